@@ -1,0 +1,113 @@
+"""Numerical helpers shared by the kernels: dtype-aware eps, checks, safe functions.
+
+The "double where" pattern: where a formula is singular at some input (e.g. sin(x)/x at 0), first replace
+the input by a harmless value on the singular branch, *then* evaluate, *then* select. A single
+``torch.where`` would still back-propagate NaN from the unused branch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from .errors import DTypeError, NonFiniteError, ShapeError
+
+__all__ = [
+    "eps_for",
+    "check_tensor",
+    "check_shape",
+    "check_finite",
+    "safe_norm",
+    "safe_normalize",
+    "sinc",
+    "safe_acos",
+    "safe_atan2",
+    "safe_sqrt",
+    "batch_shape_str",
+]
+
+_FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
+
+
+def eps_for(x: Tensor | torch.dtype) -> float:
+    """Machine epsilon of ``x``'s dtype (float32: 1.19e-7, float64: 2.22e-16)."""
+    dtype = x if isinstance(x, torch.dtype) else x.dtype
+    return torch.finfo(dtype).eps
+
+
+def batch_shape_str(shape: Sequence[int]) -> str:
+    return "(" + ", ".join(str(s) for s in shape) + ")"
+
+
+def check_tensor(x, name: str) -> Tensor:
+    """Raise ``TypeError`` unless ``x`` is a floating-point tensor."""
+    if not isinstance(x, Tensor):
+        raise DTypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    if x.dtype not in _FLOAT_DTYPES:
+        raise DTypeError(f"{name} must be a floating-point tensor (float32 or float64), got {x.dtype}")
+    return x
+
+
+def check_shape(x: Tensor, trailing: Sequence[int], name: str) -> Tensor:
+    """Check that ``x`` is a float tensor whose trailing dims equal ``trailing`` (leading dims free)."""
+    check_tensor(x, name)
+    k = len(trailing)
+    if x.ndim < k or tuple(x.shape[x.ndim - k :]) != tuple(trailing):
+        expected = "(..., " + ", ".join(str(t) for t in trailing) + ")"
+        raise ShapeError(f"expected {name} of shape {expected}, got {batch_shape_str(x.shape)}")
+    return x
+
+
+def check_finite(x: Tensor, name: str) -> Tensor:
+    """Raise :class:`NonFiniteError` if ``x`` holds NaN or inf.
+
+    This synchronises with the device; call it at API boundaries, not inside inner loops.
+    """
+    if not bool(torch.isfinite(x).all()):
+        raise NonFiniteError(f"{name} contains NaN or inf values")
+    return x
+
+
+def safe_sqrt(x: Tensor, eps: float | None = None) -> Tensor:
+    """sqrt with a finite gradient at 0 (gradient 0 there instead of inf)."""
+    tiny = (eps if eps is not None else eps_for(x)) ** 2
+    pos = x > tiny
+    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+
+
+def safe_norm(v: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
+    """Euclidean norm with a finite (zero) gradient at the zero vector."""
+    return safe_sqrt((v * v).sum(dim=dim, keepdim=keepdim))
+
+
+def safe_normalize(v: Tensor, dim: int = -1, fallback: Tensor | None = None) -> Tensor:
+    """``v / |v|``; where ``|v|`` is ~0 returns ``fallback`` (default: first unit vector) with finite grads."""
+    n = safe_norm(v, dim=dim, keepdim=True)
+    small = n <= eps_for(v) ** 0.5 * 1e-3
+    if fallback is None:
+        fallback = torch.zeros_like(v)
+        fallback.select(dim, 0).fill_(1.0)
+    return torch.where(small, fallback, v / torch.where(small, torch.ones_like(n), n))
+
+
+def sinc(x: Tensor) -> Tensor:
+    """sin(x)/x with the Taylor series near 0 (exact value and gradient at 0)."""
+    small = x.abs() < eps_for(x) ** 0.25
+    x_safe = torch.where(small, torch.ones_like(x), x)
+    x2 = x * x
+    return torch.where(small, 1.0 - x2 / 6.0 + x2 * x2 / 120.0, torch.sin(x_safe) / x_safe)
+
+
+def safe_acos(x: Tensor) -> Tensor:
+    """acos clamped to [-1, 1] with finite gradients at the ends (gradient clipped, not inf)."""
+    lim = 1.0 - eps_for(x)
+    return torch.acos(x.clamp(-lim, lim))
+
+
+def safe_atan2(y: Tensor, x: Tensor) -> Tensor:
+    """atan2 with a zero (not NaN) gradient at y = x = 0."""
+    zero = (y == 0) & (x == 0)
+    x_safe = torch.where(zero, torch.ones_like(x), x)
+    return torch.where(zero, torch.zeros_like(y), torch.atan2(y, x_safe))

@@ -1,0 +1,44 @@
+"""Typed errors: each says what was expected and what was received.
+
+Every error is a ``ValueError`` (or ``TypeError``) subclass so plain ``except ValueError`` still works.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "DiffkinError",
+    "ShapeError",
+    "ConventionError",
+    "NonFiniteError",
+    "DTypeError",
+    "ModelError",
+    "RepresentationSingularityError",
+]
+
+
+class DiffkinError(ValueError):
+    """Base class of diffkin's input errors."""
+
+
+class ShapeError(DiffkinError):
+    """A tensor has the wrong shape; the message names the expected and the received shape."""
+
+
+class ConventionError(DiffkinError):
+    """An unknown convention, representation or option name."""
+
+
+class NonFiniteError(DiffkinError):
+    """Input holds NaN or inf where finite numbers are required."""
+
+
+class DTypeError(DiffkinError, TypeError):
+    """Tensors of mixed or unsupported dtype."""
+
+
+class ModelError(DiffkinError):
+    """A robot model (DH table, YAML or URDF) is malformed or unknown."""
+
+
+class RepresentationSingularityError(DiffkinError):
+    """A minimal orientation representation is singular at the requested configuration."""
