@@ -1,0 +1,539 @@
+"""Rotations (textbook §2.2–2.6) and the orientation errors of CLIK (§3.7.3).
+
+Every function takes arbitrary leading batch dims (shape ``()`` included), keeps dtype and device and is
+differentiable, with finite gradients at the singular cases (angle 0 and π, Euler representation
+singularities). Quaternions are scalar first ``(eta, eps_x, eps_y, eps_z)``; conversions *to* quaternions
+return ``eta >= 0`` (2.34). Angles in radians.
+
+Public functions check their input (shape, dtype, finite values; the finiteness check synchronises with
+the device). Hot loops elsewhere in diffkin call the unchecked private kernels (``_name``) instead.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ._numerics import (
+    check_finite,
+    check_shape,
+    check_tensor,
+    eps_for,
+    safe_atan2,
+    safe_norm,
+    safe_sqrt,
+    sinc,
+)
+from .errors import ConventionError, DiffkinError, DTypeError
+
+__all__ = [
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "skew",
+    "vee",
+    "EULER_CONVENTIONS",
+    "euler_to_matrix",
+    "matrix_to_euler",
+    "euler_rate_matrix",
+    "axis_angle_to_matrix",
+    "matrix_to_axis_angle",
+    "rotvec_to_matrix",
+    "matrix_to_rotvec",
+    "quaternion_to_matrix",
+    "matrix_to_quaternion",
+    "axis_angle_to_quaternion",
+    "quaternion_to_axis_angle",
+    "rotvec_to_quaternion",
+    "quaternion_to_rotvec",
+    "quaternion_multiply",
+    "quaternion_conjugate",
+    "quaternion_slerp",
+    "orientation_error_euler",
+    "orientation_error_axis_angle",
+    "orientation_error_quaternion",
+]
+
+EULER_CONVENTIONS = ("ZYZ", "RPY")
+_ALIASES = {"ZYZ": "ZYZ", "RPY": "RPY", "ZYX": "RPY"}
+_BRANCHES = ("positive", "negative")
+
+
+# ----------------------------------------------------------------------------------------------- checks
+def _checked(x, trailing, name: str) -> Tensor:
+    check_shape(x, trailing, name)
+    return check_finite(x, name)
+
+
+def _same_dtype(a: Tensor, b: Tensor, na: str, nb: str) -> None:
+    if a.dtype != b.dtype:
+        raise DTypeError(f"{na} and {nb} must have the same dtype, got {a.dtype} and {b.dtype}")
+
+
+def _convention(convention: str) -> str:
+    key = convention.upper() if isinstance(convention, str) else None
+    if key not in _ALIASES:
+        raise ConventionError(
+            f"unknown Euler convention {convention!r}; valid: {', '.join(EULER_CONVENTIONS)} ('ZYX' = 'RPY')"
+        )
+    return _ALIASES[key]
+
+
+def _angle_tensor(angle, name: str) -> Tensor:
+    if not isinstance(angle, Tensor):
+        angle = torch.as_tensor(angle, dtype=torch.get_default_dtype())
+    check_tensor(angle, name)
+    return check_finite(angle, name)
+
+
+def _mat(rows) -> Tensor:
+    """Stack a nested 3x3 list of broadcastable tensors into (..., 3, 3)."""
+    rows = [torch.stack(torch.broadcast_tensors(*r), dim=-1) for r in rows]
+    return torch.stack(rows, dim=-2)
+
+
+# ------------------------------------------------------------------------------- elementary rotations
+def _rot(angle: Tensor, axis: int) -> Tensor:
+    c, s = torch.cos(angle), torch.sin(angle)
+    o, z = torch.ones_like(angle), torch.zeros_like(angle)
+    if axis == 0:
+        return _mat([[o, z, z], [z, c, -s], [z, s, c]])
+    if axis == 1:
+        return _mat([[c, z, s], [z, o, z], [-s, z, c]])
+    return _mat([[c, -s, z], [s, c, z], [z, z, o]])
+
+
+def rot_x(angle) -> Tensor:
+    """Elementary rotation about x (2.8): (...) -> (..., 3, 3)."""
+    return _rot(_angle_tensor(angle, "angle"), 0)
+
+
+def rot_y(angle) -> Tensor:
+    """Elementary rotation about y (2.7): (...) -> (..., 3, 3)."""
+    return _rot(_angle_tensor(angle, "angle"), 1)
+
+
+def rot_z(angle) -> Tensor:
+    """Elementary rotation about z (2.6): (...) -> (..., 3, 3)."""
+    return _rot(_angle_tensor(angle, "angle"), 2)
+
+
+def _skew(v: Tensor) -> Tensor:
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return _mat([[o, -z, y], [z, o, -x], [-y, x, o]])
+
+
+def skew(v: Tensor) -> Tensor:
+    """Skew-symmetric matrix S(v) with S(v) w = v x w (3.7): (..., 3) -> (..., 3, 3)."""
+    return _skew(_checked(v, (3,), "v"))
+
+
+def _vee(S: Tensor) -> Tensor:
+    return 0.5 * torch.stack(
+        (S[..., 2, 1] - S[..., 1, 2], S[..., 0, 2] - S[..., 2, 0], S[..., 1, 0] - S[..., 0, 1]), dim=-1
+    )
+
+
+def vee(S: Tensor) -> Tensor:
+    """Inverse of :func:`skew`, taken from the skew-symmetric part (S - S^T)/2: (..., 3, 3) -> (..., 3)."""
+    return _vee(_checked(S, (3, 3), "S"))
+
+
+# ----------------------------------------------------------------------------------------- Euler angles
+def _euler_to_matrix(angles: Tensor, convention: str) -> Tensor:
+    cp, ct, cs = torch.cos(angles).unbind(-1)
+    sp, st, ss = torch.sin(angles).unbind(-1)
+    if convention == "ZYZ":  # (2.18)
+        return _mat([
+            [cp * ct * cs - sp * ss, -cp * ct * ss - sp * cs, cp * st],
+            [sp * ct * cs + cp * ss, -sp * ct * ss + cp * cs, sp * st],
+            [-st * cs, st * ss, ct],
+        ])
+    return _mat([  # RPY (2.21): Rz(phi) Ry(theta) Rx(psi)
+        [cp * ct, cp * st * ss - sp * cs, cp * st * cs + sp * ss],
+        [sp * ct, sp * st * ss + cp * cs, sp * st * cs - cp * ss],
+        [-st, ct * ss, ct * cs],
+    ])
+
+
+def euler_to_matrix(angles: Tensor, convention: str = "ZYZ") -> Tensor:
+    """Rotation matrix of Euler angles (phi, theta, psi): (..., 3) -> (..., 3, 3).
+
+    ``"ZYZ"``: R = Rz(phi) Ry'(theta) Rz''(psi) (2.18). ``"RPY"`` (alias ``"ZYX"``):
+    R = Rz(phi) Ry(theta) Rx(psi) (2.21), angles ordered (phi, theta, psi) as in the book.
+    """
+    convention = _convention(convention)
+    return _euler_to_matrix(_checked(angles, (3,), "angles"), convention)
+
+
+def _singular_tol(R: Tensor) -> float:
+    return 10.0 * eps_for(R)
+
+
+def _matrix_to_euler(R: Tensor, convention: str, branch: str = "positive") -> Tensor:
+    sg = 1.0 if branch == "positive" else -1.0
+    r = lambda i, j: R[..., i - 1, j - 1]  # noqa: E731  (1-based, as in the book)
+    zero = torch.zeros_like(r(1, 1))
+    if convention == "ZYZ":  # (2.19) / (2.20)
+        s = safe_sqrt(r(1, 3) ** 2 + r(2, 3) ** 2)
+        theta = torch.atan2(sg * s, r(3, 3))
+        sing = s <= _singular_tol(R)
+        one = torch.ones_like(s)
+        # double where: the regular atan2s get harmless arguments on the singular branch
+        phi = torch.atan2(torch.where(sing, zero, sg * r(2, 3)), torch.where(sing, one, sg * r(1, 3)))
+        psi_reg = torch.atan2(torch.where(sing, zero, sg * r(3, 2)), torch.where(sing, one, -sg * r(3, 1)))
+        # sin(theta) ~ 0: only phi +- psi is defined; take phi = 0, then Rz(psi) = Ry(theta)^T R
+        ct, st = torch.cos(theta), torch.sin(theta)
+        psi_sing = safe_atan2(r(2, 1), ct * r(1, 1) - st * r(3, 1))
+    else:  # RPY (2.22) / (2.23)
+        c = safe_sqrt(r(3, 2) ** 2 + r(3, 3) ** 2)
+        theta = torch.atan2(-r(3, 1), sg * c)
+        sing = c <= _singular_tol(R)
+        one = torch.ones_like(c)
+        phi = torch.atan2(torch.where(sing, zero, sg * r(2, 1)), torch.where(sing, one, sg * r(1, 1)))
+        psi_reg = torch.atan2(torch.where(sing, zero, sg * r(3, 2)), torch.where(sing, one, sg * r(3, 3)))
+        # cos(theta) ~ 0: take phi = 0, then Rx(psi) = Ry(theta)^T R
+        ct, st = torch.cos(theta), torch.sin(theta)
+        psi_sing = safe_atan2(st * r(1, 2) + ct * r(3, 2), r(2, 2))
+    phi = torch.where(sing, zero, phi)
+    psi = torch.where(sing, psi_sing, psi_reg)
+    return torch.stack((phi, theta, psi), dim=-1)
+
+
+def matrix_to_euler(R: Tensor, convention: str = "ZYZ", branch: str = "positive") -> Tensor:
+    """Euler angles (phi, theta, psi) of a rotation matrix: (..., 3, 3) -> (..., 3).
+
+    ``branch`` picks the sign of the square root in the inverse formulas:
+
+    - ZYZ: ``"positive"`` (default) theta in (0, pi) (2.19); ``"negative"`` theta in (-pi, 0) (2.20).
+    - RPY: ``"positive"`` (default) theta in (-pi/2, pi/2) (2.22); ``"negative"`` theta in
+      (pi/2, 3pi/2), returned wrapped to (-pi, pi] (2.23).
+
+    At the representation singularity (sin theta = 0 for ZYZ, cos theta = 0 for RPY) only phi +- psi is
+    determined; by convention phi = 0 and psi takes the rest, so the result still reproduces R, with
+    finite values and gradients. phi and psi lie in (-pi, pi].
+    """
+    convention = _convention(convention)
+    if branch not in _BRANCHES:
+        raise ConventionError(f"unknown branch {branch!r}; valid: {', '.join(_BRANCHES)}")
+    return _matrix_to_euler(_checked(R, (3, 3), "R"), convention, branch)
+
+
+def _euler_rate_matrix(angles: Tensor, convention: str) -> Tensor:
+    phi, theta, _ = angles.unbind(-1)
+    cp, sp, ct, st = torch.cos(phi), torch.sin(phi), torch.cos(theta), torch.sin(theta)
+    o, z = torch.ones_like(phi), torch.zeros_like(phi)
+    if convention == "ZYZ":  # columns: z, Rz(phi) y, Rz(phi) Ry(theta) z
+        return _mat([[z, -sp, cp * st], [z, cp, sp * st], [o, z, ct]])
+    # RPY columns: z, Rz(phi) y, Rz(phi) Ry(theta) x
+    return _mat([[z, -sp, cp * ct], [z, cp, sp * ct], [o, z, -st]])
+
+
+def euler_rate_matrix(angles: Tensor, convention: str = "ZYZ") -> Tensor:
+    """T(phi) of omega = T(phi) phi_dot (3.64), omega in the base frame: (..., 3) -> (..., 3, 3).
+
+    ZYZ as printed under (3.64) (det = -sin theta); RPY (Problem 3.12) has det = -cos theta.
+    """
+    convention = _convention(convention)
+    return _euler_rate_matrix(_checked(angles, (3,), "angles"), convention)
+
+
+# ----------------------------------------------------------------------------------- angle and axis
+def _unit(v: Tensor, name: str) -> Tensor:
+    n = safe_norm(v, keepdim=True)
+    if bool((n <= eps_for(v)).any()):
+        raise DiffkinError(f"{name} must be non-zero; got a zero vector")
+    return v / n
+
+
+def _axis_angle_to_matrix(axis: Tensor, angle: Tensor) -> Tensor:
+    """(2.25) as R = c I + (1 - c) r r^T + s S(r); ``axis`` must be unit."""
+    axis, angle = torch.broadcast_tensors(axis, angle[..., None])
+    angle = angle[..., 0]
+    c, s = torch.cos(angle)[..., None, None], torch.sin(angle)[..., None, None]
+    eye = torch.eye(3, dtype=axis.dtype, device=axis.device)
+    return c * eye + (1 - c) * axis[..., :, None] * axis[..., None, :] + s * _skew(axis)
+
+
+def axis_angle_to_matrix(axis: Tensor, angle: Tensor) -> Tensor:
+    """Rotation by ``angle`` about ``axis`` (2.25): (..., 3), (...) -> (..., 3, 3) (batch dims broadcast).
+
+    The axis is normalised first, so the gradient w.r.t. ``axis`` is tangent to the unit sphere.
+    """
+    _checked(axis, (3,), "axis")
+    angle = _angle_tensor(angle, "angle")
+    _same_dtype(axis, angle, "axis", "angle")
+    return _axis_angle_to_matrix(_unit(axis, "axis"), angle)
+
+
+def _quaternion_to_axis_angle(Q: Tensor) -> tuple[Tensor, Tensor]:
+    eta, eps = Q[..., 0], Q[..., 1:]
+    n = safe_norm(eps)
+    angle = 2.0 * torch.atan2(n, eta)
+    small = n <= eps_for(Q)
+    fallback = torch.zeros_like(eps)
+    fallback[..., 0] = 1.0  # null rotation: any axis; x by convention
+    axis = torch.where(small[..., None], fallback, eps / torch.where(small, torch.ones_like(n), n)[..., None])
+    return axis, angle
+
+
+def quaternion_to_axis_angle(Q: Tensor) -> tuple[Tensor, Tensor]:
+    """Axis and angle of a unit quaternion (inverse of (2.30)-(2.31)): (..., 4) -> ((..., 3), (...)).
+
+    Q is first made eta >= 0, so the angle lies in [0, pi]; at angle 0 the axis is (1, 0, 0) by convention.
+    """
+    return _quaternion_to_axis_angle(_canonical(_checked(Q, (4,), "Q")))
+
+
+def matrix_to_axis_angle(R: Tensor) -> tuple[Tensor, Tensor]:
+    """Axis r and angle theta of R, theta in [0, pi] ((2.27)-(2.28)): (..., 3, 3) -> ((..., 3), (...)).
+
+    Computed through the singularity-free quaternion (2.34)-(2.35), so it is exact and finite at theta = 0
+    (axis (1, 0, 0) by convention) and theta = pi, including gradients. At theta = pi exactly (R
+    symmetric) the axis sign is fixed by making its largest-magnitude component positive; just below pi
+    the sign follows (2.28).
+    """
+    return _quaternion_to_axis_angle(_matrix_to_quaternion(_checked(R, (3, 3), "R")))
+
+
+def _atan_ratio(n2: Tensor, eta: Tensor) -> Tensor:
+    """2 atan2(n, eta) / n with n = sqrt(n2): the rotation angle over |eps|; smooth at n = 0 (eta > 0)."""
+    tiny = eps_for(eta) ** 0.5
+    small = n2 <= tiny * eta * eta
+    n2_safe = torch.where(small, torch.ones_like(n2), n2)
+    n = torch.sqrt(n2_safe)
+    eta_safe = torch.where(small, eta, torch.ones_like(eta))
+    x2 = n2 / (eta_safe * eta_safe)  # Taylor of atan(x)/x on the small branch
+    taylor = 2.0 / eta_safe * (1.0 - x2 / 3.0 + x2 * x2 / 5.0)
+    return torch.where(small, taylor, 2.0 * torch.atan2(n, eta) / n)
+
+
+def _quaternion_to_rotvec(Q: Tensor) -> Tensor:
+    eps = Q[..., 1:]
+    return eps * _atan_ratio((eps * eps).sum(-1), Q[..., 0])[..., None]
+
+
+def quaternion_to_rotvec(Q: Tensor) -> Tensor:
+    """Rotation vector theta r of a unit quaternion (made eta >= 0): (..., 4) -> (..., 3), theta <= pi."""
+    return _quaternion_to_rotvec(_canonical(_checked(Q, (4,), "Q")))
+
+
+def _rotvec_to_quaternion(v: Tensor) -> Tensor:
+    theta = safe_norm(v)
+    q = torch.cat(((torch.cos(theta / 2))[..., None], 0.5 * sinc(theta / 2)[..., None] * v), dim=-1)
+    return _canonical(q)
+
+
+def rotvec_to_quaternion(v: Tensor) -> Tensor:
+    """Unit quaternion (2.30)-(2.31) of the rotation vector v = theta r, eta >= 0: (..., 3) -> (..., 4)."""
+    return _rotvec_to_quaternion(_checked(v, (3,), "v"))
+
+
+def axis_angle_to_quaternion(axis: Tensor, angle: Tensor) -> Tensor:
+    """Unit quaternion (2.30)-(2.31) with eta >= 0: (..., 3), (...) -> (..., 4). The axis is normalised."""
+    _checked(axis, (3,), "axis")
+    angle = _angle_tensor(angle, "angle")
+    _same_dtype(axis, angle, "axis", "angle")
+    axis, angle = torch.broadcast_tensors(_unit(axis, "axis"), angle[..., None])
+    half = angle[..., :1] / 2
+    return _canonical(torch.cat((torch.cos(half), torch.sin(half) * axis), dim=-1))
+
+
+def _rotvec_to_matrix(v: Tensor) -> Tensor:
+    theta = safe_norm(v)[..., None, None]
+    S = _skew(v)
+    eye = torch.eye(3, dtype=v.dtype, device=v.device)
+    # (2.25) in Rodrigues form, with sin(t)/t and (1 - cos t)/t^2 = sinc(t/2)^2 / 2 smooth at t = 0
+    return eye + sinc(theta) * S + 0.5 * sinc(theta / 2) ** 2 * (S @ S)
+
+
+def rotvec_to_matrix(v: Tensor) -> Tensor:
+    """Rotation matrix of the rotation vector v = theta r (2.25): (..., 3) -> (..., 3, 3); smooth at 0."""
+    return _rotvec_to_matrix(_checked(v, (3,), "v"))
+
+
+def _matrix_to_rotvec(R: Tensor) -> Tensor:
+    return _quaternion_to_rotvec(_matrix_to_quaternion(R))
+
+
+def matrix_to_rotvec(R: Tensor) -> Tensor:
+    """Rotation vector theta r of R, theta in [0, pi] ((2.27)-(2.28)): (..., 3, 3) -> (..., 3).
+
+    Smooth with exact gradients at theta = 0; finite at theta = pi (where the sign is as in
+    :func:`matrix_to_axis_angle`).
+    """
+    return _matrix_to_rotvec(_checked(R, (3, 3), "R"))
+
+
+# --------------------------------------------------------------------------------------- quaternions
+def _canonical(Q: Tensor) -> Tensor:
+    """Flip the sign where eta < 0 (Q and -Q are the same rotation)."""
+    return torch.where(Q[..., :1] < 0, -Q, Q)
+
+
+def _quaternion_to_matrix(Q: Tensor) -> Tensor:
+    e, x, y, z = Q.unbind(-1)
+    return _mat([  # (2.33)
+        [2 * (e * e + x * x) - 1, 2 * (x * y - e * z), 2 * (x * z + e * y)],
+        [2 * (x * y + e * z), 2 * (e * e + y * y) - 1, 2 * (y * z - e * x)],
+        [2 * (x * z - e * y), 2 * (y * z + e * x), 2 * (e * e + z * z) - 1],
+    ])
+
+
+def quaternion_to_matrix(Q: Tensor) -> Tensor:
+    """Rotation matrix of a quaternion (eta, eps) (2.33): (..., 4) -> (..., 3, 3). Q is normalised first."""
+    _checked(Q, (4,), "Q")
+    return _quaternion_to_matrix(_unit(Q, "Q"))
+
+
+def _matrix_to_quaternion(R: Tensor) -> Tensor:
+    r11, r12, r13 = R[..., 0, 0], R[..., 0, 1], R[..., 0, 2]
+    r21, r22, r23 = R[..., 1, 0], R[..., 1, 1], R[..., 1, 2]
+    r31, r32, r33 = R[..., 2, 0], R[..., 2, 1], R[..., 2, 2]
+    # 4 * (eta^2, ex^2, ey^2, ez^2): the square roots of (2.34)-(2.35)
+    t = torch.stack(
+        (1 + r11 + r22 + r33, 1 + r11 - r22 - r33, 1 - r11 + r22 - r33, 1 - r11 - r22 + r33), dim=-1
+    )
+    a, b, c = r32 - r23, r13 - r31, r21 - r12  # 4 eta * eps
+    d, e, f = r12 + r21, r13 + r31, r23 + r32  # 4 ex ey, 4 ex ez, 4 ey ez
+    # Shepperd: each row k is 4 * q_k * q, divided by 2 sqrt(t_k); take the row with the largest t_k.
+    # The clamp keeps the unused rows (and their gradients) finite: the double-where pattern.
+    cand = torch.stack(
+        (
+            torch.stack((t[..., 0], a, b, c), -1),
+            torch.stack((a, t[..., 1], d, e), -1),
+            torch.stack((b, d, t[..., 2], f), -1),
+            torch.stack((c, e, f, t[..., 3]), -1),
+        ),
+        dim=-2,
+    ) / (2 * torch.sqrt(t.clamp_min(0.1)))[..., None]
+    k = t.argmax(dim=-1)[..., None, None].expand(*t.shape[:-1], 1, 4)
+    q = torch.gather(cand, -2, k)[..., 0, :]
+    q = q / safe_norm(q, keepdim=True)
+    return _canonical(q)
+
+
+def matrix_to_quaternion(R: Tensor) -> Tensor:
+    """Unit quaternion (eta, eps) of R with eta >= 0 ((2.34)-(2.35)): (..., 3, 3) -> (..., 4).
+
+    Evaluated in Shepperd's numerically robust form (same result as (2.34)-(2.35) for rotation matrices,
+    but dividing by the largest of the four square roots), then normalised and made eta >= 0.
+    """
+    return _matrix_to_quaternion(_checked(R, (3, 3), "R"))
+
+
+def _quaternion_multiply(Q1: Tensor, Q2: Tensor) -> Tensor:
+    Q1, Q2 = torch.broadcast_tensors(Q1, Q2)
+    e1, v1, e2, v2 = Q1[..., :1], Q1[..., 1:], Q2[..., :1], Q2[..., 1:]
+    eta = e1 * e2 - (v1 * v2).sum(-1, keepdim=True)
+    return torch.cat((eta, e1 * v2 + e2 * v1 + torch.linalg.cross(v1, v2, dim=-1)), dim=-1)
+
+
+def quaternion_multiply(Q1: Tensor, Q2: Tensor) -> Tensor:
+    """Quaternion product Q1 * Q2 (2.37), the quaternion of R1 R2: (..., 4), (..., 4) -> (..., 4).
+
+    Batch dims broadcast; the result is not re-canonicalised (its eta may be negative).
+    """
+    _checked(Q1, (4,), "Q1")
+    _checked(Q2, (4,), "Q2")
+    _same_dtype(Q1, Q2, "Q1", "Q2")
+    return _quaternion_multiply(Q1, Q2)
+
+
+def _quaternion_conjugate(Q: Tensor) -> Tensor:
+    return torch.cat((Q[..., :1], -Q[..., 1:]), dim=-1)
+
+
+def quaternion_conjugate(Q: Tensor) -> Tensor:
+    """Conjugate {eta, -eps}, the inverse of a unit quaternion (2.36): (..., 4) -> (..., 4)."""
+    return _quaternion_conjugate(_checked(Q, (4,), "Q"))
+
+
+def _quaternion_slerp(Q0: Tensor, Q1: Tensor, s: Tensor) -> Tensor:
+    dQ = _canonical(_quaternion_multiply(_quaternion_conjugate(Q0), Q1))  # shortest arc: eta >= 0
+    v = _quaternion_to_rotvec(dQ) * s[..., None]
+    return _quaternion_multiply(Q0, _rotvec_to_quaternion(v))
+
+
+def quaternion_slerp(Q0: Tensor, Q1: Tensor, s: Tensor) -> Tensor:
+    """Spherical linear interpolation Q0 * (Q0^-1 * Q1)^s along the shortest arc.
+
+    Q0, Q1: (..., 4) unit quaternions, s: (...) (0 -> Q0, 1 -> Q1 up to sign); batch dims broadcast.
+    Written as Q0 * exp(s log(dQ)) so it stays finite (values and gradients) for Q0 = +-Q1. The path
+    starts at Q0 exactly and is continuous, so its eta is not forced to be >= 0.
+    """
+    _checked(Q0, (4,), "Q0")
+    _checked(Q1, (4,), "Q1")
+    s = _angle_tensor(s, "s")
+    _same_dtype(Q0, Q1, "Q0", "Q1")
+    _same_dtype(Q0, s, "Q0", "s")
+    return _quaternion_slerp(Q0, Q1, s)
+
+
+# -------------------------------------------------------------------------- orientation errors (§3.7.3)
+def orientation_error_euler(phi_d: Tensor, phi_e: Tensor, wrap: bool = False) -> Tensor:
+    """Euler-angle orientation error e_O = phi_d - phi_e (3.80): (..., 3), (..., 3) -> (..., 3).
+
+    In Euler-angle space (pairs with the analytical Jacobian), not the base frame. ``wrap=True`` maps each
+    component to (-pi, pi], which the book's plain difference does not do.
+    """
+    _checked(phi_d, (3,), "phi_d")
+    _checked(phi_e, (3,), "phi_e")
+    _same_dtype(phi_d, phi_e, "phi_d", "phi_e")
+    e = phi_d - phi_e
+    return torch.atan2(torch.sin(e), torch.cos(e)) if wrap else e
+
+
+_AXIS_ANGLE_FORMS = ("sin", "rotvec")
+
+
+def _orientation_error_axis_angle(R_d: Tensor, R_e: Tensor, form: str = "sin") -> Tensor:
+    R = torch.einsum("...ij,...kj->...ik", R_d, R_e)  # R_d R_e^T (3.84)
+    return _vee(R) if form == "sin" else _matrix_to_rotvec(R)
+
+
+def orientation_error_axis_angle(R_d: Tensor, R_e: Tensor, form: str = "sin") -> Tensor:
+    """Angle-axis orientation error in the base frame: (..., 3, 3), (..., 3, 3) -> (..., 3).
+
+    theta, r are the angle and axis of R_d R_e^T (3.84). ``form="sin"`` (default): e_O = r sin(theta)
+    (3.83), computed as (3.85) = 1/2 (n_e x n_d + s_e x s_d + a_e x a_d); unique only for |theta| < pi/2.
+    ``form="rotvec"``: e_O = theta r with theta in [0, pi] (valid for any error, finite grads at 0).
+    """
+    if form not in _AXIS_ANGLE_FORMS:
+        raise ConventionError(f"unknown form {form!r}; valid: {', '.join(_AXIS_ANGLE_FORMS)}")
+    _checked(R_d, (3, 3), "R_d")
+    _checked(R_e, (3, 3), "R_e")
+    _same_dtype(R_d, R_e, "R_d", "R_e")
+    return _orientation_error_axis_angle(R_d, R_e, form)
+
+
+def _orientation_error_quaternion(Q_d: Tensor, Q_e: Tensor, shortest: bool = False) -> Tensor:
+    eta_d, eps_d, eta_e, eps_e = Q_d[..., :1], Q_d[..., 1:], Q_e[..., :1], Q_e[..., 1:]
+    eps_d, eps_e = torch.broadcast_tensors(eps_d, eps_e)
+    e = eta_e * eps_d - eta_d * eps_e - torch.linalg.cross(eps_d, eps_e, dim=-1)  # (3.91)
+    if shortest:
+        d_eta = eta_d * eta_e + (eps_d * eps_e).sum(-1, keepdim=True)
+        e = torch.where(d_eta < 0, -e, e)
+    return e
+
+
+def orientation_error_quaternion(Q_d: Tensor, Q_e: Tensor, shortest: bool = False) -> Tensor:
+    """Quaternion orientation error e_O = Delta eps of Q_d * Q_e^-1 (3.90)-(3.91), in the base frame.
+
+    e_O = eta_e eps_d - eta_d eps_e - S(eps_d) eps_e = +-r sin(theta/2) for the angle/axis of R_d R_e^T
+    (half the angle-axis error for small errors; the sign is + when Delta eta >= 0). Accepts quaternions
+    (..., 4) or rotation matrices (..., 3, 3) (converted with (2.34)-(2.35)); both arguments must be of
+    the same kind. Returns (..., 3).
+    ``shortest=True`` flips the sign where Delta eta < 0, so the error points along the shortest rotation.
+    """
+    if isinstance(Q_d, Tensor) and Q_d.ndim >= 2 and tuple(Q_d.shape[-2:]) == (3, 3):
+        _checked(Q_d, (3, 3), "R_d")
+        _checked(Q_e, (3, 3), "R_e")
+        Q_d, Q_e = _matrix_to_quaternion(Q_d), _matrix_to_quaternion(Q_e)
+    else:
+        _checked(Q_d, (4,), "Q_d")
+        _checked(Q_e, (4,), "Q_e")
+    _same_dtype(Q_d, Q_e, "Q_d", "Q_e")
+    return _orientation_error_quaternion(Q_d, Q_e, shortest)
+
