@@ -1,0 +1,430 @@
+"""The ``diffkin`` command: models, batch FK / IK, calibration, trajectories, training, benchmarks, demo.
+
+Every subcommand prints a short summary; errors in the input (unknown robot, bad file, wrong column
+count) are reported as one line ``error: ...`` with exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .errors import DiffkinError
+
+__all__ = ["main", "build_parser"]
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def _console():
+    from rich.console import Console
+
+    return Console(highlight=False)
+
+
+def _table(title: str, columns: list[str], rows: list[list]):
+    from rich.table import Table
+
+    table = Table(title=title)
+    for c in columns:
+        table.add_column(c)
+    for r in rows:
+        table.add_row(*[str(v) for v in r])
+    return table
+
+
+def _dtype(name: str) -> torch.dtype:
+    return {"float32": torch.float32, "float64": torch.float64}[name]
+
+
+def _load_chain(args):
+    from . import models
+
+    dtype, device = _dtype(args.dtype), args.device
+    if device == "cuda" and not torch.cuda.is_available():
+        raise DiffkinError("--device cuda was requested but no CUDA device is available")
+    if getattr(args, "urdf", None):
+        if not args.end_link:
+            raise DiffkinError("--urdf needs --end-link NAME (the end-effector link)")
+        return models.from_urdf(args.urdf, args.end_link, dtype=dtype, device=device)
+    if not args.robot:
+        raise DiffkinError("give --robot NAME (see `diffkin models`) or --urdf FILE --end-link LINK")
+    return models.load(args.robot, dtype=dtype, device=device)
+
+
+# ------------------------------------------------------------------------------------------ models
+def cmd_models(args) -> int:
+    from . import models
+
+    con = _console()
+    if args.action == "show":
+        if not args.name:
+            raise DiffkinError("usage: diffkin models show NAME")
+        chain = models.load(args.name, dtype=torch.float64)
+        rows = []
+        for i, (a, al, d, th) in enumerate(chain.dh_table().tolist()):
+            lo_hi = "-" if chain.q_limits is None else "[{:.4f}, {:.4f}]".format(*chain.q_limits[i].tolist())
+            rows.append(
+                [i + 1, chain.joint_types[i], f"{a:.6g}", f"{al:.6g}", f"{d:.6g}", f"{th:.6g}", lo_hi]
+            )
+        con.print(
+            _table(
+                f"{chain.name} ({chain.convention} DH)",
+                ["joint", "type", "a [m]", "alpha [rad]", "d [m]", "theta [rad]", "limits"],
+                rows,
+            )
+        )
+        return 0
+    rows = []
+    for name in models.available():
+        chain = models.load(name, dtype=torch.float64)
+        rows.append([name, chain.n_joints, chain.joint_types, chain.convention, models.source(name)])
+    con.print(_table("built-in robots", ["name", "DOF", "joints", "DH", "source"], rows))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- fk
+def cmd_fk(args) -> int:
+    from .data_io import read_joints, write_arrays
+    from .rotations import matrix_to_quaternion
+
+    chain = _load_chain(args)
+    if args.random:
+        g = torch.Generator(device="cpu").manual_seed(args.seed)
+        q = chain.random_configuration(args.random, generator=g)
+    elif args.input:
+        q = read_joints(args.input, chain.n_joints, dtype=chain.dtype, device=chain.device)
+    else:
+        raise DiffkinError("give --input FILE or --random N")
+    t0 = time.perf_counter()
+    T = chain.forward_kinematics(q)
+    if T.is_cuda:
+        torch.cuda.synchronize()
+    dt = time.perf_counter() - t0
+    T = T.detach()
+    out = {
+        "q": q.cpu().numpy(),
+        "T": T.cpu().numpy(),
+        "position": T[:, :3, 3].cpu().numpy(),
+        "quaternion": matrix_to_quaternion(T[:, :3, :3]).cpu().numpy(),
+    }
+    if args.output:
+        if Path(args.output).suffix == ".csv":
+            out = {k: out[k] for k in ("q", "position", "quaternion")}
+        write_arrays(args.output, out)
+    _console().print(
+        f"FK of {q.shape[0]} configurations of '{chain.name}' on {chain.device} in {dt * 1e3:.2f} ms "
+        f"({q.shape[0] / max(dt, 1e-9):,.0f} configs/s)" + (f" -> {args.output}" if args.output else "")
+    )
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- ik
+def cmd_ik(args) -> int:
+    from .data_io import read_poses, write_arrays
+    from .ik import solve
+
+    chain = _load_chain(args)
+    position_only = args.position_only
+    if args.random:
+        g = torch.Generator(device="cpu").manual_seed(args.seed)
+        T = chain.forward_kinematics(chain.random_configuration(args.random, generator=g)).detach()
+    elif args.input:
+        T, pos_only_file = read_poses(args.input, dtype=chain.dtype, device=chain.device)
+        position_only = position_only or pos_only_file
+    else:
+        raise DiffkinError("give --input FILE or --random N")
+    t0 = time.perf_counter()
+    res = solve(
+        chain,
+        T[..., :3, 3] if position_only else T,
+        position_only=position_only,
+        position_tolerance=args.position_tolerance,
+        orientation_tolerance=args.orientation_tolerance,
+        num_seeds=args.seeds,
+        progress=args.progress,
+    )
+    dt = time.perf_counter() - t0
+    if args.output:
+        write_arrays(
+            args.output,
+            {
+                "q": res.q.detach().cpu().numpy(),
+                "success": res.success.cpu().numpy(),
+                "position_error": res.position_error.detach().cpu().numpy(),
+                "orientation_error": res.orientation_error.detach().cpu().numpy(),
+                "iterations": res.iterations.cpu().numpy(),
+            },
+        )
+    n = T.shape[0]
+    rate = res.success.double().mean().item() * 100
+    _console().print(
+        _table(
+            f"IK on '{chain.name}' ({'position only' if position_only else 'full pose'})",
+            ["targets", "success", "median pos. err [mm]", "median ori. err [mrad]", "time [s]", "solves/s"],
+            [
+                [
+                    n,
+                    f"{rate:.2f} %",
+                    f"{res.position_error.median().item() * 1e3:.4f}",
+                    f"{res.orientation_error.median().item() * 1e3:.4f}",
+                    f"{dt:.3f}",
+                    f"{n / dt:,.0f}",
+                ]
+            ],
+        )
+    )
+    if args.output:
+        _console().print(f"wrote {args.output}")
+    return 0
+
+
+# ------------------------------------------------------------------------------------- calibrate
+def cmd_calibrate(args) -> int:
+    from . import models
+    from .calibration import calibrate
+    from .data_io import read_array
+
+    nominal = models.load(args.robot, dtype=torch.float64)
+    q = torch.as_tensor(read_array(args.data, key="q"), dtype=torch.float64)
+    path = Path(args.data)
+    if path.suffix != ".npz":
+        raise DiffkinError(
+            f"{path}: calibration data must be an .npz with 'q' (N, n) and 'T' (N, 4, 4) or 'position' (N, 3)"
+        )
+    with np.load(path) as data:
+        key = "T" if "T" in data else "position" if "position" in data else None
+        if key is None:
+            raise DiffkinError(f"{path}: expected an entry 'T' or 'position', found {sorted(data.files)}")
+        meas = torch.as_tensor(data[key], dtype=torch.float64)
+    res = calibrate(nominal, q, meas, method=args.method, progress=args.progress)
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.output).write_text(res.chain.to_yaml())
+    rows = [
+        [r["name"], f"{r['nominal']:.6f}", f"{r['identified']:.6f}", f"{r['delta']:+.6f}"]
+        for r in res.parameter_table()
+    ]
+    con = _console()
+    con.print(
+        _table(
+            f"calibration of '{nominal.name}' ({args.method})",
+            ["parameter", "nominal", "identified", "delta"],
+            rows,
+        )
+    )
+    con.print(
+        f"residual RMS: {res.residuals[0] * 1e3:.4f} mm -> {res.residuals[-1] * 1e3:.4f} mm; "
+        f"wrote {args.output}"
+    )
+    if res.report.unidentifiable:
+        con.print(
+            "not identifiable from these poses (kept at nominal): " + ", ".join(res.report.unidentifiable)
+        )
+    return 0
+
+
+# ------------------------------------------------------------------------------------ trajectory
+def cmd_trajectory(args) -> int:
+    from . import trajectories as tr
+    from .data_io import read_array, write_arrays
+
+    t = torch.linspace(0.0, args.duration, args.samples, dtype=torch.float64)
+    if args.space == "joint":
+        if args.points:
+            pts = torch.as_tensor(read_array(args.points, key="points"), dtype=torch.float64)
+            if pts.ndim != 2 or pts.shape[0] < 2:
+                raise DiffkinError(
+                    f"{args.points}: expected via points of shape (N >= 2, n), got {tuple(pts.shape)}"
+                )
+            times = torch.linspace(0.0, args.duration, pts.shape[0], dtype=torch.float64)
+            traj = tr.cubic_spline(pts, times, t)
+        else:
+            if args.start is None or args.end is None:
+                raise DiffkinError("give --points FILE, or --start and --end joint vectors")
+            qi = torch.tensor(args.start, dtype=torch.float64)
+            qf = torch.tensor(args.end, dtype=torch.float64)
+            if qi.shape != qf.shape:
+                raise DiffkinError(f"--start has {qi.numel()} values but --end has {qf.numel()}")
+            fn = {"cubic": tr.cubic, "quintic": tr.quintic, "trapezoidal": tr.trapezoidal}[args.profile]
+            traj = fn(qi, qf, torch.tensor(args.duration, dtype=torch.float64), t)
+    else:
+        if args.start is None or args.end is None or len(args.start) != 3 or len(args.end) != 3:
+            raise DiffkinError("a cartesian trajectory needs --start X Y Z and --end X Y Z")
+        traj = tr.cartesian_segment_trajectory(
+            torch.tensor(args.start, dtype=torch.float64),
+            torch.tensor(args.end, dtype=torch.float64),
+            args.duration,
+            t,
+            profile=args.profile,
+        )
+    out = {
+        "t": t.numpy(),
+        "position": traj.position.detach().numpy(),
+        "velocity": traj.velocity.detach().numpy(),
+        "acceleration": traj.acceleration.detach().numpy(),
+    }
+    write_arrays(args.output, out)
+    if args.plot:
+        _plot_trajectory(out, args.plot)
+    _console().print(
+        f"{args.space} trajectory, {args.samples} samples over {args.duration} s -> {args.output}"
+        + (f" (plot: {args.plot})" if args.plot else "")
+    )
+    return 0
+
+
+def _plot_trajectory(out: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axs = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
+    for ax, key in zip(axs, ("position", "velocity", "acceleration")):
+        ax.plot(out["t"], out[key])
+        ax.set_ylabel(key)
+        ax.grid(alpha=0.3)
+    axs[-1].set_xlabel("t [s]")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------- train / evaluate / bench
+def _run_module(module: str, argv: list[str]) -> int:
+    """Run a repo-level module (training/, benchmarks/) in a subprocess: the library never imports them."""
+    if not (REPO_ROOT / module.split(".")[0]).is_dir():
+        raise DiffkinError(f"'{module}' is part of the diffkin repository checkout; run from a clone of it")
+    return subprocess.call([sys.executable, "-m", module, *argv], cwd=REPO_ROOT)
+
+
+def cmd_train(args) -> int:
+    argv = ["--config", str(Path(args.config).resolve())]
+    if args.seed is not None:
+        argv += ["--seed", str(args.seed)]
+    if args.total_timesteps is not None:
+        argv += ["--total-timesteps", str(args.total_timesteps)]
+    if args.out:
+        argv += ["--out", str(Path(args.out).resolve())]
+    return _run_module("training.train", argv)
+
+
+def cmd_evaluate(args) -> int:
+    return _run_module(
+        "training.evaluate", [str(Path(args.run_dir).resolve()), "--episodes", str(args.episodes)]
+    )
+
+
+def cmd_bench(args) -> int:
+    argv = [args.which] + (["--quick"] if args.quick else []) + ["--device", args.device]
+    return _run_module("benchmarks.run", argv)
+
+
+def cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    return run_demo(quick=args.quick, out=args.out, skip_rl=args.skip_rl)
+
+
+# ------------------------------------------------------------------------------------------ parser
+def _robot_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--robot", help="built-in robot name or a robot YAML file")
+    p.add_argument("--urdf", help="URDF file (with --end-link)")
+    p.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
+    p.add_argument("--input", help="input file (.npz, .csv, .npy)")
+    p.add_argument(
+        "--random", type=int, default=0, metavar="N", help="use N random samples instead of --input"
+    )
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    p.add_argument("--output", help="output file (.npz, .csv, .npy)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="diffkin", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("models", help="list built-in robots, or show one's DH table")
+    p.add_argument("action", nargs="?", choices=["list", "show"], default="list")
+    p.add_argument("name", nargs="?")
+    p.set_defaults(func=cmd_models)
+
+    p = sub.add_parser("fk", help="batch forward kinematics on a file of joint vectors")
+    _robot_args(p)
+    p.set_defaults(func=cmd_fk)
+
+    p = sub.add_parser("ik", help="batch inverse kinematics on a file of target poses")
+    _robot_args(p)
+    p.add_argument("--position-only", action="store_true")
+    p.add_argument("--position-tolerance", type=float, default=1e-4, help="metres (default 0.1 mm)")
+    p.add_argument("--orientation-tolerance", type=float, default=1e-3, help="radians (default 1 mrad)")
+    p.add_argument("--seeds", type=int, default=None, help="random restarts per target")
+    p.add_argument("--progress", action="store_true")
+    p.set_defaults(func=cmd_ik)
+
+    p = sub.add_parser("calibrate", help="identify DH errors from measured poses")
+    p.add_argument("--robot", required=True)
+    p.add_argument("--data", required=True, help=".npz with q (N, n) and T (N, 4, 4) or position (N, 3)")
+    p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"])
+    p.add_argument("--output", required=True, help="calibrated robot YAML")
+    p.add_argument("--progress", action="store_true")
+    p.set_defaults(func=cmd_calibrate)
+
+    p = sub.add_parser("trajectory", help="plan and export a joint or Cartesian trajectory")
+    p.add_argument("space", choices=["joint", "cartesian"])
+    p.add_argument("--profile", default="quintic", choices=["cubic", "quintic", "trapezoidal"])
+    p.add_argument("--start", type=float, nargs="+")
+    p.add_argument("--end", type=float, nargs="+")
+    p.add_argument("--points", help="via points (N, n) file for a cubic spline (joint space)")
+    p.add_argument("--duration", type=float, default=2.0)
+    p.add_argument("--samples", type=int, default=201)
+    p.add_argument("--output", required=True)
+    p.add_argument("--plot", help="PNG of position/velocity/acceleration")
+    p.set_defaults(func=cmd_trajectory)
+
+    p = sub.add_parser("train", help="train an SB3 agent from a run config (wraps training/)")
+    p.add_argument("--config", required=True)
+    p.add_argument("--seed", type=int)
+    p.add_argument("--total-timesteps", type=int, dest="total_timesteps")
+    p.add_argument("--out")
+    p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("evaluate", help="evaluate a training run directory")
+    p.add_argument("run_dir")
+    p.add_argument("--episodes", type=int, default=100)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("bench", help="benchmarks against pytorch-kinematics (prints ratios)")
+    p.add_argument(
+        "which", nargs="?", default="all", choices=["fk", "jacobian", "ik", "env", "calibration", "all"]
+    )
+    p.add_argument("--quick", action="store_true")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.set_defaults(func=cmd_bench)
+
+    p = sub.add_parser("demo", help="the tour: IK, calibration, CLIK, RL; writes a report to runs/")
+    p.add_argument("--quick", action="store_true", help="small sizes (under a minute)")
+    p.add_argument("--out", help="report directory (default runs/demo-<time>)")
+    p.add_argument("--skip-rl", action="store_true", dest="skip_rl")
+    p.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (DiffkinError, FileNotFoundError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
