@@ -27,6 +27,7 @@ demo: $(STAMP)
 	$(VENV)/bin/diffkin demo
 
 bench: $(STAMP)
+	$(PIP) install -q -c constraints.txt -e ".[dev,rl,bench]"
 	$(PY) -m benchmarks.run all
 
 train: $(STAMP)

@@ -83,7 +83,7 @@ def safe_norm(v: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
 
 
 def safe_normalize(v: Tensor, dim: int = -1, fallback: Tensor | None = None) -> Tensor:
-    """``v / |v|``; where ``|v|`` is ~0 returns ``fallback`` (default: first unit vector) with finite grads."""
+    """``v / |v|``; where ``|v|`` is ~0 returns ``fallback`` (default: the first unit vector)."""
     n = safe_norm(v, dim=dim, keepdim=True)
     small = n <= eps_for(v) ** 0.5 * 1e-3
     if fallback is None:

@@ -2,21 +2,32 @@
 
 :class:`KinematicChain` is the interface every chain offers (FK, joint axes for the Jacobian (3.30), joint
 limits); :class:`DHChain` implements it from a Denavit–Hartenberg table in the standard convention of the
-book (2.52) or the modified (Craig) one.
+book (2.52) or the modified (Craig) one; :class:`diffkin.models.URDFChain` from a URDF.
 
-The FK kernel keeps the rotation as three column vectors ``x, y, z`` of shape ``(..., 3)`` and the origin
-``p``; each DH step is a handful of fused multiply-adds on those columns instead of a batched 4×4 matmul
-(a 4×4 matmul wastes 7/16 of its flops on the constant last row and has a high per-call overhead).
+Two kernels compute the same frames (the choice is by batch size only, both differentiable):
+
+* the *column kernel* (batches above :attr:`KinematicChain.small_batch`): the frame is kept as four
+  columns ``x, y, z, p`` of shape ``(3, B)`` (batch last, so each op is one contiguous vectorised pass) and
+  every DH step is a few fused multiply-adds on them: no 4×4 matmul, which wastes 7/16 of its flops on the
+  constant last row and is slow for tiny batched matrices;
+* the *matrix kernel* (small batches): A_i in closed form (2.52) for all joints at once, then n − 1
+  matmuls — fewer PyTorch ops, so less per-call overhead when there is little arithmetic to do.
+
+When no gradient w.r.t. the DH table is needed (``torch.no_grad()`` or ``chain.requires_grad_(False)``) the
+column kernel reads the table as Python constants and skips zero terms (:meth:`DHChain._constant_plan`).
+``chain.compile()`` is an opt-in ``torch.compile`` path for large batches. Kernels live in
+:mod:`diffkin._fk_kernels`.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 from torch import Tensor, nn
 
+from ._fk_kernels import Columns, columns_to_matrices, dh_ee_components, dh_frames
 from ._numerics import batch_shape_str, check_finite
 from .errors import ConventionError, DTypeError, ModelError, ShapeError
 
@@ -25,10 +36,18 @@ __all__ = ["KinematicChain", "DHChain"]
 _CONVENTIONS = ("standard", "modified")
 
 
-def _as_param(x, n: int, name: str) -> Tensor:
-    t = torch.as_tensor(x, dtype=torch.get_default_dtype()) if not isinstance(x, Tensor) else x.detach().clone()
-    if not t.is_floating_point():
-        t = t.to(torch.get_default_dtype())
+def _first_float_dtype(*xs) -> torch.dtype | None:
+    for x in xs:
+        if isinstance(x, Tensor) and x.is_floating_point():
+            return x.dtype
+    return None
+
+
+def _as_param(x, n: int, name: str, dtype: torch.dtype, device) -> Tensor:
+    if isinstance(x, Tensor):
+        t = x.detach().to(dtype=dtype, device=device).clone()
+    else:
+        t = torch.as_tensor(x, dtype=dtype, device=device)
     if t.ndim == 0:
         t = t.expand(n).clone()
     if t.shape != (n,):
@@ -38,47 +57,47 @@ def _as_param(x, n: int, name: str) -> Tensor:
     return t
 
 
-def _as_transform(T, name: str, like: Tensor) -> Tensor:
-    if T is None:
-        return torch.eye(4, dtype=like.dtype, device=like.device)
-    T = torch.as_tensor(T, dtype=like.dtype, device=like.device)
+def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:
+    """Validate a fixed ``(4, 4)`` rigid transform (base, tool, URDF origin) and return a tensor copy."""
+    T = torch.as_tensor(T, dtype=dtype, device=device).clone()
     if T.shape != (4, 4):
         raise ModelError(f"{name} must be a (4, 4) homogeneous transform, got {batch_shape_str(T.shape)}")
     R = T[:3, :3]
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
-    tol = 1e-5 if T.dtype == torch.float32 else 1e-9
+    tol = 1e-5 if T.dtype != torch.float64 else 1e-9
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
     if (
         not bool(torch.isfinite(T).all())
         or not torch.allclose(R.T @ R, eye, atol=tol)
-        or not torch.allclose(T[3], torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device))
+        or not torch.equal(T[3], bottom)
         or float(torch.linalg.det(R)) < 0
     ):
-        raise ModelError(f"{name} must be a rigid transform (orthonormal R with det +1, last row [0, 0, 0, 1])")
-    return T.clone()
-
-
-def _frames_to_matrix(x: Tensor, y: Tensor, z: Tensor, p: Tensor) -> Tensor:
-    """Columns (..., 3) each -> homogeneous (..., 4, 4)."""
-    top = torch.stack((x, y, z, p), dim=-1)  # (..., 3, 4)
-    bottom = torch.zeros_like(top[..., :1, :])
-    bottom[..., 0, 3] = 1.0
-    return torch.cat((top, bottom), dim=-2)
+        raise ModelError(
+            f"{name} must be a rigid transform (orthonormal R with det +1, last row [0, 0, 0, 1])"
+        )
+    return T
 
 
 class KinematicChain(nn.Module):
-    """A serial chain of ``n`` one-DOF joints with a fixed base and tool transform.
+    """A serial chain of ``n`` one-DOF joints with fixed base and tool transforms.
 
-    Subclasses implement :meth:`_link_columns`, which yields the frame of every link as rotation columns
-    and origin, and :meth:`joint_axes_origins`. Everything else (FK, Jacobians, limits, sampling) is shared.
+    Subclasses provide the kernels (see :meth:`_column_frames` and :meth:`_link_matrices`); FK, joint axes,
+    limits and sampling are shared. Shapes: ``q`` is ``(..., n)``; poses are ``(..., 4, 4)``.
 
-    Shapes: ``q`` is ``(..., n)``; poses are ``(..., 4, 4)``.
+    Kernel frames K_0..K_n satisfy K_0 = base, K_i = K_{i-1} · A_i(q_i); the end effector is K_n · tool.
+    Joint i moves about the z axis of kernel frame ``i - 1 + _axis_offset`` through its origin.
     """
 
     n_joints: int
     joint_types: str
+    #: batches with at most this many configurations use the matrix kernel (less per-call overhead)
+    small_batch: int = 16
+    _axis_offset: int = 0
 
-    def __init__(self, n_joints: int, joint_types: str, q_limits=None, name: str | None = None):
+    def __init__(self, n_joints: int, joint_types: str, q_limits=None, name: str | None = None, *,
+                 dtype: torch.dtype | None = None, device=None):
         super().__init__()
+        dtype = dtype or torch.get_default_dtype()
         joint_types = joint_types.upper()
         if len(joint_types) != n_joints or set(joint_types) - {"R", "P"}:
             raise ModelError(
@@ -88,17 +107,30 @@ class KinematicChain(nn.Module):
         self.n_joints = n_joints
         self.joint_types = joint_types
         self.name = name or f"chain{n_joints}"
-        revolute = torch.tensor([c == "R" for c in joint_types], dtype=torch.get_default_dtype())
+        revolute = torch.tensor([c == "R" for c in joint_types], dtype=dtype, device=device)
         self.register_buffer("revolute_mask", revolute)
+        self.register_buffer("q_limits", None)
+        self.register_buffer("base", None)
+        self.register_buffer("tool", None)
         if q_limits is not None:
-            lim = torch.as_tensor(q_limits, dtype=torch.get_default_dtype())
+            lim = q_limits.detach() if isinstance(q_limits, Tensor) else q_limits
+            lim = torch.as_tensor(lim, dtype=dtype, device=device).clone()
             if lim.shape != (n_joints, 2):
-                raise ModelError(f"q_limits must have shape ({n_joints}, 2), got {batch_shape_str(lim.shape)}")
-            if not bool((lim[:, 0] < lim[:, 1]).all()):
-                raise ModelError("q_limits must satisfy lower < upper for every joint")
-            self.register_buffer("q_limits", lim.clone())
-        else:
-            self.register_buffer("q_limits", None)
+                raise ModelError(
+                    f"q_limits must have shape ({n_joints}, 2), got {batch_shape_str(lim.shape)}"
+                )
+            if not bool(torch.isfinite(lim).all()) or not bool((lim[:, 0] < lim[:, 1]).all()):
+                bad = [i for i, (lo, hi) in enumerate(lim.tolist()) if not lo < hi]
+                raise ModelError(f"q_limits must be finite with lower < upper; joints {bad} are not")
+            self.q_limits = lim
+        self._compiled_fk = None
+        #: free-text model information (description, source, notes) from YAML, kept by to_dict()
+        self.metadata: dict[str, str] = {}
+
+    def _set_base_tool(self, base, tool) -> None:
+        dtype, device = self.dtype, self.device
+        self.base = None if base is None else as_rigid_transform(base, "base", dtype, device)
+        self.tool = None if tool is None else as_rigid_transform(tool, "tool", dtype, device)
 
     # ----------------------------------------------------------------------------------------- checks
     @property
@@ -110,9 +142,11 @@ class KinematicChain(nn.Module):
         return self.revolute_mask.device
 
     def check_q(self, q, name: str = "q", finite: bool = True) -> Tensor:
-        """Validate a joint tensor ``(..., n)`` against this chain (type, shape, dtype, finiteness)."""
+        """Validate a joint tensor ``(..., n)`` for this chain (type, shape, dtype, device, finiteness)."""
         if not isinstance(q, Tensor):
-            raise DTypeError(f"{name} must be a torch.Tensor of shape (..., {self.n_joints}), got {type(q).__name__}")
+            raise DTypeError(
+                f"{name} must be a torch.Tensor of shape (..., {self.n_joints}), got {type(q).__name__}"
+            )
         if not q.is_floating_point():
             raise DTypeError(f"{name} must be a floating-point tensor, got {q.dtype}")
         if q.ndim == 0 or q.shape[-1] != self.n_joints:
@@ -125,47 +159,104 @@ class KinematicChain(nn.Module):
                 f"{name} has dtype {q.dtype} but chain '{self.name}' is {self.dtype}; "
                 f"convert one of them (chain.to({q.dtype}) or q.to({self.dtype}))"
             )
-        if finite:
-            check_finite(q, name)
+        if q.device != self.device:
+            raise DTypeError(f"{name} is on {q.device} but chain '{self.name}' is on {self.device}")
+        if finite and not bool(torch.isfinite(q.detach().sum())):  # one cheap reduction: a finite sum means
+            check_finite(q, name)  # all finite; otherwise the exact (5-pass) check decides (sum overflow)
         return q
 
+    # ------------------------------------------------------------------------------ kernel protocol
+    def _column_frames(self, qs: Sequence[Tensor], constants: bool = True) -> Iterator[Columns]:
+        """Yield kernel frames K_0..K_n as columns ``(x, y, z, p)``, each ``(3, B)`` or ``(3, 1)``.
+
+        ``constants=False`` forbids data-dependent specialisation (for ``torch.compile`` tracing).
+        ``qs`` holds the n joint values, each ``(B,)`` (strided views of the flattened ``q``). K_0 is the
+        base frame. Only the current frame is alive at a time, so memory stays a few times the output.
+        """
+        raise NotImplementedError
+
+    def _link_matrices(self, q: Tensor) -> Tensor:
+        """A_1..A_n of the kernel frames, ``(..., n, 4, 4)``."""
+        raise NotImplementedError
+
+    def _frame_fixup(self, i: int) -> Tensor | None:
+        """Fixed transform from kernel frame i to link frame i (None: they coincide)."""
+        return None
+
+    def _ee_transform(self) -> Tensor | None:
+        """Fixed transform from kernel frame n to the end effector (the tool)."""
+        return self.tool
+
     # ------------------------------------------------------------------------------------------ FK
-    def _link_columns(self, q: Tensor):
-        """Yield ``(x, y, z, p)`` of frames 0..n (each ``(..., 3)``), tool not applied. Subclasses implement."""
-        raise NotImplementedError
-
-    def _tool_columns(self):
-        raise NotImplementedError
-
     def forward_kinematics(self, q: Tensor, all_frames: bool = False, check: bool = True) -> Tensor:
         """Direct kinematics T = base · A1(q1) ··· An(qn) · tool  (2.50)–(2.51).
 
         Args:
             q: joint variables ``(..., n)`` (rad for revolute, m for prismatic joints).
-            all_frames: if True return ``(..., n + 1, 4, 4)``: frame 0 (base) and every link frame, the last one
-                being the end-effector pose (tool applied). Otherwise the end-effector pose ``(..., 4, 4)``.
+            all_frames: if True return ``(..., n + 1, 4, 4)``: frame 0 (base) and every link frame, the last
+                one being the end-effector pose (tool applied). Otherwise the end-effector pose
+                ``(..., 4, 4)``.
             check: validate ``q`` (shape, dtype, finiteness). Disable only in inner loops on trusted input.
         """
         if check:
             self.check_q(q)
-        frames = list(self._link_columns(q)) if all_frames else None
-        if frames is None:
-            *_, last = self._link_columns(q)
-            return _frames_to_matrix(*self._apply_tool(*last))
-        frames[-1] = self._apply_tool(*frames[-1])
-        mats = [_frames_to_matrix(*f) for f in frames]
-        return torch.stack(torch.broadcast_tensors(*mats), dim=-3)
+        batch = q.shape[:-1]
+        if batch.numel() <= self.small_batch:
+            return self._matrix_fk(q, all_frames)
+        if not all_frames and self._compiled_fk is not None:
+            return self._compiled_fk(q)
+        return self._column_fk(q, all_frames)
 
-    def _apply_tool(self, x, y, z, p):
-        tool = self.tool
-        if tool is None:
-            return x, y, z, p
-        Rt, pt = tool[:3, :3], tool[:3, 3]
-        x2 = x * Rt[0, 0] + y * Rt[1, 0] + z * Rt[2, 0]
-        y2 = x * Rt[0, 1] + y * Rt[1, 1] + z * Rt[2, 1]
-        z2 = x * Rt[0, 2] + y * Rt[1, 2] + z * Rt[2, 2]
-        p2 = p + x * pt[0] + y * pt[1] + z * pt[2]
-        return x2, y2, z2, p2
+    def _matrix_fk(self, q: Tensor, all_frames: bool) -> Tensor:
+        A = self._link_matrices(q)
+        T = A[..., 0, :, :] if self.base is None else self.base @ A[..., 0, :, :]
+        frames = [T]
+        for i in range(1, self.n_joints):
+            T = T @ A[..., i, :, :]
+            frames.append(T)
+        ee = self._ee_transform()
+        T_ee = T if ee is None else T @ ee
+        if not all_frames:
+            return T_ee
+        base = self.base if self.base is not None else torch.eye(4, dtype=q.dtype, device=q.device)
+        out = [base]
+        for i, F in enumerate(frames[:-1], start=1):
+            fix = self._frame_fixup(i)
+            out.append(F if fix is None else F @ fix)
+        out.append(T_ee)
+        return torch.stack(torch.broadcast_tensors(*out), dim=-3)
+
+    def _joint_columns(self, q: Tensor) -> tuple[Tensor, ...]:
+        return q.reshape(-1, self.n_joints).unbind(-1)
+
+    def _base_columns(self, like: Tensor) -> Columns:
+        if self.base is None:
+            eye = torch.eye(3, dtype=like.dtype, device=like.device)
+            return eye[:, 0:1], eye[:, 1:2], eye[:, 2:3], torch.zeros_like(eye[:, 0:1])
+        x, y, z, p = self.base[:3].unsqueeze(-1).unbind(1)
+        return x, y, z, p
+
+    def _new_poses(self, q: Tensor, *shape: int) -> Tensor:
+        out = q.new_empty(*shape, 4, 4)
+        out[..., 3, :3] = 0.0
+        out[..., 3, 3] = 1.0
+        return out
+
+    def _column_fk(self, q: Tensor, all_frames: bool = False) -> Tensor:
+        batch, n = q.shape[:-1], self.n_joints
+        qs = self._joint_columns(q)
+        B = qs[0].shape[0]
+        if not all_frames:
+            for frame in self._column_frames(qs):  # noqa: B007 - only the last frame is needed
+                pass
+            out = self._new_poses(q, B)
+            columns_to_matrices(frame, self._ee_transform(), out)
+            return out.reshape(*batch, 4, 4)
+        out = self._new_poses(q, B, n + 1)
+        for i, frame in enumerate(self._column_frames(qs)):
+            fix = self._ee_transform() if i == n else self._frame_fixup(i) if i > 0 else None
+            columns_to_matrices(frame, fix, out[:, i])
+        return out.reshape(*batch, n + 1, 4, 4)
 
     def forward(self, q: Tensor) -> Tensor:
         """Alias of :meth:`forward_kinematics` (end-effector pose ``(..., 4, 4)``)."""
@@ -177,7 +268,72 @@ class KinematicChain(nn.Module):
         Returns ``(axes (..., n, 3), origins (..., n, 3), T_ee (..., 4, 4))``: for joint i the unit vector
         z_{i-1} and point p_{i-1} of (3.30) (standard DH); for modified DH the joint sits on z_i, p_i.
         """
-        raise NotImplementedError
+        if check:
+            self.check_q(q)
+        batch, n, off = q.shape[:-1], self.n_joints, self._axis_offset
+        if batch.numel() <= self.small_batch:
+            frames = self._matrix_kernel_frames(q)
+            axes = frames[..., off : off + n, :3, 2]
+            origins = frames[..., off : off + n, :3, 3]
+            ee = self._ee_transform()
+            T_ee = frames[..., n, :, :] if ee is None else frames[..., n, :, :] @ ee
+            return axes, origins, T_ee
+        qs = self._joint_columns(q)
+        B = qs[0].shape[0]
+        axes = q.new_empty(B, n, 3)
+        origins = q.new_empty(B, n, 3)
+        for i, frame in enumerate(self._column_frames(qs)):
+            if off <= i < off + n:
+                axes[:, i - off] = frame[2].T
+                origins[:, i - off] = frame[3].T
+        T_ee = self._new_poses(q, B)
+        columns_to_matrices(frame, self._ee_transform(), T_ee)
+        return axes.reshape(*batch, n, 3), origins.reshape(*batch, n, 3), T_ee.reshape(*batch, 4, 4)
+
+    def _matrix_kernel_frames(self, q: Tensor) -> Tensor:
+        """Kernel frames K_0..K_n as ``(..., n + 1, 4, 4)`` (no fixups, no tool)."""
+        A = self._link_matrices(q)
+        T = self.base if self.base is not None else torch.eye(4, dtype=q.dtype, device=q.device)
+        frames = [T]
+        for i in range(self.n_joints):
+            T = T @ A[..., i, :, :]
+            frames.append(T)
+        return torch.stack(torch.broadcast_tensors(*frames), dim=-3)
+
+    def _ee_functional(self, qT: Tensor) -> Tensor:
+        """End-effector poses ``(B, 4, 4)`` from ``qT (n, B)`` by the column kernel, without in-place
+        writes or data-dependent branches: the function :meth:`compile` traces."""
+        for frame in self._column_frames(qT.unbind(0), constants=False):  # noqa: B007
+            pass
+        F = torch.stack(torch.broadcast_tensors(*frame))  # (4, 3, B)
+        ee = self._ee_transform()
+        if ee is not None:
+            F = (ee.transpose(0, 1) @ F.reshape(4, -1)).reshape(F.shape)
+        top = F.permute(2, 1, 0)
+        bottom = torch.cat((torch.zeros_like(top[:, :1, :3]), torch.ones_like(top[:, :1, :1])), dim=-1)
+        return torch.cat((top, bottom), dim=1)
+
+    def compile(self, **kwargs) -> KinematicChain:
+        """Opt-in fast path: FK of the end effector through ``torch.compile`` (kwargs passed on).
+
+        Used for batches above :attr:`small_batch` when ``all_frames=False``. The first call compiles
+        (tens of seconds on a small CPU); ``dynamic=True`` by default so later batch sizes reuse it.
+        :meth:`uncompile` drops it.
+        """
+        kwargs.setdefault("dynamic", True)
+        fn = torch.compile(self._ee_functional, **kwargs)
+        n = self.n_joints
+
+        def fast(q: Tensor) -> Tensor:  # batch-last, contiguous joint rows: unit-stride loads in the kernel
+            return fn(q.reshape(-1, n).transpose(0, 1).contiguous()).reshape(*q.shape[:-1], 4, 4)
+
+        self._compiled_fk = fast
+        return self
+
+    def uncompile(self) -> KinematicChain:
+        """Drop the compiled fast path of :meth:`compile`."""
+        self._compiled_fk = None
+        return self
 
     # ------------------------------------------------------------------------------- Jacobians (§3)
     def geometric_jacobian(self, q: Tensor, **kwargs) -> Tensor:
@@ -200,10 +356,10 @@ class KinematicChain(nn.Module):
 
     # ------------------------------------------------------------------------------------ limits
     def lower_upper(self) -> tuple[Tensor, Tensor]:
-        """Joint limits ``(lower (n,), upper (n,))``; ±π for unlimited revolute, ±1 m for unlimited prismatic."""
+        """Limits ``(lower (n,), upper (n,))``; ±π for unlimited revolute, ±1 m for unlimited prismatic."""
         if self.q_limits is not None:
             return self.q_limits[:, 0], self.q_limits[:, 1]
-        span = torch.where(self.revolute_mask > 0, math.pi, 1.0).to(self.dtype)
+        span = torch.where(self.revolute_mask > 0, math.pi, torch.ones_like(self.revolute_mask))
         return -span, span
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
@@ -246,6 +402,8 @@ class DHChain(KinematicChain):
     A_i = Rx(α_{i-1}) Tx(a_{i-1}) Rz(ϑ_i) Tz(d_i).
 
     ``base`` and ``tool`` are fixed ``(4, 4)`` transforms T^b_0 and T^n_e (2.51); ``q_limits`` is ``(n, 2)``.
+    The chain's dtype is that of the first tensor among a, alpha, d, theta (else ``dtype`` or the default);
+    Python numbers are converted straight to it, so float64 tables are exact.
     """
 
     def __init__(
@@ -260,87 +418,83 @@ class DHChain(KinematicChain):
         tool=None,
         q_limits=None,
         name: str | None = None,
+        *,
+        dtype: torch.dtype | None = None,
+        device=None,
     ):
-        n = len(a) if not isinstance(a, Tensor) else int(a.numel())
+        n = int(a.numel()) if isinstance(a, Tensor) else len(a)
         if n == 0:
             raise ModelError("a DH chain needs at least one joint")
-        if joint_types is None:
-            joint_types = "R" * n
-        super().__init__(n, joint_types, q_limits=q_limits, name=name)
         if convention not in _CONVENTIONS:
             raise ConventionError(f"convention must be one of {_CONVENTIONS}, got {convention!r}")
+        dtype = dtype or _first_float_dtype(a, alpha, d, theta) or torch.get_default_dtype()
+        if device is None:
+            device = next((x.device for x in (a, alpha, d, theta) if isinstance(x, Tensor)), None)
+        super().__init__(n, joint_types or "R" * n, q_limits=q_limits, name=name, dtype=dtype, device=device)
         self.convention = convention
-        params = {k: _as_param(v, n, k) for k, v in dict(a=a, alpha=alpha, d=d, theta=theta).items()}
-        dtype = params["a"].dtype
-        self.a = nn.Parameter(params["a"])
-        self.alpha = nn.Parameter(params["alpha"].to(dtype))
-        self.d = nn.Parameter(params["d"].to(dtype))
-        self.theta = nn.Parameter(params["theta"].to(dtype))
-        self.revolute_mask = self.revolute_mask.to(dtype)
-        if self.q_limits is not None:
-            self.q_limits = self.q_limits.to(dtype)
-        self.register_buffer("base", _as_transform(base, "base", self.a) if base is not None else None)
-        self.register_buffer("tool", _as_transform(tool, "tool", self.a) if tool is not None else None)
+        self._axis_offset = 0 if convention == "standard" else 1
+        self.a = nn.Parameter(_as_param(a, n, "a", dtype, device))
+        self.alpha = nn.Parameter(_as_param(alpha, n, "alpha", dtype, device))
+        self.d = nn.Parameter(_as_param(d, n, "d", dtype, device))
+        self.theta = nn.Parameter(_as_param(theta, n, "theta", dtype, device))
+        self._set_base_tool(base, tool)
+        self._plan_key, self._plan = None, None
 
-    # -------------------------------------------------------------------------------------- kernel
+    # -------------------------------------------------------------------------------------- kernels
     def _joint_values(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        """Effective ϑ and d of every joint, ``(..., n)`` each."""
+        """Effective ϑ and d of every joint, ``(..., n)`` each (2.52)."""
         rev = self.revolute_mask
-        theta = self.theta + q * rev
-        d = self.d + q * (1.0 - rev)
-        return theta, d
+        return self.theta + q * rev, self.d + q * (1.0 - rev)
 
-    def _base_columns(self, like: Tensor):
-        if self.base is None:
-            eye = torch.eye(3, dtype=like.dtype, device=like.device)
-            zero = torch.zeros(3, dtype=like.dtype, device=like.device)
-            return eye[:, 0], eye[:, 1], eye[:, 2], zero
-        B = self.base
-        return B[:3, 0], B[:3, 1], B[:3, 2], B[:3, 3]
+    def _ee_functional(self, qT: Tensor) -> Tensor:
+        return dh_ee_components(qT, self.a, self.alpha, self.d, self.theta, self.base, self.tool,
+                                 self.joint_types, self.convention == "standard")
 
-    def _link_columns(self, q: Tensor):
+    def _constant_plan(self) -> list[tuple[float, float, float, float, float]] | None:
+        """The DH table as Python floats ``(a, cos α, sin α, d, theta)`` per joint, or None when autograd
+        needs the table (grad mode on and a parameter requires grad).
+
+        Without gradients w.r.t. the table its values are constants: the column kernel then skips zero
+        terms and turns α = 0, ±π/2, π into swaps (a third fewer ops on the Panda). Cached per parameter
+        version, so in-place updates (optimizer steps, ``load_state_dict``) are seen; cos/sin within one
+        ulp of 0 or ±1 are snapped to it (α = π/2 rounded to the dtype gives cos α ≈ 6e-17 or -4e-8).
+        """
+        params = (self.a, self.alpha, self.d, self.theta)
+        if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+            return None
+        key = tuple((p._version, p.data_ptr(), p.dtype, p.device) for p in params)
+        if key != self._plan_key:
+            eps = torch.finfo(self.dtype).eps
+            plan = []
+            for a, alpha, d, theta in torch.stack([p.detach() for p in params], 1).double().cpu().tolist():
+                c, s = math.cos(alpha), math.sin(alpha)
+                if abs(c) <= eps:
+                    c, s = 0.0, math.copysign(1.0, s)
+                elif abs(s) <= eps:
+                    c, s = math.copysign(1.0, c), 0.0
+                plan.append((a, c, s, d, theta))
+            self._plan_key, self._plan = key, plan
+        return self._plan
+
+    def _column_frames(self, qs: Sequence[Tensor], constants: bool = True) -> Iterator[Columns]:
+        plan = self._constant_plan() if constants else None
+        if plan is None:  # tensors: differentiable w.r.t. the DH table
+            ca, sa = torch.cos(self.alpha).unbind(), torch.sin(self.alpha).unbind()
+            plan = list(zip(self.a.unbind(), ca, sa, self.d.unbind(), self.theta.unbind()))
+        yield from dh_frames(qs, plan, self.joint_types, self.convention == "standard",
+                              self._base_columns(qs[0]))
+
+    def _link_matrices(self, q: Tensor) -> Tensor:
+        """Closed-form A_i (2.52) (standard) or Craig's matrix (modified), ``(..., n, 4, 4)``."""
         theta, d = self._joint_values(q)
-        ct, st = torch.cos(theta).unsqueeze(-1), torch.sin(theta).unsqueeze(-1)  # (..., n, 1)
-        d = d.unsqueeze(-1)
-        ct, st, d = ct.unbind(-2), st.unbind(-2), d.unbind(-2)
-        ca, sa = torch.cos(self.alpha).unbind(), torch.sin(self.alpha).unbind()
-        a = self.a.unbind()
-        x, y, z, p = self._base_columns(q)
-        yield x, y, z, p
-        standard = self.convention == "standard"
-        for i in range(self.n_joints):
-            c, s, di = ct[i], st[i], d[i]
-            if standard:
-                # Rz(ϑ) Tz(d) Tx(a) Rx(α)
-                p = p + di * z
-                x, y = c * x + s * y, c * y - s * x
-                p = p + a[i] * x
-                y, z = ca[i] * y + sa[i] * z, ca[i] * z - sa[i] * y
-            else:
-                # Rx(α_{i-1}) Tx(a_{i-1}) Rz(ϑ_i) Tz(d_i)
-                p = p + a[i] * x
-                y, z = ca[i] * y + sa[i] * z, ca[i] * z - sa[i] * y
-                x, y = c * x + s * y, c * y - s * x
-                p = p + di * z
-            yield x, y, z, p
-
-    def joint_axes_origins(self, q: Tensor, check: bool = True) -> tuple[Tensor, Tensor, Tensor]:
-        if check:
-            self.check_q(q)
-        frames = list(self._link_columns(q))
+        ct, st = torch.cos(theta), torch.sin(theta)
+        ca, sa, a = (t.expand_as(ct) for t in (torch.cos(self.alpha), torch.sin(self.alpha), self.a))
+        zero, one = torch.zeros_like(ct), torch.ones_like(ct)
         if self.convention == "standard":
-            joint_frames = frames[:-1]  # joint i moves about z_{i-1} through p_{i-1}
+            rows = (ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st, zero, sa, ca, d)
         else:
-            joint_frames = frames[1:]  # modified DH: joint i sits on z_i, p_i
-        zs = torch.broadcast_tensors(*[f[2] for f in joint_frames])
-        ps = torch.broadcast_tensors(*[f[3] for f in joint_frames])
-        axes = torch.stack(zs, dim=-2)
-        origins = torch.stack(ps, dim=-2)
-        T_ee = _frames_to_matrix(*self._apply_tool(*frames[-1]))
-        batch = q.shape[:-1]
-        axes = axes.expand(*batch, self.n_joints, 3)
-        origins = origins.expand(*batch, self.n_joints, 3)
-        return axes, origins, T_ee
+            rows = (ct, -st, zero, a, st * ca, ct * ca, -sa, -sa * d, st * sa, ct * sa, ca, ca * d)
+        return torch.stack((*rows, zero, zero, zero, one), dim=-1).unflatten(-1, (4, 4))
 
     # ------------------------------------------------------------------------------------ helpers
     def dh_table(self) -> Tensor:
@@ -349,7 +503,7 @@ class DHChain(KinematicChain):
 
     def copy(self) -> DHChain:
         """An independent copy (parameters cloned, gradients not shared)."""
-        return DHChain(
+        c = DHChain(
             self.a.detach().clone(),
             self.alpha.detach().clone(),
             self.d.detach().clone(),
@@ -361,6 +515,36 @@ class DHChain(KinematicChain):
             q_limits=None if self.q_limits is None else self.q_limits.clone(),
             name=self.name,
         )
+        c.metadata = dict(self.metadata)
+        return c
+
+    # ----------------------------------------------------------------------------------- YAML / dict
+    @classmethod
+    def from_dict(cls, data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
+        """Chain from a model mapping (YAML schema of :mod:`diffkin.models.io`); values may be expressions."""
+        from .models.io import chain_from_dict
+
+        return chain_from_dict(data, dtype=dtype, device=device, where=where)
+
+    def to_dict(self) -> dict:
+        """Model mapping (name, convention, joint_types, dh rows, q_limits, base, tool) with plain floats."""
+        from .models.io import chain_to_dict
+
+        return chain_to_dict(self)
+
+    @classmethod
+    def from_yaml(cls, path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
+        """Chain from a YAML file path or a YAML string (see :mod:`diffkin.models` for the schema)."""
+        from .models.io import chain_from_yaml
+
+        return chain_from_yaml(path_or_str, dtype=dtype, device=device)
+
+    def to_yaml(self, path=None) -> str:
+        """YAML text of :meth:`to_dict` (angles that are exact multiples of π/12 written as e.g. ``pi/2``);
+        also written to ``path`` if given."""
+        from .models.io import chain_to_yaml
+
+        return chain_to_yaml(self, path)
 
     def extra_repr(self) -> str:
         return super().extra_repr() + f", convention={self.convention!r}"

@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from .errors import DiffkinError
@@ -141,14 +140,15 @@ def cmd_ik(args) -> int:
     else:
         raise DiffkinError("give --input FILE or --random N")
     t0 = time.perf_counter()
+    options = {} if args.seeds is None else {"num_seeds": args.seeds}
     res = solve(
         chain,
         T[..., :3, 3] if position_only else T,
         position_only=position_only,
         position_tolerance=args.position_tolerance,
         orientation_tolerance=args.orientation_tolerance,
-        num_seeds=args.seeds,
         progress=args.progress,
+        **options,
     )
     dt = time.perf_counter() - t0
     if args.output:
@@ -187,23 +187,11 @@ def cmd_ik(args) -> int:
 
 # ------------------------------------------------------------------------------------- calibrate
 def cmd_calibrate(args) -> int:
-    from . import models
-    from .calibration import calibrate
-    from .data_io import read_array
+    from .calibration import calibrate_from_files
 
-    nominal = models.load(args.robot, dtype=torch.float64)
-    q = torch.as_tensor(read_array(args.data, key="q"), dtype=torch.float64)
-    path = Path(args.data)
-    if path.suffix != ".npz":
-        raise DiffkinError(
-            f"{path}: calibration data must be an .npz with 'q' (N, n) and 'T' (N, 4, 4) or 'position' (N, 3)"
-        )
-    with np.load(path) as data:
-        key = "T" if "T" in data else "position" if "position" in data else None
-        if key is None:
-            raise DiffkinError(f"{path}: expected an entry 'T' or 'position', found {sorted(data.files)}")
-        meas = torch.as_tensor(data[key], dtype=torch.float64)
-    res = calibrate(nominal, q, meas, method=args.method, progress=args.progress)
+    res = calibrate_from_files(
+        args.robot, args.data, method=args.method, progress=args.progress, out_dir=args.report_dir
+    )
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     Path(args.output).write_text(res.chain.to_yaml())
     rows = [
@@ -213,7 +201,7 @@ def cmd_calibrate(args) -> int:
     con = _console()
     con.print(
         _table(
-            f"calibration of '{nominal.name}' ({args.method})",
+            f"calibration of '{res.nominal_chain.name}' ({args.method})",
             ["parameter", "nominal", "identified", "delta"],
             rows,
         )
@@ -374,6 +362,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help=".npz with q (N, n) and T (N, 4, 4) or position (N, 3)")
     p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"])
     p.add_argument("--output", required=True, help="calibrated robot YAML")
+    p.add_argument(
+        "--report-dir", dest="report_dir", help="also write parameters.md, report.json, residuals.png"
+    )
     p.add_argument("--progress", action="store_true")
     p.set_defaults(func=cmd_calibrate)
 

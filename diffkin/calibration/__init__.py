@@ -1,0 +1,41 @@
+"""Kinematic calibration (textbook §2.11): identify DH-parameter errors from measured end-effector poses.
+
+``calibrate(chain, q, T, method="least_squares" | "gradient")`` returns a :class:`CalibrationResult` with a
+calibrated copy of the chain; ``calibrate_batch`` does K robots in one vectorised call;
+``calibration_loss`` is the differentiable objective for bigger pipelines; ``identifiability`` and
+``select_poses`` analyse and design the pose set; ``validation_error`` scores a chain on held-out poses.
+"""
+
+from .api import METHODS as METHODS
+from .api import CalibrationResult as CalibrationResult
+from .api import calibrate as calibrate
+from .api import calibrate_batch as calibrate_batch
+from .api import validation_error as validation_error
+from .identifiability import IdentifiabilityReport as IdentifiabilityReport
+from .identifiability import identifiability as identifiability
+from .identifiability import select_poses as select_poses
+from .io import calibrate_from_files as calibrate_from_files
+from .io import load_measurements as load_measurements
+from .model import CalibrationModel as CalibrationModel
+from .model import parameter_names as parameter_names
+from .solvers import LOSSES as LOSSES
+from .solvers import calibration_loss as calibration_loss
+from .solvers import robust_loss as robust_loss
+
+__all__ = [
+    "METHODS",
+    "LOSSES",
+    "CalibrationResult",
+    "CalibrationModel",
+    "IdentifiabilityReport",
+    "calibrate",
+    "calibrate_batch",
+    "calibrate_from_files",
+    "calibration_loss",
+    "identifiability",
+    "load_measurements",
+    "parameter_names",
+    "robust_loss",
+    "select_poses",
+    "validation_error",
+]

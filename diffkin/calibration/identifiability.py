@@ -1,0 +1,255 @@
+"""Identifiability of the calibration parameters and informative pose selection (§2.11).
+
+A parameter is *unidentifiable* from a pose set when its column of the stacked calibration matrix Φ̄ (2.87)
+is (numerically) a linear combination of the columns before it: then (Φ̄ᵀΦ̄)⁻¹ in (2.88) does not exist and
+the estimate would drift along the null space. Columns are taken in the order of ζ (a, α, d, ϑ joint by
+joint kind, then base, then tool), normalised to unit length, and an unpivoted QR factorisation decides: the
+residual of column j after projection on the preceding ones is |R_jj|; below ``rank_tol`` the column is
+dependent and the parameter is fixed at its nominal value. So when a base or tool correction duplicates a
+DH parameter (the base-frame and tool/last-joint redundancies), the DH parameter is kept.
+
+Observability indices (Borm & Menq 1991; Nahvi & Hollerbach 1996) of the identifiable columns, with
+σ_1 ≥ … ≥ σ_L the singular values of the weighted Φ̄ in its own units (metres per metre, metres per
+radian) and N poses: O1 = (σ_1 ⋯ σ_L)^(1/L) / √N, O3 = σ_L. The condition number is that of the
+column-normalised matrix (what the least-squares solve sees).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from .._numerics import eps_for
+from ..chain import DHChain
+from ..errors import ShapeError
+from .model import CalibrationModel, check_measurements
+
+__all__ = ["IdentifiabilityReport", "identifiability", "select_poses", "analyse_matrices"]
+
+
+@dataclass
+class IdentifiabilityReport:
+    """Which candidate parameters the poses determine, and how well.
+
+    ``unidentifiable``: names fixed at nominal; ``reasons[name]``: why (which columns it depends on);
+    ``dependencies[name]``: the coefficients c with Φ_name ≈ Σ c_k Φ_k (units of name per unit of k).
+    """
+
+    candidates: list[str]
+    identifiable: list[str]
+    unidentifiable: list[str]
+    reasons: dict[str, str]
+    dependencies: dict[str, dict[str, float]]
+    rank: int
+    condition_number: float
+    o1: float
+    o3: float
+    singular_values: list[float]
+    n_poses: int
+    rank_tol: float
+    free_mask: Tensor = field(repr=False)
+
+    def as_dict(self) -> dict:
+        """JSON-friendly summary (no tensors)."""
+        return {k: v for k, v in self.__dict__.items() if k != "free_mask"}
+
+    def summary(self) -> str:
+        lines = [
+            f"identifiable {self.rank} of {len(self.candidates)} candidate parameters "
+            f"from {self.n_poses} poses; "
+            f"condition number {self.condition_number:.3g}, O1 {self.o1:.3g}, O3 {self.o3:.3g}",
+        ]
+        lines += [f"  fixed at nominal: {self.reasons[nm]}" for nm in self.unidentifiable]
+        return "\n".join(lines)
+
+
+def _default_rank_tol(dtype: torch.dtype) -> float:
+    # 1e-6 in float64, ~1e-3 in float32: a column whose own direction is below this fraction of its norm
+    # amplifies measurement noise by > 1/rank_tol and is treated as dependent.
+    return max(1e-6, 1e4 * eps_for(dtype))
+
+
+def _reason(name: str, coeffs: dict[str, float], residual: float) -> str:
+    if not coeffs:
+        return f"{name}: has no effect on the measured poses (zero column of the calibration matrix)"
+    terms = " ".join(f"{c:+.4g}·{k}" for k, c in coeffs.items())
+    return f"{name}: its effect equals {terms} (linearly dependent; residual {residual:.1e})"
+
+
+def _reports_of_group(Phi, A, R, norms, zero, pattern, names, n_poses, rank_tol, diag):
+    """Reports of robots sharing one dependency pattern; all tensors are that group's ``(G, ...)``."""
+    keep = (~pattern).nonzero().flatten()
+    G = Phi.shape[0]
+    if keep.numel():
+        s_unit = torch.linalg.svdvals(A[..., keep])
+        s = torch.linalg.svdvals(Phi[..., keep])
+        cond = (s_unit[:, 0] / s_unit[:, -1]).tolist()
+        o1 = (torch.exp(torch.log(s).mean(-1)) / math.sqrt(n_poses)).tolist()
+        o3, s = s[:, -1].tolist(), s.tolist()
+    else:
+        cond, o1, o3, s = [math.inf] * G, [0.0] * G, [0.0] * G, [[]] * G
+    deps = [{} for _ in range(G)]
+    for j in pattern.nonzero().flatten().tolist():
+        prior = keep[keep < j]
+        c = torch.zeros(G, 0, dtype=Phi.dtype, device=Phi.device)
+        if prior.numel():
+            rows = min(j + 1, R.shape[-2])  # Φ_{≤j} = Q R_{≤j}: the least squares can be solved on R alone
+            c = torch.linalg.lstsq(R[:, :rows][..., prior], R[:, :rows, j : j + 1]).solution[..., 0]
+            c = c * norms[:, j : j + 1] / norms[:, prior]  # back to the parameters' own units
+        big = c.abs() > 1e-6 * c.abs().amax(-1, keepdim=True).clamp_min(1e-300)
+        c_list, big_list, z = c.tolist(), big.tolist(), zero[:, j].tolist()
+        for g in range(G):
+            deps[g][names[j]] = {} if z[g] else {
+                names[k]: ck for k, ck, b in zip(prior.tolist(), c_list[g], big_list[g]) if b
+            }
+    ident = [names[k] for k in keep.tolist()]
+    unid = [names[j] for j in pattern.nonzero().flatten().tolist()]
+    d = diag.tolist()
+    return [
+        IdentifiabilityReport(
+            candidates=list(names), identifiable=ident, unidentifiable=unid,
+            reasons={nm: _reason(nm, deps[g][nm], d[g][names.index(nm)]) for nm in unid},
+            dependencies=deps[g], rank=len(ident), condition_number=cond[g], o1=o1[g], o3=o3[g],
+            singular_values=s[g], n_poses=n_poses, rank_tol=rank_tol, free_mask=~pattern,
+        )
+        for g in range(G)
+    ]
+
+
+def analyse_matrices(
+    Phi: Tensor, names: list[str], n_poses: int, rank_tol: float | None = None
+) -> list[IdentifiabilityReport]:
+    """Identifiability of the columns of K stacked calibration matrices ``Phi (K, rows, L)`` named ``names``.
+
+    Robots with the same dependency pattern are analysed together (batched QR, SVD and least squares).
+    """
+    Phi = Phi.detach()
+    K, rows, L = Phi.shape
+    rank_tol = _default_rank_tol(Phi.dtype) if rank_tol is None else rank_tol
+    norms = Phi.norm(dim=-2)  # (K, L)
+    zero = norms <= rank_tol * norms.amax(-1, keepdim=True).clamp_min(torch.finfo(Phi.dtype).tiny)
+    safe = torch.where(zero, torch.ones_like(norms), norms)
+    A = torch.where(zero[:, None, :], torch.zeros_like(Phi), Phi / safe[:, None, :])
+    R = torch.linalg.qr(A, mode="r")[1]
+    diag = R.diagonal(dim1=-2, dim2=-1).abs()  # |R_jj|: residual of column j after the ones before it
+    if diag.shape[-1] < L:
+        diag = torch.cat((diag, diag.new_zeros(K, L - diag.shape[-1])), dim=-1)
+    dependent = (diag <= rank_tol) | zero
+    patterns, group = torch.unique(dependent, dim=0, return_inverse=True)
+    reports: list = [None] * K
+    for g, pattern in enumerate(patterns):
+        idx = (group == g).nonzero().flatten()
+        sub = _reports_of_group(Phi[idx], A[idx], R[idx], norms[idx], zero[idx], pattern, names, n_poses,
+                                rank_tol, diag[idx])
+        for k, rep in zip(idx.tolist(), sub):
+            reports[k] = rep
+    return reports
+
+
+def model_reports(
+    model: CalibrationModel,
+    zeta: Tensor,
+    q: Tensor,
+    position_only: bool,
+    orientation_weight: float,
+    rank_tol: float | None = None,
+) -> tuple[list[IdentifiabilityReport], Tensor]:
+    """Reports of K robots (``zeta (K, P)``, ``q (K, N, n)``) and their free mask ``(K, C)`` over the C
+    candidate parameters."""
+    Phi, _ = model.calibration_matrix(zeta, q, position_only, orientation_weight, columns=model.candidate)
+    K, N = q.shape[0], q.shape[1]
+    names = [model.names[j] for j in model.candidate.nonzero().flatten().tolist()]
+    reports = analyse_matrices(Phi.reshape(K, -1, Phi.shape[-1]), names, N, rank_tol)
+    free = torch.stack([rep.free_mask for rep in reports]).to(zeta.device)
+    return reports, free
+
+
+def identifiability(
+    chain: DHChain,
+    q: Tensor,
+    T: Tensor | None = None,
+    *,
+    parameters="all",
+    base: bool = False,
+    tool: bool = False,
+    joint_offsets: bool = True,
+    position_only: bool | None = None,
+    orientation_weight: float = 0.1,
+    rank_tol: float | None = None,
+) -> IdentifiabilityReport:
+    """Identifiability report of the nominal ``chain`` for joint readings ``q (N, n)``.
+
+    Only the joint readings matter (Φ̄ is evaluated at the nominal parameters); pass the measurements ``T``
+    (``(N, 4, 4)`` or ``(N, 3)``) or ``position_only`` to say which rows are measured (default full pose).
+    Parameter selection as in :func:`diffkin.calibration.calibrate`.
+    """
+    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    if T is not None:
+        position_only = check_measurements(q, T, chain.n_joints, chain.dtype)
+    else:
+        chain.check_q(q)
+        if q.ndim != 2:
+            raise ShapeError(f"expected q of shape (N, {chain.n_joints}), got {tuple(q.shape)}")
+    reports, _ = model_reports(
+        model, model.nominal[None], q[None], bool(position_only), orientation_weight, rank_tol
+    )
+    return reports[0]
+
+
+def select_poses(
+    chain: DHChain,
+    candidates: Tensor,
+    k: int,
+    *,
+    parameters="all",
+    base: bool = False,
+    tool: bool = False,
+    joint_offsets: bool = True,
+    position_only: bool = False,
+    orientation_weight: float = 0.1,
+    initial: Tensor | None = None,
+    rank_tol: float | None = None,
+) -> Tensor:
+    """Greedily pick ``k`` informative configurations among ``candidates (M, n)``; returns indices ``(k,)``.
+
+    Each step adds the candidate that most increases log det(Φ̄ᵀΦ̄ + εI) over the parameters identifiable
+    from all candidates (D-optimal design; for a fixed pose count this maximises O1 = (∏σ)^(1/L)/√N, and it
+    does not depend on the units of the parameters). ``initial``: indices already chosen.
+    """
+    chain.check_q(candidates, "candidates")
+    if candidates.ndim != 2:
+        raise ShapeError(f"expected candidates of shape (M, {chain.n_joints}), got {tuple(candidates.shape)}")
+    M = candidates.shape[0]
+    if not 0 < k <= M:
+        raise ShapeError(f"k must be in 1..{M} (the number of candidates), got {k}")
+    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    with torch.no_grad():
+        Phi, _ = model.calibration_matrix(
+            model.nominal, candidates, position_only, orientation_weight, columns=model.candidate
+        )
+        _, free = model_reports(
+            model, model.nominal[None], candidates[None], position_only, orientation_weight, rank_tol
+        )
+        G = Phi[..., free[0]]  # (M, m, L)
+        L = G.shape[-1]
+        eps = 1e-9 * float((G * G).sum()) / (M * max(L, 1))
+        A = eps * torch.eye(L, dtype=G.dtype, device=G.device)
+        chosen = [] if initial is None else [int(i) for i in initial]
+        for i in chosen:
+            A = A + G[i].T @ G[i]
+        taken = torch.zeros(M, dtype=torch.bool, device=G.device)
+        taken[chosen] = True
+        eye_m = torch.eye(G.shape[-2], dtype=G.dtype, device=G.device)
+        while len(chosen) < k:
+            Ainv = torch.linalg.inv(A)
+            # det(A + G_iᵀG_i) = det(A) det(I + G_i A⁻¹ G_iᵀ): score all candidates at once
+            gain = torch.logdet(eye_m + G @ Ainv @ G.transpose(-1, -2))
+            gain = torch.where(taken, torch.full_like(gain, -math.inf), gain)
+            best = int(torch.argmax(gain))
+            chosen.append(best)
+            taken[best] = True
+            A = A + G[best].T @ G[best]
+    return torch.tensor(chosen[:k], dtype=torch.long, device=candidates.device)

@@ -1,0 +1,96 @@
+"""File entry of calibration (for ``diffkin calibrate``): read measurements, calibrate, write outputs."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ..chain import DHChain
+from ..data_io import read_joints, read_poses
+from .api import CalibrationResult, calibrate
+
+__all__ = ["load_measurements", "calibrate_from_files"]
+
+
+def load_measurements(
+    joints: str | Path,
+    poses: str | Path | None = None,
+    n_joints: int | None = None,
+    dtype: torch.dtype = torch.float64,
+) -> tuple[Tensor, Tensor]:
+    """``(q (N, n), T (N, 4, 4) or positions (N, 3))`` from files (formats of :mod:`diffkin.data_io`).
+
+    With ``poses=None``, ``joints`` must be an ``.npz`` holding ``q`` and ``T`` (or ``position`` and
+    optionally ``quaternion``); otherwise the joints and poses come from two files.
+    """
+    joints = Path(joints)
+    if n_joints is None:
+        from ..data_io import read_array
+
+        n_joints = int(read_array(joints, key="q").shape[-1])
+    q = read_joints(joints, n_joints, dtype=dtype)
+    T, position_only = read_poses(joints if poses is None else poses, dtype=dtype)
+    return q, (T[:, :3, 3].contiguous() if position_only else T)
+
+
+def _load_chain(robot: DHChain | str | Path) -> DHChain:
+    if isinstance(robot, DHChain):
+        return robot
+    path = Path(robot)
+    if path.suffix in (".yaml", ".yml") and path.exists():
+        return DHChain.from_yaml(path, dtype=torch.float64)
+    from .. import models
+
+    return models.load(str(robot), dtype=torch.float64)
+
+
+def calibrate_from_files(
+    robot: DHChain | str | Path,
+    joints: str | Path,
+    poses: str | Path | None = None,
+    *,
+    out_dir: str | Path | None = None,
+    method: str = "least_squares",
+    validation: tuple | None = None,
+    **options,
+) -> CalibrationResult:
+    """Calibrate ``robot`` (a DHChain, a built-in model name or a robot YAML file) from measurement files.
+
+    Writes, when ``out_dir`` is given: ``calibrated.yaml`` (the calibrated chain), ``parameters.md`` (the
+    identified table), ``report.json`` (residuals, identifiability, validation) and ``residuals.png``.
+    ``validation``: optional ``(joints, poses)`` files of held-out measurements scored before and after.
+    ``options`` go to :func:`calibrate` (parameters, base, tool, joint_offsets, progress, ...).
+    """
+    chain = _load_chain(robot)
+    q, T = load_measurements(joints, poses, chain.n_joints, chain.dtype)
+    result = calibrate(chain, q, T, method=method, **options)
+    if out_dir is None:
+        return result
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if hasattr(result.chain, "to_yaml"):
+        (out / "calibrated.yaml").write_text(result.chain.to_yaml())
+    (out / "parameters.md").write_text(result.to_markdown() + "\n")
+    info = {
+        "method": method,
+        "iterations": result.iterations,
+        "converged": result.converged,
+        "residuals_m": result.residuals,
+        "orientation_residuals_rad": result.orientation_residuals,
+        "identifiability": result.report.as_dict(),
+        "parameters": result.parameter_table(),
+    }
+    if validation is not None:
+        qv, Tv = load_measurements(*validation, chain.n_joints, chain.dtype)
+        from .api import validation_error
+
+        info["validation"] = {
+            "nominal": validation_error(chain, qv, Tv),
+            "calibrated": result.validation_error(qv, Tv),
+        }
+    (out / "report.json").write_text(json.dumps(info, indent=2))
+    result.plot_residuals(out / "residuals.png")
+    return result

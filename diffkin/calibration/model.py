@@ -1,0 +1,383 @@
+"""Measurement model of kinematic calibration (§2.11): parameter vector ζ, batched FK, Φ̄ (2.85)–(2.87).
+
+The full parameter vector of a chain with ``n`` joints has ``P = 4n + 12`` entries, always in this order::
+
+    ζ = [a_1..a_n, alpha_1..alpha_n, d_1..d_n, theta_1..theta_n,        the book's [a; α; d; ϑ]  (2.86)
+         base_x, base_y, base_z, base_rx, base_ry, base_rz,             T_b = T_b,nom · Δ(base)
+         tool_x, tool_y, tool_z, tool_rx, tool_ry, tool_rz]             T_t = T_t,nom · Δ(tool)
+
+with Δ(v) = [[R(v_r), v_t], [0, 1]] (translation in metres, rotation vector in radians, both expressed in the
+nominal base / tool frame). Row ``i`` of a modified-DH chain holds (a_{i-1}, α_{i-1}, d_i, ϑ_i) as in
+:class:`~diffkin.chain.DHChain`. A subset of ζ, the *candidate* mask, is estimated; the rest stays nominal.
+
+The pose residual of one measurement is ``Δx = [p_m - p(ζ); w · rotvec(R_m R(ζ)^T)]`` in the base frame,
+where ``w`` (``orientation_weight``, metres per radian) weighs radians against metres: with w = 0.1 m/rad an
+orientation error of 1 mrad counts like 0.1 mm of position error. Position-only measurements drop the
+last three rows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .._numerics import batch_shape_str, check_finite
+from ..chain import DHChain
+from ..errors import DTypeError, ModelError, ShapeError
+from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix, _skew
+from ..transforms import _make_transform, check_transform
+
+__all__ = ["CalibrationModel", "parameter_names", "DH_KINDS", "POSE_AXES"]
+
+DH_KINDS = ("a", "alpha", "d", "theta")
+POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
+
+
+def parameter_names(n: int) -> tuple[str, ...]:
+    """Names of the full ζ of an ``n``-joint chain: ``a1.., alpha1.., d1.., theta1.., base_x.., tool_x..``."""
+    dh = [f"{k}{i + 1}" for k in DH_KINDS for i in range(n)]
+    return tuple(dh + [f"base_{s}" for s in POSE_AXES] + [f"tool_{s}" for s in POSE_AXES])
+
+
+def _pose_correction(v: Tensor) -> Tensor:
+    """Δ(v) = [[R(v[3:]), v[:3]], [0, 1]]: (..., 6) -> (..., 4, 4), smooth at v = 0."""
+    return _make_transform(_rotvec_to_matrix(v[..., 3:]), v[..., :3])
+
+
+def _frames_to_matrix(x: Tensor, y: Tensor, z: Tensor, p: Tensor) -> Tensor:
+    """Columns (..., 3) each -> homogeneous (..., 4, 4)."""
+    top = torch.stack(torch.broadcast_tensors(x, y, z, p), dim=-1)
+    bottom = torch.zeros_like(top[..., :1, :])
+    bottom[..., 0, 3] = 1.0
+    return torch.cat((top, bottom), dim=-2)
+
+
+def _so3_right_jacobian(v: Tensor) -> Tensor:
+    """J_r(v) with R(v + dv) ≈ R(v) R(J_r(v) dv): (..., 3) -> (..., 3, 3) (no gradient through it needed)."""
+    S = _skew(v)
+    t2 = (v * v).sum(-1)[..., None, None]
+    small = t2 < 1e-8
+    t2s = torch.where(small, torch.ones_like(t2), t2)
+    t = torch.sqrt(t2s)
+    c1 = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / t2s)
+    c2 = torch.where(small, 1.0 / 6.0 - t2 / 120.0, (t - torch.sin(t)) / (t2s * t))
+    return torch.eye(3, dtype=v.dtype, device=v.device) - c1 * S + c2 * (S @ S)
+
+
+def _cross(u: Tensor, v: Tensor) -> Tensor:
+    """Cross product of column vectors: (..., 3, k) x (..., 3, k) -> (..., 3, k), broadcasting."""
+    u0, u1, u2 = u.unbind(-2)
+    v0, v1, v2 = v.unbind(-2)
+    return torch.stack((u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0), dim=-2)
+
+
+def _dh_frames(a, alpha, d, theta, q, revolute, convention, base):
+    """Frames 0..n as columns ``(x, y, z, p)``, as :meth:`DHChain._link_columns` but with batched parameters.
+
+    ``a, alpha, d, theta`` are ``(..., n)`` and broadcast against ``q (..., n)``; ``base`` is ``(..., 4, 4)``
+    broadcastable to ``q.shape[:-1]``. Returns a list of ``n + 1`` tuples of ``(..., 3)`` tensors.
+    """
+    theta = theta + q * revolute
+    d = d + q * (1.0 - revolute)
+    ct, st = torch.cos(theta)[..., None], torch.sin(theta)[..., None]
+    ca, sa = torch.cos(alpha)[..., None], torch.sin(alpha)[..., None]
+    a, d = a[..., None], d[..., None]
+    x, y, z, p = base[..., :3, 0], base[..., :3, 1], base[..., :3, 2], base[..., :3, 3]
+    frames = [(x, y, z, p)]
+    for i in range(q.shape[-1]):
+        c, s, ci, si, ai, di = (
+            ct[..., i, :],
+            st[..., i, :],
+            ca[..., i, :],
+            sa[..., i, :],
+            a[..., i, :],
+            d[..., i, :],
+        )
+        if convention == "standard":  # Rz(ϑ) Tz(d) Tx(a) Rx(α)  (2.52)
+            p = p + di * z
+            x, y = c * x + s * y, c * y - s * x
+            p = p + ai * x
+            y, z = ci * y + si * z, ci * z - si * y
+        else:  # Rx(α_{i-1}) Tx(a_{i-1}) Rz(ϑ_i) Tz(d_i)
+            p = p + ai * x
+            y, z = ci * y + si * z, ci * z - si * y
+            x, y = c * x + s * y, c * y - s * x
+            p = p + di * z
+        frames.append((x, y, z, p))
+    return frames
+
+
+def _as_selection(parameters, n: int, joint_types: str, base: bool, tool: bool, joint_offsets: bool):
+    names = parameter_names(n)
+    index = {nm: j for j, nm in enumerate(names)}
+    mask = [False] * len(names)
+    if isinstance(parameters, str):
+        parameters = DH_KINDS if parameters == "all" else (parameters,)
+    for item in parameters:
+        if item in DH_KINDS:
+            k = DH_KINDS.index(item)
+            for i in range(n):
+                mask[k * n + i] = True
+        elif item in index:
+            mask[index[item]] = True
+        else:
+            raise ModelError(
+                f"unknown calibration parameter {item!r}; use 'all', a kind {DH_KINDS} or a name "
+                f"such as 'a2', 'theta3', 'base_z', 'tool_rx'"
+            )
+    for i, jt in enumerate(joint_types):  # encoder zero: theta of revolute, d of prismatic joints
+        mask[(3 if jt == "R" else 2) * n + i] = bool(joint_offsets)
+    for j in range(6):
+        mask[4 * n + j] = mask[4 * n + j] or base
+        mask[4 * n + 6 + j] = mask[4 * n + 6 + j] or tool
+    return torch.tensor(mask)
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationModel:
+    """Parameterised DH kinematics of one chain structure for ``K`` robots (or one shared nominal).
+
+    Attributes: ``nominal`` ζ_n ``(..., P)`` with ``...`` = ``()`` or ``(K,)``; ``base_nominal`` and
+    ``tool_nominal`` ``(..., 4, 4)``; ``candidate`` ``(P,)`` bool, the parameters to estimate; ``names``.
+    Build it with :meth:`from_chains`.
+    """
+
+    n: int
+    joint_types: str
+    convention: str
+    revolute: Tensor
+    nominal: Tensor
+    base_nominal: Tensor
+    tool_nominal: Tensor
+    candidate: Tensor
+    names: tuple[str, ...]
+    chains: tuple[DHChain, ...]
+
+    @classmethod
+    def from_chains(
+        cls,
+        chains: DHChain | Sequence[DHChain],
+        parameters: str | Iterable[str] = "all",
+        base: bool = False,
+        tool: bool = False,
+        joint_offsets: bool = True,
+    ) -> CalibrationModel:
+        """Model of one nominal chain (batch ``()``) or of ``K`` nominal chains of equal structure (``(K,)``).
+
+        ``parameters``: ``"all"`` (every a, α, d, ϑ), or an iterable of kinds (``"a"``, ``"alpha"``, ``"d"``,
+        ``"theta"``) and/or names (``"a2"``, ``"base_z"``). ``joint_offsets`` adds (True) or removes (False)
+        the encoder zero offsets ϑ_i (revolute) / d_i (prismatic); ``base`` / ``tool`` add the six pose
+        corrections of the base / tool frame.
+        """
+        single = isinstance(chains, DHChain)
+        chains = (chains,) if single else tuple(chains)
+        if not chains or not all(isinstance(c, DHChain) for c in chains):
+            raise ModelError("calibration needs a DHChain (or a non-empty sequence of DHChains)")
+        ref = chains[0]
+        for c in chains[1:]:
+            if (c.n_joints, c.joint_types, c.convention, c.dtype) != (
+                ref.n_joints,
+                ref.joint_types,
+                ref.convention,
+                ref.dtype,
+            ):
+                raise ModelError(
+                    "all nominal chains of a batch must share n_joints, joint_types, convention "
+                    f"and dtype; '{c.name}' differs from '{ref.name}'"
+                )
+        dtype, device = ref.dtype, ref.device
+        eye = torch.eye(4, dtype=dtype, device=device)
+        zeros = torch.zeros(12, dtype=dtype, device=device)
+        nominal = torch.stack([torch.cat((c.dh_table().T.reshape(-1), zeros)) for c in chains])
+        base_nom = torch.stack([eye if c.base is None else c.base.detach() for c in chains])
+        tool_nom = torch.stack([eye if c.tool is None else c.tool.detach() for c in chains])
+        if single:
+            nominal, base_nom, tool_nom = nominal[0], base_nom[0], tool_nom[0]
+        cand = _as_selection(parameters, ref.n_joints, ref.joint_types, base, tool, joint_offsets).to(device)
+        return cls(
+            ref.n_joints,
+            ref.joint_types,
+            ref.convention,
+            ref.revolute_mask.detach(),
+            nominal,
+            base_nom,
+            tool_nom,
+            cand,
+            parameter_names(ref.n_joints),
+            chains,
+        )
+
+    # ------------------------------------------------------------------------------------ layout
+    @property
+    def n_params(self) -> int:
+        return 4 * self.n + 12
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.nominal.dtype
+
+    def is_length(self) -> Tensor:
+        """``(P,)`` bool: parameters in metres (a, d, base/tool translations); the others are radians."""
+        n = self.n
+        m = torch.zeros(self.n_params, dtype=torch.bool, device=self.nominal.device)
+        m[:n] = m[2 * n : 3 * n] = True
+        m[4 * n : 4 * n + 3] = m[4 * n + 6 : 4 * n + 9] = True
+        return m
+
+    def base_tool(self, zeta: Tensor) -> tuple[Tensor, Tensor]:
+        """Base and tool transforms ``(..., 4, 4)`` of parameters ``zeta (..., P)``."""
+        n4 = 4 * self.n
+        base = self.base_nominal @ _pose_correction(zeta[..., n4 : n4 + 6])
+        tool = self.tool_nominal @ _pose_correction(zeta[..., n4 + 6 :])
+        return base, tool
+
+    def _frames(self, zeta: Tensor, q: Tensor):
+        n = self.n
+        base, tool = self.base_tool(zeta)
+        z = zeta[..., None, :]  # broadcast over the N poses
+        a, alpha, d, theta = (z[..., k * n : (k + 1) * n] for k in range(4))
+        frames = _dh_frames(a, alpha, d, theta, q, self.revolute, self.convention, base[..., None, :, :])
+        T_flange = _frames_to_matrix(*frames[-1])
+        return frames, T_flange @ tool[..., None, :, :], base
+
+    # ----------------------------------------------------------------------------- kinematics
+    def forward_kinematics(self, zeta: Tensor, q: Tensor) -> Tensor:
+        """End-effector poses ``(..., N, 4, 4)`` of ``zeta (..., P)`` at joints ``q (..., N, n)``."""
+        return self._frames(zeta, q)[1]
+
+    def residual(self, zeta: Tensor, q: Tensor, measured: Tensor, orientation_weight: float) -> Tensor:
+        """Δx = x_m - k(ζ) per pose ``(..., N, 6)`` (``(..., N, 3)`` for positions ``(..., N, 3)``)."""
+        T = self.forward_kinematics(zeta, q)
+        return pose_residual(T, measured, orientation_weight)
+
+    def calibration_matrix(
+        self,
+        zeta: Tensor,
+        q: Tensor,
+        position_only: bool,
+        orientation_weight: float,
+        columns: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """Φ(ζ) of (2.86) per pose, analytic: ``(Phi (..., N, m, C), T_ee (..., N, 4, 4))``, m = 6 or 3.
+
+        Column j is the base-frame twist [δp; w δω] of the end effector per unit change of ζ_j: a_i / d_i
+        translate along x / z of their DH frame, α_i / ϑ_i rotate about it; the base and tool columns are the
+        twists of the six pose-correction coordinates (through the right Jacobian of SO(3) for the rotation
+        vector), so that ζ' = ζ + Δζ (2.89) is exact to first order for every entry. ``columns``: bool
+        ``(P,)`` selecting the C columns to compute (default all P).
+        """
+        frames, T_ee, base = self._frames(zeta, q)
+        p_e, R_e = T_ee[..., :3, 3, None], T_ee[..., :3, :3]  # p_e as a column (..., N, 3, 1)
+        n4 = 4 * self.n
+        cols = torch.ones(self.n_params, dtype=torch.bool) if columns is None else columns.cpu()
+
+        def stack(k: int, frm):  # column k of the frames, stacked over joints: (..., N, 3, n)
+            return torch.stack(torch.broadcast_tensors(*[f[k] for f in frm]), dim=-1)
+
+        fx, fz = (frames[1:], frames[:-1]) if self.convention == "standard" else (frames[:-1], frames[1:])
+        X, OX, Z, OZ = stack(0, fx), stack(3, fx), stack(2, fz), stack(3, fz)
+        X, Z = torch.broadcast_tensors(X, Z)
+        zero = torch.zeros_like(X)
+        # a: along x, α: about x through its origin, d: along z, ϑ: about z  (linear; angular)
+        lin = [X, _cross(X, p_e - OX), Z, _cross(Z, p_e - OZ)]
+        ang = [zero, X, zero, Z]
+        if bool(cols[n4:].any()):
+            B = base[..., None, :3, :3].expand(*X.shape[:-1], 3)
+            r_b = zeta[..., None, n4 + 3 : n4 + 6]  # (..., 1, 3): broadcast over the poses
+            r_t = zeta[..., None, n4 + 9 :]
+            z3 = torch.zeros_like(B)
+            lin_b = [B @ _rotvec_to_matrix(r_b).transpose(-1, -2), _cross(B, p_e - base[..., None, :3, 3:])]
+            lin += [lin_b[0], lin_b[1] @ _so3_right_jacobian(r_b)]
+            ang += [z3, B @ _so3_right_jacobian(r_b)]
+            lin += [R_e @ _rotvec_to_matrix(r_t).transpose(-1, -2), z3]
+            ang += [z3, R_e @ _so3_right_jacobian(r_t)]
+        J = torch.cat(lin, dim=-1)
+        if not position_only:
+            J = torch.cat((J, orientation_weight * torch.cat(ang, dim=-1)), dim=-2)
+        keep = cols if J.shape[-1] == self.n_params else cols[:n4]
+        if not bool(keep.all()):
+            J = J[..., keep.nonzero().flatten().to(J.device)]
+        return J, T_ee
+
+    # ---------------------------------------------------------------------------------- chains
+    def to_chain(self, zeta: Tensor, index: int = 0) -> DHChain:
+        """A new :class:`DHChain` with the DH table, base and tool of ``zeta (P,)``; limits, name: nominal."""
+        return self.to_chains(zeta[None], first=index)[0]
+
+    def to_chains(self, zeta: Tensor, first: int = 0) -> list[DHChain]:
+        """One new :class:`DHChain` per row of ``zeta (K, P)`` (row k uses nominal chain ``first + k``)."""
+        z = zeta.detach()
+        n, n4 = self.n, 4 * self.n
+        base_used = bool(self.candidate[n4 : n4 + 6].any())
+        tool_used = bool(self.candidate[n4 + 6 :].any())
+        base, tool = self.base_tool(z) if base_used or tool_used else (None, None)
+        out = []
+        for k in range(z.shape[0]):
+            ref = self.chains[min(first + k, len(self.chains) - 1)]
+            out.append(
+                DHChain(
+                    z[k, :n].clone(),
+                    z[k, n : 2 * n].clone(),
+                    z[k, 2 * n : 3 * n].clone(),
+                    z[k, 3 * n : n4].clone(),
+                    joint_types=self.joint_types,
+                    convention=self.convention,
+                    base=base[k] if base_used else ref.base,
+                    tool=tool[k] if tool_used else ref.tool,
+                    q_limits=ref.q_limits,
+                    name=ref.name,
+                )
+            )
+        return out
+
+
+def pose_residual(T: Tensor, measured: Tensor, orientation_weight: float) -> Tensor:
+    """[p_m - p; w rotvec(R_m R^T)] ``(..., 6)``, or ``p_m - p`` ``(..., 3)`` for ``measured (..., 3)``."""
+    if measured.shape[-1] == 3 and measured.ndim == T.ndim - 1:
+        return measured - T[..., :3, 3]
+    e_p = measured[..., :3, 3] - T[..., :3, 3]
+    e_o = _matrix_to_rotvec(measured[..., :3, :3] @ T[..., :3, :3].transpose(-1, -2))
+    return torch.cat((e_p, orientation_weight * e_o), dim=-1)
+
+
+def check_measurements(q, measured, n: int, dtype: torch.dtype, batch: tuple[int, ...] = ()) -> bool:
+    """Validate joints ``q (*batch, N, n)`` and poses ``(*batch, N, 4, 4)`` / positions ``(*batch, N, 3)``.
+
+    Returns True for position-only data. Raises ShapeError / DTypeError / NonFiniteError / DiffkinError.
+    """
+    lead = "".join(f"{b}, " for b in batch)
+    for name, x in (("q", q), ("T", measured)):
+        if not isinstance(x, Tensor) or not x.is_floating_point():
+            raise DTypeError(
+                f"{name} must be a floating-point torch.Tensor, got "
+                f"{type(x).__name__ if not isinstance(x, Tensor) else x.dtype}"
+            )
+        if x.dtype != dtype:
+            raise DTypeError(
+                f"{name} has dtype {x.dtype} but the nominal chain is {dtype}; convert one of them"
+            )
+    k = len(batch)
+    if q.ndim != k + 2 or tuple(q.shape[:k]) != batch or q.shape[-1] != n:
+        raise ShapeError(f"expected q of shape ({lead}N, {n}), got {batch_shape_str(q.shape)}")
+    N = q.shape[k]
+    if N < 1:
+        raise ShapeError("calibration needs at least one measured pose (N >= 1)")
+    position_only = measured.ndim == k + 2 and measured.shape[-1] == 3
+    if not position_only and (measured.ndim != k + 3 or measured.shape[-2:] != (4, 4)):
+        raise ShapeError(
+            f"expected measured poses T of shape ({lead}N, 4, 4) or positions ({lead}N, 3), "
+            f"got {batch_shape_str(measured.shape)}"
+        )
+    if tuple(measured.shape[: k + 1]) != (*batch, N):
+        raise ShapeError(
+            f"q holds {N} joint vectors but T holds {measured.shape[k]} measurements "
+            f"(q {batch_shape_str(q.shape)}, T {batch_shape_str(measured.shape)})"
+        )
+    check_finite(q, "q")
+    check_finite(measured, "T")
+    if not position_only:
+        check_transform(measured, "T")
+    return position_only

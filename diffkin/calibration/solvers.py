@@ -1,0 +1,269 @@
+"""Calibration solvers for K robots at once: iterated least squares (2.85)–(2.89) and gradient descent.
+
+Both work on ``zeta (K, P)`` (the full parameter vector) and a ``free (K, C)`` mask over the C candidate
+parameters of the model (True: identifiable, estimated); the other entries of ζ never move. Histories are
+lists of ``(K,)`` tensors, one per iteration, the first at ζ_n.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .._numerics import eps_for
+from ..errors import ConventionError
+from .model import CalibrationModel, pose_residual
+
+__all__ = ["calibration_loss", "robust_loss", "least_squares", "gradient_descent", "SolverOutput", "LOSSES"]
+
+LOSSES = ("huber", "soft_l1", "l2")
+
+
+@dataclass
+class SolverOutput:
+    zeta: Tensor  # (K, P)
+    position_rms: list[Tensor]  # per iteration, (K,) metres
+    orientation_rms: list[Tensor] | None  # per iteration, (K,) radians (unweighted)
+    iterations: int
+    converged: Tensor  # (K,) bool
+
+
+@contextmanager
+def _progress(enabled: bool, description: str, total: int):
+    """A rich progress bar on a terminal, a no-op otherwise. Yields ``advance()``."""
+    if not (enabled and sys.stderr.isatty()):
+        yield lambda: None
+        return
+    from rich.progress import Progress
+
+    with Progress(transient=True) as bar:
+        task = bar.add_task(description, total=total)
+        yield lambda: bar.advance(task)
+
+
+def _rms(res: Tensor, orientation_weight: float) -> tuple[Tensor, Tensor | None]:
+    """Per-robot RMS of the position and (unweighted) orientation residual norms: (K, N, m) -> (K,), (K,)."""
+    pos = res[..., :3].square().sum(-1).mean(-1).sqrt()
+    if res.shape[-1] == 3:
+        return pos, None
+    return pos, (res[..., 3:].square().sum(-1).mean(-1).sqrt() / orientation_weight)
+
+
+def robust_loss(sq_norm: Tensor, loss: str, scale: float) -> Tensor:
+    """ρ(s) of the squared residual norm s (units m²), quadratic (= s) for √s ≤ ``scale`` (metres).
+
+    ``"huber"``: ρ = s for √s ≤ c, 2c√s − c² beyond; ``"soft_l1"``: ρ = 2c²(√(1 + s/c²) − 1); ``"l2"``: ρ = s.
+    """
+    if loss == "l2":
+        return sq_norm
+    c2 = scale * scale
+    if loss == "soft_l1":
+        return 2.0 * c2 * (torch.sqrt(1.0 + sq_norm / c2) - 1.0)
+    if loss == "huber":
+        big = sq_norm > c2
+        s_safe = torch.where(big, sq_norm, torch.full_like(sq_norm, c2))  # double where: no grad of sqrt at 0
+        return torch.where(big, 2.0 * scale * torch.sqrt(s_safe) - c2, sq_norm)
+    raise ConventionError(f"unknown loss {loss!r}; valid: {', '.join(LOSSES)}")
+
+
+def calibration_loss(
+    params: Tensor,
+    q: Tensor,
+    T: Tensor,
+    model: CalibrationModel,
+    *,
+    loss: str = "huber",
+    scale: float = 1e-3,
+    orientation_weight: float = 0.1,
+) -> Tensor:
+    """Mean robust loss over the poses, a pure differentiable function: ``params (..., P)`` -> ``(...)``.
+
+    ``q (..., N, n)``, ``T (..., N, 4, 4)`` measured poses or ``(..., N, 3)`` positions; ``params`` is the
+    full ζ of ``model`` (see :mod:`diffkin.calibration.model`). Per pose the squared norm of the weighted
+    residual [p_m − p; w rotvec(R_m Rᵀ)] (m²) goes through :func:`robust_loss` with ``scale`` in metres
+    (default 1 mm: quadratic for the sub-millimetre residuals of a converged fit, linear for outliers).
+    """
+    res = model.residual(params, q, T, orientation_weight)
+    return robust_loss(res.square().sum(-1), loss, scale).mean(-1)
+
+
+def _preconditioner(model, zeta, q, free, position_only, w, kind: str):
+    """Map u (K, C) -> Δζ (K, C) of the C candidates with |u|² ≈ mean_i |Φ_i Δζ|²: u is RMS motion (m).
+
+    ``"gauss_newton"``: Δζ = D⁻¹ L⁻ᵀ u with L Lᵀ the Cholesky factor of the column-normalised Φ̄ᵀΦ̄ / N at ζ_n
+    (D its column scales), which makes the least-squares part of the loss isotropic in u, so the optimisers
+    converge in a few iterations for every robot of a batch alike; ``"diagonal"``: Δζ_j = u_j / D_j only.
+    Fixed parameters get Δζ = 0 either way.
+    """
+    K, C = free.shape
+    f = free.to(zeta.dtype)
+    Phi, _ = model.calibration_matrix(zeta, q, position_only, w, columns=model.candidate)
+    A = Phi.reshape(K, -1, C) * f[:, None, :]
+    H = A.transpose(-1, -2) @ A / q.shape[-2]
+    d = H.diagonal(dim1=-2, dim2=-1).sqrt()
+    d = torch.where(free & (d > 0), d, torch.ones_like(d))
+    if kind == "diagonal":
+        return lambda u: u / d * f
+    if kind != "gauss_newton":
+        raise ConventionError(f"unknown preconditioner {kind!r}; valid: 'gauss_newton', 'diagonal'")
+    Hs = H / (d[:, :, None] * d[:, None, :])
+    Hs = Hs + torch.diag_embed(torch.where(free, 1e3 * eps_for(zeta) * torch.ones_like(d), 1.0 - f))
+    L, info = torch.linalg.cholesky_ex(Hs)
+    if bool((info != 0).any()):  # not positive definite (should not happen for identifiable sets)
+        return lambda u: u / d * f
+    Lt = L.transpose(-1, -2)
+    return lambda u: torch.linalg.solve_triangular(Lt, u[..., None], upper=True)[..., 0] / d * f
+
+
+def least_squares(
+    model: CalibrationModel,
+    zeta0: Tensor,
+    free: Tensor,
+    q: Tensor,
+    measured: Tensor,
+    *,
+    orientation_weight: float,
+    max_iterations: int = 50,
+    tol: float | None = None,
+    damping: float = 1e-9,
+    progress: bool = False,
+) -> SolverOutput:
+    """Iterate (2.88)–(2.89): Δζ = Φ̄⁺ Δx̄, ζ ← ζ + Δζ, with Φ̄ and Δx̄ re-evaluated at the current ζ.
+
+    Φ̄'s columns are scaled to unit norm and the step is solved as the damped least-squares problem
+    min ‖Φ̄ Δζ − Δx̄‖² + λ² ‖Δζ‖² (λ = ``damping`` on the unit-norm columns; it only regularises the step,
+    not the fixed point Φ̄ᵀ Δx̄ = 0). Stops when |Δζ_j| ≤ tol (1 + |ζ_j|) for every j of every robot
+    (tol default 1e-10 in float64, 1e-5 in float32) or after ``max_iterations``.
+    """
+    position_only = measured.shape[-1] == 3 and measured.ndim == q.ndim
+    tol = (1e-10 if zeta0.dtype == torch.float64 else 1e-5) if tol is None else tol
+    K, P = free.shape  # P: the candidate parameters here
+    cand_mask = model.candidate
+    cand = cand_mask.nonzero().flatten().to(zeta0.device)
+    zeta, f = zeta0.detach().clone(), free.to(zeta0.dtype)
+    hist_p, hist_o = [], []
+    converged = torch.zeros(K, dtype=torch.bool, device=zeta.device)
+    # damping rows: λ for free parameters, 1 for fixed ones (their column is zero, so their step is 0 and the
+    # augmented matrix keeps full rank: plain QR least squares, on every device)
+    diag = torch.where(free, torch.full_like(f, damping), torch.ones_like(f))
+    eye = torch.diag_embed(diag)
+    it = 0
+    with torch.no_grad(), _progress(progress, "calibrating (least squares)", max_iterations) as advance:
+        for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
+            Phi, T_model = model.calibration_matrix(zeta, q, position_only, orientation_weight, cand_mask)
+            res = pose_residual(T_model, measured, orientation_weight)
+            pos, ori = _rms(res, orientation_weight)
+            hist_p.append(pos)
+            hist_o.append(ori)
+            A = Phi.reshape(K, -1, P) * f[:, None, :]
+            s = A.norm(dim=-2)
+            s = torch.where(s > 0, s, torch.ones_like(s))
+            A_aug = torch.cat((A / s[:, None, :], eye), dim=-2)
+            b = torch.cat((res.reshape(K, -1), res.new_zeros(K, P)), dim=-1)
+            step = torch.linalg.lstsq(A_aug, b[..., None], driver="gels").solution[..., 0] / s * f
+            zeta = zeta.index_add(-1, cand, step)  # (2.89)
+            advance()
+            converged = (step.abs() <= tol * (1.0 + zeta[:, cand].abs())).all(dim=-1)
+            if bool(converged.all()):
+                break
+        res = model.residual(zeta, q, measured, orientation_weight)
+        pos, ori = _rms(res, orientation_weight)
+        hist_p.append(pos)
+        hist_o.append(ori)
+    return SolverOutput(zeta, hist_p, None if position_only else hist_o, it, converged)
+
+
+def _optimizer(name: str, u: Tensor, lr: float | None, max_iterations: int):
+    """``(optimizer, scheduler or None)``: L-BFGS with strong-Wolfe line search, or Adam with lr decay."""
+    if name == "lbfgs":
+        opt = torch.optim.LBFGS([u], lr=1.0, max_iter=20, history_size=50, tolerance_grad=eps_for(u) ** 2,
+                                tolerance_change=0.0, line_search_fn="strong_wolfe")
+        return opt, None
+    opt = torch.optim.Adam([u], lr=1e-4 if lr is None else lr)
+    return opt, torch.optim.lr_scheduler.ExponentialLR(opt, gamma=1e-3 ** (1.0 / max(max_iterations, 1)))
+
+
+def gradient_descent(
+    model: CalibrationModel,
+    zeta0: Tensor,
+    free: Tensor,
+    q: Tensor,
+    measured: Tensor,
+    *,
+    orientation_weight: float,
+    optimizer: str = "lbfgs",
+    loss: str = "huber",
+    scale: float = 1e-3,
+    max_iterations: int | None = None,
+    tol: float | None = None,
+    lr: float | None = None,
+    precondition: str = "gauss_newton",
+    progress: bool = False,
+) -> SolverOutput:
+    """Fit ζ by a torch optimiser on :func:`calibration_loss`, all K robots in one objective (their sum).
+
+    The optimiser works on preconditioned variables u (metres of RMS end-effector motion, see
+    :func:`_preconditioner`; ``precondition="gauss_newton"`` or ``"diagonal"``). ``optimizer="lbfgs"``
+    (strong-Wolfe line search, ≤ 20 evaluations per iteration; stops when the loss changes by less than
+    ``tol`` relative, default 1e-13 in float64, 1e-7 in float32) or ``"adam"`` (``lr`` default 1e-4 m,
+    decayed ×1e-3 over ``max_iterations``; it runs the whole schedule and then reports converged).
+    """
+    position_only = measured.shape[-1] == 3 and measured.ndim == q.ndim
+    lbfgs = optimizer == "lbfgs"
+    if optimizer not in ("lbfgs", "adam"):
+        raise ConventionError(f"unknown optimizer {optimizer!r}; valid: 'lbfgs', 'adam'")
+    robust_loss(zeta0.new_zeros(()), loss, scale)  # validates the loss name
+    max_iterations = (100 if lbfgs else 3000) if max_iterations is None else max_iterations
+    tol = (1e-13 if zeta0.dtype == torch.float64 else 1e-7) if tol is None else tol
+    with torch.no_grad():
+        to_delta = _preconditioner(model, zeta0, q, free, position_only, orientation_weight, precondition)
+    zeta0 = zeta0.detach()
+    cand = model.candidate.nonzero().flatten().to(zeta0.device)
+    u = torch.zeros(free.shape, dtype=zeta0.dtype, device=zeta0.device, requires_grad=True)
+    norm = 1.0 / (scale * scale)  # dimensionless objective: 1 ≙ a residual of `scale` metres on every pose
+
+    def current():
+        return zeta0.index_add(-1, cand, to_delta(u))
+
+    opt, sched = _optimizer(optimizer, u, lr, max_iterations)
+
+    def closure():
+        opt.zero_grad()
+        value = calibration_loss(current(), q, measured, model, loss=loss, scale=scale,
+                                 orientation_weight=orientation_weight).sum() * norm
+        value.backward()
+        return value
+
+    hist_p, hist_o = [], []
+
+    def record():
+        with torch.no_grad():
+            pos, ori = _rms(model.residual(current(), q, measured, orientation_weight), orientation_weight)
+        hist_p.append(pos)
+        hist_o.append(ori)
+
+    record()
+    prev, it, done, last = math.inf, 0, False, 0
+    record_every = 1 if lbfgs else max(1, max_iterations // 100)
+    with _progress(progress, f"calibrating ({optimizer})", max_iterations) as advance:
+        for it in range(1, max_iterations + 1):
+            value = float(opt.step(closure).detach())
+            if sched is not None:
+                sched.step()
+            advance()
+            done = lbfgs and abs(prev - value) <= tol * max(abs(value), eps_for(u))
+            prev = value
+            if it % record_every == 0 or done:
+                record()
+                last = it
+            if done:
+                break
+    if last != it:
+        record()
+    converged = torch.full((zeta0.shape[0],), done or not lbfgs, dtype=torch.bool, device=zeta0.device)
+    return SolverOutput(current().detach(), hist_p, None if position_only else hist_o, it, converged)

@@ -1,0 +1,475 @@
+"""Closed-loop inverse kinematics (CLIK, §3.7): a batched forward-Euler integrator tracking x_d(t).
+
+Each step evaluates the end-effector pose and Jacobian in one FK pass, forms the operational-space error e,
+computes q̇ (or q̈) with one of the book's laws and integrates with (3.48), q(t_{k+1}) = q(t_k) + q̇(t_k) Δt:
+
+====================  ====================================================================================
+``"inverse"``         q̇ = J⁻¹(ẋ_d + K e)  (3.70); K = 0 is the open-loop scheme (3.47) and its drift
+``"pseudo_inverse"``  q̇ = J†(ẋ_d + K e) + (I − J†J) q̇₀  (3.72), q̇₀ = k₀ (∂w/∂q)ᵀ  (3.55)
+``"dls"``             q̇ = J*(ẋ_d + K e) + (I − J*J) q̇₀ with the damped inverse J* (3.59)
+``"transpose"``       q̇ = Jᵀ K e  (3.76)
+``"second_order"``    q̈ = J†(ẍ_d + K_D ė + K_P e − J̇q̇) + (I − J†J) q̈₀  (3.102)/(3.104)
+====================  ====================================================================================
+
+J⁻¹ and J† are :func:`diffkin.jacobian.pinv` (regularised at the level of rounding, so a singular J gives
+large but finite velocities instead of NaN). The orientation error and the matching Jacobian (§3.7.3):
+
+- ``None``: position only, e = p_d − p_e (3.78) with J_P;
+- ``"euler"``: e_O = φ_d − φ_e (3.80) (wrapped to (−π, π]) with the analytical Jacobian (3.66), law (3.82);
+- ``"axis_angle"``: e_O = r sin ϑ of R_d R_eᵀ (3.83)–(3.85) with the geometric Jacobian and the
+  L-compensated reference L⁻¹(Lᵀω_d + K_O e_O) (3.87)–(3.89);
+- ``"quaternion"``: e_O = Δε (3.91) with the geometric Jacobian, reference ω_d + K_O e_O (3.92).
+
+``rows`` selects components of the 3- or 6-vector task (e.g. ``(0, 1, 3)`` = (x, y, φ) for the planar arm
+with RPY angles, ``(0, 1)`` = planar position only), so the book's §3.7.5 runs as written. Null-space
+objectives: ``"manipulability"`` w = √det(J Jᵀ) (3.56) of the task Jacobian, ``"joint_limits"`` (3.57), or
+any callable w(q) (..., n) -> (...); their gradient comes from autograd over the batch.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from .._numerics import batch_shape_str, check_tensor, eps_for, safe_norm
+from ..errors import ConventionError, ModelError, ShapeError
+from ..jacobian import (
+    _inverse3,
+    damped_pinv,
+    forward_kinematics_and_jacobian,
+    geometric_to_analytical,
+    jacobian_dot_qdot,
+    manipulability,
+    pinv,
+)
+from ..rotations import (
+    _convention,
+    _euler_rate_matrix,
+    _matrix_to_euler,
+    _matrix_to_quaternion,
+    _orientation_error_axis_angle,
+    _orientation_error_quaternion,
+    _skew,
+)
+
+__all__ = ["CLIKResult", "clik", "CLIK_ALGORITHMS", "CLIK_ORIENTATIONS", "joint_limit_objective"]
+
+CLIK_ALGORITHMS = ("inverse", "pseudo_inverse", "dls", "transpose", "second_order")
+CLIK_ORIENTATIONS = (None, "euler", "axis_angle", "quaternion")
+
+
+class CLIKResult(NamedTuple):
+    """Time histories of a CLIK run (``S`` = steps + 1 samples, ``m`` task rows).
+
+    t ``(S,)``; q, qdot ``(..., S, n)``; error e ``(..., S, m)`` (selected rows, as fed back);
+    position_error / orientation_error ``(..., S)`` the norms of its position and orientation rows;
+    poses ``(..., S, 4, 4)`` end-effector poses (``None`` unless ``return_poses=True``).
+    """
+
+    t: Tensor
+    q: Tensor
+    qdot: Tensor
+    error: Tensor
+    position_error: Tensor
+    orientation_error: Tensor
+    poses: Tensor | None
+
+
+class _Task(NamedTuple):
+    orientation: str | None
+    convention: str
+    rows: tuple[int, ...]
+    size: int  # 3 (position only) or 6
+
+
+# ------------------------------------------------------------------------------------------ targets
+def _time_axis(x: Tensor) -> int:
+    return -3 if x.ndim >= 3 and tuple(x.shape[-2:]) == (4, 4) else -2
+
+
+def _target_sampler(target, steps: int | None, dt: float, like: Tensor):
+    """-> (get(k) -> (x_d, ẋ_d | None, ẍ_d | None), steps). Sequences hold their last sample at rest."""
+    if callable(target):
+        if steps is None:
+            raise ConventionError("clik: pass steps when the target is a function of time")
+
+        def get_fn(k: int):
+            out = target(torch.tensor(k * dt, dtype=like.dtype, device=like.device))
+            out = (out,) if isinstance(out, Tensor) else tuple(out)
+            return (tuple(out) + (None, None))[:3]
+
+        return get_fn, steps
+    seq = _as_tuple(target)
+    if not 1 <= len(seq) <= 3 or not isinstance(seq[0], Tensor):
+        raise ConventionError("clik: target must be a callable t -> (x_d, xdot_d[, xddot_d]) or such tensors")
+    x = check_tensor(seq[0], "x_d")
+    ax = _time_axis(x)
+    if x.ndim < -ax:
+        raise ShapeError(
+            f"expected x_d with a time axis, (..., S, 4, 4) or (..., S, m), got {tuple(x.shape)}"
+        )
+    n_t = x.shape[ax]
+    steps = n_t - 1 if steps is None else steps
+    rest = [None if v is None else check_tensor(v, "target derivative") for v in seq[1:]]
+
+    def get_seq(k: int):
+        kk = min(k, n_t - 1)
+        derivs = [None if (v is None or k >= n_t) else v.select(-2, kk) for v in rest]
+        return (x.select(ax, kk), *derivs, None, None)[:3]
+
+    return get_seq, steps
+
+
+def _split_desired(task: _Task, x: Tensor):
+    """A target sample -> (p_d, orientation part): R_d (..., 3, 3), φ_d (..., 3) or None."""
+    if x.ndim >= 2 and tuple(x.shape[-2:]) == (4, 4):
+        p, R = x[..., :3, 3], x[..., :3, :3]
+        if task.orientation == "euler":
+            return p, _matrix_to_euler(R, task.convention, "positive")
+        return p, (None if task.orientation is None else R)
+    if task.orientation in ("axis_angle", "quaternion"):
+        raise ShapeError(f"orientation={task.orientation!r} needs poses (..., 4, 4), got {tuple(x.shape)}")
+    need = 6 if task.orientation == "euler" else 3
+    if x.shape[-1] < need:
+        raise ShapeError(f"expected x_d of shape (..., {need}), got {batch_shape_str(x.shape)}")
+    return x[..., :3], (x[..., 3:6] if task.orientation == "euler" else None)
+
+
+def _feed(v: Tensor | None, size: int, like: Tensor) -> Tensor:
+    if v is None:
+        return torch.zeros(size, dtype=like.dtype, device=like.device)
+    if v.shape[-1] < size:
+        raise ShapeError(f"expected target derivatives (..., {size}), got {batch_shape_str(v.shape)}")
+    return v[..., :size]
+
+
+# ------------------------------------------------------------------------------- error and Jacobian
+def _error_and_jacobian(chain, q: Tensor, task: _Task, p_d: Tensor, o_d):
+    """-> (T_e, e (..., D), task Jacobian (..., D, n), L (..., 3, 3) or None, J geometric)."""
+    T, J = forward_kinematics_and_jacobian(chain, q, check=False)
+    e_p = p_d - T[..., :3, 3]  # (3.78)
+    if task.orientation is None:
+        return T, e_p, J[..., :3, :], None, J
+    R_e = T[..., :3, :3]
+    L = None
+    if task.orientation == "euler":
+        phi_e = _matrix_to_euler(R_e, task.convention, "positive")
+        e_o = o_d - phi_e
+        e_o = torch.atan2(torch.sin(e_o), torch.cos(e_o))  # (3.80), wrapped
+        J_t = geometric_to_analytical(J, phi_e, task.convention)[0]  # (3.66)
+    elif task.orientation == "axis_angle":
+        e_o = _orientation_error_axis_angle(o_d, R_e, "sin")  # (3.85)
+        L = _L_matrix(o_d, R_e)
+        J_t = J
+    else:
+        e_o = _orientation_error_quaternion(_matrix_to_quaternion(o_d), _matrix_to_quaternion(R_e))  # (3.91)
+        J_t = J
+    e_p, e_o = torch.broadcast_tensors(e_p, e_o)
+    return T, torch.cat((e_p, e_o), dim=-1), J_t, L, J
+
+
+def _L_matrix(R_d: Tensor, R_e: Tensor) -> Tensor:
+    """L = −½ (S(n_d)S(n_e) + S(s_d)S(s_e) + S(a_d)S(a_e))  (3.87)."""
+    L = sum(_skew(R_d[..., :, i]) @ _skew(R_e[..., :, i]) for i in range(3))
+    return -0.5 * L
+
+
+def _solve_L(L: Tensor, b: Tensor) -> Tensor:
+    """L⁻¹ b, falling back to b where L is near singular (|ϑ| ≥ π/2, outside (3.83)'s validity)."""
+    L_inv, bad = _inverse3(L, 1e-3)  # cofactors: no batched LAPACK call for a 3 × 3 system
+    return torch.where(bad[..., None], b, _mv(L_inv, b))
+
+
+# ---------------------------------------------------------------------------------------- gains
+def _gain(K, task: _Task, like: Tensor, name: str) -> Tensor:
+    """Scalar, (m,) diagonal or (m, m) gain over the selected rows -> (D, D) over the full task vector."""
+    m, D = len(task.rows), task.size
+    K = torch.as_tensor(K, dtype=like.dtype, device=like.device)
+    if K.ndim == 0:
+        K = K * torch.eye(m, dtype=like.dtype, device=like.device)
+    elif K.shape == (m,):
+        K = torch.diag(K)
+    elif K.shape != (m, m):
+        raise ShapeError(f"expected {name} as a scalar, ({m},) or ({m}, {m}), got {tuple(K.shape)}")
+    G = torch.zeros(D, D, dtype=like.dtype, device=like.device)
+    idx = torch.tensor(task.rows, device=like.device)
+    G[idx[:, None], idx[None, :]] = K
+    return G
+
+
+def _mv(A: Tensor, v: Tensor) -> Tensor:
+    return torch.einsum("...ij,...j->...i", A, v)
+
+
+# ----------------------------------------------------------------------------------- null space
+def joint_limit_objective(q: Tensor, lower: Tensor, upper: Tensor) -> Tensor:
+    """Distance from the joint limits w(q) = −1/(2n) Σ ((q_i − q̄_i)/(q_iM − q_im))² (3.57).
+
+    q ``(..., n)``, lower/upper ``(n,)`` -> ``(...)``; 0 at the middle of the ranges, negative elsewhere.
+    """
+    mid = 0.5 * (lower + upper)
+    return -(((q - mid) / (upper - lower)) ** 2).sum(-1) / (2 * q.shape[-1])
+
+
+def _objective(nullspace, chain, task: _Task, q_limits) -> Callable[[Tensor], Tensor] | None:
+    if nullspace is None:
+        return None
+    if callable(nullspace):
+        return nullspace
+    if nullspace == "manipulability":
+        return lambda q: manipulability(_task_jacobian(chain, q, task))
+    if nullspace == "joint_limits":
+        lim = chain.q_limits if q_limits is None else torch.as_tensor(q_limits, dtype=chain.dtype)
+        if lim is None:
+            raise ModelError(f"nullspace='joint_limits' needs q_limits; chain '{chain.name}' has none")
+        lo, hi = lim[..., 0].to(chain.device), lim[..., 1].to(chain.device)
+        return lambda q: joint_limit_objective(q, lo, hi)
+    raise ConventionError(
+        f"unknown nullspace objective {nullspace!r}; valid: None, 'manipulability', 'joint_limits', callable"
+    )
+
+
+def _task_jacobian(chain, q: Tensor, task: _Task) -> Tensor:
+    T, J = forward_kinematics_and_jacobian(chain, q, check=False)
+    if task.orientation == "euler":
+        phi = _matrix_to_euler(T[..., :3, :3], task.convention, "positive")
+        J = geometric_to_analytical(J, phi, task.convention)[0]
+    return J[..., list(task.rows), :]
+
+
+def _gradient(w: Callable[[Tensor], Tensor], q: Tensor) -> Tensor:
+    """(∂w/∂q)ᵀ (..., n) by autograd over the batch (samples are independent, so grad of the sum)."""
+    if q.requires_grad:
+        return torch.autograd.grad(w(q).sum(), q, create_graph=True)[0]
+    with torch.enable_grad():
+        qg = q.detach().requires_grad_(True)
+        return torch.autograd.grad(w(qg).sum(), qg)[0]
+
+
+# ------------------------------------------------------------------------------------ J̇ q̇ (§3.7.4)
+def _jdot_qdot(chain, q: Tensor, qd: Tensor, task: _Task) -> Tensor:
+    """J̇_t q̇ of the task Jacobian (..., D): the geometric J̇q̇, and for J_A = T_A⁻¹J (3.66)
+    J̇_A q̇ = [J̇_P q̇; T⁻¹(J̇_O q̇ − Ṫ φ̇)] with φ̇ = T⁻¹ω."""
+    jdqd = jacobian_dot_qdot(chain, q, qd, check=False)
+    if task.orientation != "euler":
+        return jdqd[..., : task.size]
+    T_e, J = forward_kinematics_and_jacobian(chain, q, check=False)
+    phi = _matrix_to_euler(T_e[..., :3, :3], task.convention, "positive")
+    T_inv = _inverse3(_euler_rate_matrix(phi, task.convention), eps_for(phi) ** 0.5)[0]
+    phidot = _mv(T_inv, _mv(J[..., 3:, :], qd))
+    rhs = jdqd[..., 3:] - _mv(_euler_rate_dot(phi, phidot, task.convention), phidot)
+    return torch.cat((jdqd[..., :3], _mv(T_inv, rhs)), dim=-1)
+
+
+def _euler_rate_dot(phi: Tensor, phidot: Tensor, convention: str) -> Tensor:
+    """Ṫ(φ, φ̇) of (3.64): T's columns are z, [−s_φ, c_φ, 0] and one depending on (φ, ϑ)."""
+    a, b = phi[..., 0], phi[..., 1]
+    da, db = phidot[..., 0], phidot[..., 1]
+    ca, sa, cb, sb = torch.cos(a), torch.sin(a), torch.cos(b), torch.sin(b)
+    z = torch.zeros_like(a)
+    col2 = torch.stack((-ca * da, -sa * da, z), -1)
+    if convention == "ZYZ":  # [c_φ s_ϑ, s_φ s_ϑ, c_ϑ]
+        col3 = torch.stack((-sa * sb * da + ca * cb * db, ca * sb * da + sa * cb * db, -sb * db), -1)
+    else:  # RPY: [c_φ c_ϑ, s_φ c_ϑ, −s_ϑ]
+        col3 = torch.stack((-sa * cb * da - ca * sb * db, ca * cb * da - sa * sb * db, -cb * db), -1)
+    col2, col3 = torch.broadcast_tensors(col2, col3)
+    return torch.stack((torch.zeros_like(col2), col2, col3), dim=-1)
+
+
+# -------------------------------------------------------------------------------------------- laws
+def _nullspace_term(J_inv: Tensor, J_s: Tensor, v0: Tensor) -> Tensor:
+    """(I − J†J) v0 without forming the n × n projector."""
+    return v0 - _mv(J_inv, _mv(J_s, v0))
+
+
+def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
+    rows = list(cfg.task.rows)
+    Ge = _mv(cfg.K, e)
+    if cfg.algorithm == "transpose":
+        return _mv(J_t[..., rows, :].mT, Ge[..., rows])  # (3.76)
+    v = v_ff + Ge  # (3.70)/(3.82)/(3.92)
+    if L is not None:  # (3.89): L⁻¹(Lᵀω_d + K_O e_O)
+        v_o = _solve_L(L, _mv(L.mT, v_ff[..., 3:].expand_as(Ge[..., 3:])) + Ge[..., 3:])
+        v = torch.cat(torch.broadcast_tensors(v[..., :3], v_o), dim=-1)
+    J_s = J_t[..., rows, :]
+    J_inv = damped_pinv(J_s, cfg.damping) if cfg.algorithm == "dls" else pinv(J_s)
+    qd = _mv(J_inv, v[..., rows])
+    if cfg.objective is not None:  # (3.72) with (3.55)
+        qd = qd + _nullspace_term(J_inv, J_s, cfg.k0 * _gradient(cfg.objective, q))
+    return qd
+
+
+def _second_order(cfg, chain, q, qd, J_t, e, v_ff, a_ff) -> Tensor:
+    """q̈ = J†(ẍ_d + K_D ė + K_P e − J̇q̇) + (I − J†J) q̈₀ (3.102)/(3.104), q̈₀ = k₀ ∇w − k_d0 q̇."""
+    rows = list(cfg.task.rows)
+    e_dot = v_ff - _mv(J_t, qd)  # ė = ẋ_d − J q̇ (3.68)
+    a = a_ff + _mv(cfg.K_D, e_dot) + _mv(cfg.K_P, e) - _jdot_qdot(chain, q, qd, cfg.task)
+    J_s = J_t[..., rows, :]
+    J_inv = pinv(J_s)
+    qdd = _mv(J_inv, a[..., rows])
+    if cfg.objective is not None or cfg.k_d0 != 0.0:
+        qdd0 = -cfg.k_d0 * qd
+        if cfg.objective is not None:
+            qdd0 = qdd0 + cfg.k0 * _gradient(cfg.objective, q)
+        qdd = qdd + _nullspace_term(J_inv, J_s, qdd0)
+    return qdd
+
+
+class _Config(NamedTuple):
+    task: _Task
+    algorithm: str
+    K: Tensor
+    K_P: Tensor
+    K_D: Tensor
+    damping: float
+    objective: Callable | None
+    k0: float
+    k_d0: float
+
+
+def _make_task(chain, orientation, convention, rows) -> _Task:
+    if orientation not in CLIK_ORIENTATIONS:
+        raise ConventionError(f"unknown orientation {orientation!r}; valid: {CLIK_ORIENTATIONS}")
+    size = 3 if orientation is None else 6
+    rows = tuple(range(size)) if rows is None else tuple(int(r) for r in rows)
+    if not rows or len(set(rows)) != len(rows) or not all(0 <= r < size for r in rows):
+        raise ShapeError(f"rows must be distinct indices into the {size}-vector task, got {rows}")
+    return _Task(orientation, _convention(convention), rows, size)
+
+
+def clik(
+    chain,
+    q0: Tensor,
+    target,
+    dt: float,
+    steps: int | None = None,
+    *,
+    algorithm: str = "pseudo_inverse",
+    orientation: str | None = "axis_angle",
+    convention: str = "ZYZ",
+    rows: Sequence[int] | None = None,
+    K=None,
+    K_P=None,
+    K_D=None,
+    damping: float = 1e-2,
+    nullspace=None,
+    k0: float = 0.0,
+    k_d0: float = 0.0,
+    q_limits=None,
+    qdot0: Tensor | None = None,
+    clamp: bool = False,
+    return_poses: bool = False,
+    differentiable: bool | None = None,
+) -> CLIKResult:
+    """Closed-loop inverse kinematics along x_d(t), integrated with forward Euler (3.48) (§3.7).
+
+    Args:
+        chain: a :class:`~diffkin.chain.KinematicChain`.
+        q0: initial joints ``(..., n)``; the batch broadcasts with the target's.
+        target: a function ``t -> (x_d, ẋ_d[, ẍ_d])`` of a scalar time tensor (``steps`` required), or the
+            tensors ``(x_d, ẋ_d[, ẍ_d])`` with a time axis sampled every ``dt``: x_d ``(..., S, 4, 4)`` or
+            ``(..., S, 3|6)``, derivatives ``(..., S, 3|6)``; ``None`` derivatives are zero. Past the last
+            sample the target holds still. x_d is a pose, or ``[p; φ]`` for ``"euler"`` (φ̇ in ẋ_d), or ``p``
+            for position only; ẋ_d = [ṗ_d; ω_d] for ``"axis_angle"``/``"quaternion"``.
+        dt: the integration step Δt (the book uses 1 ms). steps: number of Euler steps.
+        algorithm: one of ``CLIK_ALGORITHMS`` (module table). orientation: one of ``CLIK_ORIENTATIONS``.
+        convention: Euler angles for ``"euler"`` (``"ZYZ"`` or ``"RPY"``).
+        rows: task components to control (default all): indices into [p; o].
+        K: gain of the first-order laws (scalar, (m,) or (m, m); default 0.5/Δt = the book's 500 at 1 ms).
+            ``K=0`` with ``"inverse"`` is the open-loop scheme (3.47).
+        K_P, K_D: second-order gains (default ω² and 2ω with ω = 0.1/Δt).
+        damping: k of the damped least-squares inverse (3.59). nullspace: ``None``, ``"manipulability"``,
+            ``"joint_limits"`` or a callable w(q) -> (...); k0: its gain (3.55); k_d0: damping of the
+            null-space acceleration (second order). q_limits: ``(n, 2)`` limits for ``"joint_limits"``
+            (default the chain's). qdot0: initial q̇ for the second order (default J†ẋ_d(0)).
+        clamp: project q onto the chain's joint limits after each step. return_poses: keep the poses.
+        differentiable: record the autograd graph through all the steps (w.r.t. q0, the target and the
+            chain's DH parameters). Default: only when grad mode is on and q0 or a target tensor requires
+            grad, since a graph over thousands of steps is costly; pass True for gradients w.r.t. the chain
+            or through a callable target.
+
+    Returns:
+        :class:`CLIKResult`.
+    """
+    if algorithm not in CLIK_ALGORITHMS:
+        raise ConventionError(f"unknown algorithm {algorithm!r}; valid: {CLIK_ALGORITHMS}")
+    q = chain.check_q(q0, name="q0")
+    if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
+        raise ConventionError(f"dt must be a positive number, got {dt!r}")
+    task = _make_task(chain, orientation, convention, rows)
+    if algorithm == "inverse" and len(task.rows) != chain.n_joints:
+        raise ShapeError(
+            f"algorithm='inverse' needs a square Jacobian: {len(task.rows)} task rows for {chain.n_joints} "
+            "joints; use 'pseudo_inverse' or 'dls', or select rows"
+        )
+    if qdot0 is not None:
+        chain.check_q(qdot0, name="qdot0")
+    get, steps = _target_sampler(target, steps, dt, q)
+    omega = 0.1 / dt
+    cfg = _Config(
+        task,
+        algorithm,
+        _gain(0.5 / dt if K is None else K, task, q, "K"),
+        _gain(omega**2 if K_P is None else K_P, task, q, "K_P"),
+        _gain(2 * omega if K_D is None else K_D, task, q, "K_D"),
+        damping,
+        _objective(nullspace, chain, task, q_limits),
+        float(k0),
+        float(k_d0),
+    )
+    if differentiable is None:
+        tensors = [q0] + ([] if callable(target) else [v for v in _as_tuple(target) if isinstance(v, Tensor)])
+        differentiable = torch.is_grad_enabled() and any(v.requires_grad for v in tensors)
+    with contextlib.nullcontext() if differentiable else torch.no_grad():
+        return _integrate(chain, q, qdot0, get, steps, dt, cfg, clamp, return_poses)
+
+
+def _as_tuple(target) -> tuple:
+    return (target,) if isinstance(target, Tensor) else tuple(target)
+
+
+def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_poses: bool) -> CLIKResult:
+    task, n = cfg.task, chain.n_joints
+    qs, qds, es, Ts = [], [], [], []
+    for k in range(steps + 1):
+        x_d, v_d, a_d = get(k)
+        p_d, o_d = _split_desired(task, x_d)
+        T, e, J_t, L, _ = _error_and_jacobian(chain, q, task, p_d, o_d)
+        v_ff = _feed(v_d, task.size, q)
+        if k == 0:
+            batch = torch.broadcast_shapes(e.shape[:-1], v_ff.shape[:-1], q.shape[:-1])
+            q = q.expand(*batch, n)
+        if cfg.algorithm == "second_order":
+            if qd is None:
+                qd = _mv(pinv(J_t[..., list(task.rows), :]), v_ff[..., list(task.rows)].expand(*batch, -1))
+            qd = qd.expand(*batch, n)
+            qdd = _second_order(cfg, chain, q, qd, J_t, e, v_ff, _feed(a_d, task.size, q))
+        else:
+            qd = _first_order(cfg, q, J_t, e, v_ff, L).expand(*batch, n)
+        qs.append(q)
+        qds.append(qd)
+        es.append(e[..., list(task.rows)].expand(*batch, -1))
+        if return_poses:
+            Ts.append(T.expand(*batch, 4, 4))
+        if k < steps:
+            q_next = q + qd * dt  # (3.48)
+            if cfg.algorithm == "second_order":
+                qd = qd + qdd * dt
+            q = chain.clamp_to_limits(q_next) if clamp else q_next
+    err = torch.stack(es, dim=-2)
+    pos = torch.tensor([r < 3 for r in task.rows], device=err.device)
+    zero = torch.zeros((), dtype=err.dtype, device=err.device)
+    return CLIKResult(
+        t=torch.arange(steps + 1, dtype=q.dtype, device=q.device) * dt,
+        q=torch.stack(qs, dim=-2),
+        qdot=torch.stack(qds, dim=-2),
+        error=err,
+        position_error=safe_norm(torch.where(pos, err, zero)),
+        orientation_error=safe_norm(torch.where(pos, zero, err)),
+        poses=torch.stack(Ts, dim=-3) if return_poses else None,
+    )

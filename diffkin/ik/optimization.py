@@ -1,0 +1,308 @@
+"""Optimisation-based IK: minimise a sum of differentiable per-sample cost terms over a batch.
+
+Cost terms are small frozen dataclasses evaluated on a shared :class:`CostContext` (FK and Jacobian are
+computed once per evaluation). Terms with a ``residual`` (cost = weight·‖r‖²) can be minimised by
+Gauss–Newton / Levenberg–Marquardt on the stacked residuals; any term works with the torch optimisers
+(L-BFGS, Adam). Joint limits are enforced by projection after every step.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from functools import cached_property
+
+import torch
+from torch import Tensor
+
+from ..errors import ConventionError
+from ..transforms import pose_error
+from .numerical import _targets, _user_seeds
+from .result import IKResult, final_errors
+
+__all__ = [
+    "optimize",
+    "CostContext",
+    "PoseCost",
+    "JointLimitCost",
+    "RestPostureCost",
+    "ManipulabilityCost",
+    "CallableCost",
+    "OPTIMIZERS",
+]
+
+OPTIMIZERS = ("lbfgs", "adam", "gauss_newton")
+
+
+class CostContext:
+    """What cost terms see: ``q (..., n)``, the target, and lazily the FK pose and Jacobian of ``q``."""
+
+    def __init__(self, chain, q: Tensor, T_target: Tensor):
+        self.chain, self.q, self.T_target = chain, q, T_target
+
+    @cached_property
+    def fk_and_jacobian(self) -> tuple[Tensor, Tensor]:
+        from ..jacobian import forward_kinematics_and_jacobian
+
+        return forward_kinematics_and_jacobian(self.chain, self.q, check=False)
+
+    @cached_property
+    def T(self) -> Tensor:
+        if "fk_and_jacobian" in self.__dict__:
+            return self.fk_and_jacobian[0]
+        return self.chain.forward_kinematics(self.q, check=False)
+
+    @property
+    def J(self) -> Tensor:
+        return self.fk_and_jacobian[1]
+
+
+@dataclass(frozen=True)
+class _Term:
+    weight: float = 1.0
+
+    def residual(self, ctx: CostContext) -> Tensor | None:
+        """Residual ``(..., r)`` with cost = weight·‖r‖², or None for a general (non least-squares) term."""
+        return None
+
+    def __call__(self, ctx: CostContext) -> Tensor:
+        r = self.residual(ctx)
+        return self.weight * (r * r).sum(-1)
+
+
+@dataclass(frozen=True)
+class PoseCost(_Term):
+    """Pose error [p_d − p_e; w_o·θr] (rotation vector of R_dR_eᵀ, base frame); position only for (..., 3)."""
+
+    orientation_weight: float = 0.3
+
+    def residual(self, ctx: CostContext) -> Tensor:
+        Td = ctx.T_target
+        if Td.shape[-1] == 3:
+            return Td - ctx.T[..., :3, 3]
+        e = pose_error(Td, ctx.T, orientation="rotvec")
+        return torch.cat((e[..., :3], self.orientation_weight**0.5 * e[..., 3:]), dim=-1)
+
+
+@dataclass(frozen=True)
+class JointLimitCost(_Term):
+    """Quadratic penalty for joints within ``margin`` of a limit (zero inside the safe range)."""
+
+    margin: float = 0.05
+
+    def residual(self, ctx: CostContext) -> Tensor:
+        lo, hi = ctx.chain.lower_upper()
+        q = ctx.q
+        return torch.relu(lo + self.margin - q) + torch.relu(q - (hi - self.margin))
+
+
+@dataclass(frozen=True)
+class RestPostureCost(_Term):
+    """Distance to a rest posture ``q_rest`` (broadcastable to ``(..., n)``; default: mid-range)."""
+
+    q_rest: Tensor | None = None
+
+    def residual(self, ctx: CostContext) -> Tensor:
+        if self.q_rest is None:
+            lo, hi = ctx.chain.lower_upper()
+            rest = 0.5 * (lo + hi)
+        else:
+            rest = torch.as_tensor(self.q_rest, dtype=ctx.q.dtype, device=ctx.q.device)
+        return ctx.q - rest
+
+
+@dataclass(frozen=True)
+class ManipulabilityCost(_Term):
+    """−weight·w(q), w = sqrt(det JJᵀ) (3.56): rewards configurations away from singularities."""
+
+    def __call__(self, ctx: CostContext) -> Tensor:
+        from ..jacobian import manipulability
+
+        return -self.weight * manipulability(ctx.J)
+
+
+@dataclass(frozen=True)
+class CallableCost(_Term):
+    """A user term ``fn(q (..., n), T_target) -> (...)`` times ``weight``."""
+
+    fn: Callable[[Tensor, Tensor], Tensor] | None = None
+
+    def __call__(self, ctx: CostContext) -> Tensor:
+        return self.weight * self.fn(ctx.q, ctx.T_target)
+
+
+def _as_terms(costs) -> list[_Term]:
+    if costs is None:
+        return [PoseCost()]
+    terms = []
+    for c in costs:
+        if isinstance(c, _Term):
+            terms.append(c)
+        elif callable(c):
+            terms.append(CallableCost(fn=c))
+        else:
+            raise ConventionError(f"cost terms must be diffkin.ik cost objects or callables(q, T), got {c!r}")
+    return terms
+
+
+def _total(chain, terms, q, T) -> Tensor:
+    ctx = CostContext(chain, q, T)
+    return sum(term(ctx) for term in terms)
+
+
+def _residuals(chain, terms, q, T) -> Tensor:
+    ctx = CostContext(chain, q, T)
+    parts = []
+    for term in terms:
+        r = term.residual(ctx)
+        if r is None:
+            raise ConventionError(
+                f"optimizer='gauss_newton' needs least-squares terms (with a residual); "
+                f"{type(term).__name__} has none: use optimizer='lbfgs' or 'adam'"
+            )
+        parts.append(term.weight**0.5 * r)
+    return torch.cat(parts, dim=-1)
+
+
+def _residual_jacobian(r: Tensor, q: Tensor) -> Tensor:
+    """Per-sample Jacobian ``(..., R, n)`` of ``r (..., R)`` w.r.t. ``q (..., n)`` (independent samples)."""
+    R = r.shape[-1]
+    eye = torch.eye(R, dtype=r.dtype, device=r.device).view(R, *([1] * (r.ndim - 1)), R).expand(R, *r.shape)
+    try:
+        (g,) = torch.autograd.grad(r, q, grad_outputs=eye, is_grads_batched=True, retain_graph=True)
+    except RuntimeError:  # an op without a batching rule: one backward pass per residual row
+        g = torch.stack([torch.autograd.grad(r[..., k].sum(), q, retain_graph=True)[0] for k in range(R)])
+    return g.movedim(0, -2)
+
+
+def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
+    """Levenberg–Marquardt on the stacked residuals, λ adapted per sample (accept: λ/3, reject: 4λ)."""
+    lam = torch.full(q.shape[:-1], damping**2, dtype=q.dtype, device=q.device)
+    eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)
+    it = 0
+    cost = None
+    for it in range(1, iterations + 1):
+        qv = q.detach().requires_grad_(True)
+        r = _residuals(chain, terms, qv, T)
+        Jr = _residual_jacobian(r, qv)
+        r = r.detach()
+        cost = (r * r).sum(-1)
+        A = Jr.mT @ Jr + lam[..., None, None] * eye
+        dq = -torch.linalg.solve(A, (Jr.mT @ r.unsqueeze(-1))).squeeze(-1)
+        with torch.no_grad():
+            q_new = project(q + dq)
+            r_new = _residuals(chain, terms, q_new, T)
+            cost_new = (r_new * r_new).sum(-1)
+            accept = cost_new < cost
+            q = torch.where(accept[..., None], q_new, q)
+            lam = torch.where(accept, lam / 3.0, lam * 4.0).clamp(1e-12, 1e8)
+            gain = torch.where(accept, cost - cost_new, torch.zeros_like(cost))
+            if it % 5 == 0 and bool((gain <= tol_change * cost.clamp_min(1.0)).all()):
+                break
+    return q, it
+
+
+def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_change):
+    q = q.detach().clone().requires_grad_(True)
+    if name == "lbfgs":
+        opt = torch.optim.LBFGS(
+            [q], lr=lr or 1.0, max_iter=10, history_size=20, line_search_fn="strong_wolfe",
+            tolerance_grad=1e-14, tolerance_change=1e-16,
+        )  # fmt: skip
+        sched = None
+    else:
+        opt = torch.optim.Adam([q], lr=lr or 0.05, betas=(0.8, 0.9))
+        sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=1e-3 ** (1.0 / max(iterations, 1)))
+
+    def closure():
+        opt.zero_grad()
+        loss = _total(chain, terms, q, T).sum()
+        loss.backward()
+        return loss
+
+    prev, it = None, 0
+    for it in range(1, iterations + 1):
+        loss = opt.step(closure)
+        if sched is not None:
+            sched.step()
+        with torch.no_grad():
+            q.copy_(project(q))
+        if it % 10 == 0:
+            loss = float(loss.detach())
+            if prev is not None and abs(prev - loss) <= tol_change * max(abs(loss), 1.0):
+                break
+            prev = loss
+    return q.detach(), it
+
+
+def optimize(
+    chain,
+    T_target: Tensor,
+    q0: Tensor | None = None,
+    *,
+    costs: Sequence | None = None,
+    optimizer: str = "lbfgs",
+    max_iterations: int | None = None,
+    lr: float | None = None,
+    damping: float = 1e-3,
+    position_tolerance: float = 1e-4,
+    orientation_tolerance: float = 1e-3,
+    position_only: bool = False,
+    respect_limits: bool = True,
+    tolerance_change: float = 1e-12,
+) -> IKResult:
+    """Optimisation-based IK: minimise Σ cost terms per sample, from ``q0`` (a local method).
+
+    Args:
+        chain: any :class:`~diffkin.chain.KinematicChain`.
+        T_target: ``(..., 4, 4)`` poses, or ``(..., 3)`` positions when ``position_only``.
+        q0: start ``(..., n)`` (or ``(n,)``); default: the middle of the joint range. Optimisers are local:
+            for far targets start from :func:`diffkin.ik.solve` and use this to refine secondary costs.
+        costs: cost terms (default ``[PoseCost()]``): :class:`PoseCost`, :class:`JointLimitCost`,
+            :class:`RestPostureCost`, :class:`ManipulabilityCost`, or callables ``fn(q, T_target) -> (...)``.
+        optimizer: ``"lbfgs"`` / ``"adam"`` (torch.optim on the summed cost; q projected onto the limits after
+            each step) or ``"gauss_newton"`` (per-sample Levenberg–Marquardt on the stacked residuals of
+            least-squares terms).
+        max_iterations: optimiser steps (default: L-BFGS 50, each up to 10 inner iterations; Adam 500;
+            Gauss–Newton 50).
+        lr: step size (L-BFGS 1.0; Adam 0.05, betas (0.8, 0.9), decaying exponentially to 1e-3 of it);
+            damping: initial LM k (Gauss–Newton). Adam is the least precise: give it a looser tolerance.
+        position_tolerance / orientation_tolerance: thresholds for ``success`` (pose error of the result).
+        tolerance_change: stop when the cost changes less than this (relative) over a check.
+
+    Returns:
+        :class:`IKResult`; ``success`` is judged from an exact FK in the chain's dtype (and the limits).
+    """
+    if optimizer not in OPTIMIZERS:
+        raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
+    terms = _as_terms(costs)
+    batch, T, _ = _targets(chain, T_target, position_only, chain.dtype)
+    T = T.detach()
+    if position_only and T.shape[-2:] == (4, 4):
+        T = T[..., :3, 3]
+    n = chain.n_joints
+    seeds = _user_seeds(chain, q0, batch, math.prod(batch))
+    if seeds is None:
+        lo, hi = chain.lower_upper()
+        q = (0.5 * (lo + hi)).detach().expand(*batch, n).clone()
+    else:
+        q = seeds[:, 0].reshape(*batch, n).detach().clone()
+    clamp = respect_limits and chain.q_limits is not None
+    project = chain.clamp_to_limits if clamp else (lambda x: x)
+    q = project(q)
+    if max_iterations is None:
+        max_iterations = {"lbfgs": 50, "adam": 500, "gauss_newton": 50}[optimizer]
+    if optimizer == "gauss_newton":
+        q, it = _gauss_newton(chain, terms, q, T, max_iterations, project, damping, tolerance_change)
+    else:
+        q, it = _torch_optimizer(optimizer, chain, terms, q, T, max_iterations, project, lr, tolerance_change)
+    with torch.no_grad():
+        pos_err, ori_err = final_errors(chain, q, T, position_only)
+    success = pos_err <= position_tolerance
+    if not position_only:
+        success &= ori_err <= orientation_tolerance
+    if clamp:
+        success &= chain.within_limits(q)
+    iters = torch.full(batch, it, dtype=torch.long, device=q.device)
+    return IKResult(q=q, success=success, position_error=pos_err, orientation_error=ori_err, iterations=iters)

@@ -1,0 +1,358 @@
+"""Differential kinematics (§3.1–3.7): geometric and analytical Jacobians, J̇q̇ and Jacobian inverses.
+
+The geometric Jacobian comes from the frames of one FK pass (3.30): ``chain.joint_axes_origins(q)`` gives the
+joint axes z and origins p of every joint in the base frame; each column is a couple of fused elementwise
+products on ``(..., n)`` components (no 4×4 products, no autograd). Rows are ``[linear; angular]``.
+
+Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, statics in
+:mod:`diffkin.statics`; both are re-exported here so ``diffkin.jacobian`` is the one import place.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ._numerics import check_shape, eps_for
+from .errors import ConventionError, DTypeError, RepresentationSingularityError, ShapeError
+from .manipulability import (
+    DecoupledSingularities,
+    Ellipsoid,
+    condition_number,
+    decoupled_singularities,
+    force_ellipsoid,
+    force_transmission_ratio,
+    inverse_condition_number,
+    jacobian_determinant,
+    manipulability,
+    smallest_singular_value,
+    velocity_ellipsoid,
+    velocity_transmission_ratio,
+)
+from .redundancy import damped_pinv, nullspace_projector, pinv, weighted_pinv
+from .rotations import _convention, _euler_rate_matrix, _matrix_to_euler
+from .statics import (
+    closed_chain_torques,
+    joint_torques_from_wrench,
+    transform_velocity,
+    transform_wrench,
+    velocity_transform,
+    wrench_transform,
+)
+
+__all__ = [
+    "geometric_jacobian",
+    "forward_kinematics_and_jacobian",
+    "jacobian_dot_qdot",
+    "analytical_jacobian",
+    "AnalyticalJacobian",
+    "analytical_transform",
+    "analytical_to_geometric",
+    "geometric_to_analytical",
+    "shift_jacobian_point",
+    "rotate_jacobian",
+    # re-exported from diffkin.redundancy
+    "pinv",
+    "damped_pinv",
+    "weighted_pinv",
+    "nullspace_projector",
+    # re-exported from diffkin.manipulability
+    "smallest_singular_value",
+    "jacobian_determinant",
+    "condition_number",
+    "inverse_condition_number",
+    "decoupled_singularities",
+    "DecoupledSingularities",
+    "manipulability",
+    "Ellipsoid",
+    "velocity_ellipsoid",
+    "force_ellipsoid",
+    "force_transmission_ratio",
+    "velocity_transmission_ratio",
+    # re-exported from diffkin.statics
+    "joint_torques_from_wrench",
+    "velocity_transform",
+    "wrench_transform",
+    "transform_velocity",
+    "transform_wrench",
+    "closed_chain_torques",
+]
+
+_SINGULAR_MODES = ("raise", "flag", "ignore")
+_POINT_FRAMES = ("ee", "base")
+_FEW_OPS_BATCH = 64  # up to this many configurations the Jacobian kernel minimises the number of ops
+
+
+# ------------------------------------------------------------------------------------------ kernels
+def _cross(a: Tensor, b: Tensor) -> Tensor:
+    """a × b on (..., 3), elementwise (cheaper than torch.linalg.cross for small tensors)."""
+    ax, ay, az = a.unbind(-1)
+    bx, by, bz = b.unbind(-1)
+    return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx), dim=-1)
+
+
+def _jacobian_kernel(
+    axes: Tensor, origins: Tensor, p_e: Tensor, revolute: Tensor, all_revolute: bool
+) -> Tensor:
+    """(3.30) from joint axes/origins (..., n, 3) and the EE point (..., 3) -> (..., 6, n), contiguous."""
+    if axes.shape[:-2].numel() <= _FEW_OPS_BATCH:  # per-call overhead dominates: fewest ops
+        lin = torch.linalg.cross(axes, p_e.unsqueeze(-2) - origins, dim=-1)
+        if all_revolute:
+            cols = torch.cat((lin, axes), dim=-1)
+        else:
+            rev = revolute.unsqueeze(-1)
+            cols = torch.cat((lin * rev + axes * (1.0 - rev), axes * rev), dim=-1)
+        return cols.transpose(-1, -2).contiguous()
+    if axes.stride(-1) != 1:  # the chain gave batch-last views (3, n, B) in memory: compute in that layout
+        return _jacobian_kernel_batch_last(axes, origins, p_e, revolute, all_revolute)
+    # large batches: one elementwise pass per output row, written straight into the (..., 6, n) layout
+    zx, zy, zz = axes.unbind(-1)
+    px, py, pz = origins.unbind(-1)
+    ex, ey, ez = p_e.unbind(-1)
+    rx, ry, rz = ex.unsqueeze(-1) - px, ey.unsqueeze(-1) - py, ez.unsqueeze(-1) - pz  # p_e - p_{i-1}
+    jx, jy, jz = zy * rz - zz * ry, zz * rx - zx * rz, zx * ry - zy * rx
+    if all_revolute:
+        return torch.stack((jx, jy, jz, zx, zy, zz), dim=-2)
+    # prismatic joints: [z; 0]; arithmetic blend keeps one code path for every joint
+    pri = 1.0 - revolute
+    return torch.stack(
+        (jx * revolute + zx * pri, jy * revolute + zy * pri, jz * revolute + zz * pri,
+         zx * revolute, zy * revolute, zz * revolute),
+        dim=-2,
+    )  # fmt: skip
+
+
+def _jacobian_kernel_batch_last(
+    axes: Tensor, origins: Tensor, p_e: Tensor, revolute: Tensor, all_revolute: bool
+) -> Tensor:
+    """As :func:`_jacobian_kernel`, computed on (3, n, *batch) views and transposed once at the end."""
+    nb = axes.ndim - 2
+    batch_dims = tuple(range(nb))
+    zx, zy, zz = axes.permute(nb + 1, nb, *batch_dims)
+    px, py, pz = origins.permute(nb + 1, nb, *batch_dims)
+    ex, ey, ez = p_e.permute(nb, *batch_dims).contiguous().unsqueeze(1)  # p_e is a strided view of T_ee
+    rx, ry, rz = ex - px, ey - py, ez - pz
+    jx, jy, jz = zy * rz - zz * ry, zz * rx - zx * rz, zx * ry - zy * rx
+    if all_revolute:
+        J = torch.stack((jx, jy, jz, zx, zy, zz))
+    else:
+        rev = revolute.view(-1, *(1,) * nb)
+        pri = 1.0 - rev
+        J = torch.stack(
+            (jx * rev + zx * pri, jy * rev + zy * pri, jz * rev + zz * pri, zx * rev, zy * rev, zz * rev)
+        )
+    return J.permute(*range(2, 2 + nb), 0, 1).contiguous()  # (6, n, *batch) -> (*batch, 6, n)
+
+
+def shift_jacobian_point(J: Tensor, r: Tensor) -> Tensor:
+    """Jacobian of the point p = p_e + r on the same body (3.112): J_P' = J_P - S(r) J_O, J_O' = J_O.
+
+    ``J`` (..., 6, n) in some frame, ``r`` (..., 3) the offset p - p_e expressed in that same frame.
+    """
+    lin, ang = J[..., :3, :], J[..., 3:, :]
+    wx, wy, wz = ang.unbind(-2)
+    rx, ry, rz = (c.unsqueeze(-1) for c in r.unbind(-1))
+    # v_p = v_e + omega x r
+    shift = torch.stack((wy * rz - wz * ry, wz * rx - wx * rz, wx * ry - wy * rx), dim=-2)
+    return torch.cat((lin + shift, ang.expand_as(shift)), dim=-2)
+
+
+def rotate_jacobian(J: Tensor, R: Tensor) -> Tensor:
+    """Express a Jacobian (..., 6, n) given in the base frame in frame u with orientation ``R`` = R^0_u
+    (..., 3, 3): J^u = diag(R^T, R^T) J (3.34, where the book's R^u = (R^0_u)^T)."""
+    lin = torch.einsum("...ji,...jk->...ik", R, J[..., :3, :])
+    ang = torch.einsum("...ji,...jk->...ik", R, J[..., 3:, :])
+    return torch.cat((lin, ang), dim=-2)
+
+
+def _frame_rotation(frame, T_ee: Tensor) -> Tensor | None:
+    if frame is None or (isinstance(frame, str) and frame == "base"):
+        return None
+    if isinstance(frame, str):
+        if frame != "ee":
+            raise ConventionError(f"frame must be None, 'base', 'ee' or a rotation tensor, got {frame!r}")
+        return T_ee[..., :3, :3]
+    if not isinstance(frame, Tensor):
+        raise ShapeError(f"frame must be a (..., 3, 3) rotation or (..., 4, 4) transform, got {type(frame)}")
+    if frame.shape[-2:] == (4, 4):
+        frame = frame[..., :3, :3]
+    check_shape(frame, (3, 3), "frame")
+    if frame.dtype != T_ee.dtype:
+        raise DTypeError(f"frame has dtype {frame.dtype}, expected {T_ee.dtype}")
+    return frame
+
+
+def _point_offset(point, point_frame: str, T_ee: Tensor) -> Tensor | None:
+    if point is None:
+        return None
+    if point_frame not in _POINT_FRAMES:
+        raise ConventionError(f"point_frame must be one of {_POINT_FRAMES}, got {point_frame!r}")
+    check_shape(point, (3,), "point")
+    if point.dtype != T_ee.dtype:
+        raise DTypeError(f"point has dtype {point.dtype}, expected {T_ee.dtype}")
+    R, p_e = T_ee[..., :3, :3], T_ee[..., :3, 3]
+    if point_frame == "ee":
+        return torch.einsum("...ij,...j->...i", R, point)
+    return point - p_e
+
+
+# ------------------------------------------------------------------------------ geometric Jacobian
+def forward_kinematics_and_jacobian(
+    chain, q: Tensor, frame=None, point: Tensor | None = None, point_frame: str = "ee", check: bool = True
+) -> tuple[Tensor, Tensor]:
+    """End-effector pose ``T (..., 4, 4)`` and geometric Jacobian ``J (..., 6, n)`` from one FK pass.
+
+    See :func:`geometric_jacobian` for the options. ``T`` is always the end-effector (tool) pose in the base
+    frame, whatever ``point``/``frame`` say.
+    """
+    axes, origins, T_ee = chain.joint_axes_origins(q, check=check)
+    all_rev = "P" not in chain.joint_types
+    J = _jacobian_kernel(axes, origins, T_ee[..., :3, 3], chain.revolute_mask, all_rev)
+    r = _point_offset(point, point_frame, T_ee)
+    if r is not None:
+        J = shift_jacobian_point(J, r)
+    R = _frame_rotation(frame, T_ee)
+    if R is not None:
+        J = rotate_jacobian(J, R)
+    return T_ee, J
+
+
+def geometric_jacobian(
+    chain, q: Tensor, frame=None, point: Tensor | None = None, point_frame: str = "ee", check: bool = True
+) -> Tensor:
+    """Geometric Jacobian (3.29)–(3.30): ``q (..., n)`` -> ``J (..., 6, n)``, rows [linear; angular].
+
+    Column i is [z_{i-1} × (p_e − p_{i-1}); z_{i-1}] for a revolute and [z_{i-1}; 0] for a prismatic joint,
+    from the frames of one FK pass; p_e is the end-effector (tool) origin.
+
+    Args:
+        frame: frame the velocities are expressed in. ``None``/``"base"``: base frame (default). ``"ee"``:
+            the end-effector frame. A tensor ``R`` (..., 3, 3) (or a transform (..., 4, 4), rotation used):
+            the orientation of frame u in the base frame; J^u = diag(Rᵀ, Rᵀ) J (3.34).
+        point: compute the linear velocity at this point of the end-effector body instead of p_e (e.g. a
+            tool tip): v_p = v_e + ω × (p − p_e) (3.112). ``(..., 3)``.
+        point_frame: ``"ee"`` (default): ``point`` is given in the end-effector frame (an offset from p_e,
+            like a tool translation); ``"base"``: ``point`` is a position in the base frame.
+        check: validate ``q``.
+    """
+    return forward_kinematics_and_jacobian(chain, q, frame, point, point_frame, check)[1]
+
+
+# ------------------------------------------------------------------------------------------- J̇ q̇
+def jacobian_dot_qdot(chain, q: Tensor, qdot: Tensor, check: bool = True) -> Tensor:
+    """J̇(q, q̇) q̇ ``(..., 6)`` of the base-frame geometric Jacobian at the end effector (for §3.7.4).
+
+    Exact, from the frames of one FK pass: differentiating (3.30) with ż_i = ω_i × z_i and ṗ_i the
+    velocity of the joint origin, where ω_i, ṗ_i collect the joints before i (exclusive cumulative sums
+    of the columns (3.25)–(3.26)). Same cost order as the Jacobian itself.
+    """
+    if check:
+        chain.check_q(q)
+        chain.check_q(qdot, name="qdot")
+    axes, origins, T_ee = chain.joint_axes_origins(q, check=False)
+    rev = chain.revolute_mask.unsqueeze(-1)
+    qd = qdot.unsqueeze(-1)
+    r = origins - T_ee[..., None, :3, 3]  # p_i - p_e, (..., n, 3)
+    w = axes * (qd * rev)  # angular velocity contributed by each joint
+    lin = axes * (qd * (1.0 - rev))  # linear velocity of prismatic joints
+    wr = _cross(w, r)  # w_k × (p_k - p_e)
+    w_before = torch.cumsum(w, dim=-2) - w  # ω of the link carrying axis i
+    v_before = _cross(w_before, r) - (torch.cumsum(wr, dim=-2) - wr) + (torch.cumsum(lin, dim=-2) - lin)
+    v_e = lin.sum(-2) - wr.sum(-2)  # ṗ_e
+    z_dot = _cross(w_before, axes)
+    # d/dt [z × (p_e - p)] = ż × (p_e - p) + z × (ṗ_e - ṗ)
+    col_rev = _cross(r, z_dot) + _cross(axes, v_e.unsqueeze(-2) - v_before)
+    lin_dot = (qd * (rev * col_rev + (1.0 - rev) * z_dot)).sum(-2)
+    ang_dot = (qd * rev * z_dot).sum(-2)
+    return torch.cat((lin_dot, ang_dot), dim=-1)
+
+
+# ----------------------------------------------------------------------------- analytical Jacobian
+class AnalyticalJacobian(NamedTuple):
+    """``analytical_jacobian(..., singular="flag")``: J_A (..., 6, n) and a boolean ``singular`` (...)."""
+
+    J_A: Tensor
+    singular: Tensor
+
+
+def analytical_transform(phi: Tensor, representation: str = "ZYZ") -> Tensor:
+    """T_A(φ) = diag(I, T(φ)) (3.65): Euler angles (..., 3) -> (..., 6, 6), with v_e = T_A(φ) ẋ_e."""
+    conv = _convention(representation)
+    check_shape(phi, (3,), "phi")
+    T = _euler_rate_matrix(phi, conv)
+    out = torch.zeros(*phi.shape[:-1], 6, 6, dtype=phi.dtype, device=phi.device)
+    out[..., :3, :3] = torch.eye(3, dtype=phi.dtype, device=phi.device)
+    out[..., 3:, 3:] = T
+    return out
+
+
+def analytical_to_geometric(J_A: Tensor, phi: Tensor, representation: str = "ZYZ") -> Tensor:
+    """J = T_A(φ) J_A (3.66): (..., 6, n), Euler angles (..., 3) -> (..., 6, n)."""
+    check_shape(phi, (3,), "phi")
+    T = _euler_rate_matrix(phi, _convention(representation))
+    return torch.cat((J_A[..., :3, :], T @ J_A[..., 3:, :]), dim=-2)
+
+
+def _inverse3(T: Tensor, tol: float) -> tuple[Tensor, Tensor]:
+    """Inverse of (..., 3, 3) by cofactors; where |det| <= tol returns finite garbage and flags it."""
+    a, b, c = T.unbind(-1)  # columns
+    bc, ca, ab = _cross(b, c), _cross(c, a), _cross(a, b)
+    det = (a * bc).sum(-1)
+    singular = det.abs() <= tol
+    det_safe = torch.where(singular, torch.ones_like(det), det)  # double where: no inf/NaN gradients
+    inv = torch.stack((bc, ca, ab), dim=-2) / det_safe[..., None, None]
+    return inv, singular
+
+
+def geometric_to_analytical(J: Tensor, phi: Tensor, representation: str = "ZYZ", tol: float | None = None):
+    """J_A = T_A(φ)⁻¹ J (3.66). Returns ``(J_A (..., 6, n), singular (...))``; where |det T(φ)| <= tol
+    (default √eps) the representation is singular and the values there are finite but meaningless."""
+    check_shape(phi, (3,), "phi")
+    T = _euler_rate_matrix(phi, _convention(representation))
+    tol = eps_for(phi) ** 0.5 if tol is None else tol
+    T_inv, singular = _inverse3(T, tol)
+    return torch.cat((J[..., :3, :], T_inv @ J[..., 3:, :]), dim=-2), singular
+
+
+def analytical_jacobian(
+    chain,
+    q: Tensor,
+    representation: str = "ZYZ",
+    singular: str = "raise",
+    branch: str = "positive",
+    tol: float | None = None,
+    check: bool = True,
+):
+    """Analytical Jacobian J_A = T_A⁻¹(φ_e) J (3.62)–(3.66): ``q (..., n)`` -> ``(..., 6, n)``.
+
+    Rows [ṗ_e; φ̇_e] for the Euler angles φ_e of the end-effector orientation (``"ZYZ"`` or ``"RPY"``,
+    :func:`diffkin.rotations.matrix_to_euler` with ``branch``). At a representation singularity
+    (|det T(φ)| = |sin ϑ| (ZYZ) or |cos ϑ| (RPY) <= ``tol``, default √eps of the dtype) T(φ) cannot be
+    inverted; ``singular`` chooses what happens:
+
+    - ``"raise"`` (default): raise :class:`~diffkin.errors.RepresentationSingularityError` if any
+      configuration of the batch is singular (this synchronises with the device);
+    - ``"flag"``: return :class:`AnalyticalJacobian` ``(J_A, singular)`` with a boolean mask (...);
+    - ``"ignore"``: return J_A only.
+
+    Values at flagged configurations are finite but meaningless; gradients stay finite everywhere.
+    """
+    if singular not in _SINGULAR_MODES:
+        raise ConventionError(f"singular must be one of {_SINGULAR_MODES}, got {singular!r}")
+    conv = _convention(representation)
+    T_ee, J = forward_kinematics_and_jacobian(chain, q, check=check)
+    phi = _matrix_to_euler(T_ee[..., :3, :3], conv, branch)
+    J_A, mask = geometric_to_analytical(J, phi, conv, tol)
+    if singular == "flag":
+        return AnalyticalJacobian(J_A, mask)
+    if singular == "raise" and bool(mask.any()):
+        n_bad = int(mask.sum())
+        raise RepresentationSingularityError(
+            f"{conv} Euler angles are singular at {n_bad} of {mask.numel()} configurations "
+            f"({'sin' if conv == 'ZYZ' else 'cos'}(theta) ~ 0); use singular='flag' to get a mask, "
+            "another representation, or the geometric Jacobian"
+        )
+    return J_A
+

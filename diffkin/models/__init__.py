@@ -1,0 +1,79 @@
+"""Robot models (§2.9): the textbook's structures and real arms as YAML data, URDF import, workspace.
+
+``load(name)`` builds a :class:`~diffkin.chain.DHChain` from ``diffkin/models/data/<name>.yaml`` (schema in
+:mod:`diffkin.models.io`); ``available()`` lists the names; ``from_urdf(source, end_link)`` builds a
+:class:`URDFChain`; ``sample_workspace(chain, n)`` samples reachable end-effector positions (§2.10.1).
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import torch
+import yaml
+
+from ..chain import DHChain
+from ..errors import ModelError
+from .io import chain_from_dict, chain_from_yaml, chain_to_dict, parse_value
+from .urdf import URDFChain, from_urdf
+from .workspace import sample_workspace
+
+__all__ = [
+    "load",
+    "available",
+    "source",
+    "model_path",
+    "from_urdf",
+    "URDFChain",
+    "sample_workspace",
+    "parse_value",
+    "chain_from_dict",
+    "chain_to_dict",
+    "DATA_DIR",
+]
+
+DATA_DIR = Path(__file__).resolve().parent / "data"
+
+
+def available() -> list[str]:
+    """Names of the bundled models (sorted)."""
+    return sorted(p.stem for p in DATA_DIR.glob("*.yaml"))
+
+
+def model_path(name: str) -> Path:
+    """Path of a bundled model's YAML file (ModelError listing the names if unknown)."""
+    path = DATA_DIR / f"{name}.yaml"
+    if not isinstance(name, str) or not path.is_file():
+        raise ModelError(f"unknown model {name!r}; available: {', '.join(available())}")
+    return path
+
+
+@functools.cache
+def _model_data(name: str) -> dict:
+    path = model_path(name)
+    try:
+        return yaml.safe_load(path.read_text())
+    except yaml.YAMLError as e:
+        raise ModelError(f"{path.name}: invalid YAML: {e}") from None
+
+
+def load(name_or_path, dtype: torch.dtype | None = None, device=None) -> DHChain:
+    """A model by name (see :func:`available`) or from a YAML file path, in ``dtype`` on ``device``.
+
+    The numbers are parsed as Python floats and the tensors built directly in ``dtype`` (default: torch's
+    default dtype), so ``load(name, dtype=torch.float64)`` is exact to float64.
+    """
+    if isinstance(name_or_path, Path) or (
+        isinstance(name_or_path, str) and (name_or_path.endswith((".yaml", ".yml")) or "/" in name_or_path)
+    ):
+        return chain_from_yaml(Path(name_or_path), dtype=dtype, device=device)
+    if isinstance(name_or_path, str) and name_or_path.endswith(".urdf"):
+        raise ModelError(f"{name_or_path!r} is a URDF: use diffkin.models.from_urdf(source, end_link)")
+    data = _model_data(name_or_path)
+    return chain_from_dict(data, dtype=dtype, device=device, where=f"{name_or_path}.yaml")
+
+
+def source(name: str) -> str:
+    """Where a bundled model's numbers come from (its YAML ``source`` field)."""
+    return str(_model_data(name).get("source", ""))

@@ -1,0 +1,272 @@
+"""diffkin.ik.numerical: batched LM IK (solve), dls_step, dls_delta.
+
+References: success is re-checked with an independent FK (the chain's matrix kernel, one pose at a time) and
+scipy's rotation magnitude; dls_delta against the SVD form of the damped inverse.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from diffkin.errors import DiffkinError, DTypeError, NonFiniteError, ShapeError
+from diffkin.ik.numerical import dls_delta, dls_step, solve
+from diffkin.ik.result import IKResult
+from diffkin.models import DATA_DIR, from_urdf, load
+
+F64 = torch.float64
+TOL_P, TOL_O = 1e-4, 1e-3
+
+
+def chain64(name):
+    return load(name, dtype=F64)
+
+
+def targets(chain, shape, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    q = chain.random_configuration(shape, generator=g)
+    with torch.no_grad():
+        return q, chain.forward_kinematics(q)
+
+
+def independent_errors(chain, q, T):
+    """Per-sample errors via a float64 FK of one configuration at a time and scipy's rotation angle."""
+    c = chain.copy().double() if hasattr(chain, "copy") else chain.double()
+    qs = q.reshape(-1, chain.n_joints).double()
+    Ts = T.reshape(-1, *T.shape[-2:]).double() if T.shape[-1] == 4 else T.reshape(-1, 3).double()
+    pe, oe = [], []
+    for qi, Ti in zip(qs, Ts.detach()):
+        Te = c.forward_kinematics(qi).detach()
+        if Ti.shape == (3,):
+            pe.append(float(torch.linalg.norm(Ti - Te[:3, 3])))
+            continue
+        pe.append(float(torch.linalg.norm(Ti[:3, 3] - Te[:3, 3])))
+        Rerr = Te[:3, :3].numpy().T @ Ti[:3, :3].numpy()
+        oe.append(Rotation.from_matrix(Rerr).magnitude())
+    return np.array(pe), np.array(oe) if oe else np.zeros(len(pe))
+
+
+def assert_honest(chain, res: IKResult, T, position_only=False, limits=True):
+    q = res.q.detach()
+    assert torch.isfinite(q).all() and torch.isfinite(res.position_error).all()
+    assert torch.isfinite(res.orientation_error).all()
+    pe, oe = independent_errors(chain, q, T)
+    ok = res.success.reshape(-1).numpy()
+    # every success meets the tolerance per an independent FK; failures really fail (small slack for rounding)
+    assert (pe[ok] <= TOL_P * (1 + 1e-6)).all()
+    if not position_only:
+        assert (oe[ok] <= TOL_O * (1 + 1e-6)).all()
+    bad = ~ok
+    if bad.any():
+        fails_tol = (pe[bad] > TOL_P * 0.999) | ((oe[bad] > TOL_O * 0.999) if not position_only else False)
+        if limits and chain.q_limits is not None:
+            fails_tol |= ~chain.within_limits(q.reshape(-1, chain.n_joints)).numpy()[bad]
+        assert fails_tol.all()
+    np.testing.assert_allclose(res.position_error.reshape(-1).double().numpy(), pe, atol=1e-6)
+    if limits and chain.q_limits is not None:
+        lo, hi = chain.lower_upper()
+        assert ((q >= lo) & (q <= hi)).all(), "joint limits violated"
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5", "kuka_iiwa14"])
+def test_solve_reachable_targets(name):
+    chain = chain64(name)
+    _, T = targets(chain, (200,), seed=1)
+    res = solve(chain, T, seed=0)
+    assert res.q.shape == (200, chain.n_joints) and res.success.shape == (200,)
+    assert res.success.double().mean() >= 0.99
+    assert_honest(chain, res, T)
+    assert (res.iterations > 0).all() and (res.seeds_tried >= 1).all()
+
+
+def test_solve_urdf_chain_float32():
+    """A URDF chain (not DH) in float32: float64 iteration inside, success judged in float32."""
+    chain = from_urdf(DATA_DIR / "panda.urdf", "panda_link8", dtype=torch.float32)
+    _, T = targets(chain, (100,), seed=2)
+    res = solve(chain, T, seed=0)
+    assert res.q.dtype == torch.float32 and res.position_error.dtype == torch.float32
+    assert res.success.double().mean() >= 0.99
+    assert_honest(chain, res, T)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("shape", [(), (5,), (2, 3)])
+def test_batch_shapes_and_dtypes(shape, dtype):
+    chain = load("panda", dtype=dtype)
+    _, T = targets(chain, shape, seed=3)
+    res = solve(chain, T, seed=0)
+    assert res.q.shape == (*shape, 7) and res.q.dtype == dtype
+    for t in (res.success, res.position_error, res.orientation_error, res.iterations, res.seeds_tried):
+        assert t.shape == shape
+    assert res.success.all()
+    assert_honest(chain, res, T)
+
+
+def test_unreachable_and_singular_targets():
+    chain = chain64("panda")
+    _, T = targets(chain, (4,), seed=4)
+    far = T.clone()
+    far[:2, :3, 3] += torch.tensor([5.0, 0.0, 0.0], dtype=F64)  # 5 m away
+    q_str = torch.tensor([0.0, 0.0, 0.0, -0.0698, 0.0, 0.0, 0.0], dtype=F64)
+    stretched = chain.forward_kinematics(q_str).detach()
+    over = stretched.clone()
+    over[2, 3] += 0.02  # 2 cm beyond the (nearly) stretched arm
+    T_all = torch.cat((far[:2], stretched[None], over[None]))
+    res = solve(chain, T_all, num_seeds=8, seed=0)
+    assert not res.success[:2].any() and not res.success[3]
+    assert (res.position_error[:2] > 4.0).all()
+    assert_honest(chain, res, T_all)
+
+
+def test_ur5_singular_stretched_target_is_finite():
+    chain = chain64("ur5")
+    T = chain.forward_kinematics(torch.zeros(6, dtype=F64)).detach()  # elbow singular, arm stretched
+    res = solve(chain, T, seed=0)
+    assert torch.isfinite(res.q).all()
+    assert_honest(chain, res, T)
+
+
+@pytest.mark.parametrize("as_pose", [False, True])
+def test_position_only(as_pose):
+    chain = chain64("kuka_iiwa14")
+    _, T = targets(chain, (50,), seed=5)
+    goal = T if as_pose else T[..., :3, 3]
+    res = solve(chain, goal, position_only=True, seed=0)
+    assert res.success.all()
+    assert_honest(chain, res, goal, position_only=True)
+    if not as_pose:
+        assert (res.orientation_error == 0).all()
+
+
+def test_user_seeds_are_used():
+    chain = chain64("panda")
+    q_true, T = targets(chain, (20,), seed=6)
+    res = solve(chain, T, q_true, seed=0)
+    assert res.success.all() and (res.seeds_tried == 1).all()
+    assert torch.allclose(res.q, q_true, atol=1e-6)  # converged at the given seed
+    # several seeds per target (..., S, n): the true one among random ones
+    S = torch.stack((chain.random_configuration(20), q_true), dim=-2)
+    res2 = solve(chain, T, S, seed=0)
+    assert res2.success.all() and (res2.seeds_tried >= 2).all()
+    # one seed for every target, broadcast
+    res3 = solve(chain, T, q_true[0], seed=0)
+    assert res3.success.all()
+    assert_honest(chain, res3, T)
+
+
+def test_seeded_runs_are_reproducible():
+    chain = chain64("ur5")
+    _, T = targets(chain, (30,), seed=7)
+    a, b = solve(chain, T, seed=3), solve(chain, T, seed=3)
+    assert torch.equal(a.q, b.q) and torch.equal(a.iterations, b.iterations)
+
+
+def test_respect_limits_false_allows_any_branch():
+    chain = chain64("panda")
+    _, T = targets(chain, (50,), seed=8)
+    res = solve(chain, T, respect_limits=False, seed=0)
+    assert res.success.double().mean() >= 0.98
+    assert_honest(chain, res, T, limits=False)
+
+
+def test_bad_inputs():
+    chain = chain64("panda")
+    _, T = targets(chain, (4,), seed=9)
+    with pytest.raises(ShapeError, match=r"q0"):
+        solve(chain, T, torch.zeros(4, 6, dtype=F64))  # wrong n
+    with pytest.raises(ShapeError, match=r"broadcast"):
+        solve(chain, T, torch.zeros(3, 7, dtype=F64))  # 3 seeds for 4 targets
+    with pytest.raises(ShapeError, match=r"q0"):
+        solve(chain, T, torch.zeros(1, 1, 4, 7, dtype=F64))  # too many dims
+    with pytest.raises(ShapeError, match=r"\(\.\.\., 4, 4\)"):
+        solve(chain, T[..., :3, :])
+    skew = T.clone()
+    skew[1, 0, 1] += 0.3  # not a rotation
+    with pytest.raises(DiffkinError, match="rigid"):
+        solve(chain, skew)
+    nan = T.clone()
+    nan[0, 0, 3] = math.nan
+    with pytest.raises(NonFiniteError):
+        solve(chain, nan)
+    with pytest.raises(DTypeError):
+        solve(chain, T.float())
+
+
+def test_empty_batch():
+    chain = chain64("ur5")
+    res = solve(chain, torch.zeros(0, 4, 4, dtype=F64))
+    assert res.q.shape == (0, 6) and res.success.shape == (0,)
+
+
+def test_dls_delta_matches_svd_damped_inverse():
+    g = torch.Generator().manual_seed(0)
+    J = torch.randn(5, 6, 7, generator=g, dtype=F64)
+    e = torch.randn(5, 6, generator=g, dtype=F64)
+    k = 0.1
+    U, S, Vh = torch.linalg.svd(J, full_matrices=False)
+    ref = (Vh.mT * (S / (S**2 + k**2)).unsqueeze(-2)) @ (U.mT @ e.unsqueeze(-1))
+    torch.testing.assert_close(dls_delta(J, e, k), ref.squeeze(-1))
+    Jg = J.clone().requires_grad_()
+    torch.autograd.gradcheck(lambda A: dls_delta(A, e[:2], k), (Jg[:2],))
+
+
+def test_dls_step_reduces_error_and_respects_limits():
+    chain = chain64("panda")
+    q_true, T = targets(chain, (64,), seed=10)
+    q = chain.clamp_to_limits(q_true + 0.05 * torch.randn(q_true.shape, dtype=F64))
+    before = torch.linalg.norm(chain.forward_kinematics(q)[..., :3, 3] - T[..., :3, 3], dim=-1)
+    q1 = dls_step(chain, q, T, damping=0.01)
+    after = torch.linalg.norm(chain.forward_kinematics(q1)[..., :3, 3] - T[..., :3, 3], dim=-1)
+    assert (after < before).double().mean() > 0.95 and after.median() < 0.2 * before.median()
+    assert chain.within_limits(q1).all()
+    qp = dls_step(chain, q, T[..., :3, 3], damping=0.01, position_only=True)
+    assert qp.shape == q.shape and torch.isfinite(qp).all()
+    # differentiable w.r.t. q
+    qg = q[:3].clone().requires_grad_()
+    dls_step(chain, qg, T[:3]).sum().backward()
+    assert torch.isfinite(qg.grad).all()
+
+
+def test_summary_and_str():
+    chain = chain64("ur5")
+    _, T = targets(chain, (10,), seed=11)
+    res = solve(chain, T, seed=0)
+    s = res.summary()
+    assert s["targets"] == 10 and 0.0 <= s["success_rate"] <= 1.0
+    assert "success" in str(res)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_solve_cuda():
+    chain = load("panda", dtype=torch.float32, device="cuda")
+    _, T = targets(chain.cpu(), (500,), seed=12)
+    res = solve(chain, T.cuda(), generator=torch.Generator(device="cuda").manual_seed(0))
+    assert res.q.is_cuda and res.success.double().mean() >= 0.99
+    assert_honest(chain.cpu(), res.to(device="cpu"), T)
+
+
+@pytest.mark.parametrize("name", ["panda", "ur5", "stanford", "urdf_ur5"])
+def test_batch_last_kernel_matches_geometric_jacobian(name):
+    """The solver's batch-last kernel agrees with diffkin.jacobian on DH (incl. prismatic) and URDF."""
+    from diffkin.ik._kernel import BatchLastKernel
+    from diffkin.jacobian import forward_kinematics_and_jacobian
+
+    chain = from_urdf(DATA_DIR / "ur5.urdf", "tool0", dtype=F64) if name == "urdf_ur5" else chain64(name)
+    q = chain.random_configuration((50,), generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        T_ref, J_ref = forward_kinematics_and_jacobian(chain, q)
+        J, x, y, z, p = BatchLastKernel(chain)(q.T.contiguous())
+    torch.testing.assert_close(J.permute(2, 1, 0), J_ref)
+    torch.testing.assert_close(torch.stack((x, y, z, p), 1).permute(2, 0, 1), T_ref[:, :3, :])
+
+
+def test_solve_prismatic_chain():
+    chain = chain64("stanford")
+    _, T = targets(chain, (100,), seed=13)
+    res = solve(chain, T, seed=0)
+    assert res.success.double().mean() >= 0.99
+    assert_honest(chain, res, T)
