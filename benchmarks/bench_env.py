@@ -81,12 +81,14 @@ def bench_sync(env_id: str, n: int, min_time: float, repeats: int) -> tuple[floa
 
 
 def run(args=None) -> list[dict]:
-    """Rows ``{benchmark, impl, num_envs, steps_per_s, steps_per_cpu_s, ratio}`` (ratio: batched / Sync)."""
+    """Rows ``{benchmark, impl, num_envs, steps_per_s, steps_per_cpu_s, ratio_vs_sync}`` (batched / Sync)."""
     args = args if args is not None else parse_args([])
     env_id = getattr(args, "env_id", "diffkin/Reach-v0")
-    counts = getattr(args, "envs", [1, 64, 1024, 4096])
+    quick = getattr(args, "quick", False)
+    counts = getattr(args, "envs", [1, 64, 1024] if quick else [1, 64, 1024, 4096])
     threads, device = getattr(args, "threads", 1), getattr(args, "device", "cpu")
-    min_time, repeats = getattr(args, "min_time", 1.0), getattr(args, "repeats", 3)
+    min_time = getattr(args, "min_time", 0.3 if quick else 1.0)
+    repeats = getattr(args, "repeats", 1 if quick else 3)
     old = torch.get_num_threads()
     torch.set_num_threads(threads)
     rows = []
@@ -94,12 +96,13 @@ def run(args=None) -> list[dict]:
         for n in counts:
             batched, batched_cpu = bench_batched(env_id, n, device, min_time, repeats)
             sync, sync_cpu = bench_sync(env_id, n, min_time, repeats)
-            common = {"benchmark": "env_step", "env_id": env_id, "num_envs": n, "threads": threads}
+            common = {"benchmark": "env_step", "env_id": env_id, "num_envs": n, "batch": n,
+                      "threads": threads}
             rows.append({**common, "impl": "gym.make+SyncVectorEnv", "device": "cpu", "steps_per_s": sync,
                          "steps_per_cpu_s": sync_cpu})
             rows.append({**common, "impl": "TorchVectorEnv", "device": device, "steps_per_s": batched,
-                         "steps_per_cpu_s": batched_cpu, "ratio": batched / sync,
-                         "cpu_ratio": batched_cpu / sync_cpu})
+                         "steps_per_cpu_s": batched_cpu, "ratio_vs_sync": batched / sync,
+                         "cpu_ratio_vs_sync": batched_cpu / sync_cpu})
     finally:
         torch.set_num_threads(old)
     return rows
@@ -120,8 +123,8 @@ def main(argv=None) -> int:
     rows = run(parse_args(argv))
     print(f"{'impl':<24}{'envs':>6}{'steps/s (wall)':>16}{'ratio':>8}{'steps/CPU-s':>14}{'ratio':>8}")
     for r in rows:
-        ratio = f"{r['ratio']:.0f}x" if "ratio" in r else ""
-        cpu_ratio = f"{r['cpu_ratio']:.0f}x" if "cpu_ratio" in r else ""
+        ratio = f"{r['ratio_vs_sync']:.0f}x" if "ratio_vs_sync" in r else ""
+        cpu_ratio = f"{r['cpu_ratio_vs_sync']:.0f}x" if "cpu_ratio_vs_sync" in r else ""
         print(f"{r['impl']:<24}{r['num_envs']:>6}{r['steps_per_s']:>16,.0f}{ratio:>8}"
               f"{r['steps_per_cpu_s']:>14,.0f}{cpu_ratio:>8}")
     return 0

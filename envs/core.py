@@ -1,0 +1,188 @@
+"""Task base class (batched torch logic shared by single and vector envs) and the single-env wrapper.
+
+A task owns no env state: it works on a ``state`` dict of ``(N, ...)`` tensors, so the very same code steps
+one env (``TaskEnv``, N = 1) and a batch (``envs.vector.TorchVectorEnv``). That is what makes env ``i`` of a
+batch equal a single env with the same seed.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import Tensor
+
+from diffkin.errors import NonFiniteError, ShapeError
+
+from ._random import key_from_generator, uniform
+from .robot import Robot, RobotConfig
+
+__all__ = ["Task", "TaskEnv", "check_action", "to_numpy"]
+
+
+def check_action(action, shape: tuple[int, ...], name: str = "action") -> Tensor | np.ndarray:
+    """Raise ``ShapeError`` / ``NonFiniteError`` (``ValueError`` subclasses) for a malformed action."""
+    if isinstance(action, Tensor):
+        bad_shape, finite = tuple(action.shape) != tuple(shape), lambda: bool(torch.isfinite(action).all())
+    else:
+        action = np.asarray(action, dtype=np.float32)
+        bad_shape, finite = action.shape != tuple(shape), lambda: bool(np.isfinite(action).all())
+    if bad_shape:
+        raise ShapeError(f"expected {name} of shape {tuple(shape)}, got {tuple(action.shape)}")
+    if not finite():
+        raise NonFiniteError(f"{name} contains NaN or inf values")
+    return action
+
+
+def to_numpy(obs):
+    """Row 0 of a (dict of) ``(1, ...)`` tensor(s) as float32 numpy."""
+    if isinstance(obs, dict):
+        return {k: to_numpy(v) for k, v in obs.items()}
+    return obs[0].detach().to("cpu", torch.float32).numpy().copy()
+
+
+class Task:
+    """Batched task logic. Subclasses set ``n_random``; implement ``_sample``, ``_evaluate``, ``_observe``."""
+
+    n_random: int = 0
+    max_steps: int = 50
+
+    def __init__(self, robot: str = "panda", action_mode: str = "joint",
+                 robot_config: RobotConfig | dict | None = None,
+                 home=None, dtype=torch.float32, device="cpu"):
+        if isinstance(robot_config, dict):
+            robot_config = RobotConfig(**robot_config)
+        self.robot = Robot(robot, robot_config, action_mode=action_mode, home=home, dtype=dtype,
+                           device=device)
+        self.dtype, self.device = dtype, self.robot.device
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (self.robot.action_dim,), np.float32)
+        home_ee = float(self.robot.ee_position(self.robot.home).norm())
+        self.workspace = home_ee + 2.0 + _reach_bound(self.robot)
+
+    # ------------------------------------------------------------------------------------------ state
+    def new_state(self, n: int) -> dict[str, Tensor]:
+        z = torch.zeros(n, dtype=torch.int64, device=self.device)
+        q = self.robot.home.expand(n, -1).clone()
+        state = {"q": q, "t": z.clone(), "key": z.clone(), "episode": z.clone()}
+        state.update(self._extra_state(n))
+        return state
+
+    def _extra_state(self, n: int) -> dict[str, Tensor]:
+        return {}
+
+    def reset_rows(self, state: dict[str, Tensor], idx: Tensor | None = None) -> None:
+        """Start a new episode in rows ``idx`` (all rows if None), from the counter-based RNG of each row."""
+        idx = torch.arange(state["q"].shape[0], device=self.device) if idx is None else idx
+        u = uniform(state["key"][idx], state["episode"][idx], self.n_random, dtype=self.dtype)
+        state["episode"][idx] += 1
+        state["t"][idx] = 0
+        self._sample(state, idx, u)
+
+    def observe(self, state: dict[str, Tensor]):
+        return self._observe(state, self.robot.ee_position(state["q"]))
+
+    def step(self, state: dict[str, Tensor], action: Tensor):
+        """Advance all rows one control period; ``(obs, reward, terminated, truncated, info)`` tensors."""
+        action = action.to(self.dtype).clamp(-1.0, 1.0)
+        state["q"] = self.robot.apply_action(state["q"], action)
+        state["t"] += 1
+        ee = self.robot.ee_position(state["q"])
+        reward, terminated, info = self._evaluate(state, ee)
+        truncated = state["t"] >= self.max_steps
+        return self._observe(state, ee), reward, terminated, truncated, info
+
+    # --------------------------------------------------------------------------------- to implement
+    def observation_space(self) -> gym.spaces.Space:
+        raise NotImplementedError
+
+    def _sample(self, state, idx, u) -> None:
+        raise NotImplementedError
+
+    def _evaluate(self, state, ee):
+        raise NotImplementedError
+
+    def _observe(self, state, ee):
+        raise NotImplementedError
+
+    def draw_targets(self, state) -> dict:
+        """Points to draw for row 0: ``{"goal": (3,)}`` or ``{"path": (M, 3), "target": (3,)}``."""
+        return {}
+
+
+def _reach_bound(robot: Robot) -> float:
+    """A generous bound on |p_ee|: sum of link offsets of the DH table (plus base/tool)."""
+    chain = robot.chain
+    if hasattr(chain, "dh_table"):
+        tab = chain.dh_table()
+        total = float(tab[:, 0].abs().sum() + tab[:, 2].abs().sum())
+        lo, hi = robot.lower, robot.upper
+        total += float(torch.where(robot.revolute, 0.0, torch.maximum(lo.abs(), hi.abs())).sum())
+    else:
+        total = 5.0
+    for T in (getattr(chain, "base", None), getattr(chain, "tool", None)):
+        if T is not None:
+            total += float(T[:3, 3].norm())
+    return total
+
+
+class TaskEnv(gym.Env):
+    """A single Gymnasium env over a batched :class:`Task` with N = 1.
+
+    Seeding goes only through ``super().reset(seed=seed)``: after it a 32-bit key is drawn from
+    ``self.np_random`` and episode ``e`` is a pure function of ``(key, e)`` (see ``envs/_random.py``).
+    """
+
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+
+    def __init__(self, task: Task, render_mode: str | None = None):
+        if render_mode not in (None, "rgb_array"):
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+        self.task = task
+        self.render_mode = render_mode
+        self.action_space = task.action_space
+        self.observation_space = task.observation_space()
+        self._state: dict[str, Tensor] | None = None
+        self._trace: list[np.ndarray] = []
+        self._renderer = None
+
+    @property
+    def robot(self) -> Robot:
+        return self.task.robot
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None or self._state is None:
+            self._state = self.task.new_state(1)
+            self._state["key"][0] = key_from_generator(self.np_random)
+        self.task.reset_rows(self._state)
+        obs = self.task.observe(self._state)
+        self._trace = [self._ee()]
+        return to_numpy(obs), {}
+
+    def step(self, action):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        action = check_action(action, self.action_space.shape)
+        a = torch.as_tensor(action, dtype=self.task.dtype, device=self.task.device).unsqueeze(0)
+        obs, reward, terminated, truncated, info = self.task.step(self._state, a)
+        self._trace.append(self._ee())
+        info = {k: v[0].item() for k, v in info.items()}
+        return to_numpy(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
+
+    def _ee(self) -> np.ndarray:
+        return self.robot.ee_position(self._state["q"])[0].detach().cpu().numpy().astype(np.float64)
+
+    def render(self):
+        if self.render_mode != "rgb_array" or self._state is None:
+            return None
+        from .render import ArmRenderer
+
+        if self._renderer is None:
+            self._renderer = ArmRenderer(planar=self.robot.planar, extent=_reach_bound(self.robot))
+        frames = self.robot.frames(self._state["q"])[0].cpu().numpy()
+        return self._renderer.draw(frames, np.array(self._trace), self.task.draw_targets(self._state))
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

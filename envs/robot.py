@@ -1,0 +1,147 @@
+"""The robot half of an env: a diffkin chain, its joint limits, and the two action mappings.
+
+All methods are batched over the leading env axis ``(N, ...)`` and run with ``check=False`` on trusted,
+already validated tensors (the envs validate actions once at the boundary).
+
+* joint-velocity mode: ``a ∈ [-1, 1]^n`` → q̇ = a · q̇_max, integrated over the control period and
+  projected onto the joint limits.
+* Cartesian mode: ``a ∈ [-1, 1]^3`` → Δx = a · Δx_max; Δq from diffkin's damped-least-squares step
+  Δq = J_pᵀ (J_p J_pᵀ + λ² I)⁻¹ Δx  (3.56 with damping), rescaled so no joint exceeds q̇_max · Δt.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from diffkin.chain import DHChain, KinematicChain
+from diffkin.ik.numerical import dls_delta
+from diffkin.jacobian import forward_kinematics_and_jacobian
+
+__all__ = ["Robot", "RobotConfig", "load_chain", "HOME"]
+
+# A comfortable, non-singular start pose per model ("ready" pose for the Panda).
+HOME = {
+    "panda": [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
+    "ur5": [0.0, -1.571, 1.571, -1.571, -1.571, 0.0],
+    "three_link_planar": [0.3, 0.6, 0.6],
+}
+
+
+def _fallback_chain(name: str) -> DHChain:
+    """Tables from the project brief, used only until diffkin.models provides ``load``."""
+    pi = math.pi
+    if name == "panda":
+        lim = [(-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.0718, -0.0698),
+               (-2.8973, 2.8973), (-0.0175, 3.7525), (-2.8973, 2.8973)]
+        return DHChain([0, 0, 0, 0.0825, -0.0825, 0, 0.088],
+                       [0, -pi / 2, pi / 2, pi / 2, -pi / 2, pi / 2, pi / 2],
+                       [0.333, 0, 0.316, 0, 0.384, 0, 0.107], [0.0] * 7, convention="modified", q_limits=lim,
+                       name="panda")
+    if name == "ur5":
+        return DHChain([0, -0.425, -0.39225, 0, 0, 0], [pi / 2, 0, 0, pi / 2, -pi / 2, 0],
+                       [0.089159, 0, 0, 0.10915, 0.09465, 0.0823], [0.0] * 6,
+                       q_limits=[(-2 * pi, 2 * pi)] * 6, name="ur5")
+    if name == "three_link_planar":
+        return DHChain([0.5, 0.5, 0.5], [0.0] * 3, [0.0] * 3, [0.0] * 3, q_limits=[(-pi, pi)] * 3,
+                       name="three_link_planar")
+    raise ValueError(f"unknown robot {name!r}; expected 'panda', 'ur5', 'three_link_planar' or a DHChain")
+
+
+def load_chain(robot: str | KinematicChain, dtype=torch.float32, device="cpu") -> KinematicChain:
+    """A chain from a model name (through ``diffkin.models.load``) or a chain instance (copied)."""
+    if isinstance(robot, KinematicChain):
+        chain = robot.copy() if hasattr(robot, "copy") else robot
+        return chain.to(dtype=dtype, device=device)
+    try:
+        from diffkin.models import load
+
+        return load(robot, dtype=dtype, device=device)
+    except (ImportError, ValueError):  # models package still being filled in: use the brief's tables
+        return _fallback_chain(robot).to(dtype=dtype, device=device)
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """Robot-side settings shared by every task."""
+
+    max_joint_speed: float = 1.5  # rad/s (or m/s for prismatic joints)
+    control_dt: float = 0.1  # s, one env step
+    max_ee_step: float = 0.05  # m per step, Cartesian mode
+    damping: float = 0.05  # λ of the damped least-squares step (m)
+
+
+class Robot:
+    """Batched kinematic robot: FK, limits, and the joint / Cartesian action mappings."""
+
+    def __init__(self, robot: str | KinematicChain = "panda", config: RobotConfig | None = None,
+                 action_mode: str = "joint", home=None, dtype=torch.float32, device="cpu"):
+        if action_mode not in ("joint", "cartesian"):
+            raise ValueError(f"action_mode must be 'joint' or 'cartesian', got {action_mode!r}")
+        self.config = config or RobotConfig()
+        self.chain = load_chain(robot, dtype=dtype, device=device).requires_grad_(False)
+        self.name = robot if isinstance(robot, str) else self.chain.name
+        self.n = self.chain.n_joints
+        self.action_mode = action_mode
+        self.action_dim = self.n if action_mode == "joint" else 3
+        self.dtype, self.device = dtype, torch.device(device)
+        lo, hi = self.chain.lower_upper()
+        self.lower, self.upper = lo.to(dtype).clone(), hi.to(dtype).clone()
+        if home is None:
+            home = HOME.get(self.name, ((self.lower + self.upper) / 2).tolist())
+        self.home = self.chain.clamp_to_limits(torch.as_tensor(home, dtype=dtype, device=device))
+        self.step_limit = self.config.max_joint_speed * self.config.control_dt
+        self.revolute = self.chain.revolute_mask.to(torch.bool)
+        self.planar = self.name == "three_link_planar"
+
+    # ------------------------------------------------------------------------------------ kinematics
+    def ee_position(self, q: Tensor) -> Tensor:
+        """End-effector position ``(N, 3)`` from ``q (N, n)`` (2.50)."""
+        return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
+
+    def frames(self, q: Tensor) -> Tensor:
+        """Origins of all frames ``(..., n + 1, 3)`` (for drawing)."""
+        try:
+            return self.chain.forward_kinematics(q, all_frames=True, check=False)[..., :3, 3]
+        except RuntimeError:  # chain.py all_frames does not broadcast q-independent columns (reported)
+            _, origins, T = self.chain.joint_axes_origins(q, check=False)
+            base = getattr(self.chain, "base", None)
+            p0 = torch.zeros_like(origins[..., :1, :])
+            if base is not None:
+                p0 = base[:3, 3].expand_as(p0)
+            return torch.cat((p0, origins, T[..., None, :3, 3]), dim=-2)
+
+    def normalize_q(self, q: Tensor) -> Tensor:
+        """Joint positions mapped to [-1, 1] by the limits."""
+        return 2.0 * (q - self.lower) / (self.upper - self.lower) - 1.0
+
+    def sample_q(self, u: Tensor, spread: float = 1.0, around: Tensor | None = None) -> Tensor:
+        """Joints from uniforms ``u (N, n)``: ``around + spread · (U(limits) − around)``, within limits."""
+        q = self.lower + (self.upper - self.lower) * u
+        around = self.home if around is None else around
+        return around + spread * (q - around)
+
+    # -------------------------------------------------------------------------------------- actions
+    def apply_action(self, q: Tensor, action: Tensor) -> Tensor:
+        """Next joint state from ``q (N, n)`` and a clipped action ``(N, action_dim)`` in [-1, 1]."""
+        if self.action_mode == "joint":
+            dq = action * self.step_limit
+        else:
+            dq = self.cartesian_delta(q, action * self.config.max_ee_step)
+        q = q + dq
+        return torch.maximum(torch.minimum(q, self.upper), self.lower)
+
+    def cartesian_delta(self, q: Tensor, dx: Tensor) -> Tensor:
+        """Δq for an end-effector displacement ``dx (N, 3)`` by damped least squares, speed-limited."""
+        dq = _dls_position_delta(self.chain, q, dx, self.config.damping)
+        scale = (dq.abs().amax(dim=-1, keepdim=True) / self.step_limit).clamp(min=1.0)
+        return dq / scale
+
+
+def _dls_position_delta(chain: KinematicChain, q: Tensor, dx: Tensor, damping: float) -> Tensor:
+    """Δq = J_pᵀ (J_p J_pᵀ + λ² I)⁻¹ Δx (3.59) with J_p the position rows of the geometric Jacobian (3.30)."""
+    _, J = forward_kinematics_and_jacobian(chain, q, check=False)
+    return dls_delta(J[..., :3, :], dx, damping)

@@ -1,0 +1,117 @@
+"""Torch-batched vector env: equals N single envs with the same seeds; SB3 adapter; errors."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.vector import AutoresetMode
+from stable_baselines3.common.vec_env import VecEnv
+
+import envs  # noqa: F401
+from envs.vector import SB3VecEnv, TorchVectorEnv, make_vec_env
+
+ENV_IDS = sorted(k for k in gym.registry if k.startswith("diffkin/"))
+CASES = [(e, m) for e in ENV_IDS for m in ("joint", "cartesian")]
+
+
+def _obs_rows(obs, i):
+    if isinstance(obs, dict):
+        return {k: v[i].numpy() for k, v in obs.items()}
+    return obs[i].numpy()
+
+
+def _assert_close(a, b):
+    if isinstance(a, dict):
+        for k in a:
+            np.testing.assert_allclose(a[k], b[k], rtol=1e-5, atol=2e-6, err_msg=k)
+    else:
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=2e-6)
+
+
+@pytest.mark.parametrize("env_id,action_mode", CASES)
+def test_batched_equals_single_envs_across_episode_boundary(env_id, action_mode):
+    n, seed, kw = 4, 7, dict(episode_steps=6, action_mode=action_mode)
+    venv = TorchVectorEnv(env_id, n, **kw)
+    singles = [gym.make(env_id, **kw) for _ in range(n)]
+    obs_b, _ = venv.reset(seed=seed)
+    obs_s = [e.reset(seed=seed + i)[0] for i, e in enumerate(singles)]
+    for i in range(n):
+        _assert_close(obs_s[i], _obs_rows(obs_b, i))
+    rng = np.random.default_rng(0)
+    for _ in range(15):  # 2.5 episodes: crosses two auto-resets
+        actions = rng.uniform(-1, 1, size=(n, *venv.single_action_space.shape)).astype(np.float32)
+        obs_b, r_b, te_b, tr_b, info_b = venv.step(torch.as_tensor(actions))
+        for i, env in enumerate(singles):
+            o, r, te, tr, info = env.step(actions[i])
+            assert (te, tr) == (bool(te_b[i]), bool(tr_b[i]))
+            assert r == pytest.approx(float(r_b[i]), rel=1e-5, abs=2e-6)
+            if te or tr:
+                assert bool(info_b["_final_obs"][i])
+                _assert_close(o, _obs_rows(info_b["final_obs"], i))
+                o, _ = env.reset()
+            _assert_close(o, _obs_rows(obs_b, i))
+
+
+def test_vector_env_metadata_and_spaces():
+    venv = TorchVectorEnv("diffkin/Reach-v0", 8)
+    assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
+    obs, _ = venv.reset(seed=0)
+    assert obs["observation"].shape == (8, 10) and obs["observation"].dtype == torch.float32
+    assert venv.action_space.shape == (8, 7)
+    assert venv.observation_space["desired_goal"].shape == (8, 3)
+    _, r, te, tr, info = venv.step(torch.zeros(8, 7))
+    assert r.shape == te.shape == tr.shape == info["is_success"].shape == (8,)
+
+
+def test_vector_env_list_seeds_and_compute_reward():
+    venv = TorchVectorEnv("diffkin/Reach-v0", 3)
+    a, _ = venv.reset(seed=[5, 6, 7])
+    b, _ = TorchVectorEnv("diffkin/Reach-v0", 3).reset(seed=5)
+    assert torch.equal(a["desired_goal"], b["desired_goal"])
+    r = venv.compute_reward(a["achieved_goal"], a["desired_goal"], None)
+    assert r.shape == (3,)
+
+
+@pytest.mark.parametrize("bad", [torch.zeros(4, 6), torch.zeros(7), torch.full((4, 7), float("nan"))])
+def test_vector_bad_actions(bad):
+    venv = TorchVectorEnv("diffkin/Reach-v0", 4)
+    venv.reset(seed=0)
+    with pytest.raises(ValueError, match="actions"):
+        venv.step(bad)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_sb3_adapter(env_id):
+    venv = make_vec_env(env_id, 3, episode_steps=4)
+    assert isinstance(venv, VecEnv) and isinstance(venv, SB3VecEnv)
+    venv.seed(11)
+    obs = venv.reset()
+    ref = TorchVectorEnv(env_id, 3, episode_steps=4).reset(seed=11)[0]
+    if isinstance(obs, dict):
+        assert set(obs) == {"observation", "achieved_goal", "desired_goal"}
+        np.testing.assert_array_equal(obs["desired_goal"], ref["desired_goal"].numpy())
+    else:
+        np.testing.assert_array_equal(obs, ref.numpy())
+    for _ in range(4):
+        obs, rew, done, infos = venv.step(np.zeros((3, *venv.action_space.shape), dtype=np.float32))
+        assert rew.shape == (3,) and done.dtype == bool and len(infos) == 3
+    assert done.all()
+    assert all("terminal_observation" in i and i["TimeLimit.truncated"] for i in infos)
+    if env_id == "diffkin/Reach-v0":
+        args = (obs["achieved_goal"], obs["desired_goal"], infos)
+        r = venv.env_method("compute_reward", *args, indices=[0])[0]
+        assert r.shape == (3,)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    a = TorchVectorEnv("diffkin/Reach-v0", 16, device="cuda")
+    b = TorchVectorEnv("diffkin/Reach-v0", 16)
+    oa, _ = a.reset(seed=1)
+    ob, _ = b.reset(seed=1)
+    act = torch.rand(16, 7) * 2 - 1
+    oa, *_ = a.step(act.cuda())
+    ob, *_ = b.step(act)
+    assert torch.allclose(oa["observation"].cpu(), ob["observation"], atol=1e-5)

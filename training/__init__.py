@@ -1,0 +1,1 @@
+"""Training and evaluation of stable-baselines3 agents on the diffkin envs, driven by configs/*.yaml."""

@@ -1,0 +1,134 @@
+"""Evaluate a trained run (batched, on the torch vector env) against a scripted IK baseline.
+
+    python -m training.evaluate RUN_DIR [--episodes N] [--seed S]
+
+The scripted baseline is closed-loop inverse kinematics with diffkin's damped-least-squares step
+(the env's own Cartesian mapping): each step it commands Δx = target − p_ee (goal for Reach, next path
+point for Track), converted to the env's action space and clipped. It knows the goal/path exactly, so it is
+an upper bound for a policy rather than a competitor.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from envs.vector import TorchVectorEnv
+
+__all__ = ["run_episodes", "scripted_policy", "model_policy", "evaluate_run", "main"]
+
+Policy = Callable[[object, TorchVectorEnv], object]
+
+
+def run_episodes(venv: TorchVectorEnv, policy: Policy, seed: int = 10_000) -> dict:
+    """One episode in each of the ``venv.num_envs`` envs. Success and final distance are taken at each
+    env's first episode end; tracking error is the mean over that episode's steps (and envs)."""
+    obs, _ = venv.reset(seed=seed)
+    n = venv.num_envs
+    finished = torch.zeros(n, dtype=torch.bool, device=venv.device)
+    success = torch.zeros(n, dtype=torch.bool, device=venv.device)
+    dist = torch.zeros(n, device=venv.device)
+    err_sum = torch.zeros(n, device=venv.device)
+    steps = torch.zeros(n, device=venv.device)
+    while not bool(finished.all()):
+        obs, _, term, trunc, info = venv.step(policy(obs, venv))
+        live = ~finished
+        if "tracking_error" in info:
+            err_sum += torch.where(live, info["tracking_error"].float(), 0.0)
+        steps += live.float()
+        done = (term | trunc) & live
+        if "is_success" in info:
+            success |= done & info["is_success"]
+            dist = torch.where(done, info["distance"].float(), dist)
+        finished |= done
+    out = {"episodes": n}
+    if "is_success" in info:
+        out.update(success_rate=float(success.float().mean()), final_distance=float(dist.mean()))
+    if "tracking_error" in info:
+        per_ep = err_sum / steps
+        out.update(tracking_error=float(per_ep.mean()), tracking_error_std=float(per_ep.std()))
+    return out
+
+
+def scripted_policy(obs, venv: TorchVectorEnv) -> torch.Tensor:
+    """Closed-loop IK with diffkin's damped-least-squares step, in the env's action space."""
+    task, state = venv.task, venv.state
+    robot = task.robot
+    ee = robot.ee_position(state["q"])
+    target = state["goal"] if "goal" in state else task.targets(state, offset=1)[:, 0]
+    dx = target - ee
+    if robot.action_mode == "cartesian":
+        a = dx / robot.config.max_ee_step
+        return a / a.abs().amax(dim=-1, keepdim=True).clamp(min=1.0)
+    return (robot.cartesian_delta(state["q"], dx) / robot.step_limit).clamp(-1.0, 1.0)
+
+
+def model_policy(model, obs_normalizer=None) -> Policy:
+    """Deterministic SB3 policy on batched torch observations."""
+
+    def act(obs, venv):
+        obs_np = {k: v.cpu().numpy() for k, v in obs.items()} if isinstance(obs, dict) else obs.cpu().numpy()
+        if obs_normalizer is not None:
+            obs_np = obs_normalizer.normalize_obs(obs_np)
+        action, _ = model.predict(obs_np, deterministic=True)
+        return torch.as_tensor(action, dtype=torch.float32)
+
+    return act
+
+
+def load_run(run_dir: str | Path):
+    """(config, model, VecNormalize or None) of a finished run directory."""
+    from training.config import load_config
+    from training.train import ALGOS
+
+    run_dir = Path(run_dir)
+    cfg = load_config(run_dir / "config.yaml")
+    env = None
+    if cfg.her is not None:  # SB3 rebuilds the HerReplayBuffer on load and needs an env for it
+        from envs.vector import make_vec_env
+
+        env = make_vec_env(cfg.env_id, 1, **cfg.env_kwargs)
+    model = ALGOS[cfg.algo].load(run_dir / "model.zip", env=env, device="cpu")
+    norm = None
+    if (run_dir / "vecnormalize.pkl").exists():
+        import pickle
+
+        norm = pickle.loads((run_dir / "vecnormalize.pkl").read_bytes())
+        norm.training = False
+    return cfg, model, norm
+
+
+def evaluate_run(run_dir: str | Path, episodes: int = 200, seed: int = 20_000) -> dict:
+    """Policy vs scripted baseline on ``episodes`` identical episodes (same seeds)."""
+    cfg, model, norm = load_run(run_dir)
+    kwargs = {**cfg.env_kwargs, **cfg.eval_env_kwargs}
+    venv = TorchVectorEnv(cfg.env_id, episodes, **kwargs)
+    return {
+        "run": str(run_dir),
+        "env_id": cfg.env_id,
+        "policy": run_episodes(venv, model_policy(model, norm), seed),
+        "scripted_ik": run_episodes(venv, scripted_policy, seed),
+    }
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run_dir")
+    p.add_argument("--episodes", type=int, default=200)
+    p.add_argument("--seed", type=int, default=20_000)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    res = evaluate_run(args.run_dir, args.episodes, args.seed)
+    print(json.dumps(res, indent=2))
+    (Path(args.run_dir) / "evaluation.json").write_text(json.dumps(res, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    np.set_printoptions(precision=4)
+    raise SystemExit(main())

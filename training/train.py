@@ -1,0 +1,167 @@
+"""Train an SB3 agent on a diffkin env from a YAML config; the run records itself.
+
+    python -m training.train --config configs/<run>.yaml [--seed S] [--total-timesteps N] [--out DIR]
+
+Writes to ``DIR`` (default ``runs/<name>/seed<S>``): ``config.yaml`` (resolved), ``meta.json`` (seed,
+versions, command line, timings), TensorBoard logs (``tb/``), ``model.zip`` (+ ``vecnormalize.pkl``) and
+``results.json`` (final evaluation, scripted-IK baseline, evaluation curve).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import json
+import pickle
+import platform
+import sys
+import time
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import torch
+import yaml
+from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
+from stable_baselines3.common.noise import NormalActionNoise
+from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+import envs  # noqa: F401  (registers the IDs)
+from envs.vector import TorchVectorEnv, make_vec_env
+from training.config import RunConfig, load_config
+from training.evaluate import model_policy, run_episodes, scripted_policy
+
+ALGOS = {"sac": SAC, "td3": TD3, "ppo": PPO}
+EVAL_SEED = 10_000
+
+
+def build_env(cfg: RunConfig):
+    if cfg.vectorized:
+        venv = VecMonitor(make_vec_env(cfg.env_id, cfg.n_envs, device=cfg.device, **cfg.env_kwargs))
+    else:
+        venv = sb3_make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, env_kwargs=cfg.env_kwargs)
+    venv.seed(cfg.seed)
+    if cfg.normalize:
+        venv = VecNormalize(venv, norm_obs=True, norm_reward=True)
+    return venv
+
+
+def build_model(cfg: RunConfig, venv, tb_dir: str | None):
+    kwargs = copy.deepcopy(cfg.algo_kwargs)  # SB3 mutates policy_kwargs
+    if cfg.her is not None:
+        kwargs.update(replay_buffer_class=HerReplayBuffer, replay_buffer_kwargs=dict(cfg.her))
+    if "action_noise_std" in kwargs:
+        dim = venv.action_space.shape[0]
+        std = kwargs.pop("action_noise_std")
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), std * np.ones(dim))
+    policy = "MultiInputPolicy" if isinstance(venv.observation_space, gym.spaces.Dict) else "MlpPolicy"
+    return ALGOS[cfg.algo](policy, venv, seed=cfg.seed, device=cfg.device, tensorboard_log=tb_dir, verbose=0,
+                           **kwargs)
+
+
+class EvalCallback(BaseCallback):
+    """Batched evaluation every ``eval_freq`` env steps; wall-clock and success-based stopping."""
+
+    def __init__(self, cfg: RunConfig, eval_env: TorchVectorEnv, start: float, log=print,
+                 out: Path | None = None):
+        super().__init__()
+        self.cfg, self.eval_env, self.start, self.log, self.out = cfg, eval_env, start, log, out
+        self.curve: list[dict] = []
+        self.next_eval = cfg.eval_freq
+        self.stop_reason = "total_timesteps"
+
+    def evaluate(self) -> dict:
+        norm = self.model.get_vec_normalize_env()
+        res = run_episodes(self.eval_env, model_policy(self.model, norm), seed=EVAL_SEED)
+        point = {"timesteps": int(self.num_timesteps), "wall_s": round(time.time() - self.start, 2), **res}
+        self.curve.append(point)
+        if self.out is not None:  # partial curve, readable while the run is going
+            (self.out / "progress.json").write_text(json.dumps(self.curve, indent=1))
+        for k in ("success_rate", "final_distance", "tracking_error"):
+            if k in res:
+                self.logger.record(f"eval/{k}", res[k])
+        self.log(json.dumps(point))
+        return res
+
+    def _on_step(self) -> bool:
+        cfg = self.cfg
+        if cfg.max_wall_seconds is not None and time.time() - self.start > cfg.max_wall_seconds:
+            self.stop_reason = "max_wall_seconds"
+            return False
+        if self.num_timesteps < self.next_eval:
+            return True
+        self.next_eval += cfg.eval_freq
+        res = self.evaluate()
+        if cfg.stop_success is not None and res.get("success_rate", 0.0) >= cfg.stop_success:
+            self.stop_reason = "stop_success"
+            return False
+        return True
+
+
+def versions() -> dict:
+    import stable_baselines3
+
+    return {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
+            "gymnasium": gym.__version__, "stable_baselines3": stable_baselines3.__version__,
+            "platform": platform.platform()}
+
+
+def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print) -> dict:
+    """Train, evaluate and save; returns the results dict (also written to ``out/results.json``)."""
+    torch.set_num_threads(cfg.torch_threads)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    meta = {"seed": cfg.seed, "command": " ".join(sys.argv), "versions": versions(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S")}
+    (out / "meta.json").write_text(json.dumps(meta, indent=2))
+    try:
+        import tensorboard  # noqa: F401
+
+        tb_dir = str(out / "tb")
+    except ImportError:
+        tb_dir = None
+    eval_env = TorchVectorEnv(cfg.env_id, cfg.eval_episodes, **{**cfg.env_kwargs, **cfg.eval_env_kwargs})
+    venv = build_env(cfg)
+    model = build_model(cfg, venv, tb_dir)
+    start = time.time()
+    cb = EvalCallback(cfg, eval_env, start, log, out)
+    model.learn(cfg.total_timesteps, callback=cb, progress_bar=progress_bar)
+    train_s = time.time() - start
+    if not cb.curve or cb.curve[-1]["timesteps"] != model.num_timesteps:
+        cb.evaluate()
+    final = {k: v for k, v in cb.curve[-1].items() if k != "wall_s"}
+    baseline = run_episodes(eval_env, scripted_policy, seed=EVAL_SEED)
+    model.save(out / "model.zip")
+    if isinstance(venv, VecNormalize):
+        (out / "vecnormalize.pkl").write_bytes(pickle.dumps(venv))
+    first = next((p for p in cb.curve if p.get("success_rate", 0.0) >= 0.95), {})
+    results = {"name": cfg.name, "env_id": cfg.env_id, "algo": cfg.algo, "seed": cfg.seed,
+               "timesteps": int(model.num_timesteps), "train_wall_s": round(train_s, 1),
+               "stop_reason": cb.stop_reason, "final": final, "scripted_ik": baseline, "curve": cb.curve,
+               "time_to_success_0.95_s": first.get("wall_s"), "steps_to_success_0.95": first.get("timesteps")}
+    (out / "results.json").write_text(json.dumps(results, indent=2))
+    meta["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
+    (out / "meta.json").write_text(json.dumps(meta, indent=2))
+    venv.close()
+    return results
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="Train an SB3 agent on a diffkin env from a YAML config.")
+    p.add_argument("--config", required=True)
+    p.add_argument("--seed", type=int)
+    p.add_argument("--total-timesteps", type=int)
+    p.add_argument("--out")
+    p.add_argument("--no-progress", action="store_true", help="disable the progress bar (for log files)")
+    args = p.parse_args(argv)
+    cfg = load_config(args.config).replace(seed=args.seed, total_timesteps=args.total_timesteps)
+    out = Path(args.out) if args.out else Path("runs") / cfg.name / f"seed{cfg.seed}"
+    res = train(cfg, out, progress_bar=not args.no_progress)
+    print(json.dumps({k: v for k, v in res.items() if k != "curve"}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
