@@ -18,19 +18,21 @@ __all__ = ["Columns", "columns_to_matrices", "axpy", "rotate", "dh_frames", "dh_
 Columns = tuple[Tensor, Tensor, Tensor, Tensor]  # x, y, z, p of one frame, each (3, B) or (3, 1)
 
 
-def columns_to_matrices(frame: Columns, T: Tensor | None, out: Tensor) -> None:
+def columns_to_matrices(frame: Columns, T: Tensor | None, out: Tensor) -> Tensor:
     """Write a column frame (optionally times the fixed transform ``T``) into ``out (B, 4, 4)``.
 
-    ``out``'s last row must already hold [0, 0, 0, 1].
+    ``out``'s last row must already hold [0, 0, 0, 1]. Returns the origin column written, batch last:
+    ``(3, B)`` (or ``(3, 1)`` if it does not depend on the batch), equal to ``out[:, :3, 3].T``.
     """
     if T is None:
         for j, col in enumerate(frame):
             out[..., :3, j] = col.T
-        return
+        return frame[3]
     F = torch.stack(torch.broadcast_tensors(*frame))  # (4, 3, B): columns x, y, z, p
     # F · T: new column j = sum_k T[k, j] col_k (p is the column with T[3, 3] = 1)
     F = (T.transpose(0, 1) @ F.reshape(4, -1)).reshape(F.shape)
     out[..., :3, :] = F.permute(2, 1, 0)
+    return F[3]
 
 
 def axpy(p: Tensor, a, x: Tensor) -> Tensor:

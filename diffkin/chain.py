@@ -267,6 +267,8 @@ class KinematicChain(nn.Module):
 
         Returns ``(axes (..., n, 3), origins (..., n, 3), T_ee (..., 4, 4))``: for joint i the unit vector
         z_{i-1} and point p_{i-1} of (3.30) (standard DH); for modified DH the joint sits on z_i, p_i.
+        Above :attr:`small_batch` ``axes`` and ``origins`` are non-contiguous views of batch-last memory
+        (``reshape``, not ``view``, to flatten them).
         """
         if check:
             self.check_q(q)
@@ -280,15 +282,24 @@ class KinematicChain(nn.Module):
             return axes, origins, T_ee
         qs = self._joint_columns(q)
         B = qs[0].shape[0]
-        axes = q.new_empty(B, n, 3)
-        origins = q.new_empty(B, n, 3)
-        for i, frame in enumerate(self._column_frames(qs)):
-            if off <= i < off + n:
-                axes[:, i - off] = frame[2].T
-                origins[:, i - off] = frame[3].T
-        T_ee = self._new_poses(q, B)
-        columns_to_matrices(frame, self._ee_transform(), T_ee)
+        # batch-last (3, n, B) memory, handed out as (B, n, 3) views: every write is a contiguous row copy
+        # (no transposing scatter), and the Jacobian kernel computes in this layout
+        axes_bl, origins_bl, T_ee = q.new_empty(3, n, B), q.new_empty(3, n, B), self._new_poses(q, B)
+        self._axes_origins_into(qs, axes_bl, origins_bl, T_ee)
+        axes, origins = axes_bl.permute(2, 1, 0), origins_bl.permute(2, 1, 0)
         return axes.reshape(*batch, n, 3), origins.reshape(*batch, n, 3), T_ee.reshape(*batch, 4, 4)
+
+    def _axes_origins_into(self, qs: Sequence[Tensor], axes: Tensor, origins: Tensor, T_ee: Tensor) -> Tensor:
+        """Column kernel of :meth:`joint_axes_origins` for joint columns ``qs`` (each ``(B,)``): fills
+        ``axes`` and ``origins`` ``(3, n, B)`` and ``T_ee (B, 4, 4)`` (last row already [0, 0, 0, 1]);
+        returns the end-effector origin batch last, ``(3, B)`` or ``(3, 1)``, equal to ``T_ee[:, :3, 3].T``.
+        """
+        off, n = self._axis_offset, self.n_joints
+        for i, frame in enumerate(self._column_frames(qs)):
+            if off <= i < off + n:  # q-independent columns are (3, 1) and broadcast
+                axes[:, i - off] = frame[2]
+                origins[:, i - off] = frame[3]
+        return columns_to_matrices(frame, self._ee_transform(), T_ee)
 
     def _matrix_kernel_frames(self, q: Tensor) -> Tensor:
         """Kernel frames K_0..K_n as ``(..., n + 1, 4, 4)`` (no fixups, no tool)."""

@@ -373,7 +373,7 @@ def run_demo(quick: bool = False, out: str | None = None, skip_rl: bool = False)
         ("CLIK §3.7.5", lambda: section_clik(report, quick)),
     ]
     if not skip_rl:
-        steps.append(("RL", lambda: section_rl(report, 15 if quick else 120)))
+        steps.append(("RL", lambda: section_rl(report, 15 if quick else 150)))
     t_all = time.perf_counter()
     for name, fn in steps:
         with con.status(f"[bold]{name}[/bold] ..."):

@@ -399,3 +399,22 @@ def test_analytical_jacobian_representation_singularity():
     assert torch.all(J_A[..., 4:, :].abs() < 1e-12)
     with pytest.raises(ConventionError):
         analytical_jacobian(chain, q, "RPY", singular="maybe")
+
+
+@pytest.mark.parametrize("batch", [(100,), (7, 13)])
+def test_sliced_large_batch_path_is_bit_identical(monkeypatch, batch):
+    """Large CPU batches without autograd run in slices (_CHUNK); slicing must not change a single bit."""
+    import diffkin.jacobian as jac
+    from diffkin.models import from_urdf
+
+    urdf = Path(__file__).resolve().parent.parent / "diffkin" / "models" / "data" / "ur5.urdf"
+    chains = [random_chain(3, "standard", types="RPRRPR"), from_urdf(str(urdf), "tool0", dtype=F64)]
+    for chain in chains:
+        q = chain.random_configuration(batch, generator=torch.Generator().manual_seed(5))
+        with torch.no_grad():
+            monkeypatch.setattr(jac, "_CHUNK", 10**9)
+            T_ref, J_ref = jac.forward_kinematics_and_jacobian(chain, q)
+            monkeypatch.setattr(jac, "_CHUNK", 24)  # slices of 24 (and a remainder) per thread
+            T, J = jac.forward_kinematics_and_jacobian(chain, q)
+        assert torch.equal(T, T_ref) and torch.equal(J, J_ref)
+        assert J.shape == (*batch, 6, chain.n_joints)
