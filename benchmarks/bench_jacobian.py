@@ -12,55 +12,52 @@ the ratios pk / diffkin and (diffkin FK + J) / (diffkin FK).
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import torch
 
+from benchmarks.common import pk_panda, timeit
 from diffkin import models
 from diffkin.jacobian import forward_kinematics_and_jacobian, geometric_jacobian
 
 __all__ = ["run", "main"]
 
-URDF = models.DATA_DIR / "panda.urdf"
+PEER_MAX_BATCH = 1000  # the peers loop in Python/C++ one configuration at a time: rates scale linearly
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
+def _peer_rows(B: int, t_pk: float, common: dict, repeats: int) -> list[dict]:
+    """Pinocchio and Robotics Toolbox Jacobians (float64, CPU; skipped when not installed)."""
+    from benchmarks import peers
 
-
-def _timed(fn, min_time: float, repeats: int, device: str) -> float:
-    """Median seconds per call over ``repeats`` blocks, each running ``fn`` for at least ``min_time`` s."""
-    fn()
-    _sync(device)
-    per_call = []
-    for _ in range(repeats):
-        n, t0 = 0, time.perf_counter()
-        while True:
-            fn()
-            n += 1
-            _sync(device)
-            dt = time.perf_counter() - t0
-            if dt >= min_time:
-                break
-        per_call.append(dt / n)
-    return statistics.median(per_call)
-
-
-def _pk_chain(dtype, device):
-    import pytorch_kinematics as pk
-
-    return pk.build_serial_chain_from_urdf(URDF.read_bytes(), "panda_link8").to(dtype=dtype, device=device)
+    m = min(B, PEER_MAX_BATCH)
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((m,), generator=torch.Generator().manual_seed(1))
+    with torch.no_grad():
+        J_ref = geometric_jacobian(chain, q).numpy()
+    rows = []
+    for name, fn in (("pinocchio computeFrameJacobian (Python loop)", peers.pinocchio_jacobian_rate),
+                     ("robotics_toolbox ETS_jacob0 (C++)", peers.rtb_jacobian_rate)):
+        try:
+            rate, J = fn(q.numpy(), repeats=repeats)
+        except peers.SkipPeer as e:
+            print(f"[jacobian] {e}")
+            continue
+        rows.append({**common, "dtype": "float64", "impl": name, "seconds": B / rate,
+                     "max_abs_diff_vs_diffkin": float(abs(J - J_ref).max()), "timed_batch": m,
+                     "speedup_vs_pk": t_pk / (B / rate)})
+    return rows
 
 
 def bench_batch(B: int, chain, pk_chain, min_time: float, repeats: int, device: str, seed: int = 0):
     q = chain.random_configuration((B,), generator=torch.Generator().manual_seed(seed)).to(device)
+
+    def timed(fn):
+        return timeit(fn, min_time=min_time, repeats=repeats, device=device, warmup=1)
+
     with torch.no_grad():
-        t_fk = _timed(lambda: chain.forward_kinematics(q), min_time, repeats, device)
-        t_j = _timed(lambda: geometric_jacobian(chain, q), min_time, repeats, device)
-        t_fkj = _timed(lambda: forward_kinematics_and_jacobian(chain, q), min_time, repeats, device)
-        t_pk = _timed(lambda: pk_chain.jacobian(q), min_time, repeats, device)
+        t_fk = timed(lambda: chain.forward_kinematics(q))
+        t_j = timed(lambda: geometric_jacobian(chain, q))
+        t_fkj = timed(lambda: forward_kinematics_and_jacobian(chain, q))
+        t_pk = timed(lambda: pk_chain.jacobian(q))
         err = float((geometric_jacobian(chain, q) - pk_chain.jacobian(q)).abs().max())
     common = {"benchmark": "jacobian", "robot": "panda", "device": device, "dtype": "float32", "batch": B}
     rows = [
@@ -71,6 +68,8 @@ def bench_batch(B: int, chain, pk_chain, min_time: float, repeats: int, device: 
          "ratio_fkj_over_fk": t_fkj / t_fk},
         {**common, "impl": "pytorch_kinematics jacobian", "seconds": t_pk},
     ]  # fmt: skip
+    if B > 1 and device == "cpu":
+        rows += _peer_rows(B, t_pk, common, repeats)
     for r in rows:
         r["per_second"] = B / r["seconds"]
     return rows
@@ -88,7 +87,7 @@ def run(args=None) -> list[dict]:
     torch.set_num_threads(threads)
     try:
         chain = models.load("panda", dtype=torch.float32).to(device)
-        pk_chain = _pk_chain(torch.float32, device)
+        pk_chain = pk_panda(torch.float32, device)
         rows = []
         for B in batches:
             rows += bench_batch(B, chain, pk_chain, min_time, repeats, device)
