@@ -31,7 +31,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.run all
 
 train: $(STAMP)
-	$(PY) -m training.train --config configs/sac_her_reach_panda.yaml
+	$(PY) -m training.train --config configs/sac_her_reach_panda_cartesian.yaml
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -213,3 +214,37 @@ def test_demo_quick(tmp_path):
     assert "IK" in report and "Calibration" in report and "CLIK" in report
     assert list((tmp_path / "demo").glob("*.png"))
     assert str(tmp_path / "demo") in out
+
+
+@pytest.mark.slow
+def test_train_then_evaluate(tmp_path):
+    run_dir = tmp_path / "run"
+    out = ok(
+        run_cli(
+            "train",
+            "--config",
+            "configs/ppo_batched_reach_panda.yaml",
+            "--total-timesteps",
+            "256",
+            "--out",
+            str(run_dir),
+        )
+    )
+    results = json.loads((run_dir / "results.json").read_text())
+    assert results["env_id"] == "diffkin/Reach-v0" and results["timesteps"] >= 256
+    assert (run_dir / "model.zip").exists() and (run_dir / "config.yaml").exists() and "timesteps" in out
+    ok(run_cli("evaluate", str(run_dir), "--episodes", "8"))
+    evaluation = json.loads((run_dir / "evaluation.json").read_text())
+    assert 0.0 <= evaluation["policy"]["success_rate"] <= 1.0
+    assert evaluation["scripted_ik"]["success_rate"] >= 0.9
+
+
+def test_train_missing_config_fails(tmp_path):
+    proc = run_cli("train", "--config", str(tmp_path / "nope.yaml"))
+    assert proc.returncode != 0
+
+
+@pytest.mark.slow
+def test_bench_prints_ratios():
+    out = ok(run_cli("bench", "calibration", "--quick"))
+    assert "calibrate_batch" in out and "ratio" in out
