@@ -28,13 +28,14 @@ def _console():
 
 
 def _table(title: str, columns: list[str], rows: list[list]):
+    from rich.markup import escape
     from rich.table import Table
 
-    table = Table(title=title)
+    table = Table(title=escape(title))
     for c in columns:
-        table.add_column(c)
+        table.add_column(escape(c))  # "[mm]" etc. are units, not rich markup
     for r in rows:
-        table.add_row(*[str(v) for v in r])
+        table.add_row(*[escape(str(v)) for v in r])
     return table
 
 
