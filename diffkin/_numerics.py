@@ -26,6 +26,8 @@ __all__ = [
     "safe_atan2",
     "safe_sqrt",
     "batch_shape_str",
+    "cross",
+    "wrap_angle",
 ]
 
 _FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
@@ -111,3 +113,15 @@ def safe_atan2(y: Tensor, x: Tensor) -> Tensor:
     zero = (y == 0) & (x == 0)
     x_safe = torch.where(zero, torch.ones_like(x), x)
     return torch.where(zero, torch.zeros_like(y), torch.atan2(y, x_safe))
+
+
+def cross(a: Tensor, b: Tensor, dim: int = -1) -> Tensor:
+    """a × b along ``dim`` (size 3), by components: cheaper than ``torch.linalg.cross`` on small tensors."""
+    ax, ay, az = a.unbind(dim)
+    bx, by, bz = b.unbind(dim)
+    return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx), dim)
+
+
+def wrap_angle(x: Tensor) -> Tensor:
+    """Angles mapped to (-π, π] by atan2(sin x, cos x) (smooth, finite gradient everywhere)."""
+    return torch.atan2(torch.sin(x), torch.cos(x))

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._numerics import check_shape, eps_for
+from ._numerics import check_shape, cross, eps_for
 from .chain import KinematicChain
 from .errors import ConventionError, DTypeError, RepresentationSingularityError, ShapeError
 from .manipulability import (
@@ -89,13 +89,6 @@ _CHUNK = 8192  # configurations per thread and slice of a large CPU batch (forwa
 
 
 # ------------------------------------------------------------------------------------------ kernels
-def _cross(a: Tensor, b: Tensor) -> Tensor:
-    """a × b on (..., 3), elementwise (cheaper than torch.linalg.cross for small tensors)."""
-    ax, ay, az = a.unbind(-1)
-    bx, by, bz = b.unbind(-1)
-    return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx), dim=-1)
-
-
 def _jacobian_kernel(
     axes: Tensor, origins: Tensor, p_e: Tensor, revolute: Tensor, all_revolute: bool
 ) -> Tensor:
@@ -299,13 +292,13 @@ def jacobian_dot_qdot(chain, q: Tensor, qdot: Tensor, check: bool = True) -> Ten
     r = origins - T_ee[..., None, :3, 3]  # p_i - p_e, (..., n, 3)
     w = axes * (qd * rev)  # angular velocity contributed by each joint
     lin = axes * (qd * (1.0 - rev))  # linear velocity of prismatic joints
-    wr = _cross(w, r)  # w_k × (p_k - p_e)
+    wr = cross(w, r)  # w_k × (p_k - p_e)
     w_before = torch.cumsum(w, dim=-2) - w  # ω of the link carrying axis i
-    v_before = _cross(w_before, r) - (torch.cumsum(wr, dim=-2) - wr) + (torch.cumsum(lin, dim=-2) - lin)
+    v_before = cross(w_before, r) - (torch.cumsum(wr, dim=-2) - wr) + (torch.cumsum(lin, dim=-2) - lin)
     v_e = lin.sum(-2) - wr.sum(-2)  # ṗ_e
-    z_dot = _cross(w_before, axes)
+    z_dot = cross(w_before, axes)
     # d/dt [z × (p_e - p)] = ż × (p_e - p) + z × (ṗ_e - ṗ)
-    col_rev = _cross(r, z_dot) + _cross(axes, v_e.unsqueeze(-2) - v_before)
+    col_rev = cross(r, z_dot) + cross(axes, v_e.unsqueeze(-2) - v_before)
     lin_dot = (qd * (rev * col_rev + (1.0 - rev) * z_dot)).sum(-2)
     ang_dot = (qd * rev * z_dot).sum(-2)
     return torch.cat((lin_dot, ang_dot), dim=-1)
@@ -340,7 +333,7 @@ def analytical_to_geometric(J_A: Tensor, phi: Tensor, representation: str = "ZYZ
 def _inverse3(T: Tensor, tol: float) -> tuple[Tensor, Tensor]:
     """Inverse of (..., 3, 3) by cofactors; where |det| <= tol returns finite garbage and flags it."""
     a, b, c = T.unbind(-1)  # columns
-    bc, ca, ab = _cross(b, c), _cross(c, a), _cross(a, b)
+    bc, ca, ab = cross(b, c), cross(c, a), cross(a, b)
     det = (a * bc).sum(-1)
     singular = det.abs() <= tol
     det_safe = torch.where(singular, torch.ones_like(det), det)  # double where: no inf/NaN gradients

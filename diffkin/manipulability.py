@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._numerics import check_shape, eps_for, safe_norm, safe_sqrt
+from ._numerics import check_shape, cross, eps_for, safe_norm, safe_sqrt
 from .errors import ConventionError, ModelError, ShapeError
 from .redundancy import _check_J
 
@@ -32,10 +32,6 @@ __all__ = [
 ]
 
 _PARTS = {"full": slice(None), "position": slice(0, 3), "orientation": slice(3, 6)}
-
-
-def _cross(a: Tensor, b: Tensor) -> Tensor:
-    return torch.linalg.cross(a, b, dim=-1)
 
 
 def _inv_or_inf(x: Tensor) -> Tensor:
@@ -128,19 +124,19 @@ def decoupled_singularities(chain, q: Tensor, tol: float | None = None, check: b
     if n == 6:
         p_w = _wrist_centre(axes[..., 3:, :], origins[..., 3:, :])
         z3, z4, z5 = axes[..., 3, :], axes[..., 4, :], axes[..., 5, :]
-        det_wrist = (z3 * _cross(z4, z5)).sum(-1)
+        det_wrist = (z3 * cross(z4, z5)).sum(-1)
     else:
         p_w = T_ee[..., :3, 3]
         det_wrist = torch.ones_like(p_w[..., 0])
-    cols = _cross(axes[..., :3, :], p_w.unsqueeze(-2) - origins[..., :3, :])  # J11 columns at p_W
-    det_arm = (cols[..., 0, :] * _cross(cols[..., 1, :], cols[..., 2, :])).sum(-1)
-    shoulder = safe_norm(_cross(axes[..., 0, :], p_w - origins[..., 0, :]))
+    cols = cross(axes[..., :3, :], p_w.unsqueeze(-2) - origins[..., :3, :])  # J11 columns at p_W
+    det_arm = (cols[..., 0, :] * cross(cols[..., 1, :], cols[..., 2, :])).sum(-1)
+    shoulder = safe_norm(cross(axes[..., 0, :], p_w - origins[..., 0, :]))
     z1 = axes[..., 1, :]
     upper, fore = origins[..., 2, :] - origins[..., 1, :], p_w - origins[..., 2, :]
     perp = lambda v: v - (v * z1).sum(-1, keepdim=True) * z1  # noqa: E731
     denom = safe_norm(perp(upper)) * safe_norm(perp(fore))
     degenerate = denom <= eps_for(denom)
-    sine = (z1 * _cross(upper, fore)).sum(-1).abs()
+    sine = (z1 * cross(upper, fore)).sum(-1).abs()
     elbow = torch.where(degenerate, torch.zeros_like(sine), sine / torch.where(degenerate, 1.0, denom))
     wrist = det_wrist.abs()
     tol = eps_for(p_w) ** 0.5 if tol is None else tol

@@ -23,6 +23,7 @@ from ._numerics import (
     safe_norm,
     safe_sqrt,
     sinc,
+    wrap_angle,
 )
 from .errors import ConventionError, DiffkinError, DTypeError
 
@@ -482,7 +483,7 @@ def orientation_error_euler(phi_d: Tensor, phi_e: Tensor, wrap: bool = False) ->
     _checked(phi_e, (3,), "phi_e")
     _same_dtype(phi_d, phi_e, "phi_d", "phi_e")
     e = phi_d - phi_e
-    return torch.atan2(torch.sin(e), torch.cos(e)) if wrap else e
+    return wrap_angle(e) if wrap else e
 
 
 _AXIS_ANGLE_FORMS = ("sin", "rotvec")

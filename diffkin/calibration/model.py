@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_finite
+from .._numerics import batch_shape_str, check_finite, cross
 from ..chain import DHChain
 from ..errors import DTypeError, ModelError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix, _skew
@@ -65,13 +65,6 @@ def _so3_right_jacobian(v: Tensor) -> Tensor:
     c1 = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / t2s)
     c2 = torch.where(small, 1.0 / 6.0 - t2 / 120.0, (t - torch.sin(t)) / (t2s * t))
     return torch.eye(3, dtype=v.dtype, device=v.device) - c1 * S + c2 * (S @ S)
-
-
-def _cross(u: Tensor, v: Tensor) -> Tensor:
-    """Cross product of column vectors: (..., 3, k) x (..., 3, k) -> (..., 3, k), broadcasting."""
-    u0, u1, u2 = u.unbind(-2)
-    v0, v1, v2 = v.unbind(-2)
-    return torch.stack((u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0), dim=-2)
 
 
 def _dh_frames(a, alpha, d, theta, q, revolute, convention, base):
@@ -282,14 +275,17 @@ class CalibrationModel:
         X, Z = torch.broadcast_tensors(X, Z)
         zero = torch.zeros_like(X)
         # a: along x, α: about x through its origin, d: along z, ϑ: about z  (linear; angular)
-        lin = [X, _cross(X, p_e - OX), Z, _cross(Z, p_e - OZ)]
+        lin = [X, cross(X, p_e - OX, -2), Z, cross(Z, p_e - OZ, -2)]
         ang = [zero, X, zero, Z]
         if bool(cols[n4:].any()):
             B = base[..., None, :3, :3].expand(*X.shape[:-1], 3)
             r_b = zeta[..., None, n4 + 3 : n4 + 6]  # (..., 1, 3): broadcast over the poses
             r_t = zeta[..., None, n4 + 9 :]
             z3 = torch.zeros_like(B)
-            lin_b = [B @ _rotvec_to_matrix(r_b).transpose(-1, -2), _cross(B, p_e - base[..., None, :3, 3:])]
+            lin_b = [
+                B @ _rotvec_to_matrix(r_b).transpose(-1, -2),
+                cross(B, p_e - base[..., None, :3, 3:], -2),
+            ]
             lin += [lin_b[0], lin_b[1] @ _so3_right_jacobian(r_b)]
             ang += [z3, B @ _so3_right_jacobian(r_b)]
             lin += [R_e @ _rotvec_to_matrix(r_t).transpose(-1, -2), z3]

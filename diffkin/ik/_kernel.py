@@ -12,14 +12,8 @@ import math
 import torch
 from torch import Tensor
 
+from .._numerics import cross
 from ..chain import KinematicChain
-
-
-def cross0(a: Tensor, b: Tensor, dim: int = 0) -> Tensor:
-    """Cross product along ``dim`` (size 3) by components (torch.linalg.cross is slow on small batches)."""
-    ax, ay, az = a.unbind(dim)
-    bx, by, bz = b.unbind(dim)
-    return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx), dim)
 
 
 def norm0(v: Tensor) -> Tensor:
@@ -70,7 +64,7 @@ class BatchLastKernel:
         """``q (n, m) -> (J (n, 6, m), x, y, z, p)``; row k of J is joint k's [linear; angular] column."""
         axes, origins, x, y, z, p = self._frames(q, True)
         axes, origins = torch.stack(axes), torch.stack(origins)  # (n, 3, m)
-        lin = cross0(axes, p.unsqueeze(0) - origins, dim=1)  # z_{i-1} x (p_e - p_{i-1})  (3.30)
+        lin = cross(axes, p.unsqueeze(0) - origins, dim=1)  # z_{i-1} x (p_e - p_{i-1})  (3.30)
         if self.all_revolute:
             J = torch.cat((lin, axes), dim=1)
         else:
@@ -84,7 +78,7 @@ def rotation_error(x, y, z, xd, yd, zd) -> tuple[Tensor, Tensor]:
     r sin(theta) from (3.84), cos(theta) from the trace, theta by atan2 (accurate at small angles), then
     e_O = theta r (the rotvec form keeps a useful gradient up to theta = pi, where r sin(theta) vanishes).
     """
-    v = 0.5 * (cross0(x, xd) + cross0(y, yd) + cross0(z, zd))
+    v = 0.5 * (cross(x, xd, 0) + cross(y, yd, 0) + cross(z, zd, 0))
     c = 0.5 * ((x * xd + y * yd + z * zd).sum(0) - 1.0)
     s = norm0(v)
     ang = torch.atan2(s, c)

@@ -29,9 +29,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_finite, check_tensor, safe_atan2, safe_sqrt
+from .._numerics import batch_shape_str, check_finite, check_tensor, safe_atan2, safe_sqrt, wrap_angle
 from ..errors import DTypeError, ModelError, ShapeError
 from ..rotations import _matrix_to_euler
+from ..transforms import _transform_inverse
 
 __all__ = ["ClosedFormSolution", "closed_form", "identify_structure", "CLOSED_FORM_STRUCTURES"]
 
@@ -105,8 +106,6 @@ def identify_structure(chain) -> str:
 
 
 # ------------------------------------------------------------------------------------ book kernels
-def _wrap(x: Tensor) -> Tensor:
-    return torch.atan2(torch.sin(x), torch.cos(x))
 
 
 def planar_3r(px: Tensor, py: Tensor, phi: Tensor, a1, a2, a3) -> Tensor:
@@ -185,7 +184,8 @@ def _dh(theta: Tensor, d: Tensor, a: Tensor, alpha: Tensor) -> Tensor:
 
 
 def _fk0(chain, theta: Tensor, d: Tensor, upto: int) -> Tensor:
-    """T_upto^0 (no base, no tool) from full DH angles/offsets ``(..., n)``."""
+    """T_upto^0 (no base, no tool) from full DH angles/offsets ``(..., n)``; may hold only the first
+    ``upto`` joints (the wrist-centre step), so it cannot use the chain's whole-chain kernel."""
     T = None
     for i in range(upto):
         A = _dh(theta[..., i], d[..., i], chain.a[i], chain.alpha[i])
@@ -197,17 +197,10 @@ def _fk0(chain, theta: Tensor, d: Tensor, upto: int) -> Tensor:
 def _target_frame0(chain, T: Tensor) -> Tensor:
     """World pose of the end effector -> T_n^0 (base and tool removed)."""
     if chain.base is not None:
-        T = _inv(chain.base) @ T
+        T = _transform_inverse(chain.base) @ T
     if chain.tool is not None:
-        T = T @ _inv(chain.tool)
+        T = T @ _transform_inverse(chain.tool)
     return T
-
-
-def _inv(T: Tensor) -> Tensor:
-    R, p = T[..., :3, :3], T[..., :3, 3:]
-    Rt = R.transpose(-1, -2)
-    top = torch.cat((Rt, -Rt @ p), dim=-1)
-    return torch.cat((top, T[..., 3:, :]), dim=-2)
 
 
 def _tool_translation_free(chain, what: str) -> None:
@@ -343,7 +336,7 @@ def _spherical_arm_full(chain, p: Tensor, extra) -> tuple[Tensor, Tensor]:
 def _to_joints(chain, th: Tensor, dd: Tensor) -> Tensor:
     """Full DH (angles, offsets) -> joints: ϑ - theta wrapped (revolute), d - d_offset (prismatic)."""
     rev = chain.revolute_mask
-    return rev * _wrap(th - chain.theta) + (1.0 - rev) * (dd - chain.d)
+    return rev * wrap_angle(th - chain.theta) + (1.0 - rev) * (dd - chain.d)
 
 
 def closed_form(chain, T: Tensor, tol: float | None = None) -> ClosedFormSolution:
@@ -390,6 +383,6 @@ def _valid(chain, structure, kind, th_full, d_full, ref, tol) -> Tensor:
     if structure == "three_link_planar":
         px, py, phi = ref
         dp = torch.hypot(Tn[..., 0, 3] - px[..., None], Tn[..., 1, 3] - py[..., None])
-        dphi = _wrap(torch.atan2(Tn[..., 1, 0], Tn[..., 0, 0]) - phi[..., None]).abs()
+        dphi = wrap_angle(torch.atan2(Tn[..., 1, 0], Tn[..., 0, 0]) - phi[..., None]).abs()
         return (dp <= tol * scale) & (dphi <= tol)
     return (Tn[..., :3, 3] - ref[..., None, :]).norm(dim=-1) <= tol * scale

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_tensor, eps_for, safe_norm
+from .._numerics import batch_shape_str, check_tensor, eps_for, safe_norm, wrap_angle
 from ..errors import ConventionError, ModelError, ShapeError
 from ..jacobian import (
     _inverse3,
@@ -159,8 +159,7 @@ def _error_and_jacobian(chain, q: Tensor, task: _Task, p_d: Tensor, o_d):
     L = None
     if task.orientation == "euler":
         phi_e = _matrix_to_euler(R_e, task.convention, "positive")
-        e_o = o_d - phi_e
-        e_o = torch.atan2(torch.sin(e_o), torch.cos(e_o))  # (3.80), wrapped
+        e_o = wrap_angle(o_d - phi_e)  # (3.80), wrapped
         J_t = geometric_to_analytical(J, phi_e, task.convention)[0]  # (3.66)
     elif task.orientation == "axis_angle":
         e_o = _orientation_error_axis_angle(o_d, R_e, "sin")  # (3.85)
