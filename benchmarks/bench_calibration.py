@@ -19,6 +19,7 @@ import time
 
 import torch
 
+from benchmarks.common import sync
 from diffkin import models
 from diffkin.calibration import CalibrationModel, calibrate, calibrate_batch, identifiability
 from diffkin.rotations import rotvec_to_matrix
@@ -47,19 +48,14 @@ def _problem(K: int, N: int, seed: int, device: str):
     return nominal.to(device), q.to(device), T.to(device)
 
 
-def _sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize()
-
-
 def _timed(fn, repeats: int, device: str):
     fn()  # warm-up
     times, out = [], None
     for _ in range(repeats):
-        _sync(device)
+        sync(device)
         t0 = time.perf_counter()
         out = fn()
-        _sync(device)
+        sync(device)
         times.append(time.perf_counter() - t0)
     return statistics.median(times), out
 
@@ -91,15 +87,15 @@ def bench_single(N: int, repeats: int, device: str) -> list[dict]:
 def bench_batch(K: int, N: int, sequential: int, method: str, device: str) -> list[dict]:
     nominal, q, T = _problem(K, N, seed=1, device=device)
     calibrate_batch(nominal, q[:2], T[:2], method=method, progress=False)  # warm-up
-    _sync(device)
+    sync(device)
     t0 = time.perf_counter()
     batch = calibrate_batch(nominal, q, T, method=method, progress=False)
-    _sync(device)
+    sync(device)
     t_batch = time.perf_counter() - t0
     S = min(sequential, K)
     t0 = time.perf_counter()
     singles = [calibrate(nominal, q[k], T[k], method=method, progress=False) for k in range(S)]
-    _sync(device)
+    sync(device)
     t_seq = (time.perf_counter() - t0) * K / S
     diff = max(float((b.identified - s.identified).abs().max()) for b, s in zip(batch, singles))
     common = {"benchmark": "calibration_batch", "method": method, "device": device, "robots": K, "poses": N}

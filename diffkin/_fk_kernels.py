@@ -69,19 +69,25 @@ def dh_frames(qs: Sequence[Tensor], plan, joint_types: str, standard: bool, fram
             c, s = (torch.cos(theta), torch.sin(theta)) if isinstance(theta, Tensor) else \
                 (math.cos(theta), math.sin(theta))
             d = q + d if isinstance(d, Tensor) or d != 0.0 else q
-        x, y, z, p = frame
-        if standard:  # Rz(ϑ) Tz(d) Tx(a) Rx(α)  (2.52)
-            p = axpy(p, d, z)
-            x, y = rotate(x, y, c, s)
-            p = axpy(p, a, x)
-            y, z = rotate(y, z, ca, sa)
-        else:  # Rx(α_{i-1}) Tx(a_{i-1}) Rz(ϑ_i) Tz(d_i)
-            p = axpy(p, a, x)
-            y, z = rotate(y, z, ca, sa)
-            x, y = rotate(x, y, c, s)
-            p = axpy(p, d, z)
-        frame = (x, y, z, p)
+        frame = dh_step(frame, c, s, a, ca, sa, d, standard)
         yield frame
+
+
+def dh_step(frame: Columns, c, s, a, ca, sa, d, standard: bool) -> Columns:
+    """One DH link on the columns ``(x, y, z, p)`` of frame i-1 -> frame i; cos/sin of ϑ and α, a and d as
+    tensors broadcasting against the columns (any layout) or Python floats."""
+    x, y, z, p = frame
+    if standard:  # Rz(ϑ) Tz(d) Tx(a) Rx(α)  (2.52)
+        p = axpy(p, d, z)
+        x, y = rotate(x, y, c, s)
+        p = axpy(p, a, x)
+        y, z = rotate(y, z, ca, sa)
+    else:  # Rx(α_{i-1}) Tx(a_{i-1}) Rz(ϑ_i) Tz(d_i)
+        p = axpy(p, a, x)
+        y, z = rotate(y, z, ca, sa)
+        x, y = rotate(x, y, c, s)
+        p = axpy(p, d, z)
+    return x, y, z, p
 
 
 def dh_ee_components(qT: Tensor, a: Tensor, alpha: Tensor, d: Tensor, theta: Tensor, base: Tensor | None,

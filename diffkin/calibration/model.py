@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._fk_kernels import dh_step
 from .._numerics import batch_shape_str, check_finite, cross
 from ..chain import DHChain
 from ..errors import DTypeError, ModelError, ShapeError
@@ -68,7 +69,7 @@ def _so3_right_jacobian(v: Tensor) -> Tensor:
 
 
 def _dh_frames(a, alpha, d, theta, q, revolute, convention, base):
-    """Frames 0..n as columns ``(x, y, z, p)``, as :meth:`DHChain._link_columns` but with batched parameters.
+    """Frames 0..n as columns ``(x, y, z, p)`` with batched DH parameters (the chain's :func:`dh_step`).
 
     ``a, alpha, d, theta`` are ``(..., n)`` and broadcast against ``q (..., n)``; ``base`` is ``(..., 4, 4)``
     broadcastable to ``q.shape[:-1]``. Returns a list of ``n + 1`` tuples of ``(..., 3)`` tensors.
@@ -81,25 +82,8 @@ def _dh_frames(a, alpha, d, theta, q, revolute, convention, base):
     x, y, z, p = base[..., :3, 0], base[..., :3, 1], base[..., :3, 2], base[..., :3, 3]
     frames = [(x, y, z, p)]
     for i in range(q.shape[-1]):
-        c, s, ci, si, ai, di = (
-            ct[..., i, :],
-            st[..., i, :],
-            ca[..., i, :],
-            sa[..., i, :],
-            a[..., i, :],
-            d[..., i, :],
-        )
-        if convention == "standard":  # Rz(ϑ) Tz(d) Tx(a) Rx(α)  (2.52)
-            p = p + di * z
-            x, y = c * x + s * y, c * y - s * x
-            p = p + ai * x
-            y, z = ci * y + si * z, ci * z - si * y
-        else:  # Rx(α_{i-1}) Tx(a_{i-1}) Rz(ϑ_i) Tz(d_i)
-            p = p + ai * x
-            y, z = ci * y + si * z, ci * z - si * y
-            x, y = c * x + s * y, c * y - s * x
-            p = p + di * z
-        frames.append((x, y, z, p))
+        link = (t[..., i, :] for t in (ct, st, a, ca, sa, d))
+        frames.append(dh_step(frames[-1], *link, convention == "standard"))
     return frames
 
 
