@@ -2,12 +2,16 @@
 
 Every subcommand prints a short summary; errors in the input (unknown robot, bad file, wrong column
 count) are reported as one line ``error: ...`` with exit status 2.
+
+``train``, ``evaluate`` and ``demo`` call the functions of the repository's ``training`` package in this
+process (the ``rl`` extra); ``bench`` calls ``benchmarks.run`` (a checkout's ``benchmarks/``, not installed
+with the package). Only :func:`main` sets torch's thread count: ``--threads N``, else 1 for ``demo`` and
+``evaluate``, the config's ``torch_threads`` for ``train``, and torch's own setting for the rest.
 """
 
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -17,8 +21,6 @@ import torch
 from .errors import DiffkinError
 
 __all__ = ["main", "build_parser"]
-
-REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
 def _console():
@@ -269,12 +271,10 @@ def cmd_trajectory(args) -> int:
 
 
 def _plot_trajectory(out: dict, path: str) -> None:
-    import matplotlib
+    from matplotlib.figure import Figure  # file output: no pyplot, no backend switch
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axs = plt.subplots(3, 1, figsize=(7, 7), sharex=True)
+    fig = Figure(figsize=(7, 7))
+    axs = fig.subplots(3, 1, sharex=True)
     for ax, key in zip(axs, ("position", "velocity", "acceleration")):
         ax.plot(out["t"], out[key])
         ax.set_ylabel(key)
@@ -282,37 +282,75 @@ def _plot_trajectory(out: dict, path: str) -> None:
     axs[-1].set_xlabel("t [s]")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 # --------------------------------------------------------------------------- train / evaluate / bench
-def _run_module(module: str, argv: list[str]) -> int:
-    """Run a repo-level module (training/, benchmarks/) in a subprocess: the library never imports them."""
-    if not (REPO_ROOT / module.split(".")[0]).is_dir():
-        raise DiffkinError(f"'{module}' is part of the diffkin repository checkout; run from a clone of it")
-    return subprocess.call([sys.executable, "-m", module, *argv], cwd=REPO_ROOT)
-
-
-def cmd_train(args) -> int:
-    argv = ["--config", str(Path(args.config).resolve())]
-    if args.seed is not None:
-        argv += ["--seed", str(args.seed)]
-    if args.total_timesteps is not None:
-        argv += ["--total-timesteps", str(args.total_timesteps)]
-    if args.out:
-        argv += ["--out", str(Path(args.out).resolve())]
-    return _run_module("training.train", argv)
-
-
-def cmd_evaluate(args) -> int:
-    return _run_module(
-        "training.evaluate", [str(Path(args.run_dir).resolve()), "--episodes", str(args.episodes)]
+def _missing(command: str, exc: ImportError) -> DiffkinError:
+    """The error for a subcommand whose application code (training/, benchmarks/) cannot be imported."""
+    if command == "bench":
+        if getattr(exc, "name", None) in ("benchmarks", "benchmarks.run"):
+            return DiffkinError(
+                "`diffkin bench` runs the benchmark suite of a diffkin checkout (benchmarks/ is not "
+                "installed with the package): run `make bench` (or `python -m diffkin.cli bench ...`) from "
+                "the root of a clone of the repository"
+            )
+        return DiffkinError(f"the benchmarks need {exc.name or exc}: `make bench` installs the bench extra")
+    return DiffkinError(
+        f"`diffkin {command}` needs the training code and its dependencies ({exc}): install the `rl` extra "
+        "(`pip install -e '.[rl]'` in a clone of the diffkin repository) or run from the repository"
     )
 
 
+def _config_threads(args) -> int:
+    """The run config's ``torch_threads`` (what ``diffkin train`` runs on without ``--threads``)."""
+    try:
+        from training.config import load_config
+    except ImportError as exc:
+        raise _missing("train", exc) from exc
+    try:
+        return load_config(args.config).torch_threads
+    except (TypeError, ValueError) as exc:
+        raise DiffkinError(str(exc)) from exc
+
+
+def cmd_train(args) -> int:
+    try:
+        from training.train import resolve_run, summary_json, train
+    except ImportError as exc:
+        raise _missing("train", exc) from exc
+    try:
+        cfg, out = resolve_run(
+            args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.out
+        )
+    except (TypeError, ValueError) as exc:
+        raise DiffkinError(str(exc)) from exc
+    res = train(cfg, out, progress_bar=not args.no_progress)
+    print(summary_json(res))
+    _console().print(f"wrote {out}")
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    try:
+        from training.evaluate import evaluate_and_save
+    except ImportError as exc:
+        raise _missing("evaluate", exc) from exc
+    import json
+
+    res = evaluate_and_save(args.run_dir, episodes=args.episodes)
+    print(json.dumps(res, indent=2))
+    return 0
+
+
 def cmd_bench(args) -> int:
+    try:
+        from benchmarks.run import main as run_benchmarks
+    except ImportError as exc:
+        raise _missing("bench", exc) from exc
     argv = [args.which] + (["--quick"] if args.quick else []) + ["--device", args.device]
-    return _run_module("benchmarks.run", argv)
+    if args.threads is not None:
+        argv += ["--threads", str(args.threads)]
+    return run_benchmarks(argv)
 
 
 def cmd_demo(args) -> int:
@@ -336,20 +374,44 @@ def _robot_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--output", help="output file (.npz, .csv, .npy)")
 
 
+def _positive_int(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+    return n
+
+
+_THREADS_HELP = (
+    "torch intra-op threads for this command (default: torch's own setting; `demo` and `evaluate` use 1, "
+    "`train` the config's torch_threads; `bench` passes it on to the benchmarks, which default to 1)"
+)
+
+# Commands that run on a fixed thread count unless --threads is given (measured figures, small kernels).
+_ONE_THREAD = ("demo", "evaluate")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="diffkin", description=__doc__.splitlines()[0])
+    parser.add_argument("--threads", type=_positive_int, default=None, metavar="N", help=_THREADS_HELP)
+    # Also accepted after the subcommand; SUPPRESS keeps the subparser from overwriting the global value.
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--threads", type=_positive_int, default=argparse.SUPPRESS, metavar="N",
+                        help=_THREADS_HELP)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("models", help="list built-in robots, or show one's DH table")
+    def add(name: str, **kwargs) -> argparse.ArgumentParser:
+        return sub.add_parser(name, parents=[common], **kwargs)
+
+    p = add("models", help="list built-in robots, or show one's DH table")
     p.add_argument("action", nargs="?", choices=["list", "show"], default="list")
     p.add_argument("name", nargs="?")
     p.set_defaults(func=cmd_models)
 
-    p = sub.add_parser("fk", help="batch forward kinematics on a file of joint vectors")
+    p = add("fk", help="batch forward kinematics on a file of joint vectors")
     _robot_args(p)
     p.set_defaults(func=cmd_fk)
 
-    p = sub.add_parser("ik", help="batch inverse kinematics on a file of target poses")
+    p = add("ik", help="batch inverse kinematics on a file of target poses")
     _robot_args(p)
     p.add_argument("--position-only", action="store_true")
     p.add_argument("--position-tolerance", type=float, default=1e-4, help="metres (default 0.1 mm)")
@@ -358,7 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress", action="store_true")
     p.set_defaults(func=cmd_ik)
 
-    p = sub.add_parser("calibrate", help="identify DH errors from measured poses")
+    p = add("calibrate", help="identify DH errors from measured poses")
     p.add_argument("--robot", required=True)
     p.add_argument("--data", required=True, help=".npz with q (N, n) and T (N, 4, 4) or position (N, 3)")
     p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"])
@@ -369,7 +431,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress", action="store_true")
     p.set_defaults(func=cmd_calibrate)
 
-    p = sub.add_parser("trajectory", help="plan and export a joint or Cartesian trajectory")
+    p = add("trajectory", help="plan and export a joint or Cartesian trajectory")
     p.add_argument("space", choices=["joint", "cartesian"])
     p.add_argument("--profile", default="quintic", choices=["cubic", "quintic", "trapezoidal"])
     p.add_argument("--start", type=float, nargs="+")
@@ -381,19 +443,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", help="PNG of position/velocity/acceleration")
     p.set_defaults(func=cmd_trajectory)
 
-    p = sub.add_parser("train", help="train an SB3 agent from a run config (wraps training/)")
+    p = add("train", help="train an SB3 agent from a run config (calls training.train)")
     p.add_argument("--config", required=True)
     p.add_argument("--seed", type=int)
     p.add_argument("--total-timesteps", type=int, dest="total_timesteps")
-    p.add_argument("--out")
+    p.add_argument("--out", help="run directory (default runs/<name>/seed<seed>)")
+    p.add_argument("--no-progress", action="store_true", dest="no_progress", help="no progress bar")
     p.set_defaults(func=cmd_train)
 
-    p = sub.add_parser("evaluate", help="evaluate a training run directory")
+    p = add(
+        "evaluate", help="evaluate a training run directory (one torch thread unless --threads N)"
+    )
     p.add_argument("run_dir")
     p.add_argument("--episodes", type=int, default=100)
     p.set_defaults(func=cmd_evaluate)
 
-    p = sub.add_parser("bench", help="benchmarks against pytorch-kinematics (prints ratios)")
+    p = add("bench", help="benchmarks against pytorch-kinematics (prints ratios)")
     p.add_argument(
         "which", nargs="?", default="all", choices=["fk", "jacobian", "ik", "env", "calibration", "all"]
     )
@@ -401,7 +466,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     p.set_defaults(func=cmd_bench)
 
-    p = sub.add_parser("demo", help="the tour: IK, calibration, CLIK, RL; writes a report to runs/")
+    p = add(
+        "demo",
+        help="the tour: IK, calibration, CLIK, RL; report in runs/ (1 torch thread unless --threads N)",
+        description="The tour: batch IK, calibration, CLIK and a short PPO run, written as a report. Runs on "
+        "one torch thread (the report's figures are single-threaded and say so) unless given --threads N.",
+    )
     p.add_argument("--quick", action="store_true", help="small sizes (under a minute)")
     p.add_argument("--out", help="report directory (default runs/demo-<time>)")
     p.add_argument("--skip-rl", action="store_true", dest="skip_rl")
@@ -412,6 +482,13 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
+        threads = args.threads
+        if threads is None and args.command in _ONE_THREAD:
+            threads = 1
+        elif threads is None and args.command == "train":
+            threads = _config_threads(args)
+        if threads is not None:
+            torch.set_num_threads(threads)
         return int(args.func(args) or 0)
     except (DiffkinError, FileNotFoundError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -1,17 +1,21 @@
 """``diffkin demo``: the tour of what diffkin does, written as a report (Markdown + PNG) under ``runs/``.
 
 Sections: batch IK on Panda targets (against pytorch-kinematics in the same run), calibration before/after,
-the §3.7.5 CLIK comparison, and a short PPO run on the batched Reach environment (through ``training/``,
-in a subprocess, since the library never imports the RL code).
+the §3.7.5 CLIK comparison, and a short PPO run on the batched Reach environment (``training.train``,
+called in-process when the ``rl`` extra and the repository's ``configs/`` are there; otherwise the section
+says why it was skipped).
+
+:func:`run_demo` leaves torch's thread count and matplotlib's backend alone (figures are drawn on
+:class:`matplotlib.figure.Figure` objects); ``diffkin demo`` runs it on one torch thread unless given
+``--threads N``.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 import time
+import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -43,16 +47,17 @@ def _machine() -> str:
 
     threads = torch.get_num_threads()
     cpu = platform.processor() or platform.machine()
-    return f"{cpu} CPU, {threads} torch thread(s), torch {torch.__version__}"
+    return (
+        f"{cpu} CPU, {threads} torch thread(s) (`diffkin demo` uses 1 unless given `--threads N`), "
+        f"torch {torch.__version__}"
+    )
 
 
-def _plt():
-    import matplotlib
+def _figure(**kwargs):
+    """A figure for file output: no pyplot, no backend switch."""
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return Figure(**kwargs)
 
 
 def _md_table(header: list[str], rows: list[list]) -> str:
@@ -135,8 +140,8 @@ def section_ik(report: Report, n_targets: int, n_pk: int) -> None:
         ratio = (n_targets / dt) / (n_pk / dt_pk)
     except ImportError:
         rows.append(["pytorch-kinematics", "not installed", "", "", "", ""])
-    plt = _plt()
-    fig, axs = plt.subplots(1, 2, figsize=(9, 3.4))
+    fig = _figure(figsize=(9, 3.4))
+    axs = fig.subplots(1, 2)
     pe = res.position_error.detach().double().clamp_min(1e-12).log10()
     oe = res.orientation_error.detach().double().clamp_min(1e-12).log10()
     axs[0].hist(pe.numpy(), bins=60, color="tab:blue")
@@ -151,7 +156,6 @@ def section_ik(report: Report, n_targets: int, n_pk: int) -> None:
     fig.suptitle(f"diffkin IK on {n_targets} random Panda poses")
     fig.tight_layout()
     fig.savefig(report.out / "ik_errors.png", dpi=110)
-    plt.close(fig)
     body = (
         f"{n_targets} random reachable full-pose Panda targets (FK of uniform joints within limits), "
         "tolerance 0.1 mm and 1 mrad, float32, random seeds, joint limits enforced.\n\n"
@@ -270,8 +274,8 @@ def section_clik(report: Report, quick: bool) -> None:
             (x, xd),
         ),
     }
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(7.5, 3.8))
+    fig = _figure(figsize=(7.5, 3.8))
+    ax = fig.subplots()
     rows = []
     for name, (kw, target) in runs.items():
         res = clik(chain, q0, target, dt, steps, **kw)
@@ -285,7 +289,6 @@ def section_clik(report: Report, quick: bool) -> None:
     ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(report.out / "clik_errors.png", dpi=110)
-    plt.close(fig)
     body = (
         "The textbook's §3.7.5 experiment: three-link planar arm (a = 0.5 m), tip tracking a circle of "
         "radius 0.25 m (one turn every 2 s for 4 s), Δt = 1 ms, forward Euler. The open loop drifts; the "
@@ -310,25 +313,26 @@ def section_rl(report: Report, seconds: int) -> None:
     run_dir = report.out / "rl"
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "demo_config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
-    cmd = [
-        sys.executable,
-        "-m",
-        "training.train",
-        "--config",
-        str(run_dir / "demo_config.yaml"),
-        "--out",
-        str(run_dir),
-        "--no-progress",
-    ]
-    proc = subprocess.run(cmd, cwd=REPO_ROOT, capture_output=True, text=True)
-    if proc.returncode != 0:
-        report.failures.append("RL training failed: " + proc.stderr[-2000:])
+    try:
+        from training.config import load_config
+        from training.train import train
+    except ImportError as exc:
+        report.add(
+            "RL (PPO on batched Reach)",
+            f"Skipped: the training code is not importable ({exc}); install the `rl` extra "
+            "(`pip install -e '.[rl]'`) and run from a clone of the diffkin repository.",
+        )
+        return
+    try:
+        train(load_config(run_dir / "demo_config.yaml"), run_dir, progress_bar=False, log=lambda line: None)
+    except Exception:  # the report records the failure and the tour goes on
+        report.failures.append("RL training failed: " + traceback.format_exc()[-2000:])
         report.add("RL (PPO on batched Reach)", "Training failed; see the console output.")
         return
     res = json.loads((run_dir / "results.json").read_text())
     final = res["final"]
-    plt = _plt()
-    fig, ax = plt.subplots(figsize=(6, 3.4))
+    fig = _figure(figsize=(6, 3.4))
+    ax = fig.subplots()
     xs = [p["wall_s"] for p in res["curve"]]
     ys = [p.get("success_rate", 0) * 100 for p in res["curve"]]
     ax.plot(xs, ys, marker="o")
@@ -338,7 +342,6 @@ def section_rl(report: Report, seconds: int) -> None:
     ax.grid(alpha=0.3)
     fig.tight_layout()
     fig.savefig(report.out / "rl_curve.png", dpi=110)
-    plt.close(fig)
     body = (
         f"PPO on `diffkin/Reach-v0` (Panda, {cfg['n_envs']} torch-batched envs, Cartesian actions), "
         f"{seconds} s wall-clock budget on this machine.\n\n"
@@ -359,13 +362,14 @@ def section_rl(report: Report, seconds: int) -> None:
 
 
 def run_demo(quick: bool = False, out: str | None = None, skip_rl: bool = False) -> int:
-    """Run the tour and write ``report.md`` and PNGs to ``out`` (default ``runs/demo-<time>``)."""
+    """Run the tour and write ``report.md`` and PNGs to ``out`` (default ``runs/demo-<time>``).
+
+    Runs on torch's current thread count (the report states it); ``diffkin demo`` sets one thread first,
+    since small batched kernels gain nothing from intra-op threads and lose a lot when another process
+    holds a core."""
     from rich.console import Console
     from rich.markdown import Markdown
 
-    # Small batched kernels gain nothing from intra-op threads and lose a lot when another process holds a
-    # core; the figures in the report are single-threaded and say so.
-    torch.set_num_threads(1)
     con = Console(highlight=False)
     out_dir = Path(out) if out else Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,8 @@ import torch
 
 from envs.vector import TorchVectorEnv
 
-__all__ = ["run_episodes", "scripted_policy", "model_policy", "evaluate_run", "main"]
+__all__ = ["run_episodes", "scripted_policy", "model_policy", "load_run", "evaluate_run", "evaluate_and_save",
+           "main"]
 
 Policy = Callable[[object, TorchVectorEnv], object]
 
@@ -83,8 +84,8 @@ def model_policy(model, obs_normalizer=None) -> Policy:
 
 def load_run(run_dir: str | Path):
     """(config, model, VecNormalize or None) of a finished run directory."""
+    from training.algos import ALGOS
     from training.config import load_config
-    from training.train import ALGOS
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir / "config.yaml")
@@ -116,16 +117,21 @@ def evaluate_run(run_dir: str | Path, episodes: int = 200, seed: int = 20_000) -
     }
 
 
+def evaluate_and_save(run_dir: str | Path, episodes: int = 200, seed: int = 20_000) -> dict:
+    """:func:`evaluate_run`, also written to ``run_dir/evaluation.json``."""
+    res = evaluate_run(run_dir, episodes, seed)
+    (Path(run_dir) / "evaluation.json").write_text(json.dumps(res, indent=2))
+    return res
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("run_dir")
     p.add_argument("--episodes", type=int, default=200)
     p.add_argument("--seed", type=int, default=20_000)
     args = p.parse_args(argv)
-    torch.set_num_threads(1)
-    res = evaluate_run(args.run_dir, args.episodes, args.seed)
-    print(json.dumps(res, indent=2))
-    (Path(args.run_dir) / "evaluation.json").write_text(json.dumps(res, indent=2))
+    torch.set_num_threads(1)  # the command line's choice (small batched kernels); the functions set nothing
+    print(json.dumps(evaluate_and_save(args.run_dir, args.episodes, args.seed), indent=2))
     return 0
 
 

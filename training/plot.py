@@ -65,13 +65,11 @@ def _on_grid(runs: list[dict], key: str, x: str, grid: np.ndarray) -> np.ndarray
 
 
 def plot_group(name: str, runs: list[dict], path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # file output: no pyplot, no backend switch
 
     key = _metric(runs[0])
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig = Figure(figsize=(10, 3.6))
+    axes = fig.subplots(1, 2)
     for ax, x, label in zip(axes, ("timesteps", "wall_s"), ("env steps", "wall-clock (s)")):
         hi = max(r["curve"][-1][x] for r in runs)
         lo = min(r["curve"][0][x] for r in runs)
@@ -94,7 +92,6 @@ def plot_group(name: str, runs: list[dict], path: Path) -> None:
     fig.suptitle(f"{name}: {runs[0]['env_id']}", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _fmt(ms: dict, scale: float = 1.0, digits: int = 3) -> str:

@@ -22,7 +22,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 import yaml
-from stable_baselines3 import PPO, SAC, TD3, HerReplayBuffer
+from stable_baselines3 import HerReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
 from stable_baselines3.common.noise import NormalActionNoise
@@ -30,11 +30,12 @@ from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import envs  # noqa: F401  (registers the IDs)
 from envs.vector import TorchVectorEnv, make_vec_env
+from training.algos import ALGOS, EVAL_SEED
 from training.config import RunConfig, load_config
 from training.evaluate import model_policy, run_episodes, scripted_policy
 
-ALGOS = {"sac": SAC, "td3": TD3, "ppo": PPO}
-EVAL_SEED = 10_000
+__all__ = ["ALGOS", "EVAL_SEED", "build_env", "build_model", "EvalCallback", "versions", "train",
+           "resolve_run", "summary_json", "main"]
 
 
 def build_env(cfg: RunConfig):
@@ -109,8 +110,10 @@ def versions() -> dict:
 
 
 def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print) -> dict:
-    """Train, evaluate and save; returns the results dict (also written to ``out/results.json``)."""
-    torch.set_num_threads(cfg.torch_threads)
+    """Train, evaluate and save; returns the results dict (also written to ``out/results.json``).
+
+    Leaves torch's thread count alone: ``cfg.torch_threads`` is applied by the command-line entry points
+    (:func:`main`, ``diffkin train``), not here."""
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.yaml").write_text(yaml.safe_dump(cfg.to_dict(), sort_keys=False))
     meta = {"seed": cfg.seed, "command": " ".join(sys.argv), "versions": versions(),
@@ -148,6 +151,19 @@ def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print) -> di
     return results
 
 
+def resolve_run(config: str | Path, seed: int | None = None, total_timesteps: int | None = None,
+                out: str | Path | None = None) -> tuple[RunConfig, Path]:
+    """The config file with the command line's overrides, and the run directory (default
+    ``runs/<name>/seed<seed>``)."""
+    cfg = load_config(config).replace(seed=seed, total_timesteps=total_timesteps)
+    return cfg, Path(out) if out else Path("runs") / cfg.name / f"seed{cfg.seed}"
+
+
+def summary_json(results: dict) -> str:
+    """The results without the evaluation curve, as printed at the end of a run."""
+    return json.dumps({k: v for k, v in results.items() if k != "curve"}, indent=2)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="Train an SB3 agent on a diffkin env from a YAML config.")
     p.add_argument("--config", required=True)
@@ -156,10 +172,10 @@ def main(argv=None) -> int:
     p.add_argument("--out")
     p.add_argument("--no-progress", action="store_true", help="disable the progress bar (for log files)")
     args = p.parse_args(argv)
-    cfg = load_config(args.config).replace(seed=args.seed, total_timesteps=args.total_timesteps)
-    out = Path(args.out) if args.out else Path("runs") / cfg.name / f"seed{cfg.seed}"
+    cfg, out = resolve_run(args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.out)
+    torch.set_num_threads(cfg.torch_threads)  # the command line applies the config's thread count
     res = train(cfg, out, progress_bar=not args.no_progress)
-    print(json.dumps({k: v for k, v in res.items() if k != "curve"}, indent=2))
+    print(summary_json(res))
     return 0
 
 

@@ -109,12 +109,10 @@ class CalibrationResult:
     def plot_residuals(self, path: str | Path, q: Tensor | None = None, T: Tensor | None = None) -> Path:
         """PNG: per-pose position errors before/after (histogram), orientation likewise, RMS per iteration.
 
-        Uses the calibration data, or ``q``/``T`` (e.g. held-out poses) when given. Matplotlib, Agg backend.
+        Uses the calibration data, or ``q``/``T`` (e.g. held-out poses) when given. Needs matplotlib; draws on
+        a :class:`matplotlib.figure.Figure` (no pyplot, the process's backend is left alone).
         """
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
+        from matplotlib.figure import Figure
 
         q = self.q if q is None else q
         T = self.measured if T is None else T
@@ -122,7 +120,8 @@ class CalibrationResult:
             before = pose_residual(self.nominal_chain.forward_kinematics(q), T, 1.0)
             after = pose_residual(self.chain.forward_kinematics(q), T, 1.0)
         panels = 2 if before.shape[-1] == 3 else 3
-        fig, axes = plt.subplots(1, panels, figsize=(5 * panels, 4))
+        fig = Figure(figsize=(5 * panels, 4))
+        axes = fig.subplots(1, panels)
         for ax, sl, f, unit in (
             (axes[0], slice(0, 3), 1e3, "mm"),
             (axes[-1], slice(3, 6), 57.29577951308232, "deg"),
@@ -153,7 +152,6 @@ class CalibrationResult:
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(path, dpi=110)
-        plt.close(fig)
         return path
 
     def summary(self) -> str:
