@@ -16,6 +16,7 @@ from torch import Tensor
 
 from ._numerics import batch_shape_str, check_tensor, eps_for
 from .errors import DTypeError, ShapeError
+from .kernels import dls as _dls
 
 __all__ = ["pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"]
 
@@ -28,27 +29,19 @@ def _check_J(J: Tensor) -> Tensor:
 
 
 def _as_sq(x, like: Tensor) -> Tensor:
-    """damping k -> k² as a tensor broadcastable against the batch dims of ``like``, shape (..., 1, 1)."""
+    """damping k -> k² as a tensor broadcastable against the batch dims ``(...)`` of ``like``."""
     k = torch.as_tensor(x, dtype=like.dtype, device=like.device)
-    return (k * k)[..., None, None]
+    return k * k
 
 
 def _regulariser(J: Tensor) -> Tensor:
     frob2 = (J * J).sum(dim=(-2, -1))
-    return (0.01 * eps_for(J) * frob2 + torch.finfo(J.dtype).tiny)[..., None, None]
+    return 0.01 * eps_for(J) * frob2 + torch.finfo(J.dtype).tiny
 
 
 def _damped_inverse(J: Tensor, k2: Tensor) -> Tensor:
-    """Jᵀ(JJᵀ + k²I)⁻¹ = (JᵀJ + k²I)⁻¹Jᵀ, through the smaller of the two systems."""
-    m, n = J.shape[-2:]
-    k2 = k2 + _regulariser(J)
-    if m <= n:
-        eye = torch.eye(m, dtype=J.dtype, device=J.device)
-        G = J @ J.mT + k2 * eye
-        return torch.linalg.solve(G, J).mT  # G symmetric: (G⁻¹J)ᵀ = JᵀG⁻¹
-    eye = torch.eye(n, dtype=J.dtype, device=J.device)
-    G = J.mT @ J + k2 * eye
-    return torch.linalg.solve(G, J.mT)
+    """Jᵀ(JJᵀ + k²I)⁻¹ = (JᵀJ + k²I)⁻¹Jᵀ (the kernel solves the smaller of the two systems)."""
+    return _dls.damped_pinv(J, k2 + _regulariser(J))
 
 
 def pinv(J: Tensor) -> Tensor:
@@ -56,7 +49,7 @@ def pinv(J: Tensor) -> Tensor:
     m <= n, the left one (JᵀJ)⁻¹Jᵀ for m > n. Finite at singularities (see the module docstring: zero
     singular values are inverted to 0, and near-zero ones σ to at most ~5/(√eps ‖J‖_F))."""
     _check_J(J)
-    return _damped_inverse(J, torch.zeros((), dtype=J.dtype, device=J.device)[..., None, None])
+    return _damped_inverse(J, torch.zeros((), dtype=J.dtype, device=J.device))
 
 
 def damped_pinv(J: Tensor, damping, threshold: float | None = None) -> Tensor:
@@ -78,7 +71,7 @@ def damped_pinv(J: Tensor, damping, threshold: float | None = None) -> Tensor:
         G = J @ J.mT if m <= n else J.mT @ J
         s2_min = torch.linalg.eigvalsh(G)[..., 0].clamp_min(0.0)
         factor = (1.0 - s2_min / (threshold * threshold)).clamp_min(0.0)
-        k2 = k2 * factor[..., None, None]
+        k2 = k2 * factor
     return _damped_inverse(J, k2)
 
 
@@ -99,7 +92,7 @@ def weighted_pinv(J: Tensor, W: Tensor, damping=0.0) -> Tensor:
     diagonal = W.ndim >= 1 and W.shape[-1] == n and (W.ndim == 1 or W.shape[-2:] != (n, n))
     if not diagonal and (W.ndim < 2 or W.shape[-2:] != (n, n)):
         raise ShapeError(f"expected W of shape (..., {n}, {n}) or (..., {n}), got {tuple(W.shape)}")
-    k2 = _as_sq(damping, J) + _regulariser(J)
+    k2 = (_as_sq(damping, J) + _regulariser(J))[..., None, None]
     if m > n:
         Wm = torch.diag_embed(W) if diagonal else W
         return torch.linalg.solve(J.mT @ J + k2 * Wm, J.mT)

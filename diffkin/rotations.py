@@ -26,6 +26,7 @@ from ._numerics import (
     wrap_angle,
 )
 from .errors import ConventionError, DiffkinError, DTypeError
+from .kernels import pose_error as _kpe
 
 __all__ = [
     "rot_x",
@@ -489,11 +490,6 @@ def orientation_error_euler(phi_d: Tensor, phi_e: Tensor, wrap: bool = False) ->
 _AXIS_ANGLE_FORMS = ("sin", "rotvec")
 
 
-def _orientation_error_axis_angle(R_d: Tensor, R_e: Tensor, form: str = "sin") -> Tensor:
-    R = torch.einsum("...ij,...kj->...ik", R_d, R_e)  # R_d R_e^T (3.84)
-    return _vee(R) if form == "sin" else _matrix_to_rotvec(R)
-
-
 def orientation_error_axis_angle(R_d: Tensor, R_e: Tensor, form: str = "sin") -> Tensor:
     """Angle-axis orientation error in the base frame: (..., 3, 3), (..., 3, 3) -> (..., 3).
 
@@ -506,17 +502,7 @@ def orientation_error_axis_angle(R_d: Tensor, R_e: Tensor, form: str = "sin") ->
     _checked(R_d, (3, 3), "R_d")
     _checked(R_e, (3, 3), "R_e")
     _same_dtype(R_d, R_e, "R_d", "R_e")
-    return _orientation_error_axis_angle(R_d, R_e, form)
-
-
-def _orientation_error_quaternion(Q_d: Tensor, Q_e: Tensor, shortest: bool = False) -> Tensor:
-    eta_d, eps_d, eta_e, eps_e = Q_d[..., :1], Q_d[..., 1:], Q_e[..., :1], Q_e[..., 1:]
-    eps_d, eps_e = torch.broadcast_tensors(eps_d, eps_e)
-    e = eta_e * eps_d - eta_d * eps_e - torch.linalg.cross(eps_d, eps_e, dim=-1)  # (3.91)
-    if shortest:
-        d_eta = eta_d * eta_e + (eps_d * eps_e).sum(-1, keepdim=True)
-        e = torch.where(d_eta < 0, -e, e)
-    return e
+    return _kpe.orientation_error(R_d, R_e, "axis_angle" if form == "sin" else "rotvec")[0]
 
 
 def orientation_error_quaternion(Q_d: Tensor, Q_e: Tensor, shortest: bool = False) -> Tensor:
@@ -536,5 +522,5 @@ def orientation_error_quaternion(Q_d: Tensor, Q_e: Tensor, shortest: bool = Fals
         _checked(Q_d, (4,), "Q_d")
         _checked(Q_e, (4,), "Q_e")
     _same_dtype(Q_d, Q_e, "Q_d", "Q_e")
-    return _orientation_error_quaternion(Q_d, Q_e, shortest)
+    return _kpe.quaternion_error(Q_d, Q_e, shortest)
 

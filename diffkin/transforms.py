@@ -14,7 +14,7 @@ from torch import Tensor
 
 from ._numerics import check_finite, check_shape, eps_for
 from .errors import ConventionError, DiffkinError, DTypeError
-from .rotations import _matrix_to_quaternion, _orientation_error_axis_angle, _orientation_error_quaternion
+from .kernels import pose_error as _kpe
 
 __all__ = [
     "make_transform",
@@ -28,7 +28,7 @@ __all__ = [
     "POSE_ERROR_ORIENTATIONS",
 ]
 
-POSE_ERROR_ORIENTATIONS = ("axis_angle", "quaternion", "rotvec")
+POSE_ERROR_ORIENTATIONS = ("axis_angle", "quaternion", "rotvec")  # the kernel's forms
 
 
 def _checked(x, trailing, name: str) -> Tensor:
@@ -118,13 +118,9 @@ def transform_points(T: Tensor, points: Tensor) -> Tensor:
 
 
 def _pose_error(T_desired: Tensor, T_current: Tensor, orientation: str = "axis_angle") -> Tensor:
-    R_d, p_d = T_desired[..., :3, :3], T_desired[..., :3, 3]
-    R_e, p_e = T_current[..., :3, :3], T_current[..., :3, 3]
-    if orientation == "quaternion":
-        e_o = _orientation_error_quaternion(_matrix_to_quaternion(R_d), _matrix_to_quaternion(R_e))
-    else:
-        e_o = _orientation_error_axis_angle(R_d, R_e, "sin" if orientation == "axis_angle" else "rotvec")
-    e_p = p_d - p_e  # (3.78)
+    p_d, R_d = T_desired[..., :3, 3], T_desired[..., :3, :3]
+    p_e, R_e = T_current[..., :3, 3], T_current[..., :3, :3]
+    e_p, e_o, _ = _kpe.pose_error(p_d, R_d, p_e, R_e, orientation)  # (3.78), §3.7.3
     e_p, e_o = torch.broadcast_tensors(e_p, e_o)
     return torch.cat((e_p, e_o), dim=-1)
 

@@ -28,7 +28,8 @@ from .._fk_kernels import dh_step
 from .._numerics import batch_shape_str, check_finite, cross
 from ..chain import DHChain
 from ..errors import DTypeError, ModelError, ShapeError
-from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix, _skew
+from ..kernels.pose_error import pose_error as _pose_error
+from ..rotations import _rotvec_to_matrix, _skew
 from ..transforms import _make_transform, check_transform
 
 __all__ = ["CalibrationModel", "parameter_names", "DH_KINDS", "POSE_AXES"]
@@ -318,8 +319,9 @@ def pose_residual(T: Tensor, measured: Tensor, orientation_weight: float) -> Ten
     """[p_m - p; w rotvec(R_m R^T)] ``(..., 6)``, or ``p_m - p`` ``(..., 3)`` for ``measured (..., 3)``."""
     if measured.shape[-1] == 3 and measured.ndim == T.ndim - 1:
         return measured - T[..., :3, 3]
-    e_p = measured[..., :3, 3] - T[..., :3, 3]
-    e_o = _matrix_to_rotvec(measured[..., :3, :3] @ T[..., :3, :3].transpose(-1, -2))
+    R_m, R = measured[..., :3, :3], T[..., :3, :3]
+    e_p, e_o, _ = _pose_error(measured[..., :3, 3], R_m, T[..., :3, 3], R, "rotvec")
+    e_p, e_o = torch.broadcast_tensors(e_p, e_o)
     return torch.cat((e_p, orientation_weight * e_o), dim=-1)
 
 

@@ -16,7 +16,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._kernel import BatchLastKernel, JointMap, lm_direction, norm0, rotation_error
+from ..kernels.dls import dls_solve
+from ..kernels.pose_error import orientation_error
+from ._kernel import BatchLastKernel, JointMap, norm0
 
 
 @dataclass(frozen=True)
@@ -92,7 +94,9 @@ def _errors(kernel, u, jmap, tg: Targets):
     pn = norm0(ep)
     if tg.position_only:
         return J[:, :3], ep, pn, torch.zeros_like(pn)
-    eo, ang = rotation_error(x, y, z, tg.xd, tg.yd, tg.zd)
+    # θr with the gradient up to θ = π; the merit only needs θ, so no exact axis near π
+    eo, ang = orientation_error((tg.xd, tg.yd, tg.zd), (x, y, z), "rotvec", layout="columns",
+                                exact_near_pi=False)  # fmt: skip
     return J, torch.cat((ep, eo), 0), pn, ang
 
 
@@ -166,7 +170,7 @@ class _Run:
             dqdu = self.jmap.dq_du(u)
             if dqdu is not None:  # chain rule through q = c + h sin(u)
                 Jw = Jw * dqdu.unsqueeze(1)
-            u_eval, u = u, u + lm_direction(Jw, e, lam) * (~conv)
+            u_eval, u = u, u + dls_solve(Jw, e, lam, layout="batch_last") * (~conv)
         merit = pn / tp if self.tg.position_only else torch.maximum(pn / tp, ang / to)
         return u, u_eval, conv, merit
 

@@ -47,13 +47,11 @@ from ..jacobian import (
     manipulability,
     pinv,
 )
+from ..kernels.pose_error import orientation_error as _orientation_error
 from ..rotations import (
     _convention,
     _euler_rate_matrix,
     _matrix_to_euler,
-    _matrix_to_quaternion,
-    _orientation_error_axis_angle,
-    _orientation_error_quaternion,
     _skew,
 )
 
@@ -162,11 +160,11 @@ def _error_and_jacobian(chain, q: Tensor, task: _Task, p_d: Tensor, o_d):
         e_o = wrap_angle(o_d - phi_e)  # (3.80), wrapped
         J_t = geometric_to_analytical(J, phi_e, task.convention)[0]  # (3.66)
     elif task.orientation == "axis_angle":
-        e_o = _orientation_error_axis_angle(o_d, R_e, "sin")  # (3.85)
+        e_o = _orientation_error(o_d, R_e, "axis_angle")[0]  # (3.85)
         L = _L_matrix(o_d, R_e)
         J_t = J
     else:
-        e_o = _orientation_error_quaternion(_matrix_to_quaternion(o_d), _matrix_to_quaternion(R_e))  # (3.91)
+        e_o = _orientation_error(o_d, R_e, "quaternion")[0]  # (3.91)
         J_t = J
     e_p, e_o = torch.broadcast_tensors(e_p, e_o)
     return T, torch.cat((e_p, e_o), dim=-1), J_t, L, J

@@ -18,6 +18,7 @@ from torch import Tensor
 from .._numerics import batch_shape_str, check_finite, check_shape, check_tensor
 from ..chain import KinematicChain
 from ..errors import DTypeError, ShapeError
+from ..kernels.dls import dls_solve
 from ..transforms import check_transform, pose_error
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
@@ -40,11 +41,7 @@ def dls_delta(J: Tensor, err: Tensor, damping=0.05) -> Tensor:
     if J.ndim < 2:
         raise ShapeError(f"expected J of shape (..., r, n), got {batch_shape_str(J.shape)}")
     check_shape(err, (J.shape[-2],), "err")
-    k2 = torch.as_tensor(damping, dtype=J.dtype, device=J.device) ** 2
-    eye = torch.eye(J.shape[-2], dtype=J.dtype, device=J.device)
-    A = J @ J.mT + k2[..., None, None] * eye
-    y = torch.linalg.solve(A, err.unsqueeze(-1))
-    return (J.mT @ y).squeeze(-1)
+    return dls_solve(J, err, torch.as_tensor(damping, dtype=J.dtype, device=J.device) ** 2)
 
 
 def dls_step(

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ConventionError
+from ..kernels.dls import dls_solve
 from ..transforms import pose_error
 from .numerical import _targets, _user_seeds
 from .result import IKResult, final_errors
@@ -179,7 +180,6 @@ def _residual_jacobian(r: Tensor, q: Tensor) -> Tensor:
 def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
     """Levenberg–Marquardt on the stacked residuals, λ adapted per sample (accept: λ/3, reject: 4λ)."""
     lam = torch.full(q.shape[:-1], damping**2, dtype=q.dtype, device=q.device)
-    eye = torch.eye(q.shape[-1], dtype=q.dtype, device=q.device)
     it = 0
     cost = None
     for it in range(1, iterations + 1):
@@ -188,8 +188,7 @@ def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
         Jr = _residual_jacobian(r, qv)
         r = r.detach()
         cost = (r * r).sum(-1)
-        A = Jr.mT @ Jr + lam[..., None, None] * eye
-        dq = -torch.linalg.solve(A, (Jr.mT @ r.unsqueeze(-1))).squeeze(-1)
+        dq = -dls_solve(Jr, r, lam)  # (JᵀJ + λI)⁻¹Jᵀr (3.59), whichever normal system is smaller
         with torch.no_grad():
             q_new = project(q + dq)
             r_new = _residuals(chain, terms, q_new, T)

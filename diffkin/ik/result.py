@@ -7,6 +7,8 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from ..kernels.pose_error import rotation_angle
+
 __all__ = ["IKResult", "final_errors", "rotation_angle_between"]
 
 
@@ -79,11 +81,7 @@ class IKResult:
 
 def rotation_angle_between(R_a: Tensor, R_b: Tensor) -> Tensor:
     """Angle of R_aᵀR_b ``(..., 3, 3)`` -> ``(...)`` in [0, π], by atan2(‖vee‖, cos) (accurate near 0)."""
-    M = R_a.mT @ R_b
-    S = M - M.mT
-    v = torch.stack((S[..., 2, 1], S[..., 0, 2], S[..., 1, 0]), dim=-1)
-    c = 0.5 * (M.diagonal(dim1=-2, dim2=-1).sum(-1) - 1.0)
-    return torch.atan2(0.5 * torch.linalg.vector_norm(v, dim=-1), c)
+    return rotation_angle(R_b, R_a)  # R_b R_aᵀ = R_a (R_aᵀR_b) R_aᵀ: the same angle
 
 
 def final_errors(chain, q: Tensor, T_target: Tensor, position_only: bool) -> tuple[Tensor, Tensor]:
