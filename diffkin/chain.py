@@ -1,39 +1,46 @@
-"""Kinematic chains and direct kinematics (§2.8).
+"""The learnable kinematic model (§2.8): one class for serial chains and trees, DH and URDF alike.
 
-:class:`KinematicChain` is the interface every chain offers (FK, joint axes for the Jacobian (3.30), joint
-limits); :class:`DHChain` implements it from a Denavit–Hartenberg table in the standard convention of the
-book (2.52) or the modified (Craig) one; :class:`diffkin.models.URDFChain` from a URDF.
+:class:`KinematicChain` is the one model. Its geometry is ``nn.Parameter`` s, turned into fixed transforms
+around a motion about z per joint by :mod:`diffkin.kernels.joints`, and multiplied along a tree of joints by
+:mod:`diffkin.kernels.tree`; the Jacobian (3.30) comes from :mod:`diffkin.kernels.jacobian`. Subclasses only
+say what their parameters are and how they map to those transforms (:meth:`KinematicChain._geometry`):
+:class:`DHChain` (a DH table, standard (2.52) or modified, optionally with Hayati's β) and
+:class:`diffkin.models.URDFChain` (URDF joint origins and axes, trees with several end links, mimic joints).
 
-Two kernels compute the same frames (the choice is by batch size only, both differentiable):
+Base and tool are learnable too: T_base = T_base,nominal · Δ(``base_delta``), T_tool = T_tool,nominal ·
+Δ(``tool_delta``), with Δ a pose correction that stays rigid for any value (both deltas start at zero).
 
-* the *column kernel* (batches above :attr:`KinematicChain.small_batch`): the frame is kept as four
-  columns ``x, y, z, p`` of shape ``(3, B)`` (batch last, so each op is one contiguous vectorised pass) and
-  every DH step is a few fused multiply-adds on them: no 4×4 matmul, which wastes 7/16 of its flops on the
-  constant last row and is slow for tiny batched matrices;
-* the *matrix kernel* (small batches): A_i in closed form (2.52) for all joints at once, then n − 1
-  matmuls — fewer PyTorch ops, so less per-call overhead when there is little arithmetic to do.
+Two evaluations of the product (the choice is by batch size only, both differentiable):
 
-When no gradient w.r.t. the DH table is needed (``torch.no_grad()`` or ``chain.requires_grad_(False)``) the
-column kernel reads the table as Python constants and skips zero terms (:meth:`DHChain._constant_plan`).
-``chain.compile()`` is an opt-in ``torch.compile`` path for large batches. Kernels live in
-:mod:`diffkin._fk_kernels`.
+* batches above :attr:`KinematicChain.small_batch`: batch last, joint after joint on the four columns of the
+  current frame (few fused multiply-adds per joint, no 4×4 matmul);
+* small batches: batch first, all link matrices at once, then one matmul per joint (fewer operations).
+
+When no gradient w.r.t. geometry is needed (``torch.no_grad()`` or ``chain.requires_grad_(False)``) the
+fixed transforms are evaluated once in float64 and used as Python constants whose zero terms are skipped
+(cached per parameter version, so optimizer steps and ``load_state_dict`` are seen).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor, nn
 
-from ._fk_kernels import Columns, columns_to_matrices, dh_ee_components, dh_frames
 from ._numerics import batch_shape_str, check_finite
 from .errors import ConventionError, DTypeError, ModelError, ShapeError
+from .kernels.columns import columns_to_matrices, plan_of, stack_columns
+from .kernels.jacobian import jacobian_rows, tree_jacobian
+from .kernels.joints import dh_joints, pose_correction
+from .kernels.tree import Segments, Topology, column_frames, matrix_frames
+from .transforms import as_rigid_transform
 
-__all__ = ["KinematicChain", "DHChain"]
+__all__ = ["KinematicChain", "DHChain", "as_rigid_transform"]
 
 _CONVENTIONS = ("standard", "modified")
+_CHUNK = 8192  # configurations per thread and slice of a large CPU batch (fk_jacobian)
 
 
 def _first_float_dtype(*xs) -> torch.dtype | None:
@@ -57,80 +64,177 @@ def _as_param(x, n: int, name: str, dtype: torch.dtype, device) -> Tensor:
     return t
 
 
-def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:
-    """Validate a fixed ``(4, 4)`` rigid transform (base, tool, URDF origin) and return a tensor copy."""
-    T = torch.as_tensor(T, dtype=dtype, device=device).clone()
-    if T.shape != (4, 4):
-        raise ModelError(f"{name} must be a (4, 4) homogeneous transform, got {batch_shape_str(T.shape)}")
-    R = T[:3, :3]
-    eye = torch.eye(3, dtype=T.dtype, device=T.device)
-    tol = 1e-5 if T.dtype != torch.float64 else 1e-9
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
-    if (
-        not bool(torch.isfinite(T).all())
-        or not torch.allclose(R.T @ R, eye, atol=tol)
-        or not torch.equal(T[3], bottom)
-        or float(torch.linalg.det(R)) < 0
-    ):
-        raise ModelError(
-            f"{name} must be a rigid transform (orthonormal R with det +1, last row [0, 0, 0, 1])"
-        )
-    return T
+def _is_plain(t: Tensor) -> bool:
+    """An ordinary tensor (not a torch.func / compile wrapper), whose values can be read as constants."""
+    return type(t) in (Tensor, nn.Parameter) and not torch._C._functorch.is_functorch_wrapped_tensor(t)
 
 
 class KinematicChain(nn.Module):
-    """A serial chain of ``n`` one-DOF joints with fixed base and tool transforms.
+    """A tree of one-DOF joints from a base to K end links; ``n`` independent joint variables.
 
-    Subclasses provide the kernels (see :meth:`_column_frames` and :meth:`_link_matrices`); FK, joint axes,
-    limits and sampling are shared. Shapes: ``q`` is ``(..., n)``; poses are ``(..., 4, 4)``.
+    Shapes: ``q`` is ``(..., n)``; poses are ``(..., 4, 4)`` for a chain with one end link (``K = 1``, made
+    from a single end-link name), ``(..., K, 4, 4)`` for one made from a list of end links; Jacobians
+    ``(..., 6, n)`` / ``(..., K, 6, n)``. Joint i's motion is about the z axis of its frame
+    F_parent · Pre_i (:mod:`diffkin.kernels.joints`).
 
-    Kernel frames K_0..K_n satisfy K_0 = base, K_i = K_{i-1} · A_i(q_i); the end effector is K_n · tool.
-    Joint i moves about the z axis of kernel frame ``i - 1 + _axis_offset`` through its origin.
+    Subclasses set the topology (:meth:`_set_topology`) and implement :meth:`_geometry`.
     """
 
     n_joints: int
     joint_types: str
-    #: batches with at most this many configurations use the matrix kernel (less per-call overhead)
+    #: batches with at most this many configurations use the batch-first matrix path (less overhead)
     small_batch: int = 16
-    _axis_offset: int = 0
 
-    def __init__(self, n_joints: int, joint_types: str, q_limits=None, name: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None):
+    def __init__(self, topology: Topology, q_limits=None, name: str | None = None, *,
+                 dtype: torch.dtype | None = None, device=None, single_end: bool = True):
         super().__init__()
         dtype = dtype or torch.get_default_dtype()
-        joint_types = joint_types.upper()
-        if len(joint_types) != n_joints or set(joint_types) - {"R", "P"}:
-            raise ModelError(
-                f"joint_types must be a string of {n_joints} letters 'R' (revolute) or 'P' (prismatic), "
-                f"got {joint_types!r}"
-            )
-        self.n_joints = n_joints
-        self.joint_types = joint_types
-        self.name = name or f"chain{n_joints}"
-        revolute = torch.tensor([c == "R" for c in joint_types], dtype=dtype, device=device)
-        self.register_buffer("revolute_mask", revolute)
+        if not dtype.is_floating_point or dtype not in (torch.float32, torch.float64):
+            raise DTypeError(f"a chain's dtype must be torch.float32 or torch.float64, got {dtype}")
+        self._set_topology(topology, single_end)
+        n = topology.n_vars
+        self.name = name or f"chain{n}"
+        var_rev = [True] * n
+        for j, i in enumerate(topology.q_index):
+            var_rev[i] = topology.revolute[j]
+        self.joint_types = "".join("R" if r else "P" for r in var_rev)
+        self.register_buffer("revolute_mask", torch.tensor(var_rev, dtype=dtype, device=device))
+        self.register_buffer("_joint_revolute", torch.tensor(topology.revolute, dtype=dtype, device=device))
         self.register_buffer("q_limits", None)
-        self.register_buffer("base", None)
-        self.register_buffer("tool", None)
+        self.register_buffer("base_nominal", None)
+        self.register_buffer("tool_nominal", None)
+        self.base_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
+        self.tool_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
         if q_limits is not None:
             lim = q_limits.detach() if isinstance(q_limits, Tensor) else q_limits
             lim = torch.as_tensor(lim, dtype=dtype, device=device).clone()
-            if lim.shape != (n_joints, 2):
-                raise ModelError(
-                    f"q_limits must have shape ({n_joints}, 2), got {batch_shape_str(lim.shape)}"
-                )
-            if not bool(torch.isfinite(lim).all()) or not bool((lim[:, 0] < lim[:, 1]).all()):
+            if lim.shape != (n, 2):
+                raise ModelError(f"q_limits must have shape ({n}, 2), got {batch_shape_str(lim.shape)}")
+            # ±inf marks a joint without limit (a URDF continuous joint); NaN is never a limit
+            if bool(torch.isnan(lim).any()) or not bool((lim[:, 0] < lim[:, 1]).all()) or \
+                    bool(torch.isinf(lim[:, 0]).logical_and(lim[:, 0] > 0).any()):
                 bad = [i for i, (lo, hi) in enumerate(lim.tolist()) if not lo < hi]
-                raise ModelError(f"q_limits must be finite with lower < upper; joints {bad} are not")
+                raise ModelError(f"q_limits must have lower < upper (±inf: no limit); joints {bad} do not")
             self.q_limits = lim
         self._compiled_fk = None
+        self._const_key, self._const = None, None
+        self._zero_key, self._zero = {}, {}
         #: free-text model information (description, source, notes) from YAML, kept by to_dict()
         self.metadata: dict[str, str] = {}
 
+    def _set_topology(self, topology: Topology, single_end: bool) -> None:
+        if single_end and len(topology.ends) != 1:
+            raise ModelError("a single-end chain needs exactly one end link")
+        self._topo = topology
+        self.n_joints = topology.n_vars
+        self._single_end = single_end
+
+    # ------------------------------------------------------------------------------- base and tool
     def _set_base_tool(self, base, tool) -> None:
-        dtype, device = self.dtype, self.device
-        self.base = None if base is None else as_rigid_transform(base, "base", dtype, device)
-        self.tool = None if tool is None else as_rigid_transform(tool, "tool", dtype, device)
+        self.base, self.tool = base, tool
+
+    def _fixed_pose(self, which: str, skip_zero: bool = True) -> Tensor | None:
+        """Base or tool for the kernels: the nominal alone while its correction is zero and needs no
+        gradient (checked once per parameter update), else nominal · Δ(delta)."""
+        nominal, delta = getattr(self, f"{which}_nominal"), getattr(self, f"{which}_delta")
+        if skip_zero and not (torch.is_grad_enabled() and delta.requires_grad) and \
+                self._delta_is_zero(which, delta):
+            return nominal
+        D = pose_correction(delta)
+        return D if nominal is None else nominal @ D
+
+    def _delta_is_zero(self, which: str, delta: Tensor) -> bool:
+        if not _is_plain(delta):
+            return False
+        key = (delta._version, delta.data_ptr())
+        if self._zero_key.get(which) != key:  # one host read per parameter update
+            self._zero_key[which], self._zero[which] = key, not bool(delta.detach().any())
+        return self._zero[which]
+
+    def _pose_property(self, which: str) -> Tensor | None:
+        nominal, delta = getattr(self, f"{which}_nominal"), getattr(self, f"{which}_delta")
+        if self._delta_is_zero(which, delta):
+            return nominal
+        D = pose_correction(delta)
+        return D if nominal is None else nominal @ D
+
+    @property
+    def base(self) -> Tensor | None:
+        """The base transform T^b_0 ``(4, 4)`` (nominal · Δ(base_delta)), or None for the identity."""
+        return self._pose_property("base")
+
+    @base.setter
+    def base(self, T) -> None:
+        self.base_nominal = None if T is None else as_rigid_transform(T, "base", self.dtype, self.device)
+        with torch.no_grad():
+            self.base_delta.zero_()
+
+    @property
+    def tool(self) -> Tensor | None:
+        """The tool transform T^n_e ``(4, 4)`` applied at every end link, or None for the identity."""
+        return self._pose_property("tool")
+
+    @tool.setter
+    def tool(self, T) -> None:
+        self.tool_nominal = None if T is None else as_rigid_transform(T, "tool", self.dtype, self.device)
+        with torch.no_grad():
+            self.tool_delta.zero_()
+
+    # ----------------------------------------------------------------------------------- geometry
+    def _geometry(self) -> tuple[Tensor | None, Tensor | None, Tensor | None, list[Tensor | None]]:
+        """``(Pre (J, 4, 4) | None, offset (J,) | None, Post (J, 4, 4) | None, ends [K × (4, 4) | None])``
+        from the parameters, differentiable (base and tool are added by the caller)."""
+        raise NotImplementedError
+
+    def _constants_allowed(self) -> bool:
+        params = list(self.parameters())
+        if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+            return False
+        return all(_is_plain(p) for p in params)
+
+    def _segments(self, per_joint: bool, constants: bool = True) -> Segments:
+        """The fixed transforms of every joint: per joint (column path) or stacked (matrix path); Python
+        constants when allowed, else tensors that carry gradients to the parameters."""
+        if constants and self._constants_allowed():
+            key = tuple((t._version, t.data_ptr()) for t in self.parameters()) + tuple(
+                id(b) for b in (self.base_nominal, self.tool_nominal)) + (self.dtype, self.device)
+            if key != self._const_key:
+                self._const_key, self._const = key, self._constant_segments()
+            return self._const[0 if per_joint else 1]
+        pre, offset, post, ends = self._geometry()
+        base, tool = self._fixed_pose("base", constants), self._fixed_pose("tool", constants)
+        ends = [tool if E is None else (E if tool is None else E @ tool) for E in ends]
+        stacked = Segments(pre, offset, post, base, ends)
+        if not per_joint:
+            return stacked
+        return Segments(None if pre is None else pre.unbind(0), None if offset is None else offset.unbind(0),
+                        None if post is None else post.unbind(0), base, ends)
+
+    def _constant_segments(self) -> tuple[Segments, Segments]:
+        """Both forms evaluated once without autograd: plans from float64 values (exact), and stacked
+        tensors in the chain's dtype."""
+        with torch.no_grad():
+            hi = self if self.dtype == torch.float64 else None
+            pre, offset, post, ends = (hi or _as_float64(self))._geometry()
+            src = hi or _as_float64(self)
+            base, tool = src.base, src.tool
+            ends = [tool if E is None else (E if tool is None else E @ tool) for E in ends]
+
+            eps = torch.finfo(self.dtype).eps  # snap what the chain's dtype cannot tell from 0 or ±1
+
+            def plans(T):
+                return None if T is None else [plan_of(t, eps) for t in T.unbind(0)]
+
+            per_joint = Segments(plans(pre), None if offset is None else offset.cpu().tolist(), plans(post),
+                                 None if base is None else plan_of(base, eps),
+                                 [None if E is None else plan_of(E, eps) for E in ends])
+            dt, dev = self.dtype, self.device
+
+            def cast(T):
+                return None if T is None else T.to(dtype=dt, device=dev)
+
+            stacked = Segments(cast(pre), cast(offset), cast(post), cast(base), [cast(E) for E in ends])
+        return per_joint, stacked
 
     # ----------------------------------------------------------------------------------------- checks
     @property
@@ -140,6 +244,16 @@ class KinematicChain(nn.Module):
     @property
     def device(self) -> torch.device:
         return self.revolute_mask.device
+
+    @property
+    def n_ends(self) -> int:
+        """K, the number of end links."""
+        return len(self._topo.ends)
+
+    @property
+    def topology(self) -> Topology:
+        """The tree structure (parents, joint kinds, end links, mimic couplings) as Python constants."""
+        return self._topo
 
     def check_q(self, q, name: str = "q", finite: bool = True) -> Tensor:
         """Validate a joint tensor ``(..., n)`` for this chain (type, shape, dtype, device, finiteness)."""
@@ -165,178 +279,168 @@ class KinematicChain(nn.Module):
             check_finite(q, name)  # all finite; otherwise the exact (5-pass) check decides (sum overflow)
         return q
 
-    # ------------------------------------------------------------------------------ kernel protocol
-    def _column_frames(self, qs: Sequence[Tensor], constants: bool = True) -> Iterator[Columns]:
-        """Yield kernel frames K_0..K_n as columns ``(x, y, z, p)``, each ``(3, B)`` or ``(3, 1)``.
+    def _out(self, T: Tensor) -> Tensor:
+        """Drop the end-link axis ``(..., K, ...)`` of a single-end chain."""
+        return T.squeeze(-3) if self._single_end else T
 
-        ``constants=False`` forbids data-dependent specialisation (for ``torch.compile`` tracing).
-        ``qs`` holds the n joint values, each ``(B,)`` (strided views of the flattened ``q``). K_0 is the
-        base frame. Only the current frame is alive at a time, so memory stays a few times the output.
-        """
-        raise NotImplementedError
-
-    def _link_matrices(self, q: Tensor) -> Tensor:
-        """A_1..A_n of the kernel frames, ``(..., n, 4, 4)``."""
-        raise NotImplementedError
-
-    def _frame_fixup(self, i: int) -> Tensor | None:
-        """Fixed transform from kernel frame i to link frame i (None: they coincide)."""
-        return None
-
-    def _ee_transform(self) -> Tensor | None:
-        """Fixed transform from kernel frame n to the end effector (the tool)."""
-        return self.tool
-
-    # ------------------------------------------------------------------------------------------ FK
+    # -------------------------------------------------------------------------------------------- FK
     def forward_kinematics(self, q: Tensor, all_frames: bool = False, check: bool = True) -> Tensor:
-        """Direct kinematics T = base · A1(q1) ··· An(qn) · tool  (2.50)–(2.51).
+        """Direct kinematics T = base · A1(q1) ··· An(qn) · tool  (2.50)–(2.51), on a tree for every end link.
 
         Args:
             q: joint variables ``(..., n)`` (rad for revolute, m for prismatic joints).
-            all_frames: if True return ``(..., n + 1, 4, 4)``: frame 0 (base) and every link frame, the last
-                one being the end-effector pose (tool applied). Otherwise the end-effector pose
-                ``(..., 4, 4)``.
+            all_frames: if True return ``(..., J + 1, 4, 4)``: the base frame and the frame of every joint
+                (its child link; J = n without mimic joints). For a chain with one end link the last one is
+                the end-effector pose (tool applied).
             check: validate ``q`` (shape, dtype, finiteness). Disable only in inner loops on trusted input.
+
+        Returns:
+            ``(..., 4, 4)`` for a chain with one end link, ``(..., K, 4, 4)`` for K end links.
         """
         if check:
             self.check_q(q)
         batch = q.shape[:-1]
+        if all_frames:
+            return self._all_frames(q)
         if batch.numel() <= self.small_batch:
-            return self._matrix_fk(q, all_frames)
-        if not all_frames and self._compiled_fk is not None:
+            ends = matrix_frames(q, self._topo, self._segments(per_joint=False))[0]
+            return self._out(ends)
+        if self._compiled_fk is not None:
             return self._compiled_fk(q)
-        return self._column_fk(q, all_frames)
+        qs = q.reshape(-1, self.n_joints).unbind(-1)
+        ends = column_frames(qs, self._topo, self._segments(per_joint=True))[0]
+        out = _new_poses(q, qs[0].shape[0], self.n_ends)
+        for k, frame in enumerate(ends):
+            columns_to_matrices(frame, out[:, k])
+        return self._out(out.reshape(*batch, self.n_ends, 4, 4))
 
-    def _matrix_fk(self, q: Tensor, all_frames: bool) -> Tensor:
-        A = self._link_matrices(q)
-        T = A[..., 0, :, :] if self.base is None else self.base @ A[..., 0, :, :]
-        frames = [T]
-        for i in range(1, self.n_joints):
-            T = T @ A[..., i, :, :]
-            frames.append(T)
-        ee = self._ee_transform()
-        T_ee = T if ee is None else T @ ee
-        if not all_frames:
-            return T_ee
-        base = self.base if self.base is not None else torch.eye(4, dtype=q.dtype, device=q.device)
-        out = [base]
-        for i, F in enumerate(frames[:-1], start=1):
-            fix = self._frame_fixup(i)
-            out.append(F if fix is None else F @ fix)
-        out.append(T_ee)
-        return torch.stack(torch.broadcast_tensors(*out), dim=-3)
-
-    def _joint_columns(self, q: Tensor) -> tuple[Tensor, ...]:
-        return q.reshape(-1, self.n_joints).unbind(-1)
-
-    def _base_columns(self, like: Tensor) -> Columns:
-        if self.base is None:
-            eye = torch.eye(3, dtype=like.dtype, device=like.device)
-            return eye[:, 0:1], eye[:, 1:2], eye[:, 2:3], torch.zeros_like(eye[:, 0:1])
-        x, y, z, p = self.base[:3].unsqueeze(-1).unbind(1)
-        return x, y, z, p
-
-    def _new_poses(self, q: Tensor, *shape: int) -> Tensor:
-        out = q.new_empty(*shape, 4, 4)
-        out[..., 3, :3] = 0.0
-        out[..., 3, 3] = 1.0
-        return out
-
-    def _column_fk(self, q: Tensor, all_frames: bool = False) -> Tensor:
-        batch, n = q.shape[:-1], self.n_joints
-        qs = self._joint_columns(q)
-        B = qs[0].shape[0]
-        if not all_frames:
-            for frame in self._column_frames(qs):  # noqa: B007 - only the last frame is needed
-                pass
-            out = self._new_poses(q, B)
-            columns_to_matrices(frame, self._ee_transform(), out)
-            return out.reshape(*batch, 4, 4)
-        out = self._new_poses(q, B, n + 1)
-        for i, frame in enumerate(self._column_frames(qs)):
-            fix = self._ee_transform() if i == n else self._frame_fixup(i) if i > 0 else None
-            columns_to_matrices(frame, fix, out[:, i])
-        return out.reshape(*batch, n + 1, 4, 4)
+    def _all_frames(self, q: Tensor) -> Tensor:
+        ends, frames, _, _ = matrix_frames(q, self._topo, self._segments(per_joint=False))
+        seg = self._segments(per_joint=False)
+        base = seg.base if seg.base is not None else torch.eye(4, dtype=q.dtype, device=q.device)
+        if self._single_end and self._topo.ends[0] == self._topo.n_frames - 1:
+            frames = torch.cat((frames[..., :-1, :, :], ends), dim=-3)
+        return torch.cat((base.expand(*frames.shape[:-3], 1, 4, 4), frames), dim=-3)
 
     def forward(self, q: Tensor) -> Tensor:
-        """Alias of :meth:`forward_kinematics` (end-effector pose ``(..., 4, 4)``)."""
+        """Alias of :meth:`forward_kinematics` (end-link poses)."""
         return self.forward_kinematics(q)
 
     def joint_axes_origins(self, q: Tensor, check: bool = True) -> tuple[Tensor, Tensor, Tensor]:
-        """Joint motion axes and origins in the base frame, and the end-effector pose, from one FK pass.
+        """Joint motion axes and origins in the base frame, and the end poses, from one FK pass.
 
-        Returns ``(axes (..., n, 3), origins (..., n, 3), T_ee (..., 4, 4))``: for joint i the unit vector
-        z_{i-1} and point p_{i-1} of (3.30) (standard DH); for modified DH the joint sits on z_i, p_i.
-        Above :attr:`small_batch` ``axes`` and ``origins`` are non-contiguous views of batch-last memory
-        (``reshape``, not ``view``, to flatten them).
+        Returns ``(axes (..., J, 3), origins (..., J, 3), T (..., [K,] 4, 4))``: for joint i the unit vector
+        z_{i-1} and a point p_{i-1} of its axis in (3.30) (one row per joint frame: J = n without mimic
+        joints).
         """
         if check:
             self.check_q(q)
-        batch, n, off = q.shape[:-1], self.n_joints, self._axis_offset
-        if batch.numel() <= self.small_batch:
-            frames = self._matrix_kernel_frames(q)
-            axes = frames[..., off : off + n, :3, 2]
-            origins = frames[..., off : off + n, :3, 3]
-            ee = self._ee_transform()
-            T_ee = frames[..., n, :, :] if ee is None else frames[..., n, :, :] @ ee
-            return axes, origins, T_ee
-        qs = self._joint_columns(q)
-        B = qs[0].shape[0]
-        # batch-last (3, n, B) memory, handed out as (B, n, 3) views: every write is a contiguous row copy
-        # (no transposing scatter), and the Jacobian kernel computes in this layout
-        axes_bl, origins_bl, T_ee = q.new_empty(3, n, B), q.new_empty(3, n, B), self._new_poses(q, B)
-        self._axes_origins_into(qs, axes_bl, origins_bl, T_ee)
-        axes, origins = axes_bl.permute(2, 1, 0), origins_bl.permute(2, 1, 0)
-        return axes.reshape(*batch, n, 3), origins.reshape(*batch, n, 3), T_ee.reshape(*batch, 4, 4)
+        batch = q.shape[:-1]
+        if batch.numel() <= self.small_batch or self._grad_needed(q):
+            ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
+            return axes, origins, self._out(ends)
+        qT = q.reshape(-1, self.n_joints).T
+        m = qT.shape[1]
+        _, ends, axes = self.batch_last(qT, with_axes=True)
+        # batch-last (3, J, m) memory handed out as (..., J, 3) views (reshape, not view, to flatten them)
+        z = torch.stack([a[0].expand(3, m) for a in axes], dim=1).permute(2, 1, 0)
+        o = torch.stack([a[1].expand(3, m) for a in axes], dim=1).permute(2, 1, 0)
+        T = _new_poses(q, m, self.n_ends)
+        for k, frame in enumerate(ends):
+            columns_to_matrices(frame, T[:, k])
+        J = z.shape[1]
+        return (z.reshape(*batch, J, 3), o.reshape(*batch, J, 3),
+                self._out(T.reshape(*batch, self.n_ends, 4, 4)))
 
-    def _axes_origins_into(self, qs: Sequence[Tensor], axes: Tensor, origins: Tensor, T_ee: Tensor) -> Tensor:
-        """Column kernel of :meth:`joint_axes_origins` for joint columns ``qs`` (each ``(B,)``): fills
-        ``axes`` and ``origins`` ``(3, n, B)`` and ``T_ee (B, 4, 4)`` (last row already [0, 0, 0, 1]);
-        returns the end-effector origin batch last, ``(3, B)`` or ``(3, 1)``, equal to ``T_ee[:, :3, 3].T``.
+    def _grad_needed(self, q: Tensor) -> bool:
+        params = self.parameters()
+        return torch.is_grad_enabled() and (q.requires_grad or any(p.requires_grad for p in params))
+
+    def fk_jacobian(self, q: Tensor, check: bool = True) -> tuple[Tensor, Tensor]:
+        """End poses and geometric Jacobians (3.30) from one pass: ``(T (..., [K,] 4, 4),
+        J (..., [K,] 6, n))``.
+
+        Large CPU batches without autograd run in slices of 8192 configurations per intra-op thread through
+        the batch-last path, written straight into the outputs: every value is computed as for the whole
+        batch (all operations are per configuration), but the frames and rows stay in cache.
         """
-        off, n = self._axis_offset, self.n_joints
-        for i, frame in enumerate(self._column_frames(qs)):
-            if off <= i < off + n:  # q-independent columns are (3, 1) and broadcast
-                axes[:, i - off] = frame[2]
-                origins[:, i - off] = frame[3]
-        return columns_to_matrices(frame, self._ee_transform(), T_ee)
+        if check:
+            self.check_q(q)
+        batch, n, K = q.shape[:-1], self.n_joints, self.n_ends
+        B, chunk = batch.numel(), _CHUNK * torch.get_num_threads()
+        grad = self._grad_needed(q)
+        if B <= 2 * chunk or q.device.type != "cpu" or grad:
+            if B <= self.small_batch or grad:
+                ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
+                J = tree_jacobian(axes, origins, ends[..., :3, 3], self._joint_revolute, self._topo)
+                return self._out(ends), self._out(J)
+            ends, J = self._batch_last_fk_jacobian(q.reshape(-1, n).T)
+            return self._out(ends.reshape(*batch, K, 4, 4)), self._out(J.reshape(*batch, K, 6, n))
+        qT = q.reshape(-1, n).T
+        T, Jout = _new_poses(q, B, K), q.new_empty(B, K, 6, n)
+        for start in range(0, B, chunk):
+            part = slice(start, min(start + chunk, B))
+            T[part], Jout[part] = self._batch_last_fk_jacobian(qT[:, part])
+        return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jout.reshape(*batch, K, 6, n))
 
-    def _matrix_kernel_frames(self, q: Tensor) -> Tensor:
-        """Kernel frames K_0..K_n as ``(..., n + 1, 4, 4)`` (no fixups, no tool)."""
-        A = self._link_matrices(q)
-        T = self.base if self.base is not None else torch.eye(4, dtype=q.dtype, device=q.device)
-        frames = [T]
-        for i in range(self.n_joints):
-            T = T @ A[..., i, :, :]
-            frames.append(T)
-        return torch.stack(torch.broadcast_tensors(*frames), dim=-3)
+    def _batch_last_fk_jacobian(self, qT: Tensor) -> tuple[Tensor, Tensor]:
+        """``qT (n, m)`` -> ``(T (m, K, 4, 4), J (m, K, 6, n))`` through the batch-last path."""
+        m = qT.shape[1]
+        rows, ends = self.batch_last(qT, with_jacobian=True)
+        T = _new_poses(qT, m, self.n_ends)
+        for k, frame in enumerate(ends):
+            columns_to_matrices(frame, T[:, k])
+        return T, rows.permute(2, 1, 0).unflatten(1, (self.n_ends, 6))
 
-    def _ee_functional(self, qT: Tensor) -> Tensor:
-        """End-effector poses ``(B, 4, 4)`` from ``qT (n, B)`` by the column kernel, without in-place
-        writes or data-dependent branches: the function :meth:`compile` traces."""
-        for frame in self._column_frames(qT.unbind(0), constants=False):  # noqa: B007
-            pass
-        F = torch.stack(torch.broadcast_tensors(*frame))  # (4, 3, B)
-        ee = self._ee_transform()
-        if ee is not None:
-            F = (ee.transpose(0, 1) @ F.reshape(4, -1)).reshape(F.shape)
-        top = F.permute(2, 1, 0)
-        bottom = torch.cat((torch.zeros_like(top[:, :1, :3]), torch.ones_like(top[:, :1, :1])), dim=-1)
-        return torch.cat((top, bottom), dim=1)
+    def batch_last(self, qT: Tensor, with_jacobian: bool = False, constants: bool = True,
+                   with_axes: bool = False):
+        """The batch-last kernel for solvers that keep their state batch last (:mod:`diffkin.ik`).
+
+        ``qT (n, m)`` -> ``(J, ends)``: ``ends`` the K end frames as columns ``(x, y, z, p)``, each
+        ``(3, m)`` or ``(3, 1)``; ``J`` (if ``with_jacobian``) the geometric Jacobian rows ``(n, 6K, m)``
+        (row block k for end link k), else None. ``with_axes`` appends the list of J joint ``(axis, origin)``
+        column pairs. No checks: ``qT`` must match the chain's dtype and device.
+        """
+        topo = self._topo
+        qs = qT.unbind(0)
+        ends, axes, _ = column_frames(qs, topo, self._segments(per_joint=True, constants=constants),
+                                      with_axes=with_jacobian or with_axes)
+        if not with_jacobian:
+            return (None, ends, axes) if with_axes else (None, ends)
+        m = qT.shape[1]
+        z = torch.stack([a[0].expand(3, m) for a in axes], dim=1)  # (3, J, m)
+        o = torch.stack([a[1].expand(3, m) for a in axes], dim=1)
+        all_rev = all(topo.revolute)
+        blocks = []
+        for k, frame in enumerate(ends):
+            R = jacobian_rows(z, o, frame[3].expand(3, m), self._joint_revolute, all_rev)  # (6, J, m)
+            if not all(topo.ancestors[k]):
+                R = R * torch.tensor(topo.ancestors[k], dtype=R.dtype, device=R.device).view(1, -1, 1)
+            blocks.append(R)
+        rows = torch.cat(blocks, dim=0)  # (6K, J, m)
+        if topo.coupled:
+            rows = torch.einsum("rjm,jn->nrm", rows, topo.coupling_matrix(rows.dtype, rows.device))
+        else:
+            rows = rows.permute(1, 0, 2)
+        return (rows, ends, axes) if with_axes else (rows, ends)
+
+    def _functional_fk(self, qT: Tensor) -> Tensor:
+        """End poses ``(m, K, 4, 4)`` from ``qT (n, m)`` without in-place writes or data-dependent branches:
+        the function :meth:`compile` traces."""
+        _, ends = self.batch_last(qT, constants=False)
+        return torch.stack([stack_columns(tuple(c.expand(3, qT.shape[1]) for c in f)) for f in ends], dim=1)
 
     def compile(self, **kwargs) -> KinematicChain:
-        """Opt-in fast path: FK of the end effector through ``torch.compile`` (kwargs passed on).
-
-        Used for batches above :attr:`small_batch` when ``all_frames=False``. The first call compiles
-        (tens of seconds on a small CPU); ``dynamic=True`` by default so later batch sizes reuse it.
-        :meth:`uncompile` drops it.
-        """
+        """Opt-in fast path: FK through ``torch.compile`` (kwargs passed on), for batches above
+        :attr:`small_batch`. The first call compiles (tens of seconds on a small CPU); ``dynamic=True`` by
+        default so later batch sizes reuse it. :meth:`uncompile` drops it."""
         kwargs.setdefault("dynamic", True)
-        fn = torch.compile(self._ee_functional, **kwargs)
+        fn = torch.compile(self._functional_fk, **kwargs)
         n = self.n_joints
 
         def fast(q: Tensor) -> Tensor:  # batch-last, contiguous joint rows: unit-stride loads in the kernel
-            return fn(q.reshape(-1, n).transpose(0, 1).contiguous()).reshape(*q.shape[:-1], 4, 4)
+            T = fn(q.reshape(-1, n).transpose(0, 1).contiguous())
+            return self._out(T.reshape(*q.shape[:-1], self.n_ends, 4, 4))
 
         self._compiled_fk = fast
         return self
@@ -348,7 +452,7 @@ class KinematicChain(nn.Module):
 
     # ------------------------------------------------------------------------------- Jacobians (§3)
     def geometric_jacobian(self, q: Tensor, **kwargs) -> Tensor:
-        """Geometric Jacobian ``(..., 6, n)`` (3.30); see :func:`diffkin.jacobian.geometric_jacobian`."""
+        """Geometric Jacobian ``(..., [K,] 6, n)`` (3.30); see :func:`diffkin.jacobian.geometric_jacobian`."""
         from .jacobian import geometric_jacobian
 
         return geometric_jacobian(self, q, **kwargs)
@@ -360,30 +464,60 @@ class KinematicChain(nn.Module):
         return analytical_jacobian(self, q, representation=representation, **kwargs)
 
     def forward_kinematics_and_jacobian(self, q: Tensor, **kwargs) -> tuple[Tensor, Tensor]:
-        """``(T_ee (..., 4, 4), J (..., 6, n))`` from one FK pass."""
+        """``(T (..., [K,] 4, 4), J (..., [K,] 6, n))`` from one FK pass (with the options of
+        :func:`diffkin.jacobian.geometric_jacobian`)."""
         from .jacobian import forward_kinematics_and_jacobian
 
         return forward_kinematics_and_jacobian(self, q, **kwargs)
 
+    def parameter_jacobian(self, q: Tensor, check: bool = True) -> tuple[Tensor, list[str]]:
+        """Jacobian of the end poses w.r.t. the geometric parameters: ``(Φ (..., [K,] 6, P), names)``.
+
+        Column p is the base-frame twist [δp; δω] of each end link per unit change of the p-th entry of the
+        flattened parameters (order of ``named_parameters()``, names like ``"a.2"``), by forward-mode
+        differentiation of the one FK kernel, so the same linearisation as the geometric Jacobian's.
+        """
+        from .kernels.jacobian import twist_of_derivative
+
+        if check:
+            self.check_q(q)
+        named = [(k, p) for k, p in self.named_parameters()]
+        flat = torch.cat([p.detach().reshape(-1) for _, p in named])
+        sizes = [p.numel() for _, p in named]
+
+        def fk_of(theta: Tensor) -> Tensor:
+            parts = torch.split(theta, sizes)
+            params = {k: t.view_as(p) for (k, p), t in zip(named, parts)}
+            return torch.func.functional_call(self, params, (q,))
+
+        dT = torch.func.jacfwd(fk_of)(flat)  # (..., [K,] 4, 4, P)
+        with torch.no_grad():
+            T = self.forward_kinematics(q, check=False)
+        names = [f"{k}.{i}" if p.numel() > 1 else k for k, p in named for i in range(p.numel())]
+        return twist_of_derivative(dT, T), names
+
     # ------------------------------------------------------------------------------------ limits
     def lower_upper(self) -> tuple[Tensor, Tensor]:
-        """Limits ``(lower (n,), upper (n,))``; ±π for unlimited revolute, ±1 m for unlimited prismatic."""
-        if self.q_limits is not None:
-            return self.q_limits[:, 0], self.q_limits[:, 1]
+        """Finite ranges ``(lower (n,), upper (n,))`` for sampling and seeding: the limits where a joint has
+        them, else ±π (revolute) or ±1 m (prismatic)."""
         span = torch.where(self.revolute_mask > 0, math.pi, torch.ones_like(self.revolute_mask))
-        return -span, span
+        if self.q_limits is None:
+            return -span, span
+        lo, hi = self.q_limits[:, 0], self.q_limits[:, 1]
+        return torch.where(torch.isinf(lo), -span, lo), torch.where(torch.isinf(hi), span, hi)
 
     def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
-        """Boolean ``(...)``: every joint of ``q`` within its limits (± tol)."""
-        lo, hi = self.lower_upper()
+        """Boolean ``(...)``: every joint of ``q`` within its limits (± tol); always True without limits."""
+        if self.q_limits is None:
+            return torch.ones(q.shape[:-1], dtype=torch.bool, device=q.device)
+        lo, hi = self.q_limits[:, 0], self.q_limits[:, 1]
         return ((q >= lo - tol) & (q <= hi + tol)).all(dim=-1)
 
     def clamp_to_limits(self, q: Tensor) -> Tensor:
         """Project ``q (..., n)`` onto the joint limits (identity where the chain has none)."""
         if self.q_limits is None:
             return q
-        lo, hi = self.lower_upper()
-        return torch.maximum(torch.minimum(q, hi), lo)
+        return torch.maximum(torch.minimum(q, self.q_limits[:, 1]), self.q_limits[:, 0])
 
     def random_configuration(
         self, shape: Sequence[int] | int = (), generator: torch.Generator | None = None
@@ -400,6 +534,26 @@ class KinematicChain(nn.Module):
         return f"name={self.name!r}, n_joints={self.n_joints}, joint_types={self.joint_types!r}"
 
 
+def _new_poses(like: Tensor, *shape: int) -> Tensor:
+    out = like.new_empty(*shape, 4, 4)
+    out[..., 3, :3] = 0.0
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def _as_float64(chain: KinematicChain) -> KinematicChain:
+    """A float64 CPU view of a chain's parameters and buffers for exact constant evaluation."""
+    import copy
+
+    c = copy.copy(chain)  # shallow: swap in float64 parameters/buffers without touching the original
+    c._parameters = {k: None if p is None else p.detach().double().cpu()
+                     for k, p in chain._parameters.items()}
+    c._buffers = {k: None if b is None else (b.double() if b.is_floating_point() else b).cpu()
+                  for k, b in chain._buffers.items()}
+    c._zero_key, c._zero = {}, {}
+    return c
+
+
 class DHChain(KinematicChain):
     """Serial chain from a Denavit–Hartenberg table (§2.8.2).
 
@@ -411,10 +565,14 @@ class DHChain(KinematicChain):
     convention="standard" (the book's): A_i = Rz(ϑ_i) Tz(d_i) Tx(a_i) Rx(α_i)  (2.52).
     convention="modified" (Craig): row i holds (a_{i-1}, α_{i-1}, d_i, ϑ_i) and
     A_i = Rx(α_{i-1}) Tx(a_{i-1}) Rz(ϑ_i) Tz(d_i).
+    ``beta`` (standard convention only): Hayati's parameters, A_i = (2.52) · Ry(β_i); for near-parallel
+    consecutive axes, where d is ill-defined, a small tilt of the next axis in their common plane is a small
+    β.
 
-    ``base`` and ``tool`` are fixed ``(4, 4)`` transforms T^b_0 and T^n_e (2.51); ``q_limits`` is ``(n, 2)``.
-    The chain's dtype is that of the first tensor among a, alpha, d, theta (else ``dtype`` or the default);
-    Python numbers are converted straight to it, so float64 tables are exact.
+    ``base`` and ``tool`` are ``(4, 4)`` transforms T^b_0 and T^n_e (2.51), learnable through ``base_delta``
+    and ``tool_delta``; ``q_limits`` is ``(n, 2)``. The chain's dtype is that of the first tensor among a,
+    alpha, d, theta (else ``dtype`` or the default); Python numbers are converted straight to it, so float64
+    tables are exact.
     """
 
     def __init__(
@@ -430,6 +588,7 @@ class DHChain(KinematicChain):
         q_limits=None,
         name: str | None = None,
         *,
+        beta=None,
         dtype: torch.dtype | None = None,
         device=None,
     ):
@@ -438,74 +597,32 @@ class DHChain(KinematicChain):
             raise ModelError("a DH chain needs at least one joint")
         if convention not in _CONVENTIONS:
             raise ConventionError(f"convention must be one of {_CONVENTIONS}, got {convention!r}")
+        if beta is not None and convention != "standard":
+            raise ConventionError("Hayati's beta is defined here for the standard DH convention only")
+        joint_types = "R" * n if joint_types is None else joint_types
+        joint_types = joint_types.upper() if isinstance(joint_types, str) else joint_types
+        if not isinstance(joint_types, str) or len(joint_types) != n or set(joint_types) - {"R", "P"}:
+            raise ModelError(
+                f"joint_types must be a string of {n} letters 'R' (revolute) or 'P' (prismatic), "
+                f"got {joint_types!r}"
+            )
         dtype = dtype or _first_float_dtype(a, alpha, d, theta) or torch.get_default_dtype()
         if device is None:
             device = next((x.device for x in (a, alpha, d, theta) if isinstance(x, Tensor)), None)
-        super().__init__(n, joint_types or "R" * n, q_limits=q_limits, name=name, dtype=dtype, device=device)
+        topo = Topology.serial([c == "R" for c in joint_types])
+        super().__init__(topo, q_limits=q_limits, name=name, dtype=dtype, device=device)
         self.convention = convention
-        self._axis_offset = 0 if convention == "standard" else 1
         self.a = nn.Parameter(_as_param(a, n, "a", dtype, device))
         self.alpha = nn.Parameter(_as_param(alpha, n, "alpha", dtype, device))
         self.d = nn.Parameter(_as_param(d, n, "d", dtype, device))
         self.theta = nn.Parameter(_as_param(theta, n, "theta", dtype, device))
+        self.beta = None if beta is None else nn.Parameter(_as_param(beta, n, "beta", dtype, device))
         self._set_base_tool(base, tool)
-        self._plan_key, self._plan = None, None
 
-    # -------------------------------------------------------------------------------------- kernels
-    def _joint_values(self, q: Tensor) -> tuple[Tensor, Tensor]:
-        """Effective ϑ and d of every joint, ``(..., n)`` each (2.52)."""
-        rev = self.revolute_mask
-        return self.theta + q * rev, self.d + q * (1.0 - rev)
-
-    def _ee_functional(self, qT: Tensor) -> Tensor:
-        return dh_ee_components(qT, self.a, self.alpha, self.d, self.theta, self.base, self.tool,
-                                 self.joint_types, self.convention == "standard")
-
-    def _constant_plan(self) -> list[tuple[float, float, float, float, float]] | None:
-        """The DH table as Python floats ``(a, cos α, sin α, d, theta)`` per joint, or None when autograd
-        needs the table (grad mode on and a parameter requires grad).
-
-        Without gradients w.r.t. the table its values are constants: the column kernel then skips zero
-        terms and turns α = 0, ±π/2, π into swaps (a third fewer ops on the Panda). Cached per parameter
-        version, so in-place updates (optimizer steps, ``load_state_dict``) are seen; cos/sin within one
-        ulp of 0 or ±1 are snapped to it (α = π/2 rounded to the dtype gives cos α ≈ 6e-17 or -4e-8).
-        """
-        params = (self.a, self.alpha, self.d, self.theta)
-        if torch.is_grad_enabled() and any(p.requires_grad for p in params):
-            return None
-        key = tuple((p._version, p.data_ptr(), p.dtype, p.device) for p in params)
-        if key != self._plan_key:
-            eps = torch.finfo(self.dtype).eps
-            plan = []
-            for a, alpha, d, theta in torch.stack([p.detach() for p in params], 1).double().cpu().tolist():
-                c, s = math.cos(alpha), math.sin(alpha)
-                if abs(c) <= eps:
-                    c, s = 0.0, math.copysign(1.0, s)
-                elif abs(s) <= eps:
-                    c, s = math.copysign(1.0, c), 0.0
-                plan.append((a, c, s, d, theta))
-            self._plan_key, self._plan = key, plan
-        return self._plan
-
-    def _column_frames(self, qs: Sequence[Tensor], constants: bool = True) -> Iterator[Columns]:
-        plan = self._constant_plan() if constants else None
-        if plan is None:  # tensors: differentiable w.r.t. the DH table
-            ca, sa = torch.cos(self.alpha).unbind(), torch.sin(self.alpha).unbind()
-            plan = list(zip(self.a.unbind(), ca, sa, self.d.unbind(), self.theta.unbind()))
-        yield from dh_frames(qs, plan, self.joint_types, self.convention == "standard",
-                              self._base_columns(qs[0]))
-
-    def _link_matrices(self, q: Tensor) -> Tensor:
-        """Closed-form A_i (2.52) (standard) or Craig's matrix (modified), ``(..., n, 4, 4)``."""
-        theta, d = self._joint_values(q)
-        ct, st = torch.cos(theta), torch.sin(theta)
-        ca, sa, a = (t.expand_as(ct) for t in (torch.cos(self.alpha), torch.sin(self.alpha), self.a))
-        zero, one = torch.zeros_like(ct), torch.ones_like(ct)
-        if self.convention == "standard":
-            rows = (ct, -st * ca, st * sa, a * ct, st, ct * ca, -ct * sa, a * st, zero, sa, ca, d)
-        else:
-            rows = (ct, -st, zero, a, st * ca, ct * ca, -sa, -sa * d, st * sa, ct * sa, ca, ca * d)
-        return torch.stack((*rows, zero, zero, zero, one), dim=-1).unflatten(-1, (4, 4))
+    def _geometry(self):
+        pre, offset, post = dh_joints(self.a, self.alpha, self.d, self.theta, self.revolute_mask,
+                                      self.convention == "modified", self.beta)
+        return pre, offset, post, [None]
 
     # ------------------------------------------------------------------------------------ helpers
     def dh_table(self) -> Tensor:
@@ -513,7 +630,7 @@ class DHChain(KinematicChain):
         return torch.stack([self.a, self.alpha, self.d, self.theta], dim=-1).detach()
 
     def copy(self) -> DHChain:
-        """An independent copy (parameters cloned, gradients not shared)."""
+        """An independent copy (parameters cloned, gradients not shared, not compiled)."""
         c = DHChain(
             self.a.detach().clone(),
             self.alpha.detach().clone(),
@@ -521,10 +638,11 @@ class DHChain(KinematicChain):
             self.theta.detach().clone(),
             joint_types=self.joint_types,
             convention=self.convention,
-            base=None if self.base is None else self.base.clone(),
-            tool=None if self.tool is None else self.tool.clone(),
+            base=None if self.base is None else self.base.detach().clone(),
+            tool=None if self.tool is None else self.tool.detach().clone(),
             q_limits=None if self.q_limits is None else self.q_limits.clone(),
             name=self.name,
+            beta=None if self.beta is None else self.beta.detach().clone(),
         )
         c.metadata = dict(self.metadata)
         return c
@@ -533,9 +651,13 @@ class DHChain(KinematicChain):
     @classmethod
     def from_dict(cls, data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
         """Chain from a model mapping (YAML schema of :mod:`diffkin.models.io`); values may be expressions."""
-        from .models.io import chain_from_dict
+        from .models.io import parse_chain_dict
 
-        return chain_from_dict(data, dtype=dtype, device=device, where=where)
+        kwargs = parse_chain_dict(data, dtype=dtype, device=device, where=where)
+        metadata = kwargs.pop("metadata")
+        chain = cls(**kwargs)
+        chain.metadata = metadata
+        return chain
 
     def to_dict(self) -> dict:
         """Model mapping (name, convention, joint_types, dh rows, q_limits, base, tool) with plain floats."""
@@ -546,9 +668,10 @@ class DHChain(KinematicChain):
     @classmethod
     def from_yaml(cls, path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
         """Chain from a YAML file path or a YAML string (see :mod:`diffkin.models` for the schema)."""
-        from .models.io import chain_from_yaml
+        from .models.io import read_yaml
 
-        return chain_from_yaml(path_or_str, dtype=dtype, device=device)
+        data, where = read_yaml(path_or_str)
+        return cls.from_dict(data, dtype=dtype, device=device, where=where)
 
     def to_yaml(self, path=None) -> str:
         """YAML text of :meth:`to_dict` (angles that are exact multiples of π/12 written as e.g. ``pi/2``);

@@ -1,9 +1,8 @@
 """Differential kinematics (§3.1–3.7): geometric and analytical Jacobians, J̇q̇ and Jacobian inverses.
 
-The geometric Jacobian comes from the frames of one FK pass (3.30): ``chain.joint_axes_origins(q)`` gives the
-joint axes z and origins p of every joint in the base frame; each column is a couple of fused elementwise
-products on ``(..., n)`` components (no 4×4 products, no autograd), on batch-last memory for large batches
-(which large CPU batches go through in cache-sized slices). Rows are ``[linear; angular]``.
+The geometric Jacobian (3.30) comes from one pass of the kernel layer (``chain.fk_jacobian``, encoded in
+:mod:`diffkin.kernels.jacobian`); this module adds the choice of frame and point, the analytical Jacobian
+(3.66) and J̇q̇. Rows are ``[linear; angular]``; a chain with K end links gives ``(..., K, 6, n)``.
 
 Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, statics in
 :mod:`diffkin.statics`; both are re-exported here so ``diffkin.jacobian`` is the one import place.
@@ -17,7 +16,6 @@ import torch
 from torch import Tensor
 
 from ._numerics import check_shape, cross, eps_for
-from .chain import KinematicChain
 from .errors import ConventionError, DTypeError, RepresentationSingularityError, ShapeError
 from .manipulability import (
     DecoupledSingularities,
@@ -84,64 +82,6 @@ __all__ = [
 
 _SINGULAR_MODES = ("raise", "flag", "ignore")
 _POINT_FRAMES = ("ee", "base")
-_FEW_OPS_BATCH = 64  # up to this many configurations the Jacobian kernel minimises the number of ops
-_CHUNK = 8192  # configurations per thread and slice of a large CPU batch (forward_kinematics_and_jacobian)
-
-
-# ------------------------------------------------------------------------------------------ kernels
-def _jacobian_kernel(
-    axes: Tensor, origins: Tensor, p_e: Tensor, revolute: Tensor, all_revolute: bool
-) -> Tensor:
-    """(3.30) from joint axes/origins (..., n, 3) and the EE point (..., 3) -> (..., 6, n), contiguous."""
-    if axes.shape[:-2].numel() <= _FEW_OPS_BATCH:  # per-call overhead dominates: fewest ops
-        lin = torch.linalg.cross(axes, p_e.unsqueeze(-2) - origins, dim=-1)
-        if all_revolute:
-            cols = torch.cat((lin, axes), dim=-1)
-        else:
-            rev = revolute.unsqueeze(-1)
-            cols = torch.cat((lin * rev + axes * (1.0 - rev), axes * rev), dim=-1)
-        return cols.transpose(-1, -2).contiguous()
-    # large batches: elementwise passes over batch-last (3, n, *batch) memory, which is how the chains'
-    # column kernel hands axes/origins out (stride(-1) != 1); other layouts are transposed to it once
-    nb = axes.ndim - 2
-    to_batch_last = (nb + 1, nb, *range(nb))
-    z, o = axes.permute(*to_batch_last), origins.permute(*to_batch_last)
-    if axes.stride(-1) == 1:
-        z, o = z.contiguous(), o.contiguous()
-    rows = _jacobian_rows(z, o, p_e.permute(nb, *range(nb)).contiguous(), revolute, all_revolute)
-    return rows.permute(*range(2, 2 + nb), 0, 1).contiguous()  # one transposing pass
-
-
-def _jacobian_rows(
-    z: Tensor, o: Tensor, p_e: Tensor, revolute: Tensor, all_revolute: bool, rows: Tensor | None = None
-) -> Tensor:
-    """(3.30) on batch-last blocks: axes ``z`` and origins ``o`` (3, n, *batch), EE point ``p_e``
-    (3, *batch) -> rows [linear; angular] of J as (6, n, *batch).
-
-    Without autograd the rows are written in place into ``rows`` (new if None), whose ``rows[3:]`` may
-    be ``z`` itself; with autograd they are stacked (the same arithmetic, so the same values).
-    """
-    nb = z.ndim - 2
-    zx, zy, zz = z
-    rx, ry, rz = p_e.unsqueeze(1) - o  # p_e - p_{i-1}
-    terms = ((zy, rz, zz, ry), (zz, rx, zx, rz), (zx, ry, zy, rx))  # row k of z_{i-1} x (p_e - p_{i-1})
-    rev = None if all_revolute else revolute.view(-1, *(1,) * nb)
-    # prismatic joints: [z; 0]; an arithmetic blend keeps one code path for every joint
-    if torch.is_grad_enabled() and (z.requires_grad or o.requires_grad or p_e.requires_grad):
-        lin = [torch.addcmul(a * b, c, d, value=-1.0) for a, b, c, d in terms]
-        if rev is not None:
-            lin = [torch.addcmul(row * rev, zk, 1.0 - rev) for row, zk in zip(lin, z)]
-        return torch.stack((*lin, *(z if rev is None else z * rev)))
-    rows = z.new_empty(6, *z.shape[1:]) if rows is None else rows
-    for k, (a, b, c, d) in enumerate(terms):
-        torch.mul(a, b, out=rows[k]).addcmul_(c, d, value=-1.0)
-        if rev is not None:
-            rows[k].mul_(rev).addcmul_(z[k], 1.0 - rev)
-    if rows[3:].data_ptr() != z.data_ptr():
-        rows[3:].copy_(z)
-    if rev is not None:
-        rows[3:].mul_(rev)
-    return rows
 
 
 def shift_jacobian_point(J: Tensor, r: Tensor) -> Tensor:
@@ -197,43 +137,6 @@ def _point_offset(point, point_frame: str, T_ee: Tensor) -> Tensor | None:
 
 
 # ------------------------------------------------------------------------------ geometric Jacobian
-def _fk_jacobian(chain, q: Tensor) -> tuple[Tensor, Tensor]:
-    """``(T_ee (..., 4, 4), J (..., 6, n))``: (3.30) at the end-effector origin, base frame; no checks.
-
-    Large CPU batches without autograd run in slices of :data:`_CHUNK` configurations per intra-op thread
-    through the chain's column kernel, written straight into the outputs: every value is computed as for
-    the whole batch (all operations are per configuration), but the frames, axes, origins and rows of J
-    stay in cache and the peak memory is little more than the outputs.
-    """
-    batch, n = q.shape[:-1], q.shape[-1]
-    B, chunk = batch.numel(), _CHUNK * torch.get_num_threads()
-    all_rev = "P" not in chain.joint_types
-    if B <= 2 * chunk or q.device.type != "cpu" or not _sliceable(chain) or _grad_needed(chain, q):
-        axes, origins, T_ee = chain.joint_axes_origins(q, check=False)
-        return T_ee, _jacobian_kernel(axes, origins, T_ee[..., :3, 3], chain.revolute_mask, all_rev)
-    qs = chain._joint_columns(q)
-    T, J = chain._new_poses(q, B), q.new_empty(B, 6, n)
-    for start in range(0, B, chunk):
-        part = slice(start, min(start + chunk, B))
-        m = part.stop - start
-        if start == 0 or m < chunk:  # scratch, reused; rows[3:] receives the axes directly
-            rows, origins = q.new_empty(6, n, m), q.new_empty(3, n, m)
-        p_e = chain._axes_origins_into([c[part] for c in qs], rows[3:], origins, T[part])
-        _jacobian_rows(rows[3:], origins, p_e, chain.revolute_mask, all_rev, rows)
-        J[part] = rows.permute(2, 0, 1)
-    return T.reshape(*batch, 4, 4), J.reshape(*batch, 6, n)
-
-
-def _sliceable(chain) -> bool:
-    """The chain computes its axes with the base class's column kernel (not an override)."""
-    return isinstance(chain, KinematicChain) and \
-        type(chain).joint_axes_origins is KinematicChain.joint_axes_origins
-
-
-def _grad_needed(chain, q: Tensor) -> bool:
-    return torch.is_grad_enabled() and (q.requires_grad or any(p.requires_grad for p in chain.parameters()))
-
-
 def forward_kinematics_and_jacobian(
     chain, q: Tensor, frame=None, point: Tensor | None = None, point_frame: str = "ee", check: bool = True
 ) -> tuple[Tensor, Tensor]:
@@ -242,9 +145,7 @@ def forward_kinematics_and_jacobian(
     See :func:`geometric_jacobian` for the options. ``T`` is always the end-effector (tool) pose in the base
     frame, whatever ``point``/``frame`` say.
     """
-    if check:
-        chain.check_q(q)
-    T_ee, J = _fk_jacobian(chain, q)
+    T_ee, J = chain.fk_jacobian(q, check=check)
     r = _point_offset(point, point_frame, T_ee)
     if r is not None:
         J = shift_jacobian_point(J, r)

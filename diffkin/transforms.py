@@ -12,8 +12,8 @@ from functools import reduce
 import torch
 from torch import Tensor
 
-from ._numerics import check_finite, check_shape, eps_for
-from .errors import ConventionError, DiffkinError, DTypeError
+from ._numerics import batch_shape_str, check_finite, check_shape, eps_for
+from .errors import ConventionError, DiffkinError, DTypeError, ModelError
 from .kernels import pose_error as _kpe
 
 __all__ = [
@@ -25,6 +25,7 @@ __all__ = [
     "transform_points",
     "pose_error",
     "check_transform",
+    "as_rigid_transform",
     "POSE_ERROR_ORIENTATIONS",
 ]
 
@@ -166,4 +167,25 @@ def check_transform(T, name: str = "T", atol: float | None = None) -> Tensor:
         if bool(worst > atol):
             raise DiffkinError(f"{name} is not a rigid transform: {what} (max deviation {float(worst):.3g}, "
                                f"atol {atol:.3g})")
+    return T
+
+
+def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:
+    """Validate a fixed ``(4, 4)`` rigid transform (base, tool, URDF origin) and return a tensor copy."""
+    T = torch.as_tensor(T, dtype=dtype, device=device).clone()
+    if T.shape != (4, 4):
+        raise ModelError(f"{name} must be a (4, 4) homogeneous transform, got {batch_shape_str(T.shape)}")
+    R = T[:3, :3]
+    eye = torch.eye(3, dtype=T.dtype, device=T.device)
+    tol = 1e-5 if T.dtype != torch.float64 else 1e-9
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
+    if (
+        not bool(torch.isfinite(T).all())
+        or not torch.allclose(R.T @ R, eye, atol=tol)
+        or not torch.equal(T[3], bottom)
+        or float(torch.linalg.det(R)) < 0
+    ):
+        raise ModelError(
+            f"{name} must be a rigid transform (orthonormal R with det +1, last row [0, 0, 0, 1])"
+        )
     return T

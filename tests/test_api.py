@@ -75,7 +75,8 @@ def test_contract_names_from_the_issues():
 
 def test_dh_parameters_are_named_parameters():
     chain = diffkin.models.load("panda")
-    assert {name for name, _ in chain.named_parameters()} == {"a", "alpha", "d", "theta"}
+    names = {"a", "alpha", "d", "theta", "base_delta", "tool_delta"}  # the DH table, learnable base and tool
+    assert {name for name, _ in chain.named_parameters()} == names
 
 
 def test_library_does_not_import_rl_code():

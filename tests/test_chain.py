@@ -201,10 +201,11 @@ def test_constant_table_path_matches_autograd_path(convention):
     q = torch.rand(50, n, dtype=F64)
     with_grad = chain.forward_kinematics(q)
     axes_g, origins_g, _ = chain.joint_axes_origins(q)
-    assert chain._constant_plan() is None  # autograd needs the table
+    assert not chain._constants_allowed()  # autograd needs the table
     with torch.no_grad():
-        plan = chain._constant_plan()
-        assert plan is not None and chain._constant_plan() is plan  # cached
+        plan = chain._segments(per_joint=True)
+        fixed = plan.post if convention == "standard" else plan.pre
+        assert isinstance(fixed[0], tuple) and chain._segments(per_joint=True) is plan  # cached floats
         torch.testing.assert_close(chain.forward_kinematics(q), with_grad, atol=1e-14, rtol=0)
         axes, origins, _ = chain.joint_axes_origins(q)
         chain.a.add_(0.1)  # in-place update: the cached constants must follow
@@ -280,10 +281,15 @@ def test_gradcheck_q_and_dh_parameters(convention, kernel):
                     tool=random_transform(rng))
     force_kernel(chain, kernel)
     q = (torch.rand(3, 4, dtype=F64) * 4 - 2).requires_grad_(True)
+    names = [k for k, _ in chain.named_parameters()]
+    assert set(names) == {"a", "alpha", "d", "theta", "base_delta", "tool_delta"}
     params = tuple(p.detach().clone().requires_grad_(True) for p in chain.parameters())
+    with torch.no_grad():  # learnable base and tool away from their nominal value too
+        params[names.index("base_delta")].copy_(torch.tensor([0.1, -0.2, 0.3, 0.4, -0.5, 0.6]))
+        params[names.index("tool_delta")].copy_(torch.tensor([-0.1, 0.2, 0.05, -0.3, 0.2, 0.1]))
 
-    def fk(q, a, alpha, d, theta):
-        return functional_call(chain, {"a": a, "alpha": alpha, "d": d, "theta": theta}, (q,))
+    def fk(q, *values):
+        return functional_call(chain, dict(zip(names, values)), (q,))
 
     assert torch.autograd.gradcheck(fk, (q, *params))
     assert torch.autograd.gradcheck(lambda q: chain.joint_axes_origins(q)[:2], (q,))
@@ -403,6 +409,6 @@ def test_dh_table_and_module_behaviour():
     chain = DHChain([1.0, 2.0], [0.1, 0.2], [0.3, 0.4], [0.5, 0.6], name="toy")
     torch.testing.assert_close(chain.dh_table()[1], torch.tensor([2.0, 0.2, 0.4, 0.6]))
     names = {n for n, _ in chain.named_parameters()}
-    assert names == {"a", "alpha", "d", "theta"}
+    assert names == {"a", "alpha", "d", "theta", "base_delta", "tool_delta"}
     assert "toy" in repr(chain)
     torch.testing.assert_close(chain(torch.zeros(2)), chain.forward_kinematics(torch.zeros(2)))

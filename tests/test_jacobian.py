@@ -18,7 +18,6 @@ from diffkin import DHChain
 from diffkin.errors import ConventionError, RepresentationSingularityError, ShapeError
 from diffkin.jacobian import (
     AnalyticalJacobian,
-    _jacobian_kernel,
     analytical_jacobian,
     analytical_to_geometric,
     analytical_transform,
@@ -27,6 +26,7 @@ from diffkin.jacobian import (
     geometric_to_analytical,
     jacobian_dot_qdot,
 )
+from diffkin.kernels.jacobian import jacobian_from_axes
 from diffkin.rotations import euler_rate_matrix, matrix_to_euler, rotvec_to_matrix, vee
 
 F64 = torch.float64
@@ -278,8 +278,8 @@ def test_batch_last_kernel_layout(batch):
         origins_bl = origins.permute(*perm).contiguous().permute(*inv)
         assert axes_bl.stride(-1) != 1 and torch.equal(axes_bl, axes)
         args = (T[..., :3, 3], chain.revolute_mask, False)
-        J = _jacobian_kernel(axes_bl, origins_bl, *args)
-        torch.testing.assert_close(J, _jacobian_kernel(axes, origins, *args), atol=0, rtol=0)
+        J = jacobian_from_axes(axes_bl, origins_bl, *args)
+        torch.testing.assert_close(J, jacobian_from_axes(axes, origins, *args), atol=0, rtol=0)
         torch.testing.assert_close(J, geometric_jacobian(chain, q), atol=0, rtol=0)
         assert J.is_contiguous() and J.shape == (*batch, 6, 6)
 
@@ -404,6 +404,7 @@ def test_analytical_jacobian_representation_singularity():
 @pytest.mark.parametrize("batch", [(100,), (7, 13)])
 def test_sliced_large_batch_path_is_bit_identical(monkeypatch, batch):
     """Large CPU batches without autograd run in slices (_CHUNK); slicing must not change a single bit."""
+    import diffkin.chain as chain_module
     import diffkin.jacobian as jac
     from diffkin.models import from_urdf
 
@@ -412,9 +413,9 @@ def test_sliced_large_batch_path_is_bit_identical(monkeypatch, batch):
     for chain in chains:
         q = chain.random_configuration(batch, generator=torch.Generator().manual_seed(5))
         with torch.no_grad():
-            monkeypatch.setattr(jac, "_CHUNK", 10**9)
+            monkeypatch.setattr(chain_module, "_CHUNK", 10**9)
             T_ref, J_ref = jac.forward_kinematics_and_jacobian(chain, q)
-            monkeypatch.setattr(jac, "_CHUNK", 24)  # slices of 24 (and a remainder) per thread
+            monkeypatch.setattr(chain_module, "_CHUNK", 24)  # slices of 24 (and a remainder) per thread
             T, J = jac.forward_kinematics_and_jacobian(chain, q)
         assert torch.equal(T, T_ref) and torch.equal(J, J_ref)
         assert J.shape == (*batch, 6, chain.n_joints)

@@ -32,7 +32,6 @@ def _cycles() -> list[list[str]]:
     return cycles
 
 
-@pytest.mark.xfail(strict=False, reason="chain<->jacobian<->models.io pending")
 def test_no_import_cycles():
     assert _cycles() == []
 

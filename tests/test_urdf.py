@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
@@ -140,11 +139,17 @@ def test_limits_types_and_module_behaviour():
     chain = from_urdf(TOY, "tip")
     assert isinstance(chain, URDFChain) and chain.joint_types == "RPRR"
     assert chain.joint_names == ["j1", "j2", "j3", "j4"]
-    torch.testing.assert_close(chain.q_limits, torch.tensor([[-2, 2], [-0.1, 0.4], [-math.pi, math.pi],
+    inf = math.inf  # the continuous joint j3 has no limit; it is sampled and seeded over ±π
+    torch.testing.assert_close(chain.q_limits, torch.tensor([[-2, 2], [-0.1, 0.4], [-inf, inf],
                                                              [-3, 1]], dtype=torch.float32))
+    torch.testing.assert_close(torch.stack(chain.lower_upper(), -1)[2], torch.tensor([-math.pi, math.pi]))
+    assert bool(chain.within_limits(torch.tensor([0.0, 0.0, 9.0, 0.0])))
     c64 = chain.copy().double()
     assert c64.dtype == F64 and c64.forward_kinematics(torch.zeros(4, dtype=F64)).dtype == F64
-    assert not list(chain.parameters())  # fixed geometry
+    # learnable geometry: every origin on the path (fixed joints too), every moving axis, base and tool
+    names = {k: tuple(p.shape) for k, p in chain.named_parameters()}
+    assert names == {"origin_xyz": (6, 3), "origin_rpy": (6, 3), "axis": (4, 3), "base_delta": (6,),
+                     "tool_delta": (6,)}
     q = torch.zeros(4)
     torch.testing.assert_close(chain.to(torch.float32).forward_kinematics(q), chain.forward_kinematics(q))
     sub = from_urdf(TOY, "l3", root_link="l1")  # a sub-chain
@@ -165,7 +170,5 @@ def test_urdf_errors():
     floating = TOY.replace('name="j3" type="continuous"', 'name="j3" type="floating"')
     with pytest.raises(ModelError, match="j3.*floating"):
         from_urdf(floating, "tip")
-    with pytest.raises(ModelError, match="non-zero"):
-        URDFChain(np.eye(4)[None], np.zeros((1, 3)), "R")
-    with pytest.raises(ModelError, match=r"\(n, 4, 4\)"):
-        URDFChain(np.eye(3)[None], np.ones((1, 3)), "R")
+    with pytest.raises(ModelError, match="j4"):
+        from_urdf(TOY.replace('<axis xyz="1 2 2"/>', '<axis xyz="0 0 0"/>'), "tip")

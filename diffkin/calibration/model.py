@@ -24,13 +24,14 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._fk_kernels import dh_step
 from .._numerics import batch_shape_str, check_finite, cross
 from ..chain import DHChain
 from ..errors import DTypeError, ModelError, ShapeError
+from ..kernels.joints import dh_joints, pose_correction
 from ..kernels.pose_error import pose_error as _pose_error
+from ..kernels.tree import Segments, Topology, matrix_frames
 from ..rotations import _rotvec_to_matrix, _skew
-from ..transforms import _make_transform, check_transform
+from ..transforms import check_transform
 
 __all__ = ["CalibrationModel", "parameter_names", "DH_KINDS", "POSE_AXES"]
 
@@ -42,11 +43,6 @@ def parameter_names(n: int) -> tuple[str, ...]:
     """Names of the full ζ of an ``n``-joint chain: ``a1.., alpha1.., d1.., theta1.., base_x.., tool_x..``."""
     dh = [f"{k}{i + 1}" for k in DH_KINDS for i in range(n)]
     return tuple(dh + [f"base_{s}" for s in POSE_AXES] + [f"tool_{s}" for s in POSE_AXES])
-
-
-def _pose_correction(v: Tensor) -> Tensor:
-    """Δ(v) = [[R(v[3:]), v[:3]], [0, 1]]: (..., 6) -> (..., 4, 4), smooth at v = 0."""
-    return _make_transform(_rotvec_to_matrix(v[..., 3:]), v[..., :3])
 
 
 def _frames_to_matrix(x: Tensor, y: Tensor, z: Tensor, p: Tensor) -> Tensor:
@@ -70,22 +66,17 @@ def _so3_right_jacobian(v: Tensor) -> Tensor:
 
 
 def _dh_frames(a, alpha, d, theta, q, revolute, convention, base):
-    """Frames 0..n as columns ``(x, y, z, p)`` with batched DH parameters (the chain's :func:`dh_step`).
+    """Frames 0..n as columns ``(x, y, z, p)`` with batched DH parameters, by the kernel layer's DH joints
+    and chain product (one encoding of (2.52) / Craig's matrix with the chains).
 
     ``a, alpha, d, theta`` are ``(..., n)`` and broadcast against ``q (..., n)``; ``base`` is ``(..., 4, 4)``
     broadcastable to ``q.shape[:-1]``. Returns a list of ``n + 1`` tuples of ``(..., 3)`` tensors.
     """
-    theta = theta + q * revolute
-    d = d + q * (1.0 - revolute)
-    ct, st = torch.cos(theta)[..., None], torch.sin(theta)[..., None]
-    ca, sa = torch.cos(alpha)[..., None], torch.sin(alpha)[..., None]
-    a, d = a[..., None], d[..., None]
-    x, y, z, p = base[..., :3, 0], base[..., :3, 1], base[..., :3, 2], base[..., :3, 3]
-    frames = [(x, y, z, p)]
-    for i in range(q.shape[-1]):
-        link = (t[..., i, :] for t in (ct, st, a, ca, sa, d))
-        frames.append(dh_step(frames[-1], *link, convention == "standard"))
-    return frames
+    pre, offset, post = dh_joints(a, alpha, d, theta, revolute, convention == "modified")
+    topo = Topology.serial([r > 0 for r in revolute.tolist()])
+    _, F, _, _ = matrix_frames(q, topo, Segments(pre, offset, post, base, [None]))
+    mats = [base.expand(*F.shape[:-3], 4, 4), *F.unbind(-3)]
+    return [(T[..., :3, 0], T[..., :3, 1], T[..., :3, 2], T[..., :3, 3]) for T in mats]
 
 
 def _as_selection(parameters, n: int, joint_types: str, base: bool, tool: bool, joint_offsets: bool):
@@ -208,8 +199,8 @@ class CalibrationModel:
     def base_tool(self, zeta: Tensor) -> tuple[Tensor, Tensor]:
         """Base and tool transforms ``(..., 4, 4)`` of parameters ``zeta (..., P)``."""
         n4 = 4 * self.n
-        base = self.base_nominal @ _pose_correction(zeta[..., n4 : n4 + 6])
-        tool = self.tool_nominal @ _pose_correction(zeta[..., n4 + 6 :])
+        base = self.base_nominal @ pose_correction(zeta[..., n4 : n4 + 6])
+        tool = self.tool_nominal @ pose_correction(zeta[..., n4 + 6 :])
         return base, tool
 
     def _frames(self, zeta: Tensor, q: Tensor):

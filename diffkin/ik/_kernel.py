@@ -12,7 +12,6 @@ import math
 import torch
 from torch import Tensor
 
-from .._numerics import cross
 from ..chain import KinematicChain
 
 
@@ -25,51 +24,32 @@ def norm0(v: Tensor) -> Tensor:
 
 
 class BatchLastKernel:
-    """``kernel(q (n, m)) -> (J (n, 6, m), x, y, z, p)``: Jacobian rows per joint (3.30), EE columns (3, m).
+    """``kernel(q (n, m)) -> (J (n, 6K, m), x, y, z, p)``: the chain's batch-last kernel for the IK loop.
 
-    Runs the chain's own batch-last column kernel (``KinematicChain._column_frames``); ``chain`` must already
-    be in the working dtype (the solver passes a float64 copy of a float32 chain).
+    Row block k of J (rows 6k..6k+5) is the Jacobian (3.30) of end link k; the end-link columns ``x, y, z,
+    p`` are ``(3K, m)``, the K ends' columns stacked (K = 1 for a serial chain). ``chain`` must already be
+    in the working dtype (the solver passes a float64 copy of a float32 chain).
     """
 
     def __init__(self, chain: KinematicChain):
         self.chain = chain
         self.n = chain.n_joints
-        self.off = chain._axis_offset
-        self.all_revolute = all(t == "R" for t in chain.joint_types)
-        self.rev = chain.revolute_mask.detach().view(self.n, 1, 1)
+        self.K = chain.n_ends
 
-    def _frames(self, q: Tensor, with_axes: bool):
-        n, off, m = self.n, self.off, q.shape[-1]
-        axes, origins = [], []
-        for i, frame in enumerate(self.chain._column_frames(q)):
-            if with_axes and off <= i < off + n:
-                axes.append(frame[2].expand(3, m))
-                origins.append(frame[3].expand(3, m))
-        x, y, z, p = (c.expand(3, m) for c in frame)
-        T = self.chain._ee_transform()
-        if T is not None:  # columns of F · T
-            x, y, z, p = (
-                x * T[0, 0] + y * T[1, 0] + z * T[2, 0],
-                x * T[0, 1] + y * T[1, 1] + z * T[2, 1],
-                x * T[0, 2] + y * T[1, 2] + z * T[2, 2],
-                p + x * T[0, 3] + y * T[1, 3] + z * T[2, 3],
-            )
-        return axes, origins, x, y, z, p
+    def _stack(self, ends, m: int):
+        cols = [[c.expand(3, m) for c in frame] for frame in ends]
+        if self.K == 1:
+            return tuple(cols[0])
+        return tuple(torch.cat([f[i] for f in cols], 0) for i in range(4))
 
     def fk(self, q: Tensor):
-        """``q (n, m) -> (x, y, z, p)`` each ``(3, m)``."""
-        return self._frames(q, False)[2:]
+        """``q (n, m) -> (x, y, z, p)`` each ``(3K, m)``."""
+        return self._stack(self.chain.batch_last(q)[1], q.shape[-1])
 
     def __call__(self, q: Tensor):
-        """``q (n, m) -> (J (n, 6, m), x, y, z, p)``; row k of J is joint k's [linear; angular] column."""
-        axes, origins, x, y, z, p = self._frames(q, True)
-        axes, origins = torch.stack(axes), torch.stack(origins)  # (n, 3, m)
-        lin = cross(axes, p.unsqueeze(0) - origins, dim=1)  # z_{i-1} x (p_e - p_{i-1})  (3.30)
-        if self.all_revolute:
-            J = torch.cat((lin, axes), dim=1)
-        else:
-            J = torch.cat((lin * self.rev + axes * (1 - self.rev), axes * self.rev), dim=1)
-        return J, x, y, z, p
+        """``q (n, m) -> (J (n, 6K, m), x, y, z, p)``."""
+        J, ends = self.chain.batch_last(q, with_jacobian=True)
+        return (J, *self._stack(ends, q.shape[-1]))
 
 
 class JointMap:

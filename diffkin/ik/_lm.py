@@ -53,7 +53,8 @@ class LMConfig:
 
 
 class Targets:
-    """Target position ``pd`` and rotation columns ``xd, yd, zd`` (each ``(3, N)`` or None), batch last."""
+    """Target position ``pd`` and rotation columns ``xd, yd, zd`` (each ``(3K, N)`` or None: the K end links'
+    columns stacked), batch last."""
 
     def __init__(self, pd: Tensor, xd: Tensor | None, yd: Tensor | None, zd: Tensor | None):
         self.pd, self.xd, self.yd, self.zd = pd, xd, yd, zd
@@ -89,15 +90,24 @@ def library_seeds(kernel: BatchLastKernel, jmap: JointMap, tg: Targets, cfg: LMC
 
 
 def _errors(kernel, u, jmap, tg: Targets):
+    """J ``(n, r, m)``, the error e ``(r, m)`` ([e_p; e_o] per end link, or e_p), and the worst position
+    and orientation error over the K end links ``(m,)`` each."""
     J, x, y, z, p = kernel(jmap.q_of_u(u))
     ep = tg.pd - p
-    pn = norm0(ep)
+    K = kernel.K
+    pn = norm0(ep) if K == 1 else torch.stack([norm0(ep[3 * k : 3 * k + 3]) for k in range(K)]).amax(0)
     if tg.position_only:
-        return J[:, :3], ep, pn, torch.zeros_like(pn)
-    # θr with the gradient up to θ = π; the merit only needs θ, so no exact axis near π
-    eo, ang = orientation_error((tg.xd, tg.yd, tg.zd), (x, y, z), "rotvec", layout="columns",
-                                exact_near_pi=False)  # fmt: skip
-    return J, torch.cat((ep, eo), 0), pn, ang
+        Jp = J[:, :3] if K == 1 else torch.cat([J[:, 6 * k : 6 * k + 3] for k in range(K)], 1)
+        return Jp, ep, pn, torch.zeros_like(pn)
+    e, angs = [], []
+    for k in range(K):
+        blk = slice(3 * k, 3 * k + 3)
+        # θr with the gradient up to θ = π; the merit only needs θ, so no exact axis near π
+        eo, ang = orientation_error((tg.xd[blk], tg.yd[blk], tg.zd[blk]), (x[blk], y[blk], z[blk]), "rotvec",
+                                    layout="columns", exact_near_pi=False)  # fmt: skip
+        e += [ep[blk], eo]
+        angs.append(ang)
+    return J, torch.cat(e, 0), pn, angs[0] if K == 1 else torch.stack(angs).amax(0)
 
 
 class _Seeder:
@@ -148,8 +158,9 @@ class _Run:
         dtype, device = tg.pd.dtype, tg.pd.device
         self.kernel, self.jmap, self.tg, self.cfg, self.seeder = kernel, jmap, tg, cfg, seeder
         self.tol, self.num_seeds, self.max_iterations = tol, num_seeds, max_iterations
-        self.sqrt_w = torch.ones(3 if tg.position_only else 6, 1, dtype=dtype, device=device)
-        self.sqrt_w[3:] = math.sqrt(cfg.orientation_weight)
+        w = torch.ones(3 if tg.position_only else 6, 1, dtype=dtype, device=device)
+        w[3:] = math.sqrt(cfg.orientation_weight)
+        self.sqrt_w = w.repeat(kernel.K, 1)  # the same weights in every end link's block
         self.best_u = torch.zeros(kernel.n, N, dtype=dtype, device=device)
         self.best_merit = torch.full((N,), math.inf, dtype=dtype, device=device)
         self.done = torch.zeros(N, dtype=torch.bool, device=device)

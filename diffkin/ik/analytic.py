@@ -31,6 +31,7 @@ from torch import Tensor
 
 from .._numerics import batch_shape_str, check_finite, check_tensor, safe_atan2, safe_sqrt, wrap_angle
 from ..errors import DTypeError, ModelError, ShapeError
+from ..kernels.joints import dh_matrix
 from ..rotations import _matrix_to_euler
 from ..transforms import _transform_inverse
 
@@ -169,26 +170,12 @@ def spherical_wrist_orientation(R: Tensor) -> Tensor:
 
 
 # ----------------------------------------------------------------------------------- DH products
-def _dh(theta: Tensor, d: Tensor, a: Tensor, alpha: Tensor) -> Tensor:
-    """A_i^{i-1} (2.52) for (...) theta and d, scalar a and alpha: (..., 4, 4)."""
-    ct, st = torch.cos(theta), torch.sin(theta)
-    ca, sa = torch.cos(alpha).expand_as(ct), torch.sin(alpha).expand_as(ct)
-    z, o = torch.zeros_like(ct), torch.ones_like(ct)
-    rows = [
-        [ct, -st * ca, st * sa, a * ct],
-        [st, ct * ca, -ct * sa, a * st],
-        [z, sa, ca, d.expand_as(ct)],
-        [z, z, z, o],
-    ]
-    return torch.stack([torch.stack(r, dim=-1) for r in rows], dim=-2)
-
-
 def _fk0(chain, theta: Tensor, d: Tensor, upto: int) -> Tensor:
     """T_upto^0 (no base, no tool) from full DH angles/offsets ``(..., n)``; may hold only the first
     ``upto`` joints (the wrist-centre step), so it cannot use the chain's whole-chain kernel."""
     T = None
     for i in range(upto):
-        A = _dh(theta[..., i], d[..., i], chain.a[i], chain.alpha[i])
+        A = dh_matrix(chain.a[i], chain.alpha[i], d[..., i], theta[..., i])  # (2.52)
         T = A if T is None else T @ A
     return T
 

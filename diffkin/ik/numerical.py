@@ -80,19 +80,26 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
         raise DTypeError(f"T_target has dtype {T_target.dtype} but chain '{chain.name}' is {chain.dtype}")
     if T_target.device != chain.device:
         raise ValueError(f"T_target is on {T_target.device} but chain '{chain.name}' is on {chain.device}")
+    K, tree = chain.n_ends, not getattr(chain, "_single_end", True)
+    ends = (K,) if tree else ()
     pos_input = position_only and T_target.ndim >= 1 and T_target.shape[-1] == 3
     if pos_input:
+        if tuple(T_target.shape[-1 - len(ends) : -1]) != ends:
+            raise ShapeError(f"expected target positions of shape (..., {K}, 3) for the {K} end links of "
+                             f"chain '{chain.name}', got {batch_shape_str(T_target.shape)}")
         check_finite(T_target, "T_target")
-        batch = tuple(T_target.shape[:-1])
-        pd = T_target.reshape(-1, 3).T.to(dtype)
+        batch = tuple(T_target.shape[: T_target.ndim - 1 - len(ends)])
+        pd = T_target.reshape(-1, K * 3).T.to(dtype)
         return batch, T_target, Targets(pd.contiguous(), None, None, None)
-    if T_target.ndim < 2 or T_target.shape[-2:] != (4, 4):
-        want = "(..., 4, 4) or (..., 3)" if position_only else "(..., 4, 4)"
+    want = f"(..., {K}, 4, 4)" if tree else "(..., 4, 4)"
+    tail = tuple(T_target.shape[max(T_target.ndim - 2 - len(ends), 0) :])
+    if T_target.ndim < 2 + len(ends) or tail != (*ends, 4, 4):
+        want = f"{want} or {want[:-6]}3)" if position_only else want
         raise ShapeError(f"expected T_target of shape {want}, got {batch_shape_str(T_target.shape)}")
     check_transform(T_target, "T_target")
-    batch = tuple(T_target.shape[:-2])
-    Tt = T_target.reshape(-1, 4, 4).to(dtype).permute(1, 2, 0)  # (4, 4, N)
-    cols = [Tt[:3, j].contiguous() for j in range(4)]
+    batch = tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
+    Tt = T_target.reshape(-1, K, 4, 4).to(dtype).permute(1, 2, 3, 0)  # (K, 4, 4, N)
+    cols = [Tt[:, :3, j].reshape(3 * K, -1).contiguous() for j in range(4)]
     if position_only:
         return batch, T_target, Targets(cols[3], None, None, None)
     return batch, T_target, Targets(cols[3], cols[0], cols[1], cols[2])

@@ -85,10 +85,14 @@ def rotation_angle_between(R_a: Tensor, R_b: Tensor) -> Tensor:
 
 
 def final_errors(chain, q: Tensor, T_target: Tensor, position_only: bool) -> tuple[Tensor, Tensor]:
-    """Exact position / orientation errors of ``q (..., n)`` against ``T_target`` in the chain's dtype."""
+    """Exact position / orientation errors of ``q (..., n)`` against ``T_target`` in the chain's dtype
+    (for K end links: the worst of the K)."""
     T = chain.forward_kinematics(q, check=False)
-    if T_target.shape[-2:] != (4, 4):  # positions only
+    tree = T.ndim > q.ndim + 1  # (..., K, 4, 4)
+    if T_target.ndim == T.ndim - 1:  # positions (..., [K,] 3)
         pos = torch.linalg.vector_norm(T_target - T[..., :3, 3], dim=-1)
-        return pos, torch.zeros_like(pos)
-    pos = torch.linalg.vector_norm(T_target[..., :3, 3] - T[..., :3, 3], dim=-1)
-    return pos, rotation_angle_between(T[..., :3, :3], T_target[..., :3, :3])
+        ori = torch.zeros_like(pos)
+    else:
+        pos = torch.linalg.vector_norm(T_target[..., :3, 3] - T[..., :3, 3], dim=-1)
+        ori = rotation_angle_between(T[..., :3, :3], T_target[..., :3, :3])
+    return (pos.amax(-1), ori.amax(-1)) if tree else (pos, ori)

@@ -1,9 +1,25 @@
-"""The kernel layer: the only encodings of the library's shared numerical formulas (package-internal).
+"""The kernel layer: the only encodings of the kinematic formulas, as pure functions over tensors.
 
-Each module here holds the one implementation of a formula that several public functions need, for every
-tensor layout they use (batch first ``(..., k)`` for the public API, batch last ``(k, m)`` for the IK inner
-loop); public modules are thin wrappers that check their inputs and call these kernels. No input checks here.
+Everything above it (the chains in :mod:`diffkin.chain` and :mod:`diffkin.models`, :mod:`diffkin.jacobian`,
+:mod:`diffkin.ik`, :mod:`diffkin.calibration`, the environments) calls these functions; none re-encodes them.
 
-- :mod:`.dls`: the damped least-squares solve Δ = Jᵀ(JJᵀ + λI)⁻¹e (3.59) and its matrix form.
-- :mod:`.pose_error`: the pose error [p_d − p_e; e_O] with the orientation errors of §3.7.3.
+=================  ===========================================================================================
+module             encodes
+=================  ===========================================================================================
+``columns``        a frame as its four columns ``x, y, z, p``: right-multiplication by a fixed transform or
+                   by a joint motion about z, in the batch-last (``(3, B)``) or batch-first (``(..., 3)``)
+                   layout; writing frames out as ``(..., 4, 4)``
+``joints``         each joint kind as fixed transforms around a motion about z: standard DH (2.52), modified
+                   DH (Craig), DH with Hayati's β, the general joint (URDF origin xyz + rpy, arbitrary axis);
+                   the base / tool pose correction
+``tree``           the product along a tree of joints (2.50): every frame, the joint axes and origins, the
+                   end links; mimic couplings q_full = M q + b
+``jacobian``       the geometric Jacobian (3.30) of every end link from axes and origins, masked by ancestry
+                   and summed over mimic followers; the parameter Jacobian (pose w.r.t. geometry)
+``dls``            the damped least-squares solve (3.59)
+``pose_error``     the pose / orientation error (§3.7.3)
+=================  ===========================================================================================
+
+The modules import only :mod:`torch`, :mod:`diffkin._numerics`, :mod:`diffkin.rotations`,
+:mod:`diffkin.transforms` and each other.
 """

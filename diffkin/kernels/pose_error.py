@@ -30,6 +30,7 @@ import torch
 from torch import Tensor
 
 from .._numerics import cross
+from .quaternion import _matrix_to_quaternion
 
 __all__ = ["ORIENTATION_FORMS", "orientation_error", "pose_error", "quaternion_error", "rotation_angle"]
 
@@ -100,8 +101,6 @@ def _orientation(d, e, form: str, dim: int, exact_near_pi: bool, shortest: bool)
             theta = torch.where(far, theta_far, theta)
         return e_o, theta
     if form == "quaternion":
-        from ..rotations import _matrix_to_quaternion  # rotations imports this module
-
         Rd, Re = (torch.stack(tuple(x), -1) for x in (d, e))  # (..., 3, 3) for dim -1
         if dim % d[0].ndim != d[0].ndim - 1:
             Rd, Re = Rd.movedim(dim, -2), Re.movedim(dim, -2)

@@ -15,7 +15,7 @@ import yaml
 
 from ..chain import DHChain
 from ..errors import ModelError
-from .io import chain_from_dict, chain_from_yaml, chain_to_dict, parse_value
+from .io import chain_to_dict, parse_value
 from .urdf import URDFChain, from_urdf
 from .workspace import sample_workspace
 
@@ -32,6 +32,16 @@ __all__ = [
     "chain_to_dict",
     "DATA_DIR",
 ]
+
+def chain_from_dict(data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
+    """Build a :class:`DHChain` from a model mapping; errors name the field (``where`` prefixes them)."""
+    return DHChain.from_dict(data, dtype=dtype, device=device, where=where)
+
+
+def chain_from_yaml(path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
+    """Chain from a YAML file (path) or YAML text; errors are prefixed by the file name."""
+    return DHChain.from_yaml(path_or_str, dtype=dtype, device=device)
+
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
 

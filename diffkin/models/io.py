@@ -33,16 +33,16 @@ import numpy as np
 import torch
 import yaml
 
-from ..chain import DHChain, as_rigid_transform
 from ..errors import ModelError
+from ..transforms import as_rigid_transform
 
 __all__ = [
     "parse_value",
     "rpy_to_matrix",
     "transform_from_spec",
-    "chain_from_dict",
+    "parse_chain_dict",
+    "read_yaml",
     "chain_to_dict",
-    "chain_from_yaml",
     "chain_to_yaml",
 ]
 
@@ -143,19 +143,23 @@ def transform_from_spec(spec, where: str) -> list[list[float]]:
 
 # -------------------------------------------------------------------------------------- dict -> chain
 def _parse_rows(rows, where: str) -> dict[str, list[float]]:
+    """Columns a, alpha, d, theta (and beta, Hayati's, when every row has it) of the ``dh`` rows."""
     if not isinstance(rows, list) or not rows:
         raise ModelError(f"{where}dh: expected a non-empty list of rows {{a, alpha, d, theta}}, got {rows!r}")
-    cols: dict[str, list[float]] = {k: [] for k in _ROW_KEYS}
+    with_beta = isinstance(rows[0], dict) and "beta" in rows[0]
+    keys = (*_ROW_KEYS, "beta") if with_beta else _ROW_KEYS
+    cols: dict[str, list[float]] = {k: [] for k in keys}
     for i, row in enumerate(rows):
         w = f"{where}dh[{i}]"
         if not isinstance(row, dict):
             raise ModelError(f"{w}: expected a mapping with keys a, alpha, d, theta, got {row!r}")
-        unknown, missing = set(row) - set(_ROW_KEYS), [k for k in _ROW_KEYS if k not in row]
+        unknown, missing = set(row) - set(keys), [k for k in keys if k not in row]
         if unknown or missing:
             raise ModelError(
-                f"{w}: keys must be a, alpha, d, theta (unknown {sorted(unknown)}, missing {missing})"
+                f"{w}: keys must be {', '.join(keys)} (beta in every row or none; "
+                f"unknown {sorted(unknown)}, missing {missing})"
             )
-        for k in _ROW_KEYS:
+        for k in keys:
             cols[k].append(parse_value(row[k], f"{w}.{k}"))
     return cols
 
@@ -179,8 +183,9 @@ def _parse_limits(lim, n: int, where: str) -> list[list[float]] | None:
     return pairs
 
 
-def chain_from_dict(data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
-    """Build a :class:`DHChain` from a model mapping; errors name the field (``where`` prefixes them)."""
+def parse_chain_dict(data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> dict:
+    """The keyword arguments of :class:`~diffkin.chain.DHChain` (plus ``metadata``) from a model mapping;
+    errors name the field (``where`` prefixes them). :meth:`DHChain.from_dict` builds the chain."""
     pre = f"{where}: " if where else ""
     if not isinstance(data, dict):
         raise ModelError(f"{pre}expected a mapping at the top level, got {type(data).__name__}")
@@ -210,17 +215,17 @@ def chain_from_dict(data: dict, dtype: torch.dtype | None = None, device=None, w
             fixed[key] = as_rigid_transform(M, key, dtype, device)
         except ModelError as e:
             raise ModelError(f"{pre}{e}") from None
-    chain = DHChain(
-        *(torch.tensor(cols[k], dtype=dtype, device=device) for k in _ROW_KEYS),
+    return dict(
+        **{k: torch.tensor(cols[k], dtype=dtype, device=device) for k in _ROW_KEYS},
+        beta=torch.tensor(cols["beta"], dtype=dtype, device=device) if "beta" in cols else None,
         joint_types=joint_types.upper(),
         convention=convention,
         base=fixed["base"],
         tool=fixed["tool"],
         q_limits=None if limits is None else torch.tensor(limits, dtype=dtype, device=device),
         name=name,
+        metadata={k: str(data[k]) for k in _META_KEYS if data.get(k) is not None},
     )
-    chain.metadata = {k: str(data[k]) for k in _META_KEYS if data.get(k) is not None}
-    return chain
 
 
 # -------------------------------------------------------------------------------------- chain -> dict
@@ -272,13 +277,17 @@ _Dumper.add_representer(_FlowMap, lambda dumper, v: dumper.represent_mapping(
     "tag:yaml.org,2002:map", v, flow_style=True))
 
 
-def chain_to_dict(chain: DHChain) -> dict:
+def chain_to_dict(chain) -> dict:
     """The model mapping of ``chain`` (round-trips through :func:`chain_from_dict` exactly)."""
     dt = chain.dtype
     table = chain.dh_table().cpu().tolist()
     out: dict = {"name": chain.name, "convention": chain.convention, "joint_types": chain.joint_types}
     out.update(getattr(chain, "metadata", {}))
-    out["dh"] = [_FlowMap({k: _nice(v, dt) for k, v in zip(_ROW_KEYS, row)}) for row in table]
+    keys = _ROW_KEYS
+    if getattr(chain, "beta", None) is not None:
+        keys = (*_ROW_KEYS, "beta")
+        table = [row + [b] for row, b in zip(table, chain.beta.detach().cpu().tolist())]
+    out["dh"] = [_FlowMap({k: _nice(v, dt) for k, v in zip(keys, row)}) for row in table]
     if chain.q_limits is not None:
         out["q_limits"] = [_Flow(_nice(v, dt) for v in pair) for pair in chain.q_limits.cpu().tolist()]
     for key in ("base", "tool"):
@@ -289,7 +298,7 @@ def chain_to_dict(chain: DHChain) -> dict:
     return out
 
 
-def chain_to_yaml(chain: DHChain, path=None) -> str:
+def chain_to_yaml(chain, path=None) -> str:
     text = yaml.dump(chain_to_dict(chain), Dumper=_Dumper, sort_keys=False, allow_unicode=True, width=110)
     if path is not None:
         Path(path).write_text(text)
@@ -302,8 +311,8 @@ def _looks_like_path(x) -> bool:
     return isinstance(x, str) and "\n" not in x and (x.endswith((".yaml", ".yml")) or Path(x).is_file())
 
 
-def chain_from_yaml(path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
-    """Chain from a YAML file (path) or YAML text; errors are prefixed by the file name."""
+def read_yaml(path_or_str) -> tuple[object, str]:
+    """``(data, where)`` of a YAML file (path) or YAML text; ``where`` (the file name) prefixes errors."""
     if _looks_like_path(path_or_str):
         path = Path(path_or_str)
         if not path.is_file():
@@ -312,7 +321,6 @@ def chain_from_yaml(path_or_str, dtype: torch.dtype | None = None, device=None) 
     else:
         text, where = str(path_or_str), "<yaml>"
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text), where
     except yaml.YAMLError as e:
         raise ModelError(f"{where}: invalid YAML: {e}") from None
-    return chain_from_dict(data, dtype=dtype, device=device, where=where)

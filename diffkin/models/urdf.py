@@ -1,164 +1,151 @@
-"""URDF import: a serial chain of fixed transforms and joint axes (§2.8 without the DH restriction).
+"""URDF chains and trees: the one kinematic model with URDF joint origins and axes as parameters.
 
-:func:`from_urdf` parses a URDF with pytorch-kinematics's bundled parser (``urdf_parser_py``; the numbers are
-read as Python floats, so a float64 chain is exact) and folds it into a :class:`URDFChain`: for joint i a
-fixed origin O_i (from the previous link frame, fixed joints folded in) and a unit axis k_i in the joint
-frame; link frame i = link frame (i−1) · O_i · Rot(k_i, q_i) (revolute, Rodrigues (2.25)) or
-· Trans(k_i q_i) (prismatic). Fixed joints after the last moving joint become the tool.
+:func:`from_urdf` reads a URDF (:mod:`diffkin.models.urdf_xml` validates it) and builds a
+:class:`URDFChain` from the root (or ``root_link``) to one end link or to a list of K end links (a tree whose
+shared joints are computed once). Every joint on the way keeps its ``<origin>`` as learnable ``xyz`` / ``rpy``
+rows (fixed joints too), every moving joint its axis; :meth:`URDFChain.to_urdf` writes them back into the
+source text. ``<mimic>`` joints follow their leader and are not variables.
 
-The kernel rotates each joint frame once, at construction, so that k_i is its z axis (O_i S_i with
-S_i e_z = k_i, and S_i^T folded into the next origin): every joint is then an Rz or a Tz, the same few
-column updates as the DH kernel, and the fixed rotations, mostly signed permutations in real URDFs, are
-applied with their zero terms skipped.
+Joint j of the model is the general joint of :mod:`diffkin.kernels.joints`: Pre_j = O_f1 ··· O_fm · O_j · S_j
+(the origins of the fixed joints since the previous moving joint, its own origin, and the rotation S_j taking
+e_z to its axis), a motion about z, Post_j = S_jᵀ; end link k adds the origins of the fixed joints after
+its last moving joint. Without gradients w.r.t. the geometry all of these are evaluated once in float64 and
+applied as constants (zero terms skipped): real URDFs' fixed rotations are mostly signed permutations.
 """
 
 from __future__ import annotations
 
 import copy
 import math
-from collections.abc import Iterator, Sequence
-from pathlib import Path
+from functools import reduce
 
-import numpy as np
 import torch
-from torch import Tensor
+from torch import nn
 
-from .._fk_kernels import Columns
 from ..chain import KinematicChain
 from ..errors import ModelError
+from ..kernels.joints import general_joints, origin_transform
+from ..kernels.tree import Topology
+from ..rotations import _matrix_to_euler
+from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_urdf, write_urdf
 
 __all__ = ["URDFChain", "from_urdf"]
 
-_Plan = tuple[tuple[tuple[float, ...], ...], tuple[float, ...]]  # (R 3x3, t 3) as Python floats
+
+def _moving(j: JointSpec) -> bool:
+    # a <mimic> on a fixed joint (talos_reduced's grippers) does not make it move
+    return j.type in MOVING_TYPES
 
 
-def _snap(M: np.ndarray) -> np.ndarray:
-    M = M.copy()
-    M[np.abs(M) < 1e-15] = 0.0
-    return M
-
-
-def _align_z(k: np.ndarray) -> np.ndarray:
-    """Rotation S (3x3) with S e_z = k (Rodrigues about e_z × k); exact for axis-aligned k."""
-    if k[2] > 1.0 - 1e-15:
-        return np.eye(3)
-    if k[2] < -1.0 + 1e-15:
-        return np.diag([1.0, -1.0, -1.0])
-    u = np.cross([0.0, 0.0, 1.0], k)
-    s = np.linalg.norm(u)
-    u = u / s
-    c = k[2]
-    K = np.array([[0, -u[2], u[1]], [u[2], 0, -u[0]], [-u[1], u[0], 0]])
-    return _snap(np.eye(3) + s * K + (1.0 - c) * (K @ K))
-
-
-def _homog(R: np.ndarray, t=None) -> np.ndarray:
-    T = np.eye(4)
-    T[:3, :3] = R
-    if t is not None:
-        T[:3, 3] = t
-    return T
-
-
-def _plan(T: np.ndarray) -> _Plan:
-    return tuple(tuple(float(v) for v in row) for row in T[:3, :3]), tuple(float(v) for v in T[:3, 3])
-
-
-def _combo(terms: list[tuple[float, Tensor]]) -> Tensor:
-    """sum coef * tensor over the nonzero terms (±1 without a multiply)."""
-    (c0, v0), rest = terms[0], terms[1:]
-    acc = v0 if c0 == 1.0 else -v0 if c0 == -1.0 else v0 * c0
-    for c, v in rest:
-        acc = torch.add(acc, v, alpha=c)
-    return acc
-
-
-def _apply_fixed(plan: _Plan, frame: Columns) -> Columns:
-    """Columns of F · T for a fixed T given as a plan, skipping zero entries."""
-    R, t = plan
-    cols = frame[:3]
-    new = [_combo([(R[k][j], cols[k]) for k in range(3) if R[k][j] != 0.0]) for j in range(3)]
-    terms = [(t[k], cols[k]) for k in range(3) if t[k] != 0.0]
-    p = _combo([(1.0, frame[3]), *terms]) if terms else frame[3]
-    return new[0], new[1], new[2], p
+def _leader(tree: URDFTree, j: JointSpec) -> tuple[JointSpec, float, float]:
+    """The independent joint driving ``j`` and the composed (multiplier, offset): q_j = m q_leader + b."""
+    m, b, seen = 1.0, 0.0, {j.name}
+    while j.mimic is not None:
+        name, mult, off = j.mimic
+        lead = tree.joint(name)
+        if lead.name in seen or not _moving(lead):
+            raise ModelError(f"joint {j.name!r}: mimic leader {name!r} is fixed or part of a mimic cycle")
+        seen.add(lead.name)
+        m, b = m * mult, m * off + b  # q = m (mult q_lead + off) + b
+        j = lead
+    return j, m, b
 
 
 class URDFChain(KinematicChain):
-    """General serial chain: fixed joint origins ``O_i (n, 4, 4)``, unit axes ``k_i (n, 3)``, tool.
+    """A URDF robot from a root link to one or several end links (a tree), with learnable geometry.
 
-    Link frame i = link frame (i−1) · O_i · Rot(k_i, q_i) for 'R' joints, · Trans(q_i k_i) for 'P' joints;
-    link frame 0 is the root (``base``, default identity). ``joint_names`` and ``link_names`` (the child
-    link of each joint: frame i of ``forward_kinematics(q, all_frames=True)``) label them. The geometry is
-    fixed (buffers, not parameters).
-    Same interface as :class:`~diffkin.chain.DHChain`: ``forward_kinematics``, ``joint_axes_origins``
-    (joint i moves about k_i through the origin of its joint frame), limits, Jacobians.
+    Parameters: ``origin_xyz``, ``origin_rpy`` ``(L, 3)`` — the ``<origin>`` of every joint on the paths
+    (``joint_origin_names`` labels the rows) — and ``axis`` ``(J, 3)``, the axis of every moving joint (kept
+    unit length inside the kernel), plus the base/tool corrections of :class:`~diffkin.chain.KinematicChain`.
+
+    Attributes: ``joint_names`` (the n independent joints, the order of q's last axis), ``frame_joint_names``
+    and ``link_names`` (the J moving joints in topological order, mimic followers included, and their child
+    links: frames 1..J of ``forward_kinematics(q, all_frames=True)``), ``end_links``, ``root_link``.
     """
 
-    _axis_offset = 1
+    def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
+                 dtype: torch.dtype | None = None, device=None):
+        single = isinstance(end_links, str)
+        ends = [end_links] if single else list(end_links)
+        if not ends:
+            raise ModelError("end_link: give a link name or a non-empty list of link names")
+        if len(set(ends)) != len(ends):
+            raise ModelError(f"end_link: duplicate names in {ends}")
+        paths = [tree.path(e, root_link) for e in ends]
+        used: list[JointSpec] = []  # every joint on the paths, in topological order (union of the paths)
+        for path in paths:
+            for j in path:
+                if j.type in ("floating", "planar"):
+                    raise ModelError(f"joint {j.name!r}: type {j.type!r} on the path to an end link is not "
+                                     f"supported (revolute, continuous, prismatic, fixed)")
+                if j not in used:
+                    used.append(j)
+        moving = [j for j in used if _moving(j)]
+        if not moving:
+            raise ModelError(f"no moving joint between {root_link or tree.root!r} and {ends}")
+        frame_of = {j.name: i for i, j in enumerate(moving)}
+        variables: list[JointSpec] = []
+        q_index, mult, offs = [], [], []
+        for j in moving:
+            lead, m, b = _leader(tree, j)
+            if lead not in variables:
+                variables.append(lead)
+            q_index.append(variables.index(lead))
+            mult.append(m)
+            offs.append(b)
 
-    def __init__(self, joint_origins, joint_axes, joint_types: str, tool=None, q_limits=None,
-                 name: str | None = None, joint_names=None, base=None, *, link_names=None, dtype=None,
-                 device=None):
-        O = np.asarray(torch.as_tensor(joint_origins, dtype=torch.float64).cpu(), dtype=np.float64)
-        K = np.asarray(torch.as_tensor(joint_axes, dtype=torch.float64).cpu(), dtype=np.float64)
-        n = O.shape[0]
-        if O.shape != (n, 4, 4) or K.shape != (n, 3) or n == 0:
-            raise ModelError(
-                f"joint_origins must be (n, 4, 4) and joint_axes (n, 3), got {O.shape}, {K.shape}"
-            )
-        norms = np.linalg.norm(K, axis=1)
-        if not np.all(norms > 1e-9):
-            raise ModelError(f"joint axes must be non-zero, got norms {norms.tolist()}")
-        K = K / norms[:, None]
-        super().__init__(n, joint_types, q_limits=q_limits, name=name, dtype=dtype, device=device)
-        self._set_base_tool(base, tool)
-        default_names = [f"joint{i + 1}" for i in range(n)]
-        self.joint_names = list(joint_names) if joint_names is not None else default_names
-        self.link_names = list(link_names) if link_names is not None else [f"link{i + 1}" for i in range(n)]
+        def last_moving(path: list[JointSpec]) -> int:
+            return max((frame_of[j.name] for j in path if _moving(j)), default=-1)
+
+        parents = []
+        for j in moving:
+            path = next(p for p in paths if j in p)
+            parents.append(last_moving(path[: path.index(j)]))
+        topo = Topology(tuple(parents), tuple(j.type != "prismatic" for j in moving),
+                        tuple(last_moving(p) for p in paths), tuple(q_index), tuple(mult), tuple(offs),
+                        len(variables))
+        def limit(v: JointSpec, value: float | None, default: float) -> float:
+            return default if v.type == "continuous" or value is None else value
+
+        limits = [[limit(v, v.lower, -math.inf), limit(v, v.upper, math.inf)] for v in variables]
+        super().__init__(topo, q_limits=limits, name=tree.name, dtype=dtype, device=device, single_end=single)
         dtype, device = self.dtype, self.device
-        self.register_buffer("joint_origins", torch.tensor(O, dtype=dtype, device=device))
-        self.register_buffer("joint_axes", torch.tensor(K, dtype=dtype, device=device))
-        S = [_homog(_align_z(k)) for k in K]
-        folded = [O[0] @ S[0]] + [S[i - 1].T @ O[i] @ S[i] for i in range(1, n)]
-        tool64 = np.eye(4) if self.tool is None else self.tool.detach().cpu().double().numpy()
-        ee = S[-1].T @ tool64
-        self.register_buffer("_folded", torch.tensor(np.stack(folded), dtype=dtype, device=device))
-        self.register_buffer("_fixups", torch.tensor(np.stack([s.T for s in S]), dtype=dtype, device=device))
-        self.register_buffer("_ee", torch.tensor(ee, dtype=dtype, device=device))
-        self._has_fixup = [not np.array_equal(s, np.eye(4)) for s in S]
-        self._ee_is_identity = bool(np.array_equal(ee, np.eye(4)))
-        self._plans = [_plan(T) for T in folded]
+        self.tree = tree
+        self.end_links = ends
+        self.root_link = root_link or tree.root
+        self.joint_names = [v.name for v in variables]
+        self.frame_joint_names = [j.name for j in moving]
+        self.link_names = [j.child for j in moving]
+        self.joint_origin_names = [j.name for j in used]
+        self.origin_xyz = nn.Parameter(torch.tensor([j.xyz for j in used], dtype=dtype, device=device))
+        self.origin_rpy = nn.Parameter(torch.tensor([j.rpy for j in used], dtype=dtype, device=device))
+        axes = torch.tensor([j.axis for j in moving], dtype=torch.float64)
+        unit = axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)
+        self.axis = nn.Parameter(unit.to(device=device, dtype=dtype))
+        self.register_buffer("_axis_flip", axes[:, 2] < 0)
+        # which origins make up each moving joint's Pre and each end link's fixed tail (indices into used)
+        index = {j.name: i for i, j in enumerate(used)}
+        self._pre_origins, self._end_origins = [], []
+        for j in moving:
+            path = next(p for p in paths if j in p)
+            k = path.index(j)
+            start = max((i + 1 for i, s in enumerate(path[:k]) if _moving(s)), default=0)
+            self._pre_origins.append([index[s.name] for s in path[start : k + 1]])
+        for path in paths:
+            start = max((i + 1 for i, s in enumerate(path) if _moving(s)), default=0)
+            self._end_origins.append([index[s.name] for s in path[start:]])
+        self._moving_rows = [index[j.name] for j in moving]
 
-    # -------------------------------------------------------------------------------------- kernels
-    def _column_frames(self, qs: Sequence[Tensor], constants: bool = True) -> Iterator[Columns]:
-        frame = self._base_columns(qs[0])
-        yield frame
-        for i in range(self.n_joints):
-            x, y, z, p = _apply_fixed(self._plans[i], frame)
-            if self.joint_types[i] == "R":  # · Rz(q)
-                c, s = torch.cos(qs[i]), torch.sin(qs[i])
-                x, y = torch.addcmul(c * x, s, y), torch.addcmul(c * y, s, x, value=-1.0)
-            else:  # · Tz(q)
-                p = torch.addcmul(p, qs[i], z)
-            frame = (x, y, z, p)
-            yield frame
+    def _geometry(self):
+        O = origin_transform(self.origin_xyz, self.origin_rpy)  # (L, 4, 4)
+        Os = O.unbind(0)
+        pre_o = torch.stack([reduce(torch.matmul, [Os[i] for i in idx]) for idx in self._pre_origins])
+        pre, post = general_joints(torch.zeros_like(self.axis), torch.zeros_like(self.axis), self.axis,
+                                   self._axis_flip)
+        ends = [reduce(torch.matmul, [Os[i] for i in idx]) if idx else None for idx in self._end_origins]
+        return pre_o @ pre, None, post, ends
 
-    def _link_matrices(self, q: Tensor) -> Tensor:
-        rev = self.revolute_mask > 0
-        c = torch.where(rev, torch.cos(q), 1.0)
-        s = torch.where(rev, torch.sin(q), 0.0)
-        tz = torch.where(rev, 0.0, q)
-        zero, one = torch.zeros_like(q), torch.ones_like(q)
-        rows = (c, -s, zero, zero, s, c, zero, zero, zero, zero, one, tz, zero, zero, zero, one)
-        J = torch.stack(rows, dim=-1)
-        return self._folded @ J.unflatten(-1, (4, 4))
-
-    def _frame_fixup(self, i: int) -> Tensor | None:
-        return self._fixups[i - 1] if self._has_fixup[i - 1] else None
-
-    def _ee_transform(self) -> Tensor | None:
-        return None if self._ee_is_identity else self._ee
-
+    # ------------------------------------------------------------------------------------- helpers
     def copy(self) -> URDFChain:
         """An independent deep copy (not compiled: a compiled path is bound to its own chain)."""
         fast, self._compiled_fk = self._compiled_fk, None
@@ -167,86 +154,58 @@ class URDFChain(KinematicChain):
         finally:
             self._compiled_fk = fast
 
+    def to_urdf(self, path=None) -> str:
+        """The source URDF with this chain's current joint origins and axes written in; everything else in
+        the file (visuals, collisions, inertials, transmissions, comments) is kept byte for byte. Also
+        written to ``path`` if given; returns the text. ``from_urdf`` of it gives the same FK.
+
+        A base transform is folded into the origins of the joints leaving the root link; a tool transform
+        into the origin of the fixed joint that ends each path (a ModelError if a path ends with a moving
+        joint: a URDF has no place for a tool there).
+        """
+        with torch.no_grad():
+            O = origin_transform(self.origin_xyz, self.origin_rpy).double().cpu()
+        origins = dict(zip(self.joint_origin_names, O.unbind(0)))
+        base, tool = self.base, self.tool
+        if base is not None:
+            B = base.detach().double().cpu()
+            for j in self.tree.children(self.root_link):
+                T = origins.get(j.name)
+                if T is None:
+                    T = origin_transform(torch.tensor(j.xyz, dtype=torch.float64),
+                                         torch.tensor(j.rpy, dtype=torch.float64))
+                origins[j.name] = B @ T
+        if tool is not None:
+            for end in self.end_links:
+                last = self.tree.parent_joint(end)
+                if last is None or _moving(last):
+                    raise ModelError(f"to_urdf: the tool transform cannot be written: end link {end!r} is "
+                                     "moved by a joint, not attached by a fixed one")
+                origins[last.name] = origins[last.name] @ tool.detach().double().cpu()
+        written = {}
+        for name, T in origins.items():
+            rpy = _matrix_to_euler(T[:3, :3], "RPY").flip(-1)
+            written[name] = (T[:3, 3].tolist(), rpy.tolist())
+        axis = self.axis.detach().double().cpu().tolist()
+        axes = dict(zip(self.frame_joint_names, axis))
+        return write_urdf(self.tree, written, path, axes=axes)
+
     def extra_repr(self) -> str:
-        return super().extra_repr() + f", joints={self.joint_names}"
+        ends = self.end_links[0] if self._single_end else self.end_links
+        return super().extra_repr() + f", end_link={ends!r}, joints={self.joint_names}"
 
 
-# --------------------------------------------------------------------------------------------- parsing
-def _read_source(source) -> str:
-    if isinstance(source, bytes):
-        return source.decode()
-    text = str(source)
-    if "<robot" in text:
-        return text
-    path = Path(text)
-    if not path.is_file():
-        raise ModelError(f"URDF {text!r} is neither an existing file nor URDF XML text")
-    return path.read_text()
+def from_urdf(source, end_link: str | list[str], *, root_link: str | None = None,
+              dtype: torch.dtype | None = None, device=None) -> URDFChain:
+    """A :class:`URDFChain` from a URDF file path, XML text (str or bytes; an XML encoding declaration is
+    fine) or a parsed :class:`~diffkin.models.urdf_xml.URDFTree`, from ``root_link`` (default: the tree's
+    root) to ``end_link`` — a link name, or a list of K link names for a tree whose FK is ``(..., K, 4, 4)``
+    and Jacobian ``(..., K, 6, n)`` in that order.
 
-
-def _origin_matrix(origin) -> np.ndarray:
-    from .io import rpy_to_matrix
-
-    xyz = list(getattr(origin, "xyz", None) or [0.0, 0.0, 0.0])
-    rpy = list(getattr(origin, "rpy", None) or [0.0, 0.0, 0.0])
-    return _homog(np.array(rpy_to_matrix(rpy)), xyz)
-
-
-def _serial_joints(robot, end_link: str, root_link: str | None) -> list:
-    links = {link.name for link in robot.links}
-    if end_link not in links:
-        raise ModelError(f"end link {end_link!r} not in the URDF; links: {sorted(links)}")
-    if root_link is not None and root_link not in links:
-        raise ModelError(f"root link {root_link!r} not in the URDF; links: {sorted(links)}")
-    parent_joint = {j.child: j for j in robot.joints}
-    chain, link = [], end_link
-    while link != root_link and link in parent_joint:
-        j = parent_joint[link]
-        chain.append(j)
-        link = j.parent
-    if root_link is not None and link != root_link:
-        raise ModelError(f"{root_link!r} is not an ancestor of {end_link!r}")
-    return chain[::-1]
-
-
-def from_urdf(source, end_link: str, dtype: torch.dtype | None = None, device=None, *,
-              root_link: str | None = None) -> URDFChain:
-    """A :class:`URDFChain` from the URDF file path or XML text ``source``, from ``root_link`` (default: the
-    tree's root) to ``end_link``. Revolute, continuous (limits ±π) and prismatic joints move; fixed joints
-    are folded into the neighbouring transforms. Parsed with pytorch-kinematics's ``urdf_parser_py``.
+    Revolute, continuous (no joint limit: IK wraps them) and prismatic joints move; fixed joints keep their
+    origin as parameters; ``<mimic>`` joints follow their leader (on any branch) and are not variables.
+    Raises :class:`~diffkin.errors.ModelError` naming the joint or link for invalid files (missing links, a
+    link with two parents, duplicate names, loops), a floating or planar joint on a path, or an unknown link.
     """
-    try:
-        from pytorch_kinematics.urdf_parser_py.urdf import URDF
-    except ImportError as e:  # pragma: no cover - pk is a dev dependency
-        raise ImportError("from_urdf needs pytorch-kinematics (pip install pytorch-kinematics)") from e
-    robot = URDF.from_xml_string(_read_source(source))
-    origins, axes, types, limits, names, links = [], [], "", [], [], []
-    acc = np.eye(4)
-    for j in _serial_joints(robot, end_link, root_link):
-        T = _origin_matrix(j.origin)
-        if j.type == "fixed":
-            acc = acc @ T
-            continue
-        if j.type not in ("revolute", "continuous", "prismatic"):
-            raise ModelError(f"joint {j.name!r}: type {j.type!r} is not supported (revolute, continuous, "
-                             f"prismatic, fixed)")
-        if getattr(j, "mimic", None) is not None:
-            raise ModelError(f"joint {j.name!r}: mimic joints are not supported")
-        origins.append(acc @ T)
-        acc = np.eye(4)
-        axes.append(list(j.axis) if j.axis is not None else [1.0, 0.0, 0.0])
-        types += "P" if j.type == "prismatic" else "R"
-        lim = getattr(j, "limit", None)
-        if j.type == "continuous" or lim is None or lim.lower is None or lim.upper is None:
-            limits.append([-math.pi, math.pi])
-        else:
-            limits.append([float(lim.lower), float(lim.upper)])
-        names.append(j.name)
-        links.append(j.child)
-    if not origins:
-        raise ModelError(f"no moving joint between the root and {end_link!r}")
-    tool = None if np.array_equal(acc, np.eye(4)) else acc
-    dtype = dtype or torch.get_default_dtype()
-    return URDFChain(np.stack(origins), np.array(axes, dtype=np.float64), types, tool=tool,
-                     q_limits=limits, name=robot.name, joint_names=names, link_names=links, dtype=dtype,
-                     device=device)
+    tree = source if isinstance(source, URDFTree) else parse_urdf(source)
+    return URDFChain(tree, end_link, root_link, dtype=dtype or torch.get_default_dtype(), device=device)

@@ -88,7 +88,9 @@ class URDFTree:
 
     def _check_link(self, link: str, role: str = "link") -> None:
         if link not in self._link_set:
-            raise ModelError(f"{role} {link!r} is not a link of URDF {self.name!r}")
+            leaves = [k for k in self.links if not self._by_parent.get(k)]
+            shown = ", ".join(leaves[:12]) + (", ..." if len(leaves) > 12 else "")
+            raise ModelError(f"{role} {link!r} is not a link of URDF {self.name!r}; its leaf links: {shown}")
 
     def joint(self, name: str) -> JointSpec:
         """The joint called ``name`` (ModelError if there is none)."""
@@ -380,6 +382,7 @@ class _JointSpan:
     start: re.Match  # the <joint ...> start tag
     end: int | None = None  # offset of its </joint> (None when self-closing)
     origin: re.Match | None = None  # its first direct <origin> child's start tag
+    axis: re.Match | None = None  # its first direct <axis> child's start tag
 
 
 def _joint_spans(text: str) -> dict[str, _JointSpan]:
@@ -430,6 +433,8 @@ def _joint_spans(text: str) -> dict[str, _JointSpan]:
                 current = None if self_closing else span
             elif depth == 2 and tag == "origin" and current is not None and current.origin is None:
                 current.origin = m
+            elif depth == 2 and tag == "axis" and current is not None and current.axis is None:
+                current.axis = m
             if not self_closing:
                 depth += 1
             pos = m.end()
@@ -472,38 +477,49 @@ def _set_attrs(tag: re.Match, new: dict[str, str]) -> str:
 
 
 def write_urdf(tree: URDFTree, origins: Mapping[str, tuple[Sequence[float], Sequence[float]]],
-               path=None) -> str:
-    """``tree.text`` with the ``<origin>`` of each joint in ``origins`` (name -> (xyz, rpy)) replaced.
+               path=None, *, axes: Mapping[str, Sequence[float]] | None = None) -> str:
+    """``tree.text`` with the ``<origin>`` of each joint in ``origins`` (name -> (xyz, rpy)) replaced, and
+    the ``<axis>`` of each joint in ``axes`` (name -> xyz).
 
-    Only that origin's ``xyz``/``rpy`` attributes change (an ``<origin/>`` is inserted as the joint's first
-    child if it has none); everything else stays byte-for-byte. Numbers are written as Python's shortest
-    round-trip repr, so ``parse_urdf`` of the result gives back exactly these floats. Writes to ``path`` as
-    well when given (encoded per the text's XML declaration, default UTF-8). Returns the new text.
+    Only those attributes change (an ``<origin/>`` or ``<axis/>`` is inserted as the joint's first child if
+    it has none); everything else stays byte-for-byte. Numbers are written as Python's shortest round-trip
+    repr, so ``parse_urdf`` of the result gives back exactly these floats. Writes to ``path`` as well when
+    given (encoded per the text's XML declaration, default UTF-8). Returns the new text.
     """
     text = tree.text
     spans = _joint_spans(text)
     edits: list[tuple[int, int, str]] = []
+    changes: list[tuple[str, str, dict[str, str]]] = []
     for name, value in origins.items():
         tree.joint(name)  # ModelError if unknown
         try:
             xyz, rpy = value
         except (TypeError, ValueError):
             raise ModelError(f"write_urdf: joint {name!r} origin must be (xyz, rpy), got {value!r}") from None
-        attrs = {"xyz": _fmt(xyz, name, "xyz"), "rpy": _fmt(rpy, name, "rpy")}
+        changes.append((name, "origin", {"xyz": _fmt(xyz, name, "xyz"), "rpy": _fmt(rpy, name, "rpy")}))
+    for name, value in (axes or {}).items():
+        tree.joint(name)
+        changes.append((name, "axis", {"xyz": _fmt(value, name, "axis")}))
+    inserted: dict[str, list[str]] = {}
+    for name, tag, attrs in changes:
         span = spans.get(name)
         if span is None:
             raise ModelError(f"write_urdf: joint {name!r} not found in the source text")
-        if span.origin is not None:
-            edits.append((span.origin.start(), span.origin.end(), _set_attrs(span.origin, attrs)))
-            continue
-        element = f'<origin xyz="{attrs["xyz"]}" rpy="{attrs["rpy"]}"/>'
-        start = span.start
-        if span.end is None:  # self-closing <joint .../>: expand it
+        child = getattr(span, tag)
+        if child is not None:
+            edits.append((child.start(), child.end(), _set_attrs(child, attrs)))
+        else:
+            inserted.setdefault(name, []).append(
+                f"<{tag} " + " ".join(f'{k}="{v}"' for k, v in attrs.items()) + "/>")
+    for name, elements in inserted.items():
+        start = spans[name].start
+        if spans[name].end is None:  # self-closing <joint .../>: expand it
             body = start.group(0)[:start.end(2) - start.start()] + ">"
-            edits.append((start.start(), start.end(), f"{body}{element}</joint>"))
-        else:  # first child, indented like the joint's next line
+            edits.append((start.start(), start.end(), f"{body}{''.join(elements)}</joint>"))
+        else:  # first children, indented like the joint's next line
             ws = re.match(r"[ \t]*\r?\n[ \t]*|[ \t]*", text[start.end():]).group(0)
-            edits.append((start.end(), start.end(), ws + element if "\n" in ws else element))
+            lead = ws if "\n" in ws else ""
+            edits.append((start.end(), start.end(), "".join(lead + e for e in elements)))
     for s, e, v in sorted(edits, reverse=True):
         text = text[:s] + v + text[e:]
     if path is not None:

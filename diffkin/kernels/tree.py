@@ -1,0 +1,202 @@
+"""The product along a tree of joints (2.50): frames, joint axes and origins, end links.
+
+Joints are numbered in topological order; joint j hangs from the frame of joint ``parents[j]`` (−1: the
+base) and its frame is F_j = F_parent · Pre_j · M(q_j + offset_j) · Post_j (:mod:`diffkin.kernels.joints`).
+A serial chain is the tree with ``parents[j] = j − 1``; shared prefixes of a tree are computed once. End
+link k is F_{ends[k]} · E_k. The motion axis of joint j is the z axis of F_parent · Pre_j through its origin
+(what the Jacobian (3.30) needs).
+
+Mimic joints are not variables: q_full = M q + b with joint j driven by variable ``q_index[j]`` times
+``multiplier[j]`` plus ``q_offset[j]`` (identity for ordinary joints).
+
+Two evaluations of the same product:
+
+* :func:`column_frames` — batch last, one joint at a time on the columns of the current frame (large
+  batches; fixed transforms as constant plans when no gradient w.r.t. geometry is needed);
+* :func:`matrix_frames` — batch first, every joint's link matrix at once from the same column arithmetic,
+  then one matmul per joint (small batches: fewer, larger operations).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from .columns import Columns, Fixed, apply_fixed, apply_motion, identity_columns, stack_columns
+
+__all__ = ["Topology", "Segments", "column_frames", "matrix_frames", "couple"]
+
+
+@dataclass(frozen=True)
+class Topology:
+    """The structure of a kinematic tree (Python constants; see the module doc)."""
+
+    parents: tuple[int, ...]
+    revolute: tuple[bool, ...]
+    ends: tuple[int, ...]
+    q_index: tuple[int, ...]
+    multiplier: tuple[float, ...]
+    q_offset: tuple[float, ...]
+    n_vars: int
+    ancestors: tuple[tuple[bool, ...], ...] = field(init=False)
+    last_use: tuple[int, ...] = field(init=False)
+
+    def __post_init__(self):
+        J = len(self.parents)
+        if not all(-1 <= p < j for j, p in enumerate(self.parents)):
+            raise ValueError(f"parents must precede their children, got {self.parents}")
+        anc = []
+        for e in self.ends:
+            row, j = [False] * J, e
+            while j >= 0:
+                row[j] = True
+                j = self.parents[j]
+            anc.append(tuple(row))
+        object.__setattr__(self, "ancestors", tuple(anc))
+        # the frame of joint j is needed until its last child (or end link) has used it
+        last = list(range(J))
+        for j, p in enumerate(self.parents):
+            if p >= 0:
+                last[p] = j
+        for e in self.ends:
+            if e >= 0:
+                last[e] = J
+        object.__setattr__(self, "last_use", tuple(last))
+
+    @classmethod
+    def serial(cls, revolute: Sequence[bool]) -> Topology:
+        J = len(revolute)
+        return cls(tuple(range(-1, J - 1)), tuple(bool(r) for r in revolute), (J - 1,), tuple(range(J)),
+                   (1.0,) * J, (0.0,) * J, J)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.parents)
+
+    @property
+    def coupled(self) -> bool:
+        """True when some joint is not simply variable j (mimic joints)."""
+        J = len(self.parents)
+        return (self.q_index != tuple(range(J)) or any(m != 1.0 for m in self.multiplier)
+                or any(b != 0.0 for b in self.q_offset))
+
+    @property
+    def all_ancestors(self) -> bool:
+        return all(all(row) for row in self.ancestors)
+
+    def coupling_matrix(self, dtype, device) -> Tensor:
+        """M ``(J, n)`` with q_full = M q + b."""
+        M = torch.zeros(len(self.parents), self.n_vars, dtype=dtype, device=device)
+        for j, (i, m) in enumerate(zip(self.q_index, self.multiplier)):
+            M[j, i] = m
+        return M
+
+
+@dataclass(frozen=True)
+class Segments:
+    """Fixed parts of every joint and of the ends, per joint (lists, for :func:`column_frames`) or
+    stacked (``(J, 4, 4)`` tensors, for :func:`matrix_frames`); offsets ``(J,)`` or per-joint scalars."""
+
+    pre: Sequence[Fixed] | Tensor | None
+    offset: Sequence | Tensor | None
+    post: Sequence[Fixed] | Tensor | None
+    base: Fixed
+    ends: Sequence[Fixed]
+
+
+def couple(q: Tensor, topo: Topology) -> Tensor:
+    """q_full ``(..., J)`` of the independent joints ``q (..., n)`` (identity without mimic joints)."""
+    if not topo.coupled:
+        return q
+    idx = torch.tensor(topo.q_index, device=q.device)
+    mult = torch.tensor(topo.multiplier, dtype=q.dtype, device=q.device)
+    off = torch.tensor(topo.q_offset, dtype=q.dtype, device=q.device)
+    return torch.index_select(q, -1, idx) * mult + off
+
+
+def _base_columns(base: Fixed, like: Tensor, dim: int) -> Columns:
+    return apply_fixed(identity_columns(like, dim), base, dim)
+
+
+def _joint_value(qs: Sequence[Tensor], topo: Topology, j: int, offset):
+    q = qs[topo.q_index[j]]
+    m, b = topo.multiplier[j], topo.q_offset[j]
+    if m != 1.0:
+        q = q * m
+    if isinstance(offset, Tensor):
+        return q + (offset + b if b != 0.0 else offset)
+    b = b + (offset or 0.0)
+    return q + b if b != 0.0 else q
+
+
+def column_frames(qs: Sequence[Tensor], topo: Topology, seg: Segments, with_axes: bool = False,
+                  keep_frames: bool = False):
+    """Batch-last product. ``qs``: the n joint variables, each ``(B,)``; ``seg`` per joint (lists).
+
+    Returns ``(ends, axes, frames)``: ``ends`` the K end frames as columns ``(3, B)`` (or ``(3, 1)`` where
+    constant); ``axes`` (if ``with_axes``) a list of J pairs ``(z, p)`` of each joint's motion axis and
+    origin; ``frames`` (if ``keep_frames``) the J joint frames. Frames no longer needed are dropped, so a
+    serial chain keeps one frame alive at a time.
+    """
+    J = topo.n_frames
+    base = _base_columns(seg.base, qs[0], 0)
+    frames: dict[int, Columns] = {}
+    kept, axes = [], []
+    offsets = seg.offset if seg.offset is not None else [None] * J
+    for j in range(J):
+        par = topo.parents[j]
+        F = apply_fixed(base if par < 0 else frames[par], seg.pre[j] if seg.pre is not None else None, 0)
+        if with_axes:
+            axes.append((F[2], F[3]))
+        F = apply_motion(F, _joint_value(qs, topo, j, offsets[j]), topo.revolute[j])
+        F = apply_fixed(F, seg.post[j] if seg.post is not None else None, 0)
+        frames[j] = F
+        if keep_frames:
+            kept.append(F)
+        if par >= 0 and topo.last_use[par] == j:
+            del frames[par]
+    ends = [apply_fixed(base if e < 0 else frames[e], E, 0) for e, E in zip(topo.ends, seg.ends)]
+    return ends, (axes if with_axes else None), (kept if keep_frames else None)
+
+
+def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = False):
+    """Batch-first product of ``q (..., n)`` with stacked segments (tensors ``(J, 4, 4)`` or None).
+
+    Returns ``(ends (..., K, 4, 4), frames (..., J, 4, 4), axes (..., J, 3) or None, origins or None)``.
+    """
+    q_full = couple(q, topo)
+    if seg.offset is not None:
+        q_full = q_full + seg.offset
+    if seg.pre is None:
+        cols = identity_columns(q, -1)
+    else:
+        cols = tuple(seg.pre[..., :3, k] for k in range(4))
+    # every joint's Pre · M(q) at once (batch first: the joints are one more batch axis)
+    frame = tuple(c.expand(*q_full.shape, 3) for c in cols)
+    kind = True if all(topo.revolute) else torch.tensor(topo.revolute, device=q.device).unsqueeze(-1)
+    x, y, z, p = apply_motion(frame, q_full.unsqueeze(-1), kind)
+    PM = stack_columns((x, y, z, p), -1)  # (..., J, 4, 4)
+    A = PM if seg.post is None else PM @ seg.post
+    batch = q.shape[:-1]
+    base = torch.eye(4, dtype=q.dtype, device=q.device) if seg.base is None else seg.base
+    base = base.expand(*batch, 4, 4)
+    frames, axes, origins = [], [], []
+    for j in range(topo.n_frames):
+        par = topo.parents[j]
+        F_par = base if par < 0 else frames[par]
+        if with_axes:  # the motion axis of F_par · Pre_j, before the motion (as in column_frames)
+            R = F_par[..., :3, :3]
+            z_j, p_j = (c if c.ndim == 1 else c[j] for c in cols[2:])
+            axes.append(R @ z_j)
+            origins.append(R @ p_j + F_par[..., :3, 3])
+        frames.append(F_par @ A[..., j, :, :])
+    ends = []
+    for e, E in zip(topo.ends, seg.ends):
+        F = base if e < 0 else frames[e]
+        ends.append(F if E is None else F @ E)
+    out_axes = torch.stack(axes, dim=-2) if with_axes else None
+    out_origins = torch.stack(origins, dim=-2) if with_axes else None
+    return torch.stack(ends, dim=-3), torch.stack(frames, dim=-3), out_axes, out_origins
