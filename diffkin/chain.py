@@ -251,6 +251,11 @@ class KinematicChain(nn.Module):
         return len(self._topo.ends)
 
     @property
+    def single_end(self) -> bool:
+        """True for a chain made from one end-link name: poses ``(..., 4, 4)``, not ``(..., K, 4, 4)``."""
+        return self._single_end
+
+    @property
     def topology(self) -> Topology:
         """The tree structure (parents, joint kinds, end links, mimic couplings) as Python constants."""
         return self._topo

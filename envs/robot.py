@@ -104,15 +104,7 @@ class Robot:
 
     def frames(self, q: Tensor) -> Tensor:
         """Origins of all frames ``(..., n + 1, 3)`` (for drawing)."""
-        try:
-            return self.chain.forward_kinematics(q, all_frames=True, check=False)[..., :3, 3]
-        except RuntimeError:  # chain.py all_frames does not broadcast q-independent columns (reported)
-            _, origins, T = self.chain.joint_axes_origins(q, check=False)
-            base = getattr(self.chain, "base", None)
-            p0 = torch.zeros_like(origins[..., :1, :])
-            if base is not None:
-                p0 = base[:3, 3].expand_as(p0)
-            return torch.cat((p0, origins, T[..., None, :3, 3]), dim=-2)
+        return self.chain.forward_kinematics(q, all_frames=True, check=False)[..., :3, 3]
 
     def normalize_q(self, q: Tensor) -> Tensor:
         """Joint positions mapped to [-1, 1] by the limits."""

@@ -270,3 +270,58 @@ def test_solve_prismatic_chain():
     res = solve(chain, T, seed=0)
     assert res.success.double().mean() >= 0.99
     assert_honest(chain, res, T)
+
+
+# ------------------------------------------------------------------------------------------------ trees
+def _tree_reference_errors(path, chain, q, T_target):
+    """Worst error over the end links by the tests' own numpy URDF FK (not diffkin's kernels)."""
+    from urdf_reference import ReferenceTree
+
+    ref = ReferenceTree(path)
+    pos, ori = [], []
+    for qi, Ti in zip(q.double().numpy(), T_target.double().numpy()):
+        values = dict(zip(chain.joint_names, qi))
+        Tr = np.stack([ref.fk(values, end) for end in chain.end_links])
+        if Ti.shape[-1] == 3:
+            pos.append(np.linalg.norm(Tr[:, :3, 3] - Ti, axis=-1).max())
+            continue
+        pos.append(np.linalg.norm(Tr[:, :3, 3] - Ti[:, :3, 3], axis=-1).max())
+        rel = np.einsum("kji,kjl->kil", Tr[:, :3, :3], Ti[:, :3, :3])
+        ori.append(Rotation.from_matrix(rel).magnitude().max())
+    return np.array(pos), np.array(ori) if ori else None
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_solve_two_arm_tree_full_pose(dtype):
+    """Both Baxter arms at once: T_target (..., K, 4, 4); success only when both meet the tolerances, and the
+    flags agree with an independent FK."""
+    from pathlib import Path
+
+    path = Path(__file__).parent / "data" / "urdf" / "baxter.urdf"
+    chain = from_urdf(path, ["left_gripper", "right_gripper"], dtype=dtype)
+    _, T = targets(chain, (40,), seed=4)
+    res = solve(chain, T.reshape(4, 10, 2, 4, 4), seed=0, num_seeds=128)
+    assert res.q.shape == (4, 10, 14) and res.success.shape == (4, 10)
+    assert res.success.float().mean() >= 0.95
+    pos, ori = _tree_reference_errors(path, chain, res.q.reshape(40, 14), T)
+    ok = (pos <= TOL_P * 1.001) & (ori <= TOL_O * 1.001)
+    assert bool((ok | ~res.success.reshape(40).numpy()).all())  # a success flag is never wrong
+    assert bool(chain.within_limits(res.q)[res.success].all())
+
+
+def test_solve_hand_fingertip_positions_and_shape_errors():
+    from pathlib import Path
+
+    path = Path(__file__).parent / "data" / "urdf" / "allegro_right_hand.urdf"
+    tips = [f"link_{i}.0_tip" for i in (3, 7, 11, 15)]
+    chain = from_urdf(path, tips, dtype=F64)
+    _, T = targets(chain, (60,), seed=5)
+    p = T[..., :3, 3]  # (60, 4, 3)
+    res = solve(chain, p, position_only=True, seed=0)
+    assert res.success.float().mean() >= 0.98 and res.q.shape == (60, 16)
+    pos, _ = _tree_reference_errors(path, chain, res.q, p)
+    assert bool(((pos <= TOL_P * 1.001) | ~res.success.numpy()).all())
+    with pytest.raises(ShapeError, match=r"\(\.\.\., 4, 3\)"):
+        solve(chain, p[:, :3], position_only=True)
+    with pytest.raises(ShapeError, match=r"\(\.\.\., 4, 4, 4\)"):
+        solve(chain, T[:, 0])

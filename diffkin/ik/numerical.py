@@ -80,7 +80,7 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
         raise DTypeError(f"T_target has dtype {T_target.dtype} but chain '{chain.name}' is {chain.dtype}")
     if T_target.device != chain.device:
         raise ValueError(f"T_target is on {T_target.device} but chain '{chain.name}' is on {chain.device}")
-    K, tree = chain.n_ends, not getattr(chain, "_single_end", True)
+    K, tree = chain.n_ends, not chain.single_end
     ends = (K,) if tree else ()
     pos_input = position_only and T_target.ndim >= 1 and T_target.shape[-1] == 3
     if pos_input:
