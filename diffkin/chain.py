@@ -140,7 +140,10 @@ class KinematicChain(nn.Module):
         if skip_zero and not (torch.is_grad_enabled() and delta.requires_grad) and \
                 self._delta_is_zero(which, delta):
             return nominal
-        D = pose_correction(delta)
+        if skip_zero and self._delta_is_zero(which, delta):
+            D = _zero_correction(delta)  # Δ(0) = I with Δ's exact first derivative, few operations
+        else:
+            D = pose_correction(delta)
         return D if nominal is None else nominal @ D
 
     def _delta_is_zero(self, which: str, delta: Tensor) -> bool:
@@ -312,12 +315,10 @@ class KinematicChain(nn.Module):
             return self._out(ends)
         if self._compiled_fk is not None:
             return self._compiled_fk(q)
-        qs = q.reshape(-1, self.n_joints).unbind(-1)
-        ends = column_frames(qs, self._topo, self._segments(per_joint=True))[0]
-        out = _new_poses(q, qs[0].shape[0], self.n_ends)
-        for k, frame in enumerate(ends):
-            columns_to_matrices(frame, out[:, k])
-        return self._out(out.reshape(*batch, self.n_ends, 4, 4))
+        # one transposing copy gives every joint a contiguous row: each op below is a unit-stride pass
+        qT = q.reshape(-1, self.n_joints).T.contiguous()
+        ends = column_frames(qT.unbind(0), self._topo, self._segments(per_joint=True))[0]
+        return self._out(_poses_from_columns(ends, qT).reshape(*batch, self.n_ends, 4, 4))
 
     def _all_frames(self, q: Tensor) -> Tensor:
         ends, frames, _, _ = matrix_frames(q, self._topo, self._segments(per_joint=False))
@@ -344,15 +345,13 @@ class KinematicChain(nn.Module):
         if batch.numel() <= self.small_batch or self._grad_needed(q):
             ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
             return axes, origins, self._out(ends)
-        qT = q.reshape(-1, self.n_joints).T
+        qT = q.reshape(-1, self.n_joints).T.contiguous()
         m = qT.shape[1]
         _, ends, axes = self.batch_last(qT, with_axes=True)
         # batch-last (3, J, m) memory handed out as (..., J, 3) views (reshape, not view, to flatten them)
         z = torch.stack([a[0].expand(3, m) for a in axes], dim=1).permute(2, 1, 0)
         o = torch.stack([a[1].expand(3, m) for a in axes], dim=1).permute(2, 1, 0)
-        T = _new_poses(q, m, self.n_ends)
-        for k, frame in enumerate(ends):
-            columns_to_matrices(frame, T[:, k])
+        T = _poses_from_columns(ends, qT)
         J = z.shape[1]
         return (z.reshape(*batch, J, 3), o.reshape(*batch, J, 3),
                 self._out(T.reshape(*batch, self.n_ends, 4, 4)))
@@ -379,23 +378,24 @@ class KinematicChain(nn.Module):
                 ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
                 J = tree_jacobian(axes, origins, ends[..., :3, 3], self._joint_revolute, self._topo)
                 return self._out(ends), self._out(J)
-            ends, J = self._batch_last_fk_jacobian(q.reshape(-1, n).T)
+            ends, J = self._batch_last_fk_jacobian(q.reshape(-1, n).T.contiguous())
             return self._out(ends.reshape(*batch, K, 4, 4)), self._out(J.reshape(*batch, K, 6, n))
-        qT = q.reshape(-1, n).T
+        qT = q.reshape(-1, n).T.contiguous()
         T, Jout = _new_poses(q, B, K), q.new_empty(B, K, 6, n)
         for start in range(0, B, chunk):
             part = slice(start, min(start + chunk, B))
-            T[part], Jout[part] = self._batch_last_fk_jacobian(qT[:, part])
+            rows, ends = self.batch_last(qT[:, part], with_jacobian=True)
+            if K == 1:  # straight into the output (contiguous rows of T)
+                columns_to_matrices(ends[0], T[part, 0])
+            else:
+                T[part] = _poses_from_columns(ends, qT[:, part])
+            Jout[part] = rows.permute(2, 1, 0).unflatten(1, (K, 6))
         return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jout.reshape(*batch, K, 6, n))
 
     def _batch_last_fk_jacobian(self, qT: Tensor) -> tuple[Tensor, Tensor]:
         """``qT (n, m)`` -> ``(T (m, K, 4, 4), J (m, K, 6, n))`` through the batch-last path."""
-        m = qT.shape[1]
         rows, ends = self.batch_last(qT, with_jacobian=True)
-        T = _new_poses(qT, m, self.n_ends)
-        for k, frame in enumerate(ends):
-            columns_to_matrices(frame, T[:, k])
-        return T, rows.permute(2, 1, 0).unflatten(1, (self.n_ends, 6))
+        return _poses_from_columns(ends, qT), rows.permute(2, 1, 0).unflatten(1, (self.n_ends, 6))
 
     def batch_last(self, qT: Tensor, with_jacobian: bool = False, constants: bool = True,
                    with_axes: bool = False):
@@ -412,17 +412,23 @@ class KinematicChain(nn.Module):
                                       with_axes=with_jacobian or with_axes)
         if not with_jacobian:
             return (None, ends, axes) if with_axes else (None, ends)
-        m = qT.shape[1]
-        z = torch.stack([a[0].expand(3, m) for a in axes], dim=1)  # (3, J, m)
-        o = torch.stack([a[1].expand(3, m) for a in axes], dim=1)
+        m, J = qT.shape[1], topo.n_frames
         all_rev = all(topo.revolute)
+        grad = torch.is_grad_enabled() and any(c.requires_grad for a in axes for c in a)
+        if len(ends) == 1 and not grad:  # the axes go straight into the angular rows: no extra copy
+            rows = qT.new_empty(6, J, m)
+            z = torch.stack([a[0].expand(3, m) for a in axes], dim=1, out=rows[3:])
+        else:
+            z = torch.stack([a[0].expand(3, m) for a in axes], dim=1)  # (3, J, m)
+        o = torch.stack([a[1].expand(3, m) for a in axes], dim=1)
         blocks = []
         for k, frame in enumerate(ends):
-            R = jacobian_rows(z, o, frame[3].expand(3, m), self._joint_revolute, all_rev)  # (6, J, m)
+            out = rows if len(ends) == 1 and not grad else None
+            R = jacobian_rows(z, o, frame[3].expand(3, m), self._joint_revolute, all_rev, out)  # (6, J, m)
             if not all(topo.ancestors[k]):
                 R = R * torch.tensor(topo.ancestors[k], dtype=R.dtype, device=R.device).view(1, -1, 1)
             blocks.append(R)
-        rows = torch.cat(blocks, dim=0)  # (6K, J, m)
+        rows = blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=0)  # (6K, J, m)
         if topo.coupled:
             rows = torch.einsum("rjm,jn->nrm", rows, topo.coupling_matrix(rows.dtype, rows.device))
         else:
@@ -544,6 +550,37 @@ def _new_poses(like: Tensor, *shape: int) -> Tensor:
     out[..., 3, :3] = 0.0
     out[..., 3, 3] = 1.0
     return out
+
+
+_LINEAR_CORRECTION: dict = {}
+
+
+def _zero_correction(delta: Tensor) -> Tensor:
+    """Δ(δ) at δ = 0, the identity, as I + L δ with L the exact derivative of Δ there:
+    dΔ = [[[dω]×, dt], [0, 0]] (used only while δ is exactly zero).
+
+    The base and tool corrections sit at zero until something moves them; in grad mode this gives their
+    gradient for one small matmul instead of the rotation-vector map (second derivatives w.r.t. a zero
+    correction are those of the linear map, i.e. zero)."""
+    key = (delta.dtype, delta.device)
+    L = _LINEAR_CORRECTION.get(key)
+    if L is None:
+        L = torch.zeros(16, 6, dtype=delta.dtype, device=delta.device)
+        entries = (((0, 3), 0, 1), ((1, 3), 1, 1), ((2, 3), 2, 1), ((2, 1), 3, 1), ((1, 2), 3, -1),
+                   ((0, 2), 4, 1), ((2, 0), 4, -1), ((1, 0), 5, 1), ((0, 1), 5, -1))
+        for (r, c), k, sign in entries:
+            L[4 * r + c, k] = sign
+        _LINEAR_CORRECTION[key] = L
+    return torch.eye(4, dtype=delta.dtype, device=delta.device) + (L @ delta).view(4, 4)
+
+
+def _poses_from_columns(ends, qT: Tensor) -> Tensor:
+    """``(m, K, 4, 4)`` poses from the K end frames' batch-last columns (``qT (n, m)`` for dtype and size):
+    each end written to its own contiguous block (strided writes across K are several times slower)."""
+    m = qT.shape[1]
+    if len(ends) == 1:
+        return columns_to_matrices(ends[0], _new_poses(qT, m)).unsqueeze(1)
+    return torch.stack([columns_to_matrices(f, _new_poses(qT, m)) for f in ends], dim=1)
 
 
 def _as_float64(chain: KinematicChain) -> KinematicChain:

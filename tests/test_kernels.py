@@ -265,3 +265,28 @@ def test_base_and_tool_are_learnable_and_rigid():
         torch.testing.assert_close(chain.forward_kinematics(q), want, atol=1e-14, rtol=0)
     chain.requires_grad_(False)
     assert not any(p.requires_grad for p in chain.parameters())
+
+
+def test_gradient_of_a_zero_base_or_tool_correction_matches_finite_differences():
+    """At zero the corrections take a cheap path in grad mode; its gradient must be Δ's exact derivative."""
+    chain = DHChain([0.3, 0.2, 0.1], [0.4, math.pi / 2, -0.3], [0.1, 0.0, 0.2], [0.0, 0.5, 0.0], dtype=F64,
+                    base=origin_transform(torch.tensor([0.1, 0.2, 0.3], dtype=F64),
+                                          torch.tensor([0.3, -0.2, 1.0], dtype=F64)),
+                    tool=origin_transform(torch.tensor([0.0, 0.0, 0.1], dtype=F64),
+                                          torch.tensor([0.0, 0.5, 0.0], dtype=F64)))
+    q = torch.tensor([[0.3, -0.4, 0.8], [1.0, 0.2, -0.5]], dtype=F64)
+    w = torch.randn(2, 4, 4, dtype=F64, generator=torch.Generator().manual_seed(0))
+    loss = (chain.forward_kinematics(q) * w).sum()
+    g_base, g_tool = torch.autograd.grad(loss, (chain.base_delta, chain.tool_delta))
+    h = 1e-6
+    for delta, g in ((chain.base_delta, g_base), (chain.tool_delta, g_tool)):
+        fd = torch.zeros(6, dtype=F64)
+        for i in range(6):
+            with torch.no_grad():
+                delta[i] = h
+                up = (chain.forward_kinematics(q) * w).sum()
+                delta[i] = -h
+                down = (chain.forward_kinematics(q) * w).sum()
+                delta[i] = 0.0
+            fd[i] = (up - down) / (2 * h)
+        torch.testing.assert_close(g, fd, atol=1e-8, rtol=0)

@@ -3,8 +3,8 @@
 Joints are numbered in topological order; joint j hangs from the frame of joint ``parents[j]`` (−1: the
 base) and its frame is F_j = F_parent · Pre_j · M(q_j + offset_j) · Post_j (:mod:`diffkin.kernels.joints`).
 A serial chain is the tree with ``parents[j] = j − 1``; shared prefixes of a tree are computed once. End
-link k is F_{ends[k]} · E_k. The motion axis of joint j is the z axis of F_parent · Pre_j through its origin
-(what the Jacobian (3.30) needs).
+link k is F_{ends[k]} · E_k. The motion axis of joint j is the z axis of F_parent · Pre_j · M_j through its
+origin (what the Jacobian (3.30) needs: any point of the axis will do).
 
 Mimic joints are not variables: q_full = M q + b with joint j driven by variable ``q_index[j]`` times
 ``multiplier[j]`` plus ``q_offset[j]`` (identity for ordinary joints).
@@ -137,9 +137,9 @@ def column_frames(qs: Sequence[Tensor], topo: Topology, seg: Segments, with_axes
     """Batch-last product. ``qs``: the n joint variables, each ``(B,)``; ``seg`` per joint (lists).
 
     Returns ``(ends, axes, frames)``: ``ends`` the K end frames as columns ``(3, B)`` (or ``(3, 1)`` where
-    constant); ``axes`` (if ``with_axes``) a list of J pairs ``(z, p)`` of each joint's motion axis and
-    origin; ``frames`` (if ``keep_frames``) the J joint frames. Frames no longer needed are dropped, so a
-    serial chain keeps one frame alive at a time.
+    constant); ``axes`` (if ``with_axes``) a list of J pairs ``(z, p)`` of each joint's motion axis and a
+    point on it (the origin of F_parent · Pre_j · M_j); ``frames`` (if ``keep_frames``) the J joint frames.
+    Frames no longer needed are dropped, so a serial chain keeps one frame alive at a time.
     """
     J = topo.n_frames
     base = _base_columns(seg.base, qs[0], 0)
@@ -149,9 +149,9 @@ def column_frames(qs: Sequence[Tensor], topo: Topology, seg: Segments, with_axes
     for j in range(J):
         par = topo.parents[j]
         F = apply_fixed(base if par < 0 else frames[par], seg.pre[j] if seg.pre is not None else None, 0)
-        if with_axes:
-            axes.append((F[2], F[3]))
         F = apply_motion(F, _joint_value(qs, topo, j, offsets[j]), topo.revolute[j])
+        if with_axes:  # after the motion: the same point (revolute joint) or a point on the axis (prismatic)
+            axes.append((F[2], F[3]))
         F = apply_fixed(F, seg.post[j] if seg.post is not None else None, 0)
         frames[j] = F
         if keep_frames:
@@ -183,20 +183,22 @@ def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = Fa
     batch = q.shape[:-1]
     base = torch.eye(4, dtype=q.dtype, device=q.device) if seg.base is None else seg.base
     base = base.expand(*batch, 4, 4)
-    frames, axes, origins = [], [], []
+    frames = []
     for j in range(topo.n_frames):
         par = topo.parents[j]
-        F_par = base if par < 0 else frames[par]
-        if with_axes:  # the motion axis of F_par · Pre_j, before the motion (as in column_frames)
-            R = F_par[..., :3, :3]
-            z_j, p_j = (c if c.ndim == 1 else c[j] for c in cols[2:])
-            axes.append(R @ z_j)
-            origins.append(R @ p_j + F_par[..., :3, 3])
-        frames.append(F_par @ A[..., j, :, :])
+        frames.append((base if par < 0 else frames[par]) @ A[..., j, :, :])
     ends = []
     for e, E in zip(topo.ends, seg.ends):
         F = base if e < 0 else frames[e]
         ends.append(F if E is None else F @ E)
-    out_axes = torch.stack(axes, dim=-2) if with_axes else None
-    out_origins = torch.stack(origins, dim=-2) if with_axes else None
-    return torch.stack(ends, dim=-3), torch.stack(frames, dim=-3), out_axes, out_origins
+    F = torch.stack(frames, dim=-3)
+    out_axes = out_origins = None
+    if with_axes:  # the axis of joint j is the z axis of G_j = F_parent · Pre_j · M_j, through its origin
+        if seg.post is None:
+            G = F
+        else:
+            par = torch.tensor([p + 1 for p in topo.parents], device=q.device)
+            F_par = torch.cat((base.unsqueeze(-3), F), dim=-3).index_select(-3, par)
+            G = F_par @ PM
+        out_axes, out_origins = G[..., :3, 2], G[..., :3, 3]
+    return torch.stack(ends, dim=-3), F, out_axes, out_origins
