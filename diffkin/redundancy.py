@@ -67,11 +67,7 @@ def damped_pinv(J: Tensor, damping, threshold: float | None = None) -> Tensor:
     _check_J(J)
     k2 = _as_sq(damping, J)
     if threshold is not None:
-        m, n = J.shape[-2:]
-        G = J @ J.mT if m <= n else J.mT @ J
-        s2_min = torch.linalg.eigvalsh(G)[..., 0].clamp_min(0.0)
-        factor = (1.0 - s2_min / (threshold * threshold)).clamp_min(0.0)
-        k2 = k2 * factor
+        k2 = _dls.adaptive_damping(J, k2, threshold)
     return _damped_inverse(J, k2)
 
 

@@ -22,6 +22,7 @@ from ..kernels.dls import dls_solve
 from ..transforms import check_transform, pose_error
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
+from .implicit import attach_solve_gradients
 from .result import IKResult, final_errors
 
 __all__ = ["dls_delta", "dls_step", "solve", "LMConfig"]
@@ -157,7 +158,7 @@ def solve(
     Args:
         chain: any :class:`~diffkin.chain.KinematicChain`.
         T_target: target poses ``(..., 4, 4)`` (any leading dims, ``()`` included), or target positions
-            ``(..., 3)`` when ``position_only``.
+            ``(..., 3)`` when ``position_only``; ``(..., K, 4, 4)`` / ``(..., K, 3)`` for K end links.
         q0: optional seeds tried first: ``(n,)``, ``(..., n)`` (one per target) or ``(..., S, n)`` (S per
             target), leading dims broadcastable to the target batch.
         num_seeds: most seeds per target (user seeds, then nearest poses of a sampled library, then random).
@@ -176,6 +177,15 @@ def solve(
 
     The iteration runs in the chain's dtype (float64 when a float32 chain is asked for tolerances below
     1e-5; see :class:`LMConfig`); success is decided by an exact FK of the result in the chain's dtype.
+
+    **Gradients.** With grad mode on and ``T_target`` or a chain parameter requiring grad, ``q`` is
+    differentiable w.r.t. both by the implicit function theorem at the solution (:mod:`diffkin.ik.implicit`):
+    dq = J⁻¹ dx for a square Jacobian, the minimum-norm J⁺ dx for a redundant chain (no null-space part),
+    the position rows only with ``position_only``, the K end links stacked for a tree, and
+    dq = −J⁺ J_θ dθ for the parameters. Backward costs one batched factorisation with J at the solution
+    (damped by λ = (damping/100)² + 10 ε: negligible away from singularities, finite at them); failed targets
+    get a zero gradient.
+    ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
     cfg = config or LMConfig()
     if damping is not None:
@@ -198,13 +208,17 @@ def solve(
             max_iterations=max_iterations, progress=progress,
         )  # fmt: skip
         q = jmap.finalize(jmap.q_of_u(u_best), clamp=respect_limits and chain.q_limits is not None)
-        q = q.T.to(chain.dtype).reshape(*batch, n)
+        q = q.T.to(chain.dtype).reshape(*batch, n).contiguous()
         pos_err, ori_err = final_errors(chain, q, T_orig, position_only)
     success = pos_err <= position_tolerance
     if not position_only:
         success &= ori_err <= orientation_tolerance
     if respect_limits and chain.q_limits is not None:
         success &= chain.within_limits(q)
+    # a differentiable layer: gradients w.r.t. T_target and the chain's parameters by the implicit function
+    # theorem at the solution (diffkin.ik.implicit); the iterations above ran without autograd
+    q = attach_solve_gradients(chain, q, T_target, success, position_only, cfg.orientation_weight,
+                               cfg.damping)
     return IKResult(
         q=q, success=success, position_error=pos_err, orientation_error=ori_err,
         iterations=iters.reshape(batch), seeds_tried=seeds.reshape(batch),

@@ -19,6 +19,7 @@ from torch import Tensor
 from ..errors import ConventionError
 from ..kernels.dls import dls_solve
 from ..transforms import pose_error
+from .implicit import attach_stationary_gradients, wants_gradients
 from .numerical import _targets, _user_seeds
 from .result import IKResult, final_errors
 
@@ -81,9 +82,11 @@ class PoseCost(_Term):
     def residual(self, ctx: CostContext) -> Tensor:
         Td = ctx.T_target
         if Td.shape[-1] == 3:
-            return Td - ctx.T[..., :3, 3]
-        e = pose_error(Td, ctx.T, orientation="rotvec")
-        return torch.cat((e[..., :3], self.orientation_weight**0.5 * e[..., 3:]), dim=-1)
+            e = Td - ctx.T[..., :3, 3]
+        else:
+            e = pose_error(Td, ctx.T, orientation="rotvec")
+            e = torch.cat((e[..., :3], self.orientation_weight**0.5 * e[..., 3:]), dim=-1)
+        return e.reshape(*ctx.q.shape[:-1], -1)  # K end links: their rows stacked
 
 
 @dataclass(frozen=True)
@@ -166,14 +169,16 @@ def _residuals(chain, terms, q, T) -> Tensor:
     return torch.cat(parts, dim=-1)
 
 
-def _residual_jacobian(r: Tensor, q: Tensor) -> Tensor:
+def _residual_jacobian(r: Tensor, q: Tensor, create_graph: bool = False) -> Tensor:
     """Per-sample Jacobian ``(..., R, n)`` of ``r (..., R)`` w.r.t. ``q (..., n)`` (independent samples)."""
     R = r.shape[-1]
     eye = torch.eye(R, dtype=r.dtype, device=r.device).view(R, *([1] * (r.ndim - 1)), R).expand(R, *r.shape)
     try:
-        (g,) = torch.autograd.grad(r, q, grad_outputs=eye, is_grads_batched=True, retain_graph=True)
+        (g,) = torch.autograd.grad(r, q, grad_outputs=eye, is_grads_batched=True, retain_graph=True,
+                                   create_graph=create_graph)
     except RuntimeError:  # an op without a batching rule: one backward pass per residual row
-        g = torch.stack([torch.autograd.grad(r[..., k].sum(), q, retain_graph=True)[0] for k in range(R)])
+        g = torch.stack([torch.autograd.grad(r[..., k].sum(), q, retain_graph=True,
+                                             create_graph=create_graph)[0] for k in range(R)])
     return g.movedim(0, -2)
 
 
@@ -214,10 +219,9 @@ def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_chan
         opt = torch.optim.Adam([q], lr=lr or 0.05, betas=(0.8, 0.9))
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=1e-3 ** (1.0 / max(iterations, 1)))
 
-    def closure():
-        opt.zero_grad()
+    def closure():  # the gradient w.r.t. q only: the chain's parameters keep their .grad untouched
         loss = _total(chain, terms, q, T).sum()
-        loss.backward()
+        (q.grad,) = torch.autograd.grad(loss, q)
         return loss
 
     prev, it = None, 0
@@ -250,6 +254,7 @@ def optimize(
     position_only: bool = False,
     respect_limits: bool = True,
     tolerance_change: float = 1e-12,
+    unroll: bool | int = False,
 ) -> IKResult:
     """Optimisation-based IK: minimise Σ cost terms per sample, from ``q0`` (a local method).
 
@@ -269,9 +274,21 @@ def optimize(
             damping: initial LM k (Gauss–Newton). Adam is the least precise: give it a looser tolerance.
         position_tolerance / orientation_tolerance: thresholds for ``success`` (pose error of the result).
         tolerance_change: stop when the cost changes less than this (relative) over a check.
+        unroll: how ``q`` is differentiated (see below): False (default) for the implicit gradient; True (10
+            steps) or a number of steps to differentiate through that many Gauss–Newton steps (all terms
+            least squares) or gradient steps of size ``lr`` (default 0.05) taken from the solution instead.
 
     Returns:
         :class:`IKResult`; ``success`` is judged from an exact FK in the chain's dtype (and the limits).
+
+    **Gradients.** With grad mode on and ``T_target`` or a chain parameter requiring grad, ``q`` is
+    differentiable w.r.t. both. By default from the stationarity of the summed cost at the solution,
+    ∇_q C(q*, z) = 0 ⇒ dq* = −H⁻¹ ∂(∇_q C)/∂z dz, H = ∇²_q C from Hessian–vector products through
+    autograd (damped by ``damping²``·I only where H is nearly singular); this needs twice-differentiable
+    terms — PoseCost, RestPostureCost and ManipulabilityCost are; JointLimitCost's second derivative jumps
+    at the margin and a user's callable may not be: there ``unroll`` differentiates through explicit steps
+    instead. Every sample is differentiated (its cost is stationary whether or not the pose meets the
+    tolerances).
     """
     if optimizer not in OPTIMIZERS:
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
@@ -292,10 +309,12 @@ def optimize(
     q = project(q)
     if max_iterations is None:
         max_iterations = {"lbfgs": 50, "adam": 500, "gauss_newton": 50}[optimizer]
-    if optimizer == "gauss_newton":
-        q, it = _gauss_newton(chain, terms, q, T, max_iterations, project, damping, tolerance_change)
-    else:
-        q, it = _torch_optimizer(optimizer, chain, terms, q, T, max_iterations, project, lr, tolerance_change)
+    with torch.enable_grad():  # the iterations differentiate the cost w.r.t. q, also under no_grad
+        if optimizer == "gauss_newton":
+            q, it = _gauss_newton(chain, terms, q, T, max_iterations, project, damping, tolerance_change)
+        else:
+            q, it = _torch_optimizer(optimizer, chain, terms, q, T, max_iterations, project, lr,
+                                     tolerance_change)
     with torch.no_grad():
         pos_err, ori_err = final_errors(chain, q, T, position_only)
     success = pos_err <= position_tolerance
@@ -304,4 +323,32 @@ def optimize(
     if clamp:
         success &= chain.within_limits(q)
     iters = torch.full(batch, it, dtype=torch.long, device=q.device)
+    T_src = T_target[..., :3, 3] if position_only and T_target.shape[-2:] == (4, 4) else T_target
+    if unroll:
+        q = _unrolled(chain, terms, q, T_src, torch.ones_like(success), 10 if unroll is True else int(unroll),
+                      damping, lr)
+    else:
+        # every sample: the returned point is stationary whether or not it meets the pose tolerances
+        q = attach_stationary_gradients(chain, q, T_src, torch.ones_like(success),
+                                        lambda qq, TT: _total(chain, terms, qq, TT), damping)
     return IKResult(q=q, success=success, position_error=pos_err, orientation_error=ori_err, iterations=iters)
+
+
+def _unrolled(chain, terms, q: Tensor, T: Tensor, success: Tensor, steps: int, damping: float, lr) -> Tensor:
+    """``steps`` differentiable steps from the solution ``q``: Gauss–Newton on the stacked residuals when
+    every term has one, else gradient steps; the graph reaches ``T`` and the chain's parameters."""
+    if not wants_gradients(chain, T):
+        return q
+    least_squares = all(type(t).residual is not _Term.residual for t in terms)
+    keep = success.unsqueeze(-1).to(q.dtype)
+    q = q.detach().requires_grad_(True)
+    for _ in range(steps):
+        if least_squares:
+            r = _residuals(chain, terms, q, T)
+            Jr = _residual_jacobian(r, q, create_graph=True)
+            step = dls_solve(Jr, r, damping**2)
+        else:
+            (g,) = torch.autograd.grad(_total(chain, terms, q, T).sum(), q, create_graph=True)
+            step = (lr or 0.05) * g
+        q = q - keep * step
+    return q

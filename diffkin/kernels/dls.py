@@ -20,7 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["dls_solve", "damped_pinv", "LAYOUTS"]
+__all__ = ["adaptive_damping", "dls_solve", "damped_pinv", "LAYOUTS"]
 
 LAYOUTS = ("batch_first", "batch_last")
 
@@ -123,3 +123,13 @@ def damped_pinv(J: Tensor, lam) -> Tensor:
     """The damped least-squares inverse J* = Jᵀ(JJᵀ + λI)⁻¹ (3.59) as a matrix, batch first:
     ``(..., k, n)`` -> ``(..., n, k)``: the solve of :func:`dls_solve` applied to the identity."""
     return _dls(J, None, _lam(lam, J))
+
+
+def adaptive_damping(J: Tensor, k2, threshold: float) -> Tensor:
+    """λ = k² (1 − (σ_min/threshold)²) where the smallest singular value σ_min of ``J (..., m, n)`` is below
+    ``threshold``, else 0 (Nakamura & Hanafusa 1986; Chiaverini 1997): the damped inverse is exact away
+    from singular regions and bounded in them. ``k2`` broadcasts to the batch dims; returns ``(...)``."""
+    m, n = J.shape[-2:]
+    G = J @ J.mT if m <= n else J.mT @ J
+    s2_min = torch.linalg.eigvalsh(G)[..., 0].clamp_min(0.0)
+    return k2 * (1.0 - s2_min / (threshold * threshold)).clamp_min(0.0)

@@ -1,0 +1,148 @@
+"""IK as a differentiable layer: gradients of IK solutions by the implicit function theorem (private).
+
+A solver returns q* with F(q*, z) = 0 (:func:`~diffkin.ik.solve`: the pose error) or ∇_q C(q*, z) = 0
+(:func:`~diffkin.ik.optimize`: a stationary cost), where z collects what the caller may differentiate: the
+targets and the chain's parameters. The iterations run without autograd; the result is attached to the graph
+by an autograd Function whose backward differentiates that condition at the solution only:
+
+* solve: dq* = −(∂F/∂q)⁺ ∂F/∂z dz with ∂F/∂q = −J (3.30) at a solution (rows [p; w·θr] per end link, the
+  position rows only for ``position_only``), so dq* = J⁺ (∂F/∂z dz): J⁻¹ for a square J, the minimum-norm
+  J⁺ = Jᵀ(JJᵀ)⁻¹ for a redundant chain (no null-space component). The backward of a gradient g is one
+  batched factorisation, u = (JJᵀ + λI)⁻¹ J g (the kernel's DLS), with λ = (k/100)² + 10 ε (k: the solver's
+  damping, ε: the dtype's machine epsilon): a relative change of about λ/σ_min² (1e-6 at σ_min = 0.03 in
+  float64) where J is well conditioned, and a gradient bounded by about 1/(2√λ) at singular solutions;
+  then one vector–Jacobian product of F w.r.t. z with cotangent u — the FK kernel and
+  the pose error differentiate themselves, so every parameter kind (DH, Hayati β, URDF origins and axes,
+  base, tool) and the targets get their gradient with no hand-written ∂F/∂z.
+* optimize: dq* = −H⁻¹ ∂(∇_q C)/∂z dz with H = ∇²_q C (Hessian–vector products through autograd), damped
+  by λ = k² (1 − (σ_min/k)²) only where σ_min(H) < k (k: ``optimize``'s ``damping``). Costs that are not
+  twice differentiable (a user's callable, kinks) can use ``unroll=True`` instead.
+
+Failed targets (``success`` False) get a zero gradient: they satisfy no condition to differentiate.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..kernels.dls import adaptive_damping, dls_solve
+from ..kernels.pose_error import orientation_error
+
+__all__ = ["attach_solve_gradients", "attach_stationary_gradients", "wants_gradients"]
+
+
+def wants_gradients(chain, T_target: Tensor) -> bool:
+    """Grad mode on and the target or some chain parameter requires grad."""
+    params = chain.parameters()
+    return torch.is_grad_enabled() and (T_target.requires_grad or any(p.requires_grad for p in params))
+
+
+def pose_residual(chain, q: Tensor, T_target: Tensor, position_only: bool,
+                  orientation_weight: float) -> Tensor:
+    """F ``(..., r)``: [p_d − p; √w·θr] per end link (positions only for ``position_only``), flattened."""
+    with torch.set_grad_enabled(torch.is_grad_enabled() and any(p.requires_grad for p in chain.parameters())):
+        T = chain.forward_kinematics(q, check=False)  # no graph (and the fast constant path) if not needed
+    if position_only:
+        p_d = T_target if T_target.shape[-1] == 3 else T_target[..., :3, 3]
+        e = p_d - T[..., :3, 3]
+    else:
+        # θr of R_d R_eᵀ: near a solution θ ≈ 0, where the plain form is exact (no axis-near-π branch)
+        e_o, _ = orientation_error(T_target[..., :3, :3], T[..., :3, :3], "rotvec", exact_near_pi=False)
+        e = torch.cat((T_target[..., :3, 3] - T[..., :3, 3], orientation_weight**0.5 * e_o), dim=-1)
+    return e.reshape(*q.shape[:-1], -1)
+
+
+def _task_jacobian(chain, q: Tensor, position_only: bool, orientation_weight: float) -> Tensor:
+    """−∂F/∂q at a solution: the geometric Jacobian rows matching :func:`pose_residual`, ``(..., r, n)``."""
+    J = chain.geometric_jacobian(q, check=False)  # (..., [K,] 6, n)
+    if position_only:
+        J = J[..., :3, :]
+    else:
+        J = torch.cat((J[..., :3, :], orientation_weight**0.5 * J[..., 3:, :]), dim=-2)
+    return J.reshape(*q.shape[:-1], -1, q.shape[-1])
+
+
+class _ImplicitSolve(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, q: Tensor, T_target: Tensor, spec: tuple, *params: Tensor) -> Tensor:
+        ctx.spec = spec
+        ctx.save_for_backward(q, T_target)
+        return q.clone()
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        q, T_target = ctx.saved_tensors
+        chain, success, position_only, weight, lam, params = ctx.spec
+        with torch.no_grad():
+            J = _task_jacobian(chain, q, position_only, weight)
+            # a floor far below the solver's damping: invisible for a well-conditioned J, finite at singular
+            # solutions; float32 needs more (its Gram matrix has ~7 digits)
+            lam = lam * 1e-4 + 10.0 * torch.finfo(J.dtype).eps
+            # u = (J⁺)ᵀ g = (JJᵀ + λI)⁻¹ J g = J (JᵀJ + λI)⁻¹ g: the kernel's DLS solve on Jᵀ
+            u = dls_solve(J.transpose(-1, -2), g, lam) * success.unsqueeze(-1).to(g.dtype)
+        wrt_T = T_target.requires_grad or ctx.needs_input_grad[1]
+        with torch.enable_grad():
+            T_d = T_target.detach().requires_grad_(wrt_T)
+            F = pose_residual(chain, q.detach(), T_d, position_only, weight)
+            inputs = ([T_d] if wrt_T else []) + list(params)
+            grads = torch.autograd.grad(F, inputs, grad_outputs=u, allow_unused=True) if inputs else []
+        grad_T = grads[0] if wrt_T else None
+        grad_params = grads[1:] if wrt_T else grads
+        grad_params = [None if gp is None else gp for gp in grad_params]
+        return (None, grad_T, None, *grad_params)
+
+
+def attach_solve_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, position_only: bool,
+                           orientation_weight: float, damping: float) -> Tensor:
+    """``q`` with the implicit gradient of :func:`~diffkin.ik.solve` w.r.t. ``T_target`` and the chain's
+    parameters that require grad (no-op when nothing does)."""
+    if not wants_gradients(chain, T_target):
+        return q
+    params = tuple(p for p in chain.parameters() if p.requires_grad)
+    spec = (chain, success.detach(), position_only, orientation_weight, damping**2, params)
+    return _ImplicitSolve.apply(q.detach(), T_target, spec, *params)
+
+
+class _ImplicitStationary(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, q: Tensor, T_target: Tensor, spec: tuple, *params: Tensor) -> Tensor:
+        ctx.spec = spec
+        ctx.save_for_backward(q, T_target)
+        return q.clone()
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        q, T_target = ctx.saved_tensors
+        cost_fn, success, lam, params = ctx.spec
+        wrt_T = T_target.requires_grad or ctx.needs_input_grad[1]
+        n = q.shape[-1]
+        with torch.enable_grad():
+            qv = q.detach().requires_grad_(True)
+            T_d = T_target.detach().requires_grad_(wrt_T)
+            (gq,) = torch.autograd.grad(cost_fn(qv, T_d).sum(), qv, create_graph=True)
+            # H = ∇²_q C by n Hessian-vector products (samples are independent: one pass per column)
+            cols = [torch.autograd.grad(gq[..., i].sum(), qv, retain_graph=True)[0] for i in range(n)]
+            H = torch.stack(cols, dim=-1)
+            H = 0.5 * (H + H.transpose(-1, -2))
+            # damped only where H is nearly singular (σ_min < k): exact elsewhere, bounded there
+            lam = adaptive_damping(H.detach(), lam, lam**0.5)[..., None, None]
+            eye = torch.eye(n, dtype=q.dtype, device=q.device)
+            u = torch.linalg.solve(H + lam * eye, g.unsqueeze(-1)).squeeze(-1)
+            u = u * success.unsqueeze(-1).to(u.dtype)
+            inputs = ([T_d] if wrt_T else []) + list(params)
+            grads = torch.autograd.grad(gq, inputs, grad_outputs=-u, allow_unused=True) if inputs else []
+        grad_T = grads[0] if wrt_T else None
+        grad_params = grads[1:] if wrt_T else grads
+        return (None, grad_T, None, *grad_params)
+
+
+def attach_stationary_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, cost_fn,
+                                damping: float) -> Tensor:
+    """``q`` with the implicit gradient of a stationary point of ``cost_fn(q, T) -> (...)`` (per sample)
+    w.r.t. ``T_target`` and the chain's parameters that require grad (no-op when nothing does)."""
+    if not wants_gradients(chain, T_target):
+        return q
+    params = tuple(p for p in chain.parameters() if p.requires_grad)
+    spec = (cost_fn, success.detach(), damping**2, params)
+    return _ImplicitStationary.apply(q.detach(), T_target, spec, *params)
