@@ -29,7 +29,7 @@ import sys
 
 from benchmarks.common import print_table, write_json
 
-NAMES = ("fk", "jacobian", "ik", "env", "calibration", "model")
+NAMES = ("fk", "jacobian", "ik", "env", "calibration", "model", "closed_form")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
