@@ -1,7 +1,7 @@
 """Run diffkin's benchmarks and print one table per benchmark (ratios are against the reference timed in the
 same run, on the same machine and thread count).
 
-    python -m benchmarks.run [fk|jacobian|ik|ik_grad|env|calibration|model|all ...] [--quick]
+    python -m benchmarks.run [fk|jacobian|ik|ik_grad|closed_form|env|calibration|model|all ...] [--quick]
                              [--device cpu|cuda] [--threads N] [--compile] [--json out.json]
 
 Interface for a benchmark module (add ``benchmarks/bench_<name>.py``; it is picked up by name):
@@ -29,7 +29,7 @@ import sys
 
 from benchmarks.common import print_table, write_json
 
-NAMES = ("fk", "jacobian", "ik", "ik_grad", "env", "calibration", "model")
+NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model")
 
 
 def parse_args(argv=None) -> argparse.Namespace:

@@ -241,7 +241,7 @@ def test_scalar_batch_and_float32():
 
 
 def test_unsupported_chains_and_bad_input():
-    for name in ("panda", "ur5", "kuka_iiwa14", "dlr"):
+    for name in ("panda", "kuka_iiwa14", "dlr"):  # ur5: ur family, see *_industrial.py
         with pytest.raises(ModelError, match="closed-form"):
             closed_form(models.load(name, dtype=F64), torch.eye(4, dtype=F64))
     two_link = DHChain([1.0, 1.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0])
@@ -263,4 +263,4 @@ def test_unsupported_chains_and_bad_input():
     with_tool = DHChain(arm.a.detach(), arm.alpha.detach(), arm.d.detach(), arm.theta.detach(), tool=tool)
     with pytest.raises(ModelError, match="tool"):
         closed_form(with_tool, torch.tensor([0.5, 0.2, 0.3], dtype=F64))
-    assert set(CLOSED_FORM_STRUCTURES) == set(TABLES)
+    assert set(CLOSED_FORM_STRUCTURES) == set(TABLES) | {"ur", "opw"}

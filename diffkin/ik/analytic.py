@@ -12,6 +12,13 @@ Rows are (a, α, d) per joint, ``*`` = any value; k = number of branches:
 - ``anthropomorphic_wrist`` (RRRRRR, Table 2.6): (0, π/2, *), (a2, 0, 0), (0, π/2, 0), (0, −π/2, d4≠0),
   (0, π/2, 0), (0, 0, *); k = 8
 
+Beyond the book's tables, any serial six-revolute chain (DH in either convention, or URDF) whose geometry
+at q = 0 fits one of the industrial families of :mod:`diffkin.ik.industrial` is solved too (k = 8):
+
+- ``ur`` — Universal Robots UR3/5/10/16 and e-series (axes 2, 3, 4 parallel, offset wrist);
+- ``opw`` — ortho-parallel basis and spherical wrist with offsets (ABB IRB, KUKA KR, Fanuc, Stäubli,
+  Motoman, Puma 560 with a3 / d3).
+
 Six-DOF arms are decoupled at the wrist point p_W = p_e - d_6 a_e (2.93): the arm solves p_W, then the
 wrist's ZYZ angles come from R_3^T R_e (§2.12.2).
 
@@ -34,8 +41,9 @@ from ..errors import DTypeError, ModelError, ShapeError
 from ..kernels.joints import dh_matrix
 from ..rotations import _matrix_to_euler
 from ..transforms import _transform_inverse
+from .industrial import INDUSTRIAL_FAMILIES, recognise_industrial, solve_industrial
 
-__all__ = ["ClosedFormSolution", "closed_form", "identify_structure", "CLOSED_FORM_STRUCTURES"]
+__all__ = ["ClosedFormSolution", "closed_form", "identify_structure", "CLOSED_FORM_STRUCTURES", "into_limits"]
 
 _H = math.pi / 2
 # structure -> (joint types, alpha, a: None = any / "nz" = nonzero / 0, d: None = any / 0 / "nz", branches)
@@ -53,18 +61,31 @@ _TABLES = {
         8,
     ),
 }
-CLOSED_FORM_STRUCTURES = tuple(_TABLES)
+CLOSED_FORM_STRUCTURES = (*_TABLES, *INDUSTRIAL_FAMILIES)
 
 
-class ClosedFormSolution(NamedTuple):
-    """All branches of a closed-form solution.
-
-    q: ``(..., k, n)`` joint values (revolute wrapped to (-π, π]); valid: ``(..., k)`` bool, True where the
-    branch reproduces the target within the tolerance. Unpack as ``q, valid = closed_form(chain, T)``.
-    """
-
+class _Solution(NamedTuple):
     q: Tensor
     valid: Tensor
+
+
+class ClosedFormSolution(_Solution):
+    """All branches of a closed-form solution.
+
+    q: ``(..., k, n)`` joint values: revolute joints in (-π, π], or shifted by ±2π into the joint limits
+    where that brings them in; valid: ``(..., k)`` bool, True where the branch reproduces the target within
+    the tolerance. Unpack as ``q, valid = closed_form(chain, T)`` (a 2-tuple, as before). Also carries
+    ``within_limits`` ``(..., k)`` bool (every joint within the chain's limits; all True without limits)
+    and ``structure`` (the recognised structure name).
+    """
+
+    def __new__(cls, q: Tensor, valid: Tensor, within_limits: Tensor | None = None, structure: str = ""):
+        self = super().__new__(cls, q, valid)
+        self.within_limits = (
+            within_limits if within_limits is not None else torch.ones_like(valid, dtype=torch.bool)
+        )
+        self.structure = structure
+        return self
 
 
 # ------------------------------------------------------------------------------------- structure
@@ -81,13 +102,20 @@ def _angle_matches(value: float, target: float, tol: float) -> bool:
 
 
 def identify_structure(chain) -> str:
-    """Name of the §2.12 structure whose DH table ``chain`` has (see the module table); ModelError if none."""
+    """Name of the structure ``chain`` has: a §2.12 DH table (see the module table) for a standard-DH
+    :class:`~diffkin.chain.DHChain`, else (or when none fits) an industrial family (``ur``, ``opw``) from
+    the joint geometry of any six-revolute chain; ModelError naming what was checked if none."""
     from ..chain import DHChain
 
     if not isinstance(chain, DHChain) or chain.convention != "standard":
+        if chain.n_joints == 6 and chain.joint_types == "RRRRRR":
+            return recognise_industrial(chain)[0]
         raise ModelError(
-            "closed-form IK needs a DHChain in the standard (book) DH convention, got "
+            "closed-form IK needs a DHChain in the standard (book) DH convention with one of the §2.12 "
+            "tables, or a serial six-revolute arm of an industrial family (ur, opw); got "
             f"{type(chain).__name__}{'' if not isinstance(chain, DHChain) else ' (' + chain.convention + ')'}"
+            " "
+            f"'{chain.name}' ({chain.joint_types})"
         )
     tol = 1e-6
     table = chain.dh_table().double().cpu().tolist()  # rows (a, alpha, d, theta); once per call, not hot
@@ -99,10 +127,18 @@ def identify_structure(chain) -> str:
             for row, al, sa, sd in zip(table, alphas, a_spec, d_spec)
         ):
             return name
+    if chain.n_joints == 6 and chain.joint_types == "RRRRRR":
+        try:
+            return recognise_industrial(chain)[0]
+        except ModelError as err:
+            raise ModelError(
+                f"chain '{chain.name}' has no closed-form solution here: its DH table matches none of "
+                f"{', '.join(_TABLES)} (§2.12), and {err}"
+            ) from None
     raise ModelError(
         f"chain '{chain.name}' ({chain.joint_types}, {chain.n_joints} joints) has no closed-form solution "
-        f"here: its DH table matches none of {', '.join(CLOSED_FORM_STRUCTURES)} (§2.12); "
-        "use diffkin.ik.solve"
+        f"here: its DH table matches none of {', '.join(_TABLES)} (§2.12), and only six-revolute arms can "
+        f"be of the industrial families ({', '.join(INDUSTRIAL_FAMILIES)}); use diffkin.ik.solve"
     )
 
 
@@ -326,12 +362,29 @@ def _to_joints(chain, th: Tensor, dd: Tensor) -> Tensor:
     return rev * wrap_angle(th - chain.theta) + (1.0 - rev) * (dd - chain.d)
 
 
+def into_limits(chain, q: Tensor) -> Tensor:
+    """Revolute joints of ``q (..., n)`` wrapped to (-π, π], then, where a joint is outside its limits and
+    q + 2πk lies inside for some integer k, shifted there (the smallest such value); others unchanged."""
+    rev = chain.revolute_mask.bool()
+    qw = torch.where(rev, wrap_angle(q), q)
+    if chain.q_limits is None:
+        return qw
+    lo, hi = chain.q_limits[:, 0].to(q.dtype), chain.q_limits[:, 1].to(q.dtype)
+    inside = (qw >= lo) & (qw <= hi)
+    lo_f = torch.where(torch.isfinite(lo), lo, torch.zeros_like(lo))
+    alt = lo_f + torch.remainder(qw - lo_f, 2 * math.pi)  # smallest value >= lo congruent to q
+    use = rev & ~inside & torch.isfinite(lo) & (alt <= hi)
+    return torch.where(use, alt, qw)
+
+
 def closed_form(chain, T: Tensor, tol: float | None = None) -> ClosedFormSolution:
     """Every closed-form IK branch of a §2.12 structure: ``q (..., k, n)`` and ``valid (..., k)``.
 
     Args:
         chain: a standard-DH :class:`~diffkin.chain.DHChain` with one of the tables listed in the module
-            docstring (recognised by structure; any link lengths, joint offsets, ``d_1``, base and tool).
+            docstring (recognised by structure; any link lengths, joint offsets, ``d_1``, base and tool), or
+            any six-revolute chain (DH, modified DH, URDF) of the ``ur`` / ``opw`` families (recognised from
+            its joint geometry at q = 0, base and tool folded in; see :mod:`diffkin.ik.industrial`).
         T: target in the world frame (before the chain's base, after its tool):
 
             - any structure: an end-effector pose ``(..., 4, 4)``;
@@ -344,15 +397,41 @@ def closed_form(chain, T: Tensor, tol: float | None = None) -> ClosedFormSolutio
             1e-6 (float64) / 1e-3 (float32).
 
     Branch order (k): planar s2 ≥ 0 then s2 ≤ 0; anthropomorphic arm as the book (2.110); spherical arm and
-    wrist ± roots; six-DOF arms: arm branch major, wrist ϑ5 > 0 then ϑ5 < 0. Revolute joints are returned in
-    (-π, π] after removing the DH offsets; prismatic joint values are d - d_offset.
+    wrist ± roots; six-DOF arms: arm branch major, wrist ϑ5 > 0 then ϑ5 < 0; ``ur``: shoulder, wrist,
+    elbow; ``opw``: shoulder, elbow, wrist (see :mod:`diffkin.ik.industrial`, also for singular targets).
+    Revolute joints are returned in (-π, π] after removing the DH offsets, or shifted by a multiple of 2π
+    into the joint limits where one exists (:func:`into_limits`; ``within_limits`` flags the branches inside
+    the limits); prismatic joint values are d - d_offset.
+
+    Differentiable w.r.t. ``T`` and the chain's geometry (autograd through the formulas; finite gradients
+    at singular targets). Batched over leading dims, float32/float64, on the target's device.
     """
     structure = identify_structure(chain)
     T = _check_target(T, chain)
+    if structure in INDUSTRIAL_FAMILIES:
+        if T.ndim < 2 or tuple(T.shape[-2:]) != (4, 4):
+            raise ShapeError(f"expected a target T of shape (..., 4, 4) for a {structure} arm, got "
+                             f"{batch_shape_str(T.shape)}")
+        q = into_limits(chain, solve_industrial(chain, structure, T))
+        valid = _valid_world(chain, q, T, tol)
+        return ClosedFormSolution(q, valid, chain.within_limits(q), structure)
     kind = _kind(T, structure)
     th, dd, ref = _solve_theta(chain, structure, kind, T)
     valid = _valid(chain, structure, kind, th, dd, ref, tol)
-    return ClosedFormSolution(_to_joints(chain, th, dd), valid)
+    q = into_limits(chain, _to_joints(chain, th, dd))
+    return ClosedFormSolution(q, valid, chain.within_limits(q), structure)
+
+
+def _valid_world(chain, q: Tensor, T: Tensor, tol) -> Tensor:
+    """FK of every branch (world, base and tool included) against the target (scaled as :func:`_valid`)."""
+    if tol is None:
+        tol = 1e-6 if T.dtype == torch.float64 else 1e-3
+    scale = recognise_industrial(chain)[1]
+    with torch.no_grad():
+        Tq = chain.forward_kinematics(q.detach(), check=False)
+    dp = (Tq[..., :3, 3] - T[..., None, :3, 3].detach()).norm(dim=-1)
+    dr = (Tq[..., :3, :3] - T[..., None, :3, :3].detach()).flatten(-2).norm(dim=-1)
+    return (dp <= tol * scale) & (dr <= tol)
 
 
 def _valid(chain, structure, kind, th_full, d_full, ref, tol) -> Tensor:

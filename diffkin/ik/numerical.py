@@ -130,6 +130,24 @@ def _user_seeds(chain, q0, batch: tuple[int, ...], N: int) -> Tensor | None:
     return q0.reshape(N, q0.shape[-2], n)
 
 
+def _closed_form_seeds(chain, T_target, q0, batch) -> Tensor:
+    """Closed-form branches ``(..., k, n)`` ordered valid-and-within-limits first, then ``q0``'s seeds."""
+    from .analytic import closed_form
+
+    with torch.no_grad():
+        sol = closed_form(chain, T_target.detach())
+        score = sol.valid.to(torch.int8) * 2 + sol.within_limits.to(torch.int8)
+        order = torch.argsort(-score, dim=-1, stable=True)
+        seeds = torch.take_along_dim(sol.q, order[..., None], dim=-2)
+    if q0 is None:
+        return seeds
+    q0 = q0.to(seeds.dtype)
+    if q0.ndim - 1 <= len(batch):
+        q0 = q0.unsqueeze(-2)
+    q0 = q0.expand(*batch, q0.shape[-2], chain.n_joints)
+    return torch.cat((seeds, q0), dim=-2)
+
+
 def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:
     if cfg.compute_dtype is not None:
         return cfg.compute_dtype
@@ -152,6 +170,7 @@ def solve(
     generator: torch.Generator | None = None,
     seed: int | None = None,
     progress: bool = False,
+    seeds_from_closed_form: bool = False,
 ) -> IKResult:
     """Batched inverse kinematics by Levenberg–Marquardt with joint limits and restarts.
 
@@ -170,6 +189,10 @@ def solve(
         config: :class:`LMConfig` (damping, orientation weight, seeding and scheduling knobs).
         generator / seed: randomness for seeds (a fresh generator from ``seed`` if given).
         progress: print one line per scheduling round.
+        seeds_from_closed_form: seed with every branch of :func:`~diffkin.ik.closed_form` (valid branches
+            within the limits first, then valid ones, then the rest), ahead of ``q0`` if given: exact,
+            all-branch-aware solving (LM only polishes). Raises :class:`~diffkin.errors.ModelError` when the
+            chain has no closed form (see :func:`~diffkin.ik.identify_structure`).
 
     Returns:
         :class:`IKResult` with per-target ``q``, ``success``, errors (from an exact FK in the chain's dtype),
@@ -193,6 +216,8 @@ def solve(
     dtype, device = _compute_dtype(chain, cfg, min(position_tolerance, orientation_tolerance)), chain.device
     batch, T_orig, tg = _targets(chain, T_target, position_only, dtype)
     N = math.prod(batch)
+    if seeds_from_closed_form:
+        q0 = _closed_form_seeds(chain, T_target, q0, batch)
     seeds_user = _user_seeds(chain, q0, batch, N)
     if generator is None:
         generator = torch.Generator(device=device)
