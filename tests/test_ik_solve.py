@@ -279,7 +279,7 @@ def _tree_reference_errors(path, chain, q, T_target):
 
     ref = ReferenceTree(path)
     pos, ori = [], []
-    for qi, Ti in zip(q.double().numpy(), T_target.double().numpy()):
+    for qi, Ti in zip(q.detach().double().numpy(), T_target.double().numpy()):
         values = dict(zip(chain.joint_names, qi))
         Tr = np.stack([ref.fk(values, end) for end in chain.end_links])
         if Ti.shape[-1] == 3:

@@ -208,7 +208,7 @@ def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
 
 
 def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_change):
-    q = q.detach().clone().requires_grad_(True)
+    q = q.detach().clone(memory_format=torch.contiguous_format).requires_grad_(True)  # LBFGS views .grad flat
     if name == "lbfgs":
         opt = torch.optim.LBFGS(
             [q], lr=lr or 1.0, max_iter=10, history_size=20, line_search_fn="strong_wolfe",
@@ -221,7 +221,7 @@ def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_chan
 
     def closure():  # the gradient w.r.t. q only: the chain's parameters keep their .grad untouched
         loss = _total(chain, terms, q, T).sum()
-        (q.grad,) = torch.autograd.grad(loss, q)
+        q.grad = torch.autograd.grad(loss, q)[0].contiguous()
         return loss
 
     prev, it = None, 0
