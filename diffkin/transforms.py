@@ -195,7 +195,7 @@ def as_measured_transform(T: Tensor, name: str = "T", atol: float | None = None)
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
     exact = 4.0 * eps_for(T)
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
-    if T.numel() == 0 or (bool(((R.mT @ R - eye).abs().amax() <= exact)) and bool(torch.equal(
+    if T.numel() == 0 or (bool((R.mT @ R - eye).abs().amax() <= exact) and bool(torch.equal(
             T[..., 3, :], bottom.expand_as(T[..., 3, :])))):
         return T
     U, _, Vh = torch.linalg.svd(R)

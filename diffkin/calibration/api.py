@@ -14,9 +14,9 @@ from torch import Tensor
 from ..chain import DHChain, KinematicChain
 from ..errors import ConventionError, ShapeError
 from ..transforms import as_measured_transform
-from .error_models import ChainErrorModel, resolve_error_model
+from .error_models import build_model
 from .identifiability import IdentifiabilityReport, model_reports
-from .model import CalibrationModel, check_measurements, pose_residual
+from .model import check_measurements, pose_residual
 from .solvers import gradient_descent, least_squares
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
@@ -195,7 +195,7 @@ class CalibrationResult:
 
 
 def _solve(model, q, T, position_only, method, orientation_weight, rank_tol, solver_options):
-    """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``: ``(SolverOutput, reports, ζ_n (K, P))``."""
+    """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``: ``(output, reports, ζ_n (K, P))``."""
     if method not in METHODS:
         raise ConventionError(f"unknown calibration method {method!r}; valid: {', '.join(METHODS)}")
     K = q.shape[0]
@@ -240,8 +240,8 @@ def _cross_validate(model, q, T, position_only, method, w, rank_tol, opts, folds
     with torch.no_grad():
         r = model.residual(out.zeta, q[test], T[test], 1.0)
     pos = r[..., :3].norm(dim=-1)
-    res = {"folds": folds, "position_rms": float(pos.square().mean().sqrt()), "position_max": float(pos.max()),
-           "orientation_rms": None}
+    res = {"folds": folds, "position_rms": float(pos.square().mean().sqrt()),
+           "position_max": float(pos.max()), "orientation_rms": None}
     if not position_only:
         res["orientation_rms"] = float(r[..., 3:].norm(dim=-1).square().mean().sqrt())
     return res
@@ -317,13 +317,6 @@ def _run(
     return results
 
 
-def _model(chain, error_model, parameters, base, tool, joint_offsets):
-    kind = resolve_error_model(chain, error_model)
-    if kind == "dh":
-        return CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets), kind
-    return ChainErrorModel(chain, kind, parameters, base, tool, joint_offsets), kind
-
-
 def calibrate_batch(
     chain: KinematicChain | Sequence[KinematicChain],
     q: Tensor,
@@ -345,11 +338,11 @@ def calibrate_batch(
 ) -> list[CalibrationResult]:
     """Calibrate K robots in one call: ``q (K, N, n)``, ``T (K, N, 4, 4)`` or ``(K, N, 3)``.
 
-    ``chain``: one shared nominal chain (DHChain or URDFChain) or K of them (same structure). The parameter tensor is
-    ``(K, P)`` and both methods run vectorised over K (one L-BFGS problem whose objective is the sum of
-    the K independent losses). Options as in :func:`calibrate`.
+    ``chain``: one shared nominal chain (DHChain or URDFChain) or K of them (same structure). The parameter
+    tensor is ``(K, P)`` and both methods run vectorised over K (one L-BFGS problem whose objective is the sum
+    of the K independent losses). Options as in :func:`calibrate`.
     """
-    model, kind = _model(chain, error_model, parameters, base, tool, joint_offsets)
+    model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if not isinstance(q, Tensor) or q.ndim != 3:
         shape = tuple(q.shape) if isinstance(q, Tensor) else type(q).__name__
         raise ShapeError(
@@ -425,7 +418,7 @@ def calibrate(
     with the reason and kept at nominal; those only these poses leave undetermined (few poses) are estimated
     in the span the poses determine (minimum-norm update) and listed in ``result.report.undetermined``.
     """
-    model, kind = _model(chain, error_model, parameters, base, tool, joint_offsets)
+    model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if isinstance(q, Tensor) and q.ndim == 3:
         raise ShapeError(
             f"expected q of shape (N, {model.n}) for one robot, got {tuple(q.shape)}; "

@@ -12,9 +12,9 @@ own ``nn.Parameter`` s, so the calibrated robot is the same kind of object as th
 - ``"general"`` (a :class:`~diffkin.models.urdf.URDFChain`): a six-parameter correction of the origin of
   every moving joint and of the fixed joints after the last one (the tail to the end link): origin · Δ(δ),
   δ = (translation, rotation vector) in the origin's frame (``URDFChain.origin_delta``), free of the gimbal
-  lock of URDF rpy angles (pitch ±π/2 is common: UR arms); folded into xyz/rpy in the result. Fixed joints between
-  moving ones are exactly absorbed by the next moving joint's origin and are not candidates; encoder offsets
-  are rotations of the origin about the joint axis, so ``joint_offsets`` adds nothing here. Six numbers per
+  lock of URDF rpy angles (pitch ±π/2 is common: UR arms); folded into xyz/rpy in the result. Fixed joints
+  between moving ones are exactly absorbed by the next moving joint's origin and are not candidates; encoder
+  offsets are rotations of the origin about the joint axis, so ``joint_offsets`` adds nothing here. Six numbers per
   joint are more than the 4 (revolute) or 2 (prismatic) a joint's line needs: the identifiability analysis
   (:mod:`.identifiability`) drops the redundant ones. The result is a URDFChain that ``to_urdf`` writes.
 
@@ -36,9 +36,10 @@ from torch import Tensor, nn
 from ..chain import DHChain, KinematicChain
 from ..errors import ModelError
 from ..kernels.jacobian import twist_of_derivative
-from .model import DH_KINDS, POSE_AXES, pose_residual
+from .model import DH_KINDS, POSE_AXES, CalibrationModel, pose_residual
 
-__all__ = ["ChainErrorModel", "ERROR_MODELS", "PARALLEL_SIN", "parallel_pairs", "resolve_error_model"]
+__all__ = ["build_model", "ChainErrorModel", "ERROR_MODELS", "PARALLEL_SIN", "parallel_pairs",
+           "resolve_error_model"]
 
 ERROR_MODELS = ("auto", "dh", "hayati", "general")
 #: consecutive axes with |sin α_i| below this are treated as parallel (β_i replaces d_i): about 2.9°
@@ -47,12 +48,13 @@ _RPY = ("roll", "pitch", "yaw")
 
 
 def parallel_pairs(chain: DHChain) -> list[int]:
-    """0-based rows i < n - 1 of a standard-DH chain whose axes z_{i} and z_{i+1} (joints i+1, i+2 in the
-    book's numbering) are nearly parallel: |sin α| < :data:`PARALLEL_SIN`."""
+    """0-based rows i < n - 1 of a standard-DH chain whose revolute joint i+1's axis z_i and the next axis
+    z_{i+1} (joints i+1, i+2 in the book's numbering) are nearly parallel: |sin α| < :data:`PARALLEL_SIN`
+    (a prismatic joint's d is its variable and stays)."""
     if chain.convention != "standard":
         return []
     s = torch.sin(chain.alpha.detach()).abs().tolist()
-    return [i for i in range(chain.n_joints - 1) if s[i] < PARALLEL_SIN]
+    return [i for i in range(chain.n_joints - 1) if s[i] < PARALLEL_SIN and chain.joint_types[i] == "R"]
 
 
 def resolve_error_model(chain, error_model: str) -> str:
@@ -109,7 +111,8 @@ def _names_units(chain: KinematicChain, named) -> tuple[list[str], list[bool]]:
             names += [f"{j}.{c}" for j in chain.joint_origin_names for c in _RPY]
             length += [False] * n
         elif key == "origin_delta":
-            names += [f"{j}.{c}" for j in chain.joint_origin_names for c in ("dx", "dy", "dz", "rx", "ry", "rz")]
+            comps = ("dx", "dy", "dz", "rx", "ry", "rz")
+            names += [f"{j}.{c}" for j in chain.joint_origin_names for c in comps]
             length += [True, True, True, False, False, False] * (n // 6)
         elif key == "axis":
             names += [f"{j}.axis_{c}" for j in chain.frame_joint_names for c in "xyz"]
@@ -148,8 +151,8 @@ class ChainErrorModel:
         for c in chains:
             w = c.copy()
             if type(w) is not type(ref) or w.n_joints != ref.n_joints or w.joint_types != ref.joint_types:
-                raise ModelError(f"all nominal chains of a batch must share their structure; '{c.name}' differs "
-                                 f"from '{ref.name}'")
+                raise ModelError(f"all nominal chains of a batch must share their structure; '{c.name}' "
+                                 f"differs from '{ref.name}'")
             if kind == "hayati" and w.beta is None:
                 w.beta = nn.Parameter(torch.zeros_like(w.a))
             if kind == "general":
@@ -221,8 +224,9 @@ class ChainErrorModel:
                 items = (parameters,) if isinstance(parameters, str) else tuple(parameters)
                 for item in items:
                     if item not in index:
-                        raise ModelError(f"unknown calibration parameter {item!r}; use 'all' or names such as "
-                                         f"'{self.names[self._slice('origin_xyz').start]}', 'base_z'")
+                        example = self.names[self._slice("origin_delta").start]
+                        raise ModelError(f"unknown calibration parameter {item!r}; use 'all' or names "
+                                         f"such as '{example}', 'base_z'")
                     mask[index[item]] = True
             else:
                 moving = set(ref.frame_joint_names)
@@ -231,9 +235,9 @@ class ChainErrorModel:
                 sl = self._slice("origin_delta")
                 for r in rows:
                     mask[sl.start + 6 * r : sl.start + 6 * r + 6] = True
-            self.notes.append("general: a 6-DOF correction of each joint origin (local translation dx, dy, dz "
-                              "and rotation vector rx, ry, rz: no gimbal lock of rpy); encoder offsets are "
-                              "rotations of the origins about the joint axes (no separate parameter); the "
+            self.notes.append("general: a 6-DOF correction of each joint origin (local translation dx, dy, "
+                              "dz and rotation vector rx, ry, rz: no gimbal lock of rpy); encoder offsets "
+                              "are rotations of the origins about the joint axes (no separate parameter); the "
                               "result has them folded into the URDF origins")
         for key, flag in (("base_delta", base), ("tool_delta", tool)):
             if flag:
@@ -328,3 +332,12 @@ class ChainErrorModel:
 
     def to_chain(self, zeta: Tensor, index: int = 0) -> KinematicChain:
         return self.to_chains(zeta[None], first=index)[0]
+
+
+def build_model(chain, error_model: str = "auto", parameters="all", base: bool = False, tool: bool = False,
+                joint_offsets: bool = True):
+    """``(model, kind)``: the calibration model of ``chain`` (one or a sequence) for ``error_model``."""
+    kind = resolve_error_model(chain, error_model)
+    if kind == "dh":
+        return CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets), kind
+    return ChainErrorModel(chain, kind, parameters, base, tool, joint_offsets), kind

@@ -63,7 +63,8 @@ class IdentifiabilityReport:
     undetermined: list[str] = field(default_factory=list)
     #: rank the model can reach with enough poses (candidates minus structural redundancies)
     structural_rank: int | None = None
-    #: lower bound on the extra poses that could determine the undetermined ones (missing rank / rows per pose)
+    #: lower bound on the extra poses that could determine the undetermined ones (missing rank / rows
+    #: per pose)
     more_poses_needed: int = 0
 
     def as_dict(self) -> dict:
@@ -247,14 +248,17 @@ def identifiability(
     position_only: bool | None = None,
     orientation_weight: float = 0.1,
     rank_tol: float | None = None,
+    error_model: str = "auto",
 ) -> IdentifiabilityReport:
     """Identifiability report of the nominal ``chain`` for joint readings ``q (N, n)``.
 
     Only the joint readings matter (Φ̄ is evaluated at the nominal parameters); pass the measurements ``T``
     (``(N, 4, 4)`` or ``(N, 3)``) or ``position_only`` to say which rows are measured (default full pose).
-    Parameter selection as in :func:`diffkin.calibration.calibrate`.
+    Parameter selection and ``error_model`` as in :func:`diffkin.calibration.calibrate`.
     """
-    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    from .error_models import build_model
+
+    model, _ = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if T is not None:
         position_only = check_measurements(q, T, chain.n_joints, chain.dtype)
     else:
@@ -280,6 +284,7 @@ def select_poses(
     orientation_weight: float = 0.1,
     initial: Tensor | None = None,
     rank_tol: float | None = None,
+    error_model: str = "auto",
 ) -> Tensor:
     """Greedily pick ``k`` informative configurations among ``candidates (M, n)``; returns indices ``(k,)``.
 
@@ -293,7 +298,9 @@ def select_poses(
     M = candidates.shape[0]
     if not 0 < k <= M:
         raise ShapeError(f"k must be in 1..{M} (the number of candidates), got {k}")
-    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    from .error_models import build_model
+
+    model, _ = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     with torch.no_grad():
         Phi, _ = model.calibration_matrix(
             model.nominal, candidates, position_only, orientation_weight, columns=model.candidate

@@ -120,7 +120,8 @@ class URDFChain(KinematicChain):
         self.origin_xyz = nn.Parameter(torch.tensor([j.xyz for j in used], dtype=dtype, device=device))
         self.origin_rpy = nn.Parameter(torch.tensor([j.rpy for j in used], dtype=dtype, device=device))
         # optional local corrections (L, 6) (translation, rotation vector): origin · Δ(δ), singularity-free
-        # where rpy is at gimbal lock; a buffer (None by default), set by calibration, folded in by fold_origins
+        # where rpy is at gimbal lock; a buffer (None by default), set by calibration, folded in by
+        # fold_origins
         self.register_buffer("origin_delta", None)
         axes = torch.tensor([j.axis for j in moving], dtype=torch.float64)
         unit = axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)
