@@ -14,8 +14,8 @@ own ``nn.Parameter`` s, so the calibrated robot is the same kind of object as th
   δ = (translation, rotation vector) in the origin's frame (``URDFChain.origin_delta``), free of the gimbal
   lock of URDF rpy angles (pitch ±π/2 is common: UR arms); folded into xyz/rpy in the result. Fixed joints
   between moving ones are exactly absorbed by the next moving joint's origin and are not candidates; encoder
-  offsets are rotations of the origin about the joint axis, so ``joint_offsets`` adds nothing here. Six numbers per
-  joint are more than the 4 (revolute) or 2 (prismatic) a joint's line needs: the identifiability analysis
+  offsets are rotations of the origin about the joint axis, so ``joint_offsets`` adds nothing here. Six
+  numbers per joint are more than the 4 (revolute) or 2 (prismatic) a joint's line needs: the identifiability analysis
   (:mod:`.identifiability`) drops the redundant ones. The result is a URDFChain that ``to_urdf`` writes.
 
 Both compute the calibration matrix Φ (2.86) as the base-frame twist of the end effector per unit change of
@@ -237,8 +237,8 @@ class ChainErrorModel:
                     mask[sl.start + 6 * r : sl.start + 6 * r + 6] = True
             self.notes.append("general: a 6-DOF correction of each joint origin (local translation dx, dy, "
                               "dz and rotation vector rx, ry, rz: no gimbal lock of rpy); encoder offsets "
-                              "are rotations of the origins about the joint axes (no separate parameter); the "
-                              "result has them folded into the URDF origins")
+                              "are rotations of the origins about the joint axes (no separate parameter); "
+                              "the result has them folded into the URDF origins")
         for key, flag in (("base_delta", base), ("tool_delta", tool)):
             if flag:
                 mask[self._slice(key)] = True
