@@ -15,8 +15,9 @@ own ``nn.Parameter`` s, so the calibrated robot is the same kind of object as th
   lock of URDF rpy angles (pitch ±π/2 is common: UR arms); folded into xyz/rpy in the result. Fixed joints
   between moving ones are exactly absorbed by the next moving joint's origin and are not candidates; encoder
   offsets are rotations of the origin about the joint axis, so ``joint_offsets`` adds nothing here. Six
-  numbers per joint are more than the 4 (revolute) or 2 (prismatic) a joint's line needs: the identifiability analysis
-  (:mod:`.identifiability`) drops the redundant ones. The result is a URDFChain that ``to_urdf`` writes.
+  numbers per joint are more than the 4 (revolute) or 2 (prismatic) a joint's line needs: the
+  identifiability analysis (:mod:`.identifiability`) drops the redundant ones. The result is a URDFChain
+  that ``to_urdf`` writes.
 
 Both compute the calibration matrix Φ (2.86) as the base-frame twist of the end effector per unit change of
 each candidate, by forward-mode differentiation of the one FK kernel (what
