@@ -190,13 +190,34 @@ def cmd_ik(args) -> int:
 
 # ------------------------------------------------------------------------------------- calibrate
 def cmd_calibrate(args) -> int:
-    from .calibration import calibrate_from_files
+    import math
+    import warnings
 
-    res = calibrate_from_files(
-        args.robot, args.data, method=args.method, progress=args.progress, out_dir=args.report_dir
-    )
-    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.output).write_text(res.chain.to_yaml())
+    from .calibration import calibrate_from_files
+    from .errors import ModelError
+
+    out = Path(args.output)
+    if out.suffix not in (".yaml", ".yml", ".urdf"):
+        raise ModelError(f"--output {out}: the calibrated robot is written as .yaml (DH) or .urdf (URDF)")
+    if bool(args.robot) == bool(args.urdf):
+        raise ModelError("give the nominal robot as --robot NAME|FILE.yaml or --urdf FILE --end-link LINK")
+    noise = None if args.noise is None else (args.noise[0] * 1e-3, math.radians(args.noise[1]))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = calibrate_from_files(
+            args.urdf or args.robot, args.data, end_link=args.end_link, method=args.method,
+            progress=args.progress, out_dir=args.report_dir, error_model=args.error_model,
+            base=args.base, tool=args.tool, measurement_noise=noise, cross_validation=args.cv,
+        )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if out.suffix == ".urdf":
+        if not hasattr(res.chain, "to_urdf"):
+            raise ModelError(f"--output {out}: a DH robot is written as .yaml (nominal from --robot)")
+        res.chain.to_urdf(out)
+    else:
+        if not hasattr(res.chain, "to_yaml"):
+            raise ModelError(f"--output {out}: a URDF robot is written as .urdf (nominal from --urdf)")
+        out.write_text(res.chain.to_yaml())
     rows = [
         [r["name"], f"{r['nominal']:.6f}", f"{r['identified']:.6f}", f"{r['delta']:+.6f}"]
         for r in res.parameter_table()
@@ -209,10 +230,24 @@ def cmd_calibrate(args) -> int:
             rows,
         )
     )
-    con.print(
-        f"residual RMS: {res.residuals[0] * 1e3:.4f} mm -> {res.residuals[-1] * 1e3:.4f} mm; "
-        f"wrote {args.output}"
-    )
+    rows = [["position RMS [mm]", f"{res.residuals[0] * 1e3:.4f}", f"{res.residuals[-1] * 1e3:.4f}"]]
+    if res.orientation_residuals is not None:
+        rows.append(["orientation RMS [deg]", f"{math.degrees(res.orientation_residuals[0]):.5f}",
+                     f"{math.degrees(res.orientation_residuals[-1]):.5f}"])
+    cv = res.cross_validation
+    if cv is not None:
+        rows.append([f"held-out position RMS [mm] ({cv['folds']}-fold CV)", "",
+                     f"{cv['position_rms'] * 1e3:.4f}"])
+    con.print(_table(f"before / after ({res.error_model} model, "
+                     f"{'converged' if res.converged else 'NOT converged'})",
+                     ["", "before", "after"], rows))
+    if res.noise_ratio is not None:
+        con.print(f"noise check: fit residual / measurement noise = {res.noise_ratio:.2f} (about 1 expected)")
+    for w in caught:
+        con.print(f"[bold yellow]warning:[/] {w.message}")
+    for note in res.notes:
+        con.print(f"note: {note}")
+    con.print(f"wrote {args.output}")
     if res.report.unidentifiable:
         con.print(
             "not identifiable from these poses (kept at nominal): " + ", ".join(res.report.unidentifiable)
@@ -420,11 +455,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--progress", action="store_true")
     p.set_defaults(func=cmd_ik)
 
-    p = add("calibrate", help="identify DH errors from measured poses")
-    p.add_argument("--robot", required=True)
+    p = add("calibrate", help="identify a robot's geometry from measured poses (DH YAML or URDF)")
+    p.add_argument("--robot", help="nominal robot: built-in name or robot YAML file (DH)")
+    p.add_argument("--urdf", help="nominal robot as a URDF file (with --end-link)")
+    p.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
     p.add_argument("--data", required=True, help=".npz with q (N, n) and T (N, 4, 4) or position (N, 3)")
     p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"])
-    p.add_argument("--output", required=True, help="calibrated robot YAML")
+    p.add_argument("--error-model", dest="error_model", default="auto",
+                   choices=["auto", "dh", "hayati", "general"])
+    p.add_argument("--base", action="store_true", help="also estimate the base (tracker) frame")
+    p.add_argument("--tool", action="store_true", help="also estimate the tool frame")
+    p.add_argument("--noise", type=float, nargs=2, metavar=("MM", "DEG"),
+                   help="measurement noise per coordinate (position mm, orientation deg): warn when the fit "
+                        "residual is more than 2x what it explains")
+    p.add_argument("--cv", type=int, default=5, help="k of the k-fold cross-validated held-out error, 0: off")
+    p.add_argument("--output", required=True, help="calibrated robot: .yaml (DH) or .urdf (URDF input)")
     p.add_argument(
         "--report-dir", dest="report_dir", help="also write parameters.md, report.json, residuals.png"
     )

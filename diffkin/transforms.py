@@ -26,8 +26,16 @@ __all__ = [
     "pose_error",
     "check_transform",
     "as_rigid_transform",
+    "as_measured_transform",
+    "MEASURED_TRANSFORM_ATOL",
     "POSE_ERROR_ORIENTATIONS",
 ]
+
+#: Tolerance on measured / target poses (calibration data, IK targets): rotation blocks orthonormal to
+#: 1e-5 (max |RᵀR − I|, |det R − 1|, bottom row) are accepted — files written with 6 decimals deviate by
+#: ~1e-6, float32 poses cast to float64 by ~1e-7 — and re-orthonormalised; worse ones are refused with the
+#: measured deviation. Used by :func:`as_measured_transform` (calibration and ``ik.solve``).
+MEASURED_TRANSFORM_ATOL = 1e-5
 
 POSE_ERROR_ORIENTATIONS = ("axis_angle", "quaternion", "rotvec")  # the kernel's forms
 
@@ -168,6 +176,33 @@ def check_transform(T, name: str = "T", atol: float | None = None) -> Tensor:
             raise DiffkinError(f"{name} is not a rigid transform: {what} (max deviation {float(worst):.3g}, "
                                f"atol {atol:.3g})")
     return T
+
+
+def as_measured_transform(T: Tensor, name: str = "T", atol: float | None = None) -> Tensor:
+    """Validate measured or target poses ``(..., 4, 4)`` and return them with exactly orthonormal rotations.
+
+    Accepts deviations up to ``atol`` (default :data:`MEASURED_TRANSFORM_ATOL` = 1e-5, or the looser
+    10 sqrt(eps) of float32) — rounding of exported files — and refuses worse ones (``DiffkinError`` with the
+    measured deviation, see :func:`check_transform`). The rotation blocks are replaced by the nearest rotation
+    (polar factor U Vᵀ of the SVD R = U S Vᵀ) and the bottom row by [0, 0, 0, 1]; already exact inputs are
+    returned unchanged (same object).
+    """
+    if atol is None:
+        atol = max(MEASURED_TRANSFORM_ATOL, 10.0 * eps_for(T) ** 0.5) if isinstance(T, Tensor) and \
+            T.is_floating_point() else MEASURED_TRANSFORM_ATOL
+    check_transform(T, name, atol=atol)
+    R = T[..., :3, :3]
+    eye = torch.eye(3, dtype=T.dtype, device=T.device)
+    exact = 4.0 * eps_for(T)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
+    if T.numel() == 0 or (bool((R.mT @ R - eye).abs().amax() <= exact) and bool(torch.equal(
+            T[..., 3, :], bottom.expand_as(T[..., 3, :])))):
+        return T
+    U, _, Vh = torch.linalg.svd(R)
+    out = T.clone()
+    out[..., :3, :3] = U @ Vh
+    out[..., 3, :] = bottom
+    return out
 
 
 def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:

@@ -55,10 +55,10 @@ def run_robot(name: str, args, out: Path) -> tuple[list[dict], str]:
     nominal = models.load(name, dtype=F64)
     g = torch.Generator().manual_seed(args.seed)
     pool = nominal.random_configuration((1000,), generator=g)
-    q = pool[select_poses(nominal, pool, args.poses)]
+    q = pool[select_poses(nominal, pool, args.poses, error_model="dh")]  # DH truths here: the DH model
     q_val = nominal.random_configuration((args.validation,), generator=g)
-    report = identifiability(nominal, q)
-    o1_random = identifiability(nominal, pool[: args.poses]).o1
+    report = identifiability(nominal, q, error_model="dh")
+    o1_random = identifiability(nominal, pool[: args.poses], error_model="dh").o1
     true = true_robot(nominal, report.identifiable, args.seed + 1)
     T = measure(true, q, g, args.noise_mm * 1e-3, math.radians(args.noise_deg))
     T_val = measure(true, q_val, g, 0.0, 0.0)
@@ -66,9 +66,10 @@ def run_robot(name: str, args, out: Path) -> tuple[list[dict], str]:
     rows, md = [], [f"### {name} ({nominal.convention} DH, {nominal.n_joints} joints)", "", report.summary(),
                     f"(O1 of {args.poses} random poses instead: {o1_random:.3g})", ""]
     for method in ("least_squares", "gradient"):
-        calibrate(nominal, q[:10], T[:10], method=method, progress=False)  # warm-up (torch's first optimiser)
+        # warm-up (torch's first optimiser)
+        calibrate(nominal, q[:10], T[:10], method=method, progress=False, error_model="dh")
         t0 = time.perf_counter()
-        res = calibrate(nominal, q, T, method=method, progress=False)
+        res = calibrate(nominal, q, T, method=method, progress=False, error_model="dh")
         seconds = time.perf_counter() - t0
         after = res.validation_error(q_val, T_val)
         res.plot_residuals(out / f"residuals_{name}_{method}.png", q_val, T_val)

@@ -198,12 +198,12 @@ def test_exact_recovery_noise_free(make, options):
     chain = make()
     position_only = options.pop("position_only", False)
     q = poses(chain, 60, seed=4)
-    report = identifiability(chain, q, position_only=position_only, **options)
+    report = identifiability(chain, q, position_only=position_only, error_model="dh", **options)
     true = perturbed(chain, seed=5, free_names=report.identifiable, **options)
     T = measure(true, q)
     if position_only:
         T = T[:, :3, 3]
-    res = calibrate(chain, q, T, progress=False, **options)
+    res = calibrate(chain, q, T, progress=False, error_model="dh", **options)
     assert res.converged
     assert res.report.identifiable == report.identifiable
     model = CalibrationModel.from_chains(true, **options)
@@ -245,7 +245,7 @@ def test_noisy_validation_below_0p2_mm(make):
 def test_unidentifiable_parameters_reported_and_left_at_nominal():
     chain = ur5()
     q = poses(chain, 50, seed=11)
-    rep = identifiability(chain, q, base=True)
+    rep = identifiability(chain, q, base=True, error_model="dh")
     # parallel axes 2-3-4: d3 and d4 move the wrist along the same direction as d2; base z / yaw = d1 / theta1
     assert set(rep.unidentifiable) == {"d3", "d4", "base_z", "base_rz"}
     assert rep.dependencies["d3"] == pytest.approx({"d2": 1.0}, abs=1e-9)
@@ -256,14 +256,14 @@ def test_unidentifiable_parameters_reported_and_left_at_nominal():
     with torch.no_grad():
         true.d[1:4] += torch.tensor([1e-3, 2e-3, -1.5e-3], dtype=F64)
         true.a[1] += 1e-3
-    res = calibrate(chain, q, measure(true, q), base=True, progress=False)
+    res = calibrate(chain, q, measure(true, q), base=True, progress=False, error_model="dh")
     table = {r["name"]: r for r in res.parameter_table()}
     for name in ("d3", "d4", "base_z", "base_rz"):
         assert table[name]["identified"] == table[name]["nominal"] and not table[name]["identifiable"]
     assert table["d2"]["delta"] == pytest.approx(1.5e-3, abs=1e-10)
     assert res.residuals[-1] < 1e-12
     # position-only data: the flange roll theta6 and twist alpha6 do not move the flange point
-    rep_p = identifiability(chain, q, position_only=True)
+    rep_p = identifiability(chain, q, position_only=True, error_model="dh")
     assert {"theta6", "alpha6"} <= set(rep_p.unidentifiable)
     assert "no effect" in rep_p.reasons["theta6"]
 

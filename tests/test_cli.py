@@ -131,11 +131,39 @@ def test_calibrate_writes_a_yaml_that_loads_back(tmp_path):
             "calibrate", "--robot", "ur5", "--data", str(tmp_path / "meas.npz"), "--output", str(out_yaml)
         )
     )
-    assert "residual" in out
+    assert "position RMS" in out and "before" in out
     calibrated = models.load(str(out_yaml), dtype=torch.float64)
     err = (calibrated.forward_kinematics(q)[:, :3, 3] - T[:, :3, 3]).norm(dim=-1)
     assert float(err.max()) < 1e-6
     assert yaml.safe_load(out_yaml.read_text())["name"]
+
+
+def test_calibrate_urdf_in_urdf_out_with_noise_check(tmp_path):
+    from pathlib import Path
+
+    from diffkin.models import from_urdf
+
+    urdf = Path(__file__).parent / "data" / "urdf" / "irb2400.urdf"
+    nominal = from_urdf(urdf, "tool0", dtype=torch.float64)
+    true = nominal.copy()
+    g = torch.Generator().manual_seed(3)
+    with torch.no_grad():
+        u = torch.rand(true.origin_xyz.shape, generator=g, dtype=torch.float64)
+        true.origin_xyz.add_(1e-3 * (2 * u - 1))
+    q = nominal.random_configuration(40, generator=g)
+    T = true.forward_kinematics(q).detach()
+    np.savez(tmp_path / "meas.npz", q=q.numpy(), T=T.numpy())
+    out_urdf = tmp_path / "cal.urdf"
+    out = ok(run_cli("calibrate", "--urdf", str(urdf), "--end-link", "tool0", "--data",
+                     str(tmp_path / "meas.npz"), "--tool", "--noise", "0.02", "0.005",
+                     "--output", str(out_urdf)))
+    assert "general" in out and "noise check" in out and "held-out" in out and "fit residual is" not in out
+    calibrated = from_urdf(out_urdf, "tool0", dtype=torch.float64)
+    err = (calibrated.forward_kinematics(q)[:, :3, 3] - T[:, :3, 3]).norm(dim=-1)
+    assert float(err.max()) < 1e-9
+    # a DH model's data written as URDF, or a URDF as YAML: a clear error
+    fails_clearly(run_cli("calibrate", "--urdf", str(urdf), "--end-link", "tool0", "--data",
+                          str(tmp_path / "meas.npz"), "--output", str(tmp_path / "c.yaml")), ".urdf")
 
 
 def test_calibrate_mismatched_data(tmp_path):

@@ -11,6 +11,8 @@ from .api import CalibrationResult as CalibrationResult
 from .api import calibrate as calibrate
 from .api import calibrate_batch as calibrate_batch
 from .api import validation_error as validation_error
+from .error_models import ERROR_MODELS as ERROR_MODELS
+from .error_models import ChainErrorModel as ChainErrorModel
 from .identifiability import IdentifiabilityReport as IdentifiabilityReport
 from .identifiability import identifiability as identifiability
 from .identifiability import select_poses as select_poses
@@ -24,6 +26,8 @@ from .solvers import robust_loss as robust_loss
 
 __all__ = [
     "METHODS",
+    "ERROR_MODELS",
+    "ChainErrorModel",
     "LOSSES",
     "CalibrationResult",
     "CalibrationModel",

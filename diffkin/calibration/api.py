@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -9,10 +11,12 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..chain import DHChain
+from ..chain import DHChain, KinematicChain
 from ..errors import ConventionError, ShapeError
+from ..transforms import as_measured_transform
+from .error_models import build_model
 from .identifiability import IdentifiabilityReport, model_reports
-from .model import CalibrationModel, check_measurements, pose_residual
+from .model import check_measurements, pose_residual
 from .solvers import gradient_descent, least_squares
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
@@ -50,10 +54,13 @@ class CalibrationResult:
     (metres) at ζ_n and after every iteration; ``orientation_residuals``: the same in radians (None for
     position-only data). ``names``/``nominal``/``identified``: the candidate parameters (metres / radians;
     base and tool entries are the pose corrections Δ). ``report``: identifiability at the nominal parameters.
+    ``converged``: the solver's stopping rule was met (not merely the iteration budget spent).
+    ``chain`` is of the input's kind: a :class:`DHChain` (with a ``beta`` column for Hayati's model) or a
+    :class:`~diffkin.models.urdf.URDFChain` (``to_urdf(path)`` writes it).
     """
 
-    chain: DHChain
-    nominal_chain: DHChain
+    chain: KinematicChain
+    nominal_chain: KinematicChain
     method: str
     names: list[str]
     units: list[str]
@@ -66,6 +73,15 @@ class CalibrationResult:
     converged: bool
     q: Tensor = field(repr=False)
     measured: Tensor = field(repr=False)
+    #: the error model used: "dh", "hayati" or "general" (what "auto" chose)
+    error_model: str = "dh"
+    #: fit residual over what ``measurement_noise`` explains (≈ 1 for an adequate model; None without noise)
+    noise_ratio: float | None = None
+    #: k-fold cross-validated held-out error: ``folds``, ``position_rms``/``position_max`` (m),
+    #: ``orientation_rms`` (rad or None); None when not run (fewer than 2 poses per fold, or disabled)
+    cross_validation: dict | None = None
+    #: what the error model decided (e.g. which β replace which d)
+    notes: list[str] = field(default_factory=list)
 
     @property
     def position_only(self) -> bool:
@@ -165,20 +181,21 @@ class CalibrationResult:
                 f"orientation RMS {self.orientation_residuals[0] * 1e3:.4f} mrad -> "
                 f"{self.orientation_residuals[-1] * 1e3:.4f} mrad"
             )
+        if self.cross_validation is not None:
+            cv = self.cross_validation
+            line = (f"{cv['folds']}-fold cross-validated held-out error: position RMS "
+                    f"{cv['position_rms'] * 1e3:.4f} mm (max {cv['position_max'] * 1e3:.4f} mm)")
+            if cv.get("orientation_rms") is not None:
+                line += f", orientation RMS {cv['orientation_rms'] * 1e3:.4f} mrad"
+            lines.append(line)
+        if self.noise_ratio is not None:
+            lines.append(f"fit residual / measurement noise: {self.noise_ratio:.2f} (about 1 expected)")
+        lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines + [self.report.summary()])
 
 
-def _run(
-    model: CalibrationModel,
-    q: Tensor,
-    T: Tensor,
-    position_only: bool,
-    method: str,
-    orientation_weight: float,
-    rank_tol: float | None,
-    solver_options: dict,
-) -> list[CalibrationResult]:
-    """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``; one result per robot."""
+def _solve(model, q, T, position_only, method, orientation_weight, rank_tol, solver_options):
+    """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``: ``(output, reports, ζ_n (K, P))``."""
     if method not in METHODS:
         raise ConventionError(f"unknown calibration method {method!r}; valid: {', '.join(METHODS)}")
     K = q.shape[0]
@@ -187,6 +204,66 @@ def _run(
     solve = least_squares if method == "least_squares" else gradient_descent
     opts = {k: v for k, v in solver_options.items() if v is not None}
     out = solve(model, zeta0, free, q, T, orientation_weight=orientation_weight, **opts)
+    return out, reports, zeta0
+
+
+def _noise_ratio(model, zeta, q, T, position_only, rank, noise) -> tuple[float, str]:
+    """χ = √(Σ (r/σ)² / (rows − rank)) of the final fit (≈ 1 when the noise explains the residual)."""
+    sp, so = float(noise[0]), float(noise[1]) if len(noise) > 1 else 0.0
+    with torch.no_grad():
+        r = model.residual(zeta[None], q[None], T[None], 1.0)[0]
+    chi2 = (r[..., :3] / sp).square().sum()
+    rows = r[..., :3].numel()
+    detail = f"position RMS {float(r[..., :3].norm(dim=-1).square().mean().sqrt()) * 1e3:.4f} mm vs " \
+             f"{math.sqrt(3) * sp * 1e3:.4f} mm expected"
+    if not position_only and so > 0:
+        chi2 = chi2 + (r[..., 3:] / so).square().sum()
+        rows += r[..., 3:].numel()
+        detail += f", orientation RMS {float(r[..., 3:].norm(dim=-1).square().mean().sqrt()) * 1e3:.4f} " \
+                  f"mrad vs {math.sqrt(3) * so * 1e3:.4f} mrad expected"
+    return math.sqrt(float(chi2) / max(rows - rank, 1)), detail
+
+
+def _cross_validate(model, q, T, position_only, method, w, rank_tol, opts, folds: int) -> dict | None:
+    """k-fold held-out error of one robot's data ``q (N, n)``: the k fits run as one batch."""
+    N = q.shape[0]
+    n_test = N // folds
+    if folds < 2 or n_test < 1 or N - n_test < 1:
+        return None
+    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(q.device)
+    test = perm[: folds * n_test].reshape(folds, n_test)
+    train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out, _, _ = _solve(model, q[train], T[train], position_only, method, w, rank_tol,
+                           dict(opts, progress=False))
+    with torch.no_grad():
+        r = model.residual(out.zeta, q[test], T[test], 1.0)
+    pos = r[..., :3].norm(dim=-1)
+    res = {"folds": folds, "position_rms": float(pos.square().mean().sqrt()),
+           "position_max": float(pos.max()), "orientation_rms": None}
+    if not position_only:
+        res["orientation_rms"] = float(r[..., 3:].norm(dim=-1).square().mean().sqrt())
+    return res
+
+
+def _run(
+    model,
+    q: Tensor,
+    T: Tensor,
+    position_only: bool,
+    method: str,
+    orientation_weight: float,
+    rank_tol: float | None,
+    solver_options: dict,
+    kind: str = "dh",
+    measurement_noise=None,
+    cross_validation: int | None = None,
+) -> list[CalibrationResult]:
+    """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``; one result per robot."""
+    out, reports, zeta0 = _solve(model, q, T, position_only, method, orientation_weight, rank_tol,
+                                 solver_options)
+    K = q.shape[0]
     cand = model.candidate.nonzero().flatten().tolist()
     length = model.is_length().tolist()
     names = [model.names[j] for j in cand]
@@ -195,33 +272,59 @@ def _run(
     ori = None if out.orientation_rms is None else torch.stack(out.orientation_rms, dim=-1).tolist()
     chains = model.to_chains(out.zeta)
     nominal_copies = [c.copy() for c in model.chains]
-    return [
-        CalibrationResult(
-            chain=chains[k],
-            nominal_chain=nominal_copies[min(k, len(nominal_copies) - 1)],
-            method=method,
-            names=names,
-            units=units,
-            nominal=zeta0[k, cand].clone(),
-            identified=out.zeta[k, cand].clone(),
-            report=reports[k],
-            residuals=pos[k],
-            orientation_residuals=None if ori is None else ori[k],
-            iterations=out.iterations,
-            converged=bool(out.converged[k]),
-            q=q[k],
-            measured=T[k],
+    results = []
+    for k in range(K):
+        ratio = None
+        if measurement_noise is not None:
+            ratio, detail = _noise_ratio(model, out.zeta[k], q[k], T[k], position_only, reports[k].rank,
+                                         measurement_noise)
+            if ratio > 2.0:
+                warnings.warn(
+                    f"calibration of '{chains[k].name}' (error model {kind!r}): the fit residual is "
+                    f"{ratio:.1f}x what the measurement noise explains ({detail}). Likely causes: an error "
+                    "model that cannot represent the robot (e.g. 'dh' with parallel axes: use 'hayati' or "
+                    "'general'), outliers in the measurements, wrong joint readings (units, order, timing) "
+                    "or a wrong noise level.",
+                    UserWarning,
+                    stacklevel=3,
+                )
+        cv = None
+        if cross_validation:
+            cv = _cross_validate(model, q[k], T[k], position_only, method, orientation_weight, rank_tol,
+                                 solver_options, int(cross_validation))
+        results.append(
+            CalibrationResult(
+                chain=chains[k],
+                nominal_chain=nominal_copies[min(k, len(nominal_copies) - 1)],
+                method=method,
+                names=names,
+                units=units,
+                nominal=zeta0[k, cand].clone(),
+                identified=out.zeta[k, cand].clone(),
+                report=reports[k],
+                residuals=pos[k],
+                orientation_residuals=None if ori is None else ori[k],
+                iterations=out.iterations,
+                converged=bool(out.converged[k]),
+                q=q[k],
+                measured=T[k],
+                error_model=kind,
+                noise_ratio=ratio,
+                cross_validation=cv,
+                notes=list(getattr(model, "notes", [])),
+            )
         )
-        for k in range(K)
-    ]
+    return results
 
 
 def calibrate_batch(
-    chain: DHChain | Sequence[DHChain],
+    chain: KinematicChain | Sequence[KinematicChain],
     q: Tensor,
     T: Tensor,
     method: str = "gradient",
     *,
+    error_model: str = "auto",
+    measurement_noise: tuple[float, float] | None = None,
     parameters: str | Iterable[str] = "all",
     base: bool = False,
     tool: bool = False,
@@ -235,11 +338,11 @@ def calibrate_batch(
 ) -> list[CalibrationResult]:
     """Calibrate K robots in one call: ``q (K, N, n)``, ``T (K, N, 4, 4)`` or ``(K, N, 3)``.
 
-    ``chain``: one shared nominal :class:`DHChain` or K of them (same structure). The parameter tensor is
-    ``(K, P)`` and both methods run vectorised over K (one L-BFGS problem whose objective is the sum of
-    the K independent losses). Options as in :func:`calibrate`.
+    ``chain``: one shared nominal chain (DHChain or URDFChain) or K of them (same structure). The parameter
+    tensor is ``(K, P)`` and both methods run vectorised over K (one L-BFGS problem whose objective is the sum
+    of the K independent losses). Options as in :func:`calibrate`.
     """
-    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if not isinstance(q, Tensor) or q.ndim != 3:
         shape = tuple(q.shape) if isinstance(q, Tensor) else type(q).__name__
         raise ShapeError(
@@ -250,16 +353,21 @@ def calibrate_batch(
     if model.nominal.ndim == 2 and model.nominal.shape[0] != K:
         raise ShapeError(f"got {model.nominal.shape[0]} nominal chains for K = {K} robots in q")
     position_only = check_measurements(q, T, model.n, model.dtype, batch=(K,))
+    T = T if position_only else as_measured_transform(T, "T")
     opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, **solver_options)
-    return _run(model, q, T, position_only, method, orientation_weight, rank_tol, opts)
+    return _run(model, q, T, position_only, method, orientation_weight, rank_tol, opts, kind,
+                measurement_noise)
 
 
 def calibrate(
-    chain: DHChain,
+    chain: KinematicChain,
     q: Tensor,
     T: Tensor,
     method: str = "least_squares",
     *,
+    error_model: str = "auto",
+    measurement_noise: tuple[float, float] | None = None,
+    cross_validation: int | None = 5,
     parameters: str | Iterable[str] = "all",
     base: bool = False,
     tool: bool = False,
@@ -271,10 +379,25 @@ def calibrate(
     progress: bool = True,
     **solver_options,
 ) -> CalibrationResult:
-    """Identify the DH parameters of ``chain`` from joint readings ``q (N, n)`` and measured end-effector
+    """Identify the geometry of ``chain`` from joint readings ``q (N, n)`` and measured end-effector
     poses ``T (N, 4, 4)`` (or positions ``(N, 3)``), textbook §2.11. The nominal chain is left untouched.
 
+    Measured rotation blocks orthonormal to 1e-5 are accepted and re-orthonormalised
+    (:data:`diffkin.transforms.MEASURED_TRANSFORM_ATOL`); worse ones are refused with the deviation.
+
     Args:
+        error_model: what is estimated (:mod:`.error_models`): ``"dh"`` the DH table (a, α, d, ϑ);
+            ``"hayati"`` the same with Hayati's β_i in place of d_i for near-parallel consecutive axes
+            (result: a DHChain with a ``beta`` column); ``"general"`` six origin coordinates per joint of a
+            URDF chain, redundancy removed by the identifiability analysis (result: a URDFChain,
+            ``result.chain.to_urdf(path)``); ``"auto"`` (default): ``"general"`` for URDF chains, ``"hayati"``
+            for DH chains with near-parallel consecutive axes, ``"dh"`` otherwise.
+        measurement_noise: ``(σ_position [m], σ_orientation [rad])``, the standard deviation of each
+            coordinate of the measured position and rotation vector. The fit residual is compared with what
+            this noise explains (``result.noise_ratio``, χ = √(Σ(r/σ)²/(rows − rank)) ≈ 1); above 2 a
+            ``UserWarning`` names the likely causes.
+        cross_validation: k of the k-fold cross-validated held-out error in ``result.cross_validation``
+            (default 5; run when there are at least 4k poses; 0/None: off). The k fits run as one batch.
         method: ``"least_squares"`` — iterate (2.88)–(2.89) with the analytic calibration matrix Φ̄;
             ``"gradient"`` — minimise :func:`calibration_loss` with a torch optimiser
             (``optimizer="lbfgs"|"adam"``, ``loss="huber"|"soft_l1"|"l2"``, ``scale`` metres, ``lr``).
@@ -291,14 +414,19 @@ def calibrate(
             (default 1e-3 m), ``lr``, ``precondition`` (``"gauss_newton"`` default, or ``"diagonal"``)
             for the gradient method.
 
-    Parameters that the poses cannot identify are reported in ``result.report`` and kept at nominal.
+    Parameters that no pose set can identify (the model's redundancies) are reported in ``result.report``
+    with the reason and kept at nominal; those only these poses leave undetermined (few poses) are estimated
+    in the span the poses determine (minimum-norm update) and listed in ``result.report.undetermined``.
     """
-    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if isinstance(q, Tensor) and q.ndim == 3:
         raise ShapeError(
             f"expected q of shape (N, {model.n}) for one robot, got {tuple(q.shape)}; "
             "use calibrate_batch for (K, N, n)"
         )
     position_only = check_measurements(q, T, model.n, model.dtype)
+    T = T if position_only else as_measured_transform(T, "T")
     opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, **solver_options)
-    return _run(model, q[None], T[None], position_only, method, orientation_weight, rank_tol, opts)[0]
+    folds = cross_validation if cross_validation and q.shape[0] >= 4 * cross_validation else None
+    return _run(model, q[None], T[None], position_only, method, orientation_weight, rank_tol, opts, kind,
+                measurement_noise, folds)[0]

@@ -1,12 +1,20 @@
 """Identifiability of the calibration parameters and informative pose selection (§2.11).
 
-A parameter is *unidentifiable* from a pose set when its column of the stacked calibration matrix Φ̄ (2.87)
-is (numerically) a linear combination of the columns before it: then (Φ̄ᵀΦ̄)⁻¹ in (2.88) does not exist and
-the estimate would drift along the null space. Columns are taken in the order of ζ (a, α, d, ϑ joint by
-joint kind, then base, then tool), normalised to unit length, and an unpivoted QR factorisation decides: the
-residual of column j after projection on the preceding ones is |R_jj|; below ``rank_tol`` the column is
-dependent and the parameter is fixed at its nominal value. So when a base or tool correction duplicates a
-DH parameter (the base-frame and tool/last-joint redundancies), the DH parameter is kept.
+A parameter is *unidentifiable* when its column of the stacked calibration matrix Φ̄ (2.87) is (numerically)
+a linear combination of the columns before it: then (Φ̄ᵀΦ̄)⁻¹ in (2.88) does not exist and the estimate would
+drift along the null space. Columns are taken in the order of ζ (DH: a, α, d, ϑ joint by joint kind, then
+base, then tool; error models on the chain's parameters: the order of its parameters), normalised to unit
+length, and orthogonalised one after the other (Gram–Schmidt with re-orthogonalisation, every row of every
+pose: the rank is right also with fewer equations than parameters): the residual of column j after projection
+on the span of the kept ones before it (= |R_jj| of an unpivoted QR); below ``rank_tol`` the column is
+dependent. So when a base or tool correction duplicates a DH parameter, the DH parameter is kept.
+
+Two analyses: *structural* — Φ̄ at many random configurations — finds the parameters no pose set can
+identify (the model's redundancies); they are fixed at nominal and reported with the dependency. *From these
+poses* — Φ̄ of the measured configurations — finds those that the data does not determine (too few or too
+similar poses): they are **not** frozen; the solvers take minimum-norm steps in the span the data determines
+(rank-revealing damped least squares), and the report lists them as ``undetermined`` with
+``more_poses_needed`` (the missing rank over the rows per pose).
 
 Observability indices (Borm & Menq 1991; Nahvi & Hollerbach 1996) of the identifiable columns, with
 σ_1 ≥ … ≥ σ_L the singular values of the weighted Φ̄ in its own units (metres per metre, metres per
@@ -51,6 +59,13 @@ class IdentifiabilityReport:
     n_poses: int
     rank_tol: float
     free_mask: Tensor = field(repr=False)
+    #: structurally identifiable but not determined by these poses (minimum-norm estimate, not frozen)
+    undetermined: list[str] = field(default_factory=list)
+    #: rank the model can reach with enough poses (candidates minus structural redundancies)
+    structural_rank: int | None = None
+    #: lower bound on the extra poses that could determine the undetermined ones (missing rank / rows
+    #: per pose)
+    more_poses_needed: int = 0
 
     def as_dict(self) -> dict:
         """JSON-friendly summary (no tensors)."""
@@ -63,6 +78,12 @@ class IdentifiabilityReport:
             f"condition number {self.condition_number:.3g}, O1 {self.o1:.3g}, O3 {self.o3:.3g}",
         ]
         lines += [f"  fixed at nominal: {self.reasons[nm]}" for nm in self.unidentifiable]
+        if self.undetermined:
+            lines.append(
+                f"  not determined by these poses (rank {self.rank} of {self.structural_rank}; minimum-norm "
+                f"estimate): {', '.join(self.undetermined)}; at least {self.more_poses_needed} more "
+                f"well-spread pose(s) would help (watch O1/O3 grow)"
+            )
         return "\n".join(lines)
 
 
@@ -96,8 +117,7 @@ def _reports_of_group(Phi, A, R, norms, zero, pattern, names, n_poses, rank_tol,
         prior = keep[keep < j]
         c = torch.zeros(G, 0, dtype=Phi.dtype, device=Phi.device)
         if prior.numel():
-            rows = min(j + 1, R.shape[-2])  # Φ_{≤j} = Q R_{≤j}: the least squares can be solved on R alone
-            c = torch.linalg.lstsq(R[:, :rows][..., prior], R[:, :rows, j : j + 1]).solution[..., 0]
+            c = torch.linalg.lstsq(R[..., prior], R[..., j : j + 1]).solution[..., 0]
             c = c * norms[:, j : j + 1] / norms[:, prior]  # back to the parameters' own units
         big = c.abs() > 1e-6 * c.abs().amax(-1, keepdim=True).clamp_min(1e-300)
         c_list, big_list, z = c.tolist(), big.tolist(), zero[:, j].tolist()
@@ -119,6 +139,23 @@ def _reports_of_group(Phi, A, R, norms, zero, pattern, names, n_poses, rank_tol,
     ]
 
 
+def _sequential_residuals(A: Tensor, tol: float) -> Tensor:
+    """Residual norm of each unit column of ``A (K, rows, L)`` after projection on the span of the columns
+    before it that were themselves above ``tol`` (classical Gram–Schmidt, applied twice)."""
+    K, rows, L = A.shape
+    Q = A.new_zeros(K, rows, L)
+    out = A.new_zeros(K, L)
+    for j in range(L):
+        r = A[..., j]
+        for _ in range(2):
+            r = r - (Q[..., :j] @ (Q[..., :j].mT @ r[..., None]))[..., 0]
+        nr = r.norm(dim=-1)
+        out[:, j] = nr
+        keep = nr > tol
+        Q[..., j] = torch.where(keep[:, None], r / nr.clamp_min(torch.finfo(A.dtype).tiny)[:, None], 0.0)
+    return out
+
+
 def analyse_matrices(
     Phi: Tensor, names: list[str], n_poses: int, rank_tol: float | None = None
 ) -> list[IdentifiabilityReport]:
@@ -133,10 +170,8 @@ def analyse_matrices(
     zero = norms <= rank_tol * norms.amax(-1, keepdim=True).clamp_min(torch.finfo(Phi.dtype).tiny)
     safe = torch.where(zero, torch.ones_like(norms), norms)
     A = torch.where(zero[:, None, :], torch.zeros_like(Phi), Phi / safe[:, None, :])
-    R = torch.linalg.qr(A, mode="r")[1]
-    diag = R.diagonal(dim1=-2, dim2=-1).abs()  # |R_jj|: residual of column j after the ones before it
-    if diag.shape[-1] < L:
-        diag = torch.cat((diag, diag.new_zeros(K, L - diag.shape[-1])), dim=-1)
+    diag = _sequential_residuals(A, rank_tol)  # |R_jj|: residual of column j after the kept ones before it
+    R = A  # dependencies are solved on the unit-norm columns themselves
     dependent = (diag <= rank_tol) | zero
     patterns, group = torch.unique(dependent, dim=0, return_inverse=True)
     reports: list = [None] * K
@@ -149,6 +184,18 @@ def analyse_matrices(
     return reports
 
 
+def _random_configurations(model, M: int, dtype, device) -> Tensor:
+    """``(M, n)`` reproducible configurations within the nominal chain's limits (revolute spans capped at ±π,
+    prismatic at ±0.5 m) for the structural analysis."""
+    chain = model.chains[0]
+    lo, hi = (x.detach().to(dtype=dtype, device="cpu") for x in chain.lower_upper())
+    rev = chain.revolute_mask.detach().bool().cpu()
+    cap = torch.where(rev, torch.full_like(lo, math.pi), torch.full_like(lo, 0.5))
+    lo, hi = torch.maximum(lo, -cap), torch.minimum(hi, cap)
+    u = torch.rand(M, lo.numel(), dtype=dtype, generator=torch.Generator().manual_seed(20251129))
+    return (lo + (hi - lo) * u).to(device)
+
+
 def model_reports(
     model: CalibrationModel,
     zeta: Tensor,
@@ -158,11 +205,33 @@ def model_reports(
     rank_tol: float | None = None,
 ) -> tuple[list[IdentifiabilityReport], Tensor]:
     """Reports of K robots (``zeta (K, P)``, ``q (K, N, n)``) and their free mask ``(K, C)`` over the C
-    candidate parameters."""
-    Phi, _ = model.calibration_matrix(zeta, q, position_only, orientation_weight, columns=model.candidate)
+    candidate parameters: structural redundancies (random configurations) are fixed; parameters only the
+    given poses leave undetermined stay free (minimum-norm estimate) and are listed as ``undetermined``."""
     K, N = q.shape[0], q.shape[1]
     names = [model.names[j] for j in model.candidate.nonzero().flatten().tolist()]
-    reports = analyse_matrices(Phi.reshape(K, -1, Phi.shape[-1]), names, N, rank_tol)
+    C = len(names)
+    m = 3 if position_only else 6
+    with torch.no_grad():
+        Phi, _ = model.calibration_matrix(zeta, q, position_only, orientation_weight, columns=model.candidate)
+        data = analyse_matrices(Phi.reshape(K, -1, C), names, N, rank_tol)
+        M = 2 * math.ceil(C / m) + 8
+        qs = _random_configurations(model, M, zeta.dtype, zeta.device).expand(K, M, q.shape[-1])
+        Phi_s, _ = model.calibration_matrix(zeta, qs, position_only, orientation_weight,
+                                            columns=model.candidate)
+        struct = analyse_matrices(Phi_s.reshape(K, -1, C), names, M, rank_tol)
+    reports = []
+    for rep, st in zip(data, struct):
+        fixed = set(st.unidentifiable)
+        undetermined = [nm for nm in rep.unidentifiable if nm not in fixed]
+        missing = st.rank - rep.rank
+        rep.undetermined = undetermined
+        rep.structural_rank = st.rank
+        rep.more_poses_needed = math.ceil(missing / m) if missing > 0 else 0
+        rep.unidentifiable = list(st.unidentifiable)
+        rep.reasons = {nm: st.reasons[nm] + " at every configuration" for nm in st.unidentifiable}
+        rep.dependencies = st.dependencies
+        rep.free_mask = st.free_mask
+        reports.append(rep)
     free = torch.stack([rep.free_mask for rep in reports]).to(zeta.device)
     return reports, free
 
@@ -179,14 +248,17 @@ def identifiability(
     position_only: bool | None = None,
     orientation_weight: float = 0.1,
     rank_tol: float | None = None,
+    error_model: str = "auto",
 ) -> IdentifiabilityReport:
     """Identifiability report of the nominal ``chain`` for joint readings ``q (N, n)``.
 
     Only the joint readings matter (Φ̄ is evaluated at the nominal parameters); pass the measurements ``T``
     (``(N, 4, 4)`` or ``(N, 3)``) or ``position_only`` to say which rows are measured (default full pose).
-    Parameter selection as in :func:`diffkin.calibration.calibrate`.
+    Parameter selection and ``error_model`` as in :func:`diffkin.calibration.calibrate`.
     """
-    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    from .error_models import build_model
+
+    model, _ = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if T is not None:
         position_only = check_measurements(q, T, chain.n_joints, chain.dtype)
     else:
@@ -212,6 +284,7 @@ def select_poses(
     orientation_weight: float = 0.1,
     initial: Tensor | None = None,
     rank_tol: float | None = None,
+    error_model: str = "auto",
 ) -> Tensor:
     """Greedily pick ``k`` informative configurations among ``candidates (M, n)``; returns indices ``(k,)``.
 
@@ -225,7 +298,9 @@ def select_poses(
     M = candidates.shape[0]
     if not 0 < k <= M:
         raise ShapeError(f"k must be in 1..{M} (the number of candidates), got {k}")
-    model = CalibrationModel.from_chains(chain, parameters, base, tool, joint_offsets)
+    from .error_models import build_model
+
+    model, _ = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     with torch.no_grad():
         Phi, _ = model.calibration_matrix(
             model.nominal, candidates, position_only, orientation_weight, columns=model.candidate

@@ -36,10 +36,20 @@ def load_measurements(
     return q, (T[:, :3, 3].contiguous() if position_only else T)
 
 
-def _load_chain(robot: DHChain | str | Path) -> DHChain:
-    if isinstance(robot, DHChain):
+def _load_chain(robot, end_link: str | None = None):
+    from ..chain import KinematicChain
+
+    if isinstance(robot, KinematicChain):
         return robot
     path = Path(robot)
+    if path.suffix == ".urdf":
+        from ..models import from_urdf
+
+        if not end_link:
+            from ..errors import ModelError
+
+            raise ModelError(f"a URDF robot ({path}) needs its end link (end_link= / --end-link)")
+        return from_urdf(path, end_link, dtype=torch.float64)
     if path.suffix in (".yaml", ".yml") and path.exists():
         return DHChain.from_yaml(path, dtype=torch.float64)
     from .. import models
@@ -52,19 +62,22 @@ def calibrate_from_files(
     joints: str | Path,
     poses: str | Path | None = None,
     *,
+    end_link: str | None = None,
     out_dir: str | Path | None = None,
     method: str = "least_squares",
     validation: tuple | None = None,
     **options,
 ) -> CalibrationResult:
-    """Calibrate ``robot`` (a DHChain, a built-in model name or a robot YAML file) from measurement files.
+    """Calibrate ``robot`` (a chain, a built-in model name, a robot YAML file, or a URDF file with
+    ``end_link``) from measurement files.
 
-    Writes, when ``out_dir`` is given: ``calibrated.yaml`` (the calibrated chain), ``parameters.md`` (the
-    identified table), ``report.json`` (residuals, identifiability, validation) and ``residuals.png``.
+    Writes, when ``out_dir`` is given: ``calibrated.yaml`` or ``calibrated.urdf`` (the calibrated chain),
+    ``parameters.md`` (the identified table), ``report.json`` (residuals, identifiability, noise check,
+    cross-validation, validation) and ``residuals.png``.
     ``validation``: optional ``(joints, poses)`` files of held-out measurements scored before and after.
     ``options`` go to :func:`calibrate` (parameters, base, tool, joint_offsets, progress, ...).
     """
-    chain = _load_chain(robot)
+    chain = _load_chain(robot, end_link)
     q, T = load_measurements(joints, poses, chain.n_joints, chain.dtype)
     result = calibrate(chain, q, T, method=method, **options)
     if out_dir is None:
@@ -73,11 +86,17 @@ def calibrate_from_files(
     out.mkdir(parents=True, exist_ok=True)
     if hasattr(result.chain, "to_yaml"):
         (out / "calibrated.yaml").write_text(result.chain.to_yaml())
+    elif hasattr(result.chain, "to_urdf"):
+        result.chain.to_urdf(out / "calibrated.urdf")
     (out / "parameters.md").write_text(result.to_markdown() + "\n")
     info = {
         "method": method,
+        "error_model": result.error_model,
         "iterations": result.iterations,
         "converged": result.converged,
+        "noise_ratio": result.noise_ratio,
+        "cross_validation": result.cross_validation,
+        "notes": result.notes,
         "residuals_m": result.residuals,
         "orientation_residuals_rad": result.orientation_residuals,
         "identifiability": result.report.as_dict(),

@@ -31,7 +31,7 @@ from ..kernels.joints import dh_joints, pose_correction
 from ..kernels.pose_error import pose_error as _pose_error
 from ..kernels.tree import Segments, Topology, matrix_frames
 from ..rotations import _rotvec_to_matrix, _skew
-from ..transforms import check_transform
+from ..transforms import as_measured_transform
 
 __all__ = ["CalibrationModel", "parameter_names", "DH_KINDS", "POSE_AXES"]
 
@@ -352,5 +352,5 @@ def check_measurements(q, measured, n: int, dtype: torch.dtype, batch: tuple[int
     check_finite(q, "q")
     check_finite(measured, "T")
     if not position_only:
-        check_transform(measured, "T")
+        as_measured_transform(measured, "T")  # 1e-5 tolerance; the caller re-orthonormalises
     return position_only

@@ -17,6 +17,7 @@ from torch import Tensor
 
 from .._numerics import eps_for
 from ..errors import ConventionError
+from ..kernels.dls import dls_solve
 from .model import CalibrationModel, pose_residual
 
 __all__ = ["calibration_loss", "robust_loss", "least_squares", "gradient_descent", "SolverOutput", "LOSSES"]
@@ -111,13 +112,11 @@ def _preconditioner(model, zeta, q, free, position_only, w, kind: str):
         return lambda u: u / d * f
     if kind != "gauss_newton":
         raise ConventionError(f"unknown preconditioner {kind!r}; valid: 'gauss_newton', 'diagonal'")
-    Hs = H / (d[:, :, None] * d[:, None, :])
-    Hs = Hs + torch.diag_embed(torch.where(free, 1e3 * eps_for(zeta) * torch.ones_like(d), 1.0 - f))
-    L, info = torch.linalg.cholesky_ex(Hs)
-    if bool((info != 0).any()):  # not positive definite (should not happen for identifiable sets)
-        return lambda u: u / d * f
-    Lt = L.transpose(-1, -2)
-    return lambda u: torch.linalg.solve_triangular(Lt, u[..., None], upper=True)[..., 0] / d * f
+    Hs = H / (d[:, :, None] * d[:, None, :]) * (f[:, :, None] * f[:, None, :])
+    lam, V = torch.linalg.eigh(Hs)  # pseudo-inverse square root: directions the poses leave undetermined
+    keep = lam > 1e4 * eps_for(zeta) * lam.amax(-1, keepdim=True)  # get no motion (minimum-norm estimate)
+    w = torch.where(keep, lam.clamp_min(torch.finfo(zeta.dtype).tiny).rsqrt(), torch.zeros_like(lam))
+    return lambda u: (V @ (w * u)[..., None])[..., 0] / d * f
 
 
 def least_squares(
@@ -130,42 +129,55 @@ def least_squares(
     orientation_weight: float,
     max_iterations: int = 50,
     tol: float | None = None,
-    damping: float = 1e-9,
+    damping: float | None = None,
     progress: bool = False,
 ) -> SolverOutput:
     """Iterate (2.88)–(2.89): Δζ = Φ̄⁺ Δx̄, ζ ← ζ + Δζ, with Φ̄ and Δx̄ re-evaluated at the current ζ.
 
-    Φ̄'s columns are scaled to unit norm and the step is solved as the damped least-squares problem
-    min ‖Φ̄ Δζ − Δx̄‖² + λ² ‖Δζ‖² (λ = ``damping`` on the unit-norm columns; it only regularises the step,
-    not the fixed point Φ̄ᵀ Δx̄ = 0). Stops when |Δζ_j| ≤ tol (1 + |ζ_j|) for every j of every robot
-    (tol default 1e-10 in float64, 1e-5 in float32) or after ``max_iterations``.
+    Φ̄'s columns are scaled to unit norm and the step is the kernel's damped least-squares solve
+    (:func:`diffkin.kernels.dls.dls_solve`, λ = ``damping``² on the unit-norm columns): min ‖Φ̄ Δζ − Δx̄‖² +
+    λ‖Δζ‖². λ only regularises the step, not the fixed point Φ̄ᵀ Δx̄ = 0, and it makes the step the
+    minimum-norm one in the directions the poses do not determine (fewer equations than parameters). A step
+    that raises the residual is halved (up to 20 times; Levenberg–Marquardt-style safeguard). ``converged``:
+    |Δζ_j| ≤ tol (1 + |ζ_j|) for every j (tol default 1e-10 in float64, 1e-5 in float32) — the stopping rule
+    was met — not merely the iteration budget spent.
     """
     position_only = measured.shape[-1] == 3 and measured.ndim == q.ndim
     tol = (1e-10 if zeta0.dtype == torch.float64 else 1e-5) if tol is None else tol
+    damping = (1e-7 if zeta0.dtype == torch.float64 else 1e-3) if damping is None else damping
     K, P = free.shape  # P: the candidate parameters here
     cand_mask = model.candidate
     cand = cand_mask.nonzero().flatten().to(zeta0.device)
     zeta, f = zeta0.detach().clone(), free.to(zeta0.dtype)
     hist_p, hist_o = [], []
     converged = torch.zeros(K, dtype=torch.bool, device=zeta.device)
-    # damping rows: λ for free parameters, 1 for fixed ones (their column is zero, so their step is 0 and the
-    # augmented matrix keeps full rank: plain QR least squares, on every device)
-    diag = torch.where(free, torch.full_like(f, damping), torch.ones_like(f))
-    eye = torch.diag_embed(diag)
     it = 0
+
+    def cost(z):
+        r = model.residual(z, q, measured, orientation_weight)
+        return r, r.square().sum((-1, -2))
+
     with torch.no_grad(), _progress(progress, "calibrating (least squares)", max_iterations) as advance:
         for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
             Phi, T_model = model.calibration_matrix(zeta, q, position_only, orientation_weight, cand_mask)
             res = pose_residual(T_model, measured, orientation_weight)
+            c0 = res.square().sum((-1, -2))
             pos, ori = _rms(res, orientation_weight)
             hist_p.append(pos)
             hist_o.append(ori)
             A = Phi.reshape(K, -1, P) * f[:, None, :]
             s = A.norm(dim=-2)
             s = torch.where(s > 0, s, torch.ones_like(s))
-            A_aug = torch.cat((A / s[:, None, :], eye), dim=-2)
-            b = torch.cat((res.reshape(K, -1), res.new_zeros(K, P)), dim=-1)
-            step = torch.linalg.lstsq(A_aug, b[..., None], driver="gels").solution[..., 0] / s * f
+            step = dls_solve(A / s[:, None, :], res.reshape(K, -1), damping * damping) / s * f
+            step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
+            scale = torch.ones(K, 1, dtype=zeta.dtype, device=zeta.device)
+            for _ in range(20):  # backtrack robots whose residual grew
+                _, c1 = cost(zeta.index_add(-1, cand, step * scale))
+                worse = (c1 > c0 * (1 + 1e-12) + 1e-300) & (scale[:, 0] > 0)
+                if not bool(worse.any()):
+                    break
+                scale = torch.where(worse[:, None], scale * 0.5, scale)
+            step = step * scale
             zeta = zeta.index_add(-1, cand, step)  # (2.89)
             advance()
             converged = (step.abs() <= tol * (1.0 + zeta[:, cand].abs())).all(dim=-1)
@@ -204,6 +216,7 @@ def gradient_descent(
     lr: float | None = None,
     precondition: str = "gauss_newton",
     progress: bool = False,
+    gtol: float | None = None,
 ) -> SolverOutput:
     """Fit ζ by a torch optimiser on :func:`calibration_loss`, all K robots in one objective (their sum).
 
@@ -211,7 +224,10 @@ def gradient_descent(
     :func:`_preconditioner`; ``precondition="gauss_newton"`` or ``"diagonal"``). ``optimizer="lbfgs"``
     (strong-Wolfe line search, ≤ 20 evaluations per iteration; stops when the loss changes by less than
     ``tol`` relative, default 1e-13 in float64, 1e-7 in float32) or ``"adam"`` (``lr`` default 1e-4 m,
-    decayed ×1e-3 over ``max_iterations``; it runs the whole schedule and then reports converged).
+    decayed ×1e-3 over ``max_iterations``). ``converged`` only when the stopping rule was met: for L-BFGS the
+    loss change rule, and for both the first-order test at the end — the gradient in the preconditioned
+    variables, converted to metres of RMS end-effector motion (‖∇_u‖ scale² / 2, exact for the quadratic
+    part), at most ``gtol`` (default 1e-8 m in float64, 1e-5 m in float32) for that robot.
     """
     position_only = measured.shape[-1] == 3 and measured.ndim == q.ndim
     lbfgs = optimizer == "lbfgs"
@@ -265,5 +281,11 @@ def gradient_descent(
                 break
     if last != it:
         record()
-    converged = torch.full((zeta0.shape[0],), done or not lbfgs, dtype=torch.bool, device=zeta0.device)
+    gtol = (1e-8 if zeta0.dtype == torch.float64 else 1e-5) if gtol is None else gtol
+    closure()  # gradient at the final point
+    g = u.grad.detach()
+    dist = g.norm(dim=-1) * (scale * scale) / 2.0  # metres of RMS motion to the (local) optimum
+    converged = (dist <= gtol) & torch.isfinite(dist)
+    if lbfgs:
+        converged = converged & done
     return SolverOutput(current().detach(), hist_p, None if position_only else hist_o, it, converged)

@@ -19,7 +19,7 @@ from .._numerics import batch_shape_str, check_finite, check_shape, check_tensor
 from ..chain import KinematicChain
 from ..errors import DTypeError, ShapeError
 from ..kernels.dls import dls_solve
-from ..transforms import check_transform, pose_error
+from ..transforms import as_measured_transform, pose_error
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -97,7 +97,7 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     if T_target.ndim < 2 + len(ends) or tail != (*ends, 4, 4):
         want = f"{want} or {want[:-6]}3)" if position_only else want
         raise ShapeError(f"expected T_target of shape {want}, got {batch_shape_str(T_target.shape)}")
-    check_transform(T_target, "T_target")
+    T_target = as_measured_transform(T_target, "T_target")  # 1e-5 tolerance, re-orthonormalised
     batch = tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
     Tt = T_target.reshape(-1, K, 4, 4).to(dtype).permute(1, 2, 3, 0)  # (K, 4, 4, N)
     cols = [Tt[:, :3, j].reshape(3 * K, -1).contiguous() for j in range(4)]

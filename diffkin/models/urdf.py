@@ -24,7 +24,7 @@ from torch import nn
 
 from ..chain import KinematicChain
 from ..errors import ModelError
-from ..kernels.joints import general_joints, origin_transform
+from ..kernels.joints import general_joints, origin_transform, pose_correction
 from ..kernels.tree import Topology
 from ..rotations import _matrix_to_euler
 from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_urdf, write_urdf
@@ -119,6 +119,10 @@ class URDFChain(KinematicChain):
         self.joint_origin_names = [j.name for j in used]
         self.origin_xyz = nn.Parameter(torch.tensor([j.xyz for j in used], dtype=dtype, device=device))
         self.origin_rpy = nn.Parameter(torch.tensor([j.rpy for j in used], dtype=dtype, device=device))
+        # optional local corrections (L, 6) (translation, rotation vector): origin · Δ(δ), singularity-free
+        # where rpy is at gimbal lock; a buffer (None by default), set by calibration, folded in by
+        # fold_origins
+        self.register_buffer("origin_delta", None)
         axes = torch.tensor([j.axis for j in moving], dtype=torch.float64)
         unit = axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)
         self.axis = nn.Parameter(unit.to(device=device, dtype=dtype))
@@ -136,8 +140,23 @@ class URDFChain(KinematicChain):
             self._end_origins.append([index[s.name] for s in path[start:]])
         self._moving_rows = [index[j.name] for j in moving]
 
-    def _geometry(self):
+    def _origins(self):
         O = origin_transform(self.origin_xyz, self.origin_rpy)  # (L, 4, 4)
+        return O if self.origin_delta is None else O @ pose_correction(self.origin_delta)
+
+    def fold_origins(self) -> None:
+        """Fold ``origin_delta`` (if set) into ``origin_xyz`` / ``origin_rpy`` and clear it (same FK)."""
+        if self.origin_delta is None:
+            return
+        with torch.no_grad():
+            O = self._origins().double()
+            rpy = _matrix_to_euler(O[..., :3, :3], "RPY").flip(-1)
+            self.origin_xyz.copy_(O[..., :3, 3].to(self.origin_xyz.dtype))
+            self.origin_rpy.copy_(rpy.to(self.origin_rpy.dtype))
+        self.origin_delta = None
+
+    def _geometry(self):
+        O = self._origins()  # (L, 4, 4)
         Os = O.unbind(0)
         pre_o = torch.stack([reduce(torch.matmul, [Os[i] for i in idx]) for idx in self._pre_origins])
         pre, post = general_joints(torch.zeros_like(self.axis), torch.zeros_like(self.axis), self.axis,
@@ -164,7 +183,7 @@ class URDFChain(KinematicChain):
         joint: a URDF has no place for a tool there).
         """
         with torch.no_grad():
-            O = origin_transform(self.origin_xyz, self.origin_rpy).double().cpu()
+            O = self._origins().double().cpu()
         origins = dict(zip(self.joint_origin_names, O.unbind(0)))
         base, tool = self.base, self.tool
         if base is not None:
