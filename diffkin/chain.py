@@ -199,8 +199,10 @@ class KinematicChain(nn.Module):
         """The fixed transforms of every joint: per joint (column path) or stacked (matrix path); Python
         constants when allowed, else tensors that carry gradients to the parameters."""
         if constants and self._constants_allowed():
-            key = tuple((t._version, t.data_ptr()) for t in self.parameters()) + tuple(
-                id(b) for b in (self.base_nominal, self.tool_nominal)) + (self.dtype, self.device)
+            # every parameter and buffer (set, replaced or updated in place) invalidates the constants
+            key = (*((t._version, t.data_ptr()) for t in self.parameters()),
+                   *((name, t._version, t.data_ptr()) for name, t in self.named_buffers()),
+                   self.dtype, self.device)
             if key != self._const_key:
                 self._const_key, self._const = key, self._constant_segments()
             return self._const[0 if per_joint else 1]

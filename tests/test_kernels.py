@@ -290,3 +290,21 @@ def test_gradient_of_a_zero_base_or_tool_correction_matches_finite_differences()
                 delta[i] = 0.0
             fd[i] = (up - down) / (2 * h)
         torch.testing.assert_close(g, fd, atol=1e-8, rtol=0)
+
+
+def test_constant_path_follows_buffers_set_after_a_call():
+    """Setting a buffer that changes the geometry (a URDF origin correction, a new tool) after a no-grad call
+    must not leave the cached constants stale."""
+    chain = from_urdf(DATA / "ur10.urdf", "tool0", dtype=F64)
+    q = chain.random_configuration((30,), generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        T0 = chain.forward_kinematics(q)
+        chain.origin_delta = torch.full((len(chain.joint_origin_names), 6), 1e-3, dtype=F64)
+        T1 = chain.forward_kinematics(q)
+    T_grad = chain.forward_kinematics(q).detach()  # the tensor path, never cached
+    assert float((T1 - T0).abs().max()) > 1e-4
+    torch.testing.assert_close(T1, T_grad, atol=1e-14, rtol=0)
+    with torch.no_grad():
+        chain.tool = origin_transform(torch.tensor([0.0, 0.0, 0.1], dtype=F64), torch.zeros(3, dtype=F64))
+        torch.testing.assert_close(chain.forward_kinematics(q), chain.forward_kinematics(q.clone()))
+        assert float((chain.forward_kinematics(q) - T1).abs().max()) > 0.05
