@@ -190,7 +190,7 @@ class KinematicChain(nn.Module):
         raise NotImplementedError
 
     def _constants_allowed(self) -> bool:
-        params = list(self.parameters())
+        params = [p for p in self._parameters.values() if p is not None]  # a chain has no submodules
         if torch.is_grad_enabled() and any(p.requires_grad for p in params):
             return False
         return all(_is_plain(p) for p in params)
@@ -200,8 +200,8 @@ class KinematicChain(nn.Module):
         constants when allowed, else tensors that carry gradients to the parameters."""
         if constants and self._constants_allowed():
             # every parameter and buffer (set, replaced or updated in place) invalidates the constants
-            key = (*((t._version, t.data_ptr()) for t in self.parameters()),
-                   *((name, t._version, t.data_ptr()) for name, t in self.named_buffers()),
+            state = (*self._parameters.items(), *self._buffers.items())
+            key = (*((name, t._version, t.data_ptr()) for name, t in state if t is not None),
                    self.dtype, self.device)
             if key != self._const_key:
                 self._const_key, self._const = key, self._constant_segments()

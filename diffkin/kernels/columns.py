@@ -135,13 +135,22 @@ def transform_columns(T: Tensor, dim: int = 0) -> Columns:
     return x, y, z, p
 
 
+_IDENTITY: dict = {}
+
+
 def identity_columns(like: Tensor, dim: int = 0) -> Columns:
     """The identity frame's columns in ``like``'s dtype/device (batch last ``(3, 1)``, batch first
     ``(3,)``)."""
-    eye = torch.eye(3, dtype=like.dtype, device=like.device)
-    if dim == 0:
-        return eye[:, 0:1], eye[:, 1:2], eye[:, 2:3], torch.zeros_like(eye[:, 0:1])
-    return eye[0], eye[1], eye[2], torch.zeros_like(eye[0])
+    key = (like.dtype, like.device, dim)
+    cols = _IDENTITY.get(key)
+    if cols is None:  # constants, made once per dtype/device: a small-batch call spends no ops on them
+        eye = torch.eye(3, dtype=like.dtype, device=like.device)
+        if dim == 0:
+            cols = eye[:, 0:1], eye[:, 1:2], eye[:, 2:3], torch.zeros_like(eye[:, 0:1])
+        else:
+            cols = eye[0], eye[1], eye[2], torch.zeros_like(eye[0])
+        _IDENTITY[key] = cols
+    return cols
 
 
 def columns_to_matrices(frame: Columns, out: Tensor) -> Tensor:
