@@ -17,7 +17,7 @@ import time
 
 import torch
 
-from benchmarks.common import print_table
+from benchmarks.common import print_table, torch_threads
 from diffkin import ik, models
 
 __all__ = ["run", "main"]
@@ -39,9 +39,7 @@ def run(args=None) -> list[dict]:
     dtype = {"float32": torch.float32, "float64": torch.float64}[getattr(args, "dtype", None) or "float32"]
     threads = getattr(args, "threads", None) or 1
     repeats = 3 if quick else 5
-    old = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    with torch_threads(threads):
         chain = models.load("panda", dtype=dtype)
         q_true = chain.random_configuration((N,), generator=torch.Generator().manual_seed(0))
         with torch.no_grad():
@@ -82,8 +80,6 @@ def run(args=None) -> list[dict]:
             rows.append({"benchmark": "ik_grad", "impl": f"diffkin {name}", "dtype": str(dtype)[6:],
                          "targets": Tn.shape[0], "success": ok, "forward_s": f, "backward_s": b,
                          "backward_over_forward": b / f, "grads_finite": finite, "threads": threads})
-    finally:
-        torch.set_num_threads(old)
     return rows
 
 

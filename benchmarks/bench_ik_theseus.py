@@ -51,7 +51,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import print_table
+from benchmarks.common import print_table, torch_threads
 from diffkin import ik, models
 
 __all__ = ["run", "main"]
@@ -151,9 +151,7 @@ def run(args=None) -> list[dict]:
     threads = getattr(args, "threads", None) or 1
     iters = getattr(args, "theseus_iterations", None) or 30
     repeats = 1 if quick else 3
-    old = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    with torch_threads(threads):
         chain = models.load("panda", dtype=dtype).requires_grad_(False)
         chain64 = models.load("panda", dtype=torch.float64).requires_grad_(False)
         g = torch.Generator().manual_seed(0)
@@ -234,8 +232,6 @@ def run(args=None) -> list[dict]:
                 "in_limits": float(((q_th >= lim_lo) & (q_th <= lim_hi)).all(-1).float().mean()),
                 "grad_rel_diff_same_q": r_same[0], "grad_rel_diff_same_q_median": r_same[1],
                 "compared_same_q": int(m2.sum())})
-    finally:
-        torch.set_num_threads(old)
     return rows
 
 

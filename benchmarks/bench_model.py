@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import FULL, QUICK, pk_panda, print_table, timeit
+from benchmarks.common import FULL, QUICK, pk_panda, print_table, timeit, torch_threads
 from diffkin import models
 from diffkin.jacobian import forward_kinematics_and_jacobian
 
@@ -91,16 +91,12 @@ def run(args=None) -> list[dict]:
     dtypes = getattr(args, "dtype", None) or ["float32"]
     threads = getattr(args, "threads", None) or 1
     min_time, repeats = QUICK if quick else FULL
-    old = torch.get_num_threads()
-    torch.set_num_threads(threads)
     rows = []
-    try:
+    with torch_threads(threads):
         for name in dtypes:
             for B in batches:
                 rows += _urdf_vs_dh(B, _DTYPES[name], min_time, repeats)
                 rows += _tree(B, _DTYPES[name], min_time, repeats)
-    finally:
-        torch.set_num_threads(old)
     for r in rows:
         r["threads"] = threads
     return rows

@@ -8,6 +8,7 @@ cores, so medians (not means) and ratios taken in the same run are what to compa
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import platform
@@ -39,6 +40,17 @@ PANDA_URDF = ROOT / "diffkin" / "models" / "data" / "panda.urdf"
 #: (min_time seconds per block, repeats) for --quick and for a full run
 QUICK = (0.05, 3)
 FULL = (0.3, 7)
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """Run a benchmark body with ``n`` torch intra-op threads and restore the previous setting."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(old)
 
 
 def sync(device) -> None:

@@ -63,13 +63,18 @@ def _task_jacobian(chain, q: Tensor, position_only: bool, orientation_weight: fl
     return J.reshape(*q.shape[:-1], -1, q.shape[-1])
 
 
-class _ImplicitSolve(torch.autograd.Function):
+class _AtSolution(torch.autograd.Function):
+    """Forward: the solver's ``q`` (computed outside autograd) as a node whose inputs are the target and the
+    parameters; subclasses differentiate the solver's optimality condition in ``backward``."""
+
     @staticmethod
     def forward(ctx, q: Tensor, T_target: Tensor, spec: tuple, *params: Tensor) -> Tensor:
         ctx.spec = spec
         ctx.save_for_backward(q, T_target)
         return q.clone()
 
+
+class _ImplicitSolve(_AtSolution):
     @staticmethod
     def backward(ctx, g: Tensor):
         q, T_target = ctx.saved_tensors
@@ -104,13 +109,7 @@ def attach_solve_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, 
     return _ImplicitSolve.apply(q.detach(), T_target, spec, *params)
 
 
-class _ImplicitStationary(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, q: Tensor, T_target: Tensor, spec: tuple, *params: Tensor) -> Tensor:
-        ctx.spec = spec
-        ctx.save_for_backward(q, T_target)
-        return q.clone()
-
+class _ImplicitStationary(_AtSolution):
     @staticmethod
     def backward(ctx, g: Tensor):
         q, T_target = ctx.saved_tensors
