@@ -40,8 +40,9 @@ import math
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for
+from .._numerics import cross, eps_for
 from ..errors import ModelError
+from ..rotations import _axis_angle_to_matrix
 from ..transforms import _transform_inverse
 
 __all__ = ["INDUSTRIAL_FAMILIES", "recognise_industrial", "industrial_parameters", "solve_industrial"]
@@ -200,12 +201,6 @@ def industrial_parameters(chain) -> dict[str, float]:
 
 
 # --------------------------------------------------------------------------------------- kernels
-def _cross(a: Tensor, b: Tensor) -> Tensor:
-    ax, ay, az = a.unbind(-1)
-    bx, by, bz = b.unbind(-1)
-    return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx), -1)
-
-
 def _dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(-1)
 
@@ -230,23 +225,13 @@ def _half_angle(k: Tensor, r2: Tensor, tiny: float, s2: Tensor | None = None) ->
     return torch.where(zero, torch.full_like(k, math.pi / 2), at)
 
 
-def _rot(u: Tensor, q: Tensor) -> Tensor:
-    """Rotation matrices about the unit axis u (3,) by q (...) -> (..., 3, 3) (Rodrigues)."""
-    c, s = torch.cos(q)[..., None, None], torch.sin(q)[..., None, None]
-    z = torch.zeros((), dtype=u.dtype, device=u.device)
-    K = torch.stack((torch.stack((z, -u[2], u[1])), torch.stack((u[2], z, -u[0])),
-                     torch.stack((-u[1], u[0], z))))  # fmt: skip
-    eye = torch.eye(3, dtype=u.dtype, device=u.device)
-    return eye + s * K + (1 - c) * (K @ K)
-
-
 def _mv(R: Tensor, v: Tensor) -> Tensor:
     return (R @ v[..., None])[..., 0]
 
 
 def _sub1(u: Tensor, v: Tensor, w: Tensor, tiny: float) -> Tensor:
     """Paden–Kahan subproblem 1: the angle about the unit axis u taking v to w (same u-components)."""
-    return _atan2(_dot(u, _cross(v, w)), _dot(v, w) - _dot(u, v) * _dot(u, w), tiny)
+    return _atan2(_dot(u, cross(v, w)), _dot(v, w) - _dot(u, v) * _dot(u, w), tiny)
 
 
 def _cos_sin_roots(A: Tensor, B: Tensor, k: Tensor, tiny: float, s2=None) -> tuple[Tensor, Tensor]:
@@ -259,11 +244,11 @@ def _cos_sin_roots(A: Tensor, B: Tensor, k: Tensor, tiny: float, s2=None) -> tup
 def _planar_2r(u2, u3, r3, r4, t, tiny):
     """q_2, q_3 with R(u2, q2)(r3 + R(u3, q3) r4) = t (all ⟂ u2): elbow + and − roots -> ((q2, q3), ...)."""
     A = _dot(r3, r4)
-    B = _dot(r3, _cross(u3, r4))
+    B = _dot(r3, cross(u3, r4))
     k = 0.5 * (_dot(t, t) - _dot(r3, r3) - _dot(r4, r4))
     out = []
     for q3 in _cos_sin_roots(A.expand_as(k), B.expand_as(k), k, tiny):
-        v = r3 + _mv(_rot(u3, q3), r4)
+        v = r3 + _mv(_axis_angle_to_matrix(u3, q3), r4)
         out.append((_sub1(u2, v, t, tiny), q3))
     return out
 
@@ -305,20 +290,20 @@ def solve_industrial(chain, family: str, T: Tensor) -> Tensor:
         s4 = torch.sign(u[3] @ u[1])
         e = r3 / r3.norm()
         for q1 in _shoulder(u, p, w, (w0 - p[0]) @ u[1], tiny):
-            R1 = _rot(u[0], q1)
+            R1 = _axis_angle_to_matrix(u[0], q1)
             n = _mv(R1, u[1])
             v6 = _mv(RG, u[5])
             nv6 = _dot(n, v6)
             m = _mv(RG.transpose(-1, -2), n)  # R6 m = R5^T u2
             # r² − k² = (r² − 1) + |n × v6|² + 2 C n·v6 − C² (C = c56 c25): no cancellation at q5 = 0, π
             C5 = c56 * c25
-            cr = _cross(n, v6)
+            cr = cross(n, v6)
             s2 = (A5 * A5 + B5 * B5 - 1.0) + _dot(cr, cr) + 2 * C5 * nv6 - C5 * C5
             for q5 in _cos_sin_roots(A5.expand_as(nv6), B5.expand_as(nv6), nv6 - C5, tiny, s2):
-                R5 = _rot(u[4], q5)
+                R5 = _axis_angle_to_matrix(u[4], q5)
                 v = _mv(R5.transpose(-1, -2), u[1].expand_as(m))
                 q6 = _sub1(u[5], m, v, tiny)
-                R6 = _rot(u[5], q6)
+                R6 = _axis_angle_to_matrix(u[5], q6)
                 y = _apply(G, _mv(R6.transpose(-1, -2), x45 - p[5]) + p[5])  # axes 4–5 point, world
                 y1 = _mv(R1.transpose(-1, -2), y - p[0]) + p[0]
                 Rr = R1.transpose(-1, -2) @ RG @ R6.transpose(-1, -2) @ R5.transpose(-1, -2)  # R2 R3 R4
@@ -337,10 +322,10 @@ def solve_industrial(chain, family: str, T: Tensor) -> Tensor:
     e6 = torch.linalg.cross(u6, u5)
     e6 = e6 / e6.norm()  # a direction ⟂ u6 to read q6 from
     for q1 in _shoulder(u, p, w, (w0 - p[0]) @ u[1], tiny):
-        R1 = _rot(u[0], q1)
+        R1 = _axis_angle_to_matrix(u[0], q1)
         y1 = _mv(R1.transpose(-1, -2), w - p[0]) + p[0]
         for q2, q3 in _planar_2r(u[1], u3, r3, r4, _perp(y1 - p[1], u[1]), tiny):
-            R123 = R1 @ _rot(u[1], q2 + s3 * q3)
+            R123 = R1 @ _axis_angle_to_matrix(u[1], q2 + s3 * q3)
             Rw = R123.transpose(-1, -2) @ RG  # = R4 R5 R6
             v = _mv(Rw, u6)
             # subproblem 2: z = R5 u6 with z·u4 = v·u4 and z·u5 = u6·u5
@@ -348,7 +333,7 @@ def solve_industrial(chain, family: str, T: Tensor) -> Tensor:
             det = 1.0 - c45 * c45
             al, be = (a_ - c45 * b_) / det, (b_ - c45 * a_) / det
             # 1 − α² − β² − 2αβ c45, with 1 − (v·u4)² = |u4 × v|²: no cancellation at the wrist singularity
-            cr = _cross(u4.expand_as(v), v)
+            cr = cross(u4.expand_as(v), v)
             g2 = (_dot(cr, cr) + a_ * a_ - al * al - be * be - 2 * al * be * c45) / (n45 @ n45)
             pos = g2 > tiny * tiny
             g = torch.where(pos, torch.sqrt(torch.where(pos, g2, torch.ones_like(g2))), torch.zeros_like(g2))
@@ -356,7 +341,8 @@ def solve_industrial(chain, family: str, T: Tensor) -> Tensor:
                 z = al[..., None] * u4 + be[..., None] * u5 + (sgn * g)[..., None] * n45
                 q5 = _sub1(u5, u6.expand_as(z), z, tiny)
                 q4 = _sub1(u4, z, v, tiny)
-                R6 = _rot(u5, q5).transpose(-1, -2) @ _rot(u4, q4).transpose(-1, -2) @ Rw
+                R45 = _axis_angle_to_matrix(u4, q4) @ _axis_angle_to_matrix(u5, q5)
+                R6 = R45.transpose(-1, -2) @ Rw
                 q6 = _sub1(u6, e6.expand_as(z), _mv(R6, e6), tiny)
                 branches.append(torch.stack((q1, q2, q3, q4, q5, q6), -1))
     return torch.stack(branches, -2)
