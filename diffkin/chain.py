@@ -18,7 +18,8 @@ Two evaluations of the product (the choice is by batch size only, both different
 
 When no gradient w.r.t. geometry is needed (``torch.no_grad()`` or ``chain.requires_grad_(False)``) the
 fixed transforms are evaluated once in float64 and used as Python constants whose zero terms are skipped
-(cached per parameter version, so optimizer steps and ``load_state_dict`` are seen).
+(cached per parameter and buffer version, so optimizer steps, in-place updates and ``load_state_dict`` are
+seen; writes through ``.data`` bypass version counting and are not).
 """
 
 from __future__ import annotations
@@ -190,10 +191,11 @@ class KinematicChain(nn.Module):
         raise NotImplementedError
 
     def _constants_allowed(self) -> bool:
-        params = [p for p in self._parameters.values() if p is not None]  # a chain has no submodules
-        if torch.is_grad_enabled() and any(p.requires_grad for p in params):
+        # a chain has no submodules; buffers count too (a calibration may put a learnable origin_delta there)
+        state = [t for t in (*self._parameters.values(), *self._buffers.values()) if t is not None]
+        if torch.is_grad_enabled() and any(t.requires_grad for t in state):
             return False
-        return all(_is_plain(p) for p in params)
+        return all(_is_plain(t) for t in state)
 
     def _segments(self, per_joint: bool, constants: bool = True) -> Segments:
         """The fixed transforms of every joint: per joint (column path) or stacked (matrix path); Python
@@ -428,7 +430,7 @@ class KinematicChain(nn.Module):
             out = rows if len(ends) == 1 and not grad else None
             R = jacobian_rows(z, o, frame[3].expand(3, m), self._joint_revolute, all_rev, out)  # (6, J, m)
             if not all(topo.ancestors[k]):
-                R = R * torch.tensor(topo.ancestors[k], dtype=R.dtype, device=R.device).view(1, -1, 1)
+                R = R * topo.tensor("ancestors", R.dtype, R.device)[k].view(1, -1, 1)
             blocks.append(R)
         rows = blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=0)  # (6K, J, m)
         if topo.coupled:
@@ -562,8 +564,10 @@ def _zero_correction(delta: Tensor) -> Tensor:
     dΔ = [[[dω]×, dt], [0, 0]] (used only while δ is exactly zero).
 
     The base and tool corrections sit at zero until something moves them; in grad mode this gives their
-    gradient for one small matmul instead of the rotation-vector map (second derivatives w.r.t. a zero
-    correction are those of the linear map, i.e. zero)."""
+    exact gradient for one small matmul instead of the rotation-vector map. Second derivatives w.r.t. the
+    correction itself are not exact here (the linear map has none; Δ's ½[ω]×² term does): a Hessian in
+    ``base_delta`` / ``tool_delta`` at exactly zero needs them set off zero first (mixed q–δ terms are
+    exact)."""
     key = (delta.dtype, delta.device)
     L = _LINEAR_CORRECTION.get(key)
     if L is None:

@@ -308,3 +308,15 @@ def test_constant_path_follows_buffers_set_after_a_call():
         chain.tool = origin_transform(torch.tensor([0.0, 0.0, 0.1], dtype=F64), torch.zeros(3, dtype=F64))
         torch.testing.assert_close(chain.forward_kinematics(q), chain.forward_kinematics(q.clone()))
         assert float((chain.forward_kinematics(q) - T1).abs().max()) > 0.05
+
+
+def test_a_buffer_requiring_grad_keeps_the_graph():
+    """A learnable buffer (a calibration's origin correction) must not be read as a constant."""
+    chain = from_urdf(DATA / "ur10.urdf", "tool0", dtype=F64).requires_grad_(False)
+    delta = torch.zeros(len(chain.joint_origin_names), 6, dtype=F64, requires_grad=True)
+    chain.origin_delta = delta
+    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(5))
+    T = chain.forward_kinematics(q)
+    assert T.requires_grad
+    (g,) = torch.autograd.grad(T[..., :3, 3].sum(), delta)
+    assert float(g.abs().sum()) > 0

@@ -86,7 +86,7 @@ def tree_jacobian(axes: Tensor, origins: Tensor, p_ends: Tensor, revolute: Tenso
     for k, row in enumerate(topo.ancestors):
         Jk = jacobian_from_axes(axes, origins, p_ends[..., k, :], revolute, all_rev)
         if not all(row):
-            Jk = Jk * torch.tensor(row, dtype=Jk.dtype, device=Jk.device)
+            Jk = Jk * topo.tensor("ancestors", Jk.dtype, Jk.device)[k]
         blocks.append(Jk)
     J = torch.stack(blocks, dim=-3)
     if topo.coupled:

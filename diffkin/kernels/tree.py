@@ -43,6 +43,7 @@ class Topology:
     n_vars: int
     ancestors: tuple[tuple[bool, ...], ...] = field(init=False)
     last_use: tuple[int, ...] = field(init=False)
+    _tensors: dict = field(init=False, default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):
         J = len(self.parents)
@@ -87,12 +88,34 @@ class Topology:
     def all_ancestors(self) -> bool:
         return all(all(row) for row in self.ancestors)
 
+    def tensor(self, name: str, dtype, device) -> Tensor:
+        """The structure as a tensor on ``device``, made once per (name, dtype, device): per-call
+        ``torch.tensor(list, device=cuda)`` would be a blocking host-to-device copy in the hot paths.
+
+        ``name``: ``q_index``, ``parent_index`` (parents + 1, long), ``revolute`` (bool), ``multiplier``,
+        ``q_offset``, ``ancestors`` ``(K, J)``, ``coupling`` (M ``(J, n)`` with q_full = M q + b)."""
+        key = (name, dtype, device)
+        t = self._tensors.get(key)
+        if t is None:
+            if name == "coupling":
+                M = [[0.0] * self.n_vars for _ in self.parents]
+                for j, (i, m) in enumerate(zip(self.q_index, self.multiplier)):
+                    M[j][i] = m
+                t = torch.tensor(M, dtype=dtype, device=device)
+            elif name == "parent_index":
+                t = torch.tensor([p + 1 for p in self.parents], device=device)
+            elif name == "ancestors":
+                t = torch.tensor(self.ancestors, dtype=dtype, device=device)
+            elif name in ("q_index", "revolute"):
+                t = torch.tensor(getattr(self, name), device=device)
+            else:
+                t = torch.tensor(getattr(self, name), dtype=dtype, device=device)
+            self._tensors[key] = t
+        return t
+
     def coupling_matrix(self, dtype, device) -> Tensor:
         """M ``(J, n)`` with q_full = M q + b."""
-        M = torch.zeros(len(self.parents), self.n_vars, dtype=dtype, device=device)
-        for j, (i, m) in enumerate(zip(self.q_index, self.multiplier)):
-            M[j, i] = m
-        return M
+        return self.tensor("coupling", dtype, device)
 
 
 @dataclass(frozen=True)
@@ -111,9 +134,9 @@ def couple(q: Tensor, topo: Topology) -> Tensor:
     """q_full ``(..., J)`` of the independent joints ``q (..., n)`` (identity without mimic joints)."""
     if not topo.coupled:
         return q
-    idx = torch.tensor(topo.q_index, device=q.device)
-    mult = torch.tensor(topo.multiplier, dtype=q.dtype, device=q.device)
-    off = torch.tensor(topo.q_offset, dtype=q.dtype, device=q.device)
+    idx = topo.tensor("q_index", None, q.device)
+    mult = topo.tensor("multiplier", q.dtype, q.device)
+    off = topo.tensor("q_offset", q.dtype, q.device)
     return torch.index_select(q, -1, idx) * mult + off
 
 
@@ -176,7 +199,7 @@ def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = Fa
         cols = tuple(seg.pre[..., :3, k] for k in range(4))
     # every joint's Pre · M(q) at once (batch first: the joints are one more batch axis)
     frame = tuple(c.expand(*q_full.shape, 3) for c in cols)
-    kind = True if all(topo.revolute) else torch.tensor(topo.revolute, device=q.device).unsqueeze(-1)
+    kind = True if all(topo.revolute) else topo.tensor("revolute", None, q.device).unsqueeze(-1)
     x, y, z, p = apply_motion(frame, q_full.unsqueeze(-1), kind)
     PM = stack_columns((x, y, z, p), -1)  # (..., J, 4, 4)
     A = PM if seg.post is None else PM @ seg.post
@@ -197,7 +220,7 @@ def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = Fa
         if seg.post is None:
             G = F
         else:
-            par = torch.tensor([p + 1 for p in topo.parents], device=q.device)
+            par = topo.tensor("parent_index", None, q.device)
             F_par = torch.cat((base.unsqueeze(-3), F), dim=-3).index_select(-3, par)
             G = F_par @ PM
         out_axes, out_origins = G[..., :3, 2], G[..., :3, 3]

@@ -60,7 +60,9 @@ class URDFChain(KinematicChain):
 
     Attributes: ``joint_names`` (the n independent joints, the order of q's last axis), ``frame_joint_names``
     and ``link_names`` (the J moving joints in topological order, mimic followers included, and their child
-    links: frames 1..J of ``forward_kinematics(q, all_frames=True)``), ``end_links``, ``root_link``.
+    links: frames 1..J of ``forward_kinematics(q, all_frames=True)``, except that for a single end link the
+    last frame is the end-link pose, with the fixed joints after the last moving joint and the tool applied),
+    ``end_links``, ``root_link``.
     """
 
     def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
@@ -126,7 +128,7 @@ class URDFChain(KinematicChain):
         axes = torch.tensor([j.axis for j in moving], dtype=torch.float64)
         unit = axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)
         self.axis = nn.Parameter(unit.to(device=device, dtype=dtype))
-        self.register_buffer("_axis_flip", axes[:, 2] < 0)
+        self.register_buffer("_axis_flip", (axes[:, 2] < 0).to(device))
         # which origins make up each moving joint's Pre and each end link's fixed tail (indices into used)
         index = {j.name: i for i, j in enumerate(used)}
         self._pre_origins, self._end_origins = [], []
