@@ -315,7 +315,7 @@ class KinematicChain(nn.Module):
         if all_frames:
             return self._all_frames(q)
         if batch.numel() <= self.small_batch:
-            ends = matrix_frames(q, self._topo, self._segments(per_joint=False))[0]
+            ends = matrix_frames(q, self._topo, self._segments(per_joint=False), with_frames=False)[0]
             return self._out(ends)
         if self._compiled_fk is not None:
             return self._compiled_fk(q)

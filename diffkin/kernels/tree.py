@@ -185,10 +185,12 @@ def column_frames(qs: Sequence[Tensor], topo: Topology, seg: Segments, with_axes
     return ends, (axes if with_axes else None), (kept if keep_frames else None)
 
 
-def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = False):
+def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = False,
+                  with_frames: bool = True):
     """Batch-first product of ``q (..., n)`` with stacked segments (tensors ``(J, 4, 4)`` or None).
 
-    Returns ``(ends (..., K, 4, 4), frames (..., J, 4, 4), axes (..., J, 3) or None, origins or None)``.
+    Returns ``(ends (..., K, 4, 4), frames (..., J, 4, 4) or None, axes (..., J, 3) or None, origins or
+    None)``; ``with_frames=False`` skips stacking the joint frames (FK of the end links only).
     """
     q_full = couple(q, topo)
     if seg.offset is not None:
@@ -197,24 +199,27 @@ def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = Fa
         cols = identity_columns(q, -1)
     else:
         cols = tuple(seg.pre[..., :3, k] for k in range(4))
-    # every joint's Pre · M(q) at once (batch first: the joints are one more batch axis)
-    frame = tuple(c.expand(*q_full.shape, 3) for c in cols)
+    # every joint's Pre · M(q) at once (batch first: the joints are one more batch axis; the columns
+    # (J, 3) broadcast against q's batch)
     kind = True if all(topo.revolute) else topo.tensor("revolute", None, q.device).unsqueeze(-1)
-    x, y, z, p = apply_motion(frame, q_full.unsqueeze(-1), kind)
+    x, y, z, p = apply_motion(cols, q_full.unsqueeze(-1), kind)
     PM = stack_columns((x, y, z, p), -1)  # (..., J, 4, 4)
-    A = PM if seg.post is None else PM @ seg.post
+    A = (PM if seg.post is None else PM @ seg.post).unbind(-3)
     batch = q.shape[:-1]
     base = torch.eye(4, dtype=q.dtype, device=q.device) if seg.base is None else seg.base
     base = base.expand(*batch, 4, 4)
     frames = []
     for j in range(topo.n_frames):
         par = topo.parents[j]
-        frames.append((base if par < 0 else frames[par]) @ A[..., j, :, :])
+        if par < 0:
+            frames.append(A[j] if seg.base is None else base @ A[j])  # no product with an identity base
+        else:
+            frames.append(frames[par] @ A[j])
     ends = []
     for e, E in zip(topo.ends, seg.ends):
         F = base if e < 0 else frames[e]
         ends.append(F if E is None else F @ E)
-    F = torch.stack(frames, dim=-3)
+    F = torch.stack(frames, dim=-3) if with_frames or with_axes else None
     out_axes = out_origins = None
     if with_axes:  # the axis of joint j is the z axis of G_j = F_parent · Pre_j · M_j, through its origin
         if seg.post is None:
