@@ -33,7 +33,7 @@ from torch import Tensor, nn
 from ._numerics import batch_shape_str, check_finite
 from .errors import ConventionError, DTypeError, ModelError, ShapeError
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
-from .kernels.jacobian import jacobian_rows, tree_jacobian
+from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
 from .kernels.tree import Segments, Topology, column_frames, matrix_frames
 from .transforms import as_rigid_transform
@@ -416,27 +416,7 @@ class KinematicChain(nn.Module):
                                       with_axes=with_jacobian or with_axes)
         if not with_jacobian:
             return (None, ends, axes) if with_axes else (None, ends)
-        m, J = qT.shape[1], topo.n_frames
-        all_rev = all(topo.revolute)
-        grad = torch.is_grad_enabled() and any(c.requires_grad for a in axes for c in a)
-        if len(ends) == 1 and not grad:  # the axes go straight into the angular rows: no extra copy
-            rows = qT.new_empty(6, J, m)
-            z = torch.stack([a[0].expand(3, m) for a in axes], dim=1, out=rows[3:])
-        else:
-            z = torch.stack([a[0].expand(3, m) for a in axes], dim=1)  # (3, J, m)
-        o = torch.stack([a[1].expand(3, m) for a in axes], dim=1)
-        blocks = []
-        for k, frame in enumerate(ends):
-            out = rows if len(ends) == 1 and not grad else None
-            R = jacobian_rows(z, o, frame[3].expand(3, m), self._joint_revolute, all_rev, out)  # (6, J, m)
-            if not all(topo.ancestors[k]):
-                R = R * topo.tensor("ancestors", R.dtype, R.device)[k].view(1, -1, 1)
-            blocks.append(R)
-        rows = blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=0)  # (6K, J, m)
-        if topo.coupled:
-            rows = torch.einsum("rjm,jn->nrm", rows, topo.coupling_matrix(rows.dtype, rows.device))
-        else:
-            rows = rows.permute(1, 0, 2)
+        rows = tree_jacobian_rows(axes, [f[3] for f in ends], self._joint_revolute, topo, qT.shape[1])
         return (rows, ends, axes) if with_axes else (rows, ends)
 
     def _functional_fk(self, qT: Tensor) -> Tensor:

@@ -141,11 +141,8 @@ def _closed_form_seeds(chain, T_target, q0, batch) -> Tensor:
         seeds = torch.take_along_dim(sol.q, order[..., None], dim=-2)
     if q0 is None:
         return seeds
-    q0 = q0.to(seeds.dtype)
-    if q0.ndim - 1 <= len(batch):
-        q0 = q0.unsqueeze(-2)
-    q0 = q0.expand(*batch, q0.shape[-2], chain.n_joints)
-    return torch.cat((seeds, q0), dim=-2)
+    user = _user_seeds(chain, q0, batch, math.prod(batch))  # the one broadcast rule for seeds, (N, S, n)
+    return torch.cat((seeds, user.reshape(*batch, *user.shape[-2:])), dim=-2)
 
 
 def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:

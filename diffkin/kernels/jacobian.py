@@ -15,7 +15,14 @@ from torch import Tensor
 from ..rotations import _vee
 from .tree import Topology
 
-__all__ = ["jacobian_from_axes", "jacobian_rows", "tree_jacobian", "twist_of_derivative", "FEW_OPS_BATCH"]
+__all__ = [
+    "jacobian_from_axes",
+    "jacobian_rows",
+    "tree_jacobian",
+    "tree_jacobian_rows",
+    "twist_of_derivative",
+    "FEW_OPS_BATCH",
+]
 
 FEW_OPS_BATCH = 64  # up to this many configurations the Jacobian kernel minimises the number of ops
 
@@ -92,6 +99,31 @@ def tree_jacobian(axes: Tensor, origins: Tensor, p_ends: Tensor, revolute: Tenso
     if topo.coupled:
         J = J @ topo.coupling_matrix(J.dtype, J.device)
     return J
+
+
+def tree_jacobian_rows(axes: list, p_ends: list, revolute: Tensor, topo: Topology, m: int) -> Tensor:
+    """Batch-last twin of :func:`tree_jacobian`: from the J ``(axis, point)`` column pairs of
+    :func:`~diffkin.kernels.tree.column_frames` and the K end points ``(3, m)`` (or ``(3, 1)``) -> rows
+    ``(n, 6K, m)`` (row block k for end link k), masked by ancestry and coupled through the mimic matrix.
+
+    A single end link without autograd writes the axes straight into the angular rows (no extra copy)."""
+    J = topo.n_frames
+    all_rev = all(topo.revolute)
+    grad = torch.is_grad_enabled() and any(c.requires_grad for a in axes for c in a)
+    in_place = len(p_ends) == 1 and not grad
+    rows = axes[0][0].new_empty(6, J, m) if in_place else None
+    z = torch.stack([a[0].expand(3, m) for a in axes], dim=1, out=rows[3:] if in_place else None)
+    o = torch.stack([a[1].expand(3, m) for a in axes], dim=1)  # (3, J, m)
+    blocks = []
+    for k, p in enumerate(p_ends):
+        R = jacobian_rows(z, o, p.expand(3, m), revolute, all_rev, rows)  # (6, J, m)
+        if not all(topo.ancestors[k]):
+            R = R * topo.tensor("ancestors", R.dtype, R.device)[k].view(1, -1, 1)
+        blocks.append(R)
+    out = blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=0)  # (6K, J, m)
+    if topo.coupled:
+        return torch.einsum("rjm,jn->nrm", out, topo.coupling_matrix(out.dtype, out.device))
+    return out.permute(1, 0, 2)
 
 
 def twist_of_derivative(dT: Tensor, T: Tensor) -> Tensor:
