@@ -7,69 +7,26 @@ the input by a harmless value on the singular branch, *then* evaluate, *then* se
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
 from torch import Tensor
 
-from .errors import DTypeError, NonFiniteError, ShapeError
-
 __all__ = [
     "eps_for",
-    "check_tensor",
-    "check_shape",
-    "check_finite",
     "safe_norm",
     "safe_normalize",
     "sinc",
     "safe_acos",
     "safe_atan2",
     "safe_sqrt",
-    "batch_shape_str",
     "cross",
     "wrap_angle",
 ]
-
-_FLOAT_DTYPES = (torch.float16, torch.bfloat16, torch.float32, torch.float64)
 
 
 def eps_for(x: Tensor | torch.dtype) -> float:
     """Machine epsilon of ``x``'s dtype (float32: 1.19e-7, float64: 2.22e-16)."""
     dtype = x if isinstance(x, torch.dtype) else x.dtype
     return torch.finfo(dtype).eps
-
-
-def batch_shape_str(shape: Sequence[int]) -> str:
-    return "(" + ", ".join(str(s) for s in shape) + ")"
-
-
-def check_tensor(x, name: str) -> Tensor:
-    """Raise ``TypeError`` unless ``x`` is a floating-point tensor."""
-    if not isinstance(x, Tensor):
-        raise DTypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
-    if x.dtype not in _FLOAT_DTYPES:
-        raise DTypeError(f"{name} must be a floating-point tensor (float32 or float64), got {x.dtype}")
-    return x
-
-
-def check_shape(x: Tensor, trailing: Sequence[int], name: str) -> Tensor:
-    """Check that ``x`` is a float tensor whose trailing dims equal ``trailing`` (leading dims free)."""
-    check_tensor(x, name)
-    k = len(trailing)
-    if x.ndim < k or tuple(x.shape[x.ndim - k :]) != tuple(trailing):
-        expected = "(..., " + ", ".join(str(t) for t in trailing) + ")"
-        raise ShapeError(f"expected {name} of shape {expected}, got {batch_shape_str(x.shape)}")
-    return x
-
-
-def check_finite(x: Tensor, name: str) -> Tensor:
-    """Raise :class:`NonFiniteError` if ``x`` holds NaN or inf.
-
-    This synchronises with the device; call it at API boundaries, not inside inner loops.
-    """
-    if not bool(torch.isfinite(x).all()):
-        raise NonFiniteError(f"{name} contains NaN or inf values")
-    return x
 
 
 def safe_sqrt(x: Tensor, eps: float | None = None) -> Tensor:

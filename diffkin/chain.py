@@ -30,13 +30,13 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from ._numerics import batch_shape_str, check_finite
 from .errors import ConventionError, DTypeError, ModelError, ShapeError
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
 from .kernels.tree import Segments, Topology, column_frames, matrix_frames
 from .transforms import as_rigid_transform
+from .validation import check_finite, shape_str
 
 __all__ = ["KinematicChain", "DHChain", "as_rigid_transform"]
 
@@ -59,7 +59,7 @@ def _as_param(x, n: int, name: str, dtype: torch.dtype, device) -> Tensor:
     if t.ndim == 0:
         t = t.expand(n).clone()
     if t.shape != (n,):
-        raise ModelError(f"DH parameter {name} must have shape ({n},), got {batch_shape_str(t.shape)}")
+        raise ModelError(f"DH parameter {name} must have shape ({n},), got {shape_str(t.shape)}")
     if not bool(torch.isfinite(t).all()):
         raise ModelError(f"DH parameter {name} contains NaN or inf")
     return t
@@ -110,7 +110,7 @@ class KinematicChain(nn.Module):
             lim = q_limits.detach() if isinstance(q_limits, Tensor) else q_limits
             lim = torch.as_tensor(lim, dtype=dtype, device=device).clone()
             if lim.shape != (n, 2):
-                raise ModelError(f"q_limits must have shape ({n}, 2), got {batch_shape_str(lim.shape)}")
+                raise ModelError(f"q_limits must have shape ({n}, 2), got {shape_str(lim.shape)}")
             # ±inf marks a joint without limit (a URDF continuous joint); NaN is never a limit
             if bool(torch.isnan(lim).any()) or not bool((lim[:, 0] < lim[:, 1]).all()) or \
                     bool(torch.isinf(lim[:, 0]).logical_and(lim[:, 0] > 0).any()):
@@ -278,7 +278,7 @@ class KinematicChain(nn.Module):
         if q.ndim == 0 or q.shape[-1] != self.n_joints:
             raise ShapeError(
                 f"expected {name} of shape (..., {self.n_joints}) for chain '{self.name}', "
-                f"got {batch_shape_str(q.shape)}"
+                f"got {shape_str(q.shape)}"
             )
         if q.dtype != self.dtype:
             raise DTypeError(

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._numerics import check_shape, cross, eps_for
+from ._numerics import cross, eps_for
 from .errors import ConventionError, DTypeError, RepresentationSingularityError, ShapeError
 from .manipulability import (
     DecoupledSingularities,
@@ -41,6 +41,7 @@ from .statics import (
     velocity_transform,
     wrench_transform,
 )
+from .validation import check_shape
 
 __all__ = [
     "geometric_jacobian",

@@ -12,9 +12,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._numerics import check_shape, cross, eps_for, safe_norm, safe_sqrt
+from ._numerics import cross, eps_for, safe_norm, safe_sqrt
 from .errors import ConventionError, ModelError, ShapeError
 from .redundancy import _check_J
+from .validation import check_shape
 
 __all__ = [
     "smallest_singular_value",

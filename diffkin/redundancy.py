@@ -14,9 +14,10 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._numerics import batch_shape_str, check_tensor, eps_for
+from ._numerics import eps_for
 from .errors import DTypeError, ShapeError
 from .kernels import dls as _dls
+from .validation import check_tensor, shape_str
 
 __all__ = ["pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"]
 
@@ -24,7 +25,7 @@ __all__ = ["pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"]
 def _check_J(J: Tensor) -> Tensor:
     check_tensor(J, "J")
     if J.ndim < 2:
-        raise ShapeError(f"expected J of shape (..., m, n), got {batch_shape_str(J.shape)}")
+        raise ShapeError(f"expected J of shape (..., m, n), got {shape_str(J.shape)}")
     return J
 
 

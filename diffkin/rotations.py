@@ -14,20 +14,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._numerics import (
-    check_finite,
-    check_shape,
-    check_tensor,
-    eps_for,
-    safe_atan2,
-    safe_norm,
-    safe_sqrt,
-    sinc,
-    wrap_angle,
-)
+from ._numerics import eps_for, safe_atan2, safe_norm, safe_sqrt, sinc, wrap_angle
 from .errors import ConventionError, DiffkinError, DTypeError
 from .kernels import pose_error as _kpe
 from .kernels.quaternion import _canonical, _matrix_to_quaternion
+from .validation import check_finite, check_shape, check_tensor
 
 __all__ = [
     "rot_x",

@@ -11,9 +11,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._numerics import check_shape
 from .errors import ShapeError
 from .rotations import _skew
+from .validation import check_shape
 
 __all__ = [
     "joint_torques_from_wrench",

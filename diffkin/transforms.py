@@ -12,9 +12,10 @@ from functools import reduce
 import torch
 from torch import Tensor
 
-from ._numerics import batch_shape_str, check_finite, check_shape, eps_for
+from ._numerics import eps_for
 from .errors import ConventionError, DiffkinError, DTypeError, ModelError
 from .kernels import pose_error as _kpe
+from .validation import check_finite, check_shape, shape_str
 
 __all__ = [
     "make_transform",
@@ -209,7 +210,7 @@ def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:
     """Validate a fixed ``(4, 4)`` rigid transform (base, tool, URDF origin) and return a tensor copy."""
     T = torch.as_tensor(T, dtype=dtype, device=device).clone()
     if T.shape != (4, 4):
-        raise ModelError(f"{name} must be a (4, 4) homogeneous transform, got {batch_shape_str(T.shape)}")
+        raise ModelError(f"{name} must be a (4, 4) homogeneous transform, got {shape_str(T.shape)}")
     R = T[:3, :3]
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
     tol = 1e-5 if T.dtype != torch.float64 else 1e-9

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_finite, cross
+from .._numerics import cross
 from ..chain import DHChain
 from ..errors import DTypeError, ModelError, ShapeError
 from ..kernels.joints import dh_joints, pose_correction
@@ -32,6 +32,7 @@ from ..kernels.pose_error import pose_error as _pose_error
 from ..kernels.tree import Segments, Topology, matrix_frames
 from ..rotations import _rotvec_to_matrix, _skew
 from ..transforms import as_measured_transform
+from ..validation import check_finite, shape_str
 
 __all__ = ["CalibrationModel", "parameter_names", "DH_KINDS", "POSE_AXES"]
 
@@ -334,7 +335,7 @@ def check_measurements(q, measured, n: int, dtype: torch.dtype, batch: tuple[int
             )
     k = len(batch)
     if q.ndim != k + 2 or tuple(q.shape[:k]) != batch or q.shape[-1] != n:
-        raise ShapeError(f"expected q of shape ({lead}N, {n}), got {batch_shape_str(q.shape)}")
+        raise ShapeError(f"expected q of shape ({lead}N, {n}), got {shape_str(q.shape)}")
     N = q.shape[k]
     if N < 1:
         raise ShapeError("calibration needs at least one measured pose (N >= 1)")
@@ -342,12 +343,12 @@ def check_measurements(q, measured, n: int, dtype: torch.dtype, batch: tuple[int
     if not position_only and (measured.ndim != k + 3 or measured.shape[-2:] != (4, 4)):
         raise ShapeError(
             f"expected measured poses T of shape ({lead}N, 4, 4) or positions ({lead}N, 3), "
-            f"got {batch_shape_str(measured.shape)}"
+            f"got {shape_str(measured.shape)}"
         )
     if tuple(measured.shape[: k + 1]) != (*batch, N):
         raise ShapeError(
             f"q holds {N} joint vectors but T holds {measured.shape[k]} measurements "
-            f"(q {batch_shape_str(q.shape)}, T {batch_shape_str(measured.shape)})"
+            f"(q {shape_str(q.shape)}, T {shape_str(measured.shape)})"
         )
     check_finite(q, "q")
     check_finite(measured, "T")

@@ -17,9 +17,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_finite, check_tensor
 from ..errors import ConventionError, DTypeError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
+from ..validation import check_finite, check_tensor, shape_str
 from .closed_loop import clik
 from .result import final_errors
 
@@ -90,7 +90,7 @@ def _check_path(chain, T_traj) -> bool:
     else:
         raise ShapeError(
             f"expected T_traj of shape (..., S, 4, 4) (poses) or (..., S, 3) (positions), "
-            f"got {batch_shape_str(T_traj.shape)}"
+            f"got {shape_str(T_traj.shape)}"
         )
     check_finite(T_traj, "T_traj")
     return poses
@@ -160,7 +160,7 @@ def _along_clik(chain, T_traj, q0, poses, dt, velocities, substeps, clik_kwargs)
         check_tensor(velocities, "velocities")
         if velocities.shape[-1] != size or velocities.ndim < 2 or velocities.shape[-2] != n_s:
             raise ShapeError(
-                f"expected velocities of shape (..., {n_s}, {size}), got {batch_shape_str(velocities.shape)}"
+                f"expected velocities of shape (..., {n_s}, {size}), got {shape_str(velocities.shape)}"
             )
         velocities = refine_path(velocities, substeps)
     fine = refine_path(T_traj, substeps)

@@ -36,11 +36,12 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_finite, check_tensor, safe_atan2, safe_sqrt, wrap_angle
+from .._numerics import safe_atan2, safe_sqrt, wrap_angle
 from ..errors import DTypeError, ModelError, ShapeError
 from ..kernels.joints import dh_matrix
 from ..rotations import _matrix_to_euler
 from ..transforms import _transform_inverse
+from ..validation import check_finite, check_tensor, shape_str
 from .industrial import INDUSTRIAL_FAMILIES, recognise_industrial, solve_industrial
 
 __all__ = ["ClosedFormSolution", "closed_form", "identify_structure", "CLOSED_FORM_STRUCTURES", "into_limits"]
@@ -294,7 +295,7 @@ def _kind(T: Tensor, structure: str) -> str:
         "spherical_wrist": "(..., 4, 4) or a rotation (..., 3, 3)",
     }.get(structure, "(..., 4, 4)")
     raise ShapeError(
-        f"expected a target T of shape {expected} for a {structure}, got {batch_shape_str(T.shape)}"
+        f"expected a target T of shape {expected} for a {structure}, got {shape_str(T.shape)}"
     )
 
 
@@ -411,7 +412,7 @@ def closed_form(chain, T: Tensor, tol: float | None = None) -> ClosedFormSolutio
     if structure in INDUSTRIAL_FAMILIES:
         if T.ndim < 2 or tuple(T.shape[-2:]) != (4, 4):
             raise ShapeError(f"expected a target T of shape (..., 4, 4) for a {structure} arm, got "
-                             f"{batch_shape_str(T.shape)}")
+                             f"{shape_str(T.shape)}")
         q = into_limits(chain, solve_industrial(chain, structure, T))
         valid = _valid_world(chain, q, T, tol)
         return ClosedFormSolution(q, valid, chain.within_limits(q), structure)

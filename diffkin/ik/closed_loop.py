@@ -36,7 +36,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_tensor, eps_for, safe_norm, wrap_angle
+from .._numerics import eps_for, safe_norm, wrap_angle
 from ..errors import ConventionError, ModelError, ShapeError
 from ..jacobian import (
     _inverse3,
@@ -54,6 +54,7 @@ from ..rotations import (
     _matrix_to_euler,
     _skew,
 )
+from ..validation import check_tensor, shape_str
 
 __all__ = ["CLIKResult", "clik", "CLIK_ALGORITHMS", "CLIK_ORIENTATIONS", "joint_limit_objective"]
 
@@ -134,7 +135,7 @@ def _split_desired(task: _Task, x: Tensor):
         raise ShapeError(f"orientation={task.orientation!r} needs poses (..., 4, 4), got {tuple(x.shape)}")
     need = 6 if task.orientation == "euler" else 3
     if x.shape[-1] < need:
-        raise ShapeError(f"expected x_d of shape (..., {need}), got {batch_shape_str(x.shape)}")
+        raise ShapeError(f"expected x_d of shape (..., {need}), got {shape_str(x.shape)}")
     return x[..., :3], (x[..., 3:6] if task.orientation == "euler" else None)
 
 
@@ -142,7 +143,7 @@ def _feed(v: Tensor | None, size: int, like: Tensor) -> Tensor:
     if v is None:
         return torch.zeros(size, dtype=like.dtype, device=like.device)
     if v.shape[-1] < size:
-        raise ShapeError(f"expected target derivatives (..., {size}), got {batch_shape_str(v.shape)}")
+        raise ShapeError(f"expected target derivatives (..., {size}), got {shape_str(v.shape)}")
     return v[..., :size]
 
 

@@ -15,11 +15,11 @@ import math
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_finite, check_shape, check_tensor
 from ..chain import KinematicChain
 from ..errors import DTypeError, ShapeError
 from ..kernels.dls import dls_solve
 from ..transforms import as_measured_transform, pose_error
+from ..validation import check_finite, check_shape, check_tensor, shape_str
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -40,7 +40,7 @@ def dls_delta(J: Tensor, err: Tensor, damping=0.05) -> Tensor:
     """
     check_tensor(J, "J")
     if J.ndim < 2:
-        raise ShapeError(f"expected J of shape (..., r, n), got {batch_shape_str(J.shape)}")
+        raise ShapeError(f"expected J of shape (..., r, n), got {shape_str(J.shape)}")
     check_shape(err, (J.shape[-2],), "err")
     return dls_solve(J, err, torch.as_tensor(damping, dtype=J.dtype, device=J.device) ** 2)
 
@@ -87,7 +87,7 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     if pos_input:
         if tuple(T_target.shape[-1 - len(ends) : -1]) != ends:
             raise ShapeError(f"expected target positions of shape (..., {K}, 3) for the {K} end links of "
-                             f"chain '{chain.name}', got {batch_shape_str(T_target.shape)}")
+                             f"chain '{chain.name}', got {shape_str(T_target.shape)}")
         check_finite(T_target, "T_target")
         batch = tuple(T_target.shape[: T_target.ndim - 1 - len(ends)])
         pd = T_target.reshape(-1, K * 3).T.to(dtype)
@@ -96,7 +96,7 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     tail = tuple(T_target.shape[max(T_target.ndim - 2 - len(ends), 0) :])
     if T_target.ndim < 2 + len(ends) or tail != (*ends, 4, 4):
         want = f"{want} or {want[:-6]}3)" if position_only else want
-        raise ShapeError(f"expected T_target of shape {want}, got {batch_shape_str(T_target.shape)}")
+        raise ShapeError(f"expected T_target of shape {want}, got {shape_str(T_target.shape)}")
     T_target = as_measured_transform(T_target, "T_target")  # 1e-5 tolerance, re-orthonormalised
     batch = tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
     Tt = T_target.reshape(-1, K, 4, 4).to(dtype).permute(1, 2, 3, 0)  # (K, 4, 4, N)
@@ -118,14 +118,14 @@ def _user_seeds(chain, q0, batch: tuple[int, ...], N: int) -> Tensor | None:
     elif q0.ndim - 2 != nb:
         raise ShapeError(
             f"expected q0 of shape (..., {n}) or (..., S, {n}) with leading dims broadcastable to the target "
-            f"batch {batch_shape_str(batch)}, got {batch_shape_str(q0.shape)}"
+            f"batch {shape_str(batch)}, got {shape_str(q0.shape)}"
         )
     try:
         q0 = q0.expand(*batch, q0.shape[-2], n)
     except RuntimeError:
         raise ShapeError(
-            f"q0 of shape {batch_shape_str(q0.shape)} does not broadcast to the target batch "
-            f"{batch_shape_str(batch)} (expected (..., {n}) or (..., S, {n}))"
+            f"q0 of shape {shape_str(q0.shape)} does not broadcast to the target batch "
+            f"{shape_str(batch)} (expected (..., {n}) or (..., S, {n}))"
         ) from None
     return q0.reshape(N, q0.shape[-2], n)
 

@@ -11,8 +11,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import batch_shape_str, check_finite, check_tensor
 from ..errors import DiffkinError, DTypeError, ShapeError
+from ..validation import check_finite, check_tensor, shape_str
 
 __all__ = ["Trajectory", "InfeasibleTrajectoryError"]
 
@@ -78,7 +78,7 @@ def check_knot_times(times, like: Tensor, N: int, name: str = "times") -> Tensor
     times = as_tensor(times, like, name)
     if times.ndim < 1 or times.shape[-1] != N:
         raise ShapeError(
-            f"expected {name} of shape (..., {N}) to match the points, got {batch_shape_str(times.shape)}"
+            f"expected {name} of shape (..., {N}) to match the points, got {shape_str(times.shape)}"
         )
     check_finite(times, name)
     if N > 1 and bool((times[..., 1:] <= times[..., :-1]).any()):
@@ -91,7 +91,7 @@ def check_points(points, name: str = "points", min_points: int = 2) -> Tensor:
     if points.ndim < 2 or points.shape[-2] < min_points:
         raise ShapeError(
             f"expected {name} of shape (..., N, n) with N >= {min_points}, "
-            f"got {batch_shape_str(points.shape)}"
+            f"got {shape_str(points.shape)}"
         )
     check_finite(points, name)
     return points

@@ -22,7 +22,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import check_shape, check_tensor, eps_for, safe_norm, safe_normalize
+from .._numerics import eps_for, safe_norm, safe_normalize
 from ..errors import DiffkinError, ShapeError
 from ..rotations import (
     euler_rate_matrix,
@@ -35,6 +35,7 @@ from ..rotations import (
     quaternion_to_rotvec,
     rotvec_to_matrix,
 )
+from ..validation import check_shape, check_tensor
 from ._common import Trajectory, as_tensor, query_times
 from .point_to_point import timing_law
 

@@ -14,8 +14,9 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .._numerics import check_tensor, eps_for, safe_sqrt
+from .._numerics import eps_for, safe_sqrt
 from ..errors import ConventionError, DiffkinError, ShapeError
+from ..validation import check_tensor
 from ._common import (
     InfeasibleTrajectoryError,
     Trajectory,

@@ -1,0 +1,216 @@
+"""The shared validators of diffkin's public boundary: one rule for what a public function accepts.
+
+Every public function that takes numbers runs its arguments through :func:`tensors` (or the single-argument
+helpers below) once, on entry; the kernels behind it trust their input. The rule:
+
+* **Tensors are taken as they are**: float32 or float64, one dtype and one device per call. Integer, bool,
+  complex, float16 and bfloat16 tensors raise :class:`~diffkin.errors.DTypeError` (half precision cannot
+  meet IK and calibration tolerances: convert with ``.float()``); tensors of two float dtypes or two devices
+  in one call raise :class:`~diffkin.errors.DTypeError` naming both.
+* **Everything else that holds numbers is converted**: Python numbers, (nested) sequences and numpy arrays of
+  float or integer dtype become tensors of the call's dtype and device — the chain's for a chain or a
+  function that takes one, else that of the call's tensor arguments, else float64 for a float64 numpy array
+  and torch's default dtype otherwise. Bool, complex, float16 and object data are refused (``DTypeError``).
+* **Shapes**: trailing dimensions must match exactly (:class:`~diffkin.errors.ShapeError` names the expected
+  and received shape; nothing is broadcast into a wrong trailing shape); leading batch dimensions are free
+  and may be empty (empty batches give empty results).
+* **Values**: NaN or inf raise :class:`~diffkin.errors.NonFiniteError` (``finite=False`` skips it where inf is
+  meaningful, e.g. joint limits). The check is one reduction on the device plus one host read, skipped while
+  ``torch.compile`` traces or inside ``torch.func`` transforms, where it cannot read values.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from numbers import Number
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .errors import DTypeError, NonFiniteError, ShapeError
+
+__all__ = [
+    "SUPPORTED_DTYPES",
+    "as_tensor",
+    "check_dtype",
+    "check_finite",
+    "check_shape",
+    "check_tensor",
+    "check_trailing",
+    "common_dtype_device",
+    "shape_str",
+    "tensors",
+]
+
+#: The floating dtypes every public function computes in.
+SUPPORTED_DTYPES = (torch.float32, torch.float64)
+
+Trailing = Sequence["int | None"] | None  # None: any shape; an entry None: any size on that axis
+
+
+def shape_str(shape: Sequence[int]) -> str:
+    """``(2, 3)``: a shape as users write it."""
+    return "(" + ", ".join(str(s) for s in shape) + ")"
+
+
+def _expected_str(trailing: Sequence[int | None]) -> str:
+    dims = ["..."] + ["*" if t is None else str(t) for t in trailing]
+    return "(" + ", ".join(dims) + ")"
+
+
+def check_dtype(x: Tensor, name: str) -> Tensor:
+    """Raise :class:`DTypeError` unless ``x`` is a float32 or float64 tensor."""
+    if x.dtype in SUPPORTED_DTYPES:
+        return x
+    if x.dtype in (torch.float16, torch.bfloat16):
+        raise DTypeError(
+            f"{name} has dtype {x.dtype}, which diffkin does not support (half precision cannot meet its "
+            f"tolerances); expected float32 or float64: convert with {name}.float()"
+        )
+    raise DTypeError(f"expected {name} as a float32 or float64 tensor, got dtype {x.dtype}")
+
+
+def check_tensor(x: Any, name: str) -> Tensor:
+    """Raise :class:`DTypeError` unless ``x`` is a float32 or float64 ``torch.Tensor`` (no conversion)."""
+    if not isinstance(x, Tensor):
+        raise DTypeError(f"expected {name} as a float32 or float64 torch.Tensor, got {type(x).__name__}")
+    return check_dtype(x, name)
+
+
+def check_trailing(x: Tensor, trailing: Sequence[int | None], name: str) -> Tensor:
+    """Raise :class:`ShapeError` unless ``x``'s trailing dims are ``trailing`` (None: any size)."""
+    k = len(trailing)
+    ok = x.ndim >= k and all(t is None or s == t for s, t in zip(x.shape[x.ndim - k :], trailing))
+    if not ok:
+        raise ShapeError(f"expected {name} of shape {_expected_str(trailing)}, got {shape_str(x.shape)}")
+    return x
+
+
+def check_shape(x: Any, trailing: Sequence[int | None], name: str) -> Tensor:
+    """:func:`check_tensor` and :func:`check_trailing` in one call."""
+    return check_trailing(check_tensor(x, name), trailing, name)
+
+
+def _traced(x: Tensor) -> bool:
+    """Values cannot be read: torch.compile is tracing, or ``x`` is wrapped by a torch.func transform."""
+    if torch.compiler.is_compiling():
+        return True
+    plain = type(x) in (Tensor, torch.nn.Parameter)
+    return not plain or torch._C._functorch.is_functorch_wrapped_tensor(x)
+
+
+def check_finite(x: Tensor, name: str) -> Tensor:
+    """Raise :class:`NonFiniteError` if ``x`` holds NaN or inf (skipped while tracing; see module doc)."""
+    if x.numel() == 0 or _traced(x):
+        return x
+    with torch.no_grad():
+        # one cheap reduction: a finite sum means every entry is finite; an inf sum may be an overflow of
+        # large finite values (float32 at 1e30), so the exact elementwise test decides then
+        if bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all()):
+            return x
+        bad = int((~torch.isfinite(x)).sum())
+    raise NonFiniteError(f"{name} contains NaN or inf ({bad} of {x.numel()} values); expected finite numbers")
+
+
+def _numpy_dtype(a: np.ndarray, name: str) -> torch.dtype | None:
+    """The torch dtype a numpy array keeps when nothing else decides (None: torch's default), or refuse."""
+    kind = a.dtype.kind
+    if kind == "f" and a.dtype.itemsize >= 4:
+        return torch.float64 if a.dtype == np.float64 else torch.float32
+    if kind in "iu":
+        return None
+    what = {"b": "bool", "c": "complex", "f": "float16", "O": "object"}.get(kind, str(a.dtype))
+    raise DTypeError(f"expected {name} as float or integer numbers, got a numpy array of {what} dtype")
+
+
+def _numpy_common_dtype(arrays: list[tuple[str, Any]]) -> torch.dtype | None:
+    kept = [_numpy_dtype(np.asarray(v), name) for name, v in arrays]
+    if torch.float64 in kept:
+        return torch.float64
+    return torch.float32 if kept and None not in kept else None
+
+
+def as_tensor(x: Any, name: str, *, dtype: torch.dtype | None = None, device=None) -> Tensor:
+    """One argument by the module's rule: a tensor is checked (float32/float64) and returned as it is; a
+    Python number, sequence or numpy array is converted to ``dtype``/``device`` (defaults: see module doc)."""
+    if isinstance(x, Tensor):
+        return check_dtype(x, name)
+    if isinstance(x, bool | np.bool_):
+        raise DTypeError(f"expected {name} as a number, got bool {x}")
+    if isinstance(x, np.ndarray | np.generic):
+        arr = np.asarray(x)
+        keep = _numpy_dtype(arr, name)
+        return torch.as_tensor(arr, device=device).to(dtype or keep or torch.get_default_dtype())
+    if isinstance(x, Number | Sequence) and not isinstance(x, str | bytes):
+        try:
+            arr = np.asarray(x)
+        except ValueError as exc:  # ragged nested sequences
+            raise ShapeError(f"{name} is a ragged sequence ({exc})") from None
+        if arr.dtype.kind not in "iuf":
+            raise DTypeError(f"expected {name} as numbers, got {type(x).__name__} of {arr.dtype}")
+        return torch.as_tensor(arr, device=device).to(dtype or torch.get_default_dtype())
+    raise DTypeError(f"expected {name} as a float32/float64 torch.Tensor or numbers, got {type(x).__name__}")
+
+
+def common_dtype_device(named: dict[str, Tensor]) -> tuple[torch.dtype | None, torch.device | None]:
+    """The one dtype and device of the named tensors; :class:`DTypeError` naming both on a mix."""
+    first: tuple[str, Tensor] | None = None
+    for name, t in named.items():
+        if first is None:
+            first = (name, t)
+            continue
+        n0, t0 = first
+        if t.dtype != t0.dtype:
+            raise DTypeError(
+                f"expected one dtype, got {n0}: {t0.dtype} and {name}: {t.dtype}; convert one of them"
+            )
+        if t.device != t0.device:
+            raise DTypeError(f"expected one device, got {n0} on {t0.device} and {name} on {t.device}")
+    return (None, None) if first is None else (first[1].dtype, first[1].device)
+
+
+def tensors(
+    *specs: tuple[str, Any, Trailing],
+    like: Tensor | torch.nn.Module | None = None,
+    finite: bool | Sequence[bool] = True,
+) -> tuple[Tensor, ...]:
+    """Validate a call's arguments together, by the module's rule.
+
+    Args:
+        specs: ``(name, value, trailing)`` per argument; ``trailing`` is the required trailing shape (entries
+            None for any size) or None for any shape. ``None`` values pass through as None.
+        like: a chain (anything with ``dtype`` and ``device``) or tensor whose dtype and device the call
+            must use: tensors must match it, other inputs are converted to it.
+        finite: check every argument (or per argument) for NaN/inf.
+
+    Returns:
+        the arguments as tensors, in order.
+    """
+    flags = [finite] * len(specs) if isinstance(finite, bool) else list(finite)
+    given = {name: v for name, v, _ in specs if isinstance(v, Tensor)}
+    for name, v in given.items():
+        check_dtype(v, name)
+    if like is not None:
+        target = ("chain" if isinstance(like, torch.nn.Module) else "reference", like)
+        probe = torch.empty(0, dtype=like.dtype, device=like.device)
+        common_dtype_device({target[0]: probe, **given})
+        dtype, device = like.dtype, like.device
+    else:
+        dtype, device = common_dtype_device(given)
+        if dtype is None:  # no tensor decides: the numpy arguments' widest float dtype, else torch's default
+            arrays = [(n, v) for n, v, _ in specs if isinstance(v, np.ndarray | np.generic)]
+            dtype = _numpy_common_dtype(arrays)
+    out = []
+    for (name, v, trailing), check in zip(specs, flags):
+        if v is None:
+            out.append(None)
+            continue
+        t = as_tensor(v, name, dtype=dtype, device=device)
+        if trailing is not None:
+            check_trailing(t, trailing, name)
+        if check:
+            check_finite(t, name)
+        out.append(t)
+    return tuple(out)
