@@ -11,6 +11,7 @@ import yaml
 __all__ = ["RunConfig", "load_config"]
 
 _ALGOS = ("sac", "td3", "ppo")
+_SWEEP_SECTIONS = ("search_space", "tune")
 
 
 @dataclass(frozen=True)
@@ -57,11 +58,14 @@ class RunConfig:
 
 
 def load_config(path: str | Path) -> RunConfig:
-    """Read a YAML run config; unknown keys raise ``ValueError`` naming them."""
+    """Read a YAML run config; unknown keys raise ``ValueError`` naming them. A sweep's ``search_space``
+    and ``tune`` sections (:mod:`training.tune`) are left to the sweep."""
     data = yaml.safe_load(Path(path).read_text())
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping at the top level")
     data.setdefault("name", Path(path).stem)
+    for section in _SWEEP_SECTIONS:  # read by training.tune; a sweep config trains as its base config
+        data.pop(section, None)
     known = {f.name for f in dataclasses.fields(RunConfig)}
     unknown = sorted(set(data) - known)
     if unknown:

@@ -66,9 +66,10 @@ class EvalCallback(BaseCallback):
     """Batched evaluation every ``eval_freq`` env steps; wall-clock and success-based stopping."""
 
     def __init__(self, cfg: RunConfig, eval_env: TorchVectorEnv, start: float, log=print,
-                 out: Path | None = None):
+                 out: Path | None = None, on_evaluate=None):
         super().__init__()
         self.cfg, self.eval_env, self.start, self.log, self.out = cfg, eval_env, start, log, out
+        self.on_evaluate = on_evaluate
         self.curve: list[dict] = []
         self.next_eval = cfg.eval_freq
         self.stop_reason = "total_timesteps"
@@ -84,6 +85,8 @@ class EvalCallback(BaseCallback):
             if k in res:
                 self.logger.record(f"eval/{k}", res[k])
         self.log(json.dumps(point))
+        if self.on_evaluate is not None:  # e.g. a sweep's pruning hook; it may raise to end the run
+            self.on_evaluate(point)
         return res
 
     def _on_step(self) -> bool:
@@ -109,8 +112,11 @@ def versions() -> dict:
             "platform": platform.platform()}
 
 
-def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print) -> dict:
+def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print, on_evaluate=None) -> dict:
     """Train, evaluate and save; returns the results dict (also written to ``out/results.json``).
+
+    ``on_evaluate(point)`` is called after each evaluation with its curve point (timesteps, wall_s and the
+    evaluation's metrics); an exception it raises ends training and propagates (Optuna's pruning).
 
     Leaves torch's thread count alone: ``cfg.torch_threads`` is applied by the command-line entry points
     (:func:`main`, ``diffkin train``), not here."""
@@ -129,8 +135,12 @@ def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print) -> di
     venv = build_env(cfg)
     model = build_model(cfg, venv, tb_dir)
     start = time.time()
-    cb = EvalCallback(cfg, eval_env, start, log, out)
-    model.learn(cfg.total_timesteps, callback=cb, progress_bar=progress_bar)
+    cb = EvalCallback(cfg, eval_env, start, log, out, on_evaluate)
+    try:
+        model.learn(cfg.total_timesteps, callback=cb, progress_bar=progress_bar)
+    except BaseException:
+        venv.close()  # a pruned or interrupted run leaves no env behind
+        raise
     train_s = time.time() - start
     if not cb.curve or cb.curve[-1]["timesteps"] != model.num_timesteps:
         cb.evaluate()
