@@ -1,11 +1,11 @@
-"""The documentation site: it builds strictly, and every Python block of the tutorials runs.
+"""The documentation site: it builds strictly, and every Python block of the tutorials and home page runs.
 
-Tutorial blocks (```` ```python ```` fences in ``docs/tutorials/*.md``) run in order, one interpreter per page
-(later blocks use what earlier ones defined, like a notebook), in a temporary directory that holds links to
-the repository's ``configs/`` and ``tests/data/``. Tracebacks name the Markdown file and line. A block whose
-first line is ``# requires: NAME[, NAME...]`` is skipped when one of them is missing; NAME is an extra of
-``pyproject.toml`` (``rl``) or an importable module. Blocks that use a skipped block's names carry the same
-marker.
+The blocks (```` ```python ```` fences in ``docs/index.md`` and ``docs/tutorials/*.md``) run in order, one
+interpreter per page (later blocks use what earlier ones defined, like a notebook), in a temporary directory
+that holds links to the repository's ``configs/`` and ``tests/``. Tracebacks name the Markdown file and
+line. A block whose first line is ``# requires: NAME[, NAME...]`` is skipped when one of them is missing;
+NAME is an extra of ``pyproject.toml`` (``rl``) or an importable module. Blocks that use a skipped block's
+names carry the same marker.
 """
 
 from __future__ import annotations
@@ -21,7 +21,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-TUTORIALS = sorted((ROOT / "docs" / "tutorials").glob("*.md"))
+PAGES = [ROOT / "docs" / "index.md"] + sorted(
+    p for p in (ROOT / "docs" / "tutorials").glob("*.md") if p.name != "index.md"
+)
 EXTRAS = {"rl": ("gymnasium", "stable_baselines3"), "docs": ("mkdocs", "mkdocstrings", "material")}
 PAGE_TIMEOUT_S = 120
 _FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})[ \t]*(?P<info>[^\n`]*)$")
@@ -70,8 +72,8 @@ for path, line, code in BLOCKS:
 """
 
 
-@pytest.mark.parametrize("page", TUTORIALS, ids=[p.stem for p in TUTORIALS])
-def test_tutorial_code_blocks_run(page: Path, tmp_path: Path):
+@pytest.mark.parametrize("page", PAGES, ids=[p.stem for p in PAGES])
+def test_page_code_blocks_run(page: Path, tmp_path: Path):
     blocks = python_blocks(page)
     assert blocks, f"{page} has no python code block"
     run, skipped = [], []
