@@ -76,3 +76,6 @@ class RstRoles(griffe.Extension):
             if obj.docstring is not None and ":" in obj.docstring.value:
                 obj.docstring.value = _rewrite(obj, collection, obj.docstring.value)
             stack.extend(m for m in obj.members.values() if not m.is_alias)
+
+    # griffe 1.x names the same event ``on_package_loaded``; the rewrite is idempotent if both fire.
+    on_package_loaded = on_package
