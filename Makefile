@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test demo bench train lint clean
+.PHONY: install test demo bench train lint docs clean
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -14,7 +14,7 @@ $(PY):
 # Reinstall when the project's metadata or pins change.
 $(STAMP): $(PY) pyproject.toml constraints.txt
 	$(PIP) install -q -c constraints.txt torch==2.13.0
-	$(PIP) install -q -c constraints.txt -e ".[dev,rl,tune]"
+	$(PIP) install -q -c constraints.txt -e ".[dev,rl,tune,docs]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -33,8 +33,12 @@ bench: $(STAMP)
 train: $(STAMP)
 	$(PY) -m training.train --config configs/sac_her_reach_panda_cartesian.yaml
 
+# The documentation site into site/ (MkDocs-Material + mkdocstrings; warnings fail the build).
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict -d site
+
 lint: $(STAMP)
 	$(PY) -m ruff check .
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache site

@@ -1,0 +1,123 @@
+"""The documentation site: it builds strictly, and every Python block of the tutorials and home page runs.
+
+The blocks (```` ```python ```` fences in ``docs/index.md`` and ``docs/tutorials/*.md``) run in order, one
+interpreter per page (later blocks use what earlier ones defined, like a notebook), in a temporary directory
+that holds links to the repository's ``configs/`` and ``tests/``. Tracebacks name the Markdown file and
+line. A block whose first line is ``# requires: NAME[, NAME...]`` is skipped when one of them is missing;
+NAME is an extra of ``pyproject.toml`` (``rl``) or an importable module. Blocks that use a skipped block's
+names carry the same marker.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = [ROOT / "docs" / "index.md"] + sorted(
+    p for p in (ROOT / "docs" / "tutorials").glob("*.md") if p.name != "index.md"
+)
+EXTRAS = {"rl": ("gymnasium", "stable_baselines3"), "docs": ("mkdocs", "mkdocstrings", "material")}
+PAGE_TIMEOUT_S = 120
+_FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})[ \t]*(?P<info>[^\n`]*)$")
+_REQUIRES = re.compile(r"^#\s*requires:\s*(?P<names>.+)$")
+
+
+def python_blocks(path: Path) -> list[tuple[int, str]]:
+    """``(first code line, code)`` of every fenced block whose info string starts with ``python``/``py``."""
+    lines = path.read_text(encoding="utf-8").splitlines()
+    blocks, i = [], 0
+    while i < len(lines):
+        m = _FENCE.match(lines[i])
+        if not m:
+            i += 1
+            continue
+        fence, lang = m["fence"], m["info"].strip().split(" ")[0].lstrip(".{").lower()
+        j = i + 1
+        while j < len(lines) and not lines[j].strip().startswith(fence):
+            j += 1
+        if lang in ("python", "py"):
+            blocks.append((i + 2, textwrap.dedent("\n".join(lines[i + 1 : j]))))
+        i = j + 1
+    return blocks
+
+
+def missing_requirements(code: str) -> list[str]:
+    """The names of a block's ``# requires:`` line that are not installed."""
+    first = code.lstrip().splitlines()[0] if code.strip() else ""
+    m = _REQUIRES.match(first.strip())
+    if not m:
+        return []
+    missing = []
+    for name in (n.strip() for n in m["names"].split(",")):
+        modules = EXTRAS.get(name, (name,))
+        if any(importlib.util.find_spec(mod) is None for mod in modules):
+            missing.append(name)
+    return missing
+
+
+_DRIVER = """
+import sys
+ns = {"__name__": "__main__"}
+for path, line, code in BLOCKS:
+    print(f"--- {path}:{line}", flush=True)
+    exec(compile("\\n" * (line - 1) + code, path, "exec"), ns)
+"""
+
+
+@pytest.mark.parametrize("page", PAGES, ids=[p.stem for p in PAGES])
+def test_page_code_blocks_run(page: Path, tmp_path: Path):
+    blocks = python_blocks(page)
+    assert blocks, f"{page} has no python code block"
+    run, skipped = [], []
+    for line, code in blocks:
+        missing = missing_requirements(code)
+        (skipped if missing else run).append((line, code, missing))
+    if not run:
+        pytest.skip(f"every block needs {sorted({m for *_, ms in skipped for m in ms})}")
+    rel = str(page.relative_to(ROOT))
+    script = f"BLOCKS = {[(rel, line, code) for line, code, _ in run]!r}\n{_DRIVER}"
+    for name in ("configs", "tests"):
+        (tmp_path / name).symlink_to(ROOT / name)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    proc = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=PAGE_TIMEOUT_S)
+    assert proc.returncode == 0, f"{rel}: a code block failed\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}"
+    if skipped:
+        missing = sorted({m for *_, ms in skipped for m in ms})
+        pytest.skip(f"{len(skipped)} block(s) skipped, missing {missing}")
+
+
+def test_python_blocks_parser(tmp_path: Path):
+    md = tmp_path / "x.md"
+    md.write_text("text\n```python\na = 1\n```\n\n```bash\nls\n```\n\n    ```py\n    # requires: rl\n"
+                  "    b = a\n    ```\n")
+    assert python_blocks(md) == [(3, "a = 1"), (11, "# requires: rl\nb = a")]
+    assert missing_requirements("# requires: surely_not_a_module_xyz\nx = 1") == ["surely_not_a_module_xyz"]
+    assert missing_requirements("x = 1") == []
+
+
+@pytest.mark.slow
+def test_site_builds_strict(tmp_path: Path):
+    pytest.importorskip("mkdocs")
+    pytest.importorskip("mkdocstrings_handlers.python")
+    pytest.importorskip("material")
+    env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
+    site = tmp_path / "site"
+    proc = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
+    assert proc.returncode == 0, proc.stderr[-6000:]
+    pages = ("index.html", "textbook/index.html", "tutorials/calibration/index.html", "benchmarks/index.html",
+             "rl/RESULTS/index.html")
+    for page in pages:
+        assert (site / page).is_file(), page
+    api = (site / "api" / "ik" / "index.html").read_text(encoding="utf-8")
+    assert 'id="diffkin.ik.solve"' in api and ":func:" not in api  # rendered, Sphinx roles turned into links
