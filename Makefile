@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test demo bench train lint clean
+.PHONY: install test demo bench train lint clean view-check
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -32,6 +32,12 @@ bench: $(STAMP)
 
 train: $(STAMP)
 	$(PY) -m training.train --config configs/sac_her_reach_panda_cartesian.yaml
+
+# `diffkin view --robot panda` in headless Chromium (the system's: apt-get install chromium; no
+# `playwright install`): saves docs/img/viewer.png and checks it shows the robot.
+view-check: $(STAMP)
+	$(PIP) install -q -c constraints.txt -e ".[viz]" playwright
+	$(PY) scripts/view_check.py
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

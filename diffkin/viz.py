@@ -86,6 +86,27 @@ def _as_joints(chain, q, name: str = "q") -> Tensor:
     return t.to(dtype=chain.dtype, device=chain.device)
 
 
+def _read_trajectory(chain, trajectory) -> tuple[Tensor, float | None]:
+    """Joint vectors ``(N, n)`` and their frame rate when the file has times (else None).
+
+    A file is read by :func:`diffkin.data_io.read_joints` (``.npy``, ``.csv``, ``.npz`` entry ``q``); an
+    ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate.
+    """
+    if not isinstance(trajectory, (str, Path)):
+        return _as_trajectory(chain, trajectory), None
+    path = Path(trajectory)
+    if path.suffix == ".npz" and path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            if "q" not in data.files and "position" in data.files:
+                q = _as_trajectory(chain, data["position"])
+                fps = None
+                if "t" in data.files and data["t"].shape == (q.shape[0],) and q.shape[0] > 1:
+                    span = float(data["t"][-1] - data["t"][0])
+                    fps = (q.shape[0] - 1) / span if span > 0 else None
+                return q, fps
+    return _as_trajectory(chain, trajectory), None
+
+
 def _as_trajectory(chain, trajectory) -> Tensor:
     """Joint vectors ``(N, n)`` from a tensor, an array or a .npy/.npz/.csv file."""
     if isinstance(trajectory, (str, Path)):
@@ -108,12 +129,13 @@ class Viewer:
 
     Args:
         chain: any :class:`~diffkin.chain.KinematicChain` (DH or URDF, one or K end links).
-        q: initial joint vector ``(n,)`` (default: zeros clamped to the limits).
+        q: initial joint vector ``(n,)`` (default: zero where the limits allow, else the middle of the
+            joint's range ``chain.lower_upper()``).
         host: interface to serve on (default loopback ``127.0.0.1``; ``0.0.0.0`` for every interface).
         port: TCP port; ``0`` picks a free one; viser moves on to the next free port if it is taken —
             :attr:`port` / :attr:`url` say which one is served.
         trajectory: optional joint vectors ``(N, n)`` (tensor, array or .npy/.npz/.csv) to play back.
-        fps: playback frames per second.
+        fps: playback frames per second (default: the file's own rate when it has times, else 30).
         urdf: the URDF file of a URDF chain, to show its visual meshes (relative and ``package://`` mesh
             paths resolve against the file's folder; ``None``: against the working directory).
         meshes: False: never load URDF meshes (frames and segments only).
@@ -129,7 +151,7 @@ class Viewer:
     """
 
     def __init__(self, chain, q=None, *, host: str = "127.0.0.1", port: int = 8080, trajectory=None,
-                 fps: float = 30.0, urdf=None, meshes: bool = True, ik_options: dict | None = None,
+                 fps: float | None = None, urdf=None, meshes: bool = True, ik_options: dict | None = None,
                  verbose: bool = False):
         viser = _import_viser()
         self.chain = chain
@@ -148,11 +170,13 @@ class Viewer:
         self._ends_in_frames = self._single_end and topo.ends[0] == J - 1
         lo, hi = chain.lower_upper()
         self._lo, self._hi = lo.detach().cpu().double().numpy(), hi.detach().cpu().double().numpy()
-        if q is None:
-            q = np.clip(np.zeros(chain.n_joints), self._lo, self._hi)
+        if q is None:  # zero where the limits allow it, else the middle of the joint's range
+            q = np.where((self._lo <= 0) & (self._hi >= 0), 0.0, 0.5 * (self._lo + self._hi))
         self._q = _as_joints(chain, q)
 
-        self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        with _maybe_quiet(verbose):  # viser prints its URL banner whatever `verbose` says
+            self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        self._verbose = verbose
         self.host = host
         try:
             self._build_scene(urdf, meshes)
@@ -160,7 +184,7 @@ class Viewer:
             self._traj: Tensor | None = None
             self._traj_gui: dict = {}
             self._playing = threading.Event()
-            self._fps = float(fps)
+            self._fps = 30.0 if fps is None else float(fps)
             self._frame = 0
             self._loop = True
             self._player = threading.Thread(target=self._play_loop, name="diffkin-viz-player", daemon=True)
@@ -171,7 +195,8 @@ class Viewer:
             if trajectory is not None:
                 self.load_trajectory(trajectory, fps=fps)
         except BaseException:
-            self.server.stop()
+            with _maybe_quiet(verbose):
+                self.server.stop()
             raise
 
     # ----------------------------------------------------------------------------------- properties
@@ -211,23 +236,29 @@ class Viewer:
         F, E = self._fk(self._q)
         pts = np.concatenate([F[:, :3, 3], E[:, :3, 3]])
         reach = float(np.linalg.norm(pts - F[0, :3, 3], axis=-1).max())
-        # also the sum of segment lengths (a folded arm at q = 0 can look tiny)
         seg = self._segment_points(F, E)
-        reach = max(reach, 0.5 * float(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=-1).sum()), 0.05)
+        if self._single_end:  # a folded arm can look tiny: also half its length, base to end
+            reach = max(reach, 0.5 * float(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=-1).sum()))
+        reach = max(reach, 0.05)
         self.scale = reach
         s = reach
         scene.set_up_direction("+z")
-        scene.add_grid("/grid", width=4 * s, height=4 * s, cell_size=s / 10, section_size=s / 2,
+        scene.add_grid("/grid", width=2.5 * s, height=2.5 * s, cell_size=s / 10, section_size=s / 2,
                        position=tuple(F[0, :3, 3]))
-        self.server.initial_camera.position = tuple(F[0, :3, 3] + np.array([1.5, 1.2, 1.0]) * s)
-        self.server.initial_camera.look_at = tuple(F[0, :3, 3] + np.array([0.0, 0.0, 0.4]) * s)
+        # look at the middle of the robot's bounding box from the front right, far enough to see all of it
+        lo_b, hi_b = pts.min(axis=0), pts.max(axis=0)
+        centre = 0.5 * (lo_b + hi_b)
+        size = max(float(np.linalg.norm(hi_b - lo_b)), 0.3 * s)
+        view = np.array([1.0, 0.8, 0.45])
+        self.server.initial_camera.position = tuple(centre + 1.1 * size * view / np.linalg.norm(view))
+        self.server.initial_camera.look_at = tuple(centre)
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         self._frames = []
         for i in range(F.shape[0]):
             base = i == 0
             self._frames.append(scene.add_frame(
                 "/robot/base" if base else f"/robot/frame_{i}",
-                axes_length=(0.12 if base else 0.07) * s, axes_radius=0.006 * s, origin_radius=0.018 * s,
+                axes_length=(0.12 if base else 0.06) * s, axes_radius=0.005 * s, origin_radius=0.016 * s,
             ))
         self._end_handles = []
         if not self._ends_in_frames:
@@ -243,7 +274,7 @@ class Viewer:
         self.has_meshes = self._mesh is not None
         self._targets = []
         for k in range(E.shape[0]):
-            h = scene.add_transform_controls(f"/ik/target_{k}", scale=0.22 * s, depth_test=False,
+            h = scene.add_transform_controls(f"/ik/target_{k}", scale=0.18 * s, depth_test=False,
                                              wxyz=_wxyz(E[k, :3, :3]), position=tuple(E[k, :3, 3]))
             h.on_update(self._on_target_event)
             self._targets.append(h)
@@ -334,7 +365,7 @@ class Viewer:
             for i, name in enumerate(names):
                 unit = "rad" if chain.joint_types[i] == "R" else "m"
                 s = gui.add_slider(f"{name} [{unit}]", min=float(self._lo[i]), max=float(self._hi[i]),
-                                   step=1e-3, initial_value=float(np.clip(0.0, self._lo[i], self._hi[i])))
+                                   step=1e-3, initial_value=float(self._q[i]))
                 s.on_update(self._slider_callback(i))
                 self.sliders.append(s)
             b = gui.add_button("Random configuration")
@@ -452,17 +483,20 @@ class Viewer:
 
     # ------------------------------------------------------------------------------------ trajectory
     def load_trajectory(self, trajectory, fps: float | None = None) -> None:
-        """Load joint vectors ``(N, n)`` (tensor, array or .npy/.npz/.csv file) for playback (paused, at
-        frame 0); adds the GUI's Trajectory folder (play/pause, frame slider, fps)."""
-        traj = _as_trajectory(self.chain, trajectory)
+        """Load joint vectors ``(N, n)`` for playback (paused, at frame 0) and add the GUI's Trajectory
+        folder (play/pause, frame slider, fps). ``trajectory``: a tensor or array, or a ``.npy`` / ``.csv``
+        / ``.npz`` (entry ``q``) file, or the ``.npz`` of ``diffkin trajectory joint`` (played at the rate of
+        its times ``t`` unless ``fps`` is given)."""
+        traj, file_fps = _read_trajectory(self.chain, trajectory)
+        fps = fps if fps is not None else file_fps
         gui = self.server.gui
         with self._lock:
             self._playing.clear()
-            for h in self._traj_gui.values():
-                h.remove()
+            if "folder" in self._traj_gui:
+                self._traj_gui["folder"].remove()  # and its controls
             self._traj, self._frame = traj, 0
             if fps is not None:
-                self._fps = float(fps)
+                self._fps = float(np.clip(fps, 0.1, 240.0))
             N = traj.shape[0]
             folder = gui.add_folder("Trajectory")
             with folder:
@@ -507,7 +541,7 @@ class Viewer:
         if trajectory is not None:
             self.load_trajectory(trajectory, fps=fps)
         elif fps is not None:
-            self._fps = float(fps)
+            self._fps = float(np.clip(fps, 0.1, 240.0))
         if self._traj is None:
             raise DiffkinError("no trajectory loaded: call play(trajectory)")
         if loop is not None:
@@ -548,7 +582,8 @@ class Viewer:
         self._closed = True
         self._playing.set()  # wake the player so it sees _closed
         self._player.join(timeout=2.0)
-        self.server.stop()
+        with _maybe_quiet(self._verbose):
+            self.server.stop()
 
     def __enter__(self) -> Viewer:
         return self
@@ -559,6 +594,13 @@ class Viewer:
     def __repr__(self) -> str:
         state = "closed" if self._closed else self.url
         return f"Viewer({self.chain.name!r}, {state})"
+
+
+def _maybe_quiet(verbose: bool):
+    import contextlib
+    import io
+
+    return contextlib.nullcontext() if verbose else contextlib.redirect_stdout(io.StringIO())
 
 
 class _quiet_logs:
@@ -608,8 +650,10 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
     p.add_argument("--end-link", dest="end_link", nargs="+", metavar="LINK",
                    help="end link(s) of the URDF (several: a tree, one target each)")
     p.add_argument("--root-link", dest="root_link", help="root link of the URDF chain (default: its root)")
-    p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .npz (key q) or .csv")
-    p.add_argument("--fps", type=float, default=30.0, help="playback frames per second (default 30)")
+    p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), or "
+                   "the .npz of `diffkin trajectory joint`")
+    p.add_argument("--fps", type=float, default=None,
+                   help="playback frames per second (default: the file's times if it has them, else 30)")
     p.add_argument("--play", action="store_true", help="start playing the trajectory at once")
     p.add_argument("--host", default="127.0.0.1",
                    help="interface to serve on (default 127.0.0.1, loopback only; 0.0.0.0: every interface)")

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import torch
 
-from diffkin import cli, models
+from diffkin import cli, models, viz
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -40,8 +40,12 @@ def test_view_parser():
 
 
 # ------------------------------------------------------------------------------------- the viewer
-viser = pytest.importorskip("viser")
-from diffkin import viz  # noqa: E402
+try:
+    import viser
+except ImportError:
+    viser = None
+
+needs_viser = pytest.mark.skipif(viser is None, reason="needs the viz extra (viser)")
 
 
 @pytest.fixture(scope="module")
@@ -78,6 +82,7 @@ def _scene_bytes(url: str, timeout: float = 10.0) -> bytes:
     return out
 
 
+@needs_viser
 def test_serves_loopback_http_and_scene(viewer, panda):
     assert viewer.url.startswith("http://127.0.0.1:") and viewer.port > 0
     with urllib.request.urlopen(viewer.url, timeout=10) as r:
@@ -95,6 +100,7 @@ def test_serves_loopback_http_and_scene(viewer, panda):
         assert node in sent
 
 
+@needs_viser
 def test_sliders_set_q_and_frames_follow_fk(viewer, panda):
     q = panda.random_configuration((), generator=torch.Generator().manual_seed(1))
     viewer.set_q(q)
@@ -115,6 +121,7 @@ def test_sliders_set_q_and_frames_follow_fk(viewer, panda):
     np.testing.assert_allclose(viewer._targets[0].position, F2[-1, :3, 3], atol=1e-6)
 
 
+@needs_viser
 def test_moving_the_target_runs_ik(viewer, panda):
     viewer.set_q(torch.tensor([0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8], dtype=torch.float64),
                  move_targets=True)
@@ -142,6 +149,7 @@ def test_moving_the_target_runs_ik(viewer, panda):
     assert bool(res.success) and viewer.gui_ik_orientation.value == "-"
 
 
+@needs_viser
 def test_trajectory_playback(viewer, panda, tmp_path):
     traj = panda.random_configuration((6,), generator=torch.Generator().manual_seed(2))
     path = tmp_path / "traj.npy"
@@ -167,8 +175,18 @@ def test_trajectory_playback(viewer, panda, tmp_path):
     assert viewer._traj_gui["play"].label == "Play"
     with pytest.raises(Exception, match="shape"):
         viewer.play(np.zeros((3, 2)))
+    # the .npz of `diffkin trajectory joint`: joint positions and times (played at their rate)
+    out = tmp_path / "joint.npz"
+    start, end = ["0", "0", "0", "-1.5", "0", "1.5", "0"], ["1", "0.5", "0", "-2", "0", "2", "0.5"]
+    assert cli.main(["trajectory", "joint", "--start", *start, "--end", *end, "--samples", "21",
+                     "--duration", "2", "--output", str(out)]) == 0
+    viewer.load_trajectory(out)
+    assert viewer._traj.shape == (21, 7) and viewer._fps == pytest.approx(10.0)
+    viewer.step(-1)
+    np.testing.assert_allclose(viewer.q.numpy(), [float(v) for v in end], atol=1e-12)
 
 
+@needs_viser
 def test_tree_and_urdf_meshes(tmp_path):
     import trimesh
 
@@ -204,6 +222,7 @@ def test_tree_and_urdf_meshes(tmp_path):
         assert not v.has_meshes and v.server.scene.get_handle_by_name("/robot/segments") is not None
 
 
+@needs_viser
 def test_cli_view_serves_and_stops(tmp_path, capsys):
     assert cli.main(["view", "--robot", "three_link_planar", "--port", "0", "--duration", "0.5"]) == 0
     out = capsys.readouterr().out
