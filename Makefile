@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test demo bench train lint docs clean
+.PHONY: install test demo bench train lint docs clean view-check
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -36,6 +36,12 @@ train: $(STAMP)
 # The documentation site into site/ (MkDocs-Material + mkdocstrings; warnings fail the build).
 docs: $(STAMP)
 	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict -d site
+
+# `diffkin view --robot panda` in headless Chromium (the system's: apt-get install chromium; no
+# `playwright install`): saves docs/img/viewer.png and checks it shows the robot.
+view-check: $(STAMP)
+	$(PIP) install -q -c constraints.txt -e ".[viz]" playwright
+	$(PY) scripts/view_check.py
 
 lint: $(STAMP)
 	$(PY) -m ruff check .

@@ -521,6 +521,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", help="report directory (default runs/demo-<time>)")
     p.add_argument("--skip-rl", action="store_true", dest="skip_rl")
     p.set_defaults(func=cmd_demo)
+
+    from .viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
+    add_view_parser(sub, [common])
     return parser
 
 

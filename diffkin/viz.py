@@ -1,0 +1,710 @@
+"""Interactive 3D viewer with live IK, in the browser (`viser <https://viser.studio>`_; the ``viz`` extra).
+
+:func:`show` (Python, notebooks) and ``diffkin view`` (command line) start a viser server — on the
+loopback interface unless told otherwise — that shows a :class:`~diffkin.chain.KinematicChain`:
+
+* the robot as link frames and segments between consecutive joint origins, from
+  ``chain.forward_kinematics(q, all_frames=True)`` ``(J + 1, 4, 4)`` (base, the J joint frames; for several
+  end links the K end poses of ``chain.forward_kinematics(q)`` are added), plus the URDF's own visual
+  geometry when its meshes resolve (``yourdfpy``; ``package://`` paths often do not — then only frames and
+  segments are drawn);
+* one slider per joint variable (range ``chain.lower_upper()``: the limits, ±π / ±1 m where there is none);
+* a draggable target per end link (transform controls): moving it runs :func:`diffkin.ik.solve` seeded from
+  the current ``q`` and shows success, position and orientation errors and the solve time;
+* trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second).
+
+Nothing here imports viser until a viewer is made: ``import diffkin`` and ``import diffkin.viz`` work
+without the extra, and :func:`show` raises :class:`~diffkin.errors.DiffkinError` naming it.
+
+Example::
+
+    import diffkin.viz
+    from diffkin import models
+
+    viewer = diffkin.viz.show(models.load("panda"))       # http://127.0.0.1:8080
+    viewer.set_q([0, -0.5, 0, -2.0, 0, 1.6, 0.8])         # (n,)
+    viewer.solve_to(T_target)                            # (4, 4): IK, seeded from the current q
+    viewer.play(trajectory, fps=30)                       # (N, n) tensor / array, or a .npy/.npz/.csv file
+    viewer.close()
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .errors import DiffkinError, ShapeError
+
+__all__ = ["Viewer", "show", "add_parser", "cmd_view", "MISSING_EXTRA"]
+
+#: the message (after ``error:``) when viser is not installed
+MISSING_EXTRA = "diffkin view needs the 'viz' extra: pip install 'diffkin[viz]'"
+
+_SEGMENT_RGB = (235, 120, 20)  # orange links
+_END_RGB = (40, 110, 230)  # blue end-link frames
+
+
+def _import_viser():
+    try:
+        import viser
+    except ImportError as exc:
+        raise DiffkinError(MISSING_EXTRA) from exc
+    return viser
+
+
+def _wxyz(R: np.ndarray) -> np.ndarray:
+    """Unit quaternions (w, x, y, z), w >= 0, of rotation matrices ``(..., 3, 3)``."""
+    from .rotations import matrix_to_quaternion
+
+    return matrix_to_quaternion(torch.as_tensor(R, dtype=torch.float64)).numpy()
+
+
+def _pose(wxyz, position) -> np.ndarray:
+    """4x4 transform from a quaternion (w, x, y, z) and a position."""
+    from .rotations import quaternion_to_matrix
+
+    T = np.eye(4)
+    q = torch.as_tensor(np.asarray(wxyz, dtype=np.float64))
+    T[:3, :3] = quaternion_to_matrix(q / q.norm()).numpy()
+    T[:3, 3] = np.asarray(position, dtype=np.float64)
+    return T
+
+
+def _as_joints(chain, q, name: str = "q") -> Tensor:
+    t = torch.as_tensor(np.asarray(q.detach().cpu() if isinstance(q, Tensor) else q, dtype=np.float64))
+    if t.ndim != 1 or t.shape[0] != chain.n_joints:
+        raise ShapeError(f"{name} must have shape ({chain.n_joints},), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise DiffkinError(f"{name} must be finite")
+    return t.to(dtype=chain.dtype, device=chain.device)
+
+
+def _read_trajectory(chain, trajectory) -> tuple[Tensor, float | None]:
+    """Joint vectors ``(N, n)`` and their frame rate when the file has times (else None).
+
+    A file is read by :func:`diffkin.data_io.read_joints` (``.npy``, ``.csv``, ``.npz`` entry ``q``); an
+    ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate.
+    """
+    if not isinstance(trajectory, (str, Path)):
+        return _as_trajectory(chain, trajectory), None
+    path = Path(trajectory)
+    if path.suffix == ".npz" and path.is_file():
+        with np.load(path, allow_pickle=False) as data:
+            if "q" not in data.files and "position" in data.files:
+                q = _as_trajectory(chain, data["position"])
+                fps = None
+                if "t" in data.files and data["t"].shape == (q.shape[0],) and q.shape[0] > 1:
+                    span = float(data["t"][-1] - data["t"][0])
+                    fps = (q.shape[0] - 1) / span if span > 0 else None
+                return q, fps
+    return _as_trajectory(chain, trajectory), None
+
+
+def _as_trajectory(chain, trajectory) -> Tensor:
+    """Joint vectors ``(N, n)`` from a tensor, an array or a .npy/.npz/.csv file."""
+    if isinstance(trajectory, (str, Path)):
+        from .data_io import read_joints
+
+        return read_joints(trajectory, chain.n_joints, dtype=chain.dtype, device=chain.device)
+    t = trajectory.detach() if isinstance(trajectory, Tensor) else torch.as_tensor(np.asarray(trajectory))
+    t = t.to(dtype=chain.dtype, device=chain.device)
+    if t.ndim == 1 and t.shape[0] == chain.n_joints:
+        t = t[None]
+    if t.ndim != 2 or t.shape[1] != chain.n_joints or t.shape[0] == 0:
+        raise ShapeError(f"trajectory must have shape (N, {chain.n_joints}), got {tuple(t.shape)}")
+    if not bool(torch.isfinite(t).all()):
+        raise DiffkinError("trajectory must be finite")
+    return t
+
+
+class Viewer:
+    """A viser server showing one chain, its joint sliders, IK targets and trajectory playback.
+
+    Args:
+        chain: any :class:`~diffkin.chain.KinematicChain` (DH or URDF, one or K end links).
+        q: initial joint vector ``(n,)`` (default: zero where the limits allow, else the middle of the
+            joint's range ``chain.lower_upper()``).
+        host: interface to serve on (default loopback ``127.0.0.1``; ``0.0.0.0`` for every interface).
+        port: TCP port; ``0`` picks a free one; viser moves on to the next free port if it is taken —
+            :attr:`port` / :attr:`url` say which one is served.
+        trajectory: optional joint vectors ``(N, n)`` (tensor, array or .npy/.npz/.csv) to play back.
+        fps: playback frames per second (default: the file's own rate when it has times, else 30).
+        urdf: the URDF file of a URDF chain, to show its visual meshes (relative and ``package://`` mesh
+            paths resolve against the file's folder; ``None``: against the working directory).
+        meshes: False: never load URDF meshes (frames and segments only).
+        ik_options: keyword arguments for :func:`diffkin.ik.solve` (e.g. ``num_seeds``, tolerances).
+        verbose: let viser print its banner and connection messages.
+
+    Attributes:
+        server: the ``viser.ViserServer``.
+        q: the current joint vector ``(n,)`` (a copy).
+        ik_state: the last IK solve: ``success`` (bool), ``position_error`` (m), ``orientation_error``
+            (rad), ``time_s``, ``message`` — also shown in the GUI's IK folder.
+        has_meshes: whether URDF visual geometry is shown.
+    """
+
+    def __init__(self, chain, q=None, *, host: str = "127.0.0.1", port: int = 8080, trajectory=None,
+                 fps: float | None = None, urdf=None, meshes: bool = True, ik_options: dict | None = None,
+                 verbose: bool = False):
+        viser = _import_viser()
+        self.chain = chain
+        self.ik_options = dict(ik_options or {})
+        self.ik_state: dict = {"success": None, "position_error": None, "orientation_error": None,
+                               "time_s": None, "message": "drag a target to solve IK"}
+        self._lock = threading.RLock()
+        self._syncing = False
+        self._closed = False
+        topo = chain.topology
+        self._parents = list(topo.parents)
+        self._end_frames = [e + 1 for e in topo.ends]  # frame index each end link hangs from
+        self._single_end = chain.single_end
+        J = len(self._parents)
+        # a single end link whose pose is the last frame needs no separate end node
+        self._ends_in_frames = self._single_end and topo.ends[0] == J - 1
+        lo, hi = chain.lower_upper()
+        self._lo, self._hi = lo.detach().cpu().double().numpy(), hi.detach().cpu().double().numpy()
+        if q is None:  # zero where the limits allow it, else the middle of the joint's range
+            q = np.where((self._lo <= 0) & (self._hi >= 0), 0.0, 0.5 * (self._lo + self._hi))
+        self._q = _as_joints(chain, q)
+
+        with _maybe_quiet(verbose):  # viser prints its URL banner whatever `verbose` says
+            self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        self._verbose = verbose
+        self.host = host
+        try:
+            self._build_scene(urdf, meshes)
+            self._build_gui()
+            self._traj: Tensor | None = None
+            self._traj_gui: dict = {}
+            self._playing = threading.Event()
+            self._fps = 30.0 if fps is None else float(fps)
+            self._frame = 0
+            self._loop = True
+            self._player = threading.Thread(target=self._play_loop, name="diffkin-viz-player", daemon=True)
+            self._player.start()
+            self._ik_pending: np.ndarray | None = None
+            self._ik_busy = False
+            self.set_q(self._q)
+            if trajectory is not None:
+                self.load_trajectory(trajectory, fps=fps)
+        except BaseException:
+            with _maybe_quiet(verbose):
+                self.server.stop()
+            raise
+
+    # ----------------------------------------------------------------------------------- properties
+    @property
+    def port(self) -> int:
+        """The TCP port actually served."""
+        return int(self.server.get_port())
+
+    @property
+    def url(self) -> str:
+        """``http://host:port`` of the viewer (loopback address when serving on every interface)."""
+        host = "127.0.0.1" if self.host in ("0.0.0.0", "") else self.host
+        return f"http://{host}:{self.port}"
+
+    @property
+    def q(self) -> Tensor:
+        """The current joint vector ``(n,)`` (chain dtype and device; a copy)."""
+        with self._lock:
+            return self._q.clone()
+
+    # ----------------------------------------------------------------------------------------- scene
+    def _fk(self, q: Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """(frames (J + 1, 4, 4), end poses (K, 4, 4)) as float64 arrays."""
+        with torch.no_grad():
+            F = self.chain.forward_kinematics(q, all_frames=True)
+            E = self.chain.forward_kinematics(q).reshape(-1, 4, 4)
+        return F.detach().cpu().double().numpy(), E.detach().cpu().double().numpy()
+
+    def _segment_points(self, F: np.ndarray, E: np.ndarray) -> np.ndarray:
+        pts = [(F[p + 1, :3, 3], F[j + 1, :3, 3]) for j, p in enumerate(self._parents)]
+        if not self._ends_in_frames:
+            pts += [(F[f, :3, 3], E[k, :3, 3]) for k, f in enumerate(self._end_frames)]
+        return np.asarray(pts, dtype=np.float32).reshape(-1, 2, 3)
+
+    def _build_scene(self, urdf, meshes: bool) -> None:
+        scene = self.server.scene
+        F, E = self._fk(self._q)
+        pts = np.concatenate([F[:, :3, 3], E[:, :3, 3]])
+        reach = float(np.linalg.norm(pts - F[0, :3, 3], axis=-1).max())
+        seg = self._segment_points(F, E)
+        if self._single_end:  # a folded arm can look tiny: also half its length, base to end
+            reach = max(reach, 0.5 * float(np.linalg.norm(seg[:, 1] - seg[:, 0], axis=-1).sum()))
+        reach = max(reach, 0.05)
+        self.scale = reach
+        s = reach
+        scene.set_up_direction("+z")
+        scene.add_grid("/grid", width=2.5 * s, height=2.5 * s, cell_size=s / 10, section_size=s / 2,
+                       position=tuple(F[0, :3, 3]))
+        # look at the middle of the robot's bounding box from the front right, far enough to see all of it
+        lo_b, hi_b = pts.min(axis=0), pts.max(axis=0)
+        centre = 0.5 * (lo_b + hi_b)
+        size = max(float(np.linalg.norm(hi_b - lo_b)), 0.3 * s)
+        view = np.array([1.0, 0.8, 0.45])
+        self.server.initial_camera.position = tuple(centre + 1.1 * size * view / np.linalg.norm(view))
+        self.server.initial_camera.look_at = tuple(centre)
+        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        self._frames = []
+        for i in range(F.shape[0]):
+            base = i == 0
+            self._frames.append(scene.add_frame(
+                "/robot/base" if base else f"/robot/frame_{i}",
+                axes_length=(0.12 if base else 0.06) * s, axes_radius=0.005 * s, origin_radius=0.016 * s,
+            ))
+        self._end_handles = []
+        if not self._ends_in_frames:
+            for k in range(E.shape[0]):
+                self._end_handles.append(scene.add_frame(
+                    f"/robot/end_{k}", axes_length=0.09 * s, axes_radius=0.006 * s, origin_radius=0.02 * s,
+                ))
+        self._segments = scene.add_line_segments("/robot/segments", seg, colors=_SEGMENT_RGB,
+                                                 thickness=0.022 * s)
+        self._mesh = None
+        if meshes:
+            self._mesh = self._load_meshes(urdf)
+        self.has_meshes = self._mesh is not None
+        self._targets = []
+        for k in range(E.shape[0]):
+            h = scene.add_transform_controls(f"/ik/target_{k}", scale=0.18 * s, depth_test=False,
+                                             wxyz=_wxyz(E[k, :3, :3]), position=tuple(E[k, :3, 3]))
+            h.on_update(self._on_target_event)
+            self._targets.append(h)
+
+    def _load_meshes(self, urdf):
+        """ViserUrdf of the chain's URDF when at least one visual mesh file resolves (or the visuals are
+        primitives), else None (frames and segments only)."""
+        tree = getattr(self.chain, "tree", None)
+        if tree is None or self.chain.root_link != tree.root:
+            return None
+        try:
+            import io
+
+            import yourdfpy
+            from viser.extras import ViserUrdf
+        except ImportError:
+            return None
+        folder = Path(urdf).resolve().parent if urdf is not None else Path.cwd()
+
+        def handler(fname: str) -> str:
+            return yourdfpy.filename_handler_magic(fname, dir=str(folder))
+
+        try:
+            with _quiet_logs():
+                bare = yourdfpy.URDF.load(io.StringIO(tree.text), build_scene_graph=False, load_meshes=False)
+                shown = 0
+                for link in bare.robot.links:
+                    for v in link.visuals:
+                        g = v.geometry
+                        if g is None:
+                            continue
+                        if g.mesh is not None:
+                            shown += Path(handler(g.mesh.filename)).is_file()
+                        elif g.box is not None or g.cylinder is not None or g.sphere is not None:
+                            shown += 1
+                if not shown:
+                    return None
+                model = yourdfpy.URDF.load(io.StringIO(tree.text), build_scene_graph=True, load_meshes=True,
+                                           filename_handler=handler)
+                vis = ViserUrdf(self.server, model, root_node_name="/robot/urdf")
+        except Exception:  # a URDF yourdfpy cannot read: frames and segments still show the robot
+            return None
+        names = list(vis.get_actuated_joint_names())
+        index = {name: i for i, name in enumerate(self.chain.joint_names)}
+        self._mesh_map = [(j, index.get(name)) for j, name in enumerate(names)]
+        self._mesh_cfg = np.zeros(len(names))
+        return vis
+
+    def _update_scene(self) -> None:
+        F, E = self._fk(self._q)
+        qw = _wxyz(F[:, :3, :3])
+        with self.server.atomic():
+            for h, T, w in zip(self._frames, F, qw):
+                h.position, h.wxyz = T[:3, 3], w
+            if self._end_handles:
+                ew = _wxyz(E[:, :3, :3])
+                for h, T, w in zip(self._end_handles, E, ew):
+                    h.position, h.wxyz = T[:3, 3], w
+            self._segments.points = self._segment_points(F, E)
+            if self._mesh is not None:
+                qn = self._q.detach().cpu().double().numpy()
+                for j, i in self._mesh_map:
+                    self._mesh_cfg[j] = qn[i] if i is not None else 0.0
+                base = self.server.scene.get_handle_by_name("/robot/urdf")
+                if base is not None:
+                    base.position, base.wxyz = F[0, :3, 3], qw[0]
+                self._mesh.update_cfg(self._mesh_cfg)
+        self._F, self._E = F, E
+
+    def frames(self) -> np.ndarray:
+        """The frames drawn now, ``(J + 1, 4, 4)`` float64: base and joint frames (FK of :attr:`q`)."""
+        with self._lock:
+            return self._F.copy()
+
+    def end_poses(self) -> np.ndarray:
+        """The end-link poses drawn now, ``(K, 4, 4)`` float64 (K = 1 for a single end link)."""
+        with self._lock:
+            return self._E.copy()
+
+    # ------------------------------------------------------------------------------------------- GUI
+    def _build_gui(self) -> None:
+        gui = self.server.gui
+        chain = self.chain
+        gui.configure_theme(control_width="medium")
+        names = getattr(chain, "joint_names", None) or [f"q{i + 1}" for i in range(chain.n_joints)]
+        with gui.add_folder("Joints"):
+            self.sliders = []
+            for i, name in enumerate(names):
+                unit = "rad" if chain.joint_types[i] == "R" else "m"
+                s = gui.add_slider(f"{name} [{unit}]", min=float(self._lo[i]), max=float(self._hi[i]),
+                                   step=1e-3, initial_value=float(self._q[i]))
+                s.on_update(self._slider_callback(i))
+                self.sliders.append(s)
+            b = gui.add_button("Random configuration")
+            b.on_click(lambda _: self.set_q(self.chain.random_configuration(()), move_targets=True))
+        with gui.add_folder("Inverse kinematics"):
+            self.gui_position_only = gui.add_checkbox("Position only", initial_value=False)
+            self.gui_ik_success = gui.add_text("Success", initial_value="-", disabled=True)
+            self.gui_ik_position = gui.add_text("Position error [mm]", initial_value="-", disabled=True)
+            self.gui_ik_orientation = gui.add_text("Orientation error [deg]", initial_value="-",
+                                                   disabled=True)
+            self.gui_ik_time = gui.add_text("Solve time [ms]", initial_value="-", disabled=True)
+            b = gui.add_button("Target to end effector")
+            b.on_click(lambda _: self.targets_to_ends())
+        gui.add_markdown(f"**{chain.name}** · {chain.n_joints} joints ({chain.joint_types}) · "
+                         f"{len(self._targets)} end link(s) · drag the gizmo to solve IK")
+
+    def _slider_callback(self, i: int):
+        def cb(_event) -> None:
+            if self._syncing:
+                return
+            with self._lock:
+                q = self._q.clone()
+                q[i] = float(self.sliders[i].value)
+            self.set_q(q, move_targets=True)
+
+        return cb
+
+    # ------------------------------------------------------------------------------------------- API
+    def set_q(self, q, move_targets: bool = False) -> None:
+        """Show the joint vector ``q`` ``(n,)`` (tensor, array or sequence; rad / m): frames, segments,
+        meshes and sliders; ``move_targets`` also puts the IK targets on the end links."""
+        q = _as_joints(self.chain, q)
+        with self._lock:
+            self._q = q.clone()
+            self._update_scene()
+            self._syncing = True
+            try:
+                for s, v, lo, hi in zip(self.sliders, q.tolist(), self._lo, self._hi):
+                    s.value = float(np.clip(v, lo, hi))
+            finally:
+                self._syncing = False
+            if move_targets:
+                self.targets_to_ends()
+
+    def targets_to_ends(self) -> None:
+        """Move the IK targets onto the current end-link poses."""
+        with self._lock:
+            E = self._E
+            w = _wxyz(E[:, :3, :3])
+            for h, T, wk in zip(self._targets, E, w):
+                h.position, h.wxyz = T[:3, 3], wk
+
+    def targets(self) -> np.ndarray:
+        """The IK targets' poses ``(K, 4, 4)`` float64, as the transform controls hold them."""
+        return np.stack([_pose(h.wxyz, h.position) for h in self._targets])
+
+    def solve_to(self, T_target=None, position_only: bool | None = None):
+        """Solve IK to ``T_target`` — ``(4, 4)`` for one end link, ``(K, 4, 4)`` for K (default: where the
+        targets are) — seeded from the current q; moves the targets there, shows the solution and its
+        errors, and returns the :class:`~diffkin.ik.IKResult` (``q (n,)``, ``success``, errors)."""
+        from .ik import solve
+
+        K = len(self._targets)
+        with self._lock:
+            if T_target is None:
+                T = self.targets()
+            else:
+                T = np.asarray(T_target.detach().cpu() if isinstance(T_target, Tensor) else T_target,
+                               dtype=np.float64).reshape(-1, 4, 4)
+                if T.shape[0] != K:
+                    raise ShapeError(f"T_target: expected {K} pose(s) of shape (4, 4), got {T.shape[0]}")
+                w = _wxyz(T[:, :3, :3])
+                for h, Tk, wk in zip(self._targets, T, w):
+                    h.position, h.wxyz = Tk[:3, 3], wk
+            pos_only = bool(self.gui_position_only.value) if position_only is None else position_only
+            Tt = torch.as_tensor(T, dtype=self.chain.dtype, device=self.chain.device)
+            if self._single_end:
+                Tt = Tt[0]
+            target = Tt[..., :3, 3] if pos_only else Tt
+            t0 = time.perf_counter()
+            res = solve(self.chain, target, q0=self._q, position_only=pos_only, **self.ik_options)
+            dt = time.perf_counter() - t0
+            self.set_q(res.q.detach())
+            ok = bool(res.success)
+            pe, oe = float(res.position_error.max()), float(res.orientation_error.max())
+            self.ik_state = {"success": ok, "position_error": pe,
+                             "orientation_error": None if pos_only else oe, "time_s": dt,
+                             "message": "reached" if ok else "not reached (best effort shown)"}
+            self.gui_ik_success.value = "yes" if ok else "no (best effort shown)"
+            self.gui_ik_position.value = f"{pe * 1e3:.3f}"
+            self.gui_ik_orientation.value = "-" if pos_only else f"{np.degrees(oe):.3f}"
+            self.gui_ik_time.value = f"{dt * 1e3:.1f}"
+            return res
+
+    def _on_target_event(self, _event) -> None:
+        """Transform-controls callback: solve for the newest target pose; drags that arrive while a solve
+        runs are merged into one more solve."""
+        with self._lock:
+            self._ik_pending = self.targets()
+            if self._ik_busy:
+                return
+            self._ik_busy = True
+        try:
+            while True:
+                with self._lock:
+                    T, self._ik_pending = self._ik_pending, None
+                    if T is None or self._closed:
+                        self._ik_busy = False
+                        return
+                    self.solve_to(None)
+        except BaseException:
+            with self._lock:
+                self._ik_busy = False
+            raise
+
+    # ------------------------------------------------------------------------------------ trajectory
+    def load_trajectory(self, trajectory, fps: float | None = None) -> None:
+        """Load joint vectors ``(N, n)`` for playback (paused, at frame 0) and add the GUI's Trajectory
+        folder (play/pause, frame slider, fps). ``trajectory``: a tensor or array, or a ``.npy`` / ``.csv``
+        / ``.npz`` (entry ``q``) file, or the ``.npz`` of ``diffkin trajectory joint`` (played at the rate of
+        its times ``t`` unless ``fps`` is given)."""
+        traj, file_fps = _read_trajectory(self.chain, trajectory)
+        fps = fps if fps is not None else file_fps
+        gui = self.server.gui
+        with self._lock:
+            self._playing.clear()
+            if "folder" in self._traj_gui:
+                self._traj_gui["folder"].remove()  # and its controls
+            self._traj, self._frame = traj, 0
+            if fps is not None:
+                self._fps = float(np.clip(fps, 0.1, 240.0))
+            N = traj.shape[0]
+            folder = gui.add_folder("Trajectory")
+            with folder:
+                play = gui.add_button("Play")
+                frame = gui.add_slider("Frame", min=0, max=max(N - 1, 1), step=1, initial_value=0,
+                                       disabled=N == 1)
+                fps_h = gui.add_number("Frames per second", initial_value=self._fps, min=0.1, max=240.0)
+                loop = gui.add_checkbox("Loop", initial_value=self._loop)
+            play.on_click(lambda _: self.pause() if self._playing.is_set() else self.play())
+            frame.on_update(lambda _: None if self._syncing else self.step(int(frame.value)))
+            fps_h.on_update(lambda _: setattr(self, "_fps", max(float(fps_h.value), 0.1)))
+            loop.on_update(lambda _: setattr(self, "_loop", bool(loop.value)))
+            self._traj_gui = {"folder": folder, "play": play, "frame": frame, "fps": fps_h, "loop": loop}
+            self.step(0)
+
+    @property
+    def frame(self) -> int:
+        """Index of the trajectory frame shown."""
+        return self._frame
+
+    @property
+    def playing(self) -> bool:
+        return self._playing.is_set()
+
+    def step(self, i: int) -> None:
+        """Show trajectory frame ``i`` (wrapped modulo N)."""
+        with self._lock:
+            if self._traj is None:
+                raise DiffkinError("no trajectory loaded: call play(trajectory) or load_trajectory(...)")
+            i = int(i) % self._traj.shape[0]
+            self._frame = i
+            self.set_q(self._traj[i], move_targets=True)
+            self._syncing = True
+            try:
+                self._traj_gui["frame"].value = i
+            finally:
+                self._syncing = False
+
+    def play(self, trajectory=None, fps: float | None = None, loop: bool | None = None) -> None:
+        """Start playback — of ``trajectory`` ``(N, n)`` if given (tensor, array or file), else of the
+        loaded one — at ``fps`` frames per second; ``loop`` repeats it (default: the GUI's setting)."""
+        if trajectory is not None:
+            self.load_trajectory(trajectory, fps=fps)
+        elif fps is not None:
+            self._fps = float(np.clip(fps, 0.1, 240.0))
+        if self._traj is None:
+            raise DiffkinError("no trajectory loaded: call play(trajectory)")
+        if loop is not None:
+            self._loop = bool(loop)
+            self._traj_gui["loop"].value = self._loop
+        self._traj_gui["fps"].value = self._fps
+        if self._frame >= self._traj.shape[0] - 1 and not self._loop:
+            self.step(0)
+        self._traj_gui["play"].label = "Pause"
+        self._playing.set()
+
+    def pause(self) -> None:
+        """Stop playback at the current frame."""
+        self._playing.clear()
+        if "play" in self._traj_gui:
+            self._traj_gui["play"].label = "Play"
+
+    def _play_loop(self) -> None:
+        while not self._closed:
+            if not self._playing.wait(timeout=0.2):
+                continue
+            t0 = time.perf_counter()
+            with self._lock:
+                if self._traj is None or not self._playing.is_set():
+                    continue
+                nxt = self._frame + 1
+                if nxt >= self._traj.shape[0] and not self._loop:
+                    self.pause()
+                    continue
+                self.step(nxt)
+            time.sleep(max(0.0, 1.0 / self._fps - (time.perf_counter() - t0)))
+
+    # -------------------------------------------------------------------------------------- lifetime
+    def close(self) -> None:
+        """Stop playback and the server (its port is freed)."""
+        if self._closed:
+            return
+        self._closed = True
+        self._playing.set()  # wake the player so it sees _closed
+        self._player.join(timeout=2.0)
+        with _maybe_quiet(self._verbose):
+            self.server.stop()
+
+    def __enter__(self) -> Viewer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else self.url
+        return f"Viewer({self.chain.name!r}, {state})"
+
+
+def _maybe_quiet(verbose: bool):
+    import contextlib
+    import io
+
+    return contextlib.nullcontext() if verbose else contextlib.redirect_stdout(io.StringIO())
+
+
+class _quiet_logs:
+    """Silence yourdfpy's and trimesh's warnings about meshes that do not resolve."""
+
+    def __enter__(self):
+        import logging
+        import warnings
+
+        self._warn = warnings.catch_warnings()
+        self._warn.__enter__()
+        warnings.simplefilter("ignore")
+        self._loggers = [logging.getLogger(n) for n in ("yourdfpy", "trimesh")]
+        self._levels = [lg.level for lg in self._loggers]
+        for lg in self._loggers:
+            lg.setLevel(logging.CRITICAL)
+        return self
+
+    def __exit__(self, *exc):
+        for lg, lvl in zip(self._loggers, self._levels):
+            lg.setLevel(lvl)
+        self._warn.__exit__(*exc)
+
+
+def show(chain, q=None, *, host: str = "127.0.0.1", port: int = 8080, trajectory=None, **kwargs) -> Viewer:
+    """Serve an interactive view of ``chain`` and return its :class:`Viewer` (the server runs in background
+    threads; in a notebook, open :attr:`Viewer.url`). ``q`` ``(n,)``: initial configuration; ``trajectory``
+    ``(N, n)``: joint vectors to play back; other keyword arguments as for :class:`Viewer`.
+
+    Raises :class:`~diffkin.errors.DiffkinError` (:data:`MISSING_EXTRA`) without viser.
+    """
+    return Viewer(chain, q, host=host, port=port, trajectory=trajectory, **kwargs)
+
+
+# ------------------------------------------------------------------------------------- command line
+def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
+    """Add the ``view`` subcommand to an ``argparse`` subparsers object (``parents``: shared options)."""
+    p = subparsers.add_parser(
+        "view", parents=list(parents),
+        help="3D viewer in the browser: joint sliders, live IK on a draggable target, trajectory playback",
+        description="Serve an interactive 3D view of a robot (viser; the 'viz' extra): link frames and "
+        "segments (URDF meshes when they resolve), one slider per joint, a draggable target per end link "
+        "that runs ik.solve live, and playback of a joint trajectory. Serves on loopback unless --host.",
+    )
+    p.add_argument("--robot", help="built-in robot name or a robot YAML file")
+    p.add_argument("--urdf", help="URDF file (with --end-link)")
+    p.add_argument("--end-link", dest="end_link", nargs="+", metavar="LINK",
+                   help="end link(s) of the URDF (several: a tree, one target each)")
+    p.add_argument("--root-link", dest="root_link", help="root link of the URDF chain (default: its root)")
+    p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), or "
+                   "the .npz of `diffkin trajectory joint`")
+    p.add_argument("--fps", type=float, default=None,
+                   help="playback frames per second (default: the file's times if it has them, else 30)")
+    p.add_argument("--play", action="store_true", help="start playing the trajectory at once")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="interface to serve on (default 127.0.0.1, loopback only; 0.0.0.0: every interface)")
+    p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; 0: any free port)")
+    p.add_argument("--no-meshes", dest="meshes", action="store_false", help="frames and segments only")
+    p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="stop after S seconds (default: serve until Ctrl+C)")
+    p.set_defaults(func=cmd_view)
+    return p
+
+
+def cmd_view(args) -> int:
+    """``diffkin view``: load the robot, serve it, print the URL, run until Ctrl+C (or ``--duration``)."""
+    _import_viser()  # the missing extra is the first thing to report
+    from . import models
+
+    dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
+    if args.urdf:
+        if not args.end_link:
+            raise DiffkinError("--urdf needs --end-link NAME (the end-effector link)")
+        ends = args.end_link[0] if len(args.end_link) == 1 else args.end_link
+        chain = models.from_urdf(args.urdf, ends, root_link=args.root_link, dtype=dtype)
+    elif args.robot:
+        chain = models.load(args.robot, dtype=dtype)
+    else:
+        raise DiffkinError("give --robot NAME (see `diffkin models`) or --urdf FILE --end-link LINK")
+    viewer = Viewer(chain, host=args.host, port=args.port, trajectory=args.trajectory, fps=args.fps,
+                    urdf=args.urdf, meshes=args.meshes)
+    try:
+        if args.play and args.trajectory:
+            viewer.play()
+        what = "URDF meshes, frames" if viewer.has_meshes else "frames"
+        print(f"diffkin view: '{chain.name}' ({chain.n_joints} joints; {what} and segments) at {viewer.url}"
+              + ("" if args.duration else "  (Ctrl+C to stop)"), flush=True)
+        end = None if args.duration is None else time.monotonic() + args.duration
+        while end is None or time.monotonic() < end:
+            time.sleep(0.2 if end is None else max(0.0, min(0.2, end - time.monotonic())))
+    except KeyboardInterrupt:
+        pass
+    finally:
+        viewer.close()
+    return 0
+
+
+if __name__ == "__main__":  # python -m diffkin.viz ... (same options as `diffkin view`)
+    _parser = argparse.ArgumentParser(prog="python -m diffkin.viz")
+    add_parser(_parser.add_subparsers(dest="command", required=True))
+    _args = _parser.parse_args(["view", *sys.argv[1:]])
+    try:
+        sys.exit(cmd_view(_args))
+    except (DiffkinError, FileNotFoundError) as _exc:
+        print(f"error: {_exc}", file=sys.stderr)
+        sys.exit(2)

@@ -1,0 +1,229 @@
+"""diffkin.viz / `diffkin view`: the viser server on loopback, its scene, sliders, live IK and playback.
+
+The viewer tests need the `viz` extra (viser) and are skipped without it; the missing-extra error and
+the import hygiene (``import diffkin`` never imports viser) are tested either way.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diffkin import cli, models, viz
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+# ------------------------------------------------------------------------------- without the extra
+def test_import_diffkin_does_not_import_viser():
+    code = "import sys, diffkin, diffkin.viz, diffkin.cli; sys.exit('viser' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], cwd=ROOT).returncode == 0
+
+
+def test_view_without_viser_names_the_extra(monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "viser", None)  # `import viser` raises ImportError
+    assert cli.main(["view", "--robot", "panda"]) == 2
+    err = capsys.readouterr().err
+    assert err == "error: diffkin view needs the 'viz' extra: pip install 'diffkin[viz]'\n"
+
+
+def test_view_parser():
+    args = cli.build_parser().parse_args(["view", "--urdf", "a.urdf", "--end-link", "l1", "l2"])
+    assert args.host == "127.0.0.1" and args.port == 8080 and args.end_link == ["l1", "l2"]
+    assert args.func.__module__ == "diffkin.viz"
+
+
+# ------------------------------------------------------------------------------------- the viewer
+try:
+    import viser
+except ImportError:
+    viser = None
+
+needs_viser = pytest.mark.skipif(viser is None, reason="needs the viz extra (viser)")
+
+
+@pytest.fixture(scope="module")
+def panda():
+    return models.load("panda", dtype=torch.float64)
+
+
+@pytest.fixture(scope="module")
+def viewer(panda):
+    v = viz.show(panda, port=0, ik_options={"num_seeds": 16})
+    yield v
+    v.close()
+
+
+def _scene_bytes(url: str, timeout: float = 10.0) -> bytes:
+    """Connect as a browser would and return the decompressed scene messages the server sends."""
+    import zstandard
+    from websockets.sync.client import connect
+
+    out = b""
+    ws_url = url.replace("http://", "ws://")
+    with connect(ws_url, subprotocols=[f"viser-v{viser.__version__}"], open_timeout=timeout) as ws:
+        for _ in range(20):
+            try:
+                raw = ws.recv(timeout=1.0)
+            except TimeoutError:
+                break
+            if isinstance(raw, bytes) and len(raw) > 16:
+                n_inner = int.from_bytes(raw[:8], "little")
+                n_comp = int.from_bytes(raw[8:16], "little")
+                out += zstandard.ZstdDecompressor().decompress(raw[16:16 + n_comp], max_output_size=n_inner)
+            if b"/ik/target_0" in out:
+                break
+    return out
+
+
+@needs_viser
+def test_serves_loopback_http_and_scene(viewer, panda):
+    assert viewer.url.startswith("http://127.0.0.1:") and viewer.port > 0
+    with urllib.request.urlopen(viewer.url, timeout=10) as r:
+        assert r.status == 200
+        page = r.read()
+    assert b"<html" in page.lower()
+    # server side: the robot's nodes
+    names = set(viewer.server.scene._handle_from_node_name)
+    J = len(panda.topology.parents)
+    assert {"/robot/base", "/robot/segments", "/ik/target_0", *(f"/robot/frame_{i}" for i in
+                                                                range(1, J + 1))} <= names
+    # over the wire: what a browser receives
+    sent = _scene_bytes(viewer.url)
+    for node in (b"/robot/segments", b"/robot/frame_1", b"/ik/target_0"):
+        assert node in sent
+
+
+@needs_viser
+def test_sliders_set_q_and_frames_follow_fk(viewer, panda):
+    q = panda.random_configuration((), generator=torch.Generator().manual_seed(1))
+    viewer.set_q(q)
+    F = panda.forward_kinematics(q, all_frames=True).detach().numpy()
+    np.testing.assert_allclose(viewer.frames(), F, atol=1e-9)
+    h = viewer.server.scene.get_handle_by_name("/robot/frame_3")
+    np.testing.assert_allclose(h.position, F[3, :3, 3], atol=1e-6)
+    assert [s.value for s in viewer.sliders] == pytest.approx(q.tolist(), abs=1e-12)
+    seg = viewer._segments.points
+    np.testing.assert_allclose(seg[-1, 1], F[-1, :3, 3], atol=1e-5)  # last segment ends at the EE
+    # a slider moved in the GUI: q, frames and the IK target follow
+    viewer.sliders[1].value = 0.3
+    q2 = q.clone()
+    q2[1] = 0.3
+    assert viewer.q.tolist() == pytest.approx(q2.tolist())
+    F2 = panda.forward_kinematics(q2, all_frames=True).detach().numpy()
+    np.testing.assert_allclose(viewer.frames(), F2, atol=1e-9)
+    np.testing.assert_allclose(viewer._targets[0].position, F2[-1, :3, 3], atol=1e-6)
+
+
+@needs_viser
+def test_moving_the_target_runs_ik(viewer, panda):
+    viewer.set_q(torch.tensor([0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 0.8], dtype=torch.float64),
+                 move_targets=True)
+    q_goal = torch.tensor([0.2, -0.1, 0.1, -1.8, 0.1, 1.7, 0.6], dtype=torch.float64)
+    T = panda.forward_kinematics(q_goal).detach().numpy()
+    # what a drag in the browser does: the gizmo's pose changes, then its callback runs
+    h = viewer._targets[0]
+    h.position, h.wxyz = T[:3, 3], viz._wxyz(T[:3, :3])
+    viewer._on_target_event(None)
+    assert viewer.ik_state["success"] is True
+    assert viewer.ik_state["position_error"] < 1e-4
+    assert viewer.gui_ik_success.value == "yes"
+    assert float(viewer.gui_ik_position.value) < 0.1  # mm
+    assert float(viewer.gui_ik_orientation.value) < 0.06  # deg
+    E = panda.forward_kinematics(viewer.q).detach().numpy()
+    np.testing.assert_allclose(E, T, atol=1e-3)
+    np.testing.assert_allclose(viewer.end_poses()[0], E, atol=1e-9)  # the scene shows the solution
+    assert [s.value for s in viewer.sliders] == pytest.approx(viewer.q.tolist(), abs=1e-9)
+    # an unreachable target: failure and the errors are shown, the best effort is drawn
+    res = viewer.solve_to(np.array([[1, 0, 0, 3.0], [0, 1, 0, 0], [0, 0, 1, 0.5], [0, 0, 0, 1]]))
+    assert not bool(res.success) and viewer.gui_ik_success.value.startswith("no")
+    assert float(viewer.gui_ik_position.value) > 1000  # mm
+    # position only
+    res = viewer.solve_to(T, position_only=True)
+    assert bool(res.success) and viewer.gui_ik_orientation.value == "-"
+
+
+@needs_viser
+def test_trajectory_playback(viewer, panda, tmp_path):
+    traj = panda.random_configuration((6,), generator=torch.Generator().manual_seed(2))
+    path = tmp_path / "traj.npy"
+    np.save(path, traj.numpy())
+    viewer.load_trajectory(path, fps=50)
+    assert viewer.frame == 0 and not viewer.playing
+    np.testing.assert_allclose(viewer.q.numpy(), traj[0].numpy())
+    viewer.step(4)
+    assert viewer._traj_gui["frame"].value == 4
+    np.testing.assert_allclose(viewer.frames(), panda.forward_kinematics(traj[4], all_frames=True).detach())
+    viewer._traj_gui["frame"].value = 2  # the GUI's frame slider
+    assert viewer.frame == 2
+    np.testing.assert_allclose(viewer.q.numpy(), traj[2].numpy())
+    # play to the end without looping: it stops on the last frame
+    viewer.play(fps=100, loop=False)
+    import time
+
+    t_end = time.monotonic() + 5
+    while viewer.playing and time.monotonic() < t_end:
+        time.sleep(0.02)
+    assert not viewer.playing and viewer.frame == 5
+    np.testing.assert_allclose(viewer.q.numpy(), traj[5].numpy())
+    assert viewer._traj_gui["play"].label == "Play"
+    with pytest.raises(Exception, match="shape"):
+        viewer.play(np.zeros((3, 2)))
+    # the .npz of `diffkin trajectory joint`: joint positions and times (played at their rate)
+    out = tmp_path / "joint.npz"
+    start, end = ["0", "0", "0", "-1.5", "0", "1.5", "0"], ["1", "0.5", "0", "-2", "0", "2", "0.5"]
+    assert cli.main(["trajectory", "joint", "--start", *start, "--end", *end, "--samples", "21",
+                     "--duration", "2", "--output", str(out)]) == 0
+    viewer.load_trajectory(out)
+    assert viewer._traj.shape == (21, 7) and viewer._fps == pytest.approx(10.0)
+    viewer.step(-1)
+    np.testing.assert_allclose(viewer.q.numpy(), [float(v) for v in end], atol=1e-12)
+
+
+@needs_viser
+def test_tree_and_urdf_meshes(tmp_path):
+    import trimesh
+
+    trimesh.creation.box(extents=(0.05, 0.05, 0.3)).export(tmp_path / "link.stl")
+    urdf = tmp_path / "arm.urdf"
+    urdf.write_text("""<robot name="arm">
+  <link name="base"/>
+  <link name="l1"><visual><origin xyz="0 0 0.15"/><geometry><mesh filename="link.stl"/></geometry>
+    </visual></link>
+  <link name="a"/><link name="b"/>
+  <joint name="j1" type="revolute"><parent link="base"/><child link="l1"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+  <joint name="ja" type="revolute"><parent link="l1"/><child link="a"/><origin xyz="0 0.1 0.3"/>
+    <axis xyz="1 0 0"/><limit lower="-2" upper="2" effort="1" velocity="1"/></joint>
+  <joint name="jb" type="continuous"><parent link="l1"/><child link="b"/><origin xyz="0 -0.1 0.3"/>
+    <axis xyz="0 1 0"/></joint>
+</robot>""")
+    chain = models.from_urdf(str(urdf), ["a", "b"], dtype=torch.float64)
+    with viz.show(chain, port=0, urdf=urdf) as v:
+        assert v.has_meshes
+        names = set(v.server.scene._handle_from_node_name)
+        assert any(n.startswith("/robot/urdf/") for n in names)
+        assert {"/robot/end_0", "/robot/end_1", "/ik/target_0", "/ik/target_1"} <= names
+        assert len(v.sliders) == 3 and v.sliders[2].min == pytest.approx(-np.pi)  # continuous: ±π
+        q = torch.tensor([0.5, 0.3, -0.4], dtype=torch.float64)
+        E = chain.forward_kinematics(q).detach().numpy()  # (2, 4, 4)
+        res = v.solve_to(E)  # both end links at once
+        assert bool(res.success)
+        np.testing.assert_allclose(v.end_poses(), E, atol=1e-3)
+    # a mesh that does not resolve: frames and segments only
+    urdf.write_text(urdf.read_text().replace('filename="link.stl"', 'filename="package://nowhere/x.stl"'))
+    with viz.show(models.from_urdf(str(urdf), "a"), port=0, urdf=urdf) as v:
+        assert not v.has_meshes and v.server.scene.get_handle_by_name("/robot/segments") is not None
+
+
+@needs_viser
+def test_cli_view_serves_and_stops(tmp_path, capsys):
+    assert cli.main(["view", "--robot", "three_link_planar", "--port", "0", "--duration", "0.5"]) == 0
+    out = capsys.readouterr().out
+    assert "three_link_planar" in out and "http://127.0.0.1:" in out
