@@ -82,12 +82,12 @@ def check_output_path(path: str | Path, suffixes: tuple[str, ...] = _SUFFIXES) -
     """Refuse an output path before any work: wrong suffix, an existing directory, or a parent that is (or
     lies under) a regular file."""
     path = Path(path)
+    if path.is_dir():
+        raise DataFileError(f"{path}: is a directory; give a file name ending in {'/'.join(suffixes)}")
     if path.suffix not in suffixes:
         raise DataFileError(
             f"{path}: unsupported output type {path.suffix!r}; use one of {', '.join(suffixes)}"
         )
-    if path.is_dir():
-        raise DataFileError(f"{path}: is a directory; give a file name ending in {'/'.join(suffixes)}")
     for parent in path.absolute().parents:
         if parent.exists():
             if not parent.is_dir():
