@@ -622,7 +622,9 @@ def build_parser() -> argparse.ArgumentParser:
     from .ik import solve
     from .streaming import FK_CHUNK_SIZE, IK_CHUNK_SIZE
 
-    parser = _Parser(prog="diffkin", description=__doc__.split("\n\n")[0], formatter_class=_Formatter,
+    parser = _Parser(prog="diffkin", formatter_class=_Formatter,
+                     description="diffkin: differentiable batched robot kinematics. Robot models, batch FK "
+                     "and IK of files of any length, calibration, trajectories, training, benchmarks, demo.",
                      epilog="examples:\n  " + "\n  ".join(
                          ["diffkin models", "diffkin fk --robot panda --random 1000 --output T.npy",
                           "diffkin ik --robot panda --input T.npy --output q.npz",
@@ -687,7 +689,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output", required=True, metavar="FILE|DIR",
                    help="calibrated robot: .yaml (DH) or .urdf (URDF input); a directory gets the robot and "
                         "the report (parameters.md, report.json, residuals.png)")
-    p.add_argument("--report-dir", dest="report_dir", help=argparse.SUPPRESS)  # deprecated: --output DIR
+    p.add_argument("--report-dir", dest="report_dir", action=_Deprecated, new="--output DIR")
     p.add_argument("--no-progress", dest="no_progress", action="store_true",
                    help="no progress bar (shown only when stderr is a terminal)")
     p.add_argument("--progress", dest="progress_flag", nargs=0, action=_Deprecated,

@@ -162,16 +162,19 @@ class _CsvFile:
                 return arr
         except ValueError:
             pass
-        for lineno, s in lines:  # find the row to blame
+        rows = []
+        for lineno, s in lines:  # quoted fields, or a row to blame
             fields = _split(s)
             if len(fields) != self.width:
                 raise DataFileError(
                     f"{self.path}: line {lineno}: {len(fields)} columns, but the file has {self.width}"
                 )
-            bad = [v for v in fields if not _is_number(v)]
-            if bad:
-                raise DataFileError(f"{self.path}: line {lineno}: not a number: {bad[0]!r}")
-        raise DataFileError(f"{self.path}: cannot parse lines {lines[0][0]}-{lines[-1][0]}")
+            try:
+                rows.append([float(v) for v in fields])
+            except ValueError:
+                bad = next(v for v in fields if not _is_number(v))
+                raise DataFileError(f"{self.path}: line {lineno}: not a number: {bad!r}") from None
+        return np.asarray(rows, dtype=np.float64)
 
 
 # ------------------------------------------------------------------------------------------ .npz

@@ -150,6 +150,13 @@ def test_calibrate_writes_a_yaml_that_loads_back(tmp_path):
     err = (calibrated.forward_kinematics(q)[:, :3, 3].detach() - T[:, :3, 3]).norm(dim=-1)
     assert float(err.max()) < 1e-6
     assert yaml.safe_load(out_yaml.read_text())["name"]
+    # --output DIR: the robot and the report
+    ok(run_cli("calibrate", "--robot", "ur5", "--data", str(tmp_path / "meas.npz"), "--cv", "0",
+               "--output", str(tmp_path / "report")))
+    assert sorted(p.name for p in (tmp_path / "report").iterdir()) == [
+        "calibrated.yaml", "parameters.md", "report.json", "residuals.png"]
+    again = models.load(str(tmp_path / "report" / "calibrated.yaml"), dtype=torch.float64)
+    torch.testing.assert_close(again.a, calibrated.a)
 
 
 def test_calibrate_urdf_in_urdf_out_with_noise_check(tmp_path):

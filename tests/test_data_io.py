@@ -167,3 +167,8 @@ def test_writers_and_output_checks(tmp_path):
         w.close()
     w.abort()
     assert not list(tmp_path.glob("short*"))
+
+
+def test_quoted_and_semicolon_csv(tmp_path):
+    (tmp_path / "q.csv").write_text('"q1";"q2"\n"1.5";"2"\n3;4\n')
+    np.testing.assert_array_equal(read_joints(tmp_path / "q.csv", 2).numpy(), [[1.5, 2], [3, 4]])
