@@ -180,7 +180,7 @@ def test_calibrate_urdf_in_urdf_out_with_noise_check(tmp_path):
                      "--output", str(out_urdf)))
     assert "general" in out and "noise check" in out and "held-out" in out and "fit residual is" not in out
     calibrated = from_urdf(out_urdf, "tool0", dtype=torch.float64)
-    err = (calibrated.forward_kinematics(q)[:, :3, 3] - T[:, :3, 3]).norm(dim=-1)
+    err = (calibrated.forward_kinematics(q)[:, :3, 3].detach() - T[:, :3, 3]).norm(dim=-1)
     assert float(err.max()) < 1e-9
     # a DH model's data written as URDF, or a URDF as YAML: a clear error
     fails_clearly(run_cli("calibrate", "--urdf", str(urdf), "--end-link", "tool0", "--data",
