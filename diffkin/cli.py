@@ -1,19 +1,28 @@
 """The ``diffkin`` command: models, batch FK / IK, calibration, trajectories, training, benchmarks, demo.
 
-Every subcommand prints a short summary; errors in the input (unknown robot, bad file, wrong column
-count) are reported as one line ``error: ...`` with exit status 2.
+Every failure — a bad option value, an unreadable or ill-shaped file, an error raised by the library
+(:class:`~diffkin.errors.DiffkinError`), a file-system error — prints one line ``error: ...`` on stderr and
+exits with status 2; an unexpected internal error prints one ``error: internal error ...`` line and exits 1.
+``--debug`` (or ``DIFFKIN_DEBUG=1``) shows the traceback instead.
+
+Threads: :func:`main` sets torch's intra-op thread count to ``--threads N``, else to 1 (``train``: the run
+config's ``torch_threads``; ``bench``: the benchmarks' own default, 1). Batched kinematics gains little from
+intra-op threads and collapses when another process holds a core (``diffkin ik --random 10000`` measured
+about 1 000 solves/s with torch's default threads on a busy 2-core machine against 35 000 with one thread).
 
 ``train``, ``evaluate`` and ``demo`` call the functions of the repository's ``training`` package in this
 process (the ``rl`` extra); ``bench`` calls ``benchmarks.run`` (a checkout's ``benchmarks/``, not installed
-with the package). Only :func:`main` sets torch's thread count: ``--threads N``, else 1 for ``demo`` and
-``evaluate``, the config's ``torch_threads`` for ``train``, and torch's own setting for the rest.
+with the package). ``fk`` and ``ik`` stream their input in chunks (:mod:`diffkin.streaming`).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import inspect
+import math
+import os
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -45,12 +54,16 @@ def _dtype(name: str) -> torch.dtype:
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
+def _check_device(device: str) -> None:
+    if device == "cuda" and not torch.cuda.is_available():
+        raise DiffkinError("--device cuda was requested but no CUDA device is available (use --device cpu)")
+
+
 def _load_chain(args):
     from . import models
 
     dtype, device = _dtype(args.dtype), args.device
-    if device == "cuda" and not torch.cuda.is_available():
-        raise DiffkinError("--device cuda was requested but no CUDA device is available")
+    _check_device(device)
     if getattr(args, "urdf", None):
         if not args.end_link:
             raise DiffkinError("--urdf needs --end-link NAME (the end-effector link)")
@@ -58,6 +71,26 @@ def _load_chain(args):
     if not args.robot:
         raise DiffkinError("give --robot NAME (see `diffkin models`) or --urdf FILE --end-link LINK")
     return models.load(args.robot, dtype=dtype, device=device)
+
+
+@contextlib.contextmanager
+def _progress(args, label: str):
+    """A rich progress bar on stderr when it is a terminal (and no ``--no-progress``): yields the callback
+    ``(done, total)`` for :mod:`diffkin.streaming`, or None."""
+    if getattr(args, "no_progress", False) or not sys.stderr.isatty():
+        yield None
+        return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  console=Console(stderr=True), transient=True) as bar:
+        task = bar.add_task(label, total=None)
+        yield lambda done, total: bar.update(task, completed=done, total=total)
+
+
+def _rate(n: int, seconds: float) -> str:
+    return f"{n / seconds:,.0f}" if seconds > 0 else "-"
 
 
 # ------------------------------------------------------------------------------------------ models
@@ -93,96 +126,74 @@ def cmd_models(args) -> int:
 
 # ---------------------------------------------------------------------------------------------- fk
 def cmd_fk(args) -> int:
-    from .data_io import read_joints, write_arrays
-    from .rotations import matrix_to_quaternion
+    from .data_io import RandomJoints, check_output_path
+    from .streaming import stream_fk
 
-    chain = _load_chain(args)
-    if args.random:
-        g = torch.Generator(device="cpu").manual_seed(args.seed)
-        q = chain.random_configuration(args.random, generator=g)
-    elif args.input:
-        q = read_joints(args.input, chain.n_joints, dtype=chain.dtype, device=chain.device)
-    else:
-        raise DiffkinError("give --input FILE or --random N")
-    t0 = time.perf_counter()
-    T = chain.forward_kinematics(q)
-    if T.is_cuda:
-        torch.cuda.synchronize()
-    dt = time.perf_counter() - t0
-    T = T.detach()
-    out = {
-        "q": q.cpu().numpy(),
-        "T": T.cpu().numpy(),
-        "position": T[:, :3, 3].cpu().numpy(),
-        "quaternion": matrix_to_quaternion(T[:, :3, :3]).cpu().numpy(),
-    }
     if args.output:
-        if Path(args.output).suffix == ".csv":
-            out = {k: out[k] for k in ("q", "position", "quaternion")}
-        write_arrays(args.output, out)
-    _console().print(
-        f"FK of {q.shape[0]} configurations of '{chain.name}' on {chain.device} in {dt * 1e3:.2f} ms "
-        f"({q.shape[0] / max(dt, 1e-9):,.0f} configs/s)" + (f" -> {args.output}" if args.output else "")
+        check_output_path(args.output)
+    chain = _load_chain(args)
+    source = RandomJoints(args.random, args.seed) if args.random else args.input
+    with _progress(args, "FK") as cb:
+        res = stream_fk(chain, source, args.output, chunk_size=args.chunk_size, progress=cb)
+    print(
+        f"FK of {res.count:,} configurations of '{chain.name}' on {chain.device} "
+        f"in {res.compute_seconds:.3f} s "
+        f"({_rate(res.count, res.compute_seconds)} configs/s; {res.seconds:.3f} s with I/O)"
+        + (f" -> {args.output}" if args.output else "")
     )
     return 0
 
 
 # ---------------------------------------------------------------------------------------------- ik
-def cmd_ik(args) -> int:
-    from .data_io import read_poses, write_arrays
-    from .ik import solve
+def _mm(x: float) -> str:
+    return f"{x * 1e3:.4g}"
 
-    chain = _load_chain(args)
-    position_only = args.position_only
-    if args.random:
-        g = torch.Generator(device="cpu").manual_seed(args.seed)
-        T = chain.forward_kinematics(chain.random_configuration(args.random, generator=g)).detach()
-    elif args.input:
-        T, pos_only_file = read_poses(args.input, dtype=chain.dtype, device=chain.device)
-        position_only = position_only or pos_only_file
-    else:
-        raise DiffkinError("give --input FILE or --random N")
-    t0 = time.perf_counter()
-    options = {} if args.seeds is None else {"num_seeds": args.seeds}
-    res = solve(
-        chain,
-        T[..., :3, 3] if position_only else T,
-        position_only=position_only,
-        position_tolerance=args.position_tolerance,
-        orientation_tolerance=args.orientation_tolerance,
-        progress=args.progress,
-        **options,
-    )
-    dt = time.perf_counter() - t0
+
+def _ik_table(chain, res) -> object:
+    n, ok = res.count, res.successes
+    rate = 100.0 * ok / n
+    if ok < n:  # never round a failure away: 99.999 % shows as 99.99 %, not 100.00 %
+        rate = math.floor(rate * 100) / 100
+    med = "≈" if res.median_approximate else ""
+    pos = f"{med}{_mm(res.position_error[0])} / {_mm(res.position_error[1])}"
+    ori = "—" if res.orientation_error is None else (
+        f"{med}{_mm(res.orientation_error[0])} / {_mm(res.orientation_error[1])}")
+    rows = [
+        ["targets", f"{n:,}"],
+        ["successes", f"{ok:,}"],
+        ["failures", f"{n - ok:,}"],
+        ["success rate", f"{rate:.2f} %"],
+        ["position error median / max [mm]", pos],
+        ["orientation error median / max [mrad]", ori],
+        ["solve time [s]", f"{res.compute_seconds:.3f} ({res.seconds:.3f} with I/O)"],
+        ["solves/s", _rate(n, res.compute_seconds)],
+    ]
+    title = f"IK on '{chain.name}' ({'position only' if res.position_only else 'full pose'})"
+    return _table(title, ["", "value"], rows)
+
+
+def cmd_ik(args) -> int:
+    from .data_io import RandomJoints, check_output_path
+    from .streaming import stream_ik
+
     if args.output:
-        write_arrays(
+        check_output_path(args.output)
+    chain = _load_chain(args)
+    source = RandomJoints(args.random, args.seed) if args.random else args.input
+    with _progress(args, "IK") as cb:
+        res = stream_ik(
+            chain,
+            source,
             args.output,
-            {
-                "q": res.q.detach().cpu().numpy(),
-                "success": res.success.cpu().numpy(),
-                "position_error": res.position_error.detach().cpu().numpy(),
-                "orientation_error": res.orientation_error.detach().cpu().numpy(),
-                "iterations": res.iterations.cpu().numpy(),
-            },
+            chunk_size=args.chunk_size,
+            position_only=True if args.position_only else None,
+            seed=args.seed,
+            progress=cb,
+            num_seeds=args.num_seeds,
+            position_tolerance=args.position_tolerance,
+            orientation_tolerance=args.orientation_tolerance,
         )
-    n = T.shape[0]
-    rate = res.success.double().mean().item() * 100
-    _console().print(
-        _table(
-            f"IK on '{chain.name}' ({'position only' if position_only else 'full pose'})",
-            ["targets", "success", "median pos. err [mm]", "median ori. err [mrad]", "time [s]", "solves/s"],
-            [
-                [
-                    n,
-                    f"{rate:.2f} %",
-                    f"{res.position_error.median().item() * 1e3:.4f}",
-                    f"{res.orientation_error.median().item() * 1e3:.4f}",
-                    f"{dt:.3f}",
-                    f"{n / dt:,.0f}",
-                ]
-            ],
-        )
-    )
+    _console().print(_ik_table(chain, res))
     if args.output:
         _console().print(f"wrote {args.output}")
     return 0
@@ -190,34 +201,45 @@ def cmd_ik(args) -> int:
 
 # ------------------------------------------------------------------------------------- calibrate
 def cmd_calibrate(args) -> int:
-    import math
     import warnings
 
     from .calibration import calibrate_from_files
+    from .data_io import check_output_path
     from .errors import ModelError
 
     out = Path(args.output)
-    if out.suffix not in (".yaml", ".yml", ".urdf"):
-        raise ModelError(f"--output {out}: the calibrated robot is written as .yaml (DH) or .urdf (URDF)")
+    as_dir = out.suffix not in (".yaml", ".yml", ".urdf")
+    if as_dir:
+        if out.suffix:
+            raise ModelError(f"--output {out}: give a .yaml (DH robot), a .urdf (URDF robot) or a directory")
+        _check_output_dir(out)
+    else:
+        check_output_path(out, (".yaml", ".yml", ".urdf"))
+        if args.report_dir:
+            _check_output_dir(Path(args.report_dir))
     if bool(args.robot) == bool(args.urdf):
         raise ModelError("give the nominal robot as --robot NAME|FILE.yaml or --urdf FILE --end-link LINK")
+    if not as_dir and (out.suffix == ".urdf") != bool(args.urdf):
+        raise ModelError(f"--output {out}: a DH robot (--robot) is written as .yaml, a URDF robot (--urdf) "
+                         "as .urdf")
     noise = None if args.noise is None else (args.noise[0] * 1e-3, math.radians(args.noise[1]))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = calibrate_from_files(
             args.urdf or args.robot, args.data, end_link=args.end_link, method=args.method,
-            progress=args.progress, out_dir=args.report_dir, error_model=args.error_model,
-            base=args.base, tool=args.tool, measurement_noise=noise, cross_validation=args.cv,
+            progress=not args.no_progress, out_dir=out if as_dir else args.report_dir,
+            error_model=args.error_model, base=args.base, tool=args.tool, measurement_noise=noise,
+            cross_validation=args.cv,
         )
-    out.parent.mkdir(parents=True, exist_ok=True)
-    if out.suffix == ".urdf":
-        if not hasattr(res.chain, "to_urdf"):
-            raise ModelError(f"--output {out}: a DH robot is written as .yaml (nominal from --robot)")
-        res.chain.to_urdf(out)
+    if as_dir:
+        written = out / ("calibrated.urdf" if args.urdf else "calibrated.yaml")
     else:
-        if not hasattr(res.chain, "to_yaml"):
-            raise ModelError(f"--output {out}: a URDF robot is written as .urdf (nominal from --urdf)")
-        out.write_text(res.chain.to_yaml())
+        out.parent.mkdir(parents=True, exist_ok=True)
+        if out.suffix == ".urdf":
+            res.chain.to_urdf(out)
+        else:
+            out.write_text(res.chain.to_yaml())
+        written = out
     rows = [
         [r["name"], f"{r['nominal']:.6f}", f"{r['identified']:.6f}", f"{r['delta']:+.6f}"]
         for r in res.parameter_table()
@@ -247,7 +269,7 @@ def cmd_calibrate(args) -> int:
         con.print(f"[bold yellow]warning:[/] {w.message}")
     for note in res.notes:
         con.print(f"note: {note}")
-    con.print(f"wrote {args.output}")
+    con.print(f"wrote {written}" + (f" and the report in {out}" if as_dir else ""))
     if res.report.unidentifiable:
         con.print(
             "not identifiable from these poses (kept at nominal): " + ", ".join(res.report.unidentifiable)
@@ -255,11 +277,24 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def _check_output_dir(path: Path) -> None:
+    if path.exists() and not path.is_dir():
+        raise DiffkinError(f"{path}: is a file; the report needs a directory")
+    for parent in path.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise DiffkinError(f"{path}: cannot create it: {parent} is a file, not a directory")
+            break
+
+
 # ------------------------------------------------------------------------------------ trajectory
 def cmd_trajectory(args) -> int:
     from . import trajectories as tr
-    from .data_io import read_array, write_arrays
+    from .data_io import check_output_path, read_array, write_arrays
 
+    check_output_path(args.output)
+    if args.plot:
+        check_output_path(args.plot, (".png", ".pdf", ".svg"))
     t = torch.linspace(0.0, args.duration, args.samples, dtype=torch.float64)
     if args.space == "joint":
         if args.points:
@@ -268,6 +303,8 @@ def cmd_trajectory(args) -> int:
                 raise DiffkinError(
                     f"{args.points}: expected via points of shape (N >= 2, n), got {tuple(pts.shape)}"
                 )
+            if not bool(torch.isfinite(pts).all()):
+                raise DiffkinError(f"{args.points}: the via points hold NaN or inf")
             times = torch.linspace(0.0, args.duration, pts.shape[0], dtype=torch.float64)
             traj = tr.cubic_spline(pts, times, t)
         else:
@@ -298,7 +335,7 @@ def cmd_trajectory(args) -> int:
     write_arrays(args.output, out)
     if args.plot:
         _plot_trajectory(out, args.plot)
-    _console().print(
+    print(
         f"{args.space} trajectory, {args.samples} samples over {args.duration} s -> {args.output}"
         + (f" (plot: {args.plot})" if args.plot else "")
     )
@@ -336,48 +373,68 @@ def _missing(command: str, exc: ImportError) -> DiffkinError:
     )
 
 
+def _check_config(args) -> None:
+    path = Path(args.config)
+    if not path.is_file():
+        raise DiffkinError(f"--config {path}: no such file" if not path.exists() else
+                           f"--config {path}: not a file")
+
+
 def _config_threads(args) -> int:
     """The run config's ``torch_threads`` (what ``diffkin train`` runs on without ``--threads``)."""
+    _check_config(args)
     try:
         from training.config import load_config
     except ImportError as exc:
         raise _missing("train", exc) from exc
     try:
         return load_config(args.config).torch_threads
-    except (TypeError, ValueError) as exc:
-        raise DiffkinError(str(exc)) from exc
+    except (TypeError, ValueError, KeyError) as exc:
+        raise DiffkinError(f"--config {args.config}: {exc}") from exc
 
 
 def cmd_train(args) -> int:
+    _check_config(args)
+    if args.output:
+        _check_output_dir(Path(args.output))
     try:
         from training.train import resolve_run, summary_json, train
     except ImportError as exc:
         raise _missing("train", exc) from exc
     try:
         cfg, out = resolve_run(
-            args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.out
+            args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.output
         )
-    except (TypeError, ValueError) as exc:
-        raise DiffkinError(str(exc)) from exc
-    res = train(cfg, out, progress_bar=not args.no_progress)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise DiffkinError(f"--config {args.config}: {exc}") from exc
+    res = train(cfg, out, progress_bar=not args.no_progress and sys.stderr.isatty())
     print(summary_json(res))
     _console().print(f"wrote {out}")
     return 0
 
 
 def cmd_evaluate(args) -> int:
+    run = Path(args.run_dir)
+    if not run.is_dir():
+        raise DiffkinError(f"{run}: no such run directory" if not run.exists() else f"{run}: not a directory")
+    if not (run / "config.yaml").is_file():
+        raise DiffkinError(f"{run}: not a training run directory (no config.yaml; see `diffkin train`)")
     try:
         from training.evaluate import evaluate_and_save
     except ImportError as exc:
         raise _missing("evaluate", exc) from exc
     import json
 
-    res = evaluate_and_save(args.run_dir, episodes=args.episodes)
+    try:
+        res = evaluate_and_save(args.run_dir, episodes=args.episodes)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise DiffkinError(f"{run}: {exc}") from exc
     print(json.dumps(res, indent=2))
     return 0
 
 
 def cmd_bench(args) -> int:
+    _check_device(args.device)
     try:
         from benchmarks.run import main as run_benchmarks
     except ImportError as exc:
@@ -391,135 +448,298 @@ def cmd_bench(args) -> int:
 def cmd_demo(args) -> int:
     from .demo import run_demo
 
-    return run_demo(quick=args.quick, out=args.out, skip_rl=args.skip_rl)
+    if args.output:
+        _check_output_dir(Path(args.output))
+    return run_demo(quick=args.quick, out=args.output, skip_rl=args.skip_rl)
 
 
 # ------------------------------------------------------------------------------------------ parser
-def _robot_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--robot", help="built-in robot name or a robot YAML file")
-    p.add_argument("--urdf", help="URDF file (with --end-link)")
-    p.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
-    p.add_argument("--input", help="input file (.npz, .csv, .npy)")
-    p.add_argument(
-        "--random", type=int, default=0, metavar="N", help="use N random samples instead of --input"
-    )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
-    p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
-    p.add_argument("--output", help="output file (.npz, .csv, .npy)")
+class _Parser(argparse.ArgumentParser):
+    """One ``error: ...`` line on stderr and exit status 2 for a bad command line (no usage block)."""
+
+    def error(self, message: str):
+        self.exit(2, f"error: {self.prog}: {message} (see `{self.prog} --help`)\n")
 
 
-def _positive_int(text: str) -> int:
-    n = int(text)
-    if n < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text}")
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """Examples kept as written; ``(default: X)`` appended wherever an option has a default worth stating."""
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if ("default" in text or default is None or default is False or default == argparse.SUPPRESS
+                or isinstance(action, argparse._VersionAction)):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _int_type(minimum: int, what: str):
+    def parse(text: str) -> int:
+        try:
+            n = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+        if n < minimum:
+            raise argparse.ArgumentTypeError(f"expected {what}, got {n}")
+        return n
+
+    parse.__name__ = "integer"
+    return parse
+
+
+_positive_int = _int_type(1, "a positive integer")
+_count = _int_type(0, "a non-negative integer")
+
+
+def _float_type(minimum: float | None = None, strict: bool = False):
+    what = "a finite number" if minimum is None else (
+        f"a finite number {'>' if strict else '>='} {minimum:g}")
+
+    def parse(text: str) -> float:
+        try:
+            x = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+        if not math.isfinite(x) or (minimum is not None and (x <= minimum if strict else x < minimum)):
+            raise argparse.ArgumentTypeError(f"expected {what}, got {text}")
+        return x
+
+    parse.__name__ = "number"
+    return parse
+
+
+_finite = _float_type()
+_positive_float = _float_type(0.0, strict=True)
+_nonnegative_float = _float_type(0.0)
+
+
+def _cv_folds(text: str) -> int:
+    n = _count(text)
+    if n == 1:
+        raise argparse.ArgumentTypeError("expected 0 (off) or k >= 2 folds, got 1")
     return n
 
 
+class _Deprecated(argparse.Action):
+    """A hidden old spelling: stores into the new option's dest and warns once on stderr."""
+
+    def __init__(self, option_strings, dest, new: str = "", **kwargs):
+        self.new = new
+        super().__init__(option_strings, dest, help=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"warning: {option_string} is deprecated; use {self.new}", file=sys.stderr)
+        setattr(namespace, self.dest, True if self.nargs == 0 else values)
+
+
 _THREADS_HELP = (
-    "torch intra-op threads for this command (default: torch's own setting; `demo` and `evaluate` use 1, "
-    "`train` the config's torch_threads; `bench` passes it on to the benchmarks, which default to 1)"
+    "torch intra-op threads (default: 1 — batched kinematics gains little from more and collapses when "
+    "another process holds a core; `train` uses the config's torch_threads, `bench` passes N on)"
 )
 
-# Commands that run on a fixed thread count unless --threads is given (measured figures, small kernels).
-_ONE_THREAD = ("demo", "evaluate")
+_EXAMPLES = {
+    "models": "diffkin models\n  diffkin models show panda",
+    "fk": "diffkin fk --robot panda --random 1000000 --output T.npy\n"
+          "  diffkin fk --robot ur5 --input q.csv --output poses.csv\n"
+          "  diffkin fk --urdf arm.urdf --end-link tool0 --input q.npy --output fk.npz",
+    "ik": "diffkin ik --robot panda --input poses.csv --output q.npz\n"
+          "  diffkin ik --robot ur5 --random 100000 --num-seeds 16\n"
+          "  diffkin ik --robot panda --input xyz.npy --position-only --output q.csv",
+    "calibrate": "diffkin calibrate --robot ur5 --data meas.npz --output cal.yaml\n"
+                 "  diffkin calibrate --urdf arm.urdf --end-link tool0 --data meas.npz --tool "
+                 "--noise 0.02 0.005 --output runs/cal/",
+    "trajectory": "diffkin trajectory joint --profile quintic --start 0 0 --end 1 -1 --output j.csv "
+                  "--plot j.png\n"
+                  "  diffkin trajectory cartesian --start 0.3 0 0.5 --end 0.5 0.1 0.4 --output c.npz",
+    "train": "diffkin train --config configs/ppo_batched_reach_panda.yaml --total-timesteps 20000 "
+             "--output runs/ppo",
+    "evaluate": "diffkin evaluate runs/ppo --episodes 100",
+    "bench": "diffkin bench fk --quick\n  diffkin --threads 2 bench ik",
+    "demo": "diffkin demo --quick --output runs/demo",
+}
+
+_DESCRIPTIONS = {
+    "models": "List the built-in robots (DOF, joint types, DH convention, source) or print one's DH table.",
+    "fk": "Batch forward kinematics of joint vectors (N, n) from a file or drawn at random.\n\n"
+          "Input: .npy (N, n), .npz key q, or .csv (n columns, or a header naming q1..qn).\n"
+          "Output by suffix: .npy holds the poses T (N, 4, 4) ((N, K, 4, 4) for K end links); .npz holds\n"
+          "q, T, position, quaternion (w, x, y, z); .csv has a header q1..qn,x,y,z,qw,qx,qy,qz.\n"
+          "The input is processed in chunks of --chunk-size rows (bounded memory for any N: .npy is read\n"
+          "through a memory map, outputs are written chunk by chunk). --random N draws N configurations\n"
+          "uniformly within the joint limits from --seed; the draws do not depend on the chunk size.",
+    "ik": "Batch inverse kinematics (Levenberg-Marquardt with restarts) of target poses.\n\n"
+          "Input: .npy (N, 4, 4) poses, (N, 7) rows x y z qw qx qy qz or (N, 3) positions; .npz key T or\n"
+          "position [+ quaternion]; .csv read by its header (x,y,z and qw,qx,qy,qz: diffkin fk's CSV as it\n"
+          "is; x,y,z only: position-only targets) or, headerless, 3 or 7 columns. A quaternion whose norm\n"
+          "is off 1 by more than 1e-3 is refused with its row, never normalised silently.\n"
+          "Output by suffix: .npy holds q (N, n); .npz and .csv hold q, success, position_error [m],\n"
+          "orientation_error [rad] (NaN when solving positions only) and iterations.\n"
+          "Targets are solved in chunks of --chunk-size (bounded memory). --random N solves the FK of N\n"
+          "random configurations (drawn as in `diffkin fk --random`). The solver's restarts in chunk [a, b)\n"
+          "are seeded from (--seed, a): reproducible for one chunk size; each success flag is decided by an\n"
+          "exact FK of the returned q.",
+    "calibrate": "Identify a robot's geometry from measured poses and write the calibrated robot.\n\n"
+                 "--output FILE.yaml (DH robot) or FILE.urdf (URDF robot) writes the robot; --output DIR\n"
+                 "writes DIR/calibrated.yaml|urdf with parameters.md, report.json and residuals.png.",
+    "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal, or a cubic spline through --points)\n"
+                  "or a Cartesian straight-line trajectory and export t, position, velocity, acceleration.",
+    "train": "Train an SB3 agent from a run config (calls training.train in this process; needs the rl\n"
+             "extra). Runs on the config's torch_threads unless --threads N.",
+    "evaluate": "Evaluate a training run directory (policy and the scripted-IK baseline) and write\n"
+                "evaluation.json into it. One torch thread unless --threads N.",
+    "bench": "The benchmark suite against the peers (pytorch-kinematics, ...), printing ratios measured in\n"
+             "the same run. Needs a checkout (benchmarks/ is not installed with the package).",
+    "demo": "The tour: batch IK, calibration, CLIK and a short PPO run, written as a report. Runs on one\n"
+            "torch thread (the report's figures are single-threaded and say so) unless --threads N.",
+}
+
+
+def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> None:
+    g = p.add_argument_group("robot")
+    g.add_argument("--robot", help="built-in robot name (see `diffkin models`) or a robot YAML file")
+    g.add_argument("--urdf", help="URDF file (with --end-link)")
+    g.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
+    g.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to compute")
+    g.add_argument("--dtype", default="float64", choices=["float32", "float64"],
+                   help="compute (and .npy output) dtype")
+    io = p.add_argument_group("input / output")
+    src = io.add_mutually_exclusive_group(required=True)
+    src.add_argument("--input", metavar="FILE", help=f"{what} file (.npy, .npz, .csv)")
+    src.add_argument("--random", type=_positive_int, metavar="N",
+                     help="use N random samples instead of --input")
+    io.add_argument("--seed", type=_count, default=0,
+                    help="random seed (of --random" + (" and of the solver's restarts)" if what == "pose"
+                                                       else ")"))
+    io.add_argument("--output", metavar="FILE", help="output file (.npy, .npz, .csv; see above)")
+    io.add_argument("--chunk-size", dest="chunk_size", type=_positive_int, default=chunk_default, metavar="N",
+                    help="rows per chunk (memory grows with it, not with the input)")
+    io.add_argument("--no-progress", dest="no_progress", action="store_true",
+                    help="no progress bar (shown only when stderr is a terminal)")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="diffkin", description=__doc__.splitlines()[0])
+    from . import __version__
+    from .ik import solve
+    from .streaming import FK_CHUNK_SIZE, IK_CHUNK_SIZE
+
+    parser = _Parser(prog="diffkin", formatter_class=_Formatter,
+                     description="diffkin: differentiable batched robot kinematics. Robot models, batch FK "
+                     "and IK of files of any length, calibration, trajectories, training, benchmarks, demo.",
+                     epilog="examples:\n  " + "\n  ".join(
+                         ["diffkin models", "diffkin fk --robot panda --random 1000 --output T.npy",
+                          "diffkin ik --robot panda --input T.npy --output q.npz",
+                          "diffkin COMMAND --help"]))
+    parser.add_argument("--version", action="version", version=f"diffkin {__version__}")
     parser.add_argument("--threads", type=_positive_int, default=None, metavar="N", help=_THREADS_HELP)
+    parser.add_argument("--debug", action="store_true",
+                        help="show the traceback of an error (also DIFFKIN_DEBUG=1)")
     # Also accepted after the subcommand; SUPPRESS keeps the subparser from overwriting the global value.
-    common = argparse.ArgumentParser(add_help=False)
+    common = _Parser(add_help=False)
     common.add_argument("--threads", type=_positive_int, default=argparse.SUPPRESS, metavar="N",
                         help=_THREADS_HELP)
-    sub = parser.add_subparsers(dest="command", required=True)
+    common.add_argument("--debug", action="store_true", default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def add(name: str, **kwargs) -> argparse.ArgumentParser:
-        return sub.add_parser(name, parents=[common], **kwargs)
+    def add(name: str, help: str) -> argparse.ArgumentParser:
+        return sub.add_parser(name, parents=[common], help=help, description=_DESCRIPTIONS[name],
+                              epilog="examples:\n  " + _EXAMPLES[name], formatter_class=_Formatter)
 
-    p = add("models", help="list built-in robots, or show one's DH table")
-    p.add_argument("action", nargs="?", choices=["list", "show"], default="list")
-    p.add_argument("name", nargs="?")
+    p = add("models", "list built-in robots, or show one's DH table")
+    p.add_argument("action", nargs="?", choices=["list", "show"], default="list", help="what to do")
+    p.add_argument("name", nargs="?", help="robot to show")
     p.set_defaults(func=cmd_models)
 
-    p = add("fk", help="batch forward kinematics on a file of joint vectors")
-    _robot_args(p)
+    p = add("fk", "batch forward kinematics of joint vectors (streamed)")
+    _robot_args(p, FK_CHUNK_SIZE, "joint-vector")
     p.set_defaults(func=cmd_fk)
 
-    p = add("ik", help="batch inverse kinematics on a file of target poses")
-    _robot_args(p)
-    p.add_argument("--position-only", action="store_true")
-    p.add_argument("--position-tolerance", type=float, default=1e-4, help="metres (default 0.1 mm)")
-    p.add_argument("--orientation-tolerance", type=float, default=1e-3, help="radians (default 1 mrad)")
-    p.add_argument("--seeds", type=int, default=None, help="random restarts per target")
-    p.add_argument("--progress", action="store_true")
+    p = add("ik", "batch inverse kinematics of target poses (streamed)")
+    _robot_args(p, IK_CHUNK_SIZE, "pose")
+    g = p.add_argument_group("solver")
+    g.add_argument("--position-only", action="store_true",
+                   help="solve positions only (implied by a file of positions x y z)")
+    g.add_argument("--position-tolerance", type=_positive_float, default=1e-4, metavar="M",
+                   help="success threshold on the position error [m]")
+    g.add_argument("--orientation-tolerance", type=_positive_float, default=1e-3, metavar="RAD",
+                   help="success threshold on the orientation error [rad]")
+    g.add_argument("--num-seeds", dest="num_seeds", type=_positive_int, metavar="S",
+                   default=inspect.signature(solve).parameters["num_seeds"].default,
+                   help="most initial configurations (random restarts) per target")
+    g.add_argument("--seeds", dest="num_seeds", type=_positive_int, action=_Deprecated, new="--num-seeds")
+    g.add_argument("--progress", dest="progress_flag", nargs=0, action=_Deprecated,
+                   new="nothing (the progress bar is on by default on a terminal)")
     p.set_defaults(func=cmd_ik)
 
-    p = add("calibrate", help="identify a robot's geometry from measured poses (DH YAML or URDF)")
+    p = add("calibrate", "identify a robot's geometry from measured poses (DH YAML or URDF)")
     p.add_argument("--robot", help="nominal robot: built-in name or robot YAML file (DH)")
     p.add_argument("--urdf", help="nominal robot as a URDF file (with --end-link)")
     p.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
     p.add_argument("--data", required=True, help=".npz with q (N, n) and T (N, 4, 4) or position (N, 3)")
-    p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"])
+    p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"],
+                   help="solver")
     p.add_argument("--error-model", dest="error_model", default="auto",
-                   choices=["auto", "dh", "hayati", "general"])
+                   choices=["auto", "dh", "hayati", "general"], help="parameters identified")
     p.add_argument("--base", action="store_true", help="also estimate the base (tracker) frame")
     p.add_argument("--tool", action="store_true", help="also estimate the tool frame")
-    p.add_argument("--noise", type=float, nargs=2, metavar=("MM", "DEG"),
+    p.add_argument("--noise", type=_nonnegative_float, nargs=2, metavar=("MM", "DEG"),
                    help="measurement noise per coordinate (position mm, orientation deg): warn when the fit "
                         "residual is more than 2x what it explains")
-    p.add_argument("--cv", type=int, default=5, help="k of the k-fold cross-validated held-out error, 0: off")
-    p.add_argument("--output", required=True, help="calibrated robot: .yaml (DH) or .urdf (URDF input)")
-    p.add_argument(
-        "--report-dir", dest="report_dir", help="also write parameters.md, report.json, residuals.png"
-    )
-    p.add_argument("--progress", action="store_true")
+    p.add_argument("--cv", type=_cv_folds, default=5,
+                   help="k of the k-fold cross-validated held-out error, 0: off")
+    p.add_argument("--output", required=True, metavar="FILE|DIR",
+                   help="calibrated robot: .yaml (DH) or .urdf (URDF input); a directory gets the robot and "
+                        "the report (parameters.md, report.json, residuals.png)")
+    p.add_argument("--report-dir", dest="report_dir", action=_Deprecated, new="--output DIR")
+    p.add_argument("--no-progress", dest="no_progress", action="store_true",
+                   help="no progress bar (shown only when stderr is a terminal)")
+    p.add_argument("--progress", dest="progress_flag", nargs=0, action=_Deprecated,
+                   new="nothing (the progress bar is on by default on a terminal)")
     p.set_defaults(func=cmd_calibrate)
 
-    p = add("trajectory", help="plan and export a joint or Cartesian trajectory")
-    p.add_argument("space", choices=["joint", "cartesian"])
-    p.add_argument("--profile", default="quintic", choices=["cubic", "quintic", "trapezoidal"])
-    p.add_argument("--start", type=float, nargs="+")
-    p.add_argument("--end", type=float, nargs="+")
+    p = add("trajectory", "plan and export a joint or Cartesian trajectory")
+    p.add_argument("space", choices=["joint", "cartesian"], help="joint space or a Cartesian segment")
+    p.add_argument("--profile", default="quintic", choices=["cubic", "quintic", "trapezoidal"],
+                   help="time law")
+    p.add_argument("--start", type=_finite, nargs="+", help="start joint vector (or X Y Z)")
+    p.add_argument("--end", type=_finite, nargs="+", help="end joint vector (or X Y Z)")
     p.add_argument("--points", help="via points (N, n) file for a cubic spline (joint space)")
-    p.add_argument("--duration", type=float, default=2.0)
-    p.add_argument("--samples", type=int, default=201)
-    p.add_argument("--output", required=True)
+    p.add_argument("--duration", type=_positive_float, default=2.0, help="seconds")
+    p.add_argument("--samples", type=_int_type(2, "at least 2 samples"), default=201,
+                   help="time samples, both ends included")
+    p.add_argument("--output", required=True, help="output file (.npz, .csv, .npy)")
     p.add_argument("--plot", help="PNG of position/velocity/acceleration")
     p.set_defaults(func=cmd_trajectory)
 
-    p = add("train", help="train an SB3 agent from a run config (calls training.train)")
-    p.add_argument("--config", required=True)
-    p.add_argument("--seed", type=int)
-    p.add_argument("--total-timesteps", type=int, dest="total_timesteps")
-    p.add_argument("--out", help="run directory (default runs/<name>/seed<seed>)")
-    p.add_argument("--no-progress", action="store_true", dest="no_progress", help="no progress bar")
+    p = add("train", "train an SB3 agent from a run config (calls training.train)")
+    p.add_argument("--config", required=True, help="run config YAML (see configs/)")
+    p.add_argument("--seed", type=_count, help="override the config's seed")
+    p.add_argument("--total-timesteps", type=_positive_int, dest="total_timesteps",
+                   help="override the config's total_timesteps")
+    p.add_argument("--output", metavar="DIR", help="run directory (default runs/<name>/seed<seed>)")
+    p.add_argument("--out", dest="output", action=_Deprecated, new="--output")
+    p.add_argument("--no-progress", action="store_true", dest="no_progress",
+                   help="no progress bar (shown only when stderr is a terminal)")
     p.set_defaults(func=cmd_train)
 
-    p = add(
-        "evaluate", help="evaluate a training run directory (one torch thread unless --threads N)"
-    )
-    p.add_argument("run_dir")
-    p.add_argument("--episodes", type=int, default=100)
+    p = add("evaluate", "evaluate a training run directory")
+    p.add_argument("run_dir", help="the run directory written by `diffkin train`")
+    p.add_argument("--episodes", type=_positive_int, default=100, help="evaluation episodes")
     p.set_defaults(func=cmd_evaluate)
 
-    p = add("bench", help="benchmarks against pytorch-kinematics (prints ratios)")
+    p = add("bench", "benchmarks against pytorch-kinematics and others (prints ratios)")
     p.add_argument(
-        "which", nargs="?", default="all", choices=["fk", "jacobian", "ik", "env", "calibration", "all"]
+        "which", nargs="?", default="all", choices=["fk", "jacobian", "ik", "env", "calibration", "all"],
+        help="which suite",
     )
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    p.add_argument("--quick", action="store_true", help="small sizes")
+    p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to run")
     p.set_defaults(func=cmd_bench)
 
-    p = add(
-        "demo",
-        help="the tour: IK, calibration, CLIK, RL; report in runs/ (1 torch thread unless --threads N)",
-        description="The tour: batch IK, calibration, CLIK and a short PPO run, written as a report. Runs on "
-        "one torch thread (the report's figures are single-threaded and say so) unless given --threads N.",
-    )
+    p = add("demo", "the tour: IK, calibration, CLIK, RL; report in runs/")
     p.add_argument("--quick", action="store_true", help="small sizes (under a minute)")
-    p.add_argument("--out", help="report directory (default runs/demo-<time>)")
-    p.add_argument("--skip-rl", action="store_true", dest="skip_rl")
+    p.add_argument("--output", metavar="DIR", help="report directory (default runs/demo-<time>)")
+    p.add_argument("--out", dest="output", action=_Deprecated, new="--output")
+    p.add_argument("--skip-rl", action="store_true", dest="skip_rl", help="skip the PPO run")
     p.set_defaults(func=cmd_demo)
 
     from .viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
@@ -527,20 +747,51 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split()) or "(no message)"
+
+
+def _os_message(exc: OSError) -> str:
+    if exc.filename is not None and exc.strerror:
+        return f"{exc.filename}: {exc.strerror}"
+    return str(exc)
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command line; returns the exit status (0, 2 for any user error, 1 for an internal error)."""
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a bad command line (already reported)
+        return exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 2)
+    debug = getattr(args, "debug", False) or os.environ.get("DIFFKIN_DEBUG", "") not in ("", "0")
     try:
         threads = args.threads
-        if threads is None and args.command in _ONE_THREAD:
-            threads = 1
-        elif threads is None and args.command == "train":
+        if threads is None and args.command == "train":
             threads = _config_threads(args)
+        elif threads is None and args.command != "bench":
+            threads = 1
         if threads is not None:
             torch.set_num_threads(threads)
         return int(args.func(args) or 0)
-    except (DiffkinError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except KeyboardInterrupt:
+        print("error: interrupted", file=sys.stderr)
+        return 130
+    except DiffkinError as exc:
+        if debug:
+            raise
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        if debug:
+            raise
+        print(f"error: {_one_line(_os_message(exc))}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug, not a user error: still one line, with the way to the traceback
+        if debug:
+            raise
+        print(f"error: internal error: {type(exc).__name__}: {_one_line(exc)} (rerun with --debug for the "
+              "traceback, and please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":
