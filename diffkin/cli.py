@@ -23,6 +23,7 @@ import inspect
 import math
 import os
 import sys
+import time
 from pathlib import Path
 
 import torch
@@ -131,17 +132,81 @@ def cmd_fk(args) -> int:
 
     if args.output:
         check_output_path(args.output)
+    _join_ranks(args)
     chain = _load_chain(args)
     source = RandomJoints(args.random, args.seed) if args.random else args.input
-    with _progress(args, "FK") as cb:
-        res = stream_fk(chain, source, args.output, chunk_size=args.chunk_size, progress=cb)
+    res = _streamed(args, chain, "FK", stream_fk, source)
+    if res is None:  # a rank other than 0 of a sharded run: rank 0 reports
+        return 0
     print(
         f"FK of {res.count:,} configurations of '{chain.name}' on {chain.device} "
         f"in {res.compute_seconds:.3f} s "
         f"({_rate(res.count, res.compute_seconds)} configs/s; {res.seconds:.3f} s with I/O)"
-        + (f" -> {args.output}" if args.output else "")
+        + (f" -> {res.output}" if res.output else "")
     )
     return 0
+
+
+def _streamed(args, chain, label: str, stream, source, **options):
+    """Run ``stream`` (stream_fk / stream_ik) over the input, in this process or, under torchrun, over this
+    rank's shard (:mod:`diffkin.distributed`); returns the summary (the combined one on rank 0, None on the
+    other ranks)."""
+    from . import distributed as dist
+
+    info = dist.init(args.device)
+    if not info.sharded:
+        with _progress(args, label) as cb:
+            return stream(chain, source, args.output, chunk_size=args.chunk_size, progress=cb, **options)
+    from .data_io import RandomJoints, open_joint_source, open_pose_source
+    from .streaming import combine_ik
+
+    if isinstance(source, RandomJoints):
+        n = source.count
+    elif label == "FK":
+        n = len(open_joint_source(source, chain.n_joints, chain))
+    else:
+        n = len(open_pose_source(source, chain.n_ends, chain.single_end))
+    rows = [dist.shard_rows(n, args.chunk_size, r, info.world) for r in range(info.world)]
+    start, stop = rows[info.rank]
+    part = dist.part_path(args.output, info.rank, info.world) if args.output else None
+    res = None
+    if stop > start:
+        with _progress(args if info.rank == 0 else _Quiet(), f"{label} (rank 0 of {info.world})") as cb:
+            res = stream(chain, source, part, chunk_size=args.chunk_size, start=start, stop=stop, progress=cb,
+                         **options)
+    results = [r for r in dist.gather(res) if r is not None]
+    if info.rank == 0:
+        t0 = time.perf_counter()
+        output = None
+        if args.output:
+            parts = [dist.part_path(args.output, r, info.world) for r, (a, b) in enumerate(rows) if b > a]
+            if args.merge:
+                output = dist.merge_parts(args.output, parts)
+            else:
+                output = dist.write_manifest(args.output, info.world, rows, " ".join(sys.argv))
+        merge_s = time.perf_counter() - t0
+        if label == "FK":
+            total = type(results[0])(sum(r.count for r in results), max(r.seconds for r in results) + merge_s,
+                                     max(r.compute_seconds for r in results), output)
+        else:
+            total = combine_ik(results)
+            total.output, total.seconds = output, total.seconds + merge_s
+        how = f"{'merged' if args.merge else 'manifest written'} in {merge_s:.3f} s" if args.output else ""
+        print(f"{info.world} processes, rows split on chunk boundaries; {how}", file=sys.stderr)
+    dist.finish()
+    return total if info.rank == 0 else None
+
+
+class _Quiet:
+    no_progress = True
+
+
+def _join_ranks(args) -> None:
+    """Under torchrun: join the process group first, so that ``--device cuda`` is this rank's GPU."""
+    from . import distributed
+
+    _check_device(args.device)
+    distributed.init(args.device)
 
 
 # ---------------------------------------------------------------------------------------------- ik
@@ -178,24 +243,22 @@ def cmd_ik(args) -> int:
 
     if args.output:
         check_output_path(args.output)
+    _join_ranks(args)
     chain = _load_chain(args)
     source = RandomJoints(args.random, args.seed) if args.random else args.input
-    with _progress(args, "IK") as cb:
-        res = stream_ik(
-            chain,
-            source,
-            args.output,
-            chunk_size=args.chunk_size,
-            position_only=True if args.position_only else None,
-            seed=args.seed,
-            progress=cb,
-            num_seeds=args.num_seeds,
-            position_tolerance=args.position_tolerance,
-            orientation_tolerance=args.orientation_tolerance,
-        )
+    res = _streamed(
+        args, chain, "IK", stream_ik, source,
+        position_only=True if args.position_only else None,
+        seed=args.seed,
+        num_seeds=args.num_seeds,
+        position_tolerance=args.position_tolerance,
+        orientation_tolerance=args.orientation_tolerance,
+    )
+    if res is None:  # a rank other than 0 of a sharded run: rank 0 reports
+        return 0
     _console().print(_ik_table(chain, res))
-    if args.output:
-        _console().print(f"wrote {args.output}")
+    if res.output:
+        _console().print(f"wrote {res.output}")
     return 0
 
 
@@ -615,6 +678,9 @@ def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> No
                     help="rows per chunk (memory grows with it, not with the input)")
     io.add_argument("--no-progress", dest="no_progress", action="store_true",
                     help="no progress bar (shown only when stderr is a terminal)")
+    io.add_argument("--merge", action="store_true",
+                    help="under torchrun: concatenate the ranks' parts into --output (default: the parts "
+                         "and a manifest <stem>.shards.json that every input option reads as one file)")
 
 
 def build_parser() -> argparse.ArgumentParser:

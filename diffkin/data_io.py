@@ -215,6 +215,49 @@ def _npz_keys(path: Path) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------- sources
+def _is_manifest(source) -> bool:
+    """A sharded output's manifest (``*.shards.json``, written by :mod:`diffkin.distributed`)."""
+    return isinstance(source, (str, Path)) and str(source).endswith(".shards.json")
+
+
+def _manifest_parts(path) -> list[Path]:
+    from .distributed import read_manifest
+
+    if not Path(path).exists():
+        raise DataFileError(f"{path}: no such file")
+    return read_manifest(path)[0]
+
+
+def _concat(sources: list, name: str):
+    """One source over several (a sharded data set's parts), in order; chunks keep the requested size
+    across part boundaries, so chunking matches that of one file."""
+    if not sources:
+        raise DataFileError(f"{name}: the manifest lists no parts")
+    shapes = {tuple(s.shape[1:]) for s in sources}
+    if len(shapes) > 1:
+        raise ShapeError(f"{name}: its parts hold rows of different shapes {sorted(shapes)}")
+    offsets = np.cumsum([0] + [len(s) for s in sources]).tolist()
+
+    def read(start, stop, size):
+        pending, held = [], 0
+        for src, off in zip(sources, offsets):
+            a, b = max(start, off), min(stop, off + len(src))
+            if a >= b:
+                continue
+            for chunk in src.chunks(size, a - off, b - off):
+                pending.append(chunk)
+                held += chunk.shape[0]
+                while held >= size:
+                    joined = np.concatenate(pending)
+                    yield joined[:size]
+                    rest = joined[size:]
+                    pending, held = ([rest] if rest.shape[0] else []), rest.shape[0]
+        if held:
+            yield np.concatenate(pending)
+
+    return ArraySource((offsets[-1], *sources[0].shape[1:]), name, read)
+
+
 class ArraySource:
     """Rows of one array read in chunks: ``shape`` is the whole array's, ``chunks(size)`` yields float64
     arrays of ``(m, *shape[1:])`` with ``m <= size``, first row ``start``, up to ``stop``."""
@@ -346,6 +389,8 @@ def open_joint_source(source, n_joints: int, chain=None) -> ArraySource:
     ``chain``). Chunks are finite float64 ``(m, n)`` arrays (NaN/inf raise :class:`NonFiniteError`)."""
     if isinstance(source, RandomJoints):
         return source.source(chain)
+    if _is_manifest(source):
+        return _concat([open_joint_source(p, n_joints, chain) for p in _manifest_parts(source)], str(source))
     if isinstance(source, (np.ndarray, torch.Tensor)):
         arr = source.detach().cpu().numpy() if isinstance(source, torch.Tensor) else source
         if arr.ndim == 1 and arr.shape[0] == n_joints:
@@ -504,6 +549,13 @@ def open_pose_source(source, n_ends: int = 1, single_end: bool = True) -> PoseSo
     """Target poses from a file path or an array / tensor (layouts in the module docstring)."""
     K = n_ends
     lead = () if single_end else (K,)
+    if _is_manifest(source):
+        parts = [open_pose_source(p, n_ends, single_end) for p in _manifest_parts(source)]
+        layouts = {p.layout for p in parts}
+        if len(layouts) > 1:
+            raise DataFileError(f"{source}: its parts hold different pose layouts {sorted(layouts)}")
+        return PoseSource(_concat([p.rows for p in parts], str(source)), parts[0].layout, K, single_end,
+                          str(source))
     if isinstance(source, (np.ndarray, torch.Tensor)):
         arr = source.detach().cpu().numpy() if isinstance(source, torch.Tensor) else source
         rows = _memory_source(arr, "targets")
@@ -699,7 +751,10 @@ def open_writer(path: str | Path, count: int, spec: dict[str, tuple]) -> Writer:
 
 # ------------------------------------------------------------------------------- whole-file API
 def read_array(path: str | Path, key: str | None = None) -> np.ndarray:
-    """Read one array from ``.npy``, ``.csv`` or ``.npz`` (``key`` selects the entry of an ``.npz``)."""
+    """Read one array from ``.npy``, ``.csv`` or ``.npz`` (``key`` selects the entry of an ``.npz``), or the
+    concatenated parts of a sharded output's manifest (``*.shards.json``, :mod:`diffkin.distributed`)."""
+    if _is_manifest(path):
+        return np.concatenate([read_array(p, key) for p in _manifest_parts(path)])
     path = _check_path(path)
     try:
         if path.suffix == ".csv":

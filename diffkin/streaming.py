@@ -41,7 +41,8 @@ from .data_io import (
 )
 from .errors import DiffkinError
 
-__all__ = ["FK_CHUNK_SIZE", "IK_CHUNK_SIZE", "FKStreamResult", "IKStreamResult", "stream_fk", "stream_ik"]
+__all__ = ["FK_CHUNK_SIZE", "IK_CHUNK_SIZE", "FKStreamResult", "IKStreamResult", "stream_fk", "stream_ik",
+           "combine_ik"]
 
 FK_CHUNK_SIZE = 262_144
 IK_CHUNK_SIZE = 65_536
@@ -79,10 +80,36 @@ class IKStreamResult:
     compute_seconds: float
     output: Path | None
     median_approximate: bool = False
+    #: the error statistics behind the medians (``(position, orientation)``), kept to combine ranks' results
+    stats: tuple | None = field(default=None, repr=False, compare=False)
 
     @property
     def failures(self) -> int:
         return self.count - self.successes
+
+
+def combine_ik(results: list[IKStreamResult]) -> IKStreamResult:
+    """One summary of several :func:`stream_ik` results over disjoint targets (the ranks of a sharded run):
+    counts and maxima add up exactly, medians are those of all targets together (exact up to the
+    statistics' limit, as in one run). ``seconds`` and ``compute_seconds`` are the slowest part's (the parts
+    run side by side)."""
+    pos, ori = _ErrorStats(results[0].stats[0].exact_limit), _ErrorStats(results[0].stats[0].exact_limit)
+    for r in results:
+        pos.merge(r.stats[0])
+        ori.merge(r.stats[1])
+    position_only = results[0].position_only
+    return IKStreamResult(
+        count=sum(r.count for r in results),
+        successes=sum(r.successes for r in results),
+        position_only=position_only,
+        position_error=(pos.median(), pos.max()),
+        orientation_error=None if position_only else (ori.median(), ori.max()),
+        seconds=max(r.seconds for r in results),
+        compute_seconds=max(r.compute_seconds for r in results),
+        output=None,
+        median_approximate=pos.approximate,
+        stats=(pos, ori),
+    )
 
 
 @dataclass
@@ -137,6 +164,26 @@ class _ErrorStats:
 
     def max(self) -> float:
         return self._max if self._n else math.nan
+
+    def merge(self, other: _ErrorStats) -> None:
+        """Add the values behind ``other`` (exact values, or its histogram)."""
+        if other._n == 0:
+            return
+        if other._hist is None:
+            before = self._max if self._n else -math.inf
+            for p in other._parts:
+                self.add(p)
+            self._max = max(before, other._max)  # the exact maxima, not those of the stored float32 copies
+            return
+        if self._hist is None:  # switch to the histogram before adding one
+            self._hist = np.zeros_like(other._hist)
+            parts, self._parts = self._parts, []
+            for p in parts:
+                self._bin(p.astype(np.float64))
+        self._hist += other._hist
+        self._zeros += other._zeros
+        self._n += other._n
+        self._max = max(self._max, other._max)
 
 
 def _check_range(n: int, chunk_size: int, start: int, stop: int | None) -> tuple[int, int]:
@@ -340,4 +387,5 @@ def stream_ik(
         compute_seconds=compute,
         output=path,
         median_approximate=pos_stats.approximate,
+        stats=(pos_stats, ori_stats),
     )
