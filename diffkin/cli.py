@@ -476,6 +476,22 @@ def cmd_train(args) -> int:
     return 0
 
 
+def cmd_tune(args) -> int:
+    _check_config(args)
+    try:
+        from training import tune
+    except ImportError as exc:
+        raise _missing("tune", exc) from exc
+    try:
+        import optuna  # noqa: F401
+    except ImportError:
+        raise DiffkinError("`diffkin tune` needs Optuna: pip install 'diffkin[tune]'") from None
+    try:
+        return tune.run(args, log=print)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise DiffkinError(f"--config {args.config}: {exc}") from exc
+
+
 def cmd_evaluate(args) -> int:
     run = Path(args.run_dir)
     if not run.is_dir():
@@ -617,6 +633,10 @@ _EXAMPLES = {
     "train": "diffkin train --config configs/ppo_batched_reach_panda.yaml --total-timesteps 20000 "
              "--output runs/ppo",
     "evaluate": "diffkin evaluate runs/ppo --episodes 100",
+    "tune": "diffkin tune --config configs/tune_sac_her_reach_panda.yaml --trials 20\n"
+            "  diffkin tune --config configs/tune_sac_her_reach_panda.yaml --trials 20 \\\n"
+            "      --storage postgresql://user:pw@db/optuna --study reach   # one per worker machine\n"
+            "  diffkin tune --config configs/tune_sac_her_reach_panda.yaml --show",
     "bench": "diffkin bench fk --quick\n  diffkin --threads 2 bench ik",
     "demo": "diffkin demo --quick --output runs/demo",
 }
@@ -648,6 +668,12 @@ _DESCRIPTIONS = {
                   "or a Cartesian straight-line trajectory and export t, position, velocity, acceleration.",
     "train": "Train an SB3 agent from a run config (calls training.train in this process; needs the rl\n"
              "extra). Runs on the config's torch_threads unless --threads N.",
+    "tune": "Sweep a run config's hyperparameters with Optuna: each trial trains the config with values\n"
+            "drawn from its search_space section, reports every evaluation (pruned when the pruner says\n"
+            "so) and scores the final one (tune.metric). Workers share one study through --storage:\n"
+            "SQLite by default (one file, several processes on one machine), any SQLAlchemy URL (e.g.\n"
+            "PostgreSQL) for workers on several machines, or journal:FILE. --trials counts this worker's\n"
+            "trials. --show prints the best trials and writes the best config. Needs the tune extra.",
     "evaluate": "Evaluate a training run directory (policy and the scripted-IK baseline) and write\n"
                 "evaluation.json into it. One torch thread unless --threads N.",
     "bench": "The benchmark suite against the peers (pytorch-kinematics, ...), printing ratios measured in\n"
@@ -787,6 +813,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="no progress bar (shown only when stderr is a terminal)")
     p.set_defaults(func=cmd_train)
 
+    p = add("tune", "hyperparameter sweeps with Optuna on a shared study (SQLite / PostgreSQL / journal)")
+    try:
+        from training.tune import add_arguments as add_tune_arguments
+    except ImportError:  # no training code here: cmd_tune names what to install
+        p.add_argument("--config", required=True)
+    else:
+        add_tune_arguments(p)
+    p.set_defaults(func=cmd_tune)
+
     p = add("evaluate", "evaluate a training run directory")
     p.add_argument("run_dir", help="the run directory written by `diffkin train`")
     p.add_argument("--episodes", type=_positive_int, default=100, help="evaluation episodes")
@@ -832,7 +867,7 @@ def main(argv: list[str] | None = None) -> int:
     debug = getattr(args, "debug", False) or os.environ.get("DIFFKIN_DEBUG", "") not in ("", "0")
     try:
         threads = args.threads
-        if threads is None and args.command == "train":
+        if threads is None and args.command in ("train", "tune"):
             threads = _config_threads(args)
         elif threads is None and args.command != "bench":
             threads = 1
