@@ -29,7 +29,7 @@ import sys
 
 from benchmarks.common import print_table, write_json
 
-NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model")
+NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model", "sharded")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
