@@ -149,8 +149,14 @@ def _poke(t: Tensor, value: float, gen: torch.Generator) -> Tensor:
 def _reshape_bad(t: Tensor, trailing: tuple[int | None, ...], gen: torch.Generator) -> Tensor:
     """A tensor whose trailing shape differs from ``trailing``: its last fixed-size dim one larger, or one
     dim missing."""
-    if bool(torch.randint(2, (1,), generator=gen)) and len(trailing) > 1:
-        return t[..., 0, :] if t.ndim >= 2 else t  # drops a trailing dim of a matrix argument
+    if bool(torch.randint(2, (1,), generator=gen)) and len(trailing) > 1 and t.ndim >= 2:
+        dropped = t[..., 0, :]  # drops a trailing dim of a matrix argument
+        k = len(trailing)
+        still_fits = dropped.ndim >= k and all(
+            d is None or s == d for s, d in zip(dropped.shape[dropped.ndim - k :], trailing)
+        )
+        if not still_fits:  # (3, 3, 3) -> (3, 3) is one valid matrix: pad instead
+            return dropped
     dim = max(i for i, d in enumerate(trailing) if d is not None) - len(trailing)  # last fixed-size dim
     pad = torch.zeros(*t.shape[:dim], 1, *t.shape[dim + 1 :], dtype=t.dtype) if dim < -1 else \
         torch.zeros(*t.shape[:-1], 1, dtype=t.dtype)
