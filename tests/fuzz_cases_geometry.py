@@ -116,7 +116,8 @@ JACOBIAN = [
     Case("shift_jacobian_point", jac.shift_jacobian_point, {"J": JAC6, "r": VEC3}),
     Case("rotate_jacobian", jac.rotate_jacobian, {"J": JAC6, "R": ROT}),
     _unary(jac.analytical_transform, VEC3),
-    Case("analytical_transform[RPY]", jac.analytical_transform, {"phi": VEC3}, fixed={"representation": "RPY"}),
+    Case("analytical_transform[RPY]", jac.analytical_transform, {"phi": VEC3},
+         fixed={"representation": "RPY"}),
     Case("analytical_to_geometric", jac.analytical_to_geometric, {"J_A": JAC6, "phi": VEC3}),
     Case("geometric_to_analytical", jac.geometric_to_analytical, {"J": JAC6, "phi": VEC3}),
     Case("geometric_jacobian", lambda q: jac.geometric_jacobian(_chain(), q), {"q": Q6},
@@ -147,8 +148,8 @@ STATICS = [
     Case("wrench_transform", st.wrench_transform, {"R": ROT, "r": VEC3}),
     Case("wrench_transform[T]", st.wrench_transform, {"T": TRANSFORM}),
     Case("transform_velocity", st.transform_velocity, {"R": ROT, "r": VEC3, "v": WRENCH}),
-    Case("transform_velocity[T]", lambda T, v: st.transform_velocity(T, None, v), {"T": TRANSFORM, "v": WRENCH},
-         covers=st.transform_velocity),
+    Case("transform_velocity[T]", lambda T, v: st.transform_velocity(T, None, v),
+         {"T": TRANSFORM, "v": WRENCH}, covers=st.transform_velocity),
     Case("transform_wrench", st.transform_wrench, {"R": ROT, "r": VEC3, "wrench": WRENCH}),
     Case("transform_wrench[T]", lambda T, w: st.transform_wrench(T, None, w), {"T": TRANSFORM, "w": WRENCH},
          covers=st.transform_wrench),
@@ -166,8 +167,9 @@ MANIPULABILITY = [
     _unary(man.manipulability, JAC_ANY),
     _unary(man.velocity_ellipsoid, JAC_ANY),
     Case("velocity_ellipsoid[position]", man.velocity_ellipsoid, {"J": JAC6}, fixed={"part": "position"}),
-    _unary(man.force_ellipsoid, JAC_ANY),
-    Case("force_ellipsoid[m > n]", man.force_ellipsoid, {"J": A(uniform(6, 3))}),
+    # m <= n: for m > n the semi-axes along N(J^T) are +inf by design (the harness wants finite results)
+    _unary(man.force_ellipsoid, A(uniform(4, 6))),
+    Case("force_ellipsoid[position]", man.force_ellipsoid, {"J": JAC6}, fixed={"part": "position"}),
     Case("force_transmission_ratio", man.force_transmission_ratio, {"J": JAC6, "u": WRENCH}),
     Case("velocity_transmission_ratio", man.velocity_transmission_ratio, {"J": JAC6, "u": WRENCH}),
     Case("decoupled_singularities", lambda q: man.decoupled_singularities(_chain("anthropomorphic_arm"), q),
@@ -181,6 +183,10 @@ J3 = A(uniform(3), (3,))  # (..., n) boundary data of n = 3 joints
 T_F = A(uniform(1, low=0.5, high=2.0), (1,))  # one duration per batch element, (..., 1)
 T_F0 = A(uniform(low=0.5, high=2.0))  # (...)
 TIMING = {"sigma": SIGMA, "sigma_dot": SIGMA, "sigma_ddot": SIGMA}
+S_F = A(uniform(low=0.1, high=2.0))
+FACTOR = A(uniform(low=0.5, high=2.0), batched=False)
+J2 = A(uniform(2), (2,))  # (..., n) end conditions of the n = 2 joints of POINTS
+PATH = {"points": POINTS, "times": KNOTS, "t": TIMES}
 
 
 def _timed(fn):
@@ -201,7 +207,8 @@ def _time_scale_fn(q_i, q_f, t_f, t, factor):
 
 
 def _cartesian(p_i, p_f, s, s_dot, s_ddot):
-    return tr.cartesian_trajectory(functools.partial(tr.segment_path, p_i, p_f), tr.Trajectory(s, s_dot, s_ddot))
+    path = functools.partial(tr.segment_path, p_i, p_f)
+    return tr.cartesian_trajectory(path, tr.Trajectory(s, s_dot, s_ddot))
 
 
 TRAJECTORIES = [
@@ -217,31 +224,30 @@ TRAJECTORIES = [
     Case("trapezoidal[qdd_c]", tr.trapezoidal,
          {"q_i": J3, "q_f": J3, "t_f": T_F, "t": TIMES, "qdd_c": A(uniform(3, low=50.0, high=60.0), (3,))},
          keyword=("qdd_c",)),
-    Case("timing_law", tr.timing_law, {"s_f": A(uniform(low=0.1, high=2.0)), "t_f": T_F0, "t": TIMES}),
-    Case("timing_law[quintic]", tr.timing_law, {"s_f": A(uniform(low=0.1, high=2.0)), "t_f": T_F0, "t": TIMES},
+    Case("timing_law", tr.timing_law, {"s_f": S_F, "t_f": T_F0, "t": TIMES}),
+    Case("timing_law[quintic]", tr.timing_law, {"s_f": S_F, "t_f": T_F0, "t": TIMES},
          fixed={"kind": "quintic"}),
     Case("timing_law[trapezoidal]", tr.timing_law,
-         {"s_f": A(uniform(low=0.1, high=2.0)), "t_f": T_F0, "t": TIMES, "qdd_max": A(uniform(low=50, high=60))},
+         {"s_f": S_F, "t_f": T_F0, "t": TIMES, "qdd_max": A(uniform(low=50, high=60))},
          keyword=("qdd_max",), fixed={"kind": "trapezoidal"}),
-    Case("time_scale", _time_scale,
-         {"position": J3, "velocity": J3, "acceleration": J3, "factor": A(uniform(low=0.5, high=2.0), batched=False)},
+    Case("time_scale", _time_scale, {"position": J3, "velocity": J3, "acceleration": J3, "factor": FACTOR},
          covers=tr.time_scale),
     Case("time_scale[function]", _time_scale_fn,
-         {"q_i": J3, "q_f": J3, "t_f": T_F, "t": TIMES, "factor": A(uniform(low=0.5, high=2.0), batched=False)},
-         covers=tr.time_scale),
-    Case("interpolating_polynomial", tr.interpolating_polynomial, {"points": POINTS, "times": KNOTS, "t": TIMES}),
-    Case("cubic_through_points", tr.cubic_through_points, {"points": POINTS, "times": KNOTS, "t": TIMES}),
+         {"q_i": J3, "q_f": J3, "t_f": T_F, "t": TIMES, "factor": FACTOR}, covers=tr.time_scale),
+    Case("interpolating_polynomial", tr.interpolating_polynomial, PATH),
+    Case("cubic_through_points", tr.cubic_through_points, PATH),
     Case("cubic_through_points[velocities]", tr.cubic_through_points,
          {"points": POINTS, "times": KNOTS, "t": TIMES, "velocities": POINTS}),
     Case("heuristic_velocities", tr.heuristic_velocities, {"points": POINTS, "times": KNOTS}),
-    Case("cubic_spline", tr.cubic_spline,
-         {"points": POINTS, "times": KNOTS, "t": TIMES, "v_i": A(uniform(2), (2,)), "v_f": A(uniform(2), (2,))}),
+    Case("cubic_spline", tr.cubic_spline, {**PATH, "v_i": J2, "v_f": J2}),
     Case("cubic_spline[natural_virtual]", tr.cubic_spline,
-         {"points": POINTS, "times": KNOTS, "t": TIMES, "v_i": A(uniform(2), (2,)), "v_f": A(uniform(2), (2,)),
-          "a_i": A(uniform(2), (2,)), "a_f": A(uniform(2), (2,))},
-         keyword=("a_i", "a_f"), fixed={"end": "natural_virtual"}),
+         {**PATH, "v_i": J2, "v_f": J2, "a_i": J2, "a_f": J2}, keyword=("a_i", "a_f"),
+         fixed={"end": "natural_virtual"}),
+    Case("cubic_spline[virtual_times]", tr.cubic_spline,
+         {**PATH, "virtual_times": A(constant([0.3, 3.0]), (2,), batched=False)},
+         keyword=("virtual_times",), fixed={"end": "natural_virtual"}),
     Case("linear_parabolic_blends", tr.linear_parabolic_blends,
-         {"points": POINTS, "times": KNOTS, "t": TIMES, "blend_time": A(constant([0.2] * 4), (4,), batched=False)}),
+         {**PATH, "blend_time": A(constant([0.2] * 4), (4,), batched=False)}),
     Case("linear_parabolic_blends[qdd]", tr.linear_parabolic_blends,
          {"points": POINTS, "times": KNOTS, "t": TIMES, "qdd": A(uniform(2, low=10.0, high=20.0), (2,))},
          keyword=("qdd",)),
@@ -256,8 +262,8 @@ TRAJECTORIES = [
                                               "s_ddot": SIGMA}, covers=tr.cartesian_trajectory),
     Case("cartesian_segment_trajectory", tr.cartesian_segment_trajectory,
          {"p_i": VEC3, "p_f": VEC3, "t_f": T_F0, "t": TIMES}),
-    Case("euler_angle_trajectory", _timed(tr.euler_angle_trajectory), {"phi_i": VEC3, "phi_f": VEC3, **TIMING},
-         covers=tr.euler_angle_trajectory),
+    Case("euler_angle_trajectory", _timed(tr.euler_angle_trajectory),
+         {"phi_i": VEC3, "phi_f": VEC3, **TIMING}, covers=tr.euler_angle_trajectory),
     Case("euler_orientation_trajectory", _timed(tr.euler_orientation_trajectory),
          {"phi_i": VEC3, "phi_f": VEC3, **TIMING}, covers=tr.euler_orientation_trajectory),
     Case("axis_angle_orientation_trajectory", _timed(tr.axis_angle_orientation_trajectory),

@@ -289,8 +289,8 @@ def constant(value):
 
 def main() -> None:
     """Print the sweep's counts over every case, 3 seeds, float32 and float64, and the failures."""
-    from tests.test_fuzz import CASES
     from tests.fuzzing import mutations, outcome  # the imported module, not __main__: one call_dtype() state
+    from tests.test_fuzz import CASES
 
     cases = list(CASES.values())
     counts: Counter = Counter()
