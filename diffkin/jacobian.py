@@ -144,7 +144,7 @@ def _frame_rotation(frame, T_ee: Tensor) -> Tensor | None:
         return None
     if isinstance(frame, str):
         return T_ee[..., :3, :3]
-    broadcast_batch(("frame", frame, 2), ("J", T_ee, 2))
+    broadcast_batch(("frame", frame, 2), ("q", T_ee, 2))
     return frame
 
 
