@@ -14,6 +14,8 @@ __all__ = [
     "eps_for",
     "safe_norm",
     "safe_normalize",
+    "stable_norm",
+    "stable_normalize",
     "sinc",
     "safe_acos",
     "safe_atan2",
@@ -39,6 +41,25 @@ def safe_sqrt(x: Tensor, eps: float | None = None) -> Tensor:
 def safe_norm(v: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
     """Euclidean norm with a finite (zero) gradient at the zero vector."""
     return safe_sqrt((v * v).sum(dim=dim, keepdim=keepdim))
+
+
+def stable_norm(v: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
+    """:func:`safe_norm` without overflow or underflow of the squares (1e30 m in float32 gives 1e30, not
+    inf): the vector is scaled by its largest |component| first (held constant for the gradient)."""
+    m = v.detach().abs().amax(dim=dim, keepdim=True) if v.numel() else v.new_ones(())
+    m = torch.where((m > 0) & torch.isfinite(m), m, torch.ones_like(m))
+    n = safe_norm(v / m, dim=dim, keepdim=True) * m
+    return n if keepdim else n.squeeze(dim)
+
+
+def stable_normalize(v: Tensor, dim: int = -1, fallback: Tensor | None = None) -> Tensor:
+    """:func:`safe_normalize` with the overflow-safe :func:`stable_norm`."""
+    n = stable_norm(v, dim=dim, keepdim=True)
+    small = n <= eps_for(v) ** 0.5 * 1e-3
+    if fallback is None:
+        fallback = torch.zeros_like(v)
+        fallback.select(dim, 0).fill_(1.0)
+    return torch.where(small, fallback, v / torch.where(small, torch.ones_like(n), n))
 
 
 def safe_normalize(v: Tensor, dim: int = -1, fallback: Tensor | None = None) -> Tensor:

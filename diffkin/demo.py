@@ -374,7 +374,7 @@ def _book_circle(t_end: float, dt: float):
     speed = 0.25 * math.pi
     moving = t < 4.0
     s = speed * t.clamp(max=4.0)
-    timing = Trajectory(s, torch.where(moving, speed, 0.0), torch.zeros_like(t))
+    timing = Trajectory(s, torch.where(moving, torch.full_like(t, speed), 0.0), torch.zeros_like(t))
     centre = torch.tensor([0.25, 0.5, 0.0], dtype=torch.float64)
     start = torch.tensor([0.0, 0.5, 0.0], dtype=torch.float64)
     axis = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)

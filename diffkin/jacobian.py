@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from ._numerics import cross, eps_for
-from .errors import ConventionError, DTypeError, RepresentationSingularityError, ShapeError
+from .errors import ConventionError, RepresentationSingularityError
 from .manipulability import (
     DecoupledSingularities,
     Ellipsoid,
@@ -41,7 +41,7 @@ from .statics import (
     velocity_transform,
     wrench_transform,
 )
-from .validation import check_shape
+from .validation import broadcast_batch, check_trailing, tensors
 
 __all__ = [
     "geometric_jacobian",
@@ -90,6 +90,12 @@ def shift_jacobian_point(J: Tensor, r: Tensor) -> Tensor:
 
     ``J`` (..., 6, n) in some frame, ``r`` (..., 3) the offset p - p_e expressed in that same frame.
     """
+    J, r = tensors(("J", J, (6, None)), ("r", r, (3,)))
+    broadcast_batch(("J", J, 2), ("r", r, 1))
+    return _shift_jacobian_point(J, r)
+
+
+def _shift_jacobian_point(J: Tensor, r: Tensor) -> Tensor:
     lin, ang = J[..., :3, :], J[..., 3:, :]
     wx, wy, wz = ang.unbind(-2)
     rx, ry, rz = (c.unsqueeze(-1) for c in r.unbind(-1))
@@ -101,36 +107,51 @@ def shift_jacobian_point(J: Tensor, r: Tensor) -> Tensor:
 def rotate_jacobian(J: Tensor, R: Tensor) -> Tensor:
     """Express a Jacobian (..., 6, n) given in the base frame in frame u with orientation ``R`` = R^0_u
     (..., 3, 3): J^u = diag(R^T, R^T) J (3.34, where the book's R^u = (R^0_u)^T)."""
+    J, R = tensors(("J", J, (6, None)), ("R", R, (3, 3)))
+    broadcast_batch(("J", J, 2), ("R", R, 2))
+    return _rotate_jacobian(J, R)
+
+
+def _rotate_jacobian(J: Tensor, R: Tensor) -> Tensor:
     lin = torch.einsum("...ji,...jk->...ik", R, J[..., :3, :])
     ang = torch.einsum("...ji,...jk->...ik", R, J[..., 3:, :])
     return torch.cat((lin, ang), dim=-2)
+
+
+def _check_options(chain, q, frame, point, point_frame: str, check: bool):
+    """Validate ``q`` (when ``check``), a tensor ``frame`` and ``point`` together, in the chain's dtype."""
+    if isinstance(frame, str) and frame not in ("base", "ee"):
+        raise ConventionError(f"frame must be None, 'base', 'ee' or a rotation tensor, got {frame!r}")
+    if point is not None and point_frame not in _POINT_FRAMES:
+        raise ConventionError(f"point_frame must be one of {_POINT_FRAMES}, got {point_frame!r}")
+    tensor_frame = None if frame is None or isinstance(frame, str) else frame
+    if check or tensor_frame is not None or point is not None:
+        q_spec = ("q", q if check else None, (chain.n_joints,))  # None: trusted, passed on as it is
+        q_checked, tensor_frame, point = tensors(
+            q_spec, ("frame", tensor_frame, None), ("point", point, (3,)), like=chain
+        )
+        q = q if q_checked is None else q_checked
+    if tensor_frame is not None:
+        if tensor_frame.ndim >= 2 and tuple(tensor_frame.shape[-2:]) == (4, 4):
+            tensor_frame = tensor_frame[..., :3, :3]
+        check_trailing(tensor_frame, (3, 3), "frame")
+        frame = tensor_frame
+    return q, frame, point
 
 
 def _frame_rotation(frame, T_ee: Tensor) -> Tensor | None:
     if frame is None or (isinstance(frame, str) and frame == "base"):
         return None
     if isinstance(frame, str):
-        if frame != "ee":
-            raise ConventionError(f"frame must be None, 'base', 'ee' or a rotation tensor, got {frame!r}")
         return T_ee[..., :3, :3]
-    if not isinstance(frame, Tensor):
-        raise ShapeError(f"frame must be a (..., 3, 3) rotation or (..., 4, 4) transform, got {type(frame)}")
-    if frame.shape[-2:] == (4, 4):
-        frame = frame[..., :3, :3]
-    check_shape(frame, (3, 3), "frame")
-    if frame.dtype != T_ee.dtype:
-        raise DTypeError(f"frame has dtype {frame.dtype}, expected {T_ee.dtype}")
+    broadcast_batch(("frame", frame, 2), ("q", T_ee, 2))
     return frame
 
 
 def _point_offset(point, point_frame: str, T_ee: Tensor) -> Tensor | None:
     if point is None:
         return None
-    if point_frame not in _POINT_FRAMES:
-        raise ConventionError(f"point_frame must be one of {_POINT_FRAMES}, got {point_frame!r}")
-    check_shape(point, (3,), "point")
-    if point.dtype != T_ee.dtype:
-        raise DTypeError(f"point has dtype {point.dtype}, expected {T_ee.dtype}")
+    broadcast_batch(("point", point, 1), ("q", T_ee, 2))
     R, p_e = T_ee[..., :3, :3], T_ee[..., :3, 3]
     if point_frame == "ee":
         return torch.einsum("...ij,...j->...i", R, point)
@@ -146,13 +167,14 @@ def forward_kinematics_and_jacobian(
     See :func:`geometric_jacobian` for the options. ``T`` is always the end-effector (tool) pose in the base
     frame, whatever ``point``/``frame`` say.
     """
-    T_ee, J = chain.fk_jacobian(q, check=check)
+    q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
+    T_ee, J = chain.fk_jacobian(q, check=False)
     r = _point_offset(point, point_frame, T_ee)
     if r is not None:
-        J = shift_jacobian_point(J, r)
+        J = _shift_jacobian_point(J, r)
     R = _frame_rotation(frame, T_ee)
     if R is not None:
-        J = rotate_jacobian(J, R)
+        J = _rotate_jacobian(J, R)
     return T_ee, J
 
 
@@ -172,7 +194,8 @@ def geometric_jacobian(
             tool tip): v_p = v_e + ω × (p − p_e) (3.112). ``(..., 3)``.
         point_frame: ``"ee"`` (default): ``point`` is given in the end-effector frame (an offset from p_e,
             like a tool translation); ``"base"``: ``point`` is a position in the base frame.
-        check: validate ``q``.
+        check: validate ``q`` (by the rule of :mod:`diffkin.validation`, in the chain's dtype and device;
+            ``point`` and a tensor ``frame`` are always validated).
     """
     return forward_kinematics_and_jacobian(chain, q, frame, point, point_frame, check)[1]
 
@@ -186,8 +209,9 @@ def jacobian_dot_qdot(chain, q: Tensor, qdot: Tensor, check: bool = True) -> Ten
     of the columns (3.25)–(3.26)). Same cost order as the Jacobian itself.
     """
     if check:
-        chain.check_q(q)
-        chain.check_q(qdot, name="qdot")
+        n = chain.n_joints
+        q, qdot = tensors(("q", q, (n,)), ("qdot", qdot, (n,)), like=chain)
+        broadcast_batch(("q", q, 1), ("qdot", qdot, 1))
     axes, origins, T_ee = chain.joint_axes_origins(q, check=False)
     rev = chain.revolute_mask.unsqueeze(-1)
     qd = qdot.unsqueeze(-1)
@@ -217,7 +241,7 @@ class AnalyticalJacobian(NamedTuple):
 def analytical_transform(phi: Tensor, representation: str = "ZYZ") -> Tensor:
     """T_A(φ) = diag(I, T(φ)) (3.65): Euler angles (..., 3) -> (..., 6, 6), with v_e = T_A(φ) ẋ_e."""
     conv = _convention(representation)
-    check_shape(phi, (3,), "phi")
+    (phi,) = tensors(("phi", phi, (3,)))
     T = _euler_rate_matrix(phi, conv)
     out = torch.zeros(*phi.shape[:-1], 6, 6, dtype=phi.dtype, device=phi.device)
     out[..., :3, :3] = torch.eye(3, dtype=phi.dtype, device=phi.device)
@@ -227,8 +251,10 @@ def analytical_transform(phi: Tensor, representation: str = "ZYZ") -> Tensor:
 
 def analytical_to_geometric(J_A: Tensor, phi: Tensor, representation: str = "ZYZ") -> Tensor:
     """J = T_A(φ) J_A (3.66): (..., 6, n), Euler angles (..., 3) -> (..., 6, n)."""
-    check_shape(phi, (3,), "phi")
-    T = _euler_rate_matrix(phi, _convention(representation))
+    conv = _convention(representation)
+    J_A, phi = tensors(("J_A", J_A, (6, None)), ("phi", phi, (3,)))
+    broadcast_batch(("J_A", J_A, 2), ("phi", phi, 1))
+    T = _euler_rate_matrix(phi, conv)
     return torch.cat((J_A[..., :3, :], T @ J_A[..., 3:, :]), dim=-2)
 
 
@@ -246,8 +272,14 @@ def _inverse3(T: Tensor, tol: float) -> tuple[Tensor, Tensor]:
 def geometric_to_analytical(J: Tensor, phi: Tensor, representation: str = "ZYZ", tol: float | None = None):
     """J_A = T_A(φ)⁻¹ J (3.66). Returns ``(J_A (..., 6, n), singular (...))``; where |det T(φ)| <= tol
     (default √eps) the representation is singular and the values there are finite but meaningless."""
-    check_shape(phi, (3,), "phi")
-    T = _euler_rate_matrix(phi, _convention(representation))
+    conv = _convention(representation)
+    J, phi = tensors(("J", J, (6, None)), ("phi", phi, (3,)))
+    broadcast_batch(("J", J, 2), ("phi", phi, 1))
+    return _geometric_to_analytical(J, phi, conv, tol)
+
+
+def _geometric_to_analytical(J: Tensor, phi: Tensor, conv: str, tol: float | None):
+    T = _euler_rate_matrix(phi, conv)
     tol = eps_for(phi) ** 0.5 if tol is None else tol
     T_inv, singular = _inverse3(T, tol)
     return torch.cat((J[..., :3, :], T_inv @ J[..., 3:, :]), dim=-2), singular
@@ -281,7 +313,7 @@ def analytical_jacobian(
     conv = _convention(representation)
     T_ee, J = forward_kinematics_and_jacobian(chain, q, check=check)
     phi = _matrix_to_euler(T_ee[..., :3, :3], conv, branch)
-    J_A, mask = geometric_to_analytical(J, phi, conv, tol)
+    J_A, mask = _geometric_to_analytical(J, phi, conv, tol)
     if singular == "flag":
         return AnalyticalJacobian(J_A, mask)
     if singular == "raise" and bool(mask.any()):

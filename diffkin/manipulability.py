@@ -12,10 +12,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._numerics import cross, eps_for, safe_norm, safe_sqrt
+from ._numerics import cross, eps_for, safe_norm, safe_sqrt, stable_norm
 from .errors import ConventionError, ModelError, ShapeError
-from .redundancy import _check_J
-from .validation import check_shape
+from .validation import broadcast_batch, check_trailing, shape_str, tensors
 
 __all__ = [
     "smallest_singular_value",
@@ -33,6 +32,10 @@ __all__ = [
 ]
 
 _PARTS = {"full": slice(None), "position": slice(0, 3), "orientation": slice(3, 6)}
+
+
+def _check_J(J) -> Tensor:
+    return tensors(("J", J, (None, None)))[0]
 
 
 def _inv_or_inf(x: Tensor) -> Tensor:
@@ -53,9 +56,9 @@ def jacobian_determinant(J: Tensor) -> Tensor:
     Computed as det(U) det(Vᵀ) ∏σ_i from the SVD so its gradient, adj(J)ᵀ, is right at singular J too
     (``torch.linalg.det``'s backward returns 0 there).
     """
-    _check_J(J)
+    J = _check_J(J)
     if J.shape[-1] != J.shape[-2]:
-        raise ShapeError(f"jacobian_determinant needs a square J (..., n, n), got {tuple(J.shape)}")
+        raise ShapeError(f"jacobian_determinant needs a square J (..., n, n), got {shape_str(J.shape)}")
     U, S, Vh = torch.linalg.svd(J)
     sign = (torch.linalg.det(U.detach()) * torch.linalg.det(Vh.detach())).detach()
     return sign * S.prod(dim=-1)
@@ -121,7 +124,9 @@ def decoupled_singularities(chain, q: Tensor, tol: float | None = None, check: b
             "decoupled_singularities needs an all-revolute anthropomorphic arm with 3 joints or with a "
             f"spherical wrist (6 joints), got joint_types {chain.joint_types!r}"
         )
-    axes, origins, T_ee = chain.joint_axes_origins(q, check=check)
+    if check:
+        (q,) = tensors(("q", q, (n,)), like=chain)
+    axes, origins, T_ee = chain.joint_axes_origins(q, check=False)
     if n == 6:
         p_w = _wrist_centre(axes[..., 3:, :], origins[..., 3:, :])
         z3, z4, z5 = axes[..., 3, :], axes[..., 4, :], axes[..., 5, :]
@@ -163,12 +168,12 @@ class Ellipsoid(NamedTuple):
     lengths: Tensor
 
 
-def _select_part(J: Tensor, part: str) -> Tensor:
-    _check_J(J)
+def _select_part(J, part: str) -> Tensor:
+    J = _check_J(J)
     if part not in _PARTS:
         raise ConventionError(f"part must be one of {tuple(_PARTS)}, got {part!r}")
     if part != "full" and J.shape[-2] != 6:
-        raise ShapeError(f"part={part!r} needs a (..., 6, n) Jacobian, got {tuple(J.shape)}")
+        raise ShapeError(f"part={part!r} needs a (..., 6, n) Jacobian, got {shape_str(J.shape)}")
     return J[..., _PARTS[part], :]
 
 
@@ -200,21 +205,23 @@ def force_ellipsoid(J: Tensor, part: str = "full") -> Ellipsoid:
     return Ellipsoid(U, _inv_or_inf(S))
 
 
-def _direction(J: Tensor, u: Tensor) -> Tensor:
-    check_shape(u, (J.shape[-2],), "u")
-    return u
+def _direction(J, u) -> tuple[Tensor, Tensor]:
+    J, u = tensors(("J", J, (None, None)), ("u", u, (None,)))
+    check_trailing(u, (J.shape[-2],), "u")
+    broadcast_batch(("J", J, 2), ("u", u, 1))
+    return J, u
 
 
 def force_transmission_ratio(J: Tensor, u: Tensor) -> Tensor:
     """α = (uᵀJJᵀu)^(-1/2) (3.127) along the unit direction ``u (..., m)``: +inf where u ∈ N(Jᵀ)."""
-    _direction(_check_J(J), u)
+    J, u = _direction(J, u)
     Jt_u = torch.einsum("...ij,...i->...j", J, u)
-    return _inv_or_inf(safe_norm(Jt_u))
+    return _inv_or_inf(stable_norm(Jt_u))
 
 
 def velocity_transmission_ratio(J: Tensor, u: Tensor) -> Tensor:
     """β = (uᵀ(JJᵀ)⁻¹u)^(-1/2) (3.128) along the unit direction ``u (..., m)``; → 0 where u leaves R(J)."""
-    _direction(_check_J(J), u)
+    J, u = _direction(J, u)
     m = J.shape[-2]
     G = J @ J.mT
     reg = eps_for(J) * G.diagonal(dim1=-2, dim2=-1).sum(-1) + torch.finfo(J.dtype).tiny

@@ -5,8 +5,10 @@ differentiable, with finite gradients at the singular cases (angle 0 and π, Eul
 singularities). Quaternions are scalar first ``(eta, eps_x, eps_y, eps_z)``; conversions *to* quaternions
 return ``eta >= 0`` (2.34). Angles in radians.
 
-Public functions check their input (shape, dtype, finite values; the finiteness check synchronises with
-the device). Hot loops elsewhere in diffkin call the unchecked private kernels (``_name``) instead.
+Public functions check their input by the rule of :mod:`diffkin.validation` (float32/float64 tensors of
+one dtype, numbers and numpy arrays converted, exact trailing shapes, finite values; the finiteness check
+synchronises with the device). Hot loops elsewhere in diffkin call the unchecked private kernels
+(``_name``) instead.
 """
 
 from __future__ import annotations
@@ -14,11 +16,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._numerics import eps_for, safe_atan2, safe_norm, safe_sqrt, sinc, wrap_angle
-from .errors import ConventionError, DiffkinError, DTypeError
+from ._numerics import eps_for, safe_atan2, safe_norm, safe_sqrt, sinc, stable_norm, wrap_angle
+from .errors import ConventionError, DiffkinError
 from .kernels import pose_error as _kpe
 from .kernels.quaternion import _canonical, _matrix_to_quaternion
-from .validation import check_finite, check_shape, check_tensor
+from .validation import broadcast_batch, check_trailing, tensors
 
 __all__ = [
     "rot_x",
@@ -54,14 +56,8 @@ _BRANCHES = ("positive", "negative")
 
 
 # ----------------------------------------------------------------------------------------------- checks
-def _checked(x, trailing, name: str) -> Tensor:
-    check_shape(x, trailing, name)
-    return check_finite(x, name)
-
-
-def _same_dtype(a: Tensor, b: Tensor, na: str, nb: str) -> None:
-    if a.dtype != b.dtype:
-        raise DTypeError(f"{na} and {nb} must have the same dtype, got {a.dtype} and {b.dtype}")
+def _one(x, trailing, name: str) -> Tensor:
+    return tensors((name, x, trailing))[0]
 
 
 def _convention(convention: str) -> str:
@@ -71,13 +67,6 @@ def _convention(convention: str) -> str:
             f"unknown Euler convention {convention!r}; valid: {', '.join(EULER_CONVENTIONS)} ('ZYX' = 'RPY')"
         )
     return _ALIASES[key]
-
-
-def _angle_tensor(angle, name: str) -> Tensor:
-    if not isinstance(angle, Tensor):
-        angle = torch.as_tensor(angle, dtype=torch.get_default_dtype())
-    check_tensor(angle, name)
-    return check_finite(angle, name)
 
 
 def _mat(rows) -> Tensor:
@@ -99,17 +88,17 @@ def _rot(angle: Tensor, axis: int) -> Tensor:
 
 def rot_x(angle) -> Tensor:
     """Elementary rotation about x (2.8): (...) -> (..., 3, 3)."""
-    return _rot(_angle_tensor(angle, "angle"), 0)
+    return _rot(_one(angle, None, "angle"), 0)
 
 
 def rot_y(angle) -> Tensor:
     """Elementary rotation about y (2.7): (...) -> (..., 3, 3)."""
-    return _rot(_angle_tensor(angle, "angle"), 1)
+    return _rot(_one(angle, None, "angle"), 1)
 
 
 def rot_z(angle) -> Tensor:
     """Elementary rotation about z (2.6): (...) -> (..., 3, 3)."""
-    return _rot(_angle_tensor(angle, "angle"), 2)
+    return _rot(_one(angle, None, "angle"), 2)
 
 
 def _skew(v: Tensor) -> Tensor:
@@ -120,7 +109,7 @@ def _skew(v: Tensor) -> Tensor:
 
 def skew(v: Tensor) -> Tensor:
     """Skew-symmetric matrix S(v) with S(v) w = v x w (3.7): (..., 3) -> (..., 3, 3)."""
-    return _skew(_checked(v, (3,), "v"))
+    return _skew(_one(v, (3,), "v"))
 
 
 def _vee(S: Tensor) -> Tensor:
@@ -131,7 +120,7 @@ def _vee(S: Tensor) -> Tensor:
 
 def vee(S: Tensor) -> Tensor:
     """Inverse of :func:`skew`, taken from the skew-symmetric part (S - S^T)/2: (..., 3, 3) -> (..., 3)."""
-    return _vee(_checked(S, (3, 3), "S"))
+    return _vee(_one(S, (3, 3), "S"))
 
 
 # ----------------------------------------------------------------------------------------- Euler angles
@@ -158,7 +147,7 @@ def euler_to_matrix(angles: Tensor, convention: str = "ZYZ") -> Tensor:
     R = Rz(phi) Ry(theta) Rx(psi) (2.21), angles ordered (phi, theta, psi) as in the book.
     """
     convention = _convention(convention)
-    return _euler_to_matrix(_checked(angles, (3,), "angles"), convention)
+    return _euler_to_matrix(_one(angles, (3,), "angles"), convention)
 
 
 def _singular_tol(R: Tensor) -> float:
@@ -211,7 +200,7 @@ def matrix_to_euler(R: Tensor, convention: str = "ZYZ", branch: str = "positive"
     convention = _convention(convention)
     if branch not in _BRANCHES:
         raise ConventionError(f"unknown branch {branch!r}; valid: {', '.join(_BRANCHES)}")
-    return _matrix_to_euler(_checked(R, (3, 3), "R"), convention, branch)
+    return _matrix_to_euler(_one(R, (3, 3), "R"), convention, branch)
 
 
 def _euler_rate_matrix(angles: Tensor, convention: str) -> Tensor:
@@ -230,12 +219,12 @@ def euler_rate_matrix(angles: Tensor, convention: str = "ZYZ") -> Tensor:
     ZYZ as printed under (3.64) (det = -sin theta); RPY (Problem 3.12) has det = -cos theta.
     """
     convention = _convention(convention)
-    return _euler_rate_matrix(_checked(angles, (3,), "angles"), convention)
+    return _euler_rate_matrix(_one(angles, (3,), "angles"), convention)
 
 
 # ----------------------------------------------------------------------------------- angle and axis
 def _unit(v: Tensor, name: str) -> Tensor:
-    n = safe_norm(v, keepdim=True)
+    n = stable_norm(v, keepdim=True)  # an axis of 1e30 in float32 is still an axis
     if bool((n <= eps_for(v)).any()):
         raise DiffkinError(f"{name} must be non-zero; got a zero vector")
     return v / n
@@ -255,9 +244,8 @@ def axis_angle_to_matrix(axis: Tensor, angle: Tensor) -> Tensor:
 
     The axis is normalised first, so the gradient w.r.t. ``axis`` is tangent to the unit sphere.
     """
-    _checked(axis, (3,), "axis")
-    angle = _angle_tensor(angle, "angle")
-    _same_dtype(axis, angle, "axis", "angle")
+    axis, angle = tensors(("axis", axis, (3,)), ("angle", angle, None))
+    broadcast_batch(("axis", axis, 1), ("angle", angle, 0))
     return _axis_angle_to_matrix(_unit(axis, "axis"), angle)
 
 
@@ -277,7 +265,7 @@ def quaternion_to_axis_angle(Q: Tensor) -> tuple[Tensor, Tensor]:
 
     Q is first made eta >= 0, so the angle lies in [0, pi]; at angle 0 the axis is (1, 0, 0) by convention.
     """
-    return _quaternion_to_axis_angle(_canonical(_checked(Q, (4,), "Q")))
+    return _quaternion_to_axis_angle(_canonical(_one(Q, (4,), "Q")))
 
 
 def matrix_to_axis_angle(R: Tensor) -> tuple[Tensor, Tensor]:
@@ -288,7 +276,7 @@ def matrix_to_axis_angle(R: Tensor) -> tuple[Tensor, Tensor]:
     symmetric) the axis sign is fixed by making its largest-magnitude component positive; just below pi
     the sign follows (2.28).
     """
-    return _quaternion_to_axis_angle(_matrix_to_quaternion(_checked(R, (3, 3), "R")))
+    return _quaternion_to_axis_angle(_matrix_to_quaternion(_one(R, (3, 3), "R")))
 
 
 def _atan_ratio(n2: Tensor, eta: Tensor) -> Tensor:
@@ -310,7 +298,7 @@ def _quaternion_to_rotvec(Q: Tensor) -> Tensor:
 
 def quaternion_to_rotvec(Q: Tensor) -> Tensor:
     """Rotation vector theta r of a unit quaternion (made eta >= 0): (..., 4) -> (..., 3), theta <= pi."""
-    return _quaternion_to_rotvec(_canonical(_checked(Q, (4,), "Q")))
+    return _quaternion_to_rotvec(_canonical(_one(Q, (4,), "Q")))
 
 
 def _rotvec_to_quaternion(v: Tensor) -> Tensor:
@@ -321,14 +309,13 @@ def _rotvec_to_quaternion(v: Tensor) -> Tensor:
 
 def rotvec_to_quaternion(v: Tensor) -> Tensor:
     """Unit quaternion (2.30)-(2.31) of the rotation vector v = theta r, eta >= 0: (..., 3) -> (..., 4)."""
-    return _rotvec_to_quaternion(_checked(v, (3,), "v"))
+    return _rotvec_to_quaternion(_one(v, (3,), "v"))
 
 
 def axis_angle_to_quaternion(axis: Tensor, angle: Tensor) -> Tensor:
     """Unit quaternion (2.30)-(2.31) with eta >= 0: (..., 3), (...) -> (..., 4). The axis is normalised."""
-    _checked(axis, (3,), "axis")
-    angle = _angle_tensor(angle, "angle")
-    _same_dtype(axis, angle, "axis", "angle")
+    axis, angle = tensors(("axis", axis, (3,)), ("angle", angle, None))
+    broadcast_batch(("axis", axis, 1), ("angle", angle, 0))
     axis, angle = torch.broadcast_tensors(_unit(axis, "axis"), angle[..., None])
     half = angle[..., :1] / 2
     return _canonical(torch.cat((torch.cos(half), torch.sin(half) * axis), dim=-1))
@@ -344,7 +331,7 @@ def _rotvec_to_matrix(v: Tensor) -> Tensor:
 
 def rotvec_to_matrix(v: Tensor) -> Tensor:
     """Rotation matrix of the rotation vector v = theta r (2.25): (..., 3) -> (..., 3, 3); smooth at 0."""
-    return _rotvec_to_matrix(_checked(v, (3,), "v"))
+    return _rotvec_to_matrix(_one(v, (3,), "v"))
 
 
 def _matrix_to_rotvec(R: Tensor) -> Tensor:
@@ -357,7 +344,7 @@ def matrix_to_rotvec(R: Tensor) -> Tensor:
     Smooth with exact gradients at theta = 0; finite at theta = pi (where the sign is as in
     :func:`matrix_to_axis_angle`).
     """
-    return _matrix_to_rotvec(_checked(R, (3, 3), "R"))
+    return _matrix_to_rotvec(_one(R, (3, 3), "R"))
 
 
 # --------------------------------------------------------------------------------------- quaternions
@@ -372,8 +359,7 @@ def _quaternion_to_matrix(Q: Tensor) -> Tensor:
 
 def quaternion_to_matrix(Q: Tensor) -> Tensor:
     """Rotation matrix of a quaternion (eta, eps) (2.33): (..., 4) -> (..., 3, 3). Q is normalised first."""
-    _checked(Q, (4,), "Q")
-    return _quaternion_to_matrix(_unit(Q, "Q"))
+    return _quaternion_to_matrix(_unit(_one(Q, (4,), "Q"), "Q"))
 
 
 def matrix_to_quaternion(R: Tensor) -> Tensor:
@@ -382,7 +368,7 @@ def matrix_to_quaternion(R: Tensor) -> Tensor:
     Evaluated in Shepperd's numerically robust form (same result as (2.34)-(2.35) for rotation matrices,
     but dividing by the largest of the four square roots), then normalised and made eta >= 0.
     """
-    return _matrix_to_quaternion(_checked(R, (3, 3), "R"))
+    return _matrix_to_quaternion(_one(R, (3, 3), "R"))
 
 
 def _quaternion_multiply(Q1: Tensor, Q2: Tensor) -> Tensor:
@@ -397,9 +383,8 @@ def quaternion_multiply(Q1: Tensor, Q2: Tensor) -> Tensor:
 
     Batch dims broadcast; the result is not re-canonicalised (its eta may be negative).
     """
-    _checked(Q1, (4,), "Q1")
-    _checked(Q2, (4,), "Q2")
-    _same_dtype(Q1, Q2, "Q1", "Q2")
+    Q1, Q2 = tensors(("Q1", Q1, (4,)), ("Q2", Q2, (4,)))
+    broadcast_batch(("Q1", Q1, 1), ("Q2", Q2, 1))
     return _quaternion_multiply(Q1, Q2)
 
 
@@ -409,7 +394,7 @@ def _quaternion_conjugate(Q: Tensor) -> Tensor:
 
 def quaternion_conjugate(Q: Tensor) -> Tensor:
     """Conjugate {eta, -eps}, the inverse of a unit quaternion (2.36): (..., 4) -> (..., 4)."""
-    return _quaternion_conjugate(_checked(Q, (4,), "Q"))
+    return _quaternion_conjugate(_one(Q, (4,), "Q"))
 
 
 def _quaternion_slerp(Q0: Tensor, Q1: Tensor, s: Tensor) -> Tensor:
@@ -425,11 +410,8 @@ def quaternion_slerp(Q0: Tensor, Q1: Tensor, s: Tensor) -> Tensor:
     Written as Q0 * exp(s log(dQ)) so it stays finite (values and gradients) for Q0 = +-Q1. The path
     starts at Q0 exactly and is continuous, so its eta is not forced to be >= 0.
     """
-    _checked(Q0, (4,), "Q0")
-    _checked(Q1, (4,), "Q1")
-    s = _angle_tensor(s, "s")
-    _same_dtype(Q0, Q1, "Q0", "Q1")
-    _same_dtype(Q0, s, "Q0", "s")
+    Q0, Q1, s = tensors(("Q0", Q0, (4,)), ("Q1", Q1, (4,)), ("s", s, None))
+    broadcast_batch(("Q0", Q0, 1), ("Q1", Q1, 1), ("s", s, 0))
     return _quaternion_slerp(Q0, Q1, s)
 
 
@@ -440,9 +422,8 @@ def orientation_error_euler(phi_d: Tensor, phi_e: Tensor, wrap: bool = False) ->
     In Euler-angle space (pairs with the analytical Jacobian), not the base frame. ``wrap=True`` maps each
     component to (-pi, pi], which the book's plain difference does not do.
     """
-    _checked(phi_d, (3,), "phi_d")
-    _checked(phi_e, (3,), "phi_e")
-    _same_dtype(phi_d, phi_e, "phi_d", "phi_e")
+    phi_d, phi_e = tensors(("phi_d", phi_d, (3,)), ("phi_e", phi_e, (3,)))
+    broadcast_batch(("phi_d", phi_d, 1), ("phi_e", phi_e, 1))
     e = phi_d - phi_e
     return wrap_angle(e) if wrap else e
 
@@ -459,9 +440,8 @@ def orientation_error_axis_angle(R_d: Tensor, R_e: Tensor, form: str = "sin") ->
     """
     if form not in _AXIS_ANGLE_FORMS:
         raise ConventionError(f"unknown form {form!r}; valid: {', '.join(_AXIS_ANGLE_FORMS)}")
-    _checked(R_d, (3, 3), "R_d")
-    _checked(R_e, (3, 3), "R_e")
-    _same_dtype(R_d, R_e, "R_d", "R_e")
+    R_d, R_e = tensors(("R_d", R_d, (3, 3)), ("R_e", R_e, (3, 3)))
+    broadcast_batch(("R_d", R_d, 2), ("R_e", R_e, 2))
     return _kpe.orientation_error(R_d, R_e, "axis_angle" if form == "sin" else "rotvec")[0]
 
 
@@ -474,13 +454,15 @@ def orientation_error_quaternion(Q_d: Tensor, Q_e: Tensor, shortest: bool = Fals
     the same kind. Returns (..., 3).
     ``shortest=True`` flips the sign where Delta eta < 0, so the error points along the shortest rotation.
     """
-    if isinstance(Q_d, Tensor) and Q_d.ndim >= 2 and tuple(Q_d.shape[-2:]) == (3, 3):
-        _checked(Q_d, (3, 3), "R_d")
-        _checked(Q_e, (3, 3), "R_e")
+    Q_d, Q_e = tensors(("Q_d", Q_d, None), ("Q_e", Q_e, None))
+    if Q_d.ndim >= 1 and Q_d.shape[-1] == 3:  # rotation matrices
+        check_trailing(Q_d, (3, 3), "R_d")
+        check_trailing(Q_e, (3, 3), "R_e")
+        broadcast_batch(("R_d", Q_d, 2), ("R_e", Q_e, 2))
         Q_d, Q_e = _matrix_to_quaternion(Q_d), _matrix_to_quaternion(Q_e)
     else:
-        _checked(Q_d, (4,), "Q_d")
-        _checked(Q_e, (4,), "Q_e")
-    _same_dtype(Q_d, Q_e, "Q_d", "Q_e")
+        check_trailing(Q_d, (4,), "Q_d")
+        check_trailing(Q_e, (4,), "Q_e")
+        broadcast_batch(("Q_d", Q_d, 1), ("Q_e", Q_e, 1))
     return _kpe.quaternion_error(Q_d, Q_e, shortest)
 

@@ -3,7 +3,7 @@
 Twists are ``[ṗ; ω]`` and wrenches ``[f; μ]`` ``(..., 6)``, like the rows of the geometric Jacobian.
 A pair of frames on one rigid body is given either as ``(R, r)`` with ``R = R^1_2 (..., 3, 3)`` the
 orientation of frame 2 in frame 1 and ``r = r^1_12 (..., 3)`` the origin of frame 2 seen from frame 1
-(in frame 1), or as the transform ``T^1_2 (..., 4, 4)`` alone.
+(in frame 1), or as the transform ``T^1_2 (..., 4, 4)`` alone. Inputs follow :mod:`diffkin.validation`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from torch import Tensor
 
 from .errors import ShapeError
 from .rotations import _skew
-from .validation import check_shape
+from .validation import broadcast_batch, shape_str, tensors
 
 __all__ = [
     "joint_torques_from_wrench",
@@ -31,19 +31,21 @@ def joint_torques_from_wrench(J: Tensor, wrench: Tensor) -> Tensor:
     γ_e = [f_e; μ_e] is the force and moment the end effector exerts on the environment, expressed in the
     frame (and at the point) J refers to; τ are the joint torques/forces that balance it at equilibrium.
     """
-    if J.ndim < 2 or J.shape[-2] != 6:
-        raise ShapeError(f"expected J of shape (..., 6, n), got {tuple(J.shape)}")
-    check_shape(wrench, (6,), "wrench")
+    J, wrench = tensors(("J", J, (6, None)), ("wrench", wrench, (6,)))
+    broadcast_batch(("J", J, 2), ("wrench", wrench, 1))
     return torch.einsum("...ij,...i->...j", J, wrench)
 
 
-def _pair(R: Tensor, r: Tensor | None) -> tuple[Tensor, Tensor]:
+def _pair(R, r, *extra: tuple[str, object, tuple[int, ...]]) -> tuple[Tensor, ...]:
+    """The frame pair ``(R, r)`` (from ``T`` when ``r`` is None) and the further arguments, validated."""
     if r is None:
-        check_shape(R, (4, 4), "T")
-        return R[..., :3, :3], R[..., :3, 3]
-    check_shape(R, (3, 3), "R")
-    check_shape(r, (3,), "r")
-    return R, r
+        T, *rest = tensors(("T", R, (4, 4)), *extra)
+        R, r = T[..., :3, :3], T[..., :3, 3]
+    else:
+        R, r, *rest = tensors(("R", R, (3, 3)), ("r", r, (3,)), *extra)
+    named = ((name, x, len(trail)) for (name, _, trail), x in zip(extra, rest))
+    broadcast_batch(("R", R, 2), ("r", r, 1), *named)
+    return (R, r, *rest)
 
 
 def _blocks(a: Tensor, b: Tensor, c: Tensor, d: Tensor) -> Tensor:
@@ -71,8 +73,7 @@ def wrench_transform(R: Tensor, r: Tensor | None = None) -> Tensor:
 
 def transform_velocity(R: Tensor, r: Tensor | None, v: Tensor) -> Tensor:
     """Apply (3.113) without forming the 6×6 matrix: twist ``v^1_1 (..., 6)`` -> ``v^2_2 (..., 6)``."""
-    R, r = _pair(R, r)
-    check_shape(v, (6,), "v")
+    R, r, v = _pair(R, r, ("v", v, (6,)))
     lin, ang = v[..., :3], v[..., 3:]
     ang_b, r_b = torch.broadcast_tensors(ang, r)
     lin2 = lin + torch.linalg.cross(ang_b, r_b, dim=-1)  # ṗ_2 = ṗ_1 + ω × r_12
@@ -82,8 +83,7 @@ def transform_velocity(R: Tensor, r: Tensor | None, v: Tensor) -> Tensor:
 
 def transform_wrench(R: Tensor, r: Tensor | None, wrench: Tensor) -> Tensor:
     """Apply (3.116): wrench ``γ^2_2 (..., 6)`` -> ``γ^1_1 (..., 6)``: f1 = R f2, μ1 = r × (R f2) + R μ2."""
-    R, r = _pair(R, r)
-    check_shape(wrench, (6,), "wrench")
+    R, r, wrench = _pair(R, r, ("wrench", wrench, (6,)))
     f1 = torch.einsum("...ij,...j->...i", R, wrench[..., :3])
     mu1 = torch.einsum("...ij,...j->...i", R, wrench[..., 3:])
     r, f1b = torch.broadcast_tensors(r, f1)
@@ -96,9 +96,11 @@ def closed_chain_torques(upsilon: Tensor, tau: Tensor) -> Tensor:
     ``upsilon (..., n_o, n_a)`` maps actuated joint velocities to those of the open tree, q̇_o = Υ q̇_a;
     ``tau (..., n_o)`` are the torques of the open-tree joints. Returns ``(..., n_a)``.
     """
-    if upsilon.ndim < 2 or tau.ndim < 1 or tau.shape[-1] != upsilon.shape[-2]:
+    upsilon, tau = tensors(("upsilon", upsilon, (None, None)), ("tau", tau, (None,)))
+    if tau.shape[-1] != upsilon.shape[-2]:
         raise ShapeError(
             "expected upsilon (..., n_o, n_a) and tau (..., n_o), "
-            f"got {tuple(upsilon.shape)} and {tuple(tau.shape)}"
+            f"got {shape_str(upsilon.shape)} and {shape_str(tau.shape)}"
         )
+    broadcast_batch(("upsilon", upsilon, 2), ("tau", tau, 1))
     return torch.einsum("...ij,...i->...j", upsilon, tau)

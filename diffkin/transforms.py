@@ -1,8 +1,8 @@
 """Homogeneous transformations (textbook §2.7) and the pose error of CLIK (§3.7.3).
 
 A transform ``T`` is a (..., 4, 4) tensor [[R, p], [0, 1]] (2.42); leading batch dims are free and
-broadcast where two transforms meet. Public functions check shapes and finiteness; the private kernels
-(``_name``) skip the checks for hot loops.
+broadcast where two transforms meet. Public functions check their input by the rule of
+:mod:`diffkin.validation`; the private kernels (``_name``) skip the checks for hot loops.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ import torch
 from torch import Tensor
 
 from ._numerics import eps_for
-from .errors import ConventionError, DiffkinError, DTypeError, ModelError
+from .errors import ConventionError, DiffkinError, DTypeError, ModelError, NonFiniteError, ShapeError
 from .kernels import pose_error as _kpe
-from .validation import check_finite, check_shape, shape_str
+from .validation import as_tensor, broadcast_batch, check_trailing, shape_str, tensors
 
 __all__ = [
     "make_transform",
@@ -41,16 +41,16 @@ MEASURED_TRANSFORM_ATOL = 1e-5
 POSE_ERROR_ORIENTATIONS = ("axis_angle", "quaternion", "rotvec")  # the kernel's forms
 
 
-def _checked(x, trailing, name: str) -> Tensor:
-    check_shape(x, trailing, name)
-    return check_finite(x, name)
+class RigidTransformShapeError(ModelError, ShapeError):
+    """A fixed transform of a model (base, tool, URDF origin) is not (4, 4)."""
 
 
-def _same_dtype(*pairs: tuple[str, Tensor]) -> None:
-    dtypes = {t.dtype for _, t in pairs}
-    if len(dtypes) > 1:
-        got = ", ".join(f"{n}: {t.dtype}" for n, t in pairs)
-        raise DTypeError(f"expected tensors of one dtype, got {got}")
+class RigidTransformDTypeError(ModelError, DTypeError):
+    """A fixed transform of a model holds no float numbers."""
+
+
+class RigidTransformNonFiniteError(ModelError, NonFiniteError):
+    """A fixed transform of a model holds NaN or inf."""
 
 
 def _make_transform(R: Tensor, p: Tensor) -> Tensor:
@@ -65,15 +65,14 @@ def make_transform(R: Tensor, p: Tensor) -> Tensor:
 
     Batch dims of R and p broadcast. R is not checked for orthonormality (see :func:`check_transform`).
     """
-    _checked(R, (3, 3), "R")
-    _checked(p, (3,), "p")
-    _same_dtype(("R", R), ("p", p))
+    R, p = tensors(("R", R, (3, 3)), ("p", p, (3,)))
+    broadcast_batch(("R", R, 2), ("p", p, 1))
     return _make_transform(R, p)
 
 
 def split_transform(T: Tensor) -> tuple[Tensor, Tensor]:
     """Rotation and translation of T: (..., 4, 4) -> (R (..., 3, 3), p (..., 3)) (views of T)."""
-    check_shape(T, (4, 4), "T")
+    (T,) = tensors(("T", T, (4, 4)))
     return T[..., :3, :3], T[..., :3, 3]
 
 
@@ -95,7 +94,7 @@ def _transform_inverse(T: Tensor) -> Tensor:
 
 def transform_inverse(T: Tensor) -> Tensor:
     """Inverse [[R^T, -R^T p], [0^T, 1]] of a rigid transform (2.45): (..., 4, 4) -> (..., 4, 4)."""
-    return _transform_inverse(_checked(T, (4, 4), "T"))
+    return _transform_inverse(tensors(("T", T, (4, 4)))[0])
 
 
 def compose(*Ts: Tensor) -> Tensor:
@@ -105,10 +104,11 @@ def compose(*Ts: Tensor) -> Tensor:
     """
     if not Ts:
         raise DiffkinError("compose() needs at least one transform")
-    size = Ts[0].shape[-1] if isinstance(Ts[0], Tensor) and Ts[0].ndim >= 2 else 4
+    Ts = tensors(*((f"Ts[{i}]", T, None) for i, T in enumerate(Ts)))
+    size = 3 if Ts[0].ndim >= 1 and Ts[0].shape[-1] == 3 else 4
     for i, T in enumerate(Ts):
-        _checked(T, (size, size), f"Ts[{i}]")
-    _same_dtype(*((f"Ts[{i}]", T) for i, T in enumerate(Ts)))
+        check_trailing(T, (size, size), f"Ts[{i}]")
+    broadcast_batch(*((f"Ts[{i}]", T, 2) for i, T in enumerate(Ts)))
     return reduce(torch.matmul, Ts)
 
 
@@ -121,9 +121,8 @@ def transform_points(T: Tensor, points: Tensor) -> Tensor:
 
     For N points per transform, pass ``T[..., None, :, :]`` with points (..., N, 3).
     """
-    _checked(T, (4, 4), "T")
-    _checked(points, (3,), "points")
-    _same_dtype(("T", T), ("points", points))
+    T, points = tensors(("T", T, (4, 4)), ("points", points, (3,)))
+    broadcast_batch(("T", T, 2), ("points", points, 1))
     return _transform_points(T, points)
 
 
@@ -147,9 +146,8 @@ def pose_error(T_desired: Tensor, T_current: Tensor, orientation: str = "axis_an
         raise ConventionError(
             f"unknown orientation error {orientation!r}; valid: {', '.join(POSE_ERROR_ORIENTATIONS)}"
         )
-    _checked(T_desired, (4, 4), "T_desired")
-    _checked(T_current, (4, 4), "T_current")
-    _same_dtype(("T_desired", T_desired), ("T_current", T_current))
+    T_desired, T_current = tensors(("T_desired", T_desired, (4, 4)), ("T_current", T_current, (4, 4)))
+    broadcast_batch(("T_desired", T_desired, 2), ("T_current", T_current, 2))
     return _pose_error(T_desired, T_current, orientation)
 
 
@@ -159,8 +157,13 @@ def check_transform(T, name: str = "T", atol: float | None = None) -> Tensor:
     Raises ``ShapeError`` unless T is (..., 4, 4), ``NonFiniteError`` for NaN/inf, and ``DiffkinError``
     when R^T R != I, det R != 1 or the bottom row is not [0, 0, 0, 1] beyond ``atol`` (default
     10 sqrt(eps) of T's dtype: 3.5e-3 in float32, 1.5e-7 in float64). Synchronises with the device.
+    A tensor is returned as it is; numbers and numpy arrays are converted (:mod:`diffkin.validation`).
     """
-    _checked(T, (4, 4), name)
+    (T,) = tensors((name, T, (4, 4)))
+    return _check_transform(T, name, atol)
+
+
+def _check_transform(T: Tensor, name: str, atol: float | None) -> Tensor:
     if atol is None:
         atol = 10.0 * eps_for(T) ** 0.5
     R = T[..., :3, :3]
@@ -188,10 +191,10 @@ def as_measured_transform(T: Tensor, name: str = "T", atol: float | None = None)
     (polar factor U Vᵀ of the SVD R = U S Vᵀ) and the bottom row by [0, 0, 0, 1]; already exact inputs are
     returned unchanged (same object).
     """
+    (T,) = tensors((name, T, (4, 4)))
     if atol is None:
-        atol = max(MEASURED_TRANSFORM_ATOL, 10.0 * eps_for(T) ** 0.5) if isinstance(T, Tensor) and \
-            T.is_floating_point() else MEASURED_TRANSFORM_ATOL
-    check_transform(T, name, atol=atol)
+        atol = max(MEASURED_TRANSFORM_ATOL, 10.0 * eps_for(T) ** 0.5)
+    _check_transform(T, name, atol)
     R = T[..., :3, :3]
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
     exact = 4.0 * eps_for(T)
@@ -207,17 +210,29 @@ def as_measured_transform(T: Tensor, name: str = "T", atol: float | None = None)
 
 
 def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:
-    """Validate a fixed ``(4, 4)`` rigid transform (base, tool, URDF origin) and return a tensor copy."""
-    T = torch.as_tensor(T, dtype=dtype, device=device).clone()
+    """Validate a fixed ``(4, 4)`` rigid transform (base, tool, URDF origin) and return a tensor copy in
+    ``dtype``/``device`` (a float32 or float64 tensor is converted: the caller names the dtype).
+
+    Errors are :class:`~diffkin.errors.ModelError` s, and also the shared validators' ``ShapeError``,
+    ``DTypeError`` (integer, bool, complex or half-precision data) or ``NonFiniteError`` where they apply.
+    """
+    try:
+        T = as_tensor(T, name, dtype=dtype, device=device)  # a tensor: checked, not converted
+    except DTypeError as exc:
+        raise RigidTransformDTypeError(str(exc)) from None
+    T = T.to(dtype=dtype, device=device).clone()
     if T.shape != (4, 4):
-        raise ModelError(f"{name} must be a (4, 4) homogeneous transform, got {shape_str(T.shape)}")
+        raise RigidTransformShapeError(
+            f"{name} must be a (4, 4) homogeneous transform, got {shape_str(T.shape)}"
+        )
+    if not bool(torch.isfinite(T).all()):
+        raise RigidTransformNonFiniteError(f"{name} holds NaN or inf; expected a rigid transform")
     R = T[:3, :3]
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
     tol = 1e-5 if T.dtype != torch.float64 else 1e-9
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
     if (
-        not bool(torch.isfinite(T).all())
-        or not torch.allclose(R.T @ R, eye, atol=tol)
+        not torch.allclose(R.T @ R, eye, atol=tol)
         or not torch.equal(T[3], bottom)
         or float(torch.linalg.det(R)) < 0
     ):

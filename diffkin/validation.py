@@ -34,6 +34,7 @@ from .errors import DTypeError, NonFiniteError, ShapeError
 __all__ = [
     "SUPPORTED_DTYPES",
     "as_tensor",
+    "broadcast_batch",
     "check_dtype",
     "check_finite",
     "check_shape",
@@ -214,3 +215,15 @@ def tensors(
             check_finite(t, name)
         out.append(t)
     return tuple(out)
+
+
+def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
+    """The common batch shape of a call's arguments: ``(name, tensor, k)`` per argument, whose batch dims are
+    all but its last ``k``; ``None`` tensors are skipped. :class:`ShapeError` names the shapes that do not
+    broadcast (instead of torch's error from deep inside the computation)."""
+    given = [(n, t, k) for n, t, k in specs if t is not None]
+    try:
+        return torch.broadcast_shapes(*(t.shape[: t.ndim - k] for _, t, k in given))
+    except RuntimeError:
+        got = ", ".join(f"{n} {shape_str(t.shape)}" for n, t, _ in given)
+        raise ShapeError(f"expected arguments whose batch dims broadcast, got {got}") from None

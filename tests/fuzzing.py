@@ -49,12 +49,13 @@ class Arg:
     """One tensor argument: ``make(gen, batch, dtype)`` builds a valid value.
 
     ``trailing``: the trailing shape the function requires (``None``: the argument is elementwise, any
-    shape — the shape mutation is skipped). ``batched``: its leading dims are the call's batch dims.
+    shape — the shape mutation is skipped); an entry ``None`` is a free size (e.g. n of J (..., 6, n)),
+    which the shape mutation leaves alone. ``batched``: its leading dims are the call's batch dims.
     ``finite``: NaN/inf must be refused (False where inf is meaningful, e.g. limits).
     """
 
     make: Callable[[torch.Generator, tuple[int, ...], torch.dtype], Tensor]
-    trailing: tuple[int, ...] | None = None
+    trailing: tuple[int | None, ...] | None = None
     batched: bool = True
     finite: bool = True
 
@@ -98,7 +99,7 @@ def mutations(case: Case) -> list[str]:
     for name, a in case.args.items():
         if a.finite:
             out += [f"nan:{name}", f"inf:{name}"]
-        if a.trailing:
+        if a.trailing and any(d is not None for d in a.trailing):
             out.append(f"shape:{name}")
         out += [f"dtype:{name}:{str(d).removeprefix('torch.')}" for d in BAD_DTYPES]
         if len(case.args) > 1 or case.follows_chain:
@@ -145,12 +146,31 @@ def _poke(t: Tensor, value: float, gen: torch.Generator) -> Tensor:
     return t
 
 
-def _reshape_bad(t: Tensor, trailing: tuple[int, ...], gen: torch.Generator) -> Tensor:
-    """A tensor whose trailing shape differs from ``trailing``: last dim one larger, or one dim missing."""
-    if bool(torch.randint(2, (1,), generator=gen)) and len(trailing) > 1:
-        return t[..., 0, :] if t.ndim >= 2 else t  # drops a trailing dim of a matrix argument
-    pad = torch.zeros(*t.shape[:-1], 1, dtype=t.dtype)
-    return torch.cat((t, pad), dim=-1)
+def _reshape_bad(t: Tensor, trailing: tuple[int | None, ...], gen: torch.Generator) -> Tensor:
+    """A tensor whose trailing shape differs from ``trailing``: its last fixed-size dim one larger, or one
+    dim missing."""
+    if bool(torch.randint(2, (1,), generator=gen)) and len(trailing) > 1 and t.ndim >= 2:
+        dropped = t[..., 0, :]  # drops a trailing dim of a matrix argument
+        k = len(trailing)
+        still_fits = dropped.ndim >= k and all(
+            d is None or s == d for s, d in zip(dropped.shape[dropped.ndim - k :], trailing)
+        )
+        if not still_fits:  # (3, 3, 3) -> (3, 3) is one valid matrix: pad instead
+            return dropped
+    dim = max(i for i, d in enumerate(trailing) if d is not None) - len(trailing)  # last fixed-size dim
+    pad = torch.zeros(*t.shape[:dim], 1, *t.shape[dim + 1 :], dtype=t.dtype) if dim < -1 else \
+        torch.zeros(*t.shape[:-1], 1, dtype=t.dtype)
+    return torch.cat((t, pad), dim=dim)
+
+
+#: the float dtype of the call :func:`outcome` is running (before its mutation): wrappers of functions that
+#: take a chain build the chain in it (see :func:`call_dtype`)
+_CALL_DTYPE: list[torch.dtype] = [torch.float64]
+
+
+def call_dtype() -> torch.dtype:
+    """The dtype of the call being fuzzed, for a case's ``fn`` that must build a chain (``follows_chain``)."""
+    return _CALL_DTYPE[0]
 
 
 class Timeout(Exception):
@@ -185,6 +205,7 @@ def outcome(case: Case, mutation: str, seed: int = 0, dtype: torch.dtype = torch
     elif kind == "numpy":
         reference_values = dict(values)
         values = {k: v.numpy() for k, v in values.items()}
+    _CALL_DTYPE[0] = dtype
     old = signal.signal(signal.SIGALRM, _alarm)
     signal.setitimer(signal.ITIMER_REAL, time_limit)
     t0 = time.perf_counter()
@@ -222,7 +243,7 @@ def uniform(*trailing: int, low: float = -1.0, high: float = 1.0):
     """``make`` for uniform values in [low, high) of shape (*batch, *trailing)."""
 
     def make(gen, batch, dtype):
-        return low + (high - low) * torch.rand(*batch, *trailing, generator=gen, dtype=dtype)
+        return low + (high - low) * torch.rand((*batch, *trailing), generator=gen, dtype=dtype)
 
     return make
 
@@ -268,6 +289,7 @@ def constant(value):
 
 def main() -> None:
     """Print the sweep's counts over every case, 3 seeds, float32 and float64, and the failures."""
+    from tests.fuzzing import mutations, outcome  # the imported module, not __main__: one call_dtype() state
     from tests.test_fuzz import CASES
 
     cases = list(CASES.values())

@@ -51,3 +51,14 @@ def _all_public() -> dict[str, object]:
 def test_typed_error_or_correct_result(name, mutation, seed, double):
     kind, detail = outcome(CASES[name], mutation, seed, torch.float64 if double else torch.float32)
     assert kind in ("typed", "correct"), f"{name} [{mutation}]: {kind}: {detail}"
+
+
+_SETTINGS = test_typed_error_or_correct_result._hypothesis_internal_use_settings
+
+
+@pytest.fixture(autouse=True)
+def _flat_hypothesis_settings():
+    """hypothesis' pytest plugin (6.170) gives each parametrized item a settings object whose parent is the
+    previous item's, so the parent chain grows by one per item and overflows the recursion limit after about
+    950 items (RecursionError in ``settings.database``): start every item from the decorator's settings."""
+    test_typed_error_or_correct_result._hypothesis_internal_use_settings = _SETTINGS

@@ -15,7 +15,7 @@ from scipy.interpolate import CubicHermiteSpline, CubicSpline
 from scipy.spatial.transform import Rotation
 
 from diffkin import trajectories as tr
-from diffkin.errors import DiffkinError, DTypeError, ShapeError
+from diffkin.errors import DiffkinError, DTypeError, NonFiniteError, ShapeError
 from diffkin.rotations import euler_to_matrix, matrix_to_quaternion, quaternion_to_matrix, vee
 
 F64 = torch.float64
@@ -58,6 +58,72 @@ def test_problem_4_1_quintic_closed_form():
     torch.testing.assert_close(
         tr.quintic(tt([1.0]), tt([4.0]), 2.0, tc).position[:, 0], ref, atol=1e-12, rtol=0
     )
+
+
+def test_problem_4_1_one_joint_as_scalars():
+    """Problem 4.1 as written, one joint of 0-d tensors (or numbers): the result is (T,), no joint axis."""
+    t = torch.linspace(0, 2, 41, dtype=F64)
+    u = t / 2
+    q = 1 + 3 * (10 * u**3 - 15 * u**4 + 6 * u**5)  # (4.2) with the four null end conditions
+    qd = 3 * (30 * u**2 - 60 * u**3 + 30 * u**4) / 2
+    qdd = 3 * (60 * u - 180 * u**2 + 120 * u**3) / 4
+    out = tr.quintic(tt(1.0), tt(4.0), 2.0, t)
+    assert out.position.shape == out.velocity.shape == out.acceleration.shape == (41,)
+    for got, ref in zip(out, (q, qd, qdd)):
+        torch.testing.assert_close(got, ref, atol=1e-12, rtol=0)
+    # the issue's call: float32 0-d tensors and float64 query times would mix; float32 times follow them
+    out32 = tr.quintic(torch.tensor(1.0), torch.tensor(4.0), 2.0, t.float())
+    assert out32.position.dtype == torch.float32 and out32.position.shape == (41,)
+    torch.testing.assert_close(out32.position.double(), q, atol=1e-5, rtol=0)
+    assert float(out32.position[20]) == pytest.approx(2.5)  # midpoint, by symmetry
+    with pytest.raises(DTypeError, match="float32"):
+        tr.quintic(torch.tensor(1.0), torch.tensor(4.0), 2.0, t)
+    # plain numbers are one joint too; the other laws follow the same rule
+    torch.testing.assert_close(tr.quintic(1.0, 4.0, 2.0, t).position, q, atol=1e-12, rtol=0)  # t decides
+    assert tr.cubic(tt(1.0), tt(4.0), 2.0, t).position.shape == (41,)
+    assert tr.trapezoidal(tt(1.0), tt(4.0), 2.0, t).velocity.shape == (41,)
+    # a 0-d datum next to an (n,) one broadcasts to n joints, as before
+    assert tr.quintic(tt(1.0), tt([4.0, 5.0]), 2.0, t).position.shape == (41, 2)
+    # a batch of query times (B, T) for one joint gives (B, T)
+    assert tr.cubic(tt(1.0), tt(4.0), 2.0, t.expand(3, 41)).position.shape == (3, 41)
+
+
+def test_trajectory_inputs_follow_the_validation_rule():
+    """NaN/inf in data or query times, mixed dtypes, numpy input: the shared rule of diffkin.validation."""
+    t = tt([0.0, 0.5, 1.0])
+    for bad_t in (tt([0.0, float("nan")]), tt([float("inf")])):
+        for law in (tr.cubic, tr.quintic, tr.trapezoidal):
+            with pytest.raises(NonFiniteError, match="t "):
+                law(tt([0.0]), tt([1.0]), 1.0, bad_t)
+        with pytest.raises(NonFiniteError):
+            tr.timing_law(1.0, 1.0, bad_t)
+        with pytest.raises(NonFiniteError):
+            tr.cubic_spline(PTS, TIMES, bad_t)
+    with pytest.raises(NonFiniteError, match="q_i"):
+        tr.cubic(tt([float("nan")]), tt([1.0]), 1.0, t)
+    with pytest.raises(NonFiniteError, match="v_f"):
+        tr.quintic(tt([0.0]), tt([1.0]), 1.0, t, v_f=float("inf"))
+    with pytest.raises(NonFiniteError, match="t_f"):
+        tr.cubic(tt([0.0]), tt([1.0]), float("nan"), t)
+    with pytest.raises(DTypeError, match="float32"):
+        tr.cubic(tt([0.0]), tt([1.0]), 1.0, t.float())
+    with pytest.raises(DTypeError):
+        tr.cubic(tt([0]).long(), tt([1.0]), 1.0, t)
+    out = tr.cubic(np.array([0.0]), np.array([1.0]), 1.0, np.array([0.0, 0.5, 1.0]))
+    assert out.position.dtype == torch.float64
+    torch.testing.assert_close(out.position, tr.cubic(tt([0.0]), tt([1.0]), 1.0, t).position)
+    empty = tr.cubic(torch.zeros(0, 2, dtype=F64), torch.ones(0, 2, dtype=F64), 1.0, t)
+    assert empty.position.shape == (0, 3, 2)
+
+
+def test_far_targets_stay_finite_in_float32():
+    """A straight line to 1e30 m in float32: the length and tangent without overflow of the squares."""
+    p_i, p_f = torch.zeros(3), torch.tensor([1e30, 2e30, -2e30])
+    out = tr.cartesian_segment_trajectory(p_i, p_f, 2.0, torch.tensor([0.0, 1.0, 2.0]))
+    assert all(bool(torch.isfinite(x).all()) for x in out)
+    torch.testing.assert_close(out.position[-1], p_f, rtol=1e-5, atol=0)
+    path = tr.segment_path(p_i, p_f, torch.tensor([0.0, 3e30]))
+    torch.testing.assert_close(path.dp_ds[0], p_f / 3e30, rtol=1e-5, atol=0)
 
 
 def _random_bcs(gen, shape):
@@ -175,8 +241,8 @@ def test_bad_inputs_raise():
         tr.cubic(tt([0.0]), tt([1.0]), 0.0, tt([0.5]))
     with pytest.raises(ShapeError):
         tr.cubic(tt([0.0, 1.0]), tt([1.0, 2.0, 3.0]), 1.0, tt([0.5]))
-    with pytest.raises(ShapeError):
-        tr.quintic(tt(0.0), tt(1.0), 1.0, tt([0.5]))
+    with pytest.raises(ShapeError):  # the query times' batch dims must broadcast with the data's
+        tr.cubic(tt([[0.0], [1.0]]), tt([[1.0], [2.0]]), 1.0, tt([[0.5], [0.6], [0.7]]))
     with pytest.raises(DTypeError):
         tr.cubic(tt([0.0]), torch.tensor([1.0], dtype=torch.float32), 1.0, tt([0.5]))
     pts = tt([[0.0], [1.0], [2.0]])

@@ -2,6 +2,10 @@
 
 Shape vocabulary: ``...`` leading batch dims, ``n`` joints (or coordinates), ``T`` query times,
 ``N`` path points, ``K`` knots.
+
+Inputs follow :mod:`diffkin.validation`: each public function validates all of its arguments in one
+:func:`~diffkin.validation.tensors` call (one dtype and device, numbers and numpy arrays converted, finite
+values, query times included); the helpers below work on the validated tensors.
 """
 
 from __future__ import annotations
@@ -11,8 +15,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ..errors import DiffkinError, DTypeError, ShapeError
-from ..validation import check_finite, check_tensor, shape_str
+from ..errors import DiffkinError, ShapeError
+from ..validation import check_trailing, shape_str
 
 __all__ = ["Trajectory", "InfeasibleTrajectoryError"]
 
@@ -32,14 +36,13 @@ class InfeasibleTrajectoryError(DiffkinError):
     """The requested bound (acceleration, cruise velocity, blend time) admits no trajectory."""
 
 
-def as_tensor(x, like: Tensor, name: str) -> Tensor:
-    """Python numbers become tensors of ``like``'s dtype/device; tensors must share ``like``'s dtype."""
-    if isinstance(x, Tensor):
-        check_tensor(x, name)
-        if x.dtype != like.dtype:
-            raise DTypeError(f"{name} has dtype {x.dtype} but the boundary data has dtype {like.dtype}")
-        return x.to(like.device)
-    return torch.as_tensor(x, dtype=like.dtype, device=like.device)
+def per_item(x: Tensor | None, size: int, name: str, what: str) -> Tensor | None:
+    """A validated argument that is either one number (shape ()) or one value per ``what``: (..., size)."""
+    if x is not None and x.ndim:
+        if x.shape[-1] != size:
+            raise ShapeError(f"expected {name} as a number or of shape (..., {size}) ({what}), "
+                             f"got {shape_str(x.shape)}")
+    return x
 
 
 def cat_broadcast(tensors: list[Tensor], dim: int) -> Tensor:
@@ -56,44 +59,32 @@ def cat_broadcast(tensors: list[Tensor], dim: int) -> Tensor:
     return torch.cat(out, dim)
 
 
-def query_times(t, like: Tensor) -> Tensor:
-    """Query times as a tensor of ``like``'s dtype, shape (T,) or (..., T); a number becomes (1,)."""
-    if not isinstance(t, Tensor):
-        t = torch.as_tensor(t, dtype=like.dtype, device=like.device)
-    check_tensor(t, "t")
-    if t.ndim == 0:
-        t = t.reshape(1)
-    return t.to(dtype=like.dtype, device=like.device)
+def query_times(t: Tensor) -> Tensor:
+    """Validated query times of shape (T,) or (..., T); a number (shape ()) becomes (1,)."""
+    return t.reshape(1) if t.ndim == 0 else t
 
 
 def check_durations(t_f: Tensor, name: str = "t_f") -> Tensor:
-    check_finite(t_f, name)
     if bool((t_f <= 0).any()):
         raise DiffkinError(f"{name} must be > 0 everywhere, got min {float(t_f.min())}")
     return t_f
 
 
-def check_knot_times(times, like: Tensor, N: int, name: str = "times") -> Tensor:
-    """Strictly increasing knot times (N,) or (..., N) in ``like``'s dtype."""
-    times = as_tensor(times, like, name)
-    if times.ndim < 1 or times.shape[-1] != N:
-        raise ShapeError(
-            f"expected {name} of shape (..., {N}) to match the points, got {shape_str(times.shape)}"
-        )
-    check_finite(times, name)
+def check_knot_times(times: Tensor, N: int, name: str = "times") -> Tensor:
+    """Validated knot times: (N,) or (..., N), strictly increasing."""
+    check_trailing(times, (N,), name)
     if N > 1 and bool((times[..., 1:] <= times[..., :-1]).any()):
         raise DiffkinError(f"{name} must be strictly increasing along the last dim")
     return times
 
 
-def check_points(points, name: str = "points", min_points: int = 2) -> Tensor:
-    check_tensor(points, name)
+def check_points(points: Tensor, name: str = "points", min_points: int = 2) -> Tensor:
+    """Validated path points: (..., N, n) with N >= ``min_points``."""
     if points.ndim < 2 or points.shape[-2] < min_points:
         raise ShapeError(
             f"expected {name} of shape (..., N, n) with N >= {min_points}, "
             f"got {shape_str(points.shape)}"
         )
-    check_finite(points, name)
     return points
 
 

@@ -1,10 +1,12 @@
 """Point-to-point timing laws (§4.2.1): cubic (4.1), quintic (4.2), trapezoidal velocity (4.3)-(4.11).
 
 All functions take boundary data of shape (..., n) (numbers broadcast), query times ``t`` of shape (T,)
-or (..., T), and return a :class:`Trajectory` of shape (..., T, n). ``t_f`` may be a number or a tensor
-broadcastable to (..., n) (use (..., 1) for one duration per batch element). Times outside [0, t_f]
-clamp to the end values, with zero velocity and acceleration there. Everything is differentiable
-w.r.t. the boundary conditions and ``t_f``.
+or (..., T), and return a :class:`Trajectory` of shape (..., T, n). Boundary data that are all numbers or
+0-d tensors describe one joint: the result then has shape (..., T) (the T axis of ``t``), as in the
+textbook's scalar laws. ``t_f`` may be a number or a tensor broadcastable to (..., n) (use (..., 1) for one
+duration per batch element). Times outside [0, t_f] clamp to the end values, with zero velocity and
+acceleration there. Everything is differentiable w.r.t. the boundary conditions and ``t_f``.
+Inputs follow :mod:`diffkin.validation` (NaN/inf in the data or in ``t`` raise ``NonFiniteError``).
 """
 
 from __future__ import annotations
@@ -16,11 +18,10 @@ from torch import Tensor
 
 from .._numerics import eps_for, safe_sqrt
 from ..errors import ConventionError, DiffkinError, ShapeError
-from ..validation import check_tensor
+from ..validation import broadcast_batch, shape_str, tensors
 from ._common import (
     InfeasibleTrajectoryError,
     Trajectory,
-    as_tensor,
     check_durations,
     clamp_times,
     cubic_coeffs,
@@ -32,49 +33,63 @@ from ._common import (
 __all__ = ["cubic", "quintic", "trapezoidal", "timing_law", "time_scale"]
 
 
-def _prepare(q_i, q_f, t_f, t, **extra):
-    """Broadcast boundary data to (..., 1, n) and times to (..., T, 1); clamp times to [0, t_f]."""
-    check_tensor(q_i, "q_i")
-    if q_i.ndim < 1:
-        raise ShapeError(f"expected q_i of shape (..., n), got {tuple(q_i.shape)}")
-    q_f = as_tensor(q_f, q_i, "q_f")
-    t_f = check_durations(as_tensor(t_f, q_i, "t_f"))
-    names = ["q_i", "q_f", "t_f", *extra]
-    vals = [q_i, q_f, t_f] + [as_tensor(v, q_i, k) for k, v in extra.items()]
-    try:
-        vals = torch.broadcast_tensors(*vals)
-    except RuntimeError as err:
-        shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in zip(names, vals))
-        raise ShapeError(f"boundary conditions must broadcast to (..., n); got {shapes}") from err
-    vals = [v[..., None, :] for v in vals]
-    tq = query_times(t, q_i)[..., :, None]
-    zero = torch.zeros((), dtype=q_i.dtype, device=q_i.device)
-    tau, inside = clamp_times(tq, zero, vals[2])
-    return vals, tau, inside
+def _validated(t, **data) -> tuple[dict[str, Tensor], Tensor]:
+    """The boundary data (None entries dropped) and the query times, validated together."""
+    given = {k: v for k, v in data.items() if v is not None}
+    *vals, t = tensors(*((k, v, None) for k, v in given.items()), ("t", t, None))
+    return dict(zip(given, vals)), query_times(t)
 
 
-def cubic(q_i: Tensor, q_f, t_f, t, v_i=0.0, v_f=0.0) -> Trajectory:
+def _law(kind: str, data: dict[str, Tensor], t: Tensor) -> Trajectory:
+    """Evaluate a law on validated data (q_i, q_f, t_f first): broadcast to (..., 1, n), times (..., T, 1).
+
+    All data of shape () (one joint): computed as n = 1 and returned as (..., T).
+    """
+    shape = broadcast_batch(*((k, v, 0) for k, v in data.items()))
+    scalar = len(shape) == 0
+    vals = torch.broadcast_tensors(*(v.reshape(1) if scalar else v for v in data.values()))
+    broadcast_batch(("boundary data", vals[0], 1), ("t", t, 1))
+    check_durations(vals[2])
+    b = {k: v[..., None, :] for k, v in zip(data, vals)}
+    zero = torch.zeros((), dtype=t.dtype, device=t.device)
+    tau, inside = clamp_times(t[..., :, None], zero, b["t_f"])
+    out = _KERNELS[kind](b, tau, inside)
+    return Trajectory(*(x[..., 0] for x in out)) if scalar else out
+
+
+def _cubic(b: dict[str, Tensor], tau: Tensor, inside: Tensor) -> Trajectory:
+    coeffs = cubic_coeffs(b["q_i"], b["q_f"], b["v_i"], b["v_f"], b["t_f"])
+    return mask_outside(poly_eval(coeffs, tau), inside)
+
+
+def cubic(q_i, q_f, t_f, t, v_i=0.0, v_f=0.0) -> Trajectory:
     """Cubic timing law (4.1) with q(0)=q_i, q(t_f)=q_f, qdot(0)=v_i, qdot(t_f)=v_f.
 
-    q_i, q_f, v_i, v_f: (..., n); t: (T,) or (..., T) -> Trajectory of (..., T, n).
+    q_i, q_f, v_i, v_f: (..., n); t: (T,) or (..., T) -> Trajectory of (..., T, n); for one joint given as
+    numbers or 0-d tensors, of (..., T).
     """
-    (q0, q1, tf, v0, v1), tau, inside = _prepare(q_i, q_f, t_f, t, v_i=v_i, v_f=v_f)
-    return mask_outside(poly_eval(cubic_coeffs(q0, q1, v0, v1, tf), tau), inside)
+    return _law("cubic", *_validated(t, q_i=q_i, q_f=q_f, t_f=t_f, v_i=v_i, v_f=v_f))
 
 
-def quintic(q_i: Tensor, q_f, t_f, t, v_i=0.0, v_f=0.0, a_i=0.0, a_f=0.0) -> Trajectory:
-    """Quintic timing law (4.2) with position, velocity and acceleration imposed at t=0 and t=t_f.
-
-    q_i, q_f, v_i, v_f, a_i, a_f: (..., n); t: (T,) or (..., T) -> Trajectory of (..., T, n).
-    """
-    vals, tau, inside = _prepare(q_i, q_f, t_f, t, v_i=v_i, v_f=v_f, a_i=a_i, a_f=a_f)
-    q0, q1, h, v0, v1, a0, a1 = vals
+def _quintic(b: dict[str, Tensor], tau: Tensor, inside: Tensor) -> Trajectory:
+    q0, q1, h, v0, v1, a0, a1 = (b[k] for k in ("q_i", "q_f", "t_f", "v_i", "v_f", "a_i", "a_f"))
     d = q1 - q0
     # Solution of the six conditions q, qdot, qddot at 0 and h on (4.2).
     a3 = (20 * d - (8 * v1 + 12 * v0) * h - (3 * a0 - a1) * h**2) / (2 * h**3)
     a4 = (-30 * d + (14 * v1 + 16 * v0) * h + (3 * a0 - 2 * a1) * h**2) / (2 * h**4)
     a5 = (12 * d - 6 * (v1 + v0) * h - (a0 - a1) * h**2) / (2 * h**5)
     return mask_outside(poly_eval([q0, v0, a0 / 2, a3, a4, a5], tau), inside)
+
+
+def quintic(q_i, q_f, t_f, t, v_i=0.0, v_f=0.0, a_i=0.0, a_f=0.0) -> Trajectory:
+    """Quintic timing law (4.2) with position, velocity and acceleration imposed at t=0 and t=t_f.
+
+    q_i, q_f, v_i, v_f, a_i, a_f: (..., n); t: (T,) or (..., T) -> Trajectory of (..., T, n); for one joint
+    given as numbers or 0-d tensors (e.g. ``quintic(torch.tensor(1.0), torch.tensor(4.0), 2.0, t)``,
+    Problem 4.1), of (..., T).
+    """
+    data = _validated(t, q_i=q_i, q_f=q_f, t_f=t_f, v_i=v_i, v_f=v_f, a_i=a_i, a_f=a_f)
+    return _law("quintic", *data)
 
 
 def _tol(x: Tensor) -> float:
@@ -128,7 +143,7 @@ def _trapezoid_params(d: Tensor, tf: Tensor, qdd_c, qd_c, qdd_max) -> tuple[Tens
     return t_c, qdd
 
 
-def trapezoidal(q_i: Tensor, q_f, t_f, t, qdd_c=None, qd_c=None, qdd_max=None) -> Trajectory:
+def trapezoidal(q_i, q_f, t_f, t, qdd_c=None, qd_c=None, qdd_max=None) -> Trajectory:
     """Trapezoidal velocity profile: linear segment with parabolic blends (4.8).
 
     Give at most one of ``qdd_c`` (blend acceleration magnitude, checked against (4.7); t_c from (4.6))
@@ -137,11 +152,15 @@ def trapezoidal(q_i: Tensor, q_f, t_f, t, qdd_c=None, qd_c=None, qdd_max=None) -
     smaller; ``qdd_max`` also checks the other two cases. Magnitudes: signs follow q_f - q_i. Joints with
     q_f = q_i stay put. Raises :class:`InfeasibleTrajectoryError` where a bound admits no profile.
 
-    q_i, q_f, qdd_c, qd_c, qdd_max: (..., n); t: (T,) or (..., T) -> Trajectory of (..., T, n).
+    q_i, q_f, qdd_c, qd_c, qdd_max: (..., n); t: (T,) or (..., T) -> Trajectory of (..., T, n); for one
+    joint given as numbers or 0-d tensors, of (..., T).
     """
-    bounds = {k: v for k, v in (("qdd_c", qdd_c), ("qd_c", qd_c), ("qdd_max", qdd_max)) if v is not None}
-    (q0, q1, tf, *rest), tau, inside = _prepare(q_i, q_f, t_f, t, **bounds)
-    b = dict(zip(bounds, rest))
+    data, t = _validated(t, q_i=q_i, q_f=q_f, t_f=t_f, qdd_c=qdd_c, qd_c=qd_c, qdd_max=qdd_max)
+    return _law("trapezoidal", data, t)
+
+
+def _trapezoidal(b: dict[str, Tensor], tau: Tensor, inside: Tensor) -> Trajectory:
+    q0, q1, tf = b["q_i"], b["q_f"], b["t_f"]
     t_c, qdd = _trapezoid_params(q1 - q0, tf, b.get("qdd_c"), b.get("qd_c"), b.get("qdd_max"))
     first, last = tau <= t_c, tau > tf - t_c
     rest = tf - tau
@@ -155,26 +174,40 @@ def trapezoidal(q_i: Tensor, q_f, t_f, t, qdd_c=None, qd_c=None, qdd_max=None) -
     return mask_outside(Trajectory(pos, vel, acc), inside)
 
 
-_LAWS = {"cubic": cubic, "quintic": quintic, "trapezoidal": trapezoidal}
+_LAWS = ("cubic", "quintic", "trapezoidal")
+_KERNELS = {"cubic": _cubic, "quintic": _quintic, "trapezoidal": _trapezoidal}
+_DEFAULTS = {"cubic": {"v_i": 0.0, "v_f": 0.0}, "quintic": {"v_i": 0.0, "v_f": 0.0, "a_i": 0.0, "a_f": 0.0},
+             "trapezoidal": {}}
+_OPTIONS = {"cubic": ("v_i", "v_f"), "quintic": ("v_i", "v_f", "a_i", "a_f"),
+            "trapezoidal": ("qdd_c", "qd_c", "qdd_max")}
 
 
 def timing_law(s_f, t_f, t, kind: str = "cubic", **kwargs) -> Trajectory:
     """Scalar timing law s(t) from 0 to s_f in t_f (§4.3.2): "cubic", "quintic" or "trapezoidal".
 
-    s_f, t_f and tensor ``kwargs`` (e.g. ``qdd_c``, ``v_f``): numbers or tensors of shape (...);
+    s_f, t_f and ``kwargs`` (the law's options, e.g. ``qdd_c``, ``v_f``): numbers or tensors of shape (...);
     t: (T,) or (..., T) -> Trajectory of shape (..., T).
     """
+    data, t = _validated(t, s_f=s_f, t_f=t_f, **_law_options(kind, kwargs))
+    return _timing_law(kind, data, t)
+
+
+def _law_options(kind: str, kwargs: dict) -> dict:
+    """The options of the law ``kind`` with their defaults; unknown laws and options refused."""
     if kind not in _LAWS:
         raise ConventionError(f"unknown timing law {kind!r}; valid: {', '.join(_LAWS)}")
-    like = next((x for x in (s_f, t_f, t) if isinstance(x, Tensor)), None)
-    dtype = like.dtype if like is not None else torch.get_default_dtype()
-    device = like.device if like is not None else None
-    s_f = torch.as_tensor(s_f, dtype=dtype, device=device)
-    if isinstance(t_f, Tensor):
-        t_f = t_f[..., None]
-    kw = {k: v[..., None] if isinstance(v, Tensor) else v for k, v in kwargs.items()}
-    out = _LAWS[kind](torch.zeros_like(s_f)[..., None], s_f[..., None], t_f, t, **kw)
-    return Trajectory(*(x[..., 0] for x in out))
+    unknown = set(kwargs) - set(_OPTIONS[kind])
+    if unknown:
+        raise TypeError(f"unknown option(s) {sorted(unknown)} of the {kind} law; valid: {_OPTIONS[kind]}")
+    return {**_DEFAULTS[kind], **kwargs}
+
+
+def _timing_law(kind: str, data: dict[str, Tensor], t: Tensor) -> Trajectory:
+    """:func:`timing_law` on validated data (``s_f``, ``t_f`` and the law's options, each (...))."""
+    s_f = data.pop("s_f")
+    b = {"q_i": torch.zeros_like(s_f)[..., None], "q_f": s_f[..., None], "t_f": data.pop("t_f")[..., None]}
+    b.update({k: v[..., None] for k, v in data.items()})
+    return Trajectory(*(x[..., 0] for x in _law(kind, b, t)))
 
 
 def time_scale(traj: Trajectory | Callable[[Tensor], Trajectory], factor):
@@ -185,17 +218,34 @@ def time_scale(traj: Trajectory | Callable[[Tensor], Trajectory], factor):
     function t -> Trajectory, returns the function of the new time. ``factor``: positive number or a
     tensor broadcastable to the arrays (e.g. (..., 1, 1)) or, for functions, to ``t``.
     """
-    if isinstance(factor, Tensor):
-        if bool((factor <= 0).any()):
-            raise DiffkinError("time-scaling factor must be > 0")
-    elif factor <= 0:
-        raise DiffkinError(f"time-scaling factor must be > 0, got {factor}")
-
-    def scale(tr: Trajectory) -> Trajectory:
-        return Trajectory(tr.position, tr.velocity / factor, tr.acceleration / factor**2)
-
     if isinstance(traj, Trajectory):
-        return scale(traj)
+        pos, vel, acc, k = tensors(
+            ("traj.position", traj.position, None), ("traj.velocity", traj.velocity, None),
+            ("traj.acceleration", traj.acceleration, None), ("factor", factor, None),
+        )
+        if not pos.shape == vel.shape == acc.shape:
+            raise ShapeError(
+                "expected a Trajectory whose position, velocity and acceleration have one shape, got "
+                f"{shape_str(pos.shape)}, {shape_str(vel.shape)} and {shape_str(acc.shape)}"
+            )
+        broadcast_batch(("traj", pos, 0), ("factor", k, 0))
+        return _scale(Trajectory(pos, vel, acc), _check_factor(k))
     if callable(traj):
-        return lambda t: scale(traj(t / factor))
+        _check_factor(tensors(("factor", factor, None))[0])
+
+        def scaled(t) -> Trajectory:
+            t, k = tensors(("t", t, None), ("factor", factor, None))
+            return _scale(traj(t / k), k)
+
+        return scaled
     raise TypeError(f"time_scale expects a Trajectory or a callable, got {type(traj).__name__}")
+
+
+def _check_factor(k: Tensor) -> Tensor:
+    if bool((k <= 0).any()):
+        raise DiffkinError(f"time-scaling factor must be > 0, got min {float(k.min())}")
+    return k
+
+
+def _scale(tr: Trajectory, k: Tensor) -> Trajectory:
+    return Trajectory(tr.position, tr.velocity / k, tr.acceleration / k**2)

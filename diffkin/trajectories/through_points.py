@@ -3,6 +3,7 @@
 ``points``: (..., N, n) (N path points of n joints); ``times``: (N,) or (..., N), strictly increasing;
 ``t``: query times (T,) or (..., T); results are :class:`Trajectory` of shape (..., T, n). Outside
 [t_1, t_N] positions hold the end values and velocity/acceleration are zero (except where noted).
+Inputs follow :mod:`diffkin.validation` (one dtype, numbers and numpy arrays converted, NaN/inf refused).
 """
 
 from __future__ import annotations
@@ -10,25 +11,26 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._numerics import safe_norm, safe_normalize
-from ..errors import ConventionError, DiffkinError, ShapeError
+from .._numerics import stable_norm, stable_normalize
+from ..errors import ConventionError, DiffkinError
+from ..validation import broadcast_batch, check_trailing, tensors
 from ._common import (
     InfeasibleTrajectoryError,
     Trajectory,
-    as_tensor,
     cat_broadcast,
     check_knot_times,
     check_points,
     clamp_times,
     cubic_coeffs,
     mask_outside,
+    per_item,
     poly_eval,
     query_times,
     segment_index,
     take,
     take_scalar,
 )
-from .point_to_point import trapezoidal
+from .point_to_point import _law
 
 __all__ = [
     "interpolating_polynomial",
@@ -40,10 +42,19 @@ __all__ = [
 ]
 
 
-def _setup(points, times, t, min_points: int = 2):
-    points = check_points(points, min_points=min_points)
-    times = check_knot_times(times, points, points.shape[-2])
-    return points, times, query_times(t, points)
+def _setup(points, times, t, min_points: int = 2, **extra):
+    """Validate the points (..., N, n), knot times (..., N), query times (..., T) (``t`` None: none) and the
+    ``extra`` arguments (None entries stay None) together; returns them in this order."""
+    names = list(extra)
+    points, times, t, *rest = tensors(
+        ("points", points, (None, None)), ("times", times, (None,)), ("t", t, None),
+        *((k, extra[k], None) for k in names),
+    )
+    check_points(points, min_points=min_points)
+    check_knot_times(times, points.shape[-2])
+    t = None if t is None else query_times(t)
+    broadcast_batch(("points", points, 2), ("times", times, 1), ("t", t, 1))
+    return (points, times, t, *rest)
 
 
 def interpolating_polynomial(points: Tensor, times, t) -> Trajectory:
@@ -70,8 +81,11 @@ def interpolating_polynomial(points: Tensor, times, t) -> Trajectory:
 def heuristic_velocities(points: Tensor, times) -> Tensor:
     """Path-point velocities by the rule (4.12): 0 at the ends and where the adjacent slopes change sign,
     else their mean. points (..., N, n), times (N,) or (..., N) -> (..., N, n)."""
-    points = check_points(points)
-    times = check_knot_times(times, points, points.shape[-2])
+    points, times, _ = _setup(points, times, None)
+    return _heuristic_velocities(points, times)
+
+
+def _heuristic_velocities(points: Tensor, times: Tensor) -> Tensor:
     slopes = torch.diff(points, dim=-2) / torch.diff(times, dim=-1)[..., None]
     same = torch.sign(slopes[..., :-1, :]) == torch.sign(slopes[..., 1:, :])
     inner = torch.where(
@@ -96,16 +110,12 @@ def cubic_through_points(points: Tensor, times, t, velocities: Tensor | None = N
     ``velocities`` (..., N, n) are imposed; if None they are computed by the rule (4.12) (zero at the
     ends). Position and velocity are continuous, acceleration in general is not.
     """
-    points, times, t = _setup(points, times, t)
+    points, times, t, velocities = _setup(points, times, t, velocities=velocities)
     if velocities is None:
-        velocities = heuristic_velocities(points, times)
+        velocities = _heuristic_velocities(points, times)
     else:
-        velocities = as_tensor(velocities, points, "velocities")
-        if velocities.shape[-2:] != points.shape[-2:]:
-            raise ShapeError(
-                f"expected velocities of shape (..., {points.shape[-2]}, {points.shape[-1]}) like points, "
-                f"got {tuple(velocities.shape)}"
-            )
+        check_trailing(velocities, tuple(points.shape[-2:]), "velocities")
+        broadcast_batch(("points", points, 2), ("velocities", velocities, 2))
     return _hermite_segments(points, velocities, times, t)
 
 
@@ -133,9 +143,7 @@ def _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times):
     if virtual_times is None:
         tv = torch.stack([(times[..., 0] + times[..., 1]) / 2, (times[..., -2] + times[..., -1]) / 2], -1)
     else:
-        tv = as_tensor(virtual_times, points, "virtual_times")
-        if tv.ndim < 1 or tv.shape[-1] != 2:
-            raise ShapeError(f"expected virtual_times of shape (..., 2), got {tuple(tv.shape)}")
+        tv = check_trailing(virtual_times, (2,), "virtual_times")
     knots = cat_broadcast([times[..., :1], tv[..., :1], times[..., 1:-1], tv[..., 1:], times[..., -1:]], -1)
     if bool((torch.diff(knots, dim=-1) <= 0).any()):
         raise DiffkinError("virtual_times must lie strictly inside the first and the last interval, in order")
@@ -199,21 +207,25 @@ def cubic_spline(
     and the unknown knot accelerations solve (4.28). v_i, v_f, a_i, a_f: (..., n).
     Solved with ``torch.linalg.solve`` on the batched tridiagonal matrix, so it is differentiable.
     """
-    points, times, t = _setup(points, times, t)
-    v_i, v_f = as_tensor(v_i, points, "v_i"), as_tensor(v_f, points, "v_f")
-    v_i = v_i.expand(torch.broadcast_shapes(v_i.shape, points.shape[-1:]))
-    v_f = v_f.expand(torch.broadcast_shapes(v_f.shape, points.shape[-1:]))
+    if end not in ("clamped", "natural_virtual"):
+        raise ConventionError(f'unknown spline end condition {end!r}; valid: "clamped", "natural_virtual"')
+    if end == "clamped" and virtual_times is not None:
+        raise ConventionError('virtual_times is only used with end="natural_virtual"')
+    points, times, t, v_i, v_f, a_i, a_f, virtual_times = _setup(
+        points, times, t, v_i=v_i, v_f=v_f, a_i=a_i, a_f=a_f, virtual_times=virtual_times
+    )
+    n = points.shape[-1]
+    ends = {"v_i": v_i, "v_f": v_f, "a_i": a_i, "a_f": a_f}
+    for name, x in ends.items():
+        per_item(x, n, name, "one per joint")
+    named = ((k, x, 1) for k, x in ends.items())
+    broadcast_batch(("points", points, 2), *named, ("virtual_times", virtual_times, 1))
+    v_i, v_f, a_i, a_f = (x.expand(torch.broadcast_shapes(x.shape, points.shape[-1:])) for x in ends.values())
     if end == "clamped":
-        if virtual_times is not None:
-            raise ConventionError('virtual_times is only used with end="natural_virtual"')
         h = torch.diff(times, dim=-1)
         return _spline_eval(times, points, _clamped_accelerations(points, h, v_i, v_f), t)
-    if end == "natural_virtual":
-        a_i = as_tensor(a_i, points, "a_i").expand(torch.broadcast_shapes(v_i.shape[-1:], points.shape[-1:]))
-        a_f = as_tensor(a_f, points, "a_f").expand(torch.broadcast_shapes(v_f.shape[-1:], points.shape[-1:]))
-        knots, Q, M = _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times)
-        return _spline_eval(knots, Q, M, t)
-    raise ConventionError(f'unknown spline end condition {end!r}; valid: "clamped", "natural_virtual"')
+    knots, Q, M = _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times)
+    return _spline_eval(knots, Q, M, t)
 
 
 def _ramp(x: Tensor, D: Tensor) -> Trajectory:
@@ -237,24 +249,23 @@ def linear_parabolic_blends(points: Tensor, times, t, blend_time=None, qdd=None)
     |Delta velocity|/qdd). The points become via points; the motion spans
     [t_1 - Delta t'_1/2, t_N + Delta t'_N/2] (so it starts before t_1). Blends must not overlap.
     """
-    points, times, t = _setup(points, times, t)
     if (blend_time is None) == (qdd is None):
         raise DiffkinError("give exactly one of blend_time and qdd")
+    points, times, t, blend_time, qdd = _setup(points, times, t, blend_time=blend_time, qdd=qdd)
+    per_item(blend_time, points.shape[-2], "blend_time", "one per point")
+    per_item(qdd, points.shape[-1], "qdd", "one per joint")
+    broadcast_batch(("points", points, 2), ("blend_time", blend_time, 1), ("qdd", qdd, 1))
     h = torch.diff(times, dim=-1)
     v = torch.diff(points, dim=-2) / h[..., None]
     zero = torch.zeros_like(v[..., :1, :])
     dv = torch.diff(torch.cat([zero, v, zero], -2), dim=-2)  # (..., N, n)
     if blend_time is not None:
-        D = as_tensor(blend_time, points, "blend_time")
-        if D.ndim and D.shape[-1] != points.shape[-2]:
-            raise ShapeError(
-                f"expected blend_time as a number or of shape (..., {points.shape[-2]}), got {tuple(D.shape)}"
-            )
+        D = blend_time
         D = D[..., None] if D.ndim else D.expand(dv.shape[-2:])  # (..., N, 1) or (N, n)
         if bool((D < 0).any()):
             raise DiffkinError("blend_time must be >= 0")
     else:
-        acc = as_tensor(qdd, points, "qdd").abs()
+        acc = qdd.abs()
         if bool((acc <= 0).any()):
             raise DiffkinError("qdd must be > 0")
         D = dv.abs() / (acc[..., None, :] if acc.ndim else acc)
@@ -281,21 +292,21 @@ def anticipated_segments(points: Tensor, times, t, advance=None, qdd_c=None) -> 
     acceleration of each segment's trapezoidal law (number or (..., N); default as in ``trapezoidal``).
     Position (4.46), velocity (4.48), acceleration (4.49). Works for joint space (Fig. 4.10) too.
     """
-    points, times, t = _setup(points, times, t)
+    points, times, t, advance, qdd_c = _setup(points, times, t, advance=advance, qdd_c=qdd_c)
     N = points.shape[-2] - 1
+    per_item(advance, N, "advance", "one per segment")
+    per_item(qdd_c, N, "qdd_c", "one per segment")
+    broadcast_batch(("points", points, 2), ("advance", advance, 1), ("qdd_c", qdd_c, 1))
     dp = torch.diff(points, dim=-2)
-    L, u = safe_norm(dp), safe_normalize(dp)  # (..., N), (..., N, n)
+    L, u = stable_norm(dp), stable_normalize(dp)  # (..., N), (..., N, n)
     h = torch.diff(times, dim=-1)
-    shift = torch.zeros_like(h) if advance is None else as_tensor(advance, points, "advance")
-    if shift.ndim and shift.shape[-1] != N:
-        raise ShapeError(f"expected advance as a number or of shape (..., {N}), got {tuple(shift.shape)}")
+    shift = torch.zeros_like(h) if advance is None else advance
     cum = torch.cumsum(torch.broadcast_to(shift, torch.broadcast_shapes(shift.shape, h.shape)), dim=-1)
     local = t[..., None, :] + (cum - times[..., :-1])[..., None]  # (..., N, T)
+    data = {"q_i": torch.zeros_like(L)[..., None], "q_f": L[..., None], "t_f": h[..., None]}
     if qdd_c is not None:
-        qdd_c = as_tensor(qdd_c, points, "qdd_c")
-        qdd_c = qdd_c[..., None] if qdd_c.ndim else qdd_c
-    s = trapezoidal(torch.zeros_like(L)[..., None], L[..., None], h[..., None], local, qdd_c=qdd_c)
-    s = [x[..., 0] for x in s]  # (..., N, T)
+        data["qdd_c"] = qdd_c[..., None] if qdd_c.ndim else qdd_c
+    s = [x[..., 0] for x in _law("trapezoidal", data, local)]  # (..., N, T)
     return Trajectory(
         points[..., :1, :] + torch.einsum("...jt,...jn->...tn", s[0], u),
         torch.einsum("...jt,...jn->...tn", s[1], u),
