@@ -143,7 +143,8 @@ def _env(kind: str):
         make = {
             "reach": lambda: ReachEnv(ENV_ROBOT, reward_type="dense"),
             "track": lambda: TrackEnv(ENV_ROBOT, episode_steps=5),
-            "vector": lambda: TorchVectorEnv("diffkin/Reach-v0", N_ENVS, robot=ENV_ROBOT, reward_type="dense"),
+            "vector": lambda: TorchVectorEnv("diffkin/Reach-v0", N_ENVS, robot=ENV_ROBOT,
+                                             reward_type="dense"),
             "sb3": lambda: SB3VecEnv(TorchVectorEnv("diffkin/Track-v0", N_ENVS, robot=ENV_ROBOT,
                                                     episode_steps=5)),
         }
