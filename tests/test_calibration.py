@@ -519,6 +519,11 @@ def test_nominal_chain_untouched_and_outputs(tmp_path):
     assert res.chain is not chain and res.chain.a.data_ptr() != chain.a.data_ptr()
     assert res_g.iterations <= 5
     png = res.plot_residuals(tmp_path / "res.png")
+    held_out = poses(chain, 6, seed=66).detach()
+    T_held = measure(perturbed(chain, seed=62), held_out).numpy()  # numpy held-out poses by the input rule
+    assert res.plot_residuals(tmp_path / "held.png", held_out.numpy(), T_held).stat().st_size > 1000
+    with pytest.raises(ShapeError, match="6 joint vectors but T holds 5"):
+        res.plot_residuals(tmp_path / "bad.png", held_out, T_held[:5])
     assert png.stat().st_size > 1000
     md = res.to_markdown()
     assert md.count("\n") == len(res.names) + 1 and "| a4 |" in md

@@ -130,8 +130,11 @@ class CalibrationResult:
         """
         from matplotlib.figure import Figure
 
-        q = self.q if q is None else q
-        T = self.measured if T is None else T
+        if q is None and T is None:
+            q, T = self.q, self.measured
+        else:  # held-out poses: by the input rule, like the calibration data
+            q, T, _ = check_measurements(self.q if q is None else q, self.measured if T is None else T,
+                                         self.q.shape[-1], self.chain)
         with torch.no_grad():
             before = pose_residual(self.nominal_chain.forward_kinematics(q), T, 1.0)
             after = pose_residual(self.chain.forward_kinematics(q), T, 1.0)
