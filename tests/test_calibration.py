@@ -479,7 +479,7 @@ def test_loss_functions_validate_their_input():
     torch.testing.assert_close(calibration_loss(model.nominal.numpy(), q.numpy(), T.numpy(), model), ref)
     params = model.nominal.expand(0, -1)
     assert calibration_loss(params, q.expand(0, 5, 6), T.expand(0, 5, 4, 4), model).shape == (0,)
-    with pytest.raises(ShapeError, match="at least 1 pose"):
+    with pytest.raises(ShapeError, match="at least 1 measured pose"):
         calibration_loss(model.nominal, q[:0], T[:0], model)
     with pytest.raises(ShapeError, match="do not broadcast"):
         calibration_loss(model.nominal.expand(2, -1), q.expand(3, 5, 6), T.expand(2, 5, 4, 4), model)

@@ -212,8 +212,6 @@ def _check_options(method: str, orientation_weight, measurement_noise=None) -> N
 
 def _solve(model, q, T, position_only, method, orientation_weight, rank_tol, solver_options):
     """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``: ``(output, reports, ζ_n (K, P))``."""
-    if method not in METHODS:
-        raise ConventionError(f"unknown calibration method {method!r}; valid: {', '.join(METHODS)}")
     K = q.shape[0]
     zeta0 = model.nominal.expand(K, model.n_params).clone()
     reports, free = model_reports(model, zeta0, q, position_only, orientation_weight, rank_tol)

@@ -263,7 +263,7 @@ def identifiability(
 
     model, _ = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if T is not None:
-        q, _, position_only = check_measurements(q, T, chain.n_joints, chain, batch=())
+        q, _, position_only = check_measurements(q, T, chain.n_joints, chain)
     else:
         (q,) = tensors(("q", q, (chain.n_joints,)), like=chain)
         if q.ndim != 2 or q.shape[0] < 1:

@@ -317,19 +317,25 @@ def pose_residual(T: Tensor, measured: Tensor, orientation_weight: float) -> Ten
     return torch.cat((e_p, orientation_weight * e_o), dim=-1)
 
 
-def check_measurements(
-    q, measured, n: int, like, batch: tuple[int, ...] | None = (), name_T: str = "T"
-) -> tuple[Tensor, Tensor, bool]:
+def check_measurements(q, measured, n: int, like, batch: tuple[int, ...] = ()) -> tuple[Tensor, Tensor, bool]:
     """Validate joints ``q (*batch, N, n)`` and poses ``(*batch, N, 4, 4)`` / positions ``(*batch, N, 3)`` by
     the rule of :mod:`diffkin.validation` (tensors of ``like``'s dtype and device; numbers, sequences and
     numpy arrays converted to it; finite), with N >= 1 poses.
 
-    ``batch``: the required leading dims (``None``: any, broadcast between q and T). Returns ``(q, T,
-    position_only)`` with the rotation blocks of T re-orthonormalised (deviations up to 1e-5 accepted, see
-    :func:`~diffkin.transforms.as_measured_transform`). Raises ShapeError / DTypeError / NonFiniteError /
-    DiffkinError.
+    Returns ``(q, T, position_only)`` with the rotation blocks of T re-orthonormalised (deviations up to 1e-5
+    accepted, see :func:`~diffkin.transforms.as_measured_transform`). Raises ShapeError / DTypeError /
+    NonFiniteError / DiffkinError.
     """
-    q, measured = tensors(("q", q, None), (name_T, measured, None), like=like)
+    q, measured = tensors(("q", q, None), ("T", measured, None), like=like)
+    position_only = measurement_shapes(q, measured, n, batch)
+    if not position_only:
+        measured = as_measured_transform(measured, "T")  # 1e-5 tolerance, re-orthonormalised
+    return q, measured, position_only
+
+
+def measurement_shapes(q: Tensor, T: Tensor, n: int, batch: tuple[int, ...] | None = ()) -> bool:
+    """Check the shapes of ``q (*batch, N, n)`` and ``T (*batch, N, 4, 4)`` or ``(*batch, N, 3)``, N >= 1
+    (``batch=None``: any leading dims, as many in T as in q, broadcasting). Returns True for positions."""
     lead = "..., " if batch is None else "".join(f"{b}, " for b in batch)
     k = q.ndim - 2 if batch is None else len(batch)
     if q.ndim < 2 or q.ndim != k + 2 or q.shape[-1] != n or (
@@ -337,32 +343,28 @@ def check_measurements(
     ):
         raise ShapeError(f"expected q of shape ({lead}N, {n}), got {shape_str(q.shape)}")
     N = q.shape[-2]
-    position_only = measured.ndim == q.ndim and measured.shape[-1] == 3
-    if not position_only and (measured.ndim != q.ndim + 1 or measured.shape[-2:] != (4, 4)):
+    position_only = T.ndim == q.ndim and T.shape[-1] == 3
+    if not position_only and (T.ndim != q.ndim + 1 or T.shape[-2:] != (4, 4)):
         raise ShapeError(
-            f"expected measured poses {name_T} of shape ({lead}N, 4, 4) or positions ({lead}N, 3) with N = "
-            f"{N} as in q {shape_str(q.shape)}, got {shape_str(measured.shape)}"
+            f"expected measured poses T of shape ({lead}N, 4, 4) or positions ({lead}N, 3) with N = {N} as "
+            f"in q {shape_str(q.shape)}, got {shape_str(T.shape)}"
         )
-    lead_T = measured.shape[: k + 1]
-    if measured.shape[k] != N:
+    if T.shape[k] != N:
         raise ShapeError(
-            f"q holds {N} joint vectors but {name_T} holds {measured.shape[k]} measurements "
-            f"(q {shape_str(q.shape)}, {name_T} {shape_str(measured.shape)})"
+            f"q holds {N} joint vectors but T holds {T.shape[k]} measurements "
+            f"(q {shape_str(q.shape)}, T {shape_str(T.shape)})"
         )
     if batch is None:
         try:
-            torch.broadcast_shapes(q.shape[:k], lead_T[:k])
+            torch.broadcast_shapes(q.shape[:k], T.shape[:k])
         except RuntimeError:
             raise ShapeError(
-                f"the batch dims of q {shape_str(q.shape)} and {name_T} {shape_str(measured.shape)} do not "
-                "broadcast"
+                f"the batch dims of q {shape_str(q.shape)} and T {shape_str(T.shape)} do not broadcast"
             ) from None
-    elif tuple(lead_T) != (*batch, N):
-        raise ShapeError(f"expected {name_T} of shape ({lead}{N}, ...), got {shape_str(measured.shape)}")
+    elif tuple(T.shape[:k]) != tuple(batch):
+        raise ShapeError(f"expected T of shape ({lead}{N}, ...), got {shape_str(T.shape)}")
     if N < 1:
         raise ShapeError(
             f"calibration needs at least 1 measured pose (N >= 1), got q of shape {shape_str(q.shape)}"
         )
-    if not position_only:
-        measured = as_measured_transform(measured, name_T)  # 1e-5 tolerance, re-orthonormalised
-    return q, measured, position_only
+    return position_only

@@ -19,7 +19,7 @@ from .._numerics import eps_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
 from ..validation import _traced, shape_str, tensors
-from .model import CalibrationModel, pose_residual
+from .model import CalibrationModel, measurement_shapes, pose_residual
 
 __all__ = ["calibration_loss", "robust_loss", "least_squares", "gradient_descent", "SolverOutput", "LOSSES"]
 
@@ -111,38 +111,25 @@ def calibration_loss(
     """Mean robust loss over the poses, a pure differentiable function: ``params (..., P)`` -> ``(...)``.
 
     ``q (..., N, n)``, ``T (..., N, 4, 4)`` measured poses or ``(..., N, 3)`` positions, N >= 1; ``params`` is
-    the full ζ of ``model`` (see :mod:`diffkin.calibration.model`); the batch dims broadcast (T has as many
-    as q). Per pose the
-    squared norm of the weighted residual [p_m − p; w rotvec(R_m Rᵀ)] (m²) goes through :func:`robust_loss`
-    with ``scale`` in metres (default 1 mm: quadratic for the sub-millimetre residuals of a converged fit,
-    linear for outliers). Inputs by the rule of :mod:`diffkin.validation` in the model's dtype and device
-    (shapes, dtypes, finite values; T's rotation blocks are taken as they are, not checked for rigidity).
+    the full ζ of ``model`` (see :mod:`diffkin.calibration.model`); the batch dims broadcast (T has as many as
+    q). Per pose the squared norm of the weighted residual [p_m − p; w rotvec(R_m Rᵀ)] (m²) goes through
+    :func:`robust_loss` with ``scale`` in metres (default 1 mm: quadratic for the sub-millimetre residuals of
+    a converged fit, linear for outliers). Inputs by the rule of :mod:`diffkin.validation` in the model's
+    dtype and device (shapes, dtypes, finite values; T's rotation blocks are taken as they are, not checked
+    for rigidity).
     """
     if loss not in LOSSES:
         raise ConventionError(f"unknown loss {loss!r}; valid: {', '.join(LOSSES)}")
     scale = check_number(scale, "scale", unit=" (metres)")
     orientation_weight = check_number(orientation_weight, "orientation_weight", positive=False)
-    P, n = model.n_params, model.n
-    params, q, T = tensors(
-        ("params", params, (P,)), ("q", q, (None, n)), ("T", T, None), like=model.chains[0]
-    )
-    position_only = T.ndim == q.ndim and T.shape[-1] == 3
-    if not position_only and (T.ndim != q.ndim + 1 or T.shape[-2:] != (4, 4)):
-        raise ShapeError(f"expected T of shape (..., N, 4, 4) or positions (..., N, 3) with N = "
-                         f"{q.shape[-2]} as in q {shape_str(q.shape)}, got {shape_str(T.shape)}")
-    N, k = q.shape[-2], q.ndim - 2
-    if T.shape[k] != N:
-        raise ShapeError(f"q holds {N} joint vectors but T holds {T.shape[k]} measurements "
-                         f"(q {shape_str(q.shape)}, T {shape_str(T.shape)})")
-    if N < 1:
-        raise ShapeError(
-            f"calibration_loss needs at least 1 pose (N >= 1), got q of shape {shape_str(q.shape)}"
-        )
+    params, q, T = tensors(("params", params, (model.n_params,)), ("q", q, None), ("T", T, None),
+                           like=model.chains[0])
+    measurement_shapes(q, T, model.n, batch=None)
     try:
-        torch.broadcast_shapes(params.shape[:-1], q.shape[:-2], T.shape[:k])
+        torch.broadcast_shapes(params.shape[:-1], q.shape[:-2])
     except RuntimeError:
-        raise ShapeError(f"the batch dims of params {shape_str(params.shape)}, q {shape_str(q.shape)} and T "
-                         f"{shape_str(T.shape)} do not broadcast") from None
+        raise ShapeError(f"the batch dims of params {shape_str(params.shape)} and q {shape_str(q.shape)} do "
+                         "not broadcast") from None
     return _calibration_loss(params, q, T, model, loss, scale, orientation_weight)
 
 
