@@ -7,20 +7,18 @@ batch equal a single env with the same seed.
 
 from __future__ import annotations
 
-import math
-
 import gymnasium as gym
 import numpy as np
 import torch
 from torch import Tensor
 
-from diffkin.errors import ConventionError, DiffkinError, DTypeError, ShapeError
+from diffkin.errors import ConventionError, DTypeError, ShapeError
 from diffkin.validation import check_finite, shape_str, tensors
 
 from ._random import key_from_generator, uniform
 from .robot import Robot, RobotConfig
 
-__all__ = ["Task", "TaskEnv", "check_action", "to_numpy"]  # check_reset_options, check_setting: the envs' own
+__all__ = ["Task", "TaskEnv", "check_action", "to_numpy"]  # check_reset_options: the envs' own
 
 
 def check_action(action, shape: tuple[int, ...], name: str = "action", dtype=torch.float32,
@@ -47,22 +45,6 @@ def check_reset_options(options, env: str) -> None:
         return
     got = sorted(map(str, options)) if isinstance(options, dict) else type(options).__name__
     raise ConventionError(f"{env}.reset takes no options (expected None or {{}}), got {got}")
-
-
-def check_setting(value, name: str, *, low: float | None = None, high: float | None = None,
-                  strict_low: bool = False, integer: bool = False) -> None:
-    """A numeric setting of an env config: a finite number (an integer where ``integer``) in its range."""
-    kind = int if integer else (int, float)
-    ok = isinstance(value, kind) and not isinstance(value, bool) and math.isfinite(value)
-    if ok and low is not None:
-        ok = value > low if strict_low else value >= low
-    if ok and high is not None:
-        ok = value <= high
-    if not ok:
-        rng = "" if low is None else f" {'>' if strict_low else '>='} {low}"
-        rng += "" if high is None else f"{',' if rng else ''} <= {high}"
-        what = "an integer" if integer else "a finite number"
-        raise DiffkinError(f"expected {name} as {what}{rng}, got {value!r}")
 
 
 def to_numpy(obs):

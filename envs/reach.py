@@ -12,7 +12,8 @@ from torch import Tensor
 from diffkin.errors import ConventionError, DTypeError, ShapeError
 from diffkin.validation import shape_str, tensors
 
-from .core import Task, TaskEnv, check_setting
+from ._checks import check_setting
+from .core import Task, TaskEnv
 
 __all__ = ["ReachConfig", "ReachTask", "ReachEnv", "reach_reward"]
 

@@ -23,6 +23,8 @@ from diffkin.ik.numerical import dls_delta
 from diffkin.jacobian import forward_kinematics_and_jacobian
 from diffkin.validation import shape_str, tensors
 
+from ._checks import check_setting
+
 __all__ = ["Robot", "RobotConfig", "load_chain", "HOME"]
 
 # A comfortable, non-singular start pose per model ("ready" pose for the Panda).
@@ -76,8 +78,6 @@ class RobotConfig:
     damping: float = 0.05  # λ of the damped least-squares step (m)
 
     def __post_init__(self):
-        from .core import check_setting
-
         for name in ("max_joint_speed", "control_dt", "max_ee_step", "damping"):
             check_setting(getattr(self, name), name, low=0.0, strict_low=True)
 

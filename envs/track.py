@@ -13,7 +13,8 @@ from torch import Tensor
 from diffkin.errors import ShapeError
 from diffkin.trajectories import cartesian_trajectory, circle_path, segment_path, timing_law
 
-from .core import Task, TaskEnv, check_setting
+from ._checks import check_setting
+from .core import Task, TaskEnv
 
 __all__ = ["TrackConfig", "TrackTask", "TrackEnv"]
 

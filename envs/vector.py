@@ -23,8 +23,9 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from diffkin.errors import ConventionError, DTypeError, ShapeError
 
+from ._checks import check_setting
 from ._random import key_from_generator, keys_for_seeds
-from .core import Task, check_action, check_reset_options, check_setting
+from .core import Task, check_action, check_reset_options
 from .reach import ReachConfig, ReachTask
 from .track import TrackConfig, TrackTask
 
