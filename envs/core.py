@@ -12,26 +12,39 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from diffkin.errors import NonFiniteError, ShapeError
+from diffkin.errors import ConventionError, DTypeError, ShapeError
+from diffkin.validation import check_finite, shape_str, tensors
 
 from ._random import key_from_generator, uniform
 from .robot import Robot, RobotConfig
 
-__all__ = ["Task", "TaskEnv", "check_action", "to_numpy"]
+__all__ = ["Task", "TaskEnv", "check_action", "to_numpy"]  # check_reset_options: the envs' own
 
 
-def check_action(action, shape: tuple[int, ...], name: str = "action") -> Tensor | np.ndarray:
-    """Raise ``ShapeError`` / ``NonFiniteError`` (``ValueError`` subclasses) for a malformed action."""
-    if isinstance(action, Tensor):
-        bad_shape, finite = tuple(action.shape) != tuple(shape), lambda: bool(torch.isfinite(action).all())
-    else:
-        action = np.asarray(action, dtype=np.float32)
-        bad_shape, finite = action.shape != tuple(shape), lambda: bool(np.isfinite(action).all())
-    if bad_shape:
-        raise ShapeError(f"expected {name} of shape {tuple(shape)}, got {tuple(action.shape)}")
-    if not finite():
-        raise NonFiniteError(f"{name} contains NaN or inf values")
-    return action
+def check_action(action, shape: tuple[int, ...], name: str = "action", dtype=torch.float32,
+                 device="cpu") -> Tensor:
+    """An action by the rule of :mod:`diffkin.validation`, as a tensor of the env's ``dtype`` and ``device``.
+
+    Numpy arrays (the Gymnasium case), sequences and numbers of float or integer dtype are converted; tensors
+    must be float32 or float64 (either is cast to the env's dtype: an action is a command, not a computation
+    the caller shares). Integer, bool, complex and half-precision tensors raise ``DTypeError``; a shape
+    other than ``shape`` ``ShapeError``; NaN or inf ``NonFiniteError`` (all ``ValueError`` subclasses).
+    Values out of the action space's bounds are the task's to clip.
+    """
+    (a,) = tensors((name, action, None), finite=False)
+    if tuple(a.shape) != tuple(shape):
+        raise ShapeError(f"expected {name} of shape {tuple(shape)}, got {shape_str(a.shape)}")
+    check_finite(a, name)
+    return a.to(dtype=dtype, device=device)
+
+
+def check_reset_options(options, env: str) -> None:
+    """``reset(options=...)``: these envs take none; ``None`` or ``{}`` pass, anything else is refused
+    (a misspelt or unsupported option would otherwise be silently ignored)."""
+    if options is None or (isinstance(options, dict) and not options):
+        return
+    got = sorted(map(str, options)) if isinstance(options, dict) else type(options).__name__
+    raise ConventionError(f"{env}.reset takes no options (expected None or {{}}), got {got}")
 
 
 def to_numpy(obs):
@@ -50,6 +63,8 @@ class Task:
     def __init__(self, robot: str = "panda", action_mode: str = "joint",
                  robot_config: RobotConfig | dict | None = None,
                  home=None, dtype=torch.float32, device="cpu"):
+        if dtype not in (torch.float32, torch.float64):
+            raise DTypeError(f"expected the env dtype torch.float32 or torch.float64, got {dtype!r}")
         if isinstance(robot_config, dict):
             robot_config = RobotConfig(**robot_config)
         self.robot = Robot(robot, robot_config, action_mode=action_mode, home=home, dtype=dtype,
@@ -136,7 +151,7 @@ class TaskEnv(gym.Env):
 
     def __init__(self, task: Task, render_mode: str | None = None):
         if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
+            raise ConventionError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.task = task
         self.render_mode = render_mode
         self.action_space = task.action_space
@@ -150,6 +165,7 @@ class TaskEnv(gym.Env):
         return self.task.robot
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        check_reset_options(options, type(self).__name__)
         super().reset(seed=seed)
         if seed is not None or self._state is None:
             self._state = self.task.new_state(1)
@@ -162,8 +178,8 @@ class TaskEnv(gym.Env):
     def step(self, action):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        action = check_action(action, self.action_space.shape)
-        a = torch.as_tensor(action, dtype=self.task.dtype, device=self.task.device).unsqueeze(0)
+        task = self.task
+        a = check_action(action, self.action_space.shape, dtype=task.dtype, device=task.device)[None]
         obs, reward, terminated, truncated, info = self.task.step(self._state, a)
         self._trace.append(self._ee())
         info = {k: v[0].item() for k, v in info.items()}

@@ -9,6 +9,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diffkin.errors import ConventionError, DTypeError, ShapeError
+from diffkin.validation import shape_str, tensors
+
+from ._checks import check_setting
 from .core import Task, TaskEnv
 
 __all__ = ["ReachConfig", "ReachTask", "ReachEnv", "reach_reward"]
@@ -26,15 +30,38 @@ class ReachConfig:
     init_noise: float = 0.1  # rad, uniform noise on the home pose at reset
     terminate_on_success: bool = False
 
+    def __post_init__(self):
+        if self.reward_type not in ("sparse", "dense"):
+            raise ConventionError(f"reward_type must be 'sparse' or 'dense', got {self.reward_type!r}")
+        check_setting(self.distance_threshold, "distance_threshold", low=0.0, strict_low=True)
+        check_setting(self.episode_steps, "episode_steps", low=1, integer=True)
+        check_setting(self.goal_spread, "goal_spread", low=0.0, high=1.0)
+        check_setting(self.init_noise, "init_noise", low=0.0)
+        if not isinstance(self.terminate_on_success, bool):
+            raise DTypeError(f"expected terminate_on_success as a bool, got {self.terminate_on_success!r}")
+
 
 def reach_reward(achieved_goal, desired_goal, reward_type: str, threshold: float):
-    """Vectorised reward over leading dims: works on ``(3,)`` and ``(B, 3)``, numpy or torch."""
-    if isinstance(achieved_goal, Tensor):
-        d = torch.linalg.vector_norm(achieved_goal - desired_goal, dim=-1)
-        return -d if reward_type == "dense" else -(d > threshold).to(d.dtype)
-    d = np.linalg.norm(np.asarray(achieved_goal) - np.asarray(desired_goal), axis=-1)
-    r = -d if reward_type == "dense" else -(d > threshold).astype(np.float32)
-    return np.asarray(r, dtype=np.float32)
+    """Vectorised reward over leading dims (broadcast): works on ``(3,)`` and ``(B, 3)``, numpy or torch.
+
+    Inputs by the rule of :mod:`diffkin.validation` (shape ``(..., 3)``, finite; float32/float64 tensors of
+    one dtype; numpy arrays and sequences converted). With a tensor among the inputs the reward is a tensor of
+    their dtype, else a float32 numpy array (what SB3's HER buffer stores).
+    """
+    if reward_type not in ("sparse", "dense"):
+        raise ConventionError(f"reward_type must be 'sparse' or 'dense', got {reward_type!r}")
+    check_setting(threshold, "threshold", low=0.0, strict_low=True)
+    a, d = tensors(("achieved_goal", achieved_goal, (3,)), ("desired_goal", desired_goal, (3,)))
+    try:
+        torch.broadcast_shapes(a.shape, d.shape)
+    except RuntimeError:
+        raise ShapeError(f"achieved_goal {shape_str(a.shape)} and desired_goal {shape_str(d.shape)} do not "
+                         "broadcast") from None
+    dist = torch.linalg.vector_norm(a - d, dim=-1)
+    r = -dist if reward_type == "dense" else -(dist > threshold).to(dist.dtype)
+    if isinstance(achieved_goal, Tensor) or isinstance(desired_goal, Tensor):
+        return r
+    return np.asarray(r.cpu().numpy(), dtype=np.float32)
 
 
 class ReachTask(Task):
@@ -43,8 +70,6 @@ class ReachTask(Task):
     def __init__(self, config: ReachConfig | None = None, **robot_kwargs):
         super().__init__(**robot_kwargs)
         self.config = config or ReachConfig()
-        if self.config.reward_type not in ("sparse", "dense"):
-            raise ValueError(f"reward_type must be 'sparse' or 'dense', got {self.config.reward_type!r}")
         self.max_steps = self.config.episode_steps
         self.n_random = 2 * self.robot.n
 

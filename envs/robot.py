@@ -18,8 +18,12 @@ import torch
 from torch import Tensor
 
 from diffkin.chain import DHChain, KinematicChain
+from diffkin.errors import ConventionError, ModelError, ShapeError
 from diffkin.ik.numerical import dls_delta
 from diffkin.jacobian import forward_kinematics_and_jacobian
+from diffkin.validation import shape_str, tensors
+
+from ._checks import check_setting
 
 __all__ = ["Robot", "RobotConfig", "load_chain", "HOME"]
 
@@ -48,7 +52,7 @@ def _fallback_chain(name: str) -> DHChain:
     if name == "three_link_planar":
         return DHChain([0.5, 0.5, 0.5], [0.0] * 3, [0.0] * 3, [0.0] * 3, q_limits=[(-pi, pi)] * 3,
                        name="three_link_planar")
-    raise ValueError(f"unknown robot {name!r}; expected 'panda', 'ur5', 'three_link_planar' or a DHChain")
+    raise ModelError(f"unknown robot {name!r}; expected 'panda', 'ur5', 'three_link_planar' or a DHChain")
 
 
 def load_chain(robot: str | KinematicChain, dtype=torch.float32, device="cpu") -> KinematicChain:
@@ -73,6 +77,10 @@ class RobotConfig:
     max_ee_step: float = 0.05  # m per step, Cartesian mode
     damping: float = 0.05  # λ of the damped least-squares step (m)
 
+    def __post_init__(self):
+        for name in ("max_joint_speed", "control_dt", "max_ee_step", "damping"):
+            check_setting(getattr(self, name), name, low=0.0, strict_low=True)
+
 
 class Robot:
     """Batched kinematic robot: FK, limits, and the joint / Cartesian action mappings."""
@@ -80,7 +88,7 @@ class Robot:
     def __init__(self, robot: str | KinematicChain = "panda", config: RobotConfig | None = None,
                  action_mode: str = "joint", home=None, dtype=torch.float32, device="cpu"):
         if action_mode not in ("joint", "cartesian"):
-            raise ValueError(f"action_mode must be 'joint' or 'cartesian', got {action_mode!r}")
+            raise ConventionError(f"action_mode must be 'joint' or 'cartesian', got {action_mode!r}")
         self.config = config or RobotConfig()
         self.chain = load_chain(robot, dtype=dtype, device=device).requires_grad_(False)
         self.name = robot if isinstance(robot, str) else self.chain.name
@@ -92,7 +100,10 @@ class Robot:
         self.lower, self.upper = lo.to(dtype).clone(), hi.to(dtype).clone()
         if home is None:
             home = HOME.get(self.name, ((self.lower + self.upper) / 2).tolist())
-        self.home = self.chain.clamp_to_limits(torch.as_tensor(home, dtype=dtype, device=device))
+        (home,) = tensors(("home", home, (self.n,)), like=self.chain)
+        if home.ndim != 1:
+            raise ShapeError(f"expected home of shape ({self.n},), got {shape_str(home.shape)}")
+        self.home = self.chain.clamp_to_limits(home)
         self.step_limit = self.config.max_joint_speed * self.config.control_dt
         self.revolute = self.chain.revolute_mask.to(torch.bool)
         self.planar = self.name == "three_link_planar"

@@ -10,8 +10,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from diffkin.errors import ShapeError
 from diffkin.trajectories import cartesian_trajectory, circle_path, segment_path, timing_law
 
+from ._checks import check_setting
 from .core import Task, TaskEnv
 
 __all__ = ["TrackConfig", "TrackTask", "TrackEnv"]
@@ -30,6 +32,19 @@ class TrackConfig:
     max_line_length: float = 0.4  # m
     radius_range: tuple[float, float] = (0.05, 0.15)  # m
     init_noise: float = 0.1  # rad
+
+    def __post_init__(self):
+        check_setting(self.episode_steps, "episode_steps", low=1, integer=True)
+        check_setting(self.lookahead, "lookahead", low=0, integer=True)
+        check_setting(self.line_fraction, "line_fraction", low=0.0, high=1.0)
+        check_setting(self.line_spread, "line_spread", low=0.0, high=1.0)
+        check_setting(self.max_line_length, "max_line_length", low=0.0, strict_low=True)
+        check_setting(self.init_noise, "init_noise", low=0.0)
+        r = self.radius_range
+        if not isinstance(r, tuple | list) or len(r) != 2:
+            raise ShapeError(f"expected radius_range as (low, high) in metres, got {r!r}")
+        check_setting(r[0], "radius_range[0]", low=0.0, strict_low=True)
+        check_setting(r[1], "radius_range[1]", low=r[0])
 
 
 class TrackTask(Task):

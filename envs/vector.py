@@ -21,8 +21,11 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 from stable_baselines3.common.vec_env import VecEnv
 
+from diffkin.errors import ConventionError, DTypeError, ShapeError
+
+from ._checks import check_setting
 from ._random import key_from_generator, keys_for_seeds
-from .core import Task, check_action
+from .core import Task, check_action, check_reset_options
 from .reach import ReachConfig, ReachTask
 from .track import TrackConfig, TrackTask
 
@@ -35,12 +38,16 @@ _ROBOT_KEYS = ("robot", "action_mode", "robot_config", "home", "dtype", "device"
 def make_task(env_id: str, **kwargs) -> Task:
     """The batched task behind ``env_id``, same keyword arguments as ``gymnasium.make(env_id, ...)``."""
     if env_id not in _TASKS:
-        raise ValueError(f"unknown env id {env_id!r}; batched ids: {sorted(_TASKS)}")
+        raise ConventionError(f"unknown env id {env_id!r}; batched ids: {sorted(_TASKS)}")
     task_cls, cfg_cls = _TASKS[env_id]
     if "max_episode_steps" in kwargs:  # alias (gym.make consumes this name for its TimeLimit wrapper)
         kwargs["episode_steps"] = kwargs.pop("max_episode_steps")
     robot_kwargs = {k: kwargs.pop(k) for k in _ROBOT_KEYS if k in kwargs}
     return task_cls(cfg_cls(**kwargs), **robot_kwargs)
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
 
 
 def _to_numpy(x):
@@ -55,6 +62,7 @@ class TorchVectorEnv(VectorEnv):
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
     def __init__(self, env_id: str, num_envs: int, device: str = "cpu", **env_kwargs):
+        check_setting(num_envs, "num_envs", low=1, integer=True)
         self.env_id = env_id
         self.task = make_task(env_id, device=device, **env_kwargs)
         self.num_envs = int(num_envs)
@@ -68,11 +76,15 @@ class TorchVectorEnv(VectorEnv):
         self._seeded = False
 
     def reset(self, *, seed: int | list[int] | None = None, options: dict | None = None):
-        """Reset every env. ``seed``: int (env i gets seed + i), a list of N ints, or None."""
+        """Reset every env. ``seed``: int (env i gets seed + i), a list of N ints, or None. ``options``:
+        None or ``{}`` (the envs take no reset options)."""
+        check_reset_options(options, type(self).__name__)
         if seed is not None:
-            seeds = [seed + i for i in range(self.num_envs)] if isinstance(seed, int) else list(seed)
+            seeds = [seed + i for i in range(self.num_envs)] if _is_int(seed) else list(seed)
             if len(seeds) != self.num_envs:
-                raise ValueError(f"expected {self.num_envs} seeds, got {len(seeds)}")
+                raise ShapeError(f"expected {self.num_envs} seeds, got {len(seeds)}")
+            if not all(_is_int(s) and s >= 0 for s in seeds):
+                raise DTypeError(f"expected seeds as non-negative integers, got {seeds}")
             self._set_keys(keys_for_seeds(seeds))
         elif not self._seeded:
             self._set_keys([key_from_generator(self.np_random) for _ in range(self.num_envs)])
@@ -87,9 +99,7 @@ class TorchVectorEnv(VectorEnv):
     def step(self, actions):
         if not self._seeded:
             raise RuntimeError("call reset() before step()")
-        if not isinstance(actions, torch.Tensor):
-            actions = torch.as_tensor(np.asarray(actions, dtype=np.float32))
-        actions = check_action(actions.to(self.device), self._action_shape, "actions")
+        actions = check_action(actions, self._action_shape, "actions", self.task.dtype, self.device)
         obs, reward, terminated, truncated, info = self.task.step(self.state, actions)
         done = terminated | truncated
         if bool(done.any()):

@@ -15,7 +15,9 @@ mutation       input                                         expected
                float16 or bfloat16
 ``mixed``      the argument in the other float dtype         ``DTypeError``
 ``numpy``      the argument as a numpy array                 the same result as with the tensor
-``empty``      every batched argument with batch (0,)        a result whose batch dims are (0,)
+``empty``      every batched argument with batch (0,)        a result whose batch dims are (0,) (or the
+                                                             case's ``empty_raises`` error, where an
+                                                             empty batch cannot have a result)
 ``valid``      random valid input                            a finite result with the right batch dims
 =============  ============================================  ============================================
 
@@ -81,6 +83,8 @@ class Case:
     skip: Sequence[str] = ()  # mutations that do not apply, each with a reason in the case list
     follows_chain: bool = False  # the call's dtype is a chain's: a lone tensor argument can still mix
     covers: Callable | None = None  # the public callable this case fuzzes, when ``fn`` is a wrapper
+    #: the typed error an empty batch must raise where no result can exist (e.g. calibration from 0 poses)
+    empty_raises: type[Exception] | None = None
 
     @property
     def target(self) -> Callable:
@@ -190,6 +194,8 @@ def outcome(case: Case, mutation: str, seed: int = 0, dtype: torch.dtype = torch
     batch = (0, *case.batch[1:]) if kind == "empty" else case.batch
     values: dict[str, Any] = _build(case, gen, batch, dtype)
     expected: type[Exception] | None = EXPECTED.get(kind)
+    if kind == "empty" and case.empty_raises is not None:
+        expected = case.empty_raises
     if kind == "nan":
         values[target] = _poke(values[target], math.nan, gen)
     elif kind == "inf":

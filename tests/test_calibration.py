@@ -418,6 +418,93 @@ def test_bad_input_gets_clear_errors():
         calibrate(chain, q[None], T[None], progress=False)
 
 
+def test_input_rule_numpy_empty_mixed_and_options():
+    """The shared input rule (diffkin.validation) at calibration's boundary: numpy measurements give the
+    tensor result, 0 poses are refused naming the minimum, 0 robots give no results, mixed float dtypes and
+    non-finite options are typed errors."""
+    chain = ur5()
+    q = poses(chain, 12, seed=63).detach()
+    T = measure(perturbed(chain, seed=64), q)
+    kw = dict(progress=False, cross_validation=0, max_iterations=5)
+    ref = calibrate(chain, q, T, **kw)
+    res = calibrate(chain, q.numpy(), T.numpy(), **kw)
+    torch.testing.assert_close(res.identified, ref.identified, rtol=0, atol=0)
+    assert res.q.dtype == F64 and isinstance(res.q, torch.Tensor)
+    res32 = calibrate(ur5().to(torch.float32), q.numpy(), T.numpy(), **kw)  # numpy follows the chain
+    assert res32.identified.dtype == torch.float32 and res32.residuals[-1] < 1e-4
+    # positions as nested lists are numbers too
+    pos = calibrate(chain, q.tolist(), T[:, :3, 3].tolist(), **kw)
+    assert pos.position_only and pos.residuals[-1] < pos.residuals[0] / 10
+    with pytest.raises(ShapeError, match=r"at least 1 measured pose"):
+        calibrate(chain, q[:0], T[:0], **kw)
+    with pytest.raises(ShapeError, match=r"at least 1 measured pose"):
+        validation_error(chain, q[:0], T[:0])
+    with pytest.raises(ShapeError, match=r"N >= 1"):
+        identifiability(chain, q[:0])
+    assert calibrate_batch(chain, q[None].expand(0, 12, 6), T[None].expand(0, 12, 4, 4),
+                           progress=False) == []
+    with pytest.raises(ShapeError, match="K = 0 robots"):
+        calibrate_batch(chain, q[None][:0], T[None], progress=False)
+    with pytest.raises(DTypeError, match="float64.*float32|float32.*float64"):
+        calibrate(chain, q, T.float(), **kw)
+    with pytest.raises(DTypeError, match="float64.*float32|float32.*float64"):
+        calibrate_batch(chain, q[None], T[None].float(), progress=False)
+    with pytest.raises(DTypeError, match="float16"):
+        calibrate(chain, q.half(), T, **kw)
+    with pytest.raises(NonFiniteError, match="T contains NaN"):
+        calibrate(chain, q.numpy(), np.where(np.eye(4, dtype=bool), np.nan, T.numpy()), **kw)
+    for bad in (float("nan"), -0.1, float("inf")):
+        with pytest.raises(DiffkinError, match="orientation_weight"):
+            calibrate(chain, q, T, orientation_weight=bad, **kw)
+    with pytest.raises(DiffkinError, match=r"measurement_noise\[0\]"):
+        calibrate(chain, q, T, measurement_noise=(0.0, 1e-3), **kw)
+    with pytest.raises(DiffkinError, match="unknown calibration method"):
+        calibrate_batch(chain, q[None][:0], T[None][:0], method="newton", progress=False)
+    # select_poses: indices checked, numpy candidates follow the chain
+    idx = select_poses(chain, q.numpy(), 3)
+    assert torch.equal(idx, select_poses(chain, q, 3))
+    with pytest.raises(ShapeError, match="distinct indices"):
+        select_poses(chain, q, 3, initial=[12])
+    with pytest.raises(ShapeError, match="integer in 1..12"):
+        select_poses(chain, q, 2.0)
+
+
+def test_loss_functions_validate_their_input():
+    chain = ur5()
+    model = CalibrationModel.from_chains(chain)
+    q = poses(chain, 5, seed=65).detach()
+    T = measure(chain, q)
+    ref = calibration_loss(model.nominal, q, T, model)
+    assert float(ref) < 1e-20
+    torch.testing.assert_close(calibration_loss(model.nominal.numpy(), q.numpy(), T.numpy(), model), ref)
+    params = model.nominal.expand(0, -1)
+    assert calibration_loss(params, q.expand(0, 5, 6), T.expand(0, 5, 4, 4), model).shape == (0,)
+    with pytest.raises(ShapeError, match="at least 1 measured pose"):
+        calibration_loss(model.nominal, q[:0], T[:0], model)
+    with pytest.raises(ShapeError, match="do not broadcast"):
+        calibration_loss(model.nominal.expand(2, -1), q.expand(3, 5, 6), T.expand(2, 5, 4, 4), model)
+    with pytest.raises(ShapeError, match=r"\(\.\.\., N, 4, 4\)"):
+        calibration_loss(model.nominal, q.expand(3, 5, 6), T, model)  # as many batch dims as q
+    with pytest.raises(ShapeError, match="5 joint vectors but T holds 4"):
+        calibration_loss(model.nominal, q, T[:4], model)
+    with pytest.raises(DTypeError, match="float32"):
+        calibration_loss(model.nominal.float(), q, T, model)
+    with pytest.raises(NonFiniteError, match="params"):
+        calibration_loss(model.nominal + float("nan"), q, T, model)
+    with pytest.raises(DiffkinError, match="scale"):
+        calibration_loss(model.nominal, q, T, model, scale=0.0)
+    s = torch.tensor([0.0, 1e-8, 4e-6], dtype=F64)
+    torch.testing.assert_close(robust_loss(s.numpy(), "soft_l1", 1e-3), robust_loss(s, "soft_l1", 1e-3))
+    with pytest.raises(DiffkinError, match="negative"):
+        robust_loss(-s - 1.0, "soft_l1", 1e-3)  # would be NaN
+    with pytest.raises(NonFiniteError, match="sq_norm"):
+        robust_loss(s / 0.0, "huber", 1e-3)
+    with pytest.raises(DiffkinError, match="scale"):
+        robust_loss(s, "huber", float("nan"))
+    with pytest.raises(DTypeError):
+        robust_loss(s.to(torch.bfloat16), "huber", 1e-3)
+
+
 def test_nominal_chain_untouched_and_outputs(tmp_path):
     chain = panda()
     before = {k: v.detach().clone() for k, v in chain.state_dict().items() if v is not None}
@@ -432,6 +519,11 @@ def test_nominal_chain_untouched_and_outputs(tmp_path):
     assert res.chain is not chain and res.chain.a.data_ptr() != chain.a.data_ptr()
     assert res_g.iterations <= 5
     png = res.plot_residuals(tmp_path / "res.png")
+    held_out = poses(chain, 6, seed=66).detach()
+    T_held = measure(perturbed(chain, seed=62), held_out).numpy()  # numpy held-out poses by the input rule
+    assert res.plot_residuals(tmp_path / "held.png", held_out.numpy(), T_held).stat().st_size > 1000
+    with pytest.raises(ShapeError, match="6 joint vectors but T holds 5"):
+        res.plot_residuals(tmp_path / "bad.png", held_out, T_held[:5])
     assert png.stat().st_size > 1000
     md = res.to_markdown()
     assert md.count("\n") == len(res.names) + 1 and "| a4 |" in md

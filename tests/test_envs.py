@@ -149,3 +149,95 @@ def test_render_rgb_array(env_id, robot):
     assert img.dtype == np.uint8 and img.ndim == 3 and img.shape[2] == 3
     assert img.std() > 0  # something was drawn
     env.close()
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_actions_by_the_input_rule(env_id):
+    """numpy (any float or integer dtype), lists and float32/float64 tensors are the same action; integer,
+    bool, complex and half tensors and bool/complex numpy arrays are typed errors, never cast silently."""
+    from diffkin.errors import DTypeError, NonFiniteError, ShapeError
+
+    env = gym.make(env_id).unwrapped
+    a = np.array([1, 0, -1, 0, 1, 0, -1])
+    ref = None
+    for action in (a.astype(np.float32), a.astype(np.float64), a, a.tolist(), torch.tensor(a).float(),
+                   torch.tensor(a).double()):
+        env.reset(seed=3)
+        obs = env.step(action)[0]
+        obs = obs["observation"] if isinstance(obs, dict) else obs
+        if ref is None:
+            ref = obs
+        np.testing.assert_array_equal(obs, ref)
+    for bad in (torch.tensor(a), torch.tensor(a).bool(), torch.tensor(a).half(), torch.tensor(a).bfloat16(),
+                torch.tensor(a).to(torch.complex64), a.astype(bool), a.astype(np.complex64), "0101010"):
+        env.reset(seed=3)
+        with pytest.raises(DTypeError):
+            env.step(bad)
+    env.reset(seed=3)
+    with pytest.raises(NonFiniteError, match="action"):
+        env.step(torch.full((7,), float("nan")))
+    with pytest.raises(ShapeError, match=r"\(7,\)"):
+        env.step(torch.zeros(1, 7))
+    q_before = env._state["q"].clone()
+    with pytest.raises(NonFiniteError):
+        env.step(np.array([0, 0, 0, np.inf, 0, 0, 0]))
+    assert torch.equal(env._state["q"], q_before)  # a refused action leaves the state alone
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_reset_options_and_constructor_settings(env_id):
+    from diffkin.errors import ConventionError, DiffkinError, DTypeError, ModelError, ShapeError
+
+    env = gym.make(env_id).unwrapped
+    env.reset(seed=0, options=None)
+    env.reset(seed=0, options={})
+    with pytest.raises(ConventionError, match="goal"):
+        env.reset(seed=0, options={"goal": [0.1, 0.2, 0.3]})  # not an option of these envs: not ignored
+    bad = [dict(episode_steps=0), dict(episode_steps=2.5), dict(init_noise=float("nan")),
+           dict(init_noise=-0.1), dict(robot_config=dict(control_dt=0.0)),
+           dict(robot_config=dict(max_joint_speed=float("inf")))]
+    if env_id == "diffkin/Reach-v0":
+        bad += [dict(distance_threshold=float("nan")), dict(distance_threshold=0.0), dict(goal_spread=1.5)]
+    else:
+        bad += [dict(radius_range=(0.2, 0.1)), dict(line_fraction=-0.5), dict(lookahead=-1)]
+    for kwargs in bad:
+        with pytest.raises(DiffkinError):
+            gym.make(env_id, **kwargs)
+    with pytest.raises(ConventionError, match="action_mode"):
+        gym.make(env_id, action_mode="torque")
+    with pytest.raises(DTypeError, match="float16"):
+        gym.make(env_id, dtype=torch.float16)
+    with pytest.raises(ShapeError, match="home"):
+        gym.make(env_id, home=[0.0] * 6)
+    with pytest.raises(DiffkinError, match="home"):
+        gym.make(env_id, home=[float("nan")] * 7)
+    with pytest.raises(ModelError):
+        gym.make(env_id, robot="no_such_robot")
+    if env_id == "diffkin/Reach-v0":
+        with pytest.raises(ConventionError, match="reward_type"):
+            gym.make(env_id, reward_type="shaped")
+
+
+def test_reach_reward_numpy_and_torch_agree_and_refuse_bad_goals():
+    from diffkin.errors import DTypeError, NonFiniteError, ShapeError
+    from envs.reach import reach_reward
+
+    g = np.random.default_rng(0)
+    a, d = g.uniform(-1, 1, (5, 3)), g.uniform(-1, 1, (5, 3))
+    dist = np.linalg.norm(a - d, axis=-1)
+    r_np = reach_reward(a, d, "dense", 0.05)
+    assert r_np.dtype == np.float32 and r_np.shape == (5,)
+    np.testing.assert_allclose(r_np, -dist, rtol=1e-6)
+    r_t = reach_reward(torch.from_numpy(a), torch.from_numpy(d), "dense", 0.05)
+    assert r_t.dtype == torch.float64 and torch.allclose(r_t, torch.from_numpy(-dist))
+    sparse = reach_reward(a, d[0], "sparse", 1.0)  # (5, 3) against one goal (3,)
+    np.testing.assert_array_equal(sparse, -(np.linalg.norm(a - d[0], axis=-1) > 1.0).astype(np.float32))
+    assert reach_reward(a[0], d[0], "dense", 0.05).shape == ()
+    with pytest.raises(NonFiniteError, match="desired_goal"):
+        reach_reward(a, np.full((5, 3), np.nan), "dense", 0.05)
+    with pytest.raises(ShapeError, match="achieved_goal"):
+        reach_reward(a[:, :2], d, "dense", 0.05)
+    with pytest.raises(ShapeError, match="broadcast"):
+        reach_reward(a, d[:4], "dense", 0.05)
+    with pytest.raises(DTypeError, match="float32"):
+        reach_reward(torch.from_numpy(a).float(), torch.from_numpy(d), "dense", 0.05)

@@ -1,7 +1,13 @@
 """benchmarks/peers.py: the optional peers (Pinocchio, Robotics Toolbox) compute the same FK and Jacobian as
-diffkin, so the speed rows compare like with like. Agreement only; no timing assertions."""
+diffkin, so the speed rows compare like with like. Agreement, and that each reported rate is what it says
+(configurations per second of the timed loop: an exact value under a scripted clock, and consistent with the
+call's own wall time); no speed thresholds (the machine may be busy)."""
 
 from __future__ import annotations
+
+import itertools
+import time
+import types
 
 import numpy as np
 import pytest
@@ -19,6 +25,28 @@ def _panda_q(n: int = B, seed: int = 0):
     return chain, q.detach()
 
 
+def _timed(fn, *args, **kwargs):
+    """``(fn's result, wall seconds of the call)``."""
+    t0 = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t0
+
+
+def _assert_rate(fn, q, monkeypatch, **kwargs):
+    """``fn(q, repeats=...)`` reports configurations per second of its timed loop: B / rate is at most the
+    call's wall time (the loop runs inside it), and with a clock that advances 0.25 s per read (each timed
+    repetition then lasts 0.25 s) the rate is exactly B / 0.25. Returns the real call's result."""
+    (rate, out), wall = _timed(fn, q, repeats=2, **kwargs)
+    B = len(q)
+    assert B / rate <= wall, f"{B} configurations in {B / rate:.3g} s, within a call of {wall:.3g} s"
+    ticks = itertools.count(0.0, 0.25)
+    with monkeypatch.context() as m:
+        m.setattr(peers, "time", types.SimpleNamespace(perf_counter=lambda: next(ticks)))
+        scripted, _ = fn(q, repeats=3, **kwargs)
+    assert scripted == B / 0.25
+    return out
+
+
 def _diffkin_fk_jac(chain, q):
     with torch.no_grad():
         return chain.forward_kinematics(q).numpy(), chain.geometric_jacobian(q).numpy()
@@ -33,32 +61,32 @@ def test_available_peers_and_skip():
         peers._import("surely_not_a_module_diffkin", "surely-not")
 
 
-def test_pinocchio_fk_jacobian_match_diffkin():
+def test_pinocchio_fk_jacobian_match_diffkin(monkeypatch):
     pytest.importorskip("pinocchio")
     chain, q = _panda_q()
     T_ref, J_ref = _diffkin_fk_jac(chain, q)
-    rate, T = peers.pinocchio_fk_rate(q.numpy(), repeats=1)
-    assert rate > 0 and T.shape == (B, 4, 4)
+    T = _assert_rate(peers.pinocchio_fk_rate, q.numpy(), monkeypatch)
+    assert T.shape == (B, 4, 4)
     np.testing.assert_allclose(T, T_ref, atol=1e-9, rtol=0)
-    _, T_bare = peers.pinocchio_fk_rate(q.numpy(), repeats=1, copy_out=False)
+    T_bare = _assert_rate(peers.pinocchio_fk_rate, q.numpy(), monkeypatch, copy_out=False)
     np.testing.assert_allclose(T_bare, T_ref, atol=1e-9, rtol=0)
-    rate, J = peers.pinocchio_jacobian_rate(q.numpy(), repeats=1)
-    assert rate > 0 and J.shape == (B, 6, 7)
+    J = _assert_rate(peers.pinocchio_jacobian_rate, q.numpy(), monkeypatch)
+    assert J.shape == (B, 6, 7)
     np.testing.assert_allclose(J, J_ref, atol=1e-9, rtol=0)
 
 
 @pytest.mark.parametrize("name", ["panda", "ur5", "kuka_iiwa14"])
-def test_rtb_fk_jacobian_match_diffkin(name):
+def test_rtb_fk_jacobian_match_diffkin(name, monkeypatch):
     pytest.importorskip("roboticstoolbox")
     chain = models.load(name, dtype=torch.float64)
     q = chain.random_configuration((B,), generator=torch.Generator().manual_seed(1)).detach()
     T_ref, J_ref = _diffkin_fk_jac(chain, q)
     ets = peers.rtb_panda() if name == "panda" else peers.rtb_from_chain(chain).ets()
-    rate, T = peers.rtb_fk_rate(q.numpy(), repeats=1, ets=ets)
-    assert rate > 0 and T.shape == (B, 4, 4)
+    T = _assert_rate(peers.rtb_fk_rate, q.numpy(), monkeypatch, ets=ets)
+    assert T.shape == (B, 4, 4)
     np.testing.assert_allclose(T, T_ref, atol=1e-9, rtol=0)
     for public in (False, True):
-        _, J = peers.rtb_jacobian_rate(q.numpy(), repeats=1, ets=ets, public_api=public)
+        J = _assert_rate(peers.rtb_jacobian_rate, q.numpy(), monkeypatch, ets=ets, public_api=public)
         np.testing.assert_allclose(J, J_ref, atol=1e-9, rtol=0)
 
 
@@ -96,8 +124,9 @@ def test_rtb_ik_lm_flags_are_honest():
     pytest.importorskip("roboticstoolbox")
     chain, q = _panda_q(8, seed=5)
     T = _diffkin_fk_jac(chain, q)[0]
-    res = peers.rtb_ik_lm(T)
-    assert res.q.shape == (8, 7) and res.converged.dtype == bool and res.solves_per_s > 0
+    res, wall = _timed(peers.rtb_ik_lm, T)
+    assert res.q.shape == (8, 7) and res.converged.dtype == bool
+    assert res.seconds <= wall and res.solves_per_s == pytest.approx(8 / res.seconds)
     assert res.converged.sum() >= 6
     pe, ang = _check_ik(chain, res, T)
     assert np.all(pe[res.converged] <= 1e-4) and np.all(ang[res.converged] <= 1e-3)

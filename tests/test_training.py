@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from training.algos import EVAL_SEED
 from training.config import RunConfig, load_config
 
 CONFIGS = sorted(Path(__file__).resolve().parents[1].joinpath("configs").glob("*.yaml"))
@@ -66,10 +67,56 @@ def test_smoke_run_and_evaluate(path, tmp_path):
     meta = json.loads((tmp_path / "meta.json").read_text())
     assert meta["seed"] == cfg.seed and "torch" in meta["versions"]
     key = "success_rate" if cfg.env_id == "diffkin/Reach-v0" else "tracking_error"
-    assert 0.0 <= res["final"][key] and key in res["scripted_ik"]
-    ev = evaluate_run(tmp_path, episodes=4)
-    assert key in ev["policy"] and key in ev["scripted_ik"]
+    # the saved run, evaluated again on the training's evaluation episodes, reproduces the recorded figures
+    # (deterministic policy, same seeds): what results.json reports is what the saved model does
+    ev = evaluate_run(tmp_path, episodes=cfg.eval_episodes, seed=EVAL_SEED)
+    final = {k: v for k, v in res["final"].items() if k != "timesteps"}
+    assert set(final) == set(ev["policy"]) and final["episodes"] == cfg.eval_episodes
+    for k, v in ev["policy"].items():
+        assert final[k] == pytest.approx(v, rel=1e-6, abs=1e-9), k
+    for k, v in ev["scripted_ik"].items():
+        assert res["scripted_ik"][k] == pytest.approx(v, rel=1e-6, abs=1e-9), k
     if key == "success_rate":
+        assert final[key] * cfg.eval_episodes == pytest.approx(round(final[key] * cfg.eval_episodes))
         assert ev["scripted_ik"]["success_rate"] >= 0.75  # the IK baseline is an upper bound
     else:
         assert ev["scripted_ik"]["tracking_error"] < 0.01
+
+
+@pytest.mark.parametrize("env_id", ["diffkin/Reach-v0", "diffkin/Track-v0"])
+def test_run_episodes_rates_are_those_of_the_episodes(env_id):
+    """run_episodes' figures, recomputed from each env's own first episode (stepped here one by one)."""
+    import numpy as np
+
+    from envs.vector import TorchVectorEnv
+    from training.evaluate import run_episodes, scripted_policy
+
+    kw = dict(robot="three_link_planar", episode_steps=12)
+    if env_id == "diffkin/Reach-v0":
+        kw.update(distance_threshold=0.02, init_noise=0.5)  # some envs fail within 12 steps
+    n, seed = 6, 123
+    out = run_episodes(TorchVectorEnv(env_id, n, **kw), scripted_policy, seed=seed)
+    venv = TorchVectorEnv(env_id, n, **kw)
+    obs, _ = venv.reset(seed=seed)
+    success, dist, err = [None] * n, [None] * n, [[] for _ in range(n)]
+    while any(s is None for s in (success if "Reach" in env_id else dist)):
+        obs, _, term, trunc, info = venv.step(scripted_policy(obs, venv))
+        for i in range(n):
+            if (success if "Reach" in env_id else dist)[i] is not None:
+                continue
+            if "tracking_error" in info:
+                err[i].append(float(info["tracking_error"][i]))
+            if bool(term[i] | trunc[i]):
+                if "is_success" in info:
+                    success[i], dist[i] = bool(info["is_success"][i]), float(info["distance"][i])
+                else:
+                    dist[i] = 0.0  # episode over
+    assert out["episodes"] == n
+    if "Reach" in env_id:
+        assert 0 < sum(success) < n, "pick settings where the rate is informative"
+        assert out["success_rate"] == pytest.approx(sum(success) / n)
+        assert out["final_distance"] == pytest.approx(np.mean(dist), rel=1e-5)
+    else:
+        per_ep = [np.mean(e) for e in err]
+        assert out["tracking_error"] == pytest.approx(np.mean(per_ep), rel=1e-5)
+        assert out["tracking_error_std"] == pytest.approx(np.std(per_ep, ddof=1), rel=1e-4)

@@ -115,3 +115,34 @@ def test_cuda_matches_cpu():
     oa, *_ = a.step(act.cuda())
     ob, *_ = b.step(act)
     assert torch.allclose(oa["observation"].cpu(), ob["observation"], atol=1e-5)
+
+
+def test_vector_env_settings_seeds_and_action_dtypes():
+    from diffkin.errors import ConventionError, DiffkinError, DTypeError, ShapeError
+
+    for n in (0, -2, 2.5, True):
+        with pytest.raises(DiffkinError, match="num_envs"):
+            TorchVectorEnv("diffkin/Reach-v0", n)
+    with pytest.raises(ConventionError, match="unknown env id"):
+        TorchVectorEnv("diffkin/Fly-v0", 2)
+    venv = TorchVectorEnv("diffkin/Reach-v0", 3, robot="three_link_planar")
+    with pytest.raises(ShapeError, match="3 seeds"):
+        venv.reset(seed=[1, 2])
+    with pytest.raises(DTypeError, match="seeds"):
+        venv.reset(seed=[1, 2, 3.5])
+    with pytest.raises(ConventionError, match="options"):
+        venv.reset(seed=0, options={"goal": 1})
+    obs_np = None
+    for actions in (np.full((3, 3), 0.5), np.full((3, 3), 0.5, dtype=np.float32), torch.full((3, 3), 0.5),
+                    torch.full((3, 3), 0.5, dtype=torch.float64), [[0.5] * 3] * 3):
+        venv.reset(seed=4)
+        obs = venv.step(actions)[0]["observation"]
+        assert obs.dtype == torch.float32
+        if obs_np is None:
+            obs_np = obs
+        assert torch.equal(obs, obs_np)
+    for bad in (torch.ones(3, 3, dtype=torch.int64), torch.ones(3, 3).half(), np.ones((3, 3), dtype=bool)):
+        with pytest.raises(DTypeError, match="actions"):
+            venv.step(bad)
+    with pytest.raises(ShapeError, match=r"\(3, 3\)"):
+        venv.step(np.zeros((0, 3)))

@@ -12,12 +12,12 @@ import torch
 from torch import Tensor
 
 from ..chain import DHChain, KinematicChain
-from ..errors import ConventionError, ShapeError
-from ..transforms import as_measured_transform
+from ..errors import ConventionError, DiffkinError, ShapeError
+from ..validation import as_tensor, shape_str
 from .error_models import build_model
 from .identifiability import IdentifiabilityReport, model_reports
 from .model import check_measurements, pose_residual
-from .solvers import gradient_descent, least_squares
+from .solvers import check_number, gradient_descent, least_squares
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
 
@@ -30,7 +30,7 @@ def validation_error(chain: DHChain, q: Tensor, T: Tensor) -> dict[str, float | 
     Returns ``position_rms``, ``position_max`` (metres) and ``orientation_rms``, ``orientation_max`` (radians,
     angle of R_m Rᵀ; None for position-only data).
     """
-    position_only = check_measurements(q, T, chain.n_joints, chain.dtype)
+    q, T, position_only = check_measurements(q, T, chain.n_joints, chain)
     with torch.no_grad():
         res = pose_residual(chain.forward_kinematics(q), T, 1.0)
     pos = res[..., :3].norm(dim=-1)
@@ -130,8 +130,11 @@ class CalibrationResult:
         """
         from matplotlib.figure import Figure
 
-        q = self.q if q is None else q
-        T = self.measured if T is None else T
+        if q is None and T is None:
+            q, T = self.q, self.measured
+        else:  # held-out poses: by the input rule, like the calibration data
+            q, T, _ = check_measurements(self.q if q is None else q, self.measured if T is None else T,
+                                         self.q.shape[-1], self.chain)
         with torch.no_grad():
             before = pose_residual(self.nominal_chain.forward_kinematics(q), T, 1.0)
             after = pose_residual(self.chain.forward_kinematics(q), T, 1.0)
@@ -194,10 +197,21 @@ class CalibrationResult:
         return "\n".join(lines + [self.report.summary()])
 
 
-def _solve(model, q, T, position_only, method, orientation_weight, rank_tol, solver_options):
-    """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``: ``(output, reports, ζ_n (K, P))``."""
+def _check_options(method: str, orientation_weight, measurement_noise=None) -> None:
+    """The calibration options that are numbers or names: refused with a typed error before any work."""
     if method not in METHODS:
         raise ConventionError(f"unknown calibration method {method!r}; valid: {', '.join(METHODS)}")
+    check_number(orientation_weight, "orientation_weight", positive=False, unit=" (metres per radian)")
+    if measurement_noise is not None:
+        if not isinstance(measurement_noise, Sequence) or not 1 <= len(measurement_noise) <= 2:
+            raise DiffkinError("expected measurement_noise as (sigma_position [m], sigma_orientation "
+                               f"[rad]), got {measurement_noise!r}")
+        for name, v in zip(("measurement_noise[0]", "measurement_noise[1]"), measurement_noise):
+            check_number(v, name)
+
+
+def _solve(model, q, T, position_only, method, orientation_weight, rank_tol, solver_options):
+    """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``: ``(output, reports, ζ_n (K, P))``."""
     K = q.shape[0]
     zeta0 = model.nominal.expand(K, model.n_params).clone()
     reports, free = model_reports(model, zeta0, q, position_only, orientation_weight, rank_tol)
@@ -342,9 +356,12 @@ def calibrate_batch(
     tensor is ``(K, P)`` and both methods run vectorised over K (one L-BFGS problem whose objective is the sum
     of the K independent losses). Options as in :func:`calibrate`.
     """
+    _check_options(method, orientation_weight, measurement_noise)
     model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
-    if not isinstance(q, Tensor) or q.ndim != 3:
-        shape = tuple(q.shape) if isinstance(q, Tensor) else type(q).__name__
+    ref = model.chains[0]
+    q = as_tensor(q, "q", dtype=ref.dtype, device=ref.device) if q is not None else q
+    if q is None or q.ndim != 3:
+        shape = shape_str(q.shape) if q is not None else "None"
         raise ShapeError(
             f"calibrate_batch expects q of shape (K, N, {model.n}), got {shape}; "
             "for one robot use calibrate()"
@@ -352,8 +369,12 @@ def calibrate_batch(
     K = q.shape[0]
     if model.nominal.ndim == 2 and model.nominal.shape[0] != K:
         raise ShapeError(f"got {model.nominal.shape[0]} nominal chains for K = {K} robots in q")
-    position_only = check_measurements(q, T, model.n, model.dtype, batch=(K,))
-    T = T if position_only else as_measured_transform(T, "T")
+    if K == 0:  # no robots: validate what there is, no result
+        T = as_tensor(T, "T", dtype=ref.dtype, device=ref.device)
+        if T.ndim == 0 or T.shape[0] != 0:
+            raise ShapeError(f"q holds K = 0 robots but T has shape {shape_str(T.shape)}")
+        return []
+    q, T, position_only = check_measurements(q, T, model.n, ref, batch=(K,))
     opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, **solver_options)
     return _run(model, q, T, position_only, method, orientation_weight, rank_tol, opts, kind,
                 measurement_noise)
@@ -418,14 +439,16 @@ def calibrate(
     with the reason and kept at nominal; those only these poses leave undetermined (few poses) are estimated
     in the span the poses determine (minimum-norm update) and listed in ``result.report.undetermined``.
     """
+    _check_options(method, orientation_weight, measurement_noise)
     model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
-    if isinstance(q, Tensor) and q.ndim == 3:
+    ref = model.chains[0]
+    q = as_tensor(q, "q", dtype=ref.dtype, device=ref.device) if q is not None else q
+    if q is not None and q.ndim == 3:
         raise ShapeError(
-            f"expected q of shape (N, {model.n}) for one robot, got {tuple(q.shape)}; "
+            f"expected q of shape (N, {model.n}) for one robot, got {shape_str(q.shape)}; "
             "use calibrate_batch for (K, N, n)"
         )
-    position_only = check_measurements(q, T, model.n, model.dtype)
-    T = T if position_only else as_measured_transform(T, "T")
+    q, T, position_only = check_measurements(q, T, model.n, ref)
     opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, **solver_options)
     folds = cross_validation if cross_validation and q.shape[0] >= 4 * cross_validation else None
     return _run(model, q[None], T[None], position_only, method, orientation_weight, rank_tol, opts, kind,

@@ -26,13 +26,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from numbers import Integral
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from .._numerics import eps_for
 from ..chain import DHChain
-from ..errors import ShapeError
+from ..errors import DTypeError, ShapeError
+from ..validation import shape_str, tensors
 from .model import CalibrationModel, check_measurements
 
 __all__ = ["IdentifiabilityReport", "identifiability", "select_poses", "analyse_matrices"]
@@ -260,15 +263,29 @@ def identifiability(
 
     model, _ = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     if T is not None:
-        position_only = check_measurements(q, T, chain.n_joints, chain.dtype)
+        q, _, position_only = check_measurements(q, T, chain.n_joints, chain)
     else:
-        chain.check_q(q)
-        if q.ndim != 2:
-            raise ShapeError(f"expected q of shape (N, {chain.n_joints}), got {tuple(q.shape)}")
+        (q,) = tensors(("q", q, (chain.n_joints,)), like=chain)
+        if q.ndim != 2 or q.shape[0] < 1:
+            raise ShapeError(
+                f"expected q of shape (N, {chain.n_joints}) with N >= 1 poses, got {shape_str(q.shape)}"
+            )
     reports, _ = model_reports(
         model, model.nominal[None], q[None], bool(position_only), orientation_weight, rank_tol
     )
     return reports[0]
+
+
+def _indices(initial, M: int) -> list[int]:
+    """``initial`` as a list of distinct candidate indices in 0..M-1 (typed errors otherwise)."""
+    arr = np.asarray(initial.detach().cpu() if isinstance(initial, Tensor) else initial)
+    if arr.dtype.kind not in "iu" or arr.ndim != 1:
+        raise DTypeError(f"expected initial as a 1-d sequence of integer indices, got {arr.dtype} of shape "
+                         f"{shape_str(arr.shape)}")
+    out = arr.tolist()
+    if any(not 0 <= i < M for i in out) or len(set(out)) != len(out):
+        raise ShapeError(f"initial must hold distinct indices in 0..{M - 1}, got {out}")
+    return out
 
 
 def select_poses(
@@ -292,12 +309,17 @@ def select_poses(
     from all candidates (D-optimal design; for a fixed pose count this maximises O1 = (∏σ)^(1/L)/√N, and it
     does not depend on the units of the parameters). ``initial``: indices already chosen.
     """
-    chain.check_q(candidates, "candidates")
+    (candidates,) = tensors(("candidates", candidates, (chain.n_joints,)), like=chain)
     if candidates.ndim != 2:
-        raise ShapeError(f"expected candidates of shape (M, {chain.n_joints}), got {tuple(candidates.shape)}")
+        raise ShapeError(
+            f"expected candidates of shape (M, {chain.n_joints}), got {shape_str(candidates.shape)}"
+        )
     M = candidates.shape[0]
-    if not 0 < k <= M:
-        raise ShapeError(f"k must be in 1..{M} (the number of candidates), got {k}")
+    if isinstance(k, bool) or not isinstance(k, Integral) or not 0 < k <= M:
+        raise ShapeError(f"k must be an integer in 1..{M} (the number of candidates), got {k!r}")
+    chosen = [] if initial is None else _indices(initial, M)
+    if len(chosen) > k:
+        raise ShapeError(f"initial holds {len(chosen)} indices, more than k = {k}")
     from .error_models import build_model
 
     model, _ = build_model(chain, error_model, parameters, base, tool, joint_offsets)
@@ -312,7 +334,6 @@ def select_poses(
         L = G.shape[-1]
         eps = 1e-9 * float((G * G).sum()) / (M * max(L, 1))
         A = eps * torch.eye(L, dtype=G.dtype, device=G.device)
-        chosen = [] if initial is None else [int(i) for i in initial]
         for i in chosen:
             A = A + G[i].T @ G[i]
         taken = torch.zeros(M, dtype=torch.bool, device=G.device)

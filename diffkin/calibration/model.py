@@ -26,13 +26,13 @@ from torch import Tensor
 
 from .._numerics import cross
 from ..chain import DHChain
-from ..errors import DTypeError, ModelError, ShapeError
+from ..errors import ModelError, ShapeError
 from ..kernels.joints import dh_joints, pose_correction
 from ..kernels.pose_error import pose_error as _pose_error
 from ..kernels.tree import Segments, Topology, matrix_frames
 from ..rotations import _rotvec_to_matrix, _skew
 from ..transforms import as_measured_transform
-from ..validation import check_finite, shape_str
+from ..validation import shape_str, tensors
 
 __all__ = ["CalibrationModel", "parameter_names", "DH_KINDS", "POSE_AXES"]
 
@@ -317,41 +317,54 @@ def pose_residual(T: Tensor, measured: Tensor, orientation_weight: float) -> Ten
     return torch.cat((e_p, orientation_weight * e_o), dim=-1)
 
 
-def check_measurements(q, measured, n: int, dtype: torch.dtype, batch: tuple[int, ...] = ()) -> bool:
-    """Validate joints ``q (*batch, N, n)`` and poses ``(*batch, N, 4, 4)`` / positions ``(*batch, N, 3)``.
+def check_measurements(q, measured, n: int, like, batch: tuple[int, ...] = ()) -> tuple[Tensor, Tensor, bool]:
+    """Validate joints ``q (*batch, N, n)`` and poses ``(*batch, N, 4, 4)`` / positions ``(*batch, N, 3)`` by
+    the rule of :mod:`diffkin.validation` (tensors of ``like``'s dtype and device; numbers, sequences and
+    numpy arrays converted to it; finite), with N >= 1 poses.
 
-    Returns True for position-only data. Raises ShapeError / DTypeError / NonFiniteError / DiffkinError.
+    Returns ``(q, T, position_only)`` with the rotation blocks of T re-orthonormalised (deviations up to 1e-5
+    accepted, see :func:`~diffkin.transforms.as_measured_transform`). Raises ShapeError / DTypeError /
+    NonFiniteError / DiffkinError.
     """
-    lead = "".join(f"{b}, " for b in batch)
-    for name, x in (("q", q), ("T", measured)):
-        if not isinstance(x, Tensor) or not x.is_floating_point():
-            raise DTypeError(
-                f"{name} must be a floating-point torch.Tensor, got "
-                f"{type(x).__name__ if not isinstance(x, Tensor) else x.dtype}"
-            )
-        if x.dtype != dtype:
-            raise DTypeError(
-                f"{name} has dtype {x.dtype} but the nominal chain is {dtype}; convert one of them"
-            )
-    k = len(batch)
-    if q.ndim != k + 2 or tuple(q.shape[:k]) != batch or q.shape[-1] != n:
-        raise ShapeError(f"expected q of shape ({lead}N, {n}), got {shape_str(q.shape)}")
-    N = q.shape[k]
-    if N < 1:
-        raise ShapeError("calibration needs at least one measured pose (N >= 1)")
-    position_only = measured.ndim == k + 2 and measured.shape[-1] == 3
-    if not position_only and (measured.ndim != k + 3 or measured.shape[-2:] != (4, 4)):
-        raise ShapeError(
-            f"expected measured poses T of shape ({lead}N, 4, 4) or positions ({lead}N, 3), "
-            f"got {shape_str(measured.shape)}"
-        )
-    if tuple(measured.shape[: k + 1]) != (*batch, N):
-        raise ShapeError(
-            f"q holds {N} joint vectors but T holds {measured.shape[k]} measurements "
-            f"(q {shape_str(q.shape)}, T {shape_str(measured.shape)})"
-        )
-    check_finite(q, "q")
-    check_finite(measured, "T")
+    q, measured = tensors(("q", q, None), ("T", measured, None), like=like)
+    position_only = measurement_shapes(q, measured, n, batch)
     if not position_only:
-        as_measured_transform(measured, "T")  # 1e-5 tolerance; the caller re-orthonormalises
+        measured = as_measured_transform(measured, "T")  # 1e-5 tolerance, re-orthonormalised
+    return q, measured, position_only
+
+
+def measurement_shapes(q: Tensor, T: Tensor, n: int, batch: tuple[int, ...] | None = ()) -> bool:
+    """Check the shapes of ``q (*batch, N, n)`` and ``T (*batch, N, 4, 4)`` or ``(*batch, N, 3)``, N >= 1
+    (``batch=None``: any leading dims, as many in T as in q, broadcasting). Returns True for positions."""
+    lead = "..., " if batch is None else "".join(f"{b}, " for b in batch)
+    k = q.ndim - 2 if batch is None else len(batch)
+    if q.ndim < 2 or q.ndim != k + 2 or q.shape[-1] != n or (
+        batch is not None and tuple(q.shape[:k]) != tuple(batch)
+    ):
+        raise ShapeError(f"expected q of shape ({lead}N, {n}), got {shape_str(q.shape)}")
+    N = q.shape[-2]
+    position_only = T.ndim == q.ndim and T.shape[-1] == 3
+    if not position_only and (T.ndim != q.ndim + 1 or T.shape[-2:] != (4, 4)):
+        raise ShapeError(
+            f"expected measured poses T of shape ({lead}N, 4, 4) or positions ({lead}N, 3) with N = {N} as "
+            f"in q {shape_str(q.shape)}, got {shape_str(T.shape)}"
+        )
+    if T.shape[k] != N:
+        raise ShapeError(
+            f"q holds {N} joint vectors but T holds {T.shape[k]} measurements "
+            f"(q {shape_str(q.shape)}, T {shape_str(T.shape)})"
+        )
+    if batch is None:
+        try:
+            torch.broadcast_shapes(q.shape[:k], T.shape[:k])
+        except RuntimeError:
+            raise ShapeError(
+                f"the batch dims of q {shape_str(q.shape)} and T {shape_str(T.shape)} do not broadcast"
+            ) from None
+    elif tuple(T.shape[:k]) != tuple(batch):
+        raise ShapeError(f"expected T of shape ({lead}{N}, ...), got {shape_str(T.shape)}")
+    if N < 1:
+        raise ShapeError(
+            f"calibration needs at least 1 measured pose (N >= 1), got q of shape {shape_str(q.shape)}"
+        )
     return position_only

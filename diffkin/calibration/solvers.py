@@ -16,9 +16,10 @@ import torch
 from torch import Tensor
 
 from .._numerics import eps_for
-from ..errors import ConventionError
+from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
-from .model import CalibrationModel, pose_residual
+from ..validation import _traced, shape_str, tensors
+from .model import CalibrationModel, measurement_shapes, pose_residual
 
 __all__ = ["calibration_loss", "robust_loss", "least_squares", "gradient_descent", "SolverOutput", "LOSSES"]
 
@@ -55,11 +56,36 @@ def _rms(res: Tensor, orientation_weight: float) -> tuple[Tensor, Tensor | None]
     return pos, (res[..., 3:].square().sum(-1).mean(-1).sqrt() / orientation_weight)
 
 
+def check_number(x, name: str, *, positive: bool = True, unit: str = "") -> float:
+    """A finite Python number > 0 (``positive``) or >= 0 as float, else :class:`DiffkinError` naming it."""
+    ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and (
+        x > 0 if positive else x >= 0)
+    if not ok:
+        bound = "> 0" if positive else ">= 0"
+        raise DiffkinError(f"expected {name} as a finite number {bound}{unit}, got {x!r}")
+    return float(x)
+
+
 def robust_loss(sq_norm: Tensor, loss: str, scale: float) -> Tensor:
-    """ρ(s) of the squared residual norm s (units m²), quadratic (= s) for √s ≤ ``scale`` (metres).
+    """ρ(s) of the squared residual norm s ≥ 0 (units m²), quadratic (= s) for √s ≤ ``scale`` (metres).
 
     ``"huber"``: ρ = s for √s ≤ c, 2c√s − c² beyond; ``"soft_l1"``: ρ = 2c²(√(1 + s/c²) − 1); ``"l2"``: ρ = s.
+    ``sq_norm`` of any shape, by the rule of :mod:`diffkin.validation` (finite; numbers and numpy arrays
+    converted); negative entries raise ``DiffkinError``.
     """
+    if loss not in LOSSES:
+        raise ConventionError(f"unknown loss {loss!r}; valid: {', '.join(LOSSES)}")
+    scale = check_number(scale, "scale", unit=" (metres)")
+    (s,) = tensors(("sq_norm", sq_norm, None))
+    if not _traced(s) and s.numel() and bool((s < 0).any()):
+        raise DiffkinError(
+            f"sq_norm holds negative values (min {float(s.min()):.3g}); expected squared norms >= 0"
+        )
+    return _robust_loss(s, loss, scale)
+
+
+def _robust_loss(sq_norm: Tensor, loss: str, scale: float) -> Tensor:
+    """:func:`robust_loss` on trusted input."""
     if loss == "l2":
         return sq_norm
     c2 = scale * scale
@@ -84,13 +110,33 @@ def calibration_loss(
 ) -> Tensor:
     """Mean robust loss over the poses, a pure differentiable function: ``params (..., P)`` -> ``(...)``.
 
-    ``q (..., N, n)``, ``T (..., N, 4, 4)`` measured poses or ``(..., N, 3)`` positions; ``params`` is the
-    full ζ of ``model`` (see :mod:`diffkin.calibration.model`). Per pose the squared norm of the weighted
-    residual [p_m − p; w rotvec(R_m Rᵀ)] (m²) goes through :func:`robust_loss` with ``scale`` in metres
-    (default 1 mm: quadratic for the sub-millimetre residuals of a converged fit, linear for outliers).
+    ``q (..., N, n)``, ``T (..., N, 4, 4)`` measured poses or ``(..., N, 3)`` positions, N >= 1; ``params`` is
+    the full ζ of ``model`` (see :mod:`diffkin.calibration.model`); the batch dims broadcast (T has as many as
+    q). Per pose the squared norm of the weighted residual [p_m − p; w rotvec(R_m Rᵀ)] (m²) goes through
+    :func:`robust_loss` with ``scale`` in metres (default 1 mm: quadratic for the sub-millimetre residuals of
+    a converged fit, linear for outliers). Inputs by the rule of :mod:`diffkin.validation` in the model's
+    dtype and device (shapes, dtypes, finite values; T's rotation blocks are taken as they are, not checked
+    for rigidity).
     """
+    if loss not in LOSSES:
+        raise ConventionError(f"unknown loss {loss!r}; valid: {', '.join(LOSSES)}")
+    scale = check_number(scale, "scale", unit=" (metres)")
+    orientation_weight = check_number(orientation_weight, "orientation_weight", positive=False)
+    params, q, T = tensors(("params", params, (model.n_params,)), ("q", q, None), ("T", T, None),
+                           like=model.chains[0])
+    measurement_shapes(q, T, model.n, batch=None)
+    try:
+        torch.broadcast_shapes(params.shape[:-1], q.shape[:-2])
+    except RuntimeError:
+        raise ShapeError(f"the batch dims of params {shape_str(params.shape)} and q {shape_str(q.shape)} do "
+                         "not broadcast") from None
+    return _calibration_loss(params, q, T, model, loss, scale, orientation_weight)
+
+
+def _calibration_loss(params, q, T, model, loss: str, scale: float, orientation_weight: float) -> Tensor:
+    """:func:`calibration_loss` on trusted input (the solvers' objective)."""
     res = model.residual(params, q, T, orientation_weight)
-    return robust_loss(res.square().sum(-1), loss, scale).mean(-1)
+    return _robust_loss(res.square().sum(-1), loss, scale).mean(-1)
 
 
 def _preconditioner(model, zeta, q, free, position_only, w, kind: str):
@@ -233,7 +279,9 @@ def gradient_descent(
     lbfgs = optimizer == "lbfgs"
     if optimizer not in ("lbfgs", "adam"):
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: 'lbfgs', 'adam'")
-    robust_loss(zeta0.new_zeros(()), loss, scale)  # validates the loss name
+    if loss not in LOSSES:
+        raise ConventionError(f"unknown loss {loss!r}; valid: {', '.join(LOSSES)}")
+    scale = check_number(scale, "scale", unit=" (metres)")
     max_iterations = (100 if lbfgs else 3000) if max_iterations is None else max_iterations
     tol = (1e-13 if zeta0.dtype == torch.float64 else 1e-7) if tol is None else tol
     with torch.no_grad():
@@ -250,8 +298,7 @@ def gradient_descent(
 
     def closure():
         opt.zero_grad()
-        value = calibration_loss(current(), q, measured, model, loss=loss, scale=scale,
-                                 orientation_weight=orientation_weight).sum() * norm
+        value = _calibration_loss(current(), q, measured, model, loss, scale, orientation_weight).sum() * norm
         value.backward()
         return value
 
