@@ -29,6 +29,7 @@ from streamed ``.npy`` parts at the end). Outputs are written to ``<name>.part``
 from __future__ import annotations
 
 import io
+import json
 import os
 import zipfile
 from collections.abc import Iterator
@@ -215,14 +216,43 @@ def _npz_keys(path: Path) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------- sources
+#: a sharded output's manifest (written by :mod:`diffkin.distributed`): ``<stem>.shards.json``
+MANIFEST_SUFFIX = ".shards.json"
+MANIFEST_FORMAT = "diffkin-shards/1"
+
+
+def read_manifest(path: str | Path) -> tuple[list[Path], int]:
+    """The part files of a manifest, in row order, and the total row count; checks that they exist and
+    that their rows tile ``[0, rows)``."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DataFileError(f"{path}: cannot read the shard manifest: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != MANIFEST_FORMAT:
+        raise DataFileError(f"{path}: not a diffkin shard manifest (expected format {MANIFEST_FORMAT!r})")
+    parts, expect = [], 0
+    for p in data["parts"]:
+        a, b = p["rows"]
+        if a != expect:
+            raise DataFileError(f"{path}: part {p['path']} starts at row {a}, expected {expect}")
+        expect = b
+        part = path.parent / p["path"]
+        if not part.exists():
+            raise DataFileError(f"{path}: part {part} is missing")
+        parts.append(part)
+    if expect != data["rows"]:
+        raise DataFileError(f"{path}: the parts hold {expect} rows, the manifest says {data['rows']}")
+    return parts, int(data["rows"])
+
+
+
 def _is_manifest(source) -> bool:
     """A sharded output's manifest (``*.shards.json``, written by :mod:`diffkin.distributed`)."""
-    return isinstance(source, (str, Path)) and str(source).endswith(".shards.json")
+    return isinstance(source, (str, Path)) and str(source).endswith(MANIFEST_SUFFIX)
 
 
 def _manifest_parts(path) -> list[Path]:
-    from .distributed import read_manifest
-
     if not Path(path).exists():
         raise DataFileError(f"{path}: no such file")
     return read_manifest(path)[0]

@@ -27,6 +27,15 @@ from pathlib import Path
 
 import numpy as np
 
+from .data_io import (
+    MANIFEST_FORMAT,
+    MANIFEST_SUFFIX,
+    _npz_keys,
+    _npz_member,
+    _read_exact,
+    open_writer,
+    read_manifest,
+)
 from .errors import DiffkinError
 
 __all__ = [
@@ -45,8 +54,6 @@ __all__ = [
     "finish",
 ]
 
-MANIFEST_SUFFIX = ".shards.json"
-_FORMAT = "diffkin-shards/1"
 
 
 @dataclass(frozen=True)
@@ -145,7 +152,7 @@ def write_manifest(output: str | Path, world: int, rows: list[tuple[int, int]], 
     output = Path(output)
     parts = [{"path": part_path(output, r, world).name, "rows": list(rows[r])}
              for r in range(world) if rows[r][1] > rows[r][0]]
-    data = {"format": _FORMAT, "output": output.name, "suffix": output.suffix,
+    data = {"format": MANIFEST_FORMAT, "output": output.name, "suffix": output.suffix,
             "rows": sum(b - a for a, b in rows), "parts": parts, "command": command,
             "written": time.strftime("%Y-%m-%dT%H:%M:%S")}
     path = manifest_path(output)
@@ -153,33 +160,6 @@ def write_manifest(output: str | Path, world: int, rows: list[tuple[int, int]], 
     tmp.write_text(json.dumps(data, indent=1))
     os.replace(tmp, path)
     return path
-
-
-def read_manifest(path: str | Path) -> tuple[list[Path], int]:
-    """The part files of a manifest, in row order, and the total row count; checks that they exist and
-    that their rows tile ``[0, rows)``."""
-    from .data_io import DataFileError
-
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DataFileError(f"{path}: cannot read the shard manifest: {exc}") from None
-    if not isinstance(data, dict) or data.get("format") != _FORMAT:
-        raise DataFileError(f"{path}: not a diffkin shard manifest (expected format {_FORMAT!r})")
-    parts, expect = [], 0
-    for p in data["parts"]:
-        a, b = p["rows"]
-        if a != expect:
-            raise DataFileError(f"{path}: part {p['path']} starts at row {a}, expected {expect}")
-        expect = b
-        part = path.parent / p["path"]
-        if not part.exists():
-            raise DataFileError(f"{path}: part {part} is missing")
-        parts.append(part)
-    if expect != data["rows"]:
-        raise DataFileError(f"{path}: the parts hold {expect} rows, the manifest says {data['rows']}")
-    return parts, int(data["rows"])
 
 
 def merge_parts(output: str | Path, parts: list[Path], step: int = 1 << 18) -> Path:
@@ -207,8 +187,6 @@ def merge_parts(output: str | Path, parts: list[Path], step: int = 1 << 18) -> P
 def _members(part: Path, kind: str) -> dict[str, tuple]:
     """``{key: (close, stream, shape, dtype)}`` of a part: its array (``.npy``) or each entry (``.npz``),
     each stream positioned at its first row."""
-    from .data_io import _npz_keys, _npz_member
-
     if kind == ".npy":
         f = open(part, "rb")
         version = np.lib.format.read_magic(f)
@@ -224,8 +202,6 @@ def _members(part: Path, kind: str) -> dict[str, tuple]:
 
 
 def _merge_arrays(output: Path, parts: list[Path], step: int) -> None:
-    from .data_io import _read_exact, open_writer
-
     opened = [_members(p, output.suffix) for p in parts]
     try:
         first = opened[0]
