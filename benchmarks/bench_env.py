@@ -17,8 +17,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-import envs  # noqa: F401
-from envs.vector import TorchVectorEnv
+import diffkin.envs  # noqa: F401
+from diffkin.envs.vector import TorchVectorEnv
 
 __all__ = ["run", "main"]
 

@@ -447,7 +447,7 @@ def _config_threads(args) -> int:
     """The run config's ``torch_threads`` (what ``diffkin train`` runs on without ``--threads``)."""
     _check_config(args)
     try:
-        from training.config import load_config
+        from diffkin.training.config import load_config
     except ImportError as exc:
         raise _missing("train", exc) from exc
     try:
@@ -461,7 +461,7 @@ def cmd_train(args) -> int:
     if args.output:
         _check_output_dir(Path(args.output))
     try:
-        from training.train import resolve_run, summary_json, train
+        from diffkin.training.train import resolve_run, summary_json, train
     except ImportError as exc:
         raise _missing("train", exc) from exc
     try:
@@ -479,7 +479,7 @@ def cmd_train(args) -> int:
 def cmd_tune(args) -> int:
     _check_config(args)
     try:
-        from training import tune
+        from diffkin.training import tune
     except ImportError as exc:
         raise _missing("tune", exc) from exc
     try:
@@ -499,7 +499,7 @@ def cmd_evaluate(args) -> int:
     if not (run / "config.yaml").is_file():
         raise DiffkinError(f"{run}: not a training run directory (no config.yaml; see `diffkin train`)")
     try:
-        from training.evaluate import evaluate_and_save
+        from diffkin.training.evaluate import evaluate_and_save
     except ImportError as exc:
         raise _missing("evaluate", exc) from exc
     import json
@@ -666,8 +666,8 @@ _DESCRIPTIONS = {
                  "writes DIR/calibrated.yaml|urdf with parameters.md, report.json and residuals.png.",
     "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal, or a cubic spline through --points)\n"
                   "or a Cartesian straight-line trajectory and export t, position, velocity, acceleration.",
-    "train": "Train an SB3 agent from a run config (calls training.train in this process; needs the rl\n"
-             "extra). Runs on the config's torch_threads unless --threads N.",
+    "train": "Train an SB3 agent from a run config (calls diffkin.training.train in this process; needs\n"
+             "the rl extra). Runs on the config's torch_threads unless --threads N.",
     "tune": "Sweep a run config's hyperparameters with Optuna: each trial trains the config with values\n"
             "drawn from its search_space section, reports every evaluation (pruned when the pruner says\n"
             "so) and scores the final one (tune.metric). Workers share one study through --storage:\n"
@@ -802,7 +802,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", help="PNG of position/velocity/acceleration")
     p.set_defaults(func=cmd_trajectory)
 
-    p = add("train", "train an SB3 agent from a run config (calls training.train)")
+    p = add("train", "train an SB3 agent from a run config (calls diffkin.training.train)")
     p.add_argument("--config", required=True, help="run config YAML (see configs/)")
     p.add_argument("--seed", type=_count, help="override the config's seed")
     p.add_argument("--total-timesteps", type=_positive_int, dest="total_timesteps",
@@ -815,7 +815,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("tune", "hyperparameter sweeps with Optuna on a shared study (SQLite / PostgreSQL / journal)")
     try:
-        from training.tune import add_arguments as add_tune_arguments
+        from diffkin.training.tune import add_arguments as add_tune_arguments
     except ImportError:  # no training code here: cmd_tune names what to install
         p.add_argument("--config", required=True)
     else:

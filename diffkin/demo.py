@@ -452,8 +452,8 @@ def section_rl(report: Report, seconds: int) -> None:
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "demo_config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     try:
-        from training.config import load_config
-        from training.train import train
+        from diffkin.training.config import load_config
+        from diffkin.training.train import train
     except ImportError as exc:
         report.add(
             "RL (PPO on batched Reach)",

@@ -12,8 +12,8 @@ from .reach import ReachEnv as ReachEnv
 from .track import TrackEnv as TrackEnv
 
 ENV_IDS = {
-    "diffkin/Reach-v0": "envs.reach:ReachEnv",
-    "diffkin/Track-v0": "envs.track:TrackEnv",
+    "diffkin/Reach-v0": "diffkin.envs.reach:ReachEnv",
+    "diffkin/Track-v0": "diffkin.envs.track:TrackEnv",
 }
 
 # Episode length is enforced by the envs themselves (``episode_steps=``; the batched env shares the logic),

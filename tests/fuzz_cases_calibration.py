@@ -22,12 +22,12 @@ from tests.fuzzing import Arg, Case, transform, uniform
 #: modules whose every public callable must have a case or an exemption
 MODULES: list[str] = [
     "diffkin.calibration",
-    "envs.core",
-    "envs.reach",
-    "envs.track",
-    "envs.vector",
-    "envs.robot",
-    "training.evaluate",
+    "diffkin.envs.core",
+    "diffkin.envs.reach",
+    "diffkin.envs.track",
+    "diffkin.envs.vector",
+    "diffkin.envs.robot",
+    "diffkin.training.evaluate",
 ]
 
 # ----------------------------------------------------------------------------------------- calibration
@@ -136,9 +136,9 @@ ENV_ROBOT, N_ENVS = "three_link_planar", 3
 
 def _env(kind: str):
     if kind not in _ENVS:
-        from envs.reach import ReachEnv
-        from envs.track import TrackEnv
-        from envs.vector import SB3VecEnv, TorchVectorEnv
+        from diffkin.envs.reach import ReachEnv
+        from diffkin.envs.track import TrackEnv
+        from diffkin.envs.vector import SB3VecEnv, TorchVectorEnv
 
         make = {
             "reach": lambda: ReachEnv(ENV_ROBOT, reward_type="dense"),
@@ -192,13 +192,13 @@ def _sb3_step(actions):
 
 
 def _reach_reward(achieved, desired):
-    from envs.reach import reach_reward
+    from diffkin.envs.reach import reach_reward
 
     return torch.as_tensor(np.asarray(reach_reward(achieved, desired, "dense", 0.05))).to(torch.float64)
 
 
 def _check_action(action):
-    from envs.core import check_action
+    from diffkin.envs.core import check_action
 
     return torch.as_tensor(check_action(action, (N_JOINTS,)), dtype=torch.float64)
 
@@ -209,7 +209,7 @@ def _joint_action(gen, batch, dtype):
 
 def _cases() -> list[Case]:
     from diffkin import calibration as cal
-    from envs import core, reach, track, vector
+    from diffkin.envs import core, reach, track, vector
 
     no_batch = None  # results without the call's batch dims (a report, a dict of numbers, an env step)
     return [
@@ -235,22 +235,22 @@ def _cases() -> list[Case]:
              args={"candidates": _arg(_q, (N_JOINTS,))}, batch=(6,), out_batch=no_batch,
              empty_raises=ShapeError),
         # envs: one action per step (not batched: the empty mutation leaves it valid)
-        Case("envs.ReachEnv.step", _single_step("reach"), covers=reach.ReachEnv,
+        Case("diffkin.envs.ReachEnv.step", _single_step("reach"), covers=reach.ReachEnv,
              args={"action": _arg(_joint_action, (N_JOINTS,), batched=False)}, out_batch=no_batch,
              rtol=1e-5),
-        Case("envs.TrackEnv.step", _single_step("track"), covers=track.TrackEnv,
+        Case("diffkin.envs.TrackEnv.step", _single_step("track"), covers=track.TrackEnv,
              args={"action": _arg(_joint_action, (N_JOINTS,), batched=False)}, out_batch=no_batch,
              rtol=1e-5),
-        Case("envs.check_action", _check_action, covers=core.check_action,
+        Case("diffkin.envs.check_action", _check_action, covers=core.check_action,
              args={"action": _arg(_joint_action, (N_JOINTS,), batched=False)}, out_batch=no_batch),
         # the vector envs' env count is fixed at construction: 0 actions for 3 envs is a wrong shape
-        Case("envs.TorchVectorEnv.step", _vector_step, covers=vector.TorchVectorEnv,
+        Case("diffkin.envs.TorchVectorEnv.step", _vector_step, covers=vector.TorchVectorEnv,
              args={"actions": _arg(_joint_action, (N_JOINTS,))}, batch=(N_ENVS,), out_batch=no_batch,
              empty_raises=ShapeError, rtol=1e-5),
-        Case("envs.SB3VecEnv.step", _sb3_step, covers=vector.SB3VecEnv,
+        Case("diffkin.envs.SB3VecEnv.step", _sb3_step, covers=vector.SB3VecEnv,
              args={"actions": _arg(_joint_action, (N_JOINTS,))}, batch=(N_ENVS,), out_batch=no_batch,
              empty_raises=ShapeError, rtol=1e-5),
-        Case("envs.reach_reward", _reach_reward, covers=reach.reach_reward,
+        Case("diffkin.envs.reach_reward", _reach_reward, covers=reach.reach_reward,
              args={"achieved_goal": _arg(uniform(3), (3,)), "desired_goal": _arg(uniform(3), (3,))},
              rtol=1e-5),
     ]
@@ -276,24 +276,24 @@ EXEMPT: dict[str, str] = {
                                                 "the arrays then go through calibrate (fuzzed)",
     "diffkin.calibration.load_measurements": "reads files (diffkin.data_io); no tensor input",
     "diffkin.calibration.parameter_names": "takes a joint count, no tensor input",
-    "envs.core.Task": "base class: " + _TRUSTED,
-    "envs.core.TaskEnv": "base class of ReachEnv / TrackEnv (fuzzed through them)",
-    "envs.core.to_numpy": "converts the env's own observation tensors, no user input",
-    "envs.reach.ReachTask": _TRUSTED,
-    "envs.reach.ReachConfig": "settings of Python numbers, checked on construction (tests/test_envs.py)",
-    "envs.track.TrackTask": _TRUSTED,
-    "envs.track.TrackConfig": "settings of Python numbers, checked on construction (tests/test_envs.py)",
-    "envs.vector.make_task": "factory of a task from keyword settings, no tensor input",
-    "envs.vector.make_vec_env": "factory of an SB3VecEnv (fuzzed as envs.SB3VecEnv.step)",
-    "envs.robot.Robot": "the robot half of the envs: trusted, already validated tensors (module doc)",
-    "envs.robot.RobotConfig": "settings of Python numbers, checked on construction (tests/test_envs.py)",
-    "envs.robot.load_chain": "takes a model name or a chain, no tensor input",
-    "training.evaluate.run_episodes": "takes an env and a policy; the policy's actions go through "
+    "diffkin.envs.core.Task": "base class: " + _TRUSTED,
+    "diffkin.envs.core.TaskEnv": "base class of ReachEnv / TrackEnv (fuzzed through them)",
+    "diffkin.envs.core.to_numpy": "converts the env's own observation tensors, no user input",
+    "diffkin.envs.reach.ReachTask": _TRUSTED,
+    "diffkin.envs.reach.ReachConfig": "settings of Python numbers, checked on construction (test_envs)",
+    "diffkin.envs.track.TrackTask": _TRUSTED,
+    "diffkin.envs.track.TrackConfig": "settings of Python numbers, checked on construction (test_envs)",
+    "diffkin.envs.vector.make_task": "factory of a task from keyword settings, no tensor input",
+    "diffkin.envs.vector.make_vec_env": "factory of an SB3VecEnv (fuzzed as envs.SB3VecEnv.step)",
+    "diffkin.envs.robot.Robot": "the robot half of the envs: trusted, already validated tensors (module doc)",
+    "diffkin.envs.robot.RobotConfig": "settings of Python numbers, checked on construction (test_envs)",
+    "diffkin.envs.robot.load_chain": "takes a model name or a chain, no tensor input",
+    "diffkin.training.evaluate.run_episodes": "takes an env and a policy; the policy's actions go through "
                                       "TorchVectorEnv.step (fuzzed)",
-    "training.evaluate.scripted_policy": "reads the env's own state, no user input",
-    "training.evaluate.model_policy": "wraps a trained SB3 model, no tensor input",
-    "training.evaluate.load_run": "reads a run directory",
-    "training.evaluate.evaluate_run": "reads a run directory",
-    "training.evaluate.evaluate_and_save": "reads and writes a run directory",
-    "training.evaluate.main": "command-line entry point (argument parsing)",
+    "diffkin.training.evaluate.scripted_policy": "reads the env's own state, no user input",
+    "diffkin.training.evaluate.model_policy": "wraps a trained SB3 model, no tensor input",
+    "diffkin.training.evaluate.load_run": "reads a run directory",
+    "diffkin.training.evaluate.evaluate_run": "reads a run directory",
+    "diffkin.training.evaluate.evaluate_and_save": "reads and writes a run directory",
+    "diffkin.training.evaluate.main": "command-line entry point (argument parsing)",
 }

@@ -285,7 +285,7 @@ def test_train_then_evaluate(tmp_path):
     ok(run_subprocess("evaluate", str(run_dir), "--episodes", "8"))
     evaluation = json.loads((run_dir / "evaluation.json").read_text())
     # the same evaluation computed here, independently of the command: the same episodes, the same numbers
-    from training.evaluate import evaluate_run
+    from diffkin.training.evaluate import evaluate_run
 
     torch.set_num_threads(1)
     again = evaluate_run(run_dir, 8)

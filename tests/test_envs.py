@@ -8,9 +8,9 @@ import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
 
-import envs  # noqa: F401
+import diffkin.envs  # noqa: F401
 from diffkin.chain import DHChain
-from envs.reach import ReachEnv
+from diffkin.envs.reach import ReachEnv
 
 ENV_IDS = sorted(k for k in gym.registry if k.startswith("diffkin/"))
 
@@ -219,8 +219,8 @@ def test_reset_options_and_constructor_settings(env_id):
 
 
 def test_reach_reward_numpy_and_torch_agree_and_refuse_bad_goals():
+    from diffkin.envs.reach import reach_reward
     from diffkin.errors import DTypeError, NonFiniteError, ShapeError
-    from envs.reach import reach_reward
 
     g = np.random.default_rng(0)
     a, d = g.uniform(-1, 1, (5, 3)), g.uniform(-1, 1, (5, 3))

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from training.algos import EVAL_SEED
-from training.config import RunConfig, load_config
+from diffkin.training.algos import EVAL_SEED
+from diffkin.training.config import RunConfig, load_config
 
 CONFIGS = sorted(Path(__file__).resolve().parents[1].joinpath("configs").glob("*.yaml"))
 RUN_CONFIGS = [p for p in CONFIGS if "algo" in p.read_text()]
@@ -52,8 +52,8 @@ def test_unknown_config_key_is_an_error(tmp_path):
 
 @pytest.mark.parametrize("path", RUN_CONFIGS, ids=lambda p: p.stem)
 def test_smoke_run_and_evaluate(path, tmp_path):
-    from training.evaluate import evaluate_run
-    from training.train import train
+    from diffkin.training.evaluate import evaluate_run
+    from diffkin.training.train import train
 
     threads = torch.get_num_threads()
     cfg = _small(load_config(path))
@@ -88,8 +88,8 @@ def test_run_episodes_rates_are_those_of_the_episodes(env_id):
     """run_episodes' figures, recomputed from each env's own first episode (stepped here one by one)."""
     import numpy as np
 
-    from envs.vector import TorchVectorEnv
-    from training.evaluate import run_episodes, scripted_policy
+    from diffkin.envs.vector import TorchVectorEnv
+    from diffkin.training.evaluate import run_episodes, scripted_policy
 
     kw = dict(robot="three_link_planar", episode_steps=12)
     if env_id == "diffkin/Reach-v0":

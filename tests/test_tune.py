@@ -13,8 +13,8 @@ import yaml
 optuna = pytest.importorskip("optuna")
 pytest.importorskip("stable_baselines3")
 
-from training.config import load_config  # noqa: E402
-from training.tune import apply_params, read_sweep, sample_params, show, state_counts  # noqa: E402
+from diffkin.training.config import load_config  # noqa: E402
+from diffkin.training.tune import apply_params, read_sweep, sample_params, show, state_counts  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ROOT / "tests" / "data" / "tune_tiny.yaml"
@@ -56,7 +56,7 @@ def test_two_workers_share_one_sqlite_study(tmp_path):
     """Two processes, 2 trials each, on one SQLite file: 4 distinct trials of the 4-point grid, the 300-step
     ones pruned, the 100-step ones complete, and --show writes the best config."""
     storage = f"sqlite:///{tmp_path / 'study.db'}"
-    cmd = [sys.executable, "-m", "training.tune", "--config", str(TINY), "--trials", "2",
+    cmd = [sys.executable, "-m", "diffkin.training.tune", "--config", str(TINY), "--trials", "2",
            "--storage", storage, "--study", "tiny"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     workers = [subprocess.Popen(cmd, cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,

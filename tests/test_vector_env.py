@@ -9,8 +9,8 @@ import torch
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
 
-import envs  # noqa: F401
-from envs.vector import SB3VecEnv, TorchVectorEnv, make_vec_env
+import diffkin.envs  # noqa: F401
+from diffkin.envs.vector import SB3VecEnv, TorchVectorEnv, make_vec_env
 
 ENV_IDS = sorted(k for k in gym.registry if k.startswith("diffkin/"))
 CASES = [(e, m) for e in ENV_IDS for m in ("joint", "cartesian")]

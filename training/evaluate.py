@@ -1,6 +1,6 @@
 """Evaluate a trained run (batched, on the torch vector env) against a scripted IK baseline.
 
-    python -m training.evaluate RUN_DIR [--episodes N] [--seed S]
+    python -m diffkin.training.evaluate RUN_DIR [--episodes N] [--seed S]
 
 The scripted baseline is closed-loop inverse kinematics with diffkin's damped-least-squares step
 (the env's own Cartesian mapping): each step it commands Δx = target − p_ee (goal for Reach, next path
@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from envs.vector import TorchVectorEnv
+from diffkin.envs.vector import TorchVectorEnv
 
 __all__ = ["run_episodes", "scripted_policy", "model_policy", "load_run", "evaluate_run", "evaluate_and_save",
            "main"]
@@ -84,14 +84,14 @@ def model_policy(model, obs_normalizer=None) -> Policy:
 
 def load_run(run_dir: str | Path):
     """(config, model, VecNormalize or None) of a finished run directory."""
-    from training.algos import ALGOS
-    from training.config import load_config
+    from diffkin.training.algos import ALGOS
+    from diffkin.training.config import load_config
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir / "config.yaml")
     env = None
     if cfg.her is not None:  # SB3 rebuilds the HerReplayBuffer on load and needs an env for it
-        from envs.vector import make_vec_env
+        from diffkin.envs.vector import make_vec_env
 
         env = make_vec_env(cfg.env_id, 1, **cfg.env_kwargs)
     model = ALGOS[cfg.algo].load(run_dir / "model.zip", env=env, device="cpu")

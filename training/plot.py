@@ -1,6 +1,6 @@
 """Learning curves (mean ± std over seeds) and a results summary from finished runs.
 
-    python -m training.plot [RUNS_DIR] [--out runs/results]
+    python -m diffkin.training.plot [RUNS_DIR] [--out runs/results]
 
 For every run group ``RUNS_DIR/<name>/seed*/results.json`` writes ``<out>/<name>.png`` (metric vs env steps
 and vs wall-clock), ``<out>/<name>.json`` (per-seed and mean ± std figures) and ``<out>/RESULTS.md``. Seeds

@@ -1,6 +1,6 @@
 """Train an SB3 agent on a diffkin env from a YAML config; the run records itself.
 
-    python -m training.train --config configs/<run>.yaml [--seed S] [--total-timesteps N] [--out DIR]
+    python -m diffkin.training.train --config configs/<run>.yaml [--seed S] [--total-timesteps N] [--out DIR]
 
 Writes to ``DIR`` (default ``runs/<name>/seed<S>``): ``config.yaml`` (resolved), ``meta.json`` (seed,
 versions, command line, timings), TensorBoard logs (``tb/``), ``model.zip`` (+ ``vecnormalize.pkl``) and
@@ -28,11 +28,11 @@ from stable_baselines3.common.env_util import make_vec_env as sb3_make_vec_env
 from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-import envs  # noqa: F401  (registers the IDs)
-from envs.vector import TorchVectorEnv, make_vec_env
-from training.algos import ALGOS, EVAL_SEED
-from training.config import RunConfig, load_config
-from training.evaluate import model_policy, run_episodes, scripted_policy
+import diffkin.envs  # noqa: F401  (registers the IDs)
+from diffkin.envs.vector import TorchVectorEnv, make_vec_env
+from diffkin.training.algos import ALGOS, EVAL_SEED
+from diffkin.training.config import RunConfig, load_config
+from diffkin.training.evaluate import model_policy, run_episodes, scripted_policy
 
 __all__ = ["ALGOS", "EVAL_SEED", "build_env", "build_model", "EvalCallback", "versions", "train",
            "resolve_run", "summary_json", "main"]

@@ -31,7 +31,7 @@ from typing import Any
 
 import yaml
 
-from training.config import RunConfig, load_config
+from diffkin.training.config import RunConfig, load_config
 
 __all__ = [
     "SPACE_TYPES",
@@ -202,7 +202,7 @@ def load_study(storage: str, study: str, tune_settings: dict | None = None, crea
 
 def _objective(cfg: RunConfig, space: dict, settings: dict, out: Path, log: Callable[[str], None]):
     optuna = _optuna()
-    from training.train import train
+    from diffkin.training.train import train
 
     metric = settings["metric"]
 
@@ -293,7 +293,7 @@ def state_counts(storage: str, study: str) -> dict[str, int]:
 
 
 def add_arguments(p) -> None:
-    """The options of ``diffkin tune`` / ``python -m training.tune``."""
+    """The options of ``diffkin tune`` / ``python -m diffkin.training.tune``."""
     p.add_argument("--config", required=True, help="run config with search_space and tune sections")
     p.add_argument("--trials", type=int, default=10, help="trials this worker runs (default: 10)")
     p.add_argument("--storage", help="sqlite:///FILE, an SQLAlchemy URL (postgresql://...) or journal:FILE "
@@ -324,7 +324,7 @@ def run(args, log: Callable[[str], None] = print) -> int:
 def main(argv=None) -> int:
     import argparse
 
-    p = argparse.ArgumentParser(prog="python -m training.tune", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m diffkin.training.tune", description=__doc__.split("\n\n")[0])
     add_arguments(p)
     args = p.parse_args(argv)
     import torch
