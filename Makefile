@@ -14,7 +14,7 @@ $(PY):
 # Reinstall when the project's metadata or pins change.
 $(STAMP): $(PY) pyproject.toml constraints.txt
 	$(PIP) install -q -c constraints.txt torch==2.13.0
-	$(PIP) install -q -c constraints.txt -e ".[dev,rl,tune,docs,viz]"
+	$(PIP) install -q -c constraints.txt -e ".[dev,cli,plot,rl,tune,docs,viz]"
 	touch $(STAMP)
 
 install: $(STAMP)

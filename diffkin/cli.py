@@ -34,14 +34,29 @@ __all__ = ["main", "build_parser"]
 
 
 def _console():
-    from rich.console import Console
-
+    """rich's console, or plain ``print`` without the ``cli`` extra (tables then print as aligned text)."""
+    try:
+        from rich.console import Console
+    except ImportError:
+        return _PlainConsole()
     return Console(highlight=False)
 
 
+class _PlainConsole:
+    @staticmethod
+    def print(obj="") -> None:
+        print(obj)
+
+
 def _table(title: str, columns: list[str], rows: list[list]):
-    from rich.markup import escape
-    from rich.table import Table
+    try:
+        from rich.markup import escape
+        from rich.table import Table
+    except ImportError:  # no `cli` extra: the same table as aligned text
+        cells = [[str(c) for c in columns]] + [[str(v) for v in r] for r in rows]
+        widths = [max(len(r[i]) for r in cells) for i in range(len(columns))]
+        lines = [title] + ["  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip() for r in cells]
+        return "\n".join(lines)
 
     table = Table(title=escape(title))
     for c in columns:
@@ -78,11 +93,15 @@ def _load_chain(args):
 def _progress(args, label: str):
     """A rich progress bar on stderr when it is a terminal (and no ``--no-progress``): yields the callback
     ``(done, total)`` for :mod:`diffkin.streaming`, or None."""
+    try:
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    except ImportError:  # the bar is a `cli` extra nicety
+        yield None
+        return
     if getattr(args, "no_progress", False) or not sys.stderr.isatty():
         yield None
         return
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     with Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
                   console=Console(stderr=True), transient=True) as bar:
@@ -406,7 +425,9 @@ def cmd_trajectory(args) -> int:
 
 
 def _plot_trajectory(out: dict, path: str) -> None:
-    from matplotlib.figure import Figure  # file output: no pyplot, no backend switch
+    from .errors import require
+
+    Figure = require("matplotlib.figure", "plot", "--plot").Figure  # file output: no pyplot, no backend
 
     fig = Figure(figsize=(7, 7))
     axs = fig.subplots(3, 1, sharex=True)

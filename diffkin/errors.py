@@ -5,6 +5,9 @@ Every error is a ``ValueError`` (or ``TypeError``) subclass so plain ``except Va
 
 from __future__ import annotations
 
+import importlib
+from types import ModuleType
+
 __all__ = [
     "DiffkinError",
     "ShapeError",
@@ -13,6 +16,8 @@ __all__ = [
     "DTypeError",
     "ModelError",
     "RepresentationSingularityError",
+    "MissingExtraError",
+    "require",
 ]
 
 
@@ -42,3 +47,17 @@ class ModelError(DiffkinError):
 
 class RepresentationSingularityError(DiffkinError):
     """A minimal orientation representation is singular at the requested configuration."""
+
+
+class MissingExtraError(DiffkinError, ImportError):
+    """An optional dependency is not installed; the message names the extra that installs it."""
+
+
+def require(module: str, extra: str, feature: str) -> ModuleType:
+    """Import ``module`` for ``feature``, or raise :class:`MissingExtraError` naming the extra to install."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        raise MissingExtraError(
+            f"{feature} needs {module.split('.')[0]}, which is not installed: pip install 'diffkin[{extra}]'"
+        ) from exc

@@ -6,10 +6,13 @@ vector env and its SB3 adapter live in :mod:`envs.vector`.
 
 from __future__ import annotations
 
-from gymnasium.envs.registration import register, registry
+from diffkin.errors import require
 
-from .reach import ReachEnv as ReachEnv
-from .track import TrackEnv as TrackEnv
+require("gymnasium", "gym", "diffkin.envs")  # one line naming the extra, not a traceback deep in an import
+from gymnasium.envs.registration import register, registry  # noqa: E402
+
+from .reach import ReachEnv as ReachEnv  # noqa: E402
+from .track import TrackEnv as TrackEnv  # noqa: E402
 
 ENV_IDS = {
     "diffkin/Reach-v0": "diffkin.envs.reach:ReachEnv",

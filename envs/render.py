@@ -11,8 +11,10 @@ class ArmRenderer:
     """Reusable off-screen figure; ``draw`` returns an ``(H, W, 3)`` uint8 image."""
 
     def __init__(self, planar: bool = False, extent: float = 1.0, size: tuple[int, int] = (480, 480)):
+        from diffkin.errors import require
+
+        Figure = require("matplotlib.figure", "plot", "render_mode='rgb_array'").Figure
         from matplotlib.backends.backend_agg import FigureCanvasAgg
-        from matplotlib.figure import Figure
 
         self.planar, self.extent = planar, extent
         self.fig = Figure(figsize=(size[0] / 100, size[1] / 100), dpi=100)

@@ -65,7 +65,9 @@ def _on_grid(runs: list[dict], key: str, x: str, grid: np.ndarray) -> np.ndarray
 
 
 def plot_group(name: str, runs: list[dict], path: Path) -> None:
-    from matplotlib.figure import Figure  # file output: no pyplot, no backend switch
+    from diffkin.errors import require
+
+    Figure = require("matplotlib.figure", "plot", "training.plot").Figure  # file output: no pyplot
 
     key = _metric(runs[0])
     fig = Figure(figsize=(10, 3.6))

@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from ..chain import DHChain, KinematicChain
-from ..errors import ConventionError, DiffkinError, ShapeError
+from ..errors import ConventionError, DiffkinError, ShapeError, require
 from ..validation import as_tensor, shape_str
 from .error_models import build_model
 from .identifiability import IdentifiabilityReport, model_reports
@@ -128,7 +128,7 @@ class CalibrationResult:
         Uses the calibration data, or ``q``/``T`` (e.g. held-out poses) when given. Needs matplotlib; draws on
         a :class:`matplotlib.figure.Figure` (no pyplot, the process's backend is left alone).
         """
-        from matplotlib.figure import Figure
+        Figure = require("matplotlib.figure", "plot", "CalibrationResult.plot_residuals").Figure
 
         if q is None and T is None:
             q, T = self.q, self.measured

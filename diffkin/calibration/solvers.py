@@ -38,10 +38,13 @@ class SolverOutput:
 @contextmanager
 def _progress(enabled: bool, description: str, total: int):
     """A rich progress bar on a terminal, a no-op otherwise. Yields ``advance()``."""
+    try:
+        from rich.progress import Progress
+    except ImportError:  # the bar is a `cli` extra nicety
+        enabled = False
     if not (enabled and sys.stderr.isatty()):
         yield lambda: None
         return
-    from rich.progress import Progress
 
     with Progress(transient=True) as bar:
         task = bar.add_task(description, total=total)
