@@ -593,3 +593,32 @@ def test_to_urdf_round_trip(tmp_path, stem, ends):
     idx = [chain.joint_names.index(name) for name in again.joint_names]
     torch.testing.assert_close(again.forward_kinematics(Q[:, idx]).detach(), T_mod, rtol=0, atol=1e-12)
     assert _geometry_blocks(out) == _geometry_blocks(DATA / f"{stem}.urdf")
+
+
+
+def test_valid_urdfs_parse_without_console_noise(capfd):
+    """Loading real manufacturer URDFs prints nothing (no "Unknown attribute" lines, as pytorch-kinematics'
+    parser printed for a valid Franka URDF)."""
+    files = sorted(DATA.glob("*.urdf"))
+    assert files
+    for path in files:
+        from_urdf(path, _first_leaf(path))
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+
+
+def _first_leaf(path: Path) -> str:
+    """The leaf link with the most moving joints on its path from the root."""
+    root = ET.parse(path).getroot()
+    up = {j.find("child").get("link"): (j.find("parent").get("link"), j.get("type") != "fixed")
+          for j in root.findall("joint")}
+    parents = {p for p, _ in up.values()}
+
+    def moving(link: str) -> int:
+        n = 0
+        while link in up:
+            link, m = up[link]
+            n += m
+        return n
+
+    return max((c for c in up if c not in parents), key=moving)
