@@ -67,8 +67,9 @@ class Case:
     ``fixed``: further keyword arguments (not fuzzed). ``out_batch``: maps the result to the tensor whose
     leading dims must equal the call's batch dims (default: the result itself, or the first tensor of a
     tuple/dataclass); ``None`` skips the batch-dims check (results without batch dims).
-    ``like``: None, or a callable giving the object (a chain) whose dtype the call follows — then the
-    ``mixed`` mutation converts the argument away from it.
+    ``chain``: None, or ``chain(dtype)`` giving the object (a chain) of the call's dtype, passed to ``fn`` as
+    its first argument (before the tensor arguments); the ``mixed`` mutation then converts an argument away
+    from the chain's dtype (``follows_chain`` is implied).
     """
 
     name: str
@@ -80,6 +81,7 @@ class Case:
     skip: Sequence[str] = ()  # mutations that do not apply, each with a reason in the case list
     follows_chain: bool = False  # the call's dtype is a chain's: a lone tensor argument can still mix
     covers: Callable | None = None  # the public callable this case fuzzes, when ``fn`` is a wrapper
+    chain: Callable[[torch.dtype], Any] | None = None  # the chain of the call's dtype, fn's first argument
 
     @property
     def target(self) -> Callable:
@@ -87,9 +89,11 @@ class Case:
     batch: tuple[int, ...] = (3,)
     rtol: float = 1e-6
 
-    def call(self, values: dict[str, Any]):
+    def call(self, values: dict[str, Any], dtype: torch.dtype = torch.float64):
         pos = [values[k] for k in self.args if k not in self.keyword]
         kw = {k: values[k] for k in self.keyword}
+        if self.chain is not None:
+            pos.insert(0, self.chain(dtype))
         return self.fn(*pos, **kw, **self.fixed)
 
 
@@ -101,7 +105,7 @@ def mutations(case: Case) -> list[str]:
         if a.trailing:
             out.append(f"shape:{name}")
         out += [f"dtype:{name}:{str(d).removeprefix('torch.')}" for d in BAD_DTYPES]
-        if len(case.args) > 1 or case.follows_chain:
+        if len(case.args) > 1 or case.follows_chain or case.chain is not None:
             out.append(f"mixed:{name}")
     return [m for m in out if m.split(":")[0] not in case.skip and m not in case.skip]
 
@@ -189,7 +193,7 @@ def outcome(case: Case, mutation: str, seed: int = 0, dtype: torch.dtype = torch
     signal.setitimer(signal.ITIMER_REAL, time_limit)
     t0 = time.perf_counter()
     try:
-        result = case.call(values)
+        result = case.call(values, dtype)
     except Timeout:
         return "hang", f"over {time_limit:.0f} s"
     except DiffkinError as exc:
@@ -210,9 +214,10 @@ def outcome(case: Case, mutation: str, seed: int = 0, dtype: torch.dtype = torch
     if not _finite(result):
         return "silent", "NaN or inf in the result of finite input"
     if kind == "numpy":
-        reference = case.call(reference_values)
+        reference = case.call(reference_values, dtype)
         for a, b in zip(_leaves(result), _leaves(reference)):
-            if a.dtype != b.dtype or not torch.allclose(a, b, rtol=case.rtol, atol=case.rtol):
+            if a.dtype != b.dtype or not (torch.allclose(a, b, rtol=case.rtol, atol=case.rtol)
+                                          if a.is_floating_point() else torch.equal(a, b)):
                 return "silent", f"numpy input gave {a.dtype} values unequal to the tensor input's {b.dtype}"
     return "correct", ""
 
