@@ -6,9 +6,10 @@ All functions take ``J (..., m, n)`` with free leading batch dims and return ``(
 The pseudo-inverse is the Moore–Penrose one at every J, singular or not, and its values and gradients stay
 finite. Each batch row is computed from the smaller Gram matrix (JJᵀ if m <= n, JᵀJ otherwise) by a
 Cholesky solve where J is well conditioned (cond(J) <= eps^(-1/4): relative error below √eps), and by an
-SVD with a relative cutoff otherwise: singular values below √eps·σ_max count as zero (``numpy.linalg.pinv(J, rcond)``
-with ``rcond`` = :func:`rcond`) — so one singular row never fails (or spoils) a batch. Gradients are exact where the
-rank is locally constant (autograd through the solve; the closed form
+SVD with a relative cutoff otherwise: singular values below √eps·σ_max count as zero (as
+``numpy.linalg.pinv(J, rcond)`` with ``rcond`` = :func:`rcond`) — so one singular row never fails (or
+spoils) a batch. Gradients are exact where the rank is locally constant (autograd through the solve; the
+closed form
 dJ† = −J†dJ J† + J†J†ᵀdJᵀ(I − JJ†) + (I − J†J)dJᵀJ†ᵀJ† on the SVD rows), finite everywhere.
 
 The damped inverse (3.59) with damping k² above the rounding level of JJᵀ (k² > eps·‖J‖²_F) is the
@@ -30,7 +31,8 @@ __all__ = ["pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"]
 
 
 def _needs_grad(x: Tensor) -> bool:
-    wrapped = type(x) not in (Tensor, torch.nn.Parameter) or torch._C._functorch.is_functorch_wrapped_tensor(x)
+    plain = type(x) in (Tensor, torch.nn.Parameter)
+    wrapped = not plain or torch._C._functorch.is_functorch_wrapped_tensor(x)
     return wrapped or (torch.is_grad_enabled() and x.requires_grad)
 
 

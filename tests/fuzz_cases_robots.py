@@ -65,6 +65,18 @@ def poses(chain_of, *, steps: int | None = None, positions: bool = False):
     return make
 
 
+def matrix(m: int, n: int, rank: int | None = None):
+    """``make`` for random (..., m, n) matrices, of the given rank (a product of two random factors)."""
+
+    def make(gen, batch, dtype):
+        if rank is None:
+            return uniform(m, n)(gen, batch, dtype)
+        A = torch.randn(*batch, m, rank, generator=gen, dtype=torch.float64)
+        return (A @ torch.randn(*batch, rank, n, generator=gen, dtype=torch.float64)).to(dtype)
+
+    return make
+
+
 def positive(*trailing: int, low: float = 0.5, high: float = 2.0):
     return uniform(*trailing, low=low, high=high)
 
@@ -104,10 +116,10 @@ def honest(chain, T_target, res, position_only: bool, ptol: float, otol: float):
             R = T[..., :3, :3].mT @ Td[..., :3, :3]
             cos = ((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
             ok &= torch.arccos(cos) <= otol + 1e-3 * float(torch.finfo(chain.dtype).eps) ** 0.5 + 1e-6
-        if chain.q_limits is not None:
-            ok &= chain.within_limits(res.q.detach(), tol=1e-6)
         if ok.ndim > res.success.ndim:  # K end links
             ok = ok.all(-1)
+        if chain.q_limits is not None:
+            ok &= chain.within_limits(res.q.detach(), tol=1e-6)
         bad = res.success & ~ok
         assert not bool(bad.any()), f"{int(bad.sum())} targets flagged successful outside the tolerances"
     return res
@@ -159,7 +171,8 @@ CASES: list[Case] = [
          {"q": Arg(joints(hand), (16,))}, chain=hand, follows_chain=True,
          covers=KinematicChain.forward_kinematics),
     Case("chain.forward", lambda c, q: c(q), {"q": Q}, **CH, covers=KinematicChain.forward),
-    Case("chain.fk_jacobian", lambda c, q: c.fk_jacobian(q), {"q": Q}, **CH, covers=KinematicChain.fk_jacobian),
+    Case("chain.fk_jacobian", lambda c, q: c.fk_jacobian(q), {"q": Q}, **CH,
+         covers=KinematicChain.fk_jacobian),
     Case("chain.joint_axes_origins", lambda c, q: c.joint_axes_origins(q), {"q": Q}, **CH,
          covers=KinematicChain.joint_axes_origins),
     Case("chain.geometric_jacobian", lambda c, q: c.geometric_jacobian(q), {"q": Q}, **CH,
@@ -189,24 +202,35 @@ CASES: list[Case] = [
          {"a": Arg(dh_column(0), (7,), batched=False), "alpha": Arg(dh_column(1), (7,), batched=False),
           "d": Arg(dh_column(2), (7,), batched=False), "theta": Arg(dh_column(3), (7,), batched=False)},
          out_batch=None, covers=DHChain),
-    # --- redundancy (the pinv family)
-    Case("redundancy.pinv", redundancy.pinv, {"J": Arg(uniform(6, 7), (6, 7))}),
-    Case("redundancy.pinv[tall]", redundancy.pinv, {"J": Arg(uniform(6, 4), (6, 4))}, covers=redundancy.pinv),
+    # --- redundancy (the pinv family). J of any (m, n) is valid input (a changed trailing size is another
+    # valid J), so J has no shape mutation; the shape rules are between J and the other arguments.
+    Case("redundancy.pinv", redundancy.pinv, {"J": Arg(matrix(6, 7))}),
+    Case("redundancy.pinv[tall]", redundancy.pinv, {"J": Arg(matrix(6, 4))}, covers=redundancy.pinv),
+    Case("redundancy.pinv[singular]", redundancy.pinv, {"J": Arg(matrix(6, 7, rank=4))},
+         covers=redundancy.pinv),
     Case("redundancy.damped_pinv", redundancy.damped_pinv,
-         {"J": Arg(uniform(6, 7), (6, 7)), "damping": Arg(positive(low=0.01, high=0.1))}),
+         {"J": Arg(matrix(6, 7)), "damping": Arg(positive(low=0.01, high=0.1))}),
+    Case("redundancy.damped_pinv[zero damping]", redundancy.damped_pinv,
+         {"J": Arg(matrix(6, 7, rank=3)), "damping": Arg(lambda g, b, dt: torch.zeros(b, dtype=dt))},
+         covers=redundancy.damped_pinv),
     Case("redundancy.damped_pinv[adaptive]", redundancy.damped_pinv,
-         {"J": Arg(uniform(6, 7), (6, 7)), "damping": Arg(positive(low=0.01, high=0.1))},
+         {"J": Arg(matrix(6, 7)), "damping": Arg(positive(low=0.01, high=0.1))},
          fixed={"threshold": 0.1}, covers=redundancy.damped_pinv),
     Case("redundancy.weighted_pinv", redundancy.weighted_pinv,
-         {"J": Arg(uniform(6, 7), (6, 7)), "W": Arg(positive(7), (7,))}),
+         {"J": Arg(matrix(6, 7)), "W": Arg(positive(7), (7,))}),
+    # W (..., 7, 7) with a dimension dropped is (..., 7): the diagonal form, valid input (refused here only
+    # because the rows of a diagonal matrix hold zeros, not by shape) -> no shape mutation for W
     Case("redundancy.weighted_pinv[matrix]", lambda J, W: redundancy.weighted_pinv(J, W, damping=0.01),
-         {"J": Arg(uniform(3, 7), (3, 7)), "W": Arg(lambda g, b, dt: torch.diag_embed(positive(7)(g, b, dt)),
-                                                    (7, 7))},
-         covers=redundancy.weighted_pinv),
-    Case("redundancy.nullspace_projector", redundancy.nullspace_projector, {"J": Arg(uniform(6, 7), (6, 7))}),
+         {"J": Arg(matrix(3, 7, rank=2)),
+          "W": Arg(lambda g, b, dt: torch.diag_embed(positive(7)(g, b, dt)), (7, 7))},
+         skip=("shape:W",), covers=redundancy.weighted_pinv),
+    Case("redundancy.nullspace_projector", redundancy.nullspace_projector, {"J": Arg(matrix(6, 7, rank=5))}),
     # --- ik
-    Case("ik.dls_delta", ik.dls_delta, {"J": Arg(uniform(6, 7), (6, 7)), "err": Arg(uniform(6), (6,))},
+    Case("ik.dls_delta", ik.dls_delta, {"J": Arg(matrix(6, 7)), "err": Arg(uniform(6), (6,))},
          fixed={"damping": 0.05}),
+    Case("ik.dls_delta[zero damping]", ik.dls_delta,
+         {"J": Arg(matrix(6, 7, rank=3)), "err": Arg(uniform(6), (6,))},
+         fixed={"damping": 0.0}, covers=ik.dls_delta),
     Case("ik.dls_step", lambda c, q, T: ik.dls_step(c, q, T), {"q": Q, "T_target": Arg(poses(panda), (4, 4))},
          **CH, covers=ik.dls_step),
     Case("ik.dls_step[position_only]", lambda c, q, p: ik.dls_step(c, q, p, position_only=True),
@@ -223,16 +247,24 @@ CASES: list[Case] = [
          covers=ik.optimize),
     Case("ik.clik", lambda c, q0, xd: ik.clik(c, q0, (xd,), 0.01, 3), {"q0": Q, "x_d": Arg(
         poses(panda, steps=3), (3, 4, 4))}, **CH, out_batch=lambda r: r.q, covers=ik.clik),
+    # S = 4 samples, not 3 like the batch: an (S, 6) derivative without batch dims is valid input
     Case("ik.clik[second_order]", lambda c, q0, xd, vd: ik.clik(c, q0, (xd, vd), 0.01, 3,
                                                                  algorithm="second_order"),
-         {"q0": Q, "x_d": Arg(poses(panda, steps=3), (3, 4, 4)), "xdot_d": Arg(uniform(3, 6), (3, 6))},
+         {"q0": Q, "x_d": Arg(poses(panda, steps=4), (4, 4, 4)), "xdot_d": Arg(uniform(4, 6), (4, 6))},
          **CH, out_batch=lambda r: r.q, covers=ik.clik),
     Case("ik.closed_form", lambda c, T: ik.closed_form(c, T), {"T": Arg(poses(ur5), (4, 4))}, chain=ur5,
          follows_chain=True, covers=ik.closed_form),
     Case("ik.joint_limit_objective", ik.joint_limit_objective,
-         {"q": Q, "lower": Arg(limits(0), (7,), batched=False), "upper": Arg(limits(1), (7,), batched=False)}),
+         {"q": Q, "lower": Arg(limits(0), (7,), batched=False),
+          "upper": Arg(limits(1), (7,), batched=False)}),
     Case("ik.joint_trajectory_from_poses", lambda c, T, q0: ik.joint_trajectory_from_poses(c, T, q0),
-         {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4)), "q0": Q}, **CH, covers=ik.joint_trajectory_from_poses),
+         {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4)), "q0": Q}, **CH,
+         covers=ik.joint_trajectory_from_poses),
+    Case("ik.joint_trajectory_from_poses[solve]",
+         lambda c, T, q0: ik.joint_trajectory_from_poses(c, T, q0, method="solve", num_seeds=2, seed=0,
+                                                          max_iterations=6),
+         {"T_traj": Arg(poses(panda, steps=2), (2, 4, 4)), "q0": Q}, **CH,
+         covers=ik.joint_trajectory_from_poses),
     Case("ik.finite_difference_twists", lambda T: ik.finite_difference_twists(T, 0.1),
          {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4))}, covers=ik.finite_difference_twists),
     Case("ik.refine_path", lambda T: ik.refine_path(T, 2), {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4))},
