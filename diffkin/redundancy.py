@@ -31,6 +31,8 @@ __all__ = ["pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"]
 
 
 def _needs_grad(x: Tensor) -> bool:
+    if torch.compiler.is_compiling():
+        return True
     plain = type(x) in (Tensor, torch.nn.Parameter)
     wrapped = not plain or torch._C._functorch.is_functorch_wrapped_tensor(x)
     return wrapped or (torch.is_grad_enabled() and x.requires_grad)

@@ -236,8 +236,14 @@ def test_summary_and_str():
     _, T = targets(chain, (10,), seed=11)
     res = solve(chain, T, seed=0)
     s = res.summary()
-    assert s["targets"] == 10 and 0.0 <= s["success_rate"] <= 1.0
-    assert "success" in str(res)
+    ok = res.success
+    assert s["targets"] == 10
+    assert s["success_rate"] == pytest.approx(ok.double().mean().item())  # the fraction of the flags
+    assert s["median_position_error"] == pytest.approx(res.position_error.median().item())
+    assert s["max_position_error_success"] == pytest.approx(res.position_error[ok].max().item())
+    assert s["max_position_error_success"] <= 1e-4 and s["max_orientation_error_success"] <= 1e-3
+    assert s["mean_seeds_tried"] == pytest.approx(res.seeds_tried.double().mean().item())
+    assert f"{100 * s['success_rate']:.2f} %" in str(res)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

@@ -360,6 +360,15 @@ class _Config(NamedTuple):
     objective: Callable | None
     k0: float
     k_d0: float
+    qdot_max: float
+
+
+def _qdot_max(v, dt: float) -> float:
+    if v is None:
+        return math.pi / (4.0 * dt)
+    if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+        raise NonFiniteError(f"qdot_max must be a finite positive number, got {v!r}")
+    return float(v)
 
 
 def _make_task(chain, orientation, convention, rows) -> _Task:
@@ -392,6 +401,7 @@ def clik(
     k_d0: float = 0.0,
     q_limits=None,
     qdot0: Tensor | None = None,
+    qdot_max: float | None = None,
     clamp: bool = False,
     return_poses: bool = False,
     differentiable: bool | None = None,
@@ -417,6 +427,9 @@ def clik(
             ``"joint_limits"`` or a callable w(q) -> (...); k0: its gain (3.55); k_d0: damping of the
             null-space acceleration (second order). q_limits: ``(n, 2)`` limits for ``"joint_limits"``
             (default the chain's). qdot0: initial q̇ for the second order (default J†ẋ_d(0)).
+        qdot_max: bound on |q̇| per joint of the second-order integrator (default π/(4Δt), a quarter turn
+            per step: never reached by a run that converges; it keeps a diverging one — gains too high for
+            the error, a pass near a singularity — finite, with its errors reported as they are).
         clamp: project q onto the chain's joint limits after each step. return_poses: keep the poses.
         differentiable: record the autograd graph through all the steps (w.r.t. q0, the target and the
             chain's DH parameters). Default: only when grad mode is on and q0 or a target tensor requires
@@ -451,6 +464,7 @@ def clik(
         _objective(nullspace, chain, task, q_limits),
         float(k0),
         float(k_d0),
+        _qdot_max(qdot_max, dt),
     )
     if differentiable is None:
         given = [q] + ([] if callable(target) else [v for v in _as_tuple(target) if isinstance(v, Tensor)])
@@ -477,6 +491,7 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
         if cfg.algorithm == "second_order":
             if qd is None:
                 qd = _mv(pinv(J_t[..., list(task.rows), :]), v_ff[..., list(task.rows)].expand(*batch, -1))
+                qd = qd.clamp(-cfg.qdot_max, cfg.qdot_max)
             qd = qd.expand(*batch, n)
             qdd = _second_order(cfg, chain, q, qd, J_t, e, v_ff, _feed(a_d, task.size, q))
         else:
@@ -488,8 +503,8 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
             Ts.append(T.expand(*batch, 4, 4))
         if k < steps:
             q_next = q + qd * dt  # (3.48)
-            if cfg.algorithm == "second_order":
-                qd = qd + qdd * dt
+            if cfg.algorithm == "second_order":  # q̇ bounded: a diverging run stays finite
+                qd = (qd + qdd * dt).clamp(-cfg.qdot_max, cfg.qdot_max)
             q = chain.clamp_to_limits(q_next, check=False) if clamp else q_next
     err = torch.stack(es, dim=-2)
     pos = torch.tensor([r < 3 for r in task.rows], device=err.device)
