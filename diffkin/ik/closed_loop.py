@@ -40,14 +40,13 @@ from .._numerics import eps_for, safe_norm, wrap_angle
 from ..errors import ConventionError, ModelError, NonFiniteError, ShapeError
 from ..jacobian import (
     _inverse3,
-    damped_pinv,
     forward_kinematics_and_jacobian,
     geometric_to_analytical,
     jacobian_dot_qdot,
     manipulability,
-    pinv,
 )
 from ..kernels.pose_error import orientation_error as _orientation_error
+from ..redundancy import _damped, _pinv
 from ..rotations import (
     _convention,
     _euler_rate_matrix,
@@ -327,7 +326,7 @@ def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
         v_o = _solve_L(L, _mv(L.mT, v_ff[..., 3:].expand_as(Ge[..., 3:])) + Ge[..., 3:])
         v = torch.cat(torch.broadcast_tensors(v[..., :3], v_o), dim=-1)
     J_s = J_t[..., rows, :]
-    J_inv = damped_pinv(J_s, cfg.damping) if cfg.algorithm == "dls" else pinv(J_s)
+    J_inv = _damped(J_s, cfg.damping * cfg.damping) if cfg.algorithm == "dls" else _pinv(J_s)
     qd = _mv(J_inv, v[..., rows])
     if cfg.objective is not None:  # (3.72) with (3.55)
         qd = qd + _nullspace_term(J_inv, J_s, cfg.k0 * _gradient(cfg.objective, q))
@@ -340,7 +339,7 @@ def _second_order(cfg, chain, q, qd, J_t, e, v_ff, a_ff) -> Tensor:
     e_dot = v_ff - _mv(J_t, qd)  # ė = ẋ_d − J q̇ (3.68)
     a = a_ff + _mv(cfg.K_D, e_dot) + _mv(cfg.K_P, e) - _jdot_qdot(chain, q, qd, cfg.task)
     J_s = J_t[..., rows, :]
-    J_inv = pinv(J_s)
+    J_inv = _pinv(J_s)
     qdd = _mv(J_inv, a[..., rows])
     if cfg.objective is not None or cfg.k_d0 != 0.0:
         qdd0 = -cfg.k_d0 * qd
@@ -490,7 +489,7 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
             q = q.expand(*batch, n)
         if cfg.algorithm == "second_order":
             if qd is None:
-                qd = _mv(pinv(J_t[..., list(task.rows), :]), v_ff[..., list(task.rows)].expand(*batch, -1))
+                qd = _mv(_pinv(J_t[..., list(task.rows), :]), v_ff[..., list(task.rows)].expand(*batch, -1))
                 qd = qd.clamp(-cfg.qdot_max, cfg.qdot_max)
             qd = qd.expand(*batch, n)
             qdd = _second_order(cfg, chain, q, qd, J_t, e, v_ff, _feed(a_d, task.size, q))
