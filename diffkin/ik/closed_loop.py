@@ -11,8 +11,10 @@ computes q̇ (or q̈) with one of the book's laws and integrates with (3.48), q(
 ``"second_order"``    q̈ = J†(ẍ_d + K_D ė + K_P e − J̇q̇) + (I − J†J) q̈₀  (3.102)/(3.104)
 ====================  ====================================================================================
 
-J⁻¹ and J† are :func:`diffkin.jacobian.pinv` (regularised at the level of rounding, so a singular J gives
-large but finite velocities instead of NaN). The orientation error and the matching Jacobian (§3.7.3):
+J⁻¹ and J† are the Moore–Penrose inverse of :func:`diffkin.jacobian.pinv` (singular values below √eps·σ_max
+count as zero, so a singular J gives finite velocities, never NaN); the second-order integrator also bounds
+|q̇| (``qdot_max``), so every algorithm stays finite from any start. The orientation error and the matching
+Jacobian (§3.7.3):
 
 - ``None``: position only, e = p_d − p_e (3.78) with J_P;
 - ``"euler"``: e_O = φ_d − φ_e (3.80) (wrapped to (−π, π]) with the analytical Jacobian (3.66), law (3.82);
