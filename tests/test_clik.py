@@ -332,4 +332,6 @@ def test_clik_refuses_non_finite_targets():
     with pytest.raises(NonFiniteError):
         clik(planar, Q0_BOOK, lambda t: (bad[0],), DT, 3, **POSITION)
     with pytest.raises(ShapeError):  # a derivative of the wrong size is refused, not cut
-        clik(planar, Q0_BOOK, (x, torch.zeros(1, 6, dtype=F64)), DT, **POSITION)
+        clik(planar, Q0_BOOK, (x, torch.zeros(1, 5, dtype=F64)), DT, **POSITION)
+    with pytest.raises(ShapeError):
+        clik(planar, Q0_BOOK, (torch.zeros(1, 4, dtype=F64),), DT, **POSITION)

@@ -97,24 +97,28 @@ _TARGET_NAMES = ("x_d", "xdot_d", "xddot_d")
 
 def _target_tensors(values, task: _Task, like: Tensor, time_axis: bool) -> tuple:
     """(x_d, ẋ_d, ẍ_d) by the rule of :mod:`diffkin.validation` (the chain's dtype and device, finite) with
-    exact trailing shapes: x_d a pose (4, 4) or the task vector (3, or 6 = [p; φ] for ``"euler"``),
-    derivatives the task vector; with ``time_axis`` each with the same number S of samples before it."""
+    exact trailing shapes: x_d a pose (4, 4) or the task vector (6 = [p; φ] for ``"euler"``; 3 = p, or a
+    6-vector [p; φ] whose position part is used, for position only), derivatives likewise; with
+    ``time_axis`` each with the same number S of samples before it."""
     values = (tuple(values) + (None, None))[:3]
     x, v, a = tensors(*((n, t, None) for n, t in zip(_TARGET_NAMES, values)), like=like)
-    vec = 6 if task.orientation == "euler" else 3
+    sizes = (6,) if task.orientation == "euler" else (3, 6)
     pose = x.ndim >= 2 and tuple(x.shape[-2:]) == (4, 4)
     if not pose:
         if task.orientation in ("axis_angle", "quaternion"):
             raise ShapeError(f"orientation={task.orientation!r} needs x_d poses "
                              f"(..., {'S, ' * time_axis}4, 4), got {shape_str(x.shape)}")
-        check_trailing(x, (vec,), "x_d")
+        if x.ndim == 0 or x.shape[-1] not in sizes:
+            raise ShapeError(f"expected x_d of shape (..., {' or '.join(map(str, sizes))}) (or poses "
+                             f"(..., 4, 4)), got {shape_str(x.shape)}")
     lead = 1 + (2 if pose else 1)
     if time_axis and x.ndim < lead:
         raise ShapeError(f"expected x_d with a time axis, (..., S, 4, 4) or (..., S, {vec}), got "
                          f"{shape_str(x.shape)}")
     for name, d in zip(_TARGET_NAMES[1:], (v, a)):
         if d is not None:
-            check_trailing(d, (x.shape[-lead], task.size) if time_axis else (task.size,), name)
+            size = 6 if task.size == 3 and d.ndim and d.shape[-1] == 6 else task.size  # [ṗ; ω] for p only
+            check_trailing(d, (x.shape[-lead], size) if time_axis else (size,), name)
     return x, v, a
 
 
@@ -162,10 +166,10 @@ def _split_desired(task: _Task, x: Tensor):
 
 
 def _feed(v: Tensor | None, size: int, like: Tensor) -> Tensor:
-    """A validated target derivative (..., size), or zeros."""
+    """A validated target derivative (..., size or 6), its first ``size`` components, or zeros."""
     if v is None:
         return torch.zeros(size, dtype=like.dtype, device=like.device)
-    return v
+    return v[..., :size]
 
 
 # ------------------------------------------------------------------------------- error and Jacobian
