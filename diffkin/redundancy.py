@@ -45,11 +45,11 @@ def rcond(dtype: torch.dtype) -> float:
     return eps_for(dtype) ** 0.5
 
 
-def _svd_pinv(A: Tensor) -> Tensor:
-    """Moore–Penrose inverse ``(k, c, r)`` of ``A (k, r, c)`` by SVD with the cutoff :func:`rcond` (no
-    grad)."""
+def _svd_pinv(A: Tensor, rtol: float) -> Tensor:
+    """Moore–Penrose inverse ``(k, c, r)`` of ``A (k, r, c)`` by SVD, singular values below rtol·σ_max
+    counting as zero (no grad)."""
     U, S, Vh = torch.linalg.svd(A, full_matrices=False)
-    cutoff = rcond(A.dtype) * S[..., :1]
+    cutoff = rtol * S[..., :1]
     inv = torch.where(S > cutoff, 1.0 / torch.where(S > cutoff, S, torch.ones_like(S)), torch.zeros_like(S))
     return (Vh.mT * inv[..., None, :]) @ U.mT
 
@@ -65,29 +65,39 @@ def _first_order(X0: Tensor, A: Tensor) -> Tensor:
 
 
 def _pinv_wide(A: Tensor) -> Tensor:
-    """A† ``(..., c, r)`` of ``A (..., r, c)``, r <= c: Aᵀ(AAᵀ)⁻¹ where well conditioned, else the SVD."""
+    """A† ``(..., c, r)`` of ``A (..., r, c)``, r <= c: Aᵀ(AAᵀ)⁻¹ where well conditioned, else the SVD.
+
+    float32 input is worked in float64 (the Gram matrix squares the condition number) and the result
+    returned in float32; the rank cutoff is that of the input's dtype (:func:`rcond`)."""
     r, c = A.shape[-2:]
     batch = A.shape[:-2]
+    dtype, work = A.dtype, torch.float64 if A.dtype == torch.float32 else A.dtype
     A2 = A.reshape(-1, r, c)
+    # Gram rows: cond(A) below both the working precision's eps^(-1/4) and the rank cutoff 1/rcond
+    kappa2_max = min(eps_for(work) ** -0.5, rcond(dtype) ** -2)
     with torch.no_grad():
-        Ad = A2.detach()
+        Ad = A2.detach().to(work)
         L, info = torch.linalg.cholesky_ex(Ad @ Ad.mT)
-        Li = torch.linalg.solve_triangular(L, torch.eye(r, dtype=A.dtype, device=A.device), upper=False)
-        X = (Li @ Ad).mT @ Li  # Aᵀ(AAᵀ)⁻¹ = (L⁻¹A)ᵀL⁻¹
+        Li = torch.linalg.solve_triangular(L, torch.eye(r, dtype=work, device=A.device), upper=False)
+        X = ((Li @ Ad).mT @ Li).to(dtype)  # Aᵀ(AAᵀ)⁻¹ = (L⁻¹A)ᵀL⁻¹
         # tr(AAᵀ)·tr((AAᵀ)⁻¹) is between cond(A)² and r²·cond(A)²: the Gram solve's error is eps·cond(A)²
         kappa2 = (Ad * Ad).sum((-2, -1)) * (Li * Li).sum((-2, -1))
-        bad = (info != 0) | ~torch.isfinite(kappa2) | (kappa2 > eps_for(A) ** -0.5)
+        bad = (info != 0) | ~torch.isfinite(kappa2) | (kappa2 > kappa2_max)
         any_bad = bool(bad.any()) if A2.shape[0] else False
+
+    def gram(M: Tensor) -> Tensor:  # differentiable Aᵀ(AAᵀ)⁻¹ in the working dtype
+        Mw = M.to(work)
+        return torch.linalg.solve(Mw @ Mw.mT, Mw).mT.to(dtype)
+
     if not any_bad:
         if not _needs_grad(A2):
             return X.reshape(*batch, c, r)
-        return torch.linalg.solve(A2 @ A2.mT, A2).mT.reshape(*batch, c, r)
-    dummy = torch.eye(r, c, dtype=A.dtype, device=A.device)
+        return gram(A2).reshape(*batch, c, r)
+    dummy = torch.eye(r, c, dtype=dtype, device=A.device)
     A_safe = torch.where(bad[:, None, None], dummy, A2)  # the Gram path's graph stays finite
-    X_gram = torch.linalg.solve(A_safe @ A_safe.mT, A_safe).mT if _needs_grad(A2) else \
-        torch.where(bad[:, None, None], torch.zeros_like(X), X)
+    X_gram = gram(A_safe) if _needs_grad(A2) else torch.where(bad[:, None, None], torch.zeros_like(X), X)
     Ab = A2[bad]
-    X_svd = _svd_pinv(Ab.detach())
+    X_svd = _svd_pinv(Ab.detach().to(work), rcond(dtype)).to(dtype)
     if _needs_grad(Ab):
         X_svd = _first_order(X_svd, Ab)
     full = torch.zeros_like(X_gram)

@@ -113,7 +113,7 @@ def _target_tensors(values, task: _Task, like: Tensor, time_axis: bool) -> tuple
                              f"(..., 4, 4)), got {shape_str(x.shape)}")
     lead = 1 + (2 if pose else 1)
     if time_axis and x.ndim < lead:
-        raise ShapeError(f"expected x_d with a time axis, (..., S, 4, 4) or (..., S, {vec}), got "
+        raise ShapeError(f"expected x_d with a time axis, (..., S, 4, 4) or (..., S, {sizes[-1]}), got "
                          f"{shape_str(x.shape)}")
     for name, d in zip(_TARGET_NAMES[1:], (v, a)):
         if d is not None:
