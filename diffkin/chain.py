@@ -30,13 +30,13 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from .errors import ConventionError, DTypeError, ModelError, ShapeError
+from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
 from .kernels.tree import Segments, Topology, column_frames, matrix_frames
 from .transforms import as_rigid_transform
-from .validation import check_finite, shape_str
+from .validation import SUPPORTED_DTYPES, as_tensor, check_dtype, check_finite, shape_str, tensors
 
 __all__ = ["KinematicChain", "DHChain", "as_rigid_transform"]
 
@@ -44,25 +44,38 @@ _CONVENTIONS = ("standard", "modified")
 _CHUNK = 8192  # configurations per thread and slice of a large CPU batch (fk_jacobian)
 
 
-def _first_float_dtype(*xs) -> torch.dtype | None:
-    for x in xs:
-        if isinstance(x, Tensor) and x.is_floating_point():
-            return x.dtype
-    return None
-
-
-def _as_param(x, n: int, name: str, dtype: torch.dtype, device) -> Tensor:
-    if isinstance(x, Tensor):
-        t = x.detach().to(dtype=dtype, device=device).clone()
+def _dh_columns(columns: dict, dtype: torch.dtype | None, device) -> dict[str, Tensor | None]:
+    """The DH columns by the rule of :mod:`diffkin.validation` (one float dtype; numbers and numpy arrays
+    converted; finite), each ``(n,)`` or a 0-d value for every joint. An explicit ``dtype`` converts float
+    tensors of the other float dtype (the caller asked for it)."""
+    if dtype is not None:
+        columns = {k: check_dtype(v, k).detach().to(dtype) if isinstance(v, Tensor) else v
+                   for k, v in columns.items()}
+        like = torch.empty(0, dtype=dtype, device=device)
+        if device is None:
+            like = next((v for v in columns.values() if isinstance(v, Tensor)), like)
+            like = torch.empty(0, dtype=dtype, device=like.device)
     else:
-        t = torch.as_tensor(x, dtype=dtype, device=device)
-    if t.ndim == 0:
-        t = t.expand(n).clone()
-    if t.shape != (n,):
-        raise ModelError(f"DH parameter {name} must have shape ({n},), got {shape_str(t.shape)}")
-    if not bool(torch.isfinite(t).all()):
-        raise ModelError(f"DH parameter {name} contains NaN or inf")
-    return t
+        like = None
+    out = tensors(*((k, v, None) for k, v in columns.items()), like=like)
+    if device is not None:
+        out = tuple(None if t is None else t.to(device) for t in out)
+    a = out[0]
+    if a.ndim != 1:
+        raise ShapeError(f"expected the DH column a of shape (n,), got {shape_str(a.shape)}")
+    n = a.shape[0]
+    if n == 0:
+        raise ModelError("a DH chain needs at least one joint")
+    cols = {}
+    for name, t in zip(columns, out):
+        if t is not None:
+            t = t.detach().expand(n) if t.ndim == 0 else t.detach()
+            if t.shape != (n,):
+                raise ShapeError(f"expected {name} of shape ({n},) like a (one value per joint), got "
+                                 f"{shape_str(t.shape)}")
+            t = t.clone()
+        cols[name] = t
+    return cols
 
 
 def _is_plain(t: Tensor) -> bool:
@@ -108,7 +121,8 @@ class KinematicChain(nn.Module):
         self.tool_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
         if q_limits is not None:
             lim = q_limits.detach() if isinstance(q_limits, Tensor) else q_limits
-            lim = torch.as_tensor(lim, dtype=dtype, device=device).clone()
+            lim = as_tensor(lim, "q_limits", dtype=dtype, device=device)
+            lim = lim.to(dtype=dtype, device=device).clone()
             if lim.shape != (n, 2):
                 raise ModelError(f"q_limits must have shape ({n}, 2), got {shape_str(lim.shape)}")
             # ±inf marks a joint without limit (a URDF continuous joint); NaN is never a limit
@@ -155,6 +169,13 @@ class KinematicChain(nn.Module):
             self._zero_key[which], self._zero[which] = key, not bool(delta.detach().any())
         return self._zero[which]
 
+    def _fixed_transform(self, T, name: str) -> Tensor:
+        """A base or tool ``(4, 4)`` by the rule (the chain's dtype and device), checked rigid."""
+        (T,) = tensors((name, T, (4, 4)), like=self)
+        if T.ndim != 2:
+            raise ShapeError(f"expected {name} of shape (4, 4), got {shape_str(T.shape)}")
+        return as_rigid_transform(T.detach(), name, self.dtype, self.device)
+
     def _pose_property(self, which: str) -> Tensor | None:
         nominal, delta = getattr(self, f"{which}_nominal"), getattr(self, f"{which}_delta")
         if self._delta_is_zero(which, delta):
@@ -169,7 +190,7 @@ class KinematicChain(nn.Module):
 
     @base.setter
     def base(self, T) -> None:
-        self.base_nominal = None if T is None else as_rigid_transform(T, "base", self.dtype, self.device)
+        self.base_nominal = None if T is None else self._fixed_transform(T, "base")
         with torch.no_grad():
             self.base_delta.zero_()
 
@@ -180,7 +201,7 @@ class KinematicChain(nn.Module):
 
     @tool.setter
     def tool(self, T) -> None:
-        self.tool_nominal = None if T is None else as_rigid_transform(T, "tool", self.dtype, self.device)
+        self.tool_nominal = None if T is None else self._fixed_transform(T, "tool")
         with torch.no_grad():
             self.tool_delta.zero_()
 
@@ -268,28 +289,22 @@ class KinematicChain(nn.Module):
         return self._topo
 
     def check_q(self, q, name: str = "q", finite: bool = True) -> Tensor:
-        """Validate a joint tensor ``(..., n)`` for this chain (type, shape, dtype, device, finiteness)."""
-        if not isinstance(q, Tensor):
-            raise DTypeError(
-                f"{name} must be a torch.Tensor of shape (..., {self.n_joints}), got {type(q).__name__}"
-            )
-        if not q.is_floating_point():
-            raise DTypeError(f"{name} must be a floating-point tensor, got {q.dtype}")
-        if q.ndim == 0 or q.shape[-1] != self.n_joints:
-            raise ShapeError(
-                f"expected {name} of shape (..., {self.n_joints}) for chain '{self.name}', "
-                f"got {shape_str(q.shape)}"
-            )
-        if q.dtype != self.dtype:
-            raise DTypeError(
-                f"{name} has dtype {q.dtype} but chain '{self.name}' is {self.dtype}; "
-                f"convert one of them (chain.to({q.dtype}) or q.to({self.dtype}))"
-            )
-        if q.device != self.device:
-            raise DTypeError(f"{name} is on {q.device} but chain '{self.name}' is on {self.device}")
-        if finite and not bool(torch.isfinite(q.detach().sum())):  # one cheap reduction: a finite sum means
-            check_finite(q, name)  # all finite; otherwise the exact (5-pass) check decides (sum overflow)
-        return q
+        """Joint values ``(..., n)`` for this chain by the rule of :mod:`diffkin.validation`: a float tensor
+        of the chain's dtype and device, or numbers / sequences / numpy arrays (converted to them); exact
+        trailing size n (a 0-d value for a one-joint chain); finite (unless ``finite=False``). Returns the
+        tensor. A tensor already of the chain's dtype, device and size costs one reduction (the finiteness
+        check of :func:`~diffkin.validation.check_finite`)."""
+        n = self.n_joints
+        fast = isinstance(q, Tensor) and q.dtype == self.dtype and q.device == self.device and q.ndim > 0 \
+            and q.shape[-1] == n
+        if not fast:
+            (q,) = tensors((name, q, None), like=self, finite=False)
+            if q.ndim == 0 and n == 1:  # one joint: a 0-d value is its q
+                q = q.reshape(1)
+            if q.ndim == 0 or q.shape[-1] != n:
+                raise ShapeError(f"expected {name} of shape (..., {n}) for chain '{self.name}', "
+                                 f"got {shape_str(q.shape)}")
+        return check_finite(q, name) if finite else q
 
     def _out(self, T: Tensor) -> Tensor:
         """Drop the end-link axis ``(..., K, ...)`` of a single-end chain."""
@@ -310,7 +325,7 @@ class KinematicChain(nn.Module):
             ``(..., 4, 4)`` for a chain with one end link, ``(..., K, 4, 4)`` for K end links.
         """
         if check:
-            self.check_q(q)
+            q = self.check_q(q)
         batch = q.shape[:-1]
         if all_frames:
             return self._all_frames(q)
@@ -344,14 +359,14 @@ class KinematicChain(nn.Module):
         joints).
         """
         if check:
-            self.check_q(q)
+            q = self.check_q(q)
         batch = q.shape[:-1]
         if batch.numel() <= self.small_batch or self._grad_needed(q):
             ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
             return axes, origins, self._out(ends)
         qT = q.reshape(-1, self.n_joints).T.contiguous()
         m = qT.shape[1]
-        _, ends, axes = self.batch_last(qT, with_axes=True)
+        _, ends, axes = self.batch_last(qT, with_axes=True, check=False)
         # batch-last (3, J, m) memory handed out as (..., J, 3) views (reshape, not view, to flatten them)
         z = torch.stack([a[0].expand(3, m) for a in axes], dim=1).permute(2, 1, 0)
         o = torch.stack([a[1].expand(3, m) for a in axes], dim=1).permute(2, 1, 0)
@@ -373,7 +388,7 @@ class KinematicChain(nn.Module):
         batch (all operations are per configuration), but the frames and rows stay in cache.
         """
         if check:
-            self.check_q(q)
+            q = self.check_q(q)
         batch, n, K = q.shape[:-1], self.n_joints, self.n_ends
         B, chunk = batch.numel(), _CHUNK * torch.get_num_threads()
         grad = self._grad_needed(q)
@@ -388,7 +403,7 @@ class KinematicChain(nn.Module):
         T, Jout = _new_poses(q, B, K), q.new_empty(B, K, 6, n)
         for start in range(0, B, chunk):
             part = slice(start, min(start + chunk, B))
-            rows, ends = self.batch_last(qT[:, part], with_jacobian=True)
+            rows, ends = self.batch_last(qT[:, part], with_jacobian=True, check=False)
             if K == 1:  # straight into the output (contiguous rows of T)
                 columns_to_matrices(ends[0], T[part, 0])
             else:
@@ -398,18 +413,24 @@ class KinematicChain(nn.Module):
 
     def _batch_last_fk_jacobian(self, qT: Tensor) -> tuple[Tensor, Tensor]:
         """``qT (n, m)`` -> ``(T (m, K, 4, 4), J (m, K, 6, n))`` through the batch-last path."""
-        rows, ends = self.batch_last(qT, with_jacobian=True)
+        rows, ends = self.batch_last(qT, with_jacobian=True, check=False)
         return _poses_from_columns(ends, qT), rows.permute(2, 1, 0).unflatten(1, (self.n_ends, 6))
 
     def batch_last(self, qT: Tensor, with_jacobian: bool = False, constants: bool = True,
-                   with_axes: bool = False):
+                   with_axes: bool = False, check: bool = True):
         """The batch-last kernel for solvers that keep their state batch last (:mod:`diffkin.ik`).
 
         ``qT (n, m)`` -> ``(J, ends)``: ``ends`` the K end frames as columns ``(x, y, z, p)``, each
         ``(3, m)`` or ``(3, 1)``; ``J`` (if ``with_jacobian``) the geometric Jacobian rows ``(n, 6K, m)``
         (row block k for end link k), else None. ``with_axes`` appends the list of J joint ``(axis, origin)``
-        column pairs. No checks: ``qT`` must match the chain's dtype and device.
+        column pairs. ``check``: validate ``qT`` by the rule (solvers pass False on their trusted state).
         """
+        if check:
+            (qT,) = tensors(("qT", qT, None), like=self, finite=False)
+            if qT.ndim != 2 or qT.shape[0] != self.n_joints:
+                raise ShapeError(f"expected qT of shape ({self.n_joints}, m) (joints first, batch last) for "
+                                 f"chain '{self.name}', got {shape_str(qT.shape)}")
+            check_finite(qT, "qT")
         topo = self._topo
         qs = qT.unbind(0)
         ends, axes, _ = column_frames(qs, topo, self._segments(per_joint=True, constants=constants),
@@ -422,7 +443,7 @@ class KinematicChain(nn.Module):
     def _functional_fk(self, qT: Tensor) -> Tensor:
         """End poses ``(m, K, 4, 4)`` from ``qT (n, m)`` without in-place writes or data-dependent branches:
         the function :meth:`compile` traces."""
-        _, ends = self.batch_last(qT, constants=False)
+        _, ends = self.batch_last(qT, constants=False, check=False)
         return torch.stack([stack_columns(tuple(c.expand(3, qT.shape[1]) for c in f)) for f in ends], dim=1)
 
     def compile(self, **kwargs) -> KinematicChain:
@@ -475,7 +496,7 @@ class KinematicChain(nn.Module):
         from .kernels.jacobian import twist_of_derivative
 
         if check:
-            self.check_q(q)
+            q = self.check_q(q)
         named = [(k, p) for k, p in self.named_parameters()]
         flat = torch.cat([p.detach().reshape(-1) for _, p in named])
         sizes = [p.numel() for _, p in named]
@@ -501,15 +522,23 @@ class KinematicChain(nn.Module):
         lo, hi = self.q_limits[:, 0], self.q_limits[:, 1]
         return torch.where(torch.isinf(lo), -span, lo), torch.where(torch.isinf(hi), span, hi)
 
-    def within_limits(self, q: Tensor, tol: float = 0.0) -> Tensor:
-        """Boolean ``(...)``: every joint of ``q`` within its limits (± tol); always True without limits."""
+    def within_limits(self, q: Tensor, tol: float = 0.0, check: bool = True) -> Tensor:
+        """Boolean ``(...)``: every joint of ``q (..., n)`` within its limits (± tol); always True without
+        limits. ``check``: validate ``q`` (:meth:`check_q`)."""
+        if check:
+            q = self.check_q(q)
+            if not (isinstance(tol, int | float) and math.isfinite(tol)):
+                raise NonFiniteError(f"expected tol as a finite number, got {tol!r}")
         if self.q_limits is None:
             return torch.ones(q.shape[:-1], dtype=torch.bool, device=q.device)
         lo, hi = self.q_limits[:, 0], self.q_limits[:, 1]
         return ((q >= lo - tol) & (q <= hi + tol)).all(dim=-1)
 
-    def clamp_to_limits(self, q: Tensor) -> Tensor:
-        """Project ``q (..., n)`` onto the joint limits (identity where the chain has none)."""
+    def clamp_to_limits(self, q: Tensor, check: bool = True) -> Tensor:
+        """Project ``q (..., n)`` onto the joint limits (identity where the chain has none). ``check``:
+        validate ``q`` (:meth:`check_q`; NaN is refused, never clamped)."""
+        if check:
+            q = self.check_q(q)
         if self.q_limits is None:
             return q
         return torch.maximum(torch.minimum(q, self.q_limits[:, 1]), self.q_limits[:, 0])
@@ -598,9 +627,12 @@ class DHChain(KinematicChain):
     β.
 
     ``base`` and ``tool`` are ``(4, 4)`` transforms T^b_0 and T^n_e (2.51), learnable through ``base_delta``
-    and ``tool_delta``; ``q_limits`` is ``(n, 2)``. The chain's dtype is that of the first tensor among a,
-    alpha, d, theta (else ``dtype`` or the default); Python numbers are converted straight to it, so float64
-    tables are exact.
+    and ``tool_delta``; ``q_limits`` is ``(n, 2)``. The DH columns follow the rule of
+    :mod:`diffkin.validation`: float32/float64 tensors of one dtype (mixed dtypes, integer or half tensors
+    raise :class:`~diffkin.errors.DTypeError`; NaN/inf :class:`~diffkin.errors.NonFiniteError`; columns of
+    another length :class:`~diffkin.errors.ShapeError`), numbers and numpy arrays converted. The chain's
+    dtype is ``dtype`` if given (float tensors are then converted to it), else the columns'; Python numbers
+    are converted straight to it, so float64 tables are exact. ``base``/``tool`` follow the chain's dtype.
     """
 
     def __init__(
@@ -620,13 +652,15 @@ class DHChain(KinematicChain):
         dtype: torch.dtype | None = None,
         device=None,
     ):
-        n = int(a.numel()) if isinstance(a, Tensor) else len(a)
-        if n == 0:
-            raise ModelError("a DH chain needs at least one joint")
         if convention not in _CONVENTIONS:
             raise ConventionError(f"convention must be one of {_CONVENTIONS}, got {convention!r}")
         if beta is not None and convention != "standard":
             raise ConventionError("Hayati's beta is defined here for the standard DH convention only")
+        if dtype is not None and dtype not in SUPPORTED_DTYPES:
+            raise DTypeError(f"a chain's dtype must be torch.float32 or torch.float64, got {dtype}")
+        cols = _dh_columns({"a": a, "alpha": alpha, "d": d, "theta": theta, "beta": beta}, dtype, device)
+        n = cols["a"].shape[0]
+        dtype, device = cols["a"].dtype, cols["a"].device
         joint_types = "R" * n if joint_types is None else joint_types
         joint_types = joint_types.upper() if isinstance(joint_types, str) else joint_types
         if not isinstance(joint_types, str) or len(joint_types) != n or set(joint_types) - {"R", "P"}:
@@ -634,17 +668,17 @@ class DHChain(KinematicChain):
                 f"joint_types must be a string of {n} letters 'R' (revolute) or 'P' (prismatic), "
                 f"got {joint_types!r}"
             )
-        dtype = dtype or _first_float_dtype(a, alpha, d, theta) or torch.get_default_dtype()
-        if device is None:
-            device = next((x.device for x in (a, alpha, d, theta) if isinstance(x, Tensor)), None)
         topo = Topology.serial([c == "R" for c in joint_types])
         super().__init__(topo, q_limits=q_limits, name=name, dtype=dtype, device=device)
         self.convention = convention
-        self.a = nn.Parameter(_as_param(a, n, "a", dtype, device))
-        self.alpha = nn.Parameter(_as_param(alpha, n, "alpha", dtype, device))
-        self.d = nn.Parameter(_as_param(d, n, "d", dtype, device))
-        self.theta = nn.Parameter(_as_param(theta, n, "theta", dtype, device))
-        self.beta = None if beta is None else nn.Parameter(_as_param(beta, n, "beta", dtype, device))
+        self.a = nn.Parameter(cols["a"])
+        self.alpha = nn.Parameter(cols["alpha"])
+        self.d = nn.Parameter(cols["d"])
+        self.theta = nn.Parameter(cols["theta"])
+        self.beta = None if beta is None else nn.Parameter(cols["beta"])
+        # the constructor decides the chain's dtype: float base/tool tensors are converted to it
+        base, tool = (check_dtype(T, k).detach().to(dtype) if isinstance(T, Tensor) else T
+                      for k, T in (("base", base), ("tool", tool)))
         self._set_base_tool(base, tool)
 
     def _geometry(self):

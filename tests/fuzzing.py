@@ -70,8 +70,9 @@ class Case:
     ``fixed``: further keyword arguments (not fuzzed). ``out_batch``: maps the result to the tensor whose
     leading dims must equal the call's batch dims (default: the result itself, or the first tensor of a
     tuple/dataclass); ``None`` skips the batch-dims check (results without batch dims).
-    ``like``: None, or a callable giving the object (a chain) whose dtype the call follows — then the
-    ``mixed`` mutation converts the argument away from it.
+    ``chain``: None, or ``chain(dtype)`` giving the object (a chain) of the call's dtype, passed to ``fn`` as
+    its first argument (before the tensor arguments); the ``mixed`` mutation then converts an argument away
+    from the chain's dtype (``follows_chain`` is implied).
     """
 
     name: str
@@ -85,6 +86,7 @@ class Case:
     covers: Callable | None = None  # the public callable this case fuzzes, when ``fn`` is a wrapper
     #: the typed error an empty batch must raise where no result can exist (e.g. calibration from 0 poses)
     empty_raises: type[Exception] | None = None
+    chain: Callable[[torch.dtype], Any] | None = None  # the chain of the call's dtype, fn's first argument
 
     @property
     def target(self) -> Callable:
@@ -95,6 +97,8 @@ class Case:
     def call(self, values: dict[str, Any]):
         pos = [values[k] for k in self.args if k not in self.keyword]
         kw = {k: values[k] for k in self.keyword}
+        if self.chain is not None:
+            pos.insert(0, self.chain(call_dtype()))
         return self.fn(*pos, **kw, **self.fixed)
 
 
@@ -106,7 +110,7 @@ def mutations(case: Case) -> list[str]:
         if a.trailing and any(d is not None for d in a.trailing):
             out.append(f"shape:{name}")
         out += [f"dtype:{name}:{str(d).removeprefix('torch.')}" for d in BAD_DTYPES]
-        if len(case.args) > 1 or case.follows_chain:
+        if len(case.args) > 1 or case.follows_chain or case.chain is not None:
             out.append(f"mixed:{name}")
     return [m for m in out if m.split(":")[0] not in case.skip and m not in case.skip]
 
@@ -239,7 +243,8 @@ def outcome(case: Case, mutation: str, seed: int = 0, dtype: torch.dtype = torch
     if kind == "numpy":
         reference = case.call(reference_values)
         for a, b in zip(_leaves(result), _leaves(reference)):
-            if a.dtype != b.dtype or not torch.allclose(a, b, rtol=case.rtol, atol=case.rtol):
+            if a.dtype != b.dtype or not (torch.allclose(a, b, rtol=case.rtol, atol=case.rtol)
+                                          if a.is_floating_point() else torch.equal(a, b)):
                 return "silent", f"numpy input gave {a.dtype} values unequal to the tensor input's {b.dtype}"
     return "correct", ""
 

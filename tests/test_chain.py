@@ -356,10 +356,20 @@ def test_errors_name_the_problem():
         chain.forward_kinematics(torch.tensor(0.0))
     with pytest.raises(DTypeError, match="float64"):
         chain.forward_kinematics(torch.zeros(2, dtype=F64))
-    with pytest.raises(DTypeError):
-        chain.forward_kinematics([0.0, 0.0])
-    with pytest.raises(DTypeError):
-        chain.forward_kinematics(torch.zeros(2, dtype=torch.int64))
+    # the rule of diffkin.validation: numbers, sequences and numpy arrays are converted to the chain's dtype
+    torch.testing.assert_close(chain.forward_kinematics([0.1, 0.2]),
+                               chain.forward_kinematics(torch.tensor([0.1, 0.2])))
+    T_np = chain.forward_kinematics(np.array([[0.1, 0.2]]))  # a float64 array, a float32 chain
+    assert T_np.dtype == torch.float32 and T_np.shape == (1, 4, 4)
+    for bad in (torch.int64, torch.bool, torch.float16, torch.bfloat16, torch.complex64):
+        with pytest.raises(DTypeError):
+            chain.forward_kinematics(torch.zeros(2, dtype=bad))
+    with pytest.raises(ShapeError, match=r"\(\.\.\., 2\).*got \(3, 2, 1\)"):  # no broadcast of (..., 2, 1)
+        chain.within_limits(torch.zeros(3, 2, 1))
+    one = DHChain([0.5], [0.0], [0.0], [0.0])
+    torch.testing.assert_close(one.forward_kinematics(torch.tensor(0.3)),
+                               one.forward_kinematics(torch.tensor([0.3])))
+    assert chain.forward_kinematics(torch.zeros(0, 2)).shape == (0, 4, 4)
     with pytest.raises(NonFiniteError):
         chain.forward_kinematics(torch.tensor([0.0, float("nan")]))
     with pytest.raises(NonFiniteError):
@@ -373,16 +383,27 @@ def test_construction_errors():
         DHChain([1.0], [0.0], [0.0], [0.0], convention="craig")
     with pytest.raises(ModelError, match="joint_types"):
         DHChain([1.0, 1.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], joint_types="RX")
-    with pytest.raises(ModelError, match=r"alpha must have shape \(2,\)"):
+    with pytest.raises(ShapeError, match=r"alpha of shape \(2,\)"):
         DHChain([1.0, 1.0], [0.0], [0.0, 0.0], [0.0, 0.0])
-    with pytest.raises(ModelError, match="NaN"):
+    with pytest.raises(NonFiniteError, match="a contains NaN"):
         DHChain([1.0, float("nan")], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0])
+    with pytest.raises(DTypeError, match="int64"):  # not silently truncated
+        DHChain(torch.tensor([1, 2]), [0.0, 0.0], [0.0, 0.0], [0.0, 0.0])
+    with pytest.raises(DTypeError, match="float32.*float64|float64.*float32"):
+        DHChain(torch.ones(2), torch.zeros(2, dtype=F64), [0.0, 0.0], [0.0, 0.0])
+    with pytest.raises(DTypeError):
+        DHChain([1.0], [0.0], [0.0], [0.0], dtype=torch.float16)
     with pytest.raises(ModelError, match="q_limits"):
         DHChain([1.0], [0.0], [0.0], [0.0], q_limits=[[1.0, -1.0]])
     with pytest.raises(ModelError, match="rigid"):
         DHChain([1.0], [0.0], [0.0], [0.0], base=2 * torch.eye(4))
-    with pytest.raises(ModelError, match=r"\(4, 4\)"):
+    with pytest.raises(ShapeError, match=r"tool of shape \(\.\.\., 4, 4\), got \(3, 3\)"):
         DHChain([1.0], [0.0], [0.0], [0.0], tool=torch.eye(3))
+    chain = DHChain([1.0], [0.0], [0.0], [0.0])
+    with pytest.raises(NonFiniteError):
+        chain.base = torch.full((4, 4), float("nan"))
+    with pytest.raises(DTypeError):  # a set base follows the chain's dtype
+        chain.base = torch.eye(4, dtype=F64)
     with pytest.raises(ModelError):
         DHChain([], [], [], [])
 
@@ -394,15 +415,26 @@ def test_limits_sampling_and_clamping():
     g = torch.Generator().manual_seed(0)
     q = chain.random_configuration((50, 2), generator=g)
     assert q.shape == (50, 2, 3) and chain.within_limits(q).all()
+    lo_t, hi_t = torch.tensor(lim, dtype=F64).unbind(-1)
+    # uniform over each range: the samples spread over it (not one point, not a corner)
+    span = (q.amax((0, 1)) - q.amin((0, 1))) / (hi_t - lo_t)
+    assert bool((span > 0.9).all()), span
     g2 = torch.Generator().manual_seed(0)
     torch.testing.assert_close(chain.random_configuration((50, 2), generator=g2), q)
     wild = torch.tensor([5.0, -5.0, 0.0], dtype=F64)
     torch.testing.assert_close(chain.clamp_to_limits(wild), torch.tensor([1.0, 0.2, -0.1], dtype=F64))
     assert not chain.within_limits(wild)
+    assert chain.within_limits(wild.new_tensor([1.0 + 1e-9, 0.5, -1.0]), tol=1e-6)
+    assert not chain.within_limits(wild.new_tensor([1.0 + 1e-9, 0.5, -1.0]))
+    torch.testing.assert_close(chain.clamp_to_limits(q), q)  # inside: unchanged
+    with pytest.raises(NonFiniteError):  # NaN is refused, never clamped into the range
+        chain.clamp_to_limits(torch.tensor([float("nan"), 0.5, -1.0], dtype=F64))
     free = DHChain([0.1, 0.1], [0.0] * 2, [0.0] * 2, [0.0] * 2, joint_types="RP")
     lo, hi = free.lower_upper()
     torch.testing.assert_close(hi, torch.tensor([math.pi, 1.0]))
-    assert free.clamp_to_limits(wild[:2]) is not None
+    wild32 = wild[:2].float()
+    torch.testing.assert_close(free.clamp_to_limits(wild32), wild32)  # no limits: the identity
+    assert free.within_limits(wild32) and free.within_limits(wild32[None]).shape == (1,)
 
 
 def test_dh_table_and_module_behaviour():

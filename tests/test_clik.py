@@ -11,7 +11,14 @@ import torch
 from diffkin import models
 from diffkin.chain import DHChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
-from diffkin.ik.closed_loop import CLIK_ORIENTATIONS, _jdot_qdot, _make_task, clik, joint_limit_objective
+from diffkin.ik.closed_loop import (
+    CLIK_ALGORITHMS,
+    CLIK_ORIENTATIONS,
+    _jdot_qdot,
+    _make_task,
+    clik,
+    joint_limit_objective,
+)
 from diffkin.jacobian import analytical_jacobian, geometric_jacobian, manipulability
 from diffkin.rotations import euler_rate_matrix, matrix_to_euler, rot_z
 
@@ -219,7 +226,20 @@ def test_differentiable_through_the_integration(planar):
     chain = planar.copy()
     res = clik(chain, Q0_BOOK, (x, xd), DT, algorithm="inverse", differentiable=True, **PLANAR)
     res.position_error[-1].backward()
-    assert chain.a.grad is not None and torch.isfinite(chain.a.grad).all()
+    # w.r.t. the DH table: central differences of the whole integration with a_i moved by ±h
+    h = 1e-6
+    fd = torch.zeros(3, dtype=F64)
+    for i in range(3):
+        ends = []
+        for sign in (1.0, -1.0):
+            moved = planar.copy()
+            with torch.no_grad():
+                moved.a[i] += sign * h
+                res_h = clik(moved, Q0_BOOK, (x, xd), DT, algorithm="inverse", **PLANAR)
+                ends.append(res_h.position_error[-1])
+        fd[i] = (ends[0] - ends[1]) / (2 * h)
+    assert fd.abs().max() > 1e-3  # a real dependence, not a vanishing one
+    torch.testing.assert_close(chain.a.grad, fd, rtol=1e-3, atol=1e-6)
     assert not clik(planar, Q0_BOOK, (x, xd), DT, **PLANAR).q.requires_grad  # no graph by default
 
 
@@ -258,3 +278,60 @@ def test_bad_input():
         clik(planar, Q0_BOOK, (x[:, :3],), DT, nullspace="distance", **POSITION)
     with pytest.raises(ShapeError):
         clik(planar, Q0_BOOK[:2], (x,), DT, **PLANAR)
+
+
+# ------------------------------------------------------------------------- finite everywhere (#15)
+def _ur5_starts_and_targets():
+    chain = models.load("ur5", dtype=F64)
+    g = torch.Generator().manual_seed(1)
+    starts = torch.cat([torch.zeros(1, 6, dtype=F64),  # q = 0: shoulder/elbow and wrist singular
+                        torch.tensor([[0.3, -1.0, 1.1, 0.2, 0.0, 0.5]], dtype=F64),  # wrist singular (ϑ5 = 0)
+                        chain.random_configuration((50,), generator=g)])  # fmt: skip
+    with torch.no_grad():
+        T = chain.forward_kinematics(chain.random_configuration((52,), generator=g))
+    return chain, starts, T
+
+
+@pytest.mark.parametrize("algorithm", CLIK_ALGORITHMS)
+def test_every_algorithm_stays_finite_from_singular_and_random_starts(algorithm):
+    """Second-order CLIK used to return NaN from step 11 at UR5 q = 0 and from some random starts."""
+    chain, starts, T = _ur5_starts_and_targets()
+    euler = torch.cat((T[:, :3, 3], matrix_to_euler(T[:, :3, :3], "ZYZ")), dim=-1)
+    for orientation in CLIK_ORIENTATIONS:
+        x = {None: T[:, None, :3, 3], "euler": euler[:, None]}.get(orientation, T[:, None])
+        if algorithm == "inverse" and orientation is None:
+            continue  # 3 rows for 6 joints: not square
+        res = clik(chain, starts, (x,), DT, 40, algorithm=algorithm, orientation=orientation)
+        for name in ("q", "qdot", "error", "position_error", "orientation_error"):
+            assert torch.isfinite(getattr(res, name)).all(), (algorithm, orientation, name)
+
+
+def test_default_clik_from_a_stretched_planar_arm():
+    """pinv raised torch's _LinAlgError on the stretched arm, so clik's default did too."""
+    planar = models.load("three_link_planar", dtype=F64)
+    q0 = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]], dtype=F64)
+    x = torch.tensor([0.6, 0.9, 0.2], dtype=F64).expand(2, 1, 3)
+    for algorithm in ("pseudo_inverse", "second_order", "dls"):
+        res = clik(planar, q0, (x,), DT, 50, algorithm=algorithm, orientation=None, rows=(0, 1))
+        assert torch.isfinite(res.q).all() and torch.isfinite(res.qdot).all()
+    res = clik(planar, q0, (x,), DT, 2000, orientation=None, rows=(0, 1))
+    assert (res.position_error[:, -1] < 1e-6).all()  # leaves the singularity and converges
+
+
+def test_clik_refuses_non_finite_targets():
+    from diffkin.errors import NonFiniteError
+
+    planar = models.load("three_link_planar", dtype=F64)
+    x = torch.tensor([[0.6, 0.9, 0.2]], dtype=F64)
+    bad = x.clone()
+    bad[0, 1] = float("nan")
+    with pytest.raises(NonFiniteError):
+        clik(planar, Q0_BOOK, (bad,), DT, **POSITION)
+    with pytest.raises(NonFiniteError):
+        clik(planar, Q0_BOOK, (x, torch.full((1, 3), float("inf"), dtype=F64)), DT, **POSITION)
+    with pytest.raises(NonFiniteError):
+        clik(planar, Q0_BOOK, lambda t: (bad[0],), DT, 3, **POSITION)
+    with pytest.raises(ShapeError):  # a derivative of the wrong size is refused, not cut
+        clik(planar, Q0_BOOK, (x, torch.zeros(1, 5, dtype=F64)), DT, **POSITION)
+    with pytest.raises(ShapeError):
+        clik(planar, Q0_BOOK, (torch.zeros(1, 4, dtype=F64),), DT, **POSITION)

@@ -97,13 +97,28 @@ def test_manipulability_and_custom_terms(panda):
 
 
 def test_joint_limit_cost_keeps_away_from_limits(panda):
-    q_true, T, _ = near_targets(panda, 10, 0.0, seed=4)
+    """The cost (not the projection onto the limits) moves joints out of the margin: the same solve without
+    it (respect_limits=False, so nothing else acts) leaves them where they start, inside the margin."""
     lo, hi = panda.lower_upper()
-    q0 = torch.maximum(torch.minimum(q_true, hi - 0.01), lo + 0.01)
-    res = optimize(panda, T, q0, optimizer="gauss_newton", max_iterations=30,
-                   costs=[JointLimitCost(weight=1.0, margin=0.0)])  # fmt: skip
-    assert panda.within_limits(res.q).all()
-    assert (res.iterations >= 1).all()
+    margin = 0.2
+    g = torch.Generator().manual_seed(4)
+    q0 = panda.random_configuration(10, generator=g)
+    q0[:, 3] = hi[3] - 0.05  # joint 4 within the margin of its upper limit, joint 1 of its lower one
+    q0[:, 0] = lo[0] + 0.02
+    with torch.no_grad():
+        T = panda.forward_kinematics(q0)
+    costs = [PoseCost(weight=1.0), JointLimitCost(weight=100.0, margin=margin)]
+    kw = dict(optimizer="gauss_newton", max_iterations=40, respect_limits=False)
+    res = optimize(panda, T, q0, costs=costs, **kw)
+    plain = optimize(panda, T, q0, costs=[PoseCost(weight=1.0)], **kw)
+    q, qp = res.q.detach(), plain.q.detach()
+
+    def depth(x):  # how far into the margins: 0 when every joint is at least `margin` from its limits
+        return (torch.relu(lo + margin - x) + torch.relu(x - (hi - margin))).amax(-1)
+
+    assert (depth(qp) > 0.1).all()  # the target is met at q0 already: no reason to move
+    assert (depth(q) < 0.5 * depth(q0)).all()  # the cost pushed the joints out of the margin
+    assert (depth(q) < depth(qp) - 0.05).all()
 
 
 def test_position_only_and_batch_shapes(panda):

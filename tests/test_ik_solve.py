@@ -236,8 +236,14 @@ def test_summary_and_str():
     _, T = targets(chain, (10,), seed=11)
     res = solve(chain, T, seed=0)
     s = res.summary()
-    assert s["targets"] == 10 and 0.0 <= s["success_rate"] <= 1.0
-    assert "success" in str(res)
+    ok = res.success
+    assert s["targets"] == 10
+    assert s["success_rate"] == pytest.approx(ok.double().mean().item())  # the fraction of the flags
+    assert s["median_position_error"] == pytest.approx(res.position_error.median().item())
+    assert s["max_position_error_success"] == pytest.approx(res.position_error[ok].max().item())
+    assert s["max_position_error_success"] <= 1e-4 and s["max_orientation_error_success"] <= 1e-3
+    assert s["mean_seeds_tried"] == pytest.approx(res.seeds_tried.double().mean().item())
+    assert f"{100 * s['success_rate']:.2f} %" in str(res)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
@@ -325,3 +331,84 @@ def test_solve_hand_fingertip_positions_and_shape_errors():
         solve(chain, p[:, :3], position_only=True)
     with pytest.raises(ShapeError, match=r"\(\.\.\., 4, 4, 4\)"):
         solve(chain, T[:, 0])
+
+
+# ------------------------------------------------------------------ the input rule and boundary cases (#15)
+@pytest.mark.parametrize("bad", [torch.float16, torch.bfloat16, torch.int64])
+def test_half_and_integer_targets_are_refused(bad):
+    """float16/bfloat16 used to pass and report success 1.4 mm from a 0.1 mm target: now DTypeError."""
+    chain = chain64("panda")
+    _, T = targets(chain, (4,), seed=3)
+    with pytest.raises(DTypeError):
+        solve(chain, T[..., :3, 3].to(bad), position_only=True, seed=0)
+    with pytest.raises(DTypeError):
+        solve(chain.float(), T.to(bad), seed=0)
+
+
+def test_far_target_errors_are_finite_in_float32():
+    """A 1e30 m target: finite errors (an overflow-safe norm), never success."""
+    chain = load("panda", dtype=torch.float32)
+    p = torch.tensor([[1e30, 0.0, 0.0], [0.3, 0.2, 0.5]])
+    res = solve(chain, p, position_only=True, seed=0, num_seeds=4)
+    assert torch.isfinite(res.q).all() and torch.isfinite(res.position_error).all()
+    assert res.position_error[0] == pytest.approx(1e30, rel=1e-3)
+    assert not bool(res.success[0])
+    T = torch.eye(4).expand(2, 4, 4).clone()
+    T[0, 0, 3] = -3e30
+    res = solve(chain, T, seed=0, num_seeds=4)
+    assert torch.isfinite(res.position_error).all() and not bool(res.success[0])
+
+
+def test_empty_batches_give_empty_results():
+    from diffkin.ik import clik, closed_form, optimize, refine_path
+
+    chain = chain64("ur5")
+    T = torch.zeros(0, 4, 4, dtype=F64)
+    for res in (solve(chain, T, seed=0), optimize(chain, T)):
+        assert res.q.shape == (0, 6) and res.success.shape == (0,) and res.position_error.shape == (0,)
+    q0 = torch.zeros(0, 6, dtype=F64)
+    out = clik(chain, q0, (torch.eye(4, dtype=F64).expand(0, 3, 4, 4),), 0.01)
+    assert out.q.shape == (0, 3, 6) and out.position_error.shape == (0, 3)
+    sol = closed_form(chain, T)
+    assert sol.q.shape[0] == 0 and sol.valid.shape[0] == 0
+    assert refine_path(torch.eye(4, dtype=F64).expand(0, 3, 4, 4), 2).shape == (0, 5, 4, 4)
+    assert dls_step(chain, q0, T).shape == (0, 6)
+
+
+def test_numpy_and_numbers_follow_the_chain():
+    chain = chain64("ur5").float()
+    q, T = targets(chain, (3,), seed=5)
+    a = solve(chain, T.numpy().astype(np.float64), seed=0)  # a float64 array to a float32 chain: converted
+    b = solve(chain, T, seed=0)
+    assert a.q.dtype == torch.float32
+    torch.testing.assert_close(a.q, b.q)
+    torch.testing.assert_close(dls_step(chain, q.tolist(), T.numpy()), dls_step(chain, q, T))
+
+
+def test_dls_step_refuses_nan_and_bad_shapes():
+    chain = chain64("ur5")
+    q, T = targets(chain, (3,), seed=6)
+    p = T[..., :3, 3].clone()
+    p[1, 2] = float("nan")
+    with pytest.raises(NonFiniteError):
+        dls_step(chain, q, p, position_only=True)  # used to pass NaN through
+    with pytest.raises(ShapeError):
+        dls_step(chain, q, T[..., :3, :])  # (..., 3, 4) is neither a pose nor a position
+    with pytest.raises(ShapeError):
+        dls_step(chain, q, torch.zeros(3, 4, dtype=F64), position_only=True)
+    with pytest.raises(NonFiniteError):
+        dls_step(chain, q, T, damping=float("nan"))
+    with pytest.raises(NonFiniteError):
+        solve(chain, T, position_tolerance=float("nan"))
+
+
+def test_dls_with_zero_damping_is_finite_at_a_singularity():
+    chain = chain64("ur5")
+    q = torch.zeros(2, 6, dtype=F64)  # UR5 at q = 0: singular
+    q[1] = torch.tensor([0.1, -1.0, 1.2, 0.3, 0.9, 0.2])
+    _, T = targets(chain, (2,), seed=7)
+    out = dls_step(chain, q, T, damping=0.0)
+    assert torch.isfinite(out).all()
+    J = torch.randn(6, 3, dtype=F64) @ torch.randn(3, 7, dtype=F64)  # rank 3
+    e = torch.randn(6, dtype=F64)
+    np.testing.assert_allclose(dls_delta(J, e, 0.0).numpy(), np.linalg.pinv(J.numpy()) @ e.numpy(), atol=1e-9)

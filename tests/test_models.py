@@ -430,3 +430,29 @@ def test_sample_workspace_planar_and_anthropomorphic():
     panda = load("panda")
     pp = models.sample_workspace(panda, 2000)
     assert pp.dtype == torch.float32 and (pp.norm(dim=-1) < 1.2).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.int32, torch.float16, torch.bfloat16, torch.bool])
+def test_a_model_in_another_dtype_is_refused(dtype):
+    """load("panda", dtype=torch.int64) used to return a float32 robot with its DH table truncated."""
+    from diffkin.errors import DTypeError
+
+    with pytest.raises(DTypeError, match="float32 or torch.float64"):
+        load("panda", dtype=dtype)
+    with pytest.raises(DTypeError):
+        models.from_urdf(models.DATA_DIR.parent.parent.parent / "tests" / "data" / "urdf" / "ur10.urdf",
+                         "tool0", dtype=dtype)
+    assert load("panda", dtype=torch.float64).dh_table().dtype == torch.float64
+
+
+@pytest.mark.parametrize("value", ["nan 0 0", "0 inf 0", "0 0 -inf"])
+def test_a_urdf_with_non_finite_origin_is_refused(value):
+    import re
+    from pathlib import Path
+
+    text = (Path(__file__).parent / "data" / "urdf" / "ur10.urdf").read_text()
+    bad = re.sub(r'(<joint name="shoulder_lift_joint".*?<origin[^>]*?xyz=")[^"]*', rf"\g<1>{value}", text,
+                 count=1, flags=re.S)
+    assert bad != text
+    with pytest.raises(ModelError, match="shoulder_lift_joint"):
+        models.from_urdf(bad, "tool0")

@@ -135,3 +135,89 @@ def test_bounded_near_singularity():
         assert torch.linalg.matrix_norm(damped_pinv(J, 0.1), ord=2) <= 1 / (2 * 0.1) + 1e-9
         assert torch.isfinite(pinv(J)).all()
     assert math.isfinite(float(pinv(torch.zeros(2, 3, dtype=F64)).abs().max()))
+
+
+# ----------------------------------------------------------------- rank-deficient J, singular rows (#15)
+def rank_deficient(gen, batch, m, n, r, dtype=F64):
+    A = torch.randn(*batch, m, r, generator=gen, dtype=F64)
+    return (A @ torch.randn(*batch, r, n, generator=gen, dtype=F64)).to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_pinv_matches_numpy_on_random_rank_deficient_matrices(dtype):
+    from diffkin.redundancy import rcond
+
+    g = torch.Generator().manual_seed(0)
+    for _ in range(60):
+        m, n = (int(v) for v in torch.randint(1, 9, (2,), generator=g))
+        r = int(torch.randint(0, min(m, n) + 1, (1,), generator=g))
+        J = rank_deficient(g, (5,), m, n, r, dtype)
+        ref = np.linalg.pinv(J.double().numpy(), rcond=rcond(dtype))
+        scale = max(1.0, float(np.abs(ref).max()))
+        tol = 1e-9 if dtype == F64 else 2e-3
+        np.testing.assert_allclose(pinv(J).double().numpy() / scale, ref / scale, atol=tol)
+        np.testing.assert_allclose(damped_pinv(J, 0.0).double().numpy() / scale, ref / scale, atol=tol)
+        P = nullspace_projector(J).double().numpy()
+        np.testing.assert_allclose(P, np.eye(n) - ref @ J.double().numpy(), atol=tol * 10)
+
+
+def stretched_planar():
+    from diffkin import models
+
+    return models.load("three_link_planar", dtype=F64)
+
+
+def test_one_singular_row_does_not_fail_the_batch():
+    """A stretched planar arm in a batch used to raise torch's _LinAlgError for the whole batch."""
+    chain = stretched_planar()
+    q = torch.tensor([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0], [0.3, 0.9, -0.4]], dtype=F64, requires_grad=True)
+    J = geometric_jacobian(chain, q)
+    for f in (pinv, nullspace_projector, lambda x: damped_pinv(x, 0.0), lambda x: damped_pinv(x, 0.0, 0.1)):
+        out = f(J)
+        assert torch.isfinite(out).all()
+        (g,) = torch.autograd.grad(out.square().sum(), q, retain_graph=True)
+        assert torch.isfinite(g).all()
+    Jd = J.detach()
+    np.testing.assert_allclose(pinv(Jd).numpy(), np.linalg.pinv(Jd.numpy(), rcond=1.5e-8), atol=1e-10)
+    torch.testing.assert_close(pinv(Jd)[2], pinv(Jd[2]))  # the regular row is not affected by the others
+    torch.testing.assert_close(damped_pinv(Jd, 0.0), pinv(Jd))
+
+
+def test_pinv_gradient_at_constant_rank_matches_finite_differences():
+    """The SVD rows' closed-form derivative: gradcheck on a rank-2 family J(x) = A(x) B."""
+    g = torch.Generator().manual_seed(3)
+    B = torch.randn(2, 5, generator=g, dtype=F64)
+    C = torch.randn(4, 2, generator=g, dtype=F64)
+
+    def f(x):
+        A = C + x.reshape(4, 2)
+        return pinv(A @ B)
+
+    x = torch.randn(8, generator=g, dtype=F64, requires_grad=True) * 0.1
+    assert torch.linalg.matrix_rank((C + x.detach().reshape(4, 2)) @ B) == 2
+    assert torch.autograd.gradcheck(f, (x,))
+    assert torch.autograd.gradcheck(lambda x: nullspace_projector((C + x.reshape(4, 2)) @ B), (x,))
+
+
+def test_inputs_follow_the_rule():
+    from diffkin.errors import DiffkinError, DTypeError, NonFiniteError
+
+    J = panda_J(batch=(2,)).detach()
+    for bad in (torch.float16, torch.bfloat16, torch.int64, torch.complex64):
+        with pytest.raises(DTypeError):
+            pinv(J.to(bad))
+    with pytest.raises(DTypeError, match="float32|float64"):
+        weighted_pinv(J, torch.ones(7))  # mixed float64 / float32
+    Jn = J.clone()
+    Jn[0, 1, 2] = float("nan")
+    for f in (pinv, nullspace_projector, lambda x: damped_pinv(x, 0.1)):
+        with pytest.raises(NonFiniteError):
+            f(Jn)
+    with pytest.raises(NonFiniteError):
+        damped_pinv(J, float("inf"))
+    with pytest.raises(DiffkinError, match="positive"):
+        weighted_pinv(J, torch.tensor([1.0, 2, 0, 1, 1, 1, 1], dtype=F64))
+    with pytest.raises(ShapeError):
+        nullspace_projector(J, J_pinv=J)
+    torch.testing.assert_close(pinv(J.numpy()), pinv(J))  # numpy converted
+    assert pinv(torch.zeros(0, 6, 7, dtype=F64)).shape == (0, 7, 6)

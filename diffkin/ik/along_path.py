@@ -12,14 +12,15 @@ Two ways along a sampled pose trajectory T_d(t_k), k = 0 … S−1:
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ..errors import ConventionError, DTypeError, ShapeError
+from ..errors import ConventionError, NonFiniteError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
-from ..validation import check_finite, check_tensor, shape_str
+from ..validation import check_trailing, shape_str, tensors
 from .closed_loop import clik
 from .result import final_errors
 
@@ -45,7 +46,30 @@ def finite_difference_twists(T_traj: Tensor, dt: float) -> Tensor:
     velocity over the step), the increment one Euler step (3.48) needs; the last sample is at rest.
     Positions ``(..., S, 3)`` -> ``(..., S, 3)``.
     """
-    if T_traj.shape[-2:] == (4, 4):
+    (T_traj,) = tensors(("T_traj", T_traj, None))
+    _path_kind(T_traj, "T_traj", vectors=(3,))
+    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
+        raise NonFiniteError(f"dt must be a finite positive number, got {dt!r}")
+    return _finite_difference_twists(T_traj, dt)
+
+
+def _path_kind(x: Tensor, name: str, vectors: tuple[int, ...]) -> bool:
+    """True for poses ``(..., S, 4, 4)``, False for vectors ``(..., S, k)`` with k in ``vectors``; else
+    :class:`ShapeError`."""
+    if x.ndim >= 3 and tuple(x.shape[-2:]) == (4, 4):
+        return True
+    if x.ndim >= 2 and x.shape[-1] in vectors:
+        return False
+    sizes = " or ".join(f"(..., S, {k})" for k in vectors)
+    raise ShapeError(f"expected {name} of shape (..., S, 4, 4) (poses) or {sizes}, got {shape_str(x.shape)}")
+
+
+def _finite_difference_twists(T_traj: Tensor, dt: float) -> Tensor:
+    pose = T_traj.shape[-2:] == (4, 4)
+    lead = T_traj.shape[:-3] if pose else T_traj.shape[:-2]
+    if T_traj.shape[len(lead)] == 0:  # no samples: no velocities
+        return T_traj.new_zeros(*lead, 0, 6 if pose else T_traj.shape[-1])
+    if pose:
         p = T_traj[..., :3, 3]
         R = T_traj[..., :3, :3]
         w = _matrix_to_rotvec(R[..., 1:, :, :] @ R[..., :-1, :, :].mT)
@@ -60,9 +84,17 @@ def refine_path(T_traj: Tensor, substeps: int) -> Tensor:
 
     Positions move linearly and rotations along the geodesic R(τ) = exp(τ log(R_{k+1}R_kᵀ)) R_k, i.e. with
     the constant twist of :func:`finite_difference_twists`. Vectors ``(..., S, k)`` are interpolated
-    linearly.
+    linearly (k = 3 or 6: positions, twists).
     """
-    if substeps == 1:
+    (T_traj,) = tensors(("T_traj", T_traj, None))
+    _path_kind(T_traj, "T_traj", vectors=(3, 6))
+    if not (isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1):
+        raise ConventionError(f"substeps must be a positive int, got {substeps!r}")
+    return _refine_path(T_traj, substeps)
+
+
+def _refine_path(T_traj: Tensor, substeps: int) -> Tensor:
+    if substeps == 1 or T_traj.shape[-3 if T_traj.shape[-2:] == (4, 4) else -2] == 0:
         return T_traj
     pose = T_traj.shape[-2:] == (4, 4)
     x = T_traj if pose else T_traj[..., None]  # (..., S, r, c)
@@ -78,22 +110,17 @@ def refine_path(T_traj: Tensor, substeps: int) -> Tensor:
     return fine if pose else fine[..., 0]
 
 
-def _check_path(chain, T_traj) -> bool:
-    """-> True for pose targets (..., S, 4, 4), False for positions (..., S, 3)."""
-    check_tensor(T_traj, "T_traj")
-    if T_traj.dtype != chain.dtype:
-        raise DTypeError(f"T_traj has dtype {T_traj.dtype} but chain '{chain.name}' is {chain.dtype}")
-    if T_traj.ndim >= 3 and T_traj.shape[-2:] == (4, 4):
-        poses = True
-    elif T_traj.ndim >= 2 and T_traj.shape[-1] == 3:
-        poses = False
-    else:
-        raise ShapeError(
-            f"expected T_traj of shape (..., S, 4, 4) (poses) or (..., S, 3) (positions), "
-            f"got {shape_str(T_traj.shape)}"
-        )
-    check_finite(T_traj, "T_traj")
-    return poses
+def _check_path(chain, T_traj, velocities) -> tuple[Tensor, Tensor | None, bool]:
+    """-> (T_traj, velocities, True for pose targets (..., S, 4, 4) / False for positions (..., S, 3)), by
+    the rule of :mod:`diffkin.validation` (the chain's dtype and device, finite)."""
+    T_traj, velocities = tensors(("T_traj", T_traj, None), ("velocities", velocities, None), like=chain)
+    poses = _path_kind(T_traj, "T_traj", vectors=(3,))
+    n_s = T_traj.shape[-3 if poses else -2]
+    if n_s == 0:
+        raise ShapeError(f"expected T_traj with at least one sample, got {shape_str(T_traj.shape)}")
+    if velocities is not None:
+        check_trailing(velocities, (n_s, 6 if poses else 3), "velocities")
+    return T_traj, velocities, poses
 
 
 def joint_trajectory_from_poses(
@@ -138,7 +165,7 @@ def joint_trajectory_from_poses(
     """
     if method not in _METHODS:
         raise ConventionError(f"unknown method {method!r}; valid: {_METHODS}")
-    poses = _check_path(chain, T_traj)
+    T_traj, velocities, poses = _check_path(chain, T_traj, velocities)
     q0 = chain.check_q(q0, name="q0")
     if method == "clik":
         if not (isinstance(substeps, int) and substeps >= 1):
@@ -154,19 +181,12 @@ def joint_trajectory_from_poses(
 
 
 def _along_clik(chain, T_traj, q0, poses, dt, velocities, substeps, clik_kwargs) -> Tensor:
-    n_s = T_traj.shape[-3 if poses else -2]
-    size = 6 if poses else 3
     if velocities is not None:
-        check_tensor(velocities, "velocities")
-        if velocities.shape[-1] != size or velocities.ndim < 2 or velocities.shape[-2] != n_s:
-            raise ShapeError(
-                f"expected velocities of shape (..., {n_s}, {size}), got {shape_str(velocities.shape)}"
-            )
-        velocities = refine_path(velocities, substeps)
-    fine = refine_path(T_traj, substeps)
+        velocities = _refine_path(velocities, substeps)
+    fine = _refine_path(T_traj, substeps)
     h = dt / substeps
     if velocities is None:
-        velocities = finite_difference_twists(fine, h)
+        velocities = _finite_difference_twists(fine, h)
     kw = dict(algorithm="dls", orientation="axis_angle", K=1.0 / h)
     kw.update({k: v for k, v in clik_kwargs.items() if v is not None})
     if not poses:

@@ -37,11 +37,11 @@ import torch
 from torch import Tensor
 
 from .._numerics import safe_atan2, safe_sqrt, wrap_angle
-from ..errors import DTypeError, ModelError, ShapeError
+from ..errors import ModelError, ShapeError
 from ..kernels.joints import dh_matrix
 from ..rotations import _matrix_to_euler
 from ..transforms import _transform_inverse
-from ..validation import check_finite, check_tensor, shape_str
+from ..validation import shape_str, tensors
 from .industrial import INDUSTRIAL_FAMILIES, recognise_industrial, solve_industrial
 
 __all__ = ["ClosedFormSolution", "closed_form", "identify_structure", "CLOSED_FORM_STRUCTURES", "into_limits"]
@@ -271,10 +271,8 @@ def _planar_frame0(chain, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 # ------------------------------------------------------------------------------------------- API
 def _check_target(T, chain) -> Tensor:
-    check_tensor(T, "T")
-    if T.dtype != chain.dtype:
-        raise DTypeError(f"target has dtype {T.dtype} but chain '{chain.name}' is {chain.dtype}")
-    return check_finite(T, "T")
+    """The target by the rule of :mod:`diffkin.validation` (the chain's dtype and device, finite)."""
+    return tensors(("T", T, None), like=chain)[0]
 
 
 def _kind(T: Tensor, structure: str) -> str:
@@ -415,12 +413,12 @@ def closed_form(chain, T: Tensor, tol: float | None = None) -> ClosedFormSolutio
                              f"{shape_str(T.shape)}")
         q = into_limits(chain, solve_industrial(chain, structure, T))
         valid = _valid_world(chain, q, T, tol)
-        return ClosedFormSolution(q, valid, chain.within_limits(q), structure)
+        return ClosedFormSolution(q, valid, chain.within_limits(q, check=False), structure)
     kind = _kind(T, structure)
     th, dd, ref = _solve_theta(chain, structure, kind, T)
     valid = _valid(chain, structure, kind, th, dd, ref, tol)
     q = into_limits(chain, _to_joints(chain, th, dd))
-    return ClosedFormSolution(q, valid, chain.within_limits(q), structure)
+    return ClosedFormSolution(q, valid, chain.within_limits(q, check=False), structure)
 
 
 def _valid_world(chain, q: Tensor, T: Tensor, tol) -> Tensor:

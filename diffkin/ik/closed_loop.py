@@ -11,8 +11,10 @@ computes q̇ (or q̈) with one of the book's laws and integrates with (3.48), q(
 ``"second_order"``    q̈ = J†(ẍ_d + K_D ė + K_P e − J̇q̇) + (I − J†J) q̈₀  (3.102)/(3.104)
 ====================  ====================================================================================
 
-J⁻¹ and J† are :func:`diffkin.jacobian.pinv` (regularised at the level of rounding, so a singular J gives
-large but finite velocities instead of NaN). The orientation error and the matching Jacobian (§3.7.3):
+J⁻¹ and J† are the Moore–Penrose inverse of :func:`diffkin.jacobian.pinv` (singular values below √eps·σ_max
+count as zero, so a singular J gives finite velocities, never NaN); the second-order integrator also bounds
+|q̇| (``qdot_max``), so every algorithm stays finite from any start. The orientation error and the matching
+Jacobian (§3.7.3):
 
 - ``None``: position only, e = p_d − p_e (3.78) with J_P;
 - ``"euler"``: e_O = φ_d − φ_e (3.80) (wrapped to (−π, π]) with the analytical Jacobian (3.66), law (3.82);
@@ -37,24 +39,23 @@ import torch
 from torch import Tensor
 
 from .._numerics import eps_for, safe_norm, wrap_angle
-from ..errors import ConventionError, ModelError, ShapeError
+from ..errors import ConventionError, ModelError, NonFiniteError, ShapeError
 from ..jacobian import (
     _inverse3,
-    damped_pinv,
     forward_kinematics_and_jacobian,
     geometric_to_analytical,
     jacobian_dot_qdot,
     manipulability,
-    pinv,
 )
 from ..kernels.pose_error import orientation_error as _orientation_error
+from ..redundancy import _damped, _pinv
 from ..rotations import (
     _convention,
     _euler_rate_matrix,
     _matrix_to_euler,
     _skew,
 )
-from ..validation import check_tensor, shape_str
+from ..validation import check_trailing, shape_str, tensors
 
 __all__ = ["CLIKResult", "clik", "CLIK_ALGORITHMS", "CLIK_ORIENTATIONS", "joint_limit_objective"]
 
@@ -91,30 +92,60 @@ def _time_axis(x: Tensor) -> int:
     return -3 if x.ndim >= 3 and tuple(x.shape[-2:]) == (4, 4) else -2
 
 
-def _target_sampler(target, steps: int | None, dt: float, like: Tensor):
+_TARGET_NAMES = ("x_d", "xdot_d", "xddot_d")
+
+
+def _target_tensors(values, task: _Task, like: Tensor, time_axis: bool) -> tuple:
+    """(x_d, ẋ_d, ẍ_d) by the rule of :mod:`diffkin.validation` (the chain's dtype and device, finite) with
+    exact trailing shapes: x_d a pose (4, 4) or the task vector (6 = [p; φ] for ``"euler"``; 3 = p, or a
+    6-vector [p; φ] whose position part is used, for position only), derivatives likewise; with
+    ``time_axis`` each with the same number S of samples before it."""
+    values = (tuple(values) + (None, None))[:3]
+    x, v, a = tensors(*((n, t, None) for n, t in zip(_TARGET_NAMES, values)), like=like)
+    sizes = (6,) if task.orientation == "euler" else (3, 6)
+    pose = x.ndim >= 2 and tuple(x.shape[-2:]) == (4, 4)
+    if not pose:
+        if task.orientation in ("axis_angle", "quaternion"):
+            raise ShapeError(f"orientation={task.orientation!r} needs x_d poses "
+                             f"(..., {'S, ' * time_axis}4, 4), got {shape_str(x.shape)}")
+        if x.ndim == 0 or x.shape[-1] not in sizes:
+            raise ShapeError(f"expected x_d of shape (..., {' or '.join(map(str, sizes))}) (or poses "
+                             f"(..., 4, 4)), got {shape_str(x.shape)}")
+    lead = 1 + (2 if pose else 1)
+    if time_axis and x.ndim < lead:
+        raise ShapeError(f"expected x_d with a time axis, (..., S, 4, 4) or (..., S, {sizes[-1]}), got "
+                         f"{shape_str(x.shape)}")
+    for name, d in zip(_TARGET_NAMES[1:], (v, a)):
+        if d is not None:
+            size = 6 if task.size == 3 and d.ndim and d.shape[-1] == 6 else task.size  # [ṗ; ω] for p only
+            check_trailing(d, (x.shape[-lead], size) if time_axis else (size,), name)
+    return x, v, a
+
+
+def _target_sampler(target, steps: int | None, dt: float, like: Tensor, task: _Task):
     """-> (get(k) -> (x_d, ẋ_d | None, ẍ_d | None), steps). Sequences hold their last sample at rest."""
     if callable(target):
-        if steps is None:
-            raise ConventionError("clik: pass steps when the target is a function of time")
+        if not isinstance(steps, int) or steps < 0:
+            raise ConventionError(
+                f"clik: pass steps >= 0 when the target is a function of time, got {steps!r}")
 
         def get_fn(k: int):
             out = target(torch.tensor(k * dt, dtype=like.dtype, device=like.device))
             out = (out,) if isinstance(out, Tensor) else tuple(out)
-            return (tuple(out) + (None, None))[:3]
+            return _target_tensors(out, task, like, time_axis=False)
 
         return get_fn, steps
     seq = _as_tuple(target)
-    if not 1 <= len(seq) <= 3 or not isinstance(seq[0], Tensor):
+    if not 1 <= len(seq) <= 3 or seq[0] is None:
         raise ConventionError("clik: target must be a callable t -> (x_d, xdot_d[, xddot_d]) or such tensors")
-    x = check_tensor(seq[0], "x_d")
+    x, *rest = _target_tensors(seq, task, like, time_axis=True)
     ax = _time_axis(x)
-    if x.ndim < -ax:
-        raise ShapeError(
-            f"expected x_d with a time axis, (..., S, 4, 4) or (..., S, m), got {tuple(x.shape)}"
-        )
     n_t = x.shape[ax]
+    if n_t == 0:
+        raise ShapeError(f"expected x_d with at least one sample on its time axis, got {shape_str(x.shape)}")
     steps = n_t - 1 if steps is None else steps
-    rest = [None if v is None else check_tensor(v, "target derivative") for v in seq[1:]]
+    if not isinstance(steps, int) or steps < 0:
+        raise ConventionError(f"clik: steps must be an int >= 0, got {steps!r}")
 
     def get_seq(k: int):
         kk = min(k, n_t - 1)
@@ -131,19 +162,13 @@ def _split_desired(task: _Task, x: Tensor):
         if task.orientation == "euler":
             return p, _matrix_to_euler(R, task.convention, "positive")
         return p, (None if task.orientation is None else R)
-    if task.orientation in ("axis_angle", "quaternion"):
-        raise ShapeError(f"orientation={task.orientation!r} needs poses (..., 4, 4), got {tuple(x.shape)}")
-    need = 6 if task.orientation == "euler" else 3
-    if x.shape[-1] < need:
-        raise ShapeError(f"expected x_d of shape (..., {need}), got {shape_str(x.shape)}")
     return x[..., :3], (x[..., 3:6] if task.orientation == "euler" else None)
 
 
 def _feed(v: Tensor | None, size: int, like: Tensor) -> Tensor:
+    """A validated target derivative (..., size or 6), its first ``size`` components, or zeros."""
     if v is None:
         return torch.zeros(size, dtype=like.dtype, device=like.device)
-    if v.shape[-1] < size:
-        raise ShapeError(f"expected target derivatives (..., {size}), got {shape_str(v.shape)}")
     return v[..., :size]
 
 
@@ -187,7 +212,7 @@ def _solve_L(L: Tensor, b: Tensor) -> Tensor:
 def _gain(K, task: _Task, like: Tensor, name: str) -> Tensor:
     """Scalar, (m,) diagonal or (m, m) gain over the selected rows -> (D, D) over the full task vector."""
     m, D = len(task.rows), task.size
-    K = torch.as_tensor(K, dtype=like.dtype, device=like.device)
+    (K,) = tensors((name, K, None), like=like)
     if K.ndim == 0:
         K = K * torch.eye(m, dtype=like.dtype, device=like.device)
     elif K.shape == (m,):
@@ -208,8 +233,19 @@ def _mv(A: Tensor, v: Tensor) -> Tensor:
 def joint_limit_objective(q: Tensor, lower: Tensor, upper: Tensor) -> Tensor:
     """Distance from the joint limits w(q) = −1/(2n) Σ ((q_i − q̄_i)/(q_iM − q_im))² (3.57).
 
-    q ``(..., n)``, lower/upper ``(n,)`` -> ``(...)``; 0 at the middle of the ranges, negative elsewhere.
+    q ``(..., n)``, lower/upper ``(n,)`` (finite, lower < upper) -> ``(...)``; 0 at the middle of the
+    ranges, negative elsewhere.
     """
+    q, lower, upper = tensors(("q", q, (None,)), ("lower", lower, None), ("upper", upper, None))
+    n = q.shape[-1]
+    check_trailing(lower, (n,), "lower")
+    check_trailing(upper, (n,), "upper")
+    return _joint_limit_objective(q, lower, upper)
+
+
+def _joint_limit_objective(q: Tensor, lower: Tensor, upper: Tensor) -> Tensor:
+    if not bool((upper > lower).all()):
+        raise ModelError("joint_limit_objective needs lower < upper for every joint")
     mid = 0.5 * (lower + upper)
     return -(((q - mid) / (upper - lower)) ** 2).sum(-1) / (2 * q.shape[-1])
 
@@ -222,11 +258,12 @@ def _objective(nullspace, chain, task: _Task, q_limits) -> Callable[[Tensor], Te
     if nullspace == "manipulability":
         return lambda q: manipulability(_task_jacobian(chain, q, task))
     if nullspace == "joint_limits":
-        lim = chain.q_limits if q_limits is None else torch.as_tensor(q_limits, dtype=chain.dtype)
+        lim = chain.q_limits if q_limits is None else \
+            tensors(("q_limits", q_limits, (chain.n_joints, 2)), like=chain)[0]
         if lim is None:
             raise ModelError(f"nullspace='joint_limits' needs q_limits; chain '{chain.name}' has none")
         lo, hi = lim[..., 0].to(chain.device), lim[..., 1].to(chain.device)
-        return lambda q: joint_limit_objective(q, lo, hi)
+        return lambda q: _joint_limit_objective(q, lo, hi)
     raise ConventionError(
         f"unknown nullspace objective {nullspace!r}; valid: None, 'manipulability', 'joint_limits', callable"
     )
@@ -295,7 +332,7 @@ def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
         v_o = _solve_L(L, _mv(L.mT, v_ff[..., 3:].expand_as(Ge[..., 3:])) + Ge[..., 3:])
         v = torch.cat(torch.broadcast_tensors(v[..., :3], v_o), dim=-1)
     J_s = J_t[..., rows, :]
-    J_inv = damped_pinv(J_s, cfg.damping) if cfg.algorithm == "dls" else pinv(J_s)
+    J_inv = _damped(J_s, cfg.damping * cfg.damping) if cfg.algorithm == "dls" else _pinv(J_s)
     qd = _mv(J_inv, v[..., rows])
     if cfg.objective is not None:  # (3.72) with (3.55)
         qd = qd + _nullspace_term(J_inv, J_s, cfg.k0 * _gradient(cfg.objective, q))
@@ -308,7 +345,7 @@ def _second_order(cfg, chain, q, qd, J_t, e, v_ff, a_ff) -> Tensor:
     e_dot = v_ff - _mv(J_t, qd)  # ė = ẋ_d − J q̇ (3.68)
     a = a_ff + _mv(cfg.K_D, e_dot) + _mv(cfg.K_P, e) - _jdot_qdot(chain, q, qd, cfg.task)
     J_s = J_t[..., rows, :]
-    J_inv = pinv(J_s)
+    J_inv = _pinv(J_s)
     qdd = _mv(J_inv, a[..., rows])
     if cfg.objective is not None or cfg.k_d0 != 0.0:
         qdd0 = -cfg.k_d0 * qd
@@ -328,6 +365,15 @@ class _Config(NamedTuple):
     objective: Callable | None
     k0: float
     k_d0: float
+    qdot_max: float
+
+
+def _qdot_max(v, dt: float) -> float:
+    if v is None:
+        return math.pi / (4.0 * dt)
+    if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+        raise NonFiniteError(f"qdot_max must be a finite positive number, got {v!r}")
+    return float(v)
 
 
 def _make_task(chain, orientation, convention, rows) -> _Task:
@@ -360,6 +406,7 @@ def clik(
     k_d0: float = 0.0,
     q_limits=None,
     qdot0: Tensor | None = None,
+    qdot_max: float | None = None,
     clamp: bool = False,
     return_poses: bool = False,
     differentiable: bool | None = None,
@@ -385,6 +432,9 @@ def clik(
             ``"joint_limits"`` or a callable w(q) -> (...); k0: its gain (3.55); k_d0: damping of the
             null-space acceleration (second order). q_limits: ``(n, 2)`` limits for ``"joint_limits"``
             (default the chain's). qdot0: initial q̇ for the second order (default J†ẋ_d(0)).
+        qdot_max: bound on |q̇| per joint of the second-order integrator (default π/(4Δt), a quarter turn
+            per step: never reached by a run that converges; it keeps a diverging one — gains too high for
+            the error, a pass near a singularity — finite, with its errors reported as they are).
         clamp: project q onto the chain's joint limits after each step. return_poses: keep the poses.
         differentiable: record the autograd graph through all the steps (w.r.t. q0, the target and the
             chain's DH parameters). Default: only when grad mode is on and q0 or a target tensor requires
@@ -398,7 +448,7 @@ def clik(
         raise ConventionError(f"unknown algorithm {algorithm!r}; valid: {CLIK_ALGORITHMS}")
     q = chain.check_q(q0, name="q0")
     if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
-        raise ConventionError(f"dt must be a positive number, got {dt!r}")
+        raise NonFiniteError(f"dt must be a finite positive number, got {dt!r}")
     task = _make_task(chain, orientation, convention, rows)
     if algorithm == "inverse" and len(task.rows) != chain.n_joints:
         raise ShapeError(
@@ -406,8 +456,8 @@ def clik(
             "joints; use 'pseudo_inverse' or 'dls', or select rows"
         )
     if qdot0 is not None:
-        chain.check_q(qdot0, name="qdot0")
-    get, steps = _target_sampler(target, steps, dt, q)
+        qdot0 = chain.check_q(qdot0, name="qdot0")
+    get, steps = _target_sampler(target, steps, dt, q, task)
     omega = 0.1 / dt
     cfg = _Config(
         task,
@@ -415,14 +465,15 @@ def clik(
         _gain(0.5 / dt if K is None else K, task, q, "K"),
         _gain(omega**2 if K_P is None else K_P, task, q, "K_P"),
         _gain(2 * omega if K_D is None else K_D, task, q, "K_D"),
-        damping,
+        tensors(("damping", damping, None), like=q)[0],
         _objective(nullspace, chain, task, q_limits),
         float(k0),
         float(k_d0),
+        _qdot_max(qdot_max, dt),
     )
     if differentiable is None:
-        tensors = [q0] + ([] if callable(target) else [v for v in _as_tuple(target) if isinstance(v, Tensor)])
-        differentiable = torch.is_grad_enabled() and any(v.requires_grad for v in tensors)
+        given = [q] + ([] if callable(target) else [v for v in _as_tuple(target) if isinstance(v, Tensor)])
+        differentiable = torch.is_grad_enabled() and any(v.requires_grad for v in given)
     with contextlib.nullcontext() if differentiable else torch.no_grad():
         return _integrate(chain, q, qdot0, get, steps, dt, cfg, clamp, return_poses)
 
@@ -444,7 +495,8 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
             q = q.expand(*batch, n)
         if cfg.algorithm == "second_order":
             if qd is None:
-                qd = _mv(pinv(J_t[..., list(task.rows), :]), v_ff[..., list(task.rows)].expand(*batch, -1))
+                qd = _mv(_pinv(J_t[..., list(task.rows), :]), v_ff[..., list(task.rows)].expand(*batch, -1))
+                qd = qd.clamp(-cfg.qdot_max, cfg.qdot_max)
             qd = qd.expand(*batch, n)
             qdd = _second_order(cfg, chain, q, qd, J_t, e, v_ff, _feed(a_d, task.size, q))
         else:
@@ -456,9 +508,9 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
             Ts.append(T.expand(*batch, 4, 4))
         if k < steps:
             q_next = q + qd * dt  # (3.48)
-            if cfg.algorithm == "second_order":
-                qd = qd + qdd * dt
-            q = chain.clamp_to_limits(q_next) if clamp else q_next
+            if cfg.algorithm == "second_order":  # q̇ bounded: a diverging run stays finite
+                qd = (qd + qdd * dt).clamp(-cfg.qdot_max, cfg.qdot_max)
+            q = chain.clamp_to_limits(q_next, check=False) if clamp else q_next
     err = torch.stack(es, dim=-2)
     pos = torch.tensor([r < 3 for r in task.rows], device=err.device)
     zero = torch.zeros((), dtype=err.dtype, device=err.device)

@@ -15,11 +15,13 @@ import math
 import torch
 from torch import Tensor
 
+from .._numerics import eps_for
 from ..chain import KinematicChain
-from ..errors import DTypeError, ShapeError
+from ..errors import NonFiniteError, ShapeError
 from ..kernels.dls import dls_solve
-from ..transforms import as_measured_transform, pose_error
-from ..validation import check_finite, check_shape, check_tensor, shape_str
+from ..redundancy import _damped
+from ..transforms import _pose_error, as_measured_transform
+from ..validation import check_trailing, shape_str, tensors
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -36,13 +38,21 @@ def dls_delta(J: Tensor, err: Tensor, damping=0.05) -> Tensor:
         err: task-space error or desired displacement ``(..., r)``.
         damping: k, a float or a tensor broadcastable to ``(...)``.
 
-    Returns ``(..., n)``; differentiable in J, err and damping.
+    Returns ``(..., n)``; differentiable in J, err and damping. A damping at or below the rounding level of
+    JJᵀ (zero included) gives the minimum-norm least-squares step J†e (finite at singular J).
     """
-    check_tensor(J, "J")
-    if J.ndim < 2:
-        raise ShapeError(f"expected J of shape (..., r, n), got {shape_str(J.shape)}")
-    check_shape(err, (J.shape[-2],), "err")
-    return dls_solve(J, err, torch.as_tensor(damping, dtype=J.dtype, device=J.device) ** 2)
+    J, err, k = tensors(("J", J, (None, None)), ("err", err, None), ("damping", damping, None))
+    check_trailing(err, (J.shape[-2],), "err")
+    return _dls_delta(J, err, k * k)
+
+
+def _dls_delta(J: Tensor, err: Tensor, k2: Tensor) -> Tensor:
+    """:func:`dls_delta` of validated inputs (λ = k²): the LU solve, or J†e where λ is below rounding."""
+    frob2 = (J * J).sum(dim=(-2, -1))
+    small = k2 <= eps_for(J) * frob2
+    if small.numel() and bool(small.any()):
+        return (_damped(J, k2) @ err.unsqueeze(-1)).squeeze(-1)
+    return dls_solve(J, err, k2)
 
 
 def dls_step(
@@ -62,25 +72,30 @@ def dls_step(
     """
     from ..jacobian import forward_kinematics_and_jacobian
 
-    T_e, J = forward_kinematics_and_jacobian(chain, q)
+    q = chain.check_q(q)
+    T_target, k = tensors(("T_target", T_target, None), ("damping", damping, None), like=chain)
+    full = T_target.ndim >= 2 and T_target.shape[-2:] == (4, 4)
+    if position_only and not full:
+        check_trailing(T_target, (3,), "T_target")
+    elif not full:
+        raise ShapeError(f"expected T_target of shape (..., 4, 4){' or (..., 3)' if position_only else ''}, "
+                         f"got {shape_str(T_target.shape)}")
+    T_e, J = forward_kinematics_and_jacobian(chain, q, check=False)
     if position_only:
-        full = T_target.ndim >= 2 and T_target.shape[-2:] == (4, 4)
-        p_d = T_target[..., :3, 3] if full else check_shape(T_target, (3,), "T_target")
+        p_d = T_target[..., :3, 3] if full else T_target
         e, J = p_d - T_e[..., :3, 3], J[..., :3, :]
     else:
-        e = pose_error(check_shape(T_target, (4, 4), "T_target"), T_e, orientation="rotvec")
-    q_new = q + step_size * dls_delta(J, e, damping)
-    return chain.clamp_to_limits(q_new) if respect_limits else q_new
+        e = _pose_error(T_target, T_e, "rotvec")
+    e, J = torch.broadcast_tensors(e, J[..., 0])[0], J.expand(*e.shape[:-1], *J.shape[-2:])
+    q_new = q + step_size * _dls_delta(J, e, k * k)
+    return chain.clamp_to_limits(q_new, check=False) if respect_limits else q_new
 
 
 # ------------------------------------------------------------------------------------------- solve
 def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ...], Tensor, Targets]:
-    check_tensor(T_target, "T_target")
+    """Validated targets (:func:`_valid_targets`) -> (batch, the targets detached (poses re-orthonormalised),
+    their batch-last columns in the working dtype)."""
     T_target = T_target.detach()
-    if T_target.dtype != chain.dtype:
-        raise DTypeError(f"T_target has dtype {T_target.dtype} but chain '{chain.name}' is {chain.dtype}")
-    if T_target.device != chain.device:
-        raise ValueError(f"T_target is on {T_target.device} but chain '{chain.name}' is on {chain.device}")
     K, tree = chain.n_ends, not chain.single_end
     ends = (K,) if tree else ()
     pos_input = position_only and T_target.ndim >= 1 and T_target.shape[-1] == 3
@@ -88,7 +103,6 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
         if tuple(T_target.shape[-1 - len(ends) : -1]) != ends:
             raise ShapeError(f"expected target positions of shape (..., {K}, 3) for the {K} end links of "
                              f"chain '{chain.name}', got {shape_str(T_target.shape)}")
-        check_finite(T_target, "T_target")
         batch = tuple(T_target.shape[: T_target.ndim - 1 - len(ends)])
         pd = T_target.reshape(-1, K * 3).T.to(dtype)
         return batch, T_target, Targets(pd.contiguous(), None, None, None)
@@ -106,11 +120,16 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     return batch, T_target, Targets(cols[3], cols[0], cols[1], cols[2])
 
 
+def _valid_targets(chain, T_target) -> Tensor:
+    """T_target by the rule of :mod:`diffkin.validation`: the chain's dtype and device, finite."""
+    return tensors(("T_target", T_target, None), like=chain)[0]
+
+
 def _user_seeds(chain, q0, batch: tuple[int, ...], N: int) -> Tensor | None:
     """q0 ``(n,)``, ``(..., n)`` or ``(..., S, n)`` broadcastable to the target batch -> ``(N, S, n)``."""
     if q0 is None:
         return None
-    chain.check_q(q0, "q0")
+    q0 = chain.check_q(q0, "q0")
     n = chain.n_joints
     nb = len(batch)
     if q0.ndim - 1 <= nb:
@@ -143,6 +162,12 @@ def _closed_form_seeds(chain, T_target, q0, batch) -> Tensor:
         return seeds
     user = _user_seeds(chain, q0, batch, math.prod(batch))  # the one broadcast rule for seeds, (N, S, n)
     return torch.cat((seeds, user.reshape(*batch, *user.shape[-2:])), dim=-2)
+
+
+def _check_tolerances(*tols) -> None:
+    for t in tols:
+        if not (isinstance(t, int | float) and math.isfinite(t) and t > 0):
+            raise NonFiniteError(f"expected IK tolerances as finite positive numbers, got {t!r}")
 
 
 def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:
@@ -207,10 +232,12 @@ def solve(
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
+    _check_tolerances(position_tolerance, orientation_tolerance)
     cfg = config or LMConfig()
     if damping is not None:
         cfg = dataclasses.replace(cfg, damping=float(damping))
     dtype, device = _compute_dtype(chain, cfg, min(position_tolerance, orientation_tolerance)), chain.device
+    T_target = _valid_targets(chain, T_target)
     batch, T_orig, tg = _targets(chain, T_target, position_only, dtype)
     N = math.prod(batch)
     if seeds_from_closed_form:
@@ -236,7 +263,7 @@ def solve(
     if not position_only:
         success &= ori_err <= orientation_tolerance
     if respect_limits and chain.q_limits is not None:
-        success &= chain.within_limits(q)
+        success &= chain.within_limits(q, check=False)
     # a differentiable layer: gradients w.r.t. T_target and the chain's parameters by the implicit function
     # theorem at the solution (diffkin.ik.implicit); the iterations above ran without autograd
     q = attach_solve_gradients(chain, q, T_target, success, position_only, cfg.orientation_weight,

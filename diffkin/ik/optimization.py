@@ -18,9 +18,9 @@ from torch import Tensor
 
 from ..errors import ConventionError
 from ..kernels.dls import dls_solve
-from ..transforms import pose_error
+from ..transforms import _pose_error
 from .implicit import attach_stationary_gradients, wants_gradients
-from .numerical import _targets, _user_seeds
+from .numerical import _check_tolerances, _targets, _user_seeds, _valid_targets
 from .result import IKResult, final_errors
 
 __all__ = [
@@ -84,7 +84,7 @@ class PoseCost(_Term):
         if Td.shape[-1] == 3:
             e = Td - ctx.T[..., :3, 3]
         else:
-            e = pose_error(Td, ctx.T, orientation="rotvec")
+            e = _pose_error(Td, ctx.T, "rotvec")
             e = torch.cat((e[..., :3], self.orientation_weight**0.5 * e[..., 3:]), dim=-1)
         return e.reshape(*ctx.q.shape[:-1], -1)  # K end links: their rows stacked
 
@@ -293,19 +293,27 @@ def optimize(
     if optimizer not in OPTIMIZERS:
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
     terms = _as_terms(costs)
+    _check_tolerances(position_tolerance, orientation_tolerance)
+    T_target = _valid_targets(chain, T_target)
     batch, T, _ = _targets(chain, T_target, position_only, chain.dtype)
     T = T.detach()
     if position_only and T.shape[-2:] == (4, 4):
         T = T[..., :3, 3]
     n = chain.n_joints
     seeds = _user_seeds(chain, q0, batch, math.prod(batch))
+    if math.prod(batch) == 0:  # an empty batch: empty results
+        empty = T.new_zeros(batch)
+        return IKResult(q=T.new_zeros(*batch, n),
+                        success=torch.zeros(batch, dtype=torch.bool, device=T.device),
+                        position_error=empty, orientation_error=empty.clone(),
+                        iterations=torch.zeros(batch, dtype=torch.long, device=T.device))
     if seeds is None:
         lo, hi = chain.lower_upper()
         q = (0.5 * (lo + hi)).detach().expand(*batch, n).clone()
     else:
         q = seeds[:, 0].reshape(*batch, n).detach().clone()
     clamp = respect_limits and chain.q_limits is not None
-    project = chain.clamp_to_limits if clamp else (lambda x: x)
+    project = (lambda x: chain.clamp_to_limits(x, check=False)) if clamp else (lambda x: x)
     q = project(q)
     if max_iterations is None:
         max_iterations = {"lbfgs": 50, "adam": 500, "gauss_newton": 50}[optimizer]
@@ -321,7 +329,7 @@ def optimize(
     if not position_only:
         success &= ori_err <= orientation_tolerance
     if clamp:
-        success &= chain.within_limits(q)
+        success &= chain.within_limits(q, check=False)
     iters = torch.full(batch, it, dtype=torch.long, device=q.device)
     T_src = T_target[..., :3, 3] if position_only and T_target.shape[-2:] == (4, 4) else T_target
     if unroll:

@@ -84,15 +84,23 @@ def rotation_angle_between(R_a: Tensor, R_b: Tensor) -> Tensor:
     return rotation_angle(R_b, R_a)  # R_b R_aᵀ = R_a (R_aᵀR_b) R_aᵀ: the same angle
 
 
+def _norm(v: Tensor) -> Tensor:
+    """Euclidean norm over the last axis without overflow (scaled by the largest entry): a 1e30 m error is
+    1e30 in float32, not inf."""
+    s = v.abs().amax(-1, keepdim=True)
+    scale = torch.where(s > 0, s, torch.ones_like(s))
+    return s.squeeze(-1) * torch.linalg.vector_norm(v / scale, dim=-1)
+
+
 def final_errors(chain, q: Tensor, T_target: Tensor, position_only: bool) -> tuple[Tensor, Tensor]:
     """Exact position / orientation errors of ``q (..., n)`` against ``T_target`` in the chain's dtype
     (for K end links: the worst of the K)."""
     T = chain.forward_kinematics(q, check=False)
     tree = T.ndim > q.ndim + 1  # (..., K, 4, 4)
     if T_target.ndim == T.ndim - 1:  # positions (..., [K,] 3)
-        pos = torch.linalg.vector_norm(T_target - T[..., :3, 3], dim=-1)
+        pos = _norm(T_target - T[..., :3, 3])
         ori = torch.zeros_like(pos)
     else:
-        pos = torch.linalg.vector_norm(T_target[..., :3, 3] - T[..., :3, 3], dim=-1)
+        pos = _norm(T_target[..., :3, 3] - T[..., :3, 3])
         ori = rotation_angle_between(T[..., :3, :3], T_target[..., :3, :3])
     return (pos.amax(-1), ori.amax(-1)) if tree else (pos, ori)

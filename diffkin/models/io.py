@@ -33,8 +33,9 @@ import numpy as np
 import torch
 import yaml
 
-from ..errors import ModelError
+from ..errors import DTypeError, ModelError
 from ..transforms import as_rigid_transform
+from ..validation import SUPPORTED_DTYPES
 
 __all__ = [
     "parse_value",
@@ -204,7 +205,7 @@ def parse_chain_dict(data: dict, dtype: torch.dtype | None = None, device=None, 
     if convention not in ("standard", "modified"):
         raise ModelError(f"{pre}convention: expected 'standard' or 'modified', got {convention!r}")
     limits = _parse_limits(data.get("q_limits"), n, pre)
-    dtype = dtype or torch.get_default_dtype()
+    dtype = _model_dtype(dtype)
     fixed = {}
     for key in ("base", "tool"):
         if data.get(key) is None:
@@ -224,8 +225,18 @@ def parse_chain_dict(data: dict, dtype: torch.dtype | None = None, device=None, 
         tool=fixed["tool"],
         q_limits=None if limits is None else torch.tensor(limits, dtype=dtype, device=device),
         name=name,
+        dtype=dtype,
         metadata={k: str(data[k]) for k in _META_KEYS if data.get(k) is not None},
     )
+
+
+def _model_dtype(dtype) -> torch.dtype:
+    """A model's dtype: float32 or float64 (default: torch's); anything else raises DTypeError (an integer
+    dtype would truncate the DH table)."""
+    dtype = dtype or torch.get_default_dtype()
+    if dtype not in SUPPORTED_DTYPES:
+        raise DTypeError(f"a model's dtype must be torch.float32 or torch.float64, got {dtype}")
+    return dtype
 
 
 # -------------------------------------------------------------------------------------- chain -> dict
