@@ -54,17 +54,16 @@ def stable_norm(v: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
 
 def stable_normalize(v: Tensor, dim: int = -1, fallback: Tensor | None = None) -> Tensor:
     """:func:`safe_normalize` with the overflow-safe :func:`stable_norm`."""
-    n = stable_norm(v, dim=dim, keepdim=True)
-    small = n <= eps_for(v) ** 0.5 * 1e-3
-    if fallback is None:
-        fallback = torch.zeros_like(v)
-        fallback.select(dim, 0).fill_(1.0)
-    return torch.where(small, fallback, v / torch.where(small, torch.ones_like(n), n))
+    return _normalized(v, stable_norm(v, dim=dim, keepdim=True), dim, fallback)
 
 
 def safe_normalize(v: Tensor, dim: int = -1, fallback: Tensor | None = None) -> Tensor:
     """``v / |v|``; where ``|v|`` is ~0 returns ``fallback`` (default: the first unit vector)."""
-    n = safe_norm(v, dim=dim, keepdim=True)
+    return _normalized(v, safe_norm(v, dim=dim, keepdim=True), dim, fallback)
+
+
+def _normalized(v: Tensor, n: Tensor, dim: int, fallback: Tensor | None) -> Tensor:
+    """``v / n`` with ``fallback`` where the norm ``n`` (keepdim) is ~0."""
     small = n <= eps_for(v) ** 0.5 * 1e-3
     if fallback is None:
         fallback = torch.zeros_like(v)

@@ -21,6 +21,7 @@ Outputs (N rows, K end links; the ``.npy`` holds the first entry only):
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
 from collections.abc import Callable
@@ -186,6 +187,17 @@ class _ErrorStats:
         self._max = max(self._max, other._max)
 
 
+@contextlib.contextmanager
+def _aborting(writer):
+    """Remove a half-written output when the streaming fails or is interrupted."""
+    try:
+        yield
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+
+
 def _check_range(n: int, chunk_size: int, start: int, stop: int | None) -> tuple[int, int]:
     if int(chunk_size) < 1:
         raise DiffkinError(f"chunk_size must be a positive integer, got {chunk_size}")
@@ -246,7 +258,7 @@ def stream_fk(
     t0 = time.perf_counter()
     compute = 0.0
     done = 0
-    try:
+    with _aborting(writer):
         for chunk in src.chunks(chunk_size, start, stop):
             q = torch.as_tensor(chunk).to(dtype=chain.dtype, device=chain.device)
             c0 = time.perf_counter()
@@ -264,11 +276,7 @@ def stream_fk(
             done += q.shape[0]
             if progress is not None:
                 progress(done, count)
-        path = writer.close() if writer is not None else None
-    except BaseException:
-        if writer is not None:
-            writer.abort()
-        raise
+    path = writer.close() if writer is not None else None
     return FKStreamResult(count, time.perf_counter() - t0, compute, path)
 
 
@@ -346,7 +354,7 @@ def stream_ik(
     successes = done = 0
     compute = 0.0
     t0 = time.perf_counter()
-    try:
+    with _aborting(writer):
         for T in chunks(chunk_size, start, stop):
             a = start + done
             chunk_seed = int(np.random.SeedSequence([int(seed), a]).generate_state(1)[0])
@@ -372,11 +380,7 @@ def stream_ik(
             done += ok.shape[0]
             if progress is not None:
                 progress(done, count)
-        path = writer.close() if writer is not None else None
-    except BaseException:
-        if writer is not None:
-            writer.abort()
-        raise
+    path = writer.close() if writer is not None else None
     return IKStreamResult(
         count=count,
         successes=successes,
