@@ -27,6 +27,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -36,7 +37,15 @@ from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
 from .kernels.tree import Segments, Topology, column_frames, matrix_frames
 from .transforms import as_rigid_transform
-from .validation import SUPPORTED_DTYPES, as_tensor, check_dtype, check_finite, shape_str, tensors
+from .validation import (
+    SUPPORTED_DTYPES,
+    as_tensor,
+    check_count,
+    check_dtype,
+    check_finite,
+    shape_str,
+    tensors,
+)
 
 __all__ = ["KinematicChain", "DHChain", "as_rigid_transform"]
 
@@ -547,7 +556,8 @@ class KinematicChain(nn.Module):
         self, shape: Sequence[int] | int = (), generator: torch.Generator | None = None
     ) -> Tensor:
         """Uniform joint samples within the limits, shape ``(*shape, n)``, chain dtype/device."""
-        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        shape = (shape,) if isinstance(shape, int | np.integer) else tuple(shape)
+        shape = tuple(check_count(s, "random_configuration shape entries", minimum=0) for s in shape)
         lo, hi = self.lower_upper()
         gen_device = self.device if generator is None else generator.device
         u = torch.rand(*shape, self.n_joints, generator=generator, dtype=self.dtype, device=gen_device)

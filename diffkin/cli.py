@@ -24,6 +24,7 @@ import math
 import os
 import sys
 import time
+import traceback
 from pathlib import Path
 
 import torch
@@ -176,24 +177,25 @@ def _streamed(args, chain, label: str, stream, source, **options):
     if not info.sharded:
         with _progress(args, label) as cb:
             return stream(chain, source, args.output, chunk_size=args.chunk_size, progress=cb, **options)
-    from .data_io import RandomJoints, open_joint_source, open_pose_source
     from .streaming import combine_ik
 
-    if isinstance(source, RandomJoints):
-        n = source.count
-    elif label == "FK":
-        n = len(open_joint_source(source, chain.n_joints, chain))
-    else:
-        n = len(open_pose_source(source, chain.n_ends, chain.single_end))
-    rows = [dist.shard_rows(n, args.chunk_size, r, info.world) for r in range(info.world)]
-    start, stop = rows[info.rank]
-    part = dist.part_path(args.output, info.rank, info.world) if args.output else None
-    res = None
-    if stop > start:
-        with _progress(args if info.rank == 0 else _Quiet(), f"{label} (rank 0 of {info.world})") as cb:
-            res = stream(chain, source, part, chunk_size=args.chunk_size, start=start, stop=stop, progress=cb,
-                         **options)
-    results = [r for r in dist.gather(res) if r is not None]
+    rows, res, failure = None, None, None
+    try:
+        rows, res = _stream_shard(args, chain, label, stream, source, info, **options)
+    except Exception as exc:  # every rank must reach the gather below, or the others wait for it forever
+        failure = exc
+    statuses = dist.gather((res, None if failure is None else _one_line(_exc_text(failure))))
+    failed = [(r, msg) for r, (_, msg) in enumerate(statuses) if msg is not None]
+    if failed:
+        if info.rank == 0 and args.output:  # no half data set: the parts that were written go
+            for r in range(info.world):
+                dist.part_path(args.output, r, info.world).unlink(missing_ok=True)
+        dist.finish()
+        if failure is not None:
+            raise failure
+        r, msg = failed[0]
+        raise DiffkinError(f"rank {r} of {info.world} failed ({msg}); no output written")
+    results = [r for r, _ in statuses if r is not None]
     if info.rank == 0:
         t0 = time.perf_counter()
         output = None
@@ -210,10 +212,37 @@ def _streamed(args, chain, label: str, stream, source, **options):
         else:
             total = combine_ik(results)
             total.output, total.seconds = output, total.seconds + merge_s
-        how = f"{'merged' if args.merge else 'manifest written'} in {merge_s:.3f} s" if args.output else ""
-        print(f"{info.world} processes, rows split on chunk boundaries; {how}", file=sys.stderr)
+        how = (f"; {'parts merged' if args.merge else 'manifest written'} in {merge_s:.3f} s"
+               if args.output else "; no --output: nothing written")
+        print(f"{info.world} processes, rows split on chunk boundaries{how}", file=sys.stderr)
     dist.finish()
     return total if info.rank == 0 else None
+
+
+def _exc_text(exc: BaseException) -> str:
+    return _os_message(exc) if isinstance(exc, OSError) else str(exc)
+
+
+def _stream_shard(args, chain, label: str, stream, source, info, **options):
+    """This rank's rows ``[start, stop)`` of the shards, streamed to its part file: ``(rows, result)``."""
+    from . import distributed as dist
+    from .data_io import RandomJoints, open_joint_source, open_pose_source
+
+    if isinstance(source, RandomJoints):
+        n = source.count
+    elif label == "FK":
+        n = len(open_joint_source(source, chain.n_joints, chain))
+    else:
+        n = len(open_pose_source(source, chain.n_ends, chain.single_end))
+    rows = [dist.shard_rows(n, args.chunk_size, r, info.world) for r in range(info.world)]
+    start, stop = rows[info.rank]
+    part = dist.part_path(args.output, info.rank, info.world) if args.output else None
+    res = None
+    if stop > start:
+        with _progress(args if info.rank == 0 else _Quiet(), f"{label} (rank 0 of {info.world})") as cb:
+            res = stream(chain, source, part, chunk_size=args.chunk_size, start=start, stop=stop, progress=cb,
+                         **options)
+    return rows, res
 
 
 class _Quiet:
@@ -720,7 +749,8 @@ def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> No
     io.add_argument("--seed", type=_count, default=0,
                     help="random seed (of --random" + (" and of the solver's restarts)" if what == "pose"
                                                        else ")"))
-    io.add_argument("--output", metavar="FILE", help="output file (.npy, .npz, .csv; see above)")
+    io.add_argument("--output", metavar="FILE",
+                    help="output file (.npy, .npz, .csv; see above); without it only the summary is printed")
     io.add_argument("--chunk-size", dest="chunk_size", type=_positive_int, default=chunk_default, metavar="N",
                     help="rows per chunk (memory grows with it, not with the input)")
     io.add_argument("--no-progress", dest="no_progress", action="store_true",
@@ -900,12 +930,12 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     except DiffkinError as exc:
         if debug:
-            raise
+            traceback.print_exc()  # the traceback on request; the status stays that of a user error
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:
         if debug:
-            raise
+            traceback.print_exc()
         print(f"error: {_one_line(_os_message(exc))}", file=sys.stderr)
         return 2
     except Exception as exc:  # a bug, not a user error: still one line, with the way to the traceback

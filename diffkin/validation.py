@@ -21,6 +21,7 @@ helpers below) once, on entry; the kernels behind it trust their input. The rule
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from numbers import Number
 from typing import Any
@@ -29,13 +30,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import DTypeError, NonFiniteError, ShapeError
+from .errors import DiffkinError, DTypeError, NonFiniteError, ShapeError
 
 __all__ = [
     "SUPPORTED_DTYPES",
     "as_tensor",
     "broadcast_batch",
+    "check_count",
     "check_dtype",
+    "check_number",
     "check_finite",
     "check_shape",
     "check_tensor",
@@ -194,6 +197,9 @@ def tensors(
     for name, v in given.items():
         check_dtype(v, name)
     if like is not None:
+        if like.dtype not in SUPPORTED_DTYPES:  # e.g. chain.half(): the chain itself left the rule
+            raise DTypeError(f"the chain is {like.dtype}; diffkin computes in float32 or float64: convert it "
+                             "with chain.float() or chain.double()")
         target = ("chain" if isinstance(like, torch.nn.Module) else "reference", like)
         probe = torch.empty(0, dtype=like.dtype, device=like.device)
         common_dtype_device({target[0]: probe, **given})
@@ -227,3 +233,24 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
     except RuntimeError:
         got = ", ".join(f"{n} {shape_str(t.shape)}" for n, t, _ in given)
         raise ShapeError(f"expected arguments whose batch dims broadcast, got {got}") from None
+
+
+def check_number(x: Any, name: str, *, positive: bool = True, unit: str = "") -> float:
+    """An option given as a finite Python number > 0 (``positive``) or >= 0, as float; else
+    :class:`~diffkin.errors.DiffkinError` naming it (tolerances, dampings, scales)."""
+    ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and (
+        x > 0 if positive else x >= 0)
+    if not ok:
+        bound = "> 0" if positive else ">= 0"
+        # NaN/inf keep the rule's error class; a finite number out of range (or no number) is a ValueError
+        cls = NonFiniteError if isinstance(x, float) and not math.isfinite(x) else DiffkinError
+        raise cls(f"expected {name} as a finite number {bound}{unit}, got {x!r}")
+    return float(x)
+
+
+def check_count(x: Any, name: str, minimum: int = 1) -> int:
+    """An option given as a Python integer >= ``minimum`` (seeds, iterations, sizes); else
+    :class:`~diffkin.errors.DiffkinError` naming it."""
+    if isinstance(x, bool) or not isinstance(x, int | np.integer) or x < minimum:
+        raise DiffkinError(f"expected {name} as an integer >= {minimum}, got {x!r}")
+    return int(x)

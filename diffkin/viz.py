@@ -644,6 +644,10 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
         description="Serve an interactive 3D view of a robot (viser; the 'viz' extra): link frames and "
         "segments (URDF meshes when they resolve), one slider per joint, a draggable target per end link "
         "that runs ik.solve live, and playback of a joint trajectory. Serves on loopback unless --host.",
+        epilog="examples:\n  diffkin view --robot panda\n"
+               "  diffkin view --urdf arm.urdf --end-link tool0 --trajectory q.npy --play\n"
+               "  diffkin view --robot ur5 --host 0.0.0.0 --port 8081   # reachable from other machines",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--robot", help="built-in robot name or a robot YAML file")
     p.add_argument("--urdf", help="URDF file (with --end-link)")
@@ -659,7 +663,8 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
                    help="interface to serve on (default 127.0.0.1, loopback only; 0.0.0.0: every interface)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; 0: any free port)")
     p.add_argument("--no-meshes", dest="meshes", action="store_false", help="frames and segments only")
-    p.add_argument("--dtype", default="float64", choices=["float32", "float64"])
+    p.add_argument("--dtype", default="float64", choices=["float32", "float64"],
+                   help="compute dtype of the robot and IK (default float64)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="stop after S seconds (default: serve until Ctrl+C)")
     p.set_defaults(func=cmd_view)

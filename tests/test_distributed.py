@@ -150,3 +150,22 @@ def test_two_process_fk_and_ik_equal_one_process(tmp_path):
         assert a["q"].shape == (3000, 7)
         for k in b.files:
             assert np.array_equal(a[k], b[k], equal_nan=True), k
+
+
+@pytest.mark.slow
+def test_a_failing_rank_stops_every_rank_with_one_error_and_no_parts(tmp_path):
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration(1200, generator=torch.Generator().manual_seed(5))
+    T = chain.forward_kinematics(q).detach().numpy()
+    T[1000, 0, 3] = np.nan  # in rank 1's shard
+    np.save(tmp_path / "T.npy", T)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m",
+           "diffkin.cli", "ik", "--robot", "panda", "--input", "T.npy", "--chunk-size", "300", "--output",
+           "q.npy", "--num-seeds", "2"]
+    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode != 0
+    errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
+    assert any("row 1001" in ln for ln in errors), out.stderr[-3000:]
+    assert all("internal error" not in ln for ln in errors), errors
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["T.npy"]  # no parts, no manifest

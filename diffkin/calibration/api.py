@@ -13,11 +13,11 @@ from torch import Tensor
 
 from ..chain import DHChain, KinematicChain
 from ..errors import ConventionError, DiffkinError, ShapeError, require
-from ..validation import as_tensor, shape_str
+from ..validation import as_tensor, check_number, shape_str
 from .error_models import build_model
 from .identifiability import IdentifiabilityReport, model_reports
 from .model import check_measurements, pose_residual
-from .solvers import check_number, gradient_descent, least_squares
+from .solvers import gradient_descent, least_squares
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
 

@@ -18,7 +18,7 @@ from torch import Tensor
 from .._numerics import eps_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
-from ..validation import _traced, shape_str, tensors
+from ..validation import _traced, check_number, shape_str, tensors
 from .model import CalibrationModel, measurement_shapes, pose_residual
 
 __all__ = ["calibration_loss", "robust_loss", "least_squares", "gradient_descent", "SolverOutput", "LOSSES"]
@@ -57,16 +57,6 @@ def _rms(res: Tensor, orientation_weight: float) -> tuple[Tensor, Tensor | None]
     if res.shape[-1] == 3:
         return pos, None
     return pos, (res[..., 3:].square().sum(-1).mean(-1).sqrt() / orientation_weight)
-
-
-def check_number(x, name: str, *, positive: bool = True, unit: str = "") -> float:
-    """A finite Python number > 0 (``positive``) or >= 0 as float, else :class:`DiffkinError` naming it."""
-    ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and (
-        x > 0 if positive else x >= 0)
-    if not ok:
-        bound = "> 0" if positive else ">= 0"
-        raise DiffkinError(f"expected {name} as a finite number {bound}{unit}, got {x!r}")
-    return float(x)
 
 
 def robust_loss(sq_norm: Tensor, loss: str, scale: float) -> Tensor:

@@ -17,11 +17,11 @@ from torch import Tensor
 
 from .._numerics import eps_for
 from ..chain import KinematicChain
-from ..errors import NonFiniteError, ShapeError
+from ..errors import ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _pose_error, as_measured_transform
-from ..validation import check_trailing, shape_str, tensors
+from ..validation import check_count, check_number, check_trailing, shape_str, tensors
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -166,8 +166,7 @@ def _closed_form_seeds(chain, T_target, q0, batch) -> Tensor:
 
 def _check_tolerances(*tols) -> None:
     for t in tols:
-        if not (isinstance(t, int | float) and math.isfinite(t) and t > 0):
-            raise NonFiniteError(f"expected IK tolerances as finite positive numbers, got {t!r}")
+        check_number(t, "IK tolerances")
 
 
 def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:
@@ -233,6 +232,10 @@ def solve(
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
     _check_tolerances(position_tolerance, orientation_tolerance)
+    num_seeds = check_count(num_seeds, "num_seeds")
+    max_iterations = check_count(max_iterations, "max_iterations")
+    if damping is not None:
+        check_number(damping, "damping", positive=False)
     cfg = config or LMConfig()
     if damping is not None:
         cfg = dataclasses.replace(cfg, damping=float(damping))
