@@ -29,10 +29,11 @@ from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import diffkin.envs  # noqa: F401  (registers the IDs)
-from diffkin.envs.vector import TorchVectorEnv, make_vec_env
+from diffkin.envs.vector import TorchVectorEnv
 from diffkin.training.algos import ALGOS, EVAL_SEED
 from diffkin.training.config import RunConfig, load_config
 from diffkin.training.evaluate import model_policy, run_episodes, scripted_policy
+from diffkin.training.sb3 import make_sb3_vec_env
 
 __all__ = ["ALGOS", "EVAL_SEED", "build_env", "build_model", "EvalCallback", "versions", "train",
            "resolve_run", "summary_json", "main"]
@@ -40,7 +41,7 @@ __all__ = ["ALGOS", "EVAL_SEED", "build_env", "build_model", "EvalCallback", "ve
 
 def build_env(cfg: RunConfig):
     if cfg.vectorized:
-        venv = VecMonitor(make_vec_env(cfg.env_id, cfg.n_envs, device=cfg.device, **cfg.env_kwargs))
+        venv = VecMonitor(make_sb3_vec_env(cfg.env_id, cfg.n_envs, device=cfg.device, **cfg.env_kwargs))
     else:
         venv = sb3_make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, env_kwargs=cfg.env_kwargs)
     venv.seed(cfg.seed)
