@@ -272,7 +272,11 @@ def test_train_then_evaluate(tmp_path):
         run_subprocess(
             "train",
             "--config",
-            "configs/ppo_batched_reach_panda.yaml",
+            "configs/ppo.yaml",
+            "--env",
+            "diffkin/Reach-v0",
+            "--variant",
+            "cartesian",
             "--total-timesteps",
             "256",
             "--output",
@@ -590,3 +594,17 @@ def test_deprecated_spellings_still_work(capsys, tmp_path):
     assert args.output == "d"
     args = diffkin.cli.build_parser().parse_args(["train", "--config", "c.yaml", "--out", "r"])
     assert args.output == "r"
+
+
+@pytest.mark.parametrize("space,names,unit", [("joint", ["q1", "q2"], "[rad/s or m/s]"),
+                                              ("cartesian", ["x", "y", "z"], "[m/s]")])
+def test_trajectory_plot_has_a_legend_and_units(space, names, unit):
+    pytest.importorskip("matplotlib")
+    from diffkin.cli import _trajectory_figure
+
+    n, t = len(names), np.linspace(0.0, 1.0, 5)
+    out = {"t": t, **{k: np.zeros((5, n)) for k in ("position", "velocity", "acceleration")}}
+    axs = _trajectory_figure(out, space).axes
+    assert [txt.get_text() for txt in axs[0].get_legend().get_texts()] == names
+    assert all("[" in ax.get_ylabel() and "]" in ax.get_ylabel() for ax in axs)
+    assert unit in axs[1].get_ylabel() and axs[-1].get_xlabel() == "time t [s]"
