@@ -163,6 +163,7 @@ class ReachEnv(TaskEnv):
                    reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_spread=1.0,
                    init_noise=0.1, terminate_on_success=False)
     ```
+
     * ``robot``: a model name of :func:`diffkin.models.load` (``"panda"``, ``"ur5"``, ``"three_link_planar"``,
       ...) or a :class:`~diffkin.chain.KinematicChain` (copied).
     * ``action_mode``: ``"joint"`` or ``"cartesian"`` (above).

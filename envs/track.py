@@ -174,6 +174,7 @@ class TrackEnv(TaskEnv):
                    episode_steps=100, lookahead=3, line_fraction=0.5, line_spread=0.3,
                    max_line_length=0.4, radius_range=(0.05, 0.15), init_noise=0.1)
     ```
+
     ``robot``, ``action_mode``, ``render_mode``, ``robot_config``, ``home``, ``dtype`` and ``device`` as for
     ``diffkin/Reach-v0``; the rest are the fields of :class:`TrackConfig` (lengths in m, noise in rad).
 

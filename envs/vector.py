@@ -85,6 +85,7 @@ class TorchVectorEnv(VectorEnv):
     ```python
     TorchVectorEnv(env_id, num_envs, device="cpu", **env_kwargs)
     ```
+
     * ``env_id``: ``"diffkin/Reach-v0"`` or ``"diffkin/Track-v0"`` (the IDs of
       :data:`diffkin.envs.registry.ENVS`).
     * ``num_envs``: N >= 1.
