@@ -316,6 +316,13 @@ def test_train_missing_config_fails(tmp_path):
     one_error(proc, proc.stderr, "nope.yaml", "no such file")
 
 
+def test_train_needs_an_entry_of_an_algorithm_file():
+    proc = run_subprocess("train", "--config", "configs/sac.yaml")
+    one_error(proc, proc.stderr, "configs/sac.yaml", "--env", "diffkin/Reach-v0:cartesian")
+    proc = run_subprocess("train", "--config", "configs/sac.yaml", "--env", "diffkin/Reach-v0", "--variant=x")
+    one_error(proc, proc.stderr, "no entry 'diffkin/Reach-v0:x'")
+
+
 @pytest.mark.slow
 def test_bench_prints_ratios():
     out = ok(run_subprocess("bench", "calibration", "--quick"))
