@@ -31,7 +31,7 @@ bench: $(STAMP)
 	$(PY) -m benchmarks.run all
 
 train: $(STAMP)
-	$(PY) -m diffkin.training.train --config configs/sac_her_reach_panda_cartesian.yaml
+	$(PY) -m diffkin.training.train --config configs/sac.yaml --env diffkin/Reach-v0 --variant cartesian
 
 # The documentation site into site/ (MkDocs-Material + mkdocstrings; warnings fail the build).
 docs: $(STAMP)

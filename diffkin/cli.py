@@ -445,7 +445,7 @@ def cmd_trajectory(args) -> int:
     }
     write_arrays(args.output, out)
     if args.plot:
-        _plot_trajectory(out, args.plot)
+        _plot_trajectory(out, args.plot, args.space)
     print(
         f"{args.space} trajectory, {args.samples} samples over {args.duration} s -> {args.output}"
         + (f" (plot: {args.plot})" if args.plot else "")
@@ -453,20 +453,38 @@ def cmd_trajectory(args) -> int:
     return 0
 
 
-def _plot_trajectory(out: dict, path: str) -> None:
+_TRAJECTORY_UNITS = {  # (symbol, unit) per panel: joint space (rad, or m for a prismatic joint), Cartesian
+    "joint": (("q", "rad or m"), ("q̇", "rad/s or m/s"), ("q̈", "rad/s² or m/s²")),
+    "cartesian": (("p", "m"), ("ṗ", "m/s"), ("p̈", "m/s²")),
+}
+
+
+def _trajectory_figure(out: dict, space: str = "joint"):
+    """Position, velocity and acceleration against time, one line per joint (q1..qn) or axis (x, y, z),
+    with a legend and units."""
     from .errors import require
 
     Figure = require("matplotlib.figure", "plot", "--plot").Figure  # file output: no pyplot, no backend
 
     fig = Figure(figsize=(7, 7))
     axs = fig.subplots(3, 1, sharex=True)
-    for ax, key in zip(axs, ("position", "velocity", "acceleration")):
-        ax.plot(out["t"], out[key])
-        ax.set_ylabel(key)
+    n = out["position"].shape[-1]
+    names = ["x", "y", "z"] if space == "cartesian" else [f"q{i + 1}" for i in range(n)]
+    for ax, key, (sym, unit) in zip(axs, ("position", "velocity", "acceleration"), _TRAJECTORY_UNITS[space]):
+        for i, name in enumerate(names):
+            ax.plot(out["t"], out[key][:, i], label=name)
+        ax.set_ylabel(f"{key}\n{sym} [{unit}]")
         ax.grid(alpha=0.3)
-    axs[-1].set_xlabel("t [s]")
+    axs[0].legend(title="joint" if space == "joint" else "axis", fontsize=8, ncols=min(n, 7),
+                  loc="upper left", bbox_to_anchor=(0.0, 1.32))
+    axs[-1].set_xlabel("time t [s]")
+    fig.suptitle(f"{space} trajectory", y=0.99)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    return fig
+
+
+def _plot_trajectory(out: dict, path: str, space: str = "joint") -> None:
+    _trajectory_figure(out, space).savefig(path, dpi=110)
 
 
 # --------------------------------------------------------------------------- train / evaluate / bench
@@ -501,7 +519,8 @@ def _config_threads(args) -> int:
     except ImportError as exc:
         raise _missing("train", exc) from exc
     try:
-        return load_config(args.config).torch_threads
+        cfg = load_config(args.config, getattr(args, "env", None), getattr(args, "variant", None))
+        return cfg.torch_threads
     except (TypeError, ValueError, KeyError) as exc:
         raise DiffkinError(f"--config {args.config}: {exc}") from exc
 
@@ -516,7 +535,8 @@ def cmd_train(args) -> int:
         raise _missing("train", exc) from exc
     try:
         cfg, out = resolve_run(
-            args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.output
+            args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.output, env=args.env,
+            variant=args.variant,
         )
     except (TypeError, ValueError, KeyError) as exc:
         raise DiffkinError(f"--config {args.config}: {exc}") from exc
@@ -680,13 +700,13 @@ _EXAMPLES = {
     "trajectory": "diffkin trajectory joint --profile quintic --start 0 0 --end 1 -1 --output j.csv "
                   "--plot j.png\n"
                   "  diffkin trajectory cartesian --start 0.3 0 0.5 --end 0.5 0.1 0.4 --output c.npz",
-    "train": "diffkin train --config configs/ppo_batched_reach_panda.yaml --total-timesteps 20000 "
-             "--output runs/ppo",
+    "train": "diffkin train --config configs/ppo.yaml --env diffkin/Reach-v0 --variant cartesian "
+             "--total-timesteps 20000 --output runs/ppo",
     "evaluate": "diffkin evaluate runs/ppo --episodes 100",
-    "tune": "diffkin tune --config configs/tune_sac_her_reach_panda.yaml --trials 20\n"
-            "  diffkin tune --config configs/tune_sac_her_reach_panda.yaml --trials 20 \\\n"
+    "tune": "diffkin tune --config configs/sac.yaml --env diffkin/Reach-v0 --variant tune --trials 20\n"
+            "  diffkin tune --config configs/sac.yaml --env diffkin/Reach-v0 --variant tune --trials 20 \\\n"
             "      --storage postgresql://user:pw@db/optuna --study reach   # one per worker machine\n"
-            "  diffkin tune --config configs/tune_sac_her_reach_panda.yaml --show",
+            "  diffkin tune --config configs/sac.yaml --env diffkin/Reach-v0 --variant tune --show",
     "bench": "diffkin bench fk --quick\n  diffkin --threads 2 bench ik",
     "demo": "diffkin demo --quick --output runs/demo",
 }
@@ -854,7 +874,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_trajectory)
 
     p = add("train", "train an SB3 agent from a run config (calls diffkin.training.train)")
-    p.add_argument("--config", required=True, help="run config YAML (see configs/)")
+    p.add_argument("--config", required=True,
+                   help="configs/<algo>.yaml with --env (see configs/README.md), or a single-run YAML")
+    p.add_argument("--env", help="the config entry's env ID, e.g. diffkin/Reach-v0")
+    p.add_argument("--variant", help="the entry's variant, e.g. cartesian (key diffkin/Reach-v0:cartesian)")
     p.add_argument("--seed", type=_count, help="override the config's seed")
     p.add_argument("--total-timesteps", type=_positive_int, dest="total_timesteps",
                    help="override the config's total_timesteps")

@@ -454,18 +454,12 @@ def section_clik(report: Report, quick: bool) -> None:
 def section_rl(report: Report, seconds: int) -> None:
     import yaml
 
-    cfg_path = REPO_ROOT / "configs" / "ppo_batched_reach_panda.yaml"
+    cfg_path = REPO_ROOT / "configs" / "ppo.yaml"
     if not cfg_path.exists():
         report.add("RL (PPO on batched Reach)", "Skipped: run from a clone of the diffkin repository.")
         return
-    cfg = yaml.safe_load(cfg_path.read_text())
-    cfg["max_wall_seconds"] = seconds
-    cfg["eval_freq"] = min(int(cfg.get("eval_freq", 100_000)), 50_000)
-    run_dir = report.out / "rl"
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "demo_config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     try:
-        from diffkin.training.config import load_config
+        from diffkin.training.config import load_config, read_entry
         from diffkin.training.train import train
     except ImportError as exc:
         report.add(
@@ -474,6 +468,12 @@ def section_rl(report: Report, seconds: int) -> None:
             "(`pip install -e '.[rl]'`) and run from a clone of the diffkin repository.",
         )
         return
+    cfg = read_entry(cfg_path, env="diffkin/Reach-v0", variant="cartesian")  # PPO, Cartesian actions
+    cfg["max_wall_seconds"] = seconds
+    cfg["eval_freq"] = min(int(cfg.get("eval_freq", 100_000)), 50_000)
+    run_dir = report.out / "rl"
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "demo_config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     try:
         train(load_config(run_dir / "demo_config.yaml"), run_dir, progress_bar=False, log=lambda line: None)
     except Exception:  # the report records the failure and the tour goes on

@@ -109,25 +109,74 @@ class ReachTask(Task):
 
 
 class ReachEnv(TaskEnv):
-    """## Description
-    Kinematic reach with any diffkin chain (default Franka Panda): bring the end effector within
-    ``distance_threshold`` of a goal sampled by forward kinematics of random joints within limits.
+    """``diffkin/Reach-v0``: bring the end effector of a kinematic arm to a goal position.
 
-    ## Action space
-    ``Box(-1, 1, (n,))`` joint-velocity command scaled by ``max_joint_speed``, integrated over
-    ``control_dt`` and clamped to the joint limits; or with ``action_mode="cartesian"`` ``Box(-1, 1, (3,))``,
-    an end-effector displacement (× ``max_ee_step``) mapped through a damped-least-squares step.
+    ## Description
+    Kinematic reach with any diffkin chain (default the Franka Panda; no dynamics, no collisions): bring the
+    end effector within ``distance_threshold`` of a goal position. Goals are the end-effector positions of
+    random joint vectors within the limits, so every goal is reachable. Goal-conditioned (a ``Dict``
+    observation with ``achieved_goal`` / ``desired_goal`` and a vectorised :meth:`compute_reward`), so it
+    works with stable-baselines3's ``HerReplayBuffer``; the batched version of the same task is
+    ``TorchVectorEnv("diffkin/Reach-v0", N)``.
 
-    ## Observation space
-    ``Dict(observation=[q normalised (n), p_ee (3)], achieved_goal=p_ee (3), desired_goal=goal (3))``,
-    float32.
+    ## Action Space
+    ``Box(-1.0, 1.0, (n,), float32)`` with ``action_mode="joint"`` (n = the chain's joint count, 7 for the
+    Panda): joint velocities ``q̇ = a · max_joint_speed`` (1.5 rad/s), integrated over ``control_dt``
+    (0.1 s) and clamped to the joint limits.
+    ``Box(-1.0, 1.0, (3,), float32)`` with ``action_mode="cartesian"``: an end-effector displacement
+    ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``Δq`` by a damped-least-squares step
+    (damping 0.05), scaled down so no joint moves more than ``max_joint_speed · control_dt``.
+    Actions outside [-1, 1] are clipped; NaN/inf or a wrong shape raise ``ValueError`` subclasses.
+
+    ## Observation Space
+    ``Dict`` of float32 ``Box`` es, positions in metres in the chain's base frame:
+
+    | key | shape | content |
+    |---|---|---|
+    | ``observation`` | ``(n + 3,)`` | joint positions mapped to [-1, 1] by the limits, then ``p_ee`` |
+    | ``achieved_goal`` | ``(3,)`` | the end-effector position ``p_ee`` |
+    | ``desired_goal`` | ``(3,)`` | the goal position |
+
+    The bounds are ``±w`` with ``w`` a generous bound on the reach (``|p_ee(home)| + 2 m +`` the sum of
+    the DH offsets); SB3 needs ``MultiInputPolicy`` for this ``Dict``.
 
     ## Rewards
-    sparse: 0 on success, -1 otherwise; dense: minus the distance. ``compute_reward`` is vectorised.
+    ``reward_type="sparse"`` (default): 0 when ``‖p_ee − goal‖ < distance_threshold``, else -1.
+    ``reward_type="dense"``: ``-‖p_ee − goal‖`` (m). ``compute_reward(achieved_goal, desired_goal, info)``
+    computes the same over any leading batch dimensions (what HER relabelling calls).
 
-    ## Episode end
-    Truncated after ``episode_steps`` (50); terminated on success only if ``terminate_on_success``.
-    ``info["is_success"]``, ``info["distance"]``.
+    ## Starting State
+    ``q0 = home + init_noise · U(-1, 1)^n`` (0.1 rad), clamped to the limits; ``home`` is the Panda's
+    "ready" pose (the UR5 and the planar arm have their own, other chains the middle of their limits).
+    The goal is ``p_ee(home + goal_spread · (U(limits) − home))`` (``goal_spread=1``: the whole workspace).
+
+    ## Episode End
+    Truncated after ``episode_steps`` steps (50). Terminated on success only with
+    ``terminate_on_success=True`` (default False). ``info`` holds ``is_success`` (bool) and ``distance`` (m)
+    at every step. No ``TimeLimit`` wrapper is registered: ``gymnasium.make(id, max_episode_steps=k)``
+    adds an outer one.
+
+    ## Arguments
+    ```python
+    gymnasium.make("diffkin/Reach-v0", robot="panda", action_mode="joint", render_mode=None,
+                   robot_config=None, home=None, dtype=torch.float32, device="cpu",
+                   reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_spread=1.0,
+                   init_noise=0.1, terminate_on_success=False)
+    ```
+
+    * ``robot``: a model name of :func:`diffkin.models.load` (``"panda"``, ``"ur5"``, ``"three_link_planar"``,
+      ...) or a :class:`~diffkin.chain.KinematicChain` (copied).
+    * ``action_mode``: ``"joint"`` or ``"cartesian"`` (above).
+    * ``render_mode``: None or ``"rgb_array"`` (a matplotlib drawing of the arm, its trace and the goal).
+    * ``robot_config``: :class:`~diffkin.envs.robot.RobotConfig` or a dict of its fields
+      (``max_joint_speed`` 1.5 rad/s, ``control_dt`` 0.1 s, ``max_ee_step`` 0.05 m, ``damping`` 0.05).
+    * ``home``: the start pose ``(n,)`` (default above); ``dtype`` (float32 or float64) and ``device`` of
+      the kinematics (observations are always float32 numpy).
+    * the fields of :class:`ReachConfig`: ``reward_type``, ``distance_threshold`` (m), ``episode_steps``,
+      ``goal_spread`` in [0, 1], ``init_noise`` (rad), ``terminate_on_success``.
+
+    ## Version History
+    * v0: initial version.
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

@@ -1,4 +1,5 @@
-"""Torch-batched vector env (Gymnasium ``VectorEnv`` semantics) and its stable-baselines3 ``VecEnv`` adapter.
+"""Torch-batched vector env (Gymnasium ``VectorEnv`` semantics); its stable-baselines3 adapter is
+:mod:`diffkin.training.sb3` (the environments know no trainer).
 
 ``TorchVectorEnv`` steps N envs of one task as single tensor operations on ``device`` ("cpu" or "cuda");
 observations, rewards, terminations, truncations and info values are ``(N, ...)`` torch tensors.
@@ -19,45 +20,83 @@ import numpy as np
 import torch
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
-from stable_baselines3.common.vec_env import VecEnv
 
 from diffkin.errors import ConventionError, DTypeError, ShapeError
 
 from ._checks import check_setting
 from ._random import key_from_generator, keys_for_seeds
 from .core import Task, check_action, check_reset_options
-from .reach import ReachConfig, ReachTask
-from .track import TrackConfig, TrackTask
+from .registry import ENVS
 
-__all__ = ["TorchVectorEnv", "SB3VecEnv", "make_task", "make_vec_env"]
+__all__ = ["TorchVectorEnv", "make_task"]
 
-_TASKS = {"diffkin/Reach-v0": (ReachTask, ReachConfig), "diffkin/Track-v0": (TrackTask, TrackConfig)}
 _ROBOT_KEYS = ("robot", "action_mode", "robot_config", "home", "dtype", "device")
 
 
 def make_task(env_id: str, **kwargs) -> Task:
     """The batched task behind ``env_id``, same keyword arguments as ``gymnasium.make(env_id, ...)``."""
-    if env_id not in _TASKS:
-        raise ConventionError(f"unknown env id {env_id!r}; batched ids: {sorted(_TASKS)}")
-    task_cls, cfg_cls = _TASKS[env_id]
+    if env_id not in ENVS:
+        raise ConventionError(f"unknown env id {env_id!r}; batched ids: {sorted(ENVS)}")
+    spec = ENVS[env_id]
     if "max_episode_steps" in kwargs:  # alias (gym.make consumes this name for its TimeLimit wrapper)
         kwargs["episode_steps"] = kwargs.pop("max_episode_steps")
     robot_kwargs = {k: kwargs.pop(k) for k in _ROBOT_KEYS if k in kwargs}
-    return task_cls(cfg_cls(**kwargs), **robot_kwargs)
+    return spec.task(spec.config(**kwargs), **robot_kwargs)
 
 
 def _is_int(x) -> bool:
     return isinstance(x, int | np.integer) and not isinstance(x, bool | np.bool_)
 
 
-def _to_numpy(x):
-    if isinstance(x, dict):
-        return {k: _to_numpy(v) for k, v in x.items()}
-    return x.detach().cpu().numpy()
-
-
 class TorchVectorEnv(VectorEnv):
-    """N envs of ``env_id`` stepped as one tensor op (see module docstring for autoreset and seeding)."""
+    """``num_envs`` envs of one diffkin task stepped as single tensor operations (Gymnasium ``VectorEnv``).
+
+    ## Description
+    The batched form of ``diffkin/Reach-v0`` and ``diffkin/Track-v0``: the same task code as the single env
+    (:class:`~diffkin.envs.core.Task`) on ``(N, ...)`` tensors, on ``device`` ("cpu" or "cuda"). Env ``i``
+    reset with seed ``s + i`` produces the same episodes as ``gymnasium.make(env_id).reset(seed=s + i)``.
+    Inputs and outputs are torch tensors; :func:`diffkin.training.sb3.make_sb3_vec_env` wraps it for
+    stable-baselines3 (numpy in and out).
+
+    ## Action Space
+    ``batch_space(single_action_space, N)``: ``Box(-1.0, 1.0, (N, n), float32)`` (joint mode) or
+    ``(N, 3)`` (Cartesian mode). ``step`` takes a tensor or array of that shape (float32 or float64, cast
+    to the env's dtype), clipped to [-1, 1].
+
+    ## Observation Space
+    ``batch_space(single_observation_space, N)``: for Reach a ``Dict`` of ``(N, n + 3)``, ``(N, 3)``,
+    ``(N, 3)`` tensors; for Track a ``(N, n + 3 + 3 (H + 1) + 1)`` tensor (see the single envs).
+
+    ## Rewards
+    Those of the single env, a ``(N,)`` tensor. ``compute_reward`` is the task's (vectorised, for HER).
+
+    ## Starting State
+    As the single env, per env. ``reset(seed=s)`` seeds env ``i`` with ``s + i`` (or give a list of ``N``
+    seeds); later resets draw from a counter-based RNG per env (``envs/_random.py``).
+
+    ## Episode End
+    As the single env; ``terminated`` and ``truncated`` are ``(N,)`` bool tensors. Autoreset mode
+    **SAME_STEP** (``metadata["autoreset_mode"]``, SB3's convention): the observation returned for an env
+    that ended is already the first of its next episode; its last observation is in ``info["final_obs"]``
+    (valid where ``info["_final_obs"]``) and its last info values in ``info["final_info"]``. Every other info
+    key (``is_success``, ``distance`` / ``tracking_error``) is a ``(N,)`` tensor for every env.
+
+    ## Arguments
+    ```python
+    TorchVectorEnv(env_id, num_envs, device="cpu", **env_kwargs)
+    ```
+
+    * ``env_id``: ``"diffkin/Reach-v0"`` or ``"diffkin/Track-v0"`` (the IDs of
+      :data:`diffkin.envs.registry.ENVS`).
+    * ``num_envs``: N >= 1.
+    * ``device``: where the state and the kinematics live.
+    * ``env_kwargs``: the keyword arguments of ``gymnasium.make(env_id, ...)`` except ``render_mode``
+      (``robot``, ``action_mode``, ``robot_config``, ``home``, ``dtype`` and the task's settings);
+      ``max_episode_steps`` is an alias of ``episode_steps``.
+
+    ## Version History
+    * v0: initial version.
+    """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
@@ -111,69 +150,3 @@ class TorchVectorEnv(VectorEnv):
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
         return self.task.compute_reward(achieved_goal, desired_goal, info)
-
-
-class SB3VecEnv(VecEnv):
-    """stable-baselines3 ``VecEnv`` over a :class:`TorchVectorEnv` (numpy in/out, Dict obs supported).
-
-    Done envs carry ``infos[i]["terminal_observation"]`` and ``"TimeLimit.truncated"`` (SB3's conventions);
-    ``env_method("compute_reward", ...)`` serves ``HerReplayBuffer``.
-    """
-
-    def __init__(self, venv: TorchVectorEnv):
-        self.venv = venv
-        super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
-        self._actions = None
-
-    def reset(self):
-        seeds = self._seeds
-        if seeds and seeds[0] is not None:
-            obs, _ = self.venv.reset(seed=[int(s) for s in seeds])
-        else:
-            obs, _ = self.venv.reset()
-        self._reset_seeds()
-        return _to_numpy(obs)
-
-    def step_async(self, actions: np.ndarray) -> None:
-        self._actions = actions
-
-    def step_wait(self):
-        obs, reward, terminated, truncated, info = self.venv.step(self._actions)
-        done = (terminated | truncated).cpu().numpy()
-        scalars = {k: v.cpu().numpy() for k, v in info.items()
-                   if isinstance(v, torch.Tensor) and v.ndim == 1 and not k.startswith(("_", "final"))}
-        infos = [{k: v[i].item() for k, v in scalars.items()} for i in range(self.num_envs)]
-        if done.any():
-            final = _to_numpy(info["final_obs"])
-            trunc = (truncated & ~terminated).cpu().numpy()
-            for i in np.flatnonzero(done):
-                infos[i]["terminal_observation"] = (
-                    {k: v[i] for k, v in final.items()} if isinstance(final, dict) else final[i]
-                )
-                infos[i]["TimeLimit.truncated"] = bool(trunc[i])
-        return _to_numpy(obs), reward.cpu().numpy().astype(np.float32), done, infos
-
-    def close(self) -> None:
-        self.venv.close()
-
-    def get_attr(self, attr_name, indices=None):
-        return [getattr(self.venv.task, attr_name, getattr(self.venv, attr_name, None))] * len(
-            self._get_indices(indices))
-
-    def set_attr(self, attr_name, value, indices=None) -> None:
-        setattr(self.venv, attr_name, value)
-
-    def env_method(self, method_name, *method_args, indices=None, **method_kwargs):
-        fn = getattr(self.venv, method_name)
-        return [fn(*method_args, **method_kwargs) for _ in self._get_indices(indices)]
-
-    def env_is_wrapped(self, wrapper_class, indices=None):
-        return [False] * len(self._get_indices(indices))
-
-    def get_images(self):
-        return [None] * self.num_envs
-
-
-def make_vec_env(env_id: str, num_envs: int, device: str = "cpu", **env_kwargs) -> SB3VecEnv:
-    """A batched env of ``env_id`` wrapped for stable-baselines3."""
-    return SB3VecEnv(TorchVectorEnv(env_id, num_envs, device=device, **env_kwargs))

@@ -27,8 +27,10 @@ def plot_workspace(name: str, n: int, seed: int, out_dir: Path) -> Path:
     x, y, z = p.unbind(-1)
     r = torch.sqrt(x**2 + y**2)
     planar = bool(z.abs().max() < 1e-6)
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 5))
-    ax1.scatter(x, y, s=0.5, c=z if not planar else r, cmap="viridis", alpha=0.4, linewidths=0)
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10.5, 4.6), layout="constrained")
+    colour = r if planar else z
+    points = ax1.scatter(x, y, s=0.5, c=colour, cmap="viridis", alpha=0.4, linewidths=0,
+                         vmin=float(colour.min()), vmax=float(colour.max()))
     title = "plane of the arm (colour: distance)" if planar else "top view (colour: z)"
     ax1.set(xlabel="x [m]", ylabel="y [m]", title=title)
     ax1.set_aspect("equal")
@@ -36,13 +38,15 @@ def plot_workspace(name: str, n: int, seed: int, out_dir: Path) -> Path:
         ax2.hist(r.numpy(), bins=100, color="tab:blue")
         ax2.set(xlabel="distance from the base axis [m]", ylabel="samples", title="reach")
     else:
-        ax2.scatter(r, z, s=0.5, c=z, cmap="viridis", alpha=0.4, linewidths=0)
+        ax2.scatter(r, z, s=0.5, c=z, cmap="viridis", alpha=0.4, linewidths=0, norm=points.norm)
         ax2.set(xlabel="sqrt(x² + y²) [m]", ylabel="z [m]", title="side view (all azimuths folded)")
         ax2.set_aspect("equal")
     for ax in (ax1, ax2):
         ax.grid(alpha=0.3)
+    opaque = matplotlib.cm.ScalarMappable(norm=points.norm, cmap=points.cmap)  # the bar without the alpha
+    bar = fig.colorbar(opaque, ax=[ax1] if planar else [ax1, ax2], shrink=0.85)
+    bar.set_label("distance from the base axis [m]" if planar else "end-effector height z [m]")
     fig.suptitle(f"{name}: {n} reachable end-effector positions, joints uniform within their limits")
-    fig.tight_layout()
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / f"workspace_{name}.png"
     fig.savefig(path, dpi=110)

@@ -28,6 +28,7 @@ MODULES: list[str] = [
     "diffkin.envs.vector",
     "diffkin.envs.robot",
     "diffkin.training.evaluate",
+    "diffkin.training.sb3",
 ]
 
 # ----------------------------------------------------------------------------------------- calibration
@@ -138,7 +139,8 @@ def _env(kind: str):
     if kind not in _ENVS:
         from diffkin.envs.reach import ReachEnv
         from diffkin.envs.track import TrackEnv
-        from diffkin.envs.vector import SB3VecEnv, TorchVectorEnv
+        from diffkin.envs.vector import TorchVectorEnv
+        from diffkin.training.sb3 import SB3VecEnv
 
         make = {
             "reach": lambda: ReachEnv(ENV_ROBOT, reward_type="dense"),
@@ -210,6 +212,7 @@ def _joint_action(gen, batch, dtype):
 def _cases() -> list[Case]:
     from diffkin import calibration as cal
     from diffkin.envs import core, reach, track, vector
+    from diffkin.training import sb3
 
     no_batch = None  # results without the call's batch dims (a report, a dict of numbers, an env step)
     return [
@@ -247,7 +250,7 @@ def _cases() -> list[Case]:
         Case("diffkin.envs.TorchVectorEnv.step", _vector_step, covers=vector.TorchVectorEnv,
              args={"actions": _arg(_joint_action, (N_JOINTS,))}, batch=(N_ENVS,), out_batch=no_batch,
              empty_raises=ShapeError, rtol=1e-5),
-        Case("diffkin.envs.SB3VecEnv.step", _sb3_step, covers=vector.SB3VecEnv,
+        Case("diffkin.training.SB3VecEnv.step", _sb3_step, covers=sb3.SB3VecEnv,
              args={"actions": _arg(_joint_action, (N_JOINTS,))}, batch=(N_ENVS,), out_batch=no_batch,
              empty_raises=ShapeError, rtol=1e-5),
         Case("diffkin.envs.reach_reward", _reach_reward, covers=reach.reach_reward,
@@ -284,7 +287,7 @@ EXEMPT: dict[str, str] = {
     "diffkin.envs.track.TrackTask": _TRUSTED,
     "diffkin.envs.track.TrackConfig": "settings of Python numbers, checked on construction (test_envs)",
     "diffkin.envs.vector.make_task": "factory of a task from keyword settings, no tensor input",
-    "diffkin.envs.vector.make_vec_env": "factory of an SB3VecEnv (fuzzed as envs.SB3VecEnv.step)",
+    "diffkin.training.sb3.make_sb3_vec_env": "factory of an SB3VecEnv (fuzzed as training.SB3VecEnv.step)",
     "diffkin.envs.robot.Robot": "the robot half of the envs: trusted, already validated tensors (module doc)",
     "diffkin.envs.robot.RobotConfig": "settings of Python numbers, checked on construction (test_envs)",
     "diffkin.envs.robot.load_chain": "takes a model name or a chain, no tensor input",

@@ -272,7 +272,11 @@ def test_train_then_evaluate(tmp_path):
         run_subprocess(
             "train",
             "--config",
-            "configs/ppo_batched_reach_panda.yaml",
+            "configs/ppo.yaml",
+            "--env",
+            "diffkin/Reach-v0",
+            "--variant",
+            "cartesian",
             "--total-timesteps",
             "256",
             "--output",
@@ -310,6 +314,13 @@ def one_error(proc_or_rc, err: str, *needles: str) -> str:
 def test_train_missing_config_fails(tmp_path):
     proc = run_subprocess("train", "--config", str(tmp_path / "nope.yaml"))
     one_error(proc, proc.stderr, "nope.yaml", "no such file")
+
+
+def test_train_needs_an_entry_of_an_algorithm_file():
+    proc = run_subprocess("train", "--config", "configs/sac.yaml")
+    one_error(proc, proc.stderr, "configs/sac.yaml", "--env", "diffkin/Reach-v0:cartesian")
+    proc = run_subprocess("train", "--config", "configs/sac.yaml", "--env", "diffkin/Reach-v0", "--variant=x")
+    one_error(proc, proc.stderr, "no entry 'diffkin/Reach-v0:x'")
 
 
 @pytest.mark.slow
@@ -590,3 +601,17 @@ def test_deprecated_spellings_still_work(capsys, tmp_path):
     assert args.output == "d"
     args = diffkin.cli.build_parser().parse_args(["train", "--config", "c.yaml", "--out", "r"])
     assert args.output == "r"
+
+
+@pytest.mark.parametrize("space,names,unit", [("joint", ["q1", "q2"], "[rad/s or m/s]"),
+                                              ("cartesian", ["x", "y", "z"], "[m/s]")])
+def test_trajectory_plot_has_a_legend_and_units(space, names, unit):
+    pytest.importorskip("matplotlib")
+    from diffkin.cli import _trajectory_figure
+
+    n, t = len(names), np.linspace(0.0, 1.0, 5)
+    out = {"t": t, **{k: np.zeros((5, n)) for k in ("position", "velocity", "acceleration")}}
+    axs = _trajectory_figure(out, space).axes
+    assert [txt.get_text() for txt in axs[0].get_legend().get_texts()] == names
+    assert all("[" in ax.get_ylabel() and "]" in ax.get_ylabel() for ax in axs)
+    assert unit in axs[1].get_ylabel() and axs[-1].get_xlabel() == "time t [s]"

@@ -1,4 +1,5 @@
-"""The documentation site: it builds strictly, and every Python block of the tutorials and home page runs.
+"""The documentation site: it builds strictly, and every Python block of the tutorials and home page runs;
+every Python block of the README runs on its own.
 
 The blocks (```` ```python ```` fences in ``docs/index.md`` and ``docs/tutorials/*.md``) run in order, one
 interpreter per page (later blocks use what earlier ones defined, like a notebook), in a temporary directory
@@ -94,6 +95,37 @@ def test_page_code_blocks_run(page: Path, tmp_path: Path):
     if skipped:
         missing = sorted({m for *_, ms in skipped for m in ms})
         pytest.skip(f"{len(skipped)} block(s) skipped, missing {missing}")
+
+
+README = ROOT / "README.md"
+README_BLOCK_TIMEOUT_S = 120
+
+
+def _readme_blocks() -> list[tuple[int, str]]:
+    return python_blocks(README)
+
+
+@pytest.mark.parametrize("line,code", _readme_blocks(), ids=[f"line{ln}" for ln, _ in _readme_blocks()])
+def test_readme_code_block_runs_on_its_own(line: int, code: str, tmp_path: Path):
+    """Every python block of the README runs alone (its own interpreter, an empty working directory), as a
+    reader would paste it. ``# requires: NAME`` as the first line skips it when NAME is missing."""
+    missing = missing_requirements(code)
+    if missing:
+        pytest.skip(f"README.md:{line} needs {missing}")
+    script = f"BLOCKS = {[('README.md', line, code)]!r}\n{_DRIVER}"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+           "OMP_NUM_THREADS": "1", "MPLBACKEND": "Agg"}
+    proc = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=README_BLOCK_TIMEOUT_S)
+    assert proc.returncode == 0, f"README.md:{line} failed\n{proc.stdout[-4000:]}\n{proc.stderr[-6000:]}"
+
+
+def test_readme_quickstarts_are_there():
+    """The README shows SB3 on the batched env with the settings that matter (and the test above runs it)."""
+    sb3 = [code for _, code in _readme_blocks() if "make_sb3_vec_env" in code]
+    assert len(sb3) == 1
+    for needle in ('"MultiInputPolicy"', "n_steps=50", 'reward_type="dense"', "VecNormalize("):
+        assert needle in sb3[0], needle
 
 
 def test_python_blocks_parser(tmp_path: Path):

@@ -118,3 +118,25 @@ def test_library_starts_no_subprocesses():
             if isinstance(node, ast.Call) and _dotted(node.func) in ("os.system", "os.popen", "os.execv"):
                 offenders.append(f"{rel}:{node.lineno}")
     assert offenders == []
+
+
+_DYNAMIC_IMPORTS = ("importlib.import_module", "__import__")
+
+
+def test_environments_know_no_trainer():
+    """envs/ imports no RL library (stable-baselines3 and its adapter live in training/)."""
+    trainers = ("stable_baselines3", "sb3_contrib", "rl_zoo3", "diffkin.training")
+    offenders = []
+    for rel, tree in _modules("envs"):
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                names = [node.module]
+            elif isinstance(node, ast.Call) and _dotted(node.func) in _DYNAMIC_IMPORTS:
+                names = [a.value for a in node.args[:1]
+                         if isinstance(a, ast.Constant) and isinstance(a.value, str)]
+            if any(n == t or n.startswith(t + ".") for n in names for t in trainers):
+                offenders.append(f"{rel}:{node.lineno}")
+    assert offenders == []

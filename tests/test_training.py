@@ -9,10 +9,17 @@ import pytest
 import torch
 
 from diffkin.training.algos import EVAL_SEED
-from diffkin.training.config import RunConfig, load_config
+from diffkin.training.config import RunConfig, entries, load_config, read_entry
 
-CONFIGS = sorted(Path(__file__).resolve().parents[1].joinpath("configs").glob("*.yaml"))
-RUN_CONFIGS = [p for p in CONFIGS if "algo" in p.read_text()]
+ROOT = Path(__file__).resolve().parents[1]
+ALGO_FILES = sorted(ROOT.joinpath("configs").glob("*.yaml"))
+#: (file, env ID, variant) of every entry of configs/<algo>.yaml
+RUN_CONFIGS = [(p, *(k.split(":", 1) if ":" in k else (k, None))) for p in ALGO_FILES for k in entries(p)]
+
+
+def _id(case) -> str:
+    path, env, variant = case
+    return f"{path.stem}-{env.split('/')[-1]}" + (f"-{variant}" if variant else "")
 
 
 def _small(cfg: RunConfig) -> RunConfig:
@@ -28,17 +35,75 @@ def _small(cfg: RunConfig) -> RunConfig:
 
 
 def test_there_are_run_configs():
-    names = {p.stem for p in RUN_CONFIGS}
-    assert {"sac_her_reach_panda", "sac_her_reach_panda_cartesian", "ppo_batched_reach_panda"} <= names
-    assert any("track" in n for n in names)
+    assert [p.name for p in ALGO_FILES] == ["ppo.yaml", "sac.yaml"]
+    keys = {f"{p.stem} {e}" + (f":{v}" if v else "") for p, e, v in RUN_CONFIGS}
+    assert {"sac diffkin/Reach-v0", "sac diffkin/Reach-v0:cartesian", "ppo diffkin/Reach-v0:cartesian",
+            "ppo diffkin/Track-v0", "sac diffkin/Track-v0"} <= keys
 
 
-@pytest.mark.parametrize("path", RUN_CONFIGS, ids=lambda p: p.stem)
-def test_config_loads_and_is_frozen(path):
-    cfg = load_config(path)
-    assert cfg.env_id.startswith("diffkin/") and cfg.total_timesteps > 0
+@pytest.mark.parametrize("case", RUN_CONFIGS, ids=_id)
+def test_config_loads_and_is_frozen(case):
+    path, env, variant = case
+    cfg = load_config(path, env=env, variant=variant)
+    assert cfg.env_id == env and cfg.algo == path.stem and cfg.total_timesteps > 0
+    assert cfg.name == f"{path.stem}_{env.split('/')[-1]}" + (f"_{variant}" if variant else "")
+    assert load_config(path, env=f"{env}:{variant}" if variant else env) == cfg
     with pytest.raises(AttributeError):
         cfg.seed = 3  # type: ignore[misc]
+
+
+def test_variants_share_settings_through_anchors():
+    """The variants differ from their base entry in what they name, the rest comes from the anchors."""
+    sac = ROOT / "configs" / "sac.yaml"
+    base, cart = load_config(sac, "diffkin/Reach-v0"), load_config(sac, "diffkin/Reach-v0", "cartesian")
+    fast = load_config(sac, "diffkin/Reach-v0", "fast")
+    long = load_config(sac, "diffkin/Reach-v0", "fast_long")
+    assert cart.env_kwargs["action_mode"] == "cartesian" and base.env_kwargs["action_mode"] == "joint"
+    assert cart.algo_kwargs == base.algo_kwargs and cart.her == base.her
+    assert fast.env_kwargs["robot_config"] == {"max_joint_speed": 1.0}
+    assert fast.algo_kwargs == {**base.algo_kwargs, "train_freq": 1}
+    assert long.replace(name="x", total_timesteps=1, stop_success=1.0, max_wall_seconds=1.0) == fast.replace(
+        name="x", total_timesteps=1, stop_success=1.0, max_wall_seconds=1.0)
+    assert "search_space" in read_entry(sac, "diffkin/Reach-v0", "tune")
+    assert load_config(sac, "diffkin/Reach-v0", "tune").replace(name="x") == fast.replace(name="x")
+    # each entry is its own copy: changing one does not reach another through a shared anchor
+    a, b = read_entry(sac, "diffkin/Reach-v0"), read_entry(sac, "diffkin/Reach-v0", "cartesian")
+    a["her"]["n_sampled_goal"] = 99
+    assert b["her"]["n_sampled_goal"] == 4
+
+
+def test_entry_selection_errors(tmp_path):
+    sac = ROOT / "configs" / "sac.yaml"
+    with pytest.raises(ValueError, match="--env"):
+        load_config(sac)
+    with pytest.raises(ValueError, match="no entry 'diffkin/Reach-v0:nope'.*diffkin/Reach-v0:cartesian"):
+        load_config(sac, "diffkin/Reach-v0", "nope")
+    single = tmp_path / "run.yaml"
+    single.write_text("env_id: diffkin/Reach-v0\nalgo: sac\ntotal_timesteps: 10\n")
+    assert load_config(single).name == "run" and load_config(single, env="diffkin/Reach-v0").algo == "sac"
+    with pytest.raises(ValueError, match="single-run"):
+        load_config(single, "diffkin/Reach-v0", "fast")
+    mine = tmp_path / "mine.yaml"
+    mine.write_text("diffkin/Reach-v0:\n  total_timesteps: 10\n")
+    with pytest.raises(ValueError, match="sets no algo"):
+        load_config(mine, "diffkin/Reach-v0")
+    mine.write_text("diffkin/Reach-v0:\n  algo: ppo\n  total_timesteps: 10\n  learning_rat: 1\n")
+    with pytest.raises(ValueError, match="learning_rat"):
+        load_config(mine, "diffkin/Reach-v0")
+
+
+def test_readme_maps_every_old_name_to_an_entry():
+    """configs/README.md's table of old names (the results in docs/rl/) names existing entries."""
+    text = (ROOT / "configs" / "README.md").read_text()
+    rows = [ln.split("|")[1:5] for ln in text.splitlines() if ln.startswith("| `") and ln.count("|") == 5]
+    results = {p.stem for p in (ROOT / "docs" / "rl").glob("*.json")}
+    old = set()
+    for old_file, file, env, variant in rows:
+        variant = variant.strip().strip("`")
+        load_config(ROOT / "configs" / file.strip().strip("`"), env.strip().strip("`"),
+                    None if variant == "—" else variant)
+        old.add(old_file.strip().split("`")[1].removesuffix(".yaml"))
+    assert results <= old, results - old
 
 
 def test_unknown_config_key_is_an_error(tmp_path):
@@ -50,13 +115,14 @@ def test_unknown_config_key_is_an_error(tmp_path):
         RunConfig(name="x", env_id="diffkin/Reach-v0", algo="ppo", total_timesteps=1, her={})
 
 
-@pytest.mark.parametrize("path", RUN_CONFIGS, ids=lambda p: p.stem)
-def test_smoke_run_and_evaluate(path, tmp_path):
+@pytest.mark.parametrize("case", RUN_CONFIGS, ids=_id)
+def test_smoke_run_and_evaluate(case, tmp_path):
     from diffkin.training.evaluate import evaluate_run
     from diffkin.training.train import train
 
     threads = torch.get_num_threads()
-    cfg = _small(load_config(path))
+    path, env, variant = case
+    cfg = _small(load_config(path, env=env, variant=variant))
     res = train(cfg, tmp_path, progress_bar=False, log=lambda s: None)
     torch.set_num_threads(threads)
     for name in ("config.yaml", "meta.json", "model.zip", "results.json"):

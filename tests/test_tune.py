@@ -75,3 +75,15 @@ def test_two_workers_share_one_sqlite_study(tmp_path):
     best = load_config(path)
     assert best.total_timesteps == study.best_trial.params["total_timesteps"]
     assert best.algo_kwargs["learning_rate"] == study.best_trial.params["algo_kwargs.learning_rate"]
+
+
+def test_the_sweep_is_an_entry_of_the_algorithm_file():
+    """configs/sac.yaml's diffkin/Reach-v0:tune: the fast variant's run with a search space and settings."""
+    sac = ROOT / "configs" / "sac.yaml"
+    cfg, space, settings = read_sweep(sac, "diffkin/Reach-v0", "tune")
+    assert cfg.replace(name="x") == load_config(sac, "diffkin/Reach-v0", "fast").replace(name="x")
+    assert "algo_kwargs.learning_rate" in space and settings["metric"] == "success_rate"
+    for path in space:  # every searched path exists in the run config
+        apply_params(cfg, {path: space[path].get("low", (space[path].get("choices") or [None])[0])})
+    with pytest.raises(ValueError, match="search_space"):
+        read_sweep(sac, "diffkin/Reach-v0", "fast")

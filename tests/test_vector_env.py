@@ -1,4 +1,4 @@
-"""Torch-batched vector env: equals N single envs with the same seeds; SB3 adapter; errors."""
+"""Torch-batched vector env: equals N single envs with the same seeds; one registry; errors."""
 
 from __future__ import annotations
 
@@ -7,10 +7,11 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.vector import AutoresetMode
-from stable_baselines3.common.vec_env import VecEnv
 
 import diffkin.envs  # noqa: F401
-from diffkin.envs.vector import SB3VecEnv, TorchVectorEnv, make_vec_env
+from diffkin.envs.registry import ENV_IDS as REGISTERED
+from diffkin.envs.registry import ENVS
+from diffkin.envs.vector import TorchVectorEnv, make_task
 
 ENV_IDS = sorted(k for k in gym.registry if k.startswith("diffkin/"))
 CASES = [(e, m) for e in ENV_IDS for m in ("joint", "cartesian")]
@@ -82,29 +83,6 @@ def test_vector_bad_actions(bad):
         venv.step(bad)
 
 
-@pytest.mark.parametrize("env_id", ENV_IDS)
-def test_sb3_adapter(env_id):
-    venv = make_vec_env(env_id, 3, episode_steps=4)
-    assert isinstance(venv, VecEnv) and isinstance(venv, SB3VecEnv)
-    venv.seed(11)
-    obs = venv.reset()
-    ref = TorchVectorEnv(env_id, 3, episode_steps=4).reset(seed=11)[0]
-    if isinstance(obs, dict):
-        assert set(obs) == {"observation", "achieved_goal", "desired_goal"}
-        np.testing.assert_array_equal(obs["desired_goal"], ref["desired_goal"].numpy())
-    else:
-        np.testing.assert_array_equal(obs, ref.numpy())
-    for _ in range(4):
-        obs, rew, done, infos = venv.step(np.zeros((3, *venv.action_space.shape), dtype=np.float32))
-        assert rew.shape == (3,) and done.dtype == bool and len(infos) == 3
-    assert done.all()
-    assert all("terminal_observation" in i and i["TimeLimit.truncated"] for i in infos)
-    if env_id == "diffkin/Reach-v0":
-        args = (obs["achieved_goal"], obs["desired_goal"], infos)
-        r = venv.env_method("compute_reward", *args, indices=[0])[0]
-        assert r.shape == (3,)
-
-
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu():
     a = TorchVectorEnv("diffkin/Reach-v0", 16, device="cuda")
@@ -146,3 +124,16 @@ def test_vector_env_settings_seeds_and_action_dtypes():
             venv.step(bad)
     with pytest.raises(ShapeError, match=r"\(3, 3\)"):
         venv.step(np.zeros((0, 3)))
+
+
+def test_one_registry_serves_gymnasium_and_the_batched_env():
+    assert set(ENV_IDS) == set(ENVS) == set(REGISTERED)
+    for env_id, spec in ENVS.items():
+        assert gym.spec(env_id).entry_point == spec.entry_point == REGISTERED[env_id]
+        env = gym.make(env_id, robot="three_link_planar")
+        assert isinstance(env.unwrapped, spec.env)
+        task = make_task(env_id, robot="three_link_planar")
+        assert type(task) is spec.task and type(task.config) is spec.config
+        assert type(env.unwrapped.task) is spec.task
+    with pytest.raises(ValueError, match="unknown env id"):
+        make_task("diffkin/Nope-v0")

@@ -1,17 +1,30 @@
-"""Run configuration: a YAML file keyed by env ID → a frozen dataclass."""
+"""Run configuration: rl-zoo-style YAML files (one per algorithm, keyed by env ID) → a frozen dataclass.
+
+``configs/sac.yaml`` and ``configs/ppo.yaml`` hold one entry per env ID (``diffkin/Reach-v0``) and per named
+variant (``diffkin/Reach-v0:cartesian``); the algorithm is the file's name. Entries share settings through
+YAML anchors and merge keys (``<<: *reach``). :func:`load_config` picks one entry::
+
+    load_config("configs/sac.yaml", env="diffkin/Reach-v0", variant="fast")
+
+A *single-run* file (the fields of :class:`RunConfig` at the top level, ``env_id`` and ``algo`` among them:
+what a training run writes as ``config.yaml``, what ``diffkin tune --show`` writes) loads without ``env``.
+See ``configs/README.md`` for the layout and the names of the runs.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
 
-__all__ = ["RunConfig", "load_config"]
+__all__ = ["RunConfig", "load_config", "read_entry", "entries"]
 
 _ALGOS = ("sac", "td3", "ppo")
 _SWEEP_SECTIONS = ("search_space", "tune")
+VARIANT_SEP = ":"
 
 
 @dataclass(frozen=True)
@@ -57,13 +70,66 @@ class RunConfig:
         return dataclasses.asdict(self)
 
 
-def load_config(path: str | Path) -> RunConfig:
-    """Read a YAML run config; unknown keys raise ``ValueError`` naming them. A sweep's ``search_space``
-    and ``tune`` sections (:mod:`training.tune`) are left to the sweep."""
+def _read(path: str | Path) -> dict:
     data = yaml.safe_load(Path(path).read_text())
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping at the top level")
-    data.setdefault("name", Path(path).stem)
+    return data
+
+
+def _is_single_run(data: dict) -> bool:
+    known = {f.name for f in dataclasses.fields(RunConfig)} | set(_SWEEP_SECTIONS)
+    return bool(known & set(data))
+
+
+def entries(path: str | Path) -> list[str]:
+    """The keys of an algorithm file (``ENV_ID`` and ``ENV_ID:VARIANT``), in file order; ``[]`` for a
+    single-run file."""
+    data = _read(path)
+    return [] if _is_single_run(data) else [str(k) for k in data]
+
+
+def read_entry(path: str | Path, env: str | None = None, variant: str | None = None) -> dict:
+    """The raw mapping of one run: the entry ``env`` (+ ``:variant``) of an algorithm file, with ``env_id``,
+    ``algo`` and ``name`` filled in, or the whole of a single-run file. Sweep sections are kept.
+
+    ``env`` may name the variant itself (``"diffkin/Reach-v0:fast"``). The default ``name`` is
+    ``<algo>_<env name>[_<variant>]``, e.g. ``sac_Reach-v0_fast``; ``algo`` is the file's name
+    (``sac.yaml``) unless the entry sets it.
+    """
+    data = _read(path)
+    if _is_single_run(data):
+        if variant is not None or (env is not None and env != data.get("env_id")):
+            raise ValueError(f"{path}: a single-run file (env_id {data.get('env_id')!r}); it has no entries "
+                             f"to choose with env={env!r}, variant={variant!r}")
+        data.setdefault("name", Path(path).stem)
+        return data
+    if env is None:
+        raise ValueError(f"{path}: one entry per env ID; choose one with --env (and --variant): {list(data)}")
+    key = env if variant is None else f"{env}{VARIANT_SEP}{variant}"
+    if key not in data:
+        raise ValueError(f"{path}: no entry {key!r}; entries: {list(data)}")
+    entry = data[key]
+    if not isinstance(entry, dict):
+        raise ValueError(f"{path}: entry {key!r}: expected a mapping, got {type(entry).__name__}")
+    entry = json.loads(json.dumps(entry))  # anchors share objects between entries: give this one its own
+    env_id, _, var = key.partition(VARIANT_SEP)
+    algo = entry.get("algo", Path(path).stem)
+    if algo not in _ALGOS:
+        raise ValueError(f"{path}: entry {key!r} sets no algo, and the file's name {Path(path).stem!r} is "
+                         f"not one of {_ALGOS}")
+    if entry.setdefault("env_id", env_id) != env_id:
+        raise ValueError(f"{path}: entry {key!r} sets env_id {entry['env_id']!r}")
+    entry["algo"] = algo
+    entry.setdefault("name", f"{algo}_{env_id.rsplit('/', 1)[-1]}" + (f"_{var}" if var else ""))
+    return entry
+
+
+def load_config(path: str | Path, env: str | None = None, variant: str | None = None) -> RunConfig:
+    """One run of a YAML config: the entry ``env`` (+ ``variant``) of an algorithm file (``configs/sac.yaml``)
+    or a single-run file (see :func:`read_entry`). Unknown keys raise ``ValueError`` naming them. A sweep's
+    ``search_space`` and ``tune`` sections (:mod:`training.tune`) are left to the sweep."""
+    data = read_entry(path, env, variant)
     for section in _SWEEP_SECTIONS:  # read by training.tune; a sweep config trains as its base config
         data.pop(section, None)
     known = {f.name for f in dataclasses.fields(RunConfig)}

@@ -91,9 +91,9 @@ def load_run(run_dir: str | Path):
     cfg = load_config(run_dir / "config.yaml")
     env = None
     if cfg.her is not None:  # SB3 rebuilds the HerReplayBuffer on load and needs an env for it
-        from diffkin.envs.vector import make_vec_env
+        from diffkin.training.sb3 import make_sb3_vec_env
 
-        env = make_vec_env(cfg.env_id, 1, **cfg.env_kwargs)
+        env = make_sb3_vec_env(cfg.env_id, 1, **cfg.env_kwargs)
     model = ALGOS[cfg.algo].load(run_dir / "model.zip", env=env, device="cpu")
     norm = None
     if (run_dir / "vecnormalize.pkl").exists():

@@ -1,6 +1,9 @@
 """Train an SB3 agent on a diffkin env from a YAML config; the run records itself.
 
-    python -m diffkin.training.train --config configs/<run>.yaml [--seed S] [--total-timesteps N] [--out DIR]
+    python -m diffkin.training.train --config configs/<algo>.yaml --env ENV_ID [--variant V] [--seed S]
+        [--total-timesteps N] [--out DIR]
+
+(``--config`` may also be a single-run file, without ``--env``: a run directory's ``config.yaml``.)
 
 Writes to ``DIR`` (default ``runs/<name>/seed<S>``): ``config.yaml`` (resolved), ``meta.json`` (seed,
 versions, command line, timings), TensorBoard logs (``tb/``), ``model.zip`` (+ ``vecnormalize.pkl``) and
@@ -29,10 +32,11 @@ from stable_baselines3.common.noise import NormalActionNoise
 from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import diffkin.envs  # noqa: F401  (registers the IDs)
-from diffkin.envs.vector import TorchVectorEnv, make_vec_env
+from diffkin.envs.vector import TorchVectorEnv
 from diffkin.training.algos import ALGOS, EVAL_SEED
 from diffkin.training.config import RunConfig, load_config
 from diffkin.training.evaluate import model_policy, run_episodes, scripted_policy
+from diffkin.training.sb3 import make_sb3_vec_env
 
 __all__ = ["ALGOS", "EVAL_SEED", "build_env", "build_model", "EvalCallback", "versions", "train",
            "resolve_run", "summary_json", "main"]
@@ -40,7 +44,7 @@ __all__ = ["ALGOS", "EVAL_SEED", "build_env", "build_model", "EvalCallback", "ve
 
 def build_env(cfg: RunConfig):
     if cfg.vectorized:
-        venv = VecMonitor(make_vec_env(cfg.env_id, cfg.n_envs, device=cfg.device, **cfg.env_kwargs))
+        venv = VecMonitor(make_sb3_vec_env(cfg.env_id, cfg.n_envs, device=cfg.device, **cfg.env_kwargs))
     else:
         venv = sb3_make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, env_kwargs=cfg.env_kwargs)
     venv.seed(cfg.seed)
@@ -162,10 +166,11 @@ def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print, on_ev
 
 
 def resolve_run(config: str | Path, seed: int | None = None, total_timesteps: int | None = None,
-                out: str | Path | None = None) -> tuple[RunConfig, Path]:
-    """The config file with the command line's overrides, and the run directory (default
-    ``runs/<name>/seed<seed>``)."""
-    cfg = load_config(config).replace(seed=seed, total_timesteps=total_timesteps)
+                out: str | Path | None = None, env: str | None = None,
+                variant: str | None = None) -> tuple[RunConfig, Path]:
+    """The config's entry ``env`` / ``variant`` (see :func:`~diffkin.training.config.load_config`) with the
+    command line's overrides, and the run directory (default ``runs/<name>/seed<seed>``)."""
+    cfg = load_config(config, env, variant).replace(seed=seed, total_timesteps=total_timesteps)
     return cfg, Path(out) if out else Path("runs") / cfg.name / f"seed{cfg.seed}"
 
 
@@ -176,13 +181,16 @@ def summary_json(results: dict) -> str:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="Train an SB3 agent on a diffkin env from a YAML config.")
-    p.add_argument("--config", required=True)
+    p.add_argument("--config", required=True, help="configs/<algo>.yaml (with --env) or a single-run file")
+    p.add_argument("--env", help="env ID of the config's entry, e.g. diffkin/Reach-v0")
+    p.add_argument("--variant", help="variant of the entry, e.g. cartesian (key diffkin/Reach-v0:cartesian)")
     p.add_argument("--seed", type=int)
     p.add_argument("--total-timesteps", type=int)
     p.add_argument("--out")
     p.add_argument("--no-progress", action="store_true", help="disable the progress bar (for log files)")
     args = p.parse_args(argv)
-    cfg, out = resolve_run(args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.out)
+    cfg, out = resolve_run(args.config, seed=args.seed, total_timesteps=args.total_timesteps, out=args.out,
+                           env=args.env, variant=args.variant)
     torch.set_num_threads(cfg.torch_threads)  # the command line applies the config's thread count
     res = train(cfg, out, progress_bar=not args.no_progress)
     print(summary_json(res))

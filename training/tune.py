@@ -1,6 +1,7 @@
 """Hyperparameter sweeps with Optuna on a shared store, in rl-baselines3-zoo's manner.
 
-A sweep is a run config (``configs/*.yaml``, see :mod:`training.config`) with two more sections::
+A sweep is a run config (an entry of ``configs/<algo>.yaml`` such as ``diffkin/Reach-v0:tune``, or a
+single-run file; see :mod:`training.config`) with two more sections::
 
     search_space:                       # dotted paths into the config -> an Optuna distribution
       algo_kwargs.learning_rate: {type: float, low: 1.0e-4, high: 3.0e-3, log: true}
@@ -31,7 +32,7 @@ from typing import Any
 
 import yaml
 
-from diffkin.training.config import RunConfig, load_config
+from diffkin.training.config import RunConfig, load_config, read_entry
 
 __all__ = [
     "SPACE_TYPES",
@@ -171,13 +172,13 @@ def _sampler(spec: dict | None, space: dict):
     raise ValueError(f"tune.sampler.type must be tpe, random or grid, got {kind!r}")
 
 
-def read_sweep(config: str | Path) -> tuple[RunConfig, dict, dict]:
-    """The run config, its search space and its tune settings."""
-    sweep = yaml.safe_load(Path(config).read_text())
-    if not isinstance(sweep, dict):
-        raise ValueError(f"{config}: expected a mapping at the top level")
+def read_sweep(config: str | Path, env: str | None = None, variant: str | None = None
+               ) -> tuple[RunConfig, dict, dict]:
+    """The run config, its search space and its tune settings (``env`` / ``variant`` choose the entry of an
+    algorithm file, as in :func:`~diffkin.training.config.load_config`)."""
+    sweep = read_entry(config, env, variant)
     space = _check_space(sweep.get("search_space"))
-    return load_config(config), space, _settings(sweep)
+    return load_config(config, env, variant), space, _settings(sweep)
 
 
 def load_study(storage: str, study: str, tune_settings: dict | None = None, create: bool = False,
@@ -230,8 +231,10 @@ def _objective(cfg: RunConfig, space: dict, settings: dict, out: Path, log: Call
 
 
 def tune(config: str | Path, trials: int, storage: str | None = None, study: str | None = None,
-         out: str | Path | None = None, log: Callable[[str], None] = print):
-    """Run ``trials`` trials of the sweep in ``config`` in this process, in the shared ``study``.
+         out: str | Path | None = None, log: Callable[[str], None] = print, env: str | None = None,
+         variant: str | None = None):
+    """Run ``trials`` trials of the sweep in ``config`` (its entry ``env`` / ``variant`` for an algorithm
+    file) in this process, in the shared ``study``.
 
     Returns the study. Several processes (on one or several machines) may run this at once on the same
     storage and study name: Optuna hands each its own trials.
@@ -239,30 +242,37 @@ def tune(config: str | Path, trials: int, storage: str | None = None, study: str
     optuna = _optuna()
     if trials < 1:
         raise ValueError(f"expected trials >= 1, got {trials}")
-    cfg, space, settings = read_sweep(config)
+    cfg, space, settings = read_sweep(config, env, variant)
     name = study or cfg.name
     storage = storage or default_storage(name)
     out = Path(out) if out else Path("runs") / "tune" / name
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # one line per trial from our own log
     st = load_study(storage, name, settings, create=True, space=space)
     st.set_user_attr("config", str(config))
+    st.set_user_attr("env", env)
+    st.set_user_attr("variant", variant)
     st.set_user_attr("metric", settings["metric"])
     st.optimize(_objective(cfg, space, settings, out, log), n_trials=trials, catch=())
     return st
 
 
-def best_config(study, config: str | Path | None = None) -> dict:
-    """The run config of the study's best trial, as a mapping ready for ``yaml.safe_dump``."""
-    config = config or study.user_attrs.get("config")
+def best_config(study, config: str | Path | None = None, env: str | None = None,
+                variant: str | None = None) -> dict:
+    """The run config of the study's best trial, as a mapping ready for ``yaml.safe_dump`` (a single-run
+    file). Without ``config``, the config, env and variant the study recorded."""
+    if config is None:
+        config = study.user_attrs.get("config")
+        env, variant = study.user_attrs.get("env"), study.user_attrs.get("variant")
     if config is None:
         raise ValueError("the study does not record its config: pass --config")
-    cfg, _, _ = read_sweep(config)
+    cfg, _, _ = read_sweep(config, env, variant)
     best = apply_params(cfg, study.best_trial.params).replace(name=f"{cfg.name}-best")
     return best.to_dict()
 
 
 def show(storage: str, study: str, top: int = 5, output: str | Path | None = None,
-         config: str | Path | None = None) -> tuple[list[dict], Path | None]:
+         config: str | Path | None = None, env: str | None = None,
+         variant: str | None = None) -> tuple[list[dict], Path | None]:
     """The ``top`` best finished trials (rows of number, value, params, state counts) and, when the study
     has a finished trial, the best config written to ``output`` (default ``runs/tune/<study>/best.yaml``)."""
     optuna = _optuna()
@@ -276,7 +286,7 @@ def show(storage: str, study: str, top: int = 5, output: str | Path | None = Non
         return rows, None
     path = Path(output) if output else Path("runs") / "tune" / study / "best.yaml"
     path.parent.mkdir(parents=True, exist_ok=True)
-    text = yaml.safe_dump(best_config(st, config), sort_keys=False)
+    text = yaml.safe_dump(best_config(st, config, env, variant), sort_keys=False)
     path.write_text(f"# best trial {st.best_trial.number} of study {study!r}: "
                     f"{st.user_attrs.get('metric', 'value')} = {st.best_value:.6g}\n" + text)
     return rows, path
@@ -294,7 +304,10 @@ def state_counts(storage: str, study: str) -> dict[str, int]:
 
 def add_arguments(p) -> None:
     """The options of ``diffkin tune`` / ``python -m diffkin.training.tune``."""
-    p.add_argument("--config", required=True, help="run config with search_space and tune sections")
+    p.add_argument("--config", required=True, help="run config with search_space and tune sections: "
+                   "configs/<algo>.yaml with --env (and --variant), or a single-run file")
+    p.add_argument("--env", help="the entry's env ID in an algorithm file, e.g. diffkin/Reach-v0")
+    p.add_argument("--variant", help="the entry's variant, e.g. tune (the key diffkin/Reach-v0:tune)")
     p.add_argument("--trials", type=int, default=10, help="trials this worker runs (default: 10)")
     p.add_argument("--storage", help="sqlite:///FILE, an SQLAlchemy URL (postgresql://...) or journal:FILE "
                    "(default: sqlite:///runs/tune/<study>.db)")
@@ -306,17 +319,19 @@ def add_arguments(p) -> None:
 
 def run(args, log: Callable[[str], None] = print) -> int:
     """Carry out parsed arguments (a sweep, or ``--show``)."""
-    name = args.study or load_config(args.config).name
+    env, variant = getattr(args, "env", None), getattr(args, "variant", None)
+    name = args.study or load_config(args.config, env, variant).name
     storage = args.storage or default_storage(name)
     if args.show:
-        rows, path = show(storage, name, top=args.top, output=args.output, config=args.config)
+        rows, path = show(storage, name, top=args.top, output=args.output, config=args.config, env=env,
+                          variant=variant)
         counts = state_counts(storage, name)
         log(f"study {name!r} in {storage}: " + ", ".join(f"{v} {k}" for k, v in sorted(counts.items())))
         for r in rows:
             log(f"  trial {r['trial']:4d}  value {r['value']:.6g}  {json.dumps(r['params'])}")
         log(f"wrote {path}" if path else "no finished trial yet: no best config")
         return 0
-    tune(args.config, args.trials, storage=storage, study=name, log=log)
+    tune(args.config, args.trials, storage=storage, study=name, log=log, env=env, variant=variant)
     log(f"done: {json.dumps(state_counts(storage, name))}; `--show` prints the best trials")
     return 0
 
@@ -329,7 +344,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     import torch
 
-    torch.set_num_threads(load_config(args.config).torch_threads)  # the entry point applies the config's
+    cfg = load_config(args.config, args.env, args.variant)
+    torch.set_num_threads(cfg.torch_threads)  # the entry point applies the config's
     return run(args)
 
 

@@ -164,6 +164,8 @@ class CalibrationResult:
                 label="orientation RMS [deg]",
             )
         ax.set_xlabel(f"iteration ({self.method})")
+        ax.set_ylabel("RMS error over the poses [mm | deg]" if self.orientation_residuals is not None
+                      else "RMS position error [mm]")
         ax.set_title("calibration poses", fontsize=10)
         ax.legend()
         fig.suptitle(f"calibration of '{self.chain.name}'")
