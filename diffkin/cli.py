@@ -558,8 +558,8 @@ def cmd_tune(args) -> int:
         raise DiffkinError("`diffkin tune` needs Optuna: pip install 'diffkin[tune]'") from None
     try:
         return tune.run(args, log=print)
-    except (TypeError, ValueError, KeyError) as exc:
-        raise DiffkinError(f"--config {args.config}: {exc}") from exc
+    except (TypeError, ValueError, KeyError) as exc:  # messages name the config path, key or storage
+        raise DiffkinError(str(exc).strip("'\"")) from exc
 
 
 def cmd_evaluate(args) -> int:

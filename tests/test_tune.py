@@ -87,3 +87,43 @@ def test_the_sweep_is_an_entry_of_the_algorithm_file():
         apply_params(cfg, {path: space[path].get("low", (space[path].get("choices") or [None])[0])})
     with pytest.raises(ValueError, match="search_space"):
         read_sweep(sac, "diffkin/Reach-v0", "fast")
+
+
+@pytest.mark.parametrize(("spec", "match"), [
+    ({"type": "float", "low": 0.0, "high": 1.0, "log": True}, "log scale needs low > 0"),
+    ({"type": "int", "low": 0.5, "high": 3.5}, "must be an integer"),
+    ({"type": "float", "low": 1.0, "high": 2.0, "bogus": 3}, "unknown keys"),
+    ({"type": "categorical", "choices": []}, "non-empty list"),
+    ({"type": "float", "low": 1.0, "high": 2.0, "step": 0}, "step must be > 0"),
+])
+def test_distributions_are_checked_before_any_trial(tmp_path, spec, match):
+    base = yaml.safe_load(TINY.read_text())
+    path = tmp_path / "s.yaml"
+    path.write_text(yaml.safe_dump({**base, "search_space": {"algo_kwargs.learning_rate": spec}}))
+    with pytest.raises(ValueError, match=match):
+        read_sweep(path)
+
+
+def test_a_config_that_does_not_build_fails_before_the_study_is_touched(tmp_path):
+    """An option SAC does not take, an unknown metric, a mapping replaced by a number: one error, no trial,
+    no storage file."""
+    from diffkin.training.tune import tune
+
+    base = yaml.safe_load(TINY.read_text())
+    for change, match in [({"search_space": {"algo_kwargs.learning_rat": {"type": "categorical",
+                                                                          "choices": [1]}}}, "learning_rat"),
+                          ({"tune": {**base["tune"], "metric": "succes"}}, "choose one of"),
+                          ({"search_space": {"algo_kwargs": {"type": "int", "low": 1, "high": 2}}},
+                           "mapping")]:
+        path = tmp_path / "s.yaml"
+        path.write_text(yaml.safe_dump({**base, **change}))
+        db = tmp_path / "s.db"
+        with pytest.raises(ValueError, match=match):
+            tune(path, 1, storage=f"sqlite:///{db}", study="s", out=tmp_path / "runs", log=lambda _m: None)
+        assert not db.exists()
+
+
+def test_reading_a_missing_study_creates_nothing(tmp_path):
+    with pytest.raises(ValueError, match="no such storage file"):
+        show(f"sqlite:///{tmp_path / 'none.db'}", "x")
+    assert not (tmp_path / "none.db").exists()

@@ -142,8 +142,10 @@ def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print, on_ev
     cb = EvalCallback(cfg, eval_env, start, log, out, on_evaluate)
     try:
         model.learn(cfg.total_timesteps, callback=cb, progress_bar=progress_bar)
-    except BaseException:
-        venv.close()  # a pruned or interrupted run leaves no env behind
+    except BaseException as exc:
+        venv.close()  # a pruned or interrupted run leaves no env behind, and says why it stopped
+        meta["stopped"] = f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {type(exc).__name__}: {exc}"
+        (out / "meta.json").write_text(json.dumps(meta, indent=2))
         raise
     train_s = time.time() - start
     if not cb.curve or cb.curve[-1]["timesteps"] != model.num_timesteps:

@@ -61,21 +61,51 @@ def _optuna():
     return optuna
 
 
+_SPACE_KEYS = {"float": {"type", "low", "high", "log", "step"}, "int": {"type", "low", "high", "log", "step"},
+               "categorical": {"type", "choices"}}
+
+
 def _check_space(space: dict) -> dict:
+    """Refuse a malformed search space before any trial runs (each problem named by its path)."""
     if not isinstance(space, dict) or not space:
         raise ValueError("search_space: expected a mapping of dotted config paths to distributions, got "
                          f"{space!r}")
     for key, spec in space.items():
+        where = f"search_space.{key}"
         kind = spec.get("type") if isinstance(spec, dict) else None
         if kind not in SPACE_TYPES:
-            raise ValueError(f"search_space.{key}: type must be one of {SPACE_TYPES}, got {kind!r}")
-        need = ("choices",) if kind == "categorical" else ("low", "high")
-        missing = [k for k in need if k not in spec]
+            raise ValueError(f"{where}: type must be one of {SPACE_TYPES}, got {kind!r}")
+        unknown = sorted(set(spec) - _SPACE_KEYS[kind])
+        if unknown:
+            known = sorted(_SPACE_KEYS[kind])
+            raise ValueError(f"{where}: unknown keys {unknown} for a {kind}; known: {known}")
+        if kind == "categorical":
+            if not isinstance(spec.get("choices"), list) or not spec["choices"]:
+                raise ValueError(f"{where}: choices must be a non-empty list, got {spec.get('choices')!r}")
+            continue
+        missing = [k for k in ("low", "high") if k not in spec]
         if missing:
-            raise ValueError(f"search_space.{key}: {kind} needs {missing}")
-        if kind != "categorical" and not spec["low"] < spec["high"]:
-            raise ValueError(f"search_space.{key}: expected low < high, got {spec['low']} and {spec['high']}")
+            raise ValueError(f"{where}: {kind} needs {missing}")
+        number = int if kind == "int" else (int, float)
+        for k in ("low", "high", "step"):
+            v = spec.get(k)
+            if k in spec and (isinstance(v, bool) or not isinstance(v, number)):
+                what = "an integer" if kind == "int" else "a number"
+                raise ValueError(f"{where}: {k} must be {what}, got {v!r}")
+        if not spec["low"] < spec["high"]:
+            raise ValueError(f"{where}: expected low < high, got {spec['low']} and {spec['high']}")
+        if spec.get("log") and spec["low"] <= 0:
+            raise ValueError(f"{where}: a log scale needs low > 0, got {spec['low']}")
+        if "step" in spec and not spec["step"] > 0:
+            raise ValueError(f"{where}: step must be > 0, got {spec['step']}")
+        if spec.get("log") and "step" in spec:
+            raise ValueError(f"{where}: give log or step, not both (Optuna samples one or the other)")
     return space
+
+
+def _representative(space: dict) -> dict[str, Any]:
+    """One value per path (the low end, or the first choice): what a dry run of the config is built with."""
+    return {k: v["choices"][0] if v["type"] == "categorical" else v["low"] for k, v in space.items()}
 
 
 def sample_params(trial, space: dict) -> dict[str, Any]:
@@ -84,9 +114,11 @@ def sample_params(trial, space: dict) -> dict[str, Any]:
     for key, spec in space.items():
         kind = spec["type"]
         if kind == "float":
-            params[key] = trial.suggest_float(key, spec["low"], spec["high"], log=spec.get("log", False))
+            params[key] = trial.suggest_float(key, spec["low"], spec["high"], log=spec.get("log", False),
+                                              step=spec.get("step"))
         elif kind == "int":
-            params[key] = trial.suggest_int(key, spec["low"], spec["high"], log=spec.get("log", False))
+            params[key] = trial.suggest_int(key, spec["low"], spec["high"], log=spec.get("log", False),
+                                            step=spec.get("step", 1))
         else:
             params[key] = trial.suggest_categorical(key, list(spec["choices"]))
     return params
@@ -106,6 +138,9 @@ def apply_params(cfg: RunConfig, params: dict[str, Any]) -> RunConfig:
                 raise ValueError(f"search_space.{key}: {p} is not a mapping in the config")
         if not parents and leaf not in data:
             raise ValueError(f"search_space.{key}: no such config field")
+        if isinstance(node.get(leaf), dict) and not isinstance(value, dict):
+            raise ValueError(f"search_space.{key}: the config's {leaf} is a mapping; search one of its keys "
+                             f"({key}.<name>), not the mapping itself")
         node[leaf] = value
     return RunConfig(**data)
 
@@ -115,20 +150,52 @@ def default_storage(name: str) -> str:
     return f"sqlite:///{Path('runs') / 'tune' / f'{name}.db'}"
 
 
-def make_storage(url: str):
-    """An Optuna storage: ``journal:PATH`` (journal file) or an SQLAlchemy URL (SQLite, PostgreSQL...)."""
+def _file_of(url: str) -> Path | None:
+    """The local file of a ``journal:`` or ``sqlite:///`` storage, else None."""
+    for prefix in ("journal:", "sqlite:///"):
+        if url.startswith(prefix):
+            return Path(url.removeprefix(prefix))
+    return None
+
+
+def _make_parent(path: Path) -> None:
+    for parent in path.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(f"{path}: cannot create it: {parent} is a file, not a directory")
+            break
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+
+def make_storage(url: str, create: bool = True):
+    """An Optuna storage: ``journal:PATH`` (journal file) or an SQLAlchemy URL (SQLite, PostgreSQL...).
+
+    ``create=False`` refuses a local file that does not exist yet (reading a study must not create one).
+    Several workers starting at once on a new SQLite file may race to create its tables: a failed first
+    connection is retried a few times."""
     optuna = _optuna()
+    path = _file_of(url)
+    if path is not None:
+        if not create and not path.exists():
+            raise ValueError(f"{url}: no such storage file {path}")
+        _make_parent(path)
     if url.startswith("journal:"):
         from optuna.storages.journal import JournalFileBackend
 
-        path = Path(url.removeprefix("journal:"))
-        path.parent.mkdir(parents=True, exist_ok=True)
         return optuna.storages.JournalStorage(JournalFileBackend(str(path)))
-    if url.startswith("sqlite:///"):
-        Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
-        # a busy SQLite file (several workers) waits instead of failing at once
-        return optuna.storages.RDBStorage(url, engine_kwargs={"connect_args": {"timeout": 60}})
-    return optuna.storages.RDBStorage(url)
+    # a busy SQLite file (several workers) waits instead of failing at once
+    kwargs = {"engine_kwargs": {"connect_args": {"timeout": 60}}} if url.startswith("sqlite:") else {}
+    for attempt in range(5):
+        try:
+            return optuna.storages.RDBStorage(url, **kwargs)
+        except ImportError as exc:  # the URL's database driver
+            raise ValueError(f"{url}: its database driver is not installed ({exc}); for PostgreSQL: "
+                             "pip install psycopg2-binary") from None
+        except Exception as exc:  # noqa: BLE001 - SQLAlchemy's errors, named in the message
+            kind = type(exc).__name__
+            if kind in ("ArgumentError", "NoSuchModuleError") or attempt == 4:
+                raise ValueError(f"cannot open the storage {url}: {kind}: {exc}") from None
+            time.sleep(0.5 * (attempt + 1))  # another worker creating the tables: try again
 
 
 def _settings(sweep: dict) -> dict:
@@ -186,7 +253,7 @@ def load_study(storage: str, study: str, tune_settings: dict | None = None, crea
     """The study ``study`` in ``storage`` (created with the settings' direction, pruner and sampler over
     ``space`` when asked)."""
     optuna = _optuna()
-    store = make_storage(storage)
+    store = make_storage(storage, create=create)
     if not create:
         try:
             return optuna.load_study(study_name=study, storage=store)
@@ -194,11 +261,17 @@ def load_study(storage: str, study: str, tune_settings: dict | None = None, crea
             names = [s.study_name for s in optuna.get_all_study_summaries(store)]
             raise ValueError(f"no study {study!r} in {storage}; studies there: {names or 'none'}") from None
     tune_settings = tune_settings or _settings({})
-    return optuna.create_study(
-        study_name=study, storage=store, load_if_exists=True, direction=tune_settings["direction"],
-        pruner=_pruner(tune_settings.get("pruner")),
-        sampler=_sampler(tune_settings.get("sampler"), space or {}),
-    )
+    for attempt in range(5):  # workers creating the same study at once: the losers load it
+        try:
+            return optuna.create_study(
+                study_name=study, storage=store, load_if_exists=True, direction=tune_settings["direction"],
+                pruner=_pruner(tune_settings.get("pruner")),
+                sampler=_sampler(tune_settings.get("sampler"), space or {}),
+            )
+        except Exception as exc:  # noqa: BLE001 - a race on the study row, or a real error on the 5th try
+            if attempt == 4 or isinstance(exc, ValueError | TypeError):
+                raise
+            time.sleep(0.5 * (attempt + 1))
 
 
 def _objective(cfg: RunConfig, space: dict, settings: dict, out: Path, log: Callable[[str], None]):
@@ -219,8 +292,12 @@ def _objective(cfg: RunConfig, space: dict, settings: dict, out: Path, log: Call
                 raise optuna.TrialPruned(f"pruned at {point['timesteps']} steps ({metric} {point[metric]})")
 
         t0 = time.time()
-        res = train(run, out / f"trial{trial.number:04d}", progress_bar=False, log=lambda _m: None,
-                    on_evaluate=report)
+        try:
+            res = train(run, out / f"trial{trial.number:04d}", progress_bar=False, log=lambda _m: None,
+                        on_evaluate=report)
+        except optuna.TrialPruned as exc:
+            log(f"trial {trial.number}: {exc} with {json.dumps(params)}")
+            raise
         value = float(res["final"][metric])
         trial.set_user_attr("train_wall_s", round(time.time() - t0, 1))
         trial.set_user_attr("timesteps", res["timesteps"])
@@ -246,14 +323,45 @@ def tune(config: str | Path, trials: int, storage: str | None = None, study: str
     name = study or cfg.name
     storage = storage or default_storage(name)
     out = Path(out) if out else Path("runs") / "tune" / name
+    _dry_run(apply_params(cfg, _representative(space)), settings["metric"])  # before the study is touched
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # one line per trial from our own log
     st = load_study(storage, name, settings, create=True, space=space)
     st.set_user_attr("config", str(config))
     st.set_user_attr("env", env)
     st.set_user_attr("variant", variant)
     st.set_user_attr("metric", settings["metric"])
-    st.optimize(_objective(cfg, space, settings, out, log), n_trials=trials, catch=())
+    optuna.logging.set_verbosity(optuna.logging.ERROR)  # a failing trial raises: no second report of it
+    states: list[str] = []  # this worker's trials, as they end
+
+    def remember(_study, trial) -> None:
+        states.append(trial.state.name.lower())
+
+    st.optimize(_objective(cfg, space, settings, out, log), n_trials=trials, catch=(), callbacks=[remember])
+    counts = ", ".join(f"{states.count(k)} {k}" for k in sorted(set(states)))
+    log(f"this worker: {len(states)} trials ({counts})")
     return st
+
+
+def _dry_run(cfg: RunConfig, metric: str) -> None:
+    """Build the env, the evaluation env and the model of one trial's config (no training) and check the
+    metric: bad algorithm or env settings fail here, before any trial is recorded."""
+    from diffkin.envs.vector import TorchVectorEnv
+    from diffkin.training.evaluate import run_episodes, scripted_policy
+    from diffkin.training.train import build_env, build_model
+
+    try:
+        venv = build_env(cfg)
+        try:
+            build_model(cfg, venv, None)
+        finally:
+            venv.close()
+        probe = TorchVectorEnv(cfg.env_id, 1, **{**cfg.env_kwargs, **cfg.eval_env_kwargs})
+        keys = set(run_episodes(probe, scripted_policy))
+    except Exception as exc:  # noqa: BLE001 - SB3 / env errors of many kinds, named in one message
+        raise ValueError(f"the sweep's config does not build ({type(exc).__name__}: {exc})") from None
+    if metric not in keys:
+        raise ValueError(f"tune.metric {metric!r} is not an evaluation result of {cfg.env_id}; "
+                         f"choose one of {sorted(keys - {'episodes'})}")
 
 
 def best_config(study, config: str | Path | None = None, env: str | None = None,
@@ -332,7 +440,7 @@ def run(args, log: Callable[[str], None] = print) -> int:
         log(f"wrote {path}" if path else "no finished trial yet: no best config")
         return 0
     tune(args.config, args.trials, storage=storage, study=name, log=log, env=env, variant=variant)
-    log(f"done: {json.dumps(state_counts(storage, name))}; `--show` prints the best trials")
+    log(f"the study: {json.dumps(state_counts(storage, name))}; `--show` prints the best trials")
     return 0
 
 
