@@ -6,7 +6,7 @@ Each command is run ``repeats`` times; the table gives the median wall time, the
 ratio to one process. ``compute_s`` is the slowest rank's compute time as the command reports it, so the
 launch overhead (torchrun's rendezvous, one interpreter per rank) shows as wall - compute.
 
-    python -m benchmarks.bench_sharded [--quick]
+    python -m benchmarks.bench_sharded [--quick | --large]
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ def _run(cmd: list[str], cwd: str) -> tuple[float, float, float]:
 
 
 def run(args) -> list[dict]:
-    quick = getattr(args, "quick", False)
-    repeats = 1 if quick else 3
-    n_fk, n_ik = (200_000, 4_000) if quick else (4_000_000, 40_000)
+    quick, large = getattr(args, "quick", False), getattr(args, "large", False)
+    repeats = 1 if quick or large else 3
+    n_fk, n_ik = (200_000, 4_000) if quick else (16_000_000, 400_000) if large else (4_000_000, 40_000)
     rows = []
     cli = [sys.executable, "-m", "diffkin.cli"]
     launch = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m",
@@ -72,6 +72,8 @@ def main(argv=None) -> int:
 
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--large", action="store_true",
+                   help="16M poses, 400k targets, once (the launch cost amortised)")
     rows = run(p.parse_args(argv))
     for name in dict.fromkeys(r["benchmark"] for r in rows):
         print_table([r for r in rows if r["benchmark"] == name], title=name)
