@@ -36,17 +36,9 @@ __all__ = ["main", "build_parser"]
 
 def _console():
     """rich's console, or plain ``print`` without the ``cli`` extra (tables then print as aligned text)."""
-    try:
-        from rich.console import Console
-    except ImportError:
-        return _PlainConsole()
-    return Console(highlight=False)
+    from ._console import console
 
-
-class _PlainConsole:
-    @staticmethod
-    def print(obj="") -> None:
-        print(obj)
+    return console()
 
 
 def _table(title: str, columns: list[str], rows: list[list]):
@@ -553,13 +545,10 @@ def cmd_tune(args) -> int:
     except ImportError as exc:
         raise _missing("tune", exc) from exc
     try:
-        import optuna  # noqa: F401
-    except ImportError:
-        raise DiffkinError("`diffkin tune` needs Optuna: pip install 'diffkin[tune]'") from None
-    try:
         return tune.run(args, log=print)
     except (TypeError, ValueError, KeyError) as exc:  # messages name the config path, key or storage
-        raise DiffkinError(str(exc).strip("'\"")) from exc
+        text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)  # no KeyError repr
+        raise DiffkinError(text) from exc
 
 
 def cmd_evaluate(args) -> int:

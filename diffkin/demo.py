@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -63,14 +62,6 @@ def _figure_module():
 def _figure(**kwargs):
     """A figure for file output: no pyplot, no backend switch."""
     return _figure_module().Figure(**kwargs)
-
-
-class _PlainConsole:
-    """print() without rich: the demo's few markup tags dropped."""
-
-    @staticmethod
-    def print(obj="", **_kwargs) -> None:
-        print(re.sub(r"\[/?(?:green|red|bold)\]", "", str(obj)))
 
 
 def _md_table(header: list[str], rows: list[list]) -> str:
@@ -518,12 +509,13 @@ def run_demo(quick: bool = False, out: str | None = None, skip_rl: bool = False)
     Runs on torch's current thread count (the report states it); ``diffkin demo`` sets one thread first,
     since small batched kernels gain nothing from intra-op threads and lose a lot when another process
     holds a core."""
+    from ._console import console
+
     try:
-        from rich.console import Console
         from rich.markdown import Markdown
     except ImportError:  # without the `cli` extra the report prints as plain Markdown
-        Console, Markdown = None, str
-    con = Console(highlight=False) if Console is not None else _PlainConsole()
+        Markdown = str
+    con = console()
     _figure_module()  # the report's figures need matplotlib: say so before any work
     out_dir = Path(out) if out else Path("runs") / time.strftime("demo-%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True, exist_ok=True)

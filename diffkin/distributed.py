@@ -110,8 +110,8 @@ def finish() -> None:
     """Wait for every rank, then leave the process group (no-op in one process)."""
     import torch.distributed as dist
 
+    barrier()
     if dist.is_available() and dist.is_initialized():
-        dist.barrier()
         dist.destroy_process_group()
 
 

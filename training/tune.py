@@ -32,6 +32,7 @@ from typing import Any
 
 import yaml
 
+from diffkin.errors import require
 from diffkin.training.config import RunConfig, load_config, read_entry
 
 __all__ = [
@@ -54,11 +55,7 @@ _TUNE_KEYS = {"metric", "direction", "pruner", "sampler"}
 
 
 def _optuna():
-    try:
-        import optuna
-    except ImportError as exc:  # the CLI turns this into one error line naming the extra
-        raise ImportError("diffkin tune needs Optuna: pip install 'diffkin[tune]'", name="optuna") from exc
-    return optuna
+    return require("optuna", "tune", "diffkin tune")  # MissingExtraError naming the extra
 
 
 _SPACE_KEYS = {"float": {"type", "low", "high", "log", "step"}, "int": {"type", "low", "high", "log", "step"},
