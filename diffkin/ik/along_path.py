@@ -12,15 +12,14 @@ Two ways along a sampled pose trajectory T_d(t_k), k = 0 … S−1:
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from ..errors import ConventionError, NonFiniteError, ShapeError
+from ..errors import ConventionError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
-from ..validation import check_trailing, shape_str, tensors
+from ..validation import check_number, check_trailing, shape_str, tensors
 from .closed_loop import clik
 from .result import final_errors
 
@@ -48,8 +47,7 @@ def finite_difference_twists(T_traj: Tensor, dt: float) -> Tensor:
     """
     (T_traj,) = tensors(("T_traj", T_traj, None))
     _path_kind(T_traj, "T_traj", vectors=(3,))
-    if not (isinstance(dt, int | float) and math.isfinite(dt) and dt > 0):
-        raise NonFiniteError(f"dt must be a finite positive number, got {dt!r}")
+    check_number(dt, "dt", unit=" (s)")
     return _finite_difference_twists(T_traj, dt)
 
 

@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from .._numerics import eps_for, safe_norm, wrap_angle
-from ..errors import ConventionError, ModelError, NonFiniteError, ShapeError
+from ..errors import ConventionError, ModelError, ShapeError
 from ..jacobian import (
     _inverse3,
     forward_kinematics_and_jacobian,
@@ -55,7 +55,7 @@ from ..rotations import (
     _matrix_to_euler,
     _skew,
 )
-from ..validation import check_trailing, shape_str, tensors
+from ..validation import check_number, check_trailing, shape_str, tensors
 
 __all__ = ["CLIKResult", "clik", "CLIK_ALGORITHMS", "CLIK_ORIENTATIONS", "joint_limit_objective"]
 
@@ -371,9 +371,7 @@ class _Config(NamedTuple):
 def _qdot_max(v, dt: float) -> float:
     if v is None:
         return math.pi / (4.0 * dt)
-    if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-        raise NonFiniteError(f"qdot_max must be a finite positive number, got {v!r}")
-    return float(v)
+    return check_number(v, "qdot_max", unit=" (rad/s)")
 
 
 def _make_task(chain, orientation, convention, rows) -> _Task:
@@ -447,8 +445,7 @@ def clik(
     if algorithm not in CLIK_ALGORITHMS:
         raise ConventionError(f"unknown algorithm {algorithm!r}; valid: {CLIK_ALGORITHMS}")
     q = chain.check_q(q0, name="q0")
-    if not (isinstance(dt, (int, float)) and dt > 0 and math.isfinite(dt)):
-        raise NonFiniteError(f"dt must be a finite positive number, got {dt!r}")
+    check_number(dt, "dt", unit=" (s)")
     task = _make_task(chain, orientation, convention, rows)
     if algorithm == "inverse" and len(task.rows) != chain.n_joints:
         raise ShapeError(
