@@ -32,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
+from .kernels import native
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
@@ -87,8 +88,16 @@ def _dh_columns(columns: dict, dtype: torch.dtype | None, device) -> dict[str, T
     return cols
 
 
+def _autocast(q: Tensor) -> bool:
+    """True under ``torch.autocast`` for q's device: the kinematics then run with autocast turned off, in the
+    chain's dtype (float16 / bfloat16 products would be off by millimetres; the pose is cheap either way)."""
+    return torch.is_autocast_enabled(q.device.type)
+
+
 def _is_plain(t: Tensor) -> bool:
     """An ordinary tensor (not a torch.func / compile wrapper), whose values can be read as constants."""
+    if torch.compiler.is_compiling():  # under dynamo every tensor is a graph value (and the check traces)
+        return False
     return type(t) in (Tensor, nn.Parameter) and not torch._C._functorch.is_functorch_wrapped_tensor(t)
 
 
@@ -220,24 +229,53 @@ class KinematicChain(nn.Module):
         from the parameters, differentiable (base and tool are added by the caller)."""
         raise NotImplementedError
 
-    def _constants_allowed(self) -> bool:
+    def _state_key(self) -> tuple | None:
+        """The version key of every parameter and buffer when the geometry may be read as constants (no
+        gradient needed, no torch.func / compile wrapper), else None. One pass, no host sync: this runs on
+        every call, so it is the latency floor of a small batch."""
         # a chain has no submodules; buffers count too (a calibration may put a learnable origin_delta there)
-        state = [t for t in (*self._parameters.values(), *self._buffers.values()) if t is not None]
-        if torch.is_grad_enabled() and any(t.requires_grad for t in state):
-            return False
-        return all(_is_plain(t) for t in state)
+        if torch.compiler.is_compiling():  # traced: parameters are graph inputs, never constants
+            return None
+        grad = torch.is_grad_enabled()
+        key = []
+        for t in (*self._parameters.values(), *self._buffers.values()):
+            if t is None:
+                key.append(None)
+                continue
+            if (grad and t.requires_grad) or not _is_plain(t):
+                return None
+            key.append(t._version)
+            key.append(t.data_ptr())  # replaced or re-materialised (load_state_dict, .to) tensors
+        key.append(self._buffers["revolute_mask"].dtype)
+        key.append(self._buffers["revolute_mask"].device)
+        return tuple(key)
 
     def _segments(self, per_joint: bool, constants: bool = True) -> Segments:
         """The fixed transforms of every joint: per joint (column path) or stacked (matrix path); Python
         constants when allowed, else tensors that carry gradients to the parameters."""
-        if constants and self._constants_allowed():
-            # every parameter and buffer (set, replaced or updated in place) invalidates the constants
-            state = (*self._parameters.items(), *self._buffers.items())
-            key = (*((name, t._version, t.data_ptr()) for name, t in state if t is not None),
-                   self.dtype, self.device)
-            if key != self._const_key:
-                self._const_key, self._const = key, self._constant_segments()
-            return self._const[0 if per_joint else 1]
+        key = self._state_key() if constants else None
+        if key is not None:
+            return self._cached_constants(key)[0 if per_joint else 1]
+        return self._tensor_segments(per_joint, constants)
+
+    def _cached_constants(self, key: tuple) -> tuple[Segments, Segments]:
+        """Both constant forms of :meth:`_constant_segments`, remade when the :meth:`_state_key` changes
+        (every parameter and buffer set, replaced or updated in place)."""
+        if key != self._const_key:
+            self._const_key, self._const = key, self._constant_segments()
+        return self._const
+
+    def _native_model(self, q: Tensor) -> native.NativeModel | None:
+        """The packed constants for the fused native kernel (:mod:`diffkin.kernels.native`) when it may
+        serve this call: a plain CPU tensor, nothing needing a gradient, not traced (compile / torch.func),
+        the library built. None otherwise (the torch kernels serve it)."""
+        if torch.compiler.is_compiling() or q.device.type != "cpu" or not _is_plain(q) \
+                or (q.requires_grad and torch.is_grad_enabled()) or not native.available():
+            return None
+        key = self._state_key()
+        return None if key is None else native.native_model(self._topo, self._cached_constants(key)[0])
+
+    def _tensor_segments(self, per_joint: bool, constants: bool) -> Segments:
         pre, offset, post, ends = self._geometry()
         base, tool = self._fixed_pose("base", constants), self._fixed_pose("tool", constants)
         ends = [tool if E is None else (E if tool is None else E @ tool) for E in ends]
@@ -334,8 +372,20 @@ class KinematicChain(nn.Module):
             ``(..., 4, 4)`` for a chain with one end link, ``(..., K, 4, 4)`` for K end links.
         """
         if check:
-            q = self.check_q(q)
+            q = self.check_q(q, finite=False)
+        if _autocast(q):  # poses in the chain's dtype: half precision would move a Panda's flange by mm
+            with torch.autocast(q.device.type, enabled=False):
+                return self.forward_kinematics(q, all_frames, check)
         batch = q.shape[:-1]
+        if not all_frames and self._compiled_fk is None:
+            packed = self._native_model(q)
+            if packed is not None:  # the fused C pass; it counts non-finite entries of q as it reads them
+                T, _, bad = native.fk_jacobian(packed, q.reshape(-1, self.n_joints).contiguous())
+                if bad and check:
+                    check_finite(q, "q")  # raises the validator's error
+                return self._out(T.reshape(*batch, self.n_ends, 4, 4))
+        if check:
+            check_finite(q, "q")
         if all_frames:
             return self._all_frames(q)
         if batch.numel() <= self.small_batch:
@@ -369,6 +419,9 @@ class KinematicChain(nn.Module):
         """
         if check:
             q = self.check_q(q)
+        if _autocast(q):
+            with torch.autocast(q.device.type, enabled=False):
+                return self.joint_axes_origins(q, check)
         batch = q.shape[:-1]
         if batch.numel() <= self.small_batch or self._grad_needed(q):
             ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
@@ -397,11 +450,24 @@ class KinematicChain(nn.Module):
         batch (all operations are per configuration), but the frames and rows stay in cache.
         """
         if check:
-            q = self.check_q(q)
+            q = self.check_q(q, finite=False)
+        if _autocast(q):
+            with torch.autocast(q.device.type, enabled=False):
+                return self.fk_jacobian(q, check)
         batch, n, K = q.shape[:-1], self.n_joints, self.n_ends
-        B, chunk = batch.numel(), _CHUNK * torch.get_num_threads()
-        grad = self._grad_needed(q)
-        if B <= 2 * chunk or q.device.type != "cpu" or grad:
+        packed = self._native_model(q)
+        if packed is not None:  # the fused C pass (poses and Jacobians at once)
+            T, Jac, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous(), with_jacobian=True)
+            if bad and check:
+                check_finite(q, "q")
+            return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jac.reshape(*batch, K, 6, n))
+        if check:
+            check_finite(q, "q")
+        B, grad = batch.numel(), self._grad_needed(q)
+        # (the thread count only where it matters: dynamo cannot trace torch.get_num_threads)
+        traced = torch.compiler.is_compiling()
+        chunk = _CHUNK if traced or q.device.type != "cpu" or grad else _CHUNK * torch.get_num_threads()
+        if B <= 2 * chunk or q.device.type != "cpu" or grad or traced:
             if B <= self.small_batch or grad:
                 ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
                 J = tree_jacobian(axes, origins, ends[..., :3, 3], self._joint_revolute, self._topo)
@@ -441,6 +507,14 @@ class KinematicChain(nn.Module):
                                  f"chain '{self.name}', got {shape_str(qT.shape)}")
             check_finite(qT, "qT")
         topo = self._topo
+        packed = None if with_axes or not constants else self._native_model(qT)
+        if packed is not None:  # the fused C pass, handed out in this layout (one copy each)
+            m, K = qT.shape[1], self.n_ends
+            T, Jac, _ = native.fk_jacobian(packed, qT.T.contiguous(), with_jacobian)
+            cols = T[..., :3, :].permute(3, 2, 1, 0).contiguous()  # (4 columns, 3, K, m)
+            ends = [tuple(cols[c, :, k] for c in range(4)) for k in range(K)]
+            rows = None if Jac is None else Jac.reshape(m, 6 * K, self.n_joints).permute(2, 1, 0).contiguous()
+            return rows, ends
         qs = qT.unbind(0)
         ends, axes, _ = column_frames(qs, topo, self._segments(per_joint=True, constants=constants),
                                       with_axes=with_jacobian or with_axes)

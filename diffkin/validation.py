@@ -141,6 +141,8 @@ def as_tensor(x: Any, name: str, *, dtype: torch.dtype | None = None, device=Non
     Python number, sequence or numpy array is converted to ``dtype``/``device`` (defaults: see module doc)."""
     if isinstance(x, Tensor):
         return check_dtype(x, name)
+    if type(x) is float or type(x) is int:  # the common option value, without numpy (traceable by dynamo)
+        return torch.tensor(x, dtype=dtype or torch.get_default_dtype(), device=device)
     if isinstance(x, bool | np.bool_):
         raise DTypeError(f"expected {name} as a number, got bool {x}")
     if isinstance(x, np.ndarray | np.generic):

@@ -26,6 +26,7 @@ from diffkin.jacobian import (
     geometric_to_analytical,
     jacobian_dot_qdot,
 )
+from diffkin.kernels import native
 from diffkin.kernels.jacobian import jacobian_from_axes
 from diffkin.rotations import euler_rate_matrix, matrix_to_euler, rotvec_to_matrix, vee
 
@@ -280,7 +281,9 @@ def test_batch_last_kernel_layout(batch):
         args = (T[..., :3, 3], chain.revolute_mask, False)
         J = jacobian_from_axes(axes_bl, origins_bl, *args)
         torch.testing.assert_close(J, jacobian_from_axes(axes, origins, *args), atol=0, rtol=0)
-        torch.testing.assert_close(J, geometric_jacobian(chain, q), atol=0, rtol=0)
+        with native.disabled():  # the torch kernels: the same arithmetic, bit for bit
+            torch.testing.assert_close(J, geometric_jacobian(chain, q), atol=0, rtol=0)
+        torch.testing.assert_close(J, geometric_jacobian(chain, q), atol=1e-14, rtol=0)  # the fused C pass
         assert J.is_contiguous() and J.shape == (*batch, 6, 6)
 
 

@@ -107,9 +107,15 @@ def test_library_draws_files_without_pyplot():
     assert offenders == []
 
 
+#: the one exception: the native kernel's build runs the system's C compiler once (kernels/native.py)
+_COMPILER_RUNNERS = {"diffkin/kernels/native.py"}
+
+
 def test_library_starts_no_subprocesses():
     offenders = []
     for rel, tree in _modules("diffkin"):
+        if str(rel) in _COMPILER_RUNNERS:
+            continue
         for node in ast.walk(tree):
             if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "subprocess" for a in node.names):
                 offenders.append(f"{rel}:{node.lineno}")

@@ -49,6 +49,11 @@ def dls_delta(J: Tensor, err: Tensor, damping=0.05) -> Tensor:
 def _dls_delta(J: Tensor, err: Tensor, k2: Tensor) -> Tensor:
     """:func:`dls_delta` of validated inputs (λ = k²): the LU solve, or J†e where λ is below rounding."""
     frob2 = (J * J).sum(dim=(-2, -1))
+    if torch.compiler.is_compiling():
+        # a graph has no data-dependent branch: a damping below rounding is raised to the rounding level
+        # (positive, so the solve stays regular), instead of switching to the pseudo-inverse
+        floor = (eps_for(J) * frob2).clamp_min(torch.finfo(J.dtype).tiny)
+        return dls_solve(J, err, torch.maximum(k2, floor))
     small = k2 <= eps_for(J) * frob2
     if small.numel() and bool(small.any()):
         return (_damped(J, k2) @ err.unsqueeze(-1)).squeeze(-1)

@@ -67,7 +67,8 @@ def jacobian_rows(
     terms = ((zy, rz, zz, ry), (zz, rx, zx, rz), (zx, ry, zy, rx))  # row k of z_{i-1} x (p_e - p_{i-1})
     rev = None if all_revolute else revolute.view(-1, *(1,) * nb)
     # prismatic joints: [z; 0]; an arithmetic blend keeps one code path for every joint
-    if torch.is_grad_enabled() and (z.requires_grad or o.requires_grad or p_e.requires_grad):
+    if torch.compiler.is_compiling() or (torch.is_grad_enabled() and
+                                         (z.requires_grad or o.requires_grad or p_e.requires_grad)):
         lin = [torch.addcmul(a * b, c, d, value=-1.0) for a, b, c, d in terms]
         if rev is not None:
             lin = [torch.addcmul(row * rev, zk, 1.0 - rev) for row, zk in zip(lin, z)]
@@ -110,7 +111,7 @@ def tree_jacobian_rows(axes: list, p_ends: list, revolute: Tensor, topo: Topolog
     J = topo.n_frames
     all_rev = all(topo.revolute)
     grad = torch.is_grad_enabled() and any(c.requires_grad for a in axes for c in a)
-    in_place = len(p_ends) == 1 and not grad
+    in_place = len(p_ends) == 1 and not grad and not torch.compiler.is_compiling()  # graphs: no aliasing
     rows = axes[0][0].new_empty(6, J, m) if in_place else None
     z = torch.stack([a[0].expand(3, m) for a in axes], dim=1, out=rows[3:] if in_place else None)
     o = torch.stack([a[1].expand(3, m) for a in axes], dim=1)  # (3, J, m)

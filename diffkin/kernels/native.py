@@ -1,0 +1,229 @@
+"""The fused native kernel: the chain product (2.50) and the geometric Jacobian (3.30) in one C pass.
+
+``_native.c`` is a second implementation of exactly what :func:`diffkin.kernels.tree.column_frames` and
+:mod:`diffkin.kernels.jacobian` compute, for the case where they are slowest: CPU tensors without autograd.
+It reads the same constants (the chain's fixed transforms as float plans: the
+:class:`~diffkin.kernels.tree.Segments` of ``per_joint=True``), works on blocks of 16 configurations with
+vectorised loops, and shares the blocks between threads with a dynamic schedule. ``tests/test_native.py``
+checks it against the torch kernels (every joint kind, trees, mimic joints, base and tool, both dtypes).
+
+Build: the C file is compiled on first use (about 1 s) with the system's C compiler (``$CC``, else ``cc``)
+into ``$DIFFKIN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/diffkin`` or ``~/.cache/diffkin``), once per source,
+flags and CPU; ``python -m diffkin.kernels.native`` builds it ahead of time (``make`` does) and prints
+where. Without a compiler, or with ``DIFFKIN_NATIVE=0`` in the environment, :func:`available` is False and
+every caller keeps the torch kernels: results are the same to rounding.
+
+Threads: the kernel uses ``torch.get_num_threads()`` threads for batches above 512 configurations and one
+below; blocks are handed out dynamically (a thread on a busy core takes fewer), so a core held by another
+process costs at most its share of the work instead of stalling the whole call.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from .tree import Segments, Topology
+
+__all__ = ["available", "build", "disabled", "library_path", "NativeModel", "native_model", "fk_jacobian"]
+
+_SOURCE = Path(__file__).with_name("_native.c")
+_FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
+_OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ())  # tried in this order
+_lock = threading.Lock()
+_lib: ctypes.CDLL | None = None
+_tried = False
+_error: str | None = None
+_disabled = 0  # depth of `disabled()` contexts
+
+
+def _cache_dir() -> Path:
+    env = os.environ.get("DIFFKIN_CACHE_DIR")
+    if env:
+        return Path(env)
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    return (Path(xdg) if xdg else Path.home() / ".cache") / "diffkin"
+
+
+def _cpu_signature() -> str:
+    """What -march=native depends on: the CPU model and flags (a cache shared between machines of
+    different CPUs must not hand one the other's instructions)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+        lines = [ln for ln in text.splitlines() if ln.startswith(("flags", "model name", "Features"))]
+        return "\n".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor() or platform.machine()
+
+
+def library_path(flags: tuple[str, ...] = ()) -> Path:
+    """Where the library for this source, ``flags`` and CPU is cached."""
+    h = hashlib.sha256()
+    for part in (_SOURCE.read_bytes(), " ".join(_FLAGS + flags).encode(), _cpu_signature().encode(),
+                 platform.machine().encode(), sys.platform.encode()):
+        h.update(part)
+    return _cache_dir() / f"diffkin_native-{h.hexdigest()[:16]}.so"
+
+
+def _compile(flags: tuple[str, ...]) -> Path:
+    out = library_path(flags)
+    if out.exists():
+        return out
+    cc = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc") or shutil.which("clang")
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        cmd = [cc, *_FLAGS, *flags, "-o", tmp, str(_SOURCE), "-lm"]
+        res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+        if res.returncode != 0:
+            raise RuntimeError(f"{' '.join(cmd)} failed: {res.stderr.strip()[-500:]}")
+        os.replace(tmp, out)  # atomic: concurrent builders (test workers, ranks) never see half a file
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+def build() -> Path:
+    """Compile (or find in the cache) and load the library; returns its path. Raises ``RuntimeError``
+    with the compiler's message when no flag set compiles."""
+    global _lib, _tried, _error
+    with _lock:
+        errors = []
+        for flags in _OPTIONAL:
+            try:
+                path = _compile(flags)
+                lib = ctypes.CDLL(str(path))
+            except (RuntimeError, OSError, subprocess.SubprocessError) as e:
+                errors.append(str(e))
+                continue
+            for name in ("dk_fk_f64", "dk_fk_f32"):
+                fn = getattr(lib, name)
+                fn.restype = ctypes.c_int64
+                fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64,
+                               ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+            _lib, _tried, _error = lib, True, None
+            return path
+        _tried, _error = True, "; ".join(errors)
+        raise RuntimeError(f"the native kernel could not be built: {_error}")
+
+
+def available() -> bool:
+    """True when the native kernel is built and loaded (built on the first call; False without a C
+    compiler or with ``DIFFKIN_NATIVE=0``)."""
+    if _disabled:
+        return False
+    if _lib is not None:
+        return True
+    if _tried or os.environ.get("DIFFKIN_NATIVE", "1") == "0":
+        return False
+    try:
+        build()
+    except RuntimeError:
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def disabled():
+    """Within the block every caller uses the torch kernels (for comparisons and tests; not thread-local)."""
+    global _disabled
+    _disabled += 1
+    try:
+        yield
+    finally:
+        _disabled -= 1
+
+
+class NativeModel:
+    """A chain's constants packed for the C kernel: int32 structure and float64 / float32 reals."""
+
+    __slots__ = ("ints", "reals", "n_ends", "n_vars")
+
+    def __init__(self, topo: Topology, seg: Segments):
+        J, K = topo.n_frames, len(topo.ends)
+
+        def rows(plan) -> list[float]:  # a Plan (R, t) -> 3x4 row-major; None: identity
+            if plan is None:
+                return [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+            R, t = plan
+            return [v for r in range(3) for v in (*R[r], t[r])]
+
+        pre = list(seg.pre) if seg.pre is not None else [None] * J
+        post = list(seg.post) if seg.post is not None else [None] * J
+        off = list(seg.offset) if seg.offset is not None else [0.0] * J
+        for T in (*pre, *post, seg.base, *seg.ends):
+            if T is not None and not isinstance(T, tuple):
+                raise TypeError("NativeModel needs constant plans (Segments from per_joint=True constants)")
+        ints = [J, K, topo.n_vars, *topo.parents, *map(int, topo.revolute), *topo.q_index,
+                *(int(p is not None) for p in pre), *(int(p is not None) for p in post),
+                int(seg.base is not None), *topo.ends, *(int(E is not None) for E in seg.ends),
+                *(int(a) for row in topo.ancestors for a in row)]
+        reals = [*topo.multiplier, *(b + float(o or 0.0) for b, o in zip(topo.q_offset, off))]
+        for plans in (pre, post):
+            for p in plans:
+                reals += rows(p)
+        reals += rows(seg.base)
+        for E in seg.ends:
+            reals += rows(E)
+        self.ints = torch.tensor(ints, dtype=torch.int32)
+        r64 = torch.tensor(reals, dtype=torch.float64)
+        self.reals = {torch.float64: r64, torch.float32: r64.to(torch.float32)}
+        self.n_ends, self.n_vars = K, topo.n_vars
+
+
+def native_model(topo: Topology, seg: Segments) -> NativeModel:
+    """The packed constants of ``seg``, made once per Segments object (kept on it)."""
+    packed = seg.__dict__.get("_native")
+    if packed is None:
+        packed = NativeModel(topo, seg)
+        object.__setattr__(seg, "_native", packed)  # Segments is frozen; the pack is derived data
+    return packed
+
+
+def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
+                threads: int | None = None) -> tuple[Tensor, Tensor | None, int]:
+    """``q (B, n)`` (CPU, float32/float64, contiguous) -> ``(T (B, K, 4, 4), J (B, K, 6, n) or None,
+    non-finite count)``: the end-link poses (2.50) and geometric Jacobians (3.30). Rows whose q holds
+    NaN/inf are not meaningful; the caller raises on a non-zero count."""
+    B, n, K = q.shape[0], model.n_vars, model.n_ends
+    T = torch.empty(B, K, 4, 4, dtype=q.dtype)
+    J = torch.empty(B, K, 6, n, dtype=q.dtype) if with_jacobian else None
+    fn = _lib.dk_fk_f64 if q.dtype == torch.float64 else _lib.dk_fk_f32
+    bad = fn(model.ints.data_ptr(), model.reals[q.dtype].data_ptr(), q.data_ptr(), B, T.data_ptr(),
+             None if J is None else J.data_ptr(), threads or torch.get_num_threads())
+    if bad < 0:
+        raise MemoryError("the native kernel could not allocate its per-thread frames")
+    return T, J, bad
+
+
+def _main() -> int:
+    if os.environ.get("DIFFKIN_NATIVE", "1") == "0":
+        print("diffkin native kernel: disabled (DIFFKIN_NATIVE=0)")
+        return 0
+    try:
+        path = build()
+    except RuntimeError as e:  # not an install failure: the torch kernels serve every call
+        print(f"diffkin native kernel: not built, the torch kernels will be used ({e})")
+        return 0
+    print(f"diffkin native kernel: {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main())

@@ -1,0 +1,177 @@
+"""The fused native kernel (diffkin.kernels.native) against the torch kernels it stands in for: every joint
+kind, trees with several end links, mimic joints, base and tool, both dtypes, any batch shape, threads;
+non-finite input, far angles, the fallback and the build."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from diffkin import models
+from diffkin.errors import NonFiniteError
+from diffkin.kernels import native
+from diffkin.models import from_urdf
+
+pytestmark = pytest.mark.skipif(not native.available(),
+                                reason="no C compiler: the native kernel is not built")
+
+DATA = Path(__file__).parent / "data" / "urdf"
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "urdf"
+TOL = {torch.float64: 1e-12, torch.float32: 5e-6}
+
+
+def _urdf(stem: str) -> Path:
+    path = DATA / f"{stem}.urdf"
+    return path if path.exists() else SHARED / f"{stem}.urdf"
+
+
+def _chain(kind: str, dtype):
+    if kind == "panda_base_tool":
+        chain = models.load("panda", dtype=dtype)
+        chain.base = torch.tensor([[0.0, -1.0, 0.0, 0.1], [1.0, 0.0, 0.0, 0.2], [0.0, 0.0, 1.0, 0.3],
+                                   [0.0, 0.0, 0.0, 1.0]], dtype=dtype)
+        chain.tool = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.1034],
+                                   [0.0, 0.0, 0.0, 1.0]], dtype=dtype)
+        with torch.no_grad():
+            chain.base_delta.copy_(torch.tensor([0.01, -0.02, 0.0, 0.03, 0.0, -0.01], dtype=dtype))
+        return chain
+    if kind == "allegro":  # a tree: four fingertips, shared palm
+        tips = [f"link_{i}.0_tip" for i in (3, 7, 11, 15)]
+        return from_urdf(_urdf("allegro_right_hand"), tips, dtype=dtype)
+    if kind == "yumi_mimic":  # mimic followers: Jacobian columns summed over the coupling
+        return from_urdf(_urdf("yumi"), ["gripper_r_finger_r", "gripper_r_finger_l", "gripper_l_finger_l"],
+                         dtype=dtype)
+    if kind == "tiago":  # a shared prismatic torso in a two-arm tree
+        return from_urdf(_urdf("tiago_dual"), ["arm_left_tool_link", "arm_right_tool_link"], dtype=dtype)
+    return models.load(kind, dtype=dtype)  # DH: panda (modified), ur5, stanford (prismatic joint)
+
+
+KINDS = ["panda", "ur5", "stanford", "panda_base_tool", "allegro", "yumi_mimic", "tiago"]
+
+
+def _reference(chain, q):
+    with native.disabled(), torch.no_grad():
+        return chain.forward_kinematics(q), chain.fk_jacobian(q)[1]
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("kind", KINDS)
+def test_native_equals_the_torch_kernels(kind, dtype):
+    chain = _chain(kind, dtype)
+    gen = torch.Generator().manual_seed(1)
+    for shape in [(), (1,), (3, 5), (700,)]:  # 700 > the serial limit: several threads
+        q = chain.random_configuration(shape, generator=gen)
+        T_ref, J_ref = _reference(chain, q)
+        with torch.no_grad():
+            assert chain._native_model(q) is not None
+            T = chain.forward_kinematics(q)
+            T2, J = chain.fk_jacobian(q)
+        assert T.shape == T_ref.shape and J.shape == J_ref.shape and T.dtype == dtype
+        torch.testing.assert_close(T, T_ref, atol=TOL[dtype], rtol=0)
+        torch.testing.assert_close(T2, T_ref, atol=TOL[dtype], rtol=0)
+        torch.testing.assert_close(J, J_ref, atol=TOL[dtype], rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_batch_last_layout_matches(dtype):
+    chain = _chain("allegro", dtype)
+    qT = chain.random_configuration((37,), generator=torch.Generator().manual_seed(2)).T.contiguous()
+    with torch.no_grad():
+        rows, ends = chain.batch_last(qT, with_jacobian=True)
+        with native.disabled():
+            rows_ref, ends_ref = chain.batch_last(qT, with_jacobian=True)
+    torch.testing.assert_close(rows, rows_ref, atol=TOL[dtype], rtol=0)
+    for frame, frame_ref in zip(ends, ends_ref):
+        for col, col_ref in zip(frame, frame_ref):
+            torch.testing.assert_close(col, col_ref.expand_as(col), atol=TOL[dtype], rtol=0)
+
+
+def test_threads_do_not_change_a_value():
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((5000,), generator=torch.Generator().manual_seed(3))
+    packed = chain._native_model(q) if not torch.is_grad_enabled() else None
+    with torch.no_grad():
+        packed = chain._native_model(q)
+    one = native.fk_jacobian(packed, q, True, threads=1)
+    two = native.fk_jacobian(packed, q, True, threads=2)
+    assert torch.equal(one[0], two[0]) and torch.equal(one[1], two[1])
+
+
+def test_empty_batch_and_far_angles():
+    chain = models.load("ur5", dtype=torch.float64)
+    with torch.no_grad():
+        assert chain.forward_kinematics(torch.zeros(0, 6, dtype=torch.float64)).shape == (0, 4, 4)
+        # |q| >= 1e5 rad: libm's full range reduction, as torch does
+        q = torch.tensor([[1e5, -3e6, 0.3, 1e9, 2.0, -1e7]], dtype=torch.float64)
+        T_ref, J_ref = _reference(chain, q)
+        torch.testing.assert_close(chain.forward_kinematics(q), T_ref, atol=1e-12, rtol=0)
+        torch.testing.assert_close(chain.fk_jacobian(q)[1], J_ref, atol=1e-12, rtol=0)
+
+
+def test_non_finite_q_raises_or_stays_in_its_row():
+    chain = models.load("panda", dtype=torch.float32)
+    q = chain.random_configuration((4,), generator=torch.Generator().manual_seed(4))
+    q[2, 3] = float("nan")
+    with torch.no_grad():
+        with pytest.raises(NonFiniteError, match="q"):
+            chain.forward_kinematics(q)
+        with pytest.raises(NonFiniteError, match="q"):
+            chain.fk_jacobian(q)
+        T = chain.forward_kinematics(q, check=False)
+        with native.disabled():
+            T_ref = chain.forward_kinematics(q, check=False)
+    assert torch.isnan(T[2]).any() and torch.isfinite(T[[0, 1, 3]]).all()
+    torch.testing.assert_close(T[[0, 1, 3]], T_ref[[0, 1, 3]], atol=5e-6, rtol=0)
+
+
+def test_gradients_keep_the_torch_kernels():
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(5)).requires_grad_(True)
+    assert chain._native_model(q) is None  # q needs a gradient
+    T = chain.forward_kinematics(q)
+    assert T.grad_fn is not None
+    chain.requires_grad_(False)
+    assert chain._native_model(q.detach()) is not None
+    with torch.no_grad():
+        assert chain._native_model(q) is not None
+
+
+def test_parameter_updates_reach_the_native_constants():
+    chain = models.load("ur5", dtype=torch.float64)
+    q = chain.random_configuration((5,), generator=torch.Generator().manual_seed(6))
+    with torch.no_grad():
+        before = chain.forward_kinematics(q)
+        chain.a[1] += 0.01  # in place: a new version of the parameter
+        after = chain.forward_kinematics(q)
+        ref = _reference(chain, q)[0]
+    assert not torch.allclose(before, after)
+    torch.testing.assert_close(after, ref, atol=1e-12, rtol=0)
+
+
+def test_disabled_and_missing_compiler(monkeypatch, tmp_path):
+    with native.disabled():
+        assert not native.available()
+    assert native.available()
+    monkeypatch.setenv("DIFFKIN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("CC", "no-such-compiler")
+    monkeypatch.setattr(native.shutil, "which", lambda name: None)
+    with pytest.raises(RuntimeError, match="no C compiler"):
+        native._compile(())
+    assert list(tmp_path.iterdir()) == []  # nothing half-written
+
+
+def test_build_into_a_fresh_cache_and_the_command(tmp_path):
+    env = {**os.environ, "DIFFKIN_CACHE_DIR": str(tmp_path)}
+    out = subprocess.run([sys.executable, "-m", "diffkin.kernels.native"], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    built = list(tmp_path.glob("diffkin_native-*.so"))
+    assert len(built) == 1 and str(built[0]) in out.stdout
+    off = subprocess.run([sys.executable, "-m", "diffkin.kernels.native"], capture_output=True, text=True,
+                         env={**env, "DIFFKIN_NATIVE": "0"}, timeout=300)
+    assert "disabled" in off.stdout
