@@ -1,7 +1,8 @@
 """Run diffkin's benchmarks and print one table per benchmark (ratios are against the reference timed in the
 same run, on the same machine and thread count).
 
-    python -m benchmarks.run [fk|jacobian|ik|ik_grad|closed_form|env|calibration|model|all ...] [--quick]
+    python -m benchmarks.run [fk|jacobian|ik|ik_grad|closed_form|env|calibration|model|kernels|all ...]
+                             [--quick]
                              [--device cpu|cuda] [--threads N] [--compile] [--json out.json]
 
 Interface for a benchmark module (add ``benchmarks/bench_<name>.py``; it is picked up by name):
@@ -29,7 +30,8 @@ import sys
 
 from benchmarks.common import print_table, write_json
 
-NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model", "sharded")
+NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model", "sharded",
+         "kernels")
 
 
 def parse_args(argv=None) -> argparse.Namespace:

@@ -175,3 +175,34 @@ def test_build_into_a_fresh_cache_and_the_command(tmp_path):
     off = subprocess.run([sys.executable, "-m", "diffkin.kernels.native"], capture_output=True, text=True,
                          env={**env, "DIFFKIN_NATIVE": "0"}, timeout=300)
     assert "disabled" in off.stdout
+
+
+def test_thread_policy_counts_free_cores(monkeypatch):
+    assert 1 <= native.free_cores() <= max(1, os.cpu_count() or 1)
+    assert native.thread_count(512, 8) == 1  # small batches: the calling thread only
+    assert native.thread_count(10**6, 1) == 1
+    monkeypatch.setattr(native.time, "monotonic", lambda: 1e9)  # the remembered reading is fresh
+    monkeypatch.setattr(native, "_free", [1e9, 1])  # one core free: another process holds the other
+    assert native.thread_count(10**6, 2) == 1
+    monkeypatch.setattr(native, "_free", [1e9, 3])
+    assert native.thread_count(10**6, 2) == 2 and native.thread_count(10**6, 8) == 3
+    # an explicit count is used as given, and the values do not depend on it
+    chain = models.load("panda", dtype=torch.float32)
+    q = chain.random_configuration((2000,), generator=torch.Generator().manual_seed(7))
+    with torch.no_grad():
+        packed = chain._native_model(q)
+    assert torch.equal(native.fk_jacobian(packed, q, threads=1)[0], native.fk_jacobian(packed, q)[0])
+
+
+def test_free_cores_reads_loadavg(monkeypatch, tmp_path):
+    fake = tmp_path / "loadavg"
+    fake.write_text("1.00 1.00 1.00 2/100 999\n")  # the reader and one other runnable task
+    real_open = open
+    monkeypatch.setattr(native, "_free", [0.0, 0])
+    monkeypatch.setattr(native, "_cores", lambda: 2)
+    monkeypatch.setattr("builtins.open", lambda p, *a, **k: real_open(fake if p == "/proc/loadavg" else p,
+                                                                        *a, **k))
+    assert native.free_cores() == 1
+    fake.write_text("0.10 0.10 0.10 1/100 999\n")
+    monkeypatch.setattr(native, "_free", [0.0, 0])
+    assert native.free_cores() == 2

@@ -13,9 +13,14 @@ flags and CPU; ``python -m diffkin.kernels.native`` builds it ahead of time (``m
 where. Without a compiler, or with ``DIFFKIN_NATIVE=0`` in the environment, :func:`available` is False and
 every caller keeps the torch kernels: results are the same to rounding.
 
-Threads: the kernel uses ``torch.get_num_threads()`` threads for batches above 512 configurations and one
-below; blocks are handed out dynamically (a thread on a busy core takes fewer), so a core held by another
-process costs at most its share of the work instead of stalling the whole call.
+Thread policy: batches of at most 512 configurations run on the calling thread. Larger ones use
+``torch.get_num_threads()`` threads, but never more than the cores that are free right now: the count of
+runnable tasks in ``/proc/loadavg`` (read at most every 0.1 s) minus this call's own thread is taken off
+the cores this process may run on. A fork-join call waits for its slowest thread, and a thread that shares
+a core with a busy process is preempted for whole scheduler slices (milliseconds): on a 2-core machine with
+one core busy, two threads made FK 10× slower than one. With the policy a busy core costs at most its
+share (≤ 2× on 2 cores). Blocks are also handed out dynamically, for cores that are slower for other
+reasons. ``threads=`` on :func:`fk_jacobian` overrides the policy.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ import subprocess
 import sys
 import tempfile
 import threading
+import time
 from pathlib import Path
 
 import torch
@@ -37,7 +43,8 @@ from torch import Tensor
 
 from .tree import Segments, Topology
 
-__all__ = ["available", "build", "disabled", "library_path", "NativeModel", "native_model", "fk_jacobian"]
+__all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
+           "native_model", "fk_jacobian"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
@@ -139,6 +146,44 @@ def available() -> bool:
     return True
 
 
+_SERIAL_MAX = 512  # as SERIAL_MAX in _native.c: smaller batches never start a thread
+_free = [0.0, 0]  # (time of the reading, free cores)
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def free_cores() -> int:
+    """Cores of this process's affinity set not running another task right now (at least 1): the
+    instantaneous runnable count of ``/proc/loadavg`` less the reader itself, remembered for 0.1 s. Without
+    ``/proc`` (not Linux): every core."""
+    now = time.monotonic()
+    if now - _free[0] < 0.1:
+        return _free[1]
+    cores = _cores()
+    try:
+        with open("/proc/loadavg") as f:
+            running = int(f.read().split()[3].split("/")[0])
+        free = max(1, cores - max(running - 1, 0))
+    except (OSError, ValueError, IndexError):
+        free = cores
+    _free[0], _free[1] = now, free
+    return free
+
+
+def thread_count(batch: int, requested: int | None = None) -> int:
+    """Threads the kernel uses for ``batch`` configurations: 1 up to 512, else ``requested`` (default
+    ``torch.get_num_threads()``) capped by :func:`free_cores` (see the module doc)."""
+    if batch <= _SERIAL_MAX:
+        return 1
+    requested = torch.get_num_threads() if requested is None else requested
+    return 1 if requested <= 1 else min(requested, free_cores())
+
+
 @contextlib.contextmanager
 def disabled():
     """Within the block every caller uses the torch kernels (for comparisons and tests; not thread-local)."""
@@ -200,13 +245,14 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
                 threads: int | None = None) -> tuple[Tensor, Tensor | None, int]:
     """``q (B, n)`` (CPU, float32/float64, contiguous) -> ``(T (B, K, 4, 4), J (B, K, 6, n) or None,
     non-finite count)``: the end-link poses (2.50) and geometric Jacobians (3.30). Rows whose q holds
-    NaN/inf are not meaningful; the caller raises on a non-zero count."""
+    NaN/inf are not meaningful; the caller raises on a non-zero count. ``threads``: a fixed count instead of
+    the policy of :func:`thread_count`."""
     B, n, K = q.shape[0], model.n_vars, model.n_ends
     T = torch.empty(B, K, 4, 4, dtype=q.dtype)
     J = torch.empty(B, K, 6, n, dtype=q.dtype) if with_jacobian else None
     fn = _lib.dk_fk_f64 if q.dtype == torch.float64 else _lib.dk_fk_f32
     bad = fn(model.ints.data_ptr(), model.reals[q.dtype].data_ptr(), q.data_ptr(), B, T.data_ptr(),
-             None if J is None else J.data_ptr(), threads or torch.get_num_threads())
+             None if J is None else J.data_ptr(), threads or thread_count(B))
     if bad < 0:
         raise MemoryError("the native kernel could not allocate its per-thread frames")
     return T, J, bad
