@@ -310,6 +310,56 @@ def section_trees(report: Report, quick: bool) -> None:
         report.failures.append(f"URDF geometry fit left {after:.3f} mm RMS")
 
 
+# ------------------------------------------------------------------------------------------ kernels
+def _best_of(fn, repeats: int) -> float:
+    fn()
+    return min(_timed(fn)[1] for _ in range(repeats))
+
+
+def section_kernels(report: Report, quick: bool) -> None:
+    """The fused native kernel against the torch kernels it stands in for: speed and equality."""
+    from . import models
+    from .kernels import native
+
+    if not native.available():
+        report.add("Fused FK + Jacobian kernel", "No C compiler was found: every call used the torch kernels "
+                   "(`python -m diffkin.kernels.native` says why).")
+        return
+    chain = models.load("panda", dtype=torch.float32)
+    B = 20_000 if quick else 100_000
+    q = chain.random_configuration(B, generator=torch.Generator().manual_seed(0))
+    q1 = q[:1]
+    rows, worst = [], 0.0
+    with torch.no_grad():
+        for what, size, x, reps, fn in (
+            ("FK", f"{B:,}", q, 5, chain.forward_kinematics),
+            ("FK + Jacobian", f"{B:,}", q, 5, chain.fk_jacobian),
+            ("FK", "1", q1, 200, chain.forward_kinematics),
+            ("FK + Jacobian", "1", q1, 200, chain.fk_jacobian),
+        ):
+            t_native = _best_of(lambda: fn(x), reps)  # noqa: B023  (called within this iteration)
+            out = fn(x)
+            with native.disabled():
+                t_torch = _best_of(lambda: fn(x), reps)  # noqa: B023
+                ref = fn(x)
+            outs, refs = (out, ref) if isinstance(out, tuple) else ((out,), (ref,))
+            worst = max(worst, max(float((a - b).abs().max()) for a, b in zip(outs, refs)))
+            n = x.shape[0]
+            rows.append([what, size, f"{t_torch * 1e6:,.0f} µs", f"{t_native * 1e6:,.0f} µs",
+                         f"{t_torch / t_native:.1f}×", f"{n / t_native / 1e6:.2f} M/s" if n > 1 else ""])
+    body = (
+        f"`chain.forward_kinematics` and `chain.fk_jacobian` on CPU without autograd run one fused C pass "
+        f"(`diffkin.kernels.native`, built on first use) instead of the torch kernels; with autograd, on "
+        f"CUDA, or under `torch.compile` / `torch.func` the torch kernels run. Panda, float32, "
+        f"{torch.get_num_threads()} thread(s), best of several calls; largest difference between the two "
+        f"over every output: {worst:.1e}.\n\n"
+        + _md_table(["what", "batch", "torch kernels", "fused kernel", "speed-up", "rate"], rows)
+    )
+    report.add("Fused FK + Jacobian kernel", body)
+    if worst > 1e-5:
+        report.failures.append(f"fused kernel differs from the torch kernels by {worst:.1e}")
+
+
 # ---------------------------------------------------------------------------------------- calibration
 def section_calibration(report: Report, n_poses: int) -> None:
     from . import models
@@ -521,6 +571,7 @@ def run_demo(quick: bool = False, out: str | None = None, skip_rl: bool = False)
     out_dir.mkdir(parents=True, exist_ok=True)
     report = Report(out_dir)
     steps = [
+        ("kernels", lambda: section_kernels(report, quick)),
         ("batch IK", lambda: section_ik(report, 1_000 if quick else 10_000, 200 if quick else 1_000)),
         ("IK layer", lambda: section_ik_layer(report, quick)),
         ("URDF trees", lambda: section_trees(report, quick)),

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..kernels import native
 from ..kernels.dls import dls_solve
 from ..kernels.pose_error import orientation_error
 from ._kernel import BatchLastKernel, JointMap, norm0
@@ -172,6 +173,13 @@ class _Run:
         the last error was evaluated at, the convergence mask and the merit max(e_p / tol_p, e_o / tol_o)."""
         cfg, (tp, to) = self.cfg, self.tol
         u = rows.u
+        packed = self.kernel.chain._native_model(u)
+        if packed is not None:  # the same steps fused into one C pass per row (kernels/native.py)
+            jm = self.jmap
+            return native.lm_steps(packed, u, t.pd, None if t.position_only else (t.xd, t.yd, t.zd),
+                                   self.sqrt_w, jm.c, jm.h, jm.bounded, damping2=cfg.damping**2,
+                                   error_damping=cfg.error_damping, tolerances=(float(tp), float(to)),
+                                   margin=cfg.margin, iterations=cfg.check_every)
         for _ in range(cfg.check_every):
             J, e, pn, ang = _errors(self.kernel, u, self.jmap, t)
             conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)

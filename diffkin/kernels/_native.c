@@ -1,23 +1,26 @@
-/* The chain product (2.50) and the geometric Jacobian (3.30) fused into one pass per configuration: the
- * native twin of diffkin.kernels.tree / diffkin.kernels.jacobian for CPU batches without autograd.
- *
- * It computes exactly what column_frames + the Jacobian kernel compute, from the same constants (the chain's
- * fixed transforms as Python-float plans, here dense 3x4 rows with the plan's snapped zeros skipped):
+/* The chain product (2.50), the geometric Jacobian (3.30) and the IK solver's Levenberg-Marquardt
+ * iteration, fused into one pass per configuration: the native twin of diffkin.kernels.tree,
+ * diffkin.kernels.jacobian, diffkin.kernels.pose_error (rotation-vector error) and diffkin.kernels.dls for
+ * CPU calls without autograd (diffkin/kernels/native.py loads it; tests/test_native.py checks it against
+ * those modules).
  *
  *     F_j = F_parent(j) . Pre_j . M(m_j q[i_j] + b_j) . Post_j,   end k:  F_ends[k] . E_k
  *     J_k[:, i_j] += m_j [z_j x (p_e - p_j); z_j]  (revolute)  or  m_j [z_j; 0]  (prismatic)
  *
  * with z_j, p_j the z axis and origin of F_parent . Pre_j . M_j. Configurations are processed in blocks of W
  * lanes; every loop over the lanes is branch-free so the compiler vectorises it, and sin/cos are evaluated by
- * a vectorisable Cody-Waite reduction and Cephes polynomials (|x| >= 1e5 falls back to libm per lane).
- * Blocks are shared between threads with a dynamic schedule, so a thread on a busy core simply takes fewer
- * blocks. The float kernel evaluates sin/cos in double and everything else in float.
+ * a vectorisable Cody-Waite reduction and Cephes polynomials (|x| >= 1e5 falls back to libm). Blocks are
+ * shared between threads with a dynamic schedule. The float kernels evaluate sin/cos in double.
  *
- * Model layout (built by diffkin/kernels/native.py):
+ * Model layout (built by native.py):
  *   ints:  J, K, n, then parent[J], revolute[J], qidx[J], has_pre[J], has_post[J], has_base, end_joint[K],
  *          has_end[K], ancestor[K*J]
  *   reals: mult[J], qoff[J], pre[12J], post[12J], base[12], end[12K]   (3x4 row-major blocks)
+ *
+ * The file includes itself once per real type (DK_REAL): the first pass holds what is type-free.
  */
+#ifndef DK_REAL
+
 #include <math.h>
 #include <stdint.h>
 #include <stdlib.h>
@@ -77,161 +80,405 @@ static void sincos_lanes(const double *x, double *s, double *c) {
     }
 }
 
-#define DEFINE_KERNEL(real, SUFFIX)                                                                           \
-                                                                                                              \
-/* out = P . A for frames P (12 x W lanes) and a constant 3x4 A (zeros skipped; last row 0 0 0 1). */         \
-static void mulfix_##SUFFIX(const real *P, const real *A, real *out) {                                        \
-    for (int r = 0; r < 3; r++) {                                                                             \
-        const real *Pr = P + 4 * r * W;                                                                       \
-        real *Or = out + 4 * r * W;                                                                           \
-        for (int col = 0; col < 4; col++) {                                                                   \
-            real acc[W];                                                                                      \
-            if (col == 3) memcpy(acc, Pr + 3 * W, sizeof acc); else memset(acc, 0, sizeof acc);               \
-            for (int k = 0; k < 3; k++) {                                                                     \
-                const real a = A[4 * k + col];                                                                \
-                if (a == (real)0) continue;                                                                   \
-                const real *Pk = Pr + k * W;                                                                  \
-                _Pragma("omp simd") for (int l = 0; l < W; l++) acc[l] += Pk[l] * a;                                              \
-            }                                                                                                 \
-            memcpy(Or + col * W, acc, sizeof acc);                                                            \
-        }                                                                                                     \
-    }                                                                                                         \
-}                                                                                                             \
-                                                                                                              \
-static void block_##SUFFIX(const Shape *s, const real *mult, const real *qoff, const real *pre,              \
-                           const real *post, const real *base, const real *endT, const real *q, int64_t b0,   \
-                           int nl, real *T, real *Jac, real *F, real *G, real *axes, real *Jb,                \
-                           int64_t *bad) {                                                                    \
-    const int J = s->J, K = s->K, n = s->n;                                                                   \
-    real qv[64 * W];                                                                                          \
-    real *qlanes = n <= 64 ? qv : (real *)malloc(sizeof(real) * (size_t)n * W);                               \
-    int64_t nonfinite = 0;                                                                                    \
-    for (int l = 0; l < W; l++) {                                                                             \
-        const real *qr = q + (b0 + (l < nl ? l : nl - 1)) * n;                                                \
-        for (int i = 0; i < n; i++) {                                                                         \
-            qlanes[i * W + l] = qr[i];                                                                        \
-            if (l < nl && !isfinite(qr[i])) nonfinite++;                                                      \
-        }                                                                                                     \
-    }                                                                                                         \
-    *bad += nonfinite;                                                                                        \
-    real basef[12 * W];                                                                                       \
-    for (int e = 0; e < 12; e++)                                                                              \
-        _Pragma("omp simd") for (int l = 0; l < W; l++)                                                                           \
-            basef[e * W + l] = s->has_base ? base[e] : (real)((e % 5) == 0); /* identity: 0, 5, 10 */         \
-    for (int j = 0; j < J; j++) {                                                                             \
-        const real *P = s->parent[j] < 0 ? basef : F + (size_t)s->parent[j] * 12 * W;                         \
-        if (s->has_pre[j]) mulfix_##SUFFIX(P, pre + 12 * j, G);                                               \
-        else memcpy(G, P, sizeof(real) * 12 * W);                                                             \
-        const real m = mult[j], b = qoff[j];                                                                  \
-        const real *qj = qlanes + (size_t)s->qidx[j] * W;                                                     \
-        if (s->revolute[j]) {                                                                                 \
-            double ang[W], sn[W], cs[W];                                                                      \
-            _Pragma("omp simd") for (int l = 0; l < W; l++) ang[l] = (double)(qj[l] * m + b);                                     \
-            sincos_lanes(ang, sn, cs);                                                                        \
-            for (int r = 0; r < 3; r++) {                                                                     \
-                real *restrict x = G + 4 * r * W, *restrict y = x + W;                                        \
-                _Pragma("omp simd") for (int l = 0; l < W; l++) {                                                                 \
-                    const real c = (real)cs[l], sv = (real)sn[l];                                             \
-                    const real xn = c * x[l] + sv * y[l];                                                     \
-                    y[l] = c * y[l] - sv * x[l];                                                              \
-                    x[l] = xn;                                                                                \
-                }                                                                                             \
-            }                                                                                                 \
-        } else {                                                                                              \
-            for (int r = 0; r < 3; r++) {                                                                     \
-                real *restrict z = G + (4 * r + 2) * W, *restrict p = G + (4 * r + 3) * W;                    \
-                _Pragma("omp simd") for (int l = 0; l < W; l++) p[l] += (qj[l] * m + b) * z[l];                                   \
-            }                                                                                                 \
-        }                                                                                                     \
-        if (Jac) /* the motion axis z and a point p on it, before Post */                                     \
-            for (int r = 0; r < 3; r++) {                                                                     \
-                memcpy(axes + ((size_t)j * 6 + r) * W, G + (4 * r + 2) * W, sizeof(real) * W);                \
-                memcpy(axes + ((size_t)j * 6 + 3 + r) * W, G + (4 * r + 3) * W, sizeof(real) * W);            \
-            }                                                                                                 \
-        real *Fj = F + (size_t)j * 12 * W;                                                                    \
-        if (s->has_post[j]) mulfix_##SUFFIX(G, post + 12 * j, Fj);                                            \
-        else memcpy(Fj, G, sizeof(real) * 12 * W);                                                            \
-    }                                                                                                         \
-    for (int k = 0; k < K; k++) {                                                                             \
-        const int e = s->end_joint[k];                                                                        \
-        const real *P = e < 0 ? basef : F + (size_t)e * 12 * W;                                               \
-        if (s->has_end[k]) { mulfix_##SUFFIX(P, endT + 12 * k, G); P = G; }                                   \
-        for (int l = 0; l < nl; l++) {                                                                        \
-            real *To = T + ((b0 + l) * K + k) * 16;                                                           \
-            for (int r = 0; r < 12; r++) To[r] = P[r * W + l];                                                \
-            To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;                                                   \
-        }                                                                                                     \
-        if (!Jac) continue;                                                                                   \
-        const real *restrict e0 = P + 3 * W, *restrict e1 = P + 7 * W, *restrict e2 = P + 11 * W;             \
-        memset(Jb, 0, sizeof(real) * 6 * (size_t)n * W);                                                      \
-        for (int j = 0; j < J; j++) {                                                                         \
-            if (!s->anc[k * J + j]) continue;                                                                 \
-            const real *restrict z0 = axes + (size_t)j * 6 * W, *restrict z1 = z0 + W, *restrict z2 = z1 + W; \
-            const real *restrict p0 = z2 + W, *restrict p1 = p0 + W, *restrict p2 = p1 + W;                  \
-            const real m = mult[j];                                                                           \
-            const int i = s->qidx[j];                                                                         \
-            real *restrict c0 = Jb + (size_t)(0 * n + i) * W, *restrict c1 = Jb + (size_t)(1 * n + i) * W,    \
-                 *restrict c2 = Jb + (size_t)(2 * n + i) * W, *restrict c3 = Jb + (size_t)(3 * n + i) * W,    \
-                 *restrict c4 = Jb + (size_t)(4 * n + i) * W, *restrict c5 = Jb + (size_t)(5 * n + i) * W;    \
-            if (s->revolute[j]) {                                                                             \
-                _Pragma("omp simd") for (int l = 0; l < W; l++) {                                                                 \
-                    const real d0 = e0[l] - p0[l], d1 = e1[l] - p1[l], d2 = e2[l] - p2[l];                       \
-                    c0[l] += m * (z1[l] * d2 - z2[l] * d1);                                                   \
-                    c1[l] += m * (z2[l] * d0 - z0[l] * d2);                                                   \
-                    c2[l] += m * (z0[l] * d1 - z1[l] * d0);                                                   \
-                    c3[l] += m * z0[l];                                                                       \
-                    c4[l] += m * z1[l];                                                                       \
-                    c5[l] += m * z2[l];                                                                       \
-                }                                                                                             \
-            } else {                                                                                          \
-                _Pragma("omp simd") for (int l = 0; l < W; l++) {                                                                 \
-                    c0[l] += m * z0[l];                                                                       \
-                    c1[l] += m * z1[l];                                                                       \
-                    c2[l] += m * z2[l];                                                                       \
-                }                                                                                             \
-            }                                                                                                 \
-        }                                                                                                     \
-        for (int l = 0; l < nl; l++) {                                                                        \
-            real *Jo = Jac + ((b0 + l) * K + k) * 6 * (int64_t)n;                                             \
-            for (int r = 0; r < 6 * n; r++) Jo[r] = Jb[(size_t)r * W + l];                                    \
-        }                                                                                                     \
-    }                                                                                                         \
-    if (qlanes != qv) free(qlanes);                                                                           \
-}                                                                                                             \
-                                                                                                              \
-/* T (B, K, 4, 4) and, when Jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite    \
- * entries of q (their outputs are not meaningful), or -1 when memory ran out. */                             \
-int64_t dk_fk_##SUFFIX(const int32_t *ip, const real *rp, const real *q, int64_t B, real *T, real *Jac,      \
-                       int nthreads) {                                                                        \
-    Shape s;                                                                                                  \
-    read_shape(ip, &s);                                                                                       \
-    const int J = s.J, n = s.n;                                                                               \
-    const real *mult = rp, *qoff = rp + J, *pre = rp + 2 * J, *post = pre + 12 * J, *base = post + 12 * J,    \
-               *endT = base + 12;                                                                             \
-    const int64_t nblocks = (B + W - 1) / W;                                                                  \
-    const size_t per = sizeof(real) * W * ((size_t)J * 12 + 12 + (Jac ? (size_t)J * 6 + 6 * (size_t)n : 0));  \
-    int64_t bad = 0, failed = 0;                                                                              \
-    if (nthreads < 1 || B <= SERIAL_MAX) nthreads = 1;                                                        \
-    _Pragma("omp parallel num_threads(nthreads) reduction(+ : bad, failed) if (nthreads > 1)")                \
-    {                                                                                                         \
-        real *buf = (real *)malloc(per);                                                                      \
-        if (!buf) {                                                                                           \
-            failed += 1;                                                                                      \
-        } else {                                                                                              \
-            real *F = buf, *G = F + (size_t)J * 12 * W, *axes = G + 12 * W,                                   \
-                 *Jb = axes + (Jac ? (size_t)J * 6 * W : 0);                                                  \
-            _Pragma("omp for schedule(dynamic, 8)")                                                           \
-            for (int64_t blk = 0; blk < nblocks; blk++) {                                                     \
-                const int64_t b0 = blk * W;                                                                   \
-                const int nl = (int)(B - b0 < W ? B - b0 : W);                                                \
-                block_##SUFFIX(&s, mult, qoff, pre, post, base, endT, q, b0, nl, T, Jac, F, G, axes, Jb,      \
-                               &bad);                                                                         \
-            }                                                                                                 \
-            free(buf);                                                                                        \
-        }                                                                                                     \
-    }                                                                                                         \
-    return failed ? -1 : bad;                                                                                 \
+#define DK_REAL double
+#define DK(name) name##_f64
+#define DK_TINY 2.2250738585072014e-308
+#include __FILE__
+#undef DK_REAL
+#undef DK
+#undef DK_TINY
+
+#define DK_REAL float
+#define DK(name) name##_f32
+#define DK_TINY 1.17549435e-38f
+#include __FILE__
+
+#else /* ------------------------------------------------------------------- one pass per real type */
+
+#define real DK_REAL
+
+typedef struct {
+    const real *mult, *qoff, *pre, *post, *base, *endT;
+} DK(Params);
+
+typedef struct { /* per-thread work space, all lane-major (W lanes innermost) */
+    real *F, *G, *axes, *ends, *Jb, *qlanes, *basef;
+} DK(Scratch);
+
+static void DK(read_params)(const Shape *s, const real *rp, DK(Params) *pp) {
+    pp->mult = rp;
+    pp->qoff = rp + s->J;
+    pp->pre = rp + 2 * s->J;
+    pp->post = pp->pre + 12 * s->J;
+    pp->base = pp->post + 12 * s->J;
+    pp->endT = pp->base + 12;
 }
 
-DEFINE_KERNEL(double, f64)
-DEFINE_KERNEL(float, f32)
+static size_t DK(scratch_size)(const Shape *s) {
+    const size_t J = s->J, K = s->K, n = s->n;
+    return sizeof(real) * W * (J * 12 + 12 + J * 6 + K * 12 + K * 6 * n + n + 12);
+}
+
+static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK(Scratch) *sc) {
+    const size_t J = s->J, K = s->K, n = s->n;
+    sc->F = buf;
+    sc->G = sc->F + J * 12 * W;
+    sc->axes = sc->G + 12 * W;
+    sc->ends = sc->axes + J * 6 * W;
+    sc->Jb = sc->ends + K * 12 * W;
+    sc->qlanes = sc->Jb + K * 6 * n * W;
+    sc->basef = sc->qlanes + n * W;
+    for (int e = 0; e < 12; e++)
+        for (int l = 0; l < W; l++)
+            sc->basef[e * W + l] = s->has_base ? pp->base[e] : (real)((e % 5) == 0); /* identity: 0, 5, 10 */
+}
+
+/* out = P . A for frames P (12 x W lanes) and a constant 3x4 A (zeros skipped; last row 0 0 0 1). */
+static void DK(mulfix)(const real *P, const real *A, real *out) {
+    for (int r = 0; r < 3; r++) {
+        const real *Pr = P + 4 * r * W;
+        real *Or = out + 4 * r * W;
+        for (int col = 0; col < 4; col++) {
+            real acc[W];
+            if (col == 3) memcpy(acc, Pr + 3 * W, sizeof acc); else memset(acc, 0, sizeof acc);
+            for (int k = 0; k < 3; k++) {
+                const real a = A[4 * k + col];
+                if (a == (real)0) continue;
+                const real *Pk = Pr + k * W;
+#pragma omp simd
+                for (int l = 0; l < W; l++) acc[l] += Pk[l] * a;
+            }
+            memcpy(Or + col * W, acc, sizeof acc);
+        }
+    }
+}
+
+/* The end frames (sc->ends, K x 12 x W) and, if jac, their Jacobians (sc->Jb, K x 6n x W) of the
+ * configurations in sc->qlanes (n x W). */
+static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
+    const int J = s->J, K = s->K, n = s->n;
+    real *F = sc->F, *G = sc->G, *axes = sc->axes;
+    for (int j = 0; j < J; j++) {
+        const real *P = s->parent[j] < 0 ? sc->basef : F + (size_t)s->parent[j] * 12 * W;
+        if (s->has_pre[j]) DK(mulfix)(P, pp->pre + 12 * j, G);
+        else memcpy(G, P, sizeof(real) * 12 * W);
+        const real m = pp->mult[j], b = pp->qoff[j];
+        const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
+        if (s->revolute[j]) {
+            double ang[W], sn[W], cs[W];
+            for (int l = 0; l < W; l++) ang[l] = (double)(qj[l] * m + b);
+            sincos_lanes(ang, sn, cs);
+            for (int r = 0; r < 3; r++) {
+                real *restrict x = G + 4 * r * W, *restrict y = x + W;
+#pragma omp simd
+                for (int l = 0; l < W; l++) {
+                    const real c = (real)cs[l], sv = (real)sn[l];
+                    const real xn = c * x[l] + sv * y[l];
+                    y[l] = c * y[l] - sv * x[l];
+                    x[l] = xn;
+                }
+            }
+        } else {
+            for (int r = 0; r < 3; r++) {
+                real *restrict z = G + (4 * r + 2) * W, *restrict p = G + (4 * r + 3) * W;
+#pragma omp simd
+                for (int l = 0; l < W; l++) p[l] += (qj[l] * m + b) * z[l];
+            }
+        }
+        if (jac) /* the motion axis z and a point p on it, before Post */
+            for (int r = 0; r < 3; r++) {
+                memcpy(axes + ((size_t)j * 6 + r) * W, G + (4 * r + 2) * W, sizeof(real) * W);
+                memcpy(axes + ((size_t)j * 6 + 3 + r) * W, G + (4 * r + 3) * W, sizeof(real) * W);
+            }
+        real *Fj = F + (size_t)j * 12 * W;
+        if (s->has_post[j]) DK(mulfix)(G, pp->post + 12 * j, Fj);
+        else memcpy(Fj, G, sizeof(real) * 12 * W);
+    }
+    for (int k = 0; k < K; k++) {
+        const int e = s->end_joint[k];
+        const real *P = e < 0 ? sc->basef : F + (size_t)e * 12 * W;
+        real *E = sc->ends + (size_t)k * 12 * W;
+        if (s->has_end[k]) DK(mulfix)(P, pp->endT + 12 * k, E);
+        else memcpy(E, P, sizeof(real) * 12 * W);
+        if (!jac) continue;
+        const real *restrict e0 = E + 3 * W, *restrict e1 = E + 7 * W, *restrict e2 = E + 11 * W;
+        real *Jb = sc->Jb + (size_t)k * 6 * n * W;
+        memset(Jb, 0, sizeof(real) * 6 * (size_t)n * W);
+        for (int j = 0; j < J; j++) {
+            if (!s->anc[k * J + j]) continue;
+            const real *restrict z0 = axes + (size_t)j * 6 * W, *restrict z1 = z0 + W, *restrict z2 = z1 + W;
+            const real *restrict p0 = z2 + W, *restrict p1 = p0 + W, *restrict p2 = p1 + W;
+            const real m = pp->mult[j];
+            const int i = s->qidx[j];
+            real *restrict c0 = Jb + (size_t)(0 * n + i) * W, *restrict c1 = Jb + (size_t)(1 * n + i) * W,
+                 *restrict c2 = Jb + (size_t)(2 * n + i) * W, *restrict c3 = Jb + (size_t)(3 * n + i) * W,
+                 *restrict c4 = Jb + (size_t)(4 * n + i) * W, *restrict c5 = Jb + (size_t)(5 * n + i) * W;
+            if (s->revolute[j]) {
+#pragma omp simd
+                for (int l = 0; l < W; l++) {
+                    const real d0 = e0[l] - p0[l], d1 = e1[l] - p1[l], d2 = e2[l] - p2[l];
+                    c0[l] += m * (z1[l] * d2 - z2[l] * d1);
+                    c1[l] += m * (z2[l] * d0 - z0[l] * d2);
+                    c2[l] += m * (z0[l] * d1 - z1[l] * d0);
+                    c3[l] += m * z0[l];
+                    c4[l] += m * z1[l];
+                    c5[l] += m * z2[l];
+                }
+            } else {
+#pragma omp simd
+                for (int l = 0; l < W; l++) {
+                    c0[l] += m * z0[l];
+                    c1[l] += m * z1[l];
+                    c2[l] += m * z2[l];
+                }
+            }
+        }
+    }
+}
+
+/* Load lanes b0 .. b0 + nl - 1 of q (B, n) into sc->qlanes (the tail repeats the last row); returns the
+ * number of non-finite entries. */
+static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_t b0, int nl) {
+    const int n = s->n;
+    int64_t bad = 0;
+    for (int l = 0; l < W; l++) {
+        const real *qr = q + (b0 + (l < nl ? l : nl - 1)) * n;
+        for (int i = 0; i < n; i++) {
+            sc->qlanes[i * W + l] = qr[i];
+            if (l < nl && !isfinite(qr[i])) bad++;
+        }
+    }
+    return bad;
+}
+
+/* T (B, K, 4, 4) and, when Jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite
+ * entries of q (their outputs are not meaningful), or -1 when memory ran out. */
+int64_t DK(dk_fk)(const int32_t *ip, const real *rp, const real *q, int64_t B, real *T, real *Jac,
+                  int nthreads) {
+    Shape s;
+    read_shape(ip, &s);
+    DK(Params) pp;
+    DK(read_params)(&s, rp, &pp);
+    const int K = s.K, n = s.n;
+    const int64_t nblocks = (B + W - 1) / W;
+    int64_t bad = 0, failed = 0;
+    if (nthreads < 1 || B <= SERIAL_MAX) nthreads = 1;
+#pragma omp parallel num_threads(nthreads) reduction(+ : bad, failed) if (nthreads > 1)
+    {
+        real *buf = (real *)malloc(DK(scratch_size)(&s));
+        if (!buf) {
+            failed += 1;
+        } else {
+            DK(Scratch) sc;
+            DK(scratch_init)(&s, &pp, buf, &sc);
+#pragma omp for schedule(dynamic, 8)
+            for (int64_t blk = 0; blk < nblocks; blk++) {
+                const int64_t b0 = blk * W;
+                const int nl = (int)(B - b0 < W ? B - b0 : W);
+                bad += DK(load_q)(&s, &sc, q, b0, nl);
+                DK(block)(&s, &pp, &sc, Jac != NULL);
+                for (int k = 0; k < K; k++) {
+                    const real *E = sc.ends + (size_t)k * 12 * W;
+                    for (int l = 0; l < nl; l++) {
+                        real *To = T + ((b0 + l) * K + k) * 16;
+                        for (int r = 0; r < 12; r++) To[r] = E[r * W + l];
+                        To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
+                    }
+                    if (!Jac) continue;
+                    const real *Jb = sc.Jb + (size_t)k * 6 * n * W;
+                    for (int l = 0; l < nl; l++) {
+                        real *Jo = Jac + ((b0 + l) * K + k) * 6 * (int64_t)n;
+                        for (int r = 0; r < 6 * n; r++) Jo[r] = Jb[(size_t)r * W + l];
+                    }
+                }
+            }
+            free(buf);
+        }
+    }
+    return failed ? -1 : bad;
+}
+
+/* Solve A x = b in place (x overwrites b) for symmetric positive definite A (d x d, row-major, overwritten
+ * by its Cholesky factor); pivots are clamped to a tiny positive value, as in kernels/dls.py. */
+static void DK(spd_solve)(real *A, real *b, int d) {
+    const real tiny = (real)sqrt((double)DK_TINY);
+    for (int j = 0; j < d; j++) {
+        real sjj = A[j * d + j];
+        for (int k = 0; k < j; k++) sjj -= A[j * d + k] * A[j * d + k];
+        const real ljj = (real)sqrt((double)(sjj > tiny ? sjj : tiny));
+        A[j * d + j] = ljj;
+        for (int i = j + 1; i < d; i++) {
+            real sij = A[i * d + j];
+            for (int k = 0; k < j; k++) sij -= A[i * d + k] * A[j * d + k];
+            A[i * d + j] = sij / ljj;
+        }
+    }
+    for (int i = 0; i < d; i++) { /* L y = b */
+        real v = b[i];
+        for (int k = 0; k < i; k++) v -= A[i * d + k] * b[k];
+        b[i] = v / A[i * d + i];
+    }
+    for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
+        real v = b[i];
+        for (int k = i + 1; k < d; k++) v -= A[k * d + i] * b[k];
+        b[i] = v / A[i * d + i];
+    }
+}
+
+/* `iters` Levenberg-Marquardt steps (3.59) of diffkin.ik's solver on m rows, batch last (u (n, m) is
+ * updated in place; u_eval gets the u of the last evaluation). Per row: q = c + h sin(u) on bounded joints;
+ * e = [p_d - p_e; theta r] per end link (the rotation-vector error of kernels/pose_error.py), or e_p when
+ * position_only (xd == NULL); converged when max |e_p| <= tp margin and max theta <= to margin; weighted
+ * rows sqrt_w; lambda = damping2 + error_damping |e_w|^2; Delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the
+ * n x n normal equations when the error has more rows than joints), J_w = diag(sqrt_w) J diag(dq/du);
+ * u += Delta where not converged. conv and merit (max(e_p / tp, theta / to)) are those of the last
+ * evaluation. Targets pd, xd, yd, zd are (3K, m). Returns -1 when memory ran out, else 0. */
+int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real *u, real *u_eval,
+                  const real *pd, const real *xd, const real *yd, const real *zd, const real *sqrt_w,
+                  const real *jc, const real *jh, const uint8_t *bounded, real damping2, real error_damping,
+                  real tp, real to, real margin, uint8_t *conv, real *merit, int nthreads) {
+    Shape s;
+    read_shape(ip, &s);
+    DK(Params) pp;
+    DK(read_params)(&s, rp, &pp);
+    const int K = s.K, n = s.n, pos_only = xd == NULL, r = (pos_only ? 3 : 6) * K;
+    const int d = r <= n ? r : n;
+    const int64_t nblocks = (m + W - 1) / W;
+    int64_t failed = 0;
+    if (nthreads < 1 || m <= SERIAL_MAX) nthreads = 1;
+#pragma omp parallel num_threads(nthreads) reduction(+ : failed) if (nthreads > 1)
+    {
+        const size_t extra = sizeof(real) * ((size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n);
+        real *buf = (real *)malloc(DK(scratch_size)(&s) + extra);
+        if (!buf) {
+            failed += 1;
+        } else {
+            DK(Scratch) sc;
+            DK(scratch_init)(&s, &pp, buf, &sc);
+            real *dqdu = buf + DK(scratch_size)(&s) / sizeof(real); /* n x W */
+            real *Jw = dqdu + (size_t)n * W;                         /* r x n */
+            real *e = Jw + (size_t)r * n;                           /* r */
+            real *A = e + r;                                        /* d x d */
+            real *y = A + (size_t)d * d;                            /* d */
+            real *delta = y + d;                                    /* n */
+#pragma omp for schedule(dynamic, 4)
+            for (int64_t blk = 0; blk < nblocks; blk++) {
+                const int64_t b0 = blk * W;
+                const int nl = (int)(m - b0 < W ? m - b0 : W);
+                for (int it = 0; it < iters; it++) {
+                    for (int i = 0; i < n; i++) { /* q = c + h sin(u) (bounded joints), dq/du = h cos(u) */
+                        double uu[W], sn[W], cs[W];
+                        for (int l = 0; l < W; l++) uu[l] = (double)u[(int64_t)i * m + b0 + (l < nl ? l : nl - 1)];
+                        real *ql = sc.qlanes + (size_t)i * W, *dl = dqdu + (size_t)i * W;
+                        if (bounded[i]) {
+                            sincos_lanes(uu, sn, cs);
+                            for (int l = 0; l < W; l++) {
+                                ql[l] = jc[i] + jh[i] * (real)sn[l];
+                                dl[l] = jh[i] * (real)cs[l];
+                            }
+                        } else {
+                            for (int l = 0; l < W; l++) { ql[l] = (real)uu[l]; dl[l] = 1; }
+                        }
+                    }
+                    DK(block)(&s, &pp, &sc, 1);
+                    for (int l = 0; l < nl; l++) {
+                        const int64_t b = b0 + l;
+                        real pn = 0, ang = 0;
+                        for (int k = 0; k < K; k++) {
+                            const real *E = sc.ends + (size_t)k * 12 * W;
+                            real *ek = e + (pos_only ? 3 : 6) * k;
+                            real sq = 0;
+                            for (int c = 0; c < 3; c++) {
+                                ek[c] = pd[(int64_t)(3 * k + c) * m + b] - E[(4 * c + 3) * W + l];
+                                sq += ek[c] * ek[c];
+                            }
+                            const real nk = (real)sqrt((double)sq);
+                            pn = nk > pn ? nk : pn;
+                            if (pos_only) continue;
+                            /* v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2, cos = (x_e.x_d + ... - 1) / 2 */
+                            real v[3] = {0, 0, 0}, tr = 0;
+                            const real *cols[3] = {xd, yd, zd};
+                            for (int a = 0; a < 3; a++) {
+                                real de[3], ee[3];
+                                for (int c = 0; c < 3; c++) {
+                                    de[c] = cols[a][(int64_t)(3 * k + c) * m + b];
+                                    ee[c] = E[(4 * c + a) * W + l];
+                                }
+                                v[0] += ee[1] * de[2] - ee[2] * de[1];
+                                v[1] += ee[2] * de[0] - ee[0] * de[2];
+                                v[2] += ee[0] * de[1] - ee[1] * de[0];
+                                tr += ee[0] * de[0] + ee[1] * de[1] + ee[2] * de[2];
+                            }
+                            for (int c = 0; c < 3; c++) v[c] *= (real)0.5;
+                            const real cth = (real)0.5 * (tr - 1);
+                            real vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+                            const real sth = (real)sqrt((double)(vv > DK_TINY ? vv : DK_TINY));
+                            const real th = (real)atan2((double)sth, (double)cth);
+                            for (int c = 0; c < 3; c++) ek[3 + c] = v[c] * (th / sth);
+                            ang = th > ang ? th : ang;
+                        }
+                        const int cv = pn <= tp * margin && ang <= to * margin;
+                        if (it == iters - 1) {
+                            conv[b] = (uint8_t)cv;
+                            merit[b] = pos_only ? pn / tp : (pn / tp > ang / to ? pn / tp : ang / to);
+                        }
+                        real e2 = 0;
+                        for (int a = 0; a < r; a++) {
+                            e[a] *= sqrt_w[a];
+                            e2 += e[a] * e[a];
+                        }
+                        const real lam = damping2 + error_damping * e2;
+                        for (int k = 0; k < K; k++) { /* J_w rows of end k: [lin; ang] or lin only */
+                            const real *Jb = sc.Jb + (size_t)k * 6 * n * W;
+                            const int rows = pos_only ? 3 : 6, off = rows * k;
+                            for (int a = 0; a < rows; a++)
+                                for (int i = 0; i < n; i++)
+                                    Jw[(size_t)(off + a) * n + i] =
+                                        Jb[((size_t)a * n + i) * W + l] * sqrt_w[off + a] * dqdu[(size_t)i * W + l];
+                        }
+                        if (r <= n) { /* (J J^T + lambda I) y = e, Delta = J^T y */
+                            for (int a = 0; a < r; a++)
+                                for (int c = 0; c <= a; c++) {
+                                    real acc = 0;
+                                    for (int i = 0; i < n; i++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)c * n + i];
+                                    A[a * d + c] = acc;
+                                    A[c * d + a] = acc;
+                                }
+                            for (int a = 0; a < r; a++) { A[a * d + a] += lam; y[a] = e[a]; }
+                            DK(spd_solve)(A, y, d);
+                            for (int i = 0; i < n; i++) {
+                                real acc = 0;
+                                for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * y[a];
+                                delta[i] = acc;
+                            }
+                        } else { /* (J^T J + lambda I) Delta = J^T e */
+                            for (int i = 0; i < n; i++) {
+                                for (int c = 0; c <= i; c++) {
+                                    real acc = 0;
+                                    for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)a * n + c];
+                                    A[i * d + c] = acc;
+                                    A[c * d + i] = acc;
+                                }
+                                real acc = 0;
+                                for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * e[a];
+                                delta[i] = acc;
+                                A[i * d + i] += lam;
+                            }
+                            DK(spd_solve)(A, delta, d);
+                        }
+                        for (int i = 0; i < n; i++) {
+                            real *ui = u + (int64_t)i * m + b;
+                            if (it == iters - 1) u_eval[(int64_t)i * m + b] = *ui;
+                            if (!cv) *ui += delta[i];
+                        }
+                    }
+                }
+            }
+            free(buf);
+        }
+    }
+    return failed ? -1 : 0;
+}
+
+#undef real
+#endif

@@ -44,7 +44,7 @@ from torch import Tensor
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
-           "native_model", "fk_jacobian"]
+           "native_model", "fk_jacobian", "lm_steps"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
@@ -119,11 +119,15 @@ def build() -> Path:
             except (RuntimeError, OSError, subprocess.SubprocessError) as e:
                 errors.append(str(e))
                 continue
-            for name in ("dk_fk_f64", "dk_fk_f32"):
-                fn = getattr(lib, name)
-                fn.restype = ctypes.c_int64
-                fn.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int64,
-                               ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int]
+            ptr, i64, cint = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+            for suffix, real in (("f64", ctypes.c_double), ("f32", ctypes.c_float)):
+                fn = getattr(lib, f"dk_fk_{suffix}")
+                fn.restype = i64
+                fn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, cint]
+                fn = getattr(lib, f"dk_lm_{suffix}")
+                fn.restype = i64
+                fn.argtypes = [ptr, ptr, i64, cint, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr,
+                               real, real, real, real, real, ptr, ptr, cint]
             _lib, _tried, _error = lib, True, None
             return path
         _tried, _error = True, "; ".join(errors)
@@ -256,6 +260,43 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
     if bad < 0:
         raise MemoryError("the native kernel could not allocate its per-thread frames")
     return T, J, bad
+
+
+def lm_steps(model: NativeModel, u: Tensor, pd: Tensor, cols: tuple[Tensor, Tensor, Tensor] | None,
+             sqrt_w: Tensor, c: Tensor, h: Tensor, bounded: Tensor, *, damping2: float, error_damping: float,
+             tolerances: tuple[float, float], margin: float, iterations: int,
+             threads: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``iterations`` steps of :func:`diffkin.ik.solve`'s Levenberg–Marquardt iteration on m rows, batch last.
+
+    ``u (n, m)``: the solver's variables, q = c + h sin(u) on ``bounded`` joints (``c, h, bounded`` ``(n,)``);
+    ``pd (3K, m)`` target positions and ``cols`` the target rotation columns ``(x, y, z)``, each ``(3K, m)``,
+    or None (position only); ``sqrt_w (6K,)`` / ``(3K,)`` row weights. Per step: the pose error (3.78) and
+    rotation-vector error (the ``"rotvec"`` form of :func:`~diffkin.kernels.pose_error.orientation_error`),
+    λ = damping2 + error_damping ‖e_w‖², the damped least-squares step (3.59) on the weighted Jacobian,
+    applied where not converged (max ‖e_p‖ ≤ tol_p · margin and max θ ≤ tol_o · margin).
+
+    Returns ``(u after the steps, u of the last evaluation, converged (m,) bool, merit (m,))`` with merit =
+    max(‖e_p‖ / tol_p, θ / tol_o) at the last evaluation, all as :meth:`diffkin.ik._lm._Run.steps` returns.
+    """
+    dtype = u.dtype
+    m = u.shape[1]
+    u_new = u.contiguous().clone()
+    u_eval = torch.empty_like(u_new)
+    conv = torch.empty(m, dtype=torch.uint8)
+    merit = torch.empty(m, dtype=dtype)
+    pd = pd.contiguous()
+    x, y, z = (None, None, None) if cols is None else (t.contiguous() for t in cols)
+    vec = [t.to(dtype).contiguous() for t in (sqrt_w.reshape(-1), c.reshape(-1), h.reshape(-1))]
+    flags = bounded.reshape(-1).to(torch.uint8).contiguous()
+    fn = _lib.dk_lm_f64 if dtype == torch.float64 else _lib.dk_lm_f32
+    tp, to = tolerances
+    rc = fn(model.ints.data_ptr(), model.reals[dtype].data_ptr(), m, iterations, u_new.data_ptr(),
+            u_eval.data_ptr(), pd.data_ptr(), *(None if t is None else t.data_ptr() for t in (x, y, z)),
+            *(t.data_ptr() for t in vec), flags.data_ptr(), damping2, error_damping, tp, to, margin,
+            conv.data_ptr(), merit.data_ptr(), threads or thread_count(m))
+    if rc < 0:
+        raise MemoryError("the native kernel could not allocate its per-thread work space")
+    return u_new, u_eval, conv.bool(), merit
 
 
 def _main() -> int:
