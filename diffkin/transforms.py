@@ -166,20 +166,30 @@ def check_transform(T, name: str = "T", atol: float | None = None) -> Tensor:
 def _check_transform(T: Tensor, name: str, atol: float | None) -> Tensor:
     if atol is None:
         atol = 10.0 * eps_for(T) ** 0.5
+    _transform_deviations(T, name, atol)
+    return T
+
+
+def _transform_deviations(T: Tensor, name: str, atol: float) -> tuple[float, float]:
+    """Raise unless ``T (..., 4, 4)`` is rigid to ``atol``; return the largest deviations of the bottom row
+    and of RᵀR from I (read in one host sync)."""
     R = T[..., :3, :3]
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
-    checks = (
-        ((T[..., 3, :] - bottom).abs(), "bottom row is not [0, 0, 0, 1]"),
-        ((R.transpose(-1, -2) @ R - eye).abs(), "rotation block is not orthonormal (R^T R != I)"),
-        ((torch.linalg.det(R) - 1.0).abs(), "rotation block has det != 1"),
-    )
-    for err, what in checks:
-        worst = err.amax() if err.numel() else err.new_zeros(())
-        if bool(worst > atol):
-            raise DiffkinError(f"{name} is not a rigid transform: {what} (max deviation {float(worst):.3g}, "
+    if T.numel() == 0:
+        return 0.0, 0.0
+    worst = torch.stack((
+        (T[..., 3, :] - bottom).abs().amax(),
+        (R.transpose(-1, -2) @ R - eye).abs().amax(),
+        (torch.linalg.det(R) - 1.0).abs().amax(),
+    )).tolist()  # fmt: skip
+    whats = ("bottom row is not [0, 0, 0, 1]", "rotation block is not orthonormal (R^T R != I)",
+             "rotation block has det != 1")
+    for w, what in zip(worst, whats):
+        if not w <= atol:  # NaN fails too
+            raise DiffkinError(f"{name} is not a rigid transform: {what} (max deviation {w:.3g}, "
                                f"atol {atol:.3g})")
-    return T
+    return worst[0], worst[1]
 
 
 def as_measured_transform(T: Tensor, name: str = "T", atol: float | None = None) -> Tensor:
@@ -194,14 +204,11 @@ def as_measured_transform(T: Tensor, name: str = "T", atol: float | None = None)
     (T,) = tensors((name, T, (4, 4)))
     if atol is None:
         atol = max(MEASURED_TRANSFORM_ATOL, 10.0 * eps_for(T) ** 0.5)
-    _check_transform(T, name, atol)
-    R = T[..., :3, :3]
-    eye = torch.eye(3, dtype=T.dtype, device=T.device)
-    exact = 4.0 * eps_for(T)
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
-    if T.numel() == 0 or (bool((R.mT @ R - eye).abs().amax() <= exact) and bool(torch.equal(
-            T[..., 3, :], bottom.expand_as(T[..., 3, :])))):
+    bottom_dev, orth_dev = _transform_deviations(T, name, atol)
+    if T.numel() == 0 or (orth_dev <= 4.0 * eps_for(T) and bottom_dev == 0.0):
         return T
+    R = T[..., :3, :3]
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
     U, _, Vh = torch.linalg.svd(R)
     out = T.clone()
     out[..., :3, :3] = U @ Vh

@@ -224,10 +224,10 @@ def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
     target = T[..., :3, 3] if position_only else T
     steps, rounds = lm._Run.steps, []
 
-    def both(self, rows, t):
-        fused = steps(self, rows, t)
+    def both(self, rows):
+        fused = steps(self, rows)
         with native.disabled():
-            ref = steps(self, rows, t)
+            ref = steps(self, rows)
         rounds.append((fused, ref))
         return ref
 

@@ -167,19 +167,30 @@ class _Run:
         self.done = torch.zeros(N, dtype=torch.bool, device=device)
         self.iters = torch.zeros(N, dtype=torch.long, device=device)
         self.seeds = torch.zeros(N, dtype=torch.long, device=device)
+        self._problem: native.LMProblem | None = None
 
-    def steps(self, rows: _Rows, t: Targets):
+    def _native_problem(self, u: Tensor) -> native.LMProblem | None:
+        """The fused iteration's fixed inputs, made on the first round it may serve (None: torch only)."""
+        if self._problem is None:
+            packed = self.kernel.chain._native_model(u)
+            if packed is None:
+                return None
+            tg, jm = self.tg, self.jmap
+            cols = None if tg.position_only else (tg.xd, tg.yd, tg.zd)
+            self._problem = native.LMProblem(packed, tg.pd, cols, self.sqrt_w, jm.c, jm.h, jm.bounded)
+        return self._problem
+
+    def steps(self, rows: _Rows):
         """``check_every`` LM steps (3.59) on all rows; converged rows are frozen. Returns the new u, the u
         the last error was evaluated at, the convergence mask and the merit max(e_p / tol_p, e_o / tol_o)."""
         cfg, (tp, to) = self.cfg, self.tol
         u = rows.u
-        packed = self.kernel.chain._native_model(u)
-        if packed is not None:  # the same steps fused into one C pass per row (kernels/native.py)
-            jm = self.jmap
-            return native.lm_steps(packed, u, t.pd, None if t.position_only else (t.xd, t.yd, t.zd),
-                                   self.sqrt_w, jm.c, jm.h, jm.bounded, damping2=cfg.damping**2,
+        problem = self._native_problem(u)
+        if problem is not None:  # the same steps fused into one C pass per row (kernels/native.py)
+            return native.lm_steps(problem, u, rows.idx, damping2=cfg.damping**2,
                                    error_damping=cfg.error_damping, tolerances=(float(tp), float(to)),
                                    margin=cfg.margin, iterations=cfg.check_every)
+        t = self.tg.take(rows.idx)
         for _ in range(cfg.check_every):
             J, e, pn, ang = _errors(self.kernel, u, self.jmap, t)
             conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
@@ -252,7 +263,7 @@ def run_lm(kernel, jmap, tg, seeds_user, lib_u, nn_idx, N, cfg: LMConfig, genera
     run.seeds += max(S_user, 1)
     rows, rnd = _Rows.fresh(idx, u), 0
     while rows.idx.numel():
-        u, u_eval, conv, merit = run.steps(rows, tg.take(rows.idx))
+        u, u_eval, conv, merit = run.steps(rows)
         rows = run.schedule(_Rows(rows.idx, u, rows.seed_it, rows.last), u_eval, conv, merit)
         rnd += 1
         if progress:

@@ -118,8 +118,9 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
         raise ShapeError(f"expected T_target of shape {want}, got {shape_str(T_target.shape)}")
     T_target = as_measured_transform(T_target, "T_target")  # 1e-5 tolerance, re-orthonormalised
     batch = tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
-    Tt = T_target.reshape(-1, K, 4, 4).to(dtype).permute(1, 2, 3, 0)  # (K, 4, 4, N)
-    cols = [Tt[:, :3, j].reshape(3 * K, -1).contiguous() for j in range(4)]
+    # the four columns of every end link's pose, batch last: (4, 3K, N) in one copy
+    cols = T_target.reshape(-1, K, 4, 4)[:, :, :3].permute(3, 1, 2, 0).to(dtype).reshape(4, 3 * K, -1)
+    cols = cols.contiguous().unbind(0)
     if position_only:
         return batch, T_target, Targets(cols[3], None, None, None)
     return batch, T_target, Targets(cols[3], cols[0], cols[1], cols[2])

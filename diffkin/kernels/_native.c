@@ -332,9 +332,11 @@ static void DK(spd_solve)(real *A, real *b, int d) {
  * rows sqrt_w; lambda = damping2 + error_damping |e_w|^2; Delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the
  * n x n normal equations when the error has more rows than joints), J_w = diag(sqrt_w) J diag(dq/du);
  * u += Delta where not converged. conv and merit (max(e_p / tp, theta / to)) are those of the last
- * evaluation. Targets pd, xd, yd, zd are (3K, m). Returns -1 when memory ran out, else 0. */
+ * evaluation. Targets pd, xd, yd, zd are (3K, N); row b aims at target tidx[b]. Returns -1 when memory ran
+ * out, else 0. */
 int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real *u, real *u_eval,
-                  const real *pd, const real *xd, const real *yd, const real *zd, const real *sqrt_w,
+                  const int64_t *tidx, int64_t N, const real *pd, const real *xd, const real *yd,
+                  const real *zd, const real *sqrt_w,
                   const real *jc, const real *jh, const uint8_t *bounded, real damping2, real error_damping,
                   real tp, real to, real margin, uint8_t *conv, real *merit, int nthreads) {
     Shape s;
@@ -382,14 +384,14 @@ int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real 
                     }
                     DK(block)(&s, &pp, &sc, 1);
                     for (int l = 0; l < nl; l++) {
-                        const int64_t b = b0 + l;
+                        const int64_t b = b0 + l, t = tidx[b];
                         real pn = 0, ang = 0;
                         for (int k = 0; k < K; k++) {
                             const real *E = sc.ends + (size_t)k * 12 * W;
                             real *ek = e + (pos_only ? 3 : 6) * k;
                             real sq = 0;
                             for (int c = 0; c < 3; c++) {
-                                ek[c] = pd[(int64_t)(3 * k + c) * m + b] - E[(4 * c + 3) * W + l];
+                                ek[c] = pd[(int64_t)(3 * k + c) * N + t] - E[(4 * c + 3) * W + l];
                                 sq += ek[c] * ek[c];
                             }
                             const real nk = (real)sqrt((double)sq);
@@ -401,7 +403,7 @@ int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real 
                             for (int a = 0; a < 3; a++) {
                                 real de[3], ee[3];
                                 for (int c = 0; c < 3; c++) {
-                                    de[c] = cols[a][(int64_t)(3 * k + c) * m + b];
+                                    de[c] = cols[a][(int64_t)(3 * k + c) * N + t];
                                     ee[c] = E[(4 * c + a) * W + l];
                                 }
                                 v[0] += ee[1] * de[2] - ee[2] * de[1];

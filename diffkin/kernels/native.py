@@ -44,7 +44,7 @@ from torch import Tensor
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
-           "native_model", "fk_jacobian", "lm_steps"]
+           "native_model", "fk_jacobian", "LMProblem", "lm_steps"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
@@ -126,8 +126,8 @@ def build() -> Path:
                 fn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, cint]
                 fn = getattr(lib, f"dk_lm_{suffix}")
                 fn.restype = i64
-                fn.argtypes = [ptr, ptr, i64, cint, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr, ptr,
-                               real, real, real, real, real, ptr, ptr, cint]
+                fn.argtypes = [ptr, ptr, i64, cint, ptr, ptr, ptr, i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr,
+                               ptr, real, real, real, real, real, ptr, ptr, cint]
             _lib, _tried, _error = lib, True, None
             return path
         _tried, _error = True, "; ".join(errors)
@@ -262,41 +262,52 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
     return T, J, bad
 
 
-def lm_steps(model: NativeModel, u: Tensor, pd: Tensor, cols: tuple[Tensor, Tensor, Tensor] | None,
-             sqrt_w: Tensor, c: Tensor, h: Tensor, bounded: Tensor, *, damping2: float, error_damping: float,
+class LMProblem:
+    """The fixed inputs of :func:`lm_steps` for one solve, converted once: the packed chain, the targets
+    ``pd (3K, N)`` and rotation columns ``(x, y, z)`` (each ``(3K, N)``, or None: position only), the row
+    weights ``sqrt_w`` and the joint map q = c + h sin(u) on ``bounded`` joints (``(n,)`` each), in the
+    working dtype."""
+
+    def __init__(self, model: NativeModel, pd: Tensor, cols, sqrt_w: Tensor, c: Tensor, h: Tensor,
+                 bounded: Tensor):
+        dtype = pd.dtype
+        self.model, self.dtype, self.N = model, dtype, pd.shape[1]
+        self.targets = [pd.contiguous(), *((None,) * 3 if cols is None else (t.contiguous() for t in cols))]
+        self.vectors = [t.reshape(-1).to(dtype).contiguous() for t in (sqrt_w, c, h)]
+        self.bounded = bounded.reshape(-1).to(torch.uint8).contiguous()
+        self.fn = _lib.dk_lm_f64 if dtype == torch.float64 else _lib.dk_lm_f32
+        self.pointers = (*(None if t is None else t.data_ptr() for t in self.targets),
+                         *(t.data_ptr() for t in self.vectors), self.bounded.data_ptr())
+
+
+def lm_steps(problem: LMProblem, u: Tensor, tidx: Tensor, *, damping2: float, error_damping: float,
              tolerances: tuple[float, float], margin: float, iterations: int,
              threads: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """``iterations`` steps of :func:`diffkin.ik.solve`'s Levenberg–Marquardt iteration on m rows, batch last.
 
-    ``u (n, m)``: the solver's variables, q = c + h sin(u) on ``bounded`` joints (``c, h, bounded`` ``(n,)``);
-    ``pd (3K, m)`` target positions and ``cols`` the target rotation columns ``(x, y, z)``, each ``(3K, m)``,
-    or None (position only); ``sqrt_w (6K,)`` / ``(3K,)`` row weights. Per step: the pose error (3.78) and
-    rotation-vector error (the ``"rotvec"`` form of :func:`~diffkin.kernels.pose_error.orientation_error`),
-    λ = damping2 + error_damping ‖e_w‖², the damped least-squares step (3.59) on the weighted Jacobian,
-    applied where not converged (max ‖e_p‖ ≤ tol_p · margin and max θ ≤ tol_o · margin).
+    ``u (n, m)``: the solver's variables of rows aiming at targets ``tidx (m,)`` of ``problem``. Per step:
+    the pose error (3.78) and rotation-vector error (the ``"rotvec"`` form of
+    :func:`~diffkin.kernels.pose_error.orientation_error`), λ = damping2 + error_damping ‖e_w‖², the damped
+    least-squares step (3.59) on the weighted Jacobian, applied where not converged (max ‖e_p‖ ≤ tol_p ·
+    margin and max θ ≤ tol_o · margin).
 
     Returns ``(u after the steps, u of the last evaluation, converged (m,) bool, merit (m,))`` with merit =
-    max(‖e_p‖ / tol_p, θ / tol_o) at the last evaluation, all as :meth:`diffkin.ik._lm._Run.steps` returns.
+    max(‖e_p‖ / tol_p, θ / tol_o) at the last evaluation, as :meth:`diffkin.ik._lm._Run.steps` returns.
     """
-    dtype = u.dtype
     m = u.shape[1]
-    u_new = u.contiguous().clone()
+    u_new = u.clone(memory_format=torch.contiguous_format)
     u_eval = torch.empty_like(u_new)
-    conv = torch.empty(m, dtype=torch.uint8)
-    merit = torch.empty(m, dtype=dtype)
-    pd = pd.contiguous()
-    x, y, z = (None, None, None) if cols is None else (t.contiguous() for t in cols)
-    vec = [t.to(dtype).contiguous() for t in (sqrt_w.reshape(-1), c.reshape(-1), h.reshape(-1))]
-    flags = bounded.reshape(-1).to(torch.uint8).contiguous()
-    fn = _lib.dk_lm_f64 if dtype == torch.float64 else _lib.dk_lm_f32
+    conv = torch.empty(m, dtype=torch.bool)
+    merit = torch.empty(m, dtype=problem.dtype)
+    tidx = tidx.contiguous()
     tp, to = tolerances
-    rc = fn(model.ints.data_ptr(), model.reals[dtype].data_ptr(), m, iterations, u_new.data_ptr(),
-            u_eval.data_ptr(), pd.data_ptr(), *(None if t is None else t.data_ptr() for t in (x, y, z)),
-            *(t.data_ptr() for t in vec), flags.data_ptr(), damping2, error_damping, tp, to, margin,
-            conv.data_ptr(), merit.data_ptr(), threads or thread_count(m))
+    rc = problem.fn(problem.model.ints.data_ptr(), problem.model.reals[problem.dtype].data_ptr(), m,
+                    iterations, u_new.data_ptr(), u_eval.data_ptr(), tidx.data_ptr(), problem.N,
+                    *problem.pointers, damping2, error_damping, tp, to, margin, conv.data_ptr(),
+                    merit.data_ptr(), threads or thread_count(m))
     if rc < 0:
         raise MemoryError("the native kernel could not allocate its per-thread work space")
-    return u_new, u_eval, conv.bool(), merit
+    return u_new, u_eval, conv, merit
 
 
 def _main() -> int:
