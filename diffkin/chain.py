@@ -10,11 +10,16 @@ say what their parameters are and how they map to those transforms (:meth:`Kinem
 Base and tool are learnable too: T_base = T_base,nominal · Δ(``base_delta``), T_tool = T_tool,nominal ·
 Δ(``tool_delta``), with Δ a pose correction that stays rigid for any value (both deltas start at zero).
 
-Two evaluations of the product (the choice is by batch size only, both differentiable):
+Three evaluations of the product:
 
-* batches above :attr:`KinematicChain.small_batch`: batch last, joint after joint on the four columns of the
-  current frame (few fused multiply-adds per joint, no 4×4 matmul);
+* CPU calls that need no gradient (``torch.no_grad()``, or neither ``q`` nor a parameter requires grad): the
+  fused C pass of :mod:`diffkin.kernels.native` (FK and Jacobian together, any batch size);
+* otherwise, batches above :attr:`KinematicChain.small_batch`: batch last, joint after joint on the four
+  columns of the current frame (few fused multiply-adds per joint, no 4×4 matmul);
 * small batches: batch first, all link matrices at once, then one matmul per joint (fewer operations).
+
+The last two are differentiable and traceable (``torch.compile``, ``torch.func``); all three compute the same
+numbers to rounding. Under ``torch.autocast`` the kinematics run in the chain's dtype.
 
 When no gradient w.r.t. geometry is needed (``torch.no_grad()`` or ``chain.requires_grad_(False)``) the
 fixed transforms are evaluated once in float64 and used as Python constants whose zero terms are skipped

@@ -21,6 +21,9 @@ from .robot import Robot, RobotConfig
 __all__ = ["Task", "TaskEnv", "check_action", "to_numpy"]  # check_reset_options: the envs' own
 
 
+_FLOAT_ARRAYS = (np.dtype(np.float32), np.dtype(np.float64))
+
+
 def check_action(action, shape: tuple[int, ...], name: str = "action", dtype=torch.float32,
                  device="cpu") -> Tensor:
     """An action by the rule of :mod:`diffkin.validation`, as a tensor of the env's ``dtype`` and ``device``.
@@ -31,6 +34,9 @@ def check_action(action, shape: tuple[int, ...], name: str = "action", dtype=tor
     other than ``shape`` ``ShapeError``; NaN or inf ``NonFiniteError`` (all ``ValueError`` subclasses).
     Values out of the action space's bounds are the task's to clip.
     """
+    if type(action) is np.ndarray and action.dtype in _FLOAT_ARRAYS and action.shape == tuple(shape) \
+            and np.isfinite(action).all():  # the Gymnasium case, validated in numpy: no tensor round trip
+        return torch.from_numpy(action).to(dtype=dtype, device=device, copy=True)
     (a,) = tensors((name, action, None), finite=False)
     if tuple(a.shape) != tuple(shape):
         raise ShapeError(f"expected {name} of shape {tuple(shape)}, got {shape_str(a.shape)}")
@@ -172,7 +178,7 @@ class TaskEnv(gym.Env):
             self._state["key"][0] = key_from_generator(self.np_random)
         self.task.reset_rows(self._state)
         obs = self.task.observe(self._state)
-        self._trace = [self._ee()]
+        self._trace = [self._ee()] if self.render_mode else []  # the drawn trace: only when rendering
         return to_numpy(obs), {}
 
     def step(self, action):
@@ -181,7 +187,8 @@ class TaskEnv(gym.Env):
         task = self.task
         a = check_action(action, self.action_space.shape, dtype=task.dtype, device=task.device)[None]
         obs, reward, terminated, truncated, info = self.task.step(self._state, a)
-        self._trace.append(self._ee())
+        if self.render_mode:
+            self._trace.append(self._ee())
         info = {k: v[0].item() for k, v in info.items()}
         return to_numpy(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
 

@@ -18,8 +18,12 @@ module             encodes
                    and summed over mimic followers; the parameter Jacobian (pose w.r.t. geometry)
 ``dls``            the damped least-squares solve (3.59)
 ``pose_error``     the pose / orientation error (§3.7.3)
+``native``         a second implementation, in C, of the hot path of the above for CPU calls without
+                   autograd: the tree product with the Jacobian, and the IK solver's Levenberg–Marquardt
+                   iteration (pose error, damped solve); tested for equality against the torch modules
 =================  ===========================================================================================
 
 The modules import only :mod:`torch`, :mod:`diffkin._numerics`, :mod:`diffkin.rotations`,
-:mod:`diffkin.transforms` and each other.
+:mod:`diffkin.transforms` and each other (``native`` also the standard library's ``ctypes`` and the C
+compiler, once).
 """
