@@ -180,16 +180,32 @@ class _Run:
             self._problem = native.LMProblem(packed, tg.pd, cols, self.sqrt_w, jm.c, jm.h, jm.bounded)
         return self._problem
 
+    def _idle_rounds(self, rows: _Rows) -> int:
+        """How many rounds from now the schedule would only count iterations: no row old enough for the
+        stall check or the iteration limit, and nothing for :meth:`top_up` to add (a row converging ends
+        the stretch early, see :func:`diffkin.kernels.native.lm_steps`)."""
+        cfg, m = self.cfg, rows.idx.numel()
+        if m < cfg.min_rows:
+            tgt = torch.unique(rows.idx)
+            if (cfg.min_rows - m) // tgt.numel() > 0 and bool((self.seeds[tgt] < self.num_seeds).any()):
+                return 0
+        limit = min(cfg.min_seed_iterations, self.max_iterations)
+        return max(int(((limit - 1 - rows.seed_it) // cfg.check_every).min()), 0)
+
     def steps(self, rows: _Rows):
         """``check_every`` LM steps (3.59) on all rows; converged rows are frozen. Returns the new u, the u
-        the last error was evaluated at, the convergence mask and the merit max(e_p / tol_p, e_o / tol_o)."""
+        the last error was evaluated at, the convergence mask, the merit max(e_p / tol_p, e_o / tol_o), the
+        number of rounds run ahead without a schedule (the fused path runs the rounds after which the
+        schedule would do nothing in one call) and the merit of the round before the last (None if none)."""
         cfg, (tp, to) = self.cfg, self.tol
         u = rows.u
         problem = self._native_problem(u)
         if problem is not None:  # the same steps fused into one C pass per row (kernels/native.py)
-            return native.lm_steps(problem, u, rows.idx, damping2=cfg.damping**2,
-                                   error_damping=cfg.error_damping, tolerances=(float(tp), float(to)),
-                                   margin=cfg.margin, iterations=cfg.check_every)
+            u, u_eval, conv, merit, rounds, prev = native.lm_steps(
+                problem, u, rows.idx, damping2=cfg.damping**2, error_damping=cfg.error_damping,
+                tolerances=(float(tp), float(to)), margin=cfg.margin, iterations=cfg.check_every,
+                max_rounds=1 + self._idle_rounds(rows))
+            return u, u_eval, conv, merit, rounds - 1, prev if rounds > 1 else None
         t = self.tg.take(rows.idx)
         for _ in range(cfg.check_every):
             J, e, pn, ang = _errors(self.kernel, u, self.jmap, t)
@@ -202,7 +218,7 @@ class _Run:
                 Jw = Jw * dqdu.unsqueeze(1)
             u_eval, u = u, u + dls_solve(Jw, e, lam, layout="batch_last") * (~conv)
         merit = pn / tp if self.tg.position_only else torch.maximum(pn / tp, ang / to)
-        return u, u_eval, conv, merit
+        return u, u_eval, conv, merit, 0, None
 
     def schedule(self, rows: _Rows, u_eval: Tensor, conv: Tensor, merit: Tensor) -> _Rows:
         """Harvest converged rows, re-seed or drop stalled ones, and top up the tail."""
@@ -263,9 +279,12 @@ def run_lm(kernel, jmap, tg, seeds_user, lib_u, nn_idx, N, cfg: LMConfig, genera
     run.seeds += max(S_user, 1)
     rows, rnd = _Rows.fresh(idx, u), 0
     while rows.idx.numel():
-        u, u_eval, conv, merit = run.steps(rows)
+        u, u_eval, conv, merit, ahead, prev = run.steps(rows)
+        if ahead:  # rounds whose schedule would only have counted: count them
+            run.iters.index_add_(0, rows.idx, torch.full_like(rows.idx, cfg.check_every * ahead))
+            rows = _Rows(rows.idx, rows.u, rows.seed_it + cfg.check_every * ahead, prev)
         rows = run.schedule(_Rows(rows.idx, u, rows.seed_it, rows.last), u_eval, conv, merit)
-        rnd += 1
+        rnd += 1 + ahead
         if progress:
             solved, m = int(run.done.sum()), rows.idx.numel()
             print(f"[diffkin.ik.solve] round {rnd}: {solved}/{N} solved, {m} rows", file=sys.stderr)

@@ -25,9 +25,20 @@
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
+#ifdef _OPENMP
+#include <omp.h>
+#endif
 
 #define W 16
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
+
+static int thread_id(void) {
+#ifdef _OPENMP
+    return omp_get_thread_num();
+#else
+    return 0;
+#endif
+}
 
 typedef struct {
     int J, K, n, has_base;
@@ -261,41 +272,39 @@ int64_t DK(dk_fk)(const int32_t *ip, const real *rp, const real *q, int64_t B, r
     DK(read_params)(&s, rp, &pp);
     const int K = s.K, n = s.n;
     const int64_t nblocks = (B + W - 1) / W;
-    int64_t bad = 0, failed = 0;
+    int64_t bad = 0;
     if (nthreads < 1 || B <= SERIAL_MAX) nthreads = 1;
-#pragma omp parallel num_threads(nthreads) reduction(+ : bad, failed) if (nthreads > 1)
+    const size_t per = DK(scratch_size)(&s) / sizeof(real);
+    real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads); /* before the team: no thread can fail */
+    if (!all) return -1;
+#pragma omp parallel num_threads(nthreads) reduction(+ : bad) if (nthreads > 1)
     {
-        real *buf = (real *)malloc(DK(scratch_size)(&s));
-        if (!buf) {
-            failed += 1;
-        } else {
-            DK(Scratch) sc;
-            DK(scratch_init)(&s, &pp, buf, &sc);
+        DK(Scratch) sc;
+        DK(scratch_init)(&s, &pp, all + per * (size_t)thread_id(), &sc);
 #pragma omp for schedule(dynamic, 8)
-            for (int64_t blk = 0; blk < nblocks; blk++) {
-                const int64_t b0 = blk * W;
-                const int nl = (int)(B - b0 < W ? B - b0 : W);
-                bad += DK(load_q)(&s, &sc, q, b0, nl);
-                DK(block)(&s, &pp, &sc, Jac != NULL);
-                for (int k = 0; k < K; k++) {
-                    const real *E = sc.ends + (size_t)k * 12 * W;
-                    for (int l = 0; l < nl; l++) {
-                        real *To = T + ((b0 + l) * K + k) * 16;
-                        for (int r = 0; r < 12; r++) To[r] = E[r * W + l];
-                        To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
-                    }
-                    if (!Jac) continue;
-                    const real *Jb = sc.Jb + (size_t)k * 6 * n * W;
-                    for (int l = 0; l < nl; l++) {
-                        real *Jo = Jac + ((b0 + l) * K + k) * 6 * (int64_t)n;
-                        for (int r = 0; r < 6 * n; r++) Jo[r] = Jb[(size_t)r * W + l];
-                    }
+        for (int64_t blk = 0; blk < nblocks; blk++) {
+            const int64_t b0 = blk * W;
+            const int nl = (int)(B - b0 < W ? B - b0 : W);
+            bad += DK(load_q)(&s, &sc, q, b0, nl);
+            DK(block)(&s, &pp, &sc, Jac != NULL);
+            for (int k = 0; k < K; k++) {
+                const real *E = sc.ends + (size_t)k * 12 * W;
+                for (int l = 0; l < nl; l++) {
+                    real *To = T + ((b0 + l) * K + k) * 16;
+                    for (int r = 0; r < 12; r++) To[r] = E[r * W + l];
+                    To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
+                }
+                if (!Jac) continue;
+                const real *Jb = sc.Jb + (size_t)k * 6 * n * W;
+                for (int l = 0; l < nl; l++) {
+                    real *Jo = Jac + ((b0 + l) * K + k) * 6 * (int64_t)n;
+                    for (int r = 0; r < 6 * n; r++) Jo[r] = Jb[(size_t)r * W + l];
                 }
             }
-            free(buf);
         }
     }
-    return failed ? -1 : bad;
+    free(all);
+    return bad;
 }
 
 /* Solve A x = b in place (x overwrites b) for symmetric positive definite A (d x d, row-major, overwritten
@@ -325,20 +334,21 @@ static void DK(spd_solve)(real *A, real *b, int d) {
     }
 }
 
-/* `iters` Levenberg-Marquardt steps (3.59) of diffkin.ik's solver on m rows, batch last (u (n, m) is
- * updated in place; u_eval gets the u of the last evaluation). Per row: q = c + h sin(u) on bounded joints;
- * e = [p_d - p_e; theta r] per end link (the rotation-vector error of kernels/pose_error.py), or e_p when
- * position_only (xd == NULL); converged when max |e_p| <= tp margin and max theta <= to margin; weighted
- * rows sqrt_w; lambda = damping2 + error_damping |e_w|^2; Delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the
- * n x n normal equations when the error has more rows than joints), J_w = diag(sqrt_w) J diag(dq/du);
- * u += Delta where not converged. conv and merit (max(e_p / tp, theta / to)) are those of the last
- * evaluation. Targets pd, xd, yd, zd are (3K, N); row b aims at target tidx[b]. Returns -1 when memory ran
- * out, else 0. */
-int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real *u, real *u_eval,
-                  const int64_t *tidx, int64_t N, const real *pd, const real *xd, const real *yd,
-                  const real *zd, const real *sqrt_w,
-                  const real *jc, const real *jh, const uint8_t *bounded, real damping2, real error_damping,
-                  real tp, real to, real margin, uint8_t *conv, real *merit, int nthreads) {
+/* Up to `max_rounds` rounds of `iters` Levenberg-Marquardt steps (3.59) of diffkin.ik's solver on m rows,
+ * batch last (u (n, m) is updated in place; u_eval gets the u of the last evaluation). Per row: q = c + h sin(u)
+ * on bounded joints; e = [p_d - p_e; theta r] per end link (the rotation-vector error of kernels/pose_error.py),
+ * or e_p when position_only (xd == NULL); converged when max |e_p| <= tp margin and max theta <= to margin;
+ * weighted rows sqrt_w; lambda = damping2 + error_damping |e_w|^2; Delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w
+ * (or the n x n normal equations when the error has more rows than joints), J_w = diag(sqrt_w) J
+ * diag(dq/du); u += Delta where not converged. conv and merit (max(e_p / tp, theta / to)) are those of the
+ * last evaluation, merit_prev the merit of the round before the last (when more than one ran). Rounds stop
+ * early after one in which a row converged (the caller schedules then). Targets pd, xd, yd, zd are (3K, N);
+ * row b aims at target tidx[b]. Returns the number of rounds run, or -1 when memory ran out. */
+int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, int max_rounds, real *u,
+                  real *u_eval, const int64_t *tidx, int64_t N, const real *pd, const real *xd, const real *yd,
+                  const real *zd, const real *sqrt_w, const real *jc, const real *jh, const uint8_t *bounded,
+                  real damping2, real error_damping, real tp, real to, real margin, uint8_t *conv, real *merit,
+                  real *merit_prev, int nthreads) {
     Shape s;
     read_shape(ip, &s);
     DK(Params) pp;
@@ -346,23 +356,25 @@ int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real 
     const int K = s.K, n = s.n, pos_only = xd == NULL, r = (pos_only ? 3 : 6) * K;
     const int d = r <= n ? r : n;
     const int64_t nblocks = (m + W - 1) / W;
-    int64_t failed = 0;
     if (nthreads < 1 || m <= SERIAL_MAX) nthreads = 1;
-#pragma omp parallel num_threads(nthreads) reduction(+ : failed) if (nthreads > 1)
+    const size_t base = DK(scratch_size)(&s) / sizeof(real);
+    const size_t per = base + (size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n;
+    real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads); /* before the team: no thread can fail */
+    if (!all) return -1;
+    int64_t rounds = 0;
+    int stop = 0;
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1)
     {
-        const size_t extra = sizeof(real) * ((size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n);
-        real *buf = (real *)malloc(DK(scratch_size)(&s) + extra);
-        if (!buf) {
-            failed += 1;
-        } else {
-            DK(Scratch) sc;
-            DK(scratch_init)(&s, &pp, buf, &sc);
-            real *dqdu = buf + DK(scratch_size)(&s) / sizeof(real); /* n x W */
-            real *Jw = dqdu + (size_t)n * W;                         /* r x n */
-            real *e = Jw + (size_t)r * n;                           /* r */
-            real *A = e + r;                                        /* d x d */
-            real *y = A + (size_t)d * d;                            /* d */
-            real *delta = y + d;                                    /* n */
+        real *buf = all + per * (size_t)thread_id();
+        DK(Scratch) sc;
+        DK(scratch_init)(&s, &pp, buf, &sc);
+        real *dqdu = buf + base;              /* n x W */
+        real *Jw = dqdu + (size_t)n * W;      /* r x n */
+        real *e = Jw + (size_t)r * n;         /* r */
+        real *A = e + r;                      /* d x d */
+        real *y = A + (size_t)d * d;          /* d */
+        real *delta = y + d;                  /* n */
+        for (int round = 0; round < max_rounds; round++) {
 #pragma omp for schedule(dynamic, 4)
             for (int64_t blk = 0; blk < nblocks; blk++) {
                 const int64_t b0 = blk * W;
@@ -421,6 +433,7 @@ int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real 
                         }
                         const int cv = pn <= tp * margin && ang <= to * margin;
                         if (it == iters - 1) {
+                            if (round > 0) merit_prev[b] = merit[b];
                             conv[b] = (uint8_t)cv;
                             merit[b] = pos_only ? pn / tp : (pn / tp > ang / to ? pn / tp : ang / to);
                         }
@@ -476,10 +489,18 @@ int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, real 
                     }
                 }
             }
-            free(buf);
+#pragma omp single
+            { /* after the round's barrier: go on only while no row converged */
+                rounds = round + 1;
+                int any = 0;
+                for (int64_t b = 0; b < m; b++) any |= conv[b];
+                stop = any || rounds == max_rounds;
+            }
+            if (stop) break;
         }
     }
-    return failed ? -1 : 0;
+    free(all);
+    return rounds;
 }
 
 #undef real

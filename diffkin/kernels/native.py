@@ -48,7 +48,7 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
-_OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ())  # tried in this order
+_OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
 _tried = False
@@ -126,8 +126,8 @@ def build() -> Path:
                 fn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, cint]
                 fn = getattr(lib, f"dk_lm_{suffix}")
                 fn.restype = i64
-                fn.argtypes = [ptr, ptr, i64, cint, ptr, ptr, ptr, i64, ptr, ptr, ptr, ptr, ptr, ptr, ptr,
-                               ptr, real, real, real, real, real, ptr, ptr, cint]
+                fn.argtypes = [ptr, ptr, i64, cint, cint, ptr, ptr, ptr, i64, ptr, ptr, ptr, ptr, ptr, ptr,
+                               ptr, ptr, real, real, real, real, real, ptr, ptr, ptr, cint]
             _lib, _tried, _error = lib, True, None
             return path
         _tried, _error = True, "; ".join(errors)
@@ -281,33 +281,36 @@ class LMProblem:
 
 
 def lm_steps(problem: LMProblem, u: Tensor, tidx: Tensor, *, damping2: float, error_damping: float,
-             tolerances: tuple[float, float], margin: float, iterations: int,
-             threads: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """``iterations`` steps of :func:`diffkin.ik.solve`'s Levenberg–Marquardt iteration on m rows, batch last.
+             tolerances: tuple[float, float], margin: float, iterations: int, max_rounds: int = 1,
+             threads: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, int, Tensor]:
+    """Rounds of ``iterations`` steps of :func:`diffkin.ik.solve`'s Levenberg–Marquardt iteration on m rows,
+    batch last.
 
     ``u (n, m)``: the solver's variables of rows aiming at targets ``tidx (m,)`` of ``problem``. Per step:
     the pose error (3.78) and rotation-vector error (the ``"rotvec"`` form of
     :func:`~diffkin.kernels.pose_error.orientation_error`), λ = damping2 + error_damping ‖e_w‖², the damped
     least-squares step (3.59) on the weighted Jacobian, applied where not converged (max ‖e_p‖ ≤ tol_p ·
-    margin and max θ ≤ tol_o · margin).
+    margin and max θ ≤ tol_o · margin). Up to ``max_rounds`` rounds run back to back, stopping after one in
+    which a row converged (the caller may only ask for rounds after which its schedule would do nothing).
 
-    Returns ``(u after the steps, u of the last evaluation, converged (m,) bool, merit (m,))`` with merit =
-    max(‖e_p‖ / tol_p, θ / tol_o) at the last evaluation, as :meth:`diffkin.ik._lm._Run.steps` returns.
+    Returns ``(u after the steps, u of the last evaluation, converged (m,) bool, merit (m,), rounds run,
+    merit of the round before the last (m,))`` with merit = max(‖e_p‖ / tol_p, θ / tol_o), the first four as
+    :meth:`diffkin.ik._lm._Run.steps` returns them.
     """
     m = u.shape[1]
     u_new = u.clone(memory_format=torch.contiguous_format)
     u_eval = torch.empty_like(u_new)
     conv = torch.empty(m, dtype=torch.bool)
-    merit = torch.empty(m, dtype=problem.dtype)
+    merit, merit_prev = torch.empty(2, m, dtype=problem.dtype).unbind(0)
     tidx = tidx.contiguous()
     tp, to = tolerances
-    rc = problem.fn(problem.model.ints.data_ptr(), problem.model.reals[problem.dtype].data_ptr(), m,
-                    iterations, u_new.data_ptr(), u_eval.data_ptr(), tidx.data_ptr(), problem.N,
-                    *problem.pointers, damping2, error_damping, tp, to, margin, conv.data_ptr(),
-                    merit.data_ptr(), threads or thread_count(m))
-    if rc < 0:
+    rounds = problem.fn(problem.model.ints.data_ptr(), problem.model.reals[problem.dtype].data_ptr(), m,
+                        iterations, max_rounds, u_new.data_ptr(), u_eval.data_ptr(), tidx.data_ptr(),
+                        problem.N, *problem.pointers, damping2, error_damping, tp, to, margin,
+                        conv.data_ptr(), merit.data_ptr(), merit_prev.data_ptr(), threads or thread_count(m))
+    if rounds < 0:
         raise MemoryError("the native kernel could not allocate its per-thread work space")
-    return u_new, u_eval, conv, merit
+    return u_new, u_eval, conv, merit, rounds, merit_prev
 
 
 def _main() -> int:
