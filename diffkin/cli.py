@@ -892,14 +892,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("bench", "benchmarks against pytorch-kinematics and others (prints ratios)")
     p.add_argument(
-        "which", nargs="?", default="all", choices=["fk", "jacobian", "ik", "env", "calibration", "all"],
-        help="which suite",
+        "which", nargs="?", default="all",
+        choices=["fk", "jacobian", "ik", "env", "calibration", "model", "kernels", "all"],
+        help="which suite (kernels: the performance targets, latency and busy-core runs)",
     )
     p.add_argument("--quick", action="store_true", help="small sizes")
     p.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to run")
     p.set_defaults(func=cmd_bench)
 
-    p = add("demo", "the tour: IK, calibration, CLIK, RL; report in runs/")
+    p = add("demo", "the tour: fused kernels, IK, calibration, CLIK, RL; report in runs/")
     p.add_argument("--quick", action="store_true", help="small sizes (under a minute)")
     p.add_argument("--output", metavar="DIR", help="report directory (default runs/demo-<time>)")
     p.add_argument("--out", dest="output", action=_Deprecated, new="--output")
