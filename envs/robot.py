@@ -118,8 +118,26 @@ class Robot:
         return self.chain.forward_kinematics(q, all_frames=True, check=False)[..., :3, 3]
 
     def normalize_q(self, q: Tensor) -> Tensor:
-        """Joint positions mapped to [-1, 1] by the limits."""
-        return 2.0 * (q - self.lower) / (self.upper - self.lower) - 1.0
+        """Joint positions mapped to [-1, 1] by the limits: 2 (q − lower) / (upper − lower) − 1, one
+        multiply-add with the scale and shift computed once (an env step is a few dozen small ops)."""
+        scale, shift = self._per_row(q, "affine")
+        return torch.addcmul(shift, q, scale)
+
+    def _per_row(self, q: Tensor, what: str) -> tuple[Tensor, Tensor]:
+        """``(lower, upper)`` or ``(scale, shift)`` of :meth:`normalize_q` as contiguous ``q``-shaped tensors,
+        made once per batch shape: an op broadcasting a ``(n,)`` row over ``(N, n)`` costs several times one
+        on equal shapes (a 7-wide inner loop does not vectorise)."""
+        cache = self.__dict__.setdefault("_rows", {})
+        key = (what, tuple(q.shape))
+        pair = cache.get(key)
+        if pair is None:
+            if what == "affine":
+                scale = 2.0 / (self.upper - self.lower)
+                row = (scale, -1.0 - self.lower * scale)
+            else:
+                row = (self.lower, self.upper)
+            pair = cache[key] = tuple(t.expand(q.shape).contiguous() for t in row)
+        return pair
 
     def sample_q(self, u: Tensor, spread: float = 1.0, around: Tensor | None = None) -> Tensor:
         """Joints from uniforms ``u (N, n)``: ``around + spread · (U(limits) − around)``, within limits."""
@@ -131,11 +149,10 @@ class Robot:
     def apply_action(self, q: Tensor, action: Tensor) -> Tensor:
         """Next joint state from ``q (N, n)`` and a clipped action ``(N, action_dim)`` in [-1, 1]."""
         if self.action_mode == "joint":
-            dq = action * self.step_limit
+            q = torch.add(q, action, alpha=self.step_limit)
         else:
-            dq = self.cartesian_delta(q, action * self.config.max_ee_step)
-        q = q + dq
-        return torch.maximum(torch.minimum(q, self.upper), self.lower)
+            q = q + self.cartesian_delta(q, action * self.config.max_ee_step)
+        return q.clamp_(*self._per_row(q, "limits"))  # q is a new tensor here
 
     def cartesian_delta(self, q: Tensor, dx: Tensor) -> Tensor:
         """Δq for an end-effector displacement ``dx (N, 3)`` by damped least squares, speed-limited."""
