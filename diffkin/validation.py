@@ -111,8 +111,9 @@ def check_finite(x: Tensor, name: str) -> Tensor:
         return x
     with torch.no_grad():
         # one cheap reduction: a finite sum means every entry is finite; an inf sum may be an overflow of
-        # large finite values (float32 at 1e30), so the exact elementwise test decides then
-        if bool(torch.isfinite(x.sum())) or bool(torch.isfinite(x).all()):
+        # large finite values (float32 at 1e30), so the exact elementwise test decides then. The sum is
+        # tested on the host: torch.isfinite of a 0-d tensor is four more operator calls.
+        if math.isfinite(x.sum().item()) or bool(torch.isfinite(x).all()):
             return x
         bad = int((~torch.isfinite(x)).sum())
     raise NonFiniteError(f"{name} contains NaN or inf ({bad} of {x.numel()} values); expected finite numbers")
