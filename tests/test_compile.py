@@ -96,3 +96,15 @@ def test_autocast_keeps_the_chain_dtype(fast_dtype, grad):
         assert T.dtype == J.dtype == axes.dtype == torch.float32
         torch.testing.assert_close(T, T_ref, atol=1e-6, rtol=0)
         torch.testing.assert_close(J, J_ref, atol=1e-6, rtol=0)
+
+
+@pytest.mark.slow
+def test_inductor_compiles_the_jacobian():
+    """The default backend (inductor: generated C++ on CPU) compiles FK + Jacobian into one graph, equal to
+    eager (the tests above use aot_eager to check for graph breaks quickly)."""
+    torch._dynamo.reset()
+    chain = models.load("panda", dtype=torch.float32)
+    q = chain.random_configuration((64,), generator=torch.Generator().manual_seed(4))
+    compiled = torch.compile(lambda x: geometric_jacobian(chain, x), fullgraph=True)
+    with torch.no_grad():
+        torch.testing.assert_close(compiled(q), geometric_jacobian(chain, q), atol=2e-6, rtol=0)
