@@ -18,24 +18,45 @@ from .core import Task, TaskEnv
 __all__ = ["ReachConfig", "ReachTask", "ReachEnv", "reach_reward"]
 
 
+_GOAL_SAMPLING = ("box", "joints")
+
+
 @dataclass(frozen=True)
 class ReachConfig:
-    """Task settings. ``goal_spread`` in [0, 1]: goal joints are ``home + goal_spread · (U(limits) − home)``
-    (1 = uniform over the joint limits, i.e. the whole reachable workspace)."""
+    """Task settings.
+
+    ``goal_sampling="box"`` (default): goals uniform in the axis-aligned cube of edge ``goal_range`` (m)
+    centred on ``goal_center`` (base frame, m; None = the end-effector position at ``home``), as panda-gym's
+    PandaReach (a 0.3 m cube); a planar arm's cube is flat (z = the centre's). ``goal_sampling="joints"``:
+    goals are the end-effector positions of ``home + goal_spread · (U(limits) − home)`` (``goal_spread`` in
+    [0, 1]; 1 = uniform over the joint limits, i.e. the whole reachable workspace).
+    """
 
     reward_type: str = "sparse"  # "sparse": -(d > threshold); "dense": -d
     distance_threshold: float = 0.05  # m
     episode_steps: int = 50
-    goal_spread: float = 1.0
+    goal_sampling: str = "box"
+    goal_center: tuple[float, float, float] | None = None  # m, base frame; None: p_ee(home)
+    goal_range: float = 0.3  # m, edge of the goal cube
+    goal_spread: float = 1.0  # goal_sampling="joints" only
     init_noise: float = 0.1  # rad, uniform noise on the home pose at reset
     terminate_on_success: bool = False
 
     def __post_init__(self):
         if self.reward_type not in ("sparse", "dense"):
             raise ConventionError(f"reward_type must be 'sparse' or 'dense', got {self.reward_type!r}")
+        if self.goal_sampling not in _GOAL_SAMPLING:
+            raise ConventionError(f"goal_sampling must be one of {_GOAL_SAMPLING}, got {self.goal_sampling!r}")
         check_setting(self.distance_threshold, "distance_threshold", low=0.0, strict_low=True)
         check_setting(self.episode_steps, "episode_steps", low=1, integer=True)
+        check_setting(self.goal_range, "goal_range", low=0.0)
         check_setting(self.goal_spread, "goal_spread", low=0.0, high=1.0)
+        if self.goal_center is not None:
+            c = self.goal_center
+            if not isinstance(c, tuple | list) or len(c) != 3:
+                raise ShapeError(f"expected goal_center as (x, y, z) in metres or None, got {c!r}")
+            for i, v in enumerate(c):
+                check_setting(v, f"goal_center[{i}]")
         check_setting(self.init_noise, "init_noise", low=0.0)
         if not isinstance(self.terminate_on_success, bool):
             raise DTypeError(f"expected terminate_on_success as a bool, got {self.terminate_on_success!r}")
@@ -71,7 +92,14 @@ class ReachTask(Task):
         super().__init__(**robot_kwargs)
         self.config = config or ReachConfig()
         self.max_steps = self.config.episode_steps
-        self.n_random = 2 * self.robot.n
+        self.n_random = self.robot.n + max(self.robot.n, 3)
+        c, r = self.config, self.robot
+        center = r.ee_position(r.home[None])[0] if c.goal_center is None else \
+            torch.tensor(c.goal_center, dtype=self.dtype, device=self.device)
+        half = torch.full((3,), c.goal_range / 2, dtype=self.dtype, device=self.device)
+        if r.planar:
+            half[2] = 0.0
+        self.goal_low, self.goal_high = center - half, center + half  # (3,) each, base frame
 
     def observation_space(self) -> gym.spaces.Dict:
         w, n = self.workspace, self.robot.n
@@ -86,7 +114,11 @@ class ReachTask(Task):
         r, n = self.robot, self.robot.n
         q0 = r.home + self.config.init_noise * (2.0 * u[:, :n] - 1.0)
         state["q"][idx] = r.chain.clamp_to_limits(q0)
-        state["goal"][idx] = r.ee_position(r.sample_q(u[:, n:], self.config.goal_spread))
+        if self.config.goal_sampling == "box":
+            state["goal"][idx] = self.goal_low + (self.goal_high - self.goal_low) * u[:, n:n + 3]
+        else:
+            q_goal = r.sample_q(u[:, n:2 * n], self.config.goal_spread)
+            state["goal"][idx] = r.ee_position(q_goal, self.geometry(state, idx))
 
     def _evaluate(self, state, ee):
         c = self.config

@@ -79,8 +79,9 @@ class TrackTask(Task):
         r, n, c = self.robot, self.robot.n, self.config
         q0 = r.chain.clamp_to_limits(r.home + c.init_noise * (2.0 * u[:, :n] - 1.0))
         state["q"][idx] = q0
-        p0 = r.ee_position(q0)
-        p1 = r.ee_position(r.sample_q(u[:, n:2 * n], c.line_spread, around=q0))
+        geo = self.geometry(state, idx)
+        p0 = r.ee_position(q0, geo)
+        p1 = r.ee_position(r.sample_q(u[:, n:2 * n], c.line_spread, around=q0), geo)
         d = p1 - p0
         length = torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp(min=1e-6)
         p1 = p0 + d * (c.max_line_length / length).clamp(max=1.0)
