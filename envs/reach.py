@@ -46,7 +46,8 @@ class ReachConfig:
         if self.reward_type not in ("sparse", "dense"):
             raise ConventionError(f"reward_type must be 'sparse' or 'dense', got {self.reward_type!r}")
         if self.goal_sampling not in _GOAL_SAMPLING:
-            raise ConventionError(f"goal_sampling must be one of {_GOAL_SAMPLING}, got {self.goal_sampling!r}")
+            raise ConventionError(f"goal_sampling must be one of {_GOAL_SAMPLING}, "
+                                  f"got {self.goal_sampling!r}")
         check_setting(self.distance_threshold, "distance_threshold", low=0.0, strict_low=True)
         check_setting(self.episode_steps, "episode_steps", low=1, integer=True)
         check_setting(self.goal_range, "goal_range", low=0.0)
@@ -145,8 +146,10 @@ class ReachEnv(TaskEnv):
 
     ## Description
     Kinematic reach with any diffkin chain (default the Franka Panda; no dynamics, no collisions): bring the
-    end effector within ``distance_threshold`` of a goal position. Goals are the end-effector positions of
-    random joint vectors within the limits, so every goal is reachable. Goal-conditioned (a ``Dict``
+    end effector within ``distance_threshold`` of a goal position. By default goals are uniform in a 0.3 m
+    cube around the end effector at the start pose (``goal_sampling="box"``, panda-gym's PandaReach
+    distribution); ``goal_sampling="joints"`` draws them as the end-effector positions of random joint
+    vectors within the limits (the whole workspace, every goal reachable). Goal-conditioned (a ``Dict``
     observation with ``achieved_goal`` / ``desired_goal`` and a vectorised :meth:`compute_reward`), so it
     works with stable-baselines3's ``HerReplayBuffer``; the batched version of the same task is
     ``TorchVectorEnv("diffkin/Reach-v0", N)``.
@@ -180,7 +183,22 @@ class ReachEnv(TaskEnv):
     ## Starting State
     ``q0 = home + init_noise · U(-1, 1)^n`` (0.1 rad), clamped to the limits; ``home`` is the Panda's
     "ready" pose (the UR5 and the planar arm have their own, other chains the middle of their limits).
-    The goal is ``p_ee(home + goal_spread · (U(limits) − home))`` (``goal_spread=1``: the whole workspace).
+    The goal (base frame, m): with ``goal_sampling="box"`` uniform in ``goal_center ± goal_range / 2`` per
+    axis (``goal_center`` default ``p_ee(home)``, ``goal_range`` 0.3 m; z fixed for the planar arm); with
+    ``goal_sampling="joints"`` ``p_ee(home + goal_spread · (U(limits) − home))`` (``goal_spread=1``: the
+    whole workspace).
+
+    PandaReach-v3 as here (``configs/tqc.yaml``): ``home=[0, 0.41, 0, -1.85, 0, 2.26, 0.79]`` (panda-gym's
+    neutral pose), ``init_noise=0``, ``goal_center=(0.6, 0, 0.255)`` (panda-gym's cube, centre (0, 0, 0.15)
+    in its world where the base sits at (-0.6, 0, 0), raised by the 0.105 m from diffkin's flange to
+    panda-gym's grasp point), ``max_joint_speed=0.5`` (0.05 rad per step).
+
+    Kinematic domain randomisation (``robot_config`` ``geometry_noise_length`` m / ``geometry_noise_angle``
+    rad, default 0): every episode of every env draws its own robot, the DH lengths (a, d) and angles
+    (alpha, theta) uniformly within that noise of nominal (seeded as the rest of the episode; the goal and
+    start pose of a seed are the same with and without it). The end effector (observation, reward, goals
+    drawn in joint space) is the FK of that robot; the Cartesian action's DLS step uses the nominal model,
+    as a controller that only knows the nominal robot would.
 
     ## Episode End
     Truncated after ``episode_steps`` steps (50). Terminated on success only with
@@ -192,8 +210,9 @@ class ReachEnv(TaskEnv):
     ```python
     gymnasium.make("diffkin/Reach-v0", robot="panda", action_mode="joint", render_mode=None,
                    robot_config=None, home=None, dtype=torch.float32, device="cpu",
-                   reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_spread=1.0,
-                   init_noise=0.1, terminate_on_success=False)
+                   reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_sampling="box",
+                   goal_center=None, goal_range=0.3, goal_spread=1.0, init_noise=0.1,
+                   terminate_on_success=False)
     ```
 
     * ``robot``: a model name of :func:`diffkin.models.load` (``"panda"``, ``"ur5"``, ``"three_link_planar"``,
@@ -201,14 +220,18 @@ class ReachEnv(TaskEnv):
     * ``action_mode``: ``"joint"`` or ``"cartesian"`` (above).
     * ``render_mode``: None or ``"rgb_array"`` (a matplotlib drawing of the arm, its trace and the goal).
     * ``robot_config``: :class:`~diffkin.envs.robot.RobotConfig` or a dict of its fields
-      (``max_joint_speed`` 1.5 rad/s, ``control_dt`` 0.1 s, ``max_ee_step`` 0.05 m, ``damping`` 0.05).
+      (``max_joint_speed`` 1.5 rad/s, ``control_dt`` 0.1 s, ``max_ee_step`` 0.05 m, ``damping`` 0.05,
+      ``geometry_noise_length`` 0 m, ``geometry_noise_angle`` 0 rad).
     * ``home``: the start pose ``(n,)`` (default above); ``dtype`` (float32 or float64) and ``device`` of
       the kinematics (observations are always float32 numpy).
     * the fields of :class:`ReachConfig`: ``reward_type``, ``distance_threshold`` (m), ``episode_steps``,
-      ``goal_spread`` in [0, 1], ``init_noise`` (rad), ``terminate_on_success``.
+      ``goal_sampling`` ("box" | "joints"), ``goal_center`` ((3,) m or None), ``goal_range`` (m),
+      ``goal_spread`` in [0, 1] (joints only), ``init_noise`` (rad), ``terminate_on_success``.
 
     ## Version History
-    * v0: initial version.
+    * v0: initial version. Goals were over the whole joint range; since issue 19 the default is the goal
+      cube (``goal_sampling="box"``), the old distribution is ``goal_sampling="joints"``; kinematic domain
+      randomisation added (off by default).
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

@@ -80,8 +80,8 @@ class RobotConfig:
     control_dt: float = 0.1  # s, one env step
     max_ee_step: float = 0.05  # m per step, Cartesian mode
     damping: float = 0.05  # λ of the damped least-squares step (m)
-    # kinematic domain randomisation: each episode's DH lengths (a, d) nominal + U(-1, 1) · geometry_noise_length
-    # (m) and angles (alpha, theta, beta) nominal + U(-1, 1) · geometry_noise_angle (rad); 0 = the nominal robot
+    # kinematic domain randomisation: an episode's DH lengths (a, d) are nominal + U(-1, 1) · this (m),
+    # its angles (alpha, theta, beta) nominal + U(-1, 1) · geometry_noise_angle (rad); 0: the nominal robot
     geometry_noise_length: float = 0.0
     geometry_noise_angle: float = 0.0
 
@@ -134,7 +134,8 @@ class Robot:
         self._geo = [(k, params[k].detach(), noise[k]) for k in (*_LENGTH_PARAMS, *_ANGLE_PARAMS)
                      if params.get(k) is not None]
         if cfg.randomized and not self._geo:
-            raise ModelError(f"geometry noise needs a DH chain (parameters {_LENGTH_PARAMS + _ANGLE_PARAMS}); "
+            raise ModelError("geometry noise needs a DH chain (parameters "
+                             f"{_LENGTH_PARAMS + _ANGLE_PARAMS}); "
                              f"{self.name!r} has {sorted(params)}")
         self.geometry_dim = sum(p.numel() for _, p, _ in self._geo) if cfg.randomized else 0
         self._fk = _EndPosition(self.chain)

@@ -178,9 +178,11 @@ class TrackEnv(TaskEnv):
 
     ``robot``, ``action_mode``, ``render_mode``, ``robot_config``, ``home``, ``dtype`` and ``device`` as for
     ``diffkin/Reach-v0``; the rest are the fields of :class:`TrackConfig` (lengths in m, noise in rad).
+    ``robot_config``'s ``geometry_noise_length`` / ``geometry_noise_angle`` randomise each episode's robot
+    as in ``diffkin/Reach-v0`` (the path starts at that robot's end effector).
 
     ## Version History
-    * v0: initial version.
+    * v0: initial version; kinematic domain randomisation added (off by default).
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

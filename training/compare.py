@@ -111,7 +111,8 @@ def comparison_table(result: dict) -> str:
         n = len(s["seeds"])
         lines.append(f"| `{s['entry']}` | {_pm(s['final'], 100, 1)} % | {_pm(s['steps_to_success_0.95'])} "
                      f"({s['seeds_reaching_0.95']}/{n}) | {_pm(s['time_to_success_0.95_s'])} | "
-                     f"{_pm(s['train_wall_s'])} | {_pm(s['train_steps_per_s'])} | {s['env_steps_per_s']:,.0f} |")
+                     f"{_pm(s['train_wall_s'])} | {_pm(s['train_steps_per_s'])} | "
+                     f"{s['env_steps_per_s']:,.0f} |")
     return "\n".join(lines) + "\n"
 
 

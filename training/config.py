@@ -35,8 +35,9 @@ class RunConfig:
     ``n_envs`` single envs in an SB3 ``DummyVecEnv``. ``her``: ``HerReplayBuffer`` kwargs
     (goal-conditioned envs, off-policy algorithms only). ``normalize_kwargs``: ``VecNormalize``'s keyword
     arguments when ``normalize``. ``env_id`` may be a panda-gym ID (``PandaReach-v3``, the ``panda``
-    extra): trained on SB3's ``DummyVecEnv``, evaluated on its own envs. ``eval_env_kwargs`` override ``env_kwargs`` for
-    evaluation (e.g. the sparse success metric while training on a dense reward). ``max_wall_seconds``
+    extra): trained on SB3's ``DummyVecEnv``, evaluated on its own envs. ``eval_env_kwargs`` override
+    ``env_kwargs`` for evaluation (e.g. the sparse success metric while training on a dense reward).
+    ``max_wall_seconds``
     stops training after that much wall-clock; ``stop_success`` once an evaluation reaches that success.
     """
 

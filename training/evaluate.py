@@ -20,7 +20,8 @@ import torch
 
 from diffkin.envs.vector import TorchVectorEnv
 
-__all__ = ["run_episodes", "run_vec_episodes", "scripted_policy", "model_policy", "load_run", "evaluate_run", "evaluate_and_save",
+__all__ = ["run_episodes", "run_vec_episodes", "scripted_policy", "model_policy", "load_run", "evaluate_run",
+           "evaluate_and_save",
            "main"]
 
 Policy = Callable[[object, TorchVectorEnv], object]

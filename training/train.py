@@ -38,7 +38,8 @@ from diffkin.training.config import RunConfig, load_config
 from diffkin.training.evaluate import model_policy, run_episodes, run_vec_episodes, scripted_policy
 from diffkin.training.sb3 import make_sb3_vec_env
 
-__all__ = ["ALGOS", "EVAL_SEED", "build_env", "make_eval_env", "build_model", "EvalCallback", "versions", "train",
+__all__ = ["ALGOS", "EVAL_SEED", "build_env", "make_eval_env", "build_model", "EvalCallback", "versions",
+           "train",
            "resolve_run", "summary_json", "main"]
 
 
@@ -63,8 +64,8 @@ def build_model(cfg: RunConfig, venv, tb_dir: str | None):
         std = kwargs.pop("action_noise_std")
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), std * np.ones(dim))
     policy = "MultiInputPolicy" if isinstance(venv.observation_space, gym.spaces.Dict) else "MlpPolicy"
-    return algo_class(cfg.algo)(policy, venv, seed=cfg.seed, device=cfg.device, tensorboard_log=tb_dir, verbose=0,
-                           **kwargs)
+    return algo_class(cfg.algo)(policy, venv, seed=cfg.seed, device=cfg.device, tensorboard_log=tb_dir,
+                                verbose=0, **kwargs)
 
 
 class EvalCallback(BaseCallback):
