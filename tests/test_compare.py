@@ -93,7 +93,7 @@ def test_tqc_config_is_one_algorithm_config_for_every_env():
     PandaReach (goal cube, threshold, episode length, neutral start, 0.05 rad or 0.05 m per step)."""
     path = ROOT / "configs" / "tqc.yaml"
     keys = ["PandaReach-v3", "PandaReach-v3:joints", "diffkin/Reach-v0", "diffkin/Reach-v0:cartesian",
-            "diffkin/Reach-v0:dr"]
+            "diffkin/Reach-v0:dr", "diffkin/Reach-v0:dr_large"]
     cfgs = {k: load_config(path, k) for k in keys}
     zoo = cfgs["PandaReach-v3"]
     assert zoo.algo == "tqc" and zoo.total_timesteps == 20000 and zoo.normalize

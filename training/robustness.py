@@ -30,7 +30,7 @@ def robustness(run_dirs, geometry_noise_length: float, geometry_noise_angle: flo
     noise = {"geometry_noise_length": geometry_noise_length, "geometry_noise_angle": geometry_noise_angle}
     out = {"robots": robots, "seed": seed, **noise, "runs": []}
     for run in run_dirs:
-        nominal = evaluate_run(run, robots, seed)
+        nominal = evaluate_run(run, robots, seed, robot_config=dict.fromkeys(noise, 0.0))  # a DR run too
         perturbed = evaluate_run(run, robots, seed, robot_config=noise)
         out["runs"].append({"run": str(run), "robot_config": perturbed["robot_config"],
                             "nominal": nominal["policy"], "perturbed": perturbed["policy"],
