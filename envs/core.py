@@ -85,6 +85,8 @@ class Task:
         z = torch.zeros(n, dtype=torch.int64, device=self.device)
         q = self.robot.home.expand(n, -1).clone()
         state = {"q": q, "t": z.clone(), "key": z.clone(), "episode": z.clone()}
+        if self.robot.geometry_dim:  # domain randomisation: each row's own DH parameters
+            state["geometry"] = self.robot.nominal_geometry(n)
         state.update(self._extra_state(n))
         return state
 
@@ -94,20 +96,33 @@ class Task:
     def reset_rows(self, state: dict[str, Tensor], idx: Tensor | None = None) -> None:
         """Start a new episode in rows ``idx`` (all rows if None), from the counter-based RNG of each row."""
         idx = torch.arange(state["q"].shape[0], device=self.device) if idx is None else idx
-        u = uniform(state["key"][idx], state["episode"][idx], self.n_random, dtype=self.dtype)
+        g = self.robot.geometry_dim
+        u = uniform(state["key"][idx], state["episode"][idx], self.n_random + g, dtype=self.dtype)
         state["episode"][idx] += 1
         state["t"][idx] = 0
-        self._sample(state, idx, u)
+        if g:  # the episode's robot first (the task's draws are the same numbers with or without it)
+            state["geometry"][idx] = self.robot.sample_geometry(u[:, self.n_random:])
+        self._sample(state, idx, u[:, :self.n_random])
+
+    def geometry(self, state: dict[str, Tensor], idx: Tensor | None = None) -> Tensor | None:
+        """The rows' DH parameters ``(M, geometry_dim)`` under domain randomisation, else None (nominal)."""
+        if "geometry" not in state:
+            return None
+        return state["geometry"] if idx is None else state["geometry"][idx]
+
+    def ee(self, state: dict[str, Tensor]) -> Tensor:
+        """End-effector positions ``(N, 3)`` of the state's rows, each on its episode's robot."""
+        return self.robot.ee_position(state["q"], self.geometry(state))
 
     def observe(self, state: dict[str, Tensor]):
-        return self._observe(state, self.robot.ee_position(state["q"]))
+        return self._observe(state, self.ee(state))
 
     def step(self, state: dict[str, Tensor], action: Tensor):
         """Advance all rows one control period; ``(obs, reward, terminated, truncated, info)`` tensors."""
         action = action.to(self.dtype).clamp(-1.0, 1.0)
         state["q"] = self.robot.apply_action(state["q"], action)
         state["t"] += 1
-        ee = self.robot.ee_position(state["q"])
+        ee = self.ee(state)
         reward, terminated, info = self._evaluate(state, ee)
         truncated = state["t"] >= self.max_steps
         return self._observe(state, ee), reward, terminated, truncated, info
@@ -193,7 +208,7 @@ class TaskEnv(gym.Env):
         return to_numpy(obs), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info
 
     def _ee(self) -> np.ndarray:
-        return self.robot.ee_position(self._state["q"])[0].detach().cpu().numpy().astype(np.float64)
+        return self.task.ee(self._state)[0].detach().cpu().numpy().astype(np.float64)
 
     def render(self):
         if self.render_mode != "rgb_array" or self._state is None:

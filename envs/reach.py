@@ -18,24 +18,46 @@ from .core import Task, TaskEnv
 __all__ = ["ReachConfig", "ReachTask", "ReachEnv", "reach_reward"]
 
 
+_GOAL_SAMPLING = ("box", "joints")
+
+
 @dataclass(frozen=True)
 class ReachConfig:
-    """Task settings. ``goal_spread`` in [0, 1]: goal joints are ``home + goal_spread · (U(limits) − home)``
-    (1 = uniform over the joint limits, i.e. the whole reachable workspace)."""
+    """Task settings.
+
+    ``goal_sampling="box"`` (default): goals uniform in the axis-aligned cube of edge ``goal_range`` (m)
+    centred on ``goal_center`` (base frame, m; None = the end-effector position at ``home``), as panda-gym's
+    PandaReach (a 0.3 m cube); a planar arm's cube is flat (z = the centre's). ``goal_sampling="joints"``:
+    goals are the end-effector positions of ``home + goal_spread · (U(limits) − home)`` (``goal_spread`` in
+    [0, 1]; 1 = uniform over the joint limits, i.e. the whole reachable workspace).
+    """
 
     reward_type: str = "sparse"  # "sparse": -(d > threshold); "dense": -d
     distance_threshold: float = 0.05  # m
     episode_steps: int = 50
-    goal_spread: float = 1.0
+    goal_sampling: str = "box"
+    goal_center: tuple[float, float, float] | None = None  # m, base frame; None: p_ee(home)
+    goal_range: float = 0.3  # m, edge of the goal cube
+    goal_spread: float = 1.0  # goal_sampling="joints" only
     init_noise: float = 0.1  # rad, uniform noise on the home pose at reset
     terminate_on_success: bool = False
 
     def __post_init__(self):
         if self.reward_type not in ("sparse", "dense"):
             raise ConventionError(f"reward_type must be 'sparse' or 'dense', got {self.reward_type!r}")
+        if self.goal_sampling not in _GOAL_SAMPLING:
+            raise ConventionError(f"goal_sampling must be one of {_GOAL_SAMPLING}, "
+                                  f"got {self.goal_sampling!r}")
         check_setting(self.distance_threshold, "distance_threshold", low=0.0, strict_low=True)
         check_setting(self.episode_steps, "episode_steps", low=1, integer=True)
+        check_setting(self.goal_range, "goal_range", low=0.0)
         check_setting(self.goal_spread, "goal_spread", low=0.0, high=1.0)
+        if self.goal_center is not None:
+            c = self.goal_center
+            if not isinstance(c, tuple | list) or len(c) != 3:
+                raise ShapeError(f"expected goal_center as (x, y, z) in metres or None, got {c!r}")
+            for i, v in enumerate(c):
+                check_setting(v, f"goal_center[{i}]")
         check_setting(self.init_noise, "init_noise", low=0.0)
         if not isinstance(self.terminate_on_success, bool):
             raise DTypeError(f"expected terminate_on_success as a bool, got {self.terminate_on_success!r}")
@@ -71,7 +93,14 @@ class ReachTask(Task):
         super().__init__(**robot_kwargs)
         self.config = config or ReachConfig()
         self.max_steps = self.config.episode_steps
-        self.n_random = 2 * self.robot.n
+        self.n_random = self.robot.n + max(self.robot.n, 3)
+        c, r = self.config, self.robot
+        center = r.ee_position(r.home[None])[0] if c.goal_center is None else \
+            torch.tensor(c.goal_center, dtype=self.dtype, device=self.device)
+        half = torch.full((3,), c.goal_range / 2, dtype=self.dtype, device=self.device)
+        if r.planar:
+            half[2] = 0.0
+        self.goal_low, self.goal_high = center - half, center + half  # (3,) each, base frame
 
     def observation_space(self) -> gym.spaces.Dict:
         w, n = self.workspace, self.robot.n
@@ -86,7 +115,11 @@ class ReachTask(Task):
         r, n = self.robot, self.robot.n
         q0 = r.home + self.config.init_noise * (2.0 * u[:, :n] - 1.0)
         state["q"][idx] = r.chain.clamp_to_limits(q0)
-        state["goal"][idx] = r.ee_position(r.sample_q(u[:, n:], self.config.goal_spread))
+        if self.config.goal_sampling == "box":
+            state["goal"][idx] = self.goal_low + (self.goal_high - self.goal_low) * u[:, n:n + 3]
+        else:
+            q_goal = r.sample_q(u[:, n:2 * n], self.config.goal_spread)
+            state["goal"][idx] = r.ee_position(q_goal, self.geometry(state, idx))
 
     def _evaluate(self, state, ee):
         c = self.config
@@ -113,8 +146,10 @@ class ReachEnv(TaskEnv):
 
     ## Description
     Kinematic reach with any diffkin chain (default the Franka Panda; no dynamics, no collisions): bring the
-    end effector within ``distance_threshold`` of a goal position. Goals are the end-effector positions of
-    random joint vectors within the limits, so every goal is reachable. Goal-conditioned (a ``Dict``
+    end effector within ``distance_threshold`` of a goal position. By default goals are uniform in a 0.3 m
+    cube around the end effector at the start pose (``goal_sampling="box"``, panda-gym's PandaReach
+    distribution); ``goal_sampling="joints"`` draws them as the end-effector positions of random joint
+    vectors within the limits (the whole workspace, every goal reachable). Goal-conditioned (a ``Dict``
     observation with ``achieved_goal`` / ``desired_goal`` and a vectorised :meth:`compute_reward`), so it
     works with stable-baselines3's ``HerReplayBuffer``; the batched version of the same task is
     ``TorchVectorEnv("diffkin/Reach-v0", N)``.
@@ -148,7 +183,22 @@ class ReachEnv(TaskEnv):
     ## Starting State
     ``q0 = home + init_noise · U(-1, 1)^n`` (0.1 rad), clamped to the limits; ``home`` is the Panda's
     "ready" pose (the UR5 and the planar arm have their own, other chains the middle of their limits).
-    The goal is ``p_ee(home + goal_spread · (U(limits) − home))`` (``goal_spread=1``: the whole workspace).
+    The goal (base frame, m): with ``goal_sampling="box"`` uniform in ``goal_center ± goal_range / 2`` per
+    axis (``goal_center`` default ``p_ee(home)``, ``goal_range`` 0.3 m; z fixed for the planar arm); with
+    ``goal_sampling="joints"`` ``p_ee(home + goal_spread · (U(limits) − home))`` (``goal_spread=1``: the
+    whole workspace).
+
+    PandaReach-v3 as here (``configs/tqc.yaml``): ``home=[0, 0.41, 0, -1.85, 0, 2.26, 0.79]`` (panda-gym's
+    neutral pose), ``init_noise=0``, ``goal_center=(0.6, 0, 0.255)`` (panda-gym's cube, centre (0, 0, 0.15)
+    in its world where the base sits at (-0.6, 0, 0), raised by the 0.105 m from diffkin's flange to
+    panda-gym's grasp point), ``max_joint_speed=0.5`` (0.05 rad per step).
+
+    Kinematic domain randomisation (``robot_config`` ``geometry_noise_length`` m / ``geometry_noise_angle``
+    rad, default 0): every episode of every env draws its own robot, the DH lengths (a, d) and angles
+    (alpha, theta) uniformly within that noise of nominal (seeded as the rest of the episode; the goal and
+    start pose of a seed are the same with and without it). The end effector (observation, reward, goals
+    drawn in joint space) is the FK of that robot; the Cartesian action's DLS step uses the nominal model,
+    as a controller that only knows the nominal robot would.
 
     ## Episode End
     Truncated after ``episode_steps`` steps (50). Terminated on success only with
@@ -160,8 +210,9 @@ class ReachEnv(TaskEnv):
     ```python
     gymnasium.make("diffkin/Reach-v0", robot="panda", action_mode="joint", render_mode=None,
                    robot_config=None, home=None, dtype=torch.float32, device="cpu",
-                   reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_spread=1.0,
-                   init_noise=0.1, terminate_on_success=False)
+                   reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_sampling="box",
+                   goal_center=None, goal_range=0.3, goal_spread=1.0, init_noise=0.1,
+                   terminate_on_success=False)
     ```
 
     * ``robot``: a model name of :func:`diffkin.models.load` (``"panda"``, ``"ur5"``, ``"three_link_planar"``,
@@ -169,14 +220,18 @@ class ReachEnv(TaskEnv):
     * ``action_mode``: ``"joint"`` or ``"cartesian"`` (above).
     * ``render_mode``: None or ``"rgb_array"`` (a matplotlib drawing of the arm, its trace and the goal).
     * ``robot_config``: :class:`~diffkin.envs.robot.RobotConfig` or a dict of its fields
-      (``max_joint_speed`` 1.5 rad/s, ``control_dt`` 0.1 s, ``max_ee_step`` 0.05 m, ``damping`` 0.05).
+      (``max_joint_speed`` 1.5 rad/s, ``control_dt`` 0.1 s, ``max_ee_step`` 0.05 m, ``damping`` 0.05,
+      ``geometry_noise_length`` 0 m, ``geometry_noise_angle`` 0 rad).
     * ``home``: the start pose ``(n,)`` (default above); ``dtype`` (float32 or float64) and ``device`` of
       the kinematics (observations are always float32 numpy).
     * the fields of :class:`ReachConfig`: ``reward_type``, ``distance_threshold`` (m), ``episode_steps``,
-      ``goal_spread`` in [0, 1], ``init_noise`` (rad), ``terminate_on_success``.
+      ``goal_sampling`` ("box" | "joints"), ``goal_center`` ((3,) m or None), ``goal_range`` (m),
+      ``goal_spread`` in [0, 1] (joints only), ``init_noise`` (rad), ``terminate_on_success``.
 
     ## Version History
-    * v0: initial version.
+    * v0: initial version. Goals were over the whole joint range; since issue 19 the default is the goal
+      cube (``goal_sampling="box"``), the old distribution is ``goal_sampling="joints"``; kinematic domain
+      randomisation added (off by default).
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

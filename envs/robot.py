@@ -15,7 +15,7 @@ import math
 from dataclasses import dataclass
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from diffkin.chain import DHChain, KinematicChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
@@ -26,6 +26,10 @@ from diffkin.validation import shape_str, tensors
 from ._checks import check_setting
 
 __all__ = ["Robot", "RobotConfig", "load_chain", "HOME"]
+
+# geometric parameters of a chain that domain randomisation perturbs, by unit (DHChain's names)
+_LENGTH_PARAMS = ("a", "d")
+_ANGLE_PARAMS = ("alpha", "theta", "beta")
 
 # A comfortable, non-singular start pose per model ("ready" pose for the Panda).
 HOME = {
@@ -76,10 +80,21 @@ class RobotConfig:
     control_dt: float = 0.1  # s, one env step
     max_ee_step: float = 0.05  # m per step, Cartesian mode
     damping: float = 0.05  # λ of the damped least-squares step (m)
+    # kinematic domain randomisation: an episode's DH lengths (a, d) are nominal + U(-1, 1) · this (m),
+    # its angles (alpha, theta, beta) nominal + U(-1, 1) · geometry_noise_angle (rad); 0: the nominal robot
+    geometry_noise_length: float = 0.0
+    geometry_noise_angle: float = 0.0
 
     def __post_init__(self):
         for name in ("max_joint_speed", "control_dt", "max_ee_step", "damping"):
             check_setting(getattr(self, name), name, low=0.0, strict_low=True)
+        for name in ("geometry_noise_length", "geometry_noise_angle"):
+            check_setting(getattr(self, name), name, low=0.0)
+
+    @property
+    def randomized(self) -> bool:
+        """Whether episodes draw their own geometry (a noise above 0)."""
+        return self.geometry_noise_length > 0.0 or self.geometry_noise_angle > 0.0
 
 
 class Robot:
@@ -107,11 +122,58 @@ class Robot:
         self.step_limit = self.config.max_joint_speed * self.config.control_dt
         self.revolute = self.chain.revolute_mask.to(torch.bool)
         self.planar = self.name == "three_link_planar"
+        self._init_geometry()
+
+    # ------------------------------------------------------------------------- domain randomisation
+    def _init_geometry(self) -> None:
+        """The perturbed parameters (name, nominal, noise) and their flat size ``geometry_dim``."""
+        cfg = self.config
+        params = dict(self.chain.named_parameters())
+        noise = {**dict.fromkeys(_LENGTH_PARAMS, cfg.geometry_noise_length),
+                 **dict.fromkeys(_ANGLE_PARAMS, cfg.geometry_noise_angle)}
+        self._geo = [(k, params[k].detach(), noise[k]) for k in (*_LENGTH_PARAMS, *_ANGLE_PARAMS)
+                     if params.get(k) is not None]
+        if cfg.randomized and not self._geo:
+            raise ModelError("geometry noise needs a DH chain (parameters "
+                             f"{_LENGTH_PARAMS + _ANGLE_PARAMS}); "
+                             f"{self.name!r} has {sorted(params)}")
+        self.geometry_dim = sum(p.numel() for _, p, _ in self._geo) if cfg.randomized else 0
+        self._fk = _EndPosition(self.chain)
+
+    def nominal_geometry(self, n: int) -> Tensor:
+        """The nominal perturbed parameters, flat, ``(n, geometry_dim)``."""
+        flat = torch.cat([p.reshape(-1) for _, p, _ in self._geo]) if self.geometry_dim else \
+            torch.zeros(0, dtype=self.dtype, device=self.device)
+        return flat.expand(n, -1).clone()
+
+    def sample_geometry(self, u: Tensor) -> Tensor:
+        """Perturbed parameters ``(M, geometry_dim)`` from uniforms ``u (M, geometry_dim)``: nominal +
+        ``(2u − 1) · noise`` (the length noise on a, d; the angle noise on alpha, theta, beta)."""
+        scale = torch.cat([torch.full((p.numel(),), s, dtype=self.dtype, device=self.device)
+                           for _, p, s in self._geo])
+        return self.nominal_geometry(u.shape[0]) + (2.0 * u - 1.0) * scale
+
+    def geometry_dict(self, flat: Tensor) -> dict[str, Tensor]:
+        """Flat parameters ``(..., geometry_dim)`` → ``{name: (..., *shape)}`` for ``functional_call``."""
+        out, i = {}, 0
+        for k, p, _ in self._geo:
+            out[k] = flat[..., i:i + p.numel()].reshape(*flat.shape[:-1], *p.shape)
+            i += p.numel()
+        return out
 
     # ------------------------------------------------------------------------------------ kinematics
-    def ee_position(self, q: Tensor) -> Tensor:
-        """End-effector position ``(N, 3)`` from ``q (N, n)`` (2.50)."""
-        return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
+    def ee_position(self, q: Tensor, geometry: Tensor | None = None) -> Tensor:
+        """End-effector position ``(N, 3)`` from ``q (N, n)`` (2.50); with ``geometry (N, geometry_dim)``
+        each row on its own robot: the one FK of the chain, ``torch.func.functional_call`` with that row's
+        parameters, vectorised by ``torch.func.vmap``."""
+        if geometry is None or geometry.shape[-1] == 0:
+            return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
+
+        def one(params: dict[str, Tensor], qi: Tensor) -> Tensor:
+            return torch.func.functional_call(self._fk, params, (qi[None],))[0]
+
+        params = {f"chain.{k}": v for k, v in self.geometry_dict(geometry).items()}
+        return torch.func.vmap(one)(params, q)
 
     def frames(self, q: Tensor) -> Tensor:
         """Origins of all frames ``(..., n + 1, 3)`` (for drawing)."""
@@ -159,6 +221,18 @@ class Robot:
         dq = _dls_position_delta(self.chain, q, dx, self.config.damping)
         scale = (dq.abs().amax(dim=-1, keepdim=True) / self.step_limit).clamp(min=1.0)
         return dq / scale
+
+
+class _EndPosition(nn.Module):
+    """``q ↦ p_ee`` of a chain as a module, so ``functional_call`` can swap the chain's parameters (its
+    ``forward`` would validate ``q``, which a ``vmap`` -ed call cannot)."""
+
+    def __init__(self, chain: KinematicChain):
+        super().__init__()
+        self.chain = chain
+
+    def forward(self, q: Tensor) -> Tensor:
+        return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
 
 
 def _dls_position_delta(chain: KinematicChain, q: Tensor, dx: Tensor, damping: float) -> Tensor:

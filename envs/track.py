@@ -79,8 +79,9 @@ class TrackTask(Task):
         r, n, c = self.robot, self.robot.n, self.config
         q0 = r.chain.clamp_to_limits(r.home + c.init_noise * (2.0 * u[:, :n] - 1.0))
         state["q"][idx] = q0
-        p0 = r.ee_position(q0)
-        p1 = r.ee_position(r.sample_q(u[:, n:2 * n], c.line_spread, around=q0))
+        geo = self.geometry(state, idx)
+        p0 = r.ee_position(q0, geo)
+        p1 = r.ee_position(r.sample_q(u[:, n:2 * n], c.line_spread, around=q0), geo)
         d = p1 - p0
         length = torch.linalg.vector_norm(d, dim=-1, keepdim=True).clamp(min=1e-6)
         p1 = p0 + d * (c.max_line_length / length).clamp(max=1.0)
@@ -177,9 +178,11 @@ class TrackEnv(TaskEnv):
 
     ``robot``, ``action_mode``, ``render_mode``, ``robot_config``, ``home``, ``dtype`` and ``device`` as for
     ``diffkin/Reach-v0``; the rest are the fields of :class:`TrackConfig` (lengths in m, noise in rad).
+    ``robot_config``'s ``geometry_noise_length`` / ``geometry_noise_angle`` randomise each episode's robot
+    as in ``diffkin/Reach-v0`` (the path starts at that robot's end effector).
 
     ## Version History
-    * v0: initial version.
+    * v0: initial version; kinematic domain randomisation added (off by default).
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

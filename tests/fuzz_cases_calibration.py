@@ -294,6 +294,8 @@ EXEMPT: dict[str, str] = {
     "diffkin.training.evaluate.run_episodes": "takes an env and a policy; the policy's actions go through "
                                       "TorchVectorEnv.step (fuzzed)",
     "diffkin.training.evaluate.scripted_policy": "reads the env's own state, no user input",
+    "diffkin.training.evaluate.run_vec_episodes": "takes an SB3 VecEnv and model; the actions are the "
+                                                  "model's and go through the env's own step",
     "diffkin.training.evaluate.model_policy": "wraps a trained SB3 model, no tensor input",
     "diffkin.training.evaluate.load_run": "reads a run directory",
     "diffkin.training.evaluate.evaluate_run": "reads a run directory",

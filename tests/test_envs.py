@@ -197,7 +197,11 @@ def test_reset_options_and_constructor_settings(env_id):
            dict(init_noise=-0.1), dict(robot_config=dict(control_dt=0.0)),
            dict(robot_config=dict(max_joint_speed=float("inf")))]
     if env_id == "diffkin/Reach-v0":
-        bad += [dict(distance_threshold=float("nan")), dict(distance_threshold=0.0), dict(goal_spread=1.5)]
+        bad += [dict(distance_threshold=float("nan")), dict(distance_threshold=0.0), dict(goal_spread=1.5),
+                dict(goal_sampling="sphere"), dict(goal_range=-0.1), dict(goal_range=float("inf")),
+                dict(goal_center=(0.5, 0.0)), dict(goal_center=(0.5, float("nan"), 0.2)),
+                dict(robot_config=dict(geometry_noise_length=-0.01)),
+                dict(robot_config=dict(geometry_noise_angle=float("nan")))]
     else:
         bad += [dict(radius_range=(0.2, 0.1)), dict(line_fraction=-0.5), dict(lookahead=-1)]
     for kwargs in bad:
@@ -241,3 +245,99 @@ def test_reach_reward_numpy_and_torch_agree_and_refuse_bad_goals():
         reach_reward(a, d[:4], "dense", 0.05)
     with pytest.raises(DTypeError, match="float32"):
         reach_reward(torch.from_numpy(a).float(), torch.from_numpy(d), "dense", 0.05)
+
+
+def test_goal_box_default_and_centre():
+    """Goals uniform in the cube of edge goal_range around goal_center (default: p_ee at home), base frame."""
+    env = ReachEnv()  # default: a 0.3 m cube around the end effector at the home pose
+    home_ee = env.robot.ee_position(env.robot.home[None])[0].numpy()
+    goals = np.array([env.reset(seed=s)[0]["desired_goal"] for s in range(200)])
+    assert np.all(np.abs(goals - home_ee) <= 0.15 + 1e-6)
+    assert np.all(goals.max(0) - goals.min(0) > 0.25)  # spread over the whole cube, each axis
+    env = ReachEnv(goal_center=(0.6, 0.0, 0.255), goal_range=0.1)
+    goals = np.array([env.reset(seed=s)[0]["desired_goal"] for s in range(50)])
+    assert np.all(np.abs(goals - [0.6, 0.0, 0.255]) <= 0.05 + 1e-6)
+    env = ReachEnv(goal_range=0.0, goal_center=[0.5, 0.1, 0.3])  # a list (YAML) works as a tuple
+    assert np.allclose(env.reset(seed=3)[0]["desired_goal"], [0.5, 0.1, 0.3], atol=1e-6)
+    planar = ReachEnv(robot="three_link_planar")
+    assert all(abs(planar.reset(seed=s)[0]["desired_goal"][2]) < 1e-6 for s in range(10))
+
+
+def test_goal_sampling_joints_keeps_the_old_distribution():
+    """goal_sampling="joints": goals are end-effector positions of random joints (goal_spread=0: home)."""
+    env = ReachEnv(goal_sampling="joints", goal_spread=0.0)
+    home_ee = env.robot.ee_position(env.robot.home[None])[0].numpy()
+    assert np.allclose(env.reset(seed=1)[0]["desired_goal"], home_ee, atol=1e-6)
+    wide = ReachEnv(goal_sampling="joints")
+    goals = np.array([wide.reset(seed=s)[0]["desired_goal"] for s in range(50)])
+    assert np.linalg.norm(goals - home_ee, axis=1).max() > 0.5  # the whole workspace, not a 0.3 m cube
+
+
+def _geometry(env):
+    return env.task.geometry(env._state)
+
+
+DR = dict(geometry_noise_length=0.02, geometry_noise_angle=0.04)
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_domain_randomisation_per_episode_seeded_nominal_at_zero(env_id):
+    env = gym.make(env_id, robot_config=DR).unwrapped
+    env.reset(seed=0)
+    g0 = _geometry(env).clone()
+    env.reset()
+    g1 = _geometry(env).clone()
+    assert g0.shape == (1, 28) and not torch.equal(g0, g1)  # a new robot every episode (Panda: 4 × 7 DH)
+    nominal = env.robot.nominal_geometry(1)
+    dev = (g0 - nominal)[0].reshape(4, 7)  # a, d, alpha, theta: lengths within 2 cm, angles within 0.04 rad
+    assert dev[:2].abs().max() <= 0.02 + 1e-6 and dev[2:].abs().max() <= 0.04 + 1e-6
+    assert dev[2:].abs().max() > 0.02  # the angles have their own (larger) noise
+    assert dev.abs().max() > 0.01
+    again = gym.make(env_id, robot_config=DR).unwrapped
+    again.reset(seed=0)
+    assert torch.equal(_geometry(again), g0)  # deterministic under seeding
+    # the end effector is the FK of the episode's robot, not of the nominal one
+    q = env._state["q"]
+    ee = env.task.ee(env._state)
+    assert torch.linalg.vector_norm(ee - env.robot.ee_position(q)) > 1e-3
+    chain = env.robot.chain.copy()
+    with torch.no_grad():
+        for k, v in env.robot.geometry_dict(env._state["geometry"][0]).items():
+            getattr(chain, k).copy_(v)
+    assert torch.allclose(ee[0], chain.forward_kinematics(q[0])[:3, 3], atol=1e-5)
+    # zero noise: no geometry in the state, nominal FK, the same episodes as without the option
+    plain = gym.make(env_id).unwrapped
+    zero = gym.make(env_id, robot_config=dict(geometry_noise_length=0.0)).unwrapped
+    a, b = plain.reset(seed=5)[0], zero.reset(seed=5)[0]
+    assert _geometry(zero) is None
+    for x, y in zip(_flat([a]), _flat([b])):
+        np.testing.assert_array_equal(x, y)
+    # with the noise, the same seed gives the same goal/path and start pose as the nominal env
+    rnd = gym.make(env_id, robot_config=DR).unwrapped
+    rnd.reset(seed=5)
+    assert torch.equal(rnd._state["q"], plain._state["q"])
+    if env_id == "diffkin/Reach-v0":
+        assert torch.equal(rnd._state["goal"], plain._state["goal"])
+
+
+def test_domain_randomisation_needs_dh_parameters():
+    from diffkin.errors import ModelError
+
+    chain = DHChain([0.4, 0.3], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], q_limits=[(-2.0, 2.0)] * 2, name="two")
+    env = ReachEnv(robot=chain, robot_config=DR)  # a DH chain of any size works
+    env.reset(seed=0)
+    assert _geometry(env).shape == (1, 8)
+
+    class Plain(torch.nn.Module):
+        pass
+
+    from diffkin.envs.robot import Robot
+
+    robot = Robot(chain)
+    robot.config = type(robot.config)(**DR)
+    robot.chain = chain  # a chain without DH names is refused with a typed error, not silently nominal
+    for name in ("a", "alpha", "d", "theta"):
+        delattr(chain, name)
+        chain.register_parameter(name, None)
+    with pytest.raises(ModelError, match="geometry noise"):
+        robot._init_geometry()

@@ -43,6 +43,9 @@ def test_the_core_needs_no_optional_package(tmp_path):
 @pytest.mark.parametrize(("code", "hide", "extra"), [
     ("import diffkin.envs", ["gymnasium"], "gym"),
     ("import diffkin.training.train", ["stable_baselines3"], "rl"),
+    ("from diffkin.training.algos import algo_class; algo_class('tqc')", ["sb3_contrib"], "contrib"),
+    ("from diffkin.training.algos import import_env_package; import_env_package('PandaReach-v3')",
+     ["panda_gym"], "panda"),
     ("""
      import torch
      from diffkin import calibration, models

@@ -35,7 +35,7 @@ def _small(cfg: RunConfig) -> RunConfig:
 
 
 def test_there_are_run_configs():
-    assert [p.name for p in ALGO_FILES] == ["ppo.yaml", "sac.yaml"]
+    assert [p.name for p in ALGO_FILES] == ["ppo.yaml", "sac.yaml", "tqc.yaml"]
     keys = {f"{p.stem} {e}" + (f":{v}" if v else "") for p, e, v in RUN_CONFIGS}
     assert {"sac diffkin/Reach-v0", "sac diffkin/Reach-v0:cartesian", "ppo diffkin/Reach-v0:cartesian",
             "ppo diffkin/Track-v0", "sac diffkin/Track-v0"} <= keys
@@ -103,7 +103,11 @@ def test_readme_maps_every_old_name_to_an_entry():
         load_config(ROOT / "configs" / file.strip().strip("`"), env.strip().strip("`"),
                     None if variant == "—" else variant)
         old.add(old_file.strip().split("`")[1].removesuffix(".yaml"))
-    assert results <= old, results - old
+    # results of the current configs are named by their entries (<algo>_<env name>[_<variant>]); the
+    # comparison runner and the robustness check write <algo>_comparison and dr_robustness
+    current = {load_config(p, e, v).name for p, e, v in RUN_CONFIGS}
+    current |= {"tqc_comparison", "dr_robustness", "dr_robustness_small"}
+    assert results <= old | current, results - old - current
 
 
 def test_unknown_config_key_is_an_error(tmp_path):
@@ -117,12 +121,17 @@ def test_unknown_config_key_is_an_error(tmp_path):
 
 @pytest.mark.parametrize("case", RUN_CONFIGS, ids=_id)
 def test_smoke_run_and_evaluate(case, tmp_path):
+    from diffkin.training.algos import is_diffkin_env
     from diffkin.training.evaluate import evaluate_run
     from diffkin.training.train import train
 
     threads = torch.get_num_threads()
     path, env, variant = case
     cfg = _small(load_config(path, env=env, variant=variant))
+    if cfg.algo == "tqc":
+        pytest.importorskip("sb3_contrib", reason="TQC needs the contrib extra")
+    if not is_diffkin_env(cfg.env_id):
+        pytest.importorskip("panda_gym", reason="panda-gym's IDs need the panda extra")
     res = train(cfg, tmp_path, progress_bar=False, log=lambda s: None)
     torch.set_num_threads(threads)
     for name in ("config.yaml", "meta.json", "model.zip", "results.json"):
@@ -132,6 +141,10 @@ def test_smoke_run_and_evaluate(case, tmp_path):
     assert load_config(tmp_path / "config.yaml") == cfg
     meta = json.loads((tmp_path / "meta.json").read_text())
     assert meta["seed"] == cfg.seed and "torch" in meta["versions"]
+    if not is_diffkin_env(cfg.env_id):  # panda-gym: evaluated on its own envs, no scripted baseline
+        assert res["scripted_ik"] is None and res["final"]["episodes"] == cfg.eval_episodes
+        assert 0.0 <= res["final"]["success_rate"] <= 1.0 and res["final"]["final_distance"] > 0.0
+        return
     key = "success_rate" if cfg.env_id == "diffkin/Reach-v0" else "tracking_error"
     # the saved run, evaluated again on the training's evaluation episodes, reproduces the recorded figures
     # (deterministic policy, same seeds): what results.json reports is what the saved model does
@@ -159,7 +172,7 @@ def test_run_episodes_rates_are_those_of_the_episodes(env_id):
 
     kw = dict(robot="three_link_planar", episode_steps=12)
     if env_id == "diffkin/Reach-v0":
-        kw.update(distance_threshold=0.02, init_noise=0.5)  # some envs fail within 12 steps
+        kw.update(distance_threshold=0.02, init_noise=0.5, goal_sampling="joints")  # some fail in 12 steps
     n, seed = 6, 123
     out = run_episodes(TorchVectorEnv(env_id, n, **kw), scripted_policy, seed=seed)
     venv = TorchVectorEnv(env_id, n, **kw)

@@ -137,3 +137,25 @@ def test_one_registry_serves_gymnasium_and_the_batched_env():
         assert type(env.unwrapped.task) is spec.task
     with pytest.raises(ValueError, match="unknown env id"):
         make_task("diffkin/Nope-v0")
+
+
+@pytest.mark.parametrize("env_id", ENV_IDS)
+def test_domain_randomisation_batched_equals_single(env_id):
+    """Per-env geometry in the batched env: different robots per env and per episode, env i equal to a
+    single env seeded s + i (robots, observations), autoreset draws a new robot."""
+    dr = dict(robot_config=dict(geometry_noise_length=0.02, geometry_noise_angle=0.04), episode_steps=3)
+    venv = TorchVectorEnv(env_id, 4, **dr)
+    obs, _ = venv.reset(seed=7)
+    geo = venv.state["geometry"].clone()
+    assert geo.shape == (4, 28) and len({tuple(r.tolist()) for r in geo}) == 4
+    for i in range(4):
+        single = gym.make(env_id, **dr).unwrapped
+        sobs, _ = single.reset(seed=7 + i)
+        assert torch.allclose(single._state["geometry"][0], geo[i])
+        _assert_close(sobs, _obs_rows(obs, i))
+    for _ in range(3):
+        obs, *_ = venv.step(torch.zeros(4, venv.single_action_space.shape[0]))
+    assert not torch.equal(venv.state["geometry"], geo)  # autoreset: new episodes, new robots
+    nominal = TorchVectorEnv(env_id, 4, robot_config=dict(geometry_noise_angle=0.0), episode_steps=3)
+    nominal.reset(seed=7)
+    assert "geometry" not in nominal.state

@@ -22,7 +22,7 @@ import yaml
 
 __all__ = ["RunConfig", "load_config", "read_entry", "entries"]
 
-_ALGOS = ("sac", "td3", "ppo")
+_ALGOS = ("sac", "td3", "ppo", "tqc")
 _SWEEP_SECTIONS = ("search_space", "tune")
 VARIANT_SEP = ":"
 
@@ -33,8 +33,11 @@ class RunConfig:
 
     ``vectorized``: train on the torch-batched env (``envs.vector``) with ``n_envs`` envs; else
     ``n_envs`` single envs in an SB3 ``DummyVecEnv``. ``her``: ``HerReplayBuffer`` kwargs
-    (goal-conditioned envs, off-policy algorithms only). ``eval_env_kwargs`` override ``env_kwargs`` for
-    evaluation (e.g. the sparse success metric while training on a dense reward). ``max_wall_seconds``
+    (goal-conditioned envs, off-policy algorithms only). ``normalize_kwargs``: ``VecNormalize``'s keyword
+    arguments when ``normalize``. ``env_id`` may be a panda-gym ID (``PandaReach-v3``, the ``panda``
+    extra): trained on SB3's ``DummyVecEnv``, evaluated on its own envs. ``eval_env_kwargs`` override
+    ``env_kwargs`` for evaluation (e.g. the sparse success metric while training on a dense reward).
+    ``max_wall_seconds``
     stops training after that much wall-clock; ``stop_success`` once an evaluation reaches that success.
     """
 
@@ -52,6 +55,7 @@ class RunConfig:
     algo_kwargs: dict = field(default_factory=dict)
     her: dict | None = None
     normalize: bool = False
+    normalize_kwargs: dict = field(default_factory=dict)  # VecNormalize's (rl-zoo: gamma = the algo's)
     eval_freq: int = 2000  # env steps between evaluations
     eval_episodes: int = 100
     max_wall_seconds: float | None = None
@@ -61,7 +65,7 @@ class RunConfig:
         if self.algo not in _ALGOS:
             raise ValueError(f"algo must be one of {_ALGOS}, got {self.algo!r}")
         if self.her is not None and self.algo == "ppo":
-            raise ValueError("HER needs an off-policy algorithm (sac or td3), got ppo")
+            raise ValueError("HER needs an off-policy algorithm (sac, td3 or tqc), got ppo")
 
     def replace(self, **changes) -> RunConfig:
         return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})

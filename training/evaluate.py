@@ -20,7 +20,8 @@ import torch
 
 from diffkin.envs.vector import TorchVectorEnv
 
-__all__ = ["run_episodes", "scripted_policy", "model_policy", "load_run", "evaluate_run", "evaluate_and_save",
+__all__ = ["run_episodes", "run_vec_episodes", "scripted_policy", "model_policy", "load_run", "evaluate_run",
+           "evaluate_and_save",
            "main"]
 
 Policy = Callable[[object, TorchVectorEnv], object]
@@ -56,11 +57,36 @@ def run_episodes(venv: TorchVectorEnv, policy: Policy, seed: int = 10_000) -> di
     return out
 
 
+def run_vec_episodes(venv, model, obs_normalizer=None, episodes: int = 100, seed: int = 10_000) -> dict:
+    """``episodes`` episodes of a deterministic SB3 ``model`` on an SB3 ``VecEnv`` of any Gymnasium env
+    (e.g. panda-gym's, which has no batched form): the first ``episodes`` episode ends count. Success is
+    ``info["is_success"]`` at the end; the final distance ``‖achieved_goal − desired_goal‖`` (m) of the
+    terminal observation where the env is goal-conditioned. ``venv`` is seeded with ``seed`` first."""
+    venv.seed(seed)
+    obs = venv.reset()
+    success: list[bool] = []
+    dist: list[float] = []
+    while len(success) < episodes:
+        inp = obs_normalizer.normalize_obs(obs) if obs_normalizer is not None else obs
+        action, _ = model.predict(inp, deterministic=True)
+        obs, _, done, infos = venv.step(action)
+        for i in np.flatnonzero(done):
+            info = infos[i]
+            success.append(bool(info.get("is_success", False)))
+            term = info.get("terminal_observation")
+            if isinstance(term, dict) and "achieved_goal" in term:
+                dist.append(float(np.linalg.norm(term["achieved_goal"] - term["desired_goal"])))
+    out = {"episodes": episodes, "success_rate": float(np.mean(success[:episodes]))}
+    if dist:
+        out["final_distance"] = float(np.mean(dist[:episodes]))
+    return out
+
+
 def scripted_policy(obs, venv: TorchVectorEnv) -> torch.Tensor:
     """Closed-loop IK with diffkin's damped-least-squares step, in the env's action space."""
     task, state = venv.task, venv.state
     robot = task.robot
-    ee = robot.ee_position(state["q"])
+    ee = task.ee(state)  # the episode's robot (domain randomisation); its DLS step uses the nominal model
     target = state["goal"] if "goal" in state else task.targets(state, offset=1)[:, 0]
     dx = target - ee
     if robot.action_mode == "cartesian":
@@ -84,7 +110,7 @@ def model_policy(model, obs_normalizer=None) -> Policy:
 
 def load_run(run_dir: str | Path):
     """(config, model, VecNormalize or None) of a finished run directory."""
-    from diffkin.training.algos import ALGOS
+    from diffkin.training.algos import algo_class
     from diffkin.training.config import load_config
 
     run_dir = Path(run_dir)
@@ -94,7 +120,7 @@ def load_run(run_dir: str | Path):
         from diffkin.training.sb3 import make_sb3_vec_env
 
         env = make_sb3_vec_env(cfg.env_id, 1, **cfg.env_kwargs)
-    model = ALGOS[cfg.algo].load(run_dir / "model.zip", env=env, device="cpu")
+    model = algo_class(cfg.algo).load(run_dir / "model.zip", env=env, device="cpu")
     norm = None
     if (run_dir / "vecnormalize.pkl").exists():
         import pickle
@@ -104,14 +130,21 @@ def load_run(run_dir: str | Path):
     return cfg, model, norm
 
 
-def evaluate_run(run_dir: str | Path, episodes: int = 200, seed: int = 20_000) -> dict:
-    """Policy vs scripted baseline on ``episodes`` identical episodes (same seeds)."""
+def evaluate_run(run_dir: str | Path, episodes: int = 200, seed: int = 20_000,
+                 robot_config: dict | None = None) -> dict:
+    """Policy vs scripted baseline on ``episodes`` identical episodes (same seeds). ``robot_config``
+    overrides fields of the run's :class:`~diffkin.envs.robot.RobotConfig`, e.g.
+    ``{"geometry_noise_length": 0.02, "geometry_noise_angle": 0.04}``: every episode on its own perturbed
+    robot (the goals and start poses of a seed are the same with and without the perturbation)."""
     cfg, model, norm = load_run(run_dir)
     kwargs = {**cfg.env_kwargs, **cfg.eval_env_kwargs}
+    if robot_config:
+        kwargs["robot_config"] = {**(kwargs.get("robot_config") or {}), **robot_config}
     venv = TorchVectorEnv(cfg.env_id, episodes, **kwargs)
     return {
         "run": str(run_dir),
         "env_id": cfg.env_id,
+        "robot_config": kwargs.get("robot_config"),
         "policy": run_episodes(venv, model_policy(model, norm), seed),
         "scripted_ik": run_episodes(venv, scripted_policy, seed),
     }

@@ -41,7 +41,7 @@ def summarize(name: str, runs: list[dict]) -> dict:
     out = {"name": name, "env_id": runs[0]["env_id"], "algo": runs[0]["algo"], "metric": key,
            "seeds": [r["seed"] for r in runs],
            "final": _mean_std(r["final"][key] for r in runs),
-           "scripted_ik": _mean_std(r["scripted_ik"][key] for r in runs),
+           "scripted_ik": _mean_std(r["scripted_ik"][key] for r in runs if r.get("scripted_ik")),
            "timesteps": _mean_std(r["timesteps"] for r in runs),
            "train_wall_s": _mean_std(r["train_wall_s"] for r in runs),
            "per_seed": [{"seed": r["seed"], key: r["final"][key], "timesteps": r["timesteps"],
@@ -51,7 +51,7 @@ def summarize(name: str, runs: list[dict]) -> dict:
     if key == "success_rate":
         out["steps_to_success_0.95"] = _mean_std(r.get("steps_to_success_0.95") for r in runs)
         out["time_to_success_0.95_s"] = _mean_std(r.get("time_to_success_0.95_s") for r in runs)
-        out["final_distance"] = _mean_std(r["final"]["final_distance"] for r in runs)
+        out["final_distance"] = _mean_std(r["final"].get("final_distance") for r in runs)
     return out
 
 
@@ -80,8 +80,9 @@ def plot_group(name: str, runs: list[dict], path: Path) -> None:
         mean, std = np.nanmean(ys, axis=0), np.nanstd(ys, axis=0)
         ax.plot(grid, mean, color="tab:blue", label=f"{runs[0]['algo'].upper()} (mean of {len(runs)} seeds)")
         ax.fill_between(grid, mean - std, mean + std, color="tab:blue", alpha=0.25, label="± std")
-        base = np.mean([r["scripted_ik"][key] for r in runs])
-        ax.axhline(base, color="tab:green", ls="--", label="scripted IK (upper bound)")
+        base = [r["scripted_ik"][key] for r in runs if r.get("scripted_ik")]  # none for panda-gym's envs
+        if base:
+            ax.axhline(np.mean(base), color="tab:green", ls="--", label="scripted IK (upper bound)")
         if key == "success_rate":
             ax.axhline(0.95, color="tab:red", ls=":", lw=1, label="95 %")
             ax.set_ylim(-0.02, 1.02)

@@ -115,11 +115,13 @@ def make_sb3_vec_env(
         action_mode: ``"joint"`` (joint velocities) or ``"cartesian"`` (end-effector displacements through
             a damped-least-squares step).
         robot_config: a :class:`~diffkin.envs.robot.RobotConfig` or a dict of its fields (``max_joint_speed``
-            rad/s, ``control_dt`` s, ``max_ee_step`` m, ``damping``).
+            rad/s, ``control_dt`` s, ``max_ee_step`` m, ``damping``, ``geometry_noise_length`` m and
+            ``geometry_noise_angle`` rad: each env's own robot per episode).
         home: the start pose ``(n,)``; default the model's own (the Panda's "ready" pose).
         dtype: ``torch.float32`` or ``torch.float64`` for the kinematics (observations are float32).
         **task_kwargs: the task's settings, the fields of :class:`~diffkin.envs.reach.ReachConfig`
-            (``reward_type`` "sparse" | "dense", ``distance_threshold`` m, ``episode_steps``, ``goal_spread``,
+            (``reward_type`` "sparse" | "dense", ``distance_threshold`` m, ``episode_steps``,
+            ``goal_sampling`` "box" | "joints", ``goal_center`` m, ``goal_range`` m, ``goal_spread``,
             ``init_noise`` rad, ``terminate_on_success``) or :class:`~diffkin.envs.track.TrackConfig`
             (``episode_steps``, ``lookahead``, ``line_fraction``, ``line_spread``, ``max_line_length``,
             ``radius_range``, ``init_noise``). Unknown names raise ``TypeError``.

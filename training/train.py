@@ -33,23 +33,25 @@ from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
 import diffkin.envs  # noqa: F401  (registers the IDs)
 from diffkin.envs.vector import TorchVectorEnv
-from diffkin.training.algos import ALGOS, EVAL_SEED
+from diffkin.training.algos import ALGOS, EVAL_SEED, algo_class, import_env_package, is_diffkin_env
 from diffkin.training.config import RunConfig, load_config
-from diffkin.training.evaluate import model_policy, run_episodes, scripted_policy
+from diffkin.training.evaluate import model_policy, run_episodes, run_vec_episodes, scripted_policy
 from diffkin.training.sb3 import make_sb3_vec_env
 
-__all__ = ["ALGOS", "EVAL_SEED", "build_env", "build_model", "EvalCallback", "versions", "train",
+__all__ = ["ALGOS", "EVAL_SEED", "build_env", "make_eval_env", "build_model", "EvalCallback", "versions",
+           "train",
            "resolve_run", "summary_json", "main"]
 
 
 def build_env(cfg: RunConfig):
+    import_env_package(cfg.env_id)
     if cfg.vectorized:
         venv = VecMonitor(make_sb3_vec_env(cfg.env_id, cfg.n_envs, device=cfg.device, **cfg.env_kwargs))
     else:
         venv = sb3_make_vec_env(cfg.env_id, n_envs=cfg.n_envs, seed=cfg.seed, env_kwargs=cfg.env_kwargs)
     venv.seed(cfg.seed)
     if cfg.normalize:
-        venv = VecNormalize(venv, norm_obs=True, norm_reward=True)
+        venv = VecNormalize(venv, **{"norm_obs": True, "norm_reward": True, **cfg.normalize_kwargs})
     return venv
 
 
@@ -62,14 +64,14 @@ def build_model(cfg: RunConfig, venv, tb_dir: str | None):
         std = kwargs.pop("action_noise_std")
         kwargs["action_noise"] = NormalActionNoise(np.zeros(dim), std * np.ones(dim))
     policy = "MultiInputPolicy" if isinstance(venv.observation_space, gym.spaces.Dict) else "MlpPolicy"
-    return ALGOS[cfg.algo](policy, venv, seed=cfg.seed, device=cfg.device, tensorboard_log=tb_dir, verbose=0,
-                           **kwargs)
+    return algo_class(cfg.algo)(policy, venv, seed=cfg.seed, device=cfg.device, tensorboard_log=tb_dir,
+                                verbose=0, **kwargs)
 
 
 class EvalCallback(BaseCallback):
     """Batched evaluation every ``eval_freq`` env steps; wall-clock and success-based stopping."""
 
-    def __init__(self, cfg: RunConfig, eval_env: TorchVectorEnv, start: float, log=print,
+    def __init__(self, cfg: RunConfig, eval_env, start: float, log=print,
                  out: Path | None = None, on_evaluate=None):
         super().__init__()
         self.cfg, self.eval_env, self.start, self.log, self.out = cfg, eval_env, start, log, out
@@ -77,10 +79,16 @@ class EvalCallback(BaseCallback):
         self.curve: list[dict] = []
         self.next_eval = cfg.eval_freq
         self.stop_reason = "total_timesteps"
+        self.eval_s = 0.0  # wall-clock spent in evaluations (part of the run's wall-clock)
 
     def evaluate(self) -> dict:
+        t0 = time.time()
         norm = self.model.get_vec_normalize_env()
-        res = run_episodes(self.eval_env, model_policy(self.model, norm), seed=EVAL_SEED)
+        if isinstance(self.eval_env, TorchVectorEnv):
+            res = run_episodes(self.eval_env, model_policy(self.model, norm), seed=EVAL_SEED)
+        else:  # an env without a batched form (panda-gym): SB3 VecEnv of single envs
+            res = run_vec_episodes(self.eval_env, self.model, norm, self.cfg.eval_episodes, EVAL_SEED)
+        self.eval_s += time.time() - t0
         point = {"timesteps": int(self.num_timesteps), "wall_s": round(time.time() - self.start, 2), **res}
         self.curve.append(point)
         if self.out is not None:  # partial curve, readable while the run is going
@@ -135,8 +143,8 @@ def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print, on_ev
         tb_dir = str(out / "tb")
     except ImportError:
         tb_dir = None
-    eval_env = TorchVectorEnv(cfg.env_id, cfg.eval_episodes, **{**cfg.env_kwargs, **cfg.eval_env_kwargs})
     venv = build_env(cfg)
+    eval_env = make_eval_env(cfg)
     model = build_model(cfg, venv, tb_dir)
     start = time.time()
     cb = EvalCallback(cfg, eval_env, start, log, out, on_evaluate)
@@ -144,6 +152,7 @@ def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print, on_ev
         model.learn(cfg.total_timesteps, callback=cb, progress_bar=progress_bar)
     except BaseException as exc:
         venv.close()  # a pruned or interrupted run leaves no env behind, and says why it stopped
+        eval_env.close()
         meta["stopped"] = f"{time.strftime('%Y-%m-%dT%H:%M:%S')} {type(exc).__name__}: {exc}"
         (out / "meta.json").write_text(json.dumps(meta, indent=2))
         raise
@@ -151,20 +160,33 @@ def train(cfg: RunConfig, out: Path, progress_bar: bool = True, log=print, on_ev
     if not cb.curve or cb.curve[-1]["timesteps"] != model.num_timesteps:
         cb.evaluate()
     final = {k: v for k, v in cb.curve[-1].items() if k != "wall_s"}
-    baseline = run_episodes(eval_env, scripted_policy, seed=EVAL_SEED)
+    baseline = run_episodes(eval_env, scripted_policy, seed=EVAL_SEED) if is_diffkin_env(cfg.env_id) else None
     model.save(out / "model.zip")
     if isinstance(venv, VecNormalize):
         (out / "vecnormalize.pkl").write_bytes(pickle.dumps(venv))
     first = next((p for p in cb.curve if p.get("success_rate", 0.0) >= 0.95), {})
     results = {"name": cfg.name, "env_id": cfg.env_id, "algo": cfg.algo, "seed": cfg.seed,
                "timesteps": int(model.num_timesteps), "train_wall_s": round(train_s, 1),
+               "eval_wall_s": round(cb.eval_s, 1),
+               "train_steps_per_s": round(model.num_timesteps / max(train_s - cb.eval_s, 1e-9), 1),
                "stop_reason": cb.stop_reason, "final": final, "scripted_ik": baseline, "curve": cb.curve,
                "time_to_success_0.95_s": first.get("wall_s"), "steps_to_success_0.95": first.get("timesteps")}
     (out / "results.json").write_text(json.dumps(results, indent=2))
     meta["finished"] = time.strftime("%Y-%m-%dT%H:%M:%S")
     (out / "meta.json").write_text(json.dumps(meta, indent=2))
     venv.close()
+    eval_env.close()
     return results
+
+
+def make_eval_env(cfg: RunConfig):
+    """The evaluation env of a run: ``eval_episodes`` diffkin envs as one ``TorchVectorEnv``, or for other
+    IDs (panda-gym) an SB3 ``DummyVecEnv`` of ``min(eval_episodes, 10)`` single envs."""
+    kwargs = {**cfg.env_kwargs, **cfg.eval_env_kwargs}
+    if is_diffkin_env(cfg.env_id):
+        return TorchVectorEnv(cfg.env_id, cfg.eval_episodes, **kwargs)
+    import_env_package(cfg.env_id)
+    return sb3_make_vec_env(cfg.env_id, n_envs=min(cfg.eval_episodes, 10), seed=EVAL_SEED, env_kwargs=kwargs)
 
 
 def resolve_run(config: str | Path, seed: int | None = None, total_timesteps: int | None = None,
