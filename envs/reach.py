@@ -125,8 +125,8 @@ class ReachTask(Task):
         c = self.config
         d = torch.linalg.vector_norm(ee - state["goal"], dim=-1)
         success = d < c.distance_threshold
-        reward = -d if c.reward_type == "dense" else -(~success).to(self.dtype)
-        terminated = success & c.terminate_on_success
+        reward = -d if c.reward_type == "dense" else success.to(self.dtype) - 1.0  # 0 on success, else -1
+        terminated = success.clone() if c.terminate_on_success else torch.zeros_like(success)
         return reward, terminated, {"is_success": success, "distance": d}
 
     def _observe(self, state, ee):
