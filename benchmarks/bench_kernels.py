@@ -1,7 +1,7 @@
 """The kernel performance targets (issue 18), measured in one run against pytorch-kinematics where it has a
 counterpart, on an idle machine and with another process holding one core.
 
-    python -m benchmarks.bench_kernels [--quick] [--no-busy] [--json out.json]
+    python -m benchmarks.bench_kernels [--quick] [--no-busy] [--parts fk latency env busy] [--json out.json]
 
 Rows (Panda, CPU, medians of timed blocks; see :mod:`benchmarks.common`):
 
@@ -37,6 +37,7 @@ from diffkin.envs.vector import TorchVectorEnv
 __all__ = ["run", "main", "busy_core"]
 
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
+PARTS = ("fk", "latency", "env", "busy")
 
 
 @contextlib.contextmanager
@@ -196,13 +197,19 @@ def run(args=None) -> list[dict]:
     quick = getattr(args, "quick", False)
     timing = QUICK if quick else FULL
     B = 20_000 if quick else 100_000
+    parts = set(getattr(args, "parts", None) or PARTS)
+    if getattr(args, "no_busy", False):
+        parts.discard("busy")
     rows = []
-    for threads in (1, 2):
-        rows += _fk_rows(B, threads, timing, with_pk=True)
-    rows += _latency_rows(timing, quick)
-    for threads in (1, 2):
-        rows += _env_rows(4096, threads, timing)
-    if not getattr(args, "no_busy", False):
+    if "fk" in parts:
+        for threads in (1, 2):
+            rows += _fk_rows(B, threads, timing, with_pk=True)
+    if "latency" in parts:
+        rows += _latency_rows(timing, quick)
+    if "env" in parts:
+        for threads in (1, 2):
+            rows += _env_rows(4096, threads, timing)
+    if "busy" in parts:
         rows += _busy_rows(timing, quick)
     return rows
 
@@ -211,6 +218,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="smaller batches, short timing blocks")
     p.add_argument("--no-busy", action="store_true", help="skip the runs beside a busy core")
+    p.add_argument("--parts", nargs="+", choices=PARTS, default=None, help="run only these (default all)")
     p.add_argument("--json", default=None, help="write the rows to this JSON file")
     return p.parse_args(argv)
 

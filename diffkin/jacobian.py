@@ -167,6 +167,8 @@ def forward_kinematics_and_jacobian(
     See :func:`geometric_jacobian` for the options. ``T`` is always the end-effector (tool) pose in the base
     frame, whatever ``point``/``frame`` say.
     """
+    if frame is None and point is None:  # the plain call: the chain checks q itself (the same rule)
+        return chain.fk_jacobian(q, check=check)
     q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
     T_ee, J = chain.fk_jacobian(q, check=False)
     r = _point_offset(point, point_frame, T_ee)
