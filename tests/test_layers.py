@@ -72,7 +72,8 @@ def _dotted(node: ast.AST) -> str:
 
 # Command-line entry points (the only places that may set process-wide state).
 ENTRY_POINTS = {("diffkin/cli.py", "main"), ("training/train.py", "main"), ("training/evaluate.py", "main"),
-                ("training/tune.py", "main")}
+                ("training/tune.py", "main"), ("training/compare.py", "main"),
+                ("training/robustness.py", "main")}
 
 
 def test_only_entry_points_set_threads_or_the_matplotlib_backend():
