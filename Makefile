@@ -15,7 +15,7 @@ $(PY):
 $(STAMP): $(PY) pyproject.toml constraints.txt
 	$(PIP) install -q -c constraints.txt torch==2.13.0
 	$(PIP) install -q -c constraints.txt -e ".[dev,cli,plot,rl,tune,docs,viz]"
-	$(PY) -m diffkin.kernels.native  # the fused C kernel, built once here (without a compiler: torch only)
+	$(PY) -m diffkin.kernels  # the fused C kernel, built once here (without a compiler: torch only)
 	touch $(STAMP)
 
 install: $(STAMP)

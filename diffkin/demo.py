@@ -323,7 +323,7 @@ def section_kernels(report: Report, quick: bool) -> None:
 
     if not native.available():
         report.add("Fused FK + Jacobian kernel", "No C compiler was found: every call used the torch kernels "
-                   "(`python -m diffkin.kernels.native` says why).")
+                   "(`python -m diffkin.kernels` says why).")
         return
     chain = models.load("panda", dtype=torch.float32)
     B = 20_000 if quick else 100_000

@@ -9,7 +9,7 @@ checks it against the torch kernels (every joint kind, trees, mimic joints, base
 
 Build: the C file is compiled on first use (about 1 s) with the system's C compiler (``$CC``, else ``cc``)
 into ``$DIFFKIN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/diffkin`` or ``~/.cache/diffkin``), once per source,
-flags and CPU; ``python -m diffkin.kernels.native`` builds it ahead of time (``make`` does) and prints
+flags and CPU; ``python -m diffkin.kernels`` builds it ahead of time (``make`` does) and prints
 where. Without a compiler, or with ``DIFFKIN_NATIVE=0`` in the environment, :func:`available` is False and
 every caller keeps the torch kernels: results are the same to rounding.
 
@@ -325,6 +325,3 @@ def _main() -> int:
     print(f"diffkin native kernel: {path}")
     return 0
 
-
-if __name__ == "__main__":
-    raise SystemExit(_main())
