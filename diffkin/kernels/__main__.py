@@ -4,4 +4,5 @@ the kernel is an optimisation, not an install requirement."""
 
 from .native import _main
 
-raise SystemExit(_main())
+if __name__ == "__main__":  # importing this module (docs tools, scanners) must not exit
+    raise SystemExit(_main())
