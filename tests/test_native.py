@@ -94,7 +94,6 @@ def test_batch_last_layout_matches(dtype):
 def test_threads_do_not_change_a_value():
     chain = models.load("panda", dtype=torch.float64)
     q = chain.random_configuration((5000,), generator=torch.Generator().manual_seed(3))
-    packed = chain._native_model(q) if not torch.is_grad_enabled() else None
     with torch.no_grad():
         packed = chain._native_model(q)
     one = native.fk_jacobian(packed, q, True, threads=1)
