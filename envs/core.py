@@ -65,6 +65,9 @@ class Task:
 
     n_random: int = 0
     max_steps: int = 50
+    # keep state["ee"] (p_ee at the last step) and state["ee_velocity"] ((p_ee(t) − p_ee(t − 1)) / Δt, 0 after
+    # a reset): a task that observes the end effector's velocity sets it
+    tracks_ee_velocity: bool = False
 
     def __init__(self, robot: str = "panda", action_mode: str = "joint",
                  robot_config: RobotConfig | dict | None = None,
@@ -87,6 +90,9 @@ class Task:
         state = {"q": q, "t": z.clone(), "key": z.clone(), "episode": z.clone()}
         if self.robot.geometry_dim:  # domain randomisation: each row's own DH parameters
             state["geometry"] = self.robot.nominal_geometry(n)
+        if self.tracks_ee_velocity:
+            state["ee"] = torch.zeros(n, 3, dtype=self.dtype, device=self.device)
+            state["ee_velocity"] = torch.zeros(n, 3, dtype=self.dtype, device=self.device)
         state.update(self._extra_state(n))
         return state
 
@@ -103,6 +109,9 @@ class Task:
         if g:  # the episode's robot first (the task's draws are the same numbers with or without it)
             state["geometry"][idx] = self.robot.sample_geometry(u[:, self.n_random:])
         self._sample(state, idx, u[:, :self.n_random])
+        if self.tracks_ee_velocity:  # at rest at the episode's start
+            state["ee"][idx] = self.robot.ee_position(state["q"][idx], self.geometry(state, idx))
+            state["ee_velocity"][idx] = 0.0
 
     def geometry(self, state: dict[str, Tensor], idx: Tensor | None = None) -> Tensor | None:
         """The rows' DH parameters ``(M, geometry_dim)`` under domain randomisation, else None (nominal)."""
@@ -123,6 +132,9 @@ class Task:
         state["q"] = self.robot.apply_action(state["q"], action)
         state["t"] += 1
         ee = self.ee(state)
+        if self.tracks_ee_velocity:  # the mean velocity over this control period
+            state["ee_velocity"] = (ee - state["ee"]) / self.robot.config.control_dt
+            state["ee"] = ee.clone()  # ee is also the observation's achieved_goal: a reset must not write it
         reward, terminated, info = self._evaluate(state, ee)
         truncated = state["t"] >= self.max_steps
         return self._observe(state, ee), reward, terminated, truncated, info

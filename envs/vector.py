@@ -64,8 +64,9 @@ class TorchVectorEnv(VectorEnv):
     to the env's dtype), clipped to [-1, 1].
 
     ## Observation Space
-    ``batch_space(single_observation_space, N)``: for Reach a ``Dict`` of ``(N, n + 3)``, ``(N, 3)``,
-    ``(N, 3)`` tensors; for Track a ``(N, n + 3 + 3 (H + 1) + 1)`` tensor (see the single envs).
+    ``batch_space(single_observation_space, N)``: for Reach a ``Dict`` of ``(N, d)`` (``d`` = 6 for the
+    default observation, end-effector position and velocity), ``(N, 3)``, ``(N, 3)`` tensors; for Track a
+    ``(N, n + 3 + 3 (H + 1) + 1)`` tensor (see the single envs).
 
     ## Rewards
     Those of the single env, a ``(N,)`` tensor. ``compute_reward`` is the task's (vectorised, for HER).

@@ -273,6 +273,58 @@ def test_goal_sampling_joints_keeps_the_old_distribution():
     assert np.linalg.norm(goals - home_ee, axis=1).max() > 0.5  # the whole workspace, not a 0.3 m cube
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("robot_config", [None, dict(geometry_noise_length=0.02, geometry_noise_angle=0.04)])
+def test_observation_end_effector_position_and_velocity(dtype, robot_config):
+    """Default observation: [p_ee, (p_ee(t) − p_ee(t−1)) / control_dt], the velocity 0 right after a
+    reset; p_ee is the episode's robot's (domain randomisation), so the velocity is the achieved goal's
+    difference."""
+    env = ReachEnv(dtype=dtype, robot_config=robot_config, episode_steps=4)
+    dt = env.robot.config.control_dt
+    obs, _ = env.reset(seed=0)
+    assert obs["observation"].shape == (6,) and env.observation_space.contains(obs)
+    np.testing.assert_array_equal(obs["observation"][:3], obs["achieved_goal"])
+    np.testing.assert_array_equal(obs["observation"][3:], 0.0)
+    rng = np.random.default_rng(0)
+    prev = obs["achieved_goal"].astype(np.float64)
+    for _ in range(9):  # over two episode ends: the first observation of an episode is at rest again
+        obs, _, _, truncated, _ = env.step(rng.uniform(-1, 1, 7).astype(np.float32))
+        ee = obs["achieved_goal"].astype(np.float64)
+        assert env.observation_space.contains(obs)
+        tol = 2e-4 if dtype == torch.float32 else 1e-5  # the observation is float32 either way
+        np.testing.assert_allclose(obs["observation"][3:], (ee - prev) / dt, atol=tol)
+        assert np.linalg.norm(obs["observation"][3:]) > 0.05  # a random joint step moves the end effector
+        prev = ee
+        if truncated:
+            obs, _ = env.reset()
+            np.testing.assert_array_equal(obs["observation"][3:], 0.0)
+            prev = obs["achieved_goal"].astype(np.float64)
+
+
+def test_observation_parts_order_and_errors():
+    """``observation`` picks and orders the parts; before issue 19 it was (joint_positions, ee_position)."""
+    from diffkin.errors import ConventionError
+
+    old = ReachEnv(observation=["joint_positions", "ee_position"])  # a YAML list works as a tuple
+    obs, _ = old.reset(seed=2)
+    q = old._state["q"]
+    assert obs["observation"].shape == (10,) and old.observation_space["observation"].shape == (10,)
+    np.testing.assert_allclose(obs["observation"][:7], old.robot.normalize_q(q)[0].numpy(), atol=1e-6)
+    np.testing.assert_array_equal(obs["observation"][7:], obs["achieved_goal"])
+    lo, hi = old.robot.lower.numpy(), old.robot.upper.numpy()
+    np.testing.assert_allclose(obs["observation"][:7], 2 * (q[0].numpy() - lo) / (hi - lo) - 1, atol=1e-6)
+    assert "ee" not in old._state  # no velocity bookkeeping when it is not observed
+    swapped = ReachEnv(observation=("ee_velocity", "ee_position", "joint_positions"))
+    o2, _ = swapped.reset(seed=2)
+    o2, *_ = swapped.step(np.full(7, 0.5, np.float32))
+    assert o2["observation"].shape == (13,) and swapped.observation_space.contains(o2)
+    np.testing.assert_array_equal(o2["observation"][3:6], o2["achieved_goal"])
+    assert np.linalg.norm(o2["observation"][:3]) > 0.05
+    for bad in ((), ("ee_position", "ee_position"), ("joint_velocities",), "ee_position", None):
+        with pytest.raises(ConventionError, match="observation"):
+            ReachEnv(observation=bad)
+
+
 def _geometry(env):
     return env.task.geometry(env._state)
 

@@ -59,7 +59,7 @@ def test_vector_env_metadata_and_spaces():
     venv = TorchVectorEnv("diffkin/Reach-v0", 8)
     assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP
     obs, _ = venv.reset(seed=0)
-    assert obs["observation"].shape == (8, 10) and obs["observation"].dtype == torch.float32
+    assert obs["observation"].shape == (8, 6) and obs["observation"].dtype == torch.float32
     assert venv.action_space.shape == (8, 7)
     assert venv.observation_space["desired_goal"].shape == (8, 3)
     _, r, te, tr, info = venv.step(torch.zeros(8, 7))
