@@ -12,6 +12,7 @@ import torch
 import yaml
 
 from diffkin.training.compare import compare, comparison_table, env_speed, main, plot_comparison
+from diffkin.training.config import entries as config_entries
 from diffkin.training.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,10 +91,12 @@ def test_compare_refuses_bad_input(tmp_path):
 
 def test_tqc_config_is_one_algorithm_config_for_every_env():
     """configs/tqc.yaml: rl-zoo's PandaReach settings for every entry; the diffkin entries set up as
-    PandaReach (goal cube, threshold, episode length, neutral start, 0.05 rad or 0.05 m per step)."""
+    PandaReach (goal cube, threshold, episode length, neutral start, panda-gym's observation; 0.025 rad or
+    0.05 m per step)."""
     path = ROOT / "configs" / "tqc.yaml"
-    keys = ["PandaReach-v3", "PandaReach-v3:joints", "diffkin/Reach-v0", "diffkin/Reach-v0:cartesian",
-            "diffkin/Reach-v0:dr", "diffkin/Reach-v0:dr_large"]
+    keys = ["PandaReach-v3", "PandaReach-v3:joints", "diffkin/Reach-v0", "diffkin/Reach-v0:joint_obs",
+            "diffkin/Reach-v0:cartesian", "diffkin/Reach-v0:dr"]
+    assert config_entries(path) == keys
     cfgs = {k: load_config(path, k) for k in keys}
     zoo = cfgs["PandaReach-v3"]
     assert zoo.algo == "tqc" and zoo.total_timesteps == 20000 and zoo.normalize
@@ -104,7 +107,14 @@ def test_tqc_config_is_one_algorithm_config_for_every_env():
     reach = cfgs["diffkin/Reach-v0"].env_kwargs
     assert reach["goal_center"] == [0.6, 0.0, 0.255] and reach["goal_range"] == 0.3
     assert reach["distance_threshold"] == 0.05 and reach["episode_steps"] == 50
-    assert reach["robot_config"]["max_joint_speed"] * 0.1 == pytest.approx(0.05)
+    assert reach["robot_config"]["max_joint_speed"] * 0.1 == pytest.approx(0.025)
+    assert reach["observation"] == ["ee_position", "ee_velocity"]
+    ablation = {**reach, "observation": ["joint_positions", "ee_position"]}
+    assert cfgs["diffkin/Reach-v0:joint_obs"].env_kwargs == ablation
+    assert cfgs["diffkin/Reach-v0:cartesian"].env_kwargs["robot_config"] == {"max_ee_step": 0.05}
+    dr = cfgs["diffkin/Reach-v0:dr"].env_kwargs
+    assert dr == {**reach, "robot_config": {**reach["robot_config"], "geometry_noise_length": 0.04,
+                                            "geometry_noise_angle": 0.08}}
 
 
 def test_compare_panda_gym(tmp_path):
