@@ -95,7 +95,7 @@ def test_tqc_config_is_one_algorithm_config_for_every_env():
     0.05 m per step)."""
     path = ROOT / "configs" / "tqc.yaml"
     keys = ["PandaReach-v3", "PandaReach-v3:joints", "diffkin/Reach-v0", "diffkin/Reach-v0:joint_obs",
-            "diffkin/Reach-v0:cartesian", "diffkin/Reach-v0:dr"]
+            "diffkin/Reach-v0:step_0.05", "diffkin/Reach-v0:cartesian", "diffkin/Reach-v0:dr"]
     assert config_entries(path) == keys
     cfgs = {k: load_config(path, k) for k in keys}
     zoo = cfgs["PandaReach-v3"]
@@ -111,6 +111,8 @@ def test_tqc_config_is_one_algorithm_config_for_every_env():
     assert reach["observation"] == ["ee_position", "ee_velocity"]
     ablation = {**reach, "observation": ["joint_positions", "ee_position"]}
     assert cfgs["diffkin/Reach-v0:joint_obs"].env_kwargs == ablation
+    coarse = {**reach, "robot_config": {"max_joint_speed": 0.5}}
+    assert cfgs["diffkin/Reach-v0:step_0.05"].env_kwargs == coarse
     assert cfgs["diffkin/Reach-v0:cartesian"].env_kwargs["robot_config"] == {"max_ee_step": 0.05}
     dr = cfgs["diffkin/Reach-v0:dr"].env_kwargs
     assert dr == {**reach, "robot_config": {**reach["robot_config"], "geometry_noise_length": 0.04,
