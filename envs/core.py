@@ -124,7 +124,8 @@ class Task:
         return self.robot.ee_position(state["q"], self.geometry(state))
 
     def observe(self, state: dict[str, Tensor]):
-        return self._observe(state, self.ee(state))
+        # p_ee is in the state when the velocity is tracked (copied: the observation must not alias it)
+        return self._observe(state, state["ee"].clone() if self.tracks_ee_velocity else self.ee(state))
 
     def step(self, state: dict[str, Tensor], action: Tensor):
         """Advance all rows one control period; ``(obs, reward, terminated, truncated, info)`` tensors."""

@@ -7,7 +7,9 @@ from pathlib import Path
 
 import pytest
 import torch
+import yaml
 
+from diffkin.errors import ConventionError
 from diffkin.training.algos import EVAL_SEED
 from diffkin.training.config import RunConfig, entries, load_config, read_entry
 
@@ -158,6 +160,13 @@ def test_smoke_run_and_evaluate(case, tmp_path):
     if key == "success_rate":
         assert final[key] * cfg.eval_episodes == pytest.approx(round(final[key] * cfg.eval_episodes))
         assert ev["scripted_ik"]["success_rate"] >= 0.75  # the IK baseline is an upper bound
+        # a config whose env no longer gives the policy's observations (a run from before the observation
+        # option, whose default changed) is refused with the fix, not evaluated on the wrong inputs
+        other = ["ee_velocity"] if cfg.env_kwargs.get("observation") == ["ee_position"] else ["ee_position"]
+        stale = {**cfg.to_dict(), "env_kwargs": {**cfg.env_kwargs, "observation": other}}
+        (tmp_path / "config.yaml").write_text(yaml.safe_dump(stale, sort_keys=False))
+        with pytest.raises(ConventionError, match="joint_positions, ee_position"):
+            evaluate_run(tmp_path, episodes=2)
     else:
         assert ev["scripted_ik"]["tracking_error"] < 0.01
 

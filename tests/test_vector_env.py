@@ -55,6 +55,46 @@ def test_batched_equals_single_envs_across_episode_boundary(env_id, action_mode)
             _assert_close(o, _obs_rows(obs_b, i))
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("robot_config", [None, dict(geometry_noise_length=0.04, geometry_noise_angle=0.08)])
+def test_reach_velocity_across_partial_resets(dtype, robot_config):
+    """Rows that end while others go on (success terminates): an ended row's final observation holds its last
+    step's velocity (p_ee difference / control_dt) and achieved goal, its next observation is at rest, and
+    every row equals the single env of its seed; float32 and float64, nominal and randomised robots."""
+    n, seed = 4, 3
+    kw = dict(episode_steps=5, robot_config=robot_config, dtype=dtype, distance_threshold=0.15,
+              terminate_on_success=True)
+    venv = TorchVectorEnv("diffkin/Reach-v0", n, **kw)
+    singles = [gym.make("diffkin/Reach-v0", **kw) for _ in range(n)]
+    obs_b, _ = venv.reset(seed=seed)
+    for i, e in enumerate(singles):
+        _assert_close(e.reset(seed=seed + i)[0], _obs_rows(obs_b, i))
+    dt = venv.task.robot.config.control_dt
+    rng = np.random.default_rng(1)
+    prev, partial = obs_b["achieved_goal"].clone(), 0
+    for _ in range(30):
+        actions = rng.uniform(-1, 1, (n, 7)).astype(np.float32)
+        obs_b, _, te, tr, info = venv.step(torch.as_tensor(actions))
+        done = te | tr
+        partial += int(bool(done.any()) and not bool(done.all()))
+        last = info["final_obs"] if bool(done.any()) else obs_b  # the rows' last observations this step
+        last = {k: torch.where(done[:, None], last[k], obs_b[k]) for k in obs_b}
+        torch.testing.assert_close(last["observation"][:, 3:], (last["achieved_goal"] - prev) / dt,
+                                   atol=5e-5, rtol=0)
+        assert torch.equal(last["observation"][:, :3], last["achieved_goal"])
+        assert torch.all(obs_b["observation"][done, 3:] == 0)  # a new episode starts at rest
+        assert torch.equal(obs_b["observation"][:, :3], obs_b["achieved_goal"])
+        prev = obs_b["achieved_goal"].clone()
+        for i, env in enumerate(singles):
+            o, _, t_i, r_i, _ = env.step(actions[i])
+            if t_i or r_i:
+                _assert_close(o, _obs_rows(info["final_obs"], i))
+                o, _ = env.reset()
+            _assert_close(o, _obs_rows(obs_b, i))
+            assert venv.single_observation_space.contains(o)
+    assert partial >= 2  # the case under test happened
+
+
 def test_vector_env_metadata_and_spaces():
     venv = TorchVectorEnv("diffkin/Reach-v0", 8)
     assert venv.metadata["autoreset_mode"] == AutoresetMode.SAME_STEP

@@ -115,6 +115,7 @@ def load_run(run_dir: str | Path):
 
     run_dir = Path(run_dir)
     cfg = load_config(run_dir / "config.yaml")
+    _check_observation_space(run_dir, cfg)
     env = None
     if cfg.her is not None:  # SB3 rebuilds the HerReplayBuffer on load and needs an env for it
         from diffkin.training.sb3 import make_sb3_vec_env
@@ -128,6 +129,31 @@ def load_run(run_dir: str | Path):
         norm = pickle.loads((run_dir / "vecnormalize.pkl").read_bytes())
         norm.training = False
     return cfg, model, norm
+
+
+def _shapes(space) -> dict:
+    return {k: tuple(v.shape) for k, v in space.spaces.items()} if hasattr(space, "spaces") else \
+        {"": tuple(space.shape)}
+
+
+def _check_observation_space(run_dir: Path, cfg) -> None:
+    """The run's policy was trained on the observations its config gives today: a run of ``diffkin/Reach-v0``
+    from before issue 19 observed ``(joint_positions, ee_position)``, the env's default until then."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    from diffkin.errors import ConventionError
+
+    data, _, _ = load_from_zip_file(run_dir / "model.zip", load_data=True, print_system_info=False)
+    saved = data.get("observation_space") if data else None
+    if saved is None:
+        return
+    now = TorchVectorEnv(cfg.env_id, 1, **cfg.env_kwargs).single_observation_space
+    if _shapes(saved) != _shapes(now):
+        raise ConventionError(
+            f"{run_dir}: the policy was trained on observations of shapes {_shapes(saved)}, the env of its "
+            f"config.yaml gives {_shapes(now)}; a diffkin/Reach-v0 run from before issue 19 observed "
+            "(joint_positions, ee_position): add `observation: [joint_positions, ee_position]` to its "
+            "env_kwargs")
 
 
 def evaluate_run(run_dir: str | Path, episodes: int = 200, seed: int = 20_000,
