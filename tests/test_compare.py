@@ -95,7 +95,8 @@ def test_tqc_config_is_one_algorithm_config_for_every_env():
     0.05 m per step)."""
     path = ROOT / "configs" / "tqc.yaml"
     keys = ["PandaReach-v3", "PandaReach-v3:joints", "diffkin/Reach-v0", "diffkin/Reach-v0:joint_obs",
-            "diffkin/Reach-v0:step_0.05", "diffkin/Reach-v0:cartesian", "diffkin/Reach-v0:dr"]
+            "diffkin/Reach-v0:step_0.05", "diffkin/Reach-v0:cartesian", "diffkin/Reach-v0:dr",
+            "diffkin/Reach-v0:joint_obs_dr"]
     assert config_entries(path) == keys
     cfgs = {k: load_config(path, k) for k in keys}
     zoo = cfgs["PandaReach-v3"]
@@ -117,6 +118,7 @@ def test_tqc_config_is_one_algorithm_config_for_every_env():
     dr = cfgs["diffkin/Reach-v0:dr"].env_kwargs
     assert dr == {**reach, "robot_config": {**reach["robot_config"], "geometry_noise_length": 0.04,
                                             "geometry_noise_angle": 0.08}}
+    assert cfgs["diffkin/Reach-v0:joint_obs_dr"].env_kwargs == {**dr, "observation": ablation["observation"]}
 
 
 def test_compare_panda_gym(tmp_path):
