@@ -108,7 +108,7 @@ def test_readme_maps_every_old_name_to_an_entry():
     # results of the current configs are named by their entries (<algo>_<env name>[_<variant>]); the
     # comparison runner and the robustness check write <algo>_comparison and dr_robustness
     current = {load_config(p, e, v).name for p, e, v in RUN_CONFIGS}
-    current |= {"tqc_comparison", "dr_robustness", "dr_robustness_small"}
+    current |= {"tqc_comparison", "dr_robustness", "dr_robustness_large"}
     assert results <= old | current, results - old - current
 
 

@@ -29,7 +29,8 @@ from diffkin.training.plot import _mean_std, _on_grid, summarize
 
 __all__ = ["env_speed", "run_entry", "compare", "comparison_table", "plot_comparison", "main"]
 
-_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink")
+_COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown", "tab:pink",
+           "tab:olive", "tab:cyan", "tab:gray")  # ten entries before a colour repeats
 
 
 def env_speed(cfg: RunConfig, steps: int = 2000, seed: int = 0) -> float:
