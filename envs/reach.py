@@ -224,8 +224,8 @@ class ReachEnv(TaskEnv):
     in its world where the base sits at (-0.6, 0, 0), raised by the 0.105 m from diffkin's flange to
     panda-gym's grasp point), the default observation (panda-gym's), and ``max_joint_speed=0.25`` (0.025 rad
     per step: panda-gym commands 0.05 rad, but its position control carries out only part of it, and at
-    0.05 rad a policy that does not see its joints drifts through the null space into a joint limit once at
-    the goal; ``docs/rl/RESULTS.md``).
+    0.05 rad the policies, which do not see their joints, do not settle at the goal but drift off it, often
+    with a joint at its limit; ``docs/rl/RESULTS.md``).
 
     Kinematic domain randomisation (``robot_config`` ``geometry_noise_length`` m / ``geometry_noise_angle``
     rad, default 0): every episode of every env draws its own robot, the DH lengths (a, d) and angles
