@@ -109,9 +109,11 @@ class Task:
         if g:  # the episode's robot first (the task's draws are the same numbers with or without it)
             state["geometry"][idx] = self.robot.sample_geometry(u[:, self.n_random:])
         self._sample(state, idx, u[:, :self.n_random])
-        if self.tracks_ee_velocity:  # at rest at the episode's start
-            state["ee"][idx] = self.robot.ee_position(state["q"][idx], self.geometry(state, idx))
-            state["ee_velocity"][idx] = 0.0
+        if self.tracks_ee_velocity:  # at rest at the episode's start; out of place: the last step's p_ee and
+            # velocity are also that step's (final) observation
+            ee = self.robot.ee_position(state["q"][idx], self.geometry(state, idx))
+            state["ee"] = state["ee"].index_copy(0, idx, ee)
+            state["ee_velocity"] = state["ee_velocity"].index_fill(0, idx, 0.0)
 
     def geometry(self, state: dict[str, Tensor], idx: Tensor | None = None) -> Tensor | None:
         """The rows' DH parameters ``(M, geometry_dim)`` under domain randomisation, else None (nominal)."""
@@ -135,7 +137,7 @@ class Task:
         ee = self.ee(state)
         if self.tracks_ee_velocity:  # the mean velocity over this control period
             state["ee_velocity"] = (ee - state["ee"]) / self.robot.config.control_dt
-            state["ee"] = ee.clone()  # ee is also the observation's achieved_goal: a reset must not write it
+            state["ee"] = ee
         reward, terminated, info = self._evaluate(state, ee)
         truncated = state["t"] >= self.max_steps
         return self._observe(state, ee), reward, terminated, truncated, info

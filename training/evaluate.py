@@ -144,9 +144,11 @@ def _check_observation_space(run_dir: Path, cfg) -> None:
     from diffkin.errors import ConventionError
     from diffkin.training.algos import is_diffkin_env
 
+    if not is_diffkin_env(cfg.env_id):  # no torch env to compare with (panda-gym)
+        return
     data, _, _ = load_from_zip_file(run_dir / "model.zip", load_data=True, print_system_info=False)
     saved = data.get("observation_space") if data else None
-    if saved is None or not is_diffkin_env(cfg.env_id):
+    if saved is None:
         return
     now = TorchVectorEnv(cfg.env_id, 1, **cfg.env_kwargs).single_observation_space
     if _shapes(saved) != _shapes(now):
