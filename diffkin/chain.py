@@ -39,6 +39,7 @@ from torch import Tensor, nn
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
 from .kernels import native
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
+from .kernels.configuration import ConfigurationSpace
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
 from .kernels.tree import Segments, Topology, column_frames, matrix_frames
@@ -131,12 +132,16 @@ class KinematicChain(nn.Module):
         self._set_topology(topology, single_end)
         n = topology.n_vars
         self.name = name or f"chain{n}"
-        var_rev = [True] * n
-        for j, i in enumerate(topology.q_index):
-            var_rev[i] = topology.revolute[j]
-        self.joint_types = "".join("R" if r else "P" for r in var_rev)
+        # one letter per coordinate of q: R (angle), P (length), S (an entry of a unit quaternion)
+        letters = []
+        for m in topology.motions:
+            letters.extend("SSSS" if m == "S" else m)
+        self.joint_types = "".join(letters)
+        var_rev = [c == "R" for c in self.joint_types]
         self.register_buffer("revolute_mask", torch.tensor(var_rev, dtype=dtype, device=device))
-        self.register_buffer("_joint_revolute", torch.tensor(topology.revolute, dtype=dtype, device=device))
+        #: per Jacobian column (before the mimic coupling): 1 for a rotation, 0 for a translation
+        self.register_buffer("_joint_revolute", torch.tensor(topology.column_revolute, dtype=dtype,
+                                                             device=device))
         self.register_buffer("q_limits", None)
         self.register_buffer("base_nominal", None)
         self.register_buffer("tool_nominal", None)
@@ -166,6 +171,43 @@ class KinematicChain(nn.Module):
         self._topo = topology
         self.n_joints = topology.n_vars
         self._single_end = single_end
+        self.configuration_space = ConfigurationSpace(topology.motions)
+
+    # --------------------------------------------------------------------------- configuration space
+    @property
+    def nq(self) -> int:
+        """Size of a configuration q (MuJoCo's qpos of the chain's joints; a quaternion counts four)."""
+        return self._topo.nq
+
+    @property
+    def nv(self) -> int:
+        """Size of a velocity and of the Jacobian's columns (a ball joint counts three)."""
+        return self._topo.nv
+
+    def integrate(self, q: Tensor, v: Tensor) -> Tensor:
+        """q ⊕ v ``(..., nq)`` for ``q (..., nq)`` and ``v (..., nv)``: additive on angles and lengths,
+        q ⊗ exp(ω/2) on the quaternions of ball and free joints (MuJoCo's ``mj_integratePos``, dt = 1);
+        see :mod:`diffkin.kernels.configuration`."""
+        q = self.check_q(q)
+        (v,) = tensors(("v", v, (self.nv,)), like=self)
+        return self.configuration_space.integrate(q, v)
+
+    def difference(self, q0: Tensor, q1: Tensor) -> Tensor:
+        """v ``(..., nv)`` with q0 ⊕ v = q1 (``mj_differentiatePos``: the shortest rotation)."""
+        return self.configuration_space.difference(self.check_q(q0, "q0"), self.check_q(q1, "q1"))
+
+    def interpolate(self, q0: Tensor, q1: Tensor, s) -> Tensor:
+        """The geodesic between two configurations at ``s (...)`` ∈ [0, 1]: linear on angles and lengths,
+        slerp on quaternions."""
+        return self.configuration_space.interpolate(self.check_q(q0, "q0"), self.check_q(q1, "q1"), s)
+
+    def neutral_configuration(self) -> Tensor:
+        """The neutral configuration ``(nq,)``: zeros, and identity quaternions (1, 0, 0, 0)."""
+        return self.configuration_space.neutral(self.dtype, self.device)
+
+    def normalize_configuration(self, q: Tensor) -> Tensor:
+        """``q`` with the quaternions of its ball and free joints scaled to unit length."""
+        return self.configuration_space.normalize(self.check_q(q))
 
     # ------------------------------------------------------------------------------- base and tool
     def _set_base_tool(self, base, tool) -> None:
@@ -275,7 +317,8 @@ class KinematicChain(nn.Module):
         serve this call: a plain CPU tensor, nothing needing a gradient, not traced (compile / torch.func),
         the library built. None otherwise (the torch kernels serve it)."""
         if torch.compiler.is_compiling() or q.device.type != "cpu" or not _is_plain(q) \
-                or (q.requires_grad and torch.is_grad_enabled()) or not native.available():
+                or (q.requires_grad and torch.is_grad_enabled()) or self._topo.has_spherical \
+                or not native.available():  # (ball and free joints: the torch kernels)
             return None
         key = self._state_key()
         return None if key is None else native.native_model(self._topo, self._cached_constants(key)[0])
@@ -459,7 +502,7 @@ class KinematicChain(nn.Module):
         if _autocast(q):
             with torch.autocast(q.device.type, enabled=False):
                 return self.fk_jacobian(q, check)
-        batch, n, K = q.shape[:-1], self.n_joints, self.n_ends
+        batch, n, K, nv = q.shape[:-1], self.n_joints, self.n_ends, self.nv
         packed = self._native_model(q)
         if packed is not None:  # the fused C pass (poses and Jacobians at once)
             T, Jac, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous(), with_jacobian=True)
@@ -478,9 +521,9 @@ class KinematicChain(nn.Module):
                 J = tree_jacobian(axes, origins, ends[..., :3, 3], self._joint_revolute, self._topo)
                 return self._out(ends), self._out(J)
             ends, J = self._batch_last_fk_jacobian(q.reshape(-1, n).T.contiguous())
-            return self._out(ends.reshape(*batch, K, 4, 4)), self._out(J.reshape(*batch, K, 6, n))
+            return self._out(ends.reshape(*batch, K, 4, 4)), self._out(J.reshape(*batch, K, 6, nv))
         qT = q.reshape(-1, n).T.contiguous()
-        T, Jout = _new_poses(q, B, K), q.new_empty(B, K, 6, n)
+        T, Jout = _new_poses(q, B, K), q.new_empty(B, K, 6, nv)
         for start in range(0, B, chunk):
             part = slice(start, min(start + chunk, B))
             rows, ends = self.batch_last(qT[:, part], with_jacobian=True, check=False)
@@ -489,7 +532,7 @@ class KinematicChain(nn.Module):
             else:
                 T[part] = _poses_from_columns(ends, qT[:, part])
             Jout[part] = rows.permute(2, 1, 0).unflatten(1, (K, 6))
-        return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jout.reshape(*batch, K, 6, n))
+        return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jout.reshape(*batch, K, 6, nv))
 
     def _batch_last_fk_jacobian(self, qT: Tensor) -> tuple[Tensor, Tensor]:
         """``qT (n, m)`` -> ``(T (m, K, 4, 4), J (m, K, 6, n))`` through the batch-last path."""
@@ -634,17 +677,24 @@ class KinematicChain(nn.Module):
     def random_configuration(
         self, shape: Sequence[int] | int = (), generator: torch.Generator | None = None
     ) -> Tensor:
-        """Uniform joint samples within the limits, shape ``(*shape, n)``, chain dtype/device."""
+        """Uniform joint samples within the limits, shape ``(*shape, nq)``, chain dtype/device; the
+        quaternions of ball and free joints uniform on the unit sphere (positions of a free joint within its
+        limits, else ±1 m)."""
         shape = (shape,) if isinstance(shape, int | np.integer) else tuple(shape)
         shape = tuple(check_count(s, "random_configuration shape entries", minimum=0) for s in shape)
         lo, hi = self.lower_upper()
         gen_device = self.device if generator is None else generator.device
+        if not self.configuration_space.euclidean:  # quaternions uniform on S³
+            idx = list(self.configuration_space.scalar_index())
+            return self.configuration_space.sample(lo[idx], hi[idx], shape, generator)
         u = torch.rand(*shape, self.n_joints, generator=generator, dtype=self.dtype, device=gen_device)
         u = u.to(self.device)
         return lo + (hi - lo) * u
 
     def extra_repr(self) -> str:
-        return f"name={self.name!r}, n_joints={self.n_joints}, joint_types={self.joint_types!r}"
+        if self.configuration_space.euclidean:
+            return f"name={self.name!r}, n_joints={self.n_joints}, joint_types={self.joint_types!r}"
+        return f"name={self.name!r}, nq={self.nq}, nv={self.nv}, joint_types={self.joint_types!r}"
 
 
 def _new_poses(like: Tensor, *shape: int) -> Tensor:

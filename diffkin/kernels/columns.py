@@ -29,6 +29,7 @@ __all__ = [
     "rotate",
     "apply_fixed",
     "apply_motion",
+    "rotate_columns",
     "identity_columns",
     "transform_columns",
     "columns_to_matrices",
@@ -123,6 +124,20 @@ def apply_motion(frame: Columns, q: Tensor, revolute) -> Columns:
     else:
         p = torch.addcmul(p, q, z)
     return x, y, z, p
+
+
+def rotate_columns(frame: Columns, R: Tensor, dim: int = 0) -> Columns:
+    """Columns of F · [[R, 0], [0, 1]] for a per-sample rotation: column j is Σ_k R[k, j] col_k.
+
+    ``R`` is ``(3, 3, B)`` in the batch-last layout (``dim=0``, columns ``(3, B)``), ``(..., 3, 3)`` in the
+    batch-first one (columns ``(..., 3)``); p is unchanged."""
+    x, y, z, p = frame
+    if dim == 0:
+        new = [x * R[0, j] + y * R[1, j] + z * R[2, j] for j in range(3)]
+    else:
+        E = R.unsqueeze(-1)  # (..., 3, 3, 1): coefficients broadcast over the component axis
+        new = [x * E[..., 0, j, :] + y * E[..., 1, j, :] + z * E[..., 2, j, :] for j in range(3)]
+    return new[0], new[1], new[2], p
 
 
 def transform_columns(T: Tensor, dim: int = 0) -> Columns:

@@ -1,7 +1,9 @@
 """The geometric Jacobian (3.30) and the parameter Jacobian: the only encodings.
 
 Column i of the geometric Jacobian of an end point p_e is [z_i × (p_e − p_i); z_i] for a revolute and
-[z_i; 0] for a prismatic joint, where z_i, p_i are the joint's motion axis and a point on it in the base frame
+[z_i; 0] for a prismatic joint (a ball motion gives three revolute columns, about the x, y, z axes of its
+rotated frame: its angular velocity in that frame, as MuJoCo's),
+where z_i, p_i are the joint's motion axis and a point on it in the base frame
 (from one pass of :mod:`diffkin.kernels.tree`). On a tree the columns of joints that are not ancestors of
 end link k are zero for that end link; with mimic joints the column of a variable is the sum of its joints'
 columns times their multipliers (J = J_full M).
@@ -86,15 +88,15 @@ def jacobian_rows(
 
 
 def tree_jacobian(axes: Tensor, origins: Tensor, p_ends: Tensor, revolute: Tensor, topo: Topology) -> Tensor:
-    """Jacobians of the K end links ``(..., K, 6, n)`` from the J joint axes/origins ``(..., J, 3)``, the
-    end points ``p_ends (..., K, 3)`` and the float mask ``revolute (J,)``: (3.30), masked by ancestry,
-    coupled through the mimic matrix."""
-    all_rev = all(topo.revolute)
+    """Jacobians of the K end links ``(..., K, 6, nv)`` from the C column axes/origins ``(..., C, 3)`` (one
+    per R/P frame, three per ball motion), the end points ``p_ends (..., K, 3)`` and the float mask
+    ``revolute (C,)``: (3.30), masked by ancestry, coupled through the mimic matrix."""
+    all_rev = all(topo.column_revolute)
     blocks = []
-    for k, row in enumerate(topo.ancestors):
+    for k, row in enumerate(topo.column_ancestors):
         Jk = jacobian_from_axes(axes, origins, p_ends[..., k, :], revolute, all_rev)
         if not all(row):
-            Jk = Jk * topo.tensor("ancestors", Jk.dtype, Jk.device)[k]
+            Jk = Jk * topo.tensor("column_ancestors", Jk.dtype, Jk.device)[k]
         blocks.append(Jk)
     J = torch.stack(blocks, dim=-3)
     if topo.coupled:
@@ -108,8 +110,8 @@ def tree_jacobian_rows(axes: list, p_ends: list, revolute: Tensor, topo: Topolog
     ``(n, 6K, m)`` (row block k for end link k), masked by ancestry and coupled through the mimic matrix.
 
     A single end link without autograd writes the axes straight into the angular rows (no extra copy)."""
-    J = topo.n_frames
-    all_rev = all(topo.revolute)
+    J = topo.n_columns
+    all_rev = all(topo.column_revolute)
     grad = torch.is_grad_enabled() and any(c.requires_grad for a in axes for c in a)
     in_place = len(p_ends) == 1 and not grad and not torch.compiler.is_compiling()  # graphs: no aliasing
     rows = axes[0][0].new_empty(6, J, m) if in_place else None
@@ -118,8 +120,8 @@ def tree_jacobian_rows(axes: list, p_ends: list, revolute: Tensor, topo: Topolog
     blocks = []
     for k, p in enumerate(p_ends):
         R = jacobian_rows(z, o, p.expand(3, m), revolute, all_rev, rows)  # (6, J, m)
-        if not all(topo.ancestors[k]):
-            R = R * topo.tensor("ancestors", R.dtype, R.device)[k].view(1, -1, 1)
+        if not all(topo.column_ancestors[k]):
+            R = R * topo.tensor("column_ancestors", R.dtype, R.device)[k].view(1, -1, 1)
         blocks.append(R)
     out = blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=0)  # (6K, J, m)
     if topo.coupled:

@@ -25,9 +25,19 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .columns import Columns, Fixed, apply_fixed, apply_motion, identity_columns, stack_columns
+from .._numerics import safe_normalize
+from ..rotations import _quaternion_to_matrix
+from .columns import (
+    Columns,
+    Fixed,
+    apply_fixed,
+    apply_motion,
+    identity_columns,
+    rotate_columns,
+    stack_columns,
+)
 
-__all__ = ["Topology", "Segments", "column_frames", "matrix_frames", "couple"]
+__all__ = ["Topology", "Segments", "column_frames", "matrix_frames", "couple", "spherical_rotations"]
 
 
 @dataclass(frozen=True)
@@ -41,14 +51,25 @@ class Topology:
     multiplier: tuple[float, ...]
     q_offset: tuple[float, ...]
     n_vars: int
+    #: per frame: a ball motion "S" (the unit quaternion q[q_index[j] : q_index[j] + 4], three Jacobian
+    #: columns); empty: none (every frame one R or P motion)
+    spherical: tuple[bool, ...] = ()
     ancestors: tuple[tuple[bool, ...], ...] = field(init=False)
     last_use: tuple[int, ...] = field(init=False)
+    n_dofs: int = field(init=False)
+    motions: tuple[str, ...] = field(init=False)
+    column_frame: tuple[int, ...] = field(init=False)
+    column_v: tuple[int, ...] = field(init=False)
+    column_revolute: tuple[bool, ...] = field(init=False)
+    column_ancestors: tuple[tuple[bool, ...], ...] = field(init=False)
     _tensors: dict = field(init=False, default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):
         J = len(self.parents)
         if not all(-1 <= p < j for j, p in enumerate(self.parents)):
             raise ValueError(f"parents must precede their children, got {self.parents}")
+        if self.spherical and len(self.spherical) != J:
+            raise ValueError(f"spherical must have one entry per frame ({J}), got {len(self.spherical)}")
         anc = []
         for e in self.ends:
             row, j = [False] * J, e
@@ -66,6 +87,61 @@ class Topology:
             if e >= 0:
                 last[e] = J
         object.__setattr__(self, "last_use", tuple(last))
+        self._set_columns(J)
+
+    def _set_columns(self, J: int) -> None:
+        """The velocity layout: the motion of each independent coordinate (R/P: one q and one v entry,
+        S: four and three) in q order, each frame's first velocity column, and the Jacobian columns (one per
+        R/P frame, three per S frame: its x, y, z axes)."""
+        sph = self.spherical or (False,) * J
+        motion_at: dict[int, str] = {}
+        for j in range(J):
+            m = "S" if sph[j] else ("R" if self.revolute[j] else "P")
+            if motion_at.setdefault(self.q_index[j], m) != m:
+                raise ValueError(f"frames of coordinate {self.q_index[j]} disagree on its motion")
+            if m == "S" and (self.multiplier[j] != 1.0 or self.q_offset[j] != 0.0):
+                raise ValueError(f"frame {j}: a ball motion cannot be coupled (mimic)")
+        v_at, i, nv, motions = {}, 0, 0, []
+        while i < self.n_vars:
+            m = motion_at.get(i)
+            if m is None:
+                raise ValueError(f"coordinate {i} of q drives no frame (q_index {self.q_index})")
+            v_at[i], motions = nv, motions + [m]
+            i, nv = i + (4 if m == "S" else 1), nv + (3 if m == "S" else 1)
+        if i != self.n_vars:
+            raise ValueError(f"a quaternion runs past the end of q ({self.n_vars} coordinates)")
+        cf, cv, cr = [], [], []
+        for j in range(J):
+            for k in range(3 if sph[j] else 1):
+                cf.append(j)
+                cv.append(v_at[self.q_index[j]] + k)
+                cr.append(bool(self.revolute[j] or sph[j]))
+        object.__setattr__(self, "n_dofs", nv)
+        object.__setattr__(self, "motions", tuple(motions))
+        object.__setattr__(self, "column_frame", tuple(cf))
+        object.__setattr__(self, "column_v", tuple(cv))
+        object.__setattr__(self, "column_revolute", tuple(cr))
+        object.__setattr__(self, "column_ancestors",
+                           tuple(tuple(row[f] for f in cf) for row in self.ancestors))
+
+    @property
+    def has_spherical(self) -> bool:
+        return any(self.spherical)
+
+    @property
+    def nq(self) -> int:
+        """Size of q: the independent coordinates (quaternions count four)."""
+        return self.n_vars
+
+    @property
+    def nv(self) -> int:
+        """Size of the velocities and of the Jacobian's columns (ball joints count three)."""
+        return self.n_dofs
+
+    @property
+    def n_columns(self) -> int:
+        """Jacobian columns before the coupling: one per R/P frame, three per S frame."""
+        return len(self.column_frame)
 
     @classmethod
     def serial(cls, revolute: Sequence[bool]) -> Topology:
@@ -82,7 +158,7 @@ class Topology:
         """True when some joint is not simply variable j (mimic joints)."""
         J = len(self.parents)
         return (self.q_index != tuple(range(J)) or any(m != 1.0 for m in self.multiplier)
-                or any(b != 0.0 for b in self.q_offset))
+                or any(b != 0.0 for b in self.q_offset) or self.column_v != tuple(range(self.n_columns)))
 
     @property
     def all_ancestors(self) -> bool:
@@ -97,11 +173,25 @@ class Topology:
         key = (name, dtype, device)
         t = self._tensors.get(key)
         if t is None:
-            if name == "coupling":
-                M = [[0.0] * self.n_vars for _ in self.parents]
-                for j, (i, m) in enumerate(zip(self.q_index, self.multiplier)):
-                    M[j][i] = m
+            if name == "coupling":  # (C, nv): Jacobian column c is velocity column_v[c] times its multiplier
+                M = [[0.0] * self.n_dofs for _ in self.column_frame]
+                for c, (j, i) in enumerate(zip(self.column_frame, self.column_v)):
+                    M[c][i] = self.multiplier[j]
                 t = torch.tensor(M, dtype=dtype, device=device)
+            elif name == "quaternion_index":  # (J, 4): the q entries of each S frame's quaternion (0: others)
+                t = torch.tensor([[self.q_index[j] + k if s else 0 for k in range(4)]
+                                  for j, s in enumerate(self.spherical)], device=device)
+            elif name == "spherical":
+                t = torch.tensor(self.spherical, device=device)
+            elif name == "axis_select":  # (C,): row 3 j + k of the (J, 3 axes) stack for each column
+                first = {}
+                t = torch.tensor([3 * j + (2 if not (self.spherical and self.spherical[j])
+                                           else k) for k, j in _column_slots(self.column_frame, first)],
+                                 device=device)
+            elif name == "column_frame":
+                t = torch.tensor(self.column_frame, device=device)
+            elif name == "column_ancestors":
+                t = torch.tensor(self.column_ancestors, dtype=dtype, device=device)
             elif name == "parent_index":
                 t = torch.tensor([p + 1 for p in self.parents], device=device)
             elif name == "ancestors":
@@ -116,6 +206,16 @@ class Topology:
     def coupling_matrix(self, dtype, device) -> Tensor:
         """M ``(J, n)`` with q_full = M q + b."""
         return self.tensor("coupling", dtype, device)
+
+
+def _column_slots(column_frame: Sequence[int], seen: dict) -> list[tuple[int, int]]:
+    """``(k, frame)`` for each column: k counts the columns of the same frame (0, 1, 2 for an S frame)."""
+    out = []
+    for j in column_frame:
+        k = seen.get(j, 0)
+        seen[j] = k + 1
+        out.append((k, j))
+    return out
 
 
 @dataclass(frozen=True)
@@ -169,12 +269,18 @@ def column_frames(qs: Sequence[Tensor], topo: Topology, seg: Segments, with_axes
     frames: dict[int, Columns] = {}
     kept, axes = [], []
     offsets = seg.offset if seg.offset is not None else [None] * J
+    sph = topo.spherical or (False,) * J
     for j in range(J):
         par = topo.parents[j]
         F = apply_fixed(base if par < 0 else frames[par], seg.pre[j] if seg.pre is not None else None, 0)
-        F = apply_motion(F, _joint_value(qs, topo, j, offsets[j]), topo.revolute[j])
-        if with_axes:  # after the motion: the same point (revolute joint) or a point on the axis (prismatic)
-            axes.append((F[2], F[3]))
+        if sph[j]:  # F · R(quaternion): three axes through one point
+            F = rotate_columns(F, _quaternion_rows(qs, topo.q_index[j]))
+            if with_axes:
+                axes.extend(((F[0], F[3]), (F[1], F[3]), (F[2], F[3])))
+        else:
+            F = apply_motion(F, _joint_value(qs, topo, j, offsets[j]), topo.revolute[j])
+            if with_axes:  # after the motion: the same point (revolute) or a point on the axis (prismatic)
+                axes.append((F[2], F[3]))
         F = apply_fixed(F, seg.post[j] if seg.post is not None else None, 0)
         frames[j] = F
         if keep_frames:
@@ -183,6 +289,23 @@ def column_frames(qs: Sequence[Tensor], topo: Topology, seg: Segments, with_axes
             del frames[par]
     ends = [apply_fixed(base if e < 0 else frames[e], E, 0) for e, E in zip(topo.ends, seg.ends)]
     return ends, (axes if with_axes else None), (kept if keep_frames else None)
+
+
+def _quaternion_rows(qs: Sequence[Tensor], start: int) -> Tensor:
+    """The rotation matrix ``(3, 3, B)`` of the quaternion in rows ``start .. start + 3`` of batch-last q
+    (normalised: the kernel accepts any non-zero quaternion, as MuJoCo does)."""
+    Q = torch.stack(tuple(qs[start : start + 4]), dim=-1)
+    return _quaternion_to_matrix(safe_normalize(Q)).permute(1, 2, 0)
+
+
+def spherical_rotations(q: Tensor, topo: Topology) -> Tensor:
+    """Per frame the rotation of its S motion ``(..., J, 3, 3)`` from ``q (..., nq)`` (identity on the
+    other frames)."""
+    Q = q.index_select(-1, topo.tensor("quaternion_index", None, q.device).reshape(-1)).unflatten(-1, (-1, 4))
+    mask = topo.tensor("spherical", None, q.device).unsqueeze(-1)
+    identity = torch.zeros_like(Q[..., :1, :])
+    identity[..., 0] = 1.0
+    return _quaternion_to_matrix(safe_normalize(torch.where(mask, Q, identity)))
 
 
 def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = False,
@@ -202,7 +325,11 @@ def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = Fa
     # every joint's Pre · M(q) at once (batch first: the joints are one more batch axis; the columns
     # (J, 3) broadcast against q's batch)
     kind = True if all(topo.revolute) else topo.tensor("revolute", None, q.device).unsqueeze(-1)
+    if topo.has_spherical:  # S frames: Rz(0) here, then their rotation
+        q_full = torch.where(topo.tensor("spherical", None, q.device), torch.zeros_like(q_full), q_full)
     x, y, z, p = apply_motion(cols, q_full.unsqueeze(-1), kind)
+    if topo.has_spherical:
+        x, y, z, p = rotate_columns((x, y, z, p), spherical_rotations(q, topo), dim=-1)
     PM = stack_columns((x, y, z, p), -1)  # (..., J, 4, 4)
     A = (PM if seg.post is None else PM @ seg.post).unbind(-3)
     batch = q.shape[:-1]
@@ -229,4 +356,8 @@ def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = Fa
             F_par = torch.cat((base.unsqueeze(-3), F), dim=-3).index_select(-3, par)
             G = F_par @ PM
         out_axes, out_origins = G[..., :3, 2], G[..., :3, 3]
+        if topo.has_spherical:  # one axis per Jacobian column: x, y, z of an S frame
+            sel = topo.tensor("axis_select", None, q.device)
+            out_axes = G[..., :3, :3].transpose(-1, -2).flatten(-3, -2).index_select(-2, sel)
+            out_origins = out_origins.index_select(-2, topo.tensor("column_frame", None, q.device))
     return torch.stack(ends, dim=-3), F, out_axes, out_origins

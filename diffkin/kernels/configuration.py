@@ -1,0 +1,214 @@
+"""The configuration space: joint kinds (a table) and the manifold operations on q (the only encodings).
+
+A joint of every kind is a short sequence of *elementary motions*, each of which the tree product
+(:mod:`diffkin.kernels.tree`) knows how to apply to a frame, in the way Pinocchio and MuJoCo model joints:
+
+* ``"R"``: a rotation about the z axis of the current frame by one angle (1 coordinate, 1 velocity);
+* ``"P"``: a translation along that z axis (1 coordinate, 1 velocity);
+* ``"S"``: a rotation by a unit quaternion (η, ε) (2.30) (4 coordinates, 3 velocities: the angular
+  velocity in the rotated, child frame, as MuJoCo's ball joints).
+
+=============  ====  ====  ==============  ==============================================================
+kind           nq    nv    motions         coordinates (MuJoCo's qpos order)
+=============  ====  ====  ==============  ==============================================================
+revolute       1     1     R               angle (rad), limited
+continuous     1     1     R               angle (rad), no limit
+prismatic      1     1     P               length (m), limited
+planar         3     3     P P R           x, y (m) in the plane normal to the axis, then the angle about it
+ball           4     3     S               unit quaternion (w, x, y, z)
+free           7     6     P P P S         position (m) in the parent frame, then a unit quaternion
+=============  ====  ====  ==============  ==============================================================
+
+The velocity of a free joint is MuJoCo's: the linear velocity in the parent (world) frame, then the angular
+velocity in the body frame; a planar joint's is the rate of its coordinates. Adding a kind is one entry of
+:data:`JOINT_KINDS` (its motions), since the kernels only see elementary motions.
+
+:class:`ConfigurationSpace` is the product of the chain's coordinates: scalars (R and P motions, additive)
+and unit quaternions (S motions). ``integrate(q, v)`` = q ⊕ v (MuJoCo's ``mj_integratePos`` with dt = 1:
+q_S ← q_S ⊗ exp(ω/2)), ``difference(q0, q1)`` its inverse (``mj_differentiatePos``: the shortest rotation),
+``interpolate`` the geodesic (slerp on the quaternions), ``neutral``, ``sample`` (uniform on the sphere),
+``normalize``. Every operation is over leading batch dims, differentiable, finite at zero rotation.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from .._numerics import safe_norm, safe_normalize, sinc
+from ..rotations import _canonical, _quaternion_multiply, _quaternion_to_rotvec
+
+__all__ = ["JointKind", "JOINT_KINDS", "joint_kind", "MOTION_NQ", "MOTION_NV", "ConfigurationSpace"]
+
+MOTION_NQ = {"R": 1, "P": 1, "S": 4}
+MOTION_NV = {"R": 1, "P": 1, "S": 3}
+
+
+@dataclass(frozen=True)
+class JointKind:
+    """One row of the table: a name, its elementary motions and whether its scalar coordinates have
+    position limits."""
+
+    name: str
+    motions: tuple[str, ...]
+    limited: bool
+
+    @property
+    def nq(self) -> int:
+        return sum(MOTION_NQ[m] for m in self.motions)
+
+    @property
+    def nv(self) -> int:
+        return sum(MOTION_NV[m] for m in self.motions)
+
+
+JOINT_KINDS: dict[str, JointKind] = {k.name: k for k in (
+    JointKind("revolute", ("R",), True),
+    JointKind("continuous", ("R",), False),
+    JointKind("prismatic", ("P",), True),
+    JointKind("planar", ("P", "P", "R"), False),
+    JointKind("ball", ("S",), False),
+    JointKind("free", ("P", "P", "P", "S"), False),
+)}
+
+
+def joint_kind(name: str) -> JointKind:
+    """The table entry of a kind name (KeyError-free: an unknown name raises ValueError naming the kinds)."""
+    try:
+        return JOINT_KINDS[name]
+    except KeyError:
+        raise ValueError(f"unknown joint kind {name!r}; known: {sorted(JOINT_KINDS)}") from None
+
+
+def _quaternion_exp(w: Tensor) -> Tensor:
+    """exp(ω/2) = (cos(θ/2), sin(θ/2) ω/θ), θ = |ω|: the rotation by the rotation vector ω ``(..., 3)`` ->
+    ``(..., 4)``; not made η ≥ 0, so that q ⊕ v is continuous in v beyond θ = π (as MuJoCo's)."""
+    theta = safe_norm(w, keepdim=True)
+    return torch.cat((torch.cos(0.5 * theta), 0.5 * sinc(0.5 * theta) * w), dim=-1)
+
+
+class ConfigurationSpace:
+    """The chain's independent coordinates as a product of scalars and unit quaternions.
+
+    Built from the motions of the independent coordinates in q order (``motions[i]`` ∈ {R, P, S}); holds
+    the index maps from q ``(..., nq)`` and v ``(..., nv)`` to the scalar and quaternion parts.
+    """
+
+    def __init__(self, motions: Sequence[str]):
+        self.motions = tuple(motions)
+        sq, sv, bq, bv = [], [], [], []
+        iq = iv = 0
+        for m in self.motions:
+            if m == "S":
+                bq.append(list(range(iq, iq + 4)))
+                bv.append(list(range(iv, iv + 3)))
+            else:
+                sq.append(iq)
+                sv.append(iv)
+            iq, iv = iq + MOTION_NQ[m], iv + MOTION_NV[m]
+        self.nq, self.nv = iq, iv
+        self._scalar_q, self._scalar_v = tuple(sq), tuple(sv)
+        self._quat_q, self._quat_v = tuple(map(tuple, bq)), tuple(map(tuple, bv))
+        self.n_quaternions = len(bq)
+        self.euclidean = not bq  # q ⊕ v = q + v: every existing 1-DOF chain
+        # the inverse permutation that puts [scalars, quaternion blocks] back into q order (and v order)
+        order_q = list(sq) + [i for b in bq for i in b]
+        order_v = list(sv) + [i for b in bv for i in b]
+        self._unperm_q = tuple(order_q.index(i) for i in range(self.nq))
+        self._unperm_v = tuple(order_v.index(i) for i in range(self.nv))
+        self._cache: dict = {}
+
+    # ------------------------------------------------------------------------------ index tensors
+    def _index(self, name: str, device) -> Tensor:
+        key = (name, device)
+        t = self._cache.get(key)
+        if t is None:
+            t = torch.tensor(getattr(self, name), dtype=torch.long, device=device)
+            self._cache[key] = t
+        return t
+
+    def _split_q(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """``(scalars (..., Ns), quaternions (..., Nb, 4))`` of ``q (..., nq)``."""
+        s = q.index_select(-1, self._index("_scalar_q", q.device))
+        b = q.index_select(-1, self._index("_quat_q", q.device).reshape(-1)).unflatten(-1, (-1, 4))
+        return s, b
+
+    def _split_v(self, v: Tensor) -> tuple[Tensor, Tensor]:
+        s = v.index_select(-1, self._index("_scalar_v", v.device))
+        b = v.index_select(-1, self._index("_quat_v", v.device).reshape(-1)).unflatten(-1, (-1, 3))
+        return s, b
+
+    def _join(self, s: Tensor, b: Tensor, which: str) -> Tensor:
+        flat = torch.cat((s, b.flatten(-2)), dim=-1)
+        return flat.index_select(-1, self._index(f"_unperm_{which}", flat.device))
+
+    # --------------------------------------------------------------------------------- operations
+    def integrate(self, q: Tensor, v: Tensor) -> Tensor:
+        """q ⊕ v: scalars q + v, quaternions q ⊗ exp(ω/2) (the angular velocity ω in the child frame, as
+        ``mj_integratePos`` with dt = 1). ``(..., nq)``, ``(..., nv)`` -> ``(..., nq)`` (batch dims
+        broadcast); the quaternions stay unit (they are normalised first)."""
+        if self.euclidean:
+            return q + v
+        q, v = _broadcast_batch(q, v)
+        s, b = self._split_q(q)
+        ds, w = self._split_v(v)
+        b = _quaternion_multiply(safe_normalize(b), _quaternion_exp(w))
+        return self._join(s + ds, b, "q")
+
+    def difference(self, q0: Tensor, q1: Tensor) -> Tensor:
+        """v with q0 ⊕ v = q1: scalars q1 − q0, quaternions the rotation vector of q0⁻¹ ⊗ q1 along the
+        shortest arc (angle ≤ π, ``mj_differentiatePos``). ``(..., nq)`` twice -> ``(..., nv)``."""
+        if self.euclidean:
+            return q1 - q0
+        q0, q1 = _broadcast_batch(q0, q1)
+        s0, b0 = self._split_q(q0)
+        s1, b1 = self._split_q(q1)
+        b0, b1 = safe_normalize(b0), safe_normalize(b1)
+        conj = torch.cat((b0[..., :1], -b0[..., 1:]), dim=-1)
+        d = _canonical(_quaternion_multiply(conj, b1))
+        return self._join(s1 - s0, _quaternion_to_rotvec(d), "v")
+
+    def interpolate(self, q0: Tensor, q1: Tensor, s: Tensor) -> Tensor:
+        """The geodesic q0 ⊕ s·(q1 ⊖ q0): linear on scalars, slerp on quaternions; ``s (...)``."""
+        s = torch.as_tensor(s, dtype=q0.dtype, device=q0.device)
+        return self.integrate(q0, s.unsqueeze(-1) * self.difference(q0, q1))
+
+    def normalize(self, q: Tensor) -> Tensor:
+        """q with its quaternions scaled to unit length (a zero quaternion becomes the identity)."""
+        if self.euclidean:
+            return q
+        s, b = self._split_q(q)
+        return self._join(s, safe_normalize(b), "q")
+
+    def neutral(self, dtype=None, device=None) -> Tensor:
+        """The neutral configuration ``(nq,)``: zero scalars, identity quaternions (1, 0, 0, 0)."""
+        s = torch.zeros(len(self._scalar_q), dtype=dtype, device=device)
+        b = torch.zeros(self.n_quaternions, 4, dtype=dtype, device=device)
+        b[:, 0] = 1.0
+        return self._join(s, b, "q")
+
+    def sample(self, lower: Tensor, upper: Tensor, shape: Sequence[int], generator=None) -> Tensor:
+        """Random configurations ``(*shape, nq)``: scalars uniform in ``[lower, upper]`` (``(Ns,)``, finite,
+        in scalar order), quaternions uniform on the unit sphere S³ (normalised Gaussians), η ≥ 0."""
+        dtype, device = lower.dtype, lower.device
+        gdev = device if generator is None else generator.device
+        u = torch.rand(*shape, len(self._scalar_q), generator=generator, dtype=dtype, device=gdev).to(device)
+        s = lower + (upper - lower) * u
+        g = torch.randn(*shape, self.n_quaternions, 4, generator=generator, dtype=dtype, device=gdev)
+        return self._join(s, _canonical(safe_normalize(g.to(device))), "q")
+
+    def scalar_index(self, which: str = "q") -> tuple[int, ...]:
+        """Positions of the scalar coordinates in q (``"q"``) or v (``"v"``)."""
+        return self._scalar_q if which == "q" else self._scalar_v
+
+    def quaternion_index(self) -> tuple[tuple[int, ...], ...]:
+        """The four q positions of each quaternion."""
+        return self._quat_q
+
+
+def _broadcast_batch(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    batch = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    return a.expand(*batch, a.shape[-1]), b.expand(*batch, b.shape[-1])

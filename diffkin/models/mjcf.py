@@ -1,0 +1,473 @@
+"""MuJoCo (MJCF) models as kinematic chains: read by MuJoCo's own compiler, learnable like a URDF chain.
+
+:func:`from_mjcf` compiles the file with the ``mujoco`` package (the ``mjcf`` extra), so default classes and
+``childclass``, ``<include>``, ``<compiler angle/eulerseq/autolimits>``, every orientation form (``quat``,
+``euler``, ``axisangle``, ``xyaxes``, ``zaxis``), ``<frame>``, joint ``pos``/``axis``/``ref`` and several
+joints in one body come out exactly as in MuJoCo. Files whose meshes, textures or height fields are absent
+still load: kinematics needs none of them, so mesh geoms become small spheres and file assets are dropped
+before compiling (:func:`compile_mjcf`).
+
+The chain is the tree of bodies between the root (the world, or ``root_link``) and the end links (bodies
+or sites), with MuJoCo's frame rule (``mj_kinematics``): a body's frame is its parent's times its
+``pos``/``quat``, then each of its joints in order. A hinge rotates about its axis through its ``pos`` by
+q − ref; a slide moves along its axis by q − ref; a ball rotates by its quaternion about its ``pos``; a free
+joint sets the body's position and orientation in the world directly. In the kernels
+(:mod:`diffkin.kernels.configuration`) a hinge is Pre = (bodies) · Trans(pos) · S, Rz, Post = Sᵀ ·
+Trans(−pos), with S taking e_z to the axis; a free joint is three translations along the world axes and a
+ball motion.
+
+q is ``(..., nq)`` in MuJoCo's qpos order for the chain's joints (``joint_names``), velocities and Jacobian
+columns ``(..., nv)`` in its qvel order: for ball and free joints the angular velocity in the body frame and
+(free) the linear velocity in the world frame, so :meth:`MJCFChain.geometric_jacobian` equals
+``mj_jacBody`` / ``mj_jacSite`` on the chain's columns. Linear ``<equality><joint polycoef>`` couplings become
+mimic joints; other equality constraints (connect, weld: closed loops) are named in a warning and not
+enforced.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import warnings
+from functools import reduce
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from ..chain import KinematicChain
+from ..errors import MissingExtraError, ModelError
+from ..kernels.joints import axis_alignment
+from ..kernels.tree import Topology
+from ..rotations import _quaternion_to_matrix
+from ..transforms import _make_transform
+from ..validation import shape_str, tensors
+
+__all__ = ["MJCFChain", "from_mjcf", "compile_mjcf"]
+
+_STAND_IN_RADIUS = 0.01  # a mesh geom becomes a sphere this big: positive, so inferred masses stay positive
+
+
+def _mujoco():
+    try:
+        import mujoco
+    except ImportError as exc:  # pragma: no cover - exercised where the extra is missing
+        raise MissingExtraError("MJCF models need the 'mujoco' package: pip install 'diffkin[mjcf]'") from exc
+    return mujoco
+
+
+def _strip_assets(spec) -> None:
+    """Mesh / height-field / SDF geoms become small spheres (kept, so pairs and sensors naming them still
+    resolve); mesh, height-field and skin assets and file textures are deleted. Body frames do not depend
+    on geoms."""
+    mujoco = _mujoco()
+    file_types = (mujoco.mjtGeom.mjGEOM_MESH, mujoco.mjtGeom.mjGEOM_HFIELD, mujoco.mjtGeom.mjGEOM_SDF)
+    for geom in spec.geoms:
+        if geom.type in file_types:
+            geom.type = mujoco.mjtGeom.mjGEOM_SPHERE
+            geom.meshname = ""
+            geom.hfieldname = ""
+            geom.size = [_STAND_IN_RADIUS, 0.0, 0.0]
+    for group in (spec.meshes, spec.hfields, spec.skins):
+        for item in list(group):
+            spec.delete(item)
+    for texture in list(spec.textures):
+        if texture.file or any(texture.cubefiles):
+            spec.delete(texture)
+    for material in spec.materials:
+        material.textures = [""] * len(material.textures)
+
+
+def _read_source(source) -> tuple[str, str | None]:
+    """``(xml text, path or None)`` of a path, XML text or bytes."""
+    if isinstance(source, bytes):
+        return source.decode("utf-8"), None
+    if isinstance(source, os.PathLike) or (isinstance(source, str) and not source.lstrip().startswith("<")):
+        path = Path(source)
+        if not path.is_file():
+            raise ModelError(f"MJCF file not found: {str(path)!r}")
+        return path.read_text(encoding="utf-8"), str(path)
+    if isinstance(source, str):
+        return source, None
+    raise ModelError(f"expected an MJCF path, XML text or bytes, got {type(source).__name__}")
+
+
+def compile_mjcf(source):
+    """``(mujoco.MjModel, xml text, path or None)`` of an MJCF path, XML text or bytes, compiled by MuJoCo
+    without the asset files it names (see the module doc). ``<include>`` files are found next to the file
+    (for XML text: relative to the working directory). MuJoCo's errors become a
+    :class:`~diffkin.errors.ModelError` naming the source."""
+    mujoco = _mujoco()
+    text, path = _read_source(source)
+    where = path or "<MJCF text>"
+    try:
+        spec = mujoco.MjSpec.from_file(path) if path else mujoco.MjSpec.from_string(text)
+        _strip_assets(spec)
+        model = spec.compile()
+    except (ValueError, mujoco.FatalError) as exc:
+        raise ModelError(f"{where}: MuJoCo could not compile the model: {exc}") from None
+    return model, text, path
+
+
+def _name(model, kind, i: int) -> str:
+    return _mujoco().mj_id2name(model, kind, i) or ""
+
+
+def _resolve_end(model, name: str) -> tuple[int, int | None]:
+    """``(body id, site id or None)`` of an end-link name: a body first, else a site."""
+    mujoco = _mujoco()
+    if not isinstance(name, str):
+        raise ModelError(f"end_link: expected a body or site name (str), got {type(name).__name__}")
+    b = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, name)
+    if b >= 0:
+        return b, None
+    s = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, name)
+    if s >= 0:
+        return int(model.site_bodyid[s]), s
+    bodies = [_name(model, mujoco.mjtObj.mjOBJ_BODY, i) for i in range(model.nbody)]
+    raise ModelError(f"end_link {name!r} is neither a body nor a site of the model (bodies: {bodies[1:12]}"
+                     f"{' ...' if len(bodies) > 12 else ''})")
+
+
+class _Builder:
+    """Walks the bodies of the paths in MuJoCo's order and lays out the frames of the tree product."""
+
+    def __init__(self, model, path_bodies: list[int], root: int):
+        self.m = model
+        self.parent = {b: int(model.body_parentid[b]) for b in path_bodies}
+        self.root = root
+        self.frames: list[dict] = []  # kind, parent, pre tokens, post tokens, joint, q slot
+        self.last_frame = {root: -1}  # body -> the last frame at or above it
+        self.pending = {root: []}  # body -> fixed body tokens since that frame
+        self.bodies: list[int] = []  # learnable body transforms (rows of body_pos / body_quat)
+        self.joints: list[int] = []  # chain joints in qpos order
+        self.axis_joints: list[int] = []  # hinge and slide joints (rows of joint_axis)
+        self.anchor_joints: list[int] = []  # hinge, slide and ball joints (rows of joint_pos)
+        for b in path_bodies:
+            self._body(b)
+
+    def _body(self, b: int) -> None:
+        mujoco = _mujoco()
+        p = self.parent[b]
+        frame, tokens = self.last_frame[p], list(self.pending[p])
+        nj, adr = int(self.m.body_jntnum[b]), int(self.m.body_jntadr[b])
+        types = [int(self.m.jnt_type[adr + k]) for k in range(nj)]
+        if mujoco.mjtJoint.mjJNT_FREE not in types:  # a free joint overrides the body's own pose
+            self.bodies.append(b)
+            tokens.append(("B", len(self.bodies) - 1))
+        for k in range(nj):
+            j, t = adr + k, types[k]
+            self.joints.append(j)
+            if t == mujoco.mjtJoint.mjJNT_FREE:
+                for axis in ("x", "y", "z"):
+                    frame = self._frame("P", frame, tokens + [("C", axis)], [("Ct", axis)], j)
+                    tokens = []
+                frame = self._frame("S", frame, [], [], j)
+                continue
+            self.anchor_joints.append(j)
+            anchor = len(self.anchor_joints) - 1
+            if t == mujoco.mjtJoint.mjJNT_BALL:
+                frame = self._frame("S", frame, tokens + [("J", anchor)], [("Jn", anchor)], j)
+            else:
+                self.axis_joints.append(j)
+                h = len(self.axis_joints) - 1
+                kind = "R" if t == mujoco.mjtJoint.mjJNT_HINGE else "P"
+                frame = self._frame(kind, frame, tokens + [("J", anchor), ("A", h)],
+                                    [("At", h), ("Jn", anchor)], j)
+            tokens = []
+        self.last_frame[b], self.pending[b] = frame, tokens
+
+    def _frame(self, kind: str, parent: int, pre: list, post: list, joint: int) -> int:
+        self.frames.append({"kind": kind, "parent": parent, "pre": pre, "post": post, "joint": joint})
+        return len(self.frames) - 1
+
+
+def _couplings(model, chain_joints: list[int]) -> tuple[dict[int, tuple[int, float, float]], list[str]]:
+    """Linear joint equalities among the chain's joints: follower -> (leader, m, b) with
+    q_follower = m q_leader + b; and the names of the equality constraints that are not enforced."""
+    mujoco = _mujoco()
+    follow, ignored = {}, []
+    inside = set(chain_joints)
+    for e in range(model.neq):
+        name = _name(model, mujoco.mjtObj.mjOBJ_EQUALITY, e) or f"equality {e}"
+        etype = int(model.eq_type[e])
+        if etype != mujoco.mjtEq.mjEQ_JOINT:
+            ignored.append(f"{name} ({mujoco.mjtEq(etype).name[5:].lower()})")
+            continue
+        j1, j2 = int(model.eq_obj1id[e]), int(model.eq_obj2id[e])
+        if j1 not in inside:
+            continue
+        c = [float(x) for x in model.eq_data[e, :5]]
+        if any(abs(x) > 0 for x in c[2:]) or (j2 >= 0 and j2 not in inside) or not model.eq_active0[e]:
+            ignored.append(f"{name} (joint, {'polynomial' if any(c[2:]) else 'leader outside the chain'})")
+            continue
+        if j2 < 0:  # joint1 held at a constant
+            ignored.append(f"{name} (joint held fixed)")
+            continue
+        y0, x0 = (float(model.qpos0[model.jnt_qposadr[j]]) for j in (j1, j2))
+        follow[j1] = (j2, c[1], y0 + c[0] - c[1] * x0)
+    return follow, ignored
+
+
+class MJCFChain(KinematicChain):
+    """A MuJoCo model from its world (or ``root_link``) to one or several end bodies or sites.
+
+    Parameters (learnable, like a URDF chain's): ``body_pos (L, 3)``, ``body_quat (L, 4)`` (normalised in
+    the kernel) of the bodies on the paths (``body_names``; bodies with a free joint have none: their pose is
+    q), ``joint_pos (A, 3)`` of the hinge, slide and ball joints, ``joint_axis (H, 3)`` of the hinge and
+    slide joints, ``site_pos``, ``site_quat`` of end sites, plus the base/tool corrections of
+    :class:`~diffkin.chain.KinematicChain`.
+
+    Attributes: ``joint_names`` (the chain's independent joints, q's order), ``joint_kinds`` (``"revolute"``,
+    ``"prismatic"``, ``"ball"``, ``"free"``, ``"continuous"``), ``qpos_index`` / ``dof_index`` (the model's
+    qpos / qvel entries of q / v), ``end_links``, ``root_link``, ``qpos0`` (the model's reference qpos).
+    """
+
+    def __init__(self, model, text: str, path: str | None, end_links, root_link: str | None = None, *,
+                 dtype: torch.dtype | None = None, device=None):
+        mujoco = _mujoco()
+        single = isinstance(end_links, str)
+        ends = [end_links] if single else list(end_links)
+        if not ends:
+            raise ModelError("end_link: give a body or site name, or a non-empty list of them")
+        if len(set(ends)) != len(ends):
+            raise ModelError(f"end_link: duplicate names in {ends}")
+        root = 0 if root_link is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root_link)
+        if root < 0:
+            raise ModelError(f"root_link {root_link!r} is not a body of the model")
+        resolved = [_resolve_end(model, e) for e in ends]
+        path_bodies: set[int] = set()
+        for (b, _), name in zip(resolved, ends):
+            chain_of, k = [], b
+            while k != root:
+                if k == 0:
+                    raise ModelError(f"end_link {name!r} does not hang below root_link {root_link!r}")
+                chain_of.append(k)
+                k = int(model.body_parentid[k])
+            path_bodies.update(chain_of)
+        build = _Builder(model, sorted(path_bodies), root)
+        if not build.joints:
+            raise ModelError(f"no joint between {root_link or 'the world'!r} and {ends}")
+        follow, ignored = _couplings(model, build.joints)
+        if ignored:
+            warnings.warn(f"{path or 'MJCF'}: equality constraints not enforced by the kinematic chain: "
+                          f"{', '.join(ignored)}", stacklevel=3)
+        self._layout(model, build, follow, resolved)
+        topo = Topology(tuple(f["parent"] for f in build.frames),
+                        tuple(f["kind"] != "P" for f in build.frames),
+                        tuple(build.last_frame[b] for b, _ in resolved), tuple(self._q_index),
+                        tuple(self._mult), tuple(self._qoff), self._nq,
+                        tuple(f["kind"] == "S" for f in build.frames))
+        limits = self._limits(model)
+        name = model.names.split(b"\0", 1)[0].decode() or Path(path or "mjcf").stem
+        super().__init__(topo, q_limits=limits, name=name, dtype=dtype, device=device, single_end=single)
+        self._set_parameters(model, build, resolved)
+        self.source_text, self.source_path = text, path
+        self.end_links, self.root_link = ends, root_link or "world"
+        self.qpos0 = torch.tensor(model.qpos0, dtype=self.dtype, device=self.device)
+        self._nq_model, self._nv_model = int(model.nq), int(model.nv)
+
+    # ------------------------------------------------------------------------------------ layout
+    def _layout(self, model, build: _Builder, follow: dict, resolved) -> None:
+        """q slots, mimic couplings and per-frame offsets (−ref of hinges and slides)."""
+        mujoco = _mujoco()
+        names, kinds, qpos_index, dof_index, slot = [], [], [], [], {}
+        nq = 0
+        for j in build.joints:
+            if j in follow:
+                continue
+            t = int(model.jnt_type[j])
+            size = {mujoco.mjtJoint.mjJNT_FREE: 7, mujoco.mjtJoint.mjJNT_BALL: 4}.get(t, 1)
+            slot[j] = nq
+            names.append(_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
+            kinds.append({mujoco.mjtJoint.mjJNT_FREE: "free", mujoco.mjtJoint.mjJNT_BALL: "ball",
+                          mujoco.mjtJoint.mjJNT_SLIDE: "prismatic"}.get(
+                t, "revolute" if model.jnt_limited[j] else "continuous"))
+            qa, da = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+            qpos_index.extend(range(qa, qa + size))
+            dof_index.extend(range(da, da + {7: 6, 4: 3}.get(size, 1)))
+            nq += size
+        if nq == 0:
+            raise ModelError("every joint of the chain is held by an equality constraint: nothing moves")
+        q_index, mult, qoff, offsets = [], [], [], []
+        seen_free: dict[int, int] = {}
+        for f in build.frames:
+            j = f["joint"]
+            ref = 0.0 if f["kind"] == "S" or int(model.jnt_type[j]) == mujoco.mjtJoint.mjJNT_FREE \
+                else float(model.qpos0[model.jnt_qposadr[j]])
+            if int(model.jnt_type[j]) == mujoco.mjtJoint.mjJNT_FREE:  # x, y, z, then the quaternion
+                k = seen_free.get(j, 0)
+                seen_free[j] = k + 1
+                q_index.append(slot[j] + k)
+            elif j in follow:
+                lead, m, b = follow[j]
+                q_index.append(slot[lead])
+                mult.append(m)
+                qoff.append(b)
+                offsets.append(-ref)
+                continue
+            else:
+                q_index.append(slot[j])
+            mult.append(1.0)
+            qoff.append(0.0)
+            offsets.append(-ref)
+        self._q_index, self._mult, self._qoff, self._nq = q_index, mult, qoff, nq
+        self._frame_offsets = offsets
+        self.joint_names, self.joint_kinds = names, kinds
+        self._qpos_index, self._dof_index = qpos_index, dof_index
+        self._followers = [(int(model.jnt_qposadr[j]), slot[lead], m, b)
+                           for j, (lead, m, b) in follow.items()]
+        vslot = {j: dof_index.index(int(model.jnt_dofadr[j])) for j in slot}
+        self._follower_dofs = [(int(model.jnt_dofadr[j]), vslot[lead], m)
+                               for j, (lead, m, _) in follow.items()]
+
+    def _limits(self, model) -> list[list[float]]:
+        """(nq, 2): hinge/slide ranges where limited, ±inf elsewhere (free positions, quaternions)."""
+        mujoco = _mujoco()
+        out = []
+        for name, kind in zip(self.joint_names, self.joint_kinds):
+            j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+            if kind in ("revolute", "prismatic") and model.jnt_limited[j]:
+                out.append([float(model.jnt_range[j, 0]), float(model.jnt_range[j, 1])])
+            else:
+                out.extend([[-math.inf, math.inf]] * {"free": 7, "ball": 4}.get(kind, 1))
+        return out
+
+    def _set_parameters(self, model, build: _Builder, resolved) -> None:
+        mujoco = _mujoco()
+        dt, dev = self.dtype, self.device
+
+        def param(rows, width):
+            t = torch.tensor(rows, dtype=torch.float64).reshape(-1, width)
+            return nn.Parameter(t.to(dtype=dt, device=dev))
+
+        self.body_names = [_name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in build.bodies]
+        self.body_pos = param([list(model.body_pos[b]) for b in build.bodies], 3)
+        self.body_quat = param([list(model.body_quat[b]) for b in build.bodies], 4)
+        self.joint_pos = param([list(model.jnt_pos[j]) for j in build.anchor_joints], 3)
+        axes = torch.tensor([list(model.jnt_axis[j]) for j in build.axis_joints], dtype=torch.float64)
+        axes = axes.reshape(-1, 3)
+        self.joint_axis = nn.Parameter(axes.to(dtype=dt, device=dev))
+        self.register_buffer("_axis_flip", (axes[:, 2] < 0).to(dev))
+        sites = [s for _, s in resolved if s is not None]
+        self.site_pos = param([list(model.site_pos[s]) for s in sites], 3)
+        self.site_quat = param([list(model.site_quat[s]) for s in sites], 4)
+        self.register_buffer("_offsets", torch.tensor(self._frame_offsets, dtype=dt, device=dev))
+        self._pre = [f["pre"] for f in build.frames]
+        self._post = [f["post"] for f in build.frames]
+        site_row = iter(range(len(sites)))
+        self._end_tokens = [list(build.pending[b]) + ([("site", next(site_row))] if s is not None else [])
+                            for b, s in resolved]
+        self._has_offsets = any(o != 0.0 for o in self._frame_offsets)
+
+    # ---------------------------------------------------------------------------------- geometry
+    def _geometry(self):
+        eye = torch.eye(4, dtype=self.body_pos.dtype, device=self.body_pos.device)
+        B = _make_transform(_quaternion_to_matrix(_unit(self.body_quat)), self.body_pos).unbind(0)
+        S = axis_alignment(self.joint_axis, self._axis_flip)
+        zero = torch.zeros_like(self.joint_axis)
+        A = _make_transform(S, zero).unbind(0)
+        At = _make_transform(S.transpose(-1, -2), zero).unbind(0)
+        I3 = eye[:3, :3].expand(self.joint_pos.shape[0], 3, 3)
+        Js = _make_transform(I3, self.joint_pos).unbind(0)
+        Jns = _make_transform(I3, -self.joint_pos).unbind(0)
+        sites = _make_transform(_quaternion_to_matrix(_unit(self.site_quat)), self.site_pos).unbind(0)
+        C = _free_axes(eye)
+        table = {"B": B, "A": A, "At": At, "J": Js, "Jn": Jns, "site": sites, "C": C[0], "Ct": C[1]}
+
+        def product(tokens):
+            return reduce(torch.matmul, [table[k][i] for k, i in tokens]) if tokens else eye
+
+        pre = torch.stack([product(t) for t in self._pre])
+        post = torch.stack([product(t) for t in self._post])
+        ends = [product(t) if t else None for t in self._end_tokens]
+        return pre, (self._offsets if self._has_offsets else None), post, ends
+
+    # ------------------------------------------------------------------------------------- qpos
+    def from_qpos(self, qpos) -> Tensor:
+        """The chain's q ``(..., nq)`` from the model's whole qpos ``(..., nq_model)``."""
+        (qpos,) = tensors(("qpos", qpos, (self._nq_model,)), like=self)
+        return qpos.index_select(-1, torch.tensor(self._qpos_index, device=qpos.device))
+
+    def to_qpos(self, q) -> Tensor:
+        """The model's qpos ``(..., nq_model)`` of the chain's ``q (..., nq)``: joints outside the chain
+        take ``qpos0``; joints coupled by an equality follow their leader."""
+        q = self.check_q(q)
+        out = self.qpos0.expand(*q.shape[:-1], self._nq_model).clone()
+        out[..., self._qpos_index] = q
+        for adr, lead, m, b in self._followers:
+            out[..., adr] = m * q[..., lead] + b
+        return out
+
+    def to_qvel(self, v) -> Tensor:
+        """The model's qvel ``(..., nv_model)`` of the chain's velocity ``v (..., nv)``: joints outside the
+        chain at rest, coupled joints at m times their leader's rate. ``J_model @ to_qvel`` as a matrix
+        (:meth:`velocity_map`) turns MuJoCo's Jacobian into the chain's."""
+        (v,) = tensors(("v", v, (self.nv,)), like=self)
+        return v @ self.velocity_map().T
+
+    def velocity_map(self) -> Tensor:
+        """``(nv_model, nv)``: qvel = M v (identity on :meth:`dof_index`, the multiplier for followers)."""
+        M = torch.zeros(self._nv_model, self.nv, dtype=self.dtype, device=self.device)
+        M[self._dof_index, torch.arange(self.nv)] = 1.0
+        for dof, lead, m in self._follower_dofs:
+            M[dof, lead] = m
+        return M
+
+    def dof_index(self) -> list[int]:
+        """The model's qvel entries of the chain's velocity columns (v and the Jacobian's columns)."""
+        return list(self._dof_index)
+
+    def qpos_index(self) -> list[int]:
+        """The model's qpos entries of the chain's q."""
+        return list(self._qpos_index)
+
+    def copy(self) -> MJCFChain:
+        import copy
+
+        fast, self._compiled_fk = self._compiled_fk, None
+        try:
+            return copy.deepcopy(self)
+        finally:
+            self._compiled_fk = fast
+
+    def extra_repr(self) -> str:
+        ends = self.end_links[0] if self._single_end else self.end_links
+        return super().extra_repr() + f", end_link={ends!r}, joints={self.joint_names}"
+
+
+def _unit(Q: Tensor) -> Tensor:
+    return Q / torch.linalg.vector_norm(Q, dim=-1, keepdim=True)
+
+
+_FREE_AXES: dict = {}
+
+
+def _free_axes(eye: Tensor) -> tuple[dict, dict]:
+    """The fixed rotations taking e_z to e_x and e_y (and back): a free joint's translations are motions
+    along z in these frames."""
+    key = (eye.dtype, eye.device)
+    if key not in _FREE_AXES:
+        Sx = torch.tensor([[0.0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]], dtype=eye.dtype,
+                          device=eye.device)  # Ry(π/2): e_z -> e_x
+        Sy = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=eye.dtype,
+                          device=eye.device)  # Rx(-π/2): e_z -> e_y
+        _FREE_AXES[key] = ({"x": Sx, "y": Sy, "z": eye}, {"x": Sx.T, "y": Sy.T, "z": eye})
+    return _FREE_AXES[key]
+
+
+def from_mjcf(source, end_link, *, root_link: str | None = None, dtype: torch.dtype | None = None,
+              device=None) -> MJCFChain:
+    """A :class:`MJCFChain` from an MJCF path, XML text or bytes, from the world (or ``root_link``, a body)
+    to ``end_link``: a body or site name, or a list of K of them for a tree whose FK is ``(..., K, 4, 4)``
+    and Jacobian ``(..., K, 6, nv)`` in that order. Several subtrees of the world (a robot and a movable
+    object) may be in one chain. Needs the ``mujoco`` package (``pip install 'diffkin[mjcf]'``).
+
+    Raises :class:`~diffkin.errors.ModelError` naming the source for files MuJoCo refuses, and naming the
+    element for unknown end links or root links.
+    """
+    model, text, path = compile_mjcf(source)
+    if isinstance(end_link, list | tuple) and not all(isinstance(e, str) for e in end_link):
+        raise ModelError(f"end_link: expected names, got {shape_str((len(end_link),))} of other types")
+    return MJCFChain(model, text, path, end_link if isinstance(end_link, str) else list(end_link),
+                     root_link, dtype=dtype or torch.get_default_dtype(), device=device)
