@@ -21,6 +21,9 @@ offsets). A transform that is the identity for every joint of a kind is returned
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
+from functools import reduce
+
 import torch
 from torch import Tensor
 
@@ -35,6 +38,8 @@ __all__ = [
     "axis_alignment",
     "general_joints",
     "pose_correction",
+    "compose_factors",
+    "translation_axes",
 ]
 
 
@@ -115,3 +120,29 @@ def pose_correction(v: Tensor) -> Tensor:
     """Δ(v) = [[R(v[3:]), v[:3]], [0, 1]]: a pose correction ``(..., 6)`` (translation in m, rotation vector
     in rad) -> ``(..., 4, 4)``; smooth at v = 0, so a learnable base or tool stays rigid for any value."""
     return _make_transform(_rotvec_to_matrix(v[..., 3:]), v[..., :3])
+
+
+def compose_factors(table: Mapping[str, Sequence[Tensor]], recipes: Sequence[Sequence[tuple]],
+                    eye: Tensor) -> list[Tensor]:
+    """Per recipe the product of its factors ``table[name][i]`` in order, each ``(4, 4)`` (the identity
+    ``eye`` for an empty recipe): how the URDF and MJCF chains build each frame's Pre and Post from their
+    parameters (origins, body poses, joint anchors, axis alignments) in one pass."""
+    return [reduce(torch.matmul, [table[k][i] for k, i in r]) if r else eye for r in recipes]
+
+
+_TRANSLATION_AXES: dict = {}
+
+
+def translation_axes(like: Tensor) -> tuple[dict[str, Tensor], dict[str, Tensor]]:
+    """``(S, Sᵀ)`` by axis name ``"x"``, ``"y"``, ``"z"``: fixed rotations taking e_z to e_x (Ry(π/2)), e_y
+    (Rx(−π/2)) and e_z, as ``(4, 4)``: the translations of free and planar joints are motions along z in
+    these frames (exact: signed permutations)."""
+    key = (like.dtype, like.device)
+    if key not in _TRANSLATION_AXES:
+        eye = torch.eye(4, dtype=like.dtype, device=like.device)
+        Sx = torch.tensor([[0.0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]], dtype=like.dtype,
+                          device=like.device)
+        Sy = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=like.dtype,
+                          device=like.device)
+        _TRANSLATION_AXES[key] = ({"x": Sx, "y": Sy, "z": eye}, {"x": Sx.T, "y": Sy.T, "z": eye})
+    return _TRANSLATION_AXES[key]

@@ -29,7 +29,6 @@ from __future__ import annotations
 import math
 import os
 import warnings
-from functools import reduce
 from pathlib import Path
 
 import torch
@@ -37,7 +36,7 @@ from torch import Tensor, nn
 
 from ..chain import KinematicChain
 from ..errors import MissingExtraError, ModelError
-from ..kernels.joints import axis_alignment
+from ..kernels.joints import axis_alignment, compose_factors, translation_axes
 from ..kernels.tree import Topology
 from ..rotations import _quaternion_to_matrix
 from ..transforms import _make_transform
@@ -372,15 +371,12 @@ class MJCFChain(KinematicChain):
         Js = _make_transform(I3, self.joint_pos).unbind(0)
         Jns = _make_transform(I3, -self.joint_pos).unbind(0)
         sites = _make_transform(_quaternion_to_matrix(_unit(self.site_quat)), self.site_pos).unbind(0)
-        C = _free_axes(eye)
-        table = {"B": B, "A": A, "At": At, "J": Js, "Jn": Jns, "site": sites, "C": C[0], "Ct": C[1]}
-
-        def product(tokens):
-            return reduce(torch.matmul, [table[k][i] for k, i in tokens]) if tokens else eye
-
-        pre = torch.stack([product(t) for t in self._pre])
-        post = torch.stack([product(t) for t in self._post])
-        ends = [product(t) if t else None for t in self._end_tokens]
+        C, Ct = translation_axes(eye)
+        table = {"B": B, "A": A, "At": At, "J": Js, "Jn": Jns, "site": sites, "C": C, "Ct": Ct}
+        pre = torch.stack(compose_factors(table, self._pre, eye))
+        post = torch.stack(compose_factors(table, self._post, eye))
+        ends = compose_factors(table, self._end_tokens, eye)
+        ends = [E if t else None for E, t in zip(ends, self._end_tokens)]
         return pre, (self._offsets if self._has_offsets else None), post, ends
 
     # ------------------------------------------------------------------------------------- qpos
@@ -438,22 +434,6 @@ class MJCFChain(KinematicChain):
 
 def _unit(Q: Tensor) -> Tensor:
     return Q / torch.linalg.vector_norm(Q, dim=-1, keepdim=True)
-
-
-_FREE_AXES: dict = {}
-
-
-def _free_axes(eye: Tensor) -> tuple[dict, dict]:
-    """The fixed rotations taking e_z to e_x and e_y (and back): a free joint's translations are motions
-    along z in these frames."""
-    key = (eye.dtype, eye.device)
-    if key not in _FREE_AXES:
-        Sx = torch.tensor([[0.0, 0, 1, 0], [0, 1, 0, 0], [-1, 0, 0, 0], [0, 0, 0, 1]], dtype=eye.dtype,
-                          device=eye.device)  # Ry(π/2): e_z -> e_x
-        Sy = torch.tensor([[1.0, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]], dtype=eye.dtype,
-                          device=eye.device)  # Rx(-π/2): e_z -> e_y
-        _FREE_AXES[key] = ({"x": Sx, "y": Sy, "z": eye}, {"x": Sx.T, "y": Sy.T, "z": eye})
-    return _FREE_AXES[key]
 
 
 def from_mjcf(source, end_link, *, root_link: str | None = None, dtype: torch.dtype | None = None,

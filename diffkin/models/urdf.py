@@ -17,24 +17,40 @@ from __future__ import annotations
 
 import copy
 import math
-from functools import reduce
 
 import torch
 from torch import nn
 
 from ..chain import KinematicChain
 from ..errors import ModelError
-from ..kernels.joints import general_joints, origin_transform, pose_correction
+from ..kernels.configuration import joint_kind
+from ..kernels.joints import (
+    axis_alignment,
+    compose_factors,
+    origin_transform,
+    pose_correction,
+    translation_axes,
+)
 from ..kernels.tree import Topology
 from ..rotations import _matrix_to_euler
+from ..transforms import _make_transform
 from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_urdf, write_urdf
 
 __all__ = ["URDFChain", "from_urdf"]
 
 
+_KIND = {"revolute": "revolute", "continuous": "continuous", "prismatic": "prismatic", "planar": "planar",
+         "floating": "free"}  # URDF joint type -> joint kind (diffkin.kernels.configuration)
+_MULTI = ("planar", "floating")
+
+
 def _moving(j: JointSpec) -> bool:
     # a <mimic> on a fixed joint (talos_reduced's grippers) does not make it move
-    return j.type in MOVING_TYPES
+    return j.type in MOVING_TYPES or j.type in _MULTI
+
+
+def _frame(kind: str, parent: int, pre: list, post: list, q: int, m: float, b: float) -> dict:
+    return {"kind": kind, "parent": parent, "pre": pre, "post": post, "q": q, "m": m, "b": b}
 
 
 def _leader(tree: URDFTree, j: JointSpec) -> tuple[JointSpec, float, float]:
@@ -55,8 +71,9 @@ class URDFChain(KinematicChain):
     """A URDF robot from a root link to one or several end links (a tree), with learnable geometry.
 
     Parameters: ``origin_xyz``, ``origin_rpy`` ``(L, 3)`` — the ``<origin>`` of every joint on the paths
-    (``joint_origin_names`` labels the rows) — and ``axis`` ``(J, 3)``, the axis of every moving joint (kept
-    unit length inside the kernel), plus the base/tool corrections of :class:`~diffkin.chain.KinematicChain`.
+    (``joint_origin_names`` labels the rows) — and ``axis`` ``(J, 3)``, the axis of every revolute,
+    continuous, prismatic and planar joint (``frame_joint_names``; kept unit length inside the kernel), plus
+    the base/tool corrections of :class:`~diffkin.chain.KinematicChain`.
 
     Attributes: ``joint_names`` (the n independent joints, the order of q's last axis), ``frame_joint_names``
     and ``link_names`` (the J moving joints in topological order, mimic followers included, and their child
@@ -66,7 +83,7 @@ class URDFChain(KinematicChain):
     """
 
     def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None):
+                 dtype: torch.dtype | None = None, device=None, floating_base: bool = False):
         single = isinstance(end_links, str)
         ends = [end_links] if single else list(end_links)
         if not ends:
@@ -77,70 +94,102 @@ class URDFChain(KinematicChain):
         used: list[JointSpec] = []  # every joint on the paths, in topological order (union of the paths)
         for path in paths:
             for j in path:
-                if j.type in ("floating", "planar"):
-                    raise ModelError(f"joint {j.name!r}: type {j.type!r} on the path to an end link is not "
-                                     f"supported (revolute, continuous, prismatic, fixed)")
                 if j not in used:
                     used.append(j)
         moving = [j for j in used if _moving(j)]
-        if not moving:
+        if not moving and not floating_base:
             raise ModelError(f"no moving joint between {root_link or tree.root!r} and {ends}")
-        frame_of = {j.name: i for i, j in enumerate(moving)}
         variables: list[JointSpec] = []
-        q_index, mult, offs = [], [], []
+        couplings = []
         for j in moving:
             lead, m, b = _leader(tree, j)
+            if lead.type in _MULTI and (lead is not j or j.mimic is not None):
+                raise ModelError(f"joint {j.name!r}: a {lead.type} joint cannot take part in a mimic")
             if lead not in variables:
                 variables.append(lead)
-            q_index.append(variables.index(lead))
-            mult.append(m)
-            offs.append(b)
+            couplings.append((lead, m, b))
+        slot, nq = {}, 7 if floating_base else 0
+        for v in variables:
+            slot[v.name] = nq
+            nq += joint_kind(_KIND[v.type]).nq
+        index = {j.name: i for i, j in enumerate(used)}
+        axis_joints = [j for j in moving if j.type != "floating"]
+        axis_row = {j.name: i for i, j in enumerate(axis_joints)}
+        frames: list[dict] = []
+        last_frame: dict[str, int] = {}  # joint name -> its last frame
+        if floating_base:  # a free joint at the root: x, y, z along the root frame's axes, then a ball
+            for k, ax in enumerate("xyz"):
+                frames.append(_frame("P", k - 1, [("C", ax)], [("Ct", ax)], k, 1.0, 0.0))
+            frames.append(_frame("S", 2, [], [], 3, 1.0, 0.0))
+        root_frame = len(frames) - 1
 
         def last_moving(path: list[JointSpec]) -> int:
-            return max((frame_of[j.name] for j in path if _moving(j)), default=-1)
+            return max((last_frame[j.name] for j in path if _moving(j)), default=root_frame)
 
-        parents = []
-        for j in moving:
+        for j, (lead, m, b) in zip(moving, couplings):
             path = next(p for p in paths if j in p)
-            parents.append(last_moving(path[: path.index(j)]))
-        topo = Topology(tuple(parents), tuple(j.type != "prismatic" for j in moving),
-                        tuple(last_moving(p) for p in paths), tuple(q_index), tuple(mult), tuple(offs),
-                        len(variables))
+            k = path.index(j)
+            start = max((i + 1 for i, s in enumerate(path[:k]) if _moving(s)), default=0)
+            origins = [("O", index[s.name]) for s in path[start : k + 1]]
+            parent, q0 = last_moving(path[:k]), slot[lead.name]
+            if j.type == "floating":  # the motion of a free joint in the joint's origin frame
+                parts = [("P", [("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
+                         ("P", [("C", "z")], [("Ct", "z")]), ("S", [], [])]
+            elif j.type == "planar":  # x, y in the plane normal to the axis, then the angle about it
+                a = axis_row[j.name]
+                parts = [("P", [("A", a), ("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
+                         ("R", [], [("At", a)])]
+            else:
+                a = axis_row[j.name]
+                parts = [("P" if j.type == "prismatic" else "R", [("A", a)], [("At", a)])]
+            for i, (kind, pre, post) in enumerate(parts):
+                frames.append(_frame(kind, parent, (origins if i == 0 else []) + pre, post,
+                                     q0 + (i if kind != "S" else 3), m, b))
+                parent = len(frames) - 1
+            last_frame[j.name] = parent
+        topo = Topology(tuple(f["parent"] for f in frames), tuple(f["kind"] != "P" for f in frames),
+                        tuple(last_moving(p) for p in paths), tuple(f["q"] for f in frames),
+                        tuple(f["m"] for f in frames), tuple(f["b"] for f in frames), nq,
+                        tuple(f["kind"] == "S" for f in frames))
+
         def limit(v: JointSpec, value: float | None, default: float) -> float:
             return default if v.type == "continuous" or value is None else value
 
-        limits = [[limit(v, v.lower, -math.inf), limit(v, v.upper, math.inf)] for v in variables]
+        limits = [[-math.inf, math.inf]] * (7 if floating_base else 0)
+        for v in variables:
+            if v.type in _MULTI:
+                limits += [[-math.inf, math.inf]] * joint_kind(_KIND[v.type]).nq
+            else:
+                limits.append([limit(v, v.lower, -math.inf), limit(v, v.upper, math.inf)])
         super().__init__(topo, q_limits=limits, name=tree.name, dtype=dtype, device=device, single_end=single)
         dtype, device = self.dtype, self.device
         self.tree = tree
         self.end_links = ends
         self.root_link = root_link or tree.root
-        self.joint_names = [v.name for v in variables]
-        self.frame_joint_names = [j.name for j in moving]
-        self.link_names = [j.child for j in moving]
+        self.floating_base = floating_base
+        self.joint_names = ["floating_base"] * floating_base + [v.name for v in variables]
+        self.joint_kinds = ["free"] * floating_base + [_KIND[v.type] for v in variables]
+        self.frame_joint_names = [j.name for j in axis_joints]
+        self.link_names = [j.child for j in axis_joints]
         self.joint_origin_names = [j.name for j in used]
-        self.origin_xyz = nn.Parameter(torch.tensor([j.xyz for j in used], dtype=dtype, device=device))
-        self.origin_rpy = nn.Parameter(torch.tensor([j.rpy for j in used], dtype=dtype, device=device))
+        self.origin_xyz = nn.Parameter(torch.tensor([j.xyz for j in used], dtype=dtype, device=device)
+                                       .reshape(-1, 3))
+        self.origin_rpy = nn.Parameter(torch.tensor([j.rpy for j in used], dtype=dtype, device=device)
+                                       .reshape(-1, 3))
         # optional local corrections (L, 6) (translation, rotation vector): origin · Δ(δ), singularity-free
         # where rpy is at gimbal lock; a buffer (None by default), set by calibration, folded in by
         # fold_origins
         self.register_buffer("origin_delta", None)
-        axes = torch.tensor([j.axis for j in moving], dtype=torch.float64)
+        axes = torch.tensor([j.axis for j in axis_joints], dtype=torch.float64).reshape(-1, 3)
         unit = axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)
         self.axis = nn.Parameter(unit.to(device=device, dtype=dtype))
         self.register_buffer("_axis_flip", (axes[:, 2] < 0).to(device))
-        # which origins make up each moving joint's Pre and each end link's fixed tail (indices into used)
-        index = {j.name: i for i, j in enumerate(used)}
-        self._pre_origins, self._end_origins = [], []
-        for j in moving:
-            path = next(p for p in paths if j in p)
-            k = path.index(j)
-            start = max((i + 1 for i, s in enumerate(path[:k]) if _moving(s)), default=0)
-            self._pre_origins.append([index[s.name] for s in path[start : k + 1]])
+        self._pre = [f["pre"] for f in frames]
+        self._post = [f["post"] for f in frames]
+        self._end_origins = []
         for path in paths:
             start = max((i + 1 for i, s in enumerate(path) if _moving(s)), default=0)
-            self._end_origins.append([index[s.name] for s in path[start:]])
-        self._moving_rows = [index[j.name] for j in moving]
+            self._end_origins.append([("O", index[s.name]) for s in path[start:]])
 
     def _origins(self):
         O = origin_transform(self.origin_xyz, self.origin_rpy)  # (L, 4, 4)
@@ -159,12 +208,17 @@ class URDFChain(KinematicChain):
 
     def _geometry(self):
         O = self._origins()  # (L, 4, 4)
-        Os = O.unbind(0)
-        pre_o = torch.stack([reduce(torch.matmul, [Os[i] for i in idx]) for idx in self._pre_origins])
-        pre, post = general_joints(torch.zeros_like(self.axis), torch.zeros_like(self.axis), self.axis,
-                                   self._axis_flip)
-        ends = [reduce(torch.matmul, [Os[i] for i in idx]) if idx else None for idx in self._end_origins]
-        return pre_o @ pre, None, post, ends
+        eye = torch.eye(4, dtype=O.dtype, device=O.device)
+        S = axis_alignment(self.axis, self._axis_flip)
+        zero = torch.zeros_like(self.axis)
+        C, Ct = translation_axes(eye)
+        table = {"O": O.unbind(0), "A": _make_transform(S, zero).unbind(0),
+                 "At": _make_transform(S.transpose(-1, -2), zero).unbind(0), "C": C, "Ct": Ct}
+        pre = torch.stack(compose_factors(table, self._pre, eye))
+        post = torch.stack(compose_factors(table, self._post, eye))
+        ends = [E if r else None for E, r in zip(compose_factors(table, self._end_origins, eye),
+                                                  self._end_origins)]
+        return pre, None, post, ends
 
     # ------------------------------------------------------------------------------------- helpers
     def copy(self) -> URDFChain:
@@ -217,16 +271,21 @@ class URDFChain(KinematicChain):
 
 
 def from_urdf(source, end_link: str | list[str], *, root_link: str | None = None,
-              dtype: torch.dtype | None = None, device=None) -> URDFChain:
+              dtype: torch.dtype | None = None, device=None, floating_base: bool = False) -> URDFChain:
     """A :class:`URDFChain` from a URDF file path, XML text (str or bytes; an XML encoding declaration is
     fine) or a parsed :class:`~diffkin.models.urdf_xml.URDFTree`, from ``root_link`` (default: the tree's
     root) to ``end_link`` — a link name, or a list of K link names for a tree whose FK is ``(..., K, 4, 4)``
-    and Jacobian ``(..., K, 6, n)`` in that order.
+    and Jacobian ``(..., K, 6, nv)`` in that order.
 
-    Revolute, continuous (no joint limit: IK wraps them) and prismatic joints move; fixed joints keep their
-    origin as parameters; ``<mimic>`` joints follow their leader (on any branch) and are not variables.
-    Raises :class:`~diffkin.errors.ModelError` naming the joint or link for invalid files (missing links, a
-    link with two parents, duplicate names, loops), a floating or planar joint on a path, or an unknown link.
+    Revolute, continuous (no joint limit: IK wraps them) and prismatic joints move; ``floating`` joints are
+    free joints (q: position, then a unit quaternion (w, x, y, z); v: linear velocity in the joint's parent
+    frame, angular velocity in the child frame, as MuJoCo's) and ``planar`` joints three coordinates (x, y
+    in the plane normal to the axis, then the angle about it); fixed joints keep their origin as
+    parameters; ``<mimic>`` joints follow their leader (on any branch) and are not variables.
+    ``floating_base=True`` puts a free joint at the root (q starts with its seven coordinates; a humanoid's
+    pelvis in the world). Raises :class:`~diffkin.errors.ModelError` naming the joint or link for invalid
+    files (missing links, a link with two parents, duplicate names, loops) or an unknown link.
     """
     tree = source if isinstance(source, URDFTree) else parse_urdf(source)
-    return URDFChain(tree, end_link, root_link, dtype=dtype or torch.get_default_dtype(), device=device)
+    return URDFChain(tree, end_link, root_link, dtype=dtype or torch.get_default_dtype(), device=device,
+                     floating_base=floating_base)
