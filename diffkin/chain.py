@@ -43,7 +43,7 @@ from .kernels.configuration import ConfigurationSpace
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
 from .kernels.tree import Segments, Topology, column_frames, matrix_frames
-from .transforms import as_rigid_transform
+from .transforms import as_rigid_transform, check_transform
 from .validation import (
     SUPPORTED_DTYPES,
     as_tensor,
@@ -406,19 +406,34 @@ class KinematicChain(nn.Module):
         return T.squeeze(-3) if self._single_end else T
 
     # -------------------------------------------------------------------------------------------- FK
-    def forward_kinematics(self, q: Tensor, all_frames: bool = False, check: bool = True) -> Tensor:
+    def _row_base(self, base, check: bool) -> Tensor:
+        """Per-row base poses ``(..., 4, 4)`` by the rule (the chain's dtype and device), checked rigid."""
+        (base,) = tensors(("base", base, (4, 4)), like=self)
+        return check_transform(base, "base") if check else base
+
+    def _in_world(self, T: Tensor, base: Tensor, per_end: bool) -> Tensor:
+        return base @ T if not per_end else base.unsqueeze(-3) @ T
+
+    def forward_kinematics(self, q: Tensor, all_frames: bool = False, check: bool = True,
+                           base: Tensor | None = None) -> Tensor:
         """Direct kinematics T = base · A1(q1) ··· An(qn) · tool  (2.50)–(2.51), on a tree for every end link.
 
         Args:
-            q: joint variables ``(..., n)`` (rad for revolute, m for prismatic joints).
+            q: joint variables ``(..., nq)`` (rad for revolute, m for prismatic joints, unit quaternions for
+                ball and free joints).
             all_frames: if True return ``(..., J + 1, 4, 4)``: the base frame and the frame of every joint
                 (its child link; J = n without mimic joints). For a chain with one end link the last one is
                 the end-effector pose (tool applied).
             check: validate ``q`` (shape, dtype, finiteness). Disable only in inner loops on trusted input.
+            base: per-row poses of the chain's base in the world ``(..., 4, 4)`` (broadcasting with q's
+                batch): T_world = base · T, so robots at different places are one call.
 
         Returns:
             ``(..., 4, 4)`` for a chain with one end link, ``(..., K, 4, 4)`` for K end links.
         """
+        if base is not None:
+            T = self.forward_kinematics(q, all_frames, check)
+            return self._in_world(T, self._row_base(base, check), all_frames or not self._single_end)
         if check:
             q = self.check_q(q, finite=False)
         if _autocast(q):  # poses in the chain's dtype: half precision would move a Panda's flange by mm
@@ -489,14 +504,21 @@ class KinematicChain(nn.Module):
         params = self.parameters()
         return torch.is_grad_enabled() and (q.requires_grad or any(p.requires_grad for p in params))
 
-    def fk_jacobian(self, q: Tensor, check: bool = True) -> tuple[Tensor, Tensor]:
+    def fk_jacobian(self, q: Tensor, check: bool = True, base: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """End poses and geometric Jacobians (3.30) from one pass: ``(T (..., [K,] 4, 4),
-        J (..., [K,] 6, n))``.
+        J (..., [K,] 6, nv))``. ``base`` (per-row world poses of the base ``(..., 4, 4)``): T in the world
+        and J's rows rotated into it, diag(R, R) J.
 
         Large CPU batches without autograd run in slices of 8192 configurations per intra-op thread through
         the batch-last path, written straight into the outputs: every value is computed as for the whole
         batch (all operations are per configuration), but the frames and rows stay in cache.
         """
+        if base is not None:
+            T, J = self.fk_jacobian(q, check)
+            B = self._row_base(base, check)
+            R = B[..., :3, :3] if self._single_end else B[..., None, :3, :3]
+            J = torch.cat((R @ J[..., :3, :], R @ J[..., 3:, :]), dim=-2)
+            return self._in_world(T, B, not self._single_end), J
         if check:
             q = self.check_q(q, finite=False)
         if _autocast(q):

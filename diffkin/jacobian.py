@@ -160,17 +160,28 @@ def _point_offset(point, point_frame: str, T_ee: Tensor) -> Tensor | None:
 
 # ------------------------------------------------------------------------------ geometric Jacobian
 def forward_kinematics_and_jacobian(
-    chain, q: Tensor, frame=None, point: Tensor | None = None, point_frame: str = "ee", check: bool = True
+    chain, q: Tensor, frame=None, point: Tensor | None = None, point_frame: str = "ee", check: bool = True,
+    base: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """End-effector pose ``T (..., 4, 4)`` and geometric Jacobian ``J (..., 6, n)`` from one FK pass.
 
     See :func:`geometric_jacobian` for the options. ``T`` is always the end-effector (tool) pose in the base
-    frame, whatever ``point``/``frame`` say.
+    frame, whatever ``point``/``frame`` say; with ``base`` (per-row world poses of the base, ``(..., 4, 4)``)
+    the pose and the Jacobian are in the world (``point_frame="base"`` then means the world).
     """
+    if base is not None:
+        if frame is not None or point is not None:
+            q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
+        T_ee, J = chain.fk_jacobian(q, check=check, base=base)
+        return _jacobian_options(T_ee, J, frame, point, point_frame)
     if frame is None and point is None:  # the plain call: the chain checks q itself (the same rule)
         return chain.fk_jacobian(q, check=check)
     q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
     T_ee, J = chain.fk_jacobian(q, check=False)
+    return _jacobian_options(T_ee, J, frame, point, point_frame)
+
+
+def _jacobian_options(T_ee: Tensor, J: Tensor, frame, point, point_frame: str) -> tuple[Tensor, Tensor]:
     r = _point_offset(point, point_frame, T_ee)
     if r is not None:
         J = _shift_jacobian_point(J, r)
@@ -181,7 +192,8 @@ def forward_kinematics_and_jacobian(
 
 
 def geometric_jacobian(
-    chain, q: Tensor, frame=None, point: Tensor | None = None, point_frame: str = "ee", check: bool = True
+    chain, q: Tensor, frame=None, point: Tensor | None = None, point_frame: str = "ee", check: bool = True,
+    base: Tensor | None = None,
 ) -> Tensor:
     """Geometric Jacobian (3.29)–(3.30): ``q (..., n)`` -> ``J (..., 6, n)``, rows [linear; angular].
 
@@ -198,8 +210,10 @@ def geometric_jacobian(
             like a tool translation); ``"base"``: ``point`` is a position in the base frame.
         check: validate ``q`` (by the rule of :mod:`diffkin.validation`, in the chain's dtype and device;
             ``point`` and a tensor ``frame`` are always validated).
+        base: per-row world poses of the chain's base ``(..., 4, 4)``: the Jacobian in the world,
+            diag(R, R) J.
     """
-    return forward_kinematics_and_jacobian(chain, q, frame, point, point_frame, check)[1]
+    return forward_kinematics_and_jacobian(chain, q, frame, point, point_frame, check, base)[1]
 
 
 # ------------------------------------------------------------------------------------------- J̇ q̇

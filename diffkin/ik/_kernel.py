@@ -67,9 +67,20 @@ class JointMap:
         rev = torch.tensor([t == "R" for t in chain.joint_types], device=device).view(-1, 1)
         self.rev = rev
         limited = chain.q_limits is not None and respect_limits
-        bounded = ~(rev & (hi - lo >= 2 * math.pi)) if limited else torch.zeros_like(rev)
+        # bounded: a finite range that is not a full turn (quaternions and free positions have none)
+        finite = torch.isfinite(chain.q_limits).all(-1).view(-1, 1).to(device) if limited else None
+        bounded = (~(rev & (hi - lo >= 2 * math.pi)) & finite) if limited else torch.zeros_like(rev)
         self.bounded = bounded
         self.any_bounded = bool(bounded.any())
+        # ball and free joints: LM steps v (nv) move u on the manifold (u = q there: unit quaternions)
+        self.space = chain.configuration_space
+        self.euclidean = self.space.euclidean
+        sv = list(self.space.scalar_index("v"))
+        sq = torch.tensor(self.space.scalar_index("q"), device=device)
+        self._v_bounded = torch.zeros(chain.nv, 1, dtype=torch.bool, device=device)
+        self._v_bounded[sv] = bounded.index_select(0, sq)
+        self._v_of_q = sq  # q rows of the scalar velocity columns
+        self._sv = torch.tensor(sv, device=device)
 
     def q_of_u(self, u: Tensor) -> Tensor:
         if not self.any_bounded:
@@ -77,12 +88,26 @@ class JointMap:
         return torch.where(self.bounded, self.c + self.h * torch.sin(u), u)
 
     def dq_du(self, u: Tensor) -> Tensor | None:
+        """The chain rule factor of each Jacobian column ``(nv, m)`` (None: all ones)."""
         if not self.any_bounded:
             return None
-        return torch.where(self.bounded, self.h * torch.cos(u), torch.ones_like(u))
+        d = torch.where(self.bounded, self.h * torch.cos(u), torch.ones_like(u))
+        if self.euclidean:
+            return d
+        out = torch.ones(self._v_bounded.shape[0], u.shape[1], dtype=u.dtype, device=u.device)
+        return out.index_copy(0, self._sv, d.index_select(0, self._v_of_q))
+
+    def step(self, u: Tensor, du: Tensor) -> Tensor:
+        """u ⊕ du for an LM step ``du (nv, m)``: u + du on 1-DOF chains, the configuration space's
+        integrate on chains with ball or free joints (batch last)."""
+        if self.euclidean:
+            return u + du
+        return self.space.integrate(u.T, du.T).T
 
     def u_of_q(self, q: Tensor) -> Tensor:
         """Inverse map for seeds; q is clamped into the limits first (slightly inside, so cos(u) != 0)."""
+        if not self.euclidean:
+            q = self.space.normalize(q.T).T
         if not self.any_bounded:
             return q
         s = ((q - self.c) / self.h).clamp(-1.0, 1.0) * (1.0 - 1e-6)
@@ -92,11 +117,20 @@ class JointMap:
         """Wrap revolute joints by 2π towards the range centre; clamp into the limits if ``clamp``."""
         two_pi = 2.0 * math.pi
         q = torch.where(self.rev, q - two_pi * torch.round((q - self.c) / two_pi), q)
-        return torch.maximum(torch.minimum(q, self.hi), self.lo) if clamp else q
+        if not self.euclidean:
+            q = self.space.normalize(q.T).T
+        return torch.where(self.bounded, torch.maximum(torch.minimum(q, self.hi), self.lo), q) if clamp else q
 
     def sample_u(self, m: int, generator) -> Tensor:
         gdev = self.lo.device if generator is None else generator.device
         r = torch.rand(self.lo.shape[0], m, generator=generator, dtype=self.lo.dtype, device=gdev)
         r = r.to(self.lo.device)
         # uniform in q: u = asin(2r - 1) on bounded joints
-        return torch.where(self.bounded, torch.asin((2.0 * r - 1.0) * (1.0 - 1e-6)), self.lo + 2 * self.h * r)
+        u = torch.where(self.bounded, torch.asin((2.0 * r - 1.0) * (1.0 - 1e-6)), self.lo + 2 * self.h * r)
+        if self.euclidean:
+            return u
+        # quaternions uniform on S³ (normalised Gaussians, drawn from the same generator)
+        g = torch.randn(u.shape, generator=generator, dtype=u.dtype, device=gdev).to(u.device)
+        for iq in self.space.quaternion_index():
+            u[list(iq)] = g[list(iq)]
+        return self.space.normalize(u.T).T

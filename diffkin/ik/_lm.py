@@ -216,7 +216,7 @@ class _Run:
             dqdu = self.jmap.dq_du(u)
             if dqdu is not None:  # chain rule through q = c + h sin(u)
                 Jw = Jw * dqdu.unsqueeze(1)
-            u_eval, u = u, u + dls_solve(Jw, e, lam, layout="batch_last") * (~conv)
+            u_eval, u = u, self.jmap.step(u, dls_solve(Jw, e, lam, layout="batch_last") * (~conv))
         merit = pn / tp if self.tg.position_only else torch.maximum(pn / tp, ang / to)
         return u, u_eval, conv, merit, 0, None
 

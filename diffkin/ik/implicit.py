@@ -60,7 +60,7 @@ def _task_jacobian(chain, q: Tensor, position_only: bool, orientation_weight: fl
         J = J[..., :3, :]
     else:
         J = torch.cat((J[..., :3, :], orientation_weight**0.5 * J[..., 3:, :]), dim=-2)
-    return J.reshape(*q.shape[:-1], -1, q.shape[-1])
+    return J.reshape(*q.shape[:-1], -1, J.shape[-1])  # (nv columns: ball and free joints count three)
 
 
 class _AtSolution(torch.autograd.Function):
@@ -84,6 +84,7 @@ class _ImplicitSolve(_AtSolution):
             # a floor far below the solver's damping: invisible for a well-conditioned J, finite at singular
             # solutions; float32 needs more (its Gram matrix has ~7 digits)
             lam = lam * 1e-4 + 10.0 * torch.finfo(J.dtype).eps
+            g = chain.configuration_space.pullback(q, g)  # dq = (∂q/∂v) dv on ball and free joints
             # u = (J⁺)ᵀ g = (JJᵀ + λI)⁻¹ J g = J (JᵀJ + λI)⁻¹ g: the kernel's DLS solve on Jᵀ
             u = dls_solve(J.transpose(-1, -2), g, lam) * success.unsqueeze(-1).to(g.dtype)
         wrt_T = T_target.requires_grad or ctx.needs_input_grad[1]

@@ -126,6 +126,22 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     return batch, T_target, Targets(cols[3], cols[0], cols[1], cols[2])
 
 
+def _targets_in_base(chain, T_target: Tensor, base, position_only: bool) -> Tensor:
+    """World targets in the chain's base frame: base⁻¹ T (poses) or Rᵀ (p − t) (positions), per row; the
+    K end links of a tree share their row's base."""
+    B = chain._row_base(base, True)
+    R, t = B[..., :3, :3], B[..., :3, 3]
+    per_end = not chain.single_end
+    if per_end:
+        R, t = R.unsqueeze(-3), t.unsqueeze(-2)
+    Rt = R.transpose(-1, -2)
+    if position_only and T_target.shape[-1] == 3:
+        return (Rt @ (T_target - t).unsqueeze(-1)).squeeze(-1)
+    out = torch.cat((Rt @ T_target[..., :3, :], T_target[..., 3:, :].expand(*Rt.shape[:-2], 1, 4)), dim=-2)
+    out[..., :3, 3] = (Rt @ (T_target[..., :3, 3] - t).unsqueeze(-1)).squeeze(-1)
+    return out
+
+
 def _valid_targets(chain, T_target) -> Tensor:
     """T_target by the rule of :mod:`diffkin.validation`: the chain's dtype and device, finite."""
     return tensors(("T_target", T_target, None), like=chain)[0]
@@ -198,6 +214,7 @@ def solve(
     seed: int | None = None,
     progress: bool = False,
     seeds_from_closed_form: bool = False,
+    base: Tensor | None = None,
 ) -> IKResult:
     """Batched inverse kinematics by Levenberg–Marquardt with joint limits and restarts.
 
@@ -220,6 +237,8 @@ def solve(
             within the limits first, then valid ones, then the rest), ahead of ``q0`` if given: exact,
             all-branch-aware solving (LM only polishes). Raises :class:`~diffkin.errors.ModelError` when the
             chain has no closed form (see :func:`~diffkin.ik.identify_structure`).
+        base: per-target world poses of the chain's base ``(..., 4, 4)`` (broadcasting with the target
+            batch): ``T_target`` is then in the world (robots at different places in one call).
 
     Returns:
         :class:`IKResult` with per-target ``q``, ``success``, errors (from an exact FK in the chain's dtype),
@@ -247,6 +266,8 @@ def solve(
         cfg = dataclasses.replace(cfg, damping=float(damping))
     dtype, device = _compute_dtype(chain, cfg, min(position_tolerance, orientation_tolerance)), chain.device
     T_target = _valid_targets(chain, T_target)
+    if base is not None:
+        T_target = _targets_in_base(chain, T_target, base, position_only)
     batch, T_orig, tg = _targets(chain, T_target, position_only, dtype)
     N = math.prod(batch)
     if seeds_from_closed_form:

@@ -200,6 +200,27 @@ class ConfigurationSpace:
         g = torch.randn(*shape, self.n_quaternions, 4, generator=generator, dtype=dtype, device=gdev)
         return self._join(s, _canonical(safe_normalize(g.to(device))), "q")
 
+    def tangent_map(self, q: Tensor) -> Tensor:
+        """∂(q ⊕ v)/∂v at v = 0, ``(..., nq, nv)``: the identity on scalars, ½ Q ⊗ (0, e_k) on each
+        quaternion Q (how a velocity moves q; its transpose pulls a gradient w.r.t. q back to v)."""
+        eye = torch.eye(self.nv, dtype=q.dtype, device=q.device)
+        if self.euclidean:
+            return eye.expand(*q.shape[:-1], self.nv, self.nv)
+        M = q.new_zeros(*q.shape[:-1], self.nq, self.nv)
+        M[..., list(self._scalar_q), list(self._scalar_v)] = 1.0
+        pure = torch.cat((torch.zeros_like(eye[:3, :1]), eye[:3, :3]), dim=-1)  # (0, e_k) as rows (3, 4)
+        for iq, iv in zip(self._quat_q, self._quat_v):
+            Q = safe_normalize(q[..., list(iq)]).unsqueeze(-2)  # (..., 1, 4)
+            cols = 0.5 * _quaternion_multiply(Q, pure)  # (..., 3, 4): ½ Q ⊗ (0, e_k)
+            M[..., iq[0]:iq[0] + 4, iv[0]:iv[0] + 3] = cols.transpose(-1, -2)
+        return M
+
+    def pullback(self, q: Tensor, g: Tensor) -> Tensor:
+        """A gradient w.r.t. q ``(..., nq)`` as one w.r.t. v ``(..., nv)`` (the transposed tangent map)."""
+        if self.euclidean:
+            return g
+        return (g.unsqueeze(-2) @ self.tangent_map(q)).squeeze(-2)
+
     def scalar_index(self, which: str = "q") -> tuple[int, ...]:
         """Positions of the scalar coordinates in q (``"q"``) or v (``"v"``)."""
         return self._scalar_q if which == "q" else self._scalar_v
