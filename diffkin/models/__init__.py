@@ -16,6 +16,7 @@ import yaml
 from ..chain import DHChain
 from ..errors import ModelError
 from .io import chain_to_dict, parse_value
+from .mjcf import MJCFChain, from_mjcf
 from .urdf import URDFChain, from_urdf
 from .workspace import sample_workspace
 
@@ -25,6 +26,8 @@ __all__ = [
     "source",
     "model_path",
     "from_urdf",
+    "from_mjcf",
+    "MJCFChain",
     "URDFChain",
     "sample_workspace",
     "parse_value",
@@ -80,6 +83,9 @@ def load(name_or_path, dtype: torch.dtype | None = None, device=None) -> DHChain
         return chain_from_yaml(Path(name_or_path), dtype=dtype, device=device)
     if isinstance(name_or_path, str) and name_or_path.endswith(".urdf"):
         raise ModelError(f"{name_or_path!r} is a URDF: use diffkin.models.from_urdf(source, end_link)")
+    if isinstance(name_or_path, str) and name_or_path.endswith(".xml"):
+        raise ModelError(f"{name_or_path!r} is an MJCF (MuJoCo) file: use "
+                         "diffkin.models.from_mjcf(source, end_link)")
     data = _model_data(name_or_path)
     return chain_from_dict(data, dtype=dtype, device=device, where=f"{name_or_path}.yaml")
 
