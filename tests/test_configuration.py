@@ -226,3 +226,41 @@ def test_implicit_gradient_through_a_floating_base_solve():
     w = torch.randn(chain.nq, dtype=F64, generator=torch.Generator().manual_seed(9))
     (grad,) = torch.autograd.grad((res.q * w).sum(), Tg)
     assert bool(torch.isfinite(grad).all()) and float(grad.abs().sum()) > 0
+
+
+@pytest.mark.parametrize("optimizer", ["gauss_newton", "lbfgs"])
+def test_optimize_moves_on_the_manifold(optimizer):
+    chain = _floating_g1()
+    chain.requires_grad_(False)
+    g = torch.Generator().manual_seed(10)
+    q_true = chain.random_configuration(4, generator=g)
+    with torch.no_grad():
+        T = chain.forward_kinematics(q_true)
+    q_start = chain.integrate(q_true, 0.05 * torch.randn(4, chain.nv, generator=g, dtype=F64))
+    res = ik.optimize(chain, T, q_start, optimizer=optimizer)
+    assert bool(res.success.all())
+    torch.testing.assert_close(res.q[:, 3:7].norm(dim=-1), torch.ones(4, dtype=F64), atol=1e-12, rtol=0)
+    if optimizer == "lbfgs":  # a base-height cost (a callable, not least squares) pulls the pelvis to 0.8 m
+        height = ik.optimize(chain, T, q_start, optimizer=optimizer,
+                             costs=[ik.PoseCost(), lambda q, _: 10.0 * (q[..., 2] - 0.8) ** 2])
+        moved = (height.q[:, 2] - 0.8).abs() - (res.q[:, 2] - 0.8).abs()
+        assert bool((moved <= 1e-9).all()) and float(moved.min()) < 0
+    Tg = T.clone().requires_grad_(True)
+    out = ik.optimize(chain, Tg, q_start, optimizer=optimizer)
+    (grad,) = torch.autograd.grad(out.q.sum(), Tg)
+    assert bool(torch.isfinite(grad).all()) and float(grad.abs().sum()) > 0
+
+
+def test_clik_integrates_on_the_manifold():
+    chain = from_urdf(G1, "left_wrist_yaw_link", floating_base=True, dtype=F64)
+    chain.requires_grad_(False)
+    g = torch.Generator().manual_seed(11)
+    q = chain.random_configuration(3, generator=g)
+    with torch.no_grad():
+        T = chain.forward_kinematics(q)
+    q0 = chain.integrate(q, 0.1 * torch.randn(3, chain.nv, generator=g, dtype=F64))
+    res = ik.clik(chain, q0, (T.unsqueeze(-3), None), dt=0.01, steps=100, algorithm="dls")
+    assert res.q.shape == (3, 101, chain.nq) and res.qdot.shape == (3, 101, chain.nv)
+    assert float(res.position_error[:, -1].max()) < 1e-6 < float(res.position_error[:, 0].min())
+    torch.testing.assert_close(res.q[..., 3:7].norm(dim=-1), torch.ones(3, 101, dtype=F64), atol=1e-12,
+                               rtol=0)

@@ -480,7 +480,10 @@ def _as_tuple(target) -> tuple:
 
 
 def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_poses: bool) -> CLIKResult:
-    task, n = cfg.task, chain.n_joints
+    task, n, nv, space = cfg.task, chain.n_joints, chain.nv, chain.configuration_space
+    if cfg.algorithm == "second_order" and not space.euclidean:
+        raise ConventionError("algorithm='second_order' needs chains of 1-DOF joints (J̇q̇ of ball and free "
+                              "joints is not implemented); use a first-order algorithm")
     qs, qds, es, Ts = [], [], [], []
     for k in range(steps + 1):
         x_d, v_d, a_d = get(k)
@@ -497,14 +500,14 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
             qd = qd.expand(*batch, n)
             qdd = _second_order(cfg, chain, q, qd, J_t, e, v_ff, _feed(a_d, task.size, q))
         else:
-            qd = _first_order(cfg, q, J_t, e, v_ff, L).expand(*batch, n)
+            qd = _first_order(cfg, q, J_t, e, v_ff, L).expand(*batch, nv)
         qs.append(q)
         qds.append(qd)
         es.append(e[..., list(task.rows)].expand(*batch, -1))
         if return_poses:
             Ts.append(T.expand(*batch, 4, 4))
         if k < steps:
-            q_next = q + qd * dt  # (3.48)
+            q_next = space.integrate(q, qd * dt)  # (3.48); on the manifold for ball and free joints
             if cfg.algorithm == "second_order":  # q̇ bounded: a diverging run stays finite
                 qd = (qd + qdd * dt).clamp(-cfg.qdot_max, cfg.qdot_max)
             q = chain.clamp_to_limits(q_next, check=False) if clamp else q_next

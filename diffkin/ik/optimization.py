@@ -185,17 +185,22 @@ def _residual_jacobian(r: Tensor, q: Tensor, create_graph: bool = False) -> Tens
 def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
     """Levenberg–Marquardt on the stacked residuals, λ adapted per sample (accept: λ/3, reject: 4λ)."""
     lam = torch.full(q.shape[:-1], damping**2, dtype=q.dtype, device=q.device)
+    space = chain.configuration_space
     it = 0
     cost = None
     for it in range(1, iterations + 1):
-        qv = q.detach().requires_grad_(True)
+        if space.euclidean:
+            qv = wrt = q.detach().requires_grad_(True)
+        else:  # ball / free joints: the step is a velocity v at q, re-based every iteration (q ⊕ v)
+            wrt = q.new_zeros(*q.shape[:-1], space.nv).requires_grad_(True)
+            qv = space.integrate(q.detach(), wrt)
         r = _residuals(chain, terms, qv, T)
-        Jr = _residual_jacobian(r, qv)
+        Jr = _residual_jacobian(r, wrt)
         r = r.detach()
         cost = (r * r).sum(-1)
         dq = -dls_solve(Jr, r, lam)  # (JᵀJ + λI)⁻¹Jᵀr (3.59), whichever normal system is smaller
         with torch.no_grad():
-            q_new = project(q + dq)
+            q_new = project(space.integrate(q, dq))
             r_new = _residuals(chain, terms, q_new, T)
             cost_new = (r_new * r_new).sum(-1)
             accept = cost_new < cost
@@ -208,7 +213,24 @@ def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
 
 
 def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_change):
-    q = q.detach().clone(memory_format=torch.contiguous_format).requires_grad_(True)  # LBFGS views .grad flat
+    space, q0 = chain.configuration_space, q.detach()
+    if space.euclidean:
+        x = q0.clone(memory_format=torch.contiguous_format)  # LBFGS views .grad flat
+
+        def lift(x):
+            return x
+
+        project_x = project
+    else:  # ball / free joints: optimise v in the chart q0 ⊕ v, so the quaternions stay unit
+        x = q0.new_zeros(*q0.shape[:-1], space.nv)
+
+        def lift(x):
+            return space.integrate(q0, x)
+
+        def project_x(x):
+            return space.difference(q0, project(lift(x)))
+
+    q = x.requires_grad_(True)  # the optimised variable (q itself on chains of 1-DOF joints)
     if name == "lbfgs":
         opt = torch.optim.LBFGS(
             [q], lr=lr or 1.0, max_iter=10, history_size=20, line_search_fn="strong_wolfe",
@@ -220,7 +242,7 @@ def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_chan
         sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=1e-3 ** (1.0 / max(iterations, 1)))
 
     def closure():  # the gradient w.r.t. q only: the chain's parameters keep their .grad untouched
-        loss = _total(chain, terms, q, T).sum()
+        loss = _total(chain, terms, lift(q), T).sum()
         q.grad = torch.autograd.grad(loss, q)[0].contiguous()
         return loss
 
@@ -230,13 +252,13 @@ def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_chan
         if sched is not None:
             sched.step()
         with torch.no_grad():
-            q.copy_(project(q))
+            q.copy_(project_x(q))
         if it % 10 == 0:
             loss = float(loss.detach())
             if prev is not None and abs(prev - loss) <= tol_change * max(abs(loss), 1.0):
                 break
             prev = loss
-    return q.detach(), it
+    return lift(q.detach()), it
 
 
 def optimize(
@@ -261,8 +283,10 @@ def optimize(
     Args:
         chain: any :class:`~diffkin.chain.KinematicChain`.
         T_target: ``(..., 4, 4)`` poses, or ``(..., 3)`` positions when ``position_only``.
-        q0: start ``(..., n)`` (or ``(n,)``); default: the middle of the joint range. Optimisers are local:
-            for far targets start from :func:`diffkin.ik.solve` and use this to refine secondary costs.
+        q0: start ``(..., nq)`` (or ``(nq,)``); default: the middle of the joint range (identity quaternions
+            for ball and free joints). Optimisers are local: for far targets start from
+            :func:`diffkin.ik.solve` and use this to refine secondary costs. On chains with ball or free
+            joints every step moves q on the manifold (q ⊕ v, :mod:`diffkin.kernels.configuration`).
         costs: cost terms (default ``[PoseCost()]``): :class:`PoseCost`, :class:`JointLimitCost`,
             :class:`RestPostureCost`, :class:`ManipulabilityCost`, or callables ``fn(q, T_target) -> (...)``.
         optimizer: ``"lbfgs"`` / ``"adam"`` (torch.optim on the summed cost; q projected onto the limits after
@@ -310,6 +334,10 @@ def optimize(
     if seeds is None:
         lo, hi = chain.lower_upper()
         q = (0.5 * (lo + hi)).detach().expand(*batch, n).clone()
+        if not chain.configuration_space.euclidean:  # identity quaternions where the middle is 0
+            mid = chain.neutral_configuration().expand_as(q)
+            quat = torch.tensor([c == "S" for c in chain.joint_types], device=q.device)
+            q = torch.where(quat, mid, q)
     else:
         q = seeds[:, 0].reshape(*batch, n).detach().clone()
     clamp = respect_limits and chain.q_limits is not None
@@ -332,13 +360,23 @@ def optimize(
         success &= chain.within_limits(q, check=False)
     iters = torch.full(batch, it, dtype=torch.long, device=q.device)
     T_src = T_target[..., :3, 3] if position_only and T_target.shape[-2:] == (4, 4) else T_target
+    space = chain.configuration_space
     if unroll:
+        if not space.euclidean:
+            raise ConventionError("unroll differentiates additive steps: use the implicit gradient "
+                                  "(unroll=False) on chains with ball or free joints")
         q = _unrolled(chain, terms, q, T_src, torch.ones_like(success), 10 if unroll is True else int(unroll),
                       damping, lr)
-    else:
+    elif space.euclidean:
         # every sample: the returned point is stationary whether or not it meets the pose tolerances
         q = attach_stationary_gradients(chain, q, T_src, torch.ones_like(success),
                                         lambda qq, TT: _total(chain, terms, qq, TT), damping)
+    else:  # stationary in the chart v ↦ q* ⊕ v at v = 0; q = q* ⊕ v* carries dq = (∂q/∂v) dv*
+        q_star = q.detach()
+        v = attach_stationary_gradients(
+            chain, q.new_zeros(*q.shape[:-1], space.nv), T_src, torch.ones_like(success),
+            lambda vv, TT: _total(chain, terms, space.integrate(q_star, vv), TT), damping)
+        q = space.integrate(q_star, v) if v.requires_grad else q
     return IKResult(q=q, success=success, position_error=pos_err, orientation_error=ori_err, iterations=iters)
 
 
