@@ -103,7 +103,8 @@ class JointLimitCost(_Term):
 
 @dataclass(frozen=True)
 class RestPostureCost(_Term):
-    """Distance to a rest posture ``q_rest`` (broadcastable to ``(..., n)``; default: mid-range)."""
+    """Distance to a rest posture ``q_rest`` (broadcastable to ``(..., nq)``; default: mid-range): the
+    residual q ⊖ q_rest ``(..., nv)`` (the geodesic on ball and free joints)."""
 
     q_rest: Tensor | None = None
 
@@ -113,7 +114,8 @@ class RestPostureCost(_Term):
             rest = 0.5 * (lo + hi)
         else:
             rest = torch.as_tensor(self.q_rest, dtype=ctx.q.dtype, device=ctx.q.device)
-        return ctx.q - rest
+        # q ⊖ rest: q − rest on 1-DOF joints, the rotation vector between the quaternions of ball/free ones
+        return ctx.chain.configuration_space.difference(rest.expand_as(ctx.q), ctx.q)
 
 
 @dataclass(frozen=True)
