@@ -35,7 +35,7 @@ import torch
 from torch import Tensor, nn
 
 from ..chain import KinematicChain
-from ..errors import MissingExtraError, ModelError
+from ..errors import ModelError, require
 from ..kernels.joints import axis_alignment, compose_factors, translation_axes
 from ..kernels.tree import Topology
 from ..rotations import _quaternion_to_matrix
@@ -48,11 +48,7 @@ _STAND_IN_RADIUS = 0.01  # a mesh geom becomes a sphere this big: positive, so i
 
 
 def _mujoco():
-    try:
-        import mujoco
-    except ImportError as exc:  # pragma: no cover - exercised where the extra is missing
-        raise MissingExtraError("MJCF models need the 'mujoco' package: pip install 'diffkin[mjcf]'") from exc
-    return mujoco
+    return require("mujoco", "mjcf", "MJCF models")
 
 
 def _strip_assets(spec) -> None:
