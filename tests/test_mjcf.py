@@ -234,3 +234,31 @@ def test_geometry_is_learnable():
     for name in ("body_pos", "body_quat", "joint_pos", "joint_axis", "site_pos"):
         g = getattr(chain, name).grad
         assert g is not None and bool(torch.isfinite(g).all()) and bool(g.abs().sum() > 0), name
+
+
+def test_geometry_fit_through_fk():
+    """Fitting an MJCF chain's body offsets by gradient descent through FK recovers a 2 mm perturbation."""
+    path = DATA / "mjcf" / "universal_robots_ur5e" / "ur5e.xml"
+    true = from_mjcf(path, "wrist_3_link").requires_grad_(False)
+    g = torch.Generator().manual_seed(12)
+    with torch.no_grad():
+        true.body_pos.add_(0.002 * torch.randn(true.body_pos.shape, generator=g, dtype=torch.float64))
+    fit = from_mjcf(path, "wrist_3_link").requires_grad_(False)
+    fit.body_pos.requires_grad_(True)
+    q, q_test = fit.random_configuration(40, generator=g), fit.random_configuration(200, generator=g)
+    with torch.no_grad():
+        p, p_test = true.forward_kinematics(q)[..., :3, 3], true.forward_kinematics(q_test)[..., :3, 3]
+    opt = torch.optim.LBFGS([fit.body_pos], max_iter=200, line_search_fn="strong_wolfe")
+
+    def closure():
+        opt.zero_grad()
+        loss = (fit.forward_kinematics(q)[..., :3, 3] - p).square().sum()
+        loss.backward()
+        return loss
+
+    with torch.no_grad():
+        before = float((fit.forward_kinematics(q_test)[..., :3, 3] - p_test).norm(dim=-1).max())
+    opt.step(closure)
+    with torch.no_grad():
+        after = float((fit.forward_kinematics(q_test)[..., :3, 3] - p_test).norm(dim=-1).max())
+    assert before > 1e-3 and after < 1e-5  # 13.6 mm -> 2.6 µm held out (position-only data)
