@@ -82,8 +82,8 @@ def run(args) -> list[dict]:
                     qpos = chain.to_qpos(q[: min(batch, 5_000)]).numpy()
                     t_mj = _mujoco_per_row(xml, qpos)
                     rows.append({"benchmark": "MJCF FK, every body", "model": label,
-                                 "impl": "mujoco mj_kinematics (loop)", "dtype": "float64", "batch": len(qpos),
-                                 "bodies": len(bodies), "us_per_row": 1e6 * t_mj})
+                                 "impl": "mujoco mj_kinematics (loop)", "dtype": "float64",
+                                 "batch": len(qpos), "bodies": len(bodies), "us_per_row": 1e6 * t_mj})
                     rows[-2]["ratio_vs_mujoco"] = t_mj / (t / batch)
             if label == "G1 fixed pelvis":
                 rows += _pk_rows(xml, batch, min_time, repeats, rows)
@@ -111,9 +111,9 @@ def _pk_rows(xml: str, batch: int, min_time: float, repeats: int, rows: list[dic
         ours = next(r for r in rows if r["model"] == "G1 fixed pelvis" and r["impl"] == "diffkin"
                     and r["dtype"] == str(dtype).replace("torch.", ""))
         ours["speedup_vs_pk"] = t / (ours["us_per_row"] * 1e-6 * batch)
-        out.append({"benchmark": "MJCF FK, every body", "model": "G1 fixed pelvis", "impl": "pytorch-kinematics",
-                    "dtype": str(dtype).replace("torch.", ""), "batch": batch, "bodies": ours["bodies"],
-                    "us_per_row": 1e6 * t / batch})
+        out.append({"benchmark": "MJCF FK, every body", "model": "G1 fixed pelvis",
+                    "impl": "pytorch-kinematics", "dtype": str(dtype).replace("torch.", ""), "batch": batch,
+                    "bodies": ours["bodies"], "us_per_row": 1e6 * t / batch})
     return out
 
 

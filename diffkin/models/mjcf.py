@@ -258,6 +258,11 @@ class MJCFChain(KinematicChain):
         super().__init__(topo, q_limits=limits, name=name, dtype=dtype, device=device, single_end=single)
         self._set_parameters(model, build, resolved)
         self.source_text, self.source_path = text, path
+        geometry = ("body_pos", "body_quat", "joint_pos", "joint_axis", "site_pos", "site_quat")
+        self._compiled0 = {k: getattr(self, k).detach().double().cpu().clone() for k in geometry}
+        self._joint_rows = ([_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in self._anchor_joints],
+                            [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in self._axis_joints])
+        self.site_names = [_name(model, mujoco.mjtObj.mjOBJ_SITE, s) for _, s in resolved if s is not None]
         self.end_links, self.root_link = ends, root_link or "world"
         self.qpos0 = torch.tensor(model.qpos0, dtype=self.dtype, device=self.device)
         self._nq_model, self._nv_model = int(model.nq), int(model.nv)
@@ -337,6 +342,7 @@ class MJCFChain(KinematicChain):
             return nn.Parameter(t.to(dtype=dt, device=dev))
 
         self.body_names = [_name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in build.bodies]
+        self._anchor_joints, self._axis_joints = list(build.anchor_joints), list(build.axis_joints)
         self.body_pos = param([list(model.body_pos[b]) for b in build.bodies], 3)
         self.body_quat = param([list(model.body_quat[b]) for b in build.bodies], 4)
         self.joint_pos = param([list(model.jnt_pos[j]) for j in build.anchor_joints], 3)
@@ -413,6 +419,17 @@ class MJCFChain(KinematicChain):
     def qpos_index(self) -> list[int]:
         """The model's qpos entries of the chain's q."""
         return list(self._qpos_index)
+
+    def to_mjcf(self, path=None) -> str:
+        """The source MJCF with this chain's current geometry written in: the ``pos`` / ``quat`` of every body
+        and end site whose parameters changed (relative to the enclosing ``<frame>`` s, orientation as
+        ``quat``), and the ``pos`` / ``axis`` of changed joints; everything else in the text stays byte for
+        byte. Also written to ``path`` if given; returns the text. ``from_mjcf`` of it gives the same FK.
+        Elements must be named and in the main file (not in an ``<include>``); a base or tool transform
+        has no place in an MJCF and is refused."""
+        from .mjcf_write import write_mjcf
+
+        return write_mjcf(self, path)
 
     def copy(self) -> MJCFChain:
         import copy
