@@ -503,6 +503,12 @@ def _check_config(args) -> None:
                            f"--config {path}: not a file")
 
 
+def _config_error(args, exc: Exception) -> DiffkinError:
+    """``--config FILE: what is wrong`` (once: the config reader's messages may start with the file)."""
+    text = str(exc).removeprefix(f"{args.config}: ")
+    return DiffkinError(f"--config {args.config}: {text}")
+
+
 def _config_threads(args) -> int:
     """The run config's ``torch_threads`` (what ``diffkin train`` runs on without ``--threads``)."""
     _check_config(args)
@@ -514,7 +520,7 @@ def _config_threads(args) -> int:
         cfg = load_config(args.config, getattr(args, "env", None), getattr(args, "variant", None))
         return cfg.torch_threads
     except (TypeError, ValueError, KeyError) as exc:
-        raise DiffkinError(f"--config {args.config}: {exc}") from exc
+        raise _config_error(args, exc) from exc
 
 
 def cmd_train(args) -> int:
@@ -531,7 +537,7 @@ def cmd_train(args) -> int:
             variant=args.variant,
         )
     except (TypeError, ValueError, KeyError) as exc:
-        raise DiffkinError(f"--config {args.config}: {exc}") from exc
+        raise _config_error(args, exc) from exc
     res = train(cfg, out, progress_bar=not args.no_progress and sys.stderr.isatty())
     print(summary_json(res))
     _console().print(f"wrote {out}")

@@ -37,6 +37,8 @@ def check_action(action, shape: tuple[int, ...], name: str = "action", dtype=tor
     if type(action) is np.ndarray and action.dtype in _FLOAT_ARRAYS and action.shape == tuple(shape) \
             and np.isfinite(action).all():  # the Gymnasium case, validated in numpy: no tensor round trip
         return torch.from_numpy(action).to(dtype=dtype, device=device, copy=True)
+    if action is None:  # tensors() passes None through (an optional argument); an action is required
+        raise DTypeError(f"expected {name} as numbers of shape {tuple(shape)}, got None")
     (a,) = tensors((name, action, None), finite=False)
     if tuple(a.shape) != tuple(shape):
         raise ShapeError(f"expected {name} of shape {tuple(shape)}, got {shape_str(a.shape)}")
