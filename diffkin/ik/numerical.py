@@ -233,7 +233,8 @@ def solve(
     dq = J⁻¹ dx for a square Jacobian, the minimum-norm J⁺ dx for a redundant chain (no null-space part),
     the position rows only with ``position_only``, the K end links stacked for a tree, and
     dq = −J⁺ J_θ dθ for the parameters. Backward costs one batched factorisation with J at the solution
-    (damped by λ = (damping/100)² + 10 ε: negligible away from singularities, finite at them); failed targets
+    (damped by λ = k²(1 − σ_min²/k²) only where σ_min(J) < k = ``damping``, plus 10 ε: exact up to a
+    relative 10 ε/σ_min² where σ_min >= k, amplification at most 1/k at singular solutions); failed targets
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
