@@ -40,6 +40,7 @@ __all__ = [
     "check_count",
     "check_device",
     "check_fits_dtype",
+    "check_given",
     "check_dtype",
     "check_number",
     "check_finite",
@@ -315,4 +316,12 @@ def check_broadcasts_to(x: Tensor | None, shape: Sequence[int], name: str, of: s
     if not ok:
         raise ShapeError(f"expected {name} as a number or of a shape that broadcasts to the batch dims "
                          f"{shape_str(shape)} of {of}, got {shape_str(x.shape)}")
+    return x
+
+
+def check_given(x: Any, name: str, expected: str) -> Any:
+    """``x`` unless it is None: :func:`tensors` passes None through (optional arguments), so a required one
+    is checked first; :class:`DTypeError` ``expected {name} as {expected}, got None``."""
+    if x is None:
+        raise DTypeError(f"expected {name} as {expected}, got None")
     return x

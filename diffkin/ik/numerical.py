@@ -21,7 +21,7 @@ from ..errors import ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _pose_error, as_measured_transform
-from ..validation import check_count, check_number, check_trailing, shape_str, tensors
+from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -78,6 +78,7 @@ def dls_step(
     from ..jacobian import forward_kinematics_and_jacobian
 
     q = chain.check_q(q)
+    check_given(T_target, "T_target", "poses (..., 4, 4) or positions (..., 3)")
     T_target, k = tensors(("T_target", T_target, None), ("damping", damping, None), like=chain)
     full = T_target.ndim >= 2 and T_target.shape[-2:] == (4, 4)
     if position_only and not full:
@@ -128,6 +129,7 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
 
 def _valid_targets(chain, T_target) -> Tensor:
     """T_target by the rule of :mod:`diffkin.validation`: the chain's dtype and device, finite."""
+    check_given(T_target, "T_target", "poses (..., 4, 4) or positions (..., 3)")
     return tensors(("T_target", T_target, None), like=chain)[0]
 
 
