@@ -148,7 +148,10 @@ class KinematicChain(nn.Module):
         self.base_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
         self.tool_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
         if q_limits is not None:
-            lim = q_limits.detach() if isinstance(q_limits, Tensor) else q_limits
+            from .validation import check_fits_dtype  # (local: this block is the only user in chain.py)
+
+            lim = check_fits_dtype(q_limits.detach() if isinstance(q_limits, Tensor) else q_limits, dtype,
+                                   "q_limits")
             lim = as_tensor(lim, "q_limits", dtype=dtype, device=device)
             lim = lim.to(dtype=dtype, device=device).clone()
             if lim.shape != (n, 2):

@@ -503,6 +503,12 @@ def _check_config(args) -> None:
                            f"--config {path}: not a file")
 
 
+def _config_error(args, exc: Exception) -> DiffkinError:
+    """``--config FILE: what is wrong`` (once: the config reader's messages may start with the file)."""
+    text = str(exc).removeprefix(f"{args.config}: ")
+    return DiffkinError(f"--config {args.config}: {text}")
+
+
 def _config_threads(args) -> int:
     """The run config's ``torch_threads`` (what ``diffkin train`` runs on without ``--threads``)."""
     _check_config(args)
@@ -514,7 +520,7 @@ def _config_threads(args) -> int:
         cfg = load_config(args.config, getattr(args, "env", None), getattr(args, "variant", None))
         return cfg.torch_threads
     except (TypeError, ValueError, KeyError) as exc:
-        raise DiffkinError(f"--config {args.config}: {exc}") from exc
+        raise _config_error(args, exc) from exc
 
 
 def cmd_train(args) -> int:
@@ -531,7 +537,7 @@ def cmd_train(args) -> int:
             variant=args.variant,
         )
     except (TypeError, ValueError, KeyError) as exc:
-        raise DiffkinError(f"--config {args.config}: {exc}") from exc
+        raise _config_error(args, exc) from exc
     res = train(cfg, out, progress_bar=not args.no_progress and sys.stderr.isatty())
     print(summary_json(res))
     _console().print(f"wrote {out}")
@@ -581,6 +587,37 @@ def cmd_bench(args) -> int:
     if args.threads is not None:
         argv += ["--threads", str(args.threads)]
     return run_benchmarks(argv)
+
+
+def _kernel_line() -> str:
+    """``fused C kernel: in use (PATH)`` or ``fused C kernel: not in use: WHY`` (builds it if not tried)."""
+    from .kernels import native
+
+    ok, what = native.status()
+    return f"fused C kernel: in use ({what})" if ok else f"fused C kernel: not in use: {what}"
+
+
+class _Version(argparse.Action):
+    """``--version``: the version and the fused kernel's state, computed only when asked for."""
+
+    def __init__(self, option_strings, version: str, dest=argparse.SUPPRESS, help=None):
+        self.version = version
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"{self.version}\n{_kernel_line()}")
+        parser.exit()
+
+
+def cmd_doctor(args) -> int:
+    from . import __version__
+
+    cuda = (f"{torch.cuda.device_count()} device(s), CUDA {torch.version.cuda}" if torch.cuda.is_available()
+            else f"not available (CUDA build: {torch.version.cuda or 'no'})")
+    print(f"diffkin {__version__} ({Path(__file__).parent})")
+    print(f"python {sys.version.split()[0]}, torch {torch.__version__}; CUDA: {cuda}")
+    print(_kernel_line())
+    return 0
 
 
 def cmd_demo(args) -> int:
@@ -698,9 +735,13 @@ _EXAMPLES = {
             "  diffkin tune --config configs/sac.yaml --env diffkin/Reach-v0 --variant tune --show",
     "bench": "diffkin bench fk --quick\n  diffkin --threads 2 bench ik",
     "demo": "diffkin demo --quick --output runs/demo",
+    "doctor": "diffkin doctor",
 }
 
 _DESCRIPTIONS = {
+    "doctor": "Report the installation: diffkin, python and torch versions, CUDA, and whether the fused C\n"
+              "kernel is in use (its cached library) or why not (DIFFKIN_NATIVE=0, no C compiler, build\n"
+              "failed). `python -m diffkin.kernels` builds the kernel ahead of time.",
     "models": "List the built-in robots (DOF, joint types, DH convention, source) or print one's DH table.",
     "fk": "Batch forward kinematics of joint vectors (N, n) from a file or drawn at random.\n\n"
           "Input: .npy (N, n), .npz key q, or .csv (n columns, or a header naming q1..qn).\n"
@@ -781,7 +822,8 @@ def build_parser() -> argparse.ArgumentParser:
                          ["diffkin models", "diffkin fk --robot panda --random 1000 --output T.npy",
                           "diffkin ik --robot panda --input T.npy --output q.npz",
                           "diffkin COMMAND --help"]))
-    parser.add_argument("--version", action="version", version=f"diffkin {__version__}")
+    parser.add_argument("--version", action=_Version, version=f"diffkin {__version__}",
+                        help="show the version and whether the fused C kernel is in use, and exit")
     parser.add_argument("--threads", type=_positive_int, default=None, metavar="N", help=_THREADS_HELP)
     parser.add_argument("--debug", action="store_true",
                         help="show the traceback of an error (also DIFFKIN_DEBUG=1)")
@@ -906,6 +948,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", dest="output", action=_Deprecated, new="--output")
     p.add_argument("--skip-rl", action="store_true", dest="skip_rl", help="skip the PPO run")
     p.set_defaults(func=cmd_demo)
+
+    p = add("doctor", "report versions, CUDA and whether the fused C kernel is in use (and why not)")
+    p.set_defaults(func=cmd_doctor)
 
     from .viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
     add_view_parser(sub, [common])

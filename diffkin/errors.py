@@ -17,6 +17,8 @@ __all__ = [
     "ModelError",
     "RepresentationSingularityError",
     "MissingExtraError",
+    "OptionError",
+    "DeviceError",
     "require",
 ]
 
@@ -51,6 +53,15 @@ class RepresentationSingularityError(DiffkinError):
 
 class MissingExtraError(DiffkinError, ImportError):
     """An optional dependency is not installed; the message names the extra that installs it."""
+
+
+class OptionError(DiffkinError):
+    """An option or setting out of its range (a count, a tolerance, a damping, a config value)."""
+
+
+class DeviceError(DiffkinError):
+    """A device this torch cannot compute on: ``"cuda"`` on a CPU-only build, a missing GPU index, ``"meta"``
+    (tensors without values) or an unknown device string."""
 
 
 def require(module: str, extra: str, feature: str) -> ModuleType:

@@ -10,6 +10,7 @@ Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipu
 
 from __future__ import annotations
 
+from functools import partial
 from typing import NamedTuple
 
 import torch
@@ -218,32 +219,44 @@ def geometric_jacobian(
 
 # ------------------------------------------------------------------------------------------- J̇ q̇
 def jacobian_dot_qdot(chain, q: Tensor, qdot: Tensor, check: bool = True) -> Tensor:
-    """J̇(q, q̇) q̇ ``(..., 6)`` of the base-frame geometric Jacobian at the end effector (for §3.7.4).
+    """J̇(q, q̇) q̇ ``(..., [K,] 6)`` of the base-frame geometric Jacobian at each end link (for §3.7.4).
 
-    Exact, from the frames of one FK pass: differentiating (3.30) with ż_i = ω_i × z_i and ṗ_i the
-    velocity of the joint origin, where ω_i, ṗ_i collect the joints before i (exclusive cumulative sums
-    of the columns (3.25)–(3.26)). Same cost order as the Jacobian itself.
+    ``q``, ``qdot`` ``(..., n)`` (broadcast together); ``K`` end links give ``(..., K, 6)``. J̇ is the
+    directional derivative of the kernel Jacobian (3.30) along q̇, J̇ = Σ_k ∂J/∂q_k q̇_k, taken by
+    forward-mode AD through ``chain.fk_jacobian`` (exact, no second encoding of (3.30); trees, mimic
+    couplings, prismatic joints, base and tool as the kernels have them). Batches above
+    ``chain.small_batch`` run vmapped in blocks of that size; a few times the cost of J.
+    Differentiable with respect to ``q``, ``qdot`` and the chain's parameters.
     """
     if check:
         n = chain.n_joints
         q, qdot = tensors(("q", q, (n,)), ("qdot", qdot, (n,)), like=chain)
         broadcast_batch(("q", q, 1), ("qdot", qdot, 1))
-    axes, origins, T_ee = chain.joint_axes_origins(q, check=False)
-    rev = chain.revolute_mask.unsqueeze(-1)
-    qd = qdot.unsqueeze(-1)
-    r = origins - T_ee[..., None, :3, 3]  # p_i - p_e, (..., n, 3)
-    w = axes * (qd * rev)  # angular velocity contributed by each joint
-    lin = axes * (qd * (1.0 - rev))  # linear velocity of prismatic joints
-    wr = cross(w, r)  # w_k × (p_k - p_e)
-    w_before = torch.cumsum(w, dim=-2) - w  # ω of the link carrying axis i
-    v_before = cross(w_before, r) - (torch.cumsum(wr, dim=-2) - wr) + (torch.cumsum(lin, dim=-2) - lin)
-    v_e = lin.sum(-2) - wr.sum(-2)  # ṗ_e
-    z_dot = cross(w_before, axes)
-    # d/dt [z × (p_e - p)] = ż × (p_e - p) + z × (ṗ_e - ṗ)
-    col_rev = cross(r, z_dot) + cross(axes, v_e.unsqueeze(-2) - v_before)
-    lin_dot = (qd * (rev * col_rev + (1.0 - rev) * z_dot)).sum(-2)
-    ang_dot = (qd * rev * z_dot).sum(-2)
-    return torch.cat((lin_dot, ang_dot), dim=-1)
+    q, qdot = torch.broadcast_tensors(q, qdot)
+    batch, n = q.shape[:-1], q.shape[-1]
+    q, qdot = q.reshape(-1, n), qdot.reshape(-1, n)
+    B, m = q.shape[0], chain.small_batch
+    if B <= m:
+        return _jdot_qdot_rows(chain, q, qdot).reshape(*batch, *_jdot_tail(chain))
+    # vmapped over blocks of m configurations (the last one padded with copies): within a block the kernels
+    # take their autograd-safe small-batch path, whose ops all have forward-mode derivatives (the
+    # large-batch path writes into preallocated rows)
+    pad = -B % m
+    q, qdot = (torch.cat((x, x[-1:].expand(pad, n))) if pad else x for x in (q, qdot))
+    out = torch.func.vmap(partial(_jdot_qdot_rows, chain))(q.reshape(-1, m, n), qdot.reshape(-1, m, n))
+    return out.flatten(0, 1)[:B].reshape(*batch, *_jdot_tail(chain))
+
+
+def _jdot_tail(chain) -> tuple[int, ...]:
+    return (6,) if chain.single_end else (chain.n_ends, 6)
+
+
+def _jdot_qdot_rows(chain, q: Tensor, qdot: Tensor) -> Tensor:
+    """J̇q̇ ``(m, [K,] 6)`` for at most ``chain.small_batch`` configurations ``q (m, n)``: (d/dt J(q + t q̇)) q̇
+    by forward mode through the kernel Jacobian."""
+    _, J_dot = torch.func.jvp(lambda x: chain.fk_jacobian(x, check=False)[1], (q,), (qdot,))
+    v = qdot if chain.single_end else qdot.unsqueeze(-2)  # one q̇ for every end link
+    return (J_dot @ v.unsqueeze(-1)).squeeze(-1)
 
 
 # ----------------------------------------------------------------------------- analytical Jacobian

@@ -35,7 +35,10 @@ _PARTS = {"full": slice(None), "position": slice(0, 3), "orientation": slice(3, 
 
 
 def _check_J(J) -> Tensor:
-    return tensors(("J", J, (None, None)))[0]
+    J = tensors(("J", J, (None, None)))[0]
+    if 0 in J.shape[-2:]:  # a matrix without rows or columns has no singular values
+        raise ShapeError(f"expected J of shape (..., m, n) with m, n >= 1, got {shape_str(J.shape)}")
+    return J
 
 
 def _inv_or_inf(x: Tensor) -> Tensor:
@@ -67,7 +70,9 @@ def jacobian_determinant(J: Tensor) -> Tensor:
 def condition_number(J: Tensor) -> Tensor:
     """σ_max/σ_min of J ``(..., m, n)`` -> ``(...)``; +inf at an exact singularity (σ_min = 0)."""
     s = torch.linalg.svdvals(_check_J(J))
-    return s[..., 0] * _inv_or_inf(s[..., -1])
+    # σ_min = 0 is singular whatever σ_max is (J = 0 included, where σ_max · inf would be NaN)
+    return torch.where(s[..., -1] == 0, torch.full_like(s[..., 0], float("inf")),
+                       s[..., 0] * _inv_or_inf(s[..., -1]))
 
 
 def inverse_condition_number(J: Tensor) -> Tensor:
@@ -184,7 +189,10 @@ def _left_svd(J: Tensor) -> tuple[Tensor, Tensor]:
         U, S, _ = torch.linalg.svd(J, full_matrices=False)
         return U, S
     lam, U = torch.linalg.eigh(J @ J.mT)  # ascending; m - n eigenvalues are (numerically) zero
-    return U.flip(-1), safe_sqrt(lam.flip(-1).clamp_min(0.0))
+    S = safe_sqrt(lam.flip(-1).clamp_min(0.0))
+    # rank <= n: the m - n last ones are exactly zero (eigh leaves rounding noise, 1/σ would be finite)
+    keep = torch.arange(m, device=J.device) < n
+    return U.flip(-1), torch.where(keep, S, torch.zeros_like(S))
 
 
 def velocity_ellipsoid(J: Tensor, part: str = "full") -> Ellipsoid:

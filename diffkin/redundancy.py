@@ -25,7 +25,7 @@ from torch import Tensor
 from ._numerics import eps_for
 from .errors import DiffkinError, ShapeError
 from .kernels import dls as _dls
-from .validation import check_trailing, shape_str, tensors
+from .validation import check_broadcasts_to, check_trailing, shape_str, tensors
 
 __all__ = ["pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"]
 
@@ -154,6 +154,7 @@ def damped_pinv(J, damping, threshold: float | None = None) -> Tensor:
             damping otherwise, so the inverse is exact away from singular regions.
     """
     J, k = _check_J(J, ("damping", damping, None))
+    check_broadcasts_to(k, J.shape[:-2], "damping")
     k2 = k * k
     if threshold is not None:
         (thr,) = tensors(("threshold", threshold, ()), like=J)
@@ -175,6 +176,7 @@ def weighted_pinv(J, W, damping=0.0) -> Tensor:
         damping: optional k (number or tensor (...)) as in :func:`damped_pinv`.
     """
     J, W, k = _check_J(J, ("W", W, None), ("damping", damping, None))
+    check_broadcasts_to(k, J.shape[:-2], "damping")
     n = J.shape[-1]
     diagonal = W.ndim >= 1 and W.shape[-1] == n and (W.ndim == 1 or W.shape[-2:] != (n, n))
     if not diagonal:
@@ -202,6 +204,7 @@ def nullspace_projector(J, J_pinv=None, damping=None) -> Tensor:
     approximately a projector, but smooth everywhere). Values and gradients stay finite.
     """
     J, J_pinv, k = _check_J(J, ("J_pinv", J_pinv, None), ("damping", damping, None))
+    check_broadcasts_to(k, J.shape[:-2], "damping")
     m, n = J.shape[-2:]
     if J_pinv is None:
         J_pinv = _pinv(J) if k is None else _damped(J, k * k)

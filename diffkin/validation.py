@@ -30,13 +30,17 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import DiffkinError, DTypeError, NonFiniteError, ShapeError
+from .errors import DeviceError, DTypeError, ModelError, NonFiniteError, OptionError, ShapeError
 
 __all__ = [
     "SUPPORTED_DTYPES",
     "as_tensor",
     "broadcast_batch",
+    "check_broadcasts_to",
     "check_count",
+    "check_device",
+    "check_fits_dtype",
+    "check_given",
     "check_dtype",
     "check_number",
     "check_finite",
@@ -240,20 +244,84 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
 
 def check_number(x: Any, name: str, *, positive: bool = True, unit: str = "") -> float:
     """An option given as a finite Python number > 0 (``positive``) or >= 0, as float; else
-    :class:`~diffkin.errors.DiffkinError` naming it (tolerances, dampings, scales)."""
+    :class:`~diffkin.errors.OptionError` naming it (tolerances, dampings, scales)."""
     ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and (
         x > 0 if positive else x >= 0)
     if not ok:
         bound = "> 0" if positive else ">= 0"
         # NaN/inf keep the rule's error class; a finite number out of range (or no number) is a ValueError
-        cls = NonFiniteError if isinstance(x, float) and not math.isfinite(x) else DiffkinError
+        cls = NonFiniteError if isinstance(x, float) and not math.isfinite(x) else OptionError
         raise cls(f"expected {name} as a finite number {bound}{unit}, got {x!r}")
     return float(x)
 
 
 def check_count(x: Any, name: str, minimum: int = 1) -> int:
     """An option given as a Python integer >= ``minimum`` (seeds, iterations, sizes); else
-    :class:`~diffkin.errors.DiffkinError` naming it."""
+    :class:`~diffkin.errors.OptionError` naming it."""
     if isinstance(x, bool) or not isinstance(x, int | np.integer) or x < minimum:
-        raise DiffkinError(f"expected {name} as an integer >= {minimum}, got {x!r}")
+        raise OptionError(f"expected {name} as an integer >= {minimum}, got {x!r}")
     return int(x)
+
+
+def check_device(device: Any, name: str = "device") -> torch.device | None:
+    """``device`` (None, a string or a ``torch.device``) as a ``torch.device`` this torch can compute on;
+    :class:`~diffkin.errors.DeviceError` for an unknown string, ``"meta"`` (tensors without values), CUDA
+    on a build or machine without it, or a GPU index that does not exist. None passes through."""
+    if device is None:
+        return None
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise DeviceError(f"expected {name} as 'cpu', 'cuda' or 'cuda:N', got {device!r}") from None
+    if dev.type == "meta":
+        raise DeviceError(f"{name} 'meta' holds no values; diffkin computes on 'cpu' or 'cuda'")
+    if dev.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            raise DeviceError(f"{name} {str(device)!r} was requested but this torch has no CUDA device "
+                              f"(CUDA build: {torch.version.cuda or 'no'}); use 'cpu'")
+        if dev.index is not None and dev.index >= count:
+            raise DeviceError(f"{name} {str(device)!r}: there are {count} CUDA devices (0 to {count - 1})")
+    elif dev.type != "cpu":
+        backend = getattr(torch.backends, dev.type, None)
+        if backend is None or not getattr(backend, "is_available", lambda: False)():
+            raise DeviceError(f"{name} {str(device)!r} is not available in this torch; use 'cpu' or 'cuda'")
+    return dev
+
+
+def check_fits_dtype(x: Any, dtype: torch.dtype, name: str, cls: type[Exception] = ModelError) -> Any:
+    """Refuse finite numbers in ``x`` (a tensor, numbers or an array) that ``dtype`` cannot hold: converted,
+    they would silently become ±inf (1e39 in float32). ±inf and NaN are left to the caller's rule."""
+    src = x.detach() if isinstance(x, Tensor) else as_tensor(x, name, dtype=torch.float64)
+    if not src.is_floating_point() or torch.finfo(src.dtype).max <= torch.finfo(dtype).max:
+        return x
+    big = torch.isfinite(src) & (src.abs() > torch.finfo(dtype).max)
+    if bool(big.any()):
+        worst = float(src[big].abs().max())
+        raise cls(f"{name} holds {int(big.sum())} finite values beyond the range of {dtype} (|x| <= "
+                  f"{torch.finfo(dtype).max:.4g}), e.g. {worst:.4g}, which would become inf; expected values "
+                  "that fit (±inf: no limit)")
+    return x
+
+
+def check_broadcasts_to(x: Tensor | None, shape: Sequence[int], name: str, of: str = "J") -> Tensor | None:
+    """Raise :class:`ShapeError` unless ``x``'s shape broadcasts to ``shape`` (the batch dims of ``of``)
+    without enlarging it: a per-batch option (a damping, a weight) of the wrong shape. None passes."""
+    if x is None:
+        return x
+    try:
+        ok = tuple(torch.broadcast_shapes(x.shape, tuple(shape))) == tuple(shape)
+    except RuntimeError:
+        ok = False
+    if not ok:
+        raise ShapeError(f"expected {name} as a number or of a shape that broadcasts to the batch dims "
+                         f"{shape_str(shape)} of {of}, got {shape_str(x.shape)}")
+    return x
+
+
+def check_given(x: Any, name: str, expected: str) -> Any:
+    """``x`` unless it is None: :func:`tensors` passes None through (optional arguments), so a required one
+    is checked first; :class:`DTypeError` ``expected {name} as {expected}, got None``."""
+    if x is None:
+        raise DTypeError(f"expected {name} as {expected}, got None")
+    return x

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from diffkin.errors import ConventionError, DTypeError, ShapeError
-from diffkin.validation import check_finite, shape_str, tensors
+from diffkin.validation import check_finite, check_given, shape_str, tensors
 
 from ._random import key_from_generator, uniform
 from .robot import Robot, RobotConfig
@@ -22,6 +22,10 @@ __all__ = ["Task", "TaskEnv", "check_action", "to_numpy"]  # check_reset_options
 
 
 _FLOAT_ARRAYS = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+class ResetNeededError(gym.error.ResetNeeded, RuntimeError):
+    """``step()`` before ``reset()``: Gymnasium's typed ``ResetNeeded`` (still a ``RuntimeError``)."""
 
 
 def check_action(action, shape: tuple[int, ...], name: str = "action", dtype=torch.float32,
@@ -37,6 +41,7 @@ def check_action(action, shape: tuple[int, ...], name: str = "action", dtype=tor
     if type(action) is np.ndarray and action.dtype in _FLOAT_ARRAYS and action.shape == tuple(shape) \
             and np.isfinite(action).all():  # the Gymnasium case, validated in numpy: no tensor round trip
         return torch.from_numpy(action).to(dtype=dtype, device=device, copy=True)
+    check_given(action, name, f"numbers of shape {tuple(shape)}")  # tensors() passes None through
     (a,) = tensors((name, action, None), finite=False)
     if tuple(a.shape) != tuple(shape):
         raise ShapeError(f"expected {name} of shape {tuple(shape)}, got {shape_str(a.shape)}")
@@ -213,7 +218,7 @@ class TaskEnv(gym.Env):
 
     def step(self, action):
         if self._state is None:
-            raise RuntimeError("call reset() before step()")
+            raise ResetNeededError("call reset() before step()")
         task = self.task
         a = check_action(action, self.action_space.shape, dtype=task.dtype, device=task.device)[None]
         obs, reward, terminated, truncated, info = self.task.step(self._state, a)

@@ -21,7 +21,7 @@ from diffkin.chain import DHChain, KinematicChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
 from diffkin.ik.numerical import dls_delta
 from diffkin.jacobian import forward_kinematics_and_jacobian
-from diffkin.validation import shape_str, tensors
+from diffkin.validation import check_device, shape_str, tensors
 
 from ._checks import check_setting
 
@@ -104,6 +104,7 @@ class Robot:
                  action_mode: str = "joint", home=None, dtype=torch.float32, device="cpu"):
         if action_mode not in ("joint", "cartesian"):
             raise ConventionError(f"action_mode must be 'joint' or 'cartesian', got {action_mode!r}")
+        device = check_device(device)  # "cuda" without CUDA, "meta": DeviceError here, not deep in torch
         self.config = config or RobotConfig()
         self.chain = load_chain(robot, dtype=dtype, device=device).requires_grad_(False)
         self.name = robot if isinstance(robot, str) else self.chain.name

@@ -25,7 +25,7 @@ from diffkin.errors import ConventionError, DTypeError, ShapeError
 
 from ._checks import check_setting
 from ._random import key_from_generator, keys_for_seeds
-from .core import Task, check_action, check_reset_options
+from .core import ResetNeededError, Task, check_action, check_reset_options
 from .registry import ENVS
 
 __all__ = ["TorchVectorEnv", "make_task"]
@@ -138,7 +138,7 @@ class TorchVectorEnv(VectorEnv):
 
     def step(self, actions):
         if not self._seeded:
-            raise RuntimeError("call reset() before step()")
+            raise ResetNeededError("call reset() before step()")
         actions = check_action(actions, self._action_shape, "actions", self.task.dtype, self.device)
         obs, reward, terminated, truncated, info = self.task.step(self.state, actions)
         done = terminated | truncated

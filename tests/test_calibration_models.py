@@ -250,8 +250,10 @@ def test_six_decimal_poses_are_accepted_and_reorthonormalised():
     assert 1.5e-7 < dev < 1e-5  # beyond the old 1.5e-7 tolerance
     res = calibrate(nominal, q, T6, base=True, tool=True, progress=False, cross_validation=0)
     assert res.converged and held_out(res.chain, true, off)[0] < 5e-6
-    out = solve(true, T6[:3])
-    assert out is not None
+    out = solve(true, T6[:3])  # IK accepts the same six-decimal poses and reaches them
+    assert bool(out.success.all())
+    reached = true.forward_kinematics(out.q).detach()
+    assert float((reached[:, :3, 3] - T6[:3, :3, 3]).norm(dim=-1).max()) < 1e-4
     bad = T6.clone()
     bad[0, 0, 0] += 1e-3
     with pytest.raises(DiffkinError, match="max deviation"):

@@ -339,10 +339,12 @@ def run_main(capsys, *args: str) -> tuple[int, str, str]:
 
 def test_version():
     proc = run_subprocess("--version")
-    assert proc.returncode == 0 and proc.stdout.strip() == f"diffkin {diffkin.__version__}"
+    lines = proc.stdout.strip().splitlines()
+    assert proc.returncode == 0 and lines[0] == f"diffkin {diffkin.__version__}"
+    assert len(lines) == 2 and lines[1].startswith("fused C kernel: ")  # in use (path) / not in use: why
 
 
-COMMANDS = ["models", "fk", "ik", "calibrate", "trajectory", "train", "evaluate", "bench", "demo"]
+COMMANDS = ["models", "fk", "ik", "calibrate", "trajectory", "train", "evaluate", "bench", "demo", "doctor"]
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -355,7 +357,7 @@ def test_help_has_a_description_defaults_and_an_example(capsys, command):
     examples = out[out.index("examples:"):]
     assert f"diffkin {command}" in examples
     assert "--threads" in out
-    if command not in ("models", "evaluate", "train", "demo"):
+    if command not in ("models", "evaluate", "train", "demo", "doctor"):
         assert "(default: " in out
 
 

@@ -11,15 +11,18 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tests import fuzz_cases_calibration, fuzz_cases_geometry, fuzz_cases_robots
+from tests import fuzz_cases_calibration, fuzz_cases_geometry, fuzz_cases_io, fuzz_cases_robots
 from tests.fuzzing import mutations, outcome
 
-_FILES = (fuzz_cases_geometry, fuzz_cases_robots, fuzz_cases_calibration)
+_FILES = (fuzz_cases_geometry, fuzz_cases_robots, fuzz_cases_calibration, fuzz_cases_io)
 CASES = {c.name: c for f in _FILES for c in f.CASES}
 EXEMPT = {k: v for f in _FILES for k, v in f.EXEMPT.items()}
 MODULES = [m for f in _FILES for m in f.MODULES]
 
 PARAMS = [(name, m) for name, case in CASES.items() for m in mutations(case)]
+#: 0 hangs: each item well under its bound (<= 2 examples x the harness's 20 s per call); the thread method,
+#: since the harness's own per-call limit uses SIGALRM
+pytestmark = pytest.mark.timeout(120, method="thread")
 
 
 def _public_callables(module_name: str) -> dict[str, object]:

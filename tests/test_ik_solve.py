@@ -171,6 +171,17 @@ def test_respect_limits_false_allows_any_branch():
     res = solve(chain, T, respect_limits=False, seed=0)
     assert res.success.double().mean() >= 0.98
     assert_honest(chain, res, T, limits=False)
+    # limits narrowed to ±0.1 rad about their midpoints: the targets' configurations lie outside them, so
+    # respect_limits=False must solve them there, and the default must not return any q outside
+    lo, hi = chain.lower_upper()
+    mid = (lo + hi) / 2
+    chain.q_limits = torch.stack((mid - 0.1, mid + 0.1), dim=-1)
+    free = solve(chain, T, respect_limits=False, seed=0)
+    assert free.success.double().mean() >= 0.9
+    assert bool((~chain.within_limits(free.q.detach()))[free.success].all())
+    strict = solve(chain, T, seed=0)
+    assert bool(chain.within_limits(strict.q.detach()).all()) and strict.success.double().mean() <= 0.1
+    assert_honest(chain, strict, T)
 
 
 def test_bad_inputs():

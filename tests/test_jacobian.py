@@ -422,3 +422,50 @@ def test_sliced_large_batch_path_is_bit_identical(monkeypatch, batch):
             T, J = jac.forward_kinematics_and_jacobian(chain, q)
         assert torch.equal(T, T_ref) and torch.equal(J, J_ref)
         assert J.shape == (*batch, 6, chain.n_joints)
+
+
+URDF_DATA = Path(__file__).resolve().parent / "data" / "urdf"
+
+
+def _jdot_chain(kind: str, dtype):
+    from diffkin.models import from_urdf
+
+    if kind == "tiago_two_ends":  # a tree: two arms sharing the prismatic torso (K = 2)
+        ends = ["arm_left_tool_link", "arm_right_tool_link"]
+        return from_urdf(URDF_DATA / "tiago_dual.urdf", ends, dtype=dtype)
+    if kind == "yumi_mimic":  # mimic followers (prismatic fingers), three end links
+        ends = ["gripper_r_finger_r", "gripper_r_finger_l", "gripper_l_finger_l"]
+        return from_urdf(URDF_DATA / "yumi.urdf", ends, dtype=dtype)
+    return random_chain(21, "modified").to(dtype)  # a DH arm with prismatic joints, base and tool
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+@pytest.mark.parametrize("kind", ["tiago_two_ends", "yumi_mimic", "dh"])
+@pytest.mark.parametrize("batch", [(), (5,), (3, 13)])  # (3, 13): blocks of chain.small_batch, one padded
+def test_jacobian_dot_qdot_on_trees_and_mimic_chains_vs_finite_differences(kind, dtype, batch):
+    # J̇q̇ = (d/dt J(q + t q̇)) q̇ at t = 0, by central differences of the kernel Jacobian along q̇ (in float64)
+    chain = _jdot_chain(kind, dtype)
+    g = torch.Generator().manual_seed(5)
+    q = chain.random_configuration(batch, generator=g)
+    qd = torch.randn(*batch, chain.n_joints, generator=g, dtype=dtype)
+    jd = jacobian_dot_qdot(chain, q, qd)
+    K = () if chain.single_end else (chain.n_ends,)
+    assert jd.shape == (*batch, *K, 6) and jd.dtype == dtype
+    assert bool(torch.isfinite(jd).all())
+    c64, q64, qd64 = chain.to(F64), q.to(F64), qd.to(F64)
+    h = 1e-5
+    with torch.no_grad():
+        J_fd = (geometric_jacobian(c64, q64 + h * qd64) - geometric_jacobian(c64, q64 - h * qd64)) / (2 * h)
+    qv = qd64 if chain.single_end else qd64.unsqueeze(-2)
+    ref = (J_fd @ qv.unsqueeze(-1)).squeeze(-1)
+    assert float(ref.abs().max()) > 1e-2  # the test can fail: J̇q̇ is not zero here
+    atol = 1e-7 if dtype == F64 else 1e-4
+    torch.testing.assert_close(jd.detach().to(F64), ref, atol=atol * max(1.0, float(ref.abs().max())), rtol=0)
+
+
+def test_jacobian_dot_qdot_tree_gradcheck():
+    chain = _jdot_chain("yumi_mimic", F64)
+    g = torch.Generator().manual_seed(6)
+    q = chain.random_configuration((2,), generator=g).requires_grad_()
+    qd = torch.randn(2, chain.n_joints, generator=g, dtype=F64).requires_grad_()
+    assert torch.autograd.gradcheck(lambda x, v: jacobian_dot_qdot(chain, x, v), (q, qd))

@@ -161,7 +161,7 @@ def test_limits_types_and_module_behaviour():
 def test_urdf_errors():
     with pytest.raises(ModelError, match="end link 'nope'.*panda_link8"):
         from_urdf(PANDA, "nope")
-    with pytest.raises(ModelError, match="neither an existing file"):
+    with pytest.raises(ModelError, match="no such URDF file"):
         from_urdf("/no/such/file.urdf", "x")
     with pytest.raises(ModelError, match="no moving joint"):
         from_urdf(TOY, "world")

@@ -1,6 +1,6 @@
 """diffkin.models.urdf_xml: parsing the real URDFs, structural validation, origin rewriting, tree paths.
 
-The real files live in the ``shared/urdf`` folder beside the repository checkout; those tests skip without it.
+The real files are the vendored copies in ``tests/data/urdf`` (see its README.md), so every clone runs them.
 """
 
 from __future__ import annotations
@@ -14,21 +14,19 @@ import pytest
 from diffkin.errors import ModelError
 from diffkin.models.urdf_xml import JointSpec, URDFTree, parse_urdf, write_urdf
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "urdf"
-REAL = sorted(SHARED.glob("*.urdf")) if SHARED.is_dir() else []
+DATA = Path(__file__).resolve().parent / "data" / "urdf"  # vendored real URDFs (tests/data/urdf/README.md)
+REAL = sorted(DATA.glob("*.urdf"))
 DECLARED = ["kinova", "meca500", "so101", "ur3_robot"]  # start with <?xml ... encoding="utf-8"?>
 
 
 def real(name: str) -> Path:
-    path = SHARED / f"{name}.urdf"
-    if not path.is_file():
-        pytest.skip(f"{path} not present (the shared URDF folder sits beside the checkout)")
+    path = DATA / f"{name}.urdf"
+    assert path.is_file(), f"{path} missing from the vendored URDFs"
     return path
 
 
 # ------------------------------------------------------------------------------------------- real files
 
-@pytest.mark.skipif(not REAL, reason="shared/urdf not present beside the checkout")
 @pytest.mark.parametrize("path", REAL, ids=[p.stem for p in REAL])
 def test_real_file_counts_and_root(path):
     tree = parse_urdf(path)

@@ -75,7 +75,12 @@ class RunConfig:
 
 
 def _read(path: str | Path) -> dict:
-    data = yaml.safe_load(Path(path).read_text())
+    try:
+        data = yaml.safe_load(Path(path).read_bytes().decode("utf-8"))
+    except yaml.YAMLError as e:  # not a ValueError: the CLI's clean `error:` line needs one
+        raise ValueError(f"{path}: invalid YAML: {' '.join(str(e).split())}") from None
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
     if not isinstance(data, dict):
         raise ValueError(f"{path}: expected a mapping at the top level")
     return data

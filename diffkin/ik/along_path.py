@@ -74,7 +74,8 @@ def _finite_difference_twists(T_traj: Tensor, dt: float) -> Tensor:
         v = torch.cat((p[..., 1:, :] - p[..., :-1, :], w), dim=-1) / dt
     else:
         v = (T_traj[..., 1:, :] - T_traj[..., :-1, :]) / dt
-    return torch.cat((v, torch.zeros_like(v[..., :1, :])), dim=-2)
+    rest = v.new_zeros(*v.shape[:-2], 1, v.shape[-1])  # the last sample at rest (the only one when S = 1)
+    return torch.cat((v, rest), dim=-2)
 
 
 def refine_path(T_traj: Tensor, substeps: int) -> Tensor:

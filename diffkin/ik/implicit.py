@@ -8,12 +8,13 @@ by an autograd Function whose backward differentiates that condition at the solu
 * solve: dq* = −(∂F/∂q)⁺ ∂F/∂z dz with ∂F/∂q = −J (3.30) at a solution (rows [p; w·θr] per end link, the
   position rows only for ``position_only``), so dq* = J⁺ (∂F/∂z dz): J⁻¹ for a square J, the minimum-norm
   J⁺ = Jᵀ(JJᵀ)⁻¹ for a redundant chain (no null-space component). The backward of a gradient g is one
-  batched factorisation, u = (JJᵀ + λI)⁻¹ J g (the kernel's DLS), with λ = (k/100)² + 10 ε (k: the solver's
-  damping, ε: the dtype's machine epsilon): a relative change of about λ/σ_min² (1e-6 at σ_min = 0.03 in
-  float64) where J is well conditioned, and a gradient bounded by about 1/(2√λ) at singular solutions;
-  then one vector–Jacobian product of F w.r.t. z with cotangent u — the FK kernel and
-  the pose error differentiate themselves, so every parameter kind (DH, Hayati β, URDF origins and axes,
-  base, tool) and the targets get their gradient with no hand-written ∂F/∂z.
+  batched factorisation, u = (JJᵀ + λI)⁻¹ J g (the kernel's DLS), damped by the rule of ``optimize``:
+  λ = k² (1 − (σ_min/k)²) only where σ_min(J) < k (k: the solver's damping, default 3e-3), plus a floor of
+  10 ε (ε: the dtype's machine epsilon). Where σ_min >= k the gradient is exact up to a relative 10 ε/σ_min²
+  (< 3e-10 in float64); below, each direction is scaled by σ/(σ² + λ) = σ/k² <= 1/k instead of 1/σ, so
+  ‖u‖ <= ‖g‖/k at singular solutions (no NaN, no blow-up); then one vector–Jacobian product of F w.r.t. z
+  with cotangent u — the FK kernel and the pose error differentiate themselves, so every parameter kind (DH,
+  Hayati β, URDF origins and axes, base, tool) and the targets get their gradient with no hand-written ∂F/∂z.
 * optimize: dq* = −H⁻¹ ∂(∇_q C)/∂z dz with H = ∇²_q C (Hessian–vector products through autograd), damped
   by λ = k² (1 − (σ_min/k)²) only where σ_min(H) < k (k: ``optimize``'s ``damping``). Costs that are not
   twice differentiable (a user's callable, kinks) can use ``unroll=True`` instead.
@@ -81,9 +82,7 @@ class _ImplicitSolve(_AtSolution):
         chain, success, position_only, weight, lam, params = ctx.spec
         with torch.no_grad():
             J = _task_jacobian(chain, q, position_only, weight)
-            # a floor far below the solver's damping: invisible for a well-conditioned J, finite at singular
-            # solutions; float32 needs more (its Gram matrix has ~7 digits)
-            lam = lam * 1e-4 + 10.0 * torch.finfo(J.dtype).eps
+            lam = _solve_damping(J, lam)
             g = chain.configuration_space.pullback(q, g)  # dq = (∂q/∂v) dv on ball and free joints
             # u = (J⁺)ᵀ g = (JJᵀ + λI)⁻¹ J g = J (JᵀJ + λI)⁻¹ g: the kernel's DLS solve on Jᵀ
             u = dls_solve(J.transpose(-1, -2), g, lam) * success.unsqueeze(-1).to(g.dtype)
@@ -97,6 +96,15 @@ class _ImplicitSolve(_AtSolution):
         grad_params = grads[1:] if wrt_T else grads
         grad_params = [None if gp is None else gp for gp in grad_params]
         return (None, grad_T, None, *grad_params)
+
+
+def _solve_damping(J: Tensor, k2: float) -> Tensor:
+    """λ ``(...)`` of the solve backward: the rule of ``optimize``'s (:func:`adaptive_damping`, threshold k)
+    on J, so zero where σ_min(J) >= k, plus 10 ε (a floor: an exactly singular J, or k = 0, stays finite)."""
+    floor = 10.0 * torch.finfo(J.dtype).eps
+    if k2 <= 0.0:
+        return torch.full(J.shape[:-2], floor, dtype=J.dtype, device=J.device)
+    return adaptive_damping(J, k2, k2**0.5) + floor
 
 
 def attach_solve_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, position_only: bool,

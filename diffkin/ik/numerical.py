@@ -21,7 +21,7 @@ from ..errors import ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _pose_error, as_measured_transform
-from ..validation import check_count, check_number, check_trailing, shape_str, tensors
+from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -78,6 +78,7 @@ def dls_step(
     from ..jacobian import forward_kinematics_and_jacobian
 
     q = chain.check_q(q)
+    check_given(T_target, "T_target", "poses (..., 4, 4) or positions (..., 3)")
     T_target, k = tensors(("T_target", T_target, None), ("damping", damping, None), like=chain)
     full = T_target.ndim >= 2 and T_target.shape[-2:] == (4, 4)
     if position_only and not full:
@@ -144,6 +145,7 @@ def _targets_in_base(chain, T_target: Tensor, base, position_only: bool) -> Tens
 
 def _valid_targets(chain, T_target) -> Tensor:
     """T_target by the rule of :mod:`diffkin.validation`: the chain's dtype and device, finite."""
+    check_given(T_target, "T_target", "poses (..., 4, 4) or positions (..., 3)")
     return tensors(("T_target", T_target, None), like=chain)[0]
 
 
@@ -252,7 +254,8 @@ def solve(
     dq = J⁻¹ dx for a square Jacobian, the minimum-norm J⁺ dx for a redundant chain (no null-space part),
     the position rows only with ``position_only``, the K end links stacked for a tree, and
     dq = −J⁺ J_θ dθ for the parameters. Backward costs one batched factorisation with J at the solution
-    (damped by λ = (damping/100)² + 10 ε: negligible away from singularities, finite at them); failed targets
+    (damped by λ = k²(1 − σ_min²/k²) only where σ_min(J) < k = ``damping``, plus 10 ε: exact up to a
+    relative 10 ε/σ_min² where σ_min >= k, amplification at most 1/k at singular solutions); failed targets
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """

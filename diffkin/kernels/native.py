@@ -36,6 +36,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from pathlib import Path
 
 import torch
@@ -44,7 +45,7 @@ from torch import Tensor
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
-           "native_model", "fk_jacobian", "LMProblem", "lm_steps"]
+           "native_model", "fk_jacobian", "LMProblem", "lm_steps", "status", "NativeBuildWarning"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
@@ -54,6 +55,19 @@ _lib: ctypes.CDLL | None = None
 _tried = False
 _error: str | None = None
 _disabled = 0  # depth of `disabled()` contexts
+_path: Path | None = None  # the loaded library
+_announced = False
+
+
+class NativeBuildWarning(UserWarning):
+    """Said once per process: the fused kernel is being compiled (where to), or could not be (why)."""
+
+
+def _announce(text: str) -> None:
+    global _announced
+    if not _announced:
+        _announced = True
+        warnings.warn(f"diffkin: {text}", NativeBuildWarning, stacklevel=2)
 
 
 def _cache_dir() -> Path:
@@ -91,6 +105,8 @@ def _compile(flags: tuple[str, ...]) -> Path:
     cc = shutil.which(os.environ.get("CC", "cc")) or shutil.which("gcc") or shutil.which("clang")
     if cc is None:
         raise RuntimeError("no C compiler found (set CC)")
+    _announce(f"compiling the fused C kernel once (a few seconds) into {out.parent}; "
+              "`python -m diffkin.kernels` does it ahead of time, DIFFKIN_NATIVE=0 keeps the torch kernels")
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
@@ -109,7 +125,7 @@ def _compile(flags: tuple[str, ...]) -> Path:
 def build() -> Path:
     """Compile (or find in the cache) and load the library; returns its path. Raises ``RuntimeError``
     with the compiler's message when no flag set compiles."""
-    global _lib, _tried, _error
+    global _lib, _tried, _error, _path
     with _lock:
         errors = []
         for flags in _OPTIONAL:
@@ -128,9 +144,9 @@ def build() -> Path:
                 fn.restype = i64
                 fn.argtypes = [ptr, ptr, i64, cint, cint, ptr, ptr, ptr, i64, ptr, ptr, ptr, ptr, ptr, ptr,
                                ptr, ptr, real, real, real, real, real, ptr, ptr, ptr, cint]
-            _lib, _tried, _error = lib, True, None
+            _lib, _tried, _error, _path = lib, True, None, path
             return path
-        _tried, _error = True, "; ".join(errors)
+        _tried, _error = True, "; ".join(dict.fromkeys(errors))  # each reason once
         raise RuntimeError(f"the native kernel could not be built: {_error}")
 
 
@@ -146,8 +162,28 @@ def available() -> bool:
     try:
         build()
     except RuntimeError:
+        _announce(f"the fused C kernel is not in use ({_error}); the torch kernels serve every call (the "
+                  "same results, slower on CPU without autograd)")
         return False
     return True
+
+
+def status() -> tuple[bool, str]:
+    """``(in use, what)``: the library's path, or why the torch kernels serve every call
+    (``DIFFKIN_NATIVE=0``, no C compiler, the compiler's error). Builds it if not tried yet (silently)."""
+    if os.environ.get("DIFFKIN_NATIVE", "1") == "0":
+        return False, "disabled by DIFFKIN_NATIVE=0"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NativeBuildWarning)
+        ok = available()
+    if ok:
+        return True, str(_path)
+    if _disabled:
+        return False, "disabled (inside native.disabled())"
+    err = _error or "not built"
+    if "no C compiler" in err:
+        return False, "no C compiler found (set CC); the torch kernels serve every call"
+    return False, f"build failed ({err}); the torch kernels serve every call"
 
 
 _SERIAL_MAX = 512  # as SERIAL_MAX in _native.c: smaller batches never start a thread
@@ -318,7 +354,9 @@ def _main() -> int:
         print("diffkin native kernel: disabled (DIFFKIN_NATIVE=0)")
         return 0
     try:
-        path = build()
+        with warnings.catch_warnings():  # this command says it itself
+            warnings.simplefilter("ignore", NativeBuildWarning)
+            path = build()
     except RuntimeError as e:  # not an install failure: the torch kernels serve every call
         print(f"diffkin native kernel: not built, the torch kernels will be used ({e})")
         return 0

@@ -11,11 +11,11 @@ import functools
 from pathlib import Path
 
 import torch
-import yaml
 
 from ..chain import DHChain
 from ..errors import ModelError
-from .io import chain_to_dict, parse_value
+from ..validation import check_device
+from .io import chain_to_dict, parse_value, read_yaml
 from .mjcf import MJCFChain, from_mjcf
 from .urdf import URDFChain, from_urdf
 from .workspace import sample_workspace
@@ -38,12 +38,12 @@ __all__ = [
 
 def chain_from_dict(data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
     """Build a :class:`DHChain` from a model mapping; errors name the field (``where`` prefixes them)."""
-    return DHChain.from_dict(data, dtype=dtype, device=device, where=where)
+    return DHChain.from_dict(data, dtype=dtype, device=check_device(device), where=where)
 
 
 def chain_from_yaml(path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
     """Chain from a YAML file (path) or YAML text; errors are prefixed by the file name."""
-    return DHChain.from_yaml(path_or_str, dtype=dtype, device=device)
+    return DHChain.from_yaml(path_or_str, dtype=dtype, device=check_device(device))
 
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
@@ -64,19 +64,17 @@ def model_path(name: str) -> Path:
 
 @functools.cache
 def _model_data(name: str) -> dict:
-    path = model_path(name)
-    try:
-        return yaml.safe_load(path.read_text())
-    except yaml.YAMLError as e:
-        raise ModelError(f"{path.name}: invalid YAML: {e}") from None
+    return read_yaml(model_path(name))[0]
 
 
 def load(name_or_path, dtype: torch.dtype | None = None, device=None) -> DHChain:
     """A model by name (see :func:`available`) or from a YAML file path, in ``dtype`` on ``device``.
 
     The numbers are parsed as Python floats and the tensors built directly in ``dtype`` (default: torch's
-    default dtype), so ``load(name, dtype=torch.float64)`` is exact to float64.
+    default dtype), so ``load(name, dtype=torch.float64)`` is exact to float64. A device this torch cannot
+    compute on (``"cuda"`` without CUDA, ``"meta"``) raises :class:`~diffkin.errors.DeviceError`.
     """
+    check_device(device)
     if isinstance(name_or_path, Path) or (
         isinstance(name_or_path, str) and (name_or_path.endswith((".yaml", ".yml")) or "/" in name_or_path)
     ):

@@ -328,7 +328,12 @@ def read_yaml(path_or_str) -> tuple[object, str]:
         path = Path(path_or_str)
         if not path.is_file():
             raise ModelError(f"model file {str(path)!r} not found")
-        text, where = path.read_text(), path.name
+        where = path.name
+        try:
+            text = path.read_bytes().decode("utf-8")
+        except UnicodeDecodeError as e:
+            raise ModelError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start}); expected a UTF-8 YAML "
+                             "model file") from None
     else:
         text, where = str(path_or_str), "<yaml>"
     try:

@@ -162,7 +162,7 @@ def _read(source) -> tuple[str, str]:
     if isinstance(source, (str, os.PathLike)):
         path = Path(source)
         if not path.is_file():
-            raise ModelError(f"URDF {str(source)!r} is neither an existing file nor URDF XML text")
+            raise ModelError(f"{source}: no such URDF file (nor URDF XML text)")
         return _decode(path.read_bytes(), repr(str(path))), repr(str(path))
     raise ModelError(f"URDF source must be a path, XML text or bytes, got {type(source).__name__}")
 
@@ -338,9 +338,21 @@ def _validate(links: list[str], joints: list[JointSpec]) -> str:
 def parse_urdf(source) -> URDFTree:
     """Read and validate a URDF: ``source`` is a path (str or Path), XML text (str) or bytes.
 
-    Raises ModelError (naming the joint or link) on malformed XML or kinematics; see the module docstring.
+    Raises ModelError (naming the joint or link, and starting with the file path when ``source`` is a path)
+    on malformed XML or kinematics; see the module docstring.
     """
-    text, origin = _read(source)
+    is_path = isinstance(source, os.PathLike) or (isinstance(source, str) and "<" not in source)
+    try:
+        text, origin = _read(source)
+        return _parse_text(text, origin)
+    except ModelError as e:
+        if not is_path or str(e).startswith(str(source)):
+            raise
+        msg = str(e).removeprefix(f"URDF {str(Path(source))!r}: ")
+        raise ModelError(f"{Path(source)}: {msg}") from None
+
+
+def _parse_text(text: str, origin: str) -> URDFTree:
     robot = _parse_xml(text, origin)
     if robot.tag != "robot":
         raise ModelError(f"URDF {origin}: the root element is <{robot.tag}>, not <robot>")
