@@ -19,8 +19,9 @@ Poses
 **Quaternion rule.** A quaternion whose norm differs from 1 by more than ``QUATERNION_NORM_TOLERANCE``
 (1e-3) is refused with a :class:`DataFileError` naming its row; it is never normalised silently (a
 7-column file of joint vectors is therefore refused by ``diffkin ik``, not read as poses). Within the
-tolerance it is normalised. A 4x4 pose must have the bottom row ``0 0 0 1`` and a rotation with
-``max |RᵀR − I| <= 1e-3``.
+tolerance it is normalised. A 4x4 pose must be rigid by the one rule of
+:data:`diffkin.transforms.RIGIDITY_TOLERANCE` (max |RᵀR − I|, |det R − 1| and the bottom row's deviation at
+most 1e-3): within it the pose is re-orthonormalised, beyond it refused naming the file and row.
 
 Streaming: :func:`open_joint_source` / :func:`open_pose_source` return sources read chunk by chunk
 (``.npy`` through a memory map, ``.npz`` member by member from the zip stream, ``.csv`` line by line), and
@@ -62,7 +63,6 @@ __all__ = [
 
 _SUFFIXES = (".npy", ".npz", ".csv")
 QUATERNION_NORM_TOLERANCE = 1e-3
-ROTATION_TOLERANCE = 1e-3
 
 
 class DataFileError(DiffkinError):
@@ -564,18 +564,15 @@ class PoseSource:
 def _to_transforms(chunk: np.ndarray, layout: str, K: int, single_end: bool, name: str, first: int):
     m = chunk.shape[0]
     if layout == "T":
-        T = chunk.reshape(m, K, 4, 4)
-        bottom = np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=(-1, -2))
-        R = T[..., :3, :3]
-        ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2, -3))
-        bad = np.nonzero((bottom > 1e-9) | (ortho > ROTATION_TOLERANCE))[0]
-        if bad.size:
-            i = int(bad[0])
-            raise DataFileError(
-                f"{name}: row {first + i + 1} is not a rigid transform (bottom row {T[i, 0, 3].tolist()}, "
-                f"max |RᵀR − I| = {ortho[i]:.3g} > {ROTATION_TOLERANCE:g}); poses must be homogeneous "
-                "transforms with a rotation matrix"
-            )
+        from .transforms import RIGIDITY_TOLERANCE, _nearest_rigid, _transform_deviations
+
+        T = torch.from_numpy(np.ascontiguousarray(chunk.reshape(m, K, 4, 4)))
+
+        def where(index: tuple) -> str:
+            return f"{name}: row {first + index[0] + 1}" + ("" if single_end else f", end {index[1] + 1}")
+
+        devs = _transform_deviations(T, name, RIGIDITY_TOLERANCE, where, DataFileError)
+        T = _nearest_rigid(T, *devs).numpy()  # the one rule: within it re-orthonormalised
     else:
         width = 3 if layout == "position" else 7
         rows = chunk.reshape(m, K, width)

@@ -17,7 +17,7 @@ import torch
 from diffkin import models
 from diffkin.calibration import calibrate_from_files, load_measurements
 from diffkin.cli import main
-from diffkin.errors import ShapeError
+from diffkin.errors import DiffkinError, ModelError, ShapeError
 
 F64 = torch.float64
 
@@ -76,3 +76,52 @@ def test_load_measurements_reads_fk_csv_by_header(tmp_path):
     (tmp_path / "q3.csv").write_text("q1,q2,q3,x,y,z\n0,0,0,1,2,3\n")
     with pytest.raises(ShapeError, match=r"3 joint.*2 joints"):
         read_measurements(tmp_path / "q3.csv", n_joints=2)
+
+
+# ------------------------------------------------------------------------------------------ item 3
+def _off_orthonormal(T: torch.Tensor, eps: float, row: int) -> torch.Tensor:
+    """``T`` with row ``row``'s rotation scaled by 1 + eps/2: max |RᵀR − I| ≈ eps."""
+    T = T.clone()
+    T[row, :3, :3] *= 1.0 + eps / 2
+    return T
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_one_rigidity_rule_in_both_dtypes(dtype):
+    from diffkin import transforms as tf
+
+    chain = models.load("ur5", dtype=dtype)
+    q = chain.random_configuration(8, generator=torch.Generator().manual_seed(4))
+    T = chain.forward_kinematics(q).detach()
+    assert tf.RIGIDITY_TOLERANCE == 1e-3
+    ok = _off_orthonormal(T, 2e-4, 5)  # 2e-4: accepted by every entry point, and re-orthonormalised
+    fixed = tf.as_measured_transform(ok)
+    R = fixed[..., :3, :3]
+    eye = torch.eye(3, dtype=dtype)
+    assert float((R.transpose(-1, -2) @ R - eye).abs().max()) < 1e-5
+    assert tf.check_transform(ok) is ok
+    base = tf.as_rigid_transform(ok[5], "base", dtype)
+    assert float((base[:3, :3].T @ base[:3, :3] - eye).abs().max()) < 1e-5
+    bad = _off_orthonormal(T, 3e-3, 5)  # beyond the one limit: refused by each, naming the index
+    for fn in (tf.as_measured_transform, tf.check_transform):
+        with pytest.raises(DiffkinError, match=r"T\[5\] is not a rigid transform.*1e-03|T\[5\].*0\.001"):
+            fn(bad, "T")
+    with pytest.raises(ModelError, match="base is not a rigid transform"):
+        tf.as_rigid_transform(bad[5], "base", dtype)
+
+
+def test_measurement_files_follow_the_rule_and_name_file_and_row(tmp_path):
+    chain = models.load("ur5", dtype=F64)
+    q = chain.random_configuration(10, generator=torch.Generator().manual_seed(5))
+    T = chain.forward_kinematics(q).detach()
+    np.savez(tmp_path / "ok.npz", q=q.numpy(), T=_off_orthonormal(T, 2e-4, 3).numpy())
+    res = calibrate_from_files(chain, tmp_path / "ok.npz", progress=False, cross_validation=0)
+    assert res.residuals[-1] < 1e-4  # accepted and re-orthonormalised, not refused
+    rc, out, err = _cli("calibrate", "--robot", "ur5", "--data", tmp_path / "ok.npz", "--cv", "0",
+                        "--output", tmp_path / "cal.yaml")
+    assert rc == 0, err
+    np.savez(tmp_path / "bad.npz", q=q.numpy(), T=_off_orthonormal(T, 3e-3, 7).numpy())
+    rc, out, err = _cli("calibrate", "--robot", "ur5", "--data", tmp_path / "bad.npz",
+                        "--output", tmp_path / "cal2.yaml")
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "bad.npz" in err and "row 8" in err and "rigid" in err, err

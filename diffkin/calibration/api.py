@@ -405,8 +405,8 @@ def calibrate(
     """Identify the geometry of ``chain`` from joint readings ``q (N, n)`` and measured end-effector
     poses ``T (N, 4, 4)`` (or positions ``(N, 3)``), textbook §2.11. The nominal chain is left untouched.
 
-    Measured rotation blocks orthonormal to 1e-5 are accepted and re-orthonormalised
-    (:data:`diffkin.transforms.MEASURED_TRANSFORM_ATOL`); worse ones are refused with the deviation.
+    Measured rotation blocks off orthonormal by up to 1e-3 are accepted and re-orthonormalised (the one rule
+    of :data:`diffkin.transforms.RIGIDITY_TOLERANCE`); worse ones are refused with the deviation and index.
 
     Args:
         error_model: what is estimated (:mod:`.error_models`): ``"dh"`` the DH table (a, α, d, ϑ);

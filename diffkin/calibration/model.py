@@ -322,14 +322,14 @@ def check_measurements(q, measured, n: int, like, batch: tuple[int, ...] = ()) -
     the rule of :mod:`diffkin.validation` (tensors of ``like``'s dtype and device; numbers, sequences and
     numpy arrays converted to it; finite), with N >= 1 poses.
 
-    Returns ``(q, T, position_only)`` with the rotation blocks of T re-orthonormalised (deviations up to 1e-5
-    accepted, see :func:`~diffkin.transforms.as_measured_transform`). Raises ShapeError / DTypeError /
+    Returns ``(q, T, position_only)`` with the rotation blocks of T re-orthonormalised (deviations up to 1e-3
+    accepted, :data:`~diffkin.transforms.RIGIDITY_TOLERANCE`). Raises ShapeError / DTypeError /
     NonFiniteError / DiffkinError.
     """
     q, measured = tensors(("q", q, None), ("T", measured, None), like=like)
     position_only = measurement_shapes(q, measured, n, batch)
     if not position_only:
-        measured = as_measured_transform(measured, "T")  # 1e-5 tolerance, re-orthonormalised
+        measured = as_measured_transform(measured, "T")  # the one rigidity rule, re-orthonormalised
     return q, measured, position_only
 
 
