@@ -125,3 +125,23 @@ def test_measurement_files_follow_the_rule_and_name_file_and_row(tmp_path):
                         "--output", tmp_path / "cal2.yaml")
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
     assert "bad.npz" in err and "row 8" in err and "rigid" in err, err
+
+
+# ------------------------------------------------------------------------------------------ item 4
+@pytest.mark.parametrize("robot", ["ur5", "urdf"])
+def test_hayati_and_general_calibrations_print_only_diffkin_output(tmp_path, robot):
+    from pathlib import Path
+
+    if robot == "urdf":
+        urdf = Path(__file__).parent / "data" / "urdf" / "irb2400.urdf"
+        chain = models.from_urdf(urdf, "tool0", dtype=F64)
+        args = ["--urdf", urdf, "--end-link", "tool0", "--output", tmp_path / "cal.urdf"]
+    else:
+        chain = models.load(robot, dtype=F64)
+        args = ["--robot", robot, "--output", tmp_path / "cal.yaml"]
+    q = chain.random_configuration(24, generator=torch.Generator().manual_seed(6))
+    np.savez(tmp_path / "m.npz", q=q.numpy(), T=chain.forward_kinematics(q).detach().numpy())
+    rc, out, err = _cli("calibrate", "--data", tmp_path / "m.npz", "--cv", "0", *args)
+    assert rc == 0, err
+    assert ("hayati" if robot == "ur5" else "general") in out
+    assert "jit" not in out + err and "deprecated" not in out + err, out + err

@@ -28,7 +28,9 @@ The interface is that of ``CalibrationModel`` (ζ ``(K, P)``: the flattened para
 
 from __future__ import annotations
 
+import contextlib
 import math
+import warnings
 from collections.abc import Iterable, Sequence
 
 import torch
@@ -80,6 +82,17 @@ def resolve_error_model(chain, error_model: str) -> str:
     if error_model == "auto":
         return "hayati" if parallel_pairs(first) or first.beta is not None else "dh"
     return error_model
+
+
+@contextlib.contextmanager
+def quiet_forward_mode():
+    """Silence, here only, torch's ``torch.jit.script is deprecated`` DeprecationWarning, which its own
+    forward-mode decompositions raise inside ``torch.func.jacfwd``: the user did not call jit and can do
+    nothing about it (every other warning passes)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated",
+                                category=DeprecationWarning)
+        yield
 
 
 class _FK(nn.Module):
@@ -290,7 +303,8 @@ class ChainErrorModel:
 
         with torch.no_grad():
             T = self.forward_kinematics(Z, Q)
-        dT = torch.func.vmap(one)(Z, Q)  # (K, N, 4, 4, C)
+        with quiet_forward_mode():
+            dT = torch.func.vmap(one)(Z, Q)  # (K, N, 4, 4, C)
         Phi = twist_of_derivative(dT, T)
         if position_only:
             Phi = Phi[..., :3, :]
