@@ -79,7 +79,20 @@ def _load_chain(args):
         return models.from_urdf(args.urdf, args.end_link, dtype=dtype, device=device)
     if not args.robot:
         raise DiffkinError("give --robot NAME (see `diffkin models`) or --urdf FILE --end-link LINK")
+    _check_robot_option(args.robot)
     return models.load(args.robot, dtype=dtype, device=device)
+
+
+def _check_robot_option(robot: str) -> None:
+    """``--robot`` takes a built-in name or a robot YAML: a URDF or MJCF file there is told its option."""
+    suffix = Path(robot).suffix.lower()
+    if suffix == ".urdf":
+        raise DiffkinError(f"--robot {robot}: a URDF file is given as --urdf {robot} --end-link LINK "
+                           "(--robot takes a built-in name or a robot YAML file)")
+    if suffix in (".xml", ".mjcf"):
+        raise DiffkinError(f"--robot {robot}: an XML model; a URDF is given as --urdf FILE --end-link LINK, "
+                           "a MuJoCo MJCF loads in Python with diffkin.models.from_mjcf (--robot takes a "
+                           "built-in name or a robot YAML file)")
 
 
 @contextlib.contextmanager
@@ -322,6 +335,8 @@ def cmd_calibrate(args) -> int:
             _check_output_dir(Path(args.report_dir))
     if bool(args.robot) == bool(args.urdf):
         raise ModelError("give the nominal robot as --robot NAME|FILE.yaml or --urdf FILE --end-link LINK")
+    if args.robot:
+        _check_robot_option(args.robot)
     if not as_dir and (out.suffix == ".urdf") != bool(args.urdf):
         raise ModelError(f"--output {out}: a DH robot (--robot) is written as .yaml, a URDF robot (--urdf) "
                          "as .urdf")
