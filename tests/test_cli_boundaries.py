@@ -58,3 +58,40 @@ def test_models_load_points_to_the_file_loaders(name):
     assert "unknown model" not in text and "invalid YAML" not in text, text
     with pytest.raises(ModelError, match="from_urdf"):
         models.load(Path(name))
+
+
+# ------------------------------------------------------------------------------------------ item 6
+@pytest.mark.parametrize("suffix", [".npz", ".csv"])
+def test_ik_random_output_stores_targets_and_sampled_configurations(tmp_path, suffix):
+    import numpy as np
+    import torch
+
+    from diffkin.data_io import read_joints, read_poses
+
+    out = tmp_path / f"ik{suffix}"
+    rc, _, err = _cli("ik", "--robot", "ur5", "--random", 7, "--seed", 5, "--output", out)
+    assert rc == 0, err
+    chain = models.load("ur5", dtype=torch.float64)
+    if suffix == ".npz":
+        data = np.load(out)
+        q_sampled, T_target = data["q_sampled"], data["T_target"]
+        q = data["q"]
+    else:
+        import csv
+
+        header = next(csv.reader(out.open()))
+        assert header[:6] == [f"q{i}" for i in range(1, 7)], header
+        cols = np.loadtxt(out, delimiter=",", skiprows=1)
+        pick = [header.index(f"q_sampled{i}") for i in range(1, 7)]
+        q_sampled = cols[:, pick]
+        T_target = read_poses(out)[0].numpy()  # the target's x,y,z,qw,qx,qy,qz columns read as poses
+        q = read_joints(out, 6).numpy()
+    assert q_sampled.shape == (7, 6) and T_target.shape == (7, 4, 4)
+    # the targets are the FK of the sampled configurations, drawn as `diffkin fk --random` draws them
+    rc, _, err = _cli("fk", "--robot", "ur5", "--random", 7, "--seed", 5, "--output", tmp_path / "fk.npz")
+    assert rc == 0, err
+    fk = np.load(tmp_path / "fk.npz")
+    np.testing.assert_allclose(q_sampled, fk["q"], atol=1e-12)
+    np.testing.assert_allclose(T_target, fk["T"], atol=1e-9)
+    reached = chain.forward_kinematics(torch.as_tensor(q)).detach().numpy()
+    np.testing.assert_allclose(reached[:, :3, 3], T_target[:, :3, 3], atol=1e-3)
