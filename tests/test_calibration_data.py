@@ -145,3 +145,34 @@ def test_hayati_and_general_calibrations_print_only_diffkin_output(tmp_path, rob
     assert rc == 0, err
     assert ("hayati" if robot == "ur5" else "general") in out
     assert "jit" not in out + err and "deprecated" not in out + err, out + err
+
+
+# ------------------------------------------------------------------------------------------ item 8
+def _perturbed_panda(seed: int):
+    chain = models.load("panda", dtype=F64)
+    true = chain.copy()
+    g = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        true.a.add_(1e-3 * (2 * torch.rand(true.a.shape, generator=g, dtype=F64) - 1))
+        true.d.add_(1e-3 * (2 * torch.rand(true.d.shape, generator=g, dtype=F64) - 1))
+    return chain, true
+
+
+@pytest.mark.parametrize("method", ["gradient", "least_squares"])
+def test_calibrate_with_joint_readings_that_require_grad(method):
+    from diffkin.calibration import calibrate, calibrate_batch
+
+    chain, true = _perturbed_panda(7)
+    q0 = chain.random_configuration(30, generator=torch.Generator().manual_seed(8))
+    T = true.forward_kinematics(q0).detach()
+    net = torch.nn.Linear(7, 7, dtype=F64)  # joint readings from a network: they carry a graph
+    with torch.no_grad():
+        net.weight.copy_(torch.eye(7, dtype=F64))
+        net.bias.zero_()
+    q = net(q0)
+    assert q.requires_grad
+    res = calibrate(chain, q, T, method=method, progress=False, cross_validation=0)
+    assert res.residuals[-1] < 1e-6, res.residuals[-1]
+    assert not res.q.requires_grad and net.weight.grad is None
+    out = calibrate_batch(chain, q[None], T[None], method=method, progress=False)
+    assert out[0].residuals[-1] < 1e-6

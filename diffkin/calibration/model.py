@@ -322,11 +322,15 @@ def check_measurements(q, measured, n: int, like, batch: tuple[int, ...] = ()) -
     the rule of :mod:`diffkin.validation` (tensors of ``like``'s dtype and device; numbers, sequences and
     numpy arrays converted to it; finite), with N >= 1 poses.
 
-    Returns ``(q, T, position_only)`` with the rotation blocks of T re-orthonormalised (deviations up to 1e-3
-    accepted, :data:`~diffkin.transforms.RIGIDITY_TOLERANCE`). Raises ShapeError / DTypeError /
-    NonFiniteError / DiffkinError.
+    Returns ``(q, T, position_only)``, detached, with the rotation blocks of T re-orthonormalised
+    (deviations up to 1e-3 accepted, :data:`~diffkin.transforms.RIGIDITY_TOLERANCE`). Raises ShapeError /
+    DTypeError / NonFiniteError / DiffkinError.
     """
     q, measured = tensors(("q", q, None), ("T", measured, None), like=like)
+    # data, not variables: joint readings from a network carry its graph, which the fit must not backward
+    # through (the gradient method's closure calls backward once per step); calibration_loss stays
+    # differentiable in q for pipelines that want that
+    q, measured = q.detach(), measured.detach()
     position_only = measurement_shapes(q, measured, n, batch)
     if not position_only:
         measured = as_measured_transform(measured, "T")  # the one rigidity rule, re-orthonormalised
