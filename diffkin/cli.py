@@ -386,7 +386,8 @@ def cmd_calibrate(args) -> int:
     for w in caught:
         con.print(f"[bold yellow]warning:[/] {w.message}")
     for note in res.notes:
-        con.print(f"note: {note}")
+        if not any(note in str(w.message) for w in caught):  # said once, as the warning
+            con.print(f"note: {note}")
     con.print(f"wrote {written}" + (f" and the report in {out}" if as_dir else ""))
     if res.report.unidentifiable:
         con.print(

@@ -176,3 +176,30 @@ def test_calibrate_with_joint_readings_that_require_grad(method):
     assert not res.q.requires_grad and net.weight.grad is None
     out = calibrate_batch(chain, q[None], T[None], method=method, progress=False)
     assert out[0].residuals[-1] < 1e-6
+
+
+# ------------------------------------------------------------------------------------------ item 9
+def test_calibrate_batch_is_as_honest_as_calibrate_on_degenerate_data():
+    from diffkin.calibration import calibrate, calibrate_batch
+
+    chain, true = _perturbed_panda(9)
+    q = chain.random_configuration(1, generator=torch.Generator().manual_seed(10)).expand(30, 7).clone()
+    T = true.forward_kinematics(q).detach()  # one robot, 30 identical poses
+    q_good = chain.random_configuration(30, generator=torch.Generator().manual_seed(11))
+    T_good = true.forward_kinematics(q_good).detach()
+    with pytest.warns(UserWarning, match="determine only 6 of 28"):
+        single = calibrate(chain, q, T, progress=False)
+    with pytest.warns(UserWarning, match="determine only 6 of 28") as caught:
+        batch = calibrate_batch(chain, torch.stack([q_good, q]), torch.stack([T_good, T]), progress=False)
+    assert len([w for w in caught if "determine only" in str(w.message)]) == 1  # robot 1 only
+    for res in (single, batch[1]):
+        assert res.report.rank == 6 and len(res.report.undetermined) == 22
+        assert not res.determined
+        assert any("determine only 6 of 28" in note for note in res.notes), res.notes
+        assert "NOT determined" in res.summary()
+    assert batch[0].determined and not any("determine only" in note for note in batch[0].notes)
+    # what the warning says, measured: away from the poses the identified robot is not better
+    held = chain.random_configuration(40, generator=torch.Generator().manual_seed(12))
+    T_held = true.forward_kinematics(held).detach()
+    assert batch[0].validation_error(held, T_held)["position_rms"] < 1e-6
+    assert batch[1].validation_error(held, T_held)["position_rms"] > 1e-4

@@ -84,6 +84,12 @@ class CalibrationResult:
     notes: list[str] = field(default_factory=list)
 
     @property
+    def determined(self) -> bool:
+        """The poses determine every structurally identifiable parameter (``report.undetermined`` is empty);
+        False: some are minimum-norm estimates and the error away from these poses can grow."""
+        return not self.report.undetermined
+
+    @property
     def position_only(self) -> bool:
         return self.measured.shape[-1] == 3 and self.measured.ndim == self.q.ndim
 
@@ -178,7 +184,8 @@ class CalibrationResult:
     def summary(self) -> str:
         lines = [
             f"calibration of '{self.chain.name}' ({self.method}): {self.iterations} iterations, "
-            f"{'converged' if self.converged else 'NOT converged'}",
+            f"{'converged' if self.converged else 'NOT converged'}"
+            + ("" if self.determined else "; parameters NOT determined by these poses (below)"),
             f"position RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
         ]
         if self.orientation_residuals is not None:
@@ -263,6 +270,15 @@ def _cross_validate(model, q, T, position_only, method, w, rank_tol, opts, folds
     return res
 
 
+def _undetermined_note(report: IdentifiabilityReport, n_poses: int) -> str:
+    """What degenerate data (too few or too similar poses) leave open, for ``notes`` and the warning."""
+    poses = "this pose determines" if n_poses == 1 else f"these {n_poses} poses determine"
+    return (f"{poses} only {report.rank} of {report.structural_rank} identifiable "
+            f"parameters; {len(report.undetermined)} ({', '.join(report.undetermined[:4])}"
+            f"{', ...' if len(report.undetermined) > 4 else ''}) are minimum-norm estimates, so the error "
+            f"away from these poses can grow: add at least {report.more_poses_needed} well-spread poses")
+
+
 def _run(
     model,
     q: Tensor,
@@ -304,6 +320,11 @@ def _run(
                     UserWarning,
                     stacklevel=3,
                 )
+        notes = list(getattr(model, "notes", []))
+        if reports[k].undetermined:
+            notes.append(_undetermined_note(reports[k], q.shape[1]))
+            which = f"'{chains[k].name}'" + (f" (robot {k} of the batch)" if K > 1 else "")
+            warnings.warn(f"calibration of {which}: {notes[-1]}", UserWarning, stacklevel=3)
         cv = None
         if cross_validation:
             cv = _cross_validate(model, q[k], T[k], position_only, method, orientation_weight, rank_tol,
@@ -327,7 +348,7 @@ def _run(
                 error_model=kind,
                 noise_ratio=ratio,
                 cross_validation=cv,
-                notes=list(getattr(model, "notes", [])),
+                notes=notes,
             )
         )
     return results
