@@ -347,7 +347,7 @@ def cmd_calibrate(args) -> int:
             args.urdf or args.robot, args.data, end_link=args.end_link, method=args.method,
             progress=not args.no_progress, out_dir=out if as_dir else args.report_dir,
             error_model=args.error_model, base=args.base, tool=args.tool, measurement_noise=noise,
-            cross_validation=args.cv,
+            cross_validation=args.cv, loss=args.loss,
         )
     if as_dir:
         written = out / ("calibrated.urdf" if args.urdf else "calibrated.yaml")
@@ -383,6 +383,8 @@ def cmd_calibrate(args) -> int:
                      ["", "before", "after"], rows))
     if res.noise_ratio is not None:
         con.print(f"noise check: fit residual / measurement noise = {res.noise_ratio:.2f} (about 1 expected)")
+    if res.outliers or res.loss != "l2":
+        con.print(res.outlier_summary())
     for w in caught:
         con.print(f"[bold yellow]warning:[/] {w.message}")
     for note in res.notes:
@@ -853,6 +855,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=_nonnegative_float, nargs=2, metavar=("MM", "DEG"),
                    help="measurement noise per coordinate (position mm, orientation deg): warn when the fit "
                         "residual is more than 2x what it explains")
+    p.add_argument("--loss", choices=["l2", "huber", "cauchy", "soft_l1"], default=None,
+                   help="robust loss against outliers (scale from --noise, else 1 mm); default l2 for "
+                        "least_squares, huber for gradient")
     p.add_argument("--cv", type=_cv_folds, default=5,
                    help="k of the k-fold cross-validated held-out error, 0: off")
     p.add_argument("--output", required=True, metavar="FILE|DIR",

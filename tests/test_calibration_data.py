@@ -203,3 +203,66 @@ def test_calibrate_batch_is_as_honest_as_calibrate_on_degenerate_data():
     T_held = true.forward_kinematics(held).detach()
     assert batch[0].validation_error(held, T_held)["position_rms"] < 1e-6
     assert batch[1].validation_error(held, T_held)["position_rms"] > 1e-4
+
+
+# ----------------------------------------------------------------------------------------- item 12
+def _outlier_data(seed: int, n_poses: int = 100, sigma_p: float = 5e-5, sigma_o: float = 1e-4):
+    """Panda measurements with Gaussian noise (σ per coordinate) and 5 % of the poses' positions off by 5 mm
+    (a mis-read target, a bumped reflector): ``(nominal, true, q, T_clean, T_bad, outlier rows)``."""
+    from diffkin.rotations import rotvec_to_matrix
+
+    chain, true = _perturbed_panda(seed)
+    g = torch.Generator().manual_seed(seed + 100)
+    q = chain.random_configuration(n_poses, generator=g)
+    T = true.forward_kinematics(q).detach().clone()
+    T[:, :3, 3] += sigma_p * torch.randn(n_poses, 3, generator=g, dtype=F64)
+    T[:, :3, :3] = rotvec_to_matrix(sigma_o * torch.randn(n_poses, 3, generator=g, dtype=F64)) @ T[:, :3, :3]
+    bad = torch.randperm(n_poses, generator=g)[: n_poses // 20]
+    direction = torch.nn.functional.normalize(torch.randn(len(bad), 3, generator=g, dtype=F64), dim=-1)
+    T_bad = T.clone()
+    T_bad[bad, :3, 3] += 5e-3 * direction
+    return chain, true, q, T, T_bad, sorted(bad.tolist())
+
+
+@pytest.mark.parametrize("loss,method", [("huber", "least_squares"), ("cauchy", "least_squares"),
+                                         ("cauchy", "gradient")])
+def test_robust_loss_resists_5_percent_outliers_of_5_mm(loss, method):
+    from diffkin.calibration import calibrate
+
+    noise = (5e-5, 1e-4)
+    chain, true, q, T, T_bad, bad = _outlier_data(13)
+    held = chain.random_configuration(200, generator=torch.Generator().manual_seed(14))
+    T_held = true.forward_kinematics(held).detach()  # the true robot, noise-free: the model's own error
+    opts = dict(method=method, measurement_noise=noise, progress=False, cross_validation=0)
+
+    def model_error(res):
+        return res.validation_error(held, T_held)["position_rms"]
+
+    with pytest.warns(UserWarning):  # the plain fit of the contaminated data: 2x what the noise explains
+        plain = calibrate(chain, q, T_bad, loss="l2", **opts)
+    floor = model_error(calibrate(chain, q, T, loss="l2", **opts))  # the noise floor: clean data, plain fit
+    robust = calibrate(chain, q, T_bad, loss=loss, **opts)
+    assert model_error(robust) <= 1.5 * floor, (model_error(robust), floor)
+    assert model_error(plain) > 1.5 * floor, (model_error(plain), floor)
+    # the per-pose outlier report names exactly the contaminated poses
+    assert robust.loss == loss and robust.outliers == bad, (robust.outliers, bad)
+    assert robust.pose_position_errors.shape == (100,)
+    assert float(robust.pose_position_errors[bad].min()) > 4e-3
+    assert f"{len(bad)} of 100 poses" in robust.summary()
+
+
+def test_cli_calibrate_loss_flag_reports_the_outliers(tmp_path):
+    import json
+
+    chain, true, q, T, T_bad, bad = _outlier_data(15)
+    np.savez(tmp_path / "m.npz", q=q.numpy(), T=T_bad.numpy())
+    rc, out, err = _cli("calibrate", "--robot", "panda", "--data", tmp_path / "m.npz", "--loss", "cauchy",
+                        "--noise", "0.05", str(np.degrees(1e-4)), "--cv", "0", "--output", tmp_path / "rep")
+    assert rc == 0, err
+    assert f"outliers (cauchy loss): {len(bad)} of 100 poses" in out, out
+    assert "fit residual is" not in out + err  # the robust fit's noise check is that of its inliers
+    report = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert report["loss"] == "cauchy" and report["outliers"] == bad
+    rc, out, err = _cli("calibrate", "--robot", "panda", "--data", tmp_path / "m.npz", "--loss", "tukey",
+                        "--output", tmp_path / "c.yaml")
+    assert rc == 2 and "tukey" in err
