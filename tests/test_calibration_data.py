@@ -266,3 +266,32 @@ def test_cli_calibrate_loss_flag_reports_the_outliers(tmp_path):
     rc, out, err = _cli("calibrate", "--robot", "panda", "--data", tmp_path / "m.npz", "--loss", "tukey",
                         "--output", tmp_path / "c.yaml")
     assert rc == 2 and "tukey" in err
+
+
+# ----------------------------------------------------------------------------------------- item 14
+def test_one_parameter_jacobian_for_every_error_model():
+    """The DH model's Φ is the forward-mode derivative of the FK kernel, the very code of the Hayati and
+    general models (no hand-written analytic Jacobian beside it), and it matches central differences."""
+    from diffkin.calibration import model as dh_model
+    from diffkin.calibration.error_models import ChainErrorModel
+    from diffkin.calibration.model import CalibrationModel
+
+    assert CalibrationModel.calibration_matrix is ChainErrorModel.calibration_matrix
+    assert not hasattr(dh_model, "_so3_right_jacobian")
+    chain = models.load("panda", dtype=F64)
+    model = CalibrationModel.from_chains(chain, base=True, tool=True)
+    g = torch.Generator().manual_seed(16)
+    zeta = model.nominal + 0.05 * torch.randn(model.n_params, generator=g, dtype=F64)  # off nominal
+    q = chain.random_configuration(5, generator=g)
+    Phi, T = model.calibration_matrix(zeta, q, False, 1.0)
+    assert Phi.shape == (5, 6, model.n_params)
+    from diffkin.calibration.model import pose_residual
+
+    h = 1e-6
+    for j in (0, 9, 20, 4 * 7 + 2, 4 * 7 + 4, 4 * 7 + 10):  # a1, alpha3, theta7, base_z, base_ry, tool_ry
+        e = torch.zeros(model.n_params, dtype=F64)
+        e[j] = h
+        # the twist of a parameter step, from the residual of the stepped poses against the stepped-back ones
+        plus, minus = (model.forward_kinematics(zeta + s * e, q) for s in (1.0, -1.0))
+        fd = pose_residual(minus, plus, 1.0) / (2 * h)
+        torch.testing.assert_close(Phi[..., j], fd, atol=1e-6, rtol=1e-6)

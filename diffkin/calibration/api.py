@@ -484,7 +484,7 @@ def calibrate(
             exceeds 3x the noise's expected norm (``result.outliers``, ``result.pose_position_errors``).
         cross_validation: k of the k-fold cross-validated held-out error in ``result.cross_validation``
             (default 5; run when there are at least 4k poses; 0/None: off). The k fits run as one batch.
-        method: ``"least_squares"`` — iterate (2.88)–(2.89) with the analytic calibration matrix Φ̄;
+        method: ``"least_squares"`` — iterate (2.88)–(2.89) with the calibration matrix Φ̄;
             ``"gradient"`` — minimise :func:`calibration_loss` with a torch optimiser
             (``optimizer="lbfgs"|"adam"``, ``lr``; ``loss`` and ``scale`` as above).
         parameters: ``"all"`` DH parameters, or kinds (``"a"``, ``"alpha"``, ``"d"``, ``"theta"``) / names
