@@ -23,7 +23,6 @@ import inspect
 import math
 import os
 import sys
-import time
 import traceback
 from pathlib import Path
 
@@ -174,80 +173,16 @@ def cmd_fk(args) -> int:
 
 def _streamed(args, chain, label: str, stream, source, **options):
     """Run ``stream`` (stream_fk / stream_ik) over the input, in this process or, under torchrun, over this
-    rank's shard (:mod:`diffkin.distributed`); returns the summary (the combined one on rank 0, None on the
-    other ranks)."""
+    rank's shard (:func:`diffkin.distributed.run_sharded`); returns the summary (the combined one on rank 0,
+    None on the other ranks)."""
     from . import distributed as dist
 
     info = dist.init(args.device)
-    if not info.sharded:
-        with _progress(args, label) as cb:
-            return stream(chain, source, args.output, chunk_size=args.chunk_size, progress=cb, **options)
-    from .streaming import combine_ik
-
-    rows, res, failure = None, None, None
-    try:
-        rows, res = _stream_shard(args, chain, label, stream, source, info, **options)
-    except Exception as exc:  # every rank must reach the gather below, or the others wait for it forever
-        failure = exc
-    statuses = dist.gather((res, None if failure is None else _one_line(_exc_text(failure))))
-    failed = [(r, msg) for r, (_, msg) in enumerate(statuses) if msg is not None]
-    if failed:
-        if info.rank == 0 and args.output:  # no half data set: the parts that were written go
-            for r in range(info.world):
-                dist.part_path(args.output, r, info.world).unlink(missing_ok=True)
-        dist.finish()
-        if failure is not None:
-            raise failure
-        r, msg = failed[0]
-        raise DiffkinError(f"rank {r} of {info.world} failed ({msg}); no output written")
-    results = [r for r, _ in statuses if r is not None]
-    if info.rank == 0:
-        t0 = time.perf_counter()
-        output = None
-        if args.output:
-            parts = [dist.part_path(args.output, r, info.world) for r, (a, b) in enumerate(rows) if b > a]
-            if args.merge:
-                output = dist.merge_parts(args.output, parts)
-            else:
-                output = dist.write_manifest(args.output, info.world, rows, " ".join(sys.argv))
-        merge_s = time.perf_counter() - t0
-        if label == "FK":
-            total = type(results[0])(sum(r.count for r in results), max(r.seconds for r in results) + merge_s,
-                                     max(r.compute_seconds for r in results), output)
-        else:
-            total = combine_ik(results)
-            total.output, total.seconds = output, total.seconds + merge_s
-        how = (f"; {'parts merged' if args.merge else 'manifest written'} in {merge_s:.3f} s"
-               if args.output else "; no --output: nothing written")
-        print(f"{info.world} processes, rows split on chunk boundaries{how}", file=sys.stderr)
-    dist.finish()
-    return total if info.rank == 0 else None
-
-
-def _exc_text(exc: BaseException) -> str:
-    return _os_message(exc) if isinstance(exc, OSError) else str(exc)
-
-
-def _stream_shard(args, chain, label: str, stream, source, info, **options):
-    """This rank's rows ``[start, stop)`` of the shards, streamed to its part file: ``(rows, result)``."""
-    from . import distributed as dist
-    from .data_io import RandomJoints, open_joint_source, open_pose_source
-
-    if isinstance(source, RandomJoints):
-        n = source.count
-    elif label == "FK":
-        n = len(open_joint_source(source, chain.n_joints, chain))
-    else:
-        n = len(open_pose_source(source, chain.n_ends, chain.single_end))
-    rows = [dist.shard_rows(n, args.chunk_size, r, info.world) for r in range(info.world)]
-    start, stop = rows[info.rank]
-    part = dist.part_path(args.output, info.rank, info.world) if args.output else None
-    res = None
-    if stop > start:
-        with _progress(args if info.rank == 0 else _Quiet(), f"{label} (rank 0 of {info.world})") as cb:
-            res = stream(chain, source, part, chunk_size=args.chunk_size, start=start, stop=stop, progress=cb,
-                         **options)
-    return rows, res
+    title = f"{label} (rank 0 of {info.world})" if info.sharded else label
+    with _progress(args if info.rank == 0 else _Quiet(), title) as cb:
+        return dist.run_sharded(stream, chain, source, args.output, chunk_size=args.chunk_size,
+                                merge=args.merge, command=" ".join(sys.argv), progress=cb, device=args.device,
+                                log=lambda line: print(line, file=sys.stderr), **options)
 
 
 class _Quiet:
