@@ -23,7 +23,6 @@ import inspect
 import math
 import os
 import sys
-import time
 import traceback
 from pathlib import Path
 
@@ -79,7 +78,20 @@ def _load_chain(args):
         return models.from_urdf(args.urdf, args.end_link, dtype=dtype, device=device)
     if not args.robot:
         raise DiffkinError("give --robot NAME (see `diffkin models`) or --urdf FILE --end-link LINK")
+    _check_robot_option(args.robot)
     return models.load(args.robot, dtype=dtype, device=device)
+
+
+def _check_robot_option(robot: str) -> None:
+    """``--robot`` takes a built-in name or a robot YAML: a URDF or MJCF file there is told its option."""
+    suffix = Path(robot).suffix.lower()
+    if suffix == ".urdf":
+        raise DiffkinError(f"--robot {robot}: a URDF file is given as --urdf {robot} --end-link LINK "
+                           "(--robot takes a built-in name or a robot YAML file)")
+    if suffix in (".xml", ".mjcf"):
+        raise DiffkinError(f"--robot {robot}: an XML model; a URDF is given as --urdf FILE --end-link LINK, "
+                           "a MuJoCo MJCF loads in Python with diffkin.models.from_mjcf (--robot takes a "
+                           "built-in name or a robot YAML file)")
 
 
 @contextlib.contextmanager
@@ -161,80 +173,16 @@ def cmd_fk(args) -> int:
 
 def _streamed(args, chain, label: str, stream, source, **options):
     """Run ``stream`` (stream_fk / stream_ik) over the input, in this process or, under torchrun, over this
-    rank's shard (:mod:`diffkin.distributed`); returns the summary (the combined one on rank 0, None on the
-    other ranks)."""
+    rank's shard (:func:`diffkin.distributed.run_sharded`); returns the summary (the combined one on rank 0,
+    None on the other ranks)."""
     from . import distributed as dist
 
     info = dist.init(args.device)
-    if not info.sharded:
-        with _progress(args, label) as cb:
-            return stream(chain, source, args.output, chunk_size=args.chunk_size, progress=cb, **options)
-    from .streaming import combine_ik
-
-    rows, res, failure = None, None, None
-    try:
-        rows, res = _stream_shard(args, chain, label, stream, source, info, **options)
-    except Exception as exc:  # every rank must reach the gather below, or the others wait for it forever
-        failure = exc
-    statuses = dist.gather((res, None if failure is None else _one_line(_exc_text(failure))))
-    failed = [(r, msg) for r, (_, msg) in enumerate(statuses) if msg is not None]
-    if failed:
-        if info.rank == 0 and args.output:  # no half data set: the parts that were written go
-            for r in range(info.world):
-                dist.part_path(args.output, r, info.world).unlink(missing_ok=True)
-        dist.finish()
-        if failure is not None:
-            raise failure
-        r, msg = failed[0]
-        raise DiffkinError(f"rank {r} of {info.world} failed ({msg}); no output written")
-    results = [r for r, _ in statuses if r is not None]
-    if info.rank == 0:
-        t0 = time.perf_counter()
-        output = None
-        if args.output:
-            parts = [dist.part_path(args.output, r, info.world) for r, (a, b) in enumerate(rows) if b > a]
-            if args.merge:
-                output = dist.merge_parts(args.output, parts)
-            else:
-                output = dist.write_manifest(args.output, info.world, rows, " ".join(sys.argv))
-        merge_s = time.perf_counter() - t0
-        if label == "FK":
-            total = type(results[0])(sum(r.count for r in results), max(r.seconds for r in results) + merge_s,
-                                     max(r.compute_seconds for r in results), output)
-        else:
-            total = combine_ik(results)
-            total.output, total.seconds = output, total.seconds + merge_s
-        how = (f"; {'parts merged' if args.merge else 'manifest written'} in {merge_s:.3f} s"
-               if args.output else "; no --output: nothing written")
-        print(f"{info.world} processes, rows split on chunk boundaries{how}", file=sys.stderr)
-    dist.finish()
-    return total if info.rank == 0 else None
-
-
-def _exc_text(exc: BaseException) -> str:
-    return _os_message(exc) if isinstance(exc, OSError) else str(exc)
-
-
-def _stream_shard(args, chain, label: str, stream, source, info, **options):
-    """This rank's rows ``[start, stop)`` of the shards, streamed to its part file: ``(rows, result)``."""
-    from . import distributed as dist
-    from .data_io import RandomJoints, open_joint_source, open_pose_source
-
-    if isinstance(source, RandomJoints):
-        n = source.count
-    elif label == "FK":
-        n = len(open_joint_source(source, chain.n_joints, chain))
-    else:
-        n = len(open_pose_source(source, chain.n_ends, chain.single_end))
-    rows = [dist.shard_rows(n, args.chunk_size, r, info.world) for r in range(info.world)]
-    start, stop = rows[info.rank]
-    part = dist.part_path(args.output, info.rank, info.world) if args.output else None
-    res = None
-    if stop > start:
-        with _progress(args if info.rank == 0 else _Quiet(), f"{label} (rank 0 of {info.world})") as cb:
-            res = stream(chain, source, part, chunk_size=args.chunk_size, start=start, stop=stop, progress=cb,
-                         **options)
-    return rows, res
+    title = f"{label} (rank 0 of {info.world})" if info.sharded else label
+    with _progress(args if info.rank == 0 else _Quiet(), title) as cb:
+        return dist.run_sharded(stream, chain, source, args.output, chunk_size=args.chunk_size,
+                                merge=args.merge, command=" ".join(sys.argv), progress=cb, device=args.device,
+                                log=lambda line: print(line, file=sys.stderr), **options)
 
 
 class _Quiet:
@@ -322,6 +270,8 @@ def cmd_calibrate(args) -> int:
             _check_output_dir(Path(args.report_dir))
     if bool(args.robot) == bool(args.urdf):
         raise ModelError("give the nominal robot as --robot NAME|FILE.yaml or --urdf FILE --end-link LINK")
+    if args.robot:
+        _check_robot_option(args.robot)
     if not as_dir and (out.suffix == ".urdf") != bool(args.urdf):
         raise ModelError(f"--output {out}: a DH robot (--robot) is written as .yaml, a URDF robot (--urdf) "
                          "as .urdf")
@@ -332,7 +282,7 @@ def cmd_calibrate(args) -> int:
             args.urdf or args.robot, args.data, end_link=args.end_link, method=args.method,
             progress=not args.no_progress, out_dir=out if as_dir else args.report_dir,
             error_model=args.error_model, base=args.base, tool=args.tool, measurement_noise=noise,
-            cross_validation=args.cv,
+            cross_validation=args.cv, loss=args.loss,
         )
     if as_dir:
         written = out / ("calibrated.urdf" if args.urdf else "calibrated.yaml")
@@ -368,10 +318,13 @@ def cmd_calibrate(args) -> int:
                      ["", "before", "after"], rows))
     if res.noise_ratio is not None:
         con.print(f"noise check: fit residual / measurement noise = {res.noise_ratio:.2f} (about 1 expected)")
+    if res.outliers or res.loss != "l2":
+        con.print(res.outlier_summary())
     for w in caught:
         con.print(f"[bold yellow]warning:[/] {w.message}")
     for note in res.notes:
-        con.print(f"note: {note}")
+        if not any(note in str(w.message) for w in caught):  # said once, as the warning
+            con.print(f"note: {note}")
     con.print(f"wrote {written}" + (f" and the report in {out}" if as_dir else ""))
     if res.report.unidentifiable:
         con.print(
@@ -756,7 +709,8 @@ _DESCRIPTIONS = {
           "is; x,y,z only: position-only targets) or, headerless, 3 or 7 columns. A quaternion whose norm\n"
           "is off 1 by more than 1e-3 is refused with its row, never normalised silently.\n"
           "Output by suffix: .npy holds q (N, n); .npz and .csv hold q, success, position_error [m],\n"
-          "orientation_error [rad] (NaN when solving positions only) and iterations.\n"
+          "orientation_error [rad] (NaN when solving positions only) and iterations; with --random also\n"
+          "the sampled configurations q_sampled and the targets (.npz T_target; .csv x,y,z,qw,qx,qy,qz).\n"
           "Targets are solved in chunks of --chunk-size (bounded memory). --random N solves the FK of N\n"
           "random configurations (drawn as in `diffkin fk --random`). The solver's restarts in chunk [a, b)\n"
           "are seeded from (--seed, a): reproducible for one chunk size; each success flag is decided by an\n"
@@ -878,6 +832,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=_nonnegative_float, nargs=2, metavar=("MM", "DEG"),
                    help="measurement noise per coordinate (position mm, orientation deg): warn when the fit "
                         "residual is more than 2x what it explains")
+    p.add_argument("--loss", choices=["l2", "huber", "cauchy", "soft_l1"], default=None,
+                   help="robust loss against outliers (scale from --noise, else 1 mm); default l2 for "
+                        "least_squares, huber for gradient")
     p.add_argument("--cv", type=_cv_folds, default=5,
                    help="k of the k-fold cross-validated held-out error, 0: off")
     p.add_argument("--output", required=True, metavar="FILE|DIR",

@@ -3,7 +3,9 @@ in chunks of bounded memory.
 
 Joint vectors ``(N, n)``
     ``.npy`` array; ``.npz`` key ``q``; ``.csv`` with ``n`` columns, or with a header row that names them
-    ``q1 .. qn`` (other columns, such as ``diffkin fk``'s ``x y z qw qx qy qz``, are then ignored).
+    ``q1 .. qn`` (other columns, such as ``diffkin fk``'s ``x y z qw qx qy qz``, are then ignored). The
+    joint count is the file's (its header's run q1, q2, ..., or its shape): a file of another count than the
+    robot's is refused with both counts, never cut to fit.
 
 Poses
     ``.npy``: ``(N, 4, 4)`` homogeneous transforms (``(N, K, 4, 4)`` for K end links), ``(N, 3)`` positions
@@ -17,8 +19,9 @@ Poses
 **Quaternion rule.** A quaternion whose norm differs from 1 by more than ``QUATERNION_NORM_TOLERANCE``
 (1e-3) is refused with a :class:`DataFileError` naming its row; it is never normalised silently (a
 7-column file of joint vectors is therefore refused by ``diffkin ik``, not read as poses). Within the
-tolerance it is normalised. A 4x4 pose must have the bottom row ``0 0 0 1`` and a rotation with
-``max |RᵀR − I| <= 1e-3``.
+tolerance it is normalised. A 4x4 pose must be rigid by the one rule of
+:data:`diffkin.transforms.RIGIDITY_TOLERANCE` (max |RᵀR − I|, |det R − 1| and the bottom row's deviation at
+most 1e-3): within it the pose is re-orthonormalised, beyond it refused naming the file and row.
 
 Streaming: :func:`open_joint_source` / :func:`open_pose_source` return sources read chunk by chunk
 (``.npy`` through a memory map, ``.npz`` member by member from the zip stream, ``.csv`` line by line), and
@@ -51,14 +54,15 @@ __all__ = [
     "open_pose_source",
     "open_writer",
     "read_array",
+    "joint_count",
     "read_joints",
+    "read_measurements",
     "read_poses",
     "write_arrays",
 ]
 
 _SUFFIXES = (".npy", ".npz", ".csv")
 QUATERNION_NORM_TOLERANCE = 1e-3
-ROTATION_TOLERANCE = 1e-3
 
 
 class DataFileError(DiffkinError):
@@ -432,13 +436,10 @@ def open_joint_source(source, n_joints: int, chain=None) -> ArraySource:
         path = _check_path(source)
         if path.suffix == ".csv":
             csv = _CsvFile(path)
-            cols = None
-            if csv.header is not None:
-                for names in ([f"q{i + 1}" for i in range(n_joints)], [f"q{i}" for i in range(n_joints)],
-                              [f"q_{i}" for i in range(n_joints)]):
-                    if all(nm in csv.header for nm in names):
-                        cols = [csv.header.index(nm) for nm in names]
-                        break
+            cols = None if csv.header is None else _joint_columns(csv.header)
+            if cols is not None and len(cols) != n_joints:
+                names = f"header {csv.header[cols[0]]}..{csv.header[cols[-1]]}"
+                raise ShapeError(_joint_count_message(path, len(cols), n_joints, names))
             if cols is None and csv.width != n_joints:
                 raise ShapeError(
                     f"{path}: expected joint vectors of shape (N, {n_joints}) (or a header naming "
@@ -450,9 +451,52 @@ def open_joint_source(source, n_joints: int, chain=None) -> ArraySource:
             if len(src.shape) == 1 and src.shape[0] == n_joints:
                 raise ShapeError(f"{path}: expected joint vectors of shape (N, {n_joints}), got "
                                  f"{src.shape}; save one configuration as shape (1, {n_joints})")
-        if len(src.shape) != 2 or src.shape[1] != n_joints:
+        if len(src.shape) == 2 and src.shape[1] != n_joints:
+            raise ShapeError(_joint_count_message(path, src.shape[1], n_joints, f"shape {src.shape}"))
+        if len(src.shape) != 2:
             raise ShapeError(f"{path}: expected joint vectors of shape (N, {n_joints}), got {src.shape}")
     return _finite(src)
+
+
+#: the header spellings of joint columns: q1..qn, q0..q(n-1), q_0..q_(n-1)
+_JOINT_NAMES = ((lambda i: f"q{i + 1}"), (lambda i: f"q{i}"), (lambda i: f"q_{i}"))
+
+
+def _joint_columns(header: list[str]) -> list[int] | None:
+    """Indices of the joint columns a CSV header names (the longest run q1, q2, ... of one spelling), or
+    None when it names none: the file's joint count is read from its header, never assumed (q0..q5 is a
+    run of six from q0, not of five from q1)."""
+    best: list[int] = []
+    for name in _JOINT_NAMES:
+        k = 0
+        while name(k) in header:
+            k += 1
+        if k > len(best):
+            best = [header.index(name(i)) for i in range(k)]
+    return best or None
+
+
+def _joint_count_message(path, found: int, n_joints: int, where: str) -> str:
+    return (f"{path}: holds {found} joint values per row ({where}) but the robot has {n_joints} joints; "
+            f"expected joint vectors of shape (N, {n_joints})")
+
+
+def joint_count(path: str | Path) -> int:
+    """How many joint values per row a joint file holds: a CSV by its header (q1..qn, see
+    :func:`open_joint_source`), an ``.npz`` by its ``q`` entry, an ``.npy`` by its last dimension."""
+    if _is_manifest(path):
+        return joint_count(_manifest_parts(path)[0])
+    path = _check_path(path)
+    if path.suffix == ".csv":
+        csv = _CsvFile(path)
+        cols = None if csv.header is None else _joint_columns(csv.header)
+        if cols is None and csv.header is not None:
+            raise DataFileError(f"{path}: the header names no joint columns q1..qn")
+        return csv.width if cols is None else len(cols)
+    shape = _array_source(path, "q", "joint vectors").shape
+    if len(shape) != 2:
+        raise ShapeError(f"{path}: expected joint vectors of shape (N, n), got {shape}")
+    return int(shape[1])
 
 
 def _memory_source(arr: np.ndarray, name: str) -> ArraySource:
@@ -520,18 +564,15 @@ class PoseSource:
 def _to_transforms(chunk: np.ndarray, layout: str, K: int, single_end: bool, name: str, first: int):
     m = chunk.shape[0]
     if layout == "T":
-        T = chunk.reshape(m, K, 4, 4)
-        bottom = np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=(-1, -2))
-        R = T[..., :3, :3]
-        ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-1, -2, -3))
-        bad = np.nonzero((bottom > 1e-9) | (ortho > ROTATION_TOLERANCE))[0]
-        if bad.size:
-            i = int(bad[0])
-            raise DataFileError(
-                f"{name}: row {first + i + 1} is not a rigid transform (bottom row {T[i, 0, 3].tolist()}, "
-                f"max |RᵀR − I| = {ortho[i]:.3g} > {ROTATION_TOLERANCE:g}); poses must be homogeneous "
-                "transforms with a rotation matrix"
-            )
+        from .transforms import RIGIDITY_TOLERANCE, _nearest_rigid, _transform_deviations
+
+        T = torch.from_numpy(np.ascontiguousarray(chunk.reshape(m, K, 4, 4)))
+
+        def where(index: tuple) -> str:
+            return f"{name}: row {first + index[0] + 1}" + ("" if single_end else f", end {index[1] + 1}")
+
+        devs = _transform_deviations(T, name, RIGIDITY_TOLERANCE, where, DataFileError)
+        T = _nearest_rigid(T, *devs).numpy()  # the one rule: within it re-orthonormalised
     else:
         width = 3 if layout == "position" else 7
         rows = chunk.reshape(m, K, width)
@@ -822,6 +863,27 @@ def read_poses(path, dtype=torch.float64, device="cpu", n_ends: int = 1,
     module docstring). Position-only rows ``(N, 3)`` give transforms with identity rotation."""
     src = open_pose_source(path, n_ends, single_end)
     return _tensor(np.concatenate(list(src.chunks(1 << 20))), dtype, device), src.position_only
+
+
+def read_measurements(joints, poses=None, n_joints: int | None = None, dtype=torch.float64,
+                      device="cpu") -> tuple[torch.Tensor, torch.Tensor, bool]:
+    """Calibration measurements: ``(q (N, n), T (N, 4, 4) or positions (N, 3), position_only)``.
+
+    The one reader of joint readings and measured poses (``diffkin calibrate`` and
+    :func:`diffkin.calibration.load_measurements`). With ``poses=None`` both come from ``joints``: an ``.npz``
+    with ``q`` and ``T`` (or ``position`` [+ ``quaternion``]), or a ``.csv`` read by its header (``q1..qn``
+    and ``x,y,z[,qw,qx,qy,qz]``: ``diffkin fk``'s CSV as it is). ``n_joints``: the robot's joint count; a
+    file with another count is refused with a :class:`ShapeError` naming both (None: the file's own count,
+    by header / shape). The rigidity rule of the poses is that of :func:`open_pose_source`.
+    """
+    if n_joints is None:
+        n_joints = joint_count(joints)
+    q = read_joints(joints, n_joints, dtype=dtype, device=device)
+    T, position_only = read_poses(joints if poses is None else poses, dtype=dtype, device=device)
+    if T.shape[0] != q.shape[0]:
+        raise ShapeError(f"{joints}: {q.shape[0]} joint vectors but {T.shape[0]} measured poses"
+                         + ("" if poses is None else f" in {poses}"))
+    return q, (T[:, :3, 3].contiguous() if position_only else T), position_only
 
 
 def write_arrays(path: str | Path, columns: dict[str, np.ndarray]) -> Path:

@@ -15,6 +15,11 @@ everything that reads files (:mod:`diffkin.data_io`, hence ``diffkin ik --input 
 
 Without torchrun (no ``WORLD_SIZE`` in the environment, or 1) nothing here changes anything: one process,
 one output file.
+
+:func:`run_sharded` is the whole orchestration as a Python API (what ``diffkin fk|ik`` calls): this rank's
+shard, the gather of every rank's outcome (a failure anywhere stops all ranks with one error and removes the
+parts), then on rank 0 the manifest or the merge and the combined summary. The manifest is written here
+(:func:`write_manifest`) and read in one place, :func:`diffkin.data_io.read_manifest`.
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from .errors import DiffkinError
 
 __all__ = [
     "MANIFEST_SUFFIX",
+    "run_sharded",
     "RankInfo",
     "rank_info",
     "init",
@@ -54,6 +60,96 @@ __all__ = [
     "finish",
 ]
 
+
+
+def run_sharded(stream, chain, source, output=None, *, chunk_size: int, merge: bool = False,
+                command: str = "", progress=None, device: str | None = None, log=None, **options):
+    """``stream(chain, source, output, chunk_size=..., **options)`` (:func:`~diffkin.streaming.stream_fk` or
+    :func:`~diffkin.streaming.stream_ik`) over every rank's shard of ``source``.
+
+    One process: ``stream`` itself. Under torchrun: rank r streams rows :func:`shard_rows` to its part file;
+    every rank then learns every outcome (:func:`gather`), so that a failure on any rank raises on all (the
+    failing rank its own error, the others a :class:`DiffkinError` naming it) and rank 0 removes the parts
+    written: no half data set. On success rank 0 writes the manifest (``command`` recorded in it) or, with
+    ``merge``, concatenates the parts into ``output``; it returns the combined summary (counts add up, IK
+    medians over all targets, seconds of the slowest rank plus the merge), the other ranks None.
+    ``progress(done, total)``: rank 0's shard only. ``device``: joins the process group for it (default the
+    chain's device type). ``log(line)``: rank 0's note on the split and the merge.
+    """
+    info = init(device or chain.device.type)
+    if not info.sharded:
+        return stream(chain, source, output, chunk_size=chunk_size, progress=progress, **options)
+    rows, res, failure = None, None, None
+    try:
+        rows, res = _stream_shard(stream, chain, source, output, chunk_size, info,
+                                  progress if info.rank == 0 else None, options)
+    except Exception as exc:  # every rank must reach the gather below, or the others wait for it forever
+        failure = exc
+    statuses = gather((res, None if failure is None else _one_line(failure)))
+    failed = [(r, msg) for r, (_, msg) in enumerate(statuses) if msg is not None]
+    if failed:
+        if info.rank == 0 and output:  # no half data set: the parts that were written go
+            for r in range(info.world):
+                part_path(output, r, info.world).unlink(missing_ok=True)
+        finish()
+        if failure is not None:
+            raise failure
+        r, msg = failed[0]
+        raise DiffkinError(f"rank {r} of {info.world} failed ({msg}); no output written")
+    total = _finish_rank0(output, rows, [r for r, _ in statuses if r is not None], info, merge, command,
+                          log) if info.rank == 0 else None
+    finish()
+    return total
+
+
+def _one_line(exc: BaseException) -> str:
+    text = f"{exc.filename}: {exc.strerror}" if isinstance(exc, OSError) and exc.filename and exc.strerror \
+        else str(exc)
+    return " ".join(text.split()) or type(exc).__name__
+
+
+def _stream_shard(stream, chain, source, output, chunk_size: int, info, progress, options):
+    """This rank's rows ``[start, stop)`` of the shards, streamed to its part file: ``(rows, result)``."""
+    from .data_io import RandomJoints, open_joint_source, open_pose_source
+    from .streaming import stream_fk
+
+    if isinstance(source, RandomJoints):
+        n = source.count
+    elif stream is stream_fk:
+        n = len(open_joint_source(source, chain.n_joints, chain))
+    else:
+        n = len(open_pose_source(source, chain.n_ends, chain.single_end))
+    rows = [shard_rows(n, chunk_size, r, info.world) for r in range(info.world)]
+    start, stop = rows[info.rank]
+    part = part_path(output, info.rank, info.world) if output else None
+    res = None
+    if stop > start:
+        res = stream(chain, source, part, chunk_size=chunk_size, start=start, stop=stop, progress=progress,
+                     **options)
+    return rows, res
+
+
+def _finish_rank0(output, rows, results: list, info, merge: bool, command: str, log):
+    """Rank 0 after every shard succeeded: the manifest or the merged file, and the combined summary."""
+    from .streaming import FKStreamResult, combine_ik
+
+    t0 = time.perf_counter()
+    written = None
+    if output:
+        parts = [part_path(output, r, info.world) for r, (a, b) in enumerate(rows) if b > a]
+        written = merge_parts(output, parts) if merge else write_manifest(output, info.world, rows, command)
+    merge_s = time.perf_counter() - t0
+    if isinstance(results[0], FKStreamResult):
+        total = FKStreamResult(sum(r.count for r in results), max(r.seconds for r in results) + merge_s,
+                               max(r.compute_seconds for r in results), written)
+    else:
+        total = combine_ik(results)
+        total.output, total.seconds = written, total.seconds + merge_s
+    if log is not None:
+        how = (f"; {'parts merged' if merge else 'manifest written'} in {merge_s:.3f} s" if output
+               else "; no --output: nothing written")
+        log(f"{info.world} processes, rows split on chunk boundaries{how}")
+    return total
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,9 @@ Outputs (N rows, K end links; the ``.npy`` holds the first entry only):
 ``ik``    ``.npy``: ``q`` ``(N, n)``. ``.npz``: ``q``, ``success`` ``(N,)`` bool, ``position_error`` [m],
           ``orientation_error`` [rad] (NaN for position-only solves: not measured), ``iterations``.
           ``.csv``: the same columns, ``q1..qn,success,position_error,orientation_error,iterations``.
+          From :class:`~diffkin.data_io.RandomJoints` also the sampled configurations ``q_sampled``
+          ``(N, n)`` and the targets (their FK): ``T_target`` in the ``.npz``; ``q_sampled1..n`` and fk's
+          ``x,y,z,qw,qx,qy,qz`` in the ``.csv`` (which therefore reads back as targets).
 ========= ====================================================================================================
 """
 
@@ -280,6 +283,29 @@ def stream_fk(
     return FKStreamResult(count, time.perf_counter() - t0, compute, path)
 
 
+def _sampled_spec(chain, suffix: str) -> dict:
+    """Output entries of a random IK run (``RandomJoints``): ``q_sampled`` and the targets, ``T_target`` in an
+    ``.npz``, the columns of ``diffkin fk``'s CSV (``x,y,z,qw,qx,qy,qz``) in a ``.csv``."""
+    n, K, single = chain.n_joints, chain.n_ends, chain.single_end
+    lead = () if single else (K,)
+    spec = {"q_sampled": ((n,), np.float64, [f"q_sampled{i + 1}" for i in range(n)])}
+    if suffix == ".csv":
+        names = [c for p, q in _pose_names(K, single) for c in p + q]
+        spec["target"] = ((*lead, 7), np.float64, names)
+    else:
+        spec["T_target"] = ((*lead, 4, 4), _np_dtype(chain), [])
+    return spec
+
+
+def _sampled_columns(T: torch.Tensor, q_sampled: np.ndarray, suffix: str) -> dict:
+    from .rotations import matrix_to_quaternion
+
+    if suffix != ".csv":
+        return {"q_sampled": q_sampled, "T_target": T.detach().cpu().numpy()}
+    pose = torch.cat((T[..., :3, 3], matrix_to_quaternion(T[..., :3, :3])), dim=-1)
+    return {"q_sampled": q_sampled, "target": pose.detach().double().cpu().numpy()}
+
+
 def stream_ik(
     chain,
     source,
@@ -315,7 +341,8 @@ def stream_ik(
     """
     from .ik import solve
 
-    if isinstance(source, RandomJoints):
+    sampled = isinstance(source, RandomJoints)
+    if sampled:
         joints = open_joint_source(source, chain.n_joints, chain)
         src_len, file_position_only = len(joints), False
 
@@ -323,7 +350,7 @@ def stream_ik(
             for q in joints.chunks(size, a, b):
                 with torch.no_grad():
                     qt = torch.as_tensor(q).to(dtype=chain.dtype, device=chain.device)
-                    yield chain.forward_kinematics(qt)
+                    yield chain.forward_kinematics(qt), q
     else:
         poses = source if isinstance(source, PoseSource) else open_pose_source(
             source, chain.n_ends, chain.single_end)
@@ -331,7 +358,7 @@ def stream_ik(
 
         def chunks(size, a, b):
             for T in poses.chunks(size, a, b):
-                yield torch.as_tensor(T).to(dtype=chain.dtype, device=chain.device)
+                yield torch.as_tensor(T).to(dtype=chain.dtype, device=chain.device), None
 
     if position_only is None:
         position_only = file_position_only
@@ -347,6 +374,8 @@ def stream_ik(
                 "position_error": ((), np.float64, ["position_error"]),
                 "orientation_error": ((), np.float64, ["orientation_error"]),
                 "iterations": ((), np.int64, ["iterations"])}
+        if sampled:  # the sampled configurations and their FK, the targets: the output checks itself
+            spec.update(_sampled_spec(chain, Path(output).suffix))
         if Path(output).suffix == ".npy":
             spec = {"q": ((n,), _np_dtype(chain), [])}
         writer = open_writer(output, count, spec)
@@ -355,7 +384,7 @@ def stream_ik(
     compute = 0.0
     t0 = time.perf_counter()
     with _aborting(writer):
-        for T in chunks(chunk_size, start, stop):
+        for T, q_sampled in chunks(chunk_size, start, stop):
             a = start + done
             chunk_seed = int(np.random.SeedSequence([int(seed), a]).generate_state(1)[0])
             c0 = time.perf_counter()
@@ -375,8 +404,11 @@ def stream_ik(
             pos_stats.add(pe)
             successes += int(ok.sum())
             if writer is not None:
-                writer.write({"q": q, "success": ok, "position_error": pe, "orientation_error": oe,
-                              "iterations": it})
+                cols = {"q": q, "success": ok, "position_error": pe, "orientation_error": oe,
+                        "iterations": it}
+                if sampled:
+                    cols.update(_sampled_columns(T, q_sampled, Path(output).suffix))
+                writer.write(cols)
             done += ok.shape[0]
             if progress is not None:
                 progress(done, count)

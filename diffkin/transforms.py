@@ -29,14 +29,22 @@ __all__ = [
     "as_rigid_transform",
     "as_measured_transform",
     "MEASURED_TRANSFORM_ATOL",
+    "RIGIDITY_TOLERANCE",
     "POSE_ERROR_ORIENTATIONS",
 ]
 
-#: Tolerance on measured / target poses (calibration data, IK targets): rotation blocks orthonormal to
-#: 1e-5 (max |RᵀR − I|, |det R − 1|, bottom row) are accepted — files written with 6 decimals deviate by
-#: ~1e-6, float32 poses cast to float64 by ~1e-7 — and re-orthonormalised; worse ones are refused with the
-#: measured deviation. Used by :func:`as_measured_transform` (calibration and ``ik.solve``).
-MEASURED_TRANSFORM_ATOL = 1e-5
+#: The one rigidity rule for transforms that come from outside — measured or target poses (calibration data,
+#: IK targets, pose files), a model's fixed base / tool, :func:`check_transform`'s input: the largest of
+#: max |RᵀR − I|, |det R − 1| and the bottom row's deviation from [0, 0, 0, 1] must be at most this, the same
+#: limit in float32 and float64 (tracker exports rounded to a few decimals, float32 casts and
+#: quaternion-to-matrix round-off all stay well below it). Within it a transform is accepted and, where a
+#: function returns one (:func:`as_measured_transform`, :func:`as_rigid_transform`, the readers of
+#: :mod:`diffkin.data_io`), re-orthonormalised: the rotation replaced by the nearest one, the bottom row set
+#: to [0, 0, 0, 1]; beyond it refused with an error naming the first offending index (or file and row), the
+#: deviation and this limit.
+RIGIDITY_TOLERANCE = 1e-3
+#: the former name of :data:`RIGIDITY_TOLERANCE` (kept for one release)
+MEASURED_TRANSFORM_ATOL = RIGIDITY_TOLERANCE
 
 POSE_ERROR_ORIENTATIONS = ("axis_angle", "quaternion", "rotvec")  # the kernel's forms
 
@@ -156,69 +164,76 @@ def check_transform(T, name: str = "T", atol: float | None = None) -> Tensor:
 
     Raises ``ShapeError`` unless T is (..., 4, 4), ``NonFiniteError`` for NaN/inf, and ``DiffkinError``
     when R^T R != I, det R != 1 or the bottom row is not [0, 0, 0, 1] beyond ``atol`` (default
-    10 sqrt(eps) of T's dtype: 3.5e-3 in float32, 1.5e-7 in float64). Synchronises with the device.
-    A tensor is returned as it is; numbers and numpy arrays are converted (:mod:`diffkin.validation`).
+    :data:`RIGIDITY_TOLERANCE`, 1e-3 in either dtype), naming the first offending index. Synchronises with
+    the device. A tensor is returned as it is; numbers and numpy arrays are converted
+    (:mod:`diffkin.validation`).
     """
     (T,) = tensors((name, T, (4, 4)))
-    return _check_transform(T, name, atol)
-
-
-def _check_transform(T: Tensor, name: str, atol: float | None) -> Tensor:
-    if atol is None:
-        atol = 10.0 * eps_for(T) ** 0.5
-    _transform_deviations(T, name, atol)
+    _transform_deviations(T, name, RIGIDITY_TOLERANCE if atol is None else atol)
     return T
 
 
-def _transform_deviations(T: Tensor, name: str, atol: float) -> tuple[float, float]:
-    """Raise unless ``T (..., 4, 4)`` is rigid to ``atol``; return the largest deviations of the bottom row
-    and of RᵀR from I (read in one host sync)."""
+def _transform_deviations(T: Tensor, name: str, atol: float, where=None,
+                          error: type[DiffkinError] = DiffkinError) -> tuple[float, float]:
+    """Raise ``error`` unless every transform of ``T (..., 4, 4)`` is rigid to ``atol`` (the rule of
+    :data:`RIGIDITY_TOLERANCE`); return the largest deviations of the bottom row and of RᵀR from I.
+
+    ``where(index) -> str`` names a transform by its batch index (default ``name[i, j]``; the file readers
+    name the file and row). One host sync when all is well.
+    """
+    if T.numel() == 0:
+        return 0.0, 0.0
     R = T[..., :3, :3]
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
     eye = torch.eye(3, dtype=T.dtype, device=T.device)
-    if T.numel() == 0:
-        return 0.0, 0.0
-    worst = torch.stack((
-        (T[..., 3, :] - bottom).abs().amax(),
-        (R.transpose(-1, -2) @ R - eye).abs().amax(),
-        (torch.linalg.det(R) - 1.0).abs().amax(),
-    )).tolist()  # fmt: skip
+    dev = torch.stack((
+        (T[..., 3, :] - bottom).abs().amax(-1),
+        (R.transpose(-1, -2) @ R - eye).abs().amax((-1, -2)),
+        (torch.linalg.det(R) - 1.0).abs(),
+    ), dim=-1)  # fmt: skip
+    worst = dev.reshape(-1, 3).amax(0).tolist()
+    if all(w <= atol for w in worst):  # NaN fails too
+        return worst[0], worst[1]
     whats = ("bottom row is not [0, 0, 0, 1]", "rotation block is not orthonormal (R^T R != I)",
              "rotation block has det != 1")
-    for w, what in zip(worst, whats):
-        if not w <= atol:  # NaN fails too
-            raise DiffkinError(f"{name} is not a rigid transform: {what} (max deviation {w:.3g}, "
-                               f"atol {atol:.3g})")
-    return worst[0], worst[1]
+    k = next(i for i, w in enumerate(worst) if not w <= atol)
+    bad = ~(dev[..., k] <= atol)
+    index = tuple(int(i) for i in bad.nonzero()[0].tolist()) if bad.ndim else ()
+    label = where(index) if where is not None else (
+        f"{name}[{', '.join(map(str, index))}]" if index else name)
+    w = float(dev[index][k]) if index else float(dev[k])
+    raise error(f"{label} is not a rigid transform: {whats[k]} (deviation {w:.3g} > {atol:g}, the "
+                "tolerance of diffkin.transforms.RIGIDITY_TOLERANCE)")
+
+
+def _nearest_rigid(T: Tensor, bottom_dev: float, orth_dev: float) -> Tensor:
+    """``T`` with exactly orthonormal rotations (polar factor U Vᵀ of R = U S Vᵀ) and bottom row [0, 0, 0, 1];
+    ``T`` itself when it is exact already (deviations of a few eps)."""
+    if T.numel() == 0 or (orth_dev <= 4.0 * eps_for(T) and bottom_dev == 0.0):
+        return T
+    U, _, Vh = torch.linalg.svd(T[..., :3, :3])
+    out = T.clone()
+    out[..., :3, :3] = U @ Vh
+    out[..., 3, :] = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
+    return out
 
 
 def as_measured_transform(T: Tensor, name: str = "T", atol: float | None = None) -> Tensor:
     """Validate measured or target poses ``(..., 4, 4)`` and return them with exactly orthonormal rotations.
 
-    Accepts deviations up to ``atol`` (default :data:`MEASURED_TRANSFORM_ATOL` = 1e-5, or the looser
-    10 sqrt(eps) of float32) — rounding of exported files — and refuses worse ones (``DiffkinError`` with the
-    measured deviation, see :func:`check_transform`). The rotation blocks are replaced by the nearest rotation
-    (polar factor U Vᵀ of the SVD R = U S Vᵀ) and the bottom row by [0, 0, 0, 1]; already exact inputs are
-    returned unchanged (same object).
+    The rule of :data:`RIGIDITY_TOLERANCE` (``atol`` default 1e-3, either dtype): deviations within it are
+    accepted, worse ones refused (``DiffkinError`` naming the first offending index and the deviation). The
+    rotation blocks are replaced by the nearest rotation (polar factor U Vᵀ of the SVD R = U S Vᵀ) and the
+    bottom row by [0, 0, 0, 1]; already exact inputs are returned unchanged (same object).
     """
     (T,) = tensors((name, T, (4, 4)))
-    if atol is None:
-        atol = max(MEASURED_TRANSFORM_ATOL, 10.0 * eps_for(T) ** 0.5)
-    bottom_dev, orth_dev = _transform_deviations(T, name, atol)
-    if T.numel() == 0 or (orth_dev <= 4.0 * eps_for(T) and bottom_dev == 0.0):
-        return T
-    R = T[..., :3, :3]
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
-    U, _, Vh = torch.linalg.svd(R)
-    out = T.clone()
-    out[..., :3, :3] = U @ Vh
-    out[..., 3, :] = bottom
-    return out
+    return _nearest_rigid(T, *_transform_deviations(T, name, RIGIDITY_TOLERANCE if atol is None else atol))
 
 
 def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:
     """Validate a fixed ``(4, 4)`` rigid transform (base, tool, URDF origin) and return a tensor copy in
-    ``dtype``/``device`` (a float32 or float64 tensor is converted: the caller names the dtype).
+    ``dtype``/``device`` (a float32 or float64 tensor is converted: the caller names the dtype), by the rule
+    of :data:`RIGIDITY_TOLERANCE` (re-orthonormalised within it).
 
     Errors are :class:`~diffkin.errors.ModelError` s, and also the shared validators' ``ShapeError``,
     ``DTypeError`` (integer, bool, complex or half-precision data) or ``NonFiniteError`` where they apply.
@@ -234,16 +249,4 @@ def as_rigid_transform(T, name: str, dtype: torch.dtype, device=None) -> Tensor:
         )
     if not bool(torch.isfinite(T).all()):
         raise RigidTransformNonFiniteError(f"{name} holds NaN or inf; expected a rigid transform")
-    R = T[:3, :3]
-    eye = torch.eye(3, dtype=T.dtype, device=T.device)
-    tol = 1e-5 if T.dtype != torch.float64 else 1e-9
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
-    if (
-        not torch.allclose(R.T @ R, eye, atol=tol)
-        or not torch.equal(T[3], bottom)
-        or float(torch.linalg.det(R)) < 0
-    ):
-        raise ModelError(
-            f"{name} must be a rigid transform (orthonormal R with det +1, last row [0, 0, 0, 1])"
-        )
-    return T
+    return _nearest_rigid(T, *_transform_deviations(T, name, RIGIDITY_TOLERANCE, error=ModelError))

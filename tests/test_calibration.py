@@ -340,11 +340,13 @@ def test_robust_loss_shapes_and_gradients():
     h = robust_loss(s, "huber", 1e-3)
     torch.testing.assert_close(h[:3], s[:3])  # quadratic up to the scale
     assert h[3].item() == pytest.approx(2 * 1e-3 * 2e-3 - 1e-6)
-    for loss in ("huber", "soft_l1", "l2"):
+    for loss in ("huber", "cauchy", "soft_l1", "l2"):
         (g,) = torch.autograd.grad(robust_loss(s, loss, 1e-3).sum(), s)
         assert torch.isfinite(g).all()
+    c = robust_loss(s, "cauchy", 1e-3)  # c² log(1 + s/c²): ~s near 0, logarithmic beyond
+    assert c[3].item() == pytest.approx(1e-6 * math.log(5.0))
     with pytest.raises(DiffkinError, match="unknown loss"):
-        robust_loss(s, "cauchy", 1.0)
+        robust_loss(s, "tukey", 1.0)
 
 
 def test_calibration_loss_gradcheck_and_batch():

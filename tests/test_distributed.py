@@ -169,3 +169,53 @@ def test_a_failing_rank_stops_every_rank_with_one_error_and_no_parts(tmp_path):
     assert any("row 1001" in ln for ln in errors), out.stderr[-3000:]
     assert all("internal error" not in ln for ln in errors), errors
     assert sorted(p.name for p in tmp_path.iterdir()) == ["T.npy"]  # no parts, no manifest
+
+
+# ------------------------------------------------------------------- the Python API (issue 30 item 17)
+def _api_rank(rank: int, world: int, port: int, out: str, merge: bool) -> None:
+    os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
+                      MASTER_PORT=str(port))
+    from diffkin.data_io import RandomJoints
+    from diffkin.streaming import stream_fk
+
+    torch.set_num_threads(1)
+    chain = models.load("panda", dtype=torch.float64)
+    res = dist.run_sharded(stream_fk, chain, RandomJoints(300, 2), out, chunk_size=64, merge=merge)
+    assert (res is None) == (rank != 0)
+    if rank == 0:
+        assert res.count == 300 and Path(res.output).exists()
+
+
+def test_run_sharded_python_api_equals_one_process(tmp_path):
+    """``distributed.run_sharded`` (what ``diffkin fk|ik`` calls under torchrun) in 2 gloo processes: the
+    manifest (and the merged file) equal one process's output; in one process it is ``stream`` itself."""
+    import socket
+
+    import torch.multiprocessing as mp
+
+    from diffkin.data_io import RandomJoints
+    from diffkin.streaming import stream_fk
+
+    chain = models.load("panda", dtype=torch.float64)
+    one = dist.run_sharded(stream_fk, chain, RandomJoints(300, 2), tmp_path / "one.npy", chunk_size=64)
+    assert one.count == 300 and one.output == tmp_path / "one.npy"
+    for merge, name in ((False, "T.npy"), (True, "M.npz")):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        mp.spawn(_api_rank, args=(2, port, str(tmp_path / name), merge), nprocs=2, join=True)
+    assert np.array_equal(read_array(tmp_path / "T.shards.json"), np.load(tmp_path / "one.npy"))
+    with np.load(tmp_path / "M.npz") as z:
+        assert np.array_equal(z["T"], np.load(tmp_path / "one.npy"))
+    assert not list(tmp_path.glob("M.part-*"))
+
+
+def test_cli_holds_no_sharding_orchestration():
+    """Gather, clean-up, manifest and merge live in diffkin.distributed (the CLI calls run_sharded)."""
+    import inspect
+
+    import diffkin.cli as cli
+
+    text = inspect.getsource(cli)
+    for name in ("gather(", "part_path(", "write_manifest(", "merge_parts(", "shard_rows("):
+        assert name not in text, name

@@ -235,7 +235,7 @@ def test_check_transform_errors():
         tf.check_transform(bottom)
     tf.check_transform(scaled, atol=0.1)  # user tolerance
     small = T.clone()
-    small[0, :3, :3] += 1e-3  # above float64 tolerance
+    small[0, :3, :3] += 1e-3  # above the rigidity tolerance (1e-3 on max |RᵀR − I|)
     with pytest.raises(DiffkinError):
         tf.check_transform(small)
     assert issubclass(DiffkinError, ValueError)

@@ -17,6 +17,7 @@ from ..validation import as_tensor, check_number, shape_str
 from .error_models import build_model
 from .identifiability import IdentifiabilityReport, model_reports
 from .model import check_measurements, pose_residual
+from .robust import outlier_rows, pose_errors, resolve_loss
 from .solvers import gradient_descent, least_squares
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
@@ -82,6 +83,20 @@ class CalibrationResult:
     cross_validation: dict | None = None
     #: what the error model decided (e.g. which β replace which d)
     notes: list[str] = field(default_factory=list)
+    #: the loss of the fit ("l2", "huber", "cauchy", "soft_l1"; :mod:`.robust`)
+    loss: str = "l2"
+    #: per-pose outlier report (:mod:`.robust`): the rows whose final residual norm exceeds
+    #: ``outlier_threshold`` (metres), and every pose's final position (m) / orientation (rad) error
+    outliers: list[int] = field(default_factory=list)
+    outlier_threshold: float | None = None
+    pose_position_errors: Tensor | None = field(default=None, repr=False)
+    pose_orientation_errors: Tensor | None = field(default=None, repr=False)
+
+    @property
+    def determined(self) -> bool:
+        """The poses determine every structurally identifiable parameter (``report.undetermined`` is empty);
+        False: some are minimum-norm estimates and the error away from these poses can grow."""
+        return not self.report.undetermined
 
     @property
     def position_only(self) -> bool:
@@ -175,10 +190,17 @@ class CalibrationResult:
         fig.savefig(path, dpi=110)
         return path
 
+    def outlier_summary(self) -> str:
+        """One line: how many poses are beyond the outlier threshold (:mod:`.robust`), and which."""
+        rows = ", ".join(map(str, self.outliers[:10])) + (", ..." if len(self.outliers) > 10 else "")
+        return (f"outliers ({self.loss} loss): {len(self.outliers)} of {self.q.shape[0]} poses beyond "
+                f"{self.outlier_threshold * 1e3:.4f} mm" + (f" (rows {rows})" if self.outliers else ""))
+
     def summary(self) -> str:
         lines = [
             f"calibration of '{self.chain.name}' ({self.method}): {self.iterations} iterations, "
-            f"{'converged' if self.converged else 'NOT converged'}",
+            f"{'converged' if self.converged else 'NOT converged'}"
+            + ("" if self.determined else "; parameters NOT determined by these poses (below)"),
             f"position RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
         ]
         if self.orientation_residuals is not None:
@@ -194,7 +216,11 @@ class CalibrationResult:
                 line += f", orientation RMS {cv['orientation_rms'] * 1e3:.4f} mrad"
             lines.append(line)
         if self.noise_ratio is not None:
-            lines.append(f"fit residual / measurement noise: {self.noise_ratio:.2f} (about 1 expected)")
+            excluded = self.loss != "l2" and 0 < len(self.outliers) < self.q.shape[0] / 2
+            lines.append(f"fit residual / measurement noise: {self.noise_ratio:.2f} (about 1 expected"
+                         + (", outliers excluded)" if excluded else ")"))
+        if self.outlier_threshold is not None:
+            lines.append(self.outlier_summary())
         lines += [f"note: {n}" for n in self.notes]
         return "\n".join(lines + [self.report.summary()])
 
@@ -263,6 +289,15 @@ def _cross_validate(model, q, T, position_only, method, w, rank_tol, opts, folds
     return res
 
 
+def _undetermined_note(report: IdentifiabilityReport, n_poses: int) -> str:
+    """What degenerate data (too few or too similar poses) leave open, for ``notes`` and the warning."""
+    poses = "this pose determines" if n_poses == 1 else f"these {n_poses} poses determine"
+    return (f"{poses} only {report.rank} of {report.structural_rank} identifiable "
+            f"parameters; {len(report.undetermined)} ({', '.join(report.undetermined[:4])}"
+            f"{', ...' if len(report.undetermined) > 4 else ''}) are minimum-norm estimates, so the error "
+            f"away from these poses can grow: add at least {report.more_poses_needed} well-spread poses")
+
+
 def _run(
     model,
     q: Tensor,
@@ -289,11 +324,18 @@ def _run(
     chains = model.to_chains(out.zeta)
     nominal_copies = [c.copy() for c in model.chains]
     results = []
+    loss = solver_options.get("loss", "l2")
     for k in range(K):
+        pos_err, ori_err, norms = pose_errors(model, out.zeta[k], q[k], T[k], orientation_weight)
+        outliers, threshold = outlier_rows(norms, measurement_noise, orientation_weight, position_only)
+        # a robust fit's χ is that of its inliers, while they are the majority (else the model, not a few
+        # poses, fails: every pose counts and the warning below says so)
+        robust = loss != "l2" and 0 < len(outliers) < norms.numel() / 2
+        keep = norms <= threshold if robust else slice(None)
         ratio = None
         if measurement_noise is not None:
-            ratio, detail = _noise_ratio(model, out.zeta[k], q[k], T[k], position_only, reports[k].rank,
-                                         measurement_noise)
+            ratio, detail = _noise_ratio(model, out.zeta[k], q[k][keep], T[k][keep], position_only,
+                                         reports[k].rank, measurement_noise)
             if ratio > 2.0:
                 warnings.warn(
                     f"calibration of '{chains[k].name}' (error model {kind!r}): the fit residual is "
@@ -304,6 +346,11 @@ def _run(
                     UserWarning,
                     stacklevel=3,
                 )
+        notes = list(getattr(model, "notes", []))
+        if reports[k].undetermined:
+            notes.append(_undetermined_note(reports[k], q.shape[1]))
+            which = f"'{chains[k].name}'" + (f" (robot {k} of the batch)" if K > 1 else "")
+            warnings.warn(f"calibration of {which}: {notes[-1]}", UserWarning, stacklevel=3)
         cv = None
         if cross_validation:
             cv = _cross_validate(model, q[k], T[k], position_only, method, orientation_weight, rank_tol,
@@ -327,7 +374,12 @@ def _run(
                 error_model=kind,
                 noise_ratio=ratio,
                 cross_validation=cv,
-                notes=list(getattr(model, "notes", [])),
+                notes=notes,
+                loss=loss,
+                outliers=outliers,
+                outlier_threshold=threshold,
+                pose_position_errors=pos_err,
+                pose_orientation_errors=ori_err,
             )
         )
     return results
@@ -341,6 +393,7 @@ def calibrate_batch(
     *,
     error_model: str = "auto",
     measurement_noise: tuple[float, float] | None = None,
+    loss: str | None = None,
     parameters: str | Iterable[str] = "all",
     base: bool = False,
     tool: bool = False,
@@ -377,7 +430,10 @@ def calibrate_batch(
             raise ShapeError(f"q holds K = 0 robots but T has shape {shape_str(T.shape)}")
         return []
     q, T, position_only = check_measurements(q, T, model.n, ref, batch=(K,))
-    opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, **solver_options)
+    loss, scale = resolve_loss(method, loss, solver_options.pop("scale", None), measurement_noise,
+                               orientation_weight, position_only)
+    opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, loss=loss, scale=scale,
+                **solver_options)
     return _run(model, q, T, position_only, method, orientation_weight, rank_tol, opts, kind,
                 measurement_noise)
 
@@ -390,6 +446,7 @@ def calibrate(
     *,
     error_model: str = "auto",
     measurement_noise: tuple[float, float] | None = None,
+    loss: str | None = None,
     cross_validation: int | None = 5,
     parameters: str | Iterable[str] = "all",
     base: bool = False,
@@ -405,8 +462,8 @@ def calibrate(
     """Identify the geometry of ``chain`` from joint readings ``q (N, n)`` and measured end-effector
     poses ``T (N, 4, 4)`` (or positions ``(N, 3)``), textbook §2.11. The nominal chain is left untouched.
 
-    Measured rotation blocks orthonormal to 1e-5 are accepted and re-orthonormalised
-    (:data:`diffkin.transforms.MEASURED_TRANSFORM_ATOL`); worse ones are refused with the deviation.
+    Measured rotation blocks off orthonormal by up to 1e-3 are accepted and re-orthonormalised (the one rule
+    of :data:`diffkin.transforms.RIGIDITY_TOLERANCE`); worse ones are refused with the deviation and index.
 
     Args:
         error_model: what is estimated (:mod:`.error_models`): ``"dh"`` the DH table (a, α, d, ϑ);
@@ -419,11 +476,17 @@ def calibrate(
             coordinate of the measured position and rotation vector. The fit residual is compared with what
             this noise explains (``result.noise_ratio``, χ = √(Σ(r/σ)²/(rows − rank)) ≈ 1); above 2 a
             ``UserWarning`` names the likely causes.
+        loss: ``"huber"`` or ``"cauchy"`` for measurements with outliers (a mis-read target, a bumped
+            reflector), ``"soft_l1"``, or ``"l2"`` (plain least squares); None: ``"l2"`` for least squares,
+            ``"huber"`` for the gradient method. Quadratic up to a scale of 2 √(3σ_p² + 3(w σ_o)²) from
+            ``measurement_noise`` (else 1 mm, or ``scale=`` metres); least squares then iterates reweighted
+            least squares (:mod:`.robust`). Either way the result reports the poses whose final residual
+            exceeds 3x the noise's expected norm (``result.outliers``, ``result.pose_position_errors``).
         cross_validation: k of the k-fold cross-validated held-out error in ``result.cross_validation``
             (default 5; run when there are at least 4k poses; 0/None: off). The k fits run as one batch.
-        method: ``"least_squares"`` — iterate (2.88)–(2.89) with the analytic calibration matrix Φ̄;
+        method: ``"least_squares"`` — iterate (2.88)–(2.89) with the calibration matrix Φ̄;
             ``"gradient"`` — minimise :func:`calibration_loss` with a torch optimiser
-            (``optimizer="lbfgs"|"adam"``, ``loss="huber"|"soft_l1"|"l2"``, ``scale`` metres, ``lr``).
+            (``optimizer="lbfgs"|"adam"``, ``lr``; ``loss`` and ``scale`` as above).
         parameters: ``"all"`` DH parameters, or kinds (``"a"``, ``"alpha"``, ``"d"``, ``"theta"``) / names
             (``"a2"``, ``"base_z"``) to estimate.
         base, tool: also estimate 6-parameter corrections of the base / tool frame.
@@ -433,8 +496,9 @@ def calibrate(
         max_iterations, tol: stopping rule (least squares: relative parameter change; gradient: relative loss
             change); ``rank_tol``: identifiability threshold (see :mod:`.identifiability`).
         progress: show a rich progress bar when stderr is a terminal.
-        **solver_options: ``damping`` (least squares, default 1e-9); ``optimizer``, ``loss``, ``scale``
-            (default 1e-3 m), ``lr``, ``precondition`` (``"gauss_newton"`` default, or ``"diagonal"``)
+        **solver_options: ``damping`` (least squares, default 1e-9); ``scale`` (metres, the robust loss's;
+            default from ``measurement_noise``, else 1e-3 m); ``optimizer``, ``lr``,
+            ``precondition`` (``"gauss_newton"`` default, or ``"diagonal"``)
             for the gradient method.
 
     Parameters that no pose set can identify (the model's redundancies) are reported in ``result.report``
@@ -451,7 +515,10 @@ def calibrate(
             "use calibrate_batch for (K, N, n)"
         )
     q, T, position_only = check_measurements(q, T, model.n, ref)
-    opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, **solver_options)
+    loss, scale = resolve_loss(method, loss, solver_options.pop("scale", None), measurement_noise,
+                               orientation_weight, position_only)
+    opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, loss=loss, scale=scale,
+                **solver_options)
     folds = cross_validation if cross_validation and q.shape[0] >= 4 * cross_validation else None
     return _run(model, q[None], T[None], position_only, method, orientation_weight, rank_tol, opts, kind,
                 measurement_noise, folds)[0]

@@ -1,7 +1,7 @@
 """Error models on the chain's own parameters: Hayati's β for DH chains, per-joint origins for URDF chains.
 
-The ``"dh"`` model (:class:`~diffkin.calibration.model.CalibrationModel`) estimates the DH table with an
-analytic calibration matrix. The models here estimate a subset of a :class:`~diffkin.chain.KinematicChain`'s
+The ``"dh"`` model (:class:`~diffkin.calibration.model.CalibrationModel`) estimates the DH table. The
+models here estimate a subset of a :class:`~diffkin.chain.KinematicChain`'s
 own ``nn.Parameter`` s, so the calibrated robot is the same kind of object as the nominal one:
 
 - ``"hayati"`` (a :class:`~diffkin.chain.DHChain`): a, α, d, ϑ per joint, except that for every pair of
@@ -19,8 +19,9 @@ own ``nn.Parameter`` s, so the calibrated robot is the same kind of object as th
   identifiability analysis (:mod:`.identifiability`) drops the redundant ones. The result is a URDFChain
   that ``to_urdf`` writes.
 
-Both compute the calibration matrix Φ (2.86) as the base-frame twist of the end effector per unit change of
-each candidate, by forward-mode differentiation of the one FK kernel (what
+All three compute the calibration matrix Φ (2.86) by the one
+:class:`~diffkin.calibration.model.ForwardModeMatrix`: the base-frame twist of the end effector per unit
+change of each candidate, by forward-mode differentiation of the one FK kernel (what
 :meth:`~diffkin.chain.KinematicChain.parameter_jacobian` does), vectorised over K robots with ``torch.func``.
 The interface is that of ``CalibrationModel`` (ζ ``(K, P)``: the flattened parameters; ``candidate``
 ``(P,)``), so the solvers and the identifiability analysis serve all error models.
@@ -36,8 +37,7 @@ from torch import Tensor, nn
 
 from ..chain import DHChain, KinematicChain
 from ..errors import ModelError
-from ..kernels.jacobian import twist_of_derivative
-from .model import DH_KINDS, POSE_AXES, CalibrationModel, pose_residual
+from .model import DH_KINDS, POSE_AXES, CalibrationModel, ForwardModeMatrix, pose_residual
 
 __all__ = ["build_model", "ChainErrorModel", "ERROR_MODELS", "PARALLEL_SIN", "parallel_pairs",
            "resolve_error_model"]
@@ -124,7 +124,7 @@ def _names_units(chain: KinematicChain, named) -> tuple[list[str], list[bool]]:
     return names, length
 
 
-class ChainErrorModel:
+class ChainErrorModel(ForwardModeMatrix):
     """The ``"hayati"`` or ``"general"`` error model of one chain structure for K robots (see module doc).
 
     ``nominal``: ζ_n ``(P,)`` or ``(K, P)``; ``candidate`` ``(P,)`` bool; ``names``; ``chains``: the nominal
@@ -271,34 +271,6 @@ class ChainErrorModel:
 
     def residual(self, zeta: Tensor, q: Tensor, measured: Tensor, orientation_weight: float) -> Tensor:
         return pose_residual(self.forward_kinematics(zeta, q), measured, orientation_weight)
-
-    def calibration_matrix(self, zeta: Tensor, q: Tensor, position_only: bool, orientation_weight: float,
-                           columns: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """Φ ``(K, N, m, C)`` (twists [δp; w δω] per unit change of the C selected entries of ζ) and the poses
-        ``(K, N, 4, 4)``, by forward-mode AD of the FK kernel."""
-        cols = (torch.ones(self.n_params, dtype=torch.bool) if columns is None else columns.cpu())
-        idx = cols.nonzero().flatten().to(zeta.device)
-        squeeze = zeta.ndim == 1
-        Z, Q = (zeta[None], q[None]) if squeeze else (zeta, q)
-
-        def fk_delta(delta: Tensor, z: Tensor, qk: Tensor) -> Tensor:
-            return self._fk_one(z.index_add(0, idx, delta), qk)
-
-        def one(z: Tensor, qk: Tensor):
-            delta = z.new_zeros(idx.numel())
-            return torch.func.jacfwd(fk_delta)(delta, z, qk)
-
-        with torch.no_grad():
-            T = self.forward_kinematics(Z, Q)
-        dT = torch.func.vmap(one)(Z, Q)  # (K, N, 4, 4, C)
-        Phi = twist_of_derivative(dT, T)
-        if position_only:
-            Phi = Phi[..., :3, :]
-        else:
-            Phi = torch.cat((Phi[..., :3, :], orientation_weight * Phi[..., 3:, :]), dim=-2)
-        if squeeze:
-            Phi, T = Phi[0], T[0]
-        return Phi, T
 
     def random_configurations(self, M: int, generator: torch.Generator | None = None) -> Tensor:
         """``(M, n)`` configurations within the joint limits (revolute spans capped at ±π)."""

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ..chain import DHChain
-from ..data_io import read_joints, read_poses
+from ..data_io import read_measurements
 from .api import CalibrationResult, calibrate
 
 __all__ = ["load_measurements", "calibrate_from_files"]
@@ -21,19 +21,16 @@ def load_measurements(
     n_joints: int | None = None,
     dtype: torch.dtype = torch.float64,
 ) -> tuple[Tensor, Tensor]:
-    """``(q (N, n), T (N, 4, 4) or positions (N, 3))`` from files (formats of :mod:`diffkin.data_io`).
+    """``(q (N, n), T (N, 4, 4) or positions (N, 3))`` from files, read by
+    :func:`diffkin.data_io.read_measurements` (the reader ``diffkin calibrate`` uses).
 
-    With ``poses=None``, ``joints`` must be an ``.npz`` holding ``q`` and ``T`` (or ``position`` and
-    optionally ``quaternion``); otherwise the joints and poses come from two files.
+    With ``poses=None`` both come from ``joints``: an ``.npz`` holding ``q`` and ``T`` (or ``position`` and
+    optionally ``quaternion``), or a ``.csv`` read by its header (``q1..qn,x,y,z[,qw,qx,qy,qz]``, e.g.
+    ``diffkin fk``'s output); otherwise the joints and poses come from two files (``.npy``, ``.npz``,
+    ``.csv``). ``n_joints``: the robot's joint count, checked (None: the file's own, by header or shape).
     """
-    joints = Path(joints)
-    if n_joints is None:
-        from ..data_io import read_array
-
-        n_joints = int(read_array(joints, key="q").shape[-1])
-    q = read_joints(joints, n_joints, dtype=dtype)
-    T, position_only = read_poses(joints if poses is None else poses, dtype=dtype)
-    return q, (T[:, :3, 3].contiguous() if position_only else T)
+    q, T, _ = read_measurements(joints, poses, n_joints, dtype=dtype)
+    return q, T
 
 
 def _load_chain(robot, end_link: str | None = None):
@@ -97,6 +94,10 @@ def calibrate_from_files(
         "noise_ratio": result.noise_ratio,
         "cross_validation": result.cross_validation,
         "notes": result.notes,
+        "loss": result.loss,
+        "outliers": result.outliers,
+        "outlier_threshold_m": result.outlier_threshold,
+        "pose_position_errors_m": result.pose_position_errors.tolist(),
         "residuals_m": result.residuals,
         "orientation_residuals_rad": result.orientation_residuals,
         "identifiability": result.report.as_dict(),

@@ -18,23 +18,24 @@ last three rows.
 
 from __future__ import annotations
 
+import contextlib
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .._numerics import cross
 from ..chain import DHChain
 from ..errors import ModelError, ShapeError
+from ..kernels.jacobian import twist_of_derivative
 from ..kernels.joints import dh_joints, pose_correction
 from ..kernels.pose_error import pose_error as _pose_error
 from ..kernels.tree import Segments, Topology, matrix_frames
-from ..rotations import _rotvec_to_matrix, _skew
 from ..transforms import as_measured_transform
 from ..validation import shape_str, tensors
 
-__all__ = ["CalibrationModel", "parameter_names", "DH_KINDS", "POSE_AXES"]
+__all__ = ["CalibrationModel", "ForwardModeMatrix", "parameter_names", "DH_KINDS", "POSE_AXES"]
 
 DH_KINDS = ("a", "alpha", "d", "theta")
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -52,18 +53,6 @@ def _frames_to_matrix(x: Tensor, y: Tensor, z: Tensor, p: Tensor) -> Tensor:
     bottom = torch.zeros_like(top[..., :1, :])
     bottom[..., 0, 3] = 1.0
     return torch.cat((top, bottom), dim=-2)
-
-
-def _so3_right_jacobian(v: Tensor) -> Tensor:
-    """J_r(v) with R(v + dv) ≈ R(v) R(J_r(v) dv): (..., 3) -> (..., 3, 3) (no gradient through it needed)."""
-    S = _skew(v)
-    t2 = (v * v).sum(-1)[..., None, None]
-    small = t2 < 1e-8
-    t2s = torch.where(small, torch.ones_like(t2), t2)
-    t = torch.sqrt(t2s)
-    c1 = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / t2s)
-    c2 = torch.where(small, 1.0 / 6.0 - t2 / 120.0, (t - torch.sin(t)) / (t2s * t))
-    return torch.eye(3, dtype=v.dtype, device=v.device) - c1 * S + c2 * (S @ S)
 
 
 def _dh_frames(a, alpha, d, theta, q, revolute, convention, base):
@@ -106,8 +95,57 @@ def _as_selection(parameters, n: int, joint_types: str, base: bool, tool: bool, 
     return torch.tensor(mask)
 
 
+@contextlib.contextmanager
+def quiet_forward_mode():
+    """Silence, here only, torch's ``torch.jit.script is deprecated`` DeprecationWarning, which its own
+    forward-mode decompositions raise inside ``torch.func.jacfwd``: the user did not call jit and can do
+    nothing about it (every other warning passes)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated",
+                                category=DeprecationWarning)
+        yield
+
+
+class ForwardModeMatrix:
+    """The calibration matrix Φ (2.86) of every error model, by forward-mode differentiation of the one FK
+    kernel (what :meth:`~diffkin.chain.KinematicChain.parameter_jacobian` does), vectorised over K robots
+    with ``torch.func``. A model provides ``n_params``, ``forward_kinematics(zeta (K, P), q (K, N, n))`` and
+    ``_fk_one(zeta (P,), q (N, n))``."""
+
+    def calibration_matrix(self, zeta: Tensor, q: Tensor, position_only: bool, orientation_weight: float,
+                           columns: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Φ ``(K, N, m, C)``, m = 6 or 3: column j is the base-frame twist [δp; w δω] of the end effector
+        per unit change of the j-th selected entry of ζ (``columns``: bool ``(P,)``, default all), so that
+        ζ' = ζ + Δζ (2.89) is exact to first order; and the poses ``(K, N, 4, 4)``. ``zeta (P,)`` with
+        ``q (N, n)`` gives ``(N, m, C)`` and ``(N, 4, 4)``."""
+        cols = (torch.ones(self.n_params, dtype=torch.bool) if columns is None else columns.cpu())
+        idx = cols.nonzero().flatten().to(zeta.device)
+        squeeze = zeta.ndim == 1
+        Z, Q = (zeta[None], q[None]) if squeeze else (zeta, q)
+
+        def fk_delta(delta: Tensor, z: Tensor, qk: Tensor) -> Tensor:
+            return self._fk_one(z.index_add(0, idx, delta), qk)
+
+        def one(z: Tensor, qk: Tensor):
+            delta = z.new_zeros(idx.numel())
+            return torch.func.jacfwd(fk_delta)(delta, z, qk)
+
+        with torch.no_grad():
+            T = self.forward_kinematics(Z, Q)
+        with quiet_forward_mode():
+            dT = torch.func.vmap(one)(Z, Q)  # (K, N, 4, 4, C)
+        Phi = twist_of_derivative(dT, T)
+        if position_only:
+            Phi = Phi[..., :3, :]
+        else:
+            Phi = torch.cat((Phi[..., :3, :], orientation_weight * Phi[..., 3:, :]), dim=-2)
+        if squeeze:
+            Phi, T = Phi[0], T[0]
+        return Phi, T
+
+
 @dataclass(frozen=True, eq=False)
-class CalibrationModel:
+class CalibrationModel(ForwardModeMatrix):
     """Parameterised DH kinematics of one chain structure for ``K`` robots (or one shared nominal).
 
     Attributes: ``nominal`` ζ_n ``(..., P)`` with ``...`` = ``()`` or ``(K,)``; ``base_nominal`` and
@@ -223,57 +261,9 @@ class CalibrationModel:
         T = self.forward_kinematics(zeta, q)
         return pose_residual(T, measured, orientation_weight)
 
-    def calibration_matrix(
-        self,
-        zeta: Tensor,
-        q: Tensor,
-        position_only: bool,
-        orientation_weight: float,
-        columns: Tensor | None = None,
-    ) -> tuple[Tensor, Tensor]:
-        """Φ(ζ) of (2.86) per pose, analytic: ``(Phi (..., N, m, C), T_ee (..., N, 4, 4))``, m = 6 or 3.
-
-        Column j is the base-frame twist [δp; w δω] of the end effector per unit change of ζ_j: a_i / d_i
-        translate along x / z of their DH frame, α_i / ϑ_i rotate about it; the base and tool columns are the
-        twists of the six pose-correction coordinates (through the right Jacobian of SO(3) for the rotation
-        vector), so that ζ' = ζ + Δζ (2.89) is exact to first order for every entry. ``columns``: bool
-        ``(P,)`` selecting the C columns to compute (default all P).
-        """
-        frames, T_ee, base = self._frames(zeta, q)
-        p_e, R_e = T_ee[..., :3, 3, None], T_ee[..., :3, :3]  # p_e as a column (..., N, 3, 1)
-        n4 = 4 * self.n
-        cols = torch.ones(self.n_params, dtype=torch.bool) if columns is None else columns.cpu()
-
-        def stack(k: int, frm):  # column k of the frames, stacked over joints: (..., N, 3, n)
-            return torch.stack(torch.broadcast_tensors(*[f[k] for f in frm]), dim=-1)
-
-        fx, fz = (frames[1:], frames[:-1]) if self.convention == "standard" else (frames[:-1], frames[1:])
-        X, OX, Z, OZ = stack(0, fx), stack(3, fx), stack(2, fz), stack(3, fz)
-        X, Z = torch.broadcast_tensors(X, Z)
-        zero = torch.zeros_like(X)
-        # a: along x, α: about x through its origin, d: along z, ϑ: about z  (linear; angular)
-        lin = [X, cross(X, p_e - OX, -2), Z, cross(Z, p_e - OZ, -2)]
-        ang = [zero, X, zero, Z]
-        if bool(cols[n4:].any()):
-            B = base[..., None, :3, :3].expand(*X.shape[:-1], 3)
-            r_b = zeta[..., None, n4 + 3 : n4 + 6]  # (..., 1, 3): broadcast over the poses
-            r_t = zeta[..., None, n4 + 9 :]
-            z3 = torch.zeros_like(B)
-            lin_b = [
-                B @ _rotvec_to_matrix(r_b).transpose(-1, -2),
-                cross(B, p_e - base[..., None, :3, 3:], -2),
-            ]
-            lin += [lin_b[0], lin_b[1] @ _so3_right_jacobian(r_b)]
-            ang += [z3, B @ _so3_right_jacobian(r_b)]
-            lin += [R_e @ _rotvec_to_matrix(r_t).transpose(-1, -2), z3]
-            ang += [z3, R_e @ _so3_right_jacobian(r_t)]
-        J = torch.cat(lin, dim=-1)
-        if not position_only:
-            J = torch.cat((J, orientation_weight * torch.cat(ang, dim=-1)), dim=-2)
-        keep = cols if J.shape[-1] == self.n_params else cols[:n4]
-        if not bool(keep.all()):
-            J = J[..., keep.nonzero().flatten().to(J.device)]
-        return J, T_ee
+    def _fk_one(self, zeta: Tensor, q: Tensor) -> Tensor:
+        """Poses ``(N, 4, 4)`` of one robot's ``zeta (P,)`` at ``q (N, n)`` (:class:`ForwardModeMatrix`)."""
+        return self.forward_kinematics(zeta, q)
 
     # ---------------------------------------------------------------------------------- chains
     def to_chain(self, zeta: Tensor, index: int = 0) -> DHChain:
@@ -322,14 +312,18 @@ def check_measurements(q, measured, n: int, like, batch: tuple[int, ...] = ()) -
     the rule of :mod:`diffkin.validation` (tensors of ``like``'s dtype and device; numbers, sequences and
     numpy arrays converted to it; finite), with N >= 1 poses.
 
-    Returns ``(q, T, position_only)`` with the rotation blocks of T re-orthonormalised (deviations up to 1e-5
-    accepted, see :func:`~diffkin.transforms.as_measured_transform`). Raises ShapeError / DTypeError /
-    NonFiniteError / DiffkinError.
+    Returns ``(q, T, position_only)``, detached, with the rotation blocks of T re-orthonormalised
+    (deviations up to 1e-3 accepted, :data:`~diffkin.transforms.RIGIDITY_TOLERANCE`). Raises ShapeError /
+    DTypeError / NonFiniteError / DiffkinError.
     """
     q, measured = tensors(("q", q, None), ("T", measured, None), like=like)
+    # data, not variables: joint readings from a network carry its graph, which the fit must not backward
+    # through (the gradient method's closure calls backward once per step); calibration_loss stays
+    # differentiable in q for pipelines that want that
+    q, measured = q.detach(), measured.detach()
     position_only = measurement_shapes(q, measured, n, batch)
     if not position_only:
-        measured = as_measured_transform(measured, "T")  # 1e-5 tolerance, re-orthonormalised
+        measured = as_measured_transform(measured, "T")  # the one rigidity rule, re-orthonormalised
     return q, measured, position_only
 
 

@@ -21,9 +21,10 @@ from ..kernels.dls import dls_solve
 from ..validation import _traced, check_number, shape_str, tensors
 from .model import CalibrationModel, measurement_shapes, pose_residual
 
-__all__ = ["calibration_loss", "robust_loss", "least_squares", "gradient_descent", "SolverOutput", "LOSSES"]
+__all__ = ["calibration_loss", "robust_loss", "robust_weights", "least_squares", "gradient_descent",
+           "SolverOutput", "LOSSES"]
 
-LOSSES = ("huber", "soft_l1", "l2")
+LOSSES = ("huber", "cauchy", "soft_l1", "l2")
 
 
 @dataclass
@@ -62,7 +63,8 @@ def _rms(res: Tensor, orientation_weight: float) -> tuple[Tensor, Tensor | None]
 def robust_loss(sq_norm: Tensor, loss: str, scale: float) -> Tensor:
     """ρ(s) of the squared residual norm s ≥ 0 (units m²), quadratic (= s) for √s ≤ ``scale`` (metres).
 
-    ``"huber"``: ρ = s for √s ≤ c, 2c√s − c² beyond; ``"soft_l1"``: ρ = 2c²(√(1 + s/c²) − 1); ``"l2"``: ρ = s.
+    ``"huber"``: ρ = s for √s ≤ c, 2c√s − c² beyond; ``"cauchy"``: ρ = c² log(1 + s/c²) (redescending: an
+    outlier's pull falls off as 1/√s); ``"soft_l1"``: ρ = 2c²(√(1 + s/c²) − 1); ``"l2"``: ρ = s.
     ``sq_norm`` of any shape, by the rule of :mod:`diffkin.validation` (finite; numbers and numpy arrays
     converted); negative entries raise ``DiffkinError``.
     """
@@ -82,6 +84,8 @@ def _robust_loss(sq_norm: Tensor, loss: str, scale: float) -> Tensor:
     if loss == "l2":
         return sq_norm
     c2 = scale * scale
+    if loss == "cauchy":
+        return c2 * torch.log1p(sq_norm / c2)
     if loss == "soft_l1":
         return 2.0 * c2 * (torch.sqrt(1.0 + sq_norm / c2) - 1.0)
     if loss == "huber":
@@ -89,6 +93,17 @@ def _robust_loss(sq_norm: Tensor, loss: str, scale: float) -> Tensor:
         s_safe = torch.where(big, sq_norm, torch.full_like(sq_norm, c2))  # double where: no grad of sqrt at 0
         return torch.where(big, 2.0 * scale * torch.sqrt(s_safe) - c2, sq_norm)
     raise ConventionError(f"unknown loss {loss!r}; valid: {', '.join(LOSSES)}")
+
+
+def robust_weights(sq_norm: Tensor, loss: str, scale: float) -> Tensor:
+    """ρ'(s), the iteratively reweighted least-squares weight of each squared residual norm (1 for "l2" and
+    inside the quadratic zone), by autograd of :func:`robust_loss` (one encoding of ρ). Trusted input."""
+    if loss == "l2":
+        return torch.ones_like(sq_norm)
+    with torch.enable_grad():
+        s = sq_norm.detach().requires_grad_(True)
+        (w,) = torch.autograd.grad(_robust_loss(s, loss, scale).sum(), s)
+    return w
 
 
 def calibration_loss(
@@ -170,8 +185,14 @@ def least_squares(
     tol: float | None = None,
     damping: float | None = None,
     progress: bool = False,
+    loss: str = "l2",
+    scale: float = 1e-3,
 ) -> SolverOutput:
     """Iterate (2.88)–(2.89): Δζ = Φ̄⁺ Δx̄, ζ ← ζ + Δζ, with Φ̄ and Δx̄ re-evaluated at the current ζ.
+
+    ``loss`` other than ``"l2"`` (:func:`robust_loss`, ``scale`` metres): iteratively reweighted least
+    squares — each pose's rows of Φ̄ and Δx̄ are scaled by √ρ'(|Δx_i|²) at the current ζ, and the step is
+    accepted on the robust cost Σ ρ(|Δx_i|²).
 
     Φ̄'s columns are scaled to unit norm and the step is the kernel's damped least-squares solve
     (:func:`diffkin.kernels.dls.dls_solve`, λ = ``damping``² on the unit-norm columns): min ‖Φ̄ Δζ − Δx̄‖² +
@@ -194,29 +215,33 @@ def least_squares(
 
     def cost(z):
         r = model.residual(z, q, measured, orientation_weight)
-        return r, r.square().sum((-1, -2))
+        return r, _robust_loss(r.square().sum(-1), loss, scale).sum(-1)
 
     with torch.no_grad(), _progress(progress, "calibrating (least squares)", max_iterations) as advance:
         for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
             Phi, T_model = model.calibration_matrix(zeta, q, position_only, orientation_weight, cand_mask)
             res = pose_residual(T_model, measured, orientation_weight)
-            c0 = res.square().sum((-1, -2))
+            sq = res.square().sum(-1)  # (K, N)
+            c0 = _robust_loss(sq, loss, scale).sum(-1)
             pos, ori = _rms(res, orientation_weight)
             hist_p.append(pos)
             hist_o.append(ori)
+            if loss != "l2":  # IRLS: rows of pose i weighted by √ρ'(|Δx_i|²)
+                sw = robust_weights(sq, loss, scale).sqrt()
+                Phi, res = Phi * sw[..., None, None], res * sw[..., None]
             A = Phi.reshape(K, -1, P) * f[:, None, :]
             s = A.norm(dim=-2)
             s = torch.where(s > 0, s, torch.ones_like(s))
             step = dls_solve(A / s[:, None, :], res.reshape(K, -1), damping * damping) / s * f
             step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
-            scale = torch.ones(K, 1, dtype=zeta.dtype, device=zeta.device)
+            shrink = torch.ones(K, 1, dtype=zeta.dtype, device=zeta.device)
             for _ in range(20):  # backtrack robots whose residual grew
-                _, c1 = cost(zeta.index_add(-1, cand, step * scale))
-                worse = (c1 > c0 * (1 + 1e-12) + 1e-300) & (scale[:, 0] > 0)
+                _, c1 = cost(zeta.index_add(-1, cand, step * shrink))
+                worse = (c1 > c0 * (1 + 1e-12) + 1e-300) & (shrink[:, 0] > 0)
                 if not bool(worse.any()):
                     break
-                scale = torch.where(worse[:, None], scale * 0.5, scale)
-            step = step * scale
+                shrink = torch.where(worse[:, None], shrink * 0.5, shrink)
+            step = step * shrink
             zeta = zeta.index_add(-1, cand, step)  # (2.89)
             advance()
             converged = (step.abs() <= tol * (1.0 + zeta[:, cand].abs())).all(dim=-1)

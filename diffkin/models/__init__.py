@@ -75,17 +75,32 @@ def load(name_or_path, dtype: torch.dtype | None = None, device=None) -> DHChain
     compute on (``"cuda"`` without CUDA, ``"meta"``) raises :class:`~diffkin.errors.DeviceError`.
     """
     check_device(device)
+    _refuse_other_formats(name_or_path)
     if isinstance(name_or_path, Path) or (
         isinstance(name_or_path, str) and (name_or_path.endswith((".yaml", ".yml")) or "/" in name_or_path)
     ):
         return chain_from_yaml(Path(name_or_path), dtype=dtype, device=device)
-    if isinstance(name_or_path, str) and name_or_path.endswith(".urdf"):
-        raise ModelError(f"{name_or_path!r} is a URDF: use diffkin.models.from_urdf(source, end_link)")
-    if isinstance(name_or_path, str) and name_or_path.endswith(".xml"):
-        raise ModelError(f"{name_or_path!r} is an MJCF (MuJoCo) file: use "
-                         "diffkin.models.from_mjcf(source, end_link)")
     data = _model_data(name_or_path)
     return chain_from_dict(data, dtype=dtype, device=device, where=f"{name_or_path}.yaml")
+
+
+#: file suffixes that :func:`load` does not read, and the loader that does
+OTHER_FORMATS = {".urdf": "from_urdf", ".xml": "from_mjcf", ".mjcf": "from_mjcf"}
+
+
+def _refuse_other_formats(name_or_path) -> None:
+    """A URDF or MuJoCo XML file given to :func:`load` (which reads built-in names and robot YAML): the error
+    names the loader for it, before any YAML parser sees the file."""
+    if not isinstance(name_or_path, (str, Path)):
+        return
+    suffix = Path(name_or_path).suffix.lower()
+    if suffix == ".urdf":
+        raise ModelError(f"{name_or_path}: a URDF file; load it with diffkin.models.from_urdf(path, "
+                         "end_link) (models.load reads built-in names and robot YAML files)")
+    if suffix in OTHER_FORMATS:
+        raise ModelError(f"{name_or_path}: an XML model; load a MuJoCo MJCF with diffkin.models."
+                         "from_mjcf(path, ...) or a URDF with diffkin.models.from_urdf(path, end_link) "
+                         "(models.load reads built-in names and robot YAML files)")
 
 
 def source(name: str) -> str:
