@@ -12,16 +12,19 @@
  * a vectorisable Cody-Waite reduction and Cephes polynomials (|x| >= 1e5 falls back to libm). Blocks are
  * shared between threads with a dynamic schedule. The float kernels evaluate sin/cos in double.
  *
- * Model layout (built by native.py):
- *   ints:  J, K, n, then parent[J], revolute[J], qidx[J], has_pre[J], has_post[J], has_base, end_joint[K],
- *          has_end[K], ancestor[K*J]
- *   reals: mult[J], qoff[J], pre[12J], post[12J], base[12], end[12K]   (3x4 row-major blocks)
+ * The interface is one struct, dk_args (DK_ARGS_FIELDS below), mirrored field by field by native.py's
+ * ctypes.Structure: the chain's arrays (3x4 row-major blocks for the fixed transforms), the call's inputs and
+ * outputs, and its version and size. dk_abi() and dk_abi_names() export the version, sizeof and every
+ * field's name and offset so that
+ * native.py refuses a library whose layout is not its own; every entry point refuses a struct whose version
+ * or size is not this file's (DK_ABI_ERROR).
  *
  * The file includes itself once per real type (DK_REAL): the first pass holds what is type-free.
  */
 #ifndef DK_REAL
 
 #include <math.h>
+#include <stddef.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -31,6 +34,83 @@
 
 #define W 16
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
+#define DK_ABI_VERSION 1 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
+#define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
+
+/* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
+ * passed as void pointers. J joint frames, K end links, n variables, B configurations. */
+#define DK_ARGS_FIELDS(X) \
+    X(int64_t, version, "DK_ABI_VERSION") \
+    X(int64_t, size, "sizeof(dk_args)") \
+    X(int64_t, real_bytes, "8 or 4") \
+    X(int64_t, nthreads, "threads to use for large batches (at least 1)") \
+    X(int64_t, J, "joint frames") \
+    X(int64_t, K, "end links") \
+    X(int64_t, n, "variables (columns of q)") \
+    X(int64_t, has_base, "base[] is not the identity") \
+    X(const int32_t *, parent, "[J] parent frame, -1 the base") \
+    X(const int32_t *, revolute, "[J] 1 revolute, 0 prismatic") \
+    X(const int32_t *, qidx, "[J] the variable driving the joint") \
+    X(const int32_t *, has_pre, "[J] pre[j] is not the identity") \
+    X(const int32_t *, has_post, "[J] post[j] is not the identity") \
+    X(const int32_t *, end_joint, "[K] the frame end link k hangs from, -1 the base") \
+    X(const int32_t *, has_end, "[K] end[k] is not the identity") \
+    X(const int32_t *, ancestor, "[K*J] joint j moves end link k") \
+    X(const void *, mult, "[J] reals: q_j = mult_j q[qidx_j] + qoff_j") \
+    X(const void *, qoff, "[J] reals") \
+    X(const void *, pre, "[12J] reals") \
+    X(const void *, post, "[12J] reals") \
+    X(const void *, base, "[12] reals") \
+    X(const void *, end, "[12K] reals") \
+    X(int64_t, batch, "B, or the rows m of dk_lm") \
+    X(const void *, q, "dk_fk: [B*n] reals in") \
+    X(void *, T, "dk_fk: [B*K*16] reals out") \
+    X(void *, jac, "dk_fk: [B*K*6*n] reals out, or NULL") \
+    X(int64_t, iters, "dk_lm: steps per round") \
+    X(int64_t, max_rounds, "dk_lm") \
+    X(int64_t, n_targets, "dk_lm: N") \
+    X(void *, u, "dk_lm: [n*m] reals in and out") \
+    X(void *, u_eval, "dk_lm: [n*m] reals out") \
+    X(const int64_t *, tidx, "dk_lm: [m]") \
+    X(const void *, pd, "dk_lm: [3K*N] reals") \
+    X(const void *, xd, "dk_lm: [3K*N] reals, NULL: position only") \
+    X(const void *, yd, "dk_lm: [3K*N] reals") \
+    X(const void *, zd, "dk_lm: [3K*N] reals") \
+    X(const void *, sqrt_w, "dk_lm: [rows] reals") \
+    X(const void *, jc, "dk_lm: [n] reals") \
+    X(const void *, jh, "dk_lm: [n] reals") \
+    X(const uint8_t *, bounded, "dk_lm: [n]") \
+    X(double, damping2, "dk_lm") \
+    X(double, error_damping, "dk_lm") \
+    X(double, tol_p, "dk_lm") \
+    X(double, tol_o, "dk_lm") \
+    X(double, margin, "dk_lm") \
+    X(uint8_t *, conv, "dk_lm: [m] out") \
+    X(void *, merit, "dk_lm: [m] reals out") \
+    X(void *, merit_prev, "dk_lm: [m] reals out")
+
+#define DK_DECLARE(type, name, what) type name;
+typedef struct dk_args { DK_ARGS_FIELDS(DK_DECLARE) } dk_args;
+#undef DK_DECLARE
+
+/* The field names, in order, each followed by a comma. */
+const char *dk_abi_names(void) {
+#define DK_NAME(type, name, what) #name ","
+    return DK_ARGS_FIELDS(DK_NAME);
+#undef DK_NAME
+}
+
+/* out[0] = version, out[1] = sizeof(dk_args), out[2] = number of fields, out[3 + i] = offset of field i
+ * (what fits in cap entries); returns the number of entries there are. */
+int64_t dk_abi(int64_t *out, int64_t cap) {
+#define DK_OFFSET(type, name, what) (int64_t)offsetof(dk_args, name),
+    const int64_t offs[] = {DK_ARGS_FIELDS(DK_OFFSET)};
+#undef DK_OFFSET
+    const int64_t nf = (int64_t)(sizeof offs / sizeof offs[0]);
+    const int64_t head[3] = {DK_ABI_VERSION, (int64_t)sizeof(dk_args), nf};
+    for (int64_t i = 0; i < 3 + nf && i < cap; i++) out[i] = i < 3 ? head[i] : offs[i - 3];
+    return 3 + nf;
+}
 
 static int thread_id(void) {
 #ifdef _OPENMP
@@ -45,20 +125,19 @@ typedef struct {
     const int32_t *parent, *revolute, *qidx, *has_pre, *has_post, *end_joint, *has_end, *anc;
 } Shape;
 
-static void read_shape(const int32_t *ip, Shape *s) {
-    s->J = ip[0];
-    s->K = ip[1];
-    s->n = ip[2];
-    const int32_t *p = ip + 3;
-    s->parent = p;   p += s->J;
-    s->revolute = p; p += s->J;
-    s->qidx = p;     p += s->J;
-    s->has_pre = p;  p += s->J;
-    s->has_post = p; p += s->J;
-    s->has_base = *p++;
-    s->end_joint = p; p += s->K;
-    s->has_end = p;   p += s->K;
-    s->anc = p;
+static void read_shape(const dk_args *a, Shape *s) {
+    s->J = (int)a->J;
+    s->K = (int)a->K;
+    s->n = (int)a->n;
+    s->has_base = (int)a->has_base;
+    s->parent = a->parent;
+    s->revolute = a->revolute;
+    s->qidx = a->qidx;
+    s->has_pre = a->has_pre;
+    s->has_post = a->has_post;
+    s->end_joint = a->end_joint;
+    s->has_end = a->has_end;
+    s->anc = a->ancestor;
 }
 
 /* sin and cos of W lanes of double, vectorisable. */
@@ -104,6 +183,26 @@ static void sincos_lanes(const double *x, double *s, double *c) {
 #define DK_TINY 1.17549435e-38f
 #include __FILE__
 
+static int abi_ok(const dk_args *a) {
+    return a && a->version == DK_ABI_VERSION && a->size == (int64_t)sizeof(dk_args) &&
+           (a->real_bytes == 8 || a->real_bytes == 4);
+}
+
+/* T (B, K, 4, 4) and, when jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite
+ * entries of q (their outputs are not meaningful), -1 when memory ran out, DK_ABI_ERROR for a struct of
+ * another layout. */
+int64_t dk_fk(const dk_args *a) {
+    if (!abi_ok(a)) return DK_ABI_ERROR;
+    return a->real_bytes == 8 ? dk_fk_f64(a) : dk_fk_f32(a);
+}
+
+/* The Levenberg-Marquardt rounds of dk_lm_f64 / dk_lm_f32 (see there); returns the number of rounds run, -1
+ * when memory ran out, DK_ABI_ERROR for a struct of another layout. */
+int64_t dk_lm(const dk_args *a) {
+    if (!abi_ok(a)) return DK_ABI_ERROR;
+    return a->real_bytes == 8 ? dk_lm_f64(a) : dk_lm_f32(a);
+}
+
 #else /* ------------------------------------------------------------------- one pass per real type */
 
 #define real DK_REAL
@@ -116,13 +215,13 @@ typedef struct { /* per-thread work space, all lane-major (W lanes innermost) */
     real *F, *G, *axes, *ends, *Jb, *qlanes, *basef;
 } DK(Scratch);
 
-static void DK(read_params)(const Shape *s, const real *rp, DK(Params) *pp) {
-    pp->mult = rp;
-    pp->qoff = rp + s->J;
-    pp->pre = rp + 2 * s->J;
-    pp->post = pp->pre + 12 * s->J;
-    pp->base = pp->post + 12 * s->J;
-    pp->endT = pp->base + 12;
+static void DK(read_params)(const dk_args *a, DK(Params) *pp) {
+    pp->mult = (const real *)a->mult;
+    pp->qoff = (const real *)a->qoff;
+    pp->pre = (const real *)a->pre;
+    pp->post = (const real *)a->post;
+    pp->base = (const real *)a->base;
+    pp->endT = (const real *)a->end;
 }
 
 static size_t DK(scratch_size)(const Shape *s) {
@@ -264,12 +363,15 @@ static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_
 
 /* T (B, K, 4, 4) and, when Jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite
  * entries of q (their outputs are not meaningful), or -1 when memory ran out. */
-int64_t DK(dk_fk)(const int32_t *ip, const real *rp, const real *q, int64_t B, real *T, real *Jac,
-                  int nthreads) {
+static int64_t DK(dk_fk)(const dk_args *a) {
     Shape s;
-    read_shape(ip, &s);
+    read_shape(a, &s);
     DK(Params) pp;
-    DK(read_params)(&s, rp, &pp);
+    DK(read_params)(a, &pp);
+    const real *q = (const real *)a->q;
+    real *T = (real *)a->T, *Jac = (real *)a->jac;
+    const int64_t B = a->batch;
+    int nthreads = (int)a->nthreads;
     const int K = s.K, n = s.n;
     const int64_t nblocks = (B + W - 1) / W;
     int64_t bad = 0;
@@ -344,15 +446,23 @@ static void DK(spd_solve)(real *A, real *b, int d) {
  * last evaluation, merit_prev the merit of the round before the last (when more than one ran). Rounds stop
  * early after one in which a row converged (the caller schedules then). Targets pd, xd, yd, zd are (3K, N);
  * row b aims at target tidx[b]. Returns the number of rounds run, or -1 when memory ran out. */
-int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, int max_rounds, real *u,
-                  real *u_eval, const int64_t *tidx, int64_t N, const real *pd, const real *xd, const real *yd,
-                  const real *zd, const real *sqrt_w, const real *jc, const real *jh, const uint8_t *bounded,
-                  real damping2, real error_damping, real tp, real to, real margin, uint8_t *conv, real *merit,
-                  real *merit_prev, int nthreads) {
+static int64_t DK(dk_lm)(const dk_args *a) {
     Shape s;
-    read_shape(ip, &s);
+    read_shape(a, &s);
     DK(Params) pp;
-    DK(read_params)(&s, rp, &pp);
+    DK(read_params)(a, &pp);
+    const int64_t m = a->batch, N = a->n_targets, *tidx = a->tidx;
+    const int iters = (int)a->iters, max_rounds = (int)a->max_rounds;
+    real *u = (real *)a->u, *u_eval = (real *)a->u_eval, *merit = (real *)a->merit;
+    real *merit_prev = (real *)a->merit_prev;
+    const real *pd = (const real *)a->pd, *xd = (const real *)a->xd, *yd = (const real *)a->yd;
+    const real *zd = (const real *)a->zd, *sqrt_w = (const real *)a->sqrt_w, *jc = (const real *)a->jc;
+    const real *jh = (const real *)a->jh;
+    const uint8_t *bounded = a->bounded;
+    uint8_t *conv = a->conv;
+    const real damping2 = (real)a->damping2, error_damping = (real)a->error_damping, tp = (real)a->tol_p;
+    const real to = (real)a->tol_o, margin = (real)a->margin;
+    int nthreads = (int)a->nthreads;
     const int K = s.K, n = s.n, pos_only = xd == NULL, r = (pos_only ? 3 : 6) * K;
     const int d = r <= n ? r : n;
     const int64_t nblocks = (m + W - 1) / W;
