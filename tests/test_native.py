@@ -114,6 +114,23 @@ def test_empty_batch_and_far_angles():
         torch.testing.assert_close(chain.fk_jacobian(q)[1], J_ref, atol=1e-12, rtol=0)
 
 
+@pytest.mark.parametrize("scale", [3.0, 5e3, 2e4])  # float reduction; |q| >= 1e4: the double one
+def test_float_sin_cos_near_and_far(scale):
+    """The float FK's own sin/cos (8 lanes) against the torch float32 kernels, and against float64: no
+    worse than torch's float32 error."""
+    chain, c64 = models.load("panda", dtype=torch.float32), models.load("panda", dtype=torch.float64)
+    gen = torch.Generator().manual_seed(13)
+    q = ((torch.rand(3000, 7, generator=gen) * 2 - 1) * scale).float()
+    with torch.no_grad():
+        T, J = chain.fk_jacobian(q)
+        with native.disabled():
+            T_ref, J_ref = chain.fk_jacobian(q)
+        T64 = c64.forward_kinematics(q.double())
+    torch.testing.assert_close(T, T_ref, atol=5e-6, rtol=0)
+    torch.testing.assert_close(J, J_ref, atol=5e-6, rtol=0)
+    assert (T.double() - T64).abs().max() <= 2 * (T_ref.double() - T64).abs().max()
+
+
 def test_non_finite_q_raises_or_stays_in_its_row():
     chain = models.load("panda", dtype=torch.float32)
     q = chain.random_configuration((4,), generator=torch.Generator().manual_seed(4))

@@ -10,7 +10,7 @@
  * with z_j, p_j the z axis and origin of F_parent . Pre_j . M_j. Configurations are processed in blocks of W
  * lanes; every loop over the lanes is branch-free so the compiler vectorises it, and sin/cos are evaluated by
  * a vectorisable Cody-Waite reduction and Cephes polynomials (|x| >= 1e5 falls back to libm). Blocks are
- * shared between threads with a dynamic schedule. The float kernels evaluate sin/cos in double.
+ * shared between threads with a dynamic schedule. The float FK evaluates sin/cos in float (8 lanes to an AVX2 register), the LM iteration in double.
  *
  * The interface is one struct, dk_args (DK_ARGS_FIELDS below), mirrored field by field by native.py's
  * ctypes.Structure: the chain's arrays (3x4 row-major blocks for the fixed transforms), the call's inputs and
@@ -173,6 +173,36 @@ static void sincos_lanes(const double *x, double *s, double *c) {
     }
 }
 
+/* sin and cos of W lanes of float, vectorisable, 8 lanes to an AVX2 register where the double version has
+ * 4: the same reduction in float (pi/2 in three parts, k x P1 exact for |k| < 2^16) and Cephes' sinf/cosf
+ * polynomials on [-pi/4, pi/4] (about 1 ulp); |x| >= 1e4 (or not finite) takes the double version. */
+static void sincos_lanes_f32(const float *x, float *s, float *c) {
+    int big = 0;
+    for (int l = 0; l < W; l++) big |= !(fabsf(x[l]) < 1e4f);
+    if (big) {
+        double xd[W], sd[W], cd[W];
+        for (int l = 0; l < W; l++) xd[l] = x[l];
+        sincos_lanes(xd, sd, cd);
+        for (int l = 0; l < W; l++) { s[l] = (float)sd[l]; c[l] = (float)cd[l]; }
+        return;
+    }
+    const float shift = 12582912.0f; /* 1.5 2^23: round to an integer, k mod 4 in the low mantissa bits */
+#pragma omp simd
+    for (int l = 0; l < W; l++) {
+        const float t = x[l] * 0.636619772f + shift, k = t - shift;
+        uint32_t q;
+        memcpy(&q, &t, sizeof q);
+        const float r = ((x[l] - k * 1.5703125f) - k * 4.837512969970703125e-4f) - k * 7.54978995489188216e-8f;
+        const float z = r * r;
+        const float sp = r + r * z * ((-1.9515295891e-4f * z + 8.3321608736e-3f) * z - 1.6666654611e-1f);
+        const float cp = 1.0f - 0.5f * z + z * z * ((2.443315711809948e-5f * z - 1.388731625493765e-3f) * z +
+                                                    4.166664568298827e-2f);
+        const float sv = (q & 1) ? cp : sp, cv = (q & 1) ? sp : cp;
+        s[l] = (q & 2) ? -sv : sv;
+        c[l] = ((q + 1) & 2) ? -cv : cv;
+    }
+}
+
 enum { MOVE_NONE, MOVE_TURN, MOVE_SLIDE }; /* the motion of a joint in DK(rows) */
 
 #if defined(__AVX2__)
@@ -214,6 +244,7 @@ static inline void transpose_f64(const double *src, size_t ss, double *dst, int6
 #define DK_MAX 1.7976931348623157e308
 #define DK_TILE 4
 #define DK_TRANSPOSE transpose_f64
+#define DK_SINCOS sincos_lanes
 #include __FILE__
 #undef DK_REAL
 #undef DK
@@ -221,6 +252,7 @@ static inline void transpose_f64(const double *src, size_t ss, double *dst, int6
 #undef DK_MAX
 #undef DK_TILE
 #undef DK_TRANSPOSE
+#undef DK_SINCOS
 
 #define DK_REAL float
 #define DK(name) name##_f32
@@ -228,6 +260,7 @@ static inline void transpose_f64(const double *src, size_t ss, double *dst, int6
 #define DK_MAX 3.40282347e38f
 #define DK_TILE 8
 #define DK_TRANSPOSE transpose_f32
+#define DK_SINCOS sincos_lanes_f32
 #include __FILE__
 
 static int abi_ok(const dk_args *a) {
@@ -334,8 +367,8 @@ static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK
  * product and the motion never leave the registers. perm and move are constants where this is inlined. */
 static inline __attribute__((always_inline)) void DK(rows)(const real *restrict P, const DK(Fix) *f,
                                                            const int perm, const int move,
-                                                           const double *restrict cs,
-                                                           const double *restrict sn, real *restrict out) {
+                                                           const real *restrict cs,
+                                                           const real *restrict sn, real *restrict out) {
     const real *a = f->a;
     const real a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5], a6 = a[6], a7 = a[7];
     const real a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
@@ -360,7 +393,7 @@ static inline __attribute__((always_inline)) void DK(rows)(const real *restrict 
             }
             const real p = Pp[l] + P0[l] * a3 + P1[l] * a7 + P2[l] * a11;
             if (move == MOVE_TURN) {
-                const real c = (real)cs[l], sv = (real)sn[l];
+                const real c = cs[l], sv = sn[l];
                 X[l] = c * x + sv * y;
                 Y[l] = c * y - sv * x;
             } else {
@@ -368,13 +401,12 @@ static inline __attribute__((always_inline)) void DK(rows)(const real *restrict 
                 Y[l] = y;
             }
             Z[l] = z;
-            Q[l] = move == MOVE_SLIDE ? p + (real)cs[l] * z : p;
+            Q[l] = move == MOVE_SLIDE ? p + cs[l] * z : p;
         }
     }
 }
 
-static void DK(apply)(const real *P, const DK(Fix) *f, int move, const double *cs, const double *sn,
-                      real *out) {
+static void DK(apply)(const real *P, const DK(Fix) *f, int move, const real *cs, const real *sn, real *out) {
     if (f->perm) {
         if (move == MOVE_TURN) DK(rows)(P, f, 1, MOVE_TURN, cs, sn, out);
         else if (move == MOVE_SLIDE) DK(rows)(P, f, 1, MOVE_SLIDE, cs, sn, out);
@@ -433,9 +465,9 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
         const real *P = s->parent[j] < 0 ? sc->basef : F + (size_t)s->parent[j] * 12 * W;
         const real m = pp->mult[j], b = pp->qoff[j];
         const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
-        double ang[W], sn[W], cs[W];
-        for (int l = 0; l < W; l++) ang[l] = (double)(qj[l] * m + b);
-        if (s->revolute[j]) sincos_lanes(ang, sn, cs);
+        real ang[W], sn[W], cs[W];
+        for (int l = 0; l < W; l++) ang[l] = qj[l] * m + b;
+        if (s->revolute[j]) DK_SINCOS(ang, sn, cs);
         real *Fj = F + (size_t)j * 12 * W, *out = s->has_post[j] ? sc->A + (size_t)j * 12 * W : Fj;
         DK(apply)(P, pp->fix + j, s->revolute[j] ? MOVE_TURN : MOVE_SLIDE, s->revolute[j] ? cs : ang, sn, out);
         if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj);
