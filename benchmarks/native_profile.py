@@ -2,25 +2,31 @@
 100 000, float32 and float64, FK and FK + Jacobian.
 
     python -m benchmarks.native_profile [--batch 100000] [--reps 9] [--trials 7] [--no-callgrind]
-                                        [--json out.json]
+                                        [--source OTHER.c] [--json out.json]
+
+``--source`` profiles another version of ``_native.c`` of the same interface (``git show REV:path >
+old.c``): the figures before and after a change of the kernel, in one run.
 
 * ``instr/pose``: instructions of one ``dk_fk`` call counted by ``valgrind --tool=callgrind`` (repeatable on
   a shared machine, unlike time), divided by the batch. Valgrind cannot run AVX-512, so this is the AVX2
   build (``-march=x86-64-v3``: AVX2 + FMA, what an AVX2-only CPU gets from ``-march=native``).
-* ``ns/pose``: the median of ``--reps`` calls on one thread in :file:`benchmarks/native_driver.c` (no Python
-  around the call), for the AVX2 build and for the build the library uses here (``-march=native``);
-  ``cycles/pose`` multiplies by the clock of ``/proc/cpuinfo`` (``perf stat`` has no hardware counters on a
-  virtual machine).
+* ``ns/pose``: the median (and the best) of ``--reps`` calls on one thread in
+  :file:`benchmarks/native_driver.c` (no Python around the call), for the AVX2 build and for the build the
+  library uses here (``-march=native``); ``cycles/pose`` multiplies the median by the clock of
+  ``/proc/cpuinfo`` (``perf stat`` has no hardware counters on a virtual machine).
 * ``flops/pose``: the arithmetic of the kernel's own formulas for this chain (multiply-adds counted as two,
   sin/cos by its polynomial), and ``flops/instr``: how much of each instruction is arithmetic (an AVX2 FMA
   of 4 doubles is 8 flops, of 8 floats 16).
 * ``2 threads / 1``: the speed-up of ``native.fk_jacobian(threads=2)`` over ``threads=1`` through Python,
-  the median of ``--trials`` interleaved pairs (the machine is shared: read medians, not single runs).
+  the median (and best) of ``--trials`` interleaved pairs, and ``runnable``, the running / all tasks of
+  ``/proc/loadavg`` after them: on a shared machine the second thread often finds its core taken, and the
+  ratio then says more about the neighbours than about the kernel.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ctypes
 import re
 import shutil
@@ -76,13 +82,14 @@ def pose_flops(model: native.NativeModel, with_jacobian: bool) -> int:
     return flops
 
 
-def dump_call(path: Path, model: native.NativeModel, q: torch.Tensor, with_jacobian: bool) -> None:
-    """Write one ``dk_fk`` call (one thread) in the format of :file:`benchmarks/native_driver.c`."""
+def dump_call(path: Path, model: native.NativeModel, q: torch.Tensor, with_jacobian: bool,
+              threads: int = 1) -> None:
+    """Write one ``dk_fk`` call (``threads`` threads) in the format of :file:`benchmarks/native_driver.c`."""
     B, K, n = q.shape[0], model.n_ends, model.n_vars
     out = {"q": q, "T": torch.zeros(B, K, 4, 4, dtype=q.dtype),
            "jac": torch.zeros(B, K, 6, n, dtype=q.dtype) if with_jacobian else None}
     tensors = {**model.ints, **model.reals[q.dtype], **{k: v for k, v in out.items() if v is not None}}
-    args = model.call(q.dtype, batch=B, nthreads=1, **out)
+    args = model.call(q.dtype, batch=B, nthreads=threads, **out)
     pointers = [(getattr(native.Args, name).offset, t) for name, t in tensors.items()]
     with open(path, "wb") as f:
         f.write(struct.pack("<q", ctypes.sizeof(args)) + bytes(args) + struct.pack("<q", len(pointers)))
@@ -98,10 +105,11 @@ def _driver(tmp: Path) -> Path:
     return exe
 
 
-def _time_driver(exe: Path, lib: Path, dump: Path, reps: int) -> float:
+def _time_driver(exe: Path, lib: Path, dump: Path, reps: int) -> tuple[float, float]:
+    """(best, median) seconds of ``reps`` calls."""
     out = subprocess.run([str(exe), str(lib), str(dump), str(reps)], check=True, capture_output=True,
                          text=True).stdout
-    return float(re.search(r"median (\S+)", out).group(1))
+    return float(re.search(r"best (\S+)", out).group(1)), float(re.search(r"median (\S+)", out).group(1))
 
 
 def _callgrind(exe: Path, lib: Path, dump: Path, tmp: Path) -> int | None:
@@ -122,9 +130,10 @@ def _clock_ghz() -> float | None:
         return None
 
 
-def _thread_ratio(model, q, with_jacobian: bool, trials: int) -> tuple[float, float]:
-    """Median seconds at 1 thread and median ratio t(1) / t(2) over interleaved pairs."""
-    one, ratios = [], []
+def _thread_ratio(model, q, with_jacobian: bool, trials: int) -> dict:
+    """Over ``trials`` interleaved 1- / 2-thread pairs: the median rate at 1 thread, and the median and best
+    wall-clock ratio t(1) / t(2); the runnable tasks of ``/proc/loadavg`` at the end say how busy it was."""
+    one, wall = [], []
     for _ in range(trials):
         ts = []
         for threads in (1, 2):
@@ -133,8 +142,13 @@ def _thread_ratio(model, q, with_jacobian: bool, trials: int) -> tuple[float, fl
             native.fk_jacobian(model, q, with_jacobian, threads=threads)
             ts.append(time.perf_counter() - t0)
         one.append(ts[0])
-        ratios.append(ts[0] / ts[1])
-    return statistics.median(one), statistics.median(ratios)
+        wall.append(ts[0] / ts[1])
+    try:
+        runnable = Path("/proc/loadavg").read_text().split()[3]
+    except OSError:
+        runnable = None
+    return {"M/s 1 thread": q.shape[0] / statistics.median(one) / 1e6,
+            "2 threads / 1": statistics.median(wall), "2 threads / 1 (best)": max(wall), "runnable": runnable}
 
 
 def run(args) -> list[dict]:
@@ -142,7 +156,27 @@ def run(args) -> list[dict]:
     trials, use_cg = getattr(args, "trials", 7), getattr(args, "callgrind", True)
     if not native.available():
         raise SystemExit("the native kernel is not built here")
-    libs = {"native": native.build(), "avx2": native._compile(AVX2)}
+    source = getattr(args, "source", None)
+    with contextlib.ExitStack() as stack:
+        if source:  # the other source's libraries (cached under their own hash), its kernel for the threads
+            stack.enter_context(_patched(native, "_SOURCE", Path(source).resolve()))
+            flags = native._OPTIONAL[0]
+            stack.enter_context(_patched(native, "_lib", native._load(native._compile(flags), flags)))
+        libs = {"native": native._compile(native._OPTIONAL[0]), "avx2": native._compile(AVX2)}
+        return _rows(libs, B, reps, trials, use_cg)
+
+
+@contextlib.contextmanager
+def _patched(obj, name: str, value):
+    old = getattr(obj, name)
+    setattr(obj, name, value)
+    try:
+        yield
+    finally:
+        setattr(obj, name, old)
+
+
+def _rows(libs: dict, B: int, reps: int, trials: int, use_cg: bool) -> list[dict]:
     ghz, rows = _clock_ghz(), []
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -155,18 +189,17 @@ def run(args) -> list[dict]:
                 dump_call(dump, model, q, jac)
                 flops = pose_flops(model, jac)
                 instr = _callgrind(exe, libs["avx2"], dump, tmp) if use_cg else None
-                row = {"benchmark": "native kernel per pose", "call": "FK + J" if jac else "FK",
+                row = {"call": "FK + J" if jac else "FK",
                        "dtype": str(dtype).removeprefix("torch."), "batch": B, "flops/pose": flops,
                        "instr/pose (AVX2)": instr / B if instr else None,
                        "flops/instr": flops * B / instr if instr else None}
                 for name, lib in libs.items():
-                    ns = _time_driver(exe, lib, dump, reps) / B * 1e9
-                    row[f"ns/pose ({name})"] = ns
+                    best, median = (t / B * 1e9 for t in _time_driver(exe, lib, dump, reps))
+                    row[f"ns/pose ({name})"] = median
+                    row[f"best ns/pose ({name})"] = best
                     if ghz:
-                        row[f"cycles/pose ({name})"] = ns * ghz
-                t1, ratio = _thread_ratio(model, q, jac, trials)
-                row["M/s 1 thread"] = B / t1 / 1e6
-                row["2 threads / 1"] = ratio
+                        row[f"cycles/pose ({name})"] = median * ghz
+                row.update(_thread_ratio(model, q, jac, trials))
                 rows.append(row)
     return rows
 
@@ -177,6 +210,7 @@ def main(argv=None) -> int:
     p.add_argument("--reps", type=int, default=9, help="driver calls per figure (median)")
     p.add_argument("--trials", type=int, default=7, help="interleaved 1- / 2-thread pairs (median)")
     p.add_argument("--no-callgrind", dest="callgrind", action="store_false")
+    p.add_argument("--source", default=None, help="profile this _native.c instead (same interface)")
     p.add_argument("--json", default=None)
     args = p.parse_args(argv)
     rows = run(args)
