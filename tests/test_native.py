@@ -354,3 +354,21 @@ def test_a_mismatched_library_is_rebuilt_then_refused_with_one_warning(monkeypat
         with torch.no_grad():
             assert chain._native_model(q) is None
             assert torch.isfinite(chain.forward_kinematics(q)).all()
+
+
+def test_a_copied_or_pickled_chain_keeps_its_native_constants():
+    import copy
+    import pickle
+
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((20,), generator=torch.Generator().manual_seed(14))
+    with torch.no_grad():
+        T = chain.forward_kinematics(q)  # the packed constants now live on the chain's Segments
+        packed = chain._native_model(q)
+        for other in (copy.deepcopy(chain), pickle.loads(pickle.dumps(chain))):
+            twin = other._native_model(q)
+            assert twin is not None and twin.args[torch.float64].pre != packed.args[torch.float64].pre
+            torch.testing.assert_close(other.forward_kinematics(q), T, atol=0, rtol=0)
+        clone = copy.deepcopy(packed)  # its own arrays, its own addresses
+        assert clone.args[torch.float64].mult == clone.reals[torch.float64]["mult"].data_ptr()
+        assert torch.equal(native.fk_jacobian(clone, q, True)[1], native.fk_jacobian(packed, q, True)[1])

@@ -283,7 +283,7 @@ class NativeModel:
     """A chain's constants packed for the C kernel: the int32 structure and float64 / float32 reals, one
     tensor per array field of :class:`Args`, and a filled :class:`Args` per dtype (copied per call)."""
 
-    __slots__ = ("ints", "reals", "args", "n_ends", "n_vars")
+    __slots__ = ("ints", "reals", "head", "args", "n_ends", "n_vars")
 
     def __init__(self, topo: Topology, seg: Segments):
         J, K = topo.n_frames, len(topo.ends)
@@ -307,18 +307,31 @@ class NativeModel:
         reals = {"mult": topo.multiplier, "qoff": [b + float(o or 0.0) for b, o in zip(topo.q_offset, off)],
                  "pre": [v for p in pre for v in rows(p)], "post": [v for p in post for v in rows(p)],
                  "base": rows(seg.base), "end": [v for E in seg.ends for v in rows(E)]}
-        self.ints = {name: torch.tensor(list(v), dtype=torch.int32) for name, v in ints.items()}
         r64 = {name: torch.tensor(list(v), dtype=torch.float64) for name, v in reals.items()}
-        self.reals = {torch.float64: r64, torch.float32: {k: v.to(torch.float32) for k, v in r64.items()}}
+        self._link({name: torch.tensor(list(v), dtype=torch.int32) for name, v in ints.items()},
+                   {torch.float64: r64, torch.float32: {k: v.to(torch.float32) for k, v in r64.items()}},
+                   {"J": J, "K": K, "n": topo.n_vars, "has_base": int(seg.base is not None)})
+
+    def _link(self, ints: dict, reals: dict, head: dict) -> None:
+        """Keep the arrays and fill an :class:`Args` per dtype with their addresses."""
+        self.ints, self.reals, self.head = ints, reals, head
         self.args = {dtype: _filled(Args(), version=ABI_VERSION, size=ctypes.sizeof(Args),
-                                    real_bytes=dtype.itemsize, J=J, K=K, n=topo.n_vars,
-                                    has_base=int(seg.base is not None), **self.ints, **self.reals[dtype])
-                     for dtype in self.reals}
-        self.n_ends, self.n_vars = K, topo.n_vars
+                                    real_bytes=dtype.itemsize, **head, **ints, **reals[dtype])
+                     for dtype in reals}
+        self.n_ends, self.n_vars = head["K"], head["n"]
+
+    def __reduce__(self):  # copies and pickles carry the arrays; the addresses are made anew
+        return _relinked, (self.ints, self.reals, self.head)
 
     def call(self, dtype: torch.dtype, **fields) -> Args:
         """A copy of this chain's :class:`Args` for ``dtype`` with one call's ``fields`` set."""
         return _filled(Args.from_buffer_copy(self.args[dtype]), **fields)
+
+
+def _relinked(ints: dict, reals: dict, head: dict) -> NativeModel:
+    model = NativeModel.__new__(NativeModel)
+    model._link(ints, reals, head)
+    return model
 
 
 def _filled(args: Args, **fields) -> Args:
