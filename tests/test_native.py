@@ -4,9 +4,11 @@ non-finite input, far angles, the fallback and the build."""
 
 from __future__ import annotations
 
+import ctypes
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import pytest
@@ -108,6 +110,23 @@ def test_empty_batch_and_far_angles():
         T_ref, J_ref = _reference(chain, q)
         torch.testing.assert_close(chain.forward_kinematics(q), T_ref, atol=1e-12, rtol=0)
         torch.testing.assert_close(chain.fk_jacobian(q)[1], J_ref, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("scale", [3.0, 5e3, 2e4])  # float reduction; |q| >= 1e4: the double one
+def test_float_sin_cos_near_and_far(scale):
+    """The float FK's own sin/cos (8 lanes) against the torch float32 kernels, and against float64: no
+    worse than torch's float32 error."""
+    chain, c64 = models.load("panda", dtype=torch.float32), models.load("panda", dtype=torch.float64)
+    gen = torch.Generator().manual_seed(13)
+    q = ((torch.rand(3000, 7, generator=gen) * 2 - 1) * scale).float()
+    with torch.no_grad():
+        T, J = chain.fk_jacobian(q)
+        with native.disabled():
+            T_ref, J_ref = chain.fk_jacobian(q)
+        T64 = c64.forward_kinematics(q.double())
+    torch.testing.assert_close(T, T_ref, atol=5e-6, rtol=0)
+    torch.testing.assert_close(J, J_ref, atol=5e-6, rtol=0)
+    assert (T.double() - T64).abs().max() <= 2 * (T_ref.double() - T64).abs().max()
 
 
 def test_non_finite_q_raises_or_stays_in_its_row():
@@ -295,3 +314,80 @@ def test_rounds_run_ahead_give_the_torch_solve(kind, position_only, batch):
     assert torch.equal(fused.iterations, ref.iterations) and torch.equal(fused.seeds_tried, ref.seeds_tried)
     assert torch.equal(fused.success, ref.success) and bool(ref.success.all())
     torch.testing.assert_close(fused.q, ref.q, atol=1e-8, rtol=0)
+
+
+# ------------------------------------------------------------------------------ the versioned interface
+def _args_like(fields):
+    return type("MismatchedArgs", (ctypes.Structure,), {"_fields_": fields})
+
+
+def test_the_library_speaks_this_modules_interface():
+    native.check_abi(native._lib)  # the loaded library: version, size and every offset
+    fields = list(native.Args._fields_)
+    with pytest.raises(native.AbiMismatch, match="version 1 .library. vs 2"):
+        native.check_abi(native._lib, version=native.ABI_VERSION + 1)
+    with pytest.raises(native.AbiMismatch, match="size"):  # a field missing
+        native.check_abi(native._lib, _args_like(fields[:-1]))
+    swapped = [fields[5], fields[4], *fields[6:]]  # "J" and "K" swapped: same size, other offsets
+    with pytest.raises(native.AbiMismatch, match="names or offsets"):
+        native.check_abi(native._lib, _args_like([*fields[:4], *swapped]))
+
+
+def test_the_kernel_refuses_a_struct_of_another_version_or_size():
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(11))
+    with torch.no_grad():
+        packed = chain._native_model(q)
+    T = torch.zeros(3, 1, 4, 4, dtype=torch.float64)
+    for wrong in ({"version": native.ABI_VERSION + 1}, {"size": ctypes.sizeof(native.Args) - 8},
+                  {"real_bytes": 2}):
+        args = packed.call(torch.float64, batch=3, q=q, T=T, jac=None, nthreads=1, **wrong)
+        assert native._lib.dk_fk(ctypes.byref(args)) == native._ABI_ERROR
+        assert native._lib.dk_lm(ctypes.byref(args)) == native._ABI_ERROR
+        assert not T.any()  # nothing written
+    args = packed.call(torch.float64, batch=3, q=q, T=T, jac=None, nthreads=1)
+    assert native._lib.dk_fk(ctypes.byref(args)) == 0
+    with native.disabled(), torch.no_grad():
+        torch.testing.assert_close(T[:, 0], chain.forward_kinematics(q), atol=1e-12, rtol=0)
+
+
+def test_a_mismatched_library_is_rebuilt_then_refused_with_one_warning(monkeypatch, tmp_path):
+    """native.py speaking another version than the C file: the library is compiled, refused, compiled again
+    once, refused; one warning, and the torch kernels serve the calls."""
+    monkeypatch.setenv("DIFFKIN_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(native, "ABI_VERSION", native.ABI_VERSION + 1)
+    monkeypatch.setattr(native, "_lib", None)
+    monkeypatch.setattr(native, "_tried", False)
+    monkeypatch.setattr(native, "_OPTIONAL", native._OPTIONAL[:1])
+    compiles = []
+    real_compile = native._compile
+    monkeypatch.setattr(native, "_compile", lambda flags: compiles.append(flags) or real_compile(flags))
+    with pytest.warns(RuntimeWarning, match="torch kernels serve every call.*version 1 .library. vs 2"):
+        assert not native.available()
+    assert len(compiles) == 2  # the first load, then the one rebuild
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # said once
+        assert not native.available()
+        chain = models.load("panda", dtype=torch.float64)
+        q = chain.random_configuration((4,), generator=torch.Generator().manual_seed(12))
+        with torch.no_grad():
+            assert chain._native_model(q) is None
+            assert torch.isfinite(chain.forward_kinematics(q)).all()
+
+
+def test_a_copied_or_pickled_chain_keeps_its_native_constants():
+    import copy
+    import pickle
+
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((20,), generator=torch.Generator().manual_seed(14))
+    with torch.no_grad():
+        T = chain.forward_kinematics(q)  # the packed constants now live on the chain's Segments
+        packed = chain._native_model(q)
+        for other in (copy.deepcopy(chain), pickle.loads(pickle.dumps(chain))):
+            twin = other._native_model(q)
+            assert twin is not None and twin.args[torch.float64].pre != packed.args[torch.float64].pre
+            torch.testing.assert_close(other.forward_kinematics(q), T, atol=0, rtol=0)
+        clone = copy.deepcopy(packed)  # its own arrays, its own addresses
+        assert clone.args[torch.float64].mult == clone.reals[torch.float64]["mult"].data_ptr()
+        assert torch.equal(native.fk_jacobian(clone, q, True)[1], native.fk_jacobian(packed, q, True)[1])

@@ -10,18 +10,21 @@
  * with z_j, p_j the z axis and origin of F_parent . Pre_j . M_j. Configurations are processed in blocks of W
  * lanes; every loop over the lanes is branch-free so the compiler vectorises it, and sin/cos are evaluated by
  * a vectorisable Cody-Waite reduction and Cephes polynomials (|x| >= 1e5 falls back to libm). Blocks are
- * shared between threads with a dynamic schedule. The float kernels evaluate sin/cos in double.
+ * shared between threads with a dynamic schedule. The float FK evaluates sin/cos in float (8 lanes to an AVX2 register), the LM iteration in double.
  *
- * Model layout (built by native.py):
- *   ints:  J, K, n, then parent[J], revolute[J], qidx[J], has_pre[J], has_post[J], has_base, end_joint[K],
- *          has_end[K], ancestor[K*J]
- *   reals: mult[J], qoff[J], pre[12J], post[12J], base[12], end[12K]   (3x4 row-major blocks)
+ * The interface is one struct, dk_args (DK_ARGS_FIELDS below), mirrored field by field by native.py's
+ * ctypes.Structure: the chain's arrays (3x4 row-major blocks for the fixed transforms), the call's inputs and
+ * outputs, and its version and size. dk_abi() and dk_abi_names() export the version, sizeof and every
+ * field's name and offset so that
+ * native.py refuses a library whose layout is not its own; every entry point refuses a struct whose version
+ * or size is not this file's (DK_ABI_ERROR).
  *
  * The file includes itself once per real type (DK_REAL): the first pass holds what is type-free.
  */
 #ifndef DK_REAL
 
 #include <math.h>
+#include <stddef.h>
 #include <stdint.h>
 #include <stdlib.h>
 #include <string.h>
@@ -31,6 +34,83 @@
 
 #define W 16
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
+#define DK_ABI_VERSION 1 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
+#define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
+
+/* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
+ * passed as void pointers. J joint frames, K end links, n variables, B configurations. */
+#define DK_ARGS_FIELDS(X) \
+    X(int64_t, version, "DK_ABI_VERSION") \
+    X(int64_t, size, "sizeof(dk_args)") \
+    X(int64_t, real_bytes, "8 or 4") \
+    X(int64_t, nthreads, "threads to use for large batches (at least 1)") \
+    X(int64_t, J, "joint frames") \
+    X(int64_t, K, "end links") \
+    X(int64_t, n, "variables (columns of q)") \
+    X(int64_t, has_base, "base[] is not the identity") \
+    X(const int32_t *, parent, "[J] parent frame, -1 the base") \
+    X(const int32_t *, revolute, "[J] 1 revolute, 0 prismatic") \
+    X(const int32_t *, qidx, "[J] the variable driving the joint") \
+    X(const int32_t *, has_pre, "[J] pre[j] is not the identity") \
+    X(const int32_t *, has_post, "[J] post[j] is not the identity") \
+    X(const int32_t *, end_joint, "[K] the frame end link k hangs from, -1 the base") \
+    X(const int32_t *, has_end, "[K] end[k] is not the identity") \
+    X(const int32_t *, ancestor, "[K*J] joint j moves end link k") \
+    X(const void *, mult, "[J] reals: q_j = mult_j q[qidx_j] + qoff_j") \
+    X(const void *, qoff, "[J] reals") \
+    X(const void *, pre, "[12J] reals") \
+    X(const void *, post, "[12J] reals") \
+    X(const void *, base, "[12] reals") \
+    X(const void *, end, "[12K] reals") \
+    X(int64_t, batch, "B, or the rows m of dk_lm") \
+    X(const void *, q, "dk_fk: [B*n] reals in") \
+    X(void *, T, "dk_fk: [B*K*16] reals out") \
+    X(void *, jac, "dk_fk: [B*K*6*n] reals out, or NULL") \
+    X(int64_t, iters, "dk_lm: steps per round") \
+    X(int64_t, max_rounds, "dk_lm") \
+    X(int64_t, n_targets, "dk_lm: N") \
+    X(void *, u, "dk_lm: [n*m] reals in and out") \
+    X(void *, u_eval, "dk_lm: [n*m] reals out") \
+    X(const int64_t *, tidx, "dk_lm: [m]") \
+    X(const void *, pd, "dk_lm: [3K*N] reals") \
+    X(const void *, xd, "dk_lm: [3K*N] reals, NULL: position only") \
+    X(const void *, yd, "dk_lm: [3K*N] reals") \
+    X(const void *, zd, "dk_lm: [3K*N] reals") \
+    X(const void *, sqrt_w, "dk_lm: [rows] reals") \
+    X(const void *, jc, "dk_lm: [n] reals") \
+    X(const void *, jh, "dk_lm: [n] reals") \
+    X(const uint8_t *, bounded, "dk_lm: [n]") \
+    X(double, damping2, "dk_lm") \
+    X(double, error_damping, "dk_lm") \
+    X(double, tol_p, "dk_lm") \
+    X(double, tol_o, "dk_lm") \
+    X(double, margin, "dk_lm") \
+    X(uint8_t *, conv, "dk_lm: [m] out") \
+    X(void *, merit, "dk_lm: [m] reals out") \
+    X(void *, merit_prev, "dk_lm: [m] reals out")
+
+#define DK_DECLARE(type, name, what) type name;
+typedef struct dk_args { DK_ARGS_FIELDS(DK_DECLARE) } dk_args;
+#undef DK_DECLARE
+
+/* The field names, in order, each followed by a comma. */
+const char *dk_abi_names(void) {
+#define DK_NAME(type, name, what) #name ","
+    return DK_ARGS_FIELDS(DK_NAME);
+#undef DK_NAME
+}
+
+/* out[0] = version, out[1] = sizeof(dk_args), out[2] = number of fields, out[3 + i] = offset of field i
+ * (what fits in cap entries); returns the number of entries there are. */
+int64_t dk_abi(int64_t *out, int64_t cap) {
+#define DK_OFFSET(type, name, what) (int64_t)offsetof(dk_args, name),
+    const int64_t offs[] = {DK_ARGS_FIELDS(DK_OFFSET)};
+#undef DK_OFFSET
+    const int64_t nf = (int64_t)(sizeof offs / sizeof offs[0]);
+    const int64_t head[3] = {DK_ABI_VERSION, (int64_t)sizeof(dk_args), nf};
+    for (int64_t i = 0; i < 3 + nf && i < cap; i++) out[i] = i < 3 ? head[i] : offs[i - 3];
+    return 3 + nf;
+}
 
 static int thread_id(void) {
 #ifdef _OPENMP
@@ -45,20 +125,19 @@ typedef struct {
     const int32_t *parent, *revolute, *qidx, *has_pre, *has_post, *end_joint, *has_end, *anc;
 } Shape;
 
-static void read_shape(const int32_t *ip, Shape *s) {
-    s->J = ip[0];
-    s->K = ip[1];
-    s->n = ip[2];
-    const int32_t *p = ip + 3;
-    s->parent = p;   p += s->J;
-    s->revolute = p; p += s->J;
-    s->qidx = p;     p += s->J;
-    s->has_pre = p;  p += s->J;
-    s->has_post = p; p += s->J;
-    s->has_base = *p++;
-    s->end_joint = p; p += s->K;
-    s->has_end = p;   p += s->K;
-    s->anc = p;
+static void read_shape(const dk_args *a, Shape *s) {
+    s->J = (int)a->J;
+    s->K = (int)a->K;
+    s->n = (int)a->n;
+    s->has_base = (int)a->has_base;
+    s->parent = a->parent;
+    s->revolute = a->revolute;
+    s->qidx = a->qidx;
+    s->has_pre = a->has_pre;
+    s->has_post = a->has_post;
+    s->end_joint = a->end_joint;
+    s->has_end = a->has_end;
+    s->anc = a->ancestor;
 }
 
 /* sin and cos of W lanes of double, vectorisable. */
@@ -72,9 +151,14 @@ static void sincos_lanes(const double *x, double *s, double *c) {
         for (int l = 0; l < W; l++) { s[l] = sin(x[l]); c[l] = cos(x[l]); }
         return;
     }
+    /* k = round(x 2/pi) by the 1.5 2^52 shift, whose low mantissa bits are then k mod 4 (the quadrant): no
+     * nearbyint/floor and no double -> int64 conversion, which AVX2 lacks and which kept the loop scalar */
+    const double shift = 6755399441055744.0;
 #pragma omp simd
     for (int l = 0; l < W; l++) {
-        double k = nearbyint(x[l] * two_over_pi);
+        const double t = x[l] * two_over_pi + shift, k = t - shift;
+        uint64_t q;
+        memcpy(&q, &t, sizeof q);
         double r = ((x[l] - k * P1) - k * P2) - k * P3;
         double z = r * r;
         double sp = r + r * z * (-1.66666666666666307295e-1 + z * (8.33333333332211858878e-3 +
@@ -83,167 +167,352 @@ static void sincos_lanes(const double *x, double *s, double *c) {
         double cp = 1.0 - 0.5 * z + z * z * (4.16666666666665929218e-2 + z * (-1.38888888888730564116e-3 +
                     z * (2.48015872888517045348e-5 + z * (-2.75573141792967388112e-7 +
                     z * (2.08757008419747316778e-9 + z * -1.13585365213876817300e-11)))));
-        long q = (long)k & 3;
-        double sv = (q & 1) ? cp : sp;
-        double cv = (q & 1) ? sp : cp;
+        const double sv = (q & 1) ? cp : sp, cv = (q & 1) ? sp : cp;
         s[l] = (q & 2) ? -sv : sv;
         c[l] = ((q + 1) & 2) ? -cv : cv;
     }
 }
 
+/* sin and cos of W lanes of float, vectorisable, 8 lanes to an AVX2 register where the double version has
+ * 4: the same reduction in float (pi/2 in three parts, k x P1 exact for |k| < 2^16) and Cephes' sinf/cosf
+ * polynomials on [-pi/4, pi/4] (about 1 ulp); |x| >= 1e4 (or not finite) takes the double version. */
+static void sincos_lanes_f32(const float *x, float *s, float *c) {
+    int big = 0;
+    for (int l = 0; l < W; l++) big |= !(fabsf(x[l]) < 1e4f);
+    if (big) {
+        double xd[W], sd[W], cd[W];
+        for (int l = 0; l < W; l++) xd[l] = x[l];
+        sincos_lanes(xd, sd, cd);
+        for (int l = 0; l < W; l++) { s[l] = (float)sd[l]; c[l] = (float)cd[l]; }
+        return;
+    }
+    const float shift = 12582912.0f; /* 1.5 2^23: round to an integer, k mod 4 in the low mantissa bits */
+#pragma omp simd
+    for (int l = 0; l < W; l++) {
+        const float t = x[l] * 0.636619772f + shift, k = t - shift;
+        uint32_t q;
+        memcpy(&q, &t, sizeof q);
+        const float r = ((x[l] - k * 1.5703125f) - k * 4.837512969970703125e-4f) - k * 7.54978995489188216e-8f;
+        const float z = r * r;
+        const float sp = r + r * z * ((-1.9515295891e-4f * z + 8.3321608736e-3f) * z - 1.6666654611e-1f);
+        const float cp = 1.0f - 0.5f * z + z * z * ((2.443315711809948e-5f * z - 1.388731625493765e-3f) * z +
+                                                    4.166664568298827e-2f);
+        const float sv = (q & 1) ? cp : sp, cv = (q & 1) ? sp : cp;
+        s[l] = (q & 2) ? -sv : sv;
+        c[l] = ((q + 1) & 2) ? -cv : cv;
+    }
+}
+
+enum { MOVE_NONE, MOVE_TURN, MOVE_SLIDE }; /* the motion of a joint in DK(rows) */
+
+#if defined(__AVX2__)
+#include <immintrin.h>
+/* Transposes of one register tile, for DK(store_lanes): rows of src (ss apart) become rows of dst (ds apart). */
+static inline void transpose_f32(const float *src, size_t ss, float *dst, int64_t ds) {
+    __m256 r[8], t[8], u[8];
+    for (int i = 0; i < 8; i++) r[i] = _mm256_loadu_ps(src + i * ss);
+    for (int i = 0; i < 4; i++) {
+        t[2 * i] = _mm256_unpacklo_ps(r[2 * i], r[2 * i + 1]);
+        t[2 * i + 1] = _mm256_unpackhi_ps(r[2 * i], r[2 * i + 1]);
+    }
+    for (int h = 0; h < 2; h++) /* rows 0-3, 4-7 */
+        for (int i = 0; i < 2; i++) {
+            u[4 * h + 2 * i] = _mm256_shuffle_ps(t[4 * h + i], t[4 * h + i + 2], _MM_SHUFFLE(1, 0, 1, 0));
+            u[4 * h + 2 * i + 1] = _mm256_shuffle_ps(t[4 * h + i], t[4 * h + i + 2], _MM_SHUFFLE(3, 2, 3, 2));
+        }
+    for (int i = 0; i < 4; i++) {
+        _mm256_storeu_ps(dst + i * ds, _mm256_permute2f128_ps(u[i], u[i + 4], 0x20));
+        _mm256_storeu_ps(dst + (i + 4) * ds, _mm256_permute2f128_ps(u[i], u[i + 4], 0x31));
+    }
+}
+
+static inline void transpose_f64(const double *src, size_t ss, double *dst, int64_t ds) {
+    const __m256d r0 = _mm256_loadu_pd(src), r1 = _mm256_loadu_pd(src + ss);
+    const __m256d r2 = _mm256_loadu_pd(src + 2 * ss), r3 = _mm256_loadu_pd(src + 3 * ss);
+    const __m256d t0 = _mm256_unpacklo_pd(r0, r1), t1 = _mm256_unpackhi_pd(r0, r1);
+    const __m256d t2 = _mm256_unpacklo_pd(r2, r3), t3 = _mm256_unpackhi_pd(r2, r3);
+    _mm256_storeu_pd(dst, _mm256_permute2f128_pd(t0, t2, 0x20));
+    _mm256_storeu_pd(dst + ds, _mm256_permute2f128_pd(t1, t3, 0x20));
+    _mm256_storeu_pd(dst + 2 * ds, _mm256_permute2f128_pd(t0, t2, 0x31));
+    _mm256_storeu_pd(dst + 3 * ds, _mm256_permute2f128_pd(t1, t3, 0x31));
+}
+#endif
+
 #define DK_REAL double
 #define DK(name) name##_f64
 #define DK_TINY 2.2250738585072014e-308
+#define DK_MAX 1.7976931348623157e308
+#define DK_TILE 4
+#define DK_TRANSPOSE transpose_f64
+#define DK_SINCOS sincos_lanes
 #include __FILE__
 #undef DK_REAL
 #undef DK
 #undef DK_TINY
+#undef DK_MAX
+#undef DK_TILE
+#undef DK_TRANSPOSE
+#undef DK_SINCOS
 
 #define DK_REAL float
 #define DK(name) name##_f32
 #define DK_TINY 1.17549435e-38f
+#define DK_MAX 3.40282347e38f
+#define DK_TILE 8
+#define DK_TRANSPOSE transpose_f32
+#define DK_SINCOS sincos_lanes_f32
 #include __FILE__
+
+static int abi_ok(const dk_args *a) {
+    return a && a->version == DK_ABI_VERSION && a->size == (int64_t)sizeof(dk_args) &&
+           (a->real_bytes == 8 || a->real_bytes == 4);
+}
+
+/* T (B, K, 4, 4) and, when jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite
+ * entries of q (their outputs are not meaningful), -1 when memory ran out, DK_ABI_ERROR for a struct of
+ * another layout. */
+int64_t dk_fk(const dk_args *a) {
+    if (!abi_ok(a)) return DK_ABI_ERROR;
+    return a->real_bytes == 8 ? dk_fk_f64(a) : dk_fk_f32(a);
+}
+
+/* The Levenberg-Marquardt rounds of dk_lm_f64 / dk_lm_f32 (see there); returns the number of rounds run, -1
+ * when memory ran out, DK_ABI_ERROR for a struct of another layout. */
+int64_t dk_lm(const dk_args *a) {
+    if (!abi_ok(a)) return DK_ABI_ERROR;
+    return a->real_bytes == 8 ? dk_lm_f64(a) : dk_lm_f32(a);
+}
 
 #else /* ------------------------------------------------------------------- one pass per real type */
 
 #define real DK_REAL
 
+typedef struct { /* a constant 3x4 transform A (row-major; last row 0 0 0 1) as the lanes apply it: P . A */
+    int perm;   /* every rotation column c has at most one non-zero, a[4 col[c] + c]: one product */
+    int col[3];
+    real a[12];
+} DK(Fix);
+
 typedef struct {
-    const real *mult, *qoff, *pre, *post, *base, *endT;
+    const real *mult, *qoff, *base;
+    DK(Fix) *fix; /* Pre_j (j < J), Post_j (J + j), E_k (2J + k); NULL arrays are the identity */
+    uint8_t *first; /* [K*J] joint j is the first in the loop to reach its column of end k's Jacobian */
 } DK(Params);
 
 typedef struct { /* per-thread work space, all lane-major (W lanes innermost) */
-    real *F, *G, *axes, *ends, *Jb, *qlanes, *basef;
+    real *F, *A, *ends, *Jb, *qlanes, *basef;
 } DK(Scratch);
 
-static void DK(read_params)(const Shape *s, const real *rp, DK(Params) *pp) {
-    pp->mult = rp;
-    pp->qoff = rp + s->J;
-    pp->pre = rp + 2 * s->J;
-    pp->post = pp->pre + 12 * s->J;
-    pp->base = pp->post + 12 * s->J;
-    pp->endT = pp->base + 12;
+static void DK(plan_fix)(const real *A, DK(Fix) *f) {
+    static const real eye[12] = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0};
+    memcpy(f->a, A ? A : eye, sizeof f->a);
+    f->perm = 1;
+    for (int c = 0; c < 3; c++) {
+        int nz = 0;
+        f->col[c] = 0;
+        for (int k = 0; k < 3; k++)
+            if (f->a[4 * k + c] != 0) { nz++; f->col[c] = k; }
+        f->perm &= nz <= 1;
+    }
+}
+
+/* The parameters of a call; pp->fix is allocated (2J + K plans, then first[]), the caller frees it. */
+static int DK(read_params)(const dk_args *a, const Shape *s, DK(Params) *pp) {
+    const real *pre = (const real *)a->pre, *post = (const real *)a->post, *end = (const real *)a->end;
+    pp->mult = (const real *)a->mult;
+    pp->qoff = (const real *)a->qoff;
+    pp->base = (const real *)a->base;
+    const size_t nfix = (size_t)(2 * s->J + s->K + 1);
+    pp->fix = (DK(Fix) *)malloc(sizeof(DK(Fix)) * nfix + (size_t)(s->K * s->J + s->n + 1));
+    if (!pp->fix) return -1;
+    pp->first = (uint8_t *)(pp->fix + nfix);
+    uint8_t *seen = pp->first + s->K * s->J;
+    for (int k = 0; k < s->K; k++) {
+        memset(seen, 0, (size_t)s->n);
+        for (int j = 0; j < s->J; j++) {
+            const int hit = s->anc[k * s->J + j];
+            pp->first[k * s->J + j] = (uint8_t)(hit && !seen[s->qidx[j]]);
+            seen[s->qidx[j]] |= (uint8_t)hit;
+        }
+    }
+    for (int j = 0; j < s->J; j++) {
+        DK(plan_fix)(s->has_pre[j] ? pre + 12 * j : NULL, pp->fix + j);
+        DK(plan_fix)(s->has_post[j] ? post + 12 * j : NULL, pp->fix + s->J + j);
+    }
+    for (int k = 0; k < s->K; k++) DK(plan_fix)(s->has_end[k] ? end + 12 * k : NULL, pp->fix + 2 * s->J + k);
+    return 0;
 }
 
 static size_t DK(scratch_size)(const Shape *s) {
     const size_t J = s->J, K = s->K, n = s->n;
-    return sizeof(real) * W * (J * 12 + 12 + J * 6 + K * 12 + K * 6 * n + n + 12);
+    return sizeof(real) * W * (J * 12 + J * 12 + K * 12 + K * 6 * n + n + 12);
 }
 
 static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK(Scratch) *sc) {
     const size_t J = s->J, K = s->K, n = s->n;
     sc->F = buf;
-    sc->G = sc->F + J * 12 * W;
-    sc->axes = sc->G + 12 * W;
-    sc->ends = sc->axes + J * 6 * W;
+    sc->A = sc->F + J * 12 * W;
+    sc->ends = sc->A + J * 12 * W;
     sc->Jb = sc->ends + K * 12 * W;
     sc->qlanes = sc->Jb + K * 6 * n * W;
     sc->basef = sc->qlanes + n * W;
+    memset(sc->Jb, 0, sizeof(real) * K * 6 * n * W); /* columns no joint reaches stay 0 (DK(column)) */
     for (int e = 0; e < 12; e++)
         for (int l = 0; l < W; l++)
             sc->basef[e * W + l] = s->has_base ? pp->base[e] : (real)((e % 5) == 0); /* identity: 0, 5, 10 */
 }
 
-/* out = P . A for frames P (12 x W lanes) and a constant 3x4 A (zeros skipped; last row 0 0 0 1). */
-static void DK(mulfix)(const real *P, const real *A, real *out) {
+/* out = P . A . M for frames P (12 x W lanes), a constant A (f) and the joint motion M: a turn about z by
+ * (cs, sn) per lane, a slide along z by cs per lane, or none. One pass over the lanes per row: the
+ * product and the motion never leave the registers. perm and move are constants where this is inlined. */
+static inline __attribute__((always_inline)) void DK(rows)(const real *restrict P, const DK(Fix) *f,
+                                                           const int perm, const int move,
+                                                           const real *restrict cs,
+                                                           const real *restrict sn, real *restrict out) {
+    const real *a = f->a;
+    const real a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5], a6 = a[6], a7 = a[7];
+    const real a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
+    const real sx = a[4 * f->col[0]], sy = a[4 * f->col[1] + 1], sz = a[4 * f->col[2] + 2];
     for (int r = 0; r < 3; r++) {
-        const real *Pr = P + 4 * r * W;
-        real *Or = out + 4 * r * W;
-        for (int col = 0; col < 4; col++) {
-            real acc[W];
-            if (col == 3) memcpy(acc, Pr + 3 * W, sizeof acc); else memset(acc, 0, sizeof acc);
-            for (int k = 0; k < 3; k++) {
-                const real a = A[4 * k + col];
-                if (a == (real)0) continue;
-                const real *Pk = Pr + k * W;
+        const real *restrict P0 = P + 4 * r * W, *restrict P1 = P0 + W, *restrict P2 = P1 + W;
+        const real *restrict Pp = P2 + W;
+        const real *restrict Cx = P0 + f->col[0] * W, *restrict Cy = P0 + f->col[1] * W;
+        const real *restrict Cz = P0 + f->col[2] * W;
+        real *restrict X = out + 4 * r * W, *restrict Y = X + W, *restrict Z = Y + W, *restrict Q = Z + W;
 #pragma omp simd
-                for (int l = 0; l < W; l++) acc[l] += Pk[l] * a;
+        for (int l = 0; l < W; l++) {
+            real x, y, z;
+            if (perm) {
+                x = Cx[l] * sx;
+                y = Cy[l] * sy;
+                z = Cz[l] * sz;
+            } else {
+                x = P0[l] * a0 + P1[l] * a4 + P2[l] * a8;
+                y = P0[l] * a1 + P1[l] * a5 + P2[l] * a9;
+                z = P0[l] * a2 + P1[l] * a6 + P2[l] * a10;
             }
-            memcpy(Or + col * W, acc, sizeof acc);
+            const real p = Pp[l] + P0[l] * a3 + P1[l] * a7 + P2[l] * a11;
+            if (move == MOVE_TURN) {
+                const real c = cs[l], sv = sn[l];
+                X[l] = c * x + sv * y;
+                Y[l] = c * y - sv * x;
+            } else {
+                X[l] = x;
+                Y[l] = y;
+            }
+            Z[l] = z;
+            Q[l] = move == MOVE_SLIDE ? p + cs[l] * z : p;
+        }
+    }
+}
+
+static void DK(apply)(const real *P, const DK(Fix) *f, int move, const real *cs, const real *sn, real *out) {
+    if (f->perm) {
+        if (move == MOVE_TURN) DK(rows)(P, f, 1, MOVE_TURN, cs, sn, out);
+        else if (move == MOVE_SLIDE) DK(rows)(P, f, 1, MOVE_SLIDE, cs, sn, out);
+        else DK(rows)(P, f, 1, MOVE_NONE, cs, sn, out);
+    } else {
+        if (move == MOVE_TURN) DK(rows)(P, f, 0, MOVE_TURN, cs, sn, out);
+        else if (move == MOVE_SLIDE) DK(rows)(P, f, 0, MOVE_SLIDE, cs, sn, out);
+        else DK(rows)(P, f, 0, MOVE_NONE, cs, sn, out);
+    }
+}
+
+/* Jacobian column (3.30) of the joint whose motion axis is in frame A (its z and origin, 12 x W lanes) for
+ * the end frame E: m [z x (p_e - p); z] (turn) or m [z; 0] (slide), into rows col + r step, r = 0 .. 5;
+ * the first joint to reach a column writes it (no clearing per block), the others (mimic joints) add. turn
+ * and first are constants where this is inlined. */
+static inline __attribute__((always_inline)) void DK(column)(const real *restrict A, const real *restrict E,
+                                                             const real m, const int turn, const int first,
+                                                             real *restrict col, const size_t step) {
+    const real *restrict z0 = A + 2 * W, *restrict z1 = A + 6 * W, *restrict z2 = A + 10 * W;
+    const real *restrict p0 = A + 3 * W, *restrict p1 = A + 7 * W, *restrict p2 = A + 11 * W;
+    const real *restrict e0 = E + 3 * W, *restrict e1 = E + 7 * W, *restrict e2 = E + 11 * W;
+    real *restrict c0 = col, *restrict c1 = c0 + step, *restrict c2 = c1 + step, *restrict c3 = c2 + step;
+    real *restrict c4 = c3 + step, *restrict c5 = c4 + step;
+#pragma omp simd
+    for (int l = 0; l < W; l++) {
+        real v0, v1, v2, v3, v4, v5;
+        if (turn) {
+            const real d0 = e0[l] - p0[l], d1 = e1[l] - p1[l], d2 = e2[l] - p2[l];
+            v0 = m * (z1[l] * d2 - z2[l] * d1);
+            v1 = m * (z2[l] * d0 - z0[l] * d2);
+            v2 = m * (z0[l] * d1 - z1[l] * d0);
+            v3 = m * z0[l];
+            v4 = m * z1[l];
+            v5 = m * z2[l];
+        } else {
+            v0 = m * z0[l];
+            v1 = m * z1[l];
+            v2 = m * z2[l];
+            v3 = v4 = v5 = 0;
+        }
+        if (first) {
+            c0[l] = v0; c1[l] = v1; c2[l] = v2; c3[l] = v3; c4[l] = v4; c5[l] = v5;
+        } else {
+            c0[l] += v0; c1[l] += v1; c2[l] += v2; c3[l] += v3; c4[l] += v4; c5[l] += v5;
         }
     }
 }
 
 /* The end frames (sc->ends, K x 12 x W) and, if jac, their Jacobians (sc->Jb, K x 6n x W) of the
- * configurations in sc->qlanes (n x W). */
+ * configurations in sc->qlanes (n x W). The motion axis of joint j (its z and origin, before Post) is read
+ * from F_j, or from A_j where the joint has a Post. */
 static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
     const int J = s->J, K = s->K, n = s->n;
-    real *F = sc->F, *G = sc->G, *axes = sc->axes;
+    real *F = sc->F;
     for (int j = 0; j < J; j++) {
         const real *P = s->parent[j] < 0 ? sc->basef : F + (size_t)s->parent[j] * 12 * W;
-        if (s->has_pre[j]) DK(mulfix)(P, pp->pre + 12 * j, G);
-        else memcpy(G, P, sizeof(real) * 12 * W);
         const real m = pp->mult[j], b = pp->qoff[j];
         const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
-        if (s->revolute[j]) {
-            double ang[W], sn[W], cs[W];
-            for (int l = 0; l < W; l++) ang[l] = (double)(qj[l] * m + b);
-            sincos_lanes(ang, sn, cs);
-            for (int r = 0; r < 3; r++) {
-                real *restrict x = G + 4 * r * W, *restrict y = x + W;
-#pragma omp simd
-                for (int l = 0; l < W; l++) {
-                    const real c = (real)cs[l], sv = (real)sn[l];
-                    const real xn = c * x[l] + sv * y[l];
-                    y[l] = c * y[l] - sv * x[l];
-                    x[l] = xn;
-                }
-            }
-        } else {
-            for (int r = 0; r < 3; r++) {
-                real *restrict z = G + (4 * r + 2) * W, *restrict p = G + (4 * r + 3) * W;
-#pragma omp simd
-                for (int l = 0; l < W; l++) p[l] += (qj[l] * m + b) * z[l];
-            }
-        }
-        if (jac) /* the motion axis z and a point p on it, before Post */
-            for (int r = 0; r < 3; r++) {
-                memcpy(axes + ((size_t)j * 6 + r) * W, G + (4 * r + 2) * W, sizeof(real) * W);
-                memcpy(axes + ((size_t)j * 6 + 3 + r) * W, G + (4 * r + 3) * W, sizeof(real) * W);
-            }
-        real *Fj = F + (size_t)j * 12 * W;
-        if (s->has_post[j]) DK(mulfix)(G, pp->post + 12 * j, Fj);
-        else memcpy(Fj, G, sizeof(real) * 12 * W);
+        real ang[W], sn[W], cs[W];
+        for (int l = 0; l < W; l++) ang[l] = qj[l] * m + b;
+        if (s->revolute[j]) DK_SINCOS(ang, sn, cs);
+        real *Fj = F + (size_t)j * 12 * W, *out = s->has_post[j] ? sc->A + (size_t)j * 12 * W : Fj;
+        DK(apply)(P, pp->fix + j, s->revolute[j] ? MOVE_TURN : MOVE_SLIDE, s->revolute[j] ? cs : ang, sn, out);
+        if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj);
     }
     for (int k = 0; k < K; k++) {
         const int e = s->end_joint[k];
         const real *P = e < 0 ? sc->basef : F + (size_t)e * 12 * W;
         real *E = sc->ends + (size_t)k * 12 * W;
-        if (s->has_end[k]) DK(mulfix)(P, pp->endT + 12 * k, E);
+        if (s->has_end[k]) DK(apply)(P, pp->fix + 2 * J + k, MOVE_NONE, NULL, NULL, E);
         else memcpy(E, P, sizeof(real) * 12 * W);
         if (!jac) continue;
-        const real *restrict e0 = E + 3 * W, *restrict e1 = E + 7 * W, *restrict e2 = E + 11 * W;
         real *Jb = sc->Jb + (size_t)k * 6 * n * W;
-        memset(Jb, 0, sizeof(real) * 6 * (size_t)n * W);
         for (int j = 0; j < J; j++) {
             if (!s->anc[k * J + j]) continue;
-            const real *restrict z0 = axes + (size_t)j * 6 * W, *restrict z1 = z0 + W, *restrict z2 = z1 + W;
-            const real *restrict p0 = z2 + W, *restrict p1 = p0 + W, *restrict p2 = p1 + W;
+            const real *Aj = (s->has_post[j] ? sc->A : F) + (size_t)j * 12 * W;
+            real *col = Jb + (size_t)s->qidx[j] * W;
             const real m = pp->mult[j];
-            const int i = s->qidx[j];
-            real *restrict c0 = Jb + (size_t)(0 * n + i) * W, *restrict c1 = Jb + (size_t)(1 * n + i) * W,
-                 *restrict c2 = Jb + (size_t)(2 * n + i) * W, *restrict c3 = Jb + (size_t)(3 * n + i) * W,
-                 *restrict c4 = Jb + (size_t)(4 * n + i) * W, *restrict c5 = Jb + (size_t)(5 * n + i) * W;
+            const int first = pp->first[k * J + j];
             if (s->revolute[j]) {
-#pragma omp simd
-                for (int l = 0; l < W; l++) {
-                    const real d0 = e0[l] - p0[l], d1 = e1[l] - p1[l], d2 = e2[l] - p2[l];
-                    c0[l] += m * (z1[l] * d2 - z2[l] * d1);
-                    c1[l] += m * (z2[l] * d0 - z0[l] * d2);
-                    c2[l] += m * (z0[l] * d1 - z1[l] * d0);
-                    c3[l] += m * z0[l];
-                    c4[l] += m * z1[l];
-                    c5[l] += m * z2[l];
-                }
+                if (first) DK(column)(Aj, E, m, 1, 1, col, (size_t)n * W);
+                else DK(column)(Aj, E, m, 1, 0, col, (size_t)n * W);
             } else {
-#pragma omp simd
-                for (int l = 0; l < W; l++) {
-                    c0[l] += m * z0[l];
-                    c1[l] += m * z1[l];
-                    c2[l] += m * z2[l];
-                }
+                if (first) DK(column)(Aj, E, m, 0, 1, col, (size_t)n * W);
+                else DK(column)(Aj, E, m, 0, 0, col, (size_t)n * W);
             }
         }
+    }
+}
+
+/* Row l < nl of out (rows stride apart) gets lane l of the rows x W lanes of src: the transpose into the
+ * caller's batch-first layout. */
+static void DK(store_lanes)(const real *restrict src, int rows, int nl, real *restrict out, int64_t stride) {
+    int r0 = 0;
+#if defined(__AVX2__)
+    if (nl == W) /* full blocks: DK_TILE x DK_TILE register tiles, the rows left over one by one */
+        for (; r0 + DK_TILE <= rows; r0 += DK_TILE)
+            for (int l = 0; l < W; l += DK_TILE) DK_TRANSPOSE(src + r0 * W + l, W, out + l * stride + r0, stride);
+#endif
+    src += r0 * W;
+    out += r0;
+    rows -= r0;
+    for (int l = 0; l < nl; l++) {
+        const real *restrict in = src + l;
+        real *restrict o = out + l * stride;
+        for (int r = 0; r < rows; r++) o[r] = in[r * W];
     }
 }
 
@@ -251,12 +520,25 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
  * number of non-finite entries. */
 static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_t b0, int nl) {
     const int n = s->n;
-    int64_t bad = 0;
-    for (int l = 0; l < W; l++) {
-        const real *qr = q + (b0 + (l < nl ? l : nl - 1)) * n;
+    real *restrict ql = sc->qlanes;
+    if (nl == W) { /* a full block: constant trip counts, vector stores and a vector count */
+        real flags[W] = {0};
         for (int i = 0; i < n; i++) {
-            sc->qlanes[i * W + l] = qr[i];
-            if (l < nl && !isfinite(qr[i])) bad++;
+            real *restrict qi = ql + i * W;
+            for (int l = 0; l < W; l++) qi[l] = q[(b0 + l) * n + i];
+#pragma omp simd
+            for (int l = 0; l < W; l++) flags[l] += fabs(qi[l]) <= DK_MAX ? 0 : 1; /* NaN or inf */
+        }
+        int64_t bad = 0;
+        for (int l = 0; l < W; l++) bad += (int64_t)flags[l];
+        return bad;
+    }
+    int64_t bad = 0;
+    for (int l = 0; l < W; l++) { /* the tail repeats the last row */
+        const real *restrict qr = q + (b0 + (l < nl ? l : nl - 1)) * n;
+        for (int i = 0; i < n; i++) {
+            ql[i * W + l] = qr[i];
+            bad += l < nl && !isfinite(qr[i]);
         }
     }
     return bad;
@@ -264,19 +546,22 @@ static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_
 
 /* T (B, K, 4, 4) and, when Jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite
  * entries of q (their outputs are not meaningful), or -1 when memory ran out. */
-int64_t DK(dk_fk)(const int32_t *ip, const real *rp, const real *q, int64_t B, real *T, real *Jac,
-                  int nthreads) {
+static int64_t DK(dk_fk)(const dk_args *a) {
     Shape s;
-    read_shape(ip, &s);
+    read_shape(a, &s);
     DK(Params) pp;
-    DK(read_params)(&s, rp, &pp);
+    if (DK(read_params)(a, &s, &pp)) return -1;
+    const real *q = (const real *)a->q;
+    real *T = (real *)a->T, *Jac = (real *)a->jac;
+    const int64_t B = a->batch;
+    int nthreads = (int)a->nthreads;
     const int K = s.K, n = s.n;
     const int64_t nblocks = (B + W - 1) / W;
     int64_t bad = 0;
     if (nthreads < 1 || B <= SERIAL_MAX) nthreads = 1;
     const size_t per = DK(scratch_size)(&s) / sizeof(real);
     real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads); /* before the team: no thread can fail */
-    if (!all) return -1;
+    if (!all) { free(pp.fix); return -1; }
 #pragma omp parallel num_threads(nthreads) reduction(+ : bad) if (nthreads > 1)
     {
         DK(Scratch) sc;
@@ -289,21 +574,19 @@ int64_t DK(dk_fk)(const int32_t *ip, const real *rp, const real *q, int64_t B, r
             DK(block)(&s, &pp, &sc, Jac != NULL);
             for (int k = 0; k < K; k++) {
                 const real *E = sc.ends + (size_t)k * 12 * W;
+                DK(store_lanes)(E, 12, nl, T + (b0 * K + k) * 16, (int64_t)K * 16);
                 for (int l = 0; l < nl; l++) {
                     real *To = T + ((b0 + l) * K + k) * 16;
-                    for (int r = 0; r < 12; r++) To[r] = E[r * W + l];
                     To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
                 }
-                if (!Jac) continue;
-                const real *Jb = sc.Jb + (size_t)k * 6 * n * W;
-                for (int l = 0; l < nl; l++) {
-                    real *Jo = Jac + ((b0 + l) * K + k) * 6 * (int64_t)n;
-                    for (int r = 0; r < 6 * n; r++) Jo[r] = Jb[(size_t)r * W + l];
-                }
+                if (Jac)
+                    DK(store_lanes)(sc.Jb + (size_t)k * 6 * n * W, 6 * n, nl,
+                                    Jac + (b0 * K + k) * 6 * (int64_t)n, (int64_t)K * 6 * n);
             }
         }
     }
     free(all);
+    free(pp.fix);
     return bad;
 }
 
@@ -344,15 +627,23 @@ static void DK(spd_solve)(real *A, real *b, int d) {
  * last evaluation, merit_prev the merit of the round before the last (when more than one ran). Rounds stop
  * early after one in which a row converged (the caller schedules then). Targets pd, xd, yd, zd are (3K, N);
  * row b aims at target tidx[b]. Returns the number of rounds run, or -1 when memory ran out. */
-int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, int max_rounds, real *u,
-                  real *u_eval, const int64_t *tidx, int64_t N, const real *pd, const real *xd, const real *yd,
-                  const real *zd, const real *sqrt_w, const real *jc, const real *jh, const uint8_t *bounded,
-                  real damping2, real error_damping, real tp, real to, real margin, uint8_t *conv, real *merit,
-                  real *merit_prev, int nthreads) {
+static int64_t DK(dk_lm)(const dk_args *a) {
     Shape s;
-    read_shape(ip, &s);
+    read_shape(a, &s);
     DK(Params) pp;
-    DK(read_params)(&s, rp, &pp);
+    if (DK(read_params)(a, &s, &pp)) return -1;
+    const int64_t m = a->batch, N = a->n_targets, *tidx = a->tidx;
+    const int iters = (int)a->iters, max_rounds = (int)a->max_rounds;
+    real *u = (real *)a->u, *u_eval = (real *)a->u_eval, *merit = (real *)a->merit;
+    real *merit_prev = (real *)a->merit_prev;
+    const real *pd = (const real *)a->pd, *xd = (const real *)a->xd, *yd = (const real *)a->yd;
+    const real *zd = (const real *)a->zd, *sqrt_w = (const real *)a->sqrt_w, *jc = (const real *)a->jc;
+    const real *jh = (const real *)a->jh;
+    const uint8_t *bounded = a->bounded;
+    uint8_t *conv = a->conv;
+    const real damping2 = (real)a->damping2, error_damping = (real)a->error_damping, tp = (real)a->tol_p;
+    const real to = (real)a->tol_o, margin = (real)a->margin;
+    int nthreads = (int)a->nthreads;
     const int K = s.K, n = s.n, pos_only = xd == NULL, r = (pos_only ? 3 : 6) * K;
     const int d = r <= n ? r : n;
     const int64_t nblocks = (m + W - 1) / W;
@@ -360,7 +651,7 @@ int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, int m
     const size_t base = DK(scratch_size)(&s) / sizeof(real);
     const size_t per = base + (size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n;
     real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads); /* before the team: no thread can fail */
-    if (!all) return -1;
+    if (!all) { free(pp.fix); return -1; }
     int64_t rounds = 0;
     int stop = 0;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
@@ -500,6 +791,7 @@ int64_t DK(dk_lm)(const int32_t *ip, const real *rp, int64_t m, int iters, int m
         }
     }
     free(all);
+    free(pp.fix);
     return rounds;
 }
 

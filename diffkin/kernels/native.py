@@ -13,6 +13,12 @@ flags and CPU; ``python -m diffkin.kernels`` builds it ahead of time (``make`` d
 where. Without a compiler, or with ``DIFFKIN_NATIVE=0`` in the environment, :func:`available` is False and
 every caller keeps the torch kernels: results are the same to rounding.
 
+Interface: one struct, ``dk_args`` in ``_native.c``, mirrored by :class:`Args` (a ``ctypes.Structure``) and
+passed by pointer to the entry points ``dk_fk`` and ``dk_lm``. It carries a version (:data:`ABI_VERSION`)
+and its size; on loading, the library's ``dk_abi`` reports its version, ``sizeof`` and field offsets, and a
+library that does not match :class:`Args` is rebuilt once, then refused: a one-time warning, and the torch
+kernels serve every call.
+
 Thread policy: batches of at most 512 configurations run on the calling thread. Larger ones use
 ``torch.get_num_threads()`` threads, but never more than the cores that are free right now: the count of
 runnable tasks in ``/proc/loadavg`` (read at most every 0.1 s) minus this call's own thread is taken off
@@ -45,7 +51,8 @@ from torch import Tensor
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
-           "native_model", "fk_jacobian", "LMProblem", "lm_steps", "status", "NativeBuildWarning"]
+           "native_model", "fk_jacobian", "LMProblem", "lm_steps", "status", "NativeBuildWarning", "Args",
+           "ABI_VERSION", "AbiMismatch"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
@@ -70,6 +77,79 @@ def _announce(text: str) -> None:
         warnings.warn(f"diffkin: {text}", NativeBuildWarning, stacklevel=2)
 
 
+#: the version of the C interface this module speaks (DK_ABI_VERSION in _native.c)
+ABI_VERSION = 1
+_ABI_ERROR = -2  # DK_ABI_ERROR: the library refused the struct
+_I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+
+
+class Args(ctypes.Structure):
+    """``dk_args`` of ``_native.c`` (``DK_ARGS_FIELDS``, where each field is described), field by field:
+    the chain's arrays, one call's inputs and outputs, the version and the size."""
+
+    _fields_ = [(name, _I64) for name in ("version", "size", "real_bytes", "nthreads", "J", "K", "n",
+                                          "has_base")] + \
+        [(name, _PTR) for name in ("parent", "revolute", "qidx", "has_pre", "has_post", "end_joint",
+                                   "has_end", "ancestor", "mult", "qoff", "pre", "post", "base", "end")] + \
+        [("batch", _I64), ("q", _PTR), ("T", _PTR), ("jac", _PTR), ("iters", _I64), ("max_rounds", _I64),
+         ("n_targets", _I64)] + \
+        [(name, _PTR) for name in ("u", "u_eval", "tidx", "pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh",
+                                   "bounded")] + \
+        [(name, _F64) for name in ("damping2", "error_damping", "tol_p", "tol_o", "margin")] + \
+        [(name, _PTR) for name in ("conv", "merit", "merit_prev")]
+
+
+def _dlclose(handle: int) -> None:
+    import _ctypes
+
+    getattr(_ctypes, "dlclose", lambda h: None)(handle)
+
+
+class AbiMismatch(RuntimeError):
+    """The library's ``dk_args`` is not :class:`Args` (another version, size or layout)."""
+
+
+def check_abi(lib: ctypes.CDLL, args_type: type[ctypes.Structure] | None = None,
+              version: int | None = None) -> None:
+    """Raise :class:`AbiMismatch` unless the library's exported version, ``sizeof(dk_args)``, field names
+    and offsets are those of ``args_type`` (default :class:`Args`) and ``version`` (default
+    :data:`ABI_VERSION`)."""
+    args_type = Args if args_type is None else args_type
+    version = ABI_VERSION if version is None else version
+    fn, names = lib.dk_abi, lib.dk_abi_names
+    fn.restype, fn.argtypes, names.restype, names.argtypes = _I64, [_PTR, _I64], ctypes.c_char_p, []
+    count = fn(None, 0)
+    out = (_I64 * count)()
+    fn(out, count)
+    theirs = {"version": out[0], "size": out[1],
+              "offsets": list(zip(names().decode().split(",")[:-1], out[3:]))}
+    ours = {"version": version, "size": ctypes.sizeof(args_type),
+            "offsets": [(name, getattr(args_type, name).offset) for name, *_ in args_type._fields_]}
+    if theirs != ours:
+        diff = ", ".join(f"{k} {theirs[k]} (library) vs {ours[k]} (native.py)" for k in ours
+                         if theirs[k] != ours[k] and k != "offsets")
+        raise AbiMismatch(f"the native library's dk_args does not match native.Args: "
+                          f"{diff or 'the field names or offsets differ'}")
+
+
+def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
+    """Load the library at ``path`` and check its interface (:func:`check_abi`); a file that fails the check
+    is compiled again once (a stale or foreign file under this name), then refused (:class:`AbiMismatch`).
+    The entry points take one pointer to :class:`Args`."""
+    lib = ctypes.CDLL(str(path))
+    try:
+        check_abi(lib)
+    except AbiMismatch:
+        _dlclose(lib._handle)  # else dlopen hands back the loaded file for the same name
+        path.unlink(missing_ok=True)
+        lib = ctypes.CDLL(str(_compile(flags)))
+        check_abi(lib)
+    for name in ("dk_fk", "dk_lm"):
+        fn = getattr(lib, name)
+        fn.restype, fn.argtypes = _I64, [ctypes.POINTER(Args)]
+    return lib
+
+
 def _cache_dir() -> Path:
     env = os.environ.get("DIFFKIN_CACHE_DIR")
     if env:
@@ -92,7 +172,8 @@ def _cpu_signature() -> str:
 def library_path(flags: tuple[str, ...] = ()) -> Path:
     """Where the library for this source, ``flags`` and CPU is cached."""
     h = hashlib.sha256()
-    for part in (_SOURCE.read_bytes(), " ".join(_FLAGS + flags).encode(), _cpu_signature().encode(),
+    for part in (_SOURCE.read_bytes(), f"abi {ABI_VERSION}".encode(), " ".join(_FLAGS + flags).encode(),
+                 _cpu_signature().encode(),
                  platform.machine().encode(), sys.platform.encode()):
         h.update(part)
     return _cache_dir() / f"diffkin_native-{h.hexdigest()[:16]}.so"
@@ -124,26 +205,21 @@ def _compile(flags: tuple[str, ...]) -> Path:
 
 def build() -> Path:
     """Compile (or find in the cache) and load the library; returns its path. Raises ``RuntimeError``
-    with the compiler's message when no flag set compiles."""
+    with the compiler's message when no flag set compiles, :class:`AbiMismatch` (one) when the library
+    built is not :class:`Args`'s (see :func:`check_abi`)."""
     global _lib, _tried, _error, _path
     with _lock:
         errors = []
         for flags in _OPTIONAL:
             try:
                 path = _compile(flags)
-                lib = ctypes.CDLL(str(path))
+                lib = _load(path, flags)
+            except AbiMismatch as e:  # this module's layout, not the flags': no other flag set will do
+                _tried, _error = True, str(e)
+                raise
             except (RuntimeError, OSError, subprocess.SubprocessError) as e:
                 errors.append(str(e))
                 continue
-            ptr, i64, cint = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
-            for suffix, real in (("f64", ctypes.c_double), ("f32", ctypes.c_float)):
-                fn = getattr(lib, f"dk_fk_{suffix}")
-                fn.restype = i64
-                fn.argtypes = [ptr, ptr, ptr, i64, ptr, ptr, cint]
-                fn = getattr(lib, f"dk_lm_{suffix}")
-                fn.restype = i64
-                fn.argtypes = [ptr, ptr, i64, cint, cint, ptr, ptr, ptr, i64, ptr, ptr, ptr, ptr, ptr, ptr,
-                               ptr, ptr, real, real, real, real, real, ptr, ptr, ptr, cint]
             _lib, _tried, _error, _path = lib, True, None, path
             return path
         _tried, _error = True, "; ".join(dict.fromkeys(errors))  # each reason once
@@ -161,6 +237,10 @@ def available() -> bool:
         return False
     try:
         build()
+    except AbiMismatch as e:  # built but not ours: said once (_tried); no compiler stays silent
+        warnings.warn(f"diffkin's native kernel is not used, the torch kernels serve every call: {e}",
+                      RuntimeWarning, stacklevel=2)
+        return False
     except RuntimeError:
         _announce(f"the fused C kernel is not in use ({_error}); the torch kernels serve every call (the "
                   "same results, slower on CPU without autograd)")
@@ -236,9 +316,10 @@ def disabled():
 
 
 class NativeModel:
-    """A chain's constants packed for the C kernel: int32 structure and float64 / float32 reals."""
+    """A chain's constants packed for the C kernel: the int32 structure and float64 / float32 reals, one
+    tensor per array field of :class:`Args`, and a filled :class:`Args` per dtype (copied per call)."""
 
-    __slots__ = ("ints", "reals", "n_ends", "n_vars")
+    __slots__ = ("ints", "reals", "head", "args", "n_ends", "n_vars")
 
     def __init__(self, topo: Topology, seg: Segments):
         J, K = topo.n_frames, len(topo.ends)
@@ -255,21 +336,45 @@ class NativeModel:
         for T in (*pre, *post, seg.base, *seg.ends):
             if T is not None and not isinstance(T, tuple):
                 raise TypeError("NativeModel needs constant plans (Segments from per_joint=True constants)")
-        ints = [J, K, topo.n_vars, *topo.parents, *map(int, topo.revolute), *topo.q_index,
-                *(int(p is not None) for p in pre), *(int(p is not None) for p in post),
-                int(seg.base is not None), *topo.ends, *(int(E is not None) for E in seg.ends),
-                *(int(a) for row in topo.ancestors for a in row)]
-        reals = [*topo.multiplier, *(b + float(o or 0.0) for b, o in zip(topo.q_offset, off))]
-        for plans in (pre, post):
-            for p in plans:
-                reals += rows(p)
-        reals += rows(seg.base)
-        for E in seg.ends:
-            reals += rows(E)
-        self.ints = torch.tensor(ints, dtype=torch.int32)
-        r64 = torch.tensor(reals, dtype=torch.float64)
-        self.reals = {torch.float64: r64, torch.float32: r64.to(torch.float32)}
-        self.n_ends, self.n_vars = K, topo.n_vars
+        ints = {"parent": topo.parents, "revolute": [int(r) for r in topo.revolute], "qidx": topo.q_index,
+                "has_pre": [int(p is not None) for p in pre], "has_post": [int(p is not None) for p in post],
+                "end_joint": topo.ends, "has_end": [int(E is not None) for E in seg.ends],
+                "ancestor": [int(a) for row in topo.ancestors for a in row]}
+        reals = {"mult": topo.multiplier, "qoff": [b + float(o or 0.0) for b, o in zip(topo.q_offset, off)],
+                 "pre": [v for p in pre for v in rows(p)], "post": [v for p in post for v in rows(p)],
+                 "base": rows(seg.base), "end": [v for E in seg.ends for v in rows(E)]}
+        r64 = {name: torch.tensor(list(v), dtype=torch.float64) for name, v in reals.items()}
+        self._link({name: torch.tensor(list(v), dtype=torch.int32) for name, v in ints.items()},
+                   {torch.float64: r64, torch.float32: {k: v.to(torch.float32) for k, v in r64.items()}},
+                   {"J": J, "K": K, "n": topo.n_vars, "has_base": int(seg.base is not None)})
+
+    def _link(self, ints: dict, reals: dict, head: dict) -> None:
+        """Keep the arrays and fill an :class:`Args` per dtype with their addresses."""
+        self.ints, self.reals, self.head = ints, reals, head
+        self.args = {dtype: _filled(Args(), version=ABI_VERSION, size=ctypes.sizeof(Args),
+                                    real_bytes=dtype.itemsize, **head, **ints, **reals[dtype])
+                     for dtype in reals}
+        self.n_ends, self.n_vars = head["K"], head["n"]
+
+    def __reduce__(self):  # copies and pickles carry the arrays; the addresses are made anew
+        return _relinked, (self.ints, self.reals, self.head)
+
+    def call(self, dtype: torch.dtype, **fields) -> Args:
+        """A copy of this chain's :class:`Args` for ``dtype`` with one call's ``fields`` set."""
+        return _filled(Args.from_buffer_copy(self.args[dtype]), **fields)
+
+
+def _relinked(ints: dict, reals: dict, head: dict) -> NativeModel:
+    model = NativeModel.__new__(NativeModel)
+    model._link(ints, reals, head)
+    return model
+
+
+def _filled(args: Args, **fields) -> Args:
+    """``args`` with ``fields`` set, tensors by their data pointer (the caller keeps them alive)."""
+    for name, v in fields.items():
+        setattr(args, name, v.data_ptr() if isinstance(v, Tensor) else v)
+    return args
 
 
 def native_model(topo: Topology, seg: Segments) -> NativeModel:
@@ -290,12 +395,17 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
     B, n, K = q.shape[0], model.n_vars, model.n_ends
     T = torch.empty(B, K, 4, 4, dtype=q.dtype)
     J = torch.empty(B, K, 6, n, dtype=q.dtype) if with_jacobian else None
-    fn = _lib.dk_fk_f64 if q.dtype == torch.float64 else _lib.dk_fk_f32
-    bad = fn(model.ints.data_ptr(), model.reals[q.dtype].data_ptr(), q.data_ptr(), B, T.data_ptr(),
-             None if J is None else J.data_ptr(), threads or thread_count(B))
-    if bad < 0:
-        raise MemoryError("the native kernel could not allocate its per-thread frames")
+    args = model.call(q.dtype, batch=B, q=q, T=T, jac=J, nthreads=threads or thread_count(B))
+    bad = _lib.dk_fk(ctypes.byref(args))
+    _raise_on(bad, "frames")
     return T, J, bad
+
+
+def _raise_on(status: int, what: str) -> None:
+    if status == _ABI_ERROR:
+        raise AbiMismatch("the native kernel refused the call's dk_args (another version or size)")
+    if status < 0:
+        raise MemoryError(f"the native kernel could not allocate its per-thread {what}")
 
 
 class LMProblem:
@@ -311,9 +421,8 @@ class LMProblem:
         self.targets = [pd.contiguous(), *((None,) * 3 if cols is None else (t.contiguous() for t in cols))]
         self.vectors = [t.reshape(-1).to(dtype).contiguous() for t in (sqrt_w, c, h)]
         self.bounded = bounded.reshape(-1).to(torch.uint8).contiguous()
-        self.fn = _lib.dk_lm_f64 if dtype == torch.float64 else _lib.dk_lm_f32
-        self.pointers = (*(None if t is None else t.data_ptr() for t in self.targets),
-                         *(t.data_ptr() for t in self.vectors), self.bounded.data_ptr())
+        fields = dict(zip(("pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh"), (*self.targets, *self.vectors)))
+        self.args = model.call(dtype, n_targets=self.N, bounded=self.bounded, **fields)
 
 
 def lm_steps(problem: LMProblem, u: Tensor, tidx: Tensor, *, damping2: float, error_damping: float,
@@ -339,13 +448,12 @@ def lm_steps(problem: LMProblem, u: Tensor, tidx: Tensor, *, damping2: float, er
     conv = torch.empty(m, dtype=torch.bool)
     merit, merit_prev = torch.empty(2, m, dtype=problem.dtype).unbind(0)
     tidx = tidx.contiguous()
-    tp, to = tolerances
-    rounds = problem.fn(problem.model.ints.data_ptr(), problem.model.reals[problem.dtype].data_ptr(), m,
-                        iterations, max_rounds, u_new.data_ptr(), u_eval.data_ptr(), tidx.data_ptr(),
-                        problem.N, *problem.pointers, damping2, error_damping, tp, to, margin,
-                        conv.data_ptr(), merit.data_ptr(), merit_prev.data_ptr(), threads or thread_count(m))
-    if rounds < 0:
-        raise MemoryError("the native kernel could not allocate its per-thread work space")
+    args = _filled(Args.from_buffer_copy(problem.args), batch=m, iters=iterations, max_rounds=max_rounds,
+                   u=u_new, u_eval=u_eval, tidx=tidx, conv=conv, merit=merit, merit_prev=merit_prev,
+                   damping2=damping2, error_damping=error_damping, tol_p=tolerances[0], tol_o=tolerances[1],
+                   margin=margin, nthreads=threads or thread_count(m))
+    rounds = _lib.dk_lm(ctypes.byref(args))
+    _raise_on(rounds, "work space")
     return u_new, u_eval, conv, merit, rounds, merit_prev
 
 
