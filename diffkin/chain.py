@@ -716,6 +716,16 @@ class KinematicChain(nn.Module):
         u = u.to(self.device)
         return lo + (hi - lo) * u
 
+    def copy(self) -> KinematicChain:
+        """An independent deep copy (not compiled: a compiled path is bound to its own chain)."""
+        import copy
+
+        fast, self._compiled_fk = self._compiled_fk, None
+        try:
+            return copy.deepcopy(self)
+        finally:
+            self._compiled_fk = fast
+
     def extra_repr(self) -> str:
         if self.configuration_space.euclidean:
             return f"name={self.name!r}, n_joints={self.n_joints}, joint_types={self.joint_types!r}"

@@ -431,15 +431,6 @@ class MJCFChain(KinematicChain):
 
         return write_mjcf(self, path)
 
-    def copy(self) -> MJCFChain:
-        import copy
-
-        fast, self._compiled_fk = self._compiled_fk, None
-        try:
-            return copy.deepcopy(self)
-        finally:
-            self._compiled_fk = fast
-
     def extra_repr(self) -> str:
         ends = self.end_links[0] if self._single_end else self.end_links
         return super().extra_repr() + f", end_link={ends!r}, joints={self.joint_names}"

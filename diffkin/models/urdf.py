@@ -15,7 +15,6 @@ applied as constants (zero terms skipped): real URDFs' fixed rotations are mostl
 
 from __future__ import annotations
 
-import copy
 import math
 
 import torch
@@ -221,14 +220,6 @@ class URDFChain(KinematicChain):
         return pre, None, post, ends
 
     # ------------------------------------------------------------------------------------- helpers
-    def copy(self) -> URDFChain:
-        """An independent deep copy (not compiled: a compiled path is bound to its own chain)."""
-        fast, self._compiled_fk = self._compiled_fk, None
-        try:
-            return copy.deepcopy(self)
-        finally:
-            self._compiled_fk = fast
-
     def to_urdf(self, path=None) -> str:
         """The source URDF with this chain's current joint origins and axes written in; everything else in
         the file (visuals, collisions, inertials, transmissions, comments) is kept byte for byte. Also
