@@ -76,7 +76,7 @@ def test_models_load_refuses_cuda_on_a_cpu_only_torch():
 
 
 def test_vector_env_refuses_an_unusable_device_and_a_missing_action():
-    from envs.vector import TorchVectorEnv
+    from diffkin.envs.vector import TorchVectorEnv
 
     bad = "meta" if torch.cuda.is_available() else "cuda"
     with pytest.raises(errors.DeviceError, match=bad):

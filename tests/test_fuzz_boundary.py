@@ -161,7 +161,7 @@ def test_every_bad_file_text_or_option_is_a_typed_error(tmp_path):
 
 
 def _env_calls():
-    from envs.vector import TorchVectorEnv
+    from diffkin.envs.vector import TorchVectorEnv
 
     def stepped(action):
         env = TorchVectorEnv("diffkin/Reach-v0", 2)
@@ -186,7 +186,7 @@ def _env_calls():
 def test_every_bad_env_call_is_a_typed_error():
     import gymnasium
 
-    from envs.vector import TorchVectorEnv
+    from diffkin.envs.vector import TorchVectorEnv
 
     raw, silent = [], []
     for name, call in _env_calls().items():
