@@ -1,0 +1,272 @@
+"""Small batched convex QPs in torch with KKT gradients: the solvers behind :func:`~diffkin.ik.velocity_step`.
+
+Both solve, for every batch row independently, a strictly convex QP in n variables (n is small: the joint
+velocities of one robot)
+
+    min_x  ½ xᵀ H x − gᵀ x                                                                            (Q.1)
+    s.t.   lower ≤ x ≤ upper          (box_qp)
+           G x ≤ h, lower ≤ x ≤ upper (solve_qp)
+
+with H ``(..., n, n)`` symmetric positive definite, g ``(..., n)``, bounds ``(..., n)`` (±inf: no bound),
+G ``(..., p, n)``, h ``(..., p)`` (inf: no constraint); leading batch dims broadcast.
+
+* :func:`box_qp` — a primal active-set method (Nocedal & Wright, Alg. 16.3, specialised to bounds): start at
+  the projection of the unconstrained minimiser, fix the variables clipped there, then per iteration solve
+  the equality QP on the free variables (one batched n × n solve, the fixed variables as identity rows) and
+  either step to the first bound in the way (adding it) or release the bound whose multiplier has the wrong
+  sign. Finite and exact: each row stops at its own KKT point, usually within 1–3 iterations (a bound per
+  joint that the step crosses). The iterations run as batched tensor ops over all rows; finished rows are
+  frozen by a mask. On CPU the loop ends when every row has finished; on CUDA it reads the "all done" flag
+  once every 4 iterations (the only host syncs), up to ``max_iter``.
+* :func:`solve_qp` — a primal-dual interior-point method (Mehrotra's predictor-corrector, as in OptNet /
+  qpth) for general inequalities: a fixed number of Newton steps, each one batched Cholesky-free solve of
+  the n × n reduced system H + GᵀΛS⁻¹G, then a polish on the identified active set. Chosen over ADMM,
+  which needs hundreds of iterations and a tuned penalty for 1e-8 accuracy, and over a general active set,
+  whose working sets of differing sizes and degenerate cases do not batch: an interior point takes the same
+  ~20 iterations for every row, with no host sync at all.
+
+Gradients (custom autograd functions) come from implicit differentiation of the KKT conditions at the
+solution on its active set 𝒜 (Amos & Kolter 2017, OptNet): with [H G_𝒜ᵀ; G_𝒜 0][a; β] = [x̄; 0],
+
+    ḡ = a,  H̄ = −a xᵀ,  h̄_𝒜 = β,  Ḡ_𝒜 = −λ_𝒜 aᵀ − β xᵀ                                                (Q.2)
+
+(a bound is a row ±e_i of G: the free variables get a, the fixed ones their bound's β). They are exact
+where the active set is locally constant (strict complementarity) and one-sided limits elsewhere.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from .._numerics import eps_for
+from ..errors import DiffkinError, ShapeError
+from ..validation import broadcast_batch, check_count, shape_str, tensors
+from ._qp_ip import ip_solve
+
+__all__ = ["BoxQPResult", "QPResult", "box_qp", "solve_qp"]
+
+_IP_ITERATIONS = 30  # interior-point steps: 1e-12 residuals on the test problems take 12-25
+
+
+class BoxQPResult(NamedTuple):
+    """x ``(..., n)``; at_lower / at_upper ``(..., n)`` bool: the variables fixed at a bound (the active
+    set); converged ``(...)`` bool: the row reached its KKT point within ``max_iter``."""
+
+    x: Tensor
+    at_lower: Tensor
+    at_upper: Tensor
+    converged: Tensor
+
+
+class QPResult(NamedTuple):
+    """x ``(..., n)``; multipliers ``(..., p + 2n)`` of the rows [G; I; −I] (0 where inactive);
+    active ``(..., p + 2n)`` bool; converged ``(...)`` bool (residuals below tolerance)."""
+
+    x: Tensor
+    multipliers: Tensor
+    active: Tensor
+    converged: Tensor
+
+
+# ------------------------------------------------------------------------------------------ inputs
+def _inputs(H, g, lower, upper, name: str):
+    H, g, lower, upper = tensors(("H", H, (None, None)), ("g", g, (None,)), ("lower", lower, None),
+                                 ("upper", upper, None), finite=(True, True, False, False))
+    n = g.shape[-1]
+    if H.shape[-2:] != (n, n):
+        raise ShapeError(f"{name}: expected H of shape (..., {n}, {n}) for g (..., {n}), got "
+                         f"{shape_str(H.shape)}")
+    inf = torch.tensor(float("inf"), dtype=g.dtype, device=g.device)
+    lower = -inf.expand(n) if lower is None else lower
+    upper = inf.expand(n) if upper is None else upper
+    for nm, b in (("lower", lower), ("upper", upper)):
+        if b.ndim == 0 or b.shape[-1] != n:
+            raise ShapeError(f"{name}: expected {nm} of shape (..., {n}), got {shape_str(b.shape)}")
+        if bool(torch.isnan(b).any()):
+            raise DiffkinError(f"{name}: {nm} holds NaN")
+    if bool((lower > upper).any()):
+        raise DiffkinError(f"{name}: expected lower <= upper everywhere (a non-empty box)")
+    return H, g, lower, upper
+
+
+def _flat(batch, *xs_trailing):
+    """Broadcast each (tensor, k trailing dims) to ``batch`` and flatten the batch to one axis."""
+    return [x.expand(*batch, *x.shape[x.ndim - k:]).reshape(batch.numel(), *x.shape[x.ndim - k:])
+            for x, k in xs_trailing]
+
+
+def _mv(A: Tensor, v: Tensor) -> Tensor:
+    return (A @ v.unsqueeze(-1)).squeeze(-1)
+
+
+# ------------------------------------------------------------------------------------ active set
+def _masked_system(H: Tensor, free: Tensor) -> Tensor:
+    """H with the rows and columns of fixed variables replaced by those of the identity."""
+    both = free.unsqueeze(-1) & free.unsqueeze(-2)
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
+    return torch.where(both, H, eye.expand_as(H) * (~free).unsqueeze(-1))
+
+
+def _free_solve(H, g, x, free):
+    """The equality QP with the fixed variables held at x: y_F = H_FF⁻¹(g_F − H_FA x_A), y_A = x_A."""
+    x_fix = torch.where(free, torch.zeros_like(x), x)
+    rhs = torch.where(free, g - _mv(H, x_fix), x)
+    return torch.linalg.solve_ex(_masked_system(H, free), rhs.unsqueeze(-1))[0].squeeze(-1)
+
+
+def _tolerances(H, g, lo, hi):
+    eps = eps_for(g)
+    fin = lambda b: torch.where(torch.isfinite(b), b.abs(), torch.zeros_like(b))  # noqa: E731
+    size = 1.0 + torch.maximum(fin(lo), fin(hi)).amax(-1, keepdim=True)
+    tol_x = 64 * eps * size
+    tol_mu = 64 * eps * (1.0 + g.abs().amax(-1, keepdim=True) + H.abs().amax((-2, -1))[..., None] * size)
+    return tol_x, tol_mu
+
+
+def _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols):
+    """One iteration for every unfinished row (module docstring); returns the new state."""
+    tol_x, tol_mu = tols
+    free = ~(at_lo | at_hi)
+    y = _free_solve(H, g, x, free)
+    p = y - x
+    below, above = free & (y < lo - tol_x), free & (y > hi + tol_x)
+    blocked = (below | above).any(-1, keepdim=True)
+    # infeasible: step to the first bound in the way and fix it
+    inf = torch.full_like(x, float("inf"))
+    ratio = torch.where(below, (lo - x) / torch.where(below, p, -1.0), inf)
+    ratio = torch.where(above, (hi - x) / torch.where(above, p, 1.0), ratio)
+    alpha, j = ratio.min(-1, keepdim=True)
+    alpha = alpha.clamp(0.0, 1.0)
+    hit = torch.zeros_like(free).scatter(-1, j, True) & blocked
+    x_step = torch.where(hit & below, lo, torch.where(hit & above, hi, x + alpha * p))
+    # feasible: the multipliers of the fixed variables (μ_lo = r_i ≥ 0 at a lower bound, −r_i ≥ 0 at an upper)
+    y = torch.maximum(torch.minimum(y, hi), lo)
+    r = _mv(H, y) - g
+    wrong = torch.where(at_lo, -r, torch.where(at_hi, r, torch.zeros_like(r)))
+    wrong = torch.where(lo == hi, torch.zeros_like(wrong), wrong)  # a zero-width box stays fixed
+    worst, k = wrong.max(-1, keepdim=True)
+    release = (worst > tol_mu) & ~blocked
+    drop = torch.zeros_like(free).scatter(-1, k, True) & release
+    finished = ~blocked & ~release
+    keep = done.unsqueeze(-1)
+    x_new = torch.where(keep, x, torch.where(blocked, x_step, y))
+    at_lo = torch.where(keep, at_lo, (at_lo & ~drop) | (hit & below))
+    at_hi = torch.where(keep, at_hi, (at_hi & ~drop) | (hit & above))
+    return x_new, at_lo, at_hi, done | finished.squeeze(-1)
+
+
+def _box_solve(H, g, lo, hi, max_iter: int):
+    """Flat ``(B, n)`` inputs -> (x, at_lo, at_hi, converged), no autograd."""
+    y = _free_solve(H, g, torch.zeros_like(g), torch.ones_like(g, dtype=torch.bool))
+    at_lo, at_hi = y <= lo, (y >= hi) & ~(y <= lo)
+    x = torch.maximum(torch.minimum(y, hi), lo)
+    done = torch.zeros(g.shape[:-1], dtype=torch.bool, device=g.device)
+    tols = _tolerances(H, g, lo, hi)
+    check_every = 1 if g.device.type == "cpu" else 4  # a CPU read is no device sync
+    for it in range(max_iter):
+        x, at_lo, at_hi, done = _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols)
+        if (it + 1) % check_every == 0 and bool(done.all()):
+            break
+    return x, at_lo, at_hi, done
+
+
+def _box_adjoint(H, free, xbar):
+    """a = M⁻ᵀ x̄ for M = [H_FF H_FA; 0 I] (the active-set KKT matrix of (Q.2)): a_F = H_FF⁻¹ x̄_F,
+    a_A = x̄_A − H_AF a_F (a_A is the bound's β)."""
+    a_free = torch.linalg.solve_ex(_masked_system(H, free), torch.where(free, xbar, 0.0).unsqueeze(-1))[0]
+    a_free = a_free.squeeze(-1)
+    return a_free, torch.where(free, torch.zeros_like(xbar), xbar - _mv(H, a_free))
+
+
+class _BoxQP(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, H, g, lo, hi, max_iter):
+        x, at_lo, at_hi, ok = _box_solve(H, g, lo, hi, max_iter)
+        ctx.save_for_backward(H, x, at_lo, at_hi)
+        ctx.mark_non_differentiable(at_lo, at_hi, ok)
+        return x, at_lo, at_hi, ok
+
+    @staticmethod
+    def backward(ctx, xbar, *_):
+        H, x, at_lo, at_hi = ctx.saved_tensors
+        a, beta = _box_adjoint(H, ~(at_lo | at_hi), xbar)
+        zero = torch.zeros_like(beta)
+        return (-a.unsqueeze(-1) * x.unsqueeze(-2), a, torch.where(at_lo, beta, zero),
+                torch.where(at_hi, beta, zero), None)
+
+
+def box_qp(H, g, lower=None, upper=None, *, max_iter: int | None = None) -> BoxQPResult:
+    """Solve the box-constrained QP (Q.1), ``min ½xᵀHx − gᵀx  s.t. lower ≤ x ≤ upper``, per batch row.
+
+    Args:
+        H: ``(..., n, n)`` symmetric positive definite. g: ``(..., n)``.
+        lower, upper: ``(..., n)`` bounds (±inf: none; ``None``: unbounded), lower <= upper.
+        max_iter: active-set iterations (default 4n + 8; each finished row is frozen).
+
+    Returns:
+        :class:`BoxQPResult`; ``x`` is differentiable w.r.t. H, g and the bounds by (Q.2).
+    """
+    H, g, lo, hi = _inputs(H, g, lower, upper, "box_qp")
+    n = g.shape[-1]
+    max_iter = 4 * n + 8 if max_iter is None else check_count(max_iter, "max_iter")
+    batch = broadcast_batch(("H", H, 2), ("g", g, 1), ("lower", lo, 1), ("upper", hi, 1))
+    Hf, gf, lof, hif = _flat(batch, (H, 2), (g, 1), (lo, 1), (hi, 1))
+    out = _BoxQP.apply(Hf, gf, lof, hif, max_iter)
+    return BoxQPResult(*(t.reshape((*batch, *t.shape[1:])) for t in out))
+
+
+def solve_qp(H, g, G=None, h=None, lower=None, upper=None, *, iterations: int | None = None) -> QPResult:
+    """Solve the QP (Q.1) with general inequalities ``G x ≤ h`` and bounds, per batch row, by the
+    interior-point method of the module docstring (then a polish on the active set).
+
+    Args:
+        H: ``(..., n, n)`` symmetric positive definite. g: ``(..., n)``.
+        G: ``(..., p, n)`` and h: ``(..., p)`` (inf entries of h: no constraint); ``None``: none.
+        lower, upper: ``(..., n)`` bounds as in :func:`box_qp`.
+        iterations: Newton steps (default 30; rows that converge earlier are frozen).
+
+    Returns:
+        :class:`QPResult`; ``x`` is differentiable w.r.t. H, g, G, h and the bounds by (Q.2). The
+        constraints must be feasible; an infeasible row comes back with ``converged`` False.
+    """
+    H, g, lo, hi = _inputs(H, g, lower, upper, "solve_qp")
+    n = g.shape[-1]
+    if (G is None) != (h is None):
+        raise DiffkinError("solve_qp: pass G and h together")
+    if G is None:
+        G, h = g.new_zeros(0, n), g.new_zeros(0)
+    G, h = tensors(("G", G, (None, n)), ("h", h, (None,)), like=g, finite=(True, False))
+    if h.shape[-1] != G.shape[-2]:
+        raise ShapeError(f"solve_qp: expected h of shape (..., {G.shape[-2]}) for G {shape_str(G.shape)}, "
+                         f"got {shape_str(h.shape)}")
+    if bool(torch.isnan(h).any()) or bool((h == -float("inf")).any()):
+        raise DiffkinError("solve_qp: h holds NaN or -inf (an infeasible constraint)")
+    iterations = _IP_ITERATIONS if iterations is None else check_count(iterations, "iterations")
+    batch = broadcast_batch(("H", H, 2), ("g", g, 1), ("G", G, 2), ("h", h, 1), ("lower", lo, 1),
+                            ("upper", hi, 1))
+    Hf, gf, Gf, hf, lof, hif = _flat(batch, (H, 2), (g, 1), (G, 2), (h, 1), (lo, 1), (hi, 1))
+    eye = torch.eye(n, dtype=g.dtype, device=g.device).expand(Hf.shape[0], n, n)
+    G_all = torch.cat((Gf, eye, -eye), dim=-2)  # bounds as rows of G: [G; I; −I] x ≤ [h; u; −l]
+    h_all = torch.cat((hf, hif, -lof), dim=-1)
+    out = ip_solve(Hf, gf, G_all, h_all, iterations)
+    return QPResult(*(t.reshape((*batch, *t.shape[1:])) for t in out))
+
+
+# ---------------------------------------------------------------------------- trusted entry points
+def _solve_box(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """:func:`box_qp`'s x for validated inputs of one broadcast batch (library callers)."""
+    batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1], lo.shape[:-1], hi.shape[:-1])
+    n = g.shape[-1]
+    out = _BoxQP.apply(*_flat(batch, (H, 2), (g, 1), (lo, 1), (hi, 1)), 4 * n + 8)
+    return out[0].reshape(*batch, n)
+
+
+def _solve_general(H: Tensor, g: Tensor, G: Tensor, h: Tensor) -> Tensor:
+    """:func:`solve_qp`'s x for validated inputs (no bounds; inf entries of h switch rows off)."""
+    batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1], G.shape[:-2], h.shape[:-1])
+    n = g.shape[-1]
+    out = ip_solve(*_flat(batch, (H, 2), (g, 1), (G, 2), (h, 1)), _IP_ITERATIONS)
+    return out[0].reshape(*batch, n)
