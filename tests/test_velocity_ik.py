@@ -339,3 +339,30 @@ def test_velocity_step_cuda_matches_cpu():
     gpu = ik.velocity_step(chain.to("cuda"), q.cuda(), twist.cuda(), 0.1, velocity_limit=1.0,
                            tasks=[ik.PostureTask(q_ref=torch.zeros(7, dtype=F64, device="cuda"))])
     torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-8, rtol=0)
+
+
+# ------------------------------------------------------------------------------------------- users
+def _circle(chain, q0, S, dt):
+    T0 = chain.forward_kinematics(q0)
+    t = torch.arange(S + 1, dtype=F64) * dt
+    x = T0[:3, 3] + torch.stack([0.3 * torch.sin(t), 0.0 * t, 0.3 * (1 - torch.cos(t))], -1)
+    v = torch.stack([0.3 * torch.cos(t), 0 * t, 0.3 * torch.sin(t)], -1)
+    return x, v
+
+
+def test_clik_limits_stays_within_the_limits_and_steps_by_velocity_step():
+    chain = _chain("panda")
+    q0 = torch.tensor([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8], dtype=F64)
+    dt = 0.01
+    x, v = _circle(chain, q0, 300, dt)
+    free = ik.clik(chain, q0, (x, v), dt, algorithm="dls", orientation=None)
+    assert not bool(chain.within_limits(free.q).all())  # the plain DLS law runs through a limit
+    res = ik.clik(chain, q0, (x, v), dt, algorithm="dls", orientation=None, limits=True, qdot_max=2.0)
+    assert bool(chain.within_limits(res.q).all()) and float(res.qdot.abs().max()) <= 2.0
+    for k in (0, 100, 250):  # each step is velocity_step's for the CLIK reference ẋ_d + K e (3.70)
+        ref = v[k] + 0.5 / dt * res.error[k]
+        step = ik.velocity_step(chain, res.q[k], torch.cat((ref, torch.zeros(3, dtype=F64))), dt,
+                                damping=1e-4, velocity_limit=2.0, weight=[1, 1, 1, 0, 0, 0])
+        torch.testing.assert_close(res.qdot[k], step, atol=1e-10, rtol=0)
+    with pytest.raises(ConventionError, match="limits=True"):
+        ik.clik(chain, q0, (x, v), dt, algorithm="pseudo_inverse", orientation=None, limits=True)

@@ -203,6 +203,12 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
     if vmax is not None and vmax.ndim and vmax.shape[-1] != nv:
         raise ShapeError(f"velocity_step: expected velocity_limit as a number or (..., {nv}), got "
                          f"{shape_str(vmax.shape)}")
+    return _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture)
+
+
+def _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture):
+    """(V.1)–(V.3) for validated inputs: J ``(..., K, 6, nv)``, twist and weight ``(..., K, 6)``."""
+    nv = J.shape[-1]
     A, b = _stacked_task(J, twist, weight, frames, q)
     eye = torch.eye(nv, dtype=q.dtype, device=q.device)
     H = A.mT @ A + damping[..., None, None] * eye
