@@ -16,8 +16,9 @@ G ``(..., p, n)``, h ``(..., p)`` (inf: no constraint); leading batch dims broad
   either step to the first bound in the way (adding it) or release the bound whose multiplier has the wrong
   sign. Finite and exact: each row stops at its own KKT point, usually within 1–3 iterations (a bound per
   joint that the step crosses). The iterations run as batched tensor ops over all rows; finished rows are
-  frozen by a mask. On CPU the loop ends when every row has finished; on CUDA it reads the "all done" flag
-  once every 4 iterations (the only host syncs), up to ``max_iter``.
+  frozen by a mask. On CPU each iteration runs on the unfinished rows only and the loop ends when every
+  row has finished; on CUDA all rows run, masked, and the "all done" flag is read once every 4 iterations
+  (the only host syncs), up to ``max_iter``.
 * :func:`solve_qp` — a primal-dual interior-point method (Mehrotra's predictor-corrector, as in OptNet /
   qpth) for general inequalities: a fixed number of Newton steps, each one batched Cholesky-free solve of
   the n × n reduced system H + GᵀΛS⁻¹G, then a polish on the identified active set. Chosen over ADMM,
@@ -43,11 +44,13 @@ from torch import Tensor
 
 from .._numerics import eps_for
 from ..errors import DiffkinError, ShapeError
+from ..kernels.dls import _spd_solve_batch_last
 from ..validation import broadcast_batch, check_count, shape_str, tensors
 from ._qp_ip import ip_solve
 
 __all__ = ["BoxQPResult", "QPResult", "box_qp", "solve_qp"]
 
+_WARM_START = 2  # primal-dual active-set rounds before the primal active set (all rows, no sync)
 _IP_ITERATIONS = 30  # interior-point steps: 1e-12 residuals on the test problems take 12-25
 
 
@@ -105,16 +108,23 @@ def _mv(A: Tensor, v: Tensor) -> Tensor:
 # ------------------------------------------------------------------------------------ active set
 def _masked_system(H: Tensor, free: Tensor) -> Tensor:
     """H with the rows and columns of fixed variables replaced by those of the identity."""
-    both = free.unsqueeze(-1) & free.unsqueeze(-2)
-    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
-    return torch.where(both, H, eye.expand_as(H) * (~free).unsqueeze(-1))
+    f = free.to(H.dtype)
+    return H * (f.unsqueeze(-1) * f.unsqueeze(-2)) + torch.diag_embed(1.0 - f)
 
 
 def _free_solve(H, g, x, free):
     """The equality QP with the fixed variables held at x: y_F = H_FF⁻¹(g_F − H_FA x_A), y_A = x_A."""
     x_fix = torch.where(free, torch.zeros_like(x), x)
     rhs = torch.where(free, g - _mv(H, x_fix), x)
-    return torch.linalg.solve_ex(_masked_system(H, free), rhs.unsqueeze(-1))[0].squeeze(-1)
+    return _spd_solve(_masked_system(H, free), rhs)
+
+
+def _spd_solve(M: Tensor, b: Tensor) -> Tensor:
+    """M⁻¹b for symmetric positive definite M ``(B, n, n)`` (the masked H: H_FF and an identity block) by
+    the kernels' Cholesky (unrolled over the entries for many rows: LAPACK pays a per-matrix overhead)."""
+    if M.shape[0] == 0:
+        return b.clone()
+    return _spd_solve_batch_last(M.permute(1, 2, 0).contiguous(), b.T.contiguous()).T
 
 
 def _tolerances(H, g, lo, hi):
@@ -158,26 +168,57 @@ def _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols):
     return x_new, at_lo, at_hi, done | finished.squeeze(-1)
 
 
+def _warm_start(H, g, lo, hi, rounds: int):
+    """A feasible start and working set from a few primal-dual active-set rounds (Hintermüller, Ito &
+    Kunisch 2002): fix at a bound every free variable beyond it and keep every fixed one whose multiplier
+    μ = Hx − g has the right sign, all at once (the primal phase then moves one bound at a time). Exact for
+    most rows within 2–3 rounds; it may cycle on others, which the primal phase then settles."""
+    fixed_lo = torch.zeros_like(g, dtype=torch.bool)
+    fixed_hi = fixed_lo
+    x = torch.zeros_like(g)
+    for k in range(rounds + 1):
+        held = torch.where(fixed_lo, lo, torch.where(fixed_hi, hi, 0.0))
+        x = _free_solve(H, g, held, ~(fixed_lo | fixed_hi))
+        if k == rounds:
+            break
+        mu = _mv(H, x) - g
+        fixed_lo, fixed_hi = (~(fixed_lo | fixed_hi) & (x <= lo)) | (fixed_lo & (mu >= 0)), \
+            (~(fixed_lo | fixed_hi) & (x >= hi) & (x > lo)) | (fixed_hi & (mu <= 0))
+    x = torch.where(fixed_lo, lo, torch.where(fixed_hi, hi, torch.maximum(torch.minimum(x, hi), lo)))
+    return x, fixed_lo, fixed_hi
+
+
 def _box_solve(H, g, lo, hi, max_iter: int):
     """Flat ``(B, n)`` inputs -> (x, at_lo, at_hi, converged), no autograd."""
-    y = _free_solve(H, g, torch.zeros_like(g), torch.ones_like(g, dtype=torch.bool))
-    at_lo, at_hi = y <= lo, (y >= hi) & ~(y <= lo)
-    x = torch.maximum(torch.minimum(y, hi), lo)
+    x, at_lo, at_hi = _warm_start(H, g, lo, hi, _WARM_START)
     done = torch.zeros(g.shape[:-1], dtype=torch.bool, device=g.device)
     tols = _tolerances(H, g, lo, hi)
-    check_every = 1 if g.device.type == "cpu" else 4  # a CPU read is no device sync
+    if g.device.type == "cpu":  # reading a CPU flag is no device sync: iterate on the unfinished rows only
+        return _box_solve_compacted(H, g, lo, hi, x, at_lo, at_hi, done, tols, max_iter)
     for it in range(max_iter):
         x, at_lo, at_hi, done = _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols)
-        if (it + 1) % check_every == 0 and bool(done.all()):
+        if (it + 1) % 4 == 0 and bool(done.all()):  # the only host syncs: one every 4 iterations
             break
+    return x, at_lo, at_hi, done
+
+
+def _box_solve_compacted(H, g, lo, hi, x, at_lo, at_hi, done, tols, max_iter: int):
+    """The iterations of :func:`_box_solve` on the rows still running (most finish in 1–3 iterations)."""
+    idx = torch.arange(g.shape[0], device=g.device)
+    for _ in range(max_iter):
+        if idx.numel() == 0:
+            break
+        sub = [t[idx] for t in (H, g, lo, hi, x, at_lo, at_hi, done)]
+        xs, ls, us, ds = _active_set_iteration(*sub, tuple(t[idx] for t in tols))
+        x[idx], at_lo[idx], at_hi[idx], done[idx] = xs, ls, us, ds
+        idx = idx[~ds]
     return x, at_lo, at_hi, done
 
 
 def _box_adjoint(H, free, xbar):
     """a = M⁻ᵀ x̄ for M = [H_FF H_FA; 0 I] (the active-set KKT matrix of (Q.2)): a_F = H_FF⁻¹ x̄_F,
     a_A = x̄_A − H_AF a_F (a_A is the bound's β)."""
-    a_free = torch.linalg.solve_ex(_masked_system(H, free), torch.where(free, xbar, 0.0).unsqueeze(-1))[0]
-    a_free = a_free.squeeze(-1)
+    a_free = _spd_solve(_masked_system(H, free), torch.where(free, xbar, 0.0))
     return a_free, torch.where(free, torch.zeros_like(xbar), xbar - _mv(H, a_free))
 
 
