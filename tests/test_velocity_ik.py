@@ -366,3 +366,25 @@ def test_clik_limits_stays_within_the_limits_and_steps_by_velocity_step():
         torch.testing.assert_close(res.qdot[k], step, atol=1e-10, rtol=0)
     with pytest.raises(ConventionError, match="limits=True"):
         ik.clik(chain, q0, (x, v), dt, algorithm="pseudo_inverse", orientation=None, limits=True)
+
+
+def test_env_cartesian_action_is_limit_safe():
+    from envs.robot import Robot
+
+    robot = Robot("panda", action_mode="cartesian", dtype=F64)
+    q = robot.home.expand(32, 7).clone()
+    q[:, 3] = robot.chain.q_limits[3, 1] - 0.02  # the elbow next to its upper limit
+    action = torch.tensor([0.0, 0.0, -1.0], dtype=F64).expand(32, 3)  # down: folds the elbow further
+    for _ in range(40):
+        dq = robot.cartesian_delta(q, action * robot.config.max_ee_step)
+        assert bool(robot.chain.within_limits(q + dq, tol=1e-12).all())  # no clamp needed
+        assert float(dq.abs().max()) <= robot.step_limit + 1e-12
+        q = robot.apply_action(q, action)
+    lim = robot.chain.q_limits
+    assert int((torch.minimum(q - lim[:, 0], lim[:, 1] - q).amin(0) < 1e-9).sum()) >= 2  # limits reached
+    twist = torch.cat((action * robot.config.max_ee_step / robot.config.control_dt,
+                       torch.zeros(32, 3, dtype=F64)), -1)
+    ref = ik.velocity_step(robot.chain, q, twist, robot.config.control_dt, damping=robot.config.damping ** 2,
+                           velocity_limit=robot.config.max_joint_speed, weight=[1, 1, 1, 0, 0, 0])
+    torch.testing.assert_close(robot.cartesian_delta(q, action * robot.config.max_ee_step),
+                               ref * robot.config.control_dt)
