@@ -369,7 +369,7 @@ def test_clik_limits_stays_within_the_limits_and_steps_by_velocity_step():
 
 
 def test_env_cartesian_action_is_limit_safe():
-    from envs.robot import Robot
+    from diffkin.envs.robot import Robot
 
     robot = Robot("panda", action_mode="cartesian", dtype=F64)
     q = robot.home.expand(32, 7).clone()
