@@ -388,3 +388,38 @@ def test_env_cartesian_action_is_limit_safe():
                            velocity_limit=robot.config.max_joint_speed, weight=[1, 1, 1, 0, 0, 0])
     torch.testing.assert_close(robot.cartesian_delta(q, action * robot.config.max_ee_step),
                                ref * robot.config.control_dt)
+
+
+def test_box_qp_masked_iterations_match_the_compacted_ones():
+    """The CUDA schedule (all rows masked, a sync every 4 iterations) run on CPU gives the same answer."""
+    from diffkin.ik.qp import _box_solve
+
+    A, b, lo, hi = _random_problem(200, 6, 7, 16)
+    H = A.mT @ A + 1e-3 * torch.eye(7, dtype=F64)
+    g = (A.mT @ b[..., None])[..., 0]
+    x1, l1, u1, ok1 = _box_solve(H, g, lo, hi, 36, compact=True)
+    x2, l2, u2, ok2 = _box_solve(H, g, lo, hi, 36, compact=False)
+    assert bool(ok1.all()) and bool(ok2.all())
+    torch.testing.assert_close(x1, x2, atol=1e-12, rtol=0)
+    assert bool((l1 == l2).all()) and bool((u1 == u2).all())
+
+
+def test_velocity_dampers_as_extra_inequalities_match_daqp():
+    """(V.1)-(V.2) plus distance-rate rows as the collision issue will add them: the flange may approach
+    a plane below it (normal +z, distance d) at most at ξ d/Δt, n_zᵀ J_p q̇ ≥ −ξ d/Δt (a velocity damper)."""
+    chain = _chain("panda")
+    q, twist = _rows(chain, 80, 17)
+    dt, lam, vmax = 0.1, 1e-3, 1.0
+    _, J = chain.fk_jacobian(q)
+    d = 0.01 + 0.04 * torch.rand(80, generator=torch.Generator().manual_seed(18), dtype=F64)
+    G = -J[:, 2:3, :]  # −n_zᵀ J_p q̇ ≤ ξ d/Δt
+    h = (0.5 * d / dt)[:, None]
+    H = J.mT @ J + lam * torch.eye(7, dtype=F64)
+    g = (J.mT @ twist[..., None])[..., 0]
+    lo, hi = _bounds(chain, q, dt, vmax)
+    res = solve_qp(H, g, G, h, lo, hi)
+    assert bool(res.converged.all()) and int(res.active[:, 0].sum()) > 5  # the damper shapes some rows
+    for i in range(80):
+        ref = qpsolvers.solve_qp(H[i].numpy(), -g[i].numpy(), G[i].numpy(), h[i].numpy(), lb=lo[i].numpy(),
+                                 ub=hi[i].numpy(), solver="daqp")
+        np.testing.assert_allclose(res.x[i].numpy(), ref, atol=1e-8)

@@ -188,12 +188,13 @@ def _warm_start(H, g, lo, hi, rounds: int):
     return x, fixed_lo, fixed_hi
 
 
-def _box_solve(H, g, lo, hi, max_iter: int):
-    """Flat ``(B, n)`` inputs -> (x, at_lo, at_hi, converged), no autograd."""
+def _box_solve(H, g, lo, hi, max_iter: int, compact: bool | None = None):
+    """Flat ``(B, n)`` inputs -> (x, at_lo, at_hi, converged), no autograd. ``compact``: iterate on the
+    unfinished rows only (default: on CPU)."""
     x, at_lo, at_hi = _warm_start(H, g, lo, hi, _WARM_START)
     done = torch.zeros(g.shape[:-1], dtype=torch.bool, device=g.device)
     tols = _tolerances(H, g, lo, hi)
-    if g.device.type == "cpu":  # reading a CPU flag is no device sync: iterate on the unfinished rows only
+    if g.device.type == "cpu" if compact is None else compact:  # a CPU flag read is no device sync
         return _box_solve_compacted(H, g, lo, hi, x, at_lo, at_hi, done, tols, max_iter)
     for it in range(max_iter):
         x, at_lo, at_hi, done = _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols)
