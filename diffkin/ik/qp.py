@@ -14,9 +14,10 @@ G ``(..., p, n)``, h ``(..., p)`` (inf: no constraint); leading batch dims broad
   the projection of the unconstrained minimiser, fix the variables clipped there, then per iteration solve
   the equality QP on the free variables (one batched n × n solve, the fixed variables as identity rows) and
   either step to the first bound in the way (adding it) or release the bound whose multiplier has the wrong
-  sign. Finite and exact: each row stops at its own KKT point, usually within 1–3 iterations (a bound per
-  joint that the step crosses). The iterations run as batched tensor ops over all rows; finished rows are
-  frozen by a mask. On CPU each iteration runs on the unfinished rows only and the loop ends when every
+  sign, warm-started by two rounds of the primal-dual active-set method (all bounds moved at once). Finite
+  and exact: each row stops at its own KKT point, usually within 1–3 iterations (a bound per joint that
+  the step crosses). The iterations run as batched tensor ops over all rows; finished rows are frozen by a
+  mask. On CPU each iteration runs on the unfinished rows only and the loop ends when every
   row has finished; on CUDA all rows run, masked, and the "all done" flag is read once every 4 iterations
   (the only host syncs), up to ``max_iter``.
 * :func:`solve_qp` — a primal-dual interior-point method (Mehrotra's predictor-corrector, as in OptNet /
@@ -168,17 +169,21 @@ def _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols):
     return x_new, at_lo, at_hi, done | finished.squeeze(-1)
 
 
-def _warm_start(H, g, lo, hi, rounds: int):
+def _warm_start(H, g, lo, hi, rounds: int, y: Tensor | None = None):
     """A feasible start and working set from a few primal-dual active-set rounds (Hintermüller, Ito &
     Kunisch 2002): fix at a bound every free variable beyond it and keep every fixed one whose multiplier
     μ = Hx − g has the right sign, all at once (the primal phase then moves one bound at a time). Exact for
-    most rows within 2–3 rounds; it may cycle on others, which the primal phase then settles."""
+    most rows within 2–3 rounds; it may cycle on others, which the primal phase then settles. ``y``: the
+    unconstrained minimiser if known (the first round's solve)."""
     fixed_lo = torch.zeros_like(g, dtype=torch.bool)
     fixed_hi = fixed_lo
     x = torch.zeros_like(g)
     for k in range(rounds + 1):
-        held = torch.where(fixed_lo, lo, torch.where(fixed_hi, hi, 0.0))
-        x = _free_solve(H, g, held, ~(fixed_lo | fixed_hi))
+        if k == 0 and y is not None:
+            x = y
+        else:
+            held = torch.where(fixed_lo, lo, torch.where(fixed_hi, hi, 0.0))
+            x = _free_solve(H, g, held, ~(fixed_lo | fixed_hi))
         if k == rounds:
             break
         mu = _mv(H, x) - g
@@ -190,12 +195,12 @@ def _warm_start(H, g, lo, hi, rounds: int):
 
 def _box_solve(H, g, lo, hi, max_iter: int, compact: bool | None = None):
     """Flat ``(B, n)`` inputs -> (x, at_lo, at_hi, converged), no autograd. ``compact``: iterate on the
-    unfinished rows only (default: on CPU)."""
+    unfinished rows only (default: on CPU, where reading a flag is no device sync)."""
+    tols = _tolerances(H, g, lo, hi)
+    if g.device.type == "cpu" if compact is None else compact:
+        return _box_solve_compacted(H, g, lo, hi, tols, max_iter)
     x, at_lo, at_hi = _warm_start(H, g, lo, hi, _WARM_START)
     done = torch.zeros(g.shape[:-1], dtype=torch.bool, device=g.device)
-    tols = _tolerances(H, g, lo, hi)
-    if g.device.type == "cpu" if compact is None else compact:  # a CPU flag read is no device sync
-        return _box_solve_compacted(H, g, lo, hi, x, at_lo, at_hi, done, tols, max_iter)
     for it in range(max_iter):
         x, at_lo, at_hi, done = _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols)
         if (it + 1) % 4 == 0 and bool(done.all()):  # the only host syncs: one every 4 iterations
@@ -203,9 +208,17 @@ def _box_solve(H, g, lo, hi, max_iter: int, compact: bool | None = None):
     return x, at_lo, at_hi, done
 
 
-def _box_solve_compacted(H, g, lo, hi, x, at_lo, at_hi, done, tols, max_iter: int):
-    """The iterations of :func:`_box_solve` on the rows still running (most finish in 1–3 iterations)."""
-    idx = torch.arange(g.shape[0], device=g.device)
+def _box_solve_compacted(H, g, lo, hi, tols, max_iter: int):
+    """:func:`_box_solve` on the rows still running: rows whose unconstrained minimiser lies in the box are
+    done at once (most rows of a teleoperation or env step); the warm start and the primal iterations run
+    on the others, each iteration on those not yet finished (most finish in 1–3)."""
+    y = _spd_solve(H, g)  # the unconstrained minimiser
+    done = ((y >= lo) & (y <= hi)).all(-1)
+    x, at_lo = y.clone(), torch.zeros_like(y, dtype=torch.bool)
+    at_hi = at_lo.clone()
+    idx = (~done).nonzero().squeeze(-1)
+    if idx.numel():
+        x[idx], at_lo[idx], at_hi[idx] = _warm_start(H[idx], g[idx], lo[idx], hi[idx], _WARM_START, y[idx])
     for _ in range(max_iter):
         if idx.numel() == 0:
             break
