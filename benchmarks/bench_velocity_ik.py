@@ -18,7 +18,8 @@ limits and random twists v ~ N(0, I) (m/s, rad/s): on average 3–4 of the 7 bou
   columns are zero, so their velocity is 0 and the arm's joints map one to one.
 
 Reported: the largest |J_diffkin − J_mujoco| over the rows (the models agree), time per row, the ratio
-mink / diffkin, and the largest |q̇_diffkin − q̇_mink| (the solutions agree). The machine is shared: medians.
+mink / diffkin, and the largest |q̇_diffkin − q̇_mink| (the solutions agree); for one row also the process
+CPU time per call (robust to other processes sharing the cores). The machine is shared: medians.
 """
 
 from __future__ import annotations
@@ -109,6 +110,18 @@ def _rows(chain, B: int):
     return q, torch.randn(B, 6, generator=gen, dtype=torch.float64)
 
 
+def _cpu_time(fn, repeats: int, calls: int = 50) -> float:
+    """Median process-CPU seconds per call over ``repeats`` blocks (robust to other processes)."""
+    fn()
+    per = []
+    for _ in range(repeats):
+        t0 = time.process_time()
+        for _ in range(calls):
+            fn()
+        per.append((time.process_time() - t0) / calls)
+    return statistics.median(per)
+
+
 def _step(chain, q, v):
     return ik.velocity_step(chain, q, v, DT, damping=DAMPING, velocity_limit=VMAX)
 
@@ -123,6 +136,7 @@ def run(args) -> list[dict]:
         q, v = _rows(chain, B)
         t_batch = timeit(lambda: _step(chain, q, v), min_time, repeats)
         t_one = timeit(lambda: _step(chain, q[0], v[0]), min_time, repeats)
+        cpu_one = _cpu_time(lambda: _step(chain, q[0], v[0]), repeats)
         qd = _step(chain, q, v).numpy()
         c32 = models.load("panda", dtype=torch.float32).requires_grad_(False)
         q32, v32 = q.float(), v.float()
@@ -136,7 +150,7 @@ def run(args) -> list[dict]:
             dict(benchmark="velocity_ik_panda", impl="diffkin velocity_step (float32)", batch=B,
                  seconds=t_batch32, us_per_row=1e6 * t_batch32 / B),
             dict(benchmark="velocity_ik_panda", impl="diffkin velocity_step, one row", batch=1, seconds=t_one,
-                 us_per_row=1e6 * t_one)]
+                 us_per_row=1e6 * t_one, cpu_us_per_row=1e6 * cpu_one)]
     if not path.exists():
         print(f"[velocity_ik] mink rows skipped: no Menagerie Panda at {path} (pass --panda-xml)")
         return rows
@@ -149,14 +163,15 @@ def run(args) -> list[dict]:
         per_block.append(time.perf_counter() - t0)
     t_mink = statistics.median(per_block)
     t_mink_one = timeit(lambda: solve(q[0].numpy(), v[0].numpy()), min_time, repeats)
+    cpu_mink_one = _cpu_time(lambda: solve(q[0].numpy(), v[0].numpy()), repeats)
     agree = float(np.abs(out[:, :7] - qd).max())
     rows += [dict(benchmark="velocity_ik_panda", impl="mink solve_ik (daqp), looped", batch=B, seconds=t_mink,
                   us_per_row=1e6 * t_mink / B, ratio_mink_over_diffkin=t_mink / t_batch,
                   max_abs_qdot_diff=agree, max_finger_qdot=float(np.abs(out[:, 7:]).max()),
                   jacobian_max_diff=jac_diff),
              dict(benchmark="velocity_ik_panda", impl="mink solve_ik (daqp), one call", batch=1,
-                  seconds=t_mink_one, us_per_row=1e6 * t_mink_one,
-                  ratio_mink_over_diffkin=t_mink_one / t_one)]
+                  seconds=t_mink_one, us_per_row=1e6 * t_mink_one, cpu_us_per_row=1e6 * cpu_mink_one,
+                  ratio_mink_over_diffkin=t_mink_one / t_one, cpu_ratio=cpu_mink_one / cpu_one)]
     return rows
 
 

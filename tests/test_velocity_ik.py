@@ -242,15 +242,17 @@ def test_velocity_step_gradients_finite_differences_and_gradcheck():
     vmax = torch.full((7,), 0.8, dtype=F64)
     w = torch.tensor([1.0, 1.0, 1.0, 0.5, 0.5, 0.5], dtype=F64)
 
-    def f(q, twist, vmax, w):
-        return ik.velocity_step(chain, q, twist, 0.1, damping=1e-2, velocity_limit=vmax, weight=w)
+    def f(q, twist, vmax, w, lam=None):
+        lam = torch.tensor(1e-2, dtype=F64) if lam is None else lam
+        return ik.velocity_step(chain, q, twist, 0.1, damping=lam, velocity_limit=vmax, weight=w)
 
     qd = f(q, twist, vmax, w)
     lo, hi = _bounds(chain, q, 0.1, vmax)
     n_active = int(((qd - lo).abs() < 1e-12).sum() + ((qd - hi).abs() < 1e-12).sum())
     assert n_active >= 3
     args = (q.clone().requires_grad_(True), twist.clone().requires_grad_(True),
-            vmax.clone().requires_grad_(True), w.clone().requires_grad_(True))
+            vmax.clone().requires_grad_(True), w.clone().requires_grad_(True),
+            torch.tensor(1e-2, dtype=F64, requires_grad=True))
     assert torch.autograd.gradcheck(f, args, atol=1e-6)
     # the derivative w.r.t. q by central differences, direction by direction
     qg = q.clone().requires_grad_(True)
@@ -286,6 +288,13 @@ def test_float32_and_batch_shapes():
     qd32 = ik.velocity_step(c32, q.float(), twist.float(), 0.1, velocity_limit=1.0)
     assert qd32.dtype == torch.float32
     assert float((qd32.double() - qd).abs().max()) < 1e-4
+    post64 = [ik.PostureTask(q_ref=torch.zeros(7, dtype=F64))]  # the interior point runs in float64 inside
+    post32 = [ik.PostureTask(q_ref=torch.zeros(7))]
+    p64 = ik.velocity_step(c64, q, twist, 0.1, velocity_limit=1.0, weight=[1, 1, 1, 0, 0, 0], tasks=post64)
+    p32 = ik.velocity_step(c32, q.float(), twist.float(), 0.1, velocity_limit=1.0, weight=[1, 1, 1, 0, 0, 0],
+                           tasks=post32)
+    assert p32.dtype == torch.float32 and p32.shape == (2, 3, 7)
+    assert float((p32.double() - p64).abs().max()) < 1e-3
     one = ik.velocity_step(c64, q[1, 2], twist[1, 2], 0.1, velocity_limit=1.0)
     assert one.shape == (7,)
     torch.testing.assert_close(one, qd[1, 2], atol=1e-12, rtol=0)
