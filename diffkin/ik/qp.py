@@ -10,19 +10,19 @@ velocities of one robot)
 with H ``(..., n, n)`` symmetric positive definite, g ``(..., n)``, bounds ``(..., n)`` (±inf: no bound),
 G ``(..., p, n)``, h ``(..., p)`` (inf: no constraint); leading batch dims broadcast.
 
-* :func:`box_qp` — a primal active-set method (Nocedal & Wright, Alg. 16.3, specialised to bounds): start at
-  the projection of the unconstrained minimiser, fix the variables clipped there, then per iteration solve
-  the equality QP on the free variables (one batched n × n solve, the fixed variables as identity rows) and
-  either step to the first bound in the way (adding it) or release the bound whose multiplier has the wrong
-  sign, warm-started by two rounds of the primal-dual active-set method (all bounds moved at once). Finite
-  and exact: each row stops at its own KKT point, usually within 1–3 iterations (a bound per joint that
-  the step crosses). The iterations run as batched tensor ops over all rows; finished rows are frozen by a
-  mask. On CPU each iteration runs on the unfinished rows only and the loop ends when every
-  row has finished; on CUDA all rows run, masked, and the "all done" flag is read once every 4 iterations
-  (the only host syncs), up to ``max_iter``.
+* :func:`box_qp` — a primal active-set method (Nocedal & Wright, Alg. 16.3, specialised to bounds): rows
+  whose unconstrained minimiser lies in the box are done at once; the others start from two rounds of the
+  primal-dual active-set method (Hintermüller, Ito & Kunisch: every bound moved at once), then per
+  iteration solve the equality QP on the free variables (one batched n × n Cholesky solve, the fixed
+  variables as identity rows) and either step to the first bound in the way (adding it) or release the
+  bound whose multiplier has the wrong sign. Finite and exact: each row stops at its own KKT point, most
+  within 1–3 iterations. The iterations are batched tensor ops; on CPU they run on the unfinished rows
+  only and the loop ends when every row has finished; on CUDA all rows run, finished ones frozen by a
+  mask, and the "all done" flag is read once every 4 iterations (the only host syncs), up to ``max_iter``.
 * :func:`solve_qp` — a primal-dual interior-point method (Mehrotra's predictor-corrector, as in OptNet /
-  qpth) for general inequalities: a fixed number of Newton steps, each one batched Cholesky-free solve of
-  the n × n reduced system H + GᵀΛS⁻¹G, then a polish on the identified active set. Chosen over ADMM,
+  qpth) for general inequalities: at most 30 Newton steps (finished rows frozen), each one batched LU
+  factorisation of the n × n reduced system H + GᵀΛS⁻¹G, in float64 whatever the inputs' dtype, then a
+  polish on the identified active set. Chosen over ADMM,
   which needs hundreds of iterations and a tuned penalty for 1e-8 accuracy, and over a general active set,
   whose working sets of differing sizes and degenerate cases do not batch: an interior point takes the same
   ~20 iterations for every row, with no host sync at all.
