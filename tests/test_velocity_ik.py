@@ -327,6 +327,8 @@ def test_typed_errors():
         ik.velocity_step(chain, q, tw, 0.1, velocity_limit=torch.ones(3, dtype=F64))
     with pytest.raises(ShapeError, match="weight"):
         ik.velocity_step(chain, q, tw, 0.1, weight=torch.ones(4, dtype=F64))
+    with pytest.raises(ShapeError, match="broadcast"):
+        ik.velocity_step(chain, torch.zeros(3, 7, dtype=F64), tw, 0.1, damping=torch.ones(4, dtype=F64))
     with pytest.raises(ShapeError, match="end"):
         ik.velocity_step(chain, q, tw, 0.1, tasks=[ik.FrameTask(end=1)])
     with pytest.raises(ConventionError, match="FrameTask or PostureTask"):

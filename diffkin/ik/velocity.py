@@ -198,7 +198,8 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
         weight = None if weight is None or weight.ndim == 0 else weight.unsqueeze(-2)
     if weight is not None and weight.ndim == 0:
         weight = weight.expand(*twist.shape[-2:])
-    broadcast_batch(("q", q, 1), ("twist", twist, 2), ("weight", weight, 2))
+    broadcast_batch(("q", q, 1), ("twist", twist, 2), ("weight", weight, 2), ("damping", damping, 0),
+                    ("velocity_limit", vmax if vmax is not None and vmax.ndim else None, 1))
     nv = J.shape[-1]
     if vmax is not None and vmax.ndim and vmax.shape[-1] != nv:
         raise ShapeError(f"velocity_step: expected velocity_limit as a number or (..., {nv}), got "
