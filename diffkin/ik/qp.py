@@ -262,7 +262,8 @@ def box_qp(H, g, lower=None, upper=None, *, max_iter: int | None = None) -> BoxQ
         max_iter: active-set iterations (default 4n + 8; each finished row is frozen).
 
     Returns:
-        :class:`BoxQPResult`; ``x`` is differentiable w.r.t. H, g and the bounds by (Q.2).
+        :class:`BoxQPResult`; ``x`` is differentiable w.r.t. H, g and the bounds by (Q.2). Every iterate is
+        within the bounds, so a row that has not converged (``converged`` False) is still feasible.
     """
     H, g, lo, hi = _inputs(H, g, lower, upper, "box_qp")
     n = g.shape[-1]
