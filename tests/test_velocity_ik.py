@@ -434,3 +434,12 @@ def test_velocity_dampers_as_extra_inequalities_match_daqp():
         ref = qpsolvers.solve_qp(H[i].numpy(), -g[i].numpy(), G[i].numpy(), h[i].numpy(), lb=lo[i].numpy(),
                                  ub=hi[i].numpy(), solver="daqp")
         np.testing.assert_allclose(res.x[i].numpy(), ref, atol=1e-8)
+
+
+def test_box_qp_rows_stopped_early_are_still_feasible():
+    A, b, lo, hi = _random_problem(300, 6, 7, 19)
+    H = A.mT @ A + 1e-3 * torch.eye(7, dtype=F64)
+    g = 5.0 * (A.mT @ b[..., None])[..., 0]
+    res = box_qp(H, g, lo, hi, max_iter=1)
+    assert not bool(res.converged.all())  # some rows needed more iterations
+    assert bool(((res.x >= lo) & (res.x <= hi)).all())
