@@ -123,8 +123,8 @@ def _free_solve(H, g, x, free):
 def _spd_solve(M: Tensor, b: Tensor) -> Tensor:
     """M⁻¹b for symmetric positive definite M ``(B, n, n)`` (the masked H: H_FF and an identity block) by
     the kernels' Cholesky (unrolled over the entries for many rows: LAPACK pays a per-matrix overhead)."""
-    if M.shape[0] == 0:
-        return b.clone()
+    if M.shape[0] < 1024 and not M.is_cuda:  # few systems: LAPACK directly, no layout round trip
+        return torch.linalg.solve_ex(M, b.unsqueeze(-1))[0].squeeze(-1)
     return _spd_solve_batch_last(M.permute(1, 2, 0).contiguous(), b.T.contiguous()).T
 
 
@@ -222,6 +222,10 @@ def _box_solve_compacted(H, g, lo, hi, tols, max_iter: int):
     for _ in range(max_iter):
         if idx.numel() == 0:
             break
+        if idx.numel() == g.shape[0]:  # every row still running (one row, say): no gathers
+            x, at_lo, at_hi, done = _active_set_iteration(H, g, lo, hi, x, at_lo, at_hi, done, tols)
+            idx = (~done).nonzero().squeeze(-1)
+            continue
         sub = [t[idx] for t in (H, g, lo, hi, x, at_lo, at_hi, done)]
         xs, ls, us, ds = _active_set_iteration(*sub, tuple(t[idx] for t in tols))
         x[idx], at_lo[idx], at_hi[idx], done[idx] = xs, ls, us, ds
