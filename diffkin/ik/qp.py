@@ -176,7 +176,7 @@ def _warm_start(H, g, lo, hi, rounds: int, y: Tensor | None = None):
     most rows within 2–3 rounds; it may cycle on others, which the primal phase then settles. ``y``: the
     unconstrained minimiser if known (the first round's solve)."""
     fixed_lo = torch.zeros_like(g, dtype=torch.bool)
-    fixed_hi = fixed_lo
+    fixed_hi = torch.zeros_like(fixed_lo)  # its own tensor: callers write into the returned sets
     x = torch.zeros_like(g)
     for k in range(rounds + 1):
         if k == 0 and y is not None:
@@ -217,7 +217,9 @@ def _box_solve_compacted(H, g, lo, hi, tols, max_iter: int):
     x, at_lo = y.clone(), torch.zeros_like(y, dtype=torch.bool)
     at_hi = at_lo.clone()
     idx = (~done).nonzero().squeeze(-1)
-    if idx.numel():
+    if idx.numel() == g.shape[0]:
+        x, at_lo, at_hi = _warm_start(H, g, lo, hi, _WARM_START, y)
+    elif idx.numel():
         x[idx], at_lo[idx], at_hi[idx] = _warm_start(H[idx], g[idx], lo[idx], hi[idx], _WARM_START, y[idx])
     for _ in range(max_iter):
         if idx.numel() == 0:
