@@ -274,8 +274,8 @@ class ReachEnv(TaskEnv):
       |q̇| ≤ max_joint_speed and the joint limits over control_dt, instead of the DLS step scaled down
       as a whole and clamped (over joints drawn in the whole range, 1/3 of the steps change and the mean
       end-effector error of a 0.05 m step falls from 9.1 to 7.1 mm); the exact solve costs: 4 096
-      Cartesian Reach envs step at 0.23–0.34 M env-steps per CPU second instead of 1.2–1.4 M (one
-      thread, shared machine). Joint mode is unchanged.
+      Cartesian Reach envs step at 0.18–0.34 M env-steps per CPU second instead of 0.8–1.4 M, 4–5× the
+      time (one thread, several runs on a shared machine). Joint mode is unchanged.
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,
