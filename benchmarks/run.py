@@ -1,7 +1,8 @@
 """Run diffkin's benchmarks and print one table per benchmark (ratios are against the reference timed in the
 same run, on the same machine and thread count).
 
-    python -m benchmarks.run [fk|jacobian|ik|ik_grad|closed_form|env|calibration|model|kernels|all ...]
+    python -m benchmarks.run [fk|jacobian|ik|ik_grad|closed_form|env|calibration|model|kernels|
+                              velocity_ik|all ...]
                              [--quick]
                              [--device cpu|cuda] [--threads N] [--compile] [--json out.json]
 
@@ -31,7 +32,7 @@ import sys
 from benchmarks.common import print_table, write_json
 
 NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model", "sharded",
-         "kernels")
+         "kernels", "velocity_ik")
 
 
 def parse_args(argv=None) -> argparse.Namespace:

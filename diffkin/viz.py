@@ -10,7 +10,10 @@ loopback interface unless told otherwise — that shows a :class:`~diffkin.chain
   segments are drawn);
 * one slider per joint variable (range ``chain.lower_upper()``: the limits, ±π / ±1 m where there is none);
 * a draggable target per end link (transform controls): moving it runs :func:`diffkin.ik.solve` seeded from
-  the current ``q`` and shows success, position and orientation errors and the solve time;
+  the current ``q`` and shows success, position and orientation errors and the solve time; with
+  ``drag="velocity"`` (or the GUI's "Limit-safe drag" box) the arm instead follows the target by
+  resolved-rate steps of :func:`diffkin.ik.velocity_step` (a continuous motion that never leaves the
+  joint limits nor exceeds ``drag_speed``);
 * trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second).
 
 Nothing here imports viser until a viewer is made: ``import diffkin`` and ``import diffkin.viz`` work
@@ -140,6 +143,9 @@ class Viewer:
             paths resolve against the file's folder; ``None``: against the working directory).
         meshes: False: never load URDF meshes (frames and segments only).
         ik_options: keyword arguments for :func:`diffkin.ik.solve` (e.g. ``num_seeds``, tolerances).
+        drag: what a drag of a target runs: ``"solve"`` (:func:`diffkin.ik.solve`, a jump to a solution)
+            or ``"velocity"`` (:meth:`drag_to`: limit-safe velocity-IK steps from the current q).
+        drag_speed: the joint speed bound of ``"velocity"`` drags (rad/s or m/s, per 0.05 s step).
         verbose: let viser print its banner and connection messages.
 
     Attributes:
@@ -152,10 +158,13 @@ class Viewer:
 
     def __init__(self, chain, q=None, *, host: str = "127.0.0.1", port: int = 8080, trajectory=None,
                  fps: float | None = None, urdf=None, meshes: bool = True, ik_options: dict | None = None,
-                 verbose: bool = False):
+                 verbose: bool = False, drag: str = "solve", drag_speed: float = 2.0):
+        if drag not in ("solve", "velocity"):
+            raise DiffkinError(f"drag must be 'solve' or 'velocity', got {drag!r}")
         viser = _import_viser()
         self.chain = chain
         self.ik_options = dict(ik_options or {})
+        self._drag, self.drag_speed = drag, float(drag_speed)
         self.ik_state: dict = {"success": None, "position_error": None, "orientation_error": None,
                                "time_s": None, "message": "drag a target to solve IK"}
         self._lock = threading.RLock()
@@ -372,6 +381,8 @@ class Viewer:
             b.on_click(lambda _: self.set_q(self.chain.random_configuration(()), move_targets=True))
         with gui.add_folder("Inverse kinematics"):
             self.gui_position_only = gui.add_checkbox("Position only", initial_value=False)
+            self.gui_limit_safe = gui.add_checkbox("Limit-safe drag (velocity IK)",
+                                                   initial_value=self._drag == "velocity")
             self.gui_ik_success = gui.add_text("Success", initial_value="-", disabled=True)
             self.gui_ik_position = gui.add_text("Position error [mm]", initial_value="-", disabled=True)
             self.gui_ik_orientation = gui.add_text("Orientation error [deg]", initial_value="-",
@@ -428,18 +439,8 @@ class Viewer:
         errors, and returns the :class:`~diffkin.ik.IKResult` (``q (n,)``, ``success``, errors)."""
         from .ik import solve
 
-        K = len(self._targets)
         with self._lock:
-            if T_target is None:
-                T = self.targets()
-            else:
-                T = np.asarray(T_target.detach().cpu() if isinstance(T_target, Tensor) else T_target,
-                               dtype=np.float64).reshape(-1, 4, 4)
-                if T.shape[0] != K:
-                    raise ShapeError(f"T_target: expected {K} pose(s) of shape (4, 4), got {T.shape[0]}")
-                w = _wxyz(T[:, :3, :3])
-                for h, Tk, wk in zip(self._targets, T, w):
-                    h.position, h.wxyz = Tk[:3, 3], wk
+            T = self.targets() if T_target is None else self._move_targets(T_target)
             pos_only = bool(self.gui_position_only.value) if position_only is None else position_only
             Tt = torch.as_tensor(T, dtype=self.chain.dtype, device=self.chain.device)
             if self._single_end:
@@ -460,6 +461,41 @@ class Viewer:
             self.gui_ik_time.value = f"{dt * 1e3:.1f}"
             return res
 
+    def drag_to(self, T_target=None, position_only: bool | None = None, steps: int = 40,
+                dt: float = 0.05) -> dict:
+        """Follow the targets (default: where they are; ``(4, 4)`` / ``(K, 4, 4)`` poses, which moves them)
+        from the current q by at most ``steps`` resolved-rate steps q ← q + q̇Δt of
+        :func:`diffkin.ik.velocity_step` for the twist that would close the pose error (position,
+        axis-angle orientation (3.85)) in one step, bounded by the joint limits and ``drag_speed``: every
+        intermediate q is within the limits. Shows and returns :attr:`ik_state`."""
+        with self._lock:
+            T = self.targets() if T_target is None else self._move_targets(T_target)
+            pos_only = bool(self.gui_position_only.value) if position_only is None else position_only
+            t0 = time.perf_counter()
+            q, pe, oe = _drag_steps(self.chain, self._q, T, pos_only, self.drag_speed, steps, dt)
+            self.set_q(q)
+            ok = pe < 1e-4 and (pos_only or oe < 1e-3)
+            self.ik_state = {"success": ok, "position_error": pe,
+                             "orientation_error": None if pos_only else oe,
+                             "time_s": time.perf_counter() - t0,
+                             "message": "reached" if ok else "following (limit-safe)"}
+            self.gui_ik_success.value = "yes" if ok else "no (following within the limits)"
+            self.gui_ik_position.value = f"{pe * 1e3:.3f}"
+            self.gui_ik_orientation.value = "-" if pos_only else f"{np.degrees(oe):.3f}"
+            self.gui_ik_time.value = f"{self.ik_state['time_s'] * 1e3:.1f}"
+            return self.ik_state
+
+    def _move_targets(self, T_target) -> np.ndarray:
+        """Put the targets at ``T_target`` ``(4, 4)`` / ``(K, 4, 4)``; returns the poses ``(K, 4, 4)``."""
+        K = len(self._targets)
+        T = np.asarray(T_target.detach().cpu() if isinstance(T_target, Tensor) else T_target,
+                       dtype=np.float64).reshape(-1, 4, 4)
+        if T.shape[0] != K:
+            raise ShapeError(f"T_target: expected {K} pose(s) of shape (4, 4), got {T.shape[0]}")
+        for h, Tk, wk in zip(self._targets, T, _wxyz(T[:, :3, :3])):
+            h.position, h.wxyz = Tk[:3, 3], wk
+        return T
+
     def _on_target_event(self, _event) -> None:
         """Transform-controls callback: solve for the newest target pose; drags that arrive while a solve
         runs are merged into one more solve."""
@@ -475,7 +511,10 @@ class Viewer:
                     if T is None or self._closed:
                         self._ik_busy = False
                         return
-                    self.solve_to(None)
+                    if self.gui_limit_safe.value:
+                        self.drag_to(None)
+                    else:
+                        self.solve_to(None)
         except BaseException:
             with self._lock:
                 self._ik_busy = False
@@ -594,6 +633,29 @@ class Viewer:
     def __repr__(self) -> str:
         state = "closed" if self._closed else self.url
         return f"Viewer({self.chain.name!r}, {state})"
+
+
+def _drag_steps(chain, q: Tensor, T: np.ndarray, position_only: bool, speed: float, steps: int, dt: float):
+    """Resolved-rate steps of :func:`diffkin.ik.velocity_step` towards the poses ``T (K, 4, 4)``: the twist
+    [e_p; e_O]/Δt, |q̇| ≤ speed, the joint limits over Δt. -> (q, position error, orientation error)."""
+    from .ik import velocity_step
+    from .kernels.pose_error import orientation_error
+
+    Tt = torch.as_tensor(T, dtype=chain.dtype, device=chain.device)
+    weight = torch.tensor([1.0] * 3 + [0.0 if position_only else 1.0] * 3, dtype=Tt.dtype, device=Tt.device)
+    pe = oe = float("inf")
+    for k in range(steps + 1):
+        E = chain.forward_kinematics(q).detach().reshape(-1, 4, 4)
+        e_p = Tt[:, :3, 3] - E[:, :3, 3]
+        e_o = orientation_error(Tt[:, :3, :3], E[:, :3, :3], "axis_angle")[0]
+        pe, oe = float(e_p.norm(dim=-1).max()), float(e_o.norm(dim=-1).max())
+        if k == steps or (pe < 1e-5 and (position_only or oe < 1e-4)):
+            break
+        twist = torch.cat((e_p, e_o), -1) / dt
+        qd = velocity_step(chain, q, twist[0] if chain.single_end else twist, dt, velocity_limit=speed,
+                           weight=weight if chain.single_end else weight.expand(len(T), 6))
+        q = q + qd.detach() * dt
+    return q, pe, oe
 
 
 def _maybe_quiet(verbose: bool):

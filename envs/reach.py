@@ -183,8 +183,10 @@ class ReachEnv(TaskEnv):
     Panda): joint velocities ``q̇ = a · max_joint_speed`` (1.5 rad/s), integrated over ``control_dt``
     (0.1 s) and clamped to the joint limits.
     ``Box(-1.0, 1.0, (3,), float32)`` with ``action_mode="cartesian"``: an end-effector displacement
-    ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``Δq`` by a damped-least-squares step
-    (damping 0.05), scaled down so no joint moves more than ``max_joint_speed · control_dt``.
+    ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``Δq = q̇ · control_dt`` by
+    :func:`diffkin.ik.velocity_step`: the damped-least-squares step (damping 0.05) solved exactly under
+    ``|q̇| ≤ max_joint_speed`` and the joint limits (limit-safe: a joint at its limit stops and the others
+    take over).
     Actions outside [-1, 1] are clipped; NaN/inf or a wrong shape raise ``ValueError`` subclasses.
 
     ## Observation Space
@@ -267,7 +269,13 @@ class ReachEnv(TaskEnv):
     * v0: initial version. Goals were over the whole joint range; since issue 19 the default is the goal
       cube (``goal_sampling="box"``), the old distribution is ``goal_sampling="joints"``; kinematic domain
       randomisation added (off by default); the observation is panda-gym's ``[p_ee, ṗ_ee]`` by default
-      (before: ``[normalised q, p_ee]``, ``observation=("joint_positions", "ee_position")``).
+      (before: ``[normalised q, p_ee]``, ``observation=("joint_positions", "ee_position")``). The Cartesian
+      action is velocity_step (issue 29): the damped-least-squares step solved exactly under
+      |q̇| ≤ max_joint_speed and the joint limits over control_dt, instead of the DLS step scaled down
+      as a whole and clamped (over joints drawn in the whole range, 1/3 of the steps change and the mean
+      end-effector error of a 0.05 m step falls from 9.1 to 7.1 mm); the exact solve costs: 4 096
+      Cartesian Reach envs step at 0.18–0.34 M env-steps per CPU second instead of 0.8–1.4 M, 4–5× the
+      time (one thread, several runs on a shared machine). Joint mode is unchanged.
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

@@ -5,8 +5,10 @@ already validated tensors (the envs validate actions once at the boundary).
 
 * joint-velocity mode: ``a ∈ [-1, 1]^n`` → q̇ = a · q̇_max, integrated over the control period and
   projected onto the joint limits.
-* Cartesian mode: ``a ∈ [-1, 1]^3`` → Δx = a · Δx_max; Δq from diffkin's damped-least-squares step
-  Δq = J_pᵀ (J_p J_pᵀ + λ² I)⁻¹ Δx  (3.56 with damping), rescaled so no joint exceeds q̇_max · Δt.
+* Cartesian mode: ``a ∈ [-1, 1]^3`` → Δx = a · Δx_max; Δq = q̇ Δt with q̇ from
+  :func:`diffkin.ik.velocity_step`: the damped-least-squares step (3.59) on the position rows, solved
+  exactly under |q̇| ≤ q̇_max and the joint limits over Δt (limit-safe: a joint at its limit stops and the
+  others take over the motion).
 """
 
 from __future__ import annotations
@@ -19,8 +21,7 @@ from torch import Tensor, nn
 
 from diffkin.chain import DHChain, KinematicChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
-from diffkin.ik.numerical import dls_delta
-from diffkin.jacobian import forward_kinematics_and_jacobian
+from diffkin.ik.velocity import velocity_step
 from diffkin.validation import check_device, shape_str, tensors
 
 from ._checks import check_setting
@@ -123,6 +124,7 @@ class Robot:
         self.step_limit = self.config.max_joint_speed * self.config.control_dt
         self.revolute = self.chain.revolute_mask.to(torch.bool)
         self.planar = self.name == "three_link_planar"
+        self._position_rows = torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=dtype, device=self.device)
         self._init_geometry()
 
     # ------------------------------------------------------------------------- domain randomisation
@@ -218,10 +220,14 @@ class Robot:
         return q.clamp_(*self._per_row(q, "limits"))  # q is a new tensor here
 
     def cartesian_delta(self, q: Tensor, dx: Tensor) -> Tensor:
-        """Δq for an end-effector displacement ``dx (N, 3)`` by damped least squares, speed-limited."""
-        dq = _dls_position_delta(self.chain, q, dx, self.config.damping)
-        scale = (dq.abs().amax(dim=-1, keepdim=True) / self.step_limit).clamp(min=1.0)
-        return dq / scale
+        """Δq for an end-effector displacement ``dx (N, 3)``: Δt · :func:`~diffkin.ik.velocity_step` for the
+        twist [Δx/Δt; 0] with weights (1, 1, 1, 0, 0, 0), damping λ² (3.59), |q̇| ≤ ``max_joint_speed`` and
+        the joint limits over ``control_dt``."""
+        cfg = self.config
+        twist = torch.cat((dx / cfg.control_dt, torch.zeros_like(dx)), dim=-1)
+        qd = velocity_step(self.chain, q, twist, cfg.control_dt, damping=cfg.damping ** 2,
+                           velocity_limit=cfg.max_joint_speed, weight=self._position_rows)
+        return qd * cfg.control_dt
 
 
 class _EndPosition(nn.Module):
@@ -235,8 +241,3 @@ class _EndPosition(nn.Module):
     def forward(self, q: Tensor) -> Tensor:
         return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
 
-
-def _dls_position_delta(chain: KinematicChain, q: Tensor, dx: Tensor, damping: float) -> Tensor:
-    """Δq = J_pᵀ (J_p J_pᵀ + λ² I)⁻¹ Δx (3.59) with J_p the position rows of the geometric Jacobian (3.30)."""
-    _, J = forward_kinematics_and_jacobian(chain, q, check=False)
-    return dls_delta(J[..., :3, :], dx, damping)

@@ -144,7 +144,8 @@ class TrackEnv(TaskEnv):
     ## Action Space
     As ``diffkin/Reach-v0``: ``Box(-1.0, 1.0, (n,), float32)`` joint velocities ``a · max_joint_speed``
     (``action_mode="joint"``) or ``Box(-1.0, 1.0, (3,), float32)`` end-effector displacements
-    ``a · max_ee_step`` through a damped-least-squares step (``action_mode="cartesian"``); clipped to [-1, 1].
+    ``a · max_ee_step`` through :func:`diffkin.ik.velocity_step` (``action_mode="cartesian"``: the
+    damped-least-squares step under the joint position and velocity limits); clipped to [-1, 1].
 
     ## Observation Space
     ``Box(-w, w, (n + 3 + 3 (H + 1) + 1,), float32)`` with ``H = lookahead`` (3): the joint positions mapped
@@ -182,7 +183,13 @@ class TrackEnv(TaskEnv):
     as in ``diffkin/Reach-v0`` (the path starts at that robot's end effector).
 
     ## Version History
-    * v0: initial version; kinematic domain randomisation added (off by default).
+    * v0: initial version; kinematic domain randomisation added (off by default). The Cartesian action is
+      velocity_step (issue 29): the damped-least-squares step solved exactly under
+      |q̇| ≤ max_joint_speed and the joint limits over control_dt, instead of the DLS step scaled down
+      as a whole and clamped (over joints drawn in the whole range, 1/3 of the steps change and the mean
+      end-effector error of a 0.05 m step falls from 9.1 to 7.1 mm); the exact solve costs: 4 096
+      Cartesian Reach envs step at 0.18–0.34 M env-steps per CPU second instead of 0.8–1.4 M, 4–5× the
+      time (one thread, several runs on a shared machine). Joint mode is unchanged.
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

@@ -227,3 +227,30 @@ def test_cli_view_serves_and_stops(tmp_path, capsys):
     assert cli.main(["view", "--robot", "three_link_planar", "--port", "0", "--duration", "0.5"]) == 0
     out = capsys.readouterr().out
     assert "three_link_planar" in out and "http://127.0.0.1:" in out
+
+
+@needs_viser
+def test_velocity_drag_follows_the_target_within_the_limits(panda):
+    v = viz.show(panda, port=0, drag="velocity", drag_speed=1.5)
+    try:
+        assert v.gui_limit_safe.value is True
+        q0 = torch.tensor([0.0, -0.3, 0.0, -2.0, 0.0, 1.8, 2.7], dtype=torch.float64)
+        v.set_q(q0, move_targets=True)
+        # a small drag: reached, as ik.solve would
+        T = panda.forward_kinematics(q0 + torch.tensor([0.1, 0.05, -0.05, 0.1, 0.0, -0.05, 0.0],
+                                                       dtype=torch.float64)).detach().numpy()
+        h = v._targets[0]
+        h.position, h.wxyz = T[:3, 3], viz._wxyz(T[:3, :3])
+        v._on_target_event(None)
+        assert v.ik_state["success"] is True and v.ik_state["position_error"] < 1e-4
+        np.testing.assert_allclose(panda.forward_kinematics(v.q).detach().numpy(), T, atol=1e-3)
+        # a roll of the flange past joint 7's limit: the arm follows within the limits
+        R = np.array([[np.cos(0.8), -np.sin(0.8), 0], [np.sin(0.8), np.cos(0.8), 0], [0, 0, 1]])
+        T2 = T.copy()
+        T2[:3, :3] = T[:3, :3] @ R
+        state = v.drag_to(T2)
+        assert bool(panda.within_limits(v.q).all())
+        assert float(v.q[6]) == pytest.approx(float(panda.q_limits[6, 1]), abs=1e-9)  # joint 7 at its limit
+        assert state["orientation_error"] < 1e-3  # the other joints took over the rest of the roll
+    finally:
+        v.close()

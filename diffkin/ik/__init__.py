@@ -60,3 +60,9 @@ __all__ = [
     "refine_path",
     "solve",
 ]
+
+from .velocity import FrameTask as FrameTask  # noqa: E402
+from .velocity import PostureTask as PostureTask  # noqa: E402
+from .velocity import velocity_step as velocity_step  # noqa: E402
+
+__all__ += ["FrameTask", "PostureTask", "velocity_step"]

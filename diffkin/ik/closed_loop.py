@@ -56,6 +56,8 @@ from ..rotations import (
     _skew,
 )
 from ..validation import check_number, check_trailing, shape_str, tensors
+from .velocity import FrameTask
+from .velocity import _solve as _velocity_solve
 
 __all__ = ["CLIKResult", "clik", "CLIK_ALGORITHMS", "CLIK_ORIENTATIONS", "joint_limit_objective"]
 
@@ -322,15 +324,33 @@ def _nullspace_term(J_inv: Tensor, J_s: Tensor, v0: Tensor) -> Tensor:
     return v0 - _mv(J_inv, _mv(J_s, v0))
 
 
-def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
-    rows = list(cfg.task.rows)
+def _reference(cfg, e, v_ff, L) -> Tensor:
+    """The reference velocity ẋ_d + K e of (3.70)/(3.82)/(3.92), L-compensated for (3.89)."""
     Ge = _mv(cfg.K, e)
-    if cfg.algorithm == "transpose":
-        return _mv(J_t[..., rows, :].mT, Ge[..., rows])  # (3.76)
-    v = v_ff + Ge  # (3.70)/(3.82)/(3.92)
+    v = v_ff + Ge
     if L is not None:  # (3.89): L⁻¹(Lᵀω_d + K_O e_O)
         v_o = _solve_L(L, _mv(L.mT, v_ff[..., 3:].expand_as(Ge[..., 3:])) + Ge[..., 3:])
         v = torch.cat(torch.broadcast_tensors(v[..., :3], v_o), dim=-1)
+    return v
+
+
+def _limited(cfg, chain, q, J, v, dt: float) -> Tensor:
+    """``limits=True``: q̇ of :func:`~diffkin.ik.velocity_step` (V.1)–(V.2) for the reference v on the
+    selected rows, λ = k² of (3.59): the DLS law with the joint position and velocity limits as bounds."""
+    task = cfg.task
+    zeros = torch.zeros(6, dtype=q.dtype, device=q.device)
+    twist = torch.cat((v, zeros[task.size:].expand(*v.shape[:-1], 6 - task.size)), dim=-1)
+    weight = zeros.index_fill(0, torch.tensor(task.rows, device=q.device), 1.0)
+    vmax = None if cfg.qdot_max is None else torch.tensor(cfg.qdot_max, dtype=q.dtype, device=q.device)
+    return _velocity_solve(chain, q, J.unsqueeze(-3), twist.unsqueeze(-2), weight.expand(1, 6), dt,
+                           cfg.damping * cfg.damping, vmax, True, [FrameTask()], None)
+
+
+def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
+    rows = list(cfg.task.rows)
+    if cfg.algorithm == "transpose":
+        return _mv(J_t[..., rows, :].mT, _mv(cfg.K, e)[..., rows])  # (3.76)
+    v = _reference(cfg, e, v_ff, L)
     J_s = J_t[..., rows, :]
     J_inv = _damped(J_s, cfg.damping * cfg.damping) if cfg.algorithm == "dls" else _pinv(J_s)
     qd = _mv(J_inv, v[..., rows])
@@ -365,7 +385,8 @@ class _Config(NamedTuple):
     objective: Callable | None
     k0: float
     k_d0: float
-    qdot_max: float
+    qdot_max: float | None
+    limits: bool
 
 
 def _qdot_max(v, dt: float) -> float:
@@ -408,6 +429,7 @@ def clik(
     clamp: bool = False,
     return_poses: bool = False,
     differentiable: bool | None = None,
+    limits: bool = False,
 ) -> CLIKResult:
     """Closed-loop inverse kinematics along x_d(t), integrated with forward Euler (3.48) (§3.7).
 
@@ -434,6 +456,11 @@ def clik(
             per step: never reached by a run that converges; it keeps a diverging one — gains too high for
             the error, a pass near a singularity — finite, with its errors reported as they are).
         clamp: project q onto the chain's joint limits after each step. return_poses: keep the poses.
+        limits: hard joint limits (with ``algorithm="dls"``): each q̇ is :func:`~diffkin.ik.velocity_step`'s
+            exact solution of the DLS problem (3.59) with λ = ``damping``² under the bounds that keep
+            q + q̇Δt within the chain's joint limits and |q̇| ≤ ``qdot_max`` (if given): the step near a
+            limit is redistributed to the other joints instead of cut (orientation ``None``,
+            ``"axis_angle"`` or ``"quaternion"``; no ``nullspace``).
         differentiable: record the autograd graph through all the steps (w.r.t. q0, the target and the
             chain's DH parameters). Default: only when grad mode is on and q0 or a target tensor requires
             grad, since a graph over thousands of steps is costly; pass True for gradients w.r.t. the chain
@@ -454,6 +481,11 @@ def clik(
         )
     if qdot0 is not None:
         qdot0 = chain.check_q(qdot0, name="qdot0")
+    _check_limits_mode(limits, algorithm, orientation, nullspace, damping)
+    if limits:  # the QP's velocity bound: only the one asked for
+        qd_max = None if qdot_max is None else check_number(qdot_max, "qdot_max", unit=" (rad/s)")
+    else:
+        qd_max = _qdot_max(qdot_max, dt)
     get, steps = _target_sampler(target, steps, dt, q, task)
     omega = 0.1 / dt
     cfg = _Config(
@@ -466,13 +498,25 @@ def clik(
         _objective(nullspace, chain, task, q_limits),
         float(k0),
         float(k_d0),
-        _qdot_max(qdot_max, dt),
+        qd_max,
+        bool(limits),
     )
     if differentiable is None:
         given = [q] + ([] if callable(target) else [v for v in _as_tuple(target) if isinstance(v, Tensor)])
         differentiable = torch.is_grad_enabled() and any(v.requires_grad for v in given)
     with contextlib.nullcontext() if differentiable else torch.no_grad():
         return _integrate(chain, q, qdot0, get, steps, dt, cfg, clamp, return_poses)
+
+
+def _check_limits_mode(limits, algorithm, orientation, nullspace, damping) -> None:
+    if not limits:
+        return
+    if algorithm != "dls" or orientation == "euler" or nullspace is not None:
+        raise ConventionError(
+            "clik(limits=True) solves the DLS law (3.59) under the joint limits: it needs algorithm='dls', "
+            f"orientation None, 'axis_angle' or 'quaternion' and no nullspace; got algorithm={algorithm!r}, "
+            f"orientation={orientation!r}, nullspace={nullspace!r}")
+    check_number(damping, "damping (k of (3.59), λ = k² > 0 with limits=True)")
 
 
 def _as_tuple(target) -> tuple:
@@ -488,7 +532,7 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
     for k in range(steps + 1):
         x_d, v_d, a_d = get(k)
         p_d, o_d = _split_desired(task, x_d)
-        T, e, J_t, L, _ = _error_and_jacobian(chain, q, task, p_d, o_d)
+        T, e, J_t, L, J = _error_and_jacobian(chain, q, task, p_d, o_d)
         v_ff = _feed(v_d, task.size, q)
         if k == 0:
             batch = torch.broadcast_shapes(e.shape[:-1], v_ff.shape[:-1], q.shape[:-1])
@@ -499,6 +543,8 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
                 qd = qd.clamp(-cfg.qdot_max, cfg.qdot_max)
             qd = qd.expand(*batch, n)
             qdd = _second_order(cfg, chain, q, qd, J_t, e, v_ff, _feed(a_d, task.size, q))
+        elif cfg.limits:
+            qd = _limited(cfg, chain, q, J, _reference(cfg, e, v_ff, L), dt).expand(*batch, n)
         else:
             qd = _first_order(cfg, q, J_t, e, v_ff, L).expand(*batch, nv)
         qs.append(q)
