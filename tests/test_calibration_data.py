@@ -125,6 +125,13 @@ def test_measurement_files_follow_the_rule_and_name_file_and_row(tmp_path):
                         "--output", tmp_path / "cal2.yaml")
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
     assert "bad.npz" in err and "row 8" in err and "rigid" in err, err
+    # the same rule for IK targets read from a file
+    np.save(tmp_path / "T.npy", _off_orthonormal(T, 2e-4, 3).numpy())
+    rc, out, err = _cli("ik", "--robot", "ur5", "--input", tmp_path / "T.npy", "--num-seeds", "2")
+    assert rc == 0, err
+    np.save(tmp_path / "T_bad.npy", _off_orthonormal(T, 3e-3, 4).numpy())
+    rc, out, err = _cli("ik", "--robot", "ur5", "--input", tmp_path / "T_bad.npy")
+    assert rc == 2 and "T_bad.npy: row 5 is not a rigid transform" in err, err
 
 
 # ------------------------------------------------------------------------------------------ item 4
