@@ -293,16 +293,12 @@ def cmd_calibrate(args) -> int:
         else:
             out.write_text(res.chain.to_yaml())
         written = out
-    rows = [
-        [r["name"], f"{r['nominal']:.6f}", f"{r['identified']:.6f}", f"{r['delta']:+.6f}"]
-        for r in res.parameter_table()
-    ]
     con = _console()
     con.print(
         _table(
-            f"calibration of '{res.nominal_chain.name}' ({args.method})",
-            ["parameter", "nominal", "identified", "delta"],
-            rows,
+            f"calibration of '{res.nominal_chain.name}' ({args.method}; lengths mm, angles deg)",
+            ["parameter", "nominal", "identified", "delta", "unit", ""],
+            res.display_rows(),
         )
     )
     rows = [["position RMS [mm]", f"{res.residuals[0] * 1e3:.4f}", f"{res.residuals[-1] * 1e3:.4f}"]]
@@ -822,7 +818,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--robot", help="nominal robot: built-in name or robot YAML file (DH)")
     p.add_argument("--urdf", help="nominal robot as a URDF file (with --end-link)")
     p.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
-    p.add_argument("--data", required=True, help=".npz with q (N, n) and T (N, 4, 4) or position (N, 3)")
+    p.add_argument("--data", required=True,
+                   help="measurements: .npz with q (N, n) and T (N, 4, 4) or position (N, 3) [+ quaternion], "
+                        "or .csv read by its header q1..qn,x,y,z[,qw,qx,qy,qz] (diffkin fk's CSV)")
     p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"],
                    help="solver")
     p.add_argument("--error-model", dest="error_model", default="auto",

@@ -125,6 +125,13 @@ def test_measurement_files_follow_the_rule_and_name_file_and_row(tmp_path):
                         "--output", tmp_path / "cal2.yaml")
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
     assert "bad.npz" in err and "row 8" in err and "rigid" in err, err
+    # the same rule for IK targets read from a file
+    np.save(tmp_path / "T.npy", _off_orthonormal(T, 2e-4, 3).numpy())
+    rc, out, err = _cli("ik", "--robot", "ur5", "--input", tmp_path / "T.npy", "--num-seeds", "2")
+    assert rc == 0, err
+    np.save(tmp_path / "T_bad.npy", _off_orthonormal(T, 3e-3, 4).numpy())
+    rc, out, err = _cli("ik", "--robot", "ur5", "--input", tmp_path / "T_bad.npy")
+    assert rc == 2 and "T_bad.npy: row 5 is not a rigid transform" in err, err
 
 
 # ------------------------------------------------------------------------------------------ item 4
@@ -295,3 +302,27 @@ def test_one_parameter_jacobian_for_every_error_model():
         plus, minus = (model.forward_kinematics(zeta + s * e, q) for s in (1.0, -1.0))
         fd = pose_residual(minus, plus, 1.0) / (2 * h)
         torch.testing.assert_close(Phi[..., j], fd, atol=1e-6, rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------- docs list: units
+def test_reports_share_one_unit_convention(tmp_path):
+    """Console table, parameters.md and summary() give lengths in mm and angles in degrees alike."""
+    from diffkin.calibration import calibrate
+
+    chain, true = _perturbed_panda(17)
+    q = chain.random_configuration(40, generator=torch.Generator().manual_seed(18))
+    T = true.forward_kinematics(q).detach()
+    res = calibrate(chain, q, T, progress=False)
+    text = res.summary()
+    assert "mrad" not in text and "deg" in text and "mm" in text
+    md = res.to_markdown().splitlines()[2:]
+    for line, row in zip(md, res.display_rows()):
+        assert line.startswith(f"| {row[0]} | {row[1]} | {row[2]} | {row[3]} {row[4]} |")
+    a2 = next(r for r in res.parameter_table() if r["name"] == "a2")
+    shown = next(r for r in res.display_rows() if r[0] == "a2")
+    assert float(shown[2]) == pytest.approx(a2["identified"] * 1e3, abs=1e-4) and shown[4] == "mm"
+    np.savez(tmp_path / "m.npz", q=q.numpy(), T=T.numpy())
+    rc, out, err = _cli("calibrate", "--robot", "panda", "--data", tmp_path / "m.npz", "--cv", "0",
+                        "--output", tmp_path / "c.yaml")
+    assert rc == 0, err
+    assert "lengths mm, angles deg" in " ".join(out.split()) and f"{a2['identified'] * 1e3:.4f}" in out, out

@@ -23,6 +23,7 @@ from .solvers import gradient_descent, least_squares
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
 
 METHODS = ("least_squares", "gradient")
+_DEG = 180.0 / math.pi  # reports give lengths in mm and angles in degrees (console, parameters.md, summary)
 
 
 def validation_error(chain: DHChain, q: Tensor, T: Tensor) -> dict[str, float | None]:
@@ -121,16 +122,22 @@ class CalibrationResult:
             )
         return rows
 
-    def to_markdown(self) -> str:
-        """The parameter table as Markdown (lengths in mm, angles in degrees)."""
-        lines = ["| parameter | nominal | identified | delta | |", "|---|---:|---:|---:|---|"]
+    def display_rows(self) -> list[list[str]]:
+        """The parameter table as text in the units every report uses (lengths mm, angles deg):
+        ``[name, nominal, identified, delta, unit, note]`` per parameter (``to_markdown``, ``diffkin
+        calibrate``'s table; :meth:`parameter_table` keeps metres and radians)."""
+        rows = []
         for r in self.parameter_table():
-            f, u = (1e3, "mm") if r["unit"] == "m" else (57.29577951308232, "deg")
-            note = "" if r["identifiable"] else "fixed (unidentifiable)"
-            lines.append(
-                f"| {r['name']} | {r['nominal'] * f:.4f} | {r['identified'] * f:.4f} | "
-                f"{r['delta'] * f:+.4f} {u} | {note} |"
-            )
+            f, u = (1e3, "mm") if r["unit"] == "m" else (_DEG, "deg")
+            rows.append([r["name"], f"{r['nominal'] * f:.4f}", f"{r['identified'] * f:.4f}",
+                         f"{r['delta'] * f:+.4f}", u, "" if r["identifiable"] else "fixed (unidentifiable)"])
+        return rows
+
+    def to_markdown(self) -> str:
+        """The parameter table as Markdown (lengths in mm, angles in degrees, as every report)."""
+        lines = ["| parameter | nominal | identified | delta | |", "|---|---:|---:|---:|---|"]
+        for name, nom, idf, delta, unit, note in self.display_rows():
+            lines.append(f"| {name} | {nom} | {idf} | {delta} {unit} | {note} |")
         return "\n".join(lines)
 
     def validation_error(self, q: Tensor, T: Tensor) -> dict[str, float | None]:
@@ -158,7 +165,7 @@ class CalibrationResult:
         axes = fig.subplots(1, panels)
         for ax, sl, f, unit in (
             (axes[0], slice(0, 3), 1e3, "mm"),
-            (axes[-1], slice(3, 6), 57.29577951308232, "deg"),
+            (axes[-1], slice(3, 6), _DEG, "deg"),
         )[: panels - 1]:
             b, a = (x[..., sl].norm(dim=-1).cpu().numpy() * f for x in (before, after))
             lo, hi = max(min(b.min(), a.min()), 1e-9 * f), max(b.max(), a.max(), 2e-9 * f)
@@ -173,7 +180,7 @@ class CalibrationResult:
         ax.semilogy([r * 1e3 for r in self.residuals], marker="o", ms=3, label="position RMS [mm]")
         if self.orientation_residuals is not None:
             ax.semilogy(
-                [r * 57.29577951308232 for r in self.orientation_residuals],
+                [r * _DEG for r in self.orientation_residuals],
                 marker="s",
                 ms=3,
                 label="orientation RMS [deg]",
@@ -205,15 +212,15 @@ class CalibrationResult:
         ]
         if self.orientation_residuals is not None:
             lines.append(
-                f"orientation RMS {self.orientation_residuals[0] * 1e3:.4f} mrad -> "
-                f"{self.orientation_residuals[-1] * 1e3:.4f} mrad"
+                f"orientation RMS {self.orientation_residuals[0] * _DEG:.5f} deg -> "
+                f"{self.orientation_residuals[-1] * _DEG:.5f} deg"
             )
         if self.cross_validation is not None:
             cv = self.cross_validation
             line = (f"{cv['folds']}-fold cross-validated held-out error: position RMS "
                     f"{cv['position_rms'] * 1e3:.4f} mm (max {cv['position_max'] * 1e3:.4f} mm)")
             if cv.get("orientation_rms") is not None:
-                line += f", orientation RMS {cv['orientation_rms'] * 1e3:.4f} mrad"
+                line += f", orientation RMS {cv['orientation_rms'] * _DEG:.5f} deg"
             lines.append(line)
         if self.noise_ratio is not None:
             excluded = self.loss != "l2" and 0 < len(self.outliers) < self.q.shape[0] / 2
@@ -261,8 +268,8 @@ def _noise_ratio(model, zeta, q, T, position_only, rank, noise) -> tuple[float, 
     if not position_only and so > 0:
         chi2 = chi2 + (r[..., 3:] / so).square().sum()
         rows += r[..., 3:].numel()
-        detail += f", orientation RMS {float(r[..., 3:].norm(dim=-1).square().mean().sqrt()) * 1e3:.4f} " \
-                  f"mrad vs {math.sqrt(3) * so * 1e3:.4f} mrad expected"
+        detail += f", orientation RMS {float(r[..., 3:].norm(dim=-1).square().mean().sqrt()) * _DEG:.5f} " \
+                  f"deg vs {math.sqrt(3) * so * _DEG:.5f} deg expected"
     return math.sqrt(float(chi2) / max(rows - rank, 1)), detail
 
 
