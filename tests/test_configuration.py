@@ -264,3 +264,36 @@ def test_clik_integrates_on_the_manifold():
     assert float(res.position_error[:, -1].max()) < 1e-6 < float(res.position_error[:, 0].min())
     torch.testing.assert_close(res.q[..., 3:7].norm(dim=-1), torch.ones(3, 101, dtype=F64), atol=1e-12,
                                rtol=0)
+
+
+def test_velocity_step_on_a_floating_base_matches_bvls():
+    """Joint position bounds on the scalar coordinates, none on the base's rotation: scipy's BVLS on the
+    stacked system [J; √λ I] v = [twist; 0] within the per-column bounds."""
+    from scipy.optimize import lsq_linear
+
+    chain = from_urdf(G1, ["left_wrist_yaw_link", "right_ankle_roll_link"], floating_base=True, dtype=F64)
+    chain.requires_grad_(False)
+    g = torch.Generator().manual_seed(14)
+    q = chain.random_configuration(40, generator=g)
+    twist = torch.randn(40, 2, 6, generator=g, dtype=F64)
+    dt, vmax, lam = 0.05, 1.5, 1e-3
+    v = ik.velocity_step(chain, q, twist, dt, damping=lam, velocity_limit=vmax)
+    assert v.shape == (40, chain.nv)
+    J = chain.fk_jacobian(q)[1].reshape(40, 12, chain.nv)
+    space = chain.configuration_space
+    sq, sv = list(space.scalar_index("q")), list(space.scalar_index("v"))
+    lim = chain.q_limits
+    active = 0
+    for i in range(40):
+        lo, hi = np.full(chain.nv, -vmax), np.full(chain.nv, vmax)
+        lo[sv] = np.maximum(-vmax, ((lim[sq, 0] - q[i, sq]) / dt).numpy())
+        hi[sv] = np.minimum(vmax, ((lim[sq, 1] - q[i, sq]) / dt).numpy())
+        A = np.vstack((J[i].numpy(), lam ** 0.5 * np.eye(chain.nv)))
+        b = np.concatenate((twist[i].reshape(-1).numpy(), np.zeros(chain.nv)))
+        ref = lsq_linear(A, b, bounds=(lo, hi), method="bvls", tol=1e-14).x
+        np.testing.assert_allclose(v[i].numpy(), ref, atol=1e-8)
+        active += int(((np.abs(ref - lo) < 1e-12) | (np.abs(ref - hi) < 1e-12)).sum())
+    assert active > 40  # bounds shape the answer
+    q1 = chain.integrate(q, v * dt)  # the step stays within the joint limits, the quaternion unit
+    assert bool(chain.within_limits(q1, tol=1e-12).all())
+    torch.testing.assert_close(q1[:, 3:7].norm(dim=-1), torch.ones(40, dtype=F64), atol=1e-12, rtol=0)

@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 
 from .._numerics import eps_for
-from ..errors import ConventionError, DiffkinError, ModelError, ShapeError
+from ..errors import ConventionError, DiffkinError, ShapeError
 from ..redundancy import _pinv
 from ..validation import broadcast_batch, check_number, shape_str, tensors
 from .qp import _solve_box, _solve_general
@@ -126,11 +126,16 @@ def _bounds(chain, q: Tensor, dt: float, nv: int, vmax: Tensor | None, respect_l
     inf = torch.tensor(float("inf"), dtype=q.dtype, device=q.device)
     lo, hi = -inf.expand(nv), inf.expand(nv)
     if respect_limits and chain.q_limits is not None:
-        if q.shape[-1] != nv:
-            raise ModelError(f"velocity_step: position bounds for joints with nq != nv ({q.shape[-1]} != "
-                             f"{nv}) are not defined; pass respect_limits=False")
         lim = chain.q_limits.to(q)
-        lo, hi = (lim[:, 0] - q) / dt, (lim[:, 1] - q) / dt
+        space = chain.configuration_space
+        if space.euclidean:
+            lo, hi = (lim[:, 0] - q) / dt, (lim[:, 1] - q) / dt
+        else:  # ball and free joints: the scalar coordinates have bounds, the rotations none
+            sq, sv = list(space.scalar_index("q")), torch.tensor(space.scalar_index("v"), device=q.device)
+            lo_s, hi_s = (lim[sq, 0] - q[..., sq]) / dt, (lim[sq, 1] - q[..., sq]) / dt
+            batch = q.shape[:-1]
+            lo = (-inf).expand(*batch, nv).clone().index_copy(-1, sv, lo_s)
+            hi = inf.expand(*batch, nv).clone().index_copy(-1, sv, hi_s)
     if vmax is not None:  # velocity limits win over a position bound that lies beyond them (q outside)
         lo, hi = torch.maximum(torch.minimum(lo, vmax), -vmax), torch.maximum(torch.minimum(hi, vmax), -vmax)
     return lo, hi
@@ -139,18 +144,17 @@ def _bounds(chain, q: Tensor, dt: float, nv: int, vmax: Tensor | None, respect_l
 def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask):
     """The second stage (V.3)."""
     nv = A.shape[-1]
-    if q.shape[-1] != nv:
-        raise ModelError(f"velocity_step: a PostureTask needs nq == nv, got {q.shape[-1]} and {nv}")
     gain = check_number(task.gain, "PostureTask.gain", positive=False)
-    q_ref, w = tensors(("PostureTask.q_ref", task.q_ref, (nv,)), ("PostureTask.weight", task.weight, None),
-                       like=chain)
+    q_ref, w = tensors(("PostureTask.q_ref", task.q_ref, (q.shape[-1],)),
+                       ("PostureTask.weight", task.weight, None), like=chain)
     if w.ndim and w.shape != (nv,):
         raise ShapeError(f"velocity_step: expected PostureTask.weight as a number or ({nv},), got "
                          f"{shape_str(w.shape)}")
     D = (_nonnegative(w, "PostureTask.weight") ** 2).expand(nv)
     if not bool((D > 0).any()):
         raise DiffkinError("velocity_step: PostureTask.weight must be > 0 for some joint")
-    target = gain * (q_ref - q) / dt
+    # q_ref ⊖ q: q_ref − q on 1-DOF joints, the rotation vector between quaternions on ball / free ones
+    target = gain * chain.configuration_space.difference(q, q_ref.expand_as(q)) / dt
     N = torch.eye(nv, dtype=q.dtype, device=q.device) - _pinv(A) @ A  # (3.54)
     eye = torch.eye(nv, dtype=q.dtype, device=q.device)
     # z's components in range(Aᵀ) change neither q̇ nor the constraints: curvature 1 there keeps the
