@@ -34,6 +34,13 @@ def ur5(dtype: torch.dtype) -> DHChain:
 
 
 @functools.cache
+def floating(dtype: torch.dtype):
+    """A chain with ball and free joints (q (..., 22), v (..., 19)): every MuJoCo joint type."""
+    return models.from_mjcf(Path(__file__).parent / "data" / "mjcf_extra" / "joint_kinds.xml",
+                            ["palm", "foot", "box"], dtype=dtype)
+
+
+@functools.cache
 def hand(dtype: torch.dtype):
     return models.from_urdf(DATA / "allegro_right_hand.urdf", ALLEGRO_TIPS, dtype=dtype)
 
@@ -170,6 +177,18 @@ CASES: list[Case] = [
     Case("chain.forward_kinematics[urdf tree]", lambda c, q: c.forward_kinematics(q),
          {"q": Arg(joints(hand), (16,))}, chain=hand, follows_chain=True,
          covers=KinematicChain.forward_kinematics),
+    Case("chain.forward_kinematics[mjcf floating]", lambda c, q: c.forward_kinematics(q),
+         {"q": Arg(joints(floating), (22,))}, chain=floating, follows_chain=True,
+         covers=KinematicChain.forward_kinematics),
+    Case("chain.fk_jacobian[mjcf floating]", lambda c, q: c.fk_jacobian(q),
+         {"q": Arg(joints(floating), (22,))}, chain=floating, follows_chain=True, batch=(20,),
+         covers=KinematicChain.fk_jacobian),
+    Case("chain.integrate", lambda c, q, v: c.integrate(q, v),
+         {"q": Arg(joints(floating), (22,)), "v": Arg(uniform(19), (19,))}, chain=floating,
+         follows_chain=True, covers=KinematicChain.integrate),
+    Case("chain.difference", lambda c, q0, q1: c.difference(q0, q1),
+         {"q0": Arg(joints(floating), (22,)), "q1": Arg(joints(floating), (22,))}, chain=floating,
+         follows_chain=True, covers=KinematicChain.difference),
     Case("chain.forward", lambda c, q: c(q), {"q": Q}, **CH, covers=KinematicChain.forward),
     Case("chain.fk_jacobian", lambda c, q: c.fk_jacobian(q), {"q": Q}, **CH,
          covers=KinematicChain.fk_jacobian),
@@ -265,6 +284,11 @@ CASES: list[Case] = [
                                                           max_iterations=6),
          {"T_traj": Arg(poses(panda, steps=2), (2, 4, 4)), "q0": Q}, **CH,
          covers=ik.joint_trajectory_from_poses),
+    Case("ik.velocity_step", lambda c, q, tw: ik.velocity_step(c, q, tw, 0.05, velocity_limit=1.0),
+         {"q": Q, "twist": Arg(uniform(6), (6,))}, **CH, covers=ik.velocity_step),
+    Case("ik.velocity_step[floating]", lambda c, q, tw: ik.velocity_step(c, q, tw, 0.05, velocity_limit=1.0),
+         {"q": Arg(joints(floating), (22,)), "twist": Arg(uniform(3, 6), (3, 6))}, chain=floating,
+         follows_chain=True, covers=ik.velocity_step),
     Case("ik.finite_difference_twists", lambda T: ik.finite_difference_twists(T, 0.1),
          {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4))}, covers=ik.finite_difference_twists),
     Case("ik.refine_path", lambda T: ik.refine_path(T, 2), {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4))},
@@ -291,6 +315,12 @@ EXEMPT: dict[str, str] = {
     "diffkin.models.from_urdf": _NO_TENSORS + " (tests/test_urdf.py, test_urdf_xml.py)",
     "diffkin.models.URDFChain": "built from a parsed URDFTree by from_urdf (no tensor input); its methods "
     "are KinematicChain's (chain.forward_kinematics[urdf tree], ik.solve[tree])",
+    "diffkin.models.from_mjcf": _NO_TENSORS + " (tests/test_mjcf.py)",
+    "diffkin.models.MJCFChain": "built from a compiled MuJoCo model by from_mjcf (no tensor input); its "
+    "methods are KinematicChain's (chain.forward_kinematics[mjcf floating], chain.integrate, ...)",
+    "diffkin.ik.FrameTask": "velocity_step settings (an end-link index and a weight), checked there",
+    "diffkin.ik.PostureTask": "velocity_step settings (q_ref, weight, gain), validated by velocity_step "
+    "(tests/test_velocity_ik.py::test_typed_errors)",
     "diffkin.models.sample_workspace": _NO_TENSORS,
     "diffkin.models.parse_value": _NO_TENSORS,
     "diffkin.models.chain_from_dict": _NO_TENSORS + " (tests/test_models.py)",

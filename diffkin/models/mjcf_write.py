@@ -16,7 +16,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..errors import ModelError
+from ..errors import ModelError, require
 from ..rotations import _matrix_to_quaternion, _quaternion_to_matrix
 from ..transforms import _make_transform, _transform_inverse
 
@@ -105,9 +105,7 @@ def _rewrite(text: str, edits: dict) -> str:
 
 def write_mjcf(chain, path=None) -> str:
     """See :meth:`diffkin.models.mjcf.MJCFChain.to_mjcf`."""
-    from .mjcf import _mujoco
-
-    mujoco = _mujoco()
+    mujoco = require("mujoco", "mjcf", "MJCF models")
     if chain.base is not None or chain.tool is not None:
         raise ModelError("to_mjcf: the chain has a base or tool transform, which an MJCF has no place for")
     src = chain.source_path
