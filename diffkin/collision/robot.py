@@ -1,0 +1,224 @@
+"""The robot's collision geometry: :class:`RobotCollision`, geoms on the chain's links and the pairs checked.
+
+Every geom is a capsule (spheres: zero-length capsules; cylinders: the capsule of the same radius and axis
+length, which contains the cylinder and adds a hemispherical cap at each end; meshes: a fitted enclosing
+capsule, :mod:`diffkin.collision.meshes`) or an oriented box, in its link's frame. Links behind fixed
+joints have frames of their own (:mod:`diffkin.collision._poses`).
+
+Pair rules for a URDF: links welded together by fixed joints form one rigid body; pairs within one body
+and pairs of bodies joined by one moving joint are *adjacent* and not checked (as MoveIt's setup
+assistant counts adjacency), and an SRDF's ``<disable_collisions link1= link2=>`` removes those link pairs.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from ..errors import ModelError
+from ..kernels.joints import origin_transform
+from ..models.urdf_xml import parse_collisions
+from ._poses import LinkFrames
+from .boxes import box_box, capsule_box
+from .distances import capsule_capsule
+from .meshes import fit_capsule, resolve_mesh
+from .world import World, _check_world
+
+__all__ = ["Geom", "RobotCollision"]
+
+
+@dataclass(frozen=True)
+class Geom:
+    """One collision geom: ``name``, its ``link``, ``kind`` as written in the file (``sphere``, ``capsule``,
+    ``cylinder``, ``box``, ``mesh``) and ``shape`` as computed (``capsule`` or ``box``); ``source`` is the
+    mesh file a fitted capsule came from."""
+
+    name: str
+    link: str
+    kind: str
+    shape: str
+    source: str | None = None
+
+
+def _transform(T: Tensor, p: Tensor) -> Tensor:
+    """T · p for poses ``(..., 4, 4)`` and points ``(..., 3)``."""
+    return (T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
+
+
+class RobotCollision(nn.Module):
+    """Collision geoms on the links of a chain, and the batched signed distances of their pairs and to a
+    :class:`~diffkin.collision.World`.
+
+    Build it with :meth:`from_urdf`. Attributes: ``geoms`` (list of :class:`Geom`), ``pairs`` (list of
+    ``(geom_a, geom_b)`` names, the order of :meth:`self_distances`), ``chain``. Parameters (learnable, in
+    the link frames, dtype and device of the chain): ``capsule_a``, ``capsule_b`` ``(G_c, 3)``,
+    ``capsule_radius`` ``(G_c,)``; ``box_center``, ``box_rpy``, ``box_half_extents`` ``(G_b, 3)``.
+    """
+
+    def __init__(self, chain, geoms: list[Geom], links: list[str], capsules: list, boxes: list,
+                 pairs: list[tuple[int, int]]):
+        super().__init__()
+        self.chain = chain
+        self.geoms = list(geoms)
+        self._frames = LinkFrames(chain)
+        dt, dev = chain.dtype, chain.device
+        link_index = [self._frames.index[k] for k in links]  # per geom
+        cap = [g for g, geom in enumerate(self.geoms) if geom.shape == "capsule"]
+        bx = [g for g, geom in enumerate(self.geoms) if geom.shape == "box"]
+        where = {g: (0, i) for i, g in enumerate(cap)} | {g: (1, i) for i, g in enumerate(bx)}
+        f = lambda rows, k, n: torch.tensor([r[k] for r in rows], dtype=dt, device=dev).reshape(-1, *n)  # noqa: E731
+        self.capsule_a = nn.Parameter(f(capsules, 0, (3,)))
+        self.capsule_b = nn.Parameter(f(capsules, 1, (3,)))
+        self.capsule_radius = nn.Parameter(f(capsules, 2, ()).reshape(-1))
+        self.box_center = nn.Parameter(f(boxes, 0, (3,)))
+        self.box_rpy = nn.Parameter(f(boxes, 1, (3,)))
+        self.box_half_extents = nn.Parameter(f(boxes, 2, (3,)))
+        ilong = lambda x: torch.tensor(x, dtype=torch.long, device=dev).reshape(-1)  # noqa: E731
+        self.register_buffer("_cap_link", ilong([link_index[g] for g in cap]), persistent=False)
+        self.register_buffer("_box_link", ilong([link_index[g] for g in bx]), persistent=False)
+        self.register_buffer("_rows", ilong(torch.argsort(torch.tensor(cap + bx, dtype=torch.long)).tolist()),
+                             persistent=False)
+        self.pairs = [(self.geoms[i].name, self.geoms[j].name) for i, j in pairs]
+        kinds: dict[tuple[int, int], list] = {(0, 0): [], (0, 1): [], (1, 1): []}
+        for p, (i, j) in enumerate(pairs):
+            (ki, ii), (kj, jj) = sorted((where[i], where[j]))
+            kinds[(ki, kj)].append((p, ii, jj))
+        order = []
+        for key, rows in kinds.items():
+            self.register_buffer(f"_pairs_{key[0]}{key[1]}", ilong([r[1:] for r in rows]).reshape(-1, 2),
+                                 persistent=False)
+            order += [r[0] for r in rows]
+        perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
+        self.register_buffer("_pair_perm", ilong(perm), persistent=False)
+
+    # ------------------------------------------------------------------------------------ geometry
+    def placed(self, q: Tensor) -> tuple[Tensor, ...]:
+        """The geoms in the base frame for joint values ``q (..., n)``: ``(a (..., G_c, 3), b (..., G_c, 3),
+        radius (G_c,), box centres (..., G_b, 3), rotations (..., G_b, 3, 3), half extents (G_b, 3))``."""
+        T = self._frames.poses(self.chain, q)  # (..., L, 4, 4)
+        Tc = T.index_select(-3, self._cap_link)
+        Tb = T.index_select(-3, self._box_link)
+        a, b = _transform(Tc, self.capsule_a), _transform(Tc, self.capsule_b)
+        Rb = origin_transform(torch.zeros_like(self.box_rpy), self.box_rpy)[..., :3, :3]
+        return (a, b, self.capsule_radius, _transform(Tb, self.box_center), Tb[..., :3, :3] @ Rb,
+                self.box_half_extents)
+
+    def self_distances(self, q: Tensor) -> Tensor:
+        """Signed distances ``(..., P)`` of the checked pairs (order of ``pairs``; negative: penetration
+        depth), in the chain's length unit, differentiable in q and in the geometry."""
+        a, b, r, c, R, h = self.placed(q)
+        sel = lambda x, idx, k: x.index_select(-1 - k, idx)  # noqa: E731
+        (i, j), (k, m), (u, v) = self._pairs_00.T, self._pairs_01.T, self._pairs_11.T
+        d = (capsule_capsule(sel(a, i, 1), sel(b, i, 1), r[i], sel(a, j, 1), sel(b, j, 1), r[j]),
+             capsule_box(sel(a, k, 1), sel(b, k, 1), r[k], sel(c, m, 1), sel(R, m, 2), h[m]),
+             box_box(sel(c, u, 1), sel(R, u, 2), h[u], sel(c, v, 1), sel(R, v, 2), h[v]))
+        batch = a.shape[:-2]
+        d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1)
+        return d.index_select(-1, self._pair_perm)
+
+    def world_distances(self, q: Tensor, world: World) -> Tensor:
+        """Signed distances ``(..., G, W)`` of every geom (order of ``geoms``) to every object of ``world``
+        (spheres, capsules, boxes, half-spaces, points); the world's batch dims broadcast with q's."""
+        world = _check_world(world)
+        a, b, r, c, R, h = self.placed(q)
+        d = world.distances(a, b, r.expand(a.shape[:-1]), c, R, h.expand(c.shape))
+        return d.index_select(-2, self._rows)
+
+    def min_distance(self, q: Tensor, world: World | None = None) -> Tensor:
+        """The smallest signed distance ``(...)`` over the checked pairs and, with ``world``, every
+        geom–object pair (+inf where there are none)."""
+        d = self.self_distances(q)
+        if world is not None:
+            w = self.world_distances(q, world)
+            batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-2])
+            d = torch.cat((d.expand(*batch, d.shape[-1]), w.flatten(-2).expand(*batch, -1)), -1)
+        inf = torch.full_like(d[..., :1], math.inf)
+        return torch.cat((d, inf), -1).amin(-1)
+
+    def extra_repr(self) -> str:
+        return f"geoms={len(self.geoms)}, pairs={len(self.pairs)}"
+
+    # ------------------------------------------------------------------------------------ builders
+    @classmethod
+    def from_urdf(cls, source, chain, srdf=None, *, package_dirs=()) -> RobotCollision:
+        """The ``<collision>`` geoms of the chain's links (fixed links included) from a URDF (path, text or
+        :class:`~diffkin.models.urdf_xml.URDFTree`), with the URDF pair rules (module docstring) and the
+        ``<disable_collisions>`` of ``srdf`` (path or text). Meshes whose files resolve (``package://``
+        and relative names from the URDF's directory, or ``package_dirs``) become enclosing capsules; the
+        others are skipped with one warning naming them.
+        """
+        base_dir = None
+        if isinstance(source, (str, Path)) and "<" not in str(source):
+            base_dir = Path(source).resolve().parent
+        specs = parse_collisions(source)
+        frames = LinkFrames(chain)
+        geoms, links, caps, boxes, missing = [], [], [], [], []
+        for link in frames.links:
+            for s in specs.get(link, []):
+                g = _geom_of(s, base_dir, package_dirs)
+                if g is None:
+                    missing.append(f"{s.name} ({s.filename})")
+                    continue
+                geom, data = g
+                geoms.append(geom)
+                links.append(link)
+                (caps if geom.shape == "capsule" else boxes).append(data)
+        if missing:
+            warnings.warn(f"RobotCollision.from_urdf: {len(missing)} mesh file(s) not found, those geoms are "
+                          f"skipped: {', '.join(missing)}", stacklevel=2)
+        disabled = _srdf_disabled(srdf) if srdf is not None else set()
+        pairs = _urdf_pairs(chain, frames, geoms, disabled)
+        return cls(chain, geoms, links, caps, boxes, pairs)
+
+
+def _geom_of(s, base_dir, package_dirs):
+    """(Geom, link-frame data) of a CollisionSpec; None for a mesh whose file does not resolve."""
+    T = origin_transform(torch.tensor(s.xyz, dtype=torch.float64), torch.tensor(s.rpy, dtype=torch.float64))
+    pt = lambda p: _transform(T, torch.tensor(p, dtype=torch.float64)).tolist()  # noqa: E731
+    if s.type == "sphere":
+        c = pt((0.0, 0.0, 0.0))
+        return Geom(s.name, s.link, "sphere", "capsule"), (c, c, s.size[0])
+    if s.type in ("cylinder", "capsule"):
+        r, length = s.size
+        return (Geom(s.name, s.link, s.type, "capsule"),
+                (pt((0.0, 0.0, -length / 2)), pt((0.0, 0.0, length / 2)), r))
+    if s.type == "box":
+        return Geom(s.name, s.link, "box", "box"), (list(s.xyz), list(s.rpy), [x / 2 for x in s.size])
+    path = resolve_mesh(s.filename, base_dir, package_dirs)
+    if path is None:
+        return None
+    a, b, r = fit_capsule(path, s.size)
+    return Geom(s.name, s.link, "mesh", "capsule", s.filename), (pt(tuple(a)), pt(tuple(b)), r)
+
+
+def _srdf_disabled(srdf) -> set[frozenset[str]]:
+    """The link pairs of an SRDF's ``<disable_collisions>`` (path or XML text)."""
+    text = srdf if isinstance(srdf, str) and "<" in srdf else Path(srdf).read_text()
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as e:
+        raise ModelError(f"SRDF: malformed XML ({e})") from None
+    return {frozenset((e.get("link1"), e.get("link2"))) for e in root.iter("disable_collisions")}
+
+
+def _urdf_pairs(chain, frames: LinkFrames, geoms: list[Geom], disabled) -> list[tuple[int, int]]:
+    """Geom index pairs (i < j) on different, non-adjacent bodies whose links the SRDF does not exclude."""
+    parents = chain._topo.parents  # frame j's parent frame (-1: the base)
+    parent_body = {0: None, **{j + 1: p + 1 for j, p in enumerate(parents)}}
+    body = [frames.bodies[frames.index[g.link]] for g in geoms]
+    out = []
+    for i in range(len(geoms)):
+        for j in range(i + 1, len(geoms)):
+            bi, bj = body[i], body[j]
+            if bi == bj or parent_body[bi] == bj or parent_body[bj] == bi:
+                continue
+            if frozenset((geoms[i].link, geoms[j].link)) in disabled:
+                continue
+            out.append((i, j))
+    return out
