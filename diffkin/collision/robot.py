@@ -115,10 +115,16 @@ class RobotCollision(nn.Module):
         a, b, r, c, R, h = self.placed(q)
         sel = lambda x, idx, k: x.index_select(-1 - k, idx)  # noqa: E731
         (i, j), (k, m), (u, v) = self._pairs_00.T, self._pairs_01.T, self._pairs_11.T
-        d = (capsule_capsule(sel(a, i, 1), sel(b, i, 1), r[i], sel(a, j, 1), sel(b, j, 1), r[j]),
-             capsule_box(sel(a, k, 1), sel(b, k, 1), r[k], sel(c, m, 1), sel(R, m, 2), h[m]),
-             box_box(sel(c, u, 1), sel(R, u, 2), h[u], sel(c, v, 1), sel(R, v, 2), h[v]))
+        d = []
+        if len(i):  # (static sizes: the box searches cost dozens of small ops even on empty tensors)
+            d.append(capsule_capsule(sel(a, i, 1), sel(b, i, 1), r[i], sel(a, j, 1), sel(b, j, 1), r[j]))
+        if len(k):
+            d.append(capsule_box(sel(a, k, 1), sel(b, k, 1), r[k], sel(c, m, 1), sel(R, m, 2), h[m]))
+        if len(u):
+            d.append(box_box(sel(c, u, 1), sel(R, u, 2), h[u], sel(c, v, 1), sel(R, v, 2), h[v]))
         batch = a.shape[:-2]
+        if not d:
+            return a.new_zeros(*batch, 0)
         d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1)
         return d.index_select(-1, self._pair_perm)
 

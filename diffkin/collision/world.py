@@ -112,16 +112,20 @@ class World:
         g = lambda x: x.unsqueeze(-2)  # noqa: E731  robot geoms (..., G, 1, 3)
         w = lambda x: x.unsqueeze(-3)  # noqa: E731  world objects (..., 1, W, 3)
         wm = lambda x: x.unsqueeze(-4)  # noqa: E731  world matrices (..., 1, W, 3, 3)
-        rows = []
-        rows.append(self._assemble(
+        nb = B.center.shape[-2]
+        empty = lambda x: x.new_zeros(*x.shape[:-1], 0)  # noqa: E731  (skips the box searches' small ops)
+        rows = [self._assemble(
             capsule_capsule(g(a), g(b), r[..., None], w(wa), w(wb), wr[..., None, :]),
-            capsule_box(g(a), g(b), r[..., None], w(B.center), wm(B.rotation), w(B.half_extents)),
-            capsule_halfspace(g(a), g(b), r[..., None], w(n), d[..., None, :])))
-        rows.append(self._assemble(
-            capsule_box(w(wa), w(wb), wr[..., None, :], g(bc), bR.unsqueeze(-3), g(bh)),
-            box_box(g(bc), bR.unsqueeze(-3), g(bh), w(B.center), wm(B.rotation), w(B.half_extents)),
-            box_halfspace(g(bc), bR.unsqueeze(-3), g(bh), w(n), d[..., None, :])))
-        batch = torch.broadcast_shapes(rows[0].shape[:-2], rows[1].shape[:-2])
+            capsule_box(g(a), g(b), r[..., None], w(B.center), wm(B.rotation), w(B.half_extents)) if nb
+            else empty(a),
+            capsule_halfspace(g(a), g(b), r[..., None], w(n), d[..., None, :]))]
+        if bc.shape[-2]:
+            rows.append(self._assemble(
+                capsule_box(w(wa), w(wb), wr[..., None, :], g(bc), bR.unsqueeze(-3), g(bh)),
+                box_box(g(bc), bR.unsqueeze(-3), g(bh), w(B.center), wm(B.rotation), w(B.half_extents)) if nb
+                else empty(bc),
+                box_halfspace(g(bc), bR.unsqueeze(-3), g(bh), w(n), d[..., None, :])))
+        batch = torch.broadcast_shapes(*(x.shape[:-2] for x in rows))
         return torch.cat([x.expand(*batch, *x.shape[-2:]) for x in rows], -2)
 
 
