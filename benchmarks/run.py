@@ -31,7 +31,7 @@ import sys
 from benchmarks.common import print_table, write_json
 
 NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model", "sharded",
-         "kernels")
+         "kernels", "collision")
 
 
 def parse_args(argv=None) -> argparse.Namespace:

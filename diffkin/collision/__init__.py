@@ -11,6 +11,7 @@ The model never imports this package (data flows ``model frames -> collision geo
 from .boxes import Box, box, box_box, box_halfspace, capsule_box, point_box, segment_box, sphere_box
 from .distances import (
     capsule_capsule,
+    capsule_capsule_pairs,
     capsule_halfspace,
     point_segment_parameter,
     segment_closest_parameters,
@@ -31,6 +32,7 @@ __all__ = [
     "box_halfspace",
     "capsule_box",
     "capsule_capsule",
+    "capsule_capsule_pairs",
     "capsule_halfspace",
     "point_box",
     "point_segment_parameter",

@@ -19,7 +19,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for, safe_norm
+from .._numerics import safe_norm, safe_sqrt
 
 __all__ = [
     "segment_closest_parameters",
@@ -27,6 +27,7 @@ __all__ = [
     "sphere_sphere",
     "sphere_capsule",
     "capsule_capsule",
+    "capsule_capsule_pairs",
     "sphere_halfspace",
     "capsule_halfspace",
 ]
@@ -36,21 +37,31 @@ def _dot(a: Tensor, b: Tensor) -> Tensor:
     return (a * b).sum(-1)
 
 
-def _safe_div(num: Tensor, den: Tensor, ok: Tensor) -> Tensor:
-    """``num / den`` where ``ok``, else 0 (double where: no inf or NaN on the unused branch)."""
-    return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
-
-
 @torch.no_grad()
 def point_segment_parameter(p: Tensor, a: Tensor, b: Tensor) -> Tensor:
     """The parameter t ∈ [0, 1] of the point of segment a + t (b − a) closest to p: ``(..., 3)`` → ``(...)``.
 
-    t = clamp((p − a)·d / d·d, 0, 1) with d = b − a; t = 0 for a degenerate segment (d = 0). Detached.
+    t = clamp((p − a)·d / d·d, 0, 1) with d = b − a; t = 0 for a degenerate segment (d = 0: the numerator
+    vanishes exactly and the denominator is floored at the dtype's smallest normal number). Detached.
     """
     d = b - a
-    dd = _dot(d, d)
-    ok = dd > eps_for(dd) * (1.0 + _dot(a, a) + _dot(b, b))
-    return _safe_div(_dot(p - a, d), dd, ok).clamp(0.0, 1.0)
+    return (_dot(p - a, d) / _dot(d, d).clamp_min(torch.finfo(d.dtype).tiny)).clamp(0.0, 1.0)
+
+
+def _closest_from_dots(a: Tensor, e: Tensor, b: Tensor, c: Tensor, f: Tensor) -> tuple[Tensor, Tensor]:
+    """(s, t) from a = d1·d1, e = d2·d2, b = d1·d2, c = d1·r, f = d2·r (r = a0 − b0).
+
+    Ericson's clamped solution without branches: s from the line–line solution, t for that s, s again for
+    the clamped t, each clamped to [0, 1]. The denominators are floored at the dtype's smallest normal
+    number instead of tested: where they vanish (a degenerate segment, d = 0) the numerators vanish exactly
+    too, and for parallel axes (a e − b² ≈ 0) any first s is refined by the two projections into a pair of
+    closest points, so no NaN or inf reaches the result.
+    """
+    tiny = torch.finfo(a.dtype).tiny
+    s = ((b * f - c * e) / (a * e - b * b).clamp_min(tiny)).clamp(0.0, 1.0)
+    t = (torch.addcmul(f, b, s) / e.clamp_min(tiny)).clamp(0.0, 1.0)
+    s = (torch.addcmul(-c, b, t) / a.clamp_min(tiny)).clamp(0.0, 1.0)
+    return s, t
 
 
 @torch.no_grad()
@@ -58,22 +69,38 @@ def segment_closest_parameters(a0: Tensor, a1: Tensor, b0: Tensor, b1: Tensor) -
     """Parameters (s, t) ∈ [0, 1]² of the closest points a0 + s (a1 − a0), b0 + t (b1 − b0) of two segments.
 
     ``(..., 3)`` each → ``(...)``, ``(...)``, detached. The clamped solution of the 2 × 2 normal equations
-    (Ericson, *Real-Time Collision Detection*, § 5.1.9): s from the unclamped line–line solution clamped to
-    [0, 1] (s = 0 where the axes are parallel, denominator a c − b² ≈ 0), then t for that s clamped, then s
-    again for the clamped t. Degenerate segments (zero length) are handled as points.
+    (Ericson, *Real-Time Collision Detection*, § 5.1.9); parallel axes and degenerate (zero-length)
+    segments included.
     """
     d1, d2, r = a1 - a0, b1 - b0, a0 - b0
-    a, e = _dot(d1, d1), _dot(d2, d2)
-    b, c, f = _dot(d1, d2), _dot(d1, r), _dot(d2, r)
-    scale = 1.0 + _dot(a0, a0) + _dot(b0, b0) + a + e
-    tiny = eps_for(a) * scale
-    ok_a, ok_e = a > tiny, e > tiny
-    denom = a * e - b * b
-    ok_d = denom > eps_for(a) * a * e * 16.0 + tiny * tiny
-    s = _safe_div(b * f - c * e, denom, ok_d & ok_a & ok_e).clamp(0.0, 1.0)
-    t = _safe_div(b * s + f, e, ok_e).clamp(0.0, 1.0)
-    s = _safe_div(b * t - c, a, ok_a).clamp(0.0, 1.0)
-    return s, t
+    return _closest_from_dots(_dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r))
+
+
+def capsule_capsule_pairs(a: Tensor, b: Tensor, r: Tensor, i: Tensor, j: Tensor) -> Tensor:
+    """:func:`capsule_capsule` of the pairs (i[p], j[p]) of one set of G capsules: ``a, b (..., G, 3)``,
+    ``r (G,)`` or ``(..., G)``, index tensors ``(P,)`` → ``(..., P)``."""
+    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2], r.shape[:-1])
+    cm = lambda x: x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:]).permute(1, 2, 0)  # noqa: E731
+    A = cm(a).contiguous()
+    R = r.expand(*batch, r.shape[-1]).reshape(-1, r.shape[-1]).T
+    return capsule_pairs_cm(A, cm(b) - A, R, i, j).T.reshape(*batch, len(i))
+
+
+def capsule_pairs_cm(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor) -> Tensor:
+    """The pair kernel in a component-major layout: end points ``A (G, 3, N)``, axes ``D = B − A (G, 3, N)``
+    and radii ``R (G, N)`` (or ``(G, 1)``) of G capsules in N rows → ``(P, N)`` for the pairs (i[p], j[p]).
+
+    The geoms sit on the leading axis so that gathering the pairs copies contiguous rows and every per-pair
+    operation runs on contiguous ``(P, N)`` planes; the squared lengths are computed once per geom.
+    """
+    a0, d1, b0, d2 = A.index_select(0, i), D.index_select(0, i), A.index_select(0, j), D.index_select(0, j)
+    rel = a0 - b0
+    with torch.no_grad():
+        dd = (D * D).sum(1)  # (G, N)
+        s, t = _closest_from_dots(dd.index_select(0, i), dd.index_select(0, j), (d1 * d2).sum(1),
+                                  (d1 * rel).sum(1), (d2 * rel).sum(1))
+    v = torch.addcmul(torch.addcmul(rel, s.unsqueeze(1), d1), t.unsqueeze(1), d2, value=-1.0)
+    return safe_sqrt((v * v).sum(1)) - R.index_select(0, i) - R.index_select(0, j)
 
 
 def sphere_sphere(ca: Tensor, ra: Tensor, cb: Tensor, rb: Tensor) -> Tensor:

@@ -26,7 +26,7 @@ from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
-from .distances import capsule_capsule
+from .distances import capsule_capsule_pairs, capsule_pairs_cm
 from .meshes import fit_capsule, resolve_mesh
 from .world import World, _check_world
 
@@ -80,8 +80,14 @@ class RobotCollision(nn.Module):
         self.box_rpy = nn.Parameter(f(boxes, 1, (3,)))
         self.box_half_extents = nn.Parameter(f(boxes, 2, (3,)))
         ilong = lambda x: torch.tensor(x, dtype=torch.long, device=dev).reshape(-1)  # noqa: E731
-        self.register_buffer("_cap_link", ilong([link_index[g] for g in cap]), persistent=False)
-        self.register_buffer("_box_link", ilong([link_index[g] for g in bx]), persistent=False)
+        anchor = [self._frames.bodies[k] for k in link_index]
+        # the columns of the placement product (see _columns): capsule starts, ends, box centres, box axes
+        cols = lambda per: ([per[g] for g in cap] * 2 + [per[g] for g in bx]  # noqa: E731
+                            + [per[g] for g in bx for _ in range(3)])  # box g's axes: columns 3 g + k
+        col_link, col_anchor = cols(link_index), cols(anchor)
+        self.register_buffer("_col_link", ilong(col_link), persistent=False)
+        self.register_buffer("_col_anchor", ilong(col_anchor), persistent=False)
+        self._counts = (len(cap), len(bx))
         self.register_buffer("_rows", ilong(torch.argsort(torch.tensor(cap + bx, dtype=torch.long)).tolist()),
                              persistent=False)
         self.pairs = [(self.geoms[i].name, self.geoms[j].name) for i, j in pairs]
@@ -98,33 +104,65 @@ class RobotCollision(nn.Module):
         self.register_buffer("_pair_perm", ilong(perm), persistent=False)
 
     # ------------------------------------------------------------------------------------ geometry
+    def _columns(self, q: Tensor) -> Tensor:
+        """Every geom point and axis in the base frame as the columns of one product ``(..., 3, C)``.
+
+        Column c is F_k · h_c with F_k the pose of the moving-joint frame the geom is welded to and
+        h_c = O_link · (point; 1) or (axis; 0) in that frame (O: the fixed origins down to the link, no
+        batch dims). Stacking the frames side by side, ``[F_0 … F_K][:3] · H`` with H holding h_c in the
+        block of its frame, places all of them in one batched matrix product instead of a gather of a 4 × 4
+        pose per geom.
+        """
+        F = self._frames.frames(self.chain, q)  # (..., K, 4, 4)
+        O = self._frames.offsets(self.chain, F.dtype, F.device).index_select(0, self._col_link)  # (C, 4, 4)
+        nc, nb = self._counts
+        one, zero = self.capsule_a.new_ones(nc + nc + nb, 1), self.capsule_a.new_zeros(3 * nb, 1)
+        Rb = origin_transform(torch.zeros_like(self.box_rpy), self.box_rpy)[..., :3, :3]  # (G_b, 3, 3)
+        local = torch.cat((torch.cat((self.capsule_a, self.capsule_b, self.box_center), 0), one), 1)
+        axes = torch.cat((Rb.transpose(-1, -2).reshape(-1, 3), zero), 1)  # box g's axis k: row 3 g + k
+        h = (O @ torch.cat((local, axes), 0).unsqueeze(-1)).squeeze(-1)  # (C, 4)
+        K, C = F.shape[-3], h.shape[0]
+        H = h.new_zeros(K, C, 4).index_put((self._col_anchor, torch.arange(C, device=h.device)), h)
+        Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * K)  # (..., 3, K·4)
+        return Fm @ H.transpose(1, 2).reshape(4 * K, C)
+
     def placed(self, q: Tensor) -> tuple[Tensor, ...]:
         """The geoms in the base frame for joint values ``q (..., n)``: ``(a (..., G_c, 3), b (..., G_c, 3),
         radius (G_c,), box centres (..., G_b, 3), rotations (..., G_b, 3, 3), half extents (G_b, 3))``."""
-        T = self._frames.poses(self.chain, q)  # (..., L, 4, 4)
-        Tc = T.index_select(-3, self._cap_link)
-        Tb = T.index_select(-3, self._box_link)
-        a, b = _transform(Tc, self.capsule_a), _transform(Tc, self.capsule_b)
-        Rb = origin_transform(torch.zeros_like(self.box_rpy), self.box_rpy)[..., :3, :3]
-        return (a, b, self.capsule_radius, _transform(Tb, self.box_center), Tb[..., :3, :3] @ Rb,
+        P = self._columns(q)
+        nc, nb = self._counts
+        a, b, c, ax = P.split((nc, nc, nb, 3 * nb), -1)
+        R = ax.reshape(*ax.shape[:-1], nb, 3).movedim(-3, -2)  # (..., G_b, 3 (i), 3 (k))
+        return (a.transpose(-1, -2), b.transpose(-1, -2), self.capsule_radius, c.transpose(-1, -2), R,
                 self.box_half_extents)
 
     def self_distances(self, q: Tensor) -> Tensor:
         """Signed distances ``(..., P)`` of the checked pairs (order of ``pairs``; negative: penetration
         depth), in the chain's length unit, differentiable in q and in the geometry."""
-        a, b, r, c, R, h = self.placed(q)
-        sel = lambda x, idx, k: x.index_select(-1 - k, idx)  # noqa: E731
         (i, j), (k, m), (u, v) = self._pairs_00.T, self._pairs_01.T, self._pairs_11.T
+        nc = self._counts[0]
+        if len(k) or len(u):
+            a, b, r, c, R, h = self.placed(q)
+            batch = a.shape[:-2]
+        else:  # capsules only: stay in the product's component-major layout
+            P = self._columns(q)
+            batch = P.shape[:-2]
+        sel = lambda x, idx, k: x.index_select(-1 - k, idx)  # noqa: E731
         d = []
         if len(i):  # (static sizes: the box searches cost dozens of small ops even on empty tensors)
-            d.append(capsule_capsule(sel(a, i, 1), sel(b, i, 1), r[i], sel(a, j, 1), sel(b, j, 1), r[j]))
+            if len(k) or len(u):
+                d.append(capsule_capsule_pairs(a, b, r, i, j))
+            else:
+                Pc = P[..., : 2 * nc].reshape(-1, 3, 2 * nc).permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
+                A, B = Pc[:nc], Pc[nc:]
+                d.append(capsule_pairs_cm(A, B - A, self.capsule_radius[:, None], i, j).T
+                         .reshape(*batch, len(i)))
         if len(k):
             d.append(capsule_box(sel(a, k, 1), sel(b, k, 1), r[k], sel(c, m, 1), sel(R, m, 2), h[m]))
         if len(u):
             d.append(box_box(sel(c, u, 1), sel(R, u, 2), h[u], sel(c, v, 1), sel(R, v, 2), h[v]))
-        batch = a.shape[:-2]
         if not d:
-            return a.new_zeros(*batch, 0)
+            return self.capsule_radius.new_zeros(*batch, 0)
         d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1)
         return d.index_select(-1, self._pair_perm)
 
