@@ -102,6 +102,7 @@ class RobotCollision(nn.Module):
             order += [r[0] for r in rows]
         perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
         self.register_buffer("_pair_perm", ilong(perm), persistent=False)
+        self._pairs_in_order = perm == list(range(len(perm)))  # then no gather (slow on the last axis)
 
     # ------------------------------------------------------------------------------------ geometry
     def _columns(self, q: Tensor) -> Tensor:
@@ -163,8 +164,8 @@ class RobotCollision(nn.Module):
             d.append(box_box(sel(c, u, 1), sel(R, u, 2), h[u], sel(c, v, 1), sel(R, v, 2), h[v]))
         if not d:
             return self.capsule_radius.new_zeros(*batch, 0)
-        d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1)
-        return d.index_select(-1, self._pair_perm)
+        d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1) if len(d) > 1 else d[0]
+        return d if self._pairs_in_order else d.index_select(-1, self._pair_perm)
 
     def world_distances(self, q: Tensor, world: World) -> Tensor:
         """Signed distances ``(..., G, W)`` of every geom (order of ``geoms``) to every object of ``world``
