@@ -64,7 +64,7 @@ class _Pinocchio:
     """The URDF's collision geoms as Pinocchio builds them (its parser, its FK), cylinders as coal capsules
     (the representation RobotCollision documents), distances by coal."""
 
-    def __init__(self, text: str, chain, geoms):
+    def __init__(self, text: str, chain, geoms, capsules: bool = True):
         text = _no_meshes(text)
         per_link: dict[str, int] = {}
         self.names = {}  # Pinocchio names a link's collisions '<link>_<i>' (i: index in the link)
@@ -74,7 +74,7 @@ class _Pinocchio:
         self.model = pin.buildModelFromXML(text)
         self.geom = pin.buildGeomFromUrdfString(self.model, text, pin.COLLISION)
         for o in self.geom.geometryObjects:
-            if isinstance(o.geometry, coal.Cylinder):
+            if capsules and isinstance(o.geometry, coal.Cylinder):
                 o.geometry = coal.Capsule(o.geometry.radius, 2 * o.geometry.halfLength)
         self.data, self.gdata = self.model.createData(), pin.GeometryData(self.geom)
         self.index = {o.name: i for i, o in enumerate(self.geom.geometryObjects)}
@@ -119,6 +119,28 @@ def test_self_distances_against_coal_placed_by_pinocchio(robot):
     np.testing.assert_allclose(d, want, atol=1e-8, rtol=0)
     clear = np.abs(want) > 1e-8  # every contact coal reports is a checked pair with a negative distance
     np.testing.assert_array_equal(hits[clear], (d < 0)[clear])
+
+
+def test_fr3_capsules_are_exact_for_franka_cylinders_with_end_spheres():
+    """Franka caps each cylinder with a sphere of its radius at both ends: the union is the capsule, so the
+    distance between two links apart (min over their geoms) equals coal's with true cylinders, and links in
+    contact are in contact for both (coal's EPA returns -DBL_MAX on some deep cylinder pairs: sign only)."""
+    chain, rc = _robot(FR3, "fr3_link8")
+    pref = _Pinocchio(FR3.read_text(), chain, rc.geoms, capsules=False)
+    assert any(isinstance(o.geometry, coal.Cylinder) for o in pref.geom.geometryObjects)
+    link = {g.name: g.link for g in rc.geoms}
+    groups: dict[tuple[str, str], list[int]] = {}
+    for p, (a, b) in enumerate(rc.pairs):
+        groups.setdefault((link[a], link[b]), []).append(p)
+    q = _random_q(chain, 200, seed=7)
+    with torch.no_grad():
+        d = rc.self_distances(q).numpy()
+    for b in range(len(q)):
+        pref.place(q[b].numpy())
+        for ps in groups.values():
+            want = min(ref.distance(*pref.shape(rc.pairs[p][0]), *pref.shape(rc.pairs[p][1])) for p in ps)
+            ours = d[b, ps].min()
+            assert abs(ours - want) < 1e-8 if want > 0 else ours < 1e-8
 
 
 def test_world_distances_against_coal():
