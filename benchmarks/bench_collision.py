@@ -7,7 +7,8 @@ diffkin: ``RobotCollision.from_urdf(fr3.urdf, chain).self_distances(q)`` on one 
 frame included), under ``torch.no_grad()``, float32 and float64; ``+grad`` rows add the backward pass of
 ``min_distance(q).sum()`` to q. Pinocchio + coal: ``pinocchio.computeDistances`` (its FK, geometry
 placements and coal's distance for the same 297 pairs, cylinders as the same capsules) looped over rows in
-Python, float64, timed on ``--peer-rows`` rows (its cost is linear in rows). Rows: seconds per call
+Python, float64, timed on ``--peer-rows`` rows (its cost is linear in rows), three times before and three
+times after ours (the median, with the min and max). Rows: seconds per call
 (median, :mod:`benchmarks.common`), microseconds per row and ``speedup_vs_pin_coal`` (its per-row time /
 ours). The machine is shared: compare ratios from one run. MuJoCo's ``mj_collision`` is not timed
 (``RobotCollision.from_mjcf`` is not written yet).
@@ -17,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import statistics
 import time
 import warnings
 from pathlib import Path
@@ -72,7 +74,14 @@ def run(args) -> list[dict]:
     min_time, repeats = QUICK if quick else FULL
     batches = getattr(args, "batch", None) or ([1000, 10_000] if quick else [1000, 100_000])
     rows = []
-    peer = None
+    chain64, rc64 = _robot(torch.float64, "cpu")
+    try:
+        loop = _pin_coal(rc64)
+    except ImportError:
+        loop = None
+    n = getattr(args, "peer_rows", None) or (500 if quick else 2000)
+    Q = chain64.random_configuration((n,), generator=torch.Generator().manual_seed(1)).numpy()
+    peer_times = [loop(Q) for _ in range(3)] if loop is not None else []  # before and after ours: noise
     for dtype in (torch.float32, torch.float64):
         chain, rc = _robot(dtype, device)
         for B in batches:
@@ -88,19 +97,14 @@ def run(args) -> list[dict]:
                 rows.append({"benchmark": "collision", "impl": "diffkin +grad", "batch": B,
                              "dtype": "float32", "device": device, "pairs": len(rc.pairs), "seconds": t,
                              "us_per_row": 1e6 * t / B})
-        if dtype == torch.float64:
-            try:
-                loop = _pin_coal(rc)
-            except ImportError:
-                loop = None
-            if loop is not None:
-                n = getattr(args, "peer_rows", None) or (500 if quick else 2000)
-                Q = chain.random_configuration((n,), generator=torch.Generator().manual_seed(1)).cpu().numpy()
-                per_row = sorted(loop(Q) for _ in range(3))[1]
-                peer = per_row
-                rows.append({"benchmark": "collision", "impl": "pinocchio+coal (looped)", "batch": n,
-                             "dtype": "float64", "device": "cpu", "pairs": len(rc.pairs),
-                             "seconds": per_row * n, "us_per_row": 1e6 * per_row})
+    peer = None
+    if loop is not None:
+        peer_times += [loop(Q) for _ in range(3)]
+        peer = statistics.median(peer_times)
+        rows.append({"benchmark": "collision", "impl": "pinocchio+coal (looped)", "batch": n,
+                     "dtype": "float64", "device": "cpu", "pairs": len(rc64.pairs), "seconds": peer * n,
+                     "us_per_row": 1e6 * peer, "us_per_row_min": 1e6 * min(peer_times),
+                     "us_per_row_max": 1e6 * max(peer_times)})
     for r in rows:
         if peer is not None:
             r["speedup_vs_pin_coal"] = peer / (r["us_per_row"] * 1e-6)
