@@ -307,3 +307,13 @@ def test_meshes_become_enclosing_capsules(tmp_path):
 
     inside = sphere_capsule(v, torch.zeros((), dtype=F64), a[1], b[1], r[1])  # STL: float32 vertices
     assert (inside <= 1e-7).all() and r[1] < 0.2
+
+
+def test_the_model_does_not_import_the_collision_layer():
+    """Dependencies point one way: nothing in diffkin/ but the package's __init__ names diffkin.collision."""
+    root = Path(diffkin.__file__).parent
+    files = [p for p in root.rglob("*.py") if "collision" not in p.relative_to(root).parts
+             and p != root / "__init__.py"]
+    pattern = re.compile(r"^\s*(from\s+(\.+|diffkin\.)collision|from\s+(\.+|diffkin)\s+import\s.*\bcollision\b"
+                         r"|import\s+diffkin\.collision)", re.M)
+    assert len(files) > 20 and [str(p) for p in files if pattern.search(p.read_text())] == []
