@@ -318,3 +318,38 @@ def test_the_model_does_not_import_the_collision_layer():
                          r"|from\s+(\.+|diffkin)\s+import\s.*\bcollision\b"
                          r"|import\s+diffkin\.collision)", re.M)
     assert len(files) > 20 and [str(p) for p in files if pattern.search(p.read_text())] == []
+
+
+def test_parse_collisions_rejects_malformed_elements():
+    from diffkin.errors import ModelError
+
+    def urdf(geometry: str) -> str:
+        return (f'<robot name="r"><link name="a"><collision><geometry>{geometry}</geometry></collision>'
+                "</link></robot>")
+
+    assert parse_collisions(urdf('<sphere radius="0.1"/>'))["a"][0].size == (0.1,)
+    assert parse_collisions(urdf('<box size="1 2 3"/>'))["a"][0].size == (1.0, 2.0, 3.0)
+    for bad, match in (('<sphere radius="-1"/>', "radius"), ("<cylinder radius='1'/>", "length"),
+                       ('<box size="1 2"/>', "3 numbers"), ("<mesh/>", "filename"), ("", "no <geometry>")):
+        with pytest.raises(ModelError, match=match):
+            parse_collisions(urdf(bad))
+
+
+def test_world_validation():
+    from diffkin.errors import DiffkinError, DTypeError, ShapeError
+
+    with pytest.raises(ShapeError, match="spheres"):
+        World(spheres=[[0.0, 0.0, 0.0]])
+    with pytest.raises(DiffkinError, match="unit half-space normals"):
+        World(halfspaces=[[0.0, 0.0, 2.0, 0.0]])
+    with pytest.raises(DiffkinError, match="diffkin.collision.box"):
+        World(boxes=[[0.0, 0.0, 0.0]])
+    with pytest.raises(DTypeError):
+        World(spheres=torch.zeros(1, 4, dtype=torch.float32), boxes=box([0, 0, 0], [1, 1, 1], dtype=F64))
+    chain, rc = _robot(BOXY, "l3")
+    with pytest.raises(DiffkinError, match="dtype"):
+        rc.world_distances(torch.zeros(3, dtype=F64), World(spheres=torch.zeros(1, 4, dtype=torch.float32)))
+    w = World()
+    assert len(w) == 0 and rc.world_distances(torch.zeros(3, dtype=F64), World(dtype=F64)).shape == (6, 0)
+    assert rc.min_distance(torch.zeros(3, dtype=F64), World(dtype=F64)) == rc.self_distances(
+        torch.zeros(3, dtype=F64)).min()

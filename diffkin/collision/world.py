@@ -35,6 +35,8 @@ class World:
 
     def __init__(self, spheres=None, capsules=None, boxes: Box | None = None, halfspaces=None, points=None,
                  *, dtype: torch.dtype | None = None, device=None):
+        if boxes is not None and not isinstance(boxes, Box):
+            raise DiffkinError(f"expected boxes from diffkin.collision.box(...), got {type(boxes).__name__}")
         like = None
         if dtype is not None or device is not None:
             like = torch.empty(0, dtype=dtype or torch.get_default_dtype(), device=device)
@@ -44,13 +46,10 @@ class World:
                              ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)), like=like)
         ref = next((t for t in (s, c, h, p) if t is not None), None)
         if boxes is not None:
-            if not isinstance(boxes, Box):
-                raise DiffkinError("expected boxes from diffkin.collision.box(...), got "
-                                   f"{type(boxes).__name__}")
             common_dtype_device({"boxes": boxes.center, **({"spheres etc.": ref} if ref is not None else {})})
             ref = boxes.center if ref is None else ref
         dt = ref.dtype if ref is not None else (dtype or torch.get_default_dtype())
-        dev = ref.device if ref is not None else device
+        dev = ref.device if ref is not None else torch.empty(0, device=device).device
         empty = lambda k: torch.zeros(0, k, dtype=dt, device=dev)  # noqa: E731
         self.spheres = s if s is not None else empty(4)
         self.capsules = c if c is not None else empty(7)
