@@ -62,12 +62,13 @@ class RobotCollision(nn.Module):
     """
 
     def __init__(self, chain, geoms: list[Geom], links: list[str], capsules: list, boxes: list,
-                 pairs: list[tuple[int, int]]):
+                 pairs: list[tuple[int, int]], *, frames=None, dtype=None, device=None):
         super().__init__()
         self.chain = chain
         self.geoms = list(geoms)
-        self._frames = LinkFrames(chain)
-        dt, dev = chain.dtype, chain.device
+        self._frames = LinkFrames(chain) if frames is None else frames
+        dt = chain.dtype if chain is not None else dtype or torch.get_default_dtype()
+        dev = chain.device if chain is not None else torch.empty(0, device=device).device
         link_index = [self._frames.index[k] for k in links]  # per geom
         cap = [g for g, geom in enumerate(self.geoms) if geom.shape == "capsule"]
         bx = [g for g, geom in enumerate(self.geoms) if geom.shape == "box"]
@@ -220,6 +221,34 @@ class RobotCollision(nn.Module):
         disabled = _srdf_disabled(srdf) if srdf is not None else set()
         pairs = _urdf_pairs(chain, frames, geoms, disabled)
         return cls(chain, geoms, links, caps, boxes, pairs)
+
+    @classmethod
+    def from_mjcf(cls, source, chain=None, *, body_poses=None, dtype: torch.dtype | None = None,
+                  device=None) -> RobotCollision:
+        """The geoms of an MJCF model's bodies (path, XML text or a compiled ``mujoco.MjModel``) with
+        MuJoCo's pair rules: contype/conaffinity, ``<contact><exclude>``, the weld and parent–child filters
+        (unless disabled in ``<option>``), plus explicit ``<contact><pair>``s. Geoms are named by their MJCF
+        names, unnamed ones ``"<body>/<i>"``; spheres, capsules, cylinders (as capsules), boxes and meshes
+        (fitted capsules of their vertices) are read, other types skipped with a warning.
+
+        ``body_poses(q) -> (..., nbody, 4, 4)``: the pose of every MuJoCo body (world first), differentiable
+        for gradients; defaults to ``chain.body_poses`` once the MJCF model provides it. ``chain`` (optional)
+        sets dtype and device; without it ``dtype`` / ``device``.
+        """
+        from .mjcf import BodyFrames, load_model, mjcf_geoms, mjcf_pairs
+
+        m = load_model(source)
+        poses = body_poses if body_poses is not None else getattr(chain, "body_poses", None)
+        if poses is None:
+            raise ModelError("RobotCollision.from_mjcf needs the body poses: pass body_poses=callable(q) -> "
+                             "(..., nbody, 4, 4), or a chain with a body_poses method")
+        names = [m.body(b).name or f"body{b}" for b in range(m.nbody)]
+        found, ids = mjcf_geoms(m)
+        geoms = [Geom(name, names[body], kind, shape) for name, body, kind, shape, _ in found]
+        caps = [data for *_, shape, data in found if shape == "capsule"]
+        boxes = [data for *_, shape, data in found if shape == "box"]
+        return cls(chain, geoms, [g.link for g in geoms], caps, boxes, mjcf_pairs(m, ids),
+                   frames=BodyFrames(names, poses), dtype=dtype, device=device)
 
 
 def _geom_of(s, base_dir, package_dirs):
