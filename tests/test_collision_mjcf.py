@@ -129,3 +129,43 @@ def test_gradients_through_the_poses_and_missing_poses():
 
     with pytest.raises(ModelError, match="body_poses"):
         RobotCollision.from_mjcf(ARM)
+
+
+def test_fr3_through_mujocos_urdf_compiler_matches_from_urdf():
+    """MuJoCo compiles the FR3 URDF (meshes dropped, static bodies kept): from_mjcf on it, posed by the URDF
+    chain's link frames, finds from_urdf's 297 pairs (MuJoCo's weld and parent filters are the URDF adjacency
+    rule) plus link 0 × link 1, which MuJoCo does not filter (link 0 is welded to the world, and the parent
+    filter skips world-welded bodies), and the same distances."""
+    import re
+    import warnings
+    from pathlib import Path
+
+    import diffkin
+    from diffkin.collision._poses import LinkFrames
+
+    path = Path(__file__).parent / "data" / "urdf" / "fr3.urdf"
+    mesh = r"<collision>\s*<geometry>\s*<mesh[^>]*/>\s*</geometry>\s*</collision>"
+    text = re.sub(mesh, "", path.read_text())
+    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S).replace(
+        '<robot name="fr3">', '<robot name="fr3"><mujoco><compiler fusestatic="false"/></mujoco>')
+    m = mujoco.MjModel.from_xml_string(text)
+    chain = diffkin.models.from_urdf(path, "fr3_link8", dtype=F64)
+    frames = LinkFrames(chain)
+    rows = torch.tensor([frames.index[m.body(b).name] for b in range(1, m.nbody)])
+
+    def body_poses(q):
+        T = frames.poses(chain, q).index_select(-3, rows)
+        return torch.cat((torch.eye(4, dtype=F64).expand(*T.shape[:-3], 1, 4, 4), T), -3)
+
+    mj = RobotCollision.from_mjcf(m, chain, body_poses=body_poses)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        urdf = RobotCollision.from_urdf(path, chain)
+    rename = {g.name: u.name for g, u in zip(mj.geoms, urdf.geoms)}
+    assert [g.link for g in mj.geoms] == [g.link for g in urdf.geoms]
+    theirs = [(rename[a], rename[b]) for a, b in mj.pairs]
+    base = {p for p in theirs if p[0].startswith("fr3_link0_sc") and p[1].startswith("fr3_link1_sc")}
+    assert len(base) == 9 and sorted(set(theirs) - base) == sorted(urdf.pairs)
+    q = chain.random_configuration((64,), generator=torch.Generator().manual_seed(0))
+    order = [theirs.index(p) for p in urdf.pairs]
+    torch.testing.assert_close(mj.self_distances(q)[:, order], urdf.self_distances(q), atol=1e-12, rtol=0)
