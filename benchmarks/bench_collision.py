@@ -10,8 +10,11 @@ placements and coal's distance for the same 297 pairs, cylinders as the same cap
 Python, float64, timed on ``--peer-rows`` rows (its cost is linear in rows), three times before and three
 times after ours (the median, with the min and max). Rows: seconds per call
 (median, :mod:`benchmarks.common`), microseconds per row and ``speedup_vs_pin_coal`` (its per-row time /
-ours). The machine is shared: compare ratios from one run. MuJoCo's ``mj_collision`` is not timed
-(``RobotCollision.from_mjcf`` is not written yet).
+ours). MuJoCo: the same URDF through MuJoCo's compiler (meshes dropped, static bodies kept: the same 30
+geoms, true cylinders), ``mj_kinematics`` + ``mj_collision`` looped over rows: contacts of penetrating pairs
+only, after its bounding-volume broad phase, so a cheaper query than 297 signed distances (its pair set is
+ours plus link 0 × link 1, which its parent filter keeps). The machine is shared: compare ratios from one
+run.
 """
 
 from __future__ import annotations
@@ -68,6 +71,28 @@ def _pin_coal(rc: RobotCollision):
     return loop
 
 
+def _mujoco():
+    """(per-row seconds function) for MuJoCo's mj_kinematics + mj_collision on the FR3."""
+    import mujoco
+
+    text = re.sub(r"<collision>\s*<geometry>\s*<mesh[^>]*/>\s*</geometry>\s*</collision>", "",
+                  FR3_URDF.read_text())
+    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S).replace(
+        '<robot name="fr3">', '<robot name="fr3"><mujoco><compiler fusestatic="false"/></mujoco>')
+    m = mujoco.MjModel.from_xml_string(text)
+    d = mujoco.MjData(m)
+
+    def loop(Q) -> float:
+        t0 = time.perf_counter()
+        for q in Q:
+            d.qpos[:] = q
+            mujoco.mj_kinematics(m, d)
+            mujoco.mj_collision(m, d)
+        return (time.perf_counter() - t0) / len(Q)
+
+    return loop
+
+
 def run(args) -> list[dict]:
     quick = getattr(args, "quick", False)
     device = getattr(args, "device", "cpu")
@@ -82,6 +107,11 @@ def run(args) -> list[dict]:
     n = getattr(args, "peer_rows", None) or (500 if quick else 2000)
     Q = chain64.random_configuration((n,), generator=torch.Generator().manual_seed(1)).numpy()
     peer_times = [loop(Q) for _ in range(3)] if loop is not None else []  # before and after ours: noise
+    try:
+        mj = _mujoco()
+    except ImportError:
+        mj = None
+    mj_times = [mj(Q) for _ in range(3)] if mj is not None else []
     for dtype in (torch.float32, torch.float64):
         chain, rc = _robot(dtype, device)
         for B in batches:
@@ -105,6 +135,13 @@ def run(args) -> list[dict]:
                      "dtype": "float64", "device": "cpu", "pairs": len(rc64.pairs), "seconds": peer * n,
                      "us_per_row": 1e6 * peer, "us_per_row_min": 1e6 * min(peer_times),
                      "us_per_row_max": 1e6 * max(peer_times)})
+    if mj is not None:
+        mj_times += [mj(Q) for _ in range(3)]
+        t = statistics.median(mj_times)
+        rows.append({"benchmark": "collision", "impl": "mujoco mj_collision (looped, contacts only)",
+                     "batch": n, "dtype": "float64", "device": "cpu", "pairs": len(rc64.pairs) + 9,
+                     "seconds": t * n, "us_per_row": 1e6 * t, "us_per_row_min": 1e6 * min(mj_times),
+                     "us_per_row_max": 1e6 * max(mj_times)})
     for r in rows:
         if peer is not None:
             r["speedup_vs_pin_coal"] = peer / (r["us_per_row"] * 1e-6)
