@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from ..errors import ModelError, require
-from ..rotations import _matrix_to_euler
+from ..rotations import _matrix_to_euler, quaternion_to_matrix
 from .meshes import capsule_of_points
 
 __all__ = ["BodyFrames", "mjcf_geoms"]
@@ -60,10 +60,8 @@ def load_model(source):
 
 
 def _rotation(quat) -> np.ndarray:
-    w, x, y, z = quat / np.linalg.norm(quat)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    """MuJoCo's (w, x, y, z) geom quaternion as a rotation matrix (scalar first, as the book's (2.33))."""
+    return quaternion_to_matrix(torch.tensor(quat, dtype=torch.float64)).numpy()
 
 
 def _geom_data(m, g: int, kind: int, pos: np.ndarray, R: np.ndarray):
