@@ -24,6 +24,7 @@ from torch import Tensor, nn
 from ..errors import ModelError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
+from ..transforms import transform_points
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
 from .distances import capsule_capsule_pairs, capsule_pairs_cm
@@ -44,11 +45,6 @@ class Geom:
     kind: str
     shape: str
     source: str | None = None
-
-
-def _transform(T: Tensor, p: Tensor) -> Tensor:
-    """T · p for poses ``(..., 4, 4)`` and points ``(..., 3)``."""
-    return (T[..., :3, :3] @ p.unsqueeze(-1)).squeeze(-1) + T[..., :3, 3]
 
 
 class RobotCollision(nn.Module):
@@ -254,7 +250,7 @@ class RobotCollision(nn.Module):
 def _geom_of(s, base_dir, package_dirs):
     """(Geom, link-frame data) of a CollisionSpec; None for a mesh whose file does not resolve."""
     T = origin_transform(torch.tensor(s.xyz, dtype=torch.float64), torch.tensor(s.rpy, dtype=torch.float64))
-    pt = lambda p: _transform(T, torch.tensor(p, dtype=torch.float64)).tolist()  # noqa: E731
+    pt = lambda p: transform_points(T, torch.tensor(p, dtype=torch.float64)).tolist()  # noqa: E731
     if s.type == "sphere":
         c = pt((0.0, 0.0, 0.0))
         return Geom(s.name, s.link, "sphere", "capsule"), (c, c, s.size[0])
