@@ -353,3 +353,19 @@ def test_world_validation():
     assert len(w) == 0 and rc.world_distances(torch.zeros(3, dtype=F64), World(dtype=F64)).shape == (6, 0)
     assert rc.min_distance(torch.zeros(3, dtype=F64), World(dtype=F64)) == rc.self_distances(
         torch.zeros(3, dtype=F64)).min()
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    chain, rc = _robot(BOXY, "l3")
+    q = _random_q(chain, 64, seed=8)
+    world = World(spheres=[[0.2, 0.1, 0.5, 0.05]], boxes=box([0.3, 0, 0.3], [0.05, 0.1, 0.2], dtype=F64),
+                  halfspaces=[[0, 0, 1.0, -0.01]], dtype=F64)
+    cpu = (rc.self_distances(q), rc.world_distances(q, world))
+    rc.cuda()
+    world_gpu = World(spheres=world.spheres.cuda(), boxes=box(world.boxes.center.cuda(),
+                      world.boxes.half_extents.cuda()), halfspaces=world.halfspaces.cuda())
+    gpu = (rc.self_distances(q.cuda()), rc.world_distances(q.cuda(), world_gpu))
+    for a, b in zip(cpu, gpu):
+        torch.testing.assert_close(b.cpu(), a, atol=1e-10, rtol=0)
