@@ -32,7 +32,7 @@ import sys
 from benchmarks.common import print_table, write_json
 
 NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model", "sharded",
-         "kernels", "velocity_ik")
+         "kernels", "velocity_ik", "collision", "mjcf")
 
 
 def parse_args(argv=None) -> argparse.Namespace:

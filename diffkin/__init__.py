@@ -6,6 +6,7 @@ Submodules follow the textbook's order: :mod:`~diffkin.rotations` → :mod:`~dif
 """
 
 from . import calibration as calibration
+from . import collision as collision
 from . import errors as errors
 from . import ik as ik
 from . import jacobian as jacobian
@@ -39,6 +40,7 @@ __all__ = [
     "URDFChain",
     "__version__",
     "calibration",
+    "collision",
     "errors",
     "forward_kinematics_and_jacobian",
     "geometric_jacobian",

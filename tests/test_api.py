@@ -17,6 +17,7 @@ MODULES = [
     "diffkin.ik",
     "diffkin.calibration",
     "diffkin.trajectories",
+    "diffkin.collision",
 ]
 
 

@@ -28,7 +28,8 @@ from pathlib import Path
 
 from ..errors import ModelError
 
-__all__ = ["JointSpec", "URDFTree", "parse_urdf", "write_urdf", "JOINT_TYPES", "MOVING_TYPES"]
+__all__ = ["JointSpec", "URDFTree", "parse_urdf", "write_urdf", "JOINT_TYPES", "MOVING_TYPES",
+           "CollisionSpec", "parse_collisions"]
 
 JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar")
 MOVING_TYPES = ("revolute", "continuous", "prismatic")
@@ -539,3 +540,74 @@ def write_urdf(tree: URDFTree, origins: Mapping[str, tuple[Sequence[float], Sequ
         encoding = m.group(2).decode("ascii") if m else "utf-8"
         Path(path).write_bytes(text.encode(encoding))
     return text
+
+
+# -------------------------------------------------------------------------------------- collision elements
+
+@dataclass(frozen=True)
+class CollisionSpec:
+    """One ``<collision>`` of a link: its geometry in the link frame, as written in the file.
+
+    ``type`` is ``sphere`` / ``cylinder`` / ``capsule`` / ``box`` / ``mesh``; ``size`` holds
+    ``(radius,)``, ``(radius, length)``, ``(radius, length)``, ``(x, y, z)`` (full side lengths) or the
+    mesh ``scale``; ``filename`` is the mesh's file name as written (else None); ``xyz`` / ``rpy`` its
+    ``<origin>``; ``name`` its ``name`` attribute or ``"<link>/<i>"`` (i: the element's index in the link).
+    """
+
+    link: str
+    name: str
+    type: str
+    size: tuple[float, ...]
+    xyz: Vec3 = (0.0, 0.0, 0.0)
+    rpy: Vec3 = (0.0, 0.0, 0.0)
+    filename: str | None = None
+
+
+_GEOMETRY_ATTRS = {"sphere": ("radius",), "cylinder": ("radius", "length"), "capsule": ("radius", "length")}
+
+
+def _collision_spec(link: str, i: int, elem: ET.Element) -> CollisionSpec | None:
+    name = elem.get("name") or f"{link}/{i}"
+    where = f"link {link!r} <collision> {name!r}"
+    geometry = elem.find("geometry")
+    shape = None if geometry is None else next(iter(geometry), None)
+    if shape is None:
+        raise ModelError(f"{where} has no <geometry> shape")
+    origin = elem.find("origin")
+    xyz = _vec3(origin, "xyz", (0.0, 0.0, 0.0), where)
+    rpy = _vec3(origin, "rpy", (0.0, 0.0, 0.0), where)
+    if shape.tag in _GEOMETRY_ATTRS:
+        size = []
+        for attr in _GEOMETRY_ATTRS[shape.tag]:
+            v = _opt_float(shape, attr, where)
+            if v is None or v < 0:
+                raise ModelError(f"{where}: <{shape.tag}> needs {attr} >= 0, got {shape.get(attr)!r}")
+            size.append(v)
+        return CollisionSpec(link, name, shape.tag, tuple(size), xyz, rpy)
+    if shape.tag == "box":
+        size = _vec3(shape, "size", None, where)  # type: ignore[arg-type]
+        if size is None or min(size) < 0:
+            raise ModelError(f"{where}: <box> needs size with three numbers >= 0, got {shape.get('size')!r}")
+        return CollisionSpec(link, name, "box", size, xyz, rpy)
+    if shape.tag == "mesh":
+        if not shape.get("filename"):
+            raise ModelError(f"{where}: <mesh> has no filename")
+        scale = _vec3(shape, "scale", (1.0, 1.0, 1.0), where)
+        return CollisionSpec(link, name, "mesh", scale, xyz, rpy, shape.get("filename"))
+    return None  # an unknown shape tag: not a collision primitive URDF defines
+
+
+def parse_collisions(source) -> dict[str, list[CollisionSpec]]:
+    """The ``<collision>`` elements of every link, in file order: ``{link: [CollisionSpec, ...]}`` (links
+    without collisions map to ``[]``). ``source`` as for :func:`parse_urdf` (or a :class:`URDFTree`);
+    shapes other than sphere, cylinder, capsule, box and mesh are left out. ModelError on a malformed
+    element (missing size, negative radius, mesh without file name).
+    """
+    text, origin = (source.text, "tree") if isinstance(source, URDFTree) else _read(source)
+    robot = _parse_xml(text, origin)
+    out: dict[str, list[CollisionSpec]] = {}
+    for elem in robot.findall("link"):
+        link = elem.get("name", "")
+        specs = [_collision_spec(link, i, c) for i, c in enumerate(elem.findall("collision"))]
+        out[link] = [s for s in specs if s is not None]
+    return out

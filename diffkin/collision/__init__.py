@@ -1,0 +1,51 @@
+"""Collision geometry above the model: batched, differentiable signed distances (negative = penetration).
+
+* :mod:`~diffkin.collision.distances`: spheres, capsules, points and half-spaces in closed form.
+* :mod:`~diffkin.collision.boxes`: oriented boxes (:func:`box`) against all of those and each other.
+* :class:`World`: the obstacles; :class:`RobotCollision`: the robot's geoms, its checked pairs,
+  ``self_distances``, ``world_distances`` and ``min_distance``.
+
+The model never imports this package (data flows ``model frames -> collision geometry -> distances``).
+"""
+
+from .boxes import Box as Box
+from .boxes import box as box
+from .boxes import box_box as box_box
+from .boxes import box_halfspace as box_halfspace
+from .boxes import capsule_box as capsule_box
+from .boxes import point_box as point_box
+from .boxes import segment_box as segment_box
+from .boxes import sphere_box as sphere_box
+from .distances import capsule_capsule as capsule_capsule
+from .distances import capsule_capsule_pairs as capsule_capsule_pairs
+from .distances import capsule_halfspace as capsule_halfspace
+from .distances import point_segment_parameter as point_segment_parameter
+from .distances import segment_closest_parameters as segment_closest_parameters
+from .distances import sphere_capsule as sphere_capsule
+from .distances import sphere_halfspace as sphere_halfspace
+from .distances import sphere_sphere as sphere_sphere
+from .robot import Geom as Geom
+from .robot import RobotCollision as RobotCollision
+from .world import World as World
+
+__all__ = [
+    "Box",
+    "Geom",
+    "RobotCollision",
+    "World",
+    "box",
+    "box_box",
+    "box_halfspace",
+    "capsule_box",
+    "capsule_capsule",
+    "capsule_capsule_pairs",
+    "capsule_halfspace",
+    "point_box",
+    "point_segment_parameter",
+    "segment_box",
+    "segment_closest_parameters",
+    "sphere_box",
+    "sphere_capsule",
+    "sphere_halfspace",
+    "sphere_sphere",
+]

@@ -1,0 +1,133 @@
+"""Collision geoms and pairs of an MJCF model, read from MuJoCo's compiled ``MjModel`` (no XML rules
+re-implemented): ``geom_type``, ``geom_size``, ``geom_pos``, ``geom_quat``, ``geom_bodyid``,
+``contype`` / ``conaffinity``, ``<contact><exclude>`` (``exclude_signature``), explicit ``<contact><pair>``
+and MuJoCo's weld and parent–child filters.
+
+Body frames come from a callable ``body_poses(q) -> (..., nbody, 4, 4)`` (MuJoCo's body order, the world body
+first): the MJCF model's frames once it provides them (``chain.body_poses``), or any differentiable FK.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ModelError, require
+from ..rotations import _matrix_to_euler, quaternion_to_matrix
+from .meshes import capsule_of_points
+
+__all__ = ["BodyFrames", "mjcf_geoms"]
+
+_SPHERE, _CAPSULE, _CYLINDER, _BOX, _MESH = 2, 3, 5, 6, 7
+_KINDS = {_SPHERE: "sphere", _CAPSULE: "capsule", _CYLINDER: "cylinder", _BOX: "box", _MESH: "mesh"}
+_DSBL_FILTERPARENT = 1 << 10
+
+
+class BodyFrames:
+    """The frame provider of :class:`~diffkin.collision.RobotCollision` for MuJoCo bodies: each body is its
+    own anchor, with identity offsets, posed by ``body_poses(q)``."""
+
+    def __init__(self, names: list[str], body_poses):
+        self.links = list(names)
+        self.index = {k: i for i, k in enumerate(self.links)}
+        self.bodies = list(range(len(self.links)))
+        self._poses = body_poses
+
+    def frames(self, chain, q: torch.Tensor) -> torch.Tensor:
+        T = self._poses(q)
+        if T.shape[-3:] != (len(self.links), 4, 4):
+            raise ModelError(f"body_poses(q) must return (..., {len(self.links)}, 4, 4) (MuJoCo's bodies), "
+                             f"got {tuple(T.shape)}")
+        return T
+
+    def offsets(self, chain, dtype: torch.dtype, device) -> torch.Tensor:
+        return torch.eye(4, dtype=dtype, device=device).expand(len(self.links), 4, 4)
+
+
+def load_model(source):
+    """A compiled ``mujoco.MjModel`` from a path, XML text or an ``MjModel``."""
+    mujoco = require("mujoco", "collision", "RobotCollision.from_mjcf")
+    if isinstance(source, mujoco.MjModel):
+        return source
+    if isinstance(source, str) and "<" in source:
+        return mujoco.MjModel.from_xml_string(source)
+    if isinstance(source, (str, Path)) and Path(source).is_file():
+        return mujoco.MjModel.from_xml_path(str(source))
+    raise ModelError(f"MJCF source must be a path, XML text or a mujoco.MjModel, got {source!r:.80}")
+
+
+def _rotation(quat) -> np.ndarray:
+    """MuJoCo's (w, x, y, z) geom quaternion as a rotation matrix (scalar first, as the book's (2.33))."""
+    return quaternion_to_matrix(torch.tensor(quat, dtype=torch.float64)).numpy()
+
+
+def _geom_data(m, g: int, kind: int, pos: np.ndarray, R: np.ndarray):
+    """(shape, body-frame data) of geom g: capsules (a, b, r), boxes (centre, rpy, half extents)."""
+    size = m.geom_size[g]
+    if kind == _SPHERE:
+        return "capsule", (pos.tolist(), pos.tolist(), float(size[0]))
+    if kind in (_CAPSULE, _CYLINDER):
+        half = R[:, 2] * size[1]
+        return "capsule", ((pos - half).tolist(), (pos + half).tolist(), float(size[0]))
+    if kind == _BOX:
+        rpy = _matrix_to_euler(torch.from_numpy(R), "RPY").flip(-1)
+        return "box", (pos.tolist(), rpy.tolist(), size[:3].tolist())
+    k = m.geom_dataid[g]  # a mesh: its vertices are in the geom frame
+    v = m.mesh_vert[m.mesh_vertadr[k]: m.mesh_vertadr[k] + m.mesh_vertnum[k]].astype(np.float64)
+    a, b, r = capsule_of_points(v)
+    return "capsule", ((pos + R @ a).tolist(), (pos + R @ b).tolist(), r)
+
+
+def mjcf_geoms(m):
+    """``(geoms [(name, body, kind, shape, data)], MuJoCo geom ids)`` of the bodies' geoms (the world body's
+    geoms are surroundings, not the robot's); types without a distance here are skipped with one warning."""
+    out, skipped, ids, per_body = [], [], [], {}
+    for g in range(m.ngeom):
+        body = int(m.geom_bodyid[g])
+        if body == 0:
+            continue
+        k = per_body.setdefault(body, 0)
+        per_body[body] = k + 1
+        name = m.geom(g).name or f"{m.body(body).name or f'body{body}'}/{k}"
+        kind = int(m.geom_type[g])
+        if kind not in _KINDS:
+            skipped.append(f"{name} (type {kind})")
+            continue
+        shape, data = _geom_data(m, g, kind, m.geom_pos[g].astype(np.float64), _rotation(m.geom_quat[g]))
+        out.append((name, body, _KINDS[kind], shape, data))
+        ids.append(g)
+    if skipped:
+        warnings.warn(f"RobotCollision.from_mjcf: {len(skipped)} geom(s) of types without a distance here "
+                      f"(ellipsoid, plane, height field, SDF) skipped: {', '.join(skipped)}", stacklevel=3)
+    return out, ids
+
+
+def mjcf_pairs(m, ids: list[int]) -> list[tuple[int, int]]:
+    """Index pairs (into ``ids``) MuJoCo's collision filters let through, plus the explicit ``<pair>``s."""
+    weld, parent = m.body_weldid, m.body_parentid
+    excluded = {int(s) for s in m.exclude_signature[: m.nexclude]}
+    filter_parent = not (m.opt.disableflags & _DSBL_FILTERPARENT)
+    pos = {g: i for i, g in enumerate(ids)}
+    out = set()
+    for i, g1 in enumerate(ids):
+        for j in range(i + 1, len(ids)):
+            g2 = ids[j]
+            b1, b2 = int(m.geom_bodyid[g1]), int(m.geom_bodyid[g2])
+            w1, w2 = int(weld[b1]), int(weld[b2])
+            if w1 == w2:
+                continue
+            if filter_parent and w1 and w2 and (w1 == weld[parent[w2]] or w2 == weld[parent[w1]]):
+                continue
+            ct, ca = m.geom_contype, m.geom_conaffinity
+            if not (ct[g1] & ca[g2] or ct[g2] & ca[g1]):
+                continue
+            if ((min(b1, b2) << 16) + max(b1, b2)) in excluded:
+                continue
+            out.add((i, j))
+    for g1, g2 in zip(m.pair_geom1[: m.npair], m.pair_geom2[: m.npair]):
+        if int(g1) in pos and int(g2) in pos:
+            out.add(tuple(sorted((pos[int(g1)], pos[int(g2)]))))
+    return sorted(out)

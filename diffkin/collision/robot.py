@@ -1,0 +1,294 @@
+"""The robot's collision geometry: :class:`RobotCollision`, geoms on the chain's links and the pairs checked.
+
+Every geom is a capsule (spheres: zero-length capsules; cylinders: the capsule of the same radius and axis
+length, which contains the cylinder and adds a hemispherical cap at each end; meshes: a fitted enclosing
+capsule, :mod:`diffkin.collision.meshes`) or an oriented box, in its link's frame. Links behind fixed
+joints have frames of their own (:mod:`diffkin.collision._poses`).
+
+Pair rules for a URDF: links welded together by fixed joints form one rigid body; pairs within one body
+and pairs of bodies joined by one moving joint are *adjacent* and not checked (as MoveIt's setup
+assistant counts adjacency), and an SRDF's ``<disable_collisions link1= link2=>`` removes those link pairs.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from ..errors import ModelError
+from ..kernels.joints import origin_transform
+from ..models.urdf_xml import parse_collisions
+from ..transforms import transform_points
+from ._poses import LinkFrames
+from .boxes import box_box, capsule_box
+from .distances import capsule_capsule_pairs, capsule_pairs_cm
+from .meshes import fit_capsule, resolve_mesh
+from .world import World, _check_world
+
+__all__ = ["Geom", "RobotCollision"]
+
+
+@dataclass(frozen=True)
+class Geom:
+    """One collision geom: ``name``, its ``link``, ``kind`` as written in the file (``sphere``, ``capsule``,
+    ``cylinder``, ``box``, ``mesh``) and ``shape`` as computed (``capsule`` or ``box``); ``source`` is the
+    mesh file a fitted capsule came from."""
+
+    name: str
+    link: str
+    kind: str
+    shape: str
+    source: str | None = None
+
+
+class RobotCollision(nn.Module):
+    """Collision geoms on the links of a chain, and the batched signed distances of their pairs and to a
+    :class:`~diffkin.collision.World`.
+
+    Build it with :meth:`from_urdf`. Attributes: ``geoms`` (list of :class:`Geom`), ``pairs`` (list of
+    ``(geom_a, geom_b)`` names, the order of :meth:`self_distances`), ``chain``. Parameters (learnable, in
+    the link frames, dtype and device of the chain): ``capsule_a``, ``capsule_b`` ``(G_c, 3)``,
+    ``capsule_radius`` ``(G_c,)``; ``box_center``, ``box_rpy``, ``box_half_extents`` ``(G_b, 3)``.
+    """
+
+    def __init__(self, chain, geoms: list[Geom], links: list[str], capsules: list, boxes: list,
+                 pairs: list[tuple[int, int]], *, frames=None, dtype=None, device=None):
+        super().__init__()
+        self.chain = chain
+        self.geoms = list(geoms)
+        self._frames = LinkFrames(chain) if frames is None else frames
+        dt = chain.dtype if chain is not None else dtype or torch.get_default_dtype()
+        dev = chain.device if chain is not None else torch.empty(0, device=device).device
+        link_index = [self._frames.index[k] for k in links]  # per geom
+        cap = [g for g, geom in enumerate(self.geoms) if geom.shape == "capsule"]
+        bx = [g for g, geom in enumerate(self.geoms) if geom.shape == "box"]
+        where = {g: (0, i) for i, g in enumerate(cap)} | {g: (1, i) for i, g in enumerate(bx)}
+        f = lambda rows, k, n: torch.tensor([r[k] for r in rows], dtype=dt, device=dev).reshape(-1, *n)  # noqa: E731
+        self.capsule_a = nn.Parameter(f(capsules, 0, (3,)))
+        self.capsule_b = nn.Parameter(f(capsules, 1, (3,)))
+        self.capsule_radius = nn.Parameter(f(capsules, 2, ()).reshape(-1))
+        self.box_center = nn.Parameter(f(boxes, 0, (3,)))
+        self.box_rpy = nn.Parameter(f(boxes, 1, (3,)))
+        self.box_half_extents = nn.Parameter(f(boxes, 2, (3,)))
+        ilong = lambda x: torch.tensor(x, dtype=torch.long, device=dev).reshape(-1)  # noqa: E731
+        anchor = [self._frames.bodies[k] for k in link_index]
+        # the columns of the placement product (see _columns): capsule starts, ends, box centres, box axes
+        cols = lambda per: ([per[g] for g in cap] * 2 + [per[g] for g in bx]  # noqa: E731
+                            + [per[g] for g in bx for _ in range(3)])  # box g's axes: columns 3 g + k
+        col_link, col_anchor = cols(link_index), cols(anchor)
+        self.register_buffer("_col_link", ilong(col_link), persistent=False)
+        self.register_buffer("_col_anchor", ilong(col_anchor), persistent=False)
+        self._counts = (len(cap), len(bx))
+        self.register_buffer("_rows", ilong(torch.argsort(torch.tensor(cap + bx, dtype=torch.long)).tolist()),
+                             persistent=False)
+        self.pairs = [(self.geoms[i].name, self.geoms[j].name) for i, j in pairs]
+        kinds: dict[tuple[int, int], list] = {(0, 0): [], (0, 1): [], (1, 1): []}
+        for p, (i, j) in enumerate(pairs):
+            (ki, ii), (kj, jj) = sorted((where[i], where[j]))
+            kinds[(ki, kj)].append((p, ii, jj))
+        order = []
+        for key, rows in kinds.items():
+            self.register_buffer(f"_pairs_{key[0]}{key[1]}", ilong([r[1:] for r in rows]).reshape(-1, 2),
+                                 persistent=False)
+            order += [r[0] for r in rows]
+        perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
+        self.register_buffer("_pair_perm", ilong(perm), persistent=False)
+        self._pairs_in_order = perm == list(range(len(perm)))  # then no gather (slow on the last axis)
+
+    # ------------------------------------------------------------------------------------ geometry
+    def _columns(self, q: Tensor) -> Tensor:
+        """Every geom point and axis in the base frame as the columns of one product ``(..., 3, C)``.
+
+        Column c is F_k · h_c with F_k the pose of the moving-joint frame the geom is welded to and
+        h_c = O_link · (point; 1) or (axis; 0) in that frame (O: the fixed origins down to the link, no
+        batch dims). Stacking the frames side by side, ``[F_0 … F_K][:3] · H`` with H holding h_c in the
+        block of its frame, places all of them in one batched matrix product instead of a gather of a 4 × 4
+        pose per geom.
+        """
+        F = self._frames.frames(self.chain, q)  # (..., K, 4, 4)
+        O = self._frames.offsets(self.chain, F.dtype, F.device).index_select(0, self._col_link)  # (C, 4, 4)
+        nc, nb = self._counts
+        one, zero = self.capsule_a.new_ones(nc + nc + nb, 1), self.capsule_a.new_zeros(3 * nb, 1)
+        Rb = origin_transform(torch.zeros_like(self.box_rpy), self.box_rpy)[..., :3, :3]  # (G_b, 3, 3)
+        local = torch.cat((torch.cat((self.capsule_a, self.capsule_b, self.box_center), 0), one), 1)
+        axes = torch.cat((Rb.transpose(-1, -2).reshape(-1, 3), zero), 1)  # box g's axis k: row 3 g + k
+        h = (O @ torch.cat((local, axes), 0).unsqueeze(-1)).squeeze(-1)  # (C, 4)
+        K, C = F.shape[-3], h.shape[0]
+        H = h.new_zeros(K, C, 4).index_put((self._col_anchor, torch.arange(C, device=h.device)), h)
+        Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * K)  # (..., 3, K·4)
+        return Fm @ H.transpose(1, 2).reshape(4 * K, C)
+
+    def placed(self, q: Tensor) -> tuple[Tensor, ...]:
+        """The geoms in the base frame for joint values ``q (..., n)``: ``(a (..., G_c, 3), b (..., G_c, 3),
+        radius (G_c,), box centres (..., G_b, 3), rotations (..., G_b, 3, 3), half extents (G_b, 3))``."""
+        P = self._columns(q)
+        nc, nb = self._counts
+        a, b, c, ax = P.split((nc, nc, nb, 3 * nb), -1)
+        R = ax.reshape(*ax.shape[:-1], nb, 3).movedim(-3, -2)  # (..., G_b, 3 (i), 3 (k))
+        return (a.transpose(-1, -2), b.transpose(-1, -2), self.capsule_radius, c.transpose(-1, -2), R,
+                self.box_half_extents)
+
+    def self_distances(self, q: Tensor) -> Tensor:
+        """Signed distances ``(..., P)`` of the checked pairs (order of ``pairs``; negative: penetration
+        depth), in the chain's length unit, differentiable in q and in the geometry."""
+        (i, j), (k, m), (u, v) = self._pairs_00.T, self._pairs_01.T, self._pairs_11.T
+        nc = self._counts[0]
+        if len(k) or len(u):
+            a, b, r, c, R, h = self.placed(q)
+            batch = a.shape[:-2]
+        else:  # capsules only: stay in the product's component-major layout
+            P = self._columns(q)
+            batch = P.shape[:-2]
+        sel = lambda x, idx, k: x.index_select(-1 - k, idx)  # noqa: E731
+        d = []
+        if len(i):  # (static sizes: the box searches cost dozens of small ops even on empty tensors)
+            if len(k) or len(u):
+                d.append(capsule_capsule_pairs(a, b, r, i, j))
+            else:
+                Pc = P[..., : 2 * nc].reshape(-1, 3, 2 * nc).permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
+                A, B = Pc[:nc], Pc[nc:]
+                d.append(capsule_pairs_cm(A, B - A, self.capsule_radius[:, None], i, j).T
+                         .reshape(*batch, len(i)))
+        if len(k):
+            d.append(capsule_box(sel(a, k, 1), sel(b, k, 1), r[k], sel(c, m, 1), sel(R, m, 2), h[m]))
+        if len(u):
+            d.append(box_box(sel(c, u, 1), sel(R, u, 2), h[u], sel(c, v, 1), sel(R, v, 2), h[v]))
+        if not d:
+            return self.capsule_radius.new_zeros(*batch, 0)
+        d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1) if len(d) > 1 else d[0]
+        return d if self._pairs_in_order else d.index_select(-1, self._pair_perm)
+
+    def world_distances(self, q: Tensor, world: World) -> Tensor:
+        """Signed distances ``(..., G, W)`` of every geom (order of ``geoms``) to every object of ``world``
+        (spheres, capsules, boxes, half-spaces, points); the world's batch dims broadcast with q's."""
+        world = _check_world(world)
+        a, b, r, c, R, h = self.placed(q)
+        d = world.distances(a, b, r.expand(a.shape[:-1]), c, R, h.expand(c.shape))
+        return d.index_select(-2, self._rows)
+
+    def min_distance(self, q: Tensor, world: World | None = None) -> Tensor:
+        """The smallest signed distance ``(...)`` over the checked pairs and, with ``world``, every
+        geom–object pair (+inf where there are none)."""
+        d = self.self_distances(q)
+        if world is not None:
+            w = self.world_distances(q, world)
+            batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-2])
+            d = torch.cat((d.expand(*batch, d.shape[-1]), w.flatten(-2).expand(*batch, -1)), -1)
+        inf = torch.full_like(d[..., :1], math.inf)
+        return torch.cat((d, inf), -1).amin(-1)
+
+    def extra_repr(self) -> str:
+        return f"geoms={len(self.geoms)}, pairs={len(self.pairs)}"
+
+    # ------------------------------------------------------------------------------------ builders
+    @classmethod
+    def from_urdf(cls, source, chain, srdf=None, *, package_dirs=()) -> RobotCollision:
+        """The ``<collision>`` geoms of the chain's links (fixed links included) from a URDF (path, text or
+        :class:`~diffkin.models.urdf_xml.URDFTree`), with the URDF pair rules (module docstring) and the
+        ``<disable_collisions>`` of ``srdf`` (path or text). Meshes whose files resolve (``package://``
+        and relative names from the URDF's directory, or ``package_dirs``) become enclosing capsules; the
+        others are skipped with one warning naming them.
+        """
+        base_dir = None
+        if isinstance(source, (str, Path)) and "<" not in str(source):
+            base_dir = Path(source).resolve().parent
+        specs = parse_collisions(source)
+        frames = LinkFrames(chain)
+        geoms, links, caps, boxes, missing = [], [], [], [], []
+        for link in frames.links:
+            for s in specs.get(link, []):
+                g = _geom_of(s, base_dir, package_dirs)
+                if g is None:
+                    missing.append(f"{s.name} ({s.filename})")
+                    continue
+                geom, data = g
+                geoms.append(geom)
+                links.append(link)
+                (caps if geom.shape == "capsule" else boxes).append(data)
+        if missing:
+            warnings.warn(f"RobotCollision.from_urdf: {len(missing)} mesh file(s) not found, those geoms are "
+                          f"skipped: {', '.join(missing)}", stacklevel=2)
+        disabled = _srdf_disabled(srdf) if srdf is not None else set()
+        pairs = _urdf_pairs(chain, frames, geoms, disabled)
+        return cls(chain, geoms, links, caps, boxes, pairs)
+
+    @classmethod
+    def from_mjcf(cls, source, chain=None, *, body_poses=None, dtype: torch.dtype | None = None,
+                  device=None) -> RobotCollision:
+        """The geoms of an MJCF model's bodies (path, XML text or a compiled ``mujoco.MjModel``) with
+        MuJoCo's pair rules: contype/conaffinity, ``<contact><exclude>``, the weld and parent–child filters
+        (unless disabled in ``<option>``), plus explicit ``<contact><pair>``s. Geoms are named by their MJCF
+        names, unnamed ones ``"<body>/<i>"``; spheres, capsules, cylinders (as capsules), boxes and meshes
+        (fitted capsules of their vertices) are read, other types skipped with a warning.
+
+        ``body_poses(q) -> (..., nbody, 4, 4)``: the pose of every MuJoCo body (world first), differentiable
+        for gradients; defaults to ``chain.body_poses`` once the MJCF model provides it. ``chain`` (optional)
+        sets dtype and device; without it ``dtype`` / ``device``.
+        """
+        from .mjcf import BodyFrames, load_model, mjcf_geoms, mjcf_pairs
+
+        m = load_model(source)
+        poses = body_poses if body_poses is not None else getattr(chain, "body_poses", None)
+        if poses is None:
+            raise ModelError("RobotCollision.from_mjcf needs the body poses: pass body_poses=callable(q) -> "
+                             "(..., nbody, 4, 4), or a chain with a body_poses method")
+        names = [m.body(b).name or f"body{b}" for b in range(m.nbody)]
+        found, ids = mjcf_geoms(m)
+        geoms = [Geom(name, names[body], kind, shape) for name, body, kind, shape, _ in found]
+        caps = [data for *_, shape, data in found if shape == "capsule"]
+        boxes = [data for *_, shape, data in found if shape == "box"]
+        return cls(chain, geoms, [g.link for g in geoms], caps, boxes, mjcf_pairs(m, ids),
+                   frames=BodyFrames(names, poses), dtype=dtype, device=device)
+
+
+def _geom_of(s, base_dir, package_dirs):
+    """(Geom, link-frame data) of a CollisionSpec; None for a mesh whose file does not resolve."""
+    T = origin_transform(torch.tensor(s.xyz, dtype=torch.float64), torch.tensor(s.rpy, dtype=torch.float64))
+    pt = lambda p: transform_points(T, torch.tensor(p, dtype=torch.float64)).tolist()  # noqa: E731
+    if s.type == "sphere":
+        c = pt((0.0, 0.0, 0.0))
+        return Geom(s.name, s.link, "sphere", "capsule"), (c, c, s.size[0])
+    if s.type in ("cylinder", "capsule"):
+        r, length = s.size
+        return (Geom(s.name, s.link, s.type, "capsule"),
+                (pt((0.0, 0.0, -length / 2)), pt((0.0, 0.0, length / 2)), r))
+    if s.type == "box":
+        return Geom(s.name, s.link, "box", "box"), (list(s.xyz), list(s.rpy), [x / 2 for x in s.size])
+    path = resolve_mesh(s.filename, base_dir, package_dirs)
+    if path is None:
+        return None
+    a, b, r = fit_capsule(path, s.size)
+    return Geom(s.name, s.link, "mesh", "capsule", s.filename), (pt(tuple(a)), pt(tuple(b)), r)
+
+
+def _srdf_disabled(srdf) -> set[frozenset[str]]:
+    """The link pairs of an SRDF's ``<disable_collisions>`` (path or XML text)."""
+    text = srdf if isinstance(srdf, str) and "<" in srdf else Path(srdf).read_text()
+    try:
+        root = ET.fromstring(text)
+    except ET.ParseError as e:
+        raise ModelError(f"SRDF: malformed XML ({e})") from None
+    return {frozenset((e.get("link1"), e.get("link2"))) for e in root.iter("disable_collisions")}
+
+
+def _urdf_pairs(chain, frames: LinkFrames, geoms: list[Geom], disabled) -> list[tuple[int, int]]:
+    """Geom index pairs (i < j) on different, non-adjacent bodies whose links the SRDF does not exclude."""
+    parents = chain._topo.parents  # frame j's parent frame (-1: the base)
+    parent_body = {0: None, **{j + 1: p + 1 for j, p in enumerate(parents)}}
+    body = [frames.bodies[frames.index[g.link]] for g in geoms]
+    out = []
+    for i in range(len(geoms)):
+        for j in range(i + 1, len(geoms)):
+            bi, bj = body[i], body[j]
+            if bi == bj or parent_body[bi] == bj or parent_body[bj] == bi:
+                continue
+            if frozenset((geoms[i].link, geoms[j].link)) in disabled:
+                continue
+            out.append((i, j))
+    return out
