@@ -297,3 +297,21 @@ def test_velocity_step_on_a_floating_base_matches_bvls():
     q1 = chain.integrate(q, v * dt)  # the step stays within the joint limits, the quaternion unit
     assert bool(chain.within_limits(q1, tol=1e-12).all())
     torch.testing.assert_close(q1[:, 3:7].norm(dim=-1), torch.ones(40, dtype=F64), atol=1e-12, rtol=0)
+
+
+def test_self_distances_of_a_floating_base_do_not_depend_on_where_it_is():
+    """The collision layer places links through the chain's frames, multi-frame joints included: a floating
+    G1's self-distances equal the fixed-base G1's at the same joint angles."""
+    import warnings
+
+    from diffkin.collision import RobotCollision
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # meshes absent: skipped with a warning
+        floating, fixed = _floating_g1(), from_urdf(G1, G1_ENDS, dtype=F64)
+        col_floating, col_fixed = RobotCollision.from_urdf(G1, floating), RobotCollision.from_urdf(G1, fixed)
+    assert col_floating.pairs == col_fixed.pairs and len(col_floating.pairs) > 0
+    q = floating.random_configuration(5, generator=torch.Generator().manual_seed(15))
+    with torch.no_grad():
+        torch.testing.assert_close(col_floating.self_distances(q), col_fixed.self_distances(q[:, 7:]),
+                                   atol=1e-12, rtol=0)

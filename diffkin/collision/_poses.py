@@ -38,17 +38,17 @@ class LinkFrames:
 
     def __init__(self, chain):
         tree = chain.tree
-        frame_of = {chain.root_link: 0, **{k: i + 1 for i, k in enumerate(chain.link_names)}}
+        frame_of = chain.link_frame  # the all_frames index of each moving link (multi-frame joints too)
         chain_row = {name: i for i, name in enumerate(chain.joint_origin_names)}
         links, anchor, rows, const = [], [], [], []
-        stack = [(chain.root_link, 0, ())]
+        stack = [(chain.root_link, frame_of[chain.root_link], ())]
         while stack:  # depth first from the root through the chain's moving joints and all fixed joints
             link, a, fixed = stack.pop()
             links.append(link)
             anchor.append(a)
             rows.append(fixed)
             for j in reversed(tree.children(link)):
-                if j.type in MOVING_TYPES:
+                if j.type in MOVING_TYPES or j.type in ("planar", "floating"):
                     if j.child in frame_of:
                         stack.append((j.child, frame_of[j.child], ()))
                 elif j.type == "fixed":
@@ -72,7 +72,7 @@ class LinkFrames:
         rows of that tail: the last moving link is recovered as T_end · (E · tool)⁻¹."""
         topo = chain._topo
         if chain._single_end and topo.ends[0] == topo.n_frames - 1:
-            return tuple(chain._end_origins[0])
+            return tuple(i for _, i in chain._end_origins[0])
         return None
 
     def offsets(self, chain, dtype: torch.dtype, device) -> Tensor:

@@ -168,6 +168,10 @@ class URDFChain(KinematicChain):
         self.floating_base = floating_base
         self.joint_names = ["floating_base"] * floating_base + [v.name for v in variables]
         self.joint_kinds = ["free"] * floating_base + [_KIND[v.type] for v in variables]
+        #: the index in ``forward_kinematics(q, all_frames=True)`` of each link that moves with a frame: the
+        #: root link (0, or the free joint's last frame with ``floating_base``) and every moving joint's child
+        self.link_frame = {self.root_link: root_frame + 1,
+                           **{j.child: last_frame[j.name] + 1 for j in moving}}
         self.frame_joint_names = [j.name for j in axis_joints]
         self.link_names = [j.child for j in axis_joints]
         self.joint_origin_names = [j.name for j in used]
