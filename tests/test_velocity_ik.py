@@ -443,3 +443,70 @@ def test_box_qp_rows_stopped_early_are_still_feasible():
     res = box_qp(H, g, lo, hi, max_iter=1)
     assert not bool(res.converged.all())  # some rows needed more iterations
     assert bool(((res.x >= lo) & (res.x <= hi)).all())
+
+
+def _fr3_collision():
+    import warnings
+
+    from diffkin.collision import RobotCollision
+
+    srdf = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" '
+            'reason="Default"/></robot>')
+    path = Path(__file__).parent / "data" / "urdf" / "fr3.urdf"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's mesh geoms are not shipped: skipped with a warning
+        chain = models.from_urdf(path, "fr3_link8", dtype=F64).requires_grad_(False)
+        return chain, RobotCollision.from_urdf(path, chain, srdf=srdf).requires_grad_(False)
+
+
+def test_collision_dampers_match_daqp_and_keep_the_margin():
+    """velocity_step(collision=, world=) against daqp on the same QP, its damper rows built here by central
+    differences of the distances; a flange pushed down onto a sphere stops at the margin."""
+    from diffkin.collision import World
+
+    chain, col = _fr3_collision()
+    q = chain.random_configuration(60, generator=torch.Generator().manual_seed(21))
+    with torch.no_grad():
+        q = q[col.self_distances(q).amin(-1) > 0.02][:6]  # start clear of self-contact
+        T = chain.forward_kinematics(q)
+    assert q.shape[0] == 6
+    centre = T[:, :3, 3] + torch.tensor([0.0, 0.0, -0.25], dtype=F64)
+    world = World(spheres=torch.cat((centre, torch.full((6, 1), 0.04, dtype=F64)), -1).unsqueeze(-2))
+    twist = torch.zeros(6, 6, dtype=F64)
+    twist[:, 2] = -0.5
+    dt, vmax, lam, margin, detection, gain = 0.02, 2.0, 1e-3, 0.005, 0.3, 0.85
+    kw = dict(damping=lam, velocity_limit=vmax, collision=col, world=world, collision_margin=margin,
+              collision_detection=detection, collision_gain=gain)
+    qd = ik.velocity_step(chain, q, twist, dt, **kw)
+
+    def dist(qq, i):
+        w = World(spheres=world.spheres[i])
+        return torch.cat((col.self_distances(qq), col.world_distances(qq, w).flatten(-2)), -1)
+
+    J = chain.fk_jacobian(q)[1]
+    lo, hi = _bounds(chain, q, dt, vmax)
+    active = 0
+    for i in range(6):
+        with torch.no_grad():
+            d = dist(q[i], i)
+            eps = 1e-6
+            Jd = torch.stack([(dist(q[i] + eps * e, i) - dist(q[i] - eps * e, i)) / (2 * eps)
+                              for e in torch.eye(7, dtype=F64)], -1)
+        rows = d < detection
+        active += int(rows.sum())
+        G = np.vstack((-Jd[rows].numpy(), np.eye(7), -np.eye(7)))
+        h = np.concatenate((gain * (d[rows] - margin).numpy() / dt, hi[i].numpy(), -lo[i].numpy()))
+        P = (J[i].T @ J[i]).numpy() + lam * np.eye(7)
+        ref = qpsolvers.solve_qp(P, -(J[i].T @ twist[i]).numpy(), G, h, solver="daqp")
+        assert ref is not None, f"row {i}: daqp found the QP infeasible"
+        np.testing.assert_allclose(qd[i].numpy(), ref, atol=1e-6)
+    assert active > 0  # the dampers are in play
+    qq = q[:1].clone()
+    one = World(spheres=world.spheres[:1])
+    for _ in range(50):
+        qq = qq + dt * ik.velocity_step(chain, qq, twist[:1], dt, **{**kw, "world": one})
+        with torch.no_grad():
+            assert float(col.world_distances(qq, one).min()) >= margin - 1e-6
+            assert float(col.self_distances(qq).min()) >= min(margin, float(col.self_distances(q[:1]).min()))
+    with pytest.raises(DiffkinError, match="collision model"):
+        ik.velocity_step(chain, q, twist, dt, world=world)

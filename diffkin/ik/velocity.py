@@ -141,8 +141,8 @@ def _bounds(chain, q: Tensor, dt: float, nv: int, vmax: Tensor | None, respect_l
     return lo, hi
 
 
-def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask):
-    """The second stage (V.3)."""
+def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask, dampers=None):
+    """The second stage (V.3); the damper rows, if any, constrain q̇₁ + N z too."""
     nv = A.shape[-1]
     gain = check_number(task.gain, "PostureTask.gain", positive=False)
     q_ref, w = tensors(("PostureTask.q_ref", task.q_ref, (q.shape[-1],)),
@@ -163,14 +163,48 @@ def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask):
     g = (N @ (D * (target - qd1)).unsqueeze(-1)).squeeze(-1)
     G = torch.cat((N, -N), dim=-2)
     h = torch.cat(((hi - qd1).clamp(min=0.0), (qd1 - lo).clamp(min=0.0)), dim=-1)
+    if dampers is not None:  # Gd (q̇₁ + N z) ≤ hd
+        Gd, hd = dampers
+        slack = (hd - (Gd @ qd1.unsqueeze(-1)).squeeze(-1)).clamp(min=0.0)
+        batch = torch.broadcast_shapes(slack.shape[:-1], G.shape[:-2], h.shape[:-1])
+        G = torch.cat(((Gd @ N).expand(*batch, -1, nv), G.expand(*batch, *G.shape[-2:])), dim=-2)
+        h = torch.cat((slack.expand(*batch, -1), h.expand(*batch, h.shape[-1])), dim=-1)
     z = _solve_general(H, g, G, h)
     qd = qd1 + (N @ z.unsqueeze(-1)).squeeze(-1)
     return torch.maximum(torch.minimum(qd, hi), lo)  # (V.2) holds to rounding: make it exact
 
 
+def _damper_rows(chain, q: Tensor, dt: float, collision, world, margin: float, detection: float,
+                 gain: float) -> tuple[Tensor, Tensor]:
+    """Collision velocity dampers as G q̇ ≤ h (mink's ``CollisionAvoidanceLimit``): every checked distance d
+    (the pairs of ``collision``, and each geom to each object of ``world``) closer than ``detection`` may
+    shrink by at most ``gain (d − margin)`` over the step, ḋ = J_d q̇ ≥ −gain (d − margin)/Δt, i.e.
+    −J_d q̇ ≤ gain (d − margin)/Δt; rows farther off are inactive (h = inf). J_d = ∂d/∂q (autograd of the
+    closed-form distances) times the tangent map of q for ball and free joints: ``(..., D, nv)``,
+    ``(..., D)``."""
+    from .optimization import _residual_jacobian
+
+    with torch.enable_grad():
+        qg = q.detach().requires_grad_(True)
+        d = collision.self_distances(qg)
+        if world is not None:
+            w = collision.world_distances(qg, world).flatten(-2)
+            batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-1])
+            d = torch.cat((d.expand(*batch, d.shape[-1]), w.expand(*batch, w.shape[-1])), dim=-1)
+        Jd = _residual_jacobian(d, qg)
+    d, Jd = d.detach(), Jd.detach()
+    space = chain.configuration_space
+    if not space.euclidean:
+        Jd = Jd @ space.tangent_map(q)
+    inf = torch.full_like(d, float("inf"))
+    return -Jd, torch.where(d < detection, gain * (d - margin) / dt, inf)
+
+
 def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=None,
                   respect_limits: bool = True, weight=None,
-                  tasks: Sequence[FrameTask | PostureTask] | None = None) -> Tensor:
+                  tasks: Sequence[FrameTask | PostureTask] | None = None, collision=None, world=None,
+                  collision_margin: float = 0.005, collision_detection: float = 0.05,
+                  collision_gain: float = 0.85) -> Tensor:
     """Joint velocities q̇ ``(..., nv)`` solving (V.1)–(V.2) exactly per batch row (module docstring).
 
     Args:
@@ -186,12 +220,18 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
             (0 drops a component: ``(1, 1, 1, 0, 0, 0)`` tracks the position only).
         tasks: :class:`FrameTask` s (which end links, each with its own weight; default every end link)
             and at most one :class:`PostureTask` (the lower priority (V.3)).
+        collision, world: a :class:`~diffkin.collision.RobotCollision` of the chain (its checked pairs) and
+            optionally a :class:`~diffkin.collision.World`: velocity dampers as extra inequalities
+            (:func:`_damper_rows`): a distance below ``collision_detection`` (m) may shrink over the step
+            by at most ``collision_gain`` times its excess over ``collision_margin`` (m), so no checked
+            distance is driven below the margin. The damper rows are constants of the step (their
+            derivatives w.r.t. q do not flow into q̇'s gradient).
 
     Returns:
         q̇ ``(..., nv)``, differentiable (KKT gradients of :mod:`diffkin.ik.qp`).
 
-    Collision velocity dampers (extra inequalities G q̇ ≤ h, :func:`diffkin.ik.qp.solve_qp`) come with the
-    collision module; this step has none yet.
+    With ``collision`` the step is the general QP (:func:`diffkin.ik.qp.solve_qp`'s interior point) with
+    the bounds and the damper rows as inequalities; without it, the box QP.
     """
     q, twist, damping, vmax, weight = _inputs(chain, q, twist, damping, velocity_limit, weight)
     dt = check_number(dt, "dt", unit=" (s)")
@@ -208,18 +248,39 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
     if vmax is not None and vmax.ndim and vmax.shape[-1] != nv:
         raise ShapeError(f"velocity_step: expected velocity_limit as a number or (..., {nv}), got "
                          f"{shape_str(vmax.shape)}")
-    return _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture)
+    dampers = None
+    if collision is not None:
+        for name, value in (("collision_margin", collision_margin), ("collision_detection",
+                                                                      collision_detection),
+                            ("collision_gain", collision_gain)):
+            check_number(value, name, positive=False)
+        dampers = _damper_rows(chain, q, dt, collision, world, float(collision_margin),
+                               float(collision_detection), float(collision_gain))
+    elif world is not None:
+        raise DiffkinError("velocity_step: a world needs the robot's collision model (collision=...)")
+    return _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture, dampers)
 
 
-def _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture):
-    """(V.1)–(V.3) for validated inputs: J ``(..., K, 6, nv)``, twist and weight ``(..., K, 6)``."""
+def _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture, dampers=None):
+    """(V.1)–(V.3) for validated inputs: J ``(..., K, 6, nv)``, twist and weight ``(..., K, 6)``; dampers
+    ``(G (..., D, nv), h (..., D))`` or None."""
     nv = J.shape[-1]
     A, b = _stacked_task(J, twist, weight, frames, q)
     eye = torch.eye(nv, dtype=q.dtype, device=q.device)
     H = A.mT @ A + damping[..., None, None] * eye
     g = (A.mT @ b.unsqueeze(-1)).squeeze(-1)
     lo, hi = _bounds(chain, q, dt, nv, vmax, respect_limits)
-    qd = _solve_box(H, g, lo, hi)
+    if dampers is None:
+        qd = _solve_box(H, g, lo, hi)
+    else:  # the bounds as rows beside the dampers: [G; I; −I] q̇ ≤ [h; hi; −lo] (inf rows are off)
+        Gd, hd = dampers
+        batch = torch.broadcast_shapes(Gd.shape[:-2], lo.shape[:-1], hi.shape[:-1])
+        I = eye.expand(*batch, nv, nv)
+        G = torch.cat((Gd.expand(*batch, *Gd.shape[-2:]), I, -I), dim=-2)
+        h = torch.cat((hd.expand(*batch, hd.shape[-1]), hi.expand(*batch, nv), -lo.expand(*batch, nv)),
+                      dim=-1)
+        qd = _solve_general(H, g, G, h)
+        qd = torch.maximum(torch.minimum(qd, hi), lo)  # the bounds exactly (rounding of the interior point)
     if posture is not None:
-        qd = _posture(chain, q, dt, A, qd, lo, hi, posture)
+        qd = _posture(chain, q, dt, A, qd, lo, hi, posture, dampers)
     return qd
