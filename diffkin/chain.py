@@ -50,6 +50,7 @@ from .validation import (
     check_count,
     check_dtype,
     check_finite,
+    check_given,
     shape_str,
     tensors,
 )
@@ -396,6 +397,7 @@ class KinematicChain(nn.Module):
         fast = isinstance(q, Tensor) and q.dtype == self.dtype and q.device == self.device and q.ndim > 0 \
             and q.shape[-1] == n
         if not fast:
+            check_given(q, name, f"joint values (..., {n})")
             (q,) = tensors((name, q, None), like=self, finite=False)
             if q.ndim == 0 and n == 1:  # one joint: a 0-d value is its q
                 q = q.reshape(1)

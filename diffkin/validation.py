@@ -39,6 +39,7 @@ __all__ = [
     "check_broadcasts_to",
     "check_count",
     "check_device",
+    "check_end_links",
     "check_fits_dtype",
     "check_given",
     "check_dtype",
@@ -325,3 +326,22 @@ def check_given(x: Any, name: str, expected: str) -> Any:
     if x is None:
         raise DTypeError(f"expected {name} as {expected}, got None")
     return x
+
+
+def check_end_links(end_links, what: str = "link") -> tuple[bool, list[str]]:
+    """``(single, names)`` of a model loader's ``end_link`` argument: one name (a chain with one end link,
+    poses ``(..., 4, 4)``) or a non-empty list of distinct names (K end links, ``(..., K, 4, 4)``); anything
+    else is a :class:`~diffkin.errors.ModelError` saying what was expected and what came."""
+    single = isinstance(end_links, str)
+    if not single and not isinstance(end_links, list | tuple):
+        raise ModelError(f"end_link: expected a {what} name or a list of them, got "
+                         f"{type(end_links).__name__}")
+    ends = [end_links] if single else list(end_links)
+    if not ends:
+        raise ModelError(f"end_link: give a {what} name or a non-empty list of {what} names")
+    bad = [e for e in ends if not isinstance(e, str)]
+    if bad:
+        raise ModelError(f"end_link: expected {what} names (str), got {bad[0]!r} ({type(bad[0]).__name__})")
+    if len(set(ends)) != len(ends):
+        raise ModelError(f"end_link: duplicate names in {ends}")
+    return single, ends

@@ -29,8 +29,6 @@ NAN_ORIGIN = URDF_OK.replace("<axis", '<origin xyz="nan 0 0"/><axis')
 #: raw crashes found by this sweep in files another engineer is rewriting (diffkin/chain.py, models/urdf.py):
 #: recorded here so the sweep stays a check; a fixed one fails the test until it is removed from the list
 KNOWN_OUTSIDE = {
-    "from_urdf[int end]": "diffkin/models/urdf.py: end_link not checked (TypeError: 'int' is not iterable)",
-    "chain.forward_kinematics[None]": "diffkin/chain.py check_q: q=None gives AttributeError",
     "stream_fk[bfloat16 tensor]": "diffkin/data_io.py: a bfloat16 tensor source gives numpy's TypeError",
 }
 

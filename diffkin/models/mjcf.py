@@ -40,7 +40,7 @@ from ..kernels.joints import axis_alignment, compose_factors, translation_axes
 from ..kernels.tree import Topology
 from ..rotations import _quaternion_to_matrix
 from ..transforms import _make_transform
-from ..validation import shape_str, tensors
+from ..validation import check_end_links, tensors
 
 __all__ = ["MJCFChain", "from_mjcf", "compile_mjcf"]
 
@@ -221,12 +221,7 @@ class MJCFChain(KinematicChain):
     def __init__(self, model, text: str, path: str | None, end_links, root_link: str | None = None, *,
                  dtype: torch.dtype | None = None, device=None):
         mujoco = _mujoco()
-        single = isinstance(end_links, str)
-        ends = [end_links] if single else list(end_links)
-        if not ends:
-            raise ModelError("end_link: give a body or site name, or a non-empty list of them")
-        if len(set(ends)) != len(ends):
-            raise ModelError(f"end_link: duplicate names in {ends}")
+        single, ends = check_end_links(end_links, "body or site")
         root = 0 if root_link is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root_link)
         if root < 0:
             raise ModelError(f"root_link {root_link!r} is not a body of the model")
@@ -450,8 +445,7 @@ def from_mjcf(source, end_link, *, root_link: str | None = None, dtype: torch.dt
     Raises :class:`~diffkin.errors.ModelError` naming the source for files MuJoCo refuses, and naming the
     element for unknown end links or root links.
     """
+    check_end_links(end_link, "body or site")  # before compiling: a wrong argument is said at once
     model, text, path = compile_mjcf(source)
-    if isinstance(end_link, list | tuple) and not all(isinstance(e, str) for e in end_link):
-        raise ModelError(f"end_link: expected names, got {shape_str((len(end_link),))} of other types")
-    return MJCFChain(model, text, path, end_link if isinstance(end_link, str) else list(end_link),
-                     root_link, dtype=dtype or torch.get_default_dtype(), device=device)
+    return MJCFChain(model, text, path, end_link, root_link, dtype=dtype or torch.get_default_dtype(),
+                     device=device)

@@ -33,6 +33,7 @@ from ..kernels.joints import (
 from ..kernels.tree import Topology
 from ..rotations import _matrix_to_euler
 from ..transforms import _make_transform
+from ..validation import check_end_links
 from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_urdf, write_urdf
 
 __all__ = ["URDFChain", "from_urdf"]
@@ -83,12 +84,7 @@ class URDFChain(KinematicChain):
 
     def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
                  dtype: torch.dtype | None = None, device=None, floating_base: bool = False):
-        single = isinstance(end_links, str)
-        ends = [end_links] if single else list(end_links)
-        if not ends:
-            raise ModelError("end_link: give a link name or a non-empty list of link names")
-        if len(set(ends)) != len(ends):
-            raise ModelError(f"end_link: duplicate names in {ends}")
+        single, ends = check_end_links(end_links, "link")
         paths = [tree.path(e, root_link) for e in ends]
         used: list[JointSpec] = []  # every joint on the paths, in topological order (union of the paths)
         for path in paths:
