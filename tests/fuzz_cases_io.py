@@ -64,7 +64,9 @@ EXEMPT: dict[str, str] = {
     **{f"diffkin.validation.{name}": _PIECE for name in (
         "as_tensor", "broadcast_batch", "check_broadcasts_to", "check_count", "check_device",
         "check_fits_dtype", "check_dtype", "check_given", "check_number", "check_finite", "check_shape",
-        "check_tensor", "check_trailing", "common_dtype_device", "shape_str", "check_end_links")},
+        "check_tensor", "check_trailing", "common_dtype_device", "shape_str")},
+    "diffkin.validation.check_end_links": "takes names (no tensor input): the loaders' end-link rule, "
+    "unit-tested in tests/test_mjcf.py and tests/test_urdf_models.py",
     **{f"diffkin.data_io.{name}": _FILES for name in (
         "ArraySource", "PoseSource", "RandomJoints", "check_output_path", "open_joint_source",
         "open_pose_source", "open_writer", "read_array", "read_joints", "read_poses", "write_arrays",
