@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from diffkin import ik
-from diffkin.errors import ShapeError
+from diffkin.errors import NonFiniteError, ShapeError
 from diffkin.jacobian import geometric_jacobian
 from diffkin.kernels.configuration import JOINT_KINDS, ConfigurationSpace
 from diffkin.kernels.joints import origin_transform
@@ -315,3 +315,33 @@ def test_self_distances_of_a_floating_base_do_not_depend_on_where_it_is():
     with torch.no_grad():
         torch.testing.assert_close(col_floating.self_distances(q), col_fixed.self_distances(q[:, 7:]),
                                    atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_a_free_root_goes_through_the_fused_kernel_with_the_same_numbers(dtype):
+    """A free joint at the root over 1-DOF joints: the fused C kernel serves the tree below it and the root is
+    a per-row base (kernels/free_root.py); the same poses and Jacobians as the torch kernels."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch kernels serve every call")
+    chain = from_urdf(G1, G1_ENDS + ["pelvis"], floating_base=True, dtype=dtype)
+    chain.requires_grad_(False)
+    chain.base = torch.tensor([[0.0, -1, 0, 0.3], [1, 0, 0, -0.2], [0, 0, 1, 0.1], [0, 0, 0, 1]], dtype=dtype)
+    chain.tool = torch.tensor([[1.0, 0, 0, 0.05], [0, 1, 0, 0], [0, 0, 1, 0.02], [0, 0, 0, 1]], dtype=dtype)
+    assert chain._free_split is not None
+    tol = 1e-12 if dtype == torch.float64 else 2e-6
+    for shape in ((), (3,), (2, 150)):
+        q = chain.random_configuration(shape, generator=torch.Generator().manual_seed(16))
+        with torch.no_grad():
+            T, J = chain.fk_jacobian(q)
+            F = chain.forward_kinematics(q)
+            with native.disabled():
+                T_ref, J_ref = chain.fk_jacobian(q)
+        torch.testing.assert_close(T, T_ref, atol=tol, rtol=0)
+        torch.testing.assert_close(F, T_ref, atol=tol, rtol=0)
+        torch.testing.assert_close(J, J_ref, atol=tol, rtol=0)
+    bad = chain.random_configuration(4, generator=torch.Generator().manual_seed(17))
+    bad[1, 9] = float("nan")
+    with pytest.raises(NonFiniteError):
+        chain.forward_kinematics(bad)

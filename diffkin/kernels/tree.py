@@ -157,7 +157,7 @@ class Topology:
     def coupled(self) -> bool:
         """True when some joint is not simply variable j (mimic joints)."""
         J = len(self.parents)
-        return (self.q_index != tuple(range(J)) or any(m != 1.0 for m in self.multiplier)
+        return (self.n_vars != J or self.q_index != tuple(range(J)) or any(m != 1.0 for m in self.multiplier)
                 or any(b != 0.0 for b in self.q_offset) or self.column_v != tuple(range(self.n_columns)))
 
     @property
