@@ -37,7 +37,7 @@ import torch
 from torch import Tensor, nn
 
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
-from .kernels import free_root, native
+from .kernels import native
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.configuration import ConfigurationSpace
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
@@ -176,7 +176,6 @@ class KinematicChain(nn.Module):
         self.n_joints = topology.n_vars
         self._single_end = single_end
         self.configuration_space = ConfigurationSpace(topology.motions)
-        self._free_split = free_root.split_free_root(topology)  # a free root over 1-DOF joints, or None
 
     # --------------------------------------------------------------------------- configuration space
     @property
@@ -328,29 +327,6 @@ class KinematicChain(nn.Module):
         key = self._state_key()
         return None if key is None else native.native_model(self._topo, self._cached_constants(key)[0])
 
-    def _free_root_native(self, q: Tensor, with_jacobian: bool):
-        """``(T (B, K, 4, 4), J (B, K, 6, nv) or None)`` of ``q (B, nq)`` by the fused kernel for a chain that
-        is a free joint at the root over 1-DOF joints (:mod:`diffkin.kernels.free_root`); None where that
-        path does not apply (then the torch kernels serve the call). One host read for the finiteness of q."""
-        split = self._free_split
-        if split is None or torch.compiler.is_compiling() or q.device.type != "cpu" or not _is_plain(q) \
-                or (q.requires_grad and torch.is_grad_enabled()) or not native.available():
-            return None
-        key = self._state_key()
-        if key is None:
-            return None
-        per_joint, stacked = self._cached_constants(key)
-        parts = stacked.__dict__.get("_free_root")
-        if parts is None:  # derived from the constants, kept with them (remade with them)
-            parts = free_root.split_segments(per_joint, stacked)
-            object.__setattr__(stacked, "_free_root", parts)
-        head, inner = parts
-        T_in, J_in, bad = native.fk_jacobian(native.native_model(split.inner, inner), q[:, 7:].contiguous(),
-                                             with_jacobian)
-        if bad:
-            return None
-        return free_root.compose(q, head, T_in, J_in, split)
-
     def _tensor_segments(self, per_joint: bool, constants: bool) -> Segments:
         pre, offset, post, ends = self._geometry()
         base, tool = self._fixed_pose("base", constants), self._fixed_pose("tool", constants)
@@ -469,10 +445,6 @@ class KinematicChain(nn.Module):
             with torch.autocast(q.device.type, enabled=False):
                 return self.forward_kinematics(q, all_frames, check)
         batch = q.shape[:-1]
-        if not all_frames and self._compiled_fk is None and self._free_split is not None:
-            out = self._free_root_native(q.reshape(-1, self.n_joints), with_jacobian=False)
-            if out is not None:
-                return self._out(out[0].reshape(*batch, self.n_ends, 4, 4))
         if not all_frames and self._compiled_fk is None:
             packed = self._native_model(q)
             if packed is not None:  # the fused C pass; it counts non-finite entries of q as it reads them
@@ -558,10 +530,6 @@ class KinematicChain(nn.Module):
             with torch.autocast(q.device.type, enabled=False):
                 return self.fk_jacobian(q, check)
         batch, n, K, nv = q.shape[:-1], self.n_joints, self.n_ends, self.nv
-        if self._free_split is not None:
-            out = self._free_root_native(q.reshape(-1, n), with_jacobian=True)
-            if out is not None:
-                return self._out(out[0].reshape(*batch, K, 4, 4)), self._out(out[1].reshape(*batch, K, 6, nv))
         packed = self._native_model(q)
         if packed is not None:  # the fused C pass (poses and Jacobians at once)
             T, Jac, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous(), with_jacobian=True)

@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from diffkin import ik
-from diffkin.errors import NonFiniteError, ShapeError
+from diffkin.errors import ShapeError
 from diffkin.jacobian import geometric_jacobian
 from diffkin.kernels.configuration import JOINT_KINDS, ConfigurationSpace
 from diffkin.kernels.joints import origin_transform
@@ -317,31 +317,28 @@ def test_self_distances_of_a_floating_base_do_not_depend_on_where_it_is():
                                    atol=1e-12, rtol=0)
 
 
-@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_a_free_root_goes_through_the_fused_kernel_with_the_same_numbers(dtype):
-    """A free joint at the root over 1-DOF joints: the fused C kernel serves the tree below it and the root is
-    a per-row base (kernels/free_root.py); the same poses and Jacobians as the torch kernels."""
-    from diffkin.kernels import native
+def test_a_chain_ending_in_a_ball_joint_matches_mujoco():
+    """q has more entries than frames (hinge, hinge, ball: 6 coordinates, 3 frames): the coupling of q to the
+    frames is not the identity even where every frame's first entry is in order."""
+    mujoco = pytest.importorskip("mujoco")
+    from diffkin.models import from_mjcf
 
-    if not native.available():
-        pytest.skip("no C compiler: the torch kernels serve every call")
-    chain = from_urdf(G1, G1_ENDS + ["pelvis"], floating_base=True, dtype=dtype)
-    chain.requires_grad_(False)
-    chain.base = torch.tensor([[0.0, -1, 0, 0.3], [1, 0, 0, -0.2], [0, 0, 1, 0.1], [0, 0, 0, 1]], dtype=dtype)
-    chain.tool = torch.tensor([[1.0, 0, 0, 0.05], [0, 1, 0, 0], [0, 0, 1, 0.02], [0, 0, 0, 1]], dtype=dtype)
-    assert chain._free_split is not None
-    tol = 1e-12 if dtype == torch.float64 else 2e-6
-    for shape in ((), (3,), (2, 150)):
-        q = chain.random_configuration(shape, generator=torch.Generator().manual_seed(16))
-        with torch.no_grad():
-            T, J = chain.fk_jacobian(q)
-            F = chain.forward_kinematics(q)
-            with native.disabled():
-                T_ref, J_ref = chain.fk_jacobian(q)
-        torch.testing.assert_close(T, T_ref, atol=tol, rtol=0)
-        torch.testing.assert_close(F, T_ref, atol=tol, rtol=0)
-        torch.testing.assert_close(J, J_ref, atol=tol, rtol=0)
-    bad = chain.random_configuration(4, generator=torch.Generator().manual_seed(17))
-    bad[1, 9] = float("nan")
-    with pytest.raises(NonFiniteError):
-        chain.forward_kinematics(bad)
+    xml = """<mujoco><worldbody><body name="a"><joint name="j1" axis="0 0 1"/><geom size="0.1"/>
+      <body name="b" pos="0.3 0 0"><joint name="j2" axis="0 1 0"/><geom size="0.1"/>
+      <body name="c" pos="0.3 0 0.1"><joint name="ball" type="ball"/><geom size="0.1"/>
+      <site name="tip" pos="0.2 0.1 0"/></body></body></body></worldbody></mujoco>"""
+    chain = from_mjcf(xml, "tip", dtype=F64)
+    assert (chain.nq, chain.nv) == (6, 5)
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    q = chain.random_configuration(4, generator=torch.Generator().manual_seed(18))
+    with torch.no_grad():
+        T, J = chain.fk_jacobian(q)
+    for r in range(4):
+        d.qpos[:] = chain.to_qpos(q[r]).numpy()
+        mujoco.mj_kinematics(m, d)
+        mujoco.mj_comPos(m, d)
+        jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+        mujoco.mj_jacSite(m, d, jp, jr, 0)
+        np.testing.assert_allclose(T[r, :3, 3].numpy(), d.site_xpos[0], atol=1e-12)
+        np.testing.assert_allclose(J[r].numpy(), np.vstack((jp, jr)), atol=1e-12)
