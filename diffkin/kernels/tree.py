@@ -184,10 +184,12 @@ class Topology:
             elif name == "spherical":
                 t = torch.tensor(self.spherical, device=device)
             elif name == "axis_select":  # (C,): row 3 j + k of the (J, 3 axes) stack for each column
-                first = {}
-                t = torch.tensor([3 * j + (2 if not (self.spherical and self.spherical[j])
-                                           else k) for k, j in _column_slots(self.column_frame, first)],
-                                 device=device)
+                sel, seen = [], {}
+                for j in self.column_frame:  # an S frame's columns are its axes x, y, z; others use z
+                    k = seen.get(j, 0)
+                    seen[j] = k + 1
+                    sel.append(3 * j + (k if self.spherical and self.spherical[j] else 2))
+                t = torch.tensor(sel, device=device)
             elif name == "column_frame":
                 t = torch.tensor(self.column_frame, device=device)
             elif name == "column_ancestors":
@@ -206,16 +208,6 @@ class Topology:
     def coupling_matrix(self, dtype, device) -> Tensor:
         """M ``(J, n)`` with q_full = M q + b."""
         return self.tensor("coupling", dtype, device)
-
-
-def _column_slots(column_frame: Sequence[int], seen: dict) -> list[tuple[int, int]]:
-    """``(k, frame)`` for each column: k counts the columns of the same frame (0, 1, 2 for an S frame)."""
-    out = []
-    for j in column_frame:
-        k = seen.get(j, 0)
-        seen[j] = k + 1
-        out.append((k, j))
-    return out
 
 
 @dataclass(frozen=True)
