@@ -75,12 +75,9 @@ class JointMap:
         # ball and free joints: LM steps v (nv) move u on the manifold (u = q there: unit quaternions)
         self.space = chain.configuration_space
         self.euclidean = self.space.euclidean
-        sv = list(self.space.scalar_index("v"))
-        sq = torch.tensor(self.space.scalar_index("q"), device=device)
-        self._v_bounded = torch.zeros(chain.nv, 1, dtype=torch.bool, device=device)
-        self._v_bounded[sv] = bounded.index_select(0, sq)
-        self._v_of_q = sq  # q rows of the scalar velocity columns
-        self._sv = torch.tensor(sv, device=device)
+        self.nv = chain.nv
+        self._v_of_q = torch.tensor(self.space.scalar_index("q"), device=device)  # q rows of scalar columns
+        self._sv = torch.tensor(self.space.scalar_index("v"), device=device)
 
     def q_of_u(self, u: Tensor) -> Tensor:
         if not self.any_bounded:
@@ -94,7 +91,7 @@ class JointMap:
         d = torch.where(self.bounded, self.h * torch.cos(u), torch.ones_like(u))
         if self.euclidean:
             return d
-        out = torch.ones(self._v_bounded.shape[0], u.shape[1], dtype=u.dtype, device=u.device)
+        out = torch.ones(self.nv, u.shape[1], dtype=u.dtype, device=u.device)
         return out.index_copy(0, self._sv, d.index_select(0, self._v_of_q))
 
     def step(self, u: Tensor, du: Tensor) -> Tensor:

@@ -20,7 +20,7 @@ from ..chain import KinematicChain
 from ..errors import ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
-from ..transforms import _pose_error, as_measured_transform
+from ..transforms import _pose_error, _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
@@ -130,17 +130,12 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
 def _targets_in_base(chain, T_target: Tensor, base, position_only: bool) -> Tensor:
     """World targets in the chain's base frame: base⁻¹ T (poses) or Rᵀ (p − t) (positions), per row; the
     K end links of a tree share their row's base."""
-    B = chain._row_base(base, True)
-    R, t = B[..., :3, :3], B[..., :3, 3]
-    per_end = not chain.single_end
-    if per_end:
-        R, t = R.unsqueeze(-3), t.unsqueeze(-2)
-    Rt = R.transpose(-1, -2)
+    B_inv = _transform_inverse(chain._row_base(base, True))
+    if not chain.single_end:
+        B_inv = B_inv.unsqueeze(-3)
     if position_only and T_target.shape[-1] == 3:
-        return (Rt @ (T_target - t).unsqueeze(-1)).squeeze(-1)
-    out = torch.cat((Rt @ T_target[..., :3, :], T_target[..., 3:, :].expand(*Rt.shape[:-2], 1, 4)), dim=-2)
-    out[..., :3, 3] = (Rt @ (T_target[..., :3, 3] - t).unsqueeze(-1)).squeeze(-1)
-    return out
+        return _transform_points(B_inv, T_target)
+    return B_inv @ T_target
 
 
 def _valid_targets(chain, T_target) -> Tensor:

@@ -335,11 +335,8 @@ def optimize(
                         iterations=torch.zeros(batch, dtype=torch.long, device=T.device))
     if seeds is None:
         lo, hi = chain.lower_upper()
-        q = (0.5 * (lo + hi)).detach().expand(*batch, n).clone()
-        if not chain.configuration_space.euclidean:  # identity quaternions where the middle is 0
-            mid = chain.neutral_configuration().expand_as(q)
-            quat = torch.tensor([c == "S" for c in chain.joint_types], device=q.device)
-            q = torch.where(quat, mid, q)
+        # ball and free joints: the middle of a quaternion's range is 0, normalised to the identity
+        q = chain.configuration_space.normalize((0.5 * (lo + hi)).detach().expand(*batch, n).clone())
     else:
         q = seeds[:, 0].reshape(*batch, n).detach().clone()
     clamp = respect_limits and chain.q_limits is not None
