@@ -130,7 +130,6 @@ class _Builder:
     def __init__(self, model, path_bodies: list[int], root: int):
         self.m = model
         self.parent = {b: int(model.body_parentid[b]) for b in path_bodies}
-        self.root = root
         self.frames: list[dict] = []  # kind, parent, pre tokens, post tokens, joint, q slot
         self.last_frame = {root: -1}  # body -> the last frame at or above it
         self.pending = {root: []}  # body -> fixed body tokens since that frame
