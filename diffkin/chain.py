@@ -10,7 +10,7 @@ say what their parameters are and how they map to those transforms (:meth:`Kinem
 Base and tool are learnable too: T_base = T_base,nominal · Δ(``base_delta``), T_tool = T_tool,nominal ·
 Δ(``tool_delta``), with Δ a pose correction that stays rigid for any value (both deltas start at zero).
 
-Three evaluations of the product:
+The evaluations of the product, chosen in one place (:meth:`KinematicChain._route`):
 
 * CPU calls that need no gradient (``torch.no_grad()``, or neither ``q`` nor a parameter requires grad): the
   fused C pass of :mod:`diffkin.kernels.native` (FK and Jacobian together, any batch size);
@@ -327,6 +327,41 @@ class KinematicChain(nn.Module):
         key = self._state_key()
         return None if key is None else native.native_model(self._topo, self._cached_constants(key)[0])
 
+    def _route(self, q: Tensor, op: str) -> tuple[str, native.NativeModel | None]:
+        """THE dispatch point: which evaluation serves a call of ``op`` on ``q`` (joints last, or joints
+        first for ``"columns"``); returns ``(path, packed native constants or None)``.
+
+        ``op``: ``"fk"`` (end poses), ``"axes"`` (joint axes and origins), ``"fk_jacobian"``, ``"columns"``
+        (the batch-last kernel a solver calls, constants allowed) or ``"columns_traced"`` (it with the
+        geometry as tensors, or axes asked for). Paths, in this order of preference:
+
+        * ``"native"``: the fused C pass (CPU, no gradient, not traced, the library built; see
+          :meth:`_native_model`), for ``fk`` (unless :meth:`compile` d), ``fk_jacobian`` and ``columns``;
+        * ``"batch_first"``: all link matrices at once, then one matmul per joint, for batches of at most
+          :attr:`small_batch` configurations and for Jacobians / axes that need a gradient;
+        * ``"compiled"``: the ``torch.compile`` d FK of :meth:`compile`;
+        * ``"chunked"``: large CPU Jacobian batches without autograd, batch last in slices per thread;
+        * ``"batch_last"``: joint after joint on the columns of the current frame (every other call).
+        """
+        if op == "columns_traced":
+            return "batch_last", None
+        if op != "axes" and not (op == "fk" and self._compiled_fk is not None):
+            packed = self._native_model(q)
+            if packed is not None:
+                return "native", packed
+        if op == "columns":
+            return "batch_last", None
+        B = q.shape[:-1].numel()
+        grad = op != "fk" and self._grad_needed(q)
+        if B <= self.small_batch or grad:
+            return "batch_first", None
+        if op == "fk" and self._compiled_fk is not None:
+            return "compiled", None
+        if op == "fk_jacobian" and q.device.type == "cpu" and not torch.compiler.is_compiling() \
+                and B > 2 * _CHUNK * torch.get_num_threads():
+            return "chunked", None
+        return "batch_last", None
+
     def _tensor_segments(self, per_joint: bool, constants: bool) -> Segments:
         pre, offset, post, ends = self._geometry()
         base, tool = self._fixed_pose("base", constants), self._fixed_pose("tool", constants)
@@ -445,21 +480,22 @@ class KinematicChain(nn.Module):
             with torch.autocast(q.device.type, enabled=False):
                 return self.forward_kinematics(q, all_frames, check)
         batch = q.shape[:-1]
-        if not all_frames and self._compiled_fk is None:
-            packed = self._native_model(q)
-            if packed is not None:  # the fused C pass; it counts non-finite entries of q as it reads them
-                T, _, bad = native.fk_jacobian(packed, q.reshape(-1, self.n_joints).contiguous())
-                if bad and check:
-                    check_finite(q, "q")  # raises the validator's error
-                return self._out(T.reshape(*batch, self.n_ends, 4, 4))
+        if all_frames:
+            if check:
+                check_finite(q, "q")
+            return self._all_frames(q)
+        path, packed = self._route(q, "fk")
+        if path == "native":  # the fused C pass; it counts non-finite entries of q as it reads them
+            T, _, bad = native.fk_jacobian(packed, q.reshape(-1, self.n_joints).contiguous())
+            if bad and check:
+                check_finite(q, "q")  # raises the validator's error
+            return self._out(T.reshape(*batch, self.n_ends, 4, 4))
         if check:
             check_finite(q, "q")
-        if all_frames:
-            return self._all_frames(q)
-        if batch.numel() <= self.small_batch:
+        if path == "batch_first":
             ends = matrix_frames(q, self._topo, self._segments(per_joint=False), with_frames=False)[0]
             return self._out(ends)
-        if self._compiled_fk is not None:
+        if path == "compiled":
             return self._compiled_fk(q)
         # one transposing copy gives every joint a contiguous row: each op below is a unit-stride pass
         qT = q.reshape(-1, self.n_joints).T.contiguous()
@@ -491,7 +527,7 @@ class KinematicChain(nn.Module):
             with torch.autocast(q.device.type, enabled=False):
                 return self.joint_axes_origins(q, check)
         batch = q.shape[:-1]
-        if batch.numel() <= self.small_batch or self._grad_needed(q):
+        if self._route(q, "axes")[0] == "batch_first":
             ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
             return axes, origins, self._out(ends)
         qT = q.reshape(-1, self.n_joints).T.contiguous()
@@ -530,25 +566,22 @@ class KinematicChain(nn.Module):
             with torch.autocast(q.device.type, enabled=False):
                 return self.fk_jacobian(q, check)
         batch, n, K, nv = q.shape[:-1], self.n_joints, self.n_ends, self.nv
-        packed = self._native_model(q)
-        if packed is not None:  # the fused C pass (poses and Jacobians at once)
+        path, packed = self._route(q, "fk_jacobian")
+        if path == "native":  # the fused C pass (poses and Jacobians at once)
             T, Jac, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous(), with_jacobian=True)
             if bad and check:
                 check_finite(q, "q")
             return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jac.reshape(*batch, K, 6, n))
         if check:
             check_finite(q, "q")
-        B, grad = batch.numel(), self._grad_needed(q)
-        # (the thread count only where it matters: dynamo cannot trace torch.get_num_threads)
-        traced = torch.compiler.is_compiling()
-        chunk = _CHUNK if traced or q.device.type != "cpu" or grad else _CHUNK * torch.get_num_threads()
-        if B <= 2 * chunk or q.device.type != "cpu" or grad or traced:
-            if B <= self.small_batch or grad:
-                ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
-                J = tree_jacobian(axes, origins, ends[..., :3, 3], self._joint_revolute, self._topo)
-                return self._out(ends), self._out(J)
+        if path == "batch_first":
+            ends, _, axes, origins = matrix_frames(q, self._topo, self._segments(per_joint=False), True)
+            J = tree_jacobian(axes, origins, ends[..., :3, 3], self._joint_revolute, self._topo)
+            return self._out(ends), self._out(J)
+        if path == "batch_last":
             ends, J = self._batch_last_fk_jacobian(q.reshape(-1, n).T.contiguous())
             return self._out(ends.reshape(*batch, K, 4, 4)), self._out(J.reshape(*batch, K, 6, nv))
+        B, chunk = batch.numel(), _CHUNK * torch.get_num_threads()
         qT = q.reshape(-1, n).T.contiguous()
         T, Jout = _new_poses(q, B, K), q.new_empty(B, K, 6, nv)
         for start in range(0, B, chunk):
@@ -582,8 +615,8 @@ class KinematicChain(nn.Module):
                                  f"chain '{self.name}', got {shape_str(qT.shape)}")
             check_finite(qT, "qT")
         topo = self._topo
-        packed = None if with_axes or not constants else self._native_model(qT)
-        if packed is not None:  # the fused C pass, handed out in this layout (one copy each)
+        path, packed = self._route(qT, "columns_traced" if with_axes or not constants else "columns")
+        if path == "native":  # the fused C pass, handed out in this layout (one copy each)
             m, K = qT.shape[1], self.n_ends
             T, Jac, _ = native.fk_jacobian(packed, qT.T.contiguous(), with_jacobian)
             cols = T[..., :3, :].permute(3, 2, 1, 0).contiguous()  # (4 columns, 3, K, m)
