@@ -72,7 +72,7 @@ class LinkFrames:
         rows of that tail: the last moving link is recovered as T_end · (E · tool)⁻¹."""
         topo = chain._topo
         if chain._single_end and topo.ends[0] == topo.n_frames - 1:
-            return tuple(i for _, i in chain._end_origins[0])
+            return tuple(i for _, i in chain._end_factors[0])
         return None
 
     def offsets(self, chain, dtype: torch.dtype, device) -> Tensor:

@@ -32,15 +32,14 @@ import warnings
 from pathlib import Path
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
-from ..chain import KinematicChain
 from ..errors import ModelError, require
-from ..kernels.joints import axis_alignment, compose_factors, translation_axes
-from ..kernels.tree import Topology
+from ..kernels.joints import axis_alignment
 from ..rotations import _quaternion_to_matrix
 from ..transforms import _make_transform
 from ..validation import check_end_links, tensors
+from .description import FrameSpec, TreeChain, TreeDescription
 
 __all__ = ["MJCFChain", "from_mjcf", "compile_mjcf"]
 
@@ -203,14 +202,134 @@ def _couplings(model, chain_joints: list[int]) -> tuple[dict[int, tuple[int, flo
     return follow, ignored
 
 
-class MJCFChain(KinematicChain):
+def _layout(model, build: _Builder, follow: dict) -> dict:
+    """q slots, mimic couplings and per-frame offsets (−ref of hinges and slides) of the chain's joints:
+    the frames of the description and the qpos / qvel bookkeeping."""
+    mujoco = _mujoco()
+    names, kinds, qpos_index, dof_index, slot = [], [], [], [], {}
+    nq = 0
+    for j in build.joints:
+        if j in follow:
+            continue
+        t = int(model.jnt_type[j])
+        size = {mujoco.mjtJoint.mjJNT_FREE: 7, mujoco.mjtJoint.mjJNT_BALL: 4}.get(t, 1)
+        slot[j] = nq
+        names.append(_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
+        kinds.append({mujoco.mjtJoint.mjJNT_FREE: "free", mujoco.mjtJoint.mjJNT_BALL: "ball",
+                      mujoco.mjtJoint.mjJNT_SLIDE: "prismatic"}.get(
+            t, "revolute" if model.jnt_limited[j] else "continuous"))
+        qa, da = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
+        qpos_index.extend(range(qa, qa + size))
+        dof_index.extend(range(da, da + {7: 6, 4: 3}.get(size, 1)))
+        nq += size
+    if nq == 0:
+        raise ModelError("every joint of the chain is held by an equality constraint: nothing moves")
+    frames, seen_free = [], {}
+    for f in build.frames:
+        j = f["joint"]
+        free = int(model.jnt_type[j]) == mujoco.mjtJoint.mjJNT_FREE
+        ref = 0.0 if f["kind"] == "S" or free else float(model.qpos0[model.jnt_qposadr[j]])
+        q_index, m, b = slot.get(j), 1.0, 0.0
+        if free:  # x, y, z, then the quaternion
+            k = seen_free.get(j, 0)
+            seen_free[j] = k + 1
+            q_index = slot[j] + k
+        elif j in follow:
+            lead, m, b = follow[j]
+            q_index = slot[lead]
+        frames.append(FrameSpec(f["kind"], f["parent"], tuple(f["pre"]), tuple(f["post"]), q_index, m, b,
+                                -ref))
+    vslot = {j: dof_index.index(int(model.jnt_dofadr[j])) for j in slot}
+    return {"frames": frames, "nq": nq, "joint_names": names, "joint_kinds": kinds,
+            "qpos_index": qpos_index, "dof_index": dof_index,
+            "followers": [(int(model.jnt_qposadr[j]), slot[lead], m, b)
+                          for j, (lead, m, b) in follow.items()],
+            "follower_dofs": [(int(model.jnt_dofadr[j]), vslot[lead], m)
+                              for j, (lead, m, _) in follow.items()]}
+
+
+def _limits(model, names: list[str], kinds: list[str]) -> list[list[float]]:
+    """(nq, 2): hinge/slide ranges where limited, ±inf elsewhere (free positions, quaternions)."""
+    mujoco = _mujoco()
+    out = []
+    for name, kind in zip(names, kinds):
+        j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
+        if kind in ("revolute", "prismatic") and model.jnt_limited[j]:
+            out.append([float(model.jnt_range[j, 0]), float(model.jnt_range[j, 1])])
+        else:
+            out.extend([[-math.inf, math.inf]] * {"free": 7, "ball": 4}.get(kind, 1))
+    return out
+
+
+def _parameters(model, build: _Builder, sites: list[int]) -> dict[str, Tensor]:
+    """The learnable geometry (float64): body, joint and end-site rows of the compiled model."""
+
+    def rows(values, width):
+        return torch.tensor([list(v) for v in values], dtype=torch.float64).reshape(-1, width)
+
+    return {"body_pos": rows((model.body_pos[b] for b in build.bodies), 3),
+            "body_quat": rows((model.body_quat[b] for b in build.bodies), 4),
+            "joint_pos": rows((model.jnt_pos[j] for j in build.anchor_joints), 3),
+            "joint_axis": rows((model.jnt_axis[j] for j in build.axis_joints), 3),
+            "site_pos": rows((model.site_pos[s] for s in sites), 3),
+            "site_quat": rows((model.site_quat[s] for s in sites), 4)}
+
+
+def _describe(model, path: str | None, ends: list[str],
+              root_link: str | None) -> tuple[TreeDescription, dict]:
+    """The format-neutral description of the bodies between the root and the end links, and the MJCF
+    facts the chain keeps (qpos / qvel maps, element rows of its parameters)."""
+    mujoco = _mujoco()
+    root = 0 if root_link is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root_link)
+    if root < 0:
+        raise ModelError(f"root_link {root_link!r} is not a body of the model")
+    resolved = [_resolve_end(model, e) for e in ends]
+    path_bodies: set[int] = set()
+    for (b, _), name in zip(resolved, ends):
+        chain_of, k = [], b
+        while k != root:
+            if k == 0:
+                raise ModelError(f"end_link {name!r} does not hang below root_link {root_link!r}")
+            chain_of.append(k)
+            k = int(model.body_parentid[k])
+        path_bodies.update(chain_of)
+    build = _Builder(model, sorted(path_bodies), root)
+    if not build.joints:
+        raise ModelError(f"no joint between {root_link or 'the world'!r} and {ends}")
+    follow, ignored = _couplings(model, build.joints)
+    if ignored:
+        warnings.warn(f"{path or 'MJCF'}: equality constraints not enforced by the kinematic chain: "
+                      f"{', '.join(ignored)}", stacklevel=4)
+    lay = _layout(model, build, follow)
+    sites = [s for _, s in resolved if s is not None]
+    site_row = iter(range(len(sites)))
+    end_factors = [list(build.pending[b]) + ([("site", next(site_row))] if s is not None else [])
+                   for b, s in resolved]
+    axes = torch.tensor([list(model.jnt_axis[j]) for j in build.axis_joints], dtype=torch.float64)
+    description = TreeDescription(
+        model.names.split(b"\0", 1)[0].decode() or Path(path or "mjcf").stem, lay["frames"],
+        [build.last_frame[b] for b, _ in resolved], end_factors, lay["nq"],
+        _limits(model, lay["joint_names"], lay["joint_kinds"]), lay["joint_names"], lay["joint_kinds"],
+        parameters=_parameters(model, build, sites), buffers={"_axis_flip": axes.reshape(-1, 3)[:, 2] < 0})
+    obj = mujoco.mjtObj
+    facts = {**lay, "root_link": root_link or "world",
+             "body_names": [_name(model, obj.mjOBJ_BODY, b) for b in build.bodies],
+             "anchor_joints": list(build.anchor_joints), "axis_joints": list(build.axis_joints),
+             "joint_rows": ([_name(model, obj.mjOBJ_JOINT, j) for j in build.anchor_joints],
+                            [_name(model, obj.mjOBJ_JOINT, j) for j in build.axis_joints]),
+             "site_names": [_name(model, obj.mjOBJ_SITE, s) for s in sites]}
+    return description, facts
+
+
+class MJCFChain(TreeChain):
     """A MuJoCo model from its world (or ``root_link``) to one or several end bodies or sites.
 
     Parameters (learnable, like a URDF chain's): ``body_pos (L, 3)``, ``body_quat (L, 4)`` (normalised in
     the kernel) of the bodies on the paths (``body_names``; bodies with a free joint have none: their pose is
     q), ``joint_pos (A, 3)`` of the hinge, slide and ball joints, ``joint_axis (H, 3)`` of the hinge and
     slide joints, ``site_pos``, ``site_quat`` of end sites, plus the base/tool corrections of
-    :class:`~diffkin.chain.KinematicChain`.
+    :class:`~diffkin.chain.KinematicChain`. The tree itself is the
+    :class:`~diffkin.models.description.TreeDescription` the MJCF reader makes.
 
     Attributes: ``joint_names`` (the chain's independent joints, q's order), ``joint_kinds`` (``"revolute"``,
     ``"prismatic"``, ``"ball"``, ``"free"``, ``"continuous"``), ``qpos_index`` / ``dof_index`` (the model's
@@ -219,161 +338,33 @@ class MJCFChain(KinematicChain):
 
     def __init__(self, model, text: str, path: str | None, end_links, root_link: str | None = None, *,
                  dtype: torch.dtype | None = None, device=None):
-        mujoco = _mujoco()
         single, ends = check_end_links(end_links, "body or site")
-        root = 0 if root_link is None else mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, root_link)
-        if root < 0:
-            raise ModelError(f"root_link {root_link!r} is not a body of the model")
-        resolved = [_resolve_end(model, e) for e in ends]
-        path_bodies: set[int] = set()
-        for (b, _), name in zip(resolved, ends):
-            chain_of, k = [], b
-            while k != root:
-                if k == 0:
-                    raise ModelError(f"end_link {name!r} does not hang below root_link {root_link!r}")
-                chain_of.append(k)
-                k = int(model.body_parentid[k])
-            path_bodies.update(chain_of)
-        build = _Builder(model, sorted(path_bodies), root)
-        if not build.joints:
-            raise ModelError(f"no joint between {root_link or 'the world'!r} and {ends}")
-        follow, ignored = _couplings(model, build.joints)
-        if ignored:
-            warnings.warn(f"{path or 'MJCF'}: equality constraints not enforced by the kinematic chain: "
-                          f"{', '.join(ignored)}", stacklevel=3)
-        self._layout(model, build, follow, resolved)
-        topo = Topology(tuple(f["parent"] for f in build.frames),
-                        tuple(f["kind"] != "P" for f in build.frames),
-                        tuple(build.last_frame[b] for b, _ in resolved), tuple(self._q_index),
-                        tuple(self._mult), tuple(self._qoff), self._nq,
-                        tuple(f["kind"] == "S" for f in build.frames))
-        limits = self._limits(model)
-        name = model.names.split(b"\0", 1)[0].decode() or Path(path or "mjcf").stem
-        super().__init__(topo, q_limits=limits, name=name, dtype=dtype, device=device, single_end=single)
-        self._set_parameters(model, build, resolved)
+        description, facts = _describe(model, path, ends, root_link)
+        super().__init__(description, dtype=dtype, device=device, single_end=single)
+        self.body_names = facts["body_names"]
+        self._anchor_joints, self._axis_joints = facts["anchor_joints"], facts["axis_joints"]
+        self._qpos_index, self._dof_index = facts["qpos_index"], facts["dof_index"]
+        self._followers, self._follower_dofs = facts["followers"], facts["follower_dofs"]
         self.source_text, self.source_path = text, path
         geometry = ("body_pos", "body_quat", "joint_pos", "joint_axis", "site_pos", "site_quat")
         self._compiled0 = {k: getattr(self, k).detach().double().cpu().clone() for k in geometry}
-        self._joint_rows = ([_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in self._anchor_joints],
-                            [_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) for j in self._axis_joints])
-        self.site_names = [_name(model, mujoco.mjtObj.mjOBJ_SITE, s) for _, s in resolved if s is not None]
-        self.end_links, self.root_link = ends, root_link or "world"
+        self._joint_rows = facts["joint_rows"]
+        self.site_names = facts["site_names"]
+        self.end_links, self.root_link = ends, facts["root_link"]
         self.qpos0 = torch.tensor(model.qpos0, dtype=self.dtype, device=self.device)
         self._nq_model, self._nv_model = int(model.nq), int(model.nv)
 
-    # ------------------------------------------------------------------------------------ layout
-    def _layout(self, model, build: _Builder, follow: dict, resolved) -> None:
-        """q slots, mimic couplings and per-frame offsets (−ref of hinges and slides)."""
-        mujoco = _mujoco()
-        names, kinds, qpos_index, dof_index, slot = [], [], [], [], {}
-        nq = 0
-        for j in build.joints:
-            if j in follow:
-                continue
-            t = int(model.jnt_type[j])
-            size = {mujoco.mjtJoint.mjJNT_FREE: 7, mujoco.mjtJoint.mjJNT_BALL: 4}.get(t, 1)
-            slot[j] = nq
-            names.append(_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
-            kinds.append({mujoco.mjtJoint.mjJNT_FREE: "free", mujoco.mjtJoint.mjJNT_BALL: "ball",
-                          mujoco.mjtJoint.mjJNT_SLIDE: "prismatic"}.get(
-                t, "revolute" if model.jnt_limited[j] else "continuous"))
-            qa, da = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
-            qpos_index.extend(range(qa, qa + size))
-            dof_index.extend(range(da, da + {7: 6, 4: 3}.get(size, 1)))
-            nq += size
-        if nq == 0:
-            raise ModelError("every joint of the chain is held by an equality constraint: nothing moves")
-        q_index, mult, qoff, offsets = [], [], [], []
-        seen_free: dict[int, int] = {}
-        for f in build.frames:
-            j = f["joint"]
-            ref = 0.0 if f["kind"] == "S" or int(model.jnt_type[j]) == mujoco.mjtJoint.mjJNT_FREE \
-                else float(model.qpos0[model.jnt_qposadr[j]])
-            if int(model.jnt_type[j]) == mujoco.mjtJoint.mjJNT_FREE:  # x, y, z, then the quaternion
-                k = seen_free.get(j, 0)
-                seen_free[j] = k + 1
-                q_index.append(slot[j] + k)
-            elif j in follow:
-                lead, m, b = follow[j]
-                q_index.append(slot[lead])
-                mult.append(m)
-                qoff.append(b)
-                offsets.append(-ref)
-                continue
-            else:
-                q_index.append(slot[j])
-            mult.append(1.0)
-            qoff.append(0.0)
-            offsets.append(-ref)
-        self._q_index, self._mult, self._qoff, self._nq = q_index, mult, qoff, nq
-        self._frame_offsets = offsets
-        self.joint_names, self.joint_kinds = names, kinds
-        self._qpos_index, self._dof_index = qpos_index, dof_index
-        self._followers = [(int(model.jnt_qposadr[j]), slot[lead], m, b)
-                           for j, (lead, m, b) in follow.items()]
-        vslot = {j: dof_index.index(int(model.jnt_dofadr[j])) for j in slot}
-        self._follower_dofs = [(int(model.jnt_dofadr[j]), vslot[lead], m)
-                               for j, (lead, m, _) in follow.items()]
-
-    def _limits(self, model) -> list[list[float]]:
-        """(nq, 2): hinge/slide ranges where limited, ±inf elsewhere (free positions, quaternions)."""
-        mujoco = _mujoco()
-        out = []
-        for name, kind in zip(self.joint_names, self.joint_kinds):
-            j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-            if kind in ("revolute", "prismatic") and model.jnt_limited[j]:
-                out.append([float(model.jnt_range[j, 0]), float(model.jnt_range[j, 1])])
-            else:
-                out.extend([[-math.inf, math.inf]] * {"free": 7, "ball": 4}.get(kind, 1))
-        return out
-
-    def _set_parameters(self, model, build: _Builder, resolved) -> None:
-        mujoco = _mujoco()
-        dt, dev = self.dtype, self.device
-
-        def param(rows, width):
-            t = torch.tensor(rows, dtype=torch.float64).reshape(-1, width)
-            return nn.Parameter(t.to(dtype=dt, device=dev))
-
-        self.body_names = [_name(model, mujoco.mjtObj.mjOBJ_BODY, b) for b in build.bodies]
-        self._anchor_joints, self._axis_joints = list(build.anchor_joints), list(build.axis_joints)
-        self.body_pos = param([list(model.body_pos[b]) for b in build.bodies], 3)
-        self.body_quat = param([list(model.body_quat[b]) for b in build.bodies], 4)
-        self.joint_pos = param([list(model.jnt_pos[j]) for j in build.anchor_joints], 3)
-        axes = torch.tensor([list(model.jnt_axis[j]) for j in build.axis_joints], dtype=torch.float64)
-        axes = axes.reshape(-1, 3)
-        self.joint_axis = nn.Parameter(axes.to(dtype=dt, device=dev))
-        self.register_buffer("_axis_flip", (axes[:, 2] < 0).to(dev))
-        sites = [s for _, s in resolved if s is not None]
-        self.site_pos = param([list(model.site_pos[s]) for s in sites], 3)
-        self.site_quat = param([list(model.site_quat[s]) for s in sites], 4)
-        self.register_buffer("_offsets", torch.tensor(self._frame_offsets, dtype=dt, device=dev))
-        self._pre = [f["pre"] for f in build.frames]
-        self._post = [f["post"] for f in build.frames]
-        site_row = iter(range(len(sites)))
-        self._end_tokens = [list(build.pending[b]) + ([("site", next(site_row))] if s is not None else [])
-                            for b, s in resolved]
-        self._has_offsets = any(o != 0.0 for o in self._frame_offsets)
-
     # ---------------------------------------------------------------------------------- geometry
-    def _geometry(self):
-        eye = torch.eye(4, dtype=self.body_pos.dtype, device=self.body_pos.device)
+    def _factors(self, eye):
         B = _make_transform(_quaternion_to_matrix(_unit(self.body_quat)), self.body_pos).unbind(0)
         S = axis_alignment(self.joint_axis, self._axis_flip)
         zero = torch.zeros_like(self.joint_axis)
-        A = _make_transform(S, zero).unbind(0)
-        At = _make_transform(S.transpose(-1, -2), zero).unbind(0)
         I3 = eye[:3, :3].expand(self.joint_pos.shape[0], 3, 3)
-        Js = _make_transform(I3, self.joint_pos).unbind(0)
-        Jns = _make_transform(I3, -self.joint_pos).unbind(0)
         sites = _make_transform(_quaternion_to_matrix(_unit(self.site_quat)), self.site_pos).unbind(0)
-        C, Ct = translation_axes(eye)
-        table = {"B": B, "A": A, "At": At, "J": Js, "Jn": Jns, "site": sites, "C": C, "Ct": Ct}
-        pre = torch.stack(compose_factors(table, self._pre, eye))
-        post = torch.stack(compose_factors(table, self._post, eye))
-        ends = compose_factors(table, self._end_tokens, eye)
-        ends = [E if t else None for E, t in zip(ends, self._end_tokens)]
-        return pre, (self._offsets if self._has_offsets else None), post, ends
+        return {"B": B, "A": _make_transform(S, zero).unbind(0),
+                "At": _make_transform(S.transpose(-1, -2), zero).unbind(0),
+                "J": _make_transform(I3, self.joint_pos).unbind(0),
+                "Jn": _make_transform(I3, -self.joint_pos).unbind(0), "site": sites}
 
     # ------------------------------------------------------------------------------------- qpos
     def from_qpos(self, qpos) -> Tensor:

@@ -18,22 +18,14 @@ from __future__ import annotations
 import math
 
 import torch
-from torch import nn
 
-from ..chain import KinematicChain
 from ..errors import ModelError
 from ..kernels.configuration import joint_kind
-from ..kernels.joints import (
-    axis_alignment,
-    compose_factors,
-    origin_transform,
-    pose_correction,
-    translation_axes,
-)
-from ..kernels.tree import Topology
+from ..kernels.joints import axis_alignment, origin_transform, pose_correction
 from ..rotations import _matrix_to_euler
 from ..transforms import _make_transform
 from ..validation import check_end_links
+from .description import FrameSpec, TreeChain, TreeDescription
 from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_urdf, write_urdf
 
 __all__ = ["URDFChain", "from_urdf"]
@@ -47,10 +39,6 @@ _MULTI = ("planar", "floating")
 def _moving(j: JointSpec) -> bool:
     # a <mimic> on a fixed joint (talos_reduced's grippers) does not make it move
     return j.type in MOVING_TYPES or j.type in _MULTI
-
-
-def _frame(kind: str, parent: int, pre: list, post: list, q: int, m: float, b: float) -> dict:
-    return {"kind": kind, "parent": parent, "pre": pre, "post": post, "q": q, "m": m, "b": b}
 
 
 def _leader(tree: URDFTree, j: JointSpec) -> tuple[JointSpec, float, float]:
@@ -67,13 +55,110 @@ def _leader(tree: URDFTree, j: JointSpec) -> tuple[JointSpec, float, float]:
     return j, m, b
 
 
-class URDFChain(KinematicChain):
+def _describe(tree: URDFTree, end_links: str | list[str], root_link: str | None,
+              floating_base: bool) -> tuple[TreeDescription, dict]:
+    """The format-neutral description of the tree from ``root_link`` to the end links, and the URDF facts
+    the chain keeps (element rows of its parameters, link frames)."""
+    _, ends = check_end_links(end_links, "link")
+    paths = [tree.path(e, root_link) for e in ends]
+    used: list[JointSpec] = []  # every joint on the paths, in topological order (union of the paths)
+    for path in paths:
+        for j in path:
+            if j not in used:
+                used.append(j)
+    moving = [j for j in used if _moving(j)]
+    if not moving and not floating_base:
+        raise ModelError(f"no moving joint between {root_link or tree.root!r} and {ends}")
+    variables: list[JointSpec] = []
+    couplings = []
+    for j in moving:
+        lead, m, b = _leader(tree, j)
+        if lead.type in _MULTI and (lead is not j or j.mimic is not None):
+            raise ModelError(f"joint {j.name!r}: a {lead.type} joint cannot take part in a mimic")
+        if lead not in variables:
+            variables.append(lead)
+        couplings.append((lead, m, b))
+    slot, nq = {}, 7 if floating_base else 0
+    for v in variables:
+        slot[v.name] = nq
+        nq += joint_kind(_KIND[v.type]).nq
+    index = {j.name: i for i, j in enumerate(used)}
+    axis_joints = [j for j in moving if j.type != "floating"]
+    axis_row = {j.name: i for i, j in enumerate(axis_joints)}
+    frames: list[FrameSpec] = []
+    last_frame: dict[str, int] = {}  # joint name -> its last frame
+    if floating_base:  # a free joint at the root: x, y, z along the root frame's axes, then a ball
+        for k, ax in enumerate("xyz"):
+            frames.append(FrameSpec("P", k - 1, (("C", ax),), (("Ct", ax),), k))
+        frames.append(FrameSpec("S", 2, (), (), 3))
+    root_frame = len(frames) - 1
+
+    def last_moving(path: list[JointSpec]) -> int:
+        return max((last_frame[j.name] for j in path if _moving(j)), default=root_frame)
+
+    for j, (lead, m, b) in zip(moving, couplings):
+        path = next(p for p in paths if j in p)
+        k = path.index(j)
+        start = max((i + 1 for i, s in enumerate(path[:k]) if _moving(s)), default=0)
+        origins = [("O", index[s.name]) for s in path[start : k + 1]]
+        parent, q0 = last_moving(path[:k]), slot[lead.name]
+        if j.type == "floating":  # the motion of a free joint in the joint's origin frame
+            parts = [("P", [("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
+                     ("P", [("C", "z")], [("Ct", "z")]), ("S", [], [])]
+        elif j.type == "planar":  # x, y in the plane normal to the axis, then the angle about it
+            a = axis_row[j.name]
+            parts = [("P", [("A", a), ("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
+                     ("R", [], [("At", a)])]
+        else:
+            a = axis_row[j.name]
+            parts = [("P" if j.type == "prismatic" else "R", [("A", a)], [("At", a)])]
+        for i, (kind, pre, post) in enumerate(parts):
+            frames.append(FrameSpec(kind, parent, tuple((origins if i == 0 else []) + pre), tuple(post),
+                                    q0 + (i if kind != "S" else 3), m, b))
+            parent = len(frames) - 1
+        last_frame[j.name] = parent
+
+    def limit(v: JointSpec, value: float | None, default: float) -> float:
+        return default if v.type == "continuous" or value is None else value
+
+    limits = [[-math.inf, math.inf]] * (7 if floating_base else 0)
+    for v in variables:
+        if v.type in _MULTI:
+            limits += [[-math.inf, math.inf]] * joint_kind(_KIND[v.type]).nq
+        else:
+            limits.append([limit(v, v.lower, -math.inf), limit(v, v.upper, math.inf)])
+    end_factors = []
+    for path in paths:
+        start = max((i + 1 for i, s in enumerate(path) if _moving(s)), default=0)
+        end_factors.append([("O", index[s.name]) for s in path[start:]])
+    axes = torch.tensor([j.axis for j in axis_joints], dtype=torch.float64).reshape(-1, 3)
+    description = TreeDescription(
+        tree.name, frames, [last_moving(p) for p in paths], end_factors, nq, limits,
+        ["floating_base"] * floating_base + [v.name for v in variables],
+        ["free"] * floating_base + [_KIND[v.type] for v in variables],
+        parameters={"origin_xyz": torch.tensor([j.xyz for j in used], dtype=torch.float64).reshape(-1, 3),
+                    "origin_rpy": torch.tensor([j.rpy for j in used], dtype=torch.float64).reshape(-1, 3),
+                    "axis": axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)},
+        # origin_delta: optional local corrections (L, 6) (translation, rotation vector), origin · Δ(δ),
+        # singularity-free where rpy is at gimbal lock; None by default, set by calibration, folded in by
+        # fold_origins
+        buffers={"_axis_flip": axes[:, 2] < 0, "origin_delta": None})
+    root = root_link or tree.root
+    facts = {"ends": ends, "root_link": root,
+             "link_frame": {root: root_frame + 1, **{j.child: last_frame[j.name] + 1 for j in moving}},
+             "frame_joint_names": [j.name for j in axis_joints], "link_names": [j.child for j in axis_joints],
+             "joint_origin_names": [j.name for j in used]}
+    return description, facts
+
+
+class URDFChain(TreeChain):
     """A URDF robot from a root link to one or several end links (a tree), with learnable geometry.
 
     Parameters: ``origin_xyz``, ``origin_rpy`` ``(L, 3)`` — the ``<origin>`` of every joint on the paths
     (``joint_origin_names`` labels the rows) — and ``axis`` ``(J, 3)``, the axis of every revolute,
     continuous, prismatic and planar joint (``frame_joint_names``; kept unit length inside the kernel), plus
-    the base/tool corrections of :class:`~diffkin.chain.KinematicChain`.
+    the base/tool corrections of :class:`~diffkin.chain.KinematicChain`. The tree itself is the
+    :class:`~diffkin.models.description.TreeDescription` the URDF reader makes (``description``).
 
     Attributes: ``joint_names`` (the n independent joints, the order of q's last axis), ``frame_joint_names``
     and ``link_names`` (the J moving joints in topological order, mimic followers included, and their child
@@ -84,111 +169,19 @@ class URDFChain(KinematicChain):
 
     def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
                  dtype: torch.dtype | None = None, device=None, floating_base: bool = False):
-        single, ends = check_end_links(end_links, "link")
-        paths = [tree.path(e, root_link) for e in ends]
-        used: list[JointSpec] = []  # every joint on the paths, in topological order (union of the paths)
-        for path in paths:
-            for j in path:
-                if j not in used:
-                    used.append(j)
-        moving = [j for j in used if _moving(j)]
-        if not moving and not floating_base:
-            raise ModelError(f"no moving joint between {root_link or tree.root!r} and {ends}")
-        variables: list[JointSpec] = []
-        couplings = []
-        for j in moving:
-            lead, m, b = _leader(tree, j)
-            if lead.type in _MULTI and (lead is not j or j.mimic is not None):
-                raise ModelError(f"joint {j.name!r}: a {lead.type} joint cannot take part in a mimic")
-            if lead not in variables:
-                variables.append(lead)
-            couplings.append((lead, m, b))
-        slot, nq = {}, 7 if floating_base else 0
-        for v in variables:
-            slot[v.name] = nq
-            nq += joint_kind(_KIND[v.type]).nq
-        index = {j.name: i for i, j in enumerate(used)}
-        axis_joints = [j for j in moving if j.type != "floating"]
-        axis_row = {j.name: i for i, j in enumerate(axis_joints)}
-        frames: list[dict] = []
-        last_frame: dict[str, int] = {}  # joint name -> its last frame
-        if floating_base:  # a free joint at the root: x, y, z along the root frame's axes, then a ball
-            for k, ax in enumerate("xyz"):
-                frames.append(_frame("P", k - 1, [("C", ax)], [("Ct", ax)], k, 1.0, 0.0))
-            frames.append(_frame("S", 2, [], [], 3, 1.0, 0.0))
-        root_frame = len(frames) - 1
-
-        def last_moving(path: list[JointSpec]) -> int:
-            return max((last_frame[j.name] for j in path if _moving(j)), default=root_frame)
-
-        for j, (lead, m, b) in zip(moving, couplings):
-            path = next(p for p in paths if j in p)
-            k = path.index(j)
-            start = max((i + 1 for i, s in enumerate(path[:k]) if _moving(s)), default=0)
-            origins = [("O", index[s.name]) for s in path[start : k + 1]]
-            parent, q0 = last_moving(path[:k]), slot[lead.name]
-            if j.type == "floating":  # the motion of a free joint in the joint's origin frame
-                parts = [("P", [("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
-                         ("P", [("C", "z")], [("Ct", "z")]), ("S", [], [])]
-            elif j.type == "planar":  # x, y in the plane normal to the axis, then the angle about it
-                a = axis_row[j.name]
-                parts = [("P", [("A", a), ("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
-                         ("R", [], [("At", a)])]
-            else:
-                a = axis_row[j.name]
-                parts = [("P" if j.type == "prismatic" else "R", [("A", a)], [("At", a)])]
-            for i, (kind, pre, post) in enumerate(parts):
-                frames.append(_frame(kind, parent, (origins if i == 0 else []) + pre, post,
-                                     q0 + (i if kind != "S" else 3), m, b))
-                parent = len(frames) - 1
-            last_frame[j.name] = parent
-        topo = Topology(tuple(f["parent"] for f in frames), tuple(f["kind"] != "P" for f in frames),
-                        tuple(last_moving(p) for p in paths), tuple(f["q"] for f in frames),
-                        tuple(f["m"] for f in frames), tuple(f["b"] for f in frames), nq,
-                        tuple(f["kind"] == "S" for f in frames))
-
-        def limit(v: JointSpec, value: float | None, default: float) -> float:
-            return default if v.type == "continuous" or value is None else value
-
-        limits = [[-math.inf, math.inf]] * (7 if floating_base else 0)
-        for v in variables:
-            if v.type in _MULTI:
-                limits += [[-math.inf, math.inf]] * joint_kind(_KIND[v.type]).nq
-            else:
-                limits.append([limit(v, v.lower, -math.inf), limit(v, v.upper, math.inf)])
-        super().__init__(topo, q_limits=limits, name=tree.name, dtype=dtype, device=device, single_end=single)
-        dtype, device = self.dtype, self.device
+        single, _ = check_end_links(end_links, "link")
+        description, facts = _describe(tree, end_links, root_link, floating_base)
+        super().__init__(description, dtype=dtype, device=device, single_end=single)
         self.tree = tree
-        self.end_links = ends
-        self.root_link = root_link or tree.root
+        self.end_links = facts["ends"]
+        self.root_link = facts["root_link"]
         self.floating_base = floating_base
-        self.joint_names = ["floating_base"] * floating_base + [v.name for v in variables]
-        self.joint_kinds = ["free"] * floating_base + [_KIND[v.type] for v in variables]
         #: the index in ``forward_kinematics(q, all_frames=True)`` of each link that moves with a frame: the
         #: root link (0, or the free joint's last frame with ``floating_base``) and every moving joint's child
-        self.link_frame = {self.root_link: root_frame + 1,
-                           **{j.child: last_frame[j.name] + 1 for j in moving}}
-        self.frame_joint_names = [j.name for j in axis_joints]
-        self.link_names = [j.child for j in axis_joints]
-        self.joint_origin_names = [j.name for j in used]
-        self.origin_xyz = nn.Parameter(torch.tensor([j.xyz for j in used], dtype=dtype, device=device)
-                                       .reshape(-1, 3))
-        self.origin_rpy = nn.Parameter(torch.tensor([j.rpy for j in used], dtype=dtype, device=device)
-                                       .reshape(-1, 3))
-        # optional local corrections (L, 6) (translation, rotation vector): origin · Δ(δ), singularity-free
-        # where rpy is at gimbal lock; a buffer (None by default), set by calibration, folded in by
-        # fold_origins
-        self.register_buffer("origin_delta", None)
-        axes = torch.tensor([j.axis for j in axis_joints], dtype=torch.float64).reshape(-1, 3)
-        unit = axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)
-        self.axis = nn.Parameter(unit.to(device=device, dtype=dtype))
-        self.register_buffer("_axis_flip", (axes[:, 2] < 0).to(device))
-        self._pre = [f["pre"] for f in frames]
-        self._post = [f["post"] for f in frames]
-        self._end_origins = []
-        for path in paths:
-            start = max((i + 1 for i, s in enumerate(path) if _moving(s)), default=0)
-            self._end_origins.append([("O", index[s.name]) for s in path[start:]])
+        self.link_frame = facts["link_frame"]
+        self.frame_joint_names = facts["frame_joint_names"]
+        self.link_names = facts["link_names"]
+        self.joint_origin_names = facts["joint_origin_names"]
 
     def _origins(self):
         O = origin_transform(self.origin_xyz, self.origin_rpy)  # (L, 4, 4)
@@ -205,19 +198,11 @@ class URDFChain(KinematicChain):
             self.origin_rpy.copy_(rpy.to(self.origin_rpy.dtype))
         self.origin_delta = None
 
-    def _geometry(self):
-        O = self._origins()  # (L, 4, 4)
-        eye = torch.eye(4, dtype=O.dtype, device=O.device)
+    def _factors(self, eye):
         S = axis_alignment(self.axis, self._axis_flip)
         zero = torch.zeros_like(self.axis)
-        C, Ct = translation_axes(eye)
-        table = {"O": O.unbind(0), "A": _make_transform(S, zero).unbind(0),
-                 "At": _make_transform(S.transpose(-1, -2), zero).unbind(0), "C": C, "Ct": Ct}
-        pre = torch.stack(compose_factors(table, self._pre, eye))
-        post = torch.stack(compose_factors(table, self._post, eye))
-        ends = [E if r else None for E, r in zip(compose_factors(table, self._end_origins, eye),
-                                                  self._end_origins)]
-        return pre, None, post, ends
+        return {"O": self._origins().unbind(0), "A": _make_transform(S, zero).unbind(0),
+                "At": _make_transform(S.transpose(-1, -2), zero).unbind(0)}
 
     # ------------------------------------------------------------------------------------- helpers
     def to_urdf(self, path=None) -> str:

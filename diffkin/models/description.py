@@ -1,0 +1,129 @@
+"""A format-neutral kinematic tree (§2.8 on a tree): what the URDF and MJCF readers produce, what
+:class:`TreeChain` turns into the one learnable model.
+
+A tree is a list of frames, each one elementary motion of :mod:`diffkin.kernels.configuration` (R: about
+z, P: along z, S: a unit quaternion) between two fixed transforms, A_j(q) = Pre_j · M(q) · Post_j, with
+its parent frame, the entry of q it reads and a linear coupling (mimic joints, MuJoCo joint equalities).
+Pre and Post are products of named *factors* (``("O", 3)``: row 3 of factor table O), so the
+description says which geometry enters where without saying how a file parametrises it; the reader adds
+the learnable parameter tables and one function from them to the factor tables
+(:meth:`TreeChain._factors`). The translation axes ``"C"`` / ``"Ct"`` (e_z to e_x, e_y, e_z; free and planar
+joints) are always in the table.
+
+Data flows one way: ``file -> reader -> TreeDescription -> TreeChain`` (URDF: :mod:`diffkin.models.urdf`,
+MJCF: :mod:`diffkin.models.mjcf`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor, nn
+
+from ..chain import KinematicChain
+from ..errors import ModelError
+from ..kernels.joints import compose_factors, translation_axes
+from ..kernels.tree import Topology
+
+__all__ = ["FrameSpec", "TreeDescription", "TreeChain"]
+
+Factor = tuple[str, object]  # (factor table name, row index or axis name)
+
+
+@dataclass(frozen=True)
+class FrameSpec:
+    """One frame of the tree product: ``motion`` ``"R"``, ``"P"`` or ``"S"`` after ``pre`` and before
+    ``post`` (factor lists), child of frame ``parent`` (−1: the base), reading ``q[q_index]`` (an S motion
+    reads ``q[q_index : q_index + 4]``) as ``multiplier · q + q_offset``, plus ``offset`` inside the motion
+    (MuJoCo's −ref of a hinge or slide)."""
+
+    motion: str
+    parent: int
+    pre: tuple[Factor, ...] = ()
+    post: tuple[Factor, ...] = ()
+    q_index: int = 0
+    multiplier: float = 1.0
+    q_offset: float = 0.0
+    offset: float = 0.0
+
+    def __post_init__(self):
+        if self.motion not in ("R", "P", "S"):
+            raise ModelError(f"a frame's motion is 'R', 'P' or 'S', got {self.motion!r}")
+
+
+@dataclass
+class TreeDescription:
+    """A kinematic tree from a base to K end links, independent of the file format.
+
+    ``frames`` in topological order; ``ends[k]`` the last frame at or above end link k (−1: the base) and
+    ``end_factors[k]`` the fixed factors after it; ``nq`` the size of q; ``limits`` ``(nq, 2)`` (±inf: none);
+    ``joint_names`` / ``joint_kinds`` the independent joints in q's order (kinds of
+    :data:`diffkin.kernels.configuration.JOINT_KINDS`); ``parameters`` the learnable geometry
+    (float64 tensors, registered as ``nn.Parameter`` s of those names), ``buffers`` fixed tensors the factor
+    map reads; ``name`` the model's name.
+    """
+
+    name: str
+    frames: list[FrameSpec]
+    ends: list[int]
+    end_factors: list[list[Factor]]
+    nq: int
+    limits: list[list[float]]
+    joint_names: list[str]
+    joint_kinds: list[str]
+    parameters: dict[str, Tensor] = field(default_factory=dict)
+    buffers: dict[str, Tensor | None] = field(default_factory=dict)
+
+    def topology(self) -> Topology:
+        """The tree structure the kernels run on (:class:`~diffkin.kernels.tree.Topology`)."""
+        f = self.frames
+        return Topology(tuple(x.parent for x in f), tuple(x.motion != "P" for x in f), tuple(self.ends),
+                        tuple(x.q_index for x in f), tuple(x.multiplier for x in f),
+                        tuple(x.q_offset for x in f), self.nq, tuple(x.motion == "S" for x in f))
+
+
+class TreeChain(KinematicChain):
+    """The learnable model of a :class:`TreeDescription`: its parameters as ``nn.Parameter`` s, its frames
+    evaluated by the kernels. Subclasses (:class:`~diffkin.models.URDFChain`,
+    :class:`~diffkin.models.MJCFChain`) only implement :meth:`_factors`: how their parameters map to the
+    factor tables the description names."""
+
+    def __init__(self, description: TreeDescription, *, dtype: torch.dtype | None = None, device=None,
+                 single_end: bool = True):
+        super().__init__(description.topology(), q_limits=description.limits, name=description.name,
+                         dtype=dtype, device=device, single_end=single_end)
+        dt, dev = self.dtype, self.device
+        for key, value in description.parameters.items():
+            setattr(self, key, nn.Parameter(value.to(dtype=dt, device=dev)))
+        for key, value in description.buffers.items():
+            floating = value is not None and value.is_floating_point()
+            self.register_buffer(key, None if value is None else value.to(dtype=dt if floating else None,
+                                                                         device=dev))
+        offsets = [fr.offset for fr in description.frames]
+        self._has_offsets = any(o != 0.0 for o in offsets)
+        # not saved: the description remakes it (a state dict holds the parameters and learned buffers)
+        self.register_buffer("_offsets", torch.tensor(offsets, dtype=dt, device=dev), persistent=False)
+        #: the tree this chain evaluates (its parameters' initial values included)
+        self.description = description
+        self.joint_names = list(description.joint_names)
+        self.joint_kinds = list(description.joint_kinds)
+        self._pre = [list(fr.pre) for fr in description.frames]
+        self._post = [list(fr.post) for fr in description.frames]
+        self._end_factors = [list(e) for e in description.end_factors]
+
+    def _factors(self, eye: Tensor) -> dict[str, Sequence[Tensor]]:
+        """The factor tables ``name -> rows of (4, 4)`` from the parameters, differentiable (``eye``: the
+        identity in the parameters' dtype and device)."""
+        raise NotImplementedError
+
+    def _geometry(self):
+        eye = torch.eye(4, dtype=self.dtype, device=self.device)
+        C, Ct = translation_axes(eye)
+        table = {"C": C, "Ct": Ct, **self._factors(eye)}
+        pre = torch.stack(compose_factors(table, self._pre, eye))
+        post = torch.stack(compose_factors(table, self._post, eye))
+        ends = [E if r else None for E, r in zip(compose_factors(table, self._end_factors, eye),
+                                                  self._end_factors)]
+        return pre, (self._offsets if self._has_offsets else None), post, ends
