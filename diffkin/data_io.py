@@ -418,6 +418,15 @@ class RandomJoints:
         return ArraySource((self.count, n), f"random({self.count}, seed={self.seed})", read)
 
 
+def _host_array(t: torch.Tensor) -> np.ndarray:
+    """A tensor source as a numpy array: float dtypes numpy lacks (bfloat16, float8) are widened to
+    float64 first, as a file's numbers are converted (bool and complex stay, for the data-file rule)."""
+    t = t.detach().cpu()
+    if t.is_floating_point() and t.dtype not in (torch.float16, torch.float32, torch.float64):
+        t = t.double()
+    return t.numpy()
+
+
 def open_joint_source(source, n_joints: int, chain=None) -> ArraySource:
     """Joint vectors ``(N, n)`` from a file path, an array / tensor, or :class:`RandomJoints` (needs
     ``chain``). Chunks are finite float64 ``(m, n)`` arrays (NaN/inf raise :class:`NonFiniteError`)."""
@@ -426,7 +435,7 @@ def open_joint_source(source, n_joints: int, chain=None) -> ArraySource:
     if _is_manifest(source):
         return _concat([open_joint_source(p, n_joints, chain) for p in _manifest_parts(source)], str(source))
     if isinstance(source, (np.ndarray, torch.Tensor)):
-        arr = source.detach().cpu().numpy() if isinstance(source, torch.Tensor) else source
+        arr = _host_array(source) if isinstance(source, torch.Tensor) else source
         if arr.ndim == 1 and arr.shape[0] == n_joints:
             arr = arr[None]
         if arr.ndim != 2 or arr.shape[1] != n_joints:
@@ -628,7 +637,7 @@ def open_pose_source(source, n_ends: int = 1, single_end: bool = True) -> PoseSo
         return PoseSource(_concat([p.rows for p in parts], str(source)), parts[0].layout, K, single_end,
                           str(source))
     if isinstance(source, (np.ndarray, torch.Tensor)):
-        arr = source.detach().cpu().numpy() if isinstance(source, torch.Tensor) else source
+        arr = _host_array(source) if isinstance(source, torch.Tensor) else source
         rows = _memory_source(arr, "targets")
         name = "targets"
     else:

@@ -38,7 +38,7 @@ def _stream_ik(chain, T):
 # A streamed source follows the data-file rule of diffkin.data_io, not the tensor rule: numbers of any real
 # dtype are converted to the chain's (as a file's are), bool/complex raise DataFileError, and an empty input
 # is a DataFileError (nothing to stream); so the dtype and mixed mutations do not apply (a bfloat16 tensor
-# source is a raw crash, recorded in tests/test_fuzz_boundary.py's KNOWN_OUTSIDE).
+# source is widened like a file's numbers: tests/test_fuzz_boundary.py checks it).
 _STREAM = {"out_batch": None, "chain": ur5, "empty_raises": DataFileError, "skip": ("dtype", "mixed")}
 CASES: list[Case] = [
     Case("streaming.stream_fk", _stream_fk, {"q": Arg(joints(ur5), (6,))}, covers=streaming.stream_fk,

@@ -145,3 +145,12 @@ def test_fk_memory_does_not_grow_with_n(tmp_path):
     grown = (300_000 - 30_000) * 128  # bytes of output added
     assert (tmp_path / "T300000.npy").stat().st_size == 300_000 * 128 + 128
     assert peaks[1] - peaks[0] < 0.25 * grown, (peaks, grown)
+
+
+def test_a_bfloat16_tensor_source_is_widened_like_a_files_numbers(tmp_path, panda):
+    # numpy has no bfloat16: the source is converted to float64 first (it was a raw TypeError)
+    q16 = panda.random_configuration(9, generator=torch.Generator().manual_seed(1)).to(torch.bfloat16)
+    res = stream_fk(panda, q16, tmp_path / "T.npy")
+    assert res.count == 9
+    expected = fk(panda, q16.double()).numpy()
+    np.testing.assert_allclose(np.load(tmp_path / "T.npy"), expected, rtol=0, atol=1e-13)
