@@ -60,7 +60,8 @@ def body_poses(chain, q: Tensor) -> Tensor:
     """World poses ``(..., nbody, 4, 4)`` of every body of an MJCF chain's model (MuJoCo's body order,
     the world body first, as ``mujoco.MjData.xpos`` / ``xmat``) for the chain's ``q (..., nq)``.
 
-    Bodies off the chain's paths take the model's ``qpos0`` for their joints. Differentiable in q; the
+    Bodies off the chain's paths take the model's ``qpos0`` for their joints; joints coupled by a joint
+    equality follow their leader (also where ``qpos0`` itself does not satisfy it). Differentiable in q; the
     geometry is the source file's (a calibrated chain's corrected parameters are not carried over).
     Use it as ``RobotCollision.from_mjcf(model, chain, body_poses=functools.partial(body_poses, chain))``.
     """
