@@ -75,11 +75,12 @@ class CollisionView:
             counts[s] += 1
         with torch.no_grad():
             a, b, r, c, R, h = (t.detach().cpu().double().numpy() for t in collision.placed(q))
-        self.handles = []
+        self.handles, self.meshes = [], []  # per geom: its scene node and its triangles (V, 3), (F, 3)
         for g, geom in enumerate(collision.geoms):
             k = self._slot[g]
             v, f = (_capsule(float(np.linalg.norm(b[k] - a[k])), float(r[k])) if geom.shape == "capsule"
                     else _box(h[k]))
+            self.meshes.append((v, f))
             self.handles.append(scene.add_mesh_simple(f"/collision/{g}", v, f, color=FREE_RGB, opacity=0.45))
         self.world_handles = self._add_world(world, scale) if world is not None else []
         self.contact = np.zeros(len(self.handles), dtype=bool)
@@ -93,7 +94,12 @@ class CollisionView:
                 raise ShapeError(f"the viewer draws one world: expected {name} without batch dims, got "
                                  f"{tuple(t.shape)}")
         np_ = lambda t: t.detach().cpu().double().numpy()  # noqa: E731
-        add, out = self._scene.add_mesh_simple, []
+        out, self.world_meshes = [], []
+
+        def add(name, v, f, **kw):
+            self.world_meshes.append((v, f))
+            return self._scene.add_mesh_simple(name, v, f, **kw)
+
         for i, (x, y, z, rad) in enumerate(np_(world.spheres)):
             out.append(add(f"/world/sphere_{i}", *_capsule(0.0, rad), color=WORLD_RGB, position=(x, y, z)))
         caps = np_(world.capsules)
