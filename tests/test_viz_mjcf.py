@@ -146,7 +146,7 @@ def _mesh_model(tmp_path: Path) -> Path:
     import trimesh
 
     (tmp_path / "parts").mkdir()
-    m = trimesh.creation.icosphere(subdivisions=5, radius=0.05)  # 20 480 triangles
+    m = trimesh.creation.icosphere(subdivisions=4, radius=0.05)  # 5 120 triangles
     m.vertices = m.vertices * [1.0, 0.6, 0.3] + [0.02, 0.0, 0.01]  # off-centre, not symmetric
     m.export(tmp_path / "parts" / "blob.obj")
     xml = """<mujoco><compiler meshdir="parts"/>
@@ -176,9 +176,10 @@ def test_resolving_mesh_is_drawn_where_mujoco_puts_it(tmp_path):
     ref = vert @ d.geom_xmat[0].reshape(3, 3).T + d.geom_xpos[0]
     T = body_poses(chain, q).detach().numpy()[geoms[0].body] @ geoms[0].local
     ours = geoms[0].vertices @ T[:3, :3].T + T[:3, 3]
-    assert len(geoms[0].faces) == 20480
-    dist = np.linalg.norm(ours[:, None] - ref[None], axis=-1)
-    assert dist.min(axis=1).max() < 1e-6 and dist.min(axis=0).max() < 1e-6  # the same point set
+    assert len(geoms[0].faces) == 5120
+    from scipy.spatial import cKDTree
+
+    assert cKDTree(ref).query(ours)[0].max() < 1e-6 and cKDTree(ours).query(ref)[0].max() < 1e-6  # same set
     # decimated: at most the budget, the shape kept to about a cell
     small, _ = mjcf_visuals(path, max_faces=500)
     assert 50 < len(small[0].faces) <= 500
