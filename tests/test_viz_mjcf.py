@@ -280,6 +280,14 @@ def test_contact_colouring_follows_the_distances(fr3):
         v.set_q(qs[free])
         assert v.contacts["pairs"] == [] and all(c == FREE_RGB for c in _colours(v._collision_view.handles))
         assert _colours(v._collision_view.world_handles) == [WORLD_RGB]
+        # dragged there joint by joint with the sliders: the colours follow at every step
+        for i, x in enumerate(qs[hit].tolist()):
+            v.sliders[i].value = x
+            step = col.self_distances(v.q).detach()
+            red = {names.index(n) for p, dist in zip(col.pairs, step) if dist < 0 for n in p}
+            cols = _colours(v._collision_view.handles)
+            assert {k for k, c in enumerate(cols) if c == CONTACT_RGB} == red
+        assert [(a, b) for a, b, _ in v.contacts["pairs"]] == pairs
     finally:
         v.close()
 
