@@ -176,13 +176,16 @@ class Viewer:
                  world=None, margin: float = 0.0):
         if drag not in ("solve", "velocity"):
             raise DiffkinError(f"drag must be 'solve' or 'velocity', got {drag!r}")
-        if collision is not None and collision.chain is not chain:
+        if collision is not None and collision.chain not in (None, chain):
             raise DiffkinError("collision must be a RobotCollision of the chain shown")
         if world is not None and collision is None:
             raise DiffkinError("world needs collision= (the robot's RobotCollision) to be checked against")
+        from .validation import check_number
+
+        margin = check_number(margin, "margin", positive=False, unit=" (m)")
         viser = _import_viser()
         self.chain = chain
-        self._collision_args = (collision, world, float(margin))
+        self._collision_args = (collision, world, margin)
         self.ik_options = dict(ik_options or {})
         self._drag, self.drag_speed = drag, float(drag_speed)
         self.ik_state: dict = {"success": None, "position_error": None, "orientation_error": None,

@@ -351,7 +351,14 @@ def test_mjcf_collision_and_cli(tmp_path, capsys):
     assert "MJCF geoms" in capsys.readouterr().out
 
 
-def test_collision_of_another_chain_is_refused(fr3, cassie):
-    _, col = fr3
+def test_bad_collision_arguments_are_refused(fr3, cassie):
+    chain, col = fr3
     with pytest.raises(viz.DiffkinError, match="collision must be a RobotCollision of the chain"):
         viz.show(cassie, port=0, collision=col)
+    with pytest.raises(viz.DiffkinError, match="world needs collision="):
+        viz.show(chain, port=0, world=World(points=[[0.0, 0.0, 0.0]], dtype=F64))
+    with pytest.raises(viz.DiffkinError, match="margin"):
+        viz.show(chain, port=0, collision=col, margin=float("nan"))
+    batched = World(spheres=torch.zeros(2, 1, 4, dtype=F64) + torch.tensor([0, 0, 0, 0.1], dtype=F64))
+    with pytest.raises(viz.ShapeError, match="the viewer draws one world"):
+        viz.show(chain, port=0, collision=col, world=batched)
