@@ -8,7 +8,14 @@ loopback interface unless told otherwise — that shows a :class:`~diffkin.chain
   end links the K end poses of ``chain.forward_kinematics(q)`` are added), plus the URDF's own visual
   geometry when its meshes resolve (``yourdfpy``; ``package://`` paths often do not — then only frames and
   segments are drawn);
+* for an MJCF chain (:func:`diffkin.models.from_mjcf`), every body's visual geoms in its frame
+  (:func:`diffkin.viz_mjcf.mjcf_visuals`: primitives, and meshes where their files resolve, decimated);
+* with ``collision=`` (a :class:`~diffkin.collision.RobotCollision`) and ``world=``, the collision geoms and
+  the world's objects, red for the pairs in contact (signed distance below ``margin``) at the shown q
+  (:mod:`diffkin.viz_collision`);
 * one slider per joint variable (range ``chain.lower_upper()``: the limits, ±π / ±1 m where there is none);
+  ball joints and the rotation of free joints as three rotation-vector sliders integrated on the manifold
+  by ``chain.integrate`` (:mod:`diffkin.viz_joints`), so quaternions stay unit;
 * a draggable target per end link (transform controls): moving it runs :func:`diffkin.ik.solve` seeded from
   the current ``q`` and shows success, position and orientation errors and the solve time; with
   ``drag="velocity"`` (or the GUI's "Limit-safe drag" box) the arm instead follows the target by
@@ -147,22 +154,38 @@ class Viewer:
             or ``"velocity"`` (:meth:`drag_to`: limit-safe velocity-IK steps from the current q).
         drag_speed: the joint speed bound of ``"velocity"`` drags (rad/s or m/s, per 0.05 s step).
         verbose: let viser print its banner and connection messages.
+        collision: a :class:`~diffkin.collision.RobotCollision` of ``chain`` to draw (pairs in contact red).
+        world: a :class:`~diffkin.collision.World` (no batch dims) to draw; geoms touching it are red too.
+        margin: a pair is in contact when its signed distance is below this (m; default 0: penetration).
 
     Attributes:
         server: the ``viser.ViserServer``.
         q: the current joint vector ``(n,)`` (a copy).
         ik_state: the last IK solve: ``success`` (bool), ``position_error`` (m), ``orientation_error``
             (rad), ``time_s``, ``message`` — also shown in the GUI's IK folder.
-        has_meshes: whether URDF visual geometry is shown.
+        has_meshes: whether URDF visual geometry (or MJCF geoms) is shown.
+        visual_geoms: the MJCF geoms drawn (:class:`~diffkin.viz_mjcf.VisualGeom`), ``missing_meshes`` the
+            mesh geoms not drawn (files not found).
+        contacts: the collision state at the shown q (``pairs``, ``world``, ``min_distance``; see
+            :meth:`diffkin.viz_collision.CollisionView.update`), ``{}`` without ``collision``.
     """
 
     def __init__(self, chain, q=None, *, host: str = "127.0.0.1", port: int = 8080, trajectory=None,
                  fps: float | None = None, urdf=None, meshes: bool = True, ik_options: dict | None = None,
-                 verbose: bool = False, drag: str = "solve", drag_speed: float = 2.0):
+                 verbose: bool = False, drag: str = "solve", drag_speed: float = 2.0, collision=None,
+                 world=None, margin: float = 0.0):
         if drag not in ("solve", "velocity"):
             raise DiffkinError(f"drag must be 'solve' or 'velocity', got {drag!r}")
+        if collision is not None and collision.chain not in (None, chain):
+            raise DiffkinError("collision must be a RobotCollision of the chain shown")
+        if world is not None and collision is None:
+            raise DiffkinError("world needs collision= (the robot's RobotCollision) to be checked against")
+        from .validation import check_number
+
+        margin = check_number(margin, "margin", positive=False, unit=" (m)")
         viser = _import_viser()
         self.chain = chain
+        self._collision_args = (collision, world, margin)
         self.ik_options = dict(ik_options or {})
         self._drag, self.drag_speed = drag, float(drag_speed)
         self.ik_state: dict = {"success": None, "position_error": None, "orientation_error": None,
@@ -182,6 +205,9 @@ class Viewer:
         if q is None:  # zero where the limits allow it, else the middle of the joint's range
             q = np.where((self._lo <= 0) & (self._hi >= 0), 0.0, 0.5 * (self._lo + self._hi))
         self._q = _as_joints(chain, q)
+        if not chain.configuration_space.euclidean:  # quaternions: unit, identity where the default put 0
+            self._q = chain.normalize_configuration(self._q)
+        self._q_ref = self._q.clone()
 
         with _maybe_quiet(verbose):  # viser prints its URL banner whatever `verbose` says
             self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
@@ -280,13 +306,50 @@ class Viewer:
         self._mesh = None
         if meshes:
             self._mesh = self._load_meshes(urdf)
-        self.has_meshes = self._mesh is not None
+        self._add_mjcf_geoms(meshes)
+        self.has_meshes = self._mesh is not None or bool(self.visual_geoms)
+        self._collision_view = None
+        if self._collision_args[0] is not None:
+            from .viz_collision import CollisionView
+
+            self._collision_view = CollisionView(scene, *self._collision_args, scale=s, q=self._q)
         self._targets = []
         for k in range(E.shape[0]):
             h = scene.add_transform_controls(f"/ik/target_{k}", scale=0.18 * s, depth_test=False,
                                              wxyz=_wxyz(E[k, :3, :3]), position=tuple(E[k, :3, 3]))
             h.on_update(self._on_target_event)
             self._targets.append(h)
+
+    def _add_mjcf_geoms(self, meshes: bool) -> None:
+        """One scene node per MuJoCo body holding its geoms (an MJCF chain only)."""
+        self.visual_geoms, self.missing_meshes, self._body_nodes = [], [], {}
+        if not (hasattr(self.chain, "to_qpos") and hasattr(self.chain, "source_text")):
+            return
+        from .viz_mjcf import mjcf_visuals
+
+        with _quiet_logs():
+            self.visual_geoms, self.missing_meshes = mjcf_visuals(self.chain, meshes=meshes)
+        scene = self.server.scene
+        for b in sorted({g.body for g in self.visual_geoms}):
+            self._body_nodes[b] = scene.add_frame(f"/mjcf/body_{b}", show_axes=False)
+        self._geom_handles = [
+            scene.add_mesh_simple(f"/mjcf/body_{g.body}/geom_{i}", g.vertices, g.faces, color=g.rgb,
+                                  opacity=g.opacity if g.opacity < 1.0 else None,
+                                  position=g.local[:3, 3], wxyz=_wxyz(g.local[:3, :3]))
+            for i, g in enumerate(self.visual_geoms)]
+
+    def geom_poses(self) -> np.ndarray:
+        """World poses ``(G, 4, 4)`` of the MJCF geoms as the scene holds them (body node ∘ geom node), in the
+        order of :attr:`visual_geoms`."""
+        with self._lock:
+            out = [_pose(self._body_nodes[g.body].wxyz, self._body_nodes[g.body].position)
+                   @ _pose(h.wxyz, h.position) for g, h in zip(self.visual_geoms, self._geom_handles)]
+        return np.stack(out) if out else np.zeros((0, 4, 4))
+
+    @property
+    def contacts(self) -> dict:
+        with self._lock:
+            return dict(self._collision_view.state) if self._collision_view is not None else {}
 
     def _load_meshes(self, urdf):
         """ViserUrdf of the chain's URDF when at least one visual mesh file resolves (or the visuals are
@@ -351,6 +414,17 @@ class Viewer:
                 if base is not None:
                     base.position, base.wxyz = F[0, :3, 3], qw[0]
                 self._mesh.update_cfg(self._mesh_cfg)
+            if self._body_nodes:
+                from .models.mjcf_bodies import body_poses
+
+                with torch.no_grad():
+                    B = body_poses(self.chain, self._q).detach().cpu().double().numpy()
+                bw = _wxyz(B[:, :3, :3])
+                for b, h in self._body_nodes.items():
+                    h.position, h.wxyz = B[b, :3, 3], bw[b]
+            if self._collision_view is not None:
+                self._collision_view.update(self._q)
+                self._show_contacts()
         self._F, self._E = F, E
 
     def frames(self) -> np.ndarray:
@@ -368,14 +442,15 @@ class Viewer:
         gui = self.server.gui
         chain = self.chain
         gui.configure_theme(control_width="medium")
-        names = getattr(chain, "joint_names", None) or [f"q{i + 1}" for i in range(chain.n_joints)]
+        from .viz_joints import slider_specs, slider_values
+
+        self._slider_specs = slider_specs(chain, self._lo, self._hi)
         with gui.add_folder("Joints"):
             self.sliders = []
-            for i, name in enumerate(names):
-                unit = "rad" if chain.joint_types[i] == "R" else "m"
-                s = gui.add_slider(f"{name} [{unit}]", min=float(self._lo[i]), max=float(self._hi[i]),
-                                   step=1e-3, initial_value=float(self._q[i]))
-                s.on_update(self._slider_callback(i))
+            for spec, value in zip(self._slider_specs, slider_values(self._slider_specs, self._q)):
+                s = gui.add_slider(f"{spec.label} [{spec.unit}]", min=spec.lo, max=spec.hi, step=1e-3,
+                                   initial_value=float(np.clip(value, spec.lo, spec.hi)))
+                s.on_update(self._slider_callback)
                 self.sliders.append(s)
             b = gui.add_button("Random configuration")
             b.on_click(lambda _: self.set_q(self.chain.random_configuration(()), move_targets=True))
@@ -390,32 +465,54 @@ class Viewer:
             self.gui_ik_time = gui.add_text("Solve time [ms]", initial_value="-", disabled=True)
             b = gui.add_button("Target to end effector")
             b.on_click(lambda _: self.targets_to_ends())
+        if self._collision_args[0] is not None:
+            with gui.add_folder("Collision"):
+                self.gui_contacts = gui.add_text("Pairs in contact", initial_value="-", disabled=True)
+                self.gui_min_distance = gui.add_text("Min distance [mm]", initial_value="-", disabled=True)
         gui.add_markdown(f"**{chain.name}** · {chain.n_joints} joints ({chain.joint_types}) · "
                          f"{len(self._targets)} end link(s) · drag the gizmo to solve IK")
 
-    def _slider_callback(self, i: int):
-        def cb(_event) -> None:
-            if self._syncing:
-                return
-            with self._lock:
-                q = self._q.clone()
-                q[i] = float(self.sliders[i].value)
-            self.set_q(q, move_targets=True)
+    def _slider_callback(self, _event) -> None:
+        """A slider moved: q = chain.integrate(q_ref, v) of all sliders (:mod:`diffkin.viz_joints`)."""
+        if self._syncing:
+            return
+        from .viz_joints import q_of_sliders
 
-        return cb
+        with self._lock:
+            q = q_of_sliders(self.chain, self._q_ref, [s.value for s in self.sliders], self._slider_specs)
+            self._show(q, move_targets=True, reference=False)
+
+    def _show_contacts(self) -> None:
+        st = self._collision_view.state
+        pairs = [f"{a}-{b}" for a, b, _ in st["pairs"]] + [f"{g}-world[{j}]" for g, j, _ in st["world"]]
+        self.gui_contacts.value = ", ".join(pairs[:6]) + (f" (+{len(pairs) - 6})" if len(pairs) > 6 else "") \
+            if pairs else "none"
+        self.gui_min_distance.value = f"{st['min_distance'] * 1e3:.1f}"
 
     # ------------------------------------------------------------------------------------------- API
     def set_q(self, q, move_targets: bool = False) -> None:
         """Show the joint vector ``q`` ``(n,)`` (tensor, array or sequence; rad / m): frames, segments,
-        meshes and sliders; ``move_targets`` also puts the IK targets on the end links."""
+        meshes and sliders; ``move_targets`` also puts the IK targets on the end links. Quaternions of
+        ball and free joints are normalised; the rotation sliders restart at 0 from this q."""
         q = _as_joints(self.chain, q)
+        if not self.chain.configuration_space.euclidean:
+            q = self.chain.normalize_configuration(q)
+        self._show(q, move_targets=move_targets, reference=True)
+
+    def _show(self, q: Tensor, move_targets: bool, reference: bool) -> None:
+        from .viz_joints import slider_values
+
         with self._lock:
             self._q = q.clone()
+            if reference:
+                self._q_ref = q.clone()
             self._update_scene()
             self._syncing = True
             try:
-                for s, v, lo, hi in zip(self.sliders, q.tolist(), self._lo, self._hi):
-                    s.value = float(np.clip(v, lo, hi))
+                values = slider_values(self._slider_specs, q)
+                for s, spec, v in zip(self.sliders, self._slider_specs, values):
+                    if reference or spec.q is not None:
+                        s.value = float(np.clip(v, spec.lo, spec.hi))
             finally:
                 self._syncing = False
             if move_targets:
@@ -654,7 +751,7 @@ def _drag_steps(chain, q: Tensor, T: np.ndarray, position_only: bool, speed: flo
         twist = torch.cat((e_p, e_o), -1) / dt
         qd = velocity_step(chain, q, twist[0] if chain.single_end else twist, dt, velocity_limit=speed,
                            weight=weight if chain.single_end else weight.expand(len(T), 6))
-        q = q + qd.detach() * dt
+        q = chain.integrate(q, qd.detach() * dt)  # on the manifold: ball and free joints stay unit
     return q, pe, oe
 
 
@@ -708,13 +805,16 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
         "that runs ik.solve live, and playback of a joint trajectory. Serves on loopback unless --host.",
         epilog="examples:\n  diffkin view --robot panda\n"
                "  diffkin view --urdf arm.urdf --end-link tool0 --trajectory q.npy --play\n"
+               "  diffkin view --mjcf g1.xml --end-link left_foot right_foot --collision\n"
                "  diffkin view --robot ur5 --host 0.0.0.0 --port 8081   # reachable from other machines",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--robot", help="built-in robot name or a robot YAML file")
     p.add_argument("--urdf", help="URDF file (with --end-link)")
+    p.add_argument("--mjcf", help="MJCF (MuJoCo) file (with --end-link: bodies or sites); meshes drawn where "
+                   "their files resolve")
     p.add_argument("--end-link", dest="end_link", nargs="+", metavar="LINK",
-                   help="end link(s) of the URDF (several: a tree, one target each)")
+                   help="end link(s) of the URDF or MJCF (several: a tree, one target each)")
     p.add_argument("--root-link", dest="root_link", help="root link of the URDF chain (default: its root)")
     p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), or "
                    "the .npz of `diffkin trajectory joint`")
@@ -725,6 +825,10 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
                    help="interface to serve on (default 127.0.0.1, loopback only; 0.0.0.0: every interface)")
     p.add_argument("--port", type=int, default=8080, help="TCP port (default 8080; 0: any free port)")
     p.add_argument("--no-meshes", dest="meshes", action="store_false", help="frames and segments only")
+    p.add_argument("--collision", action="store_true",
+                   help="draw the URDF's / MJCF's collision geometry, pairs in contact in red")
+    p.add_argument("--margin", type=float, default=0.0,
+                   help="with --collision: a pair is in contact below this distance (m, default 0)")
     p.add_argument("--dtype", default="float64", choices=["float32", "float64"],
                    help="compute dtype of the robot and IK (default float64)")
     p.add_argument("--duration", type=float, default=None, metavar="S",
@@ -733,27 +837,50 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
     return p
 
 
+def _cli_collision(chain, urdf, mjcf):
+    """``--collision``: the RobotCollision of the URDF or MJCF file shown."""
+    import functools
+
+    from .collision import RobotCollision
+
+    if urdf:
+        return RobotCollision.from_urdf(urdf, chain)
+    if mjcf:
+        from .models.mjcf import compile_mjcf
+        from .models.mjcf_bodies import body_poses
+
+        return RobotCollision.from_mjcf(compile_mjcf(mjcf)[0], chain, body_poses=functools.partial(body_poses,
+                                                                                                   chain))
+    raise DiffkinError("--collision needs --urdf or --mjcf (a built-in robot has no collision geometry)")
+
+
 def cmd_view(args) -> int:
     """``diffkin view``: load the robot, serve it, print the URL, run until Ctrl+C (or ``--duration``)."""
     _import_viser()  # the missing extra is the first thing to report
     from . import models
 
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
-    if args.urdf:
+    mjcf = getattr(args, "mjcf", None)
+    if args.urdf or mjcf:
         if not args.end_link:
-            raise DiffkinError("--urdf needs --end-link NAME (the end-effector link)")
+            raise DiffkinError(f"--{'urdf' if args.urdf else 'mjcf'} needs --end-link NAME (the end link)")
         ends = args.end_link[0] if len(args.end_link) == 1 else args.end_link
-        chain = models.from_urdf(args.urdf, ends, root_link=args.root_link, dtype=dtype)
+        load = models.from_urdf if args.urdf else models.from_mjcf
+        chain = load(args.urdf or mjcf, ends, root_link=args.root_link, dtype=dtype)
     elif args.robot:
         chain = models.load(args.robot, dtype=dtype)
     else:
-        raise DiffkinError("give --robot NAME (see `diffkin models`) or --urdf FILE --end-link LINK")
+        raise DiffkinError("give --robot NAME (see `diffkin models`), --urdf FILE or --mjcf FILE with "
+                           "--end-link LINK")
+    collision = _cli_collision(chain, args.urdf, mjcf) if getattr(args, "collision", False) else None
     viewer = Viewer(chain, host=args.host, port=args.port, trajectory=args.trajectory, fps=args.fps,
-                    urdf=args.urdf, meshes=args.meshes)
+                    urdf=args.urdf, meshes=args.meshes, collision=collision,
+                    margin=getattr(args, "margin", 0.0))
     try:
         if args.play and args.trajectory:
             viewer.play()
-        what = "URDF meshes, frames" if viewer.has_meshes else "frames"
+        what = ("MJCF geoms, frames" if viewer.visual_geoms else "URDF meshes, frames") if viewer.has_meshes \
+            else "frames"
         print(f"diffkin view: '{chain.name}' ({chain.n_joints} joints; {what} and segments) at {viewer.url}"
               + ("" if args.duration else "  (Ctrl+C to stop)"), flush=True)
         end = None if args.duration is None else time.monotonic() + args.duration

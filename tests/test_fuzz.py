@@ -11,10 +11,16 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tests import fuzz_cases_calibration, fuzz_cases_geometry, fuzz_cases_io, fuzz_cases_robots
+from tests import (
+    fuzz_cases_calibration,
+    fuzz_cases_geometry,
+    fuzz_cases_io,
+    fuzz_cases_robots,
+    fuzz_cases_viz,
+)
 from tests.fuzzing import mutations, outcome
 
-_FILES = (fuzz_cases_geometry, fuzz_cases_robots, fuzz_cases_calibration, fuzz_cases_io)
+_FILES = (fuzz_cases_geometry, fuzz_cases_robots, fuzz_cases_calibration, fuzz_cases_io, fuzz_cases_viz)
 CASES = {c.name: c for f in _FILES for c in f.CASES}
 EXEMPT = {k: v for f in _FILES for k, v in f.EXEMPT.items()}
 MODULES = [m for f in _FILES for m in f.MODULES]
