@@ -20,7 +20,7 @@ __all__ = ["ReachConfig", "ReachTask", "ReachEnv", "reach_reward"]
 
 _GOAL_SAMPLING = ("box", "joints")
 # the parts the "observation" entry can hold (ReachConfig.observation picks and orders them)
-OBSERVATION_PARTS = ("ee_position", "ee_velocity", "joint_positions")
+OBSERVATION_PARTS = ("ee_position", "ee_velocity", "joint_positions", "joint_velocities")
 
 
 @dataclass(frozen=True)
@@ -111,8 +111,9 @@ class ReachTask(Task):
         super().__init__(**robot_kwargs)
         self.config = config or ReachConfig()
         self.tracks_ee_velocity = "ee_velocity" in self.config.observation
+        self.tracks_joint_velocity = "joint_velocities" in self.config.observation
         self.max_steps = self.config.episode_steps
-        self.n_random = self.robot.n + max(self.robot.n, 3)
+        self.n_random = self.robot.nv + max(self.robot.nv, 3)
         c, r = self.config, self.robot
         center = r.ee_position(r.home[None])[0] if c.goal_center is None else \
             torch.tensor(c.goal_center, dtype=self.dtype, device=self.device)
@@ -122,11 +123,12 @@ class ReachTask(Task):
         self.goal_low, self.goal_high = center - half, center + half  # (3,) each, base frame
 
     def observation_space(self) -> gym.spaces.Dict:
-        w, n = self.workspace, self.robot.n
+        w, n, cfg = self.workspace, self.robot.n, self.robot.config
         pos = gym.spaces.Box(-w, w, (3,), np.float32)
-        # a step moves the end effector less than 2w, so |ṗ_ee| < 2w / control_dt; |normalised q| <= 1
-        bound = {"ee_position": (w, 3), "ee_velocity": (2.0 * w / self.robot.config.control_dt, 3),
-                 "joint_positions": (1.0, n)}
+        # a step moves the end effector less than 2w, so |ṗ_ee| < 2w / control_dt; |normalised q| <= 1 (a
+        # quaternion's entries are within ±1); |q̇_i| <= max_joint_speed (twice it: room for rounding)
+        bound = {"ee_position": (w, 3), "ee_velocity": (2.0 * w / cfg.control_dt, 3),
+                 "joint_positions": (1.0, n), "joint_velocities": (2.0 * cfg.max_joint_speed, self.robot.nv)}
         high = np.concatenate([np.full(bound[p][1], bound[p][0]) for p in self.config.observation])
         obs = gym.spaces.Box(-high.astype(np.float32), high.astype(np.float32), dtype=np.float32)
         return gym.spaces.Dict({"observation": obs, "achieved_goal": pos, "desired_goal": pos})
@@ -135,9 +137,8 @@ class ReachTask(Task):
         return {"goal": torch.zeros(n, 3, dtype=self.dtype, device=self.device)}
 
     def _sample(self, state, idx, u) -> None:
-        r, n = self.robot, self.robot.n
-        q0 = r.home + self.config.init_noise * (2.0 * u[:, :n] - 1.0)
-        state["q"][idx] = r.chain.clamp_to_limits(q0)
+        r, n = self.robot, self.robot.nv  # one uniform per velocity coordinate (= per joint for 1-DOF joints)
+        state["q"][idx] = r.perturbed_home(u[:, :n], self.config.init_noise)
         if self.config.goal_sampling == "box":
             state["goal"][idx] = self.goal_low + (self.goal_high - self.goal_low) * u[:, n:n + 3]
         else:
@@ -153,8 +154,10 @@ class ReachTask(Task):
         return reward, terminated, {"is_success": success, "distance": d}
 
     def _observe(self, state, ee):
-        obs = torch.cat([ee if p == "ee_position" else state["ee_velocity"] if p == "ee_velocity"
-                         else self.robot.normalize_q(state["q"]) for p in self.config.observation], dim=-1)
+        parts = {"ee_position": lambda: ee, "ee_velocity": lambda: state["ee_velocity"],
+                 "joint_positions": lambda: self.robot.normalize_q(state["q"]),
+                 "joint_velocities": lambda: state["joint_velocity"]}
+        obs = torch.cat([parts[p]() for p in self.config.observation], dim=-1)
         return {"observation": obs, "achieved_goal": ee, "desired_goal": state["goal"].clone()}
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):

@@ -61,7 +61,7 @@ class TrackTask(Task):
         super().__init__(**robot_kwargs)
         self.config = c = config or TrackConfig()
         self.max_steps = c.episode_steps
-        self.n_random = 2 * self.robot.n + 9
+        self.n_random = 2 * self.robot.nv + 9
         self.duration = c.episode_steps * self.robot.config.control_dt
         k = torch.arange(c.episode_steps + c.lookahead + 1, dtype=self.dtype, device=self.device)
         self.times = (k * self.robot.config.control_dt).clamp(max=self.duration)
@@ -76,8 +76,8 @@ class TrackTask(Task):
         return {"path": torch.zeros(n, k, 3, dtype=self.dtype, device=self.device)}
 
     def _sample(self, state, idx, u) -> None:
-        r, n, c = self.robot, self.robot.n, self.config
-        q0 = r.chain.clamp_to_limits(r.home + c.init_noise * (2.0 * u[:, :n] - 1.0))
+        r, n, c = self.robot, self.robot.nv, self.config  # one uniform per velocity coordinate
+        q0 = r.perturbed_home(u[:, :n], c.init_noise)
         state["q"][idx] = q0
         geo = self.geometry(state, idx)
         p0 = r.ee_position(q0, geo)
