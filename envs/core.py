@@ -75,6 +75,8 @@ class Task:
     tracks_ee_velocity: bool = False
     # keep state["joint_velocity"] ((q(t) ⊖ q(t − 1)) / Δt, (N, nv), 0 after a reset): a task that observes it
     tracks_joint_velocity: bool = False
+    #: keyword arguments of the task besides its config and the robot's (``make_task`` passes them on)
+    task_kwargs: tuple[str, ...] = ()
 
     def __init__(self, robot: str = "panda", action_mode: str = "joint",
                  robot_config: RobotConfig | dict | None = None,

@@ -14,11 +14,13 @@ from diffkin.validation import shape_str, tensors
 
 from ._checks import check_setting
 from .core import Task, TaskEnv
+from .robot import robot_collision
 
 __all__ = ["ReachConfig", "ReachTask", "ReachEnv", "reach_reward"]
 
 
 _GOAL_SAMPLING = ("box", "joints")
+_SELF_COLLISION = (None, "terminate", "penalize")
 # the parts the "observation" entry can hold (ReachConfig.observation picks and orders them)
 OBSERVATION_PARTS = ("ee_position", "ee_velocity", "joint_positions", "joint_velocities")
 
@@ -50,6 +52,11 @@ class ReachConfig:
     init_noise: float = 0.1  # rad, uniform noise on the home pose at reset
     terminate_on_success: bool = False
     observation: tuple[str, ...] = ("ee_position", "ee_velocity")
+    # on self-collision (the smallest signed distance of the checked pairs below collision_margin, m):
+    # None (default, not checked), "terminate" the episode, or "penalize" the reward by collision_penalty
+    self_collision: str | None = None
+    collision_penalty: float = 1.0
+    collision_margin: float = 0.0
 
     def __post_init__(self):
         if self.reward_type not in ("sparse", "dense"):
@@ -68,6 +75,11 @@ class ReachConfig:
             for i, v in enumerate(c):
                 check_setting(v, f"goal_center[{i}]")
         check_setting(self.init_noise, "init_noise", low=0.0)
+        if self.self_collision not in _SELF_COLLISION:
+            raise ConventionError(f"self_collision must be one of {_SELF_COLLISION}, "
+                                  f"got {self.self_collision!r}")
+        check_setting(self.collision_penalty, "collision_penalty", low=0.0)
+        check_setting(self.collision_margin, "collision_margin")
         if not isinstance(self.terminate_on_success, bool):
             raise DTypeError(f"expected terminate_on_success as a bool, got {self.terminate_on_success!r}")
         parts = self.observation
@@ -107,9 +119,15 @@ class ReachTask(Task):
     """Batched reach logic. Observation: the parts of ``config.observation`` (default ``[p_ee (3),
     ṗ_ee (3)]``); goals ``p_ee``, goal."""
 
-    def __init__(self, config: ReachConfig | None = None, **robot_kwargs):
+    #: keyword arguments of the task besides its config and the robot's (``make_task`` passes them on)
+    task_kwargs = ("collision",)
+
+    def __init__(self, config: ReachConfig | None = None, collision=None, **robot_kwargs):
         super().__init__(**robot_kwargs)
         self.config = config or ReachConfig()
+        # the self-collision model: checked (info["min_distance"]) when given or when self_collision is set
+        self.collision = None if collision is None and self.config.self_collision is None else \
+            robot_collision(self.robot.chain, collision)
         self.tracks_ee_velocity = "ee_velocity" in self.config.observation
         self.tracks_joint_velocity = "joint_velocities" in self.config.observation
         self.max_steps = self.config.episode_steps
@@ -151,7 +169,15 @@ class ReachTask(Task):
         success = d < c.distance_threshold
         reward = -d if c.reward_type == "dense" else success.to(self.dtype) - 1.0  # 0 on success, else -1
         terminated = success.clone() if c.terminate_on_success else torch.zeros_like(success)
-        return reward, terminated, {"is_success": success, "distance": d}
+        info = {"is_success": success, "distance": d}
+        if self.collision is not None:
+            info["min_distance"] = dmin = self.collision.min_distance(state["q"])
+            info["in_collision"] = hit = dmin < c.collision_margin
+            if c.self_collision == "terminate":
+                terminated = terminated | hit
+            elif c.self_collision == "penalize":
+                reward = reward - c.collision_penalty * hit.to(reward.dtype)
+        return reward, terminated, info
 
     def _observe(self, state, ee):
         parts = {"ee_position": lambda: ee, "ee_velocity": lambda: state["ee_velocity"],
@@ -161,11 +187,30 @@ class ReachTask(Task):
         return {"observation": obs, "achieved_goal": ee, "desired_goal": state["goal"].clone()}
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
+        """:func:`reach_reward`; with ``self_collision="penalize"`` minus ``collision_penalty`` where
+        ``info`` (a step's info dict, or a sequence of them as HER passes) reports ``in_collision``."""
         c = self.config
-        return reach_reward(achieved_goal, desired_goal, c.reward_type, c.distance_threshold)
+        r = reach_reward(achieved_goal, desired_goal, c.reward_type, c.distance_threshold)
+        if c.self_collision != "penalize" or info is None:
+            return r
+        hit = _in_collision(info)
+        if isinstance(r, Tensor):
+            return r - c.collision_penalty * torch.as_tensor(hit, dtype=r.dtype, device=r.device)
+        return (r - np.float32(c.collision_penalty) * hit.astype(np.float32)).astype(np.float32)
 
     def draw_targets(self, state) -> dict:
         return {"goal": state["goal"][0].cpu().numpy()}
+
+
+def _in_collision(info) -> np.ndarray:
+    """``in_collision`` of an info dict (scalar or batched values) or of a sequence of info dicts."""
+    rows = [info] if isinstance(info, dict) else list(np.ravel(np.asarray(info, dtype=object)))
+    if not all(isinstance(i, dict) and "in_collision" in i for i in rows):
+        raise ConventionError("compute_reward with self_collision='penalize' needs the steps' info (dicts "
+                              "with 'in_collision'), got " + type(info).__name__)
+    host = lambda v: v.cpu() if isinstance(v, Tensor) else v  # noqa: E731
+    vals = [np.asarray(host(i["in_collision"]), dtype=bool) for i in rows]
+    return vals[0] if isinstance(info, dict) else np.stack(vals).reshape(np.shape(info))
 
 
 class ReachEnv(TaskEnv):
@@ -282,9 +327,11 @@ class ReachEnv(TaskEnv):
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,
-                 robot_config=None, home=None, dtype=torch.float32, device="cpu", **task_kwargs):
-        task = ReachTask(ReachConfig(**task_kwargs), robot=robot, action_mode=action_mode,
-                         robot_config=robot_config, home=home, dtype=dtype, device=device)
+                 robot_config=None, home=None, dtype=torch.float32, device="cpu", collision=None,
+                 **task_kwargs):
+        task = ReachTask(ReachConfig(**task_kwargs), collision=collision, robot=robot,
+                         action_mode=action_mode, robot_config=robot_config, home=home, dtype=dtype,
+                         device=device)
         super().__init__(task, render_mode=render_mode)
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):

@@ -27,7 +27,7 @@ from diffkin.validation import check_device, shape_str, tensors
 
 from ._checks import check_setting
 
-__all__ = ["Robot", "RobotConfig", "load_chain"]
+__all__ = ["Robot", "RobotConfig", "load_chain", "robot_collision"]
 
 # geometric parameters of a chain that domain randomisation perturbs, by unit (DHChain's names)
 _LENGTH_PARAMS = ("a", "d")
@@ -238,3 +238,37 @@ class _EndPosition(nn.Module):
     def forward(self, q: Tensor) -> Tensor:
         return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
 
+
+
+def robot_collision(chain: KinematicChain, collision=None):
+    """The collision model a task checks on ``chain`` (the env's own copy): ``collision`` (a
+    :class:`~diffkin.collision.RobotCollision`) copied onto the chain's dtype and device and bound to it, or,
+    when None, one built from the robot's own description: the ``<collision>`` geoms of a URDF chain
+    (:meth:`RobotCollision.from_urdf`, mesh files resolved from the chain's URDF text only, else skipped with
+    a warning) or the geoms of an MJCF chain (:meth:`RobotCollision.from_mjcf`). A DH model carries no
+    geometry: :class:`~diffkin.errors.ModelError` saying what to pass."""
+    import copy
+
+    from diffkin.collision import RobotCollision
+    from diffkin.models import MJCFChain, URDFChain
+
+    if collision is None:
+        if isinstance(chain, URDFChain):
+            collision = RobotCollision.from_urdf(chain.tree, chain)
+        elif isinstance(chain, MJCFChain):
+            collision = RobotCollision.from_mjcf(chain.source_path or chain.source_text, chain)
+        else:
+            raise ModelError(f"self-collision checks need collision geometry: robot {chain.name!r} "
+                             f"({type(chain).__name__}) has none; pass collision=RobotCollision.from_urdf("
+                             "...) or a URDF / MJCF chain (models.from_urdf, models.from_mjcf) as the robot")
+        return collision.requires_grad_(False)
+    if not isinstance(collision, RobotCollision):
+        raise ModelError(f"expected collision as a diffkin.collision.RobotCollision, got "
+                         f"{type(collision).__name__}")
+    own = getattr(collision, "chain", None)
+    if own is not None and (own.nq, own.nv) != (chain.nq, chain.nv):
+        raise ShapeError(f"collision model for a chain of nq {own.nq}, nv {own.nv}; the robot has nq "
+                         f"{chain.nq}, nv {chain.nv}")
+    collision = copy.deepcopy(collision).to(dtype=chain.dtype, device=chain.device)
+    collision.chain = chain  # placed by the env's chain (its own copy of the robot)
+    return collision.requires_grad_(False)

@@ -40,7 +40,7 @@ def make_task(env_id: str, **kwargs) -> Task:
     spec = ENVS[env_id]
     if "max_episode_steps" in kwargs:  # alias (gym.make consumes this name for its TimeLimit wrapper)
         kwargs["episode_steps"] = kwargs.pop("max_episode_steps")
-    robot_kwargs = {k: kwargs.pop(k) for k in _ROBOT_KEYS if k in kwargs}
+    robot_kwargs = {k: kwargs.pop(k) for k in (*_ROBOT_KEYS, *spec.task.task_kwargs) if k in kwargs}
     return spec.task(spec.config(**kwargs), **robot_kwargs)
 
 
