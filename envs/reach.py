@@ -32,8 +32,14 @@ class ReachConfig:
     ``observation`` (default ``("ee_position", "ee_velocity")``, the layout of panda-gym's PandaReach): the
     parts of the ``observation`` entry, concatenated in the order given, from ``"ee_position"`` (p_ee, 3, m),
     ``"ee_velocity"`` (the end effector's mean velocity over the last control period, (p_ee(t) −
-    p_ee(t − 1)) / control_dt, 3, m/s; 0 after a reset) and ``"joint_positions"`` (q mapped to [-1, 1] by the
-    limits, n). ``("joint_positions", "ee_position")`` is the observation before issue 19.
+    p_ee(t − 1)) / control_dt, 3, m/s; 0 after a reset), ``"joint_positions"`` (q mapped to [-1, 1] by the
+    limits, nq; the quaternion entries of ball and free joints as they are) and ``"joint_velocities"``
+    ((q(t) ⊖ q(t − 1)) / control_dt, nv: rad/s, m/s, the angular velocity of a ball joint in its child
+    frame; 0 after a reset). ``("joint_positions", "ee_position")`` is the observation before issue 19.
+
+    ``self_collision`` (default None: not checked): ``"terminate"`` ends the episode, ``"penalize"``
+    subtracts ``collision_penalty`` from the reward, at every step where the smallest signed distance of the
+    robot's checked collision pairs is below ``collision_margin`` (m; 0: touching or penetrating).
 
     ``goal_sampling="box"`` (default): goals uniform in the axis-aligned cube of edge ``goal_range`` (m)
     centred on ``goal_center`` (base frame, m; None = the end-effector position at ``home``), as panda-gym's
@@ -227,11 +233,13 @@ class ReachEnv(TaskEnv):
     ``TorchVectorEnv("diffkin/Reach-v0", N)``.
 
     ## Action Space
-    ``Box(-1.0, 1.0, (n,), float32)`` with ``action_mode="joint"`` (n = the chain's joint count, 7 for the
-    Panda): joint velocities ``q̇ = a · max_joint_speed`` (1.5 rad/s), integrated over ``control_dt``
-    (0.1 s) and clamped to the joint limits.
+    ``Box(-1.0, 1.0, (nv,), float32)`` with ``action_mode="joint"`` (nv = the chain's velocity count: its
+    joint count, 7 for the Panda; a ball joint counts 3): joint velocities ``q̇ = a · max_joint_speed``
+    (1.5 rad/s), integrated over ``control_dt`` (0.1 s) on the configuration manifold, ``q ⊕ q̇ Δt``
+    (:meth:`~diffkin.chain.KinematicChain.integrate`: ``q + q̇ Δt`` for 1-DOF joints; the quaternion of a
+    ball or free joint is turned by ``exp(ω Δt / 2)`` and stays unit) and clamped to the joint limits.
     ``Box(-1.0, 1.0, (3,), float32)`` with ``action_mode="cartesian"``: an end-effector displacement
-    ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``Δq = q̇ · control_dt`` by
+    ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``q ⊕ q̇ · control_dt`` by
     :func:`diffkin.ik.velocity_step`: the damped-least-squares step (damping 0.05) solved exactly under
     ``|q̇| ≤ max_joint_speed`` and the joint limits (limit-safe: a joint at its limit stops and the others
     take over).
@@ -246,28 +254,33 @@ class ReachEnv(TaskEnv):
     | ``achieved_goal`` | ``(3,)`` | the end-effector position ``p_ee`` |
     | ``desired_goal`` | ``(3,)`` | the goal position |
 
-    ``observation`` holds the parts named by the ``observation`` argument, in that order:
-    ``"ee_position"`` (``p_ee``, 3), ``"ee_velocity"`` (``(p_ee(t) − p_ee(t − 1)) / control_dt``, the mean
-    velocity over the last control period, 3; 0 after a reset) and ``"joint_positions"`` (q mapped to
-    [-1, 1] by the limits, n). The default ``("ee_position", "ee_velocity")`` is the layout of panda-gym's
-    PandaReach observation (whose velocity is PyBullet's, at the grasp point, at the end of a 0.04 s step);
-    with it TQC + HER learns joint-velocity Reach in fewer steps than with the joint positions in the
-    observation (``docs/rl/RESULTS.md``). Bounds: ``±w`` for positions, with ``w`` a generous bound on the
-    reach (``|p_ee(home)| + 2 m +`` the sum of the DH offsets), ``±2w / control_dt`` for the velocity, ±1
-    for the joints; SB3 needs ``MultiInputPolicy`` for this ``Dict``.
+    ``observation`` holds the parts named by the ``observation`` argument, in that order: ``"ee_position"``
+    (``p_ee``, 3), ``"ee_velocity"`` (``(p_ee(t) − p_ee(t − 1)) / control_dt``, the mean velocity over the
+    last control period, 3; 0 after a reset), ``"joint_positions"`` (q mapped to [-1, 1] by the limits, nq)
+    and ``"joint_velocities"`` ((q(t) ⊖ q(t − 1)) / control_dt, nv). The default ``("ee_position",
+    "ee_velocity")`` is the layout of panda-gym's PandaReach observation (whose velocity is PyBullet's, at the
+    grasp point, at the end of a 0.04 s step); with it TQC + HER learns joint-velocity Reach in fewer steps
+    than with the joint positions in the observation (``docs/rl/RESULTS.md``). Bounds: ``±w`` for positions,
+    with ``w`` a generous bound on the reach (``|p_ee(home)| + 2 m +`` the sum of the DH offsets), ``±2w /
+    control_dt`` for the velocity, ±1 for the joints, ``±2 max_joint_speed`` for the joint velocities; SB3
+    needs ``MultiInputPolicy`` for this ``Dict``.
 
     ## Rewards
     ``reward_type="sparse"`` (default): 0 when ``‖p_ee − goal‖ < distance_threshold``, else -1.
     ``reward_type="dense"``: ``-‖p_ee − goal‖`` (m). ``compute_reward(achieved_goal, desired_goal, info)``
-    computes the same over any leading batch dimensions (what HER relabelling calls).
+    computes the same over any leading batch dimensions (what HER relabelling calls). With
+    ``self_collision="penalize"``: minus ``collision_penalty`` at a step in collision (``compute_reward``
+    reads ``in_collision`` from the ``info`` it is given: one dict, or the sequence HER passes).
 
     ## Starting State
-    ``q0 = home + init_noise · U(-1, 1)^n`` (0.1 rad), clamped to the limits; ``home`` is the Panda's
-    "ready" pose (the UR5 and the planar arm have their own, other chains the middle of their limits).
+    ``q0 = home ⊕ init_noise · U(-1, 1)^nv`` (0.1 rad; ``home + ...`` for 1-DOF joints), clamped to the
+    limits; ``home`` is the model's own (its YAML ``home``: the Panda's "ready" pose, the UR5's and the
+    planar arm's), else the middle of the limits with identity quaternions.
     The goal (base frame, m): with ``goal_sampling="box"`` uniform in ``goal_center ± goal_range / 2`` per
     axis (``goal_center`` default ``p_ee(home)``, ``goal_range`` 0.3 m; z fixed for the planar arm); with
     ``goal_sampling="joints"`` ``p_ee(home + goal_spread · (U(limits) − home))`` (``goal_spread=1``: the
-    whole workspace).
+    whole workspace; on the manifold the geodesic from ``home`` towards a uniform configuration, quaternions
+    uniform on the sphere). "Planar" is the model's ``planar`` flag, not its name.
 
     PandaReach-v3 as here (``configs/tqc.yaml``): ``home=[0, 0.41, 0, -1.85, 0, 2.26, 0.79]`` (panda-gym's
     neutral pose), ``init_noise=0``, ``goal_center=(0.6, 0, 0.255)`` (panda-gym's cube, centre (0, 0, 0.15)
@@ -286,9 +299,11 @@ class ReachEnv(TaskEnv):
 
     ## Episode End
     Truncated after ``episode_steps`` steps (50). Terminated on success only with
-    ``terminate_on_success=True`` (default False). ``info`` holds ``is_success`` (bool) and ``distance`` (m)
-    at every step. No ``TimeLimit`` wrapper is registered: ``gymnasium.make(id, max_episode_steps=k)``
-    adds an outer one.
+    ``terminate_on_success=True`` (default False), and on self-collision with
+    ``self_collision="terminate"``. ``info`` holds ``is_success`` (bool) and ``distance`` (m) at every step;
+    with collision checks also ``min_distance`` (m, the smallest signed distance of the checked pairs) and
+    ``in_collision`` (bool). No ``TimeLimit`` wrapper is registered: ``gymnasium.make(id,
+    max_episode_steps=k)`` adds an outer one.
 
     ## Arguments
     ```python
@@ -296,11 +311,14 @@ class ReachEnv(TaskEnv):
                    robot_config=None, home=None, dtype=torch.float32, device="cpu",
                    reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_sampling="box",
                    goal_center=None, goal_range=0.3, goal_spread=1.0, init_noise=0.1,
-                   terminate_on_success=False, observation=("ee_position", "ee_velocity"))
+                   terminate_on_success=False, observation=("ee_position", "ee_velocity"),
+                   self_collision=None, collision_penalty=1.0, collision_margin=0.0, collision=None)
     ```
 
     * ``robot``: a model name of :func:`diffkin.models.load` (``"panda"``, ``"ur5"``, ``"three_link_planar"``,
-      ...) or a :class:`~diffkin.chain.KinematicChain` (copied).
+      ...) or a :class:`~diffkin.chain.KinematicChain` (copied): a DH chain, a URDF chain
+      (:func:`diffkin.models.from_urdf`) or a MuJoCo model (:func:`diffkin.models.from_mjcf`), ball and free
+      joints included.
     * ``action_mode``: ``"joint"`` or ``"cartesian"`` (above).
     * ``render_mode``: None or ``"rgb_array"`` (a matplotlib drawing of the arm, its trace and the goal).
     * ``robot_config``: :class:`~diffkin.envs.robot.RobotConfig` or a dict of its fields
@@ -311,7 +329,12 @@ class ReachEnv(TaskEnv):
     * the fields of :class:`ReachConfig`: ``reward_type``, ``distance_threshold`` (m), ``episode_steps``,
       ``goal_sampling`` ("box" | "joints"), ``goal_center`` ((3,) m or None), ``goal_range`` (m),
       ``goal_spread`` in [0, 1] (joints only), ``init_noise`` (rad), ``terminate_on_success``,
-      ``observation`` (a sequence of ``"ee_position"``, ``"ee_velocity"``, ``"joint_positions"``).
+      ``observation`` (a sequence of ``"ee_position"``, ``"ee_velocity"``, ``"joint_positions"``,
+      ``"joint_velocities"``), ``self_collision`` (None | "terminate" | "penalize"), ``collision_penalty``,
+      ``collision_margin`` (m).
+    * ``collision``: the :class:`~diffkin.collision.RobotCollision` to check (copied onto the env's chain,
+      dtype and device); None: built from the robot's URDF (its ``<collision>`` geoms) or MJCF when
+      ``self_collision`` is set (a DH model has no geometry: a ``ModelError`` says to pass one).
 
     ## Version History
     * v0: initial version. Goals were over the whole joint range; since issue 19 the default is the goal
@@ -323,7 +346,9 @@ class ReachEnv(TaskEnv):
       as a whole and clamped (over joints drawn in the whole range, 1/3 of the steps change and the mean
       end-effector error of a 0.05 m step falls from 9.1 to 7.1 mm); the exact solve costs: 4 096
       Cartesian Reach envs step at 0.18–0.34 M env-steps per CPU second instead of 0.8–1.4 M, 4–5× the
-      time (one thread, several runs on a shared machine). Joint mode is unchanged.
+      time (one thread, several runs on a shared machine). Joint mode is unchanged. Issues 26/27: robots
+      with ball and free joints (actions of nv components applied on the manifold, episodes of 1-DOF
+      robots unchanged to the bit), the ``"joint_velocities"`` observation part, ``self_collision``.
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,

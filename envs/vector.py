@@ -92,7 +92,8 @@ class TorchVectorEnv(VectorEnv):
     * ``num_envs``: N >= 1.
     * ``device``: where the state and the kinematics live.
     * ``env_kwargs``: the keyword arguments of ``gymnasium.make(env_id, ...)`` except ``render_mode``
-      (``robot``, ``action_mode``, ``robot_config``, ``home``, ``dtype`` and the task's settings);
+      (``robot``, ``action_mode``, ``robot_config``, ``home``, ``dtype``, the task's settings and, for
+      Reach, ``collision``);
       ``max_episode_steps`` is an alias of ``episode_steps``.
 
     ## Version History

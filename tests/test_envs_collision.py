@@ -133,6 +133,11 @@ def test_given_collision_model_and_vector_env():
 def test_collision_option_errors():
     with pytest.raises(ModelError, match="collision geometry.*panda"):
         gym.make("diffkin/Reach-v0", robot="panda", self_collision="terminate")
+    ball = models.from_mjcf(Path(__file__).parent / "data" / "mjcf_extra" / "joint_kinds.xml", "palm",
+                            root_link="torso")
+    if not hasattr(ball, "body_poses"):  # until the MJCF chain places every body
+        with pytest.raises(ModelError, match="body_poses"):
+            gym.make("diffkin/Reach-v0", robot=ball, self_collision="penalize")
     with pytest.raises(ConventionError, match="self_collision"):
         gym.make("diffkin/Reach-v0", self_collision="stop")
     with pytest.raises(DiffkinError, match="collision_penalty"):
