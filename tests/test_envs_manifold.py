@@ -189,3 +189,28 @@ def test_home_and_planar_round_trip_and_errors():
 def test_unknown_robot_names_the_models():
     with pytest.raises(ModelError, match="unknown model 'nobot'.*panda"):
         gym.make("diffkin/Reach-v0", robot="nobot")
+
+
+def test_cartesian_steps_move_the_ball_arm_towards_the_goal_and_track_stays_on_the_sphere():
+    """The Cartesian action's velocity_step (nv velocities) applied with integrate moves the end effector as
+    commanded: a step of Δx towards a nearby goal shrinks the distance by about |Δx| (first order)."""
+    chain = _ball_arm(F64)
+    env = gym.make("diffkin/Reach-v0", robot=chain, action_mode="cartesian", dtype=F64, goal_range=0.1)
+    obs, _ = env.reset(seed=2)
+    step = env.unwrapped.robot.config.max_ee_step
+    d0 = np.linalg.norm(obs["achieved_goal"] - obs["desired_goal"])
+    for _ in range(3):
+        gap = obs["desired_goal"] - obs["achieved_goal"]
+        dx = gap / max(np.linalg.norm(gap), 1e-9) * min(np.linalg.norm(gap), 0.2 * step)
+        obs, _, _, _, info = env.step((dx / step).astype(np.float32))
+        d1 = info["distance"]
+        assert d1 < d0 - 0.5 * np.linalg.norm(dx)  # at least half the commanded progress
+        d0 = d1
+    track = gym.make("diffkin/Track-v0", robot=chain, dtype=F64, episode_steps=30)
+    track.reset(seed=5)
+    rng = np.random.default_rng(5)
+    for _ in range(30):
+        obs, *_ = track.step(rng.uniform(-1, 1, track.action_space.shape).astype(np.float32))
+        q = track.unwrapped._state["q"][0]
+        assert abs(float(q[:4].norm()) - 1.0) < 1e-12
+        np.testing.assert_array_equal(obs[:chain.nq][:4], q[:4].numpy().astype(np.float32))  # as they are
