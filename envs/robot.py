@@ -239,7 +239,6 @@ class _EndPosition(nn.Module):
         return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
 
 
-
 def robot_collision(chain: KinematicChain, collision=None):
     """The collision model a task checks on ``chain`` (the env's own copy): ``collision`` (a
     :class:`~diffkin.collision.RobotCollision`) copied onto the chain's dtype and device and bound to it, or,
