@@ -186,9 +186,6 @@ class Robot:
         the limits; on the manifold the geodesic from ``around`` to a uniform configuration (scalars uniform
         in their ranges, quaternions uniform on S³: :meth:`ConfigurationSpace.from_uniform`)."""
         around = self.home if around is None else around
-        if self.space.euclidean:
-            q = self.lower + (self.upper - self.lower) * u
-            return around + spread * (q - around)
         s = list(self.space.scalar_index())
         q = self.space.from_uniform(self.lower[s], self.upper[s], u)
         return self.space.interpolate(around.expand_as(q), q, spread)
