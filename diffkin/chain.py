@@ -123,6 +123,10 @@ class KinematicChain(nn.Module):
     joint_types: str
     #: batches with at most this many configurations use the batch-first matrix path (less overhead)
     small_batch: int = 16
+    #: model data (YAML ``home`` / ``planar``, :mod:`diffkin.models.io`): a comfortable start configuration
+    #: (``nq`` floats, or None when the model names none) and whether the arm moves in its base x-y plane
+    home: list[float] | None = None
+    planar: bool = False
 
     def __init__(self, topology: Topology, q_limits=None, name: str | None = None, *,
                  dtype: torch.dtype | None = None, device=None, single_end: bool = True):
@@ -916,6 +920,7 @@ class DHChain(KinematicChain):
             beta=None if self.beta is None else self.beta.detach().clone(),
         )
         c.metadata = dict(self.metadata)
+        c.home, c.planar = None if self.home is None else list(self.home), self.planar
         return c
 
     # ----------------------------------------------------------------------------------- YAML / dict
@@ -925,9 +930,9 @@ class DHChain(KinematicChain):
         from .models.io import parse_chain_dict
 
         kwargs = parse_chain_dict(data, dtype=dtype, device=device, where=where)
-        metadata = kwargs.pop("metadata")
+        metadata, home, planar = kwargs.pop("metadata"), kwargs.pop("home"), kwargs.pop("planar")
         chain = cls(**kwargs)
-        chain.metadata = metadata
+        chain.metadata, chain.home, chain.planar = metadata, home, planar
         return chain
 
     def to_dict(self) -> dict:

@@ -73,6 +73,10 @@ class Task:
     # keep state["ee"] (p_ee at the last step) and state["ee_velocity"] ((p_ee(t) − p_ee(t − 1)) / Δt, 0 after
     # a reset): a task that observes the end effector's velocity sets it
     tracks_ee_velocity: bool = False
+    # keep state["joint_velocity"] ((q(t) ⊖ q(t − 1)) / Δt, (N, nv), 0 after a reset): a task that observes it
+    tracks_joint_velocity: bool = False
+    #: keyword arguments of the task besides its config and the robot's (``make_task`` passes them on)
+    task_kwargs: tuple[str, ...] = ()
 
     def __init__(self, robot: str = "panda", action_mode: str = "joint",
                  robot_config: RobotConfig | dict | None = None,
@@ -98,6 +102,8 @@ class Task:
         if self.tracks_ee_velocity:
             state["ee"] = torch.zeros(n, 3, dtype=self.dtype, device=self.device)
             state["ee_velocity"] = torch.zeros(n, 3, dtype=self.dtype, device=self.device)
+        if self.tracks_joint_velocity:
+            state["joint_velocity"] = torch.zeros(n, self.robot.nv, dtype=self.dtype, device=self.device)
         state.update(self._extra_state(n))
         return state
 
@@ -119,6 +125,8 @@ class Task:
             ee = self.robot.ee_position(state["q"][idx], self.geometry(state, idx))
             state["ee"] = state["ee"].index_copy(0, idx, ee)
             state["ee_velocity"] = state["ee_velocity"].index_fill(0, idx, 0.0)
+        if self.tracks_joint_velocity:
+            state["joint_velocity"] = state["joint_velocity"].index_fill(0, idx, 0.0)
 
     def geometry(self, state: dict[str, Tensor], idx: Tensor | None = None) -> Tensor | None:
         """The rows' DH parameters ``(M, geometry_dim)`` under domain randomisation, else None (nominal)."""
@@ -137,7 +145,9 @@ class Task:
     def step(self, state: dict[str, Tensor], action: Tensor):
         """Advance all rows one control period; ``(obs, reward, terminated, truncated, info)`` tensors."""
         action = action.to(self.dtype).clamp(-1.0, 1.0)
-        state["q"] = self.robot.apply_action(state["q"], action)
+        q0, state["q"] = state["q"], self.robot.apply_action(state["q"], action)
+        if self.tracks_joint_velocity:
+            state["joint_velocity"] = self.robot.velocity(q0, state["q"])
         state["t"] += 1
         ee = self.ee(state)
         if self.tracks_ee_velocity:  # the mean velocity over this control period

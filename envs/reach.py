@@ -14,13 +14,15 @@ from diffkin.validation import shape_str, tensors
 
 from ._checks import check_setting
 from .core import Task, TaskEnv
+from .robot import robot_collision
 
 __all__ = ["ReachConfig", "ReachTask", "ReachEnv", "reach_reward"]
 
 
 _GOAL_SAMPLING = ("box", "joints")
+_SELF_COLLISION = (None, "terminate", "penalize")
 # the parts the "observation" entry can hold (ReachConfig.observation picks and orders them)
-OBSERVATION_PARTS = ("ee_position", "ee_velocity", "joint_positions")
+OBSERVATION_PARTS = ("ee_position", "ee_velocity", "joint_positions", "joint_velocities")
 
 
 @dataclass(frozen=True)
@@ -30,8 +32,14 @@ class ReachConfig:
     ``observation`` (default ``("ee_position", "ee_velocity")``, the layout of panda-gym's PandaReach): the
     parts of the ``observation`` entry, concatenated in the order given, from ``"ee_position"`` (p_ee, 3, m),
     ``"ee_velocity"`` (the end effector's mean velocity over the last control period, (p_ee(t) −
-    p_ee(t − 1)) / control_dt, 3, m/s; 0 after a reset) and ``"joint_positions"`` (q mapped to [-1, 1] by the
-    limits, n). ``("joint_positions", "ee_position")`` is the observation before issue 19.
+    p_ee(t − 1)) / control_dt, 3, m/s; 0 after a reset), ``"joint_positions"`` (q mapped to [-1, 1] by the
+    limits, nq; the quaternion entries of ball and free joints as they are) and ``"joint_velocities"``
+    ((q(t) ⊖ q(t − 1)) / control_dt, nv: rad/s, m/s, the angular velocity of a ball joint in its child
+    frame; 0 after a reset). ``("joint_positions", "ee_position")`` is the observation before issue 19.
+
+    ``self_collision`` (default None: not checked): ``"terminate"`` ends the episode, ``"penalize"``
+    subtracts ``collision_penalty`` from the reward, at every step where the smallest signed distance of the
+    robot's checked collision pairs is below ``collision_margin`` (m; 0: touching or penetrating).
 
     ``goal_sampling="box"`` (default): goals uniform in the axis-aligned cube of edge ``goal_range`` (m)
     centred on ``goal_center`` (base frame, m; None = the end-effector position at ``home``), as panda-gym's
@@ -50,6 +58,11 @@ class ReachConfig:
     init_noise: float = 0.1  # rad, uniform noise on the home pose at reset
     terminate_on_success: bool = False
     observation: tuple[str, ...] = ("ee_position", "ee_velocity")
+    # on self-collision (the smallest signed distance of the checked pairs below collision_margin, m):
+    # None (default, not checked), "terminate" the episode, or "penalize" the reward by collision_penalty
+    self_collision: str | None = None
+    collision_penalty: float = 1.0
+    collision_margin: float = 0.0
 
     def __post_init__(self):
         if self.reward_type not in ("sparse", "dense"):
@@ -68,6 +81,11 @@ class ReachConfig:
             for i, v in enumerate(c):
                 check_setting(v, f"goal_center[{i}]")
         check_setting(self.init_noise, "init_noise", low=0.0)
+        if self.self_collision not in _SELF_COLLISION:
+            raise ConventionError(f"self_collision must be one of {_SELF_COLLISION}, "
+                                  f"got {self.self_collision!r}")
+        check_setting(self.collision_penalty, "collision_penalty", low=0.0)
+        check_setting(self.collision_margin, "collision_margin")
         if not isinstance(self.terminate_on_success, bool):
             raise DTypeError(f"expected terminate_on_success as a bool, got {self.terminate_on_success!r}")
         parts = self.observation
@@ -107,12 +125,19 @@ class ReachTask(Task):
     """Batched reach logic. Observation: the parts of ``config.observation`` (default ``[p_ee (3),
     ṗ_ee (3)]``); goals ``p_ee``, goal."""
 
-    def __init__(self, config: ReachConfig | None = None, **robot_kwargs):
+    #: keyword arguments of the task besides its config and the robot's (``make_task`` passes them on)
+    task_kwargs = ("collision",)
+
+    def __init__(self, config: ReachConfig | None = None, collision=None, **robot_kwargs):
         super().__init__(**robot_kwargs)
         self.config = config or ReachConfig()
+        # the self-collision model: checked (info["min_distance"]) when given or when self_collision is set
+        self.collision = None if collision is None and self.config.self_collision is None else \
+            robot_collision(self.robot.chain, collision)
         self.tracks_ee_velocity = "ee_velocity" in self.config.observation
+        self.tracks_joint_velocity = "joint_velocities" in self.config.observation
         self.max_steps = self.config.episode_steps
-        self.n_random = self.robot.n + max(self.robot.n, 3)
+        self.n_random = self.robot.nv + max(self.robot.nv, 3)
         c, r = self.config, self.robot
         center = r.ee_position(r.home[None])[0] if c.goal_center is None else \
             torch.tensor(c.goal_center, dtype=self.dtype, device=self.device)
@@ -122,11 +147,12 @@ class ReachTask(Task):
         self.goal_low, self.goal_high = center - half, center + half  # (3,) each, base frame
 
     def observation_space(self) -> gym.spaces.Dict:
-        w, n = self.workspace, self.robot.n
+        w, n, cfg = self.workspace, self.robot.n, self.robot.config
         pos = gym.spaces.Box(-w, w, (3,), np.float32)
-        # a step moves the end effector less than 2w, so |ṗ_ee| < 2w / control_dt; |normalised q| <= 1
-        bound = {"ee_position": (w, 3), "ee_velocity": (2.0 * w / self.robot.config.control_dt, 3),
-                 "joint_positions": (1.0, n)}
+        # a step moves the end effector less than 2w, so |ṗ_ee| < 2w / control_dt; |normalised q| <= 1 (a
+        # quaternion's entries are within ±1); |q̇_i| <= max_joint_speed (twice it: room for rounding)
+        bound = {"ee_position": (w, 3), "ee_velocity": (2.0 * w / cfg.control_dt, 3),
+                 "joint_positions": (1.0, n), "joint_velocities": (2.0 * cfg.max_joint_speed, self.robot.nv)}
         high = np.concatenate([np.full(bound[p][1], bound[p][0]) for p in self.config.observation])
         obs = gym.spaces.Box(-high.astype(np.float32), high.astype(np.float32), dtype=np.float32)
         return gym.spaces.Dict({"observation": obs, "achieved_goal": pos, "desired_goal": pos})
@@ -135,9 +161,8 @@ class ReachTask(Task):
         return {"goal": torch.zeros(n, 3, dtype=self.dtype, device=self.device)}
 
     def _sample(self, state, idx, u) -> None:
-        r, n = self.robot, self.robot.n
-        q0 = r.home + self.config.init_noise * (2.0 * u[:, :n] - 1.0)
-        state["q"][idx] = r.chain.clamp_to_limits(q0)
+        r, n = self.robot, self.robot.nv  # one uniform per velocity coordinate (= per joint for 1-DOF joints)
+        state["q"][idx] = r.perturbed_home(u[:, :n], self.config.init_noise)
         if self.config.goal_sampling == "box":
             state["goal"][idx] = self.goal_low + (self.goal_high - self.goal_low) * u[:, n:n + 3]
         else:
@@ -150,19 +175,48 @@ class ReachTask(Task):
         success = d < c.distance_threshold
         reward = -d if c.reward_type == "dense" else success.to(self.dtype) - 1.0  # 0 on success, else -1
         terminated = success.clone() if c.terminate_on_success else torch.zeros_like(success)
-        return reward, terminated, {"is_success": success, "distance": d}
+        info = {"is_success": success, "distance": d}
+        if self.collision is not None:
+            info["min_distance"] = dmin = self.collision.min_distance(state["q"])
+            info["in_collision"] = hit = dmin < c.collision_margin
+            if c.self_collision == "terminate":
+                terminated = terminated | hit
+            elif c.self_collision == "penalize":
+                reward = reward - c.collision_penalty * hit.to(reward.dtype)
+        return reward, terminated, info
 
     def _observe(self, state, ee):
-        obs = torch.cat([ee if p == "ee_position" else state["ee_velocity"] if p == "ee_velocity"
-                         else self.robot.normalize_q(state["q"]) for p in self.config.observation], dim=-1)
+        parts = {"ee_position": lambda: ee, "ee_velocity": lambda: state["ee_velocity"],
+                 "joint_positions": lambda: self.robot.normalize_q(state["q"]),
+                 "joint_velocities": lambda: state["joint_velocity"]}
+        obs = torch.cat([parts[p]() for p in self.config.observation], dim=-1)
         return {"observation": obs, "achieved_goal": ee, "desired_goal": state["goal"].clone()}
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):
+        """:func:`reach_reward`; with ``self_collision="penalize"`` minus ``collision_penalty`` where
+        ``info`` (a step's info dict, or a sequence of them as HER passes) reports ``in_collision``."""
         c = self.config
-        return reach_reward(achieved_goal, desired_goal, c.reward_type, c.distance_threshold)
+        r = reach_reward(achieved_goal, desired_goal, c.reward_type, c.distance_threshold)
+        if c.self_collision != "penalize" or info is None:
+            return r
+        hit = _in_collision(info)
+        if isinstance(r, Tensor):
+            return r - c.collision_penalty * torch.as_tensor(hit, dtype=r.dtype, device=r.device)
+        return (r - np.float32(c.collision_penalty) * hit.astype(np.float32)).astype(np.float32)
 
     def draw_targets(self, state) -> dict:
         return {"goal": state["goal"][0].cpu().numpy()}
+
+
+def _in_collision(info) -> np.ndarray:
+    """``in_collision`` of an info dict (scalar or batched values) or of a sequence of info dicts."""
+    rows = [info] if isinstance(info, dict) else list(np.ravel(np.asarray(info, dtype=object)))
+    if not all(isinstance(i, dict) and "in_collision" in i for i in rows):
+        raise ConventionError("compute_reward with self_collision='penalize' needs the steps' info (dicts "
+                              "with 'in_collision'), got " + type(info).__name__)
+    host = lambda v: v.cpu() if isinstance(v, Tensor) else v  # noqa: E731
+    vals = [np.asarray(host(i["in_collision"]), dtype=bool) for i in rows]
+    return vals[0] if isinstance(info, dict) else np.stack(vals).reshape(np.shape(info))
 
 
 class ReachEnv(TaskEnv):
@@ -179,11 +233,13 @@ class ReachEnv(TaskEnv):
     ``TorchVectorEnv("diffkin/Reach-v0", N)``.
 
     ## Action Space
-    ``Box(-1.0, 1.0, (n,), float32)`` with ``action_mode="joint"`` (n = the chain's joint count, 7 for the
-    Panda): joint velocities ``q̇ = a · max_joint_speed`` (1.5 rad/s), integrated over ``control_dt``
-    (0.1 s) and clamped to the joint limits.
+    ``Box(-1.0, 1.0, (nv,), float32)`` with ``action_mode="joint"`` (nv = the chain's velocity count: its
+    joint count, 7 for the Panda; a ball joint counts 3): joint velocities ``q̇ = a · max_joint_speed``
+    (1.5 rad/s), integrated over ``control_dt`` (0.1 s) on the configuration manifold, ``q ⊕ q̇ Δt``
+    (:meth:`~diffkin.chain.KinematicChain.integrate`: ``q + q̇ Δt`` for 1-DOF joints; the quaternion of a
+    ball or free joint is turned by ``exp(ω Δt / 2)`` and stays unit) and clamped to the joint limits.
     ``Box(-1.0, 1.0, (3,), float32)`` with ``action_mode="cartesian"``: an end-effector displacement
-    ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``Δq = q̇ · control_dt`` by
+    ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``q ⊕ q̇ · control_dt`` by
     :func:`diffkin.ik.velocity_step`: the damped-least-squares step (damping 0.05) solved exactly under
     ``|q̇| ≤ max_joint_speed`` and the joint limits (limit-safe: a joint at its limit stops and the others
     take over).
@@ -198,28 +254,33 @@ class ReachEnv(TaskEnv):
     | ``achieved_goal`` | ``(3,)`` | the end-effector position ``p_ee`` |
     | ``desired_goal`` | ``(3,)`` | the goal position |
 
-    ``observation`` holds the parts named by the ``observation`` argument, in that order:
-    ``"ee_position"`` (``p_ee``, 3), ``"ee_velocity"`` (``(p_ee(t) − p_ee(t − 1)) / control_dt``, the mean
-    velocity over the last control period, 3; 0 after a reset) and ``"joint_positions"`` (q mapped to
-    [-1, 1] by the limits, n). The default ``("ee_position", "ee_velocity")`` is the layout of panda-gym's
-    PandaReach observation (whose velocity is PyBullet's, at the grasp point, at the end of a 0.04 s step);
-    with it TQC + HER learns joint-velocity Reach in fewer steps than with the joint positions in the
-    observation (``docs/rl/RESULTS.md``). Bounds: ``±w`` for positions, with ``w`` a generous bound on the
-    reach (``|p_ee(home)| + 2 m +`` the sum of the DH offsets), ``±2w / control_dt`` for the velocity, ±1
-    for the joints; SB3 needs ``MultiInputPolicy`` for this ``Dict``.
+    ``observation`` holds the parts named by the ``observation`` argument, in that order: ``"ee_position"``
+    (``p_ee``, 3), ``"ee_velocity"`` (``(p_ee(t) − p_ee(t − 1)) / control_dt``, the mean velocity over the
+    last control period, 3; 0 after a reset), ``"joint_positions"`` (q mapped to [-1, 1] by the limits, nq)
+    and ``"joint_velocities"`` ((q(t) ⊖ q(t − 1)) / control_dt, nv). The default ``("ee_position",
+    "ee_velocity")`` is the layout of panda-gym's PandaReach observation (whose velocity is PyBullet's, at the
+    grasp point, at the end of a 0.04 s step); with it TQC + HER learns joint-velocity Reach in fewer steps
+    than with the joint positions in the observation (``docs/rl/RESULTS.md``). Bounds: ``±w`` for positions,
+    with ``w`` a generous bound on the reach (``|p_ee(home)| + 2 m +`` the sum of the DH offsets), ``±2w /
+    control_dt`` for the velocity, ±1 for the joints, ``±2 max_joint_speed`` for the joint velocities; SB3
+    needs ``MultiInputPolicy`` for this ``Dict``.
 
     ## Rewards
     ``reward_type="sparse"`` (default): 0 when ``‖p_ee − goal‖ < distance_threshold``, else -1.
     ``reward_type="dense"``: ``-‖p_ee − goal‖`` (m). ``compute_reward(achieved_goal, desired_goal, info)``
-    computes the same over any leading batch dimensions (what HER relabelling calls).
+    computes the same over any leading batch dimensions (what HER relabelling calls). With
+    ``self_collision="penalize"``: minus ``collision_penalty`` at a step in collision (``compute_reward``
+    reads ``in_collision`` from the ``info`` it is given: one dict, or the sequence HER passes).
 
     ## Starting State
-    ``q0 = home + init_noise · U(-1, 1)^n`` (0.1 rad), clamped to the limits; ``home`` is the Panda's
-    "ready" pose (the UR5 and the planar arm have their own, other chains the middle of their limits).
+    ``q0 = home ⊕ init_noise · U(-1, 1)^nv`` (0.1 rad; ``home + ...`` for 1-DOF joints), clamped to the
+    limits; ``home`` is the model's own (its YAML ``home``: the Panda's "ready" pose, the UR5's and the
+    planar arm's), else the middle of the limits with identity quaternions.
     The goal (base frame, m): with ``goal_sampling="box"`` uniform in ``goal_center ± goal_range / 2`` per
     axis (``goal_center`` default ``p_ee(home)``, ``goal_range`` 0.3 m; z fixed for the planar arm); with
     ``goal_sampling="joints"`` ``p_ee(home + goal_spread · (U(limits) − home))`` (``goal_spread=1``: the
-    whole workspace).
+    whole workspace; on the manifold the geodesic from ``home`` towards a uniform configuration, quaternions
+    uniform on the sphere). "Planar" is the model's ``planar`` flag, not its name.
 
     PandaReach-v3 as here (``configs/tqc.yaml``): ``home=[0, 0.41, 0, -1.85, 0, 2.26, 0.79]`` (panda-gym's
     neutral pose), ``init_noise=0``, ``goal_center=(0.6, 0, 0.255)`` (panda-gym's cube, centre (0, 0, 0.15)
@@ -238,9 +299,11 @@ class ReachEnv(TaskEnv):
 
     ## Episode End
     Truncated after ``episode_steps`` steps (50). Terminated on success only with
-    ``terminate_on_success=True`` (default False). ``info`` holds ``is_success`` (bool) and ``distance`` (m)
-    at every step. No ``TimeLimit`` wrapper is registered: ``gymnasium.make(id, max_episode_steps=k)``
-    adds an outer one.
+    ``terminate_on_success=True`` (default False), and on self-collision with
+    ``self_collision="terminate"``. ``info`` holds ``is_success`` (bool) and ``distance`` (m) at every step;
+    with collision checks also ``min_distance`` (m, the smallest signed distance of the checked pairs) and
+    ``in_collision`` (bool). No ``TimeLimit`` wrapper is registered: ``gymnasium.make(id,
+    max_episode_steps=k)`` adds an outer one.
 
     ## Arguments
     ```python
@@ -248,11 +311,14 @@ class ReachEnv(TaskEnv):
                    robot_config=None, home=None, dtype=torch.float32, device="cpu",
                    reward_type="sparse", distance_threshold=0.05, episode_steps=50, goal_sampling="box",
                    goal_center=None, goal_range=0.3, goal_spread=1.0, init_noise=0.1,
-                   terminate_on_success=False, observation=("ee_position", "ee_velocity"))
+                   terminate_on_success=False, observation=("ee_position", "ee_velocity"),
+                   self_collision=None, collision_penalty=1.0, collision_margin=0.0, collision=None)
     ```
 
     * ``robot``: a model name of :func:`diffkin.models.load` (``"panda"``, ``"ur5"``, ``"three_link_planar"``,
-      ...) or a :class:`~diffkin.chain.KinematicChain` (copied).
+      ...) or a :class:`~diffkin.chain.KinematicChain` (copied): a DH chain, a URDF chain
+      (:func:`diffkin.models.from_urdf`) or a MuJoCo model (:func:`diffkin.models.from_mjcf`), ball and free
+      joints included.
     * ``action_mode``: ``"joint"`` or ``"cartesian"`` (above).
     * ``render_mode``: None or ``"rgb_array"`` (a matplotlib drawing of the arm, its trace and the goal).
     * ``robot_config``: :class:`~diffkin.envs.robot.RobotConfig` or a dict of its fields
@@ -263,7 +329,12 @@ class ReachEnv(TaskEnv):
     * the fields of :class:`ReachConfig`: ``reward_type``, ``distance_threshold`` (m), ``episode_steps``,
       ``goal_sampling`` ("box" | "joints"), ``goal_center`` ((3,) m or None), ``goal_range`` (m),
       ``goal_spread`` in [0, 1] (joints only), ``init_noise`` (rad), ``terminate_on_success``,
-      ``observation`` (a sequence of ``"ee_position"``, ``"ee_velocity"``, ``"joint_positions"``).
+      ``observation`` (a sequence of ``"ee_position"``, ``"ee_velocity"``, ``"joint_positions"``,
+      ``"joint_velocities"``), ``self_collision`` (None | "terminate" | "penalize"), ``collision_penalty``,
+      ``collision_margin`` (m).
+    * ``collision``: the :class:`~diffkin.collision.RobotCollision` to check (copied onto the env's chain,
+      dtype and device); None: built from the robot's URDF (its ``<collision>`` geoms) or MJCF when
+      ``self_collision`` is set (a DH model has no geometry: a ``ModelError`` says to pass one).
 
     ## Version History
     * v0: initial version. Goals were over the whole joint range; since issue 19 the default is the goal
@@ -275,13 +346,17 @@ class ReachEnv(TaskEnv):
       as a whole and clamped (over joints drawn in the whole range, 1/3 of the steps change and the mean
       end-effector error of a 0.05 m step falls from 9.1 to 7.1 mm); the exact solve costs: 4 096
       Cartesian Reach envs step at 0.18–0.34 M env-steps per CPU second instead of 0.8–1.4 M, 4–5× the
-      time (one thread, several runs on a shared machine). Joint mode is unchanged.
+      time (one thread, several runs on a shared machine). Joint mode is unchanged. Issues 26/27: robots
+      with ball and free joints (actions of nv components applied on the manifold, episodes of 1-DOF
+      robots unchanged to the bit), the ``"joint_velocities"`` observation part, ``self_collision``.
     """
 
     def __init__(self, robot="panda", action_mode: str = "joint", render_mode: str | None = None,
-                 robot_config=None, home=None, dtype=torch.float32, device="cpu", **task_kwargs):
-        task = ReachTask(ReachConfig(**task_kwargs), robot=robot, action_mode=action_mode,
-                         robot_config=robot_config, home=home, dtype=dtype, device=device)
+                 robot_config=None, home=None, dtype=torch.float32, device="cpu", collision=None,
+                 **task_kwargs):
+        task = ReachTask(ReachConfig(**task_kwargs), collision=collision, robot=robot,
+                         action_mode=action_mode, robot_config=robot_config, home=home, dtype=dtype,
+                         device=device)
         super().__init__(task, render_mode=render_mode)
 
     def compute_reward(self, achieved_goal, desired_goal, info=None):

@@ -3,9 +3,10 @@
 All methods are batched over the leading env axis ``(N, ...)`` and run with ``check=False`` on trusted,
 already validated tensors (the envs validate actions once at the boundary).
 
-* joint-velocity mode: ``a ∈ [-1, 1]^n`` → q̇ = a · q̇_max, integrated over the control period and
-  projected onto the joint limits.
-* Cartesian mode: ``a ∈ [-1, 1]^3`` → Δx = a · Δx_max; Δq = q̇ Δt with q̇ from
+* joint-velocity mode: ``a ∈ [-1, 1]^nv`` → q̇ = a · q̇_max, integrated over the control period on the
+  configuration manifold (q ⊕ q̇ Δt, :meth:`~diffkin.chain.KinematicChain.integrate`: q + q̇ Δt for 1-DOF
+  joints, q ⊗ exp(ω Δt / 2) for the quaternions of ball and free joints) and projected onto the joint limits.
+* Cartesian mode: ``a ∈ [-1, 1]^3`` → Δx = a · Δx_max; q ⊕ q̇ Δt with q̇ ``(nv,)`` from
   :func:`diffkin.ik.velocity_step`: the damped-least-squares step (3.59) on the position rows, solved
   exactly under |q̇| ≤ q̇_max and the joint limits over Δt (limit-safe: a joint at its limit stops and the
   others take over the motion).
@@ -19,58 +20,27 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from diffkin.chain import DHChain, KinematicChain
+from diffkin.chain import KinematicChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
 from diffkin.ik.velocity import velocity_step
 from diffkin.validation import check_device, shape_str, tensors
 
 from ._checks import check_setting
 
-__all__ = ["Robot", "RobotConfig", "load_chain", "HOME"]
+__all__ = ["Robot", "RobotConfig", "load_chain", "robot_collision"]
 
 # geometric parameters of a chain that domain randomisation perturbs, by unit (DHChain's names)
 _LENGTH_PARAMS = ("a", "d")
 _ANGLE_PARAMS = ("alpha", "theta", "beta")
-
-# A comfortable, non-singular start pose per model ("ready" pose for the Panda).
-HOME = {
-    "panda": [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
-    "ur5": [0.0, -1.571, 1.571, -1.571, -1.571, 0.0],
-    "three_link_planar": [0.3, 0.6, 0.6],
-}
-
-
-def _fallback_chain(name: str) -> DHChain:
-    """Tables from the project brief, used only until diffkin.models provides ``load``."""
-    pi = math.pi
-    if name == "panda":
-        lim = [(-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.0718, -0.0698),
-               (-2.8973, 2.8973), (-0.0175, 3.7525), (-2.8973, 2.8973)]
-        return DHChain([0, 0, 0, 0.0825, -0.0825, 0, 0.088],
-                       [0, -pi / 2, pi / 2, pi / 2, -pi / 2, pi / 2, pi / 2],
-                       [0.333, 0, 0.316, 0, 0.384, 0, 0.107], [0.0] * 7, convention="modified", q_limits=lim,
-                       name="panda")
-    if name == "ur5":
-        return DHChain([0, -0.425, -0.39225, 0, 0, 0], [pi / 2, 0, 0, pi / 2, -pi / 2, 0],
-                       [0.089159, 0, 0, 0.10915, 0.09465, 0.0823], [0.0] * 6,
-                       q_limits=[(-2 * pi, 2 * pi)] * 6, name="ur5")
-    if name == "three_link_planar":
-        return DHChain([0.5, 0.5, 0.5], [0.0] * 3, [0.0] * 3, [0.0] * 3, q_limits=[(-pi, pi)] * 3,
-                       name="three_link_planar")
-    raise ModelError(f"unknown robot {name!r}; expected 'panda', 'ur5', 'three_link_planar' or a DHChain")
-
 
 def load_chain(robot: str | KinematicChain, dtype=torch.float32, device="cpu") -> KinematicChain:
     """A chain from a model name (through ``diffkin.models.load``) or a chain instance (copied)."""
     if isinstance(robot, KinematicChain):
         chain = robot.copy() if hasattr(robot, "copy") else robot
         return chain.to(dtype=dtype, device=device)
-    try:
-        from diffkin.models import load
+    from diffkin.models import load
 
-        return load(robot, dtype=dtype, device=device)
-    except (ImportError, ValueError):  # models package still being filled in: use the brief's tables
-        return _fallback_chain(robot).to(dtype=dtype, device=device)
+    return load(robot, dtype=dtype, device=device)
 
 
 @dataclass(frozen=True)
@@ -109,21 +79,28 @@ class Robot:
         self.config = config or RobotConfig()
         self.chain = load_chain(robot, dtype=dtype, device=device).requires_grad_(False)
         self.name = robot if isinstance(robot, str) else self.chain.name
-        self.n = self.chain.n_joints
+        self.space = self.chain.configuration_space
+        self.n, self.nv = self.chain.nq, self.chain.nv  # coordinates of q; velocities (and joint actions)
         self.action_mode = action_mode
-        self.action_dim = self.n if action_mode == "joint" else 3
+        self.action_dim = self.nv if action_mode == "joint" else 3
         self.dtype, self.device = dtype, torch.device(device)
         lo, hi = self.chain.lower_upper()
         self.lower, self.upper = lo.to(dtype).clone(), hi.to(dtype).clone()
-        if home is None:
-            home = HOME.get(self.name, ((self.lower + self.upper) / 2).tolist())
+        # what a step is clamped to: the ranges of the scalar coordinates (quaternion entries never: a unit
+        # quaternion is within ±1 and a clamp would take it off the sphere)
+        scalar = torch.zeros(self.n, dtype=torch.bool, device=self.device)
+        scalar[list(self.space.scalar_index())] = True
+        self._clamp = (torch.where(scalar, self.lower, -math.inf), torch.where(scalar, self.upper, math.inf))
+        if home is None:  # the model's own start configuration, else the middle of the ranges
+            home = self.chain.home if self.chain.home is not None else (self.lower + self.upper) / 2
         (home,) = tensors(("home", home, (self.n,)), like=self.chain)
         if home.ndim != 1:
             raise ShapeError(f"expected home of shape ({self.n},), got {shape_str(home.shape)}")
-        self.home = self.chain.clamp_to_limits(home)
+        # on the manifold: zero quaternions (the middle of ±1) become the identity, others unit length
+        self.home = self.chain.clamp_to_limits(self.chain.normalize_configuration(home))
         self.step_limit = self.config.max_joint_speed * self.config.control_dt
         self.revolute = self.chain.revolute_mask.to(torch.bool)
-        self.planar = self.name == "three_link_planar"
+        self.planar = self.chain.planar  # model data (YAML ``planar``), not a name
         self._position_rows = torch.tensor([1.0, 1.0, 1.0, 0.0, 0.0, 0.0], dtype=dtype, device=self.device)
         self._init_geometry()
 
@@ -200,29 +177,46 @@ class Robot:
                 scale = 2.0 / (self.upper - self.lower)
                 row = (scale, -1.0 - self.lower * scale)
             else:
-                row = (self.lower, self.upper)
+                row = self._clamp
             pair = cache[key] = tuple(t.expand(q.shape).contiguous() for t in row)
         return pair
 
     def sample_q(self, u: Tensor, spread: float = 1.0, around: Tensor | None = None) -> Tensor:
-        """Joints from uniforms ``u (N, n)``: ``around + spread · (U(limits) − around)``, within limits."""
-        q = self.lower + (self.upper - self.lower) * u
+        """Configurations from uniforms ``u (N, nv)``: ``around + spread · (U(limits) − around)``, within
+        the limits; on the manifold the geodesic from ``around`` to a uniform configuration (scalars uniform
+        in their ranges, quaternions uniform on S³: :meth:`ConfigurationSpace.from_uniform`)."""
         around = self.home if around is None else around
-        return around + spread * (q - around)
+        s = list(self.space.scalar_index())
+        q = self.space.from_uniform(self.lower[s], self.upper[s], u)
+        return self.space.interpolate(around.expand_as(q), q, spread)
+
+    def perturbed_home(self, u: Tensor, noise: float) -> Tensor:
+        """``home ⊕ noise · (2u − 1)`` from uniforms ``u (N, nv)``, projected onto the limits: the start
+        configurations of an episode (``home + noise · U(-1, 1)^n`` for 1-DOF joints)."""
+        return self.chain.clamp_to_limits(self.space.integrate(self.home, noise * (2.0 * u - 1.0)))
+
+    def velocity(self, q0: Tensor, q1: Tensor) -> Tensor:
+        """The mean joint velocity ``(N, nv)`` over one control period from ``q0`` to ``q1``:
+        (q1 ⊖ q0) / control_dt (angular velocities of ball joints in their child frames)."""
+        return self.space.difference(q0, q1) / self.config.control_dt
 
     # -------------------------------------------------------------------------------------- actions
     def apply_action(self, q: Tensor, action: Tensor) -> Tensor:
-        """Next joint state from ``q (N, n)`` and a clipped action ``(N, action_dim)`` in [-1, 1]."""
+        """Next configuration from ``q (N, nq)`` and a clipped action ``(N, action_dim)`` in [-1, 1]: q ⊕ Δ
+        (:meth:`KinematicChain.integrate`; q + Δ for 1-DOF joints) with Δ = a · Δq_max in joint mode."""
         if self.action_mode == "joint":
-            q = torch.add(q, action, alpha=self.step_limit)
+            if self.space.euclidean:
+                q = torch.add(q, action, alpha=self.step_limit)
+            else:
+                q = self.space.integrate(q, action * self.step_limit)
         else:
-            q = q + self.cartesian_delta(q, action * self.config.max_ee_step)
+            q = self.space.integrate(q, self.cartesian_delta(q, action * self.config.max_ee_step))
         return q.clamp_(*self._per_row(q, "limits"))  # q is a new tensor here
 
     def cartesian_delta(self, q: Tensor, dx: Tensor) -> Tensor:
-        """Δq for an end-effector displacement ``dx (N, 3)``: Δt · :func:`~diffkin.ik.velocity_step` for the
-        twist [Δx/Δt; 0] with weights (1, 1, 1, 0, 0, 0), damping λ² (3.59), |q̇| ≤ ``max_joint_speed`` and
-        the joint limits over ``control_dt``."""
+        """Δq ``(N, nv)`` for an end-effector displacement ``dx (N, 3)``: Δt ·
+        :func:`~diffkin.ik.velocity_step` for the twist [Δx/Δt; 0] with weights (1, 1, 1, 0, 0, 0), damping
+        λ² (3.59), |q̇| ≤ ``max_joint_speed`` and the joint limits over ``control_dt``."""
         cfg = self.config
         twist = torch.cat((dx / cfg.control_dt, torch.zeros_like(dx)), dim=-1)
         qd = velocity_step(self.chain, q, twist, cfg.control_dt, damping=cfg.damping ** 2,
@@ -241,3 +235,40 @@ class _EndPosition(nn.Module):
     def forward(self, q: Tensor) -> Tensor:
         return self.chain.forward_kinematics(q, check=False)[..., :3, 3]
 
+
+def robot_collision(chain: KinematicChain, collision=None):
+    """The collision model a task checks on ``chain`` (the env's own copy): ``collision`` (a
+    :class:`~diffkin.collision.RobotCollision`) copied onto the chain's dtype and device and bound to it, or,
+    when None, one built from the robot's own description: the ``<collision>`` geoms of a URDF chain
+    (:meth:`RobotCollision.from_urdf`, mesh files resolved from the chain's URDF text only, else skipped with
+    a warning) or the geoms of an MJCF chain (:meth:`RobotCollision.from_mjcf`). A DH model carries no
+    geometry: :class:`~diffkin.errors.ModelError` saying what to pass."""
+    import copy
+
+    from diffkin.collision import RobotCollision
+    from diffkin.models import MJCFChain, URDFChain
+
+    if collision is None:
+        if isinstance(chain, URDFChain):
+            collision = RobotCollision.from_urdf(chain.tree, chain)
+        elif isinstance(chain, MJCFChain):
+            if not hasattr(chain, "body_poses"):  # placing every MuJoCo body needs them (collision.mjcf)
+                raise ModelError(f"the MJCF robot {chain.name!r} cannot place its geoms yet (no "
+                                 "chain.body_poses): pass collision=RobotCollision.from_mjcf(source, "
+                                 "body_poses=...)")
+            collision = RobotCollision.from_mjcf(chain.source_path or chain.source_text, chain)
+        else:
+            raise ModelError(f"self-collision checks need collision geometry: robot {chain.name!r} "
+                             f"({type(chain).__name__}) has none; pass collision=RobotCollision.from_urdf("
+                             "...) or a URDF / MJCF chain (models.from_urdf, models.from_mjcf) as the robot")
+        return collision.requires_grad_(False)
+    if not isinstance(collision, RobotCollision):
+        raise ModelError(f"expected collision as a diffkin.collision.RobotCollision, got "
+                         f"{type(collision).__name__}")
+    own = getattr(collision, "chain", None)
+    if own is not None and (own.nq, own.nv) != (chain.nq, chain.nv):
+        raise ShapeError(f"collision model for a chain of nq {own.nq}, nv {own.nv}; the robot has nq "
+                         f"{chain.nq}, nv {chain.nv}")
+    collision = copy.deepcopy(collision).to(dtype=chain.dtype, device=chain.device)
+    collision.chain = chain  # placed by the env's chain (its own copy of the robot)
+    return collision.requires_grad_(False)

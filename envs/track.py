@@ -61,7 +61,7 @@ class TrackTask(Task):
         super().__init__(**robot_kwargs)
         self.config = c = config or TrackConfig()
         self.max_steps = c.episode_steps
-        self.n_random = 2 * self.robot.n + 9
+        self.n_random = 2 * self.robot.nv + 9
         self.duration = c.episode_steps * self.robot.config.control_dt
         k = torch.arange(c.episode_steps + c.lookahead + 1, dtype=self.dtype, device=self.device)
         self.times = (k * self.robot.config.control_dt).clamp(max=self.duration)
@@ -76,8 +76,8 @@ class TrackTask(Task):
         return {"path": torch.zeros(n, k, 3, dtype=self.dtype, device=self.device)}
 
     def _sample(self, state, idx, u) -> None:
-        r, n, c = self.robot, self.robot.n, self.config
-        q0 = r.chain.clamp_to_limits(r.home + c.init_noise * (2.0 * u[:, :n] - 1.0))
+        r, n, c = self.robot, self.robot.nv, self.config  # one uniform per velocity coordinate
+        q0 = r.perturbed_home(u[:, :n], c.init_noise)
         state["q"][idx] = q0
         geo = self.geometry(state, idx)
         p0 = r.ee_position(q0, geo)
@@ -142,23 +142,24 @@ class TrackEnv(TaskEnv):
     of the same task is ``TorchVectorEnv("diffkin/Track-v0", N)``.
 
     ## Action Space
-    As ``diffkin/Reach-v0``: ``Box(-1.0, 1.0, (n,), float32)`` joint velocities ``a · max_joint_speed``
-    (``action_mode="joint"``) or ``Box(-1.0, 1.0, (3,), float32)`` end-effector displacements
-    ``a · max_ee_step`` through :func:`diffkin.ik.velocity_step` (``action_mode="cartesian"``: the
-    damped-least-squares step under the joint position and velocity limits); clipped to [-1, 1].
+    As ``diffkin/Reach-v0``: ``Box(-1.0, 1.0, (nv,), float32)`` joint velocities ``a · max_joint_speed``
+    integrated on the configuration manifold (``action_mode="joint"``) or ``Box(-1.0, 1.0, (3,), float32)``
+    end-effector displacements ``a · max_ee_step`` through :func:`diffkin.ik.velocity_step`
+    (``action_mode="cartesian"``: the damped-least-squares step under the joint position and velocity limits);
+    clipped to [-1, 1].
 
     ## Observation Space
-    ``Box(-w, w, (n + 3 + 3 (H + 1) + 1,), float32)`` with ``H = lookahead`` (3): the joint positions mapped
-    to [-1, 1] by the limits (n), ``p_ee`` (3, m, base frame), the targets of steps ``t .. t + H`` relative
-    to ``p_ee`` (3 (H + 1), m; held at the path's end), and the episode time fraction ``t / episode_steps``
-    (1). For the Panda with the defaults: ``(23,)``.
+    ``Box(-w, w, (nq + 3 + 3 (H + 1) + 1,), float32)`` with ``H = lookahead`` (3): the joint positions mapped
+    to [-1, 1] by the limits (nq; quaternion entries as they are), ``p_ee`` (3, m, base frame), the targets of
+    steps ``t .. t + H`` relative to ``p_ee`` (3 (H + 1), m; held at the path's end), and the episode time
+    fraction ``t / episode_steps`` (1). For the Panda with the defaults: ``(23,)``.
 
     ## Rewards
     ``-‖p_ee − p_d(t)‖`` (m) after each step, ``p_d(t)`` the path's point at the new step; also
     ``info["tracking_error"]``.
 
     ## Starting State
-    ``q0 = home + init_noise · U(-1, 1)^n`` (0.1 rad), clamped to the limits. With probability
+    ``q0 = home ⊕ init_noise · U(-1, 1)^nv`` (0.1 rad), clamped to the limits. With probability
     ``line_fraction`` (0.5) the path is a segment from ``p_ee(q0)`` towards the end effector of
     ``q0 + line_spread · (U(limits) − q0)``, at most ``max_line_length`` (0.4 m) long; otherwise a circle
     through ``p_ee(q0)`` of radius ``U(radius_range)`` (0.05-0.15 m) in a random plane (the x-y plane for

@@ -40,7 +40,7 @@ def make_task(env_id: str, **kwargs) -> Task:
     spec = ENVS[env_id]
     if "max_episode_steps" in kwargs:  # alias (gym.make consumes this name for its TimeLimit wrapper)
         kwargs["episode_steps"] = kwargs.pop("max_episode_steps")
-    robot_kwargs = {k: kwargs.pop(k) for k in _ROBOT_KEYS if k in kwargs}
+    robot_kwargs = {k: kwargs.pop(k) for k in (*_ROBOT_KEYS, *spec.task.task_kwargs) if k in kwargs}
     return spec.task(spec.config(**kwargs), **robot_kwargs)
 
 
@@ -92,7 +92,8 @@ class TorchVectorEnv(VectorEnv):
     * ``num_envs``: N >= 1.
     * ``device``: where the state and the kinematics live.
     * ``env_kwargs``: the keyword arguments of ``gymnasium.make(env_id, ...)`` except ``render_mode``
-      (``robot``, ``action_mode``, ``robot_config``, ``home``, ``dtype`` and the task's settings);
+      (``robot``, ``action_mode``, ``robot_config``, ``home``, ``dtype``, the task's settings and, for
+      Reach, ``collision``);
       ``max_episode_steps`` is an alias of ``episode_steps``.
 
     ## Version History

@@ -10,7 +10,9 @@ cases have no ``mixed`` mutation.
 
 from __future__ import annotations
 
+import importlib.util
 import math
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -149,9 +151,29 @@ def _env(kind: str):
                                              reward_type="dense"),
             "sb3": lambda: SB3VecEnv(TorchVectorEnv("diffkin/Track-v0", N_ENVS, robot=ENV_ROBOT,
                                                     episode_steps=5)),
+            # on the manifold: a ball shoulder (nq 8, nv 7), joint velocities observed
+            "reach_ball": lambda: ReachEnv(_ball_arm(), reward_type="dense", observation=(
+                "ee_position", "joint_positions", "joint_velocities")),
+            # self-collision checked: the fold arm's spheres (tests/data/envs)
+            "reach_collision": lambda: ReachEnv(_fold_arm(), self_collision="penalize", reward_type="dense"),
         }
         _ENVS[kind] = make[kind]()
     return _ENVS[kind]
+
+
+_DATA = Path(__file__).parent / "data"
+
+
+def _ball_arm():
+    from diffkin.models import from_mjcf
+
+    return from_mjcf(_DATA / "mjcf_extra" / "joint_kinds.xml", "palm", root_link="torso")
+
+
+def _fold_arm():
+    from diffkin.models import from_urdf
+
+    return from_urdf(_DATA / "envs" / "fold_arm.urdf", "tool")
 
 
 def _as_tensors(*items) -> list[torch.Tensor]:
@@ -244,6 +266,12 @@ def _cases() -> list[Case]:
         Case("diffkin.envs.TrackEnv.step", _single_step("track"), covers=track.TrackEnv,
              args={"action": _arg(_joint_action, (N_JOINTS,), batched=False)}, out_batch=no_batch,
              rtol=1e-5),
+        Case("diffkin.envs.ReachEnv.step[self_collision]", _single_step("reach_collision"),
+             covers=reach.ReachEnv, args={"action": _arg(_joint_action, (N_JOINTS,), batched=False)},
+             out_batch=no_batch, rtol=1e-5),
+        *([Case("diffkin.envs.ReachEnv.step[ball joint]", _single_step("reach_ball"), covers=reach.ReachEnv,
+                args={"action": _arg(uniform(7), (7,), batched=False)}, out_batch=no_batch, rtol=1e-5)]
+          if importlib.util.find_spec("mujoco") else []),
         Case("diffkin.envs.check_action", _check_action, covers=core.check_action,
              args={"action": _arg(_joint_action, (N_JOINTS,), batched=False)}, out_batch=no_batch),
         # the vector envs' env count is fixed at construction: 0 actions for 3 envs is a wrong shape
@@ -291,6 +319,8 @@ EXEMPT: dict[str, str] = {
     "diffkin.envs.robot.Robot": "the robot half of the envs: trusted, already validated tensors (module doc)",
     "diffkin.envs.robot.RobotConfig": "settings of Python numbers, checked on construction (test_envs)",
     "diffkin.envs.robot.load_chain": "takes a model name or a chain, no tensor input",
+    "diffkin.envs.robot.robot_collision": "takes a chain and a RobotCollision (type-checked), no tensor "
+                                          "input; its distances enter through ReachEnv.step (fuzzed)",
     "diffkin.training.evaluate.run_episodes": "takes an env and a policy; the policy's actions go through "
                                       "TorchVectorEnv.step (fuzzed)",
     "diffkin.training.evaluate.scripted_policy": "reads the env's own state, no user input",

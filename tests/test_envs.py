@@ -320,7 +320,7 @@ def test_observation_parts_order_and_errors():
     assert o2["observation"].shape == (13,) and swapped.observation_space.contains(o2)
     np.testing.assert_array_equal(o2["observation"][3:6], o2["achieved_goal"])
     assert np.linalg.norm(o2["observation"][:3]) > 0.05
-    for bad in ((), ("ee_position", "ee_position"), ("joint_velocities",), "ee_position", None):
+    for bad in ((), ("ee_position", "ee_position"), ("joint_torques",), "ee_position", None):
         with pytest.raises(ConventionError, match="observation"):
             ReachEnv(observation=bad)
 

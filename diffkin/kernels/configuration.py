@@ -32,6 +32,7 @@ q_S ← q_S ⊗ exp(ω/2)), ``difference(q0, q1)`` its inverse (``mj_differentia
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -199,6 +200,20 @@ class ConfigurationSpace:
         s = lower + (upper - lower) * u
         g = torch.randn(*shape, self.n_quaternions, 4, generator=generator, dtype=dtype, device=gdev)
         return self._join(s, _canonical(safe_normalize(g.to(device))), "q")
+
+    def from_uniform(self, lower: Tensor, upper: Tensor, u: Tensor) -> Tensor:
+        """The configuration ``(..., nq)`` of uniforms ``u (..., nv)`` in [0, 1): scalars
+        ``lower + (upper − lower) u`` (``(Ns,)`` each, finite, scalar order), each quaternion from its three
+        uniforms (u₁, u₂, u₃) by Shoemake's map (Graphics Gems III, 1992), uniform on S³ for uniform u:
+        (√u₁ cos 2πu₃, √(1−u₁) sin 2πu₂, √(1−u₁) cos 2πu₂, √u₁ sin 2πu₃), η ≥ 0. For a sampler whose
+        uniforms come from elsewhere (the envs' counter-based streams); one uniform per velocity
+        coordinate."""
+        s, b = self._split_v(u)
+        u1, u2, u3 = b.unbind(-1)
+        a, c = torch.sqrt(u1), torch.sqrt(1.0 - u1)
+        t2, t3 = 2.0 * math.pi * u2, 2.0 * math.pi * u3
+        quat = torch.stack((a * torch.cos(t3), c * torch.sin(t2), c * torch.cos(t2), a * torch.sin(t3)), -1)
+        return self._join(lower + (upper - lower) * s, _canonical(quat), "q")
 
     def tangent_map(self, q: Tensor) -> Tensor:
         """∂(q ⊕ v)/∂v at v = 0, ``(..., nq, nv)``: the identity on scalars, ½ Q ⊗ (0, e_k) on each

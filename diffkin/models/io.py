@@ -13,6 +13,10 @@ Schema (one mapping per robot)::
     base: {xyz: [0, 0, 0], rpy: [0, 0, 0]}   # optional fixed transforms: xyz + rpy (URDF order: roll about
     tool: {matrix: [[1, 0, 0, 0], ...]}      # x, pitch about y, yaw about z; R = Rz(yaw) Ry(pitch) Rx(roll)),
                                              # or a 4x4 / 3x4 matrix (also as a bare nested list)
+    home: [0, -0.785, 0, -2.356, 0, 1.571, 0.785]   # optional: a comfortable, non-singular start
+                                     # configuration (one value per joint, within q_limits)
+    planar: false                    # optional: true when every joint moves the arm in the base frame's
+                                     # x-y plane (the planar arms of §2.9.1; envs draw and sample in 2-D)
     description: ...                 # optional free text; also source, notes
 
 Every number may be a YAML number or a string expression of numbers and ``pi`` with ``+ - * /`` and
@@ -48,7 +52,7 @@ __all__ = [
 ]
 
 _TOP_KEYS = {"name", "convention", "joint_types", "dh", "q_limits", "base", "tool", "description", "source",
-             "notes"}
+             "notes", "home", "planar"}
 _META_KEYS = ("description", "source", "notes")
 _ROW_KEYS = ("a", "alpha", "d", "theta")
 _BINOPS = {ast.Add: operator.add, ast.Sub: operator.sub, ast.Mult: operator.mul, ast.Div: operator.truediv}
@@ -184,8 +188,23 @@ def _parse_limits(lim, n: int, where: str) -> list[list[float]] | None:
     return pairs
 
 
+def _parse_home_planar(data: dict, n: int, limits, where: str) -> dict:
+    """The model data ``home`` (n floats within the limits, or None) and ``planar`` (a bool)."""
+    home = data.get("home")
+    if home is not None:
+        home = _parse_list(home, n, f"{where}home")
+        for i, (v, (lo, hi)) in enumerate(zip(home, limits or [(-math.inf, math.inf)] * n)):
+            if not lo <= v <= hi:
+                raise ModelError(f"{where}home[{i}]: {v} is outside q_limits [{lo}, {hi}]")
+    planar = data.get("planar", False)
+    if not isinstance(planar, bool):
+        raise ModelError(f"{where}planar: expected true or false, got {planar!r}")
+    return {"home": home, "planar": planar}
+
+
 def parse_chain_dict(data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> dict:
-    """The keyword arguments of :class:`~diffkin.chain.DHChain` (plus ``metadata``) from a model mapping;
+    """The keyword arguments of :class:`~diffkin.chain.DHChain` (plus ``metadata`` and the model data
+    ``home`` / ``planar``, which the chain carries as attributes) from a model mapping;
     errors name the field (``where`` prefixes them). :meth:`DHChain.from_dict` builds the chain."""
     pre = f"{where}: " if where else ""
     if not isinstance(data, dict):
@@ -227,6 +246,7 @@ def parse_chain_dict(data: dict, dtype: torch.dtype | None = None, device=None, 
         name=name,
         dtype=dtype,
         metadata={k: str(data[k]) for k in _META_KEYS if data.get(k) is not None},
+        **_parse_home_planar(data, n, limits, pre),
     )
 
 
@@ -306,6 +326,10 @@ def chain_to_dict(chain) -> dict:
         if T is not None:
             rows = T.detach().cpu().tolist()
             out[key] = {"matrix": [_Flow(_nice(v, dt) for v in row) for row in rows]}
+    if getattr(chain, "home", None) is not None:
+        out["home"] = _Flow(_nice(v, dt) for v in chain.home)
+    if getattr(chain, "planar", False):
+        out["planar"] = True
     return out
 
 
