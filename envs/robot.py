@@ -252,10 +252,6 @@ def robot_collision(chain: KinematicChain, collision=None):
         if isinstance(chain, URDFChain):
             collision = RobotCollision.from_urdf(chain.tree, chain)
         elif isinstance(chain, MJCFChain):
-            if not hasattr(chain, "body_poses"):  # placing every MuJoCo body needs them (collision.mjcf)
-                raise ModelError(f"the MJCF robot {chain.name!r} cannot place its geoms yet (no "
-                                 "chain.body_poses): pass collision=RobotCollision.from_mjcf(source, "
-                                 "body_poses=...)")
             collision = RobotCollision.from_mjcf(chain.source_path or chain.source_text, chain)
         else:
             raise ModelError(f"self-collision checks need collision geometry: robot {chain.name!r} "

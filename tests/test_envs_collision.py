@@ -133,11 +133,6 @@ def test_given_collision_model_and_vector_env():
 def test_collision_option_errors():
     with pytest.raises(ModelError, match="collision geometry.*panda"):
         gym.make("diffkin/Reach-v0", robot="panda", self_collision="terminate")
-    ball = models.from_mjcf(Path(__file__).parent / "data" / "mjcf_extra" / "joint_kinds.xml", "palm",
-                            root_link="torso")
-    if not hasattr(ball, "body_poses"):  # until the MJCF chain places every body
-        with pytest.raises(ModelError, match="body_poses"):
-            gym.make("diffkin/Reach-v0", robot=ball, self_collision="penalize")
     with pytest.raises(ConventionError, match="self_collision"):
         gym.make("diffkin/Reach-v0", self_collision="stop")
     with pytest.raises(DiffkinError, match="collision_penalty"):
@@ -147,3 +142,37 @@ def test_collision_option_errors():
     other = RobotCollision.from_urdf(FOLD, models.from_urdf(FOLD, "link2"))
     with pytest.raises(ShapeError, match="nq 2"):
         gym.make("diffkin/Reach-v0", robot=_arm(), collision=other, self_collision="terminate")
+
+
+def test_an_mjcf_robot_builds_its_collision_model_from_its_own_file():
+    """An MJCF robot with self_collision: the geoms are placed by the chain's q (every body through
+    models.mjcf_bodies), and the env's min distance is MuJoCo's own mj_geomDistance over the same pairs."""
+    path = Path(__file__).parent / "data" / "mjcf_extra" / "joint_kinds.xml"  # primitive geoms only
+    arm = models.from_mjcf(path, "palm", root_link="torso", dtype=torch.float64)
+    vec = TorchVectorEnv("diffkin/Reach-v0", 3, robot=arm, self_collision="penalize", init_noise=0.5)
+    vec.reset(seed=3)
+    _, _, _, _, info = vec.step(torch.zeros(vec.action_space.shape))
+    from diffkin.models.mjcf import compile_mjcf
+
+    m = compile_mjcf(path)[0]
+    d = mujoco.MjData(m)
+    col = vec.task.collision
+    names = [g.name for g in col.geoms]
+    ids = {n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in names}
+    assert col.pairs and all(i >= 0 or "/" in n for n, i in ids.items())
+    for i in range(3):  # every env's state, its distances by MuJoCo
+        d.qpos[:] = arm.to_qpos(vec.state["q"][i].double()).numpy()
+        mujoco.mj_kinematics(m, d)
+        ref = min(mujoco.mj_geomDistance(m, d, _geom_id(m, a), _geom_id(m, b), 10.0, None)
+                  for a, b in col.pairs)
+        assert float(info["min_distance"][i]) == pytest.approx(ref, abs=1e-5)
+    assert not info["min_distance"].requires_grad  # no autograd graph built in a step
+
+
+def _geom_id(m, name: str) -> int:
+    """MuJoCo's id of a geom by the collision layer's name (MJCF name, or "<body>/<i>" when unnamed)."""
+    g = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, name)
+    if g >= 0:
+        return g
+    body, i = name.rsplit("/", 1)
+    return int(m.body(body).geomadr[0]) + int(i)

@@ -296,3 +296,11 @@ def test_to_mjcf_round_trip(path, ends, tmp_path):
     chain.base = torch.eye(4, dtype=torch.float64)
     with pytest.raises(ModelError, match="base or tool"):
         chain.to_mjcf()
+
+
+def test_to_dtype_moves_the_reference_qpos_with_the_chain():
+    # qpos0 was a plain attribute: after .to(float32) to_qpos mixed float64 and float32 (a raw RuntimeError)
+    chain = from_mjcf(KINDS, "palm", root_link="torso", dtype=torch.float64).to(torch.float32)
+    q = chain.neutral_configuration()
+    assert chain.qpos0.dtype == torch.float32
+    torch.testing.assert_close(chain.from_qpos(chain.to_qpos(q)), q)

@@ -48,15 +48,40 @@ class BodyFrames:
 
 
 def load_model(source):
-    """A compiled ``mujoco.MjModel`` from a path, XML text or an ``MjModel``."""
+    """A compiled ``mujoco.MjModel`` from a path, XML text or an ``MjModel``. A model whose mesh files do
+    not resolve still loads: its mesh geoms are skipped with a warning naming them (and file textures
+    dropped), as the kinematic reader does (:func:`diffkin.models.mjcf.compile_mjcf`)."""
     mujoco = require("mujoco", "collision", "RobotCollision.from_mjcf")
     if isinstance(source, mujoco.MjModel):
         return source
     if isinstance(source, str) and "<" in source:
-        return mujoco.MjModel.from_xml_string(source)
-    if isinstance(source, (str, Path)) and Path(source).is_file():
-        return mujoco.MjModel.from_xml_path(str(source))
-    raise ModelError(f"MJCF source must be a path, XML text or a mujoco.MjModel, got {source!r:.80}")
+        where, parse = "<MJCF text>", lambda: mujoco.MjSpec.from_string(source)
+    elif isinstance(source, (str, Path)) and Path(source).is_file():
+        where, parse = str(source), lambda: mujoco.MjSpec.from_file(str(source))
+    else:
+        raise ModelError(f"MJCF source must be a path, XML text or a mujoco.MjModel, got {source!r:.80}")
+    try:
+        return parse().compile()
+    except ValueError:  # a file asset does not resolve: compile again without the meshes
+        pass
+    except mujoco.FatalError as exc:
+        raise ModelError(f"{where}: MuJoCo could not compile the model: {exc}") from None
+    from ..models.mjcf import _strip_assets
+
+    spec = parse()
+    meshes = [g for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_MESH]
+    names = [g.name or f"{g.parent.name}/{g.meshname}" for g in meshes]
+    for g in meshes:
+        spec.delete(g)
+    _strip_assets(spec)
+    try:
+        model = spec.compile()
+    except (ValueError, mujoco.FatalError) as exc:
+        raise ModelError(f"{where}: MuJoCo could not compile the model: {exc}") from None
+    if names:
+        warnings.warn(f"{where}: mesh files do not resolve; {len(names)} mesh geoms skipped: "
+                      f"{', '.join(names[:12])}{' ...' if len(names) > 12 else ''}", stacklevel=3)
+    return model
 
 
 def _rotation(quat) -> np.ndarray:

@@ -12,6 +12,7 @@ assistant counts adjacency), and an SRDF's ``<disable_collisions link1= link2=>`
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 import xml.etree.ElementTree as ET
@@ -228,16 +229,21 @@ class RobotCollision(nn.Module):
         (fitted capsules of their vertices) are read, other types skipped with a warning.
 
         ``body_poses(q) -> (..., nbody, 4, 4)``: the pose of every MuJoCo body (world first), differentiable
-        for gradients; defaults to ``chain.body_poses`` once the MJCF model provides it. ``chain`` (optional)
-        sets dtype and device; without it ``dtype`` / ``device``.
+        for gradients; for an MJCF chain (:func:`diffkin.models.from_mjcf`) it defaults to
+        :func:`diffkin.models.mjcf_bodies.body_poses` of that chain. ``chain`` (optional) sets dtype and
+        device; without it ``dtype`` / ``device``.
         """
         from .mjcf import BodyFrames, load_model, mjcf_geoms, mjcf_pairs
 
         m = load_model(source)
-        poses = body_poses if body_poses is not None else getattr(chain, "body_poses", None)
+        poses = body_poses
+        if poses is None and hasattr(chain, "to_qpos"):  # an MJCF chain: every body from its own q
+            from ..models.mjcf_bodies import body_poses as mjcf_body_poses
+
+            poses = functools.partial(mjcf_body_poses, chain)
         if poses is None:
-            raise ModelError("RobotCollision.from_mjcf needs the body poses: pass body_poses=callable(q) -> "
-                             "(..., nbody, 4, 4), or a chain with a body_poses method")
+            raise ModelError("RobotCollision.from_mjcf needs the body poses: pass an MJCF chain "
+                             "(models.from_mjcf) or body_poses=callable(q) -> (..., nbody, 4, 4)")
         names = [m.body(b).name or f"body{b}" for b in range(m.nbody)]
         found, ids = mjcf_geoms(m)
         geoms = [Geom(name, names[body], kind, shape) for name, body, kind, shape, _ in found]

@@ -351,7 +351,9 @@ class MJCFChain(TreeChain):
         self._joint_rows = facts["joint_rows"]
         self.site_names = facts["site_names"]
         self.end_links, self.root_link = ends, facts["root_link"]
-        self.qpos0 = torch.tensor(model.qpos0, dtype=self.dtype, device=self.device)
+        # a buffer, so .to(dtype / device) moves it with the chain (not saved: the source file has it)
+        self.register_buffer("qpos0", torch.tensor(model.qpos0, dtype=self.dtype, device=self.device),
+                             persistent=False)
         self._nq_model, self._nv_model = int(model.nq), int(model.nv)
 
     # ---------------------------------------------------------------------------------- geometry

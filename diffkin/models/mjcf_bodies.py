@@ -47,7 +47,8 @@ def _companion(chain):
             raise ModelError("the MJCF model has no body besides the world")
         with warnings.catch_warnings():  # the chain itself already said which equalities it ignores
             warnings.simplefilter("ignore")
-            per[key] = from_mjcf(source, names, dtype=chain.dtype, device=chain.device)
+            # the file's geometry, not learnable here: no autograd graph through its parameters
+            per[key] = from_mjcf(source, names, dtype=chain.dtype, device=chain.device).requires_grad_(False)
     return per[key]
 
 
