@@ -4,8 +4,9 @@ The geometric Jacobian (3.30) comes from one pass of the kernel layer (``chain.f
 :mod:`diffkin.kernels.jacobian`); this module adds the choice of frame and point, the analytical Jacobian
 (3.66) and J̇q̇. Rows are ``[linear; angular]``; a chain with K end links gives ``(..., K, 6, n)``.
 
-Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, statics in
-:mod:`diffkin.statics`; both are re-exported here so ``diffkin.jacobian`` is the one import place.
+Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, Jacobian inverses
+in :mod:`diffkin.redundancy`, statics in :mod:`diffkin.statics`: each name has that one home. Their old second
+path here (``diffkin.jacobian.pinv`` ...) is a deprecated alias for one release (a ``DeprecationWarning``).
 """
 
 from __future__ import annotations
@@ -16,32 +17,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ._deprecation import moved_names
 from ._numerics import cross, eps_for
 from .errors import ConventionError, RepresentationSingularityError
-from .manipulability import (
-    DecoupledSingularities,
-    Ellipsoid,
-    condition_number,
-    decoupled_singularities,
-    force_ellipsoid,
-    force_transmission_ratio,
-    inverse_condition_number,
-    jacobian_determinant,
-    manipulability,
-    smallest_singular_value,
-    velocity_ellipsoid,
-    velocity_transmission_ratio,
-)
-from .redundancy import damped_pinv, nullspace_projector, pinv, weighted_pinv
 from .rotations import _convention, _euler_rate_matrix, _matrix_to_euler
-from .statics import (
-    closed_chain_torques,
-    joint_torques_from_wrench,
-    transform_velocity,
-    transform_wrench,
-    velocity_transform,
-    wrench_transform,
-)
 from .validation import broadcast_batch, check_trailing, tensors
 
 __all__ = [
@@ -55,32 +34,21 @@ __all__ = [
     "geometric_to_analytical",
     "shift_jacobian_point",
     "rotate_jacobian",
-    # re-exported from diffkin.redundancy
-    "pinv",
-    "damped_pinv",
-    "weighted_pinv",
-    "nullspace_projector",
-    # re-exported from diffkin.manipulability
-    "smallest_singular_value",
-    "jacobian_determinant",
-    "condition_number",
-    "inverse_condition_number",
-    "decoupled_singularities",
-    "DecoupledSingularities",
-    "manipulability",
-    "Ellipsoid",
-    "velocity_ellipsoid",
-    "force_ellipsoid",
-    "force_transmission_ratio",
-    "velocity_transmission_ratio",
-    # re-exported from diffkin.statics
-    "joint_torques_from_wrench",
-    "velocity_transform",
-    "wrench_transform",
-    "transform_velocity",
-    "transform_wrench",
-    "closed_chain_torques",
 ]
+
+#: the names this module re-exported until 0.1 (deprecated aliases, one release): name -> its one home
+_MOVED = {
+    **dict.fromkeys(("pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"), "diffkin.redundancy"),
+    **dict.fromkeys((
+        "smallest_singular_value", "jacobian_determinant", "condition_number", "inverse_condition_number",
+        "decoupled_singularities", "DecoupledSingularities", "manipulability", "Ellipsoid",
+        "velocity_ellipsoid", "force_ellipsoid", "force_transmission_ratio", "velocity_transmission_ratio",
+    ), "diffkin.manipulability"),
+    **dict.fromkeys((
+        "joint_torques_from_wrench", "velocity_transform", "wrench_transform", "transform_velocity",
+        "transform_wrench", "closed_chain_torques"), "diffkin.statics"),
+}
+__getattr__ = moved_names(__name__, _MOVED)
 
 _SINGULAR_MODES = ("raise", "flag", "ignore")
 _POINT_FRAMES = ("ee", "base")

@@ -19,7 +19,8 @@ from diffkin.ik.closed_loop import (
     clik,
     joint_limit_objective,
 )
-from diffkin.jacobian import analytical_jacobian, geometric_jacobian, manipulability
+from diffkin.jacobian import analytical_jacobian, geometric_jacobian
+from diffkin.manipulability import manipulability
 from diffkin.rotations import euler_rate_matrix, matrix_to_euler, rot_z
 
 PI = math.pi

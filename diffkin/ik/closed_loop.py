@@ -11,7 +11,7 @@ computes q̇ (or q̈) with one of the book's laws and integrates with (3.48), q(
 ``"second_order"``    q̈ = J†(ẍ_d + K_D ė + K_P e − J̇q̇) + (I − J†J) q̈₀  (3.102)/(3.104)
 ====================  ====================================================================================
 
-J⁻¹ and J† are the Moore–Penrose inverse of :func:`diffkin.jacobian.pinv` (singular values below √eps·σ_max
+J⁻¹ and J† are the Moore–Penrose inverse of :func:`diffkin.redundancy.pinv` (singular values below √eps·σ_max
 count as zero, so a singular J gives finite velocities, never NaN); the second-order integrator also bounds
 |q̇| (``qdot_max``), so every algorithm stays finite from any start. The orientation error and the matching
 Jacobian (§3.7.3):
@@ -45,9 +45,9 @@ from ..jacobian import (
     forward_kinematics_and_jacobian,
     geometric_to_analytical,
     jacobian_dot_qdot,
-    manipulability,
 )
 from ..kernels.pose_error import orientation_error as _orientation_error
+from ..manipulability import manipulability
 from ..redundancy import _damped, _pinv
 from ..rotations import (
     _convention,
