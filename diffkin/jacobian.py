@@ -1,8 +1,9 @@
 """Differential kinematics (§3.1–3.7): geometric and analytical Jacobians, J̇q̇ and Jacobian inverses.
 
-The geometric Jacobian (3.30) comes from one pass of the kernel layer (``chain.fk_jacobian``, encoded in
-:mod:`diffkin.kernels.jacobian`); this module adds the choice of frame and point, the analytical Jacobian
-(3.66) and J̇q̇. Rows are ``[linear; angular]``; a chain with K end links gives ``(..., K, 6, n)``.
+The geometric Jacobian (3.30) comes from one pass of the kernel layer (encoded in
+:mod:`diffkin.kernels.jacobian`, run by ``chain.forward_kinematics_and_jacobian``); this module adds the
+choice of frame and point, the analytical Jacobian (3.66) and J̇q̇. Rows are ``[linear; angular]``; a chain
+with K end links gives ``(..., K, 6, n)``.
 
 Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, Jacobian inverses
 in :mod:`diffkin.redundancy`, statics in :mod:`diffkin.statics`: each name has that one home. Their old second
@@ -141,12 +142,12 @@ def forward_kinematics_and_jacobian(
     if base is not None:
         if frame is not None or point is not None:
             q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
-        T_ee, J = chain.fk_jacobian(q, check=check, base=base)
+        T_ee, J = chain._fk_jacobian(q, check, base)
         return _jacobian_options(T_ee, J, frame, point, point_frame)
     if frame is None and point is None:  # the plain call: the chain checks q itself (the same rule)
-        return chain.fk_jacobian(q, check=check)
+        return chain._fk_jacobian(q, check)
     q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
-    T_ee, J = chain.fk_jacobian(q, check=False)
+    T_ee, J = chain._fk_jacobian(q, False)
     return _jacobian_options(T_ee, J, frame, point, point_frame)
 
 
@@ -191,7 +192,7 @@ def jacobian_dot_qdot(chain, q: Tensor, qdot: Tensor, check: bool = True) -> Ten
 
     ``q``, ``qdot`` ``(..., n)`` (broadcast together); ``K`` end links give ``(..., K, 6)``. J̇ is the
     directional derivative of the kernel Jacobian (3.30) along q̇, J̇ = Σ_k ∂J/∂q_k q̇_k, taken by
-    forward-mode AD through ``chain.fk_jacobian`` (exact, no second encoding of (3.30); trees, mimic
+    forward-mode AD through the chain's FK + Jacobian pass (exact, no second encoding of (3.30); trees, mimic
     couplings, prismatic joints, base and tool as the kernels have them). Batches above
     ``chain.small_batch`` run vmapped in blocks of that size; a few times the cost of J.
     Differentiable with respect to ``q``, ``qdot`` and the chain's parameters.
@@ -222,7 +223,7 @@ def _jdot_tail(chain) -> tuple[int, ...]:
 def _jdot_qdot_rows(chain, q: Tensor, qdot: Tensor) -> Tensor:
     """J̇q̇ ``(m, [K,] 6)`` for at most ``chain.small_batch`` configurations ``q (m, n)``: (d/dt J(q + t q̇)) q̇
     by forward mode through the kernel Jacobian."""
-    _, J_dot = torch.func.jvp(lambda x: chain.fk_jacobian(x, check=False)[1], (q,), (qdot,))
+    _, J_dot = torch.func.jvp(lambda x: chain._fk_jacobian(x, False)[1], (q,), (qdot,))
     v = qdot if chain.single_end else qdot.unsqueeze(-2)  # one q̇ for every end link
     return (J_dot @ v.unsqueeze(-1)).squeeze(-1)
 
