@@ -4,7 +4,8 @@ The one place for the renames of issue #30 item 15; ``docs/api/deprecated.md`` l
 
 - :func:`deprecated_alias` — an old function or method name calling the new one;
 - :func:`renamed_arguments` — old keyword names accepted for the new ones;
-- :func:`moved_names` — a module ``__getattr__`` for names whose one home is another module.
+- :func:`moved_names` — a module ``__getattr__`` for names whose one home is another module;
+- :func:`reordered_target` — the target moved before ``q0``: old positional calls recognised by shape.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import importlib
 import warnings
 from collections.abc import Callable
 
-__all__ = ["deprecated_alias", "moved_names", "renamed_arguments", "warn_deprecated"]
+__all__ = ["deprecated_alias", "moved_names", "renamed_arguments", "reordered_target", "warn_deprecated"]
 
 #: the old names that warned already in this process (once each; tests clear it)
 _WARNED: set[str] = set()
@@ -57,6 +58,28 @@ def renamed_arguments(where: str, **renamed: str) -> Callable[[Callable], Callab
                     raise TypeError(f"{where}() got both {new}= and its deprecated name {old}=")
                 warn_deprecated(f"{where}({old}=...)", f"{where}({new}=...)")
                 kwargs[new] = kwargs.pop(old)
+            return func(*args, **kwargs)
+
+        return wrapper
+
+    return decorate
+
+
+def reordered_target(where: str, q_name: str, old_order: Callable[..., bool]) -> Callable:
+    """For ``f(chain, T_target, q0, ...)`` whose old order was ``f(chain, q0, T_target, ...)``: a
+    positional call for which ``old_order(chain, a, b)`` says the old order (decided from the values' kinds
+    and shapes) is swapped, with a warning; ``f(chain, q0, T_target=...)`` binds the positional to
+    ``q_name``. Where the values cannot tell, the new order holds (documented with the function)."""
+
+    def decorate(func: Callable) -> Callable:
+        @functools.wraps(func)
+        def wrapper(*args, **kwargs):
+            if len(args) >= 3 and old_order(*args[:3]):
+                warn_deprecated(f"{where}(chain, {q_name}, T_target, ...) (the old argument order)",
+                                f"{where}(chain, T_target, {q_name}, ...)")
+                args = (args[0], args[2], args[1], *args[3:])
+            elif len(args) == 2 and "T_target" in kwargs and q_name not in kwargs:
+                kwargs[q_name], args = args[1], args[:1]
             return func(*args, **kwargs)
 
         return wrapper

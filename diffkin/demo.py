@@ -534,7 +534,7 @@ def section_clik(report: Report, quick: bool) -> None:
     ax = fig.subplots()
     rows = []
     for name, (kw, target) in runs.items():
-        res = clik(chain, q0, target, dt, steps, **kw)
+        res = clik(chain, target, q0, dt, steps, **kw)
         err = res.position_error.detach()
         t = res.t.detach()
         ax.semilogy(t.numpy(), err.clamp_min(1e-16).numpy(), label=name)

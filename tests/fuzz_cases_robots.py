@@ -267,10 +267,10 @@ CASES: list[Case] = [
          chain=hand, follows_chain=True, batch=(2,), covers=ik.solve),
     Case("ik.optimize", optimize_honest, {"T_target": Arg(poses(panda), (4, 4)), "q0": Q}, **CH,
          covers=ik.optimize),
-    Case("ik.clik", lambda c, q0, xd: ik.clik(c, q0, (xd,), 0.01, 3), {"q0": Q, "x_d": Arg(
+    Case("ik.clik", lambda c, q0, xd: ik.clik(c, (xd,), q0, 0.01, 3), {"q0": Q, "x_d": Arg(
         poses(panda, steps=3), (3, 4, 4))}, **CH, out_batch=lambda r: r.q, covers=ik.clik),
     # S = 4 samples, not 3 like the batch: an (S, 6) derivative without batch dims is valid input
-    Case("ik.clik[second_order]", lambda c, q0, xd, vd: ik.clik(c, q0, (xd, vd), 0.01, 3,
+    Case("ik.clik[second_order]", lambda c, q0, xd, vd: ik.clik(c, (xd, vd), q0, 0.01, 3,
                                                                  algorithm="second_order"),
          {"q0": Q, "x_d": Arg(poses(panda, steps=4), (4, 4, 4)), "xdot_d": Arg(uniform(4, 6), (4, 6))},
          **CH, out_batch=lambda r: r.q, covers=ik.clik),

@@ -259,7 +259,7 @@ def test_clik_integrates_on_the_manifold():
     with torch.no_grad():
         T = chain.forward_kinematics(q)
     q0 = chain.integrate(q, 0.1 * torch.randn(3, chain.nv, generator=g, dtype=F64))
-    res = ik.clik(chain, q0, (T.unsqueeze(-3), None), dt=0.01, steps=100, algorithm="dls")
+    res = ik.clik(chain, (T.unsqueeze(-3), None), q0, dt=0.01, steps=100, algorithm="dls")
     assert res.q.shape == (3, 101, chain.nq) and res.qdot.shape == (3, 101, chain.nv)
     assert float(res.position_error[:, -1].max()) < 1e-6 < float(res.position_error[:, 0].min())
     torch.testing.assert_close(res.q[..., 3:7].norm(dim=-1), torch.ones(3, 101, dtype=F64), atol=1e-12,

@@ -366,9 +366,9 @@ def test_clik_limits_stays_within_the_limits_and_steps_by_velocity_step():
     q0 = torch.tensor([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8], dtype=F64)
     dt = 0.01
     x, v = _circle(chain, q0, 300, dt)
-    free = ik.clik(chain, q0, (x, v), dt, algorithm="dls", orientation=None)
+    free = ik.clik(chain, (x, v), q0, dt, algorithm="dls", orientation=None)
     assert not bool(chain.within_limits(free.q).all())  # the plain DLS law runs through a limit
-    res = ik.clik(chain, q0, (x, v), dt, algorithm="dls", orientation=None, limits=True, qdot_max=2.0)
+    res = ik.clik(chain, (x, v), q0, dt, algorithm="dls", orientation=None, limits=True, qdot_max=2.0)
     assert bool(chain.within_limits(res.q).all()) and float(res.qdot.abs().max()) <= 2.0
     for k in (0, 100, 250):  # each step is velocity_step's for the CLIK reference ẋ_d + K e (3.70)
         ref = v[k] + 0.5 / dt * res.error[k]
@@ -376,7 +376,7 @@ def test_clik_limits_stays_within_the_limits_and_steps_by_velocity_step():
                                 damping=1e-4, velocity_limit=2.0, weight=[1, 1, 1, 0, 0, 0])
         torch.testing.assert_close(res.qdot[k], step, atol=1e-10, rtol=0)
     with pytest.raises(ConventionError, match="limits=True"):
-        ik.clik(chain, q0, (x, v), dt, algorithm="pseudo_inverse", orientation=None, limits=True)
+        ik.clik(chain, (x, v), q0, dt, algorithm="pseudo_inverse", orientation=None, limits=True)
 
 
 def test_env_cartesian_action_is_limit_safe():
