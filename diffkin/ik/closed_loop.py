@@ -581,7 +581,8 @@ def _check_limits_mode(limits, algorithm, orientation, nullspace, damping) -> No
 
 
 def _as_tuple(target) -> tuple:
-    return (target,) if isinstance(target, Tensor) else tuple(target)
+    # an array (numpy, anything with a shape) is one x_d, not a sequence of its rows
+    return (target,) if isinstance(target, Tensor) or hasattr(target, "shape") else tuple(target)
 
 
 def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_poses: bool) -> CLIKResult:
