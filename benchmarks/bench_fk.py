@@ -10,7 +10,7 @@ the same random joint batch, end-effector pose only, under ``torch.no_grad()``. 
 impl time. float64 rows add the non-torch peers of :mod:`benchmarks.peers` when installed (Pinocchio looped
 from Python, Robotics Toolbox's C++ ``ETS.eval``; same Panda frames), timed on at most 10 000
 configurations (their loops are linear in B). ``diffkin autograd`` is the default call with autograd
-recording (the DH table requires grad). ``--compile`` adds ``chain.compile()`` (torch.compile of a
+recording (the DH table requires grad). ``--compile`` adds ``chain.compile_fk()`` (torch.compile of a
 per-entry kernel; the first call compiles, tens of seconds).
 Memory rows (CPU, largest batch): peak extra resident memory of one call in a fresh process, and its ratio
 to the output size (B·16 numbers).
