@@ -46,8 +46,8 @@ def run(args) -> list[dict]:
         ik.closed_form(chain, T[:10])
         sec, sol = _time(lambda: ik.closed_form(chain, T))
         rows.append(dict(benchmark="closed_form_ur10", impl="closed_form (8 branches)", batch=n, seconds=sec,
-                         us_per_target=1e6 * sec / n, found=float(sol.valid.any(-1).float().mean()),
-                         branches_valid=float(sol.valid.float().mean())))
+                         us_per_target=1e6 * sec / n, found=float(sol.success.any(-1).float().mean()),
+                         branches_valid=float(sol.success.float().mean())))
         Ts = T[:ns]
         sec, res = _time(lambda: ik.solve(chain, Ts, seed=0, position_tolerance=1e-6,
                                           orientation_tolerance=1e-6), repeats=1)

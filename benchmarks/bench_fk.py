@@ -10,7 +10,7 @@ the same random joint batch, end-effector pose only, under ``torch.no_grad()``. 
 impl time. float64 rows add the non-torch peers of :mod:`benchmarks.peers` when installed (Pinocchio looped
 from Python, Robotics Toolbox's C++ ``ETS.eval``; same Panda frames), timed on at most 10 000
 configurations (their loops are linear in B). ``diffkin autograd`` is the default call with autograd
-recording (the DH table requires grad). ``--compile`` adds ``chain.compile()`` (torch.compile of a
+recording (the DH table requires grad). ``--compile`` adds ``chain.compile_fk()`` (torch.compile of a
 per-entry kernel; the first call compiles, tens of seconds).
 Memory rows (CPU, largest batch): peak extra resident memory of one call in a fresh process, and its ratio
 to the output size (B·16 numbers).
@@ -39,7 +39,7 @@ def _bench(B: int, dtype: torch.dtype, device: str, min_time: float, repeats: in
     q = chain.random_configuration((B,), generator=torch.Generator(device=device).manual_seed(0))
     impls = {"diffkin": lambda: chain.forward_kinematics(q)}
     if compiled:
-        fast = models.load("panda", dtype=dtype, device=device).compile()
+        fast = models.load("panda", dtype=dtype, device=device).compile_fk()
         impls["diffkin compiled"] = lambda: fast.forward_kinematics(q)
     impls["pytorch_kinematics"] = lambda: ref.forward_kinematics(q).get_matrix()
     times = {}
@@ -156,7 +156,7 @@ def parse_args(argv=None):
     p.add_argument("--device", default="cpu")
     p.add_argument("--repeats", type=int, default=None)
     p.add_argument("--min-time", type=float, default=None)
-    p.add_argument("--compile", action="store_true", help="also time chain.compile() (slow first call)")
+    p.add_argument("--compile", action="store_true", help="also time chain.compile_fk() (slow first call)")
     p.add_argument("--no-memory", action="store_true", help="skip the peak-memory subprocesses")
     p.add_argument("--no-peers", action="store_true", help="skip Pinocchio / Robotics Toolbox rows")
     p.add_argument("--quick", action="store_true")

@@ -5,8 +5,9 @@ counterpart, on an idle machine and with another process holding one core.
 
 Rows (Panda, CPU, medians of timed blocks; see :mod:`benchmarks.common`):
 
-* ``fk`` / ``fk_jacobian``: configurations per second at batch 100 000, float32 and float64, 1 and 2
-  threads; pytorch-kinematics's FK at the same batch and threads, and the ratio (FK + J) / FK;
+* ``fk`` / ``forward_kinematics_and_jacobian``: configurations per second at batch 100 000, float32 and
+  float64, 1 and 2 threads; pytorch-kinematics's FK at the same batch and threads, and the ratio
+  (FK + J) / FK;
 * ``latency``: one configuration (batch 1): FK, FK + Jacobian, ``ik.solve`` of one reachable full pose
   (median over 50 targets, 0.1 mm / 1 mrad), one ``gymnasium.make("diffkin/Reach-v0")`` step;
 * ``env``: ``TorchVectorEnv`` with 4 096 envs, env-steps per second, 1 and 2 threads;
@@ -62,7 +63,7 @@ def _fk_dtype(name: str, dtype, B: int, threads: int, timing, with_pk: bool) -> 
     q = chain.random_configuration((B,), generator=torch.Generator().manual_seed(0))
     with torch.no_grad(), torch_threads(threads):
         t_fk = timeit(lambda: chain.forward_kinematics(q), *timing)
-        t_fkj = timeit(lambda: chain.fk_jacobian(q), *timing)
+        t_fkj = timeit(lambda: chain.forward_kinematics_and_jacobian(q), *timing)
         t_pk = None
         if with_pk:
             ref = pk_panda(dtype)
@@ -100,7 +101,7 @@ def _latency_dtype(name: str, dtype, timing, quick: bool) -> list[dict]:
     q = chain.random_configuration((1,), generator=torch.Generator().manual_seed(1))
     with torch.no_grad(), torch_threads(1):
         t_fk = timeit(lambda: chain.forward_kinematics(q), *timing)
-        t_fkj = timeit(lambda: chain.fk_jacobian(q), *timing)
+        t_fkj = timeit(lambda: chain.forward_kinematics_and_jacobian(q), *timing)
         targets = _ik_targets(chain, 10 if quick else 50)
         ik.solve(chain, targets[:1])  # warm-up (sample library)
         per_target, success = [], 0
@@ -175,7 +176,7 @@ def _busy_rows(timing, quick: bool) -> list[dict]:
     step = _vector_env_step(4096)
     work = {
         f"FK, batch {B:,}": lambda: chain.forward_kinematics(q),
-        f"FK + Jacobian, batch {B:,}": lambda: chain.fk_jacobian(q),
+        f"FK + Jacobian, batch {B:,}": lambda: chain.forward_kinematics_and_jacobian(q),
         f"ik.solve, {targets.shape[0]} targets": lambda: ik.solve(chain, targets),
         "TorchVectorEnv step, 4 096 envs": step,
     }

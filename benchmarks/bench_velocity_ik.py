@@ -141,7 +141,7 @@ def run(args) -> list[dict]:
         c32 = models.load("panda", dtype=torch.float32).requires_grad_(False)
         q32, v32 = q.float(), v.float()
         t_batch32 = timeit(lambda: _step(c32, q32, v32), min_time, repeats)
-        J = chain.fk_jacobian(q)[1].numpy()
+        J = chain.forward_kinematics_and_jacobian(q)[1].numpy()
     lo, hi = chain.q_limits[:, 0].numpy(), chain.q_limits[:, 1].numpy()
     active = ((np.abs(qd - np.clip((lo - q.numpy()) / DT, -VMAX, VMAX)) < 1e-12)
               | (np.abs(qd - np.clip((hi - q.numpy()) / DT, -VMAX, VMAX)) < 1e-12)).sum(-1).mean()

@@ -3,9 +3,9 @@
     python -m benchmarks.gpu [--device cuda|cpu] [--batch 1000000] [--ik-batch N] [--dtype float32]
                              [--compile | --no-compile] [--no-graphs] [--quick] [--json out.json]
 
-Rows, per workload (``fk``: ``chain.forward_kinematics``; ``jacobian``: ``chain.fk_jacobian``, pose and
-geometric Jacobian (3.30); ``ik.solve``: full-pose targets reached by FK of random configurations,
-0.1 mm / 1 mrad):
+Rows, per workload (``fk``: ``chain.forward_kinematics``; ``jacobian``:
+``chain.forward_kinematics_and_jacobian``, pose and geometric Jacobian (3.30); ``ik.solve``: full-pose
+targets reached by FK of random configurations, 0.1 mm / 1 mrad):
 
 * ``eager``: the call as a user makes it, under ``torch.no_grad()`` (on the CPU: the fused C kernel);
 * ``cuda graph`` (CUDA only): the call captured once into a ``torch.cuda.CUDAGraph`` on static input and
@@ -125,7 +125,7 @@ def run(args) -> list[dict]:
     rows = []
     with torch.no_grad():
         for name, fn in (("fk", lambda x: chain.forward_kinematics(x, check=False)),
-                         ("jacobian", lambda x: chain.fk_jacobian(x, check=False))):
+                         ("jacobian", lambda x: chain.forward_kinematics_and_jacobian(x, check=False))):
             rows += [{**r, "batch": B} for r in _kernel_rows(name, fn, q, device, timing, graphs, compiled)]
     rows += _ik_rows(chain, n_ik, device, timing[1])
     for r in rows:

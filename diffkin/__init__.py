@@ -10,8 +10,11 @@ from . import collision as collision
 from . import errors as errors
 from . import ik as ik
 from . import jacobian as jacobian
+from . import manipulability as manipulability
 from . import models as models
+from . import redundancy as redundancy
 from . import rotations as rotations
+from . import statics as statics
 from . import trajectories as trajectories
 from . import transforms as transforms
 from .chain import DHChain as DHChain
@@ -46,8 +49,11 @@ __all__ = [
     "geometric_jacobian",
     "ik",
     "jacobian",
+    "manipulability",
     "models",
+    "redundancy",
     "rotations",
+    "statics",
     "trajectories",
     "transforms",
 ]

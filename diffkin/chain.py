@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from ._deprecation import deprecated_alias
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
 from .kernels import native
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
@@ -58,7 +59,7 @@ from .validation import (
 __all__ = ["KinematicChain", "DHChain", "as_rigid_transform"]
 
 _CONVENTIONS = ("standard", "modified")
-_CHUNK = 8192  # configurations per thread and slice of a large CPU batch (fk_jacobian)
+_CHUNK = 8192  # configurations per thread and slice of a large CPU batch (_fk_jacobian)
 
 
 def _dh_columns(columns: dict, dtype: torch.dtype | None, device) -> dict[str, Tensor | None]:
@@ -549,7 +550,8 @@ class KinematicChain(nn.Module):
         params = self.parameters()
         return torch.is_grad_enabled() and (q.requires_grad or any(p.requires_grad for p in params))
 
-    def fk_jacobian(self, q: Tensor, check: bool = True, base: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def _fk_jacobian(self, q: Tensor, check: bool = True,
+                     base: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """End poses and geometric Jacobians (3.30) from one pass: ``(T (..., [K,] 4, 4),
         J (..., [K,] 6, nv))``. ``base`` (per-row world poses of the base ``(..., 4, 4)``): T in the world
         and J's rows rotated into it, diag(R, R) J.
@@ -559,7 +561,7 @@ class KinematicChain(nn.Module):
         batch (all operations are per configuration), but the frames and rows stay in cache.
         """
         if base is not None:
-            T, J = self.fk_jacobian(q, check)
+            T, J = self._fk_jacobian(q, check)
             B = self._row_base(base, check)
             R = B[..., :3, :3] if self._single_end else B[..., None, :3, :3]
             J = torch.cat((R @ J[..., :3, :], R @ J[..., 3:, :]), dim=-2)
@@ -568,7 +570,7 @@ class KinematicChain(nn.Module):
             q = self.check_q(q, finite=False)
         if _autocast(q):
             with torch.autocast(q.device.type, enabled=False):
-                return self.fk_jacobian(q, check)
+                return self._fk_jacobian(q, check)
         batch, n, K, nv = q.shape[:-1], self.n_joints, self.n_ends, self.nv
         path, packed = self._route(q, "fk_jacobian")
         if path == "native":  # the fused C pass (poses and Jacobians at once)
@@ -637,14 +639,15 @@ class KinematicChain(nn.Module):
 
     def _functional_fk(self, qT: Tensor) -> Tensor:
         """End poses ``(m, K, 4, 4)`` from ``qT (n, m)`` without in-place writes or data-dependent branches:
-        the function :meth:`compile` traces."""
+        the function :meth:`compile_fk` traces."""
         _, ends = self.batch_last(qT, constants=False, check=False)
         return torch.stack([stack_columns(tuple(c.expand(3, qT.shape[1]) for c in f)) for f in ends], dim=1)
 
-    def compile(self, **kwargs) -> KinematicChain:
+    def compile_fk(self, **kwargs) -> KinematicChain:
         """Opt-in fast path: FK through ``torch.compile`` (kwargs passed on), for batches above
         :attr:`small_batch`. The first call compiles (tens of seconds on a small CPU); ``dynamic=True`` by
-        default so later batch sizes reuse it. :meth:`uncompile` drops it."""
+        default so later batch sizes reuse it. :meth:`uncompile_fk` drops it. (``nn.Module.compile`` is
+        torch's; the deprecated alias ``compile`` still means this method for one release.)"""
         kwargs.setdefault("dynamic", True)
         fn = torch.compile(self._functional_fk, **kwargs)
         n = self.n_joints
@@ -656,10 +659,14 @@ class KinematicChain(nn.Module):
         self._compiled_fk = fast
         return self
 
-    def uncompile(self) -> KinematicChain:
-        """Drop the compiled fast path of :meth:`compile`."""
+    def uncompile_fk(self) -> KinematicChain:
+        """Drop the compiled fast path of :meth:`compile_fk`."""
         self._compiled_fk = None
         return self
+
+    # deprecated aliases (one release): compile shadowed nn.Module.compile with another meaning
+    compile = deprecated_alias(compile_fk, "KinematicChain.compile", "KinematicChain.compile_fk")
+    uncompile = deprecated_alias(uncompile_fk, "KinematicChain.uncompile", "KinematicChain.uncompile_fk")
 
     # ------------------------------------------------------------------------------- Jacobians (§3)
     def geometric_jacobian(self, q: Tensor, **kwargs) -> Tensor:
@@ -674,12 +681,22 @@ class KinematicChain(nn.Module):
 
         return analytical_jacobian(self, q, representation=representation, **kwargs)
 
-    def forward_kinematics_and_jacobian(self, q: Tensor, **kwargs) -> tuple[Tensor, Tensor]:
-        """``(T (..., [K,] 4, 4), J (..., [K,] 6, n))`` from one FK pass (with the options of
-        :func:`diffkin.jacobian.geometric_jacobian`)."""
+    def forward_kinematics_and_jacobian(self, q: Tensor, frame=None, point: Tensor | None = None,
+                                        point_frame: str = "ee", check: bool = True,
+                                        base: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """End poses and geometric Jacobians (3.30) from one pass: ``(T (..., [K,] 4, 4),
+        J (..., [K,] 6, nv))``, with the options of :func:`diffkin.jacobian.geometric_jacobian`. ``base``
+        (per-row world poses of the base ``(..., 4, 4)``): T in the world and J's rows rotated into it,
+        diag(R, R) J. The plain call (no ``frame``/``point``) goes straight to the kernel pass."""
+        if frame is None and point is None:
+            return self._fk_jacobian(q, check, base)
         from .jacobian import forward_kinematics_and_jacobian
 
-        return forward_kinematics_and_jacobian(self, q, **kwargs)
+        return forward_kinematics_and_jacobian(self, q, frame, point, point_frame, check, base)
+
+    fk_jacobian = deprecated_alias(  # deprecated alias (one release): one name for FK + Jacobian
+        forward_kinematics_and_jacobian, "KinematicChain.fk_jacobian",
+        "KinematicChain.forward_kinematics_and_jacobian")
 
     def parameter_jacobian(self, q: Tensor, check: bool = True) -> tuple[Tensor, list[str]]:
         """Jacobian of the end poses w.r.t. the geometric parameters: ``(Φ (..., [K,] 6, P), names)``.

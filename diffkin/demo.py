@@ -397,9 +397,9 @@ def section_kernels(report: Report, quick: bool) -> None:
     with torch.no_grad():
         for what, size, x, reps, fn in (
             ("FK", f"{B:,}", q, 5, chain.forward_kinematics),
-            ("FK + Jacobian", f"{B:,}", q, 5, chain.fk_jacobian),
+            ("FK + Jacobian", f"{B:,}", q, 5, chain.forward_kinematics_and_jacobian),
             ("FK", "1", q1, 200, chain.forward_kinematics),
-            ("FK + Jacobian", "1", q1, 200, chain.fk_jacobian),
+            ("FK + Jacobian", "1", q1, 200, chain.forward_kinematics_and_jacobian),
         ):
             t_native = _best_of(lambda: fn(x), reps)  # noqa: B023  (called within this iteration)
             out = fn(x)
@@ -412,9 +412,9 @@ def section_kernels(report: Report, quick: bool) -> None:
             rows.append([what, size, f"{t_torch * 1e6:,.0f} µs", f"{t_native * 1e6:,.0f} µs",
                          f"{t_torch / t_native:.1f}×", f"{n / t_native / 1e6:.2f} M/s" if n > 1 else ""])
     body = (
-        f"`chain.forward_kinematics` and `chain.fk_jacobian` on CPU without autograd run one fused C pass "
-        f"(`diffkin.kernels.native`, built on first use) instead of the torch kernels; with autograd, on "
-        f"CUDA, or under `torch.compile` / `torch.func` the torch kernels run. Panda, float32, "
+        f"`chain.forward_kinematics` and `chain.forward_kinematics_and_jacobian` on CPU without autograd run "
+        f"one fused C pass (`diffkin.kernels.native`, built on first use) instead of the torch kernels; with "
+        f"autograd, on CUDA, or under `torch.compile` / `torch.func` the torch kernels run. Panda, float32, "
         f"{torch.get_num_threads()} thread(s), best of several calls; largest difference between the two "
         f"over every output: {worst:.1e}.\n\n"
         + _md_table(["what", "batch", "torch kernels", "fused kernel", "speed-up", "rate"], rows)
@@ -534,7 +534,7 @@ def section_clik(report: Report, quick: bool) -> None:
     ax = fig.subplots()
     rows = []
     for name, (kw, target) in runs.items():
-        res = clik(chain, q0, target, dt, steps, **kw)
+        res = clik(chain, target, q0, dt, steps, **kw)
         err = res.position_error.detach()
         t = res.t.detach()
         ax.semilogy(t.numpy(), err.clamp_min(1e-16).numpy(), label=name)

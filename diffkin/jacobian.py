@@ -1,11 +1,13 @@
 """Differential kinematics (§3.1–3.7): geometric and analytical Jacobians, J̇q̇ and Jacobian inverses.
 
-The geometric Jacobian (3.30) comes from one pass of the kernel layer (``chain.fk_jacobian``, encoded in
-:mod:`diffkin.kernels.jacobian`); this module adds the choice of frame and point, the analytical Jacobian
-(3.66) and J̇q̇. Rows are ``[linear; angular]``; a chain with K end links gives ``(..., K, 6, n)``.
+The geometric Jacobian (3.30) comes from one pass of the kernel layer (encoded in
+:mod:`diffkin.kernels.jacobian`, run by ``chain.forward_kinematics_and_jacobian``); this module adds the
+choice of frame and point, the analytical Jacobian (3.66) and J̇q̇. Rows are ``[linear; angular]``; a chain
+with K end links gives ``(..., K, 6, n)``.
 
-Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, statics in
-:mod:`diffkin.statics`; both are re-exported here so ``diffkin.jacobian`` is the one import place.
+Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, Jacobian inverses
+in :mod:`diffkin.redundancy`, statics in :mod:`diffkin.statics`: each name has that one home. Their old second
+path here (``diffkin.jacobian.pinv`` ...) is a deprecated alias for one release (a ``DeprecationWarning``).
 """
 
 from __future__ import annotations
@@ -16,32 +18,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from ._deprecation import moved_names
 from ._numerics import cross, eps_for
 from .errors import ConventionError, RepresentationSingularityError
-from .manipulability import (
-    DecoupledSingularities,
-    Ellipsoid,
-    condition_number,
-    decoupled_singularities,
-    force_ellipsoid,
-    force_transmission_ratio,
-    inverse_condition_number,
-    jacobian_determinant,
-    manipulability,
-    smallest_singular_value,
-    velocity_ellipsoid,
-    velocity_transmission_ratio,
-)
-from .redundancy import damped_pinv, nullspace_projector, pinv, weighted_pinv
 from .rotations import _convention, _euler_rate_matrix, _matrix_to_euler
-from .statics import (
-    closed_chain_torques,
-    joint_torques_from_wrench,
-    transform_velocity,
-    transform_wrench,
-    velocity_transform,
-    wrench_transform,
-)
 from .validation import broadcast_batch, check_trailing, tensors
 
 __all__ = [
@@ -55,32 +35,21 @@ __all__ = [
     "geometric_to_analytical",
     "shift_jacobian_point",
     "rotate_jacobian",
-    # re-exported from diffkin.redundancy
-    "pinv",
-    "damped_pinv",
-    "weighted_pinv",
-    "nullspace_projector",
-    # re-exported from diffkin.manipulability
-    "smallest_singular_value",
-    "jacobian_determinant",
-    "condition_number",
-    "inverse_condition_number",
-    "decoupled_singularities",
-    "DecoupledSingularities",
-    "manipulability",
-    "Ellipsoid",
-    "velocity_ellipsoid",
-    "force_ellipsoid",
-    "force_transmission_ratio",
-    "velocity_transmission_ratio",
-    # re-exported from diffkin.statics
-    "joint_torques_from_wrench",
-    "velocity_transform",
-    "wrench_transform",
-    "transform_velocity",
-    "transform_wrench",
-    "closed_chain_torques",
 ]
+
+#: the names this module re-exported until 0.1 (deprecated aliases, one release): name -> its one home
+_MOVED = {
+    **dict.fromkeys(("pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"), "diffkin.redundancy"),
+    **dict.fromkeys((
+        "smallest_singular_value", "jacobian_determinant", "condition_number", "inverse_condition_number",
+        "decoupled_singularities", "DecoupledSingularities", "manipulability", "Ellipsoid",
+        "velocity_ellipsoid", "force_ellipsoid", "force_transmission_ratio", "velocity_transmission_ratio",
+    ), "diffkin.manipulability"),
+    **dict.fromkeys((
+        "joint_torques_from_wrench", "velocity_transform", "wrench_transform", "transform_velocity",
+        "transform_wrench", "closed_chain_torques"), "diffkin.statics"),
+}
+__getattr__ = moved_names(__name__, _MOVED)
 
 _SINGULAR_MODES = ("raise", "flag", "ignore")
 _POINT_FRAMES = ("ee", "base")
@@ -173,12 +142,12 @@ def forward_kinematics_and_jacobian(
     if base is not None:
         if frame is not None or point is not None:
             q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
-        T_ee, J = chain.fk_jacobian(q, check=check, base=base)
+        T_ee, J = chain._fk_jacobian(q, check, base)
         return _jacobian_options(T_ee, J, frame, point, point_frame)
     if frame is None and point is None:  # the plain call: the chain checks q itself (the same rule)
-        return chain.fk_jacobian(q, check=check)
+        return chain._fk_jacobian(q, check)
     q, frame, point = _check_options(chain, q, frame, point, point_frame, check)
-    T_ee, J = chain.fk_jacobian(q, check=False)
+    T_ee, J = chain._fk_jacobian(q, False)
     return _jacobian_options(T_ee, J, frame, point, point_frame)
 
 
@@ -223,7 +192,7 @@ def jacobian_dot_qdot(chain, q: Tensor, qdot: Tensor, check: bool = True) -> Ten
 
     ``q``, ``qdot`` ``(..., n)`` (broadcast together); ``K`` end links give ``(..., K, 6)``. J̇ is the
     directional derivative of the kernel Jacobian (3.30) along q̇, J̇ = Σ_k ∂J/∂q_k q̇_k, taken by
-    forward-mode AD through ``chain.fk_jacobian`` (exact, no second encoding of (3.30); trees, mimic
+    forward-mode AD through the chain's FK + Jacobian pass (exact, no second encoding of (3.30); trees, mimic
     couplings, prismatic joints, base and tool as the kernels have them). Batches above
     ``chain.small_batch`` run vmapped in blocks of that size; a few times the cost of J.
     Differentiable with respect to ``q``, ``qdot`` and the chain's parameters.
@@ -254,7 +223,7 @@ def _jdot_tail(chain) -> tuple[int, ...]:
 def _jdot_qdot_rows(chain, q: Tensor, qdot: Tensor) -> Tensor:
     """J̇q̇ ``(m, [K,] 6)`` for at most ``chain.small_batch`` configurations ``q (m, n)``: (d/dt J(q + t q̇)) q̇
     by forward mode through the kernel Jacobian."""
-    _, J_dot = torch.func.jvp(lambda x: chain.fk_jacobian(x, check=False)[1], (q,), (qdot,))
+    _, J_dot = torch.func.jvp(lambda x: chain._fk_jacobian(x, False)[1], (q,), (qdot,))
     v = qdot if chain.single_end else qdot.unsqueeze(-2)  # one q̇ for every end link
     return (J_dot @ v.unsqueeze(-1)).squeeze(-1)
 

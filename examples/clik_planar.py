@@ -105,7 +105,7 @@ def run_all(duration: float) -> dict:
     out = {}
     for name, (kw, target) in runs.items():
         t0 = time.perf_counter()
-        out[name] = clik(chain, q0, target, DT, steps, **kw)
+        out[name] = clik(chain, target, q0, DT, steps, **kw)
         print(f"  {name:26s} {steps} steps in {time.perf_counter() - t0:5.1f} s")
     return out
 

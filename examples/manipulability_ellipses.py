@@ -22,12 +22,8 @@ import torch  # noqa: E402
 from matplotlib.patches import Ellipse  # noqa: E402
 
 from diffkin import DHChain  # noqa: E402
-from diffkin.jacobian import (  # noqa: E402
-    force_ellipsoid,
-    geometric_jacobian,
-    manipulability,
-    velocity_ellipsoid,
-)
+from diffkin.jacobian import geometric_jacobian  # noqa: E402
+from diffkin.manipulability import force_ellipsoid, manipulability, velocity_ellipsoid  # noqa: E402
 
 A1 = A2 = 1.0
 

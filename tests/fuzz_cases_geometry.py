@@ -275,15 +275,10 @@ TRAJECTORIES = [
 CASES: list[Case] = ROTATIONS + TRANSFORMS + JACOBIAN + STATICS + MANIPULABILITY + TRAJECTORIES
 
 _RESULT = "a result container (NamedTuple) without input of its own"
-_PINV = "fuzzed with diffkin.redundancy in fuzz_cases_robots.py"
 #: public callables without a case, with the reason
 EXEMPT: dict[str, str] = {
     "diffkin.transforms.identity_transform": "takes no tensor input (a batch shape, a dtype and a device)",
     "diffkin.jacobian.AnalyticalJacobian": _RESULT,
-    "diffkin.jacobian.pinv": _PINV,
-    "diffkin.jacobian.damped_pinv": _PINV,
-    "diffkin.jacobian.weighted_pinv": _PINV,
-    "diffkin.jacobian.nullspace_projector": _PINV,
     "diffkin.manipulability.DecoupledSingularities": _RESULT,
     "diffkin.manipulability.Ellipsoid": _RESULT,
     "diffkin.trajectories.Trajectory": _RESULT,

@@ -224,13 +224,13 @@ def test_compile_fast_path_matches_eager():
     """chain.compile(): torch.compile of the component kernel gives the same poses (any batch > small)."""
     chain = DHChain([0.0, 0.4, 0.1], [math.pi / 2, 0.0, -math.pi / 2], [0.3, 0.0, 0.2], [0.0, 0.1, 0.0],
                     joint_types="RRP", tool=torch.tensor(random_transform(np.random.default_rng(0))))
-    fast = chain.copy().compile()
+    fast = chain.copy().compile_fk()
     for shape in [(40,), (5, 30)]:
         q = torch.rand(*shape, 3)
         with torch.no_grad():
             T = fast.forward_kinematics(q)
             torch.testing.assert_close(T, chain.forward_kinematics(q), atol=1e-6, rtol=0)
-    assert fast.uncompile()._compiled_fk is None
+    assert fast.uncompile_fk()._compiled_fk is None
 
 
 # --------------------------------------------------------------------------------------- dtypes

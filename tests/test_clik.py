@@ -19,7 +19,8 @@ from diffkin.ik.closed_loop import (
     clik,
     joint_limit_objective,
 )
-from diffkin.jacobian import analytical_jacobian, geometric_jacobian, manipulability
+from diffkin.jacobian import analytical_jacobian, geometric_jacobian
+from diffkin.manipulability import manipulability
 from diffkin.rotations import euler_rate_matrix, matrix_to_euler, rot_z
 
 PI = math.pi
@@ -54,12 +55,12 @@ def circle_runs(planar):
     w_book = lambda q: 0.5 * (torch.sin(q[..., 1]) ** 2 + torch.sin(q[..., 2]) ** 2)  # noqa: E731
     pos = (x[:, :3], xd[:, :3])
     return {
-        "open": clik(planar, Q0_BOOK, (x, xd), DT, algorithm="inverse", K=0.0, **PLANAR),
-        "inverse": clik(planar, Q0_BOOK, (x, xd), DT, algorithm="inverse", K=[500, 500, 100], **PLANAR),
-        "pinv": clik(planar, Q0_BOOK, pos, DT, algorithm="pseudo_inverse", K=500, **POSITION),
-        "manip": clik(planar, Q0_BOOK, pos, DT, K=500, nullspace=w_book, k0=50, **POSITION),
+        "open": clik(planar, (x, xd), Q0_BOOK, DT, algorithm="inverse", K=0.0, **PLANAR),
+        "inverse": clik(planar, (x, xd), Q0_BOOK, DT, algorithm="inverse", K=[500, 500, 100], **PLANAR),
+        "pinv": clik(planar, pos, Q0_BOOK, DT, algorithm="pseudo_inverse", K=500, **POSITION),
+        "manip": clik(planar, pos, Q0_BOOK, DT, K=500, nullspace=w_book, k0=50, **POSITION),
         "limits": clik(
-            planar, Q0_BOOK, pos, DT, K=500, nullspace="joint_limits", k0=250, q_limits=LIMITS, **POSITION
+            planar, pos, Q0_BOOK, DT, K=500, nullspace="joint_limits", k0=250, q_limits=LIMITS, **POSITION
         ),  # fmt: skip
         "w_book": w_book,
     }
@@ -70,7 +71,7 @@ def test_inverse_error_decays_with_rate_K(planar):
     x0 = torch.tensor([0.0, 0.5, 0.0, 0.0, 0.0, 0.0], dtype=F64)
     e0 = torch.tensor([2e-5, -1e-5, 0, 3e-5, 0, 0], dtype=F64)
     K = torch.tensor([500.0, 200.0, 100.0], dtype=F64)
-    res = clik(planar, Q0_BOOK, ((x0 + e0)[None],), DT, 30, algorithm="inverse", K=K, **PLANAR)
+    res = clik(planar, ((x0 + e0)[None],), Q0_BOOK, DT, 30, algorithm="inverse", K=K, **PLANAR)
     assert res.error.shape == (31, 3) and res.q.shape == (31, 3) and res.t.shape == (31,)
     assert torch.allclose(res.error[0], e0[[0, 1, 3]], atol=1e-15)
     for k in (1, 5, 20):
@@ -94,7 +95,7 @@ def test_transpose_bounded_and_converges(planar):
     # the target stops after 0.4 s (last sample at rest), the run goes on to 0.6 s
     xd = xd.clone()
     xd[-1] = 0
-    res = clik(planar, Q0_BOOK, (x[:, :3], xd[:, :3]), DT, 600, algorithm="transpose", K=500, **POSITION)
+    res = clik(planar, (x[:, :3], xd[:, :3]), Q0_BOOK, DT, 600, algorithm="transpose", K=500, **POSITION)
     assert res.position_error.max() < 2e-2  # bounded along the trajectory (Fig. 3.18: a few mm)
     assert res.position_error[400] > 1e-3
     assert res.position_error[-1] < 1e-6  # and tends to zero at rest
@@ -109,8 +110,8 @@ def test_nullspace_manipulability_raises_w_without_hurting_tracking(circle_runs,
     # the general objective (3.56) w = sqrt(det(J Jᵀ)) of the 2 × 3 task Jacobian, gradient by autograd
     x, xd = book_circle(0.3)
     pos = (x[:, :3], xd[:, :3])
-    a = clik(planar, Q0_BOOK, pos, DT, K=500, **POSITION)
-    b = clik(planar, Q0_BOOK, pos, DT, K=500, nullspace="manipulability", k0=50, **POSITION)
+    a = clik(planar, pos, Q0_BOOK, DT, K=500, **POSITION)
+    b = clik(planar, pos, Q0_BOOK, DT, K=500, nullspace="manipulability", k0=50, **POSITION)
     mu = lambda r: manipulability(geometric_jacobian(planar, r.q)[..., :2, :])  # noqa: E731
     assert mu(b).mean() > mu(a).mean() and b.position_error.max() < 1e-5
 
@@ -134,12 +135,12 @@ def test_second_order_tracks(planar):
     xdd[:, 1] = -0.25 * PI**2 * torch.sin(PI * t)
     xdd[:, 3] = -((PI / 24) ** 2) * torch.sin(PI * t / 24)
     q0 = Q0_BOOK + torch.tensor([0.01, -0.01, 0.005], dtype=F64)
-    res = clik(planar, q0, (x, xd, xdd), DT, algorithm="second_order", K_P=2500.0, K_D=100.0, **PLANAR)
+    res = clik(planar, (x, xd, xdd), q0, DT, algorithm="second_order", K_P=2500.0, K_D=100.0, **PLANAR)
     assert res.position_error[0] > 1e-3
     # Euler integration leaves a tracking error proportional to Δt (3e-5 m here, 8e-6 m at Δt/4)
     assert res.position_error[-100:].max() < 5e-5 and res.orientation_error[-100:].max() < 1e-6
     # without the acceleration feedforward ẍ_d the error is K_P e ≈ ẍ_d: 30 times larger
-    no_ff = clik(planar, q0, (x, xd), DT, algorithm="second_order", K_P=2500.0, K_D=100.0, **PLANAR)
+    no_ff = clik(planar, (x, xd), q0, DT, algorithm="second_order", K_P=2500.0, K_D=100.0, **PLANAR)
     assert no_ff.position_error[-1] > 30 * res.position_error[-1]
 
 
@@ -181,13 +182,13 @@ def test_orientation_errors_track_a_moving_pose(orientation):
     else:
         target = (T, v)
     res = clik(
-        chain, q0, target, DT, algorithm="inverse", K=500.0, orientation=orientation, return_poses=True
+        chain, target, q0, DT, algorithm="inverse", K=500.0, orientation=orientation, return_poses=True
     )
     assert res.poses.shape == (151, 4, 4)
     assert res.position_error.max() < 1e-6 and res.orientation_error.max() < 1e-6
     assert (res.poses[-1, :3, 3] - T[-1, :3, 3]).norm() < 1e-6
     # a perturbed start converges at rate K (ė = −K e for position, (3.93)/(3.86) for orientation)
-    res = clik(chain, q0 + 0.02, target, DT, algorithm="dls", damping=1e-4, K=200.0, orientation=orientation)
+    res = clik(chain, target, q0 + 0.02, DT, algorithm="dls", damping=1e-4, K=200.0, orientation=orientation)
     assert res.position_error[0] > 1e-3 and res.position_error[-1] < 1e-6 and res.orientation_error[-1] < 1e-6
 
 
@@ -197,7 +198,7 @@ def test_dls_and_pinv_stay_finite_out_of_reach(planar):
     far = torch.tensor([[2.0, 1.0, 0.0]], dtype=F64)
     reach_gap = far[0, :2].norm() - 1.5
     for alg in ("dls", "pseudo_inverse", "transpose"):
-        res = clik(planar, Q0_BOOK, (far,), DT, 300, algorithm=alg, K=100.0, damping=0.05, **POSITION)
+        res = clik(planar, (far,), Q0_BOOK, DT, 300, algorithm=alg, K=100.0, damping=0.05, **POSITION)
         assert torch.isfinite(res.q).all() and torch.isfinite(res.error).all()
         if alg != "pseudo_inverse":
             assert res.position_error[-1] < reach_gap + 0.06
@@ -208,10 +209,10 @@ def test_batch_broadcast_matches_single_runs(planar):
     shift = torch.tensor([0.0, 0.01, -0.01, 0.02], dtype=F64)[:, None, None]
     xb = x + shift * torch.tensor([1.0, 1.0, 0, 0, 0, 0], dtype=F64)  # (4, S, 6)
     q0 = Q0_BOOK + torch.tensor([[0.0], [0.01]], dtype=F64)[:, None, :]  # (2, 1, 3)
-    res = clik(planar, q0, (xb, xd), DT, algorithm="pseudo_inverse", K=300.0, **PLANAR)
+    res = clik(planar, (xb, xd), q0, DT, algorithm="pseudo_inverse", K=300.0, **PLANAR)
     assert res.q.shape == (2, 4, 51, 3) and res.error.shape == (2, 4, 51, 3)
     assert res.position_error.shape == (2, 4, 51)
-    one = clik(planar, q0[1, 0], (xb[2], xd), DT, algorithm="pseudo_inverse", K=300.0, **PLANAR)
+    one = clik(planar, (xb[2], xd), q0[1, 0], DT, algorithm="pseudo_inverse", K=300.0, **PLANAR)
     assert torch.allclose(res.q[1, 2], one.q, atol=1e-12)
 
 
@@ -219,12 +220,12 @@ def test_differentiable_through_the_integration(planar):
     x, xd = book_circle(0.005)
 
     def final_error(q0):
-        return clik(planar, q0, (x, xd), DT, algorithm="inverse", K=[500, 500, 100], **PLANAR).error[-1]
+        return clik(planar, (x, xd), q0, DT, algorithm="inverse", K=[500, 500, 100], **PLANAR).error[-1]
 
     q0 = (Q0_BOOK + 0.01).requires_grad_(True)
     assert torch.autograd.gradcheck(final_error, (q0,))
     chain = planar.copy()
-    res = clik(chain, Q0_BOOK, (x, xd), DT, algorithm="inverse", differentiable=True, **PLANAR)
+    res = clik(chain, (x, xd), Q0_BOOK, DT, algorithm="inverse", differentiable=True, **PLANAR)
     res.position_error[-1].backward()
     # w.r.t. the DH table: central differences of the whole integration with a_i moved by ±h
     h = 1e-6
@@ -235,12 +236,12 @@ def test_differentiable_through_the_integration(planar):
             moved = planar.copy()
             with torch.no_grad():
                 moved.a[i] += sign * h
-                res_h = clik(moved, Q0_BOOK, (x, xd), DT, algorithm="inverse", **PLANAR)
+                res_h = clik(moved, (x, xd), Q0_BOOK, DT, algorithm="inverse", **PLANAR)
                 ends.append(res_h.position_error[-1])
         fd[i] = (ends[0] - ends[1]) / (2 * h)
     assert fd.abs().max() > 1e-3  # a real dependence, not a vanishing one
     torch.testing.assert_close(chain.a.grad, fd, rtol=1e-3, atol=1e-6)
-    assert not clik(planar, Q0_BOOK, (x, xd), DT, **PLANAR).q.requires_grad  # no graph by default
+    assert not clik(planar, (x, xd), Q0_BOOK, DT, **PLANAR).q.requires_grad  # no graph by default
 
 
 def test_callable_target_and_clamp(planar):
@@ -249,35 +250,35 @@ def test_callable_target_and_clamp(planar):
 
     lim_chain = DHChain(planar.a.detach(), planar.alpha.detach(), planar.d.detach(), planar.theta.detach(),
                         q_limits=LIMITS)  # fmt: skip
-    res = clik(lim_chain, Q0_BOOK, target, DT, 100, algorithm="dls", clamp=True, **POSITION)
+    res = clik(lim_chain, target, Q0_BOOK, DT, 100, algorithm="dls", clamp=True, **POSITION)
     assert res.q.shape == (101, 3) and lim_chain.within_limits(res.q).all()
     with pytest.raises(ConventionError, match="steps"):
-        clik(planar, Q0_BOOK, target, DT, **POSITION)
+        clik(planar, target, Q0_BOOK, DT, **POSITION)
 
 
 def test_bad_input():
     planar = models.load("three_link_planar", dtype=F64)
     x = torch.zeros(3, 6, dtype=F64)
     with pytest.raises(ConventionError):
-        clik(planar, Q0_BOOK, (x,), DT, algorithm="newton")
+        clik(planar, (x,), Q0_BOOK, DT, algorithm="newton")
     with pytest.raises(ConventionError):
-        clik(planar, Q0_BOOK, (x,), DT, orientation="rodrigues")
+        clik(planar, (x,), Q0_BOOK, DT, orientation="rodrigues")
     assert None in CLIK_ORIENTATIONS
     with pytest.raises(ShapeError, match="square"):
-        clik(planar, Q0_BOOK, (x[:, :3],), DT, algorithm="inverse", **POSITION)
+        clik(planar, (x[:, :3],), Q0_BOOK, DT, algorithm="inverse", **POSITION)
     with pytest.raises(ShapeError):
-        clik(planar, Q0_BOOK, (x,), DT, K=torch.ones(4, dtype=F64), **PLANAR)
+        clik(planar, (x,), Q0_BOOK, DT, K=torch.ones(4, dtype=F64), **PLANAR)
     with pytest.raises(ShapeError, match="poses"):
-        clik(planar, Q0_BOOK, (x,), DT, orientation="quaternion")
+        clik(planar, (x,), Q0_BOOK, DT, orientation="quaternion")
     with pytest.raises(ShapeError):
-        clik(planar, Q0_BOOK, (x,), DT, rows=(0, 7), orientation=None)
+        clik(planar, (x,), Q0_BOOK, DT, rows=(0, 7), orientation=None)
     no_limits = DHChain([0.5] * 3, [0.0] * 3, [0.0] * 3, [0.0] * 3)
     with pytest.raises(ModelError, match="q_limits"):
-        clik(no_limits.double(), Q0_BOOK, (x[:, :3],), DT, nullspace="joint_limits", **POSITION)
+        clik(no_limits.double(), (x[:, :3],), Q0_BOOK, DT, nullspace="joint_limits", **POSITION)
     with pytest.raises(ConventionError):
-        clik(planar, Q0_BOOK, (x[:, :3],), DT, nullspace="distance", **POSITION)
+        clik(planar, (x[:, :3],), Q0_BOOK, DT, nullspace="distance", **POSITION)
     with pytest.raises(ShapeError):
-        clik(planar, Q0_BOOK[:2], (x,), DT, **PLANAR)
+        clik(planar, (x,), Q0_BOOK[:2], DT, **PLANAR)
 
 
 # ------------------------------------------------------------------------- finite everywhere (#15)
@@ -301,7 +302,7 @@ def test_every_algorithm_stays_finite_from_singular_and_random_starts(algorithm)
         x = {None: T[:, None, :3, 3], "euler": euler[:, None]}.get(orientation, T[:, None])
         if algorithm == "inverse" and orientation is None:
             continue  # 3 rows for 6 joints: not square
-        res = clik(chain, starts, (x,), DT, 40, algorithm=algorithm, orientation=orientation)
+        res = clik(chain, (x,), starts, DT, 40, algorithm=algorithm, orientation=orientation)
         for name in ("q", "qdot", "error", "position_error", "orientation_error"):
             assert torch.isfinite(getattr(res, name)).all(), (algorithm, orientation, name)
 
@@ -312,9 +313,9 @@ def test_default_clik_from_a_stretched_planar_arm():
     q0 = torch.tensor([[0.0, 0.0, 0.0], [0.5, 0.0, 0.0]], dtype=F64)
     x = torch.tensor([0.6, 0.9, 0.2], dtype=F64).expand(2, 1, 3)
     for algorithm in ("pseudo_inverse", "second_order", "dls"):
-        res = clik(planar, q0, (x,), DT, 50, algorithm=algorithm, orientation=None, rows=(0, 1))
+        res = clik(planar, (x,), q0, DT, 50, algorithm=algorithm, orientation=None, rows=(0, 1))
         assert torch.isfinite(res.q).all() and torch.isfinite(res.qdot).all()
-    res = clik(planar, q0, (x,), DT, 2000, orientation=None, rows=(0, 1))
+    res = clik(planar, (x,), q0, DT, 2000, orientation=None, rows=(0, 1))
     assert (res.position_error[:, -1] < 1e-6).all()  # leaves the singularity and converges
 
 
@@ -326,12 +327,12 @@ def test_clik_refuses_non_finite_targets():
     bad = x.clone()
     bad[0, 1] = float("nan")
     with pytest.raises(NonFiniteError):
-        clik(planar, Q0_BOOK, (bad,), DT, **POSITION)
+        clik(planar, (bad,), Q0_BOOK, DT, **POSITION)
     with pytest.raises(NonFiniteError):
-        clik(planar, Q0_BOOK, (x, torch.full((1, 3), float("inf"), dtype=F64)), DT, **POSITION)
+        clik(planar, (x, torch.full((1, 3), float("inf"), dtype=F64)), Q0_BOOK, DT, **POSITION)
     with pytest.raises(NonFiniteError):
-        clik(planar, Q0_BOOK, lambda t: (bad[0],), DT, 3, **POSITION)
+        clik(planar, lambda t: (bad[0],), Q0_BOOK, DT, 3, **POSITION)
     with pytest.raises(ShapeError):  # a derivative of the wrong size is refused, not cut
-        clik(planar, Q0_BOOK, (x, torch.zeros(1, 5, dtype=F64)), DT, **POSITION)
+        clik(planar, (x, torch.zeros(1, 5, dtype=F64)), Q0_BOOK, DT, **POSITION)
     with pytest.raises(ShapeError):
-        clik(planar, Q0_BOOK, (torch.zeros(1, 4, dtype=F64),), DT, **POSITION)
+        clik(planar, (torch.zeros(1, 4, dtype=F64),), Q0_BOOK, DT, **POSITION)

@@ -100,7 +100,7 @@ def test_jacobian_on_the_manifold_matches_finite_differences():
     for chain in (_floating_g1(), from_urdf(PLANAR, "tip", dtype=F64)):
         q = chain.random_configuration(2, generator=torch.Generator().manual_seed(3))
         with torch.no_grad():
-            T, J = chain.fk_jacobian(q)
+            T, J = chain.forward_kinematics_and_jacobian(q)
             h = 1e-6
             for i in range(chain.nv):
                 e = torch.zeros(chain.nv, dtype=F64)
@@ -133,7 +133,7 @@ def test_floating_base_matches_pinocchio_free_flyer():
     assert (chain.nq, chain.nv) == (model.nq, model.nv) == (36, 35)
     q = chain.random_configuration(6, generator=torch.Generator().manual_seed(5))
     with torch.no_grad():
-        T, J = chain.fk_jacobian(q)
+        T, J = chain.forward_kinematics_and_jacobian(q)
     idx_v = [model.joints[model.getJointId(n)].idx_v for n in chain.joint_names[1:]]
     for r in range(q.shape[0]):
         qp = np.zeros(model.nq)
@@ -182,7 +182,7 @@ def test_per_row_base_poses():
         B = chain.forward_kinematics(chain.random_configuration(16, generator=g))  # 16 rigid poses
         T = chain.forward_kinematics(q, base=B)
         J = geometric_jacobian(chain, q, base=B)
-        T0, J0 = chain.fk_jacobian(q)
+        T0, J0 = chain.forward_kinematics_and_jacobian(q)
     torch.testing.assert_close(T, B @ T0)
     R = B[:, :3, :3]
     torch.testing.assert_close(J, torch.cat((R @ J0[:, :3], R @ J0[:, 3:]), dim=1))
@@ -259,7 +259,7 @@ def test_clik_integrates_on_the_manifold():
     with torch.no_grad():
         T = chain.forward_kinematics(q)
     q0 = chain.integrate(q, 0.1 * torch.randn(3, chain.nv, generator=g, dtype=F64))
-    res = ik.clik(chain, q0, (T.unsqueeze(-3), None), dt=0.01, steps=100, algorithm="dls")
+    res = ik.clik(chain, (T.unsqueeze(-3), None), q0, dt=0.01, steps=100, algorithm="dls")
     assert res.q.shape == (3, 101, chain.nq) and res.qdot.shape == (3, 101, chain.nv)
     assert float(res.position_error[:, -1].max()) < 1e-6 < float(res.position_error[:, 0].min())
     torch.testing.assert_close(res.q[..., 3:7].norm(dim=-1), torch.ones(3, 101, dtype=F64), atol=1e-12,
@@ -279,7 +279,7 @@ def test_velocity_step_on_a_floating_base_matches_bvls():
     dt, vmax, lam = 0.05, 1.5, 1e-3
     v = ik.velocity_step(chain, q, twist, dt, damping=lam, velocity_limit=vmax)
     assert v.shape == (40, chain.nv)
-    J = chain.fk_jacobian(q)[1].reshape(40, 12, chain.nv)
+    J = chain.forward_kinematics_and_jacobian(q)[1].reshape(40, 12, chain.nv)
     space = chain.configuration_space
     sq, sv = list(space.scalar_index("q")), list(space.scalar_index("v"))
     lim = chain.q_limits
@@ -333,7 +333,7 @@ def test_a_chain_ending_in_a_ball_joint_matches_mujoco():
     d = mujoco.MjData(m)
     q = chain.random_configuration(4, generator=torch.Generator().manual_seed(18))
     with torch.no_grad():
-        T, J = chain.fk_jacobian(q)
+        T, J = chain.forward_kinematics_and_jacobian(q)
     for r in range(4):
         d.qpos[:] = chain.to_qpos(q[r]).numpy()
         mujoco.mj_kinematics(m, d)

@@ -89,11 +89,11 @@ def test_branches_reproduce_target_and_contain_true_q(name, base_tool):
     T = chain.forward_kinematics(q)
     sol = closed_form(chain, T)
     k = BRANCHES[name]
-    assert sol.q.shape == (4, 25, k, chain.n_joints) and sol.valid.shape == (4, 25, k)
-    assert sol.valid.dtype == torch.bool and torch.isfinite(sol.q).all()
+    assert sol.q.shape == (4, 25, k, chain.n_joints) and sol.success.shape == (4, 25, k)
+    assert sol.success.dtype == torch.bool and torch.isfinite(sol.q).all()
     res = _pose_residual(chain, name, sol.q, T)
-    assert (res[sol.valid] < 1e-9).all()
-    assert sol.valid.float().mean() > 0.99  # generic targets: every branch exists
+    assert (res[sol.success] < 1e-9).all()
+    assert sol.success.float().mean() > 0.99  # generic targets: every branch exists
     assert _contains(chain, sol.q, q).all()
 
 
@@ -104,7 +104,7 @@ def test_bundled_models_are_recognised_and_solved(name):
     q = chain.random_configuration((30,), generator=torch.Generator().manual_seed(3))
     T = chain.forward_kinematics(q)
     sol = closed_form(chain, T)
-    assert (_pose_residual(chain, name, sol.q, T)[sol.valid] < 1e-9).all()
+    assert (_pose_residual(chain, name, sol.q, T)[sol.success] < 1e-9).all()
     assert _contains(chain, sol.q, q).all()
 
 
@@ -113,7 +113,7 @@ def test_generic_targets_give_distinct_branches():
     for name, k in (("anthropomorphic_arm", 4), ("anthropomorphic_wrist", 8)):
         chain = _chain(name)
         sol = closed_form(chain, chain.forward_kinematics(_random_q(chain, (10,))))
-        assert sol.valid.all()
+        assert sol.success.all()
         d = (sol.q[:, :, None] - sol.q[:, None, :]).abs().amax(-1) + torch.eye(k, dtype=F64) * 10
         assert (d > 1e-3).all()
 
@@ -150,26 +150,26 @@ def test_unreachable_targets_are_flagged_finite():
     arm = _chain("anthropomorphic_arm")
     far = torch.tensor([[3.0, 0.5, 1.0], [0.0, 0.0, 5.0]], dtype=F64)
     sol = closed_form(arm, far)
-    assert not sol.valid.any() and torch.isfinite(sol.q).all()
+    assert not sol.success.any() and torch.isfinite(sol.q).all()
 
     planar = _chain("three_link_planar")
     sol = closed_form(planar, torch.tensor([5.0, 0.0, 0.3], dtype=F64))
-    assert not sol.valid.any() and torch.isfinite(sol.q).all()
+    assert not sol.success.any() and torch.isfinite(sol.q).all()
     T = planar.forward_kinematics(torch.tensor([0.3, 0.4, 0.5], dtype=F64))
     T_tilted = T.clone()
     T_tilted[:3, :3] = T[:3, :3] @ torch.tensor([[1, 0, 0], [0, 0, -1], [0, 1, 0]], dtype=F64)
-    assert not closed_form(planar, T_tilted).valid.any()  # not a planar pose
+    assert not closed_form(planar, T_tilted).success.any()  # not a planar pose
 
     six = _chain("anthropomorphic_wrist")
     T = torch.eye(4, dtype=F64)
     T[:3, 3] = torch.tensor([4.0, 0.0, 0.0], dtype=F64)
     sol = closed_form(six, T)
-    assert not sol.valid.any() and torch.isfinite(sol.q).all()
+    assert not sol.success.any() and torch.isfinite(sol.q).all()
 
     wrist = _chain("spherical_wrist")
     T = wrist.forward_kinematics(torch.tensor([0.3, 0.4, 0.5], dtype=F64))
     T[:3, 3] += 0.5  # the wrist cannot move its centre
-    assert not closed_form(wrist, T).valid.any()
+    assert not closed_form(wrist, T).success.any()
 
 
 def test_singular_targets_are_finite_and_valid():
@@ -178,12 +178,12 @@ def test_singular_targets_are_finite_and_valid():
         q = torch.tensor([0.4, q5 - wrist.theta[1].item(), -0.2], dtype=F64)
         T = wrist.forward_kinematics(q)
         sol = closed_form(wrist, T)
-        assert torch.isfinite(sol.q).all() and sol.valid.all()
+        assert torch.isfinite(sol.q).all() and sol.success.all()
         assert (_pose_residual(wrist, "spherical_wrist", sol.q, T) < 1e-9).all()
     arm = _chain("anthropomorphic_arm")
     p = torch.tensor([0.0, 0.0, 0.9], dtype=F64, requires_grad=True)  # on the z0 axis (shoulder singularity)
     sol = closed_form(arm, p)
-    assert torch.isfinite(sol.q).all() and sol.valid.all()
+    assert torch.isfinite(sol.q).all() and sol.success.all()
     (g,) = torch.autograd.grad(sol.q.sum(), p)
     assert torch.isfinite(g).all()
 
@@ -223,20 +223,20 @@ def test_reduced_targets_with_base_and_tool():
     phi = q.sum(-1) + chain.theta.sum() + 0.7  # angle of x_3 in the world
     x = torch.stack([T[:, 0, 3], T[:, 1, 3], phi], -1)
     sol = closed_form(chain, x)
-    assert sol.valid.all() and _contains(chain, sol.q, q).all()
+    assert sol.success.all() and _contains(chain, sol.q, q).all()
 
     wrist = _chain("spherical_wrist", base_tool=True)
     q = _random_q(wrist, (16,))
     sol = closed_form(wrist, wrist.forward_kinematics(q)[..., :3, :3])
-    assert sol.valid.all() and _contains(wrist, sol.q, q).all()
+    assert sol.success.all() and _contains(wrist, sol.q, q).all()
 
 
 def test_scalar_batch_and_float32():
     chain = models.load("anthropomorphic_wrist", dtype=torch.float32)
     q = torch.tensor([0.3, -0.4, 0.5, 0.2, 0.6, -0.1])
     sol = closed_form(chain, chain.forward_kinematics(q))
-    assert sol.q.shape == (8, 6) and sol.valid.shape == (8,) and sol.q.dtype == torch.float32
-    assert sol.valid.all()
+    assert sol.q.shape == (8, 6) and sol.success.shape == (8,) and sol.q.dtype == torch.float32
+    assert sol.success.all()
     assert _contains(chain, sol.q, q, tol=1e-4)
 
 

@@ -62,14 +62,14 @@ def test_branches_reproduce_target_and_contain_true_q(name):
     T = chain.forward_kinematics(q)
     sol = closed_form(chain, T)
     assert sol.structure == ROBOTS[name][1]
-    assert sol.q.shape == (4, 50, 8, 6) and sol.valid.shape == sol.within_limits.shape == (4, 50, 8)
+    assert sol.q.shape == (4, 50, 8, 6) and sol.success.shape == sol.within_limits.shape == (4, 50, 8)
     assert torch.isfinite(sol.q).all()
-    assert (_residual(chain, sol.q, T)[sol.valid] < 1e-9).all()
+    assert (_residual(chain, sol.q, T)[sol.success] < 1e-9).all()
     assert _contains(sol.q, q).all()
-    assert (sol.valid.sum(-1) % 2 == 0).all()  # branches come and go in pairs (one root of a subproblem)
+    assert (sol.success.sum(-1) % 2 == 0).all()  # branches come and go in pairs (one root of a subproblem)
     assert torch.equal(sol.within_limits, chain.within_limits(sol.q))
     q_, valid = sol  # still a 2-tuple
-    assert q_ is sol.q and valid is sol.valid
+    assert q_ is sol.q and valid is sol.success
 
 
 @pytest.mark.parametrize("name", list(ROBOTS))
@@ -77,7 +77,7 @@ def test_generic_targets_give_eight_distinct_branches(name):
     chain = _robot(name)
     q = _generic_q(chain, 40)
     sol = closed_form(chain, chain.forward_kinematics(q))
-    full = sol.valid.all(-1)
+    full = sol.success.all(-1)
     # far targets lose branches whose planar 2R problem is out of reach (the UR's other shoulder moves the
     # 4–5 point by ~2 d5); LM from 384 random seeds finds no solution outside the valid branches there
     assert full.float().mean() >= 0.4
@@ -124,7 +124,7 @@ def test_base_tool_joint_offsets_and_modified_dh():
     q = chain.random_configuration((60,), generator=torch.Generator().manual_seed(2))
     T = chain.forward_kinematics(q)
     sol = closed_form(chain, T)
-    assert (_residual(chain, sol.q, T)[sol.valid] < 1e-9).all() and _contains(sol.q, q).all()
+    assert (_residual(chain, sol.q, T)[sol.success] < 1e-9).all() and _contains(sol.q, q).all()
 
 
 def test_joint_limits_wrapping():
@@ -136,12 +136,12 @@ def test_joint_limits_wrapping():
     sol = closed_form(chain, T)
     assert sol.within_limits.all()  # every branch brought in by ±2π
     assert (sol.q[..., 0] >= 0).all() and (sol.q[..., 5] <= 0).all()
-    assert (_residual(chain, sol.q, T)[sol.valid] < 1e-9).all() and _contains(sol.q, q).all()
+    assert (_residual(chain, sol.q, T)[sol.success] < 1e-9).all() and _contains(sol.q, q).all()
     irb = _robot("irb2400")  # narrow limits: some valid branches are outside, and flagged so
     q = irb.random_configuration((200,), generator=torch.Generator().manual_seed(4))
     sol = closed_form(irb, irb.forward_kinematics(q))
     assert torch.equal(sol.within_limits, irb.within_limits(sol.q))
-    assert (sol.valid & ~sol.within_limits).any() and (sol.valid & sol.within_limits).any(-1).all()
+    assert (sol.success & ~sol.within_limits).any() and (sol.success & sol.within_limits).any(-1).all()
 
 
 def _grad_finite(fn, x):
@@ -159,7 +159,7 @@ def test_singular_targets_finite_values_and_gradients():
         q = torch.tensor(q, dtype=F64)
         T = ur10.forward_kinematics(q)
         sol, g = _grad_finite(lambda T: closed_form(ur10, T).q, T)
-        valid = closed_form(ur10, T).valid
+        valid = closed_form(ur10, T).success
         assert torch.isfinite(sol).all() and torch.isfinite(g).all() and valid.any()
         assert (_residual(ur10, sol.detach(), T)[valid] < 1e-9).all()
     # OPW wrist singularity (axes 4 and 6 aligned) and elbow singularity
@@ -168,7 +168,7 @@ def test_singular_targets_finite_values_and_gradients():
         q = torch.tensor(q, dtype=F64)
         T = irb.forward_kinematics(q)
         sol, g = _grad_finite(lambda T: closed_form(irb, T).q, T)
-        valid = closed_form(irb, T).valid
+        valid = closed_form(irb, T).success
         assert torch.isfinite(sol).all() and torch.isfinite(g).all() and valid.any()
         assert (_residual(irb, sol.detach(), T)[valid] < 1e-9).all()
     # OPW shoulder singularity: wrist centre on axis 1 (a shoulder offset a1 keeps it reachable)
@@ -181,7 +181,7 @@ def test_singular_targets_finite_values_and_gradients():
     T[:3, :3] = _rigid(5)[:3, :3]
     T[:3, 3] = torch.tensor([0.0, 0.0, 0.9], dtype=F64) + 0.1 * T[:3, 2]  # wrist centre (0, 0, 0.9)
     sol = closed_form(arm, T)
-    assert sol.valid.all() and (_residual(arm, sol.q, T) < 1e-9).all()
+    assert sol.success.all() and (_residual(arm, sol.q, T) < 1e-9).all()
     q, g = _grad_finite(lambda T: closed_form(arm, T).q, T)
     assert torch.isfinite(g).all()
 
@@ -204,7 +204,7 @@ def test_gradients_wrt_target_against_finite_differences(name):
     q = _generic_q(chain, 1, seed=7)[0]
     f = _perturbed(chain.forward_kinematics(q).detach())
     x = torch.zeros(6, dtype=F64, requires_grad=True)
-    assert closed_form(chain, f(x)).valid.all()
+    assert closed_form(chain, f(x)).success.all()
     assert torch.autograd.gradcheck(lambda x: closed_form(chain, f(x)).q, (x,))
 
 
@@ -241,15 +241,15 @@ def test_float32_and_batch_shapes():
     sol = closed_form(chain, T)
     assert sol.q.dtype == torch.float32 and sol.q.shape == (3, 10, 8, 6)
     ref = closed_form(_robot("ur10"), T.double())
-    assert (sol.valid == ref.valid).float().mean() > 0.98 and _contains(sol.q, q, tol=2e-3).all()
-    dq = sol.q[ref.valid].double() - ref.q[ref.valid]
+    assert (sol.success == ref.success).float().mean() > 0.98 and _contains(sol.q, q, tol=2e-3).all()
+    dq = sol.q[ref.success].double() - ref.q[ref.success]
     assert torch.atan2(torch.sin(dq), torch.cos(dq)).abs().max() < 2e-3
     irb = _robot("irb2400", torch.float32)
     q = _generic_q(irb, 30, seed=12)
     sol = closed_form(irb, irb.forward_kinematics(q))
     assert _contains(sol.q, q, tol=2e-3).all()
     one = closed_form(irb, irb.forward_kinematics(q[0]))
-    assert one.q.shape == (8, 6) and one.valid.shape == (8,)
+    assert one.q.shape == (8, 6) and one.success.shape == (8,)
 
 
 def test_agreement_with_numerical_solve_and_closed_form_seeds():

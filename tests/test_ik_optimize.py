@@ -18,7 +18,7 @@ from diffkin.ik.optimization import (
     RestPostureCost,
     optimize,
 )
-from diffkin.jacobian import manipulability
+from diffkin.manipulability import manipulability
 from diffkin.models import load
 
 F64 = torch.float64

@@ -378,10 +378,10 @@ def test_empty_batches_give_empty_results():
     for res in (solve(chain, T, seed=0), optimize(chain, T)):
         assert res.q.shape == (0, 6) and res.success.shape == (0,) and res.position_error.shape == (0,)
     q0 = torch.zeros(0, 6, dtype=F64)
-    out = clik(chain, q0, (torch.eye(4, dtype=F64).expand(0, 3, 4, 4),), 0.01)
+    out = clik(chain, (torch.eye(4, dtype=F64).expand(0, 3, 4, 4),), q0, 0.01)
     assert out.q.shape == (0, 3, 6) and out.position_error.shape == (0, 3)
     sol = closed_form(chain, T)
-    assert sol.q.shape[0] == 0 and sol.valid.shape[0] == 0
+    assert sol.q.shape[0] == 0 and sol.success.shape[0] == 0
     assert refine_path(torch.eye(4, dtype=F64).expand(0, 3, 4, 4), 2).shape == (0, 5, 4, 4)
     assert dls_step(chain, q0, T).shape == (0, 6)
 

@@ -14,12 +14,12 @@ from test_jacobian import anthropomorphic, panda, planar3, stanford
 
 from diffkin import DHChain
 from diffkin.errors import ModelError, ShapeError
-from diffkin.jacobian import (
+from diffkin.jacobian import geometric_jacobian
+from diffkin.manipulability import (
     condition_number,
     decoupled_singularities,
     force_ellipsoid,
     force_transmission_ratio,
-    geometric_jacobian,
     inverse_condition_number,
     jacobian_determinant,
     manipulability,

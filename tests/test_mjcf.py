@@ -101,13 +101,13 @@ def test_every_body_and_site_matches_mujoco(path):
         ref_J.append(J @ chain.velocity_map().numpy())
     ref_T, ref_J = torch.tensor(np.stack(ref_T)), torch.tensor(np.stack(ref_J))
     with torch.no_grad():  # the batch-last column path (24 rows) and the batch-first matrix path (2 rows)
-        T, J = chain.fk_jacobian(q)
-        T2, J2 = chain.fk_jacobian(q[:2])
+        T, J = chain.forward_kinematics_and_jacobian(q)
+        T2, J2 = chain.forward_kinematics_and_jacobian(q[:2])
     torch.testing.assert_close(T, ref_T, atol=1e-10, rtol=0)
     torch.testing.assert_close(J, ref_J, atol=1e-10, rtol=0)
     torch.testing.assert_close(T2, ref_T[:2], atol=1e-10, rtol=0)
     torch.testing.assert_close(J2, ref_J[:2], atol=1e-10, rtol=0)
-    Tg, Jg = chain.fk_jacobian(q[:20].clone().requires_grad_(True))  # the autograd path
+    Tg, Jg = chain.forward_kinematics_and_jacobian(q[:20].clone().requires_grad_(True))  # the autograd path
     torch.testing.assert_close(Tg.detach(), ref_T[:20], atol=1e-10, rtol=0)
     torch.testing.assert_close(Jg.detach(), ref_J[:20], atol=1e-10, rtol=0)
 

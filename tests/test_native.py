@@ -56,7 +56,7 @@ KINDS = ["panda", "ur5", "stanford", "panda_base_tool", "allegro", "yumi_mimic",
 
 def _reference(chain, q):
     with native.disabled(), torch.no_grad():
-        return chain.forward_kinematics(q), chain.fk_jacobian(q)[1]
+        return chain.forward_kinematics(q), chain.forward_kinematics_and_jacobian(q)[1]
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
@@ -70,7 +70,7 @@ def test_native_equals_the_torch_kernels(kind, dtype):
         with torch.no_grad():
             assert chain._native_model(q) is not None
             T = chain.forward_kinematics(q)
-            T2, J = chain.fk_jacobian(q)
+            T2, J = chain.forward_kinematics_and_jacobian(q)
         assert T.shape == T_ref.shape and J.shape == J_ref.shape and T.dtype == dtype
         torch.testing.assert_close(T, T_ref, atol=TOL[dtype], rtol=0)
         torch.testing.assert_close(T2, T_ref, atol=TOL[dtype], rtol=0)
@@ -109,7 +109,7 @@ def test_empty_batch_and_far_angles():
         q = torch.tensor([[1e5, -3e6, 0.3, 1e9, 2.0, -1e7]], dtype=torch.float64)
         T_ref, J_ref = _reference(chain, q)
         torch.testing.assert_close(chain.forward_kinematics(q), T_ref, atol=1e-12, rtol=0)
-        torch.testing.assert_close(chain.fk_jacobian(q)[1], J_ref, atol=1e-12, rtol=0)
+        torch.testing.assert_close(chain.forward_kinematics_and_jacobian(q)[1], J_ref, atol=1e-12, rtol=0)
 
 
 @pytest.mark.parametrize("scale", [3.0, 5e3, 2e4])  # float reduction; |q| >= 1e4: the double one
@@ -120,9 +120,9 @@ def test_float_sin_cos_near_and_far(scale):
     gen = torch.Generator().manual_seed(13)
     q = ((torch.rand(3000, 7, generator=gen) * 2 - 1) * scale).float()
     with torch.no_grad():
-        T, J = chain.fk_jacobian(q)
+        T, J = chain.forward_kinematics_and_jacobian(q)
         with native.disabled():
-            T_ref, J_ref = chain.fk_jacobian(q)
+            T_ref, J_ref = chain.forward_kinematics_and_jacobian(q)
         T64 = c64.forward_kinematics(q.double())
     torch.testing.assert_close(T, T_ref, atol=5e-6, rtol=0)
     torch.testing.assert_close(J, J_ref, atol=5e-6, rtol=0)
@@ -137,7 +137,7 @@ def test_non_finite_q_raises_or_stays_in_its_row():
         with pytest.raises(NonFiniteError, match="q"):
             chain.forward_kinematics(q)
         with pytest.raises(NonFiniteError, match="q"):
-            chain.fk_jacobian(q)
+            chain.forward_kinematics_and_jacobian(q)
         T = chain.forward_kinematics(q, check=False)
         with native.disabled():
             T_ref = chain.forward_kinematics(q, check=False)

@@ -13,7 +13,8 @@ import torch
 from test_jacobian import anthropomorphic, panda, planar3
 
 from diffkin.errors import ShapeError
-from diffkin.jacobian import damped_pinv, geometric_jacobian, nullspace_projector, pinv, weighted_pinv
+from diffkin.jacobian import geometric_jacobian
+from diffkin.redundancy import damped_pinv, nullspace_projector, pinv, weighted_pinv
 
 F64 = torch.float64
 

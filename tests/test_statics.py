@@ -9,16 +9,16 @@ from __future__ import annotations
 import torch
 from test_jacobian import random_chain
 
-from diffkin.jacobian import (
+from diffkin.jacobian import geometric_jacobian
+from diffkin.rotations import rotvec_to_matrix
+from diffkin.statics import (
     closed_chain_torques,
-    geometric_jacobian,
     joint_torques_from_wrench,
     transform_velocity,
     transform_wrench,
     velocity_transform,
     wrench_transform,
 )
-from diffkin.rotations import rotvec_to_matrix
 
 F64 = torch.float64
 

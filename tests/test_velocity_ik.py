@@ -147,7 +147,7 @@ def test_velocity_step_matches_bvls(name):
     w = torch.tensor([1.0, 1.0, 1.0, 0.3, 0.3, 0.3], dtype=F64)
     weight = w if K is None else w.expand(K, 6)
     qd = ik.velocity_step(chain, q, twist, dt, damping=lam, velocity_limit=vmax, weight=weight)
-    J = chain.fk_jacobian(q)[1]
+    J = chain.forward_kinematics_and_jacobian(q)[1]
     J = J.reshape(B, -1, J.shape[-1])
     W = weight.reshape(-1)
     lo, hi = _bounds(chain, q, dt, vmax)
@@ -165,7 +165,7 @@ def test_velocity_step_kkt_residuals():
     q, twist = _rows(chain, 400, 7)
     lam, dt = 1e-3, 0.05
     qd = ik.velocity_step(chain, q, twist, dt, damping=lam, velocity_limit=2.0)
-    J = chain.fk_jacobian(q)[1]
+    J = chain.forward_kinematics_and_jacobian(q)[1]
     lo, hi = _bounds(chain, q, dt, 2.0)
     r = (J.mT @ (J @ qd[..., None] - twist[..., None]))[..., 0] + lam * qd  # ½∇ of (V.1)
     at_lo, at_hi = qd <= lo, qd >= hi
@@ -196,7 +196,7 @@ def test_velocity_step_without_limits_is_the_damped_least_squares_step():
     chain = _chain("ur5")
     q, twist = _rows(chain, 50, 9)
     qd = ik.velocity_step(chain, q, twist, 0.1, damping=1e-2, respect_limits=False)
-    J = chain.fk_jacobian(q)[1]
+    J = chain.forward_kinematics_and_jacobian(q)[1]
     ref = ik.dls_delta(J, twist, 0.1)  # Jᵀ(JJᵀ + k²I)⁻¹v with k² = λ
     torch.testing.assert_close(qd, ref, atol=1e-10, rtol=0)
 
@@ -212,7 +212,7 @@ def test_posture_task_matches_daqp_and_keeps_the_primary_task():
     post = ik.PostureTask(q_ref=q_ref, weight=d, gain=0.5)
     qd1 = ik.velocity_step(chain, q, twist, dt, velocity_limit=1.0, weight=wpos)
     qd = ik.velocity_step(chain, q, twist, dt, velocity_limit=1.0, weight=wpos, tasks=[post])
-    J = chain.fk_jacobian(q)[1][:, :3]
+    J = chain.forward_kinematics_and_jacobian(q)[1][:, :3]
     torch.testing.assert_close(J @ qd[..., None], J @ qd1[..., None], atol=1e-7, rtol=0)
     lo, hi = _bounds(chain, q, dt, 1.0)
     target = 0.5 * (q_ref - q) / dt
@@ -366,9 +366,9 @@ def test_clik_limits_stays_within_the_limits_and_steps_by_velocity_step():
     q0 = torch.tensor([0.0, -0.3, 0.0, -2.2, 0.0, 2.0, 0.8], dtype=F64)
     dt = 0.01
     x, v = _circle(chain, q0, 300, dt)
-    free = ik.clik(chain, q0, (x, v), dt, algorithm="dls", orientation=None)
+    free = ik.clik(chain, (x, v), q0, dt, algorithm="dls", orientation=None)
     assert not bool(chain.within_limits(free.q).all())  # the plain DLS law runs through a limit
-    res = ik.clik(chain, q0, (x, v), dt, algorithm="dls", orientation=None, limits=True, qdot_max=2.0)
+    res = ik.clik(chain, (x, v), q0, dt, algorithm="dls", orientation=None, limits=True, qdot_max=2.0)
     assert bool(chain.within_limits(res.q).all()) and float(res.qdot.abs().max()) <= 2.0
     for k in (0, 100, 250):  # each step is velocity_step's for the CLIK reference ẋ_d + K e (3.70)
         ref = v[k] + 0.5 / dt * res.error[k]
@@ -376,7 +376,7 @@ def test_clik_limits_stays_within_the_limits_and_steps_by_velocity_step():
                                 damping=1e-4, velocity_limit=2.0, weight=[1, 1, 1, 0, 0, 0])
         torch.testing.assert_close(res.qdot[k], step, atol=1e-10, rtol=0)
     with pytest.raises(ConventionError, match="limits=True"):
-        ik.clik(chain, q0, (x, v), dt, algorithm="pseudo_inverse", orientation=None, limits=True)
+        ik.clik(chain, (x, v), q0, dt, algorithm="pseudo_inverse", orientation=None, limits=True)
 
 
 def test_env_cartesian_action_is_limit_safe():
@@ -421,7 +421,7 @@ def test_velocity_dampers_as_extra_inequalities_match_daqp():
     chain = _chain("panda")
     q, twist = _rows(chain, 80, 17)
     dt, lam, vmax = 0.1, 1e-3, 1.0
-    _, J = chain.fk_jacobian(q)
+    _, J = chain.forward_kinematics_and_jacobian(q)
     d = 0.01 + 0.04 * torch.rand(80, generator=torch.Generator().manual_seed(18), dtype=F64)
     G = -J[:, 2:3, :]  # −n_zᵀ J_p q̇ ≤ ξ d/Δt
     h = (0.5 * d / dt)[:, None]
@@ -483,7 +483,7 @@ def test_collision_dampers_match_daqp_and_keep_the_margin():
         w = World(spheres=world.spheres[i])
         return torch.cat((col.self_distances(qq), col.world_distances(qq, w).flatten(-2)), -1)
 
-    J = chain.fk_jacobian(q)[1]
+    J = chain.forward_kinematics_and_jacobian(q)[1]
     lo, hi = _bounds(chain, q, dt, vmax)
     active = 0
     for i in range(6):

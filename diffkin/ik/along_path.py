@@ -17,6 +17,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .._deprecation import renamed_arguments
 from ..errors import ConventionError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
 from ..validation import check_number, check_trailing, shape_str, tensors
@@ -122,9 +123,10 @@ def _check_path(chain, T_traj, velocities) -> tuple[Tensor, Tensor | None, bool]
     return T_traj, velocities, poses
 
 
+@renamed_arguments("ik.joint_trajectory_from_poses", T_traj="T_target")
 def joint_trajectory_from_poses(
     chain,
-    T_traj: Tensor,
+    T_target: Tensor,
     q0: Tensor,
     *,
     method: str = "clik",
@@ -140,11 +142,12 @@ def joint_trajectory_from_poses(
     warm_seeds: int = 1,
     **solve_kwargs,
 ) -> JointTrajectory:
-    """Joint trajectory q(t_k) ``(..., S, n)`` whose FK follows the sampled poses ``T_traj``.
+    """Joint trajectory q(t_k) ``(..., S, n)`` whose FK follows the sampled poses ``T_target``.
 
     Args:
         chain: a :class:`~diffkin.chain.KinematicChain`.
-        T_traj: poses ``(..., S, 4, 4)`` or positions ``(..., S, 3)`` (position only), sampled every ``dt``.
+        T_target: poses ``(..., S, 4, 4)`` or positions ``(..., S, 3)`` (position only), sampled every
+            ``dt`` (``T_traj=`` is its deprecated name).
         q0: starting joints ``(..., n)`` (batch broadcastable); CLIK starts there (converging onto the path
             with rate K), ``solve`` uses it as the first sample's seed.
         method: ``"clik"`` or ``"solve"`` (see the module docstring).
@@ -164,7 +167,7 @@ def joint_trajectory_from_poses(
     """
     if method not in _METHODS:
         raise ConventionError(f"unknown method {method!r}; valid: {_METHODS}")
-    T_traj, velocities, poses = _check_path(chain, T_traj, velocities)
+    T_traj, velocities, poses = _check_path(chain, T_target, velocities)
     q0 = chain.check_q(q0, name="q0")
     if method == "clik":
         if not (isinstance(substeps, int) and substeps >= 1):
@@ -190,7 +193,7 @@ def _along_clik(chain, T_traj, q0, poses, dt, velocities, substeps, clik_kwargs)
     kw.update({k: v for k, v in clik_kwargs.items() if v is not None})
     if not poses:
         kw["orientation"] = None
-    return clik(chain, q0, (fine, velocities), h, **kw).q[..., ::substeps, :]
+    return clik(chain, (fine, velocities), q0, h, **kw).q[..., ::substeps, :]
 
 
 def _along_solve(chain, T_traj, q0, poses, tol, warm_seeds, solve_kwargs) -> Tensor:

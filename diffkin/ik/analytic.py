@@ -23,8 +23,8 @@ Six-DOF arms are decoupled at the wrist point p_W = p_e - d_6 a_e (2.93): the ar
 wrist's ZYZ angles come from R_3^T R_e (§2.12.2).
 
 Unreachable targets are not an error: their branches come back finite (the book's formulas with clamped
-arguments) and flagged ``valid = False``. ``valid`` is decided by forward kinematics: a branch is valid when
-its pose matches the target within ``tol``, so singular targets (infinitely many solutions) still return
+arguments) and flagged ``success = False``. ``success`` is decided by forward kinematics: a branch succeeds
+when its pose matches the target within ``tol``, so singular targets (infinitely many solutions) still return
 one valid representative per branch.
 """
 
@@ -36,6 +36,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .._deprecation import renamed_arguments, warn_deprecated
 from .._numerics import safe_atan2, safe_sqrt, wrap_angle
 from ..errors import ModelError, ShapeError
 from ..kernels.joints import dh_matrix
@@ -67,26 +68,33 @@ CLOSED_FORM_STRUCTURES = (*_TABLES, *INDUSTRIAL_FAMILIES)
 
 class _Solution(NamedTuple):
     q: Tensor
-    valid: Tensor
+    success: Tensor
 
 
 class ClosedFormSolution(_Solution):
     """All branches of a closed-form solution.
 
     q: ``(..., k, n)`` joint values: revolute joints in (-π, π], or shifted by ±2π into the joint limits
-    where that brings them in; valid: ``(..., k)`` bool, True where the branch reproduces the target within
-    the tolerance. Unpack as ``q, valid = closed_form(chain, T)`` (a 2-tuple, as before). Also carries
+    where that brings them in; success: ``(..., k)`` bool, True where the branch reproduces the target
+    within the tolerance (the result convention of :class:`~diffkin.ik.IKResult`: ``.q`` and ``.success``).
+    Unpack as ``q, success = closed_form(chain, T_target)`` (a 2-tuple, as before). Also carries
     ``within_limits`` ``(..., k)`` bool (every joint within the chain's limits; all True without limits)
-    and ``structure`` (the recognised structure name).
+    and ``structure`` (the recognised structure name). ``valid`` is the deprecated name of ``success``.
     """
 
-    def __new__(cls, q: Tensor, valid: Tensor, within_limits: Tensor | None = None, structure: str = ""):
-        self = super().__new__(cls, q, valid)
+    def __new__(cls, q: Tensor, success: Tensor, within_limits: Tensor | None = None, structure: str = ""):
+        self = super().__new__(cls, q, success)
         self.within_limits = (
-            within_limits if within_limits is not None else torch.ones_like(valid, dtype=torch.bool)
+            within_limits if within_limits is not None else torch.ones_like(success, dtype=torch.bool)
         )
         self.structure = structure
         return self
+
+    @property
+    def valid(self) -> Tensor:
+        """Deprecated name of :attr:`success` (one release)."""
+        warn_deprecated("ClosedFormSolution.valid", "ClosedFormSolution.success")
+        return self.success
 
 
 # ------------------------------------------------------------------------------------- structure
@@ -376,15 +384,17 @@ def into_limits(chain, q: Tensor) -> Tensor:
     return torch.where(use, alt, qw)
 
 
-def closed_form(chain, T: Tensor, tol: float | None = None) -> ClosedFormSolution:
-    """Every closed-form IK branch of a §2.12 structure: ``q (..., k, n)`` and ``valid (..., k)``.
+@renamed_arguments("ik.closed_form", T="T_target")
+def closed_form(chain, T_target: Tensor, tol: float | None = None) -> ClosedFormSolution:
+    """Every closed-form IK branch of a §2.12 structure: ``q (..., k, n)`` and ``success (..., k)``.
 
     Args:
         chain: a standard-DH :class:`~diffkin.chain.DHChain` with one of the tables listed in the module
             docstring (recognised by structure; any link lengths, joint offsets, ``d_1``, base and tool), or
             any six-revolute chain (DH, modified DH, URDF) of the ``ur`` / ``opw`` families (recognised from
             its joint geometry at q = 0, base and tool folded in; see :mod:`diffkin.ik.industrial`).
-        T: target in the world frame (before the chain's base, after its tool):
+        T_target: target in the world frame (before the chain's base, after its tool; ``T=`` is its
+            deprecated name):
 
             - any structure: an end-effector pose ``(..., 4, 4)``;
             - ``three_link_planar``: or ``(..., 3)`` = (p_x, p_y, φ), end-effector position and the angle of
@@ -402,11 +412,11 @@ def closed_form(chain, T: Tensor, tol: float | None = None) -> ClosedFormSolutio
     into the joint limits where one exists (:func:`into_limits`; ``within_limits`` flags the branches inside
     the limits); prismatic joint values are d - d_offset.
 
-    Differentiable w.r.t. ``T`` and the chain's geometry (autograd through the formulas; finite gradients
-    at singular targets). Batched over leading dims, float32/float64, on the target's device.
+    Differentiable w.r.t. ``T_target`` and the chain's geometry (autograd through the formulas; finite
+    gradients at singular targets). Batched over leading dims, float32/float64, on the target's device.
     """
     structure = identify_structure(chain)
-    T = _check_target(T, chain)
+    T = _check_target(T_target, chain)
     if structure in INDUSTRIAL_FAMILIES:
         if T.ndim < 2 or tuple(T.shape[-2:]) != (4, 4):
             raise ShapeError(f"expected a target T of shape (..., 4, 4) for a {structure} arm, got "

@@ -11,7 +11,7 @@ computes q̇ (or q̈) with one of the book's laws and integrates with (3.48), q(
 ``"second_order"``    q̈ = J†(ẍ_d + K_D ė + K_P e − J̇q̇) + (I − J†J) q̈₀  (3.102)/(3.104)
 ====================  ====================================================================================
 
-J⁻¹ and J† are the Moore–Penrose inverse of :func:`diffkin.jacobian.pinv` (singular values below √eps·σ_max
+J⁻¹ and J† are the Moore–Penrose inverse of :func:`diffkin.redundancy.pinv` (singular values below √eps·σ_max
 count as zero, so a singular J gives finite velocities, never NaN); the second-order integrator also bounds
 |q̇| (``qdot_max``), so every algorithm stays finite from any start. The orientation error and the matching
 Jacobian (§3.7.3):
@@ -38,6 +38,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .._deprecation import renamed_arguments, reordered_target
 from .._numerics import eps_for, safe_norm, wrap_angle
 from ..errors import ConventionError, ModelError, ShapeError
 from ..jacobian import (
@@ -45,9 +46,9 @@ from ..jacobian import (
     forward_kinematics_and_jacobian,
     geometric_to_analytical,
     jacobian_dot_qdot,
-    manipulability,
 )
 from ..kernels.pose_error import orientation_error as _orientation_error
+from ..manipulability import manipulability
 from ..redundancy import _damped, _pinv
 from ..rotations import (
     _convention,
@@ -65,14 +66,7 @@ CLIK_ALGORITHMS = ("inverse", "pseudo_inverse", "dls", "transpose", "second_orde
 CLIK_ORIENTATIONS = (None, "euler", "axis_angle", "quaternion")
 
 
-class CLIKResult(NamedTuple):
-    """Time histories of a CLIK run (``S`` = steps + 1 samples, ``m`` task rows).
-
-    t ``(S,)``; q, qdot ``(..., S, n)``; error e ``(..., S, m)`` (selected rows, as fed back);
-    position_error / orientation_error ``(..., S)`` the norms of its position and orientation rows;
-    poses ``(..., S, 4, 4)`` end-effector poses (``None`` unless ``return_poses=True``).
-    """
-
+class _CLIKFields(NamedTuple):
     t: Tensor
     q: Tensor
     qdot: Tensor
@@ -80,6 +74,33 @@ class CLIKResult(NamedTuple):
     position_error: Tensor
     orientation_error: Tensor
     poses: Tensor | None
+
+
+class CLIKResult(_CLIKFields):
+    """Time histories of a CLIK run (``S`` = steps + 1 samples, ``m`` task rows), a 7-tuple as before.
+
+    t ``(S,)``; q, qdot ``(..., S, n)``; error e ``(..., S, m)`` (selected rows, as fed back);
+    position_error / orientation_error ``(..., S)`` the norms of its position and orientation rows;
+    poses ``(..., S, 4, 4)`` end-effector poses (``None`` unless ``return_poses=True``).
+
+    ``success`` ``(...)`` bool (the result convention of :class:`~diffkin.ik.IKResult`): the last sample's
+    errors within ``position_tolerance`` [m] / ``orientation_tolerance`` (the norm of the orientation rows),
+    the tolerances :func:`clik` was given.
+    """
+
+    position_tolerance: float = 1e-4  # class defaults: what _make / _replace copies carry
+    orientation_tolerance: float = 1e-3
+
+    def __new__(cls, *fields, position_tolerance: float = 1e-4, orientation_tolerance: float = 1e-3,
+                **named):
+        self = super().__new__(cls, *fields, **named)
+        self.position_tolerance, self.orientation_tolerance = position_tolerance, orientation_tolerance
+        return self
+
+    @property
+    def success(self) -> Tensor:
+        return (self.position_error[..., -1] <= self.position_tolerance) & (
+            self.orientation_error[..., -1] <= self.orientation_tolerance)
 
 
 class _Task(NamedTuple):
@@ -405,10 +426,39 @@ def _make_task(chain, orientation, convention, rows) -> _Task:
     return _Task(orientation, _convention(convention), rows, size)
 
 
+def _target_like(x, n: int) -> bool | None:
+    """Whether a clik argument is the target (True), q0 (False) or cannot tell (None): targets are
+    callables, tuples of tensors or tensors with a time axis ``(..., S, 4, 4)`` / ``(..., S, 3|6)``; q0 is
+    ``(..., n)``."""
+    if callable(x):
+        return True
+    if isinstance(x, tuple | list):
+        return not all(isinstance(v, int | float) for v in x)  # a list of numbers is a q0
+    shape = getattr(x, "shape", None)
+    if shape is None:
+        return None
+    if len(shape) >= 3 and tuple(shape[-2:]) == (4, 4):
+        return True
+    if len(shape) <= 1:
+        return False  # a target tensor has a time axis
+    if shape[-1] != n:
+        return True if shape[-1] in (3, 6) else None
+    return None if n in (3, 6) else False
+
+
+def _old_clik_order(chain, a, b) -> bool:
+    """``clik(chain, q0, target, ...)``, the order before 0.2, recognised where the shapes tell."""
+    n = getattr(chain, "n_joints", -1)
+    ka, kb = _target_like(a, n), _target_like(b, n)
+    return (ka is False and kb is not False) or (kb is True and ka is not True)
+
+
+@renamed_arguments("ik.clik", target="T_target")
+@reordered_target("ik.clik", "q0", _old_clik_order)
 def clik(
     chain,
+    T_target,
     q0: Tensor,
-    target,
     dt: float,
     steps: int | None = None,
     *,
@@ -430,17 +480,22 @@ def clik(
     return_poses: bool = False,
     differentiable: bool | None = None,
     limits: bool = False,
+    position_tolerance: float = 1e-4,
+    orientation_tolerance: float = 1e-3,
 ) -> CLIKResult:
     """Closed-loop inverse kinematics along x_d(t), integrated with forward Euler (3.48) (§3.7).
 
     Args:
         chain: a :class:`~diffkin.chain.KinematicChain`.
-        q0: initial joints ``(..., n)``; the batch broadcasts with the target's.
-        target: a function ``t -> (x_d, ẋ_d[, ẍ_d])`` of a scalar time tensor (``steps`` required), or the
-            tensors ``(x_d, ẋ_d[, ẍ_d])`` with a time axis sampled every ``dt``: x_d ``(..., S, 4, 4)`` or
+        T_target: the target (before 0.2 ``target``, after ``q0``: that order still works, with a
+            ``DeprecationWarning``, where the values tell the two apart; where they cannot — both tensors
+            ``(..., 3)`` or ``(..., 6)`` with a batch, for n = 3 or 6 — the new order holds): a function
+            ``t -> (x_d, ẋ_d[, ẍ_d])`` of a scalar time tensor (``steps`` required), or the tensors
+            ``(x_d, ẋ_d[, ẍ_d])`` with a time axis sampled every ``dt``: x_d ``(..., S, 4, 4)`` or
             ``(..., S, 3|6)``, derivatives ``(..., S, 3|6)``; ``None`` derivatives are zero. Past the last
             sample the target holds still. x_d is a pose, or ``[p; φ]`` for ``"euler"`` (φ̇ in ẋ_d), or ``p``
             for position only; ẋ_d = [ṗ_d; ω_d] for ``"axis_angle"``/``"quaternion"``.
+        q0: initial joints ``(..., n)``; the batch broadcasts with the target's.
         dt: the integration step Δt (the book uses 1 ms). steps: number of Euler steps.
         algorithm: one of ``CLIK_ALGORITHMS`` (module table). orientation: one of ``CLIK_ORIENTATIONS``.
         convention: Euler angles for ``"euler"`` (``"ZYZ"`` or ``"RPY"``).
@@ -465,6 +520,8 @@ def clik(
             chain's DH parameters). Default: only when grad mode is on and q0 or a target tensor requires
             grad, since a graph over thousands of steps is costly; pass True for gradients w.r.t. the chain
             or through a callable target.
+        position_tolerance, orientation_tolerance: the final errors below which
+            :attr:`CLIKResult.success` is True (m; the norm of the orientation rows).
 
     Returns:
         :class:`CLIKResult`.
@@ -486,7 +543,9 @@ def clik(
         qd_max = None if qdot_max is None else check_number(qdot_max, "qdot_max", unit=" (rad/s)")
     else:
         qd_max = _qdot_max(qdot_max, dt)
-    get, steps = _target_sampler(target, steps, dt, q, task)
+    tolerances = {"position_tolerance": check_number(position_tolerance, "position_tolerance", unit=" (m)"),
+                  "orientation_tolerance": check_number(orientation_tolerance, "orientation_tolerance")}
+    get, steps = _target_sampler(T_target, steps, dt, q, task)
     omega = 0.1 / dt
     cfg = _Config(
         task,
@@ -502,10 +561,12 @@ def clik(
         bool(limits),
     )
     if differentiable is None:
-        given = [q] + ([] if callable(target) else [v for v in _as_tuple(target) if isinstance(v, Tensor)])
+        values = [] if callable(T_target) else _as_tuple(T_target)
+        given = [q] + [v for v in values if isinstance(v, Tensor)]
         differentiable = torch.is_grad_enabled() and any(v.requires_grad for v in given)
     with contextlib.nullcontext() if differentiable else torch.no_grad():
-        return _integrate(chain, q, qdot0, get, steps, dt, cfg, clamp, return_poses)
+        res = _integrate(chain, q, qdot0, get, steps, dt, cfg, clamp, return_poses)
+    return CLIKResult(*res, **tolerances)
 
 
 def _check_limits_mode(limits, algorithm, orientation, nullspace, damping) -> None:
@@ -520,7 +581,8 @@ def _check_limits_mode(limits, algorithm, orientation, nullspace, damping) -> No
 
 
 def _as_tuple(target) -> tuple:
-    return (target,) if isinstance(target, Tensor) else tuple(target)
+    # an array (numpy, anything with a shape) is one x_d, not a sequence of its rows
+    return (target,) if isinstance(target, Tensor) or hasattr(target, "shape") else tuple(target)
 
 
 def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_poses: bool) -> CLIKResult:

@@ -174,7 +174,7 @@ def _closed_form_seeds(chain, T_target, q0, batch) -> Tensor:
 
     with torch.no_grad():
         sol = closed_form(chain, T_target.detach())
-        score = sol.valid.to(torch.int8) * 2 + sol.within_limits.to(torch.int8)
+        score = sol.success.to(torch.int8) * 2 + sol.within_limits.to(torch.int8)
         order = torch.argsort(-score, dim=-1, stable=True)
         seeds = torch.take_along_dim(sol.q, order[..., None], dim=-2)
     if q0 is None:

@@ -123,7 +123,7 @@ class ManipulabilityCost(_Term):
     """−weight·w(q), w = sqrt(det JJᵀ) (3.56): rewards configurations away from singularities."""
 
     def __call__(self, ctx: CostContext) -> Tensor:
-        from ..jacobian import manipulability
+        from ..manipulability import manipulability
 
         return -self.weight * manipulability(ctx.J)
 

@@ -236,7 +236,7 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
     q, twist, damping, vmax, weight = _inputs(chain, q, twist, damping, velocity_limit, weight)
     dt = check_number(dt, "dt", unit=" (s)")
     frames, posture = _frame_tasks(tasks, chain.n_ends)
-    _, J = chain.fk_jacobian(q, check=False)
+    _, J = chain.forward_kinematics_and_jacobian(q, check=False)
     if chain.single_end:
         J, twist = J.unsqueeze(-3), twist.unsqueeze(-2)
         weight = None if weight is None or weight.ndim == 0 else weight.unsqueeze(-2)
