@@ -520,26 +520,10 @@ static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const 
     }
 }
 
-/* out = P . Pre_j . M_j for frame j's motion code (DK_MOTIONS): the one place that dispatches on it for
- * the frames (DK(block) for the Jacobian columns). */
-static inline void DK(motion)(const Shape *s, const DK(Params) *pp, const DK(Scratch) *sc, int j,
-                              const real *P, real *out) {
-    const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
-    const DK(Fix) *pre = pp->fix + j;
-    if (s->motion[j] == DK_MOTION_S) {
-        DK(apply)(P, pre, MOVE_NONE, NULL, NULL, out);
-        DK(quaternion_turn)(qj, out, DK_QSMALL);
-        return;
-    }
-    const real m = pp->mult[j], b = pp->qoff[j];
-    real ang[W], sn[W], cs[W];
-    for (int l = 0; l < W; l++) ang[l] = qj[l] * m + b;
-    if (s->motion[j] == DK_MOTION_R) {
-        DK_SINCOS(ang, sn, cs);
-        DK(apply)(P, pre, MOVE_TURN, cs, sn, out);
-    } else {
-        DK(apply)(P, pre, MOVE_SLIDE, ang, NULL, out);
-    }
+/* out = P . Pre . Rot(Q): the frame of an S motion (not inlined: the R/P loop of DK(block) stays as it was). */
+static __attribute__((noinline)) void DK(ball_frame)(const real *P, const DK(Fix) *pre, const real *Q, real *out) {
+    DK(apply)(P, pre, MOVE_NONE, NULL, NULL, out);
+    DK(quaternion_turn)(Q, out, DK_QSMALL);
 }
 
 /* The end frames (sc->ends, K x 12 x W) and, if jac, their Jacobians (sc->Jb, K x 6nv x W) of the
@@ -550,8 +534,15 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
     real *F = sc->F;
     for (int j = 0; j < J; j++) {
         const real *P = s->parent[j] < 0 ? sc->basef : F + (size_t)s->parent[j] * 12 * W;
+        const real m = pp->mult[j], b = pp->qoff[j];
+        const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
+        const int mo = s->motion[j], rev = mo == DK_MOTION_R; /* the one dispatch on a frame's motion */
+        real ang[W], sn[W], cs[W];
+        for (int l = 0; l < W; l++) ang[l] = qj[l] * m + b;
+        if (rev) DK_SINCOS(ang, sn, cs);
         real *Fj = F + (size_t)j * 12 * W, *out = s->has_post[j] ? sc->A + (size_t)j * 12 * W : Fj;
-        DK(motion)(s, pp, sc, j, P, out);
+        if (mo == DK_MOTION_S) DK(ball_frame)(P, pp->fix + j, qj, out);
+        else DK(apply)(P, pp->fix + j, rev ? MOVE_TURN : MOVE_SLIDE, rev ? cs : ang, sn, out);
         if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj);
     }
     for (int k = 0; k < K; k++) {
