@@ -7,7 +7,6 @@ treats them; per-row base poses; the motion table the packer reads from the libr
 from __future__ import annotations
 
 import ctypes
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,30 +20,14 @@ from diffkin.rotations import quaternion_to_matrix
 mujoco = pytest.importorskip("mujoco")
 pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: no native kernel")
 
-from diffkin.models import from_mjcf  # noqa: E402
-from diffkin.models.mjcf import compile_mjcf  # noqa: E402
+from tests.test_mjcf import _chain_of_everything as _everything  # noqa: E402
+from tests.test_mjcf import _mujoco_frames  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 G1 = DATA / "mjcf" / "unitree_g1" / "g1.xml"
 KINDS = DATA / "mjcf_extra" / "joint_kinds.xml"
 MODELS = [G1, KINDS]
-OBJ = mujoco.mjtObj
 TOL = {torch.float64: 1e-12, torch.float32: 5e-6}  # C against torch: rounding only
-
-
-def _names(m, kind, count, start=0):
-    return [n for i in range(start, count) if (n := mujoco.mj_id2name(m, kind, i))]
-
-
-def _everything(path, dtype=torch.float64):
-    """The compiled model, the chain to every body and site, the end names, the body names."""
-    m = compile_mjcf(path)[0]
-    bodies = _names(m, OBJ.mjOBJ_BODY, m.nbody, start=1)
-    ends = bodies + _names(m, OBJ.mjOBJ_SITE, m.nsite)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # closed loops are reported elsewhere (tests/test_mjcf.py)
-        chain = from_mjcf(path, ends, dtype=dtype)
-    return m, chain, ends, set(bodies)
 
 
 def _q(chain, shape, seed, scale=False):
@@ -96,18 +79,7 @@ def _mujoco(m, qpos, ends, bodies, velocity_map):
     Ts, Js = [], []
     for row in qpos:
         d.qpos[:] = row
-        mujoco.mj_kinematics(m, d)
-        mujoco.mj_comPos(m, d)
-        T, J = np.tile(np.eye(4), (len(ends), 1, 1)), np.zeros((len(ends), 6, m.nv))
-        for k, e in enumerate(ends):
-            if e in bodies:
-                i = mujoco.mj_name2id(m, OBJ.mjOBJ_BODY, e)
-                T[k, :3, 3], T[k, :3, :3] = d.xpos[i], d.xmat[i].reshape(3, 3)
-                mujoco.mj_jacBody(m, d, J[k, :3], J[k, 3:], i)
-            else:
-                i = mujoco.mj_name2id(m, OBJ.mjOBJ_SITE, e)
-                T[k, :3, 3], T[k, :3, :3] = d.site_xpos[i], d.site_xmat[i].reshape(3, 3)
-                mujoco.mj_jacSite(m, d, J[k, :3], J[k, 3:], i)
+        T, J = _mujoco_frames(m, d, ends, bodies)
         Ts.append(T)
         Js.append(J @ velocity_map)
     return torch.tensor(np.stack(Ts)), torch.tensor(np.stack(Js))
