@@ -4,6 +4,9 @@ over the rows and against pytorch-kinematics on the same MJCF, in one run.
 The model is Menagerie's Unitree G1 (tests/data/mjcf/unitree_g1/g1.xml: a free joint and 37 hinges, 38
 bodies). pytorch-kinematics cannot load a free joint (its MJCF reader maps hinge and slide joints only), so
 its rows use the same file with the free joint removed (a fixed pelvis), and diffkin is timed on both.
+diffkin's rows are its default CPU path without autograd (the fused C kernel of diffkin.kernels.native, which
+runs the free joint's translation and quaternion itself) and the torch kernels it falls back to
+(``native.disabled()``), in the same run.
 
     python -m benchmarks.bench_mjcf [--quick] [--threads N]
 """
@@ -11,6 +14,7 @@ its rows use the same file with the free joint removed (a fixed pelvis), and dif
 from __future__ import annotations
 
 import argparse
+import contextlib
 import time
 from pathlib import Path
 
@@ -18,6 +22,7 @@ import numpy as np
 import torch
 
 from benchmarks.common import FULL, QUICK, print_table, timeit, torch_threads
+from diffkin.kernels import native
 
 G1 = Path(__file__).resolve().parents[1] / "tests" / "data" / "mjcf" / "unitree_g1" / "g1.xml"
 
@@ -73,21 +78,32 @@ def run(args) -> list[dict]:
                 chain = from_mjcf(xml, bodies, dtype=dtype)
                 chain.requires_grad_(False)
                 q = chain.random_configuration(batch, generator=torch.Generator().manual_seed(0))
-                with torch.no_grad():
-                    t = timeit(lambda chain=chain, q=q: chain.forward_kinematics(q), min_time, repeats)
-                rows.append({"benchmark": "MJCF FK, every body", "model": label, "impl": "diffkin",
-                             "dtype": str(dtype).replace("torch.", ""), "batch": batch, "bodies": len(bodies),
-                             "us_per_row": 1e6 * t / batch})
+                ours = _diffkin_rows(chain, q, label, len(bodies), min_time, repeats)
+                rows += ours
                 if dtype == torch.float64:
                     qpos = chain.to_qpos(q[: min(batch, 5_000)]).numpy()
                     t_mj = _mujoco_per_row(xml, qpos)
                     rows.append({"benchmark": "MJCF FK, every body", "model": label,
                                  "impl": "mujoco mj_kinematics (loop)", "dtype": "float64",
                                  "batch": len(qpos), "bodies": len(bodies), "us_per_row": 1e6 * t_mj})
-                    rows[-2]["ratio_vs_mujoco"] = t_mj / (t / batch)
+                    for r in ours:
+                        r["ratio_vs_mujoco"] = 1e6 * t_mj / r["us_per_row"]
             if label == "G1 fixed pelvis":
                 rows += _pk_rows(xml, batch, min_time, repeats, rows)
     return rows
+
+
+def _diffkin_rows(chain, q, label: str, bodies: int, min_time: float, repeats: int) -> list[dict]:
+    """diffkin's default path (the C kernel where built) and its torch kernels, on the same q."""
+    out = []
+    paths = (("diffkin C", contextlib.nullcontext), ("diffkin torch", native.disabled))
+    for impl, context in paths if native.available() else paths[1:]:
+        with torch.no_grad(), context():
+            t = timeit(lambda chain=chain, q=q: chain.forward_kinematics(q), min_time, repeats)
+        out.append({"benchmark": "MJCF FK, every body", "model": label, "impl": impl,
+                    "dtype": str(q.dtype).replace("torch.", ""), "batch": q.shape[0], "bodies": bodies,
+                    "us_per_row": 1e6 * t / q.shape[0]})
+    return out
 
 
 def _pk_rows(xml: str, batch: int, min_time: float, repeats: int, rows: list[dict]) -> list[dict]:
@@ -108,9 +124,9 @@ def _pk_rows(xml: str, batch: int, min_time: float, repeats: int, rows: list[dic
         q = torch.rand(batch, chain.n_joints, dtype=dtype)
         with torch.no_grad():
             t = timeit(lambda chain=chain, q=q: chain.forward_kinematics(q), min_time, repeats)
-        ours = next(r for r in rows if r["model"] == "G1 fixed pelvis" and r["impl"] == "diffkin"
-                    and r["dtype"] == str(dtype).replace("torch.", ""))
-        ours["speedup_vs_pk"] = t / (ours["us_per_row"] * 1e-6 * batch)
+        for ours in (r for r in rows if r["model"] == "G1 fixed pelvis" and r["impl"].startswith("diffkin")
+                     and r["dtype"] == str(dtype).replace("torch.", "")):
+            ours["speedup_vs_pk"] = t / (ours["us_per_row"] * 1e-6 * batch)
         out.append({"benchmark": "MJCF FK, every body", "model": "G1 fixed pelvis",
                     "impl": "pytorch-kinematics", "dtype": str(dtype).replace("torch.", ""), "batch": batch,
                     "bodies": ours["bodies"], "us_per_row": 1e6 * t / batch})

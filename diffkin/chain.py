@@ -326,8 +326,7 @@ class KinematicChain(nn.Module):
         serve this call: a plain CPU tensor, nothing needing a gradient, not traced (compile / torch.func),
         the library built. None otherwise (the torch kernels serve it)."""
         if torch.compiler.is_compiling() or q.device.type != "cpu" or not _is_plain(q) \
-                or (q.requires_grad and torch.is_grad_enabled()) or self._topo.has_spherical \
-                or not native.available():  # (ball and free joints: the torch kernels)
+                or (q.requires_grad and torch.is_grad_enabled()) or not native.available():
             return None
         key = self._state_key()
         return None if key is None else native.native_model(self._topo, self._cached_constants(key)[0])
@@ -577,7 +576,7 @@ class KinematicChain(nn.Module):
             T, Jac, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous(), with_jacobian=True)
             if bad and check:
                 check_finite(q, "q")
-            return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jac.reshape(*batch, K, 6, n))
+            return self._out(T.reshape(*batch, K, 4, 4)), self._out(Jac.reshape(*batch, K, 6, nv))
         if check:
             check_finite(q, "q")
         if path == "batch_first":
@@ -627,7 +626,7 @@ class KinematicChain(nn.Module):
             T, Jac, _ = native.fk_jacobian(packed, qT.T.contiguous(), with_jacobian)
             cols = T[..., :3, :].permute(3, 2, 1, 0).contiguous()  # (4 columns, 3, K, m)
             ends = [tuple(cols[c, :, k] for c in range(4)) for k in range(K)]
-            rows = None if Jac is None else Jac.reshape(m, 6 * K, self.n_joints).permute(2, 1, 0).contiguous()
+            rows = None if Jac is None else Jac.reshape(m, 6 * K, self.nv).permute(2, 1, 0).contiguous()
             return rows, ends
         qs = qT.unbind(0)
         ends, axes, _ = column_frames(qs, topo, self._segments(per_joint=True, constants=constants),

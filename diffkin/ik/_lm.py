@@ -173,7 +173,7 @@ class _Run:
         """The fused iteration's fixed inputs, made on the first round it may serve (None: torch only)."""
         if self._problem is None:
             packed = self.kernel.chain._native_model(u)
-            if packed is None:
+            if packed is None or not packed.euclidean:  # ball and free joints: steps on the manifold
                 return None
             tg, jm = self.tg, self.jmap
             cols = None if tg.position_only else (tg.xd, tg.yd, tg.zd)

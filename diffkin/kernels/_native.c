@@ -4,13 +4,21 @@
  * CPU calls without autograd (diffkin/kernels/native.py loads it; tests/test_native.py checks it against
  * those modules).
  *
- *     F_j = F_parent(j) . Pre_j . M(m_j q[i_j] + b_j) . Post_j,   end k:  F_ends[k] . E_k
- *     J_k[:, i_j] += m_j [z_j x (p_e - p_j); z_j]  (revolute)  or  m_j [z_j; 0]  (prismatic)
+ *     F_j = F_parent(j) . Pre_j . M_j . Post_j,   end k:  F_ends[k] . E_k
+ *     R:  M_j = Rot_z(m_j q[i_j] + b_j),   J_k[:, v_j] += m_j [z_j x (p_e - p_j); z_j]
+ *     P:  M_j = Trans_z(m_j q[i_j] + b_j), J_k[:, v_j] += m_j [z_j; 0]
+ *     S:  M_j = Rot(q[i_j .. i_j + 3] / |.|) (2.33), J_k[:, v_j + c] = [a_c x (p_e - p_j); a_c], c = x, y, z
  *
- * with z_j, p_j the z axis and origin of F_parent . Pre_j . M_j. Configurations are processed in blocks of W
- * lanes; every loop over the lanes is branch-free so the compiler vectorises it, and sin/cos are evaluated by
- * a vectorisable Cody-Waite reduction and Cephes polynomials (|x| >= 1e5 falls back to libm). Blocks are
- * shared between threads with a dynamic schedule. The float FK evaluates sin/cos in float (8 lanes to an AVX2 register), the LM iteration in double.
+ * with z_j (a_c: its axis c), p_j the z axis and origin of F_parent . Pre_j . M_j: the elementary motions of
+ * diffkin.kernels.configuration (DK_MOTIONS below; each frame carries the code of its motion), q in qpos
+ * order (nq = n columns), the Jacobian in velocity order (nv columns; an S motion has 4 coordinates and 3
+ * velocities, the angular velocity in its rotated frame, as MuJoCo's ball joints). A quaternion is
+ * normalised first; one of norm ~0 is the identity (as diffkin._numerics.safe_normalize).
+ *
+ * Configurations are processed in blocks of W lanes; every loop over the lanes is branch-free so the
+ * compiler vectorises it, and sin/cos are evaluated by a vectorisable Cody-Waite reduction and Cephes
+ * polynomials (|x| >= 1e5 falls back to libm). Blocks are shared between threads with a dynamic schedule.
+ * The float FK evaluates sin/cos in float (8 lanes to an AVX2 register), the LM iteration in double.
  *
  * The interface is one struct, dk_args (DK_ARGS_FIELDS below), mirrored field by field by native.py's
  * ctypes.Structure: the chain's arrays (3x4 row-major blocks for the fixed transforms), the call's inputs and
@@ -34,8 +42,9 @@
 
 #define W 16
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
-#define DK_ABI_VERSION 1 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
+#define DK_ABI_VERSION 2 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
+#define DK_MOTION_ERROR (-3) /* dk_lm of a chain with S motions (nv != n) */
 
 /* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
  * passed as void pointers. J joint frames, K end links, n variables, B configurations. */
@@ -46,11 +55,13 @@
     X(int64_t, nthreads, "threads to use for large batches (at least 1)") \
     X(int64_t, J, "joint frames") \
     X(int64_t, K, "end links") \
-    X(int64_t, n, "variables (columns of q)") \
+    X(int64_t, n, "variables (columns of q: nq)") \
+    X(int64_t, nv, "velocities (columns of the Jacobian: nv)") \
     X(int64_t, has_base, "base[] is not the identity") \
     X(const int32_t *, parent, "[J] parent frame, -1 the base") \
-    X(const int32_t *, revolute, "[J] 1 revolute, 0 prismatic") \
-    X(const int32_t *, qidx, "[J] the variable driving the joint") \
+    X(const int32_t *, motion, "[J] the code of the frame's motion (DK_MOTIONS)") \
+    X(const int32_t *, qidx, "[J] the (first) variable driving the frame") \
+    X(const int32_t *, vidx, "[J] the (first) velocity of the frame: its Jacobian column") \
     X(const int32_t *, has_pre, "[J] pre[j] is not the identity") \
     X(const int32_t *, has_post, "[J] post[j] is not the identity") \
     X(const int32_t *, end_joint, "[K] the frame end link k hangs from, -1 the base") \
@@ -65,7 +76,7 @@
     X(int64_t, batch, "B, or the rows m of dk_lm") \
     X(const void *, q, "dk_fk: [B*n] reals in") \
     X(void *, T, "dk_fk: [B*K*16] reals out") \
-    X(void *, jac, "dk_fk: [B*K*6*n] reals out, or NULL") \
+    X(void *, jac, "dk_fk: [B*K*6*nv] reals out, or NULL") \
     X(int64_t, iters, "dk_lm: steps per round") \
     X(int64_t, max_rounds, "dk_lm") \
     X(int64_t, n_targets, "dk_lm: N") \
@@ -88,6 +99,25 @@
     X(uint8_t *, conv, "dk_lm: [m] out") \
     X(void *, merit, "dk_lm: [m] reals out") \
     X(void *, merit_prev, "dk_lm: [m] reals out")
+
+/* X(letter, nq, nv, what): the elementary motions in code order (DK_MOTION_P = 0, ...), as
+ * diffkin.kernels.configuration declares them (MOTION_NQ, MOTION_NV); native.py reads this table through
+ * dk_motions() at load time, checks it against its own and packs each frame's code from it. */
+#define DK_MOTIONS(X) \
+    X(P, 1, 1, "translation along z") \
+    X(R, 1, 1, "rotation about z") \
+    X(S, 4, 3, "rotation by a quaternion (w, x, y, z), angular velocity in the rotated frame")
+
+#define DK_CODE(letter, nq, nv, what) DK_MOTION_##letter,
+enum { DK_MOTIONS(DK_CODE) DK_N_MOTIONS };
+#undef DK_CODE
+
+/* "letter nq nv," per motion, in code order. */
+const char *dk_motions(void) {
+#define DK_ROW(letter, nq, nv, what) #letter " " #nq " " #nv ","
+    return DK_MOTIONS(DK_ROW);
+#undef DK_ROW
+}
 
 #define DK_DECLARE(type, name, what) type name;
 typedef struct dk_args { DK_ARGS_FIELDS(DK_DECLARE) } dk_args;
@@ -121,18 +151,20 @@ static int thread_id(void) {
 }
 
 typedef struct {
-    int J, K, n, has_base;
-    const int32_t *parent, *revolute, *qidx, *has_pre, *has_post, *end_joint, *has_end, *anc;
+    int J, K, n, nv, has_base;
+    const int32_t *parent, *motion, *qidx, *vidx, *has_pre, *has_post, *end_joint, *has_end, *anc;
 } Shape;
 
 static void read_shape(const dk_args *a, Shape *s) {
     s->J = (int)a->J;
     s->K = (int)a->K;
     s->n = (int)a->n;
+    s->nv = (int)a->nv;
     s->has_base = (int)a->has_base;
     s->parent = a->parent;
-    s->revolute = a->revolute;
+    s->motion = a->motion;
     s->qidx = a->qidx;
+    s->vidx = a->vidx;
     s->has_pre = a->has_pre;
     s->has_post = a->has_post;
     s->end_joint = a->end_joint;
@@ -245,6 +277,7 @@ static inline void transpose_f64(const double *src, size_t ss, double *dst, int6
 #define DK_TILE 4
 #define DK_TRANSPOSE transpose_f64
 #define DK_SINCOS sincos_lanes
+#define DK_QSMALL 1.4901161193847656e-11 /* sqrt(DBL_EPSILON) 1e-3 */
 #include __FILE__
 #undef DK_REAL
 #undef DK
@@ -253,6 +286,7 @@ static inline void transpose_f64(const double *src, size_t ss, double *dst, int6
 #undef DK_TILE
 #undef DK_TRANSPOSE
 #undef DK_SINCOS
+#undef DK_QSMALL
 
 #define DK_REAL float
 #define DK(name) name##_f32
@@ -261,6 +295,7 @@ static inline void transpose_f64(const double *src, size_t ss, double *dst, int6
 #define DK_TILE 8
 #define DK_TRANSPOSE transpose_f32
 #define DK_SINCOS sincos_lanes_f32
+#define DK_QSMALL 3.4526698300124393e-07f /* sqrt(FLT_EPSILON) 1e-3 */
 #include __FILE__
 
 static int abi_ok(const dk_args *a) {
@@ -323,16 +358,16 @@ static int DK(read_params)(const dk_args *a, const Shape *s, DK(Params) *pp) {
     pp->qoff = (const real *)a->qoff;
     pp->base = (const real *)a->base;
     const size_t nfix = (size_t)(2 * s->J + s->K + 1);
-    pp->fix = (DK(Fix) *)malloc(sizeof(DK(Fix)) * nfix + (size_t)(s->K * s->J + s->n + 1));
+    pp->fix = (DK(Fix) *)malloc(sizeof(DK(Fix)) * nfix + (size_t)(s->K * s->J + s->nv + 1));
     if (!pp->fix) return -1;
     pp->first = (uint8_t *)(pp->fix + nfix);
     uint8_t *seen = pp->first + s->K * s->J;
     for (int k = 0; k < s->K; k++) {
-        memset(seen, 0, (size_t)s->n);
-        for (int j = 0; j < s->J; j++) {
+        memset(seen, 0, (size_t)s->nv);
+        for (int j = 0; j < s->J; j++) { /* an S frame's three columns are its own (no mimic coupling) */
             const int hit = s->anc[k * s->J + j];
-            pp->first[k * s->J + j] = (uint8_t)(hit && !seen[s->qidx[j]]);
-            seen[s->qidx[j]] |= (uint8_t)hit;
+            pp->first[k * s->J + j] = (uint8_t)(hit && !seen[s->vidx[j]]);
+            seen[s->vidx[j]] |= (uint8_t)hit;
         }
     }
     for (int j = 0; j < s->J; j++) {
@@ -344,19 +379,19 @@ static int DK(read_params)(const dk_args *a, const Shape *s, DK(Params) *pp) {
 }
 
 static size_t DK(scratch_size)(const Shape *s) {
-    const size_t J = s->J, K = s->K, n = s->n;
-    return sizeof(real) * W * (J * 12 + J * 12 + K * 12 + K * 6 * n + n + 12);
+    const size_t J = s->J, K = s->K, n = s->n, nv = s->nv;
+    return sizeof(real) * W * (J * 12 + J * 12 + K * 12 + K * 6 * nv + n + 12);
 }
 
 static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK(Scratch) *sc) {
-    const size_t J = s->J, K = s->K, n = s->n;
+    const size_t J = s->J, K = s->K, n = s->n, nv = s->nv;
     sc->F = buf;
     sc->A = sc->F + J * 12 * W;
     sc->ends = sc->A + J * 12 * W;
     sc->Jb = sc->ends + K * 12 * W;
-    sc->qlanes = sc->Jb + K * 6 * n * W;
+    sc->qlanes = sc->Jb + K * 6 * nv * W;
     sc->basef = sc->qlanes + n * W;
-    memset(sc->Jb, 0, sizeof(real) * K * 6 * n * W); /* columns no joint reaches stay 0 (DK(column)) */
+    memset(sc->Jb, 0, sizeof(real) * K * 6 * nv * W); /* columns no joint reaches stay 0 (DK(column)) */
     for (int e = 0; e < 12; e++)
         for (int l = 0; l < W; l++)
             sc->basef[e * W + l] = s->has_base ? pp->base[e] : (real)((e % 5) == 0); /* identity: 0, 5, 10 */
@@ -418,14 +453,15 @@ static void DK(apply)(const real *P, const DK(Fix) *f, int move, const real *cs,
     }
 }
 
-/* Jacobian column (3.30) of the joint whose motion axis is in frame A (its z and origin, 12 x W lanes) for
- * the end frame E: m [z x (p_e - p); z] (turn) or m [z; 0] (slide), into rows col + r step, r = 0 .. 5;
- * the first joint to reach a column writes it (no clearing per block), the others (mimic joints) add. turn
- * and first are constants where this is inlined. */
+/* Jacobian column (3.30) of the joint whose motion axis is axis `ax` of frame A (its column ax, 2 = z, and
+ * origin, 12 x W lanes) for the end frame E: m [z x (p_e - p); z] (turn) or m [z; 0] (slide), into rows
+ * col + r step, r = 0 .. 5; the first joint to reach a column writes it (no clearing per block), the others
+ * (mimic joints) add. turn, first and ax are constants where this is inlined (R and P: ax = 2). */
 static inline __attribute__((always_inline)) void DK(column)(const real *restrict A, const real *restrict E,
                                                              const real m, const int turn, const int first,
-                                                             real *restrict col, const size_t step) {
-    const real *restrict z0 = A + 2 * W, *restrict z1 = A + 6 * W, *restrict z2 = A + 10 * W;
+                                                             const int ax, real *restrict col,
+                                                             const size_t step) {
+    const real *restrict z0 = A + ax * W, *restrict z1 = A + (4 + ax) * W, *restrict z2 = A + (8 + ax) * W;
     const real *restrict p0 = A + 3 * W, *restrict p1 = A + 7 * W, *restrict p2 = A + 11 * W;
     const real *restrict e0 = E + 3 * W, *restrict e1 = E + 7 * W, *restrict e2 = E + 11 * W;
     real *restrict c0 = col, *restrict c1 = c0 + step, *restrict c2 = c1 + step, *restrict c3 = c2 + step;
@@ -455,21 +491,58 @@ static inline __attribute__((always_inline)) void DK(column)(const real *restric
     }
 }
 
-/* The end frames (sc->ends, K x 12 x W) and, if jac, their Jacobians (sc->Jb, K x 6n x W) of the
- * configurations in sc->qlanes (n x W). The motion axis of joint j (its z and origin, before Post) is read
- * from F_j, or from A_j where the joint has a Post. */
+/* F (12 x W lanes) . Rot(Q) in place, Q the quaternion (w, x, y, z) in rows Q, Q + W, .. (W lanes each),
+ * normalised first (one of norm <= small is the identity, as diffkin._numerics.safe_normalize): the S motion.
+ * Column c of the result is sum_k F[:, k] R[k][c], R of (2.33); p is unchanged. */
+static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const real small) {
+    real R[9][W];
+#pragma omp simd
+    for (int l = 0; l < W; l++) {
+        const real w0 = Q[l], x0 = Q[W + l], y0 = Q[2 * W + l], z0 = Q[3 * W + l];
+        const real nrm = (real)sqrt((double)(w0 * w0 + x0 * x0 + y0 * y0 + z0 * z0));
+        const int tiny = nrm <= small;
+        const real inv = tiny ? 1 : 1 / nrm;
+        const real e = tiny ? 1 : w0 * inv, x = tiny ? 0 : x0 * inv, y = tiny ? 0 : y0 * inv;
+        const real z = tiny ? 0 : z0 * inv;
+        R[0][l] = 2 * (e * e + x * x) - 1; R[1][l] = 2 * (x * y - e * z); R[2][l] = 2 * (x * z + e * y);
+        R[3][l] = 2 * (x * y + e * z); R[4][l] = 2 * (e * e + y * y) - 1; R[5][l] = 2 * (y * z - e * x);
+        R[6][l] = 2 * (x * z - e * y); R[7][l] = 2 * (y * z + e * x); R[8][l] = 2 * (e * e + z * z) - 1;
+    }
+    for (int r = 0; r < 3; r++) {
+        real *restrict X = F + 4 * r * W, *restrict Y = X + W, *restrict Z = Y + W;
+#pragma omp simd
+        for (int l = 0; l < W; l++) {
+            const real x = X[l], y = Y[l], z = Z[l];
+            X[l] = x * R[0][l] + y * R[3][l] + z * R[6][l];
+            Y[l] = x * R[1][l] + y * R[4][l] + z * R[7][l];
+            Z[l] = x * R[2][l] + y * R[5][l] + z * R[8][l];
+        }
+    }
+}
+
+/* out = P . Pre . Rot(Q): the frame of an S motion (not inlined: the R/P loop of DK(block) stays as it was). */
+static __attribute__((noinline)) void DK(ball_frame)(const real *P, const DK(Fix) *pre, const real *Q, real *out) {
+    DK(apply)(P, pre, MOVE_NONE, NULL, NULL, out);
+    DK(quaternion_turn)(Q, out, DK_QSMALL);
+}
+
+/* The end frames (sc->ends, K x 12 x W) and, if jac, their Jacobians (sc->Jb, K x 6nv x W) of the
+ * configurations in sc->qlanes (n x W). The motion axis of joint j (its z and origin, before Post; the x, y,
+ * z axes of an S frame) is read from F_j, or from A_j where the joint has a Post. */
 static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
-    const int J = s->J, K = s->K, n = s->n;
+    const int J = s->J, K = s->K, nv = s->nv;
     real *F = sc->F;
     for (int j = 0; j < J; j++) {
         const real *P = s->parent[j] < 0 ? sc->basef : F + (size_t)s->parent[j] * 12 * W;
         const real m = pp->mult[j], b = pp->qoff[j];
         const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
+        const int mo = s->motion[j], rev = mo == DK_MOTION_R; /* the one dispatch on a frame's motion */
         real ang[W], sn[W], cs[W];
         for (int l = 0; l < W; l++) ang[l] = qj[l] * m + b;
-        if (s->revolute[j]) DK_SINCOS(ang, sn, cs);
+        if (rev) DK_SINCOS(ang, sn, cs);
         real *Fj = F + (size_t)j * 12 * W, *out = s->has_post[j] ? sc->A + (size_t)j * 12 * W : Fj;
-        DK(apply)(P, pp->fix + j, s->revolute[j] ? MOVE_TURN : MOVE_SLIDE, s->revolute[j] ? cs : ang, sn, out);
+        if (mo == DK_MOTION_S) DK(ball_frame)(P, pp->fix + j, qj, out);
+        else DK(apply)(P, pp->fix + j, rev ? MOVE_TURN : MOVE_SLIDE, rev ? cs : ang, sn, out);
         if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj);
     }
     for (int k = 0; k < K; k++) {
@@ -479,19 +552,21 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
         if (s->has_end[k]) DK(apply)(P, pp->fix + 2 * J + k, MOVE_NONE, NULL, NULL, E);
         else memcpy(E, P, sizeof(real) * 12 * W);
         if (!jac) continue;
-        real *Jb = sc->Jb + (size_t)k * 6 * n * W;
+        real *Jb = sc->Jb + (size_t)k * 6 * nv * W;
         for (int j = 0; j < J; j++) {
             if (!s->anc[k * J + j]) continue;
             const real *Aj = (s->has_post[j] ? sc->A : F) + (size_t)j * 12 * W;
-            real *col = Jb + (size_t)s->qidx[j] * W;
+            real *col = Jb + (size_t)s->vidx[j] * W;
             const real m = pp->mult[j];
-            const int first = pp->first[k * J + j];
-            if (s->revolute[j]) {
-                if (first) DK(column)(Aj, E, m, 1, 1, col, (size_t)n * W);
-                else DK(column)(Aj, E, m, 1, 0, col, (size_t)n * W);
+            const int first = pp->first[k * J + j], mo = s->motion[j];
+            if (mo == DK_MOTION_S) { /* three turns about the rotated frame's axes, never coupled */
+                for (int ax = 0; ax < 3; ax++) DK(column)(Aj, E, 1, 1, 1, ax, col + (size_t)ax * W, (size_t)nv * W);
+            } else if (mo == DK_MOTION_R) {
+                if (first) DK(column)(Aj, E, m, 1, 1, 2, col, (size_t)nv * W);
+                else DK(column)(Aj, E, m, 1, 0, 2, col, (size_t)nv * W);
             } else {
-                if (first) DK(column)(Aj, E, m, 0, 1, col, (size_t)n * W);
-                else DK(column)(Aj, E, m, 0, 0, col, (size_t)n * W);
+                if (first) DK(column)(Aj, E, m, 0, 1, 2, col, (size_t)nv * W);
+                else DK(column)(Aj, E, m, 0, 0, 2, col, (size_t)nv * W);
             }
         }
     }
@@ -555,7 +630,7 @@ static int64_t DK(dk_fk)(const dk_args *a) {
     real *T = (real *)a->T, *Jac = (real *)a->jac;
     const int64_t B = a->batch;
     int nthreads = (int)a->nthreads;
-    const int K = s.K, n = s.n;
+    const int K = s.K, nv = s.nv;
     const int64_t nblocks = (B + W - 1) / W;
     int64_t bad = 0;
     if (nthreads < 1 || B <= SERIAL_MAX) nthreads = 1;
@@ -580,8 +655,8 @@ static int64_t DK(dk_fk)(const dk_args *a) {
                     To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
                 }
                 if (Jac)
-                    DK(store_lanes)(sc.Jb + (size_t)k * 6 * n * W, 6 * n, nl,
-                                    Jac + (b0 * K + k) * 6 * (int64_t)n, (int64_t)K * 6 * n);
+                    DK(store_lanes)(sc.Jb + (size_t)k * 6 * nv * W, 6 * nv, nl,
+                                    Jac + (b0 * K + k) * 6 * (int64_t)nv, (int64_t)K * 6 * nv);
             }
         }
     }
@@ -630,6 +705,7 @@ static void DK(spd_solve)(real *A, real *b, int d) {
 static int64_t DK(dk_lm)(const dk_args *a) {
     Shape s;
     read_shape(a, &s);
+    if (s.nv != s.n) return DK_MOTION_ERROR; /* additive steps on u: R and P motions only */
     DK(Params) pp;
     if (DK(read_params)(a, &s, &pp)) return -1;
     const int64_t m = a->batch, N = a->n_targets, *tidx = a->tidx;

@@ -5,7 +5,13 @@
 It reads the same constants (the chain's fixed transforms as float plans: the
 :class:`~diffkin.kernels.tree.Segments` of ``per_joint=True``), works on blocks of 16 configurations with
 vectorised loops, and shares the blocks between threads with a dynamic schedule. ``tests/test_native.py``
-checks it against the torch kernels (every joint kind, trees, mimic joints, base and tool, both dtypes).
+checks it against the torch kernels (every joint kind, trees, mimic joints, base and tool, both dtypes),
+``tests/test_native_ball.py`` ball and free joints against the torch kernels and MuJoCo.
+
+Motions: each frame carries the code of its elementary motion (R, P or S of
+:mod:`diffkin.kernels.configuration`). The C file's table of motions (``DK_MOTIONS``: letter, nq, nv, in
+code order) is read at load time through ``dk_motions`` and must equal ``MOTION_NQ`` / ``MOTION_NV``; the
+packer gives each frame the code of its letter in that table, so one table drives both kernels.
 
 Build: the C file is compiled on first use (about 1 s) with the system's C compiler (``$CC``, else ``cc``)
 into ``$DIFFKIN_CACHE_DIR`` (default ``$XDG_CACHE_HOME/diffkin`` or ``~/.cache/diffkin``), once per source,
@@ -48,6 +54,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from .configuration import MOTION_NQ, MOTION_NV
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
@@ -78,8 +85,10 @@ def _announce(text: str) -> None:
 
 
 #: the version of the C interface this module speaks (DK_ABI_VERSION in _native.c)
-ABI_VERSION = 1
+ABI_VERSION = 2
 _ABI_ERROR = -2  # DK_ABI_ERROR: the library refused the struct
+_MOTION_ERROR = -3  # DK_MOTION_ERROR: dk_lm of a chain with S motions
+_motion_codes: dict[str, int] = {}  # letter -> code, from the loaded library's DK_MOTIONS
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 
 
@@ -87,9 +96,9 @@ class Args(ctypes.Structure):
     """``dk_args`` of ``_native.c`` (``DK_ARGS_FIELDS``, where each field is described), field by field:
     the chain's arrays, one call's inputs and outputs, the version and the size."""
 
-    _fields_ = [(name, _I64) for name in ("version", "size", "real_bytes", "nthreads", "J", "K", "n",
+    _fields_ = [(name, _I64) for name in ("version", "size", "real_bytes", "nthreads", "J", "K", "n", "nv",
                                           "has_base")] + \
-        [(name, _PTR) for name in ("parent", "revolute", "qidx", "has_pre", "has_post", "end_joint",
+        [(name, _PTR) for name in ("parent", "motion", "qidx", "vidx", "has_pre", "has_post", "end_joint",
                                    "has_end", "ancestor", "mult", "qoff", "pre", "post", "base", "end")] + \
         [("batch", _I64), ("q", _PTR), ("T", _PTR), ("jac", _PTR), ("iters", _I64), ("max_rounds", _I64),
          ("n_targets", _I64)] + \
@@ -130,6 +139,23 @@ def check_abi(lib: ctypes.CDLL, args_type: type[ctypes.Structure] | None = None,
                          if theirs[k] != ours[k] and k != "offsets")
         raise AbiMismatch(f"the native library's dk_args does not match native.Args: "
                           f"{diff or 'the field names or offsets differ'}")
+    _motion_codes.clear()
+    _motion_codes.update(motion_table(lib))
+
+
+def motion_table(lib: ctypes.CDLL) -> dict[str, int]:
+    """The library's codes of the elementary motions (``DK_MOTIONS``), checked against
+    :data:`~diffkin.kernels.configuration.MOTION_NQ` / ``MOTION_NV``: every motion of the configuration
+    layer, with the same nq and nv (else :class:`AbiMismatch`)."""
+    fn = lib.dk_motions
+    fn.restype, fn.argtypes = ctypes.c_char_p, []
+    rows = [r.split() for r in fn().decode().split(",")[:-1]]
+    theirs = {letter: (int(nq), int(nv)) for letter, nq, nv in rows}
+    ours = {m: (MOTION_NQ[m], MOTION_NV[m]) for m in MOTION_NQ}
+    if theirs != ours:
+        raise AbiMismatch(f"the native library's motions (letter: nq, nv) {theirs} are not the configuration "
+                          f"layer's {ours}")
+    return {letter: code for code, (letter, *_) in enumerate(rows)}
 
 
 def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
@@ -319,7 +345,7 @@ class NativeModel:
     """A chain's constants packed for the C kernel: the int32 structure and float64 / float32 reals, one
     tensor per array field of :class:`Args`, and a filled :class:`Args` per dtype (copied per call)."""
 
-    __slots__ = ("ints", "reals", "head", "args", "n_ends", "n_vars")
+    __slots__ = ("ints", "reals", "head", "args", "n_ends", "n_vars", "n_velocities")
 
     def __init__(self, topo: Topology, seg: Segments):
         J, K = topo.n_frames, len(topo.ends)
@@ -336,7 +362,8 @@ class NativeModel:
         for T in (*pre, *post, seg.base, *seg.ends):
             if T is not None and not isinstance(T, tuple):
                 raise TypeError("NativeModel needs constant plans (Segments from per_joint=True constants)")
-        ints = {"parent": topo.parents, "revolute": [int(r) for r in topo.revolute], "qidx": topo.q_index,
+        ints = {"parent": topo.parents, "motion": _motions(topo), "qidx": topo.q_index,
+                "vidx": _velocity_index(topo),
                 "has_pre": [int(p is not None) for p in pre], "has_post": [int(p is not None) for p in post],
                 "end_joint": topo.ends, "has_end": [int(E is not None) for E in seg.ends],
                 "ancestor": [int(a) for row in topo.ancestors for a in row]}
@@ -346,7 +373,8 @@ class NativeModel:
         r64 = {name: torch.tensor(list(v), dtype=torch.float64) for name, v in reals.items()}
         self._link({name: torch.tensor(list(v), dtype=torch.int32) for name, v in ints.items()},
                    {torch.float64: r64, torch.float32: {k: v.to(torch.float32) for k, v in r64.items()}},
-                   {"J": J, "K": K, "n": topo.n_vars, "has_base": int(seg.base is not None)})
+                   {"J": J, "K": K, "n": topo.n_vars, "nv": topo.n_dofs,
+                    "has_base": int(seg.base is not None)})
 
     def _link(self, ints: dict, reals: dict, head: dict) -> None:
         """Keep the arrays and fill an :class:`Args` per dtype with their addresses."""
@@ -354,7 +382,12 @@ class NativeModel:
         self.args = {dtype: _filled(Args(), version=ABI_VERSION, size=ctypes.sizeof(Args),
                                     real_bytes=dtype.itemsize, **head, **ints, **reals[dtype])
                      for dtype in reals}
-        self.n_ends, self.n_vars = head["K"], head["n"]
+        self.n_ends, self.n_vars, self.n_velocities = head["K"], head["n"], head["nv"]
+
+    @property
+    def euclidean(self) -> bool:
+        """True when q and v are alike (every frame an R or P motion): what :func:`lm_steps` needs."""
+        return self.n_vars == self.n_velocities
 
     def __reduce__(self):  # copies and pickles carry the arrays; the addresses are made anew
         return _relinked, (self.ints, self.reals, self.head)
@@ -362,6 +395,22 @@ class NativeModel:
     def call(self, dtype: torch.dtype, **fields) -> Args:
         """A copy of this chain's :class:`Args` for ``dtype`` with one call's ``fields`` set."""
         return _filled(Args.from_buffer_copy(self.args[dtype]), **fields)
+
+
+def _motions(topo: Topology) -> list[int]:
+    """Per frame the library's code of its motion: S for a ball motion, else R or P (:func:`motion_table`)."""
+    if not _motion_codes:
+        raise RuntimeError("the native library is not loaded (native.available() first)")
+    sph = topo.spherical or (False,) * topo.n_frames
+    return [_motion_codes["S" if s else ("R" if r else "P")] for s, r in zip(sph, topo.revolute)]
+
+
+def _velocity_index(topo: Topology) -> list[int]:
+    """Per frame its first velocity, its (first) Jacobian column, from the column layout of ``topo``."""
+    first: dict[int, int] = {}
+    for j, v in zip(topo.column_frame, topo.column_v):
+        first.setdefault(j, v)
+    return [first[j] for j in range(topo.n_frames)]
 
 
 def _relinked(ints: dict, reals: dict, head: dict) -> NativeModel:
@@ -388,13 +437,14 @@ def native_model(topo: Topology, seg: Segments) -> NativeModel:
 
 def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
                 threads: int | None = None) -> tuple[Tensor, Tensor | None, int]:
-    """``q (B, n)`` (CPU, float32/float64, contiguous) -> ``(T (B, K, 4, 4), J (B, K, 6, n) or None,
-    non-finite count)``: the end-link poses (2.50) and geometric Jacobians (3.30). Rows whose q holds
+    """``q (B, nq)`` (CPU, float32/float64, contiguous) -> ``(T (B, K, 4, 4), J (B, K, 6, nv) or None,
+    non-finite count)``: the end-link poses (2.50) and geometric Jacobians (3.30) (a ball motion's three
+    columns: its angular velocity in the rotated frame, as the torch kernels). Rows whose q holds
     NaN/inf are not meaningful; the caller raises on a non-zero count. ``threads``: a fixed count instead of
     the policy of :func:`thread_count`."""
-    B, n, K = q.shape[0], model.n_vars, model.n_ends
+    B, nv, K = q.shape[0], model.n_velocities, model.n_ends
     T = torch.empty(B, K, 4, 4, dtype=q.dtype)
-    J = torch.empty(B, K, 6, n, dtype=q.dtype) if with_jacobian else None
+    J = torch.empty(B, K, 6, nv, dtype=q.dtype) if with_jacobian else None
     args = model.call(q.dtype, batch=B, q=q, T=T, jac=J, nthreads=threads or thread_count(B))
     bad = _lib.dk_fk(ctypes.byref(args))
     _raise_on(bad, "frames")
@@ -404,6 +454,9 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
 def _raise_on(status: int, what: str) -> None:
     if status == _ABI_ERROR:
         raise AbiMismatch("the native kernel refused the call's dk_args (another version or size)")
+    if status == _MOTION_ERROR:
+        raise ValueError("the fused LM iteration takes chains of R and P motions only (ball and free joints: "
+                         "the torch iteration)")
     if status < 0:
         raise MemoryError(f"the native kernel could not allocate its per-thread {what}")
 
