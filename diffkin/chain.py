@@ -340,10 +340,10 @@ class KinematicChain(nn.Module):
         geometry as tensors, or axes asked for). Paths, in this order of preference:
 
         * ``"native"``: the fused C pass (CPU, no gradient, not traced, the library built; see
-          :meth:`_native_model`), for ``fk`` (unless :meth:`compile` d), ``fk_jacobian`` and ``columns``;
+          :meth:`_native_model`), for ``fk`` (unless :meth:`compile_fk` ed), ``fk_jacobian`` and ``columns``;
         * ``"batch_first"``: all link matrices at once, then one matmul per joint, for batches of at most
           :attr:`small_batch` configurations and for Jacobians / axes that need a gradient;
-        * ``"compiled"``: the ``torch.compile`` d FK of :meth:`compile`;
+        * ``"compiled"``: the ``torch.compile`` d FK of :meth:`compile_fk`;
         * ``"chunked"``: large CPU Jacobian batches without autograd, batch last in slices per thread;
         * ``"batch_last"``: joint after joint on the columns of the current frame (every other call).
         """
