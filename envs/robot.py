@@ -22,6 +22,7 @@ from torch import Tensor, nn
 from diffkin.chain import DHChain, KinematicChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
 from diffkin.ik.velocity import velocity_step
+from diffkin.sampling import configuration_from_uniform
 from diffkin.validation import check_device, shape_str, tensors
 
 from ._checks import check_setting
@@ -206,7 +207,7 @@ class Robot:
 
     def sample_q(self, u: Tensor, spread: float = 1.0, around: Tensor | None = None) -> Tensor:
         """Joints from uniforms ``u (N, n)``: ``around + spread · (U(limits) − around)``, within limits."""
-        q = self.lower + (self.upper - self.lower) * u
+        q = configuration_from_uniform(self.chain, u)
         around = self.home if around is None else around
         return around + spread * (q - around)
 
