@@ -13,13 +13,13 @@ already validated tensors (the envs validate actions once at the boundary).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
-from diffkin.chain import DHChain, KinematicChain
+from diffkin import models
+from diffkin.chain import KinematicChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
 from diffkin.ik.velocity import velocity_step
 from diffkin.sampling import configuration_from_uniform
@@ -41,37 +41,10 @@ HOME = {
 }
 
 
-def _fallback_chain(name: str) -> DHChain:
-    """Tables from the project brief, used only until diffkin.models provides ``load``."""
-    pi = math.pi
-    if name == "panda":
-        lim = [(-2.8973, 2.8973), (-1.7628, 1.7628), (-2.8973, 2.8973), (-3.0718, -0.0698),
-               (-2.8973, 2.8973), (-0.0175, 3.7525), (-2.8973, 2.8973)]
-        return DHChain([0, 0, 0, 0.0825, -0.0825, 0, 0.088],
-                       [0, -pi / 2, pi / 2, pi / 2, -pi / 2, pi / 2, pi / 2],
-                       [0.333, 0, 0.316, 0, 0.384, 0, 0.107], [0.0] * 7, convention="modified", q_limits=lim,
-                       name="panda")
-    if name == "ur5":
-        return DHChain([0, -0.425, -0.39225, 0, 0, 0], [pi / 2, 0, 0, pi / 2, -pi / 2, 0],
-                       [0.089159, 0, 0, 0.10915, 0.09465, 0.0823], [0.0] * 6,
-                       q_limits=[(-2 * pi, 2 * pi)] * 6, name="ur5")
-    if name == "three_link_planar":
-        return DHChain([0.5, 0.5, 0.5], [0.0] * 3, [0.0] * 3, [0.0] * 3, q_limits=[(-pi, pi)] * 3,
-                       name="three_link_planar")
-    raise ModelError(f"unknown robot {name!r}; expected 'panda', 'ur5', 'three_link_planar' or a DHChain")
-
-
 def load_chain(robot: str | KinematicChain, dtype=torch.float32, device="cpu") -> KinematicChain:
-    """A chain from a model name (through ``diffkin.models.load``) or a chain instance (copied)."""
-    if isinstance(robot, KinematicChain):
-        chain = robot.copy() if hasattr(robot, "copy") else robot
-        return chain.to(dtype=dtype, device=device)
-    try:
-        from diffkin.models import load
-
-        return load(robot, dtype=dtype, device=device)
-    except (ImportError, ValueError):  # models package still being filled in: use the brief's tables
-        return _fallback_chain(robot).to(dtype=dtype, device=device)
+    """A chain from a model name, a YAML / URDF / MJCF path or a chain instance (copied):
+    :func:`diffkin.models.load_chain`."""
+    return models.load_chain(robot, dtype=dtype, device=device)
 
 
 @dataclass(frozen=True)

@@ -108,3 +108,23 @@ def test_full_pose_calibration_and_error_model_choices(tmp_path):
     assert type(result.chain) is type(nominal)
     with pytest.raises(ModelError, match="an MJCF chain uses 'general'"):
         calibration.calibrate(nominal, q, T, error_model="dh")
+
+
+def test_calibrate_from_files_writes_the_mjcf(tmp_path):
+    """An MJCF path through the one loader: calibrated.xml, compiled by MuJoCo, has the real robot's poses."""
+    real, real_model = _perturbed(tmp_path)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        nominal = from_mjcf(PANDA, "hand", dtype=F64)
+    g = torch.Generator().manual_seed(3)
+    q = nominal.random_configuration(40, generator=g)
+    np.savez(tmp_path / "meas.npz", q=q.numpy(), T=_mujoco_poses(real_model, nominal, q).numpy())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = calibration.calibrate_from_files(PANDA, tmp_path / "meas.npz", end_link="hand",
+                                                  out_dir=tmp_path / "out", progress=False)
+    assert type(result.chain).__name__ == "MJCFChain"
+    written = compile_with_stand_in_assets(tmp_path / "out" / "calibrated.xml")
+    q_test = nominal.random_configuration(30, generator=g)
+    want = _mujoco_poses(real_model, nominal, q_test)
+    torch.testing.assert_close(_mujoco_poses(written, nominal, q_test), want, atol=1e-8, rtol=0)
