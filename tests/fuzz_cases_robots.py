@@ -315,6 +315,7 @@ EXEMPT: dict[str, str] = {
     "diffkin.chain.as_rigid_transform": "re-exported from diffkin.transforms (fuzzed with the geometry "
     "modules); the chain boundary that uses it, the base/tool setters, has the chain.base/chain.tool cases",
     "diffkin.models.load": _NO_TENSORS + " (tests/test_models.py)",
+    "diffkin.models.load_chain": _NO_TENSORS + " (tests/test_model_loading.py)",
     "diffkin.sampling.random_configuration": _NO_TENSORS + " (a chain, a shape, a generator; "
     "tests/test_sampling.py)",
     "diffkin.models.available": _NO_TENSORS,

@@ -165,3 +165,24 @@ def _write(tmp_path, name, text):
     p = tmp_path / name
     p.write_text(text)
     return p
+
+
+def test_fk_of_an_mjcf_robot_against_mujoco(capsys, tmp_path):
+    """``--mjcf FILE --end-link BODY`` (the one loader): the poses written are MuJoCo's."""
+    mujoco = pytest.importorskip("mujoco")
+    from mjcf_util import compile_with_stand_in_assets
+
+    path = Path(__file__).parent / "data" / "mjcf" / "franka_emika_panda" / "panda.xml"
+    rc, text = _run(capsys, "fk", "--mjcf", path, "--end-link", "hand", "--random", 8, "--output",
+                    tmp_path / "fk.npz")
+    assert rc == 0, text
+    with np.load(tmp_path / "fk.npz") as d:
+        q, T = d["q"], d["T"]
+    m = compile_with_stand_in_assets(path)
+    data = mujoco.MjData(m)
+    hand = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "hand")
+    for row, pose in zip(q, T):
+        data.qpos[:7] = row
+        mujoco.mj_kinematics(m, data)
+        np.testing.assert_allclose(pose[:3, 3], data.xpos[hand], atol=1e-12)
+        np.testing.assert_allclose(pose[:3, :3], data.xmat[hand].reshape(3, 3), atol=1e-12)

@@ -34,6 +34,7 @@ from collections.abc import Iterable, Sequence
 import torch
 from torch import Tensor, nn
 
+from .._unchecked import UncheckedFK as _FK  # FK without checks, for torch.func over robots
 from ..chain import DHChain, KinematicChain
 from ..errors import ModelError
 from .model import DH_KINDS, POSE_AXES, CalibrationModel, ForwardModeMatrix, pose_residual
@@ -101,17 +102,6 @@ def _mjcf_rows(chain, key: str) -> list[str]:
         return list(chain.site_names)
     anchors, axes = chain._joint_rows
     return list(anchors if key == "joint_pos" else axes)
-
-
-class _FK(nn.Module):
-    """FK without input checks, so that ``torch.func`` can vectorise it over robots."""
-
-    def __init__(self, chain: KinematicChain):
-        super().__init__()
-        self.chain = chain
-
-    def forward(self, q: Tensor) -> Tensor:
-        return self.chain.forward_kinematics(q, check=False)
 
 
 def _names_units(chain: KinematicChain, named) -> tuple[list[str], list[bool]]:
