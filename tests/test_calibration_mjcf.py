@@ -53,11 +53,16 @@ def _perturbed(tmp_path: Path):
     return real, compile_with_stand_in_assets(path)
 
 
-def test_least_squares_calibration_of_an_mjcf_panda(tmp_path):
-    real, real_model = _perturbed(tmp_path)
+def _real_and_nominal(tmp_path: Path):
+    """The perturbed robot compiled by MuJoCo, and the nominal MJCF chain."""
+    _, real_model = _perturbed(tmp_path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        nominal = from_mjcf(PANDA, "hand", dtype=F64)
+        return real_model, from_mjcf(PANDA, "hand", dtype=F64)
+
+
+def test_least_squares_calibration_of_an_mjcf_panda(tmp_path):
+    real_model, nominal = _real_and_nominal(tmp_path)
     g = torch.Generator().manual_seed(1)
     q = nominal.random_configuration(60, generator=g)
     q_test = nominal.random_configuration(200, generator=g)
@@ -91,10 +96,7 @@ def test_least_squares_calibration_of_an_mjcf_panda(tmp_path):
 
 
 def test_full_pose_calibration_and_error_model_choices(tmp_path):
-    real, real_model = _perturbed(tmp_path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        nominal = from_mjcf(PANDA, "hand", dtype=F64)
+    real_model, nominal = _real_and_nominal(tmp_path)
     g = torch.Generator().manual_seed(2)
     q = nominal.random_configuration(40, generator=g)
     T = _mujoco_poses(real_model, nominal, q)
@@ -112,10 +114,7 @@ def test_full_pose_calibration_and_error_model_choices(tmp_path):
 
 def test_calibrate_from_files_writes_the_mjcf(tmp_path):
     """An MJCF path through the one loader: calibrated.xml, compiled by MuJoCo, has the real robot's poses."""
-    real, real_model = _perturbed(tmp_path)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        nominal = from_mjcf(PANDA, "hand", dtype=F64)
+    real_model, nominal = _real_and_nominal(tmp_path)
     g = torch.Generator().manual_seed(3)
     q = nominal.random_configuration(40, generator=g)
     np.savez(tmp_path / "meas.npz", q=q.numpy(), T=_mujoco_poses(real_model, nominal, q).numpy())

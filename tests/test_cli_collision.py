@@ -31,23 +31,13 @@ def _run(capsys, *args) -> tuple[int, str]:
     return rc, out.out + out.err
 
 
-def _coal_objects(world: World):
-    objs = [ref.capsule(s[:3], s[:3], s[3]) for s in world.spheres.numpy()]
-    objs += [ref.capsule(c[:3], c[3:6], c[6]) for c in world.capsules.numpy()]
-    objs += [ref.box(c, R, h) for c, R, h in zip(world.boxes.center.numpy(), world.boxes.rotation.numpy(),
-                                                world.boxes.half_extents.numpy())]
-    objs += [ref.halfspace(h[:3], h[3]) for h in world.halfspaces.numpy()]
-    objs += [ref.capsule(p, p, 0.0) for p in world.points.numpy()]
-    return objs
-
-
 def _coal_min(q: np.ndarray, pairs: bool = True) -> np.ndarray:
     """The smallest distance of each row by coal: the SRDF-filtered self pairs (if ``pairs``) and every geom
     against the example world."""
     chain, rc = _robot(FR3, "fr3_link8")
     rc_pairs = {p for p in _robot_with_srdf().pairs}
     pref = _Pinocchio(FR3.read_text(), chain, rc.geoms)
-    objs = _coal_objects(read_world(EXAMPLE, dtype=F64))
+    objs = ref.world_objects(read_world(EXAMPLE, dtype=F64))
     out = []
     for row in q:
         pref.place(row)
