@@ -179,3 +179,22 @@ def test_collision_free_samples_rechecked_by_coal():
         pref_min.append(min(ref.distance(*pref.shape(a), *pref.shape(b)) for a, b in rc.pairs))
     assert min(pref_min) >= -1e-8
     assert math.isfinite(min(pref_min))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("gen_device", ["cpu", "cuda"])
+def test_on_cuda(gen_device):
+    """The samples on the chain's device (either generator device), the rejection on the GPU, the same
+    values as on the CPU for a CPU generator."""
+    cpu = models.from_mjcf(BALLS, _ends(), dtype=F64)
+    chain = cpu.to("cuda")
+    g = torch.Generator(device=gen_device).manual_seed(0)
+    q = chain.random_configuration(500, generator=g, collision=_Rule(), margin=0.1)
+    assert q.device.type == "cuda" and (q[:, 0] >= 0.6).all()
+    if gen_device == "cpu":
+        q_cpu = cpu.random_configuration(500, generator=torch.Generator().manual_seed(0), collision=_Rule(),
+                                         margin=0.1)
+        torch.testing.assert_close(q.cpu(), q_cpu, atol=1e-12, rtol=0)
+    u = torch.rand(7, chain.configuration_space.n_uniform, dtype=F64, device="cuda")
+    assert configuration_from_uniform(chain, u).device.type == "cuda"
