@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
@@ -48,7 +47,6 @@ from .transforms import as_rigid_transform, check_transform
 from .validation import (
     SUPPORTED_DTYPES,
     as_tensor,
-    check_count,
     check_dtype,
     check_finite,
     check_given,
@@ -755,21 +753,19 @@ class KinematicChain(nn.Module):
         return torch.maximum(torch.minimum(q, self.q_limits[:, 1]), self.q_limits[:, 0])
 
     def random_configuration(
-        self, shape: Sequence[int] | int = (), generator: torch.Generator | None = None
-    ) -> Tensor:
+        self, shape: Sequence[int] | int = (), generator: torch.Generator | None = None, *, collision=None,
+        world=None, margin: float = 0.0, max_rounds: int = 32, return_mask: bool = False,
+    ) -> Tensor | tuple[Tensor, Tensor]:
         """Uniform joint samples within the limits, shape ``(*shape, nq)``, chain dtype/device; the
         quaternions of ball and free joints uniform on the unit sphere (positions of a free joint within its
-        limits, else ±1 m)."""
-        shape = (shape,) if isinstance(shape, int | np.integer) else tuple(shape)
-        shape = tuple(check_count(s, "random_configuration shape entries", minimum=0) for s in shape)
-        lo, hi = self.lower_upper()
-        gen_device = self.device if generator is None else generator.device
-        if not self.configuration_space.euclidean:  # quaternions uniform on S³
-            idx = list(self.configuration_space.scalar_index())
-            return self.configuration_space.sample(lo[idx], hi[idx], shape, generator)
-        u = torch.rand(*shape, self.n_joints, generator=generator, dtype=self.dtype, device=gen_device)
-        u = u.to(self.device)
-        return lo + (hi - lo) * u
+        limits, else ±1 m). With ``collision`` (a :class:`~diffkin.collision.RobotCollision`), ``world``,
+        ``margin``: collision-free samples by batched rejection
+        (:func:`diffkin.sampling.random_configuration`,
+        which documents ``max_rounds`` and ``return_mask``)."""
+        from .sampling import random_configuration
+
+        return random_configuration(self, shape, generator, collision=collision, world=world, margin=margin,
+                                    max_rounds=max_rounds, return_mask=return_mask)
 
     def copy(self) -> KinematicChain:
         """An independent deep copy (not compiled: a compiled path is bound to its own chain)."""

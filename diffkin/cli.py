@@ -67,19 +67,27 @@ def _check_device(device: str) -> None:
         raise DiffkinError("--device cuda was requested but no CUDA device is available (use --device cpu)")
 
 
-def _load_chain(args):
-    from . import models
-
-    dtype, device = _dtype(args.dtype), args.device
-    _check_device(device)
-    if getattr(args, "urdf", None):
-        if not args.end_link:
-            raise DiffkinError("--urdf needs --end-link NAME (the end-effector link)")
-        return models.from_urdf(args.urdf, args.end_link, dtype=dtype, device=device)
+def _robot_source(args) -> tuple[str, str | None]:
+    """``(source, end_link)`` of the robot options: ``--urdf`` / ``--mjcf FILE --end-link`` or ``--robot``."""
+    for flag in ("urdf", "mjcf"):
+        path = getattr(args, flag, None)
+        if path:
+            if not args.end_link:
+                raise DiffkinError(f"--{flag} needs --end-link NAME (the end-effector link)")
+            return path, args.end_link
     if not args.robot:
-        raise DiffkinError("give --robot NAME (see `diffkin models`) or --urdf FILE --end-link LINK")
+        raise DiffkinError("give --robot NAME (see `diffkin models`), --urdf FILE or --mjcf FILE with "
+                           "--end-link LINK")
     _check_robot_option(args.robot)
-    return models.load(args.robot, dtype=dtype, device=device)
+    return args.robot, None
+
+
+def _load_chain(args):
+    from .models import load_chain
+
+    _check_device(args.device)
+    source, end_link = _robot_source(args)
+    return load_chain(source, end_link, dtype=_dtype(args.dtype), device=args.device)
 
 
 def _check_robot_option(robot: str) -> None:
@@ -89,9 +97,9 @@ def _check_robot_option(robot: str) -> None:
         raise DiffkinError(f"--robot {robot}: a URDF file is given as --urdf {robot} --end-link LINK "
                            "(--robot takes a built-in name or a robot YAML file)")
     if suffix in (".xml", ".mjcf"):
-        raise DiffkinError(f"--robot {robot}: an XML model; a URDF is given as --urdf FILE --end-link LINK, "
-                           "a MuJoCo MJCF loads in Python with diffkin.models.from_mjcf (--robot takes a "
-                           "built-in name or a robot YAML file)")
+        raise DiffkinError(f"--robot {robot}: an XML model; a MuJoCo MJCF is given as --mjcf FILE --end-link "
+                           "BODY, a URDF as --urdf FILE --end-link LINK (--robot takes a built-in name or a "
+                           "robot YAML file)")
 
 
 @contextlib.contextmanager
@@ -158,7 +166,7 @@ def cmd_fk(args) -> int:
         check_output_path(args.output)
     _join_ranks(args)
     chain = _load_chain(args)
-    source = RandomJoints(args.random, args.seed) if args.random else args.input
+    source = _random_source(args, chain, RandomJoints, poses=False)
     res = _streamed(args, chain, "FK", stream_fk, source)
     if res is None:  # a rank other than 0 of a sharded run: rank 0 reports
         return 0
@@ -187,6 +195,27 @@ def _streamed(args, chain, label: str, stream, source, **options):
 
 class _Quiet:
     no_progress = True
+
+
+def _random_source(args, chain, RandomJoints, poses: bool):
+    """The input of ``fk`` / ``ik``: ``--input``, or ``--random N`` (collision-free with ``--self-collision``
+    / ``--world``: joints, or for ``ik`` their FK poses as the targets). Sets ``args.collision``."""
+    from ._cli_collision import collision_free_joints, collision_options
+
+    collision, world = collision_options(args, chain, _robot_source(args)[0])
+    args.collision = (collision, world, args.margin)
+    if not args.random:
+        if collision is not None and not poses:
+            raise DiffkinError("fk: --self-collision / --world apply to --random samples")
+        return args.input
+    if collision is None:
+        return RandomJoints(args.random, args.seed)
+    q = collision_free_joints(chain, args.random, args.seed, args.chunk_size, collision, world, args.margin)
+    if not poses:
+        return q
+    with torch.no_grad():
+        T = chain.forward_kinematics(torch.as_tensor(q, dtype=chain.dtype, device=chain.device))
+    return T.cpu().double().numpy()
 
 
 def _join_ranks(args) -> None:
@@ -231,11 +260,13 @@ def cmd_ik(args) -> int:
 
     if args.output:
         check_output_path(args.output)
+    from ._cli_collision import solve_keywords
+
     _join_ranks(args)
     chain = _load_chain(args)
-    source = RandomJoints(args.random, args.seed) if args.random else args.input
+    source = _random_source(args, chain, RandomJoints, poses=True)
     res = _streamed(
-        args, chain, "IK", stream_ik, source,
+        args, chain, "IK", stream_ik, source, **solve_keywords(*args.collision),
         position_only=True if args.position_only else None,
         seed=args.seed,
         num_seeds=args.num_seeds,
@@ -737,7 +768,9 @@ def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> No
     g = p.add_argument_group("robot")
     g.add_argument("--robot", help="built-in robot name (see `diffkin models`) or a robot YAML file")
     g.add_argument("--urdf", help="URDF file (with --end-link)")
-    g.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
+    g.add_argument("--mjcf", help="MuJoCo MJCF file (with --end-link: a body or site)")
+    g.add_argument("--end-link", dest="end_link",
+                   help="end-effector link of the URDF (a body or site of the MJCF)")
     g.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to compute")
     g.add_argument("--dtype", default="float64", choices=["float32", "float64"],
                    help="compute (and .npy output) dtype")
@@ -758,6 +791,9 @@ def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> No
     io.add_argument("--merge", action="store_true",
                     help="under torchrun: concatenate the ranks' parts into --output (default: the parts "
                          "and a manifest <stem>.shards.json that every input option reads as one file)")
+    from ._cli_collision import add_arguments
+
+    add_arguments(p)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -391,7 +391,9 @@ def _column_index(header: list[str], names: list[str]) -> list[int] | None:
 
 
 class RandomJoints:
-    """``count`` joint vectors drawn uniformly within a chain's sampling ranges (``chain.lower_upper()``).
+    """``count`` joint vectors drawn uniformly within a chain's sampling ranges (``chain.lower_upper()``;
+    quaternions of ball and free joints uniform on S³), float64, by
+    :meth:`~diffkin.kernels.configuration.ConfigurationSpace.from_uniform` of float64 uniforms.
 
     Row ``i`` depends only on ``seed`` and ``i`` (one PCG64 stream advanced to the row), so the samples do
     not depend on the chunk size, and a slice ``[start, stop)`` equals the same rows of the whole set.
@@ -405,15 +407,19 @@ class RandomJoints:
         self.count, self.seed = int(count), int(seed)
 
     def source(self, chain) -> ArraySource:
-        lo, hi = (t.detach().cpu().double().numpy() for t in chain.lower_upper())
-        n = lo.shape[0]
+        from .sampling import _scalar_ranges
+
+        space = chain.configuration_space
+        lo, hi = (t.detach().cpu().double() for t in _scalar_ranges(chain))
+        n, nu = chain.nq, space.n_uniform
 
         def read(start, stop, size):
             for a in range(start, stop, size):
                 m = min(size, stop - a)
                 bg = np.random.PCG64(self.seed)
-                bg.advance(a * n)  # one 64-bit draw per float64 sample
-                yield lo + (hi - lo) * np.random.Generator(bg).random((m, n))
+                bg.advance(a * nu)  # one 64-bit draw per float64 uniform
+                u = torch.from_numpy(np.random.Generator(bg).random((m, nu)))
+                yield space.from_uniform(lo, hi, u).numpy()
 
         return ArraySource((self.count, n), f"random({self.count}, seed={self.seed})", read)
 

@@ -19,6 +19,7 @@ __all__ = [
     "MissingExtraError",
     "OptionError",
     "DeviceError",
+    "SamplingError",
     "require",
 ]
 
@@ -62,6 +63,11 @@ class OptionError(DiffkinError):
 class DeviceError(DiffkinError):
     """A device this torch cannot compute on: ``"cuda"`` on a CPU-only build, a missing GPU index, ``"meta"``
     (tensors without values) or an unknown device string."""
+
+
+class SamplingError(DiffkinError):
+    """Rejection sampling found fewer accepted samples than asked for within its bounded number of rounds
+    (collision-free configurations of a robot that is almost always in collision)."""
 
 
 def require(module: str, extra: str, feature: str) -> ModuleType:

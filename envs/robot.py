@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from diffkin import models
 from diffkin.chain import KinematicChain
 from diffkin.errors import ConventionError, ModelError, ShapeError
 from diffkin.ik.velocity import velocity_step
@@ -34,13 +35,9 @@ _LENGTH_PARAMS = ("a", "d")
 _ANGLE_PARAMS = ("alpha", "theta", "beta")
 
 def load_chain(robot: str | KinematicChain, dtype=torch.float32, device="cpu") -> KinematicChain:
-    """A chain from a model name (through ``diffkin.models.load``) or a chain instance (copied)."""
-    if isinstance(robot, KinematicChain):
-        chain = robot.copy() if hasattr(robot, "copy") else robot
-        return chain.to(dtype=dtype, device=device)
-    from diffkin.models import load
-
-    return load(robot, dtype=dtype, device=device)
+    """A chain from a model name, a YAML / URDF / MJCF path or a chain instance (copied):
+    :func:`diffkin.models.load_chain`."""
+    return models.load_chain(robot, dtype=dtype, device=device)
 
 
 @dataclass(frozen=True)

@@ -56,3 +56,15 @@ def box(c, R, h):
 
 def halfspace(n, d):
     return coal.Halfspace(np.asarray(n, dtype=np.float64), float(d)), placement()
+
+
+def world_objects(world) -> list:
+    """(coal shape, placement) of every object of a :class:`diffkin.collision.World`, in its order (spheres
+    and points as capsules of zero length)."""
+    objects = [capsule(s[:3], s[:3], s[3]) for s in world.spheres.numpy()]
+    objects += [capsule(c[:3], c[3:6], c[6]) for c in world.capsules.numpy()]
+    objects += [box(c, R, h) for c, R, h in zip(world.boxes.center.numpy(), world.boxes.rotation.numpy(),
+                                               world.boxes.half_extents.numpy())]
+    objects += [halfspace(h[:3], h[3]) for h in world.halfspaces.numpy()]
+    objects += [capsule(p, p, 0.0) for p in world.points.numpy()]
+    return objects

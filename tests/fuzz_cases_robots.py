@@ -16,6 +16,7 @@ import torch
 
 from diffkin import ik, models, redundancy
 from diffkin.chain import DHChain, KinematicChain
+from diffkin.sampling import configuration_from_uniform
 from tests.fuzzing import Arg, Case, transform, uniform
 
 DATA = Path(__file__).parent / "data" / "urdf"
@@ -195,6 +196,10 @@ CASES: list[Case] = [
          lambda c, q, point: c.forward_kinematics_and_jacobian(q, frame="ee", point=point),
          {"q": Q, "point": Arg(uniform(3), (3,))}, **CH,
          covers=KinematicChain.forward_kinematics_and_jacobian),
+    Case("sampling.configuration_from_uniform[mjcf floating]", configuration_from_uniform,
+         {"u": Arg(uniform(19, low=0, high=1), (19,))}, chain=floating, follows_chain=True),
+    Case("sampling.configuration_from_uniform", configuration_from_uniform,
+         {"u": Arg(uniform(7, low=0, high=1), (7,))}, **CH),
     Case("chain.joint_axes_origins", lambda c, q: c.joint_axes_origins(q), {"q": Q}, **CH,
          covers=KinematicChain.joint_axes_origins),
     Case("chain.geometric_jacobian", lambda c, q: c.geometric_jacobian(q), {"q": Q}, **CH,
@@ -303,7 +308,8 @@ CASES: list[Case] = [
 ]
 
 #: modules whose every public callable must have a case or an exemption
-MODULES: list[str] = ["diffkin.chain", "diffkin.models", "diffkin.redundancy", "diffkin.ik"]
+MODULES: list[str] = ["diffkin.chain", "diffkin.models", "diffkin.redundancy", "diffkin.ik",
+                      "diffkin.sampling"]
 
 _NO_TENSORS = "takes no tensor input (names, paths, mappings or counts); its bad inputs are unit-tested"
 _CONTAINER = "a result container (NamedTuple/dataclass) built by the solvers, not an entry point"
@@ -316,6 +322,9 @@ EXEMPT: dict[str, str] = {
     "diffkin.chain.as_rigid_transform": "re-exported from diffkin.transforms (fuzzed with the geometry "
     "modules); the chain boundary that uses it, the base/tool setters, has the chain.base/chain.tool cases",
     "diffkin.models.load": _NO_TENSORS + " (tests/test_models.py)",
+    "diffkin.models.load_chain": _NO_TENSORS + " (tests/test_model_loading.py)",
+    "diffkin.sampling.random_configuration": _NO_TENSORS + " (a chain, a shape, a generator; "
+    "tests/test_sampling.py)",
     "diffkin.models.available": _NO_TENSORS,
     "diffkin.models.source": _NO_TENSORS,
     "diffkin.models.model_path": _NO_TENSORS,

@@ -44,7 +44,7 @@ def test_fk_robot_given_a_urdf_points_to_urdf(tmp_path, monkeypatch, relative):
     assert "invalid YAML" not in line and "unknown model" not in line, line
     (tmp_path / "arm.xml").write_text("<mujoco/>")
     line = _one_error(*_cli("ik", "--robot", "arm.xml", "--random", "3")[::2])
-    assert "--urdf" in line and "from_mjcf" in line, line
+    assert "--urdf" in line and "--mjcf FILE" in line, line
 
 
 @pytest.mark.parametrize("name", ["x.xml", "robots/x.xml", "x.urdf", "robots/x.URDF", "x.mjcf"])

@@ -151,12 +151,7 @@ def test_world_distances_against_coal():
                   boxes=box([[0.4, 0.0, 0.1], [0.0, -0.5, 0.6]], [[0.1, 0.2, 0.1], [0.2, 0.05, 0.3]],
                             rpy=[[0.0, 0.0, 0.5], [0.3, 0.2, 0.1]], dtype=F64),
                   halfspaces=[[0.0, 0.0, 1.0, 0.0]], points=[[0.3, 0.1, 0.7]], dtype=F64)
-    objects = [ref.capsule(s[:3], s[:3], s[3]) for s in world.spheres.numpy()]
-    objects += [ref.capsule(c[:3], c[3:6], c[6]) for c in world.capsules.numpy()]
-    objects += [ref.box(c, R, h) for c, R, h in zip(world.boxes.center.numpy(), world.boxes.rotation.numpy(),
-                                                    world.boxes.half_extents.numpy())]
-    objects += [ref.halfspace(h[:3], h[3]) for h in world.halfspaces.numpy()]
-    objects += [ref.capsule(p, p, 0.0) for p in world.points.numpy()]
+    objects = ref.world_objects(world)
     q = _random_q(chain, 300, seed=2)
     with torch.no_grad():
         d = rc.world_distances(q, world).numpy()
@@ -310,10 +305,12 @@ def test_meshes_become_enclosing_capsules(tmp_path):
 
 
 def test_the_model_does_not_import_the_collision_layer():
-    """Dependencies point one way: nothing in diffkin/ but the package's __init__ names diffkin.collision."""
+    """Dependencies point one way: nothing in diffkin/ but the package's __init__ and the command line's
+    collision options (the application layer above model and geometry, ``diffkin/_cli_collision.py``) names
+    diffkin.collision."""
     root = Path(diffkin.__file__).parent
-    files = [p for p in root.rglob("*.py") if "collision" not in p.relative_to(root).parts
-             and p != root / "__init__.py"]
+    above = (root / "__init__.py", root / "_cli_collision.py")
+    files = [p for p in root.rglob("*.py") if "collision" not in p.relative_to(root).parts and p not in above]
     pattern = re.compile(r"^\s*(from\s+(\.+|diffkin\.)collision"
                          r"|from\s+(\.+|diffkin)\s+import\s.*\bcollision\b"
                          r"|import\s+diffkin\.collision)", re.M)

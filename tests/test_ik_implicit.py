@@ -107,7 +107,9 @@ def test_gradcheck_position_only_and_full_pose_and_batch_equals_single():
     def full(x):
         return ik.solve(chain, _moved(T, x), q0=q_sol, seed=0, **TIGHT).q
 
-    assert torch.autograd.gradcheck(full, (torch.zeros(2, 6, dtype=F64, requires_grad=True),), atol=1e-5)
+    # eps 1e-4: the central differences of re-solves carry ~tol / eps · 1/σ_min(J) of solver noise
+    assert torch.autograd.gradcheck(full, (torch.zeros(2, 6, dtype=F64, requires_grad=True),), eps=1e-4,
+                                    atol=1e-5)
     three = models.load("anthropomorphic_arm", dtype=F64)  # 3 joints, positions: square J
     _, T3 = _targets(three, 2, seed=6)
     q3 = ik.solve(three, T3[..., :3, 3], position_only=True, seed=0, **TIGHT).q.detach()

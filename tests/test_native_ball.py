@@ -43,13 +43,13 @@ def _q(chain, shape, seed, scale=False):
 
 def _torch(chain, q):
     with native.disabled(), torch.no_grad():
-        return chain.fk_jacobian(q)
+        return chain.forward_kinematics_and_jacobian(q)
 
 
 def _c(chain, q):
     with torch.no_grad():
         assert chain._native_model(q) is not None  # the C kernel serves this call
-        return chain.fk_jacobian(q)
+        return chain.forward_kinematics_and_jacobian(q)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
@@ -138,10 +138,10 @@ def test_per_row_base_poses_on_the_c_path():
     with torch.no_grad():
         assert chain._native_model(q) is not None
         T = chain.forward_kinematics(q, base=B)
-        T_w, J_w = chain.fk_jacobian(q, base=B)
+        T_w, J_w = chain.forward_kinematics_and_jacobian(q, base=B)
         with native.disabled():
             T_r = chain.forward_kinematics(q, base=B)
-            T0, J0 = chain.fk_jacobian(q)
+            T0, J0 = chain.forward_kinematics_and_jacobian(q)
     torch.testing.assert_close(T, T_r, atol=1e-12, rtol=0)
     torch.testing.assert_close(T, B.unsqueeze(-3) @ T0, atol=1e-12, rtol=0)
     torch.testing.assert_close(T_w, T, atol=1e-12, rtol=0)

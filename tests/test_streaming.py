@@ -77,7 +77,7 @@ def test_streamed_fk_from_csv_and_npz_inputs(tmp_path, panda):
 
 def test_streamed_ik_success_flags_are_honest(tmp_path, panda):
     res = stream_ik(panda, RandomJoints(20, seed=5), tmp_path / "ik.npz", chunk_size=7, num_seeds=2,
-                    max_iterations=4)
+                    max_iterations=6)
     with np.load(tmp_path / "ik.npz") as d:
         q, success, pe, oe = d["q"], d["success"], d["position_error"], d["orientation_error"]
     assert res.count == 20 and res.successes == int(success.sum())
@@ -95,7 +95,7 @@ def test_streamed_ik_success_flags_are_honest(tmp_path, panda):
     np.testing.assert_array_equal(success, (pos_err <= 1e-4) & (ori_err <= 1e-3) & within)
     assert res.position_error == (pytest.approx(np.median(pe), rel=1e-6), pytest.approx(pe.max()))
     assert res.orientation_error[1] == pytest.approx(oe.max())
-    assert 0 < res.successes < 20  # 2 seeds x 4 iterations: some fail, so both kinds of flag are tested
+    assert 0 < res.successes < 20  # 2 seeds x 6 iterations: some fail, so both kinds of flag are tested
 
 
 def test_streamed_ik_position_only_and_slices(tmp_path, panda):

@@ -29,12 +29,12 @@ The interface is that of ``CalibrationModel`` (ζ ``(K, P)``: the flattened para
 
 from __future__ import annotations
 
-import math
 from collections.abc import Iterable, Sequence
 
 import torch
 from torch import Tensor, nn
 
+from .._unchecked import UncheckedFK as _FK  # FK without checks, for torch.func over robots
 from ..chain import DHChain, KinematicChain
 from ..errors import ModelError
 from .model import DH_KINDS, POSE_AXES, CalibrationModel, ForwardModeMatrix, pose_residual
@@ -61,17 +61,20 @@ def parallel_pairs(chain: DHChain) -> list[int]:
 def resolve_error_model(chain, error_model: str) -> str:
     """``"auto"`` -> ``"general"`` for URDF chains, ``"hayati"`` for DH chains with near-parallel consecutive
     axes, ``"dh"`` otherwise; explicit choices are checked against the chain's kind."""
+    from ..models.mjcf import MJCFChain
     from ..models.urdf import URDFChain
 
     if error_model not in ERROR_MODELS:
         raise ModelError(f"unknown error_model {error_model!r}; valid: {', '.join(ERROR_MODELS)}")
     first = chain[0] if isinstance(chain, (list, tuple)) else chain
-    if isinstance(first, URDFChain):
+    if isinstance(first, URDFChain | MJCFChain):
         if error_model not in ("auto", "general"):
-            raise ModelError(f"error_model {error_model!r} needs a DHChain; a URDF chain uses 'general'")
+            kind = "a URDF" if isinstance(first, URDFChain) else "an MJCF"
+            raise ModelError(f"error_model {error_model!r} needs a DHChain; {kind} chain uses 'general'")
         return "general"
     if not isinstance(first, DHChain):
-        raise ModelError(f"calibration needs a DHChain or a URDFChain, got {type(first).__name__}")
+        raise ModelError("calibration needs a DHChain, a URDFChain or an MJCFChain, got "
+                         f"{type(first).__name__}")
     if error_model == "general":
         raise ModelError("error_model 'general' needs a URDF chain (diffkin.models.from_urdf); for a DHChain "
                          "use 'hayati' (DH with Hayati's beta for parallel axes) or 'dh'")
@@ -82,15 +85,23 @@ def resolve_error_model(chain, error_model: str) -> str:
     return error_model
 
 
-class _FK(nn.Module):
-    """FK without input checks, so that ``torch.func`` can vectorise it over robots."""
+_MJCF_GEOMETRY = ("body_pos", "body_quat", "joint_pos", "joint_axis", "site_pos", "site_quat")
 
-    def __init__(self, chain: KinematicChain):
-        super().__init__()
-        self.chain = chain
 
-    def forward(self, q: Tensor) -> Tensor:
-        return self.chain.forward_kinematics(q, check=False)
+def _origin_corrected(chain) -> bool:
+    """A URDF chain: its "general" model estimates 6-DOF origin corrections (an MJCF chain: its own
+    geometry parameters)."""
+    return hasattr(chain, "fold_origins")
+
+
+def _mjcf_rows(chain, key: str) -> list[str]:
+    """The names of the rows of an MJCF chain's geometry parameter ``key``."""
+    if key.startswith("body"):
+        return list(chain.body_names)
+    if key.startswith("site"):
+        return list(chain.site_names)
+    anchors, axes = chain._joint_rows
+    return list(anchors if key == "joint_pos" else axes)
 
 
 def _names_units(chain: KinematicChain, named) -> tuple[list[str], list[bool]]:
@@ -115,6 +126,11 @@ def _names_units(chain: KinematicChain, named) -> tuple[list[str], list[bool]]:
             comps = ("dx", "dy", "dz", "rx", "ry", "rz")
             names += [f"{j}.{c}" for j in chain.joint_origin_names for c in comps]
             length += [True, True, True, False, False, False] * (n // 6)
+        elif key in _MJCF_GEOMETRY:
+            rows = _mjcf_rows(chain, key)
+            comps = "wxyz" if key.endswith("quat") else "xyz"
+            names += [f"{r}.{key.split('_')[1]}_{c}" for r in rows for c in comps]
+            length += [key.endswith("pos")] * n
         elif key == "axis":
             names += [f"{j}.axis_{c}" for j in chain.frame_joint_names for c in "xyz"]
             length += [False] * n
@@ -156,7 +172,7 @@ class ChainErrorModel(ForwardModeMatrix):
                                  f"differs from '{ref.name}'")
             if kind == "hayati" and w.beta is None:
                 w.beta = nn.Parameter(torch.zeros_like(w.a))
-            if kind == "general":
+            if kind == "general" and _origin_corrected(w):
                 w.fold_origins()
                 w.origin_delta = torch.zeros_like(w.origin_xyz.detach()).repeat(1, 2)
             for p in w.parameters():
@@ -177,7 +193,7 @@ class ChainErrorModel(ForwardModeMatrix):
     def _entries(self, module: nn.Module) -> list[tuple[str, Tensor]]:
         """The estimated tensors: the chain's parameters, plus the origin corrections of a URDF chain."""
         out = list(module.named_parameters())
-        if self.kind == "general":
+        if self.kind == "general" and _origin_corrected(module.chain):
             out.append(("chain.origin_delta", module.chain.origin_delta))
         return out
 
@@ -229,6 +245,9 @@ class ChainErrorModel(ForwardModeMatrix):
                         raise ModelError(f"unknown calibration parameter {item!r}; use 'all' or names "
                                          f"such as '{example}', 'base_z'")
                     mask[index[item]] = True
+            elif not _origin_corrected(ref):  # MJCF: the body, joint and site geometry on the paths
+                for key in _MJCF_GEOMETRY:
+                    mask[self._slice(key)] = True
             else:
                 moving = set(ref.frame_joint_names)
                 last = max(i for i, nm in enumerate(ref.joint_origin_names) if nm in moving)
@@ -236,10 +255,18 @@ class ChainErrorModel(ForwardModeMatrix):
                 sl = self._slice("origin_delta")
                 for r in rows:
                     mask[sl.start + 6 * r : sl.start + 6 * r + 6] = True
+            if not _origin_corrected(ref):
+                self.notes.append("general (MJCF): the bodies' pos/quat, the joints' pos/axis and the end "
+                                  "sites' pos/quat; the redundant directions (quaternion and axis norms, "
+                                  "shifts along an axis) are fixed by the identifiability analysis")
+                return self._base_tool(mask, base, tool)
             self.notes.append("general: a 6-DOF correction of each joint origin (local translation dx, dy, "
                               "dz and rotation vector rx, ry, rz: no gimbal lock of rpy); encoder offsets "
                               "are rotations of the origins about the joint axes (no separate parameter); "
                               "the result has them folded into the URDF origins")
+        return self._base_tool(mask, base, tool)
+
+    def _base_tool(self, mask: Tensor, base: bool, tool: bool) -> Tensor:
         for key, flag in (("base_delta", base), ("tool_delta", tool)):
             if flag:
                 mask[self._slice(key)] = True
@@ -272,15 +299,6 @@ class ChainErrorModel(ForwardModeMatrix):
     def residual(self, zeta: Tensor, q: Tensor, measured: Tensor, orientation_weight: float) -> Tensor:
         return pose_residual(self.forward_kinematics(zeta, q), measured, orientation_weight)
 
-    def random_configurations(self, M: int, generator: torch.Generator | None = None) -> Tensor:
-        """``(M, n)`` configurations within the joint limits (revolute spans capped at ±π)."""
-        lo, hi = self.chains[0].lower_upper()
-        rev = self.chains[0].revolute_mask.bool()
-        cap = torch.where(rev, torch.full_like(lo, math.pi), torch.full_like(lo, 0.5))
-        lo, hi = torch.maximum(lo, -cap), torch.minimum(hi, cap)
-        u = torch.rand(M, self.n, dtype=self.dtype, generator=generator).to(lo.device)
-        return lo + (hi - lo) * u
-
     # -------------------------------------------------------------------------------- chains
     def to_chains(self, zeta: Tensor, first: int = 0) -> list[KinematicChain]:
         """One new chain per row of ``zeta (K, P)`` (row k from nominal chain ``first + k``), same kind."""
@@ -294,7 +312,7 @@ class ChainErrorModel(ForwardModeMatrix):
                     name = key.removeprefix("chain.")
                     p = c.get_buffer(name) if name == "origin_delta" else c.get_parameter(name)
                     p.copy_(t.view_as(p))
-            if self.kind == "general":
+            if self.kind == "general" and _origin_corrected(c):
                 c.fold_origins()
             for p in c.parameters():
                 p.requires_grad_(True)

@@ -188,15 +188,10 @@ def analyse_matrices(
 
 
 def _random_configurations(model, M: int, dtype, device) -> Tensor:
-    """``(M, n)`` reproducible configurations within the nominal chain's limits (revolute spans capped at ±π,
-    prismatic at ±0.5 m) for the structural analysis."""
-    chain = model.chains[0]
-    lo, hi = (x.detach().to(dtype=dtype, device="cpu") for x in chain.lower_upper())
-    rev = chain.revolute_mask.detach().bool().cpu()
-    cap = torch.where(rev, torch.full_like(lo, math.pi), torch.full_like(lo, 0.5))
-    lo, hi = torch.maximum(lo, -cap), torch.minimum(hi, cap)
-    u = torch.rand(M, lo.numel(), dtype=dtype, generator=torch.Generator().manual_seed(20251129))
-    return (lo + (hi - lo) * u).to(device)
+    """``(M, nq)`` reproducible configurations of the nominal chain (the one sampler, a fixed seed) for the
+    structural analysis."""
+    q = model.chains[0].random_configuration(M, generator=torch.Generator().manual_seed(20251129))
+    return q.detach().to(dtype=dtype, device=device)
 
 
 def model_reports(

@@ -33,27 +33,6 @@ def load_measurements(
     return q, T
 
 
-def _load_chain(robot, end_link: str | None = None):
-    from ..chain import KinematicChain
-
-    if isinstance(robot, KinematicChain):
-        return robot
-    path = Path(robot)
-    if path.suffix == ".urdf":
-        from ..models import from_urdf
-
-        if not end_link:
-            from ..errors import ModelError
-
-            raise ModelError(f"a URDF robot ({path}) needs its end link (end_link= / --end-link)")
-        return from_urdf(path, end_link, dtype=torch.float64)
-    if path.suffix in (".yaml", ".yml") and path.exists():
-        return DHChain.from_yaml(path, dtype=torch.float64)
-    from .. import models
-
-    return models.load(str(robot), dtype=torch.float64)
-
-
 def calibrate_from_files(
     robot: DHChain | str | Path,
     joints: str | Path,
@@ -65,23 +44,29 @@ def calibrate_from_files(
     validation: tuple | None = None,
     **options,
 ) -> CalibrationResult:
-    """Calibrate ``robot`` (a chain, a built-in model name, a robot YAML file, or a URDF file with
-    ``end_link``) from measurement files.
+    """Calibrate ``robot`` (a chain, a built-in model name, a robot YAML file, or a URDF or MJCF file with
+    ``end_link``: :func:`diffkin.models.load_chain`, float64) from measurement files.
 
-    Writes, when ``out_dir`` is given: ``calibrated.yaml`` or ``calibrated.urdf`` (the calibrated chain),
+    Writes, when ``out_dir`` is given: ``calibrated.yaml``, ``calibrated.urdf`` or ``calibrated.xml`` (the
+    calibrated chain: ``to_yaml``, ``to_urdf``, ``to_mjcf``),
     ``parameters.md`` (the identified table), ``report.json`` (residuals, identifiability, noise check,
     cross-validation, validation) and ``residuals.png``.
     ``validation``: optional ``(joints, poses)`` files of held-out measurements scored before and after.
     ``options`` go to :func:`calibrate` (parameters, base, tool, joint_offsets, progress, ...).
     """
-    chain = _load_chain(robot, end_link)
+    from ..chain import KinematicChain
+    from ..models import load_chain
+
+    chain = load_chain(robot, end_link, dtype=None if isinstance(robot, KinematicChain) else torch.float64)
     q, T = load_measurements(joints, poses, chain.n_joints, chain.dtype)
     result = calibrate(chain, q, T, method=method, **options)
     if out_dir is None:
         return result
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    if hasattr(result.chain, "to_yaml"):
+    if hasattr(result.chain, "to_mjcf"):
+        result.chain.to_mjcf(out / "calibrated.xml")
+    elif hasattr(result.chain, "to_yaml"):
         (out / "calibrated.yaml").write_text(result.chain.to_yaml())
     elif hasattr(result.chain, "to_urdf"):
         result.chain.to_urdf(out / "calibrated.urdf")

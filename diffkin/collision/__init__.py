@@ -27,8 +27,10 @@ from .distances import sphere_sphere as sphere_sphere
 from .robot import Geom as Geom
 from .robot import RobotCollision as RobotCollision
 from .world import World as World
+from .world_file import read_world as read_world
 
 __all__ = [
+    "read_world",
     "Box",
     "Geom",
     "RobotCollision",

@@ -119,15 +119,8 @@ class JointMap:
         return torch.where(self.bounded, torch.maximum(torch.minimum(q, self.hi), self.lo), q) if clamp else q
 
     def sample_u(self, m: int, generator) -> Tensor:
-        gdev = self.lo.device if generator is None else generator.device
-        r = torch.rand(self.lo.shape[0], m, generator=generator, dtype=self.lo.dtype, device=gdev)
-        r = r.to(self.lo.device)
-        # uniform in q: u = asin(2r - 1) on bounded joints
-        u = torch.where(self.bounded, torch.asin((2.0 * r - 1.0) * (1.0 - 1e-6)), self.lo + 2 * self.h * r)
-        if self.euclidean:
-            return u
-        # quaternions uniform on S³ (normalised Gaussians, drawn from the same generator)
-        g = torch.randn(u.shape, generator=generator, dtype=u.dtype, device=gdev).to(u.device)
-        for iq in self.space.quaternion_index():
-            u[list(iq)] = g[list(iq)]
-        return self.space.normalize(u.T).T
+        """``m`` random seeds in u ``(nq, m)``: the one sampler's configurations (uniform in q within the
+        ranges, quaternions uniform on S³) mapped by :meth:`u_of_q` (u = asin(2r - 1) on bounded joints)."""
+        s = list(self.space.scalar_index())
+        q = self.space.sample(self.lo[s, 0], self.hi[s, 0], (m,), generator)
+        return self.u_of_q(q.T)

@@ -38,6 +38,7 @@ from torch import Tensor
 
 from .._deprecation import renamed_arguments, warn_deprecated
 from .._numerics import safe_atan2, safe_sqrt, wrap_angle
+from .._unchecked import fk
 from ..errors import ModelError, ShapeError
 from ..kernels.joints import dh_matrix
 from ..rotations import _matrix_to_euler
@@ -437,7 +438,7 @@ def _valid_world(chain, q: Tensor, T: Tensor, tol) -> Tensor:
         tol = 1e-6 if T.dtype == torch.float64 else 1e-3
     scale = recognise_industrial(chain)[1]
     with torch.no_grad():
-        Tq = chain.forward_kinematics(q.detach(), check=False)
+        Tq = fk(chain, q.detach())
     dp = (Tq[..., :3, 3] - T[..., None, :3, 3].detach()).norm(dim=-1)
     dr = (Tq[..., :3, :3] - T[..., None, :3, :3].detach()).flatten(-2).norm(dim=-1)
     return (dp <= tol * scale) & (dr <= tol)

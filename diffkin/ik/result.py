@@ -7,6 +7,7 @@ from dataclasses import dataclass, fields
 import torch
 from torch import Tensor
 
+from .._unchecked import fk
 from ..kernels.pose_error import rotation_angle
 
 __all__ = ["IKResult", "final_errors", "rotation_angle_between"]
@@ -95,7 +96,7 @@ def _norm(v: Tensor) -> Tensor:
 def final_errors(chain, q: Tensor, T_target: Tensor, position_only: bool) -> tuple[Tensor, Tensor]:
     """Exact position / orientation errors of ``q (..., n)`` against ``T_target`` in the chain's dtype
     (for K end links: the worst of the K)."""
-    T = chain.forward_kinematics(q, check=False)
+    T = fk(chain, q)
     tree = T.ndim > q.ndim + 1  # (..., K, 4, 4)
     if T_target.ndim == T.ndim - 1:  # positions (..., [K,] 3)
         pos = _norm(T_target - T[..., :3, 3])

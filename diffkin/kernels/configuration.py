@@ -32,7 +32,6 @@ q_S ← q_S ⊗ exp(ω/2)), ``difference(q0, q1)`` its inverse (``mj_differentia
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -191,29 +190,39 @@ class ConfigurationSpace:
         b[:, 0] = 1.0
         return self._join(s, b, "q")
 
-    def sample(self, lower: Tensor, upper: Tensor, shape: Sequence[int], generator=None) -> Tensor:
-        """Random configurations ``(*shape, nq)``: scalars uniform in ``[lower, upper]`` (``(Ns,)``, finite,
-        in scalar order), quaternions uniform on the unit sphere S³ (normalised Gaussians), η ≥ 0."""
-        dtype, device = lower.dtype, lower.device
-        gdev = device if generator is None else generator.device
-        u = torch.rand(*shape, len(self._scalar_q), generator=generator, dtype=dtype, device=gdev).to(device)
-        s = lower + (upper - lower) * u
-        g = torch.randn(*shape, self.n_quaternions, 4, generator=generator, dtype=dtype, device=gdev)
-        return self._join(s, _canonical(safe_normalize(g.to(device))), "q")
+    @property
+    def n_uniform(self) -> int:
+        """Uniform numbers per configuration that :meth:`from_uniform` maps: one per scalar, three per
+        quaternion."""
+        return len(self._scalar_q) + 3 * self.n_quaternions
 
     def from_uniform(self, lower: Tensor, upper: Tensor, u: Tensor) -> Tensor:
-        """The configuration ``(..., nq)`` of uniforms ``u (..., nv)`` in [0, 1): scalars
-        ``lower + (upper − lower) u`` (``(Ns,)`` each, finite, scalar order), each quaternion from its three
-        uniforms (u₁, u₂, u₃) by Shoemake's map (Graphics Gems III, 1992), uniform on S³ for uniform u:
-        (√u₁ cos 2πu₃, √(1−u₁) sin 2πu₂, √(1−u₁) cos 2πu₂, √u₁ sin 2πu₃), η ≥ 0. For a sampler whose
-        uniforms come from elsewhere (the envs' counter-based streams); one uniform per velocity
-        coordinate."""
-        s, b = self._split_v(u)
-        u1, u2, u3 = b.unbind(-1)
-        a, c = torch.sqrt(u1), torch.sqrt(1.0 - u1)
-        t2, t3 = 2.0 * math.pi * u2, 2.0 * math.pi * u3
-        quat = torch.stack((a * torch.cos(t3), c * torch.sin(t2), c * torch.cos(t2), a * torch.sin(t3)), -1)
-        return self._join(lower + (upper - lower) * s, _canonical(quat), "q")
+        """Configurations ``(..., nq)`` from uniforms ``u (..., n_uniform)`` in [0, 1) (the first Ns columns
+        for the scalars, then three per quaternion): scalars
+        ``lower + (upper - lower) u`` (``(Ns,)``, finite, in scalar order), each quaternion from three
+        uniforms by Shoemake's map (uniform on S³, the Haar measure on rotations; η ≥ 0)::
+
+            q = (√(1-u₁) sin 2πu₂, √(1-u₁) cos 2πu₂, √u₁ sin 2πu₃, √u₁ cos 2πu₃)
+
+        The only map from uniform numbers to configurations: seeded, counter-based and file sources of
+        uniforms all sample through it."""
+        ns = len(self._scalar_q)
+        s = lower + (upper - lower) * u[..., :ns]
+        if self.euclidean:
+            return s
+        w = u[..., ns:].reshape(*u.shape[:-1], self.n_quaternions, 3)
+        u1, a, b = w.unbind(-1)
+        r1, r2 = torch.sqrt((1.0 - u1).clamp_min(0.0)), torch.sqrt(u1.clamp_min(0.0))
+        a, b = 2.0 * torch.pi * a, 2.0 * torch.pi * b
+        quat = torch.stack((r1 * torch.sin(a), r1 * torch.cos(a), r2 * torch.sin(b), r2 * torch.cos(b)), -1)
+        return self._join(s, _canonical(quat), "q")
+
+    def sample(self, lower: Tensor, upper: Tensor, shape: Sequence[int], generator=None) -> Tensor:
+        """Random configurations ``(*shape, nq)``: :meth:`from_uniform` of ``torch.rand(*shape, n_uniform)``
+        drawn from ``generator`` (on its device; the result on ``lower``'s)."""
+        gdev = lower.device if generator is None else generator.device
+        u = torch.rand(*shape, self.n_uniform, generator=generator, dtype=lower.dtype, device=gdev)
+        return self.from_uniform(lower, upper, u.to(lower.device))
 
     def tangent_map(self, q: Tensor) -> Tensor:
         """∂(q ⊕ v)/∂v at v = 0, ``(..., nq, nv)``: the identity on scalars, ½ Q ⊗ (0, e_k) on each

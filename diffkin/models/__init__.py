@@ -16,12 +16,14 @@ from ..chain import DHChain
 from ..errors import ModelError
 from ..validation import check_device
 from .io import chain_to_dict, parse_value, read_yaml
+from .loading import load_chain
 from .mjcf import MJCFChain, from_mjcf
 from .urdf import URDFChain, from_urdf
 from .workspace import sample_workspace
 
 __all__ = [
     "load",
+    "load_chain",
     "available",
     "source",
     "model_path",

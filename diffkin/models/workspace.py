@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._unchecked import fk
 from ..chain import KinematicChain
 
 __all__ = ["sample_workspace"]
@@ -24,5 +25,5 @@ def sample_workspace(
     """
     q = chain.random_configuration((int(n),), generator=generator)
     with torch.no_grad():
-        p = chain.forward_kinematics(q, check=False)[..., :3, 3]
+        p = fk(chain, q)[..., :3, 3]
     return (p, q) if return_q else p

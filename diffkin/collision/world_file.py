@@ -1,0 +1,79 @@
+"""World files: obstacles for ``diffkin ik / fk --world FILE`` as YAML or JSON (format in docs/collision.md).
+
+::
+
+    # metres, in the robot's base frame
+    spheres:    [[0.5, 0.0, 0.4, 0.1]]              # x, y, z, radius
+    capsules:   [[0.3, -0.3, 0.2, 0.3, 0.3, 0.2, 0.04]]   # end point a, end point b, radius
+    boxes:                                          # centre, half extents, optional rpy (URDF order)
+      - {center: [0.4, 0.0, 0.05], half_extents: [0.1, 0.2, 0.05], rpy: [0, 0, 0.3]}
+    halfspaces: [[0, 0, 1, -0.01]]                  # unit normal n, offset d: the solid {x : n·x <= d}
+    points:     [[0.3, 0.1, 0.7]]
+
+Every key is optional; an unknown key is an error naming the valid ones.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+import yaml
+
+from ..errors import DiffkinError
+from .boxes import box
+from .world import World
+
+__all__ = ["read_world", "WORLD_KEYS"]
+
+#: the keys of a world file, in the order of ``world_distances``' last axis
+WORLD_KEYS = ("spheres", "capsules", "boxes", "halfspaces", "points")
+_BOX_KEYS = ("center", "half_extents", "rpy")
+
+
+def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
+    """A :class:`~diffkin.collision.World` from a ``.yaml`` / ``.yml`` / ``.json`` file (module docstring),
+    its tensors in ``dtype`` on ``device``. Errors (:class:`~diffkin.errors.DiffkinError`) name the file and
+    the entry."""
+    path = Path(path)
+    if not path.is_file():
+        raise DiffkinError(f"world file {path} not found")
+    text = path.read_text()
+    try:
+        data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as exc:
+        raise DiffkinError(f"{path}: cannot read the world file: {exc}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise DiffkinError(f"{path}: expected a mapping with keys {', '.join(WORLD_KEYS)}, got "
+                           f"{type(data).__name__}")
+    unknown = sorted(set(data) - set(WORLD_KEYS))
+    if unknown:
+        raise DiffkinError(f"{path}: unknown key(s) {', '.join(map(str, unknown))}; valid: "
+                           f"{', '.join(WORLD_KEYS)}")
+    boxes = _boxes(path, data.get("boxes"), dtype, device)
+    lists = {k: data.get(k) or None for k in ("spheres", "capsules", "halfspaces", "points")}
+    try:
+        return World(boxes=boxes, dtype=dtype, device=device, **lists)
+    except DiffkinError as exc:
+        raise type(exc)(f"{path}: {exc}") from None
+
+
+def _boxes(path: Path, entries, dtype, device):
+    if not entries:
+        return None
+    if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
+        raise DiffkinError(f"{path}: expected boxes as a list of {{center, half_extents, rpy}} mappings")
+    for i, e in enumerate(entries):
+        bad = sorted(set(e) - set(_BOX_KEYS))
+        if bad or "center" not in e or "half_extents" not in e:
+            raise DiffkinError(f"{path}: boxes[{i}]: expected keys center, half_extents (and optional rpy), "
+                               f"got {', '.join(map(str, e))}")
+    rpy = [e.get("rpy", [0.0, 0.0, 0.0]) for e in entries]
+    try:
+        return box([e["center"] for e in entries], [e["half_extents"] for e in entries], rpy, dtype=dtype,
+                   device=device)
+    except DiffkinError as exc:
+        raise type(exc)(f"{path}: boxes: {exc}") from None

@@ -1,0 +1,49 @@
+"""The one model loader: a chain from a name, a robot YAML, a URDF or an MJCF file, or a chain.
+
+The CLI (``diffkin fk / ik / calibrate``), :func:`diffkin.calibration.calibrate_from_files` and the envs all
+load robots here.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from ..chain import KinematicChain
+from ..errors import ModelError
+from ..validation import check_device
+
+__all__ = ["load_chain"]
+
+
+def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, device=None) -> KinematicChain:
+    """A kinematic chain in ``dtype`` on ``device`` (None: the source's own, or torch's default) from:
+
+    * a :class:`~diffkin.chain.KinematicChain`: a copy (converted when dtype / device are given);
+    * a path ending in ``.urdf``: :func:`~diffkin.models.from_urdf` (``end_link``: a link or a list);
+    * a path ending in ``.xml`` / ``.mjcf``: :func:`~diffkin.models.from_mjcf` (``end_link``: bodies or
+      sites);
+    * a built-in model name or a robot YAML file: :func:`~diffkin.models.load` (``end_link`` must be None).
+
+    Errors are :class:`~diffkin.errors.ModelError` naming the source (an unknown name lists the built-in
+    ones); a device this torch cannot compute on raises :class:`~diffkin.errors.DeviceError`.
+    """
+    device = check_device(device)
+    if isinstance(source, KinematicChain):
+        chain = source.copy()
+        return chain if dtype is None and device is None else chain.to(dtype=dtype, device=device)
+    if not isinstance(source, str | Path):
+        raise ModelError(f"expected a robot as a model name, a YAML / URDF / MJCF path or a chain, got "
+                         f"{type(source).__name__}")
+    from .. import models
+
+    builder = models.OTHER_FORMATS.get(Path(source).suffix.lower())  # from_urdf / from_mjcf by suffix
+    if builder is not None:
+        if not end_link:
+            raise ModelError(f"{source}: a URDF or MJCF robot needs its end link (end_link=, --end-link)")
+        return getattr(models, builder)(source, end_link, dtype=dtype, device=device)
+    if end_link:
+        raise ModelError(f"{source}: end_link={end_link!r} applies to URDF and MJCF files only (a built-in "
+                         "model or a robot YAML ends where its table ends)")
+    return models.load(source, dtype=dtype, device=device)
