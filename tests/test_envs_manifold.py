@@ -138,7 +138,7 @@ def test_from_uniform_quaternions_are_uniform_on_the_sphere():
     torch.testing.assert_close(q[:, 1:5].norm(dim=-1), torch.ones(20000, dtype=F64))
     assert bool((q[:, 1] >= 0).all())  # η ≥ 0
     torch.testing.assert_close(q[:, 0], -1.0 + 3.0 * u[:, 0])
-    torch.testing.assert_close(q[:, 5], 0.5 * u[:, 4])
+    torch.testing.assert_close(q[:, 5], 0.5 * u[:, 1])  # scalars take the first uniforms, then the quaternion
     ours = 2 * np.arccos(np.clip(q[:, 1].numpy(), -1, 1))
     ref = Rotation.random(20000, random_state=1).magnitude()
     assert ks_2samp(ours, ref).pvalue > 1e-3
