@@ -160,3 +160,59 @@ def test_batched_targets_and_gradients_with_collision():
     assert res.q.shape == (2, 3, 7) and res.success.shape == (2, 3)
     assert res.success.all()
     assert min(check.min_distance(q) for q in res.q.reshape(-1, 7).numpy()) >= 0.0
+
+
+def _clear_target(chain, rc, w, clear: float, seed: int):
+    """A configuration whose distances all exceed ``clear`` (m), and its pose."""
+    g = torch.Generator().manual_seed(seed)
+    q = chain.random_configuration((2000,), generator=g)
+    with torch.no_grad():
+        q = q[rc.min_distance(q, w) > clear][:1]
+    assert q.shape[0] == 1
+    return q, chain.forward_kinematics(q)
+
+
+def test_optimize_gradients_at_inactive_constraints_match_finite_differences():
+    """optimize(collision=, world=) with every distance beyond margin + buffer: dq*/dT by the implicit
+    gradient equals central differences of the solver (float64), and equals the gradient without the
+    collision term (the penalty vanishes near q*)."""
+    chain, rc = _robot(torch.float64)
+    w = _world(torch.float64)
+    q_t, T = _clear_target(chain, rc, w, 0.03, seed=11)
+    q0 = q_t + 0.05
+    costs = [ik.PoseCost(), ik.RestPostureCost(weight=1e-2)]  # a unique stationary point
+    kw = dict(costs=costs, optimizer="gauss_newton", max_iterations=200, tolerance_change=0.0)
+    v = torch.linspace(-1.0, 1.0, 7, dtype=torch.float64)
+
+    def solve(TT, **extra):
+        return ik.optimize(chain, TT, q0, **kw, **extra).q
+
+    Tg = T.clone().requires_grad_(True)
+    q = solve(Tg, collision=rc, world=w)
+    (g,) = torch.autograd.grad((q * v).sum(), Tg)
+    Tg2 = T.clone().requires_grad_(True)
+    (g_plain,) = torch.autograd.grad((solve(Tg2) * v).sum(), Tg2)
+    torch.testing.assert_close(g, g_plain, rtol=1e-6, atol=1e-7)
+    eps = 1e-4  # (smaller steps meet the solver's own convergence noise)
+    for i in range(3):  # the translation entries
+        E = torch.zeros_like(T)
+        E[..., i, 3] = eps
+        with torch.no_grad():
+            dq = solve(T + E, collision=rc, world=w) - solve(T - E, collision=rc, world=w)
+        fd = (dq * v).sum() / (2 * eps)
+        assert abs(float(fd) - float(g[..., i, 3].sum())) <= 1e-5 * max(1.0, abs(float(fd))), (i, fd, g)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_optimize_collision_success_is_the_hard_check(dtype):
+    """A target whose flange sits inside an obstacle is never a success; a clear one is, and coal agrees."""
+    chain, rc = _robot(dtype)
+    check = _Coal(rc, with_box=False)
+    q_t, T = _clear_target(chain, rc, _world(dtype, with_box=False), 0.03, seed=13)
+    p = T[:, :3, 3]
+    inside = World(spheres=torch.cat((p, torch.full((1, 1), 0.04, dtype=dtype)), -1))
+    res = ik.optimize(chain, T, q_t, optimizer="gauss_newton", collision=rc, world=inside)
+    assert not res.success.any()
+    res = ik.optimize(chain, T, q_t + 0.02, optimizer="gauss_newton", collision=rc, margin=0.005)
+    assert res.success.all()
+    assert check_self(check, res.q[0].double().numpy()) >= 0.005 - 2e-6

@@ -20,7 +20,7 @@ from ..chain import KinematicChain
 from ..errors import DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
-from ..transforms import _pose_error, _transform_inverse, _transform_points, as_measured_transform
+from ..transforms import _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
 from ._collision import CollisionAcceptance, CollisionConfig, free_library
 from ._kernel import BatchLastKernel, JointMap
@@ -89,11 +89,8 @@ def dls_step(
         raise ShapeError(f"expected T_target of shape (..., 4, 4){' or (..., 3)' if position_only else ''}, "
                          f"got {shape_str(T_target.shape)}")
     T_e, J = forward_kinematics_and_jacobian(chain, q, check=False)
-    if position_only:
-        p_d = T_target[..., :3, 3] if full else T_target
-        e, J = p_d - T_e[..., :3, 3], J[..., :3, :]
-    else:
-        e = _pose_error(T_target, T_e, "rotvec")
+    residual = PoseResidual(position_only, 1.0, exact_near_pi=True)  # far from a solution: exact near π
+    e, J = residual.error(T_e, T_target), residual.rows(J)
     e, J = torch.broadcast_tensors(e, J[..., 0])[0], J.expand(*e.shape[:-1], *J.shape[-2:])
     q_new = q + step_size * _dls_delta(J, e, k * k)
     return chain.clamp_to_limits(q_new, check=False) if respect_limits else q_new
@@ -197,27 +194,28 @@ def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:
 
 
 def _constraint(chain, collision, world, margin, base) -> DistanceConstraint | None:
-    """The validated collision arguments of :func:`solve` as a :class:`DistanceConstraint` (None: none)."""
+    """The validated collision arguments of :func:`solve` and :func:`~diffkin.ik.optimize` as a
+    :class:`DistanceConstraint` (None: none)."""
     if collision is None:
         if world is not None:
-            raise DiffkinError("ik.solve: a world needs the robot's collision model (collision=...)")
+            raise DiffkinError("ik: a world needs the robot's collision model (collision=...)")
         return None
     from ..collision import RobotCollision
     from ..collision.world import _check_world
 
     if not isinstance(collision, RobotCollision):
-        raise DiffkinError(f"ik.solve: expected collision as a diffkin.collision.RobotCollision, got "
+        raise DiffkinError(f"ik: expected collision as a diffkin.collision.RobotCollision, got "
                            f"{type(collision).__name__}")
     own = getattr(collision, "chain", None)
     if own is not None and own.n_joints != chain.n_joints:
-        raise ShapeError(f"ik.solve: the collision model's chain has {own.n_joints} joints, the chain "
+        raise ShapeError(f"ik: the collision model's chain has {own.n_joints} joints, the chain "
                          f"{chain.n_joints}")
     margin = check_number(margin, "margin", positive=False)
     if world is not None:
         world = _check_world(world)
         if any(t.ndim > 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points)) or \
                 world.boxes.center.ndim > 2:
-            raise ShapeError("ik.solve: one world for all targets (objects without batch dims)")
+            raise ShapeError("ik: one world for all targets (objects without batch dims)")
     if base is not None and world is not None:
         raise DiffkinError("ik.solve: a world with per-target bases is not supported (the world is in the "
                            "chain's base frame)")
@@ -336,8 +334,7 @@ def solve(
     success, pos_err, ori_err = (t.reshape(batch) for t in (success, pos_err, ori_err))
     # a differentiable layer: gradients w.r.t. T_target and the chain's parameters by the implicit function
     # theorem at the solution (diffkin.ik.implicit); the iterations above ran without autograd
-    q = attach_solve_gradients(chain, q, T_target, success, position_only, cfg.orientation_weight,
-                               cfg.damping)
+    q = attach_solve_gradients(chain, q, T_target, success, residual, cfg.damping)
     return IKResult(
         q=q, success=success, position_error=pos_err, orientation_error=ori_err,
         iterations=iters.reshape(batch), seeds_tried=seeds.reshape(batch),
