@@ -6,14 +6,16 @@ and capsules, 288 checked pairs with link 1 - link 3 disabled as in MoveIt's SRD
 Targets: FK of uniformly random configurations whose every checked distance (self pairs and obstacles) is
 >= 1 cm, so each target is reachable AND has a collision-free solution. Solved at 0.1 mm / 1 mrad by
 ``ik.solve(chain, T)`` and ``ik.solve(chain, T, collision=rc, world=world, margin=0)`` in the same run
-(float32 chain; the same seed), each timed once on the whole batch (a solve of 10 000 targets takes seconds:
-one call is the figure, with the spread of ``--repeats``). ``success`` of the plain solve is its pose
-success; ``collision_free`` the share of its solutions that are also clear (re-checked with the exact
-distances); the collision solve's success already includes the distances. ``--world mixed``: two spheres
-and one box; ``spheres``: three spheres (the box distance is a 36-step golden-section search per geom,
-the dominant cost). PyRoKi is not on PyPI as ``pyroki`` (checked with pip in this run's venv), so no peer
-runs here; see docs/collision.md for the published GPU figures of cuRobo and PyRoKi. The machine is
-shared: compare the ratio of the two rows of one run.
+(float32 chain, the same seed), each timed once on the whole batch (a solve of 10 000 targets takes
+seconds: one call is the figure; ``--repeats`` for the median of more). ``success`` of the plain solve is
+its pose success, ``collision_free`` the share of its solutions that are also clear (re-checked with the
+exact distances); the collision solve's success includes the distances (its default: rows converged in
+collision re-seeded); "+ refinement": ``LMConfig(collision_refine_calls=1)`` (first a constrained
+Gauss-Newton refinement of the colliding solutions, ik/_collision.py).
+``--world mixed``: two spheres and one box; ``spheres``: three spheres (the capsule-box distance is a
+golden-section search per geom, the dominant cost). PyRoKi is not on PyPI as ``pyroki`` (pip in this venv
+found no distribution), so no peer runs here; docs/collision.md quotes cuRobo's and PyRoKi's published
+GPU figures. The machine is shared: compare the ratios of one run.
 """
 
 from __future__ import annotations
@@ -85,7 +87,10 @@ def run(args) -> list[dict]:
     _, T = targets(chain, rc, w, n)
     ik.solve(chain, T[:16], seed=0, collision=rc, world=w)  # warm-up (the C pass compiles once)
     rows = []
-    for name, kw in (("ik.solve", {}), ("ik.solve collision", {"collision": rc, "world": w})):
+    coll = {"collision": rc, "world": w}
+    refine = ik.LMConfig(collision_refine_calls=1)
+    for name, kw in (("ik.solve", {}), ("ik.solve collision", coll),
+                     ("ik.solve collision + refinement", {**coll, "config": refine})):
         res, times = _solve(chain, T, repeats, **kw)
         with torch.no_grad():
             free = rc.min_distance(res.q, w) >= 0.0
@@ -93,7 +98,8 @@ def run(args) -> list[dict]:
         rows.append({"impl": name, "world": kind, "targets": n, "success": float(res.success.float().mean()),
                      "collision_free": float((res.success & free).float().mean()), "seconds": t,
                      "solves_per_s": n / t, "seeds_mean": float(res.seeds_tried.float().mean())})
-    rows[1]["speed_ratio"] = rows[1]["solves_per_s"] / rows[0]["solves_per_s"]
+    for r in rows[1:]:
+        r["speed_ratio"] = r["solves_per_s"] / rows[0]["solves_per_s"]
     return rows
 
 

@@ -31,7 +31,8 @@ class CollisionConfig:
     check in the chain's dtype), ``active`` nearest distances per row as constraints, ``detection`` (m)
     beyond which a distance is no constraint, ``steps``, per-step ``push`` (m) and ``trust`` (rad or m),
     ``qp_iterations`` of the interior point per step; rows penetrating deeper than ``deepest`` (m) are
-    re-seeded without a refinement."""
+    re-seeded without a refinement. How many acceptance calls refine is
+    :attr:`~diffkin.ik.LMConfig.collision_refine_calls`."""
 
     slack: float = 1e-4
     active: int = 8
@@ -58,6 +59,7 @@ class CollisionAcceptance:
                  tol, lm_cfg, cfg: CollisionConfig | None = None):  # fmt: skip
         self.c, self.kernel, self.jmap, self.tg, self.res = constraint, kernel, jmap, tg, residual
         self.sqrt_w, self.tol, self.lm, self.cfg = sqrt_w, tol, lm_cfg, cfg or CollisionConfig()
+        self.calls = 0
 
     def free(self, q: Tensor) -> Tensor:
         """``q (n, m)`` -> every distance >= margin + slack ``(m,)``."""
@@ -69,7 +71,8 @@ class CollisionAcceptance:
         ok = (g >= self.cfg.slack).all(-1)
         # deep penetrations are left to re-seeding (a local refinement rarely resolves them)
         bad = (~ok & (g.amin(-1) > -self.cfg.deepest)).nonzero().squeeze(-1)
-        if bad.numel() == 0:
+        self.calls += 1
+        if bad.numel() == 0 or self.calls > self.lm.collision_refine_calls:
             return ok, u
         qb, fixed = self.refine(self.tg.take(idx[bad]), q[:, bad])
         u = u.clone()
