@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import print_table, write_json
+from benchmarks.common import cli
 from diffkin import ik, models
 from diffkin.collision import RobotCollision, World, box
 
@@ -108,16 +108,7 @@ def main(argv=None) -> int:
     p.add_argument("--targets", type=int, default=None)
     p.add_argument("--repeats", type=int, default=None)
     p.add_argument("--world", choices=("mixed", "spheres"), default="mixed")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--json", default=None, help="write the rows (and the environment) to this JSON file")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    rows = run(args)
-    print_table(rows, "FR3 collision-free IK, 0.1 mm / 1 mrad (one run; the machine is shared)")
-    if args.json:
-        write_json(args.json, rows)
-    return 0
+    return cli(p, run, "FR3 collision-free IK, 0.1 mm / 1 mrad (one run; the machine is shared)", argv)
 
 
 if __name__ == "__main__":

@@ -217,3 +217,15 @@ def test_optimize_collision_success_is_the_hard_check(dtype):
     res = ik.optimize(chain, T, q_t + 0.02, optimizer="gauss_newton", collision=rc, margin=0.005)
     assert res.success.all()
     assert check_self(check, res.q[0].double().numpy()) >= 0.005 - 2e-6
+
+
+def test_benchmark_runs_small():
+    """benchmarks/bench_collision_ik.py at a tiny size: its rows, and the collision rows all clear."""
+    import argparse
+
+    from benchmarks import bench_collision_ik
+
+    rows = bench_collision_ik.run(argparse.Namespace(quick=True, targets=16, world="spheres", repeats=1))
+    assert [r["impl"] for r in rows] == ["ik.solve", "ik.solve collision", "ik.solve collision + refinement"]
+    for r in rows[1:]:
+        assert r["success"] >= 0.9 and r["collision_free"] == r["success"] and r["speed_ratio"] > 0
