@@ -1,17 +1,21 @@
-"""Collision constraints in :func:`diffkin.ik.solve` (private): the acceptance test of a pose-converged row.
+"""Collision constraints in :func:`diffkin.ik.solve` (private).
 
-The LM schedule (:mod:`diffkin.ik._lm`) harvests rows whose pose meets the tolerances. With a collision
-model, a harvested row is accepted only if every checked distance d is at least ``margin + slack``; a row
-that is not gets a constrained refinement, Gauss–Newton steps on the pose with the k smallest distances as
-linearised inequality constraints, solved as one small QP per row (:func:`diffkin.ik.qp.solve_qp`'s
-interior point)
+1. The seed library keeps collision-free poses only (:func:`free_library`).
+2. The solve runs as without collision (the fused C pass included).
+3. :func:`collision_round`: the exact distances of every pose-converged result, in the chain's dtype; the
+   targets whose result collides are solved again, their colliding solution first, with an acceptance
+   test in the LM schedule (:mod:`diffkin.ik._lm`): a harvested row is accepted only if every checked
+   distance d is at least ``margin + slack``, else it is re-seeded like a stalled row (dropped when its
+   target is out of seeds). With ``LMConfig.collision_refine_calls`` > 0 a rejected row first gets a
+   constrained refinement, Gauss–Newton steps on the pose with the k smallest distances as linearised
+   inequality constraints, one small QP per row (the interior point of :mod:`diffkin.ik.qp`)
 
-    min_Δ ½‖W(J Δ − e)‖² + ½λ‖Δ‖²   s.t.   d_i + ∇d_i·Δ ≥ margin + 2 slack  (i: the k nearest),
-                                           q_lo ≤ q + Δ ≤ q_hi,  |Δ| ≤ trust,
+       min_Δ ½‖W(J Δ − e)‖² + ½λ‖Δ‖²   s.t.   d_i + ∇d_i·Δ ≥ margin + 2 slack  (i: the k nearest),
+                                              q_lo ≤ q + Δ ≤ q_hi,  |Δ| ≤ trust,
 
-the penetration recovered by at most ``push`` metres a step (so the linearisation stays valid and the
-QP feasible). A row still in collision (or off the pose) after ``steps`` steps is handed back to the
-schedule as finished: it is re-seeded like a stalled row (or dropped when its target is out of seeds).
+   the penetration recovered by at most ``push`` metres a step (so the linearisation stays valid and the
+   QP feasible).
+4. Success is decided by the exact distances of the returned q (never a success in collision).
 """
 
 from __future__ import annotations
@@ -21,6 +25,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..errors import DiffkinError, ShapeError
+from ..validation import check_number
 from ._qp_ip import ip_solve
 from .residuals import DistanceConstraint, PoseResidual
 
@@ -138,3 +144,55 @@ def free_library(lib_q: Tensor, constraint: DistanceConstraint, slack: float, ke
     free = constraint.satisfied(lib_q.T, slack)
     idx = free.nonzero().squeeze(-1)[:keep]
     return idx if idx.numel() else torch.arange(min(keep, lib_q.shape[1]), device=lib_q.device)
+
+
+def constraint_of(chain, collision, world, margin, base) -> DistanceConstraint | None:
+    """The validated collision arguments of :func:`solve` and :func:`~diffkin.ik.optimize` as a
+    :class:`DistanceConstraint` (None: none)."""
+    if collision is None:
+        if world is not None:
+            raise DiffkinError("ik: a world needs the robot's collision model (collision=...)")
+        return None
+    from ..collision import RobotCollision
+    from ..collision.world import _check_world
+
+    if not isinstance(collision, RobotCollision):
+        raise DiffkinError(f"ik: expected collision as a diffkin.collision.RobotCollision, got "
+                           f"{type(collision).__name__}")
+    own = getattr(collision, "chain", None)
+    if own is not None and own.n_joints != chain.n_joints:
+        raise ShapeError(f"ik: the collision model's chain has {own.n_joints} joints, the chain "
+                         f"{chain.n_joints}")
+    margin = check_number(margin, "margin", positive=False)
+    if world is not None:
+        world = _check_world(world)
+        if any(t.ndim > 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points)) or \
+                world.boxes.center.ndim > 2:
+            raise ShapeError("ik: one world for all targets (objects without batch dims)")
+    if base is not None and world is not None:
+        raise DiffkinError("ik.solve: a world with per-target bases is not supported (the world is in the "
+                           "chain's base frame)")
+    return DistanceConstraint(collision, world, float(margin))
+
+
+def collision_round(prob, constraint: DistanceConstraint, *out):
+    """Step 2-4 of the module docstring on the outputs ``out`` of ``prob.run()`` (``prob``: the solve's
+    ``_Problem``, :mod:`diffkin.ik.numerical`): success also needs every distance >= margin (the user's
+    model, the chain's dtype); targets whose pose converged in collision are solved again from that
+    solution with the acceptance test (re-seeding, and the refinement if configured), and checked again."""
+    q, success, pos_err, ori_err, iters, seeds = out
+    free = constraint.satisfied(q)
+    redo = (success & ~free).nonzero().squeeze(-1)
+    success = success & free
+    if redo.numel():
+        jm, dtype = prob.jmap, prob.tg.pd.dtype
+        sqrt_w = prob.residual.sqrt_weights(prob.kernel.K, dtype, q.device)
+        accept = CollisionAcceptance(prob.constraint, prob.kernel, jm, prob.tg.take(redo), prob.residual,
+                                     sqrt_w, prob.tol, prob.cfg)  # fmt: skip
+        q2, ok2, pe2, oe2, it2, s2 = prob.run(redo, q[redo].to(dtype), accept)
+        ok2 &= constraint.satisfied(q2)
+        take = redo[ok2]
+        q, success = q.index_copy(0, take, q2[ok2]), success.index_put((take,), ok2[ok2])
+        pos_err, ori_err = pos_err.index_copy(0, take, pe2[ok2]), ori_err.index_copy(0, take, oe2[ok2])
+        iters, seeds = iters.index_add(0, redo, it2), seeds.index_add(0, redo, s2)
+    return q, success, pos_err, ori_err, iters, seeds

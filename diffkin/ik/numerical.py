@@ -17,12 +17,12 @@ from torch import Tensor
 
 from .._numerics import eps_for
 from ..chain import KinematicChain
-from ..errors import DiffkinError, ShapeError
+from ..errors import ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
-from ._collision import CollisionAcceptance, CollisionConfig, free_library
+from ._collision import CollisionConfig, collision_round, constraint_of, free_library
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -193,35 +193,6 @@ def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:
     return torch.float64 if chain.dtype == torch.float64 or tol < 1e-5 else torch.float32
 
 
-def _constraint(chain, collision, world, margin, base) -> DistanceConstraint | None:
-    """The validated collision arguments of :func:`solve` and :func:`~diffkin.ik.optimize` as a
-    :class:`DistanceConstraint` (None: none)."""
-    if collision is None:
-        if world is not None:
-            raise DiffkinError("ik: a world needs the robot's collision model (collision=...)")
-        return None
-    from ..collision import RobotCollision
-    from ..collision.world import _check_world
-
-    if not isinstance(collision, RobotCollision):
-        raise DiffkinError(f"ik: expected collision as a diffkin.collision.RobotCollision, got "
-                           f"{type(collision).__name__}")
-    own = getattr(collision, "chain", None)
-    if own is not None and own.n_joints != chain.n_joints:
-        raise ShapeError(f"ik: the collision model's chain has {own.n_joints} joints, the chain "
-                         f"{chain.n_joints}")
-    margin = check_number(margin, "margin", positive=False)
-    if world is not None:
-        world = _check_world(world)
-        if any(t.ndim > 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points)) or \
-                world.boxes.center.ndim > 2:
-            raise ShapeError("ik: one world for all targets (objects without batch dims)")
-    if base is not None and world is not None:
-        raise DiffkinError("ik.solve: a world with per-target bases is not supported (the world is in the "
-                           "chain's base frame)")
-    return DistanceConstraint(collision, world, float(margin))
-
-
 def solve(
     chain: KinematicChain,
     T_target: Tensor,
@@ -318,7 +289,7 @@ def solve(
     kernel = BatchLastKernel(chain if chain.dtype == dtype else copy.deepcopy(chain).to(dtype))
     jmap = JointMap(chain, dtype, device, respect_limits)
     residual = PoseResidual(position_only, cfg.orientation_weight)
-    constraint = _constraint(chain, collision, world, margin, base)
+    constraint = constraint_of(chain, collision, world, margin, base)
     T_flat = T_orig.reshape(N, *T_orig.shape[len(batch) :])
     prob = _Problem(chain, kernel, jmap, tg, seeds_user, cfg, generator, (position_tolerance,
                     orientation_tolerance), num_seeds, max_iterations, residual, respect_limits, T_flat,
@@ -328,7 +299,7 @@ def solve(
             prob.library()
         q, success, pos_err, ori_err, iters, seeds = prob.run()
         if constraint is not None:
-            q, success, pos_err, ori_err, iters, seeds = _collision_round(
+            q, success, pos_err, ori_err, iters, seeds = collision_round(
                 prob, constraint, q, success, pos_err, ori_err, iters, seeds)
     q = q.reshape(*batch, chain.n_joints).contiguous()
     success, pos_err, ori_err = (t.reshape(batch) for t in (success, pos_err, ori_err))
@@ -395,25 +366,3 @@ class _Problem:
         if limited:
             success &= chain.within_limits(q, check=False)
         return q, success, pos_err, ori_err, iters, tried
-
-
-def _collision_round(prob: _Problem, constraint: DistanceConstraint, *out):
-    """Success also needs every distance >= margin (the user's model, the chain's dtype); targets whose
-    pose converged in collision are solved again from that solution with the collision acceptance of
-    :mod:`diffkin.ik._collision` (refinement, then re-seeding), and checked again."""
-    q, success, pos_err, ori_err, iters, seeds = out
-    free = constraint.satisfied(q)
-    redo = (success & ~free).nonzero().squeeze(-1)
-    success = success & free
-    if redo.numel():
-        jm, dtype = prob.jmap, prob.tg.pd.dtype
-        sqrt_w = prob.residual.sqrt_weights(prob.kernel.K, dtype, q.device)
-        accept = CollisionAcceptance(prob.constraint, prob.kernel, jm, prob.tg.take(redo), prob.residual,
-                                     sqrt_w, prob.tol, prob.cfg)  # fmt: skip
-        q2, ok2, pe2, oe2, it2, s2 = prob.run(redo, q[redo].to(dtype), accept)
-        ok2 &= constraint.satisfied(q2)
-        take = redo[ok2]
-        q, success = q.index_copy(0, take, q2[ok2]), success.index_put((take,), ok2[ok2])
-        pos_err, ori_err = pos_err.index_copy(0, take, pe2[ok2]), ori_err.index_copy(0, take, oe2[ok2])
-        iters, seeds = iters.index_add(0, redo, it2), seeds.index_add(0, redo, s2)
-    return q, success, pos_err, ori_err, iters, seeds

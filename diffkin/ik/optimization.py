@@ -18,8 +18,9 @@ from torch import Tensor
 
 from ..errors import ConventionError
 from ..kernels.dls import dls_solve
+from ._collision import constraint_of
 from .implicit import attach_stationary_gradients, wants_gradients
-from .numerical import _check_tolerances, _constraint, _targets, _user_seeds, _valid_targets
+from .numerical import _check_tolerances, _targets, _user_seeds, _valid_targets
 from .residuals import PoseResidual
 from .result import IKResult, final_errors
 
@@ -321,7 +322,7 @@ def optimize(
     if optimizer not in OPTIMIZERS:
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
     terms = _as_terms(costs)
-    constraint = _constraint(chain, collision, world, margin, None)
+    constraint = constraint_of(chain, collision, world, margin, None)
     if constraint is not None:
         from .collision_cost import CollisionCost
 
