@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from benchmarks.common import FULL, QUICK, print_table, timeit, write_json
+from benchmarks.common import FULL, QUICK, cli, timeit
 from diffkin import models
 from diffkin.collision import RobotCollision
 
@@ -153,16 +153,7 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, nargs="*", default=None)
     p.add_argument("--peer-rows", type=int, default=None)
     p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, default=1)
-    p.add_argument("--quick", action="store_true")
-    p.add_argument("--json", default=None, help="write the rows (and the environment) to this JSON file")
-    args = p.parse_args(argv)
-    torch.set_num_threads(args.threads)
-    rows = run(args)
-    print_table(rows, "FR3 self-distances (per row; the machine is shared: compare ratios)")
-    if args.json:
-        write_json(args.json, rows)
-    return 0
+    return cli(p, run, "FR3 self-distances (per row; the machine is shared: compare ratios)", argv)
 
 
 if __name__ == "__main__":

@@ -33,6 +33,7 @@ __all__ = [
     "print_table",
     "environment",
     "write_json",
+    "cli",
 ]
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -185,3 +186,18 @@ def write_json(path, rows: Sequence[dict], extra: dict | None = None) -> None:
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps({"environment": environment(), **(extra or {}), "rows": list(rows)},
                                      indent=2, default=str))
+
+
+def cli(parser, run, title: str, argv=None) -> int:
+    """The tail of a benchmark's ``main``: add ``--threads``, ``--quick`` and ``--json`` to ``parser``, run
+    ``run(args)`` on that many torch threads, print its rows as a table titled ``title``, write the JSON."""
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--json", default=None, help="write the rows (and the environment) to this JSON file")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rows = run(args)
+    print_table(rows, title)
+    if args.json:
+        write_json(args.json, rows)
+    return 0

@@ -157,6 +157,43 @@ def optimize_honest(chain, T, q0):
     return honest(chain, T, res, False, 1e-4, 1e-3)
 
 
+@functools.cache
+def fr3(dtype: torch.dtype):
+    return models.from_urdf(DATA / "fr3.urdf", "fr3_link8", dtype=dtype)
+
+
+@functools.cache
+def fr3_collision(dtype: torch.dtype):
+    """The FR3's collision model (link 1-3 off, as MoveIt's SRDF) and two obstacle spheres, in ``dtype``."""
+    import warnings
+
+    from diffkin.collision import RobotCollision, World
+
+    srdf = '<robot><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/></robot>'
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's meshes are not shipped
+        rc = RobotCollision.from_urdf(DATA / "fr3.urdf", fr3(dtype), srdf=srdf).requires_grad_(False)
+    return rc, World(spheres=torch.tensor([[0.45, 0.25, 0.45, 0.1], [0.4, -0.3, 0.7, 0.08]], dtype=dtype))
+
+
+def solve_collision_honest(chain, T):
+    """ik.solve(collision=, world=): flagged successes within the tolerances and clear of collision."""
+    rc, world = fr3_collision(chain.dtype)
+    res = solve_honest(chain, T, collision=rc, world=world, margin=0.002)
+    with torch.no_grad():
+        d = rc.min_distance(res.q, world)
+    assert not bool((res.success & (d < 0.002)).any()), "a success in collision"
+    return res
+
+
+def optimize_collision_honest(chain, T, q0):
+    rc, world = fr3_collision(chain.dtype)
+    res = ik.optimize(chain, T, q0, optimizer="gauss_newton", max_iterations=4, collision=rc, world=world)
+    with torch.no_grad():
+        assert not bool((res.success & (rc.min_distance(res.q, world) < 0.0)).any()), "a success in collision"
+    return honest(chain, T, res, False, 1e-4, 1e-3)
+
+
 def _set_pose(chain, which: str, T):
     c = chain.copy()
     setattr(c, which, T)
@@ -270,6 +307,11 @@ CASES: list[Case] = [
     Case("ik.solve[tree]", lambda c, p: solve_honest(c, p, position_only=True, num_seeds=2),
          {"p_target": Arg(lambda g, b, dt: poses(hand, positions=True)(g, b, dt), (4, 3))},
          chain=hand, follows_chain=True, batch=(2,), covers=ik.solve),
+    Case("ik.solve[collision]", solve_collision_honest, {"T_target": Arg(poses(fr3), (4, 4))}, chain=fr3,
+         follows_chain=True, covers=ik.solve),
+    Case("ik.optimize[collision]", optimize_collision_honest,
+         {"T_target": Arg(poses(fr3), (4, 4)), "q0": Arg(joints(fr3), (7,))}, chain=fr3, follows_chain=True,
+         covers=ik.optimize),
     Case("ik.optimize", optimize_honest, {"T_target": Arg(poses(panda), (4, 4)), "q0": Q}, **CH,
          covers=ik.optimize),
     Case("ik.clik", lambda c, q0, xd: ik.clik(c, (xd,), q0, 0.01, 3), {"q0": Q, "x_d": Arg(
@@ -348,6 +390,7 @@ EXEMPT: dict[str, str] = {
     "diffkin.ik.LMConfig": "solver settings (Python numbers), no tensor input",
     "diffkin.ik.CostContext": "built by ik.optimize on validated inputs, handed to cost terms",
     "diffkin.ik.CallableCost": _COST,
+    "diffkin.ik.CollisionCost": _COST + " (ik.optimize[collision])",
     "diffkin.ik.JointLimitCost": _COST,
     "diffkin.ik.ManipulabilityCost": _COST,
     "diffkin.ik.PoseCost": _COST,

@@ -66,3 +66,7 @@ from .velocity import PostureTask as PostureTask  # noqa: E402
 from .velocity import velocity_step as velocity_step  # noqa: E402
 
 __all__ += ["FrameTask", "PostureTask", "velocity_step"]
+
+from .collision_cost import CollisionCost as CollisionCost  # noqa: E402
+
+__all__ += ["CollisionCost"]

@@ -18,8 +18,8 @@ from torch import Tensor
 
 from ..kernels import native
 from ..kernels.dls import dls_solve
-from ..kernels.pose_error import orientation_error
-from ._kernel import BatchLastKernel, JointMap, norm0
+from ._kernel import BatchLastKernel, JointMap
+from .residuals import PoseResidual
 
 
 @dataclass(frozen=True)
@@ -38,6 +38,11 @@ class LMConfig:
     margin: internal tolerance factor (< 1 leaves room for the final FK in the chain's dtype).
     compute_dtype: dtype of the iteration; None: the chain's, except float64 for a float32 chain asked for
         tolerances below 1e-5 (float32 FK noise is ~1e-7 m / rad, so 0.1 mm and 1e-3 rad keep a 100x margin).
+    collision_refine_calls: with ``collision``, how many acceptance rounds refine rows converged in
+        collision by the constrained Gauss–Newton of :mod:`diffkin.ik._collision` before re-seeding them
+        (the first round sees the colliding solutions of the plain solve). Default 0, re-seeding only: on
+        the FR3 among obstacles a re-seed from the collision-free library reaches the same success at half
+        the cost (benchmarks/bench_collision_ik.py); 1 helps where a target has few solutions.
     """
 
     damping: float = 3e-3
@@ -51,6 +56,7 @@ class LMConfig:
     min_rows: int = 1024
     margin: float = 0.5
     compute_dtype: torch.dtype | None = None
+    collision_refine_calls: int = 0
 
 
 class Targets:
@@ -74,12 +80,17 @@ class Targets:
         return torch.cat((self.pd, w * self.xd, w * self.yd, w * self.zd), 0).T
 
 
-def library_seeds(kernel: BatchLastKernel, jmap: JointMap, tg: Targets, cfg: LMConfig, generator):
-    """Sample ``library_size`` configurations; return their ``u (n, K)`` and each target's nearest ranks."""
+def library_seeds(kernel: BatchLastKernel, jmap: JointMap, tg: Targets, cfg: LMConfig, generator,
+                  select=None):
+    """Sample ``library_size`` configurations; return their ``u (n, K)`` and each target's nearest ranks.
+    ``select(q (n, M)) -> column indices``: keep those of 4 K samples (collision-free seeds)."""
     K, R = cfg.library_size, cfg.library_ranks
     if K <= 0 or R <= 0:
         return None, None
-    lib_u = jmap.sample_u(K, generator)
+    lib_u = jmap.sample_u(K if select is None else 4 * K, generator)
+    if select is not None:
+        lib_u = lib_u[:, select(jmap.q_of_u(lib_u))]
+        K = lib_u.shape[1]
     x, y, z, p = kernel.fk(jmap.q_of_u(lib_u))
     lib = Targets(p, *(None, None, None) if tg.position_only else (x, y, z))
     w = cfg.orientation_weight**0.5
@@ -88,27 +99,6 @@ def library_seeds(kernel: BatchLastKernel, jmap: JointMap, tg: Targets, cfg: LMC
     if R == 1:
         return lib_u, d.argmin(1, keepdim=True)
     return lib_u, d.topk(min(R, K), dim=1, largest=False).indices  # (N, R)
-
-
-def _errors(kernel, u, jmap, tg: Targets):
-    """J ``(n, r, m)``, the error e ``(r, m)`` ([e_p; e_o] per end link, or e_p), and the worst position
-    and orientation error over the K end links ``(m,)`` each."""
-    J, x, y, z, p = kernel(jmap.q_of_u(u))
-    ep = tg.pd - p
-    K = kernel.K
-    pn = norm0(ep) if K == 1 else torch.stack([norm0(ep[3 * k : 3 * k + 3]) for k in range(K)]).amax(0)
-    if tg.position_only:
-        Jp = J[:, :3] if K == 1 else torch.cat([J[:, 6 * k : 6 * k + 3] for k in range(K)], 1)
-        return Jp, ep, pn, torch.zeros_like(pn)
-    e, angs = [], []
-    for k in range(K):
-        blk = slice(3 * k, 3 * k + 3)
-        # θr with the gradient up to θ = π; the merit only needs θ, so no exact axis near π
-        eo, ang = orientation_error((tg.xd[blk], tg.yd[blk], tg.zd[blk]), (x[blk], y[blk], z[blk]), "rotvec",
-                                    layout="columns", exact_near_pi=False)  # fmt: skip
-        e += [ep[blk], eo]
-        angs.append(ang)
-    return J, torch.cat(e, 0), pn, angs[0] if K == 1 else torch.stack(angs).amax(0)
 
 
 class _Seeder:
@@ -155,13 +145,12 @@ class _Run:
     """One :func:`run_lm` call: per-target bookkeeping and the two halves of a round."""
 
     def __init__(self, kernel, jmap, tg: Targets, cfg: LMConfig, seeder: _Seeder, N: int, tol, num_seeds,
-                 max_iterations):  # fmt: skip
+                 max_iterations, residual: PoseResidual, accept=None):  # fmt: skip
         dtype, device = tg.pd.dtype, tg.pd.device
         self.kernel, self.jmap, self.tg, self.cfg, self.seeder = kernel, jmap, tg, cfg, seeder
         self.tol, self.num_seeds, self.max_iterations = tol, num_seeds, max_iterations
-        w = torch.ones(3 if tg.position_only else 6, 1, dtype=dtype, device=device)
-        w[3:] = math.sqrt(cfg.orientation_weight)
-        self.sqrt_w = w.repeat(kernel.K, 1)  # the same weights in every end link's block
+        self.residual, self.accept = residual, accept
+        self.sqrt_w = residual.sqrt_weights(kernel.K, dtype, device)  # the same in every end link's block
         self.best_u = torch.zeros(kernel.n, N, dtype=dtype, device=device)
         self.best_merit = torch.full((N,), math.inf, dtype=dtype, device=device)
         self.done = torch.zeros(N, dtype=torch.bool, device=device)
@@ -176,7 +165,7 @@ class _Run:
             if packed is None or not packed.euclidean:  # ball and free joints: steps on the manifold
                 return None
             tg, jm = self.tg, self.jmap
-            cols = None if tg.position_only else (tg.xd, tg.yd, tg.zd)
+            cols = None if self.residual.position_only else (tg.xd, tg.yd, tg.zd)  # the C pass's residual
             self._problem = native.LMProblem(packed, tg.pd, cols, self.sqrt_w, jm.c, jm.h, jm.bounded)
         return self._problem
 
@@ -208,7 +197,7 @@ class _Run:
             return u, u_eval, conv, merit, rounds - 1, prev if rounds > 1 else None
         t = self.tg.take(rows.idx)
         for _ in range(cfg.check_every):
-            J, e, pn, ang = _errors(self.kernel, u, self.jmap, t)
+            J, e, pn, ang = self.residual.batch_last(self.kernel, u, self.jmap, t)
             conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
             e = e * self.sqrt_w
             lam = cfg.damping**2 + cfg.error_damping * (e * e).sum(0)  # Sugihara's damping
@@ -225,10 +214,17 @@ class _Run:
         cfg, idx, done = self.cfg, rows.idx, self.done
         self.iters.index_add_(0, idx, torch.full_like(idx, cfg.check_every))
         seed_it = rows.seed_it + cfg.check_every
+        rejected = torch.zeros_like(conv)
+        if self.accept is not None and bool(conv.any()):  # collision: refine or reject (ik/_collision.py)
+            ci = conv.nonzero().squeeze(-1)
+            ok, u_ok = self.accept(idx[ci], u_eval[:, ci])
+            u_eval = u_eval.index_copy(1, ci, u_ok)
+            rejected = rejected.index_put((ci,), ~ok)
+            conv = conv & ~rejected
         done[idx[conv]] = True
         self.best_u[:, idx[conv]] = u_eval[:, conv]
         slow = (seed_it >= cfg.min_seed_iterations) & (merit > cfg.stall_ratio * rows.last)
-        finished = ((seed_it >= self.max_iterations) | slow) & ~done[idx]
+        finished = ((seed_it >= self.max_iterations) | slow | rejected) & ~done[idx]
         if bool(finished.any()):  # keep the best failed seed of each target
             fi, fm = idx[finished], merit[finished]
             self.best_merit.scatter_reduce_(0, fi, fm, reduce="amin")
@@ -264,11 +260,12 @@ class _Run:
 
 
 def run_lm(kernel, jmap, tg, seeds_user, lib_u, nn_idx, N, cfg: LMConfig, generator, *, tol, num_seeds,
-           max_iterations, progress=False):  # fmt: skip
-    """Run the scheduled LM; returns ``(u_best (n, N), iterations (N,), seeds_tried (N,))``."""
+           max_iterations, residual: PoseResidual, accept=None, progress=False):  # fmt: skip
+    """Run the scheduled LM; returns ``(u_best (n, N), iterations (N,), seeds_tried (N,))``. ``accept(idx,
+    u) -> (ok, u)``: a test (and refinement) of pose-converged rows; rejected rows are re-seeded."""
     S_user = 0 if seeds_user is None else min(seeds_user.shape[1], max(num_seeds, 1))
     seeder = _Seeder(jmap, S_user, lib_u, nn_idx, generator)
-    run = _Run(kernel, jmap, tg, cfg, seeder, N, tol, num_seeds, max_iterations)
+    run = _Run(kernel, jmap, tg, cfg, seeder, N, tol, num_seeds, max_iterations, residual, accept)
     device = tg.pd.device
     if S_user:  # initial rows: every user seed, else one library (or random) seed per target
         idx = torch.arange(N, device=device).repeat_interleave(S_user)

@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from ..kernels.dls import adaptive_damping, dls_solve
-from ..kernels.pose_error import orientation_error
+from .residuals import PoseResidual
 
 __all__ = ["attach_solve_gradients", "attach_stationary_gradients", "wants_gradients"]
 
@@ -37,31 +37,6 @@ def wants_gradients(chain, T_target: Tensor) -> bool:
     """Grad mode on and the target or some chain parameter requires grad."""
     params = chain.parameters()
     return torch.is_grad_enabled() and (T_target.requires_grad or any(p.requires_grad for p in params))
-
-
-def pose_residual(chain, q: Tensor, T_target: Tensor, position_only: bool,
-                  orientation_weight: float) -> Tensor:
-    """F ``(..., r)``: [p_d − p; √w·θr] per end link (positions only for ``position_only``), flattened."""
-    with torch.set_grad_enabled(torch.is_grad_enabled() and any(p.requires_grad for p in chain.parameters())):
-        T = chain.forward_kinematics(q, check=False)  # no graph (and the fast constant path) if not needed
-    if position_only:
-        p_d = T_target if T_target.shape[-1] == 3 else T_target[..., :3, 3]
-        e = p_d - T[..., :3, 3]
-    else:
-        # θr of R_d R_eᵀ: near a solution θ ≈ 0, where the plain form is exact (no axis-near-π branch)
-        e_o, _ = orientation_error(T_target[..., :3, :3], T[..., :3, :3], "rotvec", exact_near_pi=False)
-        e = torch.cat((T_target[..., :3, 3] - T[..., :3, 3], orientation_weight**0.5 * e_o), dim=-1)
-    return e.reshape(*q.shape[:-1], -1)
-
-
-def _task_jacobian(chain, q: Tensor, position_only: bool, orientation_weight: float) -> Tensor:
-    """−∂F/∂q at a solution: the geometric Jacobian rows matching :func:`pose_residual`, ``(..., r, n)``."""
-    J = chain.geometric_jacobian(q, check=False)  # (..., [K,] 6, n)
-    if position_only:
-        J = J[..., :3, :]
-    else:
-        J = torch.cat((J[..., :3, :], orientation_weight**0.5 * J[..., 3:, :]), dim=-2)
-    return J.reshape(*q.shape[:-1], -1, J.shape[-1])  # (nv columns: ball and free joints count three)
 
 
 class _AtSolution(torch.autograd.Function):
@@ -79,9 +54,9 @@ class _ImplicitSolve(_AtSolution):
     @staticmethod
     def backward(ctx, g: Tensor):
         q, T_target = ctx.saved_tensors
-        chain, success, position_only, weight, lam, params = ctx.spec
+        chain, success, residual, lam, params = ctx.spec
         with torch.no_grad():
-            J = _task_jacobian(chain, q, position_only, weight)
+            J = residual.jacobian(chain, q)  # −∂F/∂q at the solution
             lam = _solve_damping(J, lam)
             g = chain.configuration_space.pullback(q, g)  # dq = (∂q/∂v) dv on ball and free joints
             # u = (J⁺)ᵀ g = (JJᵀ + λI)⁻¹ J g = J (JᵀJ + λI)⁻¹ g: the kernel's DLS solve on Jᵀ
@@ -89,7 +64,7 @@ class _ImplicitSolve(_AtSolution):
         wrt_T = T_target.requires_grad or ctx.needs_input_grad[1]
         with torch.enable_grad():
             T_d = T_target.detach().requires_grad_(wrt_T)
-            F = pose_residual(chain, q.detach(), T_d, position_only, weight)
+            F = residual.value(chain, q.detach(), T_d)
             inputs = ([T_d] if wrt_T else []) + list(params)
             grads = torch.autograd.grad(F, inputs, grad_outputs=u, allow_unused=True) if inputs else []
         grad_T = grads[0] if wrt_T else None
@@ -107,14 +82,15 @@ def _solve_damping(J: Tensor, k2: float) -> Tensor:
     return adaptive_damping(J, k2, k2**0.5) + floor
 
 
-def attach_solve_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, position_only: bool,
-                           orientation_weight: float, damping: float) -> Tensor:
-    """``q`` with the implicit gradient of :func:`~diffkin.ik.solve` w.r.t. ``T_target`` and the chain's
+def attach_solve_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, residual: PoseResidual,
+                           damping: float) -> Tensor:
+    """``q`` with the implicit gradient of :func:`~diffkin.ik.solve` (the condition F = 0 of the pose
+    ``residual``, :class:`~diffkin.ik.residuals.PoseResidual`) w.r.t. ``T_target`` and the chain's
     parameters that require grad (no-op when nothing does)."""
     if not wants_gradients(chain, T_target):
         return q
     params = tuple(p for p in chain.parameters() if p.requires_grad)
-    spec = (chain, success.detach(), position_only, orientation_weight, damping**2, params)
+    spec = (chain, success.detach(), residual, damping**2, params)
     return _ImplicitSolve.apply(q.detach(), T_target, spec, *params)
 
 

@@ -20,11 +20,13 @@ from ..chain import KinematicChain
 from ..errors import ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
-from ..transforms import _pose_error, _transform_inverse, _transform_points, as_measured_transform
+from ..transforms import _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
+from ._collision import CollisionConfig, collision_round, constraint_of, free_library
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
+from .residuals import DistanceConstraint, PoseResidual
 from .result import IKResult, final_errors
 
 __all__ = ["dls_delta", "dls_step", "solve", "LMConfig"]
@@ -87,11 +89,8 @@ def dls_step(
         raise ShapeError(f"expected T_target of shape (..., 4, 4){' or (..., 3)' if position_only else ''}, "
                          f"got {shape_str(T_target.shape)}")
     T_e, J = forward_kinematics_and_jacobian(chain, q, check=False)
-    if position_only:
-        p_d = T_target[..., :3, 3] if full else T_target
-        e, J = p_d - T_e[..., :3, 3], J[..., :3, :]
-    else:
-        e = _pose_error(T_target, T_e, "rotvec")
+    residual = PoseResidual(position_only, 1.0, exact_near_pi=True)  # far from a solution: exact near π
+    e, J = residual.error(T_e, T_target), residual.rows(J)
     e, J = torch.broadcast_tensors(e, J[..., 0])[0], J.expand(*e.shape[:-1], *J.shape[-2:])
     q_new = q + step_size * _dls_delta(J, e, k * k)
     return chain.clamp_to_limits(q_new, check=False) if respect_limits else q_new
@@ -212,6 +211,9 @@ def solve(
     progress: bool = False,
     seeds_from_closed_form: bool = False,
     base: Tensor | None = None,
+    collision=None,
+    world=None,
+    margin: float = 0.0,
 ) -> IKResult:
     """Batched inverse kinematics by Levenberg–Marquardt with joint limits and restarts.
 
@@ -236,10 +238,20 @@ def solve(
             chain has no closed form (see :func:`~diffkin.ik.identify_structure`).
         base: per-target world poses of the chain's base ``(..., 4, 4)`` (broadcasting with the target
             batch): ``T_target`` is then in the world (robots at different places in one call).
+        collision: a :class:`~diffkin.collision.RobotCollision` of the chain: success then also needs
+            every checked distance (its self pairs, and with ``world`` every geom to every object of a
+            :class:`~diffkin.collision.World` in the base frame, one world for all targets) >= ``margin``
+            (m). The distances are constraints of the solve (:mod:`diffkin.ik._collision`): seeds come
+            from collision-free library poses, a pose-converged row in collision gets a constrained
+            Gauss–Newton refinement (a small QP per row) and is re-seeded if that fails.
 
     Returns:
         :class:`IKResult` with per-target ``q``, ``success``, errors (from an exact FK in the chain's dtype),
         ``iterations`` and ``seeds_tried``. Never raises for unreachable targets and never returns NaN.
+
+    With ``collision`` the success flag is decided by the exact distances of ``collision`` at the returned
+    ``q`` in the chain's dtype (``success`` never marks a configuration in collision); the implicit
+    gradients are those of the pose condition (exact where no distance constraint is active).
 
     The iteration runs in the chain's dtype (float64 when a float32 chain is asked for tolerances below
     1e-5; see :class:`LMConfig`); success is decided by an exact FK of the result in the chain's dtype.
@@ -276,27 +288,81 @@ def solve(
         generator.manual_seed(seed if seed is not None else int(torch.randint(2**62, ()).item()))
     kernel = BatchLastKernel(chain if chain.dtype == dtype else copy.deepcopy(chain).to(dtype))
     jmap = JointMap(chain, dtype, device, respect_limits)
-    n = chain.n_joints
+    residual = PoseResidual(position_only, cfg.orientation_weight)
+    constraint = constraint_of(chain, collision, world, margin, base)
+    T_flat = T_orig.reshape(N, *T_orig.shape[len(batch) :])
+    prob = _Problem(chain, kernel, jmap, tg, seeds_user, cfg, generator, (position_tolerance,
+                    orientation_tolerance), num_seeds, max_iterations, residual, respect_limits, T_flat,
+                    progress, None if constraint is None else constraint.to(dtype))  # fmt: skip
     with torch.no_grad():
-        lib_u, nn_idx = library_seeds(kernel, jmap, tg, cfg, generator) if N else (None, None)
-        u_best, iters, seeds = run_lm(
-            kernel, jmap, tg, seeds_user, lib_u, nn_idx, N, cfg, generator,
-            tol=(position_tolerance, orientation_tolerance), num_seeds=num_seeds,
-            max_iterations=max_iterations, progress=progress,
-        )  # fmt: skip
-        q = jmap.finalize(jmap.q_of_u(u_best), clamp=respect_limits and chain.q_limits is not None)
-        q = q.T.to(chain.dtype).reshape(*batch, n).contiguous()
-        pos_err, ori_err = final_errors(chain, q, T_orig, position_only)
-    success = pos_err <= position_tolerance
-    if not position_only:
-        success &= ori_err <= orientation_tolerance
-    if respect_limits and chain.q_limits is not None:
-        success &= chain.within_limits(q, check=False)
+        if N:
+            prob.library()
+        q, success, pos_err, ori_err, iters, seeds = prob.run()
+        if constraint is not None:
+            q, success, pos_err, ori_err, iters, seeds = collision_round(
+                prob, constraint, q, success, pos_err, ori_err, iters, seeds)
+    q = q.reshape(*batch, chain.n_joints).contiguous()
+    success, pos_err, ori_err = (t.reshape(batch) for t in (success, pos_err, ori_err))
     # a differentiable layer: gradients w.r.t. T_target and the chain's parameters by the implicit function
     # theorem at the solution (diffkin.ik.implicit); the iterations above ran without autograd
-    q = attach_solve_gradients(chain, q, T_target, success, position_only, cfg.orientation_weight,
-                               cfg.damping)
+    q = attach_solve_gradients(chain, q, T_target, success, residual, cfg.damping)
     return IKResult(
         q=q, success=success, position_error=pos_err, orientation_error=ori_err,
         iterations=iters.reshape(batch), seeds_tried=seeds.reshape(batch),
     )  # fmt: skip
+
+
+@dataclasses.dataclass
+class _Problem:
+    """One :func:`solve` call's fixed inputs; :meth:`run` solves all targets or a subset of them."""
+
+    chain: KinematicChain
+    kernel: BatchLastKernel
+    jmap: JointMap
+    tg: Targets
+    seeds_user: Tensor | None
+    cfg: LMConfig
+    generator: torch.Generator
+    tol: tuple[float, float]
+    num_seeds: int
+    max_iterations: int
+    residual: PoseResidual
+    respect_limits: bool
+    T_flat: Tensor
+    progress: bool
+    constraint: DistanceConstraint | None  # in the working dtype
+    lib_u: Tensor | None = None
+    nn_idx: Tensor | None = None
+
+    def library(self) -> None:
+        """The library seeds (collision-free ones with a constraint, :func:`free_library`)."""
+        c, cfg = self.constraint, self.cfg
+        slack = CollisionConfig.slack
+        select = None if c is None else (lambda q: free_library(q, c, slack, cfg.library_size))
+        self.lib_u, self.nn_idx = library_seeds(self.kernel, self.jmap, self.tg, cfg, self.generator, select)
+
+    def run(self, sub: Tensor | None = None, first: Tensor | None = None, accept=None):
+        """LM on the targets ``sub`` (None: all), ``first (m, n)`` tried before the user's seeds (then the
+        library ranks skip their nearest), ``accept`` as in :func:`run_lm` -> (q ``(m, n)`` in the chain's
+        dtype, success, position error, orientation error, iterations, seeds tried), each ``(m,)``."""
+        chain, jm, tg, seeds, nn = self.chain, self.jmap, self.tg, self.seeds_user, self.nn_idx
+        if sub is not None:
+            tg, seeds = tg.take(sub), None if seeds is None else seeds[sub]
+            nn = None if nn is None else nn[sub].roll(-1, 1)
+        if first is not None:
+            seeds = first[:, None] if seeds is None else torch.cat((first[:, None], seeds), 1)
+        m = tg.pd.shape[1]
+        u, iters, tried = run_lm(
+            self.kernel, jm, tg, seeds, self.lib_u, nn, m, self.cfg, self.generator, tol=self.tol,
+            num_seeds=self.num_seeds + (first is not None), max_iterations=self.max_iterations,
+            residual=self.residual, accept=accept, progress=self.progress)  # fmt: skip
+        limited = self.respect_limits and chain.q_limits is not None
+        q = jm.finalize(jm.q_of_u(u), clamp=limited).T.to(chain.dtype)
+        T = self.T_flat if sub is None else self.T_flat[sub]
+        pos_err, ori_err = final_errors(chain, q, T, self.residual.position_only)
+        success = pos_err <= self.tol[0]
+        if not self.residual.position_only:
+            success &= ori_err <= self.tol[1]
+        if limited:
+            success &= chain.within_limits(q, check=False)
+        return q, success, pos_err, ori_err, iters, tried

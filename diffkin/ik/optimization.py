@@ -18,9 +18,10 @@ from torch import Tensor
 
 from ..errors import ConventionError
 from ..kernels.dls import dls_solve
-from ..transforms import _pose_error
+from ._collision import constraint_of
 from .implicit import attach_stationary_gradients, wants_gradients
 from .numerical import _check_tolerances, _targets, _user_seeds, _valid_targets
+from .residuals import PoseResidual
 from .result import IKResult, final_errors
 
 __all__ = [
@@ -81,12 +82,8 @@ class PoseCost(_Term):
 
     def residual(self, ctx: CostContext) -> Tensor:
         Td = ctx.T_target
-        if Td.shape[-1] == 3:
-            e = Td - ctx.T[..., :3, 3]
-        else:
-            e = _pose_error(Td, ctx.T, "rotvec")
-            e = torch.cat((e[..., :3], self.orientation_weight**0.5 * e[..., 3:]), dim=-1)
-        return e.reshape(*ctx.q.shape[:-1], -1)  # K end links: their rows stacked
+        res = PoseResidual(Td.shape[-1] == 3, self.orientation_weight, exact_near_pi=True)
+        return res.error(ctx.T, Td).reshape(*ctx.q.shape[:-1], -1)  # K end links: their rows stacked
 
 
 @dataclass(frozen=True)
@@ -279,6 +276,9 @@ def optimize(
     respect_limits: bool = True,
     tolerance_change: float = 1e-12,
     unroll: bool | int = False,
+    collision=None,
+    world=None,
+    margin: float = 0.0,
 ) -> IKResult:
     """Optimisation-based IK: minimise Σ cost terms per sample, from ``q0`` (a local method).
 
@@ -303,6 +303,9 @@ def optimize(
         unroll: how ``q`` is differentiated (see below): False (default) for the implicit gradient; True (10
             steps) or a number of steps to differentiate through that many Gauss–Newton steps (all terms
             least squares) or gradient steps of size ``lr`` (default 0.05) taken from the solution instead.
+        collision, world, margin: as in :func:`~diffkin.ik.solve`: adds a :class:`CollisionCost` (a
+            one-sided quadratic penalty below margin + 1 cm, :mod:`diffkin.ik.collision_cost`) to the
+            terms, and ``success`` also needs every checked distance >= ``margin`` (the exact distances).
 
     Returns:
         :class:`IKResult`; ``success`` is judged from an exact FK in the chain's dtype (and the limits).
@@ -319,6 +322,11 @@ def optimize(
     if optimizer not in OPTIMIZERS:
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
     terms = _as_terms(costs)
+    constraint = constraint_of(chain, collision, world, margin, None)
+    if constraint is not None:
+        from .collision_cost import CollisionCost
+
+        terms.append(CollisionCost(collision=collision, world=world, margin=constraint.margin))
     _check_tolerances(position_tolerance, orientation_tolerance)
     T_target = _valid_targets(chain, T_target)
     batch, T, _ = _targets(chain, T_target, position_only, chain.dtype)
@@ -357,6 +365,9 @@ def optimize(
         success &= ori_err <= orientation_tolerance
     if clamp:
         success &= chain.within_limits(q, check=False)
+    if constraint is not None:
+        with torch.no_grad():
+            success &= constraint.satisfied(q)
     iters = torch.full(batch, it, dtype=torch.long, device=q.device)
     T_src = T_target[..., :3, 3] if position_only and T_target.shape[-2:] == (4, 4) else T_target
     space = chain.configuration_space

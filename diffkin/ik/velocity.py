@@ -182,17 +182,9 @@ def _damper_rows(chain, q: Tensor, dt: float, collision, world, margin: float, d
     −J_d q̇ ≤ gain (d − margin)/Δt; rows farther off are inactive (h = inf). J_d = ∂d/∂q (autograd of the
     closed-form distances) times the tangent map of q for ball and free joints: ``(..., D, nv)``,
     ``(..., D)``."""
-    from .optimization import _residual_jacobian
+    from .residuals import DistanceConstraint
 
-    with torch.enable_grad():
-        qg = q.detach().requires_grad_(True)
-        d = collision.self_distances(qg)
-        if world is not None:
-            w = collision.world_distances(qg, world).flatten(-2)
-            batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-1])
-            d = torch.cat((d.expand(*batch, d.shape[-1]), w.expand(*batch, w.shape[-1])), dim=-1)
-        Jd = _residual_jacobian(d, qg)
-    d, Jd = d.detach(), Jd.detach()
+    d, _, Jd = DistanceConstraint(collision, world).jacobian(q)  # every row (margin 0: g = d)
     space = chain.configuration_space
     if not space.euclidean:
         Jd = Jd @ space.tangent_map(q)

@@ -1,0 +1,115 @@
+"""Collision-free IK on the Franka FR3 (Panda's successor, Franka's coarse self-collision model: 30 spheres
+and capsules, 288 checked pairs with link 1 - link 3 disabled as in MoveIt's SRDF) among a few obstacles.
+
+    python -m benchmarks.bench_collision_ik [--targets 10000] [--world mixed|spheres] [--quick] [--json F]
+
+Targets: FK of uniformly random configurations whose every checked distance (self pairs and obstacles) is
+>= 1 cm, so each target is reachable AND has a collision-free solution. Solved at 0.1 mm / 1 mrad by
+``ik.solve(chain, T)`` and ``ik.solve(chain, T, collision=rc, world=world, margin=0)`` in the same run
+(float32 chain, the same seed), each timed once on the whole batch (a solve of 10 000 targets takes
+seconds: one call is the figure; ``--repeats`` for the median of more). ``success`` of the plain solve is
+its pose success, ``collision_free`` the share of its solutions that are also clear (re-checked with the
+exact distances); the collision solve's success includes the distances (its default: rows converged in
+collision re-seeded); "+ refinement": ``LMConfig(collision_refine_calls=1)`` (first a constrained
+Gauss-Newton refinement of the colliding solutions, ik/_collision.py).
+``--world mixed``: two spheres and one box; ``spheres``: three spheres (the capsule-box distance is a
+golden-section search per geom, the dominant cost). PyRoKi is not on PyPI as ``pyroki`` (pip in this venv
+found no distribution), so no peer runs here; docs/collision.md quotes cuRobo's and PyRoKi's published
+GPU figures. The machine is shared: compare the ratios of one run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+import warnings
+from pathlib import Path
+
+import torch
+
+from benchmarks.common import cli
+from diffkin import ik, models
+from diffkin.collision import RobotCollision, World, box
+
+__all__ = ["run", "main", "robot", "world", "targets"]
+
+FR3_URDF = Path(__file__).resolve().parents[1] / "tests" / "data" / "urdf" / "fr3.urdf"
+SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/>'
+        '</robot>')
+
+
+def robot(dtype=torch.float32, device="cpu"):
+    chain = models.from_urdf(FR3_URDF, "fr3_link8", dtype=dtype, device=device)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the meshes are not shipped; the sc primitives are the model
+        return chain, RobotCollision.from_urdf(FR3_URDF, chain, srdf=SRDF).requires_grad_(False)
+
+
+def world(kind: str = "mixed", dtype=torch.float32, device="cpu") -> World:
+    """Two spheres and a table-like box (``mixed``), or three spheres."""
+    t = lambda x: torch.tensor(x, dtype=dtype, device=device)  # noqa: E731
+    spheres = [[0.45, 0.25, 0.45, 0.10], [0.40, -0.30, 0.70, 0.08]]
+    if kind == "spheres":
+        return World(spheres=t(spheres + [[0.55, 0.0, 0.15, 0.08]]))
+    return World(spheres=t(spheres), boxes=box(center=t([0.55, 0.0, 0.15]), half_extents=t([0.1, 0.3, 0.02]),
+                                               dtype=dtype))
+
+
+def targets(chain, rc, w, n: int, seed: int = 0, clear: float = 0.01):
+    """(configurations (n, 7), poses (n, 4, 4)) of random configurations clear of collision by ``clear``."""
+    g = torch.Generator(device=chain.device).manual_seed(seed)
+    keep = []
+    with torch.no_grad():
+        while sum(len(k) for k in keep) < n:
+            q = chain.random_configuration((4 * n,), generator=g)
+            keep.append(q[rc.min_distance(q, w) >= clear])
+        q = torch.cat(keep)[:n]
+        return q, chain.forward_kinematics(q)
+
+
+def _solve(chain, T, repeats: int, **kw):
+    times, res = [], None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        res = ik.solve(chain, T, seed=0, position_tolerance=1e-4, orientation_tolerance=1e-3, **kw)
+        times.append(time.perf_counter() - t0)
+    return res, times
+
+
+def run(args) -> list[dict]:
+    quick = getattr(args, "quick", False)
+    n = getattr(args, "targets", None) or (200 if quick else 10_000)
+    repeats = getattr(args, "repeats", None) or 1
+    kind = getattr(args, "world", "mixed")
+    chain, rc = robot()
+    w = world(kind)
+    _, T = targets(chain, rc, w, n)
+    ik.solve(chain, T[:16], seed=0, collision=rc, world=w)  # warm-up (the C pass compiles once)
+    rows = []
+    coll = {"collision": rc, "world": w}
+    refine = ik.LMConfig(collision_refine_calls=1)
+    for name, kw in (("ik.solve", {}), ("ik.solve collision", coll),
+                     ("ik.solve collision + refinement", {**coll, "config": refine})):
+        res, times = _solve(chain, T, repeats, **kw)
+        with torch.no_grad():
+            free = rc.min_distance(res.q, w) >= 0.0
+        t = statistics.median(times)
+        rows.append({"impl": name, "world": kind, "targets": n, "success": float(res.success.float().mean()),
+                     "collision_free": float((res.success & free).float().mean()), "seconds": t,
+                     "solves_per_s": n / t, "seeds_mean": float(res.seeds_tried.float().mean())})
+    for r in rows[1:]:
+        r["speed_ratio"] = r["solves_per_s"] / rows[0]["solves_per_s"]
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--targets", type=int, default=None)
+    p.add_argument("--repeats", type=int, default=None)
+    p.add_argument("--world", choices=("mixed", "spheres"), default="mixed")
+    return cli(p, run, "FR3 collision-free IK, 0.1 mm / 1 mrad (one run; the machine is shared)", argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

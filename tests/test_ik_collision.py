@@ -1,0 +1,231 @@
+"""Collision-free IK: ``ik.solve(..., collision=, world=, margin=)`` re-checked by coal with the geoms placed
+by Pinocchio's own URDF parser and FK (never by the code under test), on the Franka FR3 (Panda's successor;
+Franka's coarse self-collision model) among a few obstacles."""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import collision_reference as ref
+import numpy as np
+import pytest
+import torch
+
+import diffkin
+from diffkin import ik
+from diffkin.collision import RobotCollision, World, box
+from diffkin.errors import DiffkinError, OptionError
+
+pin = pytest.importorskip("pinocchio")
+coal = ref.coal
+
+FR3 = Path(__file__).parent / "data" / "urdf" / "fr3.urdf"
+# Franka's link 1 and link 3 capsules overlap in every configuration (MoveIt's SRDF disables the pair)
+SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/>'
+        '</robot>')
+SPHERES = [[0.45, 0.25, 0.45, 0.10], [0.40, -0.30, 0.70, 0.08]]
+BOX = ([0.55, 0.0, 0.15], [0.10, 0.30, 0.02])
+
+
+def _robot(dtype):
+    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=dtype)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's meshes are not shipped: skipped with a warning
+        return chain, RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+
+
+def _world(dtype, with_box=True):
+    b = box(center=torch.tensor(BOX[0], dtype=dtype), half_extents=torch.tensor(BOX[1], dtype=dtype),
+            dtype=dtype) if with_box else None
+    return World(spheres=torch.tensor(SPHERES, dtype=dtype), boxes=b, dtype=dtype)
+
+
+class _Coal:
+    """The smallest distance over the checked pairs and to the obstacles, by Pinocchio + coal."""
+
+    def __init__(self, rc: RobotCollision, with_box=True):
+        text = re.sub(r"<collision>\s*<geometry>\s*<mesh[^>]*/>\s*</geometry>\s*</collision>", "",
+                      FR3.read_text())
+        self.model = pin.buildModelFromXML(text)
+        self.geom = pin.buildGeomFromUrdfString(self.model, text, pin.COLLISION)
+        for o in self.geom.geometryObjects:  # RobotCollision's documented capsules for cylinders
+            if isinstance(o.geometry, coal.Cylinder):
+                o.geometry = coal.Capsule(o.geometry.radius, 2 * o.geometry.halfLength)
+        index = {o.name: i for i, o in enumerate(self.geom.geometryObjects)}
+        name = lambda n: "{}_{}".format(*n.rsplit("/", 1))  # noqa: E731  (Pinocchio's '<link>_<i>')
+        self.pairs = [(index[name(a)], index[name(b)]) for a, b in rc.pairs]
+        self.robot = [index[name(g.name)] for g in rc.geoms]
+        self.obstacles = [(coal.Sphere(r), ref.placement(None, c)) for *c, r in SPHERES]
+        if with_box:
+            self.obstacles.append(ref.box(BOX[0], np.eye(3), BOX[1]))
+        self.data, self.gdata = self.model.createData(), pin.GeometryData(self.geom)
+        self.q_of = [self.model.joints[self.model.getJointId(n)].idx_q for n in rc.chain.joint_names]
+
+    def place(self, q) -> None:
+        qp = pin.neutral(self.model)
+        qp[self.q_of] = np.asarray(q, np.float64)
+        pin.updateGeometryPlacements(self.model, self.data, self.geom, self.gdata, qp)
+
+    def min_distance(self, q) -> float:
+        self.place(q)
+        shape = lambda i: (self.geom.geometryObjects[i].geometry,  # noqa: E731
+                           ref.placement(self.gdata.oMg[i].rotation, self.gdata.oMg[i].translation))
+        d = [ref.distance(*shape(i), *shape(j)) for i, j in self.pairs]
+        d += [ref.distance(*shape(i), *o) for i in self.robot for o in self.obstacles]
+        return min(d)
+
+
+def _targets(chain, check: _Coal, n: int, seed: int, clear: float = 0.01):
+    """Reachable, collision-free targets: FK of random configurations that coal finds clear by ``clear``."""
+    lo, hi = chain.q_limits.T.double()
+    g = torch.Generator().manual_seed(seed)
+    q = lo + (hi - lo) * torch.rand(12 * n, chain.n_joints, dtype=torch.float64, generator=g)
+    keep = [qq for qq in q if check.min_distance(qq.numpy()) > clear][:n]
+    assert len(keep) == n
+    return chain.forward_kinematics(torch.stack(keep).to(chain.dtype))
+
+
+@pytest.mark.parametrize("dtype,refine", [(torch.float64, 0), (torch.float64, 1), (torch.float32, 0)])
+def test_solve_successes_are_collision_free_by_coal(dtype, refine):
+    """Every success is within the pose tolerances and clear of every checked pair and obstacle by the margin
+    (coal); the success rate stays high; the same solve without collision has successes in collision."""
+    chain, rc = _robot(dtype)
+    check = _Coal(rc)
+    T = _targets(chain, check, 40, seed=3)
+    margin = 0.005
+    cfg = ik.LMConfig(collision_refine_calls=refine)  # re-seeding only, or the constrained refinement too
+    res = ik.solve(chain, T, collision=rc, world=_world(dtype), margin=margin, seed=0, config=cfg)
+    plain = ik.solve(chain, T, seed=0)
+    assert plain.success.all()
+    d_plain = np.array([check.min_distance(q) for q in plain.q.double().numpy()])
+    assert (d_plain < margin).any()  # the problem is not trivial: plain IK ends in collision
+    assert res.success.float().mean() >= 0.95
+    d = np.array([check.min_distance(q) for q in res.q.double().numpy()])
+    ok = res.success.numpy()
+    tol = 1e-9 if dtype == torch.float64 else 2e-6
+    assert (d[ok] >= margin - tol).all(), d[ok].min()
+    T_e = chain.double().forward_kinematics(res.q.double()) if dtype == torch.float64 else \
+        diffkin.models.from_urdf(FR3, "fr3_link8", dtype=torch.float64).forward_kinematics(res.q.double())
+    pos = (T_e[..., :3, 3] - T.double()[..., :3, 3]).norm(dim=-1)
+    assert (pos[res.success] <= 1e-4 + 1e-7).all()
+
+
+def test_success_is_never_claimed_in_collision():
+    """Targets reachable only in collision (the flange inside an obstacle grown to cover it) come back
+    unsuccessful, and every success is clear by coal, with self-collision only (no world)."""
+    chain, rc = _robot(torch.float64)
+    check = _Coal(rc, with_box=False)
+    T = _targets(chain, check, 12, seed=5)
+    p = T[:6, :3, 3]
+    inside = World(spheres=torch.cat((p, torch.full((6, 1), 0.05, dtype=torch.float64)), -1))
+    res = ik.solve(chain, T[:6], collision=rc, world=inside, seed=1, num_seeds=8)
+    assert not res.success.any()
+    res = ik.solve(chain, T[6:], collision=rc, margin=0.01, seed=1)
+    assert res.success.all()
+    assert min(check.min_distance(q) for q in res.q.reshape(-1, 7).numpy()) >= 0.0
+    assert min(check_self(check, q) for q in res.q.numpy()) >= 0.01 - 1e-9
+
+
+def check_self(check: _Coal, q) -> float:
+    check.place(q)
+    out = []
+    for i, j in check.pairs:
+        gi, gj = (check.geom.geometryObjects[k].geometry for k in (i, j))
+        Mi, Mj = check.gdata.oMg[i], check.gdata.oMg[j]
+        out.append(ref.distance(gi, ref.placement(Mi.rotation, Mi.translation), gj,
+                                ref.placement(Mj.rotation, Mj.translation)))
+    return min(out)
+
+
+def test_collision_arguments_are_checked():
+    chain, rc = _robot(torch.float64)
+    T = chain.forward_kinematics(torch.zeros(7, dtype=torch.float64))
+    with pytest.raises(DiffkinError, match="collision model"):
+        ik.solve(chain, T, world=_world(torch.float64))
+    with pytest.raises(DiffkinError, match="RobotCollision"):
+        ik.solve(chain, T, collision="fr3")
+    with pytest.raises(OptionError, match="margin"):
+        ik.solve(chain, T, collision=rc, margin=-1.0)
+    with pytest.raises(DiffkinError, match="one world"):
+        ik.solve(chain, T, collision=rc, world=World(spheres=torch.zeros(2, 1, 4, dtype=torch.float64)))
+
+
+def test_batched_targets_and_gradients_with_collision():
+    """A (2, 3) batch keeps its shape and every target is solved clear of collisions (coal)."""
+    chain, rc = _robot(torch.float64)
+    check = _Coal(rc)
+    T = _targets(chain, check, 6, seed=7).reshape(2, 3, 4, 4)
+    res = ik.solve(chain, T, collision=rc, world=_world(torch.float64), seed=0)
+    assert res.q.shape == (2, 3, 7) and res.success.shape == (2, 3)
+    assert res.success.all()
+    assert min(check.min_distance(q) for q in res.q.reshape(-1, 7).numpy()) >= 0.0
+
+
+def _clear_target(chain, rc, w, clear: float, seed: int):
+    """A configuration whose distances all exceed ``clear`` (m), and its pose."""
+    g = torch.Generator().manual_seed(seed)
+    q = chain.random_configuration((2000,), generator=g)
+    with torch.no_grad():
+        q = q[rc.min_distance(q, w) > clear][:1]
+    assert q.shape[0] == 1
+    return q, chain.forward_kinematics(q)
+
+
+def test_optimize_gradients_at_inactive_constraints_match_finite_differences():
+    """optimize(collision=, world=) with every distance beyond margin + buffer: dq*/dT by the implicit
+    gradient equals central differences of the solver (float64), and equals the gradient without the
+    collision term (the penalty vanishes near q*)."""
+    chain, rc = _robot(torch.float64)
+    w = _world(torch.float64)
+    q_t, T = _clear_target(chain, rc, w, 0.03, seed=11)
+    q0 = q_t + 0.05
+    costs = [ik.PoseCost(), ik.RestPostureCost(weight=1e-2)]  # a unique stationary point
+    kw = dict(costs=costs, optimizer="gauss_newton", max_iterations=200, tolerance_change=0.0)
+    v = torch.linspace(-1.0, 1.0, 7, dtype=torch.float64)
+
+    def solve(TT, **extra):
+        return ik.optimize(chain, TT, q0, **kw, **extra).q
+
+    Tg = T.clone().requires_grad_(True)
+    q = solve(Tg, collision=rc, world=w)
+    (g,) = torch.autograd.grad((q * v).sum(), Tg)
+    Tg2 = T.clone().requires_grad_(True)
+    (g_plain,) = torch.autograd.grad((solve(Tg2) * v).sum(), Tg2)
+    torch.testing.assert_close(g, g_plain, rtol=1e-6, atol=1e-7)
+    eps = 1e-4  # (smaller steps meet the solver's own convergence noise)
+    for i in range(3):  # the translation entries
+        E = torch.zeros_like(T)
+        E[..., i, 3] = eps
+        with torch.no_grad():
+            dq = solve(T + E, collision=rc, world=w) - solve(T - E, collision=rc, world=w)
+        fd = (dq * v).sum() / (2 * eps)
+        assert abs(float(fd) - float(g[..., i, 3].sum())) <= 1e-5 * max(1.0, abs(float(fd))), (i, fd, g)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_optimize_collision_success_is_the_hard_check(dtype):
+    """A target whose flange sits inside an obstacle is never a success; a clear one is, and coal agrees."""
+    chain, rc = _robot(dtype)
+    check = _Coal(rc, with_box=False)
+    q_t, T = _clear_target(chain, rc, _world(dtype, with_box=False), 0.03, seed=13)
+    p = T[:, :3, 3]
+    inside = World(spheres=torch.cat((p, torch.full((1, 1), 0.04, dtype=dtype)), -1))
+    res = ik.optimize(chain, T, q_t, optimizer="gauss_newton", collision=rc, world=inside)
+    assert not res.success.any()
+    res = ik.optimize(chain, T, q_t + 0.02, optimizer="gauss_newton", collision=rc, margin=0.005)
+    assert res.success.all()
+    assert check_self(check, res.q[0].double().numpy()) >= 0.005 - 2e-6
+
+
+def test_benchmark_runs_small():
+    """benchmarks/bench_collision_ik.py at a tiny size: its rows, and the collision rows all clear."""
+    import argparse
+
+    from benchmarks import bench_collision_ik
+
+    rows = bench_collision_ik.run(argparse.Namespace(quick=True, targets=16, world="spheres", repeats=1))
+    assert [r["impl"] for r in rows] == ["ik.solve", "ik.solve collision", "ik.solve collision + refinement"]
+    for r in rows[1:]:
+        assert r["success"] >= 0.9 and r["collision_free"] == r["success"] and r["speed_ratio"] > 0
