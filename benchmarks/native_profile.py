@@ -69,15 +69,17 @@ def pose_flops(model: native.NativeModel, with_jacobian: bool) -> int:
     ints, reals = model.ints, model.reals[torch.float64]
     J = len(ints["parent"])
     blocks = lambda name, i: reals[name][12 * i:12 * i + 12].tolist()  # noqa: E731
+    prismatic = native._motion_codes["P"]  # the loaded library's code (the model was packed with it)
+    rotating = [int(m) != prismatic for m in ints["motion"]]  # R (and S) motions rotate the frame
     flops = 0
     for j in range(J):
         flops += _fixed_flops(blocks("pre", j)) if ints["has_pre"][j] else 0
         flops += _fixed_flops(blocks("post", j)) if ints["has_post"][j] else 0
-        flops += 2 + (_SINCOS + 18 if ints["revolute"][j] else 6)  # m q + b; the rotation of x, y or p += d z
+        flops += 2 + (_SINCOS + 18 if rotating[j] else 6)  # m q + b; the rotation of x, y or p += d z
     flops += sum(_fixed_flops(blocks("end", k)) for k in range(model.n_ends) if ints["has_end"][k])
     if with_jacobian:
         anc = ints["ancestor"].view(model.n_ends, J)
-        flops += sum(24 if ints["revolute"][j] else 6 for k in range(model.n_ends) for j in range(J)
+        flops += sum(24 if rotating[j] else 6 for k in range(model.n_ends) for j in range(J)
                      if anc[k, j])
     return flops
 
