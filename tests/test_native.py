@@ -263,6 +263,7 @@ def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
         return ref
 
     monkeypatch.setattr(lm._Run, "steps", both)
+    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # the scheduled torch loop
     res = ik.solve(chain, target, position_only=position_only, num_seeds=8, seed=0)
     assert len(rounds) >= 2 and bool(res.success.any())
     for fused, ref in rounds:
@@ -275,9 +276,10 @@ def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype):
+def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype, monkeypatch):
     from diffkin import ik
 
+    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # dk_lm in the torch loop
     chain = models.load("panda", dtype=dtype)
     q = chain.random_configuration((200,), generator=torch.Generator().manual_seed(9))
     with torch.no_grad():
@@ -298,11 +300,12 @@ def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype):
 
 @pytest.mark.parametrize("kind,position_only,batch", [("panda", False, 1), ("panda", False, 40),
                                                       ("ur5", False, 3), ("allegro", True, 5)])
-def test_rounds_run_ahead_give_the_torch_solve(kind, position_only, batch):
+def test_rounds_run_ahead_give_the_torch_solve(kind, position_only, batch, monkeypatch):
     """The fused path runs the rounds after which the schedule would only count in one call: the solve is
     the torch solve's (float64: the same iterations, seeds tried, success and solution)."""
     from diffkin import ik
 
+    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # dk_lm in the torch loop
     chain = _chain(kind, torch.float64)
     q = chain.random_configuration((batch,), generator=torch.Generator().manual_seed(10))
     with torch.no_grad():
@@ -324,7 +327,8 @@ def _args_like(fields):
 def test_the_library_speaks_this_modules_interface():
     native.check_abi(native._lib)  # the loaded library: version, size and every offset
     fields = list(native.Args._fields_)
-    with pytest.raises(native.AbiMismatch, match="version 1 .library. vs 2"):
+    v = native.ABI_VERSION
+    with pytest.raises(native.AbiMismatch, match=f"version {v} .library. vs {v + 1}"):
         native.check_abi(native._lib, version=native.ABI_VERSION + 1)
     with pytest.raises(native.AbiMismatch, match="size"):  # a field missing
         native.check_abi(native._lib, _args_like(fields[:-1]))
@@ -355,14 +359,15 @@ def test_a_mismatched_library_is_rebuilt_then_refused_with_one_warning(monkeypat
     """native.py speaking another version than the C file: the library is compiled, refused, compiled again
     once, refused; one warning, and the torch kernels serve the calls."""
     monkeypatch.setenv("DIFFKIN_CACHE_DIR", str(tmp_path))
-    monkeypatch.setattr(native, "ABI_VERSION", native.ABI_VERSION + 1)
+    v = native.ABI_VERSION
+    monkeypatch.setattr(native, "ABI_VERSION", v + 1)
     monkeypatch.setattr(native, "_lib", None)
     monkeypatch.setattr(native, "_tried", False)
     monkeypatch.setattr(native, "_OPTIONAL", native._OPTIONAL[:1])
     compiles = []
     real_compile = native._compile
     monkeypatch.setattr(native, "_compile", lambda flags: compiles.append(flags) or real_compile(flags))
-    with pytest.warns(RuntimeWarning, match="torch kernels serve every call.*version 1 .library. vs 2"):
+    with pytest.warns(RuntimeWarning, match=f"serve every call.*version {v} .library. vs {v + 1}"):
         assert not native.available()
     assert len(compiles) == 2  # the first load, then the one rebuild
     with warnings.catch_warnings():

@@ -22,6 +22,7 @@ from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _pose_error, _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
+from . import _native_solve
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from .implicit import attach_solve_gradients
@@ -274,6 +275,14 @@ def solve(
     if generator is None:
         generator = torch.Generator(device=device)
         generator.manual_seed(seed if seed is not None else int(torch.randint(2**62, ()).item()))
+    if _native_solve.applies(chain, T_target, progress):  # the whole solve in one C call (CPU, no autograd)
+        out = _native_solve.solve_batch(
+            chain, tg, batch, T_orig, seeds_user, cfg, generator, dtype, position_only=position_only,
+            tol=(position_tolerance, orientation_tolerance), num_seeds=num_seeds,
+            max_iterations=max_iterations, respect_limits=respect_limits)  # fmt: skip
+        if out is not None:  # gradients at the solution, as below
+            return dataclasses.replace(out, q=attach_solve_gradients(
+                chain, out.q, T_target, out.success, position_only, cfg.orientation_weight, cfg.damping))
     kernel = BatchLastKernel(chain if chain.dtype == dtype else copy.deepcopy(chain).to(dtype))
     jmap = JointMap(chain, dtype, device, respect_limits)
     n = chain.n_joints

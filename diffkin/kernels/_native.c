@@ -34,7 +34,7 @@
 
 #define W 16
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
-#define DK_ABI_VERSION 1 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
+#define DK_ABI_VERSION 2 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
 
 /* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
@@ -87,7 +87,30 @@
     X(double, margin, "dk_lm") \
     X(uint8_t *, conv, "dk_lm: [m] out") \
     X(void *, merit, "dk_lm: [m] reals out") \
-    X(void *, merit_prev, "dk_lm: [m] reals out")
+    X(void *, merit_prev, "dk_lm: [m] reals out") \
+    X(int64_t, n_seeds, "dk_solve: most seeds per target") \
+    X(int64_t, max_iterations, "dk_solve: most LM iterations per seed (iters: steps between stall checks)") \
+    X(int64_t, min_seed_iterations, "dk_solve: a seed younger than this is never stalled") \
+    X(double, stall_ratio, "dk_solve: stalled when the merit did not shrink by this factor over a check") \
+    X(int64_t, n_user, "dk_solve: S user seeds per target") \
+    X(const void *, user_u, "dk_solve: [N*S*n] reals") \
+    X(int64_t, n_lib, "dk_solve: L library configurations") \
+    X(int64_t, lib_ranks, "dk_solve: R nearest library poses tried per target") \
+    X(const void *, lib_u, "dk_solve: [L*n] reals") \
+    X(const void *, lib_pose, "dk_solve: [L*12K] reals: p, x, y, z of every end link (3K each)") \
+    X(double, feature_weight, "dk_solve: weight of the rotation columns in the nearest-pose distance") \
+    X(int64_t, n_pool, "dk_solve: P random draws") \
+    X(const void *, pool, "dk_solve: [P*n] uniform reals in [0, 1)") \
+    X(const void *, qlo, "dk_solve: [n] reals, the limits of the final check") \
+    X(const void *, qhi, "dk_solve: [n] reals") \
+    X(const uint8_t *, wrap, "dk_solve: [n] revolute variables, wrapped by 2 pi towards the centre") \
+    X(int64_t, clamp, "dk_solve: clamp into [qlo, qhi] and require it for success") \
+    X(void *, q_out, "dk_solve: [N*n] reals out") \
+    X(int64_t *, iters_out, "dk_solve: [N] out") \
+    X(int64_t *, seeds_out, "dk_solve: [N] out") \
+    X(void *, pos_err, "dk_solve: [N] reals out") \
+    X(void *, ori_err, "dk_solve: [N] reals out") \
+    X(uint8_t *, success, "dk_solve: [N] out")
 
 #define DK_DECLARE(type, name, what) type name;
 typedef struct dk_args { DK_ARGS_FIELDS(DK_DECLARE) } dk_args;
@@ -274,6 +297,19 @@ static int abi_ok(const dk_args *a) {
 int64_t dk_fk(const dk_args *a) {
     if (!abi_ok(a)) return DK_ABI_ERROR;
     return a->real_bytes == 8 ? dk_fk_f64(a) : dk_fk_f32(a);
+}
+
+/* The whole IK solve of dk_solve_f64 / dk_solve_f32 (_native_solve.c); returns 0, -1 when memory ran out,
+ * DK_ABI_ERROR for a struct of another layout. */
+int64_t dk_solve(const dk_args *a) {
+    if (!abi_ok(a)) return DK_ABI_ERROR;
+    return a->real_bytes == 8 ? dk_solve_f64(a) : dk_solve_f32(a);
+}
+
+/* The largest deviation from a rigid transform of N poses (4x4 row-major, real_bytes 8 or 4): max over
+ * |R^T R - I| entries and |bottom row - (0 0 0 1)|; NaN when an entry is not finite. */
+double dk_rigid_deviation(const void *T, int64_t N, int64_t real_bytes) {
+    return real_bytes == 8 ? rigid_deviation_f64((const double *)T, N) : rigid_deviation_f32((const float *)T, N);
 }
 
 /* The Levenberg-Marquardt rounds of dk_lm_f64 / dk_lm_f32 (see there); returns the number of rounds run, -1
@@ -794,6 +830,8 @@ static int64_t DK(dk_lm)(const dk_args *a) {
     free(pp.fix);
     return rounds;
 }
+
+#include "_native_solve.c"
 
 #undef real
 #endif
