@@ -25,7 +25,7 @@ import weakref
 import torch
 from torch import Tensor
 
-from ..kernels import native
+from ..kernels import native, single
 from ._kernel import JointMap
 from ._lm import LMConfig
 from .result import IKResult, final_errors
@@ -59,10 +59,25 @@ class _Prepared:
             self.lib_u = u.T.contiguous()  # (L, n)
             # (L, 12K): p, x, y, z of every end link, the layout of the targets' columns
             self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).contiguous()
-        self.L = L
+        self.L, self._configured = L, {}
         self.base = packed.call(dtype, jc=self.arrays[0], jh=self.arrays[1], bounded=self.arrays[2],
                                 wrap=self.arrays[3], qlo=lo, qhi=hi, clamp=self.clamp, n_lib=L,
                                 lib_u=self.lib_u, lib_pose=self.lib_pose)
+
+
+    def configured(self, cfg: LMConfig, position_only: bool, K: int) -> native.Args:
+        """:attr:`base` with the fields of ``cfg`` and the row weights set (cached per option set)."""
+        key = (cfg, position_only, K)
+        hit = self._configured.get(key)
+        if hit is None:
+            rot = [] if position_only else [math.sqrt(cfg.orientation_weight)] * 3
+            sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
+            hit = self._configured[key] = (sqrt_w, native._filled(
+                native.Args.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
+                damping2=cfg.damping**2, error_damping=cfg.error_damping, margin=cfg.margin,
+                min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
+                feature_weight=cfg.orientation_weight))
+        return hit[1]
 
 
 def prepared(chain, key, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
@@ -104,17 +119,12 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
     errs = torch.empty(2, N, dtype=dtype)
     counts = torch.empty(2, N, dtype=torch.int64)
     success = torch.empty(N, dtype=torch.bool)
-    K = len(cols[0]) // 3 if N else 1
-    rot = [] if cols[1] is None else [math.sqrt(cfg.orientation_weight)] * 3
-    sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=dtype)
     args = native._filled(
-        native.Args.from_buffer_copy(prep.base), n_targets=N, pd=cols[0], xd=cols[1], yd=cols[2], zd=cols[3],
-        sqrt_w=sqrt_w, iters=cfg.check_every, damping2=cfg.damping**2, error_damping=cfg.error_damping,
-        tol_p=tol[0], tol_o=tol[1], margin=cfg.margin, n_seeds=num_seeds, max_iterations=max_iterations,
-        min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio, n_user=S,
-        user_u=None if user_u is None else user_u, lib_ranks=R, feature_weight=cfg.orientation_weight,
-        n_pool=P, pool=pool, q_out=q, iters_out=counts[0], seeds_out=counts[1], pos_err=errs[0],
-        ori_err=errs[1], success=success, nthreads=threads or native.thread_count(64 * N))
+        native.Args.from_buffer_copy(prep.configured(cfg, cols[1] is None, len(cols[0]) // 3 if N else 1)),
+        n_targets=N, pd=cols[0], xd=cols[1], yd=cols[2], zd=cols[3], tol_p=tol[0], tol_o=tol[1],
+        n_seeds=num_seeds, max_iterations=max_iterations, n_user=S, user_u=user_u, lib_ranks=R, n_pool=P,
+        pool=pool, q_out=q, iters_out=counts[0], seeds_out=counts[1], pos_err=errs[0], ori_err=errs[1],
+        success=success, nthreads=threads or native.thread_count(64 * N))
     native.solve_call(args)
     return q, success, errs[0], errs[1], counts[0], counts[1]
 
@@ -159,3 +169,47 @@ def _solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator,
 
 
 __all__ = ["applies", "solve_batch", "run", "prepared"]
+
+
+_DEFAULT = LMConfig()
+_EXACT = {torch.float64: 64 * 2.0**-52, torch.float32: 64 * 2.0**-23}  # rotations exact to rounding
+
+
+def _plain_count(v) -> bool:
+    return type(v) is int and v >= 1
+
+
+def _plain_tol(v) -> bool:
+    return type(v) in (float, int) and 0 < v < math.inf
+
+
+def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, tol) -> IKResult | None:
+    """The lean front of :func:`diffkin.ik.solve` for ONE target pose ``T (4, 4)`` with default options
+    (no ``q0``, ``base``, ``config``, ``damping``, position-only or closed-form seeds): plain attribute
+    checks, the rigidity test in C, one ``dk_solve`` call. None when it does not apply (the general path
+    then serves the call, with its validation and errors)."""
+    if type(T) is not Tensor or T.shape != (4, 4) or T.dtype != chain.dtype or T.device.type != "cpu" \
+            or not T.is_contiguous() or not _plain_count(num_seeds) or not _plain_count(max_iterations) \
+            or not _plain_tol(tol[0]) or not _plain_tol(tol[1]) or not native.available() \
+            or (chain.dtype == torch.float32 and min(tol) < 1e-5) or not chain.single_end \
+            or (generator is not None and generator.device.type != "cpu") \
+            or (seed is not None and type(seed) is not int):
+        return None
+    if torch.is_grad_enabled() and (T.requires_grad or any(p.requires_grad for p in chain.parameters())):
+        return None  # gradients at the solution: the general path attaches them
+    if not native.rigid_deviation(T) <= _EXACT[T.dtype]:  # NaN included: the general path's error
+        return None
+    hit = single.entry(chain, T)
+    if hit is None:
+        return None
+    prep = hit.extra.get("solve")
+    if prep is None:
+        prep = hit.extra["solve"] = _Prepared(chain, hit.args, T.dtype, True, _DEFAULT.library_size)
+    if generator is None and seed is not None:
+        generator = torch.Generator().manual_seed(seed)
+    c = T[:3].T.contiguous()  # (4, 3): the x, y, z, p columns, each (3K, N) = (3, 1)
+    cols = (c[3], c[0], c[1], c[2])
+    q, ok, pe, oe, its, seeds = run(prep, cols, 1, _DEFAULT, generator, tol=tol, num_seeds=num_seeds,
+                                    max_iterations=max_iterations, user_u=None, threads=1)
+    return IKResult(q=q.view(prep.n), success=ok.view(()), position_error=pe.view(()),
+                    orientation_error=oe.view(()), iterations=its.view(()), seeds_tried=seeds.view(()))

@@ -255,6 +255,13 @@ def solve(
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
+    if q0 is None and base is None and config is None and damping is None and not (  # one pose: lean path
+            position_only or progress or seeds_from_closed_form or not respect_limits):
+        fast = _native_solve.solve_one(chain, T_target, generator, seed, num_seeds=num_seeds,
+                                       max_iterations=max_iterations,
+                                       tol=(position_tolerance, orientation_tolerance))
+        if fast is not None:
+            return fast
     _check_tolerances(position_tolerance, orientation_tolerance)
     num_seeds = check_count(num_seeds, "num_seeds")
     max_iterations = check_count(max_iterations, "max_iterations")
