@@ -22,7 +22,8 @@ import warnings
 import numpy as np
 import torch
 
-from benchmarks.bench_ik import PANDA_URDF, TOL_O, TOL_P, make_targets, verify
+from benchmarks import peers
+from benchmarks.bench_ik import TOL_O, TOL_P, make_targets, verify
 from benchmarks.common import print_table, torch_threads
 from diffkin import ik, models
 
@@ -51,16 +52,13 @@ def single_target(n: int) -> list[dict]:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            import roboticstoolbox as rtb
-
-            ets = rtb.Robot.URDF(str(PANDA_URDF)).ets(end="panda_link8")
+            peers.rtb_panda()
     except Exception as e:  # optional peer
         print(f"[single] Robotics Toolbox skipped: {e!r}")
         return rows
-    Tn = T.numpy()
-    us, sols = _median_us(lambda i: ets.ik_LM(Tn[i], ilimit=30, slimit=100, tol=5e-9, joint_limits=True)[0],
-                          range(n))
-    q = torch.from_numpy(np.array(sols, dtype=np.float64))
+    sols = [peers.rtb_ik_lm(T[i : i + 1].numpy()) for i in range(n)]  # its tuned settings, one pose a call
+    q = torch.from_numpy(np.concatenate([s.q for s in sols]))
+    us = statistics.median(s.seconds for s in sols) * 1e6
     rows.append({"case": "RTB ik_LM (C++), 1 target", "median_us": us, **verify(q, T)})
     return rows
 

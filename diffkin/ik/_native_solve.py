@@ -28,6 +28,7 @@ from torch import Tensor
 from ..kernels import native, single
 from ._kernel import JointMap
 from ._lm import LMConfig
+from .implicit import attach_solve_gradients, wants_gradients
 from .result import IKResult, final_errors
 
 _LIBRARY_SEED = 0
@@ -186,8 +187,9 @@ def _plain_tol(v) -> bool:
 def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, tol) -> IKResult | None:
     """The lean front of :func:`diffkin.ik.solve` for ONE target pose ``T (4, 4)`` with default options
     (no ``q0``, ``base``, ``config``, ``damping``, position-only or closed-form seeds): plain attribute
-    checks, the rigidity test in C, one ``dk_solve`` call. None when it does not apply (the general path
-    then serves the call, with its validation and errors)."""
+    checks, the rigidity test in C, one ``dk_solve`` call, then the implicit gradient attached when the
+    target or a chain parameter requires grad (as the general path). None when it does not apply (the
+    general path then serves the call, with its validation and errors)."""
     if type(T) is not Tensor or T.shape != (4, 4) or T.dtype != chain.dtype or T.device.type != "cpu" \
             or not T.is_contiguous() or not _plain_count(num_seeds) or not _plain_count(max_iterations) \
             or not _plain_tol(tol[0]) or not _plain_tol(tol[1]) or not native.available() \
@@ -195,11 +197,10 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
             or (generator is not None and generator.device.type != "cpu") \
             or (seed is not None and type(seed) is not int):
         return None
-    if torch.is_grad_enabled() and (T.requires_grad or any(p.requires_grad for p in chain.parameters())):
-        return None  # gradients at the solution: the general path attaches them
     if not native.rigid_deviation(T) <= _EXACT[T.dtype]:  # NaN included: the general path's error
         return None
-    hit = single.entry(chain, T)
+    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
+        hit = single.entry(chain, T)
     if hit is None:
         return None
     prep = hit.extra.get("solve")
@@ -211,5 +212,8 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
     cols = (c[3], c[0], c[1], c[2])
     q, ok, pe, oe, its, seeds = run(prep, cols, 1, _DEFAULT, generator, tol=tol, num_seeds=num_seeds,
                                     max_iterations=max_iterations, user_u=None, threads=1)
-    return IKResult(q=q.view(prep.n), success=ok.view(()), position_error=pe.view(()),
-                    orientation_error=oe.view(()), iterations=its.view(()), seeds_tried=seeds.view(()))
+    q, ok = q.view(prep.n), ok.view(())
+    if wants_gradients(chain, T):  # as the general path: the implicit-function gradient at the solution
+        q = attach_solve_gradients(chain, q, T, ok, False, _DEFAULT.orientation_weight, _DEFAULT.damping)
+    return IKResult(q=q, success=ok, position_error=pe.view(()), orientation_error=oe.view(()),
+                    iterations=its.view(()), seeds_tried=seeds.view(()))

@@ -653,6 +653,30 @@ static void DK(spd_solve)(real *A, real *b, int d) {
     }
 }
 
+/* The rotation-vector error theta r (kernels/pose_error.py's "rotvec") of lane l of the end frame E (12 x W
+ * lanes) against the target's rotation columns cols[a][c * stride] into eo[3]; returns theta:
+ * v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2, cos theta = (x_e.x_d + y_e.y_d + z_e.z_d - 1) / 2. */
+static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t stride, real *eo) {
+    real v[3] = {0, 0, 0}, tr = 0;
+    for (int a = 0; a < 3; a++) {
+        real de[3], ee[3];
+        for (int c = 0; c < 3; c++) {
+            de[c] = cols[a][c * stride];
+            ee[c] = E[(4 * c + a) * W + l];
+        }
+        v[0] += ee[1] * de[2] - ee[2] * de[1];
+        v[1] += ee[2] * de[0] - ee[0] * de[2];
+        v[2] += ee[0] * de[1] - ee[1] * de[0];
+        tr += ee[0] * de[0] + ee[1] * de[1] + ee[2] * de[2];
+    }
+    for (int c = 0; c < 3; c++) v[c] *= (real)0.5;
+    const real vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+    const real sth = (real)sqrt((double)(vv > DK_TINY ? vv : DK_TINY));
+    const real th = (real)atan2((double)sth, (double)((real)0.5 * (tr - 1)));
+    for (int c = 0; c < 3; c++) eo[c] = v[c] * (th / sth);
+    return th;
+}
+
 /* Up to `max_rounds` rounds of `iters` Levenberg-Marquardt steps (3.59) of diffkin.ik's solver on m rows,
  * batch last (u (n, m) is updated in place; u_eval gets the u of the last evaluation). Per row: q = c + h sin(u)
  * on bounded joints; e = [p_d - p_e; theta r] per end link (the rotation-vector error of kernels/pose_error.py),
@@ -736,26 +760,9 @@ static int64_t DK(dk_lm)(const dk_args *a) {
                             const real nk = (real)sqrt((double)sq);
                             pn = nk > pn ? nk : pn;
                             if (pos_only) continue;
-                            /* v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2, cos = (x_e.x_d + ... - 1) / 2 */
-                            real v[3] = {0, 0, 0}, tr = 0;
-                            const real *cols[3] = {xd, yd, zd};
-                            for (int a = 0; a < 3; a++) {
-                                real de[3], ee[3];
-                                for (int c = 0; c < 3; c++) {
-                                    de[c] = cols[a][(int64_t)(3 * k + c) * N + t];
-                                    ee[c] = E[(4 * c + a) * W + l];
-                                }
-                                v[0] += ee[1] * de[2] - ee[2] * de[1];
-                                v[1] += ee[2] * de[0] - ee[0] * de[2];
-                                v[2] += ee[0] * de[1] - ee[1] * de[0];
-                                tr += ee[0] * de[0] + ee[1] * de[1] + ee[2] * de[2];
-                            }
-                            for (int c = 0; c < 3; c++) v[c] *= (real)0.5;
-                            const real cth = (real)0.5 * (tr - 1);
-                            real vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-                            const real sth = (real)sqrt((double)(vv > DK_TINY ? vv : DK_TINY));
-                            const real th = (real)atan2((double)sth, (double)cth);
-                            for (int c = 0; c < 3; c++) ek[3 + c] = v[c] * (th / sth);
+                            const real *cols[3] = {xd + (int64_t)3 * k * N + t, yd + (int64_t)3 * k * N + t,
+                                                   zd + (int64_t)3 * k * N + t};
+                            const real th = DK(rotvec)(E, l, cols, N, ek + 3);
                             ang = th > ang ? th : ang;
                         }
                         const int cv = pn <= tp * margin && ang <= to * margin;

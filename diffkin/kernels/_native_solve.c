@@ -6,10 +6,11 @@
  * holds one (target, seed) row. After every LM step a converged row is harvested (its target is done and
  * every other row of it retired); every `iters` steps a row older than min_seed_iterations whose merit did
  * not shrink by stall_ratio, or one at max_iterations, is finished (the best finished seed of each target is
- * kept). A free lane takes, in this order: the next seed of its last target, the first seed of the chunk's
- * next target, the next seed of the chunk's active target with the fewest rows (idle lanes would cost the
- * same). A chunk's result depends only on its targets and the inputs, so the solve is the same for every
- * thread count and schedule.
+ * kept). A free lane takes, after each step, in this order: the next seed of its last target, a user
+ * seed not yet started of an open target (they run side by side, as in the torch loop), the first seed of
+ * the chunk's next target, the next seed of the open target with the fewest rows among those that ran a
+ * check interval (idle lanes would cost the same). A chunk's result depends only on its targets and the
+ * inputs, so the solve is the same for every thread count and schedule.
  *
  * Seed s of target t: s < S the user's seed (t, s); s < S + R the library configuration with the (s - S)-th
  * nearest pose (squared distance of positions plus feature_weight times that of the rotation columns); else
@@ -74,31 +75,18 @@ static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t 
     *ang = 0;
     for (int k = 0; k < S->K; k++) {
         const real *E = ends + (size_t)k * 12 * W;
-        real *ek = e + (S->pos_only ? 3 : 6) * k, sq = 0;
+        real *ek = e + (S->pos_only ? 3 : 6) * k, big = 0, sq = 0;
         for (int c = 0; c < 3; c++) {
             ek[c] = S->pd[(int64_t)(3 * k + c) * N + t] - E[(4 * c + 3) * W + l];
-            sq += ek[c] * ek[c];
+            big = fabs((double)ek[c]) > big ? (real)fabs((double)ek[c]) : big;
         }
-        const real nk = (real)sqrt((double)sq);
+        for (int c = 0; c < 3 && big > 0; c++) sq += (ek[c] / big) * (ek[c] / big); /* no overflow */
+        const real nk = big * (real)sqrt((double)sq);
         *pn = nk > *pn ? nk : *pn;
         if (S->pos_only) continue;
-        real v[3] = {0, 0, 0}, tr = 0; /* v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2 */
-        for (int a = 0; a < 3; a++) {
-            real de[3], ee[3];
-            for (int c = 0; c < 3; c++) {
-                de[c] = cols[a][(int64_t)(3 * k + c) * N + t];
-                ee[c] = E[(4 * c + a) * W + l];
-            }
-            v[0] += ee[1] * de[2] - ee[2] * de[1];
-            v[1] += ee[2] * de[0] - ee[0] * de[2];
-            v[2] += ee[0] * de[1] - ee[1] * de[0];
-            tr += ee[0] * de[0] + ee[1] * de[1] + ee[2] * de[2];
-        }
-        for (int c = 0; c < 3; c++) v[c] *= (real)0.5;
-        const real vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-        const real sth = (real)sqrt((double)(vv > DK_TINY ? vv : DK_TINY));
-        const real th = (real)atan2((double)sth, (double)((real)0.5 * (tr - 1)));
-        for (int c = 0; c < 3; c++) ek[3 + c] = v[c] * (th / sth);
+        const real *rc[3] = {cols[0] + (int64_t)3 * k * N + t, cols[1] + (int64_t)3 * k * N + t,
+                             cols[2] + (int64_t)3 * k * N + t};
+        const real th = DK(rotvec)(E, l, rc, N, ek + 3);
         *ang = th > *ang ? th : *ang;
     }
 }
@@ -199,8 +187,8 @@ static void DK(seed)(const DK(Solve) *S, int64_t t, int64_t s, const int32_t *nn
     }
 }
 
-typedef struct { /* the rows of one chunk: per lane (t < 0: free) and per target of the chunk */
-    int64_t t0, t1, next, t[W], it[W];
+typedef struct { /* the rows of one chunk: per lane (t < 0: free; prev: its last target) and per target */
+    int64_t t0, t1, next, t[W], it[W], prev[W];
     real last[W];
     int32_t *nn, *count; /* [CHUNK * R], [CHUNK] */
     uint8_t *done;       /* [CHUNK] */
@@ -224,16 +212,20 @@ static int DK(start)(const DK(Solve) *S, DK(Chunk) *c, int64_t t, real *ul, int 
 }
 
 /* Give a free lane l work: the next seed of its last target, a new target, or the next seed of the
- * active target with the fewest rows. */
+ * active target with the fewest rows among those that ran a check interval (as the torch loop's top-up,
+ * which follows a round: a target converging at its first evaluation has tried one seed). */
 static void DK(refill)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int64_t last) {
     c->t[l] = -1;
     if (DK(start)(S, c, last, ul, l)) return;
+    for (int64_t t = c->t0; t < c->next; t++) /* the user's seeds of an open target run side by side */
+        if (S->a->seeds_out[t] < S->S && DK(start)(S, c, t, ul, l)) return;
     while (c->next < c->t1)
         if (DK(start)(S, c, c->next++, ul, l)) return;
     int64_t pick = -1;
     for (int64_t t = c->t0; t < c->t1; t++) {
         const int64_t j = t - c->t0;
         if (c->count[j] > 0 && !c->done[j] && S->a->seeds_out[t] < S->nseeds &&
+            S->a->iters_out[t] >= S->every &&
             (pick < 0 || c->count[j] < c->count[pick - c->t0]))
             pick = t;
     }
@@ -241,7 +233,7 @@ static void DK(refill)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int64_
 }
 
 /* Lane l's row ends: it converged (keep u, retire the target's other rows) or was finished with merit
- * (keep u if the target's best so far); then the lane is refilled. */
+ * (keep u if the target's best so far); the lane is refilled after the step. */
 static void DK(finish)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int conv, real merit) {
     const int64_t t = c->t[l], j = t - c->t0;
     real *best = (real *)S->a->q_out + t * S->n;
@@ -255,7 +247,8 @@ static void DK(finish)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int co
         for (int o = 0; o < W; o++)
             if (o != l && c->t[o] == t) { c->count[j]--; c->t[o] = -1; }
     }
-    DK(refill)(S, c, ul, l, t);
+    c->t[l] = -1;
+    c->prev[l] = t;
 }
 
 /* One LM step on the chunk's lanes, with harvest and stall checks. */
@@ -286,8 +279,11 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
         DK(lane_delta)(S, sc->Jb, l, w);
         DK(integrate)(S->n, ul, l, w->delta);
     }
-    for (int l = 0; l < W; l++) /* lanes freed by another row's convergence */
-        if (c->t[l] < 0) DK(refill)(S, c, ul, l, -1);
+    for (int l = 0; l < W; l++) /* after every row's checks: only targets still open take lanes */
+        if (c->t[l] < 0) {
+            DK(refill)(S, c, ul, l, c->prev[l]);
+            c->prev[l] = -1;
+        }
 }
 
 /* The final q of targets t0 .. t1 - 1 (their best u in q_out, replaced) and its exact check. */
@@ -329,7 +325,10 @@ static void DK(solve_chunk)(const DK(Solve) *S, DK(Scratch) *sc, real *ul, DK(LM
     memset(c->count, 0, sizeof(int32_t) * CHUNK);
     memset(c->done, 0, CHUNK);
     memset(ul, 0, sizeof(real) * (size_t)S->n * W);
-    for (int l = 0; l < W; l++) DK(refill)(S, c, ul, l, -1);
+    for (int l = 0; l < W; l++) {
+        c->prev[l] = -1;
+        DK(refill)(S, c, ul, l, -1);
+    }
     for (;;) {
         int any = 0;
         for (int l = 0; l < W; l++) any |= c->t[l] >= 0;
