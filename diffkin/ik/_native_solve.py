@@ -20,7 +20,6 @@ a chunk's hard targets extra parallel seeds as soon as lanes fall idle (the torc
 from __future__ import annotations
 
 import math
-import weakref
 
 import torch
 from torch import Tensor
@@ -28,12 +27,11 @@ from torch import Tensor
 from ..kernels import native, single
 from ._kernel import JointMap
 from ._lm import LMConfig
-from .implicit import attach_solve_gradients, wants_gradients
+from .implicit import attach_solve_gradients
 from .result import IKResult, final_errors
 
 _LIBRARY_SEED = 0
 _POOL = 4096
-_cache: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # chain -> (key, _Prepared)
 
 
 class _Prepared:
@@ -81,18 +79,18 @@ class _Prepared:
         return hit[1]
 
 
-def prepared(chain, key, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
-    """The cached :class:`_Prepared` of ``chain`` (remade when its :meth:`_state_key` or the options
-    change); None when the fused kernel cannot serve it."""
-    full = (key, dtype, respect_limits, L)
-    hit = _cache.get(chain)
-    if hit is not None and hit[0] == full:
-        return hit[1]
-    packed = chain._native_model(chain.q_limits if chain.q_limits is not None else chain.revolute_mask)
-    if packed is None:
+def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
+    """The :class:`_Prepared` of ``chain`` for these options, kept in its lean-path cache entry
+    (:func:`diffkin.kernels.single.entry`: remade when a parameter or buffer changes); None when the fused
+    kernel cannot serve it."""
+    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
+        hit = single.entry(chain, x)
+    if hit is None:
         return None
-    prep = _Prepared(chain, packed, dtype, respect_limits, L)
-    _cache[chain] = (full, prep)
+    key = ("solve", dtype, respect_limits, L)
+    prep = hit.extra.get(key)
+    if prep is None:
+        prep = hit.extra[key] = _Prepared(chain, hit.args, dtype, respect_limits, L)
     return prep
 
 
@@ -142,8 +140,7 @@ def solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator, 
 
 def _solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator, dtype, *, tol, num_seeds,
                  max_iterations, respect_limits, position_only) -> IKResult | None:
-    key = chain._state_key()
-    prep = None if key is None else prepared(chain, key, dtype, respect_limits, max(cfg.library_size, 0))
+    prep = prepared(chain, tg.pd, dtype, respect_limits, max(cfg.library_size, 0))
     if prep is None:
         return None
     N, n = math.prod(batch), chain.n_joints
@@ -199,13 +196,9 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
         return None
     if not native.rigid_deviation(T) <= _EXACT[T.dtype]:  # NaN included: the general path's error
         return None
-    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
-        hit = single.entry(chain, T)
-    if hit is None:
-        return None
-    prep = hit.extra.get("solve")
+    prep = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
     if prep is None:
-        prep = hit.extra["solve"] = _Prepared(chain, hit.args, T.dtype, True, _DEFAULT.library_size)
+        return None
     if generator is None and seed is not None:
         generator = torch.Generator().manual_seed(seed)
     c = T[:3].T.contiguous()  # (4, 3): the x, y, z, p columns, each (3K, N) = (3, 1)
@@ -213,7 +206,9 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
     q, ok, pe, oe, its, seeds = run(prep, cols, 1, _DEFAULT, generator, tol=tol, num_seeds=num_seeds,
                                     max_iterations=max_iterations, user_u=None, threads=1)
     q, ok = q.view(prep.n), ok.view(())
-    if wants_gradients(chain, T):  # as the general path: the implicit-function gradient at the solution
+    if torch.is_grad_enabled() and (T.requires_grad or any(  # wants_gradients, without the module walk
+            p is not None and p.requires_grad for p in chain._parameters.values())):
+        # as the general path: the implicit-function gradient at the solution
         q = attach_solve_gradients(chain, q, T, ok, False, _DEFAULT.orientation_weight, _DEFAULT.damping)
     return IKResult(q=q, success=ok, position_error=pe.view(()), orientation_error=oe.view(()),
                     iterations=its.view(()), seeds_tried=seeds.view(()))

@@ -225,7 +225,7 @@ static void DK(refill)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int64_
     for (int64_t t = c->t0; t < c->t1; t++) {
         const int64_t j = t - c->t0;
         if (c->count[j] > 0 && !c->done[j] && S->a->seeds_out[t] < S->nseeds &&
-            S->a->iters_out[t] >= S->every &&
+            S->a->iters_out[t] >= S->minit &&
             (pick < 0 || c->count[j] < c->count[pick - c->t0]))
             pick = t;
     }
