@@ -28,6 +28,14 @@ def _targets(chain, n: int, seed: int, unreachable: int = 0):
     return q, T
 
 
+def _both(chain, target, **kw):
+    """(the C solve, the torch solve) of the same call, without autograd."""
+    with torch.no_grad():
+        fused = ik.solve(chain, target, **kw)
+        with native.disabled():
+            return fused, ik.solve(chain, target, **kw)
+
+
 def _check_honest(chain, res, T):
     """Every success flag is true of an independent FK of q, in the limits; the reported errors are it."""
     with torch.no_grad(), native.disabled():
@@ -48,10 +56,7 @@ def test_the_c_solve_agrees_with_the_torch_solve(dtype):
     the tolerances, solutions within the limits, both checked by an independent FK."""
     chain = models.load("panda", dtype=dtype)
     _, T = _targets(chain, 64, seed=5, unreachable=4)
-    with torch.no_grad():
-        fused = ik.solve(chain, T, seed=0)
-        with native.disabled():
-            ref = ik.solve(chain, T, seed=0)
+    fused, ref = _both(chain, T, seed=0)
     assert torch.equal(fused.success, ref.success)
     assert not bool(fused.success[:4].any()) and bool(fused.success[4:].all())
     _check_honest(chain, fused, T)
@@ -62,13 +67,8 @@ def test_the_c_solve_agrees_with_the_torch_solve(dtype):
                                                 ("yumi_mimic", False)])
 def test_trees_mimic_and_position_only_agree(kind, position_only):
     chain = _chain(kind, torch.float64)
-    q = chain.random_configuration((20,), generator=torch.Generator().manual_seed(6))
-    with torch.no_grad():
-        T = chain.forward_kinematics(q)
-        target = T[..., :3, 3] if position_only else T
-        fused = ik.solve(chain, target, position_only=position_only, seed=1)
-        with native.disabled():
-            ref = ik.solve(chain, target, position_only=position_only, seed=1)
+    _, T = _targets(chain, 20, seed=6)
+    fused, ref = _both(chain, T[..., :3, 3] if position_only else T, position_only=position_only, seed=1)
     assert bool(ref.success.all()) and torch.equal(fused.success, ref.success)
     with torch.no_grad():
         Te = chain.forward_kinematics(fused.q)
