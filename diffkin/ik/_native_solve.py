@@ -104,28 +104,27 @@ def applies(chain, T_target: Tensor, progress: bool) -> bool:
 
 
 def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, num_seeds: int,
-        max_iterations: int, user_u: Tensor | None, threads: int | None = None):
-    """One ``dk_solve`` call: ``cols`` the targets' ``(pd, xd, yd, zd)`` columns ``(3K, N)`` (xd None:
-    position only) in the compute dtype; ``user_u (N, S, n)`` the user's seeds in u. Returns ``(q (N, n),
-    success (N,), position error (N,), orientation error (N,), iterations (N,), seeds tried (N,))``, q and
-    the errors in the compute dtype."""
+        max_iterations: int, user_u: Tensor | None, threads: int | None = None, K: int = 1, outs=None):
+    """One ``dk_solve`` call: ``cols`` the targets' ``(pd, xd, yd, zd)`` columns ``(3K, N)`` (tensors or
+    addresses; xd None: position only) in the compute dtype; ``user_u (N, S, n)`` the user's seeds in u.
+    Returns ``outs`` (default new tensors): ``(q (N, n), success (N,), position error (N,), orientation
+    error (N,), iterations (N,), seeds tried (N,))``, q and the errors in the compute dtype."""
     dtype, n = prep.dtype, prep.n
     S = 0 if user_u is None else user_u.shape[1]
     R = min(cfg.library_ranks, prep.L) if prep.L else 0
     P = min(N * num_seeds, max(num_seeds, _POOL)) if num_seeds > S + R else 0
     pool = torch.rand(P * n, generator=generator, dtype=dtype) if P else None
-    q = torch.empty(N, n, dtype=dtype)
-    errs = torch.empty(2, N, dtype=dtype)
-    counts = torch.empty(2, N, dtype=torch.int64)
-    success = torch.empty(N, dtype=torch.bool)
+    if outs is None:
+        errs, counts = torch.empty(2, N, dtype=dtype), torch.empty(2, N, dtype=torch.int64)
+        outs = (torch.empty(N, n, dtype=dtype), torch.empty(N, dtype=torch.bool), *errs, *counts)
     args = native._filled(
-        native.Args.from_buffer_copy(prep.configured(cfg, cols[1] is None, len(cols[0]) // 3 if N else 1)),
+        native.Args.from_buffer_copy(prep.configured(cfg, cols[1] is None, K)),
         n_targets=N, pd=cols[0], xd=cols[1], yd=cols[2], zd=cols[3], tol_p=tol[0], tol_o=tol[1],
         n_seeds=num_seeds, max_iterations=max_iterations, n_user=S, user_u=user_u, lib_ranks=R, n_pool=P,
-        pool=pool, q_out=q, iters_out=counts[0], seeds_out=counts[1], pos_err=errs[0], ori_err=errs[1],
-        success=success, nthreads=threads or native.thread_count(64 * N))
+        pool=pool, q_out=outs[0], success=outs[1], pos_err=outs[2], ori_err=outs[3], iters_out=outs[4],
+        seeds_out=outs[5], nthreads=threads or native.thread_count(64 * N))
     native.solve_call(args)
-    return q, success, errs[0], errs[1], counts[0], counts[1]
+    return outs
 
 
 def solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator, dtype, *, tol, num_seeds,
@@ -151,7 +150,7 @@ def _solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator,
         user_u = prep.jmap.u_of_q(flat).T.reshape(N, S, n).contiguous()
     cols = tuple(None if t is None else t.contiguous() for t in (tg.pd, tg.xd, tg.yd, tg.zd))
     q, ok, pe, oe, its, seeds = run(prep, cols, N, cfg, generator, tol=tol, num_seeds=num_seeds,
-                                    max_iterations=max_iterations, user_u=user_u)
+                                    max_iterations=max_iterations, user_u=user_u, K=chain.n_ends)
     q = q.to(chain.dtype).reshape(*batch, n)
     if dtype != chain.dtype or (position_only and T_orig.shape[-1] == 4):
         # the final check in the chain's dtype (and the orientation error reported for pose targets)
@@ -201,14 +200,17 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
         return None
     if generator is None and seed is not None:
         generator = torch.Generator().manual_seed(seed)
-    c = T[:3].T.contiguous()  # (4, 3): the x, y, z, p columns, each (3K, N) = (3, 1)
-    cols = (c[3], c[0], c[1], c[2])
-    q, ok, pe, oe, its, seeds = run(prep, cols, 1, _DEFAULT, generator, tol=tol, num_seeds=num_seeds,
-                                    max_iterations=max_iterations, user_u=None, threads=1)
-    q, ok = q.view(prep.n), ok.view(())
+    c = T[:3].T.contiguous()  # (4, 3): the x, y, z, p columns, each (3K, N) = (3, 1), by address
+    a, size = c.data_ptr(), c.element_size()
+    empty = torch.empty
+    outs = (empty(prep.n, dtype=T.dtype), empty((), dtype=torch.bool), empty((), dtype=T.dtype),
+            empty((), dtype=T.dtype), empty((), dtype=torch.int64), empty((), dtype=torch.int64))
+    q, ok, pe, oe, its, seeds = run(prep, (a + 9 * size, a, a + 3 * size, a + 6 * size), 1, _DEFAULT,
+                                    generator, tol=tol, num_seeds=num_seeds, max_iterations=max_iterations,
+                                    user_u=None, threads=1, outs=outs)
     if torch.is_grad_enabled() and (T.requires_grad or any(  # wants_gradients, without the module walk
             p is not None and p.requires_grad for p in chain._parameters.values())):
         # as the general path: the implicit-function gradient at the solution
         q = attach_solve_gradients(chain, q, T, ok, False, _DEFAULT.orientation_weight, _DEFAULT.damping)
-    return IKResult(q=q, success=ok, position_error=pe.view(()), orientation_error=oe.view(()),
-                    iterations=its.view(()), seeds_tried=seeds.view(()))
+    return IKResult(q=q, success=ok, position_error=pe, orientation_error=oe, iterations=its,
+                    seeds_tried=seeds)
