@@ -54,7 +54,8 @@ def entry(chain, x: Tensor) -> Entry | None:
     ids = list(map(id, ts))
     versions = [None if t is None else t._version for t in ts]
     if hit is None or hit.ids != ids or hit.versions != versions:
-        packed = chain._native_model(x) if chain._state_key() is not None else None
+        cpu = chain.device.type == "cpu"  # a chain elsewhere: the general path's device error
+        packed = chain._native_model(x) if cpu and chain._state_key() is not None else None
         if packed is None:
             return None
         hit = Entry(ids, versions, ts, packed)  # ts: the ids stay those of live objects
