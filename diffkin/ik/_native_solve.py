@@ -4,8 +4,9 @@ It serves CPU solves without autograd on chains the fused kernel supports (1-DOF
 ``progress`` and other chains keep the torch loop of :mod:`._lm`. Both run the same iteration (the LM step
 (3.59) with the joint limits as q = c + h sin u, harvest, stall checks, re-seeding), so they agree to the
 documented tolerance but not bit for bit: the C solve fills W = 16 lanes per chunk of 32 targets and gives
-a chunk's hard targets extra parallel seeds as soon as lanes fall idle (the torch loop only below
-``min_rows`` rows), and its seeds follow one documented rule:
+a chunk's open targets extra parallel seeds when lanes fall idle, once they have run a check interval
+(``min_seed_iterations`` in a chunk of one target; the torch loop: below ``min_rows`` rows), and its
+seeds follow one documented rule:
 
 * the user's seeds first, then the poses of a **fixed pose library** nearest to the target (the
   ``library_size`` configurations drawn once per chain state from a generator seeded with 0, so that a

@@ -9,8 +9,9 @@
  * kept). A free lane takes, after each step, in this order: the next seed of its last target, a user
  * seed not yet started of an open target (they run side by side, as in the torch loop), the first seed of
  * the chunk's next target, the next seed of the open target with the fewest rows among those that ran a
- * check interval (idle lanes would cost the same). A chunk's result depends only on its targets and the
- * inputs, so the solve is the same for every thread count and schedule.
+ * check interval (min_seed_iterations in a chunk of one target: an easy single target runs on one lane,
+ * whose step costs a third of sixteen). A chunk's result depends only on its targets and
+ * the inputs, so the solve is the same for every thread count and schedule.
  *
  * Seed s of target t: s < S the user's seed (t, s); s < S + R the library configuration with the (s - S)-th
  * nearest pose (squared distance of positions plus feature_weight times that of the rotation columns); else
@@ -211,9 +212,10 @@ static int DK(start)(const DK(Solve) *S, DK(Chunk) *c, int64_t t, real *ul, int 
     return 1;
 }
 
-/* Give a free lane l work: the next seed of its last target, a new target, or the next seed of the
- * active target with the fewest rows among those that ran a check interval (as the torch loop's top-up,
- * which follows a round: a target converging at its first evaluation has tried one seed). */
+/* Give a free lane l work: the next seed of its last target, a user seed not yet started, a new target,
+ * or the next seed of the open target with the fewest rows among those that ran a check interval (as the
+ * torch loop's top-up, which follows a round: a target converging at its first evaluation has tried one
+ * seed), min_seed_iterations when the chunk holds one target. */
 static void DK(refill)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int64_t last) {
     c->t[l] = -1;
     if (DK(start)(S, c, last, ul, l)) return;
@@ -225,7 +227,7 @@ static void DK(refill)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int64_
     for (int64_t t = c->t0; t < c->t1; t++) {
         const int64_t j = t - c->t0;
         if (c->count[j] > 0 && !c->done[j] && S->a->seeds_out[t] < S->nseeds &&
-            S->a->iters_out[t] >= S->minit &&
+            S->a->iters_out[t] >= (c->t1 - c->t0 > 1 ? S->every : S->minit) &&
             (pick < 0 || c->count[j] < c->count[pick - c->t0]))
             pick = t;
     }
