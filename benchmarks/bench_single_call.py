@@ -6,7 +6,7 @@
   (``requires_grad_(False)``: the lean path) and the default (parameters requiring grad: the C solve plus
   the implicit-gradient attachment);
 * batch-1 FK and FK + Jacobian (the lean path, ``torch.no_grad()``), median per call;
-* batched ``ik.solve`` of N Panda targets on 2 threads: the C solve (``dk_solve``) against the scheduled
+* batched ``ik.solve`` of N Panda targets on 1 and 2 threads: the C solve (``dk_solve``) against the scheduled
   torch loop with the fused LM steps (``dk_lm``, what ``main`` ran before), interleaved repeats.
 
     python -m benchmarks.bench_single_call [--targets 200] [--batch 10000] [--repeats 3]
@@ -76,7 +76,7 @@ def batch_one_kinematics(n: int = 2000) -> list[dict]:
     return rows
 
 
-def batched(N: int, repeats: int) -> list[dict]:
+def batched(N: int, repeats: int, threads: int) -> list[dict]:
     from diffkin.ik import _native_solve
 
     _, T = make_targets(N, seed=3)
@@ -85,7 +85,7 @@ def batched(N: int, repeats: int) -> list[dict]:
     times = {"C solve (dk_solve)": [], "torch loop + dk_lm (main)": []}
     checks = {}
     real = _native_solve.applies
-    with torch_threads(2):
+    with torch_threads(threads):
         for rep in range(repeats):  # interleaved: both see the same machine load
             for name in times:
                 _native_solve.applies = real if name.startswith("C") else (lambda *a: False)
@@ -99,7 +99,7 @@ def batched(N: int, repeats: int) -> list[dict]:
     rows = []
     for name, ts in times.items():
         s = statistics.median(ts)
-        rows.append({"case": f"ik.solve {N} targets, 2 threads, {name}", "median_us": s * 1e6,
+        rows.append({"case": f"ik.solve {N} targets, {threads} thread(s), {name}", "median_us": s * 1e6,
                      "solves_per_s": N / s, **checks[name]})
     rows[0]["ratio_vs_main"] = rows[1]["median_us"] / rows[0]["median_us"]
     return rows
@@ -114,7 +114,7 @@ def main(argv=None) -> int:
     print(f"tolerances {TOL_P} m / {TOL_O} rad, float64, Panda")
     with torch_threads(1):
         rows = single_target(a.targets) + batch_one_kinematics()
-    rows += batched(a.batch, a.repeats)
+    rows += batched(a.batch, a.repeats, 1) + batched(a.batch, a.repeats, 2)
     print_table(rows, "single calls and batched IK (medians; one run, same machine load)")
     return 0
 

@@ -78,7 +78,7 @@ def test_trees_mimic_and_position_only_agree(kind, position_only):
 
 def test_the_same_generator_gives_the_same_answers_for_every_thread_count(monkeypatch):
     chain = models.load("panda", dtype=torch.float64)
-    _, T = _targets(chain, 80, seed=7, unreachable=2)  # 3 chunks of 32 targets
+    _, T = _targets(chain, 300, seed=7, unreachable=2)  # 3 chunks of 128 targets
     with torch.no_grad():
         monkeypatch.setattr(native, "thread_count", lambda *a, **k: 1)
         a = ik.solve(chain, T, generator=torch.Generator().manual_seed(3), num_seeds=8)

@@ -3,7 +3,7 @@
 It serves CPU solves without autograd on chains the fused kernel supports (1-DOF joints); CUDA, autograd,
 ``progress`` and other chains keep the torch loop of :mod:`._lm`. Both run the same iteration (the LM step
 (3.59) with the joint limits as q = c + h sin u, harvest, stall checks, re-seeding), so they agree to the
-documented tolerance but not bit for bit: the C solve fills W = 16 lanes per chunk of 32 targets and gives
+documented tolerance but not bit for bit: the C solve fills W = 16 lanes per chunk of 128 targets and gives
 a chunk's open targets extra parallel seeds when lanes fall idle, once they have run a check interval
 (``min_seed_iterations`` in a chunk of one target; the torch loop: below ``min_rows`` rows), and its
 seeds follow one documented rule:

@@ -24,8 +24,9 @@
  */
 #ifndef DK_SOLVE_ONCE_TYPES
 #define DK_SOLVE_ONCE_TYPES
-#define CHUNK 32 /* targets per chunk: a fixed number, so the answers do not depend on the thread count */
+#define CHUNK 128 /* targets per chunk: a fixed number, so the answers do not depend on the thread count */
 #define MAX_RANKS 64
+#define MAX_ENDS 64 /* end links the nearest-pose search takes (more: no library seeds) */
 #endif
 
 /* q and dq/du of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints, else q = u. */
@@ -145,16 +146,17 @@ static void DK(lane_delta)(const DK(Solve) *S, const real *Jb, int l, DK(LMWork)
 /* The R library indices of the poses nearest target t (nearest first) into nn. */
 static void DK(nearest)(const DK(Solve) *S, int64_t t, int32_t *nn) {
     const int K3 = 3 * S->K, F = S->pos_only ? K3 : 4 * K3;
-    real best[MAX_RANKS];
+    real best[MAX_RANKS], ft[12 * MAX_ENDS], wt[12 * MAX_ENDS];
     const real *tcol[4] = {S->pd, S->xd, S->yd, S->zd};
     int R = (int)S->R;
+    for (int c = 0; c < F; c++) { /* the target's features, once: the loop below is a plain sum */
+        ft[c] = tcol[c / K3][(int64_t)(c % K3) * S->N + t];
+        wt[c] = c < K3 ? 1 : S->w2;
+    }
     for (int64_t j = 0; j < S->L; j++) {
         const real *f = S->lib_pose + (size_t)j * 4 * K3;
         real dist = 0;
-        for (int c = 0; c < F; c++) {
-            const real dv = tcol[c / K3][(int64_t)(c % K3) * S->N + t] - f[c];
-            dist += (c < K3 ? 1 : S->w2) * dv * dv;
-        }
+        for (int c = 0; c < F; c++) dist += wt[c] * (ft[c] - f[c]) * (ft[c] - f[c]);
         int at = (int)(j < R ? j : R); /* insertion into the sorted R best */
         if (at == R && !(dist < best[R - 1])) continue;
         if (at == R) at = R - 1;
@@ -352,6 +354,7 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->N = a->n_targets, S->S = a->n_user, S->L = a->n_lib, S->P = a->n_pool;
     S->R = a->lib_ranks < a->n_lib ? a->lib_ranks : a->n_lib;
     S->R = S->R < MAX_RANKS ? S->R : MAX_RANKS;
+    if (S->K > MAX_ENDS) S->R = 0;
     S->nseeds = a->n_seeds, S->maxit = a->max_iterations, S->minit = a->min_seed_iterations;
     S->every = a->iters > 0 ? a->iters : 1;
     S->tp = (real)a->tol_p, S->to = (real)a->tol_o, S->margin = (real)a->margin;
