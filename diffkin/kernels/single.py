@@ -33,10 +33,12 @@ class Entry:
     """A chain's cached call state: the tensors and versions it was validated at, the packed Args per dtype
     and ``extra`` (per-chain state of other lean callers, e.g. the IK solve's, dropped with the entry)."""
 
-    __slots__ = ("ids", "versions", "tensors", "args", "extra")
+    __slots__ = ("ids", "versions", "tensors", "args", "extra", "dtype", "n", "shapes")
 
-    def __init__(self, ids, versions, tensors, args):
+    def __init__(self, chain, ids, versions, tensors, args):
         self.ids, self.versions, self.tensors, self.args, self.extra = ids, versions, tensors, args, {}
+        self.dtype, self.n, K = chain.dtype, chain.n_joints, chain.n_ends  # read once: properties cost µs
+        self.shapes = ((4, 4), (6, self.n)) if chain.single_end else ((K, 4, 4), (K, 6, self.n))
 
 
 def entry(chain, x: Tensor) -> Entry | None:
@@ -58,7 +60,7 @@ def entry(chain, x: Tensor) -> Entry | None:
         packed = chain._native_model(x) if cpu and chain._state_key() is not None else None
         if packed is None:
             return None
-        hit = Entry(ids, versions, ts, packed)  # ts: the ids stay those of live objects
+        hit = Entry(chain, ids, versions, ts, packed)  # ts: the ids stay those of live objects
         _cache[chain] = hit
     return hit
 
@@ -67,18 +69,15 @@ def fk(chain, q, jacobian: bool = False):
     """``T (4, 4)`` (``(K, 4, 4)`` for K end links), or ``(T, J (6, n) / (K, 6, n))`` with ``jacobian``, of
     one configuration ``q (n,)``; None when the lean path does not apply (the caller's general path then
     serves the call)."""
-    if type(q) is not Tensor or q.ndim != 1 or q.dtype != chain.dtype or q.device.type != "cpu" \
-            or q.shape[0] != chain.n_joints or (q.requires_grad and torch.is_grad_enabled()) \
-            or not q.is_contiguous() or not native.available():
+    if type(q) is not Tensor or q.ndim != 1 or q.device.type != "cpu" or not q.is_contiguous() \
+            or (q.requires_grad and torch.is_grad_enabled()) or not native.available():
         return None
     hit = entry(chain, q)
-    if hit is None:
+    if hit is None or q.dtype != hit.dtype or q.shape[0] != hit.n:
         return None
-    base = hit.args.args[q.dtype]
-    K, n = base.K, base.n
-    T = torch.empty((4, 4) if chain.single_end else (K, 4, 4), dtype=q.dtype)
-    J = torch.empty((6, n) if chain.single_end else (K, 6, n), dtype=q.dtype) if jacobian else None
-    args = native.Args.from_buffer_copy(base)
+    T = torch.empty(hit.shapes[0], dtype=q.dtype)
+    J = torch.empty(hit.shapes[1], dtype=q.dtype) if jacobian else None
+    args = native.Args.from_buffer_copy(hit.args.args[q.dtype])
     args.batch, args.nthreads, args.q, args.T = 1, 1, q.data_ptr(), T.data_ptr()
     args.jac = J.data_ptr() if jacobian else None
     if native._lib.dk_fk(ctypes.byref(args)) != 0:  # non-finite q (or a failure): the general path's error
