@@ -37,7 +37,7 @@ from torch import Tensor, nn
 
 from ._deprecation import deprecated_alias
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
-from .kernels import native
+from .kernels import native, single
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.configuration import ConfigurationSpace
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
@@ -473,6 +473,9 @@ class KinematicChain(nn.Module):
         Returns:
             ``(..., 4, 4)`` for a chain with one end link, ``(..., K, 4, 4)`` for K end links.
         """
+        if base is None and not all_frames and self._compiled_fk is None:  # one q (n,): kernels/single.py
+            if (T := single.fk(self, q)) is not None:
+                return T
         if base is not None:
             T = self.forward_kinematics(q, all_frames, check)
             return self._in_world(T, self._row_base(base, check), all_frames or not self._single_end)
@@ -557,6 +560,8 @@ class KinematicChain(nn.Module):
         the batch-last path, written straight into the outputs: every value is computed as for the whole
         batch (all operations are per configuration), but the frames and rows stay in cache.
         """
+        if base is None and (TJ := single.fk(self, q, jacobian=True)) is not None:  # kernels/single.py
+            return TJ
         if base is not None:
             T, J = self._fk_jacobian(q, check)
             B = self._row_base(base, check)

@@ -263,6 +263,7 @@ def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
         return ref
 
     monkeypatch.setattr(lm._Run, "steps", both)
+    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # the scheduled torch loop
     res = ik.solve(chain, target, position_only=position_only, num_seeds=8, seed=0)
     assert len(rounds) >= 2 and bool(res.success.any())
     for fused, ref in rounds:
@@ -275,9 +276,10 @@ def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype):
+def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype, monkeypatch):
     from diffkin import ik
 
+    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # dk_lm in the torch loop
     chain = models.load("panda", dtype=dtype)
     q = chain.random_configuration((200,), generator=torch.Generator().manual_seed(9))
     with torch.no_grad():
@@ -298,11 +300,12 @@ def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype):
 
 @pytest.mark.parametrize("kind,position_only,batch", [("panda", False, 1), ("panda", False, 40),
                                                       ("ur5", False, 3), ("allegro", True, 5)])
-def test_rounds_run_ahead_give_the_torch_solve(kind, position_only, batch):
+def test_rounds_run_ahead_give_the_torch_solve(kind, position_only, batch, monkeypatch):
     """The fused path runs the rounds after which the schedule would only count in one call: the solve is
     the torch solve's (float64: the same iterations, seeds tried, success and solution)."""
     from diffkin import ik
 
+    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # dk_lm in the torch loop
     chain = _chain(kind, torch.float64)
     q = chain.random_configuration((batch,), generator=torch.Generator().manual_seed(10))
     with torch.no_grad():

@@ -15,6 +15,7 @@ import torch
 
 from diffkin.errors import NonFiniteError
 from diffkin.kernels import native
+from diffkin.models import from_mjcf
 from diffkin.rotations import quaternion_to_matrix
 
 mujoco = pytest.importorskip("mujoco")
@@ -186,3 +187,15 @@ def test_the_fused_lm_iteration_refuses_s_motions():
     assert native._lib.dk_lm(ctypes.byref(args)) == native._MOTION_ERROR
     with pytest.raises(ValueError, match="R and P motions only"):
         native._raise_on(native._MOTION_ERROR, "work space")
+
+
+def test_the_single_call_path_of_a_ball_chain_matches_the_batch():
+    """One q (nq,) through kernels.single: Jacobian (6, nv) equal to the batched call's row (it was
+    allocated (6, nq) for chains whose q holds quaternions)."""
+    chain = from_mjcf(KINDS, "palm", root_link="torso", dtype=torch.float64).requires_grad_(False)
+    q = chain.random_configuration(3, generator=torch.Generator().manual_seed(2))
+    T1, J1 = chain.forward_kinematics_and_jacobian(q[1])
+    Tb, Jb = chain.forward_kinematics_and_jacobian(q)
+    assert J1.shape == (6, chain.nv) and chain.nv != chain.nq
+    torch.testing.assert_close(T1, Tb[1], rtol=0, atol=1e-13)
+    torch.testing.assert_close(J1, Jb[1], rtol=0, atol=1e-13)

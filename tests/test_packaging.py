@@ -65,5 +65,5 @@ def test_the_wheel_holds_only_diffkin(tmp_path):
     assert {n.split("/")[0] for n in names} == {"diffkin", wheel.name.split("-py")[0] + ".dist-info"}
     for must in ("diffkin/py.typed", "diffkin/envs/reach.py", "diffkin/training/train.py",
                  "diffkin/models/data/panda.yaml", "diffkin/models/data/ur5.urdf",
-                 "diffkin/kernels/_native.c"):
+                 "diffkin/kernels/_native.c", "diffkin/kernels/_native_solve.c"):
         assert must in names

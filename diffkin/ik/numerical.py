@@ -22,6 +22,7 @@ from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
+from . import _native_solve
 from ._collision import CollisionConfig, collision_round, constraint_of, free_library
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
@@ -266,6 +267,14 @@ def solve(
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
+    if q0 is None and base is None and config is None and damping is None and collision is None \
+            and world is None and not (  # one pose: lean path
+            position_only or progress or seeds_from_closed_form or not respect_limits):
+        fast = _native_solve.solve_one(chain, T_target, generator, seed, num_seeds=num_seeds,
+                                       max_iterations=max_iterations,
+                                       tol=(position_tolerance, orientation_tolerance))
+        if fast is not None:
+            return fast
     _check_tolerances(position_tolerance, orientation_tolerance)
     num_seeds = check_count(num_seeds, "num_seeds")
     max_iterations = check_count(max_iterations, "max_iterations")
@@ -286,9 +295,18 @@ def solve(
     if generator is None:
         generator = torch.Generator(device=device)
         generator.manual_seed(seed if seed is not None else int(torch.randint(2**62, ()).item()))
+    residual = PoseResidual(position_only, cfg.orientation_weight)
+    # the whole solve in one C call (CPU, no autograd); collision constraints keep the scheduled loop
+    if collision is None and world is None and _native_solve.applies(chain, T_target, progress):
+        out = _native_solve.solve_batch(
+            chain, tg, batch, T_orig, seeds_user, cfg, generator, dtype, position_only=position_only,
+            tol=(position_tolerance, orientation_tolerance), num_seeds=num_seeds,
+            max_iterations=max_iterations, respect_limits=respect_limits)  # fmt: skip
+        if out is not None:  # gradients at the solution, as below
+            return dataclasses.replace(out, q=attach_solve_gradients(
+                chain, out.q, T_target, out.success, residual, cfg.damping))
     kernel = BatchLastKernel(chain if chain.dtype == dtype else copy.deepcopy(chain).to(dtype))
     jmap = JointMap(chain, dtype, device, respect_limits)
-    residual = PoseResidual(position_only, cfg.orientation_weight)
     constraint = constraint_of(chain, collision, world, margin, base)
     T_flat = T_orig.reshape(N, *T_orig.shape[len(batch) :])
     prob = _Problem(chain, kernel, jmap, tg, seeds_user, cfg, generator, (position_tolerance,

@@ -98,7 +98,30 @@
     X(double, margin, "dk_lm") \
     X(uint8_t *, conv, "dk_lm: [m] out") \
     X(void *, merit, "dk_lm: [m] reals out") \
-    X(void *, merit_prev, "dk_lm: [m] reals out")
+    X(void *, merit_prev, "dk_lm: [m] reals out") \
+    X(int64_t, n_seeds, "dk_solve: most seeds per target") \
+    X(int64_t, max_iterations, "dk_solve: most LM iterations per seed (iters: steps between stall checks)") \
+    X(int64_t, min_seed_iterations, "dk_solve: a seed younger than this is never stalled") \
+    X(double, stall_ratio, "dk_solve: stalled when the merit did not shrink by this factor over a check") \
+    X(int64_t, n_user, "dk_solve: S user seeds per target") \
+    X(const void *, user_u, "dk_solve: [N*S*n] reals") \
+    X(int64_t, n_lib, "dk_solve: L library configurations") \
+    X(int64_t, lib_ranks, "dk_solve: R nearest library poses tried per target") \
+    X(const void *, lib_u, "dk_solve: [L*n] reals") \
+    X(const void *, lib_pose, "dk_solve: [L*12K] reals: p, x, y, z of every end link (3K each)") \
+    X(double, feature_weight, "dk_solve: weight of the rotation columns in the nearest-pose distance") \
+    X(int64_t, n_pool, "dk_solve: P random draws") \
+    X(const void *, pool, "dk_solve: [P*n] uniform reals in [0, 1)") \
+    X(const void *, qlo, "dk_solve: [n] reals, the limits of the final check") \
+    X(const void *, qhi, "dk_solve: [n] reals") \
+    X(const uint8_t *, wrap, "dk_solve: [n] revolute variables, wrapped by 2 pi towards the centre") \
+    X(int64_t, clamp, "dk_solve: clamp into [qlo, qhi] and require it for success") \
+    X(void *, q_out, "dk_solve: [N*n] reals out") \
+    X(int64_t *, iters_out, "dk_solve: [N] out") \
+    X(int64_t *, seeds_out, "dk_solve: [N] out") \
+    X(void *, pos_err, "dk_solve: [N] reals out") \
+    X(void *, ori_err, "dk_solve: [N] reals out") \
+    X(uint8_t *, success, "dk_solve: [N] out")
 
 /* X(letter, nq, nv, what): the elementary motions in code order (DK_MOTION_P = 0, ...), as
  * diffkin.kernels.configuration declares them (MOTION_NQ, MOTION_NV); native.py reads this table through
@@ -309,6 +332,19 @@ static int abi_ok(const dk_args *a) {
 int64_t dk_fk(const dk_args *a) {
     if (!abi_ok(a)) return DK_ABI_ERROR;
     return a->real_bytes == 8 ? dk_fk_f64(a) : dk_fk_f32(a);
+}
+
+/* The whole IK solve of dk_solve_f64 / dk_solve_f32 (_native_solve.c); returns 0, -1 when memory ran out,
+ * DK_ABI_ERROR for a struct of another layout. */
+int64_t dk_solve(const dk_args *a) {
+    if (!abi_ok(a)) return DK_ABI_ERROR;
+    return a->real_bytes == 8 ? dk_solve_f64(a) : dk_solve_f32(a);
+}
+
+/* The largest deviation from a rigid transform of N poses (4x4 row-major, real_bytes 8 or 4): max over
+ * |R^T R - I| entries and |bottom row - (0 0 0 1)|; NaN when an entry is not finite. */
+double dk_rigid_deviation(const void *T, int64_t N, int64_t real_bytes) {
+    return real_bytes == 8 ? rigid_deviation_f64((const double *)T, N) : rigid_deviation_f32((const float *)T, N);
 }
 
 /* The Levenberg-Marquardt rounds of dk_lm_f64 / dk_lm_f32 (see there); returns the number of rounds run, -1
@@ -692,6 +728,30 @@ static void DK(spd_solve)(real *A, real *b, int d) {
     }
 }
 
+/* The rotation-vector error theta r (kernels/pose_error.py's "rotvec") of lane l of the end frame E (12 x W
+ * lanes) against the target's rotation columns cols[a][c * stride] into eo[3]; returns theta:
+ * v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2, cos theta = (x_e.x_d + y_e.y_d + z_e.z_d - 1) / 2. */
+static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t stride, real *eo) {
+    real v[3] = {0, 0, 0}, tr = 0;
+    for (int a = 0; a < 3; a++) {
+        real de[3], ee[3];
+        for (int c = 0; c < 3; c++) {
+            de[c] = cols[a][c * stride];
+            ee[c] = E[(4 * c + a) * W + l];
+        }
+        v[0] += ee[1] * de[2] - ee[2] * de[1];
+        v[1] += ee[2] * de[0] - ee[0] * de[2];
+        v[2] += ee[0] * de[1] - ee[1] * de[0];
+        tr += ee[0] * de[0] + ee[1] * de[1] + ee[2] * de[2];
+    }
+    for (int c = 0; c < 3; c++) v[c] *= (real)0.5;
+    const real vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+    const real sth = (real)sqrt((double)(vv > DK_TINY ? vv : DK_TINY));
+    const real th = (real)atan2((double)sth, (double)((real)0.5 * (tr - 1)));
+    for (int c = 0; c < 3; c++) eo[c] = v[c] * (th / sth);
+    return th;
+}
+
 /* Up to `max_rounds` rounds of `iters` Levenberg-Marquardt steps (3.59) of diffkin.ik's solver on m rows,
  * batch last (u (n, m) is updated in place; u_eval gets the u of the last evaluation). Per row: q = c + h sin(u)
  * on bounded joints; e = [p_d - p_e; theta r] per end link (the rotation-vector error of kernels/pose_error.py),
@@ -776,26 +836,9 @@ static int64_t DK(dk_lm)(const dk_args *a) {
                             const real nk = (real)sqrt((double)sq);
                             pn = nk > pn ? nk : pn;
                             if (pos_only) continue;
-                            /* v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2, cos = (x_e.x_d + ... - 1) / 2 */
-                            real v[3] = {0, 0, 0}, tr = 0;
-                            const real *cols[3] = {xd, yd, zd};
-                            for (int a = 0; a < 3; a++) {
-                                real de[3], ee[3];
-                                for (int c = 0; c < 3; c++) {
-                                    de[c] = cols[a][(int64_t)(3 * k + c) * N + t];
-                                    ee[c] = E[(4 * c + a) * W + l];
-                                }
-                                v[0] += ee[1] * de[2] - ee[2] * de[1];
-                                v[1] += ee[2] * de[0] - ee[0] * de[2];
-                                v[2] += ee[0] * de[1] - ee[1] * de[0];
-                                tr += ee[0] * de[0] + ee[1] * de[1] + ee[2] * de[2];
-                            }
-                            for (int c = 0; c < 3; c++) v[c] *= (real)0.5;
-                            const real cth = (real)0.5 * (tr - 1);
-                            real vv = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
-                            const real sth = (real)sqrt((double)(vv > DK_TINY ? vv : DK_TINY));
-                            const real th = (real)atan2((double)sth, (double)cth);
-                            for (int c = 0; c < 3; c++) ek[3 + c] = v[c] * (th / sth);
+                            const real *cols[3] = {xd + (int64_t)3 * k * N + t, yd + (int64_t)3 * k * N + t,
+                                                   zd + (int64_t)3 * k * N + t};
+                            const real th = DK(rotvec)(E, l, cols, N, ek + 3);
                             ang = th > ang ? th : ang;
                         }
                         const int cv = pn <= tp * margin && ang <= to * margin;
@@ -870,6 +913,8 @@ static int64_t DK(dk_lm)(const dk_args *a) {
     free(pp.fix);
     return rounds;
 }
+
+#include "_native_solve.c"
 
 #undef real
 #endif

@@ -59,9 +59,10 @@ from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
            "native_model", "fk_jacobian", "LMProblem", "lm_steps", "status", "NativeBuildWarning", "Args",
-           "ABI_VERSION", "AbiMismatch"]
+           "ABI_VERSION", "AbiMismatch", "solve_call", "rigid_deviation"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
+_INCLUDED = (Path(__file__).with_name("_native_solve.c"),)  # #included by _native.c: part of its source
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
@@ -92,6 +93,14 @@ _motion_codes: dict[str, int] = {}  # letter -> code, from the loaded library's 
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 
 
+# the fields of dk_solve (the whole IK solve, _native_solve.c), appended after dk_lm's
+_SOLVE_FIELDS = [(name, _I64) for name in ("n_seeds", "max_iterations", "min_seed_iterations")] + \
+    [("stall_ratio", _F64), ("n_user", _I64), ("user_u", _PTR), ("n_lib", _I64), ("lib_ranks", _I64),
+     ("lib_u", _PTR), ("lib_pose", _PTR), ("feature_weight", _F64), ("n_pool", _I64)] + \
+    [(name, _PTR) for name in ("pool", "qlo", "qhi", "wrap")] + [("clamp", _I64)] + \
+    [(name, _PTR) for name in ("q_out", "iters_out", "seeds_out", "pos_err", "ori_err", "success")]
+
+
 class Args(ctypes.Structure):
     """``dk_args`` of ``_native.c`` (``DK_ARGS_FIELDS``, where each field is described), field by field:
     the chain's arrays, one call's inputs and outputs, the version and the size."""
@@ -105,7 +114,7 @@ class Args(ctypes.Structure):
         [(name, _PTR) for name in ("u", "u_eval", "tidx", "pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh",
                                    "bounded")] + \
         [(name, _F64) for name in ("damping2", "error_damping", "tol_p", "tol_o", "margin")] + \
-        [(name, _PTR) for name in ("conv", "merit", "merit_prev")]
+        [(name, _PTR) for name in ("conv", "merit", "merit_prev")] + _SOLVE_FIELDS
 
 
 def _dlclose(handle: int) -> None:
@@ -170,9 +179,10 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
         path.unlink(missing_ok=True)
         lib = ctypes.CDLL(str(_compile(flags)))
         check_abi(lib)
-    for name in ("dk_fk", "dk_lm"):
+    for name in ("dk_fk", "dk_lm", "dk_solve"):
         fn = getattr(lib, name)
         fn.restype, fn.argtypes = _I64, [ctypes.POINTER(Args)]
+    lib.dk_rigid_deviation.restype, lib.dk_rigid_deviation.argtypes = _F64, [_PTR, _I64, _I64]
     return lib
 
 
@@ -198,7 +208,8 @@ def _cpu_signature() -> str:
 def library_path(flags: tuple[str, ...] = ()) -> Path:
     """Where the library for this source, ``flags`` and CPU is cached."""
     h = hashlib.sha256()
-    for part in (_SOURCE.read_bytes(), f"abi {ABI_VERSION}".encode(), " ".join(_FLAGS + flags).encode(),
+    for part in (_SOURCE.read_bytes(), *(p.read_bytes() for p in _INCLUDED), f"abi {ABI_VERSION}".encode(),
+                 " ".join(_FLAGS + flags).encode(),
                  _cpu_signature().encode(),
                  platform.machine().encode(), sys.platform.encode()):
         h.update(part)
@@ -524,3 +535,15 @@ def _main() -> int:
     print(f"diffkin native kernel: {path}")
     return 0
 
+
+
+def solve_call(args: Args) -> None:
+    """Run ``dk_solve`` (the whole IK solve, ``_native_solve.c``) on a filled :class:`Args`; raises on
+    an allocation failure or an interface mismatch."""
+    _raise_on(_lib.dk_solve(ctypes.byref(args)), "work space")
+
+
+def rigid_deviation(T: Tensor) -> float:
+    """The largest deviation of the contiguous CPU poses ``T (..., 4, 4)`` from rigid transforms (entries
+    of RᵀR − I and of the bottom row − (0, 0, 0, 1)); NaN when an entry is not finite."""
+    return _lib.dk_rigid_deviation(T.data_ptr(), T.numel() // 16, T.element_size())

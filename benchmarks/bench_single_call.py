@@ -1,0 +1,123 @@
+"""Single-call latency and batched IK throughput of the C solve (issue 28), side by side in one run.
+
+* single-target ``ik.solve`` (Panda, float64, 1 thread, 0.1 mm / 1 mrad within the limits, random targets,
+  one call each): median per call, against Robotics Toolbox's C++ ``ik_LM`` on the same targets (success
+  checked independently by :func:`benchmarks.bench_ik.verify`). Two chain states: parameters frozen
+  (``requires_grad_(False)``: the lean path) and the default (parameters requiring grad: the C solve plus
+  the implicit-gradient attachment);
+* batch-1 FK and FK + Jacobian (the lean path, ``torch.no_grad()``), median per call;
+* batched ``ik.solve`` of N Panda targets on 1 and 2 threads: the C solve (``dk_solve``) against the scheduled
+  torch loop with the fused LM steps (``dk_lm``, what ``main`` ran before), interleaved repeats.
+
+    python -m benchmarks.bench_single_call [--targets 200] [--batch 10000] [--repeats 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from benchmarks import peers
+from benchmarks.bench_ik import TOL_O, TOL_P, make_targets, verify
+from benchmarks.common import print_table, torch_threads
+from diffkin import ik, models
+
+
+def _median_us(fn, items) -> tuple[float, list]:
+    times, out = [], []
+    for it in items:
+        t0 = time.perf_counter()
+        out.append(fn(it))
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times) * 1e6, out
+
+
+def single_target(n: int) -> list[dict]:
+    _, T = make_targets(n, seed=1)
+    rows = []
+    for label, frozen in (("lean path (params frozen)", True), ("default chain (grad attached)", False)):
+        chain = models.load("panda", dtype=torch.float64)
+        if frozen:
+            chain.requires_grad_(False)
+        ik.solve(chain, T[0], seed=0)  # warm-up (the per-chain state)
+        us, res = _median_us(lambda i, c=chain: ik.solve(c, T[i], seed=i), range(n))
+        q = torch.stack([r.q.detach() for r in res])
+        flags = torch.stack([r.success for r in res])
+        rows.append({"case": f"ik.solve 1 target, {label}", "median_us": us, **verify(q, T, flags)})
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            peers.rtb_panda()
+    except Exception as e:  # optional peer
+        print(f"[single] Robotics Toolbox skipped: {e!r}")
+        return rows
+    sols = [peers.rtb_ik_lm(T[i : i + 1].numpy()) for i in range(n)]  # its tuned settings, one pose a call
+    q = torch.from_numpy(np.concatenate([s.q for s in sols]))
+    us = statistics.median(s.seconds for s in sols) * 1e6
+    rows.append({"case": "RTB ik_LM (C++), 1 target", "median_us": us, **verify(q, T)})
+    return rows
+
+
+def batch_one_kinematics(n: int = 2000) -> list[dict]:
+    chain = models.load("panda", dtype=torch.float64)
+    qs = chain.random_configuration((n,), generator=torch.Generator().manual_seed(2)).unbind(0)
+    rows = []
+    with torch.no_grad():
+        for case, fn in (("FK, 1 configuration", chain.forward_kinematics),
+                         ("FK + Jacobian, 1 configuration", chain.fk_jacobian)):
+            fn(qs[0])
+            us, _ = _median_us(fn, qs)
+            rows.append({"case": case, "median_us": us})
+    return rows
+
+
+def batched(N: int, repeats: int, threads: int) -> list[dict]:
+    from diffkin.ik import _native_solve
+
+    _, T = make_targets(N, seed=3)
+    chain = models.load("panda", dtype=torch.float64)
+    ik.solve(chain, T[:64], seed=0)
+    times = {"C solve (dk_solve)": [], "torch loop + dk_lm (main)": []}
+    checks = {}
+    real = _native_solve.applies
+    with torch_threads(threads):
+        for rep in range(repeats):  # interleaved: both see the same machine load
+            for name in times:
+                _native_solve.applies = real if name.startswith("C") else (lambda *a: False)
+                try:
+                    t0 = time.perf_counter()
+                    res = ik.solve(chain, T, seed=rep)
+                    times[name].append(time.perf_counter() - t0)
+                finally:
+                    _native_solve.applies = real
+                checks[name] = verify(res.q.detach(), T, res.success)
+    rows = []
+    for name, ts in times.items():
+        s = statistics.median(ts)
+        rows.append({"case": f"ik.solve {N} targets, {threads} thread(s), {name}", "median_us": s * 1e6,
+                     "solves_per_s": N / s, **checks[name]})
+    rows[0]["ratio_vs_main"] = rows[1]["median_us"] / rows[0]["median_us"]
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--targets", type=int, default=200)
+    p.add_argument("--batch", type=int, default=10000)
+    p.add_argument("--repeats", type=int, default=3)
+    a = p.parse_args(argv)
+    print(f"tolerances {TOL_P} m / {TOL_O} rad, float64, Panda")
+    with torch_threads(1):
+        rows = single_target(a.targets) + batch_one_kinematics()
+    rows += batched(a.batch, a.repeats, 1) + batched(a.batch, a.repeats, 2)
+    print_table(rows, "single calls and batched IK (medians; one run, same machine load)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

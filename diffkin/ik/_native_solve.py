@@ -1,0 +1,219 @@
+"""The whole :func:`diffkin.ik.solve` in one C call (private): ``dk_solve`` of ``kernels/_native_solve.c``.
+
+It serves CPU solves without autograd on chains the fused kernel supports (1-DOF joints); CUDA, autograd,
+``progress`` and other chains keep the torch loop of :mod:`._lm`. Both run the same iteration (the LM step
+(3.59) with the joint limits as q = c + h sin u, harvest, stall checks, re-seeding), so they agree to the
+documented tolerance but not bit for bit: the C solve fills W = 16 lanes per chunk of 128 targets and gives
+a chunk's open targets extra parallel seeds when lanes fall idle, once they have run a check interval
+(``min_seed_iterations`` in a chunk of one target; the torch loop: below ``min_rows`` rows), and its
+seeds follow one documented rule:
+
+* the user's seeds first, then the poses of a **fixed pose library** nearest to the target (the
+  ``library_size`` configurations drawn once per chain state from a generator seeded with 0, so that a
+  single-target call does not pay for sampling and evaluating a library), then
+* random restarts from a pool of min(N · num_seeds, max(num_seeds, 4096)) configurations drawn in
+  advance from the caller's generator (seed s of target t is column (t · num_seeds + s) mod P): the same
+  generator state gives the same answers, for every thread count.
+
+:func:`solve_one` is the lean front for one target (no tensor round trips in validation).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from ..kernels import native, single
+from ._kernel import JointMap
+from ._lm import LMConfig
+from .implicit import attach_solve_gradients
+from .residuals import PoseResidual
+from .result import IKResult, final_errors
+
+_LIBRARY_SEED = 0
+_POOL = 4096
+
+
+class _Prepared:
+    """A chain's fixed inputs of ``dk_solve`` for one (state, compute dtype, respect_limits, library size):
+    the packed model, the joint map and its arrays, the limits of the final check and the fixed library."""
+
+    def __init__(self, chain, packed: native.NativeModel, dtype: torch.dtype, respect_limits: bool, L: int):
+        self.packed, self.dtype, self.n = packed, dtype, chain.n_joints
+        jm = self.jmap = JointMap(chain, dtype, torch.device("cpu"), respect_limits)
+        limited = respect_limits and chain.q_limits is not None
+        if limited:
+            lo, hi = (t.to(dtype).contiguous() for t in chain.q_limits.detach().unbind(-1))
+        else:
+            lo, hi = (torch.full((self.n,), v, dtype=dtype) for v in (-math.inf, math.inf))
+        self.arrays = [jm.c.reshape(-1).contiguous(), jm.h.reshape(-1).contiguous(),
+                       jm.bounded.reshape(-1).to(torch.uint8).contiguous(),
+                       jm.rev.reshape(-1).to(torch.uint8).contiguous(), lo, hi]
+        self.clamp = int(limited)
+        self.lib_u = self.lib_pose = None
+        if L > 0:
+            gen = torch.Generator().manual_seed(_LIBRARY_SEED)
+            u = jm.sample_u(L, gen)
+            T, _, _ = native.fk_jacobian(packed, jm.q_of_u(u).T.contiguous().to(dtype), threads=1)
+            self.lib_u = u.T.contiguous()  # (L, n)
+            # (L, 12K): p, x, y, z of every end link, the layout of the targets' columns
+            self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).contiguous()
+        self.L, self._configured = L, {}
+        self.base = packed.call(dtype, jc=self.arrays[0], jh=self.arrays[1], bounded=self.arrays[2],
+                                wrap=self.arrays[3], qlo=lo, qhi=hi, clamp=self.clamp, n_lib=L,
+                                lib_u=self.lib_u, lib_pose=self.lib_pose)
+
+
+    def configured(self, cfg: LMConfig, position_only: bool, K: int) -> native.Args:
+        """:attr:`base` with the fields of ``cfg`` and the row weights set (cached per option set)."""
+        key = (cfg, position_only, K)
+        hit = self._configured.get(key)
+        if hit is None:
+            rot = [] if position_only else [math.sqrt(cfg.orientation_weight)] * 3
+            sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
+            hit = self._configured[key] = (sqrt_w, native._filled(
+                native.Args.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
+                damping2=cfg.damping**2, error_damping=cfg.error_damping, margin=cfg.margin,
+                min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
+                feature_weight=cfg.orientation_weight))
+        return hit[1]
+
+
+def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
+    """The :class:`_Prepared` of ``chain`` for these options, kept in its lean-path cache entry
+    (:func:`diffkin.kernels.single.entry`: remade when a parameter or buffer changes); None when the fused
+    kernel cannot serve it."""
+    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
+        hit = single.entry(chain, x)
+    if hit is None:
+        return None
+    key = ("solve", dtype, respect_limits, L)
+    prep = hit.extra.get(key)
+    if prep is None:
+        prep = hit.extra[key] = _Prepared(chain, hit.args, dtype, respect_limits, L)
+    return prep
+
+
+def applies(chain, T_target: Tensor, progress: bool) -> bool:
+    """Whether the C solve serves this call: CPU and a chain the fused kernel supports (the iterations run
+    without autograd either way; gradients are attached at the solution afterwards)."""
+    if progress or T_target.device.type != "cpu" or chain.device.type != "cpu":
+        return False
+    with torch.no_grad():
+        return chain._native_model(T_target) is not None
+
+
+def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, num_seeds: int,
+        max_iterations: int, user_u: Tensor | None, threads: int | None = None, K: int = 1, outs=None):
+    """One ``dk_solve`` call: ``cols`` the targets' ``(pd, xd, yd, zd)`` columns ``(3K, N)`` (tensors or
+    addresses; xd None: position only) in the compute dtype; ``user_u (N, S, n)`` the user's seeds in u.
+    Returns ``outs`` (default new tensors): ``(q (N, n), success (N,), position error (N,), orientation
+    error (N,), iterations (N,), seeds tried (N,))``, q and the errors in the compute dtype."""
+    dtype, n = prep.dtype, prep.n
+    S = 0 if user_u is None else user_u.shape[1]
+    R = min(cfg.library_ranks, prep.L) if prep.L else 0
+    P = min(N * num_seeds, max(num_seeds, _POOL)) if num_seeds > S + R else 0
+    pool = torch.rand(P * n, generator=generator, dtype=dtype) if P else None
+    if outs is None:
+        errs, counts = torch.empty(2, N, dtype=dtype), torch.empty(2, N, dtype=torch.int64)
+        outs = (torch.empty(N, n, dtype=dtype), torch.empty(N, dtype=torch.bool), *errs, *counts)
+    args = native._filled(
+        native.Args.from_buffer_copy(prep.configured(cfg, cols[1] is None, K)),
+        n_targets=N, pd=cols[0], xd=cols[1], yd=cols[2], zd=cols[3], tol_p=tol[0], tol_o=tol[1],
+        n_seeds=num_seeds, max_iterations=max_iterations, n_user=S, user_u=user_u, lib_ranks=R, n_pool=P,
+        pool=pool, q_out=outs[0], success=outs[1], pos_err=outs[2], ori_err=outs[3], iters_out=outs[4],
+        seeds_out=outs[5], nthreads=threads or native.thread_count(64 * N))
+    native.solve_call(args)
+    return outs
+
+
+def solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator, dtype, *, tol, num_seeds,
+                max_iterations, respect_limits, position_only) -> IKResult | None:
+    """:func:`diffkin.ik.solve` of validated targets through ``dk_solve`` (no gradients attached); None
+    when it cannot serve."""
+    with torch.no_grad():
+        return _solve_batch(chain, tg, batch, T_orig, seeds_user, cfg, generator, dtype, tol=tol,
+                            num_seeds=num_seeds, max_iterations=max_iterations, respect_limits=respect_limits,
+                            position_only=position_only)
+
+
+def _solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator, dtype, *, tol, num_seeds,
+                 max_iterations, respect_limits, position_only) -> IKResult | None:
+    prep = prepared(chain, tg.pd, dtype, respect_limits, max(cfg.library_size, 0))
+    if prep is None:
+        return None
+    N, n = math.prod(batch), chain.n_joints
+    user_u = None
+    if seeds_user is not None:
+        S = min(seeds_user.shape[1], max(num_seeds, 1))
+        flat = seeds_user[:, :S].to(dtype).reshape(-1, n).T
+        user_u = prep.jmap.u_of_q(flat).T.reshape(N, S, n).contiguous()
+    cols = tuple(None if t is None else t.contiguous() for t in (tg.pd, tg.xd, tg.yd, tg.zd))
+    q, ok, pe, oe, its, seeds = run(prep, cols, N, cfg, generator, tol=tol, num_seeds=num_seeds,
+                                    max_iterations=max_iterations, user_u=user_u, K=chain.n_ends)
+    q = q.to(chain.dtype).reshape(*batch, n)
+    if dtype != chain.dtype or (position_only and T_orig.shape[-1] == 4):
+        # the final check in the chain's dtype (and the orientation error reported for pose targets)
+        pe, oe = final_errors(chain, q, T_orig, position_only)
+        ok = pe <= tol[0]
+        if not position_only:
+            ok &= oe <= tol[1]
+        if prep.clamp:
+            ok &= chain.within_limits(q, check=False)
+    return IKResult(q=q, success=ok.reshape(batch), position_error=pe.reshape(batch).to(chain.dtype),
+                    orientation_error=oe.reshape(batch).to(chain.dtype), iterations=its.reshape(batch),
+                    seeds_tried=seeds.reshape(batch))
+
+
+__all__ = ["applies", "solve_batch", "run", "prepared"]
+
+
+_DEFAULT = LMConfig()
+_EXACT = {torch.float64: 64 * 2.0**-52, torch.float32: 64 * 2.0**-23}  # rotations exact to rounding
+
+
+def _plain_count(v) -> bool:
+    return type(v) is int and v >= 1
+
+
+def _plain_tol(v) -> bool:
+    return type(v) in (float, int) and 0 < v < math.inf
+
+
+def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, tol) -> IKResult | None:
+    """The lean front of :func:`diffkin.ik.solve` for ONE target pose ``T (4, 4)`` with default options
+    (no ``q0``, ``base``, ``config``, ``damping``, position-only or closed-form seeds): plain attribute
+    checks, the rigidity test in C, one ``dk_solve`` call, then the implicit gradient attached when the
+    target or a chain parameter requires grad (as the general path). None when it does not apply (the
+    general path then serves the call, with its validation and errors)."""
+    if type(T) is not Tensor or T.shape != (4, 4) or T.dtype != chain.dtype or T.device.type != "cpu" \
+            or not T.is_contiguous() or not _plain_count(num_seeds) or not _plain_count(max_iterations) \
+            or not _plain_tol(tol[0]) or not _plain_tol(tol[1]) or not native.available() \
+            or (chain.dtype == torch.float32 and min(tol) < 1e-5) or not chain.single_end \
+            or (generator is not None and generator.device.type != "cpu") \
+            or (seed is not None and type(seed) is not int):
+        return None
+    if not native.rigid_deviation(T) <= _EXACT[T.dtype]:  # NaN included: the general path's error
+        return None
+    prep = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
+    if prep is None:
+        return None
+    if generator is None and seed is not None:
+        generator = torch.Generator().manual_seed(seed)
+    c = T[:3].T.contiguous()  # (4, 3): the x, y, z, p columns, each (3K, N) = (3, 1), by address
+    a, size = c.data_ptr(), c.element_size()
+    empty = torch.empty
+    outs = (empty(prep.n, dtype=T.dtype), empty((), dtype=torch.bool), empty((), dtype=T.dtype),
+            empty((), dtype=T.dtype), empty((), dtype=torch.int64), empty((), dtype=torch.int64))
+    q, ok, pe, oe, its, seeds = run(prep, (a + 9 * size, a, a + 3 * size, a + 6 * size), 1, _DEFAULT,
+                                    generator, tol=tol, num_seeds=num_seeds, max_iterations=max_iterations,
+                                    user_u=None, threads=1, outs=outs)
+    if torch.is_grad_enabled() and (T.requires_grad or any(  # wants_gradients, without the module walk
+            p is not None and p.requires_grad for p in chain._parameters.values())):
+        # as the general path: the implicit-function gradient at the solution
+        q = attach_solve_gradients(chain, q, T, ok, PoseResidual(False, _DEFAULT.orientation_weight),
+                                   _DEFAULT.damping)
+    return IKResult(q=q, success=ok, position_error=pe, orientation_error=oe, iterations=its,
+                    seeds_tried=seeds)
