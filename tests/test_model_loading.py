@@ -85,7 +85,7 @@ def test_the_callers_use_it(monkeypatch):
     assert cli._load_chain(args).name == "ur5"
     with pytest.raises(Exception):  # noqa: B017  (no measurement file: only the loading matters here)
         cio.calibrate_from_files("three_link_planar", "missing.npz")
-    from envs.robot import load_chain as env_load
+    from diffkin.envs.robot import load_chain as env_load
 
     assert env_load("panda").dtype == torch.float32
     assert calls == ["ur5", "three_link_planar", "panda"]

@@ -133,9 +133,9 @@ def test_one_configuration_fk_and_jacobian_equal_the_torch_kernels(kind, dtype):
     q = chain.random_configuration((1,), generator=torch.Generator().manual_seed(11))[0]
     with torch.no_grad():
         assert single.fk(chain, q) is not None  # the lean path serves it
-        T, (T2, J) = chain.forward_kinematics(q), chain.fk_jacobian(q)
+        T, (T2, J) = chain.forward_kinematics(q), chain.forward_kinematics_and_jacobian(q)
         with native.disabled():
-            Tr, (Tr2, Jr) = chain.forward_kinematics(q), chain.fk_jacobian(q)
+            Tr, (Tr2, Jr) = chain.forward_kinematics(q), chain.forward_kinematics_and_jacobian(q)
     atol = 1e-12 if dtype == torch.float64 else 2e-5
     assert T.shape == Tr.shape and J.shape == Jr.shape
     for a, b in ((T, Tr), (T2, Tr2), (J, Jr)):
