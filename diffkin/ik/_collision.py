@@ -73,7 +73,7 @@ class CollisionAcceptance:
 
     def __call__(self, idx: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         q = self.jmap.q_of_u(u)
-        g = self.c.value(q.T)
+        g = self.c.value(q.T, self.cfg.slack)  # exact below margin + slack: ok and the depths are exact
         ok = (g >= self.cfg.slack).all(-1)
         # deep penetrations are left to re-seeding (a local refinement rarely resolves them)
         bad = (~ok & (g.amin(-1) > -self.cfg.deepest)).nonzero().squeeze(-1)
@@ -114,7 +114,8 @@ class CollisionAcceptance:
         q = q.clone()
         for step in range(cfg.steps + 1):
             ql, tl = q[:, live], tg.take(live)
-            g, rows, Jg = self.c.jacobian(ql.T, cfg.active)
+            # rows beyond `detection` are no constraints: their broad-phase bound is enough
+            g, rows, Jg = self.c.jacobian(ql.T, cfg.active, max(cfg.detection, cfg.slack))
             A, b, pn, ang = self._pose(tl, ql)
             now = self._ok(g, pn, ang, tg.position_only)
             ok[live[now]] = True
