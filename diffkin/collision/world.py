@@ -13,7 +13,7 @@ from torch import Tensor
 from ..errors import DiffkinError, ShapeError
 from ..validation import common_dtype_device, shape_str, tensors
 from .boxes import Box, box_box, box_halfspace, capsule_box
-from .broad import box_spheres, capsule_box_bound, exact_below, sphere_bound
+from .broad import box_spheres, capsule_box_bound, capsule_spheres, exact_below, sphere_bound
 from .distances import capsule_capsule, capsule_halfspace
 
 __all__ = ["World"]
@@ -119,7 +119,7 @@ class World:
         wbox = (w(B.center), wm(B.rotation), w(B.half_extents))
         ga, gb, gr, gbox = g(a), g(b), r[..., None], (g(bc), bR.unsqueeze(-3), g(bh))
         rows = [self._assemble(
-            capsule_capsule(ga, gb, gr, w(wa), w(wb), wr[..., None, :]),
+            _pair(capsule_capsule, (ga, gb, gr), (w(wa), w(wb), wr[..., None, :]), threshold),
             _pair(capsule_box, (ga, gb, gr), wbox, threshold) if nb else empty(a),
             capsule_halfspace(ga, gb, gr, w(n), d[..., None, :]))]
         if bc.shape[-2]:
@@ -132,15 +132,19 @@ class World:
 
 
 def _pair(fn, x: tuple, y: tuple, threshold: float | None) -> Tensor:
-    """``fn(*x, *y)`` for a capsule ``(a, b, r)`` or box ``(c, R, h)`` x and a box y; with ``threshold``
-    through the broad phase (:func:`~diffkin.collision.broad.exact_below`)."""
+    """``fn(*x, *y)`` for ``fn`` one of capsule_capsule (x, y capsules ``(a, b, r)``), capsule_box (x a
+    capsule, y a box ``(c, R, h)``), box_box; with ``threshold`` through the broad phase
+    (:func:`~diffkin.collision.broad.exact_below`, the bound of the pair's kind)."""
     if threshold is None:
         return fn(*x, *y)
-    capsule = fn is capsule_box
-    bound = capsule_box_bound(*x, *y) if capsule else sphere_bound(*box_spheres(x[0], x[2]),
-                                                                   *box_spheres(y[0], y[2]))
-    ks = (1, 1, 0) if capsule else (1, 2, 1)
-    return exact_below(bound, threshold, fn, *zip(x, ks), *zip(y, (1, 2, 1)))
+    cap, box = (1, 1, 0), (1, 2, 1)  # the own dims of (a, b, r) and (c, R, h)
+    if fn is capsule_capsule:
+        bound, ks = sphere_bound(*capsule_spheres(*x), *capsule_spheres(*y)), (cap, cap)
+    elif fn is capsule_box:
+        bound, ks = capsule_box_bound(*x, *y), (cap, box)
+    else:
+        bound, ks = sphere_bound(*box_spheres(x[0], x[2]), *box_spheres(y[0], y[2])), (box, box)
+    return exact_below(bound, threshold, fn, *zip(x, ks[0]), *zip(y, ks[1]))
 
 
 def _check_world(world) -> World:
