@@ -114,6 +114,28 @@ class RobotCollision(nn.Module):
         pose per geom.
         """
         F = self._frames.frames(self.chain, q)  # (..., K, 4, 4)
+        Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * F.shape[-3])  # (..., 3, K·4)
+        return Fm @ self._placement(F)
+
+    def _placement(self, F: Tensor) -> Tensor:
+        """H ``(K·4, C)`` of :meth:`_columns`, remembered while no gradient is needed and neither the
+        chain's state (:meth:`_state_key`) nor the geometry (tensor versions) changes."""
+        key, params = None, tuple(self.parameters())
+        if not (torch.is_grad_enabled() and any(p.requires_grad for p in params)) \
+                and isinstance(self._frames, LinkFrames) and self.chain is not None:
+            ck = self.chain._state_key()
+            key = None if ck is None else (ck, F.shape[-3], F.dtype, F.device,
+                                           tuple(p._version for p in params))
+        memo = self.__dict__.get("_placement_memo")  # (key, the parameters themselves: no reused storage, H)
+        if key is not None and memo is not None and memo[0] == key and len(memo[1]) == len(params) \
+                and all(a is b for a, b in zip(memo[1], params)):
+            return memo[2]
+        H = self._placement_matrix(F)
+        if key is not None:
+            self.__dict__["_placement_memo"] = (key, params, H)
+        return H
+
+    def _placement_matrix(self, F: Tensor) -> Tensor:
         O = self._frames.offsets(self.chain, F.dtype, F.device).index_select(0, self._col_link)  # (C, 4, 4)
         nc, nb = self._counts
         one, zero = self.capsule_a.new_ones(nc + nc + nb, 1), self.capsule_a.new_zeros(3 * nb, 1)
@@ -123,8 +145,7 @@ class RobotCollision(nn.Module):
         h = (O @ torch.cat((local, axes), 0).unsqueeze(-1)).squeeze(-1)  # (C, 4)
         K, C = F.shape[-3], h.shape[0]
         H = h.new_zeros(K, C, 4).index_put((self._col_anchor, torch.arange(C, device=h.device)), h)
-        Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * K)  # (..., 3, K·4)
-        return Fm @ H.transpose(1, 2).reshape(4 * K, C)
+        return H.transpose(1, 2).reshape(4 * K, C)
 
     def placed(self, q: Tensor) -> tuple[Tensor, ...]:
         """The geoms in the base frame for joint values ``q (..., n)``: ``(a (..., G_c, 3), b (..., G_c, 3),
