@@ -89,6 +89,7 @@ class RobotCollision(nn.Module):
         self._counts = (len(cap), len(bx))
         self.register_buffer("_rows", ilong(torch.argsort(torch.tensor(cap + bx, dtype=torch.long)).tolist()),
                              persistent=False)
+        self._rows_in_order = cap + bx == list(range(len(self.geoms)))  # then no gather of the world rows
         self.pairs = [(self.geoms[i].name, self.geoms[j].name) for i, j in pairs]
         kinds: dict[tuple[int, int], list] = {(0, 0): [], (0, 1): [], (1, 1): []}
         for p, (i, j) in enumerate(pairs):
@@ -202,7 +203,7 @@ class RobotCollision(nn.Module):
     def _world_from(self, placed, world: World, threshold: float | None = None) -> Tensor:
         a, b, r, c, R, h = placed
         d = world.distances(a, b, r.expand(a.shape[:-1]), c, R, h.expand(c.shape), threshold)
-        return d.index_select(-2, self._rows)
+        return d if self._rows_in_order else d.index_select(-2, self._rows)
 
     def _distances_at_least(self, q: Tensor, world: World | None = None,
                             threshold: float | None = None) -> Tensor:
