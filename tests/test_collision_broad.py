@@ -143,3 +143,20 @@ def test_seed_library_memo_gives_the_solve_of_a_fresh_model():
     assert torch.equal(got.q, want.q) and torch.equal(got.success, want.success)
     with torch.no_grad():
         assert bool((rc.min_distance(got.q[got.success], w2) >= 0).all())
+
+
+@pytest.mark.parametrize("name", ["fr3", "boxy"])
+def test_broad_phase_with_leading_dims_and_one_world_per_row(name):
+    chain, rc = _robot(name, torch.float64)
+    w = _world(torch.float64)
+    g = torch.Generator().manual_seed(6)
+    q = chain.random_configuration((4, 50), generator=g)
+    jitter = 0.05 * torch.randn(4, 1, *w.spheres.shape, dtype=torch.float64, generator=g).clamp(-1, 1)
+    wb = World(spheres=w.spheres + jitter, capsules=w.capsules, boxes=w.boxes, halfspaces=w.halfspaces,
+               points=w.points)
+    with torch.no_grad():
+        exact = torch.cat((rc.self_distances(q).expand(4, 50, -1), rc.world_distances(q, wb).flatten(-2)), -1)
+        d = rc._distances_at_least(q, wb, 0.01)
+    below = (exact < 0.01) | (d < 0.01)
+    assert d.shape == exact.shape and below.any()
+    assert torch.equal(d[below], exact[below]) and bool((d[~below] >= 0.01).all())
