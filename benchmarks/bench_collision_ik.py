@@ -12,10 +12,9 @@ its pose success, ``collision_free`` the share of its solutions that are also cl
 exact distances); the collision solve's success includes the distances (its default: rows converged in
 collision re-seeded); "+ refinement": ``LMConfig(collision_refine_calls=1)`` (first a constrained
 Gauss-Newton refinement of the colliding solutions, ik/_collision.py).
-``--world mixed``: two spheres and one box; ``spheres``: three spheres (the capsule-box distance is a
-golden-section search per geom, the dominant cost). PyRoKi is not on PyPI as ``pyroki`` (pip in this venv
-found no distribution), so no peer runs here; docs/collision.md quotes cuRobo's and PyRoKi's published
-GPU figures. The machine is shared: compare the ratios of one run.
+``--world mixed``: two spheres and one box; ``spheres``: three spheres. PyRoKi is not on PyPI as
+``pyroki`` (pip in this venv found no distribution), so no peer runs here; docs/collision.md quotes
+cuRobo's and PyRoKi's published GPU figures. The machine is shared: compare the ratios of one run.
 """
 
 from __future__ import annotations

@@ -9,10 +9,10 @@ Methods (all exact up to the stated tolerance):
 * point–box: the closed-form signed distance field (outside: the norm of the excess over the half extents;
   inside: minus the distance to the nearest face).
 * segment–box (capsules, spheres): apart, the distance is min over t ∈ [0, 1] of the box's distance field
-  at a + t (b − a), a convex function of t, minimised by golden-section search (36 steps in float32, 72 in
-  float64: the parameter to 1e-7 / 1e-15 of the segment's length), then evaluated at the detached minimiser
-  (envelope theorem). In contact, the penetration depth is the separating-axis minimum over the six axes of
-  the segment–box Minkowski difference (the box's face normals and segment × box edges), exact.
+  at a + t (b − a); its square is a convex piecewise quadratic in t with at most six knots, minimised in
+  closed form (the stationary point of each piece, clamped to it), then evaluated at the detached
+  minimiser (envelope theorem). In contact, the penetration depth is the separating-axis minimum over the
+  six axes of the segment–box Minkowski difference (the box's face normals and segment × box edges), exact.
 * box–box: apart, min over the 24 edges of either box of the edge–other-box distance (one closest point of
   two convex polyhedra always lies on an edge of one of them), exact; in contact, the separating-axis
   minimum over the 15 axes (face normals of both, 9 edge × edge), the exact penetration depth.
@@ -21,7 +21,6 @@ Methods (all exact up to the stated tolerance):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -33,9 +32,6 @@ from ..kernels.joints import origin_transform
 from ..validation import broadcast_batch, tensors
 
 __all__ = ["Box", "box", "point_box", "segment_box", "capsule_box", "sphere_box", "box_halfspace", "box_box"]
-
-_GOLD = (math.sqrt(5.0) - 1.0) / 2.0  # 0.618…
-
 
 @dataclass(frozen=True)
 class Box:
@@ -131,30 +127,37 @@ def _segment_box_sat(a: Tensor, b: Tensor, c: Tensor, R: Tensor, h: Tensor) -> T
     return _sat(gap, ok)
 
 
-def _golden_steps(dtype: torch.dtype) -> int:
-    return 36 if dtype == torch.float32 else 72
-
-
 @torch.no_grad()
 def _segment_box_parameter(a: Tensor, b: Tensor, c: Tensor, R: Tensor, h: Tensor) -> Tensor:
-    """argmin over t ∈ [0, 1] of the box's distance field at a + t (b − a) (convex in t), detached."""
+    """argmin over t ∈ [0, 1] of the squared distance from a + t (b − a) to the box, in closed form, detached.
+
+    In the box frame u(t) = u_a + t e, the squared distance Σ_k max(|u_k(t)| − h_k, 0)² is a convex
+    piecewise quadratic whose pieces change where some u_k(t) = ±h_k (at most six knots in [0, 1]). On
+    each of the seven intervals between the sorted knots (0 and 1 included) the set of coordinates outside
+    the slab, and their side s_k, is fixed: the piece Σ_active (u_k(t) − s_k h_k)² has its stationary
+    point at t = −Σ e_k (u_a,k − s_k h_k) / Σ e_k², clamped to the interval. The best of those seven
+    candidates is the exact minimiser (used where the segment misses the box; where it meets it the
+    separating-axis depth decides).
+    """
     ua, ub = _local(a, c, R), _local(b, c, R)
-
-    def f(t: Tensor) -> Tensor:
-        return _sdf_local(ua + t.unsqueeze(-1) * (ub - ua), h)
-
-    lo = torch.zeros_like(ua[..., 0])
-    hi = torch.ones_like(lo)
-    x1, x2 = hi - _GOLD, lo + _GOLD
-    f1, f2 = f(x1), f(x2)
-    for _ in range(_golden_steps(a.dtype)):  # fixed count: no host sync
-        left = f1 <= f2  # the minimum lies in [lo, x2]
-        lo, hi = torch.where(left, lo, x1), torch.where(left, x2, hi)
-        xn = torch.where(left, hi - _GOLD * (hi - lo), lo + _GOLD * (hi - lo))
-        fn = f(xn)
-        x1, x2 = torch.where(left, xn, x2), torch.where(left, x1, xn)
-        f1, f2 = torch.where(left, fn, f2), torch.where(left, f1, fn)
-    return 0.5 * (lo + hi)
+    # component-major (3, ...): the elementwise work runs on long contiguous rows, not on triples
+    ua, e, hh = ua.movedim(-1, 0).contiguous(), (ub - ua).movedim(-1, 0).contiguous(), \
+        h.expand_as(ua).movedim(-1, 0).contiguous()
+    tiny = torch.finfo(e.dtype).tiny
+    safe_e = torch.where(e.abs() > tiny, e, torch.full_like(e, tiny))
+    ends = torch.stack((torch.zeros_like(e[0]), torch.ones_like(e[0])))
+    knots = torch.cat(((hh - ua) / safe_e, (-hh - ua) / safe_e, ends), 0)
+    knots = knots.clamp(0.0, 1.0).sort(0).values  # (8, ...)
+    lo, hi = knots[:-1], knots[1:]  # (7, ...) intervals
+    mid = 0.5 * (lo + hi)
+    ua7, e7, h7 = ua.unsqueeze(1), e.unsqueeze(1), hh.unsqueeze(1)  # (3, 1, ...)
+    um = torch.addcmul(ua7, mid, e7)  # (3, 7, ...)
+    side = (um > h7).to(e.dtype) - (um < -h7).to(e.dtype)  # s_k, 0 inside the slab
+    ee = e7 * side.abs()
+    num = (ee * (ua7 - side * h7)).sum(0)
+    t = (-num / (ee * ee).sum(0).clamp_min(tiny)).clamp(lo, hi)  # (7, ...)
+    f = (torch.addcmul(ua7, t, e7).abs() - h7).clamp(min=0.0).square().sum(0)
+    return t.gather(0, f.argmin(0, keepdim=True)).squeeze(0)
 
 
 def segment_box(a: Tensor, b: Tensor, c: Tensor, R: Tensor, h: Tensor) -> Tensor:

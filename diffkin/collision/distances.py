@@ -76,14 +76,15 @@ def segment_closest_parameters(a0: Tensor, a1: Tensor, b0: Tensor, b1: Tensor) -
     return _closest_from_dots(_dot(d1, d1), _dot(d2, d2), _dot(d1, d2), _dot(d1, r), _dot(d2, r))
 
 
-def capsule_capsule_pairs(a: Tensor, b: Tensor, r: Tensor, i: Tensor, j: Tensor) -> Tensor:
+def capsule_capsule_pairs(a: Tensor, b: Tensor, r: Tensor, i: Tensor, j: Tensor, pair_kernel=None) -> Tensor:
     """:func:`capsule_capsule` of the pairs (i[p], j[p]) of one set of G capsules: ``a, b (..., G, 3)``,
-    ``r (G,)`` or ``(..., G)``, index tensors ``(P,)`` → ``(..., P)``."""
+    ``r (G,)`` or ``(..., G)``, index tensors ``(P,)`` → ``(..., P)``; ``pair_kernel``: another kernel of
+    :func:`capsule_pairs_cm`'s signature (the broad phase)."""
     batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2], r.shape[:-1])
     cm = lambda x: x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:]).permute(1, 2, 0)  # noqa: E731
     A = cm(a).contiguous()
     R = r.expand(*batch, r.shape[-1]).reshape(-1, r.shape[-1]).T
-    return capsule_pairs_cm(A, cm(b) - A, R, i, j).T.reshape(*batch, len(i))
+    return (pair_kernel or capsule_pairs_cm)(A, cm(b) - A, R, i, j).T.reshape(*batch, len(i))
 
 
 def capsule_pairs_cm(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor) -> Tensor:

@@ -13,6 +13,7 @@ from torch import Tensor
 from ..errors import DiffkinError, ShapeError
 from ..validation import common_dtype_device, shape_str, tensors
 from .boxes import Box, box_box, box_halfspace, capsule_box
+from .broad import box_spheres, capsule_box_bound, capsule_spheres, exact_below, sphere_bound
 from .distances import capsule_capsule, capsule_halfspace
 
 __all__ = ["World"]
@@ -98,10 +99,12 @@ class World:
         round_d, box_d, half_d = e(round_d), e(box_d), e(half_d)
         return torch.cat((round_d[..., : s + c], box_d, half_d, round_d[..., s + c:]), -1)
 
-    def distances(self, a: Tensor, b: Tensor, r: Tensor, bc: Tensor, bR: Tensor, bh: Tensor) -> Tensor:
+    def distances(self, a: Tensor, b: Tensor, r: Tensor, bc: Tensor, bR: Tensor, bh: Tensor,
+                  threshold: float | None = None) -> Tensor:
         """Signed distances of G_r capsules ``a, b (..., G_r, 3), r (..., G_r)`` and G_b boxes ``bc (..., G_b,
         3), bR (..., G_b, 3, 3), bh (..., G_b, 3)`` to every object: ``(..., G_r + G_b, W)`` (capsules
-        first)."""
+        first). With ``threshold`` the box entries (searches) are exact only where their bounding-sphere
+        bound is below it, the others hold that bound (>= threshold; :mod:`diffkin.collision.broad`)."""
         if a.dtype != self.dtype or a.device != self.device:
             raise DiffkinError(f"the world is {self.dtype} on {self.device}, the robot {a.dtype} on "
                                f"{a.device}: build the world in the robot's dtype and device")
@@ -113,19 +116,35 @@ class World:
         wm = lambda x: x.unsqueeze(-4)  # noqa: E731  world matrices (..., 1, W, 3, 3)
         nb = B.center.shape[-2]
         empty = lambda x: x.new_zeros(*x.shape[:-1], 0)  # noqa: E731  (skips the box searches' small ops)
+        wbox = (w(B.center), wm(B.rotation), w(B.half_extents))
+        ga, gb, gr, gbox = g(a), g(b), r[..., None], (g(bc), bR.unsqueeze(-3), g(bh))
         rows = [self._assemble(
-            capsule_capsule(g(a), g(b), r[..., None], w(wa), w(wb), wr[..., None, :]),
-            capsule_box(g(a), g(b), r[..., None], w(B.center), wm(B.rotation), w(B.half_extents)) if nb
-            else empty(a),
-            capsule_halfspace(g(a), g(b), r[..., None], w(n), d[..., None, :]))]
+            _pair(capsule_capsule, (ga, gb, gr), (w(wa), w(wb), wr[..., None, :]), threshold),
+            _pair(capsule_box, (ga, gb, gr), wbox, threshold) if nb else empty(a),
+            capsule_halfspace(ga, gb, gr, w(n), d[..., None, :]))]
         if bc.shape[-2]:
             rows.append(self._assemble(
-                capsule_box(w(wa), w(wb), wr[..., None, :], g(bc), bR.unsqueeze(-3), g(bh)),
-                box_box(g(bc), bR.unsqueeze(-3), g(bh), w(B.center), wm(B.rotation), w(B.half_extents)) if nb
-                else empty(bc),
-                box_halfspace(g(bc), bR.unsqueeze(-3), g(bh), w(n), d[..., None, :])))
+                _pair(capsule_box, (w(wa), w(wb), wr[..., None, :]), gbox, threshold),
+                _pair(box_box, gbox, wbox, threshold) if nb else empty(bc),
+                box_halfspace(*gbox, w(n), d[..., None, :])))
         batch = torch.broadcast_shapes(*(x.shape[:-2] for x in rows))
         return torch.cat([x.expand(*batch, *x.shape[-2:]) for x in rows], -2)
+
+
+def _pair(fn, x: tuple, y: tuple, threshold: float | None) -> Tensor:
+    """``fn(*x, *y)`` for ``fn`` one of capsule_capsule (x, y capsules ``(a, b, r)``), capsule_box (x a
+    capsule, y a box ``(c, R, h)``), box_box; with ``threshold`` through the broad phase
+    (:func:`~diffkin.collision.broad.exact_below`, the bound of the pair's kind)."""
+    if threshold is None:
+        return fn(*x, *y)
+    cap, box = (1, 1, 0), (1, 2, 1)  # the own dims of (a, b, r) and (c, R, h)
+    if fn is capsule_capsule:
+        bound, ks = sphere_bound(*capsule_spheres(*x), *capsule_spheres(*y)), (cap, cap)
+    elif fn is capsule_box:
+        bound, ks = capsule_box_bound(*x, *y), (cap, box)
+    else:
+        bound, ks = sphere_bound(*box_spheres(x[0], x[2]), *box_spheres(y[0], y[2])), (box, box)
+    return exact_below(bound, threshold, fn, *zip(x, ks[0]), *zip(y, ks[1]))
 
 
 def _check_world(world) -> World:

@@ -73,7 +73,7 @@ class CollisionAcceptance:
 
     def __call__(self, idx: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         q = self.jmap.q_of_u(u)
-        g = self.c.value(q.T)
+        g = self.c.value(q.T, self.cfg.slack)  # exact below margin + slack: ok and the depths are exact
         ok = (g >= self.cfg.slack).all(-1)
         # deep penetrations are left to re-seeding (a local refinement rarely resolves them)
         bad = (~ok & (g.amin(-1) > -self.cfg.deepest)).nonzero().squeeze(-1)
@@ -114,7 +114,8 @@ class CollisionAcceptance:
         q = q.clone()
         for step in range(cfg.steps + 1):
             ql, tl = q[:, live], tg.take(live)
-            g, rows, Jg = self.c.jacobian(ql.T, cfg.active)
+            # rows beyond `detection` are no constraints: their broad-phase bound is enough
+            g, rows, Jg = self.c.jacobian(ql.T, cfg.active, max(cfg.detection, cfg.slack))
             A, b, pn, ang = self._pose(tl, ql)
             now = self._ok(g, pn, ang, tg.position_only)
             ok[live[now]] = True
@@ -140,10 +141,48 @@ class CollisionAcceptance:
 
 def free_library(lib_q: Tensor, constraint: DistanceConstraint, slack: float, keep: int) -> Tensor:
     """The columns of ``lib_q (n, M)`` whose distances all clear margin + slack, at most ``keep`` (all of
-    the first ``keep`` columns when none does)."""
+    the first ``keep`` columns when none does).
+
+    Remembered on the collision model between calls: the same library sample (a solve with the same
+    ``seed``), margin and slack against an unchanged model give the same columns, so they are reused when
+    the sample is equal and every tensor the distances read is the same object at the same version (the
+    chain's :meth:`_state_key`, the collision model's parameters and buffers, the world's tensors; the
+    cache holds them, so no freed storage can be mistaken for them)."""
+    coll = constraint.collision
+    state = _model_state(constraint)
+    memo = getattr(coll, "_free_library_memo", None)
+    if state is not None and memo is not None and _same_state(memo[0], state) \
+            and memo[1] == (float(slack), int(keep)) and torch.equal(memo[2], lib_q):
+        return memo[3]
     free = constraint.satisfied(lib_q.T, slack)
     idx = free.nonzero().squeeze(-1)[:keep]
-    return idx if idx.numel() else torch.arange(min(keep, lib_q.shape[1]), device=lib_q.device)
+    idx = idx if idx.numel() else torch.arange(min(keep, lib_q.shape[1]), device=lib_q.device)
+    if state is not None:
+        coll._free_library_memo = (state, (float(slack), int(keep)), lib_q.clone(), idx)
+    return idx
+
+
+def _model_state(constraint: DistanceConstraint) -> tuple | None:
+    """(chain, its state key, margin, [(tensor, version)] of the collision model and the world) or None
+    where the distances may read state that no version tells (a user's ``body_poses`` callable)."""
+    from ..collision._poses import LinkFrames
+
+    coll = constraint.collision
+    chain = getattr(coll, "chain", None)
+    key = None if chain is None or not isinstance(coll._frames, LinkFrames) else chain._state_key()
+    if key is None:
+        return None
+    w = constraint.world
+    ts = [*coll.parameters(), *coll.buffers()]
+    if w is not None:
+        ts += [w.spheres, w.capsules, w.halfspaces, w.points, w.boxes.center, w.boxes.rotation,
+               w.boxes.half_extents]
+    return chain, key, constraint.margin, [(t, t._version) for t in ts]
+
+
+def _same_state(a: tuple, b: tuple) -> bool:
+    return a[0] is b[0] and a[1] == b[1] and a[2] == b[2] and len(a[3]) == len(b[3]) and all(
+        x is y and u == v for (x, u), (y, v) in zip(a[3], b[3]))
 
 
 def constraint_of(chain, collision, world, margin, base) -> DistanceConstraint | None:

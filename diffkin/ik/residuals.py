@@ -106,33 +106,34 @@ class DistanceConstraint:
     def __init__(self, collision, world=None, margin: float = 0.0):
         self.collision, self.world, self.margin = collision, world, float(margin)
 
-    def distances(self, q: Tensor) -> Tensor:
-        """The signed distances d ``(..., D)`` (metres; negative: penetration depth)."""
-        d = self.collision.self_distances(q)
-        if self.world is None:
-            return d
-        w = self.collision.world_distances(q, self.world).flatten(-2)
-        batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-1])
-        return torch.cat((d.expand(*batch, d.shape[-1]), w.expand(*batch, w.shape[-1])), dim=-1)
+    def distances(self, q: Tensor, threshold: float | None = None) -> Tensor:
+        """The signed distances d ``(..., D)`` (metres; negative: penetration depth), the geoms placed once
+        for the self and the world distances. ``threshold``: the broad phase of
+        :meth:`~diffkin.collision.RobotCollision._distances_at_least` (exact wherever d or its bound is
+        below ``threshold``, >= ``threshold`` elsewhere: the decisions d >= t, t <= threshold, are exact)."""
+        return self.collision._distances_at_least(q, self.world, threshold)
 
-    def value(self, q: Tensor) -> Tensor:
-        """g = d − margin ``(..., D)``."""
-        return self.distances(q) - self.margin
+    def value(self, q: Tensor, slack: float | None = None) -> Tensor:
+        """g = d − margin ``(..., D)``; with ``slack`` exact only where g < slack (>= slack elsewhere)."""
+        return self.distances(q, None if slack is None else self.margin + slack) - self.margin
 
     def satisfied(self, q: Tensor, slack: float = 0.0) -> Tensor:
-        """Every distance >= margin + slack ``(...)`` (True where there are none)."""
-        g = self.value(q)
+        """Every distance >= margin + slack ``(...)`` (True where there are none), decided by the exact
+        distances (the broad phase only skips those its bound proves clear)."""
+        g = self.value(q, slack)
         return (g >= slack).all(-1)
 
-    def jacobian(self, q: Tensor, nearest: int | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    def jacobian(self, q: Tensor, nearest: int | None = None,
+                 slack: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """(g ``(..., D)`` detached, the rows ``(..., k)`` (indices into D: the ``nearest`` smallest g, or
         all), ∂g/∂q of those rows ``(..., k, n)``) from one evaluation and one vectorised backward pass per
-        row (autograd of the closed-form distances), in q's coordinates."""
+        row (autograd of the closed-form distances), in q's coordinates. ``slack``: as in :meth:`value`
+        (rows with g >= slack may hold their bound and its gradient: for constraints inactive there)."""
         from .optimization import _residual_jacobian
 
         with torch.enable_grad():
             qg = q.detach().requires_grad_(True)
-            g = self.value(qg)
+            g = self.value(qg, slack)
             D = g.shape[-1]
             k = D if nearest is None else min(int(nearest), D)
             rows = g.detach().topk(k, dim=-1, largest=False).indices if k < D else \
