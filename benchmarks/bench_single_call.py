@@ -77,24 +77,24 @@ def batch_one_kinematics(n: int = 2000) -> list[dict]:
 
 
 def batched(N: int, repeats: int, threads: int) -> list[dict]:
-    from diffkin.ik import _native_solve
+    from diffkin.ik import numerical
 
     _, T = make_targets(N, seed=3)
     chain = models.load("panda", dtype=torch.float64)
     ik.solve(chain, T[:64], seed=0)
     times = {"C solve (dk_solve)": [], "torch loop + dk_lm (main)": []}
     checks = {}
-    real = _native_solve.applies
+    real = numerical.native_applies  # the C solve's gate, as ik.solve sees it
     with torch_threads(threads):
         for rep in range(repeats):  # interleaved: both see the same machine load
             for name in times:
-                _native_solve.applies = real if name.startswith("C") else (lambda *a: False)
+                numerical.native_applies = real if name.startswith("C") else (lambda *a: False)
                 try:
                     t0 = time.perf_counter()
                     res = ik.solve(chain, T, seed=rep)
                     times[name].append(time.perf_counter() - t0)
                 finally:
-                    _native_solve.applies = real
+                    numerical.native_applies = real
                 checks[name] = verify(res.q.detach(), T, res.success)
     rows = []
     for name, ts in times.items():

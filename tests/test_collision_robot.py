@@ -305,16 +305,21 @@ def test_meshes_become_enclosing_capsules(tmp_path):
 
 
 def test_the_model_does_not_import_the_collision_layer():
-    """Dependencies point one way: nothing in diffkin/ but the package's __init__ and the command line's
-    collision options (the application layer above model and geometry, ``diffkin/_cli_collision.py``) names
-    diffkin.collision."""
+    """Dependencies point one way: the collision layer sits above the model (chain, kernels, models,
+    transforms, calibration, ...) and below what builds on it (IK's distance constraints, the viewer, the
+    demo and the command line); nothing of the model names diffkin.collision, and diffkin.collision names
+    nothing of those above it."""
     root = Path(diffkin.__file__).parent
-    above = (root / "__init__.py", root / "_cli_collision.py")
+    above = {root / n for n in ("__init__.py", "_cli_collision.py", "cli.py", "demo.py")}
+    above |= set(root.glob("viz*.py")) | set((root / "ik").rglob("*.py"))
     files = [p for p in root.rglob("*.py") if "collision" not in p.relative_to(root).parts and p not in above]
     pattern = re.compile(r"^\s*(from\s+(\.+|diffkin\.)collision"
                          r"|from\s+(\.+|diffkin)\s+import\s.*\bcollision\b"
                          r"|import\s+diffkin\.collision)", re.M)
     assert len(files) > 20 and [str(p) for p in files if pattern.search(p.read_text())] == []
+    upward = re.compile(r"^\s*(from\s+(\.\.|diffkin\.)(ik|viz|demo|cli)\b|import\s+diffkin\.(ik|viz))", re.M)
+    layer = list((root / "collision").rglob("*.py"))
+    assert layer and [str(p) for p in layer if upward.search(p.read_text())] == []
 
 
 def test_parse_collisions_rejects_malformed_elements():

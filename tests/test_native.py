@@ -263,7 +263,7 @@ def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
         return ref
 
     monkeypatch.setattr(lm._Run, "steps", both)
-    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # the scheduled torch loop
+    monkeypatch.setattr("diffkin.ik.numerical.native_applies", lambda *a: False)  # the scheduled torch loop
     res = ik.solve(chain, target, position_only=position_only, num_seeds=8, seed=0)
     assert len(rounds) >= 2 and bool(res.success.any())
     for fused, ref in rounds:
@@ -279,7 +279,7 @@ def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
 def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype, monkeypatch):
     from diffkin import ik
 
-    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # dk_lm in the torch loop
+    monkeypatch.setattr("diffkin.ik.numerical.native_applies", lambda *a: False)  # dk_lm in the torch loop
     chain = models.load("panda", dtype=dtype)
     q = chain.random_configuration((200,), generator=torch.Generator().manual_seed(9))
     with torch.no_grad():
@@ -305,7 +305,7 @@ def test_rounds_run_ahead_give_the_torch_solve(kind, position_only, batch, monke
     the torch solve's (float64: the same iterations, seeds tried, success and solution)."""
     from diffkin import ik
 
-    monkeypatch.setattr("diffkin.ik._native_solve.applies", lambda *a: False)  # dk_lm in the torch loop
+    monkeypatch.setattr("diffkin.ik.numerical.native_applies", lambda *a: False)  # dk_lm in the torch loop
     chain = _chain(kind, torch.float64)
     q = chain.random_configuration((batch,), generator=torch.Generator().manual_seed(10))
     with torch.no_grad():

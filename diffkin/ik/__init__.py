@@ -25,12 +25,12 @@ from .numerical import dls_delta as dls_delta
 from .numerical import dls_step as dls_step
 from .numerical import solve as solve
 from .optimization import CallableCost as CallableCost
-from .optimization import CostContext as CostContext
 from .optimization import JointLimitCost as JointLimitCost
 from .optimization import ManipulabilityCost as ManipulabilityCost
 from .optimization import PoseCost as PoseCost
 from .optimization import RestPostureCost as RestPostureCost
 from .optimization import optimize as optimize
+from .residuals import CostContext as CostContext
 from .result import IKResult as IKResult
 
 __all__ = [

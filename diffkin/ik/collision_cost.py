@@ -18,8 +18,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .optimization import CostContext, _Term
-from .residuals import DistanceConstraint
+from .residuals import CostContext, DistanceConstraint, _Term
 
 __all__ = ["CollisionCost"]
 

@@ -22,10 +22,12 @@ from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
-from . import _native_solve
 from ._collision import CollisionConfig, collision_round, constraint_of, free_library
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
+from ._native_solve import applies as native_applies
+from ._native_solve import solve_batch as native_solve_batch
+from ._native_solve import solve_one as native_solve_one
 from .implicit import attach_solve_gradients
 from .residuals import DistanceConstraint, PoseResidual
 from .result import IKResult, final_errors
@@ -270,7 +272,7 @@ def solve(
     if q0 is None and base is None and config is None and damping is None and collision is None \
             and world is None and not (  # one pose: lean path
             position_only or progress or seeds_from_closed_form or not respect_limits):
-        fast = _native_solve.solve_one(chain, T_target, generator, seed, num_seeds=num_seeds,
+        fast = native_solve_one(chain, T_target, generator, seed, num_seeds=num_seeds,
                                        max_iterations=max_iterations,
                                        tol=(position_tolerance, orientation_tolerance))
         if fast is not None:
@@ -297,8 +299,8 @@ def solve(
         generator.manual_seed(seed if seed is not None else int(torch.randint(2**62, ()).item()))
     residual = PoseResidual(position_only, cfg.orientation_weight)
     # the whole solve in one C call (CPU, no autograd); collision constraints keep the scheduled loop
-    if collision is None and world is None and _native_solve.applies(chain, T_target, progress):
-        out = _native_solve.solve_batch(
+    if collision is None and world is None and native_applies(chain, T_target, progress):
+        out = native_solve_batch(
             chain, tg, batch, T_orig, seeds_user, cfg, generator, dtype, position_only=position_only,
             tol=(position_tolerance, orientation_tolerance), num_seeds=num_seeds,
             max_iterations=max_iterations, respect_limits=respect_limits)  # fmt: skip

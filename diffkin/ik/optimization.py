@@ -11,7 +11,6 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import cached_property
 
 import torch
 from torch import Tensor
@@ -21,12 +20,11 @@ from ..kernels.dls import dls_solve
 from ._collision import constraint_of
 from .implicit import attach_stationary_gradients, wants_gradients
 from .numerical import _check_tolerances, _targets, _user_seeds, _valid_targets
-from .residuals import PoseResidual
+from .residuals import CostContext, PoseResidual, _residual_jacobian, _Term
 from .result import IKResult, final_errors
 
 __all__ = [
     "optimize",
-    "CostContext",
     "PoseCost",
     "JointLimitCost",
     "RestPostureCost",
@@ -36,42 +34,6 @@ __all__ = [
 ]
 
 OPTIMIZERS = ("lbfgs", "adam", "gauss_newton")
-
-
-class CostContext:
-    """What cost terms see: ``q (..., n)``, the target, and lazily the FK pose and Jacobian of ``q``."""
-
-    def __init__(self, chain, q: Tensor, T_target: Tensor):
-        self.chain, self.q, self.T_target = chain, q, T_target
-
-    @cached_property
-    def fk_and_jacobian(self) -> tuple[Tensor, Tensor]:
-        from ..jacobian import forward_kinematics_and_jacobian
-
-        return forward_kinematics_and_jacobian(self.chain, self.q, check=False)
-
-    @cached_property
-    def T(self) -> Tensor:
-        if "fk_and_jacobian" in self.__dict__:
-            return self.fk_and_jacobian[0]
-        return self.chain.forward_kinematics(self.q, check=False)
-
-    @property
-    def J(self) -> Tensor:
-        return self.fk_and_jacobian[1]
-
-
-@dataclass(frozen=True)
-class _Term:
-    weight: float = 1.0
-
-    def residual(self, ctx: CostContext) -> Tensor | None:
-        """Residual ``(..., r)`` with cost = weight·‖r‖², or None for a general (non least-squares) term."""
-        return None
-
-    def __call__(self, ctx: CostContext) -> Tensor:
-        r = self.residual(ctx)
-        return self.weight * (r * r).sum(-1)
 
 
 @dataclass(frozen=True)
@@ -166,19 +128,6 @@ def _residuals(chain, terms, q, T) -> Tensor:
             )
         parts.append(term.weight**0.5 * r)
     return torch.cat(parts, dim=-1)
-
-
-def _residual_jacobian(r: Tensor, q: Tensor, create_graph: bool = False) -> Tensor:
-    """Per-sample Jacobian ``(..., R, n)`` of ``r (..., R)`` w.r.t. ``q (..., n)`` (independent samples)."""
-    R = r.shape[-1]
-    eye = torch.eye(R, dtype=r.dtype, device=r.device).view(R, *([1] * (r.ndim - 1)), R).expand(R, *r.shape)
-    try:
-        (g,) = torch.autograd.grad(r, q, grad_outputs=eye, is_grads_batched=True, retain_graph=True,
-                                   create_graph=create_graph)
-    except RuntimeError:  # an op without a batching rule: one backward pass per residual row
-        g = torch.stack([torch.autograd.grad(r[..., k].sum(), q, retain_graph=True,
-                                             create_graph=create_graph)[0] for k in range(R)])
-    return g.movedim(0, -2)
 
 
 def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):

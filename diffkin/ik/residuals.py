@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import torch
 from torch import Tensor
@@ -25,7 +26,7 @@ from ..errors import DiffkinError
 from ..kernels.pose_error import orientation_error
 from ._kernel import norm0
 
-__all__ = ["PoseResidual", "DistanceConstraint"]
+__all__ = ["PoseResidual", "DistanceConstraint", "CostContext"]
 
 
 @dataclass(frozen=True)
@@ -129,8 +130,6 @@ class DistanceConstraint:
         all), ∂g/∂q of those rows ``(..., k, n)``) from one evaluation and one vectorised backward pass per
         row (autograd of the closed-form distances), in q's coordinates. ``slack``: as in :meth:`value`
         (rows with g >= slack may hold their bound and its gradient: for constraints inactive there)."""
-        from .optimization import _residual_jacobian
-
         with torch.enable_grad():
             qg = q.detach().requires_grad_(True)
             g = self.value(qg, slack)
@@ -164,3 +163,53 @@ class DistanceConstraint:
                       boxes=Box(b.center.to(dtype), b.rotation.to(dtype), b.half_extents.to(dtype)),
                       halfspaces=w.halfspaces.to(dtype), points=w.points.to(dtype))
         return DistanceConstraint(coll, w, self.margin)
+
+
+# ------------------------------------------------------------ cost terms (ik.optimize's residuals)
+class CostContext:
+    """What cost terms see: ``q (..., n)``, the target, and lazily the FK pose and Jacobian of ``q``."""
+
+    def __init__(self, chain, q: Tensor, T_target: Tensor):
+        self.chain, self.q, self.T_target = chain, q, T_target
+
+    @cached_property
+    def fk_and_jacobian(self) -> tuple[Tensor, Tensor]:
+        from ..jacobian import forward_kinematics_and_jacobian
+
+        return forward_kinematics_and_jacobian(self.chain, self.q, check=False)
+
+    @cached_property
+    def T(self) -> Tensor:
+        if "fk_and_jacobian" in self.__dict__:
+            return self.fk_and_jacobian[0]
+        return self.chain.forward_kinematics(self.q, check=False)
+
+    @property
+    def J(self) -> Tensor:
+        return self.fk_and_jacobian[1]
+
+
+@dataclass(frozen=True)
+class _Term:
+    weight: float = 1.0
+
+    def residual(self, ctx: CostContext) -> Tensor | None:
+        """Residual ``(..., r)`` with cost = weight·‖r‖², or None for a general (non least-squares) term."""
+        return None
+
+    def __call__(self, ctx: CostContext) -> Tensor:
+        r = self.residual(ctx)
+        return self.weight * (r * r).sum(-1)
+
+
+def _residual_jacobian(r: Tensor, q: Tensor, create_graph: bool = False) -> Tensor:
+    """Per-sample Jacobian ``(..., R, n)`` of ``r (..., R)`` w.r.t. ``q (..., n)`` (independent samples)."""
+    R = r.shape[-1]
+    eye = torch.eye(R, dtype=r.dtype, device=r.device).view(R, *([1] * (r.ndim - 1)), R).expand(R, *r.shape)
+    try:
+        (g,) = torch.autograd.grad(r, q, grad_outputs=eye, is_grads_batched=True, retain_graph=True,
+                                   create_graph=create_graph)
+    except RuntimeError:  # an op without a batching rule: one backward pass per residual row
+        g = torch.stack([torch.autograd.grad(r[..., k].sum(), q, retain_graph=True,
+                                             create_graph=create_graph)[0] for k in range(R)])
+    return g.movedim(0, -2)
