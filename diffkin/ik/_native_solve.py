@@ -87,7 +87,7 @@ def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int)
     kernel cannot serve it."""
     with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
         hit = single.entry(chain, x)
-    if hit is None:
+    if hit is None or not hit.args.euclidean:  # (ball / free joints: see applies)
         return None
     key = ("solve", dtype, respect_limits, L)
     prep = hit.extra.get(key)
@@ -102,7 +102,10 @@ def applies(chain, T_target: Tensor, progress: bool) -> bool:
     if progress or T_target.device.type != "cpu" or chain.device.type != "cpu":
         return False
     with torch.no_grad():
-        return chain._native_model(T_target) is not None
+        packed = chain._native_model(T_target)
+    # ball and free joints: dk_solve's steps are additive on u, so those chains keep the torch loop (on the
+    # manifold); the fused kernel still evaluates their FK and Jacobians there
+    return packed is not None and packed.euclidean
 
 
 def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, num_seeds: int,
