@@ -81,13 +81,22 @@ class _Prepared:
         return hit[1]
 
 
+def _entry(chain, x: Tensor) -> single.Entry | None:
+    """The chain's lean-path cache entry (:func:`diffkin.kernels.single.entry`) when ``dk_solve`` can serve
+    it: the fused kernel serves the chain and q has no quaternion coordinates (dk_solve's steps are additive
+    on u, so ball and free chains keep the torch loop on the manifold; their FK and Jacobians are still
+    fused there). None otherwise."""
+    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
+        hit = single.entry(chain, x)
+    return hit if hit is not None and hit.args.euclidean else None
+
+
 def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
     """The :class:`_Prepared` of ``chain`` for these options, kept in its lean-path cache entry
     (:func:`diffkin.kernels.single.entry`: remade when a parameter or buffer changes); None when the fused
     kernel cannot serve it."""
-    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
-        hit = single.entry(chain, x)
-    if hit is None or not hit.args.euclidean:  # (ball / free joints: see applies)
+    hit = _entry(chain, x)
+    if hit is None:
         return None
     key = ("solve", dtype, respect_limits, L)
     prep = hit.extra.get(key)
@@ -101,11 +110,7 @@ def applies(chain, T_target: Tensor, progress: bool) -> bool:
     without autograd either way; gradients are attached at the solution afterwards)."""
     if progress or T_target.device.type != "cpu" or chain.device.type != "cpu":
         return False
-    with torch.no_grad():
-        packed = chain._native_model(T_target)
-    # ball and free joints: dk_solve's steps are additive on u, so those chains keep the torch loop (on the
-    # manifold); the fused kernel still evaluates their FK and Jacobians there
-    return packed is not None and packed.euclidean
+    return _entry(chain, T_target) is not None
 
 
 def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, num_seeds: int,
