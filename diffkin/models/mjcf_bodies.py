@@ -32,13 +32,13 @@ def _source(chain):
 
 def _companion(chain):
     """The chain of the same source from the world to every body (cached per chain, dtype and device)."""
-    from .mjcf import compile_mjcf, from_mjcf
+    from .mjcf import MJCFChain, compile_mjcf
 
     per = _COMPANIONS.setdefault(chain, {})
     key = (chain.dtype, chain.device)
     if key not in per:
         source = _source(chain)
-        model = compile_mjcf(source)[0]
+        model, text, path = compile_mjcf(source)  # compiled once: its body names and the chain to them
         names = [model.body(b).name for b in range(1, model.nbody)]
         unnamed = [str(b + 1) for b, n in enumerate(names) if not n]
         if unnamed:
@@ -48,7 +48,8 @@ def _companion(chain):
         with warnings.catch_warnings():  # the chain itself already said which equalities it ignores
             warnings.simplefilter("ignore")
             # the file's geometry, not learnable here: no autograd graph through its parameters
-            per[key] = from_mjcf(source, names, dtype=chain.dtype, device=chain.device).requires_grad_(False)
+            per[key] = MJCFChain(model, text, path, names, dtype=chain.dtype,
+                                 device=chain.device).requires_grad_(False)
     return per[key]
 
 
