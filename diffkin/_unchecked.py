@@ -2,7 +2,9 @@
 boundary already checked, and for ``torch.func`` transforms, which cannot run the host-side checks.
 
 Library code that bypasses the validators calls :func:`fk` (or wraps a chain in :class:`UncheckedFK` for
-``torch.func.functional_call``) instead of passing ``check=False`` itself, so that the bypass is one place.
+``torch.func.functional_call``) instead of passing ``check=False`` itself, so that the bypass is one place;
+only the chain's own methods (which own the validation) pass the flag. The environments, a separate package
+on the public API, use the public ``check=False`` flag.
 """
 
 from __future__ import annotations

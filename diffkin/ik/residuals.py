@@ -22,6 +22,7 @@ from functools import cached_property
 import torch
 from torch import Tensor
 
+from .._unchecked import fk
 from ..errors import DiffkinError
 from ..kernels.pose_error import orientation_error
 from ._kernel import norm0
@@ -55,7 +56,7 @@ class PoseResidual:
         """F ``(..., r)`` at ``q (..., n)`` (no FK graph unless a chain parameter requires grad)."""
         grad = q.requires_grad or any(p.requires_grad for p in chain.parameters())
         with torch.set_grad_enabled(torch.is_grad_enabled() and grad):
-            T = chain.forward_kinematics(q, check=False)
+            T = fk(chain, q)
         return self.error(T, T_target).reshape(*T.shape[: q.ndim - 1], -1)
 
     def rows(self, J: Tensor) -> Tensor:
@@ -182,7 +183,7 @@ class CostContext:
     def T(self) -> Tensor:
         if "fk_and_jacobian" in self.__dict__:
             return self.fk_and_jacobian[0]
-        return self.chain.forward_kinematics(self.q, check=False)
+        return fk(self.chain, self.q)
 
     @property
     def J(self) -> Tensor:
