@@ -55,11 +55,10 @@ def _leader(tree: URDFTree, j: JointSpec) -> tuple[JointSpec, float, float]:
     return j, m, b
 
 
-def _describe(tree: URDFTree, end_links: str | list[str], root_link: str | None,
+def _describe(tree: URDFTree, ends: list[str], root_link: str | None,
               floating_base: bool) -> tuple[TreeDescription, dict]:
     """The format-neutral description of the tree from ``root_link`` to the end links, and the URDF facts
     the chain keeps (element rows of its parameters, link frames)."""
-    _, ends = check_end_links(end_links, "link")
     paths = [tree.path(e, root_link) for e in ends]
     used: list[JointSpec] = []  # every joint on the paths, in topological order (union of the paths)
     for path in paths:
@@ -144,7 +143,7 @@ def _describe(tree: URDFTree, end_links: str | list[str], root_link: str | None,
         # fold_origins
         buffers={"_axis_flip": axes[:, 2] < 0, "origin_delta": None})
     root = root_link or tree.root
-    facts = {"ends": ends, "root_link": root,
+    facts = {"root_link": root,
              "link_frame": {root: root_frame + 1, **{j.child: last_frame[j.name] + 1 for j in moving}},
              "frame_joint_names": [j.name for j in axis_joints], "link_names": [j.child for j in axis_joints],
              "joint_origin_names": [j.name for j in used]}
@@ -169,11 +168,11 @@ class URDFChain(TreeChain):
 
     def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
                  dtype: torch.dtype | None = None, device=None, floating_base: bool = False):
-        single, _ = check_end_links(end_links, "link")
-        description, facts = _describe(tree, end_links, root_link, floating_base)
+        single, ends = check_end_links(end_links, "link")
+        description, facts = _describe(tree, ends, root_link, floating_base)
         super().__init__(description, dtype=dtype, device=device, single_end=single)
         self.tree = tree
-        self.end_links = facts["ends"]
+        self.end_links = ends
         self.root_link = facts["root_link"]
         self.floating_base = floating_base
         #: the index in ``forward_kinematics(q, all_frames=True)`` of each link that moves with a frame: the
