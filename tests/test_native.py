@@ -193,14 +193,38 @@ def test_build_into_a_fresh_cache_and_the_command(tmp_path):
     assert "disabled" in off.stdout
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self/task"), reason="needs Linux /proc")
+def test_own_running_threads_are_counted():
+    # a thread of this process computing outside the GIL is runnable: it and the reader are two
+    import threading
+
+    done, started = threading.Event(), threading.Event()
+
+    def busy():
+        a = torch.randn(300, 300, dtype=torch.float64)
+        started.set()
+        while not done.is_set():
+            a = torch.tanh(a @ a)
+
+    worker = threading.Thread(target=busy)
+    with torch.no_grad():
+        worker.start()
+        started.wait(10)
+        counts = [native._own_running() for _ in range(20)]
+        done.set()
+        worker.join()
+    assert min(counts) >= 1 and max(counts) >= 2
+
+
 def test_thread_policy_counts_free_cores(monkeypatch):
-    # free cores = the affinity set less the other runnable tasks of /proc/loadavg (field 4: running/total;
-    # the reader itself is one of them)
+    # free cores = the affinity set less the runnable tasks of /proc/loadavg (field 4: running/total) that
+    # are not this process's own runnable threads (the reader and, say, torch's spinning OpenMP workers)
     import io
 
     monkeypatch.setattr(native, "_cores", lambda: 4)
-    for running, free in ((1, 4), (3, 2), (9, 1)):
+    for running, own, free in ((1, 1, 4), (3, 1, 2), (9, 1, 1), (3, 3, 4), (5, 2, 1)):
         monkeypatch.setattr(native, "_free", [-1e9, 0])  # no remembered reading
+        monkeypatch.setattr(native, "_own_running", lambda o=own: o)
         monkeypatch.setattr(native, "open", lambda *a, r=running, **k: io.StringIO(f"0.5 0.4 0.3 {r}/300 42"),
                             raising=False)
         assert native.free_cores() == free

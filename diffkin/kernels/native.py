@@ -27,12 +27,12 @@ kernels serve every call.
 
 Thread policy: batches of at most 512 configurations run on the calling thread. Larger ones use
 ``torch.get_num_threads()`` threads, but never more than the cores that are free right now: the count of
-runnable tasks in ``/proc/loadavg`` (read at most every 0.1 s) minus this call's own thread is taken off
-the cores this process may run on. A fork-join call waits for its slowest thread, and a thread that shares
-a core with a busy process is preempted for whole scheduler slices (milliseconds): on a 2-core machine with
-one core busy, two threads made FK 10× slower than one. With the policy a busy core costs at most its
-share (≤ 2× on 2 cores). Blocks are also handed out dynamically, for cores that are slower for other
-reasons. ``threads=`` on :func:`fk_jacobian` overrides the policy.
+runnable tasks in ``/proc/loadavg`` (read at most every 0.1 s) minus this process's own runnable threads
+is taken off the cores this process may run on. A fork-join call waits for its slowest thread, and a
+thread that shares a core with a busy process is preempted for whole scheduler slices (milliseconds): on a
+2-core machine with one core busy, two threads made FK 10× slower than one. With the policy a busy core
+costs at most its share (≤ 2× on 2 cores). Blocks are also handed out dynamically, for cores that are
+slower for other reasons. ``threads=`` on :func:`fk_jacobian` overrides the policy.
 """
 
 from __future__ import annotations
@@ -314,10 +314,26 @@ def _cores() -> int:
         return os.cpu_count() or 1
 
 
+def _own_running() -> int:
+    """Threads of this process in state R (running or runnable) right now, the reader included: read from
+    ``/proc/self/task/*/stat`` (the state is the field after the parenthesised command name)."""
+    count = 0
+    for task in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{task}/stat") as f:
+                stat = f.read()
+        except OSError:  # the thread ended between the listing and the read
+            continue
+        count += stat[stat.rindex(")") + 2:].startswith("R")
+    return max(count, 1)
+
+
 def free_cores() -> int:
-    """Cores of this process's affinity set not running another task right now (at least 1): the
-    instantaneous runnable count of ``/proc/loadavg`` less the reader itself, remembered for 0.1 s. Without
-    ``/proc`` (not Linux): every core."""
+    """Cores of this process's affinity set not running another process's task right now (at least 1): the
+    instantaneous runnable count of ``/proc/loadavg`` less this process's own runnable threads, remembered
+    for 0.1 s. Own threads are not load: torch's OpenMP workers spin for a while after each torch op, and
+    counting them halved the threads of a C call that followed one (the batched IK solve ran 2.5x slower on
+    an idle 2-core machine). Without ``/proc`` (not Linux): every core."""
     now = time.monotonic()
     if now - _free[0] < 0.1:
         return _free[1]
@@ -325,7 +341,7 @@ def free_cores() -> int:
     try:
         with open("/proc/loadavg") as f:
             running = int(f.read().split()[3].split("/")[0])
-        free = max(1, cores - max(running - 1, 0))
+        free = max(1, cores - max(running - _own_running(), 0))
     except (OSError, ValueError, IndexError):
         free = cores
     _free[0], _free[1] = now, free
