@@ -58,8 +58,9 @@ class _Prepared:
             u = jm.sample_u(L, gen)
             T, _, _ = native.fk_jacobian(packed, jm.q_of_u(u).T.contiguous().to(dtype), threads=1)
             self.lib_u = u.T.contiguous()  # (L, n)
-            # (L, 12K): p, x, y, z of every end link, the layout of the targets' columns
-            self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).contiguous()
+            # (12K, L): p, x, y, z of every end link (the layout of the targets' columns), feature-major
+            # for the vectorised nearest-pose search
+            self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).T.contiguous()
         self.L, self._configured = L, {}
         self.base = packed.call(dtype, jc=self.arrays[0], jh=self.arrays[1], bounded=self.arrays[2],
                                 wrap=self.arrays[3], qlo=lo, qhi=hi, clamp=self.clamp, n_lib=L,

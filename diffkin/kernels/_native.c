@@ -108,7 +108,7 @@
     X(int64_t, n_lib, "dk_solve: L library configurations") \
     X(int64_t, lib_ranks, "dk_solve: R nearest library poses tried per target") \
     X(const void *, lib_u, "dk_solve: [L*n] reals") \
-    X(const void *, lib_pose, "dk_solve: [L*12K] reals: p, x, y, z of every end link (3K each)") \
+    X(const void *, lib_pose, "dk_solve: [12K*L] reals, feature-major: p, x, y, z of every end link")  \
     X(double, feature_weight, "dk_solve: weight of the rotation columns in the nearest-pose distance") \
     X(int64_t, n_pool, "dk_solve: P random draws") \
     X(const void *, pool, "dk_solve: [P*n] uniform reals in [0, 1)") \
@@ -702,29 +702,33 @@ static int64_t DK(dk_fk)(const dk_args *a) {
 }
 
 /* Solve A x = b in place (x overwrites b) for symmetric positive definite A (d x d, row-major, overwritten
- * by its Cholesky factor); pivots are clamped to a tiny positive value, as in kernels/dls.py. */
+ * by its Cholesky factor); pivots are clamped to a tiny positive value, as in kernels/dls.py. One division
+ * per pivot (its reciprocal multiplies the column and both triangular solves): divisions have the longest
+ * latency here, and this d <= 6n solve runs once per lane and LM step. */
 static void DK(spd_solve)(real *A, real *b, int d) {
     const real tiny = (real)sqrt((double)DK_TINY);
+    real inv[d > 0 ? d : 1]; /* d <= min(6K, n): a few hundred reals at most */
     for (int j = 0; j < d; j++) {
         real sjj = A[j * d + j];
         for (int k = 0; k < j; k++) sjj -= A[j * d + k] * A[j * d + k];
         const real ljj = (real)sqrt((double)(sjj > tiny ? sjj : tiny));
+        inv[j] = 1 / ljj;
         A[j * d + j] = ljj;
         for (int i = j + 1; i < d; i++) {
             real sij = A[i * d + j];
             for (int k = 0; k < j; k++) sij -= A[i * d + k] * A[j * d + k];
-            A[i * d + j] = sij / ljj;
+            A[i * d + j] = sij * inv[j];
         }
     }
     for (int i = 0; i < d; i++) { /* L y = b */
         real v = b[i];
         for (int k = 0; k < i; k++) v -= A[i * d + k] * b[k];
-        b[i] = v / A[i * d + i];
+        b[i] = v * inv[i];
     }
     for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
         real v = b[i];
         for (int k = i + 1; k < d; k++) v -= A[k * d + i] * b[k];
-        b[i] = v / A[i * d + i];
+        b[i] = v * inv[i];
     }
 }
 
