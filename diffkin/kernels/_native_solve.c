@@ -93,54 +93,127 @@ static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t 
     }
 }
 
-typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta; } DK(LMWork);
+/* The LM work space of a thread, lane-major (W lanes innermost): dqdu n, Jw r x n, e r, A d x d, y d,
+ * delta n, inv d (reciprocal pivots), lam 1, each times W. */
+typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta, *inv, *lam; } DK(LMWork);
 
-/* The damped least-squares step (3.59) of lane l on its weighted error e (weighted in place):
- * delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the n x n normal equations when r > n), lambda =
- * damping2 + mu |e_w|^2, J_w = diag(sqrt_w) J diag(dq/du). */
-static void DK(lane_delta)(const DK(Solve) *S, const real *Jb, int l, DK(LMWork) *w) {
-    const int n = S->n, r = S->r, d = S->d, rows = S->pos_only ? 3 : 6;
-    real *e = w->e, *Jw = w->Jw, *A = w->A, *y = w->y, *delta = w->delta, e2 = 0;
-    for (int a = 0; a < r; a++) {
-        e[a] *= S->sqrt_w[a];
-        e2 += e[a] * e[a];
+/* Cholesky solve A x = b in place for the lanes l0 .. l1 - 1 of a lane-major SPD A (d x d x W, its lower
+ * triangle read and overwritten by the factor; b d x W): spd_solve's algorithm with the lane loop innermost,
+ * so each line is one vector operation over the lanes. */
+static void DK(spd_solve_lanes)(real *A, real *b, real *inv, int d, int l0, int l1) {
+    const real tiny = (real)sqrt((double)DK_TINY);
+#define AL(i, k) (A + ((size_t)(i) * d + (k)) * W)
+    for (int j = 0; j < d; j++) {
+        real *ajj = AL(j, j), *ij = inv + (size_t)j * W;
+        for (int k = 0; k < j; k++) {
+            const real *ajk = AL(j, k);
+            for (int l = l0; l < l1; l++) ajj[l] -= ajk[l] * ajk[l];
+        }
+        for (int l = l0; l < l1; l++) {
+            ajj[l] = (real)sqrt((double)(ajj[l] > tiny ? ajj[l] : tiny));
+            ij[l] = 1 / ajj[l];
+        }
+        for (int i = j + 1; i < d; i++) {
+            real *aij = AL(i, j);
+            for (int k = 0; k < j; k++) {
+                const real *aik = AL(i, k), *ajk = AL(j, k);
+                for (int l = l0; l < l1; l++) aij[l] -= aik[l] * ajk[l];
+            }
+            for (int l = l0; l < l1; l++) aij[l] *= ij[l];
+        }
     }
-    const real lam = S->damping2 + S->mu * e2;
+    for (int i = 0; i < d; i++) { /* L y = b */
+        real *bi = b + (size_t)i * W;
+        for (int k = 0; k < i; k++) {
+            const real *aik = AL(i, k), *bk = b + (size_t)k * W;
+            for (int l = l0; l < l1; l++) bi[l] -= aik[l] * bk[l];
+        }
+        for (int l = l0; l < l1; l++) bi[l] *= inv[(size_t)i * W + l];
+    }
+    for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
+        real *bi = b + (size_t)i * W;
+        for (int k = i + 1; k < d; k++) {
+            const real *aki = AL(k, i), *bk = b + (size_t)k * W;
+            for (int l = l0; l < l1; l++) bi[l] -= aki[l] * bk[l];
+        }
+        for (int l = l0; l < l1; l++) bi[l] *= inv[(size_t)i * W + l];
+    }
+#undef AL
+}
+
+/* The damped least-squares step (3.59) of lanes l0 .. l1 - 1 on their errors e (r x W, weighted in place):
+ * delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the n x n normal equations when r > n), lambda =
+ * damping2 + mu |e_w|^2, J_w = diag(sqrt_w) J diag(dq/du). All lanes of the range at once, lane-major: as
+ * one scalar lane at a time the inner products reduced horizontally and this step was over half of a
+ * batched solve's time. A lane of the range that takes no step computes values nobody reads. */
+static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int l0, int l1, DK(LMWork) *w) {
+    const int n = S->n, r = S->r, d = S->d, rows = S->pos_only ? 3 : 6;
+    real *e = w->e, *Jw = w->Jw, *A = w->A, *y = w->y, *delta = w->delta, *lam = w->lam;
+    for (int l = l0; l < l1; l++) lam[l] = 0;
+    for (int a = 0; a < r; a++) {
+        real *ea = e + (size_t)a * W;
+        const real sw = S->sqrt_w[a];
+        for (int l = l0; l < l1; l++) {
+            ea[l] *= sw;
+            lam[l] += ea[l] * ea[l];
+        }
+    }
+    for (int l = l0; l < l1; l++) lam[l] = S->damping2 + S->mu * lam[l];
     for (int k = 0; k < S->K; k++)
         for (int a = 0; a < rows; a++)
-            for (int i = 0; i < n; i++)
-                Jw[(size_t)(rows * k + a) * n + i] = Jb[((size_t)k * 6 * n + (size_t)a * n + i) * W + l] *
-                                                      S->sqrt_w[rows * k + a] * w->dqdu[(size_t)i * W + l];
+            for (int i = 0; i < n; i++) {
+                const real *jb = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W, *dq = w->dqdu + (size_t)i * W;
+                const real sw = S->sqrt_w[rows * k + a];
+                real *jw = Jw + ((size_t)(rows * k + a) * n + i) * W;
+                for (int l = l0; l < l1; l++) jw[l] = jb[l] * sw * dq[l];
+            }
+#define JW(a, i) (Jw + ((size_t)(a) * n + (i)) * W)
     if (r <= n) {
         for (int a = 0; a < r; a++) {
-            for (int c = 0; c <= a; c++) {
-                real acc = 0;
-                for (int i = 0; i < n; i++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)c * n + i];
-                A[a * d + c] = A[c * d + a] = acc;
+            for (int c = 0; c <= a; c++) { /* the lower triangle: all the factorisation reads */
+                real *acc = A + ((size_t)a * d + c) * W;
+                for (int l = l0; l < l1; l++) acc[l] = 0;
+                for (int i = 0; i < n; i++) {
+                    const real *ja = JW(a, i), *jc = JW(c, i);
+                    for (int l = l0; l < l1; l++) acc[l] += ja[l] * jc[l];
+                }
             }
-            A[a * d + a] += lam;
-            y[a] = e[a];
+            real *aa = A + ((size_t)a * d + a) * W, *ya = y + (size_t)a * W, *ea = e + (size_t)a * W;
+            for (int l = l0; l < l1; l++) {
+                aa[l] += lam[l];
+                ya[l] = ea[l];
+            }
         }
-        DK(spd_solve)(A, y, d);
+        DK(spd_solve_lanes)(A, y, w->inv, d, l0, l1);
         for (int i = 0; i < n; i++) {
-            real acc = 0;
-            for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * y[a];
-            delta[i] = acc;
+            real *di = delta + (size_t)i * W;
+            for (int l = l0; l < l1; l++) di[l] = 0;
+            for (int a = 0; a < r; a++) {
+                const real *ja = JW(a, i), *ya = y + (size_t)a * W;
+                for (int l = l0; l < l1; l++) di[l] += ja[l] * ya[l];
+            }
         }
         return;
     }
     for (int i = 0; i < n; i++) {
         for (int c = 0; c <= i; c++) {
-            real acc = 0;
-            for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)a * n + c];
-            A[i * d + c] = A[c * d + i] = acc;
+            real *acc = A + ((size_t)i * d + c) * W;
+            for (int l = l0; l < l1; l++) acc[l] = 0;
+            for (int a = 0; a < r; a++) {
+                const real *ji = JW(a, i), *jc = JW(a, c);
+                for (int l = l0; l < l1; l++) acc[l] += ji[l] * jc[l];
+            }
         }
-        real acc = 0;
-        for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * e[a];
-        delta[i] = acc;
-        A[i * d + i] += lam;
+        real *di = delta + (size_t)i * W, *ai = A + ((size_t)i * d + i) * W;
+        for (int l = l0; l < l1; l++) di[l] = 0;
+        for (int a = 0; a < r; a++) {
+            const real *ji = JW(a, i), *ea = e + (size_t)a * W;
+            for (int l = l0; l < l1; l++) di[l] += ji[l] * ea[l];
+        }
+        for (int l = l0; l < l1; l++) ai[l] += lam[l];
     }
-    DK(spd_solve)(A, delta, d);
+#undef JW
+    DK(spd_solve_lanes)(A, delta, w->inv, d, l0, l1);
 }
 
 /* The R library indices of the poses nearest target t (nearest first) into nn. lib_pose is feature-major
@@ -148,7 +221,7 @@ static void DK(lane_delta)(const DK(Solve) *S, const real *Jb, int l, DK(LMWork)
  * features, this search was a quarter of a batched solve's time); the sums run over the features in the
  * same order either way. */
 #ifndef NEAR_BLOCK
-#define NEAR_BLOCK 64
+#define NEAR_BLOCK 64 /* <= 64: a block's candidates are the bits of one uint64_t */
 #endif
 static void DK(nearest)(const DK(Solve) *S, int64_t t, int32_t *nn) {
     const int K3 = 3 * S->K, F = S->pos_only ? K3 : 4 * K3;
@@ -168,7 +241,13 @@ static void DK(nearest)(const DK(Solve) *S, int64_t t, int32_t *nn) {
             const real *f = S->lib_pose + (size_t)c * L + j0, tc = ft[c], w = wt[c];
             for (int jj = 0; jj < nb; jj++) d[jj] += w * (tc - f[jj]) * (tc - f[jj]);
         }
-        for (int jj = 0; jj < nb; jj++) {
+        /* the candidates: below the R-th best at the block's start (a bound: it only shrinks within) */
+        const real worst = j0 >= R ? best[R - 1] : (real)INFINITY;
+        uint64_t below = 0;
+        for (int jj = 0; jj < nb; jj++) below |= (uint64_t)(d[jj] < worst) << jj;
+        if (j0 < R) below = ~(uint64_t)0 >> (64 - nb); /* the first R fill the list whatever their value */
+        for (; below; below &= below - 1) {
+            const int jj = __builtin_ctzll(below);
             const int64_t j = j0 + jj;
             const real dist = d[jj];
             int at = (int)(j < R ? j : R); /* insertion into the sorted R best */
@@ -275,11 +354,12 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
     DK(map_u)(S->n, S->bounded, S->jc, S->jh, ul, sc->qlanes, w->dqdu);
     DK(block)(&S->s, &S->pp, sc, 1);
     int64_t *iters = S->a->iters_out;
+    int l0 = W, l1 = 0; /* the lanes that take a step lie in l0 .. l1 - 1 */
     for (int l = 0; l < W; l++) {
         const int64_t t = c->t[l];
         if (t < 0) continue;
-        real pn, ang;
-        DK(lane_error)(S, sc->ends, l, t, w->e, &pn, &ang);
+        real pn, ang, el[S->r]; /* this lane's error, then scattered into the lanes' e */
+        DK(lane_error)(S, sc->ends, l, t, el, &pn, &ang);
         iters[t]++;
         const int64_t age = ++c->it[l];
         if (pn <= S->tp * S->margin && ang <= S->to * S->margin) {
@@ -295,8 +375,16 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
                 continue;
             }
         }
-        DK(lane_delta)(S, sc->Jb, l, w);
-        DK(integrate)(S->n, ul, l, w->delta);
+        for (int a = 0; a < S->r; a++) w->e[(size_t)a * W + l] = el[a];
+        l0 = l < l0 ? l : l0;
+        l1 = l + 1;
+    }
+    if (l1 > l0) DK(lanes_delta)(S, sc->Jb, l0, l1, w);
+    for (int l = l0; l < l1; l++) { /* the rows still running (a converged row retires its target's others) */
+        if (c->t[l] < 0) continue;
+        real dl[S->n];
+        for (int i = 0; i < S->n; i++) dl[i] = w->delta[(size_t)i * W + l];
+        DK(integrate)(S->n, ul, l, dl);
     }
     for (int l = 0; l < W; l++) /* after every row's checks: only targets still open take lanes */
         if (c->t[l] < 0) {
@@ -399,7 +487,8 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     int nthreads = (int)a->nthreads;
     if (nthreads < 1 || nchunks < 2) nthreads = 1;
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
-    const size_t per = base + 2 * (size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n +
+    const size_t lm = ((size_t)n + (size_t)r * n + r + (size_t)d * d + 2 * (size_t)d + n + 1) * W; /* LMWork */
+    const size_t per = base + (size_t)n * W + lm +
                        (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK) + CHUNK) / sizeof(real) + 1;
     real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads);
     if (!all) { free(S.pp.fix); free(S.best_merit); return -1; }
@@ -412,12 +501,14 @@ static int64_t DK(dk_solve)(const dk_args *a) {
         DK(LMWork) w;
         w.dqdu = ul + (size_t)n * W;
         w.Jw = w.dqdu + (size_t)n * W;
-        w.e = w.Jw + (size_t)r * n;
-        w.A = w.e + r;
-        w.y = w.A + (size_t)d * d;
-        w.delta = w.y + d;
+        w.e = w.Jw + (size_t)r * n * W;
+        w.A = w.e + (size_t)r * W;
+        w.y = w.A + (size_t)d * d * W;
+        w.delta = w.y + (size_t)d * W;
+        w.inv = w.delta + (size_t)n * W;
+        w.lam = w.inv + (size_t)d * W;
         DK(Chunk) c;
-        c.nn = (int32_t *)(w.delta + n);
+        c.nn = (int32_t *)(w.lam + W);
         c.count = c.nn + CHUNK * R;
         c.done = (uint8_t *)(c.count + CHUNK);
 #pragma omp for schedule(dynamic, 1)
