@@ -194,7 +194,7 @@ def test_optimize_gradients_at_inactive_constraints_match_finite_differences():
     Tg2 = T.clone().requires_grad_(True)
     (g_plain,) = torch.autograd.grad((solve(Tg2) * v).sum(), Tg2)
     torch.testing.assert_close(g, g_plain, rtol=1e-6, atol=1e-7)
-    eps = 1e-4  # (smaller steps meet the solver's own convergence noise)
+    eps = 1e-3  # (smaller steps meet the solvers' convergence noise, about 1e-9 in q: 1e-5 at 1e-4)
     for i in range(3):  # the translation entries
         E = torch.zeros_like(T)
         E[..., i, 3] = eps

@@ -94,39 +94,91 @@ def attach_solve_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, 
     return _ImplicitSolve.apply(q.detach(), T_target, spec, *params)
 
 
+def _independent(A: Tensor, keep: Tensor) -> Tensor:
+    """``keep (..., k)`` less the rows of ``A (..., k, n)`` that depend on kept rows before them
+    (Gram–Schmidt, relative tolerance 1e-8): a geom listed twice, or two pairs touching at one point, hold
+    the point once."""
+    basis, out = [], keep.clone()
+    for i in range(A.shape[-2]):
+        r = A[..., i, :]
+        for b in basis:
+            r = r - (r * b).sum(-1, keepdim=True) * b
+        norm = r.norm(dim=-1)
+        out[..., i] &= norm > 1e-8 * A[..., i, :].norm(dim=-1)
+        unit = r / norm.clamp_min(1e-300)[..., None]
+        basis.append(torch.where(out[..., i, None], unit, torch.zeros_like(r)))
+    return out
+
+
+def _active_constraints(a_fn, active: Tensor, qv: Tensor, gq: Tensor):
+    """(a ``(..., k)``, A = ∂a/∂q ``(..., k, n)`` with create_graph, multipliers λ ``(..., k)`` detached,
+    the rows kept): the rows held at the boundary with λ > 0 in ∇C = Aᵀλ (least squares); a row whose
+    multiplier is not positive does not hold the point and is dropped (one pass)."""
+    a = a_fn(qv)
+    A = torch.stack([torch.autograd.grad(a[..., i].sum(), qv, create_graph=True)[0]
+                     for i in range(a.shape[-1])], dim=-2)
+    keep = _independent(A.detach(), active)
+    lam = None
+    for _ in range(2):
+        Am = (A * keep.unsqueeze(-1).to(A.dtype)).detach()
+        eye = torch.eye(a.shape[-1], dtype=A.dtype, device=A.device)
+        M = Am @ Am.mT + torch.diag_embed((~keep).to(A.dtype)) + 1e-12 * eye
+        lam = torch.linalg.solve(M, (Am @ gq.detach().unsqueeze(-1))).squeeze(-1)
+        keep = keep & (lam > 0)
+    return a, A, (lam * keep.to(lam.dtype)).detach(), keep
+
+
 class _ImplicitStationary(_AtSolution):
     @staticmethod
     def backward(ctx, g: Tensor):
         q, T_target = ctx.saved_tensors
-        cost_fn, success, lam, params = ctx.spec
+        cost_fn, success, lam, params, kkt = ctx.spec
         wrt_T = T_target.requires_grad or ctx.needs_input_grad[1]
         n = q.shape[-1]
         with torch.enable_grad():
             qv = q.detach().requires_grad_(True)
             T_d = T_target.detach().requires_grad_(wrt_T)
             (gq,) = torch.autograd.grad(cost_fn(qv, T_d).sum(), qv, create_graph=True)
-            # H = ∇²_q C by n Hessian-vector products (samples are independent: one pass per column)
+            if kkt is not None:  # ∇_q L of the Lagrangian L = C − λᵀa at the KKT point
+                a, A, mult, keep = _active_constraints(*kkt, qv, gq)
+                gq = gq - (A.mT @ mult.unsqueeze(-1)).squeeze(-1)
+            # H = ∇²_q C (or ∇²_q L) by n Hessian-vector products (samples are independent: one pass a column)
             cols = [torch.autograd.grad(gq[..., i].sum(), qv, retain_graph=True)[0] for i in range(n)]
             H = torch.stack(cols, dim=-1)
             H = 0.5 * (H + H.transpose(-1, -2))
             # damped only where H is nearly singular (σ_min < k): exact elsewhere, bounded there
             lam = adaptive_damping(H.detach(), lam, lam**0.5)[..., None, None]
             eye = torch.eye(n, dtype=q.dtype, device=q.device)
-            u = torch.linalg.solve(H + lam * eye, g.unsqueeze(-1)).squeeze(-1)
-            u = u * success.unsqueeze(-1).to(u.dtype)
+            keep_u = success.unsqueeze(-1).to(q.dtype)
+            if kkt is None:
+                u = torch.linalg.solve(H + lam * eye, g.unsqueeze(-1)).squeeze(-1) * keep_u
+                outputs, cotangents = gq, -u
+            else:  # [H Aᵀ; A 0][u; v] = [g; 0] on the kept rows (an identity block on the others: v = 0)
+                Am = A.detach() * keep.unsqueeze(-1).to(q.dtype)
+                K = torch.cat((torch.cat((H + lam * eye, Am.mT), -1),
+                               torch.cat((Am, -torch.diag_embed((~keep).to(q.dtype))), -1)), -2)
+                rhs = torch.cat((g, g.new_zeros(*g.shape[:-1], Am.shape[-2])), -1)
+                uv = torch.linalg.solve(K, rhs.unsqueeze(-1)).squeeze(-1) * success.unsqueeze(-1).to(q.dtype)
+                outputs, cotangents = (gq, a), (-uv[..., :n], -uv[..., n:] * keep.to(q.dtype))
             inputs = ([T_d] if wrt_T else []) + list(params)
-            grads = torch.autograd.grad(gq, inputs, grad_outputs=-u, allow_unused=True) if inputs else []
+            grads = torch.autograd.grad(outputs, inputs, grad_outputs=cotangents, allow_unused=True) \
+                if inputs else []
         grad_T = grads[0] if wrt_T else None
         grad_params = grads[1:] if wrt_T else grads
         return (None, grad_T, None, *grad_params)
 
 
 def attach_stationary_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, cost_fn,
-                                damping: float) -> Tensor:
+                                damping: float, kkt=None) -> Tensor:
     """``q`` with the implicit gradient of a stationary point of ``cost_fn(q, T) -> (...)`` (per sample)
-    w.r.t. ``T_target`` and the chain's parameters that require grad (no-op when nothing does)."""
+    w.r.t. ``T_target`` and the chain's parameters that require grad (no-op when nothing does).
+
+    ``kkt = (a_fn, active)``: q is a KKT point of min C s.t. a(q) ≥ const, ``a_fn(q) -> (..., k)`` the
+    constraint rows (differentiable in q and the parameters) and ``active (..., k)`` those held at the
+    boundary; the rows with a positive multiplier are differentiated as equalities:
+    [∇²L Aᵀ; A 0][dq; dν] = −[∂_z∇_q L dz; ∂_z a dz], L = C − λᵀa (the constraints' curvature included)."""
     if not wants_gradients(chain, T_target):
         return q
     params = tuple(p for p in chain.parameters() if p.requires_grad)
-    spec = (cost_fn, success.detach(), damping**2, params)
+    spec = (cost_fn, success.detach(), damping**2, params, kkt)
     return _ImplicitStationary.apply(q.detach(), T_target, spec, *params)

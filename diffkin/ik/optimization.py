@@ -17,7 +17,8 @@ from torch import Tensor
 
 from ..errors import ConventionError
 from ..kernels.dls import dls_solve
-from ._collision import constraint_of
+from ._collision import CollisionConfig, constraint_of
+from ._constrained import active_rows, constrained_step, merit, next_trust
 from .implicit import attach_stationary_gradients, wants_gradients
 from .numerical import _check_tolerances, _targets, _user_seeds, _valid_targets
 from .residuals import CostContext, PoseResidual, _residual_jacobian, _Term
@@ -130,12 +131,16 @@ def _residuals(chain, terms, q, T) -> Tensor:
     return torch.cat(parts, dim=-1)
 
 
-def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
-    """Levenberg–Marquardt on the stacked residuals, λ adapted per sample (accept: λ/3, reject: 4λ)."""
+def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change, constraint=None):
+    """Levenberg–Marquardt on the stacked residuals, λ adapted per sample (accept: λ/3, reject: 4λ); with a
+    :class:`DistanceConstraint` each step is the constrained QP of :mod:`diffkin.ik._constrained`
+    (1-DOF chains) and acceptance compares its merit."""
     lam = torch.full(q.shape[:-1], damping**2, dtype=q.dtype, device=q.device)
     space = chain.configuration_space
     it = 0
     cost = None
+    ccfg = CollisionConfig()
+    trust = torch.full_like(lam, ccfg.trust)
     for it in range(1, iterations + 1):
         if space.euclidean:
             qv = wrt = q.detach().requires_grad_(True)
@@ -146,15 +151,24 @@ def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change):
         Jr = _residual_jacobian(r, wrt)
         r = r.detach()
         cost = (r * r).sum(-1)
-        dq = -dls_solve(Jr, r, lam)  # (JᵀJ + λI)⁻¹Jᵀr (3.59), whichever normal system is smaller
+        if constraint is None:
+            dq = -dls_solve(Jr, r, lam)  # (JᵀJ + λI)⁻¹Jᵀr (3.59), whichever normal system is smaller
+        else:
+            dq = constrained_step(constraint, Jr, r, lam, q.detach(), trust, ccfg)
+            cost = merit(constraint, q.detach(), cost)
         with torch.no_grad():
             q_new = project(space.integrate(q, dq))
             r_new = _residuals(chain, terms, q_new, T)
             cost_new = (r_new * r_new).sum(-1)
+            if constraint is not None:
+                cost_new = merit(constraint, q_new, cost_new)
             accept = cost_new < cost
             q = torch.where(accept[..., None], q_new, q)
             lam = torch.where(accept, lam / 3.0, lam * 4.0).clamp(1e-12, 1e8)
             gain = torch.where(accept, cost - cost_new, torch.zeros_like(cost))
+            if constraint is not None:  # a rejected step shrinks the trust region: not yet converged
+                trust = next_trust(trust, dq, accept, ccfg)
+                gain = torch.where(accept | (trust <= 1e-10), gain, torch.full_like(gain, math.inf))
             if it % 5 == 0 and bool((gain <= tol_change * cost.clamp_min(1.0)).all()):
                 break
     return q, it
@@ -252,9 +266,12 @@ def optimize(
         unroll: how ``q`` is differentiated (see below): False (default) for the implicit gradient; True (10
             steps) or a number of steps to differentiate through that many Gauss–Newton steps (all terms
             least squares) or gradient steps of size ``lr`` (default 0.05) taken from the solution instead.
-        collision, world, margin: as in :func:`~diffkin.ik.solve`: adds a :class:`CollisionCost` (a
-            one-sided quadratic penalty below margin + 1 cm, :mod:`diffkin.ik.collision_cost`) to the
-            terms, and ``success`` also needs every checked distance >= ``margin`` (the exact distances).
+        collision, world, margin: as in :func:`~diffkin.ik.solve`; ``success`` also needs every checked
+            distance >= ``margin`` (the exact distances). With ``optimizer="gauss_newton"`` on a chain of
+            1-DOF joints the distances are **constraints** of every step (a QP with the nearest distances
+            linearised, :mod:`diffkin.ik._constrained`): the result is a KKT point of min Σ costs s.t.
+            d >= margin. Otherwise (L-BFGS, Adam, ball or free joints) a :class:`CollisionCost` (a one-sided
+            quadratic penalty below margin + 1 cm, :mod:`diffkin.ik.collision_cost`) joins the terms.
 
     Returns:
         :class:`IKResult`; ``success`` is judged from an exact FK in the chain's dtype (and the limits).
@@ -266,13 +283,20 @@ def optimize(
     terms — PoseCost, RestPostureCost and ManipulabilityCost are; JointLimitCost's second derivative jumps
     at the margin and a user's callable may not be: there ``unroll`` differentiates through explicit steps
     instead. Every sample is differentiated (its cost is stationary whether or not the pose meets the
-    tolerances).
+    tolerances). With distance constraints (Gauss–Newton) a constraint held at the boundary with a positive
+    multiplier is differentiated as an equality of the KKT point ([∇²L Aᵀ; A 0], L = C − λᵀd, the
+    distances' curvature included, :func:`~diffkin.ik.implicit.attach_stationary_gradients`); where none
+    is active the gradient is that of the unconstrained stationary point. Equal to central differences of
+    the solver in both cases (``tests/test_ik_optimize_constraints.py``, ``tests/test_ik_collision.py``).
     """
     if optimizer not in OPTIMIZERS:
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
     terms = _as_terms(costs)
     constraint = constraint_of(chain, collision, world, margin, None)
-    if constraint is not None:
+    # Gauss–Newton on 1-DOF chains keeps the distances as constraints; the other optimisers (and ball or
+    # free chains) minimise the one-sided penalty of CollisionCost
+    hard = constraint is not None and optimizer == "gauss_newton" and chain.configuration_space.euclidean
+    if constraint is not None and not hard:
         from .collision_cost import CollisionCost
 
         terms.append(CollisionCost(collision=collision, world=world, margin=constraint.margin))
@@ -303,7 +327,8 @@ def optimize(
         max_iterations = {"lbfgs": 50, "adam": 500, "gauss_newton": 50}[optimizer]
     with torch.enable_grad():  # the iterations differentiate the cost w.r.t. q, also under no_grad
         if optimizer == "gauss_newton":
-            q, it = _gauss_newton(chain, terms, q, T, max_iterations, project, damping, tolerance_change)
+            q, it = _gauss_newton(chain, terms, q, T, max_iterations, project, damping, tolerance_change,
+                                  constraint if hard else None)
         else:
             q, it = _torch_optimizer(optimizer, chain, terms, q, T, max_iterations, project, lr,
                                      tolerance_change)
@@ -327,9 +352,15 @@ def optimize(
         q = _unrolled(chain, terms, q, T_src, torch.ones_like(success), 10 if unroll is True else int(unroll),
                       damping, lr)
     elif space.euclidean:
-        # every sample: the returned point is stationary whether or not it meets the pose tolerances
+        # every sample: the returned point is stationary whether or not it meets the pose tolerances (a KKT
+        # point where a distance constraint is held at the boundary)
+        kkt = None
+        if hard and wants_gradients(chain, T_src):
+            rows, active = active_rows(constraint, q, CollisionConfig())
+            if rows.shape[-1]:
+                kkt = (lambda qq: constraint.value(qq).gather(-1, rows), active)
         q = attach_stationary_gradients(chain, q, T_src, torch.ones_like(success),
-                                        lambda qq, TT: _total(chain, terms, qq, TT), damping)
+                                        lambda qq, TT: _total(chain, terms, qq, TT), damping, kkt)
     else:  # stationary in the chart v ↦ q* ⊕ v at v = 0; q = q* ⊕ v* carries dq = (∂q/∂v) dv*
         q_star = q.detach()
         v = attach_stationary_gradients(
