@@ -44,6 +44,7 @@ class _CWatch(ctypes.Structure):
                 ("busy", _I64)]
 
 
+_one: tuple = (None, None)  # (the loaded library, its dk_fk_one typed)
 _typed: dict = {}  # id of the loaded library -> (dk_unchanged, dk_fk_one, dk_fk_work_bytes), typed once
 
 
@@ -58,6 +59,8 @@ def _functions():
         for fn, nargs in zip(fns, (1, 5, 1)):
             fn.restype, fn.argtypes = _I64, [_PTR] * nargs
         _typed[id(lib)] = fns
+    global _one
+    _one = (lib, fns[1])
     return fns
 
 
@@ -114,7 +117,7 @@ class Entry:
     packed from (their pointers in ``_tensors`` order, 0 for an unset buffer), output templates, and
     ``extra`` (per-chain state of other lean callers, e.g. the IK solve's, dropped with the entry)."""
 
-    __slots__ = ("ptrs", "topo", "watch", "args", "extra", "dtype", "n", "T0", "J0", "base")
+    __slots__ = ("ptrs", "topo", "watch", "watch_addr", "args", "extra", "dtype", "n", "T0", "J0", "base")
 
     def __init__(self, chain, ptrs, args):
         self.ptrs, self.topo, self.args, self.extra = ptrs, chain._topo, args, {}
@@ -125,6 +128,7 @@ class Entry:
         base = args.args[self.dtype]
         self.base = ctypes.addressof(base)  # args keeps it alive
         self.watch = watch(chain, _functions()[2](self.base))
+        self.watch_addr = None if self.watch is None else self.watch.addr
 
     def __reduce__(self):
         return _nothing, ()
@@ -180,7 +184,7 @@ def entry(chain, x: Tensor) -> Entry | None:
     return hit
 
 
-def fk(chain, q, jacobian: bool = False):
+def fk(chain, q, jacobian: bool = False, _retry: bool = True):
     """``T (4, 4)`` (``(K, 4, 4)`` for K end links), or ``(T, J (6, nv) / (K, 6, nv))`` with ``jacobian``,
     of one configuration ``q (nq,)``; None when the lean path does not apply (the caller's general path then
     serves the call)."""
@@ -190,17 +194,17 @@ def fk(chain, q, jacobian: bool = False):
     if (grad and q.requires_grad) or torch.compiler.is_compiling() or _is_wrapped(q) \
             or not native.available():
         return None
-    for _ in range(2):  # a stale entry (bytes written in place) is remade once
-        hit = _current(chain, grad)
-        if hit is None or q.dtype is not hit.dtype or q.shape[0] != hit.n:
-            return None
-        T = torch.empty_like(hit.T0)
-        J = torch.empty_like(hit.J0) if jacobian else None
-        status = _functions()[1](hit.base, hit.watch.addr, q.data_ptr(), T.data_ptr(),
-                                 J.data_ptr() if jacobian else None)
-        if status != _STALE:
-            break
+    hit = _current(chain, grad)
+    if hit is None or q.dtype is not hit.dtype or q.numel() != hit.n:
+        return None
+    T = torch.empty_like(hit.T0)
+    J = torch.empty_like(hit.J0) if jacobian else None
+    one = _one[1] if _one[0] is native._lib else _functions()[1]
+    status = one(hit.base, hit.watch_addr, q.data_ptr(), T.data_ptr(),
+                 J.data_ptr() if jacobian else None)
+    if status == _STALE and _retry:  # bytes written in place since the entry was made: remade once
         _remade(chain)
+        return fk(chain, q, jacobian, False)
     if status != 0:  # non-finite q (or a failure): the general path's error
         return None
     return (T, J) if jacobian else T
