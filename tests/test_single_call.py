@@ -199,3 +199,13 @@ def test_the_watch_sees_every_byte():
     t.view(torch.int64)[4] ^= 1  # the lowest bit of the last double
     assert not w.unchanged()
     assert np.array_equal(u.numpy(), [0, 1, 2])
+
+
+def test_the_benchmarks_batch_one_rows_run():
+    """benchmarks/bench_single_call.py's batch-1 rows (the peers' where installed) on a few calls."""
+    from benchmarks import bench_single_call
+
+    rows = bench_single_call.batch_one_kinematics(n=60)
+    cases = [r["case"] for r in rows]
+    assert cases[:2] == ["FK, 1 configuration", "FK + Jacobian, 1 configuration"]
+    assert all(r["median_us"] > 0 for r in rows)
