@@ -45,7 +45,7 @@
 #define DK_ABI_VERSION 2 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
 #define DK_MOTION_ERROR (-3) /* dk_lm of a chain with S motions (nv != n) */
-#define DK_STALE (-4) /* dk_fk_watched: the watched constants changed since they were packed */
+#define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
 
 /* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
  * passed as void pointers. J joint frames, K end links, n variables, B configurations. */

@@ -3,14 +3,14 @@
 A batch-1 call through the general dispatch spends most of its time in Python-side checks and tensor
 round trips (the fused C pass itself takes about 1 µs for a Panda). :func:`fk` checks what it needs with
 plain attribute tests (a plain contiguous CPU tensor of the chain's dtype, shape ``(n,)``, no gradient
-wanted), takes the chain's cached :class:`Entry` and makes ONE foreign call, ``dk_fk_watched``, on q's own
+wanted), takes the chain's cached :class:`Entry` and makes ONE foreign call, ``dk_fk_one``, on q's own
 memory and fresh outputs.
 
 The cache is checked on every call, never trusted: an entry holds the data pointers of every parameter
 and buffer it was packed from and a byte snapshot of them (a :class:`Watch`). A tensor replaced, moved
 (``.to``), re-materialised or set through ``.data =`` has another pointer; one written in place, with a
 version bump (an optimizer step, ``add_`` under ``no_grad``) or without one (``p.data.add_()``, memory
-shared with numpy), has other bytes, which ``dk_fk_watched`` compares before it computes anything (a few
+shared with numpy), has other bytes, which ``dk_fk_one`` compares before it computes anything (a few
 hundred bytes for a Panda). Either way the entry is remade through the chain's checked state
 (:meth:`~diffkin.chain.KinematicChain._state_key`, :meth:`~diffkin.chain.KinematicChain._native_model`).
 
@@ -136,7 +136,7 @@ class Entry:
 
 def _current(chain, grad: bool) -> Entry | None:
     """The cached entry if the chain's tensors are still at its pointers and none wants a gradient; the
-    bytes are not compared here (the caller does: dk_fk_watched, or :func:`entry`). None: no entry, or
+    bytes are not compared here (the caller does: dk_fk_one, or :func:`entry`). None: no entry, or
     not servable now."""
     hit = chain.__dict__.get(_KEY)
     ts = _tensors(chain)
