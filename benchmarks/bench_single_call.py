@@ -5,7 +5,8 @@
   checked independently by :func:`benchmarks.bench_ik.verify`). Two chain states: parameters frozen
   (``requires_grad_(False)``: the lean path) and the default (parameters requiring grad: the C solve plus
   the implicit-gradient attachment);
-* batch-1 FK and FK + Jacobian (the lean path, ``torch.no_grad()``), median per call;
+* batch-1 FK and FK + Jacobian (the lean path, ``torch.no_grad()``), median per call, against Pinocchio's
+  and Robotics Toolbox's C++ calls of one configuration in the same run;
 * batched ``ik.solve`` of N Panda targets on 1 and 2 threads: the C solve (``dk_solve``) against the scheduled
   torch loop with the fused LM steps (``dk_lm``, what ``main`` ran before), interleaved repeats.
 
@@ -63,16 +64,57 @@ def single_target(n: int) -> list[dict]:
     return rows
 
 
+def _peer_single_calls() -> list[tuple[str, object]]:
+    """Pinocchio's and Robotics Toolbox's one-configuration calls on a numpy row (each returns what diffkin
+    returns: the flange pose, and with the Jacobian the pose and J in the base frame)."""
+    calls = []
+    try:
+        import pinocchio as pin
+
+        model, data, fid = peers.pinocchio_panda()
+        fk, ufp = pin.forwardKinematics, pin.updateFramePlacement
+        cfj, frame = pin.computeFrameJacobian, pin.ReferenceFrame.LOCAL_WORLD_ALIGNED
+
+        def pin_fk(qi):
+            fk(model, data, qi)
+            return ufp(model, data, fid).homogeneous
+
+        def pin_fkj(qi):
+            J = cfj(model, data, qi, fid, frame)  # runs the joint FK itself
+            return ufp(model, data, fid).homogeneous, J
+
+        calls += [("Pinocchio FK, 1 configuration", pin_fk),
+                  ("Pinocchio FK + Jacobian, 1 configuration", pin_fkj)]
+    except Exception as e:  # optional peer
+        print(f"[single] Pinocchio skipped: {e!r}")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ets = peers.rtb_panda()
+        jac = peers._jacob0_fn(ets)
+        calls += [("RTB FK (C++ ETS.eval), 1 configuration", ets.eval),
+                  ("RTB FK + Jacobian (C++), 1 configuration", lambda qi: (ets.eval(qi), jac(qi)))]
+    except Exception as e:  # optional peer
+        print(f"[single] Robotics Toolbox skipped: {e!r}")
+    return calls
+
+
 def batch_one_kinematics(n: int = 2000) -> list[dict]:
     chain = models.load("panda", dtype=torch.float64)
-    qs = chain.random_configuration((n,), generator=torch.Generator().manual_seed(2)).unbind(0)
+    qb = chain.random_configuration((n,), generator=torch.Generator().manual_seed(2))
+    qs, rows_np = qb.unbind(0), list(qb.numpy())
     rows = []
     with torch.no_grad():
         for case, fn in (("FK, 1 configuration", chain.forward_kinematics),
-                         ("FK + Jacobian, 1 configuration", chain.fk_jacobian)):
+                         ("FK + Jacobian, 1 configuration", chain.forward_kinematics_and_jacobian)):
             fn(qs[0])
             us, _ = _median_us(fn, qs)
             rows.append({"case": case, "median_us": us})
+    for case, fn in _peer_single_calls():
+        for qi in rows_np[:50]:
+            fn(qi)
+        us, _ = _median_us(fn, rows_np)
+        rows.append({"case": case, "median_us": us})
     return rows
 
 
@@ -110,7 +152,12 @@ def main(argv=None) -> int:
     p.add_argument("--targets", type=int, default=200)
     p.add_argument("--batch", type=int, default=10000)
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--only-fk", action="store_true", help="only the batch-1 FK and FK + Jacobian rows")
     a = p.parse_args(argv)
+    if a.only_fk:
+        with torch_threads(1):
+            print_table(batch_one_kinematics(), "batch-1 kinematics (medians; one run, same machine load)")
+        return 0
     print(f"tolerances {TOL_P} m / {TOL_O} rad, float64, Panda")
     with torch_threads(1):
         rows = single_target(a.targets) + batch_one_kinematics()

@@ -314,9 +314,13 @@ class KinematicChain(nn.Module):
 
     def _cached_constants(self, key: tuple) -> tuple[Segments, Segments]:
         """Both constant forms of :meth:`_constant_segments`, remade when the :meth:`_state_key` changes
-        (every parameter and buffer set, replaced or updated in place)."""
-        if key != self._const_key:
+        (every parameter and buffer set, replaced or updated in place) or, on CPU, when their bytes were
+        written without a version bump (``p.data.add_()``: :class:`~diffkin.kernels.single.Watch`)."""
+        watched = self.__dict__.get("_const_watch")
+        if key != self._const_key or (watched is not None and not watched.unchanged()):
+            self._zero_key.clear()  # its (version, pointer) keys miss such writes as well
             self._const_key, self._const = key, self._constant_segments()
+            self.__dict__["_const_watch"] = single.watch(self)
         return self._const
 
     def _native_model(self, q: Tensor) -> native.NativeModel | None:

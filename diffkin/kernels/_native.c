@@ -45,6 +45,7 @@
 #define DK_ABI_VERSION 2 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
 #define DK_MOTION_ERROR (-3) /* dk_lm of a chain with S motions (nv != n) */
+#define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
 
 /* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
  * passed as void pointers. J joint frames, K end links, n variables, B configurations. */
@@ -144,6 +145,19 @@ const char *dk_motions(void) {
 
 #define DK_DECLARE(type, name, what) type name;
 typedef struct dk_args { DK_ARGS_FIELDS(DK_DECLARE) } dk_args;
+
+/* A byte snapshot of the tensors a chain's packed constants were made from (kernels/single.py): n regions,
+ * region i at address ptr[i] of bytes[i] bytes, their bytes one after another in snap. A write that bumps no
+ * version counter (p.data.add_(), a tensor shared with numpy) still changes the bytes. work (NULL, or
+ * dk_fk_work_bytes of the one dk_args it serves) keeps dk_fk_one's plans and zeroed scratch between calls:
+ * ready once the first call made them, busy while a call uses them. */
+typedef struct dk_watch {
+    int64_t n;
+    const int64_t *ptr, *bytes;
+    const uint8_t *snap;
+    void *work;
+    int64_t ready, busy;
+} dk_watch;
 #undef DK_DECLARE
 
 /* The field names, in order, each followed by a comma. */
@@ -334,6 +348,40 @@ int64_t dk_fk(const dk_args *a) {
     return a->real_bytes == 8 ? dk_fk_f64(a) : dk_fk_f32(a);
 }
 
+/* 1 when every region of w still holds its snapshot, else 0. */
+int64_t dk_unchanged(const dk_watch *w) {
+    const uint8_t *s = w->snap;
+    for (int64_t i = 0; i < w->n; s += w->bytes[i], i++)
+        if (w->bytes[i] && memcmp((const void *)(intptr_t)w->ptr[i], s, (size_t)w->bytes[i])) return 0;
+    return 1;
+}
+
+/* Bytes of the work space dk_fk_one keeps in a dk_watch for calls of a. */
+int64_t dk_fk_work_bytes(const dk_args *a) {
+    if (!abi_ok(a)) return DK_ABI_ERROR;
+    return a->real_bytes == 8 ? dk_fk_work_bytes_f64(a) : dk_fk_work_bytes_f32(a);
+}
+
+/* dk_fk of one configuration q (n) into T (K, 4, 4) and jac (K, 6, nv) or NULL, with base's constants,
+ * when the tensors they were packed from are unchanged (dk_unchanged(w)); else DK_STALE, nothing computed.
+ * One foreign call per lean single call (kernels/single.py): base is never written (calls from several
+ * threads are safe); the plans and scratch are w's work space, made by the first call (a call that finds
+ * it busy makes its own). */
+int64_t dk_fk_one(const dk_args *base, dk_watch *w, const void *q, void *T, void *jac) {
+    if (!abi_ok(base)) return DK_ABI_ERROR;
+    if (!dk_unchanged(w)) return DK_STALE;
+    dk_args a = *base;
+    a.batch = 1;
+    a.nthreads = 1;
+    a.q = q;
+    a.T = T;
+    a.jac = jac;
+    if (!w->work || __atomic_exchange_n(&w->busy, 1, __ATOMIC_ACQUIRE)) return dk_fk(&a);
+    const int64_t bad = a.real_bytes == 8 ? dk_fk_work_f64(&a, w) : dk_fk_work_f32(&a, w);
+    __atomic_store_n(&w->busy, 0, __ATOMIC_RELEASE);
+    return bad;
+}
+
 /* The whole IK solve of dk_solve_f64 / dk_solve_f32 (_native_solve.c); returns 0, -1 when memory ran out,
  * DK_ABI_ERROR for a struct of another layout. */
 int64_t dk_solve(const dk_args *a) {
@@ -387,16 +435,22 @@ static void DK(plan_fix)(const real *A, DK(Fix) *f) {
     }
 }
 
-/* The parameters of a call; pp->fix is allocated (2J + K plans, then first[]), the caller frees it. */
-static int DK(read_params)(const dk_args *a, const Shape *s, DK(Params) *pp) {
-    const real *pre = (const real *)a->pre, *post = (const real *)a->post, *end = (const real *)a->end;
+/* Bytes of a call's plans: 2J + K of them, then first[] and its seen[] (DK(bind_params)). */
+static size_t DK(params_bytes)(const Shape *s) {
+    return sizeof(DK(Fix)) * (size_t)(2 * s->J + s->K + 1) + (size_t)(s->K * s->J + s->nv + 1);
+}
+
+/* pp's pointers: the constants of a, the plans in mem (DK(params_bytes)); DK(plan_params) fills them. */
+static void DK(bind_params)(const dk_args *a, const Shape *s, DK(Params) *pp, void *mem) {
     pp->mult = (const real *)a->mult;
     pp->qoff = (const real *)a->qoff;
     pp->base = (const real *)a->base;
-    const size_t nfix = (size_t)(2 * s->J + s->K + 1);
-    pp->fix = (DK(Fix) *)malloc(sizeof(DK(Fix)) * nfix + (size_t)(s->K * s->J + s->nv + 1));
-    if (!pp->fix) return -1;
-    pp->first = (uint8_t *)(pp->fix + nfix);
+    pp->fix = (DK(Fix) *)mem;
+    pp->first = (uint8_t *)(pp->fix + (2 * s->J + s->K + 1));
+}
+
+static void DK(plan_params)(const dk_args *a, const Shape *s, DK(Params) *pp) {
+    const real *pre = (const real *)a->pre, *post = (const real *)a->post, *end = (const real *)a->end;
     uint8_t *seen = pp->first + s->K * s->J;
     for (int k = 0; k < s->K; k++) {
         memset(seen, 0, (size_t)s->nv);
@@ -411,6 +465,14 @@ static int DK(read_params)(const dk_args *a, const Shape *s, DK(Params) *pp) {
         DK(plan_fix)(s->has_post[j] ? post + 12 * j : NULL, pp->fix + s->J + j);
     }
     for (int k = 0; k < s->K; k++) DK(plan_fix)(s->has_end[k] ? end + 12 * k : NULL, pp->fix + 2 * s->J + k);
+}
+
+/* The parameters of a call; pp->fix is allocated (2J + K plans, then first[]), the caller frees it. */
+static int DK(read_params)(const dk_args *a, const Shape *s, DK(Params) *pp) {
+    void *mem = malloc(DK(params_bytes)(s));
+    if (!mem) return -1;
+    DK(bind_params)(a, s, pp, mem);
+    DK(plan_params)(a, s, pp);
     return 0;
 }
 
@@ -419,7 +481,7 @@ static size_t DK(scratch_size)(const Shape *s) {
     return sizeof(real) * W * (J * 12 + J * 12 + K * 12 + K * 6 * nv + n + 12);
 }
 
-static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK(Scratch) *sc) {
+static void DK(scratch_bind)(const Shape *s, real *buf, DK(Scratch) *sc) {
     const size_t J = s->J, K = s->K, n = s->n, nv = s->nv;
     sc->F = buf;
     sc->A = sc->F + J * 12 * W;
@@ -427,6 +489,11 @@ static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK
     sc->Jb = sc->ends + K * 12 * W;
     sc->qlanes = sc->Jb + K * 6 * nv * W;
     sc->basef = sc->qlanes + n * W;
+}
+
+static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK(Scratch) *sc) {
+    const size_t K = s->K, nv = s->nv;
+    DK(scratch_bind)(s, buf, sc);
     memset(sc->Jb, 0, sizeof(real) * K * 6 * nv * W); /* columns no joint reaches stay 0 (DK(column)) */
     for (int e = 0; e < 12; e++)
         for (int l = 0; l < W; l++)
@@ -655,6 +722,29 @@ static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_
     return bad;
 }
 
+/* Block blk of dk_fk: its configurations of q (B, n) into T and Jac (NULL: no Jacobian); returns the number
+ * of non-finite entries of q it read. */
+static int64_t DK(fk_block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, const real *q, real *T,
+                            real *Jac, int64_t B, int64_t blk) {
+    const int K = s->K, nv = s->nv;
+    const int64_t b0 = blk * W;
+    const int nl = (int)(B - b0 < W ? B - b0 : W);
+    const int64_t bad = DK(load_q)(s, sc, q, b0, nl);
+    DK(block)(s, pp, sc, Jac != NULL);
+    for (int k = 0; k < K; k++) {
+        const real *E = sc->ends + (size_t)k * 12 * W;
+        DK(store_lanes)(E, 12, nl, T + (b0 * K + k) * 16, (int64_t)K * 16);
+        for (int l = 0; l < nl; l++) {
+            real *To = T + ((b0 + l) * K + k) * 16;
+            To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
+        }
+        if (Jac)
+            DK(store_lanes)(sc->Jb + (size_t)k * 6 * nv * W, 6 * nv, nl, Jac + (b0 * K + k) * 6 * (int64_t)nv,
+                            (int64_t)K * 6 * nv);
+    }
+    return bad;
+}
+
 /* T (B, K, 4, 4) and, when Jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite
  * entries of q (their outputs are not meaningful), or -1 when memory ran out. */
 static int64_t DK(dk_fk)(const dk_args *a) {
@@ -666,38 +756,60 @@ static int64_t DK(dk_fk)(const dk_args *a) {
     real *T = (real *)a->T, *Jac = (real *)a->jac;
     const int64_t B = a->batch;
     int nthreads = (int)a->nthreads;
-    const int K = s.K, nv = s.nv;
     const int64_t nblocks = (B + W - 1) / W;
     int64_t bad = 0;
     if (nthreads < 1 || B <= SERIAL_MAX) nthreads = 1;
     const size_t per = DK(scratch_size)(&s) / sizeof(real);
     real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads); /* before the team: no thread can fail */
     if (!all) { free(pp.fix); return -1; }
-#pragma omp parallel num_threads(nthreads) reduction(+ : bad) if (nthreads > 1)
-    {
+    if (nthreads == 1) { /* no team: starting one costs as much as a small batch */
         DK(Scratch) sc;
-        DK(scratch_init)(&s, &pp, all + per * (size_t)thread_id(), &sc);
+        DK(scratch_init)(&s, &pp, all, &sc);
+        for (int64_t blk = 0; blk < nblocks; blk++) bad += DK(fk_block)(&s, &pp, &sc, q, T, Jac, B, blk);
+    } else {
+#pragma omp parallel num_threads(nthreads) reduction(+ : bad)
+        {
+            DK(Scratch) sc;
+            DK(scratch_init)(&s, &pp, all + per * (size_t)thread_id(), &sc);
 #pragma omp for schedule(dynamic, 8)
-        for (int64_t blk = 0; blk < nblocks; blk++) {
-            const int64_t b0 = blk * W;
-            const int nl = (int)(B - b0 < W ? B - b0 : W);
-            bad += DK(load_q)(&s, &sc, q, b0, nl);
-            DK(block)(&s, &pp, &sc, Jac != NULL);
-            for (int k = 0; k < K; k++) {
-                const real *E = sc.ends + (size_t)k * 12 * W;
-                DK(store_lanes)(E, 12, nl, T + (b0 * K + k) * 16, (int64_t)K * 16);
-                for (int l = 0; l < nl; l++) {
-                    real *To = T + ((b0 + l) * K + k) * 16;
-                    To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
-                }
-                if (Jac)
-                    DK(store_lanes)(sc.Jb + (size_t)k * 6 * nv * W, 6 * nv, nl,
-                                    Jac + (b0 * K + k) * 6 * (int64_t)nv, (int64_t)K * 6 * nv);
-            }
+            for (int64_t blk = 0; blk < nblocks; blk++) bad += DK(fk_block)(&s, &pp, &sc, q, T, Jac, B, blk);
         }
     }
     free(all);
     free(pp.fix);
+    return bad;
+}
+
+/* dk_fk_one's work space in a dk_watch: the plans, then (aligned) one thread's scratch. */
+static size_t DK(work_split)(const Shape *s) {
+    return (DK(params_bytes)(s) + 63) / 64 * 64;
+}
+
+static int64_t DK(dk_fk_work_bytes)(const dk_args *a) {
+    Shape s;
+    read_shape(a, &s);
+    return (int64_t)(DK(work_split)(&s) + DK(scratch_size)(&s));
+}
+
+/* dk_fk of a (one thread) in w's work space: planned and zeroed by the first call, reused as they are by
+ * the next (every block overwrites what it reads; Jacobian columns no joint reaches stay 0). */
+static int64_t DK(dk_fk_work)(const dk_args *a, dk_watch *w) {
+    Shape s;
+    read_shape(a, &s);
+    DK(Params) pp;
+    DK(Scratch) sc;
+    real *buf = (real *)((char *)w->work + DK(work_split)(&s));
+    DK(bind_params)(a, &s, &pp, w->work);
+    if (w->ready) {
+        DK(scratch_bind)(&s, buf, &sc);
+    } else {
+        DK(plan_params)(a, &s, &pp);
+        DK(scratch_init)(&s, &pp, buf, &sc);
+        w->ready = 1;
+    }
+    int64_t bad = 0;
+    for (int64_t blk = 0; blk < (a->batch + W - 1) / W; blk++)
+        bad += DK(fk_block)(&s, &pp, &sc, (const real *)a->q, (real *)a->T, (real *)a->jac, a->batch, blk);
     return bad;
 }
 
