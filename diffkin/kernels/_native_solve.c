@@ -1,6 +1,8 @@
 /* The whole of diffkin.ik.solve in one C call (included by _native.c once per real type, like its second
  * half): seeding, the Levenberg-Marquardt iteration (3.59) of dk_lm, harvest, stall detection, re-seeding
- * and the final check, for chains of 1-DOF joints. diffkin/ik/_native_solve.py prepares the arrays.
+ * and the final check, for every chain the fused pass takes: 1-DOF joints, and ball and free joints whose
+ * unit quaternions are stepped on the manifold (DK(integrate)). diffkin/ik/_native_solve.py prepares the
+ * arrays.
  *
  * Work is split into chunks of CHUNK targets, each solved by one thread on the W lanes of DK(block): a lane
  * holds one (target, seed) row. After every LM step a converged row is harvested (its target is done and
@@ -15,18 +17,62 @@
  *
  * Seed s of target t: s < S the user's seed (t, s); s < S + R the library configuration with the (s - S)-th
  * nearest pose (squared distance of positions plus feature_weight times that of the rotation columns); else
- * column (t n_seeds + s) mod P of the pool of uniform draws, mapped to u uniform in q (u = asin((2r - 1)
- * (1 - 1e-6)) on bounded joints, lo + 2 h r on the others, as JointMap.sample_u).
+ * column (t n_seeds + s) mod P of the pool of uniform draws (nu = Ns + 3 Nb per column: one per scalar
+ * coordinate in q order, then three per quaternion, as ConfigurationSpace.from_uniform), mapped to u
+ * uniform in q (u = asin((2r - 1) (1 - 1e-6)) on bounded joints, lo + 2 h r on the other scalars, as
+ * JointMap.sample_u; a quaternion by Shoemake's map, eta >= 0).
+ *
+ * The configuration space (Space below): q has n = nq coordinates, a step nv velocities; a scalar
+ * coordinate (R, P motions) moves by its velocity (additive on u), a quaternion (S motion: 4 coordinates,
+ * 3 velocities, the angular velocity in the rotated frame) by Q <- normalise(Q) (x) exp(w / 2), as
+ * ConfigurationSpace.integrate (mj_integratePos, dt = 1). Both maps are read off the frames' motion,
+ * qidx and vidx, so the packed chain is the one description.
  *
  * The result q = c + h sin(u) (bounded), wrapped by 2 pi towards the centre on revolute variables, clamped
- * into [qlo, qhi] when clamp; its exact errors come from one more FK; success = errors within the tolerances
- * (not the margin) and, when clamp, q within [qlo, qhi].
+ * into [qlo, qhi] when clamp (scalars; quaternions are normalised); its exact errors come from one more FK;
+ * success = errors within the tolerances (not the margin) and, when clamp, the scalars within [qlo, qhi].
  */
 #ifndef DK_SOLVE_ONCE_TYPES
 #define DK_SOLVE_ONCE_TYPES
 #define CHUNK 128 /* targets per chunk: a fixed number, so the answers do not depend on the thread count */
 #define MAX_RANKS 64
 #define MAX_ENDS 64 /* end links the nearest-pose search takes (more: no library seeds) */
+
+typedef struct { /* the configuration space of the chain (see the top of this file) */
+    int n, nv, nb, nu;       /* coordinates, velocities, quaternions, uniforms per random seed */
+    int32_t *vq;             /* [nv] the coordinate a scalar velocity moves, -1 in a quaternion */
+    int32_t *qs, *vs;        /* [nb] each quaternion's first coordinate and first velocity */
+    int32_t *slot;           /* [n] a scalar's index among the scalars (its uniform), -1 in a quaternion */
+} Space;
+
+/* The space of the chain s from its frames (an S frame: one quaternion; an R or P frame: scalar qidx moved
+ * by velocity vidx; mimic frames repeat their leader's pair); returns -1 when memory ran out. */
+static int space_read(const Shape *s, Space *sp) {
+    const int n = s->n, nv = s->nv;
+    int32_t *all = (int32_t *)malloc(sizeof(int32_t) * (size_t)(nv + 2 * n + n + 1));
+    if (!all) return -1;
+    sp->n = n, sp->nv = nv, sp->nb = 0;
+    sp->vq = all, sp->qs = all + nv, sp->vs = sp->qs + n, sp->slot = sp->vs + n;
+    for (int v = 0; v < nv; v++) sp->vq[v] = -1;
+    for (int i = 0; i < n; i++) sp->slot[i] = 0;
+    for (int j = 0; j < s->J; j++) {
+        if (s->motion[j] != DK_MOTION_S) {
+            sp->vq[s->vidx[j]] = s->qidx[j];
+            continue;
+        }
+        int seen = 0;
+        for (int b = 0; b < sp->nb; b++) seen |= sp->qs[b] == s->qidx[j];
+        if (seen) continue;
+        sp->qs[sp->nb] = s->qidx[j];
+        sp->vs[sp->nb++] = s->vidx[j];
+        for (int c = 0; c < 4; c++) sp->slot[s->qidx[j] + c] = -1;
+    }
+    int k = 0;
+    for (int i = 0; i < n; i++)
+        if (sp->slot[i] >= 0) sp->slot[i] = k++;
+    sp->nu = k + 3 * sp->nb;
+    return 0;
+}
 #endif
 
 /* q and dq/du of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints, else q = u. */
@@ -49,17 +95,46 @@ static void DK(map_u)(int n, const uint8_t *bounded, const real *jc, const real 
     }
 }
 
-/* The configuration update u <- u (+) delta of lane l (u lane-major, n x W): the one place a step is
- * applied, so that joints with another configuration space (ball, free) plug in here. */
-static void DK(integrate)(int n, real *ul, int l, const real *delta) {
-    for (int i = 0; i < n; i++) ul[(size_t)i * W + l] += delta[i];
+/* Normalise the quaternion of lane l at qi (4 rows of W lanes) in place; one of norm ~0 becomes the
+ * identity (as diffkin._numerics.safe_normalize and the FK's S motion: the threshold DK_QSMALL). */
+static void DK(unit_quaternion)(real *qi, int l) {
+    double x[4], nn = 0;
+    for (int c = 0; c < 4; c++) {
+        x[c] = (double)qi[(size_t)c * W + l];
+        nn += x[c] * x[c];
+    }
+    const double norm = sqrt(nn);
+    const int small = norm <= (double)DK_QSMALL;
+    for (int c = 0; c < 4; c++) qi[(size_t)c * W + l] = (real)(small ? (c == 0) : x[c] / norm);
+}
+
+/* The configuration update u <- u (+) delta of lane l (u lane-major, n x W; delta nv): scalars u += their
+ * velocity, quaternions Q <- normalise(Q) (x) exp(w / 2), exp(w / 2) = (cos(th / 2), sin(th / 2) w / th),
+ * th = |w| (ConfigurationSpace.integrate; not made eta >= 0, so that the step is continuous in w). */
+static void DK(integrate)(const Space *sp, real *ul, int l, const real *delta) {
+    for (int v = 0; v < sp->nv; v++)
+        if (sp->vq[v] >= 0) ul[(size_t)sp->vq[v] * W + l] += delta[v];
+    for (int b = 0; b < sp->nb; b++) {
+        real *qi = ul + (size_t)sp->qs[b] * W;
+        DK(unit_quaternion)(qi, l);
+        const real *w = delta + sp->vs[b];
+        const double wx = w[0], wy = w[1], wz = w[2], h = 0.5 * sqrt(wx * wx + wy * wy + wz * wz);
+        const double e0 = cos(h), s = h < 1e-4 ? 0.5 * (1 - h * h / 6) : 0.5 * sin(h) / h; /* sinc(h) / 2 */
+        const double ev[3] = {s * wx, s * wy, s * wz};
+        const double q0 = qi[l], q1 = qi[W + l], q2 = qi[2 * W + l], q3 = qi[3 * W + l];
+        qi[l] = (real)(q0 * e0 - q1 * ev[0] - q2 * ev[1] - q3 * ev[2]);
+        qi[W + l] = (real)(q0 * ev[0] + e0 * q1 + q2 * ev[2] - q3 * ev[1]);
+        qi[2 * W + l] = (real)(q0 * ev[1] + e0 * q2 + q3 * ev[0] - q1 * ev[2]);
+        qi[3 * W + l] = (real)(q0 * ev[2] + e0 * q3 + q1 * ev[1] - q2 * ev[0]);
+    }
 }
 
 typedef struct { /* the fixed inputs of a solve, read once */
     const dk_args *a;
     Shape s;
     DK(Params) pp;
-    int K, n, r, d, pos_only;
+    Space sp;
+    int K, n, nv, r, d, pos_only;
     int64_t N, S, L, R, P, nseeds, maxit, minit, every;
     real tp, to, margin, damping2, mu, stall, w2;
     const real *pd, *xd, *yd, *zd, *sqrt_w, *jc, *jh, *user_u, *lib_u, *lib_pose, *pool, *qlo, *qhi;
@@ -97,9 +172,11 @@ typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta; } DK(LMWork);
 
 /* The damped least-squares step (3.59) of lane l on its weighted error e (weighted in place):
  * delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the n x n normal equations when r > n), lambda =
- * damping2 + mu |e_w|^2, J_w = diag(sqrt_w) J diag(dq/du). */
+ * damping2 + mu |e_w|^2, J_w = diag(sqrt_w) J diag(dq/du) (J: nv columns; dq/du of a scalar velocity's
+ * coordinate, 1 in a quaternion, as JointMap.dq_du). */
 static void DK(lane_delta)(const DK(Solve) *S, const real *Jb, int l, DK(LMWork) *w) {
-    const int n = S->n, r = S->r, d = S->d, rows = S->pos_only ? 3 : 6;
+    const int n = S->nv, r = S->r, d = S->d, rows = S->pos_only ? 3 : 6; /* n: the step's nv columns */
+    const int32_t *vq = S->sp.vq;
     real *e = w->e, *Jw = w->Jw, *A = w->A, *y = w->y, *delta = w->delta, e2 = 0;
     for (int a = 0; a < r; a++) {
         e[a] *= S->sqrt_w[a];
@@ -110,7 +187,7 @@ static void DK(lane_delta)(const DK(Solve) *S, const real *Jb, int l, DK(LMWork)
         for (int a = 0; a < rows; a++)
             for (int i = 0; i < n; i++)
                 Jw[(size_t)(rows * k + a) * n + i] = Jb[((size_t)k * 6 * n + (size_t)a * n + i) * W + l] *
-                                                      S->sqrt_w[rows * k + a] * w->dqdu[(size_t)i * W + l];
+                    S->sqrt_w[rows * k + a] * (vq[i] >= 0 ? w->dqdu[(size_t)vq[i] * W + l] : 1);
     if (r <= n) {
         for (int a = 0; a < r; a++) {
             for (int c = 0; c <= a; c++) {
@@ -182,11 +259,25 @@ static void DK(seed)(const DK(Solve) *S, int64_t t, int64_t s, const int32_t *nn
         for (int i = 0; i < n; i++) ul[(size_t)i * W + l] = lu[i];
         return;
     }
-    const real *r = S->pool + (size_t)((t * S->nseeds + s) % S->P) * n;
+    const Space *sp = &S->sp;
+    const real *r = S->pool + (size_t)((t * S->nseeds + s) % S->P) * sp->nu;
     for (int i = 0; i < n; i++) {
-        const real v = S->bounded[i] ? (real)asin((double)((2 * r[i] - 1) * (real)(1.0 - 1e-6)))
-                                     : (S->jc[i] - S->jh[i]) + 2 * S->jh[i] * r[i];
+        if (sp->slot[i] < 0) continue;
+        const real ri = r[sp->slot[i]];
+        const real v = S->bounded[i] ? (real)asin((double)((2 * ri - 1) * (real)(1.0 - 1e-6)))
+                                     : (S->jc[i] - S->jh[i]) + 2 * S->jh[i] * ri;
         ul[(size_t)i * W + l] = v;
+    }
+    const double two_pi = 6.283185307179586;
+    for (int b = 0; b < sp->nb; b++) { /* Shoemake: uniform on S^3, then eta >= 0 (from_uniform) */
+        const real *rb = r + (sp->nu - 3 * sp->nb) + 3 * b;
+        const double u1 = rb[0], a = two_pi * rb[1], c = two_pi * rb[2];
+        const double r1 = sqrt(1 - u1 > 0 ? 1 - u1 : 0), r2 = sqrt(u1 > 0 ? u1 : 0);
+        double Q[4] = {r1 * sin(a), r1 * cos(a), r2 * sin(c), r2 * cos(c)};
+        const double sign = Q[0] < 0 ? -1 : 1;
+        real *qi = ul + (size_t)sp->qs[b] * W;
+        for (int k = 0; k < 4; k++) qi[(size_t)k * W + l] = (real)(sign * Q[k]);
+        DK(unit_quaternion)(qi, l); /* as JointMap.u_of_q */
     }
 }
 
@@ -281,7 +372,7 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
             }
         }
         DK(lane_delta)(S, sc->Jb, l, w);
-        DK(integrate)(S->n, ul, l, w->delta);
+        DK(integrate)(&S->sp, ul, l, w->delta);
     }
     for (int l = 0; l < W; l++) /* after every row's checks: only targets still open take lanes */
         if (c->t[l] < 0) {
@@ -301,12 +392,18 @@ static void DK(final_check)(const DK(Solve) *S, DK(Scratch) *sc, int64_t t0, int
         for (int l = 0; l < W; l++) {
             real *qt = q + (b0 + (l < nl ? l : nl - 1)) * n;
             for (int i = 0; i < n && l < nl; i++) {
+                if (S->sp.slot[i] < 0) continue; /* a quaternion: normalised below */
                 double v = S->bounded[i] ? (double)S->jc[i] + (double)S->jh[i] * sin((double)qt[i]) : qt[i];
                 if (S->wrap[i]) v -= two_pi * nearbyint((v - (double)S->jc[i]) / two_pi);
                 if (a->clamp) v = v < S->qlo[i] ? S->qlo[i] : (v > S->qhi[i] ? S->qhi[i] : v);
                 qt[i] = (real)v;
             }
             for (int i = 0; i < n; i++) sc->qlanes[(size_t)i * W + l] = qt[i];
+            for (int b = 0; b < S->sp.nb && l < nl; b++) {
+                real *qi = sc->qlanes + (size_t)S->sp.qs[b] * W;
+                DK(unit_quaternion)(qi, l);
+                for (int c = 0; c < 4; c++) qt[S->sp.qs[b] + c] = qi[(size_t)c * W + l];
+            }
         }
         DK(block)(&S->s, &S->pp, sc, 0);
         for (int l = 0; l < nl; l++) {
@@ -314,7 +411,8 @@ static void DK(final_check)(const DK(Solve) *S, DK(Scratch) *sc, int64_t t0, int
             real pn, ang;
             DK(lane_error)(S, sc->ends, l, t, e, &pn, &ang);
             int ok = pn <= S->tp && (S->pos_only || ang <= S->to);
-            for (int i = 0; i < n && a->clamp; i++) ok &= q[t * n + i] >= S->qlo[i] && q[t * n + i] <= S->qhi[i];
+            for (int i = 0; i < n && a->clamp; i++)
+                ok &= S->sp.slot[i] < 0 || (q[t * n + i] >= S->qlo[i] && q[t * n + i] <= S->qhi[i]);
             pe[t] = pn;
             oe[t] = ang;
             a->success[t] = (uint8_t)ok;
@@ -348,9 +446,10 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->a = a;
     S->K = S->s.K;
     S->n = S->s.n;
+    S->nv = S->s.nv;
     S->pos_only = a->xd == NULL;
     S->r = (S->pos_only ? 3 : 6) * S->K;
-    S->d = S->r <= S->n ? S->r : S->n;
+    S->d = S->r <= S->nv ? S->r : S->nv;
     S->N = a->n_targets, S->S = a->n_user, S->L = a->n_lib, S->P = a->n_pool;
     S->R = a->lib_ranks < a->n_lib ? a->lib_ranks : a->n_lib;
     S->R = S->R < MAX_RANKS ? S->R : MAX_RANKS;
@@ -367,7 +466,11 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->qlo = (const real *)a->qlo, S->qhi = (const real *)a->qhi;
     S->bounded = a->bounded, S->wrap = a->wrap;
     S->best_merit = (real *)malloc(sizeof(real) * (size_t)(S->N > 0 ? S->N : 1));
-    if (!S->best_merit) { free(S->pp.fix); return -1; }
+    if (!S->best_merit || space_read(&S->s, &S->sp)) {
+        free(S->best_merit);
+        free(S->pp.fix);
+        return -1;
+    }
     for (int64_t t = 0; t < S->N; t++) {
         S->best_merit[t] = (real)INFINITY;
         a->iters_out[t] = a->seeds_out[t] = 0;
@@ -379,15 +482,15 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
 static int64_t DK(dk_solve)(const dk_args *a) {
     DK(Solve) S;
     if (DK(solve_read)(a, &S)) return -1;
-    const int n = S.n, r = S.r, d = S.d, R = (int)(S.R > 0 ? S.R : 1);
+    const int n = S.n, nv = S.nv, r = S.r, d = S.d, R = (int)(S.R > 0 ? S.R : 1);
     const int64_t nchunks = (S.N + CHUNK - 1) / CHUNK;
     int nthreads = (int)a->nthreads;
     if (nthreads < 1 || nchunks < 2) nthreads = 1;
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
-    const size_t per = base + 2 * (size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n +
+    const size_t per = base + 2 * (size_t)n * W + (size_t)r * nv + r + (size_t)d * d + d + nv +
                        (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK) + CHUNK) / sizeof(real) + 1;
     real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads);
-    if (!all) { free(S.pp.fix); free(S.best_merit); return -1; }
+    if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
     {
         real *buf = all + per * (size_t)thread_id();
@@ -397,12 +500,12 @@ static int64_t DK(dk_solve)(const dk_args *a) {
         DK(LMWork) w;
         w.dqdu = ul + (size_t)n * W;
         w.Jw = w.dqdu + (size_t)n * W;
-        w.e = w.Jw + (size_t)r * n;
+        w.e = w.Jw + (size_t)r * nv;
         w.A = w.e + r;
         w.y = w.A + (size_t)d * d;
         w.delta = w.y + d;
         DK(Chunk) c;
-        c.nn = (int32_t *)(w.delta + n);
+        c.nn = (int32_t *)(w.delta + nv);
         c.count = c.nn + CHUNK * R;
         c.done = (uint8_t *)(c.count + CHUNK);
 #pragma omp for schedule(dynamic, 1)
@@ -414,6 +517,7 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     free(all);
     free(S.pp.fix);
     free(S.best_merit);
+    free(S.sp.vq);
     return 0;
 }
 
