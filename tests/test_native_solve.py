@@ -29,11 +29,13 @@ def _targets(chain, n: int, seed: int, unreachable: int = 0):
 
 
 def _both(chain, target, **kw):
-    """(the C solve, the torch solve) of the same call, without autograd."""
+    """(the C solve, the torch solve) of the same call, without autograd; each checked to be served by the
+    path it stands for."""
     with torch.no_grad():
         assert _native_solve.applies(chain, target, False)
         fused = ik.solve(chain, target, **kw)
         with native.disabled():
+            assert not _native_solve.applies(chain, target, False)
             return fused, ik.solve(chain, target, **kw)
 
 

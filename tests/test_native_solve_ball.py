@@ -24,6 +24,7 @@ mujoco = pytest.importorskip("mujoco")
 pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: the torch loop serves")
 
 from diffkin.models.mjcf import compile_mjcf  # noqa: E402
+from tests.test_native_solve import _both  # noqa: E402  (the C solve and the torch loop of one call)
 
 DATA = Path(__file__).parent / "data"
 G1 = DATA / "mjcf" / "unitree_g1" / "g1.xml"
@@ -57,16 +58,6 @@ def _targets(chain, n, seed, unreachable=0):
         T = chain.forward_kinematics(q).clone()
     T[:unreachable, 0, 0, 3] += 5.0
     return q, T
-
-
-def _both(chain, target, **kw):
-    """(the C solve, the torch loop) of the same call, without autograd; the first checked to be C's."""
-    with torch.no_grad():
-        assert _native_solve.applies(chain, target, False)
-        fused = ik.solve(chain, target, **kw)
-        with native.disabled():
-            assert not _native_solve.applies(chain, target, False)
-            return fused, ik.solve(chain, target, **kw)
 
 
 def _unit_quaternions(chain, q):
