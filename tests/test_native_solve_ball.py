@@ -210,3 +210,36 @@ def test_quaternion_seeds_of_any_norm_and_no_limits():
     assert bool(fused.success.all()) and bool(ref.success.all())
     torch.testing.assert_close(fused.q, ref.q, atol=1e-9, rtol=0)
     _unit_quaternions(chain, fused.q)
+
+
+def test_more_rows_than_velocities():
+    """Hinge, hinge, ball (nq 6, nv 5) and full poses (6 rows): the step solves the nv x nv normal
+    equations (the r > nv branch of lane_delta) and still agrees with the torch loop from the same seed;
+    random restarts solve every target, re-checked with MuJoCo."""
+    xml = """<mujoco><worldbody><body name="a"><joint name="j1" axis="0 0 1"/><geom size="0.1"/>
+      <body name="b" pos="0.3 0 0"><joint name="j2" axis="0 1 0"/><geom size="0.1"/>
+      <body name="c" pos="0.3 0 0.1"><joint name="ball" type="ball"/><geom size="0.1"/>
+      <site name="tip" pos="0.2 0.1 0"/></body></body></body></worldbody></mujoco>"""
+    chain = from_mjcf(xml, "tip", dtype=torch.float64)
+    assert (chain.nq, chain.nv) == (6, 5)
+    g = torch.Generator().manual_seed(9)
+    q = chain.random_configuration((10,), generator=g)
+    q0 = chain.integrate(q, 0.1 * torch.randn(10, chain.nv, generator=g, dtype=torch.float64))
+    with torch.no_grad():
+        T = chain.forward_kinematics(q)
+    fused, ref = _both(chain, T, q0=q0, num_seeds=1, seed=0)
+    assert bool(fused.success.all()) and bool(ref.success.all())
+    torch.testing.assert_close(fused.q, ref.q, atol=1e-9, rtol=0)
+    fused, ref = _both(chain, T, seed=0)
+    assert bool(fused.success.all()) and bool(ref.success.all())
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    reached = torch.eye(4, dtype=torch.float64).repeat(10, 1, 1, 1)
+    for r in range(10):
+        d.qpos[:] = chain.to_qpos(fused.q[r]).numpy()
+        mujoco.mj_kinematics(m, d)
+        reached[r, 0, :3, :3], reached[r, 0, :3, 3] = (torch.tensor(d.site_xmat[0].reshape(3, 3)),
+                                                        torch.tensor(d.site_xpos[0]))
+    pe, oe = _errors(reached, T[:, None])
+    assert bool((pe <= TOL_P + 1e-9).all()) and bool((oe <= TOL_O + 1e-7).all())
+    _unit_quaternions(chain, fused.q)
