@@ -108,17 +108,19 @@ static void DK(unit_quaternion)(real *qi, int l) {
     for (int c = 0; c < 4; c++) qi[(size_t)c * W + l] = (real)(small ? (c == 0) : x[c] / norm);
 }
 
-/* The configuration update u <- u (+) delta of lane l (u lane-major, n x W; delta nv): scalars u += their
- * velocity, quaternions Q <- normalise(Q) (x) exp(w / 2), exp(w / 2) = (cos(th / 2), sin(th / 2) w / th),
- * th = |w| (ConfigurationSpace.integrate; not made eta >= 0, so that the step is continuous in w). */
-static void DK(integrate)(const Space *sp, real *ul, int l, const real *delta) {
+/* The configuration update u <- u (+) delta of lane l (u lane-major, n x W; delta nv, `stride` apart):
+ * scalars u += their velocity, quaternions Q <- normalise(Q) (x) exp(w / 2), exp(w / 2) = (cos(th / 2),
+ * sin(th / 2) w / th), th = |w| (ConfigurationSpace.integrate; not made eta >= 0, so that the step is
+ * continuous in w). */
+static void DK(integrate)(const Space *sp, real *ul, int l, const real *delta, int stride) {
     for (int v = 0; v < sp->nv; v++)
-        if (sp->vq[v] >= 0) ul[(size_t)sp->vq[v] * W + l] += delta[v];
+        if (sp->vq[v] >= 0) ul[(size_t)sp->vq[v] * W + l] += delta[(size_t)v * stride];
     for (int b = 0; b < sp->nb; b++) {
         real *qi = ul + (size_t)sp->qs[b] * W;
         DK(unit_quaternion)(qi, l);
-        const real *w = delta + sp->vs[b];
-        const double wx = w[0], wy = w[1], wz = w[2], h = 0.5 * sqrt(wx * wx + wy * wy + wz * wz);
+        const real *w = delta + (size_t)sp->vs[b] * stride;
+        const double wx = w[0], wy = w[stride], wz = w[2 * stride];
+        const double h = 0.5 * sqrt(wx * wx + wy * wy + wz * wz);
         const double e0 = cos(h), s = h < 1e-4 ? 0.5 * (1 - h * h / 6) : 0.5 * sin(h) / h; /* sinc(h) / 2 */
         const double ev[3] = {s * wx, s * wy, s * wz};
         const double q0 = qi[l], q1 = qi[W + l], q2 = qi[2 * W + l], q3 = qi[3 * W + l];
@@ -168,56 +170,107 @@ static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t 
     }
 }
 
-typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta; } DK(LMWork);
+/* Per thread: dq/du (n x W), then for the m lanes that step this iteration, lane-major (column j of each
+ * array is the j-th stepping lane, lanes[j]): e (r x W), J_w (r x nv x W), A (d x d x W), y (d x W), delta
+ * (nv x W), lambda (W); e1 (r) one lane's error. */
+typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta, *lam, *e1; int32_t *lanes; } DK(LMWork);
 
-/* The damped least-squares step (3.59) of lane l on its weighted error e (weighted in place):
- * delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the n x n normal equations when r > n), lambda =
- * damping2 + mu |e_w|^2, J_w = diag(sqrt_w) J diag(dq/du) (J: nv columns; dq/du of a scalar velocity's
- * coordinate, 1 in a quaternion, as JointMap.dq_du). */
-static void DK(lane_delta)(const DK(Solve) *S, const real *Jb, int l, DK(LMWork) *w) {
-    const int n = S->nv, r = S->r, d = S->d, rows = S->pos_only ? 3 : 6; /* n: the step's nv columns */
-    const int32_t *vq = S->sp.vq;
-    real *e = w->e, *Jw = w->Jw, *A = w->A, *y = w->y, *delta = w->delta, e2 = 0;
-    for (int a = 0; a < r; a++) {
-        e[a] *= S->sqrt_w[a];
-        e2 += e[a] * e[a];
+/* Solve A x = b in place on m lanes (A d x d x W: its lower triangle, overwritten by the Cholesky factor;
+ * b d x W), DK(spd_solve)'s arithmetic on each lane (pivots clamped to a tiny positive value, as
+ * kernels/dls.py), the lanes innermost so that every loop vectorises. */
+static void DK(spd_solve_lanes)(real *restrict A, real *restrict b, int d, int m) {
+    const real tiny = (real)sqrt((double)DK_TINY);
+    for (int j = 0; j < d; j++) {
+        real *restrict Ajj = A + ((size_t)j * d + j) * W;
+        for (int k = 0; k < j; k++) {
+            const real *restrict Ajk = A + ((size_t)j * d + k) * W;
+            for (int l = 0; l < m; l++) Ajj[l] -= Ajk[l] * Ajk[l];
+        }
+        for (int l = 0; l < m; l++) Ajj[l] = (real)sqrt((double)(Ajj[l] > tiny ? Ajj[l] : tiny));
+        for (int i = j + 1; i < d; i++) {
+            real *restrict Aij = A + ((size_t)i * d + j) * W;
+            for (int k = 0; k < j; k++) {
+                const real *restrict Aik = A + ((size_t)i * d + k) * W;
+                const real *restrict Ajk = A + ((size_t)j * d + k) * W;
+                for (int l = 0; l < m; l++) Aij[l] -= Aik[l] * Ajk[l];
+            }
+            for (int l = 0; l < m; l++) Aij[l] /= Ajj[l];
+        }
     }
-    const real lam = S->damping2 + S->mu * e2;
+    for (int i = 0; i < d; i++) { /* L y = b */
+        real *restrict bi = b + (size_t)i * W;
+        for (int k = 0; k < i; k++)
+            for (int l = 0; l < m; l++) bi[l] -= A[((size_t)i * d + k) * W + l] * b[(size_t)k * W + l];
+        for (int l = 0; l < m; l++) bi[l] /= A[((size_t)i * d + i) * W + l];
+    }
+    for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
+        real *restrict bi = b + (size_t)i * W;
+        for (int k = i + 1; k < d; k++)
+            for (int l = 0; l < m; l++) bi[l] -= A[((size_t)k * d + i) * W + l] * b[(size_t)k * W + l];
+        for (int l = 0; l < m; l++) bi[l] /= A[((size_t)i * d + i) * W + l];
+    }
+}
+
+/* J_w = diag(sqrt_w) J diag(dq/du) of the m stepping lanes (J: nv columns; dq/du of a scalar velocity's
+ * coordinate, 1 in a quaternion, as JointMap.dq_du), gathered from the block's Jacobians Jb, and the
+ * weighted errors e_w with lambda = damping2 + mu |e_w|^2. */
+static void DK(lanes_weigh)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork) *w) {
+    const int n = S->nv, r = S->r, rows = S->pos_only ? 3 : 6;
+    const int32_t *vq = S->sp.vq, *lanes = w->lanes;
+    real *restrict e = w->e, *restrict lam = w->lam;
+    for (int l = 0; l < m; l++) lam[l] = 0;
+    for (int a = 0; a < r; a++)
+        for (int l = 0; l < m; l++) {
+            e[(size_t)a * W + l] *= S->sqrt_w[a];
+            lam[l] += e[(size_t)a * W + l] * e[(size_t)a * W + l];
+        }
+    for (int l = 0; l < m; l++) lam[l] = S->damping2 + S->mu * lam[l];
     for (int k = 0; k < S->K; k++)
         for (int a = 0; a < rows; a++)
-            for (int i = 0; i < n; i++)
-                Jw[(size_t)(rows * k + a) * n + i] = Jb[((size_t)k * 6 * n + (size_t)a * n + i) * W + l] *
-                    S->sqrt_w[rows * k + a] * (vq[i] >= 0 ? w->dqdu[(size_t)vq[i] * W + l] : 1);
-    if (r <= n) {
-        for (int a = 0; a < r; a++) {
-            for (int c = 0; c <= a; c++) {
-                real acc = 0;
-                for (int i = 0; i < n; i++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)c * n + i];
-                A[a * d + c] = A[c * d + a] = acc;
+            for (int i = 0; i < n; i++) {
+                const int row = rows * k + a;
+                const real *src = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W, sw = S->sqrt_w[row];
+                const real *dq = vq[i] >= 0 ? w->dqdu + (size_t)vq[i] * W : NULL;
+                real *restrict dst = w->Jw + ((size_t)row * n + i) * W;
+                for (int l = 0; l < m; l++) dst[l] = src[lanes[l]] * sw * (dq ? dq[lanes[l]] : 1);
             }
-            A[a * d + a] += lam;
-            y[a] = e[a];
+}
+
+/* The damped least-squares steps (3.59) of the m stepping lanes into delta: delta = J_w^T (J_w J_w^T +
+ * lambda I)^-1 e_w, or the n x n normal equations when r > n (J_w, e_w, lambda from DK(lanes_weigh)). The
+ * lanes are innermost: a block of stepping lanes runs on vector registers (1.8x a lane at a time for the
+ * Panda, 1.3x for the G1 floating base with four end links), a single target's one lane as before. */
+static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork) *w) {
+    const int n = S->nv, r = S->r, d = S->d; /* n: the step's nv columns */
+    DK(lanes_weigh)(S, Jb, m, w);
+    const real *restrict Jw = w->Jw, *restrict e = w->e, *restrict lam = w->lam;
+    real *restrict A = w->A, *restrict y = w->y, *restrict delta = w->delta;
+    const int rr = r <= n ? r : n, sum = r <= n ? n : r; /* A is rr x rr; its entries sum over `sum` */
+    for (int a = 0; a < rr; a++) {
+        for (int c = 0; c <= a; c++) {
+            real *restrict Aac = A + ((size_t)a * d + c) * W;
+            for (int l = 0; l < m; l++) Aac[l] = 0;
+            for (int i = 0; i < sum; i++) { /* J_w J_w^T (rows a, c) or J_w^T J_w (columns a, c) */
+                const real *restrict x = Jw + (r <= n ? (size_t)a * n + i : (size_t)i * n + a) * W;
+                const real *restrict z = Jw + (r <= n ? (size_t)c * n + i : (size_t)i * n + c) * W;
+                for (int l = 0; l < m; l++) Aac[l] += x[l] * z[l];
+            }
         }
-        DK(spd_solve)(A, y, d);
-        for (int i = 0; i < n; i++) {
-            real acc = 0;
-            for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * y[a];
-            delta[i] = acc;
-        }
-        return;
+        for (int l = 0; l < m; l++) A[((size_t)a * d + a) * W + l] += lam[l];
     }
-    for (int i = 0; i < n; i++) {
-        for (int c = 0; c <= i; c++) {
-            real acc = 0;
-            for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)a * n + c];
-            A[i * d + c] = A[c * d + i] = acc;
-        }
-        real acc = 0;
-        for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * e[a];
-        delta[i] = acc;
-        A[i * d + i] += lam;
+    if (r <= n) {
+        for (int a = 0; a < r; a++)
+            for (int l = 0; l < m; l++) y[(size_t)a * W + l] = e[(size_t)a * W + l];
+        DK(spd_solve_lanes)(A, y, d, m);
     }
-    DK(spd_solve)(A, delta, d);
+    for (int i = 0; i < n; i++) { /* J_w^T y, or the right-hand side J_w^T e_w */
+        real *restrict di = delta + (size_t)i * W;
+        const real *restrict v = r <= n ? y : e;
+        for (int l = 0; l < m; l++) di[l] = 0;
+        for (int a = 0; a < r; a++)
+            for (int l = 0; l < m; l++) di[l] += Jw[((size_t)a * n + i) * W + l] * v[(size_t)a * W + l];
+    }
+    if (r > n) DK(spd_solve_lanes)(A, delta, d, m);
 }
 
 /* The R library indices of the poses nearest target t (nearest first) into nn. */
@@ -351,11 +404,12 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
     DK(map_u)(S->n, S->bounded, S->jc, S->jh, ul, sc->qlanes, w->dqdu);
     DK(block)(&S->s, &S->pp, sc, 1);
     int64_t *iters = S->a->iters_out;
+    int m = 0;
     for (int l = 0; l < W; l++) {
         const int64_t t = c->t[l];
         if (t < 0) continue;
         real pn, ang;
-        DK(lane_error)(S, sc->ends, l, t, w->e, &pn, &ang);
+        DK(lane_error)(S, sc->ends, l, t, w->e1, &pn, &ang);
         iters[t]++;
         const int64_t age = ++c->it[l];
         if (pn <= S->tp * S->margin && ang <= S->to * S->margin) {
@@ -371,9 +425,12 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
                 continue;
             }
         }
-        DK(lane_delta)(S, sc->Jb, l, w);
-        DK(integrate)(&S->sp, ul, l, w->delta);
+        for (int a = 0; a < S->r; a++) w->e[(size_t)a * W + m] = w->e1[a];
+        w->lanes[m++] = l; /* steps below, with every lane that does */
     }
+    if (m) DK(lanes_delta)(S, sc->Jb, m, w);
+    for (int j = 0; j < m; j++) /* a lane retired meanwhile (its target converged) is refilled below */
+        DK(integrate)(&S->sp, ul, w->lanes[j], w->delta + j, W);
     for (int l = 0; l < W; l++) /* after every row's checks: only targets still open take lanes */
         if (c->t[l] < 0) {
             DK(refill)(S, c, ul, l, c->prev[l]);
@@ -437,7 +494,7 @@ static void DK(solve_chunk)(const DK(Solve) *S, DK(Scratch) *sc, real *ul, DK(LM
         if (!any) break;
         DK(chunk_step)(S, c, sc, ul, w);
     }
-    DK(final_check)(S, sc, t0, t1, w->e);
+    DK(final_check)(S, sc, t0, t1, w->e1);
 }
 
 static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
@@ -487,8 +544,9 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     int nthreads = (int)a->nthreads;
     if (nthreads < 1 || nchunks < 2) nthreads = 1;
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
-    const size_t per = base + 2 * (size_t)n * W + (size_t)r * nv + r + (size_t)d * d + d + nv +
-                       (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK) + CHUNK) / sizeof(real) + 1;
+    const size_t lanes = (size_t)W * ((size_t)r * nv + r + (size_t)d * d + d + nv + 1); /* LMWork's */
+    const size_t per = base + 2 * (size_t)n * W + lanes + r +
+                       (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1;
     real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads);
     if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
@@ -500,14 +558,17 @@ static int64_t DK(dk_solve)(const dk_args *a) {
         DK(LMWork) w;
         w.dqdu = ul + (size_t)n * W;
         w.Jw = w.dqdu + (size_t)n * W;
-        w.e = w.Jw + (size_t)r * nv;
-        w.A = w.e + r;
-        w.y = w.A + (size_t)d * d;
-        w.delta = w.y + d;
+        w.e = w.Jw + (size_t)r * nv * W;
+        w.A = w.e + (size_t)r * W;
+        w.y = w.A + (size_t)d * d * W;
+        w.delta = w.y + (size_t)d * W;
+        w.lam = w.delta + (size_t)nv * W;
+        w.e1 = w.lam + W;
         DK(Chunk) c;
-        c.nn = (int32_t *)(w.delta + nv);
+        c.nn = (int32_t *)(w.e1 + r);
         c.count = c.nn + CHUNK * R;
-        c.done = (uint8_t *)(c.count + CHUNK);
+        w.lanes = c.count + CHUNK;
+        c.done = (uint8_t *)(w.lanes + W);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t k = 0; k < nchunks; k++) {
             const int64_t t0 = k * CHUNK, t1 = t0 + CHUNK < S.N ? t0 + CHUNK : S.N;
