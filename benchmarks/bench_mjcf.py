@@ -8,7 +8,12 @@ diffkin's rows are its default CPU path without autograd (the fused C kernel of 
 runs the free joint's translation and quaternion itself) and the torch kernels it falls back to
 (``native.disabled()``), in the same run.
 
-    python -m benchmarks.bench_mjcf [--quick] [--threads N]
+``--ik``: whole-body IK of the floating-base G1 instead (both feet and both hands, full poses, float64,
+0.1 mm / 1 mrad): ``ik.solve`` through the C solve (``dk_solve``, steps on the manifold) against the torch
+loop it replaced for ball and free joints (the scheduled loop with the fused FK + Jacobian), one target per
+call (median) and a batch (interleaved repeats); success checked by an independent FK.
+
+    python -m benchmarks.bench_mjcf [--quick] [--threads N] [--ik]
 """
 
 from __future__ import annotations
@@ -133,11 +138,90 @@ def _pk_rows(xml: str, batch: int, min_time: float, repeats: int, rows: list[dic
     return out
 
 
+IK_ENDS = ["left_ankle_roll_link", "right_ankle_roll_link", "left_zero_link", "right_zero_link"]
+
+
+@contextlib.contextmanager
+def _torch_loop():
+    """ik.solve as it ran before the C solve took quaternion chains: both C-solve gates closed (the
+    scheduled torch loop; its FK and Jacobians still fused)."""
+    from diffkin.ik import numerical
+
+    gates = numerical.native_applies, numerical.native_solve_one
+    numerical.native_applies, numerical.native_solve_one = (lambda *a: False), (lambda *a, **k: None)
+    try:
+        yield
+    finally:
+        numerical.native_applies, numerical.native_solve_one = gates
+
+
+def _ik_check(chain, res, T) -> dict:
+    with torch.no_grad(), native.disabled():
+        Te = chain.forward_kinematics(res.q.detach())
+    pe = (Te[..., :3, 3] - T[..., :3, 3]).norm(dim=-1).amax(-1)
+    R = Te[..., :3, :3].transpose(-1, -2) @ T[..., :3, :3]
+    oe = torch.arccos(((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)).amax(-1)
+    ok = (pe <= 1e-4) & (oe <= 1e-3) & chain.within_limits(res.q.detach())
+    return {"success": float(ok.double().mean()), "flags_honest": not bool((res.success & ~ok).any())}
+
+
+def ik_rows(quick: bool, threads: int) -> list[dict]:
+    """Whole-body IK of the floating-base G1: the C solve against the torch loop (see the module doc)."""
+    from diffkin import ik
+    from diffkin.models import from_mjcf
+
+    chain = from_mjcf(G1, IK_ENDS, dtype=torch.float64).requires_grad_(False)
+    n_one, N, repeats = (8, 64, 2) if quick else (40, 500, 3)
+    # targets from a generator no solve below uses (the torch loop samples its pose library from the
+    # solve's generator: targets drawn from the same seed would sit in its library)
+    q = chain.random_configuration(max(n_one, N), generator=torch.Generator().manual_seed(2026))
+    with torch.no_grad():
+        T = chain.forward_kinematics(q)
+    impls = (("C solve (dk_solve)", contextlib.nullcontext), ("torch loop", _torch_loop))
+    rows = []
+    with torch_threads(threads), torch.no_grad():
+        for impl, context in impls:
+            with context():
+                ik.solve(chain, T[0], seed=1)  # warm-up: the per-chain state
+                times, out = [], []
+                for i in range(n_one):
+                    t0 = time.perf_counter()
+                    out.append(ik.solve(chain, T[i], seed=1 + i))
+                    times.append(time.perf_counter() - t0)
+            res = ik.IKResult(*(torch.stack([getattr(r, f) for r in out]) for f in
+                                ("q", "success", "position_error", "orientation_error", "iterations",
+                                 "seeds_tried")))
+            s = float(np.median(times))
+            rows.append({"case": "1 target per call", "impl": impl, "targets": n_one, "median_ms": 1e3 * s,
+                         "solves_per_s": 1 / s, **_ik_check(chain, res, T[:n_one])})
+        times = {impl: [] for impl, _ in impls}
+        for rep in range(repeats):  # interleaved: both see the same machine load
+            for impl, context in impls:
+                with context():
+                    t0 = time.perf_counter()
+                    res = ik.solve(chain, T[:N], seed=1 + rep)
+                    times[impl].append(time.perf_counter() - t0)
+                check = _ik_check(chain, res, T[:N])
+                if rep == repeats - 1:
+                    s = float(np.median(times[impl]))
+                    rows.append({"case": f"batch of {N}", "impl": impl, "targets": N, "median_ms": 1e3 * s,
+                                 "solves_per_s": N / s, **check})
+    for case in {r["case"] for r in rows}:
+        c, t = (r for r in rows if r["case"] == case)
+        c["speedup_vs_torch_loop"] = t["median_ms"] / c["median_ms"]
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--ik", action="store_true", help="whole-body IK of the floating-base G1 instead of FK")
     args = p.parse_args(argv)
+    if args.ik:
+        print_table(ik_rows(args.quick, args.threads),
+                    f"G1 floating base, whole-body ik.solve (4 end links, float64, {args.threads} thread(s))")
+        return 0
     rows = run(args)
     print_table(rows, rows[0]["benchmark"])
     return 0

@@ -29,10 +29,13 @@ def _targets(chain, n: int, seed: int, unreachable: int = 0):
 
 
 def _both(chain, target, **kw):
-    """(the C solve, the torch solve) of the same call, without autograd."""
+    """(the C solve, the torch solve) of the same call, without autograd; each checked to be served by the
+    path it stands for."""
     with torch.no_grad():
+        assert _native_solve.applies(chain, target, False)
         fused = ik.solve(chain, target, **kw)
         with native.disabled():
+            assert not _native_solve.applies(chain, target, False)
             return fused, ik.solve(chain, target, **kw)
 
 
@@ -195,25 +198,18 @@ def test_one_target_falls_back_where_the_lean_path_does_not_apply():
         ik.solve(chain, torch.full((4, 4), float("nan"), dtype=torch.float64))
 
 
-def test_ball_and_free_chains_keep_the_torch_loop_on_the_manifold():
-    """dk_solve steps u additively: a chain with quaternion coordinates must not reach it (batch or one
-    target). Before this guard the C solve took the G1/H1 floating bases and every target failed."""
-    from pathlib import Path
-
-    from diffkin.ik import _native_solve
-    from diffkin.models import from_mjcf
-
-    kinds = Path(__file__).parent / "data" / "mjcf_extra" / "joint_kinds.xml"
-    chain = from_mjcf(kinds, "palm", root_link="torso", dtype=torch.float64)
-    q = chain.random_configuration(4, generator=torch.Generator().manual_seed(6))
+def test_disabled_keeps_the_torch_loop_after_a_c_solve(monkeypatch):
+    """A chain's cached lean-path entry must not let the C solve run inside native.disabled() (the torch
+    side of every comparison here, and of tests/test_native_solve_ball.py, ran through C before)."""
+    chain = models.load("panda", dtype=torch.float64)
+    _, T = _targets(chain, 4, seed=16)
     with torch.no_grad():
-        T = chain.forward_kinematics(q)
-    assert not _native_solve.applies(chain, T, False)
-    assert _native_solve.solve_one(chain, T[0].contiguous(), None, 0, num_seeds=64, max_iterations=16,
-                                   tol=(1e-4, 1e-3)) is None
-    res = ik.solve(chain, T, seed=0)
-    one = ik.solve(chain, T[0], seed=0)
-    assert bool(res.success.all()) and bool(one.success)
-    (quat,) = chain.configuration_space.quaternion_index()  # the shoulder's ball joint
-    norms = res.q.detach()[..., list(quat)].norm(dim=-1)
-    torch.testing.assert_close(norms, torch.ones_like(norms), rtol=0, atol=1e-12)
+        assert bool(ik.solve(chain, T, seed=0).success.all()) and _native_solve.applies(chain, T, False)
+
+        def refuse(args):
+            raise AssertionError("dk_solve ran inside native.disabled()")
+
+        monkeypatch.setattr(native, "solve_call", refuse)
+        with native.disabled():
+            assert not _native_solve.applies(chain, T, False)
+            assert bool(ik.solve(chain, T, seed=0).success.all())

@@ -1,8 +1,11 @@
 """The whole :func:`diffkin.ik.solve` in one C call (private): ``dk_solve`` of ``kernels/_native_solve.c``.
 
-It serves CPU solves without autograd on chains the fused kernel supports (1-DOF joints); CUDA, autograd,
-``progress`` and other chains keep the torch loop of :mod:`._lm`. Both run the same iteration (the LM step
-(3.59) with the joint limits as q = c + h sin u, harvest, stall checks, re-seeding), so they agree to the
+It serves CPU solves without autograd on every chain the fused kernel takes (1-DOF joints, ball and free
+joints: floating bases); CUDA, autograd, ``progress`` and other chains keep the torch loop of :mod:`._lm`.
+Both run the same iteration (the LM step (3.59) with the joint limits as q = c + h sin u on the scalar
+coordinates, steps of nv velocities integrated on the manifold as
+:meth:`~diffkin.kernels.configuration.ConfigurationSpace.integrate` does: Q ⊗ exp(ω/2) on each unit
+quaternion; harvest, stall checks, re-seeding), so they agree to the
 documented tolerance but not bit for bit: the C solve fills W = 16 lanes per chunk of 128 targets and gives
 a chunk's open targets extra parallel seeds when lanes fall idle, once they have run a check interval
 (``min_seed_iterations`` in a chunk of one target; the torch loop: below ``min_rows`` rows), and its
@@ -12,8 +15,11 @@ seeds follow one documented rule:
   ``library_size`` configurations drawn once per chain state from a generator seeded with 0, so that a
   single-target call does not pay for sampling and evaluating a library), then
 * random restarts from a pool of min(N · num_seeds, max(num_seeds, 4096)) configurations drawn in
-  advance from the caller's generator (seed s of target t is column (t · num_seeds + s) mod P): the same
-  generator state gives the same answers, for every thread count.
+  advance from the caller's generator (seed s of target t is column (t · num_seeds + s) mod P, each
+  column the ``n_uniform`` numbers that
+  :meth:`~diffkin.kernels.configuration.ConfigurationSpace.from_uniform` maps: scalars uniform in their
+  ranges, quaternions by Shoemake's map): the same generator state gives the same answers, for every
+  thread count.
 
 :func:`solve_one` is the lean front for one target (no tensor round trips in validation).
 """
@@ -42,6 +48,7 @@ class _Prepared:
 
     def __init__(self, chain, packed: native.NativeModel, dtype: torch.dtype, respect_limits: bool, L: int):
         self.packed, self.dtype, self.n = packed, dtype, chain.n_joints
+        self.nu = chain.configuration_space.n_uniform  # uniforms per random seed (3 per quaternion)
         jm = self.jmap = JointMap(chain, dtype, torch.device("cpu"), respect_limits)
         limited = respect_limits and chain.q_limits is not None
         if limited:
@@ -84,12 +91,10 @@ class _Prepared:
 
 def _entry(chain, x: Tensor) -> single.Entry | None:
     """The chain's lean-path cache entry (:func:`diffkin.kernels.single.entry`) when ``dk_solve`` can serve
-    it: the fused kernel serves the chain and q has no quaternion coordinates (dk_solve's steps are additive
-    on u, so ball and free chains keep the torch loop on the manifold; their FK and Jacobians are still
-    fused there). None otherwise."""
+    it: the fused kernel serves the chain (every joint kind: dk_solve steps scalars additively and
+    quaternions on the manifold). None otherwise."""
     with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
-        hit = single.entry(chain, x)
-    return hit if hit is not None and hit.args.euclidean else None
+        return single.entry(chain, x)
 
 
 def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
@@ -108,8 +113,9 @@ def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int)
 
 def applies(chain, T_target: Tensor, progress: bool) -> bool:
     """Whether the C solve serves this call: CPU and a chain the fused kernel supports (the iterations run
-    without autograd either way; gradients are attached at the solution afterwards)."""
-    if progress or T_target.device.type != "cpu" or chain.device.type != "cpu":
+    without autograd either way; gradients are attached at the solution afterwards). Asked first whether
+    the library is in use: a cached lean-path entry outlives :func:`~diffkin.kernels.native.disabled`."""
+    if progress or T_target.device.type != "cpu" or chain.device.type != "cpu" or not native.available():
         return False
     return _entry(chain, T_target) is not None
 
@@ -124,7 +130,7 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
     S = 0 if user_u is None else user_u.shape[1]
     R = min(cfg.library_ranks, prep.L) if prep.L else 0
     P = min(N * num_seeds, max(num_seeds, _POOL)) if num_seeds > S + R else 0
-    pool = torch.rand(P * n, generator=generator, dtype=dtype) if P else None
+    pool = torch.rand(P * prep.nu, generator=generator, dtype=dtype) if P else None
     if outs is None:
         errs, counts = torch.empty(2, N, dtype=dtype), torch.empty(2, N, dtype=torch.int64)
         outs = (torch.empty(N, n, dtype=dtype), torch.empty(N, dtype=torch.bool), *errs, *counts)

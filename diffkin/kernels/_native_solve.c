@@ -1,6 +1,8 @@
 /* The whole of diffkin.ik.solve in one C call (included by _native.c once per real type, like its second
  * half): seeding, the Levenberg-Marquardt iteration (3.59) of dk_lm, harvest, stall detection, re-seeding
- * and the final check, for chains of 1-DOF joints. diffkin/ik/_native_solve.py prepares the arrays.
+ * and the final check, for every chain the fused pass takes: 1-DOF joints, and ball and free joints whose
+ * unit quaternions are stepped on the manifold (DK(integrate)). diffkin/ik/_native_solve.py prepares the
+ * arrays.
  *
  * Work is split into chunks of CHUNK targets, each solved by one thread on the W lanes of DK(block): a lane
  * holds one (target, seed) row. After every LM step a converged row is harvested (its target is done and
@@ -15,18 +17,62 @@
  *
  * Seed s of target t: s < S the user's seed (t, s); s < S + R the library configuration with the (s - S)-th
  * nearest pose (squared distance of positions plus feature_weight times that of the rotation columns); else
- * column (t n_seeds + s) mod P of the pool of uniform draws, mapped to u uniform in q (u = asin((2r - 1)
- * (1 - 1e-6)) on bounded joints, lo + 2 h r on the others, as JointMap.sample_u).
+ * column (t n_seeds + s) mod P of the pool of uniform draws (nu = Ns + 3 Nb per column: one per scalar
+ * coordinate in q order, then three per quaternion, as ConfigurationSpace.from_uniform), mapped to u
+ * uniform in q (u = asin((2r - 1) (1 - 1e-6)) on bounded joints, lo + 2 h r on the other scalars, as
+ * JointMap.sample_u; a quaternion by Shoemake's map, eta >= 0).
+ *
+ * The configuration space (Space below): q has n = nq coordinates, a step nv velocities; a scalar
+ * coordinate (R, P motions) moves by its velocity (additive on u), a quaternion (S motion: 4 coordinates,
+ * 3 velocities, the angular velocity in the rotated frame) by Q <- normalise(Q) (x) exp(w / 2), as
+ * ConfigurationSpace.integrate (mj_integratePos, dt = 1). Both maps are read off the frames' motion,
+ * qidx and vidx, so the packed chain is the one description.
  *
  * The result q = c + h sin(u) (bounded), wrapped by 2 pi towards the centre on revolute variables, clamped
- * into [qlo, qhi] when clamp; its exact errors come from one more FK; success = errors within the tolerances
- * (not the margin) and, when clamp, q within [qlo, qhi].
+ * into [qlo, qhi] when clamp (scalars; quaternions are normalised); its exact errors come from one more FK;
+ * success = errors within the tolerances (not the margin) and, when clamp, the scalars within [qlo, qhi].
  */
 #ifndef DK_SOLVE_ONCE_TYPES
 #define DK_SOLVE_ONCE_TYPES
 #define CHUNK 128 /* targets per chunk: a fixed number, so the answers do not depend on the thread count */
 #define MAX_RANKS 64
 #define MAX_ENDS 64 /* end links the nearest-pose search takes (more: no library seeds) */
+
+typedef struct { /* the configuration space of the chain (see the top of this file) */
+    int n, nv, nb, nu;       /* coordinates, velocities, quaternions, uniforms per random seed */
+    int32_t *vq;             /* [nv] the coordinate a scalar velocity moves, -1 in a quaternion */
+    int32_t *qs, *vs;        /* [nb] each quaternion's first coordinate and first velocity */
+    int32_t *slot;           /* [n] a scalar's index among the scalars (its uniform), -1 in a quaternion */
+} Space;
+
+/* The space of the chain s from its frames (an S frame: one quaternion; an R or P frame: scalar qidx moved
+ * by velocity vidx; mimic frames repeat their leader's pair); returns -1 when memory ran out. */
+static int space_read(const Shape *s, Space *sp) {
+    const int n = s->n, nv = s->nv;
+    int32_t *all = (int32_t *)malloc(sizeof(int32_t) * (size_t)(nv + 2 * n + n + 1));
+    if (!all) return -1;
+    sp->n = n, sp->nv = nv, sp->nb = 0;
+    sp->vq = all, sp->qs = all + nv, sp->vs = sp->qs + n, sp->slot = sp->vs + n;
+    for (int v = 0; v < nv; v++) sp->vq[v] = -1;
+    for (int i = 0; i < n; i++) sp->slot[i] = 0;
+    for (int j = 0; j < s->J; j++) {
+        if (s->motion[j] != DK_MOTION_S) {
+            sp->vq[s->vidx[j]] = s->qidx[j];
+            continue;
+        }
+        int seen = 0;
+        for (int b = 0; b < sp->nb; b++) seen |= sp->qs[b] == s->qidx[j];
+        if (seen) continue;
+        sp->qs[sp->nb] = s->qidx[j];
+        sp->vs[sp->nb++] = s->vidx[j];
+        for (int c = 0; c < 4; c++) sp->slot[s->qidx[j] + c] = -1;
+    }
+    int k = 0;
+    for (int i = 0; i < n; i++)
+        if (sp->slot[i] >= 0) sp->slot[i] = k++;
+    sp->nu = k + 3 * sp->nb;
+    return 0;
+}
 #endif
 
 /* q and dq/du of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints, else q = u. */
@@ -49,17 +95,48 @@ static void DK(map_u)(int n, const uint8_t *bounded, const real *jc, const real 
     }
 }
 
-/* The configuration update u <- u (+) delta of lane l (u lane-major, n x W): the one place a step is
- * applied, so that joints with another configuration space (ball, free) plug in here. */
-static void DK(integrate)(int n, real *ul, int l, const real *delta) {
-    for (int i = 0; i < n; i++) ul[(size_t)i * W + l] += delta[i];
+/* Normalise the quaternion of lane l at qi (4 rows of W lanes) in place; one of norm ~0 becomes the
+ * identity (as diffkin._numerics.safe_normalize and the FK's S motion: the threshold DK_QSMALL). */
+static void DK(unit_quaternion)(real *qi, int l) {
+    double x[4], nn = 0;
+    for (int c = 0; c < 4; c++) {
+        x[c] = (double)qi[(size_t)c * W + l];
+        nn += x[c] * x[c];
+    }
+    const double norm = sqrt(nn);
+    const int small = norm <= (double)DK_QSMALL;
+    for (int c = 0; c < 4; c++) qi[(size_t)c * W + l] = (real)(small ? (c == 0) : x[c] / norm);
+}
+
+/* The configuration update u <- u (+) delta of lane l (u lane-major, n x W; delta nv, `stride` apart):
+ * scalars u += their velocity, quaternions Q <- normalise(Q) (x) exp(w / 2), exp(w / 2) = (cos(th / 2),
+ * sin(th / 2) w / th), th = |w| (ConfigurationSpace.integrate; not made eta >= 0, so that the step is
+ * continuous in w). */
+static void DK(integrate)(const Space *sp, real *ul, int l, const real *delta, int stride) {
+    for (int v = 0; v < sp->nv; v++)
+        if (sp->vq[v] >= 0) ul[(size_t)sp->vq[v] * W + l] += delta[(size_t)v * stride];
+    for (int b = 0; b < sp->nb; b++) {
+        real *qi = ul + (size_t)sp->qs[b] * W;
+        DK(unit_quaternion)(qi, l);
+        const real *w = delta + (size_t)sp->vs[b] * stride;
+        const double wx = w[0], wy = w[stride], wz = w[2 * stride];
+        const double h = 0.5 * sqrt(wx * wx + wy * wy + wz * wz);
+        const double e0 = cos(h), s = h < 1e-4 ? 0.5 * (1 - h * h / 6) : 0.5 * sin(h) / h; /* sinc(h) / 2 */
+        const double ev[3] = {s * wx, s * wy, s * wz};
+        const double q0 = qi[l], q1 = qi[W + l], q2 = qi[2 * W + l], q3 = qi[3 * W + l];
+        qi[l] = (real)(q0 * e0 - q1 * ev[0] - q2 * ev[1] - q3 * ev[2]);
+        qi[W + l] = (real)(q0 * ev[0] + e0 * q1 + q2 * ev[2] - q3 * ev[1]);
+        qi[2 * W + l] = (real)(q0 * ev[1] + e0 * q2 + q3 * ev[0] - q1 * ev[2]);
+        qi[3 * W + l] = (real)(q0 * ev[2] + e0 * q3 + q1 * ev[1] - q2 * ev[0]);
+    }
 }
 
 typedef struct { /* the fixed inputs of a solve, read once */
     const dk_args *a;
     Shape s;
     DK(Params) pp;
-    int K, n, r, d, pos_only;
+    Space sp;
+    int K, n, nv, r, d, pos_only;
     int64_t N, S, L, R, P, nseeds, maxit, minit, every;
     real tp, to, margin, damping2, mu, stall, w2;
     const real *pd, *xd, *yd, *zd, *sqrt_w, *jc, *jh, *user_u, *lib_u, *lib_pose, *pool, *qlo, *qhi;
@@ -93,127 +170,107 @@ static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t 
     }
 }
 
-/* The LM work space of a thread, lane-major (W lanes innermost): dqdu n, Jw r x n, e r, A d x d, y d,
- * delta n, inv d (reciprocal pivots), lam 1, each times W. */
-typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta, *inv, *lam; } DK(LMWork);
+/* Per thread: dq/du (n x W), then for the m lanes that step this iteration, lane-major (column j of each
+ * array is the j-th stepping lane, lanes[j]): e (r x W), J_w (r x nv x W), A (d x d x W), y (d x W), delta
+ * (nv x W), lambda (W); e1 (r) one lane's error. */
+typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta, *lam, *e1; int32_t *lanes; } DK(LMWork);
 
-/* Cholesky solve A x = b in place for the lanes l0 .. l1 - 1 of a lane-major SPD A (d x d x W, its lower
- * triangle read and overwritten by the factor; b d x W): spd_solve's algorithm with the lane loop innermost,
- * so each line is one vector operation over the lanes. */
-static void DK(spd_solve_lanes)(real *A, real *b, real *inv, int d, int l0, int l1) {
+/* Solve A x = b in place on m lanes (A d x d x W: its lower triangle, overwritten by the Cholesky factor;
+ * b d x W), DK(spd_solve)'s arithmetic on each lane (pivots clamped to a tiny positive value, as
+ * kernels/dls.py), the lanes innermost so that every loop vectorises. */
+static void DK(spd_solve_lanes)(real *restrict A, real *restrict b, int d, int m) {
     const real tiny = (real)sqrt((double)DK_TINY);
-#define AL(i, k) (A + ((size_t)(i) * d + (k)) * W)
     for (int j = 0; j < d; j++) {
-        real *ajj = AL(j, j), *ij = inv + (size_t)j * W;
+        real *restrict Ajj = A + ((size_t)j * d + j) * W;
         for (int k = 0; k < j; k++) {
-            const real *ajk = AL(j, k);
-            for (int l = l0; l < l1; l++) ajj[l] -= ajk[l] * ajk[l];
+            const real *restrict Ajk = A + ((size_t)j * d + k) * W;
+            for (int l = 0; l < m; l++) Ajj[l] -= Ajk[l] * Ajk[l];
         }
-        for (int l = l0; l < l1; l++) {
-            ajj[l] = (real)sqrt((double)(ajj[l] > tiny ? ajj[l] : tiny));
-            ij[l] = 1 / ajj[l];
-        }
+        for (int l = 0; l < m; l++) Ajj[l] = (real)sqrt((double)(Ajj[l] > tiny ? Ajj[l] : tiny));
         for (int i = j + 1; i < d; i++) {
-            real *aij = AL(i, j);
+            real *restrict Aij = A + ((size_t)i * d + j) * W;
             for (int k = 0; k < j; k++) {
-                const real *aik = AL(i, k), *ajk = AL(j, k);
-                for (int l = l0; l < l1; l++) aij[l] -= aik[l] * ajk[l];
+                const real *restrict Aik = A + ((size_t)i * d + k) * W;
+                const real *restrict Ajk = A + ((size_t)j * d + k) * W;
+                for (int l = 0; l < m; l++) Aij[l] -= Aik[l] * Ajk[l];
             }
-            for (int l = l0; l < l1; l++) aij[l] *= ij[l];
+            for (int l = 0; l < m; l++) Aij[l] /= Ajj[l];
         }
     }
     for (int i = 0; i < d; i++) { /* L y = b */
-        real *bi = b + (size_t)i * W;
-        for (int k = 0; k < i; k++) {
-            const real *aik = AL(i, k), *bk = b + (size_t)k * W;
-            for (int l = l0; l < l1; l++) bi[l] -= aik[l] * bk[l];
-        }
-        for (int l = l0; l < l1; l++) bi[l] *= inv[(size_t)i * W + l];
+        real *restrict bi = b + (size_t)i * W;
+        for (int k = 0; k < i; k++)
+            for (int l = 0; l < m; l++) bi[l] -= A[((size_t)i * d + k) * W + l] * b[(size_t)k * W + l];
+        for (int l = 0; l < m; l++) bi[l] /= A[((size_t)i * d + i) * W + l];
     }
     for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
-        real *bi = b + (size_t)i * W;
-        for (int k = i + 1; k < d; k++) {
-            const real *aki = AL(k, i), *bk = b + (size_t)k * W;
-            for (int l = l0; l < l1; l++) bi[l] -= aki[l] * bk[l];
-        }
-        for (int l = l0; l < l1; l++) bi[l] *= inv[(size_t)i * W + l];
+        real *restrict bi = b + (size_t)i * W;
+        for (int k = i + 1; k < d; k++)
+            for (int l = 0; l < m; l++) bi[l] -= A[((size_t)k * d + i) * W + l] * b[(size_t)k * W + l];
+        for (int l = 0; l < m; l++) bi[l] /= A[((size_t)i * d + i) * W + l];
     }
-#undef AL
 }
 
-/* The damped least-squares step (3.59) of lanes l0 .. l1 - 1 on their errors e (r x W, weighted in place):
- * delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w (or the n x n normal equations when r > n), lambda =
- * damping2 + mu |e_w|^2, J_w = diag(sqrt_w) J diag(dq/du). All lanes of the range at once, lane-major: as
- * one scalar lane at a time the inner products reduced horizontally and this step was over half of a
- * batched solve's time. A lane of the range that takes no step computes values nobody reads. */
-static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int l0, int l1, DK(LMWork) *w) {
-    const int n = S->n, r = S->r, d = S->d, rows = S->pos_only ? 3 : 6;
-    real *e = w->e, *Jw = w->Jw, *A = w->A, *y = w->y, *delta = w->delta, *lam = w->lam;
-    for (int l = l0; l < l1; l++) lam[l] = 0;
-    for (int a = 0; a < r; a++) {
-        real *ea = e + (size_t)a * W;
-        const real sw = S->sqrt_w[a];
-        for (int l = l0; l < l1; l++) {
-            ea[l] *= sw;
-            lam[l] += ea[l] * ea[l];
+/* J_w = diag(sqrt_w) J diag(dq/du) of the m stepping lanes (J: nv columns; dq/du of a scalar velocity's
+ * coordinate, 1 in a quaternion, as JointMap.dq_du), gathered from the block's Jacobians Jb, and the
+ * weighted errors e_w with lambda = damping2 + mu |e_w|^2. */
+static void DK(lanes_weigh)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork) *w) {
+    const int n = S->nv, r = S->r, rows = S->pos_only ? 3 : 6;
+    const int32_t *vq = S->sp.vq, *lanes = w->lanes;
+    real *restrict e = w->e, *restrict lam = w->lam;
+    for (int l = 0; l < m; l++) lam[l] = 0;
+    for (int a = 0; a < r; a++)
+        for (int l = 0; l < m; l++) {
+            e[(size_t)a * W + l] *= S->sqrt_w[a];
+            lam[l] += e[(size_t)a * W + l] * e[(size_t)a * W + l];
         }
-    }
-    for (int l = l0; l < l1; l++) lam[l] = S->damping2 + S->mu * lam[l];
+    for (int l = 0; l < m; l++) lam[l] = S->damping2 + S->mu * lam[l];
     for (int k = 0; k < S->K; k++)
         for (int a = 0; a < rows; a++)
             for (int i = 0; i < n; i++) {
-                const real *jb = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W, *dq = w->dqdu + (size_t)i * W;
-                const real sw = S->sqrt_w[rows * k + a];
-                real *jw = Jw + ((size_t)(rows * k + a) * n + i) * W;
-                for (int l = l0; l < l1; l++) jw[l] = jb[l] * sw * dq[l];
+                const int row = rows * k + a;
+                const real *src = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W, sw = S->sqrt_w[row];
+                const real *dq = vq[i] >= 0 ? w->dqdu + (size_t)vq[i] * W : NULL;
+                real *restrict dst = w->Jw + ((size_t)row * n + i) * W;
+                for (int l = 0; l < m; l++) dst[l] = src[lanes[l]] * sw * (dq ? dq[lanes[l]] : 1);
             }
-#define JW(a, i) (Jw + ((size_t)(a) * n + (i)) * W)
+}
+
+/* The damped least-squares steps (3.59) of the m stepping lanes into delta: delta = J_w^T (J_w J_w^T +
+ * lambda I)^-1 e_w, or the n x n normal equations when r > n (J_w, e_w, lambda from DK(lanes_weigh)). The
+ * lanes are innermost: a block of stepping lanes runs on vector registers (1.8x a lane at a time for the
+ * Panda, 1.3x for the G1 floating base with four end links), a single target's one lane as before. */
+static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork) *w) {
+    const int n = S->nv, r = S->r, d = S->d; /* n: the step's nv columns */
+    DK(lanes_weigh)(S, Jb, m, w);
+    const real *restrict Jw = w->Jw, *restrict e = w->e, *restrict lam = w->lam;
+    real *restrict A = w->A, *restrict y = w->y, *restrict delta = w->delta;
+    const int rr = r <= n ? r : n, sum = r <= n ? n : r; /* A is rr x rr; its entries sum over `sum` */
+    for (int a = 0; a < rr; a++) {
+        for (int c = 0; c <= a; c++) {
+            real *restrict Aac = A + ((size_t)a * d + c) * W;
+            for (int l = 0; l < m; l++) Aac[l] = 0;
+            for (int i = 0; i < sum; i++) { /* J_w J_w^T (rows a, c) or J_w^T J_w (columns a, c) */
+                const real *restrict x = Jw + (r <= n ? (size_t)a * n + i : (size_t)i * n + a) * W;
+                const real *restrict z = Jw + (r <= n ? (size_t)c * n + i : (size_t)i * n + c) * W;
+                for (int l = 0; l < m; l++) Aac[l] += x[l] * z[l];
+            }
+        }
+        for (int l = 0; l < m; l++) A[((size_t)a * d + a) * W + l] += lam[l];
+    }
     if (r <= n) {
-        for (int a = 0; a < r; a++) {
-            for (int c = 0; c <= a; c++) { /* the lower triangle: all the factorisation reads */
-                real *acc = A + ((size_t)a * d + c) * W;
-                for (int l = l0; l < l1; l++) acc[l] = 0;
-                for (int i = 0; i < n; i++) {
-                    const real *ja = JW(a, i), *jc = JW(c, i);
-                    for (int l = l0; l < l1; l++) acc[l] += ja[l] * jc[l];
-                }
-            }
-            real *aa = A + ((size_t)a * d + a) * W, *ya = y + (size_t)a * W, *ea = e + (size_t)a * W;
-            for (int l = l0; l < l1; l++) {
-                aa[l] += lam[l];
-                ya[l] = ea[l];
-            }
-        }
-        DK(spd_solve_lanes)(A, y, w->inv, d, l0, l1);
-        for (int i = 0; i < n; i++) {
-            real *di = delta + (size_t)i * W;
-            for (int l = l0; l < l1; l++) di[l] = 0;
-            for (int a = 0; a < r; a++) {
-                const real *ja = JW(a, i), *ya = y + (size_t)a * W;
-                for (int l = l0; l < l1; l++) di[l] += ja[l] * ya[l];
-            }
-        }
-        return;
+        for (int a = 0; a < r; a++)
+            for (int l = 0; l < m; l++) y[(size_t)a * W + l] = e[(size_t)a * W + l];
+        DK(spd_solve_lanes)(A, y, d, m);
     }
-    for (int i = 0; i < n; i++) {
-        for (int c = 0; c <= i; c++) {
-            real *acc = A + ((size_t)i * d + c) * W;
-            for (int l = l0; l < l1; l++) acc[l] = 0;
-            for (int a = 0; a < r; a++) {
-                const real *ji = JW(a, i), *jc = JW(a, c);
-                for (int l = l0; l < l1; l++) acc[l] += ji[l] * jc[l];
-            }
-        }
-        real *di = delta + (size_t)i * W, *ai = A + ((size_t)i * d + i) * W;
-        for (int l = l0; l < l1; l++) di[l] = 0;
-        for (int a = 0; a < r; a++) {
-            const real *ji = JW(a, i), *ea = e + (size_t)a * W;
-            for (int l = l0; l < l1; l++) di[l] += ji[l] * ea[l];
-        }
-        for (int l = l0; l < l1; l++) ai[l] += lam[l];
+    for (int i = 0; i < n; i++) { /* J_w^T y, or the right-hand side J_w^T e_w */
+        real *restrict di = delta + (size_t)i * W;
+        const real *restrict v = r <= n ? y : e;
+        for (int l = 0; l < m; l++) di[l] = 0;
+        for (int a = 0; a < r; a++)
+            for (int l = 0; l < m; l++) di[l] += Jw[((size_t)a * n + i) * W + l] * v[(size_t)a * W + l];
     }
-#undef JW
-    DK(spd_solve_lanes)(A, delta, w->inv, d, l0, l1);
+    if (r > n) DK(spd_solve_lanes)(A, delta, d, m);
 }
 
 /* The R library indices of the poses nearest target t (nearest first) into nn. lib_pose is feature-major
@@ -276,11 +333,25 @@ static void DK(seed)(const DK(Solve) *S, int64_t t, int64_t s, const int32_t *nn
         for (int i = 0; i < n; i++) ul[(size_t)i * W + l] = lu[i];
         return;
     }
-    const real *r = S->pool + (size_t)((t * S->nseeds + s) % S->P) * n;
+    const Space *sp = &S->sp;
+    const real *r = S->pool + (size_t)((t * S->nseeds + s) % S->P) * sp->nu;
     for (int i = 0; i < n; i++) {
-        const real v = S->bounded[i] ? (real)asin((double)((2 * r[i] - 1) * (real)(1.0 - 1e-6)))
-                                     : (S->jc[i] - S->jh[i]) + 2 * S->jh[i] * r[i];
+        if (sp->slot[i] < 0) continue;
+        const real ri = r[sp->slot[i]];
+        const real v = S->bounded[i] ? (real)asin((double)((2 * ri - 1) * (real)(1.0 - 1e-6)))
+                                     : (S->jc[i] - S->jh[i]) + 2 * S->jh[i] * ri;
         ul[(size_t)i * W + l] = v;
+    }
+    const double two_pi = 6.283185307179586;
+    for (int b = 0; b < sp->nb; b++) { /* Shoemake: uniform on S^3, then eta >= 0 (from_uniform) */
+        const real *rb = r + (sp->nu - 3 * sp->nb) + 3 * b;
+        const double u1 = rb[0], a = two_pi * rb[1], c = two_pi * rb[2];
+        const double r1 = sqrt(1 - u1 > 0 ? 1 - u1 : 0), r2 = sqrt(u1 > 0 ? u1 : 0);
+        double Q[4] = {r1 * sin(a), r1 * cos(a), r2 * sin(c), r2 * cos(c)};
+        const double sign = Q[0] < 0 ? -1 : 1;
+        real *qi = ul + (size_t)sp->qs[b] * W;
+        for (int k = 0; k < 4; k++) qi[(size_t)k * W + l] = (real)(sign * Q[k]);
+        DK(unit_quaternion)(qi, l); /* as JointMap.u_of_q */
     }
 }
 
@@ -354,12 +425,12 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
     DK(map_u)(S->n, S->bounded, S->jc, S->jh, ul, sc->qlanes, w->dqdu);
     DK(block)(&S->s, &S->pp, sc, 1);
     int64_t *iters = S->a->iters_out;
-    int l0 = W, l1 = 0; /* the lanes that take a step lie in l0 .. l1 - 1 */
+    int m = 0;
     for (int l = 0; l < W; l++) {
         const int64_t t = c->t[l];
         if (t < 0) continue;
-        real pn, ang, el[S->r]; /* this lane's error, then scattered into the lanes' e */
-        DK(lane_error)(S, sc->ends, l, t, el, &pn, &ang);
+        real pn, ang;
+        DK(lane_error)(S, sc->ends, l, t, w->e1, &pn, &ang);
         iters[t]++;
         const int64_t age = ++c->it[l];
         if (pn <= S->tp * S->margin && ang <= S->to * S->margin) {
@@ -375,17 +446,12 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
                 continue;
             }
         }
-        for (int a = 0; a < S->r; a++) w->e[(size_t)a * W + l] = el[a];
-        l0 = l < l0 ? l : l0;
-        l1 = l + 1;
+        for (int a = 0; a < S->r; a++) w->e[(size_t)a * W + m] = w->e1[a];
+        w->lanes[m++] = l; /* steps below, with every lane that does */
     }
-    if (l1 > l0) DK(lanes_delta)(S, sc->Jb, l0, l1, w);
-    for (int l = l0; l < l1; l++) { /* the rows still running (a converged row retires its target's others) */
-        if (c->t[l] < 0) continue;
-        real dl[S->n];
-        for (int i = 0; i < S->n; i++) dl[i] = w->delta[(size_t)i * W + l];
-        DK(integrate)(S->n, ul, l, dl);
-    }
+    if (m) DK(lanes_delta)(S, sc->Jb, m, w);
+    for (int j = 0; j < m; j++) /* a lane retired meanwhile (its target converged) is refilled below */
+        DK(integrate)(&S->sp, ul, w->lanes[j], w->delta + j, W);
     for (int l = 0; l < W; l++) /* after every row's checks: only targets still open take lanes */
         if (c->t[l] < 0) {
             DK(refill)(S, c, ul, l, c->prev[l]);
@@ -404,12 +470,18 @@ static void DK(final_check)(const DK(Solve) *S, DK(Scratch) *sc, int64_t t0, int
         for (int l = 0; l < W; l++) {
             real *qt = q + (b0 + (l < nl ? l : nl - 1)) * n;
             for (int i = 0; i < n && l < nl; i++) {
+                if (S->sp.slot[i] < 0) continue; /* a quaternion: normalised below */
                 double v = S->bounded[i] ? (double)S->jc[i] + (double)S->jh[i] * sin((double)qt[i]) : qt[i];
                 if (S->wrap[i]) v -= two_pi * nearbyint((v - (double)S->jc[i]) / two_pi);
                 if (a->clamp) v = v < S->qlo[i] ? S->qlo[i] : (v > S->qhi[i] ? S->qhi[i] : v);
                 qt[i] = (real)v;
             }
             for (int i = 0; i < n; i++) sc->qlanes[(size_t)i * W + l] = qt[i];
+            for (int b = 0; b < S->sp.nb && l < nl; b++) {
+                real *qi = sc->qlanes + (size_t)S->sp.qs[b] * W;
+                DK(unit_quaternion)(qi, l);
+                for (int c = 0; c < 4; c++) qt[S->sp.qs[b] + c] = qi[(size_t)c * W + l];
+            }
         }
         DK(block)(&S->s, &S->pp, sc, 0);
         for (int l = 0; l < nl; l++) {
@@ -417,7 +489,8 @@ static void DK(final_check)(const DK(Solve) *S, DK(Scratch) *sc, int64_t t0, int
             real pn, ang;
             DK(lane_error)(S, sc->ends, l, t, e, &pn, &ang);
             int ok = pn <= S->tp && (S->pos_only || ang <= S->to);
-            for (int i = 0; i < n && a->clamp; i++) ok &= q[t * n + i] >= S->qlo[i] && q[t * n + i] <= S->qhi[i];
+            for (int i = 0; i < n && a->clamp; i++)
+                ok &= S->sp.slot[i] < 0 || (q[t * n + i] >= S->qlo[i] && q[t * n + i] <= S->qhi[i]);
             pe[t] = pn;
             oe[t] = ang;
             a->success[t] = (uint8_t)ok;
@@ -442,7 +515,7 @@ static void DK(solve_chunk)(const DK(Solve) *S, DK(Scratch) *sc, real *ul, DK(LM
         if (!any) break;
         DK(chunk_step)(S, c, sc, ul, w);
     }
-    DK(final_check)(S, sc, t0, t1, w->e);
+    DK(final_check)(S, sc, t0, t1, w->e1);
 }
 
 static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
@@ -451,9 +524,10 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->a = a;
     S->K = S->s.K;
     S->n = S->s.n;
+    S->nv = S->s.nv;
     S->pos_only = a->xd == NULL;
     S->r = (S->pos_only ? 3 : 6) * S->K;
-    S->d = S->r <= S->n ? S->r : S->n;
+    S->d = S->r <= S->nv ? S->r : S->nv;
     S->N = a->n_targets, S->S = a->n_user, S->L = a->n_lib, S->P = a->n_pool;
     S->R = a->lib_ranks < a->n_lib ? a->lib_ranks : a->n_lib;
     S->R = S->R < MAX_RANKS ? S->R : MAX_RANKS;
@@ -470,7 +544,11 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->qlo = (const real *)a->qlo, S->qhi = (const real *)a->qhi;
     S->bounded = a->bounded, S->wrap = a->wrap;
     S->best_merit = (real *)malloc(sizeof(real) * (size_t)(S->N > 0 ? S->N : 1));
-    if (!S->best_merit) { free(S->pp.fix); return -1; }
+    if (!S->best_merit || space_read(&S->s, &S->sp)) {
+        free(S->best_merit);
+        free(S->pp.fix);
+        return -1;
+    }
     for (int64_t t = 0; t < S->N; t++) {
         S->best_merit[t] = (real)INFINITY;
         a->iters_out[t] = a->seeds_out[t] = 0;
@@ -482,16 +560,16 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
 static int64_t DK(dk_solve)(const dk_args *a) {
     DK(Solve) S;
     if (DK(solve_read)(a, &S)) return -1;
-    const int n = S.n, r = S.r, d = S.d, R = (int)(S.R > 0 ? S.R : 1);
+    const int n = S.n, nv = S.nv, r = S.r, d = S.d, R = (int)(S.R > 0 ? S.R : 1);
     const int64_t nchunks = (S.N + CHUNK - 1) / CHUNK;
     int nthreads = (int)a->nthreads;
     if (nthreads < 1 || nchunks < 2) nthreads = 1;
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
-    const size_t lm = ((size_t)n + (size_t)r * n + r + (size_t)d * d + 2 * (size_t)d + n + 1) * W; /* LMWork */
-    const size_t per = base + (size_t)n * W + lm +
-                       (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK) + CHUNK) / sizeof(real) + 1;
+    const size_t lanes = (size_t)W * ((size_t)r * nv + r + (size_t)d * d + d + nv + 1); /* LMWork's */
+    const size_t per = base + 2 * (size_t)n * W + lanes + r +
+                       (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1;
     real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads);
-    if (!all) { free(S.pp.fix); free(S.best_merit); return -1; }
+    if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
     {
         real *buf = all + per * (size_t)thread_id();
@@ -501,16 +579,17 @@ static int64_t DK(dk_solve)(const dk_args *a) {
         DK(LMWork) w;
         w.dqdu = ul + (size_t)n * W;
         w.Jw = w.dqdu + (size_t)n * W;
-        w.e = w.Jw + (size_t)r * n * W;
+        w.e = w.Jw + (size_t)r * nv * W;
         w.A = w.e + (size_t)r * W;
         w.y = w.A + (size_t)d * d * W;
         w.delta = w.y + (size_t)d * W;
-        w.inv = w.delta + (size_t)n * W;
-        w.lam = w.inv + (size_t)d * W;
+        w.lam = w.delta + (size_t)nv * W;
+        w.e1 = w.lam + W;
         DK(Chunk) c;
-        c.nn = (int32_t *)(w.lam + W);
+        c.nn = (int32_t *)(w.e1 + r);
         c.count = c.nn + CHUNK * R;
-        c.done = (uint8_t *)(c.count + CHUNK);
+        w.lanes = c.count + CHUNK;
+        c.done = (uint8_t *)(w.lanes + W);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t k = 0; k < nchunks; k++) {
             const int64_t t0 = k * CHUNK, t1 = t0 + CHUNK < S.N ? t0 + CHUNK : S.N;
@@ -520,6 +599,7 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     free(all);
     free(S.pp.fix);
     free(S.best_merit);
+    free(S.sp.vq);
     return 0;
 }
 
