@@ -2,6 +2,7 @@
 and capsules, 288 checked pairs with link 1 - link 3 disabled as in MoveIt's SRDF) among a few obstacles.
 
     python -m benchmarks.bench_collision_ik [--targets 10000] [--world mixed|spheres] [--quick] [--json F]
+        [--pyroki N] [--pyroki-recipes example,beam]
 
 Targets: FK of uniformly random configurations whose every checked distance (self pairs and obstacles) is
 >= 1 cm, so each target is reachable AND has a collision-free solution. Solved at 0.1 mm / 1 mrad by
