@@ -17,7 +17,7 @@ import torch
 
 from ..errors import ModelError, require
 from ..rotations import _matrix_to_euler, quaternion_to_matrix
-from .meshes import capsule_of_points
+from .meshes import capsule_of_points, capsules_of_triangles
 
 __all__ = ["BodyFrames", "mjcf_geoms"]
 
@@ -89,26 +89,39 @@ def _rotation(quat) -> np.ndarray:
     return quaternion_to_matrix(torch.tensor(quat, dtype=torch.float64)).numpy()
 
 
-def _geom_data(m, g: int, kind: int, pos: np.ndarray, R: np.ndarray):
-    """(shape, body-frame data) of geom g: capsules (a, b, r), boxes (centre, rpy, half extents)."""
+def _geom_data(m, g: int, kind: int, pos: np.ndarray, R: np.ndarray, mesh_capsules: int) -> list:
+    """[(shape, body-frame data)] of geom g: capsules (a, b, r), boxes (centre, rpy, half extents); a
+    mesh gives its fitted capsule set."""
     size = m.geom_size[g]
     if kind == _SPHERE:
-        return "capsule", (pos.tolist(), pos.tolist(), float(size[0]))
-    if kind in (_CAPSULE, _CYLINDER):
+        return [("capsule", (pos.tolist(), pos.tolist(), float(size[0])))]
+    if kind in (_CAPSULE, _CYLINDER):  # a cylinder: its enclosing capsule (docs/collision.md: the error)
         half = R[:, 2] * size[1]
-        return "capsule", ((pos - half).tolist(), (pos + half).tolist(), float(size[0]))
+        return [("capsule", ((pos - half).tolist(), (pos + half).tolist(), float(size[0])))]
     if kind == _BOX:
         rpy = _matrix_to_euler(torch.from_numpy(R), "RPY").flip(-1)
-        return "box", (pos.tolist(), rpy.tolist(), size[:3].tolist())
-    k = m.geom_dataid[g]  # a mesh: its vertices are in the geom frame
+        return [("box", (pos.tolist(), rpy.tolist(), size[:3].tolist()))]
+    return [("capsule", ((pos + R @ a).tolist(), (pos + R @ b).tolist(), r))
+            for a, b, r in _mesh_capsules(m, int(m.geom_dataid[g]), mesh_capsules)]
+
+
+def _mesh_capsules(m, k: int, mesh_capsules: int) -> list:
+    """The fitted capsule set (geom frame) of mesh k's convex hull: MuJoCo collides a mesh as its hull, so
+    the set contains what MuJoCo's distances see; a flat mesh (no hull) becomes one capsule."""
     v = m.mesh_vert[m.mesh_vertadr[k]: m.mesh_vertadr[k] + m.mesh_vertnum[k]].astype(np.float64)
-    a, b, r = capsule_of_points(v)
-    return "capsule", ((pos + R @ a).tolist(), (pos + R @ b).tolist(), r)
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(v)
+    except (QhullError, ValueError):
+        return [capsule_of_points(v)]
+    return capsules_of_triangles(v, hull.simplices, max_capsules=mesh_capsules)
 
 
-def mjcf_geoms(m):
+def mjcf_geoms(m, mesh_capsules: int = 4):
     """``(geoms [(name, body, kind, shape, data)], MuJoCo geom ids)`` of the bodies' geoms (the world body's
-    geoms are surroundings, not the robot's); types without a distance here are skipped with one warning."""
+    geoms are surroundings, not the robot's); types without a distance here are skipped with one warning.
+    A mesh fitted by several capsules gives geoms ``name/0``, ``name/1``, ... with the same MuJoCo id."""
     out, skipped, ids, per_body = [], [], [], {}
     for g in range(m.ngeom):
         body = int(m.geom_bodyid[g])
@@ -121,9 +134,11 @@ def mjcf_geoms(m):
         if kind not in _KINDS:
             skipped.append(f"{name} (type {kind})")
             continue
-        shape, data = _geom_data(m, g, kind, m.geom_pos[g].astype(np.float64), _rotation(m.geom_quat[g]))
-        out.append((name, body, _KINDS[kind], shape, data))
-        ids.append(g)
+        parts = _geom_data(m, g, kind, m.geom_pos[g].astype(np.float64), _rotation(m.geom_quat[g]),
+                           mesh_capsules)
+        for p, (shape, data) in enumerate(parts):
+            out.append((name if len(parts) == 1 else f"{name}/{p}", body, _KINDS[kind], shape, data))
+            ids.append(g)
     if skipped:
         warnings.warn(f"RobotCollision.from_mjcf: {len(skipped)} geom(s) of types without a distance here "
                       f"(ellipsoid, plane, height field, SDF) skipped: {', '.join(skipped)}", stacklevel=3)
@@ -135,7 +150,9 @@ def mjcf_pairs(m, ids: list[int]) -> list[tuple[int, int]]:
     weld, parent = m.body_weldid, m.body_parentid
     excluded = {int(s) for s in m.exclude_signature[: m.nexclude]}
     filter_parent = not (m.opt.disableflags & _DSBL_FILTERPARENT)
-    pos = {g: i for i, g in enumerate(ids)}
+    pos: dict[int, list[int]] = {}  # MuJoCo geom id -> our geoms (a mesh's capsules share its id)
+    for i, g in enumerate(ids):
+        pos.setdefault(g, []).append(i)
     out = set()
     for i, g1 in enumerate(ids):
         for j in range(i + 1, len(ids)):
@@ -153,6 +170,6 @@ def mjcf_pairs(m, ids: list[int]) -> list[tuple[int, int]]:
                 continue
             out.add((i, j))
     for g1, g2 in zip(m.pair_geom1[: m.npair], m.pair_geom2[: m.npair]):
-        if int(g1) in pos and int(g2) in pos:
-            out.add(tuple(sorted((pos[int(g1)], pos[int(g2)]))))
+        for i in pos.get(int(g1), []):
+            out.update(tuple(sorted((i, j))) for j in pos.get(int(g2), []))
     return sorted(out)

@@ -1,0 +1,140 @@
+"""Meshes as fitted capsule sets, on the Panda's real collision meshes (tests/data/meshes, Franka's
+``franka_description`` meshes as shipped by rtb-data): every triangle inside the set (conservative),
+distances against coal's BVH distance to the true mesh (a bound, and tighter than one enclosing capsule),
+through ``RobotCollision.from_urdf`` (placed by Pinocchio) and ``from_mjcf`` (against ``mj_geomDistance``,
+which collides a mesh as its convex hull)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import collision_reference as ref
+import numpy as np
+import pytest
+import torch
+
+import diffkin
+from diffkin.collision import RobotCollision
+from diffkin.collision.meshes import capsules_of_triangles, fit_capsules
+from diffkin.errors import OptionError
+
+trimesh = pytest.importorskip("trimesh")
+coal = ref.coal
+MESHES = Path(__file__).parent / "data" / "meshes" / "panda"
+LINKS = ["link1", "link5", "link6"]
+F64 = torch.float64
+
+
+def _union_distance(p: np.ndarray, capsules) -> np.ndarray:
+    """Distance ``(N,)`` of points ``(N, 3)`` to the union of capsules (negative inside), in numpy."""
+    out = []
+    for a, b, r in capsules:
+        d = b - a
+        t = np.clip((p - a) @ d / max(d @ d, 1e-300), 0.0, 1.0)
+        out.append(np.linalg.norm(p - (a + t[:, None] * d), axis=1) - r)
+    return np.min(out, axis=0)
+
+
+def _bvh(mesh):
+    model = coal.BVHModelOBBRSS()
+    model.beginModel(len(mesh.faces), len(mesh.vertices))
+    model.addVertices(np.asarray(mesh.vertices, dtype=np.float64))
+    model.addTriangles(np.asarray(mesh.faces, dtype=np.int64))
+    model.endModel()
+    return model
+
+
+@pytest.mark.parametrize("name", LINKS)
+def test_every_triangle_lies_in_one_capsule_of_the_set(name):
+    mesh = trimesh.load(MESHES / f"{name}.ply")
+    caps = fit_capsules(MESHES / f"{name}.ply")
+    assert 2 <= len(caps) <= 4  # the default: at most 4; these L-shaped links split
+    assert _union_distance(mesh.vertices, caps).max() <= 1e-12
+    surface, _ = trimesh.sample.sample_surface(mesh, 20_000, seed=0)  # points inside the triangles
+    assert _union_distance(surface, caps).max() <= 1e-12
+    again = fit_capsules(MESHES / f"{name}.ply")  # deterministic
+    assert all(np.array_equal(x, y) for c, d in zip(caps, again) for x, y in zip(c[:2], d[:2]))
+    assert [c[2] for c in caps] == [d[2] for d in again]
+    assert len(fit_capsules(MESHES / f"{name}.ply", max_capsules=2)) <= 2
+    scaled = fit_capsules(MESHES / f"{name}.ply", (2.0, 1.0, 0.5))
+    assert _union_distance(mesh.vertices * [2.0, 1.0, 0.5], scaled).max() <= 1e-12
+
+
+@pytest.mark.parametrize("name", LINKS)
+def test_the_set_bounds_coals_mesh_distance_and_is_tighter_than_one_capsule(name):
+    mesh = trimesh.load(MESHES / f"{name}.ply")
+    bvh, point = _bvh(mesh), coal.Sphere(0.0)
+    lo, hi = mesh.bounds
+    p = np.random.default_rng(0).uniform(lo - 0.05, hi + 0.05, (600, 3))
+    truth = np.array([ref.distance(bvh, ref.placement(), point, ref.placement(p=x)) for x in p])
+    one = _union_distance(p, fit_capsules(MESHES / f"{name}.ply", max_capsules=1))
+    fitted = _union_distance(p, fit_capsules(MESHES / f"{name}.ply"))
+    # conservative everywhere: the mesh surface lies in the set, so no point is farther from the set
+    assert (fitted <= truth + 1e-9).all() and (one <= truth + 1e-9).all()
+    outside = ~mesh.convex_hull.contains(p)  # (inside the non-watertight mesh coal's distance is unsigned)
+    err_one, err = (truth - one)[outside], (truth - fitted)[outside]
+    assert np.median(err) <= 0.75 * np.median(err_one)
+    assert err.max() <= 0.06 and np.median(err) <= 0.03  # measured: median 15-24 mm, max 36-48 mm
+
+
+URDF = """<robot name="two_meshes">
+  <link name="l1"><collision><geometry><mesh filename="{m}/link1.ply"/></geometry></collision></link>
+  <link name="mid"/>
+  <link name="l6"><collision name="hull6"><origin xyz="0.02 0 0.05" rpy="0.3 -0.2 0.1"/><geometry>
+    <mesh filename="{m}/link6.ply"/></geometry></collision></link>
+  <joint name="j1" type="revolute"><parent link="l1"/><child link="mid"/><origin xyz="0 0 0.2"/>
+    <axis xyz="0 0 1"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+  <joint name="j2" type="revolute"><parent link="mid"/><child link="l6"/><origin xyz="0.12 0 0.05"/>
+    <axis xyz="0 1 0"/><limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
+</robot>"""
+
+
+def test_from_urdf_fits_mesh_sets_and_bounds_coal_placed_by_pinocchio():
+    pin = pytest.importorskip("pinocchio")
+    text = URDF.format(m=MESHES)
+    chain = diffkin.models.from_urdf(text, "l6", dtype=F64)
+    rc = RobotCollision.from_urdf(text, chain)
+    assert all(g.kind == "mesh" and g.shape == "capsule" for g in rc.geoms)
+    assert {g.source for g in rc.geoms} == {f"{MESHES}/link1.ply", f"{MESHES}/link6.ply"}
+    names = [g.name for g in rc.geoms]
+    n1 = sum(n.startswith("l1/0/") for n in names)
+    n6 = sum(n.startswith("hull6/") for n in names)
+    assert n1 >= 2 and n6 >= 2 and n1 + n6 == len(names) and len(rc.pairs) == n1 * n6
+    one = RobotCollision.from_urdf(text, chain, mesh_capsules=1)
+    assert [g.name for g in one.geoms] == ["l1/0", "hull6"] and len(one.pairs) == 1
+    with pytest.raises(OptionError, match="mesh_capsules"):
+        RobotCollision.from_urdf(text, chain, mesh_capsules=0)
+
+    model = pin.buildModelFromXML(text)
+    data = model.createData()
+    m1, m6 = (_bvh(trimesh.load(MESHES / f"{k}.ply")) for k in ("link1", "link6"))
+    T6 = ref.placement(*_origin((0.3, -0.2, 0.1), (0.02, 0, 0.05)))
+    lo, hi = chain.q_limits.T
+    q = lo + (hi - lo) * torch.rand(150, 2, dtype=F64, generator=torch.Generator().manual_seed(0))
+    ours, coarse = rc.self_distances(q).amin(-1), one.self_distances(q)[:, 0]
+    truth = []
+    for row in q.numpy():
+        pin.framesForwardKinematics(model, data, row)
+        M1, M6 = (data.oMf[model.getFrameId(k)] for k in ("l1", "l6"))
+        P6 = ref.placement(M6.rotation, M6.translation) * T6
+        truth.append(ref.distance(m1, ref.placement(M1.rotation, M1.translation), m6, P6))
+    truth = torch.tensor(truth, dtype=F64)
+    assert (ours <= truth + 1e-9).all() and (coarse <= truth + 1e-9).all()  # both conservative
+    apart = truth > 0.01  # coal's mesh-mesh distance is 0 in contact: compare where the meshes are apart
+    assert apart.sum() > 30
+    assert (truth - ours)[apart].median() <= 0.75 * (truth - coarse)[apart].median()
+
+
+def _origin(rpy, xyz):
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_euler("xyz", rpy).as_matrix(), np.asarray(xyz, dtype=np.float64)
+
+
+def test_bad_options_and_a_mesh_without_triangles():
+    v = np.random.default_rng(0).normal(size=(50, 3))
+    (a, b, r), = capsules_of_triangles(v, np.zeros((0, 3), dtype=np.int64))  # points: one capsule
+    assert _union_distance(v, [(a, b, r)]).max() <= 1e-12
+    for bad in ({"max_capsules": 0}, {"max_capsules": 2.5}, {"min_gain": 1.0}, {"min_gain": -0.1}):
+        with pytest.raises(OptionError):
+            capsules_of_triangles(v, np.zeros((0, 3), dtype=np.int64), **bad)
