@@ -158,10 +158,11 @@ def test_fr3_through_mujocos_urdf_compiler_matches_from_urdf():
 
 
 # Real MuJoCo Menagerie robots (tests/data/mjcf, XML only: their mesh geoms are skipped, the primitives are
-# what is tested) and the random configurations drawn for each: 3 000 in all.
+# what is tested) and the random configurations drawn for each: 3 300 in all.
 MENAGERIE = Path(__file__).parent / "data" / "mjcf"
 REAL = [("universal_robots_ur5e/ur5e.xml", 1000), ("unitree_h1/h1.xml", 400), ("unitree_go2/go2.xml", 500),
-        ("kuka_iiwa_14/iiwa14.xml", 300), ("shadow_hand/right_hand.xml", 400), ("unitree_g1/g1.xml", 400)]
+        ("kuka_iiwa_14/iiwa14.xml", 300), ("shadow_hand/right_hand.xml", 400), ("unitree_g1/g1.xml", 400),
+        ("agility_cassie/cassie.xml", 300)]  # (cassie: ball joints; its pelvis ellipsoid is skipped)
 _CYLINDER, _BOX = int(mujoco.mjtGeom.mjGEOM_CYLINDER), int(mujoco.mjtGeom.mjGEOM_BOX)
 _SUPPORTED = {int(mujoco.mjtGeom.mjGEOM_SPHERE), int(mujoco.mjtGeom.mjGEOM_CAPSULE), _CYLINDER, _BOX}
 
@@ -179,7 +180,7 @@ def test_real_menagerie_robots_against_mj_geom_distance_and_mj_collision(path, n
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the mesh files are not vendored: those geoms are skipped
         m = load_model(MENAGERIE / path)
-    rc = RobotCollision.from_mjcf(m, body_poses=MuJoCoPoses(m), dtype=F64)
+        rc = RobotCollision.from_mjcf(m, body_poses=MuJoCoPoses(m), dtype=F64)
     ids = [g for g in range(m.ngeom) if m.geom_bodyid[g] and int(m.geom_type[g]) in _SUPPORTED]
     assert len(ids) == len(rc.geoms) and len(rc.pairs) > 10
     gid = {g.name: i for g, i in zip(rc.geoms, ids)}
