@@ -188,3 +188,16 @@ def test_from_mjcf_fits_the_hull_mujoco_collides_against_mj_geom_distance(tmp_pa
     assert (ours <= want + 1e-6).all() and (coarse <= want + 1e-6).all()
     apart = want > 0.005  # a convex hull is fitted well by one capsule already: the set gains less
     assert np.median((want - ours)[apart]) <= 0.95 * np.median((want - coarse)[apart])  # measured: 0.88
+
+
+def test_degenerate_meshes_give_finite_enclosing_sets():
+    square = np.array([[0, 0, 0], [0.3, 0, 0], [0.3, 0.1, 0], [0, 0.1, 0]], dtype=np.float64)  # flat
+    sliver = np.array([[0, 0, 0], [0.2, 0, 0], [0.4, 0, 0]], dtype=np.float64)  # a zero-area triangle
+    point = np.zeros((3, 3))  # every vertex the same
+    for v, faces in ((square, [[0, 1, 2], [0, 2, 3]]), (sliver, [[0, 1, 2]]), (point, [[0, 1, 2]])):
+        caps = capsules_of_triangles(v, np.array(faces))
+        assert 1 <= len(caps) <= 4
+        assert all(np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(r) for a, b, r in caps)
+        assert _union_distance(v, caps).max() <= 1e-12
+    (a, b, r), = capsules_of_triangles(point, np.array([[0, 1, 2]]))
+    assert r == 0.0 and np.array_equal(a, b)
