@@ -181,7 +181,8 @@ def test_real_menagerie_robots_against_mj_geom_distance_and_mj_collision(path, n
         warnings.simplefilter("ignore")  # the mesh files are not vendored: those geoms are skipped
         m = load_model(MENAGERIE / path)
         rc = RobotCollision.from_mjcf(m, body_poses=MuJoCoPoses(m), dtype=F64)
-    ids = [g for g in range(m.ngeom) if m.geom_bodyid[g] and int(m.geom_type[g]) in _SUPPORTED]
+    ids = [g for g in range(m.ngeom) if m.geom_bodyid[g] and int(m.geom_type[g]) in _SUPPORTED
+           and (m.geom_contype[g] or m.geom_conaffinity[g])]  # (no <pair> names a visual geom here)
     assert len(ids) == len(rc.geoms) and len(rc.pairs) > 10
     gid = {g.name: i for g, i in zip(rc.geoms, ids)}
     pairs = np.array([(gid[a], gid[b]) for a, b in rc.pairs])

@@ -130,9 +130,10 @@ class _Part:
 
     def __init__(self, v, faces, idx, grid):
         self.v, self.faces, self.idx, self.grid = v, faces, idx, grid
-        self.capsule = capsule_of_points(v[np.unique(faces[idx])])
-        a, b, r = self.capsule
-        self.inside = _segment_distance(grid, a, b) <= r
+        used = np.zeros(len(v), dtype=bool)  # the part's vertices, in index order (as np.unique, faster)
+        used[faces[idx].ravel()] = True
+        self.capsule = capsule_of_points(v[used])
+        self.inside = _inside(grid, self.capsule)
         self._children: list | None | bool = False
 
     def children(self) -> list | None:
@@ -159,10 +160,14 @@ class _Part:
         return best
 
 
-def _segment_distance(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _inside(p: np.ndarray, capsule) -> np.ndarray:
+    """Which points ``p (M, 3)`` lie in the capsule (squared distances: no square roots)."""
+    a, b, r = capsule
     d = b - a
-    t = np.clip((p - a) @ d / max(float(d @ d), 1e-300), 0.0, 1.0)
-    return np.linalg.norm(p - (a + t[:, None] * d), axis=1)
+    pa = p - a
+    t = np.clip(pa @ d / max(float(d @ d), 1e-300), 0.0, 1.0)
+    e = pa - t[:, None] * d
+    return np.einsum("ij,ij->i", e, e) <= r * r
 
 
 def _volume(capsule) -> float:

@@ -119,16 +119,20 @@ def _mesh_capsules(m, k: int, mesh_capsules: int) -> list:
 
 
 def mjcf_geoms(m, mesh_capsules: int = 4):
-    """``(geoms [(name, body, kind, shape, data)], MuJoCo geom ids)`` of the bodies' geoms (the world body's
-    geoms are surroundings, not the robot's); types without a distance here are skipped with one warning.
+    """``(geoms [(name, body, kind, shape, data)], MuJoCo geom ids)`` of the bodies' geoms that MuJoCo can
+    collide (the world body's geoms are surroundings, not the robot's; geoms with contype = conaffinity = 0
+    outside every ``<pair>`` are visual); types without a distance here are skipped with one warning.
     A mesh fitted by several capsules gives geoms ``name/0``, ``name/1``, ... with the same MuJoCo id."""
     out, skipped, ids, per_body = [], [], [], {}
+    paired = {int(g) for g in np.concatenate((m.pair_geom1[: m.npair], m.pair_geom2[: m.npair]))}
     for g in range(m.ngeom):
         body = int(m.geom_bodyid[g])
         if body == 0:
             continue
         k = per_body.setdefault(body, 0)
         per_body[body] = k + 1
+        if not (m.geom_contype[g] or m.geom_conaffinity[g]) and g not in paired:
+            continue  # a visual geom: MuJoCo never collides it (with the robot or the world)
         name = m.geom(g).name or f"{m.body(body).name or f'body{body}'}/{k}"
         kind = int(m.geom_type[g])
         if kind not in _KINDS:

@@ -287,7 +287,8 @@ class RobotCollision(nn.Module):
         MuJoCo's pair rules: contype/conaffinity, ``<contact><exclude>``, the weld and parent–child filters
         (unless disabled in ``<option>``), plus explicit ``<contact><pair>``s. Geoms are named by their MJCF
         names, unnamed ones ``"<body>/<i>"``; spheres, capsules, boxes, cylinders and meshes are read, other
-        types skipped with a warning. A cylinder becomes the capsule of the same axis and radius
+        types skipped with a warning, visual geoms (contype = conaffinity = 0, in no ``<pair>``) left out.
+        A cylinder becomes the capsule of the same axis and radius
         (conservative: its distance is never above MuJoCo's and at most the cylinders' radii below it; on
         the Menagerie's H1, Go2, G1, UR5e and Shadow hand a median 1-5 mm and at most 96 mm below,
         docs/collision.md). A mesh becomes a fitted set of at most
