@@ -288,12 +288,11 @@ class RobotCollision(nn.Module):
         (unless disabled in ``<option>``), plus explicit ``<contact><pair>``s. Geoms are named by their MJCF
         names, unnamed ones ``"<body>/<i>"``; spheres, capsules, boxes, cylinders and meshes are read, other
         types skipped with a warning, visual geoms (contype = conaffinity = 0, in no ``<pair>``) left out.
-        A cylinder becomes the capsule of the same axis and radius
-        (conservative: its distance is never above MuJoCo's and at most the cylinders' radii below it; on
-        the Menagerie's H1, Go2, G1, UR5e and Shadow hand a median 1-5 mm and at most 96 mm below,
-        docs/collision.md). A mesh becomes a fitted set of at most
-        ``mesh_capsules`` capsules containing its convex hull's triangles (MuJoCo collides a mesh as its
-        hull; :mod:`diffkin.collision.meshes`), named ``"<geom>/<k>"`` when there are several.
+        A cylinder becomes the capsule of the same axis and radius (conservative: its distance is never
+        above MuJoCo's and at most the cylinders' radii below it; on the Menagerie's H1, Go2, G1, UR5e and
+        Shadow hand a median 1-5 mm and at most 96 mm below, docs/collision.md). A mesh becomes a fitted set
+        of at most ``mesh_capsules`` capsules containing its convex hull's triangles (MuJoCo collides a mesh
+        as its hull; :mod:`diffkin.collision.meshes`), named ``"<geom>/<k>"`` when there are several.
 
         ``body_poses(q) -> (..., nbody, 4, 4)``: the pose of every MuJoCo body (world first), differentiable
         for gradients; for an MJCF chain (:func:`diffkin.models.from_mjcf`) it defaults to
