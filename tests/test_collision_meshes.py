@@ -256,3 +256,29 @@ def test_menagerie_panda_with_its_collision_meshes_against_mujoco():
                 assert c.dist >= 0 or best[row, k] < 0
                 negative += c.dist < 0
     assert negative > 0
+
+
+def _two_meshes(dtype=F64, device="cpu"):
+    text = URDF.format(m=MESHES)
+    chain = diffkin.models.from_urdf(text, "l6", dtype=dtype, device=device)
+    return chain, RobotCollision.from_urdf(text, chain)
+
+
+def test_mesh_sets_are_differentiable_in_q_and_in_the_fitted_geometry():
+    chain, rc = _two_meshes()
+    q = torch.tensor([[0.3, 1.2], [-2.0, 2.4], [1.0, -2.9]], dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(rc.self_distances, (q,))
+    (g,) = torch.autograd.grad(rc.min_distance(q.detach()).sum(), rc.capsule_radius)
+    assert torch.isfinite(g).all() and (g <= 0).all() and (g < 0).any()  # a larger radius: nearer
+    rc32 = _two_meshes(torch.float32)[1]
+    d32 = rc32.self_distances(q.detach().float())
+    torch.testing.assert_close(d32.double(), rc.self_distances(q.detach()), atol=1e-5, rtol=0)
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_mesh_sets_on_cuda_match_cpu():
+    rc_cpu, rc_gpu = _two_meshes()[1], _two_meshes(device="cuda")[1]
+    q = torch.rand(64, 2, dtype=F64, generator=torch.Generator().manual_seed(0)) * 6 - 3
+    torch.testing.assert_close(rc_gpu.self_distances(q.cuda()).cpu(), rc_cpu.self_distances(q), atol=1e-10,
+                               rtol=0)
