@@ -106,16 +106,19 @@ def _geom_data(m, g: int, kind: int, pos: np.ndarray, R: np.ndarray, mesh_capsul
 
 
 def _mesh_capsules(m, k: int, mesh_capsules: int) -> list:
-    """The fitted capsule set (geom frame) of mesh k's convex hull: MuJoCo collides a mesh as its hull, so
-    the set contains what MuJoCo's distances see; a flat mesh (no hull) becomes one capsule."""
+    """The fitted capsule set (geom frame) of mesh k's convex hull, MuJoCo's own (``mesh_graph``): MuJoCo
+    collides a mesh as its hull, so the set contains what MuJoCo's distances see. Without a hull (a flat
+    mesh), the one enclosing capsule of the vertices."""
     v = m.mesh_vert[m.mesh_vertadr[k]: m.mesh_vertadr[k] + m.mesh_vertnum[k]].astype(np.float64)
-    from scipy.spatial import ConvexHull, QhullError
-
-    try:
-        hull = ConvexHull(v)
-    except (QhullError, ValueError):
+    adr = int(m.mesh_graphadr[k])
+    if adr < 0:
         return [capsule_of_points(v)]
-    return capsules_of_triangles(v, hull.simplices, max_capsules=mesh_capsules)
+    # mesh_graph: numvert, numface, vert_edgeadr[numvert], vert_globalid[numvert],
+    # edge_localid[numvert + 3 numface], face_globalid[3 numface] (face corners as mesh vertex indices)
+    nv, nf = int(m.mesh_graph[adr]), int(m.mesh_graph[adr + 1])
+    start = adr + 2 + nv + nv + nv + 3 * nf
+    faces = m.mesh_graph[start: start + 3 * nf].astype(np.int64).reshape(nf, 3)
+    return capsules_of_triangles(v, faces, max_capsules=mesh_capsules)
 
 
 def mjcf_geoms(m, mesh_capsules: int = 4):
