@@ -282,3 +282,14 @@ def test_mesh_sets_on_cuda_match_cpu():
     q = torch.rand(64, 2, dtype=F64, generator=torch.Generator().manual_seed(0)) * 6 - 3
     torch.testing.assert_close(rc_gpu.self_distances(q.cuda()).cpu(), rc_cpu.self_distances(q), atol=1e-10,
                                rtol=0)
+
+
+def test_a_file_named_again_is_fitted_once_and_bad_options_are_named():
+    first = fit_capsules(MESHES / "link6.ply", max_capsules=3)
+    again = fit_capsules(MESHES / "link6.ply", max_capsules=3)
+    assert all(np.array_equal(x, y) for c, d in zip(first, again) for x, y in zip(c[:2], d[:2]))
+    first[0][0][:] = 0.0  # the caller's copy: the remembered fit is not changed
+    assert not np.array_equal(fit_capsules(MESHES / "link6.ply", max_capsules=3)[0][0], first[0][0])
+    for bad in ({"max_capsules": [2]}, {"max_capsules": 0}, {"min_gain": "a"}):
+        with pytest.raises(OptionError):
+            fit_capsules(MESHES / "link6.ply", **bad)

@@ -20,6 +20,7 @@ meshes the default set has 2-4 capsules per link, and its distances to points ou
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -59,12 +60,22 @@ def resolve_mesh(filename: str, base_dir: Path | None, package_dirs=()) -> Path 
 def fit_capsules(path: Path, scale=(1.0, 1.0, 1.0), *, max_capsules: int = 4,
                  min_gain: float = 0.01) -> list[tuple[np.ndarray, np.ndarray, float]]:
     """``[(a (3,), b (3,), radius)]``: the fitted capsule set of the mesh at ``path`` (mesh frame, scaled;
-    the module docstring gives the rule)."""
+    the module docstring gives the rule). A file named again (a hand's four fingers) is fitted once while
+    it is unchanged."""
+    max_capsules = check_count(max_capsules, "max_capsules")
+    min_gain = check_number(min_gain, "min_gain", positive=False)  # (the range: capsules_of_triangles)
+    key = (str(Path(path).resolve()), Path(path).stat().st_mtime_ns,
+           tuple(float(x) for x in np.broadcast_to(np.asarray(scale, dtype=np.float64), 3)))
+    return [(a.copy(), b.copy(), r) for a, b, r in _fit_file(*key, max_capsules, min_gain)]
+
+
+@functools.lru_cache(maxsize=256)
+def _fit_file(path: str, mtime: int, scale: tuple, max_capsules: int, min_gain: float) -> tuple:
     trimesh = require("trimesh", "collision", "mesh collision geometry")
-    mesh = trimesh.load(str(path), force="mesh")
+    mesh = trimesh.load(path, force="mesh")
     v = np.asarray(mesh.vertices, dtype=np.float64) * np.asarray(scale, dtype=np.float64)
-    return capsules_of_triangles(v, np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3),
-                                 max_capsules=max_capsules, min_gain=min_gain)
+    return tuple(capsules_of_triangles(v, np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3),
+                                       max_capsules=max_capsules, min_gain=min_gain))
 
 
 def capsules_of_triangles(v: np.ndarray, faces: np.ndarray, *, max_capsules: int = 4,
