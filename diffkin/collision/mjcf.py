@@ -17,7 +17,7 @@ import torch
 
 from ..errors import ModelError, require
 from ..rotations import _matrix_to_euler, quaternion_to_matrix
-from .meshes import capsule_of_points
+from .meshes import capsule_of_points, capsules_of_triangles
 
 __all__ = ["BodyFrames", "mjcf_geoms"]
 
@@ -89,41 +89,63 @@ def _rotation(quat) -> np.ndarray:
     return quaternion_to_matrix(torch.tensor(quat, dtype=torch.float64)).numpy()
 
 
-def _geom_data(m, g: int, kind: int, pos: np.ndarray, R: np.ndarray):
-    """(shape, body-frame data) of geom g: capsules (a, b, r), boxes (centre, rpy, half extents)."""
+def _geom_data(m, g: int, kind: int, pos: np.ndarray, R: np.ndarray, mesh_capsules: int) -> list:
+    """[(shape, body-frame data)] of geom g: capsules (a, b, r), boxes (centre, rpy, half extents); a
+    mesh gives its fitted capsule set."""
     size = m.geom_size[g]
     if kind == _SPHERE:
-        return "capsule", (pos.tolist(), pos.tolist(), float(size[0]))
-    if kind in (_CAPSULE, _CYLINDER):
+        return [("capsule", (pos.tolist(), pos.tolist(), float(size[0])))]
+    if kind in (_CAPSULE, _CYLINDER):  # a cylinder: its enclosing capsule (docs/collision.md: the error)
         half = R[:, 2] * size[1]
-        return "capsule", ((pos - half).tolist(), (pos + half).tolist(), float(size[0]))
+        return [("capsule", ((pos - half).tolist(), (pos + half).tolist(), float(size[0])))]
     if kind == _BOX:
         rpy = _matrix_to_euler(torch.from_numpy(R), "RPY").flip(-1)
-        return "box", (pos.tolist(), rpy.tolist(), size[:3].tolist())
-    k = m.geom_dataid[g]  # a mesh: its vertices are in the geom frame
+        return [("box", (pos.tolist(), rpy.tolist(), size[:3].tolist()))]
+    return [("capsule", ((pos + R @ a).tolist(), (pos + R @ b).tolist(), r))
+            for a, b, r in _mesh_capsules(m, int(m.geom_dataid[g]), mesh_capsules)]
+
+
+def _mesh_capsules(m, k: int, mesh_capsules: int) -> list:
+    """The fitted capsule set (geom frame) of mesh k's convex hull, MuJoCo's own (``mesh_graph``): MuJoCo
+    collides a mesh as its hull, so the set contains what MuJoCo's distances see. Without a hull (a flat
+    mesh), the one enclosing capsule of the vertices."""
     v = m.mesh_vert[m.mesh_vertadr[k]: m.mesh_vertadr[k] + m.mesh_vertnum[k]].astype(np.float64)
-    a, b, r = capsule_of_points(v)
-    return "capsule", ((pos + R @ a).tolist(), (pos + R @ b).tolist(), r)
+    adr = int(m.mesh_graphadr[k])
+    if adr < 0:
+        return [capsule_of_points(v)]
+    # mesh_graph: numvert, numface, vert_edgeadr[numvert], vert_globalid[numvert],
+    # edge_localid[numvert + 3 numface], face_globalid[3 numface] (face corners as mesh vertex indices)
+    nv, nf = int(m.mesh_graph[adr]), int(m.mesh_graph[adr + 1])
+    start = adr + 2 + nv + nv + nv + 3 * nf
+    faces = m.mesh_graph[start: start + 3 * nf].astype(np.int64).reshape(nf, 3)
+    return capsules_of_triangles(v, faces, max_capsules=mesh_capsules)
 
 
-def mjcf_geoms(m):
-    """``(geoms [(name, body, kind, shape, data)], MuJoCo geom ids)`` of the bodies' geoms (the world body's
-    geoms are surroundings, not the robot's); types without a distance here are skipped with one warning."""
+def mjcf_geoms(m, mesh_capsules: int = 4):
+    """``(geoms [(name, body, kind, shape, data)], MuJoCo geom ids)`` of the bodies' geoms that MuJoCo can
+    collide (the world body's geoms are surroundings, not the robot's; geoms with contype = conaffinity = 0
+    outside every ``<pair>`` are visual); types without a distance here are skipped with one warning.
+    A mesh fitted by several capsules gives geoms ``name/0``, ``name/1``, ... with the same MuJoCo id."""
     out, skipped, ids, per_body = [], [], [], {}
+    paired = {int(g) for g in np.concatenate((m.pair_geom1[: m.npair], m.pair_geom2[: m.npair]))}
     for g in range(m.ngeom):
         body = int(m.geom_bodyid[g])
         if body == 0:
             continue
         k = per_body.setdefault(body, 0)
         per_body[body] = k + 1
+        if not (m.geom_contype[g] or m.geom_conaffinity[g]) and g not in paired:
+            continue  # a visual geom: MuJoCo never collides it (with the robot or the world)
         name = m.geom(g).name or f"{m.body(body).name or f'body{body}'}/{k}"
         kind = int(m.geom_type[g])
         if kind not in _KINDS:
             skipped.append(f"{name} (type {kind})")
             continue
-        shape, data = _geom_data(m, g, kind, m.geom_pos[g].astype(np.float64), _rotation(m.geom_quat[g]))
-        out.append((name, body, _KINDS[kind], shape, data))
-        ids.append(g)
+        parts = _geom_data(m, g, kind, m.geom_pos[g].astype(np.float64), _rotation(m.geom_quat[g]),
+                           mesh_capsules)
+        for p, (shape, data) in enumerate(parts):
+            out.append((name if len(parts) == 1 else f"{name}/{p}", body, _KINDS[kind], shape, data))
+            ids.append(g)
     if skipped:
         warnings.warn(f"RobotCollision.from_mjcf: {len(skipped)} geom(s) of types without a distance here "
                       f"(ellipsoid, plane, height field, SDF) skipped: {', '.join(skipped)}", stacklevel=3)
@@ -135,7 +157,9 @@ def mjcf_pairs(m, ids: list[int]) -> list[tuple[int, int]]:
     weld, parent = m.body_weldid, m.body_parentid
     excluded = {int(s) for s in m.exclude_signature[: m.nexclude]}
     filter_parent = not (m.opt.disableflags & _DSBL_FILTERPARENT)
-    pos = {g: i for i, g in enumerate(ids)}
+    pos: dict[int, list[int]] = {}  # MuJoCo geom id -> our geoms (a mesh's capsules share its id)
+    for i, g in enumerate(ids):
+        pos.setdefault(g, []).append(i)
     out = set()
     for i, g1 in enumerate(ids):
         for j in range(i + 1, len(ids)):
@@ -153,6 +177,6 @@ def mjcf_pairs(m, ids: list[int]) -> list[tuple[int, int]]:
                 continue
             out.add((i, j))
     for g1, g2 in zip(m.pair_geom1[: m.npair], m.pair_geom2[: m.npair]):
-        if int(g1) in pos and int(g2) in pos:
-            out.add(tuple(sorted((pos[int(g1)], pos[int(g2)]))))
+        for i in pos.get(int(g1), []):
+            out.update(tuple(sorted((i, j))) for j in pos.get(int(g2), []))
     return sorted(out)

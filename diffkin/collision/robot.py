@@ -2,7 +2,7 @@
 
 Every geom is a capsule (spheres: zero-length capsules; cylinders: the capsule of the same radius and axis
 length, which contains the cylinder and adds a hemispherical cap at each end; meshes: a fitted enclosing
-capsule, :mod:`diffkin.collision.meshes`) or an oriented box, in its link's frame. Links behind fixed
+capsule set, :mod:`diffkin.collision.meshes`) or an oriented box, in its link's frame. Links behind fixed
 joints have frames of their own (:mod:`diffkin.collision._poses`).
 
 Pair rules for a URDF: links welded together by fixed joints form one rigid body; pairs within one body
@@ -26,11 +26,12 @@ from ..errors import ModelError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
+from ..validation import check_count
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
 from .broad import capsule_pairs_at_least
 from .distances import capsule_capsule_pairs
-from .meshes import fit_capsule, resolve_mesh
+from .meshes import fit_capsules, resolve_mesh
 from .world import World, _check_world, _pair
 
 __all__ = ["Geom", "RobotCollision"]
@@ -40,7 +41,8 @@ __all__ = ["Geom", "RobotCollision"]
 class Geom:
     """One collision geom: ``name``, its ``link``, ``kind`` as written in the file (``sphere``, ``capsule``,
     ``cylinder``, ``box``, ``mesh``) and ``shape`` as computed (``capsule`` or ``box``); ``source`` is the
-    mesh file a fitted capsule came from."""
+    mesh file a fitted capsule came from (a mesh fitted by several capsules gives geoms ``name/0``,
+    ``name/1``, ... with the same source)."""
 
     name: str
     link: str
@@ -245,13 +247,17 @@ class RobotCollision(nn.Module):
 
     # ------------------------------------------------------------------------------------ builders
     @classmethod
-    def from_urdf(cls, source, chain, srdf=None, *, package_dirs=()) -> RobotCollision:
+    def from_urdf(cls, source, chain, srdf=None, *, package_dirs=(),
+                  mesh_capsules: int = 4) -> RobotCollision:
         """The ``<collision>`` geoms of the chain's links (fixed links included) from a URDF (path, text or
         :class:`~diffkin.models.urdf_xml.URDFTree`), with the URDF pair rules (module docstring) and the
         ``<disable_collisions>`` of ``srdf`` (path or text). Meshes whose files resolve (``package://``
-        and relative names from the URDF's directory, or ``package_dirs``) become enclosing capsules; the
-        others are skipped with one warning naming them.
+        and relative names from the URDF's directory, or ``package_dirs``) become a fitted set of at most
+        ``mesh_capsules`` capsules that together contain every triangle of the mesh
+        (:mod:`diffkin.collision.meshes`; 1: one enclosing capsule); the others are skipped with one warning
+        naming them.
         """
+        mesh_capsules = check_count(mesh_capsules, "mesh_capsules")
         base_dir = None
         if isinstance(source, (str, Path)) and "<" not in str(source):
             base_dir = Path(source).resolve().parent
@@ -260,14 +266,13 @@ class RobotCollision(nn.Module):
         geoms, links, caps, boxes, missing = [], [], [], [], []
         for link in frames.links:
             for s in specs.get(link, []):
-                g = _geom_of(s, base_dir, package_dirs)
-                if g is None:
+                found = _geoms_of(s, base_dir, package_dirs, mesh_capsules)
+                if not found:
                     missing.append(f"{s.name} ({s.filename})")
-                    continue
-                geom, data = g
-                geoms.append(geom)
-                links.append(link)
-                (caps if geom.shape == "capsule" else boxes).append(data)
+                for geom, data in found:
+                    geoms.append(geom)
+                    links.append(link)
+                    (caps if geom.shape == "capsule" else boxes).append(data)
         if missing:
             warnings.warn(f"RobotCollision.from_urdf: {len(missing)} mesh file(s) not found, those geoms are "
                           f"skipped: {', '.join(missing)}", stacklevel=2)
@@ -277,12 +282,17 @@ class RobotCollision(nn.Module):
 
     @classmethod
     def from_mjcf(cls, source, chain=None, *, body_poses=None, dtype: torch.dtype | None = None,
-                  device=None) -> RobotCollision:
+                  device=None, mesh_capsules: int = 4) -> RobotCollision:
         """The geoms of an MJCF model's bodies (path, XML text or a compiled ``mujoco.MjModel``) with
         MuJoCo's pair rules: contype/conaffinity, ``<contact><exclude>``, the weld and parent–child filters
         (unless disabled in ``<option>``), plus explicit ``<contact><pair>``s. Geoms are named by their MJCF
-        names, unnamed ones ``"<body>/<i>"``; spheres, capsules, cylinders (as capsules), boxes and meshes
-        (fitted capsules of their vertices) are read, other types skipped with a warning.
+        names, unnamed ones ``"<body>/<i>"``; spheres, capsules, boxes, cylinders and meshes are read, other
+        types skipped with a warning, visual geoms (contype = conaffinity = 0, in no ``<pair>``) left out.
+        A cylinder becomes the capsule of the same axis and radius (conservative: its distance is never
+        above MuJoCo's and at most the cylinders' radii below it; on the Menagerie's H1, Go2, G1, UR5e and
+        Shadow hand a median 1-5 mm and at most 96 mm below, docs/collision.md). A mesh becomes a fitted set
+        of at most ``mesh_capsules`` capsules containing its convex hull's triangles (MuJoCo collides a mesh
+        as its hull; :mod:`diffkin.collision.meshes`), named ``"<geom>/<k>"`` when there are several.
 
         ``body_poses(q) -> (..., nbody, 4, 4)``: the pose of every MuJoCo body (world first), differentiable
         for gradients; for an MJCF chain (:func:`diffkin.models.from_mjcf`) it defaults to
@@ -291,6 +301,7 @@ class RobotCollision(nn.Module):
         """
         from .mjcf import BodyFrames, load_model, mjcf_geoms, mjcf_pairs
 
+        mesh_capsules = check_count(mesh_capsules, "mesh_capsules")
         m = load_model(source)
         poses = body_poses
         if poses is None and hasattr(chain, "to_qpos"):  # an MJCF chain: every body from its own q
@@ -301,7 +312,7 @@ class RobotCollision(nn.Module):
             raise ModelError("RobotCollision.from_mjcf needs the body poses: pass an MJCF chain "
                              "(models.from_mjcf) or body_poses=callable(q) -> (..., nbody, 4, 4)")
         names = [m.body(b).name or f"body{b}" for b in range(m.nbody)]
-        found, ids = mjcf_geoms(m)
+        found, ids = mjcf_geoms(m, mesh_capsules)
         geoms = [Geom(name, names[body], kind, shape) for name, body, kind, shape, _ in found]
         caps = [data for *_, shape, data in found if shape == "capsule"]
         boxes = [data for *_, shape, data in found if shape == "box"]
@@ -318,24 +329,27 @@ def _unbatched(world: World) -> bool:
                                       world.boxes.center))
 
 
-def _geom_of(s, base_dir, package_dirs):
-    """(Geom, link-frame data) of a CollisionSpec; None for a mesh whose file does not resolve."""
+def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int) -> list:
+    """[(Geom, link-frame data)] of a CollisionSpec: one geom, a mesh's fitted capsules, or none for a mesh
+    whose file does not resolve."""
     T = origin_transform(torch.tensor(s.xyz, dtype=torch.float64), torch.tensor(s.rpy, dtype=torch.float64))
     pt = lambda p: transform_points(T, torch.tensor(p, dtype=torch.float64)).tolist()  # noqa: E731
     if s.type == "sphere":
         c = pt((0.0, 0.0, 0.0))
-        return Geom(s.name, s.link, "sphere", "capsule"), (c, c, s.size[0])
+        return [(Geom(s.name, s.link, "sphere", "capsule"), (c, c, s.size[0]))]
     if s.type in ("cylinder", "capsule"):
         r, length = s.size
-        return (Geom(s.name, s.link, s.type, "capsule"),
-                (pt((0.0, 0.0, -length / 2)), pt((0.0, 0.0, length / 2)), r))
+        return [(Geom(s.name, s.link, s.type, "capsule"),
+                 (pt((0.0, 0.0, -length / 2)), pt((0.0, 0.0, length / 2)), r))]
     if s.type == "box":
-        return Geom(s.name, s.link, "box", "box"), (list(s.xyz), list(s.rpy), [x / 2 for x in s.size])
+        return [(Geom(s.name, s.link, "box", "box"), (list(s.xyz), list(s.rpy), [x / 2 for x in s.size]))]
     path = resolve_mesh(s.filename, base_dir, package_dirs)
     if path is None:
-        return None
-    a, b, r = fit_capsule(path, s.size)
-    return Geom(s.name, s.link, "mesh", "capsule", s.filename), (pt(tuple(a)), pt(tuple(b)), r)
+        return []
+    caps = fit_capsules(path, s.size, max_capsules=mesh_capsules)
+    names = [s.name] if len(caps) == 1 else [f"{s.name}/{k}" for k in range(len(caps))]
+    return [(Geom(n, s.link, "mesh", "capsule", s.filename), (pt(tuple(a)), pt(tuple(b)), r))
+            for n, (a, b, r) in zip(names, caps)]
 
 
 def _srdf_disabled(srdf) -> set[frozenset[str]]:
