@@ -89,6 +89,9 @@ def random_configuration(
     if not callable(getattr(collision, "min_distance", None)):
         raise ModelError(f"random_configuration: collision= needs an object with min_distance(q, world) "
                          f"(a RobotCollision), got {type(collision).__name__}")
+    check = getattr(collision, "_check_chain", None)
+    if check is not None:  # a RobotCollision places its geoms with its own chain: it must be this one
+        check(chain, "random_configuration")
     margin = check_number(margin, "margin", positive=False, unit=" (m)")
     max_rounds = check_count(max_rounds, "max_rounds")
     n = math.prod(shape)

@@ -30,7 +30,7 @@ BOX = ([0.55, 0.0, 0.15], [0.10, 0.30, 0.02])
 
 
 def _robot(dtype):
-    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=dtype)
+    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=dtype).requires_grad_(False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the FR3's meshes are not shipped: skipped with a warning
         return chain, RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)

@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from ..errors import ModelError
+from ..errors import DeviceError, DTypeError, ModelError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
@@ -53,11 +53,33 @@ class RobotCollision(nn.Module):
     """Collision geoms on the links of a chain, and the batched signed distances of their pairs and to a
     :class:`~diffkin.collision.World`.
 
-    Build it with :meth:`from_urdf`. Attributes: ``geoms`` (list of :class:`Geom`), ``pairs`` (list of
-    ``(geom_a, geom_b)`` names, the order of :meth:`self_distances`), ``chain``. Parameters (learnable, in
-    the link frames, dtype and device of the chain): ``capsule_a``, ``capsule_b`` ``(G_c, 3)``,
-    ``capsule_radius`` ``(G_c,)``; ``box_center``, ``box_rpy``, ``box_half_extents`` ``(G_b, 3)``.
+    Build it with :meth:`from_urdf` or :meth:`from_mjcf`. Attributes: ``geoms`` (list of :class:`Geom`),
+    ``pairs`` (list of ``(geom_a, geom_b)`` names, the order of :meth:`self_distances`), ``chain``.
+    Parameters (learnable, in the link frames, dtype and device of the chain): ``capsule_a``, ``capsule_b``
+    ``(G_c, 3)``, ``capsule_radius`` ``(G_c,)``; ``box_center``, ``box_rpy``, ``box_half_extents``
+    ``(G_b, 3)``.
+
+    The chain is held by reference, not as a submodule: ``parameters()`` are the geometry's only (an
+    optimiser over them never moves the robot), and ``to()`` / ``double()`` / ``float()`` convert the
+    geometry only, never the user's chain. The chain, ``q`` and the geometry must then agree in dtype and
+    device: a mismatch raises :class:`~diffkin.errors.DTypeError` / :class:`~diffkin.errors.DeviceError`
+    naming both (convert the chain and the model together: ``chain.double(); rc.double()``). The geoms are
+    always placed by this chain, so :func:`diffkin.ik.solve`, :func:`diffkin.ik.optimize` and
+    :func:`~diffkin.sampling.random_configuration` require ``collision.chain`` to be the very chain they are
+    given (the same object; :class:`~diffkin.errors.ModelError` naming both otherwise). ``rc.chain = other``
+    rebinds the model to another chain of the same robot.
     """
+
+    def __setattr__(self, name, value):
+        if name == "chain":  # by reference: never a submodule (see the class docstring)
+            object.__setattr__(self, "_chain_ref", value)
+        else:
+            super().__setattr__(name, value)
+
+    @property
+    def chain(self):
+        """The chain whose links carry the geoms (held by reference)."""
+        return self.__dict__["_chain_ref"]
 
     def __init__(self, chain, geoms: list[Geom], links: list[str], capsules: list, boxes: list,
                  pairs: list[tuple[int, int]], *, frames=None, dtype=None, device=None):
@@ -114,15 +136,31 @@ class RobotCollision(nn.Module):
         block of its frame, places all of them in one batched matrix product instead of a gather of a 4 × 4
         pose per geom.
         """
+        self._check_agree(q)
         F = self._frames.frames(self.chain, q)  # (..., K, 4, 4)
         Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * F.shape[-3])  # (..., 3, K·4)
         return Fm @ self._placement(F)
+
+    def _check_agree(self, q: Tensor) -> None:
+        """The geometry, the chain and q in one dtype and device (else a typed error naming them)."""
+        g, c = self.capsule_radius, self.chain
+        named = [("the collision geometry", g.dtype, g.device), ("q", q.dtype, q.device)]
+        if c is not None and hasattr(c, "dtype"):
+            named.insert(1, ("the chain", c.dtype, c.device))
+        if any(dt != named[0][1] for _, dt, _ in named):
+            raise DTypeError("RobotCollision: " + ", ".join(f"{n} is {dt}" for n, dt, _ in named)
+                             + "; convert them together (chain.double(); rc.double())")
+        if any(dv != named[0][2] for *_, dv in named):
+            raise DeviceError("RobotCollision: " + ", ".join(f"{n} is on {dv}" for n, _, dv in named)
+                              + "; move them together (chain.to(device); rc.to(device))")
 
     def _placement(self, F: Tensor) -> Tensor:
         """H ``(K·4, C)`` of :meth:`_columns`, remembered while no gradient is needed and neither the
         chain's state (:meth:`_state_key`) nor the geometry (tensor versions) changes."""
         key, params = None, tuple(self.parameters())
-        if not (torch.is_grad_enabled() and any(p.requires_grad for p in params)) \
+        # H reads the chain's origins too: no memo while they need a gradient
+        own = tuple(self.chain.parameters()) if isinstance(self.chain, nn.Module) else ()
+        if not (torch.is_grad_enabled() and any(p.requires_grad for p in params + own)) \
                 and isinstance(self._frames, LinkFrames) and self.chain is not None:
             ck = self.chain._state_key()
             key = None if ck is None else (ck, F.shape[-3], F.dtype, F.device,
@@ -240,6 +278,16 @@ class RobotCollision(nn.Module):
         inf = torch.full_like(d[..., :1], math.inf)
         return torch.cat((d, inf), -1).amin(-1)
 
+    def _check_chain(self, chain, who: str) -> None:
+        """``chain`` must be the chain this model places its geoms with (the same object): else
+        :class:`~diffkin.errors.ModelError` naming both (``who``: the caller, for the message)."""
+        own = self.chain
+        if own is None or own is chain:
+            return
+        raise ModelError(f"{who}: the collision model was built for {_chain_str(own)}, but the chain given "
+                         f"is {_chain_str(chain)}; build it for this chain (RobotCollision.from_urdf(source, "
+                         "chain) / from_mjcf(source, chain)) or rebind it (collision.chain = chain)")
+
     def extra_repr(self) -> str:
         return f"geoms={len(self.geoms)}, pairs={len(self.pairs)}"
 
@@ -316,6 +364,18 @@ def _unbatched(world: World) -> bool:
     """One world for every row (no batch dims on its objects)."""
     return all(t.ndim <= 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points,
                                       world.boxes.center))
+
+
+def _names(names: list[str], k: int = 4) -> str:
+    return ", ".join(names[:k]) + (f", ... ({len(names)})" if len(names) > k else "")
+
+
+def _chain_str(chain) -> str:
+    """A chain in an error message: its class, name and joint names."""
+    names = list(getattr(chain, "joint_names", []) or [])
+    shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
+    name = getattr(chain, "name", None)
+    return f"{type(chain).__name__}{f' {name!r}' if name else ''} (joints {shown or '?'}, id {id(chain):#x})"
 
 
 def _geom_of(s, base_dir, package_dirs):

@@ -156,7 +156,8 @@ class DistanceConstraint:
         if getattr(self.collision, "chain", None) is None:
             raise DiffkinError("a RobotCollision without a chain evaluates in its own dtype only: build it "
                                "in the solver's dtype")
-        coll = copy.deepcopy(self.collision).to(dtype)
+        coll = copy.deepcopy(self.collision).to(dtype)  # the geometry (the chain is held by reference)
+        coll.chain = coll.chain.to(dtype)  # the deep copy's chain, never the user's
         w = self.world
         if w is not None:
             b = w.boxes
