@@ -14,7 +14,7 @@ import torch
 import diffkin
 import diffkin.sampling
 from diffkin import ik, models
-from diffkin.collision import RobotCollision
+from diffkin.collision import RobotCollision, World
 from diffkin.errors import DTypeError, ModelError
 
 DATA = Path(__file__).parent / "data"
@@ -78,3 +78,79 @@ def test_the_chain_is_held_by_reference():
     (-rc.min_distance(torch.rand(5, 7, dtype=F64))).sum().backward()
     opt.step()
     assert all(torch.equal(a, b) for a, b in zip(before, chain.parameters()))
+
+
+# ------------------------------------------------------------------ 2. input checks at the boundary
+def test_world_rejects_negative_radii():
+    from diffkin.errors import DiffkinError
+
+    with pytest.raises(DiffkinError, match=r"spheres radii \(last column\) >= 0, got \[-1.0\]"):
+        World(spheres=[[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, -1.0]])
+    with pytest.raises(DiffkinError, match="capsules radii"):
+        World(capsules=torch.tensor([[0.0, 0, 0, 1, 0, 0, -0.1]]))
+    assert len(World(spheres=[[0.0, 0.0, 0.0, 0.0]], capsules=[[0.0, 0, 0, 1, 0, 0, 0.0]])) == 2  # 0 is fine
+
+
+def test_from_urdf_of_another_robot_raises():
+    chain = models.from_urdf(FR3, "fr3_link8", dtype=F64)
+    with pytest.raises(ModelError, match=r"none of the chain.s links \(the chain: fr3_link0, .*: base_link"):
+        RobotCollision.from_urdf(DATA / "urdf" / "ur10.urdf", chain)
+
+
+@pytest.mark.parametrize("name", ["capsule_capsule", "sphere_sphere", "capsule_box", "box_box",
+                                  "capsule_halfspace", "segment_closest_parameters"])
+def test_exported_distance_functions_check_their_input(name):
+    from diffkin import collision
+    from diffkin.collision import boxes, distances
+    from diffkin.errors import DTypeError, ShapeError
+
+    fn = getattr(collision, name)
+    raw = getattr(distances, name, None) or getattr(boxes, name)
+    g = torch.Generator().manual_seed(1)
+    kinds = [(3,) if "pts" in k else (3, 3) if k == "rot" else () for k in _ARGS[name]]
+    args = [torch.rand(5, *k, generator=g, dtype=F64) + (0.1 if k == () else 0.0) for k in kinds]
+    args = [_rotation(a) if k == "rot" else a for a, k in zip(args, _ARGS[name])]
+    out = fn(*args)
+    torch.testing.assert_close(out, raw(*args), rtol=0, atol=0)  # the kernel itself, unchanged
+    bad = list(args)
+    bad[0] = args[0][..., :2]  # a point of two coordinates
+    with pytest.raises(ShapeError, match=r"expected \w+ of shape \(\.\.\., 3\), got \(5, 2\)"):
+        fn(*bad)
+    with pytest.raises(DTypeError, match="float32 or float64"):
+        fn(*[a.long() if i == 0 else a for i, a in enumerate(args)])
+    with pytest.raises(DTypeError):  # mixed dtypes
+        fn(*[a.float() if i == 0 else a for i, a in enumerate(args)])
+    with pytest.raises(ShapeError, match="broadcast"):
+        fn(*[a[:4] if i == 0 else a for i, a in enumerate(args)])
+
+
+def _rotation(x):
+    from diffkin.kernels.joints import origin_transform
+
+    return origin_transform(torch.zeros(x.shape[0], 3, dtype=x.dtype), x[..., 0, :])[..., :3, :3]
+
+
+_ARGS = {  # pts: a point (..., 3); rot: a rotation (..., 3, 3); r: a scalar (...)
+    "capsule_capsule": ("pts", "pts", "r", "pts", "pts", "r"),
+    "sphere_sphere": ("pts", "r", "pts", "r"),
+    "capsule_box": ("pts", "pts", "r", "pts", "rot", "pts"),
+    "box_box": ("pts", "rot", "pts", "pts", "rot", "pts"),
+    "capsule_halfspace": ("pts", "pts", "r", "pts", "r"),
+    "segment_closest_parameters": ("pts", "pts", "pts", "pts"),
+}
+
+
+def test_capsule_capsule_pairs_checks_its_indices():
+    from diffkin.collision import capsule_capsule, capsule_capsule_pairs
+    from diffkin.errors import DTypeError, ShapeError
+
+    a, b, r = torch.rand(2, 4, 3, dtype=F64), torch.rand(2, 4, 3, dtype=F64), torch.full((4,), 0.1, dtype=F64)
+    i, j = torch.tensor([0, 1]), torch.tensor([2, 3])
+    d = capsule_capsule_pairs(a, b, r, i, j)
+    torch.testing.assert_close(d, capsule_capsule(a[:, i], b[:, i], r[i], a[:, j], b[:, j], r[j]))
+    with pytest.raises(ShapeError, match=r"in \[0, 4\)"):
+        capsule_capsule_pairs(a, b, r, i, torch.tensor([2, 4]))
+    with pytest.raises(DTypeError, match="torch.long"):
+        capsule_capsule_pairs(a, b, r, i.float(), j)
+    with pytest.raises(ShapeError, match=r"r \(\.\.\., G\)"):
+        capsule_capsule_pairs(a, b, r[:3], i, j)

@@ -305,6 +305,10 @@ class RobotCollision(nn.Module):
             base_dir = Path(source).resolve().parent
         specs = parse_collisions(source)
         frames = LinkFrames(chain)
+        if not set(frames.links) & set(specs):  # another robot's file: no geom would be found
+            raise ModelError(f"RobotCollision.from_urdf: the URDF has none of the chain's links (the chain: "
+                             f"{_names(frames.links)}; the URDF: {_names(list(specs))}): is it this robot's "
+                             "file?")
         geoms, links, caps, boxes, missing = [], [], [], [], []
         for link in frames.links:
             for s in specs.get(link, []):
