@@ -154,3 +154,46 @@ def test_capsule_capsule_pairs_checks_its_indices():
         capsule_capsule_pairs(a, b, r, i.float(), j)
     with pytest.raises(ShapeError, match=r"r \(\.\.\., G\)"):
         capsule_capsule_pairs(a, b, r[:3], i, j)
+
+
+# ------------------------------------------------------------------ 3. geoms fixed to the base
+def test_a_floor_touching_the_base_leaves_ik_and_sampling_feasible():
+    """The FR3's base spheres reach 3 cm below z = 0: a floor there touches them at every q. IK and the
+    sampler leave those q-independent entries out (world_distances still reports them); the moving geoms'
+    clearance from the floor is re-checked by coal with the geoms placed by Pinocchio."""
+    pytest.importorskip("pinocchio")
+    import collision_reference as ref
+    from test_collision_robot import _Pinocchio
+
+    chain, rc = _fr3()
+    chain.requires_grad_(False)
+    floor = World(halfspaces=[[0.0, 0.0, 1.0, 0.0]], dtype=F64)
+    assert [g.link for g, f in zip(rc.geoms, rc.fixed) if f] == ["fr3_link0_sc"] * 3
+    dropped = set(rc._distance_names(floor)) - set(rc._distance_names(floor, moving_only=True))
+    # link 0 is fixed, link 1 turns about the floor's normal
+    assert dropped == {f"fr3_link{k}_sc/{i} × world halfspace 0" for k in (0, 1) for i in range(3)}
+    q = torch.zeros(2, 7, dtype=F64)
+    d = rc.world_distances(q, floor)
+    assert d.shape == (2, len(rc.geoms), 1) and bool((d[:, torch.tensor(rc.fixed), 0] < -0.02).all())
+    margin = 0.005
+    g = torch.Generator().manual_seed(4)
+    q = diffkin.sampling.random_configuration(chain, (12,), g, collision=rc, world=floor, margin=0.02)
+    T = chain.forward_kinematics(q)
+    res = ik.solve(chain, T, collision=rc, world=floor, margin=margin, seed=0)
+    assert res.success.float().mean() >= 0.8
+    pref = _Pinocchio(FR3.read_text(), chain, rc.geoms)
+    (plane,) = ref.world_objects(floor)
+    left_out = [g.name for g in rc.geoms if g.link in ("fr3_link0_sc", "fr3_link1_sc")]
+    checked = [g.name for g in rc.geoms if g.name not in left_out]
+    constant = []
+    for qq in (*res.q[res.success].numpy(), *q.numpy()):
+        pref.place(qq)
+        assert min(ref.distance(*pref.shape(n), *plane) for n in checked) >= margin - 1e-7
+        constant.append([ref.distance(*pref.shape(n), *plane) for n in left_out])
+    constant = torch.tensor(constant)  # the entries left out are the same at every q (by coal), and touch
+    assert float((constant - constant[0]).abs().max()) < 1e-9 and float(constant.min()) < 0
+    # the explicit option: check the fixed geoms too, and nothing is feasible any more
+    rc.skip_fixed = False
+    assert not ik.solve(chain, T[:3], collision=rc, world=floor, margin=margin, seed=0).success.any()
+    q2, ok = diffkin.sampling.random_configuration(chain, (3,), collision=rc, world=floor, return_mask=True)
+    assert not ok.any()

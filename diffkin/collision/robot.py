@@ -102,6 +102,13 @@ class RobotCollision(nn.Module):
         self.box_half_extents = nn.Parameter(f(boxes, 2, (3,)))
         ilong = lambda x: torch.tensor(x, dtype=torch.long, device=dev).reshape(-1)  # noqa: E731
         anchor = [self._frames.bodies[k] for k in link_index]
+        static = getattr(self._frames, "static", {0})  # anchors placed independently of q (the base)
+        #: per geom: its placement does not depend on q (a link fixed to the base): see ``skip_fixed``
+        self.fixed = [a in static for a in anchor]
+        self._anchor = anchor
+        #: leave the geoms that ``fixed`` marks out of the world checks, and pairs of two such geoms out of
+        #: the self checks, of IK and collision-free sampling (their distances cannot change with q)
+        self.skip_fixed = True
         # the columns of the placement product (see _columns): capsule starts, ends, box centres, box axes
         cols = lambda per: ([per[g] for g in cap] * 2 + [per[g] for g in bx]  # noqa: E731
                             + [per[g] for g in bx for _ in range(3)])  # box g's axes: columns 3 g + k
@@ -125,6 +132,8 @@ class RobotCollision(nn.Module):
         perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
         self.register_buffer("_pair_perm", ilong(perm), persistent=False)
         self._pairs_in_order = perm == list(range(len(perm)))  # then no gather (slow on the last axis)
+        moving_pairs = [p for p, (i, j) in enumerate(pairs) if not (self.fixed[i] and self.fixed[j])]
+        self.register_buffer("_moving_pairs", ilong(moving_pairs), persistent=False)
 
     # ------------------------------------------------------------------------------------ geometry
     def _columns(self, q: Tensor) -> Tensor:
@@ -243,8 +252,8 @@ class RobotCollision(nn.Module):
         d = world.distances(a, b, r.expand(a.shape[:-1]), c, R, h.expand(c.shape), threshold)
         return d if self._rows_in_order else d.index_select(-2, self._rows)
 
-    def _distances_at_least(self, q: Tensor, world: World | None = None,
-                            threshold: float | None = None) -> Tensor:
+    def _distances_at_least(self, q: Tensor, world: World | None = None, threshold: float | None = None,
+                            moving_only: bool = False) -> Tensor:
         """The self distances and, with ``world``, the world distances flattened geom-major, ``(..., P +
         G·W)``, from one placement of the geoms. With ``threshold`` (for decisions and constraint rows, not
         the public distances): an entry whose bounding-sphere lower bound already proves it >= threshold
@@ -252,20 +261,47 @@ class RobotCollision(nn.Module):
         result equals the exact distances wherever either is below ``threshold`` and is >= threshold
         elsewhere (:mod:`diffkin.collision.broad`); ``None``: exact everywhere. With a threshold, a large
         batch (one world for all rows) is evaluated in blocks of ``_BLOCK`` rows: the per-pair temporaries
-        of a block stay in the cache (about 25 % faster at 10 000 rows on the development machine)."""
+        of a block stay in the cache (about 25 % faster at 10 000 rows on the development machine).
+        ``moving_only``: without the entries that cannot change with q (:attr:`fixed`): the pairs of two
+        fixed geoms and the world rows of fixed geoms (the columns :meth:`_distance_names` names)."""
         rows = q.shape[:-1].numel()
         if threshold is not None and rows > _BLOCK and (world is None or _unbatched(world)):
             flat = q.reshape(rows, q.shape[-1])
-            d = torch.cat([self._distances_at_least(x, world, threshold) for x in flat.split(_BLOCK)])
+            d = torch.cat([self._distances_at_least(x, world, threshold, moving_only)
+                           for x in flat.split(_BLOCK)])
             return d.reshape(*q.shape[:-1], d.shape[-1])
         P = self._columns(q)
         placed = self._placed_from(P)
         d = self._self_from(P, placed, threshold)
+        keep_self, keep_world = self._kept(world, moving_only)
+        if keep_self is not None:
+            d = d.index_select(-1, keep_self)
         if world is None:
             return d
         w = self._world_from(placed, world, threshold).flatten(-2)
+        w = w if keep_world is None else w.index_select(-1, keep_world)
         batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-1])
         return torch.cat((d.expand(*batch, d.shape[-1]), w.expand(*batch, w.shape[-1])), dim=-1)
+
+    def _kept(self, world: World | None, moving_only: bool) -> tuple[Tensor | None, Tensor | None]:
+        """The columns :meth:`_distances_at_least` keeps with ``moving_only`` (None: all):
+        :func:`diffkin.collision._fixed.kept_columns`."""
+        from ._fixed import kept_columns
+
+        return kept_columns(self, world, moving_only)
+
+    def _distance_names(self, world: World | None = None, moving_only: bool = False) -> list[str]:
+        """A name per column of :meth:`_distances_at_least` (same arguments): ``"a × b"`` for a self pair,
+        ``"geom × world <kind> k"`` for a geom against the world's k-th object of that kind."""
+        keep_self, keep_world = self._kept(world, moving_only)
+        names = [f"{a} × {b}" for a, b in self.pairs]
+        names = names if keep_self is None else [names[i] for i in keep_self.tolist()]
+        if world is None:
+            return names
+        objs = [f"world {kind} {k}" for kind, n in zip(("sphere", "capsule", "box", "halfspace", "point"),
+                                                        world.counts) for k in range(n)]
+        rows = [f"{g.name} × {o}" for g in self.geoms for o in objs]
+        return names + (rows if keep_world is None else [rows[i] for i in keep_world.tolist()])
 
     def min_distance(self, q: Tensor, world: World | None = None) -> Tensor:
         """The smallest signed distance ``(...)`` over the checked pairs and, with ``world``, every
@@ -357,8 +393,10 @@ class RobotCollision(nn.Module):
         geoms = [Geom(name, names[body], kind, shape) for name, body, kind, shape, _ in found]
         caps = [data for *_, shape, data in found if shape == "capsule"]
         boxes = [data for *_, shape, data in found if shape == "box"]
+        frames = BodyFrames(names, poses)
+        frames.static = {b for b in range(m.nbody) if int(m.body_weldid[b]) == 0}  # welded to the world
         return cls(chain, geoms, [g.link for g in geoms], caps, boxes, mjcf_pairs(m, ids),
-                   frames=BodyFrames(names, poses), dtype=dtype, device=device)
+                   frames=frames, dtype=dtype, device=device)
 
 
 _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distances_at_least)
