@@ -197,3 +197,45 @@ def test_a_floor_touching_the_base_leaves_ik_and_sampling_feasible():
     assert not ik.solve(chain, T[:3], collision=rc, world=floor, margin=margin, seed=0).success.any()
     q2, ok = diffkin.sampling.random_configuration(chain, (3,), collision=rc, world=floor, return_mask=True)
     assert not ok.any()
+
+
+# ------------------------------------------------------------------ 4. the collision-free sampler
+class _Exact:
+    """The same model seen only through the exact ``min_distance`` (the sampler's duck-typed path), with the
+    fixed entries left out as the model's own path does."""
+
+    def __init__(self, rc, world):
+        self.rc, self.world = rc, world
+
+    def min_distance(self, q, world=None):
+        d = self.rc._distances_at_least(q, world, None, moving_only=True)  # threshold None: exact
+        return d.amin(-1)
+
+
+def test_the_broad_phase_sampler_draws_what_the_exact_one_draws():
+    chain, rc = _fr3()
+    world = World(spheres=[[0.45, 0.0, 0.45, 0.12], [0.0, 0.4, 0.3, 0.08]], halfspaces=[[0, 0, 1, 0.0]],
+                  dtype=F64)
+    kw = dict(world=world, margin=0.02, return_mask=True)
+    q1, ok1 = diffkin.sampling.random_configuration(chain, (300,), torch.Generator().manual_seed(2),
+                                                    collision=rc, **kw)
+    q2, ok2 = diffkin.sampling.random_configuration(chain, (300,), torch.Generator().manual_seed(2),
+                                                    collision=_Exact(rc, world), **kw)
+    assert bool(ok1.all()) and torch.equal(q1, q2) and torch.equal(ok1, ok2)
+
+
+def test_zero_acceptance_stops_early_and_names_the_pairs():
+    from diffkin.errors import SamplingError
+
+    chain = models.from_urdf(FR3, "fr3_link8", dtype=F64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = RobotCollision.from_urdf(FR3, chain)  # no SRDF: link 1 and link 3 always overlap
+    with pytest.raises(SamplingError) as e:
+        diffkin.sampling.random_configuration(chain, (200,), collision=rc)
+    msg = str(e.value)
+    assert "in 2 rounds (stopped early" in msg and "fr3_link1_sc/0 × fr3_link3_sc/0 (100 %)" in msg, msg
+    drawn = int(msg.split(" % of the ")[1].split(" draws")[0])
+    assert diffkin.sampling.GIVE_UP <= drawn < 32 * diffkin.sampling.GIVE_UP
+    q, ok = diffkin.sampling.random_configuration(chain, (5,), collision=rc, return_mask=True)
+    assert q.shape == (5, 7) and not ok.any()
