@@ -124,6 +124,17 @@ def test_exported_distance_functions_check_their_input(name):
         fn(*[a[:4] if i == 0 else a for i, a in enumerate(args)])
 
 
+def test_every_exported_distance_function_wraps_its_own_kernel():
+    from diffkin import collision
+    from diffkin.collision import _checked
+
+    names = [n for n in collision.__all__ if hasattr(_checked, n)]
+    assert len(names) == 14
+    for n in names:
+        fn = getattr(collision, n)
+        assert fn.__wrapped__.__name__ == n and fn.__wrapped__.__module__.endswith(("distances", "boxes"))
+
+
 def _rotation(x):
     from diffkin.kernels.joints import origin_transform
 

@@ -78,16 +78,7 @@ def capsule_capsule_pairs(a, b, r, i, j, pair_kernel=None):
     return distances.capsule_capsule_pairs(a, b, r, i, j, pair_kernel)
 
 
-segment_closest_parameters = _checked(distances.segment_closest_parameters)
-point_segment_parameter = _checked(distances.point_segment_parameter)
-sphere_sphere = _checked(distances.sphere_sphere)
-sphere_capsule = _checked(distances.sphere_capsule)
-capsule_capsule = _checked(distances.capsule_capsule)
-sphere_halfspace = _checked(distances.sphere_halfspace)
-capsule_halfspace = _checked(distances.capsule_halfspace)
-point_box = _checked(boxes.point_box)
-sphere_box = _checked(boxes.sphere_box)
-segment_box = _checked(boxes.segment_box)
-capsule_box = _checked(boxes.capsule_box)
-box_halfspace = _checked(boxes.box_halfspace)
-box_box = _checked(boxes.box_box)
+# the wrappers, in _SPECS' order
+(segment_closest_parameters, point_segment_parameter, sphere_sphere, sphere_capsule, capsule_capsule,
+ sphere_halfspace, capsule_halfspace, point_box, sphere_box, segment_box, capsule_box, box_halfspace,
+ box_box) = (_checked(fn) for fn in _SPECS)
