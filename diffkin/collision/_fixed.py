@@ -68,3 +68,17 @@ def kept_columns(rc, world, moving_only: bool) -> tuple[Tensor | None, Tensor | 
     keep = None if len(keep) == drop.numel() else keep
     rc.__dict__["_kept_memo"] = (key, world.counts, keep)
     return keep_self, keep
+
+
+def distance_names(rc, world, moving_only: bool) -> list[str]:
+    """A name per column of ``rc._distances_at_least`` (same arguments): ``"a × b"`` for a self pair,
+    ``"geom × world <kind> k"`` for a geom against the world's k-th object of that kind."""
+    keep_self, keep_world = kept_columns(rc, world, moving_only)
+    names = [f"{a} × {b}" for a, b in rc.pairs]
+    names = names if keep_self is None else [names[i] for i in keep_self.tolist()]
+    if world is None:
+        return names
+    objs = [f"world {kind} {k}" for kind, n in zip(("sphere", "capsule", "box", "halfspace", "point"),
+                                                    world.counts) for k in range(n)]
+    rows = [f"{g.name} × {o}" for g in rc.geoms for o in objs]
+    return names + (rows if keep_world is None else [rows[i] for i in keep_world.tolist()])

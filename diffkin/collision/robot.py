@@ -22,10 +22,11 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from ..errors import DeviceError, DTypeError, ModelError
+from ..errors import ModelError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
+from ._checks import check_agree, check_chain, names_str
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
 from .broad import capsule_pairs_at_least
@@ -151,17 +152,8 @@ class RobotCollision(nn.Module):
         return Fm @ self._placement(F)
 
     def _check_agree(self, q: Tensor) -> None:
-        """The geometry, the chain and q in one dtype and device (else a typed error naming them)."""
-        g, c = self.capsule_radius, self.chain
-        named = [("the collision geometry", g.dtype, g.device), ("q", q.dtype, q.device)]
-        if c is not None and hasattr(c, "dtype"):
-            named.insert(1, ("the chain", c.dtype, c.device))
-        if any(dt != named[0][1] for _, dt, _ in named):
-            raise DTypeError("RobotCollision: " + ", ".join(f"{n} is {dt}" for n, dt, _ in named)
-                             + "; convert them together (chain.double(); rc.double())")
-        if any(dv != named[0][2] for *_, dv in named):
-            raise DeviceError("RobotCollision: " + ", ".join(f"{n} is on {dv}" for n, _, dv in named)
-                              + "; move them together (chain.to(device); rc.to(device))")
+        """The geometry, the chain and q in one dtype and device (:func:`._checks.check_agree`)."""
+        check_agree(self, q)
 
     def _placement(self, F: Tensor) -> Tensor:
         """H ``(K·4, C)`` of :meth:`_columns`, remembered while no gradient is needed and neither the
@@ -291,17 +283,10 @@ class RobotCollision(nn.Module):
         return kept_columns(self, world, moving_only)
 
     def _distance_names(self, world: World | None = None, moving_only: bool = False) -> list[str]:
-        """A name per column of :meth:`_distances_at_least` (same arguments): ``"a × b"`` for a self pair,
-        ``"geom × world <kind> k"`` for a geom against the world's k-th object of that kind."""
-        keep_self, keep_world = self._kept(world, moving_only)
-        names = [f"{a} × {b}" for a, b in self.pairs]
-        names = names if keep_self is None else [names[i] for i in keep_self.tolist()]
-        if world is None:
-            return names
-        objs = [f"world {kind} {k}" for kind, n in zip(("sphere", "capsule", "box", "halfspace", "point"),
-                                                        world.counts) for k in range(n)]
-        rows = [f"{g.name} × {o}" for g in self.geoms for o in objs]
-        return names + (rows if keep_world is None else [rows[i] for i in keep_world.tolist()])
+        """A name per column of :meth:`_distances_at_least` (:func:`._fixed.distance_names`)."""
+        from ._fixed import distance_names
+
+        return distance_names(self, world, moving_only)
 
     def min_distance(self, q: Tensor, world: World | None = None) -> Tensor:
         """The smallest signed distance ``(...)`` over the checked pairs and, with ``world``, every
@@ -315,14 +300,8 @@ class RobotCollision(nn.Module):
         return torch.cat((d, inf), -1).amin(-1)
 
     def _check_chain(self, chain, who: str) -> None:
-        """``chain`` must be the chain this model places its geoms with (the same object): else
-        :class:`~diffkin.errors.ModelError` naming both (``who``: the caller, for the message)."""
-        own = self.chain
-        if own is None or own is chain:
-            return
-        raise ModelError(f"{who}: the collision model was built for {_chain_str(own)}, but the chain given "
-                         f"is {_chain_str(chain)}; build it for this chain (RobotCollision.from_urdf(source, "
-                         "chain) / from_mjcf(source, chain)) or rebind it (collision.chain = chain)")
+        """``chain`` must be the chain this model places its geoms with (:func:`._checks.check_chain`)."""
+        check_chain(self, chain, who)
 
     def extra_repr(self) -> str:
         return f"geoms={len(self.geoms)}, pairs={len(self.pairs)}"
@@ -343,8 +322,8 @@ class RobotCollision(nn.Module):
         frames = LinkFrames(chain)
         if not set(frames.links) & set(specs):  # another robot's file: no geom would be found
             raise ModelError(f"RobotCollision.from_urdf: the URDF has none of the chain's links (the chain: "
-                             f"{_names(frames.links)}; the URDF: {_names(list(specs))}): is it this robot's "
-                             "file?")
+                             f"{names_str(frames.links)}; the URDF: {names_str(list(specs))}): is it this "
+                             "robot's file?")
         geoms, links, caps, boxes, missing = [], [], [], [], []
         for link in frames.links:
             for s in specs.get(link, []):
@@ -406,18 +385,6 @@ def _unbatched(world: World) -> bool:
     """One world for every row (no batch dims on its objects)."""
     return all(t.ndim <= 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points,
                                       world.boxes.center))
-
-
-def _names(names: list[str], k: int = 4) -> str:
-    return ", ".join(names[:k]) + (f", ... ({len(names)})" if len(names) > k else "")
-
-
-def _chain_str(chain) -> str:
-    """A chain in an error message: its class, name and joint names."""
-    names = list(getattr(chain, "joint_names", []) or [])
-    shown = ", ".join(names[:3]) + (", ..." if len(names) > 3 else "")
-    name = getattr(chain, "name", None)
-    return f"{type(chain).__name__}{f' {name!r}' if name else ''} (joints {shown or '?'}, id {id(chain):#x})"
 
 
 def _geom_of(s, base_dir, package_dirs):
