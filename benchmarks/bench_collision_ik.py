@@ -52,7 +52,7 @@ SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_l
 
 
 def robot(dtype=torch.float32, device="cpu"):
-    chain = models.from_urdf(FR3_URDF, "fr3_link8", dtype=dtype, device=device)
+    chain = models.from_urdf(FR3_URDF, "fr3_link8", dtype=dtype, device=device).requires_grad_(False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the meshes are not shipped; the sc primitives are the model
         return chain, RobotCollision.from_urdf(FR3_URDF, chain, srdf=SRDF).requires_grad_(False)

@@ -11,6 +11,7 @@
   torch loop with the fused LM steps (``dk_lm``, what ``main`` ran before), interleaved repeats.
 
     python -m benchmarks.bench_single_call [--targets 200] [--batch 10000] [--repeats 3]
+    python -m benchmarks.run single_call [--quick]
 """
 
 from __future__ import annotations
@@ -147,6 +148,20 @@ def batched(N: int, repeats: int, threads: int) -> list[dict]:
     return rows
 
 
+def run(args) -> list[dict]:
+    """The rows of all three parts (``benchmarks.run`` interface; ``targets``, ``batch``, ``repeats`` and
+    ``calls`` (batch-1 FK calls) default by ``quick``)."""
+    quick = getattr(args, "quick", False)
+    n = getattr(args, "targets", None) or (20 if quick else 200)
+    N = getattr(args, "batch", None) or (1000 if quick else 10000)
+    repeats = getattr(args, "repeats", None) or (1 if quick else 3)
+    calls = getattr(args, "calls", None) or (200 if quick else 2000)
+    with torch_threads(1):
+        rows = single_target(n) + batch_one_kinematics(calls)
+    rows += batched(N, repeats, 1) + batched(N, repeats, 2)
+    return [{"benchmark": "single calls and batched IK", **r} for r in rows]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--targets", type=int, default=200)
@@ -159,10 +174,7 @@ def main(argv=None) -> int:
             print_table(batch_one_kinematics(), "batch-1 kinematics (medians; one run, same machine load)")
         return 0
     print(f"tolerances {TOL_P} m / {TOL_O} rad, float64, Panda")
-    with torch_threads(1):
-        rows = single_target(a.targets) + batch_one_kinematics()
-    rows += batched(a.batch, a.repeats, 1) + batched(a.batch, a.repeats, 2)
-    print_table(rows, "single calls and batched IK (medians; one run, same machine load)")
+    print_table(run(a), "single calls and batched IK (medians; one run, same machine load)")
     return 0
 
 

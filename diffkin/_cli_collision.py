@@ -46,6 +46,28 @@ class WorldOnly:
     def __init__(self, robot):
         self.robot = robot
 
+    @property
+    def chain(self):
+        return self.robot.chain
+
+    def _check_chain(self, chain, who: str) -> None:
+        self.robot._check_chain(chain, who)
+
+    @property
+    def skip_fixed(self) -> bool:
+        return self.robot.skip_fixed
+
+    def _distances_at_least(self, q: Tensor, world=None, threshold=None, moving_only: bool = False) -> Tensor:
+        """The robot's world columns only (``RobotCollision._distances_at_least`` without the self pairs)."""
+        if world is None:
+            return q.new_zeros(*q.shape[:-1], 0)
+        d = self.robot._distances_at_least(q, world, threshold, moving_only)
+        return d[..., len(self.robot._distance_names(None, moving_only)):]
+
+    def _distance_names(self, world=None, moving_only: bool = False) -> list[str]:
+        names = self.robot._distance_names(world, moving_only)
+        return names[len(self.robot._distance_names(None, moving_only)):]
+
     def self_distances(self, q: Tensor) -> Tensor:
         return q.new_zeros(*q.shape[:-1], 0)
 

@@ -568,7 +568,7 @@ def section_collision_ik(report: Report, quick: bool) -> None:
     if not urdf.exists():
         report.add("Collision-free IK", "Skipped: the FR3 URDF of the repository's tests/data is not here.")
         return
-    chain = models.from_urdf(urdf, "fr3_link8")
+    chain = models.from_urdf(urdf, "fr3_link8").requires_grad_(False)
     srdf = '<robot><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/></robot>'
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the FR3's meshes are not shipped: Franka's primitives remain

@@ -262,6 +262,11 @@ def robot_collision(chain: KinematicChain, collision=None):
     if own is not None and (own.nq, own.nv) != (chain.nq, chain.nv):
         raise ShapeError(f"collision model for a chain of nq {own.nq}, nv {own.nv}; the robot has nq "
                          f"{chain.nq}, nv {chain.nv}")
-    collision = copy.deepcopy(collision).to(dtype=chain.dtype, device=chain.device)
+    collision = copy.deepcopy(collision)
+    # the chain is held by reference (to() converts the geometry only): the copy's own chain too, which an
+    # MJCF model's body poses still read
+    if collision.chain is not None:
+        collision.chain.to(dtype=chain.dtype, device=chain.device)
+    collision = collision.to(dtype=chain.dtype, device=chain.device)
     collision.chain = chain  # placed by the env's chain (its own copy of the robot)
     return collision.requires_grad_(False)

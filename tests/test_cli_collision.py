@@ -5,6 +5,7 @@ file reader; the option errors."""
 from __future__ import annotations
 
 import inspect
+import re
 from pathlib import Path
 
 import numpy as np
@@ -176,3 +177,34 @@ def test_fk_of_an_mjcf_robot_against_mujoco(capsys, tmp_path):
         mujoco.mj_kinematics(m, data)
         np.testing.assert_allclose(pose[:3, 3], data.xpos[hand], atol=1e-12)
         np.testing.assert_allclose(pose[:3, :3], data.xmat[hand].reshape(3, 3), atol=1e-12)
+
+
+def test_the_docs_command_lines_run_as_written(capsys, tmp_path, monkeypatch):
+    """docs/collision.md's two command lines, from the repository root as written (fewer samples, outputs
+    under tmp): every sample and every solution flagged a success is collision-free by coal."""
+    root = Path(__file__).parent.parent
+    block = (root / "docs" / "collision.md").read_text().split("## On the command line")[1].split("```")[1]
+    commands = [line.split() for line in block.replace("\\\n", " ").strip().splitlines()]
+    assert [c[:2] for c in commands] == [["diffkin", "fk"], ["diffkin", "ik"]]
+    monkeypatch.chdir(root)
+    for argv in commands:
+        argv = argv[1:]
+        argv[argv.index("--random") + 1] = "12"
+        k = argv.index("--output") + 1
+        argv[k] = str(tmp_path / argv[k])
+        rc, text = _run(capsys, *argv)
+        assert rc == 0, text
+        with np.load(argv[k]) as d:
+            q = d["q"] if argv[0] == "fk" else d["q"][d["success"]]
+        assert len(q) >= (12 if argv[0] == "fk" else 9)
+        margin = float(argv[argv.index("--margin") + 1]) if "--margin" in argv else 0.0
+        assert _coal_min(q).min() >= margin - 1e-7
+
+
+def test_no_srdf_fails_fast_naming_the_pair(capsys):
+    """Without the SRDF no FR3 sample is free of self-collision: the error comes after the first rounds and
+    names the link-1 × link-3 pair (issue 27 review: it ran 5 min 17 s before)."""
+    rc, text = _run(capsys, "fk", "--urdf", FR3, "--end-link", "fr3_link8", "--random", 200,
+                    "--self-collision")
+    assert rc != 0
+    assert "stopped early" in text and re.search(r"fr3_link1_sc/\d × fr3_link3_sc/\d \(100 %\)", text), text

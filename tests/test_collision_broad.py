@@ -25,7 +25,7 @@ SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_l
 
 def _robot(name, dtype):
     source, end, srdf = (FR3, "fr3_link8", SRDF) if name == "fr3" else (BOXY, "l3", None)
-    chain = diffkin.models.from_urdf(source, end, dtype=dtype)
+    chain = diffkin.models.from_urdf(source, end, dtype=dtype).requires_grad_(False)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the FR3's meshes are not shipped
         return chain, RobotCollision.from_urdf(source, chain, srdf=srdf).requires_grad_(False)
@@ -137,7 +137,8 @@ def test_seed_library_memo_gives_the_solve_of_a_fresh_model():
         rc.capsule_radius.add_(0.005)  # and the model changed in place
     got = ik.solve(chain, T, world=w2, **kw)
     fresh = copy.deepcopy(rc)
-    for k in ("_free_library_memo", "_placement_memo"):
+    fresh.chain = chain  # the copy's geometry on the chain solved (a deep copy copies the chain too)
+    for k in ("_free_library_memo", "_placement_memo", "_kept_memo"):
         fresh.__dict__.pop(k, None)
     want = ik.solve(chain, T, world=w2, **{**kw, "collision": fresh})
     assert torch.equal(got.q, want.q) and torch.equal(got.success, want.success)

@@ -228,6 +228,7 @@ def test_finite_at_contact_and_batched_float32():
     (g,) = torch.autograd.grad(d.clamp(max=0.0).sum() + rc.min_distance(q).sum(), q)
     assert torch.isfinite(g).all() and g.abs().sum() > 0
     chain32, rc32 = _robot(FR3, "fr3_link8")
+    chain32.float()  # the chain is held by reference: convert it and the geometry together
     rc32 = rc32.float()
     with torch.no_grad():
         d32 = rc32.self_distances(q.detach().float())

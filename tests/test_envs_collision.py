@@ -176,3 +176,22 @@ def _geom_id(m, name: str) -> int:
         return g
     body, i = name.rsplit("/", 1)
     return int(m.body(body).geomadr[0]) + int(i)
+
+
+def test_a_given_mjcf_collision_model_follows_the_env_dtype():
+    """A float64 MJCF RobotCollision given to a float32 env: the env's copy converts its geometry and the
+    chain its body poses read (the model holds its chain by reference, so to() alone would not), and the
+    user's chain and model are left as they were."""
+    path = Path(__file__).parent / "data" / "mjcf_extra" / "joint_kinds.xml"
+    arm = models.from_mjcf(path, "palm", root_link="torso", dtype=torch.float64)
+    given = RobotCollision.from_mjcf(path, arm)
+    vec = TorchVectorEnv("diffkin/Reach-v0", 2, robot=arm, collision=given, self_collision="penalize",
+                         init_noise=0.5)
+    vec.reset(seed=1)
+    _, _, _, _, info = vec.step(torch.zeros(vec.action_space.shape))
+    assert vec.task.collision.capsule_radius.dtype == torch.float32
+    assert torch.isfinite(info["min_distance"]).all()
+    q = vec.state["q"].double()
+    torch.testing.assert_close(info["min_distance"].double(), given.min_distance(q).detach(), atol=1e-5,
+                               rtol=0)
+    assert arm.dtype == torch.float64 and given.capsule_radius.dtype == torch.float64

@@ -5,25 +5,28 @@
 * :class:`World`: the obstacles; :class:`RobotCollision`: the robot's geoms, its checked pairs,
   ``self_distances``, ``world_distances`` and ``min_distance``.
 
+The exported distance functions check their input once (:mod:`diffkin.collision._checked`: shapes, dtypes,
+broadcasting; typed errors); the kernels in ``distances`` / ``boxes`` themselves do not.
+
 The model never imports this package (data flows ``model frames -> collision geometry -> distances``).
 """
 
+from ._checked import box_box as box_box
+from ._checked import box_halfspace as box_halfspace
+from ._checked import capsule_box as capsule_box
+from ._checked import capsule_capsule as capsule_capsule
+from ._checked import capsule_capsule_pairs as capsule_capsule_pairs
+from ._checked import capsule_halfspace as capsule_halfspace
+from ._checked import point_box as point_box
+from ._checked import point_segment_parameter as point_segment_parameter
+from ._checked import segment_box as segment_box
+from ._checked import segment_closest_parameters as segment_closest_parameters
+from ._checked import sphere_box as sphere_box
+from ._checked import sphere_capsule as sphere_capsule
+from ._checked import sphere_halfspace as sphere_halfspace
+from ._checked import sphere_sphere as sphere_sphere
 from .boxes import Box as Box
 from .boxes import box as box
-from .boxes import box_box as box_box
-from .boxes import box_halfspace as box_halfspace
-from .boxes import capsule_box as capsule_box
-from .boxes import point_box as point_box
-from .boxes import segment_box as segment_box
-from .boxes import sphere_box as sphere_box
-from .distances import capsule_capsule as capsule_capsule
-from .distances import capsule_capsule_pairs as capsule_capsule_pairs
-from .distances import capsule_halfspace as capsule_halfspace
-from .distances import point_segment_parameter as point_segment_parameter
-from .distances import segment_closest_parameters as segment_closest_parameters
-from .distances import sphere_capsule as sphere_capsule
-from .distances import sphere_halfspace as sphere_halfspace
-from .distances import sphere_sphere as sphere_sphere
 from .robot import Geom as Geom
 from .robot import RobotCollision as RobotCollision
 from .world import World as World

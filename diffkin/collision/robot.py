@@ -27,6 +27,7 @@ from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
 from ..validation import check_count
+from ._checks import check_agree, check_chain, names_str
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
 from .broad import capsule_pairs_at_least
@@ -55,11 +56,33 @@ class RobotCollision(nn.Module):
     """Collision geoms on the links of a chain, and the batched signed distances of their pairs and to a
     :class:`~diffkin.collision.World`.
 
-    Build it with :meth:`from_urdf`. Attributes: ``geoms`` (list of :class:`Geom`), ``pairs`` (list of
-    ``(geom_a, geom_b)`` names, the order of :meth:`self_distances`), ``chain``. Parameters (learnable, in
-    the link frames, dtype and device of the chain): ``capsule_a``, ``capsule_b`` ``(G_c, 3)``,
-    ``capsule_radius`` ``(G_c,)``; ``box_center``, ``box_rpy``, ``box_half_extents`` ``(G_b, 3)``.
+    Build it with :meth:`from_urdf` or :meth:`from_mjcf`. Attributes: ``geoms`` (list of :class:`Geom`),
+    ``pairs`` (list of ``(geom_a, geom_b)`` names, the order of :meth:`self_distances`), ``chain``.
+    Parameters (learnable, in the link frames, dtype and device of the chain): ``capsule_a``, ``capsule_b``
+    ``(G_c, 3)``, ``capsule_radius`` ``(G_c,)``; ``box_center``, ``box_rpy``, ``box_half_extents``
+    ``(G_b, 3)``.
+
+    The chain is held by reference, not as a submodule: ``parameters()`` are the geometry's only (an
+    optimiser over them never moves the robot), and ``to()`` / ``double()`` / ``float()`` convert the
+    geometry only, never the user's chain. The chain, ``q`` and the geometry must then agree in dtype and
+    device: a mismatch raises :class:`~diffkin.errors.DTypeError` / :class:`~diffkin.errors.DeviceError`
+    naming both (convert the chain and the model together: ``chain.double(); rc.double()``). The geoms are
+    always placed by this chain, so :func:`diffkin.ik.solve`, :func:`diffkin.ik.optimize` and
+    :func:`~diffkin.sampling.random_configuration` require ``collision.chain`` to be the very chain they are
+    given (the same object; :class:`~diffkin.errors.ModelError` naming both otherwise). ``rc.chain = other``
+    rebinds the model to another chain of the same robot.
     """
+
+    def __setattr__(self, name, value):
+        if name == "chain":  # by reference: never a submodule (see the class docstring)
+            object.__setattr__(self, "_chain_ref", value)
+        else:
+            super().__setattr__(name, value)
+
+    @property
+    def chain(self):
+        """The chain whose links carry the geoms (held by reference)."""
+        return self.__dict__["_chain_ref"]
 
     def __init__(self, chain, geoms: list[Geom], links: list[str], capsules: list, boxes: list,
                  pairs: list[tuple[int, int]], *, frames=None, dtype=None, device=None):
@@ -82,6 +105,13 @@ class RobotCollision(nn.Module):
         self.box_half_extents = nn.Parameter(f(boxes, 2, (3,)))
         ilong = lambda x: torch.tensor(x, dtype=torch.long, device=dev).reshape(-1)  # noqa: E731
         anchor = [self._frames.bodies[k] for k in link_index]
+        static = getattr(self._frames, "static", {0})  # anchors placed independently of q (the base)
+        #: per geom: its placement does not depend on q (a link fixed to the base): see ``skip_fixed``
+        self.fixed = [a in static for a in anchor]
+        self._anchor = anchor
+        #: leave the geoms that ``fixed`` marks out of the world checks, and pairs of two such geoms out of
+        #: the self checks, of IK and collision-free sampling (their distances cannot change with q)
+        self.skip_fixed = True
         # the columns of the placement product (see _columns): capsule starts, ends, box centres, box axes
         cols = lambda per: ([per[g] for g in cap] * 2 + [per[g] for g in bx]  # noqa: E731
                             + [per[g] for g in bx for _ in range(3)])  # box g's axes: columns 3 g + k
@@ -105,6 +135,8 @@ class RobotCollision(nn.Module):
         perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
         self.register_buffer("_pair_perm", ilong(perm), persistent=False)
         self._pairs_in_order = perm == list(range(len(perm)))  # then no gather (slow on the last axis)
+        moving_pairs = [p for p, (i, j) in enumerate(pairs) if not (self.fixed[i] and self.fixed[j])]
+        self.register_buffer("_moving_pairs", ilong(moving_pairs), persistent=False)
 
     # ------------------------------------------------------------------------------------ geometry
     def _columns(self, q: Tensor) -> Tensor:
@@ -116,15 +148,22 @@ class RobotCollision(nn.Module):
         block of its frame, places all of them in one batched matrix product instead of a gather of a 4 × 4
         pose per geom.
         """
+        self._check_agree(q)
         F = self._frames.frames(self.chain, q)  # (..., K, 4, 4)
         Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * F.shape[-3])  # (..., 3, K·4)
         return Fm @ self._placement(F)
+
+    def _check_agree(self, q: Tensor) -> None:
+        """The geometry, the chain and q in one dtype and device (:func:`._checks.check_agree`)."""
+        check_agree(self, q)
 
     def _placement(self, F: Tensor) -> Tensor:
         """H ``(K·4, C)`` of :meth:`_columns`, remembered while no gradient is needed and neither the
         chain's state (:meth:`_state_key`) nor the geometry (tensor versions) changes."""
         key, params = None, tuple(self.parameters())
-        if not (torch.is_grad_enabled() and any(p.requires_grad for p in params)) \
+        # H reads the chain's origins too: no memo while they need a gradient
+        own = tuple(self.chain.parameters()) if isinstance(self.chain, nn.Module) else ()
+        if not (torch.is_grad_enabled() and any(p.requires_grad for p in params + own)) \
                 and isinstance(self._frames, LinkFrames) and self.chain is not None:
             ck = self.chain._state_key()
             key = None if ck is None else (ck, F.shape[-3], F.dtype, F.device,
@@ -207,8 +246,8 @@ class RobotCollision(nn.Module):
         d = world.distances(a, b, r.expand(a.shape[:-1]), c, R, h.expand(c.shape), threshold)
         return d if self._rows_in_order else d.index_select(-2, self._rows)
 
-    def _distances_at_least(self, q: Tensor, world: World | None = None,
-                            threshold: float | None = None) -> Tensor:
+    def _distances_at_least(self, q: Tensor, world: World | None = None, threshold: float | None = None,
+                            moving_only: bool = False) -> Tensor:
         """The self distances and, with ``world``, the world distances flattened geom-major, ``(..., P +
         G·W)``, from one placement of the geoms. With ``threshold`` (for decisions and constraint rows, not
         the public distances): an entry whose bounding-sphere lower bound already proves it >= threshold
@@ -216,20 +255,40 @@ class RobotCollision(nn.Module):
         result equals the exact distances wherever either is below ``threshold`` and is >= threshold
         elsewhere (:mod:`diffkin.collision.broad`); ``None``: exact everywhere. With a threshold, a large
         batch (one world for all rows) is evaluated in blocks of ``_BLOCK`` rows: the per-pair temporaries
-        of a block stay in the cache (about 25 % faster at 10 000 rows on the development machine)."""
+        of a block stay in the cache (about 25 % faster at 10 000 rows on the development machine).
+        ``moving_only``: without the entries that cannot change with q (:attr:`fixed`): the pairs of two
+        fixed geoms and the world rows of fixed geoms (the columns :meth:`_distance_names` names)."""
         rows = q.shape[:-1].numel()
         if threshold is not None and rows > _BLOCK and (world is None or _unbatched(world)):
             flat = q.reshape(rows, q.shape[-1])
-            d = torch.cat([self._distances_at_least(x, world, threshold) for x in flat.split(_BLOCK)])
+            d = torch.cat([self._distances_at_least(x, world, threshold, moving_only)
+                           for x in flat.split(_BLOCK)])
             return d.reshape(*q.shape[:-1], d.shape[-1])
         P = self._columns(q)
         placed = self._placed_from(P)
         d = self._self_from(P, placed, threshold)
+        keep_self, keep_world = self._kept(world, moving_only)
+        if keep_self is not None:
+            d = d.index_select(-1, keep_self)
         if world is None:
             return d
         w = self._world_from(placed, world, threshold).flatten(-2)
+        w = w if keep_world is None else w.index_select(-1, keep_world)
         batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-1])
         return torch.cat((d.expand(*batch, d.shape[-1]), w.expand(*batch, w.shape[-1])), dim=-1)
+
+    def _kept(self, world: World | None, moving_only: bool) -> tuple[Tensor | None, Tensor | None]:
+        """The columns :meth:`_distances_at_least` keeps with ``moving_only`` (None: all):
+        :func:`diffkin.collision._fixed.kept_columns`."""
+        from ._fixed import kept_columns
+
+        return kept_columns(self, world, moving_only)
+
+    def _distance_names(self, world: World | None = None, moving_only: bool = False) -> list[str]:
+        """A name per column of :meth:`_distances_at_least` (:func:`._fixed.distance_names`)."""
+        from ._fixed import distance_names
+
+        return distance_names(self, world, moving_only)
 
     def min_distance(self, q: Tensor, world: World | None = None) -> Tensor:
         """The smallest signed distance ``(...)`` over the checked pairs and, with ``world``, every
@@ -241,6 +300,10 @@ class RobotCollision(nn.Module):
             d = torch.cat((d.expand(*batch, d.shape[-1]), w.flatten(-2).expand(*batch, -1)), -1)
         inf = torch.full_like(d[..., :1], math.inf)
         return torch.cat((d, inf), -1).amin(-1)
+
+    def _check_chain(self, chain, who: str) -> None:
+        """``chain`` must be the chain this model places its geoms with (:func:`._checks.check_chain`)."""
+        check_chain(self, chain, who)
 
     def extra_repr(self) -> str:
         return f"geoms={len(self.geoms)}, pairs={len(self.pairs)}"
@@ -263,6 +326,10 @@ class RobotCollision(nn.Module):
             base_dir = Path(source).resolve().parent
         specs = parse_collisions(source)
         frames = LinkFrames(chain)
+        if not set(frames.links) & set(specs):  # another robot's file: no geom would be found
+            raise ModelError(f"RobotCollision.from_urdf: the URDF has none of the chain's links (the chain: "
+                             f"{names_str(frames.links)}; the URDF: {names_str(list(specs))}): is it this "
+                             "robot's file?")
         geoms, links, caps, boxes, missing = [], [], [], [], []
         for link in frames.links:
             for s in specs.get(link, []):
@@ -316,8 +383,10 @@ class RobotCollision(nn.Module):
         geoms = [Geom(name, names[body], kind, shape) for name, body, kind, shape, _ in found]
         caps = [data for *_, shape, data in found if shape == "capsule"]
         boxes = [data for *_, shape, data in found if shape == "box"]
+        frames = BodyFrames(names, poses)
+        frames.static = {b for b in range(m.nbody) if int(m.body_weldid[b]) == 0}  # welded to the world
         return cls(chain, geoms, [g.link for g in geoms], caps, boxes, mjcf_pairs(m, ids),
-                   frames=BodyFrames(names, poses), dtype=dtype, device=device)
+                   frames=frames, dtype=dtype, device=device)
 
 
 _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distances_at_least)

@@ -45,6 +45,11 @@ class World:
             like = boxes.center
         s, c, h, p = tensors(("spheres", spheres, (None, 4)), ("capsules", capsules, (None, 7)),
                              ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)), like=like)
+        for name, radius in (("spheres", s), ("capsules", c)):
+            if radius is not None and bool((radius[..., -1] < 0).any()):  # as box() rejects half extents < 0
+                bad = radius[..., -1].detach()
+                raise DiffkinError(f"expected {name} radii (last column) >= 0, got "
+                                   f"{bad[bad < 0].cpu().tolist()}")
         ref = next((t for t in (s, c, h, p) if t is not None), None)
         if boxes is not None:
             common_dtype_device({"boxes": boxes.center, **({"spheres etc.": ref} if ref is not None else {})})

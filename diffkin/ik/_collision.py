@@ -198,10 +198,7 @@ def constraint_of(chain, collision, world, margin, base) -> DistanceConstraint |
     if not isinstance(collision, RobotCollision):
         raise DiffkinError(f"ik: expected collision as a diffkin.collision.RobotCollision, got "
                            f"{type(collision).__name__}")
-    own = getattr(collision, "chain", None)
-    if own is not None and own.n_joints != chain.n_joints:
-        raise ShapeError(f"ik: the collision model's chain has {own.n_joints} joints, the chain "
-                         f"{chain.n_joints}")
+    collision._check_chain(chain, "ik")  # the geoms are placed by the collision model's own chain
     margin = check_number(margin, "margin", positive=False)
     if world is not None:
         world = _check_world(world)

@@ -35,5 +35,8 @@ class CollisionCost(_Term):
     buffer: float = 0.01
 
     def residual(self, ctx: CostContext) -> Tensor:
+        check = getattr(self.collision, "_check_chain", None)
+        if check is not None:  # the geoms are placed by the collision model's chain: it must be ctx's
+            check(ctx.chain, "ik.optimize (CollisionCost)")
         d = DistanceConstraint(self.collision, self.world).distances(ctx.q)
         return torch.relu(self.margin + self.buffer - d).expand(*ctx.q.shape[:-1], d.shape[-1])

@@ -103,7 +103,9 @@ class PoseResidual:
 class DistanceConstraint:
     """g(q) = d(q) − margin ≥ 0 for every checked distance of ``collision`` (a
     :class:`~diffkin.collision.RobotCollision`): its self pairs, then, with ``world`` (a
-    :class:`~diffkin.collision.World`), each geom to each world object (geom-major), ``(..., D)``."""
+    :class:`~diffkin.collision.World`), each geom to each world object (geom-major), ``(..., D)``. While
+    ``collision.skip_fixed`` (the default) the entries no q can change are left out: pairs of two geoms fixed
+    to the base and the world rows of such geoms (:attr:`~diffkin.collision.RobotCollision.fixed`)."""
 
     def __init__(self, collision, world=None, margin: float = 0.0):
         self.collision, self.world, self.margin = collision, world, float(margin)
@@ -113,7 +115,9 @@ class DistanceConstraint:
         for the self and the world distances. ``threshold``: the broad phase of
         :meth:`~diffkin.collision.RobotCollision._distances_at_least` (exact wherever d or its bound is
         below ``threshold``, >= ``threshold`` elsewhere: the decisions d >= t, t <= threshold, are exact)."""
-        return self.collision._distances_at_least(q, self.world, threshold)
+        # the entries no q can change (geoms fixed to the base) are left out unless the model says otherwise
+        moving = bool(getattr(self.collision, "skip_fixed", False))
+        return self.collision._distances_at_least(q, self.world, threshold, moving_only=moving)
 
     def value(self, q: Tensor, slack: float | None = None) -> Tensor:
         """g = d − margin ``(..., D)``; with ``slack`` exact only where g < slack (>= slack elsewhere)."""
@@ -156,7 +160,8 @@ class DistanceConstraint:
         if getattr(self.collision, "chain", None) is None:
             raise DiffkinError("a RobotCollision without a chain evaluates in its own dtype only: build it "
                                "in the solver's dtype")
-        coll = copy.deepcopy(self.collision).to(dtype)
+        coll = copy.deepcopy(self.collision).to(dtype)  # the geometry (the chain is held by reference)
+        coll.chain = coll.chain.to(dtype)  # the deep copy's chain, never the user's
         w = self.world
         if w is not None:
             b = w.boxes
