@@ -21,7 +21,8 @@ KW = dict(costs=COSTS, optimizer="gauss_newton", max_iterations=300, tolerance_c
 
 def _blocked_elbow():
     """(chain, rc, q_u, T, world): q_u minimises pose + rest posture for T without obstacles; the world's
-    one sphere, 10 cm out from the elbow (frame 4), reaches 1 cm into q_u's geometry."""
+    one sphere, centred out from the elbow (frame 4) where its centre is 3 cm or more clear of the arm,
+    reaches 1 cm into q_u's geometry."""
     chain, rc = _robot(F64)
     q_t = torch.tensor([0.3, 0.4, -0.2, -1.9, 0.1, 2.0, 0.6], dtype=F64)
     T = chain.forward_kinematics(q_t)
@@ -29,10 +30,14 @@ def _blocked_elbow():
     with torch.no_grad():
         elbow = chain.forward_kinematics(q_u, all_frames=True)[4, :3, 3]
         out = torch.tensor([elbow[0], elbow[1], 0.0], dtype=F64)
-        centre = elbow + 0.1 * out / out.norm()
-        probe = World(spheres=torch.cat((centre, torch.tensor([0.05], dtype=F64)))[None])
-        d = rc.world_distances(q_u, probe).min()
-        world = World(spheres=torch.cat((centre, (0.05 + d + 0.01).reshape(1)))[None])
+        for reach in torch.arange(0.1, 0.4, 0.01, dtype=F64):
+            centre = elbow + reach * out / out.norm()
+            point = World(points=centre[None])  # the centre's clearance
+            clear = rc.world_distances(q_u, point).min()
+            if clear >= 0.03:
+                break
+        assert clear >= 0.03
+        world = World(spheres=torch.cat((centre, (clear + 0.01).reshape(1)))[None])
         assert float(rc.world_distances(q_u, world).min()) == pytest.approx(-0.01, abs=1e-9)
     return chain, rc, q_u, T, world
 
@@ -70,6 +75,7 @@ def test_kkt_gradient_at_the_active_constraint_matches_finite_differences():
     Tg2 = T.clone().requires_grad_(True)
     (g_free,) = torch.autograd.grad((ik.optimize(chain, Tg2, q_c, **KW).q * v).sum(), Tg2)
     eps = 1e-4  # (smaller steps meet the solver's stopping noise: 1e-6 is 2 % off)
+    fds = []
     for i in range(3):  # the translation entries; the constraint stays active at T ± eps
         E = torch.zeros_like(T)
         E[i, 3] = eps
@@ -77,5 +83,8 @@ def test_kkt_gradient_at_the_active_constraint_matches_finite_differences():
             dq = ik.optimize(chain, T + E, q_c, **kw).q - ik.optimize(chain, T - E, q_c, **kw).q
         fd = float((dq * v).sum()) / (2 * eps)
         assert abs(fd - float(g[i, 3])) <= 1e-3 * max(1.0, abs(fd)), (i, fd, float(g[i, 3]))
-        # the gradient of the unconstrained stationary point is far off here (the constraint matters)
-        assert abs(fd - float(g_free[i, 3])) > 0.5 * max(1.0, abs(fd)), (i, fd, float(g_free[i, 3]))
+        fds.append(fd)
+    # the gradient of the unconstrained stationary point is far off here (the constraint matters)
+    fds = torch.tensor(fds, dtype=F64)
+    off = (fds - g_free[:3, 3]).norm() / fds.norm()
+    assert off > 0.2
