@@ -20,16 +20,17 @@ So the result equals the exact distance wherever either is below the threshold, 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from .._numerics import safe_norm, safe_sqrt
-from .distances import capsule_pairs_cm
+from .distances import capsule_capsule, capsule_halfspace, capsule_pairs_cm
 
 __all__ = ["capsule_spheres", "box_spheres", "sphere_bound", "capsule_box_bound", "capsule_pairs_at_least",
-           "exact_below"]
+           "exact_below", "pairs_clear", "world_clear"]
 
 
 def capsule_spheres(a: Tensor, b: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
@@ -93,9 +94,103 @@ def capsule_pairs_at_least(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor
     p, n = need.nonzero(as_tuple=True)
     if p.numel() == 0:
         return bound
-    # the same kernel on the gathered entries (two "geoms" of E rows): bit for bit the exact distances
-    Rn, ip, jp = R.expand(-1, A.shape[-1]), i[p], j[p]
+    return bound.index_put((p, n), _exact_entries(A, D, R, i[p], j[p], n))
+
+
+def _exact_entries(A: Tensor, D: Tensor, R: Tensor, ip: Tensor, jp: Tensor, n: Tensor) -> Tensor:
+    """The exact distances ``(E,)`` of the entries (capsule ip[e], capsule jp[e], row n[e]): the pair kernel
+    on the gathered entries (two "geoms" of E rows), bit for bit :func:`capsule_pairs_cm`'s values."""
+    Rn = R.expand(-1, A.shape[-1])
     pick = lambda X: torch.stack((X[ip, :, n], X[jp, :, n])).transpose(1, 2)  # noqa: E731  (2, 3, E)
     two = torch.arange(2, device=A.device)
-    d = capsule_pairs_cm(pick(A), pick(D), torch.stack((Rn[ip, n], Rn[jp, n])), two[:1], two[1:])[0]
-    return bound.index_put((p, n), d)
+    return capsule_pairs_cm(pick(A), pick(D), torch.stack((Rn[ip, n], Rn[jp, n])), two[:1], two[1:])[0]
+
+
+# ------------------------------------------------------------------ decisions only (component-major layout)
+def pairs_clear(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, margin: float, slack: float,
+                bodies: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
+    """Whether every pair (i[p], j[p]) of G capsules (``A, D (G, 3, N)`` as in :func:`capsule_pairs_at_least`,
+    ``R (G, 1)``) has d − margin >= slack, ``(N,)``, in three stages, each on the entries the one before
+    leaves:
+
+    1. per pair of rigid bodies and row, the bound of two spheres that hold the bodies' capsules (centred at
+       the mean of a body's capsule midpoints, the radius its farthest bounding sphere: the capsules of one
+       rigid body keep their distances, so the sphere holds them in every configuration);
+    2. per pair and row, the bounding-sphere bound of the two capsules;
+    3. the exact distance.
+
+    ``bodies``: (each capsule's body ``(G,)`` in 0 … B − 1, the body pairs ``(Q, 2)``, each body pair's
+    capsule pairs as two tables of capsule indices ``(2, Q, S)`` (padded with 0 and G), the averaging matrix
+    ``(B, G)`` of the capsules of each body and their indices ``(B, K)`` (padded with G))."""
+    gb, bp, table, mean, members = bodies
+    thr, (G, N) = margin + slack, A.shape[::2]
+    M = torch.addcmul(A, D, D.new_tensor(0.5))  # the capsules' bounding spheres (G, 3, N), (G, N)
+    rho = torch.addcmul(R, safe_sqrt((D * D).sum(1)), R.new_tensor(0.5))
+    ok = torch.ones(N, dtype=torch.bool, device=A.device)
+    # (a product and a gather, not index_add_ / scatter_reduce_: those take ~0.1 s on two CPU threads)
+    C = (mean @ M.reshape(G, -1)).reshape(-1, 3, N)  # the bodies' centres (B, 3, N)
+    e = M - C.index_select(0, gb)
+    far = torch.cat((safe_sqrt((e * e).sum(1)) + rho, rho.new_full((1, N), -math.inf)))  # (G + 1, N)
+    rb = far.index_select(0, members.flatten()).reshape(*members.shape, N).amax(1)  # the radii (B, N)
+    v = C.index_select(0, bp[:, 0]) - C.index_select(0, bp[:, 1])
+    bound = safe_sqrt((v * v).sum(1)) - rb.index_select(0, bp[:, 0]) - rb.index_select(0, bp[:, 1])
+    qq, n = (bound < thr + _pad(bound, thr)).nonzero(as_tuple=True)  # (Q, N) -> E entries
+    if n.numel() == 0:
+        return ok
+    # stage 2 on the flat (capsule, row) index c N + n; a padded slot pairs capsule 0 with a point at
+    # infinity (row G), whose bound is +inf
+    fi, fj = (((table[k] * N).index_select(0, qq) + n[:, None]).flatten() for k in (0, 1))
+    Mf = torch.cat((M.transpose(0, 1), M.new_full((3, 1, N), math.inf)), 1).reshape(3, -1)
+    rf = torch.cat((rho, rho.new_zeros(1, N))).reshape(-1)
+    v = Mf.index_select(1, fi) - Mf.index_select(1, fj)
+    bound = safe_sqrt((v * v).sum(0)) - rf.index_select(0, fi) - rf.index_select(0, fj)
+    keep = (bound < thr + _pad(bound, thr)).nonzero().squeeze(-1)
+    if keep.numel() == 0:
+        return ok
+    fi, fj = fi[keep], fj[keep]
+    n = fi % N
+    d = _exact_entries(A, D, R, fi // N, fj // N, n)
+    return ok.index_fill_(0, n[(d - margin) < slack], False)
+
+
+def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: float) -> Tensor:
+    """Whether every capsule ``A, B (G, 3, N)``, ``r (G,)`` has d − margin >= slack to every object of an
+    unbatched ``world`` (:class:`~diffkin.collision.World`), ``(N,)``. Spheres, capsules, points and boxes
+    first get the bounding-sphere bound of every (geom, object, row) entry, boxes then the face-normal
+    bound (:func:`capsule_box_bound`) of the entries left, and only the entries left after that their exact
+    distance (:func:`~diffkin.collision.distances.capsule_capsule`,
+    :func:`~diffkin.collision.boxes.capsule_box`); half-spaces are exact and cheap for all."""
+    from .boxes import capsule_box  # (boxes imports this module)
+
+    thr = margin + slack
+    D = B - A
+    M = torch.addcmul(A, D, D.new_tensor(0.5))  # the bounding spheres (G, 3, N), (G, N)
+    rho = 0.5 * safe_sqrt((D * D).sum(1)) + r[:, None]
+    ok = torch.ones(A.shape[-1], dtype=torch.bool, device=A.device)
+
+    def refute(d: Tensor, n: Tensor) -> None:  # rows n whose entry d fails the test
+        ok.index_fill_(0, n[(d - margin) < slack], False)
+
+    def near(c: Tensor, rc: Tensor):  # the (geom, object, row) entries the sphere bound leaves, gathered
+        v = M.unsqueeze(1) - c[None, :, :, None]  # (G, W, 3, N)
+        bound = safe_sqrt((v * v).sum(2)) - rho.unsqueeze(1) - rc[None, :, None]
+        g, w, n = (bound < thr + _pad(bound, thr)).nonzero(as_tuple=True)
+        return g, w, n, A[g, :, n], B[g, :, n]
+
+    wa, wb, wr = world._round()
+    if wa.shape[0]:
+        g, w, n, a, b = near(*capsule_spheres(wa, wb, wr))
+        if n.numel():
+            refute(capsule_capsule(a, b, r[g], wa[w], wb[w], wr[w]), n)
+    bx = world.boxes
+    if bx.center.shape[0]:
+        g, w, n, a, b = near(*box_spheres(bx.center, bx.half_extents))
+        if n.numel():
+            x = (a, b, r[g], bx.center[w], bx.rotation[w], bx.half_extents[w])
+            refute(exact_below(capsule_box_bound(*x), thr, capsule_box, *zip(x, (1, 1, 0, 1, 2, 1))), n)
+    hs = world.halfspaces
+    if hs.shape[0]:
+        a, b = (X.transpose(1, 2).unsqueeze(1) for X in (A, B))  # (G, 1, N, 3)
+        d = capsule_halfspace(a, b, r[:, None, None], hs[None, :, None, :3], hs[None, :, None, 3])
+        ok &= ((d - margin) >= slack).flatten(0, 1).all(0)
+    return ok
