@@ -30,7 +30,7 @@ from .._numerics import safe_norm, safe_sqrt
 from .distances import capsule_capsule, capsule_halfspace, capsule_pairs_cm
 
 __all__ = ["capsule_spheres", "box_spheres", "sphere_bound", "capsule_box_bound", "capsule_pairs_at_least",
-           "exact_below", "pairs_clear", "world_clear"]
+           "exact_below", "group_tables", "pairs_clear", "world_clear"]
 
 
 def capsule_spheres(a: Tensor, b: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
@@ -108,21 +108,20 @@ def _exact_entries(A: Tensor, D: Tensor, R: Tensor, ip: Tensor, jp: Tensor, n: T
 
 # ------------------------------------------------------------------ decisions only (component-major layout)
 def pairs_clear(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, margin: float, slack: float,
-                bodies: tuple[Tensor, Tensor, Tensor, Tensor]) -> Tensor:
+                groups: tuple[Tensor, ...]) -> Tensor:
     """Whether every pair (i[p], j[p]) of G capsules (``A, D (G, 3, N)`` as in :func:`capsule_pairs_at_least`,
     ``R (G, 1)``) has d − margin >= slack, ``(N,)``, in three stages, each on the entries the one before
     leaves:
 
-    1. per pair of rigid bodies and row, the bound of two spheres that hold the bodies' capsules (centred at
-       the mean of a body's capsule midpoints, the radius its farthest bounding sphere: the capsules of one
-       rigid body keep their distances, so the sphere holds them in every configuration);
+    1. per pair of capsule groups and row (:func:`group_tables`: capsules of one rigid body), the bound of
+       two spheres that hold the groups (centred at the mean of a group's capsule midpoints, the radius its
+       farthest bounding sphere: the capsules of a rigid group keep their distances, so the sphere holds
+       them in every configuration);
     2. per pair and row, the bounding-sphere bound of the two capsules;
     3. the exact distance.
 
-    ``bodies``: (each capsule's body ``(G,)`` in 0 … B − 1, the body pairs ``(Q, 2)``, each body pair's
-    capsule pairs as two tables of capsule indices ``(2, Q, S)`` (padded with 0 and G), the averaging matrix
-    ``(B, G)`` of the capsules of each body and their indices ``(B, K)`` (padded with G))."""
-    gb, bp, table, mean, members = bodies
+    ``groups``: the tables of :func:`group_tables`."""
+    gb, bp, table, mean, members = groups
     thr, (G, N) = margin + slack, A.shape[::2]
     M = torch.addcmul(A, D, D.new_tensor(0.5))  # the capsules' bounding spheres (G, 3, N), (G, N)
     rho = torch.addcmul(R, safe_sqrt((D * D).sum(1)), R.new_tensor(0.5))
@@ -151,6 +150,38 @@ def pairs_clear(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, margin: f
     n = fi % N
     d = _exact_entries(A, D, R, fi // N, fj // N, n)
     return ok.index_fill_(0, n[(d - margin) < slack], False)
+
+
+def group_tables(body: list[int], pairs: list[tuple[int, int]], dtype, device,
+                 size: int = 3) -> tuple[Tensor, ...]:
+    """The groups of :func:`pairs_clear` for G capsules on rigid bodies ``body`` (G ints) and their checked
+    ``pairs`` (P index pairs): runs of at most ``size`` consecutive capsules of one body (any split of a
+    rigid body is valid; smaller groups have tighter spheres but more pairs: 3 halves the cost on the FR3,
+    whose links hold a cylinder and its two end spheres, or two of those). Returns (each capsule's group
+    ``(G,)`` in 0 … B − 1, the group pairs ``(Q, 2)``, each group pair's capsule pairs as two tables of
+    capsule indices ``(2, Q, S)`` (padded with 0 and G), the averaging matrix ``(B, G)`` of each group's
+    capsules, their indices ``(B, K)`` (padded with G))."""
+    seen: dict[int, int] = {}
+    runs = []
+    for b in body:
+        seen[b] = seen.get(b, -1) + 1
+        runs.append((b, seen[b] // size))
+    ids = {g: k for k, g in enumerate(dict.fromkeys(runs))}
+    gb, G, B = [ids[g] for g in runs], len(body), len(ids)
+    members: dict[tuple[int, int], list[int]] = {}
+    for p, (a, b) in enumerate(pairs):
+        members.setdefault(tuple(sorted((gb[a], gb[b]))), []).append(p)
+    S = max((len(v) for v in members.values()), default=0)
+    table = [[[pairs[p][k] for p in v] + [k * G] * (S - len(v)) for v in members.values()] for k in (0, 1)]
+    of = [[g for g in range(G) if gb[g] == b] for b in range(B)]
+    K = max((len(v) for v in of), default=0)
+    mean = torch.zeros(B, G, dtype=dtype, device=device)
+    for b, v in enumerate(of):
+        mean[b, v] = 1.0 / len(v)
+    ilong = lambda x: torch.tensor(x, dtype=torch.long, device=device)  # noqa: E731
+    Q = len(members)
+    return (ilong(gb), ilong(list(members)).reshape(Q, 2), ilong(table).reshape(2, Q, S), mean,
+            ilong([v + [G] * (K - len(v)) for v in of]).reshape(B, K))
 
 
 def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: float) -> Tensor:

@@ -28,7 +28,7 @@ from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
-from .broad import capsule_pairs_at_least, pairs_clear, world_clear
+from .broad import capsule_pairs_at_least, group_tables, pairs_clear, world_clear
 from .distances import capsule_capsule_pairs
 from .meshes import fit_capsule, resolve_mesh
 from .world import World, _check_world, _pair
@@ -100,39 +100,13 @@ class RobotCollision(nn.Module):
             self.register_buffer(f"_pairs_{key[0]}{key[1]}", ilong([r[1:] for r in rows]).reshape(-1, 2),
                                  persistent=False)
             order += [r[0] for r in rows]
-        self._register_bodies([anchor[g] for g in cap], kinds[(0, 0)])
+        tables = group_tables([anchor[g] for g in cap], [(ii, jj) for _, ii, jj in kinds[(0, 0)]],
+                              self.capsule_a.dtype, dev)
+        for name, t in zip(_GROUP_BUFFERS, tables):  # the first stage of the decisions' broad phase
+            self.register_buffer(name, t, persistent=False)
         perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
         self.register_buffer("_pair_perm", ilong(perm), persistent=False)
         self._pairs_in_order = perm == list(range(len(perm)))  # then no gather (slow on the last axis)
-
-    def _register_bodies(self, body: list[int], rows: list) -> None:
-        """The rigid bodies of the capsule pairs for :func:`~diffkin.collision.broad.pairs_clear`: each
-        capsule's body ``(G_c,)`` (numbered 0 … B − 1), the body pairs ``(Q, 2)``, each body pair's capsule
-        pairs ``(2, Q, S)`` (capsule indices, padded with 0 and G_c), the averaging matrix ``(B, G_c)`` of
-        each body's capsules and their indices ``(B, K)`` (padded with G_c)."""
-        ids = {b: k for k, b in enumerate(dict.fromkeys(body))}
-        gb = [ids[b] for b in body]
-        keys = [tuple(sorted((gb[ii], gb[jj]))) for _, ii, jj in rows]
-        members: dict[tuple, list[int]] = {}
-        for p, k in enumerate(keys):
-            members.setdefault(k, []).append(p)
-        S = max((len(v) for v in members.values()), default=0)
-        dev = self.capsule_a.device
-        ilong = lambda x: torch.tensor(x, dtype=torch.long, device=dev)  # noqa: E731
-        self.register_buffer("_cap_body", ilong(gb), persistent=False)
-        self.register_buffer("_body_pairs", ilong(list(members)).reshape(-1, 2), persistent=False)
-        G, pairs = len(gb), [(ii, jj) for _, ii, jj in rows]
-        table = [[[pairs[p][k] for p in v] + [k * G] * (S - len(v)) for v in members.values()]
-                 for k in (0, 1)]
-        self.register_buffer("_body_table", ilong(table).reshape(2, len(members), S), persistent=False)
-        of = [[g for g in range(G) if gb[g] == b] for b in range(len(ids))]
-        K = max((len(v) for v in of), default=0)
-        mean = torch.zeros(len(ids), G, dtype=self.capsule_a.dtype, device=dev)
-        for b, v in enumerate(of):
-            mean[b, v] = 1.0 / len(v)
-        self.register_buffer("_body_mean", mean, persistent=False)
-        self.register_buffer("_body_members", ilong([v + [G] * (K - len(v)) for v in of]).reshape(len(of), K),
-                             persistent=False)
 
     # ------------------------------------------------------------------------------------ geometry
     def _columns(self, q: Tensor) -> Tensor:
@@ -275,8 +249,8 @@ class RobotCollision(nn.Module):
             Pc = P[..., : 2 * nc].permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
             A, B, r = Pc[:nc], Pc[nc:], self.capsule_radius
             i, j = self._pairs_00.T
-            bodies = (self._cap_body, self._body_pairs, self._body_table, self._body_mean, self._body_members)
-            ok = pairs_clear(A, B - A, r[:, None], i, j, margin, slack, bodies) if len(i) else \
+            groups = tuple(getattr(self, name) for name in _GROUP_BUFFERS)
+            ok = pairs_clear(A, B - A, r[:, None], i, j, margin, slack, groups) if len(i) else \
                 torch.ones(rows, dtype=torch.bool, device=q.device)
             if world is not None:
                 ok &= world_clear(A, B, r, world, margin, slack)
@@ -362,6 +336,7 @@ class RobotCollision(nn.Module):
                    frames=BodyFrames(names, poses), dtype=dtype, device=device)
 
 
+_GROUP_BUFFERS = ("_group", "_group_pairs", "_group_table", "_group_mean", "_group_members")
 _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distances_at_least)
 
 
