@@ -58,6 +58,12 @@ def capsule_box_bound(a: Tensor, b: Tensor, r: Tensor, c: Tensor, R: Tensor, h: 
     return torch.maximum(sphere_bound(m, rho, c, safe_norm(h)), gaps.amax(-1) - r)
 
 
+def _sqrt(x: Tensor) -> Tensor:
+    """√x of the bounds in the decisions (no gradient there, so not :func:`~diffkin._numerics.safe_sqrt`,
+    whose zero gradient at 0 costs three more passes)."""
+    return x.sqrt()
+
+
 def _pad(bound: Tensor, threshold: float) -> float:
     """Room for the rounding of the bound (√eps times the scale of the coordinates, 10 m assumed)."""
     return torch.finfo(bound.dtype).eps ** 0.5 * (10.0 + abs(threshold))
@@ -124,15 +130,15 @@ def pairs_clear(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, margin: f
     gb, bp, table, mean, members = groups
     thr, (G, N) = margin + slack, A.shape[::2]
     M = torch.addcmul(A, D, D.new_tensor(0.5))  # the capsules' bounding spheres (G, 3, N), (G, N)
-    rho = torch.addcmul(R, safe_sqrt((D * D).sum(1)), R.new_tensor(0.5))
+    rho = torch.addcmul(R, _sqrt((D * D).sum(1)), R.new_tensor(0.5))
     ok = torch.ones(N, dtype=torch.bool, device=A.device)
     # (a product and a gather, not index_add_ / scatter_reduce_: those take ~0.1 s on two CPU threads)
     C = (mean @ M.reshape(G, -1)).reshape(-1, 3, N)  # the bodies' centres (B, 3, N)
     e = M - C.index_select(0, gb)
-    far = torch.cat((safe_sqrt((e * e).sum(1)) + rho, rho.new_full((1, N), -math.inf)))  # (G + 1, N)
+    far = torch.cat((_sqrt((e * e).sum(1)) + rho, rho.new_full((1, N), -math.inf)))  # (G + 1, N)
     rb = far.index_select(0, members.flatten()).reshape(*members.shape, N).amax(1)  # the radii (B, N)
     v = C.index_select(0, bp[:, 0]) - C.index_select(0, bp[:, 1])
-    bound = safe_sqrt((v * v).sum(1)) - rb.index_select(0, bp[:, 0]) - rb.index_select(0, bp[:, 1])
+    bound = _sqrt((v * v).sum(1)) - rb.index_select(0, bp[:, 0]) - rb.index_select(0, bp[:, 1])
     qq, n = (bound < thr + _pad(bound, thr)).nonzero(as_tuple=True)  # (Q, N) -> E entries
     if n.numel() == 0:
         return ok
@@ -142,7 +148,7 @@ def pairs_clear(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, margin: f
     Mf = torch.cat((M.transpose(0, 1), M.new_full((3, 1, N), math.inf)), 1).reshape(3, -1)
     rf = torch.cat((rho, rho.new_zeros(1, N))).reshape(-1)
     v = Mf.index_select(1, fi) - Mf.index_select(1, fj)
-    bound = safe_sqrt((v * v).sum(0)) - rf.index_select(0, fi) - rf.index_select(0, fj)
+    bound = _sqrt((v * v).sum(0)) - rf.index_select(0, fi) - rf.index_select(0, fj)
     keep = (bound < thr + _pad(bound, thr)).nonzero().squeeze(-1)
     if keep.numel() == 0:
         return ok
@@ -196,15 +202,15 @@ def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: fl
     thr = margin + slack
     D = B - A
     M = torch.addcmul(A, D, D.new_tensor(0.5))  # the bounding spheres (G, 3, N), (G, N)
-    rho = 0.5 * safe_sqrt((D * D).sum(1)) + r[:, None]
+    rho = 0.5 * _sqrt((D * D).sum(1)) + r[:, None]
     ok = torch.ones(A.shape[-1], dtype=torch.bool, device=A.device)
 
     def refute(d: Tensor, n: Tensor) -> None:  # rows n whose entry d fails the test
         ok.index_fill_(0, n[(d - margin) < slack], False)
 
     def near(c: Tensor, rc: Tensor):  # the (geom, object, row) entries the sphere bound leaves, gathered
-        v = M.unsqueeze(1) - c[None, :, :, None]  # (G, W, 3, N)
-        bound = safe_sqrt((v * v).sum(2)) - rho.unsqueeze(1) - rc[None, :, None]
+        d2 = sum((M[:, None, k] - c[None, :, k, None]) ** 2 for k in range(3))  # (G, W, N), plane by plane
+        bound = _sqrt(d2) - rho.unsqueeze(1) - rc[None, :, None]
         g, w, n = (bound < thr + _pad(bound, thr)).nonzero(as_tuple=True)
         return g, w, n, A[g, :, n], B[g, :, n]
 
