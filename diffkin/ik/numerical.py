@@ -245,9 +245,12 @@ def solve(
         collision: a :class:`~diffkin.collision.RobotCollision` of the chain: success then also needs
             every checked distance (its self pairs, and with ``world`` every geom to every object of a
             :class:`~diffkin.collision.World` in the base frame, one world for all targets) >= ``margin``
-            (m). The distances are constraints of the solve (:mod:`diffkin.ik._collision`): seeds come
-            from collision-free library poses, a pose-converged row in collision gets a constrained
-            Gauss–Newton refinement (a small QP per row) and is re-seeded if that fails.
+            (m). The distances are constraints of the solve: seeds come from collision-free library
+            poses, and targets whose solution collides are solved again from other seeds — on the CPU in
+            rounds of the whole C solve, each round checked in one batch
+            (:mod:`diffkin.ik._collision_native`), elsewhere or with ``LMConfig(collision_refine_calls=1)``
+            in the scheduled loop with an acceptance test and optionally a constrained Gauss–Newton
+            refinement (:mod:`diffkin.ik._collision`).
 
     Returns:
         :class:`IKResult` with per-target ``q``, ``success``, errors (from an exact FK in the chain's dtype),
