@@ -133,7 +133,7 @@ def pairs_clear(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, margin: f
     rho = torch.addcmul(R, _sqrt((D * D).sum(1)), R.new_tensor(0.5))
     ok = torch.ones(N, dtype=torch.bool, device=A.device)
     # (a product and a gather, not index_add_ / scatter_reduce_: those take ~0.1 s on two CPU threads)
-    C = (mean @ M.reshape(G, -1)).reshape(-1, 3, N)  # the bodies' centres (B, 3, N)
+    C = (mean @ M.reshape(G, -1)).reshape(mean.shape[0], 3, N)  # the groups' centres (B, 3, N)
     e = M - C.index_select(0, gb)
     far = torch.cat((_sqrt((e * e).sum(1)) + rho, rho.new_full((1, N), -math.inf)))  # (G + 1, N)
     rb = far.index_select(0, members.flatten()).reshape(*members.shape, N).amax(1)  # the radii (B, N)
