@@ -93,6 +93,7 @@ def test_clear_decides_as_the_exact_distances(name, dtype):
                 assert int((~sure).sum()) <= 3
                 mixed += bool(ok.any() and (~ok).any())
             assert torch.equal(rc._clear(q[:12].reshape(3, 4, -1), w), rc._clear(q[:12], w).reshape(3, 4))
+            assert rc._clear(q[:0], w).shape == (0,)
     assert mixed >= 4  # the decisions are not all alike
 
 

@@ -4,10 +4,10 @@ Where ``dk_solve`` serves the chain (:mod:`diffkin.ik._native_solve`: CPU, no au
 no refinement is configured (``LMConfig.collision_refine_calls == 0``), the collision constraints are met
 by rounds instead of the scheduled loop's per-harvest acceptance (:mod:`diffkin.ik._collision`):
 
-1. Round 0: ``dk_solve`` of every target, its library seeds drawn from a fixed **collision-free library**
-   (the first ``library_size`` of 4 · ``library_size`` configurations sampled from a generator seeded with
-   0 whose every distance clears margin + slack, :func:`~diffkin.ik._collision.free_library`), then the
-   user's seeds, then random ones.
+1. Round 0: ``dk_solve`` of every target: the user's seeds, then its nearest poses of a fixed
+   **collision-free library** (the first ``library_size`` of 4 · ``library_size`` configurations sampled
+   from a generator seeded with 0 whose every distance clears margin + slack,
+   :func:`~diffkin.ik._collision.free_library`), then random ones.
 2. One exact, batched distance check of the pose-converged results in the chain's dtype
    (:meth:`~diffkin.ik.residuals.DistanceConstraint.satisfied`, margin).
 3. Round r = 1 … ``ROUNDS``: the targets whose result collides are solved again, k = min(``COPIES`` ·
