@@ -10,9 +10,11 @@ Targets: FK of uniformly random configurations whose every checked distance (sel
 (float32 chain, the same seed), each timed once on the whole batch (a solve of 10 000 targets takes
 seconds: one call is the figure; ``--repeats`` for the median of more). ``success`` of the plain solve is
 its pose success, ``collision_free`` the share of its solutions that are also clear (re-checked with the
-exact distances); the collision solve's success includes the distances (its default: rows converged in
-collision re-seeded); "+ refinement": ``LMConfig(collision_refine_calls=1)`` (first a constrained
-Gauss-Newton refinement of the colliding solutions, ik/_collision.py).
+exact distances); the collision solve's success includes the distances (its default on the CPU: rounds
+of the whole C solve, each round's results checked in one batch and the colliding targets solved again
+from other collision-free library poses, ik/_collision_native.py); "+ refinement":
+``LMConfig(collision_refine_calls=1)`` (the scheduled torch loop, with a constrained Gauss-Newton
+refinement of the colliding solutions first, ik/_collision.py).
 ``--world mixed``: two spheres and one box; ``spheres``: three spheres. The machine is shared: compare the
 ratios of one run.
 

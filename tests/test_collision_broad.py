@@ -68,6 +68,51 @@ def test_broad_phase_is_exact_below_the_threshold_and_above_it_elsewhere(name, d
         assert rc._pairs_01.numel() and rc._pairs_11.numel()
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("name", ["fr3", "boxy"])
+def test_clear_decides_as_the_exact_distances(name, dtype):
+    """``RobotCollision._clear`` (the three-stage broad phase of the IK's decisions; boxes on the robot go
+    through ``_distances_at_least``) against every exact public distance, per row, with and without a world
+    of every kind of object, for margins and slacks of both signs; batch dims kept."""
+    chain, rc = _robot(name, dtype)
+    lo, hi = chain.q_limits.T
+    g = torch.Generator().manual_seed(4)
+    q = lo + (hi - lo) * torch.rand(3000, chain.n_joints, dtype=dtype, generator=g)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12  # rounding of two layouts of the same formulas
+    mixed = 0
+    with torch.no_grad():
+        for w in (None, _world(dtype)):
+            exact = rc.self_distances(q)
+            if w is not None:
+                exact = torch.cat((exact, rc.world_distances(q, w).flatten(-2)), -1)
+            for margin, slack in ((0.0, 0.0), (0.01, 1e-4), (-0.01, 0.0), (0.03, 0.0)):
+                ok = rc._clear(q, w, margin, slack)
+                g = (exact - margin - slack).amin(-1)
+                sure = g.abs() > tol
+                assert torch.equal(ok[sure], (g >= 0)[sure])
+                assert int((~sure).sum()) <= 3
+                mixed += bool(ok.any() and (~ok).any())
+            assert torch.equal(rc._clear(q[:12].reshape(3, 4, -1), w), rc._clear(q[:12], w).reshape(3, 4))
+            assert rc._clear(q[:0], w).shape == (0,)
+    assert mixed >= 4  # the decisions are not all alike
+
+
+def test_native_link_frames_match_the_torch_frames():
+    """The link frames of the collision geometry from one fused C FK call (no gradient, CPU) against the
+    torch all-frames FK (the path taken with a gradient), batch dims kept."""
+    if not diffkin.kernels.native.available():
+        pytest.skip("the native library is not built here")
+    chain, rc = _robot("fr3", torch.float64)
+    q = chain.random_configuration((4, 25), generator=torch.Generator().manual_seed(6))
+    with torch.no_grad():
+        native = rc._frames._native_frames(chain, q)
+        assert native is not None
+        assert torch.equal(rc._frames.frames(chain, q), native)
+    torch_frames = rc._frames.frames(chain, q.clone().requires_grad_(True))
+    assert torch_frames.requires_grad
+    torch.testing.assert_close(native, torch_frames.detach(), rtol=0, atol=1e-12)
+
+
 def test_broad_phase_gradients_match_the_exact_ones_where_exact():
     chain, rc = _robot("fr3", torch.float64)
     w = _world(torch.float64)

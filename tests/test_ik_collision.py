@@ -243,6 +243,45 @@ def test_optimize_collision_success_is_the_hard_check(dtype):
     assert check_self(check, res.q[0].double().numpy()) >= 0.005 - 2e-6
 
 
+def test_collision_solve_in_c_rounds_is_the_same_for_every_thread_count(monkeypatch):
+    """The CPU solve through rounds of the whole C solve (ik/_collision_native.py), 600 targets (more than
+    one C thread's share): the same answers on 1 and 2 threads; some targets were solved again (their first
+    solution collides); every success among those and among 60 others is clear by coal."""
+    from diffkin.ik import _collision_native
+
+    if not diffkin.kernels.native.available():
+        pytest.skip("the native library is not built here")
+    chain, rc = _robot(torch.float32)
+    w = _world(torch.float32)
+    g = torch.Generator().manual_seed(17)
+    q = chain.random_configuration((4000,), generator=g)
+    with torch.no_grad():  # targets only: the successes below are checked by coal
+        T = chain.forward_kinematics(q[rc.min_distance(q, w) > 0.01][:600])
+    calls = []
+    run = _collision_native.run
+    monkeypatch.setattr(_collision_native, "run", lambda *a, **k: calls.append(a[2]) or run(*a, **k))
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = ik.solve(chain, T, collision=rc, world=w, seed=0)
+        torch.set_num_threads(2)
+        two = ik.solve(chain, T, collision=rc, world=w, seed=0)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one.q, two.q) and torch.equal(one.success, two.success)
+    assert torch.equal(one.seeds_tried, two.seeds_tried)
+    assert calls[0] == 600 and len(calls) >= 4  # round 0 and re-solve rounds, twice
+    assert one.success.float().mean() >= 0.99
+    plain = ik.solve(chain, T, seed=0)
+    with torch.no_grad():
+        redone = (rc.min_distance(plain.q, w) < 0).nonzero().squeeze(-1)
+    assert redone.numel() > 0
+    check = _Coal(rc)
+    rows = torch.cat((redone, torch.arange(0, 600, 10))).unique()
+    rows = rows[one.success[rows]]
+    assert min(check.min_distance(q) for q in one.q[rows].double().numpy()) >= -2e-6
+
+
 def test_benchmark_runs_small():
     """benchmarks/bench_collision_ik.py at a tiny size: its rows, and the collision rows all clear."""
     import argparse

@@ -8,6 +8,7 @@ paths (e.g. a link hanging off the arm by a fixed joint) are constants from the 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from functools import reduce
 
@@ -15,8 +16,11 @@ import torch
 from torch import Tensor
 
 from ..errors import ModelError
+from ..kernels import native
 from ..kernels.joints import origin_transform
+from ..kernels.tree import Segments
 from ..models.urdf_xml import MOVING_TYPES
+from ..validation import check_finite
 
 __all__ = ["LinkFrames"]
 
@@ -86,6 +90,9 @@ class LinkFrames:
 
     def frames(self, chain, q: Tensor) -> Tensor:
         """``(..., J + 1, 4, 4)``: the base and the child link of every moving joint (never the tool)."""
+        F = self._native_frames(chain, q)
+        if F is not None:
+            return F
         F = chain.forward_kinematics(q, all_frames=True)
         if self._last is None:
             return F
@@ -95,6 +102,28 @@ class LinkFrames:
         M = E if tool is None else E @ tool
         Minv = torch.cat((torch.cat((M[:3, :3].T, -M[:3, :3].T @ M[:3, 3:]), 1), M[3:]), 0)
         return torch.cat((F[..., :-1, :, :], F[..., -1:, :, :] @ Minv), -3)
+
+    def _native_frames(self, chain, q: Tensor) -> Tensor | None:
+        """:meth:`frames` from one call of the fused C FK (:mod:`diffkin.kernels.native`) where it serves
+        ``q`` (CPU, no gradient, a chain of 1-DOF joints without mimic couplings): the chain's constants
+        with every joint frame as an end link (no end transform, so the last frame is the joint's own).
+        None elsewhere (the torch kernels)."""
+        if chain._topo.coupled or any(chain._topo.spherical) or chain._native_model(q) is None:
+            return None
+        seg, stacked = chain._cached_constants(chain._state_key())
+        memo = self.__dict__.get("_native")
+        if memo is None or memo[0] is not seg:
+            topo = dataclasses.replace(chain._topo, ends=tuple(range(chain._topo.n_frames)))
+            ends = [None] * topo.n_frames
+            memo = self._native = (seg, native.NativeModel(topo, Segments(seg.pre, seg.offset, seg.post,
+                                                                           seg.base, ends)))
+        batch, n = q.shape[:-1], q.shape[-1]
+        T, _, bad = native.fk_jacobian(memo[1], q.reshape(-1, n).contiguous())
+        if bad:
+            check_finite(q, "q")
+        B = torch.eye(4, dtype=q.dtype) if stacked.base is None else stacked.base.to(q.dtype)
+        F = torch.cat((B.expand(T.shape[0], 1, 4, 4), T), 1)
+        return F.reshape(*batch, *F.shape[1:])
 
     def poses(self, chain, q: Tensor) -> Tensor:
         """``(..., L, 4, 4)``: the pose of every link of ``links`` in the base frame of the chain's world."""

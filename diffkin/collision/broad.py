@@ -20,16 +20,17 @@ So the result equals the exact distance wherever either is below the threshold, 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import torch
 from torch import Tensor
 
 from .._numerics import safe_norm, safe_sqrt
-from .distances import capsule_pairs_cm
+from .distances import capsule_capsule, capsule_halfspace, capsule_pairs_cm
 
 __all__ = ["capsule_spheres", "box_spheres", "sphere_bound", "capsule_box_bound", "capsule_pairs_at_least",
-           "exact_below"]
+           "exact_below", "group_tables", "pairs_clear", "world_clear"]
 
 
 def capsule_spheres(a: Tensor, b: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
@@ -55,6 +56,12 @@ def capsule_box_bound(a: Tensor, b: Tensor, r: Tensor, c: Tensor, R: Tensor, h: 
     local = lambda v: (v.unsqueeze(-1) * R).sum(-2)  # noqa: E731  Rᵀ v
     gaps = local(m - c).abs() - local(0.5 * (b - a)).abs() - h
     return torch.maximum(sphere_bound(m, rho, c, safe_norm(h)), gaps.amax(-1) - r)
+
+
+def _sqrt(x: Tensor) -> Tensor:
+    """√x of the bounds in the decisions (no gradient there, so not :func:`~diffkin._numerics.safe_sqrt`,
+    whose zero gradient at 0 costs three more passes)."""
+    return x.sqrt()
 
 
 def _pad(bound: Tensor, threshold: float) -> float:
@@ -93,9 +100,148 @@ def capsule_pairs_at_least(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor
     p, n = need.nonzero(as_tuple=True)
     if p.numel() == 0:
         return bound
-    # the same kernel on the gathered entries (two "geoms" of E rows): bit for bit the exact distances
-    Rn, ip, jp = R.expand(-1, A.shape[-1]), i[p], j[p]
+    return bound.index_put((p, n), _exact_entries(A, D, R, i[p], j[p], n))
+
+
+def _exact_entries(A: Tensor, D: Tensor, R: Tensor, ip: Tensor, jp: Tensor, n: Tensor) -> Tensor:
+    """The exact distances ``(E,)`` of the entries (capsule ip[e], capsule jp[e], row n[e]): the pair kernel
+    on the gathered entries (two "geoms" of E rows), bit for bit :func:`capsule_pairs_cm`'s values."""
+    Rn = R.expand(-1, A.shape[-1])
     pick = lambda X: torch.stack((X[ip, :, n], X[jp, :, n])).transpose(1, 2)  # noqa: E731  (2, 3, E)
     two = torch.arange(2, device=A.device)
-    d = capsule_pairs_cm(pick(A), pick(D), torch.stack((Rn[ip, n], Rn[jp, n])), two[:1], two[1:])[0]
-    return bound.index_put((p, n), d)
+    return capsule_pairs_cm(pick(A), pick(D), torch.stack((Rn[ip, n], Rn[jp, n])), two[:1], two[1:])[0]
+
+
+# ------------------------------------------------------------------ decisions only (component-major layout)
+def pairs_clear(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, margin: float, slack: float,
+                groups: tuple[Tensor, ...]) -> Tensor:
+    """Whether every pair (i[p], j[p]) of G capsules (``A, D (G, 3, N)`` as in :func:`capsule_pairs_at_least`,
+    ``R (G, 1)``) has d − margin >= slack, ``(N,)``, in three stages, each on the entries the one before
+    leaves:
+
+    1. per pair of capsule groups and row (:func:`group_tables`: capsules of one rigid body), the bound of
+       two spheres that hold the groups (centred at the mean of a group's capsule midpoints, the radius its
+       farthest bounding sphere: the capsules of a rigid group keep their distances, so the sphere holds
+       them in every configuration);
+    2. per pair and row, the bounding-sphere bound of the two capsules;
+    3. the exact distance.
+
+    ``groups``: the tables of :func:`group_tables`."""
+    gb, bp, table, mean, members = groups
+    thr, (G, N) = margin + slack, A.shape[::2]
+    M = torch.addcmul(A, D, D.new_tensor(0.5))  # the capsules' bounding spheres (G, 3, N), (G, N)
+    rho = torch.addcmul(R, _sqrt((D * D).sum(1)), R.new_tensor(0.5))
+    ok = torch.ones(N, dtype=torch.bool, device=A.device)
+    # (a product and a gather, not index_add_ / scatter_reduce_: those take ~0.1 s on two CPU threads)
+    C = (mean @ M.reshape(G, -1)).reshape(mean.shape[0], 3, N)  # the groups' centres (B, 3, N)
+    e = M - C.index_select(0, gb)
+    far = torch.cat((_sqrt((e * e).sum(1)) + rho, rho.new_full((1, N), -math.inf)))  # (G + 1, N)
+    rb = far.index_select(0, members.flatten()).reshape(*members.shape, N).amax(1)  # the radii (B, N)
+    v = C.index_select(0, bp[:, 0]) - C.index_select(0, bp[:, 1])
+    bound = _sqrt((v * v).sum(1)) - rb.index_select(0, bp[:, 0]) - rb.index_select(0, bp[:, 1])
+    qq, n = (bound < thr + _pad(bound, thr)).nonzero(as_tuple=True)  # (Q, N) -> E entries
+    if n.numel() == 0:
+        return ok
+    # stage 2 on the flat (capsule, row) index c N + n; a padded slot pairs capsule 0 with a point at
+    # infinity (row G), whose bound is +inf
+    fi, fj = (((table[k] * N).index_select(0, qq) + n[:, None]).flatten() for k in (0, 1))
+    Mf = torch.cat((M.transpose(0, 1), M.new_full((3, 1, N), math.inf)), 1).reshape(3, -1)
+    rf = torch.cat((rho, rho.new_zeros(1, N))).reshape(-1)
+    v = Mf.index_select(1, fi) - Mf.index_select(1, fj)
+    bound = _sqrt((v * v).sum(0)) - rf.index_select(0, fi) - rf.index_select(0, fj)
+    keep = (bound < thr + _pad(bound, thr)).nonzero().squeeze(-1)
+    if keep.numel() == 0:
+        return ok
+    fi, fj = fi[keep], fj[keep]
+    n = fi % N
+    d = _exact_entries(A, D, R, fi // N, fj // N, n)
+    return ok.index_fill_(0, n[(d - margin) < slack], False)
+
+
+def group_tables(body: list[int], pairs: list[tuple[int, int]], dtype, device,
+                 size: int = 3) -> tuple[Tensor, ...]:
+    """The groups of :func:`pairs_clear` for G capsules on rigid bodies ``body`` (G ints) and their checked
+    ``pairs`` (P index pairs): runs of at most ``size`` consecutive capsules of one body (any split of a
+    rigid body is valid; smaller groups have tighter spheres but more pairs: 3 halves the cost on the FR3,
+    whose links hold a cylinder and its two end spheres, or two of those). Returns (each capsule's group
+    ``(G,)`` in 0 … B − 1, the group pairs ``(Q, 2)``, each group pair's capsule pairs as two tables of
+    capsule indices ``(2, Q, S)`` (padded with 0 and G), the averaging matrix ``(B, G)`` of each group's
+    capsules, their indices ``(B, K)`` (padded with G))."""
+    seen: dict[int, int] = {}
+    runs = []
+    for b in body:
+        seen[b] = seen.get(b, -1) + 1
+        runs.append((b, seen[b] // size))
+    ids = {g: k for k, g in enumerate(dict.fromkeys(runs))}
+    gb, G, B = [ids[g] for g in runs], len(body), len(ids)
+    members: dict[tuple[int, int], list[int]] = {}
+    for p, (a, b) in enumerate(pairs):
+        members.setdefault(tuple(sorted((gb[a], gb[b]))), []).append(p)
+    S = max((len(v) for v in members.values()), default=0)
+    table = [[[pairs[p][k] for p in v] + [k * G] * (S - len(v)) for v in members.values()] for k in (0, 1)]
+    of = [[g for g in range(G) if gb[g] == b] for b in range(B)]
+    K = max((len(v) for v in of), default=0)
+    mean = torch.zeros(B, G, dtype=dtype, device=device)
+    for b, v in enumerate(of):
+        mean[b, v] = 1.0 / len(v)
+    ilong = lambda x: torch.tensor(x, dtype=torch.long, device=device)  # noqa: E731
+    Q = len(members)
+    return (ilong(gb), ilong(list(members)).reshape(Q, 2), ilong(table).reshape(2, Q, S), mean,
+            ilong([v + [G] * (K - len(v)) for v in of]).reshape(B, K))
+
+
+def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: float,
+                skip: Tensor | None = None) -> Tensor:
+    """Whether every capsule ``A, B (G, 3, N)``, ``r (G,)`` has d − margin >= slack to every object of an
+    unbatched ``world`` (:class:`~diffkin.collision.World`), ``(N,)``. Spheres, capsules, points and boxes
+    first get the bounding-sphere bound of every (geom, object, row) entry, boxes then the face-normal
+    bound (:func:`capsule_box_bound`) of the entries left, and only the entries left after that their exact
+    distance (:func:`~diffkin.collision.distances.capsule_capsule`,
+    :func:`~diffkin.collision.boxes.capsule_box`); half-spaces are exact and cheap for all. ``skip (G, W)``
+    (bool, the world's object order): entries that take no part (geoms fixed to the base)."""
+    from .boxes import capsule_box  # (boxes imports this module)
+
+    s_, c_, b_, h_, p_ = world.counts
+    dev = A.device
+    cols_round = torch.cat((torch.arange(s_ + c_, device=dev),  # spheres, capsules, then the points
+                            s_ + c_ + b_ + h_ + torch.arange(p_, device=dev)))
+    cols_box, cols_half = s_ + c_ + torch.arange(b_, device=dev), s_ + c_ + b_ + torch.arange(h_, device=dev)
+
+    thr = margin + slack
+    D = B - A
+    M = torch.addcmul(A, D, D.new_tensor(0.5))  # the bounding spheres (G, 3, N), (G, N)
+    rho = 0.5 * _sqrt((D * D).sum(1)) + r[:, None]
+    ok = torch.ones(A.shape[-1], dtype=torch.bool, device=A.device)
+
+    def refute(d: Tensor, n: Tensor) -> None:  # rows n whose entry d fails the test
+        ok.index_fill_(0, n[(d - margin) < slack], False)
+
+    def near(c: Tensor, rc: Tensor, cols: Tensor):  # the (geom, object, row) entries the sphere bound
+        d2 = sum((M[:, None, k] - c[None, :, k, None]) ** 2 for k in range(3))  # leaves, gathered; (G, W, N)
+        bound = _sqrt(d2) - rho.unsqueeze(1) - rc[None, :, None]
+        hit = bound < thr + _pad(bound, thr)
+        if skip is not None:
+            hit &= ~skip[:, cols, None]
+        g, w, n = hit.nonzero(as_tuple=True)
+        return g, w, n, A[g, :, n], B[g, :, n]
+
+    wa, wb, wr = world._round()
+    if wa.shape[0]:
+        g, w, n, a, b = near(*capsule_spheres(wa, wb, wr), cols_round)
+        if n.numel():
+            refute(capsule_capsule(a, b, r[g], wa[w], wb[w], wr[w]), n)
+    bx = world.boxes
+    if bx.center.shape[0]:
+        g, w, n, a, b = near(*box_spheres(bx.center, bx.half_extents), cols_box)
+        if n.numel():
+            x = (a, b, r[g], bx.center[w], bx.rotation[w], bx.half_extents[w])
+            refute(exact_below(capsule_box_bound(*x), thr, capsule_box, *zip(x, (1, 1, 0, 1, 2, 1))), n)
+    hs = world.halfspaces
+    if hs.shape[0]:
+        a, b = (X.transpose(1, 2).unsqueeze(1) for X in (A, B))  # (G, 1, N, 3)
+        d = capsule_halfspace(a, b, r[:, None, None], hs[None, :, None, :3], hs[None, :, None, 3])
+        fine = (d - margin) >= slack
+        if skip is not None:
+            fine |= skip[:, cols_half, None]
+        ok &= fine.flatten(0, 1).all(0)
+    return ok

@@ -30,7 +30,7 @@ from ..validation import check_count
 from ._checks import check_agree, check_chain, names_str
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
-from .broad import capsule_pairs_at_least
+from .broad import capsule_pairs_at_least, group_tables, pairs_clear, world_clear
 from .distances import capsule_capsule_pairs
 from .meshes import fit_capsules, resolve_mesh
 from .world import World, _check_world, _pair
@@ -132,6 +132,10 @@ class RobotCollision(nn.Module):
             self.register_buffer(f"_pairs_{key[0]}{key[1]}", ilong([r[1:] for r in rows]).reshape(-1, 2),
                                  persistent=False)
             order += [r[0] for r in rows]
+        tables = group_tables([anchor[g] for g in cap], [(ii, jj) for _, ii, jj in kinds[(0, 0)]],
+                              self.capsule_a.dtype, dev)
+        for name, t in zip(_GROUP_BUFFERS, tables):  # the first stage of the decisions' broad phase
+            self.register_buffer(name, t, persistent=False)
         perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
         self.register_buffer("_pair_perm", ilong(perm), persistent=False)
         self._pairs_in_order = perm == list(range(len(perm)))  # then no gather (slow on the last axis)
@@ -290,6 +294,42 @@ class RobotCollision(nn.Module):
 
         return distance_names(self, world, moving_only)
 
+    def _clear(self, q: Tensor, world: World | None = None, margin: float = 0.0,
+               slack: float = 0.0, moving_only: bool = False) -> Tensor:
+        """Whether every distance d of :meth:`_distances_at_least` (with ``moving_only``: the columns it
+        keeps) has d − margin >= slack, ``(...)`` bool (a decision, no gradient): the exact distances
+        wherever the bounds do not prove it. Capsule geoms and one world for all rows go through the
+        component-major broad phase of :func:`~diffkin.collision.broad.pairs_clear` and
+        :func:`~diffkin.collision.broad.world_clear` (the world entries left out masked there); robot boxes,
+        per-row worlds or self pairs left out through :meth:`_distances_at_least`."""
+        nc, nb = self._counts
+        keep_self, keep_world = self._kept(world, moving_only)
+        if nb or keep_self is not None or (world is not None and not _unbatched(world)):
+            d = self._distances_at_least(q, world, margin + slack, moving_only=moving_only)
+            return ((d - margin) >= slack).all(-1)
+        with torch.no_grad():
+            batch, rows = q.shape[:-1], q.shape[:-1].numel()
+            P = self._columns(q.reshape(rows, q.shape[-1]))  # (N, 3, C)
+            Pc = P[..., : 2 * nc].permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
+            A, B, r = Pc[:nc], Pc[nc:], self.capsule_radius
+            i, j = self._pairs_00.T
+            groups = tuple(getattr(self, name) for name in _GROUP_BUFFERS)
+            ok = pairs_clear(A, B - A, r[:, None], i, j, margin, slack, groups) if len(i) else \
+                torch.ones(rows, dtype=torch.bool, device=q.device)
+            if world is not None:
+                ok &= world_clear(A, B, r, world, margin, slack, self._world_skip(world, keep_world))
+        return ok.reshape(batch)
+
+    def _world_skip(self, world: World, keep_world: Tensor | None) -> Tensor | None:
+        """``(G_c, W)`` bool, capsule-major rows and the world's columns: the entries :meth:`_kept` leaves
+        out (None: none)."""
+        if keep_world is None:
+            return None
+        kept = torch.zeros(len(self.geoms) * len(world), dtype=torch.bool, device=keep_world.device)
+        kept[keep_world] = True
+        capsule_geoms = torch.argsort(self._rows)[: self._counts[0]]  # capsule k is geom capsule_geoms[k]
+        return ~kept.reshape(len(self.geoms), len(world))[capsule_geoms]
+
     def min_distance(self, q: Tensor, world: World | None = None) -> Tensor:
         """The smallest signed distance ``(...)`` over the checked pairs and, with ``world``, every
         geom–object pair (+inf where there are none)."""
@@ -389,6 +429,7 @@ class RobotCollision(nn.Module):
                    frames=frames, dtype=dtype, device=device)
 
 
+_GROUP_BUFFERS = ("_group", "_group_pairs", "_group_table", "_group_mean", "_group_members")
 _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distances_at_least)
 
 

@@ -40,9 +40,10 @@ class LMConfig:
         tolerances below 1e-5 (float32 FK noise is ~1e-7 m / rad, so 0.1 mm and 1e-3 rad keep a 100x margin).
     collision_refine_calls: with ``collision``, how many acceptance rounds refine rows converged in
         collision by the constrained Gauss–Newton of :mod:`diffkin.ik._collision` before re-seeding them
-        (the first round sees the colliding solutions of the plain solve). Default 0, re-seeding only: on
-        the FR3 among obstacles a re-seed from the collision-free library reaches the same success at half
-        the cost (benchmarks/bench_collision_ik.py); 1 helps where a target has few solutions.
+        (the first round sees the colliding solutions of the plain solve). Default 0, re-seeding only (on
+        the CPU in rounds of the C solve, :mod:`diffkin.ik._collision_native`): on the FR3 among obstacles
+        re-seeding from the collision-free library reaches the same success at a fraction of the cost
+        (benchmarks/bench_collision_ik.py); 1 (the scheduled loop) helps where a target has few solutions.
     """
 
     damping: float = 3e-3

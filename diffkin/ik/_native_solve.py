@@ -121,14 +121,18 @@ def applies(chain, T_target: Tensor, progress: bool) -> bool:
 
 
 def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, num_seeds: int,
-        max_iterations: int, user_u: Tensor | None, threads: int | None = None, K: int = 1, outs=None):
+        max_iterations: int, user_u: Tensor | None, threads: int | None = None, K: int = 1, outs=None,
+        library: tuple[Tensor, Tensor] | None = None):
     """One ``dk_solve`` call: ``cols`` the targets' ``(pd, xd, yd, zd)`` columns ``(3K, N)`` (tensors or
-    addresses; xd None: position only) in the compute dtype; ``user_u (N, S, n)`` the user's seeds in u.
+    addresses; xd None: position only) in the compute dtype; ``user_u (N, S, n)`` the user's seeds in u;
+    ``library``: ``(u (L, n), poses (L, 12K))`` in the layout of :class:`_Prepared` instead of its fixed
+    library (collision-free poses, :mod:`diffkin.ik._collision_native`).
     Returns ``outs`` (default new tensors): ``(q (N, n), success (N,), position error (N,), orientation
     error (N,), iterations (N,), seeds tried (N,))``, q and the errors in the compute dtype."""
     dtype, n = prep.dtype, prep.n
     S = 0 if user_u is None else user_u.shape[1]
-    R = min(cfg.library_ranks, prep.L) if prep.L else 0
+    L = prep.L if library is None else library[0].shape[0]
+    R = min(cfg.library_ranks, L) if L else 0
     P = min(N * num_seeds, max(num_seeds, _POOL)) if num_seeds > S + R else 0
     pool = torch.rand(P * prep.nu, generator=generator, dtype=dtype) if P else None
     if outs is None:
@@ -140,6 +144,8 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
         n_seeds=num_seeds, max_iterations=max_iterations, n_user=S, user_u=user_u, lib_ranks=R, n_pool=P,
         pool=pool, q_out=outs[0], success=outs[1], pos_err=outs[2], ori_err=outs[3], iters_out=outs[4],
         seeds_out=outs[5], nthreads=threads or native.thread_count(64 * N))
+    if library is not None:
+        native._filled(args, n_lib=L, lib_u=library[0], lib_pose=library[1])
     native.solve_call(args)
     return outs
 
@@ -160,29 +166,48 @@ def _solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator,
     if prep is None:
         return None
     N, n = math.prod(batch), chain.n_joints
-    user_u = None
-    if seeds_user is not None:
-        S = min(seeds_user.shape[1], max(num_seeds, 1))
-        flat = seeds_user[:, :S].to(dtype).reshape(-1, n).T
-        user_u = prep.jmap.u_of_q(flat).T.reshape(N, S, n).contiguous()
-    cols = tuple(None if t is None else t.contiguous() for t in (tg.pd, tg.xd, tg.yd, tg.zd))
-    q, ok, pe, oe, its, seeds = run(prep, cols, N, cfg, generator, tol=tol, num_seeds=num_seeds,
-                                    max_iterations=max_iterations, user_u=user_u, K=chain.n_ends)
-    q = q.to(chain.dtype).reshape(*batch, n)
-    if dtype != chain.dtype or (position_only and T_orig.shape[-1] == 4):
-        # the final check in the chain's dtype (and the orientation error reported for pose targets)
-        pe, oe = final_errors(chain, q, T_orig, position_only)
+    user_u = user_seeds(prep, seeds_user, num_seeds)
+    out = run(prep, columns(tg), N, cfg, generator, tol=tol, num_seeds=num_seeds,
+              max_iterations=max_iterations, user_u=user_u, K=chain.n_ends)
+    q, ok, pe, oe = checked(chain, prep, out, T_orig.reshape(N, *T_orig.shape[len(batch):]), tol,
+                            position_only)
+    return IKResult(q=q.reshape(*batch, n), success=ok.reshape(batch), position_error=pe.reshape(batch),
+                    orientation_error=oe.reshape(batch), iterations=out[4].reshape(batch),
+                    seeds_tried=out[5].reshape(batch))
+
+
+def user_seeds(prep: _Prepared, seeds_user: Tensor | None, num_seeds: int) -> Tensor | None:
+    """The user's seeds ``(N, S, n)`` in q as :func:`run`'s ``user_u`` (at most ``num_seeds`` each)."""
+    if seeds_user is None:
+        return None
+    N, n = seeds_user.shape[0], prep.n
+    S = min(seeds_user.shape[1], max(num_seeds, 1))
+    flat = seeds_user[:, :S].to(prep.dtype).reshape(-1, n).T
+    return prep.jmap.u_of_q(flat).T.reshape(N, S, n).contiguous()
+
+
+def columns(tg) -> tuple:
+    """The targets' ``(pd, xd, yd, zd)`` columns of :func:`run` (contiguous; None: position only)."""
+    return tuple(None if t is None else t.contiguous() for t in (tg.pd, tg.xd, tg.yd, tg.zd))
+
+
+def checked(chain, prep: _Prepared, out, T: Tensor, tol, position_only: bool):
+    """``(q (N, n), success, position error, orientation error)`` of :func:`run`'s ``out`` for the targets
+    ``T (N, ...)`` in the chain's dtype: the final check redone there when the compute dtype differs (and
+    the orientation error reported for pose targets of a position-only solve)."""
+    q, ok, pe, oe = out[:4]
+    q = q.to(chain.dtype)
+    if prep.dtype != chain.dtype or (position_only and T.shape[-1] == 4):
+        pe, oe = final_errors(chain, q, T, position_only)
         ok = pe <= tol[0]
         if not position_only:
             ok &= oe <= tol[1]
         if prep.clamp:
             ok &= chain.within_limits(q, check=False)
-    return IKResult(q=q, success=ok.reshape(batch), position_error=pe.reshape(batch).to(chain.dtype),
-                    orientation_error=oe.reshape(batch).to(chain.dtype), iterations=its.reshape(batch),
-                    seeds_tried=seeds.reshape(batch))
+    return q, ok, pe.to(chain.dtype), oe.to(chain.dtype)
 
 
-__all__ = ["applies", "solve_batch", "run", "prepared"]
+__all__ = ["applies", "solve_batch", "run", "prepared", "columns", "checked", "user_seeds"]
 
 
 _DEFAULT = LMConfig()

@@ -23,6 +23,7 @@ from ..redundancy import _damped
 from ..transforms import _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
 from ._collision import CollisionConfig, collision_round, constraint_of, free_library
+from ._collision_native import solve_batch as native_collision_solve
 from ._kernel import BatchLastKernel, JointMap
 from ._lm import LMConfig, Targets, library_seeds, run_lm
 from ._native_solve import applies as native_applies
@@ -244,9 +245,12 @@ def solve(
         collision: a :class:`~diffkin.collision.RobotCollision` of the chain: success then also needs
             every checked distance (its self pairs, and with ``world`` every geom to every object of a
             :class:`~diffkin.collision.World` in the base frame, one world for all targets) >= ``margin``
-            (m). The distances are constraints of the solve (:mod:`diffkin.ik._collision`): seeds come
-            from collision-free library poses, a pose-converged row in collision gets a constrained
-            Gauss–Newton refinement (a small QP per row) and is re-seeded if that fails.
+            (m). The distances are constraints of the solve: seeds come from collision-free library
+            poses, and targets whose solution collides are solved again from other seeds — on the CPU in
+            rounds of the whole C solve, each round checked in one batch
+            (:mod:`diffkin.ik._collision_native`), elsewhere or with ``LMConfig(collision_refine_calls=1)``
+            in the scheduled loop with an acceptance test and optionally a constrained Gauss–Newton
+            refinement (:mod:`diffkin.ik._collision`).
 
     Returns:
         :class:`IKResult` with per-target ``q``, ``success``, errors (from an exact FK in the chain's dtype),
@@ -298,7 +302,7 @@ def solve(
         generator = torch.Generator(device=device)
         generator.manual_seed(seed if seed is not None else int(torch.randint(2**62, ()).item()))
     residual = PoseResidual(position_only, cfg.orientation_weight)
-    # the whole solve in one C call (CPU, no autograd); collision constraints keep the scheduled loop
+    # the whole solve in one C call (CPU, no autograd)
     if collision is None and world is None and native_applies(chain, T_target, progress):
         out = native_solve_batch(
             chain, tg, batch, T_orig, seeds_user, cfg, generator, dtype, position_only=position_only,
@@ -307,9 +311,19 @@ def solve(
         if out is not None:  # gradients at the solution, as below
             return dataclasses.replace(out, q=attach_solve_gradients(
                 chain, out.q, T_target, out.success, residual, cfg.damping))
+    constraint = constraint_of(chain, collision, world, margin, base)
+    native = constraint is not None and cfg.collision_refine_calls == 0
+    if native and native_applies(chain, T_target, progress):
+        # rounds of the whole C solve, each checked in one batch (ik/_collision_native.py)
+        out = native_collision_solve(
+            chain, tg, batch, T_orig, seeds_user, cfg, generator, dtype, constraint,
+            position_only=position_only, tol=(position_tolerance, orientation_tolerance), num_seeds=num_seeds,
+            max_iterations=max_iterations, respect_limits=respect_limits)  # fmt: skip
+        if out is not None:
+            return dataclasses.replace(out, q=attach_solve_gradients(
+                chain, out.q, T_target, out.success, residual, cfg.damping))
     kernel = BatchLastKernel(chain if chain.dtype == dtype else copy.deepcopy(chain).to(dtype))
     jmap = JointMap(chain, dtype, device, respect_limits)
-    constraint = constraint_of(chain, collision, world, margin, base)
     T_flat = T_orig.reshape(N, *T_orig.shape[len(batch) :])
     prob = _Problem(chain, kernel, jmap, tg, seeds_user, cfg, generator, (position_tolerance,
                     orientation_tolerance), num_seeds, max_iterations, residual, respect_limits, T_flat,

@@ -125,9 +125,10 @@ class DistanceConstraint:
 
     def satisfied(self, q: Tensor, slack: float = 0.0) -> Tensor:
         """Every distance >= margin + slack ``(...)`` (True where there are none), decided by the exact
-        distances (the broad phase only skips those its bound proves clear)."""
-        g = self.value(q, slack)
-        return (g >= slack).all(-1)
+        distances (the broad phase only skips those its bound proves clear; :meth:`RobotCollision._clear
+        <diffkin.collision.RobotCollision._clear>`)."""
+        moving = bool(getattr(self.collision, "skip_fixed", False))
+        return self.collision._clear(q, self.world, self.margin, slack, moving_only=moving)
 
     def jacobian(self, q: Tensor, nearest: int | None = None,
                  slack: float | None = None) -> tuple[Tensor, Tensor, Tensor]:
