@@ -97,6 +97,31 @@ def test_clear_decides_as_the_exact_distances(name, dtype):
     assert mixed >= 4  # the decisions are not all alike
 
 
+@pytest.mark.parametrize("name", ["fr3", "boxy"])
+def test_clear_leaves_out_what_moving_only_leaves_out(name):
+    """With ``moving_only`` (the IK's default, ``skip_fixed``) the broad phase decides as the exact
+    distances of the columns ``_distances_at_least(moving_only=True)`` keeps: a floor through the base and a
+    sphere on it (geoms fixed to the base against them are left out, and geoms whose joints turn about the
+    floor's normal against the floor), margins of both signs."""
+    chain, rc = _robot(name, torch.float64)
+    q = chain.random_configuration((2000,), generator=torch.Generator().manual_seed(9))
+    w = World(spheres=torch.tensor([[-0.2, 0.0, 0.05, 0.08], [0.5, 0.2, 0.4, 0.1]], dtype=torch.float64),
+              halfspaces=torch.tensor([[0.0, 0.0, 1.0, 0.02]], dtype=torch.float64), dtype=torch.float64)
+    kept, skipped = 0, 0
+    with torch.no_grad():
+        full = rc._distances_at_least(q, w)
+        moving = rc._distances_at_least(q, w, moving_only=True)
+        assert moving.shape[-1] < full.shape[-1]  # something is left out
+        for margin in (0.0, 0.01, -0.01):
+            ok = rc._clear(q, w, margin, 0.0, moving_only=True)
+            g = (moving - margin).amin(-1)
+            sure = g.abs() > 1e-12
+            assert torch.equal(ok[sure], (g >= 0)[sure])
+            kept += int(ok.sum())
+            skipped += int((ok & ((full - margin).amin(-1) < 0)).sum())
+    assert kept > 0 and skipped > 0  # the left-out entries decided some rows
+
+
 def test_native_link_frames_match_the_torch_frames():
     """The link frames of the collision geometry from one fused C FK call (no gradient, CPU) against the
     torch all-frames FK (the path taken with a gradient), batch dims kept."""
