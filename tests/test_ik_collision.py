@@ -292,3 +292,23 @@ def test_benchmark_runs_small():
     assert [r["impl"] for r in rows] == ["ik.solve", "ik.solve collision", "ik.solve collision + refinement"]
     for r in rows[1:]:
         assert r["success"] >= 0.9 and r["collision_free"] == r["success"] and r["speed_ratio"] > 0
+
+
+def test_the_collision_free_library_has_the_solvers_layout():
+    """The collision-free library of the C rounds holds its poses as dk_solve's nearest-pose search reads
+    them, feature-major (12 K, L'): rows p, x, y, z of FK(u) (a row-major copy once sent every target to
+    far library poses; only the speed showed it)."""
+    from diffkin.ik._collision_native import _library
+    from diffkin.ik._native_solve import prepared
+    from diffkin.ik.residuals import DistanceConstraint
+
+    chain, rc = _robot(torch.float64)
+    prep = prepared(chain, torch.zeros(3, 1, dtype=torch.float64), torch.float64, True, 0)
+    if prep is None:
+        pytest.skip("the C solve does not serve here")
+    u, pose = _library(prep, DistanceConstraint(rc, _world(torch.float64)), 64, 1)
+    assert pose.shape == (12, u.shape[0]) and u.shape[0] > 0
+    with torch.no_grad():
+        T = chain.forward_kinematics(prep.jmap.q_of_u(u.T).T)
+    expect = torch.cat((T[:, :3, 3], T[:, :3, 0], T[:, :3, 1], T[:, :3, 2]), 1).T
+    torch.testing.assert_close(pose, expect, rtol=0, atol=1e-12)

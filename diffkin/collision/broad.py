@@ -191,14 +191,15 @@ def group_tables(body: list[int], pairs: list[tuple[int, int]], dtype, device,
 
 
 def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: float,
-                skip: Tensor | None = None) -> Tensor:
+                skip: Tensor | None = None, boxes_only: bool = False) -> Tensor:
     """Whether every capsule ``A, B (G, 3, N)``, ``r (G,)`` has d − margin >= slack to every object of an
     unbatched ``world`` (:class:`~diffkin.collision.World`), ``(N,)``. Spheres, capsules, points and boxes
     first get the bounding-sphere bound of every (geom, object, row) entry, boxes then the face-normal
     bound (:func:`capsule_box_bound`) of the entries left, and only the entries left after that their exact
     distance (:func:`~diffkin.collision.distances.capsule_capsule`,
     :func:`~diffkin.collision.boxes.capsule_box`); half-spaces are exact and cheap for all. ``skip (G, W)``
-    (bool, the world's object order): entries that take no part (geoms fixed to the base)."""
+    (bool, the world's object order): entries that take no part (geoms fixed to the base); ``boxes_only``:
+    the boxes alone (the fused C pass decides the rest)."""
     from .boxes import capsule_box  # (boxes imports this module)
 
     s_, c_, b_, h_, p_ = world.counts
@@ -226,7 +227,7 @@ def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: fl
         return g, w, n, A[g, :, n], B[g, :, n]
 
     wa, wb, wr = world._round()
-    if wa.shape[0]:
+    if wa.shape[0] and not boxes_only:
         g, w, n, a, b = near(*capsule_spheres(wa, wb, wr), cols_round)
         if n.numel():
             refute(capsule_capsule(a, b, r[g], wa[w], wb[w], wr[w]), n)
@@ -237,7 +238,7 @@ def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: fl
             x = (a, b, r[g], bx.center[w], bx.rotation[w], bx.half_extents[w])
             refute(exact_below(capsule_box_bound(*x), thr, capsule_box, *zip(x, (1, 1, 0, 1, 2, 1))), n)
     hs = world.halfspaces
-    if hs.shape[0]:
+    if hs.shape[0] and not boxes_only:
         a, b = (X.transpose(1, 2).unsqueeze(1) for X in (A, B))  # (G, 1, N, 3)
         d = capsule_halfspace(a, b, r[:, None, None], hs[None, :, None, :3], hs[None, :, None, 3])
         fine = (d - margin) >= slack

@@ -312,13 +312,40 @@ class RobotCollision(nn.Module):
             P = self._columns(q.reshape(rows, q.shape[-1]))  # (N, 3, C)
             Pc = P[..., : 2 * nc].permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
             A, B, r = Pc[:nc], Pc[nc:], self.capsule_radius
-            i, j = self._pairs_00.T
-            groups = tuple(getattr(self, name) for name in _GROUP_BUFFERS)
-            ok = pairs_clear(A, B - A, r[:, None], i, j, margin, slack, groups) if len(i) else \
-                torch.ones(rows, dtype=torch.bool, device=q.device)
-            if world is not None:
-                ok &= world_clear(A, B, r, world, margin, slack, self._world_skip(world, keep_world))
+            skip = None if world is None else self._world_skip(world, keep_world)
+            ok = self._clear_native(A, B, r, world, margin, slack, skip)
+            if ok is None:
+                i, j = self._pairs_00.T
+                groups = tuple(getattr(self, name) for name in _GROUP_BUFFERS)
+                ok = pairs_clear(A, B - A, r[:, None], i, j, margin, slack, groups) if len(i) else \
+                    torch.ones(rows, dtype=torch.bool, device=q.device)
+                if world is not None:
+                    ok &= world_clear(A, B, r, world, margin, slack, skip)
         return ok.reshape(batch)
+
+    def _clear_native(self, A: Tensor, B: Tensor, r: Tensor, world: World | None, margin: float,
+                      slack: float, skip: Tensor | None) -> Tensor | None:
+        """:meth:`_clear`'s decision by the fused C pass (``dk_collide_clear``: every self pair, round
+        object and half-space exactly, configurations in blocks, no broad phase needed) and the torch broad
+        phase for the world's boxes; None where the pass does not serve (not built, CUDA)."""
+        from ..kernels import native
+
+        ok = torch.ones(A.shape[-1], dtype=torch.bool, device=A.device)
+        if world is None:
+            objects = (A.new_zeros(0, 3), A.new_zeros(0, 3), A.new_zeros(0))
+            hs, skip_r, skip_h = A.new_zeros(0, 4), None, None
+        else:
+            s, c, b, h, p = world.counts
+            objects, hs = world._round(), world.halfspaces
+            round_cols = list(range(s + c)) + list(range(s + c + b + h, s + c + b + h + p))
+            skip_r = None if skip is None else skip[:, round_cols]
+            skip_h = None if skip is None else skip[:, s + c + b: s + c + b + h]
+        done = native.capsules_clear(A, B, r, self._pairs_00, objects, hs, skip_r, skip_h, margin, slack, ok)
+        if not done:
+            return None
+        if world is not None and world.boxes.center.shape[0]:
+            ok &= world_clear(A, B, r, world, margin, slack, skip, boxes_only=True)
+        return ok
 
     def _world_skip(self, world: World, keep_world: Tensor | None) -> Tensor | None:
         """``(G_c, W)`` bool, capsule-major rows and the world's columns: the entries :meth:`_kept` leaves

@@ -87,12 +87,12 @@ def solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator, 
 
 
 def _library(prep, constraint: DistanceConstraint, L: int, K: int) -> tuple[Tensor, Tensor]:
-    """The fixed collision-free library ``(u (L', n), poses (L', 12K))`` (:func:`run`'s ``library``): the
+    """The fixed collision-free library ``(u (L', n), poses (12K, L'))`` (:func:`run`'s ``library``): the
     free ones of 4 L configurations from a generator seeded with ``_LIBRARY_SEED`` (their selection is
     remembered on the collision model, :func:`free_library`; the poses on ``prep`` for that selection)."""
     jm, dtype = prep.jmap, constraint.collision.capsule_radius.dtype
     if L == 0:
-        return prep.jmap.c.new_zeros(0, prep.n), prep.jmap.c.new_zeros(0, 12 * K)
+        return prep.jmap.c.new_zeros(0, prep.n), prep.jmap.c.new_zeros(12 * K, 0)
     u = jm.sample_u(4 * L, torch.Generator().manual_seed(_LIBRARY_SEED))
     idx = free_library(jm.q_of_u(u).to(dtype), constraint, CollisionConfig.slack, L)
     memo = getattr(prep, "_free_library", None)
@@ -100,7 +100,8 @@ def _library(prep, constraint: DistanceConstraint, L: int, K: int) -> tuple[Tens
         return memo[1]
     u = u[:, idx]
     Tl, _, _ = native.fk_jacobian(prep.packed, jm.q_of_u(u).T.contiguous(), threads=1)
-    pose = Tl[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(u.shape[1], -1).contiguous()
+    # (12K, L'): feature-major, as _Prepared's library (dk_solve's vectorised nearest-pose search)
+    pose = Tl[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(u.shape[1], -1).T.contiguous()
     lib = (u.T.contiguous(), pose)
     prep._free_library = (idx, lib)
     return lib
@@ -114,7 +115,7 @@ def _ranks(tg, lib: tuple[Tensor, Tensor], w: float, rows: Tensor) -> Tensor:
     F, K3 = f.shape[1], sub.pd.shape[0]
     scale = torch.full((F,), math.sqrt(w), dtype=f.dtype, device=f.device)
     scale[:K3] = 1.0
-    return torch.cdist(f * scale, lib[1][:, :F] * scale).argsort(1)
+    return torch.cdist(f * scale, lib[1][:F].T * scale).argsort(1)
 
 
 def _window_seeds(lib, near: Tensor | None, start: int, k: int, R: int) -> tuple[Tensor | None, int]:

@@ -125,7 +125,7 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
         library: tuple[Tensor, Tensor] | None = None):
     """One ``dk_solve`` call: ``cols`` the targets' ``(pd, xd, yd, zd)`` columns ``(3K, N)`` (tensors or
     addresses; xd None: position only) in the compute dtype; ``user_u (N, S, n)`` the user's seeds in u;
-    ``library``: ``(u (L, n), poses (L, 12K))`` in the layout of :class:`_Prepared` instead of its fixed
+    ``library``: ``(u (L, n), poses (12K, L))`` in the layout of :class:`_Prepared` instead of its fixed
     library (collision-free poses, :mod:`diffkin.ik._collision_native`).
     Returns ``outs`` (default new tensors): ``(q (N, n), success (N,), position error (N,), orientation
     error (N,), iterations (N,), seeds tried (N,))``, q and the errors in the compute dtype."""

@@ -158,6 +158,16 @@ typedef struct dk_watch {
     void *work;
     int64_t ready, busy;
 } dk_watch;
+
+typedef struct dk_collide { /* the arguments of dk_collide (_native_collide.c); reals of real_bytes */
+    int64_t real_bytes, N, G, P, Wr, H, nthreads;
+    const void *A, *B, *r;        /* capsule ends (G x 3 x N, component-major) and radii (G) */
+    const int64_t *pi, *pj;       /* the P checked pairs */
+    const void *wa, *wb, *wr, *hs; /* round objects (Wr x 3, Wr x 3, Wr), half-spaces (H x 4: n, offset) */
+    const uint8_t *skip_r, *skip_h; /* (G x Wr), (G x H) entries left out, or NULL */
+    double margin, slack;
+    uint8_t *ok;                  /* (N) in/out: cleared where some distance fails */
+} dk_collide;
 #undef DK_DECLARE
 
 /* The field names, in order, each followed by a comma. */
@@ -387,6 +397,15 @@ int64_t dk_fk_one(const dk_args *base, dk_watch *w, const void *q, void *T, void
 int64_t dk_solve(const dk_args *a) {
     if (!abi_ok(a)) return DK_ABI_ERROR;
     return a->real_bytes == 8 ? dk_solve_f64(a) : dk_solve_f32(a);
+}
+
+/* Clear ok[n] where configuration n has a checked capsule distance with d - margin < slack (see
+ * _native_collide.c); returns 0, DK_ABI_ERROR for a real size other than 8 or 4. */
+int64_t dk_collide_clear(const dk_collide *c) {
+    if (c->real_bytes == 8) dk_collide_f64(c);
+    else if (c->real_bytes == 4) dk_collide_f32(c);
+    else return DK_ABI_ERROR;
+    return 0;
 }
 
 /* The largest deviation from a rigid transform of N poses (4x4 row-major, real_bytes 8 or 4): max over
@@ -1031,6 +1050,7 @@ static int64_t DK(dk_lm)(const dk_args *a) {
 }
 
 #include "_native_solve.c"
+#include "_native_collide.c"
 
 #undef real
 #endif

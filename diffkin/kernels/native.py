@@ -58,11 +58,13 @@ from .configuration import MOTION_NQ, MOTION_NV
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
+           "Collide", "capsules_clear",
            "native_model", "fk_jacobian", "LMProblem", "lm_steps", "status", "NativeBuildWarning", "Args",
            "ABI_VERSION", "AbiMismatch", "solve_call", "rigid_deviation"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
-_INCLUDED = (Path(__file__).with_name("_native_solve.c"),)  # #included by _native.c: part of its source
+_INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
+             Path(__file__).with_name("_native_collide.c"))
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
@@ -183,6 +185,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
         fn = getattr(lib, name)
         fn.restype, fn.argtypes = _I64, [ctypes.POINTER(Args)]
     lib.dk_rigid_deviation.restype, lib.dk_rigid_deviation.argtypes = _F64, [_PTR, _I64, _I64]
+    lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
     return lib
 
 
@@ -330,18 +333,22 @@ def _own_running() -> int:
 
 def free_cores() -> int:
     """Cores of this process's affinity set not running another process's task right now (at least 1): the
-    instantaneous runnable count of ``/proc/loadavg`` less this process's own runnable threads, remembered
-    for 0.1 s. Own threads are not load: torch's OpenMP workers spin for a while after each torch op, and
-    counting them halved the threads of a C call that followed one (the batched IK solve ran 2.5x slower on
-    an idle 2-core machine). Without ``/proc`` (not Linux): every core."""
+    instantaneous runnable count of ``/proc/loadavg`` less this process's own runnable threads (the least
+    of three readings in a row: a task that runs for an instant is no load), remembered for 0.1 s. Own
+    threads are not load: torch's OpenMP workers spin for a while after each torch op, and counting them
+    halved the threads of a C call that followed one (the batched IK solve ran 2.5x slower on an idle
+    2-core machine). Without ``/proc`` (not Linux): every core."""
     now = time.monotonic()
     if now - _free[0] < 0.1:
         return _free[1]
     cores = _cores()
     try:
-        with open("/proc/loadavg") as f:
-            running = int(f.read().split()[3].split("/")[0])
-        free = max(1, cores - max(running - _own_running(), 0))
+        others = cores
+        for _ in range(3):  # the least of three readings: a task that runs for an instant is no load
+            with open("/proc/loadavg") as f:
+                running = int(f.read().split()[3].split("/")[0])
+            others = min(others, max(running - _own_running(), 0))
+        free = max(1, cores - others)
     except (OSError, ValueError, IndexError):
         free = cores
     _free[0], _free[1] = now, free
@@ -563,3 +570,38 @@ def rigid_deviation(T: Tensor) -> float:
     """The largest deviation of the contiguous CPU poses ``T (..., 4, 4)`` from rigid transforms (entries
     of RᵀR − I and of the bottom row − (0, 0, 0, 1)); NaN when an entry is not finite."""
     return _lib.dk_rigid_deviation(T.data_ptr(), T.numel() // 16, T.element_size())
+
+
+class Collide(ctypes.Structure):
+    """Mirror of ``dk_collide`` in ``_native.c`` (the arguments of :func:`capsules_clear`)."""
+
+    _fields_ = [(name, _I64) for name in ("real_bytes", "N", "G", "P", "Wr", "H", "nthreads")] + \
+        [(name, _PTR) for name in ("A", "B", "r", "pi", "pj", "wa", "wb", "wr", "hs", "skip_r", "skip_h")] + \
+        [("margin", _F64), ("slack", _F64), ("ok", _PTR)]
+
+
+def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,
+                   skip_round: Tensor | None, skip_half: Tensor | None, margin: float, slack: float,
+                   ok: Tensor) -> bool:
+    """Clear ``ok (N,)`` (bool, in place) where a checked distance has d − margin < slack: capsules with
+    ends ``A, B (G, 3, N)`` (contiguous, component-major) and radii ``r (G,)``, the self ``pairs (P, 2)``
+    (long), the round world objects ``(a (W, 3), b (W, 3), r (W,))`` (spheres, capsules, points as
+    capsules) and ``halfspaces (H, 4)`` of one world (``{x : n·x ≤ offset}``), with the entries ``skip_*``
+    (``(G, W)``, ``(G, H)`` bool) left out. One call of ``dk_collide_clear`` (``_native_collide.c``); False
+    (nothing done) where the library is not loaded or the inputs are not CPU tensors of one float dtype."""
+    dtype = A.dtype
+    if not available() or A.device.type != "cpu" or dtype not in (torch.float32, torch.float64):
+        return False
+    wa, wb, wr = (t.detach().to(dtype).contiguous() for t in round_objects)
+    hs = halfspaces.detach().to(dtype).contiguous()
+    keep = [A, B, r.detach().to(dtype).contiguous(), pairs[:, 0].contiguous(), pairs[:, 1].contiguous(),
+            wa, wb, wr, hs]
+    skips = [None if m is None else m.to(torch.uint8).contiguous() for m in (skip_round, skip_half)]
+    ptr = lambda t: None if t is None or t.numel() == 0 else t.data_ptr()  # noqa: E731
+    okb = ok.view(torch.uint8)
+    c = Collide(real_bytes=A.element_size(), N=A.shape[-1], G=A.shape[0], P=pairs.shape[0], Wr=wa.shape[0],
+                H=hs.shape[0], nthreads=thread_count(A.shape[-1] * max(1, pairs.shape[0]) // 64),
+                A=A.data_ptr(), B=B.data_ptr(), r=ptr(keep[2]), pi=ptr(keep[3]), pj=ptr(keep[4]),
+                wa=ptr(wa), wb=ptr(wb), wr=ptr(wr), hs=ptr(hs), skip_r=ptr(skips[0]), skip_h=ptr(skips[1]),
+                margin=float(margin), slack=float(slack), ok=okb.data_ptr())
+    return _lib.dk_collide_clear(ctypes.byref(c)) == 0
