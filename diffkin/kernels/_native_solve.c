@@ -566,9 +566,10 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     if (nthreads < 1 || nchunks < 2) nthreads = 1;
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
     const size_t lanes = (size_t)W * ((size_t)r * nv + r + (size_t)d * d + d + nv + 1); /* LMWork's */
-    const size_t per = base + 2 * (size_t)n * W + lanes + r +
-                       (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1;
-    real *all = (real *)malloc(sizeof(real) * per * (size_t)nthreads);
+    size_t per;
+    real *all = DK(team_alloc)(base + 2 * (size_t)n * W + lanes + r +
+                               (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1,
+                               nthreads, &per);
     if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
     {
