@@ -202,11 +202,7 @@ def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: fl
     the boxes alone (the fused C pass decides the rest)."""
     from .boxes import capsule_box  # (boxes imports this module)
 
-    s_, c_, b_, h_, p_ = world.counts
-    dev = A.device
-    cols_round = torch.cat((torch.arange(s_ + c_, device=dev),  # spheres, capsules, then the points
-                            s_ + c_ + b_ + h_ + torch.arange(p_, device=dev)))
-    cols_box, cols_half = s_ + c_ + torch.arange(b_, device=dev), s_ + c_ + b_ + torch.arange(h_, device=dev)
+    cols_round, cols_box, cols_half = world._kind_columns(A.device)
 
     thr = margin + slack
     D = B - A

@@ -335,11 +335,10 @@ class RobotCollision(nn.Module):
             objects = (A.new_zeros(0, 3), A.new_zeros(0, 3), A.new_zeros(0))
             hs, skip_r, skip_h = A.new_zeros(0, 4), None, None
         else:
-            s, c, b, h, p = world.counts
             objects, hs = world._round(), world.halfspaces
-            round_cols = list(range(s + c)) + list(range(s + c + b + h, s + c + b + h + p))
+            round_cols, _, half_cols = world._kind_columns(A.device)
             skip_r = None if skip is None else skip[:, round_cols]
-            skip_h = None if skip is None else skip[:, s + c + b: s + c + b + h]
+            skip_h = None if skip is None else skip[:, half_cols]
         done = native.capsules_clear(A, B, r, self._pairs_00, objects, hs, skip_r, skip_h, margin, slack, ok)
         if not done:
             return None

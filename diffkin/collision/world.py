@@ -95,6 +95,13 @@ class World:
         r = torch.cat([x.expand(*batch, x.shape[-1]) for _, _, x in parts], -1)
         return a, b, r
 
+    def _kind_columns(self, device=None) -> tuple[Tensor, Tensor, Tensor]:
+        """The world-order columns ``(round, boxes, half-spaces)`` of :meth:`_round`'s objects (spheres,
+        capsules, then points), of the boxes and of the half-spaces (long index tensors)."""
+        s, c, b, h, p = self.counts
+        ar = lambda n, start=0: start + torch.arange(n, device=device)  # noqa: E731
+        return torch.cat((ar(s + c), ar(p, s + c + b + h))), ar(b, s + c), ar(h, s + c + b)
+
     def _assemble(self, round_d: Tensor, box_d: Tensor, half_d: Tensor) -> Tensor:
         """(..., G, W) in the world's order from the round (spheres, capsules, points), box, half-space
         blocks."""

@@ -68,20 +68,22 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
     real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK];
-    for (int64_t g = 0; g < G && (c->Wr || c->H); g++) {
-        const real *Ag = A + g * 3 * N + n0, *Bg = B + g * 3 * N + n0;
-        for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment, copied to m lanes */
+    for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment, copied to the m lanes once */
+        for (int k = 0; k < 3; k++)
+            for (int l = 0; l < m; l++) {
+                pa[k * COLLIDE_BLOCK + l] = wa[3 * w + k];
+                pb[k * COLLIDE_BLOCK + l] = wb[3 * w + k];
+            }
+        for (int64_t g = 0; g < G; g++) {
             if (c->skip_r && c->skip_r[g * c->Wr + w]) continue;
             const real T = r[g] + wr[w] + thr;
             if (T <= 0) continue;
-            for (int k = 0; k < 3; k++)
-                for (int l = 0; l < m; l++) {
-                    pa[k * COLLIDE_BLOCK + l] = wa[3 * w + k];
-                    pb[k * COLLIDE_BLOCK + l] = wb[3 * w + k];
-                }
-            DK(segments_d2)(Ag, Bg, N, pa, pb, COLLIDE_BLOCK, m, d2);
+            DK(segments_d2)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, pa, pb, COLLIDE_BLOCK, m, d2);
             for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
         }
+    }
+    for (int64_t g = 0; g < G && c->H; g++) {
+        const real *Ag = A + g * 3 * N + n0, *Bg = B + g * 3 * N + n0;
         for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
             if (c->skip_h && c->skip_h[g * c->H + h]) continue;
             const real nx = hs[4 * h], ny = hs[4 * h + 1], nz = hs[4 * h + 2], off = hs[4 * h + 3];
