@@ -141,7 +141,10 @@ def weighted_point_jacobian(axes: Tensor, origins: Tensor, points: Tensor, weigh
     z_c × (S_c − W_c p_c) for a revolute and W_c z_c for a prismatic joint, with S_c = Σ_i w_ci p_i and
     W_c = Σ_i w_ci: one cross product per column, whatever B. Coupled through the mimic matrix.
     """
-    S = weights @ points  # (..., C, 3)
+    C, B = weights.shape
+    batch = points.shape[:-2]
+    # one (C, B) x (B, 3 · batch) product: a broadcast batched matmul is many times slower for small C, B
+    S = (weights @ points.movedim(-2, 0).reshape(B, -1)).reshape(C, *batch, 3).movedim(0, -2)  # (..., C, 3)
     W = weights.sum(-1, keepdim=True)  # (C, 1)
     lin = torch.linalg.cross(axes, S - W * origins, dim=-1)
     if not all(topo.column_revolute):
