@@ -16,6 +16,7 @@ without ``<inertial>`` elements) raises :class:`~diffkin.errors.ModelError` nami
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import torch
@@ -41,6 +42,13 @@ def _masses(chain) -> tuple[Tensor, Tensor]:
             "(diffkin.models.from_urdf) or an MJCF model (diffkin.models.from_mjcf)")
         raise ModelError(f"the centre of mass needs link masses, and chain {chain.name!r} "
                          f"({type(chain).__name__}) has none: {note}")
+    approximate = getattr(chain, "_mass_note", "")
+    if approximate and not chain.__dict__.get("_mass_warned"):
+        chain.__dict__["_mass_warned"] = True
+        warnings.warn(f"chain {chain.name!r}: MuJoCo infers the masses of {approximate} from mesh geoms, "
+                      "which the loader replaces by small spheres (the mesh files are not read): their "
+                      "masses and the centre of mass are approximate; give those bodies an <inertial>",
+                      stacklevel=4)
     return m, chain.link_inertial_frames[:, :3, 3]
 
 

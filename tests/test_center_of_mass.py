@@ -70,6 +70,7 @@ def _max_errors(chain, q, ref_com, ref_J):
 
 # ------------------------------------------------------------------------------------------ MuJoCo
 
+@pytest.mark.filterwarnings("ignore:chain .* MuJoCo infers the masses")
 @pytest.mark.parametrize("path", MJCF_MODELS, ids=lambda p: p.parent.name)
 def test_every_menagerie_model_matches_mujoco(path):
     m, chain = _mjcf_chain(path)
@@ -116,6 +117,20 @@ def test_base_transform_moves_the_center_of_mass_with_the_frames():
     torch.testing.assert_close(T_b, B @ T)  # the same frame as FK's
     torch.testing.assert_close(com_b, com @ B[:3, :3].T + B[:3, 3])
     torch.testing.assert_close(J_b, B[:3, :3] @ J)
+
+
+def test_masses_inferred_from_mesh_stand_ins_are_named_in_a_warning():
+    """Allegro's bodies have no <inertial>: MuJoCo infers their masses from the mesh geoms, which the
+    loader replaces by small spheres; the first centre-of-mass call says so, once. G1 gives every body an
+    <inertial>: no warning."""
+    _, hand = _mjcf_chain(MJCF["wonik_allegro"])
+    with pytest.warns(UserWarning, match="infers the masses of palm, ff_base"):
+        hand.center_of_mass(hand.neutral_configuration())
+    _, g1 = _mjcf_chain(MJCF["unitree_g1"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        hand.center_of_mass(hand.neutral_configuration())  # said once per chain
+        g1.center_of_mass(g1.neutral_configuration())
 
 
 # --------------------------------------------------------------------------------------- Pinocchio

@@ -79,7 +79,8 @@ class TreeDescription:
     map reads; ``name`` the model's name; ``inertias`` the mass and inertial frame of every body of the model
     below the base (:class:`BodyInertia`, massless bodies left out), or None where the file says nothing
     about masses (``inertia_note`` then says why, for the error of
-    :meth:`~diffkin.chain.KinematicChain.center_of_mass`).
+    :meth:`~diffkin.chain.KinematicChain.center_of_mass`; with masses, it names the bodies whose masses are
+    approximate, for a warning).
     """
 
     name: str

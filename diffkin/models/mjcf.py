@@ -275,8 +275,8 @@ def _parameters(model, build: _Builder, sites: list[int]) -> dict[str, Tensor]:
             "site_quat": rows((model.site_quat[s] for s in sites), 4)}
 
 
-def _describe(model, path: str | None, ends: list[str],
-              root_link: str | None) -> tuple[TreeDescription, dict]:
+def _describe(model, path: str | None, ends: list[str], root_link: str | None,
+              text: str | None = None) -> tuple[TreeDescription, dict]:
     """The format-neutral description of the bodies between the root and the end links, and the MJCF
     facts the chain keeps (qpos / qvel maps, element rows of its parameters)."""
     mujoco = _mujoco()
@@ -312,6 +312,10 @@ def _describe(model, path: str | None, ends: list[str],
         _limits(model, lay["joint_names"], lay["joint_kinds"]), lay["joint_names"], lay["joint_kinds"],
         parameters=_parameters(model, build, sites), buffers={"_axis_flip": axes.reshape(-1, 3)[:, 2] < 0})
     description.inertias, description.inertia_note = _inertias(model, build, root)
+    if description.inertias and (text is not None or path is not None):
+        stand_ins = _mass_from_stand_ins(text, path)
+        inside = {b.name for b in description.inertias}
+        description.inertia_note = ", ".join(b for b in stand_ins if b in inside)
     obj = mujoco.mjtObj
     facts = {**lay, "root_link": root_link or "world",
              "body_names": [_name(model, obj.mjOBJ_BODY, b) for b in build.bodies],
@@ -363,6 +367,23 @@ def _inertias(model, build: _Builder, root: int) -> tuple[list[BodyInertia] | No
     return out, ""
 
 
+def _mass_from_stand_ins(text: str | None, path: str | None) -> list[str]:
+    """The bodies whose mass MuJoCo infers from a mesh geom (no ``<inertial>``, or ``<compiler
+    inertiafromgeom="true">``): :func:`compile_mjcf` replaces their meshes by small spheres, so their
+    compiled masses are not the file's."""
+    mujoco = _mujoco()
+    try:
+        spec = mujoco.MjSpec.from_file(path) if path else mujoco.MjSpec.from_string(text)
+    except (ValueError, mujoco.FatalError):  # compiled once already; nothing more to say
+        return []
+    rule = spec.compiler.inertiafromgeom
+    if rule == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE:
+        return []
+    always = rule == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
+    return [b.name for b in spec.bodies[1:] if (always or not b.explicitinertial)
+            and any(g.type == mujoco.mjtGeom.mjGEOM_MESH for g in b.geoms)]
+
+
 class MJCFChain(TreeChain):
     """A MuJoCo model from its world (or ``root_link``) to one or several end bodies or sites.
 
@@ -381,7 +402,7 @@ class MJCFChain(TreeChain):
     def __init__(self, model, text: str, path: str | None, end_links, root_link: str | None = None, *,
                  dtype: torch.dtype | None = None, device=None):
         single, ends = check_end_links(end_links, "body or site")
-        description, facts = _describe(model, path, ends, root_link)
+        description, facts = _describe(model, path, ends, root_link, text)
         super().__init__(description, dtype=dtype, device=device, single_end=single)
         self.body_names = facts["body_names"]
         self._anchor_joints, self._axis_joints = facts["anchor_joints"], facts["axis_joints"]
