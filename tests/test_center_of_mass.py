@@ -320,3 +320,20 @@ def test_malformed_inertials_are_named():
     massless = text.replace('<inertial><mass value="-1"/></inertial>', "")
     with pytest.raises(ModelError, match="no <inertial>"):
         from_urdf(massless, "b", dtype=F64).center_of_mass(torch.zeros(1, dtype=F64))
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_matches_cpu():
+    _, chain = _mjcf_chain(MJCF["unitree_g1"])
+    q = chain.random_configuration((64,), generator=torch.Generator().manual_seed(13))
+    with torch.no_grad():
+        com, J = chain.center_of_mass(q), chain.com_jacobian(q)
+    gpu = chain.copy().to("cuda")
+    assert gpu.link_masses.device.type == "cuda"
+    qg = q.cuda().requires_grad_(True)
+    com_g, J_g = gpu.center_of_mass(qg), gpu.com_jacobian(qg)
+    torch.testing.assert_close(com_g.detach().cpu(), com, atol=1e-10, rtol=0)
+    torch.testing.assert_close(J_g.detach().cpu(), J, atol=1e-10, rtol=0)
+    (com_g.sum() + J_g.sum()).backward()
+    assert torch.isfinite(qg.grad).all()
