@@ -337,3 +337,35 @@ def test_cuda_matches_cpu():
     torch.testing.assert_close(J_g.detach().cpu(), J, atol=1e-10, rtol=0)
     (com_g.sum() + J_g.sum()).backward()
     assert torch.isfinite(qg.grad).all()
+
+
+def test_urdf_root_link_is_its_subtree_in_its_frame():
+    """From ``root_link="torso_link"`` the chain's bodies are the torso's subtree, in the torso's frame:
+    Pinocchio's subtree centre of mass of the joint that carries the torso (``data.com[j]``,
+    ``jacobianSubtreeCenterOfMass``), rotated into the torso frame."""
+    pin = pytest.importorskip("pinocchio")
+    path = DATA / "urdf" / "g1_29dof_rev_1_0.urdf"
+    tree = parse_urdf(path)
+    below = {"torso_link"}
+    for j in tree.joints:  # file order is topological here; checked by the assertion below
+        if j.parent in below:
+            below.add(j.child)
+    leaves = [k for k in below if not tree.children(k)]
+    chain = from_urdf(path, leaves, root_link="torso_link", dtype=F64)
+    assert set(chain.mass_names) <= below
+    model = pin.buildModelFromUrdf(str(path))
+    data = model.createData()
+    jid = model.getJointId(tree.parent_joint("torso_link").name)
+    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(14))
+    for qi in q:
+        qp = pin.neutral(model)
+        qp[[model.joints[model.getJointId(n)].idx_q for n in chain.joint_names]] = qi.numpy()
+        pin.forwardKinematics(model, data, qp)
+        pin.centerOfMass(model, data, qp)
+        Jp = pin.jacobianSubtreeCenterOfMass(model, data, qp, jid)
+        R, p = data.oMi[jid].rotation, data.oMi[jid].translation
+        cols = [model.joints[model.getJointId(n)].idx_v for n in chain.joint_names]
+        with torch.no_grad():
+            com = chain.center_of_mass(qi).numpy()
+            np.testing.assert_allclose(com, R.T @ (data.com[jid] - p), atol=1e-12)
+            np.testing.assert_allclose(chain.com_jacobian(qi).numpy(), R.T @ Jp[:, cols], atol=1e-12)
