@@ -110,22 +110,35 @@ def _native_pass(chain, q: Tensor, with_jacobian: bool) -> tuple[Tensor, Tensor 
         packed = native.native_model(replace(chain.topology, ends=tuple(chain._mass_frames)), seg)
         cache = (per_joint, packed)
         chain.__dict__["_mass_native"] = cache
-    batch, nv = q.shape[:-1], chain.nv
+    batch, nv, B = q.shape[:-1], chain.nv, len(chain._mass_frames)
     flat = q.reshape(-1, chain.nq).contiguous()
     rows = flat.shape[0]
-    m = chain.link_masses
-    w = m / m.sum()
-    per_row = len(chain._mass_frames) * (6 * nv if with_jacobian else 16) * q.element_size()
-    step = max(1, _NATIVE_BYTES // per_row)
-    com = q.new_empty(rows, 3)
-    J = q.new_empty(rows, 3, nv) if with_jacobian else None
+    w = _mass_weights(chain)
+    step = max(1, _NATIVE_BYTES // (B * (6 * nv if with_jacobian else 16) * q.element_size()))
+    parts = []
     for start in range(0, rows, step):  # slices of the batch (one for a control loop's few rows)
-        part = slice(start, min(start + step, rows))
-        T, Jp, _ = native.fk_jacobian(cache[1], flat[part], with_jacobian)
-        com[part] = _weighted_mean(m, T[..., :3, 3])
-        if J is not None:  # Σ_i (m_i / M) J_P(p_i): the kernel's point Jacobians, linear rows
-            torch.sum(w[:, None, None] * Jp[..., :3, :], dim=-3, out=J[part])
+        T, Jp, _ = native.fk_jacobian(cache[1], flat[start:start + step], with_jacobian)
+        n = T.shape[0]
+        # Σ_i (m_i / M) over the bodies: one product each for the poses and the point Jacobians
+        com = (w @ T.view(n, B, 16))[:, 3:12:4]
+        parts.append((com, None if Jp is None else (w @ Jp.view(n, B, 6 * nv)).view(n, 6, nv)[:, :3]))
+    if len(parts) == 1:
+        com, J = parts[0]
+    else:
+        com = torch.cat([c for c, _ in parts])
+        J = torch.cat([j for _, j in parts]) if with_jacobian else None
     return com.reshape(*batch, 3), None if J is None else J.reshape(*batch, 3, nv)
+
+
+def _mass_weights(chain) -> Tensor:
+    """m_i / M ``(B,)``, remade when the masses change (version or storage)."""
+    m = chain.link_masses
+    key = (m._version, m.data_ptr(), m.dtype, m.device)
+    cache = chain.__dict__.get("_mass_weights")
+    if cache is None or cache[0] != key:
+        cache = (key, m / m.sum())
+        chain.__dict__["_mass_weights"] = cache
+    return cache[1]
 
 
 def _weighted_mean(m: Tensor, points: Tensor) -> Tensor:
