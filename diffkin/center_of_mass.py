@@ -70,8 +70,7 @@ def _mass_columns(chain, like: Tensor) -> Tensor:
         mask = torch.tensor(rows, dtype=like.dtype, device=like.device).reshape(topo.n_columns, -1)
         cache = ((topo, like.dtype, like.device), mask)
         chain.__dict__["_mass_column_mask"] = cache
-    m = chain.link_masses
-    return cache[1] * (m / m.sum())
+    return cache[1] * _mass_weights(chain)
 
 
 def _body_points(chain, q: Tensor, with_axes: bool):
@@ -133,6 +132,8 @@ def _native_pass(chain, q: Tensor, with_jacobian: bool) -> tuple[Tensor, Tensor 
 def _mass_weights(chain) -> Tensor:
     """m_i / M ``(B,)``, remade when the masses change (version or storage)."""
     m = chain.link_masses
+    if m.requires_grad and torch.is_grad_enabled():  # learnable masses: a fresh graph every call
+        return m / m.sum()
     key = (m._version, m.data_ptr(), m.dtype, m.device)
     cache = chain.__dict__.get("_mass_weights")
     if cache is None or cache[0] != key:
@@ -141,9 +142,9 @@ def _mass_weights(chain) -> Tensor:
     return cache[1]
 
 
-def _weighted_mean(m: Tensor, points: Tensor) -> Tensor:
+def _weighted_mean(chain, points: Tensor) -> Tensor:
     """Σ_i m_i p_i / Σ_i m_i ``(..., 3)`` of ``points (..., B, 3)``."""
-    return ((m / m.sum()).unsqueeze(-1) * points).sum(-2)
+    return (_mass_weights(chain).unsqueeze(-1) * points).sum(-2)
 
 
 def _checked(chain, q) -> Tensor:
@@ -160,7 +161,7 @@ def center_of_mass(chain, q: Tensor) -> Tensor:
         return fast[0]
     with torch.autocast(q.device.type, enabled=False):
         points, _, _ = _body_points(chain, q, with_axes=False)
-        return _weighted_mean(chain.link_masses, points)
+        return _weighted_mean(chain, points)
 
 
 def com_jacobian(chain, q: Tensor) -> Tensor:
@@ -178,7 +179,7 @@ def com_and_jacobian(chain, q: Tensor) -> tuple[Tensor, Tensor]:
         return fast
     with torch.autocast(q.device.type, enabled=False):
         points, axes, origins = _body_points(chain, q, with_axes=True)
-        com = _weighted_mean(chain.link_masses, points)
+        com = _weighted_mean(chain, points)
         J = weighted_point_jacobian(axes, origins, points, _mass_columns(chain, q), chain._joint_revolute,
                                     chain.topology)
     return com, J

@@ -373,3 +373,27 @@ def test_urdf_root_link_is_its_subtree_in_its_frame():
             com = chain.center_of_mass(qi).numpy()
             np.testing.assert_allclose(com, R.T @ (data.com[jid] - p), atol=1e-12)
             np.testing.assert_allclose(chain.com_jacobian(qi).numpy(), R.T @ Jp[:, cols], atol=1e-12)
+
+
+def test_gradients_reach_learnable_masses():
+    """A payload estimate: the masses as a learnable tensor, the gradient of the centre of mass w.r.t. them
+    against finite differences; two backward passes in a row (no graph kept between calls)."""
+    _, chain = _mjcf_chain(MJCF["universal_robots_ur5e"], "wrist_3_link")
+    chain.requires_grad_(False)
+    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(15))
+    chain.link_masses.requires_grad_(True)
+    for _ in range(2):
+        chain.link_masses.grad = None
+        chain.center_of_mass(q).sum().backward()
+    g = chain.link_masses.grad.clone()
+    chain.link_masses.requires_grad_(False)
+    fd = []
+    for i in range(len(chain.mass_names)):
+        with torch.no_grad():
+            chain.link_masses[i] += 1e-6
+            plus = chain.center_of_mass(q).sum()
+            chain.link_masses[i] -= 2e-6
+            minus = chain.center_of_mass(q).sum()
+            chain.link_masses[i] += 1e-6
+        fd.append((plus - minus) / 2e-6)
+    torch.testing.assert_close(g, torch.stack(fd), atol=1e-8, rtol=0)
