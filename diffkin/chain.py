@@ -47,6 +47,7 @@ from .transforms import as_rigid_transform, check_transform
 from .validation import (
     SUPPORTED_DTYPES,
     as_tensor,
+    broadcast_batch,
     check_dtype,
     check_finite,
     check_given,
@@ -205,8 +206,17 @@ class KinematicChain(nn.Module):
 
     def interpolate(self, q0: Tensor, q1: Tensor, s) -> Tensor:
         """The geodesic between two configurations at ``s (...)`` ∈ [0, 1]: linear on angles and lengths,
-        slerp on quaternions."""
-        return self.configuration_space.interpolate(self.check_q(q0, "q0"), self.check_q(q1, "q1"), s)
+        slerp on quaternions; ``q0, q1 (..., nq)`` -> ``(..., nq)``.
+
+        ``s`` follows the rule of :mod:`diffkin.validation` (a number, sequence, array or float tensor of the
+        chain's dtype and device; finite: :class:`~diffkin.errors.NonFiniteError`; complex, bool or text:
+        :class:`~diffkin.errors.DTypeError`); its shape is a batch shape that must broadcast with those of
+        q0 and q1 (:class:`~diffkin.errors.ShapeError`). Values outside [0, 1] extrapolate along the geodesic.
+        """
+        q0, q1 = self.check_q(q0, "q0"), self.check_q(q1, "q1")
+        (s,) = tensors(("s", check_given(s, "s", "interpolation parameters (...)"), None), like=self)
+        broadcast_batch(("q0", q0, 1), ("q1", q1, 1), ("s", s, 0))
+        return self.configuration_space.interpolate(q0, q1, s)
 
     def neutral_configuration(self) -> Tensor:
         """The neutral configuration ``(nq,)``: zeros, and identity quaternions (1, 0, 0, 0)."""
