@@ -258,3 +258,156 @@ def test_item17_tall_ellipsoid_gradients_match_finite_differences():
         return axes.sum() + e.lengths.sum()
 
     assert torch.autograd.gradcheck(f, (J,))
+
+
+# ---------------------------------------------------------------- item 22: base with the wrong batch
+def test_item22_base_batch_mismatch_is_a_shape_error(panda):
+    base = torch.eye(4, dtype=F64).expand(3, 4, 4)
+    with pytest.raises(errors.ShapeError, match=r"expected T_target of shape \(\.\.\., 4, 4\), got \(5, 4\)"):
+        ik.solve(panda, torch.zeros(5, 4, dtype=F64), base=torch.eye(4, dtype=F64))
+    T = panda.forward_kinematics(torch.zeros(5, 7, dtype=F64))
+    with pytest.raises(errors.ShapeError, match=r"base.*broadcast with those of T_target \(5\).*\(3, 4, 4\)"):
+        ik.solve(panda, T, base=base)
+    with pytest.raises(errors.ShapeError, match=r"with those of q \(5\), got base \(3, 4, 4\)"):
+        panda.forward_kinematics(torch.zeros(5, 7, dtype=F64), base=base)
+    with pytest.raises(errors.ShapeError, match=r"broadcast with those of q \(5\)"):
+        panda.forward_kinematics(torch.zeros(5, 7, dtype=F64), all_frames=True, base=base)
+    with pytest.raises(errors.ShapeError, match=r"broadcast with those of q \(5\)"):
+        panda.forward_kinematics_and_jacobian(torch.zeros(5, 7, dtype=F64), base=base)
+
+
+def test_item22_base_that_broadcasts_still_places_the_robot(panda):
+    from scipy.spatial.transform import Rotation
+
+    q = panda.random_configuration((2, 5), generator=torch.Generator().manual_seed(5))
+    B = torch.eye(4, dtype=F64).repeat(2, 1, 1, 1)  # (2, 1, 4, 4) against q's (2, 5)
+    B[:, 0, :3, :3] = torch.from_numpy(Rotation.from_rotvec([[0, 0, 0.7], [0.3, 0, 0]]).as_matrix())
+    B[:, 0, :3, 3] = torch.tensor([[0.5, 0.0, 0.1], [-1.0, 2.0, 0.0]], dtype=F64)
+    Tw = panda.forward_kinematics(q, base=B)
+    torch.testing.assert_close(Tw, B @ panda.forward_kinematics(q))
+    res = ik.solve(panda, Tw, base=B, seed=0)
+    assert bool(res.success.all())
+    torch.testing.assert_close(panda.forward_kinematics(res.q, base=B), Tw, atol=1e-3, rtol=0)
+
+
+# ------------------------------------------------------ item 24: RobotCollision takes q as the chain
+@pytest.fixture(scope="module")
+def fr3_collision():
+    import warnings
+
+    chain = models.from_urdf(DATA / "urdf" / "fr3.urdf", "fr3_link8", dtype=torch.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's meshes are not shipped
+        return chain, C.RobotCollision.from_urdf(DATA / "urdf" / "fr3.urdf", chain)
+
+
+def test_item24_robot_collision_converts_q_like_the_chain(fr3_collision):
+    chain, rc = fr3_collision
+    q = chain.random_configuration((2,), generator=torch.Generator().manual_seed(6))
+    world = C.World(spheres=[[0.4, 0.0, 0.5, 0.1]], dtype=torch.float32)
+    as_list, as_np64 = q.tolist(), q.double().numpy()  # a float64 array: converted to the chain's float32
+    for method in (rc.self_distances, rc.min_distance, lambda q: rc.placed(q)[0],
+                   lambda q: rc.world_distances(q, world), lambda q: rc.min_distance(q, world)):
+        ref = method(q)
+        for given in (as_list, as_np64):
+            out = method(given)
+            assert out.dtype == torch.float32
+            torch.testing.assert_close(out, ref)
+        with pytest.raises(errors.ShapeError, match=r"expected q of shape \(\.\.\., 7\)"):
+            method([0.0] * 6)
+    with pytest.raises(errors.DTypeError, match="q is torch.float64"):  # a tensor keeps the agreement check
+        rc.self_distances(q.double())
+
+
+def test_item24_from_urdf_refuses_a_missing_srdf_and_a_missing_chain(fr3_collision):
+    chain, _ = fr3_collision
+    urdf = DATA / "urdf" / "fr3.urdf"
+    with pytest.raises(errors.ModelError, match="SRDF file 'missing.srdf' not found"):
+        C.RobotCollision.from_urdf(urdf, chain, srdf="missing.srdf")
+    with pytest.raises(errors.ModelError, match="expected srdf as a path or the XML text, got int"):
+        C.RobotCollision.from_urdf(urdf, chain, srdf=3)
+    for bad, what in ((None, "NoneType"), (models.load("panda"), "DHChain")):
+        with pytest.raises(errors.ModelError, match=f"expected chain as the chain built from .*{what}"):
+            C.RobotCollision.from_urdf(urdf, bad)
+
+
+# ------------------------------------------------------------------ item 31: the trajectory CLI
+def _cli(*args):
+    import contextlib
+    import io
+
+    from diffkin.cli import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = main([str(a) for a in args])
+    return rc, out.getvalue(), err.getvalue()
+
+
+def test_item31_cartesian_via_points_from_a_txt_file(tmp_path):
+    from scipy.interpolate import CubicSpline
+
+    pts = np.array([[0.3, 0.0, 0.5], [0.4, 0.1, 0.5], [0.45, 0.0, 0.45], [0.5, 0.1, 0.4]])
+    np.savetxt(tmp_path / "via.txt", pts, header="x y z")  # numpy's plain text: spaces, a # header
+    rc, out, err = _cli("trajectory", "cartesian", "--points", tmp_path / "via.txt", "--duration", "3",
+                        "--samples", "31", "--output", tmp_path / "c.npz")
+    assert rc == 0, err
+    with np.load(tmp_path / "c.npz") as data:
+        t, p, v, a = data["t"], data["position"], data["velocity"], data["acceleration"]
+    # the clamped cubic spline through the points at equally spaced times (zero end velocities), scipy's
+    ref = CubicSpline(np.linspace(0, 3, 4), pts, bc_type="clamped")
+    np.testing.assert_allclose(p, ref(t), atol=1e-12)
+    np.testing.assert_allclose(v, ref(t, 1), atol=1e-10)
+    np.testing.assert_allclose(a, ref(t, 2), atol=1e-9)
+    # joint space from a comma-separated .txt, the same spline
+    np.savetxt(tmp_path / "j.txt", pts[:, :2], delimiter=",")
+    rc, _, err = _cli("trajectory", "joint", "--points", tmp_path / "j.txt", "--duration", "3", "--samples",
+                      "31", "--output", tmp_path / "j.npz")
+    assert rc == 0, err
+    with np.load(tmp_path / "j.npz") as data:
+        np.testing.assert_allclose(data["position"], ref(t)[:, :2], atol=1e-12)
+
+
+@pytest.mark.parametrize("extra,flag", [(("--profile", "cubic"), "--profile"),
+                                        (("--start", "0", "0"), "--start"), (("--end", "1", "1"), "--end")])
+def test_item31_points_with_profile_start_or_end_is_an_error(tmp_path, extra, flag):
+    np.savetxt(tmp_path / "j.csv", [[0.0, 0.0], [1.0, -1.0], [0.5, 0.5]], delimiter=",")
+    rc, _, err = _cli("trajectory", "joint", "--points", tmp_path / "j.csv", *extra, "--output",
+                      tmp_path / "x.npz")
+    assert rc == 2 and err.startswith("error: ") and f"{flag} cannot be combined with --points" in err, err
+    assert not (tmp_path / "x.npz").exists()
+
+
+def test_item31_cartesian_points_need_three_columns_and_numbers(tmp_path):
+    np.savetxt(tmp_path / "two.txt", [[0.0, 0.0], [1.0, -1.0]])
+    out = tmp_path / "x.npz"
+    rc, _, err = _cli("trajectory", "cartesian", "--points", tmp_path / "two.txt", "--output", out)
+    assert rc == 2 and "expected Cartesian via points of shape (N >= 2, 3 (x, y, z)), got (2, 2)" in err, err
+    (tmp_path / "bad.txt").write_text("0 0 0\n1 x 1\n")
+    rc, _, err = _cli("trajectory", "cartesian", "--points", tmp_path / "bad.txt", "--output", out)
+    assert rc == 2 and "line 2: not a number: 'x'" in err, err
+    (tmp_path / "ragged.txt").write_text("0 0 0\n1 1\n")
+    rc, _, err = _cli("trajectory", "cartesian", "--points", tmp_path / "ragged.txt", "--output", out)
+    assert rc == 2 and "line 2: 2 columns, but the first row has 3" in err, err
+
+
+# ------------------------------------------------------------- item 34: the env's public joint state
+def test_item34_env_exposes_its_joint_configuration():
+    gym = pytest.importorskip("gymnasium")
+    import diffkin.envs  # noqa: F401
+
+    env = gym.make("diffkin/Reach-v0", observation=("joint_positions",))
+    with pytest.raises(gym.error.ResetNeeded):
+        _ = env.unwrapped.q
+    obs, _ = env.reset(seed=3)
+    chain = env.unwrapped.robot.chain
+    lo, hi = (x.double().numpy() for x in chain.lower_upper())
+    for _ in range(3):
+        q = env.unwrapped.q
+        assert q.shape == (chain.n_joints,) and q.dtype == np.float64
+        # the observation is q mapped to [-1, 1] by the limits: the property is the env's own q
+        np.testing.assert_allclose(obs["observation"], 2.0 * (q - lo) / (hi - lo) - 1.0, atol=1e-6)
+        q[:] = 0.0  # a copy: writing it leaves the env alone
+        assert not np.array_equal(env.unwrapped.q, q)
+        np.testing.assert_array_equal(env.get_wrapper_attr("q"), env.unwrapped.q)
+        obs, *_ = env.step(env.action_space.sample())
