@@ -47,6 +47,7 @@ from .transforms import as_rigid_transform, check_transform
 from .validation import (
     SUPPORTED_DTYPES,
     as_tensor,
+    broadcast_batch,
     check_dtype,
     check_finite,
     check_given,
@@ -205,8 +206,17 @@ class KinematicChain(nn.Module):
 
     def interpolate(self, q0: Tensor, q1: Tensor, s) -> Tensor:
         """The geodesic between two configurations at ``s (...)`` ∈ [0, 1]: linear on angles and lengths,
-        slerp on quaternions."""
-        return self.configuration_space.interpolate(self.check_q(q0, "q0"), self.check_q(q1, "q1"), s)
+        slerp on quaternions; ``q0, q1 (..., nq)`` -> ``(..., nq)``.
+
+        ``s`` follows the rule of :mod:`diffkin.validation` (a number, sequence, array or float tensor of the
+        chain's dtype and device; finite: :class:`~diffkin.errors.NonFiniteError`; complex, bool or text:
+        :class:`~diffkin.errors.DTypeError`); its shape is a batch shape that must broadcast with those of
+        q0 and q1 (:class:`~diffkin.errors.ShapeError`). Values outside [0, 1] extrapolate along the geodesic.
+        """
+        q0, q1 = self.check_q(q0, "q0"), self.check_q(q1, "q1")
+        (s,) = tensors(("s", check_given(s, "s", "interpolation parameters (...)"), None), like=self)
+        broadcast_batch(("q0", q0, 1), ("q1", q1, 1), ("s", s, 0))
+        return self.configuration_space.interpolate(q0, q1, s)
 
     def neutral_configuration(self) -> Tensor:
         """The neutral configuration ``(nq,)``: zeros, and identity quaternions (1, 0, 0, 0)."""
@@ -452,9 +462,18 @@ class KinematicChain(nn.Module):
         return T.squeeze(-3) if self._single_end else T
 
     # -------------------------------------------------------------------------------------------- FK
-    def _row_base(self, base, check: bool) -> Tensor:
-        """Per-row base poses ``(..., 4, 4)`` by the rule (the chain's dtype and device), checked rigid."""
+    def _row_base(self, base, check: bool, batch: Sequence[int] | None = None, of: str = "q") -> Tensor:
+        """Per-row base poses ``(..., 4, 4)`` by the rule (the chain's dtype and device), checked rigid; with
+        ``batch`` (the batch dims of ``of``: q or the targets) their batch dims must broadcast with it
+        (:class:`ShapeError` naming both, instead of a matmul error)."""
         (base,) = tensors(("base", base, (4, 4)), like=self)
+        if batch is not None:
+            try:
+                torch.broadcast_shapes(tuple(batch), base.shape[:-2])
+            except RuntimeError:
+                got = f"{of} {shape_str(tuple(batch))}, got base {shape_str(base.shape)}"
+                raise ShapeError(f"expected base of shape (..., 4, 4) whose batch dims broadcast with those "
+                                 f"of {got}") from None
         return check_transform(base, "base") if check else base
 
     def _in_world(self, T: Tensor, base: Tensor, per_end: bool) -> Tensor:
@@ -482,7 +501,9 @@ class KinematicChain(nn.Module):
                 return T
         if base is not None:
             T = self.forward_kinematics(q, all_frames, check)
-            return self._in_world(T, self._row_base(base, check), all_frames or not self._single_end)
+            per_end = all_frames or not self._single_end
+            B = self._row_base(base, check, T.shape[: T.ndim - (3 if per_end else 2)])
+            return self._in_world(T, B, per_end)
         if check:
             q = self.check_q(q, finite=False)
         if _autocast(q):  # poses in the chain's dtype: half precision would move a Panda's flange by mm
@@ -568,7 +589,7 @@ class KinematicChain(nn.Module):
             return TJ
         if base is not None:
             T, J = self._fk_jacobian(q, check)
-            B = self._row_base(base, check)
+            B = self._row_base(base, check, T.shape[: T.ndim - (2 if self._single_end else 3)])
             R = B[..., :3, :3] if self._single_end else B[..., None, :3, :3]
             J = torch.cat((R @ J[..., :3, :], R @ J[..., 3:, :]), dim=-2)
             return self._in_world(T, B, not self._single_end), J

@@ -20,7 +20,8 @@ from torch import Tensor
 from .._deprecation import renamed_arguments
 from ..errors import ConventionError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
-from ..validation import check_number, check_trailing, shape_str, tensors
+from ..transforms import RIGIDITY_TOLERANCE, _transform_deviations
+from ..validation import _traced, check_number, check_trailing, shape_str, tensors
 from .closed_loop import clik
 from .result import final_errors
 
@@ -54,8 +55,13 @@ def finite_difference_twists(T_traj: Tensor, dt: float) -> Tensor:
 
 def _path_kind(x: Tensor, name: str, vectors: tuple[int, ...]) -> bool:
     """True for poses ``(..., S, 4, 4)``, False for vectors ``(..., S, k)`` with k in ``vectors``; else
-    :class:`ShapeError`."""
+    :class:`ShapeError`. Poses must be rigid by the one rule of
+    :data:`~diffkin.transforms.RIGIDITY_TOLERANCE` (:class:`~diffkin.errors.DiffkinError` naming the first
+    offending sample): a scaled or sheared rotation block has no rotation vector, its twists and geodesics
+    would be silently wrong."""
     if x.ndim >= 3 and tuple(x.shape[-2:]) == (4, 4):
+        if not _traced(x):  # values cannot be read while torch.compile / torch.func trace
+            _transform_deviations(x.detach(), name, RIGIDITY_TOLERANCE)
         return True
     if x.ndim >= 2 and x.shape[-1] in vectors:
         return False

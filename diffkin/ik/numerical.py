@@ -105,23 +105,12 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     """Validated targets (:func:`_valid_targets`) -> (batch, the targets detached (poses re-orthonormalised),
     their batch-last columns in the working dtype)."""
     T_target = T_target.detach()
-    K, tree = chain.n_ends, not chain.single_end
-    ends = (K,) if tree else ()
-    pos_input = position_only and T_target.ndim >= 1 and T_target.shape[-1] == 3
+    K = chain.n_ends
+    pos_input, batch = _target_batch(chain, T_target, position_only)
     if pos_input:
-        if tuple(T_target.shape[-1 - len(ends) : -1]) != ends:
-            raise ShapeError(f"expected target positions of shape (..., {K}, 3) for the {K} end links of "
-                             f"chain '{chain.name}', got {shape_str(T_target.shape)}")
-        batch = tuple(T_target.shape[: T_target.ndim - 1 - len(ends)])
         pd = T_target.reshape(-1, K * 3).T.to(dtype)
         return batch, T_target, Targets(pd.contiguous(), None, None, None)
-    want = f"(..., {K}, 4, 4)" if tree else "(..., 4, 4)"
-    tail = tuple(T_target.shape[max(T_target.ndim - 2 - len(ends), 0) :])
-    if T_target.ndim < 2 + len(ends) or tail != (*ends, 4, 4):
-        want = f"{want} or {want[:-6]}3)" if position_only else want
-        raise ShapeError(f"expected T_target of shape {want}, got {shape_str(T_target.shape)}")
     T_target = as_measured_transform(T_target, "T_target")  # 1e-5 tolerance, re-orthonormalised
-    batch = tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
     # the four columns of every end link's pose, batch last: (4, 3K, N) in one copy
     cols = T_target.reshape(-1, K, 4, 4)[:, :, :3].permute(3, 1, 2, 0).to(dtype).reshape(4, 3 * K, -1)
     cols = cols.contiguous().unbind(0)
@@ -130,10 +119,30 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     return batch, T_target, Targets(cols[3], cols[0], cols[1], cols[2])
 
 
+def _target_batch(chain, T_target: Tensor, position_only: bool) -> tuple[bool, tuple[int, ...]]:
+    """(positions given, the batch dims) of targets ``(..., [K,] 4, 4)`` or, with ``position_only``,
+    ``(..., [K,] 3)``; :class:`ShapeError` for any other shape."""
+    K, tree = chain.n_ends, not chain.single_end
+    ends = (K,) if tree else ()
+    if position_only and T_target.ndim >= 1 and T_target.shape[-1] == 3:
+        if tuple(T_target.shape[-1 - len(ends) : -1]) != ends:
+            raise ShapeError(f"expected target positions of shape (..., {K}, 3) for the {K} end links of "
+                             f"chain '{chain.name}', got {shape_str(T_target.shape)}")
+        return True, tuple(T_target.shape[: T_target.ndim - 1 - len(ends)])
+    want = f"(..., {K}, 4, 4)" if tree else "(..., 4, 4)"
+    tail = tuple(T_target.shape[max(T_target.ndim - 2 - len(ends), 0) :])
+    if T_target.ndim < 2 + len(ends) or tail != (*ends, 4, 4):
+        want = f"{want} or {want[:-6]}3)" if position_only else want
+        raise ShapeError(f"expected T_target of shape {want}, got {shape_str(T_target.shape)}")
+    return False, tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
+
+
 def _targets_in_base(chain, T_target: Tensor, base, position_only: bool) -> Tensor:
     """World targets in the chain's base frame: base⁻¹ T (poses) or Rᵀ (p − t) (positions), per row; the
-    K end links of a tree share their row's base."""
-    B_inv = _transform_inverse(chain._row_base(base, True))
+    K end links of a tree share their row's base. The targets' shape and the base's batch dims are checked
+    first (:class:`ShapeError`)."""
+    _, batch = _target_batch(chain, T_target, position_only)
+    B_inv = _transform_inverse(chain._row_base(base, True, batch, of="T_target"))
     if not chain.single_end:
         B_inv = B_inv.unsqueeze(-3)
     if position_only and T_target.shape[-1] == 3:
