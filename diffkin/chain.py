@@ -10,6 +10,10 @@ say what their parameters are and how they map to those transforms (:meth:`Kinem
 Base and tool are learnable too: T_base = T_base,nominal · Δ(``base_delta``), T_tool = T_tool,nominal ·
 Δ(``tool_delta``), with Δ a pose correction that stays rigid for any value (both deltas start at zero).
 
+Learnable means able to learn, on request: the geometry is frozen (``requires_grad=False``) by default, so
+that a solve or an FK call returns plain tensors and takes the constant fast path; ``learnable=True`` on
+the constructor or loader, or ``chain.requires_grad_()``, makes it trainable.
+
 The evaluations of the product, chosen in one place (:meth:`KinematicChain._route`):
 
 * CPU calls that need no gradient (``torch.no_grad()``, or neither ``q`` nor a parameter requires grad): the
@@ -36,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from ._deprecation import deprecated_alias
-from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
+from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, OptionError, ShapeError
 from .kernels import native, single
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.configuration import ConfigurationSpace
@@ -108,8 +112,19 @@ def _is_plain(t: Tensor) -> bool:
     return type(t) in (Tensor, nn.Parameter) and not torch._C._functorch.is_functorch_wrapped_tensor(t)
 
 
+def _check_learnable(learnable) -> None:
+    if not isinstance(learnable, bool):
+        raise OptionError(f"learnable must be True or False, got {learnable!r}")
+
+
 class KinematicChain(nn.Module):
     """A tree of one-DOF joints from a base to K end links; ``n`` independent joint variables.
+
+    Geometry is frozen by default: every ``nn.Parameter`` of a chain (DH table, URDF / MJCF origins and
+    axes, base and tool corrections) has ``requires_grad=False``, so results carry no autograd graph unless
+    ``q`` asks for one. ``learnable=True`` (on every constructor and loader) or ``chain.requires_grad_()``
+    makes the geometry trainable (gradients w.r.t. it, optimisers over ``chain.parameters()``);
+    :attr:`learnable` says whether any of it is.
 
     Shapes: ``q`` is ``(..., n)``; poses are ``(..., 4, 4)`` for a chain with one end link (``K = 1``, made
     from a single end-link name), ``(..., K, 4, 4)`` for one made from a list of end links; Jacobians
@@ -129,8 +144,10 @@ class KinematicChain(nn.Module):
     planar: bool = False
 
     def __init__(self, topology: Topology, q_limits=None, name: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None, single_end: bool = True):
+                 dtype: torch.dtype | None = None, device=None, single_end: bool = True,
+                 learnable: bool = False):
         super().__init__()
+        _check_learnable(learnable)
         dtype = dtype or torch.get_default_dtype()
         if not dtype.is_floating_point or dtype not in (torch.float32, torch.float64):
             raise DTypeError(f"a chain's dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -150,8 +167,8 @@ class KinematicChain(nn.Module):
         self.register_buffer("q_limits", None)
         self.register_buffer("base_nominal", None)
         self.register_buffer("tool_nominal", None)
-        self.base_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
-        self.tool_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
+        self.base_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device), requires_grad=learnable)
+        self.tool_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device), requires_grad=learnable)
         if q_limits is not None:
             from .validation import check_fits_dtype  # (local: this block is the only user in chain.py)
 
@@ -812,6 +829,11 @@ class KinematicChain(nn.Module):
         return random_configuration(self, shape, generator, collision=collision, world=world, margin=margin,
                                     max_rounds=max_rounds, return_mask=return_mask)
 
+    @property
+    def learnable(self) -> bool:
+        """Whether any geometry parameter requires grad (``learnable=True`` or ``requires_grad_()``)."""
+        return any(p.requires_grad for p in self.parameters())
+
     def copy(self) -> KinematicChain:
         """An independent deep copy (not compiled: a compiled path is bound to its own chain)."""
         import copy
@@ -884,8 +906,9 @@ def _as_float64(chain: KinematicChain) -> KinematicChain:
 class DHChain(KinematicChain):
     """Serial chain from a Denavit–Hartenberg table (§2.8.2).
 
-    ``a``, ``alpha``, ``d``, ``theta`` (each ``(n,)``) are ``nn.Parameter`` s, so FK is differentiable with
-    respect to the DH table by default (calibration builds on this). For a revolute joint ``theta`` is the
+    ``a``, ``alpha``, ``d``, ``theta`` (each ``(n,)``) are ``nn.Parameter`` s, frozen unless
+    ``learnable=True`` (or ``chain.requires_grad_()``): then FK is differentiable with respect to the DH
+    table (gradient-based identification, a learnt tool). For a revolute joint ``theta`` is the
     joint offset (ϑ_i = theta_i + q_i); for a prismatic joint ``theta`` is its constant angle and
     d_i = d_i + q_i (2.52).
 
@@ -921,7 +944,9 @@ class DHChain(KinematicChain):
         beta=None,
         dtype: torch.dtype | None = None,
         device=None,
+        learnable: bool = False,
     ):
+        _check_learnable(learnable)
         if convention not in _CONVENTIONS:
             raise ConventionError(f"convention must be one of {_CONVENTIONS}, got {convention!r}")
         if beta is not None and convention != "standard":
@@ -939,13 +964,13 @@ class DHChain(KinematicChain):
                 f"got {joint_types!r}"
             )
         topo = Topology.serial([c == "R" for c in joint_types])
-        super().__init__(topo, q_limits=q_limits, name=name, dtype=dtype, device=device)
+        super().__init__(topo, q_limits=q_limits, name=name, dtype=dtype, device=device, learnable=learnable)
         self.convention = convention
-        self.a = nn.Parameter(cols["a"])
-        self.alpha = nn.Parameter(cols["alpha"])
-        self.d = nn.Parameter(cols["d"])
-        self.theta = nn.Parameter(cols["theta"])
-        self.beta = None if beta is None else nn.Parameter(cols["beta"])
+        self.a = nn.Parameter(cols["a"], requires_grad=learnable)
+        self.alpha = nn.Parameter(cols["alpha"], requires_grad=learnable)
+        self.d = nn.Parameter(cols["d"], requires_grad=learnable)
+        self.theta = nn.Parameter(cols["theta"], requires_grad=learnable)
+        self.beta = None if beta is None else nn.Parameter(cols["beta"], requires_grad=learnable)
         # the constructor decides the chain's dtype: float base/tool tensors are converted to it
         base, tool = (check_dtype(T, k).detach().to(dtype) if isinstance(T, Tensor) else T
                       for k, T in (("base", base), ("tool", tool)))
@@ -962,7 +987,8 @@ class DHChain(KinematicChain):
         return torch.stack([self.a, self.alpha, self.d, self.theta], dim=-1).detach()
 
     def copy(self) -> DHChain:
-        """An independent copy (parameters cloned, gradients not shared, not compiled)."""
+        """An independent copy (parameters cloned, each as learnable as its original; gradients not shared,
+        not compiled)."""
         c = DHChain(
             self.a.detach().clone(),
             self.alpha.detach().clone(),
@@ -978,17 +1004,20 @@ class DHChain(KinematicChain):
         )
         c.metadata = dict(self.metadata)
         c.home, c.planar = None if self.home is None else list(self.home), self.planar
+        for key, p in self.named_parameters():
+            c.get_parameter(key).requires_grad_(p.requires_grad)
         return c
 
     # ----------------------------------------------------------------------------------- YAML / dict
     @classmethod
-    def from_dict(cls, data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
+    def from_dict(cls, data: dict, dtype: torch.dtype | None = None, device=None, where: str = "", *,
+                  learnable: bool = False) -> DHChain:
         """Chain from a model mapping (YAML schema of :mod:`diffkin.models.io`); values may be expressions."""
         from .models.io import parse_chain_dict
 
         kwargs = parse_chain_dict(data, dtype=dtype, device=device, where=where)
         metadata, home, planar = kwargs.pop("metadata"), kwargs.pop("home"), kwargs.pop("planar")
-        chain = cls(**kwargs)
+        chain = cls(**kwargs, learnable=learnable)
         chain.metadata, chain.home, chain.planar = metadata, home, planar
         return chain
 
@@ -999,12 +1028,13 @@ class DHChain(KinematicChain):
         return chain_to_dict(self)
 
     @classmethod
-    def from_yaml(cls, path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
+    def from_yaml(cls, path_or_str, dtype: torch.dtype | None = None, device=None, *,
+                  learnable: bool = False) -> DHChain:
         """Chain from a YAML file path or a YAML string (see :mod:`diffkin.models` for the schema)."""
         from .models.io import read_yaml
 
         data, where = read_yaml(path_or_str)
-        return cls.from_dict(data, dtype=dtype, device=device, where=where)
+        return cls.from_dict(data, dtype=dtype, device=device, where=where, learnable=learnable)
 
     def to_yaml(self, path=None) -> str:
         """YAML text of :meth:`to_dict` (angles that are exact multiples of π/12 written as e.g. ``pi/2``);

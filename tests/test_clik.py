@@ -224,7 +224,7 @@ def test_differentiable_through_the_integration(planar):
 
     q0 = (Q0_BOOK + 0.01).requires_grad_(True)
     assert torch.autograd.gradcheck(final_error, (q0,))
-    chain = planar.copy()
+    chain = planar.copy().requires_grad_()
     res = clik(chain, (x, xd), Q0_BOOK, DT, algorithm="inverse", differentiable=True, **PLANAR)
     res.position_error[-1].backward()
     # w.r.t. the DH table: central differences of the whole integration with a_i moved by ±h

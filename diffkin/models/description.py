@@ -105,18 +105,19 @@ class TreeDescription:
 
 
 class TreeChain(KinematicChain):
-    """The learnable model of a :class:`TreeDescription`: its parameters as ``nn.Parameter`` s, its frames
+    """The learnable model of a :class:`TreeDescription`: its parameters as ``nn.Parameter`` s (frozen
+    unless ``learnable=True``), its frames
     evaluated by the kernels. Subclasses (:class:`~diffkin.models.URDFChain`,
     :class:`~diffkin.models.MJCFChain`) only implement :meth:`_factors`: how their parameters map to the
     factor tables the description names."""
 
     def __init__(self, description: TreeDescription, *, dtype: torch.dtype | None = None, device=None,
-                 single_end: bool = True):
+                 single_end: bool = True, learnable: bool = False):
         super().__init__(description.topology(), q_limits=description.limits, name=description.name,
-                         dtype=dtype, device=device, single_end=single_end)
+                         dtype=dtype, device=device, single_end=single_end, learnable=learnable)
         dt, dev = self.dtype, self.device
         for key, value in description.parameters.items():
-            setattr(self, key, nn.Parameter(value.to(dtype=dt, device=dev)))
+            setattr(self, key, nn.Parameter(value.to(dtype=dt, device=dev), requires_grad=learnable))
         for key, value in description.buffers.items():
             floating = value is not None and value.is_floating_point()
             self.register_buffer(key, None if value is None else value.to(dtype=dt if floating else None,

@@ -387,12 +387,12 @@ def _mass_from_stand_ins(text: str | None, path: str | None) -> list[str]:
 class MJCFChain(TreeChain):
     """A MuJoCo model from its world (or ``root_link``) to one or several end bodies or sites.
 
-    Parameters (learnable, like a URDF chain's): ``body_pos (L, 3)``, ``body_quat (L, 4)`` (normalised in
-    the kernel) of the bodies on the paths (``body_names``; bodies with a free joint have none: their pose is
-    q), ``joint_pos (A, 3)`` of the hinge, slide and ball joints, ``joint_axis (H, 3)`` of the hinge and
-    slide joints, ``site_pos``, ``site_quat`` of end sites, plus the base/tool corrections of
-    :class:`~diffkin.chain.KinematicChain`. The tree itself is the
-    :class:`~diffkin.models.description.TreeDescription` the MJCF reader makes.
+    Parameters (learnable on request, like a URDF chain's: frozen unless ``learnable=True``):
+    ``body_pos (L, 3)``, ``body_quat (L, 4)`` (normalised in the kernel) of the bodies on the paths
+    (``body_names``; bodies with a free joint have none: their pose is q), ``joint_pos (A, 3)`` of the
+    hinge, slide and ball joints, ``joint_axis (H, 3)`` of the hinge and slide joints, ``site_pos``,
+    ``site_quat`` of end sites, plus the base/tool corrections of :class:`~diffkin.chain.KinematicChain`.
+    The tree itself is the :class:`~diffkin.models.description.TreeDescription` the MJCF reader makes.
 
     Attributes: ``joint_names`` (the chain's independent joints, q's order), ``joint_kinds`` (``"revolute"``,
     ``"prismatic"``, ``"ball"``, ``"free"``, ``"continuous"``), ``qpos_index`` / ``dof_index`` (the model's
@@ -400,10 +400,10 @@ class MJCFChain(TreeChain):
     """
 
     def __init__(self, model, text: str, path: str | None, end_links, root_link: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None):
+                 dtype: torch.dtype | None = None, device=None, learnable: bool = False):
         single, ends = check_end_links(end_links, "body or site")
         description, facts = _describe(model, path, ends, root_link, text)
-        super().__init__(description, dtype=dtype, device=device, single_end=single)
+        super().__init__(description, dtype=dtype, device=device, single_end=single, learnable=learnable)
         self.body_names = facts["body_names"]
         self._anchor_joints, self._axis_joints = facts["anchor_joints"], facts["axis_joints"]
         self._qpos_index, self._dof_index = facts["qpos_index"], facts["dof_index"]
@@ -491,16 +491,17 @@ def _unit(Q: Tensor) -> Tensor:
 
 
 def from_mjcf(source, end_link, *, root_link: str | None = None, dtype: torch.dtype | None = None,
-              device=None) -> MJCFChain:
+              device=None, learnable: bool = False) -> MJCFChain:
     """A :class:`MJCFChain` from an MJCF path, XML text or bytes, from the world (or ``root_link``, a body)
     to ``end_link``: a body or site name, or a list of K of them for a tree whose FK is ``(..., K, 4, 4)``
     and Jacobian ``(..., K, 6, nv)`` in that order. Several subtrees of the world (a robot and a movable
     object) may be in one chain. Needs the ``mujoco`` package (``pip install 'diffkin[mjcf]'``).
 
     Raises :class:`~diffkin.errors.ModelError` naming the source for files MuJoCo refuses, and naming the
-    element for unknown end links or root links.
+    element for unknown end links or root links. The geometry is frozen unless ``learnable=True`` (see
+    :class:`~diffkin.chain.KinematicChain`).
     """
     check_end_links(end_link, "body or site")  # before compiling: a wrong argument is said at once
     model, text, path = compile_mjcf(source)
     return MJCFChain(model, text, path, end_link, root_link, dtype=dtype or torch.get_default_dtype(),
-                     device=device)
+                     device=device, learnable=learnable)

@@ -182,7 +182,8 @@ def _inertias(tree: URDFTree, link_frame: dict[str, int]) -> tuple[list[BodyIner
 
 
 class URDFChain(TreeChain):
-    """A URDF robot from a root link to one or several end links (a tree), with learnable geometry.
+    """A URDF robot from a root link to one or several end links (a tree), with learnable geometry (frozen
+    unless ``learnable=True`` or ``requires_grad_()``).
 
     Parameters: ``origin_xyz``, ``origin_rpy`` ``(L, 3)`` — the ``<origin>`` of every joint on the paths
     (``joint_origin_names`` labels the rows) — and ``axis`` ``(J, 3)``, the axis of every revolute,
@@ -198,10 +199,11 @@ class URDFChain(TreeChain):
     """
 
     def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None, floating_base: bool = False):
+                 dtype: torch.dtype | None = None, device=None, floating_base: bool = False,
+                 learnable: bool = False):
         single, ends = check_end_links(end_links, "link")
         description, facts = _describe(tree, ends, root_link, floating_base)
-        super().__init__(description, dtype=dtype, device=device, single_end=single)
+        super().__init__(description, dtype=dtype, device=device, single_end=single, learnable=learnable)
         self.tree = tree
         self.end_links = ends
         self.root_link = facts["root_link"]
@@ -277,7 +279,8 @@ class URDFChain(TreeChain):
 
 
 def from_urdf(source, end_link: str | list[str], *, root_link: str | None = None,
-              dtype: torch.dtype | None = None, device=None, floating_base: bool = False) -> URDFChain:
+              dtype: torch.dtype | None = None, device=None, floating_base: bool = False,
+              learnable: bool = False) -> URDFChain:
     """A :class:`URDFChain` from a URDF file path, XML text (str or bytes; an XML encoding declaration is
     fine) or a parsed :class:`~diffkin.models.urdf_xml.URDFTree`, from ``root_link`` (default: the tree's
     root) to ``end_link`` — a link name, or a list of K link names for a tree whose FK is ``(..., K, 4, 4)``
@@ -289,9 +292,11 @@ def from_urdf(source, end_link: str | list[str], *, root_link: str | None = None
     in the plane normal to the axis, then the angle about it); fixed joints keep their origin as
     parameters; ``<mimic>`` joints follow their leader (on any branch) and are not variables.
     ``floating_base=True`` puts a free joint at the root (q starts with its seven coordinates; a humanoid's
-    pelvis in the world). Raises :class:`~diffkin.errors.ModelError` naming the joint or link for invalid
-    files (missing links, a link with two parents, duplicate names, loops) or an unknown link.
+    pelvis in the world). The geometry is frozen unless ``learnable=True`` (see
+    :class:`~diffkin.chain.KinematicChain`). Raises :class:`~diffkin.errors.ModelError` naming the joint or
+    link for invalid files (missing links, a link with two parents, duplicate names, loops) or an unknown
+    link.
     """
     tree = source if isinstance(source, URDFTree) else parse_urdf(source)
     return URDFChain(tree, end_link, root_link, dtype=dtype or torch.get_default_dtype(), device=device,
-                     floating_base=floating_base)
+                     floating_base=floating_base, learnable=learnable)
