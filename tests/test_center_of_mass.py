@@ -250,6 +250,7 @@ def test_gradcheck_float64():
 
 def test_gradients_finite_at_the_neutral_configuration_and_to_the_geometry():
     _, chain = _mjcf_chain(MJCF["unitree_h1"], ["left_ankle_link", "right_elbow_link"])
+    chain.requires_grad_()  # the geometry is frozen by default; this test differentiates w.r.t. it
     q = chain.neutral_configuration().requires_grad_(True)
     (chain.center_of_mass(q).sum() + chain.com_jacobian(q).square().sum()).backward()
     assert torch.isfinite(q.grad).all()
