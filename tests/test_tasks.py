@@ -365,3 +365,21 @@ def test_old_keywords_and_typed_errors():
         ik.solve_velocity(chain, q, [task], 0.1, damping=-1.0)
     with pytest.raises(DiffkinError, match="target pose or a twist"):
         ik.FrameTask(0, target=torch.eye(4), twist=torch.zeros(6))
+
+
+def test_joint_limit_cost_does_not_penalise_the_identity_quaternion():
+    """Issue 35: JointLimitCost gave residual 0.05 at the neutral pose of a floating-base chain (lower_upper
+    gives ±1 on quaternion entries, and the identity's w = 1 sat on the 'upper limit')."""
+    from diffkin.ik import CostContext, JointLimitCost
+
+    _, chain, _ = _g1()
+    q = chain.neutral_configuration()
+    lo, hi = chain.lower_upper()
+    mid = 0.5 * (lo + hi)
+    scalar = list(chain.configuration_space.scalar_index("q"))
+    q[scalar[3:]] = mid[scalar[3:]]  # the hinges mid-range, the base at the origin, identity orientation
+    ctx = CostContext(chain, q, None)
+    assert float(JointLimitCost(weight=1.0).residual(ctx).abs().max()) == 0.0
+    q[scalar[3]] = hi[scalar[3]]  # a hinge on its limit is still penalised
+    residual = JointLimitCost(weight=1.0).residual(CostContext(chain, q, None))
+    assert float(residual.abs().max()) == pytest.approx(0.05)
