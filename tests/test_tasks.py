@@ -383,3 +383,45 @@ def test_joint_limit_cost_does_not_penalise_the_identity_quaternion():
     q[scalar[3]] = hi[scalar[3]]  # a hinge on its limit is still penalised
     residual = JointLimitCost(weight=1.0).residual(CostContext(chain, q, None))
     assert float(residual.abs().max()) == pytest.approx(0.05)
+
+
+def test_com_task_on_the_g1_matches_mink():
+    """Feet fixed, hands moving, the centre of mass pulled over the support: ComTask + FrameTasks +
+    PostureTask with limits, against mink's ComTask (subtree_com / mj_jacSubtreeCom of the pelvis)."""
+    model = compile_mjcf(G1)[0]
+    leaves = ["left_two_link", "left_four_link", "left_six_link", "right_two_link", "right_four_link",
+              "right_six_link"]
+    ends = ["left_ankle_roll_link", "right_ankle_roll_link", "left_zero_link", "right_zero_link"]
+    chain = from_mjcf(G1, ends + leaves, dtype=F64).requires_grad_(False)  # every joint: the CoM moves all
+    assert chain.nv == model.nv
+    dt, rng = 0.01, np.random.default_rng(13)
+    qpos = model.qpos0.copy()
+    qpos[7:] += rng.normal(size=model.nq - 7) * 0.05
+    lo, hi = model.jnt_range[1:, 0], model.jnt_range[1:, 1]
+    qpos[7:] = np.clip(qpos[7:], lo + 0.01, hi - 0.01)
+    conf = mink.Configuration(model, qpos)
+    com_target = conf.data.subtree_com[1] + np.array([0.02, -0.01, -0.03])
+    mc = mink.ComTask(cost=[5.0, 5.0, 1.0])
+    mc.set_target(com_target)
+    cost = torch.tensor([5.0, 5.0, 1.0], dtype=F64)
+    mtasks, ttasks = [mc], [ik.ComTask(torch.tensor(com_target), cost=cost)]
+    for k, e in enumerate(ends):
+        move = rng.normal(size=6) * (0.03 if k >= 2 else 0.0)  # hands move, feet stay
+        tgt = conf.get_transform_frame_to_world(e, "body") @ mink.SE3.exp(move)
+        t = mink.FrameTask(e, "body", position_cost=10.0, orientation_cost=1.0)
+        t.set_target(tgt)
+        mtasks.append(t)
+        ttasks.append(ik.FrameTask(e, target=torch.tensor(tgt.as_matrix()), position_cost=10.0,
+                                   orientation_cost=1.0))
+    pt = mink.PostureTask(model, cost=0.1)
+    pt.set_target(model.qpos0)
+    mtasks.append(pt)
+    ttasks.append(ik.PostureTask(torch.tensor(model.qpos0[chain.qpos_index()]), cost=0.1))
+    want = _mink_v(model, qpos, mtasks, [mink.ConfigurationLimit(model)], dt, 1e-6)[chain.dof_index()]
+    q = torch.tensor(qpos[chain.qpos_index()])
+    v = ik.solve_velocity(chain, q, ttasks, dt, limits=[ik.ConfigurationLimit()], damping=1e-6)
+    np.testing.assert_allclose(v.numpy(), want, atol=1e-6)
+    # the step moves the centre of mass towards its target
+    c0, c1 = chain.center_of_mass(q), chain.center_of_mass(chain.integrate(q, v * dt))
+    t = torch.tensor(com_target)
+    assert float((c1 - t).norm()) < float((c0 - t).norm())
