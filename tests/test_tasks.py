@@ -425,3 +425,23 @@ def test_com_task_on_the_g1_matches_mink():
     c0, c1 = chain.center_of_mass(q), chain.center_of_mass(chain.integrate(q, v * dt))
     t = torch.tensor(com_target)
     assert float((c1 - t).norm()) < float((c0 - t).norm())
+
+
+def test_solve_takes_pose_frame_tasks_and_limits():
+    """ik.solve(chain, tasks=..., limits=...) is ik.solve(chain, T, ...): the same q and flags."""
+    _, chain = _panda()
+    q = chain.random_configuration(16, generator=torch.Generator().manual_seed(14))
+    T = chain.forward_kinematics(q)
+    a = ik.solve(chain, T, seed=3)
+    b = ik.solve(chain, tasks=[ik.FrameTask("hand", target=T)], limits=[ik.ConfigurationLimit()], seed=3)
+    torch.testing.assert_close(a.q, b.q, atol=0, rtol=0)
+    assert bool((a.success == b.success).all()) and bool(b.success.all())
+    c = ik.solve(chain, tasks=[ik.FrameTask(0, target=T, orientation_cost=0.0)], seed=3)  # position only
+    assert bool(c.success.all())
+    torch.testing.assert_close(chain.forward_kinematics(c.q)[..., :3, 3], T[..., :3, 3], atol=2e-4, rtol=0)
+    with pytest.raises(ConventionError, match="pose FrameTasks"):
+        ik.solve(chain, tasks=[ik.PostureTask(torch.zeros(7, dtype=F64))])
+    with pytest.raises(ConventionError, match="VelocityLimit"):
+        ik.solve(chain, T, limits=[ik.VelocityLimit(1.0)])
+    with pytest.raises(ConventionError, match="once"):
+        ik.solve(chain, T, tasks=[ik.FrameTask(0, target=T)])
