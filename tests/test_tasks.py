@@ -445,3 +445,26 @@ def test_solve_takes_pose_frame_tasks_and_limits():
         ik.solve(chain, T, limits=[ik.VelocityLimit(1.0)])
     with pytest.raises(ConventionError, match="once"):
         ik.solve(chain, T, tasks=[ik.FrameTask(0, target=T)])
+
+
+def test_optimize_takes_tasks_and_limits():
+    """ik.optimize(chain, tasks=[pose FrameTask, PostureTask], limits=[ConfigurationLimit()]): the pose
+    reached (success against the FrameTask's target) and, among the poses that reach it, the one the
+    posture cost pulls towards (the redundant Panda's null space), against the same problem as cost
+    objects."""
+    _, chain = _panda()
+    q = chain.random_configuration(8, generator=torch.Generator().manual_seed(15))
+    T = chain.forward_kinematics(q)
+    q0 = chain.clamp_to_limits(q + 0.05)
+    q_ref = torch.zeros(7, dtype=F64)
+    tasks = [ik.FrameTask("hand", target=T), ik.PostureTask(q_ref, cost=1e-3)]
+    res = ik.optimize(chain, q0=q0, tasks=tasks, limits=[ik.ConfigurationLimit()], optimizer="gauss_newton")
+    assert bool(res.success.all())
+    # the same problem as cost objects: ‖log(T_f⁻¹T_t)‖² + 1e-6 ‖q − q_ref‖²
+    from diffkin.ik._from_tasks import TaskCost
+
+    costs = [TaskCost(task=tasks[0]), ik.RestPostureCost(q_rest=q_ref, weight=1e-6)]
+    ref = ik.optimize(chain, T, q0, costs=costs, optimizer="gauss_newton")
+    torch.testing.assert_close(res.q, ref.q, atol=1e-6, rtol=0)
+    with pytest.raises(ConventionError, match="twist"):
+        ik.optimize(chain, T, q0, tasks=[ik.FrameTask(0, twist=torch.zeros(6, dtype=F64))])

@@ -7,25 +7,66 @@ is ``solve(chain, T_target, respect_limits=..., collision=..., world=..., margin
 iterates are free), :class:`~diffkin.ik.CollisionLimit` for the collision constraint (its
 ``minimum_distance`` is the margin). Other tasks have no place in a pose solve (``ik.optimize`` and
 ``ik.solve_velocity`` take them); a :class:`~diffkin.ik.VelocityLimit` has none either.
+
+``optimize(chain, tasks=..., limits=...)`` takes every task (but the twist form of a FrameTask): each is the
+cost term ‖W e(q)‖² (:class:`TaskCost`, the task's own error and costs), the pose FrameTasks also give the
+targets its success flags are judged against; the limits as for ``solve``.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from numbers import Number
+from typing import Any
 
 import torch
+from torch import Tensor
 
 from ..errors import ConventionError
 from .limits import CollisionLimit, ConfigurationLimit, VelocityLimit, check_limits
-from .tasks import FrameTask, Problem
+from .residuals import CostContext, _Term
+from .tasks import FrameTask, Problem, Task
 
-__all__ = ["solve_arguments"]
+__all__ = ["TaskCost", "optimize_arguments", "solve_arguments"]
+
+
+@dataclass(frozen=True)
+class TaskCost(_Term):
+    """A task as a cost term of :func:`~diffkin.ik.optimize`: residual W e(q) ``(..., m)`` (its error and
+    cost vector), cost ``weight``·‖W e‖²."""
+
+    task: Any = None
+
+    def residual(self, ctx: CostContext) -> Tensor:
+        p = Problem(ctx.chain, ctx.q, 1.0)
+        e = self.task.error(p)
+        return self.task.cost_vector(p, e.shape[-1]) * e
 
 
 def _zero(cost) -> bool:
     if isinstance(cost, Number):
         return float(cost) == 0.0
     return bool((torch.as_tensor(cost) == 0).all())
+
+
+def optimize_arguments(chain, T_target, tasks, limits, costs, position_only, respect_limits, collision, world,
+                       margin):
+    """(T_target, costs, position_only, respect_limits, collision, world, margin) of ``optimize``."""
+    if tasks is not None:
+        tasks = (tasks,) if isinstance(tasks, Task) else tuple(tasks)
+        bad = [t for t in tasks
+               if not isinstance(t, Task) or (isinstance(t, FrameTask) and t.twist is not None)]
+        if bad:
+            raise ConventionError(f"ik.optimize: expected Task objects (a FrameTask with a target pose, not "
+                                  f"a twist), got {bad[0]!r}")
+        poses = [t for t in tasks if type(t) is FrameTask]
+        if T_target is None:
+            T_target, position_only, *_ = solve_arguments(chain, None, poses, None, position_only,
+                                                          respect_limits, collision, world, margin)
+        costs = [TaskCost(task=t) for t in tasks] + list(costs or [])
+    _, _, respect_limits, collision, world, margin = solve_arguments(
+        chain, T_target, None, limits, position_only, respect_limits, collision, world, margin)
+    return T_target, costs, position_only, respect_limits, collision, world, margin
 
 
 def solve_arguments(chain, T_target, tasks, limits, position_only, respect_limits, collision, world, margin):
