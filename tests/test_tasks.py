@@ -468,3 +468,23 @@ def test_optimize_takes_tasks_and_limits():
     torch.testing.assert_close(res.q, ref.q, atol=1e-6, rtol=0)
     with pytest.raises(ConventionError, match="twist"):
         ik.optimize(chain, T, q0, tasks=[ik.FrameTask(0, twist=torch.zeros(6, dtype=F64))])
+
+
+@pytest.mark.cuda
+def test_solve_velocity_cuda_matches_cpu():
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA")
+    _, chain = _panda()
+    q = chain.random_configuration(64, generator=torch.Generator().manual_seed(16))
+    T = chain.forward_kinematics(q) @ _se3_exp(torch.full((6,), 0.03, dtype=F64))
+    tasks = [ik.FrameTask("hand", target=T, lm_damping=1e-3),
+             ik.PostureTask(torch.zeros(7, dtype=F64), cost=0.1)]
+    limits = [ik.ConfigurationLimit(), ik.VelocityLimit(1.0)]
+    cpu = ik.solve_velocity(chain, q, tasks, 0.02, limits=limits)
+    dev = torch.device("cuda")
+    gchain = chain.to(dev)
+    gtasks = [ik.FrameTask("hand", target=T.to(dev), lm_damping=1e-3),
+              ik.PostureTask(torch.zeros(7, dtype=F64, device=dev), cost=0.1)]
+    gpu = ik.solve_velocity(gchain, q.to(dev), gtasks, 0.02, limits=limits)
+    assert gpu.device.type == "cuda"
+    torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-9, rtol=0)
