@@ -175,9 +175,9 @@ class KinematicChain(nn.Module):
                                    "q_limits")
             # read in the precision they were given in (numbers: float64), then rounded inwards to dtype
             lim = as_tensor(lim, "q_limits", dtype=None if isinstance(lim, Tensor) else torch.float64)
-            lim = _limits_inward(lim, dtype).to(device=device).clone()
             if lim.shape != (n, 2):
                 raise ModelError(f"q_limits must have shape ({n}, 2), got {shape_str(lim.shape)}")
+            lim = _limits_inward(lim, dtype).to(device=device).clone()
             # ±inf marks a joint without limit (a URDF continuous joint); NaN is never a limit
             if bool(torch.isnan(lim).any()) or not bool((lim[:, 0] < lim[:, 1]).all()) or \
                     bool(torch.isinf(lim[:, 0]).logical_and(lim[:, 0] > 0).any()):

@@ -76,10 +76,9 @@ def _robot_format(args) -> str | None:
 def _robot_source(args) -> tuple[str, str | None]:
     """``(source, end_link)`` of the robot options: ``--urdf`` / ``--mjcf FILE --end-link`` or ``--robot``;
     exactly one of them (two are an error, never one silently ignored)."""
-    given = [f"--{flag}" for flag in ("robot", "urdf", "mjcf") if getattr(args, flag, None)]
-    if len(given) > 1:
-        raise DiffkinError(f"give the robot once: {' and '.join(given)} were both given (--robot "
-                           "NAME|FILE.yaml, --urdf FILE or --mjcf FILE, with --end-link for a file)")
+    from ._console import check_one_robot
+
+    check_one_robot(args)
     for flag in ("urdf", "mjcf"):
         path = getattr(args, flag, None)
         if path:

@@ -6,6 +6,7 @@ the element they name."""
 
 from __future__ import annotations
 
+import importlib.util
 import warnings
 from pathlib import Path
 
@@ -57,9 +58,10 @@ def _site_pose(m, qpos, site: int = 0) -> np.ndarray:
     (dict(ref="nan"), "joint 'j': ref"),
     (dict(range="-1 nan"), "joint 'j'"),
 ])
-def test_item05_mjcf_nan_refused(change, element):
+def test_item05_mjcf_nan_refused(change, element, tmp_path, monkeypatch):
     """MuJoCo compiles NaN / inf (a printed warning only) and the FK would be NaN: the loader refuses the
     model, naming the element and attribute."""
+    monkeypatch.chdir(tmp_path)  # MuJoCo writes its warning to MUJOCO_LOG.TXT in the working directory
     xml = _one(**change)
     with pytest.raises(ModelError, match=f"{element}.*(NaN or inf|lower < upper)"):
         from_mjcf(xml, "s", dtype=F64)
@@ -382,6 +384,10 @@ def test_item13_cli_reader_by_flag_not_suffix(tmp_path, capsys):
         rc = main(["fk", *args, "--random", "2"])
         err = capsys.readouterr().err
         assert rc == 2 and "give the robot once" in err, err
+    if importlib.util.find_spec("viser") is not None:  # the viewer's options follow the same rule
+        rc = main(["view", "--robot", "panda", "--urdf", str(src), "--end-link", "tool0"])
+        err = capsys.readouterr().err
+        assert rc == 2 and "--robot and --urdf were both given" in err, err
     with pytest.raises(ModelError, match="file_format"):
         models.load_chain(src, "tool0", file_format="sdf")
     assert models.load_chain(urdf_xml, "tool0", file_format="urdf").joint_names == names
