@@ -89,7 +89,9 @@ def collision_options(args, chain, source: str) -> tuple[object | None, object |
         return None, None
     if not math.isfinite(args.margin) or args.margin < 0:
         raise DiffkinError(f"--margin: expected a finite distance >= 0 (m), got {args.margin}")
-    suffix = Path(source).suffix.lower()
+    # the reader the option names (--urdf / --mjcf), not the suffix; by suffix only without those options
+    flag = next((f for f in ("urdf", "mjcf") if getattr(args, f, None)), None)
+    suffix = {"urdf": ".urdf", "mjcf": ".xml"}[flag] if flag else Path(source).suffix.lower()
     if suffix not in (".urdf", ".xml", ".mjcf"):
         raise DiffkinError("--self-collision / --world need the robot's collision geometry: give the robot "
                            "as --urdf FILE or --mjcf FILE (with --end-link)")

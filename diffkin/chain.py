@@ -115,6 +115,21 @@ def _is_plain(t: Tensor) -> bool:
 def _check_learnable(learnable) -> None:
     if not isinstance(learnable, bool):
         raise OptionError(f"learnable must be True or False, got {learnable!r}")
+def _limits_inward(lim: Tensor, dtype: torch.dtype) -> Tensor:
+    """Joint limits ``(n, 2)`` in ``dtype``, rounded inwards (lower up, upper down) where ``dtype`` is
+    coarser than ``lim``'s: every q of ``dtype`` within the result is within the given limits too, so
+    ``within_limits`` / ``clamp_to_limits`` / IK's ``success`` in float32 hold for the float64 limits of a
+    URDF or MJCF (rounding to the nearest float32 could put a limit 1e-7 rad outside). ±inf stays; a range
+    narrower than one step of ``dtype`` keeps the nearest values."""
+    out = lim.to(dtype)
+    if torch.finfo(dtype).eps <= torch.finfo(lim.dtype).eps or out.numel() == 0:
+        return out
+    lo, hi = out[..., 0], out[..., 1]
+    up = torch.full_like(lo, math.inf)
+    lo_in = torch.where(lo.to(lim.dtype) < lim[..., 0], torch.nextafter(lo, up), lo)
+    hi_in = torch.where(hi.to(lim.dtype) > lim[..., 1], torch.nextafter(hi, -up), hi)
+    keep = lo_in <= hi_in
+    return torch.stack((torch.where(keep, lo_in, lo), torch.where(keep, hi_in, hi)), dim=-1)
 
 
 class KinematicChain(nn.Module):
@@ -174,10 +189,11 @@ class KinematicChain(nn.Module):
 
             lim = check_fits_dtype(q_limits.detach() if isinstance(q_limits, Tensor) else q_limits, dtype,
                                    "q_limits")
-            lim = as_tensor(lim, "q_limits", dtype=dtype, device=device)
-            lim = lim.to(dtype=dtype, device=device).clone()
+            # read in the precision they were given in (numbers: float64), then rounded inwards to dtype
+            lim = as_tensor(lim, "q_limits", dtype=None if isinstance(lim, Tensor) else torch.float64)
             if lim.shape != (n, 2):
                 raise ModelError(f"q_limits must have shape ({n}, 2), got {shape_str(lim.shape)}")
+            lim = _limits_inward(lim, dtype).to(device=device).clone()
             # ±inf marks a joint without limit (a URDF continuous joint); NaN is never a limit
             if bool(torch.isnan(lim).any()) or not bool((lim[:, 0] < lim[:, 1]).all()) or \
                     bool(torch.isinf(lim[:, 0]).logical_and(lim[:, 0] > 0).any()):
@@ -189,6 +205,16 @@ class KinematicChain(nn.Module):
         self._zero_key, self._zero = {}, {}
         #: free-text model information (description, source, notes) from YAML, kept by to_dict()
         self.metadata: dict[str, str] = {}
+
+    def _apply(self, fn, recurse=True):
+        """``.to()`` / ``.float()`` / ``.double()``: as nn.Module, with the joint limits rounded inwards when
+        the chain leaves float64 (see :func:`_limits_inward`), never to the nearest float32."""
+        before = self.q_limits
+        out = super()._apply(fn, recurse)
+        after = self.q_limits
+        if before is not None and after is not None and after.dtype != before.dtype:
+            self.q_limits = _limits_inward(before, after.dtype).to(after.device)
+        return out
 
     def _set_topology(self, topology: Topology, single_end: bool) -> None:
         if single_end and len(topology.ends) != 1:

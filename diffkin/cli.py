@@ -67,8 +67,18 @@ def _check_device(device: str) -> None:
         raise DiffkinError("--device cuda was requested but no CUDA device is available (use --device cpu)")
 
 
+def _robot_format(args) -> str | None:
+    """The reader the robot option names: ``"urdf"`` (``--urdf``), ``"mjcf"`` (``--mjcf``) or None
+    (``--robot``: a built-in name or a robot YAML). The flag decides, never the file's suffix."""
+    return next((flag for flag in ("urdf", "mjcf") if getattr(args, flag, None)), None)
+
+
 def _robot_source(args) -> tuple[str, str | None]:
-    """``(source, end_link)`` of the robot options: ``--urdf`` / ``--mjcf FILE --end-link`` or ``--robot``."""
+    """``(source, end_link)`` of the robot options: ``--urdf`` / ``--mjcf FILE --end-link`` or ``--robot``;
+    exactly one of them (two are an error, never one silently ignored)."""
+    from ._console import check_one_robot
+
+    check_one_robot(args)
     for flag in ("urdf", "mjcf"):
         path = getattr(args, flag, None)
         if path:
@@ -87,7 +97,8 @@ def _load_chain(args):
 
     _check_device(args.device)
     source, end_link = _robot_source(args)
-    return load_chain(source, end_link, dtype=_dtype(args.dtype), device=args.device)
+    return load_chain(source, end_link, dtype=_dtype(args.dtype), device=args.device,
+                      file_format=_robot_format(args))
 
 
 def _check_robot_option(robot: str) -> None:

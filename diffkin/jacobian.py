@@ -203,7 +203,9 @@ def jacobian_dot_qdot(chain, q: Tensor, qdot: Tensor, check: bool = True) -> Ten
         broadcast_batch(("q", q, 1), ("qdot", qdot, 1))
     q, qdot = torch.broadcast_tensors(q, qdot)
     batch, n = q.shape[:-1], q.shape[-1]
-    q, qdot = q.reshape(-1, n), qdot.reshape(-1, n)
+    # contiguous rows: forward-mode AD writes the tangent into a tensor laid out like q, which an expanded
+    # (stride-0) q, e.g. one q broadcast against a batch of qdot, cannot hold
+    q, qdot = q.reshape(-1, n).contiguous(), qdot.reshape(-1, n).contiguous()
     B, m = q.shape[0], chain.small_batch
     if B <= m:
         return _jdot_qdot_rows(chain, q, qdot).reshape(*batch, *_jdot_tail(chain))

@@ -858,9 +858,11 @@ def cmd_view(args) -> int:
     """``diffkin view``: load the robot, serve it, print the URL, run until Ctrl+C (or ``--duration``)."""
     _import_viser()  # the missing extra is the first thing to report
     from . import models
+    from ._console import check_one_robot
 
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     mjcf = getattr(args, "mjcf", None)
+    check_one_robot(args)
     if args.urdf or mjcf:
         if not args.end_link:
             raise DiffkinError(f"--{'urdf' if args.urdf else 'mjcf'} needs --end-link NAME (the end link)")

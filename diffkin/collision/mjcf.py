@@ -49,8 +49,9 @@ class BodyFrames:
 
 def load_model(source):
     """A compiled ``mujoco.MjModel`` from a path, XML text or an ``MjModel``. A model whose mesh files do
-    not resolve still loads: its mesh geoms are skipped with a warning naming them (and file textures
-    dropped), as the kinematic reader does (:func:`diffkin.models.mjcf.compile_mjcf`)."""
+    not resolve still loads: its mesh geoms are skipped (and file textures dropped), as the kinematic reader
+    does (:func:`diffkin.models.mjcf.compile_mjcf`), with a warning naming those that would have been
+    checked (visual meshes and the world body's are never collided: skipping them loses nothing)."""
     mujoco = require("mujoco", "collision", "RobotCollision.from_mjcf")
     if isinstance(source, mujoco.MjModel):
         return source
@@ -70,7 +71,12 @@ def load_model(source):
 
     spec = parse()
     meshes = [g for g in spec.geoms if g.type == mujoco.mjtGeom.mjGEOM_MESH]
-    names = [g.name or f"{g.parent.name}/{g.meshname}" for g in meshes]
+    # the warning names only the meshes mjcf_geoms would have checked: not visual ones (contype =
+    # conaffinity = 0 outside every <pair>: MuJoCo never collides them) nor the world body's
+    paired = {n for p in spec.pairs for n in (p.geomname1, p.geomname2)}
+    names = [g.name or f"{g.parent.name}/{g.meshname}" for g in meshes
+             if g.parent.name != spec.worldbody.name and (g.contype or g.conaffinity or
+                                                          (g.name and g.name in paired))]
     for g in meshes:
         spec.delete(g)
     _strip_assets(spec)

@@ -402,7 +402,9 @@ class RobotCollision(nn.Module):
         and relative names from the URDF's directory, or ``package_dirs``) become a fitted set of at most
         ``mesh_capsules`` capsules that together contain every triangle of the mesh
         (:mod:`diffkin.collision.meshes`; 1: one enclosing capsule); the others are skipped with one warning
-        naming them.
+        naming them. A ``<collision>`` whose shape URDF does not define (``<cone>``) is left out with a
+        warning naming it; a ``<geometry>`` holding two shapes, and an SRDF naming links the URDF does not
+        have (another robot's SRDF, a typo), are a :class:`~diffkin.errors.ModelError`.
         """
         if getattr(chain, "tree", None) is None:  # None, a DH chain or anything else without the URDF tree
             raise ModelError(f"RobotCollision.from_urdf: expected chain as the chain built from this URDF "
@@ -412,7 +414,12 @@ class RobotCollision(nn.Module):
         base_dir = None
         if isinstance(source, (str, Path)) and "<" not in str(source):
             base_dir = Path(source).resolve().parent
-        specs = parse_collisions(source)
+        unknown: list[str] = []
+        specs = parse_collisions(source, unknown=unknown)
+        if unknown:
+            warnings.warn(f"RobotCollision.from_urdf: {len(unknown)} <collision> shape(s) URDF does not "
+                          f"define (box, cylinder, sphere, mesh; capsule) left out: {', '.join(unknown)}",
+                          stacklevel=2)
         frames = LinkFrames(chain)
         if not set(frames.links) & set(specs):  # another robot's file: no geom would be found
             raise ModelError(f"RobotCollision.from_urdf: the URDF has none of the chain's links (the chain: "
@@ -431,6 +438,7 @@ class RobotCollision(nn.Module):
         if missing:
             warnings.warn(f"RobotCollision.from_urdf: {len(missing)} mesh file(s) not found, those geoms are "
                           f"skipped: {', '.join(missing)}", stacklevel=2)
+        _check_srdf_links(disabled, specs)
         pairs = _urdf_pairs(chain, frames, geoms, disabled)
         return cls(chain, geoms, links, caps, boxes, pairs)
 
@@ -524,6 +532,17 @@ def _srdf_disabled(srdf) -> set[frozenset[str]]:
     except ET.ParseError as e:
         raise ModelError(f"SRDF: malformed XML ({e})") from None
     return {frozenset((e.get("link1"), e.get("link2"))) for e in root.iter("disable_collisions")}
+
+
+def _check_srdf_links(disabled: set[frozenset[str]], specs: dict) -> None:
+    """Every link an SRDF's ``<disable_collisions>`` names is a link of the URDF (``specs``: every link);
+    else a :class:`ModelError` naming the unknown ones (a pair of unknown links would disable nothing)."""
+    named = {link for pair in disabled for link in pair}
+    unknown = sorted(str(n) for n in named - set(specs))
+    if unknown:
+        raise ModelError(f"SRDF: <disable_collisions> names {len(unknown)} link(s) the URDF does not have: "
+                         f"{names_str(unknown)} (the URDF's links: {names_str(list(specs))}); is it this "
+                         "robot's SRDF?")
 
 
 def _urdf_pairs(chain, frames: LinkFrames, geoms: list[Geom], disabled) -> list[tuple[int, int]]:

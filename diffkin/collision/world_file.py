@@ -39,7 +39,12 @@ def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
     path = Path(path)
     if not path.is_file():
         raise DiffkinError(f"world file {path} not found")
-    text = path.read_text()
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DiffkinError(f"{path}: not a YAML / JSON world file: not UTF-8 text (byte "
+                           f"0x{data[exc.start]:02x} at offset {exc.start})") from None
     try:
         data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:

@@ -21,7 +21,7 @@ from .._deprecation import renamed_arguments
 from ..errors import ConventionError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
 from ..transforms import RIGIDITY_TOLERANCE, _transform_deviations
-from ..validation import _traced, check_number, check_trailing, shape_str, tensors
+from ..validation import _traced, broadcast_batch, check_number, check_trailing, shape_str, tensors
 from .closed_loop import clik
 from .result import final_errors
 
@@ -176,6 +176,12 @@ def joint_trajectory_from_poses(
         raise ConventionError(f"unknown method {method!r}; valid: {_METHODS}")
     T_traj, velocities, poses = _check_path(chain, T_target, velocities)
     q0 = chain.check_q(q0, name="q0")
+    # one batch for the path and q0 (a batch of starts along one path, or one start for a batch of paths)
+    k = 3 if poses else 2
+    batch = broadcast_batch(("T_target", T_traj, k), ("q0", q0, 1), ("velocities", velocities, 2))
+    T_traj = T_traj.expand(*batch, *T_traj.shape[-k:])
+    velocities = None if velocities is None else velocities.expand(*batch, *velocities.shape[-2:])
+    q0 = q0.expand(*batch, q0.shape[-1])
     if method == "clik":
         if not (isinstance(substeps, int) and substeps >= 1):
             raise ConventionError(f"substeps must be a positive int, got {substeps!r}")

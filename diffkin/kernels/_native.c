@@ -13,7 +13,7 @@
  * diffkin.kernels.configuration (DK_MOTIONS below; each frame carries the code of its motion), q in qpos
  * order (nq = n columns), the Jacobian in velocity order (nv columns; an S motion has 4 coordinates and 3
  * velocities, the angular velocity in its rotated frame, as MuJoCo's ball joints). A quaternion is
- * normalised first; one of norm ~0 is the identity (as diffkin._numerics.safe_normalize).
+ * normalised first; one of norm ~0 is the identity (as diffkin._numerics.stable_normalize).
  *
  * Configurations are processed in blocks of W lanes; every loop over the lanes is branch-free so the
  * compiler vectorises it, and sin/cos are evaluated by a vectorisable Cody-Waite reduction and Cephes
@@ -614,18 +614,23 @@ static inline __attribute__((always_inline)) void DK(column)(const real *restric
 }
 
 /* F (12 x W lanes) . Rot(Q) in place, Q the quaternion (w, x, y, z) in rows Q, Q + W, .. (W lanes each),
- * normalised first (one of norm <= small is the identity, as diffkin._numerics.safe_normalize): the S motion.
- * Column c of the result is sum_k F[:, k] R[k][c], R of (2.33); p is unchanged. */
+ * normalised first (one of norm <= small is the identity, as diffkin._numerics.stable_normalize; scaled by
+ * its largest |entry| before the squares, so entries of 1e160 (1e30 in float32) do not overflow): the S
+ * motion. Column c of the result is sum_k F[:, k] R[k][c], R of (2.33); p is unchanged. */
 static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const real small) {
     real R[9][W];
 #pragma omp simd
     for (int l = 0; l < W; l++) {
         const real w0 = Q[l], x0 = Q[W + l], y0 = Q[2 * W + l], z0 = Q[3 * W + l];
-        const real nrm = (real)sqrt((double)(w0 * w0 + x0 * x0 + y0 * y0 + z0 * z0));
-        const int tiny = nrm <= small;
-        const real inv = tiny ? 1 : 1 / nrm;
-        const real e = tiny ? 1 : w0 * inv, x = tiny ? 0 : x0 * inv, y = tiny ? 0 : y0 * inv;
-        const real z = tiny ? 0 : z0 * inv;
+        const real aw = w0 < 0 ? -w0 : w0, ax = x0 < 0 ? -x0 : x0, ay = y0 < 0 ? -y0 : y0, az = z0 < 0 ? -z0 : z0;
+        const real m1 = aw > ax ? aw : ax, m2 = ay > az ? ay : az, mx = m1 > m2 ? m1 : m2;
+        const real back = mx > small ? mx : 1, sc = 1 / back; /* below small: unscaled (no overflow of 1/mx) */
+        const real ws = w0 * sc, xs = x0 * sc, ys = y0 * sc, zs = z0 * sc;
+        const real ns = (real)sqrt((double)(ws * ws + xs * xs + ys * ys + zs * zs));
+        const int tiny = !(back * ns > small);
+        const real inv = tiny ? 1 : 1 / ns;
+        const real e = tiny ? 1 : ws * inv, x = tiny ? 0 : xs * inv, y = tiny ? 0 : ys * inv;
+        const real z = tiny ? 0 : zs * inv;
         R[0][l] = 2 * (e * e + x * x) - 1; R[1][l] = 2 * (x * y - e * z); R[2][l] = 2 * (x * z + e * y);
         R[3][l] = 2 * (x * y + e * z); R[4][l] = 2 * (e * e + y * y) - 1; R[5][l] = 2 * (y * z - e * x);
         R[6][l] = 2 * (x * z - e * y); R[7][l] = 2 * (y * z + e * x); R[8][l] = 2 * (e * e + z * z) - 1;

@@ -96,16 +96,22 @@ static void DK(map_u)(int n, const uint8_t *bounded, const real *jc, const real 
 }
 
 /* Normalise the quaternion of lane l at qi (4 rows of W lanes) in place; one of norm ~0 becomes the
- * identity (as diffkin._numerics.safe_normalize and the FK's S motion: the threshold DK_QSMALL). */
+ * identity (as diffkin._numerics.stable_normalize and the FK's S motion: the threshold DK_QSMALL; scaled by
+ * the largest |entry| before the squares, so entries of 1e160 do not overflow). */
 static void DK(unit_quaternion)(real *qi, int l) {
-    double x[4], nn = 0;
+    double x[4], mx = 0, nn = 0;
     for (int c = 0; c < 4; c++) {
         x[c] = (double)qi[(size_t)c * W + l];
+        mx = fabs(x[c]) > mx ? fabs(x[c]) : mx;
+    }
+    const double back = mx > (double)DK_QSMALL ? mx : 1; /* below the threshold: unscaled (1/mx stays finite) */
+    for (int c = 0; c < 4; c++) {
+        x[c] /= back;
         nn += x[c] * x[c];
     }
-    const double norm = sqrt(nn);
-    const int small = norm <= (double)DK_QSMALL;
-    for (int c = 0; c < 4; c++) qi[(size_t)c * W + l] = (real)(small ? (c == 0) : x[c] / norm);
+    const double ns = sqrt(nn);
+    const int small = !(back * ns > (double)DK_QSMALL);
+    for (int c = 0; c < 4; c++) qi[(size_t)c * W + l] = (real)(small ? (c == 0) : x[c] / ns);
 }
 
 /* The configuration update u <- u (+) delta of lane l (u lane-major, n x W; delta nv, `stride` apart):

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._numerics import safe_norm, safe_normalize, sinc
+from .._numerics import safe_norm, sinc, stable_normalize
 from ..rotations import _canonical, _quaternion_multiply, _quaternion_to_rotvec
 
 __all__ = ["JointKind", "JOINT_KINDS", "joint_kind", "MOTION_NQ", "MOTION_NV", "ConfigurationSpace"]
@@ -155,7 +155,7 @@ class ConfigurationSpace:
         q, v = _broadcast_batch(q, v)
         s, b = self._split_q(q)
         ds, w = self._split_v(v)
-        b = _quaternion_multiply(safe_normalize(b), _quaternion_exp(w))
+        b = _quaternion_multiply(stable_normalize(b), _quaternion_exp(w))
         return self._join(s + ds, b, "q")
 
     def difference(self, q0: Tensor, q1: Tensor) -> Tensor:
@@ -166,7 +166,7 @@ class ConfigurationSpace:
         q0, q1 = _broadcast_batch(q0, q1)
         s0, b0 = self._split_q(q0)
         s1, b1 = self._split_q(q1)
-        b0, b1 = safe_normalize(b0), safe_normalize(b1)
+        b0, b1 = stable_normalize(b0), stable_normalize(b1)
         conj = torch.cat((b0[..., :1], -b0[..., 1:]), dim=-1)
         d = _canonical(_quaternion_multiply(conj, b1))
         return self._join(s1 - s0, _quaternion_to_rotvec(d), "v")
@@ -181,7 +181,7 @@ class ConfigurationSpace:
         if self.euclidean:
             return q
         s, b = self._split_q(q)
-        return self._join(s, safe_normalize(b), "q")
+        return self._join(s, stable_normalize(b), "q")
 
     def neutral(self, dtype=None, device=None) -> Tensor:
         """The neutral configuration ``(nq,)``: zero scalars, identity quaternions (1, 0, 0, 0)."""
@@ -234,7 +234,7 @@ class ConfigurationSpace:
         M[..., list(self._scalar_q), list(self._scalar_v)] = 1.0
         pure = torch.cat((torch.zeros_like(eye[:3, :1]), eye[:3, :3]), dim=-1)  # (0, e_k) as rows (3, 4)
         for iq, iv in zip(self._quat_q, self._quat_v):
-            Q = safe_normalize(q[..., list(iq)]).unsqueeze(-2)  # (..., 1, 4)
+            Q = stable_normalize(q[..., list(iq)]).unsqueeze(-2)  # (..., 1, 4)
             cols = 0.5 * _quaternion_multiply(Q, pure)  # (..., 3, 4): ½ Q ⊗ (0, e_k)
             M[..., iq[0]:iq[0] + 4, iv[0]:iv[0] + 3] = cols.transpose(-1, -2)
         return M

@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .._numerics import safe_normalize
+from .._numerics import stable_normalize
 from ..rotations import _quaternion_to_matrix
 from .columns import (
     Columns,
@@ -287,7 +287,7 @@ def _quaternion_rows(qs: Sequence[Tensor], start: int) -> Tensor:
     """The rotation matrix ``(3, 3, B)`` of the quaternion in rows ``start .. start + 3`` of batch-last q
     (normalised: the kernel accepts any non-zero quaternion, as MuJoCo does)."""
     Q = torch.stack(tuple(qs[start : start + 4]), dim=-1)
-    return _quaternion_to_matrix(safe_normalize(Q)).permute(1, 2, 0)
+    return _quaternion_to_matrix(stable_normalize(Q)).permute(1, 2, 0)
 
 
 def spherical_rotations(q: Tensor, topo: Topology) -> Tensor:
@@ -297,7 +297,7 @@ def spherical_rotations(q: Tensor, topo: Topology) -> Tensor:
     mask = topo.tensor("spherical", None, q.device).unsqueeze(-1)
     identity = torch.zeros_like(Q[..., :1, :])
     identity[..., 0] = 1.0
-    return _quaternion_to_matrix(safe_normalize(torch.where(mask, Q, identity)))
+    return _quaternion_to_matrix(stable_normalize(torch.where(mask, Q, identity)))
 
 
 def matrix_frames(q: Tensor, topo: Topology, seg: Segments, with_axes: bool = False,

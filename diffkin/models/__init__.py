@@ -60,8 +60,7 @@ def available() -> list[str]:
 
 def model_path(name: str) -> Path:
     """Path of a bundled model's YAML file (ModelError listing the names if unknown)."""
-    path = DATA_DIR / f"{name}.yaml"
-    if not isinstance(name, str) or not path.is_file():
+    if not isinstance(name, str) or not (path := DATA_DIR / f"{name}.yaml").is_file():
         raise ModelError(f"unknown model {name!r}; available: {', '.join(available())}")
     return path
 
@@ -82,6 +81,9 @@ def load(name_or_path, dtype: torch.dtype | None = None, device=None, *, learnab
     compute on (``"cuda"`` without CUDA, ``"meta"``) raises :class:`~diffkin.errors.DeviceError`.
     """
     check_device(device)
+    if not isinstance(name_or_path, str | Path):  # a list of names, a chain, None ...: one model per call
+        raise ModelError(f"expected a model name (str, see models.available()) or a robot YAML path, got "
+                         f"{type(name_or_path).__name__} {name_or_path!r:.60}")
     _refuse_other_formats(name_or_path)
     if isinstance(name_or_path, Path) or (
         isinstance(name_or_path, str) and (name_or_path.endswith((".yaml", ".yml")) or "/" in name_or_path)

@@ -18,7 +18,7 @@ __all__ = ["load_chain"]
 
 
 def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, device=None,
-               learnable: bool = False) -> KinematicChain:
+               learnable: bool = False, file_format: str | None = None) -> KinematicChain:
     """A kinematic chain in ``dtype`` on ``device`` (None: the source's own, or torch's default) from:
 
     * a :class:`~diffkin.chain.KinematicChain`: a copy (converted when dtype / device are given);
@@ -29,6 +29,8 @@ def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, devic
 
     The geometry is frozen unless ``learnable=True`` (a chain given keeps its own setting, and
     ``learnable=True`` turns it on in the copy).
+    ``file_format`` (``"urdf"`` or ``"mjcf"``) names the reader for a file whatever its suffix (the CLI's
+    ``--urdf`` / ``--mjcf``: ``robot.urdf.xml`` is a URDF when the user says so); None: by the suffix.
 
     Errors are :class:`~diffkin.errors.ModelError` naming the source (an unknown name lists the built-in
     ones); a device this torch cannot compute on raises :class:`~diffkin.errors.DeviceError`.
@@ -43,7 +45,11 @@ def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, devic
                          f"{type(source).__name__}")
     from .. import models
 
-    builder = models.OTHER_FORMATS.get(Path(source).suffix.lower())  # from_urdf / from_mjcf by suffix
+    readers = {"urdf": "from_urdf", "mjcf": "from_mjcf"}
+    if file_format is not None and file_format not in readers:
+        raise ModelError(f"file_format: expected 'urdf', 'mjcf' or None (by the suffix), got {file_format!r}")
+    builder = readers[file_format] if file_format else \
+        models.OTHER_FORMATS.get(Path(source).suffix.lower())  # from_urdf / from_mjcf by suffix
     if builder is not None:
         if not end_link:
             raise ModelError(f"{source}: a URDF or MJCF robot needs its end link (end_link=, --end-link)")

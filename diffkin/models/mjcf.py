@@ -28,17 +28,19 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import warnings
 from pathlib import Path
 
 import torch
 from torch import Tensor
 
+from .._numerics import stable_norm
 from ..errors import ModelError, require
 from ..kernels.joints import axis_alignment
 from ..rotations import _quaternion_to_matrix
 from ..transforms import _make_transform
-from ..validation import check_end_links, tensors
+from ..validation import check_device, check_end_links, tensors
 from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription
 
 __all__ = ["MJCFChain", "from_mjcf", "compile_mjcf"]
@@ -72,18 +74,44 @@ def _strip_assets(spec) -> None:
         material.textures = [""] * len(material.textures)
 
 
+def _decode(data: bytes, where: str) -> str:
+    """MJCF bytes as text: MuJoCo reads its XML as UTF-8 (a BOM is allowed); anything else is a
+    :class:`~diffkin.errors.ModelError` naming the source and the first bad byte."""
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ModelError(f"{where}: not UTF-8 text (byte 0x{data[e.start]:02x} at offset {e.start}); MuJoCo "
+                         "reads MJCF as UTF-8: save the file as UTF-8") from None
+
+
+_FIRST_TAG = re.compile(r"\A(?:\s+|<\?.*?\?>|<!--.*?-->|<!DOCTYPE[^>]*>)*<\s*([A-Za-z_][\w.:-]*)", re.S)
+
+
+def _refuse_urdf(text: str, where: str) -> None:
+    """A URDF (root element ``<robot>``) given as an MJCF: MuJoCo would compile it, merging its fixed links
+    away (a ``tool0`` end link would then not exist); the error points to the URDF reader."""
+    m = _FIRST_TAG.match(text)
+    if m and m.group(1) == "robot":
+        raise ModelError(f"{where} is a URDF (root element <robot>), not an MJCF (<mujoco>): load it with "
+                         "diffkin.models.from_urdf(source, end_link) (RobotCollision.from_urdf for its "
+                         "geoms)")
+
+
 def _read_source(source) -> tuple[str, str | None]:
-    """``(xml text, path or None)`` of a path, XML text or bytes."""
-    if isinstance(source, bytes):
-        return source.decode("utf-8"), None
-    if isinstance(source, os.PathLike) or (isinstance(source, str) and not source.lstrip().startswith("<")):
-        path = Path(source)
-        if not path.is_file():
-            raise ModelError(f"MJCF file not found: {str(path)!r}")
-        return path.read_text(encoding="utf-8"), str(path)
-    if isinstance(source, str):
-        return source, None
-    raise ModelError(f"expected an MJCF path, XML text or bytes, got {type(source).__name__}")
+    """``(xml text, path or None)`` of a path, XML text or bytes: UTF-8 MJCF, not a URDF."""
+    if isinstance(source, bytes | bytearray | memoryview):
+        text, path = _decode(bytes(source), "<MJCF bytes>"), None
+    elif isinstance(source, os.PathLike) or (isinstance(source, str) and not source.lstrip().startswith("<")):
+        file = Path(source)
+        if not file.is_file():
+            raise ModelError(f"MJCF file not found: {str(file)!r}")
+        text, path = _decode(file.read_bytes(), str(file)), str(file)
+    elif isinstance(source, str):
+        text, path = source, None
+    else:
+        raise ModelError(f"expected an MJCF path, XML text or bytes, got {type(source).__name__}")
+    _refuse_urdf(text, path or "the MJCF text")
+    return text, path
 
 
 def compile_mjcf(source):
@@ -177,10 +205,13 @@ class _Builder:
 
 def _couplings(model, chain_joints: list[int]) -> tuple[dict[int, tuple[int, float, float]], list[str]]:
     """Linear joint equalities among the chain's joints: follower -> (leader, m, b) with
-    q_follower = m q_leader + b; and the names of the equality constraints that are not enforced."""
+    q_follower = m q_leader + b, the leader an independent joint (chains j3 -> j2 -> j1 composed into
+    j3 -> j1); and the names of the equality constraints that are not enforced. Two active equalities
+    on one follower, or couplings in a cycle, are a :class:`~diffkin.errors.ModelError`."""
     mujoco = _mujoco()
-    follow, ignored = {}, []
+    direct, by, ignored = {}, {}, []
     inside = set(chain_joints)
+    jname = lambda j: _name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint {j}"  # noqa: E731
     for e in range(model.neq):
         name = _name(model, mujoco.mjtObj.mjOBJ_EQUALITY, e) or f"equality {e}"
         etype = int(model.eq_type[e])
@@ -192,13 +223,30 @@ def _couplings(model, chain_joints: list[int]) -> tuple[dict[int, tuple[int, flo
             continue
         c = [float(x) for x in model.eq_data[e, :5]]
         if any(abs(x) > 0 for x in c[2:]) or (j2 >= 0 and j2 not in inside) or not model.eq_active0[e]:
-            ignored.append(f"{name} (joint, {'polynomial' if any(c[2:]) else 'leader outside the chain'})")
+            why = "polynomial" if any(c[2:]) else "inactive" if not model.eq_active0[e] else \
+                "leader outside the chain"
+            ignored.append(f"{name} (joint, {why})")
             continue
         if j2 < 0:  # joint1 held at a constant
             ignored.append(f"{name} (joint held fixed)")
             continue
+        if j1 in direct:  # MuJoCo would enforce both (over-constrained); keeping one would be a silent choice
+            raise ModelError(f"joint {jname(j1)!r} follows two joint equalities ({by[j1]!r} and {name!r}); "
+                             "a joint can follow one leader: remove or deactivate one of them")
         y0, x0 = (float(model.qpos0[model.jnt_qposadr[j]]) for j in (j1, j2))
-        follow[j1] = (j2, c[1], y0 + c[0] - c[1] * x0)
+        direct[j1], by[j1] = (j2, c[1], y0 + c[0] - c[1] * x0), name
+    follow = {}
+    for j in direct:  # compose: q_j = m q_lead + b, q_lead = m' q_lead' + b' -> (lead', m m', m b' + b)
+        lead, m, b = direct[j]
+        seen = [j]
+        while lead in direct:
+            if lead in seen:
+                raise ModelError("joint equalities couple joints in a cycle ("
+                                 f"{' -> '.join(jname(k) for k in [*seen, lead])}): no joint leads them")
+            seen.append(lead)
+            lead, m2, b2 = direct[lead]
+            m, b = m * m2, m * b2 + b
+        follow[j] = (lead, m, b)
     return follow, ignored
 
 
@@ -275,6 +323,38 @@ def _parameters(model, build: _Builder, sites: list[int]) -> dict[str, Tensor]:
             "site_quat": rows((model.site_quat[s] for s in sites), 4)}
 
 
+def _check_numbers(model, build: _Builder, sites: list[int], follow: dict) -> None:
+    """Every number of the model the chain computes with is finite, and every body / site quaternion
+    non-zero: a :class:`~diffkin.errors.ModelError` naming the element and attribute otherwise. MuJoCo
+    compiles NaN and inf (it only prints a warning) and turns a quaternion whose entries overflow its
+    normalisation (about 1e154) into (0, 0, 0, 0); the FK of either would be NaN or no rotation."""
+    obj = _mujoco().mjtObj
+
+    def bad(values) -> bool:
+        return not all(math.isfinite(float(x)) for x in values)
+
+    rows = [("body", obj.mjOBJ_BODY, b, "pos", model.body_pos[b]) for b in build.bodies]
+    rows += [("body", obj.mjOBJ_BODY, b, "quat", model.body_quat[b]) for b in build.bodies]
+    rows += [("joint", obj.mjOBJ_JOINT, j, "pos", model.jnt_pos[j]) for j in build.anchor_joints]
+    rows += [("joint", obj.mjOBJ_JOINT, j, "axis", model.jnt_axis[j]) for j in build.axis_joints]
+    rows += [("joint", obj.mjOBJ_JOINT, j, "ref", model.qpos0[model.jnt_qposadr[j]: model.jnt_qposadr[j] + 1])
+             for j in build.axis_joints]
+    rows += [("joint", obj.mjOBJ_JOINT, j, "range", model.jnt_range[j]) for j in build.axis_joints
+             if model.jnt_limited[j]]
+    rows += [("site", obj.mjOBJ_SITE, k, "pos", model.site_pos[k]) for k in sites]
+    rows += [("site", obj.mjOBJ_SITE, k, "quat", model.site_quat[k]) for k in sites]
+    rows += [("joint", obj.mjOBJ_JOINT, j, "equality (polycoef)", follow[j][1:]) for j in follow]
+    for kind, o, i, attr, values in rows:
+        what = f"MJCF {kind} {_name(model, o, i) or f'#{i}'!r}"
+        if bad(values):
+            raise ModelError(f"{what}: {attr} holds NaN or inf ({[float(x) for x in values]}); expected "
+                             "finite numbers")
+        if attr == "quat" and not any(float(x) for x in values):
+            raise ModelError(f"{what}: quat is (0, 0, 0, 0) after MuJoCo compiled it (a zero quaternion, "
+                             "or entries so large that its normalisation overflowed); give a non-zero "
+                             "quaternion of moderate size")
+
+
 def _describe(model, path: str | None, ends: list[str], root_link: str | None,
               text: str | None = None) -> tuple[TreeDescription, dict]:
     """The format-neutral description of the bodies between the root and the end links, and the MJCF
@@ -302,6 +382,7 @@ def _describe(model, path: str | None, ends: list[str], root_link: str | None,
                       f"{', '.join(ignored)}", stacklevel=4)
     lay = _layout(model, build, follow)
     sites = [s for _, s in resolved if s is not None]
+    _check_numbers(model, build, sites, follow)
     site_row = iter(range(len(sites)))
     end_factors = [list(build.pending[b]) + ([("site", next(site_row))] if s is not None else [])
                    for b, s in resolved]
@@ -487,20 +568,32 @@ class MJCFChain(TreeChain):
 
 
 def _unit(Q: Tensor) -> Tensor:
-    return Q / torch.linalg.vector_norm(Q, dim=-1, keepdim=True)
+    """Q / |Q| with |Q| scaled first (:func:`~diffkin._numerics.stable_norm`: entries of 1e160 do not
+    overflow to a zero quaternion)."""
+    return Q / stable_norm(Q, keepdim=True)
 
 
 def from_mjcf(source, end_link, *, root_link: str | None = None, dtype: torch.dtype | None = None,
               device=None, learnable: bool = False) -> MJCFChain:
-    """A :class:`MJCFChain` from an MJCF path, XML text or bytes, from the world (or ``root_link``, a body)
-    to ``end_link``: a body or site name, or a list of K of them for a tree whose FK is ``(..., K, 4, 4)``
-    and Jacobian ``(..., K, 6, nv)`` in that order. Several subtrees of the world (a robot and a movable
-    object) may be in one chain. Needs the ``mujoco`` package (``pip install 'diffkin[mjcf]'``).
+    """A :class:`MJCFChain` from an MJCF path, XML text or bytes (UTF-8), from the world (or ``root_link``,
+    a body) to ``end_link``: a body or site name, or a list of K of them for a tree whose FK is
+    ``(..., K, 4, 4)`` and Jacobian ``(..., K, 6, nv)`` in that order. Several subtrees of the world (a robot
+    and a movable object) may be in one chain. Needs the ``mujoco`` package (``pip install 'diffkin[mjcf]'``).
 
-    Raises :class:`~diffkin.errors.ModelError` naming the source for files MuJoCo refuses, and naming the
-    element for unknown end links or root links. The geometry is frozen unless ``learnable=True`` (see
+    ``dtype`` defaults to torch's default dtype, as for every loader (:func:`~diffkin.models.load`,
+    :func:`~diffkin.models.from_urdf`); pass ``dtype=torch.float64`` for MuJoCo's own precision. In float32
+    the joint limits are rounded inwards (:class:`~diffkin.chain.KinematicChain`), so a configuration the
+    chain judges within its limits (IK's ``success``, ``within_limits``) is within the file's float64
+    ranges too.
+
+    Raises :class:`~diffkin.errors.ModelError` naming the source for files MuJoCo refuses, for text that is
+    not UTF-8 and for a URDF (use :func:`~diffkin.models.from_urdf`), and naming the element for unknown end
+    links or root links, NaN / inf numbers, zero quaternions and joint equalities a chain cannot hold (two
+    on one follower, a cycle); :class:`~diffkin.errors.DeviceError` for a device this torch cannot compute
+    on (``"cuda"`` without CUDA, ``"meta"``). The geometry is frozen unless ``learnable=True`` (see
     :class:`~diffkin.chain.KinematicChain`).
     """
+    check_device(device)
     check_end_links(end_link, "body or site")  # before compiling: a wrong argument is said at once
     model, text, path = compile_mjcf(source)
     return MJCFChain(model, text, path, end_link, root_link, dtype=dtype or torch.get_default_dtype(),

@@ -21,6 +21,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -571,9 +572,14 @@ def _collision_spec(link: str, i: int, elem: ET.Element) -> CollisionSpec | None
     name = elem.get("name") or f"{link}/{i}"
     where = f"link {link!r} <collision> {name!r}"
     geometry = elem.find("geometry")
-    shape = None if geometry is None else next(iter(geometry), None)
-    if shape is None:
+    shapes = [] if geometry is None else list(geometry)
+    if not shapes:
         raise ModelError(f"{where} has no <geometry> shape")
+    if len(shapes) > 1:  # URDF's <geometry> holds exactly one shape; taking one would drop the other silently
+        raise ModelError(f"{where}: <geometry> holds {len(shapes)} shapes ("
+                         f"{', '.join(f'<{s.tag}>' for s in shapes)}); URDF allows one: give each shape its "
+                         "own <collision>")
+    shape = shapes[0]
     origin = elem.find("origin")
     xyz = _vec3(origin, "xyz", (0.0, 0.0, 0.0), where)
     rpy = _vec3(origin, "rpy", (0.0, 0.0, 0.0), where)
@@ -598,19 +604,33 @@ def _collision_spec(link: str, i: int, elem: ET.Element) -> CollisionSpec | None
     return None  # an unknown shape tag: not a collision primitive URDF defines
 
 
-def parse_collisions(source) -> dict[str, list[CollisionSpec]]:
+def parse_collisions(source, *, unknown: list[str] | None = None) -> dict[str, list[CollisionSpec]]:
     """The ``<collision>`` elements of every link, in file order: ``{link: [CollisionSpec, ...]}`` (links
-    without collisions map to ``[]``). ``source`` as for :func:`parse_urdf` (or a :class:`URDFTree`);
-    shapes other than sphere, cylinder, capsule, box and mesh are left out. ModelError on a malformed
-    element (missing size, negative radius, mesh without file name).
+    without collisions map to ``[]``). ``source`` as for :func:`parse_urdf` (or a :class:`URDFTree`).
+    Shapes other than sphere, cylinder, capsule, box and mesh (``<cone>``, a typo) are left out: named in
+    ``unknown`` (``"<name> (<tag>) on link <link>"``) when a list is given, else in one warning. ModelError
+    on a malformed element (missing size, negative radius, mesh without file name, a ``<geometry>`` with
+    more than one shape).
     """
     text, origin = (source.text, "tree") if isinstance(source, URDFTree) else _read(source)
     robot = _parse_xml(text, origin)
     out: dict[str, list[CollisionSpec]] = {}
+    left_out: list[str] = []
     for elem in robot.findall("link"):
         link = elem.get("name", "")
-        specs = [_collision_spec(link, i, c) for i, c in enumerate(elem.findall("collision"))]
-        out[link] = [s for s in specs if s is not None]
+        out[link] = []
+        for i, c in enumerate(elem.findall("collision")):
+            spec = _collision_spec(link, i, c)
+            if spec is None:
+                left_out.append(f"{c.get('name') or f'{link}/{i}'} (<{c.find('geometry')[0].tag}>) on link "
+                                f"{link!r}")
+            else:
+                out[link].append(spec)
+    if unknown is not None:
+        unknown.extend(left_out)
+    elif left_out:
+        warnings.warn(f"URDF {origin}: {len(left_out)} <collision> shape(s) URDF does not define (box, "
+                      f"cylinder, sphere, mesh; capsule) left out: {', '.join(left_out)}", stacklevel=2)
     return out
 
 
