@@ -26,7 +26,7 @@
  * in one step) the box is the point of the velocity range nearest the position range: the row moves back
  * at the velocity limit (ok[row] = 0: mink's QP is infeasible there).
  *
- * The box QP is solved exactly by active sets on the Cholesky factors of H's free block (DK(box_qp)): the
+ * The box QP is solved exactly by active sets on the Cholesky factors of H's free block (vel_box_qp): the
  * unconstrained minimiser first (one factorisation when no bound is active, the common case of a
  * teleoperation loop), then primal-dual active-set rounds that change every wrong bound at once (2-3 more
  * factorisations where bounds are active), with a primal active-set method as the finite fallback.
@@ -256,6 +256,118 @@ static void vel_sub_quat(const double qa[4], const double qb[4], double w[3]) {
     w[0] = d1 * ang / s, w[1] = d2 * ang / s, w[2] = d3 * ang / s;
 }
 
+/* The minimiser of 1/2 x^T H x + c^T x over the free variables (fixed[i] == 0) with the others held at x:
+ * H_FF xs_F = -(c_F + H_FB x_B) by Cholesky (L: work space); fr gets the free indices; returns their count. */
+static int vel_qp_free(int d, const double *H, const double *c, const double *x, const int8_t *fixed, double *L,
+                       double *xs, int *fr) {
+    int nf = 0;
+    for (int i = 0; i < d; i++)
+        if (!fixed[i]) fr[nf++] = i;
+    for (int a = 0; a < nf; a++) {
+        const int i = fr[a];
+        double r = -c[i];
+        for (int j = 0; j < d; j++)
+            if (fixed[j]) r -= H[i * d + j] * x[j];
+        xs[a] = r;
+        for (int b = 0; b <= a; b++) L[a * nf + b] = L[b * nf + a] = H[i * d + fr[b]];
+    }
+    spd_solve_f64(L, xs, nf);
+    return nf;
+}
+
+/* The multiplier of the bound that holds variable i (fixed[i] = -1 or 1): >= 0 at the optimum. */
+static inline double vel_qp_multiplier(int d, const double *H, const double *c, const double *x, int i, int side) {
+    double gi = c[i];
+    for (int j = 0; j < d; j++) gi += H[i * d + j] * x[j];
+    return side < 0 ? gi : -gi;
+}
+
+/* The exact minimiser x of 1/2 x^T H x + c^T x over lo <= x <= hi (lo <= hi; H (d x d) symmetric positive
+ * definite). First the primal-dual active-set iteration (Hintermueller, Ito and Kunisch 2002; Kunisch and
+ * Rendl 2003): solve with the current bounds held, then hold every free variable that left its range and
+ * release every held one whose multiplier is negative, all at once; unchanged sets satisfy the KKT
+ * conditions (2-3 solves where bounds are active). It may cycle on matrices far from diagonal, so after 8
+ * rounds a primal active-set method takes over from the clamped point (steps to the free block's minimiser
+ * stopped at the first bound crossed, releases one wrong-signed multiplier at a time: finite). L (d x d),
+ * xs (d), fixed, fr (d) are work space. Returns 1 when the KKT conditions hold, 0 after the iteration
+ * limit. */
+static int vel_box_qp(int d, const double *H, const double *c, const double *lo, const double *hi, double *x, double *L,
+                      double *xs, int8_t *fixed, int *fr) {
+    const double eps = 1e-13;
+    double scale = 1;
+    for (int i = 0; i < d; i++) {
+        fixed[i] = lo[i] == hi[i] ? 2 : 0; /* 2: an equality, held for good; -1 / 1: held at lo / hi */
+        x[i] = lo[i] == hi[i] ? lo[i] : 0;
+        const double ac = fabs(c[i]), ah = H[i * d + i];
+        scale = ac > scale ? ac : scale;
+        scale = ah > scale ? ah : scale;
+    }
+    for (int round = 0; round < 8; round++) { /* primal-dual active set */
+        const int nf = vel_qp_free(d, H, c, x, fixed, L, xs, fr);
+        for (int a = 0; a < nf; a++) x[fr[a]] = xs[a];
+        double xm = 0;
+        for (int i = 0; i < d; i++) xm = fabs(x[i]) > xm ? fabs(x[i]) : xm;
+        const double tol = eps * scale * (1 + xm);
+        int changed = 0;
+        for (int i = 0; i < d; i++) {
+            if (fixed[i] == 0) {
+                if (x[i] < lo[i]) { fixed[i] = -1; changed = 1; }
+                else if (x[i] > hi[i]) { fixed[i] = 1; changed = 1; }
+            } else if (fixed[i] != 2 && vel_qp_multiplier(d, H, c, x, i, fixed[i]) < -tol) {
+                fixed[i] = 0;
+                changed = 1;
+            }
+        }
+        for (int i = 0; i < d; i++)
+            if (fixed[i] == -1 || fixed[i] == 1) x[i] = fixed[i] < 0 ? lo[i] : hi[i];
+        if (!changed) return 1;
+    }
+    for (int i = 0; i < d; i++) { /* primal active set from the clamped point, held where clamped */
+        if (fixed[i] == 2) continue;
+        x[i] = x[i] < lo[i] ? lo[i] : (x[i] > hi[i] ? hi[i] : x[i]);
+        fixed[i] = x[i] == lo[i] ? -1 : (x[i] == hi[i] ? 1 : 0);
+    }
+    for (int it = 0; it < 4 * d + 16; it++) {
+        const int nf = vel_qp_free(d, H, c, x, fixed, L, xs, fr);
+        double alpha = 1;
+        int block = -1, side = 0;
+        for (int a = 0; a < nf; a++) { /* the longest feasible part of the step to xs */
+            const int i = fr[a];
+            const double step = xs[a] - x[i];
+            if (xs[a] < lo[i] && step < 0) {
+                const double t = (lo[i] - x[i]) / step;
+                if (block < 0 || t < alpha) { alpha = t; block = i; side = -1; }
+            } else if (xs[a] > hi[i] && step > 0) {
+                const double t = (hi[i] - x[i]) / step;
+                if (block < 0 || t < alpha) { alpha = t; block = i; side = 1; }
+            }
+        }
+        alpha = alpha > 0 ? alpha : 0;
+        for (int a = 0; a < nf; a++) {
+            const int i = fr[a];
+            x[i] = block < 0 ? xs[a] : x[i] + alpha * (xs[a] - x[i]);
+            x[i] = x[i] < lo[i] ? lo[i] : (x[i] > hi[i] ? hi[i] : x[i]);
+        }
+        if (block >= 0) { /* a bound crossed: it is held from now on */
+            fixed[block] = (int8_t)side;
+            x[block] = side < 0 ? lo[block] : hi[block];
+            continue;
+        }
+        double xm = 0, worst = 0;
+        for (int i = 0; i < d; i++) xm = fabs(x[i]) > xm ? fabs(x[i]) : xm;
+        const double tol = eps * scale * (1 + xm);
+        int release = -1;
+        for (int i = 0; i < d; i++) {
+            if (fixed[i] != -1 && fixed[i] != 1) continue;
+            const double lam = vel_qp_multiplier(d, H, c, x, i, fixed[i]);
+            if (lam < -tol && lam < worst) { worst = lam; release = i; }
+        }
+        if (release < 0) return 1;
+        fixed[release] = 0;
+    }
+    return 0;
+}
+
 #define DK_VEL_PASS 1
 #else
 #undef DK_VEL_PASS
@@ -273,130 +385,18 @@ typedef struct { /* one call's fixed inputs, read once */
     real pgain, plm, lgain, dt, damping;
 } DK(Vel);
 
-/* Reals of one thread's QP work space: H, L (nv x nv), c, lo, hi, x, xs, g, rhs (nv), A (6 x nv). */
+/* Doubles of one thread's QP work space: H, L (nv x nv), c, lo, hi, x, xs (nv), A (6 x nv). */
 static size_t DK(vel_qp_reals)(int nv) {
     return (size_t)2 * nv * nv + (size_t)13 * nv + 16;
-}
-
-/* The minimiser of 1/2 x^T H x + c^T x over the free variables (fixed[i] == 0) with the others held at x:
- * H_FF xs_F = -(c_F + H_FB x_B) by Cholesky (L: work space); fr gets the free indices; returns their count. */
-static int DK(qp_free)(int d, const real *H, const real *c, const real *x, const int8_t *fixed, real *L,
-                       real *xs, int *fr) {
-    int nf = 0;
-    for (int i = 0; i < d; i++)
-        if (!fixed[i]) fr[nf++] = i;
-    for (int a = 0; a < nf; a++) {
-        const int i = fr[a];
-        real r = -c[i];
-        for (int j = 0; j < d; j++)
-            if (fixed[j]) r -= H[i * d + j] * x[j];
-        xs[a] = r;
-        for (int b = 0; b <= a; b++) L[a * nf + b] = L[b * nf + a] = H[i * d + fr[b]];
-    }
-    DK(spd_solve)(L, xs, nf);
-    return nf;
-}
-
-/* The multiplier of the bound that holds variable i (fixed[i] = -1 or 1): >= 0 at the optimum. */
-static inline real DK(qp_multiplier)(int d, const real *H, const real *c, const real *x, int i, int side) {
-    real gi = c[i];
-    for (int j = 0; j < d; j++) gi += H[i * d + j] * x[j];
-    return side < 0 ? gi : -gi;
-}
-
-/* The exact minimiser x of 1/2 x^T H x + c^T x over lo <= x <= hi (lo <= hi; H (d x d) symmetric positive
- * definite). First the primal-dual active-set iteration (Hintermueller, Ito and Kunisch 2002; Kunisch and
- * Rendl 2003): solve with the current bounds held, then hold every free variable that left its range and
- * release every held one whose multiplier is negative, all at once; unchanged sets satisfy the KKT
- * conditions (2-3 solves where bounds are active). It may cycle on matrices far from diagonal, so after 8
- * rounds a primal active-set method takes over from the clamped point (steps to the free block's minimiser
- * stopped at the first bound crossed, releases one wrong-signed multiplier at a time: finite). L (d x d),
- * xs (d), fixed, fr (d) are work space. Returns 1 when the KKT conditions hold, 0 after the iteration
- * limit. */
-static int DK(box_qp)(int d, const real *H, const real *c, const real *lo, const real *hi, real *x, real *L,
-                      real *xs, int8_t *fixed, int *fr) {
-    const real eps = sizeof(real) == 8 ? (real)1e-13 : (real)1e-5;
-    real scale = 1;
-    for (int i = 0; i < d; i++) {
-        fixed[i] = lo[i] == hi[i] ? 2 : 0; /* 2: an equality, held for good; -1 / 1: held at lo / hi */
-        x[i] = lo[i] == hi[i] ? lo[i] : 0;
-        const real ac = (real)fabs((double)c[i]), ah = H[i * d + i];
-        scale = ac > scale ? ac : scale;
-        scale = ah > scale ? ah : scale;
-    }
-    for (int round = 0; round < 8; round++) { /* primal-dual active set */
-        const int nf = DK(qp_free)(d, H, c, x, fixed, L, xs, fr);
-        for (int a = 0; a < nf; a++) x[fr[a]] = xs[a];
-        real xm = 0;
-        for (int i = 0; i < d; i++) xm = (real)fabs((double)x[i]) > xm ? (real)fabs((double)x[i]) : xm;
-        const real tol = eps * scale * (1 + xm);
-        int changed = 0;
-        for (int i = 0; i < d; i++) {
-            if (fixed[i] == 0) {
-                if (x[i] < lo[i]) { fixed[i] = -1; changed = 1; }
-                else if (x[i] > hi[i]) { fixed[i] = 1; changed = 1; }
-            } else if (fixed[i] != 2 && DK(qp_multiplier)(d, H, c, x, i, fixed[i]) < -tol) {
-                fixed[i] = 0;
-                changed = 1;
-            }
-        }
-        for (int i = 0; i < d; i++)
-            if (fixed[i] == -1 || fixed[i] == 1) x[i] = fixed[i] < 0 ? lo[i] : hi[i];
-        if (!changed) return 1;
-    }
-    for (int i = 0; i < d; i++) { /* primal active set from the clamped point, held where clamped */
-        if (fixed[i] == 2) continue;
-        x[i] = x[i] < lo[i] ? lo[i] : (x[i] > hi[i] ? hi[i] : x[i]);
-        fixed[i] = x[i] == lo[i] ? -1 : (x[i] == hi[i] ? 1 : 0);
-    }
-    for (int it = 0; it < 4 * d + 16; it++) {
-        const int nf = DK(qp_free)(d, H, c, x, fixed, L, xs, fr);
-        real alpha = 1;
-        int block = -1, side = 0;
-        for (int a = 0; a < nf; a++) { /* the longest feasible part of the step to xs */
-            const int i = fr[a];
-            const real step = xs[a] - x[i];
-            if (xs[a] < lo[i] && step < 0) {
-                const real t = (lo[i] - x[i]) / step;
-                if (block < 0 || t < alpha) { alpha = t; block = i; side = -1; }
-            } else if (xs[a] > hi[i] && step > 0) {
-                const real t = (hi[i] - x[i]) / step;
-                if (block < 0 || t < alpha) { alpha = t; block = i; side = 1; }
-            }
-        }
-        alpha = alpha > 0 ? alpha : 0;
-        for (int a = 0; a < nf; a++) {
-            const int i = fr[a];
-            x[i] = block < 0 ? xs[a] : x[i] + alpha * (xs[a] - x[i]);
-            x[i] = x[i] < lo[i] ? lo[i] : (x[i] > hi[i] ? hi[i] : x[i]);
-        }
-        if (block >= 0) { /* a bound crossed: it is held from now on */
-            fixed[block] = (int8_t)side;
-            x[block] = side < 0 ? lo[block] : hi[block];
-            continue;
-        }
-        real xm = 0, worst = 0;
-        for (int i = 0; i < d; i++) xm = (real)fabs((double)x[i]) > xm ? (real)fabs((double)x[i]) : xm;
-        const real tol = eps * scale * (1 + xm);
-        int release = -1;
-        for (int i = 0; i < d; i++) {
-            if (fixed[i] != -1 && fixed[i] != 1) continue;
-            const real lam = DK(qp_multiplier)(d, H, c, x, i, fixed[i]);
-            if (lam < -tol && lam < worst) { worst = lam; release = i; }
-        }
-        if (release < 0) return 1;
-        fixed[release] = 0;
-    }
-    return 0;
 }
 
 /* The step of one row: the FK block's lane l (sc: ends and Jacobians), q (nq), its targets (F x 16) and
  * q_ref (nq) -> v (nv), q_next (nq, or NULL); returns ok. */
 static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const real *q, const real *tgt,
-                       const real *qref, real *vout, real *qnext, real *work, int8_t *fixed, int *fr) {
-    const int nv = V->nv, K = V->s.K;
-    real *H = work, *L = H + (size_t)nv * nv, *c = L + (size_t)nv * nv, *lo = c + nv, *hi = lo + nv;
-    real *x = hi + nv, *xs = x + nv, *A = xs + nv; /* A: 6 x nv */
+                       const real *qref, real *vout, real *qnext, double *work, int8_t *fixed, int *fr) {
+    const int nv = V->nv;
+    double *H = work, *L = H + (size_t)nv * nv, *c = L + (size_t)nv * nv, *lo = c + nv, *hi = lo + nv;
+    double *x = hi + nv, *xs = x + nv, *A = xs + nv; /* A: 6 x nv */
     int ok = 1;
     for (int i = 0; i < nv * nv; i++) H[i] = 0;
     for (int i = 0; i < nv; i++) c[i] = 0;
@@ -410,13 +410,14 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
         }
         for (int i = 0; i < 16; i++) Tt[i] = (double)tgt[16 * f + i];
         vel_frame_error(Rb, pb, Tt, e, M);
-        const real *cost = V->fcost + 6 * f, gain = V->fgain[f];
-        real b[6], mu = 0;
+        const real *cost = V->fcost + 6 * f;
+        const double gain = (double)V->fgain[f];
+        double b[6], mu = 0;
         for (int a = 0; a < 6; a++) {
-            b[a] = cost[a] * (-gain * (real)e[a]);
+            b[a] = (double)cost[a] * (-gain * e[a]);
             mu += b[a] * b[a];
         }
-        mu *= V->flm[f];
+        mu *= (double)V->flm[f];
         for (int i = 0; i < nv; i++) { /* A = -C M J_body, column by column */
             double jb[6];
             for (int a = 0; a < 3; a++) {
@@ -430,15 +431,15 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
             for (int a = 0; a < 6; a++) {
                 double acc = 0;
                 for (int r = 0; r < 6; r++) acc += M[6 * a + r] * jb[r];
-                A[(size_t)a * nv + i] = cost[a] * (real)(-acc);
+                A[(size_t)a * nv + i] = (double)cost[a] * -acc;
             }
         }
         for (int i = 0; i < nv; i++) {
-            real ci = 0;
+            double ci = 0;
             for (int a = 0; a < 6; a++) ci -= A[(size_t)a * nv + i] * b[a];
             c[i] += ci;
             for (int j = 0; j <= i; j++) {
-                real acc = 0;
+                double acc = 0;
                 for (int a = 0; a < 6; a++) acc += A[(size_t)a * nv + i] * A[(size_t)a * nv + j];
                 H[i * nv + j] += acc;
             }
@@ -446,9 +447,9 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
         }
     }
     if (V->pcost) { /* e = q (-) q_ref, J = I */
-        real ep[nv > 0 ? nv : 1];
+        double ep[nv > 0 ? nv : 1];
         for (int i = 0; i < nv; i++)
-            if (V->sp.vq[i] >= 0) ep[i] = q[V->sp.vq[i]] - qref[V->sp.vq[i]];
+            if (V->sp.vq[i] >= 0) ep[i] = (double)q[V->sp.vq[i]] - (double)qref[V->sp.vq[i]];
         for (int bq = 0; bq < V->sp.nb; bq++) {
             double qa[4], qb[4], w[3];
             for (int cc = 0; cc < 4; cc++) {
@@ -456,46 +457,46 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
                 qb[cc] = (double)qref[V->sp.qs[bq] + cc];
             }
             vel_sub_quat(qa, qb, w);
-            for (int cc = 0; cc < 3; cc++) ep[V->sp.vs[bq] + cc] = (real)w[cc];
+            for (int cc = 0; cc < 3; cc++) ep[V->sp.vs[bq] + cc] = w[cc];
         }
-        real mu = 0;
+        double mu = 0;
         for (int i = 0; i < nv; i++) {
-            const real b = V->pcost[i] * (-V->pgain * ep[i]);
+            const double ci = (double)V->pcost[i], b = ci * (-(double)V->pgain * ep[i]);
             mu += b * b;
-            c[i] -= V->pcost[i] * b;
-            H[i * nv + i] += V->pcost[i] * V->pcost[i];
+            c[i] -= ci * b;
+            H[i * nv + i] += ci * ci;
         }
-        mu *= V->plm;
+        mu *= (double)V->plm;
         for (int i = 0; i < nv; i++) H[i * nv + i] += mu;
     }
     for (int i = 0; i < nv; i++) {
-        H[i * nv + i] += V->damping;
+        H[i * nv + i] += (double)V->damping;
         for (int j = 0; j < i; j++) H[j * nv + i] = H[i * nv + j];
     }
-    const real inf = (real)INFINITY;
+    const double inf = INFINITY;
     for (int i = 0; i < nv; i++) { /* the box: configuration and velocity limits */
-        real plo = -inf, phi = inf, vlo = -inf, vhi = inf;
+        double plo = -inf, phi = inf, vlo = -inf, vhi = inf;
         const int qi = V->sp.vq[i];
         if (V->plo && qi >= 0) {
-            plo = V->lgain * (V->plo[i] - q[qi]);
-            phi = V->lgain * (V->phi[i] - q[qi]);
-            if (plo > phi) plo = phi = (real)0.5 * (plo + phi);
+            plo = (double)V->lgain * ((double)V->plo[i] - (double)q[qi]);
+            phi = (double)V->lgain * ((double)V->phi[i] - (double)q[qi]);
+            if (plo > phi) plo = phi = 0.5 * (plo + phi);
         }
-        if (V->vmax) vhi = V->dt * V->vmax[i], vlo = -vhi;
-        real a = plo > vlo ? plo : vlo, b = phi < vhi ? phi : vhi;
+        if (V->vmax) vhi = (double)V->dt * (double)V->vmax[i], vlo = -vhi;
+        double a = plo > vlo ? plo : vlo, b = phi < vhi ? phi : vhi;
         if (a > b) { /* no room: the velocity range's point nearest the position range */
             a = b = plo > vhi ? vhi : vlo;
             ok = 0;
         }
         lo[i] = a, hi[i] = b;
     }
-    ok &= DK(box_qp)(nv, H, c, lo, hi, x, L, xs, fixed, fr);
-    const real inv_dt = 1 / V->dt;
-    for (int i = 0; i < nv; i++) vout[i] = x[i] * inv_dt;
+    ok &= vel_box_qp(nv, H, c, lo, hi, x, L, xs, fixed, fr); /* in double for both real types */
+    const double inv_dt = 1 / (double)V->dt;
+    for (int i = 0; i < nv; i++) vout[i] = (real)(x[i] * inv_dt);
     if (qnext) { /* q (+) dq: scalars add, quaternions Q <- normalise(Q) (x) exp(w / 2) */
         for (int i = 0; i < V->n; i++) qnext[i] = q[i];
         for (int i = 0; i < nv; i++)
-            if (V->sp.vq[i] >= 0) qnext[V->sp.vq[i]] += x[i];
+            if (V->sp.vq[i] >= 0) qnext[V->sp.vq[i]] = (real)((double)qnext[V->sp.vq[i]] + x[i]);
         for (int bq = 0; bq < V->sp.nb; bq++) {
             real *Q = qnext + V->sp.qs[bq];
             double x4[4], nn = 0;
@@ -503,7 +504,7 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
             nn = sqrt(nn);
             const int small = nn <= (double)DK_QSMALL;
             for (int cc = 0; cc < 4; cc++) x4[cc] = small ? (cc == 0) : x4[cc] / nn;
-            const real *w = x + V->sp.vs[bq];
+            const double *w = x + V->sp.vs[bq];
             const double wx = w[0], wy = w[1], wz = w[2];
             const double h = 0.5 * sqrt(wx * wx + wy * wy + wz * wz);
             const double e0 = cos(h), s = h < 1e-4 ? 0.5 * (1 - h * h / 6) : 0.5 * sin(h) / h;
@@ -514,13 +515,12 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
             Q[3] = (real)(x4[0] * ev[2] + e0 * x4[3] + x4[1] * ev[1] - x4[2] * ev[0]);
         }
     }
-    (void)K;
     return ok;
 }
 
 /* Bytes of one thread's work: the FK scratch, then the QP's reals, then its index arrays. */
 static size_t DK(vel_thread_bytes)(const Shape *s) {
-    return (DK(scratch_size)(s) + sizeof(real) * DK(vel_qp_reals)(s->nv) + (size_t)s->nv * (sizeof(int) + 1) + 8 +
+    return (DK(scratch_size)(s) + sizeof(double) * DK(vel_qp_reals)(s->nv) + (size_t)s->nv * (sizeof(int) + 1) + 8 +
             63) / 64 * 64;
 }
 
@@ -545,7 +545,7 @@ static void DK(vel_block)(const DK(Vel) *V, DK(Scratch) *sc, char *thread, int64
     const int64_t B = v->batch, b0 = blk * W;
     const int nl = (int)(B - b0 < W ? B - b0 : W);
     const real *q = (const real *)v->q, *tgt = (const real *)v->target, *qref = (const real *)v->q_ref;
-    real *work = (real *)(thread + DK(scratch_size)(&V->s));
+    double *work = (double *)(thread + DK(scratch_size)(&V->s));
     int8_t *fixed = (int8_t *)(work + DK(vel_qp_reals)(nv));
     int *fr = (int *)(((uintptr_t)(fixed + nv) + sizeof(int) - 1) / sizeof(int) * sizeof(int));
     *bad += DK(load_q)(&V->s, sc, q, b0, nl);
