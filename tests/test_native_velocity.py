@@ -214,3 +214,76 @@ def test_struct_mirrors_library():
     native.check_abi(lib, nvel.Vel, nvel.VERSION)
     with pytest.raises(native.AbiMismatch):
         native.check_abi(lib, nvel.Vel, nvel.VERSION + 1)
+
+
+# ------------------------------------------------------------------ ik.solve_velocity: the C route vs torch
+from diffkin import ik  # noqa: E402
+
+
+def _both(chain, q, tasks, dt, limits, damping=1e-12):
+    """solve_velocity by the C route and by the torch path (native kernels disabled)."""
+    cache = chain.__dict__.get("_velocity_native", {})
+    n = len(cache)
+    fast = ik.solve_velocity(chain, q, tasks, dt, limits=limits, damping=damping)
+    assert len(chain.__dict__.get("_velocity_native", {})) >= max(n, 1)  # the C route served it
+    with native.disabled():
+        slow = ik.solve_velocity(chain, q, tasks, dt, limits=limits, damping=damping)
+    return fast, slow
+
+
+def test_solve_velocity_routes_to_c_and_equals_torch_panda(panda):
+    chain, _ = panda
+    g = torch.Generator().manual_seed(11)
+    q = chain.random_configuration(48, generator=g)
+    T = chain.forward_kinematics(q + 0.05 * torch.randn(q.shape, generator=g, dtype=q.dtype))
+    q_ref = chain.random_configuration((), generator=g)
+    tasks = [ik.FrameTask("hand", target=T, position_cost=[1.0, 2.0, 0.5], orientation_cost=0.5, gain=0.8,
+                          lm_damping=0.1), ik.PostureTask(q_ref, cost=1e-2, gain=0.5)]
+    limits = [ik.ConfigurationLimit(gain=0.95, min_distance_from_limits=0.01), ik.VelocityLimit(2.0)]
+    fast, slow = _both(chain, q, tasks, 0.01, limits)
+    torch.testing.assert_close(fast, slow, rtol=0, atol=1e-9)
+    # one row (the lean path), a target (4, 4), velocity limits by joint name
+    one = [ik.FrameTask(0, target=T[3]), ik.PostureTask(q_ref, cost=0.1)]
+    lim = [ik.ConfigurationLimit(), ik.VelocityLimit({f"joint{i}": 1.0 + 0.1 * i for i in range(1, 8)})]
+    fast, slow = _both(chain, q[3], one, 0.002, lim, damping=1e-6)
+    assert fast.shape == (7,)
+    torch.testing.assert_close(fast, slow, rtol=0, atol=1e-9)
+
+
+def test_solve_velocity_routes_to_c_and_equals_torch_g1():
+    """The floating base. (Below mink's 1e-5 rad switch, a translation error with no rotation error, the
+    torch path's exact log Jacobian and the C path's mink identity differ by O(|v|): the C path follows mink
+    there, test_panda_batch_matches_mink.)"""
+    chain = from_mjcf(G1, [e for e, _ in G1_ENDS], dtype=torch.float64).requires_grad_(False)
+    g = torch.Generator().manual_seed(2)
+    q = chain.neutral_configuration().expand(6, -1).clone()
+    q[:, 7:] = 0.3 * torch.randn(6, chain.nq - 7, generator=g, dtype=torch.float64)
+    q = chain.clamp_to_limits(q)
+    q[:, 3:7] = torch.nn.functional.normalize(torch.randn(6, 4, generator=g, dtype=torch.float64), dim=-1)
+    T = chain.forward_kinematics(q)
+    T[..., 2:, :3, 3] += 0.03
+    c, s = math.cos(0.05), math.sin(0.05)  # hands turned too: a rotation error above mink's 1e-5 rad switch
+    turn = torch.tensor([[c, -s, 0, 0], [s, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=torch.float64)
+    T[..., 2:, :, :] = T[..., 2:, :, :] @ turn
+    tasks = [ik.FrameTask(k, target=T[:, k], lm_damping=1.0) for k in range(4)]
+    tasks.append(ik.PostureTask(chain.neutral_configuration(), cost=0.1))
+    vmax = {name: 3.0 for name, kind in zip(chain.joint_names, chain.joint_kinds) if kind != "free"}
+    fast, slow = _both(chain, q, tasks, 0.01, [ik.ConfigurationLimit(), ik.VelocityLimit(vmax)])
+    torch.testing.assert_close(fast, slow, rtol=0, atol=1e-9)
+
+
+def test_solve_velocity_keeps_the_torch_path_outside_the_subset(panda):
+    chain, _ = panda
+    q = torch.tensor([0.1, -0.4, 0.2, -2.0, 0.1, 1.4, 0.6], dtype=torch.float64)
+    T = chain.forward_kinematics(q + 0.02).clone().requires_grad_(True)
+    v = ik.solve_velocity(chain, q, [ik.FrameTask(0, target=T)], 0.01, limits=[ik.VelocityLimit(1.0)])
+    assert v.grad_fn is not None  # a gradient wanted: the torch path (KKT gradients)
+    v.sum().backward()
+    assert T.grad is not None and bool(torch.isfinite(T.grad).all())
+    twist = torch.tensor([0.1, 0.0, 0.0, 0.0, 0.0, 0.2], dtype=torch.float64)
+    with torch.no_grad():
+        v = ik.solve_velocity(chain, q, [ik.FrameTask(0, twist=twist)], 0.01)
+    assert v.shape == (7,)  # twists: the torch path
+    with pytest.raises(Exception):  # noqa: B017 - the torch path's own error for a bad q
+        ik.solve_velocity(chain, torch.full((7,), float("nan"), dtype=torch.float64),
+                          [ik.FrameTask(0, target=T.detach())], 0.01)

@@ -119,6 +119,7 @@ class NativeVelocity:
         self.chain = chain
         self.dtype = dtype = dtype or chain.dtype
         nv, K = chain.nv, chain.n_ends
+        self.nq, self.nv = chain.nq, nv
         kw = dict(dtype=dtype)
         self.n_frames = len(frames)
         ends, cost, gain, lm = [], [], [], []
@@ -293,3 +294,195 @@ def _check(status: int) -> None:
                                  "or size)")
     if status == -1:
         raise MemoryError("the native kernel could not allocate its work space")
+
+
+# ----------------------------------------------------------------------------------- solve_velocity's route
+_CACHE = "_velocity_native"  # per chain (instance __dict__): problem key -> NativeVelocity
+
+
+def _number(x) -> float | None:
+    return float(x) if type(x) in (float, int) else None
+
+
+def _constant(x, n: int | None) -> tuple | float | None:
+    """A cost / limit as a hashable constant: a number, or a short 1-D CPU tensor / sequence without
+    gradient (its values); None when it is anything else (a batch of them, a gradient wanted)."""
+    v = _number(x)
+    if v is not None:
+        return v
+    if isinstance(x, Tensor):
+        if x.ndim != 1 or x.requires_grad or not x.is_cpu or (n is not None and x.numel() != n):
+            return None
+        return tuple(x.tolist())
+    if isinstance(x, list | tuple) and all(type(e) in (float, int) for e in x) and \
+            (n is None or len(x) == n):
+        return tuple(float(e) for e in x)
+    return None
+
+
+def _plain(t, tail: tuple, dtype) -> bool:
+    return type(t) is Tensor and t.dtype is dtype and t.is_cpu and t.ndim >= len(tail) and \
+        t.shape[t.ndim - len(tail):] == tail and not (t.requires_grad and torch.is_grad_enabled())
+
+
+_NUM = (float, int)
+_kinds: list = []  # (FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem), imported once
+
+
+def _classes():
+    if not _kinds:
+        from .limits import ConfigurationLimit, VelocityLimit
+        from .tasks import FrameTask, PostureTask, Problem
+
+        _kinds.extend((FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem))
+    return _kinds
+
+
+def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
+    """:func:`~diffkin.ik.solve_velocity` by the C step where it serves the call, else None (the torch
+    path then serves it, and raises on bad input). Served: CPU tensors of the chain's dtype (float64 or
+    float32), no gradient wanted (q, targets, q_ref, the chain's parameters), q ``(nq,)`` or ``(..., nq)``;
+    tasks: FrameTask with a ``target`` pose (not ``twist``; frame by name or index; costs a number or
+    ``(3,)``, gain and lm_damping numbers; the target ``(4, 4)`` or with q's batch dims), at most one
+    PostureTask (cost a number or ``(nv,)``, q_ref ``(nq,)`` or with q's batch dims); limits:
+    ConfigurationLimit and VelocityLimit (a number, ``(nv,)`` or a dict by joint name), at most one of each;
+    ``dt`` and ``damping`` numbers. Everything else (CollisionLimit, ComTask, RelativeFrameTask,
+    DampingTask, twists, batched costs, autograd, CUDA) takes the torch path.
+
+    The problem's constants are packed once per chain and key (the tasks' frames, costs, gains and damping,
+    the limits' constants, the chain's q_limits tensor and version) into a :class:`NativeVelocity`; a call
+    then checks types and shapes, builds the key and makes one foreign call."""
+    if type(q) is not Tensor:
+        return None
+    dtype = q.dtype
+    if (dtype is not torch.float64 and dtype is not torch.float32) or not q.is_cpu or q.ndim == 0 or \
+            (q.requires_grad and torch.is_grad_enabled()) or type(dt) not in _NUM or \
+            type(damping) not in _NUM or not dt > 0 or not damping >= 0 or dt == math.inf:
+        return None
+    if native._disabled or (native._lib is None and not native.available()):
+        return None
+    FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem = _kinds or _classes()
+    tasks = tasks if type(tasks) in (list, tuple) else (tasks,)
+    limits = () if limits is None else limits if type(limits) in (list, tuple) else (limits,)
+    frames, targets, posture, q_ref = [], [], None, None
+    for t in tasks:
+        kind = type(t)
+        if kind is FrameTask:
+            if t.twist is not None or not _plain(t.target, (4, 4), dtype):
+                return None
+            pc, oc = t.position_cost, t.orientation_cost
+            key = (t.frame, pc if type(pc) in _NUM else _constant(pc, 3),
+                   oc if type(oc) in _NUM else _constant(oc, 3), _number(t.gain), _number(t.lm_damping))
+            if None in key:
+                return None
+            frames.append(key)
+            targets.append(t.target)
+        elif kind is PostureTask and posture is None:
+            c = t.cost
+            posture = (c if type(c) in _NUM else _constant(c, None), _number(t.gain), _number(t.lm_damping))
+            q_ref = t.q_ref
+            if None in posture or type(q_ref) is not Tensor or q_ref.dtype is not dtype or \
+                    (q_ref.requires_grad and torch.is_grad_enabled()):
+                return None
+        else:
+            return None
+    config = vel = None
+    for lim in limits:
+        kind = type(lim)
+        if kind is ConfigurationLimit and config is None:
+            config = (lim.gain, lim.min_distance_from_limits)
+        elif kind is VelocityLimit and vel is None:
+            v = lim.velocity
+            vel = v if type(v) in _NUM else _constant(v, None) if not isinstance(v, dict) else \
+                ("dict", tuple((k, _constant(x, None)) for k, x in v.items()))
+            if vel is None or (type(vel) is tuple and vel and vel[0] == "dict" and
+                               any(x is None for _, x in vel[1])):
+                return None
+        else:
+            return None
+    if not frames and posture is None:
+        return None
+    lim_t = chain._buffers.get("q_limits")
+    key = (dtype, tuple(frames), posture, config, vel, damping,
+           None if lim_t is None else (id(lim_t), lim_t._version))
+    cache = chain.__dict__.get(_CACHE)
+    if cache is None:
+        cache = chain.__dict__[_CACHE] = {}
+    prob = cache.get(key)
+    if prob is None:
+        prob = _build(chain, key, limits, dt, VelocityLimit, Problem)
+        if prob is None:
+            return None
+        if len(cache) > 64:  # a loop that builds new constants every step: keep the newest only
+            cache.clear()
+        cache[key] = prob
+    if q.shape[-1] != prob.nq or (q_ref is not None and q_ref.shape[-1] != prob.nq):
+        return None
+    if q.ndim == 1:
+        if (q_ref is not None and q_ref.ndim != 1) or any(t.ndim != 2 for t in targets):
+            return None
+        tgt = (targets[0] if len(targets) == 1 else torch.stack(targets)) if targets else None
+        if tgt is not None and not tgt.is_contiguous():
+            tgt = tgt.contiguous()
+        if q_ref is not None and not q_ref.is_contiguous():
+            q_ref = q_ref.contiguous()
+        return prob.step(q if q.is_contiguous() else q.contiguous(), tgt, q_ref, dt)
+    batch, nq = q.shape[:-1], prob.nq
+    B = q.numel() // nq
+    try:
+        tgt = torch.stack([t.expand(*batch, 4, 4) for t in targets], dim=-3).reshape(B, len(targets), 4, 4) \
+            if targets else None
+        ref = q_ref if q_ref is None or q_ref.ndim == 1 else q_ref.expand(*batch, nq).reshape(B, nq)
+    except RuntimeError:  # shapes that do not broadcast: the torch path says so
+        return None
+    q2 = q.reshape(B, nq)
+    if not bool(torch.isfinite(q2).all()):  # the torch path's error
+        return None
+    try:
+        v, _ = prob.solve(q2, tgt, ref, dt)
+    except RuntimeError:  # the chain cannot be packed now (a gradient wanted from its parameters)
+        return None
+    return v.reshape(*batch, prob.nv)
+
+
+def _build(chain, key, limits, dt, VelocityLimit, Problem) -> NativeVelocity | None:
+    """The :class:`NativeVelocity` of a route key (None: the chain or the constants do not suit it)."""
+    dtype, frames, posture, config, vel, damping, _ = key
+    if chain.dtype is not dtype:
+        return None
+    K, names = chain.n_ends, list(getattr(chain, "end_links", None) or [])
+    resolved = []
+    for frame, pc, oc, g, lm in frames:
+        if isinstance(frame, str):
+            if frame not in names:
+                return None
+            frame = names.index(frame)
+        if type(frame) is not int or not 0 <= frame < K:
+            return None
+        costs = [x for c in (pc, oc) for x in (c if isinstance(c, tuple) else (c,))]
+        if min(costs) < 0 or g < 0 or lm < 0:
+            return None
+        resolved.append((frame, pc, oc, g, lm))
+    if posture is not None:
+        c = posture[0]
+        if (isinstance(c, tuple) and len(c) != chain.nv) or min(c if isinstance(c, tuple) else (c,)) < 0 or \
+                posture[1] < 0 or posture[2] < 0:
+            return None
+    if config is not None and not (type(config[0]) in _NUM and type(config[1]) in _NUM and
+                                   0 < config[0] <= 1):
+        return None
+    vmax = None
+    if vel is not None:
+        try:
+            probe = Problem(chain, torch.zeros(chain.nq, dtype=dtype), dt)
+            vmax = next(lim for lim in limits if type(lim) is VelocityLimit).limits(probe)
+        except Exception:  # noqa: BLE001 - any error: the torch path raises it with its own message
+            return None
+        vmax = vmax.detach().to("cpu", dtype)
+        if vmax.ndim != 1 or vmax.shape[0] != chain.nv or not bool((vmax >= 0).all()):
+            return None
+    try:
+        return NativeVelocity(chain, resolved, posture=posture, configuration_limit=config,
+                              velocity_limit=vmax, damping=damping, dtype=dtype)
+    except (ValueError, RuntimeError, TypeError):
+        return None
