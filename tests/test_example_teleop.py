@@ -34,3 +34,14 @@ def test_teleop_example_main_prints(capsys):
     assert _example().main(["--robot", "panda", "--seconds", "0.1"]) == 0
     out = capsys.readouterr().out
     assert "ticks at 500 Hz" in out and "worst joint-limit margin" in out
+
+
+def test_demo_teleop_section(tmp_path):
+    from diffkin.demo import Report, section_teleop
+
+    report = Report(tmp_path)
+    section_teleop(report, quick=True)
+    assert not report.failures
+    text = report.sections[-1]
+    assert "Teleoperation rate" in text and "diffkin ik.solve_velocity (C step)" in text
+    assert "(never negative)" in text
