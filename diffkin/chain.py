@@ -687,6 +687,21 @@ class KinematicChain(nn.Module):
 
         return analytical_jacobian(self, q, representation=representation, **kwargs)
 
+    def center_of_mass(self, q: Tensor) -> Tensor:
+        """Centre of mass ``(..., 3)`` of the model's bodies at ``q (..., nq)``, in the base frame (MuJoCo's
+        ``subtree_com`` of the root body); see :mod:`diffkin.center_of_mass`. Needs link masses (URDF
+        ``<inertial>``, MJCF): a chain without them raises :class:`~diffkin.errors.ModelError`."""
+        from .center_of_mass import center_of_mass
+
+        return center_of_mass(self, q)
+
+    def com_jacobian(self, q: Tensor) -> Tensor:
+        """Jacobian ``(..., 3, nv)`` of :meth:`center_of_mass`: Σ_i (m_i / M) J_P(p_i), the linear rows of
+        (3.30) at each body's centre of mass (``mj_jacSubtreeCom``); see :mod:`diffkin.center_of_mass`."""
+        from .center_of_mass import com_jacobian
+
+        return com_jacobian(self, q)
+
     def forward_kinematics_and_jacobian(self, q: Tensor, frame=None, point: Tensor | None = None,
                                         point_frame: str = "ee", check: bool = True,
                                         base: Tensor | None = None) -> tuple[Tensor, Tensor]:

@@ -57,22 +57,48 @@ def least_squares(p: Problem, tasks: Sequence[Task], damping: Tensor) -> tuple[T
     return A, b, reg.expand(batch)
 
 
+def _qr_solve(A: Tensor, b: Tensor, reg: Tensor, x: Tensor, fixed: Tensor) -> Tensor:
+    """The least squares of (D.1) with the ``fixed`` variables held at x, by QR of [A_F; √reg I_F]."""
+    free = (~fixed).to(x.dtype)
+    x_fix = torch.where(fixed, x, torch.zeros_like(x))
+    M = torch.cat((A * free[..., None, :], torch.diag_embed(free * reg.sqrt()[..., None] + (1.0 - free))),
+                  dim=-2)
+    rhs = torch.cat((b - (A @ x_fix.unsqueeze(-1)).squeeze(-1), x_fix), dim=-1)
+    Q, R = torch.linalg.qr(M)
+    return torch.linalg.solve_triangular(R, Q.mT @ rhs.unsqueeze(-1), upper=True).squeeze(-1)
+
+
+def _objective(A: Tensor, b: Tensor, reg: Tensor, x: Tensor) -> Tensor:
+    r = (A @ x.unsqueeze(-1)).squeeze(-1) - b
+    return (r * r).sum(-1) + reg * (x * x).sum(-1)
+
+
 def _refine(A: Tensor, b: Tensor, reg: Tensor, x: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
-    """x with its free variables re-solved by QR on the stacked system (module docstring); the gradient
-    stays the box QP's (the same KKT point)."""
+    """x re-solved without forming AᵀA (module docstring): QR solves on the box QP's active set, then
+    primal-dual active-set rounds (Hintermüller, Ito & Kunisch) on QR solves; of these points the feasible
+    one of least objective (D.1), evaluated unsquared, is kept per row (never worse than the box QP's). The
+    gradient stays the box QP's (the same KKT point wherever its active set was right)."""
     with torch.no_grad():
-        fixed = (x <= lo) | (x >= hi)
-        free = (~fixed).to(x.dtype)
-        x_fix = torch.where(fixed, x, torch.zeros_like(x))
-        top = A * free[..., None, :]
-        bottom = torch.diag_embed(free * reg.sqrt()[..., None] + (1.0 - free))
-        M = torch.cat((top, bottom), dim=-2)
-        rhs = torch.cat((b - (A @ x_fix.unsqueeze(-1)).squeeze(-1), x_fix), dim=-1)
-        Q, R = torch.linalg.qr(M)
-        y = torch.linalg.solve_triangular(R, (Q.mT @ rhs.unsqueeze(-1)), upper=True).squeeze(-1)
-        ok = torch.isfinite(y).all(-1, keepdim=True)
-        y = torch.where(ok, torch.minimum(torch.maximum(y, lo), hi), x)
-    return x + (y - x).detach()
+        best, best_f = x, _objective(A, b, reg, x)
+        tol = 1e-12 * (1.0 + torch.maximum(lo.abs(), hi.abs()).nan_to_num(posinf=0.0))
+        none = torch.zeros_like(x, dtype=torch.bool)
+        for at_lo, at_hi in ((x <= lo, x >= hi), (none, none)):  # from the box QP's set, and from none
+            for _ in range(x.shape[-1] + 2):
+                y = _qr_solve(A, b, reg, torch.where(at_lo, lo, torch.where(at_hi, hi, x)), at_lo | at_hi)
+                feasible = torch.isfinite(y).all(-1) & ((y >= lo - tol) & (y <= hi + tol)).all(-1)
+                y = torch.minimum(torch.maximum(y, lo), hi)
+                f = _objective(A, b, reg, y)
+                better = feasible & (f < best_f)
+                best, best_f = torch.where(better[..., None], y, best), torch.where(better, f, best_f)
+                r = (A @ y.unsqueeze(-1)).squeeze(-1) - b
+                grad = (A.mT @ r.unsqueeze(-1)).squeeze(-1) + reg[..., None] * y
+                inside = ~at_lo & ~at_hi
+                new_lo = (at_lo & (grad >= 0)) | (inside & (y <= lo))
+                new_hi = (at_hi & (grad <= 0)) | (inside & (y >= hi))
+                if bool(((new_lo == at_lo) & (new_hi == at_hi)).all()):
+                    break
+                at_lo, at_hi = new_lo, new_hi
+    return x + (best - x).detach()
 
 
 def solve_step(p: Problem, A: Tensor, b: Tensor, reg: Tensor, limits: Sequence[Limit]) -> Tensor:

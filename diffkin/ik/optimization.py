@@ -51,13 +51,18 @@ class PoseCost(_Term):
 
 @dataclass(frozen=True)
 class JointLimitCost(_Term):
-    """Quadratic penalty for joints within ``margin`` of a limit (zero inside the safe range)."""
+    """Quadratic penalty for joints within ``margin`` of a limit (zero inside the safe range): the scalar
+    coordinates only (a ball or free joint's quaternion has no limits; its entries are not penalised)."""
 
     margin: float = 0.05
 
     def residual(self, ctx: CostContext) -> Tensor:
         lo, hi = ctx.chain.lower_upper()
         q = ctx.q
+        space = ctx.chain.configuration_space
+        if not space.euclidean:
+            idx = list(space.scalar_index("q"))
+            lo, hi, q = lo[idx], hi[idx], q[..., idx]
         return torch.relu(lo + self.margin - q) + torch.relu(q - (hi - self.margin))
 
 

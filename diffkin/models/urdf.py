@@ -25,8 +25,8 @@ from ..kernels.joints import axis_alignment, origin_transform, pose_correction
 from ..rotations import _matrix_to_euler
 from ..transforms import _make_transform
 from ..validation import check_end_links
-from .description import FrameSpec, TreeChain, TreeDescription
-from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_urdf, write_urdf
+from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription
+from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_inertials, parse_urdf, write_urdf
 
 __all__ = ["URDFChain", "from_urdf"]
 
@@ -143,11 +143,42 @@ def _describe(tree: URDFTree, ends: list[str], root_link: str | None,
         # fold_origins
         buffers={"_axis_flip": axes[:, 2] < 0, "origin_delta": None})
     root = root_link or tree.root
-    facts = {"root_link": root,
-             "link_frame": {root: root_frame + 1, **{j.child: last_frame[j.name] + 1 for j in moving}},
+    link_frame = {root: root_frame + 1, **{j.child: last_frame[j.name] + 1 for j in moving}}
+    description.inertias, description.inertia_note = _inertias(tree, link_frame)
+    facts = {"root_link": root, "link_frame": link_frame,
              "frame_joint_names": [j.name for j in axis_joints], "link_names": [j.child for j in axis_joints],
              "joint_origin_names": [j.name for j in used]}
     return description, facts
+
+
+def _inertias(tree: URDFTree, link_frame: dict[str, int]) -> tuple[list[BodyInertia] | None, str]:
+    """The ``<inertial>`` of every link below the root link, attached to the frame of the nearest link that
+    moves with one (``link_frame``: index in ``all_frames``, 0 the base): the joint origins on the way
+    (fixed joints, and joints outside the chain at zero) times the inertial origin, in float64."""
+    specs = parse_inertials(tree)
+    if not specs:
+        return None, f"URDF {tree.name!r} has no <inertial> element"
+    out = []
+    for link in tree.links:
+        spec = specs.get(link)
+        if spec is None or spec.mass <= 0.0:
+            continue
+        T = origin_transform(torch.tensor(spec.xyz, dtype=torch.float64),
+                             torch.tensor(spec.rpy, dtype=torch.float64))
+        at, inside = link, True
+        while at not in link_frame:  # up to the nearest link with a frame (the root link at the latest)
+            j = tree._by_child.get(at)
+            if j is None:  # above the root link: not part of the chain's model
+                inside = False
+                break
+            T = origin_transform(torch.tensor(j.xyz, dtype=torch.float64),
+                                 torch.tensor(j.rpy, dtype=torch.float64)) @ T
+            at = j.parent
+        if inside:
+            out.append(BodyInertia(link, link_frame[at] - 1, spec.mass, tuple(map(tuple, T.tolist()))))
+    if not out:
+        return None, f"no link of URDF {tree.name!r} below the root link has a positive <inertial> mass"
+    return out, ""
 
 
 class URDFChain(TreeChain):
