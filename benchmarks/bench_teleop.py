@@ -25,8 +25,8 @@ from the same start over the same targets, ``--steps`` steps (≥ 2 000), and th
 Then 4 096 Panda rows in one call of the C step against mink looped over rows (a teleoperation-like batch:
 q near the start posture, each target a small displacement of the row's pose; mink timed row by row on
 256 of them, the median row times 4 096), and the Unitree G1 (floating base; both feet held by frame
-tasks, both hands moving, posture,
-limits) beside mink, with the largest |q̇_diffkin − q̇_mink| at mink's states along the loop (whole
+tasks, both hands moving, posture, limits; knees and elbows bent at the start) beside mink, with the
+largest |q̇_diffkin − q̇_mink| at mink's states along the loop (whole
 trajectories are not compared: near the straight-knee singularity a 1e-12 difference grows along the
 loop). The machine may be shared: ratios are measured in the same run.
 """
@@ -172,7 +172,7 @@ def _solve_velocity_side(chain, targets):
     def step(k):
         task = ik.FrameTask(0, target=tgt[k], position_cost=1.0, orientation_cost=1.0, lm_damping=LM)
         v = ik.solve_velocity(chain, state[0], [task, posture], DT, limits=limits)
-        state[0] = chain.integrate(state[0], v * DT)
+        state[0] = state[0] + v * DT  # q ⊕ v Δt: the Panda's joints are hinges
         return state[0]
 
     with torch.no_grad():
@@ -338,6 +338,9 @@ def _g1(steps: int):
                           configuration_limit=(0.95, 0.0), velocity_limit=vmax)
     cfg = mink.Configuration(model)
     q0 = model.qpos0.copy()
+    bent = {"hip_pitch": -0.3, "knee": 0.6, "ankle_pitch": -0.3, "elbow_pitch": 1.0}
+    for j in range(1, model.njnt):  # knees and elbows bent: away from the straight-leg singularity
+        q0[model.jnt_qposadr[j]] = next((a for key, a in bent.items() if key in model.joint(j).name), 0.0)
     cfg.update(q0)
     T0 = [cfg.get_transform_frame_to_world(e, t).as_matrix() for e, t in G1_ENDS]
     tasks = [mink.FrameTask(e, t, position_cost=p, orientation_cost=o, gain=1.0, lm_damping=LM)
@@ -377,13 +380,14 @@ def _g1(steps: int):
     times_mink, _ = _loop(theirs, targets[:n_mink])
     cfg.update(q0)
     agree = 0.0
-    for k in range(0, n_mink, 5):  # the same loop again: both steps at mink's states agree
+    for k in range(n_mink):  # the same loop again: both steps at mink's states agree
         for task, T in zip(tasks, se3[k]):
             task.set_target(T)
         vm = mink.solve_ik(cfg, [*tasks, posture], DT, "daqp", damping=1e-12, limits=limits)
-        mine, _ = prob.solve(torch.from_numpy(cfg.q[qadr])[None], tgt[k][None], q_ref, DT)
-        agree = max(agree, float(np.abs(mine[0].numpy() - vm[dofs]).max()))
-        cfg.integrate_inplace(vm, 5 * DT)
+        if k % 5 == 0:
+            mine, _ = prob.solve(torch.from_numpy(cfg.q[qadr])[None], tgt[k][None], q_ref, DT)
+            agree = max(agree, float(np.abs(mine[0].numpy() - vm[dofs]).max()))
+        cfg.integrate_inplace(vm, DT)
     feet = max(float(np.linalg.norm(chain.forward_kinematics(torch.from_numpy(q_ours))[k, :3, 3].numpy()
                                     - T0[k][:3, 3])) for k in range(2))
     return _median_us(times_ours), _median_us(times_mink), agree, feet, chain.nv
@@ -407,7 +411,8 @@ def run(args) -> list[dict]:
                      final_pos_err_m=err))
     sv = _solve_velocity_side(chain, targets)
     if sv is not None:
-        rows.append(dict(benchmark="teleop_panda_step", impl="diffkin ik.solve_velocity + integrate",
+        rows.append(dict(benchmark="teleop_panda_step",
+                         impl="diffkin ik.solve_velocity (+ FrameTask, q + v dt)",
                          steps=steps,
                          median_us=_median_us(sv[0]), p99_us=float(np.percentile(sv[0], 99)) / 1e3))
     peers = {}
@@ -423,7 +428,7 @@ def run(args) -> list[dict]:
         fd.close()
         from diffkin.models import from_urdf
 
-        check = from_urdf(Path(fd.name), "hand", dtype=torch.float64)
+        check = from_urdf(Path(fd.name), "hand", dtype=torch.float64).requires_grad_(False)
         qq = chain.random_configuration(64).detach()
         urdf_fk = float((check.forward_kinematics(qq) - chain.forward_kinematics(qq)).abs().max())
         if urdf_fk > 1e-12:
