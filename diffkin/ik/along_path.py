@@ -136,7 +136,7 @@ def joint_trajectory_from_poses(
     algorithm: str = "dls",
     orientation: str = "axis_angle",
     K=None,
-    damping: float = 1e-2,
+    damping: float = 1e-4,
     position_tolerance: float = 1e-4,
     orientation_tolerance: float = 1e-3,
     warm_seeds: int = 1,
@@ -157,7 +157,8 @@ def joint_trajectory_from_poses(
             :func:`finite_difference_twists`.
         substeps: CLIK Euler steps per sample interval (Δt = dt/substeps), along :func:`refine_path`; the
             tracking error falls roughly with substeps² (linearisation error of each step).
-        algorithm, orientation, K, damping: passed to :func:`~diffkin.ik.closed_loop.clik`; defaults
+        algorithm, orientation, K, damping: passed to :func:`~diffkin.ik.closed_loop.clik` (damping λ = k²
+            of (3.59)); defaults
             damped least squares (robust near singularities) and K = 1/Δt (each step removes the whole
             error on top of the feedforward: a Newton step toward the next sample).
         position_tolerance, orientation_tolerance: thresholds of ``success`` (and of ``solve``).
