@@ -287,3 +287,30 @@ def test_solve_velocity_keeps_the_torch_path_outside_the_subset(panda):
     with pytest.raises(Exception):  # noqa: B017 - the torch path's own error for a bad q
         ik.solve_velocity(chain, torch.full((7,), float("nan"), dtype=torch.float64),
                           [ik.FrameTask(0, target=T.detach())], 0.01)
+
+
+def test_lean_step_from_threads(panda):
+    """Calls of one problem from several threads get their own rows (the call struct is copied in C and the
+    kept work space is used by one call at a time)."""
+    import threading
+
+    chain, _ = panda
+    prob = nvel.NativeVelocity(chain, [(0, 1.0, 1.0, 1.0, 0.0)], posture=(1e-2, 1.0, 0.0), velocity_limit=2.0)
+    g = torch.Generator().manual_seed(9)
+    qs = chain.random_configuration(4, generator=g)
+    T = chain.forward_kinematics(chain.random_configuration(4, generator=g))[:, None].contiguous()
+    expected, _ = prob.solve(qs, T, qs, 0.01)
+    bad = []
+
+    def work(i):
+        for _ in range(200):
+            v = prob.step(qs[i], T[i], qs[i], 0.01)
+            if v is None or not torch.equal(v, expected[i]):
+                bad.append(i)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not bad

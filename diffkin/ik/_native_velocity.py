@@ -32,10 +32,10 @@ from torch import Tensor
 
 from ..kernels import native, single
 
-__all__ = ["NativeVelocity", "VERSION", "available"]
+__all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
 
 #: the version of dk_vel this module speaks (DK_VEL_VERSION in _native_velocity.c)
-VERSION = 1
+VERSION = 2
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 _STALE = -4
 
@@ -48,10 +48,10 @@ class Vel(ctypes.Structure):
         [("target_stride", _I64), ("posture_cost", _PTR), ("posture_gain", _F64), ("posture_lm", _F64),
          ("q_ref", _PTR), ("ref_stride", _I64), ("pos_lo", _PTR), ("pos_hi", _PTR), ("limit_gain", _F64),
          ("vmax", _PTR), ("dt", _F64), ("damping", _F64)] + \
-        [(name, _PTR) for name in ("q", "v", "q_next", "ok", "work")] + [("ready", _I64)]
+        [(name, _PTR) for name in ("q", "v", "q_next", "ok", "work")] + [("ready", _I64), ("busy", _I64)]
 
 
-_fns: dict = {}  # id of the loaded library -> (dk_velocity via PyDLL, dk_velocity_work_bytes)
+_fns: dict = {}  # id of the loaded library -> (dk_velocity_one, dk_velocity_work_bytes, dk_velocity)
 
 
 def _functions():
@@ -61,11 +61,13 @@ def _functions():
     fns = _fns.get(id(lib))
     if fns is None:
         native.check_abi(_Renamed(lib), Vel, VERSION)
-        step = ctypes.PyDLL(native._path).dk_velocity  # keeps the GIL: the call takes microseconds
-        step.restype, step.argtypes = _I64, [_PTR, _PTR, _PTR]
+        one = ctypes.PyDLL(native._path).dk_velocity_one  # keeps the GIL: the call takes microseconds
+        one.restype, one.argtypes = _I64, [_PTR] * 8 + [_F64]
+        batch = lib.dk_velocity  # releases the GIL (threads, milliseconds)
+        batch.restype, batch.argtypes = _I64, [_PTR, _PTR, _PTR]
         size = lib.dk_velocity_work_bytes
         size.restype, size.argtypes = _I64, [_PTR]
-        fns = _fns[id(lib)] = (step, size)
+        fns = _fns[id(lib)] = (one, size, batch)
     return fns
 
 
@@ -204,7 +206,7 @@ class NativeVelocity:
         a.dt, a.q, a.v, a.ok = float(dt), q.data_ptr(), v.data_ptr(), ok.data_ptr()
         a.q_next = qn.data_ptr() if qn is not None else None
         base = model.args[dtype]
-        status = _functions()[0](ctypes.addressof(base), ctypes.addressof(a), None)
+        status = _functions()[2](ctypes.addressof(base), ctypes.addressof(a), None)
         _check(status)
         return (v, qn, ok) if next_q else (v, ok)
 
@@ -239,7 +241,7 @@ class NativeVelocity:
         if hit is None or hit.dtype is not self.dtype or hit.watch is None:
             return None
         if self._entry is None or self._entry[0] is not hit:
-            step, size = _functions()
+            step, size, _ = _functions()
             work = torch.zeros(max(int(size(hit.base)), 64) + 64, dtype=torch.uint8)
             a = Vel.from_buffer_copy(self._args)
             a.batch, a.nthreads = 1, 1
@@ -260,13 +262,11 @@ class NativeVelocity:
             single._KEY) else self._lean()
         if lean is None:
             return None
-        a = lean[2]
         v = torch.empty(self.chain.nv, dtype=self.dtype) if out is None else out
-        a.q, a.v, a.dt = q.data_ptr(), v.data_ptr(), dt
-        a.target = targets.data_ptr() if targets is not None else None
-        a.q_ref = q_ref.data_ptr() if q_ref is not None else None
-        a.q_next = next_q.data_ptr() if next_q is not None else None
-        status = lean[6](lean[4], lean[3], lean[5])
+        status = lean[6](lean[4], lean[3], lean[5], q.data_ptr(),
+                         None if targets is None else targets.data_ptr(),
+                         None if q_ref is None else q_ref.data_ptr(), v.data_ptr(),
+                         None if next_q is None else next_q.data_ptr(), dt)
         if status == _STALE:  # the chain's bytes changed since they were packed: repacked once
             single._remade(self.chain)
             self._entry = None

@@ -39,7 +39,7 @@
  */
 #ifndef DK_VEL_TYPES
 #define DK_VEL_TYPES
-#define DK_VEL_VERSION 1 /* bump with every change of DK_VEL_FIELDS (and _native_velocity.py's VERSION) */
+#define DK_VEL_VERSION 2 /* bump with every change of DK_VEL_FIELDS (and _native_velocity.py's VERSION) */
 #define DK_LOG_EPS 1e-10 /* mink's get_epsilon(float64): the Taylor switches of SO3 / SE3 log and ljacinv */
 #define DK_VEL_F64(name) name##_f64
 #define DK_VEL_F32(name) name##_f32
@@ -73,7 +73,8 @@
     X(void *, q_next, "[B nq] reals out, or NULL: q (+) dq") \
     X(uint8_t *, ok, "[B] out, or NULL: 1 where q was finite, the box feasible and the QP solved") \
     X(void *, work, "NULL, or dk_velocity_work_bytes bytes kept between serial calls") \
-    X(int64_t, ready, "in/out: work holds the chain's plans (0: make them)")
+    X(int64_t, ready, "in/out: work holds the chain's plans (0: make them)") \
+    X(int64_t, busy, "dk_velocity_one: a call is using work now")
 
 #define DK_VDECLARE(type, name, what) type name;
 typedef struct dk_vel { DK_VEL_FIELDS(DK_VDECLARE) } dk_vel;
@@ -649,6 +650,27 @@ static int vel_ok(const dk_args *a, const dk_vel *v) {
 int64_t dk_velocity_work_bytes(const dk_args *a) {
     if (!a || a->version != DK_ABI_VERSION || a->size != (int64_t)sizeof(dk_args)) return DK_ABI_ERROR;
     return a->real_bytes == 8 ? DK_VEL_F64(velocity_work_bytes)(a) : DK_VEL_F32(velocity_work_bytes)(a);
+}
+
+/* One row (dk_velocity_one): base's constants with this call's q (nq), target (F x 16), q_ref (nq), v (nv),
+ * q_next (nq, or NULL) and dt in a copy of base, so that calls from several threads are safe; the kept work
+ * space is used by one call at a time (a call that finds it busy allocates its own). */
+int64_t dk_velocity_one(const dk_args *a, dk_vel *base, const dk_watch *w, const void *q, const void *target,
+                        const void *q_ref, void *v, void *q_next, double dt) {
+    if (!vel_ok(a, base)) return DK_ABI_ERROR;
+    if (w && !dk_unchanged(w)) return DK_STALE;
+    dk_vel c = *base;
+    c.batch = 1, c.nthreads = 1, c.q = q, c.target = target, c.target_stride = 0, c.q_ref = q_ref;
+    c.ref_stride = 0, c.v = v, c.q_next = q_next, c.dt = dt;
+    if (!base->work || __atomic_exchange_n(&base->busy, 1, __ATOMIC_ACQUIRE)) {
+        c.work = NULL;
+        return a->real_bytes == 8 ? DK_VEL_F64(velocity)(a, &c) : DK_VEL_F32(velocity)(a, &c);
+    }
+    c.ready = base->ready;
+    const int64_t r = a->real_bytes == 8 ? DK_VEL_F64(velocity)(a, &c) : DK_VEL_F32(velocity)(a, &c);
+    base->ready = c.ready;
+    __atomic_store_n(&base->busy, 0, __ATOMIC_RELEASE);
+    return r;
 }
 
 /* One step of differential IK for the v->batch rows of v (see the top of this file) on the chain a, whose
