@@ -32,7 +32,8 @@
  * factorisations where bounds are active), with a primal active-set method as the finite fallback.
  *
  * Interface: dk_vel (DK_VEL_FIELDS), its own struct with its own version (dk_vel_abi, dk_vel_names), so
- * that the FK's dk_args keeps its layout; dk_velocity(chain's dk_args, dk_vel, dk_watch or NULL). Rows run
+ * that the FK's dk_args keeps its layout; dk_velocity(chain's dk_args, dk_vel, dk_watch or NULL) for a
+ * batch, dk_velocity_one(dk_args, dk_vel, dk_watch, q, target, q_ref, v, q_next, dt) for one row. Rows run
  * in blocks of W lanes (one FK pass per block), blocks shared between nthreads threads above SERIAL_MAX
  * rows; a serial call may keep the plans and work space in `work` (dk_velocity_work_bytes bytes) between
  * calls.
