@@ -425,3 +425,66 @@ def test_com_task_on_the_g1_matches_mink():
     c0, c1 = chain.center_of_mass(q), chain.center_of_mass(chain.integrate(q, v * dt))
     t = torch.tensor(com_target)
     assert float((c1 - t).norm()) < float((c0 - t).norm())
+
+
+def test_solve_takes_pose_frame_tasks_and_limits():
+    """ik.solve(chain, tasks=..., limits=...) is ik.solve(chain, T, ...): the same q and flags."""
+    _, chain = _panda()
+    q = chain.random_configuration(16, generator=torch.Generator().manual_seed(14))
+    T = chain.forward_kinematics(q)
+    a = ik.solve(chain, T, seed=3)
+    b = ik.solve(chain, tasks=[ik.FrameTask("hand", target=T)], limits=[ik.ConfigurationLimit()], seed=3)
+    torch.testing.assert_close(a.q, b.q, atol=0, rtol=0)
+    assert bool((a.success == b.success).all()) and bool(b.success.all())
+    c = ik.solve(chain, tasks=[ik.FrameTask(0, target=T, orientation_cost=0.0)], seed=3)  # position only
+    assert bool(c.success.all())
+    torch.testing.assert_close(chain.forward_kinematics(c.q)[..., :3, 3], T[..., :3, 3], atol=2e-4, rtol=0)
+    with pytest.raises(ConventionError, match="pose FrameTasks"):
+        ik.solve(chain, tasks=[ik.PostureTask(torch.zeros(7, dtype=F64))])
+    with pytest.raises(ConventionError, match="VelocityLimit"):
+        ik.solve(chain, T, limits=[ik.VelocityLimit(1.0)])
+    with pytest.raises(ConventionError, match="once"):
+        ik.solve(chain, T, tasks=[ik.FrameTask(0, target=T)])
+
+
+def test_optimize_takes_tasks_and_limits():
+    """ik.optimize(chain, tasks=[pose FrameTask, PostureTask], limits=[ConfigurationLimit()]): the pose
+    reached (success against the FrameTask's target) and, among the poses that reach it, the one the
+    posture cost pulls towards (the redundant Panda's null space), against the same problem as cost
+    objects."""
+    _, chain = _panda()
+    q = chain.random_configuration(8, generator=torch.Generator().manual_seed(15))
+    T = chain.forward_kinematics(q)
+    q0 = chain.clamp_to_limits(q + 0.05)
+    q_ref = torch.zeros(7, dtype=F64)
+    tasks = [ik.FrameTask("hand", target=T), ik.PostureTask(q_ref, cost=1e-3)]
+    res = ik.optimize(chain, q0=q0, tasks=tasks, limits=[ik.ConfigurationLimit()], optimizer="gauss_newton")
+    assert bool(res.success.all())
+    # the same problem as cost objects: ‖log(T_f⁻¹T_t)‖² + 1e-6 ‖q − q_ref‖²
+    from diffkin.ik._from_tasks import TaskCost
+
+    costs = [TaskCost(task=tasks[0]), ik.RestPostureCost(q_rest=q_ref, weight=1e-6)]
+    ref = ik.optimize(chain, T, q0, costs=costs, optimizer="gauss_newton")
+    torch.testing.assert_close(res.q, ref.q, atol=1e-6, rtol=0)
+    with pytest.raises(ConventionError, match="twist"):
+        ik.optimize(chain, T, q0, tasks=[ik.FrameTask(0, twist=torch.zeros(6, dtype=F64))])
+
+
+@pytest.mark.cuda
+def test_solve_velocity_cuda_matches_cpu():
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA")
+    _, chain = _panda()
+    q = chain.random_configuration(64, generator=torch.Generator().manual_seed(16))
+    T = chain.forward_kinematics(q) @ _se3_exp(torch.full((6,), 0.03, dtype=F64))
+    tasks = [ik.FrameTask("hand", target=T, lm_damping=1e-3),
+             ik.PostureTask(torch.zeros(7, dtype=F64), cost=0.1)]
+    limits = [ik.ConfigurationLimit(), ik.VelocityLimit(1.0)]
+    cpu = ik.solve_velocity(chain, q, tasks, 0.02, limits=limits)
+    dev = torch.device("cuda")
+    gchain = chain.to(dev)
+    gtasks = [ik.FrameTask("hand", target=T.to(dev), lm_damping=1e-3),
+              ik.PostureTask(torch.zeros(7, dtype=F64, device=dev), cost=0.1)]
+    gpu = ik.solve_velocity(gchain, q.to(dev), gtasks, 0.02, limits=limits)
+    assert gpu.device.type == "cuda"
+    torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-9, rtol=0)

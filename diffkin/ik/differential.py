@@ -11,11 +11,13 @@ meaning of ``damping`` in every velocity-level solver (:func:`~diffkin.ik.veloci
 :func:`~diffkin.ik.clik`). The next configuration is ``chain.integrate(q, q̇ Δt)`` (3.48).
 
 With box limits only, (D.1)–(D.2) is :func:`diffkin.ik.qp.box_qp` (an exact active set) on
-H = AᵀA + (λ + Σμ‖b‖²) I, g = Aᵀ b (A = [W J] stacked, b = [−α W e] stacked); the free variables are then
-re-solved as the least squares [A_F; √(λ+Σμ‖b‖²) I] Δq_F = [b − A_A Δq_A; 0] by a QR factorisation, which
-does not square A's condition number (weights of 1e8 beside 1 lose no accuracy). Rows (collision limits)
-make it the general QP (:func:`diffkin.ik.qp.solve_qp`'s interior point) with the boxes as rows. Both are
-differentiable (KKT gradients) w.r.t. q and every task and limit tensor (targets, twists, costs, gains).
+H = AᵀA + (λ + Σμ‖b‖²) I, g = Aᵀ b (A = [W J] stacked, b = [−α W e] stacked). Where the rows of A span
+more than 1e4 in norm (extreme weights: 1e8 beside 1), forming AᵀA loses the digits that matter: the free
+variables are then re-solved as the least squares [A_F; √(λ+Σμ‖b‖²) I] Δq_F = [b − A_A Δq_A; 0] by QR
+factorisations, which do not square A's condition number, with primal-dual active-set rounds on them.
+Rows (collision limits) make it the general QP (:func:`diffkin.ik.qp.solve_qp`'s interior point) with the
+boxes as rows. Both are differentiable (KKT gradients) w.r.t. q and every task and limit tensor (targets,
+twists, costs, gains).
 """
 
 from __future__ import annotations
@@ -101,6 +103,18 @@ def _refine(A: Tensor, b: Tensor, reg: Tensor, x: Tensor, lo: Tensor, hi: Tensor
     return x + (best - x).detach()
 
 
+_EXTREME = 1e4  # row-norm ratio of A beyond which the box QP's answer is re-solved by QR (_refine)
+
+
+def _extreme(A: Tensor) -> bool:
+    """Whether the weighted rows span more than ``_EXTREME`` in norm in some batch row (weights like 1e8
+    beside 1): there AᵀA loses the digits _refine recovers. One host read."""
+    n = torch.linalg.vector_norm(A, dim=-1)
+    top = n.amax(-1)
+    low = torch.where(n > 0, n, torch.full_like(n, float("inf"))).amin(-1)
+    return bool((top > _EXTREME * low).any())
+
+
 def solve_step(p: Problem, A: Tensor, b: Tensor, reg: Tensor, limits: Sequence[Limit]) -> Tensor:
     """Δq ``(..., nv)`` of (D.1)–(D.2) for the stacked least squares (A, b, reg)."""
     nv = p.nv
@@ -113,6 +127,8 @@ def solve_step(p: Problem, A: Tensor, b: Tensor, reg: Tensor, limits: Sequence[L
     rows = [r for lim in limits if (r := lim.rows(p)) is not None]
     if not rows:
         x = _solve_box(H, g, lo, hi)
+        if not _extreme(A):
+            return x
         batch = x.shape[:-1]
         return _refine(A.expand(*batch, *A.shape[-2:]), b.expand(*batch, b.shape[-1]), reg.expand(batch), x,
                        lo.expand(*batch, nv), hi.expand(*batch, nv))

@@ -199,7 +199,7 @@ def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:
 
 def solve(
     chain: KinematicChain,
-    T_target: Tensor,
+    T_target: Tensor | None = None,
     q0: Tensor | None = None,
     *,
     num_seeds: int = 64,
@@ -218,6 +218,8 @@ def solve(
     collision=None,
     world=None,
     margin: float = 0.0,
+    tasks=None,
+    limits=None,
 ) -> IKResult:
     """Batched inverse kinematics by Levenberg–Marquardt with joint limits and restarts.
 
@@ -251,6 +253,10 @@ def solve(
             (:mod:`diffkin.ik._collision_native`), elsewhere or with ``LMConfig(collision_refine_calls=1)``
             in the scheduled loop with an acceptance test and optionally a constrained Gauss–Newton
             refinement (:mod:`diffkin.ik._collision`).
+        tasks, limits: the same problem as objects (:mod:`diffkin.ik._from_tasks`): one pose
+            :class:`~diffkin.ik.FrameTask` per end link instead of ``T_target`` (orientation costs 0:
+            ``position_only``); :class:`~diffkin.ik.ConfigurationLimit` for ``respect_limits``,
+            :class:`~diffkin.ik.CollisionLimit` for ``collision`` / ``world`` / ``margin``.
 
     Returns:
         :class:`IKResult` with per-target ``q``, ``success``, errors (from an exact FK in the chain's dtype),
@@ -273,6 +279,11 @@ def solve(
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
+    if tasks is not None or limits is not None:  # the objects, translated to the arguments below
+        from ._from_tasks import solve_arguments
+
+        T_target, position_only, respect_limits, collision, world, margin = solve_arguments(
+            chain, T_target, tasks, limits, position_only, respect_limits, collision, world, margin)
     if q0 is None and base is None and config is None and damping is None and collision is None \
             and world is None and not (  # one pose: lean path
             position_only or progress or seeds_from_closed_form or not respect_limits):

@@ -230,7 +230,7 @@ def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_chan
 
 def optimize(
     chain,
-    T_target: Tensor,
+    T_target: Tensor | None = None,
     q0: Tensor | None = None,
     *,
     costs: Sequence | None = None,
@@ -247,6 +247,8 @@ def optimize(
     collision=None,
     world=None,
     margin: float = 0.0,
+    tasks=None,
+    limits=None,
 ) -> IKResult:
     """Optimisation-based IK: minimise Σ cost terms per sample, from ``q0`` (a local method).
 
@@ -271,6 +273,9 @@ def optimize(
         unroll: how ``q`` is differentiated (see below): False (default) for the implicit gradient; True (10
             steps) or a number of steps to differentiate through that many Gauss–Newton steps (all terms
             least squares) or gradient steps of size ``lr`` (default 0.05) taken from the solution instead.
+        tasks, limits: the problem as objects (:mod:`diffkin.ik._from_tasks`): each task a cost term
+            ‖W e(q)‖² (its own error and costs), the pose :class:`~diffkin.ik.FrameTask` s also the targets
+            of ``success`` (instead of ``T_target``); limits as in :func:`~diffkin.ik.solve`.
         collision, world, margin: as in :func:`~diffkin.ik.solve`; ``success`` also needs every checked
             distance >= ``margin`` (the exact distances). With ``optimizer="gauss_newton"`` on a chain of
             1-DOF joints the distances are **constraints** of every step (a QP with the nearest distances
@@ -294,6 +299,11 @@ def optimize(
     is active the gradient is that of the unconstrained stationary point. Equal to central differences of
     the solver in both cases (``tests/test_ik_optimize_constraints.py``, ``tests/test_ik_collision.py``).
     """
+    if tasks is not None or limits is not None:  # the objects, translated (diffkin.ik._from_tasks)
+        from ._from_tasks import optimize_arguments
+
+        T_target, costs, position_only, respect_limits, collision, world, margin = optimize_arguments(
+            chain, T_target, tasks, limits, costs, position_only, respect_limits, collision, world, margin)
     if optimizer not in OPTIMIZERS:
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
     terms = _as_terms(costs)
