@@ -2,7 +2,7 @@
 same run, on the same machine and thread count).
 
     python -m benchmarks.run [fk|jacobian|ik|ik_grad|closed_form|env|calibration|model|kernels|
-                              velocity_ik|collision|mjcf|single_call|all ...]
+                              velocity_ik|collision|mjcf|single_call|teleop|all ...]
                              [--quick]
                              [--device cpu|cuda] [--threads N] [--compile] [--json out.json]
 
@@ -32,7 +32,7 @@ import sys
 from benchmarks.common import print_table, write_json
 
 NAMES = ("fk", "jacobian", "ik", "ik_grad", "closed_form", "env", "calibration", "model", "sharded",
-         "kernels", "velocity_ik", "collision", "mjcf", "single_call")
+         "kernels", "velocity_ik", "collision", "mjcf", "single_call", "teleop")
 
 
 def parse_args(argv=None) -> argparse.Namespace:

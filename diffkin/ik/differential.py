@@ -29,6 +29,7 @@ from torch import Tensor
 
 from ..errors import ConventionError, DiffkinError
 from ..validation import check_number, tensors
+from . import _native_velocity
 from .limits import Limit, check_limits, combine_boxes
 from .qp import _solve_box, _solve_general
 from .tasks import Problem, Task
@@ -161,7 +162,14 @@ def solve_velocity(chain, q, tasks, dt, *, limits=(), damping=1e-12) -> Tensor:
         q̇ ``(..., nv)``, differentiable (KKT gradients) w.r.t. q and the tasks' and limits' tensors.
 
     Every limit holds after ``chain.integrate(q, q̇ * dt)`` to rounding (boxes exactly).
+
+    On the CPU without autograd, frame tasks with target poses, a posture task, configuration and velocity
+    limits are served by one C call (:func:`diffkin.ik._native_velocity.route` lists the subset); the
+    result equals the torch path's to rounding (``tests/test_native_velocity.py``).
     """
+    fast = _native_velocity.route(chain, q, tasks, dt, limits, damping)  # the C step, where it serves
+    if fast is not None:
+        return fast
     q = chain.check_q(q)
     dt = check_number(dt, "dt", unit=" (s)")
     (lam,) = tensors(("damping", damping, None), like=chain)

@@ -1067,6 +1067,7 @@ static int64_t DK(dk_lm)(const dk_args *a) {
 
 #include "_native_solve.c"
 #include "_native_collide.c"
+#include "_native_velocity.c"
 
 #undef real
 #endif

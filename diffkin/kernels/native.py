@@ -64,7 +64,8 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
-             Path(__file__).with_name("_native_collide.c"))
+             Path(__file__).with_name("_native_collide.c"),
+             Path(__file__).with_name("_native_velocity.c"))
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()

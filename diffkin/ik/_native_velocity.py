@@ -1,0 +1,488 @@
+"""One differential-IK step in C: mink's ``solve_ik`` for frame tasks, a posture task, configuration and
+velocity limits, on resolved numeric inputs (``_native_velocity.c``, one foreign call for one row or a
+batch).
+
+:class:`NativeVelocity` holds one problem's constants, packed once for one chain and dtype: which end links
+carry a frame task and their costs, gains and Levenberg–Marquardt damping, the posture task's cost per
+velocity (0 on a free joint's six, as mink), gain and damping, the configuration limits per velocity (lower
+and upper, ``min_distance_from_limits`` folded in, and the gain), the velocity limits per velocity and
+the QP's damping. :meth:`NativeVelocity.solve` runs a batch; :meth:`NativeVelocity.step` one row ``q (nq,)``
+with no torch operation but its output's allocation (none when ``out=`` is given): the chain's packed
+constants come from the lean single-call cache (:mod:`diffkin.kernels.single`, checked on every call, never
+trusted), the QP's work space stays between calls.
+
+The QP, per row (mink's ``build_ik``; Δq the step, v = Δq / dt)::
+
+    min ½ Δqᵀ H Δq + cᵀ Δq  s.t.  lo ≤ Δq ≤ hi
+    H = damping·I + Σ (AᵀA + μ I),  c = −Σ Aᵀ b,  A = C J,  b = −gain · C e,  μ = lm_damping · ‖b‖²
+
+with e, J of a frame task log(T_b⁻¹ T_t) and −jlog(T_t⁻¹ T_b) J_body, of the posture task q ⊖ q_ref and I;
+lo, hi the intersection of gain·(q_min − q) ≤ Δq ≤ gain·(q_max − q) and |Δq| ≤ dt·v_max. Solved exactly
+(active set on Cholesky factors), not approximately: the answer is the QP's minimiser to rounding.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+from ..kernels import native, single
+
+__all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
+
+#: the version of dk_vel this module speaks (DK_VEL_VERSION in _native_velocity.c)
+VERSION = 2
+_I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+_STALE = -4
+
+
+class Vel(ctypes.Structure):
+    """``dk_vel`` of ``_native_velocity.c`` (``DK_VEL_FIELDS``, where each field is described)."""
+
+    _fields_ = [(name, _I64) for name in ("version", "size", "nthreads", "batch", "n_frames")] + \
+        [(name, _PTR) for name in ("frame_end", "frame_cost", "frame_gain", "frame_lm", "target")] + \
+        [("target_stride", _I64), ("posture_cost", _PTR), ("posture_gain", _F64), ("posture_lm", _F64),
+         ("q_ref", _PTR), ("ref_stride", _I64), ("pos_lo", _PTR), ("pos_hi", _PTR), ("limit_gain", _F64),
+         ("vmax", _PTR), ("dt", _F64), ("damping", _F64)] + \
+        [(name, _PTR) for name in ("q", "v", "q_next", "ok", "work")] + [("ready", _I64), ("busy", _I64)]
+
+
+_fns: dict = {}  # id of the loaded library -> (dk_velocity_one, dk_velocity_work_bytes, dk_velocity)
+
+
+def _functions():
+    """The loaded library's entry points, its ``dk_vel`` checked against :class:`Vel` once (a mismatch:
+    :class:`~diffkin.kernels.native.AbiMismatch`)."""
+    lib = native._lib
+    fns = _fns.get(id(lib))
+    if fns is None:
+        native.check_abi(_Renamed(lib), Vel, VERSION)
+        one = ctypes.PyDLL(native._path).dk_velocity_one  # keeps the GIL: the call takes microseconds
+        one.restype, one.argtypes = _I64, [_PTR] * 8 + [_F64]
+        batch = lib.dk_velocity  # releases the GIL (threads, milliseconds)
+        batch.restype, batch.argtypes = _I64, [_PTR, _PTR, _PTR]
+        size = lib.dk_velocity_work_bytes
+        size.restype, size.argtypes = _I64, [_PTR]
+        fns = _fns[id(lib)] = (one, size, batch)
+    return fns
+
+
+class _Renamed:
+    """The library seen through :func:`~diffkin.kernels.native.check_abi`: its ``dk_vel_abi`` /
+    ``dk_vel_names`` as ``dk_abi`` / ``dk_abi_names``, its motion table as it is."""
+
+    def __init__(self, lib):
+        self.dk_abi, self.dk_abi_names, self.dk_motions = lib.dk_vel_abi, lib.dk_vel_names, lib.dk_motions
+
+
+def available() -> bool:
+    """True when the fused library is loaded with ``dk_velocity`` (built on first use)."""
+    if not native.available():
+        return False
+    try:
+        _functions()
+    except (AttributeError, native.AbiMismatch):
+        return False
+    return True
+
+
+def _free_velocities(chain) -> list[int]:
+    """The velocities of the chain's free joints (mink's posture task leaves them out)."""
+    kinds = getattr(chain, "joint_kinds", None)
+    if not kinds:
+        return []
+    from ..kernels.configuration import joint_kind
+
+    out, v = [], 0
+    for kind in kinds:
+        nv = joint_kind(kind).nv
+        if kind == "free":
+            out.extend(range(v, v + nv))
+        v += nv
+    return out if v == chain.nv else []
+
+
+class NativeVelocity:
+    """One differential-IK problem's constants for the C step (see the module doc).
+
+    ``frames``: per frame task ``(end, position_cost, orientation_cost, gain, lm_damping)``, ``end`` an index
+    into the chain's end links, costs numbers or ``(3,)``; ``posture``: ``(cost, gain, lm_damping)`` with
+    ``cost`` a number or ``(nv,)``, or None; ``configuration_limit``: ``(gain, min_distance_from_limits)``
+    or None (the chain's ``q_limits``); ``velocity_limit``: a number or ``(nv,)`` (inf: none) or None;
+    ``damping``: added to H's diagonal (mink's ``damping``).
+    """
+
+    def __init__(self, chain, frames: Sequence[tuple], *, posture=None, configuration_limit=None,
+                 velocity_limit=None, damping: float = 1e-12, dtype: torch.dtype | None = None):
+        self.chain = chain
+        self.dtype = dtype = dtype or chain.dtype
+        nv, K = chain.nv, chain.n_ends
+        self.nq, self.nv = chain.nq, nv
+        kw = dict(dtype=dtype)
+        self.n_frames = len(frames)
+        ends, cost, gain, lm = [], [], [], []
+        for end, pc, oc, g, d in frames:
+            if not 0 <= int(end) < K:
+                raise ValueError(f"frame task end {end} is not an end link index in [0, {K})")
+            ends.append(int(end))
+            cost.append(torch.cat([torch.as_tensor(pc, **kw).expand(3), torch.as_tensor(oc, **kw).expand(3)]))
+            gain.append(float(g))
+            lm.append(float(d))
+        self._frame_end = torch.tensor(ends or [0], dtype=torch.int32)
+        self._frame_cost = torch.stack(cost) if cost else torch.zeros(1, 6, **kw)
+        self._frame_gain = torch.tensor(gain or [0.0], **kw)
+        self._frame_lm = torch.tensor(lm or [0.0], **kw)
+        self._posture = None
+        if posture is not None:
+            pcost, pgain, plm = posture
+            c = torch.as_tensor(pcost, **kw).expand(nv).clone()
+            c[_free_velocities(chain)] = 0.0
+            self._posture = (c.contiguous(), float(pgain), float(plm))
+        self._limits = None
+        if configuration_limit is not None and chain.q_limits is not None:
+            lgain, md = configuration_limit
+            vq = _velocity_coordinates(chain)
+            lim = chain.q_limits.detach().to("cpu", dtype)
+            lo, hi = torch.full((nv,), -math.inf, **kw), torch.full((nv,), math.inf, **kw)
+            for v, i in enumerate(vq):
+                if i >= 0 and math.isfinite(lim[i, 0]) and math.isfinite(lim[i, 1]):
+                    lo[v], hi[v] = lim[i, 0] + md, lim[i, 1] - md
+            self._limits = (lo, hi, float(lgain))
+        self._vmax = None
+        if velocity_limit is not None:
+            self._vmax = torch.as_tensor(velocity_limit, **kw).expand(nv).contiguous().clone()
+        self.damping = float(damping)
+        self._args = self._filled()
+        self._entry = None  # the lean path's cache: (single.Entry, its work space, the call's Vel, ...)
+        self._ok = ctypes.c_uint8(1)
+
+    @property
+    def ok(self) -> bool:
+        """Whether the last :meth:`step` found a feasible box and solved its QP."""
+        return bool(self._ok.value)
+
+    def _filled(self) -> Vel:
+        p, lim = self._posture, self._limits
+        a = Vel(version=VERSION, size=ctypes.sizeof(Vel), nthreads=1, n_frames=self.n_frames,
+                frame_end=self._frame_end.data_ptr(), frame_cost=self._frame_cost.data_ptr(),
+                frame_gain=self._frame_gain.data_ptr(), frame_lm=self._frame_lm.data_ptr(),
+                damping=self.damping)
+        if p is not None:
+            a.posture_cost, a.posture_gain, a.posture_lm = p[0].data_ptr(), p[1], p[2]
+        if lim is not None:
+            a.pos_lo, a.pos_hi, a.limit_gain = lim[0].data_ptr(), lim[1].data_ptr(), lim[2]
+        if self._vmax is not None:
+            a.vmax = self._vmax.data_ptr()
+        return a
+
+    def _model(self):
+        packed = self.chain._native_model(torch.empty(0, dtype=self.dtype))
+        if packed is None:
+            raise RuntimeError("the fused C kernel cannot serve this chain now (CUDA, gradients wanted, "
+                               "or no C compiler)")
+        return packed
+
+    def solve(self, q: Tensor, targets: Tensor | None, q_ref: Tensor | None, dt: float, *,
+              next_q: bool = False, threads: int | None = None):
+        """``q (B, nq)``, ``targets (B, F, 4, 4)`` or ``(F, 4, 4)`` (shared), ``q_ref (B, nq)`` or ``(nq,)``
+        -> ``(v (B, nv), ok (B,) bool)``, or ``(v, q_next (B, nq), ok)`` with ``next_q``: CPU tensors of
+        this problem's dtype (contiguous copies are made where needed)."""
+        dtype, B = self.dtype, q.shape[0]
+        q = q.detach().to(dtype).contiguous()
+        tgt, tstride = self._targets(targets, B)
+        ref, rstride = self._ref(q_ref, B)
+        v = torch.empty(B, self.chain.nv, dtype=dtype)
+        qn = torch.empty(B, self.chain.nq, dtype=dtype) if next_q else None
+        ok = torch.empty(B, dtype=torch.bool)
+        model = self._model()
+        a = Vel.from_buffer_copy(self._args)
+        a.nthreads = threads or native.thread_count(B)
+        a.batch, a.target, a.target_stride, a.q_ref, a.ref_stride = B, tgt.data_ptr(), tstride, \
+            (ref.data_ptr() if ref is not None else None), rstride
+        a.dt, a.q, a.v, a.ok = float(dt), q.data_ptr(), v.data_ptr(), ok.data_ptr()
+        a.q_next = qn.data_ptr() if qn is not None else None
+        base = model.args[dtype]
+        status = _functions()[2](ctypes.addressof(base), ctypes.addressof(a), None)
+        _check(status)
+        return (v, qn, ok) if next_q else (v, ok)
+
+    def _targets(self, targets, B: int) -> tuple[Tensor, int]:
+        F = self.n_frames
+        if F == 0:
+            return torch.zeros(16, dtype=self.dtype), 0
+        t = targets.detach().to(self.dtype).contiguous()
+        if t.shape == (F, 4, 4):
+            return t, 0
+        if t.shape != (B, F, 4, 4):
+            raise ValueError(f"expected targets as ({F}, 4, 4) or ({B}, {F}, 4, 4), got {tuple(t.shape)}")
+        return t, F * 16
+
+    def _ref(self, q_ref, B: int) -> tuple[Tensor | None, int]:
+        if self._posture is None:
+            return None, 0
+        r = q_ref.detach().to(self.dtype).contiguous()
+        nq = self.chain.nq
+        if r.shape == (nq,):
+            return r, 0
+        if r.shape != (B, nq):
+            raise ValueError(f"expected q_ref as ({nq},) or ({B}, {nq}), got {tuple(r.shape)}")
+        return r, nq
+
+    # ------------------------------------------------------------------------------- the lean path
+    def _lean(self):
+        """The chain's current lean entry and this problem's call struct bound to it (None: not servable:
+        gradients wanted, CUDA, no library)."""
+        chain = self.chain
+        hit = single._current(chain, torch.is_grad_enabled())
+        if hit is None or hit.dtype is not self.dtype or hit.watch is None:
+            return None
+        if self._entry is None or self._entry[0] is not hit:
+            step, size, _ = _functions()
+            work = torch.zeros(max(int(size(hit.base)), 64) + 64, dtype=torch.uint8)
+            a = Vel.from_buffer_copy(self._args)
+            a.batch, a.nthreads = 1, 1
+            a.work, a.ready = work.data_ptr() + (-work.data_ptr()) % 64, 0
+            a.ok = ctypes.addressof(self._ok)
+            self._entry = (hit, work, a, ctypes.addressof(a), hit.base, hit.watch_addr, step)
+        return self._entry
+
+    def step(self, q: Tensor, targets: Tensor | None, q_ref: Tensor | None, dt: float, *,
+             out: Tensor | None = None, next_q: Tensor | None = None) -> Tensor | None:
+        """One row: ``q (nq,)``, ``targets (F, 4, 4)``, ``q_ref (nq,)`` (contiguous CPU tensors of the
+        problem's dtype, no gradient wanted) -> ``v (nv,)`` (into ``out`` when given; ``next_q (nq,)``
+        receives q ⊕ Δq when given). None when this path cannot serve the call (the caller's general path
+        then does) or q is not finite. :attr:`ok` says whether the box was feasible and the QP solved."""
+        if not (q.dtype is self.dtype and q.is_contiguous() and not q.requires_grad):
+            return None
+        lean = self._entry if self._entry is not None and self._entry[0] is self.chain.__dict__.get(
+            single._KEY) else self._lean()
+        if lean is None:
+            return None
+        v = torch.empty(self.chain.nv, dtype=self.dtype) if out is None else out
+        status = lean[6](lean[4], lean[3], lean[5], q.data_ptr(),
+                         None if targets is None else targets.data_ptr(),
+                         None if q_ref is None else q_ref.data_ptr(), v.data_ptr(),
+                         None if next_q is None else next_q.data_ptr(), dt)
+        if status == _STALE:  # the chain's bytes changed since they were packed: repacked once
+            single._remade(self.chain)
+            self._entry = None
+            lean = self._lean()
+            if lean is None:
+                return None
+            return self.step(q, targets, q_ref, dt, out=out, next_q=next_q)
+        if status != 0:
+            return None
+        return v
+
+
+def _velocity_coordinates(chain) -> list[int]:
+    """Per velocity the coordinate of q it moves (scalars), -1 inside a quaternion."""
+    cs = chain.configuration_space
+    out = [-1] * chain.nv
+    for i, v in zip(cs.scalar_index("q"), cs.scalar_index("v")):
+        out[v] = i
+    return out
+
+
+def _check(status: int) -> None:
+    if status == -2:
+        raise native.AbiMismatch("the native kernel refused the call's dk_args / dk_vel (another version "
+                                 "or size)")
+    if status == -1:
+        raise MemoryError("the native kernel could not allocate its work space")
+
+
+# ----------------------------------------------------------------------------------- solve_velocity's route
+_CACHE = "_velocity_native"  # per chain (instance __dict__): problem key -> NativeVelocity
+
+
+def _number(x) -> float | None:
+    return float(x) if type(x) in (float, int) else None
+
+
+def _constant(x, n: int | None) -> tuple | float | None:
+    """A cost / limit as a hashable constant: a number, or a short 1-D CPU tensor / sequence without
+    gradient (its values); None when it is anything else (a batch of them, a gradient wanted)."""
+    v = _number(x)
+    if v is not None:
+        return v
+    if isinstance(x, Tensor):
+        if x.ndim != 1 or x.requires_grad or not x.is_cpu or (n is not None and x.numel() != n):
+            return None
+        return tuple(x.tolist())
+    if isinstance(x, list | tuple) and all(type(e) in (float, int) for e in x) and \
+            (n is None or len(x) == n):
+        return tuple(float(e) for e in x)
+    return None
+
+
+def _plain(t, tail: tuple, dtype) -> bool:
+    return type(t) is Tensor and t.dtype is dtype and t.is_cpu and t.ndim >= len(tail) and \
+        t.shape[t.ndim - len(tail):] == tail and not (t.requires_grad and torch.is_grad_enabled())
+
+
+_NUM = (float, int)
+_kinds: list = []  # (FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem), imported once
+
+
+def _classes():
+    if not _kinds:
+        from .limits import ConfigurationLimit, VelocityLimit
+        from .tasks import FrameTask, PostureTask, Problem
+
+        _kinds.extend((FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem))
+    return _kinds
+
+
+def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
+    """:func:`~diffkin.ik.solve_velocity` by the C step where it serves the call, else None (the torch
+    path then serves it, and raises on bad input). Served: CPU tensors of the chain's dtype (float64 or
+    float32), no gradient wanted (q, targets, q_ref, the chain's parameters), q ``(nq,)`` or ``(..., nq)``;
+    tasks: FrameTask with a ``target`` pose (not ``twist``; frame by name or index; costs a number or
+    ``(3,)``, gain and lm_damping numbers; the target ``(4, 4)`` or with q's batch dims), at most one
+    PostureTask (cost a number or ``(nv,)``, q_ref ``(nq,)`` or with q's batch dims); limits:
+    ConfigurationLimit and VelocityLimit (a number, ``(nv,)`` or a dict by joint name), at most one of each;
+    ``dt`` and ``damping`` numbers. Everything else (CollisionLimit, ComTask, RelativeFrameTask,
+    DampingTask, twists, batched costs, autograd, CUDA) takes the torch path.
+
+    The problem's constants are packed once per chain and key (the tasks' frames, costs, gains and damping,
+    the limits' constants, the chain's q_limits tensor and version) into a :class:`NativeVelocity`; a call
+    then checks types and shapes, builds the key and makes one foreign call."""
+    if type(q) is not Tensor:
+        return None
+    dtype = q.dtype
+    if (dtype is not torch.float64 and dtype is not torch.float32) or not q.is_cpu or q.ndim == 0 or \
+            (q.requires_grad and torch.is_grad_enabled()) or type(dt) not in _NUM or \
+            type(damping) not in _NUM or not dt > 0 or not damping >= 0 or dt == math.inf:
+        return None
+    if native._disabled or (native._lib is None and not native.available()):
+        return None
+    FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem = _kinds or _classes()
+    tasks = tasks if type(tasks) in (list, tuple) else (tasks,)
+    limits = () if limits is None else limits if type(limits) in (list, tuple) else (limits,)
+    frames, targets, posture, q_ref = [], [], None, None
+    for t in tasks:
+        kind = type(t)
+        if kind is FrameTask:
+            if t.twist is not None or not _plain(t.target, (4, 4), dtype):
+                return None
+            pc, oc = t.position_cost, t.orientation_cost
+            key = (t.frame, pc if type(pc) in _NUM else _constant(pc, 3),
+                   oc if type(oc) in _NUM else _constant(oc, 3), _number(t.gain), _number(t.lm_damping))
+            if None in key:
+                return None
+            frames.append(key)
+            targets.append(t.target)
+        elif kind is PostureTask and posture is None:
+            c = t.cost
+            posture = (c if type(c) in _NUM else _constant(c, None), _number(t.gain), _number(t.lm_damping))
+            q_ref = t.q_ref
+            if None in posture or type(q_ref) is not Tensor or q_ref.dtype is not dtype or \
+                    (q_ref.requires_grad and torch.is_grad_enabled()):
+                return None
+        else:
+            return None
+    config = vel = None
+    for lim in limits:
+        kind = type(lim)
+        if kind is ConfigurationLimit and config is None:
+            config = (lim.gain, lim.min_distance_from_limits)
+        elif kind is VelocityLimit and vel is None:
+            v = lim.velocity
+            vel = v if type(v) in _NUM else _constant(v, None) if not isinstance(v, dict) else \
+                ("dict", tuple((k, _constant(x, None)) for k, x in v.items()))
+            if vel is None or (type(vel) is tuple and vel and vel[0] == "dict" and
+                               any(x is None for _, x in vel[1])):
+                return None
+        else:
+            return None
+    if not frames and posture is None:
+        return None
+    lim_t = chain._buffers.get("q_limits")
+    key = (dtype, tuple(frames), posture, config, vel, damping,
+           None if lim_t is None else (id(lim_t), lim_t._version))
+    cache = chain.__dict__.get(_CACHE)
+    if cache is None:
+        cache = chain.__dict__[_CACHE] = {}
+    prob = cache.get(key)
+    if prob is None:
+        prob = _build(chain, key, limits, dt, VelocityLimit, Problem)
+        if prob is None:
+            return None
+        if len(cache) > 64:  # a loop that builds new constants every step: keep the newest only
+            cache.clear()
+        cache[key] = prob
+    if q.shape[-1] != prob.nq or (q_ref is not None and q_ref.shape[-1] != prob.nq):
+        return None
+    if q.ndim == 1:
+        if (q_ref is not None and q_ref.ndim != 1) or any(t.ndim != 2 for t in targets):
+            return None
+        tgt = (targets[0] if len(targets) == 1 else torch.stack(targets)) if targets else None
+        if tgt is not None and not tgt.is_contiguous():
+            tgt = tgt.contiguous()
+        if q_ref is not None and not q_ref.is_contiguous():
+            q_ref = q_ref.contiguous()
+        return prob.step(q if q.is_contiguous() else q.contiguous(), tgt, q_ref, dt)
+    batch, nq = q.shape[:-1], prob.nq
+    B = q.numel() // nq
+    try:
+        tgt = torch.stack([t.expand(*batch, 4, 4) for t in targets], dim=-3).reshape(B, len(targets), 4, 4) \
+            if targets else None
+        ref = q_ref if q_ref is None or q_ref.ndim == 1 else q_ref.expand(*batch, nq).reshape(B, nq)
+    except RuntimeError:  # shapes that do not broadcast: the torch path says so
+        return None
+    q2 = q.reshape(B, nq)
+    if not bool(torch.isfinite(q2).all()):  # the torch path's error
+        return None
+    try:
+        v, _ = prob.solve(q2, tgt, ref, dt)
+    except RuntimeError:  # the chain cannot be packed now (a gradient wanted from its parameters)
+        return None
+    return v.reshape(*batch, prob.nv)
+
+
+def _build(chain, key, limits, dt, VelocityLimit, Problem) -> NativeVelocity | None:
+    """The :class:`NativeVelocity` of a route key (None: the chain or the constants do not suit it)."""
+    dtype, frames, posture, config, vel, damping, _ = key
+    if chain.dtype is not dtype:
+        return None
+    K, names = chain.n_ends, list(getattr(chain, "end_links", None) or [])
+    resolved = []
+    for frame, pc, oc, g, lm in frames:
+        if isinstance(frame, str):
+            if frame not in names:
+                return None
+            frame = names.index(frame)
+        if type(frame) is not int or not 0 <= frame < K:
+            return None
+        costs = [x for c in (pc, oc) for x in (c if isinstance(c, tuple) else (c,))]
+        if min(costs) < 0 or g < 0 or lm < 0:
+            return None
+        resolved.append((frame, pc, oc, g, lm))
+    if posture is not None:
+        c = posture[0]
+        if (isinstance(c, tuple) and len(c) != chain.nv) or min(c if isinstance(c, tuple) else (c,)) < 0 or \
+                posture[1] < 0 or posture[2] < 0:
+            return None
+    if config is not None and not (type(config[0]) in _NUM and type(config[1]) in _NUM and
+                                   0 < config[0] <= 1):
+        return None
+    vmax = None
+    if vel is not None:
+        try:
+            probe = Problem(chain, torch.zeros(chain.nq, dtype=dtype), dt)
+            vmax = next(lim for lim in limits if type(lim) is VelocityLimit).limits(probe)
+        except Exception:  # noqa: BLE001 - any error: the torch path raises it with its own message
+            return None
+        vmax = vmax.detach().to("cpu", dtype)
+        if vmax.ndim != 1 or vmax.shape[0] != chain.nv or not bool((vmax >= 0).all()):
+            return None
+    try:
+        return NativeVelocity(chain, resolved, posture=posture, configuration_limit=config,
+                              velocity_limit=vmax, damping=damping, dtype=dtype)
+    except (ValueError, RuntimeError, TypeError):
+        return None
