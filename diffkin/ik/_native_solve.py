@@ -1,25 +1,14 @@
 """The whole :func:`diffkin.ik.solve` in one C call (private): ``dk_solve`` of ``kernels/_native_solve.c``.
 
 It serves CPU solves without autograd on every chain the fused kernel takes (1-DOF joints, ball and free
-joints: floating bases); CUDA, autograd, ``progress`` and other chains keep the torch loop of :mod:`._lm`.
-Both run the same iteration (the LM step (3.59) with the joint limits as q = c + h sin u on the scalar
-coordinates, steps of nv velocities integrated on the manifold as
-:meth:`~diffkin.kernels.configuration.ConfigurationSpace.integrate` does: Q ⊗ exp(ω/2) on each unit
-quaternion; harvest, stall checks, re-seeding), so they agree to the
-documented tolerance but not bit for bit: the C solve fills W = 16 lanes per chunk of 128 targets and gives
-a chunk's open targets extra parallel seeds when lanes fall idle, once they have run a check interval
-(``min_seed_iterations`` in a chunk of one target; the torch loop: below ``min_rows`` rows), and its
-seeds follow one documented rule:
-
-* the user's seeds first, then the poses of a **fixed pose library** nearest to the target (the
-  ``library_size`` configurations drawn once per chain state from a generator seeded with 0, so that a
-  single-target call does not pay for sampling and evaluating a library), then
-* random restarts from a pool of min(N · num_seeds, max(num_seeds, 4096)) configurations drawn in
-  advance from the caller's generator (seed s of target t is column (t · num_seeds + s) mod P, each
-  column the ``n_uniform`` numbers that
-  :meth:`~diffkin.kernels.configuration.ConfigurationSpace.from_uniform` maps: scalars uniform in their
-  ranges, quaternions by Shoemake's map): the same generator state gives the same answers, for every
-  thread count.
+joints: floating bases); CUDA, ``progress`` and other chains run the torch backend (:mod:`._lm`). Both run
+one algorithm, the schedule of :mod:`._lm` (each target's seeds one after another, the LM step (3.59) with
+the joint limits as q = c + h sin u on the scalar coordinates, steps of nv velocities integrated on the
+manifold as :meth:`~diffkin.kernels.configuration.ConfigurationSpace.integrate` does: Q ⊗ exp(ω/2) on each
+unit quaternion), from the seeds of :mod:`._seeds` (the user's, the fixed library's nearest poses, then the
+pool drawn from the caller's generator): on the same inputs the same success flags, iterations and q to
+rounding. The C solve fills W = 16 lanes with one target each, so its answers do not depend on the thread
+count.
 
 :func:`solve_one` is the lean front for one target (no tensor round trips in validation).
 """
@@ -32,14 +21,12 @@ import torch
 from torch import Tensor
 
 from ..kernels import native, single
+from . import _seeds
 from ._kernel import JointMap
 from ._lm import LMConfig
 from .implicit import attach_solve_gradients
 from .residuals import PoseResidual
 from .result import IKResult, final_errors
-
-_LIBRARY_SEED = 0
-_POOL = 4096
 
 
 class _Prepared:
@@ -61,8 +48,7 @@ class _Prepared:
         self.clamp = int(limited)
         self.lib_u = self.lib_pose = None
         if L > 0:
-            gen = torch.Generator().manual_seed(_LIBRARY_SEED)
-            u = jm.sample_u(L, gen)
+            u = _seeds.library_u(jm, L)
             T, _, _ = native.fk_jacobian(packed, jm.q_of_u(u).T.contiguous().to(dtype), threads=1)
             self.lib_u = u.T.contiguous()  # (L, n)
             # (12K, L): p, x, y, z of every end link (the layout of the targets' columns), feature-major
@@ -132,9 +118,9 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
     dtype, n = prep.dtype, prep.n
     S = 0 if user_u is None else user_u.shape[1]
     L = prep.L if library is None else library[0].shape[0]
-    R = min(cfg.library_ranks, L) if L else 0
-    P = min(N * num_seeds, max(num_seeds, _POOL)) if num_seeds > S + R else 0
-    pool = torch.rand(P * prep.nu, generator=generator, dtype=dtype) if P else None
+    R = _seeds.ranks(L, K, cfg.library_ranks)
+    P = _seeds.pool_size(N, num_seeds, S, R)
+    pool = _seeds.draw_pool(generator, P, prep.nu, dtype)
     if outs is None:
         errs, counts = torch.empty(2, N, dtype=dtype), torch.empty(2, N, dtype=torch.int64)
         outs = (torch.empty(N, n, dtype=dtype), torch.empty(N, dtype=torch.bool), *errs, *counts)

@@ -42,9 +42,8 @@
 
 #define W 16
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
-#define DK_ABI_VERSION 2 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
+#define DK_ABI_VERSION 3 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
-#define DK_MOTION_ERROR (-3) /* dk_lm of a chain with S motions (nv != n) */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
 
 /* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
@@ -74,32 +73,25 @@
     X(const void *, post, "[12J] reals") \
     X(const void *, base, "[12] reals") \
     X(const void *, end, "[12K] reals") \
-    X(int64_t, batch, "B, or the rows m of dk_lm") \
+    X(int64_t, batch, "B") \
     X(const void *, q, "dk_fk: [B*n] reals in") \
     X(void *, T, "dk_fk: [B*K*16] reals out") \
     X(void *, jac, "dk_fk: [B*K*6*nv] reals out, or NULL") \
-    X(int64_t, iters, "dk_lm: steps per round") \
-    X(int64_t, max_rounds, "dk_lm") \
-    X(int64_t, n_targets, "dk_lm: N") \
-    X(void *, u, "dk_lm: [n*m] reals in and out") \
-    X(void *, u_eval, "dk_lm: [n*m] reals out") \
-    X(const int64_t *, tidx, "dk_lm: [m]") \
-    X(const void *, pd, "dk_lm: [3K*N] reals") \
-    X(const void *, xd, "dk_lm: [3K*N] reals, NULL: position only") \
-    X(const void *, yd, "dk_lm: [3K*N] reals") \
-    X(const void *, zd, "dk_lm: [3K*N] reals") \
-    X(const void *, sqrt_w, "dk_lm: [rows] reals") \
-    X(const void *, jc, "dk_lm: [n] reals") \
-    X(const void *, jh, "dk_lm: [n] reals") \
-    X(const uint8_t *, bounded, "dk_lm: [n]") \
-    X(double, damping2, "dk_lm") \
-    X(double, error_damping, "dk_lm") \
-    X(double, tol_p, "dk_lm") \
-    X(double, tol_o, "dk_lm") \
-    X(double, margin, "dk_lm") \
-    X(uint8_t *, conv, "dk_lm: [m] out") \
-    X(void *, merit, "dk_lm: [m] reals out") \
-    X(void *, merit_prev, "dk_lm: [m] reals out") \
+    X(int64_t, iters, "dk_solve: steps between two stall checks") \
+    X(int64_t, n_targets, "dk_solve: N") \
+    X(const void *, pd, "dk_solve: [3K*N] reals") \
+    X(const void *, xd, "dk_solve: [3K*N] reals, NULL: position only") \
+    X(const void *, yd, "dk_solve: [3K*N] reals") \
+    X(const void *, zd, "dk_solve: [3K*N] reals") \
+    X(const void *, sqrt_w, "dk_solve: [rows] reals") \
+    X(const void *, jc, "dk_solve: [n] reals") \
+    X(const void *, jh, "dk_solve: [n] reals") \
+    X(const uint8_t *, bounded, "dk_solve: [n]") \
+    X(double, damping2, "dk_solve") \
+    X(double, error_damping, "dk_solve") \
+    X(double, tol_p, "dk_solve") \
+    X(double, tol_o, "dk_solve") \
+    X(double, margin, "dk_solve") \
     X(int64_t, n_seeds, "dk_solve: most seeds per target") \
     X(int64_t, max_iterations, "dk_solve: most LM iterations per seed (iters: steps between stall checks)") \
     X(int64_t, min_seed_iterations, "dk_solve: a seed younger than this is never stalled") \
@@ -412,13 +404,6 @@ int64_t dk_collide_clear(const dk_collide *c) {
  * |R^T R - I| entries and |bottom row - (0 0 0 1)|; NaN when an entry is not finite. */
 double dk_rigid_deviation(const void *T, int64_t N, int64_t real_bytes) {
     return real_bytes == 8 ? rigid_deviation_f64((const double *)T, N) : rigid_deviation_f32((const float *)T, N);
-}
-
-/* The Levenberg-Marquardt rounds of dk_lm_f64 / dk_lm_f32 (see there); returns the number of rounds run, -1
- * when memory ran out, DK_ABI_ERROR for a struct of another layout. */
-int64_t dk_lm(const dk_args *a) {
-    if (!abi_ok(a)) return DK_ABI_ERROR;
-    return a->real_bytes == 8 ? dk_lm_f64(a) : dk_lm_f32(a);
 }
 
 #else /* ------------------------------------------------------------------- one pass per real type */
@@ -842,37 +827,6 @@ static int64_t DK(dk_fk_work)(const dk_args *a, dk_watch *w) {
     return bad;
 }
 
-/* Solve A x = b in place (x overwrites b) for symmetric positive definite A (d x d, row-major, overwritten
- * by its Cholesky factor); pivots are clamped to a tiny positive value, as in kernels/dls.py. One division
- * per pivot (its reciprocal multiplies the column and both triangular solves): divisions have the longest
- * latency here, and this d <= 6n solve runs once per lane and LM step. */
-static void DK(spd_solve)(real *A, real *b, int d) {
-    const real tiny = (real)sqrt((double)DK_TINY);
-    real inv[d > 0 ? d : 1]; /* d <= min(6K, n): a few hundred reals at most */
-    for (int j = 0; j < d; j++) {
-        real sjj = A[j * d + j];
-        for (int k = 0; k < j; k++) sjj -= A[j * d + k] * A[j * d + k];
-        const real ljj = (real)sqrt((double)(sjj > tiny ? sjj : tiny));
-        inv[j] = 1 / ljj;
-        A[j * d + j] = ljj;
-        for (int i = j + 1; i < d; i++) {
-            real sij = A[i * d + j];
-            for (int k = 0; k < j; k++) sij -= A[i * d + k] * A[j * d + k];
-            A[i * d + j] = sij * inv[j];
-        }
-    }
-    for (int i = 0; i < d; i++) { /* L y = b */
-        real v = b[i];
-        for (int k = 0; k < i; k++) v -= A[i * d + k] * b[k];
-        b[i] = v * inv[i];
-    }
-    for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
-        real v = b[i];
-        for (int k = i + 1; k < d; k++) v -= A[k * d + i] * b[k];
-        b[i] = v * inv[i];
-    }
-}
-
 /* The rotation-vector error theta r (kernels/pose_error.py's "rotvec") of lane l of the end frame E (12 x W
  * lanes) against the target's rotation columns cols[a][c * stride] into eo[3]; returns theta:
  * v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2, cos theta = (x_e.x_d + y_e.y_d + z_e.z_d - 1) / 2. */
@@ -895,169 +849,6 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
     const real th = (real)atan2((double)sth, (double)((real)0.5 * (tr - 1)));
     for (int c = 0; c < 3; c++) eo[c] = v[c] * (th / sth);
     return th;
-}
-
-/* Up to `max_rounds` rounds of `iters` Levenberg-Marquardt steps (3.59) of diffkin.ik's solver on m rows,
- * batch last (u (n, m) is updated in place; u_eval gets the u of the last evaluation). Per row: q = c + h sin(u)
- * on bounded joints; e = [p_d - p_e; theta r] per end link (the rotation-vector error of kernels/pose_error.py),
- * or e_p when position_only (xd == NULL); converged when max |e_p| <= tp margin and max theta <= to margin;
- * weighted rows sqrt_w; lambda = damping2 + error_damping |e_w|^2; Delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w
- * (or the n x n normal equations when the error has more rows than joints), J_w = diag(sqrt_w) J
- * diag(dq/du); u += Delta where not converged. conv and merit (max(e_p / tp, theta / to)) are those of the
- * last evaluation, merit_prev the merit of the round before the last (when more than one ran). Rounds stop
- * early after one in which a row converged (the caller schedules then). Targets pd, xd, yd, zd are (3K, N);
- * row b aims at target tidx[b]. Returns the number of rounds run, or -1 when memory ran out. */
-static int64_t DK(dk_lm)(const dk_args *a) {
-    Shape s;
-    read_shape(a, &s);
-    if (s.nv != s.n) return DK_MOTION_ERROR; /* additive steps on u: R and P motions only */
-    DK(Params) pp;
-    if (DK(read_params)(a, &s, &pp)) return -1;
-    const int64_t m = a->batch, N = a->n_targets, *tidx = a->tidx;
-    const int iters = (int)a->iters, max_rounds = (int)a->max_rounds;
-    real *u = (real *)a->u, *u_eval = (real *)a->u_eval, *merit = (real *)a->merit;
-    real *merit_prev = (real *)a->merit_prev;
-    const real *pd = (const real *)a->pd, *xd = (const real *)a->xd, *yd = (const real *)a->yd;
-    const real *zd = (const real *)a->zd, *sqrt_w = (const real *)a->sqrt_w, *jc = (const real *)a->jc;
-    const real *jh = (const real *)a->jh;
-    const uint8_t *bounded = a->bounded;
-    uint8_t *conv = a->conv;
-    const real damping2 = (real)a->damping2, error_damping = (real)a->error_damping, tp = (real)a->tol_p;
-    const real to = (real)a->tol_o, margin = (real)a->margin;
-    int nthreads = (int)a->nthreads;
-    const int K = s.K, n = s.n, pos_only = xd == NULL, r = (pos_only ? 3 : 6) * K;
-    const int d = r <= n ? r : n;
-    const int64_t nblocks = (m + W - 1) / W;
-    if (nthreads < 1 || m <= SERIAL_MAX) nthreads = 1;
-    const size_t base = DK(scratch_size)(&s) / sizeof(real);
-    size_t per;
-    real *all = DK(team_alloc)(base + (size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n, nthreads,
-                               &per); /* before the team: no thread can fail */
-    if (!all) { free(pp.fix); return -1; }
-    int64_t rounds = 0;
-    int stop = 0;
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1)
-    {
-        real *buf = all + per * (size_t)thread_id();
-        DK(Scratch) sc;
-        DK(scratch_init)(&s, &pp, buf, &sc);
-        real *dqdu = buf + base;              /* n x W */
-        real *Jw = dqdu + (size_t)n * W;      /* r x n */
-        real *e = Jw + (size_t)r * n;         /* r */
-        real *A = e + r;                      /* d x d */
-        real *y = A + (size_t)d * d;          /* d */
-        real *delta = y + d;                  /* n */
-        for (int round = 0; round < max_rounds; round++) {
-#pragma omp for schedule(dynamic, 4)
-            for (int64_t blk = 0; blk < nblocks; blk++) {
-                const int64_t b0 = blk * W;
-                const int nl = (int)(m - b0 < W ? m - b0 : W);
-                for (int it = 0; it < iters; it++) {
-                    for (int i = 0; i < n; i++) { /* q = c + h sin(u) (bounded joints), dq/du = h cos(u) */
-                        double uu[W], sn[W], cs[W];
-                        for (int l = 0; l < W; l++) uu[l] = (double)u[(int64_t)i * m + b0 + (l < nl ? l : nl - 1)];
-                        real *ql = sc.qlanes + (size_t)i * W, *dl = dqdu + (size_t)i * W;
-                        if (bounded[i]) {
-                            sincos_lanes(uu, sn, cs);
-                            for (int l = 0; l < W; l++) {
-                                ql[l] = jc[i] + jh[i] * (real)sn[l];
-                                dl[l] = jh[i] * (real)cs[l];
-                            }
-                        } else {
-                            for (int l = 0; l < W; l++) { ql[l] = (real)uu[l]; dl[l] = 1; }
-                        }
-                    }
-                    DK(block)(&s, &pp, &sc, 1);
-                    for (int l = 0; l < nl; l++) {
-                        const int64_t b = b0 + l, t = tidx[b];
-                        real pn = 0, ang = 0;
-                        for (int k = 0; k < K; k++) {
-                            const real *E = sc.ends + (size_t)k * 12 * W;
-                            real *ek = e + (pos_only ? 3 : 6) * k;
-                            real sq = 0;
-                            for (int c = 0; c < 3; c++) {
-                                ek[c] = pd[(int64_t)(3 * k + c) * N + t] - E[(4 * c + 3) * W + l];
-                                sq += ek[c] * ek[c];
-                            }
-                            const real nk = (real)sqrt((double)sq);
-                            pn = nk > pn ? nk : pn;
-                            if (pos_only) continue;
-                            const real *cols[3] = {xd + (int64_t)3 * k * N + t, yd + (int64_t)3 * k * N + t,
-                                                   zd + (int64_t)3 * k * N + t};
-                            const real th = DK(rotvec)(E, l, cols, N, ek + 3);
-                            ang = th > ang ? th : ang;
-                        }
-                        const int cv = pn <= tp * margin && ang <= to * margin;
-                        if (it == iters - 1) {
-                            if (round > 0) merit_prev[b] = merit[b];
-                            conv[b] = (uint8_t)cv;
-                            merit[b] = pos_only ? pn / tp : (pn / tp > ang / to ? pn / tp : ang / to);
-                        }
-                        real e2 = 0;
-                        for (int a = 0; a < r; a++) {
-                            e[a] *= sqrt_w[a];
-                            e2 += e[a] * e[a];
-                        }
-                        const real lam = damping2 + error_damping * e2;
-                        for (int k = 0; k < K; k++) { /* J_w rows of end k: [lin; ang] or lin only */
-                            const real *Jb = sc.Jb + (size_t)k * 6 * n * W;
-                            const int rows = pos_only ? 3 : 6, off = rows * k;
-                            for (int a = 0; a < rows; a++)
-                                for (int i = 0; i < n; i++)
-                                    Jw[(size_t)(off + a) * n + i] =
-                                        Jb[((size_t)a * n + i) * W + l] * sqrt_w[off + a] * dqdu[(size_t)i * W + l];
-                        }
-                        if (r <= n) { /* (J J^T + lambda I) y = e, Delta = J^T y */
-                            for (int a = 0; a < r; a++)
-                                for (int c = 0; c <= a; c++) {
-                                    real acc = 0;
-                                    for (int i = 0; i < n; i++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)c * n + i];
-                                    A[a * d + c] = acc;
-                                    A[c * d + a] = acc;
-                                }
-                            for (int a = 0; a < r; a++) { A[a * d + a] += lam; y[a] = e[a]; }
-                            DK(spd_solve)(A, y, d);
-                            for (int i = 0; i < n; i++) {
-                                real acc = 0;
-                                for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * y[a];
-                                delta[i] = acc;
-                            }
-                        } else { /* (J^T J + lambda I) Delta = J^T e */
-                            for (int i = 0; i < n; i++) {
-                                for (int c = 0; c <= i; c++) {
-                                    real acc = 0;
-                                    for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)a * n + c];
-                                    A[i * d + c] = acc;
-                                    A[c * d + i] = acc;
-                                }
-                                real acc = 0;
-                                for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * e[a];
-                                delta[i] = acc;
-                                A[i * d + i] += lam;
-                            }
-                            DK(spd_solve)(A, delta, d);
-                        }
-                        for (int i = 0; i < n; i++) {
-                            real *ui = u + (int64_t)i * m + b;
-                            if (it == iters - 1) u_eval[(int64_t)i * m + b] = *ui;
-                            if (!cv) *ui += delta[i];
-                        }
-                    }
-                }
-            }
-#pragma omp single
-            { /* after the round's barrier: go on only while no row converged */
-                rounds = round + 1;
-                int any = 0;
-                for (int64_t b = 0; b < m; b++) any |= conv[b];
-                stop = any || rounds == max_rounds;
-            }
-            if (stop) break;
-        }
-    }
-    free(all);
-    free(pp.fix);
-    return rounds;
 }
 
 #include "_native_solve.c"
