@@ -54,7 +54,7 @@ class _Prepared:
             # (12K, L): p, x, y, z of every end link (the layout of the targets' columns), feature-major
             # for the vectorised nearest-pose search
             self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).T.contiguous()
-        self.L, self._configured = L, {}
+        self.L, self._configured, self._one = L, {}, {}
         self.base = packed.call(dtype, jc=self.arrays[0], jh=self.arrays[1], bounded=self.arrays[2],
                                 wrap=self.arrays[3], qlo=lo, qhi=hi, clamp=self.clamp, n_lib=L,
                                 lib_u=self.lib_u, lib_pose=self.lib_pose)
@@ -73,6 +73,22 @@ class _Prepared:
                 min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
                 feature_weight=cfg.orientation_weight))
         return hit[1]
+
+    def one(self, tol: tuple, num_seeds: int, max_iterations: int) -> tuple[native.Args, int]:
+        """The filled ``dk_solve`` arguments of a one-target call with default options (every field but the
+        target, the pool and the outputs), and the pool's length (cached per option set: a call copies the
+        struct and sets six addresses)."""
+        key = (tol, num_seeds, max_iterations)
+        hit = self._one.get(key)
+        if hit is None:
+            R = _seeds.ranks(self.L, 1, _DEFAULT.library_ranks)
+            P = _seeds.pool_size(1, num_seeds, 0, R)
+            args = native._filled(
+                native.Args.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
+                tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations, n_user=0,
+                user_u=None, lib_ranks=R, n_pool=P, nthreads=1, target_stride=4)  # a row-major (4, 4) pose
+            hit = self._one[key] = (args, P * self.nu)
+        return hit
 
 
 def _entry(chain, x: Tensor) -> single.Entry | None:
@@ -228,14 +244,20 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
         return None
     if generator is None and seed is not None:
         generator = torch.Generator().manual_seed(seed)
-    c = T[:3].T.contiguous()  # (4, 3): the x, y, z, p columns, each (3K, N) = (3, 1), by address
-    a, size = c.data_ptr(), c.element_size()
+    tmpl, npool = prep.one(tol, num_seeds, max_iterations)
+    dtype, n = T.dtype, prep.n
     empty = torch.empty
-    outs = (empty(prep.n, dtype=T.dtype), empty((), dtype=torch.bool), empty((), dtype=T.dtype),
-            empty((), dtype=T.dtype), empty((), dtype=torch.int64), empty((), dtype=torch.int64))
-    q, ok, pe, oe, its, seeds = run(prep, (a + 9 * size, a, a + 3 * size, a + 6 * size), 1, _DEFAULT,
-                                    generator, tol=tol, num_seeds=num_seeds, max_iterations=max_iterations,
-                                    user_u=None, threads=1, outs=outs)
+    q, ok, pe, oe, its, seeds = outs = (
+        empty(n, dtype=dtype), empty((), dtype=torch.bool), empty((), dtype=dtype), empty((), dtype=dtype),
+        empty((), dtype=torch.int64), empty((), dtype=torch.int64))
+    pool = torch.rand(npool, generator=generator, dtype=dtype) if npool else None  # the caller's generator
+    args = native.Args.from_buffer_copy(tmpl)
+    a, size = T.data_ptr(), T.element_size()  # the pose's columns x, y, z, p, rows 4 entries apart
+    args.xd, args.yd, args.zd, args.pd = a, a + size, a + 2 * size, a + 3 * size
+    args.pool = None if pool is None else pool.data_ptr()
+    args.q_out, args.success, args.pos_err, args.ori_err, args.iters_out, args.seeds_out = (
+        t.data_ptr() for t in outs)
+    native.solve_call(args)
     if torch.is_grad_enabled() and (T.requires_grad or any(  # wants_gradients, without the module walk
             p is not None and p.requires_grad for p in chain._parameters.values())):
         # as the general path: the implicit-function gradient at the solution

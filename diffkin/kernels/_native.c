@@ -114,7 +114,8 @@
     X(int64_t *, seeds_out, "dk_solve: [N] out") \
     X(void *, pos_err, "dk_solve: [N] reals out") \
     X(void *, ori_err, "dk_solve: [N] reals out") \
-    X(uint8_t *, success, "dk_solve: [N] out")
+    X(uint8_t *, success, "dk_solve: [N] out") \
+    X(int64_t, target_stride, "dk_solve: entries between a target column's rows (0: N; 4: one row-major pose)")
 
 /* X(letter, nq, nv, what): the elementary motions in code order (DK_MOTION_P = 0, ...), as
  * diffkin.kernels.configuration declares them (MOTION_NQ, MOTION_NV); native.py reads this table through

@@ -137,7 +137,7 @@ typedef struct { /* the fixed inputs of a solve, read once */
     DK(Params) pp;
     Space sp;
     int K, n, nv, r, d, pos_only;
-    int64_t N, S, L, R, P, nseeds, maxit, minit, every;
+    int64_t N, ts, S, L, R, P, nseeds, maxit, minit, every;
     real tp, to, margin, damping2, mu, stall, w2;
     const real *pd, *xd, *yd, *zd, *sqrt_w, *jc, *jh, *user_u, *lib_u, *lib_pose, *pool, *qlo, *qhi;
     const uint8_t *bounded, *wrap;
@@ -148,7 +148,7 @@ typedef struct { /* the fixed inputs of a solve, read once */
  * worst position error *pn (a scaled norm: no overflow) and angle *ang (DK(rotvec)). */
 static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t t, real *e, real *pn,
                            real *ang) {
-    const int64_t N = S->N;
+    const int64_t N = S->ts; /* the stride of the targets' columns */
     const real *cols[3] = {S->xd, S->yd, S->zd};
     *pn = 0;
     *ang = 0;
@@ -287,7 +287,7 @@ static void DK(nearest)(const DK(Solve) *S, int64_t t, int32_t *nn) {
     const int64_t L = S->L;
     int R = (int)S->R;
     for (int c = 0; c < F; c++) { /* the target's features, once */
-        ft[c] = tcol[c / K3][(int64_t)(c % K3) * S->N + t];
+        ft[c] = tcol[c / K3][(int64_t)(c % K3) * S->ts + t];
         wt[c] = c < K3 ? 1 : S->w2;
     }
     for (int64_t j0 = 0; j0 < L; j0 += NEAR_BLOCK) {
@@ -510,6 +510,7 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->r = (S->pos_only ? 3 : 6) * S->K;
     S->d = S->r <= S->nv ? S->r : S->nv;
     S->N = a->n_targets, S->S = a->n_user, S->L = a->n_lib, S->P = a->n_pool;
+    S->ts = a->target_stride > 0 ? a->target_stride : a->n_targets;
     S->R = a->lib_ranks < a->n_lib ? a->lib_ranks : a->n_lib;
     S->R = S->R < MAX_RANKS ? S->R : MAX_RANKS;
     if (S->K > MAX_ENDS) S->R = 0;

@@ -99,7 +99,8 @@ _SOLVE_FIELDS = [(name, _I64) for name in ("n_seeds", "max_iterations", "min_see
     [("stall_ratio", _F64), ("n_user", _I64), ("user_u", _PTR), ("n_lib", _I64), ("lib_ranks", _I64),
      ("lib_u", _PTR), ("lib_pose", _PTR), ("feature_weight", _F64), ("n_pool", _I64)] + \
     [(name, _PTR) for name in ("pool", "qlo", "qhi", "wrap")] + [("clamp", _I64)] + \
-    [(name, _PTR) for name in ("q_out", "iters_out", "seeds_out", "pos_err", "ori_err", "success")]
+    [(name, _PTR) for name in ("q_out", "iters_out", "seeds_out", "pos_err", "ori_err", "success")] + \
+    [("target_stride", _I64)]
 
 
 class Args(ctypes.Structure):
