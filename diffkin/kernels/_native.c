@@ -41,6 +41,7 @@
 #endif
 
 #define W 16
+#define WN 4 /* the lanes of DK(block_narrow) */
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
 #define DK_ABI_VERSION 3 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
@@ -212,22 +213,23 @@ static void read_shape(const dk_args *a, Shape *s) {
     s->anc = a->ancestor;
 }
 
-/* sin and cos of W lanes of double, vectorisable. */
-static void sincos_lanes(const double *x, double *s, double *c) {
+/* sin and cos of the first nw of W lanes of double, vectorisable (inlined: nw a constant at each call). */
+static inline __attribute__((always_inline)) void sincos_lanes(const double *x, double *s, double *c,
+                                                               const int nw) {
     const double two_over_pi = 0.63661977236758134308;
     const double P1 = 1.57079632673412561417e+00, P2 = 6.07710050630396597660e-11,
                  P3 = 2.02226624871116645580e-21;
     int big = 0;
-    for (int l = 0; l < W; l++) big |= !(fabs(x[l]) < 1e5);
+    for (int l = 0; l < nw; l++) big |= !(fabs(x[l]) < 1e5);
     if (big) { /* far from the origin (or not finite): libm's full reduction */
-        for (int l = 0; l < W; l++) { s[l] = sin(x[l]); c[l] = cos(x[l]); }
+        for (int l = 0; l < nw; l++) { s[l] = sin(x[l]); c[l] = cos(x[l]); }
         return;
     }
     /* k = round(x 2/pi) by the 1.5 2^52 shift, whose low mantissa bits are then k mod 4 (the quadrant): no
      * nearbyint/floor and no double -> int64 conversion, which AVX2 lacks and which kept the loop scalar */
     const double shift = 6755399441055744.0;
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         const double t = x[l] * two_over_pi + shift, k = t - shift;
         uint64_t q;
         memcpy(&q, &t, sizeof q);
@@ -248,19 +250,20 @@ static void sincos_lanes(const double *x, double *s, double *c) {
 /* sin and cos of W lanes of float, vectorisable, 8 lanes to an AVX2 register where the double version has
  * 4: the same reduction in float (pi/2 in three parts, k x P1 exact for |k| < 2^16) and Cephes' sinf/cosf
  * polynomials on [-pi/4, pi/4] (about 1 ulp); |x| >= 1e4 (or not finite) takes the double version. */
-static void sincos_lanes_f32(const float *x, float *s, float *c) {
+static inline __attribute__((always_inline)) void sincos_lanes_f32(const float *x, float *s, float *c,
+                                                                   const int nw) {
     int big = 0;
-    for (int l = 0; l < W; l++) big |= !(fabsf(x[l]) < 1e4f);
+    for (int l = 0; l < nw; l++) big |= !(fabsf(x[l]) < 1e4f);
     if (big) {
         double xd[W], sd[W], cd[W];
-        for (int l = 0; l < W; l++) xd[l] = x[l];
-        sincos_lanes(xd, sd, cd);
-        for (int l = 0; l < W; l++) { s[l] = (float)sd[l]; c[l] = (float)cd[l]; }
+        for (int l = 0; l < nw; l++) xd[l] = x[l];
+        sincos_lanes(xd, sd, cd, nw);
+        for (int l = 0; l < nw; l++) { s[l] = (float)sd[l]; c[l] = (float)cd[l]; }
         return;
     }
     const float shift = 12582912.0f; /* 1.5 2^23: round to an integer, k mod 4 in the low mantissa bits */
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         const float t = x[l] * 0.636619772f + shift, k = t - shift;
         uint32_t q;
         memcpy(&q, &t, sizeof q);
@@ -511,7 +514,8 @@ static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK
 static inline __attribute__((always_inline)) void DK(rows)(const real *restrict P, const DK(Fix) *f,
                                                            const int perm, const int move,
                                                            const real *restrict cs,
-                                                           const real *restrict sn, real *restrict out) {
+                                                           const real *restrict sn, real *restrict out,
+                                                           const int nw) {
     const real *a = f->a;
     const real a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5], a6 = a[6], a7 = a[7];
     const real a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
@@ -523,7 +527,7 @@ static inline __attribute__((always_inline)) void DK(rows)(const real *restrict 
         const real *restrict Cz = P0 + f->col[2] * W;
         real *restrict X = out + 4 * r * W, *restrict Y = X + W, *restrict Z = Y + W, *restrict Q = Z + W;
 #pragma omp simd
-        for (int l = 0; l < W; l++) {
+        for (int l = 0; l < nw; l++) {
             real x, y, z;
             if (perm) {
                 x = Cx[l] * sx;
@@ -549,15 +553,17 @@ static inline __attribute__((always_inline)) void DK(rows)(const real *restrict 
     }
 }
 
-static void DK(apply)(const real *P, const DK(Fix) *f, int move, const real *cs, const real *sn, real *out) {
+static inline __attribute__((always_inline)) void DK(apply)(const real *P, const DK(Fix) *f, int move,
+                                                            const real *cs, const real *sn, real *out,
+                                                            const int nw) {
     if (f->perm) {
-        if (move == MOVE_TURN) DK(rows)(P, f, 1, MOVE_TURN, cs, sn, out);
-        else if (move == MOVE_SLIDE) DK(rows)(P, f, 1, MOVE_SLIDE, cs, sn, out);
-        else DK(rows)(P, f, 1, MOVE_NONE, cs, sn, out);
+        if (move == MOVE_TURN) DK(rows)(P, f, 1, MOVE_TURN, cs, sn, out, nw);
+        else if (move == MOVE_SLIDE) DK(rows)(P, f, 1, MOVE_SLIDE, cs, sn, out, nw);
+        else DK(rows)(P, f, 1, MOVE_NONE, cs, sn, out, nw);
     } else {
-        if (move == MOVE_TURN) DK(rows)(P, f, 0, MOVE_TURN, cs, sn, out);
-        else if (move == MOVE_SLIDE) DK(rows)(P, f, 0, MOVE_SLIDE, cs, sn, out);
-        else DK(rows)(P, f, 0, MOVE_NONE, cs, sn, out);
+        if (move == MOVE_TURN) DK(rows)(P, f, 0, MOVE_TURN, cs, sn, out, nw);
+        else if (move == MOVE_SLIDE) DK(rows)(P, f, 0, MOVE_SLIDE, cs, sn, out, nw);
+        else DK(rows)(P, f, 0, MOVE_NONE, cs, sn, out, nw);
     }
 }
 
@@ -568,14 +574,14 @@ static void DK(apply)(const real *P, const DK(Fix) *f, int move, const real *cs,
 static inline __attribute__((always_inline)) void DK(column)(const real *restrict A, const real *restrict E,
                                                              const real m, const int turn, const int first,
                                                              const int ax, real *restrict col,
-                                                             const size_t step) {
+                                                             const size_t step, const int nw) {
     const real *restrict z0 = A + ax * W, *restrict z1 = A + (4 + ax) * W, *restrict z2 = A + (8 + ax) * W;
     const real *restrict p0 = A + 3 * W, *restrict p1 = A + 7 * W, *restrict p2 = A + 11 * W;
     const real *restrict e0 = E + 3 * W, *restrict e1 = E + 7 * W, *restrict e2 = E + 11 * W;
     real *restrict c0 = col, *restrict c1 = c0 + step, *restrict c2 = c1 + step, *restrict c3 = c2 + step;
     real *restrict c4 = c3 + step, *restrict c5 = c4 + step;
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         real v0, v1, v2, v3, v4, v5;
         if (turn) {
             const real d0 = e0[l] - p0[l], d1 = e1[l] - p1[l], d2 = e2[l] - p2[l];
@@ -602,10 +608,10 @@ static inline __attribute__((always_inline)) void DK(column)(const real *restric
 /* F (12 x W lanes) . Rot(Q) in place, Q the quaternion (w, x, y, z) in rows Q, Q + W, .. (W lanes each),
  * normalised first (one of norm <= small is the identity, as diffkin._numerics.safe_normalize): the S motion.
  * Column c of the result is sum_k F[:, k] R[k][c], R of (2.33); p is unchanged. */
-static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const real small) {
+static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const real small, const int nw) {
     real R[9][W];
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         const real w0 = Q[l], x0 = Q[W + l], y0 = Q[2 * W + l], z0 = Q[3 * W + l];
         const real nrm = (real)sqrt((double)(w0 * w0 + x0 * x0 + y0 * y0 + z0 * z0));
         const int tiny = nrm <= small;
@@ -619,7 +625,7 @@ static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const 
     for (int r = 0; r < 3; r++) {
         real *restrict X = F + 4 * r * W, *restrict Y = X + W, *restrict Z = Y + W;
 #pragma omp simd
-        for (int l = 0; l < W; l++) {
+        for (int l = 0; l < nw; l++) {
             const real x = X[l], y = Y[l], z = Z[l];
             X[l] = x * R[0][l] + y * R[3][l] + z * R[6][l];
             Y[l] = x * R[1][l] + y * R[4][l] + z * R[7][l];
@@ -629,15 +635,17 @@ static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const 
 }
 
 /* out = P . Pre . Rot(Q): the frame of an S motion (not inlined: the R/P loop of DK(block) stays as it was). */
-static __attribute__((noinline)) void DK(ball_frame)(const real *P, const DK(Fix) *pre, const real *Q, real *out) {
-    DK(apply)(P, pre, MOVE_NONE, NULL, NULL, out);
-    DK(quaternion_turn)(Q, out, DK_QSMALL);
+static __attribute__((noinline)) void DK(ball_frame)(const real *P, const DK(Fix) *pre, const real *Q, real *out,
+                                                     const int nw) {
+    DK(apply)(P, pre, MOVE_NONE, NULL, NULL, out, nw);
+    DK(quaternion_turn)(Q, out, DK_QSMALL, nw);
 }
 
 /* The end frames (sc->ends, K x 12 x W) and, if jac, their Jacobians (sc->Jb, K x 6nv x W) of the
  * configurations in sc->qlanes (n x W). The motion axis of joint j (its z and origin, before Post; the x, y,
  * z axes of an S frame) is read from F_j, or from A_j where the joint has a Post. */
-static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
+static inline __attribute__((always_inline)) void DK(block_lanes)(const Shape *s, const DK(Params) *pp,
+                                                                  DK(Scratch) *sc, int jac, const int nw) {
     const int J = s->J, K = s->K, nv = s->nv;
     real *F = sc->F;
     for (int j = 0; j < J; j++) {
@@ -646,18 +654,18 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
         const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
         const int mo = s->motion[j], rev = mo == DK_MOTION_R; /* the one dispatch on a frame's motion */
         real ang[W], sn[W], cs[W];
-        for (int l = 0; l < W; l++) ang[l] = qj[l] * m + b;
-        if (rev) DK_SINCOS(ang, sn, cs);
+        for (int l = 0; l < nw; l++) ang[l] = qj[l] * m + b;
+        if (rev) DK_SINCOS(ang, sn, cs, nw);
         real *Fj = F + (size_t)j * 12 * W, *out = s->has_post[j] ? sc->A + (size_t)j * 12 * W : Fj;
-        if (mo == DK_MOTION_S) DK(ball_frame)(P, pp->fix + j, qj, out);
-        else DK(apply)(P, pp->fix + j, rev ? MOVE_TURN : MOVE_SLIDE, rev ? cs : ang, sn, out);
-        if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj);
+        if (mo == DK_MOTION_S) DK(ball_frame)(P, pp->fix + j, qj, out, nw);
+        else DK(apply)(P, pp->fix + j, rev ? MOVE_TURN : MOVE_SLIDE, rev ? cs : ang, sn, out, nw);
+        if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj, nw);
     }
     for (int k = 0; k < K; k++) {
         const int e = s->end_joint[k];
         const real *P = e < 0 ? sc->basef : F + (size_t)e * 12 * W;
         real *E = sc->ends + (size_t)k * 12 * W;
-        if (s->has_end[k]) DK(apply)(P, pp->fix + 2 * J + k, MOVE_NONE, NULL, NULL, E);
+        if (s->has_end[k]) DK(apply)(P, pp->fix + 2 * J + k, MOVE_NONE, NULL, NULL, E, nw);
         else memcpy(E, P, sizeof(real) * 12 * W);
         if (!jac) continue;
         real *Jb = sc->Jb + (size_t)k * 6 * nv * W;
@@ -668,16 +676,26 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
             const real m = pp->mult[j];
             const int first = pp->first[k * J + j], mo = s->motion[j];
             if (mo == DK_MOTION_S) { /* three turns about the rotated frame's axes, never coupled */
-                for (int ax = 0; ax < 3; ax++) DK(column)(Aj, E, 1, 1, 1, ax, col + (size_t)ax * W, (size_t)nv * W);
+                for (int ax = 0; ax < 3; ax++) DK(column)(Aj, E, 1, 1, 1, ax, col + (size_t)ax * W, (size_t)nv * W, nw);
             } else if (mo == DK_MOTION_R) {
-                if (first) DK(column)(Aj, E, m, 1, 1, 2, col, (size_t)nv * W);
-                else DK(column)(Aj, E, m, 1, 0, 2, col, (size_t)nv * W);
+                if (first) DK(column)(Aj, E, m, 1, 1, 2, col, (size_t)nv * W, nw);
+                else DK(column)(Aj, E, m, 1, 0, 2, col, (size_t)nv * W, nw);
             } else {
-                if (first) DK(column)(Aj, E, m, 0, 1, 2, col, (size_t)nv * W);
-                else DK(column)(Aj, E, m, 0, 0, 2, col, (size_t)nv * W);
+                if (first) DK(column)(Aj, E, m, 0, 1, 2, col, (size_t)nv * W, nw);
+                else DK(column)(Aj, E, m, 0, 0, 2, col, (size_t)nv * W, nw);
             }
         }
     }
+}
+
+/* DK(block_lanes) of all W lanes, and of the first WN (one or two vector registers: the IK solve's single
+ * target runs on lane 0; the other lanes' outputs are then not meaningful). */
+static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
+    DK(block_lanes)(s, pp, sc, jac, W);
+}
+
+static void DK(block_narrow)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
+    DK(block_lanes)(s, pp, sc, jac, WN);
 }
 
 /* Row l < nl of out (rows stride apart) gets lane l of the rows x W lanes of src: the transpose into the

@@ -38,6 +38,20 @@
 #define MAX_RANKS 64
 #define MAX_ENDS 64 /* end links the nearest-pose search takes (more: no library seeds) */
 
+/* A 4 KiB-aligned work space of at least `bytes`, kept by the calling thread between calls and grown when a
+ * call needs more (one single-threaded solve's work space per calling thread, never released). */
+static __thread void *kept_ptr;
+static __thread size_t kept_bytes;
+static void *kept_space(size_t bytes) {
+    if (bytes > kept_bytes) {
+        free(kept_ptr);
+        kept_bytes = (bytes + 4095) / 4096 * 4096;
+        kept_ptr = aligned_alloc(4096, kept_bytes);
+        if (!kept_ptr) kept_bytes = 0;
+    }
+    return kept_ptr;
+}
+
 typedef struct { /* the configuration space of the chain (see the top of this file) */
     int n, nv, nb, nu;       /* coordinates, velocities, quaternions, uniforms per random seed */
     int32_t *vq;             /* [nv] the coordinate a scalar velocity moves, -1 in a quaternion */
@@ -75,20 +89,21 @@ static int space_read(const Shape *s, Space *sp) {
 }
 #endif
 
-/* q and dq/du of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints, else q = u. */
+/* q and dq/du of the first nw of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints,
+ * else q = u. */
 static void DK(map_u)(int n, const uint8_t *bounded, const real *jc, const real *jh, const real *ul,
-                      real *ql, real *dl) {
+                      real *ql, real *dl, const int nw) {
     for (int i = 0; i < n; i++) {
         double uu[W], sn[W], cs[W];
         const real *ui = ul + (size_t)i * W;
         real *qi = ql + (size_t)i * W, *di = dl + (size_t)i * W;
         if (!bounded[i]) {
-            for (int l = 0; l < W; l++) { qi[l] = ui[l]; di[l] = 1; }
+            for (int l = 0; l < nw; l++) { qi[l] = ui[l]; di[l] = 1; }
             continue;
         }
-        for (int l = 0; l < W; l++) uu[l] = (double)ui[l];
-        sincos_lanes(uu, sn, cs);
-        for (int l = 0; l < W; l++) {
+        for (int l = 0; l < nw; l++) uu[l] = (double)ui[l];
+        sincos_lanes(uu, sn, cs, nw);
+        for (int l = 0; l < nw; l++) {
             qi[l] = jc[i] + jh[i] * (real)sn[l];
             di[l] = jh[i] * (real)cs[l];
         }
@@ -404,8 +419,12 @@ static void DK(finish)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int co
 
 /* One LM step on the chunk's lanes, with harvest and stall checks. */
 static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, real *ul, DK(LMWork) *w) {
-    DK(map_u)(S->n, S->bounded, S->jc, S->jh, ul, sc->qlanes, w->dqdu);
-    DK(block)(&S->s, &S->pp, sc, 1);
+    int hi = 0; /* the lanes in use: lane 0 alone (a single target) takes the narrow block */
+    for (int l = 0; l < W; l++) hi = c->t[l] >= 0 ? l + 1 : hi;
+    const int nw = hi <= WN ? WN : W;
+    DK(map_u)(S->n, S->bounded, S->jc, S->jh, ul, sc->qlanes, w->dqdu, nw);
+    if (nw == W) DK(block)(&S->s, &S->pp, sc, 1);
+    else DK(block_narrow)(&S->s, &S->pp, sc, 1);
     int64_t *iters = S->a->iters_out;
     int m = 0;
     for (int l = 0; l < W; l++) {
@@ -465,7 +484,8 @@ static void DK(final_check)(const DK(Solve) *S, DK(Scratch) *sc, int64_t t0, int
                 for (int c = 0; c < 4; c++) qt[S->sp.qs[b] + c] = qi[(size_t)c * W + l];
             }
         }
-        DK(block)(&S->s, &S->pp, sc, 0);
+        if (nl <= WN) DK(block_narrow)(&S->s, &S->pp, sc, 0);
+        else DK(block)(&S->s, &S->pp, sc, 0);
         for (int l = 0; l < nl; l++) {
             const int64_t t = b0 + l;
             real pn, ang;
@@ -549,10 +569,13 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
     const size_t lanes = (size_t)W * ((size_t)r * nv + r + (size_t)d * d + d + nv + 1); /* LMWork's */
     size_t per;
-    real *all = DK(team_alloc)(base + 2 * (size_t)n * W + lanes + r +
-                               (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1,
-                               nthreads, &per);
+    const size_t want = base + 2 * (size_t)n * W + lanes + r +
+                        (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1;
+    /* one thread: the calling thread's kept work space (a single-target solve paid more for allocating
+     * and faulting in a fresh one than for its LM steps) */
+    real *all = nthreads == 1 ? (real *)kept_space(sizeof(real) * want) : DK(team_alloc)(want, nthreads, &per);
     if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
+    if (nthreads == 1) per = 0;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
     {
         real *buf = all + per * (size_t)thread_id();
@@ -578,7 +601,7 @@ static int64_t DK(dk_solve)(const dk_args *a) {
             DK(solve_chunk)(&S, &sc, ul, &w, &c, t0, t1);
         }
     }
-    free(all);
+    if (nthreads > 1) free(all);
     free(S.pp.fix);
     free(S.best_merit);
     free(S.sp.vq);
