@@ -95,8 +95,7 @@ def _entry(chain, x: Tensor) -> single.Entry | None:
     """The chain's lean-path cache entry (:func:`diffkin.kernels.single.entry`) when ``dk_solve`` can serve
     it: the fused kernel serves the chain (every joint kind: dk_solve steps scalars additively and
     quaternions on the manifold). None otherwise."""
-    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
-        return single.entry(chain, x)
+    return single.entry(chain, x, grad=False)  # the iterations never need autograd (gradients: attached)
 
 
 def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
