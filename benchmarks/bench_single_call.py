@@ -7,8 +7,9 @@
   attachment);
 * batch-1 FK and FK + Jacobian (the lean path, ``torch.no_grad()``), median per call, against Pinocchio's
   and Robotics Toolbox's C++ calls of one configuration in the same run;
-* batched ``ik.solve`` of N Panda targets on 1 and 2 threads: the C solve (``dk_solve``) against the scheduled
-  torch loop with the fused LM steps (``dk_lm``, what ``main`` ran before), interleaved repeats.
+* batched ``ik.solve`` of N Panda targets on 1 and 2 threads by its two backends, one algorithm: the C solve
+  (``dk_solve``) and the torch backend (what CUDA runs), interleaved repeats: the time ratio, and whether
+  both gave the same flags, iterations and q.
 
     python -m benchmarks.bench_single_call [--targets 200] [--batch 10000] [--repeats 3]
     python -m benchmarks.run single_call [--quick]
@@ -119,31 +120,38 @@ def batch_one_kinematics(n: int = 2000) -> list[dict]:
 
 
 def batched(N: int, repeats: int, threads: int) -> list[dict]:
-    from diffkin.ik import numerical
+    """ik.solve of N targets by its two backends (one algorithm): the C solve and the torch backend (what
+    CUDA runs; here on the CPU under ``native.disabled()``), interleaved repeats of the same call."""
+    from diffkin.kernels import native
 
     _, T = make_targets(N, seed=3)
     chain = models.load("panda", dtype=torch.float64)
     ik.solve(chain, T[:64], seed=0)
-    times = {"C solve (dk_solve)": [], "torch loop + dk_lm (main)": []}
-    checks = {}
-    real = numerical.native_applies  # the C solve's gate, as ik.solve sees it
-    with torch_threads(threads):
+    times = {"C backend (dk_solve)": [], "torch backend": []}
+    checks, results = {}, {}
+    with torch_threads(threads), torch.no_grad():
         for rep in range(repeats):  # interleaved: both see the same machine load
             for name in times:
-                numerical.native_applies = real if name.startswith("C") else (lambda *a: False)
-                try:
-                    t0 = time.perf_counter()
+                t0 = time.perf_counter()
+                if name.startswith("C"):
                     res = ik.solve(chain, T, seed=rep)
-                    times[name].append(time.perf_counter() - t0)
-                finally:
-                    numerical.native_applies = real
-                checks[name] = verify(res.q.detach(), T, res.success)
+                else:
+                    with native.disabled():
+                        res = ik.solve(chain, T, seed=rep)
+                times[name].append(time.perf_counter() - t0)
+                checks[name], results[name] = verify(res.q.detach(), T, res.success), res
+    c, t = results.values()
+    same = {"same_flags": bool(torch.equal(c.success, t.success)),
+            "same_iterations": bool(torch.equal(c.iterations, t.iterations)),
+            "max_dq": float((c.q - t.q).abs().max()) if N else 0.0}
     rows = []
     for name, ts in times.items():
         s = statistics.median(ts)
+        res = results[name]
         rows.append({"case": f"ik.solve {N} targets, {threads} thread(s), {name}", "median_us": s * 1e6,
-                     "solves_per_s": N / s, **checks[name]})
-    rows[0]["ratio_vs_main"] = rows[1]["median_us"] / rows[0]["median_us"]
+                     "solves_per_s": N / s, "mean_iterations": float(res.iterations.float().mean()),
+                     **checks[name]})
+    rows[0].update(same, ratio_vs_torch=rows[1]["median_us"] / rows[0]["median_us"])
     return rows
 
 

@@ -17,7 +17,8 @@ def test_single_call_benchmark_rows_at_tiny_sizes():
     assert any(c.startswith("ik.solve 1 target, learnable chain") for c in cases)
     assert "FK, 1 configuration" in cases and "FK + Jacobian, 1 configuration" in cases
     batched = [r for r in rows if "16 targets" in r["case"]]
-    assert len(batched) == 4 and "ratio_vs_main" in batched[0] and "ratio_vs_main" in batched[2]
+    assert len(batched) == 4 and "ratio_vs_torch" in batched[0] and "ratio_vs_torch" in batched[2]
+    assert batched[0]["same_flags"] and batched[0]["same_iterations"] and batched[0]["max_dq"] <= 1e-6
     for r in rows:
         assert r["benchmark"] == "single calls and batched IK" and r["median_us"] > 0
     for r in batched:  # 16 random Panda targets, verified in float64 by the benchmark's own check

@@ -148,10 +148,11 @@ def test_user_seeds_are_used():
     res = solve(chain, T, q_true, seed=0)
     assert res.success.all() and (res.seeds_tried == 1).all()
     assert torch.allclose(res.q, q_true, atol=1e-6)  # converged at the given seed
-    # several seeds per target (..., S, n): the true one among random ones
-    S = torch.stack((chain.random_configuration(20), q_true), dim=-2)
+    # several seeds per target (..., S, n), tried in order: the true one first converges at once
+    S = torch.stack((q_true, chain.random_configuration(20)), dim=-2)
     res2 = solve(chain, T, S, seed=0)
-    assert res2.success.all() and (res2.seeds_tried >= 2).all()
+    assert res2.success.all() and (res2.seeds_tried == 1).all() and (res2.iterations == 1).all()
+    assert torch.allclose(res2.q, q_true, atol=1e-6)
     # one seed for every target, broadcast
     res3 = solve(chain, T, q_true[0], seed=0)
     assert res3.success.all()

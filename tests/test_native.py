@@ -263,47 +263,11 @@ def test_free_cores_reads_loadavg(monkeypatch, tmp_path):
     assert native.free_cores() == 2
 
 
-# ------------------------------------------------------------------------------ the fused LM iteration
-@pytest.mark.parametrize("kind,position_only", [("panda", False), ("panda", True), ("ur5", False),
-                                                ("allegro", True), ("allegro", False), ("yumi_mimic", False)])
-def test_lm_steps_equal_the_torch_iteration(kind, position_only, monkeypatch):
-    """Every scheduling round of ik.solve: the fused steps give the torch iteration's u, u_eval, converged
-    flags and merit (float64; trees with r < n and r > n error rows, mimic joints, unbounded joints)."""
-    import diffkin.ik._lm as lm
-    from diffkin import ik
-
-    chain = _chain(kind, torch.float64)
-    q = chain.random_configuration((12,), generator=torch.Generator().manual_seed(8))
-    with torch.no_grad():
-        T = chain.forward_kinematics(q)
-    target = T[..., :3, 3] if position_only else T
-    steps, rounds = lm._Run.steps, []
-
-    def both(self, rows):
-        fused = steps(self, rows)
-        with native.disabled():
-            ref = steps(self, rows)
-        rounds.append((fused, ref))
-        return ref
-
-    monkeypatch.setattr(lm._Run, "steps", both)
-    monkeypatch.setattr("diffkin.ik.numerical.native_applies", lambda *a: False)  # the scheduled torch loop
-    res = ik.solve(chain, target, position_only=position_only, num_seeds=8, seed=0)
-    assert len(rounds) >= 2 and bool(res.success.any())
-    for fused, ref in rounds:
-        if fused[4]:  # rounds run ahead: compared through the solve's result below
-            continue
-        for a, b in zip(fused[:2], ref[:2]):
-            torch.testing.assert_close(a, b, atol=1e-9, rtol=1e-9)
-        assert torch.equal(fused[2], ref[2])
-        torch.testing.assert_close(fused[3], ref[3], atol=1e-6, rtol=1e-9)
-
-
+# ------------------------------------------------------------------------------ the C solve
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype, monkeypatch):
+def test_solve_with_the_c_backend_matches_the_torch_one(dtype):
     from diffkin import ik
 
-    monkeypatch.setattr("diffkin.ik.numerical.native_applies", lambda *a: False)  # dk_lm in the torch loop
     chain = models.load("panda", dtype=dtype)
     q = chain.random_configuration((200,), generator=torch.Generator().manual_seed(9))
     with torch.no_grad():
@@ -314,33 +278,18 @@ def test_solve_with_the_fused_iteration_matches_the_torch_one(dtype, monkeypatch
     assert fused.success.float().mean() >= 0.99 and ref.success.float().mean() >= 0.99
     ok = fused.success
     assert (fused.position_error[ok] <= 1e-4).all() and (fused.orientation_error[ok] <= 1e-3).all()
-    # the same iteration in C and in torch: the same flags and iteration counts, the same solutions to
-    # rounding (float64: 5e-13 measured; float32: 9e-5, its LM steps round differently)
-    assert torch.equal(fused.success, ref.success) and torch.equal(fused.iterations, ref.iterations)
-    atol = 1e-9 if dtype == torch.float64 else 5e-4
-    torch.testing.assert_close(fused.q, ref.q, atol=atol, rtol=0)
-    torch.testing.assert_close(fused.position_error, ref.position_error, atol=atol * 1e-2, rtol=0)
-
-
-@pytest.mark.parametrize("kind,position_only,batch", [("panda", False, 1), ("panda", False, 40),
-                                                      ("ur5", False, 3), ("allegro", True, 5)])
-def test_rounds_run_ahead_give_the_torch_solve(kind, position_only, batch, monkeypatch):
-    """The fused path runs the rounds after which the schedule would only count in one call: the solve is
-    the torch solve's (float64: the same iterations, seeds tried, success and solution)."""
-    from diffkin import ik
-
-    monkeypatch.setattr("diffkin.ik.numerical.native_applies", lambda *a: False)  # dk_lm in the torch loop
-    chain = _chain(kind, torch.float64)
-    q = chain.random_configuration((batch,), generator=torch.Generator().manual_seed(10))
-    with torch.no_grad():
-        T = chain.forward_kinematics(q)
-    target = T[..., :3, 3] if position_only else T
-    fused = ik.solve(chain, target, position_only=position_only, seed=3)
-    with native.disabled():
-        ref = ik.solve(chain, target, position_only=position_only, seed=3)
-    assert torch.equal(fused.iterations, ref.iterations) and torch.equal(fused.seeds_tried, ref.seeds_tried)
-    assert torch.equal(fused.success, ref.success) and bool(ref.success.all())
-    torch.testing.assert_close(fused.q, ref.q, atol=1e-8, rtol=0)
+    # one algorithm in C and in torch: the same flags and iteration counts, the same solutions to rounding
+    # (float64: 5e-13 measured); float32 rounds the two LM steps differently, and a convergence or stall
+    # test may then fall one step apart (1 of 200 targets measured; q within 3e-4 where the counts agree)
+    assert torch.equal(fused.success, ref.success)
+    same = fused.iterations == ref.iterations
+    if dtype == torch.float64:
+        assert bool(same.all())
+        torch.testing.assert_close(fused.q, ref.q, atol=1e-9, rtol=0)
+        torch.testing.assert_close(fused.position_error, ref.position_error, atol=1e-11, rtol=0)
+    else:
+        assert float(same.float().mean()) >= 0.97
+        torch.testing.assert_close(fused.q[same], ref.q[same], atol=1e-3, rtol=0)
 
 
 # ------------------------------------------------------------------------------ the versioned interface
@@ -371,7 +320,7 @@ def test_the_kernel_refuses_a_struct_of_another_version_or_size():
                   {"real_bytes": 2}):
         args = packed.call(torch.float64, batch=3, q=q, T=T, jac=None, nthreads=1, **wrong)
         assert native._lib.dk_fk(ctypes.byref(args)) == native._ABI_ERROR
-        assert native._lib.dk_lm(ctypes.byref(args)) == native._ABI_ERROR
+        assert native._lib.dk_solve(ctypes.byref(args)) == native._ABI_ERROR
         assert not T.any()  # nothing written
     args = packed.call(torch.float64, batch=3, q=q, T=T, jac=None, nthreads=1)
     assert native._lib.dk_fk(ctypes.byref(args)) == 0

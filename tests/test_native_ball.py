@@ -6,7 +6,6 @@ treats them; per-row base poses; the motion table the packer reads from the libr
 
 from __future__ import annotations
 
-import ctypes
 from pathlib import Path
 
 import numpy as np
@@ -175,18 +174,6 @@ def test_the_motion_table_comes_from_the_library(monkeypatch):
     monkeypatch.setitem(native.MOTION_NV, "S", 4)  # a configuration layer the library does not speak
     with pytest.raises(native.AbiMismatch, match="motions"):
         native.motion_table(native._lib)
-
-
-def test_the_fused_lm_iteration_refuses_s_motions():
-    """The LM steps of dk_lm are additive on u: a chain with S motions keeps the torch iteration."""
-    _, chain, _, _ = _everything(KINDS)
-    q = _q(chain, (3,), 8)
-    with torch.no_grad():
-        packed = chain._native_model(q)
-    args = packed.call(torch.float64, batch=3, iters=1, max_rounds=1, n_targets=1, nthreads=1)
-    assert native._lib.dk_lm(ctypes.byref(args)) == native._MOTION_ERROR
-    with pytest.raises(ValueError, match="R and P motions only"):
-        native._raise_on(native._MOTION_ERROR, "work space")
 
 
 def test_the_single_call_path_of_a_ball_chain_matches_the_batch():

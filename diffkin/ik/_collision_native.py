@@ -29,9 +29,10 @@ import torch
 from torch import Tensor
 
 from ..kernels import native
+from . import _seeds
 from ._collision import CollisionConfig, free_library
 from ._lm import LMConfig
-from ._native_solve import _LIBRARY_SEED, checked, columns, prepared, run, user_seeds
+from ._native_solve import checked, columns, prepared, run, user_seeds
 from .residuals import DistanceConstraint
 from .result import IKResult
 
@@ -88,12 +89,12 @@ def solve_batch(chain, tg, batch, T_orig, seeds_user, cfg: LMConfig, generator, 
 
 def _library(prep, constraint: DistanceConstraint, L: int, K: int) -> tuple[Tensor, Tensor]:
     """The fixed collision-free library ``(u (L', n), poses (12K, L'))`` (:func:`run`'s ``library``): the
-    free ones of 4 L configurations from a generator seeded with ``_LIBRARY_SEED`` (their selection is
+    free ones of 4 L configurations from a generator seeded with ``_seeds.LIBRARY_SEED`` (their selection is
     remembered on the collision model, :func:`free_library`; the poses on ``prep`` for that selection)."""
     jm, dtype = prep.jmap, constraint.collision.capsule_radius.dtype
     if L == 0:
         return prep.jmap.c.new_zeros(0, prep.n), prep.jmap.c.new_zeros(12 * K, 0)
-    u = jm.sample_u(4 * L, torch.Generator().manual_seed(_LIBRARY_SEED))
+    u = _seeds.library_u(jm, 4 * L)
     idx = free_library(jm.q_of_u(u).to(dtype), constraint, CollisionConfig.slack, L)
     memo = getattr(prep, "_free_library", None)
     if memo is not None and memo[0] is idx:

@@ -1,10 +1,21 @@
-"""The scheduling loop of :func:`diffkin.ik.solve` (private): LM iterations over a compacting row set.
+"""The Levenberg–Marquardt schedule of :func:`diffkin.ik.solve` (private): one algorithm, two backends.
 
-A row is one (target, seed) pair; state is batch last (``u (n, m)``). Every ``check_every`` iterations the
-loop harvests converged rows, re-seeds rows that stopped improving, drops targets that ran out of seeds and,
-when few rows remain, gives the remaining targets several seeds in parallel (a small batch costs about the
-same per iteration as a large one). Seeds come from the user, then from the nearest poses of a sampled
-configuration library, then uniformly at random within the limits.
+Every target runs its seeds one after another (:mod:`._seeds`: the user's, then the nearest poses of a
+fixed library, then random draws from the caller's generator). One LM step of a (target, seed) row:
+
+1. evaluate the pose error e = [p_d − p_e; θr] (per end link) and the Jacobian at q = c + h sin u;
+2. converged (max ‖e_p‖ ≤ tol_p · margin and max θ ≤ tol_o · margin): the target is done with this u;
+3. else, every ``check_every`` steps of the seed: a seed at least ``min_seed_iterations`` old whose merit
+   max(‖e_p‖ / tol_p, θ / tol_o) did not shrink by ``stall_ratio`` since the last check, or one at
+   ``max_iterations``, is finished (the target keeps the u of its best finished seed) and the target's next
+   seed starts, if it has one;
+4. else u ← u ⊕ Δ, Δ = J_wᵀ(J_w J_wᵀ + λI)⁻¹ e_w (3.59), J_w = diag(√w) J diag(∂q/∂u), λ = k̄² + μ‖e_w‖²
+   (Sugihara's damping), ⊕ the configuration space's integrate (quaternions on the manifold).
+
+:func:`run_lm` is the torch backend (every device; CUDA runs it), batch last over the open targets. The C
+backend (``dk_solve``, ``kernels/_native_solve.c``, the CPU) runs the same steps on SIMD lanes, one target
+per lane; on the same inputs and generator both give the same success flags, iteration counts and q to
+rounding (tests/test_ik_backends.py).
 """
 
 from __future__ import annotations
@@ -16,9 +27,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..kernels import native
 from ..kernels.dls import dls_solve
-from ._kernel import BatchLastKernel, JointMap
+from ._seeds import SeedPool
 from .residuals import PoseResidual
 
 
@@ -31,10 +41,9 @@ class LMConfig:
     orientation_weight: weight of the orientation rows relative to metres (rad → m scale).
     library_size: configurations sampled per call whose poses seed each target (nearest first); 0: off.
     library_ranks: how many nearest library poses a target tries before random seeds.
-    check_every: LM iterations between two scheduling rounds (one host sync each).
-    min_seed_iterations / stall_ratio: a seed older than this whose merit did not shrink by this factor
-        over a round is re-seeded.
-    min_rows: below this many rows, remaining targets get extra parallel seeds.
+    check_every: LM steps of a seed between two stall checks (the iteration limit is checked with them).
+    min_seed_iterations / stall_ratio: a seed at least this old whose merit did not shrink by this factor
+        since the last check is finished, and the target's next seed starts.
     margin: internal tolerance factor (< 1 leaves room for the final FK in the chain's dtype).
     compute_dtype: dtype of the iteration; None: the chain's, except float64 for a float32 chain asked for
         tolerances below 1e-5 (float32 FK noise is ~1e-7 m / rad, so 0.1 mm and 1e-3 rad keep a 100x margin).
@@ -54,7 +63,6 @@ class LMConfig:
     check_every: int = 2
     min_seed_iterations: int = 8
     stall_ratio: float = 0.5
-    min_rows: int = 1024
     margin: float = 0.5
     compute_dtype: torch.dtype | None = None
     collision_refine_calls: int = 0
@@ -81,209 +89,62 @@ class Targets:
         return torch.cat((self.pd, w * self.xd, w * self.yd, w * self.zd), 0).T
 
 
-def library_seeds(kernel: BatchLastKernel, jmap: JointMap, tg: Targets, cfg: LMConfig, generator,
-                  select=None):
-    """Sample ``library_size`` configurations; return their ``u (n, K)`` and each target's nearest ranks.
-    ``select(q (n, M)) -> column indices``: keep those of 4 K samples (collision-free seeds)."""
-    K, R = cfg.library_size, cfg.library_ranks
-    if K <= 0 or R <= 0:
-        return None, None
-    lib_u = jmap.sample_u(K if select is None else 4 * K, generator)
-    if select is not None:
-        lib_u = lib_u[:, select(jmap.q_of_u(lib_u))]
-        K = lib_u.shape[1]
-    x, y, z, p = kernel.fk(jmap.q_of_u(lib_u))
-    lib = Targets(p, *(None, None, None) if tg.position_only else (x, y, z))
-    w = cfg.orientation_weight**0.5
-    f, fl = tg.features(w).float(), lib.features(w).float()
-    d = (fl * fl).sum(1) - 2.0 * (f @ fl.T)  # squared distance up to the per-row constant |f|^2, (N, K)
-    if R == 1:
-        return lib_u, d.argmin(1, keepdim=True)
-    return lib_u, d.topk(min(R, K), dim=1, largest=False).indices  # (N, R)
+def run_lm(kernel, jmap, tg: Targets, seeds: SeedPool, N: int, cfg: LMConfig, *, tol, num_seeds: int,
+           max_iterations: int, residual: PoseResidual, accept=None, progress: bool = False):
+    """The schedule of this module on ``N`` targets ``tg`` (columns ``(3K, N)``) from ``seeds``; returns
+    ``(u (n, N) the converged or best u of each target, iterations (N,), seeds tried (N,))``.
 
-
-class _Seeder:
-    """Seed number s of a target -> u: user seeds first, then library ranks, then random."""
-
-    def __init__(self, jmap, n_user: int, lib_u, nn_idx, generator):
-        self.jmap, self.S, self.lib_u, self.nn_idx, self.gen = jmap, n_user, lib_u, nn_idx, generator
-        self.R = 0 if nn_idx is None else nn_idx.shape[1]
-
-    def __call__(self, tidx: Tensor, snum: Tensor) -> Tensor:
-        u = self.jmap.sample_u(int(tidx.numel()), self.gen)
-        if self.R:
-            rank = snum - self.S
-            use = (rank >= 0) & (rank < self.R)
-            lib = self.lib_u[:, self.nn_idx[tidx, rank.clamp(0, self.R - 1)]]
-            u = torch.where(use, lib, u)
-        return u
-
-
-@dataclass
-class _Rows:
-    """The active (target, seed) rows: target index, LM variable u ``(n, m)``, age of the seed, last merit."""
-
-    idx: Tensor
-    u: Tensor
-    seed_it: Tensor
-    last: Tensor
-
-    @classmethod
-    def fresh(cls, idx: Tensor, u: Tensor) -> _Rows:
-        inf = torch.full(idx.shape, math.inf, dtype=u.dtype, device=u.device)
-        return cls(idx, u, torch.zeros_like(idx), inf)
-
-    def select(self, keep: Tensor) -> _Rows:
-        return _Rows(self.idx[keep], self.u[:, keep], self.seed_it[keep], self.last[keep])
-
-    def extend(self, other: _Rows) -> _Rows:
-        cat = torch.cat
-        return _Rows(cat((self.idx, other.idx)), cat((self.u, other.u), 1),
-                     cat((self.seed_it, other.seed_it)), cat((self.last, other.last)))  # fmt: skip
-
-
-class _Run:
-    """One :func:`run_lm` call: per-target bookkeeping and the two halves of a round."""
-
-    def __init__(self, kernel, jmap, tg: Targets, cfg: LMConfig, seeder: _Seeder, N: int, tol, num_seeds,
-                 max_iterations, residual: PoseResidual, accept=None):  # fmt: skip
-        dtype, device = tg.pd.dtype, tg.pd.device
-        self.kernel, self.jmap, self.tg, self.cfg, self.seeder = kernel, jmap, tg, cfg, seeder
-        self.tol, self.num_seeds, self.max_iterations = tol, num_seeds, max_iterations
-        self.residual, self.accept = residual, accept
-        self.sqrt_w = residual.sqrt_weights(kernel.K, dtype, device)  # the same in every end link's block
-        self.best_u = torch.zeros(kernel.n, N, dtype=dtype, device=device)
-        self.best_merit = torch.full((N,), math.inf, dtype=dtype, device=device)
-        self.done = torch.zeros(N, dtype=torch.bool, device=device)
-        self.iters = torch.zeros(N, dtype=torch.long, device=device)
-        self.seeds = torch.zeros(N, dtype=torch.long, device=device)
-        self._problem: native.LMProblem | None = None
-
-    def _native_problem(self, u: Tensor) -> native.LMProblem | None:
-        """The fused iteration's fixed inputs, made on the first round it may serve (None: torch only)."""
-        if self._problem is None:
-            packed = self.kernel.chain._native_model(u)
-            if packed is None or not packed.euclidean:  # ball and free joints: steps on the manifold
-                return None
-            tg, jm = self.tg, self.jmap
-            cols = None if self.residual.position_only else (tg.xd, tg.yd, tg.zd)  # the C pass's residual
-            self._problem = native.LMProblem(packed, tg.pd, cols, self.sqrt_w, jm.c, jm.h, jm.bounded)
-        return self._problem
-
-    def _idle_rounds(self, rows: _Rows) -> int:
-        """How many rounds from now the schedule would only count iterations: no row old enough for the
-        stall check or the iteration limit, and nothing for :meth:`top_up` to add (a row converging ends
-        the stretch early, see :func:`diffkin.kernels.native.lm_steps`)."""
-        cfg, m = self.cfg, rows.idx.numel()
-        if m < cfg.min_rows:
-            tgt = torch.unique(rows.idx)
-            if (cfg.min_rows - m) // tgt.numel() > 0 and bool((self.seeds[tgt] < self.num_seeds).any()):
-                return 0
-        limit = min(cfg.min_seed_iterations, self.max_iterations)
-        return max(int(((limit - 1 - rows.seed_it) // cfg.check_every).min()), 0)
-
-    def steps(self, rows: _Rows):
-        """``check_every`` LM steps (3.59) on all rows; converged rows are frozen. Returns the new u, the u
-        the last error was evaluated at, the convergence mask, the merit max(e_p / tol_p, e_o / tol_o), the
-        number of rounds run ahead without a schedule (the fused path runs the rounds after which the
-        schedule would do nothing in one call) and the merit of the round before the last (None if none)."""
-        cfg, (tp, to) = self.cfg, self.tol
-        u = rows.u
-        problem = self._native_problem(u)
-        if problem is not None:  # the same steps fused into one C pass per row (kernels/native.py)
-            u, u_eval, conv, merit, rounds, prev = native.lm_steps(
-                problem, u, rows.idx, damping2=cfg.damping**2, error_damping=cfg.error_damping,
-                tolerances=(float(tp), float(to)), margin=cfg.margin, iterations=cfg.check_every,
-                max_rounds=1 + self._idle_rounds(rows))
-            return u, u_eval, conv, merit, rounds - 1, prev if rounds > 1 else None
-        t = self.tg.take(rows.idx)
-        for _ in range(cfg.check_every):
-            J, e, pn, ang = self.residual.batch_last(self.kernel, u, self.jmap, t)
-            conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
-            e = e * self.sqrt_w
-            lam = cfg.damping**2 + cfg.error_damping * (e * e).sum(0)  # Sugihara's damping
-            Jw = J * self.sqrt_w
-            dqdu = self.jmap.dq_du(u)
-            if dqdu is not None:  # chain rule through q = c + h sin(u)
-                Jw = Jw * dqdu.unsqueeze(1)
-            u_eval, u = u, self.jmap.step(u, dls_solve(Jw, e, lam, layout="batch_last") * (~conv))
-        merit = pn / tp if self.tg.position_only else torch.maximum(pn / tp, ang / to)
-        return u, u_eval, conv, merit, 0, None
-
-    def schedule(self, rows: _Rows, u_eval: Tensor, conv: Tensor, merit: Tensor) -> _Rows:
-        """Harvest converged rows, re-seed or drop stalled ones, and top up the tail."""
-        cfg, idx, done = self.cfg, rows.idx, self.done
-        self.iters.index_add_(0, idx, torch.full_like(idx, cfg.check_every))
-        seed_it = rows.seed_it + cfg.check_every
-        rejected = torch.zeros_like(conv)
-        if self.accept is not None and bool(conv.any()):  # collision: refine or reject (ik/_collision.py)
+    ``accept(idx, u) -> (ok, u)``: a test (and refinement) of pose-converged rows (collision); a rejected
+    row is finished as a stalled one. One host sync per step (the open rows are compacted)."""
+    dtype, device = tg.pd.dtype, tg.pd.device
+    (tp, to), every, pos_only = tol, max(cfg.check_every, 1), tg.position_only
+    sqrt_w = residual.sqrt_weights(kernel.K, dtype, device)
+    idx = torch.arange(N, device=device)
+    u = seeds(idx, torch.zeros_like(idx))
+    best_u, best_merit = u.clone(), torch.full((N,), math.inf, dtype=dtype, device=device)
+    iters = torch.zeros(N, dtype=torch.long, device=device)
+    tried = torch.ones(N, dtype=torch.long, device=device)
+    age = torch.zeros_like(idx)
+    last = torch.full((N,), math.inf, dtype=dtype, device=device)
+    step, solved = 0, 0
+    while idx.numel():
+        J, e, pn, ang = residual.batch_last(kernel, u, jmap, tg.take(idx))
+        iters.index_add_(0, idx, torch.ones_like(idx))
+        age = age + 1
+        conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
+        merit = pn / tp if pos_only else torch.maximum(pn / tp, ang / to)
+        check = (age % every == 0) & ~conv
+        slow = (age >= cfg.min_seed_iterations) & ~(merit <= cfg.stall_ratio * last)
+        last = torch.where(check, merit, last)
+        fin = check & (slow | (age >= max_iterations))
+        if accept is not None and bool(conv.any()):  # collision: refine or reject (ik/_collision.py)
             ci = conv.nonzero().squeeze(-1)
-            ok, u_ok = self.accept(idx[ci], u_eval[:, ci])
-            u_eval = u_eval.index_copy(1, ci, u_ok)
-            rejected = rejected.index_put((ci,), ~ok)
-            conv = conv & ~rejected
-        done[idx[conv]] = True
-        self.best_u[:, idx[conv]] = u_eval[:, conv]
-        slow = (seed_it >= cfg.min_seed_iterations) & (merit > cfg.stall_ratio * rows.last)
-        finished = ((seed_it >= self.max_iterations) | slow | rejected) & ~done[idx]
-        if bool(finished.any()):  # keep the best failed seed of each target
-            fi, fm = idx[finished], merit[finished]
-            self.best_merit.scatter_reduce_(0, fi, fm, reduce="amin")
-            better = fm <= self.best_merit[fi]
-            self.best_u[:, fi[better]] = u_eval[:, finished][:, better]
-        alive = ~done[idx]
-        restart = finished & alive & (self.seeds[idx] < self.num_seeds)
-        rows = _Rows(idx, rows.u, seed_it, merit)
-        if bool(restart.any()):
-            ri = idx[restart]
-            rows.u = rows.u.clone()
-            rows.u[:, restart] = self.seeder(ri, self.seeds[ri])
-            self.seeds.index_add_(0, ri, torch.ones_like(ri))
-            rows.seed_it = torch.where(restart, torch.zeros_like(seed_it), seed_it)
-            rows.last = torch.where(restart, torch.full_like(merit, math.inf), merit)
-        return self.top_up(rows.select(alive & (~finished | restart)))
-
-    def top_up(self, rows: _Rows) -> _Rows:
-        """Give the remaining targets extra parallel seeds while there are fewer than ``min_rows`` rows."""
-        m, min_rows = rows.idx.numel(), self.cfg.min_rows
-        if m == 0 or m >= min_rows:
-            return rows
-        tgt = torch.unique(rows.idx)
-        room = (self.num_seeds - self.seeds[tgt]).clamp_min(0)
-        per = torch.minimum(room, torch.full_like(room, (min_rows - m) // tgt.numel()))
-        new = torch.repeat_interleave(tgt, per)
-        if new.numel() == 0:
-            return rows
-        start = torch.repeat_interleave(torch.cumsum(per, 0) - per, per)
-        snum = self.seeds[new] + torch.arange(new.numel(), device=new.device) - start
-        self.seeds.index_add_(0, new, torch.ones_like(new))
-        return rows.extend(_Rows.fresh(new, self.seeder(new, snum)))
-
-
-def run_lm(kernel, jmap, tg, seeds_user, lib_u, nn_idx, N, cfg: LMConfig, generator, *, tol, num_seeds,
-           max_iterations, residual: PoseResidual, accept=None, progress=False):  # fmt: skip
-    """Run the scheduled LM; returns ``(u_best (n, N), iterations (N,), seeds_tried (N,))``. ``accept(idx,
-    u) -> (ok, u)``: a test (and refinement) of pose-converged rows; rejected rows are re-seeded."""
-    S_user = 0 if seeds_user is None else min(seeds_user.shape[1], max(num_seeds, 1))
-    seeder = _Seeder(jmap, S_user, lib_u, nn_idx, generator)
-    run = _Run(kernel, jmap, tg, cfg, seeder, N, tol, num_seeds, max_iterations, residual, accept)
-    device = tg.pd.device
-    if S_user:  # initial rows: every user seed, else one library (or random) seed per target
-        idx = torch.arange(N, device=device).repeat_interleave(S_user)
-        u = jmap.u_of_q(seeds_user[:, :S_user].to(tg.pd.dtype).reshape(-1, kernel.n).T)
-    else:
-        idx = torch.arange(N, device=device)
-        u = seeder(idx, torch.zeros_like(idx))
-    run.seeds += max(S_user, 1)
-    rows, rnd = _Rows.fresh(idx, u), 0
-    while rows.idx.numel():
-        u, u_eval, conv, merit, ahead, prev = run.steps(rows)
-        if ahead:  # rounds whose schedule would only have counted: count them
-            run.iters.index_add_(0, rows.idx, torch.full_like(rows.idx, cfg.check_every * ahead))
-            rows = _Rows(rows.idx, rows.u, rows.seed_it + cfg.check_every * ahead, prev)
-        rows = run.schedule(_Rows(rows.idx, u, rows.seed_it, rows.last), u_eval, conv, merit)
-        rnd += 1 + ahead
-        if progress:
-            solved, m = int(run.done.sum()), rows.idx.numel()
-            print(f"[diffkin.ik.solve] round {rnd}: {solved}/{N} solved, {m} rows", file=sys.stderr)
-    return run.best_u, run.iters, run.seeds
+            ok, u_ok = accept(idx[ci], u[:, ci])
+            u = u.index_copy(1, ci, u_ok)
+            rejected = torch.zeros_like(conv).index_put((ci,), ~ok)
+            conv, fin = conv & ~rejected, fin | rejected
+        best_u[:, idx[conv]] = u[:, conv]
+        fi, fm = idx[fin], merit[fin]
+        better = fm <= best_merit[fi]  # one row per target: no two rows of one target finish together
+        best_merit[fi[better]] = fm[better]
+        best_u[:, fi[better]] = u[:, fin][:, better]
+        go = ~(conv | fin)
+        e = e * sqrt_w
+        lam = cfg.damping**2 + cfg.error_damping * (e * e).sum(0)
+        Jw = J * sqrt_w
+        dqdu = jmap.dq_du(u)
+        if dqdu is not None:  # chain rule through q = c + h sin(u)
+            Jw = Jw * dqdu.unsqueeze(1)
+        u = torch.where(go, jmap.step(u, dls_solve(Jw, e, lam, layout="batch_last")), u)
+        restart = fin & (tried[idx] < num_seeds)
+        ri = idx[restart]
+        u[:, restart] = seeds(ri, tried[ri])
+        tried.index_add_(0, ri, torch.ones_like(ri))
+        age, last = age.masked_fill(restart, 0), last.masked_fill(restart, math.inf)
+        keep = go | restart
+        solved += int(conv.sum()) if progress else 0
+        idx, u, age, last = idx[keep], u[:, keep], age[keep], last[keep]
+        step += 1
+        if progress and step % every == 0:
+            print(f"[diffkin.ik.solve] step {step}: {solved}/{N} solved, {idx.numel()} rows", file=sys.stderr)
+    return best_u, iters, tried

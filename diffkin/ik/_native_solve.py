@@ -1,25 +1,14 @@
 """The whole :func:`diffkin.ik.solve` in one C call (private): ``dk_solve`` of ``kernels/_native_solve.c``.
 
 It serves CPU solves without autograd on every chain the fused kernel takes (1-DOF joints, ball and free
-joints: floating bases); CUDA, autograd, ``progress`` and other chains keep the torch loop of :mod:`._lm`.
-Both run the same iteration (the LM step (3.59) with the joint limits as q = c + h sin u on the scalar
-coordinates, steps of nv velocities integrated on the manifold as
-:meth:`~diffkin.kernels.configuration.ConfigurationSpace.integrate` does: Q ⊗ exp(ω/2) on each unit
-quaternion; harvest, stall checks, re-seeding), so they agree to the
-documented tolerance but not bit for bit: the C solve fills W = 16 lanes per chunk of 128 targets and gives
-a chunk's open targets extra parallel seeds when lanes fall idle, once they have run a check interval
-(``min_seed_iterations`` in a chunk of one target; the torch loop: below ``min_rows`` rows), and its
-seeds follow one documented rule:
-
-* the user's seeds first, then the poses of a **fixed pose library** nearest to the target (the
-  ``library_size`` configurations drawn once per chain state from a generator seeded with 0, so that a
-  single-target call does not pay for sampling and evaluating a library), then
-* random restarts from a pool of min(N · num_seeds, max(num_seeds, 4096)) configurations drawn in
-  advance from the caller's generator (seed s of target t is column (t · num_seeds + s) mod P, each
-  column the ``n_uniform`` numbers that
-  :meth:`~diffkin.kernels.configuration.ConfigurationSpace.from_uniform` maps: scalars uniform in their
-  ranges, quaternions by Shoemake's map): the same generator state gives the same answers, for every
-  thread count.
+joints: floating bases); CUDA, ``progress`` and other chains run the torch backend (:mod:`._lm`). Both run
+one algorithm, the schedule of :mod:`._lm` (each target's seeds one after another, the LM step (3.59) with
+the joint limits as q = c + h sin u on the scalar coordinates, steps of nv velocities integrated on the
+manifold as :meth:`~diffkin.kernels.configuration.ConfigurationSpace.integrate` does: Q ⊗ exp(ω/2) on each
+unit quaternion), from the seeds of :mod:`._seeds` (the user's, the fixed library's nearest poses, then the
+pool drawn from the caller's generator): on the same inputs the same success flags, iterations and q to
+rounding. The C solve fills W = 16 lanes with one target each, so its answers do not depend on the thread
+count.
 
 :func:`solve_one` is the lean front for one target (no tensor round trips in validation).
 """
@@ -32,14 +21,12 @@ import torch
 from torch import Tensor
 
 from ..kernels import native, single
+from . import _seeds
 from ._kernel import JointMap
 from ._lm import LMConfig
 from .implicit import attach_solve_gradients
 from .residuals import PoseResidual
 from .result import IKResult, final_errors
-
-_LIBRARY_SEED = 0
-_POOL = 4096
 
 
 class _Prepared:
@@ -61,14 +48,13 @@ class _Prepared:
         self.clamp = int(limited)
         self.lib_u = self.lib_pose = None
         if L > 0:
-            gen = torch.Generator().manual_seed(_LIBRARY_SEED)
-            u = jm.sample_u(L, gen)
+            u = _seeds.library_u(jm, L)
             T, _, _ = native.fk_jacobian(packed, jm.q_of_u(u).T.contiguous().to(dtype), threads=1)
             self.lib_u = u.T.contiguous()  # (L, n)
             # (12K, L): p, x, y, z of every end link (the layout of the targets' columns), feature-major
             # for the vectorised nearest-pose search
             self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).T.contiguous()
-        self.L, self._configured = L, {}
+        self.L, self._configured, self._one = L, {}, {}
         self.base = packed.call(dtype, jc=self.arrays[0], jh=self.arrays[1], bounded=self.arrays[2],
                                 wrap=self.arrays[3], qlo=lo, qhi=hi, clamp=self.clamp, n_lib=L,
                                 lib_u=self.lib_u, lib_pose=self.lib_pose)
@@ -88,13 +74,28 @@ class _Prepared:
                 feature_weight=cfg.orientation_weight))
         return hit[1]
 
+    def one(self, tol: tuple, num_seeds: int, max_iterations: int) -> tuple[native.Args, int]:
+        """The filled ``dk_solve`` arguments of a one-target call with default options (every field but the
+        target, the pool and the outputs), and the pool's length (cached per option set: a call copies the
+        struct and sets six addresses)."""
+        key = (tol, num_seeds, max_iterations)
+        hit = self._one.get(key)
+        if hit is None:
+            R = _seeds.ranks(self.L, 1, _DEFAULT.library_ranks)
+            P = _seeds.pool_size(1, num_seeds, 0, R)
+            args = native._filled(
+                native.Args.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
+                tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations, n_user=0,
+                user_u=None, lib_ranks=R, n_pool=P, nthreads=1, target_stride=4)  # a row-major (4, 4) pose
+            hit = self._one[key] = (args, P * self.nu)
+        return hit
+
 
 def _entry(chain, x: Tensor) -> single.Entry | None:
     """The chain's lean-path cache entry (:func:`diffkin.kernels.single.entry`) when ``dk_solve`` can serve
     it: the fused kernel serves the chain (every joint kind: dk_solve steps scalars additively and
     quaternions on the manifold). None otherwise."""
-    with torch.no_grad():  # the iterations never need autograd; gradients are attached at the solution
-        return single.entry(chain, x)
+    return single.entry(chain, x, grad=False)  # the iterations never need autograd (gradients: attached)
 
 
 def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
@@ -132,9 +133,9 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
     dtype, n = prep.dtype, prep.n
     S = 0 if user_u is None else user_u.shape[1]
     L = prep.L if library is None else library[0].shape[0]
-    R = min(cfg.library_ranks, L) if L else 0
-    P = min(N * num_seeds, max(num_seeds, _POOL)) if num_seeds > S + R else 0
-    pool = torch.rand(P * prep.nu, generator=generator, dtype=dtype) if P else None
+    R = _seeds.ranks(L, K, cfg.library_ranks)
+    P = _seeds.pool_size(N, num_seeds, S, R)
+    pool = _seeds.draw_pool(generator, P, prep.nu, dtype)
     if outs is None:
         errs, counts = torch.empty(2, N, dtype=dtype), torch.empty(2, N, dtype=torch.int64)
         outs = (torch.empty(N, n, dtype=dtype), torch.empty(N, dtype=torch.bool), *errs, *counts)
@@ -242,14 +243,20 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
         return None
     if generator is None and seed is not None:
         generator = torch.Generator().manual_seed(seed)
-    c = T[:3].T.contiguous()  # (4, 3): the x, y, z, p columns, each (3K, N) = (3, 1), by address
-    a, size = c.data_ptr(), c.element_size()
+    tmpl, npool = prep.one(tol, num_seeds, max_iterations)
+    dtype, n = T.dtype, prep.n
     empty = torch.empty
-    outs = (empty(prep.n, dtype=T.dtype), empty((), dtype=torch.bool), empty((), dtype=T.dtype),
-            empty((), dtype=T.dtype), empty((), dtype=torch.int64), empty((), dtype=torch.int64))
-    q, ok, pe, oe, its, seeds = run(prep, (a + 9 * size, a, a + 3 * size, a + 6 * size), 1, _DEFAULT,
-                                    generator, tol=tol, num_seeds=num_seeds, max_iterations=max_iterations,
-                                    user_u=None, threads=1, outs=outs)
+    q, ok, pe, oe, its, seeds = outs = (
+        empty(n, dtype=dtype), empty((), dtype=torch.bool), empty((), dtype=dtype), empty((), dtype=dtype),
+        empty((), dtype=torch.int64), empty((), dtype=torch.int64))
+    pool = torch.rand(npool, generator=generator, dtype=dtype) if npool else None  # the caller's generator
+    args = native.Args.from_buffer_copy(tmpl)
+    a, size = T.data_ptr(), T.element_size()  # the pose's columns x, y, z, p, rows 4 entries apart
+    args.xd, args.yd, args.zd, args.pd = a, a + size, a + 2 * size, a + 3 * size
+    args.pool = None if pool is None else pool.data_ptr()
+    args.q_out, args.success, args.pos_err, args.ori_err, args.iters_out, args.seeds_out = (
+        t.data_ptr() for t in outs)
+    native.solve_call(args)
     if torch.is_grad_enabled() and (T.requires_grad or any(  # wants_gradients, without the module walk
             p is not None and p.requires_grad for p in chain._parameters.values())):
         # as the general path: the implicit-function gradient at the solution

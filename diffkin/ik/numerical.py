@@ -22,10 +22,11 @@ from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _transform_inverse, _transform_points, as_measured_transform
 from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
+from . import _seeds
 from ._collision import CollisionConfig, collision_round, constraint_of, free_library
 from ._collision_native import solve_batch as native_collision_solve
 from ._kernel import BatchLastKernel, JointMap
-from ._lm import LMConfig, Targets, library_seeds, run_lm
+from ._lm import LMConfig, Targets, run_lm
 from ._native_solve import applies as native_applies
 from ._native_solve import solve_batch as native_solve_batch
 from ._native_solve import solve_one as native_solve_one
@@ -75,10 +76,14 @@ def dls_step(
     respect_limits: bool = True,
     step_size: float = 1.0,
 ) -> Tensor:
-    """One damped least-squares step (3.59) from ``q (..., n)`` toward ``T_target`` -> new ``q (..., n)``.
+    """One damped least-squares step (3.59) from ``q (..., nq)`` toward ``T_target`` -> new ``q (..., nq)``.
 
     The error is [p_d - p_e; θr] (rotation vector of R_d R_eᵀ, base frame), ``T_target`` ``(..., 4, 4)``,
-    or ``(..., 3)`` positions when ``position_only``. The result is clamped to the joint limits when
+    or ``(..., 3)`` positions when ``position_only`` (``(..., K, 4, 4)`` / ``(..., K, 3)`` for a chain with K
+    end links: their rows stacked). The step Δ ``(..., nv)`` (one entry per Jacobian
+    column) is integrated on the configuration manifold, q ⊕ step_size·Δ
+    (:meth:`~diffkin.chain.KinematicChain.integrate`: additive on 1-DOF joints, q ⊗ exp(ω/2) on the
+    quaternions of ball and free joints). The result is clamped to the joint limits when
     ``respect_limits``. Pure and differentiable; batched over leading dims.
     """
     from ..jacobian import forward_kinematics_and_jacobian
@@ -95,8 +100,10 @@ def dls_step(
     T_e, J = forward_kinematics_and_jacobian(chain, q, check=False)
     residual = PoseResidual(position_only, 1.0, exact_near_pi=True)  # far from a solution: exact near π
     e, J = residual.error(T_e, T_target), residual.rows(J)
+    if not chain.single_end:  # K end links: their rows stacked, e (..., rK), J (..., rK, nv)
+        e, J = e.flatten(-2), J.flatten(-3, -2)
     e, J = torch.broadcast_tensors(e, J[..., 0])[0], J.expand(*e.shape[:-1], *J.shape[-2:])
-    q_new = q + step_size * _dls_delta(J, e, k * k)
+    q_new = chain.configuration_space.integrate(q, step_size * _dls_delta(J, e, k * k))  # q ⊕ Δ, Δ (..., nv)
     return chain.clamp_to_limits(q_new, check=False) if respect_limits else q_new
 
 
@@ -350,7 +357,7 @@ def solve(
                     progress, None if constraint is None else constraint.to(dtype))  # fmt: skip
     with torch.no_grad():
         if N:
-            prob.library()
+            prob.library()  # the fixed library's nearest poses (ik/_seeds.py)
         q, success, pos_err, ori_err, iters, seeds = prob.run()
         if constraint is not None:
             q, success, pos_err, ori_err, iters, seeds = collision_round(
@@ -389,11 +396,24 @@ class _Problem:
     nn_idx: Tensor | None = None
 
     def library(self) -> None:
-        """The library seeds (collision-free ones with a constraint, :func:`free_library`)."""
-        c, cfg = self.constraint, self.cfg
-        slack = CollisionConfig.slack
-        select = None if c is None else (lambda q: free_library(q, c, slack, cfg.library_size))
-        self.lib_u, self.nn_idx = library_seeds(self.kernel, self.jmap, self.tg, cfg, self.generator, select)
+        """The fixed library seeds (:mod:`._seeds`; collision-free ones with a constraint,
+        :func:`free_library` of 4 ``library_size`` draws) and each target's nearest ranks."""
+        c, cfg, jm = self.constraint, self.cfg, self.jmap
+        L = max(cfg.library_size, 0)
+        R = _seeds.ranks(L, self.kernel.K, cfg.library_ranks)
+        if R == 0:
+            return
+        if c is None:
+            lib_u = _seeds.library_u(jm, L)
+        else:
+            lib_u = _seeds.library_u(jm, 4 * L)
+            lib_u = lib_u[:, free_library(jm.q_of_u(lib_u), c, CollisionConfig.slack, L)]
+            R = _seeds.ranks(lib_u.shape[1], self.kernel.K, cfg.library_ranks)
+            if R == 0:
+                return
+        x, y, z, p = self.kernel.fk(jm.q_of_u(lib_u))
+        lib_f = _seeds.library_features(x, y, z, p, self.tg.position_only)
+        self.lib_u, self.nn_idx = lib_u, _seeds.nearest(self.tg, lib_f, R, cfg.orientation_weight)
 
     def run(self, sub: Tensor | None = None, first: Tensor | None = None, accept=None):
         """LM on the targets ``sub`` (None: all), ``first (m, n)`` tried before the user's seeds (then the
@@ -405,11 +425,19 @@ class _Problem:
             nn = None if nn is None else nn[sub].roll(-1, 1)
         if first is not None:
             seeds = first[:, None] if seeds is None else torch.cat((first[:, None], seeds), 1)
-        m = tg.pd.shape[1]
+        m, num_seeds = tg.pd.shape[1], self.num_seeds + (first is not None)
+        user_u = None
+        if seeds is not None:
+            S = min(seeds.shape[1], max(num_seeds, 1))
+            flat = seeds[:, :S].to(tg.pd.dtype).reshape(-1, chain.n_joints).T
+            user_u = jm.u_of_q(flat).T.reshape(m, S, chain.n_joints)
+        S, R = 0 if user_u is None else user_u.shape[1], 0 if nn is None else nn.shape[1]
+        pool = _seeds.draw_pool(self.generator, _seeds.pool_size(m, num_seeds, S, R), jm.space.n_uniform,
+                                tg.pd.dtype)
+        pool = _seeds.SeedPool(jm, user_u, self.lib_u, nn, pool, num_seeds)
         u, iters, tried = run_lm(
-            self.kernel, jm, tg, seeds, self.lib_u, nn, m, self.cfg, self.generator, tol=self.tol,
-            num_seeds=self.num_seeds + (first is not None), max_iterations=self.max_iterations,
-            residual=self.residual, accept=accept, progress=self.progress)  # fmt: skip
+            self.kernel, jm, tg, pool, m, self.cfg, tol=self.tol, num_seeds=num_seeds,
+            max_iterations=self.max_iterations, residual=self.residual, accept=accept, progress=self.progress)
         limited = self.respect_limits and chain.q_limits is not None
         q = jm.finalize(jm.q_of_u(u), clamp=limited).T.to(chain.dtype)
         T = self.T_flat if sub is None else self.T_flat[sub]

@@ -41,10 +41,10 @@
 #endif
 
 #define W 16
+#define WN 4 /* the lanes of DK(block_narrow) */
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
-#define DK_ABI_VERSION 2 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
+#define DK_ABI_VERSION 3 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
-#define DK_MOTION_ERROR (-3) /* dk_lm of a chain with S motions (nv != n) */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
 
 /* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
@@ -74,32 +74,25 @@
     X(const void *, post, "[12J] reals") \
     X(const void *, base, "[12] reals") \
     X(const void *, end, "[12K] reals") \
-    X(int64_t, batch, "B, or the rows m of dk_lm") \
+    X(int64_t, batch, "B") \
     X(const void *, q, "dk_fk: [B*n] reals in") \
     X(void *, T, "dk_fk: [B*K*16] reals out") \
     X(void *, jac, "dk_fk: [B*K*6*nv] reals out, or NULL") \
-    X(int64_t, iters, "dk_lm: steps per round") \
-    X(int64_t, max_rounds, "dk_lm") \
-    X(int64_t, n_targets, "dk_lm: N") \
-    X(void *, u, "dk_lm: [n*m] reals in and out") \
-    X(void *, u_eval, "dk_lm: [n*m] reals out") \
-    X(const int64_t *, tidx, "dk_lm: [m]") \
-    X(const void *, pd, "dk_lm: [3K*N] reals") \
-    X(const void *, xd, "dk_lm: [3K*N] reals, NULL: position only") \
-    X(const void *, yd, "dk_lm: [3K*N] reals") \
-    X(const void *, zd, "dk_lm: [3K*N] reals") \
-    X(const void *, sqrt_w, "dk_lm: [rows] reals") \
-    X(const void *, jc, "dk_lm: [n] reals") \
-    X(const void *, jh, "dk_lm: [n] reals") \
-    X(const uint8_t *, bounded, "dk_lm: [n]") \
-    X(double, damping2, "dk_lm") \
-    X(double, error_damping, "dk_lm") \
-    X(double, tol_p, "dk_lm") \
-    X(double, tol_o, "dk_lm") \
-    X(double, margin, "dk_lm") \
-    X(uint8_t *, conv, "dk_lm: [m] out") \
-    X(void *, merit, "dk_lm: [m] reals out") \
-    X(void *, merit_prev, "dk_lm: [m] reals out") \
+    X(int64_t, iters, "dk_solve: steps between two stall checks") \
+    X(int64_t, n_targets, "dk_solve: N") \
+    X(const void *, pd, "dk_solve: [3K*N] reals") \
+    X(const void *, xd, "dk_solve: [3K*N] reals, NULL: position only") \
+    X(const void *, yd, "dk_solve: [3K*N] reals") \
+    X(const void *, zd, "dk_solve: [3K*N] reals") \
+    X(const void *, sqrt_w, "dk_solve: [rows] reals") \
+    X(const void *, jc, "dk_solve: [n] reals") \
+    X(const void *, jh, "dk_solve: [n] reals") \
+    X(const uint8_t *, bounded, "dk_solve: [n]") \
+    X(double, damping2, "dk_solve") \
+    X(double, error_damping, "dk_solve") \
+    X(double, tol_p, "dk_solve") \
+    X(double, tol_o, "dk_solve") \
+    X(double, margin, "dk_solve") \
     X(int64_t, n_seeds, "dk_solve: most seeds per target") \
     X(int64_t, max_iterations, "dk_solve: most LM iterations per seed (iters: steps between stall checks)") \
     X(int64_t, min_seed_iterations, "dk_solve: a seed younger than this is never stalled") \
@@ -122,7 +115,8 @@
     X(int64_t *, seeds_out, "dk_solve: [N] out") \
     X(void *, pos_err, "dk_solve: [N] reals out") \
     X(void *, ori_err, "dk_solve: [N] reals out") \
-    X(uint8_t *, success, "dk_solve: [N] out")
+    X(uint8_t *, success, "dk_solve: [N] out") \
+    X(int64_t, target_stride, "dk_solve: entries between a target column's rows (0: N; 4: one row-major pose)")
 
 /* X(letter, nq, nv, what): the elementary motions in code order (DK_MOTION_P = 0, ...), as
  * diffkin.kernels.configuration declares them (MOTION_NQ, MOTION_NV); native.py reads this table through
@@ -219,22 +213,23 @@ static void read_shape(const dk_args *a, Shape *s) {
     s->anc = a->ancestor;
 }
 
-/* sin and cos of W lanes of double, vectorisable. */
-static void sincos_lanes(const double *x, double *s, double *c) {
+/* sin and cos of the first nw of W lanes of double, vectorisable (inlined: nw a constant at each call). */
+static inline __attribute__((always_inline)) void sincos_lanes(const double *x, double *s, double *c,
+                                                               const int nw) {
     const double two_over_pi = 0.63661977236758134308;
     const double P1 = 1.57079632673412561417e+00, P2 = 6.07710050630396597660e-11,
                  P3 = 2.02226624871116645580e-21;
     int big = 0;
-    for (int l = 0; l < W; l++) big |= !(fabs(x[l]) < 1e5);
+    for (int l = 0; l < nw; l++) big |= !(fabs(x[l]) < 1e5);
     if (big) { /* far from the origin (or not finite): libm's full reduction */
-        for (int l = 0; l < W; l++) { s[l] = sin(x[l]); c[l] = cos(x[l]); }
+        for (int l = 0; l < nw; l++) { s[l] = sin(x[l]); c[l] = cos(x[l]); }
         return;
     }
     /* k = round(x 2/pi) by the 1.5 2^52 shift, whose low mantissa bits are then k mod 4 (the quadrant): no
      * nearbyint/floor and no double -> int64 conversion, which AVX2 lacks and which kept the loop scalar */
     const double shift = 6755399441055744.0;
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         const double t = x[l] * two_over_pi + shift, k = t - shift;
         uint64_t q;
         memcpy(&q, &t, sizeof q);
@@ -255,19 +250,20 @@ static void sincos_lanes(const double *x, double *s, double *c) {
 /* sin and cos of W lanes of float, vectorisable, 8 lanes to an AVX2 register where the double version has
  * 4: the same reduction in float (pi/2 in three parts, k x P1 exact for |k| < 2^16) and Cephes' sinf/cosf
  * polynomials on [-pi/4, pi/4] (about 1 ulp); |x| >= 1e4 (or not finite) takes the double version. */
-static void sincos_lanes_f32(const float *x, float *s, float *c) {
+static inline __attribute__((always_inline)) void sincos_lanes_f32(const float *x, float *s, float *c,
+                                                                   const int nw) {
     int big = 0;
-    for (int l = 0; l < W; l++) big |= !(fabsf(x[l]) < 1e4f);
+    for (int l = 0; l < nw; l++) big |= !(fabsf(x[l]) < 1e4f);
     if (big) {
         double xd[W], sd[W], cd[W];
-        for (int l = 0; l < W; l++) xd[l] = x[l];
-        sincos_lanes(xd, sd, cd);
-        for (int l = 0; l < W; l++) { s[l] = (float)sd[l]; c[l] = (float)cd[l]; }
+        for (int l = 0; l < nw; l++) xd[l] = x[l];
+        sincos_lanes(xd, sd, cd, nw);
+        for (int l = 0; l < nw; l++) { s[l] = (float)sd[l]; c[l] = (float)cd[l]; }
         return;
     }
     const float shift = 12582912.0f; /* 1.5 2^23: round to an integer, k mod 4 in the low mantissa bits */
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         const float t = x[l] * 0.636619772f + shift, k = t - shift;
         uint32_t q;
         memcpy(&q, &t, sizeof q);
@@ -414,13 +410,6 @@ double dk_rigid_deviation(const void *T, int64_t N, int64_t real_bytes) {
     return real_bytes == 8 ? rigid_deviation_f64((const double *)T, N) : rigid_deviation_f32((const float *)T, N);
 }
 
-/* The Levenberg-Marquardt rounds of dk_lm_f64 / dk_lm_f32 (see there); returns the number of rounds run, -1
- * when memory ran out, DK_ABI_ERROR for a struct of another layout. */
-int64_t dk_lm(const dk_args *a) {
-    if (!abi_ok(a)) return DK_ABI_ERROR;
-    return a->real_bytes == 8 ? dk_lm_f64(a) : dk_lm_f32(a);
-}
-
 #else /* ------------------------------------------------------------------- one pass per real type */
 
 #define real DK_REAL
@@ -525,7 +514,8 @@ static void DK(scratch_init)(const Shape *s, const DK(Params) *pp, real *buf, DK
 static inline __attribute__((always_inline)) void DK(rows)(const real *restrict P, const DK(Fix) *f,
                                                            const int perm, const int move,
                                                            const real *restrict cs,
-                                                           const real *restrict sn, real *restrict out) {
+                                                           const real *restrict sn, real *restrict out,
+                                                           const int nw) {
     const real *a = f->a;
     const real a0 = a[0], a1 = a[1], a2 = a[2], a3 = a[3], a4 = a[4], a5 = a[5], a6 = a[6], a7 = a[7];
     const real a8 = a[8], a9 = a[9], a10 = a[10], a11 = a[11];
@@ -537,7 +527,7 @@ static inline __attribute__((always_inline)) void DK(rows)(const real *restrict 
         const real *restrict Cz = P0 + f->col[2] * W;
         real *restrict X = out + 4 * r * W, *restrict Y = X + W, *restrict Z = Y + W, *restrict Q = Z + W;
 #pragma omp simd
-        for (int l = 0; l < W; l++) {
+        for (int l = 0; l < nw; l++) {
             real x, y, z;
             if (perm) {
                 x = Cx[l] * sx;
@@ -563,15 +553,17 @@ static inline __attribute__((always_inline)) void DK(rows)(const real *restrict 
     }
 }
 
-static void DK(apply)(const real *P, const DK(Fix) *f, int move, const real *cs, const real *sn, real *out) {
+static inline __attribute__((always_inline)) void DK(apply)(const real *P, const DK(Fix) *f, int move,
+                                                            const real *cs, const real *sn, real *out,
+                                                            const int nw) {
     if (f->perm) {
-        if (move == MOVE_TURN) DK(rows)(P, f, 1, MOVE_TURN, cs, sn, out);
-        else if (move == MOVE_SLIDE) DK(rows)(P, f, 1, MOVE_SLIDE, cs, sn, out);
-        else DK(rows)(P, f, 1, MOVE_NONE, cs, sn, out);
+        if (move == MOVE_TURN) DK(rows)(P, f, 1, MOVE_TURN, cs, sn, out, nw);
+        else if (move == MOVE_SLIDE) DK(rows)(P, f, 1, MOVE_SLIDE, cs, sn, out, nw);
+        else DK(rows)(P, f, 1, MOVE_NONE, cs, sn, out, nw);
     } else {
-        if (move == MOVE_TURN) DK(rows)(P, f, 0, MOVE_TURN, cs, sn, out);
-        else if (move == MOVE_SLIDE) DK(rows)(P, f, 0, MOVE_SLIDE, cs, sn, out);
-        else DK(rows)(P, f, 0, MOVE_NONE, cs, sn, out);
+        if (move == MOVE_TURN) DK(rows)(P, f, 0, MOVE_TURN, cs, sn, out, nw);
+        else if (move == MOVE_SLIDE) DK(rows)(P, f, 0, MOVE_SLIDE, cs, sn, out, nw);
+        else DK(rows)(P, f, 0, MOVE_NONE, cs, sn, out, nw);
     }
 }
 
@@ -582,14 +574,14 @@ static void DK(apply)(const real *P, const DK(Fix) *f, int move, const real *cs,
 static inline __attribute__((always_inline)) void DK(column)(const real *restrict A, const real *restrict E,
                                                              const real m, const int turn, const int first,
                                                              const int ax, real *restrict col,
-                                                             const size_t step) {
+                                                             const size_t step, const int nw) {
     const real *restrict z0 = A + ax * W, *restrict z1 = A + (4 + ax) * W, *restrict z2 = A + (8 + ax) * W;
     const real *restrict p0 = A + 3 * W, *restrict p1 = A + 7 * W, *restrict p2 = A + 11 * W;
     const real *restrict e0 = E + 3 * W, *restrict e1 = E + 7 * W, *restrict e2 = E + 11 * W;
     real *restrict c0 = col, *restrict c1 = c0 + step, *restrict c2 = c1 + step, *restrict c3 = c2 + step;
     real *restrict c4 = c3 + step, *restrict c5 = c4 + step;
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         real v0, v1, v2, v3, v4, v5;
         if (turn) {
             const real d0 = e0[l] - p0[l], d1 = e1[l] - p1[l], d2 = e2[l] - p2[l];
@@ -617,10 +609,10 @@ static inline __attribute__((always_inline)) void DK(column)(const real *restric
  * normalised first (one of norm <= small is the identity, as diffkin._numerics.stable_normalize; scaled by
  * its largest |entry| before the squares, so entries of 1e160 (1e30 in float32) do not overflow): the S
  * motion. Column c of the result is sum_k F[:, k] R[k][c], R of (2.33); p is unchanged. */
-static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const real small) {
+static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const real small, const int nw) {
     real R[9][W];
 #pragma omp simd
-    for (int l = 0; l < W; l++) {
+    for (int l = 0; l < nw; l++) {
         const real w0 = Q[l], x0 = Q[W + l], y0 = Q[2 * W + l], z0 = Q[3 * W + l];
         const real aw = w0 < 0 ? -w0 : w0, ax = x0 < 0 ? -x0 : x0, ay = y0 < 0 ? -y0 : y0, az = z0 < 0 ? -z0 : z0;
         const real m1 = aw > ax ? aw : ax, m2 = ay > az ? ay : az, mx = m1 > m2 ? m1 : m2;
@@ -638,7 +630,7 @@ static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const 
     for (int r = 0; r < 3; r++) {
         real *restrict X = F + 4 * r * W, *restrict Y = X + W, *restrict Z = Y + W;
 #pragma omp simd
-        for (int l = 0; l < W; l++) {
+        for (int l = 0; l < nw; l++) {
             const real x = X[l], y = Y[l], z = Z[l];
             X[l] = x * R[0][l] + y * R[3][l] + z * R[6][l];
             Y[l] = x * R[1][l] + y * R[4][l] + z * R[7][l];
@@ -648,15 +640,17 @@ static void DK(quaternion_turn)(const real *restrict Q, real *restrict F, const 
 }
 
 /* out = P . Pre . Rot(Q): the frame of an S motion (not inlined: the R/P loop of DK(block) stays as it was). */
-static __attribute__((noinline)) void DK(ball_frame)(const real *P, const DK(Fix) *pre, const real *Q, real *out) {
-    DK(apply)(P, pre, MOVE_NONE, NULL, NULL, out);
-    DK(quaternion_turn)(Q, out, DK_QSMALL);
+static __attribute__((noinline)) void DK(ball_frame)(const real *P, const DK(Fix) *pre, const real *Q, real *out,
+                                                     const int nw) {
+    DK(apply)(P, pre, MOVE_NONE, NULL, NULL, out, nw);
+    DK(quaternion_turn)(Q, out, DK_QSMALL, nw);
 }
 
 /* The end frames (sc->ends, K x 12 x W) and, if jac, their Jacobians (sc->Jb, K x 6nv x W) of the
  * configurations in sc->qlanes (n x W). The motion axis of joint j (its z and origin, before Post; the x, y,
  * z axes of an S frame) is read from F_j, or from A_j where the joint has a Post. */
-static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
+static inline __attribute__((always_inline)) void DK(block_lanes)(const Shape *s, const DK(Params) *pp,
+                                                                  DK(Scratch) *sc, int jac, const int nw) {
     const int J = s->J, K = s->K, nv = s->nv;
     real *F = sc->F;
     for (int j = 0; j < J; j++) {
@@ -665,18 +659,18 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
         const real *qj = sc->qlanes + (size_t)s->qidx[j] * W;
         const int mo = s->motion[j], rev = mo == DK_MOTION_R; /* the one dispatch on a frame's motion */
         real ang[W], sn[W], cs[W];
-        for (int l = 0; l < W; l++) ang[l] = qj[l] * m + b;
-        if (rev) DK_SINCOS(ang, sn, cs);
+        for (int l = 0; l < nw; l++) ang[l] = qj[l] * m + b;
+        if (rev) DK_SINCOS(ang, sn, cs, nw);
         real *Fj = F + (size_t)j * 12 * W, *out = s->has_post[j] ? sc->A + (size_t)j * 12 * W : Fj;
-        if (mo == DK_MOTION_S) DK(ball_frame)(P, pp->fix + j, qj, out);
-        else DK(apply)(P, pp->fix + j, rev ? MOVE_TURN : MOVE_SLIDE, rev ? cs : ang, sn, out);
-        if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj);
+        if (mo == DK_MOTION_S) DK(ball_frame)(P, pp->fix + j, qj, out, nw);
+        else DK(apply)(P, pp->fix + j, rev ? MOVE_TURN : MOVE_SLIDE, rev ? cs : ang, sn, out, nw);
+        if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj, nw);
     }
     for (int k = 0; k < K; k++) {
         const int e = s->end_joint[k];
         const real *P = e < 0 ? sc->basef : F + (size_t)e * 12 * W;
         real *E = sc->ends + (size_t)k * 12 * W;
-        if (s->has_end[k]) DK(apply)(P, pp->fix + 2 * J + k, MOVE_NONE, NULL, NULL, E);
+        if (s->has_end[k]) DK(apply)(P, pp->fix + 2 * J + k, MOVE_NONE, NULL, NULL, E, nw);
         else memcpy(E, P, sizeof(real) * 12 * W);
         if (!jac) continue;
         real *Jb = sc->Jb + (size_t)k * 6 * nv * W;
@@ -687,16 +681,26 @@ static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int
             const real m = pp->mult[j];
             const int first = pp->first[k * J + j], mo = s->motion[j];
             if (mo == DK_MOTION_S) { /* three turns about the rotated frame's axes, never coupled */
-                for (int ax = 0; ax < 3; ax++) DK(column)(Aj, E, 1, 1, 1, ax, col + (size_t)ax * W, (size_t)nv * W);
+                for (int ax = 0; ax < 3; ax++) DK(column)(Aj, E, 1, 1, 1, ax, col + (size_t)ax * W, (size_t)nv * W, nw);
             } else if (mo == DK_MOTION_R) {
-                if (first) DK(column)(Aj, E, m, 1, 1, 2, col, (size_t)nv * W);
-                else DK(column)(Aj, E, m, 1, 0, 2, col, (size_t)nv * W);
+                if (first) DK(column)(Aj, E, m, 1, 1, 2, col, (size_t)nv * W, nw);
+                else DK(column)(Aj, E, m, 1, 0, 2, col, (size_t)nv * W, nw);
             } else {
-                if (first) DK(column)(Aj, E, m, 0, 1, 2, col, (size_t)nv * W);
-                else DK(column)(Aj, E, m, 0, 0, 2, col, (size_t)nv * W);
+                if (first) DK(column)(Aj, E, m, 0, 1, 2, col, (size_t)nv * W, nw);
+                else DK(column)(Aj, E, m, 0, 0, 2, col, (size_t)nv * W, nw);
             }
         }
     }
+}
+
+/* DK(block_lanes) of all W lanes, and of the first WN (one or two vector registers: the IK solve's single
+ * target runs on lane 0; the other lanes' outputs are then not meaningful). */
+static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
+    DK(block_lanes)(s, pp, sc, jac, W);
+}
+
+static void DK(block_narrow)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
+    DK(block_lanes)(s, pp, sc, jac, WN);
 }
 
 /* Row l < nl of out (rows stride apart) gets lane l of the rows x W lanes of src: the transpose into the
@@ -847,37 +851,6 @@ static int64_t DK(dk_fk_work)(const dk_args *a, dk_watch *w) {
     return bad;
 }
 
-/* Solve A x = b in place (x overwrites b) for symmetric positive definite A (d x d, row-major, overwritten
- * by its Cholesky factor); pivots are clamped to a tiny positive value, as in kernels/dls.py. One division
- * per pivot (its reciprocal multiplies the column and both triangular solves): divisions have the longest
- * latency here, and this d <= 6n solve runs once per lane and LM step. */
-static void DK(spd_solve)(real *A, real *b, int d) {
-    const real tiny = (real)sqrt((double)DK_TINY);
-    real inv[d > 0 ? d : 1]; /* d <= min(6K, n): a few hundred reals at most */
-    for (int j = 0; j < d; j++) {
-        real sjj = A[j * d + j];
-        for (int k = 0; k < j; k++) sjj -= A[j * d + k] * A[j * d + k];
-        const real ljj = (real)sqrt((double)(sjj > tiny ? sjj : tiny));
-        inv[j] = 1 / ljj;
-        A[j * d + j] = ljj;
-        for (int i = j + 1; i < d; i++) {
-            real sij = A[i * d + j];
-            for (int k = 0; k < j; k++) sij -= A[i * d + k] * A[j * d + k];
-            A[i * d + j] = sij * inv[j];
-        }
-    }
-    for (int i = 0; i < d; i++) { /* L y = b */
-        real v = b[i];
-        for (int k = 0; k < i; k++) v -= A[i * d + k] * b[k];
-        b[i] = v * inv[i];
-    }
-    for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
-        real v = b[i];
-        for (int k = i + 1; k < d; k++) v -= A[k * d + i] * b[k];
-        b[i] = v * inv[i];
-    }
-}
-
 /* The rotation-vector error theta r (kernels/pose_error.py's "rotvec") of lane l of the end frame E (12 x W
  * lanes) against the target's rotation columns cols[a][c * stride] into eo[3]; returns theta:
  * v = (x_e x x_d + y_e x y_d + z_e x z_d) / 2, cos theta = (x_e.x_d + y_e.y_d + z_e.z_d - 1) / 2. */
@@ -900,169 +873,6 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
     const real th = (real)atan2((double)sth, (double)((real)0.5 * (tr - 1)));
     for (int c = 0; c < 3; c++) eo[c] = v[c] * (th / sth);
     return th;
-}
-
-/* Up to `max_rounds` rounds of `iters` Levenberg-Marquardt steps (3.59) of diffkin.ik's solver on m rows,
- * batch last (u (n, m) is updated in place; u_eval gets the u of the last evaluation). Per row: q = c + h sin(u)
- * on bounded joints; e = [p_d - p_e; theta r] per end link (the rotation-vector error of kernels/pose_error.py),
- * or e_p when position_only (xd == NULL); converged when max |e_p| <= tp margin and max theta <= to margin;
- * weighted rows sqrt_w; lambda = damping2 + error_damping |e_w|^2; Delta = J_w^T (J_w J_w^T + lambda I)^-1 e_w
- * (or the n x n normal equations when the error has more rows than joints), J_w = diag(sqrt_w) J
- * diag(dq/du); u += Delta where not converged. conv and merit (max(e_p / tp, theta / to)) are those of the
- * last evaluation, merit_prev the merit of the round before the last (when more than one ran). Rounds stop
- * early after one in which a row converged (the caller schedules then). Targets pd, xd, yd, zd are (3K, N);
- * row b aims at target tidx[b]. Returns the number of rounds run, or -1 when memory ran out. */
-static int64_t DK(dk_lm)(const dk_args *a) {
-    Shape s;
-    read_shape(a, &s);
-    if (s.nv != s.n) return DK_MOTION_ERROR; /* additive steps on u: R and P motions only */
-    DK(Params) pp;
-    if (DK(read_params)(a, &s, &pp)) return -1;
-    const int64_t m = a->batch, N = a->n_targets, *tidx = a->tidx;
-    const int iters = (int)a->iters, max_rounds = (int)a->max_rounds;
-    real *u = (real *)a->u, *u_eval = (real *)a->u_eval, *merit = (real *)a->merit;
-    real *merit_prev = (real *)a->merit_prev;
-    const real *pd = (const real *)a->pd, *xd = (const real *)a->xd, *yd = (const real *)a->yd;
-    const real *zd = (const real *)a->zd, *sqrt_w = (const real *)a->sqrt_w, *jc = (const real *)a->jc;
-    const real *jh = (const real *)a->jh;
-    const uint8_t *bounded = a->bounded;
-    uint8_t *conv = a->conv;
-    const real damping2 = (real)a->damping2, error_damping = (real)a->error_damping, tp = (real)a->tol_p;
-    const real to = (real)a->tol_o, margin = (real)a->margin;
-    int nthreads = (int)a->nthreads;
-    const int K = s.K, n = s.n, pos_only = xd == NULL, r = (pos_only ? 3 : 6) * K;
-    const int d = r <= n ? r : n;
-    const int64_t nblocks = (m + W - 1) / W;
-    if (nthreads < 1 || m <= SERIAL_MAX) nthreads = 1;
-    const size_t base = DK(scratch_size)(&s) / sizeof(real);
-    size_t per;
-    real *all = DK(team_alloc)(base + (size_t)n * W + (size_t)r * n + r + (size_t)d * d + d + n, nthreads,
-                               &per); /* before the team: no thread can fail */
-    if (!all) { free(pp.fix); return -1; }
-    int64_t rounds = 0;
-    int stop = 0;
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1)
-    {
-        real *buf = all + per * (size_t)thread_id();
-        DK(Scratch) sc;
-        DK(scratch_init)(&s, &pp, buf, &sc);
-        real *dqdu = buf + base;              /* n x W */
-        real *Jw = dqdu + (size_t)n * W;      /* r x n */
-        real *e = Jw + (size_t)r * n;         /* r */
-        real *A = e + r;                      /* d x d */
-        real *y = A + (size_t)d * d;          /* d */
-        real *delta = y + d;                  /* n */
-        for (int round = 0; round < max_rounds; round++) {
-#pragma omp for schedule(dynamic, 4)
-            for (int64_t blk = 0; blk < nblocks; blk++) {
-                const int64_t b0 = blk * W;
-                const int nl = (int)(m - b0 < W ? m - b0 : W);
-                for (int it = 0; it < iters; it++) {
-                    for (int i = 0; i < n; i++) { /* q = c + h sin(u) (bounded joints), dq/du = h cos(u) */
-                        double uu[W], sn[W], cs[W];
-                        for (int l = 0; l < W; l++) uu[l] = (double)u[(int64_t)i * m + b0 + (l < nl ? l : nl - 1)];
-                        real *ql = sc.qlanes + (size_t)i * W, *dl = dqdu + (size_t)i * W;
-                        if (bounded[i]) {
-                            sincos_lanes(uu, sn, cs);
-                            for (int l = 0; l < W; l++) {
-                                ql[l] = jc[i] + jh[i] * (real)sn[l];
-                                dl[l] = jh[i] * (real)cs[l];
-                            }
-                        } else {
-                            for (int l = 0; l < W; l++) { ql[l] = (real)uu[l]; dl[l] = 1; }
-                        }
-                    }
-                    DK(block)(&s, &pp, &sc, 1);
-                    for (int l = 0; l < nl; l++) {
-                        const int64_t b = b0 + l, t = tidx[b];
-                        real pn = 0, ang = 0;
-                        for (int k = 0; k < K; k++) {
-                            const real *E = sc.ends + (size_t)k * 12 * W;
-                            real *ek = e + (pos_only ? 3 : 6) * k;
-                            real sq = 0;
-                            for (int c = 0; c < 3; c++) {
-                                ek[c] = pd[(int64_t)(3 * k + c) * N + t] - E[(4 * c + 3) * W + l];
-                                sq += ek[c] * ek[c];
-                            }
-                            const real nk = (real)sqrt((double)sq);
-                            pn = nk > pn ? nk : pn;
-                            if (pos_only) continue;
-                            const real *cols[3] = {xd + (int64_t)3 * k * N + t, yd + (int64_t)3 * k * N + t,
-                                                   zd + (int64_t)3 * k * N + t};
-                            const real th = DK(rotvec)(E, l, cols, N, ek + 3);
-                            ang = th > ang ? th : ang;
-                        }
-                        const int cv = pn <= tp * margin && ang <= to * margin;
-                        if (it == iters - 1) {
-                            if (round > 0) merit_prev[b] = merit[b];
-                            conv[b] = (uint8_t)cv;
-                            merit[b] = pos_only ? pn / tp : (pn / tp > ang / to ? pn / tp : ang / to);
-                        }
-                        real e2 = 0;
-                        for (int a = 0; a < r; a++) {
-                            e[a] *= sqrt_w[a];
-                            e2 += e[a] * e[a];
-                        }
-                        const real lam = damping2 + error_damping * e2;
-                        for (int k = 0; k < K; k++) { /* J_w rows of end k: [lin; ang] or lin only */
-                            const real *Jb = sc.Jb + (size_t)k * 6 * n * W;
-                            const int rows = pos_only ? 3 : 6, off = rows * k;
-                            for (int a = 0; a < rows; a++)
-                                for (int i = 0; i < n; i++)
-                                    Jw[(size_t)(off + a) * n + i] =
-                                        Jb[((size_t)a * n + i) * W + l] * sqrt_w[off + a] * dqdu[(size_t)i * W + l];
-                        }
-                        if (r <= n) { /* (J J^T + lambda I) y = e, Delta = J^T y */
-                            for (int a = 0; a < r; a++)
-                                for (int c = 0; c <= a; c++) {
-                                    real acc = 0;
-                                    for (int i = 0; i < n; i++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)c * n + i];
-                                    A[a * d + c] = acc;
-                                    A[c * d + a] = acc;
-                                }
-                            for (int a = 0; a < r; a++) { A[a * d + a] += lam; y[a] = e[a]; }
-                            DK(spd_solve)(A, y, d);
-                            for (int i = 0; i < n; i++) {
-                                real acc = 0;
-                                for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * y[a];
-                                delta[i] = acc;
-                            }
-                        } else { /* (J^T J + lambda I) Delta = J^T e */
-                            for (int i = 0; i < n; i++) {
-                                for (int c = 0; c <= i; c++) {
-                                    real acc = 0;
-                                    for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * Jw[(size_t)a * n + c];
-                                    A[i * d + c] = acc;
-                                    A[c * d + i] = acc;
-                                }
-                                real acc = 0;
-                                for (int a = 0; a < r; a++) acc += Jw[(size_t)a * n + i] * e[a];
-                                delta[i] = acc;
-                                A[i * d + i] += lam;
-                            }
-                            DK(spd_solve)(A, delta, d);
-                        }
-                        for (int i = 0; i < n; i++) {
-                            real *ui = u + (int64_t)i * m + b;
-                            if (it == iters - 1) u_eval[(int64_t)i * m + b] = *ui;
-                            if (!cv) *ui += delta[i];
-                        }
-                    }
-                }
-            }
-#pragma omp single
-            { /* after the round's barrier: go on only while no row converged */
-                rounds = round + 1;
-                int any = 0;
-                for (int64_t b = 0; b < m; b++) any |= conv[b];
-                stop = any || rounds == max_rounds;
-            }
-            if (stop) break;
-        }
-    }
-    free(all);
-    free(pp.fix);
-    return rounds;
 }
 
 #include "_native_solve.c"

@@ -1,19 +1,19 @@
 /* The whole of diffkin.ik.solve in one C call (included by _native.c once per real type, like its second
- * half): seeding, the Levenberg-Marquardt iteration (3.59) of dk_lm, harvest, stall detection, re-seeding
+ * half): seeding, the Levenberg-Marquardt iteration (3.59), harvest, stall detection, re-seeding
  * and the final check, for every chain the fused pass takes: 1-DOF joints, and ball and free joints whose
  * unit quaternions are stepped on the manifold (DK(integrate)). diffkin/ik/_native_solve.py prepares the
  * arrays.
  *
- * Work is split into chunks of CHUNK targets, each solved by one thread on the W lanes of DK(block): a lane
- * holds one (target, seed) row. After every LM step a converged row is harvested (its target is done and
- * every other row of it retired); every `iters` steps a row older than min_seed_iterations whose merit did
- * not shrink by stall_ratio, or one at max_iterations, is finished (the best finished seed of each target is
- * kept). A free lane takes, after each step, in this order: the next seed of its last target, a user
- * seed not yet started of an open target (they run side by side, as in the torch loop), the first seed of
- * the chunk's next target, the next seed of the open target with the fewest rows among those that ran a
- * check interval (min_seed_iterations in a chunk of one target: an easy single target runs on one lane,
- * whose step costs a third of sixteen). A chunk's result depends only on its targets and
- * the inputs, so the solve is the same for every thread count and schedule.
+ * The algorithm is diffkin/ik/_lm.py's, step for step (its torch backend serves CUDA and the CPU without
+ * the library; on the same inputs both give the same flags and q to rounding): every target runs its seeds
+ * one after another. Per LM step of a row: evaluate e at u; converged (max |e_p| <= tp margin and max theta
+ * <= to margin): the target is done with this u; else every `iters` steps of the seed (age % iters == 0) a
+ * seed older than min_seed_iterations whose merit did not shrink by stall_ratio since the last check, or
+ * one at max_iterations, is finished (the best finished seed of each target is kept) and the target's next
+ * seed starts; else u <- u (+) delta (3.59). Work is split into chunks of CHUNK targets, each solved by one
+ * thread on the W lanes of DK(block): a lane holds one target's current seed, and a free lane takes the
+ * chunk's next target. A target's result depends only on its own inputs, so the solve is the same for
+ * every thread count and schedule.
  *
  * Seed s of target t: s < S the user's seed (t, s); s < S + R the library configuration with the (s - S)-th
  * nearest pose (squared distance of positions plus feature_weight times that of the rotation columns); else
@@ -37,6 +37,20 @@
 #define CHUNK 128 /* targets per chunk: a fixed number, so the answers do not depend on the thread count */
 #define MAX_RANKS 64
 #define MAX_ENDS 64 /* end links the nearest-pose search takes (more: no library seeds) */
+
+/* A 4 KiB-aligned work space of at least `bytes`, kept by the calling thread between calls and grown when a
+ * call needs more (one single-threaded solve's work space per calling thread, never released). */
+static __thread void *kept_ptr;
+static __thread size_t kept_bytes;
+static void *kept_space(size_t bytes) {
+    if (bytes > kept_bytes) {
+        free(kept_ptr);
+        kept_bytes = (bytes + 4095) / 4096 * 4096;
+        kept_ptr = aligned_alloc(4096, kept_bytes);
+        if (!kept_ptr) kept_bytes = 0;
+    }
+    return kept_ptr;
+}
 
 typedef struct { /* the configuration space of the chain (see the top of this file) */
     int n, nv, nb, nu;       /* coordinates, velocities, quaternions, uniforms per random seed */
@@ -75,20 +89,21 @@ static int space_read(const Shape *s, Space *sp) {
 }
 #endif
 
-/* q and dq/du of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints, else q = u. */
+/* q and dq/du of the first nw of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints,
+ * else q = u. */
 static void DK(map_u)(int n, const uint8_t *bounded, const real *jc, const real *jh, const real *ul,
-                      real *ql, real *dl) {
+                      real *ql, real *dl, const int nw) {
     for (int i = 0; i < n; i++) {
         double uu[W], sn[W], cs[W];
         const real *ui = ul + (size_t)i * W;
         real *qi = ql + (size_t)i * W, *di = dl + (size_t)i * W;
         if (!bounded[i]) {
-            for (int l = 0; l < W; l++) { qi[l] = ui[l]; di[l] = 1; }
+            for (int l = 0; l < nw; l++) { qi[l] = ui[l]; di[l] = 1; }
             continue;
         }
-        for (int l = 0; l < W; l++) uu[l] = (double)ui[l];
-        sincos_lanes(uu, sn, cs);
-        for (int l = 0; l < W; l++) {
+        for (int l = 0; l < nw; l++) uu[l] = (double)ui[l];
+        sincos_lanes(uu, sn, cs, nw);
+        for (int l = 0; l < nw; l++) {
             qi[l] = jc[i] + jh[i] * (real)sn[l];
             di[l] = jh[i] * (real)cs[l];
         }
@@ -143,7 +158,7 @@ typedef struct { /* the fixed inputs of a solve, read once */
     DK(Params) pp;
     Space sp;
     int K, n, nv, r, d, pos_only;
-    int64_t N, S, L, R, P, nseeds, maxit, minit, every;
+    int64_t N, ts, S, L, R, P, nseeds, maxit, minit, every;
     real tp, to, margin, damping2, mu, stall, w2;
     const real *pd, *xd, *yd, *zd, *sqrt_w, *jc, *jh, *user_u, *lib_u, *lib_pose, *pool, *qlo, *qhi;
     const uint8_t *bounded, *wrap;
@@ -151,10 +166,10 @@ typedef struct { /* the fixed inputs of a solve, read once */
 } DK(Solve);
 
 /* The error e (r rows: [p_d - p_e; theta r] per end link, or p_d - p_e) of lane l against target t, its
- * worst position error *pn and angle *ang (the rotation-vector error of dk_lm). */
+ * worst position error *pn (a scaled norm: no overflow) and angle *ang (DK(rotvec)). */
 static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t t, real *e, real *pn,
                            real *ang) {
-    const int64_t N = S->N;
+    const int64_t N = S->ts; /* the stride of the targets' columns */
     const real *cols[3] = {S->xd, S->yd, S->zd};
     *pn = 0;
     *ang = 0;
@@ -182,7 +197,7 @@ static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t 
 typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta, *lam, *e1; int32_t *lanes; } DK(LMWork);
 
 /* Solve A x = b in place on m lanes (A d x d x W: its lower triangle, overwritten by the Cholesky factor;
- * b d x W), DK(spd_solve)'s arithmetic on each lane (pivots clamped to a tiny positive value, as
+ * b d x W), a Cholesky factorisation on each lane (pivots clamped to a tiny positive value, as
  * kernels/dls.py), the lanes innermost so that every loop vectorises. */
 static void DK(spd_solve_lanes)(real *restrict A, real *restrict b, int d, int m) {
     const real tiny = (real)sqrt((double)DK_TINY);
@@ -293,7 +308,7 @@ static void DK(nearest)(const DK(Solve) *S, int64_t t, int32_t *nn) {
     const int64_t L = S->L;
     int R = (int)S->R;
     for (int c = 0; c < F; c++) { /* the target's features, once */
-        ft[c] = tcol[c / K3][(int64_t)(c % K3) * S->N + t];
+        ft[c] = tcol[c / K3][(int64_t)(c % K3) * S->ts + t];
         wt[c] = c < K3 ? 1 : S->w2;
     }
     for (int64_t j0 = 0; j0 < L; j0 += NEAR_BLOCK) {
@@ -364,7 +379,7 @@ static void DK(seed)(const DK(Solve) *S, int64_t t, int64_t s, const int32_t *nn
 typedef struct { /* the rows of one chunk: per lane (t < 0: free; prev: its last target) and per target */
     int64_t t0, t1, next, t[W], it[W], prev[W];
     real last[W];
-    int32_t *nn, *count; /* [CHUNK * R], [CHUNK] */
+    int32_t *nn;   /* [CHUNK * R] */
     uint8_t *done;       /* [CHUNK] */
 } DK(Chunk);
 
@@ -378,37 +393,24 @@ static int DK(start)(const DK(Solve) *S, DK(Chunk) *c, int64_t t, real *ul, int 
     if (seeds[t] == 0) /* a first best: every target ends with some u */
         for (int i = 0; i < S->n; i++) ((real *)S->a->q_out)[t * S->n + i] = ul[(size_t)i * W + l];
     seeds[t]++;
-    c->count[j]++;
     c->t[l] = t;
     c->it[l] = 0;
     c->last[l] = (real)INFINITY;
     return 1;
 }
 
-/* Give a free lane l work: the next seed of its last target, a user seed not yet started, a new target,
- * or the next seed of the open target with the fewest rows among those that ran a check interval (as the
- * torch loop's top-up, which follows a round: a target converging at its first evaluation has tried one
- * seed), min_seed_iterations when the chunk holds one target. */
+/* Give a free lane l work: the next seed of its last target, else the first seed of the chunk's next
+ * target. A target holds at most one lane and runs its seeds one after another, so its path depends on
+ * nothing but its own inputs (the schedule of diffkin/ik/_lm.py, step for step). */
 static void DK(refill)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int64_t last) {
     c->t[l] = -1;
     if (DK(start)(S, c, last, ul, l)) return;
-    for (int64_t t = c->t0; t < c->next; t++) /* the user's seeds of an open target run side by side */
-        if (S->a->seeds_out[t] < S->S && DK(start)(S, c, t, ul, l)) return;
     while (c->next < c->t1)
         if (DK(start)(S, c, c->next++, ul, l)) return;
-    int64_t pick = -1;
-    for (int64_t t = c->t0; t < c->t1; t++) {
-        const int64_t j = t - c->t0;
-        if (c->count[j] > 0 && !c->done[j] && S->a->seeds_out[t] < S->nseeds &&
-            S->a->iters_out[t] >= (c->t1 - c->t0 > 1 ? S->every : S->minit) &&
-            (pick < 0 || c->count[j] < c->count[pick - c->t0]))
-            pick = t;
-    }
-    DK(start)(S, c, pick, ul, l);
 }
 
-/* Lane l's row ends: it converged (keep u, retire the target's other rows) or was finished with merit
- * (keep u if the target's best so far); the lane is refilled after the step. */
+/* Lane l's row ends: it converged (keep u, the target is done) or was finished with merit (keep u if
+ * the target's best so far, the later of equal merits); the lane is refilled after the step. */
 static void DK(finish)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int conv, real merit) {
     const int64_t t = c->t[l], j = t - c->t0;
     real *best = (real *)S->a->q_out + t * S->n;
@@ -416,20 +418,19 @@ static void DK(finish)(const DK(Solve) *S, DK(Chunk) *c, real *ul, int l, int co
         S->best_merit[t] = conv ? -1 : merit;
         for (int i = 0; i < S->n; i++) best[i] = ul[(size_t)i * W + l];
     }
-    c->count[j]--;
-    if (conv) {
-        c->done[j] = 1;
-        for (int o = 0; o < W; o++)
-            if (o != l && c->t[o] == t) { c->count[j]--; c->t[o] = -1; }
-    }
+    if (conv) c->done[j] = 1;
     c->t[l] = -1;
     c->prev[l] = t;
 }
 
 /* One LM step on the chunk's lanes, with harvest and stall checks. */
 static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, real *ul, DK(LMWork) *w) {
-    DK(map_u)(S->n, S->bounded, S->jc, S->jh, ul, sc->qlanes, w->dqdu);
-    DK(block)(&S->s, &S->pp, sc, 1);
+    int hi = 0; /* the lanes in use: lane 0 alone (a single target) takes the narrow block */
+    for (int l = 0; l < W; l++) hi = c->t[l] >= 0 ? l + 1 : hi;
+    const int nw = hi <= WN ? WN : W;
+    DK(map_u)(S->n, S->bounded, S->jc, S->jh, ul, sc->qlanes, w->dqdu, nw);
+    if (nw == W) DK(block)(&S->s, &S->pp, sc, 1);
+    else DK(block_narrow)(&S->s, &S->pp, sc, 1);
     int64_t *iters = S->a->iters_out;
     int m = 0;
     for (int l = 0; l < W; l++) {
@@ -489,7 +490,8 @@ static void DK(final_check)(const DK(Solve) *S, DK(Scratch) *sc, int64_t t0, int
                 for (int c = 0; c < 4; c++) qt[S->sp.qs[b] + c] = qi[(size_t)c * W + l];
             }
         }
-        DK(block)(&S->s, &S->pp, sc, 0);
+        if (nl <= WN) DK(block_narrow)(&S->s, &S->pp, sc, 0);
+        else DK(block)(&S->s, &S->pp, sc, 0);
         for (int l = 0; l < nl; l++) {
             const int64_t t = b0 + l;
             real pn, ang;
@@ -508,7 +510,6 @@ static void DK(solve_chunk)(const DK(Solve) *S, DK(Scratch) *sc, real *ul, DK(LM
                             int64_t t0, int64_t t1) {
     c->t0 = c->next = t0;
     c->t1 = t1;
-    memset(c->count, 0, sizeof(int32_t) * CHUNK);
     memset(c->done, 0, CHUNK);
     memset(ul, 0, sizeof(real) * (size_t)S->n * W);
     for (int l = 0; l < W; l++) {
@@ -535,6 +536,7 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->r = (S->pos_only ? 3 : 6) * S->K;
     S->d = S->r <= S->nv ? S->r : S->nv;
     S->N = a->n_targets, S->S = a->n_user, S->L = a->n_lib, S->P = a->n_pool;
+    S->ts = a->target_stride > 0 ? a->target_stride : a->n_targets;
     S->R = a->lib_ranks < a->n_lib ? a->lib_ranks : a->n_lib;
     S->R = S->R < MAX_RANKS ? S->R : MAX_RANKS;
     if (S->K > MAX_ENDS) S->R = 0;
@@ -573,10 +575,13 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
     const size_t lanes = (size_t)W * ((size_t)r * nv + r + (size_t)d * d + d + nv + 1); /* LMWork's */
     size_t per;
-    real *all = DK(team_alloc)(base + 2 * (size_t)n * W + lanes + r +
-                               (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1,
-                               nthreads, &per);
+    const size_t want = base + 2 * (size_t)n * W + lanes + r +
+                        (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1;
+    /* one thread: the calling thread's kept work space (a single-target solve paid more for allocating
+     * and faulting in a fresh one than for its LM steps) */
+    real *all = nthreads == 1 ? (real *)kept_space(sizeof(real) * want) : DK(team_alloc)(want, nthreads, &per);
     if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
+    if (nthreads == 1) per = 0;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1)
     {
         real *buf = all + per * (size_t)thread_id();
@@ -594,8 +599,7 @@ static int64_t DK(dk_solve)(const dk_args *a) {
         w.e1 = w.lam + W;
         DK(Chunk) c;
         c.nn = (int32_t *)(w.e1 + r);
-        c.count = c.nn + CHUNK * R;
-        w.lanes = c.count + CHUNK;
+        w.lanes = c.nn + CHUNK * R;
         c.done = (uint8_t *)(w.lanes + W);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t k = 0; k < nchunks; k++) {
@@ -603,7 +607,7 @@ static int64_t DK(dk_solve)(const dk_args *a) {
             DK(solve_chunk)(&S, &sc, ul, &w, &c, t0, t1);
         }
     }
-    free(all);
+    if (nthreads > 1) free(all);
     free(S.pp.fix);
     free(S.best_merit);
     free(S.sp.vq);

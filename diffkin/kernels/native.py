@@ -20,7 +20,7 @@ where. Without a compiler, or with ``DIFFKIN_NATIVE=0`` in the environment, :fun
 every caller keeps the torch kernels: results are the same to rounding.
 
 Interface: one struct, ``dk_args`` in ``_native.c``, mirrored by :class:`Args` (a ``ctypes.Structure``) and
-passed by pointer to the entry points ``dk_fk`` and ``dk_lm``. It carries a version (:data:`ABI_VERSION`)
+passed by pointer to the entry points ``dk_fk`` and ``dk_solve``. It carries a version (:data:`ABI_VERSION`)
 and its size; on loading, the library's ``dk_abi`` reports its version, ``sizeof`` and field offsets, and a
 library that does not match :class:`Args` is rebuilt once, then refused: a one-time warning, and the torch
 kernels serve every call.
@@ -59,7 +59,7 @@ from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
            "Collide", "capsules_clear",
-           "native_model", "fk_jacobian", "LMProblem", "lm_steps", "status", "NativeBuildWarning", "Args",
+           "native_model", "fk_jacobian", "status", "NativeBuildWarning", "Args",
            "ABI_VERSION", "AbiMismatch", "solve_call", "rigid_deviation"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
@@ -89,19 +89,19 @@ def _announce(text: str) -> None:
 
 
 #: the version of the C interface this module speaks (DK_ABI_VERSION in _native.c)
-ABI_VERSION = 2
+ABI_VERSION = 3
 _ABI_ERROR = -2  # DK_ABI_ERROR: the library refused the struct
-_MOTION_ERROR = -3  # DK_MOTION_ERROR: dk_lm of a chain with S motions
 _motion_codes: dict[str, int] = {}  # letter -> code, from the loaded library's DK_MOTIONS
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 
 
-# the fields of dk_solve (the whole IK solve, _native_solve.c), appended after dk_lm's
+# the fields of dk_solve (the whole IK solve, _native_solve.c), after its targets and LM constants
 _SOLVE_FIELDS = [(name, _I64) for name in ("n_seeds", "max_iterations", "min_seed_iterations")] + \
     [("stall_ratio", _F64), ("n_user", _I64), ("user_u", _PTR), ("n_lib", _I64), ("lib_ranks", _I64),
      ("lib_u", _PTR), ("lib_pose", _PTR), ("feature_weight", _F64), ("n_pool", _I64)] + \
     [(name, _PTR) for name in ("pool", "qlo", "qhi", "wrap")] + [("clamp", _I64)] + \
-    [(name, _PTR) for name in ("q_out", "iters_out", "seeds_out", "pos_err", "ori_err", "success")]
+    [(name, _PTR) for name in ("q_out", "iters_out", "seeds_out", "pos_err", "ori_err", "success")] + \
+    [("target_stride", _I64)]
 
 
 class Args(ctypes.Structure):
@@ -112,12 +112,9 @@ class Args(ctypes.Structure):
                                           "has_base")] + \
         [(name, _PTR) for name in ("parent", "motion", "qidx", "vidx", "has_pre", "has_post", "end_joint",
                                    "has_end", "ancestor", "mult", "qoff", "pre", "post", "base", "end")] + \
-        [("batch", _I64), ("q", _PTR), ("T", _PTR), ("jac", _PTR), ("iters", _I64), ("max_rounds", _I64),
-         ("n_targets", _I64)] + \
-        [(name, _PTR) for name in ("u", "u_eval", "tidx", "pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh",
-                                   "bounded")] + \
-        [(name, _F64) for name in ("damping2", "error_damping", "tol_p", "tol_o", "margin")] + \
-        [(name, _PTR) for name in ("conv", "merit", "merit_prev")] + _SOLVE_FIELDS
+        [("batch", _I64), ("q", _PTR), ("T", _PTR), ("jac", _PTR), ("iters", _I64), ("n_targets", _I64)] + \
+        [(name, _PTR) for name in ("pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh", "bounded")] + \
+        [(name, _F64) for name in ("damping2", "error_damping", "tol_p", "tol_o", "margin")] + _SOLVE_FIELDS
 
 
 def _dlclose(handle: int) -> None:
@@ -182,7 +179,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
         path.unlink(missing_ok=True)
         lib = ctypes.CDLL(str(_compile(flags)))
         check_abi(lib)
-    for name in ("dk_fk", "dk_lm", "dk_solve"):
+    for name in ("dk_fk", "dk_solve"):
         fn = getattr(lib, name)
         fn.restype, fn.argtypes = _I64, [ctypes.POINTER(Args)]
     lib.dk_rigid_deviation.restype, lib.dk_rigid_deviation.argtypes = _F64, [_PTR, _I64, _I64]
@@ -421,7 +418,7 @@ class NativeModel:
 
     @property
     def euclidean(self) -> bool:
-        """True when q and v are alike (every frame an R or P motion): what :func:`lm_steps` needs."""
+        """True when q and v are alike (every frame an R or P motion)."""
         return self.n_vars == self.n_velocities
 
     def __reduce__(self):  # copies and pickles carry the arrays; the addresses are made anew
@@ -489,60 +486,8 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
 def _raise_on(status: int, what: str) -> None:
     if status == _ABI_ERROR:
         raise AbiMismatch("the native kernel refused the call's dk_args (another version or size)")
-    if status == _MOTION_ERROR:
-        raise ValueError("the fused LM iteration takes chains of R and P motions only (ball and free joints: "
-                         "the torch iteration)")
     if status < 0:
         raise MemoryError(f"the native kernel could not allocate its per-thread {what}")
-
-
-class LMProblem:
-    """The fixed inputs of :func:`lm_steps` for one solve, converted once: the packed chain, the targets
-    ``pd (3K, N)`` and rotation columns ``(x, y, z)`` (each ``(3K, N)``, or None: position only), the row
-    weights ``sqrt_w`` and the joint map q = c + h sin(u) on ``bounded`` joints (``(n,)`` each), in the
-    working dtype."""
-
-    def __init__(self, model: NativeModel, pd: Tensor, cols, sqrt_w: Tensor, c: Tensor, h: Tensor,
-                 bounded: Tensor):
-        dtype = pd.dtype
-        self.model, self.dtype, self.N = model, dtype, pd.shape[1]
-        self.targets = [pd.contiguous(), *((None,) * 3 if cols is None else (t.contiguous() for t in cols))]
-        self.vectors = [t.reshape(-1).to(dtype).contiguous() for t in (sqrt_w, c, h)]
-        self.bounded = bounded.reshape(-1).to(torch.uint8).contiguous()
-        fields = dict(zip(("pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh"), (*self.targets, *self.vectors)))
-        self.args = model.call(dtype, n_targets=self.N, bounded=self.bounded, **fields)
-
-
-def lm_steps(problem: LMProblem, u: Tensor, tidx: Tensor, *, damping2: float, error_damping: float,
-             tolerances: tuple[float, float], margin: float, iterations: int, max_rounds: int = 1,
-             threads: int | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, int, Tensor]:
-    """Rounds of ``iterations`` steps of :func:`diffkin.ik.solve`'s Levenberg–Marquardt iteration on m rows,
-    batch last.
-
-    ``u (n, m)``: the solver's variables of rows aiming at targets ``tidx (m,)`` of ``problem``. Per step:
-    the pose error (3.78) and rotation-vector error (the ``"rotvec"`` form of
-    :func:`~diffkin.kernels.pose_error.orientation_error`), λ = damping2 + error_damping ‖e_w‖², the damped
-    least-squares step (3.59) on the weighted Jacobian, applied where not converged (max ‖e_p‖ ≤ tol_p ·
-    margin and max θ ≤ tol_o · margin). Up to ``max_rounds`` rounds run back to back, stopping after one in
-    which a row converged (the caller may only ask for rounds after which its schedule would do nothing).
-
-    Returns ``(u after the steps, u of the last evaluation, converged (m,) bool, merit (m,), rounds run,
-    merit of the round before the last (m,))`` with merit = max(‖e_p‖ / tol_p, θ / tol_o), the first four as
-    :meth:`diffkin.ik._lm._Run.steps` returns them.
-    """
-    m = u.shape[1]
-    u_new = u.clone(memory_format=torch.contiguous_format)
-    u_eval = torch.empty_like(u_new)
-    conv = torch.empty(m, dtype=torch.bool)
-    merit, merit_prev = torch.empty(2, m, dtype=problem.dtype).unbind(0)
-    tidx = tidx.contiguous()
-    args = _filled(Args.from_buffer_copy(problem.args), batch=m, iters=iterations, max_rounds=max_rounds,
-                   u=u_new, u_eval=u_eval, tidx=tidx, conv=conv, merit=merit, merit_prev=merit_prev,
-                   damping2=damping2, error_damping=error_damping, tol_p=tolerances[0], tol_o=tolerances[1],
-                   margin=margin, nthreads=threads or thread_count(m))
-    rounds = _lib.dk_lm(ctypes.byref(args))
-    _raise_on(rounds, "work space")
-    return u_new, u_eval, conv, merit, rounds, merit_prev
 
 
 def _main() -> int:

@@ -162,7 +162,8 @@ def _remade(chain) -> Entry | None:
         return None
     ts = _tensors(chain)
     probe = torch.empty(0, dtype=chain.dtype)
-    packed = chain._native_model(probe) if chain._state_key() is not None else None
+    with torch.no_grad():  # the packed constants are data (a caller may run in grad mode)
+        packed = chain._native_model(probe) if chain._state_key() is not None else None
     if packed is None:
         return None
     hit = Entry(chain, [0 if t is None else t.data_ptr() for t in ts], packed)
@@ -172,15 +173,16 @@ def _remade(chain) -> Entry | None:
     return hit
 
 
-def entry(chain, x: Tensor) -> Entry | None:
+def entry(chain, x: Tensor, grad: bool | None = None) -> Entry | None:
     """The chain's cached :class:`Entry` for a call on the plain CPU tensor ``x``, or None (general path).
 
     A hit needs every parameter and buffer at the pointer and with the bytes the entry was packed from, and
-    no gradient wanted from any of them; a miss re-validates through ``_state_key`` and repacks.
+    no gradient wanted from any of them (``grad``: whether gradients are wanted, default grad mode; False
+    for a caller that runs without autograd); a miss re-validates through ``_state_key`` and repacks.
     """
     if torch.compiler.is_compiling() or _is_wrapped(x) or not native.available():
         return None
-    hit = _current(chain, torch.is_grad_enabled())
+    hit = _current(chain, torch.is_grad_enabled() if grad is None else grad)
     if hit is not None and not hit.watch.unchanged():
         hit = _remade(chain)
     return hit
