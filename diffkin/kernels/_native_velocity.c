@@ -258,6 +258,36 @@ static void vel_sub_quat(const double qa[4], const double qb[4], double w[3]) {
     w[0] = d1 * ang / s, w[1] = d2 * ang / s, w[2] = d3 * ang / s;
 }
 
+/* Solve A x = b in place (x overwrites b) for symmetric positive definite A (d x d, row-major, overwritten
+ * by its Cholesky factor); pivots clamped to a tiny positive value, as in kernels/dls.py. The QP's free
+ * block is small (d <= nv), one row at a time: the scalar twin of _native_solve.c's spd_solve_lanes. */
+static void vel_spd_solve(double *A, double *b, int d) {
+    const double tiny = sqrt(2.2250738585072014e-308);
+    double inv[d > 0 ? d : 1];
+    for (int j = 0; j < d; j++) {
+        double sjj = A[j * d + j];
+        for (int k = 0; k < j; k++) sjj -= A[j * d + k] * A[j * d + k];
+        const double ljj = sqrt(sjj > tiny ? sjj : tiny);
+        inv[j] = 1 / ljj;
+        A[j * d + j] = ljj;
+        for (int i = j + 1; i < d; i++) {
+            double sij = A[i * d + j];
+            for (int k = 0; k < j; k++) sij -= A[i * d + k] * A[j * d + k];
+            A[i * d + j] = sij * inv[j];
+        }
+    }
+    for (int i = 0; i < d; i++) { /* L y = b */
+        double v = b[i];
+        for (int k = 0; k < i; k++) v -= A[i * d + k] * b[k];
+        b[i] = v * inv[i];
+    }
+    for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
+        double v = b[i];
+        for (int k = i + 1; k < d; k++) v -= A[k * d + i] * b[k];
+        b[i] = v * inv[i];
+    }
+}
+
 /* The minimiser of 1/2 x^T H x + c^T x over the free variables (fixed[i] == 0) with the others held at x:
  * H_FF xs_F = -(c_F + H_FB x_B) by Cholesky (L: work space); fr gets the free indices; returns their count. */
 static int vel_qp_free(int d, const double *H, const double *c, const double *x, const int8_t *fixed, double *L,
@@ -273,7 +303,7 @@ static int vel_qp_free(int d, const double *H, const double *c, const double *x,
         xs[a] = r;
         for (int b = 0; b <= a; b++) L[a * nf + b] = L[b * nf + a] = H[i * d + fr[b]];
     }
-    spd_solve_f64(L, xs, nf);
+    vel_spd_solve(L, xs, nf);
     return nf;
 }
 
