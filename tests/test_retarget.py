@@ -312,3 +312,59 @@ def test_contacts_of_the_walk():
     assert not none.any()
     with pytest.raises(OptionError, match="speed"):
         retarget.detect_contacts(clip, ("LeftToe", "RightToe"), speed=0)
+
+
+# ------------------------------------------------------------------------------------------- clip
+def test_clip_round_trip_of_a_robot_clip(tmp_path):
+    """A G1 clip made by diffkin's FK (feet planted, arms moving) mapped back through retarget.clip: the
+    keypoints and the elbow motion are recovered and the feet do not skate."""
+    clip = retarget.clip
+
+    mp0 = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp0.frames, floating_base=True, dtype=torch.float64)
+    T = 20
+    q = torch.zeros(T, g1.nq, dtype=torch.float64)
+    q[:, 2], q[:, 3] = 0.793, 1.0
+    names = g1.joint_names
+    col = {n: 7 + i for i, n in enumerate(names[1:])}  # free joint first, then one column per hinge
+    s = torch.linspace(0, 1, T, dtype=torch.float64)
+    q[:, col["left_elbow_joint"]] = 0.3 + 0.8 * s
+    q[:, col["right_elbow_joint"]] = 1.0 - 0.6 * s
+    q[:, col["left_shoulder_pitch_joint"]] = -0.5 * s
+    with torch.no_grad():
+        P = g1.forward_kinematics(q)[..., :3, 3]  # (T, K, 3)
+    motion = retarget.Motion(P, mp0.frames, 30.0)
+    identity = retarget.Mapping({f: f for f in mp0.frames}, feet=mp0.feet)
+    r = clip(g1, motion, identity, scale=1.0)
+    assert r.q.shape == (1, T, g1.nq) and r.contacts.all()
+    assert r.metrics.keypoint_error.item() < 1.0  # mm
+    assert r.metrics.foot_skating.item() < 1.0 and r.metrics.ground_penetration.item() == 0.0
+    assert int(r.metrics.joint_limit_violations) == 0
+    # position targets leave the wrist's small link offsets redundant with the elbow: recovered to 0.05 rad
+    for j in ("left_elbow_joint", "right_elbow_joint"):
+        torch.testing.assert_close(r.q[0, :, col[j]], q[:, col[j]], atol=5e-2, rtol=0)
+    # MuJoCo-free reference: the reported keypoint error is the FK distance to the targets
+    with torch.no_grad():
+        fk = g1.forward_kinematics(r.q[0])[..., :3, 3]
+    assert float((fk - P).norm(dim=-1).mean() * 1000) == pytest.approx(r.metrics.keypoint_error.item())
+    out = np.load(r.save(tmp_path / "clip.npz"))
+    assert out["q"].shape == (1, T, g1.nq) and out["qd"].shape == (1, T, 29)
+    assert float(out["fps"]) == 30.0 and len(out["joint_names"]) == 29
+    np.testing.assert_allclose((out["root_quat"][0] ** 2).sum(-1), 1.0)
+
+
+def test_clip_of_the_shipped_walk_runs_and_is_scored():
+    clip, fit_scale = retarget.clip, retarget.fit_scale
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(0, 30)
+    s = fit_scale(g1, walk, mp)
+    assert 0.7 < float(s) < 1.0  # the G1 (1.3 m) is smaller than the CMU subject
+    r = clip(g1, walk, mp)
+    torch.testing.assert_close(r.scale, s)
+    assert r.q.shape == (1, 30, g1.nq) and torch.isfinite(r.q).all()
+    assert int(r.metrics.joint_limit_violations) == 0  # ik.solve respects the limits
+    assert r.metrics.keypoint_error.item() < 100.0  # mm: a warm start, not yet the whole-clip optimisation
+    with pytest.raises(ModelError, match="mapping's frames"):
+        clip(models.from_urdf(G1_URDF, mp.frames[::-1], floating_base=True), walk, mp)
