@@ -368,3 +368,32 @@ def test_clip_of_the_shipped_walk_runs_and_is_scored():
     assert r.metrics.keypoint_error.item() < 100.0  # mm: a warm start, not yet the whole-clip optimisation
     with pytest.raises(ModelError, match="mapping's frames"):
         clip(models.from_urdf(G1_URDF, mp.frames[::-1], floating_base=True), walk, mp)
+
+
+def test_h1_capsule_sole_against_mujoco():
+    """The H1's feet are three capsules (``fromto``): the lowest sole point vs MuJoCo's placed capsules."""
+    from diffkin.models.mjcf import compile_mjcf
+
+    path = DATA / "mjcf" / "unitree_h1" / "h1.xml"
+    mp = retarget.Mapping.builtin("h1")
+    chain = models.from_mjcf(path, mp.frames, dtype=torch.float64)
+    model = compile_mjcf(path)[0]
+    data = mujoco.MjData(model)
+    qpos = model.qpos0.copy()
+    qpos[2] = 1.0
+    qpos[3:7] = Rotation.from_rotvec([0.2, -0.3, 0.5]).as_quat(scalar_first=True)
+    qpos[7:] += np.linspace(-0.3, 0.3, model.nq - 7)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    with torch.no_grad():
+        T = chain.forward_kinematics(chain.from_qpos(torch.as_tensor(qpos)))
+    for k, foot in enumerate(mp.feet):
+        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
+        caps = [i for i in range(model.ngeom) if model.geom_bodyid[i] == bid
+                and model.geom_type[i] == mujoco.mjtGeom.mjGEOM_CAPSULE and model.geom_contype[i]]
+        assert len(caps) == 3
+        ends = [data.geom_xpos[i] + sgn * model.geom_size[i, 1] * data.geom_xmat[i].reshape(3, 3)[:, 2]
+                for i in caps for sgn in (-1, 1)]
+        want = min(e[2] - model.geom_size[caps[0], 0] for e in ends)
+        height, _ = retarget.sole_of(chain, foot).lowest(T[k])
+        assert height.item() == pytest.approx(want, abs=1e-12)
