@@ -397,3 +397,26 @@ def test_h1_capsule_sole_against_mujoco():
         want = min(e[2] - model.geom_size[caps[0], 0] for e in ends)
         height, _ = retarget.sole_of(chain, foot).lowest(T[k])
         assert height.item() == pytest.approx(want, abs=1e-12)
+
+
+def test_metrics_gradients_and_float32():
+    """Penetration and floating are differentiable in q (finite differences, float64), and the metrics
+    follow a float32 chain."""
+    chain = models.from_mjcf(FEET_XML, ["lfoot", "rfoot", "arm"], dtype=torch.float64)
+    q = torch.zeros(1, 3, 15, dtype=torch.float64)
+    q[..., 3] = q[..., 10] = 1.0
+    q[..., 4] = 0.1  # a tilted box: one lowest corner
+    q[..., 2] = torch.tensor([0.02, 0.06, 0.07], dtype=torch.float64)
+    q[..., 9] = 0.05
+    c = torch.ones(1, 3, 2, dtype=torch.bool)
+
+    def f(x):
+        m = retarget.metrics(chain, x, c, 30, feet=("lfoot", "rfoot"))
+        return torch.stack((m.ground_penetration, m.floating), -1)
+
+    assert torch.autograd.gradcheck(f, (q.requires_grad_(),), eps=1e-7, atol=1e-5)
+    chain32 = models.from_mjcf(FEET_XML, ["lfoot", "rfoot", "arm"], dtype=torch.float32)
+    m32 = retarget.metrics(chain32, q.detach().float(), c, 30, feet=("lfoot", "rfoot"))
+    m64 = retarget.metrics(chain, q.detach(), c, 30, feet=("lfoot", "rfoot"))
+    assert m32.floating.dtype == torch.float32
+    torch.testing.assert_close(m32.floating.double(), m64.floating, atol=1e-3, rtol=0)  # mm
