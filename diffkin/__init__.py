@@ -13,6 +13,7 @@ from . import jacobian as jacobian
 from . import manipulability as manipulability
 from . import models as models
 from . import redundancy as redundancy
+from . import retarget as retarget
 from . import rotations as rotations
 from . import statics as statics
 from . import trajectories as trajectories
@@ -52,6 +53,7 @@ __all__ = [
     "manipulability",
     "models",
     "redundancy",
+    "retarget",
     "rotations",
     "statics",
     "trajectories",

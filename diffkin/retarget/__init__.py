@@ -1,0 +1,20 @@
+"""Human motion onto humanoids (issue 37): clips in (:class:`Motion`, :func:`load_bvh`, :func:`load_smpl`,
+:func:`example_clips`), robot-human pairings (:class:`Mapping`), foot contacts (:func:`detect_contacts`),
+foot soles (:class:`Sole`), the artefact metrics of a robot clip (:func:`metrics`) and the first stage
+of retargeting (:func:`clip`: per-clip scale and a frame-by-frame warm start). See
+docs/retargeting.md.
+"""
+
+from .bvh import load_bvh
+from .clip import RetargetResult, clip, fit_scale
+from .clips import example_clips
+from .contacts import detect_contacts
+from .mapping import Mapping
+from .metrics import Metrics, metrics
+from .motion import Motion
+from .smpl import SMPL_JOINT_NAMES, SMPLX_JOINT_NAMES, load_smpl
+from .sole import Sole, sole_of
+
+__all__ = ["Mapping", "Metrics", "Motion", "RetargetResult", "SMPLX_JOINT_NAMES", "SMPL_JOINT_NAMES", "Sole",
+           "clip", "detect_contacts", "example_clips", "fit_scale", "load_bvh", "load_smpl", "metrics",
+           "sole_of"]

@@ -1,0 +1,134 @@
+"""Retargeting a clip, first stage: per-clip scale and a frame-by-frame warm start through ``ik.solve``.
+
+``clip`` does not yet run the whole-clip optimisation of issue 37 (contacts held, limits and smoothness over
+all T frames at once); its result is the warm start that optimisation will take, scored by
+:func:`~diffkin.retarget.metrics`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .. import ik
+from ..errors import ModelError
+from ..validation import check_count
+from .mapping import Mapping
+from .metrics import Metrics, _scalar_columns, metrics
+from .motion import Motion
+
+__all__ = ["RetargetResult", "clip", "fit_scale"]
+
+
+@dataclass
+class RetargetResult:
+    """A retargeted clip: ``q (B, T, nq)`` in the chain's q order, ``contacts (B, T, 2)`` (left, right),
+    ``metrics`` (:func:`~diffkin.retarget.metrics` of ``q``), ``scale (B,)``, ``keypoints (B, T, K, 3)``
+    (the scaled human targets of ``keypoint_frames``), ``fps`` and the chain's ``joint_names``."""
+
+    q: Tensor
+    contacts: Tensor
+    metrics: Metrics
+    scale: Tensor
+    keypoints: Tensor
+    keypoint_frames: list[str]
+    fps: float
+    joint_names: list[str]
+    scalar_columns: list[int]
+
+    def save(self, path) -> Path:
+        """An ``.npz`` with ``q (B, T, nq)``, ``qd (B, T, n)`` (the hinge/slide joints' velocities, central
+        differences), ``root_pos (B, T, 3)`` and ``root_quat (B, T, 4)`` (w, x, y, z; when the first joint
+        is free), ``contacts``, ``fps``, ``joint_names`` (of the qd columns), ``scale``."""
+        path = Path(path)
+        q = self.q.detach().cpu().double()
+        qs = q[..., self.scalar_columns]
+        qd = torch.gradient(qs, spacing=1.0 / self.fps, dim=1)[0] if q.shape[1] > 1 else torch.zeros_like(qs)
+        names = [n for n in self.joint_names if n is not None]
+        np.savez(path, q=q.numpy(), qd=qd.numpy(), root_pos=q[..., :3].numpy(), root_quat=q[..., 3:7].numpy(),
+                 contacts=self.contacts.cpu().numpy(), fps=np.array(self.fps), joint_names=np.array(names),
+                 scale=self.scale.detach().cpu().numpy())
+        return path
+
+
+def _reference(chain) -> Tensor:
+    q = torch.zeros(chain.nq, dtype=chain.dtype, device=chain.device)
+    if chain.joint_kinds and chain.joint_kinds[0] == "free":
+        q[3] = 1.0
+    return q
+
+
+def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
+    """Per-clip scale ``(B,)``: the summed distances of the robot's keypoint frames to its root keypoint
+    (the first paired frame that is not a foot, e.g. the pelvis) at the zero configuration, over the
+    human's (mean over frames). A limb-length ratio over all mapped limbs."""
+    kp = mapping.keypoint_frames
+    roots = [f for f in kp if f not in mapping.feet]
+    if not roots:
+        raise ModelError("the mapping needs a paired frame besides the feet (a pelvis) to fit a scale")
+    r = kp.index(roots[0])
+    with torch.no_grad():
+        T0 = chain.forward_kinematics(_reference(chain))
+    P = T0[[chain.end_links.index(f) for f in kp], :3, 3]
+    H = motion.positions[:, :, motion.index(mapping.human_joints)]
+    robot = (P - P[r]).norm(dim=-1).sum()
+    human = (H - H[:, :, r : r + 1]).norm(dim=-1).sum(-1).mean(-1)
+    return (robot.to(human) / human).to(motion.positions.dtype)
+
+
+def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float = 0.0,
+         max_iterations: int = 20, contact_thresholds: dict | None = None) -> RetargetResult:
+    """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
+    ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
+
+    Stage one of issue 37: the human joints are scaled (``scale``: a number, ``(B,)``, or None for
+    :func:`fit_scale`) and followed frame by frame with position-only ``ik.solve`` (one seed, warm started
+    from the previous frame; the first frame from the zero posture, the base at the human root, turned
+    to the heading of the line from the right to the left foot). Contacts come from the human clip
+    (``mapping.contacts``), the metrics from :func:`~diffkin.retarget.metrics` of the result.
+    """
+    mapping.check(motion)
+    check_count(max_iterations, "max_iterations")
+    if list(chain.end_links) != list(mapping.frames):
+        raise ModelError(f"the chain's frames {list(chain.end_links)} must be the mapping's frames "
+                         f"{mapping.frames} (build it with mapping.frames)")
+    if not chain.joint_kinds or chain.joint_kinds[0] != "free":
+        raise ModelError("clip needs a floating-base chain (a free joint first)")
+    motion_c = Motion(motion.positions.to(chain.dtype), motion.names, motion.fps)
+    s = fit_scale(chain, motion_c, mapping) if scale is None else torch.as_tensor(
+        scale, dtype=chain.dtype).reshape(-1).expand(motion.batch)
+    X = mapping.targets(motion_c, s)  # (B, T, K, 3)
+    B, T, K = X.shape[:3]
+    kp = mapping.keypoint_frames
+    ends = list(chain.end_links)
+    tgt = torch.eye(4, dtype=chain.dtype).repeat(B, T, len(ends), 1, 1)
+    for k, f in enumerate(kp):
+        tgt[:, :, ends.index(f), :3, 3] = X[:, :, k]
+    root = [f for f in kp if f not in mapping.feet][0]
+    left, right = (X[:, 0, kp.index(f)] for f in mapping.feet) if all(f in kp for f in mapping.feet) else (
+        None, None)
+    q = _reference(chain).expand(B, -1).clone()
+    q[:, :3] = X[:, 0, kp.index(root)]
+    if left is not None:
+        d = left - right
+        yaw = torch.atan2(d[:, 1], d[:, 0]) - math.pi / 2
+        q[:, 3], q[:, 6] = torch.cos(yaw / 2), torch.sin(yaw / 2)
+    out = []
+    for t in range(T):  # over time: each frame's solve starts at the previous frame's answer
+        res = ik.solve(chain, tgt[:, t], q, num_seeds=1, max_iterations=max_iterations, position_only=True)
+        q = res.q.detach()
+        out.append(q)
+    Q = torch.stack(out, 1)
+    contacts = mapping.contacts(motion_c, **(contact_thresholds or {}))
+    m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
+                keypoint_frames=kp, sole=mapping.sole or None)
+    cols = _scalar_columns(chain)
+    names = list(getattr(chain, "joint_names", []))
+    kinds = list(chain.joint_kinds)
+    scalar_names = [n for n, k in zip(names, kinds) if k not in ("free", "ball")]
+    return RetargetResult(Q, contacts, m, s, X, kp, motion.fps, scalar_names, cols)

@@ -1,0 +1,422 @@
+"""diffkin.retarget (issue 37): the clip loaders on the shipped CMU files, the Motion checks, the foot soles
+against MuJoCo, the artefact metrics against hand-computed values, the built-in G1 mapping and contacts."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from diffkin import models, retarget
+from diffkin.errors import ConventionError, ModelError, NonFiniteError, OptionError, ShapeError
+from diffkin.retarget.bvh import CMU_UNIT
+
+mujoco = pytest.importorskip("mujoco")
+Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
+
+DATA = Path(__file__).parent / "data"
+G1_URDF = DATA / "urdf" / "g1_29dof_rev_1_0.urdf"
+G1_OLD = DATA / "mjcf" / "unitree_g1" / "g1.xml"
+C = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # y up -> z up
+
+
+def _offsets(path: Path) -> list[list[float]]:
+    """The OFFSET rows of a BVH file in order (joints and End Sites), read independently of the loader."""
+    head = path.read_text().split("MOTION")[0]
+    return [[float(v) for v in m.split()] for m in re.findall(r"OFFSET\s+([-\d.\s]+?)\s*\n", head)]
+
+
+# ------------------------------------------------------------------------------------------ loaders
+@pytest.mark.parametrize("name, frames", [("walk", 150), ("crouch", 120), ("hop", 120)])
+def test_shipped_clips_load(name, frames):
+    path = retarget.example_clips()[name]
+    m = retarget.load_bvh(path)
+    assert (m.batch, m.frames, len(m.names)) == (1, frames, 38)  # 31 joints + 7 End Sites
+    assert m.fps == 60.0
+    assert m.orientations.shape == (1, frames, 38, 3, 3)
+    # bone lengths: constant over frames and equal to the file's offsets in CMU units
+    off = np.array(_offsets(path))
+    p = m.positions[0].numpy()
+    for j, parent in enumerate(m.parents):
+        if parent < 0:
+            continue
+        length = np.linalg.norm(p[:, j] - p[:, parent], axis=-1)
+        np.testing.assert_allclose(length, np.linalg.norm(off[j]) * CMU_UNIT, atol=1e-9)
+    # standing on the floor: the lowest foot point of every frame is within a few cm of z = 0
+    feet = m.index(["LeftToe", "RightToe", "LeftToe_end", "RightToe_end", "LeftAnkle", "RightAnkle"])
+    lowest = p[:, feet, 2].min(-1)
+    assert np.all(lowest > -0.03) and np.median(lowest) < 0.08
+    # an adult: pelvis 0.8-1.1 m high in the first frame, head top above 1.3 m
+    assert 0.8 < p[0, m.index("Hips")[0], 2] < 1.1
+    assert p[0, m.index("Head_end")[0], 2] > 1.3
+
+
+def test_bvh_root_against_scipy():
+    """The root's frame and position against scipy's intrinsic Euler composition (channels Z Y X)."""
+    path = retarget.example_clips()["walk"]
+    rows = path.read_text().split("MOTION")[1].strip().splitlines()[2:]
+    m = retarget.load_bvh(path)
+    for t in (0, 77, 149):
+        v = [float(x) for x in rows[t].split()]
+        R = Rotation.from_euler("ZYX", v[3:6], degrees=True).as_matrix()
+        np.testing.assert_allclose(m.orientations[0, t, 0].numpy(), C @ R, atol=1e-12)
+        np.testing.assert_allclose(m.positions[0, t, 0].numpy(), C @ np.array(v[:3]) * CMU_UNIT, atol=1e-12)
+        # a child: LeftHipJoint (offset 0) then LeftHip at R_root R_lhj offset
+        lhj = Rotation.from_euler("ZYX", v[6:9], degrees=True).as_matrix()
+        off = np.array(_offsets(path)[2]) * CMU_UNIT
+        want = C @ (np.array(v[:3]) * CMU_UNIT + R @ lhj @ off)
+        np.testing.assert_allclose(m.joint("LeftHip")[0, t].numpy(), want, atol=1e-12)
+
+
+def test_bvh_scale_and_errors(tmp_path):
+    path = retarget.example_clips()["hop"]
+    m = retarget.load_bvh(path, scale=1.0)  # file units
+    ref = retarget.load_bvh(path)
+    torch.testing.assert_close(m.positions * CMU_UNIT, ref.positions, atol=1e-12, rtol=0)
+    with pytest.raises(ModelError, match="not found"):
+        retarget.load_bvh(tmp_path / "none.bvh")
+    bad = tmp_path / "bad.bvh"
+    text = path.read_text()
+    bad.write_text(text.replace("Frames: 120", "Frames: 121"))
+    with pytest.raises(ModelError, match="121 frames"):
+        retarget.load_bvh(bad)
+    bad.write_text(text.replace("Zrotation", "Wrotation", 1))
+    with pytest.raises(ModelError, match="unknown channel"):
+        retarget.load_bvh(bad)
+    with pytest.raises(OptionError, match="scale"):
+        retarget.load_bvh(path, scale=-1.0)
+
+
+def test_load_smpl(tmp_path):
+    rng = np.random.default_rng(0)
+    joints = rng.normal(size=(5, 24, 3))
+    np.savez(tmp_path / "a.npz", joints=joints, mocap_framerate=30.0)
+    m = retarget.load_smpl(tmp_path / "a.npz")
+    assert m.names == retarget.SMPL_JOINT_NAMES and m.fps == 30.0 and m.positions.shape == (1, 5, 24, 3)
+    np.testing.assert_allclose(m.positions[0].numpy(), joints)
+    y = retarget.load_smpl(tmp_path / "a.npz", up="y")
+    np.testing.assert_allclose(y.positions[0].numpy(), joints @ C.T)
+    np.savez(tmp_path / "x.npz", joints=rng.normal(size=(2, 4, 55, 3)), fps=np.array(120))
+    assert retarget.load_smpl(tmp_path / "x.npz").names == retarget.SMPLX_JOINT_NAMES
+    np.savez(tmp_path / "b.npz", poses=joints)
+    with pytest.raises(ModelError, match="no array 'joints'"):
+        retarget.load_smpl(tmp_path / "b.npz", fps=30)
+    np.savez(tmp_path / "c.npz", joints=rng.normal(size=(5, 17, 3)))
+    with pytest.raises(ModelError, match="17 joints"):
+        retarget.load_smpl(tmp_path / "c.npz", fps=30)
+    with pytest.raises(ModelError, match="frame rate"):
+        retarget.load_smpl(tmp_path / "c.npz", names=[f"j{i}" for i in range(17)])
+
+
+def test_motion_checks():
+    p = torch.zeros(2, 4, 3, 3)
+    m = retarget.Motion(p, ["a", "b", "c"], 30)
+    assert (m.batch, m.frames) == (2, 4) and m.duration == pytest.approx(0.1)
+    bad = p.clone()
+    bad[1, 2, 0, 1] = float("nan")
+    with pytest.raises(NonFiniteError, match=r"clip 1, frame 2"):
+        retarget.Motion(bad, ["a", "b", "c"], 30)
+    for fps in (0, -5.0, float("nan")):
+        with pytest.raises((OptionError, NonFiniteError), match="fps"):
+            retarget.Motion(p, ["a", "b", "c"], fps)
+    with pytest.raises(ShapeError, match="3 joint names"):
+        retarget.Motion(p, ["a", "b"], 30)
+    with pytest.raises(ShapeError, match="positions"):
+        retarget.Motion(torch.zeros(2, 4, 3, 2), ["a", "b", "c"], 30)
+    with pytest.raises(ShapeError, match="orientations"):
+        retarget.Motion(p, ["a", "b", "c"], 30, orientations=torch.zeros(2, 4, 3, 3))
+    with pytest.raises(ModelError, match="unique"):
+        retarget.Motion(p, ["a", "a", "c"], 30)
+    with pytest.raises(ModelError, match=r"\['zz'\]"):
+        m.index(["a", "zz"])
+
+
+# ------------------------------------------------------------------------------------- soles, metrics
+def test_sole_against_mujoco():
+    """The G1's lowest foot point from the sole read off its geoms, against MuJoCo's placed foot geoms."""
+    from diffkin.models.mjcf import compile_mjcf
+
+    feet = ["left_ankle_roll_link", "right_ankle_roll_link"]
+    chain = models.from_mjcf(G1_OLD, feet, dtype=torch.float64)
+    model = compile_mjcf(G1_OLD)[0]
+    data = mujoco.MjData(model)
+    g = torch.Generator().manual_seed(3)
+    for _ in range(4):
+        qpos = model.qpos0.copy()
+        qpos[7:] += torch.empty(model.nq - 7).uniform_(-0.3, 0.3, generator=g).numpy()
+        qpos[3:7] = Rotation.from_rotvec(torch.empty(3).uniform_(-0.4, 0.4, generator=g).numpy()).as_quat(
+            scalar_first=True)
+        data.qpos[:] = qpos
+        mujoco.mj_kinematics(model, data)
+        with torch.no_grad():
+            T = chain.forward_kinematics(chain.from_qpos(torch.as_tensor(qpos)))
+        for k, foot in enumerate(feet):
+            bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
+            gs = [i for i in range(model.ngeom) if model.geom_bodyid[i] == bid and model.geom_contype[i]
+                  and model.geom_type[i] == mujoco.mjtGeom.mjGEOM_SPHERE and model.geom_size[i, 0] < 0.005]
+            assert len(gs) == 4
+            want = min(data.geom_xpos[i, 2] - model.geom_size[i, 0] for i in gs)
+            height, centre = retarget.sole_of(chain, foot).lowest(T[k])
+            assert float(height) == pytest.approx(want, abs=1e-12)
+            np.testing.assert_allclose(centre.numpy(), data.geom_xpos[gs].mean(0), atol=1e-12)
+
+
+def test_sole_of_urdf_g1():
+    chain = models.from_urdf(G1_URDF, ["left_ankle_roll_link", "right_ankle_roll_link"], floating_base=True)
+    s = retarget.sole_of(chain, "left_ankle_roll_link")
+    np.testing.assert_allclose(s.points.numpy(), [[-0.05, 0.025, -0.03], [-0.05, -0.025, -0.03],
+                                                   [0.12, 0.03, -0.03], [0.12, -0.03, -0.03]])
+    np.testing.assert_allclose(s.radii.numpy(), [0.005] * 4)
+
+
+FEET_XML = """
+<mujoco>
+  <compiler angle="radian"/>
+  <worldbody>
+    <body name="lfoot"><freejoint/>
+      <geom type="box" size="0.1 0.05 0.02" pos="0 0 -0.03"/>
+      <geom type="sphere" size="0.5" contype="0" conaffinity="0"/>
+    </body>
+    <body name="rfoot"><freejoint/>
+      <geom type="sphere" size="0.01" pos="0.05 0 -0.02"/>
+      <geom type="sphere" size="0.01" pos="-0.05 0 -0.02"/>
+    </body>
+    <body name="arm" pos="0 0 1"><joint name="hinge" axis="0 0 1" range="-1 1"/>
+      <geom type="capsule" size="0.02 0.1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def _close(x, want):
+    torch.testing.assert_close(x, torch.tensor(want, dtype=torch.float64), atol=1e-5, rtol=0)  # mm
+
+
+def test_metrics_hand_computed():
+    """A constructed clip of two free feet and a limited hinge, 6 frames at 10 fps, every metric by hand."""
+    chain = models.from_mjcf(FEET_XML, ["lfoot", "rfoot", "arm"], dtype=torch.float64)
+    assert chain.joint_kinds == ["free", "free", "revolute"]
+    T, fps = 6, 10.0
+    q = torch.zeros(2, T, 15, dtype=torch.float64)
+    q[..., 3] = q[..., 10] = 1.0  # identity quaternions
+    # left foot: box bottom 0.05 below the body origin; right: spheres 0.03 below
+    q[0, :, 0] = torch.tensor([0.0, 0.01, 0.03, 0.03, 0.5, 0.5])
+    q[0, :, 2] = torch.tensor([0.05, 0.05, 0.045, 0.06, 0.2, 0.05])  # heights 0, 0, -5 mm, 10 mm, 150 mm, 0
+    q[0, :, 8] = torch.tensor([0.0, 0.0, 0.004, 0.004, 0.004, 0.01])
+    q[0, :, 9] = 0.04  # right sole 10 mm above the ground throughout
+    q[0, :, 14] = torch.tensor([0.0, 0.5, 1.2, 1.0, -1.5, 0.0])  # beyond the limits at 1.2 and -1.5
+    q[1] = q[0]
+    q[1, :, 14] = 0.0
+    contacts = torch.zeros(2, T, 2, dtype=torch.bool)
+    contacts[0, :, 0] = torch.tensor([1, 1, 1, 1, 0, 1], dtype=torch.bool)
+    contacts[0, :, 1] = torch.tensor([0, 1, 1, 0, 1, 1], dtype=torch.bool)
+    targets = torch.zeros(2, T, 1, 3, dtype=torch.float64)
+    targets[..., 2] = 1.003
+    m = retarget.metrics(chain, q, contacts, fps, feet=("lfoot", "rfoot"), keypoints=targets,
+                         keypoint_frames=["arm"])
+    # phases: left frames 0-3 (10 + 20 + 0 mm) and 5 (0); right 1-2 (4 mm) and 4-5 (6 mm): median (4+6)/2
+    torch.testing.assert_close(m.contact_phases, torch.tensor([4, 0]))
+    _close(m.foot_skating, [5.0, 0.0])
+    _close(m.ground_penetration, [5.0, 5.0])
+    # contact frames: left 0, 0, 0 (below counts 0), 10, 0 mm; right 10 mm x 4 -> 50 mm / 9
+    _close(m.floating, [50.0 / 9, 0.0])
+    torch.testing.assert_close(m.joint_limit_violations, torch.tensor([2, 0]))
+    _close(m.joint_limit_excess, [0.5, 0.0])
+    _close(m.max_joint_velocity, [25.0, 0.0])
+    _close(m.keypoint_error, [3.0, 3.0])
+    assert set(m.as_dict()) >= {"foot_skating", "floating", "ground_penetration", "joint_limit_violations"}
+    # an odd number of phases: the middle one; the ground raised by 10 mm: penetration grows by 10 mm
+    c1 = contacts[:1].clone()
+    c1[0, 5, 0] = False
+    m1 = retarget.metrics(chain, q[:1], c1, fps, feet=("lfoot", "rfoot"), ground=0.01)
+    _close(m1.foot_skating, [6.0])
+    _close(m1.ground_penetration, [15.0])
+
+
+def test_metrics_errors():
+    chain = models.from_mjcf(FEET_XML, ["lfoot", "rfoot", "arm"], dtype=torch.float64)
+    q = torch.zeros(1, 3, 15, dtype=torch.float64)
+    c = torch.zeros(1, 3, 2, dtype=torch.bool)
+    with pytest.raises(ModelError, match="feet"):
+        retarget.metrics(chain, q, c, 30, feet=("lfoot", "nofoot"))
+    with pytest.raises(ShapeError, match="contacts"):
+        retarget.metrics(chain, q, c[:, :2], 30, feet=("lfoot", "rfoot"))
+    with pytest.raises(OptionError, match="fps"):
+        retarget.metrics(chain, q, c, 0, feet=("lfoot", "rfoot"))
+    bad = q.clone()
+    bad[0, 1, 0] = float("nan")
+    with pytest.raises(NonFiniteError, match="q"):
+        retarget.metrics(chain, bad, c, 30, feet=("lfoot", "rfoot"))
+    with pytest.raises(ModelError, match="neither a body nor a site|not among|feet"):
+        retarget.metrics(chain, q, c, 30, feet=("lfoot", "hinge"))
+    # a capsule sole: the arm's capsule (half length 0.1, radius 0.02) at z = 1: lowest point 0.88 m
+    q[..., 3] = q[..., 10] = 1.0
+    m = retarget.metrics(chain, q, torch.ones_like(c), 30, feet=("lfoot", "arm"))
+    _close(m.floating, [880.0 / 2])
+
+
+# ------------------------------------------------------------------------------------ mapping, contacts
+def test_builtin_g1_mapping_on_the_29dof_model():
+    mp = retarget.Mapping.builtin("g1")
+    assert mp.frames[:2] == ["left_ankle_roll_link", "right_ankle_roll_link"]
+    chain = models.from_urdf(G1_URDF, mp.frames, floating_base=True)  # every frame is a body of the model
+    assert chain.end_links == mp.frames and chain.nq == 7 + 29  # the free base and all 29 hinges
+    clip = retarget.load_bvh(retarget.example_clips()["walk"])
+    mp.check(clip)
+    x = mp.targets(clip)
+    assert x.shape == (1, 150, len(mp.keypoint_frames), 3)
+    torch.testing.assert_close(x[0, :, 0], clip.joint("LeftAnkle")[0])
+    # metrics run on the mapping's chain (a standing G1 at its reference height)
+    q = torch.zeros(1, 2, chain.nq, dtype=chain.dtype)
+    q[..., 2], q[..., 3] = 0.793, 1.0
+    m = retarget.metrics(chain, q, torch.ones(1, 2, 2, dtype=torch.bool), 30, feet=mp.feet)
+    assert m.joint_limit_violations.item() == 0 and m.max_joint_velocity.item() == 0.0
+
+
+def test_mapping_errors():
+    clip = retarget.load_bvh(retarget.example_clips()["walk"])
+    mp = retarget.Mapping({"left_ankle_roll_link": "LeftAnkle", "right_ankle_roll_link": "RightAnkle",
+                           "pelvis": "Pelvis"}, feet=("left_ankle_roll_link", "right_ankle_roll_link"))
+    with pytest.raises(ModelError, match="'Pelvis'"):
+        mp.check(clip)
+    with pytest.raises(ModelError, match="feet"):
+        retarget.Mapping({"a": "b"}, feet=("a", "a"))
+    with pytest.raises(ModelError, match="weights"):
+        retarget.Mapping({"a": "b", "c": "d"}, feet=("a", "c"), weights={"zz": 1.0})
+    with pytest.raises(ConventionError, match="no built-in"):
+        retarget.Mapping.builtin("nao")
+    mp2 = retarget.Mapping({"a": "LeftAnkle", "c": "RightAnkle", "p": "Hips"}, feet=("a", "c"),
+                           weights={"p": (2.0, 0.5)}, offsets={"p": (0, 0, 0.1)})
+    torch.testing.assert_close(mp2.weights[2], torch.tensor([2.0, 0.5], dtype=torch.float64))
+    torch.testing.assert_close(mp2.targets(clip, scale=0.5)[0, :, 2],
+                               0.5 * clip.joint("Hips")[0] + torch.tensor([0, 0, 0.1], dtype=torch.float64))
+
+
+def test_contacts_of_the_walk():
+    clip = retarget.load_bvh(retarget.example_clips()["walk"])
+    c = retarget.Mapping.builtin("g1").contacts(clip)[0]
+    assert c.shape == (150, 2)
+    assert c.any(-1).float().mean() > 0.9  # walking: a foot on the ground almost always
+    assert (~c).any(0).all() and c.any(0).all()  # each foot both swings and stands
+    # a swinging foot moves: the ankle's mean horizontal speed off contact is several times that in contact
+    for side, k in (("Left", 0), ("Right", 1)):
+        ankle = clip.joint(f"{side}Ankle")[0, :, :2]
+        v = (ankle[1:] - ankle[:-1]).norm(dim=-1) * clip.fps
+        stance = c[1:, k] & c[:-1, k]
+        assert v[~c[1:, k]].mean() > 3 * v[stance].mean() and v[~c[1:, k]].max() > 1.0
+    none = retarget.detect_contacts(clip, ("LeftToe", "RightToe"), height=1e-3)
+    assert not none.any()
+    with pytest.raises(OptionError, match="speed"):
+        retarget.detect_contacts(clip, ("LeftToe", "RightToe"), speed=0)
+
+
+# ------------------------------------------------------------------------------------------- clip
+def test_clip_round_trip_of_a_robot_clip(tmp_path):
+    """A G1 clip made by diffkin's FK (feet planted, arms moving) mapped back through retarget.clip: the
+    keypoints and the elbow motion are recovered and the feet do not skate."""
+    clip = retarget.clip
+
+    mp0 = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp0.frames, floating_base=True, dtype=torch.float64)
+    T = 20
+    q = torch.zeros(T, g1.nq, dtype=torch.float64)
+    q[:, 2], q[:, 3] = 0.793, 1.0
+    names = g1.joint_names
+    col = {n: 7 + i for i, n in enumerate(names[1:])}  # free joint first, then one column per hinge
+    s = torch.linspace(0, 1, T, dtype=torch.float64)
+    q[:, col["left_elbow_joint"]] = 0.3 + 0.8 * s
+    q[:, col["right_elbow_joint"]] = 1.0 - 0.6 * s
+    q[:, col["left_shoulder_pitch_joint"]] = -0.5 * s
+    with torch.no_grad():
+        P = g1.forward_kinematics(q)[..., :3, 3]  # (T, K, 3)
+    motion = retarget.Motion(P, mp0.frames, 30.0)
+    identity = retarget.Mapping({f: f for f in mp0.frames}, feet=mp0.feet)
+    r = clip(g1, motion, identity, scale=1.0)
+    assert r.q.shape == (1, T, g1.nq) and r.contacts.all()
+    assert r.metrics.keypoint_error.item() < 1.0  # mm
+    assert r.metrics.foot_skating.item() < 1.0 and r.metrics.ground_penetration.item() == 0.0
+    assert int(r.metrics.joint_limit_violations) == 0
+    # position targets leave the wrist's small link offsets redundant with the elbow: recovered to 0.05 rad
+    for j in ("left_elbow_joint", "right_elbow_joint"):
+        torch.testing.assert_close(r.q[0, :, col[j]], q[:, col[j]], atol=5e-2, rtol=0)
+    # MuJoCo-free reference: the reported keypoint error is the FK distance to the targets
+    with torch.no_grad():
+        fk = g1.forward_kinematics(r.q[0])[..., :3, 3]
+    assert float((fk - P).norm(dim=-1).mean() * 1000) == pytest.approx(r.metrics.keypoint_error.item())
+    out = np.load(r.save(tmp_path / "clip.npz"))
+    assert out["q"].shape == (1, T, g1.nq) and out["qd"].shape == (1, T, 29)
+    assert float(out["fps"]) == 30.0 and len(out["joint_names"]) == 29
+    np.testing.assert_allclose((out["root_quat"][0] ** 2).sum(-1), 1.0)
+
+
+def test_clip_of_the_shipped_walk_runs_and_is_scored():
+    clip, fit_scale = retarget.clip, retarget.fit_scale
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(0, 30)
+    s = fit_scale(g1, walk, mp)
+    assert 0.7 < float(s) < 1.0  # the G1 (1.3 m) is smaller than the CMU subject
+    r = clip(g1, walk, mp)
+    torch.testing.assert_close(r.scale, s)
+    assert r.q.shape == (1, 30, g1.nq) and torch.isfinite(r.q).all()
+    assert int(r.metrics.joint_limit_violations) == 0  # ik.solve respects the limits
+    assert r.metrics.keypoint_error.item() < 100.0  # mm: a warm start, not yet the whole-clip optimisation
+    with pytest.raises(ModelError, match="mapping's frames"):
+        clip(models.from_urdf(G1_URDF, mp.frames[::-1], floating_base=True), walk, mp)
+
+
+def test_h1_capsule_sole_against_mujoco():
+    """The H1's feet are three capsules (``fromto``): the lowest sole point vs MuJoCo's placed capsules."""
+    from diffkin.models.mjcf import compile_mjcf
+
+    path = DATA / "mjcf" / "unitree_h1" / "h1.xml"
+    mp = retarget.Mapping.builtin("h1")
+    chain = models.from_mjcf(path, mp.frames, dtype=torch.float64)
+    model = compile_mjcf(path)[0]
+    data = mujoco.MjData(model)
+    qpos = model.qpos0.copy()
+    qpos[2] = 1.0
+    qpos[3:7] = Rotation.from_rotvec([0.2, -0.3, 0.5]).as_quat(scalar_first=True)
+    qpos[7:] += np.linspace(-0.3, 0.3, model.nq - 7)
+    data.qpos[:] = qpos
+    mujoco.mj_kinematics(model, data)
+    with torch.no_grad():
+        T = chain.forward_kinematics(chain.from_qpos(torch.as_tensor(qpos)))
+    for k, foot in enumerate(mp.feet):
+        bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, foot)
+        caps = [i for i in range(model.ngeom) if model.geom_bodyid[i] == bid
+                and model.geom_type[i] == mujoco.mjtGeom.mjGEOM_CAPSULE and model.geom_contype[i]]
+        assert len(caps) == 3
+        ends = [data.geom_xpos[i] + sgn * model.geom_size[i, 1] * data.geom_xmat[i].reshape(3, 3)[:, 2]
+                for i in caps for sgn in (-1, 1)]
+        want = min(e[2] - model.geom_size[caps[0], 0] for e in ends)
+        height, _ = retarget.sole_of(chain, foot).lowest(T[k])
+        assert height.item() == pytest.approx(want, abs=1e-12)
+
+
+def test_metrics_gradients_and_float32():
+    """Penetration and floating are differentiable in q (finite differences, float64), and the metrics
+    follow a float32 chain."""
+    chain = models.from_mjcf(FEET_XML, ["lfoot", "rfoot", "arm"], dtype=torch.float64)
+    q = torch.zeros(1, 3, 15, dtype=torch.float64)
+    q[..., 3] = q[..., 10] = 1.0
+    q[..., 4] = 0.1  # a tilted box: one lowest corner
+    q[..., 2] = torch.tensor([0.02, 0.06, 0.07], dtype=torch.float64)
+    q[..., 9] = 0.05
+    c = torch.ones(1, 3, 2, dtype=torch.bool)
+
+    def f(x):
+        m = retarget.metrics(chain, x, c, 30, feet=("lfoot", "rfoot"))
+        return torch.stack((m.ground_penetration, m.floating), -1)
+
+    assert torch.autograd.gradcheck(f, (q.requires_grad_(),), eps=1e-7, atol=1e-5)
+    chain32 = models.from_mjcf(FEET_XML, ["lfoot", "rfoot", "arm"], dtype=torch.float32)
+    m32 = retarget.metrics(chain32, q.detach().float(), c, 30, feet=("lfoot", "rfoot"))
+    m64 = retarget.metrics(chain, q.detach(), c, 30, feet=("lfoot", "rfoot"))
+    assert m32.floating.dtype == torch.float32
+    torch.testing.assert_close(m32.floating.double(), m64.floating, atol=1e-3, rtol=0)  # mm
