@@ -794,9 +794,9 @@ _DESCRIPTIONS = {
                  "--mjcf FILE with --end-link. --output FILE.yaml (DH robot), FILE.urdf (URDF robot) or\n"
                  "FILE.xml (MJCF robot) writes the robot; --output DIR writes DIR/calibrated.yaml|urdf|xml\n"
                  "with parameters.md, report.json and residuals.png.\n"
-                 "A result that fails its plausibility checks (held-out error or noise ratio more than 5x the\n"
-                 "fit, a link corrected by more than 5 cm / 10 deg: data of another robot) is not written\n"
-                 "and exits with status 2 (the report directory is written); --force writes it.",
+                 "A result that fails its plausibility checks (held-out error or noise ratio more than 5x\n"
+                 "the fit, a link corrected by more than 5 cm / 10 deg: data of another robot) is not\n"
+                 "written and exits with status 2 (the report directory is written); --force writes it.",
     "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal, or a cubic spline through --points)\n"
                   "or a Cartesian straight-line trajectory and export t, position, velocity, acceleration.",
     "train": "Train an SB3 agent from a run config (calls diffkin.training.train in this process; needs\n"
@@ -933,8 +933,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "gets the robot and the report (parameters.md, report.json, residuals.png)")
     p.add_argument("--force", action="store_true",
                    help="write the calibrated robot and exit 0 even when the result fails its plausibility "
-                        "checks (held-out error or noise ratio more than 5x the fit, a link corrected by more "
-                        "than 5 cm / 10 deg: the data are probably of another robot)")
+                        "checks (held-out error or noise ratio more than 5x the fit, a link corrected by "
+                        "more than 5 cm / 10 deg: the data are probably of another robot)")
     p.add_argument("--report-dir", dest="report_dir", action=_Deprecated, new="--output DIR")
     p.add_argument("--no-progress", dest="no_progress", action="store_true",
                    help="no progress bar (shown only when stderr is a terminal)")

@@ -113,7 +113,8 @@ def _fixed_to(tree, link: str) -> list[str]:
     return out
 
 
-def end_link_fit(nominal, calibrated, q: Tensor, bound: tuple[float, float]) -> tuple[str, float, float] | None:
+def end_link_fit(nominal, calibrated, q: Tensor, bound: tuple[float, float]
+                 ) -> tuple[str, float, float] | None:
     """For a URDF robot: ``(link, translation, angle)`` of the link rigidly attached to the last moving link
     whose nominal frame the calibrated end frame is nearest to (X_n compared at the poses ``q``), when that
     is within ``bound`` and it is not the chain's own end link; else None."""
