@@ -387,6 +387,20 @@ def optimize(
 
     Returns:
         :class:`IKResult`; ``success`` is judged from an exact FK in the chain's dtype (and the limits).
+        Gauss–Newton stops only when every sample's last step was accepted with a gain below
+        ``tolerance_change`` or fails at the largest damping (a stationary point); a rejected step only raises
+        the damping. A sample that accepted no step before the budget ran out (q0 returned unmoved, short of
+        a stationary point) has ``success`` False.
+
+    Raises:
+        :class:`~diffkin.errors.OptionError` naming the option (``max_iterations`` an integer >= 1, ``lr``
+        > 0, ``damping`` and ``tolerance_change`` >= 0, ``unroll`` a bool or an integer >= 0, a cost's
+        ``weight`` / ``orientation_weight`` / ``margin`` >= 0, ``margin`` without ``collision``; NaN: the
+        :class:`~diffkin.errors.NonFiniteOptionError` subclass); :class:`~diffkin.errors.ConventionError`
+        for ``costs`` that is not a non-empty list of terms; :class:`~diffkin.errors.ShapeError` for a term
+        whose value at q0 is not one number per sample or a ``q_rest`` of the wrong length;
+        :class:`~diffkin.errors.NonFiniteError` naming the term whose cost is NaN/inf at q0, or turns NaN/inf
+        during L-BFGS or Adam (Gauss–Newton rejects such steps).
 
     **Gradients.** With grad mode on and ``T_target`` or a chain parameter requiring grad, ``q`` is
     differentiable w.r.t. both. By default from the stationarity of the summed cost at the solution,
