@@ -95,6 +95,9 @@ def _check_device(device: str) -> None:
 
 def _robot_source(args) -> tuple[str, str | None]:
     """``(source, end_link)`` of the robot options: ``--urdf`` / ``--mjcf FILE --end-link`` or ``--robot``."""
+    given = [f"--{f}" for f in ("robot", "urdf", "mjcf") if getattr(args, f, None)]
+    if len(given) > 1:  # one would be ignored silently
+        raise DiffkinError(f"give the robot once: {' and '.join(given)} were both given")
     for flag in ("urdf", "mjcf"):
         path = getattr(args, flag, None)
         if path:

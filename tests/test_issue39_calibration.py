@@ -167,7 +167,7 @@ def test_item29_calibrate_names_the_robot_as_fk_does(tmp_path):
     err = (back.forward_kinematics(q)[:, :3, 3].detach() - T[:, :3, 3]).norm(dim=-1)
     assert float(err.max()) < 1e-6
     # the same mistakes, the same messages as fk
-    for args in (["--mjcf", xml], ["--robot", UR5_URDF], []):
+    for args in (["--mjcf", xml], ["--robot", UR5_URDF], [], ["--robot", "ur5", "--mjcf", xml]):
         cal = run_cli("calibrate", *args, "--data", tmp_path / "m.npz", "--output", tmp_path / "x.yaml")
         fk = run_cli("fk", *args, "--random", "2")
         assert cal.returncode == fk.returncode == 2 and cal.stderr == fk.stderr, (cal.stderr, fk.stderr)
