@@ -40,13 +40,13 @@ def run(args=None) -> list[dict]:
     threads = getattr(args, "threads", None) or 1
     repeats = 3 if quick else 5
     with torch_threads(threads):
-        chain = models.load("panda", dtype=dtype)
+        chain = models.load("panda", dtype=dtype, learnable=True)
         q_true = chain.random_configuration((N,), generator=torch.Generator().manual_seed(0))
         with torch.no_grad():
             T = chain.forward_kinematics(q_true)
         q_rest = 0.5 * sum(chain.lower_upper())
         rows = []
-        frozen = models.load("panda", dtype=dtype).requires_grad_(False)
+        frozen = models.load("panda", dtype=dtype)  # the default: geometry frozen
         for name, solve in (
             ("solve (grads: targets + DH table, base, tool)", lambda Tg: ik.solve(chain, Tg, seed=1)),
             ("solve (grads: targets, chain frozen)", lambda Tg: ik.solve(frozen, Tg, seed=1)),

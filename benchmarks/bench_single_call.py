@@ -2,9 +2,9 @@
 
 * single-target ``ik.solve`` (Panda, float64, 1 thread, 0.1 mm / 1 mrad within the limits, random targets,
   one call each): median per call, against Robotics Toolbox's C++ ``ik_LM`` on the same targets (success
-  checked independently by :func:`benchmarks.bench_ik.verify`). Two chain states: parameters frozen
-  (``requires_grad_(False)``: the lean path) and the default (parameters requiring grad: the C solve plus
-  the implicit-gradient attachment);
+  checked independently by :func:`benchmarks.bench_ik.verify`). Two chain states: the default, parameters
+  frozen (the lean path), and a learnable chain (``learnable=True``: the C solve plus the implicit-gradient
+  attachment);
 * batch-1 FK and FK + Jacobian (the lean path, ``torch.no_grad()``), median per call, against Pinocchio's
   and Robotics Toolbox's C++ calls of one configuration in the same run;
 * batched ``ik.solve`` of N Panda targets on 1 and 2 threads: the C solve (``dk_solve``) against the scheduled
@@ -42,10 +42,9 @@ def _median_us(fn, items) -> tuple[float, list]:
 def single_target(n: int) -> list[dict]:
     _, T = make_targets(n, seed=1)
     rows = []
-    for label, frozen in (("lean path (params frozen)", True), ("default chain (grad attached)", False)):
-        chain = models.load("panda", dtype=torch.float64)
-        if frozen:
-            chain.requires_grad_(False)
+    for label, frozen in (("lean path (default chain, params frozen)", True),
+                          ("learnable chain (grad attached)", False)):
+        chain = models.load("panda", dtype=torch.float64, learnable=not frozen)
         ik.solve(chain, T[0], seed=0)  # warm-up (the per-chain state)
         us, res = _median_us(lambda i, c=chain: ik.solve(c, T[i], seed=i), range(n))
         q = torch.stack([r.q.detach() for r in res])

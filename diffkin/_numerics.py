@@ -32,14 +32,15 @@ def eps_for(x: Tensor | torch.dtype) -> float:
 
 
 def safe_sqrt(x: Tensor, eps: float | None = None) -> Tensor:
-    """sqrt with a finite gradient at 0 (gradient 0 there instead of inf)."""
+    """sqrt with a finite gradient at 0 (gradient 0 there instead of inf); 0 for x <= eps², NaN for NaN
+    (NaN in, NaN out: a NaN coordinate never becomes a plausible zero length or distance)."""
     tiny = (eps if eps is not None else eps_for(x)) ** 2
-    pos = x > tiny
-    return torch.where(pos, torch.sqrt(torch.where(pos, x, torch.ones_like(x))), torch.zeros_like(x))
+    small = x <= tiny  # False for NaN: the NaN reaches the sqrt and the result
+    return torch.where(small, torch.zeros_like(x), torch.sqrt(torch.where(small, torch.ones_like(x), x)))
 
 
 def safe_norm(v: Tensor, dim: int = -1, keepdim: bool = False) -> Tensor:
-    """Euclidean norm with a finite (zero) gradient at the zero vector."""
+    """Euclidean norm with a finite (zero) gradient at the zero vector; NaN where ``v`` holds NaN."""
     return safe_sqrt((v * v).sum(dim=dim, keepdim=keepdim))
 
 

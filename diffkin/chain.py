@@ -10,6 +10,10 @@ say what their parameters are and how they map to those transforms (:meth:`Kinem
 Base and tool are learnable too: T_base = T_base,nominal · Δ(``base_delta``), T_tool = T_tool,nominal ·
 Δ(``tool_delta``), with Δ a pose correction that stays rigid for any value (both deltas start at zero).
 
+Learnable means able to learn, on request: the geometry is frozen (``requires_grad=False``) by default, so
+that a solve or an FK call returns plain tensors and takes the constant fast path; ``learnable=True`` on
+the constructor or loader, or ``chain.requires_grad_()``, makes it trainable.
+
 The evaluations of the product, chosen in one place (:meth:`KinematicChain._route`):
 
 * CPU calls that need no gradient (``torch.no_grad()``, or neither ``q`` nor a parameter requires grad): the
@@ -36,7 +40,7 @@ import torch
 from torch import Tensor, nn
 
 from ._deprecation import deprecated_alias
-from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, ShapeError
+from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, OptionError, ShapeError
 from .kernels import native, single
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.configuration import ConfigurationSpace
@@ -47,6 +51,7 @@ from .transforms import as_rigid_transform, check_transform
 from .validation import (
     SUPPORTED_DTYPES,
     as_tensor,
+    broadcast_batch,
     check_dtype,
     check_finite,
     check_given,
@@ -107,8 +112,19 @@ def _is_plain(t: Tensor) -> bool:
     return type(t) in (Tensor, nn.Parameter) and not torch._C._functorch.is_functorch_wrapped_tensor(t)
 
 
+def _check_learnable(learnable) -> None:
+    if not isinstance(learnable, bool):
+        raise OptionError(f"learnable must be True or False, got {learnable!r}")
+
+
 class KinematicChain(nn.Module):
     """A tree of one-DOF joints from a base to K end links; ``n`` independent joint variables.
+
+    Geometry is frozen by default: every ``nn.Parameter`` of a chain (DH table, URDF / MJCF origins and
+    axes, base and tool corrections) has ``requires_grad=False``, so results carry no autograd graph unless
+    ``q`` asks for one. ``learnable=True`` (on every constructor and loader) or ``chain.requires_grad_()``
+    makes the geometry trainable (gradients w.r.t. it, optimisers over ``chain.parameters()``);
+    :attr:`learnable` says whether any of it is.
 
     Shapes: ``q`` is ``(..., n)``; poses are ``(..., 4, 4)`` for a chain with one end link (``K = 1``, made
     from a single end-link name), ``(..., K, 4, 4)`` for one made from a list of end links; Jacobians
@@ -128,8 +144,10 @@ class KinematicChain(nn.Module):
     planar: bool = False
 
     def __init__(self, topology: Topology, q_limits=None, name: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None, single_end: bool = True):
+                 dtype: torch.dtype | None = None, device=None, single_end: bool = True,
+                 learnable: bool = False):
         super().__init__()
+        _check_learnable(learnable)
         dtype = dtype or torch.get_default_dtype()
         if not dtype.is_floating_point or dtype not in (torch.float32, torch.float64):
             raise DTypeError(f"a chain's dtype must be torch.float32 or torch.float64, got {dtype}")
@@ -149,8 +167,8 @@ class KinematicChain(nn.Module):
         self.register_buffer("q_limits", None)
         self.register_buffer("base_nominal", None)
         self.register_buffer("tool_nominal", None)
-        self.base_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
-        self.tool_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device))
+        self.base_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device), requires_grad=learnable)
+        self.tool_delta = nn.Parameter(torch.zeros(6, dtype=dtype, device=device), requires_grad=learnable)
         if q_limits is not None:
             from .validation import check_fits_dtype  # (local: this block is the only user in chain.py)
 
@@ -205,8 +223,17 @@ class KinematicChain(nn.Module):
 
     def interpolate(self, q0: Tensor, q1: Tensor, s) -> Tensor:
         """The geodesic between two configurations at ``s (...)`` ∈ [0, 1]: linear on angles and lengths,
-        slerp on quaternions."""
-        return self.configuration_space.interpolate(self.check_q(q0, "q0"), self.check_q(q1, "q1"), s)
+        slerp on quaternions; ``q0, q1 (..., nq)`` -> ``(..., nq)``.
+
+        ``s`` follows the rule of :mod:`diffkin.validation` (a number, sequence, array or float tensor of the
+        chain's dtype and device; finite: :class:`~diffkin.errors.NonFiniteError`; complex, bool or text:
+        :class:`~diffkin.errors.DTypeError`); its shape is a batch shape that must broadcast with those of
+        q0 and q1 (:class:`~diffkin.errors.ShapeError`). Values outside [0, 1] extrapolate along the geodesic.
+        """
+        q0, q1 = self.check_q(q0, "q0"), self.check_q(q1, "q1")
+        (s,) = tensors(("s", check_given(s, "s", "interpolation parameters (...)"), None), like=self)
+        broadcast_batch(("q0", q0, 1), ("q1", q1, 1), ("s", s, 0))
+        return self.configuration_space.interpolate(q0, q1, s)
 
     def neutral_configuration(self) -> Tensor:
         """The neutral configuration ``(nq,)``: zeros, and identity quaternions (1, 0, 0, 0)."""
@@ -452,9 +479,18 @@ class KinematicChain(nn.Module):
         return T.squeeze(-3) if self._single_end else T
 
     # -------------------------------------------------------------------------------------------- FK
-    def _row_base(self, base, check: bool) -> Tensor:
-        """Per-row base poses ``(..., 4, 4)`` by the rule (the chain's dtype and device), checked rigid."""
+    def _row_base(self, base, check: bool, batch: Sequence[int] | None = None, of: str = "q") -> Tensor:
+        """Per-row base poses ``(..., 4, 4)`` by the rule (the chain's dtype and device), checked rigid; with
+        ``batch`` (the batch dims of ``of``: q or the targets) their batch dims must broadcast with it
+        (:class:`ShapeError` naming both, instead of a matmul error)."""
         (base,) = tensors(("base", base, (4, 4)), like=self)
+        if batch is not None:
+            try:
+                torch.broadcast_shapes(tuple(batch), base.shape[:-2])
+            except RuntimeError:
+                got = f"{of} {shape_str(tuple(batch))}, got base {shape_str(base.shape)}"
+                raise ShapeError(f"expected base of shape (..., 4, 4) whose batch dims broadcast with those "
+                                 f"of {got}") from None
         return check_transform(base, "base") if check else base
 
     def _in_world(self, T: Tensor, base: Tensor, per_end: bool) -> Tensor:
@@ -482,7 +518,9 @@ class KinematicChain(nn.Module):
                 return T
         if base is not None:
             T = self.forward_kinematics(q, all_frames, check)
-            return self._in_world(T, self._row_base(base, check), all_frames or not self._single_end)
+            per_end = all_frames or not self._single_end
+            B = self._row_base(base, check, T.shape[: T.ndim - (3 if per_end else 2)])
+            return self._in_world(T, B, per_end)
         if check:
             q = self.check_q(q, finite=False)
         if _autocast(q):  # poses in the chain's dtype: half precision would move a Panda's flange by mm
@@ -568,7 +606,7 @@ class KinematicChain(nn.Module):
             return TJ
         if base is not None:
             T, J = self._fk_jacobian(q, check)
-            B = self._row_base(base, check)
+            B = self._row_base(base, check, T.shape[: T.ndim - (2 if self._single_end else 3)])
             R = B[..., :3, :3] if self._single_end else B[..., None, :3, :3]
             J = torch.cat((R @ J[..., :3, :], R @ J[..., 3:, :]), dim=-2)
             return self._in_world(T, B, not self._single_end), J
@@ -687,6 +725,21 @@ class KinematicChain(nn.Module):
 
         return analytical_jacobian(self, q, representation=representation, **kwargs)
 
+    def center_of_mass(self, q: Tensor) -> Tensor:
+        """Centre of mass ``(..., 3)`` of the model's bodies at ``q (..., nq)``, in the base frame (MuJoCo's
+        ``subtree_com`` of the root body); see :mod:`diffkin.center_of_mass`. Needs link masses (URDF
+        ``<inertial>``, MJCF): a chain without them raises :class:`~diffkin.errors.ModelError`."""
+        from .center_of_mass import center_of_mass
+
+        return center_of_mass(self, q)
+
+    def com_jacobian(self, q: Tensor) -> Tensor:
+        """Jacobian ``(..., 3, nv)`` of :meth:`center_of_mass`: Σ_i (m_i / M) J_P(p_i), the linear rows of
+        (3.30) at each body's centre of mass (``mj_jacSubtreeCom``); see :mod:`diffkin.center_of_mass`."""
+        from .center_of_mass import com_jacobian
+
+        return com_jacobian(self, q)
+
     def forward_kinematics_and_jacobian(self, q: Tensor, frame=None, point: Tensor | None = None,
                                         point_frame: str = "ee", check: bool = True,
                                         base: Tensor | None = None) -> tuple[Tensor, Tensor]:
@@ -776,6 +829,11 @@ class KinematicChain(nn.Module):
         return random_configuration(self, shape, generator, collision=collision, world=world, margin=margin,
                                     max_rounds=max_rounds, return_mask=return_mask)
 
+    @property
+    def learnable(self) -> bool:
+        """Whether any geometry parameter requires grad (``learnable=True`` or ``requires_grad_()``)."""
+        return any(p.requires_grad for p in self.parameters())
+
     def copy(self) -> KinematicChain:
         """An independent deep copy (not compiled: a compiled path is bound to its own chain)."""
         import copy
@@ -848,8 +906,9 @@ def _as_float64(chain: KinematicChain) -> KinematicChain:
 class DHChain(KinematicChain):
     """Serial chain from a Denavit–Hartenberg table (§2.8.2).
 
-    ``a``, ``alpha``, ``d``, ``theta`` (each ``(n,)``) are ``nn.Parameter`` s, so FK is differentiable with
-    respect to the DH table by default (calibration builds on this). For a revolute joint ``theta`` is the
+    ``a``, ``alpha``, ``d``, ``theta`` (each ``(n,)``) are ``nn.Parameter`` s, frozen unless
+    ``learnable=True`` (or ``chain.requires_grad_()``): then FK is differentiable with respect to the DH
+    table (gradient-based identification, a learnt tool). For a revolute joint ``theta`` is the
     joint offset (ϑ_i = theta_i + q_i); for a prismatic joint ``theta`` is its constant angle and
     d_i = d_i + q_i (2.52).
 
@@ -885,7 +944,9 @@ class DHChain(KinematicChain):
         beta=None,
         dtype: torch.dtype | None = None,
         device=None,
+        learnable: bool = False,
     ):
+        _check_learnable(learnable)
         if convention not in _CONVENTIONS:
             raise ConventionError(f"convention must be one of {_CONVENTIONS}, got {convention!r}")
         if beta is not None and convention != "standard":
@@ -903,13 +964,13 @@ class DHChain(KinematicChain):
                 f"got {joint_types!r}"
             )
         topo = Topology.serial([c == "R" for c in joint_types])
-        super().__init__(topo, q_limits=q_limits, name=name, dtype=dtype, device=device)
+        super().__init__(topo, q_limits=q_limits, name=name, dtype=dtype, device=device, learnable=learnable)
         self.convention = convention
-        self.a = nn.Parameter(cols["a"])
-        self.alpha = nn.Parameter(cols["alpha"])
-        self.d = nn.Parameter(cols["d"])
-        self.theta = nn.Parameter(cols["theta"])
-        self.beta = None if beta is None else nn.Parameter(cols["beta"])
+        self.a = nn.Parameter(cols["a"], requires_grad=learnable)
+        self.alpha = nn.Parameter(cols["alpha"], requires_grad=learnable)
+        self.d = nn.Parameter(cols["d"], requires_grad=learnable)
+        self.theta = nn.Parameter(cols["theta"], requires_grad=learnable)
+        self.beta = None if beta is None else nn.Parameter(cols["beta"], requires_grad=learnable)
         # the constructor decides the chain's dtype: float base/tool tensors are converted to it
         base, tool = (check_dtype(T, k).detach().to(dtype) if isinstance(T, Tensor) else T
                       for k, T in (("base", base), ("tool", tool)))
@@ -926,7 +987,8 @@ class DHChain(KinematicChain):
         return torch.stack([self.a, self.alpha, self.d, self.theta], dim=-1).detach()
 
     def copy(self) -> DHChain:
-        """An independent copy (parameters cloned, gradients not shared, not compiled)."""
+        """An independent copy (parameters cloned, each as learnable as its original; gradients not shared,
+        not compiled)."""
         c = DHChain(
             self.a.detach().clone(),
             self.alpha.detach().clone(),
@@ -942,17 +1004,20 @@ class DHChain(KinematicChain):
         )
         c.metadata = dict(self.metadata)
         c.home, c.planar = None if self.home is None else list(self.home), self.planar
+        for key, p in self.named_parameters():
+            c.get_parameter(key).requires_grad_(p.requires_grad)
         return c
 
     # ----------------------------------------------------------------------------------- YAML / dict
     @classmethod
-    def from_dict(cls, data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
+    def from_dict(cls, data: dict, dtype: torch.dtype | None = None, device=None, where: str = "", *,
+                  learnable: bool = False) -> DHChain:
         """Chain from a model mapping (YAML schema of :mod:`diffkin.models.io`); values may be expressions."""
         from .models.io import parse_chain_dict
 
         kwargs = parse_chain_dict(data, dtype=dtype, device=device, where=where)
         metadata, home, planar = kwargs.pop("metadata"), kwargs.pop("home"), kwargs.pop("planar")
-        chain = cls(**kwargs)
+        chain = cls(**kwargs, learnable=learnable)
         chain.metadata, chain.home, chain.planar = metadata, home, planar
         return chain
 
@@ -963,12 +1028,13 @@ class DHChain(KinematicChain):
         return chain_to_dict(self)
 
     @classmethod
-    def from_yaml(cls, path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
+    def from_yaml(cls, path_or_str, dtype: torch.dtype | None = None, device=None, *,
+                  learnable: bool = False) -> DHChain:
         """Chain from a YAML file path or a YAML string (see :mod:`diffkin.models` for the schema)."""
         from .models.io import read_yaml
 
         data, where = read_yaml(path_or_str)
-        return cls.from_dict(data, dtype=dtype, device=device, where=where)
+        return cls.from_dict(data, dtype=dtype, device=device, where=where, learnable=learnable)
 
     def to_yaml(self, path=None) -> str:
         """YAML text of :meth:`to_dict` (angles that are exact multiples of π/12 written as e.g. ``pi/2``);

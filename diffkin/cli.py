@@ -427,35 +427,45 @@ def cmd_trajectory(args) -> int:
     if args.plot:
         check_output_path(args.plot, (".png", ".pdf", ".svg"))
     t = torch.linspace(0.0, args.duration, args.samples, dtype=torch.float64)
-    if args.space == "joint":
-        if args.points:
-            pts = torch.as_tensor(read_array(args.points, key="points"), dtype=torch.float64)
-            if pts.ndim != 2 or pts.shape[0] < 2:
-                raise DiffkinError(
-                    f"{args.points}: expected via points of shape (N >= 2, n), got {tuple(pts.shape)}"
-                )
-            if not bool(torch.isfinite(pts).all()):
-                raise DiffkinError(f"{args.points}: the via points hold NaN or inf")
-            times = torch.linspace(0.0, args.duration, pts.shape[0], dtype=torch.float64)
-            traj = tr.cubic_spline(pts, times, t)
-        else:
-            if args.start is None or args.end is None:
-                raise DiffkinError("give --points FILE, or --start and --end joint vectors")
-            qi = torch.tensor(args.start, dtype=torch.float64)
-            qf = torch.tensor(args.end, dtype=torch.float64)
-            if qi.shape != qf.shape:
-                raise DiffkinError(f"--start has {qi.numel()} values but --end has {qf.numel()}")
-            fn = {"cubic": tr.cubic, "quintic": tr.quintic, "trapezoidal": tr.trapezoidal}[args.profile]
-            traj = fn(qi, qf, torch.tensor(args.duration, dtype=torch.float64), t)
+    profile = args.profile or "quintic"
+    if args.points:
+        # through a sequence of points (§4.2.2; in operational space "a smooth interpolating vector function
+        # between the path points", §4.3): a cubic spline, the points at equally spaced times
+        given = [f for f, v in (("--profile", args.profile), ("--start", args.start), ("--end", args.end))
+                 if v is not None]
+        if given:
+            raise DiffkinError(f"{' and '.join(given)} cannot be combined with --points (the spline passes "
+                               "through the points' first and last rows); give --points FILE, or --start "
+                               "and --end")
+        pts = torch.as_tensor(read_array(args.points, key="points"), dtype=torch.float64)
+        width = "3 (x, y, z)" if args.space == "cartesian" else "n"
+        if pts.ndim != 2 or pts.shape[0] < 2 or (args.space == "cartesian" and pts.shape[1] != 3):
+            raise DiffkinError(
+                f"{args.points}: expected {'Cartesian ' if args.space == 'cartesian' else ''}via points of "
+                f"shape (N >= 2, {width}), got {tuple(pts.shape)}"
+            )
+        if not bool(torch.isfinite(pts).all()):
+            raise DiffkinError(f"{args.points}: the via points hold NaN or inf")
+        times = torch.linspace(0.0, args.duration, pts.shape[0], dtype=torch.float64)
+        traj = tr.cubic_spline(pts, times, t)
+    elif args.space == "joint":
+        if args.start is None or args.end is None:
+            raise DiffkinError("give --points FILE, or --start and --end joint vectors")
+        qi = torch.tensor(args.start, dtype=torch.float64)
+        qf = torch.tensor(args.end, dtype=torch.float64)
+        if qi.shape != qf.shape:
+            raise DiffkinError(f"--start has {qi.numel()} values but --end has {qf.numel()}")
+        fn = {"cubic": tr.cubic, "quintic": tr.quintic, "trapezoidal": tr.trapezoidal}[profile]
+        traj = fn(qi, qf, torch.tensor(args.duration, dtype=torch.float64), t)
     else:
         if args.start is None or args.end is None or len(args.start) != 3 or len(args.end) != 3:
-            raise DiffkinError("a cartesian trajectory needs --start X Y Z and --end X Y Z")
+            raise DiffkinError("a cartesian trajectory needs --start X Y Z and --end X Y Z, or --points FILE")
         traj = tr.cartesian_segment_trajectory(
             torch.tensor(args.start, dtype=torch.float64),
             torch.tensor(args.end, dtype=torch.float64),
             args.duration,
             t,
-            profile=args.profile,
+            profile=profile,
         )
     out = {
         "t": t.numpy(),
@@ -755,7 +765,8 @@ _EXAMPLES = {
                  "--output ur10e_cal.xml",
     "trajectory": "diffkin trajectory joint --profile quintic --start 0 0 --end 1 -1 --output j.csv "
                   "--plot j.png\n"
-                  "  diffkin trajectory cartesian --start 0.3 0 0.5 --end 0.5 0.1 0.4 --output c.npz",
+                  "  diffkin trajectory cartesian --start 0.3 0 0.5 --end 0.5 0.1 0.4 --output c.npz\n"
+                  "  diffkin trajectory cartesian --points via_xyz.txt --duration 4 --output c.csv",
     "train": "diffkin train --config configs/ppo.yaml --env diffkin/Reach-v0 --variant cartesian "
              "--total-timesteps 20000 --output runs/ppo",
     "evaluate": "diffkin evaluate runs/ppo --episodes 100",
@@ -800,8 +811,9 @@ _DESCRIPTIONS = {
                  "A result that fails its plausibility checks (held-out error or noise ratio more than 5x\n"
                  "the fit, a link corrected by more than 5 cm / 10 deg: data of another robot) is not\n"
                  "written and exits with status 2 (the report directory is written); --force writes it.",
-    "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal, or a cubic spline through --points)\n"
-                  "or a Cartesian straight-line trajectory and export t, position, velocity, acceleration.",
+    "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal) or a Cartesian straight-line trajectory\n"
+                  "from --start to --end, or in either space a cubic spline through the via points of\n"
+                  "--points (rows at equally spaced times), and export t, position, velocity, acceleration.",
     "train": "Train an SB3 agent from a run config (calls diffkin.training.train in this process; needs\n"
              "the rl extra). Runs on the config's torch_threads unless --threads N.",
     "tune": "Sweep a run config's hyperparameters with Optuna: each trial trains the config with values\n"
@@ -947,11 +959,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("trajectory", "plan and export a joint or Cartesian trajectory")
     p.add_argument("space", choices=["joint", "cartesian"], help="joint space or a Cartesian segment")
-    p.add_argument("--profile", default="quintic", choices=["cubic", "quintic", "trapezoidal"],
-                   help="time law")
+    p.add_argument("--profile", choices=["cubic", "quintic", "trapezoidal"],
+                   help="time law from --start to --end (default quintic; not with --points)")
     p.add_argument("--start", type=_finite, nargs="+", help="start joint vector (or X Y Z)")
     p.add_argument("--end", type=_finite, nargs="+", help="end joint vector (or X Y Z)")
-    p.add_argument("--points", help="via points (N, n) file for a cubic spline (joint space)")
+    p.add_argument("--points", help="via points for a cubic spline through them at equally spaced times: "
+                                    "(N, n) joint vectors or (N, 3) Cartesian positions (.csv, .txt, .npy, "
+                                    ".npz key points); instead of --start/--end/--profile")
     p.add_argument("--duration", type=_positive_float, default=2.0, help="seconds")
     p.add_argument("--samples", type=_int_type(2, "at least 2 samples"), default=201,
                    help="time samples, both ends included")

@@ -70,11 +70,11 @@ class DataFileError(DiffkinError):
 
 
 # ------------------------------------------------------------------------------------------ paths
-def _check_path(path: str | Path) -> Path:
+def _check_path(path: str | Path, suffixes: tuple[str, ...] = _SUFFIXES) -> Path:
     path = Path(path)
-    if path.suffix not in _SUFFIXES:
+    if path.suffix not in suffixes:
         raise DataFileError(
-            f"{path}: unsupported file type {path.suffix!r}; use one of {', '.join(_SUFFIXES)}"
+            f"{path}: unsupported file type {path.suffix!r}; use one of {', '.join(suffixes)}"
         )
     if not path.exists():
         raise DataFileError(f"{path}: no such file")
@@ -836,13 +836,38 @@ def open_writer(path: str | Path, count: int, spec: dict[str, tuple]) -> Writer:
 
 
 # ------------------------------------------------------------------------------- whole-file API
+def _read_text(path: Path) -> np.ndarray:
+    """A plain-text table ``(N, m)`` (``numpy.savetxt``'s default): one row per line, numbers separated by
+    whitespace, commas or semicolons, ``#`` comments and blank lines skipped; every row the same width."""
+    rows: list[list[float]] = []
+    with open(path, encoding="utf-8", errors="replace") as f:
+        for lineno, line in enumerate(f, 1):
+            fields = line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()
+            if not fields:
+                continue
+            if rows and len(fields) != len(rows[0]):
+                raise DataFileError(f"{path}: line {lineno}: {len(fields)} columns, but the first row has "
+                                    f"{len(rows[0])}")
+            try:
+                rows.append([float(v) for v in fields])
+            except ValueError:
+                bad = next(v for v in fields if not _is_number(v))
+                raise DataFileError(f"{path}: line {lineno}: not a number: {bad!r}") from None
+    if not rows:
+        raise DataFileError(f"{path}: empty file (no data rows)")
+    return np.asarray(rows, dtype=np.float64)
+
+
 def read_array(path: str | Path, key: str | None = None) -> np.ndarray:
-    """Read one array from ``.npy``, ``.csv`` or ``.npz`` (``key`` selects the entry of an ``.npz``), or the
-    concatenated parts of a sharded output's manifest (``*.shards.json``, :mod:`diffkin.distributed`)."""
+    """Read one array from ``.npy``, ``.csv``, ``.npz`` (``key`` selects the entry of an ``.npz``) or a
+    plain-text ``.txt`` table (numbers separated by whitespace, commas or semicolons; ``#`` comments), or
+    the concatenated parts of a sharded output's manifest (``*.shards.json``, :mod:`diffkin.distributed`)."""
     if _is_manifest(path):
         return np.concatenate([read_array(p, key) for p in _manifest_parts(path)])
-    path = _check_path(path)
+    path = _check_path(path, (*_SUFFIXES, ".txt"))
     try:
+        if path.suffix == ".txt":
+            return _read_text(path)
         if path.suffix == ".csv":
             csv = _CsvFile(path)
             return np.concatenate(list(csv.chunks(1 << 20)))

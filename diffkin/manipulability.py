@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._numerics import cross, eps_for, safe_norm, safe_sqrt, stable_norm
+from ._numerics import cross, eps_for, safe_norm, stable_norm
 from .errors import ConventionError, ModelError, ShapeError
 from .validation import broadcast_batch, check_trailing, shape_str, tensors
 
@@ -183,16 +183,22 @@ def _select_part(J, part: str) -> Tensor:
 
 
 def _left_svd(J: Tensor) -> tuple[Tensor, Tensor]:
-    """Left singular vectors (..., m, m) and singular values (..., m), descending, zero-padded if m > n."""
+    """Left singular vectors (..., m, m) and singular values (..., m), descending, zero-padded if m > n.
+
+    One thin SVD for every shape (no J Jᵀ: its squares underflow or overflow at |J| ~ 1e-20 / 1e20 in
+    float32, and its eigendecomposition fails to converge on the m - n repeated zero eigenvalues of a tall
+    J). For m > n the m - n directions of N(Jᵀ) (σ = 0) complete U to an orthonormal basis: a basis E of
+    the complement from a complete QR of U (held constant), projected off range(U) (E itself at the
+    evaluation point, differentiable in U) and orthonormalised.
+    """
     m, n = J.shape[-2:]
+    U, S, _ = torch.linalg.svd(J, full_matrices=False)  # (..., m, min(m, n)), (..., min(m, n))
     if m <= n:
-        U, S, _ = torch.linalg.svd(J, full_matrices=False)
         return U, S
-    lam, U = torch.linalg.eigh(J @ J.mT)  # ascending; m - n eigenvalues are (numerically) zero
-    S = safe_sqrt(lam.flip(-1).clamp_min(0.0))
-    # rank <= n: the m - n last ones are exactly zero (eigh leaves rounding noise, 1/σ would be finite)
-    keep = torch.arange(m, device=J.device) < n
-    return U.flip(-1), torch.where(keep, S, torch.zeros_like(S))
+    with torch.no_grad():
+        E = torch.linalg.qr(U, mode="complete")[0][..., n:]  # (..., m, m - n), orthonormal, ⟂ range(U)
+    Q = torch.linalg.qr(E - U @ (U.mT @ E))[0]
+    return torch.cat((U, Q), -1), torch.cat((S, S.new_zeros(*S.shape[:-1], m - n)), -1)
 
 
 def velocity_ellipsoid(J: Tensor, part: str = "full") -> Ellipsoid:

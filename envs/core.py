@@ -215,6 +215,16 @@ class TaskEnv(gym.Env):
     def robot(self) -> Robot:
         return self.task.robot
 
+    @property
+    def q(self) -> np.ndarray:
+        """The joint configuration ``(nq,)`` now (rad or m; unit quaternions (w, x, y, z) for ball and free
+        joints), a float64 copy: reading it never changes the env. Through ``gym.make``'s wrappers:
+        ``env.unwrapped.q`` or ``env.get_wrapper_attr("q")``. Gymnasium's ``ResetNeeded`` before the first
+        ``reset()``."""
+        if self._state is None:
+            raise ResetNeededError("call reset() before reading q")
+        return self._state["q"][0].detach().cpu().numpy().astype(np.float64)
+
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         check_reset_options(options, type(self).__name__)
         super().reset(seed=seed)

@@ -240,7 +240,7 @@ class ReachEnv(TaskEnv):
     ball or free joint is turned by ``exp(ω Δt / 2)`` and stays unit) and clamped to the joint limits.
     ``Box(-1.0, 1.0, (3,), float32)`` with ``action_mode="cartesian"``: an end-effector displacement
     ``Δx = a · max_ee_step`` (0.05 m, base frame) turned into ``q ⊕ q̇ · control_dt`` by
-    :func:`diffkin.ik.velocity_step`: the damped-least-squares step (damping 0.05) solved exactly under
+    :func:`diffkin.ik.velocity_step`: the damped-least-squares step (damping λ = 0.05²) solved exactly under
     ``|q̇| ≤ max_joint_speed`` and the joint limits (limit-safe: a joint at its limit stops and the others
     take over).
     Actions outside [-1, 1] are clipped; NaN/inf or a wrong shape raise ``ValueError`` subclasses.
@@ -322,7 +322,7 @@ class ReachEnv(TaskEnv):
     * ``action_mode``: ``"joint"`` or ``"cartesian"`` (above).
     * ``render_mode``: None or ``"rgb_array"`` (a matplotlib drawing of the arm, its trace and the goal).
     * ``robot_config``: :class:`~diffkin.envs.robot.RobotConfig` or a dict of its fields
-      (``max_joint_speed`` 1.5 rad/s, ``control_dt`` 0.1 s, ``max_ee_step`` 0.05 m, ``damping`` 0.05,
+      (``max_joint_speed`` 1.5 rad/s, ``control_dt`` 0.1 s, ``max_ee_step`` 0.05 m, ``damping`` 0.0025 (λ),
       ``geometry_noise_length`` 0 m, ``geometry_noise_angle`` 0 rad).
     * ``home``: the start pose ``(n,)`` (default above); ``dtype`` (float32 or float64) and ``device`` of
       the kinematics (observations are always float32 numpy).

@@ -47,7 +47,7 @@ class RobotConfig:
     max_joint_speed: float = 1.5  # rad/s (or m/s for prismatic joints)
     control_dt: float = 0.1  # s, one env step
     max_ee_step: float = 0.05  # m per step, Cartesian mode
-    damping: float = 0.05  # λ of the damped least-squares step (m)
+    damping: float = 0.0025  # λ = k² of the damped least-squares step (3.59), m²
     # kinematic domain randomisation: an episode's DH lengths (a, d) are nominal + U(-1, 1) · this (m),
     # its angles (alpha, theta, beta) nominal + U(-1, 1) · geometry_noise_angle (rad); 0: the nominal robot
     geometry_noise_length: float = 0.0
@@ -213,10 +213,10 @@ class Robot:
     def cartesian_delta(self, q: Tensor, dx: Tensor) -> Tensor:
         """Δq ``(N, nv)`` for an end-effector displacement ``dx (N, 3)``: Δt ·
         :func:`~diffkin.ik.velocity_step` for the twist [Δx/Δt; 0] with weights (1, 1, 1, 0, 0, 0), damping
-        λ² (3.59), |q̇| ≤ ``max_joint_speed`` and the joint limits over ``control_dt``."""
+        λ = k² (3.59), |q̇| ≤ ``max_joint_speed`` and the joint limits over ``control_dt``."""
         cfg = self.config
         twist = torch.cat((dx / cfg.control_dt, torch.zeros_like(dx)), dim=-1)
-        qd = velocity_step(self.chain, q, twist, cfg.control_dt, damping=cfg.damping ** 2,
+        qd = velocity_step(self.chain, q, twist, cfg.control_dt, damping=cfg.damping,
                            velocity_limit=cfg.max_joint_speed, weight=self._position_rows)
         return qd * cfg.control_dt
 

@@ -55,7 +55,7 @@ def path(chain, q0):
 
 
 def runs(chain, q0, target):
-    common = dict(algorithm="dls", orientation="axis_angle", damping=0.01, K=20.0)
+    common = dict(algorithm="dls", orientation="axis_angle", damping=1e-4, K=20.0)
     return {"dls": ik.clik(chain, target, q0, DT, **common),
             "dls + clamp": ik.clik(chain, target, q0, DT, clamp=True, **common),
             "velocity_step": ik.clik(chain, target, q0, DT, limits=True, qdot_max=2.0, **common)}

@@ -14,7 +14,7 @@ def test_single_call_benchmark_rows_at_tiny_sizes():
     rows = bench_single_call.run(argparse.Namespace(quick=True, targets=3, batch=16, repeats=1, calls=5))
     cases = [r["case"] for r in rows]
     assert any(c.startswith("ik.solve 1 target, lean path") for c in cases)
-    assert any(c.startswith("ik.solve 1 target, default chain") for c in cases)
+    assert any(c.startswith("ik.solve 1 target, learnable chain") for c in cases)
     assert "FK, 1 configuration" in cases and "FK + Jacobian, 1 configuration" in cases
     batched = [r for r in rows if "16 targets" in r["case"]]
     assert len(batched) == 4 and "ratio_vs_main" in batched[0] and "ratio_vs_main" in batched[2]

@@ -91,7 +91,7 @@ def test_train_with_a_malformed_config_is_a_clean_error(tmp_path):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("a: [1, 2\nb: : :\n")
     r = subprocess.run([sys.executable, "-m", "diffkin.cli", "train", "--config", str(cfg)], cwd=ROOT,
-                       capture_output=True, text=True, timeout=300)
+                       capture_output=True, text=True)
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("error: ") and "internal" not in lines[0]

@@ -196,7 +196,8 @@ def test_constant_table_path_matches_autograd_path(convention):
     n = 8
     chain = DHChain(rng.uniform(-1, 1, n) * (rng.random(n) > 0.4), rng.choice(special, n),
                     rng.uniform(-1, 1, n) * (rng.random(n) > 0.4), rng.choice(special, n),
-                    joint_types="RRPRRPRR", convention=convention, base=random_transform(rng), dtype=F64)
+                    joint_types="RRPRRPRR", convention=convention, base=random_transform(rng), dtype=F64,
+                    learnable=True)
     force_kernel(chain, "column")
     q = torch.rand(50, n, dtype=F64)
     with_grad = chain.forward_kinematics(q)
@@ -297,8 +298,9 @@ def test_gradcheck_q_and_dh_parameters(convention, kernel):
 
 
 def test_parameter_gradients_match_finite_differences():
-    """dp_e/d(a, alpha, d, theta) by autograd (default requires_grad) vs central differences."""
+    """dp_e/d(a, alpha, d, theta) by autograd (a learnable chain) vs central differences."""
     chain, *_ = random_chain(33, "standard", dtype=F64)
+    chain.requires_grad_()
     q = torch.rand(chain.n_joints, dtype=F64)
     T = chain.forward_kinematics(q)
     loss = T[:3, 3].sum() + T[0, 2]
@@ -321,8 +323,8 @@ def test_parameter_gradients_match_finite_differences():
 @pytest.mark.parametrize("kernel", ["matrix", "column"])
 def test_gradients_finite_at_singular_configurations(kernel):
     """q = 0 and q = pi (stretched / folded arm): FK gradients are finite (no NaN)."""
-    chain = force_kernel(DHChain([0.0, 0.5, 0.5], [math.pi / 2, 0.0, 0.0], [0.0] * 3, [0.0] * 3, dtype=F64),
-                         kernel)
+    chain = force_kernel(DHChain([0.0, 0.5, 0.5], [math.pi / 2, 0.0, 0.0], [0.0] * 3, [0.0] * 3, dtype=F64,
+                                 learnable=True), kernel)
     for value in (0.0, math.pi):
         q = torch.full((20, 3), value, dtype=F64, requires_grad=True)
         chain.forward_kinematics(q).sum().backward()

@@ -36,7 +36,6 @@ def run_subprocess(*args: str, cwd: Path | None = None) -> subprocess.CompletedP
         capture_output=True,
         text=True,
         cwd=cwd or REPO,
-        timeout=300,
     )
 
 

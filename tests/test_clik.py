@@ -188,7 +188,7 @@ def test_orientation_errors_track_a_moving_pose(orientation):
     assert res.position_error.max() < 1e-6 and res.orientation_error.max() < 1e-6
     assert (res.poses[-1, :3, 3] - T[-1, :3, 3]).norm() < 1e-6
     # a perturbed start converges at rate K (ė = −K e for position, (3.93)/(3.86) for orientation)
-    res = clik(chain, target, q0 + 0.02, DT, algorithm="dls", damping=1e-4, K=200.0, orientation=orientation)
+    res = clik(chain, target, q0 + 0.02, DT, algorithm="dls", damping=1e-8, K=200.0, orientation=orientation)
     assert res.position_error[0] > 1e-3 and res.position_error[-1] < 1e-6 and res.orientation_error[-1] < 1e-6
 
 
@@ -198,7 +198,7 @@ def test_dls_and_pinv_stay_finite_out_of_reach(planar):
     far = torch.tensor([[2.0, 1.0, 0.0]], dtype=F64)
     reach_gap = far[0, :2].norm() - 1.5
     for alg in ("dls", "pseudo_inverse", "transpose"):
-        res = clik(planar, (far,), Q0_BOOK, DT, 300, algorithm=alg, K=100.0, damping=0.05, **POSITION)
+        res = clik(planar, (far,), Q0_BOOK, DT, 300, algorithm=alg, K=100.0, damping=0.0025, **POSITION)
         assert torch.isfinite(res.q).all() and torch.isfinite(res.error).all()
         if alg != "pseudo_inverse":
             assert res.position_error[-1] < reach_gap + 0.06
@@ -224,7 +224,7 @@ def test_differentiable_through_the_integration(planar):
 
     q0 = (Q0_BOOK + 0.01).requires_grad_(True)
     assert torch.autograd.gradcheck(final_error, (q0,))
-    chain = planar.copy()
+    chain = planar.copy().requires_grad_()
     res = clik(chain, (x, xd), Q0_BOOK, DT, algorithm="inverse", differentiable=True, **PLANAR)
     res.position_error[-1].backward()
     # w.r.t. the DH table: central differences of the whole integration with a_i moved by ±h

@@ -197,6 +197,7 @@ def test_link_frames_against_pinocchio(case):
 
 def test_gradients_in_q_and_in_the_geometry():
     chain, rc = _robot(BOXY, "l3")
+    chain.requires_grad_()  # the chain's origins learnable too (frozen by default)
     q = _random_q(chain, 3, seed=4).requires_grad_(True)
     assert torch.autograd.gradcheck(lambda q: rc.self_distances(q), (q,), eps=1e-6, atol=1e-6)
     world = World(spheres=[[0.2, 0.1, 0.5, 0.05]], boxes=box([0.3, 0, 0.3], [0.05, 0.1, 0.2], dtype=F64),

@@ -35,7 +35,7 @@ def _functions(chain, T):
 @pytest.mark.parametrize("name", ["fk", "jacobian", "pose_error", "dls_step"])
 def test_fullgraph_compile_without_graph_break(name, batch, grad):
     torch._dynamo.reset()
-    chain = models.load("panda", dtype=F64)
+    chain = models.load("panda", dtype=F64, learnable=True)  # gradients w.r.t. the geometry too
     gen = torch.Generator().manual_seed(0)
     q = chain.random_configuration((batch,), generator=gen)
     T = chain.forward_kinematics(chain.random_configuration((batch,), generator=gen)).detach()

@@ -33,7 +33,7 @@ class PlanarArm(TreeChain):
 
 
 def test_hand_written_description_matches_the_planar_arm_closed_form():
-    arm = PlanarArm([0.7, 0.4])
+    arm = PlanarArm([0.7, 0.4]).requires_grad_()  # learnable on request
     q = torch.rand(64, 2, dtype=F64) * 6 - 3
     T = arm.forward_kinematics(q)
     c1, c12 = torch.cos(q[:, 0]), torch.cos(q.sum(-1))

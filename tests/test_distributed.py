@@ -123,7 +123,7 @@ def _torchrun(tmp_path, *args):
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
            "-m", "diffkin.cli", *args]
-    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stdout[-3000:] + out.stderr[-3000:]
     return out
 
@@ -163,7 +163,7 @@ def test_a_failing_rank_stops_every_rank_with_one_error_and_no_parts(tmp_path):
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m",
            "diffkin.cli", "ik", "--robot", "panda", "--input", "T.npy", "--chunk-size", "300", "--output",
            "q.npy", "--num-seeds", "2"]
-    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300)
+    out = subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True)
     assert out.returncode != 0
     errors = [ln for ln in out.stderr.splitlines() if ln.startswith("error:")]
     assert any("row 1001" in ln for ln in errors), out.stderr[-3000:]

@@ -17,7 +17,7 @@ OPTIONAL = ["rich", "matplotlib", "gymnasium", "stable_baselines3", "tensorboard
 def _run(code: str, hide: list[str]) -> subprocess.CompletedProcess:
     prelude = f"import sys\nfor _m in {hide!r}:\n    sys.modules[_m] = None  # import raises ImportError\n"
     return subprocess.run([sys.executable, "-c", prelude + textwrap.dedent(code)], capture_output=True,
-                          text=True, timeout=300)
+                          text=True)
 
 
 def test_the_core_needs_no_optional_package(tmp_path):

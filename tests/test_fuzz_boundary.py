@@ -2,7 +2,7 @@
 URDF/YAML readers, data files, run configs, envs, the CLI), and of the tensor callables added since the
 tensor sweep (``tests/test_fuzz.py``) was written (streaming, the shared ``validation.tensors`` rule): every
 bad input gives one of diffkin's typed errors (``diffkin.errors.DiffkinError`` subclasses) naming it —
-no raw exception, no silent result, no hang (pytest-timeout)."""
+no raw exception, no silent result, no hang (the suite's hang guard, pyproject's pytest ``timeout``)."""
 
 from __future__ import annotations
 
@@ -18,8 +18,6 @@ from diffkin.models.io import read_yaml
 from diffkin.models.urdf_xml import parse_urdf
 from diffkin.streaming import stream_fk, stream_ik
 from diffkin.validation import tensors
-
-pytestmark = pytest.mark.timeout(300)
 
 F64 = torch.float64
 URDF_OK = ('<robot name="r"><link name="a"/><link name="b"/><joint name="j" type="revolute">'

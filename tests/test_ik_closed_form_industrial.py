@@ -210,7 +210,7 @@ def test_gradients_wrt_target_against_finite_differences(name):
 
 def test_gradients_wrt_dh_geometry_against_finite_differences():
     """d q_branches / d (a, d) of the DH UR5 by autograd vs central differences of the closed form."""
-    chain = models.load("ur5", dtype=F64)
+    chain = models.load("ur5", dtype=F64, learnable=True)
     q = _generic_q(chain, 3, seed=9)
     with torch.no_grad():
         T = chain.forward_kinematics(q)

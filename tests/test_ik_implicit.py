@@ -77,7 +77,7 @@ def test_panda_redundant_jacobian_identities():
 
 def test_parameter_gradients_are_minus_jinv_dx_dtheta():
     """dq*/dθ = −J⁻¹ ∂x/∂θ, ∂x/∂θ the twist of the FK change from central differences of the parameters."""
-    chain = models.load("ur5", dtype=F64)
+    chain = models.load("ur5", dtype=F64, learnable=True)
     _, T = _targets(chain, 2, seed=4)
     res = ik.solve(chain, T, seed=0, **TIGHT)
     q = res.q
@@ -148,7 +148,7 @@ def test_failed_and_singular_targets_give_finite_gradients():
 
 def test_gradients_reach_a_tree_and_a_float32_urdf_chain():
     path = Path(__file__).parent / "data" / "urdf" / "baxter.urdf"
-    chain = models.from_urdf(path, ["left_gripper", "right_gripper"], dtype=torch.float32)
+    chain = models.from_urdf(path, ["left_gripper", "right_gripper"], dtype=torch.float32, learnable=True)
     _, T = _targets(chain, 6, seed=7)
     Tg = T.clone().requires_grad_(True)
     res = ik.solve(chain, Tg, seed=0)

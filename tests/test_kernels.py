@@ -248,7 +248,7 @@ def test_urdf_geometry_gradcheck_origins_and_axes():
 
 
 def test_base_and_tool_are_learnable_and_rigid():
-    chain = DHChain([0.3, 0.2], [0.0, math.pi / 2], [0.1, 0.0], [0.0, 0.0], dtype=F64)
+    chain = DHChain([0.3, 0.2], [0.0, math.pi / 2], [0.1, 0.0], [0.0, 0.0], dtype=F64, learnable=True)
     q = torch.tensor([0.3, -0.4], dtype=F64)
     T = chain.forward_kinematics(q)
     T.sum().backward()
@@ -273,7 +273,7 @@ def test_gradient_of_a_zero_base_or_tool_correction_matches_finite_differences()
                     base=origin_transform(torch.tensor([0.1, 0.2, 0.3], dtype=F64),
                                           torch.tensor([0.3, -0.2, 1.0], dtype=F64)),
                     tool=origin_transform(torch.tensor([0.0, 0.0, 0.1], dtype=F64),
-                                          torch.tensor([0.0, 0.5, 0.0], dtype=F64)))
+                                          torch.tensor([0.0, 0.5, 0.0], dtype=F64)), learnable=True)
     q = torch.tensor([[0.3, -0.4, 0.8], [1.0, 0.2, -0.5]], dtype=F64)
     w = torch.randn(2, 4, 4, dtype=F64, generator=torch.Generator().manual_seed(0))
     loss = (chain.forward_kinematics(q) * w).sum()

@@ -19,7 +19,7 @@ KERNEL_LAYER = ("diffkin.chain", "diffkin.jacobian", "diffkin.models")
 
 def _cycles() -> list[list[str]]:
     proc = subprocess.run(
-        [sys.executable, str(CYCLES_TOOL), str(ROOT), *PACKAGES], capture_output=True, text=True, timeout=120
+        [sys.executable, str(CYCLES_TOOL), str(ROOT), *PACKAGES], capture_output=True, text=True
     )
     lines = proc.stdout.splitlines()
     assert lines and re.fullmatch(r"\d+ import cycles", lines[-1]), proc.stdout + proc.stderr

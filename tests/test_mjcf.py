@@ -227,7 +227,7 @@ def test_floating_base_ik_rechecked_by_mujoco():
 
 
 def test_geometry_is_learnable():
-    chain = from_mjcf(KINDS, ["palm", "foot"])
+    chain = from_mjcf(KINDS, ["palm", "foot"], learnable=True)
     names = {k for k, _ in chain.named_parameters()}
     assert {"body_pos", "body_quat", "joint_pos", "joint_axis", "site_pos", "site_quat"} <= names
     q = chain.random_configuration(5, generator=torch.Generator().manual_seed(5))

@@ -27,7 +27,7 @@ def _run(args, env_extra, tmp_path, path=None):
     if path is not None:
         env["PATH"] = path
     return subprocess.run([sys.executable, "-W", "default", *args], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=300)
+                          text=True)
 
 
 @pytest.mark.skipif(not HAS_CC, reason="no C compiler: nothing is compiled")

@@ -159,7 +159,7 @@ def test_the_lean_cache_follows_the_parameters():
 
 
 def test_the_lean_path_leaves_gradients_and_bad_input_to_the_general_path():
-    chain = models.load("panda", dtype=torch.float64)
+    chain = models.load("panda", dtype=torch.float64, learnable=True)
     q = chain.random_configuration((1,), generator=torch.Generator().manual_seed(13))[0]
     assert single.fk(chain, q) is None  # parameters requiring grad, grad mode on
     assert chain.forward_kinematics(q).requires_grad

@@ -32,7 +32,7 @@ F64 = torch.float64
 ENTRY_POINTS = [
     "diffkin.forward_kinematics_and_jacobian", "diffkin.geometric_jacobian",
     "diffkin.jacobian.analytical_jacobian", "diffkin.ik.solve", "diffkin.ik.optimize", "diffkin.ik.clik",
-    "diffkin.ik.closed_form", "diffkin.ik.dls_step", "diffkin.ik.velocity_step",
+    "diffkin.ik.closed_form", "diffkin.ik.dls_step", "diffkin.ik.velocity_step", "diffkin.ik.solve_velocity",
     "diffkin.ik.joint_trajectory_from_poses", "diffkin.models.load", "diffkin.models.from_urdf",
     "diffkin.calibration.calibrate", "diffkin.calibration.calibrate_batch",
 ]

@@ -64,7 +64,7 @@ def test_memory_shared_with_numpy_is_seen():
 
 
 def test_an_optimizer_step_on_a_learnable_chain_is_seen():
-    chain = models.load("panda", dtype=torch.float64)
+    chain = models.load("panda", dtype=torch.float64, learnable=True)
     q = _q(chain, 3)
     T0 = _check_fresh(chain, q)
     opt = torch.optim.SGD(chain.parameters(), lr=0.1)
@@ -147,7 +147,7 @@ def test_errors_and_non_finite_input_stay_the_general_paths():
 
 
 def test_gradients_are_the_general_paths():
-    chain = models.load("panda", dtype=torch.float64)
+    chain = models.load("panda", dtype=torch.float64, learnable=True)
     q = _q(chain, 8).requires_grad_(True)
     assert single.fk(chain, q) is None and single.fk(chain, q.detach()) is None  # parameters need grad
     T = chain.forward_kinematics(q)

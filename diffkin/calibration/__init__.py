@@ -4,6 +4,10 @@
 calibrated copy of the chain; ``calibrate_batch`` does K robots in one vectorised call;
 ``calibration_loss`` is the differentiable objective for bigger pipelines; ``identifiability`` and
 ``select_poses`` analyse and design the pose set; ``validation_error`` scores a chain on held-out poses.
+
+Calibration estimates its own parameter vector ζ (on a private copy of the chain), never the chain's
+``requires_grad``: a frozen chain (the default of every loader) calibrates as a learnable one does, and the
+calibrated chain is as learnable as the nominal one given, parameter by parameter.
 """
 
 from .api import METHODS as METHODS

@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from .._unchecked import UncheckedFK as _FK  # FK without checks, for torch.func over robots
 from ..chain import DHChain, KinematicChain
 from ..errors import ModelError
-from .model import DH_KINDS, POSE_AXES, CalibrationModel, ForwardModeMatrix, pose_residual
+from .model import DH_KINDS, POSE_AXES, CalibrationModel, ForwardModeMatrix, learnable_like, pose_residual
 
 __all__ = ["build_model", "ChainErrorModel", "ERROR_MODELS", "PARALLEL_SIN", "parallel_pairs",
            "resolve_error_model"]
@@ -314,9 +314,8 @@ class ChainErrorModel(ForwardModeMatrix):
                     p.copy_(t.view_as(p))
             if self.kind == "general" and _origin_corrected(c):
                 c.fold_origins()
-            for p in c.parameters():
-                p.requires_grad_(True)
             src = self.chains[min(first + k, len(self.chains) - 1)]
+            learnable_like(c, src)
             c.metadata = dict(getattr(src, "metadata", {}))
             out.append(c)
         return out

@@ -41,6 +41,16 @@ DH_KINDS = ("a", "alpha", "d", "theta")
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
 
 
+def learnable_like(chain, source) -> None:
+    """Give a calibrated ``chain`` the learnability of its nominal ``source``, parameter by parameter (a
+    parameter the source lacks, e.g. an added β, follows the source's :attr:`learnable`). Calibration works
+    on ζ, never on the chain's ``requires_grad``: a frozen chain (the default) calibrates, and so does a
+    learnable one; what comes back is as learnable as what went in."""
+    own = dict(source.named_parameters())
+    for key, p in chain.named_parameters():
+        p.requires_grad_(own[key].requires_grad if key in own else source.learnable)
+
+
 def parameter_names(n: int) -> tuple[str, ...]:
     """Names of the full ζ of an ``n``-joint chain: ``a1.., alpha1.., d1.., theta1.., base_x.., tool_x..``."""
     dh = [f"{k}{i + 1}" for k in DH_KINDS for i in range(n)]
@@ -294,6 +304,7 @@ class CalibrationModel(ForwardModeMatrix):
                     name=ref.name,
                 )
             )
+            learnable_like(out[-1], ref)
         return out
 
 

@@ -26,7 +26,7 @@ from ..errors import ModelError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
-from ..validation import check_count
+from ..validation import check_count, check_dtype, check_given, tensors
 from ._checks import check_agree, check_chain, names_str
 from ._poses import LinkFrames
 from .boxes import box_box, capsule_box
@@ -193,10 +193,26 @@ class RobotCollision(nn.Module):
         H = h.new_zeros(K, C, 4).index_put((self._col_anchor, torch.arange(C, device=h.device)), h)
         return H.transpose(1, 2).reshape(4 * K, C)
 
+    def _as_q(self, q) -> Tensor:
+        """``q`` of a public method by the chain's rule (:meth:`~diffkin.chain.KinematicChain.check_q`:
+        lists, numbers and numpy arrays converted to the chain's dtype and device, the trailing size
+        checked); a tensor first meets :meth:`_check_agree` (its dtype and device against the geometry's
+        and the chain's). Finiteness is left to the FK pass (no extra host sync). Without a chain (an MJCF
+        model placed by ``body_poses``), numbers become the geometry's dtype and device."""
+        if isinstance(q, Tensor):
+            check_dtype(q, "q")
+            self._check_agree(q)
+        chain = self.chain
+        if chain is not None and hasattr(chain, "check_q"):
+            return chain.check_q(q, finite=False)
+        check_given(q, "q", "joint values (..., n)")
+        return tensors(("q", q, None), like=self.capsule_radius, finite=False)[0]
+
     def placed(self, q: Tensor) -> tuple[Tensor, ...]:
         """The geoms in the base frame for joint values ``q (..., n)``: ``(a (..., G_c, 3), b (..., G_c, 3),
-        radius (G_c,), box centres (..., G_b, 3), rotations (..., G_b, 3, 3), half extents (G_b, 3))``."""
-        return self._placed_from(self._columns(q))
+        radius (G_c,), box centres (..., G_b, 3), rotations (..., G_b, 3, 3), half extents (G_b, 3))``.
+        ``q`` as the chain takes it (a tensor, a list or an array, converted to the chain's dtype)."""
+        return self._placed_from(self._columns(self._as_q(q)))
 
     def _placed_from(self, P: Tensor) -> tuple[Tensor, ...]:
         nc, nb = self._counts
@@ -207,8 +223,9 @@ class RobotCollision(nn.Module):
 
     def self_distances(self, q: Tensor) -> Tensor:
         """Signed distances ``(..., P)`` of the checked pairs (order of ``pairs``; negative: penetration
-        depth), in the chain's length unit, differentiable in q and in the geometry."""
-        return self._self_from(self._columns(q))
+        depth), in the chain's length unit, differentiable in q and in the geometry; ``q`` as in
+        :meth:`placed`."""
+        return self._self_from(self._columns(self._as_q(q)))
 
     def _self_from(self, P: Tensor, placed=None, threshold: float | None = None) -> Tensor:
         """:meth:`self_distances` from the placement product ``P`` (and its :meth:`placed` split); with
@@ -243,7 +260,7 @@ class RobotCollision(nn.Module):
         """Signed distances ``(..., G, W)`` of every geom (order of ``geoms``) to every object of ``world``
         (spheres, capsules, boxes, half-spaces, points); the world's batch dims broadcast with q's."""
         world = _check_world(world)
-        return self._world_from(self.placed(q), world)
+        return self._world_from(self.placed(q), world)  # q converted by placed
 
     def _world_from(self, placed, world: World, threshold: float | None = None) -> Tensor:
         a, b, r, c, R, h = placed
@@ -358,7 +375,8 @@ class RobotCollision(nn.Module):
 
     def min_distance(self, q: Tensor, world: World | None = None) -> Tensor:
         """The smallest signed distance ``(...)`` over the checked pairs and, with ``world``, every
-        geom–object pair (+inf where there are none)."""
+        geom–object pair (+inf where there are none); ``q`` as in :meth:`placed`."""
+        q = self._as_q(q)
         d = self.self_distances(q)
         if world is not None:
             w = self.world_distances(q, world)
@@ -386,7 +404,11 @@ class RobotCollision(nn.Module):
         (:mod:`diffkin.collision.meshes`; 1: one enclosing capsule); the others are skipped with one warning
         naming them.
         """
+        if getattr(chain, "tree", None) is None:  # None, a DH chain or anything else without the URDF tree
+            raise ModelError(f"RobotCollision.from_urdf: expected chain as the chain built from this URDF "
+                             f"(models.from_urdf(source, end_link)), got {type(chain).__name__}")
         mesh_capsules = check_count(mesh_capsules, "mesh_capsules")
+        disabled = _srdf_disabled(srdf) if srdf is not None else set()  # a missing SRDF: before any work
         base_dir = None
         if isinstance(source, (str, Path)) and "<" not in str(source):
             base_dir = Path(source).resolve().parent
@@ -409,7 +431,6 @@ class RobotCollision(nn.Module):
         if missing:
             warnings.warn(f"RobotCollision.from_urdf: {len(missing)} mesh file(s) not found, those geoms are "
                           f"skipped: {', '.join(missing)}", stacklevel=2)
-        disabled = _srdf_disabled(srdf) if srdf is not None else set()
         pairs = _urdf_pairs(chain, frames, geoms, disabled)
         return cls(chain, geoms, links, caps, boxes, pairs)
 
@@ -490,7 +511,14 @@ def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int) -> list:
 
 def _srdf_disabled(srdf) -> set[frozenset[str]]:
     """The link pairs of an SRDF's ``<disable_collisions>`` (path or XML text)."""
-    text = srdf if isinstance(srdf, str) and "<" in srdf else Path(srdf).read_text()
+    if isinstance(srdf, str) and "<" in srdf:
+        text = srdf
+    elif isinstance(srdf, (str, Path)):
+        if not Path(srdf).is_file():
+            raise ModelError(f"SRDF file {str(srdf)!r} not found (srdf: a path or the XML text)")
+        text = Path(srdf).read_text()
+    else:
+        raise ModelError(f"expected srdf as a path or the XML text, got {type(srdf).__name__}")
     try:
         root = ET.fromstring(text)
     except ET.ParseError as e:

@@ -11,8 +11,8 @@ import torch
 from torch import Tensor
 
 from ..errors import DiffkinError, ShapeError
-from ..validation import common_dtype_device, shape_str, tensors
-from .boxes import Box, box_box, box_halfspace, capsule_box
+from ..validation import broadcast_batch, common_dtype_device, shape_str, tensors
+from .boxes import Box, box_box, box_halfspace, capsule_box, checked_boxes
 from .broad import box_spheres, capsule_box_bound, capsule_spheres, exact_below, sphere_bound
 from .distances import capsule_capsule, capsule_halfspace
 
@@ -41,10 +41,16 @@ class World:
         like = None
         if dtype is not None or device is not None:
             like = torch.empty(0, dtype=dtype or torch.get_default_dtype(), device=device)
-        elif boxes is not None:
+        elif boxes is not None and isinstance(boxes.center, Tensor):
             like = boxes.center
+        if boxes is not None:  # a Box built directly: the rule of box() (shapes, finite, h >= 0, rotations)
+            boxes = checked_boxes(boxes, like)
+            like = boxes.center if like is None else like
         s, c, h, p = tensors(("spheres", spheres, (None, 4)), ("capsules", capsules, (None, 7)),
                              ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)), like=like)
+        # one world per batch row: the objects' batch dims (all but the last two) must broadcast
+        broadcast_batch(("spheres", s, 2), ("capsules", c, 2), ("halfspaces", h, 2), ("points", p, 2),
+                        ("boxes.center", None if boxes is None or boxes.center.ndim < 2 else boxes.center, 2))
         for name, radius in (("spheres", s), ("capsules", c)):
             if radius is not None and bool((radius[..., -1] < 0).any()):  # as box() rejects half extents < 0
                 bad = radius[..., -1].detach()

@@ -61,11 +61,21 @@ __all__ = [
     "solve",
 ]
 
-from .velocity import FrameTask as FrameTask  # noqa: E402
-from .velocity import PostureTask as PostureTask  # noqa: E402
+from .differential import solve_velocity as solve_velocity  # noqa: E402
+from .limits import CollisionLimit as CollisionLimit  # noqa: E402
+from .limits import ConfigurationLimit as ConfigurationLimit  # noqa: E402
+from .limits import Limit as Limit  # noqa: E402
+from .limits import VelocityLimit as VelocityLimit  # noqa: E402
+from .tasks import ComTask as ComTask  # noqa: E402
+from .tasks import DampingTask as DampingTask  # noqa: E402
+from .tasks import FrameTask as FrameTask  # noqa: E402
+from .tasks import PostureTask as PostureTask  # noqa: E402
+from .tasks import RelativeFrameTask as RelativeFrameTask  # noqa: E402
+from .tasks import Task as Task  # noqa: E402
 from .velocity import velocity_step as velocity_step  # noqa: E402
 
-__all__ += ["FrameTask", "PostureTask", "velocity_step"]
+__all__ += ["CollisionLimit", "ComTask", "ConfigurationLimit", "DampingTask", "FrameTask", "Limit",
+            "PostureTask", "RelativeFrameTask", "Task", "VelocityLimit", "solve_velocity", "velocity_step"]
 
 from .collision_cost import CollisionCost as CollisionCost  # noqa: E402
 

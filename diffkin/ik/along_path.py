@@ -20,7 +20,8 @@ from torch import Tensor
 from .._deprecation import renamed_arguments
 from ..errors import ConventionError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
-from ..validation import check_number, check_trailing, shape_str, tensors
+from ..transforms import RIGIDITY_TOLERANCE, _transform_deviations
+from ..validation import _traced, check_number, check_trailing, shape_str, tensors
 from .closed_loop import clik
 from .result import final_errors
 
@@ -54,8 +55,13 @@ def finite_difference_twists(T_traj: Tensor, dt: float) -> Tensor:
 
 def _path_kind(x: Tensor, name: str, vectors: tuple[int, ...]) -> bool:
     """True for poses ``(..., S, 4, 4)``, False for vectors ``(..., S, k)`` with k in ``vectors``; else
-    :class:`ShapeError`."""
+    :class:`ShapeError`. Poses must be rigid by the one rule of
+    :data:`~diffkin.transforms.RIGIDITY_TOLERANCE` (:class:`~diffkin.errors.DiffkinError` naming the first
+    offending sample): a scaled or sheared rotation block has no rotation vector, its twists and geodesics
+    would be silently wrong."""
     if x.ndim >= 3 and tuple(x.shape[-2:]) == (4, 4):
+        if not _traced(x):  # values cannot be read while torch.compile / torch.func trace
+            _transform_deviations(x.detach(), name, RIGIDITY_TOLERANCE)
         return True
     if x.ndim >= 2 and x.shape[-1] in vectors:
         return False
@@ -136,7 +142,7 @@ def joint_trajectory_from_poses(
     algorithm: str = "dls",
     orientation: str = "axis_angle",
     K=None,
-    damping: float = 1e-2,
+    damping: float = 1e-4,
     position_tolerance: float = 1e-4,
     orientation_tolerance: float = 1e-3,
     warm_seeds: int = 1,
@@ -157,7 +163,8 @@ def joint_trajectory_from_poses(
             :func:`finite_difference_twists`.
         substeps: CLIK Euler steps per sample interval (Δt = dt/substeps), along :func:`refine_path`; the
             tracking error falls roughly with substeps² (linearisation error of each step).
-        algorithm, orientation, K, damping: passed to :func:`~diffkin.ik.closed_loop.clik`; defaults
+        algorithm, orientation, K, damping: passed to :func:`~diffkin.ik.closed_loop.clik` (damping λ = k²
+            of (3.59)); defaults
             damped least squares (robust near singularities) and K = 1/Δt (each step removes the whole
             error on top of the feedforward: a Newton step toward the next sample).
         position_tolerance, orientation_tolerance: thresholds of ``success`` (and of ``solve``).

@@ -357,14 +357,15 @@ def _reference(cfg, e, v_ff, L) -> Tensor:
 
 def _limited(cfg, chain, q, J, v, dt: float) -> Tensor:
     """``limits=True``: q̇ of :func:`~diffkin.ik.velocity_step` (V.1)–(V.2) for the reference v on the
-    selected rows, λ = k² of (3.59): the DLS law with the joint position and velocity limits as bounds."""
+    selected rows, λ = ``damping`` (k² of (3.59)): the DLS law with the joint position and velocity limits
+    as bounds."""
     task = cfg.task
     zeros = torch.zeros(6, dtype=q.dtype, device=q.device)
     twist = torch.cat((v, zeros[task.size:].expand(*v.shape[:-1], 6 - task.size)), dim=-1)
     weight = zeros.index_fill(0, torch.tensor(task.rows, device=q.device), 1.0)
     vmax = None if cfg.qdot_max is None else torch.tensor(cfg.qdot_max, dtype=q.dtype, device=q.device)
     return _velocity_solve(chain, q, J.unsqueeze(-3), twist.unsqueeze(-2), weight.expand(1, 6), dt,
-                           cfg.damping * cfg.damping, vmax, True, [FrameTask()], None)
+                           cfg.damping, vmax, True, [FrameTask()], None)
 
 
 def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
@@ -373,7 +374,7 @@ def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
         return _mv(J_t[..., rows, :].mT, _mv(cfg.K, e)[..., rows])  # (3.76)
     v = _reference(cfg, e, v_ff, L)
     J_s = J_t[..., rows, :]
-    J_inv = _damped(J_s, cfg.damping * cfg.damping) if cfg.algorithm == "dls" else _pinv(J_s)
+    J_inv = _damped(J_s, cfg.damping) if cfg.algorithm == "dls" else _pinv(J_s)
     qd = _mv(J_inv, v[..., rows])
     if cfg.objective is not None:  # (3.72) with (3.55)
         qd = qd + _nullspace_term(J_inv, J_s, cfg.k0 * _gradient(cfg.objective, q))
@@ -469,7 +470,7 @@ def clik(
     K=None,
     K_P=None,
     K_D=None,
-    damping: float = 1e-2,
+    damping: float = 1e-4,
     nullspace=None,
     k0: float = 0.0,
     k_d0: float = 0.0,
@@ -503,16 +504,18 @@ def clik(
         K: gain of the first-order laws (scalar, (m,) or (m, m); default 0.5/Δt = the book's 500 at 1 ms).
             ``K=0`` with ``"inverse"`` is the open-loop scheme (3.47).
         K_P, K_D: second-order gains (default ω² and 2ω with ω = 0.1/Δt).
-        damping: k of the damped least-squares inverse (3.59). nullspace: ``None``, ``"manipulability"``,
-            ``"joint_limits"`` or a callable w(q) -> (...); k0: its gain (3.55); k_d0: damping of the
-            null-space acceleration (second order). q_limits: ``(n, 2)`` limits for ``"joint_limits"``
-            (default the chain's). qdot0: initial q̇ for the second order (default J†ẋ_d(0)).
+        damping: λ = k² of the damped least-squares inverse (3.59), Jᵀ(JJᵀ + λI)⁻¹ (the one meaning of
+            ``damping`` in the velocity-level solvers, as :func:`~diffkin.ik.solve_velocity`'s).
+            nullspace: ``None``, ``"manipulability"``, ``"joint_limits"`` or a callable w(q) -> (...); k0:
+            its gain (3.55); k_d0: damping of the null-space acceleration (second order). q_limits:
+            ``(n, 2)`` limits for ``"joint_limits"`` (default the chain's). qdot0: initial q̇ for the second
+            order (default J†ẋ_d(0)).
         qdot_max: bound on |q̇| per joint of the second-order integrator (default π/(4Δt), a quarter turn
             per step: never reached by a run that converges; it keeps a diverging one — gains too high for
             the error, a pass near a singularity — finite, with its errors reported as they are).
         clamp: project q onto the chain's joint limits after each step. return_poses: keep the poses.
         limits: hard joint limits (with ``algorithm="dls"``): each q̇ is :func:`~diffkin.ik.velocity_step`'s
-            exact solution of the DLS problem (3.59) with λ = ``damping``² under the bounds that keep
+            exact solution of the DLS problem (3.59) with λ = ``damping`` under the bounds that keep
             q + q̇Δt within the chain's joint limits and |q̇| ≤ ``qdot_max`` (if given): the step near a
             limit is redistributed to the other joints instead of cut (orientation ``None``,
             ``"axis_angle"`` or ``"quaternion"``; no ``nullspace``).
@@ -577,7 +580,7 @@ def _check_limits_mode(limits, algorithm, orientation, nullspace, damping) -> No
             "clik(limits=True) solves the DLS law (3.59) under the joint limits: it needs algorithm='dls', "
             f"orientation None, 'axis_angle' or 'quaternion' and no nullspace; got algorithm={algorithm!r}, "
             f"orientation={orientation!r}, nullspace={nullspace!r}")
-    check_number(damping, "damping (k of (3.59), λ = k² > 0 with limits=True)")
+    check_number(damping, "damping (λ = k² of (3.59), > 0 with limits=True)")
 
 
 def _as_tuple(target) -> tuple:

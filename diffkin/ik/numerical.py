@@ -105,23 +105,12 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     """Validated targets (:func:`_valid_targets`) -> (batch, the targets detached (poses re-orthonormalised),
     their batch-last columns in the working dtype)."""
     T_target = T_target.detach()
-    K, tree = chain.n_ends, not chain.single_end
-    ends = (K,) if tree else ()
-    pos_input = position_only and T_target.ndim >= 1 and T_target.shape[-1] == 3
+    K = chain.n_ends
+    pos_input, batch = _target_batch(chain, T_target, position_only)
     if pos_input:
-        if tuple(T_target.shape[-1 - len(ends) : -1]) != ends:
-            raise ShapeError(f"expected target positions of shape (..., {K}, 3) for the {K} end links of "
-                             f"chain '{chain.name}', got {shape_str(T_target.shape)}")
-        batch = tuple(T_target.shape[: T_target.ndim - 1 - len(ends)])
         pd = T_target.reshape(-1, K * 3).T.to(dtype)
         return batch, T_target, Targets(pd.contiguous(), None, None, None)
-    want = f"(..., {K}, 4, 4)" if tree else "(..., 4, 4)"
-    tail = tuple(T_target.shape[max(T_target.ndim - 2 - len(ends), 0) :])
-    if T_target.ndim < 2 + len(ends) or tail != (*ends, 4, 4):
-        want = f"{want} or {want[:-6]}3)" if position_only else want
-        raise ShapeError(f"expected T_target of shape {want}, got {shape_str(T_target.shape)}")
     T_target = as_measured_transform(T_target, "T_target")  # 1e-5 tolerance, re-orthonormalised
-    batch = tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
     # the four columns of every end link's pose, batch last: (4, 3K, N) in one copy
     cols = T_target.reshape(-1, K, 4, 4)[:, :, :3].permute(3, 1, 2, 0).to(dtype).reshape(4, 3 * K, -1)
     cols = cols.contiguous().unbind(0)
@@ -130,10 +119,30 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     return batch, T_target, Targets(cols[3], cols[0], cols[1], cols[2])
 
 
+def _target_batch(chain, T_target: Tensor, position_only: bool) -> tuple[bool, tuple[int, ...]]:
+    """(positions given, the batch dims) of targets ``(..., [K,] 4, 4)`` or, with ``position_only``,
+    ``(..., [K,] 3)``; :class:`ShapeError` for any other shape."""
+    K, tree = chain.n_ends, not chain.single_end
+    ends = (K,) if tree else ()
+    if position_only and T_target.ndim >= 1 and T_target.shape[-1] == 3:
+        if tuple(T_target.shape[-1 - len(ends) : -1]) != ends:
+            raise ShapeError(f"expected target positions of shape (..., {K}, 3) for the {K} end links of "
+                             f"chain '{chain.name}', got {shape_str(T_target.shape)}")
+        return True, tuple(T_target.shape[: T_target.ndim - 1 - len(ends)])
+    want = f"(..., {K}, 4, 4)" if tree else "(..., 4, 4)"
+    tail = tuple(T_target.shape[max(T_target.ndim - 2 - len(ends), 0) :])
+    if T_target.ndim < 2 + len(ends) or tail != (*ends, 4, 4):
+        want = f"{want} or {want[:-6]}3)" if position_only else want
+        raise ShapeError(f"expected T_target of shape {want}, got {shape_str(T_target.shape)}")
+    return False, tuple(T_target.shape[: T_target.ndim - 2 - len(ends)])
+
+
 def _targets_in_base(chain, T_target: Tensor, base, position_only: bool) -> Tensor:
     """World targets in the chain's base frame: base⁻¹ T (poses) or Rᵀ (p − t) (positions), per row; the
-    K end links of a tree share their row's base."""
-    B_inv = _transform_inverse(chain._row_base(base, True))
+    K end links of a tree share their row's base. The targets' shape and the base's batch dims are checked
+    first (:class:`ShapeError`)."""
+    _, batch = _target_batch(chain, T_target, position_only)
+    B_inv = _transform_inverse(chain._row_base(base, True, batch, of="T_target"))
     if not chain.single_end:
         B_inv = B_inv.unsqueeze(-3)
     if position_only and T_target.shape[-1] == 3:
@@ -199,7 +208,7 @@ def _compute_dtype(chain, cfg: LMConfig, tol: float) -> torch.dtype:
 
 def solve(
     chain: KinematicChain,
-    T_target: Tensor,
+    T_target: Tensor | None = None,
     q0: Tensor | None = None,
     *,
     num_seeds: int = 64,
@@ -218,6 +227,8 @@ def solve(
     collision=None,
     world=None,
     margin: float = 0.0,
+    tasks=None,
+    limits=None,
 ) -> IKResult:
     """Batched inverse kinematics by Levenberg–Marquardt with joint limits and restarts.
 
@@ -251,6 +262,10 @@ def solve(
             (:mod:`diffkin.ik._collision_native`), elsewhere or with ``LMConfig(collision_refine_calls=1)``
             in the scheduled loop with an acceptance test and optionally a constrained Gauss–Newton
             refinement (:mod:`diffkin.ik._collision`).
+        tasks, limits: the same problem as objects (:mod:`diffkin.ik._from_tasks`): one pose
+            :class:`~diffkin.ik.FrameTask` per end link instead of ``T_target`` (orientation costs 0:
+            ``position_only``); :class:`~diffkin.ik.ConfigurationLimit` for ``respect_limits``,
+            :class:`~diffkin.ik.CollisionLimit` for ``collision`` / ``world`` / ``margin``.
 
     Returns:
         :class:`IKResult` with per-target ``q``, ``success``, errors (from an exact FK in the chain's dtype),
@@ -273,6 +288,11 @@ def solve(
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """
+    if tasks is not None or limits is not None:  # the objects, translated to the arguments below
+        from ._from_tasks import solve_arguments
+
+        T_target, position_only, respect_limits, collision, world, margin = solve_arguments(
+            chain, T_target, tasks, limits, position_only, respect_limits, collision, world, margin)
     if q0 is None and base is None and config is None and damping is None and collision is None \
             and world is None and not (  # one pose: lean path
             position_only or progress or seeds_from_closed_form or not respect_limits):

@@ -54,13 +54,18 @@ class PoseCost(_Term):
 
 @dataclass(frozen=True)
 class JointLimitCost(_Term):
-    """Quadratic penalty for joints within ``margin`` of a limit (zero inside the safe range)."""
+    """Quadratic penalty for joints within ``margin`` of a limit (zero inside the safe range): the scalar
+    coordinates only (a ball or free joint's quaternion has no limits; its entries are not penalised)."""
 
     margin: float = 0.05
 
     def residual(self, ctx: CostContext) -> Tensor:
         lo, hi = ctx.chain.lower_upper()
         q = ctx.q
+        space = ctx.chain.configuration_space
+        if not space.euclidean:
+            idx = list(space.scalar_index("q"))
+            lo, hi, q = lo[idx], hi[idx], q[..., idx]
         return torch.relu(lo + self.margin - q) + torch.relu(q - (hi - self.margin))
 
 
@@ -337,7 +342,7 @@ def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_chan
 
 def optimize(
     chain,
-    T_target: Tensor,
+    T_target: Tensor | None = None,
     q0: Tensor | None = None,
     *,
     costs: Sequence | None = None,
@@ -354,6 +359,8 @@ def optimize(
     collision=None,
     world=None,
     margin: float = 0.0,
+    tasks=None,
+    limits=None,
 ) -> IKResult:
     """Optimisation-based IK: minimise Σ cost terms per sample, from ``q0`` (a local method).
 
@@ -378,6 +385,9 @@ def optimize(
         unroll: how ``q`` is differentiated (see below): False (default) for the implicit gradient; True (10
             steps) or a number of steps to differentiate through that many Gauss–Newton steps (all terms
             least squares) or gradient steps of size ``lr`` (default 0.05) taken from the solution instead.
+        tasks, limits: the problem as objects (:mod:`diffkin.ik._from_tasks`): each task a cost term
+            ‖W e(q)‖² (its own error and costs), the pose :class:`~diffkin.ik.FrameTask` s also the targets
+            of ``success`` (instead of ``T_target``); limits as in :func:`~diffkin.ik.solve`.
         collision, world, margin: as in :func:`~diffkin.ik.solve`; ``success`` also needs every checked
             distance >= ``margin`` (the exact distances). With ``optimizer="gauss_newton"`` on a chain of
             1-DOF joints the distances are **constraints** of every step (a QP with the nearest distances
@@ -415,6 +425,11 @@ def optimize(
     is active the gradient is that of the unconstrained stationary point. Equal to central differences of
     the solver in both cases (``tests/test_ik_optimize_constraints.py``, ``tests/test_ik_collision.py``).
     """
+    if tasks is not None or limits is not None:  # the objects, translated (diffkin.ik._from_tasks)
+        from ._from_tasks import optimize_arguments
+
+        T_target, costs, position_only, respect_limits, collision, world, margin = optimize_arguments(
+            chain, T_target, tasks, limits, costs, position_only, respect_limits, collision, world, margin)
     _check_options(optimizer, max_iterations, lr, damping, tolerance_change, unroll, collision, world, margin)
     terms = _as_terms(costs)
     constraint = constraint_of(chain, collision, world, margin, None)

@@ -38,6 +38,7 @@ where the active set is locally constant (strict complementarity) and one-sided 
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -52,7 +53,9 @@ from ._qp_ip import ip_solve
 __all__ = ["BoxQPResult", "QPResult", "box_qp", "solve_qp"]
 
 _WARM_START = 2  # primal-dual active-set rounds before the primal active set (all rows, no sync)
-_IP_ITERATIONS = 30  # interior-point steps: 1e-12 residuals on the test problems take 12-25
+# interior-point steps (at most): 1e-12 residuals take 12-25, ill-conditioned H (eigenvalues ~1e-3 beside ~1)
+# up to ~60; the loop stops once every row has converged (checked every 8 steps)
+_IP_ITERATIONS = 80
 
 
 class BoxQPResult(NamedTuple):
@@ -93,7 +96,34 @@ def _inputs(H, g, lower, upper, name: str):
             raise DiffkinError(f"{name}: {nm} holds NaN")
     if bool((lower > upper).any()):
         raise DiffkinError(f"{name}: expected lower <= upper everywhere (a non-empty box)")
+    if bool((lower == math.inf).any()) or bool((upper == -math.inf).any()):
+        raise DiffkinError(f"{name}: expected lower < +inf and upper > -inf (no real x satisfies x >= +inf "
+                           "or x <= -inf; -inf / +inf: no bound)")
+    _check_spd(H, name)
     return H, g, lower, upper
+
+
+def _check_spd(H: Tensor, name: str) -> None:
+    """Refuse an H that is not symmetric (beyond √ε of its largest entry) or not positive definite (its
+    Cholesky factorisation fails): the QP (Q.1) is then unbounded or not the problem the solvers solve, and
+    no x they could return would be its minimiser. :class:`DiffkinError` naming the first offending row."""
+    if H.numel() == 0:
+        return
+    Hd = H.detach()
+    scale = Hd.abs().amax((-2, -1))
+    asym = (Hd - Hd.mT).abs().amax((-2, -1))
+    bad = asym > eps_for(Hd) ** 0.5 * scale
+    what = "symmetric"
+    if not bool(bad.any()):
+        bad, what = torch.linalg.cholesky_ex(Hd)[1] != 0, "positive definite"
+        if not bool(bad.any()):
+            return
+    index = tuple(int(i) for i in bad.nonzero()[0].tolist()) if bad.ndim else ()
+    row = f"H[{', '.join(map(str, index))}]" if index else "H"
+    detail = (f"max |H - Hᵀ| = {float(asym[index]):.3g}" if what == "symmetric"
+              else "its Cholesky factorisation fails: a zero, negative or indefinite curvature")
+    raise DiffkinError(f"{name}: expected H symmetric positive definite, but {row} is not {what} ({detail}); "
+                       "the QP has no unique minimiser (add a damping λI to H)")
 
 
 def _flat(batch, *xs_trailing):
@@ -246,6 +276,7 @@ class _BoxQP(torch.autograd.Function):
     @staticmethod
     def forward(ctx, H, g, lo, hi, max_iter):
         x, at_lo, at_hi, ok = _box_solve(H, g, lo, hi, max_iter)
+        ok = ok & torch.isfinite(x).all(-1)  # never "converged" on a NaN / inf x (no host sync)
         ctx.save_for_backward(H, x, at_lo, at_hi)
         ctx.mark_non_differentiable(at_lo, at_hi, ok)
         return x, at_lo, at_hi, ok
@@ -269,7 +300,14 @@ def box_qp(H, g, lower=None, upper=None, *, max_iter: int | None = None) -> BoxQ
 
     Returns:
         :class:`BoxQPResult`; ``x`` is differentiable w.r.t. H, g and the bounds by (Q.2). Every iterate is
-        within the bounds, so a row that has not converged (``converged`` False) is still feasible.
+        within the bounds, so a row that has not converged (``converged`` False) is still feasible;
+        ``converged`` is never True for a non-finite x.
+
+    Raises:
+        DiffkinError: H not symmetric (beyond √ε of its largest entry) or not positive definite (H = 0, a
+            negative-definite or indefinite H: the QP has no unique minimiser), lower = +inf or upper = -inf
+            anywhere (an empty box), lower > upper, NaN bounds. ShapeError / DTypeError / NonFiniteError by
+            the rule of :mod:`diffkin.validation`.
     """
     H, g, lo, hi = _inputs(H, g, lower, upper, "box_qp")
     n = g.shape[-1]
@@ -288,11 +326,16 @@ def solve_qp(H, g, G=None, h=None, lower=None, upper=None, *, iterations: int | 
         H: ``(..., n, n)`` symmetric positive definite. g: ``(..., n)``.
         G: ``(..., p, n)`` and h: ``(..., p)`` (inf entries of h: no constraint); ``None``: none.
         lower, upper: ``(..., n)`` bounds as in :func:`box_qp`.
-        iterations: Newton steps (default 30; rows that converge earlier are frozen).
+        iterations: at most this many Newton steps (default 80; rows that converge earlier are frozen, and
+            the loop ends once all have).
 
     Returns:
         :class:`QPResult`; ``x`` is differentiable w.r.t. H, g, G, h and the bounds by (Q.2). The
         constraints must be feasible; an infeasible row comes back with ``converged`` False.
+
+    Raises:
+        DiffkinError: H not symmetric positive definite, an empty box, NaN or -inf entries of h (as
+            :func:`box_qp`).
     """
     H, g, lo, hi = _inputs(H, g, lower, upper, "solve_qp")
     n = g.shape[-1]

@@ -22,13 +22,20 @@ acts only on the part of z that N removes, and ε = √eps·max D² makes z uniq
 (V.1) is :func:`diffkin.ik.qp.box_qp` on H = AᵀA + λI, g = Aᵀ W v; (V.3) is :func:`diffkin.ik.qp.solve_qp`.
 Both are differentiable (KKT gradients) w.r.t. q (through J and the bounds), v, the limits, the weights and
 the damping.
+
+:func:`velocity_step` is a shorthand: it builds the task and limit objects of :mod:`diffkin.ik.tasks` and
+:mod:`diffkin.ik.limits` — one :class:`~diffkin.ik.FrameTask` per end link with ``twist=`` and the costs
+W, :class:`~diffkin.ik.ConfigurationLimit` ``(gain=1)`` for ``respect_limits``,
+:class:`~diffkin.ik.VelocityLimit` for ``velocity_limit``, :class:`~diffkin.ik.CollisionLimit` for
+``collision`` — and solves (V.1)–(V.2) as :func:`~diffkin.ik.solve_velocity` does ((D.1) with Δq = q̇Δt is
+(V.1) times Δt²; λ = ``damping`` is the same number in both). The one difference is the
+:class:`~diffkin.ik.PostureTask`: here the lower priority (V.3), in ``solve_velocity`` a term of the
+weighted sum (mink's semantics); pass the tasks to ``solve_velocity`` for the latter.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any
 
 import torch
 from torch import Tensor
@@ -37,46 +44,32 @@ from .._numerics import eps_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..redundancy import _pinv
 from ..validation import broadcast_batch, check_number, shape_str, tensors
-from .qp import _solve_box, _solve_general
+from .differential import least_squares, solve_step
+from .limits import CollisionLimit, ConfigurationLimit, VelocityLimit, combine_boxes
+from .qp import _solve_general
+from .tasks import FrameTask, PostureTask, Problem
 
 __all__ = ["FrameTask", "PostureTask", "velocity_step"]
 
 
-@dataclass(frozen=True, eq=False)
-class FrameTask:
-    """Track the twist of end link ``end`` (the index into ``chain.topology.ends``; 0 for a chain).
-
-    weight: a number or ``(6,)`` per component of [v; ω] (e.g. ``(1, 1, 1, 0, 0, 0)``: position only);
-    it multiplies ``velocity_step``'s ``weight``.
-    """
-
-    end: int = 0
-    weight: Any = 1.0
-
-
-@dataclass(frozen=True, eq=False)
-class PostureTask:
-    """Lower-priority posture (V.3): move towards ``q_ref`` ``(..., n)`` at q̇_p = gain · (q_ref − q)/Δt in
-    the primary tasks' null space. weight: a number or ``(nv,)`` per joint (D of (V.3), > 0 somewhere)."""
-
-    q_ref: Any
-    weight: Any = 1.0
-    gain: float = 1.0
-
-
 def _frame_tasks(tasks, K: int) -> tuple[list[FrameTask], PostureTask | None]:
     tasks = () if tasks is None else tuple(tasks)
-    bad = [t for t in tasks if not isinstance(t, FrameTask | PostureTask)]
+    bad = [t for t in tasks if not isinstance(t, FrameTask | PostureTask)
+           or (isinstance(t, FrameTask) and (t.twist is not None or t.target is not None))
+           or type(t) not in (FrameTask, PostureTask)]
     if bad:
-        raise ConventionError(f"velocity_step: tasks must be FrameTask or PostureTask, got {bad[0]!r}")
+        raise ConventionError(f"velocity_step: tasks must be FrameTask or PostureTask (a FrameTask without "
+                              f"target or twist: the twist argument is its), got {bad[0]!r}; pass other "
+                              f"tasks to ik.solve_velocity")
     frames = [t for t in tasks if isinstance(t, FrameTask)] or [FrameTask(end=k) for k in range(K)]
     postures = [t for t in tasks if isinstance(t, PostureTask)]
     if len(postures) > 1:
         raise ConventionError(f"velocity_step: at most one PostureTask, got {len(postures)}")
     for t in frames:
-        if isinstance(t.end, bool) or not isinstance(t.end, int) or not 0 <= t.end < K:
+        if isinstance(t.frame, bool) or not isinstance(t.frame, int | str) or (
+                isinstance(t.frame, int) and not 0 <= t.frame < K):
             raise ShapeError(f"velocity_step: FrameTask.end must be an end-link index in [0, {K}), got "
-                             f"{t.end!r}")
+                             f"{t.frame!r}")
     return frames, (postures[0] if postures else None)
 
 
@@ -106,39 +99,17 @@ def _inputs(chain, q, twist, damping, velocity_limit, weight):
     return q, twist, damping, vmax, weight
 
 
-def _stacked_task(J, twist, weight, frames: list[FrameTask], like: Tensor):
-    """A = W J ``(..., 6F, nv)`` and b = W v ``(..., 6F)`` over the frame tasks."""
-    A, b = [], []
+def _frame_objects(twist, weight, frames: list[FrameTask], p: Problem) -> list[FrameTask]:
+    """The :class:`FrameTask` objects of (V.1): twist ξ_k, costs W = its costs × ``weight[..., k, :]``."""
+    out = []
     for t in frames:
-        (w,) = tensors(("FrameTask.weight", t.weight, None), like=like)
-        if w.ndim and w.shape != (6,):
-            raise ShapeError(f"velocity_step: expected FrameTask.weight as a number or (6,), got "
-                             f"{shape_str(w.shape)}")
-        _nonnegative(w, "FrameTask.weight")
-        wk = w.expand(6) if weight is None else w * weight[..., t.end, :]
-        A.append(wk[..., :, None] * J[..., t.end, :, :])
-        b.append(wk * twist[..., t.end, :])
-    return torch.cat(A, dim=-2), torch.cat(torch.broadcast_tensors(*b), dim=-1)
-
-
-def _bounds(chain, q: Tensor, dt: float, nv: int, vmax: Tensor | None, respect_limits: bool):
-    """(lower, upper) of (V.2) ``(..., nv)``; ±inf where a joint has no bound."""
-    inf = torch.tensor(float("inf"), dtype=q.dtype, device=q.device)
-    lo, hi = -inf.expand(nv), inf.expand(nv)
-    if respect_limits and chain.q_limits is not None:
-        lim = chain.q_limits.to(q)
-        space = chain.configuration_space
-        if space.euclidean:
-            lo, hi = (lim[:, 0] - q) / dt, (lim[:, 1] - q) / dt
-        else:  # ball and free joints: the scalar coordinates have bounds, the rotations none
-            sq, sv = list(space.scalar_index("q")), torch.tensor(space.scalar_index("v"), device=q.device)
-            lo_s, hi_s = (lim[sq, 0] - q[..., sq]) / dt, (lim[sq, 1] - q[..., sq]) / dt
-            batch = q.shape[:-1]
-            lo = (-inf).expand(*batch, nv).clone().index_copy(-1, sv, lo_s)
-            hi = inf.expand(*batch, nv).clone().index_copy(-1, sv, hi_s)
-    if vmax is not None:  # velocity limits win over a position bound that lies beyond them (q outside)
-        lo, hi = torch.maximum(torch.minimum(lo, vmax), -vmax), torch.maximum(torch.minimum(hi, vmax), -vmax)
-    return lo, hi
+        k = p.end_index(t.frame, "velocity_step: FrameTask.end")
+        w = t.cost_vector(p, 6)
+        if weight is not None:
+            w = w * weight[..., k, :]
+        out.append(FrameTask(k, twist=twist[..., k, :], position_cost=w[..., :3], orientation_cost=w[..., 3:],
+                             gain=t.gain, lm_damping=t.lm_damping))
+    return out
 
 
 def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask, dampers=None):
@@ -163,6 +134,9 @@ def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask, dampers=None):
     g = (N @ (D * (target - qd1)).unsqueeze(-1)).squeeze(-1)
     G = torch.cat((N, -N), dim=-2)
     h = torch.cat(((hi - qd1).clamp(min=0.0), (qd1 - lo).clamp(min=0.0)), dim=-1)
+    # q̇₁ on several bounds can leave {z: G z ≤ h} without interior, where the interior point stalls: the
+    # rows are relaxed by δ = eps^¾ (1 + |h|) (the final clamp restores (V.2) exactly)
+    h = h + eps_for(q) ** 0.75 * (1.0 + h.abs())
     if dampers is not None:  # Gd (q̇₁ + N z) ≤ hd
         Gd, hd = dampers
         slack = (hd - (Gd @ qd1.unsqueeze(-1)).squeeze(-1)).clamp(min=0.0)
@@ -174,24 +148,6 @@ def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask, dampers=None):
     return torch.maximum(torch.minimum(qd, hi), lo)  # (V.2) holds to rounding: make it exact
 
 
-def _damper_rows(chain, q: Tensor, dt: float, collision, world, margin: float, detection: float,
-                 gain: float) -> tuple[Tensor, Tensor]:
-    """Collision velocity dampers as G q̇ ≤ h (mink's ``CollisionAvoidanceLimit``): every checked distance d
-    (the pairs of ``collision``, and each geom to each object of ``world``) closer than ``detection`` may
-    shrink by at most ``gain (d − margin)`` over the step, ḋ = J_d q̇ ≥ −gain (d − margin)/Δt, i.e.
-    −J_d q̇ ≤ gain (d − margin)/Δt; rows farther off are inactive (h = inf). J_d = ∂d/∂q (autograd of the
-    closed-form distances) times the tangent map of q for ball and free joints: ``(..., D, nv)``,
-    ``(..., D)``."""
-    from .residuals import DistanceConstraint
-
-    d, _, Jd = DistanceConstraint(collision, world).jacobian(q)  # every row (margin 0: g = d)
-    space = chain.configuration_space
-    if not space.euclidean:
-        Jd = Jd @ space.tangent_map(q)
-    inf = torch.full_like(d, float("inf"))
-    return -Jd, torch.where(d < detection, gain * (d - margin) / dt, inf)
-
-
 def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=None,
                   respect_limits: bool = True, weight=None,
                   tasks: Sequence[FrameTask | PostureTask] | None = None, collision=None, world=None,
@@ -201,29 +157,29 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
 
     Args:
         chain: a :class:`~diffkin.chain.KinematicChain` (one or K end links).
-        q: joints ``(..., n)``.
+        q: joints ``(..., nq)``.
         twist: desired end-link twists [v; ω] in the base frame (m/s, rad/s): ``(..., 6)`` for a chain,
             ``(..., K, 6)`` for a tree (one per end link, in ``chain.topology.ends`` order).
         dt: the step Δt (s) over which the position limits must hold, > 0.
-        damping: λ of (V.1), > 0: a number or ``(...)`` per row.
+        damping: λ of (V.1) (= k² of (3.59), the same λ as :func:`~diffkin.ik.solve_velocity`'s), > 0: a
+            number or ``(...)`` per row.
         velocity_limit: q̇_max, a number or ``(..., nv)`` per joint (>= 0; inf: none); None: no limit.
         respect_limits: bound q + q̇Δt by ``chain.q_limits`` (joints with ±inf limits are free).
         weight: W of (V.1), diagonal: a number or ``(..., 6)`` / ``(..., K, 6)`` per twist component
             (0 drops a component: ``(1, 1, 1, 0, 0, 0)`` tracks the position only).
-        tasks: :class:`FrameTask` s (which end links, each with its own weight; default every end link)
+        tasks: :class:`FrameTask` s (which end links, each with its own costs; default every end link)
             and at most one :class:`PostureTask` (the lower priority (V.3)).
         collision, world: a :class:`~diffkin.collision.RobotCollision` of the chain (its checked pairs) and
-            optionally a :class:`~diffkin.collision.World`: velocity dampers as extra inequalities
-            (:func:`_damper_rows`): a distance below ``collision_detection`` (m) may shrink over the step
-            by at most ``collision_gain`` times its excess over ``collision_margin`` (m), so no checked
-            distance is driven below the margin. The damper rows are constants of the step (their
-            derivatives w.r.t. q do not flow into q̇'s gradient).
+            optionally a :class:`~diffkin.collision.World`: a :class:`~diffkin.ik.CollisionLimit` with
+            ``minimum_distance=collision_margin``, ``detection_distance=collision_detection``,
+            ``gain=collision_gain``: a distance below the detection distance (m) may shrink over the step by
+            at most the gain times its excess over the margin (m), never by a negative amount.
 
     Returns:
         q̇ ``(..., nv)``, differentiable (KKT gradients of :mod:`diffkin.ik.qp`).
 
     With ``collision`` the step is the general QP (:func:`diffkin.ik.qp.solve_qp`'s interior point) with
-    the bounds and the damper rows as inequalities; without it, the box QP.
+    the bounds and the collision rows as inequalities; without it, the box QP.
     """
     q, twist, damping, vmax, weight = _inputs(chain, q, twist, damping, velocity_limit, weight)
     dt = check_number(dt, "dt", unit=" (s)")
@@ -231,8 +187,9 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
     _, J = chain.forward_kinematics_and_jacobian(q, check=False)
     if chain.single_end:
         J, twist = J.unsqueeze(-3), twist.unsqueeze(-2)
-        weight = None if weight is None or weight.ndim == 0 else weight.unsqueeze(-2)
-    if weight is not None and weight.ndim == 0:
+        if weight is not None and weight.ndim:
+            weight = weight.unsqueeze(-2)
+    if weight is not None and weight.ndim == 0:  # a plain number (0 included) weights every component
         weight = weight.expand(*twist.shape[-2:])
     broadcast_batch(("q", q, 1), ("twist", twist, 2), ("weight", weight, 2), ("damping", damping, 0),
                     ("velocity_limit", vmax if vmax is not None and vmax.ndim else None, 1))
@@ -240,39 +197,29 @@ def velocity_step(chain, q, twist, dt: float, *, damping=1e-3, velocity_limit=No
     if vmax is not None and vmax.ndim and vmax.shape[-1] != nv:
         raise ShapeError(f"velocity_step: expected velocity_limit as a number or (..., {nv}), got "
                          f"{shape_str(vmax.shape)}")
-    dampers = None
+    limit = None
     if collision is not None:
-        for name, value in (("collision_margin", collision_margin), ("collision_detection",
-                                                                      collision_detection),
-                            ("collision_gain", collision_gain)):
-            check_number(value, name, positive=False)
-        dampers = _damper_rows(chain, q, dt, collision, world, float(collision_margin),
-                               float(collision_detection), float(collision_gain))
+        limit = CollisionLimit(collision, world, gain=collision_gain, minimum_distance=collision_margin,
+                               detection_distance=collision_detection)
     elif world is not None:
         raise DiffkinError("velocity_step: a world needs the robot's collision model (collision=...)")
-    return _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture, dampers)
+    return _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture, limit)
 
 
-def _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture, dampers=None):
-    """(V.1)–(V.3) for validated inputs: J ``(..., K, 6, nv)``, twist and weight ``(..., K, 6)``; dampers
-    ``(G (..., D, nv), h (..., D))`` or None."""
-    nv = J.shape[-1]
-    A, b = _stacked_task(J, twist, weight, frames, q)
-    eye = torch.eye(nv, dtype=q.dtype, device=q.device)
-    H = A.mT @ A + damping[..., None, None] * eye
-    g = (A.mT @ b.unsqueeze(-1)).squeeze(-1)
-    lo, hi = _bounds(chain, q, dt, nv, vmax, respect_limits)
-    if dampers is None:
-        qd = _solve_box(H, g, lo, hi)
-    else:  # the bounds as rows beside the dampers: [G; I; −I] q̇ ≤ [h; hi; −lo] (inf rows are off)
-        Gd, hd = dampers
-        batch = torch.broadcast_shapes(Gd.shape[:-2], lo.shape[:-1], hi.shape[:-1])
-        I = eye.expand(*batch, nv, nv)
-        G = torch.cat((Gd.expand(*batch, *Gd.shape[-2:]), I, -I), dim=-2)
-        h = torch.cat((hd.expand(*batch, hd.shape[-1]), hi.expand(*batch, nv), -lo.expand(*batch, nv)),
-                      dim=-1)
-        qd = _solve_general(H, g, G, h)
-        qd = torch.maximum(torch.minimum(qd, hi), lo)  # the bounds exactly (rounding of the interior point)
+def _solve(chain, q, J, twist, weight, dt, damping, vmax, respect_limits, frames, posture, collision=None):
+    """(V.1)–(V.3) for validated inputs: J ``(..., K, 6, nv)``, twist and weight ``(..., K, 6)``; collision a
+    :class:`~diffkin.ik.CollisionLimit` or None."""
+    p = Problem(chain, q, dt)
+    p._fk = (None, J)  # the twist form reads only the Jacobians
+    limits = ([ConfigurationLimit(gain=1.0)] if respect_limits else []) + (
+        [VelocityLimit(vmax)] if vmax is not None else []) + ([collision] if collision is not None else [])
+    A, b, reg = least_squares(p, _frame_objects(twist, weight, frames, p), damping)
+    qd = solve_step(p, A, b, reg, limits) / dt
     if posture is not None:
-        qd = _posture(chain, q, dt, A, qd, lo, hi, posture, dampers)
+        box = combine_boxes(limits, p)
+        inf = torch.tensor(float("inf"), dtype=q.dtype, device=q.device)
+        lo, hi = (box[0] / dt, box[1] / dt) if box is not None else (-inf.expand(A.shape[-1]),
+                                                                      inf.expand(A.shape[-1]))
+        rows = None if collision is None else collision.rows(p)
+        qd = _posture(chain, q, dt, A, qd, lo, hi, posture, None if rows is None else (rows[0], rows[1] / dt))
     return qd

@@ -22,6 +22,7 @@ __all__ = [
     "jacobian_rows",
     "tree_jacobian",
     "tree_jacobian_rows",
+    "weighted_point_jacobian",
     "twist_of_derivative",
     "FEW_OPS_BATCH",
 ]
@@ -127,6 +128,32 @@ def tree_jacobian_rows(axes: list, p_ends: list, revolute: Tensor, topo: Topolog
     if topo.coupled:
         return torch.einsum("rjm,jn->nrm", out, topo.coupling_matrix(out.dtype, out.device))
     return out.permute(1, 0, 2)
+
+
+def weighted_point_jacobian(axes: Tensor, origins: Tensor, points: Tensor, weights: Tensor, revolute: Tensor,
+                            topo: Topology) -> Tensor:
+    """Σ_i w_i J_P(p_i) ``(..., 3, nv)``: the linear rows of (3.30) for B points ``p_i`` ``(..., B, 3)``
+    attached to the tree, summed with weights (the centre-of-mass Jacobian for w_i = m_i / M).
+
+    ``axes`` / ``origins`` ``(..., C, 3)`` are the C columns' z_c and p_c of one pass of
+    :mod:`diffkin.kernels.tree`; ``weights (C, B)`` holds w_i where column c moves point i (its frame is an
+    ancestor of point i's) and 0 elsewhere. By linearity of (3.30) in p_e, column c is
+    z_c × (S_c − W_c p_c) for a revolute and W_c z_c for a prismatic joint, with S_c = Σ_i w_ci p_i and
+    W_c = Σ_i w_ci: one cross product per column, whatever B. Coupled through the mimic matrix.
+    """
+    C, B = weights.shape
+    batch = points.shape[:-2]
+    # one (C, B) x (B, 3 · batch) product: a broadcast batched matmul is many times slower for small C, B
+    S = (weights @ points.movedim(-2, 0).reshape(B, -1)).reshape(C, *batch, 3).movedim(0, -2)  # (..., C, 3)
+    W = weights.sum(-1, keepdim=True)  # (C, 1)
+    lin = torch.linalg.cross(axes, S - W * origins, dim=-1)
+    if not all(topo.column_revolute):
+        rev = revolute.unsqueeze(-1)
+        lin = lin * rev + axes * (W * (1.0 - rev))
+    J = lin.transpose(-1, -2)  # (..., 3, C)
+    if topo.coupled:
+        J = J @ topo.coupling_matrix(J.dtype, J.device)
+    return J
 
 
 def twist_of_derivative(dT: Tensor, T: Tensor) -> Tensor:

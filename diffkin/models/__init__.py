@@ -38,14 +38,16 @@ __all__ = [
     "DATA_DIR",
 ]
 
-def chain_from_dict(data: dict, dtype: torch.dtype | None = None, device=None, where: str = "") -> DHChain:
+def chain_from_dict(data: dict, dtype: torch.dtype | None = None, device=None, where: str = "", *,
+                    learnable: bool = False) -> DHChain:
     """Build a :class:`DHChain` from a model mapping; errors name the field (``where`` prefixes them)."""
-    return DHChain.from_dict(data, dtype=dtype, device=check_device(device), where=where)
+    return DHChain.from_dict(data, dtype=dtype, device=check_device(device), where=where, learnable=learnable)
 
 
-def chain_from_yaml(path_or_str, dtype: torch.dtype | None = None, device=None) -> DHChain:
+def chain_from_yaml(path_or_str, dtype: torch.dtype | None = None, device=None, *,
+                    learnable: bool = False) -> DHChain:
     """Chain from a YAML file (path) or YAML text; errors are prefixed by the file name."""
-    return DHChain.from_yaml(path_or_str, dtype=dtype, device=check_device(device))
+    return DHChain.from_yaml(path_or_str, dtype=dtype, device=check_device(device), learnable=learnable)
 
 
 DATA_DIR = Path(__file__).resolve().parent / "data"
@@ -69,8 +71,11 @@ def _model_data(name: str) -> dict:
     return read_yaml(model_path(name))[0]
 
 
-def load(name_or_path, dtype: torch.dtype | None = None, device=None) -> DHChain:
+def load(name_or_path, dtype: torch.dtype | None = None, device=None, *, learnable: bool = False) -> DHChain:
     """A model by name (see :func:`available`) or from a YAML file path, in ``dtype`` on ``device``.
+
+    The geometry (DH table, base and tool corrections) is frozen unless ``learnable=True`` (or
+    ``chain.requires_grad_()`` later): results then carry no autograd graph unless ``q`` asks for one.
 
     The numbers are parsed as Python floats and the tensors built directly in ``dtype`` (default: torch's
     default dtype), so ``load(name, dtype=torch.float64)`` is exact to float64. A device this torch cannot
@@ -81,9 +86,10 @@ def load(name_or_path, dtype: torch.dtype | None = None, device=None) -> DHChain
     if isinstance(name_or_path, Path) or (
         isinstance(name_or_path, str) and (name_or_path.endswith((".yaml", ".yml")) or "/" in name_or_path)
     ):
-        return chain_from_yaml(Path(name_or_path), dtype=dtype, device=device)
+        return chain_from_yaml(Path(name_or_path), dtype=dtype, device=device, learnable=learnable)
     data = _model_data(name_or_path)
-    return chain_from_dict(data, dtype=dtype, device=device, where=f"{name_or_path}.yaml")
+    return chain_from_dict(data, dtype=dtype, device=device, where=f"{name_or_path}.yaml",
+                           learnable=learnable)
 
 
 #: file suffixes that :func:`load` does not read, and the loader that does

@@ -27,7 +27,7 @@ from ..errors import ModelError
 from ..kernels.joints import compose_factors, translation_axes
 from ..kernels.tree import Topology
 
-__all__ = ["FrameSpec", "TreeDescription", "TreeChain"]
+__all__ = ["FrameSpec", "BodyInertia", "TreeDescription", "TreeChain"]
 
 Factor = tuple[str, object]  # (factor table name, row index or axis name)
 
@@ -53,6 +53,20 @@ class FrameSpec:
             raise ModelError(f"a frame's motion is 'R', 'P' or 'S', got {self.motion!r}")
 
 
+@dataclass(frozen=True)
+class BodyInertia:
+    """The mass of one body of the model and its inertial frame: ``mass`` (kg) on the body called ``name``,
+    moving with tree frame ``frame`` (−1: the base); ``pose`` the inertial frame in that frame's coordinates
+    (a ``(4, 4)`` nested tuple of floats: its translation is the body's centre of mass). Bodies fixed to a
+    moving one (merged fixed joints, bodies beyond the chain's joints) carry the fixed transforms between
+    them in ``pose``."""
+
+    name: str
+    frame: int
+    mass: float
+    pose: tuple[tuple[float, ...], ...]
+
+
 @dataclass
 class TreeDescription:
     """A kinematic tree from a base to K end links, independent of the file format.
@@ -62,7 +76,11 @@ class TreeDescription:
     ``joint_names`` / ``joint_kinds`` the independent joints in q's order (kinds of
     :data:`diffkin.kernels.configuration.JOINT_KINDS`); ``parameters`` the learnable geometry
     (float64 tensors, registered as ``nn.Parameter`` s of those names), ``buffers`` fixed tensors the factor
-    map reads; ``name`` the model's name.
+    map reads; ``name`` the model's name; ``inertias`` the mass and inertial frame of every body of the model
+    below the base (:class:`BodyInertia`, massless bodies left out), or None where the file says nothing
+    about masses (``inertia_note`` then says why, for the error of
+    :meth:`~diffkin.chain.KinematicChain.center_of_mass`; with masses, it names the bodies whose masses are
+    approximate, for a warning).
     """
 
     name: str
@@ -75,6 +93,8 @@ class TreeDescription:
     joint_kinds: list[str]
     parameters: dict[str, Tensor] = field(default_factory=dict)
     buffers: dict[str, Tensor | None] = field(default_factory=dict)
+    inertias: list[BodyInertia] | None = None
+    inertia_note: str = ""
 
     def topology(self) -> Topology:
         """The tree structure the kernels run on (:class:`~diffkin.kernels.tree.Topology`)."""
@@ -85,18 +105,19 @@ class TreeDescription:
 
 
 class TreeChain(KinematicChain):
-    """The learnable model of a :class:`TreeDescription`: its parameters as ``nn.Parameter`` s, its frames
+    """The learnable model of a :class:`TreeDescription`: its parameters as ``nn.Parameter`` s (frozen
+    unless ``learnable=True``), its frames
     evaluated by the kernels. Subclasses (:class:`~diffkin.models.URDFChain`,
     :class:`~diffkin.models.MJCFChain`) only implement :meth:`_factors`: how their parameters map to the
     factor tables the description names."""
 
     def __init__(self, description: TreeDescription, *, dtype: torch.dtype | None = None, device=None,
-                 single_end: bool = True):
+                 single_end: bool = True, learnable: bool = False):
         super().__init__(description.topology(), q_limits=description.limits, name=description.name,
-                         dtype=dtype, device=device, single_end=single_end)
+                         dtype=dtype, device=device, single_end=single_end, learnable=learnable)
         dt, dev = self.dtype, self.device
         for key, value in description.parameters.items():
-            setattr(self, key, nn.Parameter(value.to(dtype=dt, device=dev)))
+            setattr(self, key, nn.Parameter(value.to(dtype=dt, device=dev), requires_grad=learnable))
         for key, value in description.buffers.items():
             floating = value is not None and value.is_floating_point()
             self.register_buffer(key, None if value is None else value.to(dtype=dt if floating else None,
@@ -112,6 +133,24 @@ class TreeChain(KinematicChain):
         self._pre = [list(fr.pre) for fr in description.frames]
         self._post = [list(fr.post) for fr in description.frames]
         self._end_factors = [list(e) for e in description.end_factors]
+        self._set_inertias(description)
+
+    def _set_inertias(self, description: TreeDescription) -> None:
+        """The masses as buffers of the chain (dtype and device follow it; not saved: the source has them):
+        ``link_masses (B,)``, ``link_inertial_frames (B, 4, 4)`` (in the frame each body moves with),
+        ``mass_names``; None / [] when the model has no masses (``_mass_note`` says why)."""
+        inertias = description.inertias or []
+        dt, dev = self.dtype, self.device
+        self.mass_names = [b.name for b in inertias]
+        self._mass_frames = [b.frame for b in inertias]
+        self._mass_note = description.inertia_note
+        masses = poses = None
+        if inertias:
+            masses = torch.tensor([b.mass for b in inertias], dtype=torch.float64)
+            poses = torch.tensor([b.pose for b in inertias], dtype=torch.float64)
+        for key, value in (("link_masses", masses), ("link_inertial_frames", poses)):
+            self.register_buffer(key, None if value is None else value.to(dtype=dt, device=dev),
+                                 persistent=False)
 
     def _factors(self, eye: Tensor) -> dict[str, Sequence[Tensor]]:
         """The factor tables ``name -> rows of (4, 4)`` from the parameters, differentiable (``eye``: the

@@ -10,14 +10,15 @@ from pathlib import Path
 
 import torch
 
-from ..chain import KinematicChain
+from ..chain import KinematicChain, _check_learnable
 from ..errors import ModelError
 from ..validation import check_device
 
 __all__ = ["load_chain"]
 
 
-def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, device=None) -> KinematicChain:
+def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, device=None,
+               learnable: bool = False) -> KinematicChain:
     """A kinematic chain in ``dtype`` on ``device`` (None: the source's own, or torch's default) from:
 
     * a :class:`~diffkin.chain.KinematicChain`: a copy (converted when dtype / device are given);
@@ -26,12 +27,16 @@ def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, devic
       sites);
     * a built-in model name or a robot YAML file: :func:`~diffkin.models.load` (``end_link`` must be None).
 
+    The geometry is frozen unless ``learnable=True`` (a chain given keeps its own setting, and
+    ``learnable=True`` turns it on in the copy).
+
     Errors are :class:`~diffkin.errors.ModelError` naming the source (an unknown name lists the built-in
     ones); a device this torch cannot compute on raises :class:`~diffkin.errors.DeviceError`.
     """
     device = check_device(device)
+    _check_learnable(learnable)
     if isinstance(source, KinematicChain):
-        chain = source.copy()
+        chain = source.copy().requires_grad_(True) if learnable else source.copy()
         return chain if dtype is None and device is None else chain.to(dtype=dtype, device=device)
     if not isinstance(source, str | Path):
         raise ModelError(f"expected a robot as a model name, a YAML / URDF / MJCF path or a chain, got "
@@ -42,8 +47,8 @@ def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, devic
     if builder is not None:
         if not end_link:
             raise ModelError(f"{source}: a URDF or MJCF robot needs its end link (end_link=, --end-link)")
-        return getattr(models, builder)(source, end_link, dtype=dtype, device=device)
+        return getattr(models, builder)(source, end_link, dtype=dtype, device=device, learnable=learnable)
     if end_link:
         raise ModelError(f"{source}: end_link={end_link!r} applies to URDF and MJCF files only (a built-in "
                          "model or a robot YAML ends where its table ends)")
-    return models.load(source, dtype=dtype, device=device)
+    return models.load(source, dtype=dtype, device=device, learnable=learnable)

@@ -39,7 +39,7 @@ from ..kernels.joints import axis_alignment
 from ..rotations import _quaternion_to_matrix
 from ..transforms import _make_transform
 from ..validation import check_end_links, tensors
-from .description import FrameSpec, TreeChain, TreeDescription
+from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription
 
 __all__ = ["MJCFChain", "from_mjcf", "compile_mjcf"]
 
@@ -275,8 +275,8 @@ def _parameters(model, build: _Builder, sites: list[int]) -> dict[str, Tensor]:
             "site_quat": rows((model.site_quat[s] for s in sites), 4)}
 
 
-def _describe(model, path: str | None, ends: list[str],
-              root_link: str | None) -> tuple[TreeDescription, dict]:
+def _describe(model, path: str | None, ends: list[str], root_link: str | None,
+              text: str | None = None) -> tuple[TreeDescription, dict]:
     """The format-neutral description of the bodies between the root and the end links, and the MJCF
     facts the chain keeps (qpos / qvel maps, element rows of its parameters)."""
     mujoco = _mujoco()
@@ -311,6 +311,11 @@ def _describe(model, path: str | None, ends: list[str],
         [build.last_frame[b] for b, _ in resolved], end_factors, lay["nq"],
         _limits(model, lay["joint_names"], lay["joint_kinds"]), lay["joint_names"], lay["joint_kinds"],
         parameters=_parameters(model, build, sites), buffers={"_axis_flip": axes.reshape(-1, 3)[:, 2] < 0})
+    description.inertias, description.inertia_note = _inertias(model, build, root)
+    if description.inertias and (text is not None or path is not None):
+        stand_ins = _mass_from_stand_ins(text, path)
+        inside = {b.name for b in description.inertias}
+        description.inertia_note = ", ".join(b for b in stand_ins if b in inside)
     obj = mujoco.mjtObj
     facts = {**lay, "root_link": root_link or "world",
              "body_names": [_name(model, obj.mjOBJ_BODY, b) for b in build.bodies],
@@ -321,15 +326,73 @@ def _describe(model, path: str | None, ends: list[str],
     return description, facts
 
 
+def _inertias(model, build: _Builder, root: int) -> tuple[list[BodyInertia] | None, str]:
+    """MuJoCo's compiled mass and inertial frame (``body_mass``, ``body_ipos`` / ``body_iquat``) of every
+    body in the root's subtree, attached to the frame of the nearest body on the chain's paths: the pose
+    of the inertial frame relative to that frame, from ``mj_kinematics`` at ``qpos0`` (joints outside the
+    chain sit there, as in :meth:`MJCFChain.to_qpos`). A frame is the pose of the body whose joints it
+    ends (MuJoCo's xpos / xmat of that body)."""
+    mujoco = _mujoco()
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+
+    def pose(pos, mat):
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, :3] = torch.tensor(mat, dtype=torch.float64).reshape(3, 3)
+        T[:3, 3] = torch.tensor(pos, dtype=torch.float64)
+        return T
+
+    frame_body = {-1: root, **{f: int(model.jnt_bodyid[spec["joint"]])
+                               for f, spec in enumerate(build.frames)}}
+    frame_inverse: dict[int, Tensor] = {}
+    out = []
+    for b in range(model.nbody):
+        mass = float(model.body_mass[b])
+        if mass <= 0.0:
+            continue
+        at = b
+        while at not in build.last_frame and at != 0:  # the nearest body on the paths (or the root)
+            at = int(model.body_parentid[at])
+        if at not in build.last_frame:  # not in the root's subtree
+            continue
+        f = build.last_frame[at]
+        if f not in frame_inverse:
+            fb = frame_body[f]
+            frame_inverse[f] = torch.linalg.inv(pose(data.xpos[fb], data.xmat[fb]))
+        T = frame_inverse[f] @ pose(data.xipos[b], data.ximat[b])
+        out.append(BodyInertia(_name(model, mujoco.mjtObj.mjOBJ_BODY, b) or f"body{b}", f, mass,
+                               tuple(map(tuple, T.tolist()))))
+    if not out:
+        return None, "no body of the MJCF model below the root has a positive mass"
+    return out, ""
+
+
+def _mass_from_stand_ins(text: str | None, path: str | None) -> list[str]:
+    """The bodies whose mass MuJoCo infers from a mesh geom (no ``<inertial>``, or ``<compiler
+    inertiafromgeom="true">``): :func:`compile_mjcf` replaces their meshes by small spheres, so their
+    compiled masses are not the file's."""
+    mujoco = _mujoco()
+    try:
+        spec = mujoco.MjSpec.from_file(path) if path else mujoco.MjSpec.from_string(text)
+    except (ValueError, mujoco.FatalError):  # compiled once already; nothing more to say
+        return []
+    rule = spec.compiler.inertiafromgeom
+    if rule == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_FALSE:
+        return []
+    always = rule == mujoco.mjtInertiaFromGeom.mjINERTIAFROMGEOM_TRUE
+    return [b.name for b in spec.bodies[1:] if (always or not b.explicitinertial)
+            and any(g.type == mujoco.mjtGeom.mjGEOM_MESH for g in b.geoms)]
+
+
 class MJCFChain(TreeChain):
     """A MuJoCo model from its world (or ``root_link``) to one or several end bodies or sites.
 
-    Parameters (learnable, like a URDF chain's): ``body_pos (L, 3)``, ``body_quat (L, 4)`` (normalised in
-    the kernel) of the bodies on the paths (``body_names``; bodies with a free joint have none: their pose is
-    q), ``joint_pos (A, 3)`` of the hinge, slide and ball joints, ``joint_axis (H, 3)`` of the hinge and
-    slide joints, ``site_pos``, ``site_quat`` of end sites, plus the base/tool corrections of
-    :class:`~diffkin.chain.KinematicChain`. The tree itself is the
-    :class:`~diffkin.models.description.TreeDescription` the MJCF reader makes.
+    Parameters (learnable on request, like a URDF chain's: frozen unless ``learnable=True``):
+    ``body_pos (L, 3)``, ``body_quat (L, 4)`` (normalised in the kernel) of the bodies on the paths
+    (``body_names``; bodies with a free joint have none: their pose is q), ``joint_pos (A, 3)`` of the
+    hinge, slide and ball joints, ``joint_axis (H, 3)`` of the hinge and slide joints, ``site_pos``,
+    ``site_quat`` of end sites, plus the base/tool corrections of :class:`~diffkin.chain.KinematicChain`.
+    The tree itself is the :class:`~diffkin.models.description.TreeDescription` the MJCF reader makes.
 
     Attributes: ``joint_names`` (the chain's independent joints, q's order), ``joint_kinds`` (``"revolute"``,
     ``"prismatic"``, ``"ball"``, ``"free"``, ``"continuous"``), ``qpos_index`` / ``dof_index`` (the model's
@@ -337,10 +400,10 @@ class MJCFChain(TreeChain):
     """
 
     def __init__(self, model, text: str, path: str | None, end_links, root_link: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None):
+                 dtype: torch.dtype | None = None, device=None, learnable: bool = False):
         single, ends = check_end_links(end_links, "body or site")
-        description, facts = _describe(model, path, ends, root_link)
-        super().__init__(description, dtype=dtype, device=device, single_end=single)
+        description, facts = _describe(model, path, ends, root_link, text)
+        super().__init__(description, dtype=dtype, device=device, single_end=single, learnable=learnable)
         self.body_names = facts["body_names"]
         self._anchor_joints, self._axis_joints = facts["anchor_joints"], facts["axis_joints"]
         self._qpos_index, self._dof_index = facts["qpos_index"], facts["dof_index"]
@@ -428,16 +491,17 @@ def _unit(Q: Tensor) -> Tensor:
 
 
 def from_mjcf(source, end_link, *, root_link: str | None = None, dtype: torch.dtype | None = None,
-              device=None) -> MJCFChain:
+              device=None, learnable: bool = False) -> MJCFChain:
     """A :class:`MJCFChain` from an MJCF path, XML text or bytes, from the world (or ``root_link``, a body)
     to ``end_link``: a body or site name, or a list of K of them for a tree whose FK is ``(..., K, 4, 4)``
     and Jacobian ``(..., K, 6, nv)`` in that order. Several subtrees of the world (a robot and a movable
     object) may be in one chain. Needs the ``mujoco`` package (``pip install 'diffkin[mjcf]'``).
 
     Raises :class:`~diffkin.errors.ModelError` naming the source for files MuJoCo refuses, and naming the
-    element for unknown end links or root links.
+    element for unknown end links or root links. The geometry is frozen unless ``learnable=True`` (see
+    :class:`~diffkin.chain.KinematicChain`).
     """
     check_end_links(end_link, "body or site")  # before compiling: a wrong argument is said at once
     model, text, path = compile_mjcf(source)
     return MJCFChain(model, text, path, end_link, root_link, dtype=dtype or torch.get_default_dtype(),
-                     device=device)
+                     device=device, learnable=learnable)

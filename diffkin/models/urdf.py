@@ -25,8 +25,8 @@ from ..kernels.joints import axis_alignment, origin_transform, pose_correction
 from ..rotations import _matrix_to_euler
 from ..transforms import _make_transform
 from ..validation import check_end_links
-from .description import FrameSpec, TreeChain, TreeDescription
-from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_urdf, write_urdf
+from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription
+from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_inertials, parse_urdf, write_urdf
 
 __all__ = ["URDFChain", "from_urdf"]
 
@@ -143,15 +143,47 @@ def _describe(tree: URDFTree, ends: list[str], root_link: str | None,
         # fold_origins
         buffers={"_axis_flip": axes[:, 2] < 0, "origin_delta": None})
     root = root_link or tree.root
-    facts = {"root_link": root,
-             "link_frame": {root: root_frame + 1, **{j.child: last_frame[j.name] + 1 for j in moving}},
+    link_frame = {root: root_frame + 1, **{j.child: last_frame[j.name] + 1 for j in moving}}
+    description.inertias, description.inertia_note = _inertias(tree, link_frame)
+    facts = {"root_link": root, "link_frame": link_frame,
              "frame_joint_names": [j.name for j in axis_joints], "link_names": [j.child for j in axis_joints],
              "joint_origin_names": [j.name for j in used]}
     return description, facts
 
 
+def _inertias(tree: URDFTree, link_frame: dict[str, int]) -> tuple[list[BodyInertia] | None, str]:
+    """The ``<inertial>`` of every link below the root link, attached to the frame of the nearest link that
+    moves with one (``link_frame``: index in ``all_frames``, 0 the base): the joint origins on the way
+    (fixed joints, and joints outside the chain at zero) times the inertial origin, in float64."""
+    specs = parse_inertials(tree)
+    if not specs:
+        return None, f"URDF {tree.name!r} has no <inertial> element"
+    out = []
+    for link in tree.links:
+        spec = specs.get(link)
+        if spec is None or spec.mass <= 0.0:
+            continue
+        T = origin_transform(torch.tensor(spec.xyz, dtype=torch.float64),
+                             torch.tensor(spec.rpy, dtype=torch.float64))
+        at, inside = link, True
+        while at not in link_frame:  # up to the nearest link with a frame (the root link at the latest)
+            j = tree._by_child.get(at)
+            if j is None:  # above the root link: not part of the chain's model
+                inside = False
+                break
+            T = origin_transform(torch.tensor(j.xyz, dtype=torch.float64),
+                                 torch.tensor(j.rpy, dtype=torch.float64)) @ T
+            at = j.parent
+        if inside:
+            out.append(BodyInertia(link, link_frame[at] - 1, spec.mass, tuple(map(tuple, T.tolist()))))
+    if not out:
+        return None, f"no link of URDF {tree.name!r} below the root link has a positive <inertial> mass"
+    return out, ""
+
+
 class URDFChain(TreeChain):
-    """A URDF robot from a root link to one or several end links (a tree), with learnable geometry.
+    """A URDF robot from a root link to one or several end links (a tree), with learnable geometry (frozen
+    unless ``learnable=True`` or ``requires_grad_()``).
 
     Parameters: ``origin_xyz``, ``origin_rpy`` ``(L, 3)`` — the ``<origin>`` of every joint on the paths
     (``joint_origin_names`` labels the rows) — and ``axis`` ``(J, 3)``, the axis of every revolute,
@@ -167,10 +199,11 @@ class URDFChain(TreeChain):
     """
 
     def __init__(self, tree: URDFTree, end_links: str | list[str], root_link: str | None = None, *,
-                 dtype: torch.dtype | None = None, device=None, floating_base: bool = False):
+                 dtype: torch.dtype | None = None, device=None, floating_base: bool = False,
+                 learnable: bool = False):
         single, ends = check_end_links(end_links, "link")
         description, facts = _describe(tree, ends, root_link, floating_base)
-        super().__init__(description, dtype=dtype, device=device, single_end=single)
+        super().__init__(description, dtype=dtype, device=device, single_end=single, learnable=learnable)
         self.tree = tree
         self.end_links = ends
         self.root_link = facts["root_link"]
@@ -246,7 +279,8 @@ class URDFChain(TreeChain):
 
 
 def from_urdf(source, end_link: str | list[str], *, root_link: str | None = None,
-              dtype: torch.dtype | None = None, device=None, floating_base: bool = False) -> URDFChain:
+              dtype: torch.dtype | None = None, device=None, floating_base: bool = False,
+              learnable: bool = False) -> URDFChain:
     """A :class:`URDFChain` from a URDF file path, XML text (str or bytes; an XML encoding declaration is
     fine) or a parsed :class:`~diffkin.models.urdf_xml.URDFTree`, from ``root_link`` (default: the tree's
     root) to ``end_link`` — a link name, or a list of K link names for a tree whose FK is ``(..., K, 4, 4)``
@@ -258,9 +292,11 @@ def from_urdf(source, end_link: str | list[str], *, root_link: str | None = None
     in the plane normal to the axis, then the angle about it); fixed joints keep their origin as
     parameters; ``<mimic>`` joints follow their leader (on any branch) and are not variables.
     ``floating_base=True`` puts a free joint at the root (q starts with its seven coordinates; a humanoid's
-    pelvis in the world). Raises :class:`~diffkin.errors.ModelError` naming the joint or link for invalid
-    files (missing links, a link with two parents, duplicate names, loops) or an unknown link.
+    pelvis in the world). The geometry is frozen unless ``learnable=True`` (see
+    :class:`~diffkin.chain.KinematicChain`). Raises :class:`~diffkin.errors.ModelError` naming the joint or
+    link for invalid files (missing links, a link with two parents, duplicate names, loops) or an unknown
+    link.
     """
     tree = source if isinstance(source, URDFTree) else parse_urdf(source)
     return URDFChain(tree, end_link, root_link, dtype=dtype or torch.get_default_dtype(), device=device,
-                     floating_base=floating_base)
+                     floating_base=floating_base, learnable=learnable)

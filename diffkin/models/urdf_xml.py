@@ -2,7 +2,8 @@
 
 :func:`parse_urdf` reads a URDF (path, XML text or bytes, with or without an XML encoding declaration) into a
 :class:`URDFTree` of :class:`JointSpec` records: the kinematic skeleton only (links, joints, origins, axes,
-limits, mimics); visuals, collisions, inertials, transmissions, gazebo and namespaced tags are ignored. It
+limits, mimics); visuals, collisions, inertials, transmissions, gazebo and namespaced tags are ignored there
+(:func:`parse_collisions` and :func:`parse_inertials` read the collision and inertial elements). It
 validates the structure (unique names, existing links, one parent per link, exactly one root, no loops,
 non-zero moving axes, ordered limits, acyclic mimics) and raises :class:`~diffkin.errors.ModelError` naming
 the offending joint or link. Every walk is iterative with a visited set, so a malformed file never hangs.
@@ -29,7 +30,7 @@ from pathlib import Path
 from ..errors import ModelError
 
 __all__ = ["JointSpec", "URDFTree", "parse_urdf", "write_urdf", "JOINT_TYPES", "MOVING_TYPES",
-           "CollisionSpec", "parse_collisions"]
+           "CollisionSpec", "parse_collisions", "InertialSpec", "parse_inertials"]
 
 JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar")
 MOVING_TYPES = ("revolute", "continuous", "prismatic")
@@ -610,4 +611,48 @@ def parse_collisions(source) -> dict[str, list[CollisionSpec]]:
         link = elem.get("name", "")
         specs = [_collision_spec(link, i, c) for i, c in enumerate(elem.findall("collision"))]
         out[link] = [s for s in specs if s is not None]
+    return out
+
+
+# --------------------------------------------------------------------------------------- inertial elements
+
+@dataclass(frozen=True)
+class InertialSpec:
+    """The ``<inertial>`` of a link: ``mass`` (kg, >= 0), the inertial frame ``xyz`` / ``rpy`` (its
+    ``<origin>``, in the link frame: ``xyz`` is the centre of mass) and the inertia tensor's six entries
+    ``(ixx, ixy, ixz, iyy, iyz, izz)`` about the centre of mass in that frame (zeros where absent)."""
+
+    link: str
+    mass: float
+    xyz: Vec3 = (0.0, 0.0, 0.0)
+    rpy: Vec3 = (0.0, 0.0, 0.0)
+    inertia: tuple[float, float, float, float, float, float] = (0.0,) * 6
+
+
+def _inertial_spec(link: str, elem: ET.Element) -> InertialSpec:
+    where = f"link {link!r} <inertial>"
+    mass = _opt_float(elem.find("mass"), "value", where)
+    if mass is None or mass < 0:
+        raise ModelError(f"{where}: needs <mass value=...> >= 0, got "
+                         f"{None if elem.find('mass') is None else elem.find('mass').get('value')!r}")
+    origin = elem.find("origin")
+    xyz = _vec3(origin, "xyz", (0.0, 0.0, 0.0), where)
+    rpy = _vec3(origin, "rpy", (0.0, 0.0, 0.0), where)
+    tensor = elem.find("inertia")
+    inertia = tuple(_opt_float(tensor, k, where) or 0.0 for k in ("ixx", "ixy", "ixz", "iyy", "iyz", "izz"))
+    return InertialSpec(link, mass, xyz, rpy, inertia)  # type: ignore[arg-type]
+
+
+def parse_inertials(source) -> dict[str, InertialSpec]:
+    """The ``<inertial>`` of every link that has one: ``{link: InertialSpec}`` (links without one are
+    massless, as in URDF). ``source`` as for :func:`parse_urdf` (or a :class:`URDFTree`). ModelError on a
+    malformed element (no mass, a negative mass, a non-number)."""
+    text, origin = (source.text, "tree") if isinstance(source, URDFTree) else _read(source)
+    robot = _parse_xml(text, origin)
+    out: dict[str, InertialSpec] = {}
+    for elem in robot.findall("link"):
+        inertial = elem.find("inertial")
+        if inertial is not None:
+            link = elem.get("name", "")
+            out[link] = _inertial_spec(link, inertial)
     return out
