@@ -3,7 +3,8 @@
 Every failure — a bad option value, an unreadable or ill-shaped file, an error raised by the library
 (:class:`~diffkin.errors.DiffkinError`), a file-system error — prints one line ``error: ...`` on stderr and
 exits with status 2; an unexpected internal error prints one ``error: internal error ...`` line and exits 1.
-``--debug`` (or ``DIFFKIN_DEBUG=1``) shows the traceback instead.
+``--debug`` (or ``DIFFKIN_DEBUG=1``) shows the traceback instead. A calibration whose result fails its
+plausibility checks (``CalibrationResult.success`` False) is such a failure too, unless ``--force``.
 
 Threads: :func:`main` sets torch's intra-op thread count to ``--threads N``, else to 1 (``train``: the run
 config's ``torch_threads``; ``bench``: the benchmarks' own default, 1). Batched kinematics gains little from
@@ -40,7 +41,9 @@ def _console():
     return console()
 
 
-def _table(title: str, columns: list[str], rows: list[list]):
+def _table(title: str, columns: list[str], rows: list[list], whole: tuple[int, ...] = ()):
+    """A rich table (aligned text without the ``cli`` extra); the cells of the columns in ``whole`` are never
+    cut or wrapped, whatever the terminal's width (the other columns wrap to make room)."""
     try:
         from rich.markup import escape
         from rich.table import Table
@@ -51,11 +54,34 @@ def _table(title: str, columns: list[str], rows: list[list]):
         return "\n".join(lines)
 
     table = Table(title=escape(title))
-    for c in columns:
-        table.add_column(escape(c))  # "[mm]" etc. are units, not rich markup
+    for i, c in enumerate(columns):
+        if i in whole:
+            longest = max([len(str(r[i])) for r in rows] + [len(str(c))])
+            table.add_column(escape(c), no_wrap=True, min_width=longest)
+        elif whole:  # the others wrap, folding a word longer than the column rather than cutting it
+            table.add_column(escape(c), overflow="fold")
+        else:
+            table.add_column(escape(c))  # "[mm]" etc. are units, not rich markup
     for r in rows:
         table.add_row(*[escape(str(v)) for v in r])
     return table
+
+
+def _print_whole(con, table) -> None:
+    """Print a table of :func:`_table` with ``whole`` columns: wider than the terminal where these need
+    more room than it has (the terminal then wraps the lines; nothing is cut)."""
+    try:
+        from rich.measure import Measurement
+    except ImportError:  # plain text: never cut
+        con.print(table)
+        return
+    width = con.width
+    need = Measurement.get(con, con.options.update(max_width=10_000), table).minimum
+    con.width = max(width, need)
+    try:
+        con.print(table)
+    finally:
+        con.width = width
 
 
 def _dtype(name: str) -> torch.dtype:
@@ -301,48 +327,50 @@ def cmd_calibrate(args) -> int:
     from .errors import ModelError
 
     out = Path(args.output)
-    as_dir = out.suffix not in (".yaml", ".yml", ".urdf")
+    suffixes = (".yaml", ".yml", ".urdf", ".xml")
+    as_dir = out.suffix not in suffixes
     if as_dir:
         if out.suffix:
-            raise ModelError(f"--output {out}: give a .yaml (DH robot), a .urdf (URDF robot) or a directory")
+            raise ModelError(f"--output {out}: give a .yaml (DH robot), a .urdf (URDF robot), an .xml (MJCF "
+                             "robot) or a directory")
         _check_output_dir(out)
     else:
-        check_output_path(out, (".yaml", ".yml", ".urdf"))
+        check_output_path(out, suffixes)
         if args.report_dir:
             _check_output_dir(Path(args.report_dir))
-    if bool(args.robot) == bool(args.urdf):
-        raise ModelError("give the nominal robot as --robot NAME|FILE.yaml or --urdf FILE --end-link LINK")
-    if args.robot:
-        _check_robot_option(args.robot)
-    if not as_dir and (out.suffix == ".urdf") != bool(args.urdf):
-        raise ModelError(f"--output {out}: a DH robot (--robot) is written as .yaml, a URDF robot (--urdf) "
-                         "as .urdf")
+    args.device, args.dtype = "cpu", "float64"  # calibration corrects by micrometres: float64 on the CPU
+    chain = _load_chain(args)  # --robot NAME|FILE, --urdf / --mjcf FILE --end-link: as fk, ik and view
+    kind = _written_kind(chain)
+    if not as_dir and (".yaml" if out.suffix == ".yml" else out.suffix) != kind:
+        raise ModelError(f"--output {out}: a DH robot (--robot NAME or YAML) is written as .yaml, a URDF "
+                         f"robot as .urdf, an MJCF robot as .xml; this one as {kind} (or give a directory)")
     noise = None if args.noise is None else (args.noise[0] * 1e-3, math.radians(args.noise[1]))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         res = calibrate_from_files(
-            args.urdf or args.robot, args.data, end_link=args.end_link, method=args.method,
-            progress=not args.no_progress, out_dir=out if as_dir else args.report_dir,
-            error_model=args.error_model, base=args.base, tool=args.tool, measurement_noise=noise,
-            cross_validation=args.cv, loss=args.loss,
+            chain, args.data, method=args.method, progress=not args.no_progress,
+            out_dir=out if as_dir else args.report_dir, force=args.force, error_model=args.error_model,
+            base=args.base, tool=args.tool, measurement_noise=noise, cross_validation=args.cv, loss=args.loss,
         )
-    if as_dir:
-        written = out / ("calibrated.urdf" if args.urdf else "calibrated.yaml")
-    else:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        if out.suffix == ".urdf":
-            res.chain.to_urdf(out)
+    written = None
+    if res.success or args.force:
+        if as_dir:
+            written = out / f"calibrated{kind}"  # calibrate_from_files wrote it
         else:
-            out.write_text(res.chain.to_yaml())
-        written = out
+            out.parent.mkdir(parents=True, exist_ok=True)
+            if kind == ".urdf":
+                res.chain.to_urdf(out)
+            elif kind == ".xml":
+                res.chain.to_mjcf(out)
+            else:
+                out.write_text(res.chain.to_yaml())
+            written = out
     con = _console()
-    con.print(
-        _table(
-            f"calibration of '{res.nominal_chain.name}' ({args.method}; lengths mm, angles deg)",
-            ["parameter", "nominal", "identified", "delta", "unit", ""],
-            res.display_rows(),
-        )
-    )
+    title = f"calibration of '{res.nominal_chain.name}' ({args.method}; lengths mm, angles deg)"
+    rows = res.display_rows()
+    # the whole parameter names, whatever the terminal's width (URDF joints: "shoulder_pan_joint.dx")
+    _print_whole(con, _table(title, ["parameter", "nominal", "identified", "delta", "unit", ""], rows,
+                             whole=(0, 1, 2, 3, 4)))
     rows = [["position RMS [mm]", f"{res.residuals[0] * 1e3:.4f}", f"{res.residuals[-1] * 1e3:.4f}"]]
     if res.orientation_residuals is not None:
         rows.append(["orientation RMS [deg]", f"{math.degrees(res.orientation_residuals[0]):.5f}",
@@ -363,12 +391,29 @@ def cmd_calibrate(args) -> int:
     for note in res.notes:
         if not any(note in str(w.message) for w in caught):  # said once, as the warning
             con.print(f"note: {note}")
-    con.print(f"wrote {written}" + (f" and the report in {out}" if as_dir else ""))
+    if written is not None:
+        con.print(f"wrote {written}" + (f" and the report in {out}" if as_dir else ""))
+    elif as_dir:
+        con.print(f"wrote the report in {out} (not the calibrated robot)")
     if res.report.unidentifiable:
         con.print(
             "not identifiable from these poses (kept at nominal): " + ", ".join(res.report.unidentifiable)
         )
+    if not res.success:
+        if not args.force:
+            raise DiffkinError(f"calibration of '{res.nominal_chain.name}' failed: {res.failure}; the "
+                               "calibrated robot was not written (--force writes it and exits 0)")
+        con.print("[bold yellow]warning:[/] the calibration failed its plausibility checks; written anyway "
+                  "(--force)")
     return 0
+
+
+def _written_kind(chain) -> str:
+    """The file a calibrated ``chain`` is written as: ``.xml`` (MJCF), ``.yaml`` (DH) or ``.urdf``."""
+    if hasattr(chain, "to_mjcf"):
+        return ".xml"
+    return ".yaml" if hasattr(chain, "to_yaml") else ".urdf"
+
 
 
 def _check_output_dir(path: Path) -> None:
@@ -723,7 +768,9 @@ _EXAMPLES = {
           "  diffkin ik --robot panda --input xyz.npy --position-only --output q.csv",
     "calibrate": "diffkin calibrate --robot ur5 --data meas.npz --output cal.yaml\n"
                  "  diffkin calibrate --urdf arm.urdf --end-link tool0 --data meas.npz --tool "
-                 "--noise 0.02 0.005 --output runs/cal/",
+                 "--noise 0.02 0.005 --output runs/cal/\n"
+                 "  diffkin calibrate --mjcf ur10e.xml --end-link attachment_site --data meas.csv "
+                 "--output ur10e_cal.xml",
     "trajectory": "diffkin trajectory joint --profile quintic --start 0 0 --end 1 -1 --output j.csv "
                   "--plot j.png\n"
                   "  diffkin trajectory cartesian --start 0.3 0 0.5 --end 0.5 0.1 0.4 --output c.npz\n"
@@ -765,8 +812,13 @@ _DESCRIPTIONS = {
           "are seeded from (--seed, a): reproducible for one chunk size; each success flag is decided by an\n"
           "exact FK of the returned q.",
     "calibrate": "Identify a robot's geometry from measured poses and write the calibrated robot.\n\n"
-                 "--output FILE.yaml (DH robot) or FILE.urdf (URDF robot) writes the robot; --output DIR\n"
-                 "writes DIR/calibrated.yaml|urdf with parameters.md, report.json and residuals.png.",
+                 "The nominal robot is named as in fk, ik and view: --robot NAME|FILE.yaml, --urdf FILE or\n"
+                 "--mjcf FILE with --end-link. --output FILE.yaml (DH robot), FILE.urdf (URDF robot) or\n"
+                 "FILE.xml (MJCF robot) writes the robot; --output DIR writes DIR/calibrated.yaml|urdf|xml\n"
+                 "with parameters.md, report.json and residuals.png.\n"
+                 "A result that fails its plausibility checks (held-out error or noise ratio more than 5x\n"
+                 "the fit, a link corrected by more than 5 cm / 10 deg: data of another robot) is not\n"
+                 "written and exits with status 2 (the report directory is written); --force writes it.",
     "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal) or a Cartesian straight-line trajectory\n"
                   "from --start to --end, or in either space a cubic spline through the via points of\n"
                   "--points (rows at equally spaced times), and export t, position, velocity, acceleration.",
@@ -787,13 +839,20 @@ _DESCRIPTIONS = {
 }
 
 
-def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> None:
+def _robot_options(p: argparse.ArgumentParser):
+    """The one way every subcommand names a robot: ``--robot NAME|FILE``, ``--urdf`` / ``--mjcf FILE`` with
+    ``--end-link`` (read by :func:`_load_chain`); returns the argument group."""
     g = p.add_argument_group("robot")
     g.add_argument("--robot", help="built-in robot name (see `diffkin models`) or a robot YAML file")
     g.add_argument("--urdf", help="URDF file (with --end-link)")
     g.add_argument("--mjcf", help="MuJoCo MJCF file (with --end-link: a body or site)")
     g.add_argument("--end-link", dest="end_link",
                    help="end-effector link of the URDF (a body or site of the MJCF)")
+    return g
+
+
+def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> None:
+    g = _robot_options(p)
     g.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where to compute")
     g.add_argument("--dtype", default="float64", choices=["float32", "float64"],
                    help="compute (and .npy output) dtype")
@@ -873,10 +932,8 @@ def build_parser() -> argparse.ArgumentParser:
                    new="nothing (the progress bar is on by default on a terminal)")
     p.set_defaults(func=cmd_ik)
 
-    p = add("calibrate", "identify a robot's geometry from measured poses (DH YAML or URDF)")
-    p.add_argument("--robot", help="nominal robot: built-in name or robot YAML file (DH)")
-    p.add_argument("--urdf", help="nominal robot as a URDF file (with --end-link)")
-    p.add_argument("--end-link", dest="end_link", help="end-effector link of the URDF")
+    p = add("calibrate", "identify a robot's geometry from measured poses (DH YAML, URDF or MJCF)")
+    _robot_options(p)  # the nominal robot, named as in fk, ik and view
     p.add_argument("--data", required=True,
                    help="measurements: .npz with q (N, n) and T (N, 4, 4) or position (N, 3) [+ quaternion], "
                         "or .csv read by its header q1..qn,x,y,z[,qw,qx,qy,qz] (diffkin fk's CSV)")
@@ -895,8 +952,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--cv", type=_cv_folds, default=5,
                    help="k of the k-fold cross-validated held-out error, 0: off")
     p.add_argument("--output", required=True, metavar="FILE|DIR",
-                   help="calibrated robot: .yaml (DH) or .urdf (URDF input); a directory gets the robot and "
-                        "the report (parameters.md, report.json, residuals.png)")
+                   help="calibrated robot: .yaml (DH), .urdf (URDF input) or .xml (MJCF input); a directory "
+                        "gets the robot and the report (parameters.md, report.json, residuals.png)")
+    p.add_argument("--force", action="store_true",
+                   help="write the calibrated robot and exit 0 even when the result fails its plausibility "
+                        "checks (held-out error or noise ratio more than 5x the fit, a link corrected by "
+                        "more than 5 cm / 10 deg: the data are probably of another robot)")
     p.add_argument("--report-dir", dest="report_dir", action=_Deprecated, new="--output DIR")
     p.add_argument("--no-progress", dest="no_progress", action="store_true",
                    help="no progress bar (shown only when stderr is a terminal)")

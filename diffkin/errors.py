@@ -18,6 +18,7 @@ __all__ = [
     "RepresentationSingularityError",
     "MissingExtraError",
     "OptionError",
+    "NonFiniteOptionError",
     "DeviceError",
     "SamplingError",
     "require",
@@ -58,6 +59,11 @@ class MissingExtraError(DiffkinError, ImportError):
 
 class OptionError(DiffkinError):
     """An option or setting out of its range (a count, a tolerance, a damping, a config value)."""
+
+
+class NonFiniteOptionError(NonFiniteError, OptionError):
+    """A numeric option given as NaN or inf: both a :class:`NonFiniteError` (the rule for every NaN) and an
+    :class:`OptionError` (the one type of every numeric option's mistake)."""
 
 
 class DeviceError(DiffkinError):

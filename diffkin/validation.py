@@ -30,7 +30,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import DeviceError, DTypeError, ModelError, NonFiniteError, OptionError, ShapeError
+from .errors import (
+    DeviceError,
+    DTypeError,
+    ModelError,
+    NonFiniteError,
+    NonFiniteOptionError,
+    OptionError,
+    ShapeError,
+)
 
 __all__ = [
     "SUPPORTED_DTYPES",
@@ -245,13 +253,14 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
 
 def check_number(x: Any, name: str, *, positive: bool = True, unit: str = "") -> float:
     """An option given as a finite Python number > 0 (``positive``) or >= 0, as float; else
-    :class:`~diffkin.errors.OptionError` naming it (tolerances, dampings, scales)."""
+    :class:`~diffkin.errors.OptionError` naming it (tolerances, dampings, scales): NaN and inf raise
+    :class:`~diffkin.errors.NonFiniteOptionError`, which is an OptionError and a NonFiniteError."""
     ok = isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and (
         x > 0 if positive else x >= 0)
     if not ok:
         bound = "> 0" if positive else ">= 0"
-        # NaN/inf keep the rule's error class; a finite number out of range (or no number) is a ValueError
-        cls = NonFiniteError if isinstance(x, float) and not math.isfinite(x) else OptionError
+        # NaN/inf keep the rule's error class (and are OptionErrors: one type for every option's mistake)
+        cls = NonFiniteOptionError if isinstance(x, float) and not math.isfinite(x) else OptionError
         raise cls(f"expected {name} as a finite number {bound}{unit}, got {x!r}")
     return float(x)
 

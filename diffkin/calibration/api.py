@@ -12,11 +12,12 @@ import torch
 from torch import Tensor
 
 from ..chain import DHChain, KinematicChain
-from ..errors import ConventionError, DiffkinError, ShapeError, require
+from ..errors import ConventionError, DiffkinError, OptionError, ShapeError, require
 from ..validation import as_tensor, check_number, shape_str
 from .error_models import build_model
 from .identifiability import IdentifiabilityReport, model_reports
 from .model import check_measurements, pose_residual
+from .plausibility import MAX_CORRECTION, correction_findings, fit_failures
 from .robust import outlier_rows, pose_errors, resolve_loss
 from .solvers import gradient_descent, least_squares
 
@@ -57,6 +58,9 @@ class CalibrationResult:
     position-only data). ``names``/``nominal``/``identified``: the candidate parameters (metres / radians;
     base and tool entries are the pose corrections Δ). ``report``: identifiability at the nominal parameters.
     ``converged``: the solver's stopping rule was met (not merely the iteration budget spent).
+    ``success``: the result passed the plausibility checks of :mod:`.plausibility` (held-out error, noise
+    ratio, size of the corrections); False with the reasons in ``failure`` (and a ``UserWarning``): the data
+    are probably not of this robot, and the calibrated chain should not be used.
     ``chain`` is of the input's kind: a :class:`DHChain` (with a ``beta`` column for Hayati's model) or a
     :class:`~diffkin.models.urdf.URDFChain` (``to_urdf(path)`` writes it).
     """
@@ -92,6 +96,9 @@ class CalibrationResult:
     outlier_threshold: float | None = None
     pose_position_errors: Tensor | None = field(default=None, repr=False)
     pose_orientation_errors: Tensor | None = field(default=None, repr=False)
+    #: the plausibility checks (:mod:`.plausibility`) passed; else False and ``failure`` says why
+    success: bool = True
+    failure: str | None = None
 
     @property
     def determined(self) -> bool:
@@ -207,7 +214,8 @@ class CalibrationResult:
         lines = [
             f"calibration of '{self.chain.name}' ({self.method}): {self.iterations} iterations, "
             f"{'converged' if self.converged else 'NOT converged'}"
-            + ("" if self.determined else "; parameters NOT determined by these poses (below)"),
+            + ("" if self.determined else "; parameters NOT determined by these poses (below)")
+            + ("" if self.success else f"; FAILED: {self.failure}"),
             f"position RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
         ]
         if self.orientation_residuals is not None:
@@ -232,8 +240,15 @@ class CalibrationResult:
         return "\n".join(lines + [self.report.summary()])
 
 
-def _check_options(method: str, orientation_weight, measurement_noise=None) -> None:
+def _check_options(method: str, orientation_weight, measurement_noise=None, max_correction=MAX_CORRECTION
+                   ) -> None:
     """The calibration options that are numbers or names: refused with a typed error before any work."""
+    if max_correction is not None:
+        if not isinstance(max_correction, Sequence) or len(max_correction) != 2:
+            raise OptionError("expected max_correction as (metres, radians) or None, got "
+                              f"{max_correction!r}")
+        check_number(max_correction[0], "max_correction[0]", unit=" (metres)")
+        check_number(max_correction[1], "max_correction[1]", unit=" (radians)")
     if method not in METHODS:
         raise ConventionError(f"unknown calibration method {method!r}; valid: {', '.join(METHODS)}")
     check_number(orientation_weight, "orientation_weight", positive=False, unit=" (metres per radian)")
@@ -317,6 +332,7 @@ def _run(
     kind: str = "dh",
     measurement_noise=None,
     cross_validation: int | None = None,
+    max_correction: tuple[float, float] | None = MAX_CORRECTION,
 ) -> list[CalibrationResult]:
     """Identifiability at ζ_n, then the solver, for ``q (K, N, n)``; one result per robot."""
     out, reports, zeta0 = _solve(model, q, T, position_only, method, orientation_weight, rank_tol,
@@ -362,10 +378,22 @@ def _run(
         if cross_validation:
             cv = _cross_validate(model, q[k], T[k], position_only, method, orientation_weight, rank_tol,
                                  solver_options, int(cross_validation))
+        nominal_k = nominal_copies[min(k, len(nominal_copies) - 1)]
+        failures = fit_failures(pos[k][-1], None if ori is None else ori[k][-1], cv, ratio, measurement_noise)
+        wrong, end = correction_findings(nominal_k, chains[k], q[k], max_correction)
+        failures += wrong
+        which = f"'{chains[k].name}'" + (f" (robot {k} of the batch)" if K > 1 else "")
+        if end is not None:
+            notes.append(end)
+            warnings.warn(f"calibration of {which}: {end}", UserWarning, stacklevel=3)
+        failure = "; ".join(failures) or None
+        if failure is not None:
+            warnings.warn(f"calibration of {which} FAILED (result.success is False): {failure}", UserWarning,
+                          stacklevel=3)
         results.append(
             CalibrationResult(
                 chain=chains[k],
-                nominal_chain=nominal_copies[min(k, len(nominal_copies) - 1)],
+                nominal_chain=nominal_k,
                 method=method,
                 names=names,
                 units=units,
@@ -387,6 +415,8 @@ def _run(
                 outlier_threshold=threshold,
                 pose_position_errors=pos_err,
                 pose_orientation_errors=ori_err,
+                success=failure is None,
+                failure=failure,
             )
         )
     return results
@@ -410,6 +440,7 @@ def calibrate_batch(
     tol: float | None = None,
     rank_tol: float | None = None,
     progress: bool = True,
+    max_correction: tuple[float, float] | None = MAX_CORRECTION,
     **solver_options,
 ) -> list[CalibrationResult]:
     """Calibrate K robots in one call: ``q (K, N, n)``, ``T (K, N, 4, 4)`` or ``(K, N, 3)``.
@@ -418,7 +449,7 @@ def calibrate_batch(
     tensor is ``(K, P)`` and both methods run vectorised over K (one L-BFGS problem whose objective is the sum
     of the K independent losses). Options as in :func:`calibrate`.
     """
-    _check_options(method, orientation_weight, measurement_noise)
+    _check_options(method, orientation_weight, measurement_noise, max_correction)
     model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     ref = model.chains[0]
     q = as_tensor(q, "q", dtype=ref.dtype, device=ref.device) if q is not None else q
@@ -442,7 +473,7 @@ def calibrate_batch(
     opts = dict(max_iterations=max_iterations, tol=tol, progress=progress, loss=loss, scale=scale,
                 **solver_options)
     return _run(model, q, T, position_only, method, orientation_weight, rank_tol, opts, kind,
-                measurement_noise)
+                measurement_noise, max_correction=max_correction)
 
 
 def calibrate(
@@ -464,6 +495,7 @@ def calibrate(
     tol: float | None = None,
     rank_tol: float | None = None,
     progress: bool = True,
+    max_correction: tuple[float, float] | None = MAX_CORRECTION,
     **solver_options,
 ) -> CalibrationResult:
     """Identify the geometry of ``chain`` from joint readings ``q (N, n)`` and measured end-effector
@@ -503,6 +535,10 @@ def calibrate(
         max_iterations, tol: stopping rule (least squares: relative parameter change; gradient: relative loss
             change); ``rank_tol``: identifiability threshold (see :mod:`.identifiability`).
         progress: show a rich progress bar when stderr is a terminal.
+        max_correction: ``(metres, radians)``, the plausibility bound of one link's correction (default
+            5 cm / 10°; None: not checked). A link before the last moved by more fails the result (the data
+            are of another robot); the end link (last link, tail, tool) warns and names the URDF link that
+            would fit (:mod:`.plausibility`).
         **solver_options: ``damping`` (least squares, default 1e-9); ``scale`` (metres, the robust loss's;
             default from ``measurement_noise``, else 1e-3 m); ``optimizer``, ``lr``,
             ``precondition`` (``"gauss_newton"`` default, or ``"diagonal"``)
@@ -511,8 +547,14 @@ def calibrate(
     Parameters that no pose set can identify (the model's redundancies) are reported in ``result.report``
     with the reason and kept at nominal; those only these poses leave undetermined (few poses) are estimated
     in the span the poses determine (minimum-norm update) and listed in ``result.report.undetermined``.
+
+    ``result.success`` is False, with the reasons in ``result.failure`` and a ``UserWarning``, when the
+    result is not credible (:mod:`.plausibility`): a cross-validated held-out error more than 5x the fit's, a
+    fit residual more than 5x what ``measurement_noise`` explains, or a link before the last corrected by
+    more than ``max_correction``. ``diffkin calibrate`` then exits with status 2 and does not write the robot
+    unless ``--force``.
     """
-    _check_options(method, orientation_weight, measurement_noise)
+    _check_options(method, orientation_weight, measurement_noise, max_correction)
     model, kind = build_model(chain, error_model, parameters, base, tool, joint_offsets)
     ref = model.chains[0]
     q = as_tensor(q, "q", dtype=ref.dtype, device=ref.device) if q is not None else q
@@ -528,4 +570,4 @@ def calibrate(
                 **solver_options)
     folds = cross_validation if cross_validation and q.shape[0] >= 4 * cross_validation else None
     return _run(model, q[None], T[None], position_only, method, orientation_weight, rank_tol, opts, kind,
-                measurement_noise, folds)[0]
+                measurement_noise, folds, max_correction)[0]

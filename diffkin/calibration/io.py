@@ -12,7 +12,7 @@ from ..chain import DHChain
 from ..data_io import read_measurements
 from .api import CalibrationResult, calibrate
 
-__all__ = ["load_measurements", "calibrate_from_files"]
+__all__ = ["load_measurements", "calibrate_from_files", "write_robot"]
 
 
 def load_measurements(
@@ -33,6 +33,22 @@ def load_measurements(
     return q, T
 
 
+def write_robot(chain, out_dir: str | Path) -> Path:
+    """Write a calibrated chain into ``out_dir`` in its own format: ``calibrated.xml`` (MJCF),
+    ``calibrated.yaml`` (DH) or ``calibrated.urdf`` (URDF); returns the path."""
+    out = Path(out_dir)
+    if hasattr(chain, "to_mjcf"):
+        path = out / "calibrated.xml"
+        chain.to_mjcf(path)
+    elif hasattr(chain, "to_yaml"):
+        path = out / "calibrated.yaml"
+        path.write_text(chain.to_yaml())
+    else:
+        path = out / "calibrated.urdf"
+        chain.to_urdf(path)
+    return path
+
+
 def calibrate_from_files(
     robot: DHChain | str | Path,
     joints: str | Path,
@@ -42,6 +58,7 @@ def calibrate_from_files(
     out_dir: str | Path | None = None,
     method: str = "least_squares",
     validation: tuple | None = None,
+    force: bool = False,
     **options,
 ) -> CalibrationResult:
     """Calibrate ``robot`` (a chain, a built-in model name, a robot YAML file, or a URDF or MJCF file with
@@ -52,6 +69,8 @@ def calibrate_from_files(
     ``parameters.md`` (the identified table), ``report.json`` (residuals, identifiability, noise check,
     cross-validation, validation) and ``residuals.png``.
     ``validation``: optional ``(joints, poses)`` files of held-out measurements scored before and after.
+    A result that fails its plausibility checks (``result.success`` False, :mod:`.plausibility`) gets its
+    report but not the calibrated robot, unless ``force``.
     ``options`` go to :func:`calibrate` (parameters, base, tool, joint_offsets, progress, ...).
     """
     from ..chain import KinematicChain
@@ -64,18 +83,16 @@ def calibrate_from_files(
         return result
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    if hasattr(result.chain, "to_mjcf"):
-        result.chain.to_mjcf(out / "calibrated.xml")
-    elif hasattr(result.chain, "to_yaml"):
-        (out / "calibrated.yaml").write_text(result.chain.to_yaml())
-    elif hasattr(result.chain, "to_urdf"):
-        result.chain.to_urdf(out / "calibrated.urdf")
+    if result.success or force:  # a failed result: the report says why, the robot is not written
+        write_robot(result.chain, out)
     (out / "parameters.md").write_text(result.to_markdown() + "\n")
     info = {
         "method": method,
         "error_model": result.error_model,
         "iterations": result.iterations,
         "converged": result.converged,
+        "success": result.success,
+        "failure": result.failure,
         "noise_ratio": result.noise_ratio,
         "cross_validation": result.cross_validation,
         "notes": result.notes,

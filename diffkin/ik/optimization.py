@@ -9,14 +9,16 @@ Gauss–Newton / Levenberg–Marquardt on the stacked residuals; any term works 
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from ..errors import ConventionError
+from ..errors import ConventionError, NonFiniteError, OptionError, ShapeError
 from ..kernels.dls import dls_solve
+from ..validation import as_tensor, check_count, check_number, shape_str
 from ._collision import CollisionConfig, constraint_of
 from ._constrained import active_rows, constrained_step, merit, next_trust
 from .implicit import attach_stationary_gradients, wants_gradients
@@ -35,6 +37,7 @@ __all__ = [
 ]
 
 OPTIMIZERS = ("lbfgs", "adam", "gauss_newton")
+_LAM_MAX = 1e8  # the largest Levenberg–Marquardt damping λ: a step that fails there is a stationary point
 
 
 @dataclass(frozen=True)
@@ -104,17 +107,114 @@ class CallableCost(_Term):
 
 
 def _as_terms(costs) -> list[_Term]:
+    """``costs`` as cost terms: None (the default ``[PoseCost()]``) or a non-empty list / tuple of cost
+    objects and callables; their numeric fields are checked (:func:`_check_term`)."""
     if costs is None:
         return [PoseCost()]
+    if isinstance(costs, _Term) or callable(costs) or not isinstance(costs, list | tuple):
+        what = type(costs).__name__
+        hint = f" (one term: costs=[{what}(...)])" if isinstance(costs, _Term) or callable(costs) else ""
+        raise ConventionError(f"expected costs as a list of cost terms, got a {what}{hint}")
+    if not costs:
+        raise ConventionError("expected costs as a non-empty list of cost terms, got an empty one (None: the "
+                              "default [PoseCost()])")
     terms = []
     for c in costs:
         if isinstance(c, _Term):
-            terms.append(c)
+            terms.append(_check_term(c))
         elif callable(c):
             terms.append(CallableCost(fn=c))
         else:
             raise ConventionError(f"cost terms must be diffkin.ik cost objects or callables(q, T), got {c!r}")
     return terms
+
+
+def _check_term(term: _Term) -> _Term:
+    """A cost term's numeric fields by the one option rule (:func:`~diffkin.validation.check_number`):
+    ``weight`` >= 0, ``orientation_weight`` >= 0 (PoseCost), ``margin`` >= 0 (JointLimitCost)."""
+    name = type(term).__name__
+    check_number(term.weight, f"{name}.weight", positive=False)
+    if isinstance(term, PoseCost):
+        check_number(term.orientation_weight, "PoseCost.orientation_weight", positive=False,
+                     unit=" (metres per radian)")
+    if isinstance(term, JointLimitCost):
+        check_number(term.margin, "JointLimitCost.margin", positive=False, unit=" (rad or m)")
+    if isinstance(term, CallableCost) and not callable(term.fn):
+        raise ConventionError(f"expected CallableCost.fn as a callable fn(q, T_target), got {term.fn!r}")
+    return term
+
+
+def _check_options(optimizer, max_iterations, lr, damping, tolerance_change, unroll, collision, world,
+                   margin) -> None:
+    """The options of :func:`optimize`, each refused with an :class:`~diffkin.errors.OptionError` naming it
+    (NaN: a :class:`~diffkin.errors.NonFiniteOptionError`, which is one) before any work."""
+    if optimizer not in OPTIMIZERS:
+        raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
+    if max_iterations is not None:
+        check_count(max_iterations, "max_iterations")
+    if lr is not None:
+        check_number(lr, "lr")  # 0 was silently the default
+    check_number(damping, "damping", positive=False)
+    check_number(tolerance_change, "tolerance_change", positive=False)
+    if not isinstance(unroll, bool):
+        check_count(unroll, "unroll (False, True or a number of steps)", minimum=0)
+    if collision is None and world is None and margin != 0.0:
+        check_number(margin, "margin", positive=False)
+        raise OptionError(f"margin={margin!r} applies to collision checks: give collision= (and world=) with "
+                          "it, or leave margin at 0")
+
+
+def _check_terms_at(chain, terms: list[_Term], q: Tensor, T: Tensor) -> None:
+    """Evaluate every term once at the start ``q (..., nq)``: one finite value per sample ``(...)`` each,
+    or a typed error naming the term (a cost of the wrong shape, a ``q_rest`` of the wrong length, NaN)."""
+    for i, term in enumerate(terms):
+        label = f"costs[{i}] ({_term_name(term)})"
+        if isinstance(term, RestPostureCost) and term.q_rest is not None:
+            rest = as_tensor(term.q_rest, "RestPostureCost.q_rest", dtype=q.dtype, device=q.device)
+            try:
+                torch.broadcast_shapes(rest.shape, q.shape)
+            except RuntimeError:
+                raise ShapeError(f"expected RestPostureCost.q_rest of shape (..., {chain.n_joints}) "
+                                 f"broadcastable to q {shape_str(q.shape)}, got {shape_str(rest.shape)}"
+                                 ) from None
+        with torch.no_grad():
+            value = term(CostContext(chain, q, T))
+        value = torch.as_tensor(value)
+        if tuple(value.shape) != tuple(q.shape[:-1]):
+            raise ShapeError(f"{label} returned shape {shape_str(value.shape)}; expected one value per "
+                             f"sample, shape {shape_str(q.shape[:-1])}")
+        bad = ~torch.isfinite(value)
+        if bool(bad.any()):
+            raise NonFiniteError(f"{label} is NaN or inf at the start q0 for {int(bad.sum())} of "
+                                 f"{value.numel()} samples; expected a finite cost")
+
+
+class _NonFiniteCost(Exception):
+    """Raised inside the torch optimisers' closure at a q ``(..., nq)`` where the summed cost is NaN/inf."""
+
+    def __init__(self, q: Tensor):
+        super().__init__("non-finite cost")
+        self.q = q
+
+
+def _nonfinite_report(chain, terms: list[_Term], q: Tensor, T: Tensor, optimizer: str) -> NonFiniteError:
+    """The typed error for a cost that turned NaN/inf at ``q`` during the iterations, naming the terms."""
+    with torch.enable_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ctx = CostContext(chain, q, T)
+        bad = [(i, t, ~torch.isfinite(t(ctx).detach())) for i, t in enumerate(terms)]
+    names = ", ".join(f"costs[{i}] ({_term_name(t)}) at {int(m.sum())} of {m.numel()} samples"
+                      for i, t, m in bad if bool(m.any()))
+    return NonFiniteError(f"ik.optimize (optimizer={optimizer!r}): the cost became NaN or inf during the "
+                          f"iterations: {names or 'the summed cost'} (finite at q0); give a term that is "
+                          "finite wherever the optimiser may step, or use optimizer='gauss_newton', which "
+                          "rejects such steps")
+
+
+def _term_name(term: _Term) -> str:
+    if isinstance(term, CallableCost):
+        return getattr(term.fn, "__name__", type(term.fn).__name__)
+    return type(term).__name__
 
 
 def _total(chain, terms, q, T) -> Tensor:
@@ -139,8 +239,13 @@ def _residuals(chain, terms, q, T) -> Tensor:
 def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change, constraint=None):
     """Levenberg–Marquardt on the stacked residuals, λ adapted per sample (accept: λ/3, reject: 4λ); with a
     :class:`DistanceConstraint` each step is the constrained QP of :mod:`diffkin.ik._constrained`
-    (1-DOF chains) and acceptance compares its merit."""
+    (1-DOF chains) and acceptance compares its merit. Stops when every sample's last step was accepted with
+    a gain below ``tol_change`` (relative) or fails at the largest damping; rejected steps only raise λ.
+    Returns ``(q, iterations, progressed)``: ``progressed (...)`` bool, False for the samples whose every
+    step was rejected before a stationary point was reached (the budget ran out): q0 unmoved, reported as
+    failed by :func:`optimize`."""
     lam = torch.full(q.shape[:-1], damping**2, dtype=q.dtype, device=q.device)
+    progressed = torch.zeros(q.shape[:-1], dtype=torch.bool, device=q.device)
     space = chain.configuration_space
     it = 0
     cost = None
@@ -169,14 +274,19 @@ def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change, 
                 cost_new = merit(constraint, q_new, cost_new)
             accept = cost_new < cost
             q = torch.where(accept[..., None], q_new, q)
-            lam = torch.where(accept, lam / 3.0, lam * 4.0).clamp(1e-12, 1e8)
-            gain = torch.where(accept, cost - cost_new, torch.zeros_like(cost))
+            # the shortest step still fails (or nothing is left to gain): a stationary point
+            stuck = ~accept & ((lam >= _LAM_MAX) | (cost <= 0))
+            progressed |= accept | stuck
+            lam = torch.where(accept, lam / 3.0, lam * 4.0).clamp(1e-12, _LAM_MAX)
+            # a rejected step is no sign of convergence (the next, more damped one may well succeed): only
+            # an accepted step's small gain, or a step that fails at the largest damping, ends the iteration
+            gain = torch.where(accept, cost - cost_new, torch.where(stuck, 0.0, math.inf))
             if constraint is not None:  # a rejected step shrinks the trust region: not yet converged
                 trust = next_trust(trust, dq, accept, ccfg)
                 gain = torch.where(accept | (trust <= 1e-10), gain, torch.full_like(gain, math.inf))
             if it % 5 == 0 and bool((gain <= tol_change * cost.clamp_min(1.0)).all()):
                 break
-    return q, it
+    return q, it, progressed
 
 
 def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_change):
@@ -210,6 +320,8 @@ def _torch_optimizer(name, chain, terms, q, T, iterations, project, lr, tol_chan
 
     def closure():  # the gradient w.r.t. q only: the chain's parameters keep their .grad untouched
         loss = _total(chain, terms, lift(q), T).sum()
+        if not torch.isfinite(loss):  # torch's optimisers would carry NaN into q (or crash in a line search)
+            raise _NonFiniteCost(lift(q.detach()))
         q.grad = torch.autograd.grad(loss, q)[0].contiguous()
         return loss
 
@@ -285,6 +397,20 @@ def optimize(
 
     Returns:
         :class:`IKResult`; ``success`` is judged from an exact FK in the chain's dtype (and the limits).
+        Gauss–Newton stops only when every sample's last step was accepted with a gain below
+        ``tolerance_change`` or fails at the largest damping (a stationary point); a rejected step only raises
+        the damping. A sample that accepted no step before the budget ran out (q0 returned unmoved, short of
+        a stationary point) has ``success`` False.
+
+    Raises:
+        :class:`~diffkin.errors.OptionError` naming the option (``max_iterations`` an integer >= 1, ``lr``
+        > 0, ``damping`` and ``tolerance_change`` >= 0, ``unroll`` a bool or an integer >= 0, a cost's
+        ``weight`` / ``orientation_weight`` / ``margin`` >= 0, ``margin`` without ``collision``; NaN: the
+        :class:`~diffkin.errors.NonFiniteOptionError` subclass); :class:`~diffkin.errors.ConventionError`
+        for ``costs`` that is not a non-empty list of terms; :class:`~diffkin.errors.ShapeError` for a term
+        whose value at q0 is not one number per sample or a ``q_rest`` of the wrong length;
+        :class:`~diffkin.errors.NonFiniteError` naming the term whose cost is NaN/inf at q0, or turns NaN/inf
+        during L-BFGS or Adam (Gauss–Newton rejects such steps).
 
     **Gradients.** With grad mode on and ``T_target`` or a chain parameter requiring grad, ``q`` is
     differentiable w.r.t. both. By default from the stationarity of the summed cost at the solution,
@@ -304,8 +430,7 @@ def optimize(
 
         T_target, costs, position_only, respect_limits, collision, world, margin = optimize_arguments(
             chain, T_target, tasks, limits, costs, position_only, respect_limits, collision, world, margin)
-    if optimizer not in OPTIMIZERS:
-        raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
+    _check_options(optimizer, max_iterations, lr, damping, tolerance_change, unroll, collision, world, margin)
     terms = _as_terms(costs)
     constraint = constraint_of(chain, collision, world, margin, None)
     # Gauss–Newton on 1-DOF chains keeps the distances as constraints; the other optimisers (and ball or
@@ -338,22 +463,35 @@ def optimize(
     clamp = respect_limits and chain.q_limits is not None
     project = (lambda x: chain.clamp_to_limits(x, check=False)) if clamp else (lambda x: x)
     q = project(q)
+    with torch.enable_grad():  # terms may differentiate inside (a Jacobian), also under no_grad
+        _check_terms_at(chain, terms, q, T)
     if max_iterations is None:
         max_iterations = {"lbfgs": 50, "adam": 500, "gauss_newton": 50}[optimizer]
     with torch.enable_grad():  # the iterations differentiate the cost w.r.t. q, also under no_grad
         if optimizer == "gauss_newton":
-            q, it = _gauss_newton(chain, terms, q, T, max_iterations, project, damping, tolerance_change,
-                                  constraint if hard else None)
+            q, it, progressed = _gauss_newton(chain, terms, q, T, max_iterations, project, damping,
+                                              tolerance_change, constraint if hard else None)
         else:
-            q, it = _torch_optimizer(optimizer, chain, terms, q, T, max_iterations, project, lr,
-                                     tolerance_change)
+            try:
+                q, it = _torch_optimizer(optimizer, chain, terms, q, T, max_iterations, project, lr,
+                                         tolerance_change)
+            except _NonFiniteCost as exc:
+                raise _nonfinite_report(chain, terms, exc.q, T, optimizer) from None
+            progressed = None
     with torch.no_grad():
         pos_err, ori_err = final_errors(chain, q, T, position_only)
-    success = pos_err <= position_tolerance
+        lost = ~torch.isfinite(q).all(-1)
+    if bool(lost.any()):  # a term went NaN or inf on the way (finite at q0: checked above)
+        warnings.warn(f"ik.optimize ({optimizer}): the cost became NaN or inf during the optimisation for "
+                      f"{int(lost.sum())} of {lost.numel()} samples (a cost term that is not finite "
+                      "everywhere); their q is not finite and success is False", RuntimeWarning, stacklevel=2)
+    success = (pos_err <= position_tolerance) & ~lost
     if not position_only:
         success &= ori_err <= orientation_tolerance
     if clamp:
         success &= chain.within_limits(q, check=False)
+    if progressed is not None:  # Gauss–Newton left q0 unmoved without reaching a stationary point
+        success &= progressed
     if constraint is not None:
         with torch.no_grad():
             success &= constraint.satisfied(q)
