@@ -19,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from torch import Tensor
 
 from .errors import DiffkinError
 
@@ -37,48 +36,6 @@ def add_arguments(p) -> None:
                    help="SRDF whose <disable_collisions> pairs are not checked (URDF robots)")
     g.add_argument("--margin", type=float, default=0.0, metavar="M",
                    help="smallest allowed distance in metres (default 0)")
-
-
-class WorldOnly:
-    """A robot's geoms against the world only (no self pairs): the duck-typed collision object of
-    ``--world`` without ``--self-collision``."""
-
-    def __init__(self, robot):
-        self.robot = robot
-
-    @property
-    def chain(self):
-        return self.robot.chain
-
-    def _check_chain(self, chain, who: str) -> None:
-        self.robot._check_chain(chain, who)
-
-    @property
-    def skip_fixed(self) -> bool:
-        return self.robot.skip_fixed
-
-    def _distances_at_least(self, q: Tensor, world=None, threshold=None, moving_only: bool = False) -> Tensor:
-        """The robot's world columns only (``RobotCollision._distances_at_least`` without the self pairs)."""
-        if world is None:
-            return q.new_zeros(*q.shape[:-1], 0)
-        d = self.robot._distances_at_least(q, world, threshold, moving_only)
-        return d[..., len(self.robot._distance_names(None, moving_only)):]
-
-    def _distance_names(self, world=None, moving_only: bool = False) -> list[str]:
-        names = self.robot._distance_names(world, moving_only)
-        return names[len(self.robot._distance_names(None, moving_only)):]
-
-    def self_distances(self, q: Tensor) -> Tensor:
-        return q.new_zeros(*q.shape[:-1], 0)
-
-    def world_distances(self, q: Tensor, world) -> Tensor:
-        return self.robot.world_distances(q, world)
-
-    def min_distance(self, q: Tensor, world=None) -> Tensor:
-        if world is None:
-            return torch.full(q.shape[:-1], math.inf, dtype=q.dtype, device=q.device)
-        d = self.world_distances(q, world).flatten(-2)
-        return torch.cat((d, torch.full_like(d[..., :1], math.inf)), -1).amin(-1)
 
 
 def collision_options(args, chain, source: str) -> tuple[object | None, object | None]:
@@ -110,7 +67,7 @@ def collision_options(args, chain, source: str) -> tuple[object | None, object |
     if not robot.geoms:
         raise DiffkinError(f"{source}: no collision geometry found for the chain's links")
     world = read_world(args.world, dtype=chain.dtype, device=chain.device) if args.world else None
-    return (robot if args.self_collision else WorldOnly(robot)), world
+    return (robot if args.self_collision else robot.world_only()), world
 
 
 def collision_free_joints(chain, count: int, seed: int, chunk: int, collision, world, margin: float):

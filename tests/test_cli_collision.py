@@ -208,3 +208,26 @@ def test_no_srdf_fails_fast_naming_the_pair(capsys):
                     "--self-collision")
     assert rc != 0
     assert "stopped early" in text and re.search(r"fr3_link1_sc/\d × fr3_link3_sc/\d \(100 %\)", text), text
+
+
+def test_ik_with_a_world_and_no_self_collision(capsys, tmp_path):
+    """``--world`` without ``--self-collision`` (the robot against the world only) reaches ik.solve as a
+    RobotCollision without self pairs (it was refused there as the CLI's own wrapper type); the successes are
+    re-checked against the world by coal."""
+    rc, text = _run(capsys, "ik", "--urdf", FR3, "--end-link", "fr3_link8", "--random", 8, "--world", EXAMPLE,
+                    "--margin", 0.005, "--output", tmp_path / "ik.npz")
+    assert rc == 0, text
+    with np.load(tmp_path / "ik.npz") as d:
+        q, ok = d["q"], d["success"].astype(bool)
+    assert ok.any()
+    assert _coal_min(q[ok], pairs=False).min() >= 0.005 - 1e-6
+
+
+def test_world_only_keeps_the_world_distances_and_drops_the_pairs():
+    robot = _robot_with_srdf()
+    only = robot.world_only()
+    world = read_world(EXAMPLE, dtype=F64)
+    q = robot.chain.random_configuration((5,), generator=torch.Generator().manual_seed(3))
+    assert only.pairs == [] and only.self_distances(q).shape == (5, 0)
+    torch.testing.assert_close(only.world_distances(q, world), robot.world_distances(q, world))
+    torch.testing.assert_close(only.min_distance(q, world), robot.world_distances(q, world).flatten(-2).amin(-1))

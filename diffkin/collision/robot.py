@@ -142,6 +142,20 @@ class RobotCollision(nn.Module):
         moving_pairs = [p for p, (i, j) in enumerate(pairs) if not (self.fixed[i] and self.fixed[j])]
         self.register_buffer("_moving_pairs", ilong(moving_pairs), persistent=False)
 
+    def world_only(self) -> RobotCollision:
+        """The same geoms on the same chain, checked against a world only: no self pairs (``diffkin fk/ik
+        --world`` without ``--self-collision``). The geometry's current values are copied (the result has
+        parameters of its own); ``skip_fixed`` is kept."""
+        with torch.no_grad():
+            caps = [(a.tolist(), b.tolist(), float(r)) for a, b, r in
+                    zip(self.capsule_a, self.capsule_b, self.capsule_radius)]
+            boxes = [(c.tolist(), e.tolist(), h.tolist()) for c, e, h in
+                     zip(self.box_center, self.box_rpy, self.box_half_extents)]
+        out = type(self)(self.chain, self.geoms, [g.link for g in self.geoms], caps, boxes, [],
+                         frames=self._frames, dtype=self.capsule_a.dtype, device=self.capsule_a.device)
+        out.skip_fixed = self.skip_fixed
+        return out.requires_grad_(any(p.requires_grad for p in self.parameters()))
+
     # ------------------------------------------------------------------------------------ geometry
     def _columns(self, q: Tensor) -> Tensor:
         """Every geom point and axis in the base frame as the columns of one product ``(..., 3, C)``.
