@@ -4,6 +4,7 @@
 calibrated copy of the chain; ``calibrate_batch`` does K robots in one vectorised call;
 ``calibration_loss`` is the differentiable objective for bigger pipelines; ``identifiability`` and
 ``select_poses`` analyse and design the pose set; ``validation_error`` scores a chain on held-out poses.
+``hand_eye`` and ``robot_world_hand_eye`` solve AX = XB / AX = ZB for cameras with OpenCV's conventions.
 """
 
 from .api import METHODS as METHODS
@@ -11,8 +12,15 @@ from .api import CalibrationResult as CalibrationResult
 from .api import calibrate as calibrate
 from .api import calibrate_batch as calibrate_batch
 from .api import validation_error as validation_error
+from .camera import project_points as project_points
 from .error_models import ERROR_MODELS as ERROR_MODELS
 from .error_models import ChainErrorModel as ChainErrorModel
+from .hand_eye import HAND_EYE_METHODS as HAND_EYE_METHODS
+from .hand_eye import ROBOT_WORLD_METHODS as ROBOT_WORLD_METHODS
+from .hand_eye import DegenerateMotionError as DegenerateMotionError
+from .hand_eye import hand_eye as hand_eye
+from .hand_eye import motion_axis_spread as motion_axis_spread
+from .hand_eye import robot_world_hand_eye as robot_world_hand_eye
 from .identifiability import IdentifiabilityReport as IdentifiabilityReport
 from .identifiability import identifiability as identifiability
 from .identifiability import select_poses as select_poses
@@ -29,6 +37,9 @@ __all__ = [
     "ERROR_MODELS",
     "ChainErrorModel",
     "LOSSES",
+    "HAND_EYE_METHODS",
+    "ROBOT_WORLD_METHODS",
+    "DegenerateMotionError",
     "CalibrationResult",
     "CalibrationModel",
     "IdentifiabilityReport",
@@ -36,9 +47,13 @@ __all__ = [
     "calibrate_batch",
     "calibrate_from_files",
     "calibration_loss",
+    "hand_eye",
+    "motion_axis_spread",
+    "robot_world_hand_eye",
     "identifiability",
     "load_measurements",
     "parameter_names",
+    "project_points",
     "robust_loss",
     "select_poses",
     "validation_error",
