@@ -14,7 +14,7 @@ board (the "world"): it returns ``T_base_world`` (the board in the base frame, t
 ``gripper2cam``).
 
 ``refine=True`` (default) follows either closed form with Gauss-Newton on SE(3) over both unknown transforms
-of the loop G_i X C_i = Y (:mod:`.hand_eye_refine`). Motion sets that do not determine X (fewer than three
+of the loop G_i X C_i = Y (:mod:`.handeye_refine`). Motion sets that do not determine X (fewer than three
 poses, or relative rotations about fewer than two distinct axes) raise :class:`DegenerateMotionError`.
 """
 
@@ -281,7 +281,7 @@ def hand_eye(T_base_gripper: Tensor, T_cam_target: Tensor, *, method: str = "par
             rides on the gripper; returns T_base_cam (OpenCV's result for the inverted gripper poses).
         refine: follow with Gauss-Newton on SE(3) over X and the fixed transform Y of the loop
             G_i X C_i = Y, minimising the camera-frame pose residuals of the target, rotation and translation
-            each weighted by its RMS at the closed form (:mod:`.hand_eye_refine`).
+            each weighted by its RMS at the closed form (:mod:`.handeye_refine`).
         axis_tol: the smallest accepted :func:`motion_axis_spread`.
         iterations: Gauss-Newton iterations of the refinement.
 
@@ -305,7 +305,7 @@ def hand_eye(T_base_gripper: Tensor, T_cam_target: Tensor, *, method: str = "par
     R, t = _CLOSED_FORMS[method](A, B)
     X = _make_transform(R, t)
     if refine:
-        from .hand_eye_refine import refine_loop, start_y
+        from .handeye_refine import refine_loop, start_y
 
         X, _ = refine_loop(G, C, X, start_y(G, C, X), iterations)
     return X
@@ -333,7 +333,7 @@ def robot_world_hand_eye(T_base_gripper: Tensor, T_cam_target: Tensor, *, method
     base2world, gripper2cam = (_shah if method == "shah" else _li)(_transform_inverse(G), C)
     X, Y = _transform_inverse(gripper2cam), _transform_inverse(base2world)
     if refine:
-        from .hand_eye_refine import refine_loop
+        from .handeye_refine import refine_loop
 
         X, Y = refine_loop(G, C, X, Y, iterations)
     return Y, X

@@ -1,4 +1,4 @@
-"""Gauss-Newton on SE(3) for the hand-eye loop G_i X C_i = Y (the refinement of :mod:`.hand_eye`).
+"""Gauss-Newton on SE(3) for the hand-eye loop G_i X C_i = Y (the refinement of :mod:`.handeye`).
 
 Unknowns: X (the hand-eye transform) and Y (the other fixed transform of the loop: the target in the base
 frame eye-in-hand, the target on the gripper eye-to-hand), each updated on the right by the pose correction
