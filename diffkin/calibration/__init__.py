@@ -4,6 +4,7 @@
 calibrated copy of the chain; ``calibrate_batch`` does K robots in one vectorised call;
 ``calibration_loss`` is the differentiable objective for bigger pipelines; ``identifiability`` and
 ``select_poses`` analyse and design the pose set; ``validation_error`` scores a chain on held-out poses.
+``hand_eye`` and ``robot_world_hand_eye`` solve AX = XB / AX = ZB for cameras with OpenCV's conventions.
 
 Calibration estimates its own parameter vector ζ (on a private copy of the chain), never the chain's
 ``requires_grad``: a frozen chain (the default of every loader) calibrates as a learnable one does, and the
@@ -15,8 +16,15 @@ from .api import CalibrationResult as CalibrationResult
 from .api import calibrate as calibrate
 from .api import calibrate_batch as calibrate_batch
 from .api import validation_error as validation_error
+from .camera import project_points as project_points
 from .error_models import ERROR_MODELS as ERROR_MODELS
 from .error_models import ChainErrorModel as ChainErrorModel
+from .handeye import HAND_EYE_METHODS as HAND_EYE_METHODS
+from .handeye import ROBOT_WORLD_METHODS as ROBOT_WORLD_METHODS
+from .handeye import DegenerateMotionError as DegenerateMotionError
+from .handeye import hand_eye as hand_eye
+from .handeye import motion_axis_spread as motion_axis_spread
+from .handeye import robot_world_hand_eye as robot_world_hand_eye
 from .identifiability import IdentifiabilityReport as IdentifiabilityReport
 from .identifiability import identifiability as identifiability
 from .identifiability import select_poses as select_poses
@@ -33,6 +41,9 @@ __all__ = [
     "ERROR_MODELS",
     "ChainErrorModel",
     "LOSSES",
+    "HAND_EYE_METHODS",
+    "ROBOT_WORLD_METHODS",
+    "DegenerateMotionError",
     "CalibrationResult",
     "CalibrationModel",
     "IdentifiabilityReport",
@@ -40,9 +51,13 @@ __all__ = [
     "calibrate_batch",
     "calibrate_from_files",
     "calibration_loss",
+    "hand_eye",
+    "motion_axis_spread",
+    "robot_world_hand_eye",
     "identifiability",
     "load_measurements",
     "parameter_names",
+    "project_points",
     "robust_loss",
     "select_poses",
     "validation_error",
