@@ -158,9 +158,11 @@ def test_gradcheck_closed_form_and_refined():
         Cp = C @ make_transform(rotvec_to_matrix(v[:, 3:]), v[:, :3])
         return hand_eye(G, Cp, method=method, refine=refine, iterations=3)
 
+    # fast mode: the Jacobian-vector product against finite differences along random directions (the full
+    # 30-column Jacobian took minutes on 2 cores)
     for method in ("park", "andreff", "horaud"):
-        assert torch.autograd.gradcheck(lambda v, m=method: f(v, m, False), (v,))
-    assert torch.autograd.gradcheck(lambda v: f(v, "park", True), (v,))
+        assert torch.autograd.gradcheck(lambda v, m=method: f(v, m, False), (v,), fast_mode=True)
+    assert torch.autograd.gradcheck(lambda v: f(v, "park", True), (v,), fast_mode=True)
 
 
 def test_degenerate_motions_raise():
