@@ -295,7 +295,15 @@ CASES: list[Case] = _cases()
 
 _TRUSTED = "batched task logic on trusted state tensors; user input enters through the env's step (fuzzed)"
 #: public callables without a case, with the reason
+_HAND_EYE = ("camera calibration on pose sets (rigid, >= 3 poses with two rotation axes): bad shapes, NaN, "
+             "non-rigid and degenerate sets are unit-tested in tests/test_hand_eye.py::test_bad_inputs and "
+             "::test_degenerate_motions_raise; no fuzz case yet")
 EXEMPT: dict[str, str] = {
+    "diffkin.calibration.hand_eye": _HAND_EYE,
+    "diffkin.calibration.robot_world_hand_eye": _HAND_EYE,
+    "diffkin.calibration.motion_axis_spread": _HAND_EYE,
+    "diffkin.calibration.project_points": "pinhole projection: shapes checked in "
+    "tests/test_camera_projection.py::test_bad_shapes; no fuzz case yet",
     "diffkin.calibration.CalibrationResult": "result container",
     "diffkin.calibration.IdentifiabilityReport": "result container",
     "diffkin.calibration.CalibrationModel": "the solvers' measurement model (built from chains; its methods "

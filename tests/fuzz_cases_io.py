@@ -71,9 +71,9 @@ EXEMPT: dict[str, str] = {
         "ArraySource", "PoseSource", "RandomJoints", "check_output_path", "open_joint_source",
         "open_pose_source", "open_writer", "read_array", "read_joints", "read_poses", "write_arrays",
         "read_manifest", "DataFileError", "joint_count", "read_measurements")},
-    **{f"diffkin.models.urdf_xml.{name}": _FILES for name in ("JointSpec", "URDFTree", "parse_urdf",
-                                                              "write_urdf", "CollisionSpec",
-                                                              "parse_collisions")},
+    **{f"diffkin.models.urdf_xml.{name}": _FILES for name in ("JointSpec", "URDFTree", "InertialSpec",
+                                                              "parse_inertials", "parse_urdf", "write_urdf",
+                                                              "CollisionSpec", "parse_collisions")},
     **{f"diffkin.distributed.{name}": _RANKS for name in (
         "RankInfo", "rank_info", "init", "shard_rows", "part_path", "manifest_path", "write_manifest",
         "read_manifest", "merge_parts", "gather", "barrier", "finish", "run_sharded")},

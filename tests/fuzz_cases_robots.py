@@ -343,6 +343,11 @@ CASES: list[Case] = [
     Case("ik.velocity_step[floating]", lambda c, q, tw: ik.velocity_step(c, q, tw, 0.05, velocity_limit=1.0),
          {"q": Arg(joints(floating), (22,)), "twist": Arg(uniform(3, 6), (3, 6))}, chain=floating,
          follows_chain=True, covers=ik.velocity_step),
+    Case("ik.solve_velocity",
+         lambda c, q, T: ik.solve_velocity(
+             c, q, [ik.FrameTask(0, target=T), ik.PostureTask(c.q_limits.mean(-1))], 0.01,
+             limits=[ik.ConfigurationLimit(), ik.VelocityLimit(2.0)]),
+         {"q": Q, "T_target": Arg(poses(panda), (4, 4))}, **CH, covers=ik.solve_velocity),
     Case("ik.finite_difference_twists", lambda T: ik.finite_difference_twists(T, 0.1),
          {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4))}, covers=ik.finite_difference_twists),
     Case("ik.refine_path", lambda T: ik.refine_path(T, 2), {"T_traj": Arg(poses(panda, steps=3), (3, 4, 4))},
@@ -355,6 +360,8 @@ MODULES: list[str] = ["diffkin.chain", "diffkin.models", "diffkin.redundancy", "
 
 _NO_TENSORS = "takes no tensor input (names, paths, mappings or counts); its bad inputs are unit-tested"
 _CONTAINER = "a result container (NamedTuple/dataclass) built by the solvers, not an entry point"
+_TASK = ("a task or limit of the problem description: settings whose tensors solve_velocity / solve / "
+         "optimize validate against the chain (fuzzed through ik.solve_velocity; tests/test_tasks.py)")
 _COST = "an ik.optimize cost term: called by optimize on the inputs optimize validated (fuzzed there)"
 
 #: public callables without a case, with the reason
@@ -377,6 +384,9 @@ EXEMPT: dict[str, str] = {
     "diffkin.models.MJCFChain": "built from a compiled MuJoCo model by from_mjcf (no tensor input); its "
     "methods are KinematicChain's (chain.forward_kinematics[mjcf floating], chain.integrate, ...)",
     "diffkin.ik.FrameTask": "velocity_step settings (an end-link index and a weight), checked there",
+    "diffkin.ik.Task": _TASK, "diffkin.ik.RelativeFrameTask": _TASK, "diffkin.ik.ComTask": _TASK,
+    "diffkin.ik.DampingTask": _TASK, "diffkin.ik.Limit": _TASK, "diffkin.ik.ConfigurationLimit": _TASK,
+    "diffkin.ik.VelocityLimit": _TASK, "diffkin.ik.CollisionLimit": _TASK,
     "diffkin.ik.PostureTask": "velocity_step settings (q_ref, weight, gain), validated by velocity_step "
     "(tests/test_velocity_ik.py::test_typed_errors)",
     "diffkin.models.sample_workspace": _NO_TENSORS,

@@ -386,6 +386,10 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
                 return None
         else:
             return None
+    # NaN / inf targets or posture go to the torch path, whose validators name them (CPU tensors: no device
+    # sync); a sum that overflows only costs the fast path
+    if not all(math.isfinite(float(x.sum())) for x in (*targets, *(() if q_ref is None else (q_ref,)))):
+        return None
     config = vel = None
     for lim in limits:
         kind = type(lim)

@@ -151,7 +151,8 @@ def _check_options(optimizer, max_iterations, lr, damping, tolerance_change, unr
     if optimizer not in OPTIMIZERS:
         raise ConventionError(f"unknown optimizer {optimizer!r}; valid: {', '.join(OPTIMIZERS)}")
     if max_iterations is not None:
-        check_count(max_iterations, "max_iterations")
+        # 0: no step, q0 returned (the implicit gradient evaluated exactly at a given stationary point)
+        check_count(max_iterations, "max_iterations", minimum=0)
     if lr is not None:
         check_number(lr, "lr")  # 0 was silently the default
     check_number(damping, "damping", positive=False)
@@ -403,14 +404,14 @@ def optimize(
         a stationary point) has ``success`` False.
 
     Raises:
-        :class:`~diffkin.errors.OptionError` naming the option (``max_iterations`` an integer >= 1, ``lr``
-        > 0, ``damping`` and ``tolerance_change`` >= 0, ``unroll`` a bool or an integer >= 0, a cost's
-        ``weight`` / ``orientation_weight`` / ``margin`` >= 0, ``margin`` without ``collision``; NaN: the
-        :class:`~diffkin.errors.NonFiniteOptionError` subclass); :class:`~diffkin.errors.ConventionError`
-        for ``costs`` that is not a non-empty list of terms; :class:`~diffkin.errors.ShapeError` for a term
-        whose value at q0 is not one number per sample or a ``q_rest`` of the wrong length;
-        :class:`~diffkin.errors.NonFiniteError` naming the term whose cost is NaN/inf at q0, or turns NaN/inf
-        during L-BFGS or Adam (Gauss–Newton rejects such steps).
+        OptionError: an option out of range, named (``max_iterations`` an integer >= 0, ``lr`` > 0,
+            ``damping`` and ``tolerance_change`` >= 0, ``unroll`` a bool or an integer >= 0, a cost's
+            ``weight`` / ``orientation_weight`` / ``margin`` >= 0, ``margin`` without ``collision``); NaN
+            raises its subclass NonFiniteOptionError.
+        ConventionError: ``costs`` that is not a non-empty list of terms.
+        ShapeError: a term whose value at q0 is not one number per sample, a ``q_rest`` of the wrong length.
+        NonFiniteError: the term whose cost is NaN/inf at q0, or turns NaN/inf during L-BFGS or Adam
+            (Gauss–Newton rejects such steps).
 
     **Gradients.** With grad mode on and ``T_target`` or a chain parameter requiring grad, ``q`` is
     differentiable w.r.t. both. By default from the stationarity of the summed cost at the solution,
