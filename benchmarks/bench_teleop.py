@@ -328,12 +328,7 @@ def _g1(steps: int):
 
     chain = from_mjcf(G1, [e for e, _ in G1_ENDS], dtype=torch.float64).requires_grad_(False)
     model = compile_mjcf(G1)[0]
-    qadr, dofs = [], []
-    for name in chain.joint_names:
-        j = model.joint(name).id
-        nq, nv = {0: (7, 6), 1: (4, 3)}.get(int(model.jnt_type[j]), (1, 1))
-        qadr += range(model.jnt_qposadr[j], model.jnt_qposadr[j] + nq)
-        dofs += range(model.jnt_dofadr[j], model.jnt_dofadr[j] + nv)
+    qadr, dofs = chain.qpos_index(), chain.dof_index()  # MuJoCo's qpos / qvel entries of q and v
     costs = [(1.0, 1.0), (1.0, 1.0), (1.0, 0.5), (1.0, 0.5)]
     vmax = torch.full((chain.nv,), VMAX * 2, dtype=torch.float64)
     vmax[:6] = math.inf

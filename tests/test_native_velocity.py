@@ -28,17 +28,6 @@ G1_ENDS = [("left_foot", "site"), ("right_foot", "site"), ("left_elbow_roll_link
            ("right_elbow_roll_link", "body")]
 
 
-def _layout(chain, model):
-    """MuJoCo's qpos and dof addresses of the chain's joints, in the chain's q and v order."""
-    qadr, dofs = [], []
-    for name in chain.joint_names:
-        j = model.joint(name).id
-        nq, nv = {0: (7, 6), 1: (4, 3)}.get(int(model.jnt_type[j]), (1, 1))
-        qadr += range(model.jnt_qposadr[j], model.jnt_qposadr[j] + nq)
-        dofs += range(model.jnt_dofadr[j], model.jnt_dofadr[j] + nv)
-    return qadr, dofs
-
-
 @pytest.fixture(scope="module")
 def panda():
     chain = from_mjcf(PANDA, "hand", dtype=torch.float64).requires_grad_(False)
@@ -171,7 +160,7 @@ def test_float32_close_to_float64(panda):
 def test_g1_floating_base_matches_mink():
     chain = from_mjcf(G1, [e for e, _ in G1_ENDS], dtype=torch.float64).requires_grad_(False)
     model = compile_mjcf(G1)[0]
-    qadr, dofs = _layout(chain, model)
+    qadr, dofs = chain.qpos_index(), chain.dof_index()  # MuJoCo's qpos / qvel entries of q and v
     cfg = mink.Configuration(model)
     costs = [(1.0, 1.0), (1.0, 1.0), (2.0, 0.5), (2.0, 0.5)]
     tasks = [mink.FrameTask(e, t, position_cost=p, orientation_cost=o, gain=1.0, lm_damping=1.0)
