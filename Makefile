@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 PIP    := $(PY) -m pip
 STAMP  := $(VENV)/.installed
 
-.PHONY: install test demo bench train lint docs clean view-check
+.PHONY: install test test-all demo bench train lint docs clean view-check
 
 $(PY):
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,11 @@ install: $(STAMP)
 test: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m pytest
+
+# Everything, the extended reference sweeps and long end-to-end runs included.
+test-all: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m pytest -m "extended or not extended"
 
 demo: $(STAMP)
 	$(VENV)/bin/diffkin demo
