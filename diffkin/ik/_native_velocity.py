@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import ctypes
 import math
+import struct
 from collections.abc import Sequence
 
 import torch
@@ -38,6 +39,8 @@ __all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
 VERSION = 2
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 _STALE = -4
+_LEAN = single._KEY  # the chain's lean entry in its instance __dict__
+_pack = struct.Struct("=5Qd").pack  # dk_velocity_step's call block: q, target, q_ref, v, q_next, dt
 
 
 class Vel(ctypes.Structure):
@@ -51,7 +54,7 @@ class Vel(ctypes.Structure):
         [(name, _PTR) for name in ("q", "v", "q_next", "ok", "work")] + [("ready", _I64), ("busy", _I64)]
 
 
-_fns: dict = {}  # id of the loaded library -> (dk_velocity_one, dk_velocity_work_bytes, dk_velocity)
+_fns: dict = {}  # id of the loaded library -> (dk_velocity_step, dk_velocity_work_bytes, dk_velocity)
 
 
 def _functions():
@@ -61,8 +64,8 @@ def _functions():
     fns = _fns.get(id(lib))
     if fns is None:
         native.check_abi(_Renamed(lib), Vel, VERSION)
-        one = ctypes.PyDLL(native._path).dk_velocity_one  # keeps the GIL: the call takes microseconds
-        one.restype, one.argtypes = _I64, [_PTR] * 8 + [_F64]
+        one = ctypes.PyDLL(native._path).dk_velocity_step  # keeps the GIL: the call takes microseconds
+        one.restype, one.argtypes = _I64, [_PTR, ctypes.c_char_p]  # two arguments to convert, not nine
         batch = lib.dk_velocity  # releases the GIL (threads, milliseconds)
         batch.restype, batch.argtypes = _I64, [_PTR, _PTR, _PTR]
         size = lib.dk_velocity_work_bytes
@@ -157,7 +160,8 @@ class NativeVelocity:
             self._vmax = torch.as_tensor(velocity_limit, **kw).expand(nv).contiguous().clone()
         self.damping = float(damping)
         self._args = self._filled()
-        self._entry = None  # the lean path's cache: (single.Entry, its work space, the call's Vel, ...)
+        self._entry = None  # the lean path's cache: (single.Entry, dk_velocity_step, ...: see _lean)
+        self._cdict = chain.__dict__  # where the chain keeps its lean entry
         self._ok = ctypes.c_uint8(1)
 
     @property
@@ -235,8 +239,10 @@ class NativeVelocity:
     # ------------------------------------------------------------------------------- the lean path
     def _lean(self):
         """The chain's current lean entry and this problem's call struct bound to it (None: not servable:
-        gradients wanted, CUDA, no library)."""
+        gradients wanted, CUDA, no library): ``(entry, dk_velocity_step, address of its fixed block, work
+        space, the call's Vel, the fixed block)``."""
         chain = self.chain
+        self._cdict = chain.__dict__
         hit = single._current(chain, torch.is_grad_enabled())
         if hit is None or hit.dtype is not self.dtype or hit.watch is None:
             return None
@@ -247,7 +253,8 @@ class NativeVelocity:
             a.batch, a.nthreads = 1, 1
             a.work, a.ready = work.data_ptr() + (-work.data_ptr()) % 64, 0
             a.ok = ctypes.addressof(self._ok)
-            self._entry = (hit, work, a, ctypes.addressof(a), hit.base, hit.watch_addr, step)
+            fixed = (_PTR * 3)(hit.base, ctypes.addressof(a), hit.watch_addr)  # dk_args, dk_vel, dk_watch
+            self._entry = (hit, step, ctypes.addressof(fixed), work, a, fixed)
         return self._entry
 
     def step(self, q: Tensor, targets: Tensor | None, q_ref: Tensor | None, dt: float, *,
@@ -255,28 +262,32 @@ class NativeVelocity:
         """One row: ``q (nq,)``, ``targets (F, 4, 4)``, ``q_ref (nq,)`` (contiguous CPU tensors of the
         problem's dtype, no gradient wanted) -> ``v (nv,)`` (into ``out`` when given; ``next_q (nq,)``
         receives q ⊕ Δq when given). None when this path cannot serve the call (the caller's general path
-        then does) or q is not finite. :attr:`ok` says whether the box was feasible and the QP solved."""
-        if not (q.dtype is self.dtype and q.is_contiguous() and not q.requires_grad):
-            return None
-        lean = self._entry if self._entry is not None and self._entry[0] is self.chain.__dict__.get(
-            single._KEY) else self._lean()
-        if lean is None:
-            return None
-        v = torch.empty(self.chain.nv, dtype=self.dtype) if out is None else out
-        status = lean[6](lean[4], lean[3], lean[5], q.data_ptr(),
-                         None if targets is None else targets.data_ptr(),
-                         None if q_ref is None else q_ref.data_ptr(), v.data_ptr(),
-                         None if next_q is None else next_q.data_ptr(), dt)
-        if status == _STALE:  # the chain's bytes changed since they were packed: repacked once
-            single._remade(self.chain)
-            self._entry = None
+        then does) or q is not finite. :attr:`ok` says whether the box was feasible and the QP solved.
+
+        A handful of Python operations around one foreign call (``dk_velocity_step``, two arguments): the
+        entry is this problem's while the chain's lean entry is the one it was bound to (the chain's bytes
+        are compared in C on every call)."""
+        lean = self._entry
+        if lean is None or lean[0] is not self._cdict.get(_LEAN) or q.dtype is not self.dtype or \
+                not q.is_contiguous() or q.requires_grad:
+            if not (q.dtype is self.dtype and q.is_contiguous() and not q.requires_grad):
+                return None
             lean = self._lean()
             if lean is None:
                 return None
+        v = torch.empty(self.nv, dtype=self.dtype) if out is None else out
+        status = lean[1](lean[2], _pack(q.data_ptr(), 0 if targets is None else targets.data_ptr(),
+                                        0 if q_ref is None else q_ref.data_ptr(), v.data_ptr(),
+                                        0 if next_q is None else next_q.data_ptr(), dt))
+        if status == 0:
+            return v
+        if status == _STALE:  # the chain's bytes changed since they were packed: repacked once
+            single._remade(self.chain)
+            self._entry = None
+            if self._lean() is None:
+                return None
             return self.step(q, targets, q_ref, dt, out=out, next_q=next_q)
-        if status != 0:
-            return None
-        return v
+        return None
 
 
 def _velocity_coordinates(chain) -> list[int]:

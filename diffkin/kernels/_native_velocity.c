@@ -33,10 +33,11 @@
  *
  * Interface: dk_vel (DK_VEL_FIELDS), its own struct with its own version (dk_vel_abi, dk_vel_names), so
  * that the FK's dk_args keeps its layout; dk_velocity(chain's dk_args, dk_vel, dk_watch or NULL) for a
- * batch, dk_velocity_one(dk_args, dk_vel, dk_watch, q, target, q_ref, v, q_next, dt) for one row. Rows run
- * in blocks of W lanes (one FK pass per block), blocks shared between nthreads threads above SERIAL_MAX
- * rows; a serial call may keep the plans and work space in `work` (dk_velocity_work_bytes bytes) between
- * calls.
+ * batch, dk_velocity_one(dk_args, dk_vel, dk_watch, q, target, q_ref, v, q_next, dt) for one row (and
+ * dk_velocity_step, the same with its arguments in two blocks: two for ctypes to convert). Rows run
+ * in blocks of W lanes (one FK pass per block, of WN lanes where the block has at most WN rows), blocks
+ * shared between nthreads threads above SERIAL_MAX rows; a serial call may keep the plans and work space in
+ * `work` (dk_velocity_work_bytes bytes) between calls.
  */
 #ifndef DK_VEL_TYPES
 #define DK_VEL_TYPES
@@ -581,7 +582,8 @@ static void DK(vel_block)(const DK(Vel) *V, DK(Scratch) *sc, char *thread, int64
     int8_t *fixed = (int8_t *)(work + DK(vel_qp_reals)(nv));
     int *fr = (int *)(((uintptr_t)(fixed + nv) + sizeof(int) - 1) / sizeof(int) * sizeof(int));
     *bad += DK(load_q)(&V->s, sc, q, b0, nl);
-    DK(block)(&V->s, &V->pp, sc, 1);
+    if (nl <= WN) DK(block_narrow)(&V->s, &V->pp, sc, 1); /* one row (dk_velocity_one): WN lanes, not W */
+    else DK(block)(&V->s, &V->pp, sc, 1);
     for (int l = 0; l < nl; l++) {
         const int64_t b = b0 + l;
         const real *qb = q + b * n;
@@ -702,6 +704,20 @@ int64_t dk_velocity_one(const dk_args *a, dk_vel *base, const dk_watch *w, const
     base->ready = c.ready;
     __atomic_store_n(&base->busy, 0, __ATOMIC_RELEASE);
     return r;
+}
+
+/* dk_velocity_one with its arguments in two blocks, so that a caller through ctypes converts two, not nine:
+ * h = {dk_args *, dk_vel *, dk_watch *} (the problem's, fixed) and call = {q, target, q_ref, v, q_next as
+ * 64-bit addresses (0: NULL), then dt as a double}, packed per call by the caller (an immutable buffer of
+ * its own: calls from several threads never share it). */
+int64_t dk_velocity_step(const void *const *h, const void *call) {
+    uint64_t p[5];
+    double dt;
+    memcpy(p, call, sizeof p);
+    memcpy(&dt, (const char *)call + sizeof p, sizeof dt);
+    return dk_velocity_one((const dk_args *)h[0], (dk_vel *)h[1], (const dk_watch *)h[2], (const void *)(uintptr_t)p[0],
+                           (const void *)(uintptr_t)p[1], (const void *)(uintptr_t)p[2], (void *)(uintptr_t)p[3],
+                           (void *)(uintptr_t)p[4], dt);
 }
 
 /* One step of differential IK for the v->batch rows of v (see the top of this file) on the chain a, whose
