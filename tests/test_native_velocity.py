@@ -303,3 +303,21 @@ def test_lean_step_from_threads(panda):
     for t in threads:
         t.join()
     assert not bad
+
+
+def test_one_row_non_finite_target_or_posture(panda):
+    """A NaN / inf target or q_ref of one row: the C step computes nothing (None) and solve_velocity's torch
+    path names the bad input; finite inputs are served."""
+    chain, _ = panda
+    prob = nvel.NativeVelocity(chain, [(0, 1.0, 1.0, 1.0, 0.0)], posture=(1e-2, 1.0, 0.0), velocity_limit=2.0)
+    q = torch.tensor([0.1, -0.4, 0.2, -2.0, 0.1, 1.4, 0.6], dtype=torch.float64)
+    T = chain.forward_kinematics(q + 0.05).detach()
+    bad_T, bad_q = T.clone(), q.clone()
+    bad_T[1, 3], bad_q[2] = float("nan"), float("inf")
+    with torch.no_grad():
+        assert prob.step(q, T[None].contiguous(), q, 0.01) is not None
+        assert prob.step(q, bad_T[None].contiguous(), q, 0.01) is None
+        assert prob.step(q, T[None].contiguous(), bad_q, 0.01) is None
+        for tgt, ref in ((bad_T, q), (T, bad_q)):
+            with pytest.raises(Exception):  # noqa: B017 - the torch path's validator
+                ik.solve_velocity(chain, q, [ik.FrameTask(0, target=tgt), ik.PostureTask(ref)], 0.01)

@@ -262,7 +262,8 @@ class NativeVelocity:
         """One row: ``q (nq,)``, ``targets (F, 4, 4)``, ``q_ref (nq,)`` (contiguous CPU tensors of the
         problem's dtype, no gradient wanted) -> ``v (nv,)`` (into ``out`` when given; ``next_q (nq,)``
         receives q ⊕ Δq when given). None when this path cannot serve the call (the caller's general path
-        then does) or q is not finite. :attr:`ok` says whether the box was feasible and the QP solved.
+        then does) or q, a target or q_ref is not finite. :attr:`ok` says whether the box was feasible and
+        the QP solved.
 
         A handful of Python operations around one foreign call (``dk_velocity_step``, two arguments): the
         entry is this problem's while the chain's lean entry is the one it was bound to (the chain's bytes
@@ -397,10 +398,6 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
                 return None
         else:
             return None
-    # NaN / inf targets or posture go to the torch path, whose validators name them (CPU tensors: no device
-    # sync); a sum that overflows only costs the fast path
-    if not all(math.isfinite(float(x.sum())) for x in (*targets, *(() if q_ref is None else (q_ref,)))):
-        return None
     config = vel = None
     for lim in limits:
         kind = type(lim)
@@ -442,6 +439,10 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
         if q_ref is not None and not q_ref.is_contiguous():
             q_ref = q_ref.contiguous()
         return prob.step(q if q.is_contiguous() else q.contiguous(), tgt, q_ref, dt)
+    # NaN / inf targets or posture go to the torch path, whose validators name them (CPU tensors: no device
+    # sync; a sum that overflows only costs the fast path); one row: dk_velocity_step checks them
+    if not all(math.isfinite(float(x.sum())) for x in (*targets, *(() if q_ref is None else (q_ref,)))):
+        return None
     batch, nq = q.shape[:-1], prob.nq
     B = q.numel() // nq
     try:

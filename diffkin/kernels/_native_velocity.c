@@ -706,15 +706,33 @@ int64_t dk_velocity_one(const dk_args *a, dk_vel *base, const dk_watch *w, const
     return r;
 }
 
+/* The number of entries of x (n reals of real_bytes) that are NaN or infinite. */
+static int64_t vel_nonfinite(const void *x, int64_t n, int64_t real_bytes) {
+    int64_t bad = 0;
+    if (real_bytes == 8)
+        for (int64_t i = 0; i < n; i++) bad += !isfinite(((const double *)x)[i]);
+    else
+        for (int64_t i = 0; i < n; i++) bad += !isfinite(((const float *)x)[i]);
+    return bad;
+}
+
 /* dk_velocity_one with its arguments in two blocks, so that a caller through ctypes converts two, not nine:
  * h = {dk_args *, dk_vel *, dk_watch *} (the problem's, fixed) and call = {q, target, q_ref, v, q_next as
  * 64-bit addresses (0: NULL), then dt as a double}, packed per call by the caller (an immutable buffer of
- * its own: calls from several threads never share it). */
+ * its own: calls from several threads never share it). Non-finite targets or q_ref (of a posture task):
+ * their number of non-finite entries is returned and nothing is computed (the caller's checked path names
+ * them). */
 int64_t dk_velocity_step(const void *const *h, const void *call) {
     uint64_t p[5];
     double dt;
     memcpy(p, call, sizeof p);
     memcpy(&dt, (const char *)call + sizeof p, sizeof dt);
+    const dk_args *a = (const dk_args *)h[0];
+    const dk_vel *v = (const dk_vel *)h[1];
+    if (!vel_ok(a, v)) return DK_ABI_ERROR;
+    const int64_t bad = (p[1] ? vel_nonfinite((const void *)(uintptr_t)p[1], 16 * v->n_frames, a->real_bytes) : 0) +
+                        (p[2] && v->posture_cost ? vel_nonfinite((const void *)(uintptr_t)p[2], a->n, a->real_bytes) : 0);
+    if (bad) return bad;
     return dk_velocity_one((const dk_args *)h[0], (dk_vel *)h[1], (const dk_watch *)h[2], (const void *)(uintptr_t)p[0],
                            (const void *)(uintptr_t)p[1], (const void *)(uintptr_t)p[2], (void *)(uintptr_t)p[3],
                            (void *)(uintptr_t)p[4], dt);
