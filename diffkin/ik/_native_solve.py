@@ -16,6 +16,7 @@ count.
 from __future__ import annotations
 
 import math
+import threading
 
 import torch
 from torch import Tensor
@@ -55,6 +56,10 @@ class _Prepared:
             # for the vectorised nearest-pose search
             self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).T.contiguous()
         self.L, self._configured, self._one = L, {}, {}
+        # solve_one's outputs by empty_like (half the cost of torch.empty with a dtype): q, a real, a flag,
+        # a count
+        self.outs = (torch.empty(self.n, dtype=dtype), torch.empty((), dtype=dtype),
+                     torch.empty((), dtype=torch.bool), torch.empty((), dtype=torch.int64))
         self.base = packed.call(dtype, jc=self.arrays[0], jh=self.arrays[1], bounded=self.arrays[2],
                                 wrap=self.arrays[3], qlo=lo, qhi=hi, clamp=self.clamp, n_lib=L,
                                 lib_u=self.lib_u, lib_pose=self.lib_pose)
@@ -215,6 +220,18 @@ _DEFAULT = LMConfig()
 _EXACT = {torch.float64: 64 * 2.0**-52, torch.float32: 64 * 2.0**-23}  # rotations exact to rounding
 
 
+_local = threading.local()  # per thread: the generator solve_one seeds for a call with seed=
+
+
+def _seeded(seed: int) -> torch.Generator:
+    """This thread's CPU generator reseeded with ``seed``: the draws of
+    ``torch.Generator().manual_seed(seed)`` at half its cost (used for one draw at once, never handed out)."""
+    g = getattr(_local, "generator", None)
+    if g is None:
+        g = _local.generator = torch.Generator()
+    return g.manual_seed(seed)
+
+
 def _plain_count(v) -> bool:
     return type(v) is int and v >= 1
 
@@ -241,14 +258,13 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
     prep = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
     if prep is None:
         return None
-    if generator is None and seed is not None:
-        generator = torch.Generator().manual_seed(seed)
+    if generator is None and seed is not None:  # this thread's generator, seeded: torch.Generator's draws
+        generator = _seeded(seed)
     tmpl, npool = prep.one(tol, num_seeds, max_iterations)
-    dtype, n = T.dtype, prep.n
-    empty = torch.empty
-    q, ok, pe, oe, its, seeds = outs = (
-        empty(n, dtype=dtype), empty((), dtype=torch.bool), empty((), dtype=dtype), empty((), dtype=dtype),
-        empty((), dtype=torch.int64), empty((), dtype=torch.int64))
+    dtype = T.dtype
+    empty, (tq, treal, tflag, tcount) = torch.empty_like, prep.outs
+    q, ok, pe, oe, its, seeds = outs = (empty(tq), empty(tflag), empty(treal), empty(treal), empty(tcount),
+                                        empty(tcount))
     pool = torch.rand(npool, generator=generator, dtype=dtype) if npool else None  # the caller's generator
     args = native.Args.from_buffer_copy(tmpl)
     a, size = T.data_ptr(), T.element_size()  # the pose's columns x, y, z, p, rows 4 entries apart
