@@ -162,6 +162,7 @@ class NativeVelocity:
         self._args = self._filled()
         self._entry = None  # the lean path's cache: (single.Entry, dk_velocity_step, ...: see _lean)
         self._cdict = chain.__dict__  # where the chain keeps its lean entry
+        self._v = torch.empty(nv, dtype=dtype)  # step's output template
         self._ok = ctypes.c_uint8(1)
 
     @property
@@ -276,7 +277,7 @@ class NativeVelocity:
             lean = self._lean()
             if lean is None:
                 return None
-        v = torch.empty(self.nv, dtype=self.dtype) if out is None else out
+        v = torch.empty_like(self._v) if out is None else out  # empty_like: half torch.empty's cost
         status = lean[1](lean[2], _pack(q.data_ptr(), 0 if targets is None else targets.data_ptr(),
                                         0 if q_ref is None else q_ref.data_ptr(), v.data_ptr(),
                                         0 if next_q is None else next_q.data_ptr(), dt))
