@@ -8,7 +8,9 @@ lm_damping 1e-3), a PostureTask (cost 1e-2, towards the start posture), the join
 (ConfigurationLimit, gain 0.95) and |q̇| ≤ 2 rad/s (VelocityLimit), Δt = 2 ms (500 Hz), the target moving
 on a 5 cm circle at 0.5 Hz while turning about its z axis; then q ← q ⊕ q̇ Δt. Each side runs its own loop
 from the same start over the same targets, ``--steps`` steps (≥ 2 000), and the median time of a whole step
-(set the target, solve, integrate) is reported, with the tracking error at the end.
+(set the target, solve, integrate) is reported, with the tracking error at the end. Each side's per-step
+target objects are made before the loop (mink's and pink's SE(3) objects, diffkin's tensor views; PlaCo
+takes a numpy row).
 
 * ``diffkin C step``: :class:`diffkin.ik._native_velocity.NativeVelocity` ``.step`` (one foreign call: FK,
   Jacobian, mink's SE(3) error and log Jacobian, the QP and its exact box solve, the integration);
@@ -137,23 +139,22 @@ def _diffkin_side(targets):
                           configuration_limit=(0.95, 0.0), velocity_limit=VMAX)
     q = torch.tensor(Q0, dtype=torch.float64)
     q_ref = q.clone()
-    qs = [q.clone(), torch.empty_like(q)]
     v = torch.empty(7, dtype=torch.float64)
-    tgt = torch.from_numpy(targets).contiguous()
-    traj = np.empty((len(targets), 7))
+    # the targets as (1, 4, 4) views made beforehand (as mink's SE3 objects are), the trajectory's rows as
+    # the steps' q and next_q: the loop records it as it runs
+    tgt = list(torch.from_numpy(targets).contiguous()[:, None])
+    traj_t = torch.empty(len(targets) + 1, 7, dtype=torch.float64)
+    rows = list(traj_t)
 
     def step(k):
-        prob.step(qs[k % 2], tgt[k:k + 1], q_ref, DT, out=v, next_q=qs[(k + 1) % 2])
-        return qs[(k + 1) % 2]
+        prob.step(rows[k], tgt[k], q_ref, DT, out=v, next_q=rows[k + 1])
+        return rows[k + 1]
 
-    def record(k):
-        out = step(k)
-        traj[k] = out.numpy()
-        return out
-
+    traj_t[0] = q
     _loop(step, targets[:200])  # warm-up (the first call packs the chain)
-    qs[0].copy_(q)
-    times, _ = _loop(record, targets)
+    traj_t[0] = q
+    times, _ = _loop(step, targets)
+    traj = traj_t[1:].numpy()
     T = chain.forward_kinematics(torch.from_numpy(traj[-1])).numpy()
     return times, traj, _pos_err(T, targets[-1]), chain, prob
 
@@ -165,7 +166,7 @@ def _solve_velocity_side(chain, targets):
         return None
     q = torch.tensor(Q0, dtype=torch.float64)
     q_ref = q.clone()
-    tgt = torch.from_numpy(targets).contiguous()
+    tgt = list(torch.from_numpy(targets).contiguous())  # (4, 4) views made beforehand, as mink's SE3s
     limits = (ik.ConfigurationLimit(gain=0.95), ik.VelocityLimit(VMAX))
     posture = ik.PostureTask(q_ref, cost=POSTURE)
     state = [q]
@@ -360,8 +361,10 @@ def _g1(steps: int):
     qs = [q.clone(), torch.empty_like(q)]
     v = torch.empty(chain.nv, dtype=torch.float64)
 
+    tgts = list(tgt)  # (4, 4, 4) views made beforehand, as mink's SE3 objects
+
     def ours(k):
-        prob.step(qs[k % 2], tgt[k], q_ref, DT, out=v, next_q=qs[(k + 1) % 2])
+        prob.step(qs[k % 2], tgts[k], q_ref, DT, out=v, next_q=qs[(k + 1) % 2])
 
     _loop(ours, targets[:100])
     qs[0].copy_(q)
