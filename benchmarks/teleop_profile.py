@@ -80,6 +80,7 @@ def run(args) -> list[dict]:
             if status:
                 raise RuntimeError(f"dk_velocity_step failed ({status})")
             rows.append(dict(part="C step alone (dk_velocity_step in a C loop)", median_us=_median_us(times)))
+            q_c = qs[steps % 2].clone()  # where the C loop ended: the Python loop below must end there too
             hit = lean[0]
             T, J = torch.empty(4, 4, dtype=torch.float64), torch.empty(6, 7, dtype=torch.float64)
             fk = ctypes.cast(single._functions()[1], ctypes.c_void_p).value
@@ -95,7 +96,8 @@ def run(args) -> list[dict]:
             t0 = time.perf_counter()
             prob.step(qs[k % 2], views[k], q_ref, DT, out=v, next_q=qs[(k + 1) % 2])
             py.append(time.perf_counter() - t0)
-        rows.append(dict(part="NativeVelocity.step (Python, one ctypes call)", median_us=_median_us(py)))
+        rows.append(dict(part="NativeVelocity.step (Python, one ctypes call)", median_us=_median_us(py),
+                         max_abs_q_diff_vs_c_loop=float((qs[steps % 2] - q_c).abs().max())))
         limits = (ik.ConfigurationLimit(gain=0.95), ik.VelocityLimit(VMAX))
         posture = ik.PostureTask(q_ref, cost=POSTURE)
         tasks = [[ik.FrameTask(0, target=T, position_cost=1.0, orientation_cost=1.0, lm_damping=LM), posture]
@@ -106,7 +108,8 @@ def run(args) -> list[dict]:
             vk = ik.solve_velocity(chain, state, tasks[k], DT, limits=limits)
             pub.append(time.perf_counter() - t0)
             state = state + vk * DT
-        rows.append(dict(part="ik.solve_velocity (tasks built beforehand)", median_us=_median_us(pub)))
+        rows.append(dict(part="ik.solve_velocity (tasks built beforehand)", median_us=_median_us(pub),
+                         max_abs_q_diff_vs_c_loop=float((state - q_c).abs().max())))
     c = rows[0]["median_us"]
     for r in rows:
         r["ratio_to_c_step"] = r["median_us"] / c

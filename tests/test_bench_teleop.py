@@ -54,3 +54,19 @@ def test_placo_and_pink_run_on_the_written_urdf():
         _, err_placo = bt._placo_side(f.name, targets)
         _, err_pink = bt._pink_side(f.name, targets)
     assert err_placo < 0.02 and err_pink < 2e-3  # both follow the 5 cm circle
+
+
+def test_teleop_profile_parts_run_the_same_loop():
+    """benchmarks/teleop_profile.py: the C loop outside Python, NativeVelocity.step and ik.solve_velocity run
+    the same 200 steps to the same q (results only, never time)."""
+    import argparse
+    import shutil
+
+    if not (shutil.which("cc") or shutil.which("gcc") or shutil.which("clang")):
+        pytest.skip("no C compiler for the driver")
+    from benchmarks import teleop_profile
+
+    rows = teleop_profile.run(argparse.Namespace(steps=200, quick=False))
+    assert len(rows) == 4 and all(r["median_us"] > 0 for r in rows)
+    assert rows[2]["max_abs_q_diff_vs_c_loop"] == 0.0  # the same C call on the same inputs
+    assert rows[3]["max_abs_q_diff_vs_c_loop"] < 1e-12  # q + q̇ Δt in torch against the C integration
