@@ -270,6 +270,14 @@ static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork
     for (int a = 0; a < rr; a++) {
         for (int c = 0; c <= a; c++) {
             real *restrict Aac = A + ((size_t)a * d + c) * W;
+            if (m == 1) { /* one stepping lane (a single target): the sum in a register, in the same order */
+                real acc = 0;
+                for (int i = 0; i < sum; i++)
+                    acc += Jw[(r <= n ? (size_t)a * n + i : (size_t)i * n + a) * W] *
+                           Jw[(r <= n ? (size_t)c * n + i : (size_t)i * n + c) * W];
+                Aac[0] = acc;
+                continue;
+            }
             for (int l = 0; l < m; l++) Aac[l] = 0;
             for (int i = 0; i < sum; i++) { /* J_w J_w^T (rows a, c) or J_w^T J_w (columns a, c) */
                 const real *restrict x = Jw + (r <= n ? (size_t)a * n + i : (size_t)i * n + a) * W;
@@ -287,6 +295,12 @@ static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork
     for (int i = 0; i < n; i++) { /* J_w^T y, or the right-hand side J_w^T e_w */
         real *restrict di = delta + (size_t)i * W;
         const real *restrict v = r <= n ? y : e;
+        if (m == 1) { /* one stepping lane: as above */
+            real acc = 0;
+            for (int a = 0; a < r; a++) acc += Jw[((size_t)a * n + i) * W] * v[(size_t)a * W];
+            di[0] = acc;
+            continue;
+        }
         for (int l = 0; l < m; l++) di[l] = 0;
         for (int a = 0; a < r; a++)
             for (int l = 0; l < m; l++) di[l] += Jw[((size_t)a * n + i) * W + l] * v[(size_t)a * W + l];
