@@ -246,10 +246,10 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
     checks, the rigidity test in C, one ``dk_solve`` call, then the implicit gradient attached when the
     target or a chain parameter requires grad (as the general path). None when it does not apply (the
     general path then serves the call, with its validation and errors)."""
-    if type(T) is not Tensor or T.shape != (4, 4) or T.dtype != chain.dtype or T.device.type != "cpu" \
+    if type(T) is not Tensor or T.shape != (4, 4) or not T.is_cpu or T.dtype != chain.dtype \
             or not T.is_contiguous() or not _plain_count(num_seeds) or not _plain_count(max_iterations) \
             or not _plain_tol(tol[0]) or not _plain_tol(tol[1]) or not native.available() \
-            or (chain.dtype == torch.float32 and min(tol) < 1e-5) or not chain.single_end \
+            or (T.dtype == torch.float32 and min(tol) < 1e-5) or not chain.single_end \
             or (generator is not None and generator.device.type != "cpu") \
             or (seed is not None and type(seed) is not int):
         return None
@@ -263,15 +263,15 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
     tmpl, npool = prep.one(tol, num_seeds, max_iterations)
     dtype = T.dtype
     empty, (tq, treal, tflag, tcount) = torch.empty_like, prep.outs
-    q, ok, pe, oe, its, seeds = outs = (empty(tq), empty(tflag), empty(treal), empty(treal), empty(tcount),
-                                        empty(tcount))
+    q, ok, pe, oe, its, seeds = (empty(tq), empty(tflag), empty(treal), empty(treal), empty(tcount),
+                                 empty(tcount))
     pool = torch.rand(npool, generator=generator, dtype=dtype) if npool else None  # the caller's generator
     args = native.Args.from_buffer_copy(tmpl)
     a, size = T.data_ptr(), T.element_size()  # the pose's columns x, y, z, p, rows 4 entries apart
     args.xd, args.yd, args.zd, args.pd = a, a + size, a + 2 * size, a + 3 * size
     args.pool = None if pool is None else pool.data_ptr()
     args.q_out, args.success, args.pos_err, args.ori_err, args.iters_out, args.seeds_out = (
-        t.data_ptr() for t in outs)
+        q.data_ptr(), ok.data_ptr(), pe.data_ptr(), oe.data_ptr(), its.data_ptr(), seeds.data_ptr())
     native.solve_call(args)
     if torch.is_grad_enabled() and (T.requires_grad or any(  # wants_gradients, without the module walk
             p is not None and p.requires_grad for p in chain._parameters.values())):
