@@ -250,7 +250,7 @@ def section_trees(report: Report, quick: bool) -> None:
     from .ik import solve
 
     tips = [f"link_{i}.0_tip" for i in (3, 7, 11, 15)]
-    path = models.DATA_DIR / "allegro_right_hand.urdf"
+    path = models.model_path("allegro_right_hand")
     hand = models.from_urdf(path, tips, dtype=torch.float64)
     g = torch.Generator().manual_seed(0)
     B = 10_000 if quick else 100_000
