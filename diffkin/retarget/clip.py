@@ -1,7 +1,6 @@
-"""Retargeting a clip, first stage: per-clip scale and a frame-by-frame warm start through ``ik.solve``.
-
-``clip`` does not yet run the whole-clip optimisation of issue 37 (contacts held, limits and smoothness over
-all T frames at once); its result is the warm start that optimisation will take, scored by
+"""Retargeting a clip: per-clip scale, a frame-by-frame warm start through ``ik.solve`` (stage one), then
+the whole-clip optimisation over all T frames of all B clips at once
+(:func:`~diffkin.retarget.optimize_clip`: contacts held, no penetration, limits, smoothness), scored by
 :func:`~diffkin.retarget.metrics`.
 """
 
@@ -21,6 +20,7 @@ from ..validation import check_count
 from .mapping import Mapping
 from .metrics import Metrics, _scalar_columns, metrics
 from .motion import Motion
+from .whole_clip import optimize_clip
 
 __all__ = ["RetargetResult", "clip", "fit_scale"]
 
@@ -29,7 +29,9 @@ __all__ = ["RetargetResult", "clip", "fit_scale"]
 class RetargetResult:
     """A retargeted clip: ``q (B, T, nq)`` in the chain's q order, ``contacts (B, T, 2)`` (left, right),
     ``metrics`` (:func:`~diffkin.retarget.metrics` of ``q``), ``scale (B,)``, ``keypoints (B, T, K, 3)``
-    (the scaled human targets of ``keypoint_frames``), ``fps`` and the chain's ``joint_names``."""
+    (the scaled human targets of ``keypoint_frames``), ``fps`` and the chain's ``joint_names``;
+    ``warm_start``: the metrics of stage one (before the whole-clip optimisation), ``cost``: that
+    optimisation's cost per iteration ``(iterations + 1, B)`` (None when it did not run)."""
 
     q: Tensor
     contacts: Tensor
@@ -40,6 +42,8 @@ class RetargetResult:
     fps: float
     joint_names: list[str]
     scalar_columns: list[int]
+    warm_start: Metrics | None = None
+    cost: Tensor | None = None
 
     def save(self, path) -> Path:
         """An ``.npz`` with ``q (B, T, nq)``, ``qd (B, T, n)`` (the hinge/slide joints' velocities, central
@@ -82,15 +86,21 @@ def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
 
 
 def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float = 0.0,
-         max_iterations: int = 20, contact_thresholds: dict | None = None) -> RetargetResult:
+         max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
+         iterations: int = 10, costs: dict | None = None, solver: str = "banded") -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
     ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
 
-    Stage one of issue 37: the human joints are scaled (``scale``: a number, ``(B,)``, or None for
-    :func:`fit_scale`) and followed frame by frame with position-only ``ik.solve`` (one seed, warm started
-    from the previous frame; the first frame from the zero posture, the base at the human root, turned
-    to the heading of the line from the right to the left foot). Contacts come from the human clip
-    (``mapping.contacts``), the metrics from :func:`~diffkin.retarget.metrics` of the result.
+    Stage one: the human joints are scaled (``scale``: a number, ``(B,)``, or None for :func:`fit_scale`)
+    and followed frame by frame with position-only ``ik.solve`` (one seed, ``max_iterations``, warm
+    started from the previous frame; the first frame from the zero posture, the base at the human root,
+    turned to the heading of the line from the right to the left foot). Contacts come from the human clip
+    (``mapping.contacts``; ``contact_thresholds`` overrides its ``height``/``speed``/``ground``).
+
+    Stage two (``whole_clip=True``): :func:`~diffkin.retarget.optimize_clip` over all frames of all clips
+    at once (``iterations``, ``costs``, ``solver`` are its), with the mapping's position weights and
+    soles. The metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage
+    one's.
     """
     mapping.check(motion)
     check_count(max_iterations, "max_iterations")
@@ -125,10 +135,20 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
         out.append(q)
     Q = torch.stack(out, 1)
     contacts = mapping.contacts(motion_c, **(contact_thresholds or {}))
+    sole = mapping.sole or None
     m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
-                keypoint_frames=kp, sole=mapping.sole or None)
+                keypoint_frames=kp, sole=sole)
+    warm, cost = None, None
+    if whole_clip:
+        weights = mapping.weights[[mapping.frames.index(f) for f in kp], 0]
+        opt = optimize_clip(chain, Q, X, contacts, feet=mapping.feet, keypoint_frames=kp, fps=motion.fps,
+                            ground=ground, sole=sole, keypoint_weights=weights, costs=costs,
+                            iterations=iterations, solver=solver)
+        Q, cost, warm = opt.q, opt.cost, m
+        m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
+                    keypoint_frames=kp, sole=sole)
     cols = _scalar_columns(chain)
     names = list(getattr(chain, "joint_names", []))
     kinds = list(chain.joint_kinds)
     scalar_names = [n for n, k in zip(names, kinds) if k not in ("free", "ball")]
-    return RetargetResult(Q, contacts, m, s, X, kp, motion.fps, scalar_names, cols)
+    return RetargetResult(Q, contacts, m, s, X, kp, motion.fps, scalar_names, cols, warm, cost)
