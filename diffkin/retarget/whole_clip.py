@@ -46,7 +46,7 @@ from .sole import Sole, sole_of
 __all__ = ["COSTS", "ClipOptimization", "optimize_clip"]
 
 #: default weights of the whole-clip terms (module doc); lengths in metres, angles in rad per frame.
-COSTS = {"keypoint": 1.0, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3, "penetration": 100.0,
+COSTS = {"keypoint": 1.0, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3, "penetration": 300.0,
          "limit": 10.0, "velocity": 0.02, "acceleration": 0.3, "posture": 0.01}
 
 
