@@ -48,3 +48,16 @@ def test_retarget_help_has_a_description_defaults_and_an_example(capsys):
     out = capsys.readouterr().out
     assert "Retarget a human clip" in out and "diffkin retarget walk" in out[out.index("examples:"):]
     assert "--threads" in out and "(default: " in out
+
+
+@pytest.mark.extended
+def test_demo_retarget_section(tmp_path):
+    """The demo's retargeting section (about 10 s): the table and the sole-height figure, no failure."""
+    from diffkin.demo import Report, section_retarget
+
+    report = Report(tmp_path)
+    section_retarget(report, quick=True)
+    assert not report.failures
+    text = report.sections[-1]
+    assert "frame by frame (ik.solve)" in text and "| whole clip | 0 |" in text
+    assert (tmp_path / "retarget_soles.png").stat().st_size > 10_000
