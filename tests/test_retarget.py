@@ -443,6 +443,29 @@ def test_whole_clip_optimisation_on_the_shipped_hop():
     again = retarget.metrics(g1, r.q, r.contacts, hop.fps, feet=mp.feet, keypoints=r.keypoints,
                              keypoint_frames=r.keypoint_frames)
     torch.testing.assert_close(again.foot_skating, m.foot_skating)
+    # MuJoCo's FK of the output (the same URDF compiled by MuJoCo) gives the reported keypoint error
+    model = _mujoco_g1()
+    data = mujoco.MjData(model)
+    adr = [0, 1, 2, 3, 4, 5, 6] + [int(model.joint(n).qposadr[0]) for n in g1.joint_names[1:]]
+    ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in r.keypoint_frames]
+    dist = []
+    for t in range(r.q.shape[1]):
+        data.qpos[adr] = r.q[0, t].numpy()
+        mujoco.mj_kinematics(model, data)
+        dist.append(np.linalg.norm(data.xpos[ids] - r.keypoints[0, t].numpy(), axis=-1))
+    assert 1000 * np.mean(dist) == pytest.approx(m.keypoint_error.item(), abs=1e-6)
+
+
+def _mujoco_g1():
+    """The G1 URDF compiled by MuJoCo itself (meshes dropped, no body fused, a free joint on the pelvis)."""
+    text = G1_URDF.read_text()
+    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
+    text = re.sub(r"<collision>(?:(?!</collision>).)*<mesh[^>]*/>(?:(?!</collision>).)*</collision>", "",
+                  text, flags=re.S)
+    text = re.sub(r"(<robot [^>]*>)", r'\1<mujoco><compiler fusestatic="false"/></mujoco>', text, count=1)
+    spec = mujoco.MjSpec.from_string(text)
+    spec.worldbody.first_body().add_freejoint()
+    return spec.compile()
 
 
 def test_whole_clip_gradient_against_autograd():
