@@ -36,6 +36,8 @@ def test_block_banded_solve_against_dense(T):
     H, D, E, F, g = _system(2, T, 4, seed=T)
     want = torch.linalg.solve(H, g.reshape(2, -1)).reshape(g.shape)
     torch.testing.assert_close(block_banded_solve(D, E, F, g), want, atol=1e-9, rtol=1e-9)
+    for k in (2, 3, 4):  # regrouped into k-frame super-blocks (block-tridiagonal), padded when k ∤ T
+        torch.testing.assert_close(block_banded_solve(D, E, F, g, k), want, atol=1e-9, rtol=1e-9)
     # conjugate gradients: exact in at most T n steps (here with its block-Jacobi preconditioner)
     torch.testing.assert_close(block_banded_cg(D, E, F, g, iterations=4 * T * 4), want, atol=1e-6, rtol=1e-6)
 

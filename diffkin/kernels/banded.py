@@ -32,10 +32,83 @@ def _right_solve(L: Tensor, M: Tensor) -> Tensor:
     return torch.linalg.solve_triangular(L, M.mT, upper=False).mT
 
 
-def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor:
+def _regroup(D: Tensor, E: Tensor, F: Tensor, g: Tensor, k: int):
+    """The same H as a block-*tridiagonal* matrix of k-frame super-blocks ``(..., m, k n, k n)`` (diagonal
+    and first sub-diagonal) and g ``(..., m, k n)``, m = ⌈T / k⌉ (k ≥ 2, so that the two bands couple
+    neighbouring super-blocks only); padding frames are identity rows."""
+    *lead, T, n, _ = D.shape
+    m = -(-T // k)
+    pad = m * k - T
+    eye = torch.eye(n, dtype=D.dtype, device=D.device)
+    if pad:
+        D = torch.cat((D, eye.expand(*lead, pad, n, n)), -3)
+        E = torch.nn.functional.pad(E, (0, 0, 0, 0, 0, pad))
+        F = torch.nn.functional.pad(F, (0, 0, 0, 0, 0, pad))
+        g = torch.nn.functional.pad(g, (0, 0, 0, pad))
+    first = torch.ones(m * k, 1, 1, dtype=D.dtype, device=D.device)
+    first[0] = 0.0
+    E = E * first  # E[0], F[0], F[1] are outside the matrix
+    first[1] = 0.0
+    F = F * first
+    Dd = D.new_zeros(*lead, m, k, n, k, n)
+    Ee = D.new_zeros(*lead, m, k, n, k, n)
+    for a in range(k):  # over the k frame positions in a super-block (not over T)
+        Dd[..., a, :, a, :] = D[..., a::k, :, :]
+        if a >= 1:
+            Dd[..., a, :, a - 1, :] = E[..., a::k, :, :]
+            Dd[..., a - 1, :, a, :] = E[..., a::k, :, :].mT
+        if a >= 2:
+            Dd[..., a, :, a - 2, :] = F[..., a::k, :, :]
+            Dd[..., a - 2, :, a, :] = F[..., a::k, :, :].mT
+    Ee[..., 0, :, k - 1, :] = E[..., 0::k, :, :]  # frame sk with sk - 1
+    Ee[..., 0, :, k - 2, :] = F[..., 0::k, :, :]  # frame sk with sk - 2
+    Ee[..., 1, :, k - 1, :] = F[..., 1::k, :, :]  # frame sk + 1 with sk - 1
+    return Dd.flatten(-4, -3).flatten(-2, -1), Ee.flatten(-4, -3).flatten(-2, -1), g.reshape(*lead, m, k * n)
+
+
+def _tridiagonal_solve(D: Tensor, E: Tensor, g: Tensor) -> Tensor:
+    """x with H x = g for block-tridiagonal SPD H: diagonal ``D (..., m, N, N)``, sub-diagonal
+    ``E (..., m, N, N)`` (E[0] unused), g ``(..., m, N)``; block Cholesky, a loop over the m blocks."""
+    m = D.shape[-3]
+    L: list[Tensor] = []
+    A: list[Tensor | None] = [None]
+    for s in range(m):
+        S = D[..., s, :, :]
+        if s >= 1:
+            a = _right_solve(L[s - 1], E[..., s, :, :])
+            A.append(a)
+            S = S - a @ a.mT
+        L.append(torch.linalg.cholesky_ex(S)[0])
+    y: list[Tensor] = []
+    for s in range(m):
+        r = g[..., s, :]
+        if s >= 1:
+            r = r - (A[s] @ y[s - 1].unsqueeze(-1)).squeeze(-1)
+        y.append(torch.linalg.solve_triangular(L[s], r.unsqueeze(-1), upper=False).squeeze(-1))
+    x: list[Tensor | None] = [None] * m
+    for s in range(m - 1, -1, -1):
+        r = y[s]
+        if s + 1 < m:
+            r = r - (A[s + 1].mT @ x[s + 1].unsqueeze(-1)).squeeze(-1)
+        x[s] = torch.linalg.solve_triangular(L[s].mT, r.unsqueeze(-1), upper=True).squeeze(-1)
+    return torch.stack(x, -2)
+
+
+def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_block: int | None = None
+                       ) -> Tensor:
     """x ``(..., T, n)`` with H x = g, H SPD block-banded (module doc); ``D, E, F (..., T, n, n)``,
-    ``g (..., T, n)``. A block that is not positive definite gives NaN (no host sync to check it)."""
+    ``g (..., T, n)``. A block that is not positive definite gives NaN (no host sync to check it).
+
+    ``frames_per_block`` k ≥ 2 regroups the frames into ⌈T/k⌉ super-blocks of k frames, which makes H
+    block-tridiagonal: k times fewer sequential steps of k n × k n blocks (k² times the flops of the
+    band, k times fewer small operations: for a GPU, where each launch costs more than its flops). None
+    or 1 (default): the two-band recursion frame by frame (on the 2-core CPU, B = 3, T = 120, n = 35:
+    0.21 s, against 0.19 s for k = 2 and 0.53 s for k = 4)."""
     T = D.shape[-3]
+    k = 1 if frames_per_block is None else int(frames_per_block)
+    if k >= 2:
+        x = _tridiagonal_solve(*_regroup(D, E, F, g, k))
+        return x.reshape(*g.shape[:-2], -1, g.shape[-1])[..., :T, :]
     L: list[Tensor] = []
     A: list[Tensor | None] = []
     B: list[Tensor | None] = []
