@@ -1047,6 +1047,13 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("doctor", "report versions, CUDA and whether the fused C kernel is in use (and why not)")
     p.set_defaults(func=cmd_doctor)
 
+    from . import _cli_retarget  # `diffkin retarget` (its description and examples live with it)
+    p = sub.add_parser("retarget", parents=[common], help="a human clip (BVH, SMPL joints) onto a humanoid",
+                       description=_cli_retarget.DESCRIPTION, epilog="examples:\n  " + _cli_retarget.EXAMPLES,
+                       formatter_class=_Formatter)
+    _cli_retarget.add_arguments(p)
+    p.set_defaults(func=_cli_retarget.cmd_retarget)
+
     from .viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
     add_view_parser(sub, [common])
     return parser
