@@ -266,7 +266,8 @@ def camera_reports(
         rep.reasons = {nm: st.reasons[nm] + " at every configuration" for nm in fixed}
         rep.dependencies = {} if st is None else st.dependencies
         rep.candidates = cand_names
-        rep.identifiable = [nm for nm in cand_names if nm not in fixed_set]
+        undetermined = set(rep.undetermined)
+        rep.identifiable = [nm for nm in cand_names if nm not in fixed_set and nm not in undetermined]
         mask = torch.tensor([nm not in fixed_set for nm in cand_names], device=theta.device)
         rep.free_mask = mask
         free.append(mask)
