@@ -202,7 +202,8 @@ def calibrate_camera(
             and tool corrections are the camera's and board's poses here).
         measurement_noise: σ, pixels per coordinate of the detections: ``result.noise_ratio`` compares the
             fit residual with it (≈ 1 expected; a ``UserWarning`` above 2), and the outlier threshold is
-            3 √2 σ per point (else 3 × the median residual × 1.2).
+            3 √2 σ per point (else 3 × the median residual × 1.2). With a robust ``loss`` and outliers
+            fewer than half the points, χ is that of the inliers.
         loss: ``"l2"`` (default) or a robust loss of :data:`.LOSSES` per point, quadratic up to ``scale``
             pixels (``scale=`` in ``solver_options``, default 2 √2 σ, else 1 px).
         cross_validation: k of the k-fold held-out reprojection error over images (default 5; run with at
@@ -310,24 +311,28 @@ def calibrate_camera(
     per_image0 = (r0.square().sum((-1, -2)) / vis.sum(-1).clamp_min(1)).sqrt()
     rms = float(_point_rms(r, vis))
     norms = r.norm(dim=-1)
+    threshold = (
+        3.0 * math.sqrt(2.0) * sigma if sigma is not None else 3.0 * 1.2011 * float(norms[vis].median())
+    )
+    out_mask = (norms > threshold) & vis
+    outliers = [tuple(ij) for ij in out_mask.nonzero().tolist()]
     ratio = None
     if sigma is not None:
-        dof = max(2 * n_vis - report.rank, 1)
-        ratio = math.sqrt(float((r / sigma).square().sum()) / dof)
+        # a robust fit's χ is that of its inliers while they are the majority (as calibrate's)
+        robust = loss != "l2" and 0 < len(outliers) < n_vis / 2
+        keep = vis & ~out_mask if robust else vis
+        dof = max(2 * int(keep.sum()) - report.rank, 1)
+        ratio = math.sqrt(float((r[keep] / sigma).square().sum()) / dof)
         if ratio > 2.0:
             warnings.warn(
                 f"camera calibration of '{ref.name}': the reprojection residual is {ratio:.1f}x what "
                 f"{sigma:g} px of detection noise explains. Likely causes: wrong joint readings (order, "
                 "units, timing), a board of other dimensions, wrong intrinsics (estimate them), "
-                "mis-detected corners (use loss='huber'), or an error model that cannot represent the "
-                "robot.",
+                "mis-detected corners (use loss='cauchy' or 'huber'), or an error model that cannot "
+                "represent the robot.",
                 UserWarning,
                 stacklevel=2,
             )
-        threshold = 3.0 * math.sqrt(2.0) * sigma
-    else:
-        threshold = 3.0 * 1.2011 * float(norms[vis].median())
-    outliers = [tuple(ij) for ij in ((norms > threshold) & vis).nonzero().tolist()]
     cv = None
     if cross_validation and N >= 4 * int(cross_validation):
         cv = _cross_validate(model, theta0, free, x, img, vis, solve, opts, int(cross_validation))
