@@ -210,3 +210,34 @@ def test_intrinsics_estimated_with_the_robot(method):
     assert (
         held_out_3d(res.chain, res.camera_pose, res.board_pose, true, cam, board, q_out, "eye_to_hand") < 1e-6
     )
+
+
+def test_signature_is_the_issues():
+    """Issue 38's names: calibrate_camera(chain, q, image_points, board_points, *, camera_matrix,
+    dist_coeffs=None, setup="eye_to_hand", visible=None, estimate=("robot", "camera", "board"), ...) and the
+    result's fields."""
+    import dataclasses
+    import inspect
+
+    from diffkin.calibration import CameraCalibrationResult
+
+    sig = inspect.signature(calibrate_camera)
+    names = list(sig.parameters)
+    assert names[:4] == ["chain", "q", "image_points", "board_points"]
+    kw = {n: p for n, p in sig.parameters.items() if p.kind is inspect.Parameter.KEYWORD_ONLY}
+    assert kw["camera_matrix"].default is inspect.Parameter.empty and kw["dist_coeffs"].default is None
+    assert kw["setup"].default == "eye_to_hand" and kw["visible"].default is None
+    assert tuple(kw["estimate"].default) == ("robot", "camera", "board")
+    fields = {f.name for f in dataclasses.fields(CameraCalibrationResult)}
+    assert {
+        "chain",
+        "camera_pose",
+        "board_pose",
+        "camera_matrix",
+        "dist_coeffs",
+        "reprojection_rms",
+        "report",
+        "cross_validation",
+        "noise_ratio",
+        "outliers",
+    } <= fields
