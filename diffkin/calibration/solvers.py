@@ -19,7 +19,7 @@ from .._numerics import eps_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
 from ..validation import _traced, check_number, shape_str, tensors
-from .model import CalibrationModel, measurement_shapes, pose_residual
+from .model import CalibrationModel, measurement_shapes
 
 __all__ = ["calibration_loss", "robust_loss", "robust_weights", "least_squares", "gradient_descent",
            "SolverOutput", "LOSSES"]
@@ -220,7 +220,7 @@ def least_squares(
     with torch.no_grad(), _progress(progress, "calibrating (least squares)", max_iterations) as advance:
         for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
             Phi, T_model = model.calibration_matrix(zeta, q, position_only, orientation_weight, cand_mask)
-            res = pose_residual(T_model, measured, orientation_weight)
+            res = model.residual_of(T_model, measured, orientation_weight)
             sq = res.square().sum(-1)  # (K, N)
             c0 = _robust_loss(sq, loss, scale).sum(-1)
             pos, ori = _rms(res, orientation_weight)
