@@ -545,3 +545,21 @@ def test_clip_batched_warm_start():
     assert r.metrics.keypoint_error.item() < 50.0  # mm
     with pytest.raises(OptionError, match="warm_start"):
         retarget.clip(g1, walk, mp, warm_start="parallel")
+
+
+def test_the_builtin_g1_mapping_on_menageries_current_g1():
+    """The issue's robot: ``models.load("g1")`` is MuJoCo Menagerie's current 29-DoF unitree_g1 (shipped); the
+    built-in mapping's frames are its bodies, its foot spheres give the sole (3 cm below the ankle-roll
+    origin, 5 mm spheres: 3.5 cm), and a short clip retargets onto it with its limits and contacts kept."""
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64)
+    assert g1.nq == 36 and "waist_pitch_joint" in g1.joint_names and "torso_joint" not in g1.joint_names
+    for foot in mp.feet:
+        sole = retarget.sole_of(g1, foot)
+        lowest = (sole.points[:, 2] - sole.radii).min().item()
+        assert lowest == pytest.approx(-0.035, abs=1e-12)
+    hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 12)
+    r = retarget.clip(g1, hop, mp, max_iterations=8, iterations=4)
+    m = r.metrics
+    assert int(m.joint_limit_violations) == 0 and m.ground_penetration.item() <= 1.0
+    assert m.foot_skating.item() <= 5.0 and m.floating.item() <= 5.0 and m.keypoint_error.item() < 80.0
