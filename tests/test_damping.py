@@ -102,3 +102,28 @@ def test_clik_and_solve_velocity_take_the_same_lambda():
     v = ik.solve_velocity(chain, q0, [ik.FrameTask(0, twist=twist)], 0.1, damping=LAM)
     # (D.1) with e = −ξΔt, Δq = q̇Δt: q̇ = Jᵀ(JJᵀ + λI)⁻¹ξ, the same λ
     np.testing.assert_allclose(v.numpy(), _dls(J.numpy(), twist.numpy(), LAM), atol=1e-10)
+
+
+def test_calibration_least_squares_takes_lambda():
+    """One step of the calibration least squares (2.88)–(2.89): on the unit-norm columns Ā = Φ̄ S⁻¹,
+    Δζ = S⁻¹(ĀᵀĀ + λI)⁻¹Āᵀ Δx̄ with λ = ``damping`` (numpy)."""
+    from diffkin.calibration.model import CalibrationModel, pose_residual
+    from diffkin.calibration.solvers import least_squares
+
+    chain = models.load("ur5", dtype=F64)
+    model = CalibrationModel.from_chains(chain)
+    g = torch.Generator().manual_seed(0)
+    q = chain.random_configuration((12,), generator=g)[None]
+    with torch.no_grad():
+        T = model.forward_kinematics((model.nominal + 1e-3 * torch.randn(model.n_params, generator=g,
+                                                                         dtype=F64))[None], q)
+    cand, zeta0 = model.candidate, model.nominal[None].clone()
+    P = int(cand.sum())
+    out = least_squares(model, zeta0, torch.ones(1, P, dtype=F64), q, T, orientation_weight=1.0,
+                        max_iterations=1, damping=LAM)
+    Phi, Tm = model.calibration_matrix(zeta0, q, False, 1.0, cand)
+    A, r = Phi.reshape(-1, P).numpy(), pose_residual(Tm, T, 1.0).reshape(-1).numpy()
+    s = np.linalg.norm(A, axis=0)
+    s[s == 0] = 1.0
+    want = np.linalg.solve((A / s).T @ (A / s) + LAM * np.eye(P), (A / s).T @ r) / s
+    np.testing.assert_allclose((out.zeta - zeta0)[0, cand].numpy(), want, atol=1e-14)
