@@ -424,3 +424,24 @@ def test_dls_with_zero_damping_is_finite_at_a_singularity():
     J = torch.randn(6, 3, dtype=F64) @ torch.randn(3, 7, dtype=F64)  # rank 3
     e = torch.randn(6, dtype=F64)
     np.testing.assert_allclose(dls_delta(J, e, 0.0).numpy(), np.linalg.pinv(J.numpy()) @ e.numpy(), atol=1e-9)
+
+
+def test_lockstep_seeds_equal_the_sequential_schedule(monkeypatch):
+    """The torch backend's lockstep rounds (ik/_lm.py: seeds 0 | 1-2 | 3-6 | 7 in fixed slots)
+    give the sequential schedule's flags, iterations, seeds tried and q, unreachable targets (every seed
+    tried, the least-merit one kept) included; without the C solve, so it runs where there is no compiler."""
+    from diffkin.ik import _lm
+    from diffkin.kernels import native
+
+    chain = chain64("panda")
+    _, T = targets(chain, (16,), seed=31)
+    T[:3, 0, 3] += 5.0
+    kw = dict(seed=2, num_seeds=8, max_iterations=10, config=_lm.LMConfig(library_size=0))
+    with native.disabled(), torch.no_grad():
+        a = solve(chain, T, **kw)
+        monkeypatch.setattr(_lm, "_run_lockstep", _lm._run_sequential)
+        b = solve(chain, T, **kw)
+    assert torch.equal(a.success, b.success) and torch.equal(a.iterations, b.iterations)
+    assert torch.equal(a.seeds_tried, b.seeds_tried) and bool((a.seeds_tried[:3] == 8).all())
+    torch.testing.assert_close(a.q, b.q, atol=1e-12, rtol=0)
+    assert int(a.success[3:].sum()) >= 10 and not bool(a.success[:3].any())
