@@ -25,9 +25,9 @@ the C solve, the torch loop (what CUDA runs, here under ``native.disabled()``) w
 rounds, and the torch loop with each target's seeds one after another (the schedule before the lockstep
 rounds); ``ratio_to_c`` is each time over the C path's in the same run, ``same_as_c`` whether the success
 flags, iterations and seeds tried are equal and q within 1e-6. Measured on 2 000 targets (2 shared cores,
-contended, 1 thread), two runs: C 0.085 s / 0.179 s, torch lockstep 2.19 s / 5.72 s (26x / 32x the C
-path), torch one seed after another 6.24 s / 12.56 s (73x / 70x); CPU seconds of the second run 0.020,
-0.62, 1.43. All three give the same answers (100 % success, flags honest).
+contended, 1 thread), three runs: C 0.085 / 0.179 / 0.051 s, torch lockstep 2.19 / 5.72 / 0.77 s (26x /
+32x / 15x the C path), torch one seed after another 6.24 / 12.56 / 2.05 s (73x / 70x / 41x); CPU seconds
+of the last run 0.023, 0.38, 1.01. All three give the same answers (100 % success, flags honest).
 """
 
 from __future__ import annotations
