@@ -369,7 +369,8 @@ def _joint_frames(chain, q: Tensor) -> Tensor:
     key = chain._state_key()
     seg, stacked = chain._cached_constants(key)
     topo = dataclasses.replace(chain.topology, ends=tuple(range(chain.topology.n_frames)))
-    model = native.NativeModel(topo, Segments(seg.pre, seg.offset, seg.post, seg.base, [None] * topo.n_frames))
+    ends = [None] * topo.n_frames
+    model = native.NativeModel(topo, Segments(seg.pre, seg.offset, seg.post, seg.base, ends))
     T, _, bad = native.fk_jacobian(model, q.contiguous(), threads=1)
     if bad:
         raise ValueError("non-finite configuration")
@@ -499,6 +500,39 @@ def _classes():
     return _kinds
 
 
+_kinds3: list = []  # (ComTask, CollisionLimit), imported once (v3)
+
+
+def _classes3():
+    if not _kinds3:
+        from .limits import CollisionLimit
+        from .tasks import ComTask
+
+        _kinds3.extend((ComTask, CollisionLimit))
+    return _kinds3
+
+
+def _collision_key(chain, lim, dtype) -> tuple | None:
+    """A CollisionLimit as a hashable constant: the collision model (identity, its parameters' versions and
+    storage), the world's tensors (the same), gain and distances; None where the C step does not serve it
+    (another chain, box geoms, a world with boxes or batch dims, another dtype or device)."""
+    rc, world = lim.collision, lim.world
+    if getattr(rc, "chain", None) is not chain or getattr(rc, "_counts", (0, 1))[1]:
+        return None
+    params = tuple(rc.parameters())
+    if any(p.dtype is not dtype or not p.is_cpu for p in params):
+        return None
+    wkey = None
+    if world is not None:
+        ts = (world.spheres, world.capsules, world.halfspaces, world.points, world.boxes.center)
+        if ts[4].shape[0] or any(t.ndim != 2 or t.dtype is not dtype or not t.is_cpu or
+                                 (t.requires_grad and torch.is_grad_enabled()) for t in ts[:4]):
+            return None
+        wkey = (id(world), *((id(t), t._version, t.data_ptr()) for t in ts))
+    return (id(rc), tuple((p._version, p.data_ptr()) for p in params), wkey, lim.gain, lim.minimum_distance,
+            lim.detection_distance)
+
+
 def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     """:func:`~diffkin.ik.solve_velocity` by the C step where it serves the call, else None (the torch
     path then serves it, and raises on bad input). Served: CPU tensors of the chain's dtype (float64 or
@@ -507,7 +541,10 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     ``(3,)``, gain and lm_damping numbers; the target ``(4, 4)`` or with q's batch dims), at most one
     PostureTask (cost a number or ``(nv,)``, q_ref ``(nq,)`` or with q's batch dims); limits:
     ConfigurationLimit and VelocityLimit (a number, ``(nv,)`` or a dict by joint name), at most one of each;
-    ``dt`` and ``damping`` numbers. Everything else (CollisionLimit, ComTask, RelativeFrameTask,
+    ``dt`` and ``damping`` numbers. Also (v3) at most one ComTask (target ``(3,)`` or with q's batch dims,
+    cost a number or ``(3,)``; a chain with link masses) and at most one CollisionLimit (a collision model of
+    capsules on this chain, in its dtype, and a world of spheres, capsules, half-spaces and points without
+    batch dims, or none). Everything else (box geoms or world boxes, a batched world, RelativeFrameTask,
     DampingTask, twists, batched costs, autograd, CUDA) takes the torch path.
 
     The problem's constants are packed once per chain and key (the tasks' frames, costs, gains and damping,
@@ -525,9 +562,18 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem = _kinds or _classes()
     tasks = tasks if type(tasks) in (list, tuple) else (tasks,)
     limits = () if limits is None else limits if type(limits) in (list, tuple) else (limits,)
+    ComTask, CollisionLimit = _kinds3 or _classes3()
     frames, targets, posture, q_ref = [], [], None, None
+    com = com_target = coll = coll_key = None
     for t in tasks:
         kind = type(t)
+        if kind is ComTask and com is None:
+            c = t.cost
+            com = (c if type(c) in _NUM else _constant(c, 3), _number(t.gain), _number(t.lm_damping))
+            com_target = t.target
+            if None in com or not _plain(com_target, (3,), dtype):
+                return None
+            continue
         if kind is FrameTask:
             if t.twist is not None or not _plain(t.target, (4, 4), dtype):
                 return None
@@ -549,13 +595,18 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
             return None
     # NaN / inf targets or posture go to the torch path, whose validators name them (CPU tensors: no device
     # sync); a sum that overflows only costs the fast path
-    if not all(math.isfinite(float(x.sum())) for x in (*targets, *(() if q_ref is None else (q_ref,)))):
+    if not all(math.isfinite(float(x.sum())) for x in (*targets, *(() if q_ref is None else (q_ref,)),
+                                                       *(() if com_target is None else (com_target,)))):
         return None
     config = vel = None
     for lim in limits:
         kind = type(lim)
         if kind is ConfigurationLimit and config is None:
             config = (lim.gain, lim.min_distance_from_limits)
+        elif kind is CollisionLimit and coll is None:
+            coll, coll_key = lim, _collision_key(chain, lim, dtype)
+            if coll_key is None:
+                return None
         elif kind is VelocityLimit and vel is None:
             v = lim.velocity
             vel = v if type(v) in _NUM else _constant(v, None) if not isinstance(v, dict) else \
@@ -565,17 +616,22 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
                 return None
         else:
             return None
-    if not frames and posture is None:
+    if not frames and posture is None and com is None:
         return None
     lim_t = chain._buffers.get("q_limits")
     key = (dtype, tuple(frames), posture, config, vel, damping,
            None if lim_t is None else (id(lim_t), lim_t._version))
+    if com is not None or coll is not None:  # v3: their arrays read the chain's masses and frames
+        state = chain._state_key()
+        if state is None:
+            return None
+        key = key + (com, coll_key, state)
     cache = chain.__dict__.get(_CACHE)
     if cache is None:
         cache = chain.__dict__[_CACHE] = {}
     prob = cache.get(key)
     if prob is None:
-        prob = _build(chain, key, limits, dt, VelocityLimit, Problem)
+        prob = _build(chain, key, limits, dt, VelocityLimit, Problem, com=com, collision=coll)
         if prob is None:
             return None
         if len(cache) > 64:  # a loop that builds new constants every step: keep the newest only
@@ -584,8 +640,12 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     if q.shape[-1] != prob.nq or (q_ref is not None and q_ref.shape[-1] != prob.nq):
         return None
     if q.ndim == 1:
-        if (q_ref is not None and q_ref.ndim != 1) or any(t.ndim != 2 for t in targets):
+        if (q_ref is not None and q_ref.ndim != 1) or any(t.ndim != 2 for t in targets) or \
+                (com_target is not None and com_target.ndim != 1):
             return None
+        if com_target is not None:
+            return prob.step(q if q.is_contiguous() else q.contiguous(), _stacked(targets), q_ref.contiguous()
+                             if q_ref is not None else None, dt, com_target=com_target.contiguous())
         tgt = (targets[0] if len(targets) == 1 else torch.stack(targets)) if targets else None
         if tgt is not None and not tgt.is_contiguous():
             tgt = tgt.contiguous()
@@ -598,21 +658,31 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
         tgt = torch.stack([t.expand(*batch, 4, 4) for t in targets], dim=-3).reshape(B, len(targets), 4, 4) \
             if targets else None
         ref = q_ref if q_ref is None or q_ref.ndim == 1 else q_ref.expand(*batch, nq).reshape(B, nq)
+        ct = com_target if com_target is None or com_target.ndim == 1 else \
+            com_target.expand(*batch, 3).reshape(B, 3)
     except RuntimeError:  # shapes that do not broadcast: the torch path says so
         return None
     q2 = q.reshape(B, nq)
     if not bool(torch.isfinite(q2).all()):  # the torch path's error
         return None
     try:
-        v, _ = prob.solve(q2, tgt, ref, dt)
+        v, _ = prob.solve(q2, tgt, ref, dt, com_target=ct)
     except RuntimeError:  # the chain cannot be packed now (a gradient wanted from its parameters)
         return None
     return v.reshape(*batch, prob.nv)
 
 
-def _build(chain, key, limits, dt, VelocityLimit, Problem) -> NativeVelocity | None:
+def _stacked(targets: list) -> Tensor | None:
+    """The frame tasks' targets of one row as one contiguous ``(F, 4, 4)`` (None: no frame task)."""
+    if not targets:
+        return None
+    tgt = targets[0] if len(targets) == 1 else torch.stack(targets)
+    return tgt if tgt.is_contiguous() else tgt.contiguous()
+
+
+def _build(chain, key, limits, dt, VelocityLimit, Problem, com=None, collision=None) -> NativeVelocity | None:
     """The :class:`NativeVelocity` of a route key (None: the chain or the constants do not suit it)."""
-    dtype, frames, posture, config, vel, damping, _ = key
+    dtype, frames, posture, config, vel, damping, _ = key[:7]
     if chain.dtype is not dtype:
         return None
     K, names = chain.n_ends, list(getattr(chain, "end_links", None) or [])
@@ -646,8 +716,15 @@ def _build(chain, key, limits, dt, VelocityLimit, Problem) -> NativeVelocity | N
         vmax = vmax.detach().to("cpu", dtype)
         if vmax.ndim != 1 or vmax.shape[0] != chain.nv or not bool((vmax >= 0).all()):
             return None
+    if com is not None:
+        c = com[0]
+        if min(c if isinstance(c, tuple) else (c,)) < 0 or com[1] < 0 or com[2] < 0 or \
+                getattr(chain, "link_masses", None) is None or getattr(chain, "_mass_note", ""):
+            return None  # the torch path raises (no masses) or warns (approximate masses) with its message
+    coll = None if collision is None else (collision.collision, collision.world, collision.gain,
+                                           collision.minimum_distance, collision.detection_distance)
     try:
         return NativeVelocity(chain, resolved, posture=posture, configuration_limit=config,
-                              velocity_limit=vmax, damping=damping, dtype=dtype)
+                              velocity_limit=vmax, damping=damping, dtype=dtype, com=com, collision=coll)
     except (ValueError, RuntimeError, TypeError):
         return None
