@@ -703,24 +703,50 @@ static void DK(vel_point_columns)(const DK(Vel) *V, const DK(Scratch) *sc, int l
 
 /* The ComTask's terms of (T.1) added to H (lower triangle) and c: e = p_C(q) - target, J = J_C, the
  * centre of mass of the bodies and its Jacobian sum_i w_i J_P(p_i) (center_of_mass.py: p_i = F_i c_i,
- * w_i = m_i / M), A = C J, b = -gain C e, mu = lm_damping |b|^2. */
+ * w_i = m_i / M), A = C J, b = -gain C e, mu = lm_damping |b|^2. The Jacobian by subtrees: joint j moves
+ * the bodies below its frame, whose weight W_j and weighted centre S_j / W_j are summed from the leaves up
+ * (parents precede children), so its column is W_j times the point column (DK(column)) at S_j / W_j: one
+ * column per joint, not one per body and ancestor. */
 static void DK(vel_com)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const real *target, double *H, double *c) {
     const dk_vel *v = V->v;
-    const int nv = V->nv, B = (int)v->n_bodies;
+    const Shape *s = &V->s;
+    const int nv = V->nv, B = (int)v->n_bodies, J = s->J;
     const real *bp = (const real *)v->body_point, *bw = (const real *)v->body_weight;
     const real *cost = (const real *)v->com_cost;
-    double com[3] = {0, 0, 0}, Jc[3 * (nv > 0 ? nv : 1)];
+    double com[3] = {0, 0, 0}, Jc[3 * (nv > 0 ? nv : 1)], Sw[4 * (J > 0 ? J : 1)]; /* S_j (3), W_j */
     for (int i = 0; i < 3 * nv; i++) Jc[i] = 0;
+    for (int i = 0; i < 4 * J; i++) Sw[i] = 0;
     for (int i = 0; i < B; i++) {
         double R[9], t[3], pi[3];
         const int f = v->body_frame[i];
         DK(vel_frame)(sc, l, f, R, t);
-        for (int r = 0; r < 3; r++)
+        const double wi = (double)bw[i];
+        for (int r = 0; r < 3; r++) {
             pi[r] = R[3 * r] * (double)bp[3 * i] + R[3 * r + 1] * (double)bp[3 * i + 1] +
                     R[3 * r + 2] * (double)bp[3 * i + 2] + t[r];
-        const double wi = (double)bw[i];
-        for (int r = 0; r < 3; r++) com[r] += wi * pi[r];
-        DK(vel_point_columns)(V, sc, l, f, pi, NULL, wi, Jc);
+            com[r] += wi * pi[r];
+            if (f >= 0) Sw[4 * f + r] += wi * pi[r];
+        }
+        if (f >= 0) Sw[4 * f + 3] += wi;
+    }
+    for (int j = J - 1; j >= 0; j--) { /* subtree sums, then each joint's column */
+        const int pj = s->parent[j];
+        if (pj >= 0)
+            for (int r = 0; r < 4; r++) Sw[4 * pj + r] += Sw[4 * j + r];
+        const double Wj = Sw[4 * j + 3];
+        if (!(Wj > 0)) continue;
+        const double pc[3] = {Sw[4 * j] / Wj, Sw[4 * j + 1] / Wj, Sw[4 * j + 2] / Wj};
+        real E[12 * W], t6[6];
+        E[3 * W] = (real)pc[0], E[7 * W] = (real)pc[1], E[11 * W] = (real)pc[2];
+        const real *Aj = (s->has_post[j] ? sc->A : sc->F) + (size_t)j * 12 * W + l;
+        const int mo = s->motion[j], naxes = mo == DK_MOTION_S ? 3 : 1;
+        for (int ax = 0; ax < naxes; ax++) {
+            if (mo == DK_MOTION_S) DK(column)(Aj, E, 1, 1, 1, ax, t6, 1, 1);
+            else if (mo == DK_MOTION_R) DK(column)(Aj, E, V->pp.mult[j], 1, 1, 2, t6, 1, 1);
+            else DK(column)(Aj, E, V->pp.mult[j], 0, 1, 2, t6, 1, 1);
+            const int col = s->vidx[j] + ax;
+            for (int r = 0; r < 3; r++) Jc[(size_t)r * nv + col] += Wj * (double)t6[r];
+        }
     }
     double b[3], mu = 0;
     for (int a = 0; a < 3; a++) {
