@@ -30,6 +30,15 @@ tasks, both hands moving, posture, limits; knees and elbows bent at the start) b
 largest |q̇_diffkin − q̇_mink| at mink's states along the loop (whole
 trajectories are not compared: near the straight-knee singularity a 1e-12 difference grows along the
 loop). The machine may be shared: ratios are measured in the same run.
+
+Rows of the C step's v3 (``dk_vel`` version 3): ``teleop_fr3_collision_step``, the Panda step on the FR3 (the
+Panda's seven-joint successor, whose URDF collision model is capsules and spheres: the vendored Panda MJCF's
+collision meshes are not shipped) plus a CollisionLimit (its self pairs and three world spheres under and
+beside the flange, detection 0.1 m, minimum distance 5 mm, gain 0.85), beside mink with a
+CollisionAvoidanceLimit on MuJoCo's geoms of the same URDF (cylinders where diffkin has capsules: the two
+solve nearly, not exactly, the same problem; only the times compare); and ``teleop_g1_com_step``, the G1
+step with a ComTask (the centre of mass held over its start, swaying 1 cm with the hands) on a chain that
+reaches every body (nv 43, MuJoCo's), beside mink with its ComTask, the largest |Δq̇| at mink's states.
 """
 
 from __future__ import annotations

@@ -19,6 +19,12 @@ The QP, per row (mink's ``build_ik``; Δq the step, v = Δq / dt)::
 with e, J of a frame task log(T_b⁻¹ T_t) and −jlog(T_t⁻¹ T_b) J_body, of the posture task q ⊖ q_ref and I;
 lo, hi the intersection of gain·(q_min − q) ≤ Δq ≤ gain·(q_max − q) and |Δq| ≤ dt·v_max. Solved exactly
 (active set on Cholesky factors), not approximately: the answer is the QP's minimiser to rounding.
+
+Version 3 of ``dk_vel`` adds a ComTask (e = p_C − target, J = J_C, computed in C from the FK block's frames
+and the chain's link masses) and a CollisionLimit: rows −J_d Δq ≤ γ max(d − d_min, 0) for every checked
+distance d < d_detect (capsule self pairs, capsules against world spheres, capsules, points and half-spaces),
+the QP with them solved exactly (a dual active set, after the box QP whose minimiser is kept where it meets
+every row).
 """
 
 from __future__ import annotations
@@ -125,7 +131,10 @@ class NativeVelocity:
     into the chain's end links, costs numbers or ``(3,)``; ``posture``: ``(cost, gain, lm_damping)`` with
     ``cost`` a number or ``(nv,)``, or None; ``configuration_limit``: ``(gain, min_distance_from_limits)``
     or None (the chain's ``q_limits``); ``velocity_limit``: a number or ``(nv,)`` (inf: none) or None;
-    ``damping``: added to H's diagonal (mink's ``damping``).
+    ``damping``: added to H's diagonal (mink's ``damping``). v3: ``com``: ``(cost, gain, lm_damping)`` of a
+    ComTask (cost a number or ``(3,)``; its target is given per call: ``com_target=`` of :meth:`solve` /
+    :meth:`step`) or None; ``collision``: ``(collision, world, gain, minimum_distance,
+    detection_distance)`` of a CollisionLimit (:func:`_pack_collision`) or None.
     """
 
     def __init__(self, chain, frames: Sequence[tuple], *, posture=None, configuration_limit=None,
