@@ -88,11 +88,9 @@ class CollisionView:
         self.state: dict = {}
 
     def _add_world(self, world, scale: float) -> list:
-        for name, t in (("spheres", world.spheres), ("capsules", world.capsules), ("halfspaces",
-                        world.halfspaces), ("points", world.points), ("boxes", world.boxes.center)):
-            if t.ndim != 2:
-                raise ShapeError(f"the viewer draws one world: expected {name} without batch dims, got "
-                                 f"{tuple(t.shape)}")
+        if len(world.batch_shape):
+            raise ShapeError(f"the viewer draws one world: expected objects without batch dims, got batch "
+                             f"shape {tuple(world.batch_shape)}")
         np_ = lambda t: t.detach().cpu().double().numpy()  # noqa: E731
         out, self.world_meshes = [], []
 

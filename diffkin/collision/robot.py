@@ -504,8 +504,7 @@ _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distance
 
 def _unbatched(world: World) -> bool:
     """One world for every row (no batch dims on its objects)."""
-    return all(t.ndim <= 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points,
-                                      world.boxes.center))
+    return len(world.batch_shape) == 0
 
 
 def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int) -> list:

@@ -1,8 +1,9 @@
-"""The robot's surroundings: :class:`World`, a set of spheres, capsules, boxes, half-spaces and points, and
-the distances of capsule-like and box geoms to all of them.
+"""The robot's surroundings: :class:`World`, a set of spheres, capsules, boxes, half-spaces, points and
+cylinders, and the distances of the robot's geoms to all of them.
 
-Objects are indexed in the order spheres, capsules, boxes, half-spaces, points; every tensor may carry
-leading batch dims (one world per row of a batch), which broadcast against the batch of ``q``.
+Objects are indexed in the order spheres, capsules, boxes, half-spaces, points, cylinders (a kind added
+later comes last, so the columns of the earlier kinds never move); every tensor may carry leading batch
+dims (one world per row of a batch), which broadcast against the batch of ``q``.
 """
 
 from __future__ import annotations
@@ -29,13 +30,16 @@ class World:
             ``(..., W_b)``).
         halfspaces: ``(..., W_h, 4)``: unit outward normal n and offset d of the solid {x : n·x ≤ d}.
         points: ``(..., W_p, 3)``.
+        cylinders: ``(..., W_y, 7)``: the two end points of the axis (the centres of the flat faces) and the
+            radius, in the style of ``capsules`` (a cylinder of length L along the unit axis u, placed at p:
+            ``p ∓ (L/2) u`` and r). Exact cylinders (flat ends), not capsules.
         dtype, device: for arguments given as numbers or arrays (tensors are taken as they are).
 
-    ``len(world)`` is W = W_s + W_c + W_b + W_h + W_p, the last axis of ``world_distances``.
+    ``len(world)`` is W = W_s + W_c + W_b + W_h + W_p + W_y, the last axis of ``world_distances``.
     """
 
     def __init__(self, spheres=None, capsules=None, boxes: Box | None = None, halfspaces=None, points=None,
-                 *, dtype: torch.dtype | None = None, device=None):
+                 cylinders=None, *, dtype: torch.dtype | None = None, device=None):
         if boxes is not None and not isinstance(boxes, Box):
             raise DiffkinError(f"expected boxes from diffkin.collision.box(...), got {type(boxes).__name__}")
         like = None
@@ -46,17 +50,19 @@ class World:
         if boxes is not None:  # a Box built directly: the rule of box() (shapes, finite, h >= 0, rotations)
             boxes = checked_boxes(boxes, like)
             like = boxes.center if like is None else like
-        s, c, h, p = tensors(("spheres", spheres, (None, 4)), ("capsules", capsules, (None, 7)),
-                             ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)), like=like)
+        s, c, h, p, y = tensors(("spheres", spheres, (None, 4)), ("capsules", capsules, (None, 7)),
+                                ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)),
+                                ("cylinders", cylinders, (None, 7)), like=like)
         # one world per batch row: the objects' batch dims (all but the last two) must broadcast
         broadcast_batch(("spheres", s, 2), ("capsules", c, 2), ("halfspaces", h, 2), ("points", p, 2),
+                        ("cylinders", y, 2),
                         ("boxes.center", None if boxes is None or boxes.center.ndim < 2 else boxes.center, 2))
-        for name, radius in (("spheres", s), ("capsules", c)):
+        for name, radius in (("spheres", s), ("capsules", c), ("cylinders", y)):
             if radius is not None and bool((radius[..., -1] < 0).any()):  # as box() rejects half extents < 0
                 bad = radius[..., -1].detach()
                 raise DiffkinError(f"expected {name} radii (last column) >= 0, got "
                                    f"{bad[bad < 0].cpu().tolist()}")
-        ref = next((t for t in (s, c, h, p) if t is not None), None)
+        ref = next((t for t in (s, c, h, p, y) if t is not None), None)
         if boxes is not None:
             common_dtype_device({"boxes": boxes.center, **({"spheres etc.": ref} if ref is not None else {})})
             ref = boxes.center if ref is None else ref
@@ -67,6 +73,7 @@ class World:
         self.capsules = c if c is not None else empty(7)
         self.halfspaces = h if h is not None else empty(4)
         self.points = p if p is not None else empty(3)
+        self.cylinders = y if y is not None else empty(7)
         if boxes is None:
             boxes = Box(empty(3), torch.zeros(0, 3, 3, dtype=dt, device=dev), empty(3))
         elif boxes.center.ndim == 1:  # one box
@@ -78,17 +85,36 @@ class World:
         self.dtype, self.device = dt, dev
 
     @property
-    def counts(self) -> tuple[int, int, int, int, int]:
-        """(W_s, W_c, W_b, W_h, W_p)."""
+    def counts(self) -> tuple[int, int, int, int, int, int]:
+        """(W_s, W_c, W_b, W_h, W_p, W_y)."""
         return (self.spheres.shape[-2], self.capsules.shape[-2], self.boxes.center.shape[-2],
-                self.halfspaces.shape[-2], self.points.shape[-2])
+                self.halfspaces.shape[-2], self.points.shape[-2], self.cylinders.shape[-2])
+
+    def tensors(self) -> tuple[Tensor, ...]:
+        """Every tensor of the world: spheres, capsules, the boxes' centres, rotations and half extents,
+        half-spaces, points, cylinders (for memo keys and conversions)."""
+        b = self.boxes
+        return (self.spheres, self.capsules, b.center, b.rotation, b.half_extents, self.halfspaces,
+                self.points, self.cylinders)
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The objects' leading (per-row world) dims broadcast together; ``()`` for one world for all rows."""
+        s, c, bc, bR, bh, h, p, y = self.tensors()
+        return torch.broadcast_shapes(*(t.shape[:-2] for t in (s, c, bc, bh, h, p, y)), bR.shape[:-3])
+
+    def to(self, dtype: torch.dtype | None = None, device=None) -> World:
+        """The same world with every tensor in ``dtype`` on ``device`` (None: unchanged)."""
+        s, c, bc, bR, bh, h, p, y = (t.to(dtype=dtype or self.dtype, device=device or self.device)
+                                     for t in self.tensors())
+        return World(spheres=s, capsules=c, boxes=Box(bc, bR, bh), halfspaces=h, points=p, cylinders=y)
 
     def __len__(self) -> int:
         return sum(self.counts)
 
     def __repr__(self) -> str:
-        s, c, b, h, p = self.counts
-        return f"World(spheres={s}, capsules={c}, boxes={b}, halfspaces={h}, points={p})"
+        s, c, b, h, p, y = self.counts
+        return f"World(spheres={s}, capsules={c}, boxes={b}, halfspaces={h}, points={p}, cylinders={y})"
 
     def _round(self) -> tuple[Tensor, Tensor, Tensor]:
         """Spheres, capsules and points as capsules ``(a (..., W, 3), b (..., W, 3), r (..., W))``."""
@@ -104,14 +130,14 @@ class World:
     def _kind_columns(self, device=None) -> tuple[Tensor, Tensor, Tensor]:
         """The world-order columns ``(round, boxes, half-spaces)`` of :meth:`_round`'s objects (spheres,
         capsules, then points), of the boxes and of the half-spaces (long index tensors)."""
-        s, c, b, h, p = self.counts
+        s, c, b, h, p, _ = self.counts
         ar = lambda n, start=0: start + torch.arange(n, device=device)  # noqa: E731
         return torch.cat((ar(s + c), ar(p, s + c + b + h))), ar(b, s + c), ar(h, s + c + b)
 
     def _assemble(self, round_d: Tensor, box_d: Tensor, half_d: Tensor) -> Tensor:
         """(..., G, W) in the world's order from the round (spheres, capsules, points), box, half-space
         blocks."""
-        s, c, _, _, p = self.counts
+        s, c, _, _, p, _ = self.counts
         batch = torch.broadcast_shapes(round_d.shape[:-1], box_d.shape[:-1], half_d.shape[:-1])
         e = lambda x: x.expand(*batch, x.shape[-1])  # noqa: E731
         round_d, box_d, half_d = e(round_d), e(box_d), e(half_d)
@@ -126,6 +152,9 @@ class World:
         if a.dtype != self.dtype or a.device != self.device:
             raise DiffkinError(f"the world is {self.dtype} on {self.device}, the robot {a.dtype} on "
                                f"{a.device}: build the world in the robot's dtype and device")
+        if self.cylinders.shape[-2]:
+            raise DiffkinError("World: distances to cylinders come with the cylinder pair entries (next "
+                               "commit of this branch)")
         wa, wb, wr = self._round()
         B = self.boxes
         n, d = self.halfspaces[..., :3], self.halfspaces[..., 3]
