@@ -32,6 +32,13 @@ def _capsule(length: float, radius: float):
     return np.asarray(m.vertices, dtype=np.float32), np.asarray(m.faces, dtype=np.int32)
 
 
+def _cylinder(length: float, radius: float):
+    import trimesh
+
+    m = trimesh.creation.cylinder(radius=max(radius, 1e-4), height=max(length, 1e-4), sections=32)
+    return np.asarray(m.vertices, dtype=np.float32), np.asarray(m.faces, dtype=np.int32)
+
+
 def _box(half):
     import trimesh
 
@@ -117,6 +124,13 @@ class CollisionView:
                            position=hs[:3] * hs[3] - R[:, 2] * half[2], wxyz=_wxyz(R)))
         for i, p in enumerate(np_(world.points)):
             out.append(add(f"/world/point_{i}", *_capsule(0.0, 0.01 * scale), color=WORLD_RGB, position=p))
+        cyls = np_(world.cylinders)
+        if len(cyls):  # exact cylinders (flat ends), last as in the world's columns
+            centres, rots = _capsule_poses(cyls[:, :3], cyls[:, 3:6])
+            for i, (cyl, p, R) in enumerate(zip(cyls, centres, rots)):
+                out.append(add(f"/world/cylinder_{i}", *_cylinder(float(np.linalg.norm(cyl[3:6] - cyl[:3])),
+                                                                 cyl[6]), color=WORLD_RGB, position=p,
+                               wxyz=_wxyz(R)))
         return out
 
     def update(self, q) -> dict:
