@@ -162,36 +162,60 @@ def _search(delta: Tensor, E: Tensor, V: Tensor, rho: Tensor, beta: Tensor, iter
     f = _separation(seeds, delta, E, V, rho, beta).masked_fill(~ok, -math.inf)
     best, top = f.topk(min(starts, f.shape[-1]), -1)  # (..., K)
     n = seeds.gather(-2, top.unsqueeze(-1).expand(*top.shape, 3))  # (..., K, 3)
-    # the pair's data with a starts axis
-    d1, E1, V1 = delta.unsqueeze(-2), E.unsqueeze(-3), V.unsqueeze(-3)
-    r1, b1 = rho.unsqueeze(-2), beta.unsqueeze(-1)
-    Eu = _unit(E)[0].unsqueeze(-3)  # (..., 1, S, 3)
+    # the loop runs component-major (x, y, z as separate (..., K, M) tensors: no reductions over a last axis
+    # of 3); the pair's data gets (K, M) axes
+    col = lambda t: [t[..., k, None, None] for k in range(3)]  # noqa: E731
+    dl = col(delta)
+    Eu = _unit(E)[0]
+    segs = [(col(E[..., s, :]), col(Eu[..., s, :])) for s in range(E.shape[-2])]
+    discs = [(col(V[..., j, :]), rho[..., j, None, None]) for j in range(V.shape[-2])]
+    b1 = beta[..., None, None]
+
+    def sep(x, y, z):
+        f = x * dl[0] + y * dl[1] + z * dl[2] - b1
+        for (ex, ey, ez), _ in segs:
+            f = f - (x * ex + y * ey + z * ez).abs()
+        for (vx, vy, vz), r in discs:  # ‖n × v‖ = ‖n − (n·v) v‖, accurate near n = ±v
+            cx, cy, cz = y * vz - z * vy, z * vx - x * vz, x * vy - y * vx
+            f = f - r * (cx * cx + cy * cy + cz * cz).sqrt()
+        return f
+
+    def unit(x, y, z):
+        n = (x * x + y * y + z * z).sqrt().clamp_min(1e-300)
+        return x / n, y / n, z / n
+
+    nx, ny, nz = (n[..., k] for k in range(3))  # (..., K)
     step = torch.full_like(best, 0.3)
     ang = torch.arange(8, dtype=n.dtype, device=n.device) * (math.pi / 4)
-    helper = torch.zeros_like(n)
-    helper[..., 0] = 1.0
     for it in range(iterations):
-        # a tangent basis at n
-        h = torch.where(n[..., :1].abs() > 0.9, torch.roll(helper, 1, -1), helper)
-        t1 = safe_normalize(torch.linalg.cross(n, h, dim=-1))
-        t2 = torch.linalg.cross(n, t1, dim=-1)
+        big = nx.abs() > 0.9  # a tangent basis: t1 = n × e_x (n × e_y near ±e_x), t2 = n × t1
+        t1 = unit(torch.where(big, -nz, torch.zeros_like(nz)), torch.where(big, torch.zeros_like(nz), nz),
+                  torch.where(big, nx, -ny))
+        t2 = (ny * t1[2] - nz * t1[1], nz * t1[0] - nx * t1[2], nx * t1[1] - ny * t1[0])
         th = ang + 0.37 * it  # a turning stencil: no ridge stays between its moves
-        dirs = th.cos()[:, None] * t1.unsqueeze(-2) + th.sin()[:, None] * t2.unsqueeze(-2)  # (..., K, 8, 3)
-        sk = step[..., None, None]
-        moves = [n.unsqueeze(-2) + sk * dirs]
-        if E.shape[-2]:  # onto each kink circle n ⟂ E_k, and along it
-            on = n.unsqueeze(-2) - (n.unsqueeze(-2) * Eu).sum(-1, keepdim=True) * Eu  # (..., K, S, 3)
-            on = safe_normalize(on)
-            along = torch.linalg.cross(Eu.expand_as(on), on, dim=-1)
-            moves += [on, on + sk * along, on - sk * along]
-        cand = safe_normalize(torch.cat(moves, -2))
-        fc = _separation(cand, d1, E1, V1, r1, b1)
+        c, s_ = th.cos(), th.sin()
+        sk = step[..., None]
+        moves = [[nk[..., None] + sk * (c * a1[..., None] + s_ * a2[..., None])] for nk, a1, a2 in
+                 zip((nx, ny, nz), t1, t2)]
+        for _, (ux, uy, uz) in segs:  # onto each kink circle n ⟂ E_k, and along it
+            ux, uy, uz = ux[..., 0], uy[..., 0], uz[..., 0]
+            d = nx * ux + ny * uy + nz * uz
+            on = unit(nx - d * ux, ny - d * uy, nz - d * uz)
+            al = (uy * on[2] - uz * on[1], uz * on[0] - ux * on[2], ux * on[1] - uy * on[0])
+            for k in range(3):
+                o, a_ = on[k][..., None], al[k][..., None]
+                moves[k].append(torch.cat((o, o + sk * a_, o - sk * a_), -1))
+        mx, my, mz = (torch.cat(m, -1) for m in moves)
+        cx, cy, cz = unit(mx, my, mz)
+        fc = sep(cx, cy, cz).masked_fill(mx * mx + my * my + mz * mz < 1e-24, -math.inf)  # (0: no direction)
         fb, ib = fc.max(-1)
         better = fb > best
-        pick = cand.gather(-2, ib[..., None, None].expand(*ib.shape, 1, 3)).squeeze(-2)
-        n = torch.where(better[..., None], pick, n)
+        ib = ib[..., None]
+        nx, ny, nz = (torch.where(better, ck.gather(-1, ib).squeeze(-1), nk) for ck, nk in
+                      zip((cx, cy, cz), (nx, ny, nz)))
         best = torch.where(better, fb, best)
         step = torch.where(better, step, 0.5 * step)
+    n = torch.stack((nx, ny, nz), -1)
     return n.gather(-2, best.argmax(-1)[..., None, None].expand(*best.shape[:-1], 1, 3)).squeeze(-2)
 
 
