@@ -20,10 +20,12 @@ Methods:
       d = max_{|n| = 1}  F(n),   F(n) = n·(c_A − c_B) − Σ_k |n·E_k| − Σ_j ρ_j ‖n − (n·v_j) v_j‖ − β
 
   (E, v, ρ of both solids, β the sum of their ball radii). Every F(n) is a lower bound of d, so the result
-  is never optimistic. The maximiser is found without gradient (float64): the best of the structural axes
+  is never optimistic. The maximiser is found without gradient (float64): the three best structural axes
   (the E_k, the v_j, their pairwise cross products, c_A − c_B and its parts perpendicular to the v_j) and
-  64 Fibonacci directions seeds a pattern search on the sphere (eight moves around n and moves along the
-  kink circles n ⟂ E_k, on which F is not smooth), the step halved when no move improves, 48 iterations.
+  the three best of 48 Fibonacci directions start a pattern search on the sphere (eight moves around n and
+  moves along the kink circles n ⟂ E_k, on which F is not smooth; the step halved when no move improves;
+  40 iterations, component-major), the best of the six results is kept (in contact F has several local
+  maxima).
   The maximiser is then snapped to the structure it lies on (a disc normal ±v_j, a cross product
   E_i × E_k, the circle n ⟂ E_k, or none) and rebuilt from the differentiable geometry: F at that n is the
   value, and its gradient is the exact one wherever d is differentiable (the envelope theorem on the
@@ -148,9 +150,10 @@ def _structural(delta: Tensor, E: Tensor, V: Tensor) -> tuple[Tensor, Tensor, li
 
 @torch.no_grad()
 def _search(delta: Tensor, E: Tensor, V: Tensor, rho: Tensor, beta: Tensor, iterations: int = 40,
-            fib: int = 32, starts: int = 3) -> Tensor:
+            fib: int = 48, starts: int = 3) -> Tensor:
     """The maximiser n* ``(..., 3)`` of F (module docstring), detached, float64: the pattern search from the
-    ``starts`` best seeds (in contact F has several local maxima), the best result."""
+    ``starts`` best structural seeds and the ``starts`` best Fibonacci seeds (in contact F has several local
+    maxima; starts from both sets keep apart basins), the best result."""
     f64 = lambda x: x.detach().to(torch.float64)  # noqa: E731
     delta, E, V, rho, beta = map(f64, (delta, E, V, rho, beta))
     seeds, ok = _structural(delta, E, V)
@@ -160,7 +163,10 @@ def _search(delta: Tensor, E: Tensor, V: Tensor, rho: Tensor, beta: Tensor, iter
     # F(n) - F(-n) = 2 n·delta: the sign facing delta is never worse
     seeds = torch.where((seeds * delta.unsqueeze(-2)).sum(-1, keepdim=True) < 0, -seeds, seeds)
     f = _separation(seeds, delta, E, V, rho, beta).masked_fill(~ok, -math.inf)
-    best, top = f.topk(min(starts, f.shape[-1]), -1)  # (..., K)
+    ns = f.shape[-1] - fib
+    b_s, t_s = f[..., :ns].topk(min(starts, ns), -1)
+    b_f, t_f = f[..., ns:].topk(min(starts, fib), -1)
+    best, top = torch.cat((b_s, b_f), -1), torch.cat((t_s, t_f + ns), -1)  # (..., K)
     n = seeds.gather(-2, top.unsqueeze(-1).expand(*top.shape, 3))  # (..., K, 3)
     # the loop runs component-major (x, y, z as separate (..., K, M) tensors: no reductions over a last axis
     # of 3); the pair's data gets (K, M) axes
