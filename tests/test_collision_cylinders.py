@@ -236,7 +236,7 @@ def test_cylinder_distances_batch_and_float32():
     torch.testing.assert_close(d32.double(), d64, atol=2e-5, rtol=0)
 
 
-def test_world_cylinders_through_the_pair_table():
+def test_world_cylinders_through_the_pair_table(monkeypatch):
     """World obstacles that are cylinders: World.distances against the kernels, and the broad-phase and C
     decisions (which do not serve cylinders: the table routes them to torch) against the exact distances."""
     from diffkin import models
@@ -257,10 +257,19 @@ def test_world_cylinders_through_the_pair_table():
     ref = C.capsule_cylinder(a[:, :, None], b[:, :, None], r[:, None], y[:, :3], y[:, 3:6], y[:, 6])
     cap = [i for i, g in enumerate(rc.geoms) if g.shape == "capsule"]
     torch.testing.assert_close(d[:, cap, 2:], ref, atol=1e-12, rtol=0)
+    from diffkin.collision.pairs import NATIVE_CLEAR, PAIRS
     from diffkin.ik.residuals import DistanceConstraint
+    from diffkin.kernels import native
 
+    # the table: the C decisions serve capsule-capsule and capsule-halfspace only; cylinders go to torch
+    assert PAIRS[("capsule", "cylinder")].native is None
+    assert PAIRS[("capsule", "capsule")].native == NATIVE_CLEAR
     exact = d.flatten(1).amin(-1)
     for margin in (0.0, 0.05):
         clear = exact >= margin
         assert 0 < int(clear.sum()) < 12  # some clear, some not
+        # the C pass (where built) for the round objects, torch for the cylinders and the box
         assert torch.equal(DistanceConstraint(rc, world, margin).satisfied(q), clear)
+        with monkeypatch.context() as mp:  # without the C pass: every kind through the torch broad phase
+            mp.setattr(native, "capsules_clear", lambda *args: False)
+            assert torch.equal(DistanceConstraint(rc, world, margin).satisfied(q), clear)
