@@ -32,6 +32,13 @@ def _capsule(length: float, radius: float):
     return np.asarray(m.vertices, dtype=np.float32), np.asarray(m.faces, dtype=np.int32)
 
 
+def _cylinder(length: float, radius: float):
+    import trimesh
+
+    m = trimesh.creation.cylinder(radius=max(radius, 1e-4), height=max(length, 1e-4), sections=32)
+    return np.asarray(m.vertices, dtype=np.float32), np.asarray(m.faces, dtype=np.int32)
+
+
 def _box(half):
     import trimesh
 
@@ -88,11 +95,9 @@ class CollisionView:
         self.state: dict = {}
 
     def _add_world(self, world, scale: float) -> list:
-        for name, t in (("spheres", world.spheres), ("capsules", world.capsules), ("halfspaces",
-                        world.halfspaces), ("points", world.points), ("boxes", world.boxes.center)):
-            if t.ndim != 2:
-                raise ShapeError(f"the viewer draws one world: expected {name} without batch dims, got "
-                                 f"{tuple(t.shape)}")
+        if len(world.batch_shape):
+            raise ShapeError(f"the viewer draws one world: expected objects without batch dims, got batch "
+                             f"shape {tuple(world.batch_shape)}")
         np_ = lambda t: t.detach().cpu().double().numpy()  # noqa: E731
         out, self.world_meshes = [], []
 
@@ -119,6 +124,13 @@ class CollisionView:
                            position=hs[:3] * hs[3] - R[:, 2] * half[2], wxyz=_wxyz(R)))
         for i, p in enumerate(np_(world.points)):
             out.append(add(f"/world/point_{i}", *_capsule(0.0, 0.01 * scale), color=WORLD_RGB, position=p))
+        cyls = np_(world.cylinders)
+        if len(cyls):  # exact cylinders (flat ends), last as in the world's columns
+            centres, rots = _capsule_poses(cyls[:, :3], cyls[:, 3:6])
+            for i, (cyl, p, R) in enumerate(zip(cyls, centres, rots)):
+                out.append(add(f"/world/cylinder_{i}", *_cylinder(float(np.linalg.norm(cyl[3:6] - cyl[:3])),
+                                                                 cyl[6]), color=WORLD_RGB, position=p,
+                               wxyz=_wxyz(R)))
         return out
 
     def update(self, q) -> dict:

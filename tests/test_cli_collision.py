@@ -129,7 +129,7 @@ def test_option_errors(capsys, tmp_path):
 
 def test_world_files(tmp_path):
     w = read_world(EXAMPLE, dtype=F64)
-    assert w.counts == (2, 1, 1, 1, 1) and w.dtype == F64
+    assert w.counts == (2, 1, 1, 1, 1, 0) and w.dtype == F64
     direct = World(spheres=[[0.45, 0.0, 0.45, 0.12], [0.0, 0.4, 0.3, 0.08]],
                    capsules=[[0.3, -0.4, 0.2, 0.3, -0.4, 0.7, 0.04]],
                    boxes=box([[-0.4, 0.0, 0.3]], [[0.05, 0.2, 0.3]], [[0.0, 0.0, 0.3]], dtype=F64),
@@ -142,7 +142,7 @@ def test_world_files(tmp_path):
     js.write_text('{"spheres": [[0, 0, 1, 0.2]], '
                   '"boxes": [{"center": [1, 0, 0], "half_extents": [0.1, 0.1, 0.1]}]}')
     wj = read_world(js, dtype=torch.float32)
-    assert wj.counts == (1, 0, 1, 0, 0) and wj.dtype == torch.float32
+    assert wj.counts == (1, 0, 1, 0, 0, 0) and wj.dtype == torch.float32
     assert len(read_world(_write(tmp_path, "empty.yaml", ""))) == 0
     bad = {"cones: [[1, 2]]": "unknown key", "spheres: [[1, 2]]": "spheres", "- 1": "mapping",
            "boxes: [{center: [0, 0, 0]}]": "half_extents", "halfspaces: [[0, 0, 2, 0]]": "unit",

@@ -92,6 +92,20 @@ def test_world_rejects_negative_radii():
     assert len(World(spheres=[[0.0, 0.0, 0.0, 0.0]], capsules=[[0.0, 0, 0, 1, 0, 0, 0.0]])) == 2  # 0 is fine
 
 
+def test_world_cylinders_argument():
+    """cylinders (..., W_y, 7): axis end points and radius, like capsules; their columns come last."""
+    from diffkin.errors import DiffkinError, ShapeError
+
+    w = World(spheres=[[0.0, 0.0, 1.0, 0.1]], cylinders=[[0.5, 0.0, 0.0, 0.5, 0.0, 0.4, 0.05]],
+              dtype=torch.float64)
+    assert w.counts == (1, 0, 0, 0, 0, 1) and len(w) == 2 and w.cylinders.dtype == torch.float64
+    assert w.to(torch.float32).cylinders.dtype == torch.float32
+    with pytest.raises(DiffkinError, match="cylinders radii"):
+        World(cylinders=[[0.0, 0, 0, 0, 0, 1, -0.1]])
+    with pytest.raises(ShapeError, match="cylinders"):
+        World(cylinders=[[0.0, 0, 0, 0, 0, 1]])
+
+
 def test_from_urdf_of_another_robot_raises():
     chain = models.from_urdf(FR3, "fr3_link8", dtype=F64)
     with pytest.raises(ModelError, match=r"none of the chain.s links \(the chain: fr3_link0, .*: base_link"):
@@ -130,10 +144,11 @@ def test_every_exported_distance_function_wraps_its_own_kernel():
     from diffkin.collision import _checked
 
     names = [n for n in collision.__all__ if hasattr(_checked, n)]
-    assert len(names) == 14
+    assert len(names) == 20
     for n in names:
         fn = getattr(collision, n)
-        assert fn.__wrapped__.__name__ == n and fn.__wrapped__.__module__.endswith(("distances", "boxes"))
+        assert fn.__wrapped__.__name__ == n and fn.__wrapped__.__module__.endswith(
+            ("distances", "boxes", "cylinders"))
 
 
 def _rotation(x):

@@ -172,7 +172,7 @@ def test_item09_world_takes_a_valid_direct_box_as_box_builds_it():
         torch.testing.assert_close(d[0], ref, atol=1e-4, rtol=0)
     # batch dims that broadcast are fine: (2, W, 4) spheres with (1, W, 7) capsules
     w = C.World(spheres=torch.zeros(2, 1, 4, dtype=F64), capsules=torch.zeros(1, 1, 7, dtype=F64))
-    assert w.counts == (1, 1, 0, 0, 0)
+    assert w.counts == (1, 1, 0, 0, 0, 0)
 
 
 # --------------------------------------------------------------------- item 10: interpolate checks s

@@ -299,7 +299,8 @@ def test_world_objects_drawn_and_coloured(fr3):
 
     def world_at(p):
         return World(spheres=[[*p.tolist(), 0.05]], capsules=[[0.5, 0.5, 0.0, 0.5, 0.5, 0.4, 0.03]],
-                     halfspaces=[[0.0, 0.0, 1.0, -0.3]], points=[[0.6, -0.6, 0.2]], dtype=F64)
+                     halfspaces=[[0.0, 0.0, 1.0, -0.3]], points=[[0.6, -0.6, 0.2]],
+                     cylinders=[[-0.5, 0.5, 0.0, -0.5, 0.5, 0.4, 0.05]], dtype=F64)
     for p, touching in ((flange, True), (flange + torch.tensor([2.0, 0, 0], dtype=F64), False)):
         world = world_at(p)
         w = col.world_distances(q, world).detach()
@@ -307,8 +308,12 @@ def test_world_objects_drawn_and_coloured(fr3):
         v = viz.show(chain, q, port=0, collision=col, world=world)
         try:
             cols = _colours(v._collision_view.world_handles)
-            assert len(cols) == 4 and cols[0] == (CONTACT_RGB if touching else WORLD_RGB)
-            assert cols[1:] == [WORLD_RGB] * 3
+            assert len(cols) == 5 and cols[0] == (CONTACT_RGB if touching else WORLD_RGB)
+            assert cols[1:] == [WORLD_RGB] * 4
+            cyl = v._collision_view.world_handles[4]  # the cylinder, drawn where it is (last column)
+            np.testing.assert_allclose(cyl.position, [-0.5, 0.5, 0.2], atol=1e-6)
+            vv = np.asarray(v._collision_view.world_meshes[4][0])
+            np.testing.assert_allclose(np.ptp(vv, axis=0), [0.1, 0.1, 0.4], atol=2e-3)  # flat ends
             np.testing.assert_allclose(v._collision_view.world_handles[0].position, p.numpy(), atol=1e-6)
             red = {g for g, _, _ in v.contacts["world"]}
             assert red == {col.geoms[g].name for g in torch.nonzero(w[:, 0] < 0)[:, 0].tolist()}

@@ -2,6 +2,8 @@
 
 * :mod:`~diffkin.collision.distances`: spheres, capsules, points and half-spaces in closed form.
 * :mod:`~diffkin.collision.boxes`: oriented boxes (:func:`box`) against all of those and each other.
+* :mod:`~diffkin.collision.cylinders`: exact cylinders (flat ends) against all of those and each other.
+* :mod:`~diffkin.collision.pairs`: the pair table (kinds × kinds → distance, broad-phase bound, C entry).
 * :class:`World`: the obstacles; :class:`RobotCollision`: the robot's geoms, its checked pairs,
   ``self_distances``, ``world_distances`` and ``min_distance``.
 
@@ -12,17 +14,23 @@ The model never imports this package (data flows ``model frames -> collision geo
 """
 
 from ._checked import box_box as box_box
+from ._checked import box_cylinder as box_cylinder
 from ._checked import box_halfspace as box_halfspace
 from ._checked import capsule_box as capsule_box
 from ._checked import capsule_capsule as capsule_capsule
 from ._checked import capsule_capsule_pairs as capsule_capsule_pairs
+from ._checked import capsule_cylinder as capsule_cylinder
 from ._checked import capsule_halfspace as capsule_halfspace
+from ._checked import cylinder_cylinder as cylinder_cylinder
+from ._checked import cylinder_halfspace as cylinder_halfspace
 from ._checked import point_box as point_box
+from ._checked import point_cylinder as point_cylinder
 from ._checked import point_segment_parameter as point_segment_parameter
 from ._checked import segment_box as segment_box
 from ._checked import segment_closest_parameters as segment_closest_parameters
 from ._checked import sphere_box as sphere_box
 from ._checked import sphere_capsule as sphere_capsule
+from ._checked import sphere_cylinder as sphere_cylinder
 from ._checked import sphere_halfspace as sphere_halfspace
 from ._checked import sphere_sphere as sphere_sphere
 from .boxes import Box as Box
@@ -40,17 +48,23 @@ __all__ = [
     "World",
     "box",
     "box_box",
+    "box_cylinder",
     "box_halfspace",
     "capsule_box",
     "capsule_capsule",
     "capsule_capsule_pairs",
+    "capsule_cylinder",
+    "cylinder_cylinder",
+    "cylinder_halfspace",
     "capsule_halfspace",
     "point_box",
+    "point_cylinder",
     "point_segment_parameter",
     "segment_box",
     "segment_closest_parameters",
     "sphere_box",
     "sphere_capsule",
+    "sphere_cylinder",
     "sphere_halfspace",
     "sphere_sphere",
 ]

@@ -4,8 +4,9 @@
 (tensors of float32 / float64, numbers and arrays converted to their dtype, one dtype and device, the
 trailing shape of each argument, batch dims that broadcast) and raises the typed errors of
 :mod:`diffkin.errors`; then it calls the kernel of :mod:`~diffkin.collision.distances` /
-:mod:`~diffkin.collision.boxes` unchanged. The library's own hot paths call those kernels directly (no
-check per call). No finiteness check: that would read the values (a host sync on CUDA).
+:mod:`~diffkin.collision.boxes` / :mod:`~diffkin.collision.cylinders` unchanged. The library's own hot
+paths call those kernels directly (no check per call). No finiteness check: that would read the values
+(a host sync on CUDA).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import torch
 
 from ..errors import DTypeError, ShapeError
 from ..validation import broadcast_batch, shape_str, tensors
-from . import boxes, distances
+from . import boxes, cylinders, distances
 
 V, M, S = (3,), (3, 3), ()  # a point or vector, a rotation matrix, a scalar (radius, offset)
 
@@ -35,6 +36,12 @@ _SPECS = {
     boxes.capsule_box: dict(a=V, b=V, r=S, c=V, R=M, h=V),
     boxes.box_halfspace: dict(c=V, R=M, h=V, n=V, offset=S),
     boxes.box_box: dict(c1=V, R1=M, h1=V, c2=V, R2=M, h2=V),
+    cylinders.point_cylinder: dict(p=V, a=V, b=V, r=S),
+    cylinders.sphere_cylinder: dict(c=V, r=S, a=V, b=V, rc=S),
+    cylinders.cylinder_halfspace: dict(a=V, b=V, r=S, n=V, offset=S),
+    cylinders.capsule_cylinder: dict(a0=V, a1=V, ra=S, b0=V, b1=V, rb=S),
+    cylinders.box_cylinder: dict(c=V, R=M, h=V, a=V, b=V, r=S),
+    cylinders.cylinder_cylinder: dict(a0=V, a1=V, ra=S, b0=V, b1=V, rb=S),
 }
 
 
@@ -81,4 +88,5 @@ def capsule_capsule_pairs(a, b, r, i, j, pair_kernel=None):
 # the wrappers, in _SPECS' order
 (segment_closest_parameters, point_segment_parameter, sphere_sphere, sphere_capsule, capsule_capsule,
  sphere_halfspace, capsule_halfspace, point_box, sphere_box, segment_box, capsule_box, box_halfspace,
- box_box) = (_checked(fn) for fn in _SPECS)
+ box_box, point_cylinder, sphere_cylinder, cylinder_halfspace, capsule_cylinder, box_cylinder,
+ cylinder_cylinder) = (_checked(fn) for fn in _SPECS)

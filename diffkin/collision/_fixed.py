@@ -59,7 +59,7 @@ def kept_columns(rc, world, moving_only: bool) -> tuple[Tensor | None, Tensor | 
     if memo is not None and len(memo[0]) == len(key) and memo[1] == world.counts and all(
             a is b and u == v for (a, u), (b, v) in zip(memo[0], key)):
         return keep_self, memo[2]
-    G, (s, c, b, h, _) = len(rc.geoms), world.counts
+    G, (s, c, b, h, *_) = len(rc.geoms), world.counts
     drop = torch.tensor(rc.fixed, dtype=torch.bool).reshape(G, 1).expand(G, len(world)).clone()
     if h and world.halfspaces.ndim == 2 and chain is not None:
         planar = planar_frames(rc._frames, chain, world.halfspaces[:, :3].detach()).cpu()
@@ -78,7 +78,7 @@ def distance_names(rc, world, moving_only: bool) -> list[str]:
     names = names if keep_self is None else [names[i] for i in keep_self.tolist()]
     if world is None:
         return names
-    objs = [f"world {kind} {k}" for kind, n in zip(("sphere", "capsule", "box", "halfspace", "point"),
-                                                    world.counts) for k in range(n)]
+    kinds = ("sphere", "capsule", "box", "halfspace", "point", "cylinder")
+    objs = [f"world {kind} {k}" for kind, n in zip(kinds, world.counts) for k in range(n)]
     rows = [f"{g.name} × {o}" for g in rc.geoms for o in objs]
     return names + (rows if keep_world is None else [rows[i] for i in keep_world.tolist()])

@@ -27,10 +27,10 @@ import torch
 from torch import Tensor
 
 from .._numerics import safe_norm, safe_sqrt
-from .distances import capsule_capsule, capsule_halfspace, capsule_pairs_cm
+from .distances import capsule_pairs_cm
 
 __all__ = ["capsule_spheres", "box_spheres", "sphere_bound", "capsule_box_bound", "capsule_pairs_at_least",
-           "exact_below", "group_tables", "pairs_clear", "world_clear"]
+           "exact_below", "group_tables", "pairs_clear"]
 
 
 def capsule_spheres(a: Tensor, b: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
@@ -188,57 +188,3 @@ def group_tables(body: list[int], pairs: list[tuple[int, int]], dtype, device,
     Q = len(members)
     return (ilong(gb), ilong(list(members)).reshape(Q, 2), ilong(table).reshape(2, Q, S), mean,
             ilong([v + [G] * (K - len(v)) for v in of]).reshape(B, K))
-
-
-def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: float,
-                skip: Tensor | None = None, boxes_only: bool = False) -> Tensor:
-    """Whether every capsule ``A, B (G, 3, N)``, ``r (G,)`` has d − margin >= slack to every object of an
-    unbatched ``world`` (:class:`~diffkin.collision.World`), ``(N,)``. Spheres, capsules, points and boxes
-    first get the bounding-sphere bound of every (geom, object, row) entry, boxes then the face-normal
-    bound (:func:`capsule_box_bound`) of the entries left, and only the entries left after that their exact
-    distance (:func:`~diffkin.collision.distances.capsule_capsule`,
-    :func:`~diffkin.collision.boxes.capsule_box`); half-spaces are exact and cheap for all. ``skip (G, W)``
-    (bool, the world's object order): entries that take no part (geoms fixed to the base); ``boxes_only``:
-    the boxes alone (the fused C pass decides the rest)."""
-    from .boxes import capsule_box  # (boxes imports this module)
-
-    cols_round, cols_box, cols_half = world._kind_columns(A.device)
-
-    thr = margin + slack
-    D = B - A
-    M = torch.addcmul(A, D, D.new_tensor(0.5))  # the bounding spheres (G, 3, N), (G, N)
-    rho = 0.5 * _sqrt((D * D).sum(1)) + r[:, None]
-    ok = torch.ones(A.shape[-1], dtype=torch.bool, device=A.device)
-
-    def refute(d: Tensor, n: Tensor) -> None:  # rows n whose entry d fails the test
-        ok.index_fill_(0, n[(d - margin) < slack], False)
-
-    def near(c: Tensor, rc: Tensor, cols: Tensor):  # the (geom, object, row) entries the sphere bound
-        d2 = sum((M[:, None, k] - c[None, :, k, None]) ** 2 for k in range(3))  # leaves, gathered; (G, W, N)
-        bound = _sqrt(d2) - rho.unsqueeze(1) - rc[None, :, None]
-        hit = bound < thr + _pad(bound, thr)
-        if skip is not None:
-            hit &= ~skip[:, cols, None]
-        g, w, n = hit.nonzero(as_tuple=True)
-        return g, w, n, A[g, :, n], B[g, :, n]
-
-    wa, wb, wr = world._round()
-    if wa.shape[0] and not boxes_only:
-        g, w, n, a, b = near(*capsule_spheres(wa, wb, wr), cols_round)
-        if n.numel():
-            refute(capsule_capsule(a, b, r[g], wa[w], wb[w], wr[w]), n)
-    bx = world.boxes
-    if bx.center.shape[0]:
-        g, w, n, a, b = near(*box_spheres(bx.center, bx.half_extents), cols_box)
-        if n.numel():
-            x = (a, b, r[g], bx.center[w], bx.rotation[w], bx.half_extents[w])
-            refute(exact_below(capsule_box_bound(*x), thr, capsule_box, *zip(x, (1, 1, 0, 1, 2, 1))), n)
-    hs = world.halfspaces
-    if hs.shape[0] and not boxes_only:
-        a, b = (X.transpose(1, 2).unsqueeze(1) for X in (A, B))  # (G, 1, N, 3)
-        d = capsule_halfspace(a, b, r[:, None, None], hs[None, :, None, :3], hs[None, :, None, 3])
-        fine = (d - margin) >= slack
-        if skip is not None:
-            fine |= skip[:, cols_half, None]
-        ok &= fine.flatten(0, 1).all(0)
-    return ok

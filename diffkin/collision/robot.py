@@ -29,11 +29,12 @@ from ..transforms import transform_points
 from ..validation import check_count, check_dtype, check_given, tensors
 from ._checks import check_agree, check_chain, names_str
 from ._poses import LinkFrames
-from .boxes import box_box, capsule_box
-from .broad import capsule_pairs_at_least, group_tables, pairs_clear, world_clear
+from .broad import capsule_pairs_at_least, group_tables, pairs_clear
+from .clear import world_clear
 from .distances import capsule_capsule_pairs
 from .meshes import fit_capsules, resolve_mesh
-from .world import World, _check_world, _pair
+from .pairs import NATIVE_CLEAR, PAIRS, distance
+from .world import World, _check_world
 
 __all__ = ["Geom", "RobotCollision"]
 
@@ -260,11 +261,11 @@ class RobotCollision(nn.Module):
                 A, B = Pc[:nc], Pc[nc:]
                 d.append(kern(A, B - A, self.capsule_radius[:, None], i, j).T.reshape(*batch, len(i)))
         if len(k):
-            d.append(_pair(capsule_box, (sel(a, k, 1), sel(b, k, 1), r[k]),
-                           (sel(c, m, 1), sel(R, m, 2), h[m]), threshold))
+            d.append(distance("capsule", (sel(a, k, 1), sel(b, k, 1), r[k]),
+                              "box", (sel(c, m, 1), sel(R, m, 2), h[m]), threshold))
         if len(u):
-            d.append(_pair(box_box, (sel(c, u, 1), sel(R, u, 2), h[u]), (sel(c, v, 1), sel(R, v, 2), h[v]),
-                           threshold))
+            d.append(distance("box", (sel(c, u, 1), sel(R, u, 2), h[u]), "box",
+                              (sel(c, v, 1), sel(R, v, 2), h[v]), threshold))
         if not d:
             return self.capsule_radius.new_zeros(*batch, 0)
         d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1) if len(d) > 1 else d[0]
@@ -331,7 +332,7 @@ class RobotCollision(nn.Module):
         keeps) has d − margin >= slack, ``(...)`` bool (a decision, no gradient): the exact distances
         wherever the bounds do not prove it. Capsule geoms and one world for all rows go through the
         component-major broad phase of :func:`~diffkin.collision.broad.pairs_clear` and
-        :func:`~diffkin.collision.broad.world_clear` (the world entries left out masked there); robot boxes,
+        :func:`~diffkin.collision.clear.world_clear` (the world entries left out masked there); robot boxes,
         per-row worlds or self pairs left out through :meth:`_distances_at_least`."""
         nc, nb = self._counts
         keep_self, keep_world = self._kept(world, moving_only)
@@ -367,14 +368,15 @@ class RobotCollision(nn.Module):
             hs, skip_r, skip_h = A.new_zeros(0, 4), None, None
         else:
             objects, hs = world._round(), world.halfspaces
-            round_cols, _, half_cols = world._kind_columns(A.device)
+            round_cols, _, half_cols, _ = world._kind_columns(A.device)
             skip_r = None if skip is None else skip[:, round_cols]
             skip_h = None if skip is None else skip[:, half_cols]
         done = native.capsules_clear(A, B, r, self._pairs_00, objects, hs, skip_r, skip_h, margin, slack, ok)
         if not done:
             return None
-        if world is not None and world.boxes.center.shape[0]:
-            ok &= world_clear(A, B, r, world, margin, slack, skip, boxes_only=True)
+        if world is not None and any(PAIRS[("capsule", k)].native != NATIVE_CLEAR and len(args[0])
+                                     for k, args in world.blocks()):
+            ok &= world_clear(A, B, r, world, margin, slack, skip, native=NATIVE_CLEAR)
         return ok
 
     def _world_skip(self, world: World, keep_world: Tensor | None) -> Tensor | None:
@@ -504,8 +506,7 @@ _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distance
 
 def _unbatched(world: World) -> bool:
     """One world for every row (no batch dims on its objects)."""
-    return all(t.ndim <= 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points,
-                                      world.boxes.center))
+    return len(world.batch_shape) == 0
 
 
 def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int) -> list:

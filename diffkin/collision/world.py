@@ -1,8 +1,9 @@
-"""The robot's surroundings: :class:`World`, a set of spheres, capsules, boxes, half-spaces and points, and
-the distances of capsule-like and box geoms to all of them.
+"""The robot's surroundings: :class:`World`, a set of spheres, capsules, boxes, half-spaces, points and
+cylinders, and the distances of the robot's geoms to all of them.
 
-Objects are indexed in the order spheres, capsules, boxes, half-spaces, points; every tensor may carry
-leading batch dims (one world per row of a batch), which broadcast against the batch of ``q``.
+Objects are indexed in the order spheres, capsules, boxes, half-spaces, points, cylinders (a kind added
+later comes last, so the columns of the earlier kinds never move); every tensor may carry leading batch
+dims (one world per row of a batch), which broadcast against the batch of ``q``.
 """
 
 from __future__ import annotations
@@ -12,9 +13,7 @@ from torch import Tensor
 
 from ..errors import DiffkinError, ShapeError
 from ..validation import broadcast_batch, common_dtype_device, shape_str, tensors
-from .boxes import Box, box_box, box_halfspace, capsule_box, checked_boxes
-from .broad import box_spheres, capsule_box_bound, capsule_spheres, exact_below, sphere_bound
-from .distances import capsule_capsule, capsule_halfspace
+from .boxes import Box, checked_boxes
 
 __all__ = ["World"]
 
@@ -29,13 +28,16 @@ class World:
             ``(..., W_b)``).
         halfspaces: ``(..., W_h, 4)``: unit outward normal n and offset d of the solid {x : n·x ≤ d}.
         points: ``(..., W_p, 3)``.
+        cylinders: ``(..., W_y, 7)``: the two end points of the axis (the centres of the flat faces) and the
+            radius, in the style of ``capsules`` (a cylinder of length L along the unit axis u, placed at p:
+            ``p ∓ (L/2) u`` and r). Exact cylinders (flat ends), not capsules.
         dtype, device: for arguments given as numbers or arrays (tensors are taken as they are).
 
-    ``len(world)`` is W = W_s + W_c + W_b + W_h + W_p, the last axis of ``world_distances``.
+    ``len(world)`` is W = W_s + W_c + W_b + W_h + W_p + W_y, the last axis of ``world_distances``.
     """
 
     def __init__(self, spheres=None, capsules=None, boxes: Box | None = None, halfspaces=None, points=None,
-                 *, dtype: torch.dtype | None = None, device=None):
+                 cylinders=None, *, dtype: torch.dtype | None = None, device=None):
         if boxes is not None and not isinstance(boxes, Box):
             raise DiffkinError(f"expected boxes from diffkin.collision.box(...), got {type(boxes).__name__}")
         like = None
@@ -46,17 +48,19 @@ class World:
         if boxes is not None:  # a Box built directly: the rule of box() (shapes, finite, h >= 0, rotations)
             boxes = checked_boxes(boxes, like)
             like = boxes.center if like is None else like
-        s, c, h, p = tensors(("spheres", spheres, (None, 4)), ("capsules", capsules, (None, 7)),
-                             ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)), like=like)
+        s, c, h, p, y = tensors(("spheres", spheres, (None, 4)), ("capsules", capsules, (None, 7)),
+                                ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)),
+                                ("cylinders", cylinders, (None, 7)), like=like)
         # one world per batch row: the objects' batch dims (all but the last two) must broadcast
         broadcast_batch(("spheres", s, 2), ("capsules", c, 2), ("halfspaces", h, 2), ("points", p, 2),
+                        ("cylinders", y, 2),
                         ("boxes.center", None if boxes is None or boxes.center.ndim < 2 else boxes.center, 2))
-        for name, radius in (("spheres", s), ("capsules", c)):
+        for name, radius in (("spheres", s), ("capsules", c), ("cylinders", y)):
             if radius is not None and bool((radius[..., -1] < 0).any()):  # as box() rejects half extents < 0
                 bad = radius[..., -1].detach()
                 raise DiffkinError(f"expected {name} radii (last column) >= 0, got "
                                    f"{bad[bad < 0].cpu().tolist()}")
-        ref = next((t for t in (s, c, h, p) if t is not None), None)
+        ref = next((t for t in (s, c, h, p, y) if t is not None), None)
         if boxes is not None:
             common_dtype_device({"boxes": boxes.center, **({"spheres etc.": ref} if ref is not None else {})})
             ref = boxes.center if ref is None else ref
@@ -67,6 +71,7 @@ class World:
         self.capsules = c if c is not None else empty(7)
         self.halfspaces = h if h is not None else empty(4)
         self.points = p if p is not None else empty(3)
+        self.cylinders = y if y is not None else empty(7)
         if boxes is None:
             boxes = Box(empty(3), torch.zeros(0, 3, 3, dtype=dt, device=dev), empty(3))
         elif boxes.center.ndim == 1:  # one box
@@ -78,17 +83,36 @@ class World:
         self.dtype, self.device = dt, dev
 
     @property
-    def counts(self) -> tuple[int, int, int, int, int]:
-        """(W_s, W_c, W_b, W_h, W_p)."""
+    def counts(self) -> tuple[int, int, int, int, int, int]:
+        """(W_s, W_c, W_b, W_h, W_p, W_y)."""
         return (self.spheres.shape[-2], self.capsules.shape[-2], self.boxes.center.shape[-2],
-                self.halfspaces.shape[-2], self.points.shape[-2])
+                self.halfspaces.shape[-2], self.points.shape[-2], self.cylinders.shape[-2])
+
+    def tensors(self) -> tuple[Tensor, ...]:
+        """Every tensor of the world: spheres, capsules, the boxes' centres, rotations and half extents,
+        half-spaces, points, cylinders (for memo keys and conversions)."""
+        b = self.boxes
+        return (self.spheres, self.capsules, b.center, b.rotation, b.half_extents, self.halfspaces,
+                self.points, self.cylinders)
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The objects' leading (per-row world) dims broadcast together; ``()`` for one world for all rows."""
+        s, c, bc, bR, bh, h, p, y = self.tensors()
+        return torch.broadcast_shapes(*(t.shape[:-2] for t in (s, c, bc, bh, h, p, y)), bR.shape[:-3])
+
+    def to(self, dtype: torch.dtype | None = None, device=None) -> World:
+        """The same world with every tensor in ``dtype`` on ``device`` (None: unchanged)."""
+        s, c, bc, bR, bh, h, p, y = (t.to(dtype=dtype or self.dtype, device=device or self.device)
+                                     for t in self.tensors())
+        return World(spheres=s, capsules=c, boxes=Box(bc, bR, bh), halfspaces=h, points=p, cylinders=y)
 
     def __len__(self) -> int:
         return sum(self.counts)
 
     def __repr__(self) -> str:
-        s, c, b, h, p = self.counts
-        return f"World(spheres={s}, capsules={c}, boxes={b}, halfspaces={h}, points={p})"
+        s, c, b, h, p, y = self.counts
+        return f"World(spheres={s}, capsules={c}, boxes={b}, halfspaces={h}, points={p}, cylinders={y})"
 
     def _round(self) -> tuple[Tensor, Tensor, Tensor]:
         """Spheres, capsules and points as capsules ``(a (..., W, 3), b (..., W, 3), r (..., W))``."""
@@ -101,68 +125,67 @@ class World:
         r = torch.cat([x.expand(*batch, x.shape[-1]) for _, _, x in parts], -1)
         return a, b, r
 
-    def _kind_columns(self, device=None) -> tuple[Tensor, Tensor, Tensor]:
-        """The world-order columns ``(round, boxes, half-spaces)`` of :meth:`_round`'s objects (spheres,
-        capsules, then points), of the boxes and of the half-spaces (long index tensors)."""
-        s, c, b, h, p = self.counts
-        ar = lambda n, start=0: start + torch.arange(n, device=device)  # noqa: E731
-        return torch.cat((ar(s + c), ar(p, s + c + b + h))), ar(b, s + c), ar(h, s + c + b)
+    def blocks(self) -> list[tuple[str, tuple[Tensor, ...]]]:
+        """The objects by kind of the pair table (:mod:`diffkin.collision.pairs`), in block order: round
+        objects (spheres, capsules, points as ``capsule``: :meth:`_round`), ``box``, ``halfspace``
+        (``(n (..., W_h, 3), offset (..., W_h))``), ``cylinder`` (``(a, b, r)``)."""
+        B, y = self.boxes, self.cylinders
+        return [("capsule", self._round()), ("box", (B.center, B.rotation, B.half_extents)),
+                ("halfspace", (self.halfspaces[..., :3], self.halfspaces[..., 3])),
+                ("cylinder", (y[..., :3], y[..., 3:6], y[..., 6]))]
 
-    def _assemble(self, round_d: Tensor, box_d: Tensor, half_d: Tensor) -> Tensor:
-        """(..., G, W) in the world's order from the round (spheres, capsules, points), box, half-space
-        blocks."""
-        s, c, _, _, p = self.counts
-        batch = torch.broadcast_shapes(round_d.shape[:-1], box_d.shape[:-1], half_d.shape[:-1])
-        e = lambda x: x.expand(*batch, x.shape[-1])  # noqa: E731
-        round_d, box_d, half_d = e(round_d), e(box_d), e(half_d)
-        return torch.cat((round_d[..., : s + c], box_d, half_d, round_d[..., s + c:]), -1)
+    def _kind_columns(self, device=None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The world-order columns of the objects of each of :meth:`blocks` (round: spheres, capsules, then
+        points; boxes; half-spaces; cylinders), long index tensors."""
+        s, c, b, h, p, y = self.counts
+        ar = lambda n, start=0: start + torch.arange(n, device=device)  # noqa: E731
+        return (torch.cat((ar(s + c), ar(p, s + c + b + h))), ar(b, s + c), ar(h, s + c + b),
+                ar(y, s + c + b + h + p))
+
+    def _assemble(self, parts: list[Tensor]) -> Tensor:
+        """(..., G, W) in the world's order from the blocks' distances (order of :meth:`blocks`)."""
+        s, c, *_ = self.counts
+        batch = torch.broadcast_shapes(*(x.shape[:-1] for x in parts))
+        rd, bd, hd, yd = (x.expand(*batch, x.shape[-1]) for x in parts)
+        return torch.cat((rd[..., : s + c], bd, hd, rd[..., s + c:], yd), -1)
 
     def distances(self, a: Tensor, b: Tensor, r: Tensor, bc: Tensor, bR: Tensor, bh: Tensor,
-                  threshold: float | None = None) -> Tensor:
-        """Signed distances of G_r capsules ``a, b (..., G_r, 3), r (..., G_r)`` and G_b boxes ``bc (..., G_b,
-        3), bR (..., G_b, 3, 3), bh (..., G_b, 3)`` to every object: ``(..., G_r + G_b, W)`` (capsules
-        first). With ``threshold`` the box entries (searches) are exact only where their bounding-sphere
-        bound is below it, the others hold that bound (>= threshold; :mod:`diffkin.collision.broad`)."""
-        if a.dtype != self.dtype or a.device != self.device:
-            raise DiffkinError(f"the world is {self.dtype} on {self.device}, the robot {a.dtype} on "
-                               f"{a.device}: build the world in the robot's dtype and device")
-        wa, wb, wr = self._round()
-        B = self.boxes
-        n, d = self.halfspaces[..., :3], self.halfspaces[..., 3]
-        g = lambda x: x.unsqueeze(-2)  # noqa: E731  robot geoms (..., G, 1, 3)
-        w = lambda x: x.unsqueeze(-3)  # noqa: E731  world objects (..., 1, W, 3)
-        wm = lambda x: x.unsqueeze(-4)  # noqa: E731  world matrices (..., 1, W, 3, 3)
-        nb = B.center.shape[-2]
-        empty = lambda x: x.new_zeros(*x.shape[:-1], 0)  # noqa: E731  (skips the box searches' small ops)
-        wbox = (w(B.center), wm(B.rotation), w(B.half_extents))
-        ga, gb, gr, gbox = g(a), g(b), r[..., None], (g(bc), bR.unsqueeze(-3), g(bh))
-        rows = [self._assemble(
-            _pair(capsule_capsule, (ga, gb, gr), (w(wa), w(wb), wr[..., None, :]), threshold),
-            _pair(capsule_box, (ga, gb, gr), wbox, threshold) if nb else empty(a),
-            capsule_halfspace(ga, gb, gr, w(n), d[..., None, :]))]
-        if bc.shape[-2]:
-            rows.append(self._assemble(
-                _pair(capsule_box, (w(wa), w(wb), wr[..., None, :]), gbox, threshold),
-                _pair(box_box, gbox, wbox, threshold) if nb else empty(bc),
-                box_halfspace(*gbox, w(n), d[..., None, :])))
+                  threshold: float | None = None, *, cylinders: tuple[Tensor, Tensor, Tensor] | None = None
+                  ) -> Tensor:
+        """Signed distances of G_r capsules ``a, b (..., G_r, 3), r (..., G_r)``, G_b boxes ``bc (..., G_b,
+        3), bR (..., G_b, 3, 3), bh (..., G_b, 3)`` and G_y ``cylinders`` ``(a, b (..., G_y, 3), r (...,
+        G_y))`` to every object: ``(..., G_r + G_b + G_y, W)`` (in that order). With ``threshold`` the
+        pairs that have a bound (:mod:`diffkin.collision.pairs`) are exact only where their bound is below
+        it, the others hold that bound (>= threshold; :mod:`diffkin.collision.broad`)."""
+        geoms = [("capsule", (a, b, r)), ("box", (bc, bR, bh))]
+        if cylinders is not None:
+            geoms.append(("cylinder", tuple(cylinders)))
+        return self.distances_of(geoms, threshold)
+
+    def distances_of(self, geoms: list[tuple[str, tuple[Tensor, ...]]], threshold: float | None = None
+                     ) -> Tensor:
+        """Signed distances ``(..., ΣG_k, W)`` of robot geoms given by kind, ``[(kind, args (..., G_k,
+        own dims)), ...]`` (kinds of :data:`diffkin.collision.pairs.KINDS`), to every object, through the
+        pair table; ``threshold`` as in :meth:`distances`."""
+        from .pairs import KINDS, distance
+
+        ref = geoms[0][1][0]
+        if ref.dtype != self.dtype or ref.device != self.device:
+            raise DiffkinError(f"the world is {self.dtype} on {self.device}, the robot {ref.dtype} on "
+                               f"{ref.device}: build the world in the robot's dtype and device")
+        count = lambda k, args: args[0].shape[-1 - KINDS[k].own[0]]  # noqa: E731  (objects / geoms)
+        world = [(k, tuple(x.unsqueeze(-2 - own) for x, own in zip(args, KINDS[k].own)), count(k, args))
+                 for k, args in self.blocks()]
+        rows = []
+        for kg, args in geoms:
+            if count(kg, args) == 0 and rows:  # (static sizes: skip empty kinds)
+                continue
+            g = tuple(x.unsqueeze(-1 - own) for x, own in zip(args, KINDS[kg].own))
+            empty = g[0].new_zeros(*g[0].shape[:-1 - KINDS[kg].own[0]], 0)
+            rows.append(self._assemble([distance(kg, g, kw, w, threshold) if n else empty
+                                        for kw, w, n in world]))
         batch = torch.broadcast_shapes(*(x.shape[:-2] for x in rows))
         return torch.cat([x.expand(*batch, *x.shape[-2:]) for x in rows], -2)
-
-
-def _pair(fn, x: tuple, y: tuple, threshold: float | None) -> Tensor:
-    """``fn(*x, *y)`` for ``fn`` one of capsule_capsule (x, y capsules ``(a, b, r)``), capsule_box (x a
-    capsule, y a box ``(c, R, h)``), box_box; with ``threshold`` through the broad phase
-    (:func:`~diffkin.collision.broad.exact_below`, the bound of the pair's kind)."""
-    if threshold is None:
-        return fn(*x, *y)
-    cap, box = (1, 1, 0), (1, 2, 1)  # the own dims of (a, b, r) and (c, R, h)
-    if fn is capsule_capsule:
-        bound, ks = sphere_bound(*capsule_spheres(*x), *capsule_spheres(*y)), (cap, cap)
-    elif fn is capsule_box:
-        bound, ks = capsule_box_bound(*x, *y), (cap, box)
-    else:
-        bound, ks = sphere_bound(*box_spheres(x[0], x[2]), *box_spheres(y[0], y[2])), (box, box)
-    return exact_below(bound, threshold, fn, *zip(x, ks[0]), *zip(y, ks[1]))
 
 
 def _check_world(world) -> World:

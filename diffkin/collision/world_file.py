@@ -9,6 +9,7 @@
       - {center: [0.4, 0.0, 0.05], half_extents: [0.1, 0.2, 0.05], rpy: [0, 0, 0.3]}
     halfspaces: [[0, 0, 1, -0.01]]                  # unit normal n, offset d: the solid {x : n·x <= d}
     points:     [[0.3, 0.1, 0.7]]
+    cylinders:  [[0.6, 0.2, 0.0, 0.6, 0.2, 0.3, 0.05]]   # axis end points a, b (flat-face centres), radius
 
 Every key is optional; an unknown key is an error naming the valid ones.
 """
@@ -28,7 +29,7 @@ from .world import World
 __all__ = ["read_world", "WORLD_KEYS"]
 
 #: the keys of a world file, in the order of ``world_distances``' last axis
-WORLD_KEYS = ("spheres", "capsules", "boxes", "halfspaces", "points")
+WORLD_KEYS = ("spheres", "capsules", "boxes", "halfspaces", "points", "cylinders")
 _BOX_KEYS = ("center", "half_extents", "rpy")
 
 
@@ -59,7 +60,7 @@ def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
         raise DiffkinError(f"{path}: unknown key(s) {', '.join(map(str, unknown))}; valid: "
                            f"{', '.join(WORLD_KEYS)}")
     boxes = _boxes(path, data.get("boxes"), dtype, device)
-    lists = {k: data.get(k) or None for k in ("spheres", "capsules", "halfspaces", "points")}
+    lists = {k: data.get(k) or None for k in ("spheres", "capsules", "halfspaces", "points", "cylinders")}
     try:
         return World(boxes=boxes, dtype=dtype, device=device, **lists)
     except DiffkinError as exc:

@@ -175,8 +175,7 @@ def _model_state(constraint: DistanceConstraint) -> tuple | None:
     w = constraint.world
     ts = [*coll.parameters(), *coll.buffers()]
     if w is not None:
-        ts += [w.spheres, w.capsules, w.halfspaces, w.points, w.boxes.center, w.boxes.rotation,
-               w.boxes.half_extents]
+        ts += list(w.tensors())
     return chain, key, constraint.margin, [(t, t._version) for t in ts]
 
 
@@ -202,8 +201,7 @@ def constraint_of(chain, collision, world, margin, base) -> DistanceConstraint |
     margin = check_number(margin, "margin", positive=False)
     if world is not None:
         world = _check_world(world)
-        if any(t.ndim > 2 for t in (world.spheres, world.capsules, world.halfspaces, world.points)) or \
-                world.boxes.center.ndim > 2:
+        if len(world.batch_shape):
             raise ShapeError("ik: one world for all targets (objects without batch dims)")
     if base is not None and world is not None:
         raise DiffkinError("ik.solve: a world with per-target bases is not supported (the world is in the "

@@ -153,9 +153,6 @@ class DistanceConstraint:
         """A copy evaluating in ``dtype`` (the collision model, its chain and the world converted)."""
         import copy
 
-        from ..collision import World, box  # noqa: F401  (the layer above the model, imported lazily)
-        from ..collision.boxes import Box
-
         if self.collision.capsule_radius.dtype == dtype:
             return self
         if getattr(self.collision, "chain", None) is None:
@@ -163,12 +160,7 @@ class DistanceConstraint:
                                "in the solver's dtype")
         coll = copy.deepcopy(self.collision).to(dtype)  # the geometry (the chain is held by reference)
         coll.chain = coll.chain.to(dtype)  # the deep copy's chain, never the user's
-        w = self.world
-        if w is not None:
-            b = w.boxes
-            w = World(spheres=w.spheres.to(dtype), capsules=w.capsules.to(dtype),
-                      boxes=Box(b.center.to(dtype), b.rotation.to(dtype), b.half_extents.to(dtype)),
-                      halfspaces=w.halfspaces.to(dtype), points=w.points.to(dtype))
+        w = None if self.world is None else self.world.to(dtype)
         return DistanceConstraint(coll, w, self.margin)
 
 
