@@ -10,7 +10,9 @@
     halfspaces: [[0, 0, 1, -0.01]]                  # unit normal n, offset d: the solid {x : n·x <= d}
     points:     [[0.3, 0.1, 0.7]]
 
-Every key is optional; an unknown key is an error naming the valid ones.
+Every key is optional; an unknown key is an error naming the valid ones. A MoveIt PlanningScene YAML (a
+``world: collision_objects:`` list and an ``allowed_collision_matrix``) is read as such
+(:mod:`diffkin.collision.moveit`; its allowed pairs: :func:`~diffkin.collision.moveit.read_scene`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import yaml
 
 from ..errors import DiffkinError
 from .boxes import box
+from .moveit import is_moveit_scene, scene_from_data
 from .world import World
 
 __all__ = ["read_world", "WORLD_KEYS"]
@@ -33,7 +36,8 @@ _BOX_KEYS = ("center", "half_extents", "rpy")
 
 
 def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
-    """A :class:`~diffkin.collision.World` from a ``.yaml`` / ``.yml`` / ``.json`` file (module docstring),
+    """A :class:`~diffkin.collision.World` from a ``.yaml`` / ``.yml`` / ``.json`` file (module docstring) or
+    a MoveIt PlanningScene YAML (boxes, spheres, cylinders: :meth:`~diffkin.collision.moveit.Scene.to_world`),
     its tensors in ``dtype`` on ``device``. Errors (:class:`~diffkin.errors.DiffkinError`) name the file and
     the entry."""
     path = Path(path)
@@ -51,6 +55,8 @@ def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
         raise DiffkinError(f"{path}: cannot read the world file: {exc}") from None
     if data is None:
         data = {}
+    if is_moveit_scene(data):  # a MoveIt PlanningScene (diffkin.collision.moveit)
+        return scene_from_data(str(path), data).to_world(dtype=dtype, device=device)
     if not isinstance(data, dict):
         raise DiffkinError(f"{path}: expected a mapping with keys {', '.join(WORLD_KEYS)}, got "
                            f"{type(data).__name__}")
