@@ -27,9 +27,14 @@ DATA = mp.DATA
 
 
 @pytest.fixture(scope="module")
-def cage():
-    """Problems 1-7 of the cage family (one pass over the archive)."""
-    return mp.load_problems(families={"cage"}, indices=range(1, 8))
+def problems():
+    """Problems 1-7 and 41 of the cage, box and table_pick families (one pass over the archive)."""
+    return mp.load_problems(families={"cage", "box", "table_pick"}, indices={*range(1, 8), 41})
+
+
+@pytest.fixture(scope="module")
+def cage(problems):
+    return [p for p in problems if p.family == "cage" and p.index <= 7]
 
 
 @pytest.fixture(scope="module")
@@ -268,6 +273,38 @@ def test_allow_collisions_drops_exactly_the_allowed_link_pairs(spherized, cage):
 
 
 # ------------------------------------------------------------------------------ the benchmark's counts
+
+def test_benchmark_counts_against_coal_and_pinocchio(problems, spherized):
+    """The benchmark's verdicts for the spherized Panda on 24 problems (VAMP's one invalid problem,
+    table_pick 41, among them) are those of coal with the spheres placed by Pinocchio against the scene's
+    true boxes and cylinders; with cylinders as capsules the box family's goals are flagged too (their
+    caps)."""
+    from benchmarks import bench_motion_problems as bench
+
+    chain, rc = spherized
+    model = pin.buildModelFromUrdf(str(mp.PANDA_SPHERIZED_URDF))
+    gmodel = pin.buildGeomFromUrdf(model, str(mp.PANDA_SPHERIZED_URDF), pin.COLLISION)
+    data, gdata = model.createData(), pin.GeometryData(gmodel)
+    want = {}
+    for p in problems:
+        shapes = [(coal.Box(*o.dimensions) if o.kind == "box" else coal.Cylinder(*o.dimensions[::-1]),
+                   ref.placement(o.pose[:3, :3].numpy(), o.pose[:3, 3].numpy())) for o in p.scene.objects]
+        states = []
+        for q in (p.start, p.goal):
+            pin.updateGeometryPlacements(model, data, gmodel, gdata, np.array(q))
+            states.append(any(ref.collide(go.geometry, gdata.oMg[i], *s)
+                              for i, go in enumerate(gmodel.geometryObjects) for s in shapes))
+        want.setdefault(p.family, []).append(states)
+    rows = {r["family"]: r for r in bench.run(models=("spherized",), problems=problems)}
+    for family, states in want.items():
+        st = np.array(states)
+        assert rows[family]["start"] == st[:, 0].sum() and rows[family]["goal"] == st[:, 1].sum()
+        assert rows[family]["start_or_goal"] == st.any(1).sum() and rows[family]["self"] == 0
+    assert rows["all"]["start_or_goal"] == 1 and rows["table_pick"]["goal"] == 1  # table_pick 41's goal
+    capsules = {r["family"]: r for r in bench.run(models=("spherized",), problems=problems,
+                                                  cylinders="capsules")}
+    assert capsules["box"]["goal"] > 0 and capsules["all"]["start_or_goal"] > 1
+
 
 @pytest.mark.extended
 def test_spherized_panda_finds_vamps_one_invalid_problem():
