@@ -84,6 +84,49 @@ def test_mimic_on_a_fixed_joint_is_inert_but_a_moving_follower_of_a_fixed_joint_
         diffkin.models.urdf_xml.parse_urdf(base.format(t="revolute"))
 
 
+@pytest.mark.extended
+def test_vamp_panda_capsule_model_covers_every_collision_mesh_fingers_included():
+    """Today's default model of VAMP's panda.urdf (meshes fitted by capsules; ~10 s): a geom on every link
+    with a <collision> (both fixed fingers included), and every vertex of each OBJ (read by trimesh), placed
+    by Pinocchio's frames, inside the union of that mesh's capsules."""
+    trimesh = pytest.importorskip("trimesh")
+    import xml.etree.ElementTree as ET
+
+    chain = diffkin.models.from_urdf(mp.PANDA_URDF, "panda_hand", dtype=F64)
+    rc = RobotCollision.from_urdf(mp.PANDA_URDF, chain, mp.PANDA_SRDF)
+    root = ET.parse(mp.PANDA_URDF).getroot()
+    meshes = {}  # link -> (mesh file, collision origin (4, 4))
+    for link in root.iter("link"):
+        for c in link.findall("collision"):
+            o = c.find("origin")
+            T = np.eye(4)
+            if o is not None:  # URDF rpy: R = Rz(y) Ry(p) Rx(r), scipy's extrinsic "xyz"
+                rpy = [float(x) for x in o.get("rpy", "0 0 0").split()]
+                T[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
+                T[:3, 3] = [float(x) for x in o.get("xyz", "0 0 0").split()]
+            meshes[link.get("name")] = (c.find("geometry/mesh").get("filename").replace("package://", ""), T)
+    assert {g.link for g in rc.geoms} == set(meshes)
+    assert {"panda_leftfinger", "panda_rightfinger"} <= set(meshes)
+    model = pin.buildModelFromUrdf(str(mp.PANDA_URDF))
+    data = model.createData()
+    q = _random_q(chain, 3, seed=11)
+    with torch.no_grad():
+        a, b, r, *_ = rc.placed(q)
+    for s in range(len(q)):
+        pin.framesForwardKinematics(model, data, q[s].numpy())
+        for link, (file, T) in meshes.items():
+            M = data.oMf[model.getFrameId(link)].homogeneous @ T
+            v = trimesh.load(DATA / file, force="mesh").vertices @ M[:3, :3].T + M[:3, 3]
+            ks = [k for k, g in enumerate(g for g in rc.geoms if g.shape == "capsule") if g.link == link]
+            inside = np.zeros(len(v), dtype=bool)
+            for k in ks:
+                A, B = a[s, k].numpy(), b[s, k].numpy()
+                t = np.clip((v - A) @ (B - A) / max((B - A) @ (B - A), 1e-18), 0.0, 1.0)
+                radius = float(r[k].detach())
+                inside |= np.linalg.norm(v - (A + t[:, None] * (B - A)), axis=1) <= radius + 1e-9
+            assert inside.all(), (link, (~inside).sum())
+
+
 # ------------------------------------------------------------------------------ the spherized URDF
 
 def test_spherized_panda_self_distances_against_coal_placed_by_pinocchio(spherized):
