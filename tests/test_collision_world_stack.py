@@ -70,3 +70,5 @@ def test_stack_errors():
         World.stack([World.stack([a, a]), a])
     with pytest.raises(DiffkinError, match="non-empty"):
         World.stack([])
+    with pytest.raises(DiffkinError, match="list of diffkin.collision.World"):
+        World.stack(a)  # one world, not a list

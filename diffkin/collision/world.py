@@ -97,6 +97,10 @@ class World:
         collide (:mod:`diffkin.collision.world_stack`; ``stacked_columns`` maps a world's columns)."""
         from .world_stack import stack_worlds
 
+        if not isinstance(worlds, (list, tuple)) or not all(isinstance(w, World) for w in worlds):
+            got = [type(w).__name__ for w in worlds] if isinstance(worlds, (list, tuple)) else \
+                type(worlds).__name__
+            raise DiffkinError(f"World.stack: expected a list of diffkin.collision.World, got {got}")
         return cls(**stack_worlds(worlds))
 
     def _round(self) -> tuple[Tensor, Tensor, Tensor]:

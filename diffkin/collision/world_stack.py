@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ..errors import DiffkinError
+from .boxes import Box
 
 __all__ = ["PAD_DISTANCE", "stack_worlds", "stacked_columns"]
 
@@ -45,11 +46,8 @@ def stack_worlds(worlds: Sequence) -> dict:
     """The keyword arguments of the batched World of ``worlds`` (module docstring): each kind ``(B, W_max,
     ·)``, the boxes a :class:`~diffkin.collision.Box` of ``(B, W_max_b, ·)``. The worlds must be unbatched
     and of one dtype and device."""
-    from .boxes import Box
-    from .world import World
-
     worlds = list(worlds)
-    if not worlds or not all(isinstance(w, World) for w in worlds):
+    if not worlds or not all(hasattr(w, "boxes") and hasattr(w, "counts") for w in worlds):
         raise DiffkinError("World.stack: expected a non-empty sequence of diffkin.collision.World, got "
                            f"{[type(w).__name__ for w in worlds] if worlds else 'nothing'}")
     ref = worlds[0]
