@@ -54,8 +54,10 @@ def robot_model(name: str) -> RobotCollision:
 def run(args=None, *, models=MODELS, families=None, problems=None, cylinders: str = "exact") -> list[dict]:
     """One row per (model, family) and a total row per model (module docstring); ``cylinders="capsules"``
     counts the world's capsules as they are (no coal re-check)."""
-    if args is not None:
-        models, families, cylinders = args.models, args.families, args.cylinders
+    if args is not None:  # benchmarks.run's namespace has none of these: the defaults then
+        models = getattr(args, "models", models)
+        families = getattr(args, "families", families)
+        cylinders = getattr(args, "cylinders", cylinders)
     problems = load_problems(families=families) if problems is None else problems
     rows = []
     for name in models:
@@ -64,10 +66,10 @@ def run(args=None, *, models=MODELS, families=None, problems=None, cylinders: st
         total: dict = defaultdict(int)
         for family in sorted(counts):
             c = counts[family]
-            rows.append({"model": name, "family": family, **c})
+            rows.append({"benchmark": "motion_problems", "model": name, "family": family, **c})
             for k, v in c.items():
                 total[k] = v if isinstance(v, str) else total[k] + v
-        rows.append({"model": name, "family": "all", **total})
+        rows.append({"benchmark": "motion_problems", "model": name, "family": "all", **total})
     return rows
 
 
