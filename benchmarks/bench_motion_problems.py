@@ -77,19 +77,20 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     rules: dict = {}  # one model per distinct allowed-collision matrix (all 700 share one)
     q = torch.tensor([[p.start, p.goal] for p in problems], dtype=F64)  # (N, 2, 7)
     base = torch.tensor([g.link == "panda_link0" for g in rc.geoms])
-    coal_ref = _CoalCylinders.make() if exact else None
-    label = "exact" if _EXACT_CYLINDERS else "exact (coal)" if coal_ref else "capsules"
+    coal_ref = _CoalCylinders.make() if exact and not _EXACT_CYLINDERS else None
+    label = "capsules" if not exact else "exact" if _EXACT_CYLINDERS else "exact (coal)" if coal_ref \
+        else "capsules"
     out: dict[str, dict] = {}
     with torch.no_grad():
         for k, p in enumerate(problems):
             model = rules.get(p.scene.allowed)
             if model is None:
                 model = rules[p.scene.allowed] = rc.allow_collisions(p.scene.allowed)
-            world = p.scene.to_world(dtype=F64)
+            world = p.scene.to_world(dtype=F64, cylinders=None if exact else "capsules")
             self_hit = (model.self_distances(q[k]) < 0).any(-1)  # (2,)
             d = model.world_distances(q[k], world)  # (2, G, W)
             hit = d < 0
-            if coal_ref is not None and world.capsules.shape[-2]:
+            if coal_ref is not None and world.capsules.shape[-2]:  # the scene's cylinders, as capsules
                 hit = coal_ref.recheck(model, q[k], p.scene, hit)
             world_hit = hit.flatten(1).any(-1)
             base_hit = hit[:, base].flatten(1).any(-1)

@@ -222,6 +222,11 @@ def test_hand_written_scene_poses_against_scipy_and_acm_pairs(tmp_path):
     cyl = w.capsules if w.capsules.shape[0] else w.cylinders
     np.testing.assert_allclose(cyl[0, :6].numpy(), np.r_[c - 0.15 * axis, c + 0.15 * axis], atol=1e-12)
     assert float(cyl[0, 6]) == 0.02
+    held = sc.to_world(dtype=F64, cylinders="capsules")  # the enclosing capsule on request, in any World
+    torch.testing.assert_close(held.capsules, cyl, rtol=0, atol=0)
+    assert sc.column_names("capsules") == ["ball", "table/1", "table/0"]
+    with pytest.raises(DiffkinError, match="cylinders as 'exact', 'capsules' or None"):
+        sc.to_world(cylinders="cones")
 
 
 @pytest.mark.parametrize("edit, match", [

@@ -81,13 +81,15 @@ class Scene:
     joint_state: Mapping[str, float] = field(default_factory=dict)
     name: str = ""
 
-    def to_world(self, *, dtype: torch.dtype | None = None, device=None) -> World:
+    def to_world(self, *, dtype: torch.dtype | None = None, device=None,
+                 cylinders: str | None = None) -> World:
         """The obstacles as a :class:`~diffkin.collision.World` in ``dtype`` on ``device``: spheres, boxes
         (centre, rotation, half sizes) and cylinders (axis end points at ± height/2 along the local z axis,
-        radius). A cylinder is represented by its enclosing capsule (same axis and radius: conservative, at
-        most the radius beyond each flat face) until the World has exact cylinders. Objects come in kind
-        order (spheres, capsules, boxes) as the World indexes them; ``world_names`` gives each column's
-        name."""
+        radius). ``cylinders``: ``"capsules"`` holds each cylinder as its enclosing capsule (same axis and
+        radius: conservative, at most the radius beyond each flat face), ``"exact"`` as an exact cylinder
+        (where the World has them), None the default: exact where the World has them, else capsules.
+        Objects come in the World's kind order; :meth:`column_names` names each column."""
+        exact = self._exact(cylinders)
         dt = dtype or torch.get_default_dtype()
         by = {k: [p for p in self.objects if p.kind == k] for k in ("sphere", "cylinder", "box")}
         f = lambda rows, n: torch.tensor(rows, dtype=torch.float64).reshape(-1, n)  # noqa: E731
@@ -104,14 +106,27 @@ class Scene:
                                                                                     dtype=torch.float64)
         half = f([[0.5 * d for d in p.dimensions] for p in boxes], 3)
         cast = lambda t: t.to(dtype=dt, device=device)  # noqa: E731
-        kw = {"cylinders": cast(cyl_t)} if _EXACT_CYLINDERS else {"capsules": cast(cyl_t)}
+        kw = {"cylinders": cast(cyl_t)} if exact else {"capsules": cast(cyl_t)}
         return World(spheres=cast(spheres), boxes=Box(cast(center), cast(rot), cast(half)), **kw)
+
+    def column_names(self, cylinders: str | None = None) -> list[str]:
+        """The name of every column of ``to_world(cylinders=cylinders)``'s world, in the World's order."""
+        exact = self._exact(cylinders)
+        kinds = ("sphere", "box", "cylinder") if exact else ("sphere", "cylinder", "box")
+        return [p.name for k in kinds for p in self.objects if p.kind == k]
 
     @property
     def world_names(self) -> list[str]:
-        """The name of every column of :meth:`to_world`'s world, in the World's order."""
-        kinds = ("sphere", "box", "cylinder") if _EXACT_CYLINDERS else ("sphere", "cylinder", "box")
-        return [p.name for k in kinds for p in self.objects if p.kind == k]
+        """:meth:`column_names` of the default :meth:`to_world`."""
+        return self.column_names()
+
+    @staticmethod
+    def _exact(cylinders: str | None) -> bool:
+        if cylinders not in (None, "exact", "capsules"):
+            raise DiffkinError(f"expected cylinders as 'exact', 'capsules' or None, got {cylinders!r}")
+        if cylinders == "exact" and not _EXACT_CYLINDERS:
+            raise DiffkinError("cylinders='exact': this World holds no exact cylinders yet (use 'capsules')")
+        return _EXACT_CYLINDERS if cylinders is None else cylinders == "exact"
 
 
 def is_moveit_scene(data) -> bool:
