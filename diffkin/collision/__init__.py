@@ -4,6 +4,8 @@
 * :mod:`~diffkin.collision.boxes`: oriented boxes (:func:`box`) against all of those and each other.
 * :mod:`~diffkin.collision.cylinders`: exact cylinders (flat ends) against all of those and each other.
 * :mod:`~diffkin.collision.pairs`: the pair table (kinds × kinds → distance, broad-phase bound, C entry).
+* :func:`read_world` / :func:`read_scene`: world files and MoveIt PlanningScene YAML
+  (:mod:`~diffkin.collision.moveit`).
 * :class:`World`: the obstacles; :class:`RobotCollision`: the robot's geoms, its checked pairs,
   ``self_distances``, ``world_distances`` and ``min_distance``.
 
@@ -35,6 +37,9 @@ from ._checked import sphere_halfspace as sphere_halfspace
 from ._checked import sphere_sphere as sphere_sphere
 from .boxes import Box as Box
 from .boxes import box as box
+from .moveit import Primitive as Primitive
+from .moveit import Scene as Scene
+from .moveit import read_scene as read_scene
 from .robot import Geom as Geom
 from .robot import RobotCollision as RobotCollision
 from .world import World as World
@@ -42,6 +47,9 @@ from .world_file import read_world as read_world
 
 __all__ = [
     "read_world",
+    "read_scene",
+    "Scene",
+    "Primitive",
     "Box",
     "Geom",
     "RobotCollision",

@@ -124,6 +124,7 @@ class RobotCollision(nn.Module):
                              persistent=False)
         self._rows_in_order = cap + bx == list(range(len(self.geoms)))  # then no gather of the world rows
         self.pairs = [(self.geoms[i].name, self.geoms[j].name) for i, j in pairs]
+        self._pair_index = [(int(i), int(j)) for i, j in pairs]  # geom indices of ``pairs``
         kinds: dict[tuple[int, int], list] = {(0, 0): [], (0, 1): [], (1, 1): []}
         for p, (i, j) in enumerate(pairs):
             (ki, ii), (kj, jj) = sorted((where[i], where[j]))
@@ -147,12 +148,46 @@ class RobotCollision(nn.Module):
         """The same geoms on the same chain, checked against a world only: no self pairs (``diffkin fk/ik
         --world`` without ``--self-collision``). The geometry's current values are copied (the result has
         parameters of its own); ``skip_fixed`` is kept."""
+        return self._with_pairs([])
+
+    def allow_collisions(self, pairs) -> RobotCollision:
+        """The same geoms on the same chain without the self pairs of the given link pairs: an allowed-
+        collision matrix's true entries (:attr:`diffkin.collision.moveit.Scene.allowed`) or any iterable of
+        two link names, as an SRDF's ``<disable_collisions>``. Pairs of two names neither of which is a
+        link of the robot (object–object entries) are ignored; a pair of a robot link and another name (a
+        robot–object rule) is a :class:`~diffkin.errors.ModelError`, as the
+        :class:`~diffkin.collision.World` has no per-object rules. The geometry is copied as in
+        :meth:`world_only`; ``skip_fixed`` is kept."""
+        links = set(self._frames.links)
+        tree = getattr(self.chain, "tree", None)
+        links |= set(getattr(tree, "links", ()))  # links of the URDF the chain leaves out (no geoms)
+        rules = set()
+        for p in pairs:
+            if isinstance(p, (set, frozenset)) and len(p) == 1:  # a link with itself: never checked
+                continue
+            p = (p,) if isinstance(p, str) else tuple(p)
+            if len(p) != 2 or not all(isinstance(n, str) for n in p):
+                raise ModelError(f"allow_collisions: expected pairs of two link names, got {p!r}")
+            known = [n in links for n in p]
+            if all(known):
+                rules.add(frozenset(p))
+            elif any(known):
+                other = p[known.index(False)]
+                raise ModelError(f"allow_collisions: {p!r} pairs a robot link with {other!r}, not a link of "
+                                 "this robot: robot-object rules are not supported (the World has no "
+                                 "per-object rules; leave the object out of the world instead)")
+        return self._with_pairs([(i, j) for i, j in self._pair_index
+                                 if frozenset((self.geoms[i].link, self.geoms[j].link)) not in rules])
+
+    def _with_pairs(self, pairs: list[tuple[int, int]]) -> RobotCollision:
+        """A copy of the geometry's current values (parameters of its own) on the same chain and frames,
+        checking the geom index ``pairs``; ``skip_fixed`` and ``requires_grad`` kept."""
         with torch.no_grad():
             caps = [(a.tolist(), b.tolist(), float(r)) for a, b, r in
                     zip(self.capsule_a, self.capsule_b, self.capsule_radius)]
             boxes = [(c.tolist(), e.tolist(), h.tolist()) for c, e, h in
                      zip(self.box_center, self.box_rpy, self.box_half_extents)]
-        out = type(self)(self.chain, self.geoms, [g.link for g in self.geoms], caps, boxes, [],
+        out = type(self)(self.chain, self.geoms, [g.link for g in self.geoms], caps, boxes, pairs,
                          frames=self._frames, dtype=self.capsule_a.dtype, device=self.capsule_a.device)
         out.skip_fixed = self.skip_fixed
         return out.requires_grad_(any(p.requires_grad for p in self.parameters()))

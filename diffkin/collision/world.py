@@ -114,6 +114,19 @@ class World:
         s, c, b, h, p, y = self.counts
         return f"World(spheres={s}, capsules={c}, boxes={b}, halfspaces={h}, points={p}, cylinders={y})"
 
+    @classmethod
+    def stack(cls, worlds) -> World:
+        """One batched world ``(B, ...)`` from B unbatched worlds of possibly different sizes (one scene per
+        row of a batch of q ``(B, n)``): each kind is padded to the largest count with objects that never
+        collide (:mod:`diffkin.collision.world_stack`; ``stacked_columns`` maps a world's columns)."""
+        from .world_stack import stack_worlds
+
+        if not isinstance(worlds, (list, tuple)) or not all(isinstance(w, World) for w in worlds):
+            got = [type(w).__name__ for w in worlds] if isinstance(worlds, (list, tuple)) else \
+                type(worlds).__name__
+            raise DiffkinError(f"World.stack: expected a list of diffkin.collision.World, got {got}")
+        return cls(**stack_worlds(worlds))
+
     def _round(self) -> tuple[Tensor, Tensor, Tensor]:
         """Spheres, capsules and points as capsules ``(a (..., W, 3), b (..., W, 3), r (..., W))``."""
         parts = [(self.spheres[..., :3], self.spheres[..., :3], self.spheres[..., 3]),

@@ -11,7 +11,9 @@
     points:     [[0.3, 0.1, 0.7]]
     cylinders:  [[0.6, 0.2, 0.0, 0.6, 0.2, 0.3, 0.05]]   # axis end points a, b (flat-face centres), radius
 
-Every key is optional; an unknown key is an error naming the valid ones.
+Every key is optional; an unknown key is an error naming the valid ones. A MoveIt PlanningScene YAML (a
+``world: collision_objects:`` list and an ``allowed_collision_matrix``) is read as such
+(:mod:`diffkin.collision.moveit`; its allowed pairs: :func:`~diffkin.collision.moveit.read_scene`).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ import yaml
 
 from ..errors import DiffkinError
 from .boxes import box
+from .moveit import is_moveit_scene, scene_from_data
 from .world import World
 
 __all__ = ["read_world", "WORLD_KEYS"]
@@ -34,7 +37,8 @@ _BOX_KEYS = ("center", "half_extents", "rpy")
 
 
 def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
-    """A :class:`~diffkin.collision.World` from a ``.yaml`` / ``.yml`` / ``.json`` file (module docstring),
+    """A :class:`~diffkin.collision.World` from a ``.yaml`` / ``.yml`` / ``.json`` file (module docstring) or
+    a MoveIt PlanningScene YAML (boxes, spheres, cylinders: :meth:`~diffkin.collision.moveit.Scene.to_world`),
     its tensors in ``dtype`` on ``device``. Errors (:class:`~diffkin.errors.DiffkinError`) name the file and
     the entry."""
     path = Path(path)
@@ -52,6 +56,8 @@ def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
         raise DiffkinError(f"{path}: cannot read the world file: {exc}") from None
     if data is None:
         data = {}
+    if is_moveit_scene(data):  # a MoveIt PlanningScene (diffkin.collision.moveit)
+        return scene_from_data(str(path), data).to_world(dtype=dtype, device=device)
     if not isinstance(data, dict):
         raise DiffkinError(f"{path}: expected a mapping with keys {', '.join(WORLD_KEYS)}, got "
                            f"{type(data).__name__}")

@@ -5,8 +5,9 @@
 limits, mimics); visuals, collisions, inertials, transmissions, gazebo and namespaced tags are ignored there
 (:func:`parse_collisions` and :func:`parse_inertials` read the collision and inertial elements). It
 validates the structure (unique names, existing links, one parent per link, exactly one root, no loops,
-non-zero moving axes, ordered limits, acyclic mimics) and raises :class:`~diffkin.errors.ModelError` naming
-the offending joint or link. Every walk is iterative with a visited set, so a malformed file never hangs.
+non-zero moving axes, ordered limits, acyclic mimics; a ``<mimic>`` on a fixed joint is inert, as in ROS)
+and raises :class:`~diffkin.errors.ModelError` naming the offending joint or link. Every walk is iterative
+with a visited set, so a malformed file never hangs.
 
 :func:`write_urdf` writes new joint origins (e.g. calibrated ones) back by text surgery on the source: only
 the ``<origin>`` element directly inside each named ``<joint>`` changes; comments, whitespace, attribute
@@ -314,9 +315,11 @@ def _validate(links: list[str], joints: list[JointSpec]) -> str:
             raise ModelError(f"kinematic loop through links {_cycle_from(link, parent_of)} "
                              f"(not reachable from the root {root!r})")
 
-    # Mimics: the leader exists, is not fixed, and the leader pointers have no cycle.
+    # Mimics: the leader exists, is not fixed, and the leader pointers have no cycle. A <mimic> on a fixed
+    # joint is inert (a fixed joint has nothing to follow; ROS ignores it, as VAMP's Panda fingers have it):
+    # it is kept in the JointSpec but neither checked nor followed.
     for j in joints:
-        if j.mimic is None:
+        if j.mimic is None or j.type == "fixed":
             continue
         leader = by_name.get(j.mimic[0])
         if leader is None:
@@ -329,8 +332,8 @@ def _validate(links: list[str], joints: list[JointSpec]) -> str:
         name: str | None = j.name
         while name is not None and name not in done and name not in walk:
             walk[name] = len(walk)
-            mimic = by_name[name].mimic
-            name = mimic[0] if mimic else None
+            spec = by_name[name]
+            name = spec.mimic[0] if spec.mimic and spec.type != "fixed" else None
         if name is not None and name in walk:
             cycle = [n for n, i in walk.items() if i >= walk[name]]
             raise ModelError(f"mimic cycle among joints {cycle}")

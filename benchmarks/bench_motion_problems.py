@@ -1,0 +1,177 @@
+"""How many of the 700 MotionBenchMaker Panda problems start or end in collision, per scene family and robot
+model: the baseline a planner's collision model is judged by (VAMP counts 699 valid problems).
+
+    python -m benchmarks.bench_motion_problems [--models capsules spherized] [--families cage box]
+
+Models, both built from VAMP's files unchanged (``tests/data/vamp_panda``, the SRDF's pair rules and each
+scene's allowed-collision matrix through :meth:`~diffkin.collision.RobotCollision.allow_collisions`):
+
+* ``capsules``: today's default ``RobotCollision.from_urdf(panda.urdf)`` (each collision mesh fitted by at
+  most 4 enclosing capsules; never optimistic, oversized);
+* ``spherized``: ``panda_spherized.urdf``'s 59 spheres (VAMP's conservative spherical decomposition).
+
+A state (a start or a goal) is in collision when a checked self pair or a geom–obstacle pair has a signed
+distance < 0 (no margin). The world is :meth:`Scene.to_world <diffkin.collision.moveit.Scene.to_world>`;
+while it holds a cylinder as its enclosing capsule, every geom–cylinder pair that capsule flags is re-checked
+by coal against the true cylinder (``cylinders: exact (coal)``; without coal or with ``--cylinders
+capsules``: ``capsules``, the counts of the enclosing capsules). Columns: ``start`` / ``goal`` /
+``start_or_goal`` (problems), ``self`` and ``world`` (states in self-collision / touching an obstacle),
+``base_world`` (states where a geom of ``panda_link0``, which no joint moves, touches an obstacle). Counting
+only: no timing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+from collections import defaultdict
+
+import numpy as np
+import torch
+
+from benchmarks.common import cli
+from benchmarks.motion_problems import PANDA_SPHERIZED_URDF, PANDA_SRDF, PANDA_URDF, load_problems
+from diffkin import models as dk_models
+from diffkin.collision import RobotCollision
+from diffkin.collision.moveit import _EXACT_CYLINDERS
+
+__all__ = ["run", "robot_model", "main"]
+
+MODELS = ("capsules", "spherized")
+F64 = torch.float64
+
+
+def robot_model(name: str) -> RobotCollision:
+    """The robot model ``name`` (module docstring) on a float64 chain to ``panda_hand`` (fingers included:
+    they are fixed joints in VAMP's URDF)."""
+    urdf = {"capsules": PANDA_URDF, "spherized": PANDA_SPHERIZED_URDF}[name]
+    chain = dk_models.from_urdf(urdf, "panda_hand", dtype=F64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # panda.urdf's visual meshes are not vendored (collision ones are)
+        return RobotCollision.from_urdf(urdf, chain, PANDA_SRDF)
+
+
+def run(args=None, *, models=MODELS, families=None, problems=None, cylinders: str = "exact") -> list[dict]:
+    """One row per (model, family) and a total row per model (module docstring); ``cylinders="capsules"``
+    counts the world's capsules as they are (no coal re-check)."""
+    if args is not None:  # benchmarks.run's namespace has none of these: the defaults then
+        models = getattr(args, "models", models)
+        families = getattr(args, "families", families)
+        cylinders = getattr(args, "cylinders", cylinders)
+    problems = load_problems(families=families) if problems is None else problems
+    rows = []
+    for name in models:
+        rc = robot_model(name)
+        counts = _count(rc, problems, exact=cylinders == "exact")
+        total: dict = defaultdict(int)
+        for family in sorted(counts):
+            c = counts[family]
+            rows.append({"benchmark": "motion_problems", "model": name, "family": family, **c})
+            for k, v in c.items():
+                total[k] = v if isinstance(v, str) else total[k] + v
+        rows.append({"benchmark": "motion_problems", "model": name, "family": "all", **total})
+    return rows
+
+
+def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
+    rules: dict = {}  # one model per distinct allowed-collision matrix (all 700 share one)
+    q = torch.tensor([[p.start, p.goal] for p in problems], dtype=F64)  # (N, 2, 7)
+    base = torch.tensor([g.link == "panda_link0" for g in rc.geoms])
+    coal_ref = _CoalCylinders.make() if exact and not _EXACT_CYLINDERS else None
+    label = "capsules" if not exact else "exact" if _EXACT_CYLINDERS else "exact (coal)" if coal_ref \
+        else "capsules"
+    out: dict[str, dict] = {}
+    with torch.no_grad():
+        for k, p in enumerate(problems):
+            model = rules.get(p.scene.allowed)
+            if model is None:
+                model = rules[p.scene.allowed] = rc.allow_collisions(p.scene.allowed)
+            world = p.scene.to_world(dtype=F64, cylinders=None if exact else "capsules")
+            self_hit = (model.self_distances(q[k]) < 0).any(-1)  # (2,)
+            d = model.world_distances(q[k], world)  # (2, G, W)
+            hit = d < 0
+            if coal_ref is not None and world.capsules.shape[-2]:  # the scene's cylinders, as capsules
+                hit = coal_ref.recheck(model, q[k], p.scene, hit)
+            world_hit = hit.flatten(1).any(-1)
+            base_hit = hit[:, base].flatten(1).any(-1)
+            state = self_hit | world_hit
+            c = out.setdefault(p.family, {"problems": 0, "start": 0, "goal": 0, "start_or_goal": 0, "self": 0,
+                                          "world": 0, "base_world": 0,
+                                          "cylinders": label})
+            c["problems"] += 1
+            c["start"] += int(state[0])
+            c["goal"] += int(state[1])
+            c["start_or_goal"] += int(state.any())
+            c["self"] += int(self_hit.sum())
+            c["world"] += int(world_hit.sum())
+            c["base_world"] += int(base_hit.sum())
+    return out
+
+
+class _CoalCylinders:
+    """Re-checks the geom–cylinder entries a capsule flagged against the true cylinder, by coal (the robot's
+    geoms are diffkin's capsules and spheres, placed by diffkin)."""
+
+    def __init__(self, coal):
+        self.coal = coal
+
+    @classmethod
+    def make(cls):
+        try:
+            import coal
+        except ImportError:
+            return None
+        return cls(coal)
+
+    def recheck(self, rc: RobotCollision, q: torch.Tensor, scene, hit: torch.Tensor) -> torch.Tensor:
+        coal = self.coal
+        names = scene.world_names
+        prims = {p.name: p for p in scene.objects}
+        cyl_cols = [w for w, n in enumerate(names) if prims[n].kind == "cylinder"]
+        a, b, r, *_ = rc.placed(q)  # capsule geoms (..., G_c, 3)
+        capsule_geoms = torch.argsort(rc._rows)[: rc._counts[0]].tolist()  # capsule k: geom capsule_geoms[k]
+        hit = hit.clone()
+        for s, g, w in hit[:, :, cyl_cols].nonzero().tolist():
+            col = cyl_cols[w]
+            k = capsule_geoms.index(g) if g in capsule_geoms else None
+            if k is None:  # a box geom: keep the capsule's verdict (conservative)
+                continue
+            prim = prims[names[col]]
+            T = prim.pose.numpy()
+            cyl = coal.Cylinder(prim.dimensions[1], prim.dimensions[0])
+            geom, Tg = _capsule(coal, a[s, k].numpy(), b[s, k].numpy(), float(r[k]))
+            req, res = coal.CollisionRequest(), coal.CollisionResult()
+            hit[s, g, col] = coal.collide(geom, Tg, cyl, _transform(coal, T[:3, :3], T[:3, 3]), req, res) > 0
+        return hit
+
+
+def _transform(coal, R, p):
+    T = coal.Transform3s()
+    T.setRotation(np.asarray(R, dtype=np.float64))
+    T.setTranslation(np.asarray(p, dtype=np.float64))
+    return T
+
+
+def _capsule(coal, a, b, r):
+    d = b - a
+    length = float(np.linalg.norm(d))
+    z = d / length if length > 0 else np.array([0.0, 0.0, 1.0])
+    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    R = np.stack((x, np.cross(z, x), z), axis=1)
+    shape = coal.Sphere(r) if length == 0 else coal.Capsule(r, length)
+    return shape, _transform(coal, R, 0.5 * (a + b))
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--models", nargs="*", default=list(MODELS), choices=MODELS)
+    p.add_argument("--families", nargs="*", default=None)
+    p.add_argument("--cylinders", default="exact", choices=("exact", "capsules"),
+                   help="exact: re-check capsule-flagged cylinder pairs with coal; capsules: as the World "
+                   "holds them")
+    return cli(p, run, "MotionBenchMaker Panda: problems whose start or goal is in collision", argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
