@@ -113,7 +113,7 @@ class EdgeChecker:
         L = (dq.abs() * self.reach.to(dq.dtype)).sum(-1)
         return torch.ceil(L / self.eta).clamp(min=1).long()
 
-    def edges(self, qa: Tensor, qb: Tensor, prefix: bool = False, block: int = 64) -> tuple[Tensor, Tensor]:
+    def edges(self, qa: Tensor, qb: Tensor, prefix: bool = False, block: int = 256) -> tuple[Tensor, Tensor]:
         """Straight edges qa → qb (E, nq): ``free (E,)`` and ``reach (E,)``, with ``prefix`` the largest
         fraction λ ∈ [0, 1] such that qa → qa + λ (qb − qa) is proven clear (0 when qa itself is not; without
         ``prefix``: 1 for free edges, 0 otherwise).

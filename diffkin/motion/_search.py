@@ -131,27 +131,32 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
     return full, lengths, found
 
 
-def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, rounds: int,
-             generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """Random shortcutting of paths (B, L, nq) with n (B,) waypoints: each round, every path tries one
-    straight edge between two random waypoints i < j − 1 and drops the waypoints between when it is clear."""
+def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, rounds: int, generator: torch.Generator,
+             tries: int = 4) -> tuple[Tensor, Tensor]:
+    """Random shortcutting of paths (B, L, nq) with n (B,) waypoints: each round, every path tries ``tries``
+    straight edges between random waypoints i < j − 1 (all in one batched decision) and, of the clear ones,
+    takes the one dropping the most waypoints."""
     B, L, nq = path.shape
     dev = path.device
     rows = torch.arange(B, device=dev)
     cols = torch.arange(L, device=dev)[None]
     for _ in range(rounds):
-        can = n > 2
-        if not bool(can.any()):
+        can = (n > 2).nonzero().squeeze(1)
+        if can.numel() == 0:
             break
-        u = torch.rand(B, 2, generator=generator, dtype=torch.float64).to(dev)
-        i = (u[:, 0] * (n - 2).clamp(min=1)).long().clamp(max=(n - 3).clamp(min=0))
-        j = i + 2 + (u[:, 1] * (n - i - 2).clamp(min=1)).long().clamp(max=(n - i - 3).clamp(min=0))
-        sel = can.nonzero().squeeze(1)
-        free, _ = checker.edges(path[sel, i[sel]], path[sel, j[sel]])
-        take = torch.zeros(B, dtype=torch.bool, device=dev)
-        take[sel[free]] = True
-        drop = torch.where(take, j - i - 1, 0)
-        src = torch.where(cols > i[:, None], cols + drop[:, None], cols).clamp(max=L - 1)
+        m = n[can, None]
+        u = torch.rand(can.numel(), tries, 2, generator=generator, dtype=torch.float64).to(dev)
+        i = (u[..., 0] * (m - 2)).long().clamp(max=m - 3)  # 0 <= i <= n - 3
+        j = i + 2 + (u[..., 1] * (m - i - 2)).long().clamp(max=m - i - 3)  # i + 2 <= j <= n - 1
+        r = can[:, None].expand(-1, tries)
+        free, _ = checker.edges(path[r, i].reshape(-1, nq), path[r, j].reshape(-1, nq))
+        gain = torch.where(free.view(-1, tries), j - i - 1, 0)
+        best = gain.argmax(1)
+        drop = torch.zeros(B, dtype=torch.long, device=dev)
+        ii = torch.zeros(B, dtype=torch.long, device=dev)
+        drop[can] = gain[torch.arange(can.numel(), device=dev), best]
+        ii[can] = i[torch.arange(can.numel(), device=dev), best]
+        src = torch.where(cols > ii[:, None], cols + drop[:, None], cols).clamp(max=L - 1)
         path = path[rows[:, None], src]
         n = n - drop
     return path, n

@@ -173,7 +173,7 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, fine: int =
 
 def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, velocity_limit=None,
          acceleration_limit=None, jerk_limit=None, dt: float = 0.01, resolution: float = 0.005,
-         max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 64, seed: int = 0,
+         max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 16, seed: int = 0,
          position_tolerance: float = 1e-4, orientation_tolerance: float = 1e-3) -> MotionResult:
     """Collision-free, limit-respecting timed trajectories from ``q_start`` to ``goal``, batched (module
     docstring: goals, per-row checks, search, shortcut, timing, continuous re-check).
@@ -196,7 +196,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         resolution: η [m], the most any geom point travels between two collision checks (module docstring
             of :mod:`diffkin.motion._edges`); starts and goals must be clear of ``margin + resolution``.
         max_iterations / step / shortcut_rounds / seed: search budget, RRT step (metres of geom travel in
-            the bound's metric), shortcut attempts per path, randomness.
+            the bound's metric), shortcut rounds (4 tries per path each), randomness.
         position_tolerance / orientation_tolerance: of the pose goals' IK.
 
     Returns:

@@ -95,6 +95,7 @@ class _Path:
 
     def __init__(self, s: Tensor, y: Tensor, interpolation: str, bc: str):
         self.s = s
+        self.end = y[:, -1]  # returned exactly at s >= s_N
         h = (s[:, 1:] - s[:, :-1])[..., None]
         d = (y[:, 1:] - y[:, :-1]) / h
         if interpolation == "linear":
@@ -118,6 +119,7 @@ class _Path:
         idx = k[..., None].expand(*k.shape, self.c[0].shape[-1])
         c0, c1, c2, c3 = (torch.gather(c, 1, idx) for c in self.c)
         q = c0 + tau * (c1 + tau * (c2 + tau * c3))
+        q = torch.where((s >= self.s[:, -1:])[..., None], self.end[:, None], q)
         q1 = c1 + tau * (2 * c2 + 3 * tau * c3)
         q2 = 2 * c2 + 6 * tau * c3
         return q, q1, q2, 6 * c3
