@@ -120,3 +120,23 @@ def test_at_rate_float32_and_errors():
         time_optimal(torch.tensor(path), torch.tensor([1.0, 0.0], dtype=torch.float64), 10.0)
     with pytest.raises(ShapeError):
         time_optimal(torch.tensor(path), torch.ones(3, dtype=torch.float64), 10.0)
+
+
+def test_linear_path_with_jerk_limit_rests_at_every_corner():
+    path, v, a, rng = _problem(4, B=2, N=4, n=3)
+    j = rng.uniform(50.0, 300.0, 3)
+    res = time_optimal(torch.tensor(path), torch.tensor(v[0]), torch.tensor(a[0]), torch.tensor(j),
+                       interpolation="linear")
+    h = 1e-4
+    t = torch.arange(0, float(res.duration.max()) + 0.05, h, dtype=torch.float64)
+    tr, jerk = res.sample(t), res.jerk(t)
+    assert (tr.velocity.abs() <= torch.tensor(v[0]) * (1 + 1e-9)).all()
+    assert (tr.acceleration.abs() <= torch.tensor(a[0]) * (1 + 1e-9)).all()
+    assert (jerk.abs() <= torch.tensor(j) * (1 + 1e-9)).all()
+    # no velocity jump anywhere (a corner passed at speed would show here): positions differentiate to qd
+    fd = (tr.position[:, 2:] - tr.position[:, :-2]) / (2 * h)
+    assert (fd - tr.velocity[:, 1:-1]).abs().max() < 1e-4
+    fa = (tr.velocity[:, 2:] - tr.velocity[:, :-2]) / (2 * h)
+    assert (fa - tr.acceleration[:, 1:-1]).abs().max() < 0.05
+    end = res.sample(res.duration[:, None] + 1e-9).position[:, 0]
+    np.testing.assert_array_equal(end.numpy(), path[:, -1])

@@ -10,7 +10,8 @@ The geometric path through the waypoints ``path (B, N, n)`` at the path paramete
   ``toppra.SplineInterpolator(knots, path[b], bc_type=bc)``;
 * ``interpolation="linear"``: the polyline itself (each segment a straight line in joint space). Its path
   derivative jumps at an interior waypoint, so the motion stops there (ṡ = 0): the timing of a collision-
-  checked polyline that never leaves its segments.
+  checked polyline that never leaves its segments. With a jerk limit each segment is timed and smoothed on
+  its own (rest to rest, zero acceleration at every corner) and the segments are played in turn.
 
 Method: time-optimal path parameterisation by reachability analysis (TOPP-RA, Pham & Pham 2018, toppra's
 algorithm). On a grid s_0 < … < s_M (``grid_per_segment`` points per waypoint interval, so the waypoints are
@@ -196,6 +197,7 @@ class TimedPath:
 
     def __init__(self, path: _Path, grid: Tensor, x: Tensor, tau: Tensor, k: Tensor, dtype: torch.dtype):
         self._path, self._grid, self._tau, self._k, self._dtype = path, grid, tau, k, dtype
+        self._B, self._device = grid.shape[0], grid.device
         sd = x.clamp_min(0).sqrt()
         delta = grid[:, 1:] - grid[:, :-1]
         dt = 2 * delta / (sd[:, 1:] + sd[:, :-1]).clamp_min(1e-300)
@@ -237,7 +239,10 @@ class TimedPath:
         vb = torch.where(smooth, (s - s2) / taus, v)
         ab = torch.where(smooth, (v - v2) / taus, a)
         jb = torch.where(smooth, (a - a2) / taus, torch.zeros_like(a))
-        return sb, vb, ab, jb
+        done = t >= self._t[:, -1:] + tau  # at the end exactly, at rest
+        zero = torch.zeros_like(sb)
+        return (torch.where(done, torch.ones_like(sb), sb), torch.where(done, zero, vb),
+                torch.where(done, zero, ab), torch.where(done, zero, jb))
 
     def _joint(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """q, q̇, q̈, q⃛ (B, T, n) at real times t (B, T), float64."""
@@ -250,8 +255,8 @@ class TimedPath:
         return q, q1 * v, q1 * a + q2 * v**2, q1 * j + 3 * q2 * v * a + q3 * v**3
 
     def _times(self, t) -> Tensor:
-        B = self._grid.shape[0]
-        t = torch.as_tensor(t, dtype=torch.float64, device=self._grid.device)
+        B = self._B
+        t = torch.as_tensor(t, dtype=torch.float64, device=self._device)
         if t.ndim == 0:
             t = t.reshape(1)
         if t.ndim == 1:
@@ -273,8 +278,8 @@ class TimedPath:
         """Samples every ``dt`` seconds up to the longest duration: t (B, S) and q, q̇, q̈ (B, S, n) (rows past
         their duration hold the end at rest). S = ceil(max duration / dt) + 1."""
         S = int(math.ceil(float(self.duration.max()) / dt - 1e-9)) + 1 if self.duration.numel() else 1
-        t = torch.arange(S, dtype=torch.float64, device=self._grid.device) * dt
-        return t.to(self._dtype).expand(self._grid.shape[0], S), self.sample(t)
+        t = torch.arange(S, dtype=torch.float64, device=self._device) * dt
+        return t.to(self._dtype).expand(self._B, S), self.sample(t)
 
     def _breakpoints(self, per_interval: int) -> Tensor:
         """Profile times (B, ·) for the limit check: the knots, the knots + τ, ``per_interval`` inside."""
@@ -282,6 +287,28 @@ class TimedPath:
         t0, dt = self._t[:, :-1, None], (self._t[:, 1:] - self._t[:, :-1])[..., None]
         inner = (t0 + f * dt).flatten(1)
         return torch.cat((inner, inner + self._tau[:, None]), 1)
+
+
+class _Chained(TimedPath):
+    """Rest-to-rest straight segments played one after another: the polyline with a jerk limit (each
+    segment smoothed on its own, so the motion stops at every corner with zero acceleration)."""
+
+    def __init__(self, parts: TimedPath, B: int, K: int, dtype: torch.dtype):
+        self._parts, self._K, self._dtype = parts, K, dtype
+        self._B, self._device = B, parts._device
+        d = parts.duration.to(torch.float64).view(B, K)
+        self._start = torch.cat((torch.zeros_like(d[:, :1]), d.cumsum(1)[:, :-1]), 1)  # (B, K)
+        self.duration = d.sum(1).to(dtype)
+        self.knots = None
+
+    def _joint(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        B, T, K = t.shape[0], t.shape[1], self._K
+        local = (t[:, None, :] - self._start[:, :, None]).reshape(B * K, T)  # each part rests outside
+        out = self._parts._joint(local)
+        seg = torch.searchsorted(self._start[:, 1:].contiguous(), t.contiguous(), right=True)  # (B, T)
+        n = out[0].shape[-1]
+        idx = seg[:, None, :, None].expand(B, 1, T, n)
+        return tuple(torch.gather(x.view(B, K, T, n), 1, idx)[:, 0] for x in out)
 
 
 def _check_limit(x: Tensor, B: int, n: int, name: str) -> Tensor:
@@ -345,6 +372,14 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             if bool((s[:, 1:] <= s[:, :-1]).any()):
                 raise ConventionError("time_optimal: knots must be strictly increasing")
         s = (s - s[:, :1]) / (s[:, -1:] - s[:, :1])  # normalised: the same path
+        if interpolation == "linear" and jmax is not None and N > 2:  # each segment rest to rest
+            K = N - 1
+            seg = torch.stack((y[:, :-1], y[:, 1:]), 2).reshape(B * K, 2, n)
+            rep = lambda x: x.repeat_interleave(K, 0)  # noqa: E731
+            m = grid_per_segment if grid_per_segment is not None else max(2, -(-256 // K))
+            parts = time_optimal(seg, rep(vmax), rep(amax), rep(jmax), interpolation="linear",
+                                 grid_per_segment=m, check_per_interval=check_per_interval)
+            return _Chained(parts, B, K, dtype)
         p = _Path(s.contiguous(), y, interpolation, bc)
         m = grid_per_segment if grid_per_segment is not None else max(2, -(-256 // (N - 1)))
         check_count(m, "grid_per_segment", 2 if interpolation == "linear" else 1)
