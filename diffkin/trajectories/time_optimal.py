@@ -335,7 +335,7 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             but the spline's shape depends on their spacing.
         interpolation: ``"spline"`` (scipy's / toppra's cubic spline with boundary condition ``bc``,
             ``"not-a-knot"`` or ``"clamped"``) or ``"linear"`` (the polyline, stopping at each waypoint).
-        grid_per_segment: TOPP grid intervals per waypoint interval (default: about 256 in all, at least 2).
+        grid_per_segment: TOPP grid intervals per waypoint interval (default: about 512 in all, at least 2).
         check_per_interval: samples per profile interval for the final limit stretch.
 
     Returns:
@@ -376,12 +376,12 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             K = N - 1
             seg = torch.stack((y[:, :-1], y[:, 1:]), 2).reshape(B * K, 2, n)
             rep = lambda x: x.repeat_interleave(K, 0)  # noqa: E731
-            m = grid_per_segment if grid_per_segment is not None else max(2, -(-256 // K))
+            m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // K))
             parts = time_optimal(seg, rep(vmax), rep(amax), rep(jmax), interpolation="linear",
                                  grid_per_segment=m, check_per_interval=check_per_interval)
             return _Chained(parts, B, K, dtype)
         p = _Path(s.contiguous(), y, interpolation, bc)
-        m = grid_per_segment if grid_per_segment is not None else max(2, -(-256 // (N - 1)))
+        m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // (N - 1)))
         check_count(m, "grid_per_segment", 2 if interpolation == "linear" else 1)
         f = torch.arange(m, dtype=torch.float64, device=y.device) / m
         grid = torch.cat(((s[:, :-1, None] + f * (s[:, 1:] - s[:, :-1])[..., None]).flatten(1), s[:, -1:]), 1)
