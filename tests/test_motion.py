@@ -209,3 +209,21 @@ def test_plans_rechecked_densely_by_coal(robot):
     for b in res.success.nonzero().squeeze(1).tolist():
         S = int(res.duration[b] / 0.01) + 2
         assert min(ref_check.min_distance(x.numpy()) for x in res.q[b, :S]) >= 0.002 - 1e-9
+
+
+def test_plan_float32_and_empty_batch():
+    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=torch.float32).requires_grad_(False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+    world = World(spheres=torch.tensor(SPHERES, dtype=torch.float32), dtype=torch.float32)
+    q = random_configuration(chain, (4,), torch.Generator().manual_seed(3), collision=rc, world=world,
+                             margin=0.02)
+    res = motion.plan(chain, q[:2], q[2:], collision=rc, world=world, acceleration_limit=10.0,
+                      resolution=0.01, max_iterations=200)
+    assert res.success.all(), res.reason
+    assert res.q.dtype == res.t.dtype == res.duration.dtype == torch.float32
+    assert torch.equal(res.q[:, 0], q[:2]) and torch.equal(res.q[:, -1], q[2:])
+    assert (res.qd.abs() <= torch.tensor(V) * (1 + 1e-6)).all() and (res.qdd.abs() <= 10.0 * (1 + 1e-6)).all()
+    empty = motion.plan(chain, q[:0], q[:0], collision=rc, world=world, acceleration_limit=10.0)
+    assert empty.success.shape == (0,) and empty.q.shape[0] == 0

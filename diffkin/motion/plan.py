@@ -155,6 +155,7 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, fine: int =
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
     crosses a multiple of 0.8 η (the 20 % spare covers chords against arcs and the last fine chord)."""
     B = path.shape[0]
+    knots = knots.to(torch.float64)
     s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
     p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
     u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
