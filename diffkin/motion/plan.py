@@ -79,17 +79,21 @@ class MotionResult:
     def state(self, t) -> Trajectory:
         """q, q̇, q̈ ``(B, T, nq)`` at times ``t`` ``(T,)`` or ``(B, T)`` [s] (failed rows hold the start)."""
         B = self.success.shape[0]
-        t = torch.as_tensor(t, dtype=torch.float64, device=self.q.device)
+        t = tensors(("t", t, None), like=self.q)[0].to(torch.float64)
         t = t.reshape(1) if t.ndim == 0 else t
         if t.ndim == 1:
             t = t.expand(B, -1)
         if t.ndim != 2 or t.shape[0] != B:
             raise ShapeError(f"expected t of shape (T,) or ({B}, T), got {shape_str(t.shape)}")
-        nq = self.q.shape[-1]
+        return self._state(t)
+
+    def _state(self, t: Tensor) -> Trajectory:
+        """:meth:`state` at float64 times (B, T), unchecked."""
+        B, nq = self.success.shape[0], self.q.shape[-1]
         q = self.q[:, :1].expand(B, t.shape[1], nq).clone()
         qd, qdd = torch.zeros_like(q), torch.zeros_like(q)
         for rows, timed in self._timing:  # at most two timings (spline, linear fallback)
-            tr = timed.sample(t[rows])
+            tr = timed._sample(t[rows])
             q[rows], qd[rows], qdd[rows] = tr.position, tr.velocity, tr.acceleration
         return Trajectory(q, qd, qdd)
 
@@ -308,6 +312,6 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         zero = torch.zeros(B, S, nq, dtype=dtype, device=dev)
         result = MotionResult(success, duration, t.to(dtype).expand(B, S), q_start[:, None].expand(B, S, nq),
                               zero, zero, reason, q_goal, waypoints, n_way, interp, timing)
-        tr = result.state(t)
+        tr = result._state(t.expand(B, S))
         result.q, result.qd, result.qdd = tr.position, tr.velocity, tr.acceleration
     return result

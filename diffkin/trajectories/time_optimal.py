@@ -197,7 +197,7 @@ class TimedPath:
 
     def __init__(self, path: _Path, grid: Tensor, x: Tensor, tau: Tensor, k: Tensor, dtype: torch.dtype):
         self._path, self._grid, self._tau, self._k, self._dtype = path, grid, tau, k, dtype
-        self._B, self._device = grid.shape[0], grid.device
+        self._B, self._device, self._batch = grid.shape[0], grid.device, (grid.shape[0],)
         sd = x.clamp_min(0).sqrt()
         delta = grid[:, 1:] - grid[:, :-1]
         dt = 2 * delta / (sd[:, 1:] + sd[:, :-1]).clamp_min(1e-300)
@@ -255,31 +255,40 @@ class TimedPath:
         return q, q1 * v, q1 * a + q2 * v**2, q1 * j + 3 * q2 * v * a + q3 * v**3
 
     def _times(self, t) -> Tensor:
-        B = self._B
-        t = torch.as_tensor(t, dtype=torch.float64, device=self._device)
+        B, batch = self._B, self._batch
+        t = tensors(("t", t, None), like=torch.empty(0, dtype=self._dtype, device=self._device))[0]
+        t = t.to(torch.float64)
         if t.ndim == 0:
             t = t.reshape(1)
         if t.ndim == 1:
-            t = t.expand(B, -1)
-        if t.ndim != 2 or t.shape[0] != B:
-            raise ShapeError(f"expected t of shape (T,) or ({B}, T), got {shape_str(t.shape)}")
-        return t.to(torch.float64)
+            return t.expand(B, -1)
+        if tuple(t.shape[:-1]) != tuple(batch):
+            raise ShapeError(f"expected t of shape (T,) or {shape_str((*batch, 'T'))}, "
+                             f"got {shape_str(t.shape)}")
+        return t.reshape(B, t.shape[-1])
+
+    def _out(self, x: Tensor) -> Tensor:
+        return x.reshape(*self._batch, *x.shape[1:]).to(self._dtype)
 
     def sample(self, t) -> Trajectory:
-        """q, q̇, q̈ (B, T, n) at times ``t`` (T,) or (B, T) [s]."""
-        q, qd, qdd, _ = self._joint(self._times(t))
-        return Trajectory(q.to(self._dtype), qd.to(self._dtype), qdd.to(self._dtype))
+        """q, q̇, q̈ ``(..., T, n)`` at times ``t`` ``(T,)`` or ``(..., T)`` [s] (the path's dtype)."""
+        return self._sample(self._times(t))
+
+    def _sample(self, t: Tensor) -> Trajectory:
+        """:meth:`sample` at float64 times (B, T), unchecked."""
+        q, qd, qdd, _ = self._joint(t)
+        return Trajectory(self._out(q), self._out(qd), self._out(qdd))
 
     def jerk(self, t) -> Tensor:
-        """q⃛ (B, T, n) at times ``t`` (T,) or (B, T) (piecewise continuous; 0 at rest)."""
-        return self._joint(self._times(t))[3].to(self._dtype)
+        """q⃛ ``(..., T, n)`` at times ``t`` ``(T,)`` or ``(..., T)`` (piecewise continuous; 0 at rest)."""
+        return self._out(self._joint(self._times(t))[3])
 
     def at_rate(self, dt: float) -> tuple[Tensor, Trajectory]:
-        """Samples every ``dt`` seconds up to the longest duration: t (B, S) and q, q̇, q̈ (B, S, n) (rows past
-        their duration hold the end at rest). S = ceil(max duration / dt) + 1."""
+        """Samples every ``dt`` seconds up to the longest duration: t ``(..., S)`` and q, q̇, q̈ ``(..., S, n)``
+        (rows past their duration hold the end at rest). S = ceil(max duration / dt) + 1."""
         S = int(math.ceil(float(self.duration.max()) / dt - 1e-9)) + 1 if self.duration.numel() else 1
         t = torch.arange(S, dtype=torch.float64, device=self._device) * dt
-        return t.to(self._dtype).expand(self._B, S), self.sample(t)
+        return t.to(self._dtype).expand(*self._batch, S), self._sample(t.expand(self._B, S))
 
     def _breakpoints(self, per_interval: int) -> Tensor:
         """Profile times (B, ·) for the limit check: the knots, the knots + τ, ``per_interval`` inside."""
@@ -295,7 +304,7 @@ class _Chained(TimedPath):
 
     def __init__(self, parts: TimedPath, B: int, K: int, dtype: torch.dtype):
         self._parts, self._K, self._dtype = parts, K, dtype
-        self._B, self._device = B, parts._device
+        self._B, self._device, self._batch = B, parts._device, (B,)
         d = parts.duration.to(torch.float64).view(B, K)
         self._start = torch.cat((torch.zeros_like(d[:, :1]), d.cumsum(1)[:, :-1]), 1)  # (B, K)
         self.duration = d.sum(1).to(dtype)
@@ -311,13 +320,16 @@ class _Chained(TimedPath):
         return tuple(torch.gather(x.view(B, K, T, n), 1, idx)[:, 0] for x in out)
 
 
-def _check_limit(x: Tensor, B: int, n: int, name: str) -> Tensor:
-    if x.ndim > 2 or (x.ndim and x.shape[-1] != n) or (x.ndim == 2 and x.shape[0] != B):
-        raise ShapeError(f"expected {name} as a number, ({n},) or ({B}, {n}), got {shape_str(x.shape)}")
-    x = x.expand(B, n)
+def _check_limit(x: Tensor, batch: tuple, n: int, name: str) -> Tensor:
+    """A limit given as a number, ``(n,)`` or ``(..., n)`` broadcasting to the path's batch -> (B, n)."""
+    try:
+        x = torch.broadcast_to(x, (*batch, n))
+    except RuntimeError:
+        raise ShapeError(f"expected {name} as a number, ({n},) or {shape_str((*batch, n))}, "
+                         f"got {shape_str(x.shape)}") from None
     if bool((x <= 0).any()):
         raise InfeasibleTrajectoryError(f"{name} must be > 0 everywhere (no motion is possible otherwise)")
-    return x.to(torch.float64)
+    return x.reshape(-1, n).to(torch.float64)
 
 
 def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, knots=None,
@@ -327,10 +339,12 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
     optional jerk smoothing and an exact limit stretch).
 
     Args:
-        path: waypoints ``(B, N, n)`` (or ``(N, n)``: B = 1), N >= 2.
-        velocity_limit / acceleration_limit: q̇_max / q̈_max > 0: a number, ``(n,)`` or ``(B, n)``.
+        path: waypoints ``(B, N, n)`` (any leading batch dims ``(..., N, n)``, ``()`` included), N >= 2.
+        velocity_limit / acceleration_limit: q̇_max / q̈_max > 0: a number, ``(n,)`` or ``(B, n)`` (leading
+            dims broadcasting to the path's).
         jerk_limit: q⃛_max > 0 (same shapes) or None (bang-bang acceleration).
-        knots: path parameters of the waypoints ``(N,)`` or ``(B, N)``, strictly increasing (default
+        knots: path parameters of the waypoints ``(N,)`` or ``(B, N)`` (the path's batch dims), strictly
+            increasing (default
             ``linspace(0, 1, N)``); the path is the same whatever their scale (s is normalised to [0, 1]),
             but the spline's shape depends on their spacing.
         interpolation: ``"spline"`` (scipy's / toppra's cubic spline with boundary condition ``bc``,
@@ -339,7 +353,8 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         check_per_interval: samples per profile interval for the final limit stretch.
 
     Returns:
-        :class:`TimedPath` (``duration (B,)``, ``sample(t)``, ``jerk(t)``, ``at_rate(dt)``).
+        :class:`TimedPath` (``duration (B,)``, ``sample(t)``, ``jerk(t)``, ``at_rate(dt)``), batch dims as
+        the path's.
     """
     if interpolation not in ("spline", "linear"):
         raise ConventionError(f"time_optimal: interpolation is 'spline' or 'linear', got {interpolation!r}")
@@ -350,24 +365,24 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         ("acceleration_limit", acceleration_limit, None), ("jerk_limit", jerk_limit, None),
         ("knots", knots, None))
     dtype = path.dtype
-    if path.ndim == 2:
-        path = path[None]
-    if path.ndim != 3 or path.shape[1] < 2:
-        raise ShapeError(f"expected path of shape (B, N, n) with N >= 2, got {shape_str(path.shape)}")
-    B, N, n = path.shape
+    if path.ndim < 2 or path.shape[-2] < 2:
+        raise ShapeError(f"expected path of shape (..., N, n) with N >= 2, got {shape_str(path.shape)}")
+    batch, (N, n) = tuple(path.shape[:-2]), path.shape[-2:]
     check_count(check_per_interval, "check_per_interval")
     with torch.no_grad():
-        y = path.detach().to(torch.float64)
-        vmax = _check_limit(vmax, B, n, "velocity_limit")
-        amax = _check_limit(amax, B, n, "acceleration_limit")
-        jmax = None if jmax is None else _check_limit(jmax, B, n, "jerk_limit")
+        y = path.detach().to(torch.float64).reshape(-1, N, n)
+        B = y.shape[0]
+        vmax = _check_limit(vmax, batch, n, "velocity_limit")
+        amax = _check_limit(amax, batch, n, "acceleration_limit")
+        jmax = None if jmax is None else _check_limit(jmax, batch, n, "jerk_limit")
         if knots is None:
             s = torch.linspace(0, 1, N, dtype=torch.float64, device=y.device).expand(B, N)
         else:
             s = knots.detach().to(torch.float64)
-            s = s.expand(B, N) if s.ndim == 1 else s
-            if s.shape != (B, N):
-                raise ShapeError(f"expected knots of shape ({N},) or ({B}, {N}), "
+            if s.ndim and s.shape[-1] == N and tuple(s.shape[:-1]) in ((), batch):
+                s = s.expand(*batch, N).reshape(B, N)
+            else:
+                raise ShapeError(f"expected knots of shape ({N},) or {shape_str((*batch, N))}, "
                                  f"got {shape_str(knots.shape)}")
             if bool((s[:, 1:] <= s[:, :-1]).any()):
                 raise ConventionError("time_optimal: knots must be strictly increasing")
@@ -379,7 +394,7 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // K))
             parts = time_optimal(seg, rep(vmax), rep(amax), rep(jmax), interpolation="linear",
                                  grid_per_segment=m, check_per_interval=check_per_interval)
-            return _Chained(parts, B, K, dtype)
+            return _batched(_Chained(parts, B, K, dtype), batch)
         p = _Path(s.contiguous(), y, interpolation, bc)
         m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // (N - 1)))
         check_count(m, "grid_per_segment", 2 if interpolation == "linear" else 1)
@@ -413,4 +428,11 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             else:
                 better = total < best[2]
                 best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total), best))
-        return TimedPath(p, grid, x, best[0], best[1], dtype)
+        return _batched(TimedPath(p, grid, x, best[0], best[1], dtype), batch)
+
+
+def _batched(timed: TimedPath, batch: tuple) -> TimedPath:
+    """The result with the path's leading batch dims (``duration``, ``sample``, ``jerk``, ``at_rate``)."""
+    timed._batch = batch
+    timed.duration = timed.duration.reshape(batch)
+    return timed
