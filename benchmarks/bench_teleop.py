@@ -30,6 +30,16 @@ tasks, both hands moving, posture, limits; knees and elbows bent at the start) b
 largest |q̇_diffkin − q̇_mink| at mink's states along the loop (whole
 trajectories are not compared: near the straight-knee singularity a 1e-12 difference grows along the
 loop). The machine may be shared: ratios are measured in the same run.
+
+Rows of the C step's v3 (``dk_vel`` version 3): ``teleop_fr3_collision_step``, the Panda step on the FR3 (the
+Panda's seven-joint successor, whose URDF collision model is capsules and spheres: the vendored Panda MJCF's
+collision meshes are not shipped) plus a CollisionLimit (its self pairs and three world spheres under and
+beside the flange, detection 0.1 m, minimum distance 5 mm, gain 0.85), beside mink with a
+CollisionAvoidanceLimit on MuJoCo's geoms of the same URDF (cylinders where diffkin has capsules: the two
+solve nearly, not exactly, the same problem; only the times compare); and ``teleop_g1_com_step``, the G1
+step with a ComTask (the centre of mass held over its start, swaying 1 cm with the hands), on the chain of
+``teleop_g1_step`` (nv 29, the fingers held) and on one that reaches every body (nv 43, MuJoCo's: the same
+problem as mink's, the largest |Δq̇| at mink's states reported), each beside mink with its ComTask.
 """
 
 from __future__ import annotations
@@ -392,6 +402,208 @@ def _g1(steps: int):
     return _median_us(times_ours), _median_us(times_mink), agree, feet, chain.nv
 
 
+FR3 = ROOT / "tests" / "data" / "urdf" / "fr3.urdf"
+FR3_SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" '
+            'reason="Default"/></robot>')
+DETECT, D_MIN, C_GAIN = 0.1, 0.005, 0.85  # the CollisionLimit of the collision rows
+
+
+def _fr3_world(T0: np.ndarray) -> np.ndarray:
+    """Three world spheres (x, y, z, r): under and beside the start flange (the loop's circle passes them)
+    and one away from the arm."""
+    p = T0[:3, 3]
+    return np.array([[p[0], p[1], p[2] - 0.15, 0.05], [p[0] + 0.2, p[1], p[2], 0.04], [0.5, 0.5, 0.2, 0.1]])
+
+
+def _fr3_mink_model(spheres: np.ndarray):
+    """The FR3 URDF in MuJoCo for mink: mesh geoms and visuals dropped (the files are not shipped), the
+    capsule links' cylinders and spheres kept (MuJoCo collides the cylinders as cylinders), the world
+    spheres added as static bodies."""
+    import re
+
+    import mujoco
+
+    text = FR3.read_text()
+    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
+    text = re.sub(r"<collision>(?:(?!</collision>).)*<mesh.*?</collision>", "", text, flags=re.S)
+    model = mujoco.MjModel.from_xml_string(text)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "fr3.xml"
+        mujoco.mj_saveLastXML(str(path), model)
+        xml = path.read_text()
+    balls = "".join(f'<body name="obstacle{i}" pos="{x} {y} {z}"><geom name="obstacle{i}" type="sphere" '
+                    f'size="{r}"/></body>' for i, (x, y, z, r) in enumerate(spheres))
+    xml = xml.replace("<worldbody>", "<worldbody>" + balls, 1)
+    return mujoco.MjModel.from_xml_string(xml)
+
+
+def _fr3_collision(steps: int):
+    """The Panda-class FR3 (seven hinges, capsule collision model from its URDF): the Panda step (frame
+    task, posture, configuration and velocity limits) plus a CollisionLimit on its self pairs and three
+    world spheres, the C step (NativeVelocity.step: FK, the distances and their gradients, the QP with the
+    rows solved exactly) beside mink with a CollisionAvoidanceLimit on the same arm (MuJoCo's geoms of the
+    same URDF) and spheres; returns (ours µs, mink µs, our smallest distance over the loop, steps whose
+    collision rows were detected (%))."""
+    import warnings
+
+    import mink
+
+    from diffkin.collision import RobotCollision, World
+    from diffkin.ik._native_velocity import NativeVelocity
+    from diffkin.models import from_urdf
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's mesh geoms are not shipped: skipped with a warning
+        chain = from_urdf(FR3, "fr3_link8", dtype=torch.float64).requires_grad_(False)
+        rc = RobotCollision.from_urdf(FR3, chain, srdf=FR3_SRDF).requires_grad_(False)
+    q = torch.tensor(Q0, dtype=torch.float64)
+    T0 = chain.forward_kinematics(q).numpy()
+    spheres = _fr3_world(T0)
+    world = World(spheres=torch.tensor(spheres))
+    prob = NativeVelocity(chain, [(0, 1.0, 1.0, 1.0, LM)], posture=(POSTURE, 1.0, 0.0),
+                          configuration_limit=(0.95, 0.0), velocity_limit=VMAX,
+                          collision=(rc, world, C_GAIN, D_MIN, DETECT))
+    targets = _targets(T0, steps)
+    tgt = torch.from_numpy(targets).contiguous()
+    q_ref = q.clone()
+    qs = [q.clone(), torch.empty_like(q)]
+    v = torch.empty(7, dtype=torch.float64)
+    traj = np.empty((steps, 7))
+
+    def ours(k):
+        prob.step(qs[k % 2], tgt[k:k + 1], q_ref, DT, out=v, next_q=qs[(k + 1) % 2])
+
+    def record(k):
+        ours(k)
+        traj[k] = qs[(k + 1) % 2].numpy()
+
+    _loop(ours, targets[:200])
+    qs[0].copy_(q)
+    times_ours, _ = _loop(record, targets)
+    with torch.no_grad():
+        from diffkin.ik.residuals import DistanceConstraint
+
+        d = DistanceConstraint(rc, world).distances(torch.from_numpy(traj))
+    detected = float((d < DETECT).any(-1).double().mean()) * 100
+    model = _fr3_mink_model(spheres)
+    cfg = mink.Configuration(model)
+    qm = np.zeros(model.nq)
+    qm[:7] = Q0
+    frame = mink.FrameTask("fr3_link7", "body", position_cost=1.0, orientation_cost=1.0, gain=1.0,
+                           lm_damping=LM)
+    posture = mink.PostureTask(model, cost=POSTURE)
+    posture.set_target(qm)
+    arm = [model.joint(i).name for i in range(model.njnt)]
+    robot = [model.geom(i).name for i in range(model.ngeom) if not model.geom(i).name.startswith("obstacle")]
+    robot = [g for g in robot if g]
+    obstacles = [f"obstacle{i}" for i in range(len(spheres))]
+    limits = [mink.ConfigurationLimit(model, gain=0.95), mink.VelocityLimit(model, dict.fromkeys(arm, VMAX)),
+              mink.CollisionAvoidanceLimit(model, [(robot, robot), (robot, obstacles)], gain=C_GAIN,
+                                           minimum_distance_from_collisions=D_MIN,
+                                           collision_detection_distance=DETECT)]
+    se3 = [mink.SE3.from_matrix(T) for T in targets]
+    # mink's frame: fr3_link7 (MuJoCo fuses the fixed link8 into it); the target is the flange's pose
+    # moved to link7 by the fixed offset at the start
+    cfg.update(qm)
+    off = cfg.get_transform_frame_to_world("fr3_link7", "body").inverse() @ mink.SE3.from_matrix(T0)
+    se3 = [T @ off.inverse() for T in se3]
+
+    def theirs(k):
+        frame.set_target(se3[k])
+        vm = mink.solve_ik(cfg, [frame, posture], DT, "daqp", damping=1e-12, limits=limits)
+        cfg.integrate_inplace(vm, DT)
+
+    n_mink = min(steps, 500)
+    cfg.update(qm)
+    _loop(theirs, targets[:50])
+    cfg.update(qm)
+    times_mink, _ = _loop(theirs, targets[:n_mink])
+    return _median_us(times_ours), _median_us(times_mink), float(d.min()), detected
+
+
+def _g1_com(steps: int, every_body: bool = True):
+    """The G1 step of :func:`_g1` with a ComTask (cost (5, 5, 1): the centre of mass held over its start,
+    moving 1 cm sideways with the hands) in the C step, beside mink with its ComTask. ``every_body``: the
+    chain reaches every body (the hands' leaves too: nv 43 = MuJoCo's), so the two solve the same problem,
+    compared at mink's states (largest |Δq̇|); else the chain of :func:`_g1` (nv 29: the fingers held at
+    qpos0, their masses still in the centre of mass), whose time compares with ``teleop_g1_step`` (mink
+    then also moves the fingers: no agreement reported)."""
+    import mink
+
+    from diffkin.ik._native_velocity import NativeVelocity
+    from diffkin.models import from_mjcf
+    from diffkin.models.mjcf import compile_mjcf
+
+    model = compile_mjcf(G1)[0]
+    leaves = [model.body(b).name for b in range(1, model.nbody)
+              if not any(model.body_parentid[k] == b for k in range(model.nbody))
+              and "ankle" not in model.body(b).name] if every_body else []
+    chain = from_mjcf(G1, [e for e, _ in G1_ENDS] + leaves, dtype=torch.float64).requires_grad_(False)
+    qadr, dofs = chain.qpos_index(), chain.dof_index()
+    costs = [(1.0, 1.0), (1.0, 1.0), (1.0, 0.5), (1.0, 0.5)]
+    com_cost = [5.0, 5.0, 1.0]
+    vmax = torch.full((chain.nv,), VMAX * 2, dtype=torch.float64)
+    vmax[:6] = math.inf
+    prob = NativeVelocity(chain, [(k, p, o, 1.0, LM) for k, (p, o) in enumerate(costs)],
+                          posture=(POSTURE, 1.0, 0.0), configuration_limit=(0.95, 0.0), velocity_limit=vmax,
+                          com=(com_cost, 1.0, 0.0))
+    cfg = mink.Configuration(model)
+    q0 = model.qpos0.copy()
+    bent = {"hip_pitch": -0.3, "knee": 0.6, "ankle_pitch": -0.3, "elbow_pitch": 1.0}
+    for j in range(1, model.njnt):
+        q0[model.jnt_qposadr[j]] = next((a for key, a in bent.items() if key in model.joint(j).name), 0.0)
+    cfg.update(q0)
+    T0 = [cfg.get_transform_frame_to_world(e, t).as_matrix() for e, t in G1_ENDS]
+    c0 = cfg.data.subtree_com[1].copy()
+    tasks = [mink.FrameTask(e, t, position_cost=p, orientation_cost=o, gain=1.0, lm_damping=LM)
+             for (e, t), (p, o) in zip(G1_ENDS, costs)]
+    com_task = mink.ComTask(cost=com_cost)
+    posture = mink.PostureTask(model, cost=POSTURE)
+    posture.set_target(q0)
+    hinges = [model.joint(i).name for i in range(model.njnt) if model.jnt_type[i] != 0]
+    limits = [mink.ConfigurationLimit(model, gain=0.95),
+              mink.VelocityLimit(model, dict.fromkeys(hinges, VMAX * 2))]
+    t = np.arange(steps) * DT
+    w = 2 * math.pi * 0.5
+    hand = 0.08 * np.stack([np.zeros_like(t), np.sin(w * t), 1 - np.cos(w * t)], -1)
+    targets = np.repeat(np.stack(T0)[None], steps, axis=0)
+    targets[:, 2:, :3, 3] += hand[:, None]
+    coms = np.repeat(c0[None], steps, axis=0)
+    coms[:, 1] += 0.01 * np.sin(w * t)
+    tgt, ctg = torch.from_numpy(targets).contiguous(), torch.from_numpy(coms).contiguous()
+    q = torch.tensor(q0[qadr])
+    q_ref = q.clone()
+    qs = [q.clone(), torch.empty_like(q)]
+    v = torch.empty(chain.nv, dtype=torch.float64)
+
+    def ours(k):
+        prob.step(qs[k % 2], tgt[k], q_ref, DT, out=v, next_q=qs[(k + 1) % 2], com_target=ctg[k])
+
+    _loop(ours, targets[:100])
+    qs[0].copy_(q)
+    times_ours, _ = _loop(ours, targets)
+    se3 = [[mink.SE3.from_matrix(T) for T in Ts] for Ts in targets]
+
+    def theirs(k):
+        for task, T in zip(tasks, se3[k]):
+            task.set_target(T)
+        com_task.set_target(coms[k])
+        vm = mink.solve_ik(cfg, [*tasks, com_task, posture], DT, "daqp", damping=1e-12, limits=limits)
+        cfg.integrate_inplace(vm, DT)
+        return vm
+
+    n_mink = min(steps, 500)
+    times_mink, _ = _loop(theirs, targets[:n_mink])
+    cfg.update(q0)
+    agree = 0.0 if every_body else None
+    for k in range(0, n_mink if every_body else 0, 5):  # both steps at mink's states
+        qk = torch.from_numpy(cfg.q[qadr])
+        vm = theirs(k)
+        mine, _ = prob.solve(qk[None], tgt[k][None], q_ref, DT, com_target=ctg[k])
+        agree = max(agree, float(np.abs(mine[0].numpy() - vm[dofs]).max()))
+    return _median_us(times_ours), _median_us(times_mink), agree, chain.nv
+
+
 def run(args) -> list[dict]:
     quick = getattr(args, "quick", False)
     steps = 300 if quick else max(2000, getattr(args, "steps", 2000))
@@ -461,6 +673,22 @@ def run(args) -> list[dict]:
         rows.append(dict(benchmark="teleop_g1_step", impl="mink", median_us=g_mink,
                          ratio_to_diffkin=g_mink / g_ours,
                          max_abs_v_diff=agree))
+        with torch.no_grad():  # v3 rows: CollisionLimit and ComTask in the C step
+            c_ours, c_mink, dmin, detected = _fr3_collision(300 if quick else steps)
+        rows.append(dict(benchmark="teleop_fr3_collision_step", impl="diffkin C step (+ CollisionLimit)",
+                         steps=steps, median_us=c_ours, min_distance_m=dmin, steps_with_rows_pct=detected))
+        rows.append(dict(benchmark="teleop_fr3_collision_step", impl="mink (+ CollisionAvoidanceLimit)",
+                         median_us=c_mink, ratio_to_diffkin=c_mink / c_ours))
+        for every in (False, True):
+            with torch.no_grad():
+                m_ours, m_mink, m_agree, m_nv = _g1_com(300 if quick else steps, every)
+            rows.append(dict(benchmark="teleop_g1_com_step", impl=f"diffkin C step (+ ComTask, nv {m_nv})",
+                             steps=steps, median_us=m_ours))
+            row = dict(benchmark="teleop_g1_com_step", impl="mink (+ ComTask, nv 43)", median_us=m_mink,
+                       ratio_to_diffkin=m_mink / m_ours)
+            if m_agree is not None:
+                row["max_abs_v_diff"] = m_agree
+            rows.append(row)
     return rows
 
 

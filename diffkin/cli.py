@@ -115,7 +115,8 @@ def _robot_source(args) -> tuple[str, str | None]:
         raise DiffkinError("give --robot NAME (see `diffkin models`), --urdf FILE or --mjcf FILE with "
                            "--end-link LINK")
     _check_robot_option(args.robot)
-    return args.robot, None
+    # a built-in URDF / MuJoCo robot takes --end-link instead of its default end links (a DH model refuses it)
+    return args.robot, getattr(args, "end_link", None)
 
 
 def _load_chain(args):
@@ -171,6 +172,15 @@ def cmd_models(args) -> int:
     if args.action == "show":
         if not args.name:
             raise DiffkinError("usage: diffkin models show NAME")
+        robot = models.info(args.name)
+        if robot.format != "dh":  # a URDF / MuJoCo robot: its joints, limits and where it comes from
+            chain = models.load(args.name, dtype=torch.float64)
+            kinds = getattr(chain, "joint_kinds", None) or ["-"] * len(chain.joint_names)
+            rows = [[i + 1, name, kind] for i, (name, kind) in enumerate(zip(chain.joint_names, kinds))]
+            con.print(_table(f"{robot.name} ({robot.format.upper()}, nq {chain.nq}, nv {chain.nv}; end links "
+                             f"{', '.join(robot.end_links or ())})", ["joint", "name", "kind"], rows))
+            con.print(f"file: {robot.path}\nsource: {robot.source}\nlicence: {robot.licence}")
+            return 0
         chain = models.load(args.name, dtype=torch.float64)
         rows = []
         for i, (a, al, d, th) in enumerate(chain.dh_table().tolist()):
@@ -186,11 +196,17 @@ def cmd_models(args) -> int:
             )
         )
         return 0
-    rows = []
-    for name in models.available():
-        chain = models.load(name, dtype=torch.float64)
-        rows.append([name, chain.n_joints, chain.joint_types, chain.convention, models.source(name)])
-    con.print(_table("built-in robots", ["name", "DOF", "joints", "DH", "source"], rows))
+    rows, files = [], []
+    for robot in models.available(details=True):
+        if robot.format == "dh":
+            chain = models.load(robot.name, dtype=torch.float64)
+            rows.append([robot.name, chain.n_joints, chain.joint_types, chain.convention, robot.source])
+        else:  # listed from the catalogue, not compiled: `diffkin models show NAME` loads one
+            files.append([robot.name, ", ".join(robot.aliases) or "-", robot.format.upper(), robot.category,
+                          ", ".join(robot.end_links or ()), robot.licence])
+    con.print(_table("built-in robots (DH tables)", ["name", "DOF", "joints", "DH", "source"], rows))
+    con.print(_table("built-in robots (URDF and MuJoCo files; `diffkin models show NAME` for one)",
+                     ["name", "aliases", "format", "kind", "default end links", "licence"], files))
     return 0
 
 
@@ -843,11 +859,13 @@ def _robot_options(p: argparse.ArgumentParser):
     """The one way every subcommand names a robot: ``--robot NAME|FILE``, ``--urdf`` / ``--mjcf FILE`` with
     ``--end-link`` (read by :func:`_load_chain`); returns the argument group."""
     g = p.add_argument_group("robot")
-    g.add_argument("--robot", help="built-in robot name (see `diffkin models`) or a robot YAML file")
+    g.add_argument("--robot", help="built-in robot name (DH, URDF or MuJoCo: see `diffkin models`; a "
+                   "robot_descriptions name when that package is installed) or a robot YAML file")
     g.add_argument("--urdf", help="URDF file (with --end-link)")
     g.add_argument("--mjcf", help="MuJoCo MJCF file (with --end-link: a body or site)")
     g.add_argument("--end-link", dest="end_link",
-                   help="end-effector link of the URDF (a body or site of the MJCF)")
+                   help="end-effector link of the URDF (a body or site of the MJCF; with --robot: a built-in "
+                   "URDF / MuJoCo robot's end link instead of its default ones)")
     return g
 
 
@@ -1028,6 +1046,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = add("doctor", "report versions, CUDA and whether the fused C kernel is in use (and why not)")
     p.set_defaults(func=cmd_doctor)
+
+    from . import _cli_retarget  # `diffkin retarget` (its description and examples live with it)
+    p = sub.add_parser("retarget", parents=[common], help="a human clip (BVH, SMPL joints) onto a humanoid",
+                       description=_cli_retarget.DESCRIPTION, epilog="examples:\n  " + _cli_retarget.EXAMPLES,
+                       formatter_class=_Formatter)
+    _cli_retarget.add_arguments(p)
+    p.set_defaults(func=_cli_retarget.cmd_retarget)
 
     from .viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
     add_view_parser(sub, [common])

@@ -12,7 +12,8 @@ spoils) a batch. Gradients are exact where the rank is locally constant (autogra
 closed form
 dJ† = −J†dJ J† + J†J†ᵀdJᵀ(I − JJ†) + (I − J†J)dJᵀJ†ᵀJ† on the SVD rows), finite everywhere.
 
-The damped inverse (3.59) with damping k² above the rounding level of JJᵀ (k² > eps·‖J‖²_F) is the
+The damped inverse (3.59) with a damping λ = k² (``damping``: the value added to JJᵀ's diagonal) above
+the rounding level of JJᵀ (λ > eps·‖J‖²_F) is the
 regular solve; a smaller damping, zero included, is no damping at all in that arithmetic and gives the
 pseudo-inverse.
 """
@@ -114,8 +115,8 @@ def _pinv(J: Tensor) -> Tensor:
 
 
 def _damped(J: Tensor, k2: Tensor) -> Tensor:
-    """Jᵀ(JJᵀ + k²I)⁻¹ of validated inputs, ``k2`` broadcastable to the batch dims: the pseudo-inverse where
-    k² is at or below the rounding level eps·‖J‖²_F (zero included), else the regular damped solve."""
+    """Jᵀ(JJᵀ + λI)⁻¹ of validated inputs, λ = ``k2`` broadcastable to the batch dims: the pseudo-inverse
+    where λ is at or below the rounding level eps·‖J‖²_F (zero included), else the regular damped solve."""
     frob2 = (J * J).sum(dim=(-2, -1))
     k2, frob2 = torch.broadcast_tensors(k2, frob2)
     small = k2 <= eps_for(J) * frob2
@@ -142,20 +143,20 @@ def pinv(J) -> Tensor:
 
 
 def damped_pinv(J, damping, threshold: float | None = None) -> Tensor:
-    """Damped least-squares inverse J* = Jᵀ(JJᵀ + k²I)⁻¹ (3.59): ``(..., m, n)`` -> ``(..., n, m)``.
+    """Damped least-squares inverse J* = Jᵀ(JJᵀ + λI)⁻¹ (3.59), λ = k²: ``(..., m, n)`` -> ``(..., n, m)``.
 
-    It minimises ‖v − Jq̇‖² + k²‖q̇‖²: each singular value σ of J is inverted as σ/(σ² + k²), bounded by
-    1/(2k) so joint velocities stay bounded through singularities. ``damping = 0`` gives :func:`pinv`.
+    It minimises ‖v − Jq̇‖² + λ‖q̇‖²: each singular value σ of J is inverted as σ/(σ² + λ), bounded by
+    1/(2√λ) so joint velocities stay bounded through singularities. ``damping = 0`` gives :func:`pinv`.
 
     Args:
-        damping: k, a number or a tensor broadcastable to the batch dims ``(...)``.
-        threshold: if given, adaptive damping (Nakamura & Hanafusa 1986; Chiaverini 1997): k² =
-            damping² (1 − (σ_min/threshold)²) where the smallest singular value σ_min < threshold, and no
-            damping otherwise, so the inverse is exact away from singular regions.
+        damping: λ, added to JJᵀ's diagonal, eq. (3.59) (the textbook's k²; the unreleased 0.1.0 took k),
+            >= 0, a number or a tensor broadcastable to the batch dims ``(...)``.
+        threshold: if given, adaptive damping (Nakamura & Hanafusa 1986; Chiaverini 1997): the damping
+            λ (1 − (σ_min/threshold)²) where the smallest singular value σ_min < threshold, and none
+            otherwise, so the inverse is exact away from singular regions.
     """
-    J, k = _check_J(J, ("damping", damping, None))
-    check_broadcasts_to(k, J.shape[:-2], "damping")
-    k2 = k * k
+    J, k2 = _check_J(J, ("damping", damping, None))
+    check_broadcasts_to(k2, J.shape[:-2], "damping")
     if threshold is not None:
         (thr,) = tensors(("threshold", threshold, ()), like=J)
         k2 = _dls.adaptive_damping(J, k2, thr)
@@ -163,20 +164,21 @@ def damped_pinv(J, damping, threshold: float | None = None) -> Tensor:
 
 
 def weighted_pinv(J, W, damping=0.0) -> Tensor:
-    """Weighted pseudo-inverse W⁻¹Jᵀ(JW⁻¹Jᵀ + k²I)⁻¹ (3.50): the q̇ = J†_W v minimising ½ q̇ᵀWq̇ subject
-    to Jq̇ = v (m <= n; for m > n the equal form (JᵀJ + k²W)⁻¹Jᵀ).
+    """Weighted pseudo-inverse W⁻¹Jᵀ(JW⁻¹Jᵀ + λI)⁻¹ (3.50): the q̇ = J†_W v minimising ½ q̇ᵀWq̇ subject
+    to Jq̇ = v (m <= n; for m > n the equal form (JᵀJ + λW)⁻¹Jᵀ).
 
     Computed as L⁻ᵀ (J L⁻ᵀ)* with W = LLᵀ and * the damped inverse of :func:`damped_pinv` (so the pseudo-
-    inverse of J L⁻ᵀ for k = 0: finite at singular J).
+    inverse of J L⁻ᵀ for λ = 0: finite at singular J).
 
     Args:
         J: ``(..., m, n)``.
         W: symmetric positive-definite weights, ``(..., n, n)``, or their diagonal ``(..., n)``
             (:class:`~diffkin.errors.DiffkinError` if not positive definite).
-        damping: optional k (number or tensor (...)) as in :func:`damped_pinv`.
+        damping: optional λ (number or tensor (...)), added to JW⁻¹Jᵀ's diagonal, eq. (3.59), as in
+            :func:`damped_pinv`.
     """
-    J, W, k = _check_J(J, ("W", W, None), ("damping", damping, None))
-    check_broadcasts_to(k, J.shape[:-2], "damping")
+    J, W, lam = _check_J(J, ("W", W, None), ("damping", damping, None))
+    check_broadcasts_to(lam, J.shape[:-2], "damping")
     n = J.shape[-1]
     diagonal = W.ndim >= 1 and W.shape[-1] == n and (W.ndim == 1 or W.shape[-2:] != (n, n))
     if not diagonal:
@@ -187,12 +189,12 @@ def weighted_pinv(J, W, damping=0.0) -> Tensor:
         if W.numel() and not bool((W > 0).all()):
             raise DiffkinError("W must be positive definite: its diagonal has entries <= 0")
         s = torch.rsqrt(W)  # L⁻ᵀ = diag(W^-½)
-        return s[..., :, None] * _damped(J * s[..., None, :], k * k)
+        return s[..., :, None] * _damped(J * s[..., None, :], lam)
     L, info = torch.linalg.cholesky_ex(W)
     if info.numel() and bool((info != 0).any()):
         raise DiffkinError("W must be symmetric positive definite (its Cholesky factorisation failed)")
     Jt = torch.linalg.solve_triangular(L, J.mT, upper=False).mT  # J L⁻ᵀ
-    return torch.linalg.solve_triangular(L.mT, _damped(Jt, k * k), upper=True)
+    return torch.linalg.solve_triangular(L.mT, _damped(Jt, lam), upper=True)
 
 
 def nullspace_projector(J, J_pinv=None, damping=None) -> Tensor:
@@ -200,14 +202,15 @@ def nullspace_projector(J, J_pinv=None, damping=None) -> Tensor:
 
     P is symmetric, idempotent and JP = 0 (at singular J the lost directions join the null space).
     ``J_pinv`` ``(..., n, m)`` lets you pass a weighted inverse J†_W (then P = I − J†_W J, the projector of
-    (3.54) for that metric); ``damping`` uses the damped inverse (3.59) instead (then P is only
-    approximately a projector, but smooth everywhere). Values and gradients stay finite.
+    (3.54) for that metric); ``damping`` λ (added to JJᵀ's diagonal) uses the damped inverse (3.59)
+    Jᵀ(JJᵀ + λI)⁻¹ instead (then P is only approximately a projector, but smooth everywhere). Values and
+    gradients stay finite.
     """
-    J, J_pinv, k = _check_J(J, ("J_pinv", J_pinv, None), ("damping", damping, None))
-    check_broadcasts_to(k, J.shape[:-2], "damping")
+    J, J_pinv, lam = _check_J(J, ("J_pinv", J_pinv, None), ("damping", damping, None))
+    check_broadcasts_to(lam, J.shape[:-2], "damping")
     m, n = J.shape[-2:]
     if J_pinv is None:
-        J_pinv = _pinv(J) if k is None else _damped(J, k * k)
+        J_pinv = _pinv(J) if lam is None else _damped(J, lam)
     else:
         check_trailing(J_pinv, (n, m), "J_pinv")
     return torch.eye(n, dtype=J.dtype, device=J.device) - J_pinv @ J

@@ -305,6 +305,10 @@ EXEMPT: dict[str, str] = {
     "diffkin.calibration.project_points": "pinhole projection: shapes checked in "
     "tests/test_camera_projection.py::test_bad_shapes; no fuzz case yet",
     "diffkin.calibration.CalibrationResult": "result container",
+    "diffkin.calibration.CameraCalibrationResult": "result container",
+    "diffkin.calibration.calibrate_camera": "a fit over images (seconds a call): bad shapes (another board "
+    "size, another robot), NaN at visible points, unknown options and degenerate postures are unit-tested in "
+    "tests/test_calibrate_camera.py::test_bad_inputs_are_refused; no fuzz case yet",
     "diffkin.calibration.IdentifiabilityReport": "result container",
     "diffkin.calibration.CalibrationModel": "the solvers' measurement model (built from chains; its methods "
                                             "take the trusted tensors of the hot path; user input enters "

@@ -375,6 +375,8 @@ EXEMPT: dict[str, str] = {
     "diffkin.sampling.random_configuration": _NO_TENSORS + " (a chain, a shape, a generator; "
     "tests/test_sampling.py)",
     "diffkin.models.available": _NO_TENSORS,
+    "diffkin.models.info": _NO_TENSORS,
+    "diffkin.models.RobotInfo": "a frozen record of what models.load reads for a name (no tensor input)",
     "diffkin.models.source": _NO_TENSORS,
     "diffkin.models.model_path": _NO_TENSORS,
     "diffkin.models.from_urdf": _NO_TENSORS + " (tests/test_urdf.py, test_urdf_xml.py)",

@@ -118,7 +118,14 @@ def _readme_blocks() -> list[tuple[int, str]]:
     return python_blocks(README)
 
 
-@pytest.mark.parametrize("line,code", _readme_blocks(), ids=[f"line{ln}" for ln, _ in _readme_blocks()])
+def _readme_params() -> list:
+    """The README's blocks; a block that trains a policy (``.learn(``: the RL quick start, about 50 s on 2
+    cores) is a long end-to-end run, outside the default run (``make test-all`` runs it)."""
+    return [pytest.param(ln, code, id=f"line{ln}", marks=[pytest.mark.extended] if ".learn(" in code else [])
+            for ln, code in _readme_blocks()]
+
+
+@pytest.mark.parametrize("line,code", _readme_params())
 def test_readme_code_block_runs_on_its_own(line: int, code: str, tmp_path: Path):
     """Every python block of the README runs alone (its own interpreter, an empty working directory), as a
     reader would paste it. ``# requires: NAME`` as the first line skips it when NAME is missing."""

@@ -125,9 +125,9 @@ def test_dls_step_integrates_on_the_manifold(name):
     with torch.no_grad():
         T = chain.forward_kinematics(chain.integrate(q, v))
         T_e, J = chain.forward_kinematics_and_jacobian(q)
-    k = 1e-6
+    lam = 1e-12  # λ of (3.59), added to JJᵀ's diagonal
     T, T_e, J = T[:, 0], T_e[:, 0], J[:, 0]  # one end link (the chain keeps the K axis)
-    q1 = ik.dls_step(chain, q, T[:, None], damping=k, respect_limits=False)
+    q1 = ik.dls_step(chain, q, T[:, None], damping=lam, respect_limits=False)
     assert q1.shape == q.shape == (5, chain.nq)
     for idx in chain.configuration_space.quaternion_index():
         torch.testing.assert_close(q1[..., list(idx)].norm(dim=-1), torch.ones(5, dtype=torch.float64),
@@ -136,7 +136,7 @@ def test_dls_step_integrates_on_the_manifold(name):
     dp = T[..., :3, 3] - T_e[..., :3, 3]
     R = T[..., :3, :3] @ T_e[..., :3, :3].transpose(-1, -2)
     w = torch.from_numpy(np.stack([_rotvec(r) for r in R.numpy()]))
-    delta = ik.dls_delta(J, torch.cat((dp, w), -1), k)
+    delta = ik.dls_delta(J, torch.cat((dp, w), -1), lam)
     m = compile_mjcf(path)[0]
     qpos, qvel = chain.to_qpos(q).numpy(), chain.to_qvel(delta).numpy()
     ref = np.empty_like(qpos)
@@ -169,6 +169,6 @@ def test_dls_step_is_differentiable_on_a_free_joint():
 
     def f(p):
         Tp = torch.cat((torch.cat((T[..., :3, :3], p.unsqueeze(-1)), -1), T[..., 3:, :]), -2)
-        return ik.dls_step(chain, q, Tp, damping=0.05, respect_limits=False)  # Tp (2, K = 1, 4, 4)
+        return ik.dls_step(chain, q, Tp, damping=2.5e-3, respect_limits=False)  # Tp (2, K = 1, 4, 4)
 
     assert torch.autograd.gradcheck(f, (p,))

@@ -57,7 +57,7 @@ def test_errors_name_the_source():
         models.load_chain(FR3)
     with pytest.raises(ModelError, match="panda.xml: a URDF or MJCF robot needs its end link"):
         models.load_chain(str(PANDA_XML))
-    with pytest.raises(ModelError, match="applies to URDF and MJCF files only"):
+    with pytest.raises(ModelError, match="applies to URDF and MuJoCo robots"):
         models.load_chain("panda", "hand")
     with pytest.raises(ModelError, match="unknown model 'nope'"):
         models.load_chain("nope")

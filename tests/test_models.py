@@ -37,7 +37,8 @@ def _mat(rows):
 
 # ------------------------------------------------------------------------------------- registry
 def test_available_and_sources():
-    assert models.available() == NAMES
+    assert [r.name for r in models.available(details=True) if r.format == "dh"] == NAMES
+    assert set(NAMES) <= set(models.available())
     for name in NAMES:
         chain = load(name)
         assert chain.name == name and chain.q_limits is not None

@@ -55,27 +55,35 @@ def test_nullspace_projector_properties(dtype):  # (3.54)
 
 def test_damped_pinv_is_the_damped_svd_inverse():  # (3.59)
     J = panda_J(seed=2).detach()
-    k = 0.1
+    lam = 0.01  # λ, added to JJᵀ's diagonal
     U, S, Vt = np.linalg.svd(J.numpy(), full_matrices=False)
-    expected = np.einsum("bji,bj,bkj->bik", Vt, S / (S**2 + k**2), U)
-    np.testing.assert_allclose(damped_pinv(J, k).numpy(), expected, atol=1e-12)
-    # per-configuration damping tensor, and the tall form (JᵀJ + k²I)⁻¹Jᵀ
-    ks = torch.tensor([0.0, 0.1, 0.5], dtype=F64)
+    expected = np.einsum("bji,bj,bkj->bik", Vt, S / (S**2 + lam), U)
+    np.testing.assert_allclose(damped_pinv(J, lam).numpy(), expected, atol=1e-12)
+    # per-configuration damping tensor, and the tall form (JᵀJ + λI)⁻¹Jᵀ
+    lams = torch.tensor([0.0, 0.01, 0.25], dtype=F64)
     for i in range(3):
-        torch.testing.assert_close(damped_pinv(J, ks)[i], damped_pinv(J[i], float(ks[i])))
+        torch.testing.assert_close(damped_pinv(J, lams)[i], damped_pinv(J[i], float(lams[i])))
     Jt = J.mT
-    expected = torch.linalg.solve(J @ Jt + k**2 * torch.eye(6, dtype=F64), J)
-    torch.testing.assert_close(damped_pinv(Jt, k), expected)
+    expected = torch.linalg.solve(J @ Jt + lam * torch.eye(6, dtype=F64), J)
+    torch.testing.assert_close(damped_pinv(Jt, lam), expected)
+    # weighted_pinv and nullspace_projector: the same λ
+    Jn, w = J.numpy()[0], np.array([1.0, 2.0, 0.5, 3.0, 1.5, 1.0, 4.0])
+    Wi = np.diag(1.0 / w)
+    want = Wi @ Jn.T @ np.linalg.inv(Jn @ Wi @ Jn.T + lam * np.eye(6))
+    Jw = weighted_pinv(J[0], torch.from_numpy(w), damping=lam)
+    np.testing.assert_allclose(Jw.numpy(), want, atol=1e-12)
+    P = np.eye(7) - Jn.T @ np.linalg.solve(Jn @ Jn.T + lam * np.eye(6), Jn)
+    np.testing.assert_allclose(nullspace_projector(J[0], damping=lam).numpy(), P, atol=1e-12)
 
 
 def test_adaptive_damping():
     J = panda_J(seed=3).detach()
     smin = torch.linalg.svdvals(J)[..., -1]
-    far = damped_pinv(J, 0.2, threshold=float(smin.min()) * 0.5)  # σ_min above the threshold: undamped
+    far = damped_pinv(J, 0.04, threshold=float(smin.min()) * 0.5)  # σ_min above the threshold: undamped
     torch.testing.assert_close(far, pinv(J))
     _, f = singular_J()
     Js = f(torch.tensor([0.3, 0.5, 0.0], dtype=F64)).detach()  # σ_min = 0: full damping
-    torch.testing.assert_close(damped_pinv(Js, 0.2, threshold=0.1), damped_pinv(Js, 0.2))
+    torch.testing.assert_close(damped_pinv(Js, 0.04, threshold=0.1), damped_pinv(Js, 0.04))
 
 
 def test_weighted_pinv():  # (3.50): minimum of q̇ᵀWq̇ subject to J q̇ = v
@@ -102,8 +110,8 @@ def test_finite_at_exact_singularity():
     q, f = singular_J(requires_grad=True)
     J = f(q)
     assert torch.linalg.svdvals(J.detach())[-1] < 1e-12
-    outs = [pinv(J), damped_pinv(J, 0.05), weighted_pinv(J, torch.tensor([1.0, 2.0, 3.0], dtype=F64)),
-            nullspace_projector(J), damped_pinv(J, 0.05, threshold=0.1)]  # fmt: skip
+    outs = [pinv(J), damped_pinv(J, 2.5e-3), weighted_pinv(J, torch.tensor([1.0, 2.0, 3.0], dtype=F64)),
+            nullspace_projector(J), damped_pinv(J, 2.5e-3, threshold=0.1)]  # fmt: skip
     for out in outs:
         assert torch.isfinite(out).all()
         (g,) = torch.autograd.grad(out.sum(), q, retain_graph=True)
@@ -116,11 +124,11 @@ def test_finite_at_exact_singularity():
 
 def test_gradcheck_at_singularity():
     q, f = singular_J(requires_grad=True)
-    assert torch.autograd.gradcheck(lambda x: damped_pinv(f(x), 0.1), (q,))
-    assert torch.autograd.gradcheck(lambda x: nullspace_projector(f(x), damping=0.1), (q,))
+    assert torch.autograd.gradcheck(lambda x: damped_pinv(f(x), 0.01), (q,))
+    assert torch.autograd.gradcheck(lambda x: nullspace_projector(f(x), damping=0.01), (q,))
     w = torch.tensor([1.0, 2.0, 3.0], dtype=F64)
-    assert torch.autograd.gradcheck(lambda x: weighted_pinv(f(x), w, damping=0.1), (q,))
-    assert torch.autograd.gradcheck(lambda x: damped_pinv(f(x), 0.1, threshold=0.2), (q,))
+    assert torch.autograd.gradcheck(lambda x: weighted_pinv(f(x), w, damping=0.01), (q,))
+    assert torch.autograd.gradcheck(lambda x: damped_pinv(f(x), 0.01, threshold=0.2), (q,))
     # and the exact inverse near (not at) the singularity
     q_near = torch.tensor([0.3, 0.5, 0.2], dtype=F64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda x: pinv(f(x)), (q_near,))

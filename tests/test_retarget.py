@@ -420,3 +420,146 @@ def test_metrics_gradients_and_float32():
     m64 = retarget.metrics(chain, q.detach(), c, 30, feet=("lfoot", "rfoot"))
     assert m32.floating.dtype == torch.float32
     torch.testing.assert_close(m32.floating.double(), m64.floating, atol=1e-3, rtol=0)  # mm
+
+
+# ------------------------------------------------------------------------------ whole-clip optimisation
+def test_whole_clip_optimisation_on_the_shipped_hop():
+    """Stage two on 20 frames of the shipped hop: every artefact metric within its bound and better than
+    the frame-by-frame warm start's, the cost decreasing."""
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 20)
+    r = retarget.clip(g1, hop, mp, max_iterations=8, iterations=5)
+    w, m = r.warm_start, r.metrics
+    assert int(m.joint_limit_violations) == 0 and m.joint_limit_excess.item() == 0.0
+    assert m.ground_penetration.item() <= 1.0  # mm
+    assert m.floating.item() <= 5.0 < w.floating.item()  # the warm start floats (the scaled human ankle)
+    assert m.foot_skating.item() <= min(5.0, w.foot_skating.item() / 3)
+    assert m.keypoint_error.item() < 80.0
+    assert m.max_joint_velocity.item() < 20.0  # rad/s, under the G1 motors' 20-37 rad/s
+    assert r.cost.shape == (6, 1) and bool((r.cost[1:] <= r.cost[:-1]).all())
+    assert r.cost[-1].item() < r.cost[0].item() / 10
+    # the reported metrics are metrics() of the returned q
+    again = retarget.metrics(g1, r.q, r.contacts, hop.fps, feet=mp.feet, keypoints=r.keypoints,
+                             keypoint_frames=r.keypoint_frames)
+    torch.testing.assert_close(again.foot_skating, m.foot_skating)
+    # MuJoCo's FK of the output (the same URDF compiled by MuJoCo) gives the reported keypoint error
+    model = _mujoco_g1()
+    data = mujoco.MjData(model)
+    adr = [0, 1, 2, 3, 4, 5, 6] + [int(model.joint(n).qposadr[0]) for n in g1.joint_names[1:]]
+    ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in r.keypoint_frames]
+    dist = []
+    for t in range(r.q.shape[1]):
+        data.qpos[adr] = r.q[0, t].numpy()
+        mujoco.mj_kinematics(model, data)
+        dist.append(np.linalg.norm(data.xpos[ids] - r.keypoints[0, t].numpy(), axis=-1))
+    assert 1000 * np.mean(dist) == pytest.approx(m.keypoint_error.item(), abs=1e-6)
+
+
+def _mujoco_g1():
+    """The G1 URDF compiled by MuJoCo itself (meshes dropped, no body fused, a free joint on the pelvis)."""
+    text = G1_URDF.read_text()
+    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
+    text = re.sub(r"<collision>(?:(?!</collision>).)*<mesh[^>]*/>(?:(?!</collision>).)*</collision>", "",
+                  text, flags=re.S)
+    text = re.sub(r"(<robot [^>]*>)", r'\1<mujoco><compiler fusestatic="false"/></mujoco>', text, count=1)
+    spec = mujoco.MjSpec.from_string(text)
+    spec.worldbody.first_body().add_freejoint()
+    return spec.compile()
+
+
+def test_whole_clip_gradient_against_autograd():
+    """The normal equations' right-hand side g = Jᵀr of the Gauss–Newton step is the gradient of the cost
+    (autograd, pulled back to velocity coordinates): exactly with the difference terms off, on the
+    hinge and base-position columns with them on (their base-rotation Jacobian is approximated)."""
+    from diffkin.retarget.whole_clip import COSTS, _Terms
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    B, T = 2, 5
+    gen = torch.Generator().manual_seed(0)
+    q = torch.zeros(B, T, g1.nq, dtype=torch.float64)
+    q[..., 2], q[..., 3] = 0.78, 1.0
+    q[..., 7:] = 0.2 * torch.randn(B, T, g1.nq - 7, generator=gen, dtype=torch.float64)
+    q[..., 3:7] += 0.05 * torch.randn(B, T, 4, generator=gen, dtype=torch.float64)
+    q[..., 3:7] /= q[..., 3:7].norm(dim=-1, keepdim=True)
+    q[0, :, 7] = 2.9  # beyond the hip pitch's upper limit 2.8798: the limit term is active
+    kp = mp.keypoint_frames
+    with torch.no_grad():
+        x = g1.forward_kinematics(q)[..., [g1.end_links.index(f) for f in kp], :3, 3]
+    x = x + 0.03 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    contacts = torch.rand(B, T, 2, generator=gen) < 0.6
+    q_ref = q + 0.01 * torch.randn(q.shape, generator=gen, dtype=torch.float64)
+    q_ref[..., 3:7] /= q_ref[..., 3:7].norm(dim=-1, keepdim=True)
+    cs = g1.configuration_space
+    for costs, cols in (({"velocity": 0.0, "acceleration": 0.0, "posture": 0.0}, list(range(g1.nv))),
+                        ({}, [0, 1, 2, *range(6, g1.nv)])):
+        w = {**COSTS, **costs}
+        terms = _Terms(g1, x, contacts, list(mp.feet), kp, 30.0, 0.0, None,
+                       torch.ones(len(kp), dtype=torch.float64), w, q_ref, 0.0)
+        qq = q.clone().requires_grad_()
+        cost, D, E, F, g = terms.evaluate(qq)
+        (grad,) = torch.autograd.grad(cost.sum(), qq)
+        want = cs.pullback(q, grad)
+        torch.testing.assert_close(g[..., cols], want[..., cols], atol=1e-8, rtol=1e-8)
+        ev = torch.linalg.eigvalsh(D)  # JᵀJ: positive semi-definite
+        assert torch.isfinite(D).all() and (ev > -1e-9 * ev.amax(-1, keepdim=True)).all()
+
+
+def test_optimize_clip_errors():
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    q = torch.zeros(1, 3, g1.nq, dtype=torch.float64)
+    q[..., 3] = 1.0
+    kp = mp.keypoint_frames
+    x = torch.zeros(1, 3, len(kp), 3, dtype=torch.float64)
+    c = torch.ones(1, 3, 2, dtype=torch.bool)
+    kw = dict(feet=mp.feet, keypoint_frames=kp, fps=30.0)
+    with pytest.raises(ShapeError, match="keypoints"):
+        retarget.optimize_clip(g1, q, x[:, :2], c, **kw)
+    with pytest.raises(ShapeError, match="contacts"):
+        retarget.optimize_clip(g1, q, x, c[..., :1], **kw)
+    with pytest.raises(ModelError, match="skate"):
+        retarget.optimize_clip(g1, q, x, c, costs={"skate": 1.0}, **kw)
+    with pytest.raises(OptionError, match="solver"):
+        retarget.optimize_clip(g1, q, x, c, solver="qr", **kw)
+    with pytest.raises(ModelError, match="nofoot"):
+        retarget.optimize_clip(g1, q, x, c, feet=("nofoot", mp.feet[1]), keypoint_frames=kp, fps=30.0)
+    with pytest.raises(OptionError, match="fps"):
+        retarget.optimize_clip(g1, q, x, c, feet=mp.feet, keypoint_frames=kp, fps=0)
+    out = retarget.optimize_clip(g1, q, x, c, iterations=0, **kw)
+    torch.testing.assert_close(out.q, q) and out.cost.shape == (1, 1)
+    cg = retarget.optimize_clip(g1, q, x, c, iterations=2, solver="cg", **kw)
+    assert cg.cost[-1].item() < cg.cost[0].item()
+
+
+def test_clip_batched_warm_start():
+    """warm_start="batched": every frame in one ik.solve call, each from the standing posture at its own
+    root and heading: the keypoints are reached as closely as frame by frame (47 mm on the whole walk)."""
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(0, 12)
+    r = retarget.clip(g1, walk, mp, warm_start="batched", whole_clip=False)
+    assert r.warm_start is None and r.cost is None and torch.isfinite(r.q).all()
+    assert int(r.metrics.joint_limit_violations) == 0
+    assert r.metrics.keypoint_error.item() < 50.0  # mm
+    with pytest.raises(OptionError, match="warm_start"):
+        retarget.clip(g1, walk, mp, warm_start="parallel")
+
+
+def test_the_builtin_g1_mapping_on_menageries_current_g1():
+    """The issue's robot: ``models.load("g1")`` is MuJoCo Menagerie's current 29-DoF unitree_g1 (shipped); the
+    built-in mapping's frames are its bodies, its foot spheres give the sole (3 cm below the ankle-roll
+    origin, 5 mm spheres: 3.5 cm), and a short clip retargets onto it with its limits and contacts kept."""
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64)
+    assert g1.nq == 36 and "waist_pitch_joint" in g1.joint_names and "torso_joint" not in g1.joint_names
+    for foot in mp.feet:
+        sole = retarget.sole_of(g1, foot)
+        lowest = (sole.points[:, 2] - sole.radii).min().item()
+        assert lowest == pytest.approx(-0.035, abs=1e-12)
+    hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 12)
+    r = retarget.clip(g1, hop, mp, max_iterations=8, iterations=4)
+    m = r.metrics
+    assert int(m.joint_limit_violations) == 0 and m.ground_penetration.item() <= 1.0
+    assert m.foot_skating.item() <= 5.0 and m.floating.item() <= 5.0 and m.keypoint_error.item() < 80.0

@@ -197,7 +197,7 @@ def test_velocity_step_without_limits_is_the_damped_least_squares_step():
     q, twist = _rows(chain, 50, 9)
     qd = ik.velocity_step(chain, q, twist, 0.1, damping=1e-2, respect_limits=False)
     J = chain.forward_kinematics_and_jacobian(q)[1]
-    ref = ik.dls_delta(J, twist, 0.1)  # Jᵀ(JJᵀ + k²I)⁻¹v with k² = λ
+    ref = ik.dls_delta(J, twist, 1e-2)  # Jᵀ(JJᵀ + λI)⁻¹v, the same λ
     torch.testing.assert_close(qd, ref, atol=1e-10, rtol=0)
 
 
@@ -395,7 +395,7 @@ def test_env_cartesian_action_is_limit_safe():
     assert int((torch.minimum(q - lim[:, 0], lim[:, 1] - q).amin(0) < 1e-9).sum()) >= 2  # limits reached
     twist = torch.cat((action * robot.config.max_ee_step / robot.config.control_dt,
                        torch.zeros(32, 3, dtype=F64)), -1)
-    ref = ik.velocity_step(robot.chain, q, twist, robot.config.control_dt, damping=robot.config.damping ** 2,
+    ref = ik.velocity_step(robot.chain, q, twist, robot.config.control_dt, damping=robot.config.damping,
                            velocity_limit=robot.config.max_joint_speed, weight=[1, 1, 1, 0, 0, 0])
     torch.testing.assert_close(robot.cartesian_delta(q, action * robot.config.max_ee_step),
                                ref * robot.config.control_dt)

@@ -4,7 +4,8 @@
 calibrated copy of the chain; ``calibrate_batch`` does K robots in one vectorised call;
 ``calibration_loss`` is the differentiable objective for bigger pipelines; ``identifiability`` and
 ``select_poses`` analyse and design the pose set; ``validation_error`` scores a chain on held-out poses.
-``hand_eye`` and ``robot_world_hand_eye`` solve AX = XB / AX = ZB for cameras with OpenCV's conventions.
+``hand_eye`` and ``robot_world_hand_eye`` solve AX = XB / AX = ZB for cameras with OpenCV's conventions;
+``calibrate_camera`` fits the robot's geometry with the camera's and a board's poses to board pixels.
 
 Calibration estimates its own parameter vector ζ (on a private copy of the chain), never the chain's
 ``requires_grad``: a frozen chain (the default of every loader) calibrates as a learnable one does, and the
@@ -17,6 +18,8 @@ from .api import calibrate as calibrate
 from .api import calibrate_batch as calibrate_batch
 from .api import validation_error as validation_error
 from .camera import project_points as project_points
+from .camera_api import calibrate_camera as calibrate_camera
+from .camera_result import CameraCalibrationResult as CameraCalibrationResult
 from .error_models import ERROR_MODELS as ERROR_MODELS
 from .error_models import ChainErrorModel as ChainErrorModel
 from .handeye import HAND_EYE_METHODS as HAND_EYE_METHODS
@@ -45,10 +48,12 @@ __all__ = [
     "ROBOT_WORLD_METHODS",
     "DegenerateMotionError",
     "CalibrationResult",
+    "CameraCalibrationResult",
     "CalibrationModel",
     "IdentifiabilityReport",
     "calibrate",
     "calibrate_batch",
+    "calibrate_camera",
     "calibrate_from_files",
     "calibration_loss",
     "hand_eye",

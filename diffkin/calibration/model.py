@@ -153,6 +153,11 @@ class ForwardModeMatrix:
             Phi, T = Phi[0], T[0]
         return Phi, T
 
+    def residual_of(self, prediction: Tensor, measured: Tensor, orientation_weight: float) -> Tensor:
+        """Δx of the prediction :meth:`calibration_matrix` returns beside Φ (the poses) against the
+        measurements: :func:`pose_residual` (a model of other measurements, e.g. pixels, overrides it)."""
+        return pose_residual(prediction, measured, orientation_weight)
+
 
 @dataclass(frozen=True, eq=False)
 class CalibrationModel(ForwardModeMatrix):

@@ -19,7 +19,7 @@ from .._numerics import eps_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
 from ..validation import _traced, check_number, shape_str, tensors
-from .model import CalibrationModel, measurement_shapes, pose_residual
+from .model import CalibrationModel, measurement_shapes
 
 __all__ = ["calibration_loss", "robust_loss", "robust_weights", "least_squares", "gradient_descent",
            "SolverOutput", "LOSSES"]
@@ -195,16 +195,18 @@ def least_squares(
     accepted on the robust cost Σ ρ(|Δx_i|²).
 
     Φ̄'s columns are scaled to unit norm and the step is the kernel's damped least-squares solve
-    (:func:`diffkin.kernels.dls.dls_solve`, λ = ``damping``² on the unit-norm columns): min ‖Φ̄ Δζ − Δx̄‖² +
-    λ‖Δζ‖². λ only regularises the step, not the fixed point Φ̄ᵀ Δx̄ = 0, and it makes the step the
-    minimum-norm one in the directions the poses do not determine (fewer equations than parameters). A step
-    that raises the residual is halved (up to 20 times; Levenberg–Marquardt-style safeguard). ``converged``:
+    (:func:`diffkin.kernels.dls.dls_solve`, λ = ``damping`` on the unit-norm columns: the value added to the
+    normal matrix's diagonal, (3.59); default 1e-14 in float64, 1e-6 in float32; the unreleased 0.1.0 took
+    its square root): min ‖Φ̄ Δζ − Δx̄‖² + λ‖Δζ‖². λ only regularises the step, not the fixed point
+    Φ̄ᵀ Δx̄ = 0, and it makes the step the minimum-norm one in the directions the poses do not determine
+    (fewer equations than parameters). A step that raises the residual is halved (up to 20 times;
+    Levenberg–Marquardt-style safeguard). ``converged``:
     |Δζ_j| ≤ tol (1 + |ζ_j|) for every j (tol default 1e-10 in float64, 1e-5 in float32) — the stopping rule
     was met — not merely the iteration budget spent.
     """
     position_only = measured.shape[-1] == 3 and measured.ndim == q.ndim
     tol = (1e-10 if zeta0.dtype == torch.float64 else 1e-5) if tol is None else tol
-    damping = (1e-7 if zeta0.dtype == torch.float64 else 1e-3) if damping is None else damping
+    damping = (1e-14 if zeta0.dtype == torch.float64 else 1e-6) if damping is None else damping
     K, P = free.shape  # P: the candidate parameters here
     cand_mask = model.candidate
     cand = cand_mask.nonzero().flatten().to(zeta0.device)
@@ -220,7 +222,7 @@ def least_squares(
     with torch.no_grad(), _progress(progress, "calibrating (least squares)", max_iterations) as advance:
         for it in range(1, max_iterations + 1):  # noqa: B007 (it is reported)
             Phi, T_model = model.calibration_matrix(zeta, q, position_only, orientation_weight, cand_mask)
-            res = pose_residual(T_model, measured, orientation_weight)
+            res = model.residual_of(T_model, measured, orientation_weight)
             sq = res.square().sum(-1)  # (K, N)
             c0 = _robust_loss(sq, loss, scale).sum(-1)
             pos, ori = _rms(res, orientation_weight)
@@ -232,7 +234,7 @@ def least_squares(
             A = Phi.reshape(K, -1, P) * f[:, None, :]
             s = A.norm(dim=-2)
             s = torch.where(s > 0, s, torch.ones_like(s))
-            step = dls_solve(A / s[:, None, :], res.reshape(K, -1), damping * damping) / s * f
+            step = dls_solve(A / s[:, None, :], res.reshape(K, -1), damping) / s * f
             step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
             shrink = torch.ones(K, 1, dtype=zeta.dtype, device=zeta.device)
             for _ in range(20):  # backtrack robots whose residual grew

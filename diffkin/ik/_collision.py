@@ -125,7 +125,7 @@ class CollisionAcceptance:
             live, ql = live[keep], ql[:, keep]
             g, rows, Jg, A, b = (t[keep] for t in (g, rows, Jg, A, b))
             gk, mm = g.gather(-1, rows), live.numel()
-            lam = lm.damping**2 + lm.error_damping * (b * b).sum(-1)
+            lam = lm.damping + lm.error_damping * (b * b).sum(-1)
             H = A.mT @ A + lam[:, None, None] * eye
             grad = (A.mT @ b.unsqueeze(-1)).squeeze(-1)
             # d + ∇d·Δ ≥ margin + 2 slack  <=>  −∇d·Δ ≤ g − 2 slack, recovering at most `push` a step

@@ -1,7 +1,8 @@
 """The Levenberg–Marquardt schedule of :func:`diffkin.ik.solve` (private): one algorithm, two backends.
 
-Every target runs its seeds one after another (:mod:`._seeds`: the user's, then the nearest poses of a
-fixed library, then random draws from the caller's generator). One LM step of a (target, seed) row:
+Every target runs its seeds in order (:mod:`._seeds`: the user's, then the nearest poses of a fixed
+library, then random draws from the caller's generator); the first seed that converges gives the answer.
+One LM step of a (target, seed) row:
 
 1. evaluate the pose error e = [p_d − p_e; θr] (per end link) and the Jacobian at q = c + h sin u;
 2. converged (max ‖e_p‖ ≤ tol_p · margin and max θ ≤ tol_o · margin): the target is done with this u;
@@ -9,7 +10,7 @@ fixed library, then random draws from the caller's generator). One LM step of a 
    max(‖e_p‖ / tol_p, θ / tol_o) did not shrink by ``stall_ratio`` since the last check, or one at
    ``max_iterations``, is finished (the target keeps the u of its best finished seed) and the target's next
    seed starts, if it has one;
-4. else u ← u ⊕ Δ, Δ = J_wᵀ(J_w J_wᵀ + λI)⁻¹ e_w (3.59), J_w = diag(√w) J diag(∂q/∂u), λ = k̄² + μ‖e_w‖²
+4. else u ← u ⊕ Δ, Δ = J_wᵀ(J_w J_wᵀ + λI)⁻¹ e_w (3.59), J_w = diag(√w) J diag(∂q/∂u), λ = λ̄ + μ‖e_w‖²
    (Sugihara's damping), ⊕ the configuration space's integrate (quaternions on the manifold).
 
 :func:`run_lm` is the torch backend (every device; CUDA runs it), batch last over the open targets. The C
@@ -36,7 +37,9 @@ from .residuals import PoseResidual
 class LMConfig:
     """Knobs of :func:`diffkin.ik.solve` (defaults tuned on Panda, UR5 and iiwa; see the benchmark).
 
-    damping: k̄, constant damping (λ = k̄² + μ‖e‖², Sugihara's error-dependent LM damping).
+    damping: λ̄, the constant part of the damping λ = λ̄ + μ‖e‖² added to JJᵀ's diagonal, eq. (3.59)
+        (Sugihara's error-dependent LM damping; λ̄ is the textbook's k², k = 3e-3 by default; the unreleased
+        0.1.0 took k here).
     error_damping: μ, weight of the error-dependent part.
     orientation_weight: weight of the orientation rows relative to metres (rad → m scale).
     library_size: configurations sampled per call whose poses seed each target (nearest first); 0: off.
@@ -55,7 +58,7 @@ class LMConfig:
         (benchmarks/bench_collision_ik.py); 1 (the scheduled loop) helps where a target has few solutions.
     """
 
-    damping: float = 3e-3
+    damping: float = 9e-6
     error_damping: float = 0.1
     orientation_weight: float = 0.3
     library_size: int = 256
@@ -94,8 +97,124 @@ def run_lm(kernel, jmap, tg: Targets, seeds: SeedPool, N: int, cfg: LMConfig, *,
     """The schedule of this module on ``N`` targets ``tg`` (columns ``(3K, N)``) from ``seeds``; returns
     ``(u (n, N) the converged or best u of each target, iterations (N,), seeds tried (N,))``.
 
-    ``accept(idx, u) -> (ok, u)``: a test (and refinement) of pose-converged rows (collision); a rejected
-    row is finished as a stalled one. One host sync per step (the open rows are compacted)."""
+    Without ``accept`` the seeds run in lockstep (:func:`_run_lockstep`); with it (collision:
+    ``accept(idx, u) -> (ok, u)``, a test and refinement of pose-converged rows whose rejected rows finish
+    as stalled ones) one after another (:func:`_run_sequential`). Both give the schedule's result."""
+    if accept is None:
+        return _run_lockstep(kernel, jmap, tg, seeds, N, cfg, tol=tol, num_seeds=num_seeds,
+                             max_iterations=max_iterations, residual=residual, progress=progress)
+    return _run_sequential(kernel, jmap, tg, seeds, N, cfg, tol=tol, num_seeds=num_seeds,
+                           max_iterations=max_iterations, residual=residual, accept=accept, progress=progress)
+
+
+MAX_SLOTS = 16  # the most seeds a target runs at once in a lockstep round
+
+
+def _slots(r: int, left: int) -> int:
+    """W of lockstep round r: 1, 2, 4, ... up to :data:`MAX_SLOTS` and the seeds left (most targets converge
+    from their first seed; on 2 000 Panda targets caps of 8, 16 and 32 measured alike, within the noise)."""
+    return min(1 << min(r, 10), MAX_SLOTS, left)
+
+
+def _lm_update(u: Tensor, J: Tensor, e: Tensor, go: Tensor, jmap, cfg: LMConfig, sqrt_w: Tensor) -> Tensor:
+    """Step 4 of the schedule on the rows ``go``: u ⊕ J_wᵀ(J_w J_wᵀ + λI)⁻¹ e_w, λ = λ̄ + μ‖e_w‖²."""
+    e = e * sqrt_w
+    lam = cfg.damping + cfg.error_damping * (e * e).sum(0)
+    Jw = J * sqrt_w
+    dqdu = jmap.dq_du(u)
+    if dqdu is not None:  # chain rule through q = c + h sin(u)
+        Jw = Jw * dqdu.unsqueeze(1)
+    return torch.where(go, jmap.step(u, dls_solve(Jw, e, lam, layout="batch_last")), u)
+
+
+def _run_lockstep(kernel, jmap, tg: Targets, seeds: SeedPool, N: int, cfg: LMConfig, *, tol, num_seeds: int,
+                  max_iterations: int, residual: PoseResidual, progress: bool = False):
+    """The schedule with the seeds in lockstep: in round r every open target runs its seeds
+    ``base, ..., base + W_r − 1`` at once (fixed slots; W_r of :func:`_slots`: 1, 2, 4, ... 16), one row
+    per (target, slot). A seed's run depends only on its target and its start, so the result is the
+    sequential schedule's: the lowest seed that converges wins (a slot behind a converged lower slot of its
+    target is dropped by a mask); iterations are the sum of the runs of the seeds up to the winner, seeds
+    tried the winner's number + 1; a target whose seeds all finish unconverged keeps the u of the least
+    merit (ties: the later seed), as one after another. One host sync per step."""
+    dtype, device = tg.pd.dtype, tg.pd.device
+    (tp, to), every, pos_only = tol, max(cfg.check_every, 1), tg.position_only
+    sqrt_w = residual.sqrt_weights(kernel.K, dtype, device)
+    open_t = torch.arange(N, device=device)
+    best_u = seeds(open_t, torch.zeros_like(open_t))
+    best_merit = torch.full((N,), math.inf, dtype=dtype, device=device)
+    iters = torch.zeros(N, dtype=torch.long, device=device)
+    tried = torch.zeros(N, dtype=torch.long, device=device)
+    base, step, r = 0, 0, 0
+    while open_t.numel() and base < num_seeds:
+        M = open_t.numel()
+        W = _slots(r, num_seeds - base)
+        grid = torch.arange(M * W, device=device)  # row = (target m, slot k), target-major
+        slot_of = grid % W
+        t = open_t.repeat_interleave(W)
+        u = seeds(t, base + slot_of)
+        length = torch.zeros(M * W, dtype=torch.long, device=device)
+        state = torch.zeros(M * W, dtype=torch.int8, device=device)  # 0 running, 1 converged, 2 finished
+        fmerit = torch.full((M * W,), math.nan, dtype=dtype, device=device)
+        fu = torch.zeros(u.shape[0], M * W, dtype=dtype, device=device)
+        rows, age = grid, torch.zeros(M * W, dtype=torch.long, device=device)
+        last = torch.full((M * W,), math.inf, dtype=dtype, device=device)
+        while rows.numel():
+            J, e, pn, ang = residual.batch_last(kernel, u, jmap, tg.take(t[rows]))
+            age = age + 1
+            conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
+            merit = pn / tp if pos_only else torch.maximum(pn / tp, ang / to)
+            check = (age % every == 0) & ~conv
+            slow = (age >= cfg.min_seed_iterations) & ~(merit <= cfg.stall_ratio * last)
+            last = torch.where(check, merit, last)
+            fin = check & (slow | (age >= max_iterations))
+            done = conv | fin
+            di = rows[done]
+            length[di] = age[done]
+            state[di] = torch.where(conv[done], 1, 2).to(torch.int8)
+            fmerit[rows[fin]] = merit[fin]
+            fu[:, di] = u[:, done]
+            go = ~done
+            u = _lm_update(u, J, e, go, jmap, cfg, sqrt_w)
+            # a slot behind a converged lower slot of its target can no longer win: masked out
+            first = torch.where((state == 1).view(M, W), slot_of.view(M, W), W).amin(1)  # (M,)
+            keep = go & (slot_of[rows] < first[rows // W])
+            rows, u, age, last = rows[keep], u[:, keep], age[keep], last[keep]
+            step += 1
+            if progress and step % every == 0:
+                print(f"[diffkin.ik.solve] step {step}: seeds {base}..{base + W - 1}, {rows.numel()} rows",
+                      file=sys.stderr)
+        # resolve the round's targets
+        conv_g = (state == 1).view(M, W)
+        has = conv_g.any(1)
+        slots = torch.arange(W, device=device)
+        kstar = torch.where(conv_g, slots, W).amin(1)  # the winner, or W
+        upto = slots[None, :] <= kstar[:, None]
+        iters[open_t] += (length.view(M, W) * upto).sum(1)
+        tried[open_t] += torch.where(has, kstar + 1, W)
+        fu = fu.view(-1, M, W)
+        mrange = torch.arange(M, device=device)
+        win = open_t[has]
+        best_u[:, win] = fu[:, mrange[has], kstar[has]]
+        fm = fmerit.view(M, W)
+        valid = ~torch.isnan(fm)
+        fm_v = torch.where(valid, fm, math.inf)
+        low = fm_v.amin(1)
+        at = valid & (fm_v == low[:, None])
+        latest = (W - 1) - at.flip(1).to(torch.int8).argmax(1)  # the later seed on a tie
+        better = ~has & valid.any(1) & (low <= best_merit[open_t])
+        bt = open_t[better]
+        best_merit[bt] = low[better]
+        best_u[:, bt] = fu[:, mrange[better], latest[better]]
+        open_t = open_t[~has]
+        base, r = base + W, r + 1
+    return best_u, iters, tried
+
+
+def _run_sequential(kernel, jmap, tg: Targets, seeds: SeedPool, N: int, cfg: LMConfig, *, tol,
+                    num_seeds: int, max_iterations: int, residual: PoseResidual, accept=None,
+                    progress: bool = False):
+    """The schedule with each target's seeds one after another (the rows of finished seeds restart with
+    the next seed). One host sync per step (the open rows are compacted)."""
     dtype, device = tg.pd.dtype, tg.pd.device
     (tp, to), every, pos_only = tol, max(cfg.check_every, 1), tg.position_only
     sqrt_w = residual.sqrt_weights(kernel.K, dtype, device)
@@ -129,13 +248,7 @@ def run_lm(kernel, jmap, tg: Targets, seeds: SeedPool, N: int, cfg: LMConfig, *,
         best_merit[fi[better]] = fm[better]
         best_u[:, fi[better]] = u[:, fin][:, better]
         go = ~(conv | fin)
-        e = e * sqrt_w
-        lam = cfg.damping**2 + cfg.error_damping * (e * e).sum(0)
-        Jw = J * sqrt_w
-        dqdu = jmap.dq_du(u)
-        if dqdu is not None:  # chain rule through q = c + h sin(u)
-            Jw = Jw * dqdu.unsqueeze(1)
-        u = torch.where(go, jmap.step(u, dls_solve(Jw, e, lam, layout="batch_last")), u)
+        u = _lm_update(u, J, e, go, jmap, cfg, sqrt_w)
         restart = fin & (tried[idx] < num_seeds)
         ri = idx[restart]
         u[:, restart] = seeds(ri, tried[ri])

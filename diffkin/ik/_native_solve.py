@@ -69,7 +69,7 @@ class _Prepared:
             sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
             hit = self._configured[key] = (sqrt_w, native._filled(
                 native.Args.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
-                damping2=cfg.damping**2, error_damping=cfg.error_damping, margin=cfg.margin,
+                damping2=cfg.damping, error_damping=cfg.error_damping, margin=cfg.margin,
                 min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
                 feature_weight=cfg.orientation_weight))
         return hit[1]

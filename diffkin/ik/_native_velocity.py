@@ -19,6 +19,12 @@ The QP, per row (mink's ``build_ik``; Δq the step, v = Δq / dt)::
 with e, J of a frame task log(T_b⁻¹ T_t) and −jlog(T_t⁻¹ T_b) J_body, of the posture task q ⊖ q_ref and I;
 lo, hi the intersection of gain·(q_min − q) ≤ Δq ≤ gain·(q_max − q) and |Δq| ≤ dt·v_max. Solved exactly
 (active set on Cholesky factors), not approximately: the answer is the QP's minimiser to rounding.
+
+Version 3 of ``dk_vel`` adds a ComTask (e = p_C − target, J = J_C, computed in C from the FK block's frames
+and the chain's link masses) and a CollisionLimit: rows −J_d Δq ≤ γ max(d − d_min, 0) for every checked
+distance d < d_detect (capsule self pairs, capsules against world spheres, capsules, points and half-spaces),
+the QP with them solved exactly (a dual active set, after the box QP whose minimiser is kept where it meets
+every row).
 """
 
 from __future__ import annotations
@@ -35,9 +41,20 @@ from ..kernels import native, single
 __all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
 
 #: the version of dk_vel this module speaks (DK_VEL_VERSION in _native_velocity.c)
-VERSION = 2
+VERSION = 3
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 _STALE = -4
+
+
+# v3: the ComTask (the bodies' centres and weights, cost, gain, damping, the target) and the CollisionLimit
+# (capsules on frames, self pairs, round world objects and half-spaces, gain, minimum and detection distance)
+_V3_FIELDS = [("n_bodies", _I64)] + \
+    [(name, _PTR) for name in ("body_frame", "body_point", "body_weight", "com_cost")] + \
+    [("com_gain", _F64), ("com_lm", _F64), ("com_target", _PTR), ("com_stride", _I64), ("n_caps", _I64)] + \
+    [(name, _PTR) for name in ("cap_frame", "cap_a", "cap_b", "cap_r", "cap_moving")] + \
+    [("n_pairs", _I64), ("pair_i", _PTR), ("pair_j", _PTR), ("n_round", _I64), ("round_a", _PTR),
+     ("round_b", _PTR), ("round_r", _PTR), ("n_half", _I64), ("half", _PTR), ("coll_gain", _F64),
+     ("coll_min", _F64), ("coll_detect", _F64)]
 
 
 class Vel(ctypes.Structure):
@@ -48,7 +65,8 @@ class Vel(ctypes.Structure):
         [("target_stride", _I64), ("posture_cost", _PTR), ("posture_gain", _F64), ("posture_lm", _F64),
          ("q_ref", _PTR), ("ref_stride", _I64), ("pos_lo", _PTR), ("pos_hi", _PTR), ("limit_gain", _F64),
          ("vmax", _PTR), ("dt", _F64), ("damping", _F64)] + \
-        [(name, _PTR) for name in ("q", "v", "q_next", "ok", "work")] + [("ready", _I64), ("busy", _I64)]
+        [(name, _PTR) for name in ("q", "v", "q_next", "ok", "work")] + [("ready", _I64), ("busy", _I64)] + \
+        _V3_FIELDS
 
 
 _fns: dict = {}  # id of the loaded library -> (dk_velocity_one, dk_velocity_work_bytes, dk_velocity)
@@ -113,11 +131,15 @@ class NativeVelocity:
     into the chain's end links, costs numbers or ``(3,)``; ``posture``: ``(cost, gain, lm_damping)`` with
     ``cost`` a number or ``(nv,)``, or None; ``configuration_limit``: ``(gain, min_distance_from_limits)``
     or None (the chain's ``q_limits``); ``velocity_limit``: a number or ``(nv,)`` (inf: none) or None;
-    ``damping``: added to H's diagonal (mink's ``damping``).
+    ``damping``: added to H's diagonal (mink's ``damping``). v3: ``com``: ``(cost, gain, lm_damping)`` of a
+    ComTask (cost a number or ``(3,)``; its target is given per call: ``com_target=`` of :meth:`solve` /
+    :meth:`step`) or None; ``collision``: ``(collision, world, gain, minimum_distance,
+    detection_distance)`` of a CollisionLimit (:func:`_pack_collision`) or None.
     """
 
     def __init__(self, chain, frames: Sequence[tuple], *, posture=None, configuration_limit=None,
-                 velocity_limit=None, damping: float = 1e-12, dtype: torch.dtype | None = None):
+                 velocity_limit=None, damping: float = 1e-12, dtype: torch.dtype | None = None,
+                 com=None, collision=None):
         self.chain = chain
         self.dtype = dtype = dtype or chain.dtype
         nv, K = chain.nv, chain.n_ends
@@ -156,7 +178,9 @@ class NativeVelocity:
         if velocity_limit is not None:
             self._vmax = torch.as_tensor(velocity_limit, **kw).expand(nv).contiguous().clone()
         self.damping = float(damping)
+        self._rows = _pack_rows(chain, dtype, com, collision)  # v3: ComTask, CollisionLimit (or None)
         self._args = self._filled()
+        _fill_rows(self._args, self._rows)
         self._entry = None  # the lean path's cache: (single.Entry, its work space, the call's Vel, ...)
         self._ok = ctypes.c_uint8(1)
 
@@ -187,7 +211,7 @@ class NativeVelocity:
         return packed
 
     def solve(self, q: Tensor, targets: Tensor | None, q_ref: Tensor | None, dt: float, *,
-              next_q: bool = False, threads: int | None = None):
+              next_q: bool = False, threads: int | None = None, com_target: Tensor | None = None):
         """``q (B, nq)``, ``targets (B, F, 4, 4)`` or ``(F, 4, 4)`` (shared), ``q_ref (B, nq)`` or ``(nq,)``
         -> ``(v (B, nv), ok (B,) bool)``, or ``(v, q_next (B, nq), ok)`` with ``next_q``: CPU tensors of
         this problem's dtype (contiguous copies are made where needed)."""
@@ -205,6 +229,9 @@ class NativeVelocity:
             (ref.data_ptr() if ref is not None else None), rstride
         a.dt, a.q, a.v, a.ok = float(dt), q.data_ptr(), v.data_ptr(), ok.data_ptr()
         a.q_next = qn.data_ptr() if qn is not None else None
+        ct = self._com_target(com_target, B)
+        if ct is not None:
+            a.com_target, a.com_stride = ct[0].data_ptr(), ct[1]
         base = model.args[dtype]
         status = _functions()[2](ctypes.addressof(base), ctypes.addressof(a), None)
         _check(status)
@@ -220,6 +247,19 @@ class NativeVelocity:
         if t.shape != (B, F, 4, 4):
             raise ValueError(f"expected targets as ({F}, 4, 4) or ({B}, {F}, 4, 4), got {tuple(t.shape)}")
         return t, F * 16
+
+    def _com_target(self, com_target, B: int) -> tuple[Tensor, int] | None:
+        """The ComTask's target as ``(tensor, stride)``: ``(3,)`` shared or ``(B, 3)`` (None: no ComTask)."""
+        if self._rows is None or "com_cost" not in self._rows:
+            return None
+        if com_target is None:
+            raise ValueError("this problem has a ComTask: com_target (3,) or (B, 3) is needed")
+        t = com_target.detach().to(self.dtype).contiguous()
+        if t.shape == (3,):
+            return t, 0
+        if t.shape != (B, 3):
+            raise ValueError(f"expected com_target as (3,) or ({B}, 3), got {tuple(t.shape)}")
+        return t, 3
 
     def _ref(self, q_ref, B: int) -> tuple[Tensor | None, int]:
         if self._posture is None:
@@ -251,7 +291,8 @@ class NativeVelocity:
         return self._entry
 
     def step(self, q: Tensor, targets: Tensor | None, q_ref: Tensor | None, dt: float, *,
-             out: Tensor | None = None, next_q: Tensor | None = None) -> Tensor | None:
+             out: Tensor | None = None, next_q: Tensor | None = None,
+             com_target: Tensor | None = None) -> Tensor | None:
         """One row: ``q (nq,)``, ``targets (F, 4, 4)``, ``q_ref (nq,)`` (contiguous CPU tensors of the
         problem's dtype, no gradient wanted) -> ``v (nv,)`` (into ``out`` when given; ``next_q (nq,)``
         receives q ⊕ Δq when given). None when this path cannot serve the call (the caller's general path
@@ -262,6 +303,11 @@ class NativeVelocity:
             single._KEY) else self._lean()
         if lean is None:
             return None
+        if self._rows is not None and "com_cost" in self._rows:  # v3: the ComTask's target (3,)
+            if not (type(com_target) is Tensor and com_target.shape == (3,) and com_target.dtype is self.dtype
+                    and com_target.is_contiguous() and com_target.is_cpu):
+                return None
+            lean[2].com_target = com_target.data_ptr()
         v = torch.empty(self.chain.nv, dtype=self.dtype) if out is None else out
         status = lean[6](lean[4], lean[3], lean[5], q.data_ptr(),
                          None if targets is None else targets.data_ptr(),
@@ -273,10 +319,135 @@ class NativeVelocity:
             lean = self._lean()
             if lean is None:
                 return None
-            return self.step(q, targets, q_ref, dt, out=out, next_q=next_q)
+            return self.step(q, targets, q_ref, dt, out=out, next_q=next_q, com_target=com_target)
         if status != 0:
             return None
         return v
+
+
+# ----------------------------------------------------------------------- v3: ComTask and CollisionLimit rows
+def _pack_rows(chain, dtype, com, collision) -> dict | None:
+    """The arrays of the ComTask and the CollisionLimit for ``dk_vel`` (None: neither).
+
+    ``com``: ``(cost, gain, lm_damping)``, cost a number or ``(3,)``: the bodies of
+    :mod:`diffkin.center_of_mass` (``link_masses``, the centres ``link_inertial_frames[:, :3, 3]`` in the
+    frames ``chain._mass_frames``, weights m_i / M). ``collision``: ``(collision, world, gain,
+    minimum_distance, detection_distance)`` (a :class:`~diffkin.collision.RobotCollision` of capsules and a
+    :class:`~diffkin.collision.World` of spheres, capsules, half-spaces and points without batch dims, or
+    None): :func:`_pack_collision`. Raises ValueError where the C step does not serve them."""
+    if com is None and collision is None:
+        return None
+    out: dict = {}
+    kw = dict(dtype=dtype)
+    if com is not None:
+        cost, gain, lm = com
+        m = getattr(chain, "link_masses", None)
+        if m is None:
+            raise ValueError("ComTask: the chain has no link masses")
+        m = m.detach().to("cpu", torch.float64)
+        out["body_frame"] = torch.tensor(list(chain._mass_frames), dtype=torch.int32)
+        out["body_point"] = chain.link_inertial_frames.detach()[:, :3, 3].to("cpu", dtype).contiguous()
+        out["body_weight"] = (m / m.sum()).to(dtype).contiguous()
+        out["com_cost"] = torch.as_tensor(cost, **kw).expand(3).contiguous().clone()
+        out["com_gain"], out["com_lm"] = float(gain), float(lm)
+    if collision is not None:
+        out.update(_pack_collision(chain, dtype, *collision))
+    return out
+
+
+def _fill_rows(a: Vel, rows: dict | None) -> None:
+    """Set the v3 fields of ``a`` from :func:`_pack_rows`'s arrays (kept alive by the caller)."""
+    if rows is None:
+        return
+    for name, value in rows.items():
+        setattr(a, name, value.data_ptr() if isinstance(value, Tensor) else value)
+    if "body_frame" in rows:
+        a.n_bodies = rows["body_frame"].numel()
+    if "cap_frame" in rows:
+        a.n_caps, a.n_pairs = rows["cap_frame"].numel(), rows["pair_i"].numel()
+        a.n_round, a.n_half = rows["round_r"].numel(), rows["half"].shape[0]
+
+
+def _joint_frames(chain, q: Tensor) -> Tensor:
+    """``(B, J + 1, 4, 4)``: the base and every joint frame F_j of the packed model (the frames the C step
+    reads), from one fused FK call with every frame as an end link (as collision/_poses.py does)."""
+    import dataclasses
+
+    from ..kernels.tree import Segments
+
+    key = chain._state_key()
+    seg, stacked = chain._cached_constants(key)
+    topo = dataclasses.replace(chain.topology, ends=tuple(range(chain.topology.n_frames)))
+    ends = [None] * topo.n_frames
+    model = native.NativeModel(topo, Segments(seg.pre, seg.offset, seg.post, seg.base, ends))
+    T, _, bad = native.fk_jacobian(model, q.contiguous(), threads=1)
+    if bad:
+        raise ValueError("non-finite configuration")
+    B = torch.eye(4, dtype=q.dtype) if stacked.base is None else stacked.base.detach().to(q.dtype)
+    return torch.cat((B.expand(T.shape[0], 1, 4, 4), T), 1)
+
+
+def _pack_collision(chain, dtype, collision, world, gain, minimum_distance, detection_distance) -> dict:
+    """The CollisionLimit's arrays: each capsule's frame of the packed model and its ends there, found by
+    matching the geom's pose (the collision model's own frames and offsets) to the joint frame it moves with
+    rigidly, over three random configurations; the self pairs (not both fixed to the base); the world's
+    spheres, capsules and points as segments with a radius, its half-spaces. ValueError where the C step
+    does not serve the model (boxes, a batched world, a geom matched to no frame)."""
+    if getattr(collision, "chain", None) is not chain:
+        raise ValueError("CollisionLimit: the collision model is not on this chain")
+    nc, nb = collision._counts
+    if nb:
+        raise ValueError("box geoms: the torch path")
+    kw = dict(dtype=dtype)
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(0)
+        qs = chain.random_configuration(3, generator=g).detach().to(dtype)
+        F = _joint_frames(chain, qs)  # (3, J + 1, 4, 4)
+        Fr = collision._frames.frames(chain, qs)
+        O = collision._frames.offsets(chain, dtype, "cpu")
+        anchor, link = collision._col_anchor[:nc], collision._col_link[:nc]
+        pose = Fr.index_select(1, anchor) @ O.index_select(0, link)  # (3, G, 4, 4)
+        X = torch.linalg.solve(F.unsqueeze(2), pose.unsqueeze(1))  # (3, J + 1, G, 4, 4): F_f^-1 pose_g
+        spread = (X - X[:1]).abs().amax((0, -2, -1))  # (J + 1, G)
+        tol = 1e-9 if dtype == torch.float64 else 1e-4
+        frames, a_loc, b_loc = [], [], []
+        for gi in range(nc):
+            hits = (spread[:, gi] <= tol).nonzero().flatten().tolist()
+            if not hits:
+                raise ValueError(f"geom {gi}: moves with no frame of the chain")
+            f = hits[-1]  # the deepest frame it moves with
+            Xg = X[0, f, gi]
+            frames.append(f - 1)
+            a_loc.append(Xg[:3, :3] @ collision.capsule_a[gi].detach().to(dtype) + Xg[:3, 3])
+            b_loc.append(Xg[:3, :3] @ collision.capsule_b[gi].detach().to(dtype) + Xg[:3, 3])
+    fixed = [f < 0 for f in frames]
+    index = {geom.name: i for i, geom in enumerate(collision.geoms)}
+    pairs = [(index[a], index[b]) for a, b in collision.pairs]
+    pairs = [(i, j) for i, j in pairs if not (fixed[i] and fixed[j])]
+    out = {"cap_frame": torch.tensor(frames, dtype=torch.int32),
+           "cap_a": torch.stack(a_loc).contiguous() if nc else torch.zeros(1, 3, **kw),
+           "cap_b": torch.stack(b_loc).contiguous() if nc else torch.zeros(1, 3, **kw),
+           "cap_r": collision.capsule_radius.detach().to("cpu", dtype).contiguous(),
+           "cap_moving": torch.tensor([not f for f in fixed] or [0], dtype=torch.uint8),
+           "pair_i": torch.tensor([i for i, _ in pairs] or [0], dtype=torch.int32)[:len(pairs)].contiguous(),
+           "pair_j": torch.tensor([j for _, j in pairs] or [0], dtype=torch.int32)[:len(pairs)].contiguous(),
+           "coll_gain": float(gain), "coll_min": float(minimum_distance),
+           "coll_detect": float(detection_distance)}
+    ra, rb, rr, half = [], [], [], torch.zeros(0, 4, **kw)
+    if world is not None:
+        if world.boxes.center.shape[0] or any(t.ndim != 2 for t in (world.spheres, world.capsules,
+                                                                        world.halfspaces, world.points)):
+            raise ValueError("world boxes or a batched world: the torch path")
+        sp, cp, pt = (t.detach().to("cpu", dtype) for t in (world.spheres, world.capsules, world.points))
+        ra += [sp[:, :3], cp[:, :3], pt]
+        rb += [sp[:, :3], cp[:, 3:6], pt]
+        rr += [sp[:, 3], cp[:, 6], torch.zeros(pt.shape[0], **kw)]
+        half = world.halfspaces.detach().to("cpu", dtype)
+    out["round_a"] = torch.cat(ra).contiguous() if ra else torch.zeros(0, 3, **kw)
+    out["round_b"] = torch.cat(rb).contiguous() if rb else torch.zeros(0, 3, **kw)
+    out["round_r"] = torch.cat(rr).contiguous() if rr else torch.zeros(0, **kw)
+    out["half"] = half.contiguous()
+    return out
 
 
 def _velocity_coordinates(chain) -> list[int]:
@@ -338,6 +509,39 @@ def _classes():
     return _kinds
 
 
+_kinds3: list = []  # (ComTask, CollisionLimit), imported once (v3)
+
+
+def _classes3():
+    if not _kinds3:
+        from .limits import CollisionLimit
+        from .tasks import ComTask
+
+        _kinds3.extend((ComTask, CollisionLimit))
+    return _kinds3
+
+
+def _collision_key(chain, lim, dtype) -> tuple | None:
+    """A CollisionLimit as a hashable constant: the collision model (identity, its parameters' versions and
+    storage), the world's tensors (the same), gain and distances; None where the C step does not serve it
+    (another chain, box geoms, a world with boxes or batch dims, another dtype or device)."""
+    rc, world = lim.collision, lim.world
+    if getattr(rc, "chain", None) is not chain or getattr(rc, "_counts", (0, 1))[1]:
+        return None
+    params = tuple(rc.parameters())
+    if any(p.dtype is not dtype or not p.is_cpu for p in params):
+        return None
+    wkey = None
+    if world is not None:
+        ts = (world.spheres, world.capsules, world.halfspaces, world.points, world.boxes.center)
+        if ts[4].shape[0] or any(t.ndim != 2 or t.dtype is not dtype or not t.is_cpu or
+                                 (t.requires_grad and torch.is_grad_enabled()) for t in ts[:4]):
+            return None
+        wkey = (id(world), *((id(t), t._version, t.data_ptr()) for t in ts))
+    return (id(rc), tuple((p._version, p.data_ptr()) for p in params), wkey, lim.gain, lim.minimum_distance,
+            lim.detection_distance)
+
+
 def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     """:func:`~diffkin.ik.solve_velocity` by the C step where it serves the call, else None (the torch
     path then serves it, and raises on bad input). Served: CPU tensors of the chain's dtype (float64 or
@@ -346,7 +550,10 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     ``(3,)``, gain and lm_damping numbers; the target ``(4, 4)`` or with q's batch dims), at most one
     PostureTask (cost a number or ``(nv,)``, q_ref ``(nq,)`` or with q's batch dims); limits:
     ConfigurationLimit and VelocityLimit (a number, ``(nv,)`` or a dict by joint name), at most one of each;
-    ``dt`` and ``damping`` numbers. Everything else (CollisionLimit, ComTask, RelativeFrameTask,
+    ``dt`` and ``damping`` numbers. Also (v3) at most one ComTask (target ``(3,)`` or with q's batch dims,
+    cost a number or ``(3,)``; a chain with link masses) and at most one CollisionLimit (a collision model of
+    capsules on this chain, in its dtype, and a world of spheres, capsules, half-spaces and points without
+    batch dims, or none). Everything else (box geoms or world boxes, a batched world, RelativeFrameTask,
     DampingTask, twists, batched costs, autograd, CUDA) takes the torch path.
 
     The problem's constants are packed once per chain and key (the tasks' frames, costs, gains and damping,
@@ -364,9 +571,18 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     FrameTask, PostureTask, ConfigurationLimit, VelocityLimit, Problem = _kinds or _classes()
     tasks = tasks if type(tasks) in (list, tuple) else (tasks,)
     limits = () if limits is None else limits if type(limits) in (list, tuple) else (limits,)
+    ComTask, CollisionLimit = _kinds3 or _classes3()
     frames, targets, posture, q_ref = [], [], None, None
+    com = com_target = coll = coll_key = None
     for t in tasks:
         kind = type(t)
+        if kind is ComTask and com is None:
+            c = t.cost
+            com = (c if type(c) in _NUM else _constant(c, 3), _number(t.gain), _number(t.lm_damping))
+            com_target = t.target
+            if None in com or not _plain(com_target, (3,), dtype):
+                return None
+            continue
         if kind is FrameTask:
             if t.twist is not None or not _plain(t.target, (4, 4), dtype):
                 return None
@@ -388,13 +604,18 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
             return None
     # NaN / inf targets or posture go to the torch path, whose validators name them (CPU tensors: no device
     # sync); a sum that overflows only costs the fast path
-    if not all(math.isfinite(float(x.sum())) for x in (*targets, *(() if q_ref is None else (q_ref,)))):
+    if not all(math.isfinite(float(x.sum())) for x in (*targets, *(() if q_ref is None else (q_ref,)),
+                                                       *(() if com_target is None else (com_target,)))):
         return None
     config = vel = None
     for lim in limits:
         kind = type(lim)
         if kind is ConfigurationLimit and config is None:
             config = (lim.gain, lim.min_distance_from_limits)
+        elif kind is CollisionLimit and coll is None:
+            coll, coll_key = lim, _collision_key(chain, lim, dtype)
+            if coll_key is None:
+                return None
         elif kind is VelocityLimit and vel is None:
             v = lim.velocity
             vel = v if type(v) in _NUM else _constant(v, None) if not isinstance(v, dict) else \
@@ -404,17 +625,22 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
                 return None
         else:
             return None
-    if not frames and posture is None:
+    if not frames and posture is None and com is None:
         return None
     lim_t = chain._buffers.get("q_limits")
     key = (dtype, tuple(frames), posture, config, vel, damping,
            None if lim_t is None else (id(lim_t), lim_t._version))
+    if com is not None or coll is not None:  # v3: their arrays read the chain's masses and frames
+        state = chain._state_key()
+        if state is None:
+            return None
+        key = key + (com, coll_key, state)
     cache = chain.__dict__.get(_CACHE)
     if cache is None:
         cache = chain.__dict__[_CACHE] = {}
     prob = cache.get(key)
     if prob is None:
-        prob = _build(chain, key, limits, dt, VelocityLimit, Problem)
+        prob = _build(chain, key, limits, dt, VelocityLimit, Problem, com=com, collision=coll)
         if prob is None:
             return None
         if len(cache) > 64:  # a loop that builds new constants every step: keep the newest only
@@ -423,8 +649,12 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     if q.shape[-1] != prob.nq or (q_ref is not None and q_ref.shape[-1] != prob.nq):
         return None
     if q.ndim == 1:
-        if (q_ref is not None and q_ref.ndim != 1) or any(t.ndim != 2 for t in targets):
+        if (q_ref is not None and q_ref.ndim != 1) or any(t.ndim != 2 for t in targets) or \
+                (com_target is not None and com_target.ndim != 1):
             return None
+        if com_target is not None:
+            return prob.step(q if q.is_contiguous() else q.contiguous(), _stacked(targets), q_ref.contiguous()
+                             if q_ref is not None else None, dt, com_target=com_target.contiguous())
         tgt = (targets[0] if len(targets) == 1 else torch.stack(targets)) if targets else None
         if tgt is not None and not tgt.is_contiguous():
             tgt = tgt.contiguous()
@@ -437,21 +667,31 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
         tgt = torch.stack([t.expand(*batch, 4, 4) for t in targets], dim=-3).reshape(B, len(targets), 4, 4) \
             if targets else None
         ref = q_ref if q_ref is None or q_ref.ndim == 1 else q_ref.expand(*batch, nq).reshape(B, nq)
+        ct = com_target if com_target is None or com_target.ndim == 1 else \
+            com_target.expand(*batch, 3).reshape(B, 3)
     except RuntimeError:  # shapes that do not broadcast: the torch path says so
         return None
     q2 = q.reshape(B, nq)
     if not bool(torch.isfinite(q2).all()):  # the torch path's error
         return None
     try:
-        v, _ = prob.solve(q2, tgt, ref, dt)
+        v, _ = prob.solve(q2, tgt, ref, dt, com_target=ct)
     except RuntimeError:  # the chain cannot be packed now (a gradient wanted from its parameters)
         return None
     return v.reshape(*batch, prob.nv)
 
 
-def _build(chain, key, limits, dt, VelocityLimit, Problem) -> NativeVelocity | None:
+def _stacked(targets: list) -> Tensor | None:
+    """The frame tasks' targets of one row as one contiguous ``(F, 4, 4)`` (None: no frame task)."""
+    if not targets:
+        return None
+    tgt = targets[0] if len(targets) == 1 else torch.stack(targets)
+    return tgt if tgt.is_contiguous() else tgt.contiguous()
+
+
+def _build(chain, key, limits, dt, VelocityLimit, Problem, com=None, collision=None) -> NativeVelocity | None:
     """The :class:`NativeVelocity` of a route key (None: the chain or the constants do not suit it)."""
-    dtype, frames, posture, config, vel, damping, _ = key
+    dtype, frames, posture, config, vel, damping, _ = key[:7]
     if chain.dtype is not dtype:
         return None
     K, names = chain.n_ends, list(getattr(chain, "end_links", None) or [])
@@ -485,8 +725,15 @@ def _build(chain, key, limits, dt, VelocityLimit, Problem) -> NativeVelocity | N
         vmax = vmax.detach().to("cpu", dtype)
         if vmax.ndim != 1 or vmax.shape[0] != chain.nv or not bool((vmax >= 0).all()):
             return None
+    if com is not None:
+        c = com[0]
+        if min(c if isinstance(c, tuple) else (c,)) < 0 or com[1] < 0 or com[2] < 0 or \
+                getattr(chain, "link_masses", None) is None or getattr(chain, "_mass_note", ""):
+            return None  # the torch path raises (no masses) or warns (approximate masses) with its message
+    coll = None if collision is None else (collision.collision, collision.world, collision.gain,
+                                           collision.minimum_distance, collision.detection_distance)
     try:
         return NativeVelocity(chain, resolved, posture=posture, configuration_limit=config,
-                              velocity_limit=vmax, damping=damping, dtype=dtype)
+                              velocity_limit=vmax, damping=damping, dtype=dtype, com=com, collision=coll)
     except (ValueError, RuntimeError, TypeError):
         return None

@@ -66,9 +66,12 @@ def nearest(tg, lib_f: Tensor, R: int, weight: float) -> Tensor:
     ``weight`` times that of the rotation columns (``dk_solve``'s distance); ties: the lower index."""
     f = library_features(tg.xd, tg.yd, tg.zd, tg.pd, tg.position_only)  # (F, N)
     K3 = tg.pd.shape[0]
-    w = torch.ones(f.shape[0], 1, 1, dtype=f.dtype, device=f.device)
-    w[K3:] = weight
-    d = (w * (f.unsqueeze(-1) - lib_f.unsqueeze(1)).square()).sum(0)  # (N, L)
+    d = None  # (N, L), accumulated feature by feature in order (no (F, N, L) temporary)
+    for i in range(f.shape[0]):
+        term = (f[i, :, None] - lib_f[i, None, :]).square()
+        if i >= K3:
+            term = term * weight
+        d = term if d is None else d.add_(term)
     return torch.sort(d, dim=1, stable=True).indices[:, :R]
 
 

@@ -57,8 +57,9 @@ from ..rotations import (
     _skew,
 )
 from ..validation import check_number, check_trailing, shape_str, tensors
-from .velocity import FrameTask
-from .velocity import _solve as _velocity_solve
+from ._clik_tasks import clik_arguments, clik_limits
+from .differential import least_squares, solve_step
+from .tasks import FrameTask, Problem
 
 __all__ = ["CLIKResult", "clik", "CLIK_ALGORITHMS", "CLIK_ORIENTATIONS", "joint_limit_objective"]
 
@@ -356,26 +357,39 @@ def _reference(cfg, e, v_ff, L) -> Tensor:
 
 
 def _limited(cfg, chain, q, J, v, dt: float) -> Tensor:
-    """``limits=True``: q̇ of :func:`~diffkin.ik.velocity_step` (V.1)–(V.2) for the reference v on the
-    selected rows, λ = ``damping`` (k² of (3.59)): the DLS law with the joint position and velocity limits
-    as bounds."""
+    """``limits``: q̇ of :func:`~diffkin.ik.solve_velocity` (D.1)–(D.2) (= :func:`~diffkin.ik.velocity_step`
+    (V.1)–(V.2)) for the reference v on the selected rows (weighted by the costs), λ = ``damping`` (k² of
+    (3.59)): the DLS law with the limit objects (joint position and velocity limits) as bounds."""
     task = cfg.task
     zeros = torch.zeros(6, dtype=q.dtype, device=q.device)
     twist = torch.cat((v, zeros[task.size:].expand(*v.shape[:-1], 6 - task.size)), dim=-1)
-    weight = zeros.index_fill(0, torch.tensor(task.rows, device=q.device), 1.0)
-    vmax = None if cfg.qdot_max is None else torch.tensor(cfg.qdot_max, dtype=q.dtype, device=q.device)
-    return _velocity_solve(chain, q, J.unsqueeze(-3), twist.unsqueeze(-2), weight.expand(1, 6), dt,
-                           cfg.damping, vmax, True, [FrameTask()], None)
+    w = zeros.index_fill(0, torch.tensor(task.rows, device=q.device), 1.0)
+    if cfg.W is not None:
+        w = w * cfg.W
+    p = Problem(chain, q, dt)
+    p._fk = (None, J.unsqueeze(-3))  # the twist form reads only the Jacobian
+    frame = FrameTask(0, twist=twist, position_cost=w[..., :3], orientation_cost=w[..., 3:])
+    A, b, reg = least_squares(p, [frame], cfg.damping)
+    return solve_step(p, A, b, reg, cfg.limits) / dt
+
+
+def _weighted(cfg, J_s: Tensor, v_s: Tensor) -> tuple[Tensor, Tensor]:
+    """W J and W v on the selected rows (the FrameTask's costs W; unchanged where every cost is 1)."""
+    if cfg.W is None:
+        return J_s, v_s
+    w = cfg.W[..., list(cfg.task.rows)]
+    return w[..., :, None] * J_s, w * v_s
 
 
 def _first_order(cfg, q, J_t, e, v_ff, L) -> Tensor:
     rows = list(cfg.task.rows)
     if cfg.algorithm == "transpose":
-        return _mv(J_t[..., rows, :].mT, _mv(cfg.K, e)[..., rows])  # (3.76)
+        J_s, Ke = _weighted(cfg, J_t[..., rows, :], _mv(cfg.K, e)[..., rows])
+        return _mv(J_s.mT, Ke)  # (3.76)
     v = _reference(cfg, e, v_ff, L)
-    J_s = J_t[..., rows, :]
+    J_s, v_s = _weighted(cfg, J_t[..., rows, :], v[..., rows])
     J_inv = _damped(J_s, cfg.damping) if cfg.algorithm == "dls" else _pinv(J_s)
-    qd = _mv(J_inv, v[..., rows])
+    qd = _mv(J_inv, v_s)
     if cfg.objective is not None:  # (3.72) with (3.55)
         qd = qd + _nullspace_term(J_inv, J_s, cfg.k0 * _gradient(cfg.objective, q))
     return qd
@@ -386,9 +400,9 @@ def _second_order(cfg, chain, q, qd, J_t, e, v_ff, a_ff) -> Tensor:
     rows = list(cfg.task.rows)
     e_dot = v_ff - _mv(J_t, qd)  # ė = ẋ_d − J q̇ (3.68)
     a = a_ff + _mv(cfg.K_D, e_dot) + _mv(cfg.K_P, e) - _jdot_qdot(chain, q, qd, cfg.task)
-    J_s = J_t[..., rows, :]
+    J_s, a_s = _weighted(cfg, J_t[..., rows, :], a[..., rows])
     J_inv = _pinv(J_s)
-    qdd = _mv(J_inv, a[..., rows])
+    qdd = _mv(J_inv, a_s)
     if cfg.objective is not None or cfg.k_d0 != 0.0:
         qdd0 = -cfg.k_d0 * qd
         if cfg.objective is not None:
@@ -408,7 +422,8 @@ class _Config(NamedTuple):
     k0: float
     k_d0: float
     qdot_max: float | None
-    limits: bool
+    limits: tuple | None  # the limit objects of the limited DLS step
+    W: Tensor | None  # the FrameTask's costs (..., 6), None where all are 1
 
 
 def _qdot_max(v, dt: float) -> float:
@@ -458,9 +473,9 @@ def _old_clik_order(chain, a, b) -> bool:
 @reordered_target("ik.clik", "q0", _old_clik_order)
 def clik(
     chain,
-    T_target,
-    q0: Tensor,
-    dt: float,
+    T_target=None,
+    q0: Tensor | None = None,
+    dt: float | None = None,
     steps: int | None = None,
     *,
     algorithm: str = "pseudo_inverse",
@@ -480,9 +495,10 @@ def clik(
     clamp: bool = False,
     return_poses: bool = False,
     differentiable: bool | None = None,
-    limits: bool = False,
+    limits=False,
     position_tolerance: float = 1e-4,
     orientation_tolerance: float = 1e-3,
+    tasks=None,
 ) -> CLIKResult:
     """Closed-loop inverse kinematics along x_d(t), integrated with forward Euler (3.48) (§3.7).
 
@@ -514,11 +530,21 @@ def clik(
             per step: never reached by a run that converges; it keeps a diverging one — gains too high for
             the error, a pass near a singularity — finite, with its errors reported as they are).
         clamp: project q onto the chain's joint limits after each step. return_poses: keep the poses.
-        limits: hard joint limits (with ``algorithm="dls"``): each q̇ is :func:`~diffkin.ik.velocity_step`'s
-            exact solution of the DLS problem (3.59) with λ = ``damping`` under the bounds that keep
-            q + q̇Δt within the chain's joint limits and |q̇| ≤ ``qdot_max`` (if given): the step near a
+        limits: hard limits (with ``algorithm="dls"``): each q̇ is :func:`~diffkin.ik.solve_velocity`'s
+            exact solution of the DLS problem (3.59) with λ = ``damping`` under the bounds of the limit
+            objects, :class:`~diffkin.ik.ConfigurationLimit` (q + q̇Δt within γ of the way to the chain's
+            joint limits) and :class:`~diffkin.ik.VelocityLimit` (|q̇| ≤ its bound): the step near a
             limit is redistributed to the other joints instead of cut (orientation ``None``,
-            ``"axis_angle"`` or ``"quaternion"``; no ``nullspace``).
+            ``"axis_angle"`` or ``"quaternion"``; no ``nullspace``). ``True`` is the shorthand for
+            ``[ConfigurationLimit(gain=1.0)]`` and, if ``qdot_max`` is given, ``VelocityLimit(qdot_max)``.
+        tasks: the tracking problem as objects (:mod:`diffkin.ik._clik_tasks`) instead of ``T_target``,
+            ``rows``, ``K`` and ``nullspace``: one :class:`~diffkin.ik.FrameTask` with ``target`` x_d
+            ``(..., S, 4, 4)`` (its costs select and weight the rows, its gain α gives K = α/Δt unless
+            ``K`` is given), optionally a FrameTask with ``twist`` ẋ_d ``(..., S, 6)`` (the feed-forward)
+            and a :class:`~diffkin.ik.PostureTask` (the null-space objective w = −½‖c (q ⊖ q_ref)‖²,
+            k₀ = α/Δt). The shorthand arguments are this problem: ``clik(chain, (x_d, ẋ_d), q0, dt,
+            rows=(0, 1, 2), K=k)`` is ``clik(chain, q0=q0, dt=dt, K=k, tasks=[FrameTask(0, target=x_d,
+            orientation_cost=0), FrameTask(0, twist=ẋ_d)])`` (``tests/test_clik_tasks.py``).
         differentiable: record the autograd graph through all the steps (w.r.t. q0, the target and the
             chain's DH parameters). Default: only when grad mode is on and q0 or a target tensor requires
             grad, since a graph over thousands of steps is costly; pass True for gradients w.r.t. the chain
@@ -531,8 +557,17 @@ def clik(
     """
     if algorithm not in CLIK_ALGORITHMS:
         raise ConventionError(f"unknown algorithm {algorithm!r}; valid: {CLIK_ALGORITHMS}")
+    if q0 is None or dt is None:
+        raise ConventionError("ik.clik needs q0 and dt")
     q = chain.check_q(q0, name="q0")
     check_number(dt, "dt", unit=" (s)")
+    weights = None
+    if tasks is not None:  # the objects, translated to the arguments below (diffkin.ik._clik_tasks)
+        T_target, orientation, rows, weights, K, nullspace, k0 = clik_arguments(
+            chain, T_target, tasks, dt, orientation, rows, K, nullspace, k0)
+    elif T_target is None:
+        raise ConventionError("ik.clik needs a target: T_target, or tasks=[FrameTask(0, target=x_d)]")
+    limit_objs = clik_limits(limits, qdot_max)
     task = _make_task(chain, orientation, convention, rows)
     if algorithm == "inverse" and len(task.rows) != chain.n_joints:
         raise ShapeError(
@@ -541,8 +576,8 @@ def clik(
         )
     if qdot0 is not None:
         qdot0 = chain.check_q(qdot0, name="qdot0")
-    _check_limits_mode(limits, algorithm, orientation, nullspace, damping)
-    if limits:  # the QP's velocity bound: only the one asked for
+    _check_limits_mode(limit_objs, algorithm, orientation, nullspace, damping)
+    if limit_objs is not None:  # the QP's velocity bound: only the one asked for (a VelocityLimit)
         qd_max = None if qdot_max is None else check_number(qdot_max, "qdot_max", unit=" (rad/s)")
     else:
         qd_max = _qdot_max(qdot_max, dt)
@@ -561,7 +596,8 @@ def clik(
         float(k0),
         float(k_d0),
         qd_max,
-        bool(limits),
+        limit_objs,
+        weights,
     )
     if differentiable is None:
         values = [] if callable(T_target) else _as_tuple(T_target)
@@ -573,14 +609,14 @@ def clik(
 
 
 def _check_limits_mode(limits, algorithm, orientation, nullspace, damping) -> None:
-    if not limits:
+    if limits is None:
         return
     if algorithm != "dls" or orientation == "euler" or nullspace is not None:
         raise ConventionError(
-            "clik(limits=True) solves the DLS law (3.59) under the joint limits: it needs algorithm='dls', "
-            f"orientation None, 'axis_angle' or 'quaternion' and no nullspace; got algorithm={algorithm!r}, "
-            f"orientation={orientation!r}, nullspace={nullspace!r}")
-    check_number(damping, "damping (λ = k² of (3.59), > 0 with limits=True)")
+            "clik(limits=True, or limit objects) solves the DLS law (3.59) under the joint limits: it needs "
+            "algorithm='dls', orientation None, 'axis_angle' or 'quaternion' and no nullspace; got "
+            f"algorithm={algorithm!r}, orientation={orientation!r}, nullspace={nullspace!r}")
+    check_number(damping, "damping (λ of (3.59), > 0 with limits)")
 
 
 def _as_tuple(target) -> tuple:
@@ -608,7 +644,7 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
                 qd = qd.clamp(-cfg.qdot_max, cfg.qdot_max)
             qd = qd.expand(*batch, n)
             qdd = _second_order(cfg, chain, q, qd, J_t, e, v_ff, _feed(a_d, task.size, q))
-        elif cfg.limits:
+        elif cfg.limits is not None:
             qd = _limited(cfg, chain, q, J, _reference(cfg, e, v_ff, L), dt).expand(*batch, n)
         else:
             qd = _first_order(cfg, q, J_t, e, v_ff, L).expand(*batch, nv)

@@ -163,9 +163,23 @@ def solve_velocity(chain, q, tasks, dt, *, limits=(), damping=1e-12) -> Tensor:
 
     Every limit holds after ``chain.integrate(q, q̇ * dt)`` to rounding (boxes exactly).
 
-    On the CPU without autograd, frame tasks with target poses, a posture task, configuration and velocity
-    limits are served by one C call (:func:`diffkin.ik._native_velocity.route` lists the subset); the
-    result equals the torch path's to rounding (``tests/test_native_velocity.py``).
+    On the CPU without autograd, one C call serves these combinations
+    (:func:`diffkin.ik._native_velocity.route` gives the details):
+
+    - tasks: any number of :class:`~diffkin.ik.FrameTask` with a ``target`` pose, at most one
+      :class:`~diffkin.ik.PostureTask` and at most one :class:`~diffkin.ik.ComTask` (a chain with link
+      masses), costs numbers or per axis, gains and damping numbers;
+    - limits: at most one each of :class:`~diffkin.ik.ConfigurationLimit`,
+      :class:`~diffkin.ik.VelocityLimit` and :class:`~diffkin.ik.CollisionLimit` (a collision model of
+      capsules and spheres on this chain; a world of spheres, capsules, half-spaces and points without batch
+      dims, or none); with collision rows the QP (D.1)–(D.2) is solved exactly by a dual active set.
+
+    Everything else (``FrameTask(twist=...)``, :class:`~diffkin.ik.RelativeFrameTask`,
+    :class:`~diffkin.ik.DampingTask`, box geoms or world boxes, a batched world, batched costs, a gradient
+    wanted, CUDA) runs the torch path. The two agree to rounding (1e-9 in float64:
+    ``tests/test_native_velocity.py``, ``tests/test_native_velocity_rows.py``), except where collision
+    rows bind nearly dependently: there the C step's exact active set equals daqp's answer at tolerance
+    1e-12, and the torch path's polished interior point may be off by up to ~1e-6.
     """
     fast = _native_velocity.route(chain, q, tasks, dt, limits, damping)  # the C step, where it serves
     if fast is not None:

@@ -9,14 +9,15 @@ by an autograd Function whose backward differentiates that condition at the solu
   position rows only for ``position_only``), so dq* = J⁺ (∂F/∂z dz): J⁻¹ for a square J, the minimum-norm
   J⁺ = Jᵀ(JJᵀ)⁻¹ for a redundant chain (no null-space component). The backward of a gradient g is one
   batched factorisation, u = (JJᵀ + λI)⁻¹ J g (the kernel's DLS), damped by the rule of ``optimize``:
-  λ = k² (1 − (σ_min/k)²) only where σ_min(J) < k (k: the solver's damping, default 3e-3), plus a floor of
+  λ = k² (1 − (σ_min/k)²) only where σ_min(J) < k (k² = λ̄: the solver's ``damping``, default 9e-6, so
+  k = 3e-3), plus a floor of
   10 ε (ε: the dtype's machine epsilon). Where σ_min >= k the gradient is exact up to a relative 10 ε/σ_min²
   (< 3e-10 in float64); below, each direction is scaled by σ/(σ² + λ) = σ/k² <= 1/k instead of 1/σ, so
   ‖u‖ <= ‖g‖/k at singular solutions (no NaN, no blow-up); then one vector–Jacobian product of F w.r.t. z
   with cotangent u — the FK kernel and the pose error differentiate themselves, so every parameter kind (DH,
   Hayati β, URDF origins and axes, base, tool) and the targets get their gradient with no hand-written ∂F/∂z.
 * optimize: dq* = −H⁻¹ ∂(∇_q C)/∂z dz with H = ∇²_q C (Hessian–vector products through autograd), damped
-  by λ = k² (1 − (σ_min/k)²) only where σ_min(H) < k (k: ``optimize``'s ``damping``). Costs that are not
+  by λ = k² (1 − (σ_min/k)²) only where σ_min(H) < k (k² = ``optimize``'s ``damping``). Costs that are not
   twice differentiable (a user's callable, kinks) can use ``unroll=True`` instead.
 
 Failed targets (``success`` False) get a zero gradient: they satisfy no condition to differentiate.
@@ -74,8 +75,9 @@ class _ImplicitSolve(_AtSolution):
 
 
 def _solve_damping(J: Tensor, k2: float) -> Tensor:
-    """λ ``(...)`` of the solve backward: the rule of ``optimize``'s (:func:`adaptive_damping`, threshold k)
-    on J, so zero where σ_min(J) >= k, plus 10 ε (a floor: an exactly singular J, or k = 0, stays finite)."""
+    """λ ``(...)`` of the solve backward: the rule of ``optimize``'s (:func:`adaptive_damping`, threshold
+    k = √k2) on J, so zero where σ_min(J) >= k, plus 10 ε (a floor: an exactly singular J, or k = 0, stays
+    finite)."""
     floor = 10.0 * torch.finfo(J.dtype).eps
     if k2 <= 0.0:
         return torch.full(J.shape[:-2], floor, dtype=J.dtype, device=J.device)
@@ -86,11 +88,11 @@ def attach_solve_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, 
                            damping: float) -> Tensor:
     """``q`` with the implicit gradient of :func:`~diffkin.ik.solve` (the condition F = 0 of the pose
     ``residual``, :class:`~diffkin.ik.residuals.PoseResidual`) w.r.t. ``T_target`` and the chain's
-    parameters that require grad (no-op when nothing does)."""
+    parameters that require grad (no-op when nothing does); ``damping``: the solver's λ̄ = k²."""
     if not wants_gradients(chain, T_target):
         return q
     params = tuple(p for p in chain.parameters() if p.requires_grad)
-    spec = (chain, success.detach(), residual, damping**2, params)
+    spec = (chain, success.detach(), residual, float(damping), params)
     return _ImplicitSolve.apply(q.detach(), T_target, spec, *params)
 
 
@@ -171,7 +173,8 @@ class _ImplicitStationary(_AtSolution):
 def attach_stationary_gradients(chain, q: Tensor, T_target: Tensor, success: Tensor, cost_fn,
                                 damping: float, kkt=None) -> Tensor:
     """``q`` with the implicit gradient of a stationary point of ``cost_fn(q, T) -> (...)`` (per sample)
-    w.r.t. ``T_target`` and the chain's parameters that require grad (no-op when nothing does).
+    w.r.t. ``T_target`` and the chain's parameters that require grad (no-op when nothing does);
+    ``damping``: optimize's λ = k².
 
     ``kkt = (a_fn, active)``: q is a KKT point of min C s.t. a(q) ≥ const, ``a_fn(q) -> (..., k)`` the
     constraint rows (differentiable in q and the parameters) and ``active (..., k)`` those held at the
@@ -180,5 +183,5 @@ def attach_stationary_gradients(chain, q: Tensor, T_target: Tensor, success: Ten
     if not wants_gradients(chain, T_target):
         return q
     params = tuple(p for p in chain.parameters() if p.requires_grad)
-    spec = (cost_fn, success.detach(), damping**2, params, kkt)
+    spec = (cost_fn, success.detach(), float(damping), params, kkt)
     return _ImplicitStationary.apply(q.detach(), T_target, spec, *params)

@@ -37,24 +37,26 @@ from .result import IKResult, final_errors
 __all__ = ["dls_delta", "dls_step", "solve", "LMConfig"]
 
 
-def dls_delta(J: Tensor, err: Tensor, damping=0.05) -> Tensor:
-    """Damped least-squares joint displacement Δq = Jᵀ(JJᵀ + k²I)⁻¹ e  (3.59).
+def dls_delta(J: Tensor, err: Tensor, damping=2.5e-3) -> Tensor:
+    """Damped least-squares joint displacement Δq = Jᵀ(JJᵀ + λI)⁻¹ e  (3.59), λ = k².
 
     Args:
         J: Jacobian ``(..., r, n)`` (any task dimension r, e.g. 6 or 3).
         err: task-space error or desired displacement ``(..., r)``.
-        damping: k, a float or a tensor broadcastable to ``(...)``.
+        damping: λ, added to JJᵀ's diagonal, eq. (3.59) (the textbook's k²; the unreleased 0.1.0 took k:
+            its default 0.05 is 2.5e-3 here), >= 0, a float or a tensor
+            broadcastable to ``(...)``.
 
     Returns ``(..., n)``; differentiable in J, err and damping. A damping at or below the rounding level of
     JJᵀ (zero included) gives the minimum-norm least-squares step J†e (finite at singular J).
     """
-    J, err, k = tensors(("J", J, (None, None)), ("err", err, None), ("damping", damping, None))
+    J, err, lam = tensors(("J", J, (None, None)), ("err", err, None), ("damping", damping, None))
     check_trailing(err, (J.shape[-2],), "err")
-    return _dls_delta(J, err, k * k)
+    return _dls_delta(J, err, lam)
 
 
 def _dls_delta(J: Tensor, err: Tensor, k2: Tensor) -> Tensor:
-    """:func:`dls_delta` of validated inputs (λ = k²): the LU solve, or J†e where λ is below rounding."""
+    """:func:`dls_delta` of validated inputs (λ = k2): the LU solve, or J†e where λ is below rounding."""
     frob2 = (J * J).sum(dim=(-2, -1))
     if torch.compiler.is_compiling():
         # a graph has no data-dependent branch: a damping below rounding is raised to the rounding level
@@ -71,7 +73,7 @@ def dls_step(
     chain: KinematicChain,
     q: Tensor,
     T_target: Tensor,
-    damping=0.05,
+    damping=2.5e-3,
     position_only: bool = False,
     respect_limits: bool = True,
     step_size: float = 1.0,
@@ -85,12 +87,15 @@ def dls_step(
     (:meth:`~diffkin.chain.KinematicChain.integrate`: additive on 1-DOF joints, q ⊗ exp(ω/2) on the
     quaternions of ball and free joints). The result is clamped to the joint limits when
     ``respect_limits``. Pure and differentiable; batched over leading dims.
+
+    ``damping`` is λ, added to JJᵀ's diagonal, eq. (3.59): Δ = Jᵀ(JJᵀ + λI)⁻¹ e (the textbook's k²; the
+    unreleased 0.1.0 took k: its default 0.05 is 2.5e-3 here), as :func:`dls_delta`'s.
     """
     from ..jacobian import forward_kinematics_and_jacobian
 
     q = chain.check_q(q)
     check_given(T_target, "T_target", "poses (..., 4, 4) or positions (..., 3)")
-    T_target, k = tensors(("T_target", T_target, None), ("damping", damping, None), like=chain)
+    T_target, lam = tensors(("T_target", T_target, None), ("damping", damping, None), like=chain)
     full = T_target.ndim >= 2 and T_target.shape[-2:] == (4, 4)
     if position_only and not full:
         check_trailing(T_target, (3,), "T_target")
@@ -103,7 +108,7 @@ def dls_step(
     if not chain.single_end:  # K end links: their rows stacked, e (..., rK), J (..., rK, nv)
         e, J = e.flatten(-2), J.flatten(-3, -2)
     e, J = torch.broadcast_tensors(e, J[..., 0])[0], J.expand(*e.shape[:-1], *J.shape[-2:])
-    q_new = chain.configuration_space.integrate(q, step_size * _dls_delta(J, e, k * k))  # q ⊕ Δ, Δ (..., nv)
+    q_new = chain.configuration_space.integrate(q, step_size * _dls_delta(J, e, lam))  # q ⊕ Δ, Δ (..., nv)
     return chain.clamp_to_limits(q_new, check=False) if respect_limits else q_new
 
 
@@ -250,7 +255,9 @@ def solve(
         position_tolerance / orientation_tolerance: success thresholds [m] / [rad, angle of R_eᵀR_d].
         position_only: solve for the position only (3 rows of the Jacobian).
         respect_limits: keep every iterate within the chain's joint limits (q = c + h sin u).
-        damping: constant LM damping k (λ = k² + μ‖e‖²); overrides ``config.damping``.
+        damping: λ̄, the constant part of the LM damping λ = λ̄ + μ‖e‖² added to JJᵀ's diagonal, eq. (3.59)
+            (the textbook's k²; the unreleased 0.1.0 took k: its default 3e-3 is 9e-6 here);
+            overrides ``config.damping``.
         config: :class:`LMConfig` (damping, orientation weight, seeding and scheduling knobs).
         generator / seed: randomness for seeds (a fresh generator from ``seed`` if given).
         progress: print one line per scheduling round.
@@ -290,8 +297,8 @@ def solve(
     dq = J⁻¹ dx for a square Jacobian, the minimum-norm J⁺ dx for a redundant chain (no null-space part),
     the position rows only with ``position_only``, the K end links stacked for a tree, and
     dq = −J⁺ J_θ dθ for the parameters. Backward costs one batched factorisation with J at the solution
-    (damped by λ = k²(1 − σ_min²/k²) only where σ_min(J) < k = ``damping``, plus 10 ε: exact up to a
-    relative 10 ε/σ_min² where σ_min >= k, amplification at most 1/k at singular solutions); failed targets
+    (damped by λ̄(1 − σ_min²/λ̄) only where σ_min(J) < √λ̄, λ̄ = ``damping``, plus 10 ε: exact up to a
+    relative 10 ε/σ_min² where σ_min >= √λ̄, amplification at most 1/√λ̄ at singular solutions); failed targets
     get a zero gradient.
     ``T_target (..., K, 4, 4)`` (or ``(..., K, 3)``) for a chain with K end links: success needs all K.
     """

@@ -245,7 +245,7 @@ def _gauss_newton(chain, terms, q, T, iterations, project, damping, tol_change, 
     Returns ``(q, iterations, progressed)``: ``progressed (...)`` bool, False for the samples whose every
     step was rejected before a stationary point was reached (the budget ran out): q0 unmoved, reported as
     failed by :func:`optimize`."""
-    lam = torch.full(q.shape[:-1], damping**2, dtype=q.dtype, device=q.device)
+    lam = torch.full(q.shape[:-1], damping, dtype=q.dtype, device=q.device)
     progressed = torch.zeros(q.shape[:-1], dtype=torch.bool, device=q.device)
     space = chain.configuration_space
     it = 0
@@ -350,7 +350,7 @@ def optimize(
     optimizer: str = "lbfgs",
     max_iterations: int | None = None,
     lr: float | None = None,
-    damping: float = 1e-3,
+    damping: float = 1e-6,
     position_tolerance: float = 1e-4,
     orientation_tolerance: float = 1e-3,
     position_only: bool = False,
@@ -380,7 +380,9 @@ def optimize(
         max_iterations: optimiser steps (default: L-BFGS 50, each up to 10 inner iterations; Adam 500;
             Gauss–Newton 50).
         lr: step size (L-BFGS 1.0; Adam 0.05, betas (0.8, 0.9), decaying exponentially to 1e-3 of it);
-            damping: initial LM k (Gauss–Newton). Adam is the least precise: give it a looser tolerance.
+            damping: Gauss–Newton's initial λ, added to JᵀJ's diagonal (the step (JᵀJ + λI)⁻¹Jᵀr, the
+            damped least squares of eq. (3.59) in its tall form; the textbook's k²; the unreleased 0.1.0
+            took k: its default 1e-3 is 1e-6 here). Adam is the least precise: give it a looser tolerance.
         position_tolerance / orientation_tolerance: thresholds for ``success`` (pose error of the result).
         tolerance_change: stop when the cost changes less than this (relative) over a check.
         unroll: how ``q`` is differentiated (see below): False (default) for the implicit gradient; True (10
@@ -416,7 +418,7 @@ def optimize(
     **Gradients.** With grad mode on and ``T_target`` or a chain parameter requiring grad, ``q`` is
     differentiable w.r.t. both. By default from the stationarity of the summed cost at the solution,
     ∇_q C(q*, z) = 0 ⇒ dq* = −H⁻¹ ∂(∇_q C)/∂z dz, H = ∇²_q C from Hessian–vector products through
-    autograd (damped by ``damping²``·I only where H is nearly singular); this needs twice-differentiable
+    autograd (damped by ``damping``·I only where H is nearly singular); this needs twice-differentiable
     terms — PoseCost, RestPostureCost and ManipulabilityCost are; JointLimitCost's second derivative jumps
     at the margin and a user's callable may not be: there ``unroll`` differentiates through explicit steps
     instead. Every sample is differentiated (its cost is stationary whether or not the pose meets the
@@ -536,7 +538,7 @@ def _unrolled(chain, terms, q: Tensor, T: Tensor, success: Tensor, steps: int, d
         if least_squares:
             r = _residuals(chain, terms, q, T)
             Jr = _residual_jacobian(r, q, create_graph=True)
-            step = dls_solve(Jr, r, damping**2)
+            step = dls_solve(Jr, r, damping)
         else:
             (g,) = torch.autograd.grad(_total(chain, terms, q, T).sum(), q, create_graph=True)
             step = (lr or 0.05) * g

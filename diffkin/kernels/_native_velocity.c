@@ -40,7 +40,7 @@
  */
 #ifndef DK_VEL_TYPES
 #define DK_VEL_TYPES
-#define DK_VEL_VERSION 2 /* bump with every change of DK_VEL_FIELDS (and _native_velocity.py's VERSION) */
+#define DK_VEL_VERSION 3 /* bump with every change of DK_VEL_FIELDS (and _native_velocity.py's VERSION) */
 #define DK_LOG_EPS 1e-10 /* mink's get_epsilon(float64): the Taylor switches of SO3 / SE3 log and ljacinv */
 #define DK_VEL_F64(name) name##_f64
 #define DK_VEL_F32(name) name##_f32
@@ -75,7 +75,34 @@
     X(uint8_t *, ok, "[B] out, or NULL: 1 where q was finite, the box feasible and the QP solved") \
     X(void *, work, "NULL, or dk_velocity_work_bytes bytes kept between serial calls") \
     X(int64_t, ready, "in/out: work holds the chain's plans (0: make them)") \
-    X(int64_t, busy, "dk_velocity_one: a call is using work now")
+    X(int64_t, busy, "dk_velocity_one: a call is using work now") \
+    X(int64_t, n_bodies, "v3: B bodies of the centre of mass (ComTask)") \
+    X(const int32_t *, body_frame, "[B] the frame each body moves with (-1: the base)") \
+    X(const void *, body_point, "[3B] reals: each body's centre of mass in its frame") \
+    X(const void *, body_weight, "[B] reals: m_i / M") \
+    X(const void *, com_cost, "[3] reals; NULL: no ComTask") \
+    X(double, com_gain, "the ComTask's gain") \
+    X(double, com_lm, "the ComTask's lm_damping") \
+    X(const void *, com_target, "[3] reals per row: the centre of mass's target in the base frame") \
+    X(int64_t, com_stride, "reals from one row's com_target to the next (0: shared)") \
+    X(int64_t, n_caps, "G capsules of the collision rows (0: no CollisionLimit)") \
+    X(const int32_t *, cap_frame, "[G] the frame each capsule moves with (-1: the base)") \
+    X(const void *, cap_a, "[3G] reals: segment starts in their frames") \
+    X(const void *, cap_b, "[3G] reals: segment ends in their frames") \
+    X(const void *, cap_r, "[G] reals: radii") \
+    X(const uint8_t *, cap_moving, "[G] 1: the capsule's world rows are checked") \
+    X(int64_t, n_pairs, "P checked self pairs") \
+    X(const int32_t *, pair_i, "[P] capsule indices") \
+    X(const int32_t *, pair_j, "[P] capsule indices") \
+    X(int64_t, n_round, "world spheres, capsules and points (segments with a radius)") \
+    X(const void *, round_a, "[3 n_round] reals: segment starts in the base frame") \
+    X(const void *, round_b, "[3 n_round] reals: segment ends") \
+    X(const void *, round_r, "[n_round] reals: radii") \
+    X(int64_t, n_half, "world half-spaces {x : n.x <= offset}") \
+    X(const void *, half, "[4 n_half] reals: unit normal n, offset") \
+    X(double, coll_gain, "CollisionLimit.gain") \
+    X(double, coll_min, "CollisionLimit.minimum_distance") \
+    X(double, coll_detect, "CollisionLimit.detection_distance")
 
 #define DK_VDECLARE(type, name, what) type name;
 typedef struct dk_vel { DK_VEL_FIELDS(DK_VDECLARE) } dk_vel;
@@ -400,6 +427,225 @@ static int vel_box_qp(int d, const double *H, const double *c, const double *lo,
     return 0;
 }
 
+/* Cholesky factor L L^T = A in place (lower triangle, d x d row-major), pivots clamped to a tiny positive
+ * value as in vel_spd_solve; vel_lsolve / vel_ltsolve: L y = b and L^T y = b in place. */
+static void vel_chol(double *A, int d) {
+    const double tiny = sqrt(2.2250738585072014e-308);
+    for (int j = 0; j < d; j++) {
+        double sjj = A[j * d + j];
+        for (int k = 0; k < j; k++) sjj -= A[j * d + k] * A[j * d + k];
+        const double ljj = sqrt(sjj > tiny ? sjj : tiny);
+        A[j * d + j] = ljj;
+        for (int i = j + 1; i < d; i++) {
+            double sij = A[i * d + j];
+            for (int k = 0; k < j; k++) sij -= A[i * d + k] * A[j * d + k];
+            A[i * d + j] = sij / ljj;
+        }
+    }
+}
+
+static void vel_lsolve(const double *L, int d, double *b) {
+    for (int i = 0; i < d; i++) {
+        double v = b[i];
+        for (int k = 0; k < i; k++) v -= L[i * d + k] * b[k];
+        b[i] = v / L[i * d + i];
+    }
+}
+
+static void vel_ltsolve(const double *L, int d, double *b) {
+    for (int i = d - 1; i >= 0; i--) {
+        double v = b[i];
+        for (int k = i + 1; k < d; k++) v -= L[k * d + i] * b[k];
+        b[i] = v / L[i * d + i];
+    }
+}
+
+/* Constraint k of vel_rows_qp's reduced problem (nf free variables): k < m row k of Gr (m x nf), bound
+ * hb[k]; k = m + 2a: x_a <= hi_a; k = m + 2a + 1: -x_a <= -lo_a. Its vector into a; returns its bound. */
+static double vel_row_of(int64_t k, int64_t m, int nf, const double *Gr, const double *hb, const double *lo,
+                         const double *hi, const int *fr, double *a) {
+    if (k < m) {
+        for (int i = 0; i < nf; i++) a[i] = Gr[k * nf + i];
+        return hb[k];
+    }
+    const int i = (int)((k - m) / 2), up = (int)((k - m) % 2) == 0;
+    for (int j = 0; j < nf; j++) a[j] = 0;
+    a[i] = up ? 1 : -1;
+    return up ? hi[fr[i]] : -lo[fr[i]];
+}
+
+/* The exact minimiser x of 1/2 x^T H x + c^T x (H d x d symmetric positive definite) over lo <= x <= hi and
+ * the m rows G x <= h (G m x d row-major, h finite), given in x the minimiser over the box alone (vel_box_qp):
+ * where that meets every row it is the answer (the box path's cost: one product with G). Else the dual
+ * active-set method of Goldfarb and Idnani (1983) on the free variables (lo < hi; the others held), the box
+ * bounds as rows: from the unconstrained minimiser, the most violated constraint is added with the primal
+ * step z = -H^-1 (a_p - N r) and the active multipliers moving by -r (r = S^-1 N^T H^-1 a_p, S = N^T H^-1 N),
+ * a constraint whose multiplier reaches 0 first dropped (a partial step); every iterate is the minimiser
+ * over its active set, the multipliers stay >= 0, so the method ends at the KKT point (finite), or finds no
+ * feasible point. The last active set's KKT system is then solved once more from the start (no rounding
+ * carried over the steps). Linear algebra on L (H = L L^T) and B = L^-1 N, S = B^T B. Returns 1 with x the
+ * minimiser, 0 (x left as given) when the rows and the box leave no feasible point or the iteration limit
+ * is reached. */
+static int vel_rows_qp(int d, const double *H, const double *c, const double *lo, const double *hi, int64_t m,
+                       const double *G, const double *h, double *x) {
+    const double eps = 1e-12;
+    int viol = 0;
+    for (int64_t k = 0; k < m && !viol; k++) {
+        double gx = 0, ga = 0;
+        for (int j = 0; j < d; j++) {
+            gx += G[k * d + j] * x[j];
+            ga += fabs(G[k * d + j] * x[j]);
+        }
+        viol = gx - h[k] > eps * (1 + fabs(h[k]) + ga);
+    }
+    if (!viol) return 1;
+    int fr[d > 0 ? d : 1], nf = 0;
+    double xb[d > 0 ? d : 1];
+    for (int i = 0; i < d; i++) {
+        xb[i] = lo[i] == hi[i] ? lo[i] : 0;
+        if (lo[i] != hi[i]) fr[nf++] = i;
+    }
+    const int n1 = nf > 0 ? nf : 1;
+    double *mem = malloc(sizeof(double) * ((size_t)m * n1 + (size_t)m + 4 * (size_t)n1 * n1 + 10 * (size_t)n1));
+    if (!mem) return 0;
+    double *Gr = mem, *hb = Gr + (size_t)m * n1, *L = hb + m, *Bm = L + (size_t)n1 * n1, *S = Bm + (size_t)n1 * n1;
+    double *Ls = S + (size_t)n1 * n1, *g0 = Ls + (size_t)n1 * n1, *xr = g0 + n1, *u = xr + n1, *w = u + n1;
+    double *r = w + n1, *y = r + n1, *z = y + n1, *ap = z + n1, *tq = ap + n1, *tq2 = tq + n1;
+    int act[n1];
+    for (int a = 0; a < nf; a++) {
+        const int i = fr[a];
+        double ci = c[i];
+        for (int j = 0; j < d; j++)
+            if (lo[j] == hi[j]) ci += H[i * d + j] * xb[j];
+        g0[a] = ci;
+        for (int b = 0; b < nf; b++) L[a * nf + b] = H[i * d + fr[b]];
+    }
+    for (int64_t k = 0; k < m; k++) {
+        double v = h[k];
+        for (int j = 0; j < d; j++)
+            if (lo[j] == hi[j]) v -= G[k * d + j] * xb[j];
+        hb[k] = v;
+        for (int a = 0; a < nf; a++) Gr[k * nf + a] = G[k * d + fr[a]];
+    }
+    vel_chol(L, nf);
+    vel_lsolve(L, nf, g0); /* g0 = L^-1 c_r */
+    for (int a = 0; a < nf; a++) xr[a] = -g0[a];
+    vel_ltsolve(L, nf, xr); /* the unconstrained minimiser */
+    const int64_t nc = m + 2 * (int64_t)nf;
+    int q = 0, ok = 0;
+    int64_t it = 0;
+    const int64_t cap = 8 * nc + 32;
+    /* S = B^T B over the active set, factored (Ls), and r = S^-1 B^T w for the vector w */
+#define VEL_ACTIVE_SOLVE(wv, rv)                                                                           \
+    do {                                                                                                   \
+        for (int i2 = 0; i2 < q; i2++) {                                                                   \
+            double acc = 0;                                                                                \
+            for (int k2 = 0; k2 < nf; k2++) acc += Bm[(size_t)i2 * n1 + k2] * (wv)[k2];                     \
+            (rv)[i2] = acc;                                                                                \
+            for (int j2 = 0; j2 <= i2; j2++) {                                                             \
+                double s2 = 0;                                                                             \
+                for (int k2 = 0; k2 < nf; k2++) s2 += Bm[(size_t)i2 * n1 + k2] * Bm[(size_t)j2 * n1 + k2]; \
+                Ls[i2 * q + j2] = s2;                                                                      \
+            }                                                                                              \
+        }                                                                                                  \
+        vel_chol(Ls, q);                                                                                   \
+        vel_lsolve(Ls, q, (rv));                                                                           \
+        vel_ltsolve(Ls, q, (rv));                                                                          \
+    } while (0)
+    for (;;) {
+        int64_t p = -1;
+        double worst = 0;
+        for (int64_t k = 0; k < nc; k++) { /* the most violated inactive constraint */
+            int on = 0;
+            for (int i = 0; i < q && !on; i++) on = act[i] == k;
+            if (on) continue;
+            const double bk = vel_row_of(k, m, nf, Gr, hb, lo, hi, fr, ap);
+            if (!isfinite(bk)) continue;
+            double ax = 0, aa = 0;
+            for (int i = 0; i < nf; i++) {
+                ax += ap[i] * xr[i];
+                aa += fabs(ap[i] * xr[i]);
+            }
+            const double vk = ax - bk;
+            if (vk > eps * (1 + fabs(bk) + aa) && vk > worst) { worst = vk; p = k; }
+        }
+        if (p < 0) { ok = 1; break; }
+        const double bp = vel_row_of(p, m, nf, Gr, hb, lo, hi, fr, ap);
+        double up = 0;
+        int added = 0;
+        while (!added) {
+            if (++it > cap) goto done;
+            for (int i = 0; i < nf; i++) w[i] = ap[i];
+            vel_lsolve(L, nf, w);
+            VEL_ACTIVE_SOLVE(w, r);
+            double yy = 0, ww = 0;
+            for (int i = 0; i < nf; i++) {
+                double v = w[i];
+                for (int k = 0; k < q; k++) v -= Bm[(size_t)k * n1 + i] * r[k];
+                y[i] = v;
+                yy += v * v;
+                ww += w[i] * w[i];
+            }
+            const int dependent = !(yy > 1e-20 * ww);
+            double t1 = INFINITY, t2 = INFINITY;
+            int kb = -1;
+            if (!dependent) {
+                double ax = 0;
+                for (int i = 0; i < nf; i++) ax += ap[i] * xr[i];
+                t1 = (ax - bp) / yy;
+                t1 = t1 > 0 ? t1 : 0;
+            }
+            for (int i = 0; i < q; i++)
+                if (r[i] > 0 && u[i] / r[i] < t2) { t2 = u[i] / r[i]; kb = i; }
+            if (!isfinite(t1) && !isfinite(t2)) goto done; /* no feasible point */
+            const double t = t1 < t2 ? t1 : t2;
+            if (!dependent) {
+                for (int i = 0; i < nf; i++) z[i] = -y[i];
+                vel_ltsolve(L, nf, z);
+                for (int i = 0; i < nf; i++) xr[i] += t * z[i];
+            }
+            for (int i = 0; i < q; i++) u[i] -= t * r[i];
+            up += t;
+            if (t1 <= t2) { /* a full step: p joins the active set */
+                act[q] = (int)p;
+                u[q] = up;
+                for (int i = 0; i < nf; i++) Bm[(size_t)q * n1 + i] = w[i];
+                q++;
+                added = 1;
+            } else { /* a partial step: constraint kb leaves */
+                for (int i = kb; i + 1 < q; i++) {
+                    act[i] = act[i + 1];
+                    u[i] = u[i + 1];
+                    for (int k = 0; k < nf; k++) Bm[(size_t)i * n1 + k] = Bm[(size_t)(i + 1) * n1 + k];
+                }
+                q--;
+            }
+        }
+    }
+done:
+    if (ok) { /* the final active set's KKT point from the start: u = S^-1 (-B^T g0 - b_A), x = -L^-T (g0 + B u) */
+        for (int i = 0; i < nf; i++) tq2[i] = -g0[i];
+        VEL_ACTIVE_SOLVE(tq2, tq); /* S^-1 (-B^T g0) */
+        for (int i = 0; i < q; i++) {
+            const double bk = vel_row_of(act[i], m, nf, Gr, hb, lo, hi, fr, ap);
+            r[i] = bk;
+        }
+        vel_lsolve(Ls, q, r);
+        vel_ltsolve(Ls, q, r); /* S^-1 b_A */
+        for (int i = 0; i < nf; i++) {
+            double v = g0[i];
+            for (int k = 0; k < q; k++) v += Bm[(size_t)k * n1 + i] * (tq[k] - r[k]);
+            z[i] = -v;
+        }
+        vel_ltsolve(L, nf, z);
+        for (int i = 0; i < d; i++) x[i] = xb[i];
+        for (int a = 0; a < nf; a++) x[fr[a]] = z[a];
+    }
+#undef VEL_ACTIVE_SOLVE
+    free(mem);
+    return ok;
+}
+
 #define DK_VEL_PASS 1
 #else
 #undef DK_VEL_PASS
@@ -422,10 +668,209 @@ static size_t DK(vel_qp_reals)(int nv) {
     return (size_t)2 * nv * nv + (size_t)13 * nv + 16;
 }
 
+/* Lane l's pose of frame f (-1: the base) in the FK block: R (row-major 3 x 3) and t. */
+static void DK(vel_frame)(const DK(Scratch) *sc, int l, int f, double R[9], double t[3]) {
+    const real *E = f < 0 ? sc->basef : sc->F + (size_t)f * 12 * W;
+    for (int r = 0; r < 3; r++) {
+        for (int cc = 0; cc < 3; cc++) R[3 * r + cc] = (double)E[(4 * r + cc) * W + l];
+        t[r] = (double)E[(4 * r + 3) * W + l];
+    }
+}
+
+/* w times the linear rows of the Jacobian (3.30) of the point p (base frame) moving with frame f (lane l):
+ * DK(column) of every joint from f to the base, each column written to t6 and added. dir NULL: into out
+ * (3 x nv row-major); else dir . those rows into out (nv). */
+static void DK(vel_point_columns)(const DK(Vel) *V, const DK(Scratch) *sc, int l, int f, const double p[3],
+                                  const double *dir, double w, double *out) {
+    const Shape *s = &V->s;
+    const int nv = s->nv;
+    real E[12 * W], t6[6];
+    E[3 * W] = (real)p[0], E[7 * W] = (real)p[1], E[11 * W] = (real)p[2];
+    for (int j = f; j >= 0; j = s->parent[j]) {
+        const real *Aj = (s->has_post[j] ? sc->A : sc->F) + (size_t)j * 12 * W + l;
+        const int mo = s->motion[j], naxes = mo == DK_MOTION_S ? 3 : 1;
+        for (int ax = 0; ax < naxes; ax++) {
+            if (mo == DK_MOTION_S) DK(column)(Aj, E, 1, 1, 1, ax, t6, 1, 1);
+            else if (mo == DK_MOTION_R) DK(column)(Aj, E, V->pp.mult[j], 1, 1, 2, t6, 1, 1);
+            else DK(column)(Aj, E, V->pp.mult[j], 0, 1, 2, t6, 1, 1);
+            const int col = s->vidx[j] + ax;
+            if (dir) out[col] += w * (dir[0] * (double)t6[0] + dir[1] * (double)t6[1] + dir[2] * (double)t6[2]);
+            else
+                for (int r = 0; r < 3; r++) out[(size_t)r * nv + col] += w * (double)t6[r];
+        }
+    }
+}
+
+/* The ComTask's terms of (T.1) added to H (lower triangle) and c: e = p_C(q) - target, J = J_C, the
+ * centre of mass of the bodies and its Jacobian sum_i w_i J_P(p_i) (center_of_mass.py: p_i = F_i c_i,
+ * w_i = m_i / M), A = C J, b = -gain C e, mu = lm_damping |b|^2. The Jacobian by subtrees: joint j moves
+ * the bodies below its frame, whose weight W_j and weighted centre S_j / W_j are summed from the leaves up
+ * (parents precede children), so its column is W_j times the point column (DK(column)) at S_j / W_j: one
+ * column per joint, not one per body and ancestor. */
+static void DK(vel_com)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const real *target, double *H, double *c) {
+    const dk_vel *v = V->v;
+    const Shape *s = &V->s;
+    const int nv = V->nv, B = (int)v->n_bodies, J = s->J;
+    const real *bp = (const real *)v->body_point, *bw = (const real *)v->body_weight;
+    const real *cost = (const real *)v->com_cost;
+    double com[3] = {0, 0, 0}, Jc[3 * (nv > 0 ? nv : 1)], Sw[4 * (J > 0 ? J : 1)]; /* S_j (3), W_j */
+    for (int i = 0; i < 3 * nv; i++) Jc[i] = 0;
+    for (int i = 0; i < 4 * J; i++) Sw[i] = 0;
+    for (int i = 0; i < B; i++) {
+        double R[9], t[3], pi[3];
+        const int f = v->body_frame[i];
+        DK(vel_frame)(sc, l, f, R, t);
+        const double wi = (double)bw[i];
+        for (int r = 0; r < 3; r++) {
+            pi[r] = R[3 * r] * (double)bp[3 * i] + R[3 * r + 1] * (double)bp[3 * i + 1] +
+                    R[3 * r + 2] * (double)bp[3 * i + 2] + t[r];
+            com[r] += wi * pi[r];
+            if (f >= 0) Sw[4 * f + r] += wi * pi[r];
+        }
+        if (f >= 0) Sw[4 * f + 3] += wi;
+    }
+    for (int j = J - 1; j >= 0; j--) { /* subtree sums, then each joint's column */
+        const int pj = s->parent[j];
+        if (pj >= 0)
+            for (int r = 0; r < 4; r++) Sw[4 * pj + r] += Sw[4 * j + r];
+        const double Wj = Sw[4 * j + 3];
+        if (!(Wj > 0)) continue;
+        const double pc[3] = {Sw[4 * j] / Wj, Sw[4 * j + 1] / Wj, Sw[4 * j + 2] / Wj};
+        real E[12 * W], t6[6];
+        E[3 * W] = (real)pc[0], E[7 * W] = (real)pc[1], E[11 * W] = (real)pc[2];
+        const real *Aj = (s->has_post[j] ? sc->A : sc->F) + (size_t)j * 12 * W + l;
+        const int mo = s->motion[j], naxes = mo == DK_MOTION_S ? 3 : 1;
+        for (int ax = 0; ax < naxes; ax++) {
+            if (mo == DK_MOTION_S) DK(column)(Aj, E, 1, 1, 1, ax, t6, 1, 1);
+            else if (mo == DK_MOTION_R) DK(column)(Aj, E, V->pp.mult[j], 1, 1, 2, t6, 1, 1);
+            else DK(column)(Aj, E, V->pp.mult[j], 0, 1, 2, t6, 1, 1);
+            const int col = s->vidx[j] + ax;
+            for (int r = 0; r < 3; r++) Jc[(size_t)r * nv + col] += Wj * (double)t6[r];
+        }
+    }
+    double b[3], mu = 0;
+    for (int a = 0; a < 3; a++) {
+        b[a] = (double)cost[a] * (-(double)v->com_gain * (com[a] - (double)target[a]));
+        mu += b[a] * b[a];
+        for (int i = 0; i < nv; i++) Jc[(size_t)a * nv + i] *= (double)cost[a];
+    }
+    mu *= (double)v->com_lm;
+    for (int i = 0; i < nv; i++) {
+        c[i] -= Jc[i] * b[0] + Jc[nv + i] * b[1] + Jc[2 * nv + i] * b[2];
+        for (int j = 0; j <= i; j++)
+            H[i * nv + j] += Jc[i] * Jc[j] + Jc[nv + i] * Jc[nv + j] + Jc[2 * nv + i] * Jc[2 * nv + j];
+        H[i * nv + i] += mu;
+    }
+}
+
+/* Entry e of the CollisionLimit's distances (lane l; caps: the placed capsules, 6 per capsule, its ends in
+ * the base frame): e < P the self pair e, then per capsule g its world objects (round ones, then
+ * half-spaces). d: the signed distance (capsule-capsule: |c1 - c2| - r1 - r2 at Ericson's closest points,
+ * DK(segment_closest) of _native_collide.c; half-space: min(n.a, n.b) - offset - r). With grad (nv, added
+ * to): dd/dq = n . (J_P(c1) - J_P(c2)), n = (c1 - c2) / |c1 - c2| (the envelope theorem, as
+ * collision/distances.py; 0 at coincident centres). Returns 0 for an entry not checked (a fixed capsule's
+ * world rows). */
+static int DK(vel_entry)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const double *caps, int64_t e, double *d,
+                         double *grad) {
+    const dk_vel *v = V->v;
+    const int64_t P = v->n_pairs, O = v->n_round + v->n_half;
+    const real *cr = (const real *)v->cap_r;
+    int g, f2 = -2;
+    double p1[3], u1[3], p2[3], u2[3], r2;
+    if (e < P) {
+        const int j = v->pair_j[e];
+        g = v->pair_i[e];
+        f2 = v->cap_frame[j];
+        for (int k = 0; k < 3; k++) { p2[k] = caps[6 * j + k]; u2[k] = caps[6 * j + 3 + k] - p2[k]; }
+        r2 = (double)cr[j];
+    } else {
+        g = (int)((e - P) / O);
+        const int64_t o = (e - P) % O;
+        if (!v->cap_moving[g]) return 0;
+        if (o >= v->n_round) { /* a half-space */
+            const real *hs = (const real *)v->half + 4 * (o - v->n_round);
+            const double n[3] = {(double)hs[0], (double)hs[1], (double)hs[2]};
+            const double *A = caps + 6 * g, *B = A + 3;
+            const double da = n[0] * A[0] + n[1] * A[1] + n[2] * A[2], db = n[0] * B[0] + n[1] * B[1] + n[2] * B[2];
+            *d = (da < db ? da : db) - (double)hs[3] - (double)cr[g];
+            if (grad) DK(vel_point_columns)(V, sc, l, v->cap_frame[g], da < db ? A : B, n, 1, grad);
+            return 1;
+        }
+        const real *ra = (const real *)v->round_a + 3 * o, *rb = (const real *)v->round_b + 3 * o;
+        for (int k = 0; k < 3; k++) { p2[k] = (double)ra[k]; u2[k] = (double)rb[k] - (double)ra[k]; }
+        r2 = (double)((const real *)v->round_r)[o];
+    }
+    for (int k = 0; k < 3; k++) { p1[k] = caps[6 * g + k]; u1[k] = caps[6 * g + 3 + k] - p1[k]; }
+    real sp, tp;
+    DK(segment_closest)((real)u1[0], (real)u1[1], (real)u1[2], (real)u2[0], (real)u2[1], (real)u2[2],
+                        (real)(p1[0] - p2[0]), (real)(p1[1] - p2[1]), (real)(p1[2] - p2[2]), &sp, &tp);
+    double c1[3], c2[3], n[3], nn = 0;
+    for (int k = 0; k < 3; k++) {
+        c1[k] = p1[k] + (double)sp * u1[k];
+        c2[k] = p2[k] + (double)tp * u2[k];
+        n[k] = c1[k] - c2[k];
+        nn += n[k] * n[k];
+    }
+    nn = sqrt(nn);
+    *d = nn - (double)cr[g] - r2;
+    if (grad && nn > 0) {
+        for (int k = 0; k < 3; k++) n[k] /= nn;
+        DK(vel_point_columns)(V, sc, l, v->cap_frame[g], c1, n, 1, grad);
+        if (f2 > -2) DK(vel_point_columns)(V, sc, l, f2, c2, n, -1, grad);
+    }
+    return 1;
+}
+
+/* The CollisionLimit (L.3) of lane l: the rows -J_d dq <= gain max(d - d_min, 0) of every distance
+ * d < detection_distance, and x (the box QP's minimiser) re-solved with them where it breaks one
+ * (vel_rows_qp). Returns ok. */
+static int DK(vel_collision)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const double *H, const double *c,
+                             const double *lo, const double *hi, double *x) {
+    const dk_vel *v = V->v;
+    const int nv = V->nv, G = (int)v->n_caps;
+    const int64_t total = v->n_pairs + (int64_t)G * (v->n_round + v->n_half);
+    double caps[6 * G];
+    for (int g = 0; g < G; g++) {
+        double R[9], t[3];
+        const real *a = (const real *)v->cap_a + 3 * g, *b = (const real *)v->cap_b + 3 * g;
+        DK(vel_frame)(sc, l, v->cap_frame[g], R, t);
+        for (int r = 0; r < 3; r++) {
+            caps[6 * g + r] = R[3 * r] * (double)a[0] + R[3 * r + 1] * (double)a[1] + R[3 * r + 2] * (double)a[2] + t[r];
+            caps[6 * g + 3 + r] = R[3 * r] * (double)b[0] + R[3 * r + 1] * (double)b[1] + R[3 * r + 2] * (double)b[2] + t[r];
+        }
+    }
+    const double detect = v->coll_detect;
+    int64_t m = 0;
+    for (int64_t e = 0; e < total; e++) {
+        double d;
+        m += DK(vel_entry)(V, sc, l, caps, e, &d, NULL) && d < detect;
+    }
+    if (m == 0) return 1;
+    double sbuf[2048];
+    const size_t need = (size_t)m * (nv + 1);
+    double *Gm = need <= 2048 ? sbuf : malloc(sizeof(double) * need);
+    if (!Gm) return 0;
+    double *h = Gm + (size_t)m * nv;
+    int64_t k = 0;
+    for (int64_t e = 0; e < total && k < m; e++) {
+        double d;
+        if (!DK(vel_entry)(V, sc, l, caps, e, &d, NULL) || !(d < detect)) continue;
+        double *row = Gm + (size_t)k * nv;
+        for (int i = 0; i < nv; i++) row[i] = 0;
+        DK(vel_entry)(V, sc, l, caps, e, &d, row);
+        for (int i = 0; i < nv; i++) row[i] = -row[i];
+        h[k++] = v->coll_gain * (d > v->coll_min ? d - v->coll_min : 0);
+    }
+    const int ok = vel_rows_qp(nv, H, c, lo, hi, m, Gm, h, x);
+    if (Gm != sbuf) free(Gm);
+    return ok;
+}
+
 /* The step of one row: the FK block's lane l (sc: ends and Jacobians), q (nq), its targets (F x 16) and
  * q_ref (nq) -> v (nv), q_next (nq, or NULL); returns ok. */
 static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const real *q, const real *tgt,
-                       const real *qref, real *vout, real *qnext, double *work, int8_t *fixed, int *fr) {
+                       const real *qref, real *vout, real *qnext, double *work, int8_t *fixed, int *fr,
+                       const real *ctgt) {
     const int nv = V->nv;
     double *H = work, *L = H + (size_t)nv * nv, *c = L + (size_t)nv * nv, *lo = c + nv, *hi = lo + nv;
     double *x = hi + nv, *xs = x + nv, *A = xs + nv; /* A: 6 x nv */
@@ -501,6 +946,7 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
         mu *= (double)V->plm;
         for (int i = 0; i < nv; i++) H[i * nv + i] += mu;
     }
+    if (V->v->com_cost) DK(vel_com)(V, sc, l, ctgt, H, c); /* v3: the ComTask */
     for (int i = 0; i < nv; i++) {
         H[i * nv + i] += (double)V->damping;
         for (int j = 0; j < i; j++) H[j * nv + i] = H[i * nv + j];
@@ -523,6 +969,7 @@ static int DK(vel_row)(const DK(Vel) *V, const DK(Scratch) *sc, int l, const rea
         lo[i] = a, hi[i] = b;
     }
     ok &= vel_box_qp(nv, H, c, lo, hi, x, L, xs, fixed, fr); /* in double for both real types */
+    if (V->v->n_caps > 0) ok &= DK(vel_collision)(V, sc, l, H, c, lo, hi, x); /* v3: the CollisionLimit's rows */
     const double inv_dt = 1 / (double)V->dt;
     for (int i = 0; i < nv; i++) vout[i] = (real)(x[i] * inv_dt);
     if (qnext) { /* q (+) dq: scalars add, quaternions Q <- normalise(Q) (x) exp(w / 2) */
@@ -589,7 +1036,8 @@ static void DK(vel_block)(const DK(Vel) *V, DK(Scratch) *sc, char *thread, int64
         for (int i = 0; i < n; i++) finite &= isfinite(qb[i]) != 0;
         real *vo = (real *)v->v + b * nv, *qn = v->q_next ? (real *)v->q_next + b * n : NULL;
         const int ok = DK(vel_row)(V, sc, l, qb, tgt + b * v->target_stride, qref ? qref + b * v->ref_stride : NULL,
-                                   vo, qn, work, fixed, fr);
+                                   vo, qn, work, fixed, fr,
+                                   v->com_target ? (const real *)v->com_target + b * v->com_stride : NULL);
         if (v->ok) v->ok[b] = (uint8_t)(ok && finite);
     }
 }

@@ -25,7 +25,8 @@ def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, devic
     * a path ending in ``.urdf``: :func:`~diffkin.models.from_urdf` (``end_link``: a link or a list);
     * a path ending in ``.xml`` / ``.mjcf``: :func:`~diffkin.models.from_mjcf` (``end_link``: bodies or
       sites);
-    * a built-in model name or a robot YAML file: :func:`~diffkin.models.load` (``end_link`` must be None).
+    * a built-in robot name or a DH robot YAML file: :func:`~diffkin.models.load` (``end_link``: a URDF /
+      MuJoCo robot's end links instead of its default ones; None for a DH model).
 
     The geometry is frozen unless ``learnable=True`` (a chain given keeps its own setting, and
     ``learnable=True`` turns it on in the copy).
@@ -54,7 +55,6 @@ def load_chain(source, end_link=None, *, dtype: torch.dtype | None = None, devic
         if not end_link:
             raise ModelError(f"{source}: a URDF or MJCF robot needs its end link (end_link=, --end-link)")
         return getattr(models, builder)(source, end_link, dtype=dtype, device=device, learnable=learnable)
-    if end_link:
-        raise ModelError(f"{source}: end_link={end_link!r} applies to URDF and MJCF files only (a built-in "
-                         "model or a robot YAML ends where its table ends)")
-    return models.load(source, dtype=dtype, device=device, learnable=learnable)
+    # a built-in name: a DH model (end_link refused: it ends where its table ends) or a shipped URDF / MuJoCo
+    # robot (end_link: instead of its default end links)
+    return models.load(source, dtype=dtype, device=device, learnable=learnable, end_link=end_link or None)

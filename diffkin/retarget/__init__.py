@@ -1,8 +1,8 @@
 """Human motion onto humanoids (issue 37): clips in (:class:`Motion`, :func:`load_bvh`, :func:`load_smpl`,
 :func:`example_clips`), robot-human pairings (:class:`Mapping`), foot contacts (:func:`detect_contacts`),
-foot soles (:class:`Sole`), the artefact metrics of a robot clip (:func:`metrics`) and the first stage
-of retargeting (:func:`clip`: per-clip scale and a frame-by-frame warm start). See
-docs/retargeting.md.
+foot soles (:class:`Sole`), the artefact metrics of a robot clip (:func:`metrics`) and retargeting
+(:func:`clip`: per-clip scale, a frame-by-frame warm start, then :func:`optimize_clip` over all frames of
+all clips at once). See docs/retargeting.md.
 """
 
 from .bvh import load_bvh
@@ -14,7 +14,8 @@ from .metrics import Metrics, metrics
 from .motion import Motion
 from .smpl import SMPL_JOINT_NAMES, SMPLX_JOINT_NAMES, load_smpl
 from .sole import Sole, sole_of
+from .whole_clip import COSTS, ClipOptimization, optimize_clip
 
-__all__ = ["Mapping", "Metrics", "Motion", "RetargetResult", "SMPLX_JOINT_NAMES", "SMPL_JOINT_NAMES", "Sole",
-           "clip", "detect_contacts", "example_clips", "fit_scale", "load_bvh", "load_smpl", "metrics",
-           "sole_of"]
+__all__ = ["COSTS", "ClipOptimization", "Mapping", "Metrics", "Motion", "RetargetResult", "SMPLX_JOINT_NAMES",
+           "SMPL_JOINT_NAMES", "Sole", "clip", "detect_contacts", "example_clips", "fit_scale", "load_bvh",
+           "load_smpl", "metrics", "optimize_clip", "sole_of"]

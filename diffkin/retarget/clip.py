@@ -1,7 +1,6 @@
-"""Retargeting a clip, first stage: per-clip scale and a frame-by-frame warm start through ``ik.solve``.
-
-``clip`` does not yet run the whole-clip optimisation of issue 37 (contacts held, limits and smoothness over
-all T frames at once); its result is the warm start that optimisation will take, scored by
+"""Retargeting a clip: per-clip scale, a frame-by-frame warm start through ``ik.solve`` (stage one), then
+the whole-clip optimisation over all T frames of all B clips at once
+(:func:`~diffkin.retarget.optimize_clip`: contacts held, no penetration, limits, smoothness), scored by
 :func:`~diffkin.retarget.metrics`.
 """
 
@@ -16,11 +15,12 @@ import torch
 from torch import Tensor
 
 from .. import ik
-from ..errors import ModelError
+from ..errors import ModelError, OptionError
 from ..validation import check_count
 from .mapping import Mapping
 from .metrics import Metrics, _scalar_columns, metrics
 from .motion import Motion
+from .whole_clip import optimize_clip
 
 __all__ = ["RetargetResult", "clip", "fit_scale"]
 
@@ -29,7 +29,9 @@ __all__ = ["RetargetResult", "clip", "fit_scale"]
 class RetargetResult:
     """A retargeted clip: ``q (B, T, nq)`` in the chain's q order, ``contacts (B, T, 2)`` (left, right),
     ``metrics`` (:func:`~diffkin.retarget.metrics` of ``q``), ``scale (B,)``, ``keypoints (B, T, K, 3)``
-    (the scaled human targets of ``keypoint_frames``), ``fps`` and the chain's ``joint_names``."""
+    (the scaled human targets of ``keypoint_frames``), ``fps`` and the chain's ``joint_names``;
+    ``warm_start``: the metrics of stage one (before the whole-clip optimisation), ``cost``: that
+    optimisation's cost per iteration ``(iterations + 1, B)`` (None when it did not run)."""
 
     q: Tensor
     contacts: Tensor
@@ -40,6 +42,8 @@ class RetargetResult:
     fps: float
     joint_names: list[str]
     scalar_columns: list[int]
+    warm_start: Metrics | None = None
+    cost: Tensor | None = None
 
     def save(self, path) -> Path:
         """An ``.npz`` with ``q (B, T, nq)``, ``qd (B, T, n)`` (the hinge/slide joints' velocities, central
@@ -63,6 +67,26 @@ def _reference(chain) -> Tensor:
     return q
 
 
+def _initial(chain, X: Tensor, kp: list, root: str, feet, window: int) -> Tensor:
+    """Initial configurations ``(B, T, nq)``: the zero posture with the base at the root keypoint, turned to
+    the heading of the right-to-left foot line (averaged over ``window`` frames either side: walking
+    swings that line about the heading), or unturned without both feet among the keypoints."""
+    B, T = X.shape[:2]
+    q = _reference(chain).expand(B, T, -1).clone()
+    q[..., :3] = X[:, :, kp.index(root)]
+    if all(f in kp for f in feet):
+        d = (X[:, :, kp.index(feet[0])] - X[:, :, kp.index(feet[1])])[..., :2]
+        d = d / d.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+        if T > 1 and window > 0:  # moving average over ±window frames (edges: the frames there are)
+            c = torch.nn.functional.pad(d.cumsum(1), (0, 0, 1, 0))
+            t = torch.arange(T, device=X.device)
+            lo, hi = (t - window).clamp_min(0), (t + window + 1).clamp_max(T)
+            d = c[:, hi] - c[:, lo]
+        yaw = torch.atan2(d[..., 1], d[..., 0]) - math.pi / 2
+        q[..., 3], q[..., 6] = torch.cos(yaw / 2), torch.sin(yaw / 2)
+    return q
+
+
 def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
     """Per-clip scale ``(B,)``: the summed distances of the robot's keypoint frames to its root keypoint
     (the first paired frame that is not a foot, e.g. the pelvis) at the zero configuration, over the
@@ -82,18 +106,29 @@ def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
 
 
 def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float = 0.0,
-         max_iterations: int = 20, contact_thresholds: dict | None = None) -> RetargetResult:
+         max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
+         iterations: int = 10, costs: dict | None = None, solver: str = "banded",
+         warm_start: str = "sequential") -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
     ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
 
-    Stage one of issue 37: the human joints are scaled (``scale``: a number, ``(B,)``, or None for
-    :func:`fit_scale`) and followed frame by frame with position-only ``ik.solve`` (one seed, warm started
-    from the previous frame; the first frame from the zero posture, the base at the human root, turned
-    to the heading of the line from the right to the left foot). Contacts come from the human clip
-    (``mapping.contacts``), the metrics from :func:`~diffkin.retarget.metrics` of the result.
+    Stage one: the human joints are scaled (``scale``: a number, ``(B,)``, or None for :func:`fit_scale`)
+    and followed with position-only ``ik.solve`` (one seed, ``max_iterations``). ``warm_start="batched"``
+    solves all frames of all clips in one call, each from the zero posture with the base at that frame's
+    human root, turned to the heading of the line from the right to the left foot (averaged over ±0.5 s);
+    ``"sequential"`` solves frame after frame, each from the previous frame's answer (the first as the
+    batched one, unaveraged). Contacts come from the human clip
+    (``mapping.contacts``; ``contact_thresholds`` overrides its ``height``/``speed``/``ground``).
+
+    Stage two (``whole_clip=True``): :func:`~diffkin.retarget.optimize_clip` over all frames of all clips
+    at once (``iterations``, ``costs``, ``solver`` are its), with the mapping's position weights and
+    soles. The metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage
+    one's.
     """
     mapping.check(motion)
     check_count(max_iterations, "max_iterations")
+    if warm_start not in ("batched", "sequential"):
+        raise OptionError(f"warm_start must be 'batched' or 'sequential', got {warm_start!r}")
     if list(chain.end_links) != list(mapping.frames):
         raise ModelError(f"the chain's frames {list(chain.end_links)} must be the mapping's frames "
                          f"{mapping.frames} (build it with mapping.frames)")
@@ -110,25 +145,32 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
     for k, f in enumerate(kp):
         tgt[:, :, ends.index(f), :3, 3] = X[:, :, k]
     root = [f for f in kp if f not in mapping.feet][0]
-    left, right = (X[:, 0, kp.index(f)] for f in mapping.feet) if all(f in kp for f in mapping.feet) else (
-        None, None)
-    q = _reference(chain).expand(B, -1).clone()
-    q[:, :3] = X[:, 0, kp.index(root)]
-    if left is not None:
-        d = left - right
-        yaw = torch.atan2(d[:, 1], d[:, 0]) - math.pi / 2
-        q[:, 3], q[:, 6] = torch.cos(yaw / 2), torch.sin(yaw / 2)
-    out = []
-    for t in range(T):  # over time: each frame's solve starts at the previous frame's answer
-        res = ik.solve(chain, tgt[:, t], q, num_seeds=1, max_iterations=max_iterations, position_only=True)
-        q = res.q.detach()
-        out.append(q)
-    Q = torch.stack(out, 1)
+    if warm_start == "sequential":
+        q = _initial(chain, X[:, :1], kp, root, mapping.feet, 1)[:, 0]
+        out = []
+        for t in range(T):  # over time: each frame's solve starts at the previous frame's answer
+            q = ik.solve(chain, tgt[:, t], q, num_seeds=1, max_iterations=max_iterations,
+                         position_only=True).q.detach()
+            out.append(q)
+        Q = torch.stack(out, 1)
+    else:  # every frame at once, each from the zero posture placed at its own root and heading
+        q = _initial(chain, X, kp, root, mapping.feet, max(1, round(motion.fps / 2)))
+        Q = ik.solve(chain, tgt, q, num_seeds=1, max_iterations=max_iterations, position_only=True).q.detach()
     contacts = mapping.contacts(motion_c, **(contact_thresholds or {}))
+    sole = mapping.sole or None
     m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
-                keypoint_frames=kp, sole=mapping.sole or None)
+                keypoint_frames=kp, sole=sole)
+    warm, cost = None, None
+    if whole_clip:
+        weights = mapping.weights[[mapping.frames.index(f) for f in kp], 0]
+        opt = optimize_clip(chain, Q, X, contacts, feet=mapping.feet, keypoint_frames=kp, fps=motion.fps,
+                            ground=ground, sole=sole, keypoint_weights=weights, costs=costs,
+                            iterations=iterations, solver=solver)
+        Q, cost, warm = opt.q, opt.cost, m
+        m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
+                    keypoint_frames=kp, sole=sole)
     cols = _scalar_columns(chain)
     names = list(getattr(chain, "joint_names", []))
     kinds = list(chain.joint_kinds)
     scalar_names = [n for n, k in zip(names, kinds) if k not in ("free", "ball")]
-    return RetargetResult(Q, contacts, m, s, X, kp, motion.fps, scalar_names, cols)
+    return RetargetResult(Q, contacts, m, s, X, kp, motion.fps, scalar_names, cols, warm, cost)

@@ -1,0 +1,151 @@
+"""Retargeting the shipped human clips onto the 29-DoF G1: speed and the artefact metrics, beside mink.
+
+The clips are the three shipped CMU clips (walk, crouch, hop; 60 fps), the robot the 29-DoF G1
+(``tests/data/urdf/g1_29dof_rev_1_0.urdf``, the kinematics of MuJoCo Menagerie's current ``unitree_g1``)
+with ``retarget.Mapping.builtin("g1")``. Rows:
+
+* ``diffkin``: ``retarget.clip`` on the three clips batched (B = 3, the first 120 frames of each), stage one
+  (``warm_start="sequential"``: ``ik.solve`` frame after frame, or ``"batched"``: all frames in one call)
+  then the whole-clip optimisation (:func:`diffkin.retarget.optimize_clip`); frames per second over the
+  360 frames, each stage's share of the time.
+* ``mink``: frame by frame with mink (GMR's scheme: a ``FrameTask`` per mapped frame with the same scaled
+  human targets, position cost 1 and orientation cost 0, a small ``PostureTask``,
+  ``ConfigurationLimit``, ``solve_ik(..., "daqp")`` and ``integrate_inplace``, iterated on each frame
+  until the keypoint error falls by less than 1 mm or 10 iterations, warm started from the previous
+  frame; the first frame from diffkin's initial posture). The MuJoCo model is the same URDF compiled by
+  MuJoCo (meshes dropped, a free joint added to the pelvis).
+
+GMR itself (``general-motion-retargeting``) is not on the package index this machine can reach, so mink
+frame by frame (GMR's solver, on the same mapping and targets) stands in for it. Both outputs are scored
+by ``retarget.metrics`` with the same contacts (from the human clip) and keypoints. The machine is shared:
+times are contended; compare the ratios of rows measured in the same run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.common import cli
+
+ROOT = Path(__file__).resolve().parents[1]
+G1_URDF = ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
+CLIPS = ("walk", "crouch", "hop")
+
+
+def mujoco_g1():
+    """The G1 URDF compiled by MuJoCo: meshes dropped, static bodies kept, a free joint on the pelvis."""
+    import mujoco
+
+    text = G1_URDF.read_text()
+    text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
+    mesh = r"<collision>(?:(?!</collision>).)*<mesh[^>]*/>(?:(?!</collision>).)*</collision>"
+    text = re.sub(mesh, "", text, flags=re.S)
+    text = re.sub(r"(<robot [^>]*>)", r'\1<mujoco><compiler fusestatic="false"/></mujoco>', text, count=1)
+    spec = mujoco.MjSpec.from_string(text)
+    spec.worldbody.first_body().add_freejoint()
+    return spec.compile()
+
+
+def _metrics_row(m, b: int) -> dict:
+    return {"limit violations": int(m.joint_limit_violations[b]), "skating mm": float(m.foot_skating[b]),
+            "penetration mm": float(m.ground_penetration[b]), "floating mm": float(m.floating[b]),
+            "keypoint mm": float(m.keypoint_error[b]), "max |qd| rad/s": float(m.max_joint_velocity[b])}
+
+
+def _mink(chain, model, result, q_init, max_iter: int = 10):
+    """Frame-by-frame mink IK on the scaled targets of ``result``; returns q (B, T, nq) in the chain's
+    order and the seconds taken."""
+    import mink
+
+    names = list(chain.joint_names)
+    qadr = [0, 1, 2, 3, 4, 5, 6] + [int(model.joint(n).qposadr[0]) for n in names[1:]]
+    X = result.keypoints.numpy()
+    B, T, K = X.shape[:3]
+    frames = result.keypoint_frames
+    cfg = mink.Configuration(model)
+    tasks = [mink.FrameTask(f, "body", position_cost=1.0, orientation_cost=0.0, lm_damping=1.0)
+             for f in frames]
+    posture = mink.PostureTask(model, cost=1e-2)
+    limits = [mink.ConfigurationLimit(model)]
+    out = np.zeros((B, T, chain.nq))
+    dt = 1.0 / result.fps
+    start = time.perf_counter()
+    for b in range(B):
+        q = model.qpos0.copy()
+        q[qadr] = q_init[b].numpy()
+        cfg.update(q)
+        posture.set_target(q)
+        for t in range(T):
+            for task, x in zip(tasks, X[b, t]):
+                task.set_target(mink.SE3.from_translation(x))
+            err = np.mean([np.linalg.norm(cfg.get_transform_frame_to_world(f, "body").translation() - x)
+                           for f, x in zip(frames, X[b, t])])
+            for _ in range(max_iter):
+                v = mink.solve_ik(cfg, [*tasks, posture], dt, "daqp", damping=1e-3, limits=limits)
+                cfg.integrate_inplace(v, dt)
+                new = np.mean([np.linalg.norm(cfg.get_transform_frame_to_world(f, "body").translation() - x)
+                               for f, x in zip(frames, X[b, t])])
+                done = err - new < 1e-3
+                err = new
+                if done:
+                    break
+            out[b, t] = cfg.q[qadr]
+    return torch.from_numpy(out), time.perf_counter() - start
+
+
+def run(args) -> list[dict]:
+    from diffkin import models, retarget
+    from diffkin.retarget.clip import _initial
+
+    frames = 40 if args.quick else 120
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64).requires_grad_(False)
+    clips = [retarget.load_bvh(retarget.example_clips()[n]).frames_slice(0, frames) for n in CLIPS]
+    motion = retarget.Motion(torch.cat([c.positions for c in clips]), clips[0].names, clips[0].fps)
+    n = motion.batch * motion.frames
+    rows = []
+    base = None
+    for warm in ("sequential", "batched"):
+        t0 = time.perf_counter()
+        r = retarget.clip(g1, motion, mp, whole_clip=False, warm_start=warm)
+        t1 = time.perf_counter()
+        opt = retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
+                                     keypoint_frames=r.keypoint_frames, fps=motion.fps)
+        t2 = time.perf_counter()
+        m = retarget.metrics(g1, opt.q, r.contacts, motion.fps, feet=mp.feet, keypoints=r.keypoints,
+                             keypoint_frames=r.keypoint_frames)
+        base = base or r
+        for b, name in enumerate(CLIPS):
+            if warm == "sequential":
+                rows.append({"method": "diffkin stage one (sequential)", "clip": name, "frames/s": None,
+                             **_metrics_row(r.metrics, b)})
+            rows.append({"method": f"diffkin whole clip ({warm} warm start)", "clip": name,
+                         "frames/s": n / (t2 - t0), "stage-two share": (t2 - t1) / (t2 - t0),
+                         **_metrics_row(m, b)})
+    model = mujoco_g1()
+    kp = base.keypoint_frames
+    root = [f for f in kp if f not in mp.feet][0]
+    q_init = _initial(g1, base.keypoints[:, :1], kp, root, mp.feet, 1)[:, 0]
+    q_mink, secs = _mink(g1, model, base, q_init)
+    q_mink[..., 3:7] /= q_mink[..., 3:7].norm(dim=-1, keepdim=True)
+    mm = retarget.metrics(g1, q_mink, base.contacts, motion.fps, feet=mp.feet, keypoints=base.keypoints,
+                          keypoint_frames=kp)
+    for b, name in enumerate(CLIPS):
+        rows.append({"method": "mink frame by frame (GMR's scheme)", "clip": name, "frames/s": n / secs,
+                     **_metrics_row(mm, b)})
+    return rows
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    return cli(p, run, "retargeting the shipped clips onto the G1 (contended 2-core CPU; 360 frames)", argv)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

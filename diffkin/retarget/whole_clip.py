@@ -1,0 +1,274 @@
+"""Retargeting, stage two: one Gauss–Newton (Levenberg–Marquardt) optimisation over all T frames of all B
+clips at once.
+
+The unknowns are the configurations q_t of every frame; a step moves each by δ_t ``(nv,)`` (q_t ⊕ δ_t, the
+chain's velocity coordinates). The cost is ½ Σ ‖r‖² over the residuals (w a weight of :data:`COSTS`):
+
+=====================  =====================================================  ==========================
+term                   residual                                               frames
+=====================  =====================================================  ==========================
+``keypoint``           w w_k (p_k(q_t) − x_{k,t}): the mapped frames on the     every frame
+                       scaled human joints (``w_k`` the mapping's weights)
+``contact_height``     w (z_lowest − ground): the lowest sole point on the      a foot in contact
+                       ground (no floating, no penetration)
+``skating``            w (c_t − c_{t−1})_xy: the sole centre does not slide     both in one contact phase
+``flat_foot``          w (R_f e_z)_xy: the sole level                           a foot in contact
+``penetration``        w min(0, z_p − r_p − ground) for every sole point        every frame
+``limit``              w (q − (q_max − m))⁺ − w ((q_min + m) − q)⁺              every frame (hinges)
+``velocity``           w (q_t ⊖ q_{t−1})                                        t ≥ 1
+``acceleration``       w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1}))                     1 ≤ t ≤ T − 2
+``posture``            w (q_t ⊖ q_t⁰): stay near the warm start q⁰              every frame
+=====================  =====================================================  ==========================
+
+Point Jacobians come from the chain's geometric Jacobian (3.30) at the frame origin o: J_p = J_v − S(p − o)
+J_ω (the velocity of a point of the body, (3.26)); the sole's normal R e_z moves as −S(R e_z) J_ω. The
+difference terms take ∂(q_t ⊖ q_{t−1})/∂δ ≈ (I at t, −I at t−1) (exact for hinges and the base position).
+The residuals couple at most three consecutive frames, so the normal matrix JᵀJ is block-banded with two
+bands and each step is one block-banded Cholesky solve (:func:`diffkin.kernels.banded.block_banded_solve`,
+O(T nv³)). A step is kept per clip when it lowers that clip's cost (the damping λ then shrinks, else it
+grows); after each step the hinges are projected onto their limits, so the result never violates them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..errors import ModelError, OptionError, ShapeError
+from ..kernels.banded import block_banded_cg, block_banded_solve
+from ..rotations import _skew
+from ..validation import as_tensor, check_count, check_finite, check_number, shape_str
+from .metrics import _finite
+from .sole import Sole, sole_of
+
+__all__ = ["COSTS", "ClipOptimization", "optimize_clip"]
+
+#: default weights of the whole-clip terms (module doc); lengths in metres, angles in rad per frame.
+COSTS = {"keypoint": 1.0, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3, "penetration": 300.0,
+         "limit": 10.0, "velocity": 0.02, "acceleration": 0.3, "posture": 0.01}
+
+
+@dataclass
+class ClipOptimization:
+    """The optimised clip ``q (B, T, nq)`` and the cost ½‖r‖² per clip after each iteration
+    ``cost (iterations + 1, B)`` (row 0: the warm start)."""
+
+    q: Tensor
+    cost: Tensor
+
+
+class _Terms:
+    """The residual layout of one problem (weights, sole geometry, index maps)."""
+
+    def __init__(self, chain, keypoints, contacts, feet, keypoint_frames, fps, ground, sole, kp_weights, w,
+                 q_ref, limit_margin):
+        ends = list(chain.end_links)
+        self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
+        self.w, self.q_ref = w, q_ref
+        self.fps = fps
+        self.kp_idx = [ends.index(f) for f in keypoint_frames]
+        self.kp_w = kp_weights
+        self.feet_idx = [ends.index(f) for f in feet]
+        self.soles = []
+        for f in feet:
+            s = (sole or {}).get(f) or sole_of(chain, f)
+            if not isinstance(s, Sole):
+                raise ModelError(f"sole[{f!r}] must be a Sole(points, radii), got {type(s).__name__}")
+            self.soles.append((s.points.to(keypoints), s.radii.to(keypoints)))
+        cs = chain.configuration_space
+        self.sq = torch.tensor(cs.scalar_index("q"), dtype=torch.long, device=keypoints.device)
+        self.sv = torch.tensor(cs.scalar_index("v"), dtype=torch.long, device=keypoints.device)
+        lim = chain.q_limits.index_select(0, self.sq) if chain.q_limits is not None else None
+        if lim is None:
+            lim = torch.full((len(self.sq), 2), float("inf"), dtype=keypoints.dtype, device=keypoints.device)
+            lim[:, 0] = -lim[:, 0]
+        self.lo, self.hi = lim[:, 0] + limit_margin, lim[:, 1] - limit_margin
+
+    def evaluate(self, q: Tensor):
+        """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``."""
+        chain, w = self.chain, self.w
+        B, T, nq = q.shape
+        nv = chain.nv
+        Ta, Ja = chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
+        if Ta.ndim == 3:
+            Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
+        Ta = Ta.reshape(B, T, *Ta.shape[1:])
+        Ja = Ja.reshape(B, T, *Ja.shape[1:])
+        rows, jacs = [], []
+        # keypoints
+        kp = torch.tensor(self.kp_idx, device=q.device)
+        p = Ta.index_select(2, kp)[..., :3, 3]
+        Jp = Ja.index_select(2, kp)[..., :3, :]
+        sw = (w["keypoint"] * self.kp_w).to(q)[:, None]  # (K, 1)
+        rows.append((sw * (p - self.x)).flatten(2))
+        jacs.append((sw[..., None] * Jp).flatten(2, 3))
+        cost = 0.0
+        D = torch.zeros(B, T, nv, nv, dtype=q.dtype, device=q.device)
+        E = torch.zeros_like(D)
+        F = torch.zeros_like(D)
+        g = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
+        for k, (fi, (pts, rad)) in enumerate(zip(self.feet_idx, self.soles)):
+            Tf, Jf = Ta[:, :, fi], Ja[:, :, fi]
+            R, o = Tf[..., :3, :3], Tf[..., :3, 3]
+            off = (R.unsqueeze(-3) @ pts.unsqueeze(-1)).squeeze(-1)  # (B, T, P, 3)
+            world = off + o.unsqueeze(-2)
+            Jv, Jw = Jf[..., :3, :].unsqueeze(-3), Jf[..., 3:, :].unsqueeze(-3)
+            Jpt = Jv - _skew(off) @ Jw  # (B, T, P, 3, nv): (3.26) for each sole point
+            h = world[..., 2] - rad - self.ground  # (B, T, P)
+            c = self.c[..., k].to(q.dtype)  # (B, T)
+            lowest = h.argmin(-1, keepdim=True)
+            h_low = h.gather(-1, lowest).squeeze(-1)
+            J_low = Jpt[..., 2, :].gather(-2, lowest.unsqueeze(-1).expand(B, T, 1, nv)).squeeze(-2)
+            wc = w["contact_height"] * c
+            rows.append((wc * h_low).unsqueeze(-1))
+            jacs.append((wc.unsqueeze(-1) * J_low).unsqueeze(-2))
+            below = (h < 0).to(q.dtype) * w["penetration"]
+            rows.append(below * h)
+            jacs.append(below.unsqueeze(-1) * Jpt[..., 2, :])
+            n = R[..., :, 2]
+            wf = (w["flat_foot"] * c)[..., None]
+            rows.append(wf * n[..., :2])
+            jacs.append(wf[..., None] * (-_skew(n) @ Jf[..., 3:, :])[..., :2, :])
+            if T > 1:  # skating: the sole centre of consecutive contact frames
+                ctr, Jc = world.mean(-2)[..., :2], Jpt.mean(-3)[..., :2, :]
+                both = (self.c[:, 1:, k] & self.c[:, :-1, k]).to(q.dtype)[..., None] * w["skating"]
+                r = both * (ctr[:, 1:] - ctr[:, :-1])
+                Jn, Jo = both[..., None] * Jc[:, 1:], -both[..., None] * Jc[:, :-1]
+                cost = cost + 0.5 * r.square().flatten(1).sum(-1)
+                D[:, 1:] += Jn.mT @ Jn
+                D[:, :-1] += Jo.mT @ Jo
+                E[:, 1:] += Jn.mT @ Jo
+                g[:, 1:] += (Jn.mT @ r.unsqueeze(-1)).squeeze(-1)
+                g[:, :-1] += (Jo.mT @ r.unsqueeze(-1)).squeeze(-1)
+        r_f, J_f = torch.cat(rows, -1), torch.cat(jacs, -2)
+        cost = cost + 0.5 * r_f.square().flatten(1).sum(-1)
+        D += J_f.mT @ J_f
+        g += (J_f.mT @ r_f.unsqueeze(-1)).squeeze(-1)
+        # joint limits (diagonal in the scalar velocity columns)
+        qs = q.index_select(-1, self.sq)
+        over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
+        r_l = w["limit"] * (over - under)
+        act = ((over > 0) | (under > 0)).to(q.dtype) * w["limit"] ** 2
+        cost = cost + 0.5 * r_l.square().flatten(1).sum(-1)
+        diag = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
+        diag[..., self.sv] += act
+        g[..., self.sv] += w["limit"] * r_l
+        # posture: near the warm start
+        dp = self.chain.configuration_space.difference(self.q_ref, q)
+        cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
+        diag += w["posture"] ** 2
+        g += w["posture"] ** 2 * dp
+        D += torch.diag_embed(diag)
+        eye = torch.eye(nv, dtype=q.dtype, device=q.device)
+        if T > 1:  # velocity: J = (I at t, −I at t−1)
+            d = self.chain.configuration_space.difference(q[:, :-1], q[:, 1:])  # (B, T-1, nv)
+            wv = w["velocity"] ** 2
+            cost = cost + 0.5 * wv * d.square().flatten(1).sum(-1)
+            D[:, 1:] += wv * eye
+            D[:, :-1] += wv * eye
+            E[:, 1:] -= wv * eye
+            g[:, 1:] += wv * d
+            g[:, :-1] -= wv * d
+            if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
+                a = d[:, 1:] - d[:, :-1]  # (B, T-2, nv), centred at frames 1..T-2
+                wa = w["acceleration"] ** 2
+                cost = cost + 0.5 * wa * a.square().flatten(1).sum(-1)
+                D[:, :-2] += wa * eye
+                D[:, 1:-1] += 4 * wa * eye
+                D[:, 2:] += wa * eye
+                E[:, 1:-1] -= 2 * wa * eye
+                E[:, 2:] -= 2 * wa * eye
+                F[:, 2:] += wa * eye
+                g[:, :-2] += wa * a
+                g[:, 1:-1] -= 2 * wa * a
+                g[:, 2:] += wa * a
+        return cost, D, E, F, g
+
+
+def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, ground: float = 0.0,
+               sole: dict | None = None, keypoint_weights=None, costs: dict | None = None,
+               iterations: int = 10, limit_margin: float = 0.0, damping: float = 1e-4, solver: str = "banded",
+               cg_iterations: int = 30) -> ClipOptimization:
+    """Optimise a warm-started clip ``q (B, T, nq)`` over all frames at once (module doc).
+
+    Args:
+        chain: the robot (a floating-base chain whose end links include ``feet`` and ``keypoint_frames``).
+        q: the warm start ``(B, T, nq)`` (e.g. stage one of :func:`~diffkin.retarget.clip`).
+        keypoints: targets ``(B, T, K, 3)`` (m) of ``keypoint_frames``.
+        contacts: booleans ``(B, T, 2)``: the left and right foot in contact.
+        feet: ``(left, right)`` foot frames among the chain's end links.
+        keypoint_frames: the K frames the keypoints belong to.
+        fps: frames per second (> 0; the weights are per frame, fps is checked and recorded only).
+        ground: the ground height (m).
+        sole: optional ``{foot: Sole}`` replacing the soles read from the model.
+        keypoint_weights: optional ``(K,)`` position weights (the mapping's).
+        costs: weights overriding :data:`COSTS` by name.
+        iterations: Levenberg–Marquardt iterations (each one solve and one FK pass; 0 returns the warm
+            start, clamped to the limits).
+        limit_margin: keep the hinges this far inside their limits (rad or m) where the cost allows.
+        damping: the initial damping λ (relative to the mean diagonal of JᵀJ).
+        solver: ``"banded"``, the exact block-banded Cholesky solve (a loop over T), or ``"cg"``,
+            ``cg_iterations`` steps of block-Jacobi conjugate gradients (batched over T; for long clips on
+            a GPU).
+
+    Returns a :class:`ClipOptimization`.
+    """
+    check_number(fps, "fps", unit=" frames per second")
+    check_count(iterations, "iterations", minimum=0)
+    check_count(cg_iterations, "cg_iterations")
+    if solver not in ("cg", "banded"):
+        raise OptionError(f"solver must be 'cg' or 'banded', got {solver!r}")
+    ground = _finite(ground, "ground")
+    limit_margin = check_number(limit_margin, "limit_margin", positive=False)
+    damping = check_number(damping, "damping")
+    q = check_finite(as_tensor(q, "q", dtype=chain.dtype, device=chain.device), "q")
+    if q.ndim != 3 or q.shape[-1] != chain.nq:
+        raise ShapeError(f"expected q of shape (B, T, {chain.nq}), got {shape_str(q.shape)}")
+    B, T = q.shape[:2]
+    frames = list(keypoint_frames)
+    ends = list(chain.end_links)
+    unknown = [f for f in [*frames, *feet] if f not in ends]
+    if unknown:
+        raise ModelError(f"frames {unknown} are not among the chain's end links {ends}")
+    x = check_finite(as_tensor(keypoints, "keypoints", dtype=q.dtype, device=q.device), "keypoints")
+    if tuple(x.shape) != (B, T, len(frames), 3):
+        raise ShapeError(f"expected keypoints of shape {shape_str((B, T, len(frames), 3))}, got "
+                         f"{shape_str(x.shape)}")
+    c = torch.as_tensor(contacts, device=q.device)
+    if tuple(c.shape) != (B, T, 2):
+        raise ShapeError(f"expected contacts of shape {shape_str((B, T, 2))}, got {shape_str(c.shape)}")
+    unknown = sorted(set(costs or {}) - set(COSTS))
+    if unknown:
+        raise ModelError(f"costs names unknown terms {unknown}; the terms are {sorted(COSTS)}")
+    w = {**COSTS, **(costs or {})}
+    kw = torch.ones(len(frames), dtype=q.dtype, device=q.device) if keypoint_weights is None else \
+        as_tensor(keypoint_weights, "keypoint_weights", dtype=q.dtype, device=q.device).reshape(-1)
+    if kw.shape[0] != len(frames):
+        raise ShapeError(f"expected {len(frames)} keypoint weights, got {kw.shape[0]}")
+    q = q.detach()
+    terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
+                   limit_margin)
+    q = chain.clamp_to_limits(q, check=False)
+    with torch.no_grad():
+        cur = terms.evaluate(q)
+        lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
+        history = [cur[0]]
+        eye = torch.eye(chain.nv, dtype=q.dtype, device=q.device)
+        for _ in range(iterations):
+            cost, D, E, F, g = cur
+            scale = torch.diagonal(D, dim1=-2, dim2=-1).mean((-1, -2))  # (B,): λ relative to the curvature
+            Dl = D + (lam * scale)[:, None, None, None] * eye
+            if solver == "cg":
+                step = -block_banded_cg(Dl, E, F, g, cg_iterations)
+            else:
+                step = -block_banded_solve(Dl, E, F, g)
+            trial = chain.clamp_to_limits(chain.configuration_space.integrate(q, step), check=False)
+            new = terms.evaluate(trial)
+            ok = torch.isfinite(new[0]) & (new[0] < cost)
+            q = torch.where(ok[:, None, None], trial, q)
+            cur = tuple(torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a) for a, b in zip(cur, new))
+            lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
+            history.append(cur[0])
+    return ClipOptimization(q, torch.stack(history))
