@@ -12,6 +12,7 @@ from . import ik as ik
 from . import jacobian as jacobian
 from . import manipulability as manipulability
 from . import models as models
+from . import motion as motion
 from . import redundancy as redundancy
 from . import retarget as retarget
 from . import rotations as rotations
@@ -52,6 +53,7 @@ __all__ = [
     "jacobian",
     "manipulability",
     "models",
+    "motion",
     "redundancy",
     "retarget",
     "rotations",

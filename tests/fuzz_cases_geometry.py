@@ -211,6 +211,10 @@ def _cartesian(p_i, p_f, s, s_dot, s_ddot):
     return tr.cartesian_trajectory(path, tr.Trajectory(s, s_dot, s_ddot))
 
 
+def _time_optimal(points, velocity_limit, acceleration_limit, t):
+    return tr.time_optimal(points, velocity_limit, acceleration_limit, grid_per_segment=8).sample(t)
+
+
 TRAJECTORIES = [
     Case("cubic", tr.cubic, {"q_i": J3, "q_f": J3, "t_f": T_F, "t": TIMES, "v_i": J3, "v_f": J3}),
     Case("cubic[t_f number]", tr.cubic, {"q_i": J3, "q_f": J3, "t": TIMES}, keyword=("t",),
@@ -234,6 +238,9 @@ TRAJECTORIES = [
          covers=tr.time_scale),
     Case("time_scale[function]", _time_scale_fn,
          {"q_i": J3, "q_f": J3, "t_f": T_F, "t": TIMES, "factor": FACTOR}, covers=tr.time_scale),
+    Case("time_optimal", _time_optimal,
+         {"points": POINTS, "velocity_limit": A(uniform(2, low=1.0, high=2.0), (2,)),
+          "acceleration_limit": A(uniform(2, low=5.0, high=9.0), (2,)), "t": TIMES}, covers=tr.time_optimal),
     Case("interpolating_polynomial", tr.interpolating_polynomial, PATH),
     Case("cubic_through_points", tr.cubic_through_points, PATH),
     Case("cubic_through_points[velocities]", tr.cubic_through_points,
@@ -285,4 +292,5 @@ EXEMPT: dict[str, str] = {
     "diffkin.trajectories.PathSample": _RESULT,
     "diffkin.trajectories.OrientationTrajectory": _RESULT,
     "diffkin.trajectories.QuaternionTrajectory": _RESULT,
+    "diffkin.trajectories.TimedPath": "the result of time_optimal (fuzzed through its sample method there)",
 }

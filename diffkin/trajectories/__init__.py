@@ -3,7 +3,8 @@
 Joint space point to point (§4.2.1): :func:`cubic`, :func:`quintic`, :func:`trapezoidal`;
 through a sequence of points (§4.2.2): :func:`interpolating_polynomial`, :func:`cubic_through_points`,
 :func:`cubic_spline`, :func:`linear_parabolic_blends`, :func:`anticipated_segments`; time scaling;
-operational space (§4.3): path primitives, :func:`cartesian_trajectory` and orientation laws.
+operational space (§4.3): path primitives, :func:`cartesian_trajectory` and orientation laws; time-optimal
+timing of a joint path under velocity, acceleration and jerk limits: :func:`time_optimal`.
 """
 
 from ._common import InfeasibleTrajectoryError as InfeasibleTrajectoryError
@@ -31,6 +32,8 @@ from .through_points import cubic_through_points as cubic_through_points
 from .through_points import heuristic_velocities as heuristic_velocities
 from .through_points import interpolating_polynomial as interpolating_polynomial
 from .through_points import linear_parabolic_blends as linear_parabolic_blends
+from .time_optimal import TimedPath as TimedPath
+from .time_optimal import time_optimal as time_optimal
 
 __all__ = [
     "Trajectory",
@@ -58,4 +61,6 @@ __all__ = [
     "euler_orientation_trajectory",
     "axis_angle_orientation_trajectory",
     "quaternion_orientation_trajectory",
+    "TimedPath",
+    "time_optimal",
 ]

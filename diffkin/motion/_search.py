@@ -1,0 +1,162 @@
+"""Batched collision-free path search: straight line first, then RRT-Connect vectorised over problems, then
+random shortcutting. Every edge goes through :class:`~diffkin.motion._edges.EdgeChecker` (subdivision with
+the proven step bound), all problems' edges of one iteration in one batched decision.
+
+Trees are tensors ``(B, capacity, nq)`` with parent indices; one iteration extends, for every unsolved
+problem at once, tree A by one step of at most ``step`` (in the bound's metric: metres of geom travel)
+towards a random configuration, then tries to connect tree B to the new node by the longest clear prefix of
+the straight edge (RRT-Connect's CONNECT, decided by one subdivided edge), then swaps the trees.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ._edges import EdgeChecker
+
+__all__ = ["search", "shortcut"]
+
+
+def _nearest(nodes: Tensor, count: Tensor, q: Tensor, w: Tensor) -> Tensor:
+    """Index (B,) of the node of each tree (B, C, nq) (first ``count`` valid) nearest to q (B, nq), in the
+    weighted L1 metric of the bound (w = R)."""
+    d = ((nodes - q[:, None]).abs() * w).sum(-1)
+    C = nodes.shape[1]
+    d = torch.where(torch.arange(C, device=q.device)[None] < count[:, None], d, torch.inf)
+    return d.argmin(1)
+
+
+def _trace(nodes: Tensor, parent: Tensor, leaf: Tensor) -> tuple[Tensor, Tensor]:
+    """Root-to-leaf paths (B, D, nq) (the root is node 0), padded at the end with the leaf, and their
+    waypoint counts (B,)."""
+    B = nodes.shape[0]
+    rows = torch.arange(B, device=nodes.device)
+    walk, cur = [leaf], leaf
+    while True:
+        p = parent[rows, cur]
+        if bool((p < 0).all()):
+            break
+        cur = torch.where(p < 0, cur, p)  # a row at its root stays there
+        walk.append(cur)
+    idx = torch.stack(walk[::-1], 1)  # (B, D): the root repeated in front of the shallower rows
+    D = idx.shape[1]
+    roots = (idx == 0).sum(1)  # node 0 appears once on a path: the repeats are the padding
+    depth = D - roots + 1
+    shift = (torch.arange(D, device=nodes.device)[None] + (roots - 1)[:, None]).clamp(max=D - 1)
+    return nodes[rows[:, None], torch.gather(idx, 1, shift)], depth
+
+
+def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, *,
+           max_iterations: int, step: float, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+    """Paths (B, L, nq) from q_start to q_goal (B, nq) (rows padded with the goal), their waypoint counts
+    (B,) and ``found (B,)``. Start and goal must already be clear (rows where they are not stay unfound)."""
+    B, nq = q_start.shape
+    dev, dt = q_start.device, q_start.dtype
+    w = checker.reach.to(dt)
+    free, _ = checker.edges(q_start, q_goal)
+    found = free.clone()
+    paths = [torch.stack((q_start, q_goal), 1)]
+    lengths = torch.full((B,), 2, dtype=torch.long, device=dev)
+    todo = (~found).nonzero().squeeze(1)
+    if todo.numel() == 0 or max_iterations == 0:
+        return paths[0], lengths, found
+    C = max_iterations + 2
+    nb = todo.numel()
+    trees = []
+    for root in (q_start[todo], q_goal[todo]):
+        nodes = q_start.new_zeros(nb, C, nq)
+        nodes[:, 0] = root
+        trees.append([nodes, torch.full((nb, C), -1, dtype=torch.long, device=dev),
+                      torch.ones(nb, dtype=torch.long, device=dev)])
+    active = torch.ones(nb, dtype=torch.bool, device=dev)
+    link = torch.zeros(nb, 2, dtype=torch.long, device=dev)  # (node in tree 0, node in tree 1) at the join
+    a = 0
+    for _ in range(max_iterations):
+        rows = active.nonzero().squeeze(1)
+        if rows.numel() == 0:
+            break
+        A, Bt = trees[a], trees[1 - a]
+        r = len(rows)
+        q_rand = lo + (hi - lo) * torch.rand(r, nq, generator=generator, dtype=dt, device="cpu").to(dev)
+        near = _nearest(A[0][rows], A[2][rows], q_rand, w)
+        q_near = A[0][rows, near]
+        d = q_rand - q_near
+        L = (d.abs() * w).sum(-1)
+        q_new = q_near + d * (step / L.clamp(min=step))[:, None]
+        ok, _ = checker.edges(q_near, q_new)
+        grow = rows[ok]
+        if grow.numel():
+            slot = A[2][grow]
+            A[0][grow, slot] = q_new[ok]
+            A[1][grow, slot] = near[ok]
+            A[2][grow] += 1
+            # CONNECT: tree B's nearest node towards the new node, as far as the edge is clear
+            qn = q_new[ok]
+            nearB = _nearest(Bt[0][grow], Bt[2][grow], qn, w)
+            qb = Bt[0][grow, nearB]
+            freeB, lam = checker.edges(qb, qn, prefix=True)
+            joined = grow[freeB]
+            if joined.numel():
+                ia, ib = slot[freeB], nearB[freeB]
+                link[joined] = torch.stack((ia, ib) if a == 0 else (ib, ia), 1)
+                active[joined] = False
+            part = (~freeB) & (lam > 0)
+            ext = grow[part]
+            if ext.numel():
+                s2 = Bt[2][ext]
+                Bt[0][ext, s2] = qb[part] + lam[part, None] * (qn[part] - qb[part])
+                Bt[1][ext, s2] = nearB[part]
+                Bt[2][ext] += 1
+        a = 1 - a
+    joined = ~active
+    sub_found = joined
+    p0, n0 = _trace(trees[0][0], trees[0][1], link[:, 0])
+    p1, n1 = _trace(trees[1][0], trees[1][1], link[:, 1])
+    # start … join (tree 0, root first) then join … goal (tree 1 reversed)
+    D0, D1 = p0.shape[1], p1.shape[1]
+    Lmax = D0 + D1
+    i = torch.arange(Lmax, device=dev)[None]
+    from0 = i < n0[:, None]
+    j1 = (n0[:, None] + n1[:, None] - 1 - i).clamp(0, D1 - 1)  # tree 1's path is root(goal)-first
+    take0 = torch.gather(p0, 1, i.clamp(max=D0 - 1)[..., None].expand(nb, Lmax, nq))
+    out = torch.where(from0[..., None], take0, torch.gather(p1, 1, j1[..., None].expand(nb, Lmax, nq)))
+    n = n0 + n1
+    out = torch.where((i < n[:, None])[..., None], out, q_goal[todo][:, None])
+    full = q_goal[:, None].expand(B, Lmax, nq).clone()
+    full[:, 0] = q_start
+    full[todo] = out
+    lengths[todo] = torch.where(sub_found, n, 2)
+    found[todo] = sub_found
+    return full, lengths, found
+
+
+def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, rounds: int, generator: torch.Generator,
+             tries: int = 4) -> tuple[Tensor, Tensor]:
+    """Random shortcutting of paths (B, L, nq) with n (B,) waypoints: each round, every path tries ``tries``
+    straight edges between random waypoints i < j − 1 (all in one batched decision) and, of the clear ones,
+    takes the one dropping the most waypoints."""
+    B, L, nq = path.shape
+    dev = path.device
+    rows = torch.arange(B, device=dev)
+    cols = torch.arange(L, device=dev)[None]
+    for _ in range(rounds):
+        can = (n > 2).nonzero().squeeze(1)
+        if can.numel() == 0:
+            break
+        m = n[can, None]
+        u = torch.rand(can.numel(), tries, 2, generator=generator, dtype=torch.float64).to(dev)
+        i = (u[..., 0] * (m - 2)).long().clamp(max=m - 3)  # 0 <= i <= n - 3
+        j = i + 2 + (u[..., 1] * (m - i - 2)).long().clamp(max=m - i - 3)  # i + 2 <= j <= n - 1
+        r = can[:, None].expand(-1, tries)
+        free, _ = checker.edges(path[r, i].reshape(-1, nq), path[r, j].reshape(-1, nq))
+        gain = torch.where(free.view(-1, tries), j - i - 1, 0)
+        best = gain.argmax(1)
+        drop = torch.zeros(B, dtype=torch.long, device=dev)
+        ii = torch.zeros(B, dtype=torch.long, device=dev)
+        drop[can] = gain[torch.arange(can.numel(), device=dev), best]
+        ii[can] = i[torch.arange(can.numel(), device=dev), best]
+        src = torch.where(cols > ii[:, None], cols + drop[:, None], cols).clamp(max=L - 1)
+        path = path[rows[:, None], src]
+        n = n - drop
+    return path, n

@@ -1,0 +1,317 @@
+"""Batched motion planning: collision-free, limit-respecting timed trajectories from start to goal (§4.2–4.3
+timing laws through a cluttered scene).
+
+Pipeline of :func:`plan` (every stage batched over the problems; loops run over iterations, never rows):
+
+1. **Goals**: joint goals as given, or pose goals solved by :func:`diffkin.ik.solve` with the collision model
+   (seeded with the start).
+2. **Per-row checks**: the start and goal within the joint limits and clear of ``margin + resolution``
+   (the subdivision's slack, :mod:`diffkin.motion._edges`), the limits > 0: a failing row gets its
+   ``reason``; nothing is raised for the batch.
+3. **Search** (:mod:`diffkin.motion._search`): the straight edge first, then RRT-Connect vectorised over the
+   unsolved problems; every edge is checked by a subdivision whose joint step bounds the travel of every
+   geom point by ``resolution`` (so the continuous edge is clear of ``margin``).
+4. **Shortcutting**: random straight shortcuts between waypoints, each edge checked the same way.
+5. **Geometric path**: the cubic spline through the waypoints (chord-length knots, zero path slope at both
+   ends), checked continuously by the same bound (along its length in the bound's metric); a row whose
+   spline leaves the clear region falls back to the checked polyline itself (a stop at every waypoint).
+6. **Timing** (:func:`diffkin.trajectories.time_optimal`): TOPP-RA under the velocity and acceleration
+   limits, smoothed for the jerk limit (zero acceleration at both ends), limits held on dense samples.
+
+A row succeeds when all of that holds: it starts exactly at ``q_start``, rests at both ends (zero velocity
+and acceleration), ends at the goal (exactly for joint goals; within the IK tolerances for pose goals),
+keeps every limit on the samples, and its continuous motion is proven clear of ``margin``.
+"""
+
+from __future__ import annotations
+
+import math
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ..errors import ConventionError, ShapeError
+from ..trajectories import Trajectory
+from ..trajectories.time_optimal import _Path, time_optimal
+from ..validation import check_count, check_number, shape_str, tensors
+from ._edges import EdgeChecker
+from ._search import search, shortcut
+
+__all__ = ["MotionResult", "plan"]
+
+#: the jerk bound of the smoothing when no ``jerk_limit`` is given: this many times the acceleration limit
+#: per second (the motion still starts and ends with zero acceleration)
+DEFAULT_JERK_PER_ACCELERATION = 100.0
+
+
+@dataclass
+class MotionResult:
+    """Batched result of :func:`plan`.
+
+    Attributes:
+        success: ``(B,)`` bool (see :func:`plan`).
+        duration: ``(B,)`` seconds (0 for failed rows).
+        t: ``(B, S)`` sample times ``0, dt, 2 dt, …`` up to the longest duration.
+        q, qd, qdd: ``(B, S, nq)`` positions, velocities, accelerations at ``t`` (rows past their duration
+            hold the goal at rest; failed rows hold the start).
+        reason: per row, ``""`` on success or why it failed.
+        q_goal: ``(B, nq)`` the goal configuration (IK's solution for pose goals).
+        waypoints: ``(B, L, nq)`` the shortcut collision-checked path (rows padded with their goal) and
+            ``n_waypoints (B,)`` its waypoint counts.
+        interpolation: per row ``"spline"`` or ``"linear"`` (the fallback), ``""`` for failed rows.
+    """
+
+    success: Tensor
+    duration: Tensor
+    t: Tensor
+    q: Tensor
+    qd: Tensor
+    qdd: Tensor
+    reason: list[str]
+    q_goal: Tensor
+    waypoints: Tensor
+    n_waypoints: Tensor
+    interpolation: list[str]
+    _timing: list
+
+    def state(self, t) -> Trajectory:
+        """q, q̇, q̈ ``(B, T, nq)`` at times ``t`` ``(T,)`` or ``(B, T)`` [s] (failed rows hold the start)."""
+        B = self.success.shape[0]
+        t = tensors(("t", t, None), like=self.q)[0].to(torch.float64)
+        t = t.reshape(1) if t.ndim == 0 else t
+        if t.ndim == 1:
+            t = t.expand(B, -1)
+        if t.ndim != 2 or t.shape[0] != B:
+            raise ShapeError(f"expected t of shape (T,) or ({B}, T), got {shape_str(t.shape)}")
+        return self._state(t)
+
+    def _state(self, t: Tensor) -> Trajectory:
+        """:meth:`state` at float64 times (B, T), unchecked."""
+        B, nq = self.success.shape[0], self.q.shape[-1]
+        q = self.q[:, :1].expand(B, t.shape[1], nq).clone()
+        qd, qdd = torch.zeros_like(q), torch.zeros_like(q)
+        for rows, timed in self._timing:  # at most two timings (spline, linear fallback)
+            tr = timed._sample(t[rows])
+            q[rows], qd[rows], qdd[rows] = tr.position, tr.velocity, tr.acceleration
+        return Trajectory(q, qd, qdd)
+
+    def sample(self, t) -> Tensor:
+        """Positions ``(B, T, nq)`` at times ``t`` ``(T,)`` or ``(B, T)`` [s] (see :meth:`state`)."""
+        return self.state(t).position
+
+
+def _urdf_velocity(chain) -> Tensor | None:
+    """The chain's joint velocity limits from its URDF's ``<limit velocity=>`` (None where absent)."""
+    tree = getattr(chain, "tree", None)
+    text = getattr(tree, "text", None)
+    names = getattr(chain, "joint_names", None)
+    if not text or names is None:
+        return None
+    root = ET.fromstring(text)
+    v = {}
+    for j in root.iter("joint"):
+        lim = j.find("limit")
+        if lim is not None and lim.get("velocity") is not None:
+            v[j.get("name")] = float(lim.get("velocity"))
+    if not all(n in v for n in names):
+        return None
+    return torch.tensor([v[n] for n in names], dtype=chain.dtype, device=chain.device)
+
+
+def _limits(x, B: int, nq: int, name: str, like: Tensor) -> Tensor:
+    x = tensors((name, x, None), like=like, finite=False)[0]
+    if x.ndim > 2 or (x.ndim and x.shape[-1] != nq) or (x.ndim == 2 and x.shape[0] != B):
+        raise ShapeError(f"expected {name} as a number, ({nq},) or ({B}, {nq}), got {shape_str(x.shape)}")
+    return x.expand(B, nq)
+
+
+def _pad(path: Tensor, n: Tensor) -> Tensor:
+    """Paths (B, L, nq) with n (B,) waypoints, each row brought to L waypoints by splitting its longest
+    segment at the midpoint (the polyline is unchanged)."""
+    B, L, nq = path.shape
+    rows = torch.arange(B, device=path.device)
+    cols = torch.arange(L, device=path.device)[None]
+    while bool((n < L).any()):
+        seg = (path[:, 1:] - path[:, :-1]).norm(dim=-1)
+        seg = torch.where(cols[:, :-1] < (n - 1)[:, None], seg, -1.0)
+        i = seg.argmax(1)
+        need = n < L
+        mid = (path[rows, i] + path[rows, i + 1]) / 2
+        src = torch.where(cols > i[:, None], cols - 1, cols).clamp(min=0)
+        new = path[rows[:, None], src]
+        new[rows, i + 1] = mid
+        path = torch.where(need[:, None, None], new, path)
+        n = n + need.long()
+    return path
+
+
+def _knots(path: Tensor) -> Tensor:
+    """Chord-length knots (B, L), strictly increasing."""
+    seg = (path[:, 1:] - path[:, :-1]).norm(dim=-1) + 1e-9
+    return torch.cat((torch.zeros_like(seg[:, :1]), seg.cumsum(1)), 1)
+
+
+def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, fine: int = 4096) -> Tensor:
+    """(B,) bool: the clamped cubic spline through ``path`` (B, L, nq) at ``knots`` (B, L) — the geometric
+    path :func:`~diffkin.trajectories.time_optimal` times — is proven clear. Its bound-length
+    Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
+    crosses a multiple of 0.8 η (the 20 % spare covers chords against arcs and the last fine chord)."""
+    B = path.shape[0]
+    knots = knots.to(torch.float64)
+    s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
+    p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
+    u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
+    q = p.eval(u)[0]
+    chord = ((q[:, 1:] - q[:, :-1]).abs() * checker.reach.to(torch.float64)).sum(-1)
+    cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
+    c = 0.8 * checker.eta
+    n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
+    K = int(n.max()) + 1
+    marks = torch.arange(K, device=path.device, dtype=torch.float64)[None] * c  # (1, K)
+    idx = torch.searchsorted(cum, marks.expand(B, K).contiguous()).clamp(max=fine)
+    idx = torch.where(torch.arange(K, device=path.device)[None] <= n[:, None], idx, fine)
+    qc = torch.gather(q, 1, idx[..., None].expand(B, K, q.shape[-1])).to(path.dtype)
+    return checker.clear(qc).all(1)
+
+
+def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, velocity_limit=None,
+         acceleration_limit=None, jerk_limit=None, dt: float = 0.01, resolution: float = 0.005,
+         max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 16, seed: int = 0,
+         position_tolerance: float = 1e-4, orientation_tolerance: float = 1e-3) -> MotionResult:
+    """Collision-free, limit-respecting timed trajectories from ``q_start`` to ``goal``, batched (module
+    docstring: goals, per-row checks, search, shortcut, timing, continuous re-check).
+
+    Args:
+        chain: a chain of revolute joints (a URDF or MJCF arm).
+        q_start: ``(B, nq)`` start configurations.
+        goal: ``(B, nq)`` goal configurations, or goal poses ``(B, 4, 4)`` (``(B, K, 4, 4)`` for K end links)
+            solved by :func:`diffkin.ik.solve` with the collision model.
+        collision: the robot's :class:`~diffkin.collision.RobotCollision` on ``chain`` (self pairs and
+            geoms of the links fixed to the chain included).
+        world: the obstacles (:class:`~diffkin.collision.World`, one for all problems) or None.
+        margin: the least clearance [m] of the continuous motion.
+        velocity_limit / acceleration_limit / jerk_limit: a number, ``(nq,)`` or ``(B, nq)``.
+            ``velocity_limit`` None: the URDF's ``<limit velocity=>``; the URDF holds no acceleration limit,
+            so ``acceleration_limit`` must be given. ``jerk_limit`` None: the smoothing bound
+            ``DEFAULT_JERK_PER_ACCELERATION · acceleration_limit`` (1/s) — the motion still rests with zero
+            acceleration at both ends. A row with a limit ≤ 0 or NaN fails with its reason.
+        dt: sampling period of ``t``, ``q``, ``qd``, ``qdd`` [s].
+        resolution: η [m], the most any geom point travels between two collision checks (module docstring
+            of :mod:`diffkin.motion._edges`); starts and goals must be clear of ``margin + resolution``.
+        max_iterations / step / shortcut_rounds / seed: search budget, RRT step (metres of geom travel in
+            the bound's metric), shortcut rounds (4 tries per path each), randomness.
+        position_tolerance / orientation_tolerance: of the pose goals' IK.
+
+    Returns:
+        :class:`MotionResult`.
+    """
+    from ..ik import solve as ik_solve
+
+    dt = check_number(dt, "dt")
+    resolution = check_number(resolution, "resolution")
+    margin = check_number(margin, "margin", positive=False)
+    step = check_number(step, "step")
+    check_count(max_iterations, "max_iterations", 0)
+    check_count(shortcut_rounds, "shortcut_rounds", 0)
+    collision._check_chain(chain, "motion.plan")
+    q_start = chain.check_q(q_start, "q_start")
+    if q_start.ndim != 2:
+        raise ShapeError(f"expected q_start of shape (B, {chain.nq}), got {shape_str(q_start.shape)}")
+    B, nq = q_start.shape
+    goal = tensors(("goal", goal, None), like=chain)[0]
+    pose_goal = goal.ndim >= 3 and goal.shape[-2:] == (4, 4)
+    if not pose_goal and goal.shape != (B, nq):
+        raise ShapeError(f"expected goal of shape ({B}, {nq}) (joints), ({B}, 4, 4) or ({B}, K, 4, 4) "
+                         f"(poses), got {shape_str(goal.shape)}")
+    if pose_goal and goal.shape[0] != B:
+        raise ShapeError(f"expected {B} goal poses, got {shape_str(goal.shape)}")
+    if velocity_limit is None:
+        velocity_limit = _urdf_velocity(chain)
+        if velocity_limit is None:
+            raise ConventionError("motion.plan: the chain carries no velocity limits: give velocity_limit")
+    if acceleration_limit is None:
+        raise ConventionError("motion.plan: give acceleration_limit (a URDF holds none)")
+    vmax = _limits(velocity_limit, B, nq, "velocity_limit", q_start)
+    amax = _limits(acceleration_limit, B, nq, "acceleration_limit", q_start)
+    jmax = DEFAULT_JERK_PER_ACCELERATION * amax if jerk_limit is None else \
+        _limits(jerk_limit, B, nq, "jerk_limit", q_start)
+    dev, dtype = q_start.device, q_start.dtype
+    reason = [""] * B
+
+    def fail(mask: Tensor, why: str) -> None:
+        for r in mask.nonzero().squeeze(1).tolist():
+            if not reason[r]:
+                reason[r] = why
+
+    with torch.no_grad():
+        checker = EdgeChecker(collision, world, margin, resolution)
+        gen = torch.Generator().manual_seed(seed)
+        lim_ok = torch.stack([(x > 0).all(1) & x.isfinite().all(1) for x in (vmax, amax, jmax)], 0).all(0)
+        fail(~lim_ok, "infeasible limits (each must be a finite number > 0)")
+        if pose_goal:
+            ik = ik_solve(chain, goal, q0=q_start, collision=collision, world=world,
+                          margin=margin + resolution, position_tolerance=position_tolerance,
+                          orientation_tolerance=orientation_tolerance, seed=seed)
+            q_goal = ik.q.detach().to(dtype)
+            fail(~ik.success.reshape(B), "goal pose unreachable (no collision-free IK solution)")
+        else:
+            q_goal = goal.detach()
+        lim = chain.q_limits
+        if lim is not None:
+            lo_l, hi_l = lim[:, 0].to(dtype), lim[:, 1].to(dtype)
+            fail(((q_start < lo_l) | (q_start > hi_l)).any(1), "start outside the joint limits")
+            fail(((q_goal < lo_l) | (q_goal > hi_l)).any(1), "goal outside the joint limits")
+        else:
+            lo_l = torch.full((nq,), -math.inf, dtype=dtype, device=dev)
+            hi_l = -lo_l
+        fail(~checker.clear(q_start), "start in collision (closer than margin + resolution)")
+        fail(~checker.clear(q_goal), "goal in collision (closer than margin + resolution)")
+        lo = lo_l.clamp(min=-math.pi)
+        hi = hi_l.clamp(max=math.pi)
+        valid = torch.tensor([not r for r in reason], dtype=torch.bool, device=dev)
+        rows = valid.nonzero().squeeze(1)
+        L = 2
+        waypoints = torch.stack((q_start, q_goal), 1)
+        n_way = torch.full((B,), 2, dtype=torch.long, device=dev)
+        timing, interp = [], [""] * B
+        success = torch.zeros(B, dtype=torch.bool, device=dev)
+        duration = torch.zeros(B, dtype=dtype, device=dev)
+        if rows.numel():
+            path, n, found = search(checker, q_start[rows], q_goal[rows], lo, hi,
+                                    max_iterations=max_iterations, step=step, generator=gen)
+            fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, rows[~found], True),
+                 f"no collision-free path found in {max_iterations} iterations")
+            path, n = shortcut(checker, path, n, shortcut_rounds, gen)
+            L = int(n[found].max()) if bool(found.any()) else 2
+            path = path[:, :L]
+            waypoints = q_goal[:, None].expand(B, L, nq).clone()
+            waypoints[:, 0] = q_start
+            waypoints[rows] = path
+            n_way[rows] = n
+            good = rows[found]
+            if good.numel():
+                p = _pad(path[found], n[found])
+                kn = _knots(p)
+                smooth = _spline_clear(checker, p, kn)
+                for keep, how in ((smooth, "spline"), (~smooth, "linear")):
+                    rr = good[keep]
+                    if rr.numel() == 0:
+                        continue
+                    # the spline where it is proven clear, else the checked polyline (stops at waypoints)
+                    timed = time_optimal(p[keep], vmax[rr], amax[rr], jmax[rr], knots=kn[keep],
+                                         interpolation=how, bc="clamped")
+                    timing.append((rr, timed))
+                    success[rr] = True
+                    duration[rr] = timed.duration.to(dtype)
+                    for r in rr.tolist():
+                        interp[r] = how
+        S = int(math.ceil(float(duration.max()) / dt - 1e-9)) + 1 if B else 1
+        t = (torch.arange(S, dtype=torch.float64, device=dev) * dt)
+        zero = torch.zeros(B, S, nq, dtype=dtype, device=dev)
+        result = MotionResult(success, duration, t.to(dtype).expand(B, S), q_start[:, None].expand(B, S, nq),
+                              zero, zero, reason, q_goal, waypoints, n_way, interp, timing)
+        tr = result._state(t.expand(B, S))
+        result.q, result.qd, result.qdd = tr.position, tr.velocity, tr.acceleration
+    return result

@@ -1,0 +1,229 @@
+"""motion.plan on the Franka FR3 (the Panda's successor; Franka's capsule collision model) among spheres and a
+box: the reach bound the subdivision rests on, the per-row failure reasons, and successful plans re-checked
+densely by Pinocchio's FK + coal (never by the code under test) and against their limits."""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import collision_reference as ref
+import numpy as np
+import pytest
+import torch
+
+import diffkin
+from diffkin import motion
+from diffkin.collision import RobotCollision, World, box
+from diffkin.motion._edges import EdgeChecker
+from diffkin.sampling import random_configuration
+
+pin = pytest.importorskip("pinocchio")
+coal = ref.coal
+
+FR3 = Path(__file__).parent / "data" / "urdf" / "fr3.urdf"
+SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/>'
+        '</robot>')
+SPHERES = [[0.45, 0.25, 0.45, 0.10], [0.40, -0.30, 0.70, 0.08]]
+BOX = ([0.55, 0.0, 0.15], [0.10, 0.30, 0.02])
+V = [2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]  # fr3.urdf's <limit velocity=>
+A = [10.0, 5.0, 8.0, 10.0, 12.0, 15.0, 15.0]
+J = [500.0, 250.0, 400.0, 500.0, 600.0, 750.0, 750.0]
+
+
+@pytest.fixture(scope="module")
+def robot():
+    d = torch.float64
+    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=d).requires_grad_(False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's meshes are not shipped: skipped with a warning
+        rc = RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+    world = World(spheres=torch.tensor(SPHERES, dtype=d),
+                  boxes=box(center=torch.tensor(BOX[0], dtype=d), half_extents=torch.tensor(BOX[1], dtype=d),
+                            dtype=d), dtype=d)
+    return chain, rc, world
+
+
+class _Coal:
+    """The smallest distance over the checked pairs and to the obstacles, by Pinocchio + coal."""
+
+    def __init__(self, rc: RobotCollision):
+        text = re.sub(r"<collision>\s*<geometry>\s*<mesh[^>]*/>\s*</geometry>\s*</collision>", "",
+                      FR3.read_text())
+        self.model = pin.buildModelFromXML(text)
+        self.geom = pin.buildGeomFromUrdfString(self.model, text, pin.COLLISION)
+        for o in self.geom.geometryObjects:  # RobotCollision's documented capsules for cylinders
+            if isinstance(o.geometry, coal.Cylinder):
+                o.geometry = coal.Capsule(o.geometry.radius, 2 * o.geometry.halfLength)
+        index = {o.name: i for i, o in enumerate(self.geom.geometryObjects)}
+        name = lambda n: "{}_{}".format(*n.rsplit("/", 1))  # noqa: E731  (Pinocchio's '<link>_<i>')
+        self.pairs = [(index[name(a)], index[name(b)]) for a, b in rc.pairs]
+        self.robot = [index[name(g.name)] for g in rc.geoms if not rc.fixed[rc.geoms.index(g)]]
+        self.obstacles = [(coal.Sphere(r), ref.placement(None, c)) for *c, r in SPHERES]
+        self.obstacles.append(ref.box(BOX[0], np.eye(3), BOX[1]))
+        self.data, self.gdata = self.model.createData(), pin.GeometryData(self.geom)
+        self.q_of = [self.model.joints[self.model.getJointId(n)].idx_q for n in rc.chain.joint_names]
+
+    def min_distance(self, q) -> float:
+        qp = pin.neutral(self.model)
+        qp[self.q_of] = np.asarray(q, np.float64)
+        pin.updateGeometryPlacements(self.model, self.data, self.geom, self.gdata, qp)
+        shape = lambda i: (self.geom.geometryObjects[i].geometry,  # noqa: E731
+                           ref.placement(self.gdata.oMg[i].rotation, self.gdata.oMg[i].translation))
+        d = [ref.distance(*shape(i), *shape(j)) for i, j in self.pairs]
+        d += [ref.distance(*shape(i), *o) for i in self.robot for o in self.obstacles]
+        return min(d)
+
+
+def _points(rc, q):
+    """Every capsule end and box corner of the robot at q (..., nq) -> (..., P, 3)."""
+    a, b, _, c, R, h = rc.placed(q)
+    return torch.cat((a, b), -2) if c.shape[-2] == 0 else torch.cat((a, b, c), -2)
+
+
+def test_joint_reach_bounds_the_travel_of_every_geom(robot):
+    chain, rc, _ = robot
+    R = motion.joint_reach(rc)
+    assert R.shape == (7,) and (R > 0).all()
+    g = torch.Generator().manual_seed(0)
+    lo, hi = chain.q_limits[:, 0], chain.q_limits[:, 1]
+    q = lo + (hi - lo) * torch.rand(3000, 7, generator=g, dtype=torch.float64)
+    dq = (torch.rand(3000, 7, generator=g, dtype=torch.float64) - 0.5) * 2e-3
+    travel = (_points(rc, q + dq) - _points(rc, q)).norm(dim=-1).amax(-1)
+    bound = (dq.abs() * R).sum(-1)
+    ratio = travel / bound
+    assert ratio.max() <= 1.0 and ratio.max() > 0.3  # a bound, and not a vacuous one
+    # one joint at a time: the farthest geom point from its axis is within R_j
+    for j in range(7):
+        e = torch.zeros(7, dtype=torch.float64)
+        e[j] = 1e-4
+        assert ((_points(rc, q[:200] + e) - _points(rc, q[:200])).norm(dim=-1).amax() <= R[j] * 1e-4 * 1.0001)
+
+
+def test_edges_subdivision_proves_the_continuous_edge(robot):
+    chain, rc, world = robot
+    eta = 0.01
+    checker = EdgeChecker(rc, world, 0.0, eta)
+    g = torch.Generator().manual_seed(1)
+    q = random_configuration(chain, (8,), g, collision=rc, world=world, margin=0.03)
+    qa, qb = q[:4], q[4:]
+    free, _ = checker.edges(qa, qb)
+    assert free.any() and (~free).any()
+    # every free edge, sampled 2x finer than the subdivision, keeps d >= 0 (exact distances, torch path)
+    f = torch.linspace(0, 1, 2 * int(checker.steps(qb - qa).max()) + 1, dtype=torch.float64)
+    qs = qa[free, None] + f[:, None] * (qb - qa)[free, None]
+    assert (rc.min_distance(qs, world) >= 0).all()
+    # a blocked edge: some configuration on it is closer than the slack η
+    qs = qa[~free, None] + f[:, None] * (qb - qa)[~free, None]
+    assert (rc.min_distance(qs, world).amin(-1) < eta).all()
+    # the prefix decision: the reached part is clear, the part just after it is not provably so
+    free_p, lam = checker.edges(qa, qb, prefix=True)
+    assert (free_p == free).all() and (lam[free] == 1).all() and (lam[~free] < 1).all()
+    part = qa + lam[:, None] * (qb - qa)
+    assert checker.clear(part).all()
+
+
+def test_plan_joint_goals_rechecked_by_coal(robot):
+    chain, rc, world = robot
+    g = torch.Generator().manual_seed(3)
+    q = random_configuration(chain, (6,), g, collision=rc, world=world, margin=0.02)
+    qs, qg = q[:3], q[3:]
+    margin = 0.005
+    res = motion.plan(chain, qs, qg, collision=rc, world=world, margin=margin, acceleration_limit=A,
+                      jerk_limit=J, dt=0.01, resolution=0.01, max_iterations=300)
+    assert res.success.all(), res.reason
+    B, S, nq = res.q.shape
+    assert res.t.shape == (B, S) and res.qd.shape == res.qdd.shape == (B, S, nq)
+    assert torch.equal(res.q[:, 0], qs)  # the start exactly
+    assert torch.equal(res.q[:, -1], qg)  # the goal exactly, held
+    for x in (res.qd, res.qdd):  # at rest at both ends
+        assert x[:, 0].abs().max() == 0 and x[:, -1].abs().max() == 0
+    end = res.state(res.duration[:, None])
+    assert end.velocity.abs().max() < 1e-9 and end.acceleration.abs().max() < 1e-9
+    assert torch.equal(end.position, qg[:, None])
+    # limits on dense samples (1 ms)
+    t = torch.arange(0, float(res.duration.max()) + 0.02, 1e-3, dtype=torch.float64)
+    st = res.state(t)
+    assert (st.velocity.abs() <= torch.tensor(V) * (1 + 1e-9)).all()
+    assert (st.acceleration.abs() <= torch.tensor(A) * (1 + 1e-9)).all()
+    jerk = torch.cat([tp.jerk(t) for _, tp in res._timing])
+    assert (jerk.abs() <= torch.tensor(J) * (1 + 1e-9)).all()
+    assert (st.position[:, 0] == qs).all() and res.sample(t).shape == (B, t.numel(), nq)
+    # clearance: exact distances at the 10 ms samples (torch path), coal + Pinocchio at 20 instants per row
+    assert (rc.min_distance(res.q, world) >= margin).all()
+    ref_check = _Coal(rc)
+    for b in range(B):
+        idx = torch.linspace(0, int(res.duration[b] / 1e-3), 20).long()
+        d = [ref_check.min_distance(st.position[b, i].numpy()) for i in idx]
+        assert min(d) >= margin - 1e-9
+
+
+def test_plan_reports_bad_rows(robot):
+    chain, rc, world = robot
+    g = torch.Generator().manual_seed(5)
+    q = random_configuration(chain, (8,), g, collision=rc, world=world, margin=0.02)
+    qs, qg = q[:4].clone(), q[4:].clone()
+    qs[0] = qs[1]
+    qs[0, 3] = chain.q_limits[3, 1] + 0.1  # start outside the limits
+    qg[1] = chain.q_limits[:, 1] + 0.2  # goal outside the limits
+    v = torch.tensor(V, dtype=torch.float64).repeat(4, 1)
+    v[2, 0] = 0.0  # infeasible limits
+    a, b, *_ = rc.placed(qg[3])
+    k = len(rc.geoms) - 3  # a capsule on the forearm / wrist: a sphere on it puts the goal in collision
+    centre = ((a[k] + b[k]) / 2).tolist()
+    ball = World(spheres=torch.tensor(SPHERES + [[*centre, 0.03]], dtype=torch.float64), dtype=torch.float64)
+    res = motion.plan(chain, qs, qg, collision=rc, world=ball, velocity_limit=v, acceleration_limit=A,
+                      max_iterations=50, resolution=0.02)
+    assert res.success.tolist() == [False, False, False, False]
+    assert "start outside" in res.reason[0] and "goal outside" in res.reason[1]
+    assert "limits" in res.reason[2] and "goal in collision" in res.reason[3]
+    assert (res.q == qs[:, None]).all() and (res.duration == 0).all()
+
+
+def test_plan_pose_goals(robot):
+    chain, rc, world = robot
+    g = torch.Generator().manual_seed(7)
+    q = random_configuration(chain, (6,), g, collision=rc, world=world, margin=0.02)
+    T = chain.forward_kinematics(q[3:])
+    T[2, :3, 3] = torch.tensor([3.0, 0.0, 0.5], dtype=torch.float64)  # out of reach
+    res = motion.plan(chain, q[:3], T, collision=rc, world=world, acceleration_limit=A, jerk_limit=J,
+                      resolution=0.01, max_iterations=300)
+    assert res.success.tolist() == [True, True, False], res.reason
+    assert "unreachable" in res.reason[2]
+    Tend = chain.forward_kinematics(res.q[:2, -1])
+    assert (Tend[:, :3, 3] - T[:2, :3, 3]).norm(dim=-1).max() < 1e-4
+    assert torch.equal(res.q[:2, -1], res.q_goal[:2])
+
+
+@pytest.mark.extended
+def test_plans_rechecked_densely_by_coal(robot):
+    """Every successful plan of a larger batch, every 10 ms sample, by Pinocchio + coal (about a minute)."""
+    chain, rc, world = robot
+    g = torch.Generator().manual_seed(11)
+    q = random_configuration(chain, (16,), g, collision=rc, world=world, margin=0.02)
+    res = motion.plan(chain, q[:8], q[8:], collision=rc, world=world, margin=0.002, acceleration_limit=A,
+                      jerk_limit=J, resolution=0.005)
+    assert res.success.float().mean() >= 0.75, res.reason
+    ref_check = _Coal(rc)
+    for b in res.success.nonzero().squeeze(1).tolist():
+        S = int(res.duration[b] / 0.01) + 2
+        assert min(ref_check.min_distance(x.numpy()) for x in res.q[b, :S]) >= 0.002 - 1e-9
+
+
+def test_plan_float32_and_empty_batch():
+    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=torch.float32).requires_grad_(False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+    world = World(spheres=torch.tensor(SPHERES, dtype=torch.float32), dtype=torch.float32)
+    q = random_configuration(chain, (4,), torch.Generator().manual_seed(3), collision=rc, world=world,
+                             margin=0.02)
+    res = motion.plan(chain, q[:2], q[2:], collision=rc, world=world, acceleration_limit=10.0,
+                      resolution=0.01, max_iterations=200)
+    assert res.success.all(), res.reason
+    assert res.q.dtype == res.t.dtype == res.duration.dtype == torch.float32
+    assert torch.equal(res.q[:, 0], q[:2]) and torch.equal(res.q[:, -1], q[2:])
+    assert (res.qd.abs() <= torch.tensor(V) * (1 + 1e-6)).all() and (res.qdd.abs() <= 10.0 * (1 + 1e-6)).all()
+    empty = motion.plan(chain, q[:0], q[:0], collision=rc, world=world, acceleration_limit=10.0)
+    assert empty.success.shape == (0,) and empty.q.shape[0] == 0

@@ -1,0 +1,142 @@
+"""trajectories.time_optimal beside toppra (TOPP-RA, PyPI) on the same geometric path and grid, in the same
+run: durations within 1 %, limits on dense samples, rest at both ends, the path itself (scipy's CubicSpline),
+the jerk-limited variant against finite differences of its own acceleration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.interpolate import CubicSpline
+
+from diffkin.errors import ShapeError
+from diffkin.trajectories import InfeasibleTrajectoryError, time_optimal
+
+ta = pytest.importorskip("toppra")
+import toppra.algorithm as talgo  # noqa: E402
+import toppra.constraint as tcon  # noqa: E402
+
+ta.setup_logging("WARNING")
+
+
+def _problem(seed: int, B: int = 4, N: int = 6, n: int = 7):
+    rng = np.random.default_rng(seed)
+    path = rng.uniform(-1.5, 1.5, (B, N, n))
+    v = rng.uniform(1.0, 2.5, (B, n))
+    a = rng.uniform(5.0, 15.0, (B, n))
+    return path, v, a, rng
+
+
+def _toppra_duration(path, v, a, grid, knots, bc="not-a-knot") -> float:
+    p = ta.SplineInterpolator(knots, path, bc_type=bc)
+    cons = [tcon.JointVelocityConstraint(np.stack([-v, v], 1)),
+            tcon.JointAccelerationConstraint(np.stack([-a, a], 1))]  # toppra's default (interpolation) scheme
+    inst = talgo.TOPPRA(cons, p, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+    return inst.compute_trajectory(0, 0).duration
+
+
+@pytest.mark.parametrize("bc", ["not-a-knot", "clamped"])
+def test_durations_match_toppra_and_limits_hold(bc):
+    path, v, a, rng = _problem(0)
+    B, N, _ = path.shape
+    knots = np.cumsum(rng.uniform(0.5, 1.5, (B, N)), 1)  # uneven knots: the same path as toppra's
+    res = time_optimal(torch.tensor(path), torch.tensor(v), torch.tensor(a), knots=torch.tensor(knots), bc=bc)
+    grid = res._grid.numpy() * (knots[:, -1:] - knots[:, :1]) + knots[:, :1]
+    grid[:, 0], grid[:, -1] = knots[:, 0], knots[:, -1]
+    for b in range(B):
+        ref = _toppra_duration(path[b], v[b], a[b], grid[b], knots[b], bc)
+        assert abs(float(res.duration[b]) / ref - 1) < 0.01, (b, float(res.duration[b]), ref)
+    t = torch.linspace(0, float(res.duration.max()) + 0.1, 4001, dtype=torch.float64)
+    tr = res.sample(t)
+    assert (tr.velocity.abs() <= torch.tensor(v)[:, None] * (1 + 1e-9)).all()
+    assert (tr.acceleration.abs() <= torch.tensor(a)[:, None] * (1 + 1e-9)).all()
+    # the geometric path is scipy's spline: positions lie on it (the path parameter recovered by time)
+    prof = res._profile(t.expand(B, -1) / res._k[:, None])[0].clamp(0, 1).numpy()
+    for b in range(B):
+        s = knots[b, 0] + prof[b] * (knots[b, -1] - knots[b, 0])
+        ref = CubicSpline(knots[b], path[b], bc_type=bc)(s)
+        np.testing.assert_allclose(tr.position[b].numpy(), ref, atol=1e-10)
+    # starts exactly, holds the end at rest
+    end = res.sample(res.duration[:, None] + 0.5)
+    np.testing.assert_array_equal(tr.position[:, 0].numpy(), path[:, 0])
+    np.testing.assert_allclose(end.position[:, 0].numpy(), path[:, -1], atol=1e-12)
+    assert (end.velocity == 0).all() and (end.acceleration == 0).all()
+
+
+def test_linear_path_stops_at_waypoints_and_stays_on_segments():
+    path, v, a, _ = _problem(1, B=3, N=4, n=3)
+    res = time_optimal(torch.tensor(path), torch.tensor(v[0]), torch.tensor(a[0]), interpolation="linear")
+    t = torch.linspace(0, float(res.duration.max()), 3001, dtype=torch.float64)
+    tr = res.sample(t)
+    assert (tr.velocity.abs() <= torch.tensor(v[0]) * (1 + 1e-9)).all()
+    assert (tr.acceleration.abs() <= torch.tensor(a[0]) * (1 + 1e-9)).all()
+    # every sample on one of the straight segments
+    q, P = tr.position.numpy(), path
+    for b in range(3):
+        d = []
+        for k in range(3):
+            e = P[b, k + 1] - P[b, k]
+            lam = np.clip((q[b] - P[b, k]) @ e / (e @ e), 0, 1)
+            d.append(np.linalg.norm(q[b] - (P[b, k] + lam[:, None] * e), axis=1))
+        assert np.min(d, 0).max() < 1e-12
+    # at rest at every interior waypoint (the velocity is zero at its time)
+    for b in range(3):
+        for k in (1, 2):
+            hit = np.linalg.norm(q[b] - P[b, k], axis=1).argmin()
+            assert np.linalg.norm(tr.velocity[b, hit].numpy()) < 0.05 * np.linalg.norm(v[0])
+
+
+def test_jerk_limited_variant():
+    path, v, a, rng = _problem(2, B=3)
+    j = rng.uniform(50.0, 500.0, 7)
+    free = time_optimal(torch.tensor(path), torch.tensor(v), torch.tensor(a))
+    res = time_optimal(torch.tensor(path), torch.tensor(v), torch.tensor(a), torch.tensor(j))
+    assert (res.duration >= free.duration).all()  # the smoothing can only cost time
+    t = torch.linspace(0, float(res.duration.max()) + 0.1, 6001, dtype=torch.float64)
+    tr, jerk = res.sample(t), res.jerk(t)
+    assert (tr.velocity.abs() <= torch.tensor(v)[:, None] * (1 + 1e-9)).all()
+    assert (tr.acceleration.abs() <= torch.tensor(a)[:, None] * (1 + 1e-9)).all()
+    assert (jerk.abs() <= torch.tensor(j) * (1 + 1e-9)).all()
+    # rest at both ends with zero acceleration (the moving average starts and ends at rest)
+    assert tr.acceleration[:, 0].abs().max() == 0 and tr.velocity[:, 0].abs().max() == 0
+    end = res.sample(res.duration[:, None])
+    assert end.velocity.abs().max() < 1e-9 and end.acceleration.abs().max() < 1e-9
+    # velocity, acceleration and jerk are the derivatives of the samples (central differences)
+    tq, h = torch.tensor([0.31, 0.77, 1.9], dtype=torch.float64), 1e-6
+    up, dn = res.sample(tq + h), res.sample(tq - h)
+    np.testing.assert_allclose((up.position - dn.position) / (2 * h), res.sample(tq).velocity, atol=1e-6)
+    np.testing.assert_allclose((up.velocity - dn.velocity) / (2 * h), res.sample(tq).acceleration, atol=1e-5)
+    np.testing.assert_allclose((up.acceleration - dn.acceleration) / (2 * h), res.jerk(tq), atol=1e-3)
+
+
+def test_at_rate_float32_and_errors():
+    path, v, a, _ = _problem(3, B=2, N=3, n=2)
+    res = time_optimal(torch.tensor(path, dtype=torch.float32), 2.0, 10.0)
+    t, tr = res.at_rate(0.01)
+    assert t.dtype == tr.position.dtype == torch.float32 and tr.position.shape == (2, t.shape[1], 2)
+    assert t.shape[1] == int(np.ceil(float(res.duration.max()) / 0.01)) + 1
+    np.testing.assert_allclose(tr.position[:, -1].numpy(), path[:, -1], atol=1e-5)
+    with pytest.raises(InfeasibleTrajectoryError):
+        time_optimal(torch.tensor(path), torch.tensor([1.0, 0.0], dtype=torch.float64), 10.0)
+    with pytest.raises(ShapeError):
+        time_optimal(torch.tensor(path), torch.ones(3, dtype=torch.float64), 10.0)
+
+
+def test_linear_path_with_jerk_limit_rests_at_every_corner():
+    path, v, a, rng = _problem(4, B=2, N=4, n=3)
+    j = rng.uniform(50.0, 300.0, 3)
+    res = time_optimal(torch.tensor(path), torch.tensor(v[0]), torch.tensor(a[0]), torch.tensor(j),
+                       interpolation="linear")
+    h = 1e-4
+    t = torch.arange(0, float(res.duration.max()) + 0.05, h, dtype=torch.float64)
+    tr, jerk = res.sample(t), res.jerk(t)
+    assert (tr.velocity.abs() <= torch.tensor(v[0]) * (1 + 1e-9)).all()
+    assert (tr.acceleration.abs() <= torch.tensor(a[0]) * (1 + 1e-9)).all()
+    assert (jerk.abs() <= torch.tensor(j) * (1 + 1e-9)).all()
+    # no velocity jump anywhere (a corner passed at speed would show here): positions differentiate to qd
+    fd = (tr.position[:, 2:] - tr.position[:, :-2]) / (2 * h)
+    assert (fd - tr.velocity[:, 1:-1]).abs().max() < 1e-4
+    fa = (tr.velocity[:, 2:] - tr.velocity[:, :-2]) / (2 * h)
+    assert (fa - tr.acceleration[:, 1:-1]).abs().max() < 0.05
+    end = res.sample(res.duration[:, None] + 1e-9).position[:, 0]
+    np.testing.assert_array_equal(end.numpy(), path[:, -1])
