@@ -65,6 +65,10 @@ PANDA = ROOT / "tests" / "data" / "mjcf" / "franka_emika_panda" / "panda.xml"
 G1 = ROOT / "tests" / "data" / "mjcf" / "unitree_g1" / "g1.xml"
 G1_ENDS = [("left_foot", "site"), ("right_foot", "site"), ("left_elbow_roll_link", "body"),
            ("right_elbow_roll_link", "body")]
+# MuJoCo Menagerie's current 29-DoF G1 (no fingers: its four end links reach every body, nv 35 = MuJoCo's)
+G1_29 = ROOT / "tests" / "data" / "mjcf" / "unitree_g1_29dof" / "g1.xml"
+G1_29_ENDS = [("left_foot", "site"), ("right_foot", "site"), ("left_wrist_yaw_link", "body"),
+              ("right_wrist_yaw_link", "body")]
 DT, VMAX, POSTURE, LM = 0.002, 2.0, 1e-2, 1e-3
 Q0 = [0.0, -0.4, 0.0, -2.2, 0.0, 1.9, 0.8]
 
@@ -524,7 +528,7 @@ def _fr3_collision(steps: int):
     return _median_us(times_ours), _median_us(times_mink), float(d.min()), detected
 
 
-def _g1_com(steps: int, every_body: bool = True):
+def _g1_com(steps: int, every_body: bool = True, path: Path = G1, ends: list = G1_ENDS):
     """The G1 step of :func:`_g1` with a ComTask (cost (5, 5, 1): the centre of mass held over its start,
     moving 1 cm sideways with the hands) in the C step, beside mink with its ComTask. ``every_body``: the
     chain reaches every body (the hands' leaves too: nv 43 = MuJoCo's), so the two solve the same problem,
@@ -537,11 +541,12 @@ def _g1_com(steps: int, every_body: bool = True):
     from diffkin.models import from_mjcf
     from diffkin.models.mjcf import compile_mjcf
 
-    model = compile_mjcf(G1)[0]
+    model = compile_mjcf(path)[0]
     leaves = [model.body(b).name for b in range(1, model.nbody)
               if not any(model.body_parentid[k] == b for k in range(model.nbody))
-              and "ankle" not in model.body(b).name] if every_body else []
-    chain = from_mjcf(G1, [e for e, _ in G1_ENDS] + leaves, dtype=torch.float64).requires_grad_(False)
+              and "ankle" not in model.body(b).name and model.body(b).name not in dict(ends)] \
+        if every_body else []
+    chain = from_mjcf(path, [e for e, _ in ends] + leaves, dtype=torch.float64).requires_grad_(False)
     qadr, dofs = chain.qpos_index(), chain.dof_index()
     costs = [(1.0, 1.0), (1.0, 1.0), (1.0, 0.5), (1.0, 0.5)]
     com_cost = [5.0, 5.0, 1.0]
@@ -552,14 +557,14 @@ def _g1_com(steps: int, every_body: bool = True):
                           com=(com_cost, 1.0, 0.0))
     cfg = mink.Configuration(model)
     q0 = model.qpos0.copy()
-    bent = {"hip_pitch": -0.3, "knee": 0.6, "ankle_pitch": -0.3, "elbow_pitch": 1.0}
+    bent = {"hip_pitch": -0.3, "knee": 0.6, "ankle_pitch": -0.3, "elbow_pitch": 1.0, "elbow_joint": 1.0}
     for j in range(1, model.njnt):
         q0[model.jnt_qposadr[j]] = next((a for key, a in bent.items() if key in model.joint(j).name), 0.0)
     cfg.update(q0)
-    T0 = [cfg.get_transform_frame_to_world(e, t).as_matrix() for e, t in G1_ENDS]
+    T0 = [cfg.get_transform_frame_to_world(e, t).as_matrix() for e, t in ends]
     c0 = cfg.data.subtree_com[1].copy()
     tasks = [mink.FrameTask(e, t, position_cost=p, orientation_cost=o, gain=1.0, lm_damping=LM)
-             for (e, t), (p, o) in zip(G1_ENDS, costs)]
+             for (e, t), (p, o) in zip(ends, costs)]
     com_task = mink.ComTask(cost=com_cost)
     posture = mink.PostureTask(model, cost=POSTURE)
     posture.set_target(q0)
@@ -692,6 +697,12 @@ def run(args) -> list[dict]:
             if m_agree is not None:
                 row["max_abs_v_diff"] = m_agree
             rows.append(row)
+        with torch.no_grad():  # the issue's G1: Menagerie's current 29-DoF model, every body (nv 35)
+            m_ours, m_mink, m_agree, m_nv = _g1_com(300 if quick else steps, True, G1_29, G1_29_ENDS)
+        rows.append(dict(benchmark="teleop_g1_29dof_com_step", impl=f"diffkin C step (+ ComTask, nv {m_nv})",
+                         steps=steps, median_us=m_ours))
+        rows.append(dict(benchmark="teleop_g1_29dof_com_step", impl=f"mink (+ ComTask, nv {m_nv})",
+                         median_us=m_mink, ratio_to_diffkin=m_mink / m_ours, max_abs_v_diff=m_agree))
     return rows
 
 
