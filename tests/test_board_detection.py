@@ -91,6 +91,16 @@ def test_bad_boards_and_inputs_are_refused(tmp_path):
         detect_board(tmp_path, (ROWS, COLS), SQUARE)
 
 
+def test_without_opencv_a_typed_error_names_the_extra(monkeypatch):
+    import sys
+
+    from diffkin.errors import MissingExtraError
+
+    monkeypatch.setitem(sys.modules, "cv2", None)  # import cv2 then raises ImportError
+    with pytest.raises(MissingExtraError, match=r"diffkin\[camera\]"):
+        detect_board([_flat_board_image(0)], (ROWS, COLS), SQUARE)
+
+
 def test_rendered_images_to_calibrate_camera(rendered):
     """Ten rendered 960 x 768 px pictures (lens distortion, blur, noise) and one without the board: the
     board found in the ten (sector-based detector), NaN with a False mask row in the other; corners within
