@@ -54,11 +54,11 @@ def _flat_board_image(turn: int):
 
 
 def test_corner_order_is_the_boards_whatever_the_view():
-    """A straight view of the texture, turned by 0 and 2 quarter turns and mirrored in neither: the first
+    """A straight view of the texture, turned by 0 to 3 quarter turns: the first
     corner is always the one next to the dark outer square, rows of 9 corners, x across a row, right-handed
     in the image; the board points are the OpenCV grid (c s, r s, 0)."""
     PPS = texture().shape[1] // (COLS + 3)
-    for turn in (0, 2):
+    for turn in (0, 1, 2, 3):
         img = _flat_board_image(turn)
         det = detect_board([img], (ROWS, COLS), SQUARE)
         assert det.found.all() and det.detection_rate == 1.0
@@ -66,13 +66,27 @@ def test_corner_order_is_the_boards_whatever_the_view():
         r, c = np.meshgrid(np.arange(ROWS), np.arange(COLS), indexing="ij")
         x, y = (2 + c.ravel()) * PPS - 0.5, (2 + r.ravel()) * PPS - 0.5
         h, w = texture().shape
-        if turn == 2:
-            x, y = (w - 1) - x, (h - 1) - y
+        for _ in range(turn):  # np.rot90: a[y, x] -> a'[w - 1 - x, y] (a quarter turn counter-clockwise)
+            x, y, w, h = y, (w - 1) - x, h, w
         err = np.abs(det.image_points[0].numpy() - np.stack((x, y), -1)).max()
         assert err < 0.2, (turn, err)
     p = det.board_points
     assert p.shape == (ROWS * COLS, 3) and torch.equal(p[1], torch.tensor([SQUARE, 0, 0], dtype=p.dtype))
     assert torch.equal(p[COLS], torch.tensor([0, SQUARE, 0], dtype=p.dtype))
+
+
+def test_opencv_orders_turned_or_mirrored_are_put_back():
+    """OpenCV's order may start at another corner from picture to picture: the detected corners of a
+    straight view given half turned (reversed) or mirrored (each row reversed, or the rows' order reversed)
+    come back in the board's order."""
+    from diffkin.calibration.board import _canonical
+
+    img = _flat_board_image(0)
+    right = detect_board([img], (ROWS, COLS), SQUARE).image_points[0].numpy()
+    grid = right.reshape(ROWS, COLS, 2)
+    for wrong in (grid[::-1, ::-1], grid[:, ::-1], grid[::-1, :]):
+        got = _canonical(cv2, img, np.ascontiguousarray(wrong).reshape(-1, 2), ROWS, COLS)
+        assert np.array_equal(got, right)
 
 
 def test_bad_boards_and_inputs_are_refused(tmp_path):
