@@ -342,6 +342,10 @@ def cmd_calibrate(args) -> int:
     from .data_io import check_output_path
     from .errors import ModelError
 
+    if args.images is not None or args.joints is not None:
+        return _cmd_calibrate_images(args)
+    if args.data is None:
+        raise DiffkinError("calibrate needs --data FILE (measured poses) or --images DIR with --joints FILE")
     out = Path(args.output)
     suffixes = (".yaml", ".yml", ".urdf", ".xml")
     as_dir = out.suffix not in suffixes
@@ -421,6 +425,66 @@ def cmd_calibrate(args) -> int:
                                "calibrated robot was not written (--force writes it and exits 0)")
         con.print("[bold yellow]warning:[/] the calibration failed its plausibility checks; written anyway "
                   "(--force)")
+    return 0
+
+
+def _cmd_calibrate_images(args) -> int:
+    """``calibrate --images DIR --joints FILE``: board pictures -> detect_board -> calibrate_camera."""
+    import warnings
+
+    from .calibration.camera_io import calibrate_camera_from_files, write_camera_report
+
+    need = {"--images": args.images, "--joints": args.joints, "--board": args.board, "--square": args.square,
+            "--camera": args.camera}
+    missing = [k for k, v in need.items() if v is None]
+    if missing:
+        raise DiffkinError(f"calibrate --images needs {', '.join(missing)} as well (see --help)")
+    if args.data is not None:
+        raise DiffkinError("give --data (measured poses) or --images with --joints (board pictures), "
+                           "not both")
+    if args.base or args.tool or args.noise is not None:
+        raise DiffkinError("--base, --tool and --noise are for --data; with --images the camera's and the "
+                           "board's poses are always estimated (--pixel-noise PX for the noise check)")
+    out = Path(args.output)
+    if out.suffix:
+        raise DiffkinError(f"--output {out}: with --images give a directory (the calibrated robot, "
+                           "camera.yaml, camera_joint.urdf, report.md, residuals.png)")
+    _check_output_dir(out)
+    args.device, args.dtype = "cpu", "float64"  # calibration corrects by micrometres: float64 on the CPU
+    chain = _load_chain(args)
+    fx, fy, cx, cy = args.camera
+    K = torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    if args.dist is not None and len(args.dist) not in (4, 5):
+        raise DiffkinError(f"--dist: expected 4 or 5 numbers (k1 k2 p1 p2 [k3]), got {len(args.dist)}")
+    dist = None if args.dist is None else torch.tensor(args.dist, dtype=torch.float64)
+    estimate = ("robot", "camera", "board") + (("intrinsics",) if args.intrinsics else ())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res, det = calibrate_camera_from_files(
+            chain, args.images, args.joints, board=tuple(args.board), square=args.square, camera_matrix=K,
+            detector=args.detector, dist_coeffs=dist, setup=args.setup, estimate=estimate, method=args.method,
+            error_model=args.error_model, measurement_noise=args.pixel_noise, loss=args.loss,
+            cross_validation=args.cv, progress=not args.no_progress,
+        )
+    written = write_camera_report(res, det, out)
+    con = _console()
+    con.print(f"board found in {int(det.found.sum())} of {len(det.names)} pictures"
+              + ("" if bool(det.found.all()) else " (not in: "
+                 + ", ".join(n for n, f in zip(det.names, det.found.tolist()) if not f) + ")"))
+    title = f"camera calibration of '{res.nominal_chain.name}' ({args.method}; lengths mm, angles deg)"
+    unit = {"m": (1e3, "mm"), "rad": (180.0 / math.pi, "deg"), "px": (1.0, "px")}
+    rows = []
+    for r in res.parameter_table():
+        f, u = unit.get(r["unit"], (1.0, r["unit"]))
+        rows.append([r["name"], f"{r['nominal'] * f:.4f}", f"{r['identified'] * f:.4f}",
+                     f"{r['delta'] * f:+.4f}", u if r["identifiable"] else f"{u} (fixed: unidentifiable)"])
+    if rows:
+        _print_whole(con, _table(title, ["parameter", "nominal", "identified", "delta", "unit"], rows,
+                                 whole=(0, 1, 2, 3, 4)))
+    con.print(res.summary())
+    for w in caught:
+        con.print(f"[bold yellow]warning:[/] {w.message}")
+    con.print("wrote " + ", ".join(str(p) for p in written))
     return 0
 
 
@@ -786,7 +850,9 @@ _EXAMPLES = {
                  "  diffkin calibrate --urdf arm.urdf --end-link tool0 --data meas.npz --tool "
                  "--noise 0.02 0.005 --output runs/cal/\n"
                  "  diffkin calibrate --mjcf ur10e.xml --end-link attachment_site --data meas.csv "
-                 "--output ur10e_cal.xml",
+                 "--output ur10e_cal.xml\n"
+                 "  diffkin calibrate --urdf panda.urdf --end-link panda_link8 --images shots/ --joints "
+                 "q.csv --board 6 9 --square 0.025 --camera 1000 1000 640 512 --output runs/camcal/",
     "trajectory": "diffkin trajectory joint --profile quintic --start 0 0 --end 1 -1 --output j.csv "
                   "--plot j.png\n"
                   "  diffkin trajectory cartesian --start 0.3 0 0.5 --end 0.5 0.1 0.4 --output c.npz\n"
@@ -834,7 +900,12 @@ _DESCRIPTIONS = {
                  "with parameters.md, report.json and residuals.png.\n"
                  "A result that fails its plausibility checks (held-out error or noise ratio more than 5x\n"
                  "the fit, a link corrected by more than 5 cm / 10 deg: data of another robot) is not\n"
-                 "written and exits with status 2 (the report directory is written); --force writes it.",
+                 "written and exits with status 2 (the report directory is written); --force writes it.\n"
+                 "From board pictures: --images DIR --joints FILE --board ROWS COLS --square M\n"
+                 "--camera FX FY CX CY detects the chessboard in each picture (OpenCV) and fits the\n"
+                 "robot's geometry with the camera's and the board's poses to the corners' pixels;\n"
+                 "--output DIR gets the calibrated robot, camera.yaml, camera_joint.urdf, report.md and\n"
+                 "residuals.png.",
     "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal) or a Cartesian straight-line trajectory\n"
                   "from --start to --end, or in either space a cubic spline through the via points of\n"
                   "--points (rows at equally spaced times), and export t, position, velocity, acceleration.",
@@ -950,11 +1021,30 @@ def build_parser() -> argparse.ArgumentParser:
                    new="nothing (the progress bar is on by default on a terminal)")
     p.set_defaults(func=cmd_ik)
 
-    p = add("calibrate", "identify a robot's geometry from measured poses (DH YAML, URDF or MJCF)")
+    p = add("calibrate", "identify a robot's geometry from measured poses or board pictures")
     _robot_options(p)  # the nominal robot, named as in fk, ik and view
-    p.add_argument("--data", required=True,
+    p.add_argument("--data",
                    help="measurements: .npz with q (N, n) and T (N, 4, 4) or position (N, 3) [+ quaternion], "
                         "or .csv read by its header q1..qn,x,y,z[,qw,qx,qy,qz] (diffkin fk's CSV)")
+    g = p.add_argument_group("from board pictures (instead of --data; needs the camera extra)")
+    g.add_argument("--images", metavar="DIR", help="folder of chessboard pictures (sorted by file name)")
+    g.add_argument("--joints", metavar="FILE",
+                   help="joint readings, one per picture: .csv (an 'image' column names the picture; else "
+                        "rows in the pictures' order), .npy (N, n) or .npz key q")
+    g.add_argument("--board", type=_positive_int, nargs=2, metavar=("ROWS", "COLS"),
+                   help="inner corners of the chessboard (one count even, the other odd)")
+    g.add_argument("--square", type=_positive_float, metavar="M", help="side of the board's squares [m]")
+    g.add_argument("--camera", type=_positive_float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
+                   help="camera matrix [px] (the start with --intrinsics)")
+    g.add_argument("--dist", type=_finite, nargs="+", metavar="K",
+                   help="OpenCV distortion k1 k2 p1 p2 [k3] (default none)")
+    g.add_argument("--setup", choices=["eye_to_hand", "eye_in_hand"], default="eye_to_hand",
+                   help="a fixed camera and the board on the flange, or the camera on the flange")
+    g.add_argument("--intrinsics", action="store_true", help="also estimate the camera matrix and distortion")
+    g.add_argument("--detector", choices=["classic", "sb"], default="classic",
+                   help="OpenCV's findChessboardCorners (classic) or findChessboardCornersSB (sb)")
+    g.add_argument("--pixel-noise", dest="pixel_noise", type=_positive_float, metavar="PX",
+                   help="detection noise per coordinate [px]: the noise check and the outlier threshold")
     p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"],
                    help="solver")
     p.add_argument("--error-model", dest="error_model", default="auto",

@@ -309,6 +309,10 @@ EXEMPT: dict[str, str] = {
     "diffkin.calibration.calibrate_camera": "a fit over images (seconds a call): bad shapes (another board "
     "size, another robot), NaN at visible points, unknown options and degenerate postures are unit-tested in "
     "tests/test_calibrate_camera.py::test_bad_inputs_are_refused; no fuzz case yet",
+    "diffkin.calibration.BoardDetection": "result container",
+    "diffkin.calibration.detect_board": "reads images (OpenCV's detector): bad boards, options and files "
+    "are unit-tested in tests/test_board_detection.py::test_bad_boards_and_inputs_are_refused; its tensors "
+    "then go through calibrate_camera",
     "diffkin.calibration.IdentifiabilityReport": "result container",
     "diffkin.calibration.CalibrationModel": "the solvers' measurement model (built from chains; its methods "
                                             "take the trusted tensors of the hot path; user input enters "

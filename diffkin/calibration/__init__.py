@@ -5,7 +5,8 @@ calibrated copy of the chain; ``calibrate_batch`` does K robots in one vectorise
 ``calibration_loss`` is the differentiable objective for bigger pipelines; ``identifiability`` and
 ``select_poses`` analyse and design the pose set; ``validation_error`` scores a chain on held-out poses.
 ``hand_eye`` and ``robot_world_hand_eye`` solve AX = XB / AX = ZB for cameras with OpenCV's conventions;
-``calibrate_camera`` fits the robot's geometry with the camera's and a board's poses to board pixels.
+``calibrate_camera`` fits the robot's geometry with the camera's and a board's poses to board pixels;
+``detect_board`` finds a chessboard's corners in images (OpenCV) in the order it expects.
 
 Calibration estimates its own parameter vector ζ (on a private copy of the chain), never the chain's
 ``requires_grad``: a frozen chain (the default of every loader) calibrates as a learnable one does, and the
@@ -17,6 +18,8 @@ from .api import CalibrationResult as CalibrationResult
 from .api import calibrate as calibrate
 from .api import calibrate_batch as calibrate_batch
 from .api import validation_error as validation_error
+from .board import BoardDetection as BoardDetection
+from .board import detect_board as detect_board
 from .camera import project_points as project_points
 from .camera_api import calibrate_camera as calibrate_camera
 from .camera_result import CameraCalibrationResult as CameraCalibrationResult
@@ -49,12 +52,14 @@ __all__ = [
     "DegenerateMotionError",
     "CalibrationResult",
     "CameraCalibrationResult",
+    "BoardDetection",
     "CalibrationModel",
     "IdentifiabilityReport",
     "calibrate",
     "calibrate_batch",
     "calibrate_camera",
     "calibrate_from_files",
+    "detect_board",
     "calibration_loss",
     "hand_eye",
     "motion_axis_spread",
