@@ -10,6 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ..data_io import _is_number
 from ..errors import DiffkinError, MissingExtraError, ShapeError
 from .board import BoardDetection, detect_board, image_files
 from .camera_api import calibrate_camera
@@ -17,14 +18,6 @@ from .camera_result import CameraCalibrationResult
 from .io import write_robot
 
 __all__ = ["load_joint_readings", "calibrate_camera_from_files", "write_camera_report"]
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def load_joint_readings(path: str | Path, images: list[str], n_joints: int,

@@ -116,6 +116,21 @@ def _slots(r: int, left: int) -> int:
     return min(1 << min(r, 10), MAX_SLOTS, left)
 
 
+def _stop_rule(pn: Tensor, ang: Tensor, age: Tensor, last: Tensor, tp, to, cfg: LMConfig, pos_only: bool,
+               every: int, max_iterations: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The one stopping rule of a seed's LM run (both runners, and ``dk_solve``'s): converged when both
+    errors are within ``margin`` × the tolerances; every ``every`` iterations the merit (the larger error
+    over its tolerance) is compared with the last check's, and a seed past ``min_seed_iterations`` that has
+    not improved by ``stall_ratio``, or has used ``max_iterations``, is finished. -> ``(converged,
+    finished, merit, the merit to compare at the next check)``."""
+    conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
+    merit = pn / tp if pos_only else torch.maximum(pn / tp, ang / to)
+    check = (age % every == 0) & ~conv
+    slow = (age >= cfg.min_seed_iterations) & ~(merit <= cfg.stall_ratio * last)
+    fin = check & (slow | (age >= max_iterations))
+    return conv, fin, merit, torch.where(check, merit, last)
+
+
 def _lm_update(u: Tensor, J: Tensor, e: Tensor, go: Tensor, jmap, cfg: LMConfig, sqrt_w: Tensor) -> Tensor:
     """Step 4 of the schedule on the rows ``go``: u ⊕ J_wᵀ(J_w J_wᵀ + λI)⁻¹ e_w, λ = λ̄ + μ‖e_w‖²."""
     e = e * sqrt_w
@@ -161,12 +176,8 @@ def _run_lockstep(kernel, jmap, tg: Targets, seeds: SeedPool, N: int, cfg: LMCon
         while rows.numel():
             J, e, pn, ang = residual.batch_last(kernel, u, jmap, tg.take(t[rows]))
             age = age + 1
-            conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
-            merit = pn / tp if pos_only else torch.maximum(pn / tp, ang / to)
-            check = (age % every == 0) & ~conv
-            slow = (age >= cfg.min_seed_iterations) & ~(merit <= cfg.stall_ratio * last)
-            last = torch.where(check, merit, last)
-            fin = check & (slow | (age >= max_iterations))
+            conv, fin, merit, last = _stop_rule(pn, ang, age, last, tp, to, cfg, pos_only, every,
+                                                max_iterations)
             done = conv | fin
             di = rows[done]
             length[di] = age[done]
@@ -230,12 +241,7 @@ def _run_sequential(kernel, jmap, tg: Targets, seeds: SeedPool, N: int, cfg: LMC
         J, e, pn, ang = residual.batch_last(kernel, u, jmap, tg.take(idx))
         iters.index_add_(0, idx, torch.ones_like(idx))
         age = age + 1
-        conv = (pn <= tp * cfg.margin) & (ang <= to * cfg.margin)
-        merit = pn / tp if pos_only else torch.maximum(pn / tp, ang / to)
-        check = (age % every == 0) & ~conv
-        slow = (age >= cfg.min_seed_iterations) & ~(merit <= cfg.stall_ratio * last)
-        last = torch.where(check, merit, last)
-        fin = check & (slow | (age >= max_iterations))
+        conv, fin, merit, last = _stop_rule(pn, ang, age, last, tp, to, cfg, pos_only, every, max_iterations)
         if accept is not None and bool(conv.any()):  # collision: refine or reject (ik/_collision.py)
             ci = conv.nonzero().squeeze(-1)
             ok, u_ok = accept(idx[ci], u[:, ci])
