@@ -154,6 +154,8 @@ class ImitateTask(Task):
             robot_config = RobotConfig(**kw)
         super().__init__(robot=chain, action_mode="joint", robot_config=robot_config, home=home, dtype=dtype,
                          device=device)
+        if chain.joint_kinds and chain.joint_kinds[0] == "free":
+            self.robot.unbound(range(3))  # the root goes where the clip goes (beyond the chain's ±1 m box)
         self.ref_q = ref.to(self.device)
         self.space = self.robot.space
         with torch.no_grad():
@@ -195,8 +197,7 @@ class ImitateTask(Task):
         state["start"][idx] = (u[:, 1] * (self.last_start + 1)).long().clamp(max=self.last_start)
         q0 = self.ref_q[state["clip"][idx], state["start"][idx]]
         if c.init_noise > 0.0:
-            q0 = self.space.integrate(q0, c.init_noise * (2.0 * u[:, 2:] - 1.0))
-            q0 = self.robot.chain.clamp_to_limits(q0)
+            q0 = self.robot.clamp(self.space.integrate(q0, c.init_noise * (2.0 * u[:, 2:] - 1.0)))
         state["q"][idx] = q0
 
     def reference_action(self, state) -> Tensor:
@@ -248,10 +249,10 @@ class ImitateEnv(TaskEnv):
     reachable.
 
     ## Observation Space
-    ``Box(-100, 100, (nq − 2 + H · nv + 1,), float32)`` (a formal bound), ``H = lookahead`` (2): ``q`` without the root's
-    horizontal position (root height, root quaternion (w, x, y, z), hinges), ``q_ref(f + k · frame_skip) ⊖
-    q`` for k = 1..H (nv each: what to move by to be on the next reference frames), and the clip phase
-    ``f / (T − 1)``. For the G1 with the defaults: ``(105,)``.
+    ``Box(-100, 100, (nq − 2 + H · nv + 1,), float32)`` (a formal bound), ``H = lookahead`` (2): ``q``
+    without the root's horizontal position (root height, root quaternion (w, x, y, z), hinges),
+    ``q_ref(f + k · frame_skip) ⊖ q`` for k = 1..H (nv each: what to move by to be on the next reference
+    frames), and the clip phase ``f / (T − 1)``. For the G1 with the defaults: ``(105,)``.
 
     ## Rewards
     ``joint_weight · exp(−joint_scale · mean((q_ref ⊖ q)²)) + keypoint_weight · exp(−keypoint_scale ·
