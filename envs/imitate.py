@@ -127,9 +127,12 @@ class ImitateTask(Task):
                                   f"got {action_mode!r}")
         self.config = c = config or ImitateConfig()
         q_np, fps, names = load_reference(clip)
-        frames = list(c.keypoint_frames) if c.keypoint_frames is not None else Mapping.builtin("g1").frames
-        chain = load_chain(robot, end_link=frames, dtype=dtype, device=device) \
-            if isinstance(robot, str | Path) else robot
+        if isinstance(robot, str | Path):
+            frames = list(c.keypoint_frames) if c.keypoint_frames is not None else Mapping.builtin("g1").frames
+            chain = load_chain(robot, end_link=frames, dtype=dtype, device=device)
+        else:  # a chain: its own end links are the keypoints
+            chain = load_chain(robot, dtype=dtype, device=device)
+            frames = list(chain.end_links)
         if q_np.shape[-1] != chain.nq:
             raise ShapeError(f"reference q has {q_np.shape[-1]} coordinates per frame, the robot "
                              f"{chain.name!r} has nq {chain.nq}")
@@ -275,8 +278,9 @@ class ImitateEnv(TaskEnv):
                    random_start=0.5, init_noise=0.0, joint_weight=0.5, keypoint_weight=0.5,
                    joint_scale=10.0, keypoint_scale=100.0, keypoint_frames=None, speed_margin=1.25)
     ```
-    ``robot``: a model name or chain whose q is the clip's (``keypoint_frames``, default
-    ``Mapping.builtin("g1").frames``, become its end links); ``robot_config``'s ``control_dt`` is replaced
+    ``robot``: a model name whose q is the clip's (``keypoint_frames``, default
+    ``Mapping.builtin("g1").frames``, become its end links) or a chain (its end links are the keypoints:
+    the chain ``retarget.clip`` took); ``robot_config``'s ``control_dt`` is replaced
     by ``frame_skip / fps``. ``render_mode`` only None (playback is not drawn).
 
     ## Version History
