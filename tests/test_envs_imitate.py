@@ -113,6 +113,18 @@ def test_clip_from_a_result_or_npz_and_errors(tmp_path):
     path = res.save(tmp_path / "c.npz")
     env2 = ImitateEnv(clip=str(path), random_start=0.0)
     assert torch.equal(env2.task.ref_q, env.task.ref_q)
+    # a chain as the robot: its end links are the keypoints (Unitree's G1 URDF, the clip's joint layout);
+    # the same keypoints as Menagerie's MJCF the default loads
+    from pathlib import Path
+
+    from diffkin import models
+    from diffkin.retarget import Mapping
+
+    urdf = Path(__file__).parent / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
+    g1 = models.from_urdf(urdf, Mapping.builtin("g1").frames, floating_base=True)
+    env3 = ImitateEnv(robot=g1, clip=res)
+    assert env3.task.keypoint_frames == env.task.keypoint_frames
+    torch.testing.assert_close(env3.task.ref_keypoints, env.task.ref_keypoints, atol=1e-5, rtol=0)
     np.savez(tmp_path / "bad.npz", q=q)
     with pytest.raises(ModelError, match="fps"):
         ImitateEnv(clip=tmp_path / "bad.npz")
