@@ -127,12 +127,16 @@ class ImitateTask(Task):
                                   f"got {action_mode!r}")
         self.config = c = config or ImitateConfig()
         q_np, fps, names = load_reference(clip)
+        given = list(c.keypoint_frames) if c.keypoint_frames is not None else None
         if isinstance(robot, str | Path):
-            frames = list(c.keypoint_frames) if c.keypoint_frames is not None else Mapping.builtin("g1").frames
+            frames = given if given is not None else Mapping.builtin("g1").frames
             chain = load_chain(robot, end_link=frames, dtype=dtype, device=device)
         else:  # a chain: its own end links are the keypoints
             chain = load_chain(robot, dtype=dtype, device=device)
             frames = list(chain.end_links)
+            if given is not None and given != frames:
+                raise ConventionError(f"keypoint_frames {given} differ from the robot chain's end links "
+                                      f"{frames} (a chain's end links are the keypoints)")
         if q_np.shape[-1] != chain.nq:
             raise ShapeError(f"reference q has {q_np.shape[-1]} coordinates per frame, the robot "
                              f"{chain.name!r} has nq {chain.nq}")

@@ -125,6 +125,8 @@ def test_clip_from_a_result_or_npz_and_errors(tmp_path):
     env3 = ImitateEnv(robot=g1, clip=res)
     assert env3.task.keypoint_frames == env.task.keypoint_frames
     torch.testing.assert_close(env3.task.ref_keypoints, env.task.ref_keypoints, atol=1e-5, rtol=0)
+    with pytest.raises(ConventionError, match="end links"):
+        ImitateEnv(robot=g1, clip=res, keypoint_frames=("pelvis",))
     np.savez(tmp_path / "bad.npz", q=q)
     with pytest.raises(ModelError, match="fps"):
         ImitateEnv(clip=tmp_path / "bad.npz")
