@@ -1,9 +1,10 @@
 """Gymnasium environments on the diffkin kernels. Importing this package registers the IDs below.
 
-``diffkin/Reach-v0`` (goal-conditioned, HER-ready) and ``diffkin/Track-v0`` (path tracking), both listed
-in one table (:data:`diffkin.envs.registry.ENVS`); the torch-batched vector env is
-:class:`diffkin.envs.vector.TorchVectorEnv`. The environments know no trainer: the stable-baselines3 adapter
-is :mod:`diffkin.training.sb3`.
+``diffkin/Reach-v0`` (goal-conditioned, HER-ready), ``diffkin/Track-v0`` (path tracking) and
+``diffkin/Imitate-v0`` (reference-motion tracking of a retargeted clip), all listed in one table
+(:data:`diffkin.envs.registry.ENVS`); the torch-batched vector env is
+:class:`diffkin.envs.vector.TorchVectorEnv`. The environments know no trainer: the stable-baselines3
+adapter is :mod:`diffkin.training.sb3`.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ require("gymnasium", "gym", "diffkin.envs")  # one line naming the extra, not a 
 from gymnasium.envs.registration import register  # noqa: E402
 from gymnasium.envs.registration import registry as _gym_registry  # noqa: E402
 
+from .imitate import ImitateEnv as ImitateEnv  # noqa: E402
 from .reach import ReachEnv as ReachEnv  # noqa: E402
 from .registry import ENV_IDS as ENV_IDS  # noqa: E402
 from .registry import ENVS as ENVS  # noqa: E402

@@ -10,6 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from .core import Task, TaskEnv
+from .imitate import ImitateConfig, ImitateEnv, ImitateTask
 from .reach import ReachConfig, ReachEnv, ReachTask
 from .track import TrackConfig, TrackEnv, TrackTask
 
@@ -34,6 +35,7 @@ class EnvSpec:
 ENVS: dict[str, EnvSpec] = {
     "diffkin/Reach-v0": EnvSpec(ReachEnv, ReachTask, ReachConfig),
     "diffkin/Track-v0": EnvSpec(TrackEnv, TrackTask, TrackConfig),
+    "diffkin/Imitate-v0": EnvSpec(ImitateEnv, ImitateTask, ImitateConfig),
 }
 
 #: env ID → Gymnasium entry point, for every environment of :data:`ENVS`

@@ -192,6 +192,20 @@ class Robot:
         configurations of an episode (``home + noise · U(-1, 1)^n`` for 1-DOF joints)."""
         return self.chain.clamp_to_limits(self.space.integrate(self.home, noise * (2.0 * u - 1.0)))
 
+    def unbound(self, coords) -> None:
+        """Lift the projection of a step onto the limits for the q coordinates ``coords`` (indices into
+        ``(nq,)``): e.g. a free joint's translation, whose nominal range (the chain's ±1 m box) a reference
+        clip walks out of. Later steps and :meth:`clamp` leave those coordinates as they are."""
+        lo, hi = (t.clone() for t in self._clamp)
+        lo[list(coords)], hi[list(coords)] = -math.inf, math.inf
+        self._clamp = (lo, hi)
+        self.__dict__.pop("_rows", None)  # the per-shape rows of the old bounds
+
+    def clamp(self, q: Tensor) -> Tensor:
+        """``q (N, nq)`` projected onto the joint limits the steps keep (scalar coordinates only), a new
+        tensor."""
+        return q.clamp(*self._per_row(q, "limits"))
+
     def velocity(self, q0: Tensor, q1: Tensor) -> Tensor:
         """The mean joint velocity ``(N, nv)`` over one control period from ``q0`` to ``q1``:
         (q1 ⊖ q0) / control_dt (angular velocities of ball joints in their child frames)."""

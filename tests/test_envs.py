@@ -12,11 +12,13 @@ import diffkin.envs  # noqa: F401
 from diffkin.chain import DHChain
 from diffkin.envs.reach import ReachEnv
 
-ENV_IDS = sorted(k for k in gym.registry if k.startswith("diffkin/"))
+# the arm envs (any chain, joint and Cartesian actions); diffkin/Imitate-v0: tests/test_envs_imitate.py
+ENV_IDS = sorted(k for k in gym.registry if k.startswith("diffkin/") and k != "diffkin/Imitate-v0")
 
 
 def test_ids_registered():
     assert {"diffkin/Reach-v0", "diffkin/Track-v0"} <= set(ENV_IDS)
+    assert "diffkin/Imitate-v0" in gym.registry
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

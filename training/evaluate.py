@@ -83,8 +83,12 @@ def run_vec_episodes(venv, model, obs_normalizer=None, episodes: int = 100, seed
 
 
 def scripted_policy(obs, venv: TorchVectorEnv) -> torch.Tensor:
-    """Closed-loop IK with diffkin's damped-least-squares step, in the env's action space."""
+    """Closed-loop IK with diffkin's damped-least-squares step, in the env's action space; for a task that
+    knows its reference motion (``reference_action``: ``diffkin/Imitate-v0``), the step onto the next
+    reference frame."""
     task, state = venv.task, venv.state
+    if hasattr(task, "reference_action"):
+        return task.reference_action(state)
     robot = task.robot
     ee = task.ee(state)  # the episode's robot (domain randomisation); its DLS step uses the nominal model
     target = state["goal"] if "goal" in state else task.targets(state, offset=1)[:, 0]
