@@ -147,3 +147,19 @@ def test_without_robot_descriptions_its_names_are_unknown(monkeypatch):
     monkeypatch.setitem(sys.modules, "robot_descriptions._descriptions", None)
     with pytest.raises(ModelError, match="unknown model 'ur10e_mj_description'.*robot_descriptions"):
         models.load("ur10e_mj_description", end_link="wrist_3_link")
+
+
+def test_a_robot_the_wheel_does_not_carry_is_named_with_its_licence(monkeypatch, tmp_path):
+    """In an installed package the files whose licence keeps them out of the wheel are absent: the name is
+    not listed, and loading it says why (here the file is moved away to stand for the installed case)."""
+    import dataclasses
+
+    table = dict(catalog._shipped())
+    gone = dataclasses.replace(table["talos_reduced"], path=tmp_path / "talos_reduced.urdf")
+    table["talos_reduced"] = gone
+    monkeypatch.setattr(catalog, "_shipped", lambda: table)
+    assert not gone.wheel and "talos_reduced" not in models.available()
+    with pytest.raises(ModelError, match="talos_reduced: its URDF file is not in the installed.*CC-BY-NC"):
+        models.load("talos_reduced")
+    assert {e["name"] for e in CATALOG if not e["wheel"]} >= {"talos_reduced", "tiago_dual", "yumi"}
+    assert all(e["wheel"] for e in CATALOG if e["name"] in ("unitree_g1_29dof", "universal_robots_ur10e"))

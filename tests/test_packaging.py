@@ -5,6 +5,7 @@ repository folders under their bare names."""
 from __future__ import annotations
 
 import ast
+import json
 import subprocess
 import sys
 import zipfile
@@ -71,5 +72,19 @@ def test_the_wheel_holds_only_diffkin(tmp_path):
     tree = ROOT / "diffkin"
     data = [p for p in tree.rglob("*") if p.is_file() and p.suffix not in (".py", ".pyc")
             and "__pycache__" not in p.parts]
-    missing = sorted(str(p.relative_to(ROOT)) for p in data if str(p.relative_to(ROOT)) not in names)
+    robots = tree / "models" / "robots"
+    held = [robots / r["file"] for r in json.loads((robots / "catalog.json").read_text())["robots"]
+            if not r["wheel"]]  # their licence keeps them out: the file, and its folder's other files
+    held_dirs = {h.parent for h in held if h.parent.parent.name == "mjcf"}
+    out = {p for p in data if p in held or p.parent in held_dirs}
+    assert held and out and not {str(p.relative_to(ROOT)) for p in out} & set(names)
+    missing = sorted(str(p.relative_to(ROOT)) for p in data if p not in out
+                     and str(p.relative_to(ROOT)) not in names)
     assert not missing, f"not in the wheel: {missing}"
+    # every robot the wheel carries has its licence text beside it
+    for r in json.loads((robots / "catalog.json").read_text())["robots"]:
+        path = (robots / r["file"]).resolve()
+        if r["wheel"] and robots in path.parents:
+            beside = [n for n in names if n.startswith(str(path.parent.relative_to(ROOT)) + "/")
+                      and "LICENSE" in n.rsplit("/", 1)[1] and (path.parent.name != "urdf" or path.stem in n)]
+            assert beside, f"{r['name']}: no licence text beside it in the wheel"

@@ -151,6 +151,10 @@ def load(name_or_path, dtype: torch.dtype | None = None, device=None, *, learnab
 
 
 def _load_named(robot: RobotInfo, end_link, *, dtype, device, learnable):
+    if not robot.path.is_file():  # a catalogue robot the wheel does not carry (its licence)
+        raise ModelError(f"{robot.name}: its {robot.format.upper()} file is not in the installed package "
+                         f"(licence: {robot.licence}); it loads by name from a source checkout of diffkin, "
+                         "or through robot_descriptions")
     # one default end link is given as a name, so that FK is (..., 4, 4) as for a DH model; several: a list
     ends = end_link if end_link is not None else None if not robot.end_links else \
         robot.end_links[0] if len(robot.end_links) == 1 else list(robot.end_links)

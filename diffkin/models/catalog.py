@@ -25,7 +25,10 @@ ROBOTS_DIR = Path(__file__).resolve().parent / "robots"
 class RobotInfo:
     """One robot loadable by name. ``format``: ``"dh"`` (a YAML table of :mod:`diffkin.models.data`),
     ``"urdf"`` or ``"mjcf"``; ``path``: its file; ``end_links``: the default end links (URDF / MJCF; None for
-    a DH table, which ends where its table ends); ``floating_base``: a URDF read with a free root joint."""
+    a DH table, which ends where its table ends); ``floating_base``: a URDF read with a free root joint (an
+    MJCF file declares its own free joints); ``wheel``: whether the installed package carries the file (only
+    files whose licence permits it ship, with their licence text beside them; the others load by name from a
+    source checkout)."""
 
     name: str
     format: str
@@ -36,6 +39,7 @@ class RobotInfo:
     category: str = ""
     aliases: tuple[str, ...] = ()
     floating_base: bool = False
+    wheel: bool = True
 
 
 @functools.cache
@@ -46,7 +50,8 @@ def _shipped() -> dict[str, RobotInfo]:
         info = RobotInfo(name=row["name"], format=row["format"], path=(ROBOTS_DIR / row["file"]).resolve(),
                          end_links=tuple(row["end_links"]), source=row["source"], licence=row["licence"],
                          category=row.get("category", ""), aliases=tuple(row.get("aliases", ())),
-                         floating_base=bool(row.get("floating_base", False)))
+                         floating_base=bool(row.get("floating_base", False)),
+                         wheel=bool(row.get("wheel", True)))
         for key in (info.name, *info.aliases):
             if key in out:
                 raise ModelError(f"robots/catalog.json: the name {key!r} is given twice")
@@ -60,8 +65,9 @@ def shipped(name: str) -> RobotInfo | None:
 
 
 def shipped_names() -> list[str]:
-    """Every shipped URDF / MJCF robot's name (aliases not repeated)."""
-    return sorted({info.name for info in _shipped().values()})
+    """Every shipped URDF / MJCF robot's name whose file is here (aliases not repeated): in an installed
+    package the robots of the wheel, in a source checkout all of them."""
+    return sorted({info.name for info in _shipped().values() if info.path.is_file()})
 
 
 def robot_description(name: str) -> RobotInfo | None:
