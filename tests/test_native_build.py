@@ -3,7 +3,8 @@ cache directory), a machine without a compiler is told why the torch kernels ser
 doctor`` / ``diffkin --version`` report whether the fused kernel is in use and why not. Run in subprocesses
 with a fresh cache directory (``DIFFKIN_CACHE_DIR``): the session's cached library must not hide the first
 build. Each subprocess imports torch (the slow part with the two builds), so one process runs doctor and
---version together and the first FK build is shared by the tests that read it: 6 processes, 2 builds."""
+--version together and the first FK build is shared by the tests that read it (doctor's own build gets
+it from a stand-in compiler): 6 processes, 1 compile."""
 
 from __future__ import annotations
 
@@ -95,12 +96,22 @@ def test_no_compiler_is_said_once_and_fk_still_works(tmp_path):
 @pytest.mark.parametrize(("env", "path", "expect"), [
     ({"DIFFKIN_NATIVE": "0"}, None, "not in use: disabled by DIFFKIN_NATIVE=0"),
     ({"CC": "no-such-cc"}, "EMPTY", "not in use: no C compiler found"),
-] + ([({}, None, "in use")] if HAS_CC else []))
-def test_doctor_and_version_report_the_fused_kernel(tmp_path, env, path, expect):
-    """On a fresh cache: doctor (which tries the build itself, silently), then --version in that process."""
+] + ([({"CC": "STAND-IN"}, None, "in use")] if HAS_CC else []))
+def test_doctor_and_version_report_the_fused_kernel(request, tmp_path, env, path, expect):
+    """On a fresh cache: doctor (which tries the build itself, silently), then --version in that process.
+    The build doctor runs is the library's own (announcement, compiler call, atomic rename, load, ABI
+    check); its compiler is a stand-in that writes the library ``first_build`` compiled (one real compile
+    for the file, not two)."""
     if path == "EMPTY":
         path = str(tmp_path / "bin")
         os.mkdir(path)
+    if env.get("CC") == "STAND-IN":
+        built = next((request.getfixturevalue("first_build")[0] / "cache").glob("diffkin_native-*.so"))
+        cc = tmp_path / "stand-in-cc"
+        cc.write_text(f"#!{sys.executable}\nimport shutil, sys\n"
+                      f"shutil.copyfile({str(built)!r}, sys.argv[sys.argv.index('-o') + 1])\n")
+        cc.chmod(0o755)
+        env = {"CC": str(cc)}
     r = _run(["-c", CLI], env, tmp_path, path=path)
     assert r.returncode == 0, r.stderr
     reports = _cli_reports(r.stdout)
