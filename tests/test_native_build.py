@@ -2,9 +2,10 @@
 cache directory), a machine without a compiler is told why the torch kernels serve it, and ``diffkin
 doctor`` / ``diffkin --version`` report whether the fused kernel is in use and why not. Run in subprocesses
 with a fresh cache directory (``DIFFKIN_CACHE_DIR``): the session's cached library must not hide the first
-build. Each subprocess imports torch (the slow part with the two builds), so one process runs doctor and
---version together and the first FK build is shared by the tests that read it (doctor's own build gets
-it from a stand-in compiler): 6 processes, 1 compile."""
+build. Each subprocess imports torch (with a compile, the slow part), so one process runs doctor and
+--version together, the first FK build is shared by the tests that read it, and the subprocesses' builds
+get their library from a stand-in compiler that copies the one this session compiled (every other step of
+the build is the library's own): 6 processes, no compile of their own."""
 
 from __future__ import annotations
 
@@ -52,13 +53,28 @@ def _cli_reports(stdout: str) -> list[tuple[int, list[str]]]:
 
 
 @pytest.fixture(scope="module")
-def first_build(tmp_path_factory):
-    """One fresh cache directory and the first FK process that built the kernel into it (shared: the build
-    is the slow part, and two tests read it)."""
+def stand_in_cc(tmp_path_factory) -> str:
+    """A C compiler stand-in (for ``CC``) that writes to its ``-o`` argument the library this session built:
+    the library's whole build path runs in the subprocesses (announcement, compiler call, atomic rename,
+    load, ABI check) without paying for a real compile there (the session's build is the real one)."""
     if not HAS_CC:
         pytest.skip("no C compiler: nothing is compiled")
+    from diffkin.kernels import native
+
+    built = native.build()
+    cc = tmp_path_factory.mktemp("stand_in_cc") / "cc"
+    cc.write_text(f"#!{sys.executable}\nimport shutil, sys\n"
+                  f"shutil.copyfile({str(built)!r}, sys.argv[sys.argv.index('-o') + 1])\n")
+    cc.chmod(0o755)
+    return str(cc)
+
+
+@pytest.fixture(scope="module")
+def first_build(tmp_path_factory, stand_in_cc):
+    """One fresh cache directory and the first FK process that built the kernel into it (shared by the
+    two tests that read it)."""
     tmp = tmp_path_factory.mktemp("first_build")
-    return tmp, _run(["-c", FK], {}, tmp)
+    return tmp, _run(["-c", FK], {"CC": stand_in_cc}, tmp)
 
 
 def test_first_fk_call_announces_the_build_once(first_build):
@@ -98,20 +114,12 @@ def test_no_compiler_is_said_once_and_fk_still_works(tmp_path):
     ({"CC": "no-such-cc"}, "EMPTY", "not in use: no C compiler found"),
 ] + ([({"CC": "STAND-IN"}, None, "in use")] if HAS_CC else []))
 def test_doctor_and_version_report_the_fused_kernel(request, tmp_path, env, path, expect):
-    """On a fresh cache: doctor (which tries the build itself, silently), then --version in that process.
-    The build doctor runs is the library's own (announcement, compiler call, atomic rename, load, ABI
-    check); its compiler is a stand-in that writes the library ``first_build`` compiled (one real compile
-    for the file, not two)."""
+    """On a fresh cache: doctor (which tries the build itself, silently), then --version in that process."""
     if path == "EMPTY":
         path = str(tmp_path / "bin")
         os.mkdir(path)
     if env.get("CC") == "STAND-IN":
-        built = next((request.getfixturevalue("first_build")[0] / "cache").glob("diffkin_native-*.so"))
-        cc = tmp_path / "stand-in-cc"
-        cc.write_text(f"#!{sys.executable}\nimport shutil, sys\n"
-                      f"shutil.copyfile({str(built)!r}, sys.argv[sys.argv.index('-o') + 1])\n")
-        cc.chmod(0o755)
-        env = {"CC": str(cc)}
+        env = {"CC": request.getfixturevalue("stand_in_cc")}
     r = _run(["-c", CLI], env, tmp_path, path=path)
     assert r.returncode == 0, r.stderr
     reports = _cli_reports(r.stdout)
