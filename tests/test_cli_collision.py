@@ -20,7 +20,8 @@ from diffkin.errors import DiffkinError
 pin = pytest.importorskip("pinocchio")
 import collision_reference as ref  # noqa: E402
 from test_collision_robot import FR3, _Pinocchio, _robot  # noqa: E402
-from test_sampling import _NEVER  # noqa: E402
+
+from tests.helpers import FR3_SRDF_NEVER  # noqa: E402
 
 EXAMPLE = Path(__file__).parent.parent / "examples" / "world.yaml"
 F64 = torch.float64
@@ -57,12 +58,12 @@ def _robot_with_srdf():
     chain = models.from_urdf(FR3, "fr3_link8", dtype=F64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return RobotCollision.from_urdf(FR3, chain, srdf=_NEVER)
+        return RobotCollision.from_urdf(FR3, chain, srdf=FR3_SRDF_NEVER)
 
 
 def test_fk_random_collision_free_rechecked_by_coal(capsys, tmp_path):
     srdf = tmp_path / "fr3.srdf"
-    srdf.write_text(_NEVER)
+    srdf.write_text(FR3_SRDF_NEVER)
     out = tmp_path / "fk.npz"
     rc, text = _run(capsys, "fk", "--urdf", FR3, "--end-link", "fr3_link8", "--random", 60, "--seed", 3,
                     "--self-collision", "--srdf", srdf, "--world", EXAMPLE, "--margin", 0.01, "--output", out,
@@ -95,7 +96,7 @@ def test_ik_collision_options(capsys, tmp_path):
     """With ik.solve(collision=, world=, margin=) (the collision-aware IK branch) the successes are
     re-checked by coal; without it the options are one clear error."""
     srdf = tmp_path / "fr3.srdf"
-    srdf.write_text(_NEVER)
+    srdf.write_text(FR3_SRDF_NEVER)
     args = ("ik", "--urdf", FR3, "--end-link", "fr3_link8", "--random", 12, "--self-collision", "--srdf",
             srdf, "--world", EXAMPLE, "--margin", 0.005, "--output", tmp_path / "ik.npz")
     rc, text = _run(capsys, *args)

@@ -12,7 +12,7 @@ from diffkin.ik.numerical import dls_step
 from diffkin.jacobian import geometric_jacobian
 from diffkin.kernels.pose_error import pose_error
 from diffkin.models import from_urdf
-from tests.test_native import _urdf
+from tests.helpers import urdf_path
 
 F64 = torch.float64
 
@@ -55,7 +55,7 @@ def test_fullgraph_compile_without_graph_break(name, batch, grad):
 
 def test_compile_of_a_tree_with_mimic_joints():
     torch._dynamo.reset()
-    chain = from_urdf(_urdf("yumi"), ["gripper_r_finger_r", "gripper_r_finger_l"], dtype=F64)
+    chain = from_urdf(urdf_path("yumi"), ["gripper_r_finger_r", "gripper_r_finger_l"], dtype=F64)
     q = chain.random_configuration((32,), generator=torch.Generator().manual_seed(1))
     fn = _functions(chain, None)["jacobian"]
     with torch.no_grad():

@@ -4,36 +4,19 @@ Franka's coarse self-collision model) among a few obstacles."""
 
 from __future__ import annotations
 
-import re
-import warnings
-from pathlib import Path
-
-import collision_reference as ref
 import numpy as np
 import pytest
 import torch
 
 import diffkin
 from diffkin import ik
-from diffkin.collision import RobotCollision, World, box
+from diffkin.collision import World, box
 from diffkin.errors import DiffkinError, OptionError
 
-pin = pytest.importorskip("pinocchio")
-coal = ref.coal
+pytest.importorskip("pinocchio")
+pytest.importorskip("coal")  # the reference distances (tests/collision_reference.py)
 
-FR3 = Path(__file__).parent / "data" / "urdf" / "fr3.urdf"
-# Franka's link 1 and link 3 capsules overlap in every configuration (MoveIt's SRDF disables the pair)
-SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/>'
-        '</robot>')
-SPHERES = [[0.45, 0.25, 0.45, 0.10], [0.40, -0.30, 0.70, 0.08]]
-BOX = ([0.55, 0.0, 0.15], [0.10, 0.30, 0.02])
-
-
-def _robot(dtype):
-    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=dtype).requires_grad_(False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the FR3's meshes are not shipped: skipped with a warning
-        return chain, RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+from tests.helpers import BOX, FR3, SPHERES, TIGHT, CoalCheck, fr3_robot, moved  # noqa: E402
 
 
 def _world(dtype, with_box=True):
@@ -42,42 +25,7 @@ def _world(dtype, with_box=True):
     return World(spheres=torch.tensor(SPHERES, dtype=dtype), boxes=b, dtype=dtype)
 
 
-class _Coal:
-    """The smallest distance over the checked pairs and to the obstacles, by Pinocchio + coal."""
-
-    def __init__(self, rc: RobotCollision, with_box=True):
-        text = re.sub(r"<collision>\s*<geometry>\s*<mesh[^>]*/>\s*</geometry>\s*</collision>", "",
-                      FR3.read_text())
-        self.model = pin.buildModelFromXML(text)
-        self.geom = pin.buildGeomFromUrdfString(self.model, text, pin.COLLISION)
-        for o in self.geom.geometryObjects:  # RobotCollision's documented capsules for cylinders
-            if isinstance(o.geometry, coal.Cylinder):
-                o.geometry = coal.Capsule(o.geometry.radius, 2 * o.geometry.halfLength)
-        index = {o.name: i for i, o in enumerate(self.geom.geometryObjects)}
-        name = lambda n: "{}_{}".format(*n.rsplit("/", 1))  # noqa: E731  (Pinocchio's '<link>_<i>')
-        self.pairs = [(index[name(a)], index[name(b)]) for a, b in rc.pairs]
-        self.robot = [index[name(g.name)] for g in rc.geoms]
-        self.obstacles = [(coal.Sphere(r), ref.placement(None, c)) for *c, r in SPHERES]
-        if with_box:
-            self.obstacles.append(ref.box(BOX[0], np.eye(3), BOX[1]))
-        self.data, self.gdata = self.model.createData(), pin.GeometryData(self.geom)
-        self.q_of = [self.model.joints[self.model.getJointId(n)].idx_q for n in rc.chain.joint_names]
-
-    def place(self, q) -> None:
-        qp = pin.neutral(self.model)
-        qp[self.q_of] = np.asarray(q, np.float64)
-        pin.updateGeometryPlacements(self.model, self.data, self.geom, self.gdata, qp)
-
-    def min_distance(self, q) -> float:
-        self.place(q)
-        shape = lambda i: (self.geom.geometryObjects[i].geometry,  # noqa: E731
-                           ref.placement(self.gdata.oMg[i].rotation, self.gdata.oMg[i].translation))
-        d = [ref.distance(*shape(i), *shape(j)) for i, j in self.pairs]
-        d += [ref.distance(*shape(i), *o) for i in self.robot for o in self.obstacles]
-        return min(d)
-
-
-def _targets(chain, check: _Coal, n: int, seed: int, clear: float = 0.01):
+def _targets(chain, check: CoalCheck, n: int, seed: int, clear: float = 0.01):
     """Reachable, collision-free targets: FK of random configurations that coal finds clear by ``clear``."""
     lo, hi = chain.q_limits.T.double()
     g = torch.Generator().manual_seed(seed)
@@ -91,8 +39,8 @@ def _targets(chain, check: _Coal, n: int, seed: int, clear: float = 0.01):
 def test_solve_successes_are_collision_free_by_coal(dtype, refine):
     """Every success is within the pose tolerances and clear of every checked pair and obstacle by the margin
     (coal); the success rate stays high; the same solve without collision has successes in collision."""
-    chain, rc = _robot(dtype)
-    check = _Coal(rc)
+    chain, rc = fr3_robot(dtype)
+    check = CoalCheck(rc)
     T = _targets(chain, check, 40, seed=3)
     margin = 0.005
     cfg = ik.LMConfig(collision_refine_calls=refine)  # re-seeding only, or the constrained refinement too
@@ -115,8 +63,8 @@ def test_solve_successes_are_collision_free_by_coal(dtype, refine):
 def test_success_is_never_claimed_in_collision():
     """Targets reachable only in collision (the flange inside an obstacle grown to cover it) come back
     unsuccessful, and every success is clear by coal, with self-collision only (no world)."""
-    chain, rc = _robot(torch.float64)
-    check = _Coal(rc, with_box=False)
+    chain, rc = fr3_robot(torch.float64)
+    check = CoalCheck(rc, with_box=False)
     T = _targets(chain, check, 12, seed=5)
     p = T[:6, :3, 3]
     inside = World(spheres=torch.cat((p, torch.full((6, 1), 0.05, dtype=torch.float64)), -1))
@@ -125,22 +73,13 @@ def test_success_is_never_claimed_in_collision():
     res = ik.solve(chain, T[6:], collision=rc, margin=0.01, seed=1)
     assert res.success.all()
     assert min(check.min_distance(q) for q in res.q.reshape(-1, 7).numpy()) >= 0.0
-    assert min(check_self(check, q) for q in res.q.numpy()) >= 0.01 - 1e-9
+    assert min(check.min_self_distance(q) for q in res.q.numpy()) >= 0.01 - 1e-9
 
 
-def check_self(check: _Coal, q) -> float:
-    check.place(q)
-    out = []
-    for i, j in check.pairs:
-        gi, gj = (check.geom.geometryObjects[k].geometry for k in (i, j))
-        Mi, Mj = check.gdata.oMg[i], check.gdata.oMg[j]
-        out.append(ref.distance(gi, ref.placement(Mi.rotation, Mi.translation), gj,
-                                ref.placement(Mj.rotation, Mj.translation)))
-    return min(out)
 
 
 def test_collision_arguments_are_checked():
-    chain, rc = _robot(torch.float64)
+    chain, rc = fr3_robot(torch.float64)
     T = chain.forward_kinematics(torch.zeros(7, dtype=torch.float64))
     with pytest.raises(DiffkinError, match="collision model"):
         ik.solve(chain, T, world=_world(torch.float64))
@@ -158,13 +97,12 @@ def test_batched_targets_and_gradients_with_collision():
     warm-started collision-aware re-solves (the targets' distances are clear: no constraint is active).
     The FR3 is redundant, so a re-solve may move along the self-motion manifold: w = Jᵀv lies in J's row
     space, where that motion does not count (w·N = 0), and both then equal v (J D = I)."""
-    from test_ik_implicit import TIGHT, _moved
 
-    chain, rc = _robot(torch.float64)
-    check, world = _Coal(rc), _world(torch.float64)
+    chain, rc = fr3_robot(torch.float64)
+    check, world = CoalCheck(rc), _world(torch.float64)
     T = _targets(chain, check, 6, seed=7).reshape(2, 3, 4, 4)
     xi = torch.zeros(2, 3, 6, dtype=torch.float64, requires_grad=True)
-    res = ik.solve(chain, _moved(T, xi), collision=rc, world=world, seed=0, **TIGHT)
+    res = ik.solve(chain, moved(T, xi), collision=rc, world=world, seed=0, **TIGHT)
     assert res.q.shape == (2, 3, 7) and res.success.shape == (2, 3)
     assert res.success.all() and res.q.grad_fn is not None
     assert min(check.min_distance(q) for q in res.q.detach().reshape(-1, 7).numpy()) >= 0.0
@@ -177,7 +115,7 @@ def test_batched_targets_and_gradients_with_collision():
         d = torch.zeros(2, 3, 6, dtype=torch.float64)
         d[..., k] = h
         with torch.no_grad():
-            up, down = (ik.solve(chain, _moved(T, s * d), q0=q_star, collision=rc, world=world, seed=0,
+            up, down = (ik.solve(chain, moved(T, s * d), q0=q_star, collision=rc, world=world, seed=0,
                                  **TIGHT) for s in (1.0, -1.0))
         assert up.success.all() and down.success.all()
         fd[..., k] = ((up.q - down.q) * w).sum(-1) / (2 * h)
@@ -201,7 +139,7 @@ def test_optimize_gradients_at_inactive_constraints_match_finite_differences():
     """optimize(collision=, world=) with every distance beyond margin + buffer: dq*/dT by the implicit
     gradient equals central differences of the solver (float64), and equals the gradient without the
     collision term (the penalty vanishes near q*)."""
-    chain, rc = _robot(torch.float64)
+    chain, rc = fr3_robot(torch.float64)
     w = _world(torch.float64)
     q_t, T = _clear_target(chain, rc, w, 0.03, seed=11)
     q0 = q_t + 0.05
@@ -231,8 +169,8 @@ def test_optimize_gradients_at_inactive_constraints_match_finite_differences():
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_optimize_collision_success_is_the_hard_check(dtype):
     """A target whose flange sits inside an obstacle is never a success; a clear one is, and coal agrees."""
-    chain, rc = _robot(dtype)
-    check = _Coal(rc, with_box=False)
+    chain, rc = fr3_robot(dtype)
+    check = CoalCheck(rc, with_box=False)
     q_t, T = _clear_target(chain, rc, _world(dtype, with_box=False), 0.03, seed=13)
     p = T[:, :3, 3]
     inside = World(spheres=torch.cat((p, torch.full((1, 1), 0.04, dtype=dtype)), -1))
@@ -240,7 +178,7 @@ def test_optimize_collision_success_is_the_hard_check(dtype):
     assert not res.success.any()
     res = ik.optimize(chain, T, q_t + 0.02, optimizer="gauss_newton", collision=rc, margin=0.005)
     assert res.success.all()
-    assert check_self(check, res.q[0].double().numpy()) >= 0.005 - 2e-6
+    assert check.min_self_distance(res.q[0].double().numpy()) >= 0.005 - 2e-6
 
 
 def test_collision_solve_in_c_rounds_is_the_same_for_every_thread_count(monkeypatch):
@@ -251,7 +189,7 @@ def test_collision_solve_in_c_rounds_is_the_same_for_every_thread_count(monkeypa
 
     if not diffkin.kernels.native.available():
         pytest.skip("the native library is not built here")
-    chain, rc = _robot(torch.float32)
+    chain, rc = fr3_robot(torch.float32)
     w = _world(torch.float32)
     g = torch.Generator().manual_seed(17)
     q = chain.random_configuration((4000,), generator=g)
@@ -276,7 +214,7 @@ def test_collision_solve_in_c_rounds_is_the_same_for_every_thread_count(monkeypa
     with torch.no_grad():
         redone = (rc.min_distance(plain.q, w) < 0).nonzero().squeeze(-1)
     assert redone.numel() > 0
-    check = _Coal(rc)
+    check = CoalCheck(rc)
     rows = torch.cat((redone, torch.arange(0, 600, 10))).unique()
     rows = rows[one.success[rows]]
     assert min(check.min_distance(q) for q in one.q[rows].double().numpy()) >= -2e-6
@@ -302,7 +240,7 @@ def test_the_collision_free_library_has_the_solvers_layout():
     from diffkin.ik._native_solve import prepared
     from diffkin.ik.residuals import DistanceConstraint
 
-    chain, rc = _robot(torch.float64)
+    chain, rc = fr3_robot(torch.float64)
     prep = prepared(chain, torch.zeros(3, 1, dtype=torch.float64), torch.float64, True, 0)
     if prep is None:
         pytest.skip("the C solve does not serve here")

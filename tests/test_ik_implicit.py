@@ -10,24 +10,15 @@ import pytest
 import torch
 
 from diffkin import ik, models
-from diffkin.rotations import rotvec_to_matrix
+from tests.helpers import TIGHT, moved
 
 F64 = torch.float64
-TIGHT = {"position_tolerance": 1e-11, "orientation_tolerance": 1e-11}
 
 
 def _targets(chain, B, seed):
     q = chain.random_configuration((B,), generator=torch.Generator().manual_seed(seed))
     with torch.no_grad():
         return q, chain.forward_kinematics(q)
-
-
-def _moved(T: torch.Tensor, xi: torch.Tensor) -> torch.Tensor:
-    """T moved by a base-frame twist ξ = (δp, δω): [exp(δω) R, p + δp] (differentiable in ξ)."""
-    R = rotvec_to_matrix(xi[..., 3:]) @ T[..., :3, :3]
-    p = T[..., :3, 3] + xi[..., :3]
-    top = torch.cat((R, p.unsqueeze(-1)), -1)
-    return torch.cat((top, T[..., 3:, :].expand(*top.shape[:-2], 1, 4)), -2)
 
 
 def _resolve(chain, T, q_start, **kw):
@@ -40,7 +31,7 @@ def test_solve_returns_a_graph_and_gradients_match_warm_started_resolves():
     chain = models.load("ur5", dtype=F64)
     q_true, T = _targets(chain, 5, seed=1)
     xi = torch.zeros(5, 6, dtype=F64, requires_grad=True)
-    res = ik.solve(chain, _moved(T, xi), seed=0, **TIGHT)
+    res = ik.solve(chain, moved(T, xi), seed=0, **TIGHT)
     assert bool(res.success.all()) and res.q.grad_fn is not None and res.q.is_contiguous()
     w = torch.randn(5, 6, dtype=F64, generator=torch.Generator().manual_seed(2))
     (res.q * w).sum().backward()
@@ -51,8 +42,8 @@ def test_solve_returns_a_graph_and_gradients_match_warm_started_resolves():
     for k in range(6):
         d = torch.zeros(5, 6, dtype=F64)
         d[:, k] = h
-        up = _resolve(chain, _moved(T, d), res.q.detach())
-        down = _resolve(chain, _moved(T, -d), res.q.detach())
+        up = _resolve(chain, moved(T, d), res.q.detach())
+        down = _resolve(chain, moved(T, -d), res.q.detach())
         fd[:, k] = ((up - down) * w).sum(-1) / (2 * h)
     torch.testing.assert_close(xi.grad, fd, atol=1e-5, rtol=1e-5)
 
@@ -65,7 +56,7 @@ def test_panda_redundant_jacobian_identities():
     assert bool(res0.success.all())
     for b in range(3):
         def solved(x, b=b):  # warm-started: lands on the same point of the self-motion manifold
-            return ik.solve(chain, _moved(T[b], x), q0=res0.q[b].detach(), seed=0, **TIGHT).q
+            return ik.solve(chain, moved(T[b], x), q0=res0.q[b].detach(), seed=0, **TIGHT).q
 
         D = torch.autograd.functional.jacobian(solved, torch.zeros(6, dtype=F64))  # (7, 6)
         J = chain.geometric_jacobian(solved(torch.zeros(6, dtype=F64)).detach()).detach()
@@ -107,7 +98,7 @@ def test_gradcheck_position_only_and_full_pose_and_batch_equals_single():
     q_sol = ik.solve(chain, T, seed=0, **TIGHT).q.detach()
 
     def full(x):
-        return ik.solve(chain, _moved(T, x), q0=q_sol, seed=0, **TIGHT).q
+        return ik.solve(chain, moved(T, x), q0=q_sol, seed=0, **TIGHT).q
 
     # eps 1e-4: the central differences of re-solves carry ~tol / eps · 1/σ_min(J) of solver noise
     assert torch.autograd.gradcheck(full, (torch.zeros(2, 6, dtype=F64, requires_grad=True),), eps=1e-4,
@@ -125,7 +116,7 @@ def test_gradcheck_position_only_and_full_pose_and_batch_equals_single():
     (full(xi) ** 2).sum().backward()
     for b in range(2):
         xb = torch.zeros(6, dtype=F64, requires_grad=True)
-        (ik.solve(chain, _moved(T[b], xb), q0=q_sol[b], seed=0, **TIGHT).q ** 2).sum().backward()
+        (ik.solve(chain, moved(T[b], xb), q0=q_sol[b], seed=0, **TIGHT).q ** 2).sum().backward()
         torch.testing.assert_close(xb.grad, xi.grad[b], atol=1e-9, rtol=1e-9)
 
 
@@ -204,11 +195,11 @@ def test_optimize_implicit_gradient_matches_finite_differences_and_unroll():
     # joint limits, and a solve's seed may land on a branch whose stationary point is past one)
     kw = {"costs": costs, "optimizer": "lbfgs", "max_iterations": 100, "respect_limits": False}
     xi = torch.zeros(2, 6, dtype=F64, requires_grad=True)
-    res = ik.optimize(chain, _moved(T, xi), q0=q0, **kw)
+    res = ik.optimize(chain, moved(T, xi), q0=q0, **kw)
     q_star = _polished(chain, costs, T, res.q)
     assert float((q_star - res.q.detach()).abs().max()) < 1e-4  # the optimiser found this stationary point
     # zero iterations from the exact point: the backward is evaluated exactly there
-    res = ik.optimize(chain, _moved(T, xi), q0=q_star, **{**kw, "max_iterations": 0})
+    res = ik.optimize(chain, moved(T, xi), q0=q_star, **{**kw, "max_iterations": 0})
     w = torch.randn(2, 7, dtype=F64, generator=torch.Generator().manual_seed(10))
     (res.q * w).sum().backward()
     g_implicit = xi.grad.clone()
@@ -217,12 +208,12 @@ def test_optimize_implicit_gradient_matches_finite_differences_and_unroll():
     for k in range(6):
         d = torch.zeros(2, 6, dtype=F64)
         d[:, k] = h
-        up = _polished(chain, costs, _moved(T, d), q_star)
-        down = _polished(chain, costs, _moved(T, -d), q_star)
+        up = _polished(chain, costs, moved(T, d), q_star)
+        down = _polished(chain, costs, moved(T, -d), q_star)
         fd[:, k] = ((up - down) * w).sum(-1) / (2 * h)
     torch.testing.assert_close(g_implicit, fd, atol=1e-5, rtol=1e-4)
     xi.grad = None
-    res_u = ik.optimize(chain, _moved(T, xi), q0=q_star, unroll=60, **{**kw, "max_iterations": 0})
+    res_u = ik.optimize(chain, moved(T, xi), q0=q_star, unroll=60, **{**kw, "max_iterations": 0})
     (res_u.q * w).sum().backward()
     torch.testing.assert_close(xi.grad, g_implicit, atol=1e-4, rtol=1e-3)
 
@@ -238,7 +229,7 @@ def test_usable_inside_torch_compile():
     q0 = q_true + 0.05
 
     def loss(x):
-        return (ik.solve(chain, _moved(T, x), q0=q0, num_seeds=1, seed=0).q - q_true).square().sum()
+        return (ik.solve(chain, moved(T, x), q0=q0, num_seeds=1, seed=0).q - q_true).square().sum()
 
     x1 = torch.zeros(4, 6, dtype=F64, requires_grad=True)
     x2 = torch.zeros(4, 6, dtype=F64, requires_grad=True)
@@ -256,13 +247,13 @@ def _solution_map_gradient(chain, q_sol, w, h):
     with torch.no_grad():
         T = chain.forward_kinematics(q_sol)
     xi = torch.zeros(6, dtype=F64, requires_grad=True)
-    res = ik.solve(chain, _moved(T, xi), q0=q_sol, num_seeds=1, seed=0, **EXACT)
+    res = ik.solve(chain, moved(T, xi), q0=q_sol, num_seeds=1, seed=0, **EXACT)
     assert bool(res.success)
     (res.q @ w).backward()
 
     def f(d):
         with torch.no_grad():
-            r = ik.solve(chain, _moved(T, d), q0=q_sol, num_seeds=1, seed=0, **EXACT)
+            r = ik.solve(chain, moved(T, d), q0=q_sol, num_seeds=1, seed=0, **EXACT)
             assert bool(r.success)
             return r.q @ w
 
@@ -298,7 +289,7 @@ def test_solve_gradient_is_bounded_at_a_singular_solution():
     with torch.no_grad():
         T = chain.forward_kinematics(q)
     xi = torch.zeros(6, dtype=F64, requires_grad=True)
-    res = ik.solve(chain, _moved(T, xi), q0=q, seed=0, **EXACT)
+    res = ik.solve(chain, moved(T, xi), q0=q, seed=0, **EXACT)
     w = torch.randn(6, dtype=F64, generator=torch.Generator().manual_seed(8))
     (res.q @ w).backward()
     k = ik.LMConfig().damping ** 0.5  # λ̄ = k² = 9e-6

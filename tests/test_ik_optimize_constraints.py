@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import pytest
 import torch
-from test_ik_collision import _Coal, _robot, check_self
 
 from diffkin import ik
 from diffkin.collision import World
+from tests.helpers import CoalCheck, fr3_robot
 
 pytest.importorskip("pinocchio")
 
@@ -23,7 +23,7 @@ def _blocked_elbow():
     """(chain, rc, q_u, T, world): q_u minimises pose + rest posture for T without obstacles; the world's
     one sphere, centred out from the elbow (frame 4) where its centre is 3 cm or more clear of the arm,
     reaches 1 cm into q_u's geometry."""
-    chain, rc = _robot(F64)
+    chain, rc = fr3_robot(F64)
     q_t = torch.tensor([0.3, 0.4, -0.2, -1.9, 0.1, 2.0, 0.6], dtype=F64)
     T = chain.forward_kinematics(q_t)
     q_u = ik.optimize(chain, T, q_t, **KW).q.detach()
@@ -49,11 +49,11 @@ def test_constraints_clear_an_obstacle_on_the_unconstrained_solution():
     assert not bool(ik.optimize(chain, T, q_u, **kw).success & (rc.world_distances(q_u, world).min() >= 0))
     res = ik.optimize(chain, T, q_u, collision=rc, world=world, margin=margin, **kw)
     assert bool(res.success)
-    check = _Coal(rc, with_box=False)
+    check = CoalCheck(rc, with_box=False)
     check.obstacles = [(check.obstacles[0][0].__class__(float(world.spheres[0, 3])),
                         _placement(world.spheres[0, :3]))]
     assert check.min_distance(res.q.detach().numpy()) >= margin - 1e-9
-    assert check_self(check, res.q.detach().numpy()) >= margin - 1e-9
+    assert check.min_self_distance(res.q.detach().numpy()) >= margin - 1e-9
     assert float(res.position_error) <= 1e-4 and float(res.orientation_error) <= 1e-3
 
 

@@ -14,7 +14,6 @@ import pytest
 import torch
 from torch.func import functional_call, jacrev, jvp
 
-from diffkin import DHChain
 from diffkin.errors import ConventionError, RepresentationSingularityError, ShapeError
 from diffkin.jacobian import (
     AnalyticalJacobian,
@@ -29,54 +28,11 @@ from diffkin.jacobian import (
 from diffkin.kernels import native
 from diffkin.kernels.jacobian import jacobian_from_axes
 from diffkin.rotations import euler_rate_matrix, matrix_to_euler, rotvec_to_matrix, vee
+from tests.helpers import anthropomorphic, panda, planar3, random_chain, stanford
 
 F64 = torch.float64
 PI = math.pi
 PANDA_URDF = Path(__file__).resolve().parents[1] / "diffkin" / "models" / "data" / "panda.urdf"
-
-
-# ------------------------------------------------------------------------------------------- chains
-def _rigid(g: torch.Generator) -> torch.Tensor:
-    T = torch.eye(4, dtype=F64)
-    T[:3, :3] = rotvec_to_matrix(torch.randn(3, generator=g, dtype=F64))
-    T[:3, 3] = torch.randn(3, generator=g, dtype=F64)
-    return T
-
-
-def random_chain(seed: int, convention: str, types: str = "RRPRPR", base_tool: bool = True) -> DHChain:
-    g = torch.Generator().manual_seed(seed)
-    n = len(types)
-    a, alpha, d, theta = (torch.randn(n, generator=g, dtype=F64) for _ in range(4))
-    base, tool = (_rigid(g), _rigid(g)) if base_tool else (None, None)
-    return DHChain(a, alpha, d, theta, joint_types=types, convention=convention, base=base, tool=tool)
-
-
-def planar3(a=(0.5, 0.4, 0.3)) -> DHChain:  # Table 2.1
-    return DHChain(torch.tensor(a, dtype=F64), torch.zeros(3, dtype=F64), torch.zeros(3, dtype=F64),
-                   torch.zeros(3, dtype=F64))  # fmt: skip
-
-
-def anthropomorphic(a2=0.6, a3=0.45) -> DHChain:  # Table 2.4
-    z = torch.zeros(3, dtype=F64)
-    return DHChain(torch.tensor([0.0, a2, a3], dtype=F64), torch.tensor([PI / 2, 0, 0], dtype=F64), z, z)
-
-
-def stanford(d2=0.2, d6=0.15) -> DHChain:  # Tables 2.3 + 2.5
-    return DHChain(
-        torch.zeros(6, dtype=F64),
-        torch.tensor([-PI / 2, PI / 2, 0, -PI / 2, PI / 2, 0], dtype=F64),
-        torch.tensor([0, d2, 0, 0, 0, d6], dtype=F64),
-        torch.zeros(6, dtype=F64),
-        joint_types="RRPRRR",
-    )
-
-
-def panda(dtype=F64) -> DHChain:  # Franka's modified DH table to the flange (the brief's table)
-    a = [0, 0, 0, 0.0825, -0.0825, 0, 0.088]
-    d = [0.333, 0, 0.316, 0, 0.384, 0, 0.107]
-    alpha = [0, -PI / 2, PI / 2, PI / 2, -PI / 2, PI / 2, PI / 2]
-    t = lambda x: torch.tensor(x, dtype=dtype)  # noqa: E731
-    return DHChain(t(a), t(alpha), t(d), t([0.0] * 7), convention="modified")
 
 
 # ----------------------------------------------------------------------------------- references

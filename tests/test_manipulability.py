@@ -10,7 +10,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_jacobian import anthropomorphic, panda, planar3, stanford
 
 from diffkin import DHChain
 from diffkin.errors import ModelError, ShapeError
@@ -27,6 +26,7 @@ from diffkin.manipulability import (
     velocity_ellipsoid,
     velocity_transmission_ratio,
 )
+from tests.helpers import anthropomorphic, panda, planar3, stanford
 
 F64 = torch.float64
 PI = math.pi

@@ -21,22 +21,18 @@ from diffkin import ik  # noqa: E402
 from diffkin.errors import ModelError  # noqa: E402
 from diffkin.models import from_mjcf as _from_mjcf  # noqa: E402
 from diffkin.models.mjcf import compile_mjcf  # noqa: E402
+from tests.helpers import chain_of_everything, mujoco_frames  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 KINDS = DATA / "mjcf_extra" / "joint_kinds.xml"
 ENTRIES = json.loads((DATA / "mjcf" / "index.json").read_text())
 MODELS = [DATA / "mjcf" / e["file"] for e in ENTRIES] + [KINDS]
-OBJ = mujoco.mjtObj
 
 
 def from_mjcf(source, end_link, **kwargs):
     """The loader in float64 unless told otherwise (the references are MuJoCo's float64 numbers)."""
     kwargs.setdefault("dtype", torch.float64)
     return _from_mjcf(source, end_link, **kwargs)
-
-
-def _names(m, kind, count, start=0):
-    return [n for i in range(start, count) if (n := mujoco.mj_id2name(m, kind, i))]
 
 
 def _random_qpos(m, rng) -> np.ndarray:
@@ -57,37 +53,9 @@ def _random_qpos(m, rng) -> np.ndarray:
     return qpos
 
 
-def _mujoco_frames(m, d, ends, bodies):
-    """Poses ``(K, 4, 4)`` and Jacobians ``(K, 6, nv_model)`` of the named bodies / sites from MuJoCo."""
-    mujoco.mj_kinematics(m, d)
-    mujoco.mj_comPos(m, d)
-    T = np.tile(np.eye(4), (len(ends), 1, 1))
-    J = np.zeros((len(ends), 6, m.nv))
-    for k, e in enumerate(ends):
-        if e in bodies:
-            i = mujoco.mj_name2id(m, OBJ.mjOBJ_BODY, e)
-            T[k, :3, 3], T[k, :3, :3] = d.xpos[i], d.xmat[i].reshape(3, 3)
-            mujoco.mj_jacBody(m, d, J[k, :3], J[k, 3:], i)
-        else:
-            i = mujoco.mj_name2id(m, OBJ.mjOBJ_SITE, e)
-            T[k, :3, 3], T[k, :3, :3] = d.site_xpos[i], d.site_xmat[i].reshape(3, 3)
-            mujoco.mj_jacSite(m, d, J[k, :3], J[k, 3:], i)
-    return T, J
-
-
-def _chain_of_everything(path, dtype=torch.float64):
-    m = compile_mjcf(path)[0]
-    bodies = _names(m, OBJ.mjOBJ_BODY, m.nbody, start=1)
-    ends = bodies + _names(m, OBJ.mjOBJ_SITE, m.nsite)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # closed loops (connect) are reported, tested below
-        chain = _from_mjcf(path, ends, dtype=dtype)
-    return m, chain, ends, set(bodies)
-
-
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.parent.name + "/" + p.name)
 def test_every_body_and_site_matches_mujoco(path):
-    m, chain, ends, bodies = _chain_of_everything(path)
+    m, chain, ends, bodies = chain_of_everything(path)
     d = mujoco.MjData(m)
     rng = np.random.default_rng(7)
     qpos = np.stack([_random_qpos(m, rng) for _ in range(24)])
@@ -96,7 +64,7 @@ def test_every_body_and_site_matches_mujoco(path):
     ref_T, ref_J = [], []
     for row in qpos:
         d.qpos[:] = row
-        T, J = _mujoco_frames(m, d, ends, bodies)
+        T, J = mujoco_frames(m, d, ends, bodies)
         ref_T.append(T)
         ref_J.append(J @ chain.velocity_map().numpy())
     ref_T, ref_J = torch.tensor(np.stack(ref_T)), torch.tensor(np.stack(ref_J))
@@ -113,7 +81,7 @@ def test_every_body_and_site_matches_mujoco(path):
 
 
 def test_float32_and_batch_shapes():
-    m, chain64, ends, bodies = _chain_of_everything(KINDS)
+    m, chain64, ends, bodies = chain_of_everything(KINDS)
     chain32 = from_mjcf(KINDS, ends, dtype=torch.float32)
     q = chain64.random_configuration((2, 3), generator=torch.Generator().manual_seed(0))
     with torch.no_grad():
@@ -142,7 +110,7 @@ def test_structure_of_the_joint_kinds_model():
 def test_integrate_and_difference_match_mujoco():
     menagerie = DATA / "mjcf"
     for path in (KINDS, menagerie / "unitree_g1" / "g1.xml", menagerie / "agility_cassie" / "cassie.xml"):
-        m, chain, _, _ = _chain_of_everything(path)
+        m, chain, _, _ = chain_of_everything(path)
         rng = np.random.default_rng(3)
         for _ in range(10):
             q = chain.from_qpos(torch.tensor(_random_qpos(m, rng)))
@@ -218,7 +186,7 @@ def test_floating_base_ik_rechecked_by_mujoco():
     d = mujoco.MjData(m)
     for row, Tt in zip(chain.to_qpos(res.q.detach()).numpy(), T.numpy()):
         d.qpos[:] = row
-        got, _ = _mujoco_frames(m, d, ends, set(ends))
+        got, _ = mujoco_frames(m, d, ends, set(ends))
         assert np.abs(got[:, :3, 3] - Tt[:, :3, 3]).max() <= 1e-4
         cos = (np.trace(np.swapaxes(got[:, :3, :3], 1, 2) @ Tt[:, :3, :3], axis1=1, axis2=2) - 1) / 2
         assert np.arccos(np.clip(cos, -1, 1)).max() <= 1e-3

@@ -9,7 +9,6 @@ import os
 import subprocess
 import sys
 import warnings
-from pathlib import Path
 
 import pytest
 import torch
@@ -17,38 +16,12 @@ import torch
 from diffkin import models
 from diffkin.errors import NonFiniteError
 from diffkin.kernels import native
-from diffkin.models import from_urdf
+from tests.helpers import native_chain
 
 pytestmark = pytest.mark.skipif(not native.available(),
                                 reason="no C compiler: the native kernel is not built")
 
-DATA = Path(__file__).parent / "data" / "urdf"  # vendored real URDFs (tests/data/urdf/README.md)
 TOL = {torch.float64: 1e-12, torch.float32: 5e-6}
-
-
-def _urdf(stem: str) -> Path:
-    return DATA / f"{stem}.urdf"
-
-
-def _chain(kind: str, dtype):
-    if kind == "panda_base_tool":
-        chain = models.load("panda", dtype=dtype)
-        chain.base = torch.tensor([[0.0, -1.0, 0.0, 0.1], [1.0, 0.0, 0.0, 0.2], [0.0, 0.0, 1.0, 0.3],
-                                   [0.0, 0.0, 0.0, 1.0]], dtype=dtype)
-        chain.tool = torch.tensor([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, -1.0, 0.0], [0.0, 1.0, 0.0, 0.1034],
-                                   [0.0, 0.0, 0.0, 1.0]], dtype=dtype)
-        with torch.no_grad():
-            chain.base_delta.copy_(torch.tensor([0.01, -0.02, 0.0, 0.03, 0.0, -0.01], dtype=dtype))
-        return chain
-    if kind == "allegro":  # a tree: four fingertips, shared palm
-        tips = [f"link_{i}.0_tip" for i in (3, 7, 11, 15)]
-        return from_urdf(_urdf("allegro_right_hand"), tips, dtype=dtype)
-    if kind == "yumi_mimic":  # mimic followers: Jacobian columns summed over the coupling
-        return from_urdf(_urdf("yumi"), ["gripper_r_finger_r", "gripper_r_finger_l", "gripper_l_finger_l"],
-                         dtype=dtype)
-    if kind == "tiago":  # a shared prismatic torso in a two-arm tree
-        return from_urdf(_urdf("tiago_dual"), ["arm_left_tool_link", "arm_right_tool_link"], dtype=dtype)
-    return models.load(kind, dtype=dtype)  # DH: panda (modified), ur5, stanford (prismatic joint)
 
 
 KINDS = ["panda", "ur5", "stanford", "panda_base_tool", "allegro", "yumi_mimic", "tiago"]
@@ -62,7 +35,7 @@ def _reference(chain, q):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("kind", KINDS)
 def test_native_equals_the_torch_kernels(kind, dtype):
-    chain = _chain(kind, dtype)
+    chain = native_chain(kind, dtype)
     gen = torch.Generator().manual_seed(1)
     for shape in [(), (1,), (3, 5), (700,)]:  # 700 > the serial limit: several threads
         q = chain.random_configuration(shape, generator=gen)
@@ -79,7 +52,7 @@ def test_native_equals_the_torch_kernels(kind, dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_batch_last_layout_matches(dtype):
-    chain = _chain("allegro", dtype)
+    chain = native_chain("allegro", dtype)
     qT = chain.random_configuration((37,), generator=torch.Generator().manual_seed(2)).T.contiguous()
     with torch.no_grad():
         rows, ends = chain.batch_last(qT, with_jacobian=True)

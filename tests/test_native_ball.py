@@ -20,8 +20,7 @@ from diffkin.rotations import quaternion_to_matrix
 mujoco = pytest.importorskip("mujoco")
 pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: no native kernel")
 
-from tests.test_mjcf import _chain_of_everything as _everything  # noqa: E402
-from tests.test_mjcf import _mujoco_frames  # noqa: E402
+from tests.helpers import chain_of_everything, mujoco_frames  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 G1 = DATA / "mjcf" / "unitree_g1" / "g1.xml"
@@ -55,7 +54,7 @@ def _c(chain, q):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
 def test_c_equals_the_torch_kernels(path, dtype):
-    _, chain, ends, _ = _everything(path, dtype)
+    _, chain, ends, _ = chain_of_everything(path, dtype)
     q = _q(chain, (37,), 1)  # two full blocks of 16 and a tail
     T, J = _c(chain, q)
     Tr, Jr = _torch(chain, q)
@@ -79,7 +78,7 @@ def _mujoco(m, qpos, ends, bodies, velocity_map):
     Ts, Js = [], []
     for row in qpos:
         d.qpos[:] = row
-        T, J = _mujoco_frames(m, d, ends, bodies)
+        T, J = mujoco_frames(m, d, ends, bodies)
         Ts.append(T)
         Js.append(J @ velocity_map)
     return torch.tensor(np.stack(Ts)), torch.tensor(np.stack(Js))
@@ -87,14 +86,14 @@ def _mujoco(m, qpos, ends, bodies, velocity_map):
 
 @pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
 def test_c_equals_mujoco_at_random_qpos(path):
-    m, chain, ends, bodies = _everything(path)
+    m, chain, ends, bodies = chain_of_everything(path)
     q = _q(chain, (20,), 2)
     q[:3] = _q(chain, (3,), 3, scale=True)  # non-unit quaternions: MuJoCo normalises them as well
     ref_T, ref_J = _mujoco(m, chain.to_qpos(q).numpy(), ends, bodies, chain.velocity_map().numpy())
     T, J = _c(chain, q)
     torch.testing.assert_close(T, ref_T, atol=1e-10, rtol=0)
     torch.testing.assert_close(J, ref_J, atol=1e-10, rtol=0)
-    chain32 = _everything(path, torch.float32)[1]
+    chain32 = chain_of_everything(path, torch.float32)[1]
     T32, J32 = _c(chain32, q.float())
     torch.testing.assert_close(T32.double(), ref_T, atol=2e-5, rtol=0)
     torch.testing.assert_close(J32.double(), ref_J, atol=2e-5, rtol=0)
@@ -102,7 +101,7 @@ def test_c_equals_mujoco_at_random_qpos(path):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_non_unit_zero_and_tiny_quaternions_as_the_torch_path(dtype):
-    _, chain, _, _ = _everything(KINDS, dtype)
+    _, chain, _, _ = chain_of_everything(KINDS, dtype)
     q = _q(chain, (16,), 4)
     scaled = _q(chain, (16,), 4, scale=True)  # the same rotations, other norms
     quats = [list(i) for i in chain.configuration_space.quaternion_index()]
@@ -129,7 +128,7 @@ def test_non_unit_zero_and_tiny_quaternions_as_the_torch_path(dtype):
 
 
 def test_per_row_base_poses_on_the_c_path():
-    _, chain, _, _ = _everything(G1)
+    _, chain, _, _ = chain_of_everything(G1)
     q = _q(chain, (2, 9), 5)
     g = torch.Generator().manual_seed(6)
     B = torch.eye(4, dtype=torch.float64).repeat(2, 9, 1, 1)  # robots at 18 places
@@ -151,7 +150,7 @@ def test_per_row_base_poses_on_the_c_path():
 
 
 def test_threads_do_not_change_a_value():
-    _, chain, _, _ = _everything(G1)
+    _, chain, _, _ = chain_of_everything(G1)
     q = _q(chain, (1500,), 7)
     with torch.no_grad():
         packed = chain._native_model(q)
@@ -163,7 +162,7 @@ def test_threads_do_not_change_a_value():
 def test_the_motion_table_comes_from_the_library(monkeypatch):
     codes = native.motion_table(native._lib)
     assert sorted(codes) == ["P", "R", "S"] and sorted(codes.values()) == [0, 1, 2]
-    _, chain, _, _ = _everything(KINDS)
+    _, chain, _, _ = chain_of_everything(KINDS)
     topo = chain._topo
     with torch.no_grad():
         packed = chain._native_model(_q(chain, (1,), 0))

@@ -2,7 +2,10 @@
 cache directory), a machine without a compiler is told why the torch kernels serve it, and ``diffkin
 doctor`` / ``diffkin --version`` report whether the fused kernel is in use and why not. Run in subprocesses
 with a fresh cache directory (``DIFFKIN_CACHE_DIR``): the session's cached library must not hide the first
-build."""
+build. Each subprocess imports torch (with a compile, the slow part), so one process runs doctor and
+--version together, the first FK build is shared by the tests that read it, and the subprocesses' builds
+get their library from a stand-in compiler that copies the one this session compiled (every other step of
+the build is the library's own): 6 processes, no compile of their own."""
 
 from __future__ import annotations
 
@@ -30,16 +33,71 @@ def _run(args, env_extra, tmp_path, path=None):
                           text=True)
 
 
-@pytest.mark.skipif(not HAS_CC, reason="no C compiler: nothing is compiled")
-def test_first_fk_call_announces_the_build_once(tmp_path):
-    r = _run(["-c", FK], {}, tmp_path)
+#: ``diffkin doctor`` then ``diffkin --version`` in one process (through the CLI's ``main``, as
+#: ``python -m diffkin.cli`` calls it), each followed by a line ``rc=N``; doctor meets the cache as it is
+CLI = ("import sys; from diffkin.cli import main\n"
+       "for argv in (['doctor'], ['--version']):\n"
+       "    rc = main(argv); sys.stdout.flush(); print(f'rc={rc}', flush=True)")
+
+
+def _cli_reports(stdout: str) -> list[tuple[int, list[str]]]:
+    """(exit status, the ``fused C kernel:`` lines) of doctor and of --version, from ``CLI``'s output."""
+    out, lines = [], []
+    for ln in stdout.splitlines():
+        if ln.startswith("rc="):
+            out.append((int(ln.removeprefix("rc=")), lines))
+            lines = []
+        elif ln.startswith("fused C kernel:"):
+            lines.append(ln.removeprefix("fused C kernel: "))
+    return out
+
+
+@pytest.fixture(scope="module")
+def stand_in_cc(tmp_path_factory) -> str:
+    """A C compiler stand-in (for ``CC``) that writes to its ``-o`` argument the library this session built:
+    the library's whole build path runs in the subprocesses (announcement, compiler call, atomic rename,
+    load, ABI check) without paying for a real compile there (the session's build is the real one)."""
+    if not HAS_CC:
+        pytest.skip("no C compiler: nothing is compiled")
+    from diffkin.kernels import native
+
+    built = native.build()
+    cc = tmp_path_factory.mktemp("stand_in_cc") / "cc"
+    cc.write_text(f"#!{sys.executable}\nimport shutil, sys\n"
+                  f"shutil.copyfile({str(built)!r}, sys.argv[sys.argv.index('-o') + 1])\n")
+    cc.chmod(0o755)
+    return str(cc)
+
+
+@pytest.fixture(scope="module")
+def first_build(tmp_path_factory, stand_in_cc):
+    """One fresh cache directory and the first FK process that built the kernel into it (shared by the
+    two tests that read it)."""
+    tmp = tmp_path_factory.mktemp("first_build")
+    return tmp, _run(["-c", FK], {"CC": stand_in_cc}, tmp)
+
+
+def test_first_fk_call_announces_the_build_once(first_build):
+    tmp_path, r = first_build
     assert r.returncode == 0, r.stderr
     said = [ln for ln in r.stderr.splitlines() if "NativeBuildWarning" in ln]
     assert len(said) == 1, r.stderr
     assert str(tmp_path / "cache") in said[0] and "python -m diffkin.kernels" in said[0]
     assert list((tmp_path / "cache").glob("diffkin_native-*.so"))  # built where it said
-    again = _run(["-c", FK], {}, tmp_path)  # cached: silent
+
+
+def test_a_cached_build_is_silent_and_reported_in_use(first_build):
+    """A second process on the built cache: FK says nothing, and doctor / --version report the kernel in
+    use from that cache."""
+    tmp_path, _ = first_build
+    again = _run(["-c", FK + "\n" + CLI], {}, tmp_path)
+    assert again.returncode == 0, again.stderr
     assert "NativeBuildWarning" not in again.stderr, again.stderr
+    reports = _cli_reports(again.stdout)
+    assert len(reports) == 2, again.stdout
+    for rc, line in reports:
+        assert rc == 0 and len(line) == 1 and line[0].startswith("in use"), again.stdout
+        assert str(tmp_path / "cache") in line[0]
 
 
 def test_no_compiler_is_said_once_and_fk_still_works(tmp_path):
@@ -54,16 +112,21 @@ def test_no_compiler_is_said_once_and_fk_still_works(tmp_path):
 @pytest.mark.parametrize(("env", "path", "expect"), [
     ({"DIFFKIN_NATIVE": "0"}, None, "not in use: disabled by DIFFKIN_NATIVE=0"),
     ({"CC": "no-such-cc"}, "EMPTY", "not in use: no C compiler found"),
-] + ([({}, None, "in use")] if HAS_CC else []))
-def test_doctor_and_version_report_the_fused_kernel(tmp_path, env, path, expect):
+] + ([({"CC": "STAND-IN"}, None, "in use")] if HAS_CC else []))
+def test_doctor_and_version_report_the_fused_kernel(request, tmp_path, env, path, expect):
+    """On a fresh cache: doctor (which tries the build itself, silently), then --version in that process."""
     if path == "EMPTY":
         path = str(tmp_path / "bin")
         os.mkdir(path)
-    for args in (["-m", "diffkin.cli", "doctor"], ["-m", "diffkin.cli", "--version"]):
-        r = _run(args, env, tmp_path, path=path)
-        assert r.returncode == 0, r.stderr
-        line = [ln for ln in r.stdout.splitlines() if ln.startswith("fused C kernel:")]
-        assert len(line) == 1 and line[0].removeprefix("fused C kernel: ").startswith(expect), r.stdout
-        assert "NativeBuildWarning" not in r.stderr  # the report says it; no warning on top
+    if env.get("CC") == "STAND-IN":
+        env = {"CC": request.getfixturevalue("stand_in_cc")}
+    r = _run(["-c", CLI], env, tmp_path, path=path)
+    assert r.returncode == 0, r.stderr
+    reports = _cli_reports(r.stdout)
+    assert len(reports) == 2, r.stdout  # doctor, --version
+    for rc, line in reports:
+        assert rc == 0 and len(line) == 1, r.stdout
+        assert line[0].startswith(expect), r.stdout
+    assert "NativeBuildWarning" not in r.stderr  # the report says it; no warning on top
     if expect == "in use":
-        assert str(tmp_path / "cache") in line[0]
+        assert str(tmp_path / "cache") in reports[0][1][0]

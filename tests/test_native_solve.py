@@ -11,7 +11,7 @@ from diffkin import ik, models
 from diffkin.ik import _native_solve
 from diffkin.ik.result import rotation_angle_between
 from diffkin.kernels import native, single
-from tests.test_native import _chain
+from tests.helpers import c_and_torch_solve, native_chain
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: the torch kernels serve")
 
@@ -26,17 +26,6 @@ def _targets(chain, n: int, seed: int, unreachable: int = 0):
         T = T.clone()
         T[:unreachable, :3, 3] += torch.tensor([5.0, 0.0, 0.0], dtype=T.dtype)
     return q, T
-
-
-def _both(chain, target, **kw):
-    """(the C solve, the torch solve) of the same call, without autograd; each checked to be served by the
-    path it stands for."""
-    with torch.no_grad():
-        assert _native_solve.applies(chain, target, False)
-        fused = ik.solve(chain, target, **kw)
-        with native.disabled():
-            assert not _native_solve.applies(chain, target, False)
-            return fused, ik.solve(chain, target, **kw)
 
 
 def _check_honest(chain, res, T):
@@ -59,7 +48,7 @@ def test_the_c_solve_agrees_with_the_torch_solve(dtype):
     the tolerances, solutions within the limits, both checked by an independent FK."""
     chain = models.load("panda", dtype=dtype)
     _, T = _targets(chain, 64, seed=5, unreachable=4)
-    fused, ref = _both(chain, T, seed=0)
+    fused, ref = c_and_torch_solve(chain, T, seed=0)
     assert torch.equal(fused.success, ref.success)
     assert not bool(fused.success[:4].any()) and bool(fused.success[4:].all())
     _check_honest(chain, fused, T)
@@ -69,9 +58,10 @@ def test_the_c_solve_agrees_with_the_torch_solve(dtype):
 @pytest.mark.parametrize("kind,position_only", [("allegro", True), ("allegro", False), ("ur5", False),
                                                 ("yumi_mimic", False)])
 def test_trees_mimic_and_position_only_agree(kind, position_only):
-    chain = _chain(kind, torch.float64)
+    chain = native_chain(kind, torch.float64)
     _, T = _targets(chain, 20, seed=6)
-    fused, ref = _both(chain, T[..., :3, 3] if position_only else T, position_only=position_only, seed=1)
+    fused, ref = c_and_torch_solve(chain, T[..., :3, 3] if position_only else T, position_only=position_only,
+                                   seed=1)
     assert bool(ref.success.all()) and torch.equal(fused.success, ref.success)
     with torch.no_grad():
         Te = chain.forward_kinematics(fused.q)
@@ -132,7 +122,7 @@ def test_seeds_outside_the_limits_give_solutions_within_them():
 @pytest.mark.parametrize("kind", ["panda", "panda_base_tool", "allegro", "yumi_mimic"])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_one_configuration_fk_and_jacobian_equal_the_torch_kernels(kind, dtype):
-    chain = _chain(kind, dtype)
+    chain = native_chain(kind, dtype)
     q = chain.random_configuration((1,), generator=torch.Generator().manual_seed(11))[0]
     with torch.no_grad():
         assert single.fk(chain, q) is not None  # the lean path serves it

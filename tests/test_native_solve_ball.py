@@ -24,7 +24,7 @@ mujoco = pytest.importorskip("mujoco")
 pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: the torch loop serves")
 
 from diffkin.models.mjcf import compile_mjcf  # noqa: E402
-from tests.test_native_solve import _both  # noqa: E402  (the C solve and the torch loop of one call)
+from tests.helpers import c_and_torch_solve  # noqa: E402  (the C solve and the torch loop of one call)
 
 DATA = Path(__file__).parent / "data"
 G1 = DATA / "mjcf" / "unitree_g1" / "g1.xml"
@@ -102,7 +102,7 @@ def test_the_c_solve_agrees_with_the_torch_loop(name, dtype, position_only):
     path, ends = MODELS[name]
     _, T = _targets(chain, 20, seed=1, unreachable=2)
     target = T[..., :3, 3] if position_only else T
-    fused, ref = _both(chain, target, seed=0, position_only=position_only)
+    fused, ref = c_and_torch_solve(chain, target, seed=0, position_only=position_only)
     assert not bool(fused.success[:2].any()) and not bool(ref.success[:2].any())
     assert int((fused.success != ref.success).sum()) <= 1 and int(fused.success.sum()) >= 17
     pe, oe = _errors(_mujoco_errors(path, chain, ends, fused.q), T.double())
@@ -128,7 +128,7 @@ def test_the_same_seed_gives_the_same_solution(dtype, position_only):
     with torch.no_grad():
         T = chain.forward_kinematics(q)
     target = T[..., :3, 3] if position_only else T
-    fused, ref = _both(chain, target, q0=q0, num_seeds=1, seed=0, position_only=position_only)
+    fused, ref = c_and_torch_solve(chain, target, q0=q0, num_seeds=1, seed=0, position_only=position_only)
     assert bool(fused.success.all()) and bool(ref.success.all())
     assert bool((fused.seeds_tried == 1).all()) and bool((ref.seeds_tried == 1).all())
     torch.testing.assert_close(fused.q, ref.q, atol=SAME_Q[dtype], rtol=0)
@@ -170,7 +170,7 @@ def test_whole_body_targets_succeed_as_often_as_with_the_torch_loop():
     here as many), and every success is true of an independent FK."""
     chain = from_urdf(G1_URDF, G1_URDF_ENDS, floating_base=True, dtype=torch.float64)
     _, T = _targets(chain, 32, seed=6)
-    fused, ref = _both(chain, T, seed=0)
+    fused, ref = c_and_torch_solve(chain, T, seed=0)
     assert int(fused.success.sum()) >= int(ref.success.sum()) - 1 and int(ref.success.sum()) >= 30
     with torch.no_grad(), native.disabled():
         pe, oe = _errors(chain.forward_kinematics(fused.q), T)
@@ -208,7 +208,7 @@ def test_quaternion_seeds_of_any_norm_and_no_limits():
     q0 = q.clone()
     for idx in chain.configuration_space.quaternion_index():
         q0[:, list(idx)] *= 3.0
-    fused, ref = _both(chain, T, q0=q0, num_seeds=1, seed=0, respect_limits=False)
+    fused, ref = c_and_torch_solve(chain, T, q0=q0, num_seeds=1, seed=0, respect_limits=False)
     assert bool(fused.success.all()) and bool(ref.success.all())
     torch.testing.assert_close(fused.q, ref.q, atol=1e-9, rtol=0)
     _unit_quaternions(chain, fused.q)
@@ -229,10 +229,10 @@ def test_more_rows_than_velocities():
     q0 = chain.integrate(q, 0.1 * torch.randn(10, chain.nv, generator=g, dtype=torch.float64))
     with torch.no_grad():
         T = chain.forward_kinematics(q)
-    fused, ref = _both(chain, T, q0=q0, num_seeds=1, seed=0)
+    fused, ref = c_and_torch_solve(chain, T, q0=q0, num_seeds=1, seed=0)
     assert bool(fused.success.all()) and bool(ref.success.all())
     torch.testing.assert_close(fused.q, ref.q, atol=1e-9, rtol=0)
-    fused, ref = _both(chain, T, seed=0)
+    fused, ref = c_and_torch_solve(chain, T, seed=0)
     assert bool(fused.success.all()) and bool(ref.success.all())
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)

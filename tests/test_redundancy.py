@@ -10,11 +10,11 @@ import math
 import numpy as np
 import pytest
 import torch
-from test_jacobian import anthropomorphic, panda, planar3
 
 from diffkin.errors import ShapeError
 from diffkin.jacobian import geometric_jacobian
 from diffkin.redundancy import damped_pinv, nullspace_projector, pinv, weighted_pinv
+from tests.helpers import anthropomorphic, panda, planar3
 
 F64 = torch.float64
 

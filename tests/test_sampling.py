@@ -17,6 +17,7 @@ from diffkin.data_io import RandomJoints, open_joint_source
 from diffkin.errors import ModelError, OptionError, SamplingError, ShapeError
 from diffkin.kernels.configuration import ConfigurationSpace
 from diffkin.sampling import configuration_from_uniform, random_configuration
+from tests.helpers import FR3_SRDF_NEVER
 
 scipy_stats = pytest.importorskip("scipy.stats")
 F64 = torch.float64
@@ -133,11 +134,6 @@ def test_rejection_with_a_duck_typed_object_and_its_errors():
         random_configuration(chain, 3, collision=rule, max_rounds=0)
 
 
-# the FR3's coarse link1 and link3 spheres overlap in every configuration (MoveIt's "Never" pairs)
-_NEVER = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Never"/>'
-          "</robot>")
-
-
 def test_collision_free_samples_rechecked_by_coal():
     """FR3 (Franka's spheres and cylinders): every sample drawn with collision= / world= / margin= is, by
     coal with the geoms placed by Pinocchio, at least ``margin`` from every checked pair and obstacle;
@@ -151,7 +147,7 @@ def test_collision_free_samples_rechecked_by_coal():
     chain = models.from_urdf(FR3, "fr3_link8", dtype=F64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        rc = RobotCollision.from_urdf(FR3, chain, srdf=_NEVER)
+        rc = RobotCollision.from_urdf(FR3, chain, srdf=FR3_SRDF_NEVER)
     pref = _Pinocchio(FR3.read_text(), chain, rc.geoms)
     world = World(spheres=[[0.45, 0.0, 0.45, 0.12], [0.0, 0.4, 0.3, 0.08]], dtype=F64)
     obstacles = [ref.capsule(s[:3], s[:3], s[3]) for s in world.spheres.numpy()]

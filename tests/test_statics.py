@@ -7,7 +7,6 @@ diffkin.jacobian (3.112)–(3.113), and Example 3.5 (3.121).
 from __future__ import annotations
 
 import torch
-from test_jacobian import random_chain
 
 from diffkin.jacobian import geometric_jacobian
 from diffkin.rotations import rotvec_to_matrix
@@ -19,6 +18,7 @@ from diffkin.statics import (
     velocity_transform,
     wrench_transform,
 )
+from tests.helpers import random_chain
 
 F64 = torch.float64
 
