@@ -150,6 +150,8 @@ def test_plan_joint_goals_rechecked_by_coal(robot):
     jerk = torch.cat([tp.jerk(t) for _, tp in res._timing])
     assert (jerk.abs() <= torch.tensor(J) * (1 + 1e-9)).all()
     assert (st.position[:, 0] == qs).all() and res.sample(t).shape == (B, t.numel(), nq)
+    lim = chain.q_limits.to(st.position)  # the joint limits along the whole motion (a spline overshoots)
+    assert ((st.position >= lim[:, 0]) & (st.position <= lim[:, 1])).all()
     # clearance: exact distances at the 10 ms samples (torch path), coal + Pinocchio at 20 instants per row
     assert (rc.min_distance(res.q, world) >= margin).all()
     ref_check = _Coal(rc)
@@ -227,3 +229,28 @@ def test_plan_float32_and_empty_batch():
     assert (res.qd.abs() <= torch.tensor(V) * (1 + 1e-6)).all() and (res.qdd.abs() <= 10.0 * (1 + 1e-6)).all()
     empty = motion.plan(chain, q[:0], q[:0], collision=rc, world=world, acceleration_limit=10.0)
     assert empty.success.shape == (0,) and empty.q.shape[0] == 0
+
+
+def test_a_spline_leaving_the_limits_is_not_taken():
+    """The cubic through waypoints that touch a limit overshoots it; _spline_clear refuses it (the planner
+    then times the polyline, which stays inside)."""
+    from diffkin.motion.plan import _spline_clear
+
+    class Clear:  # every configuration collision-free: only the limits decide
+        reach = torch.ones(1, dtype=torch.float64)
+        eta = 0.01
+
+        def clear(self, q):
+            return torch.ones(q.shape[:-1], dtype=torch.bool)
+
+    path = torch.tensor([[[0.0], [1.0], [1.0], [0.2]]], dtype=torch.float64)
+    knots = torch.tensor([[0.0, 1.0, 2.0, 3.0]], dtype=torch.float64)
+    from scipy.interpolate import CubicSpline
+
+    spline = CubicSpline(knots[0].numpy(), path[0, :, 0].numpy(), bc_type="clamped")
+    top = spline(np.linspace(0, 3, 30001)).max()
+    assert top > 1.0 + 1e-3  # scipy's clamped cubic through the same points: it overshoots the waypoints
+    lo = torch.tensor([-2.0], dtype=torch.float64)
+    for hi, inside in ((1.0, False), (top - 1e-4, False), (top + 1e-4, True)):
+        limit = torch.tensor([hi], dtype=torch.float64)
+        assert bool(_spline_clear(Clear(), path, knots, lo, limit)) == inside

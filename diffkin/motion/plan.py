@@ -153,9 +153,12 @@ def _knots(path: Tensor) -> Tensor:
     return torch.cat((torch.zeros_like(seg[:, :1]), seg.cumsum(1)), 1)
 
 
-def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, fine: int = 4096) -> Tensor:
+def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor,
+                  fine: int = 4096) -> Tensor:
     """(B,) bool: the clamped cubic spline through ``path`` (B, L, nq) at ``knots`` (B, L) — the geometric
-    path :func:`~diffkin.trajectories.time_optimal` times — is proven clear. Its bound-length
+    path :func:`~diffkin.trajectories.time_optimal` times — is proven clear and within the joint limits
+    ``lo``, ``hi`` (nq,) (a cubic overshoots its waypoints: checked on the ``fine`` samples, whose spacing
+    leaves at most the spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
     crosses a multiple of 0.8 η (the 20 % spare covers chords against arcs and the last fine chord)."""
     B = path.shape[0]
@@ -164,6 +167,7 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, fine: int =
     p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
     u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
     q = p.eval(u)[0]
+    inside = ((q >= lo.to(q)) & (q <= hi.to(q))).all(-1).all(-1)
     chord = ((q[:, 1:] - q[:, :-1]).abs() * checker.reach.to(torch.float64)).sum(-1)
     cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
     c = 0.8 * checker.eta
@@ -173,7 +177,7 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, fine: int =
     idx = torch.searchsorted(cum, marks.expand(B, K).contiguous()).clamp(max=fine)
     idx = torch.where(torch.arange(K, device=path.device)[None] <= n[:, None], idx, fine)
     qc = torch.gather(q, 1, idx[..., None].expand(B, K, q.shape[-1])).to(path.dtype)
-    return checker.clear(qc).all(1)
+    return checker.clear(qc).all(1) & inside
 
 
 def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, velocity_limit=None,
@@ -268,8 +272,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             hi_l = -lo_l
         fail(~checker.clear(q_start), "start in collision (closer than margin + resolution)")
         fail(~checker.clear(q_goal), "goal in collision (closer than margin + resolution)")
-        lo = lo_l.clamp(min=-math.pi)
-        hi = hi_l.clamp(max=math.pi)
+        # the sampling box: the limits, and one turn about zero where a joint has none
+        lo = torch.where(torch.isfinite(lo_l), lo_l, torch.full_like(lo_l, -math.pi))
+        hi = torch.where(torch.isfinite(hi_l), hi_l, torch.full_like(hi_l, math.pi))
         valid = torch.tensor([not r for r in reason], dtype=torch.bool, device=dev)
         rows = valid.nonzero().squeeze(1)
         L = 2
@@ -294,7 +299,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             if good.numel():
                 p = _pad(path[found], n[found])
                 kn = _knots(p)
-                smooth = _spline_clear(checker, p, kn)
+                smooth = _spline_clear(checker, p, kn, lo_l, hi_l)
                 for keep, how in ((smooth, "spline"), (~smooth, "linear")):
                     rr = good[keep]
                     if rr.numel() == 0:
