@@ -10,12 +10,14 @@ closed forms (point / sphere, half-space) agree to 1e-9.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
 from diffkin import collision as C
-from diffkin.collision import World, box
+from diffkin.collision import World, box, cylinders
 
 coal = pytest.importorskip("coal")
 F64 = torch.float64
@@ -273,3 +275,18 @@ def test_world_cylinders_through_the_pair_table(monkeypatch):
         with monkeypatch.context() as mp:  # without the C pass: every kind through the torch broad phase
             mp.setattr(native, "capsules_clear", lambda *args: False)
             assert torch.equal(DistanceConstraint(rc, world, margin).satisfied(q), clear)
+
+
+def test_a_nan_row_is_nan_and_leaves_the_other_rows():
+    """One row of NaN input among finite ones: that row's distance is NaN (as the capsule and sphere forms
+    give), the other rows equal their values alone; no error for the batch."""
+    t = lambda *x: torch.tensor(x, dtype=torch.float64)  # noqa: E731
+    a0 = torch.stack([t(0, 0, 0), t(math.nan, 0, 0)])
+    a1, ra = torch.stack([t(0, 0, 1), t(0, 0, 1)]), t(0.1, 0.1)
+    b0, b1, rb = torch.stack([t(1, 0, 0), t(1, 0, 0)]), torch.stack([t(1, 0, 1), t(1, 0, 1)]), t(0.1, 0.1)
+    for fn in (cylinders.cylinder_cylinder, cylinders.capsule_cylinder):
+        d = fn(a0, a1, ra, b0, b1, rb)
+        assert torch.isnan(d[1]) and d[0] == fn(a0[:1], a1[:1], ra[:1], b0[:1], b1[:1], rb[:1])[0]
+    centre, R = torch.stack([t(0, 0, 0), t(math.nan, 0, 0)]), torch.eye(3).double().expand(2, 3, 3)
+    d_box = cylinders.box_cylinder(centre, R, t(0.1, 0.1, 0.1).expand(2, 3), b0, b1, rb)
+    assert torch.isnan(d_box[1]) and torch.isfinite(d_box[0])

@@ -256,7 +256,8 @@ def _snapped(m: Tensor, delta: Tensor, E: Tensor, V: Tensor, rho: Tensor, beta: 
         # the most constrained candidate within tol of the best (later candidates are more constrained)
         good = f >= f.amax(-1, keepdim=True) - tol
         idx = torch.arange(f.shape[-1], device=f.device).expand_as(f)
-        pick = torch.where(good, idx, torch.full_like(idx, -1)).amax(-1)
+        # a row with NaN inputs has no good candidate: it takes candidate 0 and its distance stays NaN
+        pick = torch.where(good, idx, torch.full_like(idx, -1)).amax(-1).clamp(min=0)
     return cand.gather(-2, pick[..., None, None].expand(*pick.shape, 1, 3)).squeeze(-2)
 
 
