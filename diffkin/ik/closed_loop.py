@@ -442,7 +442,7 @@ def _make_task(chain, orientation, convention, rows) -> _Task:
 
 
 def _check_order(T_target, q0) -> None:
-    """A typed error for ``clik(chain, q0, T_target, ...)``, the argument order before 0.2: a target has a
+    """A typed error for ``clik(chain, q0, T_target, ...)``, the old argument order: a target has a
     time axis (or is a callable or a tuple of tensors), a ``q0`` has none."""
     if callable(q0) or (isinstance(q0, tuple | list) and any(isinstance(v, Tensor) for v in q0)):
         raise ShapeError("ik.clik: q0 is a target (a callable or a tuple of tensors); the order is "
@@ -487,7 +487,7 @@ def clik(
 
     Args:
         chain: a :class:`~diffkin.chain.KinematicChain`.
-        T_target: the target, before ``q0`` (the order before 0.2, ``clik(chain, q0, target)``, raises
+        T_target: the target, before ``q0`` (the old order, ``clik(chain, q0, target)``, raises
             :class:`~diffkin.errors.ShapeError` where a 1-D ``T_target`` or a callable or tuple of tensors
             as ``q0`` shows it): a function
             ``t -> (x_d, ẋ_d[, ẍ_d])`` of a scalar time tensor (``steps`` required), or the tensors
