@@ -39,7 +39,6 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from ._deprecation import deprecated_alias
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, OptionError, ShapeError
 from .kernels import native, single
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
@@ -716,8 +715,8 @@ class KinematicChain(nn.Module):
     def compile_fk(self, **kwargs) -> KinematicChain:
         """Opt-in fast path: FK through ``torch.compile`` (kwargs passed on), for batches above
         :attr:`small_batch`. The first call compiles (tens of seconds on a small CPU); ``dynamic=True`` by
-        default so later batch sizes reuse it. :meth:`uncompile_fk` drops it. (``nn.Module.compile`` is
-        torch's; the deprecated alias ``compile`` still means this method for one release.)"""
+        default so later batch sizes reuse it. :meth:`uncompile_fk` drops it. (``chain.compile()`` is
+        ``nn.Module.compile``, torch's: it compiles the module's ``forward``.)"""
         kwargs.setdefault("dynamic", True)
         fn = torch.compile(self._functional_fk, **kwargs)
         n = self.n_joints
@@ -733,10 +732,6 @@ class KinematicChain(nn.Module):
         """Drop the compiled fast path of :meth:`compile_fk`."""
         self._compiled_fk = None
         return self
-
-    # deprecated aliases (one release): compile shadowed nn.Module.compile with another meaning
-    compile = deprecated_alias(compile_fk, "KinematicChain.compile", "KinematicChain.compile_fk")
-    uncompile = deprecated_alias(uncompile_fk, "KinematicChain.uncompile", "KinematicChain.uncompile_fk")
 
     # ------------------------------------------------------------------------------- Jacobians (§3)
     def geometric_jacobian(self, q: Tensor, **kwargs) -> Tensor:
@@ -778,10 +773,6 @@ class KinematicChain(nn.Module):
         from .jacobian import forward_kinematics_and_jacobian
 
         return forward_kinematics_and_jacobian(self, q, frame, point, point_frame, check, base)
-
-    fk_jacobian = deprecated_alias(  # deprecated alias (one release): one name for FK + Jacobian
-        forward_kinematics_and_jacobian, "KinematicChain.fk_jacobian",
-        "KinematicChain.forward_kinematics_and_jacobian")
 
     def parameter_jacobian(self, q: Tensor, check: bool = True) -> tuple[Tensor, list[str]]:
         """Jacobian of the end poses w.r.t. the geometric parameters: ``(Φ (..., [K,] 6, P), names)``.

@@ -356,8 +356,6 @@ def cmd_calibrate(args) -> int:
         _check_output_dir(out)
     else:
         check_output_path(out, suffixes)
-        if args.report_dir:
-            _check_output_dir(Path(args.report_dir))
     args.device, args.dtype = "cpu", "float64"  # calibration corrects by micrometres: float64 on the CPU
     chain = _load_chain(args)  # --robot NAME|FILE, --urdf / --mjcf FILE --end-link: as fk, ik and view
     kind = _written_kind(chain)
@@ -369,7 +367,7 @@ def cmd_calibrate(args) -> int:
         warnings.simplefilter("always")
         res = calibrate_from_files(
             chain, args.data, method=args.method, progress=not args.no_progress,
-            out_dir=out if as_dir else args.report_dir, force=args.force, error_model=args.error_model,
+            out_dir=out if as_dir else None, force=args.force, error_model=args.error_model,
             base=args.base, tool=args.tool, measurement_noise=noise, cross_validation=args.cv, loss=args.loss,
         )
     written = None
@@ -821,18 +819,6 @@ def _cv_folds(text: str) -> int:
     return n
 
 
-class _Deprecated(argparse.Action):
-    """A hidden old spelling: stores into the new option's dest and warns once on stderr."""
-
-    def __init__(self, option_strings, dest, new: str = "", **kwargs):
-        self.new = new
-        super().__init__(option_strings, dest, help=argparse.SUPPRESS, **kwargs)
-
-    def __call__(self, parser, namespace, values, option_string=None):
-        print(f"warning: {option_string} is deprecated; use {self.new}", file=sys.stderr)
-        setattr(namespace, self.dest, True if self.nargs == 0 else values)
-
-
 _THREADS_HELP = (
     "torch intra-op threads (default: 1 — batched kinematics gains little from more and collapses when "
     "another process holds a core; `train` uses the config's torch_threads, `bench` passes N on)"
@@ -1016,9 +1002,6 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--num-seeds", dest="num_seeds", type=_positive_int, metavar="S",
                    default=inspect.signature(solve).parameters["num_seeds"].default,
                    help="most initial configurations (random restarts) per target")
-    g.add_argument("--seeds", dest="num_seeds", type=_positive_int, action=_Deprecated, new="--num-seeds")
-    g.add_argument("--progress", dest="progress_flag", nargs=0, action=_Deprecated,
-                   new="nothing (the progress bar is on by default on a terminal)")
     p.set_defaults(func=cmd_ik)
 
     p = add("calibrate", "identify a robot's geometry from measured poses or board pictures")
@@ -1066,11 +1049,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the calibrated robot and exit 0 even when the result fails its plausibility "
                         "checks (held-out error or noise ratio more than 5x the fit, a link corrected by "
                         "more than 5 cm / 10 deg: the data are probably of another robot)")
-    p.add_argument("--report-dir", dest="report_dir", action=_Deprecated, new="--output DIR")
     p.add_argument("--no-progress", dest="no_progress", action="store_true",
                    help="no progress bar (shown only when stderr is a terminal)")
-    p.add_argument("--progress", dest="progress_flag", nargs=0, action=_Deprecated,
-                   new="nothing (the progress bar is on by default on a terminal)")
     p.set_defaults(func=cmd_calibrate)
 
     p = add("trajectory", "plan and export a joint or Cartesian trajectory")
@@ -1098,7 +1078,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--total-timesteps", type=_positive_int, dest="total_timesteps",
                    help="override the config's total_timesteps")
     p.add_argument("--output", metavar="DIR", help="run directory (default runs/<name>/seed<seed>)")
-    p.add_argument("--out", dest="output", action=_Deprecated, new="--output")
     p.add_argument("--no-progress", action="store_true", dest="no_progress",
                    help="no progress bar (shown only when stderr is a terminal)")
     p.set_defaults(func=cmd_train)
@@ -1130,7 +1109,6 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("demo", "the tour: fused kernels, IK, calibration, CLIK, RL; report in runs/")
     p.add_argument("--quick", action="store_true", help="small sizes (under a minute)")
     p.add_argument("--output", metavar="DIR", help="report directory (default runs/demo-<time>)")
-    p.add_argument("--out", dest="output", action=_Deprecated, new="--output")
     p.add_argument("--skip-rl", action="store_true", dest="skip_rl", help="skip the PPO run")
     p.set_defaults(func=cmd_demo)
 

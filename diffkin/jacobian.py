@@ -6,8 +6,7 @@ choice of frame and point, the analytical Jacobian (3.66) and J̇q̇. Rows are `
 with K end links gives ``(..., K, 6, n)``.
 
 Singularity measures, manipulability and ellipsoids live in :mod:`diffkin.manipulability`, Jacobian inverses
-in :mod:`diffkin.redundancy`, statics in :mod:`diffkin.statics`: each name has that one home. Their old second
-path here (``diffkin.jacobian.pinv`` ...) is a deprecated alias for one release (a ``DeprecationWarning``).
+in :mod:`diffkin.redundancy`, statics in :mod:`diffkin.statics`: each name has that one home.
 """
 
 from __future__ import annotations
@@ -18,7 +17,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._deprecation import moved_names
 from ._numerics import cross, eps_for
 from .errors import ConventionError, RepresentationSingularityError
 from .rotations import _convention, _euler_rate_matrix, _matrix_to_euler
@@ -36,20 +34,6 @@ __all__ = [
     "shift_jacobian_point",
     "rotate_jacobian",
 ]
-
-#: the names this module re-exported until 0.1 (deprecated aliases, one release): name -> its one home
-_MOVED = {
-    **dict.fromkeys(("pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"), "diffkin.redundancy"),
-    **dict.fromkeys((
-        "smallest_singular_value", "jacobian_determinant", "condition_number", "inverse_condition_number",
-        "decoupled_singularities", "DecoupledSingularities", "manipulability", "Ellipsoid",
-        "velocity_ellipsoid", "force_ellipsoid", "force_transmission_ratio", "velocity_transmission_ratio",
-    ), "diffkin.manipulability"),
-    **dict.fromkeys((
-        "joint_torques_from_wrench", "velocity_transform", "wrench_transform", "transform_velocity",
-        "transform_wrench", "closed_chain_torques"), "diffkin.statics"),
-}
-__getattr__ = moved_names(__name__, _MOVED)
 
 _SINGULAR_MODES = ("raise", "flag", "ignore")
 _POINT_FRAMES = ("ee", "base")

@@ -370,7 +370,6 @@ def test_help_states_the_defaults(capsys):
     assert f"{chunk} (default: {IK_CHUNK_SIZE})" in flat
     assert "(default: 0.0001)" in flat and "(default: 64)" in flat and "(default: 0)" in flat
     assert "default: 1" in flat  # --threads policy
-    assert "--seeds" not in flat and "--progress " not in flat  # deprecated spellings stay hidden
 
 
 def test_every_compute_command_takes_threads(capsys, monkeypatch):
@@ -596,13 +595,15 @@ def test_ik_refuses_non_unit_quaternions(capsys, tmp_path):
     assert rc == 0, err
 
 
-def test_deprecated_spellings_still_work(capsys, tmp_path):
-    rc, _, err = run_main(capsys, "ik", "--robot", "ur5", "--random", "2", "--seeds", "4", "--progress")
-    assert rc == 0 and "--seeds is deprecated; use --num-seeds" in err
-    args = diffkin.cli.build_parser().parse_args(["demo", "--out", "d"])
-    assert args.output == "d"
-    args = diffkin.cli.build_parser().parse_args(["train", "--config", "c.yaml", "--out", "r"])
-    assert args.output == "r"
+def test_old_spellings_are_gone(capsys):
+    """The pre-release spellings --seeds, --progress and --report-dir kept no alias (``--out`` is still
+    argparse's prefix of ``--output``)."""
+    for argv in (["ik", "--robot", "ur5", "--seeds", "4"], ["ik", "--robot", "ur5", "--progress"],
+                 ["calibrate", "--robot", "ur5", "--report-dir", "r"]):
+        with pytest.raises(SystemExit):
+            diffkin.cli.build_parser().parse_args(argv)
+    capsys.readouterr()
+    assert diffkin.cli.build_parser().parse_args(["demo", "--output", "d"]).output == "d"
 
 
 @pytest.mark.parametrize("space,names,unit", [("joint", ["q1", "q2"], "[rad/s or m/s]"),

@@ -1,12 +1,11 @@
-"""The public API against a checked-in list (tests/data/public_api.txt), and the deprecated aliases.
+"""The public API against a checked-in list (tests/data/public_api.txt), and the one result convention.
 
 An accidental rename or removal of an exported name, or a changed signature of a main entry point, fails
 ``test_public_api_matches_the_list``. A deliberate change regenerates the list and shows in the diff:
 
     python -m tests.test_public_api      # rewrites tests/data/public_api.txt
 
-Each deprecated alias (issue #30 item 15, ``docs/api/deprecated.md``) warns once, names its replacement and
-returns what the new name returns.
+The renames of issue #30 item 15 (``docs/api/deprecated.md``) kept no alias: 0.1 never shipped a release.
 """
 
 from __future__ import annotations
@@ -14,16 +13,15 @@ from __future__ import annotations
 import importlib
 import inspect
 import pkgutil
-import warnings
 from pathlib import Path
 
 import pytest
 import torch
 
 import diffkin
-from diffkin import _deprecation, ik, models
+from diffkin import ik, models
 from diffkin.chain import KinematicChain
-from diffkin.jacobian import _MOVED
+from diffkin.errors import ShapeError
 
 LIST = Path(__file__).parent / "data" / "public_api.txt"
 F64 = torch.float64
@@ -70,8 +68,7 @@ def test_public_api_matches_the_list():
     removed, added = sorted(set(want) - set(got)), sorted(set(got) - set(want))
     assert not removed and not added, (
         f"the public API changed: removed or changed {removed}, added {added}; if deliberate, run "
-        "`python -m tests.test_public_api` and commit tests/data/public_api.txt (with a deprecated alias for "
-        "a removed name, see diffkin/_deprecation.py)")
+        "`python -m tests.test_public_api` and commit tests/data/public_api.txt")
 
 
 def test_the_list_covers_the_subpackages():
@@ -81,27 +78,7 @@ def test_the_list_covers_the_subpackages():
             "diffkin.redundancy", "diffkin.manipulability", "diffkin.statics"} <= names
 
 
-# ------------------------------------------------------------------------------------ deprecated aliases
-@pytest.fixture
-def fresh():
-    """Forget which deprecated names warned already (each warns once per process)."""
-    _deprecation._WARNED.clear()
-    yield
-    _deprecation._WARNED.clear()
-
-
-def _warns_once(call, old: str, new: str):
-    """``call()`` warns naming ``old`` and ``new``; a second call does not warn; returns the first result."""
-    with pytest.warns(DeprecationWarning) as record:
-        out = call()
-    messages = [str(w.message) for w in record if issubclass(w.category, DeprecationWarning)]
-    assert any(old in m and new in m for m in messages), messages
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", DeprecationWarning)
-        call()  # once: no second warning
-    return out
-
-
+# ------------------------------------------------------------------------------------ the renamed names
 @pytest.fixture(scope="module")
 def panda():
     return models.load("panda", dtype=F64)
@@ -112,59 +89,42 @@ def q(panda):
     return panda.random_configuration(5, generator=torch.Generator().manual_seed(0))
 
 
-@pytest.mark.parametrize("name", sorted(_MOVED))
-def test_jacobian_second_paths_warn_and_are_the_same_object(fresh, name):
-    home = importlib.import_module(_MOVED[name])
-    old = _warns_once(lambda: getattr(diffkin.jacobian, name), f"diffkin.jacobian.{name}",
-                      f"{_MOVED[name]}.{name}")
-    assert old is getattr(home, name) and name in home.__all__ and name not in diffkin.jacobian.__all__
-
-
-def test_from_import_of_a_moved_name_warns(fresh):
-    with pytest.warns(DeprecationWarning, match="diffkin.redundancy.pinv"):
-        from diffkin.jacobian import pinv
-    from diffkin.redundancy import pinv as home
-
-    assert pinv is home
-    with pytest.raises(AttributeError, match="no attribute 'not_a_name'"):
-        diffkin.jacobian.not_a_name  # noqa: B018
-
-
-def test_fk_jacobian_alias(fresh, panda, q):
-    T, J = _warns_once(lambda: panda.fk_jacobian(q), "fk_jacobian", "forward_kinematics_and_jacobian")
-    T2, J2 = panda.forward_kinematics_and_jacobian(q)
-    torch.testing.assert_close(T, T2, rtol=0, atol=0)
-    torch.testing.assert_close(J, J2, rtol=0, atol=0)
+def test_removed_names_are_gone(panda, q):
+    """No alias kept for the renames (never released): the old name is an AttributeError/TypeError."""
+    with pytest.raises(AttributeError):
+        diffkin.jacobian.pinv  # noqa: B018  (its one home is diffkin.redundancy)
+    with pytest.raises(ImportError):
+        from diffkin.jacobian import manipulability  # noqa: F401
+    assert not hasattr(panda, "fk_jacobian") and not hasattr(panda, "uncompile")
+    assert KinematicChain.compile is torch.nn.Module.compile  # torch's, no longer shadowed
     # the method and the module function: one computation, with or without options
+    T2, J2 = panda.forward_kinematics_and_jacobian(q)
     T3, J3 = diffkin.forward_kinematics_and_jacobian(panda, q, frame="ee")
     T4, J4 = panda.forward_kinematics_and_jacobian(q, frame="ee")
     torch.testing.assert_close(J3, J4, rtol=0, atol=0)
     assert not torch.allclose(J3, J2)  # the option took effect
 
 
-def test_compile_alias_keeps_its_meaning(fresh):
+def test_nn_module_compile_works_on_a_chain(panda, q):
+    """``chain.compile()`` is ``nn.Module.compile``: it compiles ``forward`` in place (lazily; the eager
+    backend keeps the test fast) and the compiled module returns the same poses."""
     chain = models.load("panda", dtype=F64)
-    assert _warns_once(lambda: chain.compile(), "KinematicChain.compile", "compile_fk") is chain
-    assert chain._compiled_fk is not None  # the FK fast path, as compile_fk (torch.compile is lazy: no trace)
-    assert _warns_once(lambda: chain.uncompile(), "KinematicChain.uncompile", "uncompile_fk") is chain
-    assert chain._compiled_fk is None
+    assert chain.compile(backend="eager") is None and chain._compiled_call_impl is not None
+    torch.testing.assert_close(chain(q), panda.forward_kinematics(q), rtol=0, atol=1e-12)
+    assert chain._compiled_fk is None  # compile_fk's fast path is another, opt-in thing
     assert chain.compile_fk()._compiled_fk is not None and chain.uncompile_fk()._compiled_fk is None
-    assert KinematicChain.compile is not torch.nn.Module.compile  # the alias, until it goes
 
 
-def test_closed_form_valid_is_success(fresh):
+def test_closed_form_success():
     ur5 = models.load("ur5", dtype=F64)
     T = ur5.forward_kinematics(ur5.random_configuration(4, generator=torch.Generator().manual_seed(1)))
     sol = ik.closed_form(ur5, T)
     assert sol.success.dtype == torch.bool and sol.success.any(-1).all()
-    valid = _warns_once(lambda: sol.valid, "ClosedFormSolution.valid", "ClosedFormSolution.success")
-    assert valid is sol.success
+    assert not hasattr(sol, "valid")
     q_, ok = sol  # still a 2-tuple
     assert ok is sol.success
-    old = _warns_once(lambda: ik.closed_form(ur5, T=T), "closed_form(T=", "closed_form(T_target=")
-    torch.testing.assert_close(old.q, sol.q, rtol=0, atol=0)
-    with pytest.raises(TypeError, match="both T_target= and its deprecated name T="):
-        ik.closed_form(ur5, T_target=T, T=T)
+    with pytest.raises(TypeError):
+        ik.closed_form(ur5, T=T)
 
 
 def _planar():
@@ -178,32 +138,27 @@ def _clik_inputs(chain, poses: bool):
 
 
 @pytest.mark.parametrize("form", ["tuple", "pose tensor", "callable"])
-def test_clik_old_argument_order_is_recognised(fresh, form):
+def test_clik_old_argument_order_is_a_typed_error(form):
     chain = _planar()
     q0, x = _clik_inputs(chain, poses=True)
     target = {"tuple": (x,), "pose tensor": x, "callable": lambda t: (x[0], None)}[form]
     kw = {"algorithm": "dls", "orientation": None, "steps": 19} if form == "callable" else {
         "algorithm": "dls", "orientation": None}
-    new = ik.clik(chain, target, q0, 0.01, **kw)
-    old = _warns_once(lambda: ik.clik(chain, q0, target, 0.01, **kw), "the old argument order",
-                      "clik(chain, T_target, q0")
-    torch.testing.assert_close(old.q, new.q, rtol=0, atol=0)
-    kw_old = _warns_once(lambda: ik.clik(chain, q0, target=target, dt=0.01, **kw), "clik(target=",
-                         "clik(T_target=")
-    torch.testing.assert_close(kw_old.q, new.q, rtol=0, atol=0)
+    ik.clik(chain, target, q0, 0.01, **kw)  # the one order
+    with pytest.raises(ShapeError, match=r"clik\(chain, T_target, q0"):
+        ik.clik(chain, q0, target, 0.01, **kw)
+    with pytest.raises(TypeError):
+        ik.clik(chain, q0, target=target, dt=0.01, **kw)
 
 
-def test_clik_position_targets_and_the_ambiguous_case(fresh):
+def test_clik_position_targets_take_the_one_order():
     chain = _planar()  # n = 3: a position target (S, 3) and a batch of q0 (B, 3) share the trailing size
     q0, p = _clik_inputs(chain, poses=False)
     kw = {"algorithm": "dls", "orientation": None}
     new = ik.clik(chain, p, q0, 0.01, **kw)
-    old = _warns_once(lambda: ik.clik(chain, q0, p, 0.01, **kw), "old argument order", "T_target")  # q0: 1-D
-    torch.testing.assert_close(old.q, new.q, rtol=0, atol=0)
-    q0b = q0.expand(20, 3)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error", DeprecationWarning)  # cannot tell: the new order holds, no warning
-        both = ik.clik(chain, p, q0b, 0.01, **kw)
+    with pytest.raises(ShapeError, match="no time axis"):  # a 1-D q0 first
+        ik.clik(chain, q0, p, 0.01, **kw)
+    both = ik.clik(chain, p, q0.expand(20, 3), 0.01, **kw)  # same trailing size: no guessing, as written
     torch.testing.assert_close(both.q, new.q.expand_as(both.q), rtol=0, atol=1e-12)  # batched kernels
 
 
@@ -221,13 +176,14 @@ def test_clik_result_success():
     assert not short.success  # two steps at a low gain do not reach the target
 
 
-def test_joint_trajectory_from_poses_T_traj(fresh):
+def test_joint_trajectory_from_poses_takes_T_target():
     chain = _planar()
     q0, x = _clik_inputs(chain, poses=True)
     new = ik.joint_trajectory_from_poses(chain, x[:5], q0)
-    old = _warns_once(lambda: ik.joint_trajectory_from_poses(chain, T_traj=x[:5], q0=q0),
-                      "joint_trajectory_from_poses(T_traj=", "joint_trajectory_from_poses(T_target=")
-    torch.testing.assert_close(old.q, new.q, rtol=0, atol=0)
+    kw = ik.joint_trajectory_from_poses(chain, T_target=x[:5], q0=q0)
+    torch.testing.assert_close(kw.q, new.q, rtol=0, atol=0)
+    with pytest.raises(TypeError):
+        ik.joint_trajectory_from_poses(chain, T_traj=x[:5], q0=q0)
 
 
 if __name__ == "__main__":

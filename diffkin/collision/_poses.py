@@ -15,7 +15,6 @@ from functools import reduce
 import torch
 from torch import Tensor
 
-from ..errors import ModelError
 from ..kernels import native
 from ..kernels.joints import origin_transform
 from ..kernels.tree import Segments
@@ -131,14 +130,3 @@ class LinkFrames:
         anchor = torch.tensor(self._plan.anchor, device=F.device)
         return F.index_select(-3, anchor) @ self.offsets(chain, F.dtype, F.device)
 
-
-def link_poses(chain, q: Tensor, links: list[str] | None = None) -> Tensor:
-    """``(..., L, 4, 4)`` poses of ``links`` (default: every link :class:`LinkFrames` knows)."""
-    lf = LinkFrames(chain)
-    T = lf.poses(chain, q)
-    if links is None:
-        return T
-    missing = [k for k in links if k not in lf.index]
-    if missing:
-        raise ModelError(f"links {missing} have no pose in this chain (behind a joint it does not model)")
-    return T.index_select(-3, torch.tensor([lf.index[k] for k in links], device=T.device))

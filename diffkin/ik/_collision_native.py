@@ -1,8 +1,10 @@
 """Collision-free :func:`diffkin.ik.solve` in rounds of the whole C solve (private).
 
-Where ``dk_solve`` serves the chain (:mod:`diffkin.ik._native_solve`: CPU, no autograd, 1-DOF joints) and
-no refinement is configured (``LMConfig.collision_refine_calls == 0``), the collision constraints are met
-by rounds instead of the scheduled loop's per-harvest acceptance (:mod:`diffkin.ik._collision`):
+Where ``dk_solve`` serves the chain (:mod:`diffkin.ik._native_solve`: a CPU solve without ``progress`` on
+any chain the fused kernel takes, ball and free joints included; the iterations run without autograd and
+:func:`diffkin.ik.solve` attaches the gradients at the solution afterwards) and no refinement is configured
+(``LMConfig.collision_refine_calls == 0``), the collision constraints are met by rounds instead of the
+scheduled loop's per-harvest acceptance (:mod:`diffkin.ik._collision`):
 
 1. Round 0: ``dk_solve`` of every target: the user's seeds, then its nearest poses of a fixed
    **collision-free library** (the first ``library_size`` of 4 · ``library_size`` configurations sampled

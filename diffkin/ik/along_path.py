@@ -17,7 +17,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._deprecation import renamed_arguments
 from ..errors import ConventionError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
 from ..transforms import RIGIDITY_TOLERANCE, _transform_deviations
@@ -129,7 +128,6 @@ def _check_path(chain, T_traj, velocities) -> tuple[Tensor, Tensor | None, bool]
     return T_traj, velocities, poses
 
 
-@renamed_arguments("ik.joint_trajectory_from_poses", T_traj="T_target")
 def joint_trajectory_from_poses(
     chain,
     T_target: Tensor,
@@ -153,7 +151,7 @@ def joint_trajectory_from_poses(
     Args:
         chain: a :class:`~diffkin.chain.KinematicChain`.
         T_target: poses ``(..., S, 4, 4)`` or positions ``(..., S, 3)`` (position only), sampled every
-            ``dt`` (``T_traj=`` is its deprecated name).
+            ``dt``.
         q0: starting joints ``(..., n)`` (batch broadcastable); CLIK starts there (converging onto the path
             with rate K), ``solve`` uses it as the first sample's seed.
         method: ``"clik"`` or ``"solve"`` (see the module docstring).

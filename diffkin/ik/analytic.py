@@ -36,7 +36,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._deprecation import renamed_arguments, warn_deprecated
 from .._numerics import safe_atan2, safe_sqrt, wrap_angle
 from .._unchecked import fk
 from ..errors import ModelError, ShapeError
@@ -80,7 +79,7 @@ class ClosedFormSolution(_Solution):
     within the tolerance (the result convention of :class:`~diffkin.ik.IKResult`: ``.q`` and ``.success``).
     Unpack as ``q, success = closed_form(chain, T_target)`` (a 2-tuple, as before). Also carries
     ``within_limits`` ``(..., k)`` bool (every joint within the chain's limits; all True without limits)
-    and ``structure`` (the recognised structure name). ``valid`` is the deprecated name of ``success``.
+    and ``structure`` (the recognised structure name).
     """
 
     def __new__(cls, q: Tensor, success: Tensor, within_limits: Tensor | None = None, structure: str = ""):
@@ -90,12 +89,6 @@ class ClosedFormSolution(_Solution):
         )
         self.structure = structure
         return self
-
-    @property
-    def valid(self) -> Tensor:
-        """Deprecated name of :attr:`success` (one release)."""
-        warn_deprecated("ClosedFormSolution.valid", "ClosedFormSolution.success")
-        return self.success
 
 
 # ------------------------------------------------------------------------------------- structure
@@ -385,7 +378,6 @@ def into_limits(chain, q: Tensor) -> Tensor:
     return torch.where(use, alt, qw)
 
 
-@renamed_arguments("ik.closed_form", T="T_target")
 def closed_form(chain, T_target: Tensor, tol: float | None = None) -> ClosedFormSolution:
     """Every closed-form IK branch of a §2.12 structure: ``q (..., k, n)`` and ``success (..., k)``.
 
@@ -394,8 +386,7 @@ def closed_form(chain, T_target: Tensor, tol: float | None = None) -> ClosedForm
             docstring (recognised by structure; any link lengths, joint offsets, ``d_1``, base and tool), or
             any six-revolute chain (DH, modified DH, URDF) of the ``ur`` / ``opw`` families (recognised from
             its joint geometry at q = 0, base and tool folded in; see :mod:`diffkin.ik.industrial`).
-        T_target: target in the world frame (before the chain's base, after its tool; ``T=`` is its
-            deprecated name):
+        T_target: target in the world frame (before the chain's base, after its tool):
 
             - any structure: an end-effector pose ``(..., 4, 4)``;
             - ``three_link_planar``: or ``(..., 3)`` = (p_x, p_y, φ), end-effector position and the angle of

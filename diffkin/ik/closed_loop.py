@@ -38,7 +38,6 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._deprecation import renamed_arguments, reordered_target
 from .._numerics import eps_for, safe_norm, wrap_angle
 from ..errors import ConventionError, ModelError, ShapeError
 from ..jacobian import (
@@ -442,35 +441,19 @@ def _make_task(chain, orientation, convention, rows) -> _Task:
     return _Task(orientation, _convention(convention), rows, size)
 
 
-def _target_like(x, n: int) -> bool | None:
-    """Whether a clik argument is the target (True), q0 (False) or cannot tell (None): targets are
-    callables, tuples of tensors or tensors with a time axis ``(..., S, 4, 4)`` / ``(..., S, 3|6)``; q0 is
-    ``(..., n)``."""
-    if callable(x):
-        return True
-    if isinstance(x, tuple | list):
-        return not all(isinstance(v, int | float) for v in x)  # a list of numbers is a q0
-    shape = getattr(x, "shape", None)
-    if shape is None:
-        return None
-    if len(shape) >= 3 and tuple(shape[-2:]) == (4, 4):
-        return True
-    if len(shape) <= 1:
-        return False  # a target tensor has a time axis
-    if shape[-1] != n:
-        return True if shape[-1] in (3, 6) else None
-    return None if n in (3, 6) else False
+def _check_order(T_target, q0) -> None:
+    """A typed error for ``clik(chain, q0, T_target, ...)``, the old argument order: a target has a
+    time axis (or is a callable or a tuple of tensors), a ``q0`` has none."""
+    if callable(q0) or (isinstance(q0, tuple | list) and any(isinstance(v, Tensor) for v in q0)):
+        raise ShapeError("ik.clik: q0 is a target (a callable or a tuple of tensors); the order is "
+                         "clik(chain, T_target, q0, dt, ...)")
+    numbers = isinstance(T_target, tuple | list) and all(isinstance(v, int | float) for v in T_target)
+    if numbers or (isinstance(T_target, Tensor) and T_target.dim() <= 1):
+        shape = (len(T_target),) if numbers else tuple(T_target.shape)
+        raise ShapeError(f"ik.clik: T_target of shape {shape} has no time axis (it looks like q0); the "
+                         "order is clik(chain, T_target, q0, dt, ...)")
 
 
-def _old_clik_order(chain, a, b) -> bool:
-    """``clik(chain, q0, target, ...)``, the order before 0.2, recognised where the shapes tell."""
-    n = getattr(chain, "n_joints", -1)
-    ka, kb = _target_like(a, n), _target_like(b, n)
-    return (ka is False and kb is not False) or (kb is True and ka is not True)
-
-
-@renamed_arguments("ik.clik", target="T_target")
-@reordered_target("ik.clik", "q0", _old_clik_order)
 def clik(
     chain,
     T_target=None,
@@ -504,9 +487,9 @@ def clik(
 
     Args:
         chain: a :class:`~diffkin.chain.KinematicChain`.
-        T_target: the target (before 0.2 ``target``, after ``q0``: that order still works, with a
-            ``DeprecationWarning``, where the values tell the two apart; where they cannot — both tensors
-            ``(..., 3)`` or ``(..., 6)`` with a batch, for n = 3 or 6 — the new order holds): a function
+        T_target: the target, before ``q0`` (the old order, ``clik(chain, q0, target)``, raises
+            :class:`~diffkin.errors.ShapeError` where a 1-D ``T_target`` or a callable or tuple of tensors
+            as ``q0`` shows it): a function
             ``t -> (x_d, ẋ_d[, ẍ_d])`` of a scalar time tensor (``steps`` required), or the tensors
             ``(x_d, ẋ_d[, ẍ_d])`` with a time axis sampled every ``dt``: x_d ``(..., S, 4, 4)`` or
             ``(..., S, 3|6)``, derivatives ``(..., S, 3|6)``; ``None`` derivatives are zero. Past the last
@@ -559,6 +542,7 @@ def clik(
         raise ConventionError(f"unknown algorithm {algorithm!r}; valid: {CLIK_ALGORITHMS}")
     if q0 is None or dt is None:
         raise ConventionError("ik.clik needs q0 and dt")
+    _check_order(T_target, q0)
     q = chain.check_q(q0, name="q0")
     check_number(dt, "dt", unit=" (s)")
     weights = None

@@ -122,7 +122,7 @@ def _targets(chain, T_target, position_only: bool, dtype) -> tuple[tuple[int, ..
     if pos_input:
         pd = T_target.reshape(-1, K * 3).T.to(dtype)
         return batch, T_target, Targets(pd.contiguous(), None, None, None)
-    T_target = as_measured_transform(T_target, "T_target")  # 1e-5 tolerance, re-orthonormalised
+    T_target = as_measured_transform(T_target, "T_target")  # RIGIDITY_TOLERANCE (1e-3), re-orthonormalised
     # the four columns of every end link's pose, batch last: (4, 3K, N) in one copy
     cols = T_target.reshape(-1, K, 4, 4)[:, :, :3].permute(3, 1, 2, 0).to(dtype).reshape(4, 3 * K, -1)
     cols = cols.contiguous().unbind(0)

@@ -160,10 +160,6 @@ class Topology:
         return (self.n_vars != J or self.q_index != tuple(range(J)) or any(m != 1.0 for m in self.multiplier)
                 or any(b != 0.0 for b in self.q_offset) or self.column_v != tuple(range(self.n_columns)))
 
-    @property
-    def all_ancestors(self) -> bool:
-        return all(all(row) for row in self.ancestors)
-
     def tensor(self, name: str, dtype, device) -> Tensor:
         """The structure as a tensor on ``device``, made once per (name, dtype, device): per-call
         ``torch.tensor(list, device=cuda)`` would be a blocking host-to-device copy in the hot paths.
