@@ -26,7 +26,7 @@ from torch import Tensor
 from ._numerics import eps_for
 from .errors import DiffkinError, ShapeError
 from .kernels import dls as _dls
-from .validation import check_broadcasts_to, check_trailing, shape_str, tensors
+from .validation import check_broadcasts_to, check_nonnegative, check_trailing, shape_str, tensors
 
 __all__ = ["pinv", "damped_pinv", "weighted_pinv", "nullspace_projector"]
 
@@ -156,7 +156,7 @@ def damped_pinv(J, damping, threshold: float | None = None) -> Tensor:
             otherwise, so the inverse is exact away from singular regions.
     """
     J, k2 = _check_J(J, ("damping", damping, None))
-    check_broadcasts_to(k2, J.shape[:-2], "damping")
+    check_broadcasts_to(check_nonnegative(k2, "damping"), J.shape[:-2], "damping")
     if threshold is not None:
         (thr,) = tensors(("threshold", threshold, ()), like=J)
         k2 = _dls.adaptive_damping(J, k2, thr)
@@ -178,7 +178,7 @@ def weighted_pinv(J, W, damping=0.0) -> Tensor:
             :func:`damped_pinv`.
     """
     J, W, lam = _check_J(J, ("W", W, None), ("damping", damping, None))
-    check_broadcasts_to(lam, J.shape[:-2], "damping")
+    check_broadcasts_to(check_nonnegative(lam, "damping"), J.shape[:-2], "damping")
     n = J.shape[-1]
     diagonal = W.ndim >= 1 and W.shape[-1] == n and (W.ndim == 1 or W.shape[-2:] != (n, n))
     if not diagonal:

@@ -251,6 +251,18 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
         raise ShapeError(f"expected arguments whose batch dims broadcast, got {got}") from None
 
 
+def check_nonnegative(x: Tensor, name: str) -> Tensor:
+    """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry < 0 (a damping, a weight; NaN is
+    left to :func:`check_finite`; skipped while tracing)."""
+    if x.numel() == 0 or _traced(x):
+        return x
+    with torch.no_grad():
+        if bool((x < 0).any()):
+            raise OptionError(f"expected {name} >= 0, got {int((x < 0).sum())} negative value(s) "
+                              f"(smallest {float(x.min()):.3g})")
+    return x
+
+
 def check_number(x: Any, name: str, *, positive: bool = True, unit: str = "") -> float:
     """An option given as a finite Python number > 0 (``positive``) or >= 0, as float; else
     :class:`~diffkin.errors.OptionError` naming it (tolerances, dampings, scales): NaN and inf raise

@@ -127,3 +127,21 @@ def test_calibration_least_squares_takes_lambda():
     s[s == 0] = 1.0
     want = np.linalg.solve((A / s).T @ (A / s) + LAM * np.eye(P), (A / s).T @ r) / s
     np.testing.assert_allclose((out.zeta - zeta0)[0, cand].numpy(), want, atol=1e-14)
+
+
+@pytest.mark.parametrize("fn", ["dls_delta", "damped_pinv", "weighted_pinv"])
+def test_negative_damping_is_a_typed_error(fn):
+    """λ < 0 is refused (it used to fall into the λ ≈ 0 branch and return the plain pseudo-inverse)."""
+    from diffkin import redundancy
+    from diffkin.errors import OptionError
+
+    J, e = torch.eye(6, 7, dtype=torch.float64), torch.ones(6, dtype=torch.float64)
+    call = {"dls_delta": lambda lam: ik.dls_delta(J, e, lam),
+            "damped_pinv": lambda lam: redundancy.damped_pinv(J, lam),
+            "weighted_pinv": lambda lam: redundancy.weighted_pinv(J, torch.ones(7, dtype=torch.float64),
+                                                                  lam)}[fn]
+    with pytest.raises(OptionError, match="damping >= 0"):
+        call(-1.0)
+    with pytest.raises(OptionError, match="damping >= 0"):
+        call(torch.tensor(-1e-3, dtype=torch.float64))
+    assert torch.isfinite(call(0.0)).all()

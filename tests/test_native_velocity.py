@@ -15,6 +15,7 @@ mink = pytest.importorskip("mink")
 pytest.importorskip("daqp")
 mujoco = pytest.importorskip("mujoco")
 
+from diffkin.errors import NonFiniteError  # noqa: E402
 from diffkin.ik import _native_velocity as nvel  # noqa: E402
 from diffkin.kernels import native  # noqa: E402
 from diffkin.models import from_mjcf  # noqa: E402
@@ -273,7 +274,7 @@ def test_solve_velocity_keeps_the_torch_path_outside_the_subset(panda):
     with torch.no_grad():
         v = ik.solve_velocity(chain, q, [ik.FrameTask(0, twist=twist)], 0.01)
     assert v.shape == (7,)  # twists: the torch path
-    with pytest.raises(Exception):  # noqa: B017 - the torch path's own error for a bad q
+    with pytest.raises(NonFiniteError, match="q contains NaN"):  # the torch path's own error for a bad q
         ik.solve_velocity(chain, torch.full((7,), float("nan"), dtype=torch.float64),
                           [ik.FrameTask(0, target=T.detach())], 0.01)
 
@@ -319,5 +320,5 @@ def test_one_row_non_finite_target_or_posture(panda):
         assert prob.step(q, bad_T[None].contiguous(), q, 0.01) is None
         assert prob.step(q, T[None].contiguous(), bad_q, 0.01) is None
         for tgt, ref in ((bad_T, q), (T, bad_q)):
-            with pytest.raises(Exception):  # noqa: B017 - the torch path's validator
+            with pytest.raises(NonFiniteError, match="target|q_ref"):  # the torch path's validator
                 ik.solve_velocity(chain, q, [ik.FrameTask(0, target=tgt), ik.PostureTask(ref)], 0.01)

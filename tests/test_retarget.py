@@ -3,6 +3,7 @@ against MuJoCo, the artefact metrics against hand-computed values, the built-in 
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
@@ -527,8 +528,20 @@ def test_optimize_clip_errors():
         retarget.optimize_clip(g1, q, x, c, feet=("nofoot", mp.feet[1]), keypoint_frames=kp, fps=30.0)
     with pytest.raises(OptionError, match="fps"):
         retarget.optimize_clip(g1, q, x, c, feet=mp.feet, keypoint_frames=kp, fps=0)
+    with pytest.raises(NonFiniteError, match="contacts"):
+        retarget.optimize_clip(g1, q, x, torch.full((1, 3, 2), math.nan, dtype=torch.float64), **kw)
+    with pytest.raises(NonFiniteError, match="keypoint_weights"):
+        retarget.optimize_clip(g1, q, x, c, keypoint_weights=[math.nan] * len(kp), **kw)
+    with pytest.raises(OptionError, match="keypoint_weights"):
+        retarget.optimize_clip(g1, q, x, c, keypoint_weights=[-1.0] * len(kp), **kw)
+    with pytest.raises(OptionError, match="costs"):
+        retarget.optimize_clip(g1, q, x, c, costs={next(iter(retarget.COSTS)): -1.0}, **kw)
+    # float32 keypoints with a float64 chain: taken in the chain's dtype
+    f32 = retarget.optimize_clip(g1, q, x.float(), c, iterations=1, **kw)
+    assert f32.q.dtype == torch.float64
     out = retarget.optimize_clip(g1, q, x, c, iterations=0, **kw)
-    torch.testing.assert_close(out.q, q) and out.cost.shape == (1, 1)
+    torch.testing.assert_close(out.q, q)
+    assert out.cost.shape == (1, 1)
     cg = retarget.optimize_clip(g1, q, x, c, iterations=2, solver="cg", **kw)
     assert cg.cost[-1].item() < cg.cost[0].item()
 

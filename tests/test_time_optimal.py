@@ -9,7 +9,7 @@ import pytest
 import torch
 from scipy.interpolate import CubicSpline
 
-from diffkin.errors import ShapeError
+from diffkin.errors import OptionError, ShapeError
 from diffkin.trajectories import InfeasibleTrajectoryError, time_optimal
 
 ta = pytest.importorskip("toppra")
@@ -116,6 +116,9 @@ def test_at_rate_float32_and_errors():
     assert t.dtype == tr.position.dtype == torch.float32 and tr.position.shape == (2, t.shape[1], 2)
     assert t.shape[1] == int(np.ceil(float(res.duration.max()) / 0.01)) + 1
     np.testing.assert_allclose(tr.position[:, -1].numpy(), path[:, -1], atol=1e-5)
+    for dt in (0.0, -0.01, float("nan")):
+        with pytest.raises(OptionError, match="dt"):
+            res.at_rate(dt)
     with pytest.raises(InfeasibleTrajectoryError):
         time_optimal(torch.tensor(path), torch.tensor([1.0, 0.0], dtype=torch.float64), 10.0)
     with pytest.raises(ShapeError):

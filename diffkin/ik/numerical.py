@@ -21,7 +21,15 @@ from ..errors import ShapeError
 from ..kernels.dls import dls_solve
 from ..redundancy import _damped
 from ..transforms import _transform_inverse, _transform_points, as_measured_transform
-from ..validation import check_count, check_given, check_number, check_trailing, shape_str, tensors
+from ..validation import (
+    check_count,
+    check_given,
+    check_nonnegative,
+    check_number,
+    check_trailing,
+    shape_str,
+    tensors,
+)
 from . import _seeds
 from ._collision import CollisionConfig, collision_round, constraint_of, free_library
 from ._collision_native import solve_batch as native_collision_solve
@@ -52,7 +60,7 @@ def dls_delta(J: Tensor, err: Tensor, damping=2.5e-3) -> Tensor:
     """
     J, err, lam = tensors(("J", J, (None, None)), ("err", err, None), ("damping", damping, None))
     check_trailing(err, (J.shape[-2],), "err")
-    return _dls_delta(J, err, lam)
+    return _dls_delta(J, err, check_nonnegative(lam, "damping"))
 
 
 def _dls_delta(J: Tensor, err: Tensor, k2: Tensor) -> Tensor:

@@ -232,21 +232,30 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
     unknown = [f for f in [*frames, *feet] if f not in ends]
     if unknown:
         raise ModelError(f"frames {unknown} are not among the chain's end links {ends}")
-    x = check_finite(as_tensor(keypoints, "keypoints", dtype=q.dtype, device=q.device), "keypoints")
+    x = check_finite(as_tensor(keypoints, "keypoints", dtype=q.dtype, device=q.device), "keypoints").to(q)
     if tuple(x.shape) != (B, T, len(frames), 3):
         raise ShapeError(f"expected keypoints of shape {shape_str((B, T, len(frames), 3))}, got "
                          f"{shape_str(x.shape)}")
     c = torch.as_tensor(contacts, device=q.device)
+    if c.is_floating_point():  # 0/1 given as floats: NaN is not a contact state
+        c = check_finite(c, "contacts")
+        if not bool(((c == 0) | (c == 1)).all()):
+            raise OptionError("expected contacts as booleans (or 0/1), got other values")
     if tuple(c.shape) != (B, T, 2):
         raise ShapeError(f"expected contacts of shape {shape_str((B, T, 2))}, got {shape_str(c.shape)}")
     unknown = sorted(set(costs or {}) - set(COSTS))
     if unknown:
         raise ModelError(f"costs names unknown terms {unknown}; the terms are {sorted(COSTS)}")
+    for name, value in (costs or {}).items():
+        check_number(value, f"costs[{name!r}]", positive=False)
     w = {**COSTS, **(costs or {})}
     kw = torch.ones(len(frames), dtype=q.dtype, device=q.device) if keypoint_weights is None else \
         as_tensor(keypoint_weights, "keypoint_weights", dtype=q.dtype, device=q.device).reshape(-1)
     if kw.shape[0] != len(frames):
         raise ShapeError(f"expected {len(frames)} keypoint weights, got {kw.shape[0]}")
+    kw = check_finite(kw, "keypoint_weights").to(q)
+    if bool((kw < 0).any()):
+        raise OptionError("expected keypoint_weights >= 0")
     q = q.detach()
     terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
                    limit_margin)

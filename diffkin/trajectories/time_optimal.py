@@ -47,7 +47,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ConventionError, ShapeError
-from ..validation import check_count, shape_str, tensors
+from ..validation import check_count, check_number, shape_str, tensors
 from ._common import InfeasibleTrajectoryError, Trajectory
 
 __all__ = ["TimedPath", "time_optimal"]
@@ -286,6 +286,7 @@ class TimedPath:
     def at_rate(self, dt: float) -> tuple[Tensor, Trajectory]:
         """Samples every ``dt`` seconds up to the longest duration: t ``(..., S)`` and q, q̇, q̈ ``(..., S, n)``
         (rows past their duration hold the end at rest). S = ceil(max duration / dt) + 1."""
+        dt = check_number(dt, "dt", unit=" s")
         S = int(math.ceil(float(self.duration.max()) / dt - 1e-9)) + 1 if self.duration.numel() else 1
         t = torch.arange(S, dtype=torch.float64, device=self._device) * dt
         return t.to(self._dtype).expand(*self._batch, S), self._sample(t.expand(self._B, S))
