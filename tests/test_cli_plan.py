@@ -100,3 +100,14 @@ def test_plan_csv_and_bad_input(files, capsys):
     assert main(_args(files, "--acceleration-limit", "-1", "--output", str(out))) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 1 and "acceleration-limit" in err
+
+
+@pytest.mark.extended
+def test_demo_motion_section(tmp_path):
+    """The demo's motion-planning section (about 5 s): the table and the q/q̇/q̈ figure, no failure."""
+    from diffkin.demo import Report, section_motion
+
+    report = Report(tmp_path)
+    section_motion(report, quick=True)
+    assert report.failures == [] and "| success | True |" in report.sections[-1]
+    assert (tmp_path / "motion_plan.png").stat().st_size > 10_000
