@@ -24,9 +24,10 @@ DESCRIPTION = (
     "continuously, then time-optimal timing under the velocity, acceleration and jerk limits\n"
     "(diffkin.motion.plan; docs/motion.md). The robot is a URDF or MJCF arm (its collision geometry is\n"
     "the file's own; --srdf names the pairs not checked); the scene a world file (spheres, capsules,\n"
-    "boxes, cylinders, ...; see docs/collision.md) or a MoveIt PlanningScene YAML. One --start / --goal\n"
-    "vector, or files of B rows (.npy, .csv, .txt, .npz key q) for B problems (a single row of either\n"
-    "is used for every problem). Prints per problem whether it succeeded, its duration or why not.\n"
+    "boxes, cylinders, ...; see docs/collision.md) or a MoveIt PlanningScene YAML (its allowed-collision\n"
+    "matrix: robot link pairs not checked). One --start / --goal vector, or files of B rows (.npy,\n"
+    ".csv, .txt, .npz key q) for B problems (a single row of either is used for every problem).\n"
+    "Prints per problem whether it succeeded, its duration or why not.\n"
     "Output by suffix: .npz holds t (B, S), q, qd, qdd (B, S, nq) sampled every --dt (rows past their\n"
     "duration hold the goal at rest; failed rows hold the start), success, duration, reason, q_goal and\n"
     "joint_names; .csv one row per problem and sample up to its end: problem, success, t, q_*, qd_*,\n"
@@ -135,6 +136,25 @@ def _collision(chain, path, kind: str, srdf):
     return rc.requires_grad_(False)
 
 
+def _scene(path, rc, chain):
+    """``(robot collision, world)`` of ``--scene``: a world file, or a MoveIt PlanningScene YAML whose
+    allowed-collision matrix also becomes the robot's pair rules (:meth:`RobotCollision.allow_collisions`)."""
+    from .collision import read_scene, read_world
+    from .collision.moveit import is_moveit_scene
+
+    if path is None:
+        return rc, None
+    world = read_world(path, dtype=chain.dtype, device=chain.device)  # names the file in its errors
+    if Path(path).suffix.lower() in (".yaml", ".yml"):
+        import yaml
+
+        if is_moveit_scene(yaml.safe_load(Path(path).read_text(encoding="utf-8-sig"))):
+            allowed = read_scene(path).allowed
+            if allowed:
+                rc = rc.allow_collisions(allowed)
+    return rc, world
+
+
 def _joints(values, path, flag: str, chain) -> torch.Tensor:
     """``(B, nq)`` from ``--start`` / ``--goal`` or their ``-file`` option (exactly one of them)."""
     from .data_io import read_array
@@ -197,7 +217,6 @@ def plan_figure(result, chain, velocity_limit, acceleration_limit, row: int = 0,
 
 def cmd_plan(args) -> int:
     from . import motion
-    from .collision import read_world
     from .data_io import check_output_path, write_arrays
 
     out = check_output_path(args.output, (".npz", ".csv"))
@@ -217,8 +236,7 @@ def cmd_plan(args) -> int:
     q0, q1 = q0.expand(B, -1).contiguous(), q1.expand(B, -1).contiguous()
     limits = {f: _limit(getattr(args, f), f.replace("_", "-"), chain.nq)
               for f in ("velocity_limit", "acceleration_limit", "jerk_limit")}
-    rc = _collision(chain, path, kind, args.srdf)
-    world = read_world(args.scene, dtype=chain.dtype, device=chain.device) if args.scene else None
+    rc, world = _scene(args.scene, _collision(chain, path, kind, args.srdf), chain)
     t0 = time.perf_counter()
     res = motion.plan(chain, q0, q1, collision=rc, world=world, margin=args.margin, dt=args.dt,
                       resolution=args.resolution, max_iterations=args.max_iterations, seed=args.seed,
