@@ -1122,6 +1122,13 @@ def build_parser() -> argparse.ArgumentParser:
     _cli_retarget.add_arguments(p)
     p.set_defaults(func=_cli_retarget.cmd_retarget)
 
+    from . import _cli_plan  # `diffkin plan` (its description and examples live with it)
+    p = sub.add_parser("plan", parents=[common], help="collision-free timed motions from start to goal",
+                       description=_cli_plan.DESCRIPTION, epilog="examples:\n  " + _cli_plan.EXAMPLES,
+                       formatter_class=_Formatter)
+    _cli_plan.add_arguments(p)
+    p.set_defaults(func=_cli_plan.cmd_plan)
+
     from .viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
     add_view_parser(sub, [common])
     return parser

@@ -801,6 +801,64 @@ def section_retarget(report: Report, quick: bool) -> None:
         report.failures.append("retargeting: the whole-clip result violates a limit, penetrates or skates")
 
 
+def section_motion(report: Report, quick: bool) -> None:
+    """One planned motion (issue 36): motion.plan on the FR3 around a sphere above a table, its timing
+    against the limits and a plot of q, q̇, q̈ with them (`diffkin plan` writes the same)."""
+    import warnings
+
+    from . import models, motion
+    from ._cli_plan import plan_figure
+    from .collision import RobotCollision, World, box
+
+    title = "Motion planning around an obstacle"
+    urdf = REPO_ROOT / "tests" / "data" / "urdf" / "fr3.urdf"
+    if not urdf.exists():
+        report.add(title, "Skipped: the FR3 URDF of the repository's tests/data is not here.")
+        return
+    d = torch.float64
+    chain = models.from_urdf(urdf, "fr3_link8", dtype=d).requires_grad_(False)
+    srdf = '<robot><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/></robot>'
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's meshes are not shipped: Franka's primitives remain
+        rc = RobotCollision.from_urdf(urdf, chain, srdf=srdf).requires_grad_(False)
+    table = box(center=torch.tensor([0.55, 0.0, 0.05], dtype=d), half_extents=torch.tensor([0.2, 0.5, 0.05],
+                                                                                            dtype=d), dtype=d)
+    world = World(spheres=torch.tensor([[0.5, 0.0, 0.45, 0.12]], dtype=d), boxes=table, dtype=d)
+    q0 = torch.tensor([[0.8, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785]], dtype=d)
+    q1 = torch.tensor([[-0.8, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785]], dtype=d)
+    acc, jerk = 5.0, 100.0
+    with torch.no_grad():
+        f = torch.linspace(0, 1, 101, dtype=d)[:, None]
+        straight = float(rc.min_distance(q0 + f * (q1 - q0), world).min())
+    res, dt = _timed(lambda: motion.plan(chain, q0, q1, collision=rc, world=world, acceleration_limit=acc,
+                                         jerk_limit=jerk, resolution=0.01 if quick else 0.005))
+    from .motion.plan import _urdf_velocity
+
+    vel = _urdf_velocity(chain)
+    ok = bool(res.success[0])
+    with torch.no_grad():
+        clear = float(rc.min_distance(res.q[0], world).min())
+    rows = [["success", ok or res.reason[0]], ["planning time [s]", f"{dt:.2f}"],
+            ["duration [s]", f"{float(res.duration[0]):.3f}"],
+            ["waypoints / path", f"{int(res.n_waypoints[0])} / {res.interpolation[0] or '-'}"],
+            ["clearance of the straight line [mm]", f"{straight * 1e3:.0f}"],
+            ["clearance of the plan (10 ms samples) [mm]", f"{clear * 1e3:.0f}"],
+            ["max abs(q̇) / velocity limit", f"{float((res.qd[0].abs() / vel).max()):.3f}"],
+            ["max abs(q̈) / acceleration limit", f"{float(res.qdd[0].abs().max()) / acc:.3f}"]]
+    plan_figure(res, chain, vel, acc, 0, title="FR3 around a sphere: q, q̇, q̈ (dashed: limits)").savefig(
+        report.out / "motion_plan.png", dpi=110)
+    body = (
+        "`motion.plan` on the FR3 (Franka's capsule model) from one side of a sphere (r = 12 cm) above a "
+        "table to the other: the straight joint-space line passes through the sphere; the plan is "
+        "RRT-Connect, shortcutting, a continuously checked spline and time-optimal timing under the URDF's "
+        f"velocity limits, {acc:g} rad/s² and {jerk:g} rad/s³ (`diffkin plan` writes the same to .npz / "
+        ".csv):"
+        "\n\n" + _md_table(["", "value"], rows) + "\n\n![planned motion](motion_plan.png)\n")
+    report.add(title, body)
+    if not ok or clear < 0:
+        report.failures.append(f"motion planning: {res.reason[0] or 'a sample in collision'}")
+
+
 def run_demo(quick: bool = False, out: str | None = None, skip_rl: bool = False) -> int:
     """Run the tour and write ``report.md`` and PNGs to ``out`` (default ``runs/demo-<time>``).
 
@@ -829,6 +887,7 @@ def run_demo(quick: bool = False, out: str | None = None, skip_rl: bool = False)
         ("collision-free IK", lambda: section_collision_ik(report, quick)),
         ("teleoperation", lambda: section_teleop(report, quick)),
         ("retargeting", lambda: section_retarget(report, quick)),
+        ("motion planning", lambda: section_motion(report, quick)),
     ]
     if not skip_rl:
         steps.append(("RL", lambda: section_rl(report, 15 if quick else 150)))

@@ -344,7 +344,8 @@ def test_version():
     assert len(lines) == 2 and lines[1].startswith("fused C kernel: ")  # in use (path) / not in use: why
 
 
-COMMANDS = ["models", "fk", "ik", "calibrate", "trajectory", "train", "evaluate", "bench", "demo", "doctor"]
+COMMANDS = ["models", "fk", "ik", "calibrate", "trajectory", "train", "evaluate", "bench", "demo", "doctor",
+            "plan"]
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -378,7 +379,8 @@ def test_every_compute_command_takes_threads(capsys, monkeypatch):
         extra = {"fk": ["--random", "1"], "ik": ["--random", "1"],
                  "calibrate": ["--data", "x", "--output", "y"],
                  "trajectory": ["joint", "--output", "x.npz"], "train": ["--config", "x"],
-                 "evaluate": ["run"]}.get(command, [])
+                 "evaluate": ["run"],
+                 "plan": ["--acceleration-limit", "5", "--output", "x.npz"]}.get(command, [])
         assert parser.parse_args([command, "--threads", "3", *extra]).threads == 3
         assert parser.parse_args(["--threads", "2", command, *extra]).threads == 2
     # the default is one thread (not torch's all-cores default); --threads N sets N
