@@ -26,14 +26,12 @@ import argparse
 import warnings
 from collections import defaultdict
 
-import numpy as np
 import torch
 
 from benchmarks.common import cli
 from benchmarks.motion_problems import PANDA_SPHERIZED_URDF, PANDA_SRDF, PANDA_URDF, load_problems
 from diffkin import models as dk_models
 from diffkin.collision import RobotCollision
-from diffkin.collision.moveit import _EXACT_CYLINDERS
 
 __all__ = ["run", "robot_model", "main"]
 
@@ -77,9 +75,7 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     rules: dict = {}  # one model per distinct allowed-collision matrix (all 700 share one)
     q = torch.tensor([[p.start, p.goal] for p in problems], dtype=F64)  # (N, 2, 7)
     base = torch.tensor([g.link == "panda_link0" for g in rc.geoms])
-    coal_ref = _CoalCylinders.make() if exact and not _EXACT_CYLINDERS else None
-    label = "capsules" if not exact else "exact" if _EXACT_CYLINDERS else "exact (coal)" if coal_ref \
-        else "capsules"
+    label = "exact" if exact else "capsules"
     out: dict[str, dict] = {}
     with torch.no_grad():
         for k, p in enumerate(problems):
@@ -90,8 +86,6 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
             self_hit = (model.self_distances(q[k]) < 0).any(-1)  # (2,)
             d = model.world_distances(q[k], world)  # (2, G, W)
             hit = d < 0
-            if coal_ref is not None and world.capsules.shape[-2]:  # the scene's cylinders, as capsules
-                hit = coal_ref.recheck(model, q[k], p.scene, hit)
             world_hit = hit.flatten(1).any(-1)
             base_hit = hit[:, base].flatten(1).any(-1)
             state = self_hit | world_hit
@@ -108,68 +102,13 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
-class _CoalCylinders:
-    """Re-checks the geom–cylinder entries a capsule flagged against the true cylinder, by coal (the robot's
-    geoms are diffkin's capsules and spheres, placed by diffkin)."""
-
-    def __init__(self, coal):
-        self.coal = coal
-
-    @classmethod
-    def make(cls):
-        try:
-            import coal
-        except ImportError:
-            return None
-        return cls(coal)
-
-    def recheck(self, rc: RobotCollision, q: torch.Tensor, scene, hit: torch.Tensor) -> torch.Tensor:
-        coal = self.coal
-        names = scene.world_names
-        prims = {p.name: p for p in scene.objects}
-        cyl_cols = [w for w, n in enumerate(names) if prims[n].kind == "cylinder"]
-        a, b, r, *_ = rc.placed(q)  # capsule geoms (..., G_c, 3)
-        capsule_geoms = torch.argsort(rc._rows)[: rc._counts[0]].tolist()  # capsule k: geom capsule_geoms[k]
-        hit = hit.clone()
-        for s, g, w in hit[:, :, cyl_cols].nonzero().tolist():
-            col = cyl_cols[w]
-            k = capsule_geoms.index(g) if g in capsule_geoms else None
-            if k is None:  # a box geom: keep the capsule's verdict (conservative)
-                continue
-            prim = prims[names[col]]
-            T = prim.pose.numpy()
-            cyl = coal.Cylinder(prim.dimensions[1], prim.dimensions[0])
-            geom, Tg = _capsule(coal, a[s, k].numpy(), b[s, k].numpy(), float(r[k]))
-            req, res = coal.CollisionRequest(), coal.CollisionResult()
-            hit[s, g, col] = coal.collide(geom, Tg, cyl, _transform(coal, T[:3, :3], T[:3, 3]), req, res) > 0
-        return hit
-
-
-def _transform(coal, R, p):
-    T = coal.Transform3s()
-    T.setRotation(np.asarray(R, dtype=np.float64))
-    T.setTranslation(np.asarray(p, dtype=np.float64))
-    return T
-
-
-def _capsule(coal, a, b, r):
-    d = b - a
-    length = float(np.linalg.norm(d))
-    z = d / length if length > 0 else np.array([0.0, 0.0, 1.0])
-    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
-    x /= np.linalg.norm(x)
-    R = np.stack((x, np.cross(z, x), z), axis=1)
-    shape = coal.Sphere(r) if length == 0 else coal.Capsule(r, length)
-    return shape, _transform(coal, R, 0.5 * (a + b))
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--models", nargs="*", default=list(MODELS), choices=MODELS)
     p.add_argument("--families", nargs="*", default=None)
     p.add_argument("--cylinders", default="exact", choices=("exact", "capsules"),
-                   help="exact: re-check capsule-flagged cylinder pairs with coal; capsules: as the World "
-                   "holds them")
+                   help="exact: the scenes' cylinders as exact cylinders; capsules: as their enclosing "
+                   "capsules")
     return cli(p, run, "MotionBenchMaker Panda: problems whose start or goal is in collision", argv)
 
 

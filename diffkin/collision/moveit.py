@@ -49,12 +49,6 @@ __all__ = ["Primitive", "Scene", "read_scene", "is_moveit_scene", "scene_from_da
 _TYPES = {1: "box", 2: "sphere", 3: "cylinder", 4: "cone"}
 _DIMS = {"box": 3, "sphere": 1, "cylinder": 2}
 
-#: the World takes exact cylinders (``World(cylinders=...)``): a scene's cylinders are exact by default
-#: (``to_world(cylinders="capsules")`` holds each as its enclosing capsule: conservative, and served by the
-#: C decisions where capsule pairs are)
-_EXACT_CYLINDERS = True
-
-
 @dataclass(frozen=True)
 class Primitive:
     """One solid of a scene: ``name`` (the object's id; ``id/k`` for the k-th primitive of an object with
@@ -88,7 +82,7 @@ class Scene:
         (centre, rotation, half sizes) and cylinders (axis end points at ± height/2 along the local z axis,
         radius). ``cylinders``: ``"capsules"`` holds each cylinder as its enclosing capsule (same axis and
         radius: conservative, at most the radius beyond each flat face), ``"exact"`` as an exact cylinder
-        (where the World has them), None the default: exact where the World has them, else capsules.
+        (the default, None, too).
         Objects come in the World's kind order; :meth:`column_names` names each column."""
         exact = self._exact(cylinders)
         dt = dtype or torch.get_default_dtype()
@@ -125,9 +119,7 @@ class Scene:
     def _exact(cylinders: str | None) -> bool:
         if cylinders not in (None, "exact", "capsules"):
             raise DiffkinError(f"expected cylinders as 'exact', 'capsules' or None, got {cylinders!r}")
-        if cylinders == "exact" and not _EXACT_CYLINDERS:
-            raise DiffkinError("cylinders='exact': this World holds no exact cylinders yet (use 'capsules')")
-        return _EXACT_CYLINDERS if cylinders is None else cylinders == "exact"
+        return cylinders != "capsules"  # exact by default; capsules: conservative, served by the C decisions
 
 
 def is_moveit_scene(data) -> bool:
