@@ -19,9 +19,11 @@ DESCRIPTION = (
     "then one optimisation over all frames (feet held on the ground in contact without sliding, no\n"
     "penetration, joint limits, smoothness). The clip is a BVH file, an .npz of SMPL / SMPL-X joint\n"
     "positions (key 'joints', with 'fps' or 'mocap_framerate'), or a shipped clip: walk, crouch, hop.\n"
-    "The robot is a URDF or MJCF file whose bodies the built-in mapping (--mapping) names. Prints the\n"
-    "artefact metrics before and after the whole-clip optimisation.")
-EXAMPLES = ("diffkin retarget walk --mapping g1 --urdf g1_29dof_rev_1_0.urdf --output walk_g1.npz\n"
+    "The robot is a built-in robot by name (--robot g1), or a URDF or MJCF file, whose bodies the\n"
+    "built-in mapping (--mapping) names. Prints the artefact metrics before and after the whole-clip\n"
+    "optimisation.")
+EXAMPLES = ("diffkin retarget walk --mapping g1 --robot g1 --output walk_g1.npz\n"
+            "  diffkin retarget walk --mapping g1 --urdf g1_29dof_rev_1_0.urdf --output walk_g1.npz\n"
             "  diffkin retarget clip.bvh --mapping h1 --mjcf h1.xml --frames 0:300 --output clip_h1.csv")
 
 
@@ -33,6 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--skeleton", default=None, choices=["cmu", "smpl"],
                    help="the clip's skeleton (default: smpl for .npz, cmu otherwise)")
     src = g.add_mutually_exclusive_group(required=True)
+    src.add_argument("--robot", help="a built-in URDF / MuJoCo robot by name (g1: MuJoCo Menagerie's "
+                     "29-DoF G1, h1; see `diffkin models`)")
     src.add_argument("--urdf", help="robot URDF (floating base added)")
     src.add_argument("--mjcf", help="robot MJCF (its free joint)")
     g.add_argument("--dtype", default="float64", choices=["float32", "float64"], help="compute dtype")
@@ -86,7 +90,9 @@ def cmd_retarget(args) -> int:
     motion = motion.frames_slice(start, stop)
     mapping = retarget.Mapping.builtin(args.mapping, skeleton)
     dtype = getattr(torch, args.dtype)
-    if args.urdf:
+    if args.robot:  # its mapping's frames as the end links; a URDF robot by name keeps its catalogue root
+        chain = models.load(args.robot, dtype=dtype, end_link=mapping.frames)
+    elif args.urdf:
         chain = models.from_urdf(args.urdf, mapping.frames, floating_base=True, dtype=dtype)
     else:
         chain = models.from_mjcf(args.mjcf, mapping.frames, dtype=dtype)

@@ -32,6 +32,22 @@ def test_retarget_cli_npz_and_csv(tmp_path, capsys):
     np.testing.assert_allclose(rows[:, 2], np.arange(6) / 60.0)
 
 
+def test_retarget_cli_robot_by_name_writes_the_librarys_clip(tmp_path, capsys):
+    """``--robot g1`` (Menagerie's current G1, shipped) writes exactly what retarget.clip returns."""
+    import torch
+
+    from diffkin import models, retarget
+
+    out = tmp_path / "hop.npz"
+    assert main(["retarget", "hop", "--mapping", "g1", "--robot", "g1", "--frames", "0:5",
+                 "--iterations", "0", "--output", str(out)]) == 0
+    mp = retarget.Mapping.builtin("g1")
+    chain = models.load("g1", dtype=torch.float64, end_link=mp.frames)
+    hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 5)
+    ref = retarget.clip(chain, hop, mp, whole_clip=False)
+    np.testing.assert_array_equal(np.load(out)["q"], ref.q.numpy())
+
+
 @pytest.mark.parametrize("argv, message", [
     (["nothing.txt"], "shipped clip"),
     (["hop", "--frames", "5:5"], "no frame"),
