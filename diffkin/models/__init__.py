@@ -94,8 +94,8 @@ def model_path(name: str) -> Path:
     """Path of a built-in robot's file (its DH YAML, URDF or MJCF; ModelError listing the names if
     unknown)."""
     if not isinstance(name, str):
-        raise ModelError(f"unknown model {name!r:.60}: expected a model name (str, see models.available()), got "
-                         f"{type(name).__name__}")
+        raise ModelError(f"unknown model {name!r:.60}: expected a model name (str, see "
+                         f"models.available()), got {type(name).__name__}")
     if (path := DATA_DIR / f"{name}.yaml").is_file():
         return path
     robot = catalog.shipped(name) or catalog.robot_description(name)
