@@ -228,7 +228,8 @@ def test_implicit_gradient_through_a_floating_base_solve():
     assert bool(torch.isfinite(grad).all()) and float(grad.abs().sum()) > 0
 
 
-@pytest.mark.parametrize("optimizer", ["gauss_newton", "lbfgs"])
+@pytest.mark.parametrize("optimizer", ["gauss_newton",
+                                       pytest.param("lbfgs", marks=pytest.mark.extended)])  # L-BFGS: 20 s
 def test_optimize_moves_on_the_manifold(optimizer):
     chain = _floating_g1()
     chain.requires_grad_(False)

@@ -186,6 +186,8 @@ def _api_rank(rank: int, world: int, port: int, out: str, merge: bool) -> None:
         assert res.count == 300 and Path(res.output).exists()
 
 
+# two more processes (12 s); test_two_process_fk_and_ik_equal_one_process keeps sharding in the default run
+@pytest.mark.extended
 def test_run_sharded_python_api_equals_one_process(tmp_path):
     """``distributed.run_sharded`` (what ``diffkin fk|ik`` calls under torchrun) in 2 gloo processes: the
     manifest (and the merged file) equal one process's output; in one process it is ``stream`` itself."""

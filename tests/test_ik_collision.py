@@ -135,6 +135,8 @@ def _clear_target(chain, rc, w, clear: float, seed: int):
     return q, chain.forward_kinematics(q)
 
 
+@pytest.mark.extended  # 21 s of finite differences; the KKT gradient against finite differences stays in the
+# default run (test_ik_optimize_constraints.py)
 def test_optimize_gradients_at_inactive_constraints_match_finite_differences():
     """optimize(collision=, world=) with every distance beyond margin + buffer: dq*/dT by the implicit
     gradient equals central differences of the solver (float64), and equals the gradient without the

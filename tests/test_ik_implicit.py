@@ -218,7 +218,8 @@ def test_optimize_implicit_gradient_matches_finite_differences_and_unroll():
     torch.testing.assert_close(xi.grad, g_implicit, atol=1e-4, rtol=1e-3)
 
 
-@pytest.mark.slow
+# compiles the whole solve (13 s); the kernels' fullgraph compiles stay in test_compile.py
+@pytest.mark.extended
 def test_usable_inside_torch_compile():
     """A caller's compiled function containing solve: the same values and gradients as eager."""
     chain = models.load("ur5", dtype=F64)
