@@ -189,9 +189,10 @@ def fr3_robot(dtype):
 
 class CoalCheck:
     """The smallest distance over the checked pairs and to the obstacles (``SPHERES``, ``BOX``), by
-    Pinocchio + coal."""
+    Pinocchio + coal; ``moving_only``: obstacle distances from the geoms that move with a joint only (the
+    base's geoms left out, as the planner's checks)."""
 
-    def __init__(self, rc, with_box=True):
+    def __init__(self, rc, with_box=True, moving_only=False):
         import collision_reference as ref
         import pinocchio as pin
 
@@ -207,7 +208,8 @@ class CoalCheck:
         index = {o.name: i for i, o in enumerate(self.geom.geometryObjects)}
         name = lambda n: "{}_{}".format(*n.rsplit("/", 1))  # noqa: E731  (Pinocchio's '<link>_<i>')
         self.pairs = [(index[name(a)], index[name(b)]) for a, b in rc.pairs]
-        self.robot = [index[name(g.name)] for g in rc.geoms]
+        self.robot = [index[name(g.name)] for k, g in enumerate(rc.geoms)
+                      if not (moving_only and rc.fixed[k])]
         self.obstacles = [(coal.Sphere(r), ref.placement(None, c)) for *c, r in SPHERES]
         if with_box:
             self.obstacles.append(ref.box(BOX[0], np.eye(3), BOX[1]))

@@ -4,30 +4,18 @@ densely by Pinocchio's FK + coal (never by the code under test) and against thei
 
 from __future__ import annotations
 
-import re
-import warnings
-from pathlib import Path
-
-import collision_reference as ref
 import numpy as np
 import pytest
 import torch
 
-import diffkin
 from diffkin import motion
-from diffkin.collision import RobotCollision, World, box
+from diffkin.collision import World, box
 from diffkin.motion._edges import EdgeChecker
 from diffkin.sampling import random_configuration
+from tests.helpers import BOX, SPHERES, CoalCheck, fr3_robot
 
-pin = pytest.importorskip("pinocchio")
-coal = ref.coal
-
-FR3 = Path(__file__).parent / "data" / "urdf" / "fr3.urdf"
-SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/>'
-        '</robot>')
-SPHERES = [[0.45, 0.25, 0.45, 0.10], [0.40, -0.30, 0.70, 0.08]]
-BOX = ([0.55, 0.0, 0.15], [0.10, 0.30, 0.02])
-V = [2.62, 2.62, 2.62, 2.62, 5.26, 4.18, 5.26]  # fr3.urdf's <limit velocity=>
+pytest.importorskip("pinocchio")
+V = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]  # fr3.urdf's <limit velocity=> (plan's default velocity limits)
 A = [10.0, 5.0, 8.0, 10.0, 12.0, 15.0, 15.0]
 J = [500.0, 250.0, 400.0, 500.0, 600.0, 750.0, 750.0]
 
@@ -35,45 +23,11 @@ J = [500.0, 250.0, 400.0, 500.0, 600.0, 750.0, 750.0]
 @pytest.fixture(scope="module")
 def robot():
     d = torch.float64
-    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=d).requires_grad_(False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the FR3's meshes are not shipped: skipped with a warning
-        rc = RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+    chain, rc = fr3_robot(d)
     world = World(spheres=torch.tensor(SPHERES, dtype=d),
                   boxes=box(center=torch.tensor(BOX[0], dtype=d), half_extents=torch.tensor(BOX[1], dtype=d),
                             dtype=d), dtype=d)
     return chain, rc, world
-
-
-class _Coal:
-    """The smallest distance over the checked pairs and to the obstacles, by Pinocchio + coal."""
-
-    def __init__(self, rc: RobotCollision):
-        text = re.sub(r"<collision>\s*<geometry>\s*<mesh[^>]*/>\s*</geometry>\s*</collision>", "",
-                      FR3.read_text())
-        self.model = pin.buildModelFromXML(text)
-        self.geom = pin.buildGeomFromUrdfString(self.model, text, pin.COLLISION)
-        for o in self.geom.geometryObjects:  # RobotCollision's documented capsules for cylinders
-            if isinstance(o.geometry, coal.Cylinder):
-                o.geometry = coal.Capsule(o.geometry.radius, 2 * o.geometry.halfLength)
-        index = {o.name: i for i, o in enumerate(self.geom.geometryObjects)}
-        name = lambda n: "{}_{}".format(*n.rsplit("/", 1))  # noqa: E731  (Pinocchio's '<link>_<i>')
-        self.pairs = [(index[name(a)], index[name(b)]) for a, b in rc.pairs]
-        self.robot = [index[name(g.name)] for g in rc.geoms if not rc.fixed[rc.geoms.index(g)]]
-        self.obstacles = [(coal.Sphere(r), ref.placement(None, c)) for *c, r in SPHERES]
-        self.obstacles.append(ref.box(BOX[0], np.eye(3), BOX[1]))
-        self.data, self.gdata = self.model.createData(), pin.GeometryData(self.geom)
-        self.q_of = [self.model.joints[self.model.getJointId(n)].idx_q for n in rc.chain.joint_names]
-
-    def min_distance(self, q) -> float:
-        qp = pin.neutral(self.model)
-        qp[self.q_of] = np.asarray(q, np.float64)
-        pin.updateGeometryPlacements(self.model, self.data, self.geom, self.gdata, qp)
-        shape = lambda i: (self.geom.geometryObjects[i].geometry,  # noqa: E731
-                           ref.placement(self.gdata.oMg[i].rotation, self.gdata.oMg[i].translation))
-        d = [ref.distance(*shape(i), *shape(j)) for i, j in self.pairs]
-        d += [ref.distance(*shape(i), *o) for i in self.robot for o in self.obstacles]
-        return min(d)
 
 
 def _points(rc, q):
@@ -154,7 +108,7 @@ def test_plan_joint_goals_rechecked_by_coal(robot):
     assert ((st.position >= lim[:, 0]) & (st.position <= lim[:, 1])).all()
     # clearance: exact distances at the 10 ms samples (torch path), coal + Pinocchio at 20 instants per row
     assert (rc.min_distance(res.q, world) >= margin).all()
-    ref_check = _Coal(rc)
+    ref_check = CoalCheck(rc, moving_only=True)
     for b in range(B):
         idx = torch.linspace(0, int(res.duration[b] / 1e-3), 20).long()
         d = [ref_check.min_distance(st.position[b, i].numpy()) for i in idx]
@@ -207,17 +161,14 @@ def test_plans_rechecked_densely_by_coal(robot):
     res = motion.plan(chain, q[:8], q[8:], collision=rc, world=world, margin=0.002, acceleration_limit=A,
                       jerk_limit=J, resolution=0.005)
     assert res.success.float().mean() >= 0.75, res.reason
-    ref_check = _Coal(rc)
+    ref_check = CoalCheck(rc, moving_only=True)
     for b in res.success.nonzero().squeeze(1).tolist():
         S = int(res.duration[b] / 0.01) + 2
         assert min(ref_check.min_distance(x.numpy()) for x in res.q[b, :S]) >= 0.002 - 1e-9
 
 
 def test_plan_float32_and_empty_batch():
-    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=torch.float32).requires_grad_(False)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        rc = RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+    chain, rc = fr3_robot(torch.float32)
     world = World(spheres=torch.tensor(SPHERES, dtype=torch.float32), dtype=torch.float32)
     q = random_configuration(chain, (4,), torch.Generator().manual_seed(3), collision=rc, world=world,
                              margin=0.02)
