@@ -334,6 +334,34 @@ def _batch_rows(chain, prob, model, B: int, mink_rows: int):
     return t_ours, t_mink, worst, bool(ok.all())
 
 
+def _g1_mink(model, ends, costs, steps: int):
+    """The G1 problem both G1 rows share, on mink's side: the start (knees and elbows bent, away from the
+    straight-leg singularity), mink's frame tasks, posture task and limits, and the target trajectory (feet
+    held, hands on a 8 cm circle at 0.5 Hz) -> ``(cfg, q0, tasks, posture, limits, targets (steps, K, 4, 4),
+    phase (steps,))``."""
+    import mink
+
+    cfg = mink.Configuration(model)
+    q0 = model.qpos0.copy()
+    bent = {"hip_pitch": -0.3, "knee": 0.6, "ankle_pitch": -0.3, "elbow_pitch": 1.0, "elbow_joint": 1.0}
+    for j in range(1, model.njnt):
+        q0[model.jnt_qposadr[j]] = next((a for key, a in bent.items() if key in model.joint(j).name), 0.0)
+    cfg.update(q0)
+    T0 = [cfg.get_transform_frame_to_world(e, t).as_matrix() for e, t in ends]
+    tasks = [mink.FrameTask(e, t, position_cost=p, orientation_cost=o, gain=1.0, lm_damping=LM)
+             for (e, t), (p, o) in zip(ends, costs)]
+    posture = mink.PostureTask(model, cost=POSTURE)
+    posture.set_target(q0)
+    hinges = [model.joint(i).name for i in range(model.njnt) if model.jnt_type[i] != 0]
+    limits = [mink.ConfigurationLimit(model, gain=0.95),
+              mink.VelocityLimit(model, dict.fromkeys(hinges, VMAX * 2))]
+    phase = 2 * math.pi * 0.5 * np.arange(steps) * DT
+    hand = 0.08 * np.stack([np.zeros_like(phase), np.sin(phase), 1 - np.cos(phase)], -1)
+    targets = np.repeat(np.stack(T0)[None], steps, axis=0)
+    targets[:, 2:, :3, 3] += hand[:, None]
+    return cfg, q0, tasks, posture, limits, targets, phase
+
+
 def _g1(steps: int):
     import mink
 
@@ -350,25 +378,7 @@ def _g1(steps: int):
     prob = NativeVelocity(chain, [(k, p, o, 1.0, LM) for k, (p, o) in enumerate(costs)],
                           posture=(POSTURE, 1.0, 0.0),
                           configuration_limit=(0.95, 0.0), velocity_limit=vmax)
-    cfg = mink.Configuration(model)
-    q0 = model.qpos0.copy()
-    bent = {"hip_pitch": -0.3, "knee": 0.6, "ankle_pitch": -0.3, "elbow_pitch": 1.0}
-    for j in range(1, model.njnt):  # knees and elbows bent: away from the straight-leg singularity
-        q0[model.jnt_qposadr[j]] = next((a for key, a in bent.items() if key in model.joint(j).name), 0.0)
-    cfg.update(q0)
-    T0 = [cfg.get_transform_frame_to_world(e, t).as_matrix() for e, t in G1_ENDS]
-    tasks = [mink.FrameTask(e, t, position_cost=p, orientation_cost=o, gain=1.0, lm_damping=LM)
-             for (e, t), (p, o) in zip(G1_ENDS, costs)]
-    posture = mink.PostureTask(model, cost=POSTURE)
-    posture.set_target(q0)
-    hinges = [model.joint(i).name for i in range(model.njnt) if model.jnt_type[i] != 0]
-    limits = [mink.ConfigurationLimit(model, gain=0.95),
-              mink.VelocityLimit(model, dict.fromkeys(hinges, VMAX * 2))]
-    t = np.arange(steps) * DT
-    w = 2 * math.pi * 0.5
-    hand = 0.08 * np.stack([np.zeros_like(t), np.sin(w * t), 1 - np.cos(w * t)], -1)
-    targets = np.repeat(np.stack(T0)[None], steps, axis=0)
-    targets[:, 2:, :3, 3] += hand[:, None]
+    cfg, q0, tasks, posture, limits, targets, _ = _g1_mink(model, G1_ENDS, costs, steps)
     tgt = torch.from_numpy(targets).contiguous()
     q = torch.tensor(q0[qadr])
     q_ref = q.clone()
@@ -405,7 +415,7 @@ def _g1(steps: int):
             agree = max(agree, float(np.abs(mine[0].numpy() - vm[dofs]).max()))
         cfg.integrate_inplace(vm, DT)
     feet = max(float(np.linalg.norm(chain.forward_kinematics(torch.from_numpy(q_ours))[k, :3, 3].numpy()
-                                    - T0[k][:3, 3])) for k in range(2))
+                                    - targets[0, k, :3, 3])) for k in range(2))
     return _median_us(times_ours), _median_us(times_mink), agree, feet, chain.nv
 
 
@@ -555,29 +565,11 @@ def _g1_com(steps: int, every_body: bool = True, path: Path = G1, ends: list = G
     prob = NativeVelocity(chain, [(k, p, o, 1.0, LM) for k, (p, o) in enumerate(costs)],
                           posture=(POSTURE, 1.0, 0.0), configuration_limit=(0.95, 0.0), velocity_limit=vmax,
                           com=(com_cost, 1.0, 0.0))
-    cfg = mink.Configuration(model)
-    q0 = model.qpos0.copy()
-    bent = {"hip_pitch": -0.3, "knee": 0.6, "ankle_pitch": -0.3, "elbow_pitch": 1.0, "elbow_joint": 1.0}
-    for j in range(1, model.njnt):
-        q0[model.jnt_qposadr[j]] = next((a for key, a in bent.items() if key in model.joint(j).name), 0.0)
-    cfg.update(q0)
-    T0 = [cfg.get_transform_frame_to_world(e, t).as_matrix() for e, t in ends]
+    cfg, q0, tasks, posture, limits, targets, phase = _g1_mink(model, ends, costs, steps)
     c0 = cfg.data.subtree_com[1].copy()
-    tasks = [mink.FrameTask(e, t, position_cost=p, orientation_cost=o, gain=1.0, lm_damping=LM)
-             for (e, t), (p, o) in zip(ends, costs)]
     com_task = mink.ComTask(cost=com_cost)
-    posture = mink.PostureTask(model, cost=POSTURE)
-    posture.set_target(q0)
-    hinges = [model.joint(i).name for i in range(model.njnt) if model.jnt_type[i] != 0]
-    limits = [mink.ConfigurationLimit(model, gain=0.95),
-              mink.VelocityLimit(model, dict.fromkeys(hinges, VMAX * 2))]
-    t = np.arange(steps) * DT
-    w = 2 * math.pi * 0.5
-    hand = 0.08 * np.stack([np.zeros_like(t), np.sin(w * t), 1 - np.cos(w * t)], -1)
-    targets = np.repeat(np.stack(T0)[None], steps, axis=0)
-    targets[:, 2:, :3, 3] += hand[:, None]
     coms = np.repeat(c0[None], steps, axis=0)
-    coms[:, 1] += 0.01 * np.sin(w * t)
+    coms[:, 1] += 0.01 * np.sin(phase)
     tgt, ctg = torch.from_numpy(targets).contiguous(), torch.from_numpy(coms).contiguous()
     q = torch.tensor(q0[qadr])
     q_ref = q.clone()
