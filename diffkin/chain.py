@@ -42,7 +42,7 @@ from torch import Tensor, nn
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, OptionError, ShapeError
 from .kernels import native, single
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
-from .kernels.configuration import ConfigurationSpace
+from .kernels.configuration import MOTION_NQ, ConfigurationSpace
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
 from .kernels.joints import dh_joints, pose_correction
 from .kernels.tree import Segments, Topology, column_frames, matrix_frames
@@ -169,10 +169,7 @@ class KinematicChain(nn.Module):
         n = topology.n_vars
         self.name = name or f"chain{n}"
         # one letter per coordinate of q: R (angle), P (length), S (an entry of a unit quaternion)
-        letters = []
-        for m in topology.motions:
-            letters.extend("SSSS" if m == "S" else m)
-        self.joint_types = "".join(letters)
+        self.joint_types = "".join(m * MOTION_NQ[m] for m in topology.motions)
         var_rev = [c == "R" for c in self.joint_types]
         self.register_buffer("revolute_mask", torch.tensor(var_rev, dtype=dtype, device=device))
         #: per Jacobian column (before the mimic coupling): 1 for a rotation, 0 for a translation
@@ -980,7 +977,7 @@ class DHChain(KinematicChain):
                 f"joint_types must be a string of {n} letters 'R' (revolute) or 'P' (prismatic), "
                 f"got {joint_types!r}"
             )
-        topo = Topology.serial([c == "R" for c in joint_types])
+        topo = Topology.serial(joint_types)
         super().__init__(topo, q_limits=q_limits, name=name, dtype=dtype, device=device, learnable=learnable)
         self.convention = convention
         self.a = nn.Parameter(cols["a"], requires_grad=learnable)

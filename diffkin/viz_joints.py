@@ -17,13 +17,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .kernels.configuration import JOINT_KINDS
+from .kernels.configuration import JOINT_KINDS, MOTION_NQ, MOTION_NV, MOTIONS
 
 __all__: list[str] = []  # used through diffkin.viz.Viewer
-
-_SUFFIX = {"free": ("x", "y", "z", "rx", "ry", "rz"), "ball": ("rx", "ry", "rz"),
-           "planar": ("x", "y", "theta")}
-
 
 @dataclass(frozen=True)
 class SliderSpec:
@@ -45,8 +41,8 @@ def _labels(chain, n_sliders: int) -> list[str]:
     if kinds is not None and len(kinds) == len(names):
         for name, kind in zip(names, kinds):
             k = JOINT_KINDS.get(kind)
-            nv = k.nv if k is not None else 1
-            out += [f"{name}.{s}" for s in _SUFFIX[kind]] if kind in _SUFFIX else [name] * nv
+            suffixes = k.velocity_labels if k is not None else ()
+            out += [f"{name}.{s}" for s in suffixes] if suffixes else [name] * (k.nv if k is not None else 1)
     elif len(names) == n_sliders:
         out = names
     return out if len(out) == n_sliders else [f"v{i + 1}" for i in range(n_sliders)]
@@ -59,13 +55,13 @@ def slider_specs(chain, lo: Tensor, hi: Tensor) -> list[SliderSpec]:
     labels = _labels(chain, chain.nv)
     out, iq, iv = [], 0, 0
     for m in motions:
-        if m == "S":
-            out += [SliderSpec(labels[iv + k], "rad", -math.pi, math.pi, iv + k, None) for k in range(3)]
-            iq, iv = iq + 4, iv + 3
+        if MOTION_NQ[m] != 1:  # a quaternion: three rotation-vector components
+            out += [SliderSpec(labels[iv + k], "rad", -math.pi, math.pi, iv + k, None)
+                    for k in range(MOTION_NV[m])]
         else:
-            unit = "rad" if m == "R" else "m"
+            unit = "rad" if MOTIONS[m].rotation else "m"
             out.append(SliderSpec(labels[iv], unit, float(lo[iq]), float(hi[iq]), iv, iq))
-            iq, iv = iq + 1, iv + 1
+        iq, iv = iq + MOTION_NQ[m], iv + MOTION_NV[m]
     return out
 
 

@@ -201,7 +201,7 @@ def test_tree_jacobian_is_masked_by_ancestry_and_matches_finite_differences():
 
 def test_topology_rejects_parents_after_children():
     with pytest.raises(ValueError, match="precede"):
-        Topology((1, -1), (True, True), (0,), (0, 1), (1.0, 1.0), (0.0, 0.0), 2)
+        Topology((1, -1), ("R", "R"), (0,), (0, 1), (1.0, 1.0), (0.0, 0.0), 2)
 
 
 # ---------------------------------------------------------------------------------- parameter Jacobian

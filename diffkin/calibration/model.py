@@ -73,7 +73,7 @@ def _dh_frames(a, alpha, d, theta, q, revolute, convention, base):
     broadcastable to ``q.shape[:-1]``. Returns a list of ``n + 1`` tuples of ``(..., 3)`` tensors.
     """
     pre, offset, post = dh_joints(a, alpha, d, theta, revolute, convention == "modified")
-    topo = Topology.serial([r > 0 for r in revolute.tolist()])
+    topo = Topology.serial(["R" if r > 0 else "P" for r in revolute.tolist()])
     _, F, _, _ = matrix_frames(q, topo, Segments(pre, offset, post, base, [None]))
     mats = [base.expand(*F.shape[:-3], 4, 4), *F.unbind(-3)]
     return [(T[..., :3, 0], T[..., :3, 1], T[..., :3, 2], T[..., :3, 3]) for T in mats]

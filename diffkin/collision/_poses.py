@@ -18,7 +18,7 @@ from torch import Tensor
 from ..kernels import native
 from ..kernels.joints import origin_transform
 from ..kernels.tree import Segments
-from ..models.urdf_xml import MOVING_TYPES
+from ..models.urdf_xml import moves
 from ..validation import check_finite
 
 __all__ = ["LinkFrames"]
@@ -51,7 +51,7 @@ class LinkFrames:
             anchor.append(a)
             rows.append(fixed)
             for j in reversed(tree.children(link)):
-                if j.type in MOVING_TYPES or j.type in ("planar", "floating"):
+                if moves(j.type):
                     if j.child in frame_of:
                         stack.append((j.child, frame_of[j.child], ()))
                 elif j.type == "fixed":

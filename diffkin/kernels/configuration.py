@@ -14,14 +14,17 @@ kind           nq    nv    motions         coordinates (MuJoCo's qpos order)
 revolute       1     1     R               angle (rad), limited
 continuous     1     1     R               angle (rad), no limit
 prismatic      1     1     P               length (m), limited
-planar         3     3     P P R           x, y (m) in the plane normal to the axis, then the angle about it
+planar         3     3     Px Py R         x, y (m) in the plane normal to the axis, then the angle about it
 ball           4     3     S               unit quaternion (w, x, y, z)
-free           7     6     P P P S         position (m) in the parent frame, then a unit quaternion
+free           7     6     Px Py Pz S      position (m) in the parent frame, then a unit quaternion
 =============  ====  ====  ==============  ==============================================================
 
 The velocity of a free joint is MuJoCo's: the linear velocity in the parent (world) frame, then the angular
-velocity in the body frame; a planar joint's is the rate of its coordinates. Adding a kind is one entry of
-:data:`JOINT_KINDS` (its motions), since the kernels only see elementary motions.
+velocity in the body frame; a planar joint's is the rate of its coordinates. A kind built from these motions
+is one row of :data:`JOINT_KINDS` (:class:`JointKind`: its motions, whether it is limited, its URDF / MuJoCo
+type names): the readers lay out its frames from the row (:func:`diffkin.models.description.kind_frames`),
+the topology, the native packer and the configuration space see only the motions, the viewer labels its
+sliders from it. A new *motion* is a row of :data:`MOTIONS` plus its kernel code (Python and C).
 
 :class:`ConfigurationSpace` is the product of the chain's coordinates: scalars (R and P motions, additive)
 and unit quaternions (S motions). ``integrate(q, v)`` = q ⊕ v (MuJoCo's ``mj_integratePos`` with dt = 1:
@@ -32,6 +35,7 @@ q_S ← q_S ⊗ exp(ω/2)), ``difference(q0, q1)`` its inverse (``mj_differentia
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -41,37 +45,122 @@ from torch import Tensor
 from .._numerics import safe_norm, sinc, stable_normalize
 from ..rotations import _canonical, _quaternion_multiply, _quaternion_to_rotvec
 
-__all__ = ["JointKind", "JOINT_KINDS", "joint_kind", "MOTION_NQ", "MOTION_NV", "ConfigurationSpace"]
+__all__ = ["Motion", "MOTIONS", "JointKind", "JOINT_KINDS", "joint_kind", "urdf_kind", "mjcf_kind",
+           "MOTION_NQ", "MOTION_NV", "ConfigurationSpace"]
 
-MOTION_NQ = {"R": 1, "P": 1, "S": 4}
-MOTION_NV = {"R": 1, "P": 1, "S": 3}
+@dataclass(frozen=True)
+class Motion:
+    """One elementary motion the kernels apply to a frame (module doc): its letter, the coordinates it
+    reads from q, the velocities (Jacobian columns) it moves, and whether it rotates the frame."""
+
+    letter: str
+    nq: int
+    nv: int
+    rotation: bool
+
+
+#: the elementary motions (the native library's ``DK_MOTIONS`` is checked against this table at load)
+MOTIONS: dict[str, Motion] = {m.letter: m for m in (
+    Motion("R", 1, 1, True),
+    Motion("P", 1, 1, False),
+    Motion("S", 4, 3, True),
+)}
+MOTION_NQ = {m.letter: m.nq for m in MOTIONS.values()}
+MOTION_NV = {m.letter: m.nv for m in MOTIONS.values()}
 
 
 @dataclass(frozen=True)
 class JointKind:
-    """One row of the table: a name, its elementary motions and whether its scalar coordinates have
-    position limits."""
+    """One row of the table, everything the library knows about a kind (readers, topology, native packer,
+    viewer and configuration space all read it from here).
+
+    ``motions``: the frames of the joint in order, each an elementary motion letter optionally followed by
+    an axis of the joint frame (``"Px"``: a translation along x, in the frame (x, y, z) whose z is the joint
+    axis; a bare ``"R"`` / ``"P"`` acts along the file's axis, ``"S"`` is a ball); ``limited``: whether its
+    scalar coordinates take the file's position limits; ``urdf`` / ``mjcf``: the joint type names that
+    read as this kind in a URDF file / a MuJoCo model (None: not in that format)."""
 
     name: str
     motions: tuple[str, ...]
     limited: bool
+    urdf: str | None = None
+    mjcf: str | None = None
+
+    def __post_init__(self):
+        for m in self.motions:
+            if m[:1] not in MOTIONS or m[1:] not in ("", "x", "y", "z") or (m[0] == "S" and m[1:]):
+                raise ValueError(f"joint kind {self.name!r}: a motion is one of {sorted(MOTIONS)} with an "
+                                 f"optional axis x, y or z (S: none), got {m!r}")
+
+    @property
+    def letters(self) -> tuple[str, ...]:
+        """The elementary motion of each frame (``"R"``, ``"P"``, ``"S"``)."""
+        return tuple(m[0] for m in self.motions)
+
+    @property
+    def axes(self) -> tuple[str | None, ...]:
+        """The joint-frame axis of each frame's motion (None: the file's axis, or a ball)."""
+        return tuple(m[1:] or None for m in self.motions)
+
+    @property
+    def has_axis(self) -> bool:
+        """Whether the kind reads a joint axis from the file (some R or P motion acts along it)."""
+        return any(m in ("R", "P") for m in self.motions)
 
     @property
     def nq(self) -> int:
-        return sum(MOTION_NQ[m] for m in self.motions)
+        return sum(MOTION_NQ[m] for m in self.letters)
 
     @property
     def nv(self) -> int:
-        return sum(MOTION_NV[m] for m in self.motions)
+        return sum(MOTION_NV[m] for m in self.letters)
+
+    @property
+    def q_offsets(self) -> tuple[int, ...]:
+        """Where each frame's coordinates start within the joint's ``nq`` entries of q."""
+        out, i = [], 0
+        for m in self.letters:
+            out.append(i)
+            i += MOTION_NQ[m]
+        return tuple(out)
+
+    def limits(self, lower: float | None, upper: float | None) -> list[list[float]]:
+        """The ``(nq, 2)`` rows of q limits from a file's ``lower`` / ``upper`` (None: none): a limited kind
+        gives them to its scalar coordinates, everything else is ±inf."""
+        free = [-math.inf, math.inf]
+        lo = -math.inf if lower is None else lower
+        hi = math.inf if upper is None else upper
+        rows: list[list[float]] = []
+        for m in self.letters:
+            scalar = MOTION_NQ[m] == 1
+            rows += [[lo, hi] if self.limited and scalar else list(free)] * MOTION_NQ[m]
+        return rows
+
+    @property
+    def velocity_labels(self) -> tuple[str, ...]:
+        """A short label per velocity coordinate (``()`` for a one-coordinate kind: the joint's name is its
+        label): a translation its axis, a rotation about the file's axis ``theta``, about a joint-frame axis
+        ``r`` + axis, a ball ``rx, ry, rz``."""
+        if self.nv == 1:
+            return ()
+        out: list[str] = []
+        for letter, ax in zip(self.letters, self.axes):
+            if letter == "S":
+                out += ["rx", "ry", "rz"]
+            elif letter == "P":
+                out.append(ax or "z")
+            else:
+                out.append(f"r{ax}" if ax else "theta")
+        return tuple(out)
 
 
 JOINT_KINDS: dict[str, JointKind] = {k.name: k for k in (
-    JointKind("revolute", ("R",), True),
-    JointKind("continuous", ("R",), False),
-    JointKind("prismatic", ("P",), True),
-    JointKind("planar", ("P", "P", "R"), False),
-    JointKind("ball", ("S",), False),
-    JointKind("free", ("P", "P", "P", "S"), False),
+    JointKind("revolute", ("R",), True, urdf="revolute", mjcf="hinge"),
+    JointKind("continuous", ("R",), False, urdf="continuous", mjcf="hinge"),
+    JointKind("prismatic", ("P",), True, urdf="prismatic", mjcf="slide"),
+    JointKind("planar", ("Px", "Py", "R"), False, urdf="planar"),
+    JointKind("ball", ("S",), False, mjcf="ball"),
+    JointKind("free", ("Px", "Py", "Pz", "S"), False, urdf="floating", mjcf="free"),
 )}
 
 
@@ -81,6 +170,21 @@ def joint_kind(name: str) -> JointKind:
         return JOINT_KINDS[name]
     except KeyError:
         raise ValueError(f"unknown joint kind {name!r}; known: {sorted(JOINT_KINDS)}") from None
+
+
+def urdf_kind(urdf_type: str) -> JointKind | None:
+    """The kind a URDF joint ``type`` reads as (None: ``"fixed"`` or a type no kind claims)."""
+    return next((k for k in JOINT_KINDS.values() if k.urdf == urdf_type), None)
+
+
+def mjcf_kind(mjcf_type: str, limited: bool) -> JointKind:
+    """The kind of a MuJoCo joint of type ``mjcf_type`` (``"hinge"``, ``"slide"``, ``"ball"``, ``"free"``):
+    of the rows with that type, the one whose ``limited`` matches (a hinge: revolute or continuous), else
+    the first."""
+    rows = [k for k in JOINT_KINDS.values() if k.mjcf == mjcf_type]
+    if not rows:
+        raise ValueError(f"no joint kind reads MuJoCo joint type {mjcf_type!r}")
+    return next((k for k in rows if k.limited == bool(limited)), rows[0])
 
 
 def _quaternion_exp(w: Tensor) -> Tensor:

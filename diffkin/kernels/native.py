@@ -430,11 +430,10 @@ class NativeModel:
 
 
 def _motions(topo: Topology) -> list[int]:
-    """Per frame the library's code of its motion: S for a ball motion, else R or P (:func:`motion_table`)."""
+    """Per frame the library's code of its motion letter (:func:`motion_table`)."""
     if not _motion_codes:
         raise RuntimeError("the native library is not loaded (native.available() first)")
-    sph = topo.spherical or (False,) * topo.n_frames
-    return [_motion_codes["S" if s else ("R" if r else "P")] for s, r in zip(sph, topo.revolute)]
+    return [_motion_codes[m] for m in topo.frame_motions]
 
 
 def _velocity_index(topo: Topology) -> list[int]:

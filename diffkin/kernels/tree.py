@@ -36,6 +36,7 @@ from .columns import (
     rotate_columns,
     stack_columns,
 )
+from .configuration import MOTION_NQ, MOTION_NV, MOTIONS
 
 __all__ = ["Topology", "Segments", "column_frames", "matrix_frames", "couple", "spherical_rotations"]
 
@@ -45,15 +46,18 @@ class Topology:
     """The structure of a kinematic tree (Python constants; see the module doc)."""
 
     parents: tuple[int, ...]
-    revolute: tuple[bool, ...]
+    #: per frame its elementary motion (:data:`~diffkin.kernels.configuration.MOTIONS`): "R", "P" or "S" (a
+    #: ball: the unit quaternion q[q_index[j] : q_index[j] + 4], three Jacobian columns)
+    frame_motions: tuple[str, ...]
     ends: tuple[int, ...]
     q_index: tuple[int, ...]
     multiplier: tuple[float, ...]
     q_offset: tuple[float, ...]
     n_vars: int
-    #: per frame: a ball motion "S" (the unit quaternion q[q_index[j] : q_index[j] + 4], three Jacobian
-    #: columns); empty: none (every frame one R or P motion)
-    spherical: tuple[bool, ...] = ()
+    #: per frame, read from the motion table: the motion rotates about z (R) / is a ball (S); what the
+    #: column arithmetic branches on
+    revolute: tuple[bool, ...] = field(init=False)
+    spherical: tuple[bool, ...] = field(init=False)
     ancestors: tuple[tuple[bool, ...], ...] = field(init=False)
     last_use: tuple[int, ...] = field(init=False)
     n_dofs: int = field(init=False)
@@ -68,8 +72,11 @@ class Topology:
         J = len(self.parents)
         if not all(-1 <= p < j for j, p in enumerate(self.parents)):
             raise ValueError(f"parents must precede their children, got {self.parents}")
-        if self.spherical and len(self.spherical) != J:
-            raise ValueError(f"spherical must have one entry per frame ({J}), got {len(self.spherical)}")
+        if len(self.frame_motions) != J or set(self.frame_motions) - set(MOTIONS):
+            raise ValueError(f"frame_motions must be one of {sorted(MOTIONS)} per frame ({J}), "
+                             f"got {self.frame_motions}")
+        object.__setattr__(self, "spherical", tuple(m == "S" for m in self.frame_motions))
+        object.__setattr__(self, "revolute", tuple(m == "R" for m in self.frame_motions))
         anc = []
         for e in self.ends:
             row, j = [False] * J, e
@@ -93,10 +100,9 @@ class Topology:
         """The velocity layout: the motion of each independent coordinate (R/P: one q and one v entry,
         S: four and three) in q order, each frame's first velocity column, and the Jacobian columns (one per
         R/P frame, three per S frame: its x, y, z axes)."""
-        sph = self.spherical or (False,) * J
         motion_at: dict[int, str] = {}
         for j in range(J):
-            m = "S" if sph[j] else ("R" if self.revolute[j] else "P")
+            m = self.frame_motions[j]
             if motion_at.setdefault(self.q_index[j], m) != m:
                 raise ValueError(f"frames of coordinate {self.q_index[j]} disagree on its motion")
             if m == "S" and (self.multiplier[j] != 1.0 or self.q_offset[j] != 0.0):
@@ -107,15 +113,16 @@ class Topology:
             if m is None:
                 raise ValueError(f"coordinate {i} of q drives no frame (q_index {self.q_index})")
             v_at[i], motions = nv, motions + [m]
-            i, nv = i + (4 if m == "S" else 1), nv + (3 if m == "S" else 1)
+            i, nv = i + MOTION_NQ[m], nv + MOTION_NV[m]
         if i != self.n_vars:
             raise ValueError(f"a quaternion runs past the end of q ({self.n_vars} coordinates)")
         cf, cv, cr = [], [], []
         for j in range(J):
-            for k in range(3 if sph[j] else 1):
+            m = MOTIONS[self.frame_motions[j]]
+            for k in range(m.nv):
                 cf.append(j)
                 cv.append(v_at[self.q_index[j]] + k)
-                cr.append(bool(self.revolute[j] or sph[j]))
+                cr.append(m.rotation)
         object.__setattr__(self, "n_dofs", nv)
         object.__setattr__(self, "motions", tuple(motions))
         object.__setattr__(self, "column_frame", tuple(cf))
@@ -126,7 +133,7 @@ class Topology:
 
     @property
     def has_spherical(self) -> bool:
-        return any(self.spherical)
+        return "S" in self.frame_motions
 
     @property
     def nq(self) -> int:
@@ -144,10 +151,11 @@ class Topology:
         return len(self.column_frame)
 
     @classmethod
-    def serial(cls, revolute: Sequence[bool]) -> Topology:
-        J = len(revolute)
-        return cls(tuple(range(-1, J - 1)), tuple(bool(r) for r in revolute), (J - 1,), tuple(range(J)),
-                   (1.0,) * J, (0.0,) * J, J)
+    def serial(cls, motions: Sequence[str]) -> Topology:
+        """A serial chain of one-coordinate motions (``"R"`` / ``"P"`` per joint, e.g. ``"RRPR"``)."""
+        J = len(motions)
+        return cls(tuple(range(-1, J - 1)), tuple(motions), (J - 1,), tuple(range(J)), (1.0,) * J,
+                   (0.0,) * J, J)
 
     @property
     def n_frames(self) -> int:
@@ -184,7 +192,7 @@ class Topology:
                 for j in self.column_frame:  # an S frame's columns are its axes x, y, z; others use z
                     k = seen.get(j, 0)
                     seen[j] = k + 1
-                    sel.append(3 * j + (k if self.spherical and self.spherical[j] else 2))
+                    sel.append(3 * j + (k if self.spherical[j] else 2))
                 t = torch.tensor(sel, device=device)
             elif name == "column_frame":
                 t = torch.tensor(self.column_frame, device=device)
@@ -257,7 +265,7 @@ def column_frames(qs: Sequence[Tensor], topo: Topology, seg: Segments, with_axes
     frames: dict[int, Columns] = {}
     kept, axes = [], []
     offsets = seg.offset if seg.offset is not None else [None] * J
-    sph = topo.spherical or (False,) * J
+    sph = topo.spherical
     for j in range(J):
         par = topo.parents[j]
         F = apply_fixed(base if par < 0 else frames[par], seg.pre[j] if seg.pre is not None else None, 0)

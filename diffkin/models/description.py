@@ -24,10 +24,11 @@ from torch import Tensor, nn
 
 from ..chain import KinematicChain
 from ..errors import ModelError
+from ..kernels.configuration import MOTIONS, JointKind
 from ..kernels.joints import compose_factors, translation_axes
 from ..kernels.tree import Topology
 
-__all__ = ["FrameSpec", "BodyInertia", "TreeDescription", "TreeChain"]
+__all__ = ["FrameSpec", "kind_frames", "BodyInertia", "TreeDescription", "TreeChain"]
 
 Factor = tuple[str, object]  # (factor table name, row index or axis name)
 
@@ -49,8 +50,27 @@ class FrameSpec:
     offset: float = 0.0
 
     def __post_init__(self):
-        if self.motion not in ("R", "P", "S"):
-            raise ModelError(f"a frame's motion is 'R', 'P' or 'S', got {self.motion!r}")
+        if self.motion not in MOTIONS:
+            raise ModelError(f"a frame's motion is one of {sorted(MOTIONS)}, got {self.motion!r}")
+
+
+def kind_frames(kind: JointKind, parent: int, start: int, q_index: int, pre: Sequence[Factor] = (),
+                post: Sequence[Factor] = (), multiplier: float = 1.0, q_offset: float = 0.0,
+                offset: float = 0.0) -> list[FrameSpec]:
+    """The frames of one joint of ``kind`` (a row of :data:`~diffkin.kernels.configuration.JOINT_KINDS`),
+    the only place a kind becomes frames: one per motion of the row, chained from ``parent``, numbered
+    from ``start`` (the index the first will have), reading q from ``q_index`` on (each frame at its
+    :attr:`~diffkin.kernels.configuration.JointKind.q_offsets`). ``pre`` (the factors into the joint
+    frame: origin, and the axis rotation A for a kind with an axis) goes before the first motion, ``post``
+    after the last; a motion along a joint-frame axis ``a`` sits between ``("C", a)`` and ``("Ct", a)``
+    (e_z to e_a and back). ``multiplier`` / ``q_offset`` (mimic) and ``offset`` apply to every frame."""
+    frames, n = [], len(kind.motions)
+    for i, (letter, ax, dq) in enumerate(zip(kind.letters, kind.axes, kind.q_offsets)):
+        f_pre = (tuple(pre) if i == 0 else ()) + ((("C", ax),) if ax else ())
+        f_post = ((("Ct", ax),) if ax else ()) + (tuple(post) if i == n - 1 else ())
+        frames.append(FrameSpec(letter, parent if i == 0 else start + i - 1, f_pre, f_post, q_index + dq,
+                                multiplier, q_offset, offset))
+    return frames
 
 
 @dataclass(frozen=True)
@@ -99,9 +119,9 @@ class TreeDescription:
     def topology(self) -> Topology:
         """The tree structure the kernels run on (:class:`~diffkin.kernels.tree.Topology`)."""
         f = self.frames
-        return Topology(tuple(x.parent for x in f), tuple(x.motion != "P" for x in f), tuple(self.ends),
+        return Topology(tuple(x.parent for x in f), tuple(x.motion for x in f), tuple(self.ends),
                         tuple(x.q_index for x in f), tuple(x.multiplier for x in f),
-                        tuple(x.q_offset for x in f), self.nq, tuple(x.motion == "S" for x in f))
+                        tuple(x.q_offset for x in f), self.nq)
 
 
 class TreeChain(KinematicChain):

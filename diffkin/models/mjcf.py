@@ -37,11 +37,12 @@ from torch import Tensor
 
 from .._numerics import stable_norm
 from ..errors import ModelError, require
+from ..kernels.configuration import JointKind, joint_kind, mjcf_kind
 from ..kernels.joints import axis_alignment
 from ..rotations import _quaternion_to_matrix
 from ..transforms import _make_transform
 from ..validation import check_device, check_end_links, tensors
-from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription
+from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription, kind_frames
 
 __all__ = ["MJCFChain", "from_mjcf", "compile_mjcf"]
 
@@ -179,28 +180,28 @@ class _Builder:
         for k in range(nj):
             j, t = adr + k, types[k]
             self.joints.append(j)
-            if t == mujoco.mjtJoint.mjJNT_FREE:
-                for axis in ("x", "y", "z"):
-                    frame = self._frame("P", frame, tokens + [("C", axis)], [("Ct", axis)], j)
-                    tokens = []
-                frame = self._frame("S", frame, [], [], j)
-                continue
-            self.anchor_joints.append(j)
-            anchor = len(self.anchor_joints) - 1
-            if t == mujoco.mjtJoint.mjJNT_BALL:
-                frame = self._frame("S", frame, tokens + [("J", anchor)], [("Jn", anchor)], j)
-            else:
+            kind = _kind(self.m, j)
+            pre, post = list(tokens), []
+            if t != mujoco.mjtJoint.mjJNT_FREE:  # MuJoCo places every joint but a free one at its pos
+                self.anchor_joints.append(j)
+                anchor = len(self.anchor_joints) - 1
+                pre, post = pre + [("J", anchor)], [("Jn", anchor)]
+            if kind.has_axis:
                 self.axis_joints.append(j)
                 h = len(self.axis_joints) - 1
-                kind = "R" if t == mujoco.mjtJoint.mjJNT_HINGE else "P"
-                frame = self._frame(kind, frame, tokens + [("J", anchor), ("A", h)],
-                                    [("At", h), ("Jn", anchor)], j)
-            tokens = []
+                pre, post = pre + [("A", h)], [("At", h)] + post
+            for spec in kind_frames(kind, frame, len(self.frames), 0, pre, post):
+                self.frames.append({"kind": spec.motion, "parent": spec.parent, "pre": list(spec.pre),
+                                    "post": list(spec.post), "joint": j, "qoff": spec.q_index})
+            frame, tokens = len(self.frames) - 1, []
         self.last_frame[b], self.pending[b] = frame, tokens
 
-    def _frame(self, kind: str, parent: int, pre: list, post: list, joint: int) -> int:
-        self.frames.append({"kind": kind, "parent": parent, "pre": pre, "post": post, "joint": joint})
-        return len(self.frames) - 1
+
+def _kind(model, j: int) -> JointKind:
+    """The joint kind of MuJoCo joint ``j`` (the ``mjcf`` column of the kinds table; a hinge is revolute
+    where limited, else continuous)."""
+    name = _mujoco().mjtJoint(int(model.jnt_type[j])).name[len("mjJNT_"):].lower()
+    return mjcf_kind(name, bool(model.jnt_limited[j]))
 
 
 def _couplings(model, chain_joints: list[int]) -> tuple[dict[int, tuple[int, float, float]], list[str]]:
@@ -259,32 +260,28 @@ def _layout(model, build: _Builder, follow: dict) -> dict:
     for j in build.joints:
         if j in follow:
             continue
-        t = int(model.jnt_type[j])
-        size = {mujoco.mjtJoint.mjJNT_FREE: 7, mujoco.mjtJoint.mjJNT_BALL: 4}.get(t, 1)
+        kind = _kind(model, j)
         slot[j] = nq
         names.append(_name(model, mujoco.mjtObj.mjOBJ_JOINT, j) or f"joint{j}")
-        kinds.append({mujoco.mjtJoint.mjJNT_FREE: "free", mujoco.mjtJoint.mjJNT_BALL: "ball",
-                      mujoco.mjtJoint.mjJNT_SLIDE: "prismatic"}.get(
-            t, "revolute" if model.jnt_limited[j] else "continuous"))
+        kinds.append(kind.name)
         qa, da = int(model.jnt_qposadr[j]), int(model.jnt_dofadr[j])
-        qpos_index.extend(range(qa, qa + size))
-        dof_index.extend(range(da, da + {7: 6, 4: 3}.get(size, 1)))
-        nq += size
+        qpos_index.extend(range(qa, qa + kind.nq))
+        dof_index.extend(range(da, da + kind.nv))
+        nq += kind.nq
     if nq == 0:
         raise ModelError("every joint of the chain is held by an equality constraint: nothing moves")
-    frames, seen_free = [], {}
+    frames = []
+    scalar = (mujoco.mjtJoint.mjJNT_HINGE, mujoco.mjtJoint.mjJNT_SLIDE)
     for f in build.frames:
         j = f["joint"]
-        free = int(model.jnt_type[j]) == mujoco.mjtJoint.mjJNT_FREE
-        ref = 0.0 if f["kind"] == "S" or free else float(model.qpos0[model.jnt_qposadr[j]])
-        q_index, m, b = slot.get(j), 1.0, 0.0
-        if free:  # x, y, z, then the quaternion
-            k = seen_free.get(j, 0)
-            seen_free[j] = k + 1
-            q_index = slot[j] + k
-        elif j in follow:
+        # MuJoCo's ref (the value of a hinge or slide in the model's pose) shifts the motion
+        ref = float(model.qpos0[model.jnt_qposadr[j]]) if int(model.jnt_type[j]) in scalar else 0.0
+        m, b = 1.0, 0.0
+        if j in follow:  # a follower is a hinge or slide: one coordinate, its leader's
             lead, m, b = follow[j]
             q_index = slot[lead]
+        else:
+            q_index = slot[j] + f["qoff"]
         frames.append(FrameSpec(f["kind"], f["parent"], tuple(f["pre"]), tuple(f["post"]), q_index, m, b,
                                 -ref))
     vslot = {j: dof_index.index(int(model.jnt_dofadr[j])) for j in slot}
@@ -302,10 +299,9 @@ def _limits(model, names: list[str], kinds: list[str]) -> list[list[float]]:
     out = []
     for name, kind in zip(names, kinds):
         j = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_JOINT, name)
-        if kind in ("revolute", "prismatic") and model.jnt_limited[j]:
-            out.append([float(model.jnt_range[j, 0]), float(model.jnt_range[j, 1])])
-        else:
-            out.extend([[-math.inf, math.inf]] * {"free": 7, "ball": 4}.get(kind, 1))
+        limited = bool(model.jnt_limited[j])
+        lo, hi = (float(model.jnt_range[j, 0]), float(model.jnt_range[j, 1])) if limited else (None, None)
+        out.extend(joint_kind(kind).limits(lo, hi))
     return out
 
 

@@ -15,30 +15,31 @@ applied as constants (zero terms skipped): real URDFs' fixed rotations are mostl
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from ..errors import ModelError
-from ..kernels.configuration import joint_kind
+from ..kernels.configuration import JointKind, joint_kind, urdf_kind
 from ..kernels.joints import axis_alignment, origin_transform, pose_correction
 from ..rotations import _matrix_to_euler
 from ..transforms import _make_transform
 from ..validation import check_end_links
-from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription
-from .urdf_xml import MOVING_TYPES, JointSpec, URDFTree, parse_inertials, parse_urdf, write_urdf
+from .description import BodyInertia, FrameSpec, TreeChain, TreeDescription, kind_frames
+from .urdf_xml import JointSpec, URDFTree, parse_inertials, parse_urdf, write_urdf
 
 __all__ = ["URDFChain", "from_urdf"]
 
 
-_KIND = {"revolute": "revolute", "continuous": "continuous", "prismatic": "prismatic", "planar": "planar",
-         "floating": "free"}  # URDF joint type -> joint kind (diffkin.kernels.configuration)
-_MULTI = ("planar", "floating")
+def _kind(j: JointSpec) -> JointKind:
+    """The joint kind of a moving joint's URDF type (the ``urdf`` column of the kinds table)."""
+    kind = urdf_kind(j.type)
+    if kind is None:
+        raise ModelError(f"joint {j.name!r}: type {j.type!r} does not move")
+    return kind
 
 
 def _moving(j: JointSpec) -> bool:
     # a <mimic> on a fixed joint (talos_reduced's grippers) does not make it move
-    return j.type in MOVING_TYPES or j.type in _MULTI
+    return urdf_kind(j.type) is not None
 
 
 def _leader(tree: URDFTree, j: JointSpec) -> tuple[JointSpec, float, float]:
@@ -72,7 +73,7 @@ def _describe(tree: URDFTree, ends: list[str], root_link: str | None,
     couplings = []
     for j in moving:
         lead, m, b = _leader(tree, j)
-        if lead.type in _MULTI and (lead is not j or j.mimic is not None):
+        if _kind(lead).nq != 1 and (lead is not j or j.mimic is not None):
             raise ModelError(f"joint {j.name!r}: a {lead.type} joint cannot take part in a mimic")
         if lead not in variables:
             variables.append(lead)
@@ -80,16 +81,14 @@ def _describe(tree: URDFTree, ends: list[str], root_link: str | None,
     slot, nq = {}, 7 if floating_base else 0
     for v in variables:
         slot[v.name] = nq
-        nq += joint_kind(_KIND[v.type]).nq
+        nq += _kind(v).nq
     index = {j.name: i for i, j in enumerate(used)}
-    axis_joints = [j for j in moving if j.type != "floating"]
+    axis_joints = [j for j in moving if _kind(j).has_axis]
     axis_row = {j.name: i for i, j in enumerate(axis_joints)}
     frames: list[FrameSpec] = []
     last_frame: dict[str, int] = {}  # joint name -> its last frame
     if floating_base:  # a free joint at the root: x, y, z along the root frame's axes, then a ball
-        for k, ax in enumerate("xyz"):
-            frames.append(FrameSpec("P", k - 1, (("C", ax),), (("Ct", ax),), k))
-        frames.append(FrameSpec("S", 2, (), (), 3))
+        frames += kind_frames(joint_kind("free"), -1, 0, 0)
     root_frame = len(frames) - 1
 
     def last_moving(path: list[JointSpec]) -> int:
@@ -101,31 +100,15 @@ def _describe(tree: URDFTree, ends: list[str], root_link: str | None,
         start = max((i + 1 for i, s in enumerate(path[:k]) if _moving(s)), default=0)
         origins = [("O", index[s.name]) for s in path[start : k + 1]]
         parent, q0 = last_moving(path[:k]), slot[lead.name]
-        if j.type == "floating":  # the motion of a free joint in the joint's origin frame
-            parts = [("P", [("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
-                     ("P", [("C", "z")], [("Ct", "z")]), ("S", [], [])]
-        elif j.type == "planar":  # x, y in the plane normal to the axis, then the angle about it
-            a = axis_row[j.name]
-            parts = [("P", [("A", a), ("C", "x")], [("Ct", "x")]), ("P", [("C", "y")], [("Ct", "y")]),
-                     ("R", [], [("At", a)])]
-        else:
-            a = axis_row[j.name]
-            parts = [("P" if j.type == "prismatic" else "R", [("A", a)], [("At", a)])]
-        for i, (kind, pre, post) in enumerate(parts):
-            frames.append(FrameSpec(kind, parent, tuple((origins if i == 0 else []) + pre), tuple(post),
-                                    q0 + (i if kind != "S" else 3), m, b))
-            parent = len(frames) - 1
-        last_frame[j.name] = parent
+        kind = _kind(j)  # the joint frame: its origin, then (a kind with an axis) e_z turned onto the axis
+        axis = [("A", axis_row[j.name])] if kind.has_axis else []
+        axis_t = [("At", axis_row[j.name])] if kind.has_axis else []
+        frames += kind_frames(kind, parent, len(frames), q0, origins + axis, axis_t, m, b)
+        last_frame[j.name] = len(frames) - 1
 
-    def limit(v: JointSpec, value: float | None, default: float) -> float:
-        return default if v.type == "continuous" or value is None else value
-
-    limits = [[-math.inf, math.inf]] * (7 if floating_base else 0)
+    limits = joint_kind("free").limits(None, None) if floating_base else []
     for v in variables:
-        if v.type in _MULTI:
-            limits += [[-math.inf, math.inf]] * joint_kind(_KIND[v.type]).nq
-        else:
-            limits.append([limit(v, v.lower, -math.inf), limit(v, v.upper, math.inf)])
+        limits += _kind(v).limits(v.lower, v.upper)
     end_factors = []
     for path in paths:
         start = max((i + 1 for i, s in enumerate(path) if _moving(s)), default=0)
@@ -134,7 +117,7 @@ def _describe(tree: URDFTree, ends: list[str], root_link: str | None,
     description = TreeDescription(
         tree.name, frames, [last_moving(p) for p in paths], end_factors, nq, limits,
         ["floating_base"] * floating_base + [v.name for v in variables],
-        ["free"] * floating_base + [_KIND[v.type] for v in variables],
+        ["free"] * floating_base + [_kind(v).name for v in variables],
         parameters={"origin_xyz": torch.tensor([j.xyz for j in used], dtype=torch.float64).reshape(-1, 3),
                     "origin_rpy": torch.tensor([j.rpy for j in used], dtype=torch.float64).reshape(-1, 3),
                     "axis": axes / torch.linalg.vector_norm(axes, dim=-1, keepdim=True)},

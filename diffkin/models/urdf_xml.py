@@ -30,12 +30,21 @@ from functools import cached_property
 from pathlib import Path
 
 from ..errors import ModelError
+from ..kernels.configuration import JOINT_KINDS, urdf_kind
 
-__all__ = ["JointSpec", "URDFTree", "parse_urdf", "write_urdf", "JOINT_TYPES", "MOVING_TYPES",
+__all__ = ["JointSpec", "URDFTree", "parse_urdf", "write_urdf", "joint_types", "moves",
            "CollisionSpec", "parse_collisions", "InertialSpec", "parse_inertials"]
 
-JOINT_TYPES = ("revolute", "continuous", "prismatic", "fixed", "floating", "planar")
-MOVING_TYPES = ("revolute", "continuous", "prismatic")
+
+def joint_types() -> tuple[str, ...]:
+    """The URDF joint types read: ``"fixed"`` and the ``urdf`` names of the joint kinds table."""
+    return ("fixed",) + tuple(k.urdf for k in JOINT_KINDS.values() if k.urdf)
+
+
+def moves(jtype: str) -> bool:
+    """Whether a URDF joint type moves (some joint kind reads it)."""
+    return urdf_kind(jtype) is not None
+
 
 Vec3 = tuple[float, float, float]
 
@@ -229,22 +238,23 @@ def _joint_spec(elem: ET.Element, index: int) -> JointSpec:
     jtype = elem.get("type")
     if not jtype:
         raise ModelError(f"{where} has no type")
-    if jtype not in JOINT_TYPES:
-        raise ModelError(f"{where}: unknown type {jtype!r} (one of {', '.join(JOINT_TYPES)})")
+    kind = urdf_kind(jtype)
+    if kind is None and jtype != "fixed":
+        raise ModelError(f"{where}: unknown type {jtype!r} (one of {', '.join(joint_types())})")
     parent = _link_ref(elem, "parent", where)
     child = _link_ref(elem, "child", where)
     origin = elem.find("origin")
     xyz = _vec3(origin, "xyz", (0.0, 0.0, 0.0), where)
     rpy = _vec3(origin, "rpy", (0.0, 0.0, 0.0), where)
     axis = _vec3(elem.find("axis"), "xyz", (1.0, 0.0, 0.0), where)
-    if jtype in MOVING_TYPES and not any(axis):
+    if kind is not None and kind.has_axis and not any(axis):
         raise ModelError(f"{where} ({jtype}) has a zero axis {axis}")
     limit = elem.find("limit")
     lower = _opt_float(limit, "lower", where)
     upper = _opt_float(limit, "upper", where)
-    if jtype == "continuous":
+    if kind is not None and not kind.limited:
         lower = upper = None
-    if jtype in ("revolute", "prismatic") and lower is not None and upper is not None and lower > upper:
+    if kind is not None and lower is not None and upper is not None and lower > upper:
         raise ModelError(f"{where}: limit lower {lower} > upper {upper}")
     mimic = None
     m = elem.find("mimic")

@@ -29,13 +29,11 @@ import torch
 from torch import Tensor
 
 from ..errors import ModelError, OptionError, ShapeError
+from ..kernels.configuration import joint_kind
 from ..validation import as_tensor, check_finite, check_number, shape_str
 from .sole import Sole, sole_of
 
 __all__ = ["Metrics", "metrics"]
-
-_WIDTH = {"free": 7, "ball": 4}
-
 
 @dataclass
 class Metrics:
@@ -65,7 +63,7 @@ def _finite(x, name: str) -> float:
 def _scalar_columns(chain) -> list[int]:
     cols, i = [], 0
     for kind in chain.joint_kinds:
-        w = _WIDTH.get(kind, 1)
+        w = joint_kind(kind).nq
         if w == 1:
             cols.append(i)
         i += w
