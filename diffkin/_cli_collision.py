@@ -12,7 +12,6 @@ Random samples with these options are collision-free configurations drawn by
 from __future__ import annotations
 
 import inspect
-import math
 import sys
 import warnings
 from pathlib import Path
@@ -21,6 +20,7 @@ import numpy as np
 import torch
 
 from .errors import DiffkinError
+from .validation import check_number
 
 __all__: list[str] = []
 
@@ -44,8 +44,7 @@ def collision_options(args, chain, source: str) -> tuple[object | None, object |
         if args.margin != 0.0 or args.srdf:
             raise DiffkinError("--margin / --srdf apply with --self-collision or --world")
         return None, None
-    if not math.isfinite(args.margin) or args.margin < 0:
-        raise DiffkinError(f"--margin: expected a finite distance >= 0 (m), got {args.margin}")
+    check_number(args.margin, "--margin", positive=False, unit=" (m)")
     # the reader the option names (--urdf / --mjcf), not the suffix; by suffix only without those options
     flag = next((f for f in ("urdf", "mjcf") if getattr(args, f, None)), None)
     suffix = {"urdf": ".urdf", "mjcf": ".xml"}[flag] if flag else Path(source).suffix.lower()

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from .errors import DiffkinError
+from .validation import check_count, check_number
 
 __all__: list[str] = []
 
@@ -222,10 +223,8 @@ def cmd_plan(args) -> int:
     out = check_output_path(args.output, (".npz", ".csv"))
     if args.plot:
         check_output_path(args.plot, (".png", ".pdf", ".svg"))
-    if args.max_iterations < 0:
-        raise DiffkinError(f"--max-iterations: expected an integer >= 0, got {args.max_iterations}")
-    if args.margin < 0:
-        raise DiffkinError(f"--margin: expected a distance >= 0 [m], got {args.margin}")
+    check_count(args.max_iterations, "--max-iterations", minimum=0)
+    check_number(args.margin, "--margin", positive=False, unit=" [m]")
     chain, path, kind = _robot(args)
     q0 = _joints(args.start, args.start_file, "start", chain)
     q1 = _joints(args.goal, args.goal_file, "goal", chain)

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from .errors import DiffkinError
+from .validation import check_count
 
 __all__: list[str] = []
 
@@ -83,8 +84,7 @@ def cmd_retarget(args) -> int:
     from .data_io import check_output_path, write_arrays
 
     out = check_output_path(args.output, (".npz", ".csv"))
-    if args.iterations < 0:
-        raise DiffkinError(f"--iterations: expected an integer >= 0, got {args.iterations}")
+    check_count(args.iterations, "--iterations", minimum=0)
     motion, skeleton = _motion(args.clip, args.skeleton)
     start, stop = _slice(args.frames, motion.frames)
     motion = motion.frames_slice(start, stop)

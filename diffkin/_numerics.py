@@ -12,6 +12,7 @@ from torch import Tensor
 
 __all__ = [
     "eps_for",
+    "tol_for",
     "safe_norm",
     "safe_normalize",
     "stable_norm",
@@ -29,6 +30,14 @@ def eps_for(x: Tensor | torch.dtype) -> float:
     """Machine epsilon of ``x``'s dtype (float32: 1.19e-7, float64: 2.22e-16)."""
     dtype = x if isinstance(x, torch.dtype) else x.dtype
     return torch.finfo(dtype).eps
+
+
+def tol_for(x: Tensor | torch.dtype, float64: float, float32: float) -> float:
+    """The tolerance of ``x``'s dtype: ``float64`` for double precision, ``float32`` for every other
+    floating dtype (single and lower). The one place a tolerance branches on the dtype: a call site states
+    both values, so what float32 gets is written next to what float64 gets."""
+    dtype = x if isinstance(x, torch.dtype) else x.dtype
+    return float64 if dtype == torch.float64 else float32
 
 
 def safe_sqrt(x: Tensor, eps: float | None = None) -> Tensor:

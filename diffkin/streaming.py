@@ -44,6 +44,7 @@ from .data_io import (
     open_writer,
 )
 from .errors import DiffkinError
+from .validation import check_count
 
 __all__ = ["FK_CHUNK_SIZE", "IK_CHUNK_SIZE", "FKStreamResult", "IKStreamResult", "stream_fk", "stream_ik",
            "combine_ik"]
@@ -202,8 +203,7 @@ def _aborting(writer):
 
 
 def _check_range(n: int, chunk_size: int, start: int, stop: int | None) -> tuple[int, int]:
-    if int(chunk_size) < 1:
-        raise DiffkinError(f"chunk_size must be a positive integer, got {chunk_size}")
+    check_count(chunk_size, "chunk_size")
     stop = n if stop is None else int(stop)
     if not 0 <= int(start) <= stop <= n:
         raise DiffkinError(f"expected 0 <= start <= stop <= {n} (rows of the input), got [{start}, {stop})")

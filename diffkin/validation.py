@@ -51,7 +51,9 @@ __all__ = [
     "check_fits_dtype",
     "check_given",
     "check_dtype",
+    "check_nonnegative",
     "check_number",
+    "check_positive",
     "check_finite",
     "check_shape",
     "check_tensor",
@@ -251,14 +253,30 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
         raise ShapeError(f"expected arguments whose batch dims broadcast, got {got}") from None
 
 
-def check_nonnegative(x: Tensor, name: str) -> Tensor:
+def check_nonnegative(x: Tensor, name: str, *, nan: bool = True) -> Tensor:
     """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry < 0 (a damping, a weight; NaN is
-    left to :func:`check_finite`; skipped while tracing)."""
+    left to :func:`check_finite` unless ``nan=False``, for options that may be inf and so are not checked
+    finite: then a NaN raises :class:`~diffkin.errors.NonFiniteOptionError`; skipped while tracing)."""
+    return _check_bound(x, name, torch.lt, ">= 0", "negative", nan)
+
+
+def check_positive(x: Tensor, name: str, *, nan: bool = True) -> Tensor:
+    """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry <= 0 (a damping that makes a step
+    unique, a time step; NaN as :func:`check_nonnegative`)."""
+    return _check_bound(x, name, torch.le, "> 0", "non-positive", nan)
+
+
+def _check_bound(x: Tensor, name: str, outside, bound: str, what: str, nan: bool) -> Tensor:
+    """The one rule of the tensor option checks: ``outside(x, 0)`` marks the entries outside the bound."""
     if x.numel() == 0 or _traced(x):
         return x
     with torch.no_grad():
-        if bool((x < 0).any()):
-            raise OptionError(f"expected {name} >= 0, got {int((x < 0).sum())} negative value(s) "
+        bad = outside(x, 0)
+        if not nan and bool(torch.isnan(x).any()):
+            n = int(torch.isnan(x).sum())
+            raise NonFiniteOptionError(f"expected {name} {bound}, got {n} NaN value(s)")
+        if bool(bad.any()):
+            raise OptionError(f"expected {name} {bound}, got {int(bad.sum())} {what} value(s) "
                               f"(smallest {float(x.min()):.3g})")
     return x
 

@@ -26,6 +26,7 @@ import torch
 from diffkin.training.algos import import_env_package
 from diffkin.training.config import RunConfig, entries, load_config
 from diffkin.training.plot import _mean_std, _on_grid, summarize
+from diffkin.validation import check_count
 
 __all__ = ["env_speed", "run_entry", "compare", "comparison_table", "plot_comparison", "main"]
 
@@ -36,8 +37,7 @@ _COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:
 def env_speed(cfg: RunConfig, steps: int = 2000, seed: int = 0) -> float:
     """Env steps per second (wall-clock) of one ``gymnasium.make(cfg.env_id, **cfg.env_kwargs)`` env under
     uniformly random actions, resets included; ``steps`` >= 1."""
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"expected steps as an integer >= 1, got {steps!r}")
+    steps = check_count(steps, "steps")
     import_env_package(cfg.env_id)
     env = gym.make(cfg.env_id, **cfg.env_kwargs)
     env.action_space.seed(seed)

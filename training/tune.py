@@ -34,6 +34,7 @@ import yaml
 
 from diffkin.errors import require
 from diffkin.training.config import RunConfig, load_config, read_entry
+from diffkin.validation import check_count
 
 __all__ = [
     "SPACE_TYPES",
@@ -314,8 +315,7 @@ def tune(config: str | Path, trials: int, storage: str | None = None, study: str
     storage and study name: Optuna hands each its own trials.
     """
     optuna = _optuna()
-    if trials < 1:
-        raise ValueError(f"expected trials >= 1, got {trials}")
+    trials = check_count(trials, "trials")
     cfg, space, settings = read_sweep(config, env, variant)
     name = study or cfg.name
     storage = storage or default_storage(name)

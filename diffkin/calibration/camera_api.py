@@ -10,6 +10,7 @@ from collections.abc import Iterable
 import torch
 from torch import Tensor
 
+from .._numerics import tol_for
 from ..chain import KinematicChain
 from ..errors import ConventionError, DiffkinError, NonFiniteError, OptionError, ShapeError, require
 from ..transforms import _transform_inverse, as_measured_transform
@@ -295,7 +296,7 @@ def calibrate_camera(
         max_iterations=max_iterations, tol=tol, progress=progress, loss=loss, scale=scale, **solver_options
     )
     if method == "gradient":
-        opts.setdefault("gtol", 1e-6 if q.dtype == torch.float64 else 1e-3)  # pixels
+        opts.setdefault("gtol", tol_for(q, 1e-6, 1e-3))  # pixels
     opts = {k: v for k, v in opts.items() if v is not None}
     out = solve(model, theta0, free, x[None], img[None], orientation_weight=1.0, **opts)
     theta = out.zeta[0]

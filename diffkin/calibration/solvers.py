@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for
+from .._numerics import eps_for, tol_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
 from ..validation import _traced, check_number, shape_str, tensors
@@ -205,8 +205,8 @@ def least_squares(
     was met — not merely the iteration budget spent.
     """
     position_only = measured.shape[-1] == 3 and measured.ndim == q.ndim
-    tol = (1e-10 if zeta0.dtype == torch.float64 else 1e-5) if tol is None else tol
-    damping = (1e-14 if zeta0.dtype == torch.float64 else 1e-6) if damping is None else damping
+    tol = tol_for(zeta0, 1e-10, 1e-5) if tol is None else tol
+    damping = tol_for(zeta0, 1e-14, 1e-6) if damping is None else damping
     K, P = free.shape  # P: the candidate parameters here
     cand_mask = model.candidate
     cand = cand_mask.nonzero().flatten().to(zeta0.device)
@@ -303,7 +303,7 @@ def gradient_descent(
         raise ConventionError(f"unknown loss {loss!r}; valid: {', '.join(LOSSES)}")
     scale = check_number(scale, "scale", unit=" (metres)")
     max_iterations = (100 if lbfgs else 3000) if max_iterations is None else max_iterations
-    tol = (1e-13 if zeta0.dtype == torch.float64 else 1e-7) if tol is None else tol
+    tol = tol_for(zeta0, 1e-13, 1e-7) if tol is None else tol
     with torch.no_grad():
         to_delta = _preconditioner(model, zeta0, q, free, position_only, orientation_weight, precondition)
     zeta0 = zeta0.detach()
@@ -348,7 +348,7 @@ def gradient_descent(
                 break
     if last != it:
         record()
-    gtol = (1e-8 if zeta0.dtype == torch.float64 else 1e-5) if gtol is None else gtol
+    gtol = tol_for(zeta0, 1e-8, 1e-5) if gtol is None else gtol
     closure()  # gradient at the final point
     g = u.grad.detach()
     dist = g.norm(dim=-1) * (scale * scale) / 2.0  # metres of RMS motion to the (local) optimum

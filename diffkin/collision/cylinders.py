@@ -41,7 +41,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._numerics import safe_norm, safe_normalize
+from .._numerics import safe_norm, safe_normalize, tol_for
 
 __all__ = ["point_cylinder", "sphere_cylinder", "cylinder_halfspace", "capsule_cylinder", "box_cylinder",
            "cylinder_cylinder", "cylinder_spheres"]
@@ -252,7 +252,7 @@ def _snapped(m: Tensor, delta: Tensor, E: Tensor, V: Tensor, rho: Tensor, beta: 
         f = f.masked_fill(~ok, -math.inf)
         scale = 1.0 + delta.detach().double().abs().amax(-1, keepdim=True) + E.detach().double().abs().sum(
             (-1, -2)).unsqueeze(-1)
-        tol = 1e-10 * scale if m.dtype == torch.float64 else 1e-5 * scale
+        tol = tol_for(m, 1e-10, 1e-5) * scale
         # the most constrained candidate within tol of the best (later candidates are more constrained)
         good = f >= f.amax(-1, keepdim=True) - tol
         idx = torch.arange(f.shape[-1], device=f.device).expand_as(f)

@@ -37,6 +37,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from .._numerics import tol_for
 from ..kernels import native, single
 
 __all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
@@ -422,7 +423,7 @@ def _pack_collision(chain, dtype, collision, world, gain, minimum_distance, dete
         pose = Fr.index_select(1, anchor) @ O.index_select(0, link)  # (3, G, 4, 4)
         X = torch.linalg.solve(F.unsqueeze(2), pose.unsqueeze(1))  # (3, J + 1, G, 4, 4): F_f^-1 pose_g
         spread = (X - X[:1]).abs().amax((0, -2, -1))  # (J + 1, G)
-        tol = 1e-9 if dtype == torch.float64 else 1e-4
+        tol = tol_for(dtype, 1e-9, 1e-4)
         frames, a_loc, b_loc = [], [], []
         for gi in range(nc):
             hits = (spread[:, gi] <= tol).nonzero().flatten().tolist()

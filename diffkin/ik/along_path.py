@@ -20,7 +20,15 @@ from torch import Tensor
 from ..errors import ConventionError, ShapeError
 from ..rotations import _matrix_to_rotvec, _rotvec_to_matrix
 from ..transforms import RIGIDITY_TOLERANCE, _transform_deviations
-from ..validation import _traced, broadcast_batch, check_number, check_trailing, shape_str, tensors
+from ..validation import (
+    _traced,
+    broadcast_batch,
+    check_count,
+    check_number,
+    check_trailing,
+    shape_str,
+    tensors,
+)
 from .closed_loop import clik
 from .result import final_errors
 
@@ -93,9 +101,7 @@ def refine_path(T_traj: Tensor, substeps: int) -> Tensor:
     """
     (T_traj,) = tensors(("T_traj", T_traj, None))
     _path_kind(T_traj, "T_traj", vectors=(3, 6))
-    if not (isinstance(substeps, int) and not isinstance(substeps, bool) and substeps >= 1):
-        raise ConventionError(f"substeps must be a positive int, got {substeps!r}")
-    return _refine_path(T_traj, substeps)
+    return _refine_path(T_traj, check_count(substeps, "substeps"))
 
 
 def _refine_path(T_traj: Tensor, substeps: int) -> Tensor:
@@ -181,8 +187,7 @@ def joint_trajectory_from_poses(
     velocities = None if velocities is None else velocities.expand(*batch, *velocities.shape[-2:])
     q0 = q0.expand(*batch, q0.shape[-1])
     if method == "clik":
-        if not (isinstance(substeps, int) and substeps >= 1):
-            raise ConventionError(f"substeps must be a positive int, got {substeps!r}")
+        substeps = check_count(substeps, "substeps")
         kw = dict(algorithm=algorithm, orientation=orientation, K=K, damping=damping)
         q = _along_clik(chain, T_traj, q0, poses, dt, velocities, substeps, kw)
     else:

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import safe_atan2, safe_sqrt, wrap_angle
+from .._numerics import safe_atan2, safe_sqrt, tol_for, wrap_angle
 from .._unchecked import fk
 from ..errors import ModelError, ShapeError
 from ..kernels.joints import dh_matrix
@@ -426,7 +426,7 @@ def closed_form(chain, T_target: Tensor, tol: float | None = None) -> ClosedForm
 def _valid_world(chain, q: Tensor, T: Tensor, tol) -> Tensor:
     """FK of every branch (world, base and tool included) against the target (scaled as :func:`_valid`)."""
     if tol is None:
-        tol = 1e-6 if T.dtype == torch.float64 else 1e-3
+        tol = tol_for(T, 1e-6, 1e-3)
     scale = recognise_industrial(chain)[1]
     with torch.no_grad():
         Tq = fk(chain, q.detach())
@@ -438,7 +438,7 @@ def _valid_world(chain, q: Tensor, T: Tensor, tol) -> Tensor:
 def _valid(chain, structure, kind, th_full, d_full, ref, tol) -> Tensor:
     """FK of every branch (frame 0, no base/tool) against the frame-0 target."""
     if tol is None:
-        tol = 1e-6 if chain.dtype == torch.float64 else 1e-3
+        tol = tol_for(chain.dtype, 1e-6, 1e-3)
     scale = 1.0 + float(chain.a.detach().abs().sum() + chain.d.detach().abs().sum())
     Tn = _fk0(chain, th_full, d_full, chain.n_joints)
     if kind == "pose" and structure not in ("spherical_arm", "anthropomorphic_arm"):

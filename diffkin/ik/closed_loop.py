@@ -55,7 +55,7 @@ from ..rotations import (
     _matrix_to_euler,
     _skew,
 )
-from ..validation import check_number, check_trailing, shape_str, tensors
+from ..validation import check_count, check_number, check_trailing, shape_str, tensors
 from ._clik_tasks import clik_arguments, clik_limits
 from .differential import least_squares, solve_step
 from .tasks import FrameTask, Problem
@@ -167,8 +167,7 @@ def _target_sampler(target, steps: int | None, dt: float, like: Tensor, task: _T
     if n_t == 0:
         raise ShapeError(f"expected x_d with at least one sample on its time axis, got {shape_str(x.shape)}")
     steps = n_t - 1 if steps is None else steps
-    if not isinstance(steps, int) or steps < 0:
-        raise ConventionError(f"clik: steps must be an int >= 0, got {steps!r}")
+    steps = check_count(steps, "clik: steps", minimum=0)
 
     def get_seq(k: int):
         kk = min(k, n_t - 1)

@@ -27,8 +27,8 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from ..errors import ConventionError, DiffkinError
-from ..validation import check_number, tensors
+from ..errors import ConventionError
+from ..validation import check_nonnegative, check_number, tensors
 from . import _native_velocity
 from .limits import Limit, check_limits, combine_boxes
 from .qp import _solve_box, _solve_general
@@ -187,8 +187,7 @@ def solve_velocity(chain, q, tasks, dt, *, limits=(), damping=1e-12) -> Tensor:
     q = chain.check_q(q)
     dt = check_number(dt, "dt", unit=" (s)")
     (lam,) = tensors(("damping", damping, None), like=chain)
-    if bool((lam < 0).any()) or bool(torch.isnan(lam).any()):
-        raise DiffkinError("solve_velocity: expected damping >= 0 (λ of (D.1))")
+    check_nonnegative(lam, "damping (λ of (D.1))")
     tasks, limits = check_tasks(tasks), check_limits(limits)
     p = Problem(chain, q, dt)
     A, b, reg = least_squares(p, tasks, lam)

@@ -43,7 +43,7 @@ from torch import Tensor
 from .._numerics import eps_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..redundancy import _pinv
-from ..validation import broadcast_batch, check_number, shape_str, tensors
+from ..validation import broadcast_batch, check_nonnegative, check_number, check_positive, shape_str, tensors
 from .differential import least_squares, solve_step
 from .limits import CollisionLimit, ConfigurationLimit, VelocityLimit, combine_boxes
 from .qp import _solve_general
@@ -73,12 +73,6 @@ def _frame_tasks(tasks, K: int) -> tuple[list[FrameTask], PostureTask | None]:
     return frames, (postures[0] if postures else None)
 
 
-def _nonnegative(x: Tensor, name: str) -> Tensor:
-    if bool((x < 0).any()) or bool(torch.isnan(x).any()):
-        raise DiffkinError(f"velocity_step: expected {name} >= 0 everywhere, got a negative or NaN entry")
-    return x
-
-
 def _inputs(chain, q, twist, damping, velocity_limit, weight):
     q = chain.check_q(q)
     K, one = chain.n_ends, chain.single_end
@@ -86,16 +80,15 @@ def _inputs(chain, q, twist, damping, velocity_limit, weight):
     twist, damping, vmax, weight = tensors(
         ("twist", twist, trailing), ("damping", damping, None), ("velocity_limit", velocity_limit, None),
         ("weight", weight, None), like=chain, finite=(True, True, False, True))
-    if not bool((damping > 0).all()):
-        raise DiffkinError("velocity_step: expected damping > 0 (λ of (V.1) makes the step unique)")
+    check_positive(damping, "damping (λ of (V.1) makes the step unique)")
     if vmax is not None:
-        _nonnegative(vmax, "velocity_limit")
+        check_nonnegative(vmax, "velocity_limit", nan=False)
     if weight is not None and weight.ndim and weight.shape[weight.ndim - len(trailing):] != trailing:
         dims = ", ".join(map(str, trailing))
         raise ShapeError(f"velocity_step: expected weight as a number or (..., {dims}), got "
                          f"{shape_str(weight.shape)}")
     if weight is not None:
-        _nonnegative(weight, "weight")
+        check_nonnegative(weight, "weight")
     return q, twist, damping, vmax, weight
 
 
@@ -121,7 +114,7 @@ def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask, dampers=None):
     if w.ndim and w.shape != (nv,):
         raise ShapeError(f"velocity_step: expected PostureTask.weight as a number or ({nv},), got "
                          f"{shape_str(w.shape)}")
-    D = (_nonnegative(w, "PostureTask.weight") ** 2).expand(nv)
+    D = (check_nonnegative(w, "PostureTask.weight") ** 2).expand(nv)
     if not bool((D > 0).any()):
         raise DiffkinError("velocity_step: PostureTask.weight must be > 0 for some joint")
     # q_ref ⊖ q: q_ref − q on 1-DOF joints, the rotation vector between quaternions on ball / free ones

@@ -27,6 +27,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._numerics import tol_for
 from ..rotations import _matrix_to_rotvec, _skew
 
 __all__ = ["se3_jlog", "se3_log"]
@@ -48,7 +49,7 @@ def _series(name: str, t2: Tensor) -> Tensor:
 def _coefficients(w: Tensor, names: str) -> dict[str, Tensor]:
     """The coefficients of (S.1)/(S.3) at the rotation vector ``w (..., 3)``: each ``(..., 1, 1)``."""
     t2 = (w * w).sum(-1)[..., None, None]
-    small = t2 < (1e-2 if w.dtype == torch.float64 else 0.25)
+    small = t2 < tol_for(w, 1e-2, 0.25)
     t2s = torch.where(small, torch.ones_like(t2), t2)  # the closed forms see θ away from 0 only
     t = torch.sqrt(t2s)
     s, co = torch.sin(t), torch.cos(t)
