@@ -9,7 +9,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from diffkin import models
-from diffkin.errors import ConventionError, ShapeError
+from diffkin.errors import ConventionError, OptionError, ShapeError
 from diffkin.ik.along_path import finite_difference_twists, joint_trajectory_from_poses, refine_path
 from diffkin.trajectories import Trajectory, cartesian_trajectory, circle_path
 
@@ -102,5 +102,5 @@ def test_bad_input(arm, path):
         joint_trajectory_from_poses(arm, T, q_true[:, 0], method="newton")
     with pytest.raises(ShapeError):
         joint_trajectory_from_poses(arm, T, q_true[:, 0], velocities=torch.zeros(3, 31, 3, dtype=F64))
-    with pytest.raises(ConventionError):
+    with pytest.raises(OptionError, match="substeps"):  # a numeric option: the one validator's error
         joint_trajectory_from_poses(arm, T, q_true[:, 0], substeps=0)

@@ -29,8 +29,8 @@ import torch
 from torch import Tensor
 
 from ..errors import ConventionError, DiffkinError, ShapeError
-from ..validation import check_number, shape_str
-from .tasks import Problem, _Frozen, _nonnegative, joint_dofs
+from ..validation import check_nonnegative, check_number, shape_str
+from .tasks import Problem, _Frozen, joint_dofs
 
 __all__ = ["CollisionLimit", "ConfigurationLimit", "Limit", "VelocityLimit"]
 
@@ -108,8 +108,8 @@ class VelocityLimit(Limit):
                     raise ShapeError(f"VelocityLimit: expected the limit of {name!r} as a number or "
                                      f"({len(cols)},), got {shape_str(v.shape)}")
                 vmax[cols] = v
-            return _nonnegative(vmax, "VelocityLimit.velocity")
-        v = _nonnegative(p.like("VelocityLimit.velocity", self.velocity, None), "VelocityLimit.velocity")
+            return check_nonnegative(vmax, "VelocityLimit.velocity")
+        v = check_nonnegative(p.like("VelocityLimit.velocity", self.velocity, None), "VelocityLimit.velocity")
         if v.ndim == 0:
             return v.expand(p.nv)
         if v.shape[-1] != p.nv:

@@ -40,7 +40,7 @@ from torch import Tensor
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.se3 import se3_jlog, se3_log
 from ..transforms import _transform_inverse
-from ..validation import shape_str, tensors
+from ..validation import check_nonnegative, shape_str, tensors
 
 __all__ = ["ComTask", "DampingTask", "FrameTask", "PostureTask", "RelativeFrameTask", "Task"]
 
@@ -131,22 +131,15 @@ def free_dofs(chain) -> list[int]:
     return [c for _, kind, cols in joint_dofs(chain) if kind == "free" for c in cols]
 
 
-def _nonnegative(x: Tensor, name: str) -> Tensor:
-    if bool((x < 0).any()) or bool(torch.isnan(x).any()):
-        raise DiffkinError(f"expected {name} >= 0 everywhere, got a negative or NaN entry")
-    return x
-
-
 def _gain_damping(task, p: Problem) -> tuple[Tensor, Tensor]:
-    gain = _nonnegative(p.like(f"{type(task).__name__}.gain", task.gain, None), f"{type(task).__name__}.gain")
-    mu = _nonnegative(p.like(f"{type(task).__name__}.lm_damping", task.lm_damping, None),
-                      f"{type(task).__name__}.lm_damping")
+    gain, mu = (check_nonnegative(p.like(f"{type(task).__name__}.{k}", v, None), f"{type(task).__name__}.{k}")
+                for k, v in (("gain", task.gain), ("lm_damping", task.lm_damping)))
     return gain, mu
 
 
 def _per_axis(p: Problem, value, name: str, m: int) -> Tensor:
     """A cost as a number or ``(..., m)``, made ``(..., m)``."""
-    w = _nonnegative(p.like(name, value, None), name)
+    w = check_nonnegative(p.like(name, value, None), name)
     if w.ndim == 0:
         return w.expand(m)
     if w.shape[-1] != m:
