@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from diffkin.errors import ConventionError, ModelError, ShapeError
+from diffkin.kernels.configuration import joint_kind
 from diffkin.models import load_chain
 from diffkin.retarget import Mapping, RetargetResult
 from diffkin.validation import check_finite
@@ -140,7 +141,7 @@ class ImitateTask(Task):
         if q_np.shape[-1] != chain.nq:
             raise ShapeError(f"reference q has {q_np.shape[-1]} coordinates per frame, the robot "
                              f"{chain.name!r} has nq {chain.nq}")
-        own = [n for n, k in zip(chain.joint_names, chain.joint_kinds) if k not in ("free", "ball")]
+        own = [n for n, k in zip(chain.joint_names, chain.joint_kinds) if joint_kind(k).nq == 1]
         if names and names != own:
             raise ModelError(f"reference joint names {names} differ from the robot's {own}")
         T = q_np.shape[1]

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from .. import ik
 from ..errors import ModelError, OptionError
+from ..kernels.configuration import joint_kind
 from ..validation import check_count
 from .mapping import Mapping
 from .metrics import Metrics, _scalar_columns, metrics
@@ -172,5 +173,5 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
     cols = _scalar_columns(chain)
     names = list(getattr(chain, "joint_names", []))
     kinds = list(chain.joint_kinds)
-    scalar_names = [n for n, k in zip(names, kinds) if k not in ("free", "ball")]
+    scalar_names = [n for n, k in zip(names, kinds) if joint_kind(k).nq == 1]  # the names of cols
     return RetargetResult(Q, contacts, m, s, X, kp, motion.fps, scalar_names, cols, warm, cost)
