@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from .errors import DiffkinError, NonFiniteError, ShapeError
+from .validation import check_count
 
 __all__ = [
     "DataFileError",
@@ -400,11 +401,8 @@ class RandomJoints:
     """
 
     def __init__(self, count: int, seed: int = 0):
-        if int(count) < 1:
-            raise DataFileError(f"expected a positive number of random samples, got {count}")
-        if int(seed) < 0:
-            raise DataFileError(f"expected a non-negative seed, got {seed}")
-        self.count, self.seed = int(count), int(seed)
+        self.count = check_count(count, "count (random samples)")
+        self.seed = check_count(seed, "seed", minimum=0)
 
     def source(self, chain) -> ArraySource:
         from .sampling import _scalar_ranges

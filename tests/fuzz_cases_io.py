@@ -65,6 +65,11 @@ EXEMPT: dict[str, str] = {
         "as_tensor", "broadcast_batch", "check_broadcasts_to", "check_count", "check_device",
         "check_fits_dtype", "check_dtype", "check_given", "check_number", "check_finite", "check_shape",
         "check_tensor", "check_trailing", "common_dtype_device", "shape_str")},
+    **{f"diffkin.validation.{name}": "a tensor option's bound (the rule velocity_step, solve_velocity and "
+       "the IK tasks share; fuzzed through them), unit-tested in tests/test_boundary_errors.py"
+       for name in ("check_nonnegative", "check_positive")},
+    **{f"diffkin.models.urdf_xml.{name}": "reads the joint kinds table (a type name in, no tensor input), "
+       "unit-tested in tests/test_joint_kinds.py" for name in ("joint_types", "moves")},
     "diffkin.validation.check_end_links": "takes names (no tensor input): the loaders' end-link rule, "
     "unit-tested in tests/test_mjcf.py and tests/test_urdf_models.py",
     **{f"diffkin.data_io.{name}": _FILES for name in (

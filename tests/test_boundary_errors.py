@@ -129,3 +129,27 @@ def test_urdf_errors_name_their_file(tmp_path):
     with pytest.raises(errors.ModelError) as info:
         models.from_urdf(bad_xml, "a")
     assert str(info.value).startswith(str(bad_xml)), str(info.value)
+
+
+def test_tensor_option_bounds_raise_one_error_type():
+    """check_positive / check_nonnegative: OptionError naming the option and the bound; NaN left to
+    check_finite unless ``nan=False`` (then NonFiniteOptionError, an OptionError); the public functions that
+    route through them raise the same."""
+    from diffkin.validation import check_nonnegative, check_positive
+
+    x = torch.tensor([0.5, 0.0, 2.0], dtype=torch.float64)
+    assert check_nonnegative(x, "w") is x
+    with pytest.raises(errors.OptionError, match=r"expected damping > 0, got 1 non-positive"):
+        check_positive(x, "damping")
+    with pytest.raises(errors.OptionError, match=r"expected w >= 0, got 2 negative value\(s\) \(smallest -3"):
+        check_nonnegative(torch.tensor([-1.0, 2.0, -3.0]), "w")
+    nan = torch.tensor([1.0, float("nan")])
+    assert check_nonnegative(nan, "limit") is nan
+    with pytest.raises(errors.NonFiniteOptionError, match="limit >= 0, got 1 NaN"):
+        check_nonnegative(nan, "limit", nan=False)
+    chain = DHChain([0.3, 0.2], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0], dtype=torch.float64)
+    q = torch.zeros(2, dtype=torch.float64)
+    with pytest.raises(errors.OptionError, match="damping"):
+        ik.velocity_step(chain, q, torch.zeros(6, dtype=torch.float64), 0.01, damping=0.0)
+    with pytest.raises(errors.OptionError, match="velocity_limit"):
+        ik.velocity_step(chain, q, torch.zeros(6, dtype=torch.float64), 0.01, velocity_limit=-1.0)

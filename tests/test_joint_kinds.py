@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from diffkin.kernels.configuration import JOINT_KINDS, MOTIONS, JointKind, joint_kind
 from diffkin.models import from_urdf
+from diffkin.models.urdf_xml import joint_types, moves
 from diffkin.viz_joints import slider_specs
 
 
@@ -53,6 +54,7 @@ def test_a_cylindrical_kind_is_one_row(new_kinds):
                            _joint("j2b", "continuous", "l4", "l2", axis="0 0.6 0.8"), _TOOL),
                     "l3", dtype=torch.float64)
     assert cyl.joint_kinds == ["revolute", "cylindrical"] and (cyl.nq, cyl.nv) == (3, 3)
+    assert "cylindrical" in joint_types() and moves("cylindrical") and not moves("fixed")
     assert cyl.joint_types == std.joint_types == "RPR"
     q = torch.tensor([[0.3, 0.2, -1.1], [-1.0, -0.4, 2.5]], dtype=torch.float64)
     torch.testing.assert_close(cyl.forward_kinematics(q), std.forward_kinematics(q), rtol=0, atol=1e-12)

@@ -148,9 +148,9 @@ def _target_tensors(values, task: _Task, like: Tensor, time_axis: bool) -> tuple
 def _target_sampler(target, steps: int | None, dt: float, like: Tensor, task: _Task):
     """-> (get(k) -> (x_d, ẋ_d | None, ẍ_d | None), steps). Sequences hold their last sample at rest."""
     if callable(target):
-        if not isinstance(steps, int) or steps < 0:
-            raise ConventionError(
-                f"clik: pass steps >= 0 when the target is a function of time, got {steps!r}")
+        if steps is None:
+            raise ConventionError("clik: pass steps (an integer >= 0) when the target is a function of time")
+        steps = check_count(steps, "clik: steps", minimum=0)
 
         def get_fn(k: int):
             out = target(torch.tensor(k * dt, dtype=like.dtype, device=like.device))
