@@ -18,7 +18,8 @@ DESCRIPTION = (
     "Retarget a human clip onto a humanoid: a per-clip scale, a frame-by-frame warm start with ik.solve,\n"
     "then one optimisation over all frames (feet held on the ground in contact without sliding, no\n"
     "penetration, joint limits, smoothness). The clip is a BVH file, an .npz of SMPL / SMPL-X joint\n"
-    "positions (key 'joints', with 'fps' or 'mocap_framerate'), or a shipped clip: walk, crouch, hop.\n"
+    "positions (key 'joints', with 'fps' or 'mocap_framerate'), or a shipped clip: walk, crouch, hop,\n"
+    "turn, reach. "
     "The robot is a built-in robot by name (--robot g1), or a URDF or MJCF file, whose bodies the\n"
     "built-in mapping (--mapping) names. Prints the artefact metrics before and after the whole-clip\n"
     "optimisation.")

@@ -31,7 +31,8 @@ def _offsets(path: Path) -> list[list[float]]:
 
 
 # ------------------------------------------------------------------------------------------ loaders
-@pytest.mark.parametrize("name, frames", [("walk", 150), ("crouch", 120), ("hop", 120)])
+@pytest.mark.parametrize("name, frames", [("walk", 150), ("crouch", 120), ("hop", 120), ("turn", 110),
+                                          ("reach", 74)])
 def test_shipped_clips_load(name, frames):
     path = retarget.example_clips()[name]
     m = retarget.load_bvh(path)
@@ -53,6 +54,24 @@ def test_shipped_clips_load(name, frames):
     # an adult: pelvis 0.8-1.1 m high in the first frame, head top above 1.3 m
     assert 0.8 < p[0, m.index("Hips")[0], 2] < 1.1
     assert p[0, m.index("Head_end")[0], 2] > 1.3
+
+
+def test_shipped_turn_and_reach_are_what_they_say():
+    """The turn turns the pelvis (hip line) > 110° to the left and back within 15°; the reach takes the right
+    wrist from below the shoulder to 20 cm above it with the elbow straightened (shoulder-wrist distance
+    > 95 % of the arm's length, from < 60 %) while the pelvis stays within 5 cm."""
+    turn = retarget.load_bvh(retarget.example_clips()["turn"])
+    p = turn.positions[0].numpy()
+    d = p[:, turn.index("LeftHip")[0]] - p[:, turn.index("RightHip")[0]]
+    yaw = np.degrees(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))
+    assert yaw.max() - yaw[0] > 110 and abs(yaw[-1] - yaw[0]) < 15
+    reach = retarget.load_bvh(retarget.example_clips()["reach"])
+    s, e, w, h = (reach.joint(n)[0].numpy() for n in ("RightShoulder", "RightElbow", "RightWrist", "Hips"))
+    arm = np.linalg.norm(e - s, axis=-1) + np.linalg.norm(w - e, axis=-1)
+    straight = np.linalg.norm(w - s, axis=-1) / arm
+    assert w[0, 2] < s[0, 2] and w[-1, 2] > s[-1, 2] + 0.2
+    assert straight[0] < 0.6 and straight[-1] > 0.95
+    assert np.linalg.norm(h - h[0], axis=-1).max() < 0.05
 
 
 def test_bvh_root_against_scipy():
