@@ -21,7 +21,9 @@ loopback interface unless told otherwise — that shows a :class:`~diffkin.chain
   ``drag="velocity"`` (or the GUI's "Limit-safe drag" box) the arm instead follows the target by
   resolved-rate steps of :func:`diffkin.ik.velocity_step` (a continuous motion that never leaves the
   joint limits nor exceeds ``drag_speed``);
-* trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second).
+* trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second), and of
+  a retargeted human clip (a :class:`~diffkin.retarget.RetargetResult`, its human keypoints drawn beside
+  the robot, or the ``.npz`` its ``save`` writes), at the clip's frame rate.
 
 Nothing here imports viser until a viewer is made: ``import diffkin`` and ``import diffkin.viz`` work
 without the extra, and :func:`show` raises :class:`~diffkin.errors.DiffkinError` naming it.
@@ -58,6 +60,7 @@ __all__ = ["Viewer", "show", "add_parser", "cmd_view", "MISSING_EXTRA"]
 MISSING_EXTRA = "diffkin view needs the 'viz' extra: pip install 'diffkin[viz]'"
 
 _SEGMENT_RGB = (235, 120, 20)  # orange links
+_KEYPOINT_RGB = (30, 170, 60)  # green human keypoints of a retargeted clip
 _END_RGB = (40, 110, 230)  # blue end-link frames
 
 
@@ -96,14 +99,25 @@ def _as_joints(chain, q, name: str = "q") -> Tensor:
     return t.to(dtype=chain.dtype, device=chain.device)
 
 
-def _read_trajectory(chain, trajectory) -> tuple[Tensor, float | None]:
-    """Joint vectors ``(N, n)`` and their frame rate when the file has times (else None).
+def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | None, np.ndarray | None]:
+    """Joint vectors ``(N, n)``, their frame rate when the source has one (else None) and, for a retargeted
+    clip, the human keypoints ``(N, K, 3)`` to draw beside the robot (else None).
 
     A file is read by :func:`diffkin.data_io.read_joints` (``.npy``, ``.csv``, ``.npz`` entry ``q``); an
-    ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate.
+    ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate;
+    so is one of :meth:`diffkin.retarget.RetargetResult.save` (``q (B, T, nq)`` and ``fps``: clip ``clip``
+    at the clip's rate). A :class:`~diffkin.retarget.RetargetResult` itself gives clip ``clip``'s ``q``, its
+    rate and its scaled human keypoints.
     """
+    q_clips = getattr(trajectory, "q", None)
+    if isinstance(q_clips, Tensor) and hasattr(trajectory, "keypoints") and hasattr(trajectory, "fps"):
+        B = q_clips.shape[0]
+        if not -B <= clip < B:
+            raise ShapeError(f"clip {clip} is not among the result's {B} clips")
+        points = trajectory.keypoints[clip].detach().cpu().double().numpy()
+        return _as_trajectory(chain, q_clips[clip]), float(trajectory.fps), points
     if not isinstance(trajectory, (str, Path)):
-        return _as_trajectory(chain, trajectory), None
+        return _as_trajectory(chain, trajectory), None, None
     path = Path(trajectory)
     if path.suffix == ".npz" and path.is_file():
         with np.load(path, allow_pickle=False) as data:
@@ -113,8 +127,13 @@ def _read_trajectory(chain, trajectory) -> tuple[Tensor, float | None]:
                 if "t" in data.files and data["t"].shape == (q.shape[0],) and q.shape[0] > 1:
                     span = float(data["t"][-1] - data["t"][0])
                     fps = (q.shape[0] - 1) / span if span > 0 else None
-                return q, fps
-    return _as_trajectory(chain, trajectory), None
+                return q, fps, None
+            if "q" in data.files and data["q"].ndim == 3 and "fps" in data.files:  # RetargetResult.save
+                B = data["q"].shape[0]
+                if not -B <= clip < B:
+                    raise ShapeError(f"clip {clip} is not among the {B} clips of {str(path)!r}")
+                return _as_trajectory(chain, data["q"][clip]), float(data["fps"]), None
+    return _as_trajectory(chain, trajectory), None, None
 
 
 def _as_trajectory(chain, trajectory) -> Tensor:
@@ -218,6 +237,7 @@ class Viewer:
             self._build_gui()
             self._traj: Tensor | None = None
             self._traj_gui: dict = {}
+            self._keypoints: tuple | None = None  # a retargeted clip's human keypoints (N, K, 3), cloud
             self._playing = threading.Event()
             self._fps = 30.0 if fps is None else float(fps)
             self._frame = 0
@@ -618,18 +638,29 @@ class Viewer:
             raise
 
     # ------------------------------------------------------------------------------------ trajectory
-    def load_trajectory(self, trajectory, fps: float | None = None) -> None:
+    def load_trajectory(self, trajectory, fps: float | None = None, clip: int = 0) -> None:
         """Load joint vectors ``(N, n)`` for playback (paused, at frame 0) and add the GUI's Trajectory
         folder (play/pause, frame slider, fps). ``trajectory``: a tensor or array, or a ``.npy`` / ``.csv``
         / ``.npz`` (entry ``q``) file, or the ``.npz`` of ``diffkin trajectory joint`` (played at the rate of
-        its times ``t`` unless ``fps`` is given)."""
-        traj, file_fps = _read_trajectory(self.chain, trajectory)
+        its times ``t`` unless ``fps`` is given), or a retargeted clip: a
+        :class:`~diffkin.retarget.RetargetResult` (clip ``clip`` at its rate, its scaled human keypoints
+        drawn as green points, ``/retarget/keypoints``, following the frames) or the ``.npz`` its ``save``
+        writes (clip ``clip`` at its rate)."""
+        traj, file_fps, points = _read_trajectory(self.chain, trajectory, clip)
         fps = fps if fps is not None else file_fps
         gui = self.server.gui
         with self._lock:
             self._playing.clear()
             if "folder" in self._traj_gui:
                 self._traj_gui["folder"].remove()  # and its controls
+            if self._keypoints is not None:
+                self._keypoints[1].remove()
+                self._keypoints = None
+            if points is not None:
+                cloud = self.server.scene.add_point_cloud(
+                    "/retarget/keypoints", points=points[0].astype(np.float32),
+                    colors=np.array(_KEYPOINT_RGB, dtype=np.uint8), point_size=0.03)
+                self._keypoints = (points, cloud)
             self._traj, self._frame = traj, 0
             if fps is not None:
                 self._fps = float(np.clip(fps, 0.1, 240.0))
@@ -665,17 +696,21 @@ class Viewer:
             i = int(i) % self._traj.shape[0]
             self._frame = i
             self.set_q(self._traj[i], move_targets=True)
+            if self._keypoints is not None:
+                self._keypoints[1].points = self._keypoints[0][i].astype(np.float32)
             self._syncing = True
             try:
                 self._traj_gui["frame"].value = i
             finally:
                 self._syncing = False
 
-    def play(self, trajectory=None, fps: float | None = None, loop: bool | None = None) -> None:
-        """Start playback — of ``trajectory`` ``(N, n)`` if given (tensor, array or file), else of the
-        loaded one — at ``fps`` frames per second; ``loop`` repeats it (default: the GUI's setting)."""
+    def play(self, trajectory=None, fps: float | None = None, loop: bool | None = None,
+             clip: int = 0) -> None:
+        """Start playback — of ``trajectory`` if given (what :meth:`load_trajectory` takes, ``clip`` of a
+        retargeted clip), else of the loaded one — at ``fps`` frames per second; ``loop`` repeats it
+        (default: the GUI's setting)."""
         if trajectory is not None:
-            self.load_trajectory(trajectory, fps=fps)
+            self.load_trajectory(trajectory, fps=fps, clip=clip)
         elif fps is not None:
             self._fps = float(np.clip(fps, 0.1, 240.0))
         if self._traj is None:
@@ -816,8 +851,9 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
     p.add_argument("--end-link", dest="end_link", nargs="+", metavar="LINK",
                    help="end link(s) of the URDF or MJCF (several: a tree, one target each)")
     p.add_argument("--root-link", dest="root_link", help="root link of the URDF chain (default: its root)")
-    p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), or "
-                   "the .npz of `diffkin trajectory joint`")
+    p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), "
+                   "the .npz of `diffkin trajectory joint`, or a retargeted clip's .npz (`diffkin retarget "
+                   "--output`; its first clip at its frame rate)")
     p.add_argument("--fps", type=float, default=None,
                    help="playback frames per second (default: the file's times if it has them, else 30)")
     p.add_argument("--play", action="store_true", help="start playing the trajectory at once")
