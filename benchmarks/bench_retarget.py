@@ -60,7 +60,8 @@ def mujoco_g1():
 
 
 def _metrics_row(m, b: int) -> dict:
-    return {"limit violations": int(m.joint_limit_violations[b]), "skating mm": float(m.foot_skating[b]),
+    return {"limit violations": int(m.joint_limit_violations[b]),
+            "worst excess rad": float(m.joint_limit_excess[b]), "skating mm": float(m.foot_skating[b]),
             "penetration mm": float(m.ground_penetration[b]), "floating mm": float(m.floating[b]),
             "keypoint mm": float(m.keypoint_error[b]), "max |qd| rad/s": float(m.max_joint_velocity[b])}
 

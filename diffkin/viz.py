@@ -54,7 +54,7 @@ from torch import Tensor
 
 from .errors import DiffkinError, ShapeError
 
-__all__ = ["Viewer", "show", "add_parser", "cmd_view", "MISSING_EXTRA"]
+__all__ = ["Viewer", "show", "add_parser", "cmd_view", "segment_points", "MISSING_EXTRA"]
 
 #: the message (after ``error:``) when viser is not installed
 MISSING_EXTRA = "diffkin view needs the 'viz' extra: pip install 'diffkin[viz]'"
@@ -97,6 +97,23 @@ def _as_joints(chain, q, name: str = "q") -> Tensor:
     if not bool(torch.isfinite(t).all()):
         raise DiffkinError(f"{name} must be finite")
     return t.to(dtype=chain.dtype, device=chain.device)
+
+
+def segment_points(chain, F: np.ndarray, E: np.ndarray, floating: bool = True) -> np.ndarray:
+    """The robot's drawing as segments ``(S, 2, 3)``: each joint frame's origin to its parent's, then each end
+    link's pose to the frame it hangs from (unless a single end link is the last frame). ``F`` ``(J + 1, 4,
+    4)``: ``chain.forward_kinematics(q, all_frames=True)``; ``E`` ``(K, 4, 4)``: the end poses.
+    ``floating=False`` leaves out the segments of a free first joint (its three slides and its ball: the
+    world origin to the floating body)."""
+    topo = chain.topology
+    parents = list(topo.parents)
+    skip = 0
+    if not floating and chain.joint_kinds and chain.joint_kinds[0] == "free":
+        skip = list(topo.motions).index("S") + 1  # the free joint's frames: slides x, y, z, then the ball
+    pts = [(F[p + 1, :3, 3], F[j + 1, :3, 3]) for j, p in enumerate(parents) if j >= skip]
+    if not (chain.single_end and topo.ends[0] == len(parents) - 1):
+        pts += [(F[e + 1, :3, 3], E[k, :3, 3]) for k, e in enumerate(topo.ends)]
+    return np.asarray(pts, dtype=np.float64).reshape(-1, 2, 3)
 
 
 def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | None, np.ndarray | None]:
@@ -281,10 +298,7 @@ class Viewer:
         return F.detach().cpu().double().numpy(), E.detach().cpu().double().numpy()
 
     def _segment_points(self, F: np.ndarray, E: np.ndarray) -> np.ndarray:
-        pts = [(F[p + 1, :3, 3], F[j + 1, :3, 3]) for j, p in enumerate(self._parents)]
-        if not self._ends_in_frames:
-            pts += [(F[f, :3, 3], E[k, :3, 3]) for k, f in enumerate(self._end_frames)]
-        return np.asarray(pts, dtype=np.float32).reshape(-1, 2, 3)
+        return segment_points(self.chain, F, E).astype(np.float32)
 
     def _build_scene(self, urdf, meshes: bool) -> None:
         scene = self.server.scene
