@@ -796,9 +796,9 @@ def section_retarget(report: Report, quick: bool) -> None:
         + _md_table(["stage", "limit violations", "skating", "penetration", "floating", "keypoint error"],
                     rows)
         + f"\n\nFrame {shown} (`retarget.plot_frame`): the human skeleton of the clip (blue) beside the G1 "
-        "(orange) and the scaled human joints it tracks (green):\n\n![a retargeted frame](retarget_frame.png)\n"
-        "\nThe lowest sole point of each foot after the optimisation (bars: contact detected in the "
-        "human clip):\n\n![sole heights](retarget_soles.png)\n"
+        "(orange) and the scaled human joints it tracks (green):\n\n"
+        "![a retargeted frame](retarget_frame.png)\n\nThe lowest sole point of each foot after the "
+        "optimisation (bars: contact detected in the human clip):\n\n![sole heights](retarget_soles.png)\n"
     )
     report.add(title, body)
     m = r.metrics

@@ -103,7 +103,7 @@ class Motion:
         return self.positions[:, :, self.index(name)[0]]
 
     def frames_slice(self, start: int = 0, stop: int | None = None) -> Motion:
-        """The frames ``start:stop`` as a new Motion (same fps; the skeleton's ``parents`` kept when known)."""
+        """The frames ``start:stop`` as a new Motion (same fps; the skeleton's ``parents`` kept if known)."""
         R = None if self.orientations is None else self.orientations[:, start:stop]
         out = Motion(self.positions[:, start:stop], self.names, self.fps, R)
         if getattr(self, "parents", None) is not None:
