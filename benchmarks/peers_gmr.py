@@ -2,7 +2,8 @@
 
 GMR is not on the package index; the benchmark imports it when it is installed (``pip install --no-deps -e``
 of its repository, plus ``loop_rate_limiters``; it runs on mink, MuJoCo, SciPy and ``rich``) and its rows
-are skipped otherwise (:func:`available`).
+are skipped otherwise (:func:`available`). The figures in docs/bench/retarget.txt are of its commit
+4f9e8b7b8b471c9d8b4cb0119f6dca886868b3dd (2025-08-09).
 
 **Its robot.** ``GeneralMotionRetargeting(src_human, "unitree_g1")`` loads GMR's own
 ``assets/unitree_g1/g1_mocap_29dof.xml``. Its kinematics are those of MuJoCo Menagerie's current 29-DoF
