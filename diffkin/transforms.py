@@ -39,7 +39,7 @@ __all__ = [
 #: limit in float32 and float64 (tracker exports rounded to a few decimals, float32 casts and
 #: quaternion-to-matrix round-off all stay well below it). Within it a transform is accepted and, where a
 #: function returns one (:func:`as_measured_transform`, :func:`as_rigid_transform`, the readers of
-#: :mod:`diffkin.data_io`), re-orthonormalised: the rotation replaced by the nearest one, the bottom row set
+#: :mod:`diffkin.io.data`), re-orthonormalised: the rotation replaced by the nearest one, the bottom row set
 #: to [0, 0, 0, 1]; beyond it refused with an error naming the first offending index (or file and row), the
 #: deviation and this limit.
 RIGIDITY_TOLERANCE = 1e-3
