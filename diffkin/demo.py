@@ -813,7 +813,7 @@ def section_motion(report: Report, quick: bool) -> None:
     import warnings
 
     from . import models, motion
-    from ._cli_plan import plan_figure
+    from .cli.plan import plan_figure
     from .collision import RobotCollision, World, box
 
     title = "Motion planning around an obstacle"

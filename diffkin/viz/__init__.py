@@ -9,13 +9,13 @@ loopback interface unless told otherwise — that shows a :class:`~diffkin.chain
   geometry when its meshes resolve (``yourdfpy``; ``package://`` paths often do not — then only frames and
   segments are drawn);
 * for an MJCF chain (:func:`diffkin.models.from_mjcf`), every body's visual geoms in its frame
-  (:func:`diffkin.viz_mjcf.mjcf_visuals`: primitives, and meshes where their files resolve, decimated);
+  (:func:`diffkin.viz.mjcf.mjcf_visuals`: primitives, and meshes where their files resolve, decimated);
 * with ``collision=`` (a :class:`~diffkin.collision.RobotCollision`) and ``world=``, the collision geoms and
   the world's objects, red for the pairs in contact (signed distance below ``margin``) at the shown q
-  (:mod:`diffkin.viz_collision`);
+  (:mod:`diffkin.viz.collision`);
 * one slider per joint variable (range ``chain.lower_upper()``: the limits, ±π / ±1 m where there is none);
   ball joints and the rotation of free joints as three rotation-vector sliders integrated on the manifold
-  by ``chain.integrate`` (:mod:`diffkin.viz_joints`), so quaternions stay unit;
+  by ``chain.integrate`` (:mod:`diffkin.viz.joints`), so quaternions stay unit;
 * a draggable target per end link (transform controls): moving it runs :func:`diffkin.ik.solve` seeded from
   the current ``q`` and shows success, position and orientation errors and the solve time; with
   ``drag="velocity"`` (or the GUI's "Limit-safe drag" box) the arm instead follows the target by
@@ -43,7 +43,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import sys
 import threading
 import time
 from pathlib import Path
@@ -52,7 +51,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import DiffkinError, ShapeError
+from ..errors import DiffkinError, ShapeError
 
 __all__ = ["Viewer", "show", "add_parser", "cmd_view", "segment_points", "MISSING_EXTRA"]
 
@@ -74,14 +73,14 @@ def _import_viser():
 
 def _wxyz(R: np.ndarray) -> np.ndarray:
     """Unit quaternions (w, x, y, z), w >= 0, of rotation matrices ``(..., 3, 3)``."""
-    from .rotations import matrix_to_quaternion
+    from ..rotations import matrix_to_quaternion
 
     return matrix_to_quaternion(torch.as_tensor(R, dtype=torch.float64)).numpy()
 
 
 def _pose(wxyz, position) -> np.ndarray:
     """4x4 transform from a quaternion (w, x, y, z) and a position."""
-    from .rotations import quaternion_to_matrix
+    from ..rotations import quaternion_to_matrix
 
     T = np.eye(4)
     q = torch.as_tensor(np.asarray(wxyz, dtype=np.float64))
@@ -120,7 +119,7 @@ def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | 
     """Joint vectors ``(N, n)``, their frame rate when the source has one (else None) and, for a retargeted
     clip, the human keypoints ``(N, K, 3)`` to draw beside the robot (else None).
 
-    A file is read by :func:`diffkin.data_io.read_joints` (``.npy``, ``.csv``, ``.npz`` entry ``q``); an
+    A file is read by :func:`diffkin.io.data.read_joints` (``.npy``, ``.csv``, ``.npz`` entry ``q``); an
     ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate;
     so is one of :meth:`diffkin.retarget.RetargetResult.save` (``q (B, T, nq)`` and ``fps``: clip ``clip``
     at the clip's rate). A :class:`~diffkin.retarget.RetargetResult` itself gives clip ``clip``'s ``q``, its
@@ -156,7 +155,7 @@ def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | 
 def _as_trajectory(chain, trajectory) -> Tensor:
     """Joint vectors ``(N, n)`` from a tensor, an array or a .npy/.npz/.csv file."""
     if isinstance(trajectory, (str, Path)):
-        from .data_io import read_joints
+        from ..io.data import read_joints
 
         return read_joints(trajectory, chain.n_joints, dtype=chain.dtype, device=chain.device)
     t = trajectory.detach() if isinstance(trajectory, Tensor) else torch.as_tensor(np.asarray(trajectory))
@@ -200,10 +199,10 @@ class Viewer:
         ik_state: the last IK solve: ``success`` (bool), ``position_error`` (m), ``orientation_error``
             (rad), ``time_s``, ``message`` — also shown in the GUI's IK folder.
         has_meshes: whether URDF visual geometry (or MJCF geoms) is shown.
-        visual_geoms: the MJCF geoms drawn (:class:`~diffkin.viz_mjcf.VisualGeom`), ``missing_meshes`` the
+        visual_geoms: the MJCF geoms drawn (:class:`~diffkin.viz.mjcf.VisualGeom`), ``missing_meshes`` the
             mesh geoms not drawn (files not found).
         contacts: the collision state at the shown q (``pairs``, ``world``, ``min_distance``; see
-            :meth:`diffkin.viz_collision.CollisionView.update`), ``{}`` without ``collision``.
+            :meth:`diffkin.viz.collision.CollisionView.update`), ``{}`` without ``collision``.
     """
 
     def __init__(self, chain, q=None, *, host: str = "127.0.0.1", port: int = 8080, trajectory=None,
@@ -216,7 +215,7 @@ class Viewer:
             raise DiffkinError("collision must be a RobotCollision of the chain shown")
         if world is not None and collision is None:
             raise DiffkinError("world needs collision= (the robot's RobotCollision) to be checked against")
-        from .validation import check_number
+        from ..validation import check_number
 
         margin = check_number(margin, "margin", positive=False, unit=" (m)")
         viser = _import_viser()
@@ -344,7 +343,7 @@ class Viewer:
         self.has_meshes = self._mesh is not None or bool(self.visual_geoms)
         self._collision_view = None
         if self._collision_args[0] is not None:
-            from .viz_collision import CollisionView
+            from .collision import CollisionView
 
             self._collision_view = CollisionView(scene, *self._collision_args, scale=s, q=self._q)
         self._targets = []
@@ -359,7 +358,7 @@ class Viewer:
         self.visual_geoms, self.missing_meshes, self._body_nodes = [], [], {}
         if not (hasattr(self.chain, "to_qpos") and hasattr(self.chain, "source_text")):
             return
-        from .viz_mjcf import mjcf_visuals
+        from .mjcf import mjcf_visuals
 
         with _quiet_logs():
             self.visual_geoms, self.missing_meshes = mjcf_visuals(self.chain, meshes=meshes)
@@ -449,7 +448,7 @@ class Viewer:
                     base.position, base.wxyz = F[0, :3, 3], qw[0]
                 self._mesh.update_cfg(self._mesh_cfg)
             if self._body_nodes:
-                from .models.mjcf_bodies import body_poses
+                from ..models.mjcf_bodies import body_poses
 
                 with torch.no_grad():
                     B = body_poses(self.chain, self._q).detach().cpu().double().numpy()
@@ -476,7 +475,7 @@ class Viewer:
         gui = self.server.gui
         chain = self.chain
         gui.configure_theme(control_width="medium")
-        from .viz_joints import slider_specs, slider_values
+        from .joints import slider_specs, slider_values
 
         self._slider_specs = slider_specs(chain, self._lo, self._hi)
         with gui.add_folder("Joints"):
@@ -507,10 +506,10 @@ class Viewer:
                          f"{len(self._targets)} end link(s) · drag the gizmo to solve IK")
 
     def _slider_callback(self, _event) -> None:
-        """A slider moved: q = chain.integrate(q_ref, v) of all sliders (:mod:`diffkin.viz_joints`)."""
+        """A slider moved: q = chain.integrate(q_ref, v) of all sliders (:mod:`diffkin.viz.joints`)."""
         if self._syncing:
             return
-        from .viz_joints import q_of_sliders
+        from .joints import q_of_sliders
 
         with self._lock:
             q = q_of_sliders(self.chain, self._q_ref, [s.value for s in self.sliders], self._slider_specs)
@@ -534,7 +533,7 @@ class Viewer:
         self._show(q, move_targets=move_targets, reference=True)
 
     def _show(self, q: Tensor, move_targets: bool, reference: bool) -> None:
-        from .viz_joints import slider_values
+        from .joints import slider_values
 
         with self._lock:
             self._q = q.clone()
@@ -568,7 +567,7 @@ class Viewer:
         """Solve IK to ``T_target`` — ``(4, 4)`` for one end link, ``(K, 4, 4)`` for K (default: where the
         targets are) — seeded from the current q; moves the targets there, shows the solution and its
         errors, and returns the :class:`~diffkin.ik.IKResult` (``q (n,)``, ``success``, errors)."""
-        from .ik import solve
+        from ..ik import solve
 
         with self._lock:
             T = self.targets() if T_target is None else self._move_targets(T_target)
@@ -784,8 +783,8 @@ class Viewer:
 def _drag_steps(chain, q: Tensor, T: np.ndarray, position_only: bool, speed: float, steps: int, dt: float):
     """Resolved-rate steps of :func:`diffkin.ik.velocity_step` towards the poses ``T (K, 4, 4)``: the twist
     [e_p; e_O]/Δt, |q̇| ≤ speed, the joint limits over Δt. -> (q, position error, orientation error)."""
-    from .ik import velocity_step
-    from .kernels.pose_error import orientation_error
+    from ..ik import velocity_step
+    from ..kernels.pose_error import orientation_error
 
     Tt = torch.as_tensor(T, dtype=chain.dtype, device=chain.device)
     weight = torch.tensor([1.0] * 3 + [0.0 if position_only else 1.0] * 3, dtype=Tt.dtype, device=Tt.device)
@@ -891,13 +890,13 @@ def _cli_collision(chain, urdf, mjcf):
     """``--collision``: the RobotCollision of the URDF or MJCF file shown."""
     import functools
 
-    from .collision import RobotCollision
+    from ..collision import RobotCollision
 
     if urdf:
         return RobotCollision.from_urdf(urdf, chain)
     if mjcf:
-        from .models.mjcf import compile_mjcf
-        from .models.mjcf_bodies import body_poses
+        from ..models.mjcf import compile_mjcf
+        from ..models.mjcf_bodies import body_poses
 
         return RobotCollision.from_mjcf(compile_mjcf(mjcf)[0], chain, body_poses=functools.partial(body_poses,
                                                                                                    chain))
@@ -907,8 +906,8 @@ def _cli_collision(chain, urdf, mjcf):
 def cmd_view(args) -> int:
     """``diffkin view``: load the robot, serve it, print the URL, run until Ctrl+C (or ``--duration``)."""
     _import_viser()  # the missing extra is the first thing to report
-    from . import models
-    from ._console import check_one_robot
+    from .. import models
+    from .._console import check_one_robot
 
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     mjcf = getattr(args, "mjcf", None)
@@ -943,14 +942,3 @@ def cmd_view(args) -> int:
     finally:
         viewer.close()
     return 0
-
-
-if __name__ == "__main__":  # python -m diffkin.viz ... (same options as `diffkin view`)
-    _parser = argparse.ArgumentParser(prog="python -m diffkin.viz")
-    add_parser(_parser.add_subparsers(dest="command", required=True))
-    _args = _parser.parse_args(["view", *sys.argv[1:]])
-    try:
-        sys.exit(cmd_view(_args))
-    except (DiffkinError, FileNotFoundError) as _exc:
-        print(f"error: {_exc}", file=sys.stderr)
-        sys.exit(2)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import DiffkinError
+from ..errors import DiffkinError
 
 __all__: list[str] = []
 
@@ -52,7 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _motion(spec: str, skeleton: str | None):
-    from . import retarget
+    from .. import retarget
 
     shipped = retarget.example_clips()
     if spec in shipped:
@@ -80,8 +80,8 @@ def _slice(text: str | None, frames: int) -> tuple[int, int]:
 
 
 def cmd_retarget(args) -> int:
-    from . import models, retarget
-    from .data_io import check_output_path, write_arrays
+    from .. import models, retarget
+    from ..io.data import check_output_path, write_arrays
 
     out = check_output_path(args.output, (".npz", ".csv"))
     if args.iterations < 0:
