@@ -28,6 +28,15 @@ from .errors import require
 __all__ = ["run_demo"]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+_NOT_SHIPPED = ("{} is not in the installed package (its licence is not stated: the robot ships in the "
+                "source repository only).")
+
+
+def _shipped(name: str) -> Path:
+    """The file of a catalogued robot (``models.model_path``): the demo reads what the package installs."""
+    from .models import model_path
+
+    return model_path(name)
 
 
 @dataclass
@@ -315,15 +324,14 @@ def section_trees(report: Report, quick: bool) -> None:
 # ----------------------------------------------------------------------------------------- MuJoCo
 def section_mjcf(report: Report, quick: bool) -> None:
     """A MuJoCo Menagerie humanoid (floating base): FK of every body against MuJoCo, whole-body IK."""
-    path = REPO_ROOT / "tests" / "data" / "mjcf" / "unitree_g1" / "g1.xml"
+    path = _shipped("unitree_g1")
     try:
         mujoco = require("mujoco", "mjcf", "MuJoCo models")
     except ImportError as exc:
         report.add("MuJoCo models (Menagerie G1, floating base)", f"Skipped: {exc}")
         return
     if not path.is_file():
-        report.add("MuJoCo models (Menagerie G1, floating base)",
-                   "Skipped: the vendored Menagerie models (tests/data/mjcf) are in the repository only.")
+        report.add("MuJoCo models (Menagerie G1, floating base)", f"Skipped: {path} is not installed.")
         return
     from . import models
     from .ik import solve
@@ -565,9 +573,9 @@ def section_collision_ik(report: Report, quick: bool) -> None:
     from .collision import RobotCollision, World
     from .ik import solve
 
-    urdf = REPO_ROOT / "tests" / "data" / "urdf" / "fr3.urdf"
+    urdf = _shipped("fr3")
     if not urdf.exists():
-        report.add("Collision-free IK", "Skipped: the FR3 URDF of the repository's tests/data is not here.")
+        report.add("Collision-free IK", f"Skipped: {_NOT_SHIPPED.format(urdf)}")
         return
     chain = models.from_urdf(urdf, "fr3_link8").requires_grad_(False)
     srdf = '<robot><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/></robot>'
@@ -662,15 +670,14 @@ def section_teleop(report: Report, quick: bool) -> None:
     """Differential IK at 500 Hz (issue 35): the Panda's hand on a moving circle, ik.solve_velocity with
     mink's tasks and limits (served by one C call a step), beside mink in the same run when installed."""
     title = "Teleoperation rate (differential IK, 500 Hz)"
-    path = REPO_ROOT / "tests" / "data" / "mjcf" / "franka_emika_panda" / "panda.xml"
+    path = _shipped("franka_emika_panda")
     try:
         require("mujoco", "mjcf", "MuJoCo models")
     except ImportError as exc:
         report.add(title, f"Skipped: {exc}")
         return
     if not path.is_file():
-        report.add(title, "Skipped: the vendored Menagerie models (tests/data/mjcf) are in the repository "
-                   "only.")
+        report.add(title, f"Skipped: {path} is not installed.")
         return
     import numpy as np
 
@@ -750,9 +757,9 @@ def section_retarget(report: Report, quick: bool) -> None:
     metrics of the frame-by-frame warm start and of the whole-clip optimisation, a frame of the clip beside
     the robot, the sole heights."""
     title = "Human motion onto a humanoid (retargeting)"
-    urdf = REPO_ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
+    urdf = _shipped("g1_urdf")
     if not urdf.is_file():
-        report.add(title, "Skipped: the G1 URDF of the repository's tests/data is not here.")
+        report.add(title, f"Skipped: {urdf} is not installed.")
         return
     from . import models, retarget
 
@@ -817,9 +824,9 @@ def section_motion(report: Report, quick: bool) -> None:
     from .collision import RobotCollision, World, box
 
     title = "Motion planning around an obstacle"
-    urdf = REPO_ROOT / "tests" / "data" / "urdf" / "fr3.urdf"
+    urdf = _shipped("fr3")
     if not urdf.exists():
-        report.add(title, "Skipped: the FR3 URDF of the repository's tests/data is not here.")
+        report.add(title, f"Skipped: {_NOT_SHIPPED.format(urdf)}")
         return
     d = torch.float64
     chain = models.from_urdf(urdf, "fr3_link8", dtype=d).requires_grad_(False)
