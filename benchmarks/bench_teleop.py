@@ -33,12 +33,16 @@ largest |q̇_diffkin − q̇_mink| at mink's states along the loop (whole
 trajectories are not compared: near the straight-knee singularity a 1e-12 difference grows along the
 loop). The machine may be shared: ratios are measured in the same run.
 
-Rows of the C step's v3 (``dk_vel`` version 3): ``teleop_fr3_collision_step``, the Panda step on the FR3 (the
-Panda's seven-joint successor, whose URDF collision model is capsules and spheres: the vendored Panda MJCF's
-collision meshes are not shipped) plus a CollisionLimit (its self pairs and three world spheres under and
-beside the flange, detection 0.1 m, minimum distance 5 mm, gain 0.85), beside mink with a
-CollisionAvoidanceLimit on MuJoCo's geoms of the same URDF (cylinders where diffkin has capsules: the two
-solve nearly, not exactly, the same problem; only the times compare); and ``teleop_g1_com_step``, the G1
+Rows of the C step's v3 (``dk_vel`` version 3): ``teleop_panda_collision_step``, the Panda step plus a
+CollisionLimit (the self pairs, the SRDF's disabled pairs applied, and three world spheres under and beside
+the hand, detection 0.1 m, minimum distance 5 mm, gain 0.85) on VAMP's spherized Panda URDF (59 spheres, 690
+self pairs; its ``panda_hand`` is the MJCF's ``hand`` to 4e-8 m), beside mink with a
+CollisionAvoidanceLimit on the same URDF in MuJoCo and exactly the same pairs (spheres: the same QP; the two
+steps agree to rounding at Δt = 1, where mink's bound γ(d − d_min)/Δt is CollisionLimit's γ(d − d_min):
+tests/test_native_velocity_rows.py); ``teleop_fr3_collision_step``, the same on the FR3 (the Panda's
+seven-joint successor, whose URDF collision model is capsules and spheres), where mink collides MuJoCo's
+cylinders where diffkin has capsules (nearly, not exactly, the same problem; only the times compare); and
+``teleop_g1_com_step``, the G1
 step with a ComTask (the centre of mass held over its start, swaying 1 cm with the hands), on the chain of
 ``teleop_g1_step`` (nv 29, the fingers held) and on one that reaches every body (nv 43, MuJoCo's: the same
 problem as mink's, the largest |Δq̇| at mink's states reported), each beside mink with its ComTask.
@@ -422,7 +426,13 @@ def _g1(steps: int):
 FR3 = ROOT / "tests" / "data" / "urdf" / "fr3.urdf"
 FR3_SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" '
             'reason="Default"/></robot>')
+VAMP_PANDA = ROOT / "tests" / "data" / "vamp_panda" / "panda_spherized.urdf"
 DETECT, D_MIN, C_GAIN = 0.1, 0.005, 0.85  # the CollisionLimit of the collision rows
+#: the robots of the collision rows: (URDF, SRDF, end link). The FR3: capsules and spheres (its mesh geoms
+#: are not shipped); VAMP's spherized Panda: 59 spheres, its MoveIt SRDF's 34 disabled pairs, the hand of
+#: the Menagerie Panda's rows (the same frame, to 4e-8 m)
+COLLISION_ROBOTS = {"fr3": (FR3, FR3_SRDF, "fr3_link8"),
+                    "panda": (VAMP_PANDA, VAMP_PANDA.with_name("panda.srdf"), "panda_hand")}
 
 
 def _fr3_world(T0: np.ndarray) -> np.ndarray:
@@ -432,47 +442,82 @@ def _fr3_world(T0: np.ndarray) -> np.ndarray:
     return np.array([[p[0], p[1], p[2] - 0.15, 0.05], [p[0] + 0.2, p[1], p[2], 0.04], [0.5, 0.5, 0.2, 0.1]])
 
 
-def _fr3_mink_model(spheres: np.ndarray):
-    """The FR3 URDF in MuJoCo for mink: mesh geoms and visuals dropped (the files are not shipped), the
-    capsule links' cylinders and spheres kept (MuJoCo collides the cylinders as cylinders), the world
-    spheres added as static bodies."""
+def collision_robot(name: str, dtype=torch.float64):
+    """``(chain, rc)``: the chain to the end link and its RobotCollision (the SRDF's disabled pairs
+    applied) of a robot of :data:`COLLISION_ROBOTS`."""
+    import warnings
+
+    from diffkin.collision import RobotCollision
+    from diffkin.models import from_urdf
+
+    urdf, srdf, end = COLLISION_ROBOTS[name]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the FR3's mesh geoms are not shipped: skipped with a warning
+        chain = from_urdf(urdf, end, dtype=dtype).requires_grad_(False)
+        rc = RobotCollision.from_urdf(urdf, chain, srdf=srdf).requires_grad_(False)
+    return chain, rc
+
+
+def collision_mink_model(name: str, spheres: np.ndarray):
+    """The robot's URDF in MuJoCo for mink: visuals and mesh geoms dropped (the FR3's files are not
+    shipped), the capsule links' cylinders and spheres kept (MuJoCo collides the cylinders as cylinders),
+    fixed links kept as bodies (``fusestatic="false"``: the end link is a body, the frame task the same
+    function as diffkin's), the world spheres added as fixed mocap bodies ``obstacle0`` ..."""
     import re
 
     import mujoco
 
-    text = FR3.read_text()
+    text = COLLISION_ROBOTS[name][0].read_text()
     text = re.sub(r"<visual>.*?</visual>", "", text, flags=re.S)
     text = re.sub(r"<collision>(?:(?!</collision>).)*<mesh.*?</collision>", "", text, flags=re.S)
-    model = mujoco.MjModel.from_xml_string(text)
-    with tempfile.TemporaryDirectory() as d:
-        path = Path(d) / "fr3.xml"
-        mujoco.mj_saveLastXML(str(path), model)
-        xml = path.read_text()
-    balls = "".join(f'<body name="obstacle{i}" pos="{x} {y} {z}"><geom name="obstacle{i}" type="sphere" '
-                    f'size="{r}"/></body>' for i, (x, y, z, r) in enumerate(spheres))
-    xml = xml.replace("<worldbody>", "<worldbody>" + balls, 1)
-    return mujoco.MjModel.from_xml_string(xml)
+    text = re.sub(r"(<robot[^>]*>)", r'\1<mujoco><compiler fusestatic="false"/></mujoco>', text, count=1)
+    spec = mujoco.MjSpec.from_string(text)  # no saved-XML round trip: it rounds the constants (~1e-7 m)
+    for i, (x, y, z, r) in enumerate(spheres):
+        # mocap: a weld of its own, else mink's parent-child filter drops the first link against it
+        body = spec.worldbody.add_body(name=f"obstacle{i}", pos=[x, y, z], mocap=True)
+        body.add_geom(name=f"obstacle{i}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[r, 0.0, 0.0])
+    return spec.compile()
 
 
-def _fr3_collision(steps: int):
-    """The Panda-class FR3 (seven hinges, capsule collision model from its URDF): the Panda step (frame
-    task, posture, configuration and velocity limits) plus a CollisionLimit on its self pairs and three
-    world spheres, the C step (NativeVelocity.step: FK, the distances and their gradients, the QP with the
-    rows solved exactly) beside mink with a CollisionAvoidanceLimit on the same arm (MuJoCo's geoms of the
-    same URDF) and spheres; returns (ours µs, mink µs, our smallest distance over the loop, steps whose
-    collision rows were detected (%))."""
-    import warnings
+def collision_mink_pairs(model, rc, q0) -> list:
+    """diffkin's pair set for mink's CollisionAvoidanceLimit ``geom_pairs``: each of ``rc``'s self pairs as
+    a pair of one-geom groups, and every robot geom against the obstacles. Each diffkin geom (a sphere or a
+    capsule) is the MuJoCo geom at its centre with its radius at ``q0`` (mj_kinematics); mink's own filters
+    (same weld, parent and child) keep all of these pairs but the base's geoms against the obstacles
+    (constant distances, which diffkin's CollisionLimit leaves out too: ``RobotCollision.skip_fixed``)."""
+    import mujoco
 
+    if any(g.shape == "box" for g in rc.geoms):
+        raise ValueError("collision_mink_pairs takes spheres and capsules (a box geom has no radius)")
+    data = mujoco.MjData(model)
+    data.qpos[:] = q0
+    mujoco.mj_kinematics(model, data)
+    a, b, r = (x.numpy() for x in rc.placed(torch.as_tensor(q0))[:3])
+    gap = (np.linalg.norm(data.geom_xpos[None] - (a + b)[:, None] / 2, axis=-1)
+           + np.abs(model.geom_size[None, :, 0] - r[:, None]))
+    ids = gap.argmin(-1)
+    if gap.min(-1).max() > 1e-6 or len(set(ids.tolist())) != len(ids):
+        raise AssertionError(f"the MuJoCo geoms are not diffkin's ({gap.min(-1).max():.3g} m)")
+    index = {g.name: int(ids[k]) for k, g in enumerate(rc.geoms)}
+    obstacles = [i for i in range(model.ngeom) if model.geom(i).name.startswith("obstacle")]
+    return [([index[x]], [index[y]]) for x, y in rc.pairs] + [(ids.tolist(), obstacles)]
+
+
+def _collision(name: str, steps: int):
+    """A collision row: the Panda step (frame task, posture, configuration and velocity limits) plus a
+    CollisionLimit on the robot's self pairs and three world spheres, the C step (NativeVelocity.step: FK,
+    the distances and their gradients, the QP with the rows solved exactly) beside mink with a
+    CollisionAvoidanceLimit on the same URDF's geoms in MuJoCo and the same pairs
+    (:func:`collision_mink_pairs`); returns (ours µs, mink µs, our smallest distance over the loop, steps
+    whose collision rows were detected (%))."""
     import mink
 
-    from diffkin.collision import RobotCollision, World
+    from diffkin.collision import World
     from diffkin.ik._native_velocity import NativeVelocity
-    from diffkin.models import from_urdf
+    from diffkin.ik.residuals import DistanceConstraint
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # the FR3's mesh geoms are not shipped: skipped with a warning
-        chain = from_urdf(FR3, "fr3_link8", dtype=torch.float64).requires_grad_(False)
-        rc = RobotCollision.from_urdf(FR3, chain, srdf=FR3_SRDF).requires_grad_(False)
+    chain, rc = collision_robot(name)
+    end = COLLISION_ROBOTS[name][2]
     q = torch.tensor(Q0, dtype=torch.float64)
     T0 = chain.forward_kinematics(q).numpy()
     spheres = _fr3_world(T0)
@@ -498,32 +543,20 @@ def _fr3_collision(steps: int):
     qs[0].copy_(q)
     times_ours, _ = _loop(record, targets)
     with torch.no_grad():
-        from diffkin.ik.residuals import DistanceConstraint
-
         d = DistanceConstraint(rc, world).distances(torch.from_numpy(traj))
     detected = float((d < DETECT).any(-1).double().mean()) * 100
-    model = _fr3_mink_model(spheres)
+    model = collision_mink_model(name, spheres)
     cfg = mink.Configuration(model)
-    qm = np.zeros(model.nq)
-    qm[:7] = Q0
-    frame = mink.FrameTask("fr3_link7", "body", position_cost=1.0, orientation_cost=1.0, gain=1.0,
-                           lm_damping=LM)
+    qm = np.array(Q0)
+    frame = mink.FrameTask(end, "body", position_cost=1.0, orientation_cost=1.0, gain=1.0, lm_damping=LM)
     posture = mink.PostureTask(model, cost=POSTURE)
     posture.set_target(qm)
     arm = [model.joint(i).name for i in range(model.njnt)]
-    robot = [model.geom(i).name for i in range(model.ngeom) if not model.geom(i).name.startswith("obstacle")]
-    robot = [g for g in robot if g]
-    obstacles = [f"obstacle{i}" for i in range(len(spheres))]
     limits = [mink.ConfigurationLimit(model, gain=0.95), mink.VelocityLimit(model, dict.fromkeys(arm, VMAX)),
-              mink.CollisionAvoidanceLimit(model, [(robot, robot), (robot, obstacles)], gain=C_GAIN,
+              mink.CollisionAvoidanceLimit(model, collision_mink_pairs(model, rc, qm), gain=C_GAIN,
                                            minimum_distance_from_collisions=D_MIN,
                                            collision_detection_distance=DETECT)]
     se3 = [mink.SE3.from_matrix(T) for T in targets]
-    # mink's frame: fr3_link7 (MuJoCo fuses the fixed link8 into it); the target is the flange's pose
-    # moved to link7 by the fixed offset at the start
-    cfg.update(qm)
-    off = cfg.get_transform_frame_to_world("fr3_link7", "body").inverse() @ mink.SE3.from_matrix(T0)
-    se3 = [T @ off.inverse() for T in se3]
 
     def theirs(k):
         frame.set_target(se3[k])
@@ -673,12 +706,14 @@ def run(args) -> list[dict]:
         rows.append(dict(benchmark="teleop_g1_step", impl="mink", median_us=g_mink,
                          ratio_to_diffkin=g_mink / g_ours,
                          max_abs_v_diff=agree))
-        with torch.no_grad():  # v3 rows: CollisionLimit and ComTask in the C step
-            c_ours, c_mink, dmin, detected = _fr3_collision(300 if quick else steps)
-        rows.append(dict(benchmark="teleop_fr3_collision_step", impl="diffkin C step (+ CollisionLimit)",
-                         steps=steps, median_us=c_ours, min_distance_m=dmin, steps_with_rows_pct=detected))
-        rows.append(dict(benchmark="teleop_fr3_collision_step", impl="mink (+ CollisionAvoidanceLimit)",
-                         median_us=c_mink, ratio_to_diffkin=c_mink / c_ours))
+        for robot in COLLISION_ROBOTS:  # v3 rows: CollisionLimit and ComTask in the C step
+            with torch.no_grad():
+                c_ours, c_mink, dmin, detected = _collision(robot, 300 if quick else steps)
+            bench = f"teleop_{robot}_collision_step"
+            rows.append(dict(benchmark=bench, impl="diffkin C step (+ CollisionLimit)", steps=steps,
+                             median_us=c_ours, min_distance_m=dmin, steps_with_rows_pct=detected))
+            rows.append(dict(benchmark=bench, impl="mink (+ CollisionAvoidanceLimit)", median_us=c_mink,
+                             ratio_to_diffkin=c_mink / c_ours))
         for every in (False, True):
             with torch.no_grad():
                 m_ours, m_mink, m_agree, m_nv = _g1_com(300 if quick else steps, every)

@@ -28,6 +28,15 @@ from .errors import require
 __all__ = ["run_demo"]
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+_NOT_SHIPPED = ("{} is not in the installed package (its licence is not stated: the robot ships in the "
+                "source repository only).")
+
+
+def _shipped(name: str) -> Path:
+    """The file of a catalogued robot (``models.model_path``): the demo reads what the package installs."""
+    from .models import model_path
+
+    return model_path(name)
 
 
 @dataclass
@@ -315,15 +324,14 @@ def section_trees(report: Report, quick: bool) -> None:
 # ----------------------------------------------------------------------------------------- MuJoCo
 def section_mjcf(report: Report, quick: bool) -> None:
     """A MuJoCo Menagerie humanoid (floating base): FK of every body against MuJoCo, whole-body IK."""
-    path = REPO_ROOT / "tests" / "data" / "mjcf" / "unitree_g1" / "g1.xml"
+    path = _shipped("unitree_g1")
     try:
         mujoco = require("mujoco", "mjcf", "MuJoCo models")
     except ImportError as exc:
         report.add("MuJoCo models (Menagerie G1, floating base)", f"Skipped: {exc}")
         return
     if not path.is_file():
-        report.add("MuJoCo models (Menagerie G1, floating base)",
-                   "Skipped: the vendored Menagerie models (tests/data/mjcf) are in the repository only.")
+        report.add("MuJoCo models (Menagerie G1, floating base)", f"Skipped: {path} is not installed.")
         return
     from . import models
     from .ik import solve
@@ -565,9 +573,9 @@ def section_collision_ik(report: Report, quick: bool) -> None:
     from .collision import RobotCollision, World
     from .ik import solve
 
-    urdf = REPO_ROOT / "tests" / "data" / "urdf" / "fr3.urdf"
+    urdf = _shipped("fr3")
     if not urdf.exists():
-        report.add("Collision-free IK", "Skipped: the FR3 URDF of the repository's tests/data is not here.")
+        report.add("Collision-free IK", f"Skipped: {_NOT_SHIPPED.format(urdf)}")
         return
     chain = models.from_urdf(urdf, "fr3_link8").requires_grad_(False)
     srdf = '<robot><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" reason="Default"/></robot>'
@@ -662,15 +670,14 @@ def section_teleop(report: Report, quick: bool) -> None:
     """Differential IK at 500 Hz (issue 35): the Panda's hand on a moving circle, ik.solve_velocity with
     mink's tasks and limits (served by one C call a step), beside mink in the same run when installed."""
     title = "Teleoperation rate (differential IK, 500 Hz)"
-    path = REPO_ROOT / "tests" / "data" / "mjcf" / "franka_emika_panda" / "panda.xml"
+    path = _shipped("franka_emika_panda")
     try:
         require("mujoco", "mjcf", "MuJoCo models")
     except ImportError as exc:
         report.add(title, f"Skipped: {exc}")
         return
     if not path.is_file():
-        report.add(title, "Skipped: the vendored Menagerie models (tests/data/mjcf) are in the repository "
-                   "only.")
+        report.add(title, f"Skipped: {path} is not installed.")
         return
     import numpy as np
 
@@ -747,11 +754,12 @@ def section_teleop(report: Report, quick: bool) -> None:
 
 def section_retarget(report: Report, quick: bool) -> None:
     """Human motion onto the G1 (issue 37): the shipped CMU walk through retarget.clip, the artefact
-    metrics of the frame-by-frame warm start and of the whole-clip optimisation, the sole heights."""
+    metrics of the frame-by-frame warm start and of the whole-clip optimisation, a frame of the clip beside
+    the robot, the sole heights."""
     title = "Human motion onto a humanoid (retargeting)"
-    urdf = REPO_ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
+    urdf = _shipped("g1_urdf")
     if not urdf.is_file():
-        report.add(title, "Skipped: the G1 URDF of the repository's tests/data is not here.")
+        report.add(title, f"Skipped: {urdf} is not installed.")
         return
     from . import models, retarget
 
@@ -783,6 +791,9 @@ def section_retarget(report: Report, quick: bool) -> None:
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     fig.savefig(report.out / "retarget_soles.png", dpi=110)
+    shown = frames * 3 // 10  # a frame of the walk's stride
+    retarget.plot_frame(g1, r, walk, shown, path=report.out / "retarget_frame.png",
+                        title=f"the walk, frame {shown}: the clip's skeleton beside the G1")
     body = (
         f"{frames} frames of the shipped CMU walk (60 fps) onto the 29-DoF G1 with the built-in mapping: a "
         f"per-clip scale ({float(r.scale[0]):.3f}), a frame-by-frame warm start with `ik.solve`, then one "
@@ -791,8 +802,10 @@ def section_retarget(report: Report, quick: bool) -> None:
         f"({frames / dt:.0f} frames/s on this machine). Metrics per `retarget.metrics` (mm):\n\n"
         + _md_table(["stage", "limit violations", "skating", "penetration", "floating", "keypoint error"],
                     rows)
-        + "\n\nThe lowest sole point of each foot after the optimisation (bars: contact detected in the "
-        "human clip):\n\n![sole heights](retarget_soles.png)\n"
+        + f"\n\nFrame {shown} (`retarget.plot_frame`): the human skeleton of the clip (blue) beside the G1 "
+        "(orange) and the scaled human joints it tracks (green):\n\n"
+        "![a retargeted frame](retarget_frame.png)\n\nThe lowest sole point of each foot after the "
+        "optimisation (bars: contact detected in the human clip):\n\n![sole heights](retarget_soles.png)\n"
     )
     report.add(title, body)
     m = r.metrics
@@ -807,13 +820,13 @@ def section_motion(report: Report, quick: bool) -> None:
     import warnings
 
     from . import models, motion
-    from ._cli_plan import plan_figure
+    from .cli.plan import plan_figure
     from .collision import RobotCollision, World, box
 
     title = "Motion planning around an obstacle"
-    urdf = REPO_ROOT / "tests" / "data" / "urdf" / "fr3.urdf"
+    urdf = _shipped("fr3")
     if not urdf.exists():
-        report.add(title, "Skipped: the FR3 URDF of the repository's tests/data is not here.")
+        report.add(title, f"Skipped: {_NOT_SHIPPED.format(urdf)}")
         return
     d = torch.float64
     chain = models.from_urdf(urdf, "fr3_link8", dtype=d).requires_grad_(False)

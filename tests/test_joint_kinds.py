@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from diffkin.kernels.configuration import JOINT_KINDS, MOTIONS, JointKind, joint_kind
 from diffkin.models import from_urdf
 from diffkin.models.urdf_xml import joint_types, moves
-from diffkin.viz_joints import slider_specs
+from diffkin.viz.joints import slider_specs
 
 
 def _joint(name, jtype, parent, child, xyz="0 0 0", rpy="0 0 0", axis="0 0 1", limit=""):

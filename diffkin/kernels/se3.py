@@ -28,7 +28,7 @@ import torch
 from torch import Tensor
 
 from .._numerics import tol_for
-from ..rotations import _matrix_to_rotvec, _skew
+from .rigid import _matrix_to_rotvec, _skew
 
 __all__ = ["se3_jlog", "se3_log"]
 

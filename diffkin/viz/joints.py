@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .kernels.configuration import JOINT_KINDS, MOTION_NQ, MOTION_NV, MOTIONS
+from ..kernels.configuration import JOINT_KINDS, MOTION_NQ, MOTION_NV, MOTIONS
 
 __all__: list[str] = []  # used through diffkin.viz.Viewer
 
