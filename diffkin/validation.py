@@ -51,6 +51,7 @@ __all__ = [
     "check_fits_dtype",
     "check_given",
     "check_dtype",
+    "check_lower_bound",
     "check_number",
     "check_finite",
     "check_shape",
@@ -251,16 +252,26 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
         raise ShapeError(f"expected arguments whose batch dims broadcast, got {got}") from None
 
 
-def check_nonnegative(x: Tensor, name: str) -> Tensor:
-    """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry < 0 (a damping, a weight; NaN is
-    left to :func:`check_finite`; skipped while tracing)."""
+def check_lower_bound(x: Tensor, name: str, bound: float = 0.0, *, strict: bool = False,
+                      cls: type[Exception] = OptionError) -> Tensor:
+    """Raise ``cls`` (default :class:`~diffkin.errors.OptionError`) unless every entry of ``x`` is
+    >= ``bound`` (``strict``: > ``bound``), naming how many are not and the smallest. NaN is left to
+    :func:`check_finite`; skipped while tracing (the values cannot be read)."""
     if x.numel() == 0 or _traced(x):
         return x
     with torch.no_grad():
-        if bool((x < 0).any()):
-            raise OptionError(f"expected {name} >= 0, got {int((x < 0).sum())} negative value(s) "
-                              f"(smallest {float(x.min()):.3g})")
+        bad = x <= bound if strict else x < bound
+        if bool(bad.any()):
+            op, neg = (">", "<=") if strict else (">=", "<")
+            raise cls(f"expected {name} {op} {bound:g}, got {int(bad.sum())} value(s) {neg} {bound:g} "
+                      f"(smallest {float(x.min()):.3g})")
     return x
+
+
+def check_nonnegative(x: Tensor, name: str) -> Tensor:
+    """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry < 0 (a damping, a weight):
+    :func:`check_lower_bound` at 0."""
+    return check_lower_bound(x, name)
 
 
 def check_number(x: Any, name: str, *, positive: bool = True, unit: str = "") -> float:
