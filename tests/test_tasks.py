@@ -455,3 +455,19 @@ def test_solve_velocity_cuda_matches_cpu():
     gpu = ik.solve_velocity(gchain, q.to(dev), gtasks, 0.02, limits=limits)
     assert gpu.device.type == "cuda"
     torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-9, rtol=0)
+
+
+def test_tasks_and_limits_arguments_name_what_they_take():
+    _, chain = _panda()
+    q = torch.zeros(7, dtype=F64)
+    posture = ik.PostureTask(q, cost=0.1)
+    kinds = r"\(FrameTask, RelativeFrameTask, PostureTask, ComTask, DampingTask\)"
+    with pytest.raises(ConventionError, match=r"expected tasks as Task objects " + kinds + ", got 'hand'"):
+        ik.solve_velocity(chain, q, [posture, "hand"], 0.01)
+    with pytest.raises(ConventionError, match=r"expected limits as Limit objects \(ConfigurationLimit, "
+                                              r"VelocityLimit, CollisionLimit\), got 1.0"):
+        ik.solve_velocity(chain, q, posture, 0.01, limits=[ik.ConfigurationLimit(), 1.0])
+    with pytest.raises(ConventionError, match="at least one task"):
+        ik.solve_velocity(chain, q, None, 0.01)
+    v = ik.solve_velocity(chain, q, posture, 0.01, limits=ik.ConfigurationLimit())  # one of each, unwrapped
+    assert v.shape == (7,)
