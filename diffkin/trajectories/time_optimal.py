@@ -48,7 +48,7 @@ from torch import Tensor
 
 from ..errors import ConventionError, ShapeError
 from ..validation import check_count, check_number, shape_str, tensors
-from ._common import InfeasibleTrajectoryError, Trajectory, cubic_coeffs, spline_slopes
+from ._common import InfeasibleTrajectoryError, Trajectory, cubic_coeffs, poly_eval, spline_slopes
 
 __all__ = ["TimedPath", "time_optimal"]
 
@@ -85,12 +85,10 @@ class _Path:
         k = self.segment(s) if k is None else k
         tau = (s - torch.gather(self.s, 1, k))[..., None]
         idx = k[..., None].expand(*k.shape, self.c[0].shape[-1])
-        c0, c1, c2, c3 = (torch.gather(c, 1, idx) for c in self.c)
-        q = c0 + tau * (c1 + tau * (c2 + tau * c3))
+        coeffs = [torch.gather(c, 1, idx) for c in self.c]
+        q, q1, q2 = poly_eval(coeffs, tau)
         q = torch.where((s >= self.s[:, -1:])[..., None], self.end[:, None], q)
-        q1 = c1 + tau * (2 * c2 + 3 * tau * c3)
-        q2 = 2 * c2 + 6 * tau * c3
-        return q, q1, q2, 6 * c3
+        return q, q1, q2, 6 * coeffs[3]
 
 
 # ------------------------------------------------------------------------------------ TOPP-RA on a grid
