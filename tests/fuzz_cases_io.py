@@ -63,7 +63,8 @@ EXEMPT: dict[str, str] = {
     "diffkin.io.streaming.combine_ik": "combines IKStreamResults (plain numbers), no tensor input",
     **{f"diffkin.validation.{name}": _PIECE for name in (
         "as_tensor", "broadcast_batch", "check_broadcasts_to", "check_count", "check_device",
-        "check_fits_dtype", "check_dtype", "check_given", "check_number", "check_finite", "check_shape",
+        "check_fits_dtype", "check_dtype", "check_given", "check_lower_bound", "check_number", "check_finite",
+        "check_shape",
         "check_tensor", "check_trailing", "common_dtype_device", "shape_str")},
     "diffkin.validation.check_end_links": "takes names (no tensor input): the loaders' end-link rule, "
     "unit-tested in tests/test_mjcf.py and tests/test_urdf_models.py",
