@@ -15,6 +15,7 @@ __all__ = [
     "tol_for",
     "safe_norm",
     "safe_normalize",
+    "normalize_floor",
     "stable_norm",
     "stable_normalize",
     "sinc",
@@ -72,9 +73,15 @@ def safe_normalize(v: Tensor, dim: int = -1, fallback: Tensor | None = None) -> 
     return _normalized(v, safe_norm(v, dim=dim, keepdim=True), dim, fallback)
 
 
+def normalize_floor(x: Tensor | torch.dtype) -> float:
+    """The norm at or below which :func:`safe_normalize` gives its fallback (no direction): sqrt(eps) / 1000
+    (float64: 1.5e-11, float32: 3.5e-7)."""
+    return eps_for(x) ** 0.5 * 1e-3
+
+
 def _normalized(v: Tensor, n: Tensor, dim: int, fallback: Tensor | None) -> Tensor:
     """``v / n`` with ``fallback`` where the norm ``n`` (keepdim) is ~0."""
-    small = n <= eps_for(v) ** 0.5 * 1e-3
+    small = n <= normalize_floor(v)
     if fallback is None:
         fallback = torch.zeros_like(v)
         fallback.select(dim, 0).fill_(1.0)

@@ -87,6 +87,17 @@ def _timed(fn):
     return out, time.perf_counter() - t0
 
 
+def _timed_fk(chain, B: int):
+    """(the generator (seed 0), B random configurations drawn from it, their FK and its time in s, after a
+    warm-up on 64 of them)."""
+    g = torch.Generator().manual_seed(0)
+    q = chain.random_configuration(B, generator=g)
+    with torch.no_grad():
+        chain.forward_kinematics(q[:64])
+        T, dt = _timed(lambda: chain.forward_kinematics(q))
+    return g, q, T, dt
+
+
 # ------------------------------------------------------------------------------------------------- IK
 def _pk_ik(T, pos_tol, rot_tol):
     """pytorch-kinematics' batched IK on the same Panda (from diffkin's URDF), float32, with the fastest
@@ -261,12 +272,8 @@ def section_trees(report: Report, quick: bool) -> None:
     tips = [f"link_{i}.0_tip" for i in (3, 7, 11, 15)]
     path = models.model_path("allegro_right_hand")
     hand = models.from_urdf(path, tips, dtype=torch.float64)
-    g = torch.Generator().manual_seed(0)
     B = 10_000 if quick else 100_000
-    q = hand.random_configuration(B, generator=g)
-    with torch.no_grad():
-        hand.forward_kinematics(q[:64])
-        T, dt_fk = _timed(lambda: hand.forward_kinematics(q))
+    g, q, T, dt_fk = _timed_fk(hand, B)
     N = 200 if quick else 1_000
     targets = T[:N, :, :3, 3]  # the four fingertip positions, (N, 4, 3)
     res, dt_ik = _timed(lambda: solve(hand, targets, position_only=True, seed=1))
@@ -340,12 +347,8 @@ def section_mjcf(report: Report, quick: bool) -> None:
     m = compile_mjcf(path)[0]
     bodies = [mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, i) for i in range(1, m.nbody)]
     chain = models.from_mjcf(path, bodies, dtype=torch.float64).requires_grad_(False)
-    g = torch.Generator().manual_seed(0)
     B = 5_000 if quick else 50_000
-    q = chain.random_configuration(B, generator=g)
-    with torch.no_grad():
-        chain.forward_kinematics(q[:64])
-        T, dt_fk = _timed(lambda: chain.forward_kinematics(q))
+    g, q, T, dt_fk = _timed_fk(chain, B)
     d = mujoco.MjData(m)
     worst, rows_mj = 0.0, 200
     t0 = time.perf_counter()

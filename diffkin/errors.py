@@ -46,7 +46,8 @@ class DTypeError(DiffkinError, TypeError):
 
 
 class ModelError(DiffkinError):
-    """A robot model (DH table, YAML or URDF) is malformed or unknown."""
+    """A robot model (DH table, YAML or URDF) or a scene (world file, MoveIt PlanningScene, obstacle geometry:
+    a negative radius, a zero-length cylinder) is malformed or unknown."""
 
 
 class RepresentationSingularityError(DiffkinError):

@@ -51,6 +51,7 @@ __all__ = [
     "check_fits_dtype",
     "check_given",
     "check_dtype",
+    "check_lower_bound",
     "check_nonnegative",
     "check_number",
     "check_positive",
@@ -253,32 +254,39 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
         raise ShapeError(f"expected arguments whose batch dims broadcast, got {got}") from None
 
 
+def check_lower_bound(x: Tensor, name: str, bound: float = 0.0, *, strict: bool = False,
+                      cls: type[Exception] = OptionError, nan: bool = True) -> Tensor:
+    """The one rule of the tensor option checks: raise ``cls`` (default
+    :class:`~diffkin.errors.OptionError`) unless every entry of ``x`` is >= ``bound`` (``strict``: >
+    ``bound``), naming how many are not and the smallest. NaN is left to :func:`check_finite` unless
+    ``nan=False`` (options that may be inf and so are not checked finite): then a NaN raises
+    :class:`~diffkin.errors.NonFiniteOptionError`. Skipped while tracing (the values cannot be read)."""
+    if x.numel() == 0 or _traced(x):
+        return x
+    with torch.no_grad():
+        op = ">" if strict else ">="
+        if not nan and bool(torch.isnan(x).any()):
+            raise NonFiniteOptionError(f"expected {name} {op} {bound:g}, got {int(torch.isnan(x).sum())} NaN "
+                                       "value(s)")
+        bad = x <= bound if strict else x < bound
+        if bool(bad.any()):
+            what = (("non-positive" if strict else "negative") if bound == 0
+                    else f"{'<=' if strict else '<'} {bound:g}")
+            raise cls(f"expected {name} {op} {bound:g}, got {int(bad.sum())} {what} value(s) "
+                      f"(smallest {float(x.min()):.3g})")
+    return x
+
+
 def check_nonnegative(x: Tensor, name: str, *, nan: bool = True) -> Tensor:
-    """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry < 0 (a damping, a weight; NaN is
-    left to :func:`check_finite` unless ``nan=False``, for options that may be inf and so are not checked
-    finite: then a NaN raises :class:`~diffkin.errors.NonFiniteOptionError`; skipped while tracing)."""
-    return _check_bound(x, name, torch.lt, ">= 0", "negative", nan)
+    """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry < 0 (a damping, a weight; NaN as
+    :func:`check_lower_bound`): :func:`check_lower_bound` at 0."""
+    return check_lower_bound(x, name, nan=nan)
 
 
 def check_positive(x: Tensor, name: str, *, nan: bool = True) -> Tensor:
     """Raise :class:`~diffkin.errors.OptionError` if ``x`` has an entry <= 0 (a damping that makes a step
-    unique, a time step; NaN as :func:`check_nonnegative`)."""
-    return _check_bound(x, name, torch.le, "> 0", "non-positive", nan)
-
-
-def _check_bound(x: Tensor, name: str, outside, bound: str, what: str, nan: bool) -> Tensor:
-    """The one rule of the tensor option checks: ``outside(x, 0)`` marks the entries outside the bound."""
-    if x.numel() == 0 or _traced(x):
-        return x
-    with torch.no_grad():
-        bad = outside(x, 0)
-        if not nan and bool(torch.isnan(x).any()):
-            n = int(torch.isnan(x).sum())
-            raise NonFiniteOptionError(f"expected {name} {bound}, got {n} NaN value(s)")
-        if bool(bad.any()):
-            raise OptionError(f"expected {name} {bound}, got {int(bad.sum())} {what} value(s) "
-                              f"(smallest {float(x.min()):.3g})")
-    return x
+    unique, a time step; NaN as :func:`check_lower_bound`)."""
+    return check_lower_bound(x, name, strict=True, nan=nan)
 
 
 def check_number(x: Any, name: str, *, positive: bool = True, unit: str = "") -> float:

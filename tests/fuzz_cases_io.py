@@ -63,7 +63,8 @@ EXEMPT: dict[str, str] = {
     "diffkin.io.streaming.combine_ik": "combines IKStreamResults (plain numbers), no tensor input",
     **{f"diffkin.validation.{name}": _PIECE for name in (
         "as_tensor", "broadcast_batch", "check_broadcasts_to", "check_count", "check_device",
-        "check_fits_dtype", "check_dtype", "check_given", "check_number", "check_finite", "check_shape",
+        "check_fits_dtype", "check_dtype", "check_given", "check_lower_bound", "check_number", "check_finite",
+        "check_shape",
         "check_tensor", "check_trailing", "common_dtype_device", "shape_str")},
     **{f"diffkin.validation.{name}": "a tensor option's bound (the rule velocity_step, solve_velocity and "
        "the IK tasks share; fuzzed through them), unit-tested in tests/test_boundary_errors.py"

@@ -236,3 +236,73 @@ class CoalCheck:
         """Over the checked pairs only."""
         self.place(q)
         return min(self._ref.distance(*self._shape(i), *self._shape(j)) for i, j in self.pairs)
+
+
+# ------------------------------------------------- the G1 (Menagerie MJCF) with feet, hands and its CoM
+G1_MJCF = DATA / "mjcf" / "unitree_g1" / "g1.xml"
+#: the feet and the hands: the FrameTasks' end links, in this order
+G1_ENDS = ["left_ankle_roll_link", "right_ankle_roll_link", "left_zero_link", "right_zero_link"]
+#: the finger leaves, so that the chain holds every body (the centre of mass moves with every joint)
+G1_LEAVES = ["left_two_link", "left_four_link", "left_six_link", "right_two_link", "right_four_link",
+             "right_six_link"]
+
+
+def se3_exp(xi: torch.Tensor) -> torch.Tensor:
+    """exp of twists ξ = [v; ω] ``(..., 6)`` -> ``(..., 4, 4)``: the reference, the matrix exponential of
+    [[ω]×, v; 0, 0] (mink's ``SE3.exp`` and diffkin's log both use this ordering)."""
+    xi = torch.as_tensor(xi, dtype=F64) if not isinstance(xi, torch.Tensor) else xi
+    M = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype)
+    w, v = xi[..., 3:], xi[..., :3]
+    M[..., 0, 1], M[..., 0, 2], M[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
+    M[..., 1, 0], M[..., 2, 0], M[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
+    M[..., :3, 3] = v
+    return torch.linalg.matrix_exp(M)
+
+
+def g1_com_robot(dtype=F64):
+    """(the compiled MuJoCo model, the chain of every body to ``G1_ENDS + G1_LEAVES``, frozen)."""
+    from diffkin.models.mjcf import compile_mjcf
+
+    model = compile_mjcf(G1_MJCF)[0]
+    return model, models.from_mjcf(G1_MJCF, G1_ENDS + G1_LEAVES, dtype=dtype).requires_grad_(False)
+
+
+def g1_com_case(model, chain, seed: int, feet: float = 1e-3, hands: float = 0.03, com=None, frame=None):
+    """(qpos, q, tasks) of the whole-body case: q near the model's qpos0 (normal, σ = 0.05, within the limits
+    by 0.01); tasks = [ComTask (the CoM pulled by (0.02, -0.01, -0.03), costs (5, 5, 1)), four FrameTasks
+    (``G1_ENDS``: feet moved by normal twists of scale ``feet``, hands of scale ``hands``, costs 10 / 1),
+    PostureTask (qpos0, cost 0.1)]. ``com`` / ``frame``: further keyword arguments of those tasks."""
+    rng = np.random.default_rng(seed)
+    qpos = model.qpos0.copy()
+    qpos[7:] += rng.normal(size=model.nq - 7) * 0.05
+    lo, hi = model.jnt_range[1:, 0], model.jnt_range[1:, 1]
+    qpos[7:] = np.clip(qpos[7:], lo + 0.01, hi - 0.01)
+    q = torch.tensor(qpos[chain.qpos_index()])
+    T = chain.forward_kinematics(q)
+    com_target = chain.center_of_mass(q) + torch.tensor([0.02, -0.01, -0.03], dtype=F64)
+    tasks = [ik.ComTask(com_target, cost=torch.tensor([5.0, 5.0, 1.0], dtype=F64), **(com or {}))]
+    for k in range(len(G1_ENDS)):
+        move = torch.tensor(rng.normal(size=6) * (hands if k >= 2 else feet))
+        tasks.append(ik.FrameTask(k, target=T[k] @ se3_exp(move), position_cost=10.0, orientation_cost=1.0,
+                                  **(frame or {})))
+    tasks.append(ik.PostureTask(torch.tensor(model.qpos0[chain.qpos_index()]), cost=0.1))
+    return qpos, q, tasks
+
+
+def g1_mink_tasks(model, tasks) -> list:
+    """mink's ComTask, FrameTasks and PostureTask with the targets, costs, gains and dampings of
+    :func:`g1_com_case`'s ``tasks``."""
+    import mink
+
+    com = tasks[0]
+    mc = mink.ComTask(cost=com.cost.numpy(), gain=com.gain, lm_damping=com.lm_damping)
+    mc.set_target(com.target.numpy())
+    out = [mc]
+    for name, t in zip(G1_ENDS, tasks[1:1 + len(G1_ENDS)]):
+        ft = mink.FrameTask(name, "body", position_cost=t.position_cost, orientation_cost=t.orientation_cost,
+                            gain=t.gain, lm_damping=t.lm_damping)
+        ft.set_target(mink.SE3.from_matrix(t.target.numpy()))
+        out.append(ft)
+    pt = mink.PostureTask(model, cost=tasks[-1].cost)
+    pt.set_target(model.qpos0)
+    return out + [pt]

@@ -15,7 +15,7 @@ import torch
 from diffkin import ik
 from diffkin.cli import main
 from diffkin.collision import World, box, read_world
-from diffkin.errors import DiffkinError
+from diffkin.errors import ModelError, ShapeError
 
 pin = pytest.importorskip("pinocchio")
 import collision_reference as ref  # noqa: E402
@@ -145,12 +145,24 @@ def test_world_files(tmp_path):
     wj = read_world(js, dtype=torch.float32)
     assert wj.counts == (1, 0, 1, 0, 0, 0) and wj.dtype == torch.float32
     assert len(read_world(_write(tmp_path, "empty.yaml", ""))) == 0
-    bad = {"cones: [[1, 2]]": "unknown key", "spheres: [[1, 2]]": "spheres", "- 1": "mapping",
-           "boxes: [{center: [0, 0, 0]}]": "half_extents", "halfspaces: [[0, 0, 2, 0]]": "unit",
-           "spheres: [": "cannot read"}
-    for i, (text, message) in enumerate(bad.items()):
-        with pytest.raises(DiffkinError, match=message):
+    bad = {  # the file's layout and the World's values: typed errors naming the file, expected and got
+        "cones: [[1, 2]]": (ModelError, r"unknown key\(s\) cones; expected keys among spheres, capsules"),
+        "spheres: [[1, 2]]": (ShapeError, r"bad1.yaml: expected spheres of shape .*, got \(1, 2\)"),
+        "- 1": (ModelError, "expected a mapping with keys spheres, .*, got list"),
+        "boxes: [{center: [0, 0, 0]}]":
+            (ModelError, r"boxes\[0\]: expected keys center, half_extents .*got center"),
+        "boxes: [{center: [0, 0, 0], half_extents: [1, -1, 1]}]":
+            (ModelError, r"boxes: expected half_extents >= 0, got 1 value\(s\) < 0 \(smallest -1\)"),
+        "halfspaces: [[0, 0, 2, 0]]": (ModelError, r"expected unit half-space normals, got norms \[2.0\]"),
+        "cylinders: [[0, 0, 1, 0, 0, 1, 0.1]]":
+            (ModelError, r"bad6.yaml: expected cylinders lengths \|b - a\|"),
+        "spheres: [": (ModelError, "expected YAML / JSON, cannot read the world file"),
+    }
+    for i, (text, (cls, message)) in enumerate(bad.items()):
+        with pytest.raises(cls, match=message):
             read_world(_write(tmp_path, f"bad{i}.yaml", text))
+    with pytest.raises(ModelError, match=r"world file '.*nowhere.yaml' not found \(expected an existing"):
+        read_world(tmp_path / "nowhere.yaml")
 
 
 def _write(tmp_path, name, text):

@@ -83,24 +83,23 @@ def test_the_chain_is_held_by_reference():
 
 # ------------------------------------------------------------------ 2. input checks at the boundary
 def test_world_rejects_negative_radii():
-    from diffkin.errors import DiffkinError
-
-    with pytest.raises(DiffkinError, match=r"spheres radii \(last column\) >= 0, got \[-1.0\]"):
+    with pytest.raises(ModelError, match=r"spheres radii \(last column\) >= 0, got 1 value\(s\) < 0 "
+                       r"\(smallest -1\)"):
         World(spheres=[[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, -1.0]])
-    with pytest.raises(DiffkinError, match="capsules radii"):
+    with pytest.raises(ModelError, match="capsules radii"):
         World(capsules=torch.tensor([[0.0, 0, 0, 1, 0, 0, -0.1]]))
     assert len(World(spheres=[[0.0, 0.0, 0.0, 0.0]], capsules=[[0.0, 0, 0, 1, 0, 0, 0.0]])) == 2  # 0 is fine
 
 
 def test_world_cylinders_argument():
     """cylinders (..., W_y, 7): axis end points and radius, like capsules; their columns come last."""
-    from diffkin.errors import DiffkinError, ShapeError
+    from diffkin.errors import ShapeError
 
     w = World(spheres=[[0.0, 0.0, 1.0, 0.1]], cylinders=[[0.5, 0.0, 0.0, 0.5, 0.0, 0.4, 0.05]],
               dtype=torch.float64)
     assert w.counts == (1, 0, 0, 0, 0, 1) and len(w) == 2 and w.cylinders.dtype == torch.float64
     assert w.to(torch.float32).cylinders.dtype == torch.float32
-    with pytest.raises(DiffkinError, match="cylinders radii"):
+    with pytest.raises(ModelError, match=r"cylinders radii \(last column\) >= 0, got 1 value\(s\) < 0"):
         World(cylinders=[[0.0, 0, 0, 0, 0, 1, -0.1]])
     with pytest.raises(ShapeError, match="cylinders"):
         World(cylinders=[[0.0, 0, 0, 0, 0, 1]])
@@ -301,3 +300,21 @@ def test_ur5e_shoulder_over_a_floor_is_left_out_and_ik_succeeds():
     q = diffkin.sampling.random_configuration(chain, (10,), g, collision=rc, world=floor, margin=0.02)
     res = ik.solve(chain, chain.forward_kinematics(q), collision=rc, world=floor, margin=0.005, seed=0)
     assert res.success.float().mean() >= 0.8
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_world_rejects_zero_length_cylinders(dtype):
+    """A cylinder without length has no axis (the kernel would take an arbitrary one for its flat faces):
+    refused at the boundary, in a batch of worlds too; a short one, above the normalisation floor, is kept."""
+    good = [0.0, 0.0, 0.0, 0.0, 0.0, 0.2, 0.05]
+    with pytest.raises(ModelError, match=r"cylinders lengths \|b - a\| \(columns 0-5\) > .*, got 1 value"):
+        World(cylinders=[good, [0.3, 0.1, 0.2, 0.3, 0.1, 0.2, 0.05]], dtype=dtype)
+    batched = torch.tensor([[good], [[1.0, 0, 0, 1.0, 0, 0, 0.0]]], dtype=dtype)  # (2 worlds, 1, 7)
+    with pytest.raises(ModelError, match="cylinders lengths"):
+        World(cylinders=batched)
+    short = 1e-3 if dtype == torch.float32 else 1e-8
+    w = World(cylinders=[good, [0.0, 0.0, 0.0, short, 0.0, 0.0, 0.01]], dtype=dtype)
+    assert w.counts[-1] == 2
+    stacked = World.stack([w, World(dtype=dtype)])  # its padding cylinders have a length too
+    assert stacked.cylinders.shape == (2, 2, 7)
+

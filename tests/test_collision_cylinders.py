@@ -290,3 +290,13 @@ def test_a_nan_row_is_nan_and_leaves_the_other_rows():
     centre, R = torch.stack([t(0, 0, 0), t(math.nan, 0, 0)]), torch.eye(3).double().expand(2, 3, 3)
     d_box = cylinders.box_cylinder(centre, R, t(0.1, 0.1, 0.1).expand(2, 3), b0, b1, rb)
     assert torch.isnan(d_box[1]) and torch.isfinite(d_box[0])
+
+
+def test_pair_table_names_the_kinds_it_has():
+    from diffkin.collision.pairs import pair
+    from diffkin.errors import ConventionError
+
+    assert pair("cylinder", "capsule")[1]  # stored the other way round
+    with pytest.raises(ConventionError, match=r"expected two geom kinds of the pair table \(capsule, box, .*"
+                                              r"got 'capsule' and 'cone'"):
+        pair("capsule", "cone")

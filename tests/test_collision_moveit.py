@@ -18,7 +18,7 @@ import diffkin
 from benchmarks import motion_problems as mp
 from diffkin.collision import RobotCollision, read_world
 from diffkin.collision.moveit import read_scene
-from diffkin.errors import DiffkinError, ModelError
+from diffkin.errors import ConventionError, ModelError
 
 pin = pytest.importorskip("pinocchio")
 coal = ref.coal
@@ -225,22 +225,56 @@ def test_hand_written_scene_poses_against_scipy_and_acm_pairs(tmp_path):
     held = sc.to_world(dtype=F64, cylinders="capsules")  # the enclosing capsule on request, in any World
     torch.testing.assert_close(held.capsules, cyl, rtol=0, atol=0)
     assert sc.column_names("capsules") == ["ball", "table/1", "table/0"]
-    with pytest.raises(DiffkinError, match="cylinders as 'exact', 'capsules' or None"):
+    with pytest.raises(ConventionError,
+                       match="expected cylinders as 'exact', 'capsules' or None, got 'cones'"):
         sc.to_world(cylinders="cones")
 
 
-@pytest.mark.parametrize("edit, match", [
-    (lambda t: t.replace("type: sphere", "type: cone"), "cone"),
-    (lambda t: t.replace("- [false, true, false, false]", "- [false, false, false, false]"), "symmetric"),
-    (lambda t: t.replace("dimensions: [0.05]", "dimensions: [0.05, 1]"), "expected 1 numbers"),
-    (lambda t: t.replace("orientation: [0, 0, 0, 1]}]\n    - id: table",
-                         "orientation: [0, 0, 0, 0]}]\n    - id: table"), "zero quaternion"),
-    (lambda t: t.replace("primitives: [{type: sphere", "meshes: [{}]\n      primitives: [{type: sphere"),
-     "meshes are not supported"),
-], ids=["cone", "asymmetric-acm", "dimensions", "zero-quaternion", "mesh"])
+_OBJ = r"world.collision_objects\[1\] \('table'\)"
+
+
+def _sub(old: str, new: str):
+    return lambda text: text.replace(old, new)
+
+
+_EDITS = {  # id: (edit of HAND_WRITTEN, what the ModelError says: the entry, what was expected, what came)
+    "cone": (_sub("type: sphere", "type: cone"),
+             r"primitives\[0\]: primitive type 'cone' is not supported \(expected box, sphere or cylinder\)"),
+    "asymmetric-acm": (_sub("- [false, true, false, false]", "- [false, false, false, false]"),
+                       r"allowed_collision_matrix: expected a symmetric matrix, not symmetric: "
+                       r"\(panda_link1, panda_link5\) is False but \(panda_link5, panda_link1\) is True"),
+    "dimensions": (_sub("dimensions: [0.05]", "dimensions: [0.05, 1]"),
+                   r"primitives\[0\].dimensions: expected 1 numbers, got 2"),
+    "zero-quaternion": (_sub("orientation: [0, 0, 0, 1]}]\n    - id: table",
+                             "orientation: [0, 0, 0, 0]}]\n    - id: table"),
+                        r"primitive_poses\[0\].orientation: expected a non-zero quaternion, "
+                        r"got \[0.0, 0.0, 0.0, 0.0\]"),
+    "mesh": (_sub("primitives: [{type: sphere", "meshes: [{}]\n      primitives: [{type: sphere"),
+             r"meshes are not supported \(expected primitives: boxes, spheres and cylinders only, "
+             r"got meshes\)"),
+    "flat-cylinder": (_sub("dimensions: [0.3, 0.02]", "dimensions: [0.0, 0.02]"),
+                      _OBJ + r".primitives\[1\].dimensions: expected a cylinder height > 0, got 0.0"),
+    "poses": (_sub("        - {position: [0, 0, 0], orientation: [0, 0, 0, 1]}\n", ""),
+              _OBJ + ": expected one primitive_pose per primitive, got 2 primitives and 1 primitive_poses"),
+    "operation": (_sub("    - id: table\n", "    - id: table\n      operation: remove\n"),
+                  _OBJ + r": expected operation add \(0\) or append .*, got 'remove'"),
+    "yaml": (lambda t: t + "  bad: [\n", "expected PlanningScene YAML, cannot read it"),
+}
+
+
+@pytest.mark.parametrize("edit, match", list(_EDITS.values()), ids=list(_EDITS))
 def test_scene_errors_name_the_entry(edit, match):
-    with pytest.raises(DiffkinError, match=match):
+    with pytest.raises(ModelError, match=match):
         read_scene(edit(HAND_WRITTEN))
+
+
+def test_scene_source_errors(tmp_path):
+    with pytest.raises(ModelError, match=r"scene file '.*nowhere.yaml' not found \(expected an existing"):
+        read_scene(tmp_path / "nowhere.yaml")
+    with pytest.raises(ModelError, match="expected a scene as a path, YAML text or a mapping, got int"):
+        read_scene(3)
+    with pytest.raises(ModelError, match="not a MoveIt PlanningScene .*got keys spheres"):
+        read_scene({"spheres": [[0, 0, 0, 1]]})
 
 
 def test_real_scene_world_distances_against_coal(cage):

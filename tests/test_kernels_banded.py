@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from diffkin.kernels.banded import block_banded_cg, block_banded_solve
+from diffkin.kernels.banded import block_banded_cg, block_banded_solve, tridiagonal_solve
 
 F64 = torch.float64
 
@@ -50,3 +50,23 @@ def test_block_banded_solve_gradcheck():
         return block_banded_solve(Ds, E, F, g_)
 
     assert torch.autograd.gradcheck(f, (D.clone().requires_grad_(), g.clone().requires_grad_()))
+
+
+def test_tridiagonal_solve_matches_scipy_banded_and_broadcasts():
+    """The scalar (non-symmetric) tridiagonal solve against scipy's banded LU, a batched matrix with an
+    unbatched right-hand side of the same rank (never read as a batch of vectors), and its gradient."""
+    from scipy.linalg import solve_banded
+
+    g = torch.Generator().manual_seed(3)
+    B, N, k = 3, 6, 2
+    sub, sup = torch.randn(B, N - 1, generator=g, dtype=F64), torch.randn(B, N - 1, generator=g, dtype=F64)
+    diag = 4 + torch.rand(B, N, generator=g, dtype=F64)
+    rhs = torch.randn(N, k, generator=g, dtype=F64)
+    x = tridiagonal_solve(sub, diag, sup, rhs)
+    assert x.shape == (B, N, k)
+    for b in range(B):
+        ab = torch.zeros(3, N, dtype=F64)
+        ab[0, 1:], ab[1], ab[2, :-1] = sup[b], diag[b], sub[b]
+        torch.testing.assert_close(x[b], torch.from_numpy(solve_banded((1, 1), ab.numpy(), rhs.numpy())))
+    args = tuple(a[:1].clone().requires_grad_() for a in (sub, diag, sup)) + (rhs.clone().requires_grad_(),)
+    assert torch.autograd.gradcheck(tridiagonal_solve, args)

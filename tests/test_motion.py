@@ -55,6 +55,67 @@ def test_joint_reach_bounds_the_travel_of_every_geom(robot):
         assert ((_points(rc, q[:200] + e) - _points(rc, q[:200])).norm(dim=-1).amax() <= R[j] * 1e-4 * 1.0001)
 
 
+def _reach_loop(rc) -> torch.Tensor:
+    """joint_reach's sum as it was first written (a Python loop per joint and geom, walking the parent frames
+    one by one, in Python floats), from the same intermediate quantities: the reference the batched walk
+    must reproduce bit for bit."""
+    chain, frames = rc.chain, rc._frames
+    dt = rc.capsule_a.dtype
+    q0 = (torch.rand(chain.nq, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5).to(dt)
+    F0 = frames.frames(chain, q0)
+    K, nq = F0.shape[-3], chain.nq
+    Fp = frames.frames(chain, q0 + 1e-3 * torch.eye(nq, dtype=dt))
+    moved = (Fp - F0).abs().flatten(-2).amax(-1) > 1e-7
+    o = F0[..., :3, 3]
+    first = torch.where(moved, torch.arange(K), K).amin(1)
+    movers = moved.T
+    anc = ((movers[:, None, :] & ~movers[None, :, :]).any(-1) == 0) & movers.any(1)[:, None]
+    parent = [max([m for m in range(k) if bool(anc[m, k])], default=-1) for k in range(K)]
+    link = [float((o[k] - o[parent[k]]).norm()) if parent[k] >= 0 else 0.0 for k in range(K)]
+    nc, nb = rc._counts
+    pts = rc._columns(q0)[:, : 2 * nc + nb].T
+    a_pts = rc._col_anchor[: 2 * nc + nb]
+    ext = torch.cat((rc.capsule_radius, rc.capsule_radius, rc.box_half_extents.norm(dim=-1)))
+    own = (pts - o[a_pts]).norm(dim=-1) + ext
+    origin = chain.joint_axes_origins(q0)[1]
+    axis_off = (origin - o[first.clamp(max=K - 1)]).norm(dim=-1)
+    R = torch.zeros(nq, dtype=dt)
+    for j in range(nq):
+        for c in range(pts.shape[0]):
+            k = int(a_pts[c])
+            if not bool(moved[j, k]):
+                continue
+            total, m = float(own[c]) + float(axis_off[j]), k
+            while m != int(first[j]) and m >= 0:
+                total += link[m]
+                m = parent[m]
+            R[j] = max(float(R[j]), total)
+    return R
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_joint_reach_batched_walk_equals_the_loop(robot, dtype):
+    """The batched walk up the frame tree gives the per-joint, per-geom loop's R exactly, on the FR3 (a chain)
+    and on the G1 (a tree of 29 joints, five end links, its URDF's primitive geoms)."""
+    import warnings
+
+    from diffkin import models
+    from diffkin.collision import RobotCollision
+    from tests.helpers import DATA, fr3_robot
+
+    g1 = DATA / "urdf" / "g1_29dof_rev_1_0.urdf"
+    ends = ["left_ankle_roll_link", "right_ankle_roll_link", "left_rubber_hand", "right_rubber_hand",
+            "head_link"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # meshes not shipped: skipped
+        chain = models.from_urdf(g1, ends, dtype=dtype).requires_grad_(False)
+        rcs = [fr3_robot(dtype)[1], RobotCollision.from_urdf(g1, chain).requires_grad_(False)]
+    for rc in rcs:
+        got = motion.joint_reach(rc)
+        assert got.dtype == dtype and got.shape == (rc.chain.nq,) and (got > 0).any()
+        assert torch.equal(got, _reach_loop(rc))
+
+
 def test_edges_subdivision_proves_the_continuous_edge(robot):
     chain, rc, world = robot
     eta = 0.01

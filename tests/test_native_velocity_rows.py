@@ -24,25 +24,15 @@ from diffkin.ik import _native_velocity as nvel
 from diffkin.ik.tasks import Problem
 from diffkin.kernels import native
 from diffkin.models import from_mjcf, from_urdf
+from tests.helpers import g1_com_case, g1_com_robot, g1_mink_tasks, se3_exp
 
 pytestmark = pytest.mark.skipif(not nvel.available(), reason="no C compiler: the fused kernel is not built")
 
 F64 = torch.float64
 DATA = Path(__file__).parent / "data"
 FR3 = DATA / "urdf" / "fr3.urdf"
-G1 = DATA / "mjcf" / "unitree_g1" / "g1.xml"
 SRDF = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" '
         'reason="Default"/></robot>')
-
-
-def _twist_exp(xi) -> torch.Tensor:
-    """exp of the twist [v; w] (the reference: the matrix exponential)."""
-    M = torch.zeros(4, 4, dtype=F64)
-    v, w = xi[:3], xi[3:]
-    M[0, 1], M[0, 2], M[1, 2] = -w[2], w[1], -w[0]
-    M[1, 0], M[2, 0], M[2, 1] = w[2], -w[1], w[0]
-    M[:3, 3] = torch.as_tensor(v, dtype=F64)
-    return torch.linalg.matrix_exp(M)
 
 
 def _torch_path(chain, q, tasks, dt, limits, damping=1e-12):
@@ -69,7 +59,7 @@ def _fr3_case(chain, q, i):
     c = T[:3, 3]
     spheres = torch.tensor([[c[0], c[1], c[2] - 0.15, 0.05], [c[0] + 0.2, c[1], c[2], 0.04],
                             [0.5, 0.5, 0.2, 0.1]], dtype=F64)
-    tgt = T @ _twist_exp(torch.tensor([0.0, 0.0, 0.2, 0.05, -0.03, 0.02], dtype=F64))
+    tgt = T @ se3_exp(torch.tensor([0.0, 0.0, 0.2, 0.05, -0.03, 0.02], dtype=F64))
     tasks = [ik.FrameTask(0, target=tgt, lm_damping=1e-3), ik.PostureTask(q[i], cost=1e-2)]
     return tasks, World(spheres=spheres)
 
@@ -247,38 +237,15 @@ def test_collision_rows_match_minks_collision_avoidance_limit_vamp_panda_spheres
 
 
 # ----------------------------------------------------------------------------------------- ComTask
-G1_ENDS = ["left_ankle_roll_link", "right_ankle_roll_link", "left_zero_link", "right_zero_link"]
-G1_LEAVES = ["left_two_link", "left_four_link", "left_six_link", "right_two_link", "right_four_link",
-             "right_six_link"]
-
-
 @pytest.fixture(scope="module")
 def g1():
-    from diffkin.models.mjcf import compile_mjcf
-
-    model = compile_mjcf(G1)[0]
-    chain = from_mjcf(G1, G1_ENDS + G1_LEAVES, dtype=F64).requires_grad_(False)  # every body: the CoM
-    return model, chain
+    return g1_com_robot()
 
 
 def _g1_case(model, chain, seed):
-    """Feet held, hands moved and turned, the centre of mass pulled over the support, posture; q near the
-    model's qpos0 (limits respected)."""
-    rng = np.random.default_rng(seed)
-    qpos = model.qpos0.copy()
-    qpos[7:] += rng.normal(size=model.nq - 7) * 0.05
-    lo, hi = model.jnt_range[1:, 0], model.jnt_range[1:, 1]
-    qpos[7:] = np.clip(qpos[7:], lo + 0.01, hi - 0.01)
-    q = torch.tensor(qpos[chain.qpos_index()])
-    T = chain.forward_kinematics(q)
-    com_target = chain.center_of_mass(q) + torch.tensor([0.02, -0.01, -0.03], dtype=F64)
-    tasks = [ik.ComTask(com_target, cost=torch.tensor([5.0, 5.0, 1.0], dtype=F64), gain=0.9, lm_damping=1e-2)]
-    for k in range(4):
-        move = torch.tensor(rng.normal(size=6) * (0.03 if k >= 2 else 1e-3))
-        tasks.append(ik.FrameTask(k, target=T[k] @ _twist_exp(move), position_cost=10.0, orientation_cost=1.0,
-                                  lm_damping=1e-3))
-    tasks.append(ik.PostureTask(torch.tensor(model.qpos0[chain.qpos_index()]), cost=0.1))
-    return qpos, q, tasks
+    """:func:`tests.helpers.g1_com_case` with the gains and dampings the C rows read."""
+    return g1_com_case(model, chain, seed, com=dict(gain=0.9, lm_damping=1e-2),
+                       frame=dict(lm_damping=1e-3))
 
 
 def test_com_task_in_c_matches_the_torch_path_g1(g1):
@@ -306,16 +273,7 @@ def test_com_task_in_c_matches_minks_com_task(g1):
     model, chain = g1
     qpos, q, tasks = _g1_case(model, chain, 13)
     conf = mink.Configuration(model, qpos)
-    mc = mink.ComTask(cost=[5.0, 5.0, 1.0], gain=0.9, lm_damping=1e-2)
-    mc.set_target(tasks[0].target.numpy())
-    mtasks = [mc]
-    for k, e in enumerate(G1_ENDS):
-        t = mink.FrameTask(e, "body", position_cost=10.0, orientation_cost=1.0, lm_damping=1e-3)
-        t.set_target(mink.SE3.from_matrix(tasks[1 + k].target.numpy()))
-        mtasks.append(t)
-    pt = mink.PostureTask(model, cost=0.1)
-    pt.set_target(model.qpos0)
-    mtasks.append(pt)
+    mtasks = g1_mink_tasks(model, tasks)
     want = mink.solve_ik(conf, mtasks, 0.01, "daqp", damping=1e-6,
                          limits=[mink.ConfigurationLimit(model)])[chain.dof_index()]
     v = nvel.route(chain, q, tasks, 0.01, [ik.ConfigurationLimit()], 1e-6)
@@ -346,7 +304,7 @@ def _contact_case(chain, rc, q, T, i, rng_draws):
     c = T[i, :3, 3]
     world = World(spheres=torch.tensor([[c[0], c[1], c[2] - 0.1 - 0.05 * rr, 0.05],
                                         [c[0] + 0.15, c[1], c[2], 0.04], [0.4, 0.0, 0.3, 0.1]], dtype=F64))
-    tgt = T[i] @ _twist_exp(torch.tensor(xi))
+    tgt = T[i] @ se3_exp(torch.tensor(xi))
     tasks = [ik.FrameTask(0, target=tgt, lm_damping=1e-3), ik.PostureTask(q[i], cost=1e-2)]
     dt = (0.002, 0.01, 0.05)[i % 3]
     lim = ik.CollisionLimit(rc, world, gain=0.85, minimum_distance=0.005, detection_distance=0.2)

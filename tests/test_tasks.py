@@ -16,6 +16,7 @@ from diffkin.errors import ConventionError, DiffkinError, ShapeError
 from diffkin.kernels.se3 import se3_jlog, se3_log
 from diffkin.models import from_mjcf
 from diffkin.models.mjcf import compile_mjcf
+from tests.helpers import g1_com_case, g1_com_robot, g1_mink_tasks, se3_exp
 
 mink = pytest.importorskip("mink")
 mujoco = pytest.importorskip("mujoco")
@@ -25,15 +26,6 @@ MJCF = Path(__file__).parent / "data" / "mjcf"
 PANDA = MJCF / "franka_emika_panda" / "panda.xml"
 G1 = MJCF / "unitree_g1" / "g1.xml"
 ARM = ["joint1", "joint2", "joint3", "joint4", "joint5", "joint6", "joint7"]
-
-
-def _se3_exp(xi):  # the reference: the matrix exponential of the twist
-    M = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype)
-    w, v = xi[..., 3:], xi[..., :3]
-    M[..., 0, 1], M[..., 0, 2], M[..., 1, 2] = -w[..., 2], w[..., 1], -w[..., 0]
-    M[..., 1, 0], M[..., 2, 0], M[..., 2, 1] = w[..., 2], -w[..., 1], w[..., 0]
-    M[..., :3, 3] = v
-    return torch.linalg.matrix_exp(M)
 
 
 def _panda(ends="hand", dtype=F64):
@@ -63,10 +55,10 @@ def test_se3_log_and_its_jacobian_against_the_matrix_exponential_and_autograd():
         xi = torch.randn(8, 6, generator=g, dtype=F64) * scale
         w = xi[:, 3:]
         xi[:, 3:] = w * (3.0 / w.norm(dim=-1, keepdim=True)).clamp(max=1.0)
-        T = _se3_exp(xi)
+        T = se3_exp(xi)
         torch.testing.assert_close(se3_log(T), xi, atol=1e-12, rtol=1e-9)
         for Ti in T[:3]:
-            J = torch.autograd.functional.jacobian(lambda d, Ti=Ti: se3_log(Ti @ _se3_exp(d)),
+            J = torch.autograd.functional.jacobian(lambda d, Ti=Ti: se3_log(Ti @ se3_exp(d)),
                                                    torch.zeros(6, dtype=F64))
             torch.testing.assert_close(se3_jlog(Ti), J, atol=1e-9, rtol=1e-9)
 
@@ -177,7 +169,7 @@ def test_floating_base_g1_matches_mink_and_its_base_velocity_limit_holds():
     g = torch.Generator().manual_seed(6)
     qb = q.expand(5, -1).clone()
     qb[:, 3:7] = torch.nn.functional.normalize(torch.randn(5, 4, generator=g, dtype=F64), dim=-1)
-    tb = [ik.FrameTask(e, target=chain.forward_kinematics(qb)[:, k] @ _se3_exp(
+    tb = [ik.FrameTask(e, target=chain.forward_kinematics(qb)[:, k] @ se3_exp(
         0.1 * torch.randn(5, 6, generator=g, dtype=F64))) for k, e in enumerate(ends)]
     vb = ik.solve_velocity(chain, qb, tb + [ik.DampingTask(1e-3)], dt, limits=limits)
     assert bool((vb[:, :3].abs() <= 0.2 + 1e-9).all() and (vb[:, 3:6].abs() <= 0.3 + 1e-9).all())
@@ -256,7 +248,7 @@ def test_gradients_with_respect_to_the_target_finite_differences_and_gradcheck()
     limits = [ik.ConfigurationLimit(), ik.VelocityLimit(0.8)]
 
     def f(xi, w):
-        T = T0 @ _se3_exp(xi)
+        T = T0 @ se3_exp(xi)
         return ik.solve_velocity(chain, q, [ik.FrameTask(0, target=T, orientation_cost=w, lm_damping=1e-3),
                                             ik.PostureTask(torch.zeros(7, dtype=F64), cost=0.1)], 0.05,
                                  limits=limits)
@@ -278,7 +270,7 @@ def test_gradients_with_respect_to_the_target_finite_differences_and_gradcheck()
 def test_batch_dims_broadcast_and_one_row_equals_the_batch():
     model, chain = _panda()
     q = torch.tensor(np.array(_panda_rows(model, chain, 6, 9)))[:, chain.qpos_index()].reshape(2, 3, 7)
-    T = chain.forward_kinematics(q) @ _se3_exp(torch.full((6,), 0.02, dtype=F64))
+    T = chain.forward_kinematics(q) @ se3_exp(torch.full((6,), 0.02, dtype=F64))
     tasks = [ik.FrameTask("hand", target=T), ik.PostureTask(torch.zeros(7, dtype=F64), cost=0.1)]
     v = ik.solve_velocity(chain, q, tasks, 0.02, limits=[ik.ConfigurationLimit(), ik.VelocityLimit(1.0)])
     assert v.shape == (2, 3, 7)
@@ -388,42 +380,17 @@ def test_joint_limit_cost_does_not_penalise_the_identity_quaternion():
 def test_com_task_on_the_g1_matches_mink():
     """Feet fixed, hands moving, the centre of mass pulled over the support: ComTask + FrameTasks +
     PostureTask with limits, against mink's ComTask (subtree_com / mj_jacSubtreeCom of the pelvis)."""
-    model = compile_mjcf(G1)[0]
-    leaves = ["left_two_link", "left_four_link", "left_six_link", "right_two_link", "right_four_link",
-              "right_six_link"]
-    ends = ["left_ankle_roll_link", "right_ankle_roll_link", "left_zero_link", "right_zero_link"]
-    chain = from_mjcf(G1, ends + leaves, dtype=F64).requires_grad_(False)  # every joint: the CoM moves all
+    model, chain = g1_com_robot()
     assert chain.nv == model.nv
-    dt, rng = 0.01, np.random.default_rng(13)
-    qpos = model.qpos0.copy()
-    qpos[7:] += rng.normal(size=model.nq - 7) * 0.05
-    lo, hi = model.jnt_range[1:, 0], model.jnt_range[1:, 1]
-    qpos[7:] = np.clip(qpos[7:], lo + 0.01, hi - 0.01)
-    conf = mink.Configuration(model, qpos)
-    com_target = conf.data.subtree_com[1] + np.array([0.02, -0.01, -0.03])
-    mc = mink.ComTask(cost=[5.0, 5.0, 1.0])
-    mc.set_target(com_target)
-    cost = torch.tensor([5.0, 5.0, 1.0], dtype=F64)
-    mtasks, ttasks = [mc], [ik.ComTask(torch.tensor(com_target), cost=cost)]
-    for k, e in enumerate(ends):
-        move = rng.normal(size=6) * (0.03 if k >= 2 else 0.0)  # hands move, feet stay
-        tgt = conf.get_transform_frame_to_world(e, "body") @ mink.SE3.exp(move)
-        t = mink.FrameTask(e, "body", position_cost=10.0, orientation_cost=1.0)
-        t.set_target(tgt)
-        mtasks.append(t)
-        ttasks.append(ik.FrameTask(e, target=torch.tensor(tgt.as_matrix()), position_cost=10.0,
-                                   orientation_cost=1.0))
-    pt = mink.PostureTask(model, cost=0.1)
-    pt.set_target(model.qpos0)
-    mtasks.append(pt)
-    ttasks.append(ik.PostureTask(torch.tensor(model.qpos0[chain.qpos_index()]), cost=0.1))
-    want = _mink_v(model, qpos, mtasks, [mink.ConfigurationLimit(model)], dt, 1e-6)[chain.dof_index()]
-    q = torch.tensor(qpos[chain.qpos_index()])
+    dt = 0.01
+    qpos, q, ttasks = g1_com_case(model, chain, 13, feet=0.0)  # feet fixed, hands moved
+    mlimits = [mink.ConfigurationLimit(model)]
+    want = _mink_v(model, qpos, g1_mink_tasks(model, ttasks), mlimits, dt, 1e-6)[chain.dof_index()]
     v = ik.solve_velocity(chain, q, ttasks, dt, limits=[ik.ConfigurationLimit()], damping=1e-6)
     np.testing.assert_allclose(v.numpy(), want, atol=1e-6)
     # the step moves the centre of mass towards its target
     c0, c1 = chain.center_of_mass(q), chain.center_of_mass(chain.integrate(q, v * dt))
-    t = torch.tensor(com_target)
+    t = ttasks[0].target
     assert float((c1 - t).norm()) < float((c0 - t).norm())
 
 
@@ -476,7 +443,7 @@ def test_solve_velocity_cuda_matches_cpu():
         pytest.skip("no CUDA")
     _, chain = _panda()
     q = chain.random_configuration(64, generator=torch.Generator().manual_seed(16))
-    T = chain.forward_kinematics(q) @ _se3_exp(torch.full((6,), 0.03, dtype=F64))
+    T = chain.forward_kinematics(q) @ se3_exp(torch.full((6,), 0.03, dtype=F64))
     tasks = [ik.FrameTask("hand", target=T, lm_damping=1e-3),
              ik.PostureTask(torch.zeros(7, dtype=F64), cost=0.1)]
     limits = [ik.ConfigurationLimit(), ik.VelocityLimit(1.0)]
@@ -488,3 +455,19 @@ def test_solve_velocity_cuda_matches_cpu():
     gpu = ik.solve_velocity(gchain, q.to(dev), gtasks, 0.02, limits=limits)
     assert gpu.device.type == "cuda"
     torch.testing.assert_close(gpu.cpu(), cpu, atol=1e-9, rtol=0)
+
+
+def test_tasks_and_limits_arguments_name_what_they_take():
+    _, chain = _panda()
+    q = torch.zeros(7, dtype=F64)
+    posture = ik.PostureTask(q, cost=0.1)
+    kinds = r"\(FrameTask, RelativeFrameTask, PostureTask, ComTask, DampingTask\)"
+    with pytest.raises(ConventionError, match=r"expected tasks as Task objects " + kinds + ", got 'hand'"):
+        ik.solve_velocity(chain, q, [posture, "hand"], 0.01)
+    with pytest.raises(ConventionError, match=r"expected limits as Limit objects \(ConfigurationLimit, "
+                                              r"VelocityLimit, CollisionLimit\), got 1.0"):
+        ik.solve_velocity(chain, q, posture, 0.01, limits=[ik.ConfigurationLimit(), 1.0])
+    with pytest.raises(ConventionError, match="at least one task"):
+        ik.solve_velocity(chain, q, None, 0.01)
+    v = ik.solve_velocity(chain, q, posture, 0.01, limits=ik.ConfigurationLimit())  # one of each, unwrapped
+    assert v.shape == (7,)

@@ -142,7 +142,8 @@ def test_moving_the_target_runs_ik(viewer, panda):
     assert [s.value for s in viewer.sliders] == pytest.approx(viewer.q.tolist(), abs=1e-9)
     # an unreachable target: failure and the errors are shown, the best effort is drawn
     res = viewer.solve_to(np.array([[1, 0, 0, 3.0], [0, 1, 0, 0], [0, 0, 1, 0.5], [0, 0, 0, 1]]))
-    assert not bool(res.success) and viewer.gui_ik_success.value.startswith("no")
+    assert not bool(res.success) and viewer.gui_ik_success.value == "no (best effort shown)"
+    assert viewer.ik_state["message"] == "not reached (best effort shown)"
     assert float(viewer.gui_ik_position.value) > 1000  # mm
     # position only
     res = viewer.solve_to(T, position_only=True)
@@ -252,6 +253,8 @@ def test_velocity_drag_follows_the_target_within_the_limits(panda):
         assert bool(panda.within_limits(v.q).all())
         assert float(v.q[6]) == pytest.approx(float(panda.q_limits[6, 1]), abs=1e-9)  # joint 7 at its limit
         assert state["orientation_error"] < 1e-3  # the other joints took over the rest of the roll
+        assert state is v.ik_state and state["message"] in ("reached", "following (limit-safe)")
+        assert v.gui_ik_success.value == ("yes" if state["success"] else "no (following within the limits)")
     finally:
         v.close()
 

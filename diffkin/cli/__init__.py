@@ -212,14 +212,9 @@ def cmd_models(args) -> int:
 
 # ---------------------------------------------------------------------------------------------- fk
 def cmd_fk(args) -> int:
-    from ..io.data import RandomJoints, check_output_path
     from ..io.streaming import stream_fk
 
-    if args.output:
-        check_output_path(args.output)
-    _join_ranks(args)
-    chain = _load_chain(args)
-    source = _random_source(args, chain, RandomJoints, poses=False)
+    chain, source = _stream_input(args, poses=False)
     res = _streamed(args, chain, "FK", stream_fk, source)
     if res is None:  # a rank other than 0 of a sharded run: rank 0 reports
         return 0
@@ -248,6 +243,18 @@ def _streamed(args, chain, label: str, stream, source, **options):
 
 class _Quiet:
     no_progress = True
+
+
+def _stream_input(args, poses: bool):
+    """(chain, input) of ``fk`` / ``ik``: the output path checked first, the ranks joined (torchrun), the
+    chain loaded, then :func:`_random_source`."""
+    from ..io.data import RandomJoints, check_output_path
+
+    if args.output:
+        check_output_path(args.output)
+    _join_ranks(args)
+    chain = _load_chain(args)
+    return chain, _random_source(args, chain, RandomJoints, poses)
 
 
 def _random_source(args, chain, RandomJoints, poses: bool):
@@ -308,16 +315,10 @@ def _ik_table(chain, res) -> object:
 
 
 def cmd_ik(args) -> int:
-    from ..io.data import RandomJoints, check_output_path
     from ..io.streaming import stream_ik
-
-    if args.output:
-        check_output_path(args.output)
     from .collision import solve_keywords
 
-    _join_ranks(args)
-    chain = _load_chain(args)
-    source = _random_source(args, chain, RandomJoints, poses=True)
+    chain, source = _stream_input(args, poses=True)
     res = _streamed(
         args, chain, "IK", stream_ik, source, **solve_keywords(*args.collision),
         position_only=True if args.position_only else None,

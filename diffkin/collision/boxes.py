@@ -27,10 +27,10 @@ import torch
 from torch import Tensor
 
 from .._numerics import eps_for, safe_norm
-from ..errors import DiffkinError
+from ..errors import ModelError
 from ..kernels.joints import origin_transform
 from ..transforms import RIGIDITY_TOLERANCE, _make_transform, _nearest_rigid, _transform_deviations
-from ..validation import broadcast_batch, tensors
+from ..validation import broadcast_batch, check_lower_bound, tensors
 
 __all__ = ["Box", "box", "point_box", "segment_box", "capsule_box", "sphere_box", "box_halfspace", "box_box"]
 
@@ -58,8 +58,7 @@ def box(center, half_extents, rpy=None, *, dtype: torch.dtype | None = None, dev
         0, dtype=dtype or torch.get_default_dtype(), device=device)
     c, h, r = tensors(("center", center, (3,)), ("half_extents", half_extents, (3,)), ("rpy", rpy, (3,)),
                       like=like)
-    if bool((h < 0).any()):
-        raise DiffkinError(f"expected half_extents >= 0, got {h.detach().cpu().tolist()}")
+    check_lower_bound(h, "half_extents", cls=ModelError)
     r = torch.zeros_like(c) if r is None else r
     batch = broadcast_batch(("center", c, 1), ("half_extents", h, 1), ("rpy", r, 1))
     R = origin_transform(torch.zeros_like(r), r)[..., :3, :3]
@@ -71,15 +70,15 @@ def checked_boxes(B: Box, like=None) -> Box:
     it): tensors or numbers of one dtype and device (``like``'s, if given) with trailing shapes ``(3,)``,
     ``(3, 3)``, ``(3,)`` and batch dims that broadcast (:class:`~diffkin.errors.ShapeError`), finite
     (:class:`~diffkin.errors.NonFiniteError`), half extents >= 0 and rotations that are rotations by the one
-    rule of :data:`~diffkin.transforms.RIGIDITY_TOLERANCE` (:class:`~diffkin.errors.DiffkinError`;
+    rule of :data:`~diffkin.transforms.RIGIDITY_TOLERANCE` (:class:`~diffkin.errors.ModelError`;
     re-orthonormalised within it). Returns the box expanded to one batch shape."""
     c, R, h = tensors(("boxes.center", B.center, (3,)), ("boxes.rotation", B.rotation, (3, 3)),
                       ("boxes.half_extents", B.half_extents, (3,)), like=like)
     batch = broadcast_batch(("boxes.center", c, 1), ("boxes.rotation", R, 2), ("boxes.half_extents", h, 1))
-    if bool((h < 0).any()):
-        raise DiffkinError(f"expected boxes.half_extents >= 0, got {h.detach().cpu().tolist()}")
+    check_lower_bound(h, "boxes.half_extents", cls=ModelError)
     T = _make_transform(R, c)
-    exact = _nearest_rigid(T, *_transform_deviations(T, "boxes.rotation", RIGIDITY_TOLERANCE))
+    dev = _transform_deviations(T, "boxes.rotation", RIGIDITY_TOLERANCE, error=ModelError)
+    exact = _nearest_rigid(T, *dev)
     R = R if exact is T else exact[..., :3, :3]
     return Box(c.expand(*batch, 3), R.expand(*batch, 3, 3), h.expand(*batch, 3))
 

@@ -20,7 +20,7 @@ Quaternions are ROS's ``(x, y, z, w)``. Dimensions are ``shape_msgs/SolidPrimiti
 the name or the message's number: 1 box, 2 sphere, 3 cylinder). Every pose is read in the scene's planning
 frame, taken as the robot's base frame (the objects' ``header.frame_id`` and the scene's
 ``fixed_frame_transforms`` are not applied). Meshes, planes and cones are a
-:class:`~diffkin.errors.DiffkinError` naming the object (no silent omission).
+:class:`~diffkin.errors.ModelError` naming the object (no silent omission), as is every malformed entry.
 
 :func:`read_scene` gives a :class:`Scene`: the primitives (:class:`Primitive`, one per primitive of each
 object, in file order) and the allowed pairs; :meth:`Scene.to_world` builds the
@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ..errors import DiffkinError
+from ..errors import ConventionError, ModelError
 from ..rotations import quaternion_to_matrix
 from .boxes import Box
 from .world import World
@@ -118,7 +118,7 @@ class Scene:
     @staticmethod
     def _exact(cylinders: str | None) -> bool:
         if cylinders not in (None, "exact", "capsules"):
-            raise DiffkinError(f"expected cylinders as 'exact', 'capsules' or None, got {cylinders!r}")
+            raise ConventionError(f"expected cylinders as 'exact', 'capsules' or None, got {cylinders!r}")
         return cylinders != "capsules"  # exact by default; capsules: conservative, served by the C decisions
 
 
@@ -132,15 +132,16 @@ def is_moveit_scene(data) -> bool:
 
 def read_scene(source) -> Scene:
     """A :class:`Scene` from a MoveIt PlanningScene YAML file (a path), its text, or its loaded mapping
-    (module docstring). Errors (:class:`~diffkin.errors.DiffkinError`) name the file and the object."""
+    (module docstring). Errors (:class:`~diffkin.errors.ModelError`) name the file and the object, what was
+    expected there and what came."""
     return scene_from_data(*_load(source))
 
 
 def scene_from_data(where: str, data) -> Scene:
     """:func:`read_scene` of an already loaded mapping; ``where`` names it in errors."""
     if not is_moveit_scene(data):
-        raise DiffkinError(f"{where}: not a MoveIt PlanningScene (expected world.collision_objects or an "
-                           f"allowed_collision_matrix, got keys {_keys(data)})")
+        raise ModelError(f"{where}: not a MoveIt PlanningScene (expected world.collision_objects or an "
+                         f"allowed_collision_matrix, got keys {_keys(data)})")
     world = data.get("world") or {}
     found = []
     for i, co in enumerate(world.get("collision_objects") or []):
@@ -170,27 +171,28 @@ def _load(source) -> tuple[str, object]:
     if isinstance(source, (str, Path)) and "\n" not in str(source):
         path = Path(source)
         if not path.is_file():
-            raise DiffkinError(f"scene file {path} not found")
+            raise ModelError(f"scene file {str(path)!r} not found (expected an existing file, YAML text or a "
+                             "mapping)")
         where, text = str(path), path.read_text(encoding="utf-8-sig")
     elif isinstance(source, str):
         where, text = "scene", source
     else:
-        raise DiffkinError(f"expected a scene as a path, YAML text or a mapping, got {type(source).__name__}")
+        raise ModelError(f"expected a scene as a path, YAML text or a mapping, got {type(source).__name__}")
     try:
         return where, yaml.load(text, Loader=loader)
     except yaml.YAMLError as exc:
-        raise DiffkinError(f"{where}: cannot read the scene: {exc}") from None
+        raise ModelError(f"{where}: expected PlanningScene YAML, cannot read it: {exc}") from None
 
 
 def _numbers(x, n: int | None, what: str) -> list[float]:
     try:
         out = [float(v) for v in x]
     except (TypeError, ValueError):
-        raise DiffkinError(f"{what}: expected a list of numbers, got {x!r}") from None
+        raise ModelError(f"{what}: expected a list of numbers, got {x!r}") from None
     if n is not None and len(out) != n:
-        raise DiffkinError(f"{what}: expected {n} numbers, got {len(out)}")
+        raise ModelError(f"{what}: expected {n} numbers, got {len(out)}")
     if not all(abs(v) < float("inf") for v in out):
-        raise DiffkinError(f"{what}: expected finite numbers, got {out}")
+        raise ModelError(f"{what}: expected finite numbers, got {out}")
     return out
 
 
@@ -203,14 +205,14 @@ def _pose(p, what: str) -> list[float]:
     if p is None:
         return list(_IDENTITY)
     if not isinstance(p, Mapping):
-        raise DiffkinError(f"{what}: expected a pose {{position, orientation}}, got {p!r}")
+        raise ModelError(f"{what}: expected a pose {{position, orientation}}, got {p!r}")
     out = list(_IDENTITY)
     if p.get("position") is not None:
         out[:3] = _numbers(p["position"], 3, f"{what}.position")
     if p.get("orientation") is not None:
         x, y, z, w = _numbers(p["orientation"], 4, f"{what}.orientation")
         if x * x + y * y + z * z + w * w < 1e-12:
-            raise DiffkinError(f"{what}.orientation: a zero quaternion")
+            raise ModelError(f"{what}.orientation: expected a non-zero quaternion, got {[x, y, z, w]}")
         out[3:] = [w, x, y, z]
     return out
 
@@ -228,31 +230,36 @@ def _poses(rows: list[list[float]]) -> Tensor:
 def _object(co, what: str) -> list[tuple]:
     """(name, kind, object pose row, primitive pose row, dimensions) per primitive of a collision object."""
     if not isinstance(co, Mapping):
-        raise DiffkinError(f"{what}: expected a collision object mapping, got {type(co).__name__}")
+        raise ModelError(f"{what}: expected a collision object mapping, got {type(co).__name__}")
     name = str(co.get("id", ""))
     what = f"{what} ({name!r})"
     for key in ("meshes", "planes"):
         if co.get(key):
-            raise DiffkinError(f"{what}: {key} are not supported (boxes, spheres and cylinders only)")
+            raise ModelError(f"{what}: {key} are not supported (expected primitives: boxes, spheres and "
+                             f"cylinders only, got {key})")
     if str(co.get("operation", "0")).lower() not in ("0", "add", "append"):
-        raise DiffkinError(f"{what}: operation {co['operation']!r}: only added objects are read")
+        raise ModelError(f"{what}: expected operation add (0) or append (only added objects are read), got "
+                         f"{co['operation']!r}")
     prims, poses = co.get("primitives") or [], co.get("primitive_poses") or []
     if len(prims) != len(poses):
-        raise DiffkinError(f"{what}: {len(prims)} primitives but {len(poses)} primitive_poses")
+        raise ModelError(f"{what}: expected one primitive_pose per primitive, got {len(prims)} primitives "
+                         f"and {len(poses)} primitive_poses")
     base = _pose(co.get("pose"), f"{what}.pose")
     out: list[tuple[str, str, list[float], list[float], tuple[float, ...]]] = []
     for k, (prim, pose) in enumerate(zip(prims, poses)):
         pw = f"{what}.primitives[{k}]"
         if not isinstance(prim, Mapping):
-            raise DiffkinError(f"{pw}: expected {{type, dimensions}}, got {prim!r}")
+            raise ModelError(f"{pw}: expected {{type, dimensions}}, got {prim!r}")
         kind = prim.get("type")
         kind = _TYPES.get(kind, kind) if isinstance(kind, int) else str(kind).lower()
         if kind not in _DIMS:
-            raise DiffkinError(f"{pw}: primitive type {prim.get('type')!r} is not supported (box, sphere, "
-                               "cylinder)")
+            raise ModelError(f"{pw}: primitive type {prim.get('type')!r} is not supported (expected box, "
+                             "sphere or cylinder)")
         dims = _numbers(prim.get("dimensions"), _DIMS[kind], f"{pw}.dimensions")
         if any(d < 0 for d in dims):
-            raise DiffkinError(f"{pw}.dimensions: expected sizes >= 0, got {dims}")
+            raise ModelError(f"{pw}.dimensions: expected sizes >= 0, got {dims}")
+        if kind == "cylinder" and dims[0] <= 0:  # without a height it has no axis (World refuses it too)
+            raise ModelError(f"{pw}.dimensions: expected a cylinder height > 0, got {dims[0]}")
         out.append((name if len(prims) == 1 else f"{name}/{k}", kind, base,
                     _pose(pose, f"{what}.primitive_poses[{k}]"), tuple(dims)))
     return out
@@ -266,24 +273,24 @@ def _acm(acm, where: str) -> tuple[frozenset[frozenset[str]], tuple[str, ...]]:
     if acm is None:
         return frozenset(), ()
     if not isinstance(acm, Mapping):
-        raise DiffkinError(f"{what}: expected a mapping, got {type(acm).__name__}")
+        raise ModelError(f"{what}: expected a mapping, got {type(acm).__name__}")
     names = [str(n) for n in acm.get("entry_names") or []]
     rows = [r.get("enabled") if isinstance(r, Mapping) else r for r in acm.get("entry_values") or []]
     if len(rows) != len(names) or any(not isinstance(r, list) or len(r) != len(names) for r in rows):
-        raise DiffkinError(f"{what}: expected entry_names (n names) and entry_values (n rows of n booleans), "
-                           f"got {len(names)} names and rows of lengths "
-                           f"{[len(r) if isinstance(r, list) else None for r in rows]}")
+        raise ModelError(f"{what}: expected entry_names (n names) and entry_values (n rows of n booleans), "
+                         f"got {len(names)} names and rows of lengths "
+                         f"{[len(r) if isinstance(r, list) else None for r in rows]}")
     if any(d is True for d in acm.get("default_entry_values") or []):
-        raise DiffkinError(f"{what}: true default entries (a name allowed to touch everything) are not "
-                           "supported")
+        raise ModelError(f"{what}: expected default_entry_values false, got true (a name allowed to touch "
+                         "everything is not supported)")
     allowed = set()
     for i, row in enumerate(rows):
         for j, v in enumerate(row):
             if not isinstance(v, bool):
-                raise DiffkinError(f"{what}.entry_values[{i}][{j}]: expected true or false, got {v!r}")
+                raise ModelError(f"{what}.entry_values[{i}][{j}]: expected true or false, got {v!r}")
             if v != rows[j][i]:
-                raise DiffkinError(f"{what}: not symmetric: ({names[i]}, {names[j]}) is {v} but "
-                                   f"({names[j]}, {names[i]}) is {rows[j][i]}")
+                raise ModelError(f"{what}: expected a symmetric matrix, not symmetric: ({names[i]}, "
+                                 f"{names[j]}) is {v} but ({names[j]}, {names[i]}) is {rows[j][i]}")
             if v and i < j:
                 allowed.add(frozenset((names[i], names[j])))
     return frozenset(allowed), tuple(names)

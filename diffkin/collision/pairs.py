@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
+from ..errors import ConventionError
 from .boxes import box_box, box_halfspace, capsule_box
 from .broad import box_spheres, capsule_box_bound, capsule_spheres, exact_below, sphere_bound
 from .cylinders import box_cylinder, capsule_cylinder, cylinder_cylinder, cylinder_halfspace, cylinder_spheres
@@ -88,7 +89,8 @@ def pair(kx: str, ky: str) -> tuple[Pair, bool]:
         return PAIRS[(kx, ky)], False
     if (ky, kx) in PAIRS:
         return PAIRS[(ky, kx)], True
-    raise KeyError(f"no pair entry for kinds {kx!r} and {ky!r}")
+    raise ConventionError(f"expected two geom kinds of the pair table ({', '.join(KINDS)}; pairs "
+                          f"{', '.join('-'.join(k) for k in PAIRS)}), got {kx!r} and {ky!r}")
 
 
 def distance(kx: str, x: tuple, ky: str, y: tuple, threshold: float | None = None) -> Tensor:

@@ -11,8 +11,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..errors import DiffkinError, ShapeError
-from ..validation import broadcast_batch, common_dtype_device, shape_str, tensors
+from .._numerics import normalize_floor, safe_norm
+from ..errors import DiffkinError, ModelError, ShapeError
+from ..validation import broadcast_batch, check_lower_bound, common_dtype_device, shape_str, tensors
 from .boxes import Box, checked_boxes
 
 __all__ = ["World"]
@@ -30,7 +31,7 @@ class World:
         points: ``(..., W_p, 3)``.
         cylinders: ``(..., W_y, 7)``: the two end points of the axis (the centres of the flat faces) and the
             radius, in the style of ``capsules`` (a cylinder of length L along the unit axis u, placed at p:
-            ``p ∓ (L/2) u`` and r). Exact cylinders (flat ends), not capsules.
+            ``p ∓ (L/2) u`` and r). Exact cylinders (flat ends), not capsules; L > 0.
         dtype, device: for arguments given as numbers or arrays (tensors are taken as they are).
 
     ``len(world)`` is W = W_s + W_c + W_b + W_h + W_p + W_y, the last axis of ``world_distances``.
@@ -56,10 +57,11 @@ class World:
                         ("cylinders", y, 2),
                         ("boxes.center", None if boxes is None or boxes.center.ndim < 2 else boxes.center, 2))
         for name, radius in (("spheres", s), ("capsules", c), ("cylinders", y)):
-            if radius is not None and bool((radius[..., -1] < 0).any()):  # as box() rejects half extents < 0
-                bad = radius[..., -1].detach()
-                raise DiffkinError(f"expected {name} radii (last column) >= 0, got "
-                                   f"{bad[bad < 0].cpu().tolist()}")
+            if radius is not None:  # as box() rejects half extents < 0
+                check_lower_bound(radius[..., -1], f"{name} radii (last column)", cls=ModelError)
+        if y is not None:  # a cylinder without length has no axis: its flat faces would face anywhere
+            check_lower_bound(safe_norm(y[..., 3:6] - y[..., :3]), "cylinders lengths |b - a| (columns 0-5)",
+                              2 * normalize_floor(y), strict=True, cls=ModelError)
         ref = next((t for t in (s, c, h, p, y) if t is not None), None)
         if boxes is not None:
             common_dtype_device({"boxes": boxes.center, **({"spheres etc.": ref} if ref is not None else {})})
@@ -79,7 +81,7 @@ class World:
         self.boxes = boxes
         n = self.halfspaces[..., :3].norm(dim=-1)
         if bool(((n - 1.0).abs() > 1e-5).any()):
-            raise DiffkinError(f"expected unit half-space normals, got norms {n.detach().cpu().tolist()}")
+            raise ModelError(f"expected unit half-space normals, got norms {n.detach().cpu().tolist()}")
         self.dtype, self.device = dt, dev
 
     @property

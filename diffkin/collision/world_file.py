@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 import yaml
 
-from ..errors import DiffkinError
+from ..errors import DiffkinError, ModelError
 from .boxes import box
 from .moveit import is_moveit_scene, scene_from_data
 from .world import World
@@ -39,32 +39,33 @@ _BOX_KEYS = ("center", "half_extents", "rpy")
 def read_world(path, *, dtype: torch.dtype | None = None, device=None) -> World:
     """A :class:`~diffkin.collision.World` from a ``.yaml`` / ``.yml`` / ``.json`` file (module docstring) or
     a MoveIt PlanningScene YAML (boxes, spheres, cylinders: :meth:`~diffkin.collision.moveit.Scene.to_world`),
-    its tensors in ``dtype`` on ``device``. Errors (:class:`~diffkin.errors.DiffkinError`) name the file and
-    the entry."""
+    its tensors in ``dtype`` on ``device``. Errors name the file and the entry: the file's layout a
+    :class:`~diffkin.errors.ModelError`, its values the :class:`World`'s (:class:`~diffkin.errors.ShapeError`,
+    :class:`~diffkin.errors.NonFiniteError`, :class:`~diffkin.errors.ModelError`)."""
     path = Path(path)
     if not path.is_file():
-        raise DiffkinError(f"world file {path} not found")
+        raise ModelError(f"world file {str(path)!r} not found (expected an existing .yaml / .json file)")
     data = path.read_bytes()
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
-        raise DiffkinError(f"{path}: not a YAML / JSON world file: not UTF-8 text (byte "
-                           f"0x{data[exc.start]:02x} at offset {exc.start})") from None
+        raise ModelError(f"{path}: expected a YAML / JSON world file (UTF-8 text), got byte "
+                         f"0x{data[exc.start]:02x} at offset {exc.start}") from None
     try:
         data = json.loads(text) if path.suffix.lower() == ".json" else yaml.safe_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:
-        raise DiffkinError(f"{path}: cannot read the world file: {exc}") from None
+        raise ModelError(f"{path}: expected YAML / JSON, cannot read the world file: {exc}") from None
     if data is None:
         data = {}
     if is_moveit_scene(data):  # a MoveIt PlanningScene (diffkin.collision.moveit)
         return scene_from_data(str(path), data).to_world(dtype=dtype, device=device)
     if not isinstance(data, dict):
-        raise DiffkinError(f"{path}: expected a mapping with keys {', '.join(WORLD_KEYS)}, got "
-                           f"{type(data).__name__}")
+        raise ModelError(f"{path}: expected a mapping with keys {', '.join(WORLD_KEYS)}, got "
+                         f"{type(data).__name__}")
     unknown = sorted(set(data) - set(WORLD_KEYS))
     if unknown:
-        raise DiffkinError(f"{path}: unknown key(s) {', '.join(map(str, unknown))}; valid: "
-                           f"{', '.join(WORLD_KEYS)}")
+        raise ModelError(f"{path}: unknown key(s) {', '.join(map(str, unknown))}; expected keys among "
+                         f"{', '.join(WORLD_KEYS)}")
     boxes = _boxes(path, data.get("boxes"), dtype, device)
     lists = {k: data.get(k) or None for k in ("spheres", "capsules", "halfspaces", "points", "cylinders")}
     try:
@@ -77,12 +78,13 @@ def _boxes(path: Path, entries, dtype, device):
     if not entries:
         return None
     if not isinstance(entries, list) or not all(isinstance(e, dict) for e in entries):
-        raise DiffkinError(f"{path}: expected boxes as a list of {{center, half_extents, rpy}} mappings")
+        raise ModelError(f"{path}: expected boxes as a list of {{center, half_extents, rpy}} mappings, got "
+                         f"{entries!r:.80}")
     for i, e in enumerate(entries):
         bad = sorted(set(e) - set(_BOX_KEYS))
         if bad or "center" not in e or "half_extents" not in e:
-            raise DiffkinError(f"{path}: boxes[{i}]: expected keys center, half_extents (and optional rpy), "
-                               f"got {', '.join(map(str, e))}")
+            raise ModelError(f"{path}: boxes[{i}]: expected keys center, half_extents (and optional rpy), "
+                             f"got {', '.join(map(str, e))}")
     rpy = [e.get("rpy", [0.0, 0.0, 0.0]) for e in entries]
     try:
         return box([e["center"] for e in entries], [e["half_extents"] for e in entries], rpy, dtype=dtype,

@@ -1,11 +1,12 @@
 """Scenes of different sizes as one batched :class:`~diffkin.collision.World` (:meth:`World.stack`).
 
 Every kind of object is padded to the largest count among the worlds with objects that cannot be touched,
-placed :data:`PAD_DISTANCE` (in the worlds' length unit) from the origin: spheres, capsules and cylinders
-of zero radius and length, unit boxes, points, and half-spaces whose solid is {z ≤ −PAD_DISTANCE}. Their
-distances are about PAD_DISTANCE, far above any margin, so they never collide. Within each kind a world's
-own objects keep their order and come first, its padding after them; :func:`stacked_columns` gives where a
-world's columns of ``world_distances`` land in the stacked world's.
+placed :data:`PAD_DISTANCE` (in the worlds' length unit) from the origin: spheres and capsules of zero radius
+and length, cylinders of zero radius and unit length (one without a length has no axis), unit boxes, points,
+and half-spaces whose solid is {z ≤ −PAD_DISTANCE}. Their distances are about PAD_DISTANCE, far above any
+margin, so they never collide. Within each kind a world's own objects keep their order and come first, its
+padding after them; :func:`stacked_columns` gives where a world's columns of ``world_distances`` land in the
+stacked world's.
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ _KINDS = {
     "capsules": lambda t: _row(t, [PAD_DISTANCE, 0.0, 0.0, PAD_DISTANCE, 0.0, 0.0, 0.0]),
     "halfspaces": lambda t: _row(t, [0.0, 0.0, 1.0, -PAD_DISTANCE]),
     "points": lambda t: _row(t, [PAD_DISTANCE, 0.0, 0.0]),
-    "cylinders": lambda t: _row(t, [PAD_DISTANCE, 0.0, 0.0, PAD_DISTANCE, 0.0, 0.0, 0.0]),
+    # a cylinder needs a length (World refuses one without an axis): a unit one, radius 0
+    "cylinders": lambda t: _row(t, [PAD_DISTANCE, 0.0, 0.0, PAD_DISTANCE, 0.0, 1.0, 0.0]),
 }
 
 

@@ -32,17 +32,14 @@ from ..validation import check_nonnegative, check_number, tensors
 from . import _native_velocity
 from .limits import Limit, check_limits, combine_boxes
 from .qp import _solve_box, _solve_general
-from .tasks import Problem, Task
+from .tasks import Problem, Task, objects_of
 
 __all__ = ["solve_velocity"]
 
 
 def check_tasks(tasks) -> tuple[Task, ...]:
-    tasks = () if tasks is None else (tasks,) if isinstance(tasks, Task) else tuple(tasks)
-    bad = [t for t in tasks if not isinstance(t, Task)]
-    if bad:
-        raise ConventionError(f"expected tasks as Task objects (FrameTask, RelativeFrameTask, PostureTask, "
-                              f"ComTask, DampingTask), got {bad[0]!r}")
+    kinds = "FrameTask, RelativeFrameTask, PostureTask, ComTask, DampingTask"
+    tasks = objects_of(tasks, Task, "tasks", kinds)
     if not tasks:
         raise ConventionError("expected at least one task")
     return tasks

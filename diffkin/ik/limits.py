@@ -30,7 +30,7 @@ from torch import Tensor
 
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..validation import check_nonnegative, check_number, shape_str
-from .tasks import Problem, _Frozen, joint_dofs
+from .tasks import Problem, _Frozen, joint_dofs, objects_of
 
 __all__ = ["CollisionLimit", "ConfigurationLimit", "Limit", "VelocityLimit"]
 
@@ -169,9 +169,4 @@ def combine_boxes(limits, p: Problem) -> tuple[Tensor, Tensor] | None:
 
 
 def check_limits(limits: Any) -> tuple[Limit, ...]:
-    limits = () if limits is None else (limits,) if isinstance(limits, Limit) else tuple(limits)
-    bad = [x for x in limits if not isinstance(x, Limit)]
-    if bad:
-        raise ConventionError(f"expected limits as Limit objects (ConfigurationLimit, VelocityLimit, "
-                              f"CollisionLimit), got {bad[0]!r}")
-    return limits
+    return objects_of(limits, Limit, "limits", "ConfigurationLimit, VelocityLimit, CollisionLimit")

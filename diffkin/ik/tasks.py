@@ -131,6 +131,16 @@ def free_dofs(chain) -> list[int]:
     return [c for _, kind, cols in joint_dofs(chain) if kind == "free" for c in cols]
 
 
+def objects_of(x: Any, cls: type, name: str, kinds: str) -> tuple:
+    """``x`` (None, one ``cls`` or an iterable of them: the tasks or limits argument) as a tuple;
+    :class:`~diffkin.errors.ConventionError` naming ``kinds`` and the first entry that is not a ``cls``."""
+    xs = () if x is None else (x,) if isinstance(x, cls) else tuple(x)
+    bad = [t for t in xs if not isinstance(t, cls)]
+    if bad:
+        raise ConventionError(f"expected {name} as {cls.__name__} objects ({kinds}), got {bad[0]!r}")
+    return xs
+
+
 def _gain_damping(task, p: Problem) -> tuple[Tensor, Tensor]:
     gain, mu = (check_nonnegative(p.like(f"{type(task).__name__}.{k}", v, None), f"{type(task).__name__}.{k}")
                 for k, v in (("gain", task.gain), ("lm_damping", task.lm_damping)))

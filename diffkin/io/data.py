@@ -117,6 +117,18 @@ def _is_number(text: str) -> bool:
     return True
 
 
+def _row(fields: list[str], width: int | None, where: str, lineno: int, of: str) -> list[float]:
+    """One text row as floats; ``width`` (None: any) the columns it must have (``of``: whose width, for the
+    message). :class:`DataFileError` names the line and the first field that is not a number."""
+    if width is not None and len(fields) != width:
+        raise DataFileError(f"{where}: line {lineno}: {len(fields)} columns, but {of} has {width}")
+    try:
+        return [float(v) for v in fields]
+    except ValueError:
+        bad = next(v for v in fields if not _is_number(v))
+        raise DataFileError(f"{where}: line {lineno}: not a number: {bad!r}") from None
+
+
 class _CsvFile:
     """A CSV file read in chunks: header detection, row count, line numbers for errors."""
 
@@ -168,18 +180,8 @@ class _CsvFile:
                 return arr
         except ValueError:
             pass
-        rows = []
-        for lineno, s in lines:  # quoted fields, or a row to blame
-            fields = _split(s)
-            if len(fields) != self.width:
-                raise DataFileError(
-                    f"{self.path}: line {lineno}: {len(fields)} columns, but the file has {self.width}"
-                )
-            try:
-                rows.append([float(v) for v in fields])
-            except ValueError:
-                bad = next(v for v in fields if not _is_number(v))
-                raise DataFileError(f"{self.path}: line {lineno}: not a number: {bad!r}") from None
+        # quoted fields, or a row to blame
+        rows = [_row(_split(s), self.width, str(self.path), lineno, "the file") for lineno, s in lines]
         return np.asarray(rows, dtype=np.float64)
 
 
@@ -843,14 +845,7 @@ def _read_text(path: Path) -> np.ndarray:
             fields = line.split("#", 1)[0].replace(",", " ").replace(";", " ").split()
             if not fields:
                 continue
-            if rows and len(fields) != len(rows[0]):
-                raise DataFileError(f"{path}: line {lineno}: {len(fields)} columns, but the first row has "
-                                    f"{len(rows[0])}")
-            try:
-                rows.append([float(v) for v in fields])
-            except ValueError:
-                bad = next(v for v in fields if not _is_number(v))
-                raise DataFileError(f"{path}: line {lineno}: not a number: {bad!r}") from None
+            rows.append(_row(fields, len(rows[0]) if rows else None, str(path), lineno, "the first row"))
     if not rows:
         raise DataFileError(f"{path}: empty file (no data rows)")
     return np.asarray(rows, dtype=np.float64)

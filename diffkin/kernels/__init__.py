@@ -18,7 +18,7 @@ module             encodes
                    and summed over mimic followers; the parameter Jacobian (pose w.r.t. geometry)
 ``dls``            the damped least-squares solve (3.59)
 ``banded``         the block-banded SPD solve (a Gauss–Newton normal matrix over a time series): block
-                   Cholesky, and block-Jacobi conjugate gradients
+                   Cholesky, and block-Jacobi conjugate gradients; the scalar tridiagonal solve (splines)
 ``pose_error``     the pose / orientation error (§3.7.3)
 ``native``         a second implementation, in C, of the hot path of the above for CPU calls without
                    autograd: the tree product with the Jacobian, and the IK solver's Levenberg–Marquardt

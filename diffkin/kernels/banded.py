@@ -17,6 +17,9 @@ blocks' Cholesky factors (block Jacobi): a fixed number of iterations, each a fe
 T blocks at once, so the sequential depth does not grow with T (the exact solve's loop does: on a busy CPU
 or a GPU, where each small operation costs its launch, that loop dominates). An inexact solve is what a
 damped Gauss–Newton step needs (truncated Newton).
+
+:func:`tridiagonal_solve` is the scalar (not necessarily symmetric) tridiagonal system of the cubic splines
+(the knot slopes or accelerations of §4.2.2), small enough (N path points) for a dense batched LU.
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["block_banded_cg", "block_banded_solve"]
+__all__ = ["block_banded_cg", "block_banded_solve", "tridiagonal_solve"]
 
 
 def _right_solve(L: Tensor, M: Tensor) -> Tensor:
@@ -66,34 +69,6 @@ def _regroup(D: Tensor, E: Tensor, F: Tensor, g: Tensor, k: int):
     return Dd.flatten(-4, -3).flatten(-2, -1), Ee.flatten(-4, -3).flatten(-2, -1), g.reshape(*lead, m, k * n)
 
 
-def _tridiagonal_solve(D: Tensor, E: Tensor, g: Tensor) -> Tensor:
-    """x with H x = g for block-tridiagonal SPD H: diagonal ``D (..., m, N, N)``, sub-diagonal
-    ``E (..., m, N, N)`` (E[0] unused), g ``(..., m, N)``; block Cholesky, a loop over the m blocks."""
-    m = D.shape[-3]
-    L: list[Tensor] = []
-    A: list[Tensor | None] = [None]
-    for s in range(m):
-        S = D[..., s, :, :]
-        if s >= 1:
-            a = _right_solve(L[s - 1], E[..., s, :, :])
-            A.append(a)
-            S = S - a @ a.mT
-        L.append(torch.linalg.cholesky_ex(S)[0])
-    y: list[Tensor] = []
-    for s in range(m):
-        r = g[..., s, :]
-        if s >= 1:
-            r = r - (A[s] @ y[s - 1].unsqueeze(-1)).squeeze(-1)
-        y.append(torch.linalg.solve_triangular(L[s], r.unsqueeze(-1), upper=False).squeeze(-1))
-    x: list[Tensor | None] = [None] * m
-    for s in range(m - 1, -1, -1):
-        r = y[s]
-        if s + 1 < m:
-            r = r - (A[s + 1].mT @ x[s + 1].unsqueeze(-1)).squeeze(-1)
-        x[s] = torch.linalg.solve_triangular(L[s].mT, r.unsqueeze(-1), upper=True).squeeze(-1)
-    return torch.stack(x, -2)
-
-
 def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_block: int | None = None
                        ) -> Tensor:
     """x ``(..., T, n)`` with H x = g, H SPD block-banded (module doc); ``D, E, F (..., T, n, n)``,
@@ -107,15 +82,23 @@ def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_bl
     T = D.shape[-3]
     k = 1 if frames_per_block is None else int(frames_per_block)
     if k >= 2:
-        x = _tridiagonal_solve(*_regroup(D, E, F, g, k))
+        Dk, Ek, gk = _regroup(D, E, F, g, k)
+        x = _band_cholesky_solve(Dk, Ek, None, gk)
         return x.reshape(*g.shape[:-2], -1, g.shape[-1])[..., :T, :]
+    return _band_cholesky_solve(D, E, F, g)
+
+
+def _band_cholesky_solve(D: Tensor, E: Tensor, F: Tensor | None, g: Tensor) -> Tensor:
+    """The block Cholesky recursion of the module doc, a loop over the T blocks (the band), batched over the
+    leading dims; ``F`` None: block-tridiagonal (the regrouped super-blocks), the second band skipped."""
+    T = D.shape[-3]
     L: list[Tensor] = []
     A: list[Tensor | None] = []
     B: list[Tensor | None] = []
     for t in range(T):  # over time (the band), batched over the leading dims
         S = D[..., t, :, :]
         b = a = None
-        if t >= 2:
+        if t >= 2 and F is not None:
             b = _right_solve(L[t - 2], F[..., t, :, :])
             S = S - b @ b.mT
         if t >= 1:
@@ -132,7 +115,7 @@ def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_bl
         r = g[..., t, :]
         if t >= 1:
             r = r - (A[t] @ y[t - 1].unsqueeze(-1)).squeeze(-1)
-        if t >= 2:
+        if B[t] is not None:
             r = r - (B[t] @ y[t - 2].unsqueeze(-1)).squeeze(-1)
         y.append(torch.linalg.solve_triangular(L[t], r.unsqueeze(-1), upper=False).squeeze(-1))
     x: list[Tensor | None] = [None] * T
@@ -140,7 +123,7 @@ def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_bl
         r = y[t]
         if t + 1 < T:
             r = r - (A[t + 1].mT @ x[t + 1].unsqueeze(-1)).squeeze(-1)
-        if t + 2 < T:
+        if t + 2 < T and B[t + 2] is not None:
             r = r - (B[t + 2].mT @ x[t + 2].unsqueeze(-1)).squeeze(-1)
         x[t] = torch.linalg.solve_triangular(L[t].mT, r.unsqueeze(-1), upper=True).squeeze(-1)
     return torch.stack(x, -2)
@@ -188,3 +171,14 @@ def block_banded_cg(D: Tensor, E: Tensor, F: Tensor, g: Tensor, iterations: int 
         p = z + (rz_new / rz.clamp_min(tiny)) * p
         rz = rz_new
     return x
+
+
+def tridiagonal_solve(sub: Tensor, diag: Tensor, sup: Tensor, rhs: Tensor) -> Tensor:
+    """x ``(..., N, k)`` with A x = rhs for the tridiagonal A of diagonal ``diag (..., N)``, sub-diagonal
+    ``sub (..., N-1)`` (A_{i+1,i}) and super-diagonal ``sup (..., N-1)`` (A_{i,i+1}); ``rhs (..., N, k)``,
+    batch dims broadcast. A need not be symmetric (a spline's not-a-knot or virtual-point rows are not):
+    LU with partial pivoting on the dense matrix (``torch.linalg.solve``), differentiable; N is the number
+    of path points, so the dense N x N costs nothing next to the evaluation."""
+    A = torch.diag_embed(diag) + torch.diag_embed(sub, offset=-1) + torch.diag_embed(sup, offset=1)
+    batch = torch.broadcast_shapes(A.shape[:-2], rhs.shape[:-2])  # explicit: rhs is never read as vectors
+    return torch.linalg.solve(A.expand(*batch, *A.shape[-2:]), rhs.expand(*batch, *rhs.shape[-2:]))

@@ -51,14 +51,13 @@ def joint_reach(collision) -> Tensor:
         # ancestors: frame m is on the path to frame k when every joint moving m also moves k
         anc = (movers[:, None, :] & ~movers[None, :, :]).any(-1) == 0  # anc[m, k]: movers(m) ⊆ movers(k)
         anc &= movers.any(1)[:, None]
-        parent = torch.full((K,), -1, dtype=torch.long, device=dev)
-        for k in range(K):  # the nearest proper ancestor (largest index: frames are in topological order)
-            cand = [m for m in range(k) if bool(anc[m, k]) and bool(movers[m].any())]
-            parent[k] = cand[-1] if cand else -1
+        # the nearest proper ancestor (largest index: frames are in topological order), -1 for none
+        idx = torch.arange(K, device=dev)
+        cand = anc & (idx[:, None] < idx[None, :])  # cand[m, k]: m a proper ancestor of k
+        parent = torch.where(cand, idx[:, None], -1).amax(0) if K else idx
         link = torch.zeros(K, dtype=dt, device=dev)
         has = parent >= 0
         link[has] = (o[has] - o[parent[has]]).norm(dim=-1)
-        # dist[j_frame, k]: sum of the fixed links from frame f down to frame k (f an ancestor of k or k)
         P = collision._columns(q0)  # (3, C)
         nc, nb = collision._counts
         anchor = collision._col_anchor
@@ -72,20 +71,22 @@ def joint_reach(collision) -> Tensor:
         _, origin, _ = chain.joint_axes_origins(q0)
         axis_off = (origin - o[first.clamp(max=K - 1)]).norm(dim=-1) if origin.shape[-2] == nq \
             else torch.zeros(nq, dtype=dt, device=dev)
-        R = torch.zeros(nq, dtype=dt, device=dev)
-        for j in range(nq):
-            f = int(first[j])
-            for c in range(pts.shape[0]):
-                k = int(a_pts[c])
-                if not bool(moved[j, k]):
-                    continue
-                total, m = float(own[c]) + float(axis_off[j]), k
-                while m != f and m >= 0:
-                    total += float(link[m])
-                    m = int(parent[m])
-                R[j] = max(float(R[j]), total)
-        return R
-
+        # R_j: the largest own extent + axis offset + the fixed links from the geom's frame k up to joint j's
+        # own frame f (f excluded; up to the root where f is not above k), over the geoms joint j moves: all
+        # (joint, geom) pairs walk up the frame tree together, one level per step, in float64 (the sums as
+        # before, link after link), then cast to the chain's dtype
+        f64 = torch.float64
+        link64, up = link.to(f64), torch.cat((parent, parent.new_full((1,), -1)))  # up[-1]: "none" stays
+        total = own.to(f64)[None, :] + axis_off.to(f64)[:, None]  # (nq, C')
+        m = a_pts.expand(nq, -1)
+        f = first[:, None]
+        live = m != f
+        for _ in range(K):  # over the depth of the frame tree (at most K levels), not over a batch
+            total = total + torch.where(live, link64[m.clamp(min=0)], 0.0)
+            m = up[m]
+            live = live & (m != f) & (m >= 0)
+        total = torch.where(moved[:, a_pts], total, 0.0)  # the geoms joint j moves only
+        return torch.cat((total, total.new_zeros(nq, 1)), 1).amax(1).to(dt)
 
 class EdgeChecker:
     """Collision decisions for configurations and straight joint-space edges (module docstring)."""

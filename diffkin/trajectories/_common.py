@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ..errors import DiffkinError, ShapeError
+from ..kernels.banded import tridiagonal_solve
 from ..validation import check_trailing, shape_str
 
 __all__ = ["Trajectory", "InfeasibleTrajectoryError"]
@@ -140,6 +141,47 @@ def cubic_coeffs(q0: Tensor, q1: Tensor, v0: Tensor, v1: Tensor, h: Tensor) -> l
     a2 = (3 * d - (2 * v0 + v1) * h) / h**2
     a3 = (-2 * d + (v0 + v1) * h) / h**3
     return [q0, v0, a2, a3]
+
+
+def spline_slopes(knots: Tensor, y: Tensor, bc: str = "clamped", v_i: Tensor | None = None,
+                  v_f: Tensor | None = None) -> Tensor:
+    """Knot slopes m (..., N, n) of the C² cubic spline through y (..., N, n) at knots (N,) or (..., N).
+
+    With the slopes, each segment is the Hermite cubic (4.1) of its end positions and velocities
+    (:func:`cubic_coeffs`); continuity of the acceleration at the interior knots gives the rows
+    h_k m_{k-1} + 2 (h_{k-1} + h_k) m_k + h_{k-1} m_{k+1} = 3 (h_k d_{k-1} + h_{k-1} d_k) (h: intervals, d:
+    chord slopes). bc="clamped": m_1 = v_i, m_N = v_f ((..., n), default 0: §4.2.2's imposed end
+    velocities, scipy's ``bc_type="clamped"``); bc="not-a-knot": scipy ``CubicSpline``'s default (third
+    derivative continuous at the second and the last but one knot; N = 2: the chord, N = 3: the parabola).
+    """
+    h = torch.diff(knots, dim=-1)  # (..., N-1)
+    d = torch.diff(y, dim=-2) / h[..., None]  # chord slopes (..., N-1, n)
+    N = y.shape[-2]
+    if bc == "not-a-knot" and N == 2:
+        return cat_broadcast([d, d], -2)
+    if bc == "not-a-knot" and N == 3:  # scipy: the parabola through the three points
+        c = (d[..., 1, :] - d[..., 0, :]) / (knots[..., 2] - knots[..., 0])[..., None]
+        h0, h1 = h[..., :1], h[..., 1:]
+        return torch.stack(torch.broadcast_tensors(d[..., 0, :] - c * h0, d[..., 0, :] + c * h0,
+                                                   d[..., 1, :] + c * h1), -2)
+    hl, hr = h[..., :-1], h[..., 1:]  # the intervals left and right of each interior knot (..., N-2)
+    rhs = 3 * (hr[..., None] * d[..., :-1, :] + hl[..., None] * d[..., 1:, :])
+    if bc == "clamped":
+        one, zero = torch.ones_like(h[..., :1]), torch.zeros_like(h[..., :1])
+        diag = torch.cat([one, 2 * (hl + hr), one], -1)
+        sub, sup = torch.cat([hr, zero], -1), torch.cat([zero, hl], -1)
+        v0 = torch.zeros_like(y[..., 0, :]) if v_i is None else v_i
+        v1 = torch.zeros_like(y[..., -1, :]) if v_f is None else v_f
+        rhs = cat_broadcast([v0[..., None, :], rhs, v1[..., None, :]], -2)
+    else:  # not-a-knot: scipy's first and last rows
+        w0, w1 = knots[..., 2:3] - knots[..., :1], knots[..., -1:] - knots[..., -3:-2]
+        h0, h1, hm, hn = h[..., :1], h[..., 1:2], h[..., -2:-1], h[..., -1:]
+        diag = torch.cat([h1, 2 * (hl + hr), hm], -1)
+        sub, sup = torch.cat([hr, w1], -1), torch.cat([w0, hl], -1)
+        first = ((h0 + 2 * w0) * h1)[..., None] * d[..., :1, :] + (h0**2)[..., None] * d[..., 1:2, :]
+        last = (hn**2)[..., None] * d[..., -2:-1, :] + ((2 * w1 + hn) * hm)[..., None] * d[..., -1:, :]
+        rhs = cat_broadcast([first / w0[..., None], rhs, last / w1[..., None]], -2)
+    return tridiagonal_solve(sub, diag, sup, rhs)
 
 
 def mask_outside(traj: Trajectory, inside: Tensor) -> Trajectory:

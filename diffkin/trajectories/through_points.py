@@ -13,6 +13,7 @@ from torch import Tensor
 
 from .._numerics import stable_norm, stable_normalize
 from ..errors import ConventionError, DiffkinError
+from ..kernels.banded import tridiagonal_solve
 from ..validation import broadcast_batch, check_trailing, tensors
 from ._common import (
     InfeasibleTrajectoryError,
@@ -27,6 +28,7 @@ from ._common import (
     poly_eval,
     query_times,
     segment_index,
+    spline_slopes,
     take,
     take_scalar,
 )
@@ -119,20 +121,6 @@ def cubic_through_points(points: Tensor, times, t, velocities: Tensor | None = N
     return _hermite_segments(points, velocities, times, t)
 
 
-def _tridiagonal(diag: Tensor, off_lo: Tensor, off_up: Tensor) -> Tensor:
-    return torch.diag_embed(diag) + torch.diag_embed(off_lo, offset=-1) + torch.diag_embed(off_up, offset=1)
-
-
-def _clamped_accelerations(Q: Tensor, h: Tensor, v_i: Tensor, v_f: Tensor) -> Tensor:
-    """Knot accelerations of the spline with imposed end velocities: tridiagonal N x N system."""
-    zero = torch.zeros_like(h[..., :1])
-    diag = 2 * (torch.cat([zero, h], -1) + torch.cat([h, zero], -1))
-    slopes = torch.diff(Q, dim=-2) / h[..., None]
-    first, last = slopes[..., :1, :] - v_i[..., None, :], v_f[..., None, :] - slopes[..., -1:, :]
-    b = 6 * cat_broadcast([first, torch.diff(slopes, dim=-2), last], -2)
-    return torch.linalg.solve(_tridiagonal(diag, h, h), b)
-
-
 def _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times):
     """Knots, knot positions and knot accelerations of the book's N+1 cubics with two virtual points.
 
@@ -166,7 +154,7 @@ def _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times):
     b = 6 * torch.diff(slopes, dim=-2)
     b = cat_broadcast([b[..., :1, :] - h0[..., None] * a_i[..., None, :], b[..., 1:, :]], -2)
     b = cat_broadcast([b[..., :-1, :], b[..., -1:, :] - hl[..., None] * a_f[..., None, :]], -2)
-    M_in = torch.linalg.solve(_tridiagonal(diag, sub, sup), b)
+    M_in = tridiagonal_solve(sub, diag, sup, b)
     M = cat_broadcast([a_i[..., None, :], M_in, a_f[..., None, :]], -2)
     Q = cat_broadcast(
         [
@@ -181,18 +169,14 @@ def _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times):
     return knots, Q, M
 
 
-def _spline_eval(knots: Tensor, Q: Tensor, M: Tensor, t: Tensor) -> Trajectory:
-    """Evaluate the spline (4.27) from knot positions Q and knot accelerations M (..., K, n)."""
-    tq, inside = clamp_times(t, knots[..., :1], knots[..., -1:])
-    k = segment_index(knots, tq)
-    tk, tk1 = take_scalar(knots, k)[..., None], take_scalar(knots, k + 1)[..., None]
-    q0, q1, m0, m1 = take(Q, k), take(Q, k + 1), take(M, k), take(M, k + 1)
-    tq = tq[..., None]
-    h, a, b = tk1 - tk, tk1 - tq, tq - tk
-    pos = m0 * a**3 / (6 * h) + m1 * b**3 / (6 * h) + (q1 / h - h * m1 / 6) * b + (q0 / h - h * m0 / 6) * a
-    vel = -m0 * a**2 / (2 * h) + m1 * b**2 / (2 * h) + (q1 - q0) / h - h * (m1 - m0) / 6
-    acc = (m0 * a + m1 * b) / h  # (4.26)
-    return mask_outside(Trajectory(pos, vel, acc), inside[..., None])
+def _knot_velocities(knots: Tensor, Q: Tensor, M: Tensor) -> Tensor:
+    """Knot velocities (..., K, n) of the spline (4.27) with knot positions Q and accelerations M (..., K, n):
+    its derivative at the start of each interval and, last, at the end of the last one."""
+    h = torch.diff(knots, dim=-1)[..., None]
+    slope = torch.diff(Q, dim=-2) / h
+    start = slope - h * (2 * M[..., :-1, :] + M[..., 1:, :]) / 6
+    end = slope[..., -1:, :] + h[..., -1:, :] * (M[..., -2:-1, :] + 2 * M[..., -1:, :]) / 6
+    return cat_broadcast([start, end], -2)
 
 
 def cubic_spline(
@@ -201,11 +185,12 @@ def cubic_spline(
     """Cubic spline through the path points with continuous velocity and acceleration (4.26)-(4.28).
 
     end="clamped": N-1 cubics with the end velocities v_i, v_f imposed (end accelerations free), knot
-    accelerations from a tridiagonal system. end="natural_virtual": the book's construction with two
+    slopes from a tridiagonal system. end="natural_virtual": the book's construction with two
     virtual points (4.13)-(4.25), so that end accelerations a_i, a_f (default 0) are imposed too; the
     virtual points sit at ``virtual_times`` (..., 2) (default: middles of the first and last interval)
     and the unknown knot accelerations solve (4.28). v_i, v_f, a_i, a_f: (..., n).
-    Solved with ``torch.linalg.solve`` on the batched tridiagonal matrix, so it is differentiable.
+    Both are evaluated as the Hermite cubics (4.1) of their knot positions and velocities; the tridiagonal
+    systems are solved by :func:`~diffkin.kernels.banded.tridiagonal_solve` (batched, differentiable).
     """
     if end not in ("clamped", "natural_virtual"):
         raise ConventionError(f'unknown spline end condition {end!r}; valid: "clamped", "natural_virtual"')
@@ -222,10 +207,9 @@ def cubic_spline(
     broadcast_batch(("points", points, 2), *named, ("virtual_times", virtual_times, 1))
     v_i, v_f, a_i, a_f = (x.expand(torch.broadcast_shapes(x.shape, points.shape[-1:])) for x in ends.values())
     if end == "clamped":
-        h = torch.diff(times, dim=-1)
-        return _spline_eval(times, points, _clamped_accelerations(points, h, v_i, v_f), t)
+        return _hermite_segments(points, spline_slopes(times, points, "clamped", v_i, v_f), times, t)
     knots, Q, M = _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times)
-    return _spline_eval(knots, Q, M, t)
+    return _hermite_segments(Q, _knot_velocities(knots, Q, M), knots, t)
 
 
 def _ramp(x: Tensor, D: Tensor) -> Trajectory:

@@ -48,7 +48,7 @@ from torch import Tensor
 
 from ..errors import ConventionError, ShapeError
 from ..validation import check_count, check_number, shape_str, tensors
-from ._common import InfeasibleTrajectoryError, Trajectory
+from ._common import InfeasibleTrajectoryError, Trajectory, cubic_coeffs, poly_eval, spline_slopes
 
 __all__ = ["TimedPath", "time_optimal"]
 
@@ -59,38 +59,6 @@ _STRETCH = 2e-4
 
 
 # ------------------------------------------------------------------------------------ the geometric path
-def _spline_slopes(s: Tensor, y: Tensor, bc: str) -> Tensor:
-    """Knot slopes (B, N, n) of scipy's CubicSpline through y (B, N, n) at knots s (B, N)."""
-    B, N, n = y.shape
-    h = s[:, 1:] - s[:, :-1]  # (B, N-1)
-    d = (y[:, 1:] - y[:, :-1]) / h[..., None]  # slopes of the chords
-    if N == 2:
-        return d.expand(B, 2, n).clone() if bc == "not-a-knot" else torch.zeros_like(y)
-    if N == 3 and bc == "not-a-knot":  # scipy: the parabola through the three points
-        c = (d[:, 1] - d[:, 0]) / (s[:, 2] - s[:, 0])[..., None]
-        h0 = h[:, :1]
-        return torch.stack((d[:, 0] - c * h0, d[:, 0] + c * h0, d[:, 1] + c * h[:, 1:]), 1)
-    A = y.new_zeros(B, N, N)
-    r = y.new_zeros(B, N, n)
-    i = torch.arange(1, N - 1, device=y.device)
-    A[:, i, i - 1] = h[:, 1:]
-    A[:, i, i] = 2 * (h[:, :-1] + h[:, 1:])
-    A[:, i, i + 1] = h[:, :-1]
-    r[:, 1:-1] = 3 * (h[:, 1:, None] * d[:, :-1] + h[:, :-1, None] * d[:, 1:])
-    if bc == "clamped":
-        A[:, 0, 0] = 1
-        A[:, -1, -1] = 1
-    else:  # not-a-knot, scipy's rows
-        w = s[:, 2] - s[:, 0]
-        A[:, 0, 0], A[:, 0, 1] = h[:, 1], w
-        r[:, 0] = ((h[:, :1] + 2 * w[:, None]) * h[:, 1:2] * d[:, 0] + h[:, :1] ** 2 * d[:, 1]) / w[:, None]
-        w = s[:, -1] - s[:, -3]
-        A[:, -1, -1], A[:, -1, -2] = h[:, -2], w
-        r[:, -1] = (h[:, -1:] ** 2 * d[:, -2] + (2 * w[:, None] + h[:, -1:]) * h[:, -2:-1] * d[:, -1]) \
-            / w[:, None]
-    return torch.linalg.solve(A, r)
-
-
 class _Path:
     """Piecewise cubic q(s) = c0 + c1 τ + c2 τ² + c3 τ³ (τ = s − s_k on [s_k, s_{k+1}]), (B, N−1, n)."""
 
@@ -98,14 +66,13 @@ class _Path:
         self.s = s
         self.end = y[:, -1]  # returned exactly at s >= s_N
         h = (s[:, 1:] - s[:, :-1])[..., None]
-        d = (y[:, 1:] - y[:, :-1]) / h
         if interpolation == "linear":
+            d = (y[:, 1:] - y[:, :-1]) / h
             zero = torch.zeros_like(d)
             self.c = (y[:, :-1], d, zero, zero)
         else:
-            m = _spline_slopes(s, y, bc)
-            m0, m1 = m[:, :-1], m[:, 1:]
-            self.c = (y[:, :-1], m0, (3 * d - 2 * m0 - m1) / h, (m0 + m1 - 2 * d) / h**2)
+            m = spline_slopes(s, y, bc)  # the spline as Hermite cubics of its knot slopes
+            self.c = tuple(cubic_coeffs(y[:, :-1], y[:, 1:], m[:, :-1], m[:, 1:], h))
 
     def segment(self, s: Tensor) -> Tensor:
         """Segment index (B, T) of path parameters s (B, T) (clamped into the path)."""
@@ -118,12 +85,10 @@ class _Path:
         k = self.segment(s) if k is None else k
         tau = (s - torch.gather(self.s, 1, k))[..., None]
         idx = k[..., None].expand(*k.shape, self.c[0].shape[-1])
-        c0, c1, c2, c3 = (torch.gather(c, 1, idx) for c in self.c)
-        q = c0 + tau * (c1 + tau * (c2 + tau * c3))
+        coeffs = [torch.gather(c, 1, idx) for c in self.c]
+        q, q1, q2 = poly_eval(coeffs, tau)
         q = torch.where((s >= self.s[:, -1:])[..., None], self.end[:, None], q)
-        q1 = c1 + tau * (2 * c2 + 3 * tau * c3)
-        q2 = 2 * c2 + 6 * tau * c3
-        return q, q1, q2, 6 * c3
+        return q, q1, q2, 6 * coeffs[3]
 
 
 # ------------------------------------------------------------------------------------ TOPP-RA on a grid

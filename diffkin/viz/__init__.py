@@ -582,14 +582,19 @@ class Viewer:
             self.set_q(res.q.detach())
             ok = bool(res.success)
             pe, oe = float(res.position_error.max()), float(res.orientation_error.max())
-            self.ik_state = {"success": ok, "position_error": pe,
-                             "orientation_error": None if pos_only else oe, "time_s": dt,
-                             "message": "reached" if ok else "not reached (best effort shown)"}
-            self.gui_ik_success.value = "yes" if ok else "no (best effort shown)"
-            self.gui_ik_position.value = f"{pe * 1e3:.3f}"
-            self.gui_ik_orientation.value = "-" if pos_only else f"{np.degrees(oe):.3f}"
-            self.gui_ik_time.value = f"{dt * 1e3:.1f}"
+            self._show_ik(ok, pe, oe, pos_only, dt, "not reached (best effort shown)", "best effort shown")
             return res
+
+    def _show_ik(self, ok: bool, pe: float, oe: float, pos_only: bool, dt: float, message: str,
+                 shown: str) -> None:
+        """Set :attr:`ik_state` and the IK panel: reached or not (``message`` / ``shown`` say what is shown
+        when not), the position (mm) and orientation (deg) errors, the time (ms)."""
+        self.ik_state = {"success": ok, "position_error": pe, "orientation_error": None if pos_only else oe,
+                         "time_s": dt, "message": "reached" if ok else message}
+        self.gui_ik_success.value = "yes" if ok else f"no ({shown})"
+        self.gui_ik_position.value = f"{pe * 1e3:.3f}"
+        self.gui_ik_orientation.value = "-" if pos_only else f"{np.degrees(oe):.3f}"
+        self.gui_ik_time.value = f"{dt * 1e3:.1f}"
 
     def drag_to(self, T_target=None, position_only: bool | None = None, steps: int = 40,
                 dt: float = 0.05) -> dict:
@@ -605,14 +610,8 @@ class Viewer:
             q, pe, oe = _drag_steps(self.chain, self._q, T, pos_only, self.drag_speed, steps, dt)
             self.set_q(q)
             ok = pe < 1e-4 and (pos_only or oe < 1e-3)
-            self.ik_state = {"success": ok, "position_error": pe,
-                             "orientation_error": None if pos_only else oe,
-                             "time_s": time.perf_counter() - t0,
-                             "message": "reached" if ok else "following (limit-safe)"}
-            self.gui_ik_success.value = "yes" if ok else "no (following within the limits)"
-            self.gui_ik_position.value = f"{pe * 1e3:.3f}"
-            self.gui_ik_orientation.value = "-" if pos_only else f"{np.degrees(oe):.3f}"
-            self.gui_ik_time.value = f"{self.ik_state['time_s'] * 1e3:.1f}"
+            self._show_ik(ok, pe, oe, pos_only, time.perf_counter() - t0, "following (limit-safe)",
+                          "following within the limits")
             return self.ik_state
 
     def _move_targets(self, T_target) -> np.ndarray:
