@@ -270,10 +270,10 @@ def check_lower_bound(x: Tensor, name: str, bound: float = 0.0, *, strict: bool 
                                        "value(s)")
         bad = x <= bound if strict else x < bound
         if bool(bad.any()):
-            what = (("non-positive" if strict else "negative") if bound == 0
-                    else f"{'<=' if strict else '<'} {bound:g}")
-            raise cls(f"expected {name} {op} {bound:g}, got {int(bad.sum())} {what} value(s) "
-                      f"(smallest {float(x.min()):.3g})")
+            n = int(bad.sum())
+            got = (f"{n} {'non-positive' if strict else 'negative'} value(s)" if bound == 0
+                   else f"{n} value(s) {'<=' if strict else '<'} {bound:g}")
+            raise cls(f"expected {name} {op} {bound:g}, got {got} (smallest {float(x.min()):.3g})")
     return x
 
 

@@ -83,7 +83,7 @@ def test_the_chain_is_held_by_reference():
 
 # ------------------------------------------------------------------ 2. input checks at the boundary
 def test_world_rejects_negative_radii():
-    with pytest.raises(ModelError, match=r"spheres radii \(last column\) >= 0, got 1 value\(s\) < 0 "
+    with pytest.raises(ModelError, match=r"spheres radii \(last column\) >= 0, got 1 negative value\(s\) "
                        r"\(smallest -1\)"):
         World(spheres=[[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, -1.0]])
     with pytest.raises(ModelError, match="capsules radii"):
@@ -99,7 +99,7 @@ def test_world_cylinders_argument():
               dtype=torch.float64)
     assert w.counts == (1, 0, 0, 0, 0, 1) and len(w) == 2 and w.cylinders.dtype == torch.float64
     assert w.to(torch.float32).cylinders.dtype == torch.float32
-    with pytest.raises(ModelError, match=r"cylinders radii \(last column\) >= 0, got 1 value\(s\) < 0"):
+    with pytest.raises(ModelError, match=r"cylinders radii \(last column\) >= 0, got 1 negative value\(s\)"):
         World(cylinders=[[0.0, 0, 0, 0, 0, 1, -0.1]])
     with pytest.raises(ShapeError, match="cylinders"):
         World(cylinders=[[0.0, 0, 0, 0, 0, 1]])
