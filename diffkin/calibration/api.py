@@ -19,7 +19,7 @@ from .identifiability import IdentifiabilityReport, model_reports
 from .model import check_measurements, pose_residual
 from .plausibility import MAX_CORRECTION, correction_findings, fit_failures
 from .robust import outlier_rows, pose_errors, resolve_loss
-from .solvers import gradient_descent, least_squares
+from .solvers import gradient_descent, kfold_split, least_squares
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
 
@@ -290,13 +290,10 @@ def _noise_ratio(model, zeta, q, T, position_only, rank, noise) -> tuple[float, 
 
 def _cross_validate(model, q, T, position_only, method, w, rank_tol, opts, folds: int) -> dict | None:
     """k-fold held-out error of one robot's data ``q (N, n)``: the k fits run as one batch."""
-    N = q.shape[0]
-    n_test = N // folds
-    if folds < 2 or n_test < 1 or N - n_test < 1:
+    split = kfold_split(q.shape[0], folds, q.device)
+    if split is None:
         return None
-    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(q.device)
-    test = perm[: folds * n_test].reshape(folds, n_test)
-    train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
+    train, test = split
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out, _, _ = _solve(model, q[train], T[train], position_only, method, w, rank_tol,

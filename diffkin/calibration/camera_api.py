@@ -18,7 +18,7 @@ from .camera_model import ESTIMATE, CameraModel, camera_reports
 from .camera_result import CameraCalibrationResult
 from .error_models import build_model
 from .handeye import SETUPS, robot_world_hand_eye
-from .solvers import LOSSES, gradient_descent, least_squares
+from .solvers import LOSSES, gradient_descent, kfold_split, least_squares
 
 __all__ = ["calibrate_camera", "initial_poses"]
 
@@ -128,16 +128,6 @@ def initial_poses(T_base_flange: Tensor, T_cam_board: Tensor, setup: str) -> tup
 
 def _intrinsics(K: Tensor, dist: Tensor) -> Tensor:
     return torch.stack((K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist.unbind(-1)))
-
-
-def _folds(N: int, folds: int, device) -> tuple[Tensor, Tensor] | None:
-    n_test = N // folds
-    if folds < 2 or n_test < 1 or N - n_test < 3:
-        return None
-    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(device)
-    test = perm[: folds * n_test].reshape(folds, n_test)
-    train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
-    return train, test
 
 
 def _point_rms(r: Tensor, vis: Tensor) -> Tensor:
@@ -383,7 +373,7 @@ def calibrate_camera(
 
 def _cross_validate(model, theta0, free, x, img, vis, solve, opts, folds: int) -> dict | None:
     """k-fold held-out reprojection RMS over images; the k fits run as one batch."""
-    split = _folds(x.shape[0], folds, x.device)
+    split = kfold_split(x.shape[0], folds, x.device, min_train=3)
     if split is None:
         return None
     train, test = split

@@ -22,9 +22,22 @@ from ..validation import _traced, check_number, shape_str, tensors
 from .model import CalibrationModel, measurement_shapes
 
 __all__ = ["calibration_loss", "robust_loss", "robust_weights", "least_squares", "gradient_descent",
-           "SolverOutput", "LOSSES"]
+           "SolverOutput", "LOSSES", "kfold_split"]
 
 LOSSES = ("huber", "cauchy", "soft_l1", "l2")
+
+
+def kfold_split(N: int, folds: int, device, min_train: int = 1) -> tuple[Tensor, Tensor] | None:
+    """``(train (k, N − N//k), test (k, N//k))`` row indices of a k-fold split of N measurements (one fixed
+    random permutation, seed 0: reproducible); None when a fold would have no test row or fewer than
+    ``min_train`` training rows."""
+    n_test = N // folds
+    if folds < 2 or n_test < 1 or N - n_test < min_train:
+        return None
+    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(device)
+    test = perm[: folds * n_test].reshape(folds, n_test)
+    train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
+    return train, test
 
 
 @dataclass
