@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -284,3 +285,47 @@ def test_rendered_images_full_size_beside_opencv():
     cv_cam = min(float((X[:3, 3] - cam[:3, 3]).norm()) for X, _ in cv.values())
     assert cam_err < 1e-3 and 3 * cam_err < cv_cam, (cam_err, cv_cam)
     assert res.reprojection_rms < 0.6 and res.noise_ratio < 2  # the rendering's aliasing: 0.43 px
+
+
+@pytest.mark.extended  # its own process imports torch and MuJoCo; the cv2-warped route runs by default
+def test_mujoco_rendered_panda_end_to_end(tmp_path):
+    """MuJoCo Menagerie's Panda with a chessboard on its hand, pictured by ``mujoco.Renderer`` (headless:
+    MUJOCO_GL=egl, in its own process) at 10 postures: OpenCV finds the board in every picture, its corners
+    within 0.4 px (0.2 px RMS) of the board's projection by MuJoCo's own camera (its fovy and the picture's
+    size), and calibrate_camera, given MuJoCo's kinematics, recovers the camera's and the board's poses to a
+    millimetre."""
+    import os
+    import subprocess
+    import sys
+
+    pytest.importorskip("mujoco")
+    from benchmarks.mujoco_board import BOARD_ON_HAND, CAMERA, PANDA_XML, postures
+    from diffkin.models import from_mjcf
+
+    chain = from_mjcf(PANDA_XML, "hand", dtype=torch.float64)
+    f = 384 / math.tan(math.radians(35.0) / 2)
+    K = torch.tensor([[f, 0, 479.5], [0, f, 383.5], [0, 0, 1]], dtype=torch.float64)
+    q, T = postures(chain, K, 10)
+    np.save(tmp_path / "q.npy", q.numpy())
+    env = dict(os.environ, MUJOCO_GL=os.environ.get("MUJOCO_GL", "egl"))
+    run = subprocess.run([sys.executable, "-m", "benchmarks.mujoco_board", str(tmp_path / "q.npy"),
+                          str(tmp_path / "out.npz")], cwd=Path(__file__).resolve().parents[1], env=env,
+                         capture_output=True, text=True, timeout=300)
+    if run.returncode != 0:
+        pytest.skip(f"MuJoCo cannot render here (MUJOCO_GL={env['MUJOCO_GL']}): {run.stderr[-300:]}")
+    out = np.load(tmp_path / "out.npz")
+    np.testing.assert_allclose(out["K"], K.numpy(), rtol=1e-12)
+    det = detect_board(list(out["images"]), (ROWS, COLS), SQUARE)
+    assert det.found.all()
+    pts = det.board_points
+    p = (T[:, None, :3, :3] @ pts[None, :, :, None])[..., 0] + T[:, None, :3, 3]
+    truth = p[..., :2] / p[..., 2:] * f + K[:2, 2]
+    err = (det.image_points - truth).norm(dim=-1)
+    assert float(err.max()) < 0.4 and float(err.square().mean().sqrt()) < 0.2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = calibrate_camera(chain, q, det.image_points, pts, camera_matrix=K, visible=det.visible,
+                               estimate=("camera", "board"), cross_validation=0, progress=False)
+    assert res.reprojection_rms < 0.2
+    assert float((res.camera_pose[:3, 3] - CAMERA[:3, 3]).norm()) < 1e-3
+    assert float((res.board_pose[:3, 3] - BOARD_ON_HAND[:3, 3]).norm()) < 1e-3
