@@ -31,14 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 TIP = (0.0, 0.0, 0.1)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def perturbed(nominal, seed=1):
     """The true robot: every candidate of the error model moved by up to ±1 mm / ±0.1°."""
     model, _ = build_model(nominal)

@@ -27,6 +27,16 @@ METHODS = ("least_squares", "gradient")
 _DEG = 180.0 / math.pi  # reports give lengths in mm and angles in degrees (console, parameters.md, summary)
 
 
+def save_figure(fig, path: str | Path) -> Path:
+    """Lay out a matplotlib ``Figure`` and write it to ``path`` (parent folders made): every calibration
+    result's residual plot."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def validation_error(chain: DHChain, q: Tensor, T: Tensor) -> dict[str, float | None]:
     """Pose error of ``chain`` against measurements: ``q (N, n)``, ``T (N, 4, 4)`` or positions ``(N, 3)``.
 
@@ -198,11 +208,7 @@ class CalibrationResult:
         ax.set_title("calibration poses", fontsize=10)
         ax.legend()
         fig.suptitle(f"calibration of '{self.chain.name}'")
-        fig.tight_layout()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
-        return path
+        return save_figure(fig, path)
 
     def outlier_summary(self) -> str:
         """One line: how many poses are beyond the outlier threshold (:mod:`.robust`), and which."""

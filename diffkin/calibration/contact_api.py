@@ -15,7 +15,7 @@ from torch import Tensor
 from ..chain import KinematicChain
 from ..errors import ConventionError, DiffkinError, OptionError, ShapeError, require
 from ..validation import as_tensor, check_number, shape_str, tensors
-from .api import CalibrationResult, _check_options, _undetermined_note
+from .api import CalibrationResult, _check_options, _undetermined_note, save_figure
 from .contact_model import (
     SURFACES,
     ContactModel,
@@ -27,7 +27,7 @@ from .contact_model import (
 from .error_models import build_model
 from .plausibility import MAX_CORRECTION, correction_findings, fit_failures
 from .robust import resolve_loss
-from .solvers import gradient_descent, kfold_split, least_squares
+from .solvers import fold_fits, gradient_descent, least_squares
 
 __all__ = ["ContactCalibrationResult", "calibrate_contacts"]
 
@@ -95,16 +95,7 @@ class ContactCalibrationResult(CalibrationResult):
         ax2.set_xlabel(f"iteration ({self.method})")
         ax2.set_ylabel("distance RMS [mm]")
         fig.suptitle(f"contact calibration of '{self.chain.name}' ({self.surface})")
-        fig.tight_layout()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
-        return path
-
-    def outlier_summary(self) -> str:
-        rows = ", ".join(map(str, self.outliers[:10])) + (", ..." if len(self.outliers) > 10 else "")
-        return (f"outliers ({self.loss} loss): {len(self.outliers)} of {self.q.shape[0]} contacts beyond "
-                f"{self.outlier_threshold * 1e3:.4f} mm" + (f" (rows {rows})" if self.outliers else ""))
+        return save_figure(fig, path)
 
     def summary(self) -> str:
         lines = [
@@ -338,16 +329,12 @@ def calibrate_contacts(
 
 def _cross_validate(model, theta0, free, x, measured, solve, opts, folds: int) -> dict | None:
     """k-fold held-out distance RMS over contacts; the k fits run as one batch."""
-    split = kfold_split(x.shape[0], folds, x.device, min_train=int(free.sum()) // 2 + 1)
-    if split is None:
+    fits = fold_fits(model, theta0, free, x, measured, solve, opts, folds, min_train=int(free.sum()) // 2 + 1)
+    if fits is None:
         return None
-    train, test = split
-    k = train.shape[0]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        out = solve(model, theta0.expand(k, -1).clone(), free.expand(k, -1), x[train], measured[train],
-                    orientation_weight=1.0, **dict(opts, progress=False))
+    out, test = fits
     with torch.no_grad():
         d = model.distances(out.zeta, x[test])
-    return {"folds": k, "distance_rms": float(d.square().mean().sqrt()), "distance_max": float(d.abs().max())}
+    return {"folds": test.shape[0], "distance_rms": float(d.square().mean().sqrt()),
+            "distance_max": float(d.abs().max())}
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -22,7 +23,7 @@ from ..validation import _traced, check_number, shape_str, tensors
 from .model import CalibrationModel, measurement_shapes
 
 __all__ = ["calibration_loss", "robust_loss", "robust_weights", "least_squares", "gradient_descent",
-           "SolverOutput", "LOSSES", "kfold_split"]
+           "SolverOutput", "LOSSES", "kfold_split", "fold_fits"]
 
 LOSSES = ("huber", "cauchy", "soft_l1", "l2")
 
@@ -38,6 +39,23 @@ def kfold_split(N: int, folds: int, device, min_train: int = 1) -> tuple[Tensor,
     test = perm[: folds * n_test].reshape(folds, n_test)
     train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
     return train, test
+
+
+def fold_fits(model, theta0: Tensor, free: Tensor, x: Tensor, measured: Tensor, solve, opts: dict, folds: int,
+              min_train: int = 1):
+    """The k fits of a k-fold split (:func:`kfold_split`) of one robot's data ``x (N, ...)``, ``measured
+    (N, ...)`` from ``theta0 (1, P)`` with the free mask ``free (1, C)``, as one batch of ``solve``
+    (warnings silenced: the full fit reports): ``(SolverOutput, test indices (k, N//k))`` or None."""
+    split = kfold_split(x.shape[0], folds, x.device, min_train)
+    if split is None:
+        return None
+    train, test = split
+    k = train.shape[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = solve(model, theta0.expand(k, -1).clone(), free.expand(k, -1), x[train], measured[train],
+                    orientation_weight=1.0, **dict(opts, progress=False))
+    return out, test
 
 
 @dataclass
