@@ -168,3 +168,29 @@ def test_bad_inputs_are_refused():
         calibrate_contacts(nominal, q[:1].expand(30, 7), **kw)
     with pytest.raises(ShapeError, match="tip"):
         calibrate_contacts(nominal, q, tip=[0.0, 0.1], **kw)
+
+
+@pytest.mark.extended
+def test_two_spheres_gradient_and_unknown_radii():
+    """DH Panda, two spheres, 80 contacts, 10 µm: by the gradient method with the radii known, the tip at
+    held-out postures as the truth's to 2σ (rigid alignment), cross-validated distance RMS ≈ σ; by least
+    squares with the radii unknown, one more length (the scale) fixed with the radii in its dependency, the
+    geometry right up to that scale (similarity alignment) and not rigidly."""
+    nominal = panda()
+    true = perturbed(nominal)
+    spheres = torch.tensor([[0.45, 0.2, 0.3, 0.16], [0.3, -0.3, 0.5, 0.12]], dtype=F64)
+    sigma = 1e-5
+    q, fixture = contacts(true, "sphere", spheres, 80, sigma)
+    q_out = true.random_configuration(200, generator=torch.Generator().manual_seed(5))
+    kw = dict(fixture=fixture, tip=TIP, measurement_noise=sigma, cross_validation=4, progress=False)
+    known = calibrate_contacts(nominal, q, "sphere", radius=[0.16, 0.12], method="gradient", **kw)
+    assert known.success and known.converged and 0.7 < known.noise_ratio < 1.4
+    assert known.cross_validation["distance_rms"] < 2 * sigma
+    assert aligned_rms(tips(true, q_out), tips(known.chain, q_out)) < 2 * sigma
+    free = calibrate_contacts(nominal, q, "sphere", **kw)
+    extra = set(free.report.unidentifiable) - set(known.report.unidentifiable)
+    assert len(extra) == 1
+    why = free.report.reasons[extra.pop()]
+    assert "sphere0_r" in why and "sphere1_r" in why
+    assert aligned_rms(tips(true, q_out), tips(free.chain, q_out), scale=True) < 2 * sigma
+    assert aligned_rms(tips(true, q_out), tips(free.chain, q_out)) > 20 * sigma
