@@ -213,17 +213,18 @@ class CalibrationResult:
     def outlier_summary(self) -> str:
         """One line: how many poses are beyond the outlier threshold (:mod:`.robust`), and which."""
         rows = ", ".join(map(str, self.outliers[:10])) + (", ..." if len(self.outliers) > 10 else "")
-        return (f"outliers ({self.loss} loss): {len(self.outliers)} of {self.q.shape[0]} poses beyond "
+        return (f"outliers ({self.loss} loss): {len(self.outliers)} of {self.q.shape[0]} {self._noun} beyond "
                 f"{self.outlier_threshold * 1e3:.4f} mm" + (f" (rows {rows})" if self.outliers else ""))
 
-    def summary(self) -> str:
-        lines = [
-            f"calibration of '{self.chain.name}' ({self.method}): {self.iterations} iterations, "
-            f"{'converged' if self.converged else 'NOT converged'}"
-            + ("" if self.determined else "; parameters NOT determined by these poses (below)")
-            + ("" if self.success else f"; FAILED: {self.failure}"),
-            f"position RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
-        ]
+    #: what the summary calls the measurements and the fit's RMS (the contact result: contacts, distance)
+    _noun, _quantity = "poses", "position"
+
+    def _title(self) -> str:
+        return f"calibration of '{self.chain.name}' ({self.method})"
+
+    def _fit_lines(self) -> list[str]:
+        """The summary's lines on the fit beyond the RMS: orientation and the cross-validated error."""
+        lines = []
         if self.orientation_residuals is not None:
             lines.append(
                 f"orientation RMS {self.orientation_residuals[0] * _DEG:.5f} deg -> "
@@ -236,6 +237,16 @@ class CalibrationResult:
             if cv.get("orientation_rms") is not None:
                 line += f", orientation RMS {cv['orientation_rms'] * _DEG:.5f} deg"
             lines.append(line)
+        return lines
+
+    def summary(self) -> str:
+        lines = [
+            f"{self._title()}: {self.iterations} iterations, "
+            f"{'converged' if self.converged else 'NOT converged'}"
+            + ("" if self.determined else f"; parameters NOT determined by these {self._noun} (below)")
+            + ("" if self.success else f"; FAILED: {self.failure}"),
+            f"{self._quantity} RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
+        ] + self._fit_lines()
         if self.noise_ratio is not None:
             excluded = self.loss != "l2" and 0 < len(self.outliers) < self.q.shape[0] / 2
             lines.append(f"fit residual / measurement noise: {self.noise_ratio:.2f} (about 1 expected"

@@ -97,14 +97,14 @@ class ContactCalibrationResult(CalibrationResult):
         fig.suptitle(f"contact calibration of '{self.chain.name}' ({self.surface})")
         return save_figure(fig, path)
 
-    def summary(self) -> str:
-        lines = [
-            f"contact calibration of '{self.chain.name}' ({self.surface}, {self.method}): {self.iterations} "
-            f"iterations, {'converged' if self.converged else 'NOT converged'}"
-            + ("" if self.determined else "; parameters NOT determined by these contacts (below)")
-            + ("" if self.success else f"; FAILED: {self.failure}"),
-            f"distance RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
-        ]
+    _noun, _quantity = "contacts", "distance"
+
+    def _title(self) -> str:
+        return f"contact calibration of '{self.chain.name}' ({self.surface}, {self.method})"
+
+    def _fit_lines(self) -> list[str]:
+        """The fitted fixtures and the cross-validated distance."""
+        lines = []
         for f, v in enumerate(self.fixtures.tolist()):
             if self.surface == "sphere":
                 lines.append(f"sphere {f}: centre [{v[0] * 1e3:.3f}, {v[1] * 1e3:.3f}, {v[2] * 1e3:.3f}] mm, "
@@ -116,12 +116,7 @@ class ContactCalibrationResult(CalibrationResult):
             cv = self.cross_validation
             lines.append(f"{cv['folds']}-fold cross-validated held-out distance RMS "
                          f"{cv['distance_rms'] * 1e3:.4f} mm (max {cv['distance_max'] * 1e3:.4f} mm)")
-        if self.noise_ratio is not None:
-            lines.append(f"fit residual / measurement noise: {self.noise_ratio:.2f} (about 1 expected)")
-        if self.outlier_threshold is not None:
-            lines.append(self.outlier_summary())
-        lines += [f"note: {n}" for n in self.notes]
-        return "\n".join(lines + [self.report.summary()])
+        return lines
 
 
 def _postures(chain, q, fixture, F: int) -> tuple[Tensor, Tensor]:
