@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import torch
 
-from diffkin.calibration.board import board_points
+from diffkin.calibration.board import board_points, charuco_board
 
 from .camera_scenes import DIST, F64, H, K, W, cam_board, chessboard, scene
 
@@ -49,16 +49,34 @@ def _distortion_map(Kc, size):
     return ideal[:, 0].reshape(h, w).astype(np.float32), ideal[:, 1].reshape(h, w).astype(np.float32)
 
 
+def _texture_to_board(origin_px: float, pps: int = PPS) -> np.ndarray:
+    """(3, 3): texture pixel (x, y) -> board plane (X, Y), the board's origin at texture (origin_px,
+    origin_px) (pixel centres at integers, ``pps`` pixels a square)."""
+    s = SQUARE / pps
+    return np.array([[s, 0, -origin_px * s], [0, s, -origin_px * s], [0, 0, 1]])
+
+
+def charuco_texture(marker: float = 0.018, dictionary: str = "DICT_5X5_100"):
+    """OpenCV's own picture of the ChArUco board of ROWS x COLS inner corners (``board.generateImage``, 2 PPS
+    px a square: OpenCV 5.1 refuses some sizes, e.g. 48 px squares of this board), in a one-square white
+    margin: ``(texture, A (3, 3) texture pixel -> board plane of detect_board(marker=...), i.e. OpenCV's
+    board frame)``."""
+    board = charuco_board(ROWS, COLS, SQUARE, marker, dictionary)
+    pps = 2 * PPS
+    tex = np.pad(board.generateImage(((COLS + 1) * pps, (ROWS + 1) * pps), marginSize=0), pps,
+                 constant_values=255)
+    return tex, _texture_to_board(pps - 0.5, pps)  # the board's outer corner at the margin's inner edge
+
+
 def render(T_cam_board: torch.Tensor, camera_matrix: torch.Tensor = K, size=(W, H), noise: float = 2.0,
-           blur: float = 0.8, seed: int = 0, distortion: bool = True) -> list[np.ndarray]:
+           blur: float = 0.8, seed: int = 0, distortion: bool = True, tex=None) -> list[np.ndarray]:
     """uint8 grey images ``(H, W)`` of the board at each pose ``T_cam_board (N, 4, 4)`` (detect_board's
     board frame: the first corner at the origin) seen by ``camera_matrix`` (default the scenes' K) with the
-    scenes' DIST; ``size`` (W, H) px; ``noise`` grey levels σ; ``blur`` px σ."""
+    scenes' DIST; ``size`` (W, H) px; ``noise`` grey levels σ; ``blur`` px σ; ``tex``: ``(texture, A)`` of
+    another board (:func:`charuco_texture`), default the chessboard of :func:`texture`."""
     Kc = camera_matrix.numpy()
-    tex = texture()
-    # texture pixel (x, y) -> board plane (X, Y): corner (c, r) at texture ((2 + c) PPS - 0.5, ...)
-    A = np.array([[SQUARE / PPS, 0, -(2 * PPS - 0.5) * SQUARE / PPS],
-                  [0, SQUARE / PPS, -(2 * PPS - 0.5) * SQUARE / PPS], [0, 0, 1]])
+    # the chessboard's first corner (c, r) = (0, 0) at texture (2 PPS - 0.5, 2 PPS - 0.5)
+    tex, A = (texture(), _texture_to_board(2 * PPS - 0.5)) if tex is None else tex
     maps = _distortion_map(Kc, size) if distortion else None
     rng = np.random.default_rng(seed)
     out = []

@@ -241,3 +241,15 @@ def test_signature_is_the_issues():
         "noise_ratio",
         "outliers",
     } <= fields
+
+
+@pytest.mark.extended
+def test_demo_camera_calibration_section(tmp_path):
+    """The demo's camera-calibration section (about 5 s): the table beside OpenCV's seven methods, the
+    figure, no failure (diffkin's camera at least 5x closer than OpenCV's best)."""
+    from diffkin.demo import Report, section_camera_calibration
+
+    report = Report(tmp_path)
+    section_camera_calibration(report, quick=True)
+    assert report.failures == [] and report.sections[-1].count("| OpenCV ") == 7
+    assert (tmp_path / "camera_calibration_residuals.png").stat().st_size > 10_000

@@ -6,7 +6,8 @@ calibrated copy of the chain; ``calibrate_batch`` does K robots in one vectorise
 ``select_poses`` analyse and design the pose set; ``validation_error`` scores a chain on held-out poses.
 ``hand_eye`` and ``robot_world_hand_eye`` solve AX = XB / AX = ZB for cameras with OpenCV's conventions;
 ``calibrate_camera`` fits the robot's geometry with the camera's and a board's poses to board pixels;
-``detect_board`` finds a chessboard's corners in images (OpenCV) in the order it expects.
+``detect_board`` finds a chessboard's corners in images (OpenCV) in the order it expects;
+``calibrate_contacts`` fits the robot's geometry to a probe tip touching fixed spheres or planes.
 
 Calibration estimates its own parameter vector ζ (on a private copy of the chain), never the chain's
 ``requires_grad``: a frozen chain (the default of every loader) calibrates as a learnable one does, and the
@@ -23,6 +24,8 @@ from .board import detect_board as detect_board
 from .camera import project_points as project_points
 from .camera_api import calibrate_camera as calibrate_camera
 from .camera_result import CameraCalibrationResult as CameraCalibrationResult
+from .contact_api import ContactCalibrationResult as ContactCalibrationResult
+from .contact_api import calibrate_contacts as calibrate_contacts
 from .error_models import ERROR_MODELS as ERROR_MODELS
 from .error_models import ChainErrorModel as ChainErrorModel
 from .handeye import HAND_EYE_METHODS as HAND_EYE_METHODS
@@ -52,12 +55,14 @@ __all__ = [
     "DegenerateMotionError",
     "CalibrationResult",
     "CameraCalibrationResult",
+    "ContactCalibrationResult",
     "BoardDetection",
     "CalibrationModel",
     "IdentifiabilityReport",
     "calibrate",
     "calibrate_batch",
     "calibrate_camera",
+    "calibrate_contacts",
     "calibrate_from_files",
     "detect_board",
     "calibration_loss",

@@ -19,12 +19,22 @@ from .identifiability import IdentifiabilityReport, model_reports
 from .model import check_measurements, pose_residual
 from .plausibility import MAX_CORRECTION, correction_findings, fit_failures
 from .robust import outlier_rows, pose_errors, resolve_loss
-from .solvers import gradient_descent, least_squares
+from .solvers import gradient_descent, kfold_split, least_squares
 
 __all__ = ["CalibrationResult", "calibrate", "calibrate_batch", "validation_error", "METHODS"]
 
 METHODS = ("least_squares", "gradient")
 _DEG = 180.0 / math.pi  # reports give lengths in mm and angles in degrees (console, parameters.md, summary)
+
+
+def save_figure(fig, path: str | Path) -> Path:
+    """Lay out a matplotlib ``Figure`` and write it to ``path`` (parent folders made): every calibration
+    result's residual plot."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
 
 
 def validation_error(chain: DHChain, q: Tensor, T: Tensor) -> dict[str, float | None]:
@@ -198,26 +208,23 @@ class CalibrationResult:
         ax.set_title("calibration poses", fontsize=10)
         ax.legend()
         fig.suptitle(f"calibration of '{self.chain.name}'")
-        fig.tight_layout()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
-        return path
+        return save_figure(fig, path)
 
     def outlier_summary(self) -> str:
         """One line: how many poses are beyond the outlier threshold (:mod:`.robust`), and which."""
         rows = ", ".join(map(str, self.outliers[:10])) + (", ..." if len(self.outliers) > 10 else "")
-        return (f"outliers ({self.loss} loss): {len(self.outliers)} of {self.q.shape[0]} poses beyond "
+        return (f"outliers ({self.loss} loss): {len(self.outliers)} of {self.q.shape[0]} {self._noun} beyond "
                 f"{self.outlier_threshold * 1e3:.4f} mm" + (f" (rows {rows})" if self.outliers else ""))
 
-    def summary(self) -> str:
-        lines = [
-            f"calibration of '{self.chain.name}' ({self.method}): {self.iterations} iterations, "
-            f"{'converged' if self.converged else 'NOT converged'}"
-            + ("" if self.determined else "; parameters NOT determined by these poses (below)")
-            + ("" if self.success else f"; FAILED: {self.failure}"),
-            f"position RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
-        ]
+    #: what the summary calls the measurements and the fit's RMS (the contact result: contacts, distance)
+    _noun, _quantity = "poses", "position"
+
+    def _title(self) -> str:
+        return f"calibration of '{self.chain.name}' ({self.method})"
+
+    def _fit_lines(self) -> list[str]:
+        """The summary's lines on the fit beyond the RMS: orientation and the cross-validated error."""
+        lines = []
         if self.orientation_residuals is not None:
             lines.append(
                 f"orientation RMS {self.orientation_residuals[0] * _DEG:.5f} deg -> "
@@ -230,6 +237,16 @@ class CalibrationResult:
             if cv.get("orientation_rms") is not None:
                 line += f", orientation RMS {cv['orientation_rms'] * _DEG:.5f} deg"
             lines.append(line)
+        return lines
+
+    def summary(self) -> str:
+        lines = [
+            f"{self._title()}: {self.iterations} iterations, "
+            f"{'converged' if self.converged else 'NOT converged'}"
+            + ("" if self.determined else f"; parameters NOT determined by these {self._noun} (below)")
+            + ("" if self.success else f"; FAILED: {self.failure}"),
+            f"{self._quantity} RMS {self.residuals[0] * 1e3:.4f} mm -> {self.residuals[-1] * 1e3:.4f} mm",
+        ] + self._fit_lines()
         if self.noise_ratio is not None:
             excluded = self.loss != "l2" and 0 < len(self.outliers) < self.q.shape[0] / 2
             lines.append(f"fit residual / measurement noise: {self.noise_ratio:.2f} (about 1 expected"
@@ -290,13 +307,10 @@ def _noise_ratio(model, zeta, q, T, position_only, rank, noise) -> tuple[float, 
 
 def _cross_validate(model, q, T, position_only, method, w, rank_tol, opts, folds: int) -> dict | None:
     """k-fold held-out error of one robot's data ``q (N, n)``: the k fits run as one batch."""
-    N = q.shape[0]
-    n_test = N // folds
-    if folds < 2 or n_test < 1 or N - n_test < 1:
+    split = kfold_split(q.shape[0], folds, q.device)
+    if split is None:
         return None
-    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(q.device)
-    test = perm[: folds * n_test].reshape(folds, n_test)
-    train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
+    train, test = split
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         out, _, _ = _solve(model, q[train], T[train], position_only, method, w, rank_tol,

@@ -13,6 +13,15 @@ are refused (their corner order could flip from image to image and corrupt the c
 is then made the one above: mirrored orders (row direction x column direction pointing out of the board) are
 reversed along the rows, and a half turn is undone by comparing the brightness of the two outer corner
 squares (through the homography of the detected grid).
+
+A **ChArUco** board (``marker=`` the ArUco markers' side; OpenCV's ``cv2.aruco.CharucoBoard`` of
+``(cols + 1) x (rows + 1)`` squares and ``dictionary``) names every corner by the markers around it, so any
+corner counts work, a half turn cannot confuse the order, and a partial view (the board cut by the image's
+edge, hidden behind the gripper) still gives the corners it shows: ``visible`` marks them.
+``cv2.aruco.CharucoDetector`` finds them (with its sub-pixel refinement), and the board's points are
+OpenCV's (``board.getChessboardCorners()``: the board's outer corner at the origin, corner id
+k = r * cols + c at ((c + 1) * square, (r + 1) * square, 0)), so ``board.generateImage`` prints the board the
+points describe.
 """
 
 from __future__ import annotations
@@ -27,7 +36,7 @@ from torch import Tensor
 from ..errors import DiffkinError, OptionError, ShapeError, require
 from ..validation import check_number
 
-__all__ = ["BoardDetection", "detect_board", "image_files", "IMAGE_SUFFIXES", "DETECTORS"]
+__all__ = ["BoardDetection", "detect_board", "charuco_board", "image_files", "IMAGE_SUFFIXES", "DETECTORS"]
 
 DETECTORS = ("classic", "sb")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm")
@@ -43,8 +52,8 @@ class BoardDetection(NamedTuple):
 
     @property
     def found(self) -> Tensor:
-        """(N,) bool: the images where the board was found."""
-        return self.visible.all(-1)
+        """(N,) bool: the images where the board (a ChArUco board: some of its corners) was found."""
+        return self.visible.any(-1)
 
     @property
     def detection_rate(self) -> float:
@@ -57,6 +66,26 @@ def board_points(rows: int, cols: int, square: float, dtype=torch.float64, devic
     r, c = torch.meshgrid(torch.arange(rows), torch.arange(cols), indexing="ij")
     p = torch.stack((c.reshape(-1), r.reshape(-1), torch.zeros(rows * cols, dtype=torch.long)), -1)
     return p.to(dtype=dtype, device=device) * square
+
+
+def charuco_board(rows: int, cols: int, square: float, marker: float, dictionary: str = "DICT_5X5_100"):
+    """OpenCV's ``cv2.aruco.CharucoBoard`` with ``rows x cols`` inner corners (``(cols + 1) x (rows + 1)``
+    squares of ``square`` metres, markers of ``marker`` metres from the predefined ``dictionary``): the
+    board :func:`detect_board` looks for with ``marker=``; ``.generateImage(size)`` draws it to print."""
+    cv2 = require("cv2", "camera", "ChArUco boards")
+    if not hasattr(cv2, "aruco") or not hasattr(cv2.aruco, "CharucoDetector"):
+        raise DiffkinError("ChArUco boards need OpenCV >= 4.7 (cv2.aruco.CharucoDetector); this is "
+                           f"{cv2.__version__}")
+    names = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+    if dictionary not in names:
+        raise OptionError(f"unknown ArUco dictionary {dictionary!r}; valid: {', '.join(names)}")
+    if not marker < square:
+        raise OptionError(f"the markers ({marker} m) must be smaller than the squares ({square} m)")
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    if d.bytesList.shape[0] < (rows + 1) * (cols + 1) // 2:
+        raise OptionError(f"dictionary {dictionary} holds {d.bytesList.shape[0]} markers; a board of "
+                          f"{(cols + 1)} x {(rows + 1)} squares needs {(rows + 1) * (cols + 1) // 2}")
+    return cv2.aruco.CharucoBoard((cols + 1, rows + 1), square, marker, d)
 
 
 def image_files(directory: str | Path) -> list[Path]:
@@ -125,31 +154,38 @@ def detect_board(
     device: torch.device | str | None = None,
     subpix_window: int = 5,
     detector: str = "classic",
+    marker: float | None = None,
+    dictionary: str = "DICT_5X5_100",
 ) -> BoardDetection:
-    """Chessboard corners in images, for :func:`~diffkin.calibration.calibrate_camera`.
+    """Chessboard or ChArUco corners in images, for :func:`~diffkin.calibration.calibrate_camera`.
 
     Args:
         images: a directory (its image files sorted by name, :func:`image_files`), or a sequence of image
             files or of arrays ``(H, W)`` / ``(H, W, 3)`` (BGR, as ``cv2.imread``; uint8 or floats in
             [0, 1] / [0, 255]).
-        board: ``(rows, cols)`` inner corners; one even and one odd (the order is then unique, see the
-            module's docstring).
+        board: ``(rows, cols)`` inner corners; a chessboard's one even and one odd (the order is then
+            unique, see the module's docstring), a ChArUco board's any.
         square: the squares' side in metres.
         dtype, device: of the returned tensors.
         subpix_window: half side (px) of ``cv2.cornerSubPix``'s search window (at most 0.4 of the
             smallest corner spacing in the image).
         detector: ``"classic"`` (``cv2.findChessboardCorners`` + ``cv2.cornerSubPix``, default) or
             ``"sb"`` (``cv2.findChessboardCornersSB``, OpenCV's sector-based detector: finds boards in
-            smaller and more oblique views; then ``cv2.cornerSubPix`` as well).
+            smaller and more oblique views; then ``cv2.cornerSubPix`` as well). Chessboards only.
+        marker: a ChArUco board (:func:`charuco_board`): its markers' side in metres; None: a chessboard.
+        dictionary: the ChArUco board's ArUco dictionary (a ``cv2.aruco.DICT_*`` name).
 
     Returns:
         :class:`BoardDetection` ``(image_points (N, M, 2), visible (N, M), board_points (M, 3), names)``
-        with M = rows * cols: NaN pixels and ``visible`` False in the images where the board was not
-        found (pass both to ``calibrate_camera``); ``.found`` (N,) and ``.detection_rate``.
+        with M = rows * cols: NaN pixels and ``visible`` False where a corner was not found (a
+        chessboard: the whole image's; a ChArUco board: each corner not seen; pass both to
+        ``calibrate_camera``); ``.found`` (N,) and ``.detection_rate``.
 
     Raises:
         MissingExtraError: OpenCV is not installed (``pip install 'diffkin[camera]'``).
-        OptionError: a board of two even or two odd corner counts, or fewer than 2 corners a side.
+        OptionError: a chessboard of two even or two odd corner counts, fewer than 2 corners a side, a
+            ChArUco marker not smaller than the squares, an unknown or too small dictionary, ``detector``
+            with ``marker``.
         DiffkinError, ShapeError: no images, an unreadable file, an array of another shape.
     """
     cv2 = require("cv2", "camera", "detect_board (chessboard corners from images)")
@@ -161,6 +197,10 @@ def detect_board(
         raise OptionError(f"expected board=(rows, cols) inner corners, got {board!r}") from None
     if rows < 2 or cols < 2:
         raise OptionError(f"expected board=(rows, cols) with at least 2 inner corners a side, got {board!r}")
+    if marker is not None:
+        return _detect_charuco(cv2, images, rows, cols, check_number(square, "square", unit=" (metres)"),
+                               check_number(marker, "marker", unit=" (metres)"), dictionary, detector, dtype,
+                               device)
     if (rows + cols) % 2 == 0:
         raise OptionError(
             f"board=({rows}, {cols}) is symmetric under a half turn (both counts even or both odd), so the "
@@ -170,14 +210,7 @@ def detect_board(
     square = check_number(square, "square", unit=" (metres)")
     if detector not in DETECTORS:
         raise OptionError(f"unknown detector {detector!r}; valid: {', '.join(DETECTORS)}")
-    if isinstance(images, (str, Path)):
-        images = image_files(images)
-    images = list(images)
-    if not images:
-        raise DiffkinError("detect_board: no images given")
-    names = [
-        Path(im).name if isinstance(im, (str, Path)) else f"image_{i}" for i, im in enumerate(images)
-    ]
+    images, names = _image_list(images)
     M = rows * cols
     uv = np.full((len(images), M, 2), np.nan)
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_FAST_CHECK
@@ -198,3 +231,37 @@ def detect_board(
     pixels = torch.tensor(uv, dtype=dtype, device=device)
     visible = torch.isfinite(pixels).all(-1)
     return BoardDetection(pixels, visible, board_points(rows, cols, square, dtype, device), names)
+
+
+def _image_list(images) -> tuple[list, list[str]]:
+    """The images of a directory or sequence, and their names (file names; ``image_i`` for arrays)."""
+    if isinstance(images, (str, Path)):
+        images = image_files(images)
+    images = list(images)
+    if not images:
+        raise DiffkinError("detect_board: no images given")
+    names = [Path(im).name if isinstance(im, (str, Path)) else f"image_{i}" for i, im in enumerate(images)]
+    return images, names
+
+
+def _detect_charuco(cv2, images, rows: int, cols: int, square: float, marker: float, dictionary: str,
+                    detector: str, dtype, device) -> BoardDetection:
+    """:func:`detect_board` of a ChArUco board: each corner where OpenCV's CharucoDetector finds it."""
+    import numpy as np
+
+    if detector != "classic":
+        raise OptionError(f"detector={detector!r} is for chessboards; a ChArUco board is found by its "
+                          "markers")
+    board = charuco_board(rows, cols, square, marker, dictionary)
+    find = cv2.aruco.CharucoDetector(board)
+    images, names = _image_list(images)
+    uv = np.full((len(images), rows * cols, 2), np.nan)
+    for i, im in enumerate(images):  # OpenCV's detector, one image at a time
+        corners, ids, _, _ = find.detectBoard(_gray(cv2, im, names[i]))
+        if ids is not None and len(ids):
+            uv[i, ids.reshape(-1)] = corners.reshape(-1, 2)
+    pixels = torch.tensor(uv, dtype=dtype, device=device)
+    # OpenCV's board.getChessboardCorners(), but exact (OpenCV keeps them in float32)
+    points = board_points(rows, cols, square, dtype, device)
+    points[:, :2] += square
+    return BoardDetection(pixels, torch.isfinite(pixels).all(-1), points, names)

@@ -19,7 +19,7 @@ from .camera_model import ESTIMATE, CameraModel, camera_reports
 from .camera_result import CameraCalibrationResult
 from .error_models import build_model
 from .handeye import SETUPS, robot_world_hand_eye
-from .solvers import LOSSES, gradient_descent, least_squares
+from .solvers import LOSSES, fold_fits, gradient_descent, least_squares
 
 __all__ = ["calibrate_camera", "initial_poses"]
 
@@ -129,16 +129,6 @@ def initial_poses(T_base_flange: Tensor, T_cam_board: Tensor, setup: str) -> tup
 
 def _intrinsics(K: Tensor, dist: Tensor) -> Tensor:
     return torch.stack((K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist.unbind(-1)))
-
-
-def _folds(N: int, folds: int, device) -> tuple[Tensor, Tensor] | None:
-    n_test = N // folds
-    if folds < 2 or n_test < 1 or N - n_test < 3:
-        return None
-    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(device)
-    test = perm[: folds * n_test].reshape(folds, n_test)
-    train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
-    return train, test
 
 
 def _point_rms(r: Tensor, vis: Tensor) -> Tensor:
@@ -384,28 +374,16 @@ def calibrate_camera(
 
 def _cross_validate(model, theta0, free, x, img, vis, solve, opts, folds: int) -> dict | None:
     """k-fold held-out reprojection RMS over images; the k fits run as one batch."""
-    split = _folds(x.shape[0], folds, x.device)
-    if split is None:
+    fits = fold_fits(model, theta0, free, x, img, solve, opts, folds, min_train=3)
+    if fits is None:
         return None
-    train, test = split
-    k = train.shape[0]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        out = solve(
-            model,
-            theta0.expand(k, -1).clone(),
-            free.expand(k, -1),
-            x[train],
-            img[train],
-            orientation_weight=1.0,
-            **dict(opts, progress=False),
-        )
+    out, test = fits
     with torch.no_grad():
         r = model.residual(out.zeta, x[test], img[test]).unflatten(1, (test.shape[1], img.shape[1]))
     v = vis[test]
     per_image = (r.square().sum((-1, -2)) / v.sum(-1).clamp_min(1)).sqrt()
     return {
-        "folds": k,
+        "folds": test.shape[0],
         "reprojection_rms": float(_point_rms(r.flatten(0, 1), v.flatten(0, 1))),
         "reprojection_max": float(r.norm(dim=-1).max()),
         "image_rms_max": float(per_image.max()),

@@ -86,15 +86,19 @@ def calibrate_camera_from_files(
     square: float,
     camera_matrix: Tensor,
     detector: str = "classic",
+    marker: float | None = None,
+    dictionary: str = "DICT_5X5_100",
     **options,
 ) -> tuple[CameraCalibrationResult, BoardDetection]:
     """:func:`calibrate_camera` on the pictures of the folder ``images`` (sorted by name) and the joint
     readings of ``joints`` (:func:`load_joint_readings`): corners by :func:`detect_board` (``board``,
-    ``square``, ``detector``), pictures where the board is not found masked out; ``options`` go to
+    ``square``, ``detector``; a ChArUco board with ``marker`` and ``dictionary``), pictures where the
+    board is not found masked out; ``options`` go to
     :func:`calibrate_camera`. Returns ``(result, detections)``."""
     files = image_files(images)
     q = load_joint_readings(joints, [f.name for f in files], chain.n_joints, chain.dtype)
-    det = detect_board(files, board, square, dtype=chain.dtype, device=chain.device, detector=detector)
+    det = detect_board(files, board, square, dtype=chain.dtype, device=chain.device, detector=detector,
+                       marker=marker, dictionary=dictionary)
     if int(det.found.sum()) < 3:
         raise DiffkinError(f"{images}: the board ({board[0]} x {board[1]} inner corners) was found in only "
                            f"{int(det.found.sum())} of {len(files)} pictures; at least 3 are needed")

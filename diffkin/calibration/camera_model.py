@@ -33,8 +33,8 @@ from ..kernels.jacobian import twist_of_derivative
 from ..kernels.joints import pose_correction
 from ..transforms import _transform_inverse, _transform_points
 from .camera import _project
-from .identifiability import IdentifiabilityReport, _random_configurations, analyse_matrices
-from .model import POSE_AXES, quiet_forward_mode
+from .identifiability import IdentifiabilityReport, _random_configurations, analyse_matrices, merge_reports
+from .model import POSE_AXES, parameter_jacobian
 
 __all__ = ["CameraModel", "ESTIMATE", "INTRINSICS", "camera_reports"]
 
@@ -160,17 +160,7 @@ class CameraModel:
         return torch.func.vmap(self._cam_board_one)(theta, q)
 
     def _jacobian(self, f, theta: Tensor, x: Tensor, columns: Tensor | None) -> Tensor:
-        cols = torch.ones(self.n_params, dtype=torch.bool) if columns is None else columns.cpu()
-        idx = cols.nonzero().flatten().to(theta.device)
-
-        def shifted(delta, z, xk):
-            return f(z.index_add(0, idx, delta), xk)
-
-        def one(z, xk):
-            return torch.func.jacfwd(shifted)(z.new_zeros(idx.numel()), z, xk)
-
-        with quiet_forward_mode():
-            return torch.func.vmap(one)(theta, x)
+        return parameter_jacobian(f, theta, x, self.n_params, columns)
 
     def calibration_matrix(
         self,
@@ -250,26 +240,5 @@ def camera_reports(
         Phi_d = Phi_d[..., [pos[j] for j in order_d]]
         data = analyse_matrices(Phi_d.reshape(K, -1, len(order_d)), [names[j] for j in order_d], N, rank_tol)
     cand_names = [names[j] for j in cand.nonzero().flatten().tolist()]
-    reports, free = [], []
-    for k, rep in enumerate(data):
-        st = struct[k] if struct is not None else None
-        fixed = [] if st is None else list(st.unidentifiable)
-        fixed_set = set(fixed)
-        struct_rank = len(order_d) - len(fixed)
-        rep.undetermined = [nm for nm in rep.unidentifiable if nm not in fixed_set]
-        rep.structural_rank = struct_rank
-        missing = struct_rank - rep.rank
-        rep.more_poses_needed = (
-            math.ceil(missing / (2 * max(int(x[k, :, model.n :].sum(-1).max()), 1))) if missing > 0 else 0
-        )
-        rep.unidentifiable = fixed
-        rep.reasons = {nm: st.reasons[nm] + " at every configuration" for nm in fixed}
-        rep.dependencies = {} if st is None else st.dependencies
-        rep.candidates = cand_names
-        undetermined = set(rep.undetermined)
-        rep.identifiable = [nm for nm in cand_names if nm not in fixed_set and nm not in undetermined]
-        mask = torch.tensor([nm not in fixed_set for nm in cand_names], device=theta.device)
-        rep.free_mask = mask
-        free.append(mask)
-        reports.append(rep)
-    return reports, torch.stack(free)
+    rows = 2 * max(int(x[:, :, model.n :].sum(-1).max()), 1)
+    return merge_reports(data, struct, cand_names, rows, theta.device)

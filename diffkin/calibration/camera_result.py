@@ -12,6 +12,7 @@ from torch import Tensor
 from ..chain import KinematicChain
 from ..errors import require
 from ..rotations import _matrix_to_rotvec
+from .api import save_figure
 from .identifiability import IdentifiabilityReport
 
 __all__ = ["CameraCalibrationResult"]
@@ -202,8 +203,4 @@ class CameraCalibrationResult:
         ax2.set_xlabel(f"iteration ({self.method})")
         ax2.set_ylabel("reprojection RMS [px]")
         fig.suptitle(f"camera calibration of '{self.chain.name}' ({self.setup})")
-        fig.tight_layout()
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fig.savefig(path, dpi=110)
-        return path
+        return save_figure(fig, path)

@@ -38,7 +38,7 @@ from ..errors import DTypeError, ShapeError
 from ..validation import shape_str, tensors
 from .model import CalibrationModel, check_measurements
 
-__all__ = ["IdentifiabilityReport", "identifiability", "select_poses", "analyse_matrices"]
+__all__ = ["IdentifiabilityReport", "identifiability", "select_poses", "analyse_matrices", "merge_reports"]
 
 
 @dataclass
@@ -122,7 +122,7 @@ def _reports_of_group(Phi, A, R, norms, zero, pattern, names, n_poses, rank_tol,
         if prior.numel():
             c = torch.linalg.lstsq(R[..., prior], R[..., j : j + 1]).solution[..., 0]
             c = c * norms[:, j : j + 1] / norms[:, prior]  # back to the parameters' own units
-        big = c.abs() > 1e-6 * c.abs().amax(-1, keepdim=True).clamp_min(1e-300)
+        big = c.abs() > 1e-6 * (c.abs().amax(-1, keepdim=True) if prior.numel() else c.new_zeros(G, 1))
         c_list, big_list, z = c.tolist(), big.tolist(), zero[:, j].tolist()
         for g in range(G):
             deps[g][names[j]] = {} if z[g] else {
@@ -185,6 +185,36 @@ def analyse_matrices(
         for k, rep in zip(idx.tolist(), sub):
             reports[k] = rep
     return reports
+
+
+def merge_reports(data: list[IdentifiabilityReport], struct: list[IdentifiabilityReport] | None,
+                  candidates: list[str], rows_per_pose: int, device) -> tuple[list[IdentifiabilityReport],
+                                                                             Tensor]:
+    """One report per robot from the analysis at the data's poses (``data``) and the structural one
+    (``struct``, None when no column was analysed structurally), for models whose candidates are reported
+    in another order than θ's (e.g. the camera's and board's poses first): the structural redundancies are
+    fixed (``unidentifiable``, with reasons), what only these poses leave open is ``undetermined``; the
+    free mask ``(K, C)`` follows ``candidates`` (θ's order). ``rows_per_pose``: measured rows per pose, for
+    ``more_poses_needed``."""
+    reports, free = [], []
+    for k, rep in enumerate(data):
+        st = struct[k] if struct is not None else None
+        fixed = [] if st is None else list(st.unidentifiable)
+        fixed_set = set(fixed)
+        rep.undetermined = [nm for nm in rep.unidentifiable if nm not in fixed_set]
+        rep.structural_rank = len(candidates) - len(fixed)
+        missing = rep.structural_rank - rep.rank
+        rep.more_poses_needed = math.ceil(missing / max(rows_per_pose, 1)) if missing > 0 else 0
+        rep.unidentifiable = fixed
+        rep.reasons = {nm: st.reasons[nm] + " at every configuration" for nm in fixed}
+        rep.dependencies = {} if st is None else st.dependencies
+        rep.candidates = list(candidates)
+        undetermined = set(rep.undetermined)
+        rep.identifiable = [nm for nm in candidates if nm not in fixed_set and nm not in undetermined]
+        rep.free_mask = torch.tensor([nm not in fixed_set for nm in candidates], device=device)
+        free.append(rep.free_mask)
+        reports.append(rep)
+    return reports, torch.stack(free)
 
 
 def _random_configurations(model, M: int, dtype, device) -> Tensor:

@@ -35,7 +35,8 @@ from ..kernels.tree import Segments, Topology, matrix_frames
 from ..transforms import as_measured_transform
 from ..validation import shape_str, tensors
 
-__all__ = ["CalibrationModel", "ForwardModeMatrix", "parameter_names", "DH_KINDS", "POSE_AXES"]
+__all__ = ["CalibrationModel", "ForwardModeMatrix", "parameter_jacobian", "parameter_names", "DH_KINDS",
+           "POSE_AXES"]
 
 DH_KINDS = ("a", "alpha", "d", "theta")
 POSE_AXES = ("x", "y", "z", "rx", "ry", "rz")
@@ -114,6 +115,26 @@ def quiet_forward_mode():
         warnings.filterwarnings("ignore", message=r".*torch\.jit\.script.*deprecated",
                                 category=DeprecationWarning)
         yield
+
+
+def parameter_jacobian(f, theta: Tensor, x: Tensor, n_params: int, columns: Tensor | None) -> Tensor:
+    """Forward-mode derivative of a measurement function ``f(theta (P,), x (N, ...)) -> (N, ...)`` with
+    respect to the selected entries of θ (``columns``: bool ``(P,)``, default all), vectorised over K
+    robots: ``theta (K, P)``, ``x (K, N, ...)`` -> ``(K, N, ..., C)`` (the models of measurements other than
+    poses: pixels, contact distances)."""
+    cols = torch.ones(n_params, dtype=torch.bool) if columns is None else columns.cpu()
+    idx = cols.nonzero().flatten().to(theta.device)
+
+    def shifted(delta, z, xk):
+        return f(z.index_add(0, idx, delta), xk)
+
+    def one(z, xk):
+        return torch.func.jacfwd(shifted)(z.new_zeros(idx.numel()), z, xk)
+
+    with quiet_forward_mode():
+        if theta.shape[0] == 1:  # one robot: vmap's overhead on a chain's many small operations is the cost
+            return one(theta[0], x[0])[None]
+        return torch.func.vmap(one)(theta, x)
 
 
 class ForwardModeMatrix:

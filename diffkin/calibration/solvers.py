@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import sys
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
 
@@ -22,9 +23,39 @@ from ..validation import _traced, check_number, shape_str, tensors
 from .model import CalibrationModel, measurement_shapes
 
 __all__ = ["calibration_loss", "robust_loss", "robust_weights", "least_squares", "gradient_descent",
-           "SolverOutput", "LOSSES"]
+           "SolverOutput", "LOSSES", "kfold_split", "fold_fits"]
 
 LOSSES = ("huber", "cauchy", "soft_l1", "l2")
+
+
+def kfold_split(N: int, folds: int, device, min_train: int = 1) -> tuple[Tensor, Tensor] | None:
+    """``(train (k, N − N//k), test (k, N//k))`` row indices of a k-fold split of N measurements (one fixed
+    random permutation, seed 0: reproducible); None when a fold would have no test row or fewer than
+    ``min_train`` training rows."""
+    n_test = N // folds
+    if folds < 2 or n_test < 1 or N - n_test < min_train:
+        return None
+    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(device)
+    test = perm[: folds * n_test].reshape(folds, n_test)
+    train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
+    return train, test
+
+
+def fold_fits(model, theta0: Tensor, free: Tensor, x: Tensor, measured: Tensor, solve, opts: dict, folds: int,
+              min_train: int = 1):
+    """The k fits of a k-fold split (:func:`kfold_split`) of one robot's data ``x (N, ...)``, ``measured
+    (N, ...)`` from ``theta0 (1, P)`` with the free mask ``free (1, C)``, as one batch of ``solve``
+    (warnings silenced: the full fit reports): ``(SolverOutput, test indices (k, N//k))`` or None."""
+    split = kfold_split(x.shape[0], folds, x.device, min_train)
+    if split is None:
+        return None
+    train, test = split
+    k = train.shape[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = solve(model, theta0.expand(k, -1).clone(), free.expand(k, -1), x[train], measured[train],
+                    orientation_weight=1.0, **dict(opts, progress=False))
+    return out, test
 
 
 @dataclass

@@ -461,7 +461,8 @@ def _cmd_calibrate_images(args) -> int:
         warnings.simplefilter("always")
         res, det = calibrate_camera_from_files(
             chain, args.images, args.joints, board=tuple(args.board), square=args.square, camera_matrix=K,
-            detector=args.detector, dist_coeffs=dist, setup=args.setup, estimate=estimate, method=args.method,
+            detector=args.detector, marker=args.charuco_marker, dictionary=args.charuco_dictionary,
+            dist_coeffs=dist, setup=args.setup, estimate=estimate, method=args.method,
             error_model=args.error_model, measurement_noise=args.pixel_noise, loss=args.loss,
             cross_validation=args.cv, progress=not args.no_progress,
         )
@@ -1027,6 +1028,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--intrinsics", action="store_true", help="also estimate the camera matrix and distortion")
     g.add_argument("--detector", choices=["classic", "sb"], default="classic",
                    help="OpenCV's findChessboardCorners (classic) or findChessboardCornersSB (sb)")
+    g.add_argument("--charuco-marker", type=_positive_float, metavar="M",
+                   help="a ChArUco board (OpenCV's CharucoBoard of ROWS+1 x COLS+1 squares): its markers' "
+                        "side [m]; partial views count")
+    g.add_argument("--charuco-dictionary", default="DICT_5X5_100", metavar="NAME",
+                   help="the ChArUco board's ArUco dictionary (cv2.aruco.DICT_*; default DICT_5X5_100)")
     g.add_argument("--pixel-noise", dest="pixel_noise", type=_positive_float, metavar="PX",
                    help="detection noise per coordinate [px]: the noise check and the outlier threshold")
     p.add_argument("--method", default="least_squares", choices=["least_squares", "gradient"],
