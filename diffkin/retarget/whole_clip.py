@@ -35,8 +35,10 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from torch.nn import functional as nn
 
 from ..errors import ModelError, OptionError, ShapeError
+from ..jacobian import _shift_jacobian_point
 from ..kernels.banded import block_banded_cg, block_banded_solve
 from ..rotations import _skew
 from ..validation import as_tensor, check_count, check_finite, check_number, shape_str
@@ -86,8 +88,20 @@ class _Terms:
             lim[:, 0] = -lim[:, 0]
         self.lo, self.hi = lim[:, 0] + limit_margin, lim[:, 1] - limit_margin
 
+    def _frames(self, X: Tensor, idx: list[int]) -> Tensor:
+        """``X[:, :, idx]`` (dim 2: the chain's end links), a view where ``idx`` is a run of frames."""
+        if idx == list(range(idx[0], idx[0] + len(idx))):
+            return X[:, :, idx[0]:idx[0] + len(idx)]
+        return X.index_select(2, torch.tensor(idx, device=X.device))
+
     def evaluate(self, q: Tensor):
-        """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``."""
+        """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``.
+
+        The rows of one frame (keypoints, the soles' contact, penetration and level rows) are stacked into
+        ``J_f (B, T, m, nv)`` and enter D as one batched product J_fᵀ J_f; the skating rows couple
+        consecutive frames, their diagonal part joins that product (each frame's sole-centre Jacobian
+        weighted by the root of the summed squared weights of its two pairs), their off-diagonal part is
+        one more product; the limit, posture and difference terms are multiples of the identity."""
         chain, w = self.chain, self.w
         B, T, nq = q.shape
         nv = chain.nv
@@ -96,26 +110,22 @@ class _Terms:
             Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
         Ta = Ta.reshape(B, T, *Ta.shape[1:])
         Ja = Ja.reshape(B, T, *Ja.shape[1:])
-        rows, jacs = [], []
+        rows, jacs, d_only = [], [], []  # d_only: rows entering D only (skating's diagonal part)
         # keypoints
-        kp = torch.tensor(self.kp_idx, device=q.device)
-        p = Ta.index_select(2, kp)[..., :3, 3]
-        Jp = Ja.index_select(2, kp)[..., :3, :]
+        p = self._frames(Ta, self.kp_idx)[..., :3, 3]
+        Jp = self._frames(Ja, self.kp_idx)[..., :3, :]
         sw = (w["keypoint"] * self.kp_w).to(q)[:, None]  # (K, 1)
         rows.append((sw * (p - self.x)).flatten(2))
         jacs.append((sw[..., None] * Jp).flatten(2, 3))
         cost = 0.0
-        D = torch.zeros(B, T, nv, nv, dtype=q.dtype, device=q.device)
-        E = torch.zeros_like(D)
-        F = torch.zeros_like(D)
         g = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
+        skate_new, skate_old = [], []  # the skating rows of frames t and t − 1, for E
         for k, (fi, (pts, rad)) in enumerate(zip(self.feet_idx, self.soles)):
             Tf, Jf = Ta[:, :, fi], Ja[:, :, fi]
             R, o = Tf[..., :3, :3], Tf[..., :3, 3]
             off = (R.unsqueeze(-3) @ pts.unsqueeze(-1)).squeeze(-1)  # (B, T, P, 3)
             world = off + o.unsqueeze(-2)
-            Jv, Jw = Jf[..., :3, :].unsqueeze(-3), Jf[..., 3:, :].unsqueeze(-3)
-            Jpt = Jv - _skew(off) @ Jw  # (B, T, P, 3, nv): (3.26) for each sole point
+            Jpt = _shift_jacobian_point(Jf.unsqueeze(-3), off)[..., :3, :]  # (B, T, P, 3, nv): (3.112)
             h = world[..., 2] - rad - self.ground  # (B, T, P)
             c = self.c[..., k].to(q.dtype)  # (B, T)
             lowest = h.argmin(-1, keepdim=True)
@@ -133,19 +143,25 @@ class _Terms:
             jacs.append(wf[..., None] * (-_skew(n) @ Jf[..., 3:, :])[..., :2, :])
             if T > 1:  # skating: the sole centre of consecutive contact frames
                 ctr, Jc = world.mean(-2)[..., :2], Jpt.mean(-3)[..., :2, :]
-                both = (self.c[:, 1:, k] & self.c[:, :-1, k]).to(q.dtype)[..., None] * w["skating"]
-                r = both * (ctr[:, 1:] - ctr[:, :-1])
-                Jn, Jo = both[..., None] * Jc[:, 1:], -both[..., None] * Jc[:, :-1]
+                both = (self.c[:, 1:, k] & self.c[:, :-1, k]).to(q.dtype) * w["skating"]  # (B, T - 1)
+                r = both[..., None] * (ctr[:, 1:] - ctr[:, :-1])
                 cost = cost + 0.5 * r.square().flatten(1).sum(-1)
-                D[:, 1:] += Jn.mT @ Jn
-                D[:, :-1] += Jo.mT @ Jo
-                E[:, 1:] += Jn.mT @ Jo
-                g[:, 1:] += (Jn.mT @ r.unsqueeze(-1)).squeeze(-1)
-                g[:, :-1] += (Jo.mT @ r.unsqueeze(-1)).squeeze(-1)
+                gr = (Jc.mT @ nn.pad(both[..., None] * r, (0, 0, 1, 0)).unsqueeze(-1)).squeeze(-1)
+                g += gr - (Jc.mT @ nn.pad(both[..., None] * r, (0, 0, 0, 1)).unsqueeze(-1)).squeeze(-1)
+                wd = (nn.pad(both, (1, 0)).square() + nn.pad(both, (0, 1)).square()).sqrt()  # (B, T)
+                d_only.append(wd[..., None, None] * Jc)
+                skate_new.append(both[..., None, None] * Jc[:, 1:])
+                skate_old.append(both[..., None, None] * Jc[:, :-1])
         r_f, J_f = torch.cat(rows, -1), torch.cat(jacs, -2)
         cost = cost + 0.5 * r_f.square().flatten(1).sum(-1)
-        D += J_f.mT @ J_f
+        J_d = torch.cat((J_f, *d_only), -2) if d_only else J_f
+        D = J_d.mT @ J_d
         g += (J_f.mT @ r_f.unsqueeze(-1)).squeeze(-1)
+        E = torch.zeros_like(D)
+        F = torch.zeros_like(D)
+        if skate_new:
+            Jn, Jo = torch.cat(skate_new, -2), torch.cat(skate_old, -2)
+            E[:, 1:] -= Jn.mT @ Jo
         # joint limits (diagonal in the scalar velocity columns)
         qs = q.index_select(-1, self.sq)
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
@@ -160,30 +176,33 @@ class _Terms:
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
         diag += w["posture"] ** 2
         g += w["posture"] ** 2 * dp
-        D += torch.diag_embed(diag)
-        eye = torch.eye(nv, dtype=q.dtype, device=q.device)
         if T > 1:  # velocity: J = (I at t, −I at t−1)
             d = self.chain.configuration_space.difference(q[:, :-1], q[:, 1:])  # (B, T-1, nv)
             wv = w["velocity"] ** 2
             cost = cost + 0.5 * wv * d.square().flatten(1).sum(-1)
-            D[:, 1:] += wv * eye
-            D[:, :-1] += wv * eye
-            E[:, 1:] -= wv * eye
+            diag[:, 1:] += wv
+            diag[:, :-1] += wv
+            e = torch.full((T,), -wv, dtype=q.dtype, device=q.device)
+            f = torch.zeros(T, dtype=q.dtype, device=q.device)
             g[:, 1:] += wv * d
             g[:, :-1] -= wv * d
             if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
                 a = d[:, 1:] - d[:, :-1]  # (B, T-2, nv), centred at frames 1..T-2
                 wa = w["acceleration"] ** 2
                 cost = cost + 0.5 * wa * a.square().flatten(1).sum(-1)
-                D[:, :-2] += wa * eye
-                D[:, 1:-1] += 4 * wa * eye
-                D[:, 2:] += wa * eye
-                E[:, 1:-1] -= 2 * wa * eye
-                E[:, 2:] -= 2 * wa * eye
-                F[:, 2:] += wa * eye
+                diag[:, :-2] += wa
+                diag[:, 1:-1] += 4 * wa
+                diag[:, 2:] += wa
+                e[1:-1] -= 2 * wa
+                e[2:] -= 2 * wa
+                f[2:] += wa
                 g[:, :-2] += wa * a
                 g[:, 1:-1] -= 2 * wa * a
                 g[:, 2:] += wa * a
+            e[0] = 0.0
+            E.diagonal(dim1=-2, dim2=-1).add_(e[:, None])
+            F.diagonal(dim1=-2, dim2=-1).add_(f[:, None])
+        D.diagonal(dim1=-2, dim2=-1).add_(diag)
         return cost, D, E, F, g
 
 
