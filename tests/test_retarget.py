@@ -473,7 +473,7 @@ def test_whole_clip_gradient_against_autograd():
     """The normal equations' right-hand side g = Jᵀr of the Gauss–Newton step is the gradient of the cost
     (autograd, pulled back to velocity coordinates): exactly with the difference terms off, on the
     hinge and base-position columns with them on (their base-rotation Jacobian is approximated)."""
-    from diffkin.retarget.whole_clip import COSTS, _Terms
+    from diffkin.retarget.whole_clip import COSTS, _Terms, _velocity_limits
 
     mp = retarget.Mapping.builtin("g1")
     g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
@@ -493,11 +493,13 @@ def test_whole_clip_gradient_against_autograd():
     q_ref = q + 0.01 * torch.randn(q.shape, generator=gen, dtype=torch.float64)
     q_ref[..., 3:7] /= q_ref[..., 3:7].norm(dim=-1, keepdim=True)
     cs = g1.configuration_space
-    for costs, cols in (({"velocity": 0.0, "acceleration": 0.0, "posture": 0.0}, list(range(g1.nv))),
-                        ({}, [0, 1, 2, *range(6, g1.nv)])):
+    vmax = _velocity_limits(g1, 3.0, q)  # 0.1 rad per frame at 30 fps: active on many joints here
+    off = {"velocity": 0.0, "acceleration": 0.0, "posture": 0.0}
+    exact = [0, 1, 2, *range(6, g1.nv)]
+    for costs, cols, vel in ((off, list(range(g1.nv)), None), ({}, exact, None), ({}, exact, vmax)):
         w = {**COSTS, **costs}
         terms = _Terms(g1, x, contacts, list(mp.feet), kp, 30.0, 0.0, None,
-                       torch.ones(len(kp), dtype=torch.float64), w, q_ref, 0.0)
+                       torch.ones(len(kp), dtype=torch.float64), w, q_ref, 0.0, vel)
         qq = q.clone().requires_grad_()
         cost, D, E, F, g = terms.evaluate(qq)
         (grad,) = torch.autograd.grad(cost.sum(), qq)
@@ -542,8 +544,35 @@ def test_optimize_clip_errors():
     out = retarget.optimize_clip(g1, q, x, c, iterations=0, **kw)
     torch.testing.assert_close(out.q, q)
     assert out.cost.shape == (1, 1)
+    with pytest.raises(ModelError, match="nojoint"):
+        retarget.optimize_clip(g1, q, x, c, velocity_limit={"nojoint": 1.0}, **kw)
+    with pytest.raises(OptionError, match="velocity_limit"):
+        retarget.optimize_clip(g1, q, x, c, velocity_limit=0.0, **kw)
+    with pytest.raises(ShapeError, match="velocity_limit"):
+        retarget.optimize_clip(g1, q, x, c, velocity_limit=[1.0, 2.0], **kw)
     cg = retarget.optimize_clip(g1, q, x, c, iterations=2, solver="cg", **kw)
     assert cg.cost[-1].item() < cg.cost[0].item()
+
+
+def test_whole_clip_velocity_limits_are_hard():
+    """velocity_limit: unconstrained, the first 16 frames of the shipped walk reach 12 rad/s; with a limit for
+    every hinge and a tighter one for the knees the output's finite differences (numpy) stay within them,
+    the joint limits hold and the contacts are kept."""
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(0, 16)
+    free = retarget.clip(g1, walk, mp, warm_start="batched", max_iterations=8, iterations=3)
+    assert free.metrics.max_joint_velocity.item() > 10.0
+    names = list(g1.joint_names[1:])
+    limit = {n: 8.0 for n in names} | {"left_knee_joint": 4.0, "right_knee_joint": 4.0}
+    r = retarget.clip(g1, walk, mp, warm_start="batched", max_iterations=8, iterations=3,
+                      velocity_limit=limit)
+    qd = np.abs(np.diff(r.q[0, :, 7:].numpy(), axis=0)) * walk.fps  # the hinges (free joint first)
+    bound = np.array([limit[n] for n in names])
+    assert (qd <= bound * (1 + 1e-9)).all() and (qd >= bound * (1 - 1e-6)).any()  # reached: it binds
+    assert int(r.metrics.joint_limit_violations) == 0
+    assert r.metrics.foot_skating.item() <= 10.0 and r.metrics.ground_penetration.item() <= 1.0
+    assert r.metrics.keypoint_error.item() < 80.0
 
 
 def test_clip_batched_warm_start():

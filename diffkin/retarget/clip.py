@@ -108,7 +108,7 @@ def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
 def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float = 0.0,
          max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
          iterations: int = 10, costs: dict | None = None, solver: str = "banded",
-         warm_start: str = "sequential") -> RetargetResult:
+         warm_start: str = "sequential", velocity_limit=None) -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
     ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
 
@@ -121,9 +121,9 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
     (``mapping.contacts``; ``contact_thresholds`` overrides its ``height``/``speed``/``ground``).
 
     Stage two (``whole_clip=True``): :func:`~diffkin.retarget.optimize_clip` over all frames of all clips
-    at once (``iterations``, ``costs``, ``solver`` are its), with the mapping's position weights and
-    soles. The metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage
-    one's.
+    at once (``iterations``, ``costs``, ``solver``, ``velocity_limit`` are its: joint velocity limits as
+    hard constraints, e.g. the motors' rad/s), with the mapping's position weights and soles. The
+    metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage one's.
     """
     mapping.check(motion)
     check_count(max_iterations, "max_iterations")
@@ -165,7 +165,7 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
         weights = mapping.weights[[mapping.frames.index(f) for f in kp], 0]
         opt = optimize_clip(chain, Q, X, contacts, feet=mapping.feet, keypoint_frames=kp, fps=motion.fps,
                             ground=ground, sole=sole, keypoint_weights=weights, costs=costs,
-                            iterations=iterations, solver=solver)
+                            iterations=iterations, solver=solver, velocity_limit=velocity_limit)
         Q, cost, warm = opt.q, opt.cost, m
         m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
                     keypoint_frames=kp, sole=sole)

@@ -15,6 +15,8 @@ term                   residual                                               fr
 ``flat_foot``          w (R_f e_z)_xy: the sole level                           a foot in contact
 ``penetration``        w min(0, z_p − r_p − ground) for every sole point        every frame
 ``limit``              w (q − (q_max − m))⁺ − w ((q_min + m) − q)⁺              every frame (hinges)
+``velocity_limit``     w (|Δq| − q̇_max/fps)⁺ sign(Δq), Δq = q_t − q_{t−1}        t ≥ 1 (hinges, slides; with
+                                                                              ``velocity_limit``)
 ``velocity``           w (q_t ⊖ q_{t−1})                                        t ≥ 1
 ``acceleration``       w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1}))                     1 ≤ t ≤ T − 2
 ``posture``            w (q_t ⊖ q_t⁰): stay near the warm start q⁰              every frame
@@ -26,7 +28,9 @@ difference terms take ∂(q_t ⊖ q_{t−1})/∂δ ≈ (I at t, −I at t−1) (
 The residuals couple at most three consecutive frames, so the normal matrix JᵀJ is block-banded with two
 bands and each step is one block-banded Cholesky solve (:func:`diffkin.kernels.banded.block_banded_solve`,
 O(T nv³)). A step is kept per clip when it lowers that clip's cost (the damping λ then shrinks, else it
-grows); after each step the hinges are projected onto their limits, so the result never violates them.
+grows); after each step the hinges are projected onto their limits (and, with ``velocity_limit``, frame
+after frame onto [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max]), so the result never violates
+them: hard constraints, whose penalty rows steer the steps away from the projection.
 """
 
 from __future__ import annotations
@@ -42,14 +46,14 @@ from ..jacobian import _shift_jacobian_point
 from ..kernels.banded import block_banded_cg, block_banded_solve
 from ..rotations import _skew
 from ..validation import as_tensor, check_count, check_finite, check_number, shape_str
-from .metrics import _finite
+from .metrics import _finite, _scalar_columns
 from .sole import Sole, sole_of
 
 __all__ = ["COSTS", "ClipOptimization", "optimize_clip"]
 
 #: default weights of the whole-clip terms (module doc); lengths in metres, angles in rad per frame.
 COSTS = {"keypoint": 1.0, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3, "penetration": 300.0,
-         "limit": 10.0, "velocity": 0.02, "acceleration": 0.3, "posture": 0.01}
+         "limit": 10.0, "velocity_limit": 10.0, "velocity": 0.02, "acceleration": 0.3, "posture": 0.01}
 
 
 @dataclass
@@ -65,7 +69,7 @@ class _Terms:
     """The residual layout of one problem (weights, sole geometry, index maps)."""
 
     def __init__(self, chain, keypoints, contacts, feet, keypoint_frames, fps, ground, sole, kp_weights, w,
-                 q_ref, limit_margin):
+                 q_ref, limit_margin, velocity_limit=None):
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
@@ -86,7 +90,26 @@ class _Terms:
         if lim is None:
             lim = torch.full((len(self.sq), 2), float("inf"), dtype=keypoints.dtype, device=keypoints.device)
             lim[:, 0] = -lim[:, 0]
+        self.lo_hard, self.hi_hard = lim[:, 0], lim[:, 1]
         self.lo, self.hi = lim[:, 0] + limit_margin, lim[:, 1] - limit_margin
+        # q̇_max / fps (rad or m per frame) on the scalar q columns (inf on the base position)
+        self.vstep = None if velocity_limit is None else velocity_limit.index_select(0, self.sq) / fps
+
+    def project(self, q: Tensor) -> Tensor:
+        """``q (B, T, nq)`` onto the joint limits and, with velocity limits, frame after frame onto
+        [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max] on the scalar columns (a loop over
+        time: each frame's interval depends on the projected frame before it; it meets the limits' range
+        because q_{t−1} is in it)."""
+        q = self.chain.clamp_to_limits(q, check=False)
+        if self.vstep is None or q.shape[1] < 2:
+            return q
+        qs = q.index_select(-1, self.sq)
+        out = [qs[:, 0]]
+        for t in range(1, q.shape[1]):
+            lo = torch.maximum(out[-1] - self.vstep, self.lo_hard)
+            hi = torch.minimum(out[-1] + self.vstep, self.hi_hard)
+            out.append(torch.minimum(torch.maximum(qs[:, t], lo), hi))
+        return q.index_copy(-1, self.sq, torch.stack(out, 1))
 
     def _frames(self, X: Tensor, idx: list[int]) -> Tensor:
         """``X[:, :, idx]`` (dim 2: the chain's end links), a view where ``idx`` is a run of frames."""
@@ -171,6 +194,18 @@ class _Terms:
         diag = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
         diag[..., self.sv] += act
         g[..., self.sv] += w["limit"] * r_l
+        if T > 1 and self.vstep is not None:  # velocity limits: ±(I, −I) on the scalar columns where beyond
+            dq = qs[:, 1:] - qs[:, :-1]
+            ex = (dq.abs() - self.vstep).clamp_min(0)
+            wl = w["velocity_limit"]
+            r_v = wl * ex * dq.sign()
+            cost = cost + 0.5 * r_v.square().flatten(1).sum(-1)
+            act = (ex > 0).to(q.dtype) * wl**2  # (B, T - 1, n_s)
+            diag[:, 1:, self.sv] += act
+            diag[:, :-1, self.sv] += act
+            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv] -= act
+            g[:, 1:, self.sv] += wl * r_v
+            g[:, :-1, self.sv] -= wl * r_v
         # posture: near the warm start
         dp = self.chain.configuration_space.difference(self.q_ref, q)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
@@ -206,10 +241,38 @@ class _Terms:
         return cost, D, E, F, g
 
 
+def _velocity_limits(chain, limit, like: Tensor) -> Tensor | None:
+    """q̇_max ``(nq,)`` (inf outside the scalar joints) from a number, a sequence over the scalar joints
+    (hinges, slides) or ``{joint name: limit}`` (inf: free), checked > 0; None for None."""
+    if limit is None:
+        return None
+    names = [n for n, k in zip(chain.joint_names, chain.joint_kinds) if k not in ("free", "ball")]
+    full = torch.full((chain.nq,), float("inf"), dtype=like.dtype, device=like.device)
+    cols = torch.tensor(_scalar_columns(chain), dtype=torch.long, device=like.device)
+    if isinstance(limit, dict):
+        unknown = sorted(set(limit) - set(names))
+        if unknown:
+            raise ModelError(f"velocity_limit names joints {unknown} that are not scalar joints of the chain "
+                             f"{names}")
+        v = torch.full((len(names),), float("inf"), dtype=like.dtype, device=like.device)
+        for name, value in limit.items():
+            v[names.index(name)] = check_number(value, f"velocity_limit[{name!r}]", unit=" rad/s")
+        return full.index_copy(0, cols, v)
+    v = as_tensor(limit, "velocity_limit", dtype=like.dtype, device=like.device).reshape(-1)
+    if v.numel() == 1:
+        v = v.expand(len(names))
+    if v.shape[0] != len(names):
+        raise ShapeError(f"expected velocity_limit as a number or {len(names)} values (the scalar joints), "
+                         f"got {v.shape[0]}")
+    if bool(torch.isnan(v).any() | (v <= 0).any()):
+        raise OptionError(f"expected velocity_limit > 0 (inf: free), got {v.tolist()}")
+    return full.index_copy(0, cols, v)
+
+
 def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, ground: float = 0.0,
                sole: dict | None = None, keypoint_weights=None, costs: dict | None = None,
                iterations: int = 10, limit_margin: float = 0.0, damping: float = 1e-4, solver: str = "banded",
-               cg_iterations: int = 30) -> ClipOptimization:
+               cg_iterations: int = 30, velocity_limit=None) -> ClipOptimization:
     """Optimise a warm-started clip ``q (B, T, nq)`` over all frames at once (module doc).
 
     Args:
@@ -231,6 +294,10 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         solver: ``"banded"``, the exact block-banded Cholesky solve (a loop over T), or ``"cg"``,
             ``cg_iterations`` steps of block-Jacobi conjugate gradients (batched over T; for long clips on
             a GPU).
+
+        velocity_limit: optional q̇_max of the scalar joints (hinges: rad/s, slides: m/s): a number for
+            every one, ``(n_scalar,)`` in the chain's joint order, or ``{joint name: limit}`` (others
+            free); kept as a hard constraint (module doc). None: no limit.
 
     Returns a :class:`ClipOptimization`.
     """
@@ -276,9 +343,10 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
     if bool((kw < 0).any()):
         raise OptionError("expected keypoint_weights >= 0")
     q = q.detach()
+    vmax = _velocity_limits(chain, velocity_limit, q)
     terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
-                   limit_margin)
-    q = chain.clamp_to_limits(q, check=False)
+                   limit_margin, vmax)
+    q = terms.project(q)
     with torch.no_grad():
         cur = terms.evaluate(q)
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
@@ -292,7 +360,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                 step = -block_banded_cg(Dl, E, F, g, cg_iterations)
             else:
                 step = -block_banded_solve(Dl, E, F, g)
-            trial = chain.clamp_to_limits(chain.configuration_space.integrate(q, step), check=False)
+            trial = terms.project(chain.configuration_space.integrate(q, step))
             new = terms.evaluate(trial)
             ok = torch.isfinite(new[0]) & (new[0] < cost)
             q = torch.where(ok[:, None, None], trial, q)
