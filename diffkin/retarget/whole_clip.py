@@ -9,6 +9,9 @@ term                   residual                                               fr
 =====================  =====================================================  ==========================
 ``keypoint``           w w_k (p_k(q_t) − x_{k,t}): the mapped frames on the     every frame
                        scaled human joints (``w_k`` the mapping's weights)
+``orientation``        w w_o e_O(R_d, R_k(q_t)) (3.85): the mapped frames'      every frame (with
+                       orientation on target rotations R_d (``w_o`` the     ``orientations``)
+                       mapping's orientation weights)
 ``contact_height``     w (z_lowest − ground): the lowest sole point on the      a foot in contact
                        ground (no floating, no penetration)
 ``skating``            w (c_t − c_{t−1})_xy: the sole centre does not slide     both in one contact phase
@@ -23,7 +26,8 @@ term                   residual                                               fr
 =====================  =====================================================  ==========================
 
 Point Jacobians come from the chain's geometric Jacobian (3.30) at the frame origin o: J_p = J_v − S(p − o)
-J_ω (the velocity of a point of the body, (3.26)); the sole's normal R e_z moves as −S(R e_z) J_ω. The
+J_ω (the velocity of a point of the body, (3.26)); the sole's normal R e_z moves as −S(R e_z) J_ω; the
+orientation error e_O of (3.85) as −L J_ω with L of (3.87) (exact: ė_O = Lᵀω_d − Lω_e). The
 difference terms take ∂(q_t ⊖ q_{t−1})/∂δ ≈ (I at t, −I at t−1) (exact for hinges and the base position).
 The residuals couple at most three consecutive frames, so the normal matrix JᵀJ is block-banded with two
 bands and each step is one block-banded Cholesky solve (:func:`diffkin.kernels.banded.block_banded_solve`,
@@ -42,8 +46,10 @@ from torch import Tensor
 from torch.nn import functional as nn
 
 from ..errors import ModelError, OptionError, ShapeError
+from ..ik.closed_loop import _L_matrix
 from ..jacobian import _shift_jacobian_point
 from ..kernels.banded import block_banded_cg, block_banded_solve
+from ..kernels.pose_error import orientation_error
 from ..rotations import _skew
 from ..validation import as_tensor, check_count, check_finite, check_number, shape_str
 from .metrics import _finite, _scalar_columns
@@ -52,8 +58,9 @@ from .sole import Sole, sole_of
 __all__ = ["COSTS", "ClipOptimization", "optimize_clip"]
 
 #: default weights of the whole-clip terms (module doc); lengths in metres, angles in rad per frame.
-COSTS = {"keypoint": 1.0, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3, "penetration": 300.0,
-         "limit": 10.0, "velocity_limit": 10.0, "velocity": 0.02, "acceleration": 0.3, "posture": 0.01}
+COSTS = {"keypoint": 1.0, "orientation": 0.1, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3,
+         "penetration": 300.0, "limit": 10.0, "velocity_limit": 10.0, "velocity": 0.02, "acceleration": 0.3,
+         "posture": 0.01}
 
 
 @dataclass
@@ -69,13 +76,20 @@ class _Terms:
     """The residual layout of one problem (weights, sole geometry, index maps)."""
 
     def __init__(self, chain, keypoints, contacts, feet, keypoint_frames, fps, ground, sole, kp_weights, w,
-                 q_ref, limit_margin, velocity_limit=None):
+                 q_ref, limit_margin, velocity_limit=None, orientations=None, orientation_weights=None):
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
         self.fps = fps
         self.kp_idx = [ends.index(f) for f in keypoint_frames]
         self.kp_w = kp_weights
+        # orientation targets (B, T, K_o, 3, 3) of the keypoint frames with a weight > 0 (their indices)
+        self.ori = None
+        if orientations is not None and bool((orientation_weights > 0).any()):
+            sel = (orientation_weights > 0).nonzero().flatten().tolist()
+            self.ori = orientations[:, :, sel]
+            self.ori_idx = [self.kp_idx[k] for k in sel]
+            self.ori_w = orientation_weights[sel]
         self.feet_idx = [ends.index(f) for f in feet]
         self.soles = []
         for f in feet:
@@ -140,6 +154,13 @@ class _Terms:
         sw = (w["keypoint"] * self.kp_w).to(q)[:, None]  # (K, 1)
         rows.append((sw * (p - self.x)).flatten(2))
         jacs.append((sw[..., None] * Jp).flatten(2, 3))
+        if self.ori is not None:  # orientations: r = w e_O (3.85), ∂r/∂δ = −w L J_ω (3.87)
+            R_e = self._frames(Ta, self.ori_idx)[..., :3, :3]
+            e_o, _ = orientation_error(self.ori, R_e, "axis_angle")
+            wo = (w["orientation"] * self.ori_w).to(q)[:, None]  # (K_o, 1)
+            L = _L_matrix(self.ori, R_e)
+            rows.append((wo * e_o).flatten(2))
+            jacs.append((-wo[..., None] * (L @ self._frames(Ja, self.ori_idx)[..., 3:, :])).flatten(2, 3))
         cost = 0.0
         g = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
         skate_new, skate_old = [], []  # the skating rows of frames t and t − 1, for E
@@ -241,6 +262,24 @@ class _Terms:
         return cost, D, E, F, g
 
 
+def _orientation_targets(orientations, weights, shape: tuple, like: Tensor):
+    """Checked ``orientations (B, T, K, 3, 3)`` and ``weights (K,)`` (≥ 0) in ``like``'s dtype, or
+    (None, None) without orientations."""
+    if orientations is None:
+        return None, None
+    R = check_finite(as_tensor(orientations, "orientations", dtype=like.dtype, device=like.device),
+                     "orientations")
+    if tuple(R.shape) != (*shape, 3, 3):
+        raise ShapeError(f"expected orientations of shape {shape_str((*shape, 3, 3))}, got "
+                         f"{shape_str(R.shape)}")
+    ow = torch.ones(shape[2], dtype=like.dtype, device=like.device) if weights is None else check_finite(
+        as_tensor(weights, "orientation_weights", dtype=like.dtype, device=like.device).reshape(-1),
+        "orientation_weights")
+    if ow.shape[0] != shape[2] or bool((ow < 0).any()):
+        raise OptionError(f"expected {shape[2]} orientation weights >= 0, got {ow.tolist()}")
+    return R.detach(), ow
+
+
 def _velocity_limits(chain, limit, like: Tensor) -> Tensor | None:
     """q̇_max ``(nq,)`` (inf outside the scalar joints) from a number, a sequence over the scalar joints
     (hinges, slides) or ``{joint name: limit}`` (inf: free), checked > 0; None for None."""
@@ -272,7 +311,8 @@ def _velocity_limits(chain, limit, like: Tensor) -> Tensor | None:
 def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, ground: float = 0.0,
                sole: dict | None = None, keypoint_weights=None, costs: dict | None = None,
                iterations: int = 10, limit_margin: float = 0.0, damping: float = 1e-4, solver: str = "banded",
-               cg_iterations: int = 30, velocity_limit=None) -> ClipOptimization:
+               cg_iterations: int = 30, velocity_limit=None, orientations=None,
+               orientation_weights=None) -> ClipOptimization:
     """Optimise a warm-started clip ``q (B, T, nq)`` over all frames at once (module doc).
 
     Args:
@@ -295,6 +335,8 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
             ``cg_iterations`` steps of block-Jacobi conjugate gradients (batched over T; for long clips on
             a GPU).
 
+        orientations: optional target rotations ``(B, T, K, 3, 3)`` of ``keypoint_frames`` (world from
+            frame), followed where ``orientation_weights (K,)`` (the mapping's) is > 0.
         velocity_limit: optional q̇_max of the scalar joints (hinges: rad/s, slides: m/s): a number for
             every one, ``(n_scalar,)`` in the chain's joint order, or ``{joint name: limit}`` (others
             free); kept as a hard constraint (module doc). None: no limit.
@@ -344,8 +386,9 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         raise OptionError("expected keypoint_weights >= 0")
     q = q.detach()
     vmax = _velocity_limits(chain, velocity_limit, q)
+    R_d, ow = _orientation_targets(orientations, orientation_weights, (B, T, len(frames)), q)
     terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
-                   limit_margin, vmax)
+                   limit_margin, vmax, R_d, ow)
     q = terms.project(q)
     with torch.no_grad():
         cur = terms.evaluate(q)
