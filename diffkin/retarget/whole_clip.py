@@ -80,6 +80,7 @@ class _Terms:
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
+        self._F = None
         self.fps = fps
         self.kp_idx = [ends.index(f) for f in keypoint_frames]
         self.kp_w = kp_weights
@@ -202,10 +203,9 @@ class _Terms:
         D = J_d.mT @ J_d
         g += (J_f.mT @ r_f.unsqueeze(-1)).squeeze(-1)
         E = torch.zeros_like(D)
-        F = torch.zeros_like(D)
         if skate_new:
             Jn, Jo = torch.cat(skate_new, -2), torch.cat(skate_old, -2)
-            E[:, 1:] -= Jn.mT @ Jo
+            E[:, 1:] = -(Jn.mT @ Jo)
         # joint limits (diagonal in the scalar velocity columns)
         qs = q.index_select(-1, self.sq)
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
@@ -239,7 +239,6 @@ class _Terms:
             diag[:, 1:] += wv
             diag[:, :-1] += wv
             e = torch.full((T,), -wv, dtype=q.dtype, device=q.device)
-            f = torch.zeros(T, dtype=q.dtype, device=q.device)
             g[:, 1:] += wv * d
             g[:, :-1] -= wv * d
             if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
@@ -251,15 +250,22 @@ class _Terms:
                 diag[:, 2:] += wa
                 e[1:-1] -= 2 * wa
                 e[2:] -= 2 * wa
-                f[2:] += wa
                 g[:, :-2] += wa * a
                 g[:, 1:-1] -= 2 * wa * a
                 g[:, 2:] += wa * a
             e[0] = 0.0
             E.diagonal(dim1=-2, dim2=-1).add_(e[:, None])
-            F.diagonal(dim1=-2, dim2=-1).add_(f[:, None])
         D.diagonal(dim1=-2, dim2=-1).add_(diag)
-        return cost, D, E, F, g
+        return cost, D, E, self._second_band(D), g
+
+    def _second_band(self, like: Tensor) -> Tensor:
+        """F: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q (made once)."""
+        if self._F is None or self._F.shape != like.shape:
+            F = torch.zeros_like(like)
+            if like.shape[1] > 2:
+                F[:, 2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
+            self._F = F
+        return self._F
 
 
 def _orientation_targets(orientations, weights, shape: tuple, like: Tensor):
@@ -407,7 +413,9 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
             new = terms.evaluate(trial)
             ok = torch.isfinite(new[0]) & (new[0] < cost)
             q = torch.where(ok[:, None, None], trial, q)
-            cur = tuple(torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a) for a, b in zip(cur, new))
+            # F is the same at every q: the other parts are taken per clip from the trial where it is kept
+            cur = tuple(b if k == 3 else torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a)
+                        for k, (a, b) in enumerate(zip(cur, new)))
             lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
             history.append(cur[0])
     return ClipOptimization(q, torch.stack(history))
