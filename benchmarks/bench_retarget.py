@@ -1,13 +1,13 @@
-"""Retargeting the shipped human clips onto the 29-DoF G1: speed and the artefact metrics, beside mink.
+"""Retargeting the shipped human clips onto the 29-DoF G1: speed and the artefact metrics beside GMR and mink.
 
-The clips are the three shipped CMU clips (walk, crouch, hop; 60 fps), the robot the 29-DoF G1
+The clips are the five shipped CMU clips (walk, crouch, hop, turn, reach; 60 fps), the robot the 29-DoF G1
 (``tests/data/urdf/g1_29dof_rev_1_0.urdf``, the kinematics of MuJoCo Menagerie's current ``unitree_g1``)
 with ``retarget.Mapping.builtin("g1")``. Rows:
 
-* ``diffkin``: ``retarget.clip`` on the three clips batched (B = 3, the first 120 frames of each), stage one
+* ``diffkin``: ``retarget.clip`` on the five clips batched (B = 5, the first 74 frames of each), stage one
   (``warm_start="sequential"``: ``ik.solve`` frame after frame, or ``"batched"``: all frames in one call)
   then the whole-clip optimisation (:func:`diffkin.retarget.optimize_clip`, with the URDF's joint velocity
-  limits as hard constraints: ``velocity_limit=``); frames per second over the 360 frames, each stage's
+  limits as hard constraints: ``velocity_limit=``); frames per second over the 370 frames, each stage's
   share of the time; ``diffkin one clip``: the walk alone (B = 1), end to end through ``retarget.clip``.
 * ``mink``: frame by frame with mink (GMR's scheme: a ``FrameTask`` per mapped frame with the same scaled
   human targets, position cost 1 and orientation cost 0, a small ``PostureTask``,
@@ -16,10 +16,16 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
   frame; the first frame from diffkin's initial posture). The MuJoCo model is the same URDF compiled by
   MuJoCo (meshes dropped, a free joint added to the pelvis).
 
-GMR itself (``general-motion-retargeting``) is not on the package index this machine can reach, so mink
-frame by frame (GMR's solver, on the same mapping and targets) stands in for it. Both outputs are scored
-by ``retarget.metrics`` with the same contacts (from the human clip) and keypoints. The machine is shared:
-times are contended; compare the ratios of rows measured in the same run.
+* ``GMR``: GMR itself (github.com/YanjieZe/GMR, not on the package index: installed from its repository,
+  see :mod:`benchmarks.peers_gmr`; its rows are skipped when it is not importable) on the same clips and
+  frames, its G1 (``g1_mocap_29dof.xml``, the Menagerie G1's kinematics with narrower ranges: checked
+  with MuJoCo's FK before scoring), its two-stage mink scheme and weights, its ``bvh_to_g1.json`` written
+  for the CMU skeleton (names mapped, orientation offsets recomputed at the rest pose); one clip after
+  the other, frame by frame. ``GMR own mm``: GMR's bodies against its own scaled targets.
+
+Every output is scored by ``retarget.metrics`` on the same chain with the same contacts (from the human
+clip) and keypoints (diffkin's scaled human joints). The machine is shared: times are contended; compare
+the ratios of rows measured in the same run.
 """
 
 from __future__ import annotations
@@ -36,7 +42,8 @@ from benchmarks.common import cli
 
 ROOT = Path(__file__).resolve().parents[1]
 G1_URDF = ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
-CLIPS = ("walk", "crouch", "hop")
+G1_MJCF = ROOT / "diffkin" / "models" / "robots" / "mjcf" / "unitree_g1_29dof" / "g1.xml"
+CLIPS = ("walk", "crouch", "hop", "turn", "reach")
 
 
 def mujoco_g1():
@@ -63,7 +70,8 @@ def g1_velocity_limits() -> dict[str, float]:
 
 
 def _metrics_row(m, b: int) -> dict:
-    return {"limit violations": int(m.joint_limit_violations[b]), "skating mm": float(m.foot_skating[b]),
+    return {"limit violations": int(m.joint_limit_violations[b]),
+            "worst excess rad": float(m.joint_limit_excess[b]), "skating mm": float(m.foot_skating[b]),
             "penetration mm": float(m.ground_penetration[b]), "floating mm": float(m.floating[b]),
             "keypoint mm": float(m.keypoint_error[b]), "max |qd| rad/s": float(m.max_joint_velocity[b])}
 
@@ -128,13 +136,14 @@ def run(args) -> list[dict]:
     from diffkin import models, retarget
     from diffkin.retarget.clip import _initial
 
-    frames = 40 if args.quick else 120
+    frames = 40 if args.quick else 74  # the shortest shipped clip (the reach): one batch, equal lengths
     mp = retarget.Mapping.builtin("g1")
     g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64).requires_grad_(False)
     clips = [retarget.load_bvh(retarget.example_clips()[n]).frames_slice(0, frames) for n in CLIPS]
-    motion = retarget.Motion(torch.cat([c.positions for c in clips]), clips[0].names, clips[0].fps)
+    motion = retarget.Motion(torch.cat([c.positions for c in clips]), clips[0].names, clips[0].fps,
+                             torch.cat([c.orientations for c in clips]))
     n = motion.batch * motion.frames
-    vmax = {n: v for n, v in g1_velocity_limits().items() if n in g1.joint_names}
+    vmax = {j: v for j, v in g1_velocity_limits().items() if j in g1.joint_names}
     rows = []
     base = None
     for warm in ("sequential", "batched"):
@@ -166,12 +175,38 @@ def run(args) -> list[dict]:
     for b, name in enumerate(CLIPS):
         rows.append({"method": "mink frame by frame (GMR's scheme)", "clip": name, "frames/s": n / secs,
                      **_metrics_row(mm, b)})
+    rows += _gmr_rows(g1, motion, base, mp)
     return rows
+
+
+def _gmr_rows(chain, motion, base, mp) -> list[dict]:
+    """GMR itself on the same clips (``benchmarks.peers_gmr``), scored like the other rows; [] when GMR is
+    not installed."""
+    from benchmarks import peers_gmr
+    from diffkin import retarget
+    from diffkin.models.mjcf import compile_mjcf
+
+    if not peers_gmr.available():
+        print("GMR (general_motion_retargeting) is not installed: its rows are skipped")
+        return []
+    q, secs, own, model = peers_gmr.retarget_gmr(motion)
+    worst = peers_gmr.check_same_kinematics(model, compile_mjcf(G1_MJCF)[0])
+    if worst > 1e-9:
+        raise AssertionError(f"GMR's G1 is not the Menagerie G1's kinematics (bodies {worst:.2e} apart)")
+    names = list(chain.joint_names)
+    qadr = [0, 1, 2, 3, 4, 5, 6] + [int(model.joint(n).qposadr[0]) for n in names[1:]]
+    q = torch.from_numpy(q[..., qadr])
+    m = retarget.metrics(chain, q, base.contacts, motion.fps, feet=mp.feet, keypoints=base.keypoints,
+                         keypoint_frames=base.keypoint_frames)
+    n = motion.batch * motion.frames
+    return [{"method": "GMR (its G1, its scheme and weights)", "clip": name, "frames/s": n / secs,
+             **_metrics_row(m, b), "GMR own mm": 1000 * float(own[b])} for b, name in enumerate(CLIPS)]
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    return cli(p, run, "retargeting the shipped clips onto the G1 (contended 2-core CPU; 360 frames)", argv)
+    title = "retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames)"
+    return cli(p, run, title, argv)
 
 
 if __name__ == "__main__":

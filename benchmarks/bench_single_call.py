@@ -3,8 +3,10 @@
 * single-target ``ik.solve`` (Panda, float64, 1 thread, 0.1 mm / 1 mrad within the limits, random targets,
   one call each): median per call, against Robotics Toolbox's C++ ``ik_LM`` on the same targets (success
   checked independently by :func:`benchmarks.bench_ik.verify`). Two chain states: the default, parameters
-  frozen (the lean path), and a learnable chain (``learnable=True``: the C solve plus the implicit-gradient
-  attachment);
+  frozen (the lean path: one foreign call, ``dk_solve_one``; with ``seed=`` it draws the random seeds
+  itself, only those it uses), and a learnable chain (``learnable=True``: the C solve plus the
+  implicit-gradient attachment); and the lean path without ``seed=`` (the pool from torch's default
+  generator);
 * batch-1 FK and FK + Jacobian (the lean path, ``torch.no_grad()``), median per call, against Pinocchio's
   and Robotics Toolbox's C++ calls of one configuration in the same run;
 * batched ``ik.solve`` of N Panda targets on 1 and 2 threads by its two backends, one algorithm: the C solve
@@ -51,6 +53,12 @@ def single_target(n: int) -> list[dict]:
         q = torch.stack([r.q.detach() for r in res])
         flags = torch.stack([r.success for r in res])
         rows.append({"case": f"ik.solve 1 target, {label}", "median_us": us, **verify(q, T, flags)})
+        if frozen:  # no seed: the pool from torch's default generator (drawn whole, as the general path)
+            us, res = _median_us(lambda i, c=chain: ik.solve(c, T[i]), range(n))
+            q = torch.stack([r.q for r in res])
+            flags = torch.stack([r.success for r in res])
+            rows.append({"case": "ik.solve 1 target, lean path, no seed (torch's default generator)",
+                         "median_us": us, **verify(q, T, flags)})
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

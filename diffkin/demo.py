@@ -747,7 +747,8 @@ def section_teleop(report: Report, quick: bool) -> None:
 
 def section_retarget(report: Report, quick: bool) -> None:
     """Human motion onto the G1 (issue 37): the shipped CMU walk through retarget.clip, the artefact
-    metrics of the frame-by-frame warm start and of the whole-clip optimisation, the sole heights."""
+    metrics of the frame-by-frame warm start and of the whole-clip optimisation, a frame of the clip beside
+    the robot, the sole heights."""
     title = "Human motion onto a humanoid (retargeting)"
     urdf = REPO_ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
     if not urdf.is_file():
@@ -783,6 +784,9 @@ def section_retarget(report: Report, quick: bool) -> None:
     ax.grid(True, alpha=0.3)
     fig.tight_layout()
     fig.savefig(report.out / "retarget_soles.png", dpi=110)
+    shown = frames * 3 // 10  # a frame of the walk's stride
+    retarget.plot_frame(g1, r, walk, shown, path=report.out / "retarget_frame.png",
+                        title=f"the walk, frame {shown}: the clip's skeleton beside the G1")
     body = (
         f"{frames} frames of the shipped CMU walk (60 fps) onto the 29-DoF G1 with the built-in mapping: a "
         f"per-clip scale ({float(r.scale[0]):.3f}), a frame-by-frame warm start with `ik.solve`, then one "
@@ -791,8 +795,10 @@ def section_retarget(report: Report, quick: bool) -> None:
         f"({frames / dt:.0f} frames/s on this machine). Metrics per `retarget.metrics` (mm):\n\n"
         + _md_table(["stage", "limit violations", "skating", "penetration", "floating", "keypoint error"],
                     rows)
-        + "\n\nThe lowest sole point of each foot after the optimisation (bars: contact detected in the "
-        "human clip):\n\n![sole heights](retarget_soles.png)\n"
+        + f"\n\nFrame {shown} (`retarget.plot_frame`): the human skeleton of the clip (blue) beside the G1 "
+        "(orange) and the scaled human joints it tracks (green):\n\n"
+        "![a retargeted frame](retarget_frame.png)\n\nThe lowest sole point of each foot after the "
+        "optimisation (bars: contact detected in the human clip):\n\n![sole heights](retarget_soles.png)\n"
     )
     report.add(title, body)
     m = r.metrics
@@ -807,7 +813,7 @@ def section_motion(report: Report, quick: bool) -> None:
     import warnings
 
     from . import models, motion
-    from ._cli_plan import plan_figure
+    from .cli.plan import plan_figure
     from .collision import RobotCollision, World, box
 
     title = "Motion planning around an obstacle"

@@ -1,7 +1,7 @@
 """The one configuration sampler: uniform within the joint ranges, optionally collision-free.
 
 Every random configuration in diffkin comes from here (the chain's ``random_configuration``, IK's random
-seeds and restarts, calibration's structural analysis, ``data_io.RandomJoints``, the envs' goals), through
+seeds and restarts, calibration's structural analysis, ``io.data.RandomJoints``, the envs' goals), through
 :meth:`~diffkin.kernels.configuration.ConfigurationSpace.from_uniform`: each scalar joint uniform in
 ``chain.lower_upper()`` (its limits, else ±π for a revolute, ±1 m for a prismatic joint), each quaternion of
 a ball or free joint uniform on S³ (Shoemake's map).

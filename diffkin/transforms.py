@@ -14,7 +14,7 @@ from torch import Tensor
 
 from ._numerics import eps_for
 from .errors import ConventionError, DiffkinError, DTypeError, ModelError, NonFiniteError, ShapeError
-from .kernels import pose_error as _kpe
+from .kernels.rigid import _make_transform, _pose_error, _transform_inverse, _transform_points
 from .validation import as_tensor, broadcast_batch, check_trailing, shape_str, tensors
 
 __all__ = [
@@ -39,7 +39,7 @@ __all__ = [
 #: limit in float32 and float64 (tracker exports rounded to a few decimals, float32 casts and
 #: quaternion-to-matrix round-off all stay well below it). Within it a transform is accepted and, where a
 #: function returns one (:func:`as_measured_transform`, :func:`as_rigid_transform`, the readers of
-#: :mod:`diffkin.data_io`), re-orthonormalised: the rotation replaced by the nearest one, the bottom row set
+#: :mod:`diffkin.io.data`), re-orthonormalised: the rotation replaced by the nearest one, the bottom row set
 #: to [0, 0, 0, 1]; beyond it refused with an error naming the first offending index (or file and row), the
 #: deviation and this limit.
 RIGIDITY_TOLERANCE = 1e-3
@@ -59,13 +59,6 @@ class RigidTransformDTypeError(ModelError, DTypeError):
 
 class RigidTransformNonFiniteError(ModelError, NonFiniteError):
     """A fixed transform of a model holds NaN or inf."""
-
-
-def _make_transform(R: Tensor, p: Tensor) -> Tensor:
-    batch = torch.broadcast_shapes(R.shape[:-2], p.shape[:-1])
-    top = torch.cat((R.expand(*batch, 3, 3), p.expand(*batch, 3)[..., None]), dim=-1)
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(*batch, 1, 4)
-    return torch.cat((top, bottom), dim=-2)
 
 
 def make_transform(R: Tensor, p: Tensor) -> Tensor:
@@ -94,12 +87,6 @@ def identity_transform(
     return eye.expand(*batch_shape, 4, 4).clone()
 
 
-def _transform_inverse(T: Tensor) -> Tensor:
-    Rt = T[..., :3, :3].transpose(-1, -2)
-    p = -torch.einsum("...ij,...j->...i", Rt, T[..., :3, 3])
-    return _make_transform(Rt, p)
-
-
 def transform_inverse(T: Tensor) -> Tensor:
     """Inverse [[R^T, -R^T p], [0^T, 1]] of a rigid transform (2.45): (..., 4, 4) -> (..., 4, 4)."""
     return _transform_inverse(tensors(("T", T, (4, 4)))[0])
@@ -120,10 +107,6 @@ def compose(*Ts: Tensor) -> Tensor:
     return reduce(torch.matmul, Ts)
 
 
-def _transform_points(T: Tensor, points: Tensor) -> Tensor:
-    return torch.einsum("...ij,...j->...i", T[..., :3, :3], points) + T[..., :3, 3]
-
-
 def transform_points(T: Tensor, points: Tensor) -> Tensor:
     """p^0 = o + R p^1 (2.38) for each point: (..., 4, 4), (..., 3) -> (..., 3), batch dims broadcast.
 
@@ -132,14 +115,6 @@ def transform_points(T: Tensor, points: Tensor) -> Tensor:
     T, points = tensors(("T", T, (4, 4)), ("points", points, (3,)))
     broadcast_batch(("T", T, 2), ("points", points, 1))
     return _transform_points(T, points)
-
-
-def _pose_error(T_desired: Tensor, T_current: Tensor, orientation: str = "axis_angle") -> Tensor:
-    p_d, R_d = T_desired[..., :3, 3], T_desired[..., :3, :3]
-    p_e, R_e = T_current[..., :3, 3], T_current[..., :3, :3]
-    e_p, e_o, _ = _kpe.pose_error(p_d, R_d, p_e, R_e, orientation)  # (3.78), §3.7.3
-    e_p, e_o = torch.broadcast_tensors(e_p, e_o)
-    return torch.cat((e_p, e_o), dim=-1)
 
 
 def pose_error(T_desired: Tensor, T_current: Tensor, orientation: str = "axis_angle") -> Tensor:

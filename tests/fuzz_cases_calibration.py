@@ -319,9 +319,9 @@ EXEMPT: dict[str, str] = {
                                             "through calibration_loss / calibrate, which validate)",
     "diffkin.calibration.ChainErrorModel": "the solvers' error model of a chain's own parameters (built from "
                                            "chains; trusted tensors on the hot path, as CalibrationModel)",
-    "diffkin.calibration.calibrate_from_files": "reads files (the formats' checks are diffkin.data_io's); "
+    "diffkin.calibration.calibrate_from_files": "reads files (the formats' checks are diffkin.io.data's); "
                                                 "the arrays then go through calibrate (fuzzed)",
-    "diffkin.calibration.load_measurements": "reads files (diffkin.data_io); no tensor input",
+    "diffkin.calibration.load_measurements": "reads files (diffkin.io.data); no tensor input",
     "diffkin.calibration.parameter_names": "takes a joint count, no tensor input",
     "diffkin.envs.core.Task": "base class: " + _TRUSTED,
     "diffkin.envs.core.TaskEnv": "base class of ReachEnv / TrackEnv (fuzzed through them)",

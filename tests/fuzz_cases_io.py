@@ -7,19 +7,19 @@ from __future__ import annotations
 
 import torch
 
-from diffkin import streaming
-from diffkin.data_io import DataFileError
+from diffkin.io import streaming
+from diffkin.io.data import DataFileError
 from diffkin.validation import tensors
 from tests.fuzz_cases_robots import joints, poses, ur5
 from tests.fuzzing import Arg, Case, call_dtype, transform, uniform
 
 #: modules whose every public callable must have a case or an exemption
 MODULES: list[str] = [
-    "diffkin.streaming",
+    "diffkin.io.streaming",
     "diffkin.validation",
-    "diffkin.data_io",
+    "diffkin.io.data",
     "diffkin.models.urdf_xml",
-    "diffkin.distributed",
+    "diffkin.io.distributed",
 ]
 
 
@@ -35,7 +35,7 @@ def _stream_ik(chain, T):
     return torch.tensor([float(res.count), *res.position_error])
 
 
-# A streamed source follows the data-file rule of diffkin.data_io, not the tensor rule: numbers of any real
+# A streamed source follows the data-file rule of diffkin.io.data, not the tensor rule: numbers of any real
 # dtype are converted to the chain's (as a file's are), bool/complex raise DataFileError, and an empty input
 # is a DataFileError (nothing to stream); so the dtype and mixed mutations do not apply (a bfloat16 tensor
 # source is widened like a file's numbers: tests/test_fuzz_boundary.py checks it).
@@ -58,23 +58,23 @@ _RANKS = "process-group plumbing under torchrun (ranks, files, barriers): tests/
 _RESULT = "a result container (dataclass) without input of its own"
 #: public callables without a case, with the reason
 EXEMPT: dict[str, str] = {
-    "diffkin.streaming.FKStreamResult": _RESULT,
-    "diffkin.streaming.IKStreamResult": _RESULT,
-    "diffkin.streaming.combine_ik": "combines IKStreamResults (plain numbers), no tensor input",
+    "diffkin.io.streaming.FKStreamResult": _RESULT,
+    "diffkin.io.streaming.IKStreamResult": _RESULT,
+    "diffkin.io.streaming.combine_ik": "combines IKStreamResults (plain numbers), no tensor input",
     **{f"diffkin.validation.{name}": _PIECE for name in (
         "as_tensor", "broadcast_batch", "check_broadcasts_to", "check_count", "check_device",
         "check_fits_dtype", "check_dtype", "check_given", "check_number", "check_finite", "check_shape",
         "check_tensor", "check_trailing", "common_dtype_device", "shape_str")},
     "diffkin.validation.check_end_links": "takes names (no tensor input): the loaders' end-link rule, "
     "unit-tested in tests/test_mjcf.py and tests/test_urdf_models.py",
-    **{f"diffkin.data_io.{name}": _FILES for name in (
+    **{f"diffkin.io.data.{name}": _FILES for name in (
         "ArraySource", "PoseSource", "RandomJoints", "check_output_path", "open_joint_source",
         "open_pose_source", "open_writer", "read_array", "read_joints", "read_poses", "write_arrays",
         "read_manifest", "DataFileError", "joint_count", "read_measurements")},
     **{f"diffkin.models.urdf_xml.{name}": _FILES for name in ("JointSpec", "URDFTree", "InertialSpec",
                                                               "parse_inertials", "parse_urdf", "write_urdf",
                                                               "CollisionSpec", "parse_collisions")},
-    **{f"diffkin.distributed.{name}": _RANKS for name in (
+    **{f"diffkin.io.distributed.{name}": _RANKS for name in (
         "RankInfo", "rank_info", "init", "shard_rows", "part_path", "manifest_path", "write_manifest",
         "read_manifest", "merge_parts", "gather", "barrier", "finish", "run_sharded")},
 }

@@ -11,7 +11,7 @@ from tests.fuzz_cases_robots import floating, joints
 from tests.fuzzing import Arg, Case
 
 #: modules whose every public callable must have a case or an exemption
-MODULES: list[str] = ["diffkin.models.mjcf_bodies", "diffkin.viz_mjcf"]
+MODULES: list[str] = ["diffkin.models.mjcf_bodies", "diffkin.viz.mjcf"]
 
 CASES: list[Case] = [
     # the ball + free joint model: q (..., 22); every body of its model, world first
@@ -23,6 +23,6 @@ _FILES = ("reads an MJCF file or chain (no tensor input); its bad inputs are uni
           "tests/test_viz_mjcf.py")
 EXEMPT: dict[str, str] = {
     "diffkin.models.mjcf_bodies.body_names": _FILES,
-    "diffkin.viz_mjcf.mjcf_visuals": _FILES,
-    "diffkin.viz_mjcf.VisualGeom": "a record of one drawn geom (arrays and names), built by mjcf_visuals",
+    "diffkin.viz.mjcf.mjcf_visuals": _FILES,
+    "diffkin.viz.mjcf.VisualGeom": "a record of one drawn geom (arrays and names), built by mjcf_visuals",
 }

@@ -61,7 +61,7 @@ def test_load_measurements_reads_fk_csv_by_header(tmp_path):
     chain = models.load("panda", dtype=F64)
     torch.testing.assert_close(chain.forward_kinematics(q).detach(), T, atol=1e-7, rtol=0)
     # the same reader as the CLI's calibrate (calibrate_from_files): the same arrays
-    from diffkin.data_io import read_measurements
+    from diffkin.io.data import read_measurements
 
     q2, T2, position_only = read_measurements(data, n_joints=7)
     assert not position_only

@@ -365,7 +365,7 @@ def test_help_has_a_description_defaults_and_an_example(capsys, command):
 def test_help_states_the_defaults(capsys):
     _, out, _ = run_main(capsys, "ik", "--help")
     flat = " ".join(out.split())
-    from diffkin.streaming import IK_CHUNK_SIZE
+    from diffkin.io.streaming import IK_CHUNK_SIZE
 
     chunk = "--chunk-size N rows per chunk (memory grows with it, not with the input)"
     assert f"{chunk} (default: {IK_CHUNK_SIZE})" in flat
@@ -472,21 +472,21 @@ def test_library_errors_and_os_errors_become_one_line(capsys, tmp_path, monkeypa
     def boom(*a, **k):
         raise NonFiniteError("q holds NaN\nat row 3")
 
-    monkeypatch.setattr("diffkin.streaming.stream_fk", boom)
+    monkeypatch.setattr("diffkin.io.streaming.stream_fk", boom)
     rc, _, err = run_main(capsys, "fk", "--robot", "panda", "--random", "2")
     assert one_error(rc, err) == "error: q holds NaN at row 3"
 
     def denied(*a, **k):
         raise PermissionError(13, "Permission denied", "/root/x.npy")
 
-    monkeypatch.setattr("diffkin.streaming.stream_fk", denied)
+    monkeypatch.setattr("diffkin.io.streaming.stream_fk", denied)
     rc, _, err = run_main(capsys, "fk", "--robot", "panda", "--random", "2")
     assert one_error(rc, err) == "error: /root/x.npy: Permission denied"
 
     def bug(*a, **k):
         raise RuntimeError("something internal")
 
-    monkeypatch.setattr("diffkin.streaming.stream_fk", bug)
+    monkeypatch.setattr("diffkin.io.streaming.stream_fk", bug)
     rc, _, err = run_main(capsys, "fk", "--robot", "panda", "--random", "2")
     assert rc == 1 and err.count("\n") == 1 and err.startswith("error: internal error: RuntimeError")
     with pytest.raises(RuntimeError):

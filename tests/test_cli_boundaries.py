@@ -66,7 +66,7 @@ def test_ik_random_output_stores_targets_and_sampled_configurations(tmp_path, su
     import numpy as np
     import torch
 
-    from diffkin.data_io import read_joints, read_poses
+    from diffkin.io.data import read_joints, read_poses
 
     out = tmp_path / f"ik{suffix}"
     rc, _, err = _cli("ik", "--robot", "ur5", "--random", 7, "--seed", 5, "--output", out)

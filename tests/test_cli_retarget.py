@@ -68,7 +68,8 @@ def test_retarget_help_has_a_description_defaults_and_an_example(capsys):
 
 @pytest.mark.extended
 def test_demo_retarget_section(tmp_path):
-    """The demo's retargeting section (about 10 s): the table and the sole-height figure, no failure."""
+    """The demo's retargeting section (about 10 s): the table, the frame picture and the sole-height
+    figure, no failure."""
     from diffkin.demo import Report, section_retarget
 
     report = Report(tmp_path)
@@ -77,3 +78,4 @@ def test_demo_retarget_section(tmp_path):
     text = report.sections[-1]
     assert "frame by frame (ik.solve)" in text and "| whole clip | 0 |" in text
     assert (tmp_path / "retarget_soles.png").stat().st_size > 10_000
+    assert (tmp_path / "retarget_frame.png").stat().st_size > 10_000 and "retarget_frame.png" in text

@@ -312,8 +312,8 @@ def test_the_model_does_not_import_the_collision_layer():
     demo and the command line); nothing of the model names diffkin.collision, and diffkin.collision names
     nothing of those above it."""
     root = Path(diffkin.__file__).parent
-    above = {root / n for n in ("__init__.py", "_cli_collision.py", "_cli_plan.py", "cli.py", "demo.py")}
-    above |= set(root.glob("viz*.py")) | set((root / "ik").rglob("*.py"))
+    above = {root / "__init__.py", root / "demo.py"}
+    above |= {p for d in ("cli", "viz", "ik") for p in (root / d).rglob("*.py")}
     files = [p for p in root.rglob("*.py") if "collision" not in p.relative_to(root).parts and p not in above]
     pattern = re.compile(r"^\s*(from\s+(\.+|diffkin\.)collision"
                          r"|from\s+(\.+|diffkin)\s+import\s.*\bcollision\b"

@@ -1,4 +1,4 @@
-"""File layouts of :mod:`diffkin.data_io`: headers, the quaternion rule, chunked readers and writers."""
+"""File layouts of :mod:`diffkin.io.data`: headers, the quaternion rule, chunked readers and writers."""
 
 from __future__ import annotations
 
@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from diffkin.data_io import (
+from diffkin.errors import NonFiniteError, ShapeError
+from diffkin.io.data import (
     DataFileError,
     check_output_path,
     open_joint_source,
@@ -15,7 +16,6 @@ from diffkin.data_io import (
     read_joints,
     read_poses,
 )
-from diffkin.errors import NonFiniteError, ShapeError
 from diffkin.rotations import matrix_to_quaternion
 
 

@@ -1,4 +1,4 @@
-"""Sharded FK / IK (diffkin.distributed): shards on chunk boundaries, manifests, merging, and 2-process
+"""Sharded FK / IK (diffkin.io.distributed): shards on chunk boundaries, manifests, merging, and 2-process
 gloo runs under torchrun that equal the single-process result row for row."""
 
 from __future__ import annotations
@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import torch
 
-from diffkin import distributed as dist
 from diffkin import models
 from diffkin.cli import main
-from diffkin.data_io import DataFileError, open_joint_source, read_array
-from diffkin.streaming import combine_ik, stream_ik
+from diffkin.io import distributed as dist
+from diffkin.io.data import DataFileError, open_joint_source, read_array
+from diffkin.io.streaming import combine_ik, stream_ik
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -175,8 +175,8 @@ def test_a_failing_rank_stops_every_rank_with_one_error_and_no_parts(tmp_path):
 def _api_rank(rank: int, world: int, port: int, out: str, merge: bool) -> None:
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), MASTER_ADDR="127.0.0.1",
                       MASTER_PORT=str(port))
-    from diffkin.data_io import RandomJoints
-    from diffkin.streaming import stream_fk
+    from diffkin.io.data import RandomJoints
+    from diffkin.io.streaming import stream_fk
 
     torch.set_num_threads(1)
     chain = models.load("panda", dtype=torch.float64)
@@ -195,8 +195,8 @@ def test_run_sharded_python_api_equals_one_process(tmp_path):
 
     import torch.multiprocessing as mp
 
-    from diffkin.data_io import RandomJoints
-    from diffkin.streaming import stream_fk
+    from diffkin.io.data import RandomJoints
+    from diffkin.io.streaming import stream_fk
 
     chain = models.load("panda", dtype=torch.float64)
     one = dist.run_sharded(stream_fk, chain, RandomJoints(300, 2), tmp_path / "one.npy", chunk_size=64)
@@ -213,7 +213,7 @@ def test_run_sharded_python_api_equals_one_process(tmp_path):
 
 
 def test_cli_holds_no_sharding_orchestration():
-    """Gather, clean-up, manifest and merge live in diffkin.distributed (the CLI calls run_sharded)."""
+    """Gather, clean-up, manifest and merge live in diffkin.io.distributed (the CLI calls run_sharded)."""
     import inspect
 
     import diffkin.cli as cli

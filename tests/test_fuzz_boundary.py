@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from diffkin import errors, ik, models
-from diffkin.data_io import read_array, read_joints, read_poses
+from diffkin.io.data import read_array, read_joints, read_poses
+from diffkin.io.streaming import stream_fk, stream_ik
 from diffkin.models.io import read_yaml
 from diffkin.models.urdf_xml import parse_urdf
-from diffkin.streaming import stream_fk, stream_ik
 from diffkin.validation import tensors
 
 F64 = torch.float64

@@ -31,7 +31,8 @@ def _offsets(path: Path) -> list[list[float]]:
 
 
 # ------------------------------------------------------------------------------------------ loaders
-@pytest.mark.parametrize("name, frames", [("walk", 150), ("crouch", 120), ("hop", 120)])
+@pytest.mark.parametrize("name, frames", [("walk", 150), ("crouch", 120), ("hop", 120), ("turn", 110),
+                                          ("reach", 74)])
 def test_shipped_clips_load(name, frames):
     path = retarget.example_clips()[name]
     m = retarget.load_bvh(path)
@@ -53,6 +54,24 @@ def test_shipped_clips_load(name, frames):
     # an adult: pelvis 0.8-1.1 m high in the first frame, head top above 1.3 m
     assert 0.8 < p[0, m.index("Hips")[0], 2] < 1.1
     assert p[0, m.index("Head_end")[0], 2] > 1.3
+
+
+def test_shipped_turn_and_reach_are_what_they_say():
+    """The turn turns the pelvis (hip line) > 110° to the left and back within 15°; the reach takes the right
+    wrist from below the shoulder to 20 cm above it with the elbow straightened (shoulder-wrist distance
+    > 95 % of the arm's length, from < 60 %) while the pelvis stays within 5 cm."""
+    turn = retarget.load_bvh(retarget.example_clips()["turn"])
+    p = turn.positions[0].numpy()
+    d = p[:, turn.index("LeftHip")[0]] - p[:, turn.index("RightHip")[0]]
+    yaw = np.degrees(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))
+    assert yaw.max() - yaw[0] > 110 and abs(yaw[-1] - yaw[0]) < 15
+    reach = retarget.load_bvh(retarget.example_clips()["reach"])
+    s, e, w, h = (reach.joint(n)[0].numpy() for n in ("RightShoulder", "RightElbow", "RightWrist", "Hips"))
+    arm = np.linalg.norm(e - s, axis=-1) + np.linalg.norm(w - e, axis=-1)
+    straight = np.linalg.norm(w - s, axis=-1) / arm
+    assert w[0, 2] < s[0, 2] and w[-1, 2] > s[-1, 2] + 0.2
+    assert straight[0] < 0.6 and straight[-1] > 0.95
+    assert np.linalg.norm(h - h[0], axis=-1).max() < 0.05
 
 
 def test_bvh_root_against_scipy():
@@ -677,3 +696,45 @@ def test_the_builtin_g1_mapping_on_menageries_current_g1():
     m = r.metrics
     assert int(m.joint_limit_violations) == 0 and m.ground_penetration.item() <= 1.0
     assert m.foot_skating.item() <= 5.0 and m.floating.item() <= 5.0 and m.keypoint_error.item() < 80.0
+
+
+# ------------------------------------------------------------------------------------------ picture
+def test_plot_frame_draws_the_robot_at_its_fk_and_the_human_beside_it(tmp_path):
+    """retarget.plot_frame: the robot's lines are its FK segments (the free joint's slides left out, so no
+    line leaves the world origin) and pass through every mapped frame; the human's lines are the clip's
+    bones at their lengths, moved ``gap`` sideways from the robot's keypoints; a PNG is written."""
+    pytest.importorskip("matplotlib")
+    from diffkin.viz import segment_points
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.load_chain("g1", end_link=mp.frames, dtype=torch.float64).requires_grad_(False)
+    walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(20, 23)
+    r = retarget.clip(g1, walk, mp, whole_clip=False)
+    fig = retarget.plot_frame(g1, r, walk, 1, gap=0.7, path=tmp_path / "f.png")
+    assert (tmp_path / "f.png").stat().st_size > 10_000
+    ax = fig.axes[0]
+    robot = [np.stack(h.get_data_3d(), -1) for h in ax.lines if h.get_color() == "tab:orange" and
+             len(h.get_xdata())]
+    human = [np.stack(h.get_data_3d(), -1) for h in ax.lines if h.get_color() == "tab:blue" and
+             len(h.get_xdata())]
+    F = g1.forward_kinematics(r.q[0, 1], all_frames=True).numpy()
+    E = g1.forward_kinematics(r.q[0, 1]).numpy()
+    want = segment_points(g1, F, E, floating=False)
+    assert len(robot) == len(want) == len(segment_points(g1, F, E)) - 4  # x, y, z slides and the ball
+    np.testing.assert_allclose(np.stack(robot), want, atol=1e-12)
+    assert np.linalg.norm(np.stack(robot).reshape(-1, 3), axis=-1).min() > 0.1  # nothing at the origin
+    ends = np.stack(robot).reshape(-1, 3)
+    for k, f in enumerate(g1.end_links):
+        assert np.linalg.norm(ends - E[k, :3, 3], axis=-1).min() < 1e-12, f
+    p = walk.positions[0, 1].numpy()
+    bones = [j for j, parent in enumerate(walk.parents) if parent >= 0]
+    assert len(human) == len(bones)
+    np.testing.assert_allclose([np.linalg.norm(h[1] - h[0]) for h in human],
+                               [np.linalg.norm(p[j] - p[walk.parents[j]]) for j in bones], atol=1e-12)
+    shift = np.stack([h[1] - p[j] for h, j in zip(human, bones)])  # one horizontal translation
+    np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-12)
+    assert abs(shift[0, 2]) < 1e-12
+    kp = r.keypoints[0, 1].numpy()
+    assert np.linalg.norm((p + shift[0]).mean(0)[:2] - kp.mean(0)[:2]) == pytest.approx(0.7, abs=1e-9)
+    with pytest.raises(ShapeError, match="frame 3"):
+        retarget.plot_frame(g1, r, walk, 3)

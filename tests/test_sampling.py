@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from diffkin import models
-from diffkin.data_io import RandomJoints, open_joint_source
 from diffkin.errors import ModelError, OptionError, SamplingError, ShapeError
+from diffkin.io.data import RandomJoints, open_joint_source
 from diffkin.kernels.configuration import ConfigurationSpace
 from diffkin.sampling import configuration_from_uniform, random_configuration
 from tests.helpers import FR3_SRDF_NEVER

@@ -228,3 +228,50 @@ def test_one_target_seed_draws_as_a_fresh_generator():
         if first is None:
             first = a
     assert first.q.data_ptr() != a.q.data_ptr()
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_one_target_pool_drawn_in_c_is_torchs_stream(dtype):
+    """With seed=s and no generator, dk_solve_one draws the random seeds itself (MT19937 as ATen's CPU
+    generator, 53-bit doubles / 24-bit floats): unreachable targets use all 64 seeds, so the whole pool is
+    compared with torch.rand's through the solve (q, flags, iterations); seeds beyond C's range (>= 2**63,
+    negative) take torch's generator. The low 32 bits of a seed are MT19937's (as torch's manual_seed)."""
+    from diffkin import ik
+
+    chain = models.load("panda", dtype=dtype)
+    g = torch.Generator().manual_seed(5)
+    T = chain.forward_kinematics(chain.random_configuration(4, generator=g)).to(dtype)
+    T[2:, :3, 3] += 2.0  # out of reach: every seed runs
+    for seed in (0, 7, 2**32 + 7, 2**63 - 1):
+        for t in range(4):
+            a = ik.solve(chain, T[t].contiguous(), seed=seed)
+            b = ik.solve(chain, T[t].contiguous(), generator=torch.Generator().manual_seed(seed))
+            assert torch.equal(a.q, b.q) and bool(a.success) == bool(b.success) == (t < 2)
+            assert int(a.iterations) == int(b.iterations) and int(a.seeds_tried) == int(b.seeds_tried)
+            if t >= 2:
+                assert int(a.seeds_tried) == 64
+    seven = ik.solve(chain, T[3].contiguous(), seed=7).q
+    assert torch.equal(seven, ik.solve(chain, T[3].contiguous(), seed=2**32 + 7).q)  # low 32 bits
+    assert not torch.equal(seven, ik.solve(chain, T[3].contiguous(), seed=8).q)
+    for seed in (2**63, -3):  # torch's generator serves these
+        a = ik.solve(chain, T[3].contiguous(), seed=seed)
+        b = ik.solve(chain, T[3].contiguous(), generator=torch.Generator().manual_seed(seed))
+        assert torch.equal(a.q, b.q)
+
+
+def test_one_target_solve_sees_a_write_through_data():
+    """dk_solve_one compares the packed constants' bytes: after p.data.add_() (no version bump) the lean
+    solve answers for the new geometry, as a freshly loaded chain with the same change."""
+    from diffkin import ik
+
+    chain, fresh = (models.load("panda", dtype=torch.float64) for _ in range(2))
+    T = chain.forward_kinematics(_q(chain, 11))
+    before = ik.solve(chain, T, seed=3)
+    chain.d.data.add_(0.02)
+    fresh.d.data.add_(0.02)
+    after, ref = ik.solve(chain, T, seed=3), ik.solve(fresh, T, seed=3)
+    assert torch.equal(after.q, ref.q) and bool(after.success) and bool(ref.success)
+    assert not torch.equal(after.q, before.q)
+    reached = chain.forward_kinematics(after.q)  # within 0.1 mm and 1 mrad, the default tolerances
+    torch.testing.assert_close(reached[:3, 3], T[:3, 3], atol=1e-4, rtol=0)
+    torch.testing.assert_close(reached[:3, :3], T[:3, :3], atol=1e-3, rtol=0)

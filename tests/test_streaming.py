@@ -1,4 +1,4 @@
-"""Chunked FK / IK (:mod:`diffkin.streaming`): equal to the one-shot results, bounded memory."""
+"""Chunked FK / IK (:mod:`diffkin.io.streaming`): equal to the one-shot results, bounded memory."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from diffkin import models
-from diffkin.data_io import RandomJoints
 from diffkin.errors import DiffkinError
-from diffkin.streaming import _ErrorStats, stream_fk, stream_ik
+from diffkin.io.data import RandomJoints
+from diffkin.io.streaming import _ErrorStats, stream_fk, stream_ik
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -132,8 +132,8 @@ def test_error_stats_histogram_median():
 def test_fk_memory_does_not_grow_with_n(tmp_path):
     """Peak RSS of a 10x larger FK run grows by far less than its 10x larger output (streamed, not held)."""
     code = ("import resource, sys, torch; from diffkin import models;"
-            "from diffkin.data_io import RandomJoints;"
-            "from diffkin.streaming import stream_fk; torch.set_num_threads(1);"
+            "from diffkin.io.data import RandomJoints;"
+            "from diffkin.io.streaming import stream_fk; torch.set_num_threads(1);"
             "c = models.load('panda', dtype=torch.float64);"
             "stream_fk(c, RandomJoints(int(sys.argv[1])), sys.argv[2], chunk_size=4096);"
             "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")

@@ -254,3 +254,42 @@ def test_velocity_drag_follows_the_target_within_the_limits(panda):
         assert state["orientation_error"] < 1e-3  # the other joints took over the rest of the roll
     finally:
         v.close()
+
+
+@needs_viser
+def test_retargeted_clip_playback(tmp_path):
+    """A retargeted clip plays at its rate: a RetargetResult (its human keypoints drawn beside the robot and
+    following the frames) and the .npz its save writes (here the shipped G1 walk), on the G1 MJCF chain."""
+    from diffkin import retarget
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.load_chain("g1", end_link=mp.frames, dtype=torch.float64).requires_grad_(False)
+    walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(0, 5)
+    result = retarget.clip(g1, walk, mp, whole_clip=False)
+    v = viz.show(g1, port=0, meshes=False)
+    try:
+        v.load_trajectory(result)
+        assert v._traj.shape == (5, g1.n_joints) and v._fps == 60.0
+        nodes = set(v.server.scene._handle_from_node_name)
+        assert "/retarget/keypoints" in nodes
+        v.step(3)
+        np.testing.assert_allclose(v.q.numpy(), result.q[0, 3].numpy())
+        np.testing.assert_allclose(v.frames(), g1.forward_kinematics(result.q[0, 3], all_frames=True))
+        # the cloud holds frame 3's scaled human joints (viser sends float16: within 1 mm at 2 m)
+        np.testing.assert_allclose(v._keypoints[1].points, result.keypoints[0, 3].numpy(), atol=1e-3)
+        with pytest.raises(Exception, match="clip 1"):
+            v.load_trajectory(result, clip=1)
+        # the saved .npz: q (B, T, nq) and fps; no keypoints in the file, so the cloud goes
+        shipped = retarget.example_clips()["walk"].parent / "g1_walk.npz"
+        v.load_trajectory(shipped)
+        with np.load(shipped) as data:
+            q = data["q"][0]
+        assert v._traj.shape == q.shape and v._fps == 60.0 and v._keypoints is None
+        assert "/retarget/keypoints" not in set(v.server.scene._handle_from_node_name)
+        v.step(-1)
+        np.testing.assert_allclose(v.q.numpy(), q[-1])
+        path = result.save(tmp_path / "r.npz")
+        v.load_trajectory(path)
+        np.testing.assert_allclose(v._traj.numpy(), result.q[0].numpy())
+    finally:
+        v.close()

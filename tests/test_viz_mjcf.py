@@ -24,8 +24,8 @@ pytest.importorskip("trimesh")
 from diffkin.collision import RobotCollision, World  # noqa: E402
 from diffkin.models.mjcf import compile_mjcf  # noqa: E402
 from diffkin.models.mjcf_bodies import _companion, body_names, body_poses  # noqa: E402
-from diffkin.viz_collision import CONTACT_RGB, FREE_RGB, WORLD_RGB  # noqa: E402
-from diffkin.viz_mjcf import mjcf_visuals  # noqa: E402
+from diffkin.viz.collision import CONTACT_RGB, FREE_RGB, WORLD_RGB  # noqa: E402
+from diffkin.viz.mjcf import mjcf_visuals  # noqa: E402
 
 DATA = Path(__file__).parent / "data" / "mjcf"
 G1, CASSIE = DATA / "unitree_g1/g1.xml", DATA / "agility_cassie/cassie.xml"

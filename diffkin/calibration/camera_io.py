@@ -10,8 +10,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..data_io import _is_number
 from ..errors import DiffkinError, MissingExtraError, ShapeError
+from ..io.data import _is_number
 from .board import BoardDetection, detect_board, image_files
 from .camera_api import calibrate_camera
 from .camera_result import CameraCalibrationResult

@@ -9,7 +9,7 @@ import torch
 from torch import Tensor
 
 from ..chain import DHChain
-from ..data_io import read_measurements
+from ..io.data import read_measurements
 from .api import CalibrationResult, calibrate
 
 __all__ = ["load_measurements", "calibrate_from_files", "write_robot"]
@@ -22,7 +22,7 @@ def load_measurements(
     dtype: torch.dtype = torch.float64,
 ) -> tuple[Tensor, Tensor]:
     """``(q (N, n), T (N, 4, 4) or positions (N, 3))`` from files, read by
-    :func:`diffkin.data_io.read_measurements` (the reader ``diffkin calibrate`` uses).
+    :func:`diffkin.io.data.read_measurements` (the reader ``diffkin calibrate`` uses).
 
     With ``poses=None`` both come from ``joints``: an ``.npz`` holding ``q`` and ``T`` (or ``position`` and
     optionally ``quaternion``), or a ``.csv`` read by its header (``q1..qn,x,y,z[,qw,qx,qy,qz]``, e.g.

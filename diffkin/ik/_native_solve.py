@@ -10,11 +10,14 @@ pool drawn from the caller's generator): on the same inputs the same success fla
 rounding. The C solve fills W = 16 lanes with one target each, so its answers do not depend on the thread
 count.
 
-:func:`solve_one` is the lean front for one target (no tensor round trips in validation).
+:func:`solve_one` is the lean front for one target: plain checks in Python, then one foreign call
+(``dk_solve_one``: the cache check, the rigidity check and the solve; with ``seed=`` the random seeds drawn
+in C from torch's CPU stream, only those used).
 """
 
 from __future__ import annotations
 
+import ctypes
 import math
 import threading
 
@@ -79,10 +82,10 @@ class _Prepared:
                 feature_weight=cfg.orientation_weight))
         return hit[1]
 
-    def one(self, tol: tuple, num_seeds: int, max_iterations: int) -> tuple[native.Args, int]:
-        """The filled ``dk_solve`` arguments of a one-target call with default options (every field but the
-        target, the pool and the outputs), and the pool's length (cached per option set: a call copies the
-        struct and sets six addresses)."""
+    def one(self, tol: tuple, num_seeds: int, max_iterations: int) -> tuple[int, int]:
+        """The address of the filled ``dk_solve`` arguments of a one-target call with default options (every
+        field but the target, the pool and the outputs: ``dk_solve_one`` copies the struct and sets them),
+        and the pool's length (cached per option set)."""
         key = (tol, num_seeds, max_iterations)
         hit = self._one.get(key)
         if hit is None:
@@ -92,8 +95,8 @@ class _Prepared:
                 native.Args.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
                 tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations, n_user=0,
                 user_u=None, lib_ranks=R, n_pool=P, nthreads=1, target_stride=4)  # a row-major (4, 4) pose
-            hit = self._one[key] = (args, P * self.nu)
-        return hit
+            hit = self._one[key] = (ctypes.addressof(args), P * self.nu, args)  # args keeps the address
+        return hit[:2]
 
 
 def _entry(chain, x: Tensor) -> single.Entry | None:
@@ -217,7 +220,94 @@ __all__ = ["applies", "solve_batch", "run", "prepared", "columns", "checked", "u
 
 
 _DEFAULT = LMConfig()
-_EXACT = {torch.float64: 64 * 2.0**-52, torch.float32: 64 * 2.0**-23}  # rotations exact to rounding
+_ONE = ("solve_one",)  # the Entry.extra key of the default-options _Prepared a one-target call uses
+_NOT_RIGID = -5  # DK_NOT_RIGID of _native.c
+_SEED_MAX = 2**63  # seeds from 0 below this: the pool drawn in C as torch.Generator().manual_seed(seed) draws
+_typed: tuple = (None, None)  # (the loaded library, its dk_solve_one typed)
+
+
+def _solve_one_fn():
+    """``dk_solve_one`` of the loaded library, typed once per library (plain addresses and integers: no
+    per-call type checks of ctypes pointers)."""
+    global _typed
+    lib = native._lib
+    if _typed[0] is not lib:
+        fn = lib.dk_solve_one
+        fn.restype = ctypes.c_int64
+        fn.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64] + \
+            [ctypes.c_void_p] * 6
+        _typed = (lib, fn)
+    return _typed[1]
+
+
+def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, tol,
+              _retry: bool = True) -> IKResult | None:
+    """The lean front of :func:`diffkin.ik.solve` for ONE target pose ``T (4, 4)`` with default options
+    (no ``q0``, ``base``, ``config``, ``damping``, position-only or closed-form seeds): plain attribute
+    checks, then one foreign call, ``dk_solve_one``, that checks the packed constants are still the chain's
+    and the target is rigid, and solves (with ``seed=`` and no generator it draws the pool itself, the
+    numbers ``torch.rand`` would draw from ``torch.Generator().manual_seed(seed)``, and only those the
+    seeds use); then the implicit gradient attached when the target or a chain parameter requires grad (as
+    the general path). None when it does not apply (the general path then serves the call, with its
+    validation and errors)."""
+    tp, to = tol
+    # plain values only (bools, floats as counts, tensors: the general path's checks and errors)
+    if type(T) is not Tensor or T.shape != (4, 4) or not T.is_cpu or not T.is_contiguous() \
+            or type(num_seeds) is not int or num_seeds < 1 or type(max_iterations) is not int \
+            or max_iterations < 1 or type(tp) not in (float, int) or not 0 < tp < math.inf \
+            or type(to) not in (float, int) or not 0 < to < math.inf \
+            or (generator is not None and generator.device.type != "cpu") \
+            or (seed is not None and type(seed) is not int) or torch.compiler.is_compiling() \
+            or single._is_wrapped(T) or not native.available():
+        return None
+    hit = single._current(chain, False)  # the pointers; dk_solve_one compares the bytes
+    if hit is None or T.dtype is not hit.dtype or (T.dtype is torch.float32 and min(tol) < 1e-5) \
+            or not chain._single_end:
+        return None
+    prep = hit.extra.get(_ONE)
+    if prep is None:
+        prep = hit.extra[_ONE] = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
+        if prep is None:
+            return None
+    tmpl, npool = prep.one(tol, num_seeds, max_iterations)
+    empty, (tq, treal, tflag, tcount) = torch.empty_like, prep.outs
+    q, ok, pe, oe, its, seeds = (empty(tq), empty(tflag), empty(treal), empty(treal), empty(tcount),
+                                 empty(tcount))
+    pool = None
+    if generator is None and seed is not None and 0 <= seed < _SEED_MAX:
+        stream = seed  # drawn in C, as needed
+    else:  # the caller's generator (or torch's default one): the whole pool, as the general path draws it
+        stream = -1
+        if generator is None and seed is not None:
+            generator = _seeded(seed)
+        pool = torch.rand(npool, generator=generator, dtype=T.dtype) if npool else None  # alive for the call
+    status = _solve_one_fn()(tmpl, hit.watch_addr, T.data_ptr(), stream,
+                             None if pool is None else pool.data_ptr(), npool, q.data_ptr(),
+                             ok.data_ptr(), pe.data_ptr(), oe.data_ptr(), its.data_ptr(), seeds.data_ptr())
+    if status != 0:
+        if status == single._STALE and _retry:  # bytes written in place since the entry was made
+            single._remade(chain)
+            return solve_one(chain, T, generator, seed, num_seeds=num_seeds, max_iterations=max_iterations,
+                             tol=tol, _retry=False)
+        if status == _NOT_RIGID or status == single._STALE:  # the general path: its error, or a repack
+            return None
+        native._raise_on(status, "work space")
+    if torch.is_grad_enabled() and _wants_gradients(chain, T):
+        # as the general path: the implicit-function gradient at the solution
+        q = attach_solve_gradients(chain, q, T, ok, PoseResidual(False, _DEFAULT.orientation_weight),
+                                   _DEFAULT.damping)
+    return IKResult(q=q, success=ok, position_error=pe, orientation_error=oe, iterations=its,
+                    seeds_tried=seeds)
+
+
+def _wants_gradients(chain, T: Tensor) -> bool:
+    """Whether the target or a chain parameter requires grad (a loop over the parameters: no module walk)."""
+    if T.requires_grad:
+        return True
+    for p in chain.__dict__["_parameters"].values():
+        if p is not None and p.requires_grad:
+            return True
+    return False
 
 
 _local = threading.local()  # per thread: the generator solve_one seeds for a call with seed=
@@ -230,53 +320,3 @@ def _seeded(seed: int) -> torch.Generator:
     if g is None:
         g = _local.generator = torch.Generator()
     return g.manual_seed(seed)
-
-
-def _plain_count(v) -> bool:
-    return type(v) is int and v >= 1
-
-
-def _plain_tol(v) -> bool:
-    return type(v) in (float, int) and 0 < v < math.inf
-
-
-def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, tol) -> IKResult | None:
-    """The lean front of :func:`diffkin.ik.solve` for ONE target pose ``T (4, 4)`` with default options
-    (no ``q0``, ``base``, ``config``, ``damping``, position-only or closed-form seeds): plain attribute
-    checks, the rigidity test in C, one ``dk_solve`` call, then the implicit gradient attached when the
-    target or a chain parameter requires grad (as the general path). None when it does not apply (the
-    general path then serves the call, with its validation and errors)."""
-    if type(T) is not Tensor or T.shape != (4, 4) or not T.is_cpu or T.dtype != chain.dtype \
-            or not T.is_contiguous() or not _plain_count(num_seeds) or not _plain_count(max_iterations) \
-            or not _plain_tol(tol[0]) or not _plain_tol(tol[1]) or not native.available() \
-            or (T.dtype == torch.float32 and min(tol) < 1e-5) or not chain.single_end \
-            or (generator is not None and generator.device.type != "cpu") \
-            or (seed is not None and type(seed) is not int):
-        return None
-    if not native.rigid_deviation(T) <= _EXACT[T.dtype]:  # NaN included: the general path's error
-        return None
-    prep = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
-    if prep is None:
-        return None
-    if generator is None and seed is not None:  # this thread's generator, seeded: torch.Generator's draws
-        generator = _seeded(seed)
-    tmpl, npool = prep.one(tol, num_seeds, max_iterations)
-    dtype = T.dtype
-    empty, (tq, treal, tflag, tcount) = torch.empty_like, prep.outs
-    q, ok, pe, oe, its, seeds = (empty(tq), empty(tflag), empty(treal), empty(treal), empty(tcount),
-                                 empty(tcount))
-    pool = torch.rand(npool, generator=generator, dtype=dtype) if npool else None  # the caller's generator
-    args = native.Args.from_buffer_copy(tmpl)
-    a, size = T.data_ptr(), T.element_size()  # the pose's columns x, y, z, p, rows 4 entries apart
-    args.xd, args.yd, args.zd, args.pd = a, a + size, a + 2 * size, a + 3 * size
-    args.pool = None if pool is None else pool.data_ptr()
-    args.q_out, args.success, args.pos_err, args.ori_err, args.iters_out, args.seeds_out = (
-        q.data_ptr(), ok.data_ptr(), pe.data_ptr(), oe.data_ptr(), its.data_ptr(), seeds.data_ptr())
-    native.solve_call(args)
-    if torch.is_grad_enabled() and (T.requires_grad or any(  # wants_gradients, without the module walk
-            p is not None and p.requires_grad for p in chain._parameters.values())):
-        # as the general path: the implicit-function gradient at the solution
-        q = attach_solve_gradients(chain, q, T, ok, PoseResidual(False, _DEFAULT.orientation_weight),
-                                   _DEFAULT.damping)
-    return IKResult(q=q, success=ok, position_error=pe, orientation_error=oe, iterations=its,
-                    seeds_tried=seeds)

@@ -46,6 +46,7 @@
 #define DK_ABI_VERSION 3 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
+#define DK_NOT_RIGID (-5) /* dk_solve_one: the target is not a rigid transform (or not finite) */
 
 /* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
  * passed as void pointers. J joint frames, K end links, n variables, B configurations. */
@@ -395,6 +396,21 @@ int64_t dk_solve(const dk_args *a) {
     return a->real_bytes == 8 ? dk_solve_f64(a) : dk_solve_f32(a);
 }
 
+/* The lean one-target ik.solve in one foreign call (ik/_native_solve.py solve_one): the watched constants
+ * unchanged (else DK_STALE), the target T (4 x 4 row-major reals) rigid (else DK_NOT_RIGID), then dk_solve of
+ * tmpl (a filled one-target dk_args, never written) with T, the pool drawn from `seed` (>= 0: torch's CPU
+ * stream of manual_seed(seed), pool_size uniforms at most, drawn as needed) or read from `pool` (seed < 0),
+ * into the outputs q (n reals), ok (1 byte), pe, oe (1 real each), its, seeds (1 int64 each). Returns 0,
+ * DK_STALE, DK_NOT_RIGID, -1 when memory ran out, DK_ABI_ERROR. */
+int64_t dk_solve_one(const dk_args *tmpl, const dk_watch *w, const void *T, int64_t seed, const void *pool,
+                     int64_t pool_size, void *q, void *ok, void *pe, void *oe, void *its, void *seeds) {
+    if (!abi_ok(tmpl)) return DK_ABI_ERROR;
+    if (!dk_unchanged(w)) return DK_STALE;
+    return tmpl->real_bytes == 8
+        ? solve_one_f64(tmpl, (const double *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds)
+        : solve_one_f32(tmpl, (const float *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds);
+}
+
 /* Clear ok[n] where configuration n has a checked capsule distance with d - margin < slack (see
  * _native_collide.c); returns 0, DK_ABI_ERROR for a real size other than 8 or 4. */
 int64_t dk_collide_clear(const dk_collide *c) {
@@ -415,12 +431,6 @@ int64_t dk_banded_solve(const void *D, const void *E, const void *F, const void 
         return banded_solve_f32((const float *)D, (const float *)E, (const float *)F, (const float *)g,
                                 (float *)x, batch, T, n, nthreads);
     return DK_ABI_ERROR;
-}
-
-/* The largest deviation from a rigid transform of N poses (4x4 row-major, real_bytes 8 or 4): max over
- * |R^T R - I| entries and |bottom row - (0 0 0 1)|; NaN when an entry is not finite. */
-double dk_rigid_deviation(const void *T, int64_t N, int64_t real_bytes) {
-    return real_bytes == 8 ? rigid_deviation_f64((const double *)T, N) : rigid_deviation_f32((const float *)T, N);
 }
 
 #else /* ------------------------------------------------------------------- one pass per real type */

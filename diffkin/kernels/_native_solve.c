@@ -52,6 +52,45 @@ static void *kept_space(size_t bytes) {
     return kept_ptr;
 }
 
+/* The pool of a one-target call drawn here instead of by torch (dk_solve_one with a seed): the stream of
+ * torch.rand(n, generator=torch.Generator().manual_seed(seed)) on the CPU, which is MT19937 (ATen's
+ * at::mt19937: the reference initialisation of the low 32 bits of the seed, the reference twist and
+ * tempering) read as 53-bit doubles from two words (the first the high half, ATen's random64) or 24-bit
+ * floats from one; tests/test_native_solve_one.py compares the streams with torch's. Drawn lazily: a
+ * target that a library seed solves draws nothing (torch would fill the whole pool: ~4 us of one call). */
+#define MT_N 624
+#define MT_M 397
+typedef struct {
+    uint32_t mt[MT_N];
+    int next;          /* the next word of mt to temper; MT_N: twist first */
+    int seeded;
+    uint64_t seed;
+    int64_t drawn;     /* uniforms drawn into buf */
+    void *buf;         /* the pool's reals (the caller's work space) */
+} dk_stream;
+
+static void stream_seed(dk_stream *g) {
+    g->mt[0] = (uint32_t)(g->seed & 0xffffffffu);
+    for (uint32_t j = 1; j < MT_N; j++) g->mt[j] = 1812433253u * (g->mt[j - 1] ^ (g->mt[j - 1] >> 30)) + j;
+    g->next = MT_N;
+    g->seeded = 1;
+}
+
+static uint32_t stream_word(dk_stream *g) {
+    if (g->next >= MT_N) {
+        for (int j = 0; j < MT_N; j++) {
+            const uint32_t y = (g->mt[j] & 0x80000000u) | (g->mt[(j + 1) % MT_N] & 0x7fffffffu);
+            g->mt[j] = g->mt[(j + MT_M) % MT_N] ^ (y >> 1) ^ ((y & 1u) ? 0x9908b0dfu : 0u);
+        }
+        g->next = 0;
+    }
+    uint32_t y = g->mt[g->next++];
+    y ^= y >> 11;
+    y ^= (y << 7) & 0x9d2c5680u;
+    y ^= (y << 15) & 0xefc60000u;
+    return y ^ (y >> 18);
+}
+
 typedef struct { /* the configuration space of the chain (see the top of this file) */
     int n, nv, nb, nu;       /* coordinates, velocities, quaternions, uniforms per random seed */
     int32_t *vq;             /* [nv] the coordinate a scalar velocity moves, -1 in a quaternion */
@@ -163,7 +202,22 @@ typedef struct { /* the fixed inputs of a solve, read once */
     const real *pd, *xd, *yd, *zd, *sqrt_w, *jc, *jh, *user_u, *lib_u, *lib_pose, *pool, *qlo, *qhi;
     const uint8_t *bounded, *wrap;
     real *best_merit; /* [N] */
+    dk_stream *stream; /* not NULL: the pool is drawn from it as the seeds need it (one target, one thread) */
 } DK(Solve);
+
+/* The stream's uniforms up to index `upto` (exclusive) into its buffer, in stream order. */
+static void DK(draw_upto)(dk_stream *g, int64_t upto) {
+    real *buf = (real *)g->buf;
+    if (g->drawn < upto && !g->seeded) stream_seed(g);
+    for (; g->drawn < upto; g->drawn++) {
+        if (sizeof(real) == 8) {
+            const uint64_t hi = stream_word(g), lo = stream_word(g);
+            buf[g->drawn] = (real)((double)(((hi << 32) | lo) & ((1ull << 53) - 1)) * 0x1p-53);
+        } else {
+            buf[g->drawn] = (real)((double)(stream_word(g) & ((1u << 24) - 1)) * 0x1p-24);
+        }
+    }
+}
 
 /* The error e (r rows: [p_d - p_e; theta r] per end link, or p_d - p_e) of lane l against target t, its
  * worst position error *pn (a scaled norm: no overflow) and angle *ang (DK(rotvec)). */
@@ -369,7 +423,9 @@ static void DK(seed)(const DK(Solve) *S, int64_t t, int64_t s, const int32_t *nn
         return;
     }
     const Space *sp = &S->sp;
-    const real *r = S->pool + (size_t)((t * S->nseeds + s) % S->P) * sp->nu;
+    const int64_t col = (t * S->nseeds + s) % S->P;
+    if (S->stream) DK(draw_upto)(S->stream, (col + 1) * sp->nu);
+    const real *r = (S->stream ? (const real *)S->stream->buf : S->pool) + (size_t)col * sp->nu;
     for (int i = 0; i < n; i++) {
         if (sp->slot[i] < 0) continue;
         const real ri = r[sp->slot[i]];
@@ -565,6 +621,7 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->lib_pose = (const real *)a->lib_pose, S->pool = (const real *)a->pool;
     S->qlo = (const real *)a->qlo, S->qhi = (const real *)a->qhi;
     S->bounded = a->bounded, S->wrap = a->wrap;
+    S->stream = NULL;
     S->best_merit = (real *)malloc(sizeof(real) * (size_t)(S->N > 0 ? S->N : 1));
     if (!S->best_merit || space_read(&S->s, &S->sp)) {
         free(S->best_merit);
@@ -578,48 +635,61 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     return 0;
 }
 
-/* Every target of the call (see the top of this file); returns 0, or -1 when memory ran out. */
-static int64_t DK(dk_solve)(const dk_args *a) {
+/* One thread's share of a solve: its scratch in buf, then chunks of CHUNK targets (all of them alone;
+ * `shared`: the chunks of an orphaned omp for, dynamically scheduled over the enclosing team). */
+static void DK(solve_worker)(const DK(Solve) *S, real *buf, int64_t nchunks, int shared) {
+    const int n = S->n, nv = S->nv, r = S->r, d = S->d, R = (int)(S->R > 0 ? S->R : 1);
+    const size_t base = DK(scratch_size)(&S->s) / sizeof(real);
+    DK(Scratch) sc;
+    DK(scratch_init)(&S->s, &S->pp, buf, &sc);
+    real *ul = buf + base;
+    DK(LMWork) w;
+    w.dqdu = ul + (size_t)n * W;
+    w.Jw = w.dqdu + (size_t)n * W;
+    w.e = w.Jw + (size_t)r * nv * W;
+    w.A = w.e + (size_t)r * W;
+    w.y = w.A + (size_t)d * d * W;
+    w.delta = w.y + (size_t)d * W;
+    w.lam = w.delta + (size_t)nv * W;
+    w.e1 = w.lam + W;
+    DK(Chunk) c;
+    c.nn = (int32_t *)(w.e1 + r);
+    w.lanes = c.nn + CHUNK * R;
+    c.done = (uint8_t *)(w.lanes + W);
+    if (shared) {
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t k = 0; k < nchunks; k++)
+            DK(solve_chunk)(S, &sc, ul, &w, &c, k * CHUNK, k * CHUNK + CHUNK < S->N ? k * CHUNK + CHUNK : S->N);
+    } else {
+        for (int64_t k = 0; k < nchunks; k++)
+            DK(solve_chunk)(S, &sc, ul, &w, &c, k * CHUNK, k * CHUNK + CHUNK < S->N ? k * CHUNK + CHUNK : S->N);
+    }
+}
+
+/* Every target of the call (see the top of this file), the pool from `stream` when not NULL; returns 0, or
+ * -1 when memory ran out. */
+static int64_t DK(solve_from)(const dk_args *a, dk_stream *stream) {
     DK(Solve) S;
     if (DK(solve_read)(a, &S)) return -1;
+    S.stream = stream;
     const int n = S.n, nv = S.nv, r = S.r, d = S.d, R = (int)(S.R > 0 ? S.R : 1);
     const int64_t nchunks = (S.N + CHUNK - 1) / CHUNK;
     int nthreads = (int)a->nthreads;
     if (nthreads < 1 || nchunks < 2) nthreads = 1;
     const size_t base = DK(scratch_size)(&S.s) / sizeof(real);
     const size_t lanes = (size_t)W * ((size_t)r * nv + r + (size_t)d * d + d + nv + 1); /* LMWork's */
-    size_t per;
+    size_t per = 0;
     const size_t want = base + 2 * (size_t)n * W + lanes + r +
                         (sizeof(int32_t) * (CHUNK * (size_t)R + CHUNK + W) + CHUNK) / sizeof(real) + 1;
     /* one thread: the calling thread's kept work space (a single-target solve paid more for allocating
      * and faulting in a fresh one than for its LM steps) */
     real *all = nthreads == 1 ? (real *)kept_space(sizeof(real) * want) : DK(team_alloc)(want, nthreads, &per);
     if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
-    if (nthreads == 1) per = 0;
-#pragma omp parallel num_threads(nthreads) if (nthreads > 1)
-    {
-        real *buf = all + per * (size_t)thread_id();
-        DK(Scratch) sc;
-        DK(scratch_init)(&S.s, &S.pp, buf, &sc);
-        real *ul = buf + base;
-        DK(LMWork) w;
-        w.dqdu = ul + (size_t)n * W;
-        w.Jw = w.dqdu + (size_t)n * W;
-        w.e = w.Jw + (size_t)r * nv * W;
-        w.A = w.e + (size_t)r * W;
-        w.y = w.A + (size_t)d * d * W;
-        w.delta = w.y + (size_t)d * W;
-        w.lam = w.delta + (size_t)nv * W;
-        w.e1 = w.lam + W;
-        DK(Chunk) c;
-        c.nn = (int32_t *)(w.e1 + r);
-        w.lanes = c.nn + CHUNK * R;
-        c.done = (uint8_t *)(w.lanes + W);
-#pragma omp for schedule(dynamic, 1)
-        for (int64_t k = 0; k < nchunks; k++) {
-            const int64_t t0 = k * CHUNK, t1 = t0 + CHUNK < S.N ? t0 + CHUNK : S.N;
-            DK(solve_chunk)(&S, &sc, ul, &w, &c, t0, t1);
-        }
+    if (nthreads == 1) { /* no team: OpenMP's fork and dynamic schedule cost a one-target call ~1 us */
+        DK(solve_worker)(&S, all, nchunks, 0);
+    } else {
+#pragma omp parallel num_threads(nthreads)
+        DK(solve_worker)(&S, all + per * (size_t)thread_id(), nchunks, 1);
     }
     if (nthreads > 1) free(all);
     free(S.pp.fix);
@@ -628,7 +698,8 @@ static int64_t DK(dk_solve)(const dk_args *a) {
     return 0;
 }
 
-/* See dk_rigid_deviation. */
+/* The largest deviation from a rigid transform of N poses (4x4 row-major): max over |R^T R - I| entries and
+ * |bottom row - (0 0 0 1)|; NaN when an entry is not finite. */
 static double DK(rigid_deviation)(const real *T, int64_t N) {
     double worst = 0;
     for (int64_t b = 0; b < N; b++) {
@@ -648,4 +719,32 @@ static double DK(rigid_deviation)(const real *T, int64_t N) {
             if (!isfinite((double)M[j])) return NAN;
     }
     return worst;
+}
+
+static int64_t DK(dk_solve)(const dk_args *a) { return DK(solve_from)(a, NULL); }
+
+/* dk_solve_one (see _native.c): the pose T (4 x 4, row-major) checked rigid to 64 epsilon (the general
+ * path's error otherwise: DK_NOT_RIGID, nothing solved), then the solve of tmpl with T as its one target
+ * and the pool (pool_size uniforms: n_pool columns of nu) drawn here from `seed` (>= 0) or read from `pool`
+ * (seed < 0). */
+static int64_t DK(solve_one)(const dk_args *tmpl, const real *T, int64_t seed, const void *pool,
+                             int64_t pool_size, void *q, void *ok, void *pe, void *oe, void *its, void *seeds) {
+    const double exact = 64 * (sizeof(real) == 8 ? 0x1p-52 : 0x1p-23);
+    if (!(DK(rigid_deviation)(T, 1) <= exact)) return DK_NOT_RIGID; /* NaN included */
+    dk_args a = *tmpl;
+    a.xd = T, a.yd = T + 1, a.zd = T + 2, a.pd = T + 3; /* the pose's columns, rows 4 entries apart */
+    a.pool = pool, a.q_out = q, a.success = ok, a.pos_err = pe, a.ori_err = oe, a.iters_out = its;
+    a.seeds_out = seeds;
+    if (seed < 0) return DK(solve_from)(&a, NULL);
+    static __thread real *buf;
+    static __thread int64_t cap;
+    if (pool_size > cap) { /* kept by the calling thread between calls, as the work space */
+        free(buf);
+        buf = (real *)malloc(sizeof(real) * (size_t)pool_size);
+        cap = buf ? pool_size : 0;
+        if (!buf) return -1;
+    }
+    dk_stream g;
+    g.seeded = 0, g.seed = (uint64_t)seed, g.drawn = 0, g.buf = buf;
+    return DK(solve_from)(&a, &g);
 }

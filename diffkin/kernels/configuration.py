@@ -39,7 +39,7 @@ import torch
 from torch import Tensor
 
 from .._numerics import safe_norm, sinc, stable_normalize
-from ..rotations import _canonical, _quaternion_multiply, _quaternion_to_rotvec
+from .rigid import _canonical, _quaternion_multiply, _quaternion_to_rotvec
 
 __all__ = ["JointKind", "JOINT_KINDS", "joint_kind", "MOTION_NQ", "MOTION_NV", "ConfigurationSpace"]
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..rotations import _vee
+from .rigid import _vee
 from .tree import Topology
 
 __all__ = [

@@ -27,8 +27,7 @@ from functools import reduce
 import torch
 from torch import Tensor
 
-from ..rotations import _euler_to_matrix, _rotvec_to_matrix, _skew
-from ..transforms import _make_transform
+from .rigid import _euler_to_matrix, _make_transform, _rotvec_to_matrix, _skew
 
 __all__ = [
     "dh_matrix",

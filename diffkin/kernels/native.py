@@ -60,7 +60,7 @@ from .tree import Segments, Topology
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
            "Collide", "capsules_clear",
            "native_model", "fk_jacobian", "status", "NativeBuildWarning", "Args",
-           "ABI_VERSION", "AbiMismatch", "solve_call", "rigid_deviation", "banded_solve"]
+           "ABI_VERSION", "AbiMismatch", "solve_call", "banded_solve"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -183,7 +183,6 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     for name in ("dk_fk", "dk_solve"):
         fn = getattr(lib, name)
         fn.restype, fn.argtypes = _I64, [ctypes.POINTER(Args)]
-    lib.dk_rigid_deviation.restype, lib.dk_rigid_deviation.argtypes = _F64, [_PTR, _I64, _I64]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
     lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 5 + [_I64] * 5
     return lib
@@ -512,12 +511,6 @@ def solve_call(args: Args) -> None:
     """Run ``dk_solve`` (the whole IK solve, ``_native_solve.c``) on a filled :class:`Args`; raises on
     an allocation failure or an interface mismatch."""
     _raise_on(_lib.dk_solve(ctypes.byref(args)), "work space")
-
-
-def rigid_deviation(T: Tensor) -> float:
-    """The largest deviation of the contiguous CPU poses ``T (..., 4, 4)`` from rigid transforms (entries
-    of RᵀR − I and of the bottom row − (0, 0, 0, 1)); NaN when an entry is not finite."""
-    return _lib.dk_rigid_deviation(T.data_ptr(), T.numel() // 16, T.element_size())
 
 
 def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:

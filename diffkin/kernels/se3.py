@@ -27,7 +27,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..rotations import _matrix_to_rotvec, _skew
+from .rigid import _matrix_to_rotvec, _skew
 
 __all__ = ["se3_jlog", "se3_log"]
 

@@ -138,8 +138,8 @@ def _current(chain, grad: bool) -> Entry | None:
     """The cached entry if the chain's tensors are still at its pointers and none wants a gradient; the
     bytes are not compared here (the caller does: dk_fk_one, or :func:`entry`). None: no entry, or
     not servable now."""
-    hit = chain.__dict__.get(_KEY)
-    ts = _tensors(chain)
+    d = chain.__dict__  # plain reads: nn.Module's attribute lookup costs a microsecond here
+    hit, ts = d.get(_KEY), (*d["_parameters"].values(), *d["_buffers"].values())
     if grad:  # a loop, not any(<generator>): half the cost
         for t in ts:
             if t is not None and t.requires_grad:
@@ -150,7 +150,7 @@ def _current(chain, grad: bool) -> Entry | None:
         ptrs = [0 if t is None else t.data_ptr() for t in ts]
     except RuntimeError:  # a tensor without storage (a torch.func wrapper): the general path
         return None
-    if ptrs != hit.ptrs or hit.topo is not chain._topo:
+    if ptrs != hit.ptrs or hit.topo is not d["_topo"]:
         return _remade(chain)
     return hit
 

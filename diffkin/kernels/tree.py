@@ -26,7 +26,6 @@ import torch
 from torch import Tensor
 
 from .._numerics import stable_normalize
-from ..rotations import _quaternion_to_matrix
 from .columns import (
     Columns,
     Fixed,
@@ -36,6 +35,7 @@ from .columns import (
     rotate_columns,
     stack_columns,
 )
+from .rigid import _quaternion_to_matrix
 
 __all__ = ["Topology", "Segments", "column_frames", "matrix_frames", "couple", "spherical_rotations"]
 

@@ -103,6 +103,9 @@ class Motion:
         return self.positions[:, :, self.index(name)[0]]
 
     def frames_slice(self, start: int = 0, stop: int | None = None) -> Motion:
-        """The frames ``start:stop`` as a new Motion (same fps)."""
+        """The frames ``start:stop`` as a new Motion (same fps; the skeleton's ``parents`` kept if known)."""
         R = None if self.orientations is None else self.orientations[:, start:stop]
-        return Motion(self.positions[:, start:stop], self.names, self.fps, R)
+        out = Motion(self.positions[:, start:stop], self.names, self.fps, R)
+        if getattr(self, "parents", None) is not None:
+            out.parents = list(self.parents)
+        return out

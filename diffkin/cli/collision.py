@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import DiffkinError
+from ..errors import DiffkinError
 
 __all__: list[str] = []
 
@@ -52,7 +52,7 @@ def collision_options(args, chain, source: str) -> tuple[object | None, object |
     if suffix not in (".urdf", ".xml", ".mjcf"):
         raise DiffkinError("--self-collision / --world need the robot's collision geometry: give the robot "
                            "as --urdf FILE or --mjcf FILE (with --end-link)")
-    from .collision import RobotCollision, read_world
+    from ..collision import RobotCollision, read_world
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -86,7 +86,7 @@ def solve_keywords(collision, world, margin: float) -> dict:
     """The ``ik.solve`` keywords of the options; an error if this build's solver has no ``collision=``."""
     if collision is None:
         return {}
-    from .ik import solve
+    from ..ik import solve
 
     if "collision" not in inspect.signature(solve).parameters:
         raise DiffkinError("ik --self-collision / --world: this build's ik.solve has no collision= keyword")

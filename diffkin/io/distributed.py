@@ -7,11 +7,11 @@ from torch.distributed (gloo on CPUs, NCCL when ``--device cuda``: rank r then c
 is computed exactly as in a single process (same rows, same IK restart seeds): a sharded run equals the
 single-process run row for row.
 
-Each rank streams its shard (:mod:`diffkin.streaming`) to its own part file ``OUT`` →
+Each rank streams its shard (:mod:`diffkin.io.streaming`) to its own part file ``OUT`` →
 ``<stem>.part-00001-of-00004<suffix>``; when all are written, rank 0 writes the manifest
 ``<stem>.shards.json`` (the parts in order, their rows, what produced them), or with ``merge=True``
 (``--merge``) concatenates the parts into ``OUT`` itself and removes them. The manifest is a data set for
-everything that reads files (:mod:`diffkin.data_io`, hence ``diffkin ik --input T.shards.json``).
+everything that reads files (:mod:`diffkin.io.data`, hence ``diffkin ik --input T.shards.json``).
 
 Without torchrun (no ``WORLD_SIZE`` in the environment, or 1) nothing here changes anything: one process,
 one output file.
@@ -19,7 +19,7 @@ one output file.
 :func:`run_sharded` is the whole orchestration as a Python API (what ``diffkin fk|ik`` calls): this rank's
 shard, the gather of every rank's outcome (a failure anywhere stops all ranks with one error and removes the
 parts), then on rank 0 the manifest or the merge and the combined summary. The manifest is written here
-(:func:`write_manifest`) and read in one place, :func:`diffkin.data_io.read_manifest`.
+(:func:`write_manifest`) and read in one place, :func:`diffkin.io.data.read_manifest`.
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .data_io import (
+from ..errors import DiffkinError
+from ..io.data import (
     MANIFEST_FORMAT,
     MANIFEST_SUFFIX,
     _npz_keys,
@@ -41,7 +42,6 @@ from .data_io import (
     open_writer,
     read_manifest,
 )
-from .errors import DiffkinError
 
 __all__ = [
     "MANIFEST_SUFFIX",
@@ -64,8 +64,9 @@ __all__ = [
 
 def run_sharded(stream, chain, source, output=None, *, chunk_size: int, merge: bool = False,
                 command: str = "", progress=None, device: str | None = None, log=None, **options):
-    """``stream(chain, source, output, chunk_size=..., **options)`` (:func:`~diffkin.streaming.stream_fk` or
-    :func:`~diffkin.streaming.stream_ik`) over every rank's shard of ``source``.
+    """``stream(chain, source, output, chunk_size=..., **options)``
+    (:func:`~diffkin.io.streaming.stream_fk` or :func:`~diffkin.io.streaming.stream_ik`) over every
+    rank's shard of ``source``.
 
     One process: ``stream`` itself. Under torchrun: rank r streams rows :func:`shard_rows` to its part file;
     every rank then learns every outcome (:func:`gather`), so that a failure on any rank raises on all (the
@@ -110,8 +111,8 @@ def _one_line(exc: BaseException) -> str:
 
 def _stream_shard(stream, chain, source, output, chunk_size: int, info, progress, options):
     """This rank's rows ``[start, stop)`` of the shards, streamed to its part file: ``(rows, result)``."""
-    from .data_io import RandomJoints, open_joint_source, open_pose_source
-    from .streaming import stream_fk
+    from ..io.data import RandomJoints, open_joint_source, open_pose_source
+    from ..io.streaming import stream_fk
 
     if isinstance(source, RandomJoints):
         n = source.count
@@ -131,7 +132,7 @@ def _stream_shard(stream, chain, source, output, chunk_size: int, info, progress
 
 def _finish_rank0(output, rows, results: list, info, merge: bool, command: str, log):
     """Rank 0 after every shard succeeded: the manifest or the merged file, and the combined summary."""
-    from .streaming import FKStreamResult, combine_ik
+    from ..io.streaming import FKStreamResult, combine_ik
 
     t0 = time.perf_counter()
     written = None

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .kernels.configuration import JOINT_KINDS
+from ..kernels.configuration import JOINT_KINDS
 
 __all__: list[str] = []  # used through diffkin.viz.Viewer
 

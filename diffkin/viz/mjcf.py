@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import DiffkinError
+from ..errors import DiffkinError
 
 __all__ = ["VisualGeom", "mjcf_visuals"]
 
@@ -151,7 +151,7 @@ def _rotation(wxyz) -> np.ndarray:
     """MuJoCo's (w, x, y, z) quaternion as a rotation matrix (normalised first, as MuJoCo does)."""
     import torch
 
-    from .rotations import quaternion_to_matrix
+    from ..rotations import quaternion_to_matrix
 
     q = torch.as_tensor(np.asarray(wxyz, dtype=np.float64))
     return quaternion_to_matrix(q / q.norm()).numpy()
@@ -183,7 +183,7 @@ def mjcf_visuals(source, *, meshes: bool = True, groups=(0, 1, 2), fallback: boo
     the module doc for what is drawn and in which frame."""
     import mujoco
 
-    from .models.mjcf import _read_source, _strip_assets
+    from ..models.mjcf import _read_source, _strip_assets
 
     chain_source = getattr(source, "source_path", None) or getattr(source, "source_text", None)
     text, path = _read_source(chain_source if chain_source is not None else source)

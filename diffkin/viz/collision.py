@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .errors import ShapeError
+from ..errors import ShapeError
 
 __all__: list[str] = []  # used through diffkin.viz.Viewer(collision=, world=, margin=)
 
@@ -47,7 +47,7 @@ def _box(half):
 
 
 def _wxyz(R: np.ndarray) -> np.ndarray:
-    from .rotations import matrix_to_quaternion
+    from ..rotations import matrix_to_quaternion
 
     return matrix_to_quaternion(torch.as_tensor(R, dtype=torch.float64)).numpy()
 

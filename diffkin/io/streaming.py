@@ -3,7 +3,7 @@
 Memory is a few chunks' worth whatever N is: ``.npy`` inputs are read through a memory map, ``.npz`` entries
 from the zip stream and CSV line by line; ``.npy`` and ``.csv`` outputs are written chunk by chunk (an
 ``.npz`` output is streamed to one ``.npy`` part per entry and zipped at the end, so it needs twice its size
-on disk, not in memory). Random inputs (:class:`~diffkin.data_io.RandomJoints`) are generated per chunk and do
+on disk, not in memory). Random inputs (:class:`~diffkin.io.data.RandomJoints`) are generated per chunk and do
 not depend on the chunk size. ``start`` / ``stop`` select a row range of the input (one rank's slice of a
 sharded run); the output then holds just those rows.
 
@@ -16,7 +16,7 @@ Outputs (N rows, K end links; the ``.npy`` holds the first entry only):
 ``ik``    ``.npy``: ``q`` ``(N, n)``. ``.npz``: ``q``, ``success`` ``(N,)`` bool, ``position_error`` [m],
           ``orientation_error`` [rad] (NaN for position-only solves: not measured), ``iterations``.
           ``.csv``: the same columns, ``q1..qn,success,position_error,orientation_error,iterations``.
-          From :class:`~diffkin.data_io.RandomJoints` also the sampled configurations ``q_sampled``
+          From :class:`~diffkin.io.data.RandomJoints` also the sampled configurations ``q_sampled``
           ``(N, n)`` and the targets (their FK): ``T_target`` in the ``.npz``; ``q_sampled1..n`` and fk's
           ``x,y,z,qw,qx,qy,qz`` in the ``.csv`` (which therefore reads back as targets).
 ========= ====================================================================================================
@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data_io import (
+from ..errors import DiffkinError
+from ..io.data import (
     ArraySource,
     PoseSource,
     RandomJoints,
@@ -43,7 +44,6 @@ from .data_io import (
     open_pose_source,
     open_writer,
 )
-from .errors import DiffkinError
 
 __all__ = ["FK_CHUNK_SIZE", "IK_CHUNK_SIZE", "FKStreamResult", "IKStreamResult", "stream_fk", "stream_ik",
            "combine_ik"]
@@ -230,15 +230,15 @@ def stream_fk(
 
     Args:
         chain: any :class:`~diffkin.chain.KinematicChain` (its dtype and device are used).
-        source: a file (``.npy`` / ``.npz`` key ``q`` / ``.csv``, see :mod:`diffkin.data_io`), an array or
-            tensor ``(N, n)``, or :class:`~diffkin.data_io.RandomJoints`.
+        source: a file (``.npy`` / ``.npz`` key ``q`` / ``.csv``, see :mod:`diffkin.io.data`), an array or
+            tensor ``(N, n)``, or :class:`~diffkin.io.data.RandomJoints`.
         output: ``.npy`` (poses ``T (N, 4, 4)``, ``(N, K, 4, 4)`` for K end links), ``.npz`` or ``.csv``
             (table in the module docstring); None computes without writing.
         chunk_size: rows per chunk (memory grows with it, not with N).
         start, stop: the rows ``[start, stop)`` of the input (default all).
         progress: called as ``progress(rows_done, rows_total)`` after each chunk.
     """
-    from .rotations import matrix_to_quaternion
+    from ..rotations import matrix_to_quaternion
 
     src: ArraySource = open_joint_source(source, chain.n_joints, chain)
     start, stop = _check_range(len(src), chunk_size, start, stop)
@@ -298,7 +298,7 @@ def _sampled_spec(chain, suffix: str) -> dict:
 
 
 def _sampled_columns(T: torch.Tensor, q_sampled: np.ndarray, suffix: str) -> dict:
-    from .rotations import matrix_to_quaternion
+    from ..rotations import matrix_to_quaternion
 
     if suffix != ".csv":
         return {"q_sampled": q_sampled, "T_target": T.detach().cpu().numpy()}
@@ -325,8 +325,8 @@ def stream_ik(
     Args:
         chain: any :class:`~diffkin.chain.KinematicChain`.
         source: a pose file (``.npy`` / ``.npz`` / ``.csv``, layouts and the quaternion rule in
-            :mod:`diffkin.data_io`), an array ``(N, 4, 4)`` / ``(N, 7)`` / ``(N, 3)`` (``(N, K, ...)`` for K
-            end links), a :class:`~diffkin.data_io.PoseSource`, or :class:`~diffkin.data_io.RandomJoints`
+            :mod:`diffkin.io.data`), an array ``(N, 4, 4)`` / ``(N, 7)`` / ``(N, 3)`` (``(N, K, ...)`` for K
+            end links), a :class:`~diffkin.io.data.PoseSource`, or :class:`~diffkin.io.data.RandomJoints`
             (targets: the FK of those configurations).
         output: ``.npy`` (``q (N, n)``), ``.npz`` or ``.csv`` (table in the module docstring), or None.
         position_only: solve positions only; None: only when the input holds positions only.
@@ -339,7 +339,7 @@ def stream_ik(
         exact_limit: most targets whose errors are kept for an exact median (4 B each per error).
         solve_options: passed to :func:`~diffkin.ik.solve` (``num_seeds``, tolerances, ...).
     """
-    from .ik import solve
+    from ..ik import solve
 
     sampled = isinstance(source, RandomJoints)
     if sampled:

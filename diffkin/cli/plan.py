@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import DiffkinError
+from ..errors import DiffkinError
 
 __all__: list[str] = []
 
@@ -94,7 +94,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def _robot(args):
     """``(chain, collision source path, 'urdf' | 'mjcf')`` of the robot options."""
-    from . import models
+    from .. import models
 
     given = [f for f in ("robot", "urdf", "mjcf") if getattr(args, f)]
     if len(given) != 1:
@@ -121,7 +121,7 @@ def _robot(args):
 
 
 def _collision(chain, path, kind: str, srdf):
-    from .collision import RobotCollision
+    from ..collision import RobotCollision
 
     if srdf and kind != "urdf":
         raise DiffkinError("--srdf applies to URDF robots (an MJCF file has its own <contact> rules)")
@@ -139,8 +139,8 @@ def _collision(chain, path, kind: str, srdf):
 def _scene(path, rc, chain):
     """``(robot collision, world)`` of ``--scene``: a world file, or a MoveIt PlanningScene YAML whose
     allowed-collision matrix also becomes the robot's pair rules (:meth:`RobotCollision.allow_collisions`)."""
-    from .collision import read_scene, read_world
-    from .collision.moveit import is_moveit_scene
+    from ..collision import read_scene, read_world
+    from ..collision.moveit import is_moveit_scene
 
     if path is None:
         return rc, None
@@ -157,7 +157,7 @@ def _scene(path, rc, chain):
 
 def _joints(values, path, flag: str, chain) -> torch.Tensor:
     """``(B, nq)`` from ``--start`` / ``--goal`` or their ``-file`` option (exactly one of them)."""
-    from .data_io import read_array
+    from ..io.data import read_array
 
     if (values is None) == (path is None):
         raise DiffkinError(f"give --{flag} Q1 ... Q{chain.nq} or --{flag}-file FILE (exactly one)")
@@ -185,7 +185,7 @@ def plan_figure(result, chain, velocity_limit, acceleration_limit, row: int = 0,
     """q, q̇, q̈ of problem ``row`` of a :class:`~diffkin.motion.MotionResult` against time, one colour per
     joint, its limits dashed (joint limits, ``velocity_limit`` / ``acceleration_limit``: numbers or
     ``(nq,)``); a matplotlib Figure for file output (no pyplot)."""
-    from .errors import require
+    from ..errors import require
 
     Figure = require("matplotlib.figure", "plot", "--plot").Figure
     nq = chain.nq
@@ -216,8 +216,8 @@ def plan_figure(result, chain, velocity_limit, acceleration_limit, row: int = 0,
 
 
 def cmd_plan(args) -> int:
-    from . import motion
-    from .data_io import check_output_path, write_arrays
+    from .. import motion
+    from ..io.data import check_output_path, write_arrays
 
     out = check_output_path(args.output, (".npz", ".csv"))
     if args.plot:
@@ -269,7 +269,7 @@ def cmd_plan(args) -> int:
         row = int(ok.nonzero()[0, 0]) if ok.any() else 0
         v = limits["velocity_limit"]
         if v is None:  # the URDF's, as plan read them
-            from .motion.plan import _urdf_velocity
+            from ..motion.plan import _urdf_velocity
 
             v = _urdf_velocity(chain)
         fig = plan_figure(res, chain, v, limits["acceleration_limit"], row)

@@ -9,19 +9,21 @@ loopback interface unless told otherwise — that shows a :class:`~diffkin.chain
   geometry when its meshes resolve (``yourdfpy``; ``package://`` paths often do not — then only frames and
   segments are drawn);
 * for an MJCF chain (:func:`diffkin.models.from_mjcf`), every body's visual geoms in its frame
-  (:func:`diffkin.viz_mjcf.mjcf_visuals`: primitives, and meshes where their files resolve, decimated);
+  (:func:`diffkin.viz.mjcf.mjcf_visuals`: primitives, and meshes where their files resolve, decimated);
 * with ``collision=`` (a :class:`~diffkin.collision.RobotCollision`) and ``world=``, the collision geoms and
   the world's objects, red for the pairs in contact (signed distance below ``margin``) at the shown q
-  (:mod:`diffkin.viz_collision`);
+  (:mod:`diffkin.viz.collision`);
 * one slider per joint variable (range ``chain.lower_upper()``: the limits, ±π / ±1 m where there is none);
   ball joints and the rotation of free joints as three rotation-vector sliders integrated on the manifold
-  by ``chain.integrate`` (:mod:`diffkin.viz_joints`), so quaternions stay unit;
+  by ``chain.integrate`` (:mod:`diffkin.viz.joints`), so quaternions stay unit;
 * a draggable target per end link (transform controls): moving it runs :func:`diffkin.ik.solve` seeded from
   the current ``q`` and shows success, position and orientation errors and the solve time; with
   ``drag="velocity"`` (or the GUI's "Limit-safe drag" box) the arm instead follows the target by
   resolved-rate steps of :func:`diffkin.ik.velocity_step` (a continuous motion that never leaves the
   joint limits nor exceeds ``drag_speed``);
-* trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second).
+* trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second), and of
+  a retargeted human clip (a :class:`~diffkin.retarget.RetargetResult`, its human keypoints drawn beside
+  the robot, or the ``.npz`` its ``save`` writes), at the clip's frame rate.
 
 Nothing here imports viser until a viewer is made: ``import diffkin`` and ``import diffkin.viz`` work
 without the extra, and :func:`show` raises :class:`~diffkin.errors.DiffkinError` naming it.
@@ -41,7 +43,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import sys
 import threading
 import time
 from pathlib import Path
@@ -50,14 +51,15 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import DiffkinError, ShapeError
+from ..errors import DiffkinError, ShapeError
 
-__all__ = ["Viewer", "show", "add_parser", "cmd_view", "MISSING_EXTRA"]
+__all__ = ["Viewer", "show", "add_parser", "cmd_view", "segment_points", "MISSING_EXTRA"]
 
 #: the message (after ``error:``) when viser is not installed
 MISSING_EXTRA = "diffkin view needs the 'viz' extra: pip install 'diffkin[viz]'"
 
 _SEGMENT_RGB = (235, 120, 20)  # orange links
+_KEYPOINT_RGB = (30, 170, 60)  # green human keypoints of a retargeted clip
 _END_RGB = (40, 110, 230)  # blue end-link frames
 
 
@@ -71,14 +73,14 @@ def _import_viser():
 
 def _wxyz(R: np.ndarray) -> np.ndarray:
     """Unit quaternions (w, x, y, z), w >= 0, of rotation matrices ``(..., 3, 3)``."""
-    from .rotations import matrix_to_quaternion
+    from ..rotations import matrix_to_quaternion
 
     return matrix_to_quaternion(torch.as_tensor(R, dtype=torch.float64)).numpy()
 
 
 def _pose(wxyz, position) -> np.ndarray:
     """4x4 transform from a quaternion (w, x, y, z) and a position."""
-    from .rotations import quaternion_to_matrix
+    from ..rotations import quaternion_to_matrix
 
     T = np.eye(4)
     q = torch.as_tensor(np.asarray(wxyz, dtype=np.float64))
@@ -96,14 +98,42 @@ def _as_joints(chain, q, name: str = "q") -> Tensor:
     return t.to(dtype=chain.dtype, device=chain.device)
 
 
-def _read_trajectory(chain, trajectory) -> tuple[Tensor, float | None]:
-    """Joint vectors ``(N, n)`` and their frame rate when the file has times (else None).
+def segment_points(chain, F: np.ndarray, E: np.ndarray, floating: bool = True) -> np.ndarray:
+    """The robot's drawing as segments ``(S, 2, 3)``: each joint frame's origin to its parent's, then each end
+    link's pose to the frame it hangs from (unless a single end link is the last frame). ``F`` ``(J + 1, 4,
+    4)``: ``chain.forward_kinematics(q, all_frames=True)``; ``E`` ``(K, 4, 4)``: the end poses.
+    ``floating=False`` leaves out the segments of a free first joint (its three slides and its ball: the
+    world origin to the floating body)."""
+    topo = chain.topology
+    parents = list(topo.parents)
+    skip = 0
+    if not floating and chain.joint_kinds and chain.joint_kinds[0] == "free":
+        skip = list(topo.motions).index("S") + 1  # the free joint's frames: slides x, y, z, then the ball
+    pts = [(F[p + 1, :3, 3], F[j + 1, :3, 3]) for j, p in enumerate(parents) if j >= skip]
+    if not (chain.single_end and topo.ends[0] == len(parents) - 1):
+        pts += [(F[e + 1, :3, 3], E[k, :3, 3]) for k, e in enumerate(topo.ends)]
+    return np.asarray(pts, dtype=np.float64).reshape(-1, 2, 3)
 
-    A file is read by :func:`diffkin.data_io.read_joints` (``.npy``, ``.csv``, ``.npz`` entry ``q``); an
-    ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate.
+
+def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | None, np.ndarray | None]:
+    """Joint vectors ``(N, n)``, their frame rate when the source has one (else None) and, for a retargeted
+    clip, the human keypoints ``(N, K, 3)`` to draw beside the robot (else None).
+
+    A file is read by :func:`diffkin.io.data.read_joints` (``.npy``, ``.csv``, ``.npz`` entry ``q``); an
+    ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate;
+    so is one of :meth:`diffkin.retarget.RetargetResult.save` (``q (B, T, nq)`` and ``fps``: clip ``clip``
+    at the clip's rate). A :class:`~diffkin.retarget.RetargetResult` itself gives clip ``clip``'s ``q``, its
+    rate and its scaled human keypoints.
     """
+    q_clips = getattr(trajectory, "q", None)
+    if isinstance(q_clips, Tensor) and hasattr(trajectory, "keypoints") and hasattr(trajectory, "fps"):
+        B = q_clips.shape[0]
+        if not -B <= clip < B:
+            raise ShapeError(f"clip {clip} is not among the result's {B} clips")
+        points = trajectory.keypoints[clip].detach().cpu().double().numpy()
+        return _as_trajectory(chain, q_clips[clip]), float(trajectory.fps), points
     if not isinstance(trajectory, (str, Path)):
-        return _as_trajectory(chain, trajectory), None
+        return _as_trajectory(chain, trajectory), None, None
     path = Path(trajectory)
     if path.suffix == ".npz" and path.is_file():
         with np.load(path, allow_pickle=False) as data:
@@ -113,14 +143,19 @@ def _read_trajectory(chain, trajectory) -> tuple[Tensor, float | None]:
                 if "t" in data.files and data["t"].shape == (q.shape[0],) and q.shape[0] > 1:
                     span = float(data["t"][-1] - data["t"][0])
                     fps = (q.shape[0] - 1) / span if span > 0 else None
-                return q, fps
-    return _as_trajectory(chain, trajectory), None
+                return q, fps, None
+            if "q" in data.files and data["q"].ndim == 3 and "fps" in data.files:  # RetargetResult.save
+                B = data["q"].shape[0]
+                if not -B <= clip < B:
+                    raise ShapeError(f"clip {clip} is not among the {B} clips of {str(path)!r}")
+                return _as_trajectory(chain, data["q"][clip]), float(data["fps"]), None
+    return _as_trajectory(chain, trajectory), None, None
 
 
 def _as_trajectory(chain, trajectory) -> Tensor:
     """Joint vectors ``(N, n)`` from a tensor, an array or a .npy/.npz/.csv file."""
     if isinstance(trajectory, (str, Path)):
-        from .data_io import read_joints
+        from ..io.data import read_joints
 
         return read_joints(trajectory, chain.n_joints, dtype=chain.dtype, device=chain.device)
     t = trajectory.detach() if isinstance(trajectory, Tensor) else torch.as_tensor(np.asarray(trajectory))
@@ -164,10 +199,10 @@ class Viewer:
         ik_state: the last IK solve: ``success`` (bool), ``position_error`` (m), ``orientation_error``
             (rad), ``time_s``, ``message`` — also shown in the GUI's IK folder.
         has_meshes: whether URDF visual geometry (or MJCF geoms) is shown.
-        visual_geoms: the MJCF geoms drawn (:class:`~diffkin.viz_mjcf.VisualGeom`), ``missing_meshes`` the
+        visual_geoms: the MJCF geoms drawn (:class:`~diffkin.viz.mjcf.VisualGeom`), ``missing_meshes`` the
             mesh geoms not drawn (files not found).
         contacts: the collision state at the shown q (``pairs``, ``world``, ``min_distance``; see
-            :meth:`diffkin.viz_collision.CollisionView.update`), ``{}`` without ``collision``.
+            :meth:`diffkin.viz.collision.CollisionView.update`), ``{}`` without ``collision``.
     """
 
     def __init__(self, chain, q=None, *, host: str = "127.0.0.1", port: int = 8080, trajectory=None,
@@ -180,7 +215,7 @@ class Viewer:
             raise DiffkinError("collision must be a RobotCollision of the chain shown")
         if world is not None and collision is None:
             raise DiffkinError("world needs collision= (the robot's RobotCollision) to be checked against")
-        from .validation import check_number
+        from ..validation import check_number
 
         margin = check_number(margin, "margin", positive=False, unit=" (m)")
         viser = _import_viser()
@@ -218,6 +253,7 @@ class Viewer:
             self._build_gui()
             self._traj: Tensor | None = None
             self._traj_gui: dict = {}
+            self._keypoints: tuple | None = None  # a retargeted clip's human keypoints (N, K, 3), cloud
             self._playing = threading.Event()
             self._fps = 30.0 if fps is None else float(fps)
             self._frame = 0
@@ -261,10 +297,7 @@ class Viewer:
         return F.detach().cpu().double().numpy(), E.detach().cpu().double().numpy()
 
     def _segment_points(self, F: np.ndarray, E: np.ndarray) -> np.ndarray:
-        pts = [(F[p + 1, :3, 3], F[j + 1, :3, 3]) for j, p in enumerate(self._parents)]
-        if not self._ends_in_frames:
-            pts += [(F[f, :3, 3], E[k, :3, 3]) for k, f in enumerate(self._end_frames)]
-        return np.asarray(pts, dtype=np.float32).reshape(-1, 2, 3)
+        return segment_points(self.chain, F, E).astype(np.float32)
 
     def _build_scene(self, urdf, meshes: bool) -> None:
         scene = self.server.scene
@@ -310,7 +343,7 @@ class Viewer:
         self.has_meshes = self._mesh is not None or bool(self.visual_geoms)
         self._collision_view = None
         if self._collision_args[0] is not None:
-            from .viz_collision import CollisionView
+            from .collision import CollisionView
 
             self._collision_view = CollisionView(scene, *self._collision_args, scale=s, q=self._q)
         self._targets = []
@@ -325,7 +358,7 @@ class Viewer:
         self.visual_geoms, self.missing_meshes, self._body_nodes = [], [], {}
         if not (hasattr(self.chain, "to_qpos") and hasattr(self.chain, "source_text")):
             return
-        from .viz_mjcf import mjcf_visuals
+        from .mjcf import mjcf_visuals
 
         with _quiet_logs():
             self.visual_geoms, self.missing_meshes = mjcf_visuals(self.chain, meshes=meshes)
@@ -415,7 +448,7 @@ class Viewer:
                     base.position, base.wxyz = F[0, :3, 3], qw[0]
                 self._mesh.update_cfg(self._mesh_cfg)
             if self._body_nodes:
-                from .models.mjcf_bodies import body_poses
+                from ..models.mjcf_bodies import body_poses
 
                 with torch.no_grad():
                     B = body_poses(self.chain, self._q).detach().cpu().double().numpy()
@@ -442,7 +475,7 @@ class Viewer:
         gui = self.server.gui
         chain = self.chain
         gui.configure_theme(control_width="medium")
-        from .viz_joints import slider_specs, slider_values
+        from .joints import slider_specs, slider_values
 
         self._slider_specs = slider_specs(chain, self._lo, self._hi)
         with gui.add_folder("Joints"):
@@ -473,10 +506,10 @@ class Viewer:
                          f"{len(self._targets)} end link(s) · drag the gizmo to solve IK")
 
     def _slider_callback(self, _event) -> None:
-        """A slider moved: q = chain.integrate(q_ref, v) of all sliders (:mod:`diffkin.viz_joints`)."""
+        """A slider moved: q = chain.integrate(q_ref, v) of all sliders (:mod:`diffkin.viz.joints`)."""
         if self._syncing:
             return
-        from .viz_joints import q_of_sliders
+        from .joints import q_of_sliders
 
         with self._lock:
             q = q_of_sliders(self.chain, self._q_ref, [s.value for s in self.sliders], self._slider_specs)
@@ -500,7 +533,7 @@ class Viewer:
         self._show(q, move_targets=move_targets, reference=True)
 
     def _show(self, q: Tensor, move_targets: bool, reference: bool) -> None:
-        from .viz_joints import slider_values
+        from .joints import slider_values
 
         with self._lock:
             self._q = q.clone()
@@ -534,7 +567,7 @@ class Viewer:
         """Solve IK to ``T_target`` — ``(4, 4)`` for one end link, ``(K, 4, 4)`` for K (default: where the
         targets are) — seeded from the current q; moves the targets there, shows the solution and its
         errors, and returns the :class:`~diffkin.ik.IKResult` (``q (n,)``, ``success``, errors)."""
-        from .ik import solve
+        from ..ik import solve
 
         with self._lock:
             T = self.targets() if T_target is None else self._move_targets(T_target)
@@ -618,18 +651,29 @@ class Viewer:
             raise
 
     # ------------------------------------------------------------------------------------ trajectory
-    def load_trajectory(self, trajectory, fps: float | None = None) -> None:
+    def load_trajectory(self, trajectory, fps: float | None = None, clip: int = 0) -> None:
         """Load joint vectors ``(N, n)`` for playback (paused, at frame 0) and add the GUI's Trajectory
         folder (play/pause, frame slider, fps). ``trajectory``: a tensor or array, or a ``.npy`` / ``.csv``
         / ``.npz`` (entry ``q``) file, or the ``.npz`` of ``diffkin trajectory joint`` (played at the rate of
-        its times ``t`` unless ``fps`` is given)."""
-        traj, file_fps = _read_trajectory(self.chain, trajectory)
+        its times ``t`` unless ``fps`` is given), or a retargeted clip: a
+        :class:`~diffkin.retarget.RetargetResult` (clip ``clip`` at its rate, its scaled human keypoints
+        drawn as green points, ``/retarget/keypoints``, following the frames) or the ``.npz`` its ``save``
+        writes (clip ``clip`` at its rate)."""
+        traj, file_fps, points = _read_trajectory(self.chain, trajectory, clip)
         fps = fps if fps is not None else file_fps
         gui = self.server.gui
         with self._lock:
             self._playing.clear()
             if "folder" in self._traj_gui:
                 self._traj_gui["folder"].remove()  # and its controls
+            if self._keypoints is not None:
+                self._keypoints[1].remove()
+                self._keypoints = None
+            if points is not None:
+                cloud = self.server.scene.add_point_cloud(
+                    "/retarget/keypoints", points=points[0].astype(np.float32),
+                    colors=np.array(_KEYPOINT_RGB, dtype=np.uint8), point_size=0.03)
+                self._keypoints = (points, cloud)
             self._traj, self._frame = traj, 0
             if fps is not None:
                 self._fps = float(np.clip(fps, 0.1, 240.0))
@@ -665,17 +709,21 @@ class Viewer:
             i = int(i) % self._traj.shape[0]
             self._frame = i
             self.set_q(self._traj[i], move_targets=True)
+            if self._keypoints is not None:
+                self._keypoints[1].points = self._keypoints[0][i].astype(np.float32)
             self._syncing = True
             try:
                 self._traj_gui["frame"].value = i
             finally:
                 self._syncing = False
 
-    def play(self, trajectory=None, fps: float | None = None, loop: bool | None = None) -> None:
-        """Start playback — of ``trajectory`` ``(N, n)`` if given (tensor, array or file), else of the
-        loaded one — at ``fps`` frames per second; ``loop`` repeats it (default: the GUI's setting)."""
+    def play(self, trajectory=None, fps: float | None = None, loop: bool | None = None,
+             clip: int = 0) -> None:
+        """Start playback — of ``trajectory`` if given (what :meth:`load_trajectory` takes, ``clip`` of a
+        retargeted clip), else of the loaded one — at ``fps`` frames per second; ``loop`` repeats it
+        (default: the GUI's setting)."""
         if trajectory is not None:
-            self.load_trajectory(trajectory, fps=fps)
+            self.load_trajectory(trajectory, fps=fps, clip=clip)
         elif fps is not None:
             self._fps = float(np.clip(fps, 0.1, 240.0))
         if self._traj is None:
@@ -735,8 +783,8 @@ class Viewer:
 def _drag_steps(chain, q: Tensor, T: np.ndarray, position_only: bool, speed: float, steps: int, dt: float):
     """Resolved-rate steps of :func:`diffkin.ik.velocity_step` towards the poses ``T (K, 4, 4)``: the twist
     [e_p; e_O]/Δt, |q̇| ≤ speed, the joint limits over Δt. -> (q, position error, orientation error)."""
-    from .ik import velocity_step
-    from .kernels.pose_error import orientation_error
+    from ..ik import velocity_step
+    from ..kernels.pose_error import orientation_error
 
     Tt = torch.as_tensor(T, dtype=chain.dtype, device=chain.device)
     weight = torch.tensor([1.0] * 3 + [0.0 if position_only else 1.0] * 3, dtype=Tt.dtype, device=Tt.device)
@@ -816,8 +864,9 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
     p.add_argument("--end-link", dest="end_link", nargs="+", metavar="LINK",
                    help="end link(s) of the URDF or MJCF (several: a tree, one target each)")
     p.add_argument("--root-link", dest="root_link", help="root link of the URDF chain (default: its root)")
-    p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), or "
-                   "the .npz of `diffkin trajectory joint`")
+    p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), "
+                   "the .npz of `diffkin trajectory joint`, or a retargeted clip's .npz (`diffkin retarget "
+                   "--output`; its first clip at its frame rate)")
     p.add_argument("--fps", type=float, default=None,
                    help="playback frames per second (default: the file's times if it has them, else 30)")
     p.add_argument("--play", action="store_true", help="start playing the trajectory at once")
@@ -841,13 +890,13 @@ def _cli_collision(chain, urdf, mjcf):
     """``--collision``: the RobotCollision of the URDF or MJCF file shown."""
     import functools
 
-    from .collision import RobotCollision
+    from ..collision import RobotCollision
 
     if urdf:
         return RobotCollision.from_urdf(urdf, chain)
     if mjcf:
-        from .models.mjcf import compile_mjcf
-        from .models.mjcf_bodies import body_poses
+        from ..models.mjcf import compile_mjcf
+        from ..models.mjcf_bodies import body_poses
 
         return RobotCollision.from_mjcf(compile_mjcf(mjcf)[0], chain, body_poses=functools.partial(body_poses,
                                                                                                    chain))
@@ -857,8 +906,8 @@ def _cli_collision(chain, urdf, mjcf):
 def cmd_view(args) -> int:
     """``diffkin view``: load the robot, serve it, print the URL, run until Ctrl+C (or ``--duration``)."""
     _import_viser()  # the missing extra is the first thing to report
-    from . import models
-    from ._console import check_one_robot
+    from .. import models
+    from .._console import check_one_robot
 
     dtype = {"float32": torch.float32, "float64": torch.float64}[args.dtype]
     mjcf = getattr(args, "mjcf", None)
@@ -893,14 +942,3 @@ def cmd_view(args) -> int:
     finally:
         viewer.close()
     return 0
-
-
-if __name__ == "__main__":  # python -m diffkin.viz ... (same options as `diffkin view`)
-    _parser = argparse.ArgumentParser(prog="python -m diffkin.viz")
-    add_parser(_parser.add_subparsers(dest="command", required=True))
-    _args = _parser.parse_args(["view", *sys.argv[1:]])
-    try:
-        sys.exit(cmd_view(_args))
-    except (DiffkinError, FileNotFoundError) as _exc:
-        print(f"error: {_exc}", file=sys.stderr)
-        sys.exit(2)

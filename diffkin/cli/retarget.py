@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import DiffkinError
+from ..errors import DiffkinError
 
 __all__: list[str] = []
 
@@ -18,7 +18,8 @@ DESCRIPTION = (
     "Retarget a human clip onto a humanoid: a per-clip scale, a frame-by-frame warm start with ik.solve,\n"
     "then one optimisation over all frames (feet held on the ground in contact without sliding, no\n"
     "penetration, joint limits, smoothness). The clip is a BVH file, an .npz of SMPL / SMPL-X joint\n"
-    "positions (key 'joints', with 'fps' or 'mocap_framerate'), or a shipped clip: walk, crouch, hop.\n"
+    "positions (key 'joints', with 'fps' or 'mocap_framerate'), or a shipped clip: walk, crouch, hop,\n"
+    "turn, reach. "
     "The robot is a built-in robot by name (--robot g1), or a URDF or MJCF file, whose bodies the\n"
     "built-in mapping (--mapping) names. Prints the artefact metrics before and after the whole-clip\n"
     "optimisation.")
@@ -51,7 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _motion(spec: str, skeleton: str | None):
-    from . import retarget
+    from .. import retarget
 
     shipped = retarget.example_clips()
     if spec in shipped:
@@ -79,8 +80,8 @@ def _slice(text: str | None, frames: int) -> tuple[int, int]:
 
 
 def cmd_retarget(args) -> int:
-    from . import models, retarget
-    from .data_io import check_output_path, write_arrays
+    from .. import models, retarget
+    from ..io.data import check_output_path, write_arrays
 
     out = check_output_path(args.output, (".npz", ".csv"))
     if args.iterations < 0:

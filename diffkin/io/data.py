@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .errors import DiffkinError, NonFiniteError, ShapeError
+from ..errors import DiffkinError, NonFiniteError, ShapeError
 
 __all__ = [
     "DataFileError",
@@ -220,7 +220,7 @@ def _npz_keys(path: Path) -> list[str]:
 
 
 # ------------------------------------------------------------------------------------- sources
-#: a sharded output's manifest (written by :mod:`diffkin.distributed`): ``<stem>.shards.json``
+#: a sharded output's manifest (written by :mod:`diffkin.io.distributed`): ``<stem>.shards.json``
 MANIFEST_SUFFIX = ".shards.json"
 MANIFEST_FORMAT = "diffkin-shards/1"
 
@@ -252,7 +252,7 @@ def read_manifest(path: str | Path) -> tuple[list[Path], int]:
 
 
 def _is_manifest(source) -> bool:
-    """A sharded output's manifest (``*.shards.json``, written by :mod:`diffkin.distributed`)."""
+    """A sharded output's manifest (``*.shards.json``, written by :mod:`diffkin.io.distributed`)."""
     return isinstance(source, (str, Path)) and str(source).endswith(MANIFEST_SUFFIX)
 
 
@@ -407,7 +407,7 @@ class RandomJoints:
         self.count, self.seed = int(count), int(seed)
 
     def source(self, chain) -> ArraySource:
-        from .sampling import _scalar_ranges
+        from ..sampling import _scalar_ranges
 
         space = chain.configuration_space
         lo, hi = (t.detach().cpu().double() for t in _scalar_ranges(chain))
@@ -579,7 +579,7 @@ class PoseSource:
 def _to_transforms(chunk: np.ndarray, layout: str, K: int, single_end: bool, name: str, first: int):
     m = chunk.shape[0]
     if layout == "T":
-        from .transforms import RIGIDITY_TOLERANCE, _nearest_rigid, _transform_deviations
+        from ..transforms import RIGIDITY_TOLERANCE, _nearest_rigid, _transform_deviations
 
         T = torch.from_numpy(np.ascontiguousarray(chunk.reshape(m, K, 4, 4)))
 
@@ -861,7 +861,8 @@ def _read_text(path: Path) -> np.ndarray:
 def read_array(path: str | Path, key: str | None = None) -> np.ndarray:
     """Read one array from ``.npy``, ``.csv``, ``.npz`` (``key`` selects the entry of an ``.npz``) or a
     plain-text ``.txt`` table (numbers separated by whitespace, commas or semicolons; ``#`` comments), or
-    the concatenated parts of a sharded output's manifest (``*.shards.json``, :mod:`diffkin.distributed`)."""
+    the concatenated parts of a sharded output's manifest (``*.shards.json``,
+    :mod:`diffkin.io.distributed`)."""
     if _is_manifest(path):
         return np.concatenate([read_array(p, key) for p in _manifest_parts(path)])
     path = _check_path(path, (*_SUFFIXES, ".txt"))

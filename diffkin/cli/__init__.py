@@ -13,7 +13,7 @@ about 1 000 solves/s with torch's default threads on a busy 2-core machine again
 
 ``train``, ``evaluate`` and ``demo`` call the functions of the repository's ``training`` package in this
 process (the ``rl`` extra); ``bench`` calls ``benchmarks.run`` (a checkout's ``benchmarks/``, not installed
-with the package). ``fk`` and ``ik`` stream their input in chunks (:mod:`diffkin.streaming`).
+with the package). ``fk`` and ``ik`` stream their input in chunks (:mod:`diffkin.io.streaming`).
 """
 
 from __future__ import annotations
@@ -29,14 +29,14 @@ from pathlib import Path
 
 import torch
 
-from .errors import DiffkinError
+from ..errors import DiffkinError
 
 __all__ = ["main", "build_parser"]
 
 
 def _console():
     """rich's console, or plain ``print`` without the ``cli`` extra (tables then print as aligned text)."""
-    from ._console import console
+    from .._console import console
 
     return console()
 
@@ -102,7 +102,7 @@ def _robot_format(args) -> str | None:
 def _robot_source(args) -> tuple[str, str | None]:
     """``(source, end_link)`` of the robot options: ``--urdf`` / ``--mjcf FILE --end-link`` or ``--robot``;
     exactly one of them (two are an error, never one silently ignored)."""
-    from ._console import check_one_robot
+    from .._console import check_one_robot
 
     check_one_robot(args)
     for flag in ("urdf", "mjcf"):
@@ -120,7 +120,7 @@ def _robot_source(args) -> tuple[str, str | None]:
 
 
 def _load_chain(args):
-    from .models import load_chain
+    from ..models import load_chain
 
     _check_device(args.device)
     source, end_link = _robot_source(args)
@@ -143,7 +143,7 @@ def _check_robot_option(robot: str) -> None:
 @contextlib.contextmanager
 def _progress(args, label: str):
     """A rich progress bar on stderr when it is a terminal (and no ``--no-progress``): yields the callback
-    ``(done, total)`` for :mod:`diffkin.streaming`, or None."""
+    ``(done, total)`` for :mod:`diffkin.io.streaming`, or None."""
     try:
         from rich.console import Console
         from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -166,7 +166,7 @@ def _rate(n: int, seconds: float) -> str:
 
 # ------------------------------------------------------------------------------------------ models
 def cmd_models(args) -> int:
-    from . import models
+    from .. import models
 
     con = _console()
     if args.action == "show":
@@ -212,8 +212,8 @@ def cmd_models(args) -> int:
 
 # ---------------------------------------------------------------------------------------------- fk
 def cmd_fk(args) -> int:
-    from .data_io import RandomJoints, check_output_path
-    from .streaming import stream_fk
+    from ..io.data import RandomJoints, check_output_path
+    from ..io.streaming import stream_fk
 
     if args.output:
         check_output_path(args.output)
@@ -233,10 +233,10 @@ def cmd_fk(args) -> int:
 
 
 def _streamed(args, chain, label: str, stream, source, **options):
-    """Run ``stream`` (stream_fk / stream_ik) over the input, in this process or, under torchrun, over this
-    rank's shard (:func:`diffkin.distributed.run_sharded`); returns the summary (the combined one on rank 0,
-    None on the other ranks)."""
-    from . import distributed as dist
+    """Run ``stream`` (stream_fk / stream_ik) over the input, in this process or, under torchrun, over
+    this rank's shard (:func:`diffkin.io.distributed.run_sharded`); returns the summary (the combined one
+    on rank 0, None on the other ranks)."""
+    from ..io import distributed as dist
 
     info = dist.init(args.device)
     title = f"{label} (rank 0 of {info.world})" if info.sharded else label
@@ -253,7 +253,7 @@ class _Quiet:
 def _random_source(args, chain, RandomJoints, poses: bool):
     """The input of ``fk`` / ``ik``: ``--input``, or ``--random N`` (collision-free with ``--self-collision``
     / ``--world``: joints, or for ``ik`` their FK poses as the targets). Sets ``args.collision``."""
-    from ._cli_collision import collision_free_joints, collision_options
+    from .collision import collision_free_joints, collision_options
 
     collision, world = collision_options(args, chain, _robot_source(args)[0])
     args.collision = (collision, world, args.margin)
@@ -273,7 +273,7 @@ def _random_source(args, chain, RandomJoints, poses: bool):
 
 def _join_ranks(args) -> None:
     """Under torchrun: join the process group first, so that ``--device cuda`` is this rank's GPU."""
-    from . import distributed
+    from ..io import distributed
 
     _check_device(args.device)
     distributed.init(args.device)
@@ -308,12 +308,12 @@ def _ik_table(chain, res) -> object:
 
 
 def cmd_ik(args) -> int:
-    from .data_io import RandomJoints, check_output_path
-    from .streaming import stream_ik
+    from ..io.data import RandomJoints, check_output_path
+    from ..io.streaming import stream_ik
 
     if args.output:
         check_output_path(args.output)
-    from ._cli_collision import solve_keywords
+    from .collision import solve_keywords
 
     _join_ranks(args)
     chain = _load_chain(args)
@@ -338,9 +338,9 @@ def cmd_ik(args) -> int:
 def cmd_calibrate(args) -> int:
     import warnings
 
-    from .calibration import calibrate_from_files
-    from .data_io import check_output_path
-    from .errors import ModelError
+    from ..calibration import calibrate_from_files
+    from ..errors import ModelError
+    from ..io.data import check_output_path
 
     if args.images is not None or args.joints is not None:
         return _cmd_calibrate_images(args)
@@ -430,7 +430,7 @@ def _cmd_calibrate_images(args) -> int:
     """``calibrate --images DIR --joints FILE``: board pictures -> detect_board -> calibrate_camera."""
     import warnings
 
-    from .calibration.camera_io import calibrate_camera_from_files, write_camera_report
+    from ..calibration.camera_io import calibrate_camera_from_files, write_camera_report
 
     need = {"--images": args.images, "--joints": args.joints, "--board": args.board, "--square": args.square,
             "--camera": args.camera}
@@ -506,8 +506,8 @@ def _check_output_dir(path: Path) -> None:
 
 # ------------------------------------------------------------------------------------ trajectory
 def cmd_trajectory(args) -> int:
-    from . import trajectories as tr
-    from .data_io import check_output_path, read_array, write_arrays
+    from .. import trajectories as tr
+    from ..io.data import check_output_path, read_array, write_arrays
 
     check_output_path(args.output)
     if args.plot:
@@ -578,7 +578,7 @@ _TRAJECTORY_UNITS = {  # (symbol, unit) per panel: joint space (rad, or m for a 
 def _trajectory_figure(out: dict, space: str = "joint"):
     """Position, velocity and acceleration against time, one line per joint (q1..qn) or axis (x, y, z),
     with a legend and units."""
-    from .errors import require
+    from ..errors import require
 
     Figure = require("matplotlib.figure", "plot", "--plot").Figure  # file output: no pyplot, no backend
 
@@ -715,7 +715,7 @@ def cmd_bench(args) -> int:
 
 def _kernel_line() -> str:
     """``fused C kernel: in use (PATH)`` or ``fused C kernel: not in use: WHY`` (builds it if not tried)."""
-    from .kernels import native
+    from ..kernels import native
 
     ok, what = native.status()
     return f"fused C kernel: in use ({what})" if ok else f"fused C kernel: not in use: {what}"
@@ -734,18 +734,18 @@ class _Version(argparse.Action):
 
 
 def cmd_doctor(args) -> int:
-    from . import __version__
+    from .. import __version__
 
     cuda = (f"{torch.cuda.device_count()} device(s), CUDA {torch.version.cuda}" if torch.cuda.is_available()
             else f"not available (CUDA build: {torch.version.cuda or 'no'})")
-    print(f"diffkin {__version__} ({Path(__file__).parent})")
+    print(f"diffkin {__version__} ({Path(__file__).parents[1]})")
     print(f"python {sys.version.split()[0]}, torch {torch.__version__}; CUDA: {cuda}")
     print(_kernel_line())
     return 0
 
 
 def cmd_demo(args) -> int:
-    from .demo import run_demo
+    from ..demo import run_demo
 
     if args.output:
         _check_output_dir(Path(args.output))
@@ -948,15 +948,15 @@ def _robot_args(p: argparse.ArgumentParser, chunk_default: int, what: str) -> No
     io.add_argument("--merge", action="store_true",
                     help="under torchrun: concatenate the ranks' parts into --output (default: the parts "
                          "and a manifest <stem>.shards.json that every input option reads as one file)")
-    from ._cli_collision import add_arguments
+    from .collision import add_arguments
 
     add_arguments(p)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
-    from .ik import solve
-    from .streaming import FK_CHUNK_SIZE, IK_CHUNK_SIZE
+    from .. import __version__
+    from ..ik import solve
+    from ..io.streaming import FK_CHUNK_SIZE, IK_CHUNK_SIZE
 
     parser = _Parser(prog="diffkin", formatter_class=_Formatter,
                      description="diffkin: differentiable batched robot kinematics. Robot models, batch FK "
@@ -1115,21 +1115,21 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("doctor", "report versions, CUDA and whether the fused C kernel is in use (and why not)")
     p.set_defaults(func=cmd_doctor)
 
-    from . import _cli_retarget  # `diffkin retarget` (its description and examples live with it)
+    from . import retarget as _cli_retarget  # `diffkin retarget` (its description and examples live with it)
     p = sub.add_parser("retarget", parents=[common], help="a human clip (BVH, SMPL joints) onto a humanoid",
                        description=_cli_retarget.DESCRIPTION, epilog="examples:\n  " + _cli_retarget.EXAMPLES,
                        formatter_class=_Formatter)
     _cli_retarget.add_arguments(p)
     p.set_defaults(func=_cli_retarget.cmd_retarget)
 
-    from . import _cli_plan  # `diffkin plan` (its description and examples live with it)
+    from . import plan as _cli_plan  # `diffkin plan` (its description and examples live with it)
     p = sub.add_parser("plan", parents=[common], help="collision-free timed motions from start to goal",
                        description=_cli_plan.DESCRIPTION, epilog="examples:\n  " + _cli_plan.EXAMPLES,
                        formatter_class=_Formatter)
     _cli_plan.add_arguments(p)
     p.set_defaults(func=_cli_plan.cmd_plan)
 
-    from .viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
+    from ..viz import add_parser as add_view_parser  # `diffkin view` (viser is imported only when it runs)
     add_view_parser(sub, [common])
     return parser
 
@@ -1180,6 +1180,3 @@ def main(argv: list[str] | None = None) -> int:
               "traceback, and please report it)", file=sys.stderr)
         return 1
 
-
-if __name__ == "__main__":
-    sys.exit(main())
