@@ -645,6 +645,52 @@ def test_optimize_clip_errors():
     assert cg.cost[-1].item() < cg.cost[0].item()
 
 
+def test_whole_clip_difference_terms_hessian_by_differences():
+    """The banded normal matrix (D, E, F) of the terms that couple frames (velocity limits, velocity,
+    acceleration; every other weight 0) is their cost's Hessian in the hinge columns (central differences
+    of the gradient): the residuals are (piecewise) linear there, so Gauss–Newton's JᵀJ is exact."""
+    from diffkin.retarget.whole_clip import COSTS, _Terms, _velocity_limits
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    B, T = 1, 3  # T = 3: the F band (t, t − 2) is in
+    gen = torch.Generator().manual_seed(1)
+    q = torch.zeros(B, T, g1.nq, dtype=torch.float64)
+    q[..., 2], q[..., 3] = 0.78, 1.0
+    q[..., 7:] = 0.2 * torch.randn(B, T, g1.nq - 7, generator=gen, dtype=torch.float64)
+    kp = mp.keypoint_frames
+    x = torch.zeros(B, T, len(kp), 3, dtype=torch.float64)
+    c = torch.zeros(B, T, 2, dtype=torch.bool)
+    w = {k: 0.0 for k in COSTS} | {"velocity_limit": 10.0, "velocity": 0.3, "acceleration": 0.5}
+    terms = _Terms(g1, x, c, list(mp.feet), kp, 30.0, 0.0, None, torch.ones(len(kp), dtype=torch.float64), w,
+                   q.clone(), 0.0, _velocity_limits(g1, 3.0, q))
+    _, D, E, F, _ = terms.evaluate(q)
+    n = g1.nv
+    H = torch.zeros(T * n, T * n, dtype=torch.float64)
+    for t in range(T):  # the dense matrix of the lower blocks (a loop over the 3 frames of a test)
+        H[t * n:(t + 1) * n, t * n:(t + 1) * n] = D[0, t]
+        for k, M in ((1, E), (2, F)):
+            if t >= k:
+                H[t * n:(t + 1) * n, (t - k) * n:(t - k + 1) * n] = M[0, t]
+                H[(t - k) * n:(t - k + 1) * n, t * n:(t + 1) * n] = M[0, t].T
+
+    # central differences of the gradient g (checked against autograd in the test above) in the hinges of
+    # all three frames, where the terms are linear pieces: exact to rounding. The limit term acts on the
+    # hinges whose steps exceed 0.1 rad; four of them (and one below it) in every frame:
+    step = q[0, :, 7:].diff(dim=0).abs().amax(0)  # (29,): the largest step of each hinge
+    hinges = [int(i) for i in step.argsort(descending=True)[:4]] + [int(step.argmin())]
+    eps = 1e-6
+    cols = [t * n + 6 + j for t in range(T) for j in hinges]
+    want = torch.zeros(T * n, len(cols), dtype=torch.float64)
+    for i, col in enumerate(cols):
+        t, j = divmod(col, n)
+        dq = torch.zeros_like(q)
+        dq[0, t, 7 + j - 6] = eps
+        want[:, i] = (terms.evaluate(q + dq)[4] - terms.evaluate(q - dq)[4]).reshape(-1) / (2 * eps)
+    torch.testing.assert_close(H[:, cols], want, atol=1e-6, rtol=1e-6)  # whole columns: D, E and F blocks
+    assert bool((step[hinges[:4]] > 0.1).all())  # 3 rad/s at 30 fps: the limit term is active on them
+
+
 def test_whole_clip_velocity_limits_are_hard():
     """velocity_limit: unconstrained, the first 16 frames of the shipped walk reach 12 rad/s; with a limit for
     every hinge and a tighter one for the knees the output's finite differences (numpy) stay within them,
