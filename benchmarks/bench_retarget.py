@@ -6,8 +6,9 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
 
 * ``diffkin``: ``retarget.clip`` on the five clips batched (B = 5, the first 74 frames of each), stage one
   (``warm_start="sequential"``: ``ik.solve`` frame after frame, or ``"batched"``: all frames in one call)
-  then the whole-clip optimisation (:func:`diffkin.retarget.optimize_clip`); frames per second over the
-  370 frames, each stage's share of the time.
+  then the whole-clip optimisation (:func:`diffkin.retarget.optimize_clip`, with the URDF's joint velocity
+  limits as hard constraints: ``velocity_limit=``); frames per second over the 370 frames, each stage's
+  share of the time; ``diffkin one clip``: the walk alone (B = 1), end to end through ``retarget.clip``.
 * ``mink``: frame by frame with mink (GMR's scheme: a ``FrameTask`` per mapped frame with the same scaled
   human targets, position cost 1 and orientation cost 0, a small ``PostureTask``,
   ``ConfigurationLimit``, ``solve_ik(..., "daqp")`` and ``integrate_inplace``, iterated on each frame
@@ -59,6 +60,15 @@ def mujoco_g1():
     return spec.compile()
 
 
+def g1_velocity_limits() -> dict[str, float]:
+    """The G1 URDF's joint velocity limits (rad/s, ``<limit velocity=...>``: its motors' 20-37 rad/s)."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(G1_URDF).getroot()
+    return {j.get("name"): float(j.find("limit").get("velocity")) for j in root.iter("joint")
+            if j.get("type") in ("revolute", "prismatic") and j.find("limit") is not None}
+
+
 def _metrics_row(m, b: int) -> dict:
     return {"limit violations": int(m.joint_limit_violations[b]),
             "worst excess rad": float(m.joint_limit_excess[b]), "skating mm": float(m.foot_skating[b]),
@@ -107,6 +117,21 @@ def _mink(chain, model, result, q_init, max_iter: int = 10):
     return torch.from_numpy(out), time.perf_counter() - start
 
 
+def _one_clip(g1, mp, motion, name: str, vmax: dict) -> list[dict]:
+    """The speed of one clip alone (B = 1, batched warm start then the whole-clip optimisation); the
+    median of three runs."""
+    from diffkin import retarget
+
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        r = retarget.clip(g1, motion, mp, warm_start="batched", velocity_limit=vmax)
+        times.append(time.perf_counter() - t0)
+    t = sorted(times)[1]
+    return [{"method": "diffkin one clip (batched warm start)", "clip": name, "frames/s": motion.frames / t,
+             **_metrics_row(r.metrics, 0)}]
+
+
 def run(args) -> list[dict]:
     from diffkin import models, retarget
     from diffkin.retarget.clip import _initial
@@ -118,6 +143,7 @@ def run(args) -> list[dict]:
     motion = retarget.Motion(torch.cat([c.positions for c in clips]), clips[0].names, clips[0].fps,
                              torch.cat([c.orientations for c in clips]))
     n = motion.batch * motion.frames
+    vmax = {j: v for j, v in g1_velocity_limits().items() if j in g1.joint_names}
     rows = []
     base = None
     for warm in ("sequential", "batched"):
@@ -125,7 +151,7 @@ def run(args) -> list[dict]:
         r = retarget.clip(g1, motion, mp, whole_clip=False, warm_start=warm)
         t1 = time.perf_counter()
         opt = retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
-                                     keypoint_frames=r.keypoint_frames, fps=motion.fps)
+                                     keypoint_frames=r.keypoint_frames, fps=motion.fps, velocity_limit=vmax)
         t2 = time.perf_counter()
         m = retarget.metrics(g1, opt.q, r.contacts, motion.fps, feet=mp.feet, keypoints=r.keypoints,
                              keypoint_frames=r.keypoint_frames)
@@ -137,6 +163,7 @@ def run(args) -> list[dict]:
             rows.append({"method": f"diffkin whole clip ({warm} warm start)", "clip": name,
                          "frames/s": n / (t2 - t0), "stage-two share": (t2 - t1) / (t2 - t0),
                          **_metrics_row(m, b)})
+    rows += _one_clip(g1, mp, clips[0], CLIPS[0], vmax)
     model = mujoco_g1()
     kp = base.keypoint_frames
     root = [f for f in kp if f not in mp.feet][0]

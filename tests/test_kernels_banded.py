@@ -70,3 +70,33 @@ def test_tridiagonal_solve_matches_scipy_banded_and_broadcasts():
         torch.testing.assert_close(x[b], torch.from_numpy(solve_banded((1, 1), ab.numpy(), rhs.numpy())))
     args = tuple(a[:1].clone().requires_grad_() for a in (sub, diag, sup)) + (rhs.clone().requires_grad_(),)
     assert torch.autograd.gradcheck(tridiagonal_solve, args)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_native_banded_solve_against_torch_loop(dtype):
+    """The C recursion (native.banded_solve, CPU without autograd) against the torch loop and the dense
+    solve, both dtypes, batched (2, 3) with broadcast blocks; a block that is not positive definite gives
+    NaN in its system only."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    H, D, E, F, g = _system(6, 7, 5, seed=3)
+    D, E, F, g, H = (t.reshape(2, 3, *t.shape[1:]) for t in (D, E, F, g, H))
+    D, E, F, g = (t.to(dtype) for t in (D, E, F, g))
+    got = native.banded_solve(D, E, F, g)
+    assert got is not None and got.dtype == dtype and got.shape == g.shape
+    with native.disabled():
+        ref = block_banded_solve(D, E, F, g)
+    want = torch.linalg.solve(H, g.double().reshape(2, 3, -1, 1)).reshape(g.shape)
+    tol = 1e-10 if dtype == torch.float64 else 2e-3
+    torch.testing.assert_close(got.double(), want, atol=tol, rtol=tol)
+    torch.testing.assert_close(got, ref, atol=tol, rtol=tol)
+    torch.testing.assert_close(block_banded_solve(D, E, F, g), got)  # the default path is the C one
+    one = native.banded_solve(D[0, 0], E[0, 0], F[0, 0], g[0, 0])  # no batch dimension
+    torch.testing.assert_close(one, got[0, 0])
+    bad = D.clone()
+    bad[1, 2, 4] = -bad[1, 2, 4]  # frame 4 of system (1, 2): negative definite
+    x = native.banded_solve(bad, E, F, g)
+    assert torch.isnan(x[1, 2]).any() and torch.isfinite(x[0]).all() and torch.isfinite(x[1, :2]).all()
+    assert native.banded_solve(D, E, F, g.requires_grad_()) is None  # autograd: the torch loop's

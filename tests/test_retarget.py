@@ -492,7 +492,8 @@ def test_whole_clip_gradient_against_autograd():
     """The normal equations' right-hand side g = Jᵀr of the Gauss–Newton step is the gradient of the cost
     (autograd, pulled back to velocity coordinates): exactly with the difference terms off, on the
     hinge and base-position columns with them on (their base-rotation Jacobian is approximated)."""
-    from diffkin.retarget.whole_clip import COSTS, _Terms
+    from diffkin.retarget.whole_clip import COSTS, _Terms, _velocity_limits
+    from diffkin.rotations import _skew
 
     mp = retarget.Mapping.builtin("g1")
     g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
@@ -512,11 +513,18 @@ def test_whole_clip_gradient_against_autograd():
     q_ref = q + 0.01 * torch.randn(q.shape, generator=gen, dtype=torch.float64)
     q_ref[..., 3:7] /= q_ref[..., 3:7].norm(dim=-1, keepdim=True)
     cs = g1.configuration_space
-    for costs, cols in (({"velocity": 0.0, "acceleration": 0.0, "posture": 0.0}, list(range(g1.nv))),
-                        ({}, [0, 1, 2, *range(6, g1.nv)])):
+    vmax = _velocity_limits(g1, 3.0, q)  # 0.1 rad per frame at 30 fps: active on many joints here
+    off = {"velocity": 0.0, "acceleration": 0.0, "posture": 0.0}
+    exact = [0, 1, 2, *range(6, g1.nv)]
+    rv = 0.5 * torch.randn(B, T, len(kp), 3, generator=gen, dtype=torch.float64)
+    R_d = torch.linalg.matrix_exp(_skew(rv))
+    ow = torch.rand(len(kp), generator=gen, dtype=torch.float64) * (torch.arange(len(kp)) % 2)  # some 0
+    cases = ((off, list(range(g1.nv)), None, None), ({}, exact, None, None), ({}, exact, vmax, None),
+             (off, list(range(g1.nv)), None, R_d))
+    for costs, cols, vel, ori in cases:
         w = {**COSTS, **costs}
         terms = _Terms(g1, x, contacts, list(mp.feet), kp, 30.0, 0.0, None,
-                       torch.ones(len(kp), dtype=torch.float64), w, q_ref, 0.0)
+                       torch.ones(len(kp), dtype=torch.float64), w, q_ref, 0.0, vel, ori, ow)
         qq = q.clone().requires_grad_()
         cost, D, E, F, g = terms.evaluate(qq)
         (grad,) = torch.autograd.grad(cost.sum(), qq)
@@ -524,6 +532,72 @@ def test_whole_clip_gradient_against_autograd():
         torch.testing.assert_close(g[..., cols], want[..., cols], atol=1e-8, rtol=1e-8)
         ev = torch.linalg.eigvalsh(D)  # JᵀJ: positive semi-definite
         assert torch.isfinite(D).all() and (ev > -1e-9 * ev.amax(-1, keepdim=True)).all()
+
+
+def test_whole_clip_orientation_targets_recover_the_wrists():
+    """Orientation targets (the robot's own link frames by diffkin FK): the wrist joints, which positions of
+    the wrist_yaw_link origin leave nearly unobservable, are recovered with the orientation term and not
+    without it; the term's frames are exactly where MuJoCo-free FK puts them (rotation angle < 1°)."""
+    from diffkin.kernels.pose_error import rotation_angle
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    T = 8
+    q = torch.zeros(1, T, g1.nq, dtype=torch.float64)
+    q[..., 2], q[..., 3] = 0.793, 1.0
+    col = {n: 7 + i for i, n in enumerate(g1.joint_names[1:])}
+    s = torch.linspace(0, 1, T, dtype=torch.float64)
+    wrists = ("left_wrist_roll_joint", "right_wrist_pitch_joint", "left_elbow_joint")
+    for j, amp in zip(wrists, (0.8, -0.6, 0.5)):
+        q[0, :, col[j]] = amp * s
+    kp = mp.keypoint_frames
+    idx = [g1.end_links.index(f) for f in kp]
+    with torch.no_grad():
+        Tk = g1.forward_kinematics(q)[..., idx, :, :]
+    start = q.clone()
+    start[..., 7:] = 0.0  # the standing posture: the arm motion is to be found
+    c = torch.ones(1, T, 2, dtype=torch.bool)
+    kw = dict(feet=mp.feet, keypoint_frames=kp, fps=30.0, iterations=8)
+    with_o = retarget.optimize_clip(g1, start, Tk[..., :3, 3], c, orientations=Tk[..., :3, :3],
+                                    orientation_weights=[1.0] * len(kp), costs={"orientation": 1.0}, **kw)
+    without = retarget.optimize_clip(g1, start, Tk[..., :3, 3], c, **kw)
+    for j in wrists:
+        torch.testing.assert_close(with_o.q[0, :, col[j]], q[0, :, col[j]], atol=2e-2, rtol=0)
+    assert (without.q[0, -1, col["left_wrist_roll_joint"]] - 0.8).abs() > 0.2
+    with torch.no_grad():
+        got = g1.forward_kinematics(with_o.q)[..., idx, :3, :3]
+    assert rotation_angle(Tk[..., :3, :3], got).max() < math.radians(1.0)
+    with pytest.raises(ShapeError, match="orientations"):
+        retarget.optimize_clip(g1, start, Tk[..., :3, 3], c, orientations=Tk[:, :2, :, :3, :3], **kw)
+    with pytest.raises(OptionError, match="orientation weights"):
+        retarget.optimize_clip(g1, start, Tk[..., :3, 3], c, orientations=Tk[..., :3, :3],
+                               orientation_weights=[-1.0] * len(kp), **kw)
+
+
+def test_clip_follows_human_orientations_with_orientation_weights():
+    """Mapping weights (w_pos, w_ori) > 0 on the wrists: clip follows the human wrists' frames (the BVH's
+    orientations) up to their fitted constant offsets more closely than with w_ori = 0."""
+    from diffkin.kernels.pose_error import rotation_angle
+    from diffkin.retarget.clip import _orientation_targets
+
+    mp0 = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp0.frames, floating_base=True, dtype=torch.float64)
+    hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 12)
+    mp = retarget.Mapping(mp0.pairs, feet=mp0.feet, contact_joints=mp0.contact_joints,
+                          weights={f"{s}_wrist_yaw_link": (1.0, 3.0) for s in ("left", "right")})
+    plain = retarget.clip(g1, hop, mp0, warm_start="batched", max_iterations=8, iterations=4)
+    ori = retarget.clip(g1, hop, mp, warm_start="batched", max_iterations=8, iterations=4)
+    frames = ["left_wrist_yaw_link", "right_wrist_yaw_link"]
+    k = [mp.keypoint_frames.index(f) for f in frames]
+
+    def spread(r):  # the wrists' deviation from the human's frames times the constant offsets fitted on r.q
+        target = _orientation_targets(g1, hop, mp, r.q)[:, :, k]
+        with torch.no_grad():
+            R = g1.forward_kinematics(r.q)[..., [g1.end_links.index(f) for f in frames], :3, :3]
+        return rotation_angle(target, R).mean()
+
+    assert spread(ori) < 0.3 * spread(plain)  # 0.7° against 5.4° when written
+    assert int(ori.metrics.joint_limit_violations) == 0 and ori.metrics.keypoint_error.item() < 80.0
 
 
 def test_optimize_clip_errors():
@@ -561,8 +635,81 @@ def test_optimize_clip_errors():
     out = retarget.optimize_clip(g1, q, x, c, iterations=0, **kw)
     torch.testing.assert_close(out.q, q)
     assert out.cost.shape == (1, 1)
+    with pytest.raises(ModelError, match="nojoint"):
+        retarget.optimize_clip(g1, q, x, c, velocity_limit={"nojoint": 1.0}, **kw)
+    with pytest.raises(OptionError, match="velocity_limit"):
+        retarget.optimize_clip(g1, q, x, c, velocity_limit=0.0, **kw)
+    with pytest.raises(ShapeError, match="velocity_limit"):
+        retarget.optimize_clip(g1, q, x, c, velocity_limit=[1.0, 2.0], **kw)
     cg = retarget.optimize_clip(g1, q, x, c, iterations=2, solver="cg", **kw)
     assert cg.cost[-1].item() < cg.cost[0].item()
+
+
+def test_whole_clip_difference_terms_hessian_by_differences():
+    """The banded normal matrix (D, E, F) of the terms that couple frames (velocity limits, velocity,
+    acceleration; every other weight 0) is their cost's Hessian in the hinge columns (central differences
+    of the gradient): the residuals are (piecewise) linear there, so Gauss–Newton's JᵀJ is exact."""
+    from diffkin.retarget.whole_clip import COSTS, _Terms, _velocity_limits
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    B, T = 1, 3  # T = 3: the F band (t, t − 2) is in
+    gen = torch.Generator().manual_seed(1)
+    q = torch.zeros(B, T, g1.nq, dtype=torch.float64)
+    q[..., 2], q[..., 3] = 0.78, 1.0
+    q[..., 7:] = 0.2 * torch.randn(B, T, g1.nq - 7, generator=gen, dtype=torch.float64)
+    kp = mp.keypoint_frames
+    x = torch.zeros(B, T, len(kp), 3, dtype=torch.float64)
+    c = torch.zeros(B, T, 2, dtype=torch.bool)
+    w = {k: 0.0 for k in COSTS} | {"velocity_limit": 10.0, "velocity": 0.3, "acceleration": 0.5}
+    terms = _Terms(g1, x, c, list(mp.feet), kp, 30.0, 0.0, None, torch.ones(len(kp), dtype=torch.float64), w,
+                   q.clone(), 0.0, _velocity_limits(g1, 3.0, q))
+    _, D, E, F, _ = terms.evaluate(q)
+    n = g1.nv
+    H = torch.zeros(T * n, T * n, dtype=torch.float64)
+    for t in range(T):  # the dense matrix of the lower blocks (a loop over the 3 frames of a test)
+        H[t * n:(t + 1) * n, t * n:(t + 1) * n] = D[0, t]
+        for k, M in ((1, E), (2, F)):
+            if t >= k:
+                H[t * n:(t + 1) * n, (t - k) * n:(t - k + 1) * n] = M[0, t]
+                H[(t - k) * n:(t - k + 1) * n, t * n:(t + 1) * n] = M[0, t].T
+
+    # central differences of the gradient g (checked against autograd in the test above) in the hinges of
+    # all three frames, where the terms are linear pieces: exact to rounding. The limit term acts on the
+    # hinges whose steps exceed 0.1 rad; four of them (and one below it) in every frame:
+    step = q[0, :, 7:].diff(dim=0).abs().amax(0)  # (29,): the largest step of each hinge
+    hinges = [int(i) for i in step.argsort(descending=True)[:4]] + [int(step.argmin())]
+    eps = 1e-6
+    cols = [t * n + 6 + j for t in range(T) for j in hinges]
+    want = torch.zeros(T * n, len(cols), dtype=torch.float64)
+    for i, col in enumerate(cols):
+        t, j = divmod(col, n)
+        dq = torch.zeros_like(q)
+        dq[0, t, 7 + j - 6] = eps
+        want[:, i] = (terms.evaluate(q + dq)[4] - terms.evaluate(q - dq)[4]).reshape(-1) / (2 * eps)
+    torch.testing.assert_close(H[:, cols], want, atol=1e-6, rtol=1e-6)  # whole columns: D, E and F blocks
+    assert bool((step[hinges[:4]] > 0.1).all())  # 3 rad/s at 30 fps: the limit term is active on them
+
+
+def test_whole_clip_velocity_limits_are_hard():
+    """velocity_limit: unconstrained, the first 16 frames of the shipped walk reach 12 rad/s; with a limit for
+    every hinge and a tighter one for the knees the output's finite differences (numpy) stay within them,
+    the joint limits hold and the contacts are kept."""
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(0, 16)
+    free = retarget.clip(g1, walk, mp, warm_start="batched", max_iterations=8, iterations=3)
+    assert free.metrics.max_joint_velocity.item() > 10.0
+    names = list(g1.joint_names[1:])
+    limit = {n: 8.0 for n in names} | {"left_knee_joint": 4.0, "right_knee_joint": 4.0}
+    r = retarget.clip(g1, walk, mp, warm_start="batched", max_iterations=8, iterations=3,
+                      velocity_limit=limit)
+    qd = np.abs(np.diff(r.q[0, :, 7:].numpy(), axis=0)) * walk.fps  # the hinges (free joint first)
+    bound = np.array([limit[n] for n in names])
+    assert (qd <= bound * (1 + 1e-9)).all() and (qd >= bound * (1 - 1e-6)).any()  # reached: it binds
+    assert int(r.metrics.joint_limit_violations) == 0
+    assert r.metrics.foot_skating.item() <= 10.0 and r.metrics.ground_penetration.item() <= 1.0
+    assert r.metrics.keypoint_error.item() < 80.0
 
 
 def test_clip_batched_warm_start():

@@ -27,6 +27,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from . import native
+
 __all__ = ["block_banded_cg", "block_banded_solve", "tridiagonal_solve"]
 
 
@@ -77,10 +79,15 @@ def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_bl
     ``frames_per_block`` k ≥ 2 regroups the frames into ⌈T/k⌉ super-blocks of k frames, which makes H
     block-tridiagonal: k times fewer sequential steps of k n × k n blocks (k² times the flops of the
     band, k times fewer small operations: for a GPU, where each launch costs more than its flops). None
-    or 1 (default): the two-band recursion frame by frame (on the 2-core CPU, B = 3, T = 120, n = 35:
-    0.21 s, against 0.19 s for k = 2 and 0.53 s for k = 4)."""
+    or 1 (default): the two-band recursion frame by frame; on CPU tensors without autograd in C
+    (:func:`diffkin.kernels.native.banded_solve`, the same recursion; the torch loop below where the
+    native kernel is not built)."""
     T = D.shape[-3]
     k = 1 if frames_per_block is None else int(frames_per_block)
+    if k < 2:  # CPU without autograd: the same recursion in C (native.banded_solve), else torch's below
+        x = native.banded_solve(D, E, F, g)
+        if x is not None:
+            return x
     if k >= 2:
         Dk, Ek, gk = _regroup(D, E, F, g, k)
         x = _band_cholesky_solve(Dk, Ek, None, gk)

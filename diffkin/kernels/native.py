@@ -60,12 +60,13 @@ from .tree import Segments, Topology
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
            "Collide", "capsules_clear",
            "native_model", "fk_jacobian", "status", "NativeBuildWarning", "Args",
-           "ABI_VERSION", "AbiMismatch", "solve_call"]
+           "ABI_VERSION", "AbiMismatch", "solve_call", "banded_solve"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
              Path(__file__).with_name("_native_collide.c"),
-             Path(__file__).with_name("_native_velocity.c"))
+             Path(__file__).with_name("_native_velocity.c"),
+             Path(__file__).with_name("_native_banded.c"))
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
@@ -183,6 +184,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
         fn = getattr(lib, name)
         fn.restype, fn.argtypes = _I64, [ctypes.POINTER(Args)]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
+    lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 5 + [_I64] * 5
     return lib
 
 
@@ -508,6 +510,31 @@ def solve_call(args: Args) -> None:
     """Run ``dk_solve`` (the whole IK solve, ``_native_solve.c``) on a filled :class:`Args`; raises on
     an allocation failure or an interface mismatch."""
     _raise_on(_lib.dk_solve(ctypes.byref(args)), "work space")
+
+
+def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
+    """x ``(..., T, n)`` with H x = g for the block-banded SPD H of ``D, E, F (..., T, n, n)`` (the lower
+    blocks of :func:`diffkin.kernels.banded.block_banded_solve`), by ``dk_banded_solve``
+    (``_native_banded.c``); None (nothing done) where the library is not loaded, or the inputs are not CPU
+    tensors of one float dtype without autograd. Systems are shared between threads (:func:`thread_count`
+    of the frames they hold)."""
+    dtype = g.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64) or torch.is_grad_enabled() and any(
+            t.requires_grad for t in (D, E, F, g)) or any(t.device.type != "cpu" or t.dtype != dtype
+                                                         for t in (D, E, F))):
+        return None
+    *lead, T, n = g.shape
+    if g.numel() == 0:
+        return torch.empty_like(g)
+    shape = (*lead, T, n, n)
+    D, E, F = (t.expand(shape).contiguous() for t in (D, E, F))
+    g = g.contiguous()
+    x = torch.empty_like(g)
+    batch = max(1, g.numel() // max(1, T * n))
+    threads = min(batch, thread_count(batch * T))
+    _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), g.data_ptr(), x.data_ptr(),
+                                   batch, T, n, g.element_size(), threads), "work space")
+    return x
 
 
 class Collide(ctypes.Structure):

@@ -88,6 +88,24 @@ def _initial(chain, X: Tensor, kp: list, root: str, feet, window: int) -> Tensor
     return q
 
 
+def _orientation_targets(chain, motion: Motion, mapping: Mapping, Q: Tensor) -> Tensor | None:
+    """Target rotations ``(B, T, K, 3, 3)`` of the keypoint frames: each human joint's frame times a constant
+    per-clip offset, the rotation nearest the mean of Rₕᵀ R_robot over the warm start ``Q`` (the polar
+    factor of their sum, det +1), since a human joint's frame and the robot link's differ by a rest-pose
+    rotation no clip states. None when the motion has no orientations."""
+    if motion.orientations is None:
+        return None
+    kp = mapping.keypoint_frames
+    Rh = motion.orientations[:, :, motion.index(mapping.human_joints)]
+    with torch.no_grad():
+        Rr = chain.forward_kinematics(Q)[..., [list(chain.end_links).index(f) for f in kp], :3, :3]
+    U, _, Vh = torch.linalg.svd((Rh.mT @ Rr).sum(1))  # (B, K, 3, 3)
+    flip = torch.ones_like(U[..., 0, :])
+    flip[..., -1] = torch.det(U @ Vh).sign()
+    offset = (U * flip.unsqueeze(-2)) @ Vh
+    return Rh @ offset.unsqueeze(1)
+
+
 def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
     """Per-clip scale ``(B,)``: the summed distances of the robot's keypoint frames to its root keypoint
     (the first paired frame that is not a foot, e.g. the pelvis) at the zero configuration, over the
@@ -109,7 +127,7 @@ def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
 def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float = 0.0,
          max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
          iterations: int = 10, costs: dict | None = None, solver: str = "banded",
-         warm_start: str = "sequential") -> RetargetResult:
+         warm_start: str = "sequential", velocity_limit=None) -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
     ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
 
@@ -122,9 +140,11 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
     (``mapping.contacts``; ``contact_thresholds`` overrides its ``height``/``speed``/``ground``).
 
     Stage two (``whole_clip=True``): :func:`~diffkin.retarget.optimize_clip` over all frames of all clips
-    at once (``iterations``, ``costs``, ``solver`` are its), with the mapping's position weights and
-    soles. The metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage
-    one's.
+    at once (``iterations``, ``costs``, ``solver``, ``velocity_limit`` are its: joint velocity limits as
+    hard constraints, e.g. the motors' rad/s), with the mapping's position weights and soles; pairs with an
+    orientation weight follow their human joint's frame (``motion.orientations``) up to a per-clip
+    constant rotation fitted on stage one's answer. The
+    metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage one's.
     """
     mapping.check(motion)
     check_count(max_iterations, "max_iterations")
@@ -135,7 +155,8 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
                          f"{mapping.frames} (build it with mapping.frames)")
     if not chain.joint_kinds or chain.joint_kinds[0] != "free":
         raise ModelError("clip needs a floating-base chain (a free joint first)")
-    motion_c = Motion(motion.positions.to(chain.dtype), motion.names, motion.fps)
+    motion_c = Motion(motion.positions.to(chain.dtype), motion.names, motion.fps,
+                      None if motion.orientations is None else motion.orientations.to(chain.dtype))
     s = fit_scale(chain, motion_c, mapping) if scale is None else torch.as_tensor(
         scale, dtype=chain.dtype).reshape(-1).expand(motion.batch)
     X = mapping.targets(motion_c, s)  # (B, T, K, 3)
@@ -163,10 +184,12 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
                 keypoint_frames=kp, sole=sole)
     warm, cost = None, None
     if whole_clip:
-        weights = mapping.weights[[mapping.frames.index(f) for f in kp], 0]
+        weights = mapping.weights[[mapping.frames.index(f) for f in kp]]
+        ori = _orientation_targets(chain, motion_c, mapping, Q) if bool((weights[:, 1] > 0).any()) else None
         opt = optimize_clip(chain, Q, X, contacts, feet=mapping.feet, keypoint_frames=kp, fps=motion.fps,
-                            ground=ground, sole=sole, keypoint_weights=weights, costs=costs,
-                            iterations=iterations, solver=solver)
+                            ground=ground, sole=sole, keypoint_weights=weights[:, 0], costs=costs,
+                            iterations=iterations, solver=solver, velocity_limit=velocity_limit,
+                            orientations=ori, orientation_weights=None if ori is None else weights[:, 1])
         Q, cost, warm = opt.q, opt.cost, m
         m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
                     keypoint_frames=kp, sole=sole)

@@ -9,24 +9,32 @@ term                   residual                                               fr
 =====================  =====================================================  ==========================
 ``keypoint``           w w_k (p_k(q_t) − x_{k,t}): the mapped frames on the     every frame
                        scaled human joints (``w_k`` the mapping's weights)
+``orientation``        w w_o e_O(R_d, R_k(q_t)) (3.85): the mapped frames'      every frame (with
+                       orientation on target rotations R_d (``w_o`` the     ``orientations``)
+                       mapping's orientation weights)
 ``contact_height``     w (z_lowest − ground): the lowest sole point on the      a foot in contact
                        ground (no floating, no penetration)
 ``skating``            w (c_t − c_{t−1})_xy: the sole centre does not slide     both in one contact phase
 ``flat_foot``          w (R_f e_z)_xy: the sole level                           a foot in contact
 ``penetration``        w min(0, z_p − r_p − ground) for every sole point        every frame
 ``limit``              w (q − (q_max − m))⁺ − w ((q_min + m) − q)⁺              every frame (hinges)
+``velocity_limit``     w (|Δq| − q̇_max/fps)⁺ sign(Δq), Δq = q_t − q_{t−1}        t ≥ 1 (hinges, slides; with
+                                                                              ``velocity_limit``)
 ``velocity``           w (q_t ⊖ q_{t−1})                                        t ≥ 1
 ``acceleration``       w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1}))                     1 ≤ t ≤ T − 2
 ``posture``            w (q_t ⊖ q_t⁰): stay near the warm start q⁰              every frame
 =====================  =====================================================  ==========================
 
 Point Jacobians come from the chain's geometric Jacobian (3.30) at the frame origin o: J_p = J_v − S(p − o)
-J_ω (the velocity of a point of the body, (3.26)); the sole's normal R e_z moves as −S(R e_z) J_ω. The
+J_ω (the velocity of a point of the body, (3.26)); the sole's normal R e_z moves as −S(R e_z) J_ω; the
+orientation error e_O of (3.85) as −L J_ω with L of (3.87) (exact: ė_O = Lᵀω_d − Lω_e). The
 difference terms take ∂(q_t ⊖ q_{t−1})/∂δ ≈ (I at t, −I at t−1) (exact for hinges and the base position).
 The residuals couple at most three consecutive frames, so the normal matrix JᵀJ is block-banded with two
 bands and each step is one block-banded Cholesky solve (:func:`diffkin.kernels.banded.block_banded_solve`,
 O(T nv³)). A step is kept per clip when it lowers that clip's cost (the damping λ then shrinks, else it
-grows); after each step the hinges are projected onto their limits, so the result never violates them.
+grows); after each step the hinges are projected onto their limits (and, with ``velocity_limit``, frame
+after frame onto [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max]), so the result never violates
+them: hard constraints, whose penalty rows steer the steps away from the projection.
 """
 
 from __future__ import annotations
@@ -35,19 +43,24 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from torch.nn import functional as nn
 
 from ..errors import ModelError, OptionError, ShapeError
+from ..ik.closed_loop import _L_matrix
+from ..jacobian import _shift_jacobian_point
 from ..kernels.banded import block_banded_cg, block_banded_solve
+from ..kernels.pose_error import orientation_error
 from ..rotations import _skew
 from ..validation import as_tensor, check_count, check_finite, check_number, shape_str
-from .metrics import _finite
+from .metrics import _finite, _scalar_columns
 from .sole import Sole, sole_of
 
 __all__ = ["COSTS", "ClipOptimization", "optimize_clip"]
 
 #: default weights of the whole-clip terms (module doc); lengths in metres, angles in rad per frame.
-COSTS = {"keypoint": 1.0, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3, "penetration": 300.0,
-         "limit": 10.0, "velocity": 0.02, "acceleration": 0.3, "posture": 0.01}
+COSTS = {"keypoint": 1.0, "orientation": 0.1, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3,
+         "penetration": 300.0, "limit": 10.0, "velocity_limit": 10.0, "velocity": 0.02, "acceleration": 0.3,
+         "posture": 0.01}
 
 
 @dataclass
@@ -63,13 +76,21 @@ class _Terms:
     """The residual layout of one problem (weights, sole geometry, index maps)."""
 
     def __init__(self, chain, keypoints, contacts, feet, keypoint_frames, fps, ground, sole, kp_weights, w,
-                 q_ref, limit_margin):
+                 q_ref, limit_margin, velocity_limit=None, orientations=None, orientation_weights=None):
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
+        self._F = None
         self.fps = fps
         self.kp_idx = [ends.index(f) for f in keypoint_frames]
         self.kp_w = kp_weights
+        # orientation targets (B, T, K_o, 3, 3) of the keypoint frames with a weight > 0 (their indices)
+        self.ori = None
+        if orientations is not None and bool((orientation_weights > 0).any()):
+            sel = (orientation_weights > 0).nonzero().flatten().tolist()
+            self.ori = orientations[:, :, sel]
+            self.ori_idx = [self.kp_idx[k] for k in sel]
+            self.ori_w = orientation_weights[sel]
         self.feet_idx = [ends.index(f) for f in feet]
         self.soles = []
         for f in feet:
@@ -84,10 +105,41 @@ class _Terms:
         if lim is None:
             lim = torch.full((len(self.sq), 2), float("inf"), dtype=keypoints.dtype, device=keypoints.device)
             lim[:, 0] = -lim[:, 0]
+        self.lo_hard, self.hi_hard = lim[:, 0], lim[:, 1]
         self.lo, self.hi = lim[:, 0] + limit_margin, lim[:, 1] - limit_margin
+        # q̇_max / fps (rad or m per frame) on the scalar q columns (inf on the base position)
+        self.vstep = None if velocity_limit is None else velocity_limit.index_select(0, self.sq) / fps
+
+    def project(self, q: Tensor) -> Tensor:
+        """``q (B, T, nq)`` onto the joint limits and, with velocity limits, frame after frame onto
+        [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max] on the scalar columns (a loop over
+        time: each frame's interval depends on the projected frame before it; it meets the limits' range
+        because q_{t−1} is in it)."""
+        q = self.chain.clamp_to_limits(q, check=False)
+        if self.vstep is None or q.shape[1] < 2:
+            return q
+        qs = q.index_select(-1, self.sq)
+        out = [qs[:, 0]]
+        for t in range(1, q.shape[1]):
+            lo = torch.maximum(out[-1] - self.vstep, self.lo_hard)
+            hi = torch.minimum(out[-1] + self.vstep, self.hi_hard)
+            out.append(torch.minimum(torch.maximum(qs[:, t], lo), hi))
+        return q.index_copy(-1, self.sq, torch.stack(out, 1))
+
+    def _frames(self, X: Tensor, idx: list[int]) -> Tensor:
+        """``X[:, :, idx]`` (dim 2: the chain's end links), a view where ``idx`` is a run of frames."""
+        if idx == list(range(idx[0], idx[0] + len(idx))):
+            return X[:, :, idx[0]:idx[0] + len(idx)]
+        return X.index_select(2, torch.tensor(idx, device=X.device))
 
     def evaluate(self, q: Tensor):
-        """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``."""
+        """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``.
+
+        The rows of one frame (keypoints, the soles' contact, penetration and level rows) are stacked into
+        ``J_f (B, T, m, nv)`` and enter D as one batched product J_fᵀ J_f; the skating rows couple
+        consecutive frames, their diagonal part joins that product (each frame's sole-centre Jacobian
+        weighted by the root of the summed squared weights of its two pairs), their off-diagonal part is
+        one more product; the limit, posture and difference terms are multiples of the identity."""
         chain, w = self.chain, self.w
         B, T, nq = q.shape
         nv = chain.nv
@@ -96,26 +148,29 @@ class _Terms:
             Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
         Ta = Ta.reshape(B, T, *Ta.shape[1:])
         Ja = Ja.reshape(B, T, *Ja.shape[1:])
-        rows, jacs = [], []
+        rows, jacs, d_only = [], [], []  # d_only: rows entering D only (skating's diagonal part)
         # keypoints
-        kp = torch.tensor(self.kp_idx, device=q.device)
-        p = Ta.index_select(2, kp)[..., :3, 3]
-        Jp = Ja.index_select(2, kp)[..., :3, :]
+        p = self._frames(Ta, self.kp_idx)[..., :3, 3]
+        Jp = self._frames(Ja, self.kp_idx)[..., :3, :]
         sw = (w["keypoint"] * self.kp_w).to(q)[:, None]  # (K, 1)
         rows.append((sw * (p - self.x)).flatten(2))
         jacs.append((sw[..., None] * Jp).flatten(2, 3))
+        if self.ori is not None:  # orientations: r = w e_O (3.85), ∂r/∂δ = −w L J_ω (3.87)
+            R_e = self._frames(Ta, self.ori_idx)[..., :3, :3]
+            e_o, _ = orientation_error(self.ori, R_e, "axis_angle")
+            wo = (w["orientation"] * self.ori_w).to(q)[:, None]  # (K_o, 1)
+            L = _L_matrix(self.ori, R_e)
+            rows.append((wo * e_o).flatten(2))
+            jacs.append((-wo[..., None] * (L @ self._frames(Ja, self.ori_idx)[..., 3:, :])).flatten(2, 3))
         cost = 0.0
-        D = torch.zeros(B, T, nv, nv, dtype=q.dtype, device=q.device)
-        E = torch.zeros_like(D)
-        F = torch.zeros_like(D)
         g = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
+        skate_new, skate_old = [], []  # the skating rows of frames t and t − 1, for E
         for k, (fi, (pts, rad)) in enumerate(zip(self.feet_idx, self.soles)):
             Tf, Jf = Ta[:, :, fi], Ja[:, :, fi]
             R, o = Tf[..., :3, :3], Tf[..., :3, 3]
             off = (R.unsqueeze(-3) @ pts.unsqueeze(-1)).squeeze(-1)  # (B, T, P, 3)
             world = off + o.unsqueeze(-2)
-            Jv, Jw = Jf[..., :3, :].unsqueeze(-3), Jf[..., 3:, :].unsqueeze(-3)
-            Jpt = Jv - _skew(off) @ Jw  # (B, T, P, 3, nv): (3.26) for each sole point
+            Jpt = _shift_jacobian_point(Jf.unsqueeze(-3), off)[..., :3, :]  # (B, T, P, 3, nv): (3.112)
             h = world[..., 2] - rad - self.ground  # (B, T, P)
             c = self.c[..., k].to(q.dtype)  # (B, T)
             lowest = h.argmin(-1, keepdim=True)
@@ -133,19 +188,24 @@ class _Terms:
             jacs.append(wf[..., None] * (-_skew(n) @ Jf[..., 3:, :])[..., :2, :])
             if T > 1:  # skating: the sole centre of consecutive contact frames
                 ctr, Jc = world.mean(-2)[..., :2], Jpt.mean(-3)[..., :2, :]
-                both = (self.c[:, 1:, k] & self.c[:, :-1, k]).to(q.dtype)[..., None] * w["skating"]
-                r = both * (ctr[:, 1:] - ctr[:, :-1])
-                Jn, Jo = both[..., None] * Jc[:, 1:], -both[..., None] * Jc[:, :-1]
+                both = (self.c[:, 1:, k] & self.c[:, :-1, k]).to(q.dtype) * w["skating"]  # (B, T - 1)
+                r = both[..., None] * (ctr[:, 1:] - ctr[:, :-1])
                 cost = cost + 0.5 * r.square().flatten(1).sum(-1)
-                D[:, 1:] += Jn.mT @ Jn
-                D[:, :-1] += Jo.mT @ Jo
-                E[:, 1:] += Jn.mT @ Jo
-                g[:, 1:] += (Jn.mT @ r.unsqueeze(-1)).squeeze(-1)
-                g[:, :-1] += (Jo.mT @ r.unsqueeze(-1)).squeeze(-1)
+                gr = (Jc.mT @ nn.pad(both[..., None] * r, (0, 0, 1, 0)).unsqueeze(-1)).squeeze(-1)
+                g += gr - (Jc.mT @ nn.pad(both[..., None] * r, (0, 0, 0, 1)).unsqueeze(-1)).squeeze(-1)
+                wd = (nn.pad(both, (1, 0)).square() + nn.pad(both, (0, 1)).square()).sqrt()  # (B, T)
+                d_only.append(wd[..., None, None] * Jc)
+                skate_new.append(both[..., None, None] * Jc[:, 1:])
+                skate_old.append(both[..., None, None] * Jc[:, :-1])
         r_f, J_f = torch.cat(rows, -1), torch.cat(jacs, -2)
         cost = cost + 0.5 * r_f.square().flatten(1).sum(-1)
-        D += J_f.mT @ J_f
+        J_d = torch.cat((J_f, *d_only), -2) if d_only else J_f
+        D = J_d.mT @ J_d
         g += (J_f.mT @ r_f.unsqueeze(-1)).squeeze(-1)
+        E = torch.zeros_like(D)
+        if skate_new:
+            Jn, Jo = torch.cat(skate_new, -2), torch.cat(skate_old, -2)
+            E[:, 1:] = -(Jn.mT @ Jo)
         # joint limits (diagonal in the scalar velocity columns)
         qs = q.index_select(-1, self.sq)
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
@@ -155,42 +215,110 @@ class _Terms:
         diag = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
         diag[..., self.sv] += act
         g[..., self.sv] += w["limit"] * r_l
+        if T > 1 and self.vstep is not None:  # velocity limits: ±(I, −I) on the scalar columns where beyond
+            dq = qs[:, 1:] - qs[:, :-1]
+            ex = (dq.abs() - self.vstep).clamp_min(0)
+            wl = w["velocity_limit"]
+            r_v = wl * ex * dq.sign()
+            cost = cost + 0.5 * r_v.square().flatten(1).sum(-1)
+            act = (ex > 0).to(q.dtype) * wl**2  # (B, T - 1, n_s)
+            diag[:, 1:, self.sv] += act
+            diag[:, :-1, self.sv] += act
+            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv] -= act
+            g[:, 1:, self.sv] += wl * r_v
+            g[:, :-1, self.sv] -= wl * r_v
         # posture: near the warm start
         dp = self.chain.configuration_space.difference(self.q_ref, q)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
         diag += w["posture"] ** 2
         g += w["posture"] ** 2 * dp
-        D += torch.diag_embed(diag)
-        eye = torch.eye(nv, dtype=q.dtype, device=q.device)
         if T > 1:  # velocity: J = (I at t, −I at t−1)
             d = self.chain.configuration_space.difference(q[:, :-1], q[:, 1:])  # (B, T-1, nv)
             wv = w["velocity"] ** 2
             cost = cost + 0.5 * wv * d.square().flatten(1).sum(-1)
-            D[:, 1:] += wv * eye
-            D[:, :-1] += wv * eye
-            E[:, 1:] -= wv * eye
+            diag[:, 1:] += wv
+            diag[:, :-1] += wv
+            e = torch.full((T,), -wv, dtype=q.dtype, device=q.device)
             g[:, 1:] += wv * d
             g[:, :-1] -= wv * d
             if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
                 a = d[:, 1:] - d[:, :-1]  # (B, T-2, nv), centred at frames 1..T-2
                 wa = w["acceleration"] ** 2
                 cost = cost + 0.5 * wa * a.square().flatten(1).sum(-1)
-                D[:, :-2] += wa * eye
-                D[:, 1:-1] += 4 * wa * eye
-                D[:, 2:] += wa * eye
-                E[:, 1:-1] -= 2 * wa * eye
-                E[:, 2:] -= 2 * wa * eye
-                F[:, 2:] += wa * eye
+                diag[:, :-2] += wa
+                diag[:, 1:-1] += 4 * wa
+                diag[:, 2:] += wa
+                e[1:-1] -= 2 * wa
+                e[2:] -= 2 * wa
                 g[:, :-2] += wa * a
                 g[:, 1:-1] -= 2 * wa * a
                 g[:, 2:] += wa * a
-        return cost, D, E, F, g
+            e[0] = 0.0
+            E.diagonal(dim1=-2, dim2=-1).add_(e[:, None])
+        D.diagonal(dim1=-2, dim2=-1).add_(diag)
+        return cost, D, E, self._second_band(D), g
+
+    def _second_band(self, like: Tensor) -> Tensor:
+        """F: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q (made once)."""
+        if self._F is None or self._F.shape != like.shape:
+            F = torch.zeros_like(like)
+            if like.shape[1] > 2:
+                F[:, 2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
+            self._F = F
+        return self._F
+
+
+def _orientation_targets(orientations, weights, shape: tuple, like: Tensor):
+    """Checked ``orientations (B, T, K, 3, 3)`` and ``weights (K,)`` (≥ 0) in ``like``'s dtype, or
+    (None, None) without orientations."""
+    if orientations is None:
+        return None, None
+    R = check_finite(as_tensor(orientations, "orientations", dtype=like.dtype, device=like.device),
+                     "orientations")
+    if tuple(R.shape) != (*shape, 3, 3):
+        raise ShapeError(f"expected orientations of shape {shape_str((*shape, 3, 3))}, got "
+                         f"{shape_str(R.shape)}")
+    ow = torch.ones(shape[2], dtype=like.dtype, device=like.device) if weights is None else check_finite(
+        as_tensor(weights, "orientation_weights", dtype=like.dtype, device=like.device).reshape(-1),
+        "orientation_weights")
+    if ow.shape[0] != shape[2] or bool((ow < 0).any()):
+        raise OptionError(f"expected {shape[2]} orientation weights >= 0, got {ow.tolist()}")
+    return R.detach(), ow
+
+
+def _velocity_limits(chain, limit, like: Tensor) -> Tensor | None:
+    """q̇_max ``(nq,)`` (inf outside the scalar joints) from a number, a sequence over the scalar joints
+    (hinges, slides) or ``{joint name: limit}`` (inf: free), checked > 0; None for None."""
+    if limit is None:
+        return None
+    names = [n for n, k in zip(chain.joint_names, chain.joint_kinds) if k not in ("free", "ball")]
+    full = torch.full((chain.nq,), float("inf"), dtype=like.dtype, device=like.device)
+    cols = torch.tensor(_scalar_columns(chain), dtype=torch.long, device=like.device)
+    if isinstance(limit, dict):
+        unknown = sorted(set(limit) - set(names))
+        if unknown:
+            raise ModelError(f"velocity_limit names joints {unknown} that are not scalar joints of the chain "
+                             f"{names}")
+        v = torch.full((len(names),), float("inf"), dtype=like.dtype, device=like.device)
+        for name, value in limit.items():
+            v[names.index(name)] = check_number(value, f"velocity_limit[{name!r}]", unit=" rad/s")
+        return full.index_copy(0, cols, v)
+    v = as_tensor(limit, "velocity_limit", dtype=like.dtype, device=like.device).reshape(-1)
+    if v.numel() == 1:
+        v = v.expand(len(names))
+    if v.shape[0] != len(names):
+        raise ShapeError(f"expected velocity_limit as a number or {len(names)} values (the scalar joints), "
+                         f"got {v.shape[0]}")
+    if bool(torch.isnan(v).any() | (v <= 0).any()):
+        raise OptionError(f"expected velocity_limit > 0 (inf: free), got {v.tolist()}")
+    return full.index_copy(0, cols, v)
 
 
 def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, ground: float = 0.0,
                sole: dict | None = None, keypoint_weights=None, costs: dict | None = None,
                iterations: int = 10, limit_margin: float = 0.0, damping: float = 1e-4, solver: str = "banded",
-               cg_iterations: int = 30) -> ClipOptimization:
+               cg_iterations: int = 30, velocity_limit=None, orientations=None,
+               orientation_weights=None) -> ClipOptimization:
     """Optimise a warm-started clip ``q (B, T, nq)`` over all frames at once (module doc).
 
     Args:
@@ -212,6 +340,12 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         solver: ``"banded"``, the exact block-banded Cholesky solve (a loop over T), or ``"cg"``,
             ``cg_iterations`` steps of block-Jacobi conjugate gradients (batched over T; for long clips on
             a GPU).
+
+        orientations: optional target rotations ``(B, T, K, 3, 3)`` of ``keypoint_frames`` (world from
+            frame), followed where ``orientation_weights (K,)`` (the mapping's) is > 0.
+        velocity_limit: optional q̇_max of the scalar joints (hinges: rad/s, slides: m/s): a number for
+            every one, ``(n_scalar,)`` in the chain's joint order, or ``{joint name: limit}`` (others
+            free); kept as a hard constraint (module doc). None: no limit.
 
     Returns a :class:`ClipOptimization`.
     """
@@ -257,9 +391,11 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
     if bool((kw < 0).any()):
         raise OptionError("expected keypoint_weights >= 0")
     q = q.detach()
+    vmax = _velocity_limits(chain, velocity_limit, q)
+    R_d, ow = _orientation_targets(orientations, orientation_weights, (B, T, len(frames)), q)
     terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
-                   limit_margin)
-    q = chain.clamp_to_limits(q, check=False)
+                   limit_margin, vmax, R_d, ow)
+    q = terms.project(q)
     with torch.no_grad():
         cur = terms.evaluate(q)
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
@@ -273,11 +409,13 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                 step = -block_banded_cg(Dl, E, F, g, cg_iterations)
             else:
                 step = -block_banded_solve(Dl, E, F, g)
-            trial = chain.clamp_to_limits(chain.configuration_space.integrate(q, step), check=False)
+            trial = terms.project(chain.configuration_space.integrate(q, step))
             new = terms.evaluate(trial)
             ok = torch.isfinite(new[0]) & (new[0] < cost)
             q = torch.where(ok[:, None, None], trial, q)
-            cur = tuple(torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a) for a, b in zip(cur, new))
+            # F is the same at every q: the other parts are taken per clip from the trial where it is kept
+            cur = tuple(b if k == 3 else torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a)
+                        for k, (a, b) in enumerate(zip(cur, new)))
             lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
             history.append(cur[0])
     return ClipOptimization(q, torch.stack(history))
