@@ -23,7 +23,9 @@ loopback interface unless told otherwise — that shows a :class:`~diffkin.chain
   joint limits nor exceeds ``drag_speed``);
 * trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second), and of
   a retargeted human clip (a :class:`~diffkin.retarget.RetargetResult`, its human keypoints drawn beside
-  the robot, or the ``.npz`` its ``save`` writes), at the clip's frame rate.
+  the robot, or the ``.npz`` its ``save`` writes), at the clip's frame rate, and of a planned motion (a
+  :class:`~diffkin.motion.MotionResult` or the ``.npz`` of ``diffkin plan``: one problem up to its end, at
+  its rate 1 / dt).
 
 Nothing here imports viser until a viewer is made: ``import diffkin`` and ``import diffkin.viz`` work
 without the extra, and :func:`show` raises :class:`~diffkin.errors.DiffkinError` naming it.
@@ -37,6 +39,7 @@ Example::
     viewer.set_q([0, -0.5, 0, -2.0, 0, 1.6, 0.8])         # (n,)
     viewer.solve_to(T_target)                            # (4, 4): IK, seeded from the current q
     viewer.play(trajectory, fps=30)                       # (N, n) tensor / array, or a .npy/.npz/.csv file
+    viewer.play(motion.plan(...), problem=2)              # a planned motion, at its rate
     viewer.close()
 """
 
