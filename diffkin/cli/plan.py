@@ -324,18 +324,17 @@ def plan_rows(chain, problems, output, *, chunk_size: int, start: int = 0, stop:
     try:
         for a, res in done:
             tr = res.state(t)  # on the common grid (rows past their end hold the goal at rest)
-            ok = res.success.cpu().numpy()
+            ok, duration, n_way = res.success.cpu().numpy(), host(res.duration), res.n_waypoints.tolist()
             B = ok.shape[0]
-            for i in range(B):
-                summary.append((a + i, bool(ok[i]), float(res.duration[i]), int(res.n_waypoints[i]),
-                                res.interpolation[i], res.reason[i]))
+            summary += [(a + i, bool(ok[i]), float(duration[i]), n_way[i], res.interpolation[i],
+                         res.reason[i]) for i in range(B)]  # the report's lines (one transfer per chunk)
             cols = {"t": np.broadcast_to(host(t.to(chain.dtype)), (B, S)), "q": host(tr.position),
                     "qd": host(tr.velocity), "qdd": host(tr.acceleration), "success": ok,
-                    "duration": host(res.duration), "reason": np.array(res.reason, dtype=f"<U{REASON_WIDTH}"),
+                    "duration": duration, "reason": np.array(res.reason, dtype=f"<U{REASON_WIDTH}"),
                     "q_goal": host(res.q_goal)}
             if figure is None and ok.any():
                 i = int(ok.nonzero()[0][0])
-                figure = (a + i, *(cols[k][i] for k in ("t", "q", "qd", "qdd")), float(res.duration[i]))
+                figure = (a + i, *(cols[k][i] for k in ("t", "q", "qd", "qdd")), float(duration[i]))
             if output is None:
                 continue
             if writer is None:
