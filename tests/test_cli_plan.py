@@ -135,3 +135,118 @@ def test_demo_motion_section(tmp_path):
     section_motion(report, quick=True)
     assert report.failures == [] and "| success | True |" in report.sections[-1]
     assert (tmp_path / "motion_plan.png").stat().st_size > 10_000
+
+
+def _pin_pose(q: np.ndarray) -> np.ndarray:
+    """fr3_link8's pose (4, 4) at q by Pinocchio (the reference for the pose goals)."""
+    pin = pytest.importorskip("pinocchio")
+    model = pin.buildModelFromUrdf(str(FR3))
+    data = model.createData()
+    pin.framesForwardKinematics(model, data, np.asarray(q, np.float64))
+    return data.oMf[model.getFrameId("fr3_link8")].homogeneous
+
+
+def test_plan_pose_goals_from_the_command_line_and_a_file(files, capsys):
+    """--goal-pose x y z qw qx qy qz and --goal-pose-file: plan's pose goals (collision-free IK, then the
+    search around the sphere); the motions end at rest where Pinocchio puts fr3_link8 on the goal pose."""
+    from scipy.spatial.transform import Rotation
+
+    T = _pin_pose(GOAL)
+    w_xyz = np.roll(Rotation.from_matrix(T[:3, :3]).as_quat(), 1)  # scipy: x y z w → w x y z
+    out = files / "pose.npz"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        pose = [f"{x:.15f}" for x in (*T[:3, 3], *w_xyz)]  # argparse: "-1e-16" would read as an option
+        rc = main(_args(files, "--start", *map(str, START), "--goal-pose", *pose, "--output", str(out)))
+    assert rc == 0 and "problem 0: success" in capsys.readouterr().out
+    z = np.load(out)
+    assert z["success"].all()
+    q_end = z["q"][0, -1]
+    assert np.array_equal(q_end, z["q_goal"][0]) and np.abs(z["qd"][0, -1]).max() == 0
+    got = _pin_pose(q_end)
+    assert np.abs(got[:3, 3] - T[:3, 3]).max() < 1e-4
+    assert Rotation.from_matrix(got[:3, :3].T @ T[:3, :3]).magnitude() < 1e-3
+    # a file of two (4, 4) goal poses for two starts
+    poses = np.stack([T, _pin_pose([-0.6, 0.2, 0.0, -1.9, 0.0, 2.0, 0.6])])
+    np.save(files / "T.npy", poses)
+    np.save(files / "q0.npy", np.array([START, START]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main(_args(files, "--start-file", str(files / "q0.npy"), "--goal-pose-file",
+                          str(files / "T.npy"), "--output", str(out))) == 0
+    z = np.load(out)
+    assert z["success"].all() and z["q"].shape[0] == 2
+    for b in range(2):
+        assert np.abs(_pin_pose(z["q"][b, -1])[:3, 3] - poses[b, :3, 3]).max() < 1e-4
+    capsys.readouterr()
+    for extra, needle in [(["--goal-pose", "0.5", "0", "0.5", "1", "0", "0"], "7 numbers"),
+                          (["--goal", *map(str, GOAL), "--goal-pose", *["0"] * 7], "exactly one of")]:
+        assert main(_args(files, "--start", *map(str, START), *extra, "--output", str(out))) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("error:") and needle in err, err
+
+
+PROBLEMS = np.array([START, [0.7, 0.2, 0.1, -1.9, 0.0, 2.0, 0.6], [0.0, 0.3, 0.0, -2.0, 0.0, 2.1, 0.785],
+                     [-0.5, 0.0, 0.0, -1.5, 0.0, 1.8, 0.0]])  # 2 detour the sphere, 1 starts in it, 1 is free
+
+
+def test_plan_chunks_are_seeded_by_their_first_row_so_shards_equal_one_run(files):
+    """plan_rows (the stream run_sharded shards): rows [2, 4) planned alone equal those rows of the whole
+    batch (chunk [a, b) seeded from (seed, a)); the two shards' parts merged (joint names once) are the
+    single file wherever the shards' time grids agree, the tail of the shorter one resting at its goal."""
+    from diffkin.cli.plan import plan_rows
+    from diffkin.io import distributed as dist
+
+    chain = diffkin.models.from_urdf(FR3, "fr3_link8", dtype=torch.float64).requires_grad_(False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        robot = RobotCollision.from_urdf(FR3, chain, srdf=SRDF).requires_grad_(False)
+    world = read_world(files / "world.yaml", dtype=torch.float64)
+    q0 = torch.as_tensor(PROBLEMS)
+    problems = (q0, torch.tensor([GOAL] * 4, dtype=torch.float64))
+    kw = dict(chunk_size=1, seed=3, collision=robot, world=world, resolution=0.01, acceleration_limit=5.0,
+              joint_names=chain.joint_names)
+    whole = plan_rows(chain, problems, files / "one.npz", **kw)
+    out = files / "T.npz"
+    parts = [plan_rows(chain, problems, dist.part_path(out, r, 2), start=a, stop=b, **kw)
+             for r, (a, b) in enumerate(((0, 2), (2, 4)))]
+    assert [p[:2] for p in whole.problems] == [(0, True), (1, True), (2, False), (3, True)]
+    assert [p for s in parts for p in s.problems] == whole.problems  # durations, waypoints, reasons
+    with np.load(dist.part_path(out, 1, 2)) as p1, np.load(files / "one.npz") as one:
+        S = p1["q"].shape[1]
+        assert S < one["q"].shape[1]
+        assert np.array_equal(p1["q"], one["q"][2:, :S]) and np.array_equal(p1["qd"], one["qd"][2:, :S])
+        assert (one["q"][3, S:] == GOAL).all() and (one["q"][2] == PROBLEMS[2]).all()
+    dist.merge_parts(out, [dist.part_path(out, 0, 2)], constants=("joint_names",))
+    with np.load(out) as m, np.load(files / "one.npz") as one:
+        assert sorted(m.files) == sorted(one.files)
+        assert list(m["joint_names"]) == list(one["joint_names"]) == chain.joint_names
+        for k in ("q", "qd", "qdd", "t", "success", "duration", "reason", "q_goal"):
+            assert np.array_equal(m[k], one[k][:2]), k
+
+
+@pytest.mark.extended  # two torchrun processes and one in-process run (about 25 s on 2 cores)
+def test_two_process_plan_equals_one_process(files, capsys):
+    """torchrun, 2 gloo processes, 4 problems in chunks of 1: each rank plans its 2, every part on the
+    longest motion's time grid, rank 0 merges; the file equals main()'s in one process entry for entry."""
+    import os
+    import subprocess
+    import sys
+
+    np.save(files / "q0.npy", PROBLEMS)
+    args = _args(files, "--start-file", str(files / "q0.npy"), "--goal", *map(str, GOAL), "--chunk-size", "1",
+                 "--seed", "3")
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", "-m",
+           "diffkin.cli", *args, "--output", "m.npz", "--merge"]
+    run = subprocess.run(cmd, cwd=files, env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert run.stdout.count("planned 3 of 4") == 1 and "problem 2: FAILED: start in collision" in run.stdout
+    assert not list(files.glob("m.part-*"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert main([*args, "--output", str(files / "one.npz")]) == 0
+    with np.load(files / "m.npz") as a, np.load(files / "one.npz") as b:
+        assert sorted(a.files) == sorted(b.files) and a["q"].shape[:2] == (4, b["q"].shape[1])
+        for k in b.files:
+            assert np.array_equal(a[k], b[k]), k

@@ -105,6 +105,33 @@ def test_merge_equals_the_concatenation(tmp_path, suffix):
         assert np.array_equal(np.loadtxt(out, delimiter=",", skiprows=1), whole)
 
 
+def test_merge_keeps_constant_entries_once_and_agree_in_one_process(tmp_path):
+    """``constants`` (entries that are no rows, written whole by the Writer) come once from the first part;
+    the other entries concatenate. ``agree`` in one process: ``[value]``, or this process's failure."""
+    from diffkin.io.data import open_writer
+
+    rng = np.random.default_rng(2)
+    out = tmp_path / "p.npz"
+    names = np.array(["j1", "j2", "j3"])
+    chunks = [rng.normal(size=(m, 4, 3)) for m in (2, 5)]
+    parts = [dist.part_path(out, r, 2) for r in range(2)]
+    for p, x in zip(parts, chunks):
+        w = open_writer(p, len(x), {"q": ((4, 3), np.float64, []), "why": ((), "<U8", [])},
+                        constants={"joint_names": names})
+        w.write({"q": x, "why": np.array(["a"] * len(x))})
+        w.close()
+        with np.load(p) as z:
+            assert np.array_equal(z["joint_names"], names) and z["q"].shape == x.shape
+    dist.merge_parts(out, parts, step=3, constants=("joint_names",))
+    with np.load(out) as z:
+        assert sorted(z.files) == ["joint_names", "q", "why"]
+        assert np.array_equal(z["q"], np.concatenate(chunks)) and np.array_equal(z["joint_names"], names)
+        assert z["why"].tolist() == ["a"] * 7
+    assert dist.agree(5) == [5]
+    with pytest.raises(ValueError, match="boom"):
+        dist.agree(5, ValueError("boom"))
+
+
 def test_combined_ik_summary_equals_one_run():
     chain = models.load("panda", dtype=torch.float64)
     q = chain.random_configuration(300, generator=torch.Generator().manual_seed(3))

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import time
 import urllib.request
 from pathlib import Path
 
@@ -296,3 +297,56 @@ def test_retargeted_clip_playback(tmp_path):
         np.testing.assert_allclose(v._traj.numpy(), result.q[0].numpy())
     finally:
         v.close()
+
+
+@needs_viser
+def test_planned_motion_playback(tmp_path, capsys):
+    """A planned motion plays problem by problem up to its end at its rate 1 / dt: a MotionResult
+    (viewer.play(result, problem=i)) and the .npz of `diffkin plan` (load_trajectory(..., problem=i),
+    `diffkin view --trajectory plan.npz --problem I --play`); a failed problem says why."""
+    import warnings
+
+    from diffkin import motion
+    from diffkin.collision import RobotCollision
+
+    fr3 = Path(__file__).parent / "data" / "urdf" / "fr3.urdf"
+    srdf = ('<robot name="fr3"><disable_collisions link1="fr3_link1_sc" link2="fr3_link3_sc" '
+            'reason="Default"/></robot>')
+    chain = models.from_urdf(fr3, "fr3_link8", dtype=torch.float64).requires_grad_(False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        robot = RobotCollision.from_urdf(fr3, chain, srdf=srdf).requires_grad_(False)
+    q0 = torch.tensor([[0.8, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785], [3.0, 0.3, 0.0, -1.8, 0.0, 2.1, 0.785],
+                       [0.0, 0.0, 0.0, -1.5, 0.0, 1.8, 0.0]], dtype=torch.float64)
+    q1 = torch.tensor([[0.2, 0.1, 0.0, -2.0, 0.0, 2.0, 0.5]], dtype=torch.float64).expand(3, -1)
+    res = motion.plan(chain, q0, q1, collision=robot, acceleration_limit=5.0, dt=0.02, resolution=0.01)
+    assert res.success.tolist() == [True, False, True]
+    n = [int(np.ceil(float(d) / 0.02 - 1e-9)) + 1 for d in res.duration]
+    assert n[0] != n[2] and res.q.shape[1] == max(n)
+    v = viz.show(chain, port=0, meshes=False)
+    try:
+        v.play(res, problem=2, loop=False)
+        assert v._traj.shape == (n[2], 7) and v._fps == pytest.approx(50.0)
+        t_end = time.monotonic() + 120  # a hang guard: playback ends by itself
+        while v.playing and time.monotonic() < t_end:
+            time.sleep(0.02)
+        assert not v.playing and v.frame == n[2] - 1
+        np.testing.assert_array_equal(v.q.numpy(), q1[0].numpy())  # ends on the goal
+        with pytest.raises(Exception, match="problem 1 .*failed .*outside the joint limits"):
+            v.load_trajectory(res, problem=1)
+        with pytest.raises(Exception, match="problem 3 is not among the 3"):
+            v.load_trajectory(res, problem=3)
+        # the file `diffkin plan` writes: the same frames, problem 0
+        path = tmp_path / "plan.npz"
+        np.savez(path, t=res.t.numpy(), q=res.q.numpy(), qd=res.qd.numpy(), qdd=res.qdd.numpy(),
+                 success=res.success.numpy(), duration=res.duration.numpy(), reason=np.array(res.reason))
+        v.load_trajectory(path, problem=0)
+        np.testing.assert_array_equal(v._traj.numpy(), res.q[0, :n[0]].numpy())
+        assert v._fps == pytest.approx(50.0)
+    finally:
+        v.close()
+    view = ["view", "--urdf", str(fr3), "--end-link", "fr3_link8", "--no-meshes", "--port", "0", "--duration",
+            "0.3", "--trajectory", str(path), "--play"]
+    assert cli.main([*view, "--problem", "2"]) == 0
+    assert cli.main([*view, "--problem", "1"]) == 2
+    assert "problem 1 of" in capsys.readouterr().err

@@ -772,9 +772,12 @@ class _NpyWriter:
 class Writer:
     """Writes named columns chunk by chunk to ``.npy`` (the first column only), ``.npz`` (all) or ``.csv``
     (all, flattened, with a header row); ``close()`` renames ``<path>.part`` to ``path``, ``abort()`` removes
-    it. ``spec`` maps names to ``(row_shape, dtype, csv_names)``."""
+    it. ``spec`` maps names to ``(row_shape, dtype, csv_names)``; ``constants``: ``.npz`` entries that are no
+    rows (joint names), written whole (ignored by ``.npy`` and ``.csv``)."""
 
-    def __init__(self, path: str | Path, count: int, spec: dict[str, tuple]):
+    def __init__(self, path: str | Path, count: int, spec: dict[str, tuple],
+                 constants: dict[str, np.ndarray] | None = None):
+        self.constants = dict(constants or {})
         self.path = check_output_path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.part = self.path.with_name(self.path.name + ".part")
@@ -815,6 +818,9 @@ class Writer:
                         while buf := src.read(1 << 24):
                             dst.write(buf)
                     p.unlink()
+                for key, arr in self.constants.items():
+                    with zf.open(key + ".npy", "w", force_zip64=True) as dst:
+                        np.lib.format.write_array(dst, np.asarray(arr), allow_pickle=False)
         else:
             self._csv.close()
         os.replace(self.part, self.path)
@@ -830,9 +836,10 @@ class Writer:
         self.part.unlink(missing_ok=True)
 
 
-def open_writer(path: str | Path, count: int, spec: dict[str, tuple]) -> Writer:
+def open_writer(path: str | Path, count: int, spec: dict[str, tuple],
+                constants: dict[str, np.ndarray] | None = None) -> Writer:
     """A :class:`Writer` of ``count`` rows for ``spec`` (see there)."""
-    return Writer(path, count, spec)
+    return Writer(path, count, spec, constants)
 
 
 # ------------------------------------------------------------------------------- whole-file API

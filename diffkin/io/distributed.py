@@ -46,6 +46,7 @@ from ..io.data import (
 __all__ = [
     "MANIFEST_SUFFIX",
     "run_sharded",
+    "agree",
     "RankInfo",
     "rank_info",
     "init",
@@ -63,7 +64,9 @@ __all__ = [
 
 
 def run_sharded(stream, chain, source, output=None, *, chunk_size: int, merge: bool = False,
-                command: str = "", progress=None, device: str | None = None, log=None, **options):
+                command: str = "", progress=None, device: str | None = None, log=None,
+                rows: int | None = None, combine=None, collective: bool = False,
+                constants: tuple[str, ...] = (), **options):
     """``stream(chain, source, output, chunk_size=..., **options)``
     (:func:`~diffkin.io.streaming.stream_fk` or :func:`~diffkin.io.streaming.stream_ik`) over every
     rank's shard of ``source``.
@@ -76,18 +79,23 @@ def run_sharded(stream, chain, source, output=None, *, chunk_size: int, merge: b
     medians over all targets, seconds of the slowest rank plus the merge), the other ranks None.
     ``progress(done, total)``: rank 0's shard only. ``device``: joins the process group for it (default the
     chain's device type). ``log(line)``: rank 0's note on the split and the merge.
+
+    Other streams (``diffkin plan``'s): ``rows``, the row count of ``source`` (default: read as fk's joints
+    or ik's poses); ``combine(results, written, merge_seconds)``, the summary of every rank's (default: fk's
+    or ik's); ``collective``: ``stream`` takes part in collectives (:func:`agree`), so it runs on every rank,
+    an empty shard included (it then writes nothing); ``constants``: ``.npz`` entries that are no rows (the
+    same in every part), kept once by the merge.
     """
     info = init(device or chain.device.type)
     if not info.sharded:
         return stream(chain, source, output, chunk_size=chunk_size, progress=progress, **options)
-    rows, res, failure = None, None, None
+    count, rows, res, failure = rows, None, None, None
     try:
         rows, res = _stream_shard(stream, chain, source, output, chunk_size, info,
-                                  progress if info.rank == 0 else None, options)
+                                  progress if info.rank == 0 else None, options, count, collective)
     except Exception as exc:  # every rank must reach the gather below, or the others wait for it forever
         failure = exc
-    statuses = gather((res, None if failure is None else _one_line(failure)))
-    failed = [(r, msg) for r, (_, msg) in enumerate(statuses) if msg is not None]
+    statuses, failed = _outcomes(res, failure)
     if failed:
         if info.rank == 0 and output:  # no half data set: the parts that were written go
             for r in range(info.world):
@@ -98,9 +106,30 @@ def run_sharded(stream, chain, source, output=None, *, chunk_size: int, merge: b
         r, msg = failed[0]
         raise DiffkinError(f"rank {r} of {info.world} failed ({msg}); no output written")
     total = _finish_rank0(output, rows, [r for r, _ in statuses if r is not None], info, merge, command,
-                          log) if info.rank == 0 else None
+                          log, combine, constants) if info.rank == 0 else None
     finish()
     return total
+
+
+def _outcomes(value, failure: BaseException | None) -> tuple[list, list]:
+    """Every rank's ``(value, failure message or None)`` and the ``(rank, message)`` of those that failed."""
+    statuses = gather((value, None if failure is None else _one_line(failure)))
+    return statuses, [(r, msg) for r, (_, msg) in enumerate(statuses) if msg is not None]
+
+
+def agree(value, failure: BaseException | None = None) -> list:
+    """``value`` of every rank, in rank order, on every rank: a step inside a shard's work that every rank
+    must reach (``diffkin plan``'s ranks learn the longest motion, so that all parts share one time grid).
+    ``failure``: this rank's exception so far (it still takes part); when any rank failed, raises on every
+    rank: the failing one its own error, the others a :class:`DiffkinError` naming it. ``[value]`` in one
+    process (``failure`` raised)."""
+    statuses, failed = _outcomes(value, failure)
+    if failure is not None:
+        raise failure
+    if failed:
+        r, msg = failed[0]
+        raise DiffkinError(f"rank {r} of {len(statuses)} failed ({msg})")
+    return [v for v, _ in statuses]
 
 
 def _one_line(exc: BaseException) -> str:
@@ -109,12 +138,14 @@ def _one_line(exc: BaseException) -> str:
     return " ".join(text.split()) or type(exc).__name__
 
 
-def _stream_shard(stream, chain, source, output, chunk_size: int, info, progress, options):
+def _stream_shard(stream, chain, source, output, chunk_size: int, info, progress, options, n, collective):
     """This rank's rows ``[start, stop)`` of the shards, streamed to its part file: ``(rows, result)``."""
     from ..io.data import RandomJoints, open_joint_source, open_pose_source
     from ..io.streaming import stream_fk
 
-    if isinstance(source, RandomJoints):
+    if n is not None:
+        pass
+    elif isinstance(source, RandomJoints):
         n = source.count
     elif stream is stream_fk:
         n = len(open_joint_source(source, chain.n_joints, chain))
@@ -124,13 +155,14 @@ def _stream_shard(stream, chain, source, output, chunk_size: int, info, progress
     start, stop = rows[info.rank]
     part = part_path(output, info.rank, info.world) if output else None
     res = None
-    if stop > start:
+    if stop > start or collective:
         res = stream(chain, source, part, chunk_size=chunk_size, start=start, stop=stop, progress=progress,
                      **options)
     return rows, res
 
 
-def _finish_rank0(output, rows, results: list, info, merge: bool, command: str, log):
+def _finish_rank0(output, rows, results: list, info, merge: bool, command: str, log, combine=None,
+                  constants: tuple[str, ...] = ()):
     """Rank 0 after every shard succeeded: the manifest or the merged file, and the combined summary."""
     from ..io.streaming import FKStreamResult, combine_ik
 
@@ -138,9 +170,12 @@ def _finish_rank0(output, rows, results: list, info, merge: bool, command: str, 
     written = None
     if output:
         parts = [part_path(output, r, info.world) for r, (a, b) in enumerate(rows) if b > a]
-        written = merge_parts(output, parts) if merge else write_manifest(output, info.world, rows, command)
+        written = merge_parts(output, parts, constants=constants) if merge else \
+            write_manifest(output, info.world, rows, command)
     merge_s = time.perf_counter() - t0
-    if isinstance(results[0], FKStreamResult):
+    if combine is not None:
+        total = combine(results, written, merge_s)
+    elif isinstance(results[0], FKStreamResult):
         total = FKStreamResult(sum(r.count for r in results), max(r.seconds for r in results) + merge_s,
                                max(r.compute_seconds for r in results), written)
     else:
@@ -259,9 +294,11 @@ def write_manifest(output: str | Path, world: int, rows: list[tuple[int, int]], 
     return path
 
 
-def merge_parts(output: str | Path, parts: list[Path], step: int = 1 << 18) -> Path:
+def merge_parts(output: str | Path, parts: list[Path], step: int = 1 << 18,
+                constants: tuple[str, ...] = ()) -> Path:
     """Concatenate part files (all ``.npy``, ``.npz`` or ``.csv`` like ``output``) into ``output``, ``step``
-    rows at a time (bounded memory), and remove them. ``.csv`` keeps the first part's header."""
+    rows at a time (bounded memory), and remove them. ``.csv`` keeps the first part's header; ``.npz``
+    entries named in ``constants`` (no rows: the same in every part, joint names) are the first part's."""
     output = Path(output)
     tmp = output.with_name(output.name + ".part")
     if output.suffix == ".csv":
@@ -275,7 +312,7 @@ def merge_parts(output: str | Path, parts: list[Path], step: int = 1 << 18) -> P
                         dst.write(buf)
         os.replace(tmp, output)
     else:
-        _merge_arrays(output, parts, step)
+        _merge_arrays(output, parts, step, constants)
     for p in parts:
         p.unlink()
     return output
@@ -298,13 +335,20 @@ def _members(part: Path, kind: str) -> dict[str, tuple]:
     return out
 
 
-def _merge_arrays(output: Path, parts: list[Path], step: int) -> None:
+def _merge_arrays(output: Path, parts: list[Path], step: int, constants: tuple[str, ...] = ()) -> None:
+    fixed = {}
+    if constants:
+        with np.load(parts[0], allow_pickle=False) as z:
+            fixed = {k: z[k] for k in constants if k in z.files}
     opened = [_members(p, output.suffix) for p in parts]
+    for members in opened:
+        for k in fixed:
+            members.pop(k)[0]()  # close its stream: written once below
     try:
         first = opened[0]
         total = sum(next(iter(m.values()))[2][0] for m in opened)
         spec = {k: (shape[1:], dtype, []) for k, (_, _, shape, dtype) in first.items()}
-        writer = open_writer(output, total, spec)
+        writer = open_writer(output, total, spec, constants=fixed)
         try:
             for part, members in zip(parts, opened):
                 n = next(iter(members.values()))[2][0]

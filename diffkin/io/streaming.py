@@ -47,7 +47,7 @@ from ..io.data import (
 from ..validation import check_count
 
 __all__ = ["FK_CHUNK_SIZE", "IK_CHUNK_SIZE", "FKStreamResult", "IKStreamResult", "stream_fk", "stream_ik",
-           "combine_ik"]
+           "combine_ik", "seed_of_chunk"]
 
 FK_CHUNK_SIZE = 262_144
 IK_CHUNK_SIZE = 65_536
@@ -210,6 +210,12 @@ def _check_range(n: int, chunk_size: int, start: int, stop: int | None) -> tuple
     if start == stop:
         raise DiffkinError(f"the row range [{start}, {stop}) is empty")
     return int(start), stop
+
+
+def seed_of_chunk(seed: int, first_row: int) -> int:
+    """The seed of the chunk whose first row is ``first_row`` (its rows ``[a, b)``), drawn from ``(seed, a)``
+    by :class:`numpy.random.SeedSequence`: one chunking gives the same seeds in any process and shard."""
+    return int(np.random.SeedSequence([int(seed), int(first_row)]).generate_state(1)[0])
 
 
 def _np_dtype(chain) -> np.dtype:
@@ -386,7 +392,7 @@ def stream_ik(
     with _aborting(writer):
         for T, q_sampled in chunks(chunk_size, start, stop):
             a = start + done
-            chunk_seed = int(np.random.SeedSequence([int(seed), a]).generate_state(1)[0])
+            chunk_seed = seed_of_chunk(seed, a)
             c0 = time.perf_counter()
             with torch.no_grad():
                 target = T[..., :3, 3] if position_only else T

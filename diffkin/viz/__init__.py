@@ -23,7 +23,9 @@ loopback interface unless told otherwise — that shows a :class:`~diffkin.chain
   joint limits nor exceeds ``drag_speed``);
 * trajectory playback of joint vectors ``(N, n)`` (play/pause, a frame slider, frames per second), and of
   a retargeted human clip (a :class:`~diffkin.retarget.RetargetResult`, its human keypoints drawn beside
-  the robot, or the ``.npz`` its ``save`` writes), at the clip's frame rate.
+  the robot, or the ``.npz`` its ``save`` writes), at the clip's frame rate, and of a planned motion (a
+  :class:`~diffkin.motion.MotionResult` or the ``.npz`` of ``diffkin plan``: one problem up to its end, at
+  its rate 1 / dt).
 
 Nothing here imports viser until a viewer is made: ``import diffkin`` and ``import diffkin.viz`` work
 without the extra, and :func:`show` raises :class:`~diffkin.errors.DiffkinError` naming it.
@@ -37,12 +39,14 @@ Example::
     viewer.set_q([0, -0.5, 0, -2.0, 0, 1.6, 0.8])         # (n,)
     viewer.solve_to(T_target)                            # (4, 4): IK, seeded from the current q
     viewer.play(trajectory, fps=30)                       # (N, n) tensor / array, or a .npy/.npz/.csv file
+    viewer.play(motion.plan(...), problem=2)              # a planned motion, at its rate
     viewer.close()
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import threading
 import time
 from pathlib import Path
@@ -115,7 +119,25 @@ def segment_points(chain, F: np.ndarray, E: np.ndarray, floating: bool = True) -
     return np.asarray(pts, dtype=np.float64).reshape(-1, 2, 3)
 
 
-def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | None, np.ndarray | None]:
+def _plan_problem(chain, q, t, duration, success, reason, problem: int, where: str) -> tuple[Tensor, float]:
+    """Problem ``problem`` of a planned motion (:class:`~diffkin.motion.MotionResult` or the ``.npz`` of
+    ``diffkin plan``: ``q (B, S, nq)``, ``t (B, S)`` every dt): its samples up to its end, and 1 / dt."""
+    B, S = q.shape[0], q.shape[1]
+    if not -B <= problem < B:
+        raise ShapeError(f"problem {problem} is not among the {B} problems of {where}")
+    problem %= B
+    if not bool(success[problem]):
+        raise DiffkinError(f"problem {problem} of {where} failed ({reason[problem]}): no motion to play")
+    t = np.asarray(t[problem], dtype=np.float64)
+    if S < 2:
+        return _as_trajectory(chain, q[problem]), None
+    dt = float(t[1] - t[0])
+    n = min(S, int(math.ceil(float(duration[problem]) / dt - 1e-9)) + 1)  # up to its end, at rest there
+    return _as_trajectory(chain, q[problem][:n]), 1.0 / dt
+
+
+def _read_trajectory(chain, trajectory, clip: int = 0,
+                     problem: int = 0) -> tuple[Tensor, float | None, np.ndarray | None]:
     """Joint vectors ``(N, n)``, their frame rate when the source has one (else None) and, for a retargeted
     clip, the human keypoints ``(N, K, 3)`` to draw beside the robot (else None).
 
@@ -123,8 +145,15 @@ def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | 
     ``.npz`` of ``diffkin trajectory joint`` (entries ``t`` and ``position``) is read too, at its own rate;
     so is one of :meth:`diffkin.retarget.RetargetResult.save` (``q (B, T, nq)`` and ``fps``: clip ``clip``
     at the clip's rate). A :class:`~diffkin.retarget.RetargetResult` itself gives clip ``clip``'s ``q``, its
-    rate and its scaled human keypoints.
+    rate and its scaled human keypoints. A planned motion (a :class:`~diffkin.motion.MotionResult` or the
+    ``.npz`` of ``diffkin plan``) gives problem ``problem`` up to its end, at its rate 1 / dt.
     """
+    from ..motion import MotionResult
+
+    if isinstance(trajectory, MotionResult):
+        host = trajectory.t.detach().cpu().double().numpy()
+        return (*_plan_problem(chain, trajectory.q, host, trajectory.duration.cpu(), trajectory.success.cpu(),
+                               trajectory.reason, problem, "the motion result"), None)
     q_clips = getattr(trajectory, "q", None)
     if isinstance(q_clips, Tensor) and hasattr(trajectory, "keypoints") and hasattr(trajectory, "fps"):
         B = q_clips.shape[0]
@@ -144,6 +173,10 @@ def _read_trajectory(chain, trajectory, clip: int = 0) -> tuple[Tensor, float | 
                     span = float(data["t"][-1] - data["t"][0])
                     fps = (q.shape[0] - 1) / span if span > 0 else None
                 return q, fps, None
+            if {"q", "t", "duration", "success"} <= set(data.files) and data["q"].ndim == 3:  # diffkin plan
+                reason = data["reason"] if "reason" in data.files else [""] * data["q"].shape[0]
+                return (*_plan_problem(chain, data["q"], data["t"], data["duration"], data["success"], reason,
+                                       problem, repr(str(path))), None)
             if "q" in data.files and data["q"].ndim == 3 and "fps" in data.files:  # RetargetResult.save
                 B = data["q"].shape[0]
                 if not -B <= clip < B:
@@ -650,15 +683,16 @@ class Viewer:
             raise
 
     # ------------------------------------------------------------------------------------ trajectory
-    def load_trajectory(self, trajectory, fps: float | None = None, clip: int = 0) -> None:
+    def load_trajectory(self, trajectory, fps: float | None = None, clip: int = 0, problem: int = 0) -> None:
         """Load joint vectors ``(N, n)`` for playback (paused, at frame 0) and add the GUI's Trajectory
         folder (play/pause, frame slider, fps). ``trajectory``: a tensor or array, or a ``.npy`` / ``.csv``
         / ``.npz`` (entry ``q``) file, or the ``.npz`` of ``diffkin trajectory joint`` (played at the rate of
         its times ``t`` unless ``fps`` is given), or a retargeted clip: a
         :class:`~diffkin.retarget.RetargetResult` (clip ``clip`` at its rate, its scaled human keypoints
         drawn as green points, ``/retarget/keypoints``, following the frames) or the ``.npz`` its ``save``
-        writes (clip ``clip`` at its rate)."""
-        traj, file_fps, points = _read_trajectory(self.chain, trajectory, clip)
+        writes (clip ``clip`` at its rate), or a planned motion: a :class:`~diffkin.motion.MotionResult` or
+        the ``.npz`` of ``diffkin plan`` (problem ``problem`` up to its end, at its rate 1 / dt)."""
+        traj, file_fps, points = _read_trajectory(self.chain, trajectory, clip, problem)
         fps = fps if fps is not None else file_fps
         gui = self.server.gui
         with self._lock:
@@ -717,12 +751,12 @@ class Viewer:
                 self._syncing = False
 
     def play(self, trajectory=None, fps: float | None = None, loop: bool | None = None,
-             clip: int = 0) -> None:
+             clip: int = 0, problem: int = 0) -> None:
         """Start playback — of ``trajectory`` if given (what :meth:`load_trajectory` takes, ``clip`` of a
-        retargeted clip), else of the loaded one — at ``fps`` frames per second; ``loop`` repeats it
-        (default: the GUI's setting)."""
+        retargeted clip, ``problem`` of a planned motion), else of the loaded one — at ``fps`` frames per
+        second; ``loop`` repeats it (default: the GUI's setting)."""
         if trajectory is not None:
-            self.load_trajectory(trajectory, fps=fps, clip=clip)
+            self.load_trajectory(trajectory, fps=fps, clip=clip, problem=problem)
         elif fps is not None:
             self._fps = float(np.clip(fps, 0.1, 240.0))
         if self._traj is None:
@@ -864,8 +898,11 @@ def add_parser(subparsers, parents=()) -> argparse.ArgumentParser:
                    help="end link(s) of the URDF or MJCF (several: a tree, one target each)")
     p.add_argument("--root-link", dest="root_link", help="root link of the URDF chain (default: its root)")
     p.add_argument("--trajectory", help="joint vectors (N, n) to play back: .npy, .csv, .npz (entry q), "
-                   "the .npz of `diffkin trajectory joint`, or a retargeted clip's .npz (`diffkin retarget "
-                   "--output`; its first clip at its frame rate)")
+                   "the .npz of `diffkin trajectory joint`, a retargeted clip's .npz (`diffkin retarget "
+                   "--output`; clip --clip at its frame rate) or the .npz of `diffkin plan`")
+    p.add_argument("--problem", "--clip", dest="index", type=int, default=0, metavar="I",
+                   help="which problem of a `diffkin plan` .npz (played up to its end at its rate 1 / dt) or "
+                        "which clip of a retargeted .npz to play (default 0)")
     p.add_argument("--fps", type=float, default=None,
                    help="playback frames per second (default: the file's times if it has them, else 30)")
     p.add_argument("--play", action="store_true", help="start playing the trajectory at once")
@@ -923,10 +960,12 @@ def cmd_view(args) -> int:
         raise DiffkinError("give --robot NAME (see `diffkin models`), --urdf FILE or --mjcf FILE with "
                            "--end-link LINK")
     collision = _cli_collision(chain, args.urdf, mjcf) if getattr(args, "collision", False) else None
-    viewer = Viewer(chain, host=args.host, port=args.port, trajectory=args.trajectory, fps=args.fps,
-                    urdf=args.urdf, meshes=args.meshes, collision=collision,
-                    margin=getattr(args, "margin", 0.0))
+    viewer = Viewer(chain, host=args.host, port=args.port, fps=args.fps, urdf=args.urdf, meshes=args.meshes,
+                    collision=collision, margin=getattr(args, "margin", 0.0))
     try:
+        if args.trajectory:  # --problem / --clip: which one of a plan's problems or a retarget file's clips
+            index = getattr(args, "index", 0)
+            viewer.load_trajectory(args.trajectory, fps=args.fps, clip=index, problem=index)
         if args.play and args.trajectory:
             viewer.play()
         what = ("MJCF geoms, frames" if viewer.visual_geoms else "URDF meshes, frames") if viewer.has_meshes \
