@@ -293,7 +293,7 @@ def test_a_solver_option_leaves_the_fk_struct_alone():
     """The FK's dk_args holds the chain and one FK call only: every solve field lives in dk_solve_args."""
     fk = {name for name, *_ in native.Args._fields_}
     solve = {name for name, *_ in native.SolveArgs._fields_}
-    assert fk & solve == {"version", "size", "nthreads"}
+    assert fk & solve == {"version", "size", "nthreads"} and "chain" in solve  # the chain: an address
     assert {"damping2", "lib_ranks", "n_seeds", "q_out"} <= solve
 
 
@@ -347,25 +347,36 @@ def test_the_solve_watch_and_collide_entries_refuse_a_struct_of_another_version_
     off = {"version": lambda s: s.VERSION + 1, "size": lambda s: ctypes.sizeof(s) - 8}[wrong]
     T = chain.forward_kinematics(q).contiguous()
     out = torch.full((3, 7), 7.0, dtype=torch.float64)
-    solve = native.new_struct(native.SolveArgs, n_targets=3, target_stride=0, nthreads=1, q_out=out)
-    setattr(solve, wrong, off(native.SolveArgs))
     chain_args = packed.args[torch.float64]
-    assert lib.dk_solve(ctypes.byref(chain_args), ctypes.byref(solve)) == abi_error
+    solve = native.new_struct(native.SolveArgs, chain=ctypes.addressof(chain_args), n_targets=3, nthreads=1,
+                              q_out=out)
+    setattr(solve, wrong, off(native.SolveArgs))
+    assert lib.dk_solve(ctypes.byref(solve)) == abi_error
     with pytest.raises(native.AbiMismatch):
-        native.solve_call(chain_args, solve)
+        native.solve_call(solve)
     bad_chain = native.Args.from_buffer_copy(chain_args)
     setattr(bad_chain, wrong, off(native.Args))
-    good = native.new_struct(native.SolveArgs, n_targets=3, nthreads=1, q_out=out)
-    assert lib.dk_solve(ctypes.byref(bad_chain), ctypes.byref(good)) == abi_error
+    good = native.new_struct(native.SolveArgs, chain=ctypes.addressof(bad_chain), n_targets=3, nthreads=1,
+                             q_out=out)
+    assert lib.dk_solve(ctypes.byref(good)) == abi_error  # a good solve struct on a chain of another layout
     assert torch.all(out == 7.0)  # nothing written
 
     watch = single.Watch([q])
     assert watch.unchanged()
-    setattr(watch.c, wrong, off(native.WatchArgs))
-    Tq = torch.zeros(4, 4, dtype=torch.float64)
-    fk_one, unchanged = lib.dk_fk_one, lib.dk_unchanged
+    fk_one, unchanged, solve_one = lib.dk_fk_one, lib.dk_unchanged, lib.dk_solve_one
     fk_one.restype, fk_one.argtypes = ctypes.c_int64, [ctypes.c_void_p] * 5
     unchanged.restype, unchanged.argtypes = ctypes.c_int64, [ctypes.c_void_p]
+    solve_one.restype = ctypes.c_int64
+    solve_one.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64] + \
+        [ctypes.c_void_p] * 6
+    one = [out[0].data_ptr()] + [out[1].data_ptr()] * 5  # q, ok, pe, oe, its, seeds: none may be written
+    good.chain = ctypes.addressof(chain_args)
+    for sol, w in ((solve, watch), (good, None)):  # a bad solve struct; a bad watch (made so below)
+        if w is None:
+            setattr(watch.c, wrong, off(native.WatchArgs))
+        assert solve_one(ctypes.addressof(sol), watch.addr, T[0].data_ptr(), 0, None, 0, *one) == abi_error
+    assert torch.all(out == 7.0)
+    Tq = torch.zeros(4, 4, dtype=torch.float64)
     assert unchanged(watch.addr) == abi_error
     assert fk_one(ctypes.addressof(chain_args), watch.addr, q[0].data_ptr(), Tq.data_ptr(), None) == abi_error
     assert not Tq.any()

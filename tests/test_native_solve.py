@@ -196,7 +196,7 @@ def test_disabled_keeps_the_torch_loop_after_a_c_solve(monkeypatch):
     with torch.no_grad():
         assert bool(ik.solve(chain, T, seed=0).success.all()) and _native_solve.applies(chain, T, False)
 
-        def refuse(*args):
+        def refuse(args):
             raise AssertionError("dk_solve ran inside native.disabled()")
 
         monkeypatch.setattr(native, "solve_call", refuse)

@@ -63,11 +63,11 @@ class _Prepared:
         # a count
         self.outs = (torch.empty(self.n, dtype=dtype), torch.empty((), dtype=dtype),
                      torch.empty((), dtype=torch.bool), torch.empty((), dtype=torch.int64))
-        self.chain = packed.args[dtype]  # the chain's dk_args (packed keeps it alive)
-        self.chain_addr = ctypes.addressof(self.chain)
-        self.base = native.new_struct(native.SolveArgs, jc=self.arrays[0], jh=self.arrays[1],
-                                      bounded=self.arrays[2], wrap=self.arrays[3], qlo=lo, qhi=hi,
-                                      clamp=self.clamp, n_lib=L, lib_u=self.lib_u, lib_pose=self.lib_pose)
+        self.chain = packed.args[dtype]  # the chain's dk_args (packed keeps it alive): its address below
+        self.base = native.new_struct(native.SolveArgs, chain=ctypes.addressof(self.chain), jc=self.arrays[0],
+                                      jh=self.arrays[1], bounded=self.arrays[2], wrap=self.arrays[3], qlo=lo,
+                                      qhi=hi, clamp=self.clamp, n_lib=L, lib_u=self.lib_u,
+                                      lib_pose=self.lib_pose)
 
 
     def configured(self, cfg: LMConfig, position_only: bool, K: int) -> native.SolveArgs:
@@ -157,7 +157,7 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
         seeds_out=outs[5], nthreads=threads or native.thread_count(64 * N))
     if library is not None:
         native._filled(args, n_lib=L, lib_u=library[0], lib_pose=library[1])
-    native.solve_call(prep.chain, args)
+    native.solve_call(args)
     return outs
 
 
@@ -236,7 +236,7 @@ def _solve_one_fn():
     if _typed[0] is not lib:
         fn = lib.dk_solve_one
         fn.restype = ctypes.c_int64
-        fn.argtypes = [ctypes.c_void_p] * 4 + [ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64] + \
+        fn.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64] + \
             [ctypes.c_void_p] * 6
         _typed = (lib, fn)
     return _typed[1]
@@ -283,7 +283,7 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
         if generator is None and seed is not None:
             generator = _seeded(seed)
         pool = torch.rand(npool, generator=generator, dtype=T.dtype) if npool else None  # alive for the call
-    status = _solve_one_fn()(prep.chain_addr, tmpl, hit.watch_addr, T.data_ptr(), stream,
+    status = _solve_one_fn()(tmpl, hit.watch_addr, T.data_ptr(), stream,
                              None if pool is None else pool.data_ptr(), npool, q.data_ptr(),
                              ok.data_ptr(), pe.data_ptr(), oe.data_ptr(), its.data_ptr(), seeds.data_ptr())
     if status != 0:

@@ -23,8 +23,8 @@
  * The interface is one struct per entry point, each an X-macro list of its fields that native.py mirrors
  * field by field as a ctypes.Structure: dk_args (DK_ARGS_FIELDS: the chain's arrays, 3x4 row-major blocks
  * for the fixed transforms, and one FK call's inputs and outputs) for dk_fk and as the chain of every other
- * entry; dk_solve_args (DK_SOLVE_FIELDS, _native_solve.c's LM constants and the solve's inputs and outputs)
- * for dk_solve and dk_solve_one; dk_watch (DK_WATCH_FIELDS) for the cache checks; dk_collide
+ * entry; dk_solve_args (DK_SOLVE_FIELDS, _native_solve.c's: the chain's address, the LM constants, the
+ * solve's inputs and outputs) for dk_solve and dk_solve_one; dk_watch (DK_WATCH_FIELDS) for the cache checks; dk_collide
  * (DK_COLLIDE_FIELDS) for dk_collide_clear; dk_vel (_native_velocity.c). Each struct starts with its own
  * version and its size: DK_LAYOUT exports dk_layout_<tag>() (version, sizeof, every field's offset) and
  * dk_names_<tag>() (the field names), which native.py checks at load for every struct, and every entry point
@@ -340,8 +340,8 @@ static int abi_ok(const dk_args *a) {
 
 static int watch_ok(const dk_watch *w) { return DK_LAYOUT_OK(w, dk_watch, DK_WATCH_VERSION); }
 
-static int solve_ok(const dk_args *a, const dk_solve_args *o) {
-    return abi_ok(a) && DK_LAYOUT_OK(o, dk_solve_args, DK_SOLVE_VERSION);
+static int solve_ok(const dk_solve_args *o) {
+    return DK_LAYOUT_OK(o, dk_solve_args, DK_SOLVE_VERSION) && abi_ok(o->chain);
 }
 
 /* X(name, what): the status codes and limits the Python side reads, exported by dk_constants() and
@@ -417,25 +417,26 @@ int64_t dk_fk_one(const dk_args *base, dk_watch *w, const void *q, void *T, void
     return bad;
 }
 
-/* The whole IK solve of dk_solve_f64 / dk_solve_f32 (_native_solve.c) on the chain a with the arguments o;
- * returns 0, -1 when memory ran out, DK_RANGE_ERROR for lib_ranks > MAX_RANKS (nothing solved),
- * DK_ABI_ERROR for a struct of another layout. */
-int64_t dk_solve(const dk_args *a, const dk_solve_args *o) {
-    if (!solve_ok(a, o)) return DK_ABI_ERROR;
-    return a->real_bytes == 8 ? dk_solve_f64(a, o) : dk_solve_f32(a, o);
+/* The whole IK solve of dk_solve_f64 / dk_solve_f32 (_native_solve.c) with the arguments o on the chain
+ * o->chain; returns 0, -1 when memory ran out, DK_RANGE_ERROR for lib_ranks > MAX_RANKS (nothing solved),
+ * DK_ABI_ERROR for a dk_solve_args or dk_args of another version or size. */
+int64_t dk_solve(const dk_solve_args *o) {
+    if (!solve_ok(o)) return DK_ABI_ERROR;
+    return o->chain->real_bytes == 8 ? dk_solve_f64(o->chain, o) : dk_solve_f32(o->chain, o);
 }
 
 /* The lean one-target ik.solve in one foreign call (ik/_native_solve.py solve_one): the watched constants
  * unchanged (else DK_STALE), the target T (4 x 4 row-major reals) rigid (else DK_NOT_RIGID), then dk_solve of
- * the chain a with tmpl (filled one-target arguments, never written) and T, the pool drawn from `seed` (>= 0:
+ * tmpl (filled one-target arguments and their chain, never written) with T, the pool drawn from `seed` (>= 0:
  * torch's CPU stream of manual_seed(seed), pool_size uniforms at most, drawn as needed) or read from `pool`
  * (seed < 0), into the outputs q (n reals), ok (1 byte), pe, oe (1 real each), its, seeds (1 int64 each).
  * Returns 0, DK_STALE, DK_NOT_RIGID, -1 when memory ran out, DK_RANGE_ERROR, DK_ABI_ERROR. */
-int64_t dk_solve_one(const dk_args *a, const dk_solve_args *tmpl, const dk_watch *w, const void *T,
-                     int64_t seed, const void *pool, int64_t pool_size, void *q, void *ok, void *pe, void *oe,
-                     void *its, void *seeds) {
-    if (!solve_ok(a, tmpl) || !watch_ok(w)) return DK_ABI_ERROR;
+int64_t dk_solve_one(const dk_solve_args *tmpl, const dk_watch *w, const void *T, int64_t seed,
+                     const void *pool, int64_t pool_size, void *q, void *ok, void *pe, void *oe, void *its,
+                     void *seeds) {
+    if (!solve_ok(tmpl) || !watch_ok(w)) return DK_ABI_ERROR;
     if (dk_unchanged(w) != 1) return DK_STALE;
+    const dk_args *a = tmpl->chain;
     return a->real_bytes == 8
         ? solve_one_f64(a, tmpl, (const double *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds)
         : solve_one_f32(a, tmpl, (const float *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds);

@@ -38,14 +38,15 @@
 #define MAX_RANKS 64 /* library ranks a target may ask for (lib_ranks; more: DK_RANGE_ERROR) */
 #define MAX_ENDS 64 /* end links the nearest-pose search takes (more: no library seeds) */
 
-/* The arguments of dk_solve and dk_solve_one (X(type, name, what)), apart from the chain's dk_args: the LM
- * constants, the targets, the seeds and the outputs. A new solver option is a field here (and a bump of
- * DK_SOLVE_VERSION with native.SolveArgs); dk_args, the FK's, keeps its layout. Reals are of the chain's
- * real_bytes. */
+/* The arguments of dk_solve and dk_solve_one (X(type, name, what)): the chain (a pointer to its dk_args,
+ * checked as dk_fk checks it), the LM constants, the targets, the seeds and the outputs. A new solver option
+ * is a field here (and a bump of DK_SOLVE_VERSION with native.SolveArgs); dk_args, the FK's, keeps its
+ * layout. Reals are of the chain's real_bytes. */
 #define DK_SOLVE_FIELDS(X) \
     X(int64_t, version, "DK_SOLVE_VERSION") \
     X(int64_t, size, "sizeof(dk_solve_args)") \
     X(int64_t, nthreads, "threads to use (at least 1)") \
+    X(const dk_args *, chain, "the chain's arrays (their call fields unused)") \
     X(int64_t, iters, "steps between two stall checks") \
     X(int64_t, n_targets, "N") \
     X(const void *, pd, "[3K*N] reals") \

@@ -21,17 +21,17 @@ every caller keeps the torch kernels: results are the same to rounding.
 
 Interface: one struct per entry point, each mirrored field by field by a ``ctypes.Structure`` here:
 :class:`Args` (``dk_args``: the chain's arrays and one FK call, for ``dk_fk`` and as the chain of every
-other entry), :class:`SolveArgs` (``dk_solve_args``: the LM constants and one solve, for ``dk_solve`` and
-``dk_solve_one``), :class:`WatchArgs` (``dk_watch``: the cache check of the lean paths) and :class:`Collide`
-(``dk_collide``); ``ik/_native_velocity.py``'s ``Vel`` (``dk_vel``) follows the same rule. Each starts with
-its own version (the class's ``VERSION``) and its size, so that a new solver option changes
-:class:`SolveArgs` and its version only, never the FK's :class:`Args`. On loading, :func:`check_abi` reads
-every struct's version, ``sizeof``, field names and offsets from the library (``dk_layout_<tag>`` /
-``dk_names_<tag>``, one generic check: :func:`check_layout`), the status codes and limits Python uses
-(``dk_constants``, checked against :data:`CONSTANTS`: :func:`check_constants`) and the table of motions; a
-library that does not match is rebuilt once, then refused: a one-time warning, and the torch kernels serve
-every call. Every entry point refuses, at call time, a struct of another version or size (``DK_ABI_ERROR``:
-:class:`AbiMismatch` here).
+other entry), :class:`SolveArgs` (``dk_solve_args``: the chain's address, the LM constants and one solve,
+for ``dk_solve`` and ``dk_solve_one``), :class:`WatchArgs` (``dk_watch``: the cache check of the lean
+paths) and :class:`Collide` (``dk_collide``); ``ik/_native_velocity.py``'s ``Vel`` (``dk_vel``) follows
+the same rule. Each starts with its own version (the class's ``VERSION``) and its size, so that a new
+solver option changes :class:`SolveArgs` and its version only, never the FK's :class:`Args`. On loading,
+:func:`check_abi` reads every struct's version, ``sizeof``, field names and offsets from the library
+(``dk_layout_<tag>`` / ``dk_names_<tag>``, one generic check: :func:`check_layout`), the status codes and
+limits Python uses (``dk_constants``, checked against :data:`CONSTANTS`: :func:`check_constants`) and the
+table of motions; a library that does not match is rebuilt once, then refused: a one-time warning, and the
+torch kernels serve every call. Every entry point refuses, at call time, a struct of another version or
+size (``DK_ABI_ERROR``: :class:`AbiMismatch` here).
 
 Thread policy: batches of at most 512 configurations run on the calling thread. Larger ones use
 ``torch.get_num_threads()`` threads, but never more than the cores that are free right now: the count of
@@ -115,7 +115,8 @@ class Args(ctypes.Structure):
     the version and the size, the chain's arrays, one FK call's inputs and outputs."""
 
     VERSION = ABI_VERSION
-    _fields_ = _HEAD + [(name, _I64) for name in ("real_bytes", "nthreads", "J", "K", "n", "nv", "has_base")] + \
+    _fields_ = _HEAD + \
+        [(name, _I64) for name in ("real_bytes", "nthreads", "J", "K", "n", "nv", "has_base")] + \
         [(name, _PTR) for name in ("parent", "motion", "qidx", "vidx", "has_pre", "has_post", "end_joint",
                                    "has_end", "ancestor", "mult", "qoff", "pre", "post", "base", "end")] + \
         [("batch", _I64), ("q", _PTR), ("T", _PTR), ("jac", _PTR)]
@@ -123,11 +124,12 @@ class Args(ctypes.Structure):
 
 class SolveArgs(ctypes.Structure):
     """``dk_solve_args`` of ``_native_solve.c`` (``DK_SOLVE_FIELDS``): the arguments of ``dk_solve`` and
-    ``dk_solve_one`` besides the chain's :class:`Args`: the LM constants, the targets, the seeds and the
-    outputs. A new solver option is a field here and a new :attr:`VERSION` (with ``DK_SOLVE_VERSION``)."""
+    ``dk_solve_one``: the address of the chain's :class:`Args` (``chain``), the LM constants, the targets,
+    the seeds and the outputs. A new solver option is a field here and a new :attr:`VERSION` (with
+    ``DK_SOLVE_VERSION``)."""
 
     VERSION = 1
-    _fields_ = _HEAD + [("nthreads", _I64), ("iters", _I64), ("n_targets", _I64)] + \
+    _fields_ = _HEAD + [("nthreads", _I64), ("chain", _PTR), ("iters", _I64), ("n_targets", _I64)] + \
         [(name, _PTR) for name in ("pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh", "bounded")] + \
         [(name, _F64) for name in ("damping2", "error_damping", "tol_p", "tol_o", "margin")] + \
         [(name, _I64) for name in ("n_seeds", "max_iterations", "min_seed_iterations")] + \
@@ -191,7 +193,8 @@ def _exported(lib, name: str, restype, argtypes):
 def check_layout(lib, tag: str, struct_type: type[ctypes.Structure], version: int | None = None) -> None:
     """Raise :class:`AbiMismatch` unless the library's struct ``tag`` (its ``dk_layout_<tag>`` and
     ``dk_names_<tag>``) has the version ``version`` (default ``struct_type.VERSION``), the size, field names
-    and offsets of the ``ctypes.Structure`` ``struct_type``. The one check of every struct of the interface."""
+    and offsets of the ``ctypes.Structure`` ``struct_type``. The one check of every struct of the
+    interface."""
     version = struct_type.VERSION if version is None else version
     fn = _exported(lib, f"dk_layout_{tag}", _I64, [_PTR, _I64])
     names = _exported(lib, f"dk_names_{tag}", ctypes.c_char_p, [])
@@ -254,8 +257,7 @@ def motion_table(lib: ctypes.CDLL) -> dict[str, int]:
 def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     """Load the library at ``path`` and check its interface (:func:`check_abi`); a file that fails the check
     is compiled again once (a stale or foreign file under this name), then refused (:class:`AbiMismatch`).
-    ``dk_fk`` takes a pointer to :class:`Args`, ``dk_solve`` one to :class:`Args` and one to
-    :class:`SolveArgs`."""
+    ``dk_fk`` takes a pointer to :class:`Args`, ``dk_solve`` one to :class:`SolveArgs`."""
     lib = ctypes.CDLL(str(path))
     try:
         check_abi(lib)
@@ -265,7 +267,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
         lib = ctypes.CDLL(str(_compile(flags)))
         check_abi(lib)
     lib.dk_fk.restype, lib.dk_fk.argtypes = _I64, [ctypes.POINTER(Args)]
-    lib.dk_solve.restype, lib.dk_solve.argtypes = _I64, [ctypes.POINTER(Args), ctypes.POINTER(SolveArgs)]
+    lib.dk_solve.restype, lib.dk_solve.argtypes = _I64, [ctypes.POINTER(SolveArgs)]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
     return lib
 
@@ -292,7 +294,8 @@ def _cpu_signature() -> str:
 def library_path(flags: tuple[str, ...] = ()) -> Path:
     """Where the library for this source, ``flags`` and CPU is cached."""
     h = hashlib.sha256()
-    for part in (_SOURCE.read_bytes(), *(p.read_bytes() for p in _INCLUDED), f"abi {sorted((t, c.VERSION) for t, c in STRUCTS.items())}".encode(),
+    versions = sorted((tag, struct_type.VERSION) for tag, struct_type in STRUCTS.items())
+    for part in (_SOURCE.read_bytes(), *(p.read_bytes() for p in _INCLUDED), f"abi {versions}".encode(),
                  " ".join(_FLAGS + flags).encode(),
                  _cpu_signature().encode(),
                  platform.machine().encode(), sys.platform.encode()):
@@ -592,11 +595,11 @@ def _main() -> int:
 
 
 
-def solve_call(chain: Args, args: SolveArgs) -> None:
-    """Run ``dk_solve`` (the whole IK solve, ``_native_solve.c``) on the chain's filled :class:`Args` and a
-    filled :class:`SolveArgs`; raises on an allocation failure, an option beyond the library's limits
-    (:class:`~diffkin.errors.OptionError`) or an interface mismatch."""
-    _raise_on(_lib.dk_solve(ctypes.byref(chain), ctypes.byref(args)), "work space")
+def solve_call(args: SolveArgs) -> None:
+    """Run ``dk_solve`` (the whole IK solve, ``_native_solve.c``) on a filled :class:`SolveArgs` (its
+    ``chain`` the address of a chain's filled :class:`Args`); raises on an allocation failure, an option
+    beyond the library's limits (:class:`~diffkin.errors.OptionError`) or an interface mismatch."""
+    _raise_on(_lib.dk_solve(ctypes.byref(args)), "work space")
 
 
 def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,
@@ -618,7 +621,8 @@ def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects
     skips = [None if m is None else m.to(torch.uint8).contiguous() for m in (skip_round, skip_half)]
     ptr = lambda t: None if t is None or t.numel() == 0 else t.data_ptr()  # noqa: E731
     okb = ok.view(torch.uint8)
-    c = new_struct(Collide, real_bytes=A.element_size(), N=A.shape[-1], G=A.shape[0], P=pairs.shape[0], Wr=wa.shape[0],
+    c = new_struct(Collide, real_bytes=A.element_size(), N=A.shape[-1], G=A.shape[0], P=pairs.shape[0],
+                   Wr=wa.shape[0],
                 H=hs.shape[0], nthreads=thread_count(A.shape[-1] * max(1, pairs.shape[0]) // 64),
                 A=A.data_ptr(), B=B.data_ptr(), r=ptr(keep[2]), pi=ptr(keep[3]), pj=ptr(keep[4]),
                 wa=ptr(wa), wb=ptr(wb), wr=ptr(wr), hs=ptr(hs), skip_r=ptr(skips[0]), skip_h=ptr(skips[1]),

@@ -75,7 +75,8 @@ class Watch:
         self._keep = (ptr, size, space)
         snap = ctypes.cast(ctypes.c_char_p(self.snap), _PTR).value
         self.c = native.new_struct(native.WatchArgs, n=len(tensors), ptr=ctypes.addressof(ptr),
-                                   bytes=ctypes.addressof(size), snap=snap, work=space and ctypes.addressof(space))
+                                   bytes=ctypes.addressof(size), snap=snap,
+                                   work=space and ctypes.addressof(space))
         self.addr = ctypes.addressof(self.c)
 
     def unchanged(self) -> bool:
