@@ -57,11 +57,11 @@
     X(const void *, jc, "[n] reals") \
     X(const void *, jh, "[n] reals") \
     X(const uint8_t *, bounded, "[n]") \
-    X(double, damping2, "dk_solve") \
-    X(double, error_damping, "dk_solve") \
-    X(double, tol_p, "dk_solve") \
-    X(double, tol_o, "dk_solve") \
-    X(double, margin, "dk_solve") \
+    X(double, damping2, "the constant damping of (3.59)") \
+    X(double, error_damping, "the weight of the error-dependent damping") \
+    X(double, tol_p, "position tolerance") \
+    X(double, tol_o, "orientation tolerance") \
+    X(double, margin, "converged within the tolerances times this") \
     X(int64_t, n_seeds, "most seeds per target") \
     X(int64_t, max_iterations, "most LM iterations per seed (iters: steps between stall checks)") \
     X(int64_t, min_seed_iterations, "a seed younger than this is never stalled") \
