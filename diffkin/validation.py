@@ -303,11 +303,13 @@ def check_number(x: Any, name: str, *, positive: bool = True, unit: str = "") ->
     return float(x)
 
 
-def check_count(x: Any, name: str, minimum: int = 1) -> int:
-    """An option given as a Python integer >= ``minimum`` (seeds, iterations, sizes); else
-    :class:`~diffkin.errors.OptionError` naming it."""
-    if isinstance(x, bool) or not isinstance(x, int | np.integer) or x < minimum:
-        raise OptionError(f"expected {name} as an integer >= {minimum}, got {x!r}")
+def check_count(x: Any, name: str, minimum: int = 1, maximum: int | None = None) -> int:
+    """An option given as a Python integer >= ``minimum`` (and <= ``maximum`` when given: seeds, iterations,
+    sizes); else :class:`~diffkin.errors.OptionError` naming it."""
+    if isinstance(x, bool) or not isinstance(x, int | np.integer) or x < minimum or \
+            (maximum is not None and x > maximum):
+        bound = f">= {minimum}" if maximum is None else f"in [{minimum}, {maximum}]"
+        raise OptionError(f"expected {name} as an integer {bound}, got {x!r}")
     return int(x)
 
 

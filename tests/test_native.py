@@ -266,54 +266,166 @@ def test_solve_with_the_c_backend_matches_the_torch_one(dtype):
 
 
 # ------------------------------------------------------------------------------ the versioned interface
-def _args_like(fields):
-    return type("MismatchedArgs", (ctypes.Structure,), {"_fields_": fields})
+def _struct_like(struct_type, fields):
+    return type("Mismatched" + struct_type.__name__, (ctypes.Structure,), {"_fields_": fields})
 
 
-def test_the_library_speaks_this_modules_interface():
-    native.check_abi(native._lib)  # the loaded library: version, size and every offset
-    fields = list(native.Args._fields_)
-    v = native.ABI_VERSION
-    with pytest.raises(native.AbiMismatch, match=f"version {v} .library. vs {v + 1}"):
-        native.check_abi(native._lib, version=native.ABI_VERSION + 1)
+@pytest.mark.parametrize("tag", sorted(native.STRUCTS))
+def test_the_library_speaks_this_modules_interface(tag):
+    """Every struct of the interface (FK, solve, watch, collide) is checked by the one generic check:
+    its version, its size (a field missing) and its field names and offsets (two fields swapped)."""
+    native.check_abi(native._lib)  # the loaded library: every struct, the constants, the motions
+    struct_type = native.STRUCTS[tag]
+    fields, v = list(struct_type._fields_), struct_type.VERSION
+    native.check_layout(native._lib, tag, struct_type)
+    with pytest.raises(native.AbiMismatch, match=f"{tag} struct .* version {v} .library. vs {v + 1}"):
+        native.check_layout(native._lib, tag, struct_type, v + 1)
     with pytest.raises(native.AbiMismatch, match="size"):  # a field missing
-        native.check_abi(native._lib, _args_like(fields[:-1]))
-    swapped = [fields[5], fields[4], *fields[6:]]  # "J" and "K" swapped: same size, other offsets
+        native.check_layout(native._lib, tag, _struct_like(struct_type, fields[:-1]), v)
+    swapped = [*fields[:2], fields[3], fields[2], *fields[4:]]  # same size, other names at the offsets
     with pytest.raises(native.AbiMismatch, match="names or offsets"):
-        native.check_abi(native._lib, _args_like([*fields[:4], *swapped]))
+        native.check_layout(native._lib, tag, _struct_like(struct_type, swapped), v)
+    with pytest.raises(native.AbiMismatch, match="exports no dk_layout_nothing"):
+        native.check_layout(native._lib, "nothing", struct_type)
+
+
+def test_a_solver_option_leaves_the_fk_struct_alone():
+    """The FK's dk_args holds the chain and one FK call only: every solve field lives in dk_solve_args."""
+    fk = {name for name, *_ in native.Args._fields_}
+    solve = {name for name, *_ in native.SolveArgs._fields_}
+    assert fk & solve == {"version", "size", "nthreads"} and "chain" in solve  # the chain: an address
+    assert {"damping2", "lib_ranks", "n_seeds", "q_out"} <= solve
+
+
+def test_the_constants_check_catches_a_changed_constant():
+    """The status codes and limits Python uses are the library's (dk_constants): a changed or missing one
+    is refused, and the codes the entry points return are those of the table."""
+    native.check_constants(native._lib)
+    with pytest.raises(native.AbiMismatch, match=r"DK_STALE -4 \(library\) vs -7 \(python\)"):
+        native.check_constants(native._lib, {**native.CONSTANTS, "DK_STALE": -7})
+    with pytest.raises(native.AbiMismatch, match=r"MAX_RANKS 64 \(library\) vs 32"):
+        native.check_constants(native._lib, {**native.CONSTANTS, "MAX_RANKS": 32})
+    with pytest.raises(native.AbiMismatch, match="DK_GONE missing"):
+        native.check_constants(native._lib, {"DK_GONE": 1})
+    codes = [native.CONSTANTS[k] for k in ("DK_ABI_ERROR", "DK_RANGE_ERROR", "DK_STALE", "DK_NOT_RIGID")]
+    assert len(set(codes)) == 4 and all(c < -1 for c in codes)  # distinct from 0, counts and -1 (memory)
+
+
+def _panda_call(n=3):
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((n,), generator=torch.Generator().manual_seed(11))
+    with torch.no_grad():
+        packed = chain._native_model(q)
+    return chain, q, packed
 
 
 def test_the_kernel_refuses_a_struct_of_another_version_or_size():
-    chain = models.load("panda", dtype=torch.float64)
-    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(11))
-    with torch.no_grad():
-        packed = chain._native_model(q)
+    chain, q, packed = _panda_call()
     T = torch.zeros(3, 1, 4, 4, dtype=torch.float64)
+    lib, abi_error = native._lib, native.CONSTANTS["DK_ABI_ERROR"]
     for wrong in ({"version": native.ABI_VERSION + 1}, {"size": ctypes.sizeof(native.Args) - 8},
                   {"real_bytes": 2}):
         args = packed.call(torch.float64, batch=3, q=q, T=T, jac=None, nthreads=1, **wrong)
-        assert native._lib.dk_fk(ctypes.byref(args)) == native._ABI_ERROR
-        assert native._lib.dk_solve(ctypes.byref(args)) == native._ABI_ERROR
+        assert lib.dk_fk(ctypes.byref(args)) == abi_error
         assert not T.any()  # nothing written
     args = packed.call(torch.float64, batch=3, q=q, T=T, jac=None, nthreads=1)
-    assert native._lib.dk_fk(ctypes.byref(args)) == 0
+    assert lib.dk_fk(ctypes.byref(args)) == 0
     with native.disabled(), torch.no_grad():
         torch.testing.assert_close(T[:, 0], chain.forward_kinematics(q), atol=1e-12, rtol=0)
+    with pytest.raises(native.AbiMismatch, match="refused the call"):
+        native._raise_on(abi_error, "frames")
 
 
-def test_a_mismatched_library_is_rebuilt_then_refused_with_one_warning(monkeypatch, tmp_path):
-    """native.py speaking another version than the C file: the library is compiled, refused, compiled again
-    once, refused; one warning, and the torch kernels serve the calls."""
+@pytest.mark.parametrize("wrong", ["version", "size"])
+def test_the_solve_watch_and_collide_entries_refuse_a_struct_of_another_version_or_size(wrong):
+    """dk_solve, dk_solve_one, dk_fk_one, dk_unchanged and dk_collide_clear check their own structs at call
+    time: nothing is computed or written, DK_ABI_ERROR is returned (AbiMismatch through solve_call)."""
+    from diffkin.kernels import single
+
+    chain, q, packed = _panda_call()
+    lib, abi_error = native._lib, native.CONSTANTS["DK_ABI_ERROR"]
+    off = {"version": lambda s: s.VERSION + 1, "size": lambda s: ctypes.sizeof(s) - 8}[wrong]
+    T = chain.forward_kinematics(q).contiguous()
+    out = torch.full((3, 7), 7.0, dtype=torch.float64)
+    chain_args = packed.args[torch.float64]
+    solve = native.new_struct(native.SolveArgs, chain=ctypes.addressof(chain_args), n_targets=3, nthreads=1,
+                              q_out=out)
+    setattr(solve, wrong, off(native.SolveArgs))
+    assert lib.dk_solve(ctypes.byref(solve)) == abi_error
+    with pytest.raises(native.AbiMismatch):
+        native.solve_call(solve)
+    bad_chain = native.Args.from_buffer_copy(chain_args)
+    setattr(bad_chain, wrong, off(native.Args))
+    good = native.new_struct(native.SolveArgs, chain=ctypes.addressof(bad_chain), n_targets=3, nthreads=1,
+                             q_out=out)
+    assert lib.dk_solve(ctypes.byref(good)) == abi_error  # a good solve struct on a chain of another layout
+    assert torch.all(out == 7.0)  # nothing written
+
+    watch = single.Watch([q])
+    assert watch.unchanged()
+    fk_one, unchanged, solve_one = lib.dk_fk_one, lib.dk_unchanged, lib.dk_solve_one
+    fk_one.restype, fk_one.argtypes = ctypes.c_int64, [ctypes.c_void_p] * 5
+    unchanged.restype, unchanged.argtypes = ctypes.c_int64, [ctypes.c_void_p]
+    solve_one.restype = ctypes.c_int64
+    solve_one.argtypes = [ctypes.c_void_p] * 3 + [ctypes.c_int64, ctypes.c_void_p, ctypes.c_int64] + \
+        [ctypes.c_void_p] * 6
+    one = [out[0].data_ptr()] + [out[1].data_ptr()] * 5  # q, ok, pe, oe, its, seeds: none may be written
+    good.chain = ctypes.addressof(chain_args)
+    for sol, w in ((solve, watch), (good, None)):  # a bad solve struct; a bad watch (made so below)
+        if w is None:
+            setattr(watch.c, wrong, off(native.WatchArgs))
+        assert solve_one(ctypes.addressof(sol), watch.addr, T[0].data_ptr(), 0, None, 0, *one) == abi_error
+    assert torch.all(out == 7.0)
+    Tq = torch.zeros(4, 4, dtype=torch.float64)
+    assert unchanged(watch.addr) == abi_error
+    assert fk_one(ctypes.addressof(chain_args), watch.addr, q[0].data_ptr(), Tq.data_ptr(), None) == abi_error
+    assert not Tq.any()
+
+    A, ok = torch.zeros(1, 3, 4, dtype=torch.float64), torch.ones(4, dtype=torch.bool)
+    r, w = torch.ones(1, dtype=torch.float64), torch.zeros(3, dtype=torch.float64)  # alive for the calls
+    # four unit capsules at the origin and a unit sphere there: every configuration in collision
+    c = native.new_struct(native.Collide, real_bytes=8, N=4, G=1, P=0, Wr=1, H=0, nthreads=1, A=A, B=A, r=r,
+                          wa=w, wb=w, wr=r, margin=0.0, slack=0.0, ok=ok.view(torch.uint8))
+    assert lib.dk_collide_clear(ctypes.byref(c)) == 0 and not ok.any()  # the right struct: all in collision
+    ok.fill_(True)
+    setattr(c, wrong, off(native.Collide))
+    assert lib.dk_collide_clear(ctypes.byref(c)) == abi_error and ok.all()  # refused: nothing cleared
+
+
+@pytest.mark.parametrize("mismatch", ["fk version", "solve version", "constant"])
+def test_a_mismatched_library_is_rebuilt_then_refused_with_one_warning(monkeypatch, tmp_path, mismatch):
+    """native.py speaking another interface than the C file (the FK's struct, the solve's struct (a new
+    solver option on one side only), a constant): the library is built, refused, built again once, refused;
+    one warning, and the torch kernels serve the calls. The "compiler" copies this session's library (the
+    check is what is tested, not the compiler)."""
+    import shutil
+
     monkeypatch.setenv("DIFFKIN_CACHE_DIR", str(tmp_path))
-    v = native.ABI_VERSION
-    monkeypatch.setattr(native, "ABI_VERSION", v + 1)
+    if mismatch == "fk version":
+        v = native.Args.VERSION
+        monkeypatch.setattr(native.Args, "VERSION", v + 1)
+        said = f"args struct does not match Args: version {v} .library. vs {v + 1}"
+    elif mismatch == "solve version":
+        v = native.SolveArgs.VERSION
+        monkeypatch.setattr(native.SolveArgs, "VERSION", v + 1)
+        said = f"solve struct does not match SolveArgs: version {v} .library. vs {v + 1}"
+    else:
+        monkeypatch.setitem(native.CONSTANTS, "MAX_RANKS", 65)
+        said = r"constants differ: MAX_RANKS 64 \(library\) vs 65"
+    built = native._path
     monkeypatch.setattr(native, "_lib", None)
     monkeypatch.setattr(native, "_tried", False)
     monkeypatch.setattr(native, "_OPTIONAL", native._OPTIONAL[:1])
     compiles = []
-    real_compile = native._compile
-    monkeypatch.setattr(native, "_compile", lambda flags: compiles.append(flags) or real_compile(flags))
-    with pytest.warns(RuntimeWarning, match=f"serve every call.*version {v} .library. vs {v + 1}"):
+
+    def stand_in(flags):
+        compiles.append(flags)
+        out = native.library_path(flags)
+        shutil.copyfile(built, out)
+        return out
+
+    monkeypatch.setattr(native, "_compile", stand_in)
+    with pytest.warns(RuntimeWarning, match=f"serve every call.*{said}"):
         assert not native.available()
     assert len(compiles) == 2  # the first load, then the one rebuild
     with warnings.catch_warnings():

@@ -203,3 +203,35 @@ def test_disabled_keeps_the_torch_loop_after_a_c_solve(monkeypatch):
         with native.disabled():
             assert not _native_solve.applies(chain, T, False)
             assert bool(ik.solve(chain, T, seed=0).success.all())
+
+
+# ------------------------------------------------------------------------------ library ranks: no clamp
+def test_library_ranks_at_the_limit_are_served_fully_and_beyond_it_refused():
+    """library_ranks = MAX_RANKS (64) is served: the C solve and the torch solve agree on targets that try
+    every seed (unreachable: the best of 64 library seeds decides q). Beyond it LMConfig refuses (an
+    OptionError naming the limit), and dk_solve itself refuses lib_ranks > MAX_RANKS (DK_RANGE_ERROR, no
+    clamp) if asked without LMConfig's check."""
+    from diffkin.errors import OptionError
+    from diffkin.ik import numerical
+    from diffkin.ik._lm import LMConfig
+
+    limit = native.CONSTANTS["MAX_RANKS"]
+    chain = models.load("panda", dtype=torch.float64)
+    _, T = _targets(chain, 3, seed=41, unreachable=3)
+    cfg = LMConfig(library_ranks=limit, library_size=limit + 16)
+    fused, ref = c_and_torch_solve(chain, T, seed=0, config=cfg, num_seeds=limit, max_iterations=6)
+    assert not fused.success.any() and bool((fused.seeds_tried == limit).all())
+    assert torch.equal(fused.seeds_tried, ref.seeds_tried)
+    torch.testing.assert_close(fused.q, ref.q, atol=1e-9, rtol=0)
+    torch.testing.assert_close(fused.position_error, ref.position_error, atol=1e-9, rtol=0)
+    with pytest.raises(OptionError, match=rf"library_ranks as an integer in \[0, {limit}\], got {limit + 1}"):
+        LMConfig(library_ranks=limit + 1)
+    with pytest.raises(OptionError, match="library_ranks"):
+        ik.solve(chain, T, config=LMConfig(library_ranks=-1))
+    over = LMConfig(library_size=limit + 16)
+    object.__setattr__(over, "library_ranks", limit + 1)  # past the Python check: the C entry refuses
+    prep = _native_solve.prepared(chain, T, torch.float64, True, over.library_size)
+    tg = numerical._targets(chain, T, False, torch.float64)[2]
+    with pytest.raises(OptionError, match=f"library ranks above {limit}"):
+        _native_solve.run(prep, _native_solve.columns(tg), 3, over, torch.Generator().manual_seed(0),
+                          tol=(TOL_P, TOL_O), num_seeds=limit + 1, max_iterations=6, user_u=None)

@@ -199,11 +199,10 @@ def test_g1_floating_base_matches_mink():
 
 
 def test_struct_mirrors_library():
-    """native.check_abi refuses a dk_vel whose fields, offsets or version differ from Vel's."""
-    lib = nvel._Renamed(native._lib)
-    native.check_abi(lib, nvel.Vel, nvel.VERSION)
-    with pytest.raises(native.AbiMismatch):
-        native.check_abi(lib, nvel.Vel, nvel.VERSION + 1)
+    """native.check_layout refuses a dk_vel whose fields, offsets or version differ from Vel's."""
+    native.check_layout(native._lib, "vel", nvel.Vel)
+    with pytest.raises(native.AbiMismatch, match="vel struct does not match Vel: version"):
+        native.check_layout(native._lib, "vel", nvel.Vel, nvel.VERSION + 1)
 
 
 # ------------------------------------------------------------------ ik.solve_velocity: the C route vs torch

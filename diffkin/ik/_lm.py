@@ -29,7 +29,8 @@ import torch
 from torch import Tensor
 
 from ..kernels.dls import dls_solve
-from ._seeds import SeedPool
+from ..validation import check_count
+from ._seeds import MAX_RANKS, SeedPool
 from .residuals import PoseResidual
 
 
@@ -43,7 +44,9 @@ class LMConfig:
     error_damping: μ, weight of the error-dependent part.
     orientation_weight: weight of the orientation rows relative to metres (rad → m scale).
     library_size: configurations sampled per call whose poses seed each target (nearest first); 0: off.
-    library_ranks: how many nearest library poses a target tries before random seeds.
+    library_ranks: how many nearest library poses a target tries before random seeds (0 to
+        :data:`~diffkin.ik._seeds.MAX_RANKS` = 64, the C solve's limit: more raises
+        :class:`~diffkin.errors.OptionError`, never a silent clamp).
     check_every: LM steps of a seed between two stall checks (the iteration limit is checked with them).
     min_seed_iterations / stall_ratio: a seed at least this old whose merit did not shrink by this factor
         since the last check is finished, and the target's next seed starts.
@@ -69,6 +72,9 @@ class LMConfig:
     margin: float = 0.5
     compute_dtype: torch.dtype | None = None
     collision_refine_calls: int = 0
+
+    def __post_init__(self):
+        check_count(self.library_ranks, "LMConfig.library_ranks", minimum=0, maximum=MAX_RANKS)
 
 
 class Targets:

@@ -63,12 +63,14 @@ class _Prepared:
         # a count
         self.outs = (torch.empty(self.n, dtype=dtype), torch.empty((), dtype=dtype),
                      torch.empty((), dtype=torch.bool), torch.empty((), dtype=torch.int64))
-        self.base = packed.call(dtype, jc=self.arrays[0], jh=self.arrays[1], bounded=self.arrays[2],
-                                wrap=self.arrays[3], qlo=lo, qhi=hi, clamp=self.clamp, n_lib=L,
-                                lib_u=self.lib_u, lib_pose=self.lib_pose)
+        self.chain = packed.args[dtype]  # the chain's dk_args (packed keeps it alive): its address below
+        self.base = native.new_struct(native.SolveArgs, chain=ctypes.addressof(self.chain), jc=self.arrays[0],
+                                      jh=self.arrays[1], bounded=self.arrays[2], wrap=self.arrays[3], qlo=lo,
+                                      qhi=hi, clamp=self.clamp, n_lib=L, lib_u=self.lib_u,
+                                      lib_pose=self.lib_pose)
 
 
-    def configured(self, cfg: LMConfig, position_only: bool, K: int) -> native.Args:
+    def configured(self, cfg: LMConfig, position_only: bool, K: int) -> native.SolveArgs:
         """:attr:`base` with the fields of ``cfg`` and the row weights set (cached per option set)."""
         key = (cfg, position_only, K)
         hit = self._configured.get(key)
@@ -76,14 +78,14 @@ class _Prepared:
             rot = [] if position_only else [math.sqrt(cfg.orientation_weight)] * 3
             sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
             hit = self._configured[key] = (sqrt_w, native._filled(
-                native.Args.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
+                native.SolveArgs.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
                 damping2=cfg.damping, error_damping=cfg.error_damping, margin=cfg.margin,
                 min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
                 feature_weight=cfg.orientation_weight))
         return hit[1]
 
     def one(self, tol: tuple, num_seeds: int, max_iterations: int) -> tuple[int, int]:
-        """The address of the filled ``dk_solve`` arguments of a one-target call with default options (every
+        """The address of the filled ``dk_solve_args`` of a one-target call with default options (every
         field but the target, the pool and the outputs: ``dk_solve_one`` copies the struct and sets them),
         and the pool's length (cached per option set)."""
         key = (tol, num_seeds, max_iterations)
@@ -92,7 +94,7 @@ class _Prepared:
             R = _seeds.ranks(self.L, 1, _DEFAULT.library_ranks)
             P = _seeds.pool_size(1, num_seeds, 0, R)
             args = native._filled(
-                native.Args.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
+                native.SolveArgs.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
                 tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations, n_user=0,
                 user_u=None, lib_ranks=R, n_pool=P, nthreads=1, target_stride=4)  # a row-major (4, 4) pose
             hit = self._one[key] = (ctypes.addressof(args), P * self.nu, args)  # args keeps the address
@@ -148,7 +150,7 @@ def run(prep: _Prepared, cols: tuple, N: int, cfg: LMConfig, generator, *, tol, 
         errs, counts = torch.empty(2, N, dtype=dtype), torch.empty(2, N, dtype=torch.int64)
         outs = (torch.empty(N, n, dtype=dtype), torch.empty(N, dtype=torch.bool), *errs, *counts)
     args = native._filled(
-        native.Args.from_buffer_copy(prep.configured(cfg, cols[1] is None, K)),
+        native.SolveArgs.from_buffer_copy(prep.configured(cfg, cols[1] is None, K)),
         n_targets=N, pd=cols[0], xd=cols[1], yd=cols[2], zd=cols[3], tol_p=tol[0], tol_o=tol[1],
         n_seeds=num_seeds, max_iterations=max_iterations, n_user=S, user_u=user_u, lib_ranks=R, n_pool=P,
         pool=pool, q_out=outs[0], success=outs[1], pos_err=outs[2], ori_err=outs[3], iters_out=outs[4],
@@ -221,7 +223,7 @@ __all__ = ["applies", "solve_batch", "run", "prepared", "columns", "checked", "u
 
 _DEFAULT = LMConfig()
 _ONE = ("solve_one",)  # the Entry.extra key of the default-options _Prepared a one-target call uses
-_NOT_RIGID = -5  # DK_NOT_RIGID of _native.c
+_NOT_RIGID = native.CONSTANTS["DK_NOT_RIGID"]
 _SEED_MAX = 2**63  # seeds from 0 below this: the pool drawn in C as torch.Generator().manual_seed(seed) draws
 _typed: tuple = (None, None)  # (the loaded library, its dk_solve_one typed)
 

@@ -45,7 +45,7 @@ __all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
 #: the version of dk_vel this module speaks (DK_VEL_VERSION in _native_velocity.c)
 VERSION = 3
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-_STALE = -4
+_STALE = native.CONSTANTS["DK_STALE"]
 _LEAN = single._KEY  # the chain's lean entry in its instance __dict__
 _pack = struct.Struct("=5Qd").pack  # dk_velocity_step's call block: q, target, q_ref, v, q_next, dt
 
@@ -64,6 +64,7 @@ _V3_FIELDS = [("n_bodies", _I64)] + \
 class Vel(ctypes.Structure):
     """``dk_vel`` of ``_native_velocity.c`` (``DK_VEL_FIELDS``, where each field is described)."""
 
+    VERSION = VERSION
     _fields_ = [(name, _I64) for name in ("version", "size", "nthreads", "batch", "n_frames")] + \
         [(name, _PTR) for name in ("frame_end", "frame_cost", "frame_gain", "frame_lm", "target")] + \
         [("target_stride", _I64), ("posture_cost", _PTR), ("posture_gain", _F64), ("posture_lm", _F64),
@@ -82,7 +83,7 @@ def _functions():
     lib = native._lib
     fns = _fns.get(id(lib))
     if fns is None:
-        native.check_abi(_Renamed(lib), Vel, VERSION)
+        native.check_layout(lib, "vel", Vel)
         one = ctypes.PyDLL(native._path).dk_velocity_step  # keeps the GIL: the call takes microseconds
         one.restype, one.argtypes = _I64, [_PTR, ctypes.c_char_p]  # two arguments to convert, not nine
         batch = lib.dk_velocity  # releases the GIL (threads, milliseconds)
@@ -91,14 +92,6 @@ def _functions():
         size.restype, size.argtypes = _I64, [_PTR]
         fns = _fns[id(lib)] = (one, size, batch)
     return fns
-
-
-class _Renamed:
-    """The library seen through :func:`~diffkin.kernels.native.check_abi`: its ``dk_vel_abi`` /
-    ``dk_vel_names`` as ``dk_abi`` / ``dk_abi_names``, its motion table as it is."""
-
-    def __init__(self, lib):
-        self.dk_abi, self.dk_abi_names, self.dk_motions = lib.dk_vel_abi, lib.dk_vel_names, lib.dk_motions
 
 
 def available() -> bool:

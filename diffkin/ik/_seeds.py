@@ -7,7 +7,8 @@ Seed ``s`` of target ``t`` is
   per chain state from a generator seeded with :data:`LIBRARY_SEED`, so that a single-target call does not
   pay for sampling and evaluating a library) whose end-link pose is the ``(s - S)``-th nearest to the
   target's (squared distance of the positions plus ``orientation_weight`` times that of the rotation
-  columns; ties: the lower library index first), R = min(``library_ranks``, L, 64);
+  columns; ties: the lower library index first), R = min(``library_ranks``, L) (``library_ranks`` at most
+  :data:`MAX_RANKS`: :class:`~diffkin.ik._lm.LMConfig` refuses more);
 * else column ``(t · num_seeds + s) mod P`` of a pool of P = min(N · num_seeds, max(num_seeds, 4096))
   columns of ``n_uniform`` numbers drawn in advance from the **caller's generator** (one draw per call, in
   :func:`draw_pool`), mapped by the one sampler
@@ -23,10 +24,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..kernels import native
+
 LIBRARY_SEED = 0
 POOL = 4096
-MAX_RANKS = 64  # MAX_RANKS of _native_solve.c
-MAX_ENDS = 64  # MAX_ENDS of _native_solve.c: more end links, no library seeds
+MAX_RANKS = native.CONSTANTS["MAX_RANKS"]  # the most library_ranks (LMConfig refuses more: no clamp)
+MAX_ENDS = native.CONSTANTS["MAX_ENDS"]  # more end links: no library seeds
 
 
 def library_u(jmap, L: int) -> Tensor:
@@ -39,7 +42,7 @@ def ranks(L: int, K: int, library_ranks: int) -> int:
     """R: how many nearest library poses a target tries (as ``dk_solve`` reads it)."""
     if L <= 0 or K > MAX_ENDS:
         return 0
-    return max(min(library_ranks, L, MAX_RANKS), 0)
+    return max(min(library_ranks, L), 0)  # library_ranks <= MAX_RANKS: LMConfig checked it
 
 
 def pool_size(N: int, num_seeds: int, S: int, R: int) -> int:

@@ -20,12 +20,17 @@
  * polynomials (|x| >= 1e5 falls back to libm). Blocks are shared between threads with a dynamic schedule.
  * The float FK evaluates sin/cos in float (8 lanes to an AVX2 register), the LM iteration in double.
  *
- * The interface is one struct, dk_args (DK_ARGS_FIELDS below), mirrored field by field by native.py's
- * ctypes.Structure: the chain's arrays (3x4 row-major blocks for the fixed transforms), the call's inputs and
- * outputs, and its version and size. dk_abi() and dk_abi_names() export the version, sizeof and every
- * field's name and offset so that
- * native.py refuses a library whose layout is not its own; every entry point refuses a struct whose version
- * or size is not this file's (DK_ABI_ERROR).
+ * The interface is one struct per entry point, each an X-macro list of its fields that native.py mirrors
+ * field by field as a ctypes.Structure: dk_args (DK_ARGS_FIELDS: the chain's arrays, 3x4 row-major blocks
+ * for the fixed transforms, and one FK call's inputs and outputs) for dk_fk and as the chain of every other
+ * entry; dk_solve_args (DK_SOLVE_FIELDS, _native_solve.c's: the chain's address, the LM constants, the
+ * solve's inputs and outputs) for dk_solve and dk_solve_one; dk_watch (DK_WATCH_FIELDS) for the cache checks; dk_collide
+ * (DK_COLLIDE_FIELDS) for dk_collide_clear; dk_vel (_native_velocity.c). Each struct starts with its own
+ * version and its size: DK_LAYOUT exports dk_layout_<tag>() (version, sizeof, every field's offset) and
+ * dk_names_<tag>() (the field names), which native.py checks at load for every struct, and every entry point
+ * refuses a struct whose version or size is not this file's (DK_ABI_ERROR). A new solver option therefore
+ * changes dk_solve_args only, never dk_args. The status codes and limits Python reads (DK_CONSTANTS) are
+ * exported by dk_constants() / dk_constant_names() and checked against native.py's CONSTANTS at load.
  *
  * The file includes itself once per real type (DK_REAL): the first pass holds what is type-free.
  */
@@ -43,13 +48,35 @@
 #define W 16
 #define WN 4 /* the lanes of DK(block_narrow) */
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
-#define DK_ABI_VERSION 3 /* bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
-#define DK_ABI_ERROR (-2) /* returned for a dk_args of another version or size */
+#define DK_ABI_VERSION 4 /* dk_args: bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
+#define DK_SOLVE_VERSION 1 /* dk_solve_args: bump with every change of DK_SOLVE_FIELDS (native.SolveArgs) */
+#define DK_WATCH_VERSION 1 /* dk_watch: bump with every change of DK_WATCH_FIELDS (native.WatchArgs) */
+#define DK_COLLIDE_VERSION 1 /* dk_collide: bump with every change of DK_COLLIDE_FIELDS (native.Collide) */
+#define DK_ABI_ERROR (-2) /* returned for a struct of another version or size */
+#define DK_RANGE_ERROR (-3) /* dk_solve: an option beyond this file's limits (lib_ranks > MAX_RANKS) */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
 #define DK_NOT_RIGID (-5) /* dk_solve_one: the target is not a rigid transform (or not finite) */
 
-/* X(type, name, what): reals are of the type real_bytes says (8 float64, 4 float32); arrays of reals are
- * passed as void pointers. J joint frames, K end links, n variables, B configurations. */
+/* The layout of a struct T of fields FIELDS (X(type, name, what) lists) and version VERSION, exported for
+ * native.py's load-time check: dk_layout_<tag>(out, cap) writes out[0] = VERSION, out[1] = sizeof(T),
+ * out[2] = the number of fields, out[3 + i] = the offset of field i (what fits in cap entries) and returns
+ * the number of entries there are; dk_names_<tag>() the field names, in order, each followed by a comma. */
+#define DK_NAME(type, name, what) #name ","
+#define DK_OFFSET(type, name, what) (int64_t)((const char *)&probe->name - (const char *)probe),
+#define DK_LAYOUT(tag, T, FIELDS, VERSION) \
+    const char *dk_names_##tag(void) { return FIELDS(DK_NAME); } \
+    int64_t dk_layout_##tag(int64_t *out, int64_t cap) { \
+        static T probe_struct; \
+        const T *probe = &probe_struct; \
+        const int64_t offs[] = {FIELDS(DK_OFFSET)}; \
+        const int64_t nf = (int64_t)(sizeof offs / sizeof offs[0]); \
+        const int64_t head[3] = {VERSION, (int64_t)sizeof(T), nf}; \
+        for (int64_t i = 0; i < 3 + nf && i < cap; i++) out[i] = i < 3 ? head[i] : offs[i - 3]; \
+        return 3 + nf; \
+    }
+/* a struct pointer p of type T is not NULL and has T's version and size */
+#define DK_LAYOUT_OK(p, T, VERSION) ((p) && (p)->version == (VERSION) && (p)->size == (int64_t)sizeof(T))
+
 #define DK_ARGS_FIELDS(X) \
     X(int64_t, version, "DK_ABI_VERSION") \
     X(int64_t, size, "sizeof(dk_args)") \
@@ -78,47 +105,7 @@
     X(int64_t, batch, "B") \
     X(const void *, q, "dk_fk: [B*n] reals in") \
     X(void *, T, "dk_fk: [B*K*16] reals out") \
-    X(void *, jac, "dk_fk: [B*K*6*nv] reals out, or NULL") \
-    X(int64_t, iters, "dk_solve: steps between two stall checks") \
-    X(int64_t, n_targets, "dk_solve: N") \
-    X(const void *, pd, "dk_solve: [3K*N] reals") \
-    X(const void *, xd, "dk_solve: [3K*N] reals, NULL: position only") \
-    X(const void *, yd, "dk_solve: [3K*N] reals") \
-    X(const void *, zd, "dk_solve: [3K*N] reals") \
-    X(const void *, sqrt_w, "dk_solve: [rows] reals") \
-    X(const void *, jc, "dk_solve: [n] reals") \
-    X(const void *, jh, "dk_solve: [n] reals") \
-    X(const uint8_t *, bounded, "dk_solve: [n]") \
-    X(double, damping2, "dk_solve") \
-    X(double, error_damping, "dk_solve") \
-    X(double, tol_p, "dk_solve") \
-    X(double, tol_o, "dk_solve") \
-    X(double, margin, "dk_solve") \
-    X(int64_t, n_seeds, "dk_solve: most seeds per target") \
-    X(int64_t, max_iterations, "dk_solve: most LM iterations per seed (iters: steps between stall checks)") \
-    X(int64_t, min_seed_iterations, "dk_solve: a seed younger than this is never stalled") \
-    X(double, stall_ratio, "dk_solve: stalled when the merit did not shrink by this factor over a check") \
-    X(int64_t, n_user, "dk_solve: S user seeds per target") \
-    X(const void *, user_u, "dk_solve: [N*S*n] reals") \
-    X(int64_t, n_lib, "dk_solve: L library configurations") \
-    X(int64_t, lib_ranks, "dk_solve: R nearest library poses tried per target") \
-    X(const void *, lib_u, "dk_solve: [L*n] reals") \
-    X(const void *, lib_pose, "dk_solve: [12K*L] reals, feature-major: p, x, y, z of every end link")  \
-    X(double, feature_weight, "dk_solve: weight of the rotation columns in the nearest-pose distance") \
-    X(int64_t, n_pool, "dk_solve: P random draws") \
-    X(const void *, pool, "dk_solve: [P*n] uniform reals in [0, 1)") \
-    X(const void *, qlo, "dk_solve: [n] reals, the limits of the final check") \
-    X(const void *, qhi, "dk_solve: [n] reals") \
-    X(const uint8_t *, wrap, "dk_solve: [n] revolute variables, wrapped by 2 pi towards the centre") \
-    X(int64_t, clamp, "dk_solve: clamp into [qlo, qhi] and require it for success") \
-    X(void *, q_out, "dk_solve: [N*n] reals out") \
-    X(int64_t *, iters_out, "dk_solve: [N] out") \
-    X(int64_t *, seeds_out, "dk_solve: [N] out") \
-    X(void *, pos_err, "dk_solve: [N] reals out") \
-    X(void *, ori_err, "dk_solve: [N] reals out") \
-    X(uint8_t *, success, "dk_solve: [N] out") \
-    X(int64_t, target_stride, "dk_solve: entries between a target column's rows (0: N; 4: one row-major pose)")
-
+    X(void *, jac, "dk_fk: [B*K*6*nv] reals out, or NULL")
 /* X(letter, nq, nv, what): the elementary motions in code order (DK_MOTION_P = 0, ...), as
  * diffkin.kernels.configuration declares them (MOTION_NQ, MOTION_NV); native.py reads this table through
  * dk_motions() at load time, checks it against its own and packs each frame's code from it. */
@@ -146,43 +133,48 @@ typedef struct dk_args { DK_ARGS_FIELDS(DK_DECLARE) } dk_args;
  * version counter (p.data.add_(), a tensor shared with numpy) still changes the bytes. work (NULL, or
  * dk_fk_work_bytes of the one dk_args it serves) keeps dk_fk_one's plans and zeroed scratch between calls:
  * ready once the first call made them, busy while a call uses them. */
-typedef struct dk_watch {
-    int64_t n;
-    const int64_t *ptr, *bytes;
-    const uint8_t *snap;
-    void *work;
-    int64_t ready, busy;
-} dk_watch;
+#define DK_WATCH_FIELDS(X) \
+    X(int64_t, version, "DK_WATCH_VERSION") \
+    X(int64_t, size, "sizeof(dk_watch)") \
+    X(int64_t, n, "regions") \
+    X(const int64_t *, ptr, "[n] addresses") \
+    X(const int64_t *, bytes, "[n] sizes") \
+    X(const uint8_t *, snap, "the regions' bytes one after another") \
+    X(void *, work, "dk_fk_one's work space, or NULL") \
+    X(int64_t, ready, "the work space holds the plans") \
+    X(int64_t, busy, "a call uses the work space")
+typedef struct dk_watch { DK_WATCH_FIELDS(DK_DECLARE) } dk_watch;
 
-typedef struct dk_collide { /* the arguments of dk_collide (_native_collide.c); reals of real_bytes */
-    int64_t real_bytes, N, G, P, Wr, H, nthreads;
-    const void *A, *B, *r;        /* capsule ends (G x 3 x N, component-major) and radii (G) */
-    const int64_t *pi, *pj;       /* the P checked pairs */
-    const void *wa, *wb, *wr, *hs; /* round objects (Wr x 3, Wr x 3, Wr), half-spaces (H x 4: n, offset) */
-    const uint8_t *skip_r, *skip_h; /* (G x Wr), (G x H) entries left out, or NULL */
-    double margin, slack;
-    uint8_t *ok;                  /* (N) in/out: cleared where some distance fails */
-} dk_collide;
-#undef DK_DECLARE
+/* The arguments of dk_collide_clear (_native_collide.c); reals of real_bytes. */
+#define DK_COLLIDE_FIELDS(X) \
+    X(int64_t, version, "DK_COLLIDE_VERSION") \
+    X(int64_t, size, "sizeof(dk_collide)") \
+    X(int64_t, real_bytes, "8 or 4") \
+    X(int64_t, N, "configurations") \
+    X(int64_t, G, "capsules") \
+    X(int64_t, P, "checked self pairs") \
+    X(int64_t, Wr, "round world objects") \
+    X(int64_t, H, "half-spaces") \
+    X(int64_t, nthreads, "threads (at least 1)") \
+    X(const void *, A, "[G*3*N] reals: capsule ends, component-major") \
+    X(const void *, B, "[G*3*N] reals") \
+    X(const void *, r, "[G] reals: radii") \
+    X(const int64_t *, pi, "[P] first capsule of each pair") \
+    X(const int64_t *, pj, "[P] second capsule") \
+    X(const void *, wa, "[Wr*3] reals: round objects' segment ends") \
+    X(const void *, wb, "[Wr*3] reals") \
+    X(const void *, wr, "[Wr] reals: radii") \
+    X(const void *, hs, "[H*4] reals: half-spaces n, offset") \
+    X(const uint8_t *, skip_r, "[G*Wr] entries left out, or NULL") \
+    X(const uint8_t *, skip_h, "[G*H] entries left out, or NULL") \
+    X(double, margin, "") \
+    X(double, slack, "") \
+    X(uint8_t *, ok, "[N] in/out: cleared where some distance fails")
+typedef struct dk_collide { DK_COLLIDE_FIELDS(DK_DECLARE) } dk_collide;
 
-/* The field names, in order, each followed by a comma. */
-const char *dk_abi_names(void) {
-#define DK_NAME(type, name, what) #name ","
-    return DK_ARGS_FIELDS(DK_NAME);
-#undef DK_NAME
-}
-
-/* out[0] = version, out[1] = sizeof(dk_args), out[2] = number of fields, out[3 + i] = offset of field i
- * (what fits in cap entries); returns the number of entries there are. */
-int64_t dk_abi(int64_t *out, int64_t cap) {
-#define DK_OFFSET(type, name, what) (int64_t)offsetof(dk_args, name),
-    const int64_t offs[] = {DK_ARGS_FIELDS(DK_OFFSET)};
-#undef DK_OFFSET
-    const int64_t nf = (int64_t)(sizeof offs / sizeof offs[0]);
-    const int64_t head[3] = {DK_ABI_VERSION, (int64_t)sizeof(dk_args), nf};
-    for (int64_t i = 0; i < 3 + nf && i < cap; i++) out[i] = i < 3 ? head[i] : offs[i - 3];
-    return 3 + nf;
-}
+DK_LAYOUT(args, dk_args, DK_ARGS_FIELDS, DK_ABI_VERSION)
+DK_LAYOUT(watch, dk_watch, DK_WATCH_FIELDS, DK_WATCH_VERSION)
+DK_LAYOUT(collide, dk_collide, DK_COLLIDE_FIELDS, DK_COLLIDE_VERSION)
 
 static int thread_id(void) {
 #ifdef _OPENMP
@@ -343,8 +335,42 @@ static inline void transpose_f64(const double *src, size_t ss, double *dst, int6
 #include __FILE__
 
 static int abi_ok(const dk_args *a) {
-    return a && a->version == DK_ABI_VERSION && a->size == (int64_t)sizeof(dk_args) &&
-           (a->real_bytes == 8 || a->real_bytes == 4);
+    return DK_LAYOUT_OK(a, dk_args, DK_ABI_VERSION) && (a->real_bytes == 8 || a->real_bytes == 4);
+}
+
+static int watch_ok(const dk_watch *w) { return DK_LAYOUT_OK(w, dk_watch, DK_WATCH_VERSION); }
+
+static int solve_ok(const dk_solve_args *o) {
+    return DK_LAYOUT_OK(o, dk_solve_args, DK_SOLVE_VERSION) && abi_ok(o->chain);
+}
+
+/* X(name, what): the status codes and limits the Python side reads, exported by dk_constants() and
+ * dk_constant_names() (as dk_layout_* / dk_names_*) and checked at load against native.py's CONSTANTS. */
+#define DK_CONSTANTS(X) \
+    X(DK_ABI_ERROR, "a struct of another version or size") \
+    X(DK_RANGE_ERROR, "an option beyond this file's limits") \
+    X(DK_STALE, "the watched constants changed") \
+    X(DK_NOT_RIGID, "the target is not a rigid transform") \
+    X(W, "lanes of a block") \
+    X(CHUNK, "targets per chunk of the solve") \
+    X(SERIAL_MAX, "configurations below which no thread is started") \
+    X(MAX_RANKS, "library ranks a target may ask for") \
+    X(MAX_ENDS, "end links the nearest-pose search takes")
+
+const char *dk_constant_names(void) {
+#define DK_CNAME(name, what) #name ","
+    return DK_CONSTANTS(DK_CNAME);
+#undef DK_CNAME
+}
+
+/* out[i] = the value of constant i (what fits in cap entries); returns the number of constants. */
+int64_t dk_constants(int64_t *out, int64_t cap) {
+#define DK_CVALUE(name, what) (int64_t)(name),
+    const int64_t values[] = {DK_CONSTANTS(DK_CVALUE)};
+#undef DK_CVALUE
+    const int64_t n = (int64_t)(sizeof values / sizeof values[0]);
+    for (int64_t i = 0; i < n && i < cap; i++) out[i] = values[i];
+    return n;
 }
 
 /* T (B, K, 4, 4) and, when jac is not NULL, J (B, K, 6, n) of q (B, n); returns the number of non-finite
@@ -355,8 +381,10 @@ int64_t dk_fk(const dk_args *a) {
     return a->real_bytes == 8 ? dk_fk_f64(a) : dk_fk_f32(a);
 }
 
-/* 1 when every region of w still holds its snapshot, else 0. */
+/* 1 when every region of w still holds its snapshot, else 0; DK_ABI_ERROR for a dk_watch of another
+ * version or size. */
 int64_t dk_unchanged(const dk_watch *w) {
+    if (!watch_ok(w)) return DK_ABI_ERROR;
     const uint8_t *s = w->snap;
     for (int64_t i = 0; i < w->n; s += w->bytes[i], i++)
         if (w->bytes[i] && memcmp((const void *)(intptr_t)w->ptr[i], s, (size_t)w->bytes[i])) return 0;
@@ -375,8 +403,8 @@ int64_t dk_fk_work_bytes(const dk_args *a) {
  * threads are safe); the plans and scratch are w's work space, made by the first call (a call that finds
  * it busy makes its own). */
 int64_t dk_fk_one(const dk_args *base, dk_watch *w, const void *q, void *T, void *jac) {
-    if (!abi_ok(base)) return DK_ABI_ERROR;
-    if (!dk_unchanged(w)) return DK_STALE;
+    if (!abi_ok(base) || !watch_ok(w)) return DK_ABI_ERROR;
+    if (dk_unchanged(w) != 1) return DK_STALE;
     dk_args a = *base;
     a.batch = 1;
     a.nthreads = 1;
@@ -389,31 +417,36 @@ int64_t dk_fk_one(const dk_args *base, dk_watch *w, const void *q, void *T, void
     return bad;
 }
 
-/* The whole IK solve of dk_solve_f64 / dk_solve_f32 (_native_solve.c); returns 0, -1 when memory ran out,
- * DK_ABI_ERROR for a struct of another layout. */
-int64_t dk_solve(const dk_args *a) {
-    if (!abi_ok(a)) return DK_ABI_ERROR;
-    return a->real_bytes == 8 ? dk_solve_f64(a) : dk_solve_f32(a);
+/* The whole IK solve of dk_solve_f64 / dk_solve_f32 (_native_solve.c) with the arguments o on the chain
+ * o->chain; returns 0, -1 when memory ran out, DK_RANGE_ERROR for lib_ranks > MAX_RANKS (nothing solved),
+ * DK_ABI_ERROR for a dk_solve_args or dk_args of another version or size. */
+int64_t dk_solve(const dk_solve_args *o) {
+    if (!solve_ok(o)) return DK_ABI_ERROR;
+    return o->chain->real_bytes == 8 ? dk_solve_f64(o->chain, o) : dk_solve_f32(o->chain, o);
 }
 
 /* The lean one-target ik.solve in one foreign call (ik/_native_solve.py solve_one): the watched constants
  * unchanged (else DK_STALE), the target T (4 x 4 row-major reals) rigid (else DK_NOT_RIGID), then dk_solve of
- * tmpl (a filled one-target dk_args, never written) with T, the pool drawn from `seed` (>= 0: torch's CPU
- * stream of manual_seed(seed), pool_size uniforms at most, drawn as needed) or read from `pool` (seed < 0),
- * into the outputs q (n reals), ok (1 byte), pe, oe (1 real each), its, seeds (1 int64 each). Returns 0,
- * DK_STALE, DK_NOT_RIGID, -1 when memory ran out, DK_ABI_ERROR. */
-int64_t dk_solve_one(const dk_args *tmpl, const dk_watch *w, const void *T, int64_t seed, const void *pool,
-                     int64_t pool_size, void *q, void *ok, void *pe, void *oe, void *its, void *seeds) {
-    if (!abi_ok(tmpl)) return DK_ABI_ERROR;
-    if (!dk_unchanged(w)) return DK_STALE;
-    return tmpl->real_bytes == 8
-        ? solve_one_f64(tmpl, (const double *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds)
-        : solve_one_f32(tmpl, (const float *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds);
+ * tmpl (filled one-target arguments and their chain, never written) with T, the pool drawn from `seed` (>= 0:
+ * torch's CPU stream of manual_seed(seed), pool_size uniforms at most, drawn as needed) or read from `pool`
+ * (seed < 0), into the outputs q (n reals), ok (1 byte), pe, oe (1 real each), its, seeds (1 int64 each).
+ * Returns 0, DK_STALE, DK_NOT_RIGID, -1 when memory ran out, DK_RANGE_ERROR, DK_ABI_ERROR. */
+int64_t dk_solve_one(const dk_solve_args *tmpl, const dk_watch *w, const void *T, int64_t seed,
+                     const void *pool, int64_t pool_size, void *q, void *ok, void *pe, void *oe, void *its,
+                     void *seeds) {
+    if (!solve_ok(tmpl) || !watch_ok(w)) return DK_ABI_ERROR;
+    if (dk_unchanged(w) != 1) return DK_STALE;
+    const dk_args *a = tmpl->chain;
+    return a->real_bytes == 8
+        ? solve_one_f64(a, tmpl, (const double *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds)
+        : solve_one_f32(a, tmpl, (const float *)T, seed, pool, pool_size, q, ok, pe, oe, its, seeds);
 }
 
 /* Clear ok[n] where configuration n has a checked capsule distance with d - margin < slack (see
- * _native_collide.c); returns 0, DK_ABI_ERROR for a real size other than 8 or 4. */
+ * _native_collide.c); returns 0, DK_ABI_ERROR for a struct of another version or size or a real size other
+ * than 8 or 4. */
 int64_t dk_collide_clear(const dk_collide *c) {
+    if (!DK_LAYOUT_OK(c, dk_collide, DK_COLLIDE_VERSION)) return DK_ABI_ERROR;
     if (c->real_bytes == 8) dk_collide_f64(c);
     else if (c->real_bytes == 4) dk_collide_f32(c);
     else return DK_ABI_ERROR;

@@ -35,8 +35,59 @@
 #ifndef DK_SOLVE_ONCE_TYPES
 #define DK_SOLVE_ONCE_TYPES
 #define CHUNK 128 /* targets per chunk: a fixed number, so the answers do not depend on the thread count */
-#define MAX_RANKS 64
+#define MAX_RANKS 64 /* library ranks a target may ask for (lib_ranks; more: DK_RANGE_ERROR) */
 #define MAX_ENDS 64 /* end links the nearest-pose search takes (more: no library seeds) */
+
+/* The arguments of dk_solve and dk_solve_one (X(type, name, what)): the chain (a pointer to its dk_args,
+ * checked as dk_fk checks it), the LM constants, the targets, the seeds and the outputs. A new solver option
+ * is a field here (and a bump of DK_SOLVE_VERSION with native.SolveArgs); dk_args, the FK's, keeps its
+ * layout. Reals are of the chain's real_bytes. */
+#define DK_SOLVE_FIELDS(X) \
+    X(int64_t, version, "DK_SOLVE_VERSION") \
+    X(int64_t, size, "sizeof(dk_solve_args)") \
+    X(int64_t, nthreads, "threads to use (at least 1)") \
+    X(const dk_args *, chain, "the chain's arrays (their call fields unused)") \
+    X(int64_t, iters, "steps between two stall checks") \
+    X(int64_t, n_targets, "N") \
+    X(const void *, pd, "[3K*N] reals") \
+    X(const void *, xd, "[3K*N] reals, NULL: position only") \
+    X(const void *, yd, "[3K*N] reals") \
+    X(const void *, zd, "[3K*N] reals") \
+    X(const void *, sqrt_w, "[rows] reals") \
+    X(const void *, jc, "[n] reals") \
+    X(const void *, jh, "[n] reals") \
+    X(const uint8_t *, bounded, "[n]") \
+    X(double, damping2, "the constant damping of (3.59)") \
+    X(double, error_damping, "the weight of the error-dependent damping") \
+    X(double, tol_p, "position tolerance") \
+    X(double, tol_o, "orientation tolerance") \
+    X(double, margin, "converged within the tolerances times this") \
+    X(int64_t, n_seeds, "most seeds per target") \
+    X(int64_t, max_iterations, "most LM iterations per seed (iters: steps between stall checks)") \
+    X(int64_t, min_seed_iterations, "a seed younger than this is never stalled") \
+    X(double, stall_ratio, "stalled when the merit did not shrink by this factor over a check") \
+    X(int64_t, n_user, "S user seeds per target") \
+    X(const void *, user_u, "[N*S*n] reals") \
+    X(int64_t, n_lib, "L library configurations") \
+    X(int64_t, lib_ranks, "R nearest library poses tried per target") \
+    X(const void *, lib_u, "[L*n] reals") \
+    X(const void *, lib_pose, "[12K*L] reals, feature-major: p, x, y, z of every end link")  \
+    X(double, feature_weight, "weight of the rotation columns in the nearest-pose distance") \
+    X(int64_t, n_pool, "P random draws") \
+    X(const void *, pool, "[P*n] uniform reals in [0, 1)") \
+    X(const void *, qlo, "[n] reals, the limits of the final check") \
+    X(const void *, qhi, "[n] reals") \
+    X(const uint8_t *, wrap, "[n] revolute variables, wrapped by 2 pi towards the centre") \
+    X(int64_t, clamp, "clamp into [qlo, qhi] and require it for success") \
+    X(void *, q_out, "[N*n] reals out") \
+    X(int64_t *, iters_out, "[N] out") \
+    X(int64_t *, seeds_out, "[N] out") \
+    X(void *, pos_err, "[N] reals out") \
+    X(void *, ori_err, "[N] reals out") \
+    X(uint8_t *, success, "[N] out") \
+    X(int64_t, target_stride, "entries between a target column's rows (0: N; 4: one row-major pose)")
+typedef struct dk_solve_args { DK_SOLVE_FIELDS(DK_DECLARE) } dk_solve_args;
+DK_LAYOUT(solve, dk_solve_args, DK_SOLVE_FIELDS, DK_SOLVE_VERSION)
 
 /* A 4 KiB-aligned work space of at least `bytes`, kept by the calling thread between calls and grown when a
  * call needs more (one single-threaded solve's work space per calling thread, never released). */
@@ -192,7 +243,7 @@ static void DK(integrate)(const Space *sp, real *ul, int l, const real *delta, i
 }
 
 typedef struct { /* the fixed inputs of a solve, read once */
-    const dk_args *a;
+    const dk_solve_args *a; /* the solve's arguments (the chain's are read into s and pp) */
     Shape s;
     DK(Params) pp;
     Space sp;
@@ -538,7 +589,7 @@ static void DK(chunk_step)(const DK(Solve) *S, DK(Chunk) *c, DK(Scratch) *sc, re
 
 /* The final q of targets t0 .. t1 - 1 (their best u in q_out, replaced) and its exact check. */
 static void DK(final_check)(const DK(Solve) *S, DK(Scratch) *sc, int64_t t0, int64_t t1, real *e) {
-    const dk_args *a = S->a;
+    const dk_solve_args *a = S->a;
     const int n = S->n;
     real *q = (real *)a->q_out, *pe = (real *)a->pos_err, *oe = (real *)a->ori_err;
     const double two_pi = 6.283185307179586;
@@ -595,9 +646,9 @@ static void DK(solve_chunk)(const DK(Solve) *S, DK(Scratch) *sc, real *ul, DK(LM
     DK(final_check)(S, sc, t0, t1, w->e1);
 }
 
-static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
-    read_shape(a, &S->s);
-    if (DK(read_params)(a, &S->s, &S->pp)) return -1;
+static int DK(solve_read)(const dk_args *chain, const dk_solve_args *a, DK(Solve) *S) {
+    read_shape(chain, &S->s);
+    if (DK(read_params)(chain, &S->s, &S->pp)) return -1;
     S->a = a;
     S->K = S->s.K;
     S->n = S->s.n;
@@ -608,7 +659,6 @@ static int DK(solve_read)(const dk_args *a, DK(Solve) *S) {
     S->N = a->n_targets, S->S = a->n_user, S->L = a->n_lib, S->P = a->n_pool;
     S->ts = a->target_stride > 0 ? a->target_stride : a->n_targets;
     S->R = a->lib_ranks < a->n_lib ? a->lib_ranks : a->n_lib;
-    S->R = S->R < MAX_RANKS ? S->R : MAX_RANKS;
     if (S->K > MAX_ENDS) S->R = 0;
     S->nseeds = a->n_seeds, S->maxit = a->max_iterations, S->minit = a->min_seed_iterations;
     S->every = a->iters > 0 ? a->iters : 1;
@@ -668,9 +718,10 @@ static void DK(solve_worker)(const DK(Solve) *S, real *buf, int64_t nchunks, int
 
 /* Every target of the call (see the top of this file), the pool from `stream` when not NULL; returns 0, or
  * -1 when memory ran out. */
-static int64_t DK(solve_from)(const dk_args *a, dk_stream *stream) {
+static int64_t DK(solve_from)(const dk_args *chain, const dk_solve_args *a, dk_stream *stream) {
     DK(Solve) S;
-    if (DK(solve_read)(a, &S)) return -1;
+    if (a->lib_ranks > MAX_RANKS) return DK_RANGE_ERROR; /* no silent clamp: the caller asked for more */
+    if (DK(solve_read)(chain, a, &S)) return -1;
     S.stream = stream;
     const int n = S.n, nv = S.nv, r = S.r, d = S.d, R = (int)(S.R > 0 ? S.R : 1);
     const int64_t nchunks = (S.N + CHUNK - 1) / CHUNK;
@@ -721,21 +772,21 @@ static double DK(rigid_deviation)(const real *T, int64_t N) {
     return worst;
 }
 
-static int64_t DK(dk_solve)(const dk_args *a) { return DK(solve_from)(a, NULL); }
+static int64_t DK(dk_solve)(const dk_args *chain, const dk_solve_args *a) { return DK(solve_from)(chain, a, NULL); }
 
 /* dk_solve_one (see _native.c): the pose T (4 x 4, row-major) checked rigid to 64 epsilon (the general
  * path's error otherwise: DK_NOT_RIGID, nothing solved), then the solve of tmpl with T as its one target
  * and the pool (pool_size uniforms: n_pool columns of nu) drawn here from `seed` (>= 0) or read from `pool`
  * (seed < 0). */
-static int64_t DK(solve_one)(const dk_args *tmpl, const real *T, int64_t seed, const void *pool,
+static int64_t DK(solve_one)(const dk_args *chain, const dk_solve_args *tmpl, const real *T, int64_t seed, const void *pool,
                              int64_t pool_size, void *q, void *ok, void *pe, void *oe, void *its, void *seeds) {
     const double exact = 64 * (sizeof(real) == 8 ? 0x1p-52 : 0x1p-23);
     if (!(DK(rigid_deviation)(T, 1) <= exact)) return DK_NOT_RIGID; /* NaN included */
-    dk_args a = *tmpl;
+    dk_solve_args a = *tmpl;
     a.xd = T, a.yd = T + 1, a.zd = T + 2, a.pd = T + 3; /* the pose's columns, rows 4 entries apart */
     a.pool = pool, a.q_out = q, a.success = ok, a.pos_err = pe, a.ori_err = oe, a.iters_out = its;
     a.seeds_out = seeds;
-    if (seed < 0) return DK(solve_from)(&a, NULL);
+    if (seed < 0) return DK(solve_from)(chain, &a, NULL);
     static __thread real *buf;
     static __thread int64_t cap;
     if (pool_size > cap) { /* kept by the calling thread between calls, as the work space */
@@ -746,5 +797,5 @@ static int64_t DK(solve_one)(const dk_args *tmpl, const real *T, int64_t seed, c
     }
     dk_stream g;
     g.seeded = 0, g.seed = (uint64_t)seed, g.drawn = 0, g.buf = buf;
-    return DK(solve_from)(&a, &g);
+    return DK(solve_from)(chain, &a, &g);
 }

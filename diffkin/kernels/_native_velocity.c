@@ -31,7 +31,7 @@
  * teleoperation loop), then primal-dual active-set rounds that change every wrong bound at once (2-3 more
  * factorisations where bounds are active), with a primal active-set method as the finite fallback.
  *
- * Interface: dk_vel (DK_VEL_FIELDS), its own struct with its own version (dk_vel_abi, dk_vel_names), so
+ * Interface: dk_vel (DK_VEL_FIELDS), its own struct with its own version (dk_layout_vel, dk_names_vel), so
  * that the FK's dk_args keeps its layout; dk_velocity(chain's dk_args, dk_vel, dk_watch or NULL) for a
  * batch, dk_velocity_one(dk_args, dk_vel, dk_watch, q, target, q_ref, v, q_next, dt) for one row (and
  * dk_velocity_step, the same with its arguments in two blocks: two for ctypes to convert). Rows run
@@ -109,24 +109,7 @@
 typedef struct dk_vel { DK_VEL_FIELDS(DK_VDECLARE) } dk_vel;
 #undef DK_VDECLARE
 
-/* The field names, in order, each followed by a comma. */
-const char *dk_vel_names(void) {
-#define DK_VNAME(type, name, what) #name ","
-    return DK_VEL_FIELDS(DK_VNAME);
-#undef DK_VNAME
-}
-
-/* out[0] = DK_VEL_VERSION, out[1] = sizeof(dk_vel), out[2] = number of fields, out[3 + i] = offset of
- * field i (what fits in cap entries); returns the number of entries there are. */
-int64_t dk_vel_abi(int64_t *out, int64_t cap) {
-#define DK_VOFFSET(type, name, what) (int64_t)offsetof(dk_vel, name),
-    const int64_t offs[] = {DK_VEL_FIELDS(DK_VOFFSET)};
-#undef DK_VOFFSET
-    const int64_t nf = (int64_t)(sizeof offs / sizeof offs[0]);
-    const int64_t head[3] = {DK_VEL_VERSION, (int64_t)sizeof(dk_vel), nf};
-    for (int64_t i = 0; i < 3 + nf && i < cap; i++) out[i] = i < 3 ? head[i] : offs[i - 3];
-    return 3 + nf;
-}
+DK_LAYOUT(vel, dk_vel, DK_VEL_FIELDS, DK_VEL_VERSION) /* dk_layout_vel, dk_names_vel (_native.c) */
 
 int64_t dk_unchanged(const dk_watch *w); /* _native.c */
 
@@ -1122,14 +1105,13 @@ static int64_t DK(velocity)(const dk_args *a, dk_vel *v) {
 
 #if DK_VEL_PASS == 2 /* after the second (float) pass: both types exist */
 static int vel_ok(const dk_args *a, const dk_vel *v) {
-    return a && v && a->version == DK_ABI_VERSION && a->size == (int64_t)sizeof(dk_args) &&
-           (a->real_bytes == 8 || a->real_bytes == 4) && v->version == DK_VEL_VERSION &&
-           v->size == (int64_t)sizeof(dk_vel);
+    return DK_LAYOUT_OK(a, dk_args, DK_ABI_VERSION) && (a->real_bytes == 8 || a->real_bytes == 4) &&
+           DK_LAYOUT_OK(v, dk_vel, DK_VEL_VERSION);
 }
 
 /* Bytes of the work space a serial call of dk_velocity may keep in v->work for the chain a. */
 int64_t dk_velocity_work_bytes(const dk_args *a) {
-    if (!a || a->version != DK_ABI_VERSION || a->size != (int64_t)sizeof(dk_args)) return DK_ABI_ERROR;
+    if (!DK_LAYOUT_OK(a, dk_args, DK_ABI_VERSION)) return DK_ABI_ERROR;
     return a->real_bytes == 8 ? DK_VEL_F64(velocity_work_bytes)(a) : DK_VEL_F32(velocity_work_bytes)(a);
 }
 
@@ -1139,7 +1121,8 @@ int64_t dk_velocity_work_bytes(const dk_args *a) {
 int64_t dk_velocity_one(const dk_args *a, dk_vel *base, const dk_watch *w, const void *q, const void *target,
                         const void *q_ref, void *v, void *q_next, double dt) {
     if (!vel_ok(a, base)) return DK_ABI_ERROR;
-    if (w && !dk_unchanged(w)) return DK_STALE;
+    if (w && !DK_LAYOUT_OK(w, dk_watch, DK_WATCH_VERSION)) return DK_ABI_ERROR;
+    if (w && dk_unchanged(w) != 1) return DK_STALE;
     dk_vel c = *base;
     c.batch = 1, c.nthreads = 1, c.q = q, c.target = target, c.target_stride = 0, c.q_ref = q_ref;
     c.ref_stride = 0, c.v = v, c.q_next = q_next, c.dt = dt;
@@ -1192,7 +1175,8 @@ int64_t dk_velocity_step(const void *const *h, const void *call) {
  * DK_ABI_ERROR for a dk_args or dk_vel of another version or size. */
 int64_t dk_velocity(const dk_args *a, dk_vel *v, const dk_watch *w) {
     if (!vel_ok(a, v)) return DK_ABI_ERROR;
-    if (w && !dk_unchanged(w)) return DK_STALE;
+    if (w && !DK_LAYOUT_OK(w, dk_watch, DK_WATCH_VERSION)) return DK_ABI_ERROR;
+    if (w && dk_unchanged(w) != 1) return DK_STALE;
     return a->real_bytes == 8 ? DK_VEL_F64(velocity)(a, v) : DK_VEL_F32(velocity)(a, v);
 }
 #endif

@@ -19,11 +19,19 @@ flags and CPU; ``python -m diffkin.kernels`` builds it ahead of time (``make`` d
 where. Without a compiler, or with ``DIFFKIN_NATIVE=0`` in the environment, :func:`available` is False and
 every caller keeps the torch kernels: results are the same to rounding.
 
-Interface: one struct, ``dk_args`` in ``_native.c``, mirrored by :class:`Args` (a ``ctypes.Structure``) and
-passed by pointer to the entry points ``dk_fk`` and ``dk_solve``. It carries a version (:data:`ABI_VERSION`)
-and its size; on loading, the library's ``dk_abi`` reports its version, ``sizeof`` and field offsets, and a
-library that does not match :class:`Args` is rebuilt once, then refused: a one-time warning, and the torch
-kernels serve every call.
+Interface: one struct per entry point, each mirrored field by field by a ``ctypes.Structure`` here:
+:class:`Args` (``dk_args``: the chain's arrays and one FK call, for ``dk_fk`` and as the chain of every
+other entry), :class:`SolveArgs` (``dk_solve_args``: the chain's address, the LM constants and one solve,
+for ``dk_solve`` and ``dk_solve_one``), :class:`WatchArgs` (``dk_watch``: the cache check of the lean
+paths) and :class:`Collide` (``dk_collide``); ``ik/_native_velocity.py``'s ``Vel`` (``dk_vel``) follows
+the same rule. Each starts with its own version (the class's ``VERSION``) and its size, so that a new
+solver option changes :class:`SolveArgs` and its version only, never the FK's :class:`Args`. On loading,
+:func:`check_abi` reads every struct's version, ``sizeof``, field names and offsets from the library
+(``dk_layout_<tag>`` / ``dk_names_<tag>``, one generic check: :func:`check_layout`), the status codes and
+limits Python uses (``dk_constants``, checked against :data:`CONSTANTS`: :func:`check_constants`) and the
+table of motions; a library that does not match is rebuilt once, then refused: a one-time warning, and the
+torch kernels serve every call. Every entry point refuses, at call time, a struct of another version or
+size (``DK_ABI_ERROR``: :class:`AbiMismatch` here).
 
 Thread policy: batches of at most 512 configurations run on the calling thread. Larger ones use
 ``torch.get_num_threads()`` threads, but never more than the cores that are free right now: the count of
@@ -54,13 +62,15 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from ..errors import OptionError
 from .configuration import MOTION_NQ, MOTION_NV
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
            "Collide", "capsules_clear",
-           "native_model", "fk_jacobian", "status", "NativeBuildWarning", "Args",
-           "ABI_VERSION", "AbiMismatch", "solve_call", "banded_solve"]
+           "native_model", "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
+           "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
+           "check_layout", "check_constants", "banded_solve"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -89,33 +99,74 @@ def _announce(text: str) -> None:
         warnings.warn(f"diffkin: {text}", NativeBuildWarning, stacklevel=2)
 
 
-#: the version of the C interface this module speaks (DK_ABI_VERSION in _native.c)
-ABI_VERSION = 3
-_ABI_ERROR = -2  # DK_ABI_ERROR: the library refused the struct
+#: the version of ``dk_args`` this module speaks (DK_ABI_VERSION in _native.c)
+ABI_VERSION = 4
+#: the status codes and limits of the library that Python uses (DK_CONSTANTS in _native.c), checked equal to
+#: the library's at load (:func:`check_constants`); the other modules read them from here
+CONSTANTS = {"DK_ABI_ERROR": -2, "DK_RANGE_ERROR": -3, "DK_STALE": -4, "DK_NOT_RIGID": -5, "SERIAL_MAX": 512,
+             "MAX_RANKS": 64, "MAX_ENDS": 64}
+_ABI_ERROR, _RANGE_ERROR = CONSTANTS["DK_ABI_ERROR"], CONSTANTS["DK_RANGE_ERROR"]
 _motion_codes: dict[str, int] = {}  # letter -> code, from the loaded library's DK_MOTIONS
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
-
-
-# the fields of dk_solve (the whole IK solve, _native_solve.c), after its targets and LM constants
-_SOLVE_FIELDS = [(name, _I64) for name in ("n_seeds", "max_iterations", "min_seed_iterations")] + \
-    [("stall_ratio", _F64), ("n_user", _I64), ("user_u", _PTR), ("n_lib", _I64), ("lib_ranks", _I64),
-     ("lib_u", _PTR), ("lib_pose", _PTR), ("feature_weight", _F64), ("n_pool", _I64)] + \
-    [(name, _PTR) for name in ("pool", "qlo", "qhi", "wrap")] + [("clamp", _I64)] + \
-    [(name, _PTR) for name in ("q_out", "iters_out", "seeds_out", "pos_err", "ori_err", "success")] + \
-    [("target_stride", _I64)]
+_HEAD = [("version", _I64), ("size", _I64)]  # every struct's first fields
 
 
 class Args(ctypes.Structure):
     """``dk_args`` of ``_native.c`` (``DK_ARGS_FIELDS``, where each field is described), field by field:
-    the chain's arrays, one call's inputs and outputs, the version and the size."""
+    the version and the size, the chain's arrays, one FK call's inputs and outputs."""
 
-    _fields_ = [(name, _I64) for name in ("version", "size", "real_bytes", "nthreads", "J", "K", "n", "nv",
-                                          "has_base")] + \
+    VERSION = ABI_VERSION
+    _fields_ = _HEAD + \
+        [(name, _I64) for name in ("real_bytes", "nthreads", "J", "K", "n", "nv", "has_base")] + \
         [(name, _PTR) for name in ("parent", "motion", "qidx", "vidx", "has_pre", "has_post", "end_joint",
                                    "has_end", "ancestor", "mult", "qoff", "pre", "post", "base", "end")] + \
-        [("batch", _I64), ("q", _PTR), ("T", _PTR), ("jac", _PTR), ("iters", _I64), ("n_targets", _I64)] + \
+        [("batch", _I64), ("q", _PTR), ("T", _PTR), ("jac", _PTR)]
+
+
+class SolveArgs(ctypes.Structure):
+    """``dk_solve_args`` of ``_native_solve.c`` (``DK_SOLVE_FIELDS``): the arguments of ``dk_solve`` and
+    ``dk_solve_one``: the address of the chain's :class:`Args` (``chain``), the LM constants, the targets,
+    the seeds and the outputs. A new solver option is a field here and a new :attr:`VERSION` (with
+    ``DK_SOLVE_VERSION``)."""
+
+    VERSION = 1
+    _fields_ = _HEAD + [("nthreads", _I64), ("chain", _PTR), ("iters", _I64), ("n_targets", _I64)] + \
         [(name, _PTR) for name in ("pd", "xd", "yd", "zd", "sqrt_w", "jc", "jh", "bounded")] + \
-        [(name, _F64) for name in ("damping2", "error_damping", "tol_p", "tol_o", "margin")] + _SOLVE_FIELDS
+        [(name, _F64) for name in ("damping2", "error_damping", "tol_p", "tol_o", "margin")] + \
+        [(name, _I64) for name in ("n_seeds", "max_iterations", "min_seed_iterations")] + \
+        [("stall_ratio", _F64), ("n_user", _I64), ("user_u", _PTR), ("n_lib", _I64), ("lib_ranks", _I64),
+         ("lib_u", _PTR), ("lib_pose", _PTR), ("feature_weight", _F64), ("n_pool", _I64)] + \
+        [(name, _PTR) for name in ("pool", "qlo", "qhi", "wrap")] + [("clamp", _I64)] + \
+        [(name, _PTR) for name in ("q_out", "iters_out", "seeds_out", "pos_err", "ori_err", "success")] + \
+        [("target_stride", _I64)]
+
+
+class WatchArgs(ctypes.Structure):
+    """``dk_watch`` of ``_native.c`` (``DK_WATCH_FIELDS``): the byte snapshot the lean paths' entry points
+    compare before they compute (:class:`diffkin.kernels.single.Watch`)."""
+
+    VERSION = 1
+    _fields_ = _HEAD + [("n", _I64), ("ptr", _PTR), ("bytes", _PTR), ("snap", _PTR), ("work", _PTR),
+                        ("ready", _I64), ("busy", _I64)]
+
+
+class Collide(ctypes.Structure):
+    """``dk_collide`` of ``_native.c`` (``DK_COLLIDE_FIELDS``: the arguments of :func:`capsules_clear`)."""
+
+    VERSION = 1
+    _fields_ = _HEAD + [(name, _I64) for name in ("real_bytes", "N", "G", "P", "Wr", "H", "nthreads")] + \
+        [(name, _PTR) for name in ("A", "B", "r", "pi", "pj", "wa", "wb", "wr", "hs", "skip_r", "skip_h")] + \
+        [("margin", _F64), ("slack", _F64), ("ok", _PTR)]
+
+
+#: the structs checked at load, by the tag of their ``dk_layout_<tag>`` / ``dk_names_<tag>`` exports
+STRUCTS: dict[str, type[ctypes.Structure]] = {"args": Args, "solve": SolveArgs, "watch": WatchArgs,
+                                              "collide": Collide}
+
+
+def new_struct(struct_type: type[ctypes.Structure], **fields) -> ctypes.Structure:
+    """A ``struct_type`` with its version and size set and ``fields`` set (tensors by their data pointer)."""
+    return _filled(struct_type(version=struct_type.VERSION, size=ctypes.sizeof(struct_type)), **fields)
 
 
 def _dlclose(handle: int) -> None:
@@ -125,40 +176,76 @@ def _dlclose(handle: int) -> None:
 
 
 class AbiMismatch(RuntimeError):
-    """The library's ``dk_args`` is not :class:`Args` (another version, size or layout)."""
+    """The library's interface is not this module's: a struct of another version, size or layout, or
+    another status code or limit (:data:`CONSTANTS`)."""
 
 
-def check_abi(lib: ctypes.CDLL, args_type: type[ctypes.Structure] | None = None,
-              version: int | None = None) -> None:
-    """Raise :class:`AbiMismatch` unless the library's exported version, ``sizeof(dk_args)``, field names
-    and offsets are those of ``args_type`` (default :class:`Args`) and ``version`` (default
-    :data:`ABI_VERSION`)."""
-    args_type = Args if args_type is None else args_type
-    version = ABI_VERSION if version is None else version
-    fn, names = lib.dk_abi, lib.dk_abi_names
-    fn.restype, fn.argtypes, names.restype, names.argtypes = _I64, [_PTR, _I64], ctypes.c_char_p, []
+def _exported(lib, name: str, restype, argtypes):
+    """The library's function ``name`` typed, or :class:`AbiMismatch` when it exports none (a library of
+    another interface)."""
+    try:
+        fn = getattr(lib, name)
+    except AttributeError:
+        raise AbiMismatch(f"the native library exports no {name} (another interface)") from None
+    fn.restype, fn.argtypes = restype, argtypes
+    return fn
+
+
+def check_layout(lib, tag: str, struct_type: type[ctypes.Structure], version: int | None = None) -> None:
+    """Raise :class:`AbiMismatch` unless the library's struct ``tag`` (its ``dk_layout_<tag>`` and
+    ``dk_names_<tag>``) has the version ``version`` (default ``struct_type.VERSION``), the size, field names
+    and offsets of the ``ctypes.Structure`` ``struct_type``. The one check of every struct of the
+    interface."""
+    version = struct_type.VERSION if version is None else version
+    fn = _exported(lib, f"dk_layout_{tag}", _I64, [_PTR, _I64])
+    names = _exported(lib, f"dk_names_{tag}", ctypes.c_char_p, [])
     count = fn(None, 0)
     out = (_I64 * count)()
     fn(out, count)
     theirs = {"version": out[0], "size": out[1],
               "offsets": list(zip(names().decode().split(",")[:-1], out[3:]))}
-    ours = {"version": version, "size": ctypes.sizeof(args_type),
-            "offsets": [(name, getattr(args_type, name).offset) for name, *_ in args_type._fields_]}
+    ours = {"version": version, "size": ctypes.sizeof(struct_type),
+            "offsets": [(name, getattr(struct_type, name).offset) for name, *_ in struct_type._fields_]}
     if theirs != ours:
-        diff = ", ".join(f"{k} {theirs[k]} (library) vs {ours[k]} (native.py)" for k in ours
+        diff = ", ".join(f"{k} {theirs[k]} (library) vs {ours[k]} (python)" for k in ours
                          if theirs[k] != ours[k] and k != "offsets")
-        raise AbiMismatch(f"the native library's dk_args does not match native.Args: "
+        raise AbiMismatch(f"the native library's {tag} struct does not match {struct_type.__name__}: "
                           f"{diff or 'the field names or offsets differ'}")
+
+
+def check_constants(lib, expected: dict[str, int] | None = None) -> None:
+    """Raise :class:`AbiMismatch` unless the library's ``dk_constants`` hold every entry of ``expected``
+    (default :data:`CONSTANTS`) with the same value."""
+    expected = CONSTANTS if expected is None else expected
+    fn = _exported(lib, "dk_constants", _I64, [_PTR, _I64])
+    names = _exported(lib, "dk_constant_names", ctypes.c_char_p, [])
+    count = fn(None, 0)
+    out = (_I64 * count)()
+    fn(out, count)
+    theirs = dict(zip(names().decode().split(",")[:-1], out))
+    wrong = [f"{k} {theirs.get(k, 'missing')} (library) vs {v} (python)" for k, v in expected.items()
+             if theirs.get(k) != v]
+    if wrong:
+        raise AbiMismatch(f"the native library's constants differ: {', '.join(wrong)}")
+
+
+def check_abi(lib) -> None:
+    """Raise :class:`AbiMismatch` unless every struct of :data:`STRUCTS` (:func:`check_layout`), the
+    constants (:func:`check_constants`) and the motions (:func:`motion_table`) of the library are this
+    module's; then take the library's motion codes."""
+    for tag, struct_type in STRUCTS.items():
+        check_layout(lib, tag, struct_type)
+    check_constants(lib)
+    codes = motion_table(lib)
     _motion_codes.clear()
-    _motion_codes.update(motion_table(lib))
+    _motion_codes.update(codes)
 
 
 def motion_table(lib: ctypes.CDLL) -> dict[str, int]:
     """The library's codes of the elementary motions (``DK_MOTIONS``), checked against
     :data:`~diffkin.kernels.configuration.MOTION_NQ` / ``MOTION_NV``: every motion of the configuration
     layer, with the same nq and nv (else :class:`AbiMismatch`)."""
-    fn = lib.dk_motions
-    fn.restype, fn.argtypes = ctypes.c_char_p, []
+    fn = _exported(lib, "dk_motions", ctypes.c_char_p, [])
     rows = [r.split() for r in fn().decode().split(",")[:-1]]
     theirs = {letter: (int(nq), int(nv)) for letter, nq, nv in rows}
     ours = {m: (MOTION_NQ[m], MOTION_NV[m]) for m in MOTION_NQ}
@@ -171,7 +258,7 @@ def motion_table(lib: ctypes.CDLL) -> dict[str, int]:
 def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     """Load the library at ``path`` and check its interface (:func:`check_abi`); a file that fails the check
     is compiled again once (a stale or foreign file under this name), then refused (:class:`AbiMismatch`).
-    The entry points take one pointer to :class:`Args`."""
+    ``dk_fk`` takes a pointer to :class:`Args`, ``dk_solve`` one to :class:`SolveArgs`."""
     lib = ctypes.CDLL(str(path))
     try:
         check_abi(lib)
@@ -180,9 +267,8 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
         path.unlink(missing_ok=True)
         lib = ctypes.CDLL(str(_compile(flags)))
         check_abi(lib)
-    for name in ("dk_fk", "dk_solve"):
-        fn = getattr(lib, name)
-        fn.restype, fn.argtypes = _I64, [ctypes.POINTER(Args)]
+    lib.dk_fk.restype, lib.dk_fk.argtypes = _I64, [ctypes.POINTER(Args)]
+    lib.dk_solve.restype, lib.dk_solve.argtypes = _I64, [ctypes.POINTER(SolveArgs)]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
     lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 5 + [_I64] * 5
     return lib
@@ -210,7 +296,8 @@ def _cpu_signature() -> str:
 def library_path(flags: tuple[str, ...] = ()) -> Path:
     """Where the library for this source, ``flags`` and CPU is cached."""
     h = hashlib.sha256()
-    for part in (_SOURCE.read_bytes(), *(p.read_bytes() for p in _INCLUDED), f"abi {ABI_VERSION}".encode(),
+    versions = sorted((tag, struct_type.VERSION) for tag, struct_type in STRUCTS.items())
+    for part in (_SOURCE.read_bytes(), *(p.read_bytes() for p in _INCLUDED), f"abi {versions}".encode(),
                  " ".join(_FLAGS + flags).encode(),
                  _cpu_signature().encode(),
                  platform.machine().encode(), sys.platform.encode()):
@@ -305,7 +392,7 @@ def status() -> tuple[bool, str]:
     return False, f"build failed ({err}); the torch kernels serve every call"
 
 
-_SERIAL_MAX = 512  # as SERIAL_MAX in _native.c: smaller batches never start a thread
+_SERIAL_MAX = CONSTANTS["SERIAL_MAX"]  # smaller batches never start a thread
 _free = [0.0, 0]  # (time of the reading, free cores)
 
 
@@ -412,8 +499,7 @@ class NativeModel:
     def _link(self, ints: dict, reals: dict, head: dict) -> None:
         """Keep the arrays and fill an :class:`Args` per dtype with their addresses."""
         self.ints, self.reals, self.head = ints, reals, head
-        self.args = {dtype: _filled(Args(), version=ABI_VERSION, size=ctypes.sizeof(Args),
-                                    real_bytes=dtype.itemsize, **head, **ints, **reals[dtype])
+        self.args = {dtype: new_struct(Args, real_bytes=dtype.itemsize, **head, **ints, **reals[dtype])
                      for dtype in reals}
         self.n_ends, self.n_vars, self.n_velocities = head["K"], head["n"], head["nv"]
 
@@ -451,7 +537,7 @@ def _relinked(ints: dict, reals: dict, head: dict) -> NativeModel:
     return model
 
 
-def _filled(args: Args, **fields) -> Args:
+def _filled(args: ctypes.Structure, **fields) -> ctypes.Structure:
     """``args`` with ``fields`` set, tensors by their data pointer (the caller keeps them alive)."""
     for name, v in fields.items():
         setattr(args, name, v.data_ptr() if isinstance(v, Tensor) else v)
@@ -485,7 +571,11 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
 
 def _raise_on(status: int, what: str) -> None:
     if status == _ABI_ERROR:
-        raise AbiMismatch("the native kernel refused the call's dk_args (another version or size)")
+        raise AbiMismatch("the native kernel refused the call's arguments (a struct of another version or "
+                          "size)")
+    if status == _RANGE_ERROR:
+        raise OptionError(f"the native solve refused an option beyond its limits (library ranks above "
+                          f"{CONSTANTS['MAX_RANKS']})")
     if status < 0:
         raise MemoryError(f"the native kernel could not allocate its per-thread {what}")
 
@@ -506,9 +596,10 @@ def _main() -> int:
 
 
 
-def solve_call(args: Args) -> None:
-    """Run ``dk_solve`` (the whole IK solve, ``_native_solve.c``) on a filled :class:`Args`; raises on
-    an allocation failure or an interface mismatch."""
+def solve_call(args: SolveArgs) -> None:
+    """Run ``dk_solve`` (the whole IK solve, ``_native_solve.c``) on a filled :class:`SolveArgs` (its
+    ``chain`` the address of a chain's filled :class:`Args`); raises on an allocation failure, an option
+    beyond the library's limits (:class:`~diffkin.errors.OptionError`) or an interface mismatch."""
     _raise_on(_lib.dk_solve(ctypes.byref(args)), "work space")
 
 
@@ -537,14 +628,6 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
     return x
 
 
-class Collide(ctypes.Structure):
-    """Mirror of ``dk_collide`` in ``_native.c`` (the arguments of :func:`capsules_clear`)."""
-
-    _fields_ = [(name, _I64) for name in ("real_bytes", "N", "G", "P", "Wr", "H", "nthreads")] + \
-        [(name, _PTR) for name in ("A", "B", "r", "pi", "pj", "wa", "wb", "wr", "hs", "skip_r", "skip_h")] + \
-        [("margin", _F64), ("slack", _F64), ("ok", _PTR)]
-
-
 def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,
                    skip_round: Tensor | None, skip_half: Tensor | None, margin: float, slack: float,
                    ok: Tensor) -> bool:
@@ -564,7 +647,8 @@ def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects
     skips = [None if m is None else m.to(torch.uint8).contiguous() for m in (skip_round, skip_half)]
     ptr = lambda t: None if t is None or t.numel() == 0 else t.data_ptr()  # noqa: E731
     okb = ok.view(torch.uint8)
-    c = Collide(real_bytes=A.element_size(), N=A.shape[-1], G=A.shape[0], P=pairs.shape[0], Wr=wa.shape[0],
+    c = new_struct(Collide, real_bytes=A.element_size(), N=A.shape[-1], G=A.shape[0], P=pairs.shape[0],
+                   Wr=wa.shape[0],
                 H=hs.shape[0], nthreads=thread_count(A.shape[-1] * max(1, pairs.shape[0]) // 64),
                 A=A.data_ptr(), B=B.data_ptr(), r=ptr(keep[2]), pi=ptr(keep[3]), pj=ptr(keep[4]),
                 wa=ptr(wa), wb=ptr(wb), wr=ptr(wr), hs=ptr(hs), skip_r=ptr(skips[0]), skip_h=ptr(skips[1]),

@@ -30,18 +30,11 @@ from . import native
 __all__ = ["fk", "entry", "Entry", "Watch", "watch"]
 
 _KEY = "_lean_entry"  # the chain's cached Entry, in its instance __dict__ (an attribute read: ~50 ns)
-_STALE = -4  # DK_STALE of _native.c
+_STALE = native.CONSTANTS["DK_STALE"]
 _is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor
 
 
 _I64, _PTR = ctypes.c_int64, ctypes.c_void_p
-
-
-class _CWatch(ctypes.Structure):
-    """``dk_watch`` of ``_native.c``."""
-
-    _fields_ = [("n", _I64), ("ptr", _PTR), ("bytes", _PTR), ("snap", _PTR), ("work", _PTR), ("ready", _I64),
-                ("busy", _I64)]
 
 
 _one: tuple = (None, None)  # (the loaded library, its dk_fk_one typed)
@@ -80,9 +73,10 @@ class Watch:
         ptr, size = (_I64 * len(tensors))(*self.ptrs), (_I64 * len(tensors))(*sizes)
         space = ctypes.create_string_buffer(work) if work > 0 else None
         self._keep = (ptr, size, space)
-        snap = ctypes.cast(ctypes.c_char_p(self.snap), _PTR)
-        self.c = _CWatch(len(tensors), ctypes.addressof(ptr), ctypes.addressof(size), snap,
-                         space and ctypes.addressof(space), 0, 0)
+        snap = ctypes.cast(ctypes.c_char_p(self.snap), _PTR).value
+        self.c = native.new_struct(native.WatchArgs, n=len(tensors), ptr=ctypes.addressof(ptr),
+                                   bytes=ctypes.addressof(size), snap=snap,
+                                   work=space and ctypes.addressof(space))
         self.addr = ctypes.addressof(self.c)
 
     def unchanged(self) -> bool:
