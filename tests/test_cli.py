@@ -612,7 +612,7 @@ def test_old_spellings_are_gone(capsys):
                                               ("cartesian", ["x", "y", "z"], "[m/s]")])
 def test_trajectory_plot_has_a_legend_and_units(space, names, unit):
     pytest.importorskip("matplotlib")
-    from diffkin.cli import _trajectory_figure
+    from diffkin.cli.trajectory import _trajectory_figure
 
     n, t = len(names), np.linspace(0.0, 1.0, 5)
     out = {"t": t, **{k: np.zeros((5, n)) for k in ("position", "velocity", "acceleration")}}

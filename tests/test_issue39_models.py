@@ -218,7 +218,8 @@ def test_item23_non_utf8_input_typed(tmp_path, capsys):
     assert utf8.joint_names == ["j"]
     world = tmp_path / "garbage.yaml"
     world.write_bytes(bytes(range(256)))
-    with pytest.raises(DiffkinError, match="garbage.yaml: not a YAML / JSON world file: not UTF-8"):
+    with pytest.raises(DiffkinError, match=r"garbage.yaml: expected a YAML / JSON world file "
+                                           r"\(UTF-8 text\), got byte 0x80 at offset 128"):
         read_world(world)
     from diffkin.cli import main
 
@@ -227,7 +228,7 @@ def test_item23_non_utf8_input_typed(tmp_path, capsys):
         warnings.simplefilter("ignore")  # the URDF's mesh files are absent
         rc = main(["fk", "--urdf", str(urdf), "--end-link", "tool0", "--random", "2", "--world", str(world)])
     err = capsys.readouterr().err
-    assert rc == 2 and "not UTF-8" in err and "internal error" not in err, err
+    assert rc == 2 and "(UTF-8 text), got byte 0x80" in err and "internal error" not in err, err
 
 
 # ----------------------------------------------------------------------------------------------- item 25

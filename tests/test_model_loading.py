@@ -153,6 +153,7 @@ def test_the_callers_use_it(monkeypatch):
     """The CLI, calibrate_from_files and the envs load through models.load_chain."""
     import diffkin.calibration.io as cio
     from diffkin import cli
+    from diffkin.cli import _common as cli_common
 
     calls = []
     real = models.load_chain
@@ -164,7 +165,7 @@ def test_the_callers_use_it(monkeypatch):
     monkeypatch.setattr(models, "load_chain", spy)
     monkeypatch.setattr("diffkin.models.loading.load_chain", spy, raising=False)
     args = cli.build_parser().parse_args(["fk", "--robot", "ur5", "--random", "2"])
-    assert cli._load_chain(args).name == "ur5"
+    assert cli_common._load_chain(args).name == "ur5"
     with pytest.raises(Exception):  # noqa: B017  (no measurement file: only the loading matters here)
         cio.calibrate_from_files("three_link_planar", "missing.npz")
     from diffkin.envs.robot import load_chain as env_load
