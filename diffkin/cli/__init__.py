@@ -447,7 +447,7 @@ def _cmd_calibrate_images(args) -> int:
     out = Path(args.output)
     if out.suffix:
         raise DiffkinError(f"--output {out}: with --images give a directory (the calibrated robot, "
-                           "camera.yaml, camera_joint.urdf, report.md, residuals.png)")
+                           "camera.yaml, camera_joint.urdf, report.md, residuals.png, residuals/)")
     _check_output_dir(out)
     args.device, args.dtype = "cpu", "float64"  # calibration corrects by micrometres: float64 on the CPU
     chain = _load_chain(args)
@@ -466,7 +466,7 @@ def _cmd_calibrate_images(args) -> int:
             error_model=args.error_model, measurement_noise=args.pixel_noise, loss=args.loss,
             cross_validation=args.cv, progress=not args.no_progress,
         )
-    written = write_camera_report(res, det, out)
+    written = write_camera_report(res, det, out, images=args.images)
     con = _console()
     con.print(f"board found in {int(det.found.sum())} of {len(det.names)} pictures"
               + ("" if bool(det.found.all()) else " (not in: "
@@ -892,8 +892,9 @@ _DESCRIPTIONS = {
                  "From board pictures: --images DIR --joints FILE --board ROWS COLS --square M\n"
                  "--camera FX FY CX CY detects the chessboard in each picture (OpenCV) and fits the\n"
                  "robot's geometry with the camera's and the board's poses to the corners' pixels;\n"
-                 "--output DIR gets the calibrated robot, camera.yaml, camera_joint.urdf, report.md and\n"
-                 "residuals.png.",
+                 "--output DIR gets the calibrated robot, camera.yaml, camera_joint.urdf, report.md,\n"
+                 "residuals.png and residuals/<picture>.png (each picture with its detected corners, the\n"
+                 "corners projected before and after the fit and the residuals magnified).",
     "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal) or a Cartesian straight-line trajectory\n"
                   "from --start to --end, or in either space a cubic spline through the via points of\n"
                   "--points (rows at equally spaced times), and export t, position, velocity, acceleration.",
