@@ -124,8 +124,8 @@ def write_camera_report(result: CameraCalibrationResult, detections: BoardDetect
     RMS before / after) and, with matplotlib, ``residuals.png`` and per picture where the board was found
     ``residuals/<picture stem>.png`` (:meth:`CameraCalibrationResult.plot_image_residuals`, linked from
     the report's table), drawn over the picture when ``images`` (the folder, or the files or arrays in
-    the detections' order) is given and OpenCV can read it, else on a blank canvas. Returns the paths
-    written."""
+    the detections' order; arrays in RGB) is given and OpenCV can read it, else on a blank canvas.
+    Returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     try:
