@@ -262,7 +262,7 @@ class CameraCalibrationResult:
             raw = 0.04 * math.hypot(W, H) / max(longest, 1e-12)
             k = 10.0 ** math.floor(math.log10(raw))
             scale = max(m * k for m in (1, 2, 5) if m * k <= raw)
-        fig = Figure(figsize=(8, 8 * H / W + 0.6))
+        fig = Figure(figsize=(7, 7 * H / W + 0.6))
         ax = fig.subplots()
         if image is not None:
             top = 255 if image.dtype.kind in "ui" else 1
@@ -271,7 +271,7 @@ class CameraCalibrationResult:
         else:
             ax.set_facecolor("white")
         rms0, rms1 = float(self.initial_image_rms[i]), float(self.image_rms[i])
-        ax.plot(meas[:, 0], meas[:, 1], "+", color="lime", ms=7, mew=1.2, label="detected")
+        ax.plot(meas[:, 0], meas[:, 1], "+", color="lime", ms=6, mew=1.0, label="detected")
         ax.plot(before[:, 0], before[:, 1], "o", mfc="none", color="tab:orange", ms=5,
                 label=f"start (nominal robot), RMS {rms0:.3f} px")
         ax.plot(after[:, 0], after[:, 1], "x", color="tab:blue", ms=5,
@@ -287,4 +287,6 @@ class CameraCalibrationResult:
         ax.set_ylabel("v [px]")
         ax.legend(loc="upper right", fontsize=8, framealpha=0.8)
         ax.set_title(title or f"image {i % n}: reprojection before / after calibration")
-        return fig if path is None else save_figure(fig, path)
+        fig.subplots_adjust(left=0.11, right=0.98, bottom=0.07, top=0.94)  # fixed: no layout pass
+        # one figure per picture in a report: a fast PNG compression (the pictures' noise compresses badly)
+        return fig if path is None else save_figure(fig, path, tight=False, pil_kwargs={"compress_level": 3})
