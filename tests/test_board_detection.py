@@ -192,7 +192,19 @@ def test_without_opencv_a_typed_error_names_the_extra(monkeypatch):
         detect_board([_flat_board_image(0)], (ROWS, COLS), SQUARE)
 
 
-def test_rendered_images_to_calibrate_camera(rendered):
+@pytest.fixture(scope="module")
+def rendered_fit(rendered):
+    """detect_board (sb) and calibrate_camera on the eleven rendered pictures: ``(detections, result)``."""
+    nominal, true, q, q_out, cam, board, T, Kc, imgs = rendered
+    det = detect_board(imgs, (ROWS, COLS), SQUARE, detector="sb")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a few images determine fewer parameters: said in a warning
+        res = calibrate_camera(nominal, q, det.image_points, det.board_points, camera_matrix=Kc,
+                               dist_coeffs=DIST, visible=det.visible, cross_validation=0, progress=False)
+    return det, res
+
+
+def test_rendered_images_to_calibrate_camera(rendered, rendered_fit):
     """Ten rendered 960 x 768 px pictures (lens distortion, blur, noise) and one without the board: the
     board found in the ten (sector-based detector), NaN with a False mask row in the other; corners within
     1 px of cv2.projectPoints of the truth (0.3 px RMS; measured 0.21 px, the rendering's aliasing);
@@ -201,20 +213,59 @@ def test_rendered_images_to_calibrate_camera(rendered):
     at 50 held-out postures within 2.5 mm (1.6 mm; OpenCV's best 3.8 mm). Ten images leave the robot's
     34 parameters weakly determined; the extended test below runs 30 full-size ones."""
     nominal, true, q, q_out, cam, board, T, Kc, imgs = rendered
-    det = detect_board(imgs, (ROWS, COLS), SQUARE, detector="sb")
+    det, res = rendered_fit
     assert det.found[-1].item() is False and torch.isnan(det.image_points[-1]).all()
     assert det.found.sum() >= 9, det.found
     err = (det.image_points[:-1] - true_pixels(T, Kc)).norm(dim=-1)[det.found[:-1]]
     assert float(err.square().mean().sqrt()) < 0.3 and float(err.max()) < 1.0, err.max()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # a few images determine fewer parameters: said in a warning
-        res = calibrate_camera(nominal, q, det.image_points, det.board_points, camera_matrix=Kc,
-                               dist_coeffs=DIST, visible=det.visible, cross_validation=0, progress=False)
     cam_err = float((res.camera_pose[:3, 3] - cam[:3, 3]).norm())
     assert res.reprojection_rms < 0.5 and cam_err < 3e-3, (res.reprojection_rms, cam_err)
     pts_err = held_out_3d(res.chain, res.camera_pose, res.board_pose @ _centre(), true, cam,
                           board @ _centre(), q_out, "eye_to_hand")
     assert pts_err < 2.5e-3, pts_err
+
+
+def test_image_residual_plot_draws_the_reported_projections(rendered, rendered_fit, tmp_path):
+    """The result's per-point projections are cv2.projectPoints of the board's corners through the
+    calibrated (``reprojected``) and the starting model (``initial_reprojected``: nominal robot, hand-eye
+    poses), to 1e-9 px; image_rms / initial_image_rms are their RMS against the detections; and
+    plot_image_residuals draws exactly those points (the Figure's data), over the picture or on a blank
+    canvas of the camera's size, residual arrows magnified by a factor named in the legend."""
+    nominal, true, q, q_out, cam, board, T, Kc, imgs = rendered
+    det, res = rendered_fit
+    inv = torch.linalg.inv
+    for chain, C, B, uv in ((res.chain, res.camera_pose, res.board_pose, res.reprojected),
+                            (res.nominal_chain, res.initial_camera_pose, res.initial_board_pose,
+                             res.initial_reprojected)):
+        T_cb = inv(C) @ chain.forward_kinematics(q) @ B  # eye-to-hand: camera <- base <- flange <- board
+        ref = np.array([cv2.projectPoints(det.board_points.numpy(), cv2.Rodrigues(t[:3, :3])[0], t[:3, 3],
+                                          res.camera_matrix.numpy(), res.dist_coeffs.numpy())[0][:, 0]
+                        for t in T_cb.numpy()])
+        v = res.visible.numpy()
+        np.testing.assert_allclose(uv.numpy()[v], ref[v], rtol=0, atol=1e-9)
+        assert np.isnan(uv.numpy()[~v]).all()
+    i = 2
+    fig = res.plot_image_residuals(i, image=imgs[i])
+    ax = fig.axes[0]
+    (meas, before, after) = (np.asarray(line.get_xydata()) for line in ax.lines[:3])
+    vis = res.visible[i].numpy()
+    np.testing.assert_array_equal(meas, res.image_points[i].numpy()[vis])
+    np.testing.assert_array_equal(before, res.initial_reprojected[i].numpy()[vis])
+    np.testing.assert_array_equal(after, res.reprojected[i].numpy()[vis])
+    for drawn, rms in ((after, res.image_rms[i]), (before, res.initial_image_rms[i])):
+        assert abs(np.sqrt(((meas - drawn) ** 2).sum(-1).mean()) - float(rms)) < 1e-12
+    assert ax.images[0].get_array().shape == imgs[i].shape and len(ax.collections) == 2  # picture, 2 quivers
+    legend = [t.get_text() for t in ax.get_legend().get_texts()]
+    assert any(t.startswith("projected - detected, x") for t in legend), legend
+    q0 = ax.collections[0]  # the start's arrows: projected - detected, times the legend's factor
+    k = float(next(t for t in legend if t.startswith("projected")).split("x")[-1])
+    np.testing.assert_allclose(np.stack((q0.U, q0.V), -1), (before - meas) * k, rtol=1e-12)
+    blank = res.plot_image_residuals(-2, scale=100).axes[0]  # no picture: a canvas of the camera's size
+    assert not blank.images and blank.get_xlim() == (-0.5, 959.5) and blank.get_ylim() == (767.5, -0.5)
+    assert any(t.get_text().endswith("x100") for t in blank.get_legend().get_texts())
+    assert res.plot_image_residuals(0, tmp_path / "r" / "0.png").stat().st_size > 10_000
+    with pytest.raises(OptionError):
+        res.plot_image_residuals(len(imgs), tmp_path / "none.png")
 
 
 def _centre():
@@ -258,7 +309,12 @@ def test_cli_calibrate_images(rendered, tmp_path, capsys):
     got = yaml.safe_load((out / "camera.yaml").read_text())
     assert float((torch.tensor(got["camera_pose"]["xyz"], dtype=torch.float64) - cam[:3, 3]).norm()) < 1e-2
     assert (out / "calibrated.urdf").is_file() and 'type="fixed"' in (out / "camera_joint.urdf").read_text()
-    assert "| shot_06.png | no | | |" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "| shot_06.png | no | | | |" in report
+    for i in range(6):  # per picture with the board: its residual figure, over the picture, linked
+        png = f"residuals/shot_{i:02d}.png"
+        assert f"]({png}) |" in report and (out / png).is_file()
+    assert not (out / "residuals/shot_06.png").exists()
     (tmp_path / "short.csv").write_text("\n".join(lines[:-1]) + "\n")  # one picture without a reading
     bad = [a if a != str(tmp_path / "q.csv") else str(tmp_path / "short.csv") for a in args]
     assert main([*bad, "--output", str(tmp_path / "cal2")]) == 2

@@ -27,13 +27,15 @@ METHODS = ("least_squares", "gradient")
 _DEG = 180.0 / math.pi  # reports give lengths in mm and angles in degrees (console, parameters.md, summary)
 
 
-def save_figure(fig, path: str | Path) -> Path:
-    """Lay out a matplotlib ``Figure`` and write it to ``path`` (parent folders made): every calibration
+def save_figure(fig, path: str | Path, tight: bool = True, **savefig) -> Path:
+    """Lay out a matplotlib ``Figure`` (``tight``: ``tight_layout``, one extra draw) and write it to
+    ``path`` (parent folders made; ``savefig``: more options of ``Figure.savefig``): every calibration
     result's residual plot."""
-    fig.tight_layout()
+    if tight:
+        fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=110, **savefig)
     return path
 
 

@@ -296,8 +296,10 @@ def calibrate_camera(
     to_px = math.sqrt(N * M / n_vis)  # the solvers' RMS runs over every point slot, invisible ones zero
     history = [float(h[0]) * to_px for h in out.position_rms]
     with torch.no_grad():
-        r = model.residual(theta[None], x[None], img[None])[0].reshape(N, M, 2)
-        r0 = model.residual(theta0, x[None], img[None])[0].reshape(N, M, 2)
+        # the projections the report draws (plot_image_residuals) are those its RMS figures come from
+        uv, uv0 = model.pixels(torch.cat((theta[None], theta0)), x[None].expand(2, -1, -1)).unbind(0)
+        r = model.residual_of(uv, img).reshape(N, M, 2)
+        r0 = model.residual_of(uv0, img).reshape(N, M, 2)
     per_image = (r.square().sum((-1, -2)) / vis.sum(-1).clamp_min(1)).sqrt()
     per_image0 = (r0.square().sum((-1, -2)) / vis.sum(-1).clamp_min(1)).sqrt()
     rms = float(_point_rms(r, vis))
@@ -367,6 +369,10 @@ def calibrate_camera(
         outlier_threshold=threshold,
         image_rms=per_image,
         initial_image_rms=per_image0,
+        image_points=torch.where(vis[..., None], img, torch.nan),
+        visible=vis,
+        reprojected=torch.where(vis[..., None], uv, torch.nan),
+        initial_reprojected=torch.where(vis[..., None], uv0, torch.nan),
         loss=loss,
         notes=list(model.notes) + [n for n in notes if n not in model.notes],
     )

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from ..errors import DiffkinError, MissingExtraError, ShapeError
+from ..errors import DiffkinError, MissingExtraError, ShapeError, require
 from ..io.data import _is_number
 from .board import BoardDetection, detect_board, image_files
 from .camera_api import calibrate_camera
@@ -107,14 +108,47 @@ def calibrate_camera_from_files(
     return res, det
 
 
+def _picture(cv2, image):
+    """An image file (RGB array) or array as given; None when it cannot be read (a blank canvas then)."""
+    if not isinstance(image, (str, Path)):
+        return image
+    img = cv2.imread(str(image), cv2.IMREAD_COLOR)
+    return None if img is None else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
 def write_camera_report(result: CameraCalibrationResult, detections: BoardDetection, out_dir: str | Path,
-                        robot: bool = True) -> list[Path]:
+                        robot: bool = True, images=None) -> list[Path]:
     """Write into ``out_dir``: the calibrated robot (``calibrated.yaml|urdf|xml``, unless ``robot`` is
     False), ``camera.yaml`` (:meth:`CameraCalibrationResult.to_yaml`), ``camera_joint.urdf`` (the camera
     as a fixed URDF joint), ``report.md`` (summary, parameters, the pictures' detections and reprojection
-    RMS before / after) and, with matplotlib, ``residuals.png``. Returns the paths written."""
+    RMS before / after) and, with matplotlib, ``residuals.png`` and per picture where the board was found
+    ``residuals/<picture stem>.png`` (:meth:`CameraCalibrationResult.plot_image_residuals`, linked from
+    the report's table), drawn over the picture when ``images`` (the folder, or the files or arrays in
+    the detections' order; arrays in RGB) is given and OpenCV can read it, else on a blank canvas.
+    Returns the paths written."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        require("matplotlib.figure", "plot", "the camera calibration report's figures")
+        plots = True
+    except MissingExtraError:  # no matplotlib: the report without its figures
+        plots = False
+    if images is not None and not isinstance(images, (list, tuple)):
+        images = image_files(images)
+    if images is not None and len(images) != len(detections.names):
+        raise ShapeError(f"expected {len(detections.names)} pictures (one per detection), got {len(images)}")
+    try:
+        cv2 = require("cv2", "camera", "reading the pictures for the report") if images is not None else None
+    except MissingExtraError:
+        cv2 = images = None
+    stems = [Path(n).stem for n in detections.names]
+    figures = {}
+    if plots:
+        for i, name in enumerate(detections.names):
+            if bool(detections.found[i]):
+                pic = None if images is None else _picture(cv2, images[i])
+                figures[i] = result.plot_image_residuals(i, out / "residuals" / f"{stems[i]}.png", pic,
+                                                         title=f"{name}: reprojection before / after")
     written = [write_robot(result.chain, out)] if robot else []
     written.append(out / "camera.yaml")
     result.to_yaml(written[-1])
@@ -122,17 +156,18 @@ def write_camera_report(result: CameraCalibrationResult, detections: BoardDetect
     written[-1].write_text(result.camera_joint_urdf() + "\n")
     lines = ["# Camera calibration", "", "```", result.summary(), "```", "", result.to_markdown(), "",
              f"## Pictures (board found in {int(detections.found.sum())} of {len(detections.names)})", "",
-             "| picture | board found | RMS before [px] | RMS after [px] |", "|---|---|---|---|"]
+             "| picture | board found | RMS before [px] | RMS after [px] | residuals |",
+             "|---|---|---|---|---|"]
     for i, name in enumerate(detections.names):
         if bool(detections.found[i]):
+            link = f"[{stems[i]}.png](residuals/{quote(stems[i])}.png)" if i in figures else ""
             lines.append(f"| {name} | yes | {float(result.initial_image_rms[i]):.4f} | "
-                         f"{float(result.image_rms[i]):.4f} |")
+                         f"{float(result.image_rms[i]):.4f} | {link} |")
         else:
-            lines.append(f"| {name} | no | | |")
+            lines.append(f"| {name} | no | | | |")
     written.append(out / "report.md")
     written[-1].write_text("\n".join(lines) + "\n")
-    try:
+    if plots:
         written.append(result.plot_residuals(out / "residuals.png"))
-    except MissingExtraError:  # no matplotlib: the report without its figure
-        pass
+        written += list(figures.values())
     return written

@@ -10,7 +10,7 @@ from pathlib import Path
 from torch import Tensor
 
 from ..chain import KinematicChain
-from ..errors import require
+from ..errors import DiffkinError, OptionError, ShapeError, require
 from ..rotations import _matrix_to_rotvec
 from .api import save_figure
 from .identifiability import IdentifiabilityReport
@@ -48,6 +48,10 @@ class CameraCalibrationResult:
     model; None without σ); ``cross_validation``: the k-fold held-out reprojection RMS over images
     (``folds``, ``reprojection_rms``, ``reprojection_max`` in px); ``outliers``: ``(image, point)`` pairs
     whose residual exceeds ``outlier_threshold`` px; ``image_rms`` ``(N,)``: per image, after the fit.
+    ``image_points`` ``(N, M, 2)``: the measured pixels, ``visible`` ``(N, M)``, and ``reprojected`` /
+    ``initial_reprojected`` ``(N, M, 2)``: the board points projected by the calibrated model / at the start
+    (nominal robot, hand-eye poses) — the projections ``image_rms`` / ``initial_image_rms`` are computed
+    from (NaN where not visible); drawn per image by :meth:`plot_image_residuals`.
     """
 
     chain: KinematicChain
@@ -80,6 +84,10 @@ class CameraCalibrationResult:
     initial_image_rms: Tensor | None = field(default=None, repr=False)
     loss: str = "l2"
     notes: list[str] = field(default_factory=list)
+    image_points: Tensor | None = field(default=None, repr=False)
+    visible: Tensor | None = field(default=None, repr=False)
+    reprojected: Tensor | None = field(default=None, repr=False)
+    initial_reprojected: Tensor | None = field(default=None, repr=False)
 
     @property
     def determined(self) -> bool:
@@ -204,3 +212,81 @@ class CameraCalibrationResult:
         ax2.set_ylabel("reprojection RMS [px]")
         fig.suptitle(f"camera calibration of '{self.chain.name}' ({self.setup})")
         return save_figure(fig, path)
+
+    def plot_image_residuals(
+        self,
+        i: int,
+        path: str | Path | None = None,
+        image=None,
+        *,
+        scale: float | None = None,
+        size: tuple[int, int] | None = None,
+        title: str | None = None,
+    ):
+        """One picture's reprojection residuals, OpenCV-style: picture ``i`` (``image``: an array ``(H, W)``
+        or ``(H, W, 3)`` in RGB order, e.g. ``cv2.cvtColor(cv2.imread(f), cv2.COLOR_BGR2RGB)``; None: a blank
+        canvas of ``size = (W, H)`` px, by default (2⌈cx⌉, 2⌈cy⌉) of the camera matrix) with the detected
+        corners (``image_points[i]``), the corners projected at the start (``initial_reprojected[i]``: nominal
+        robot, hand-eye poses) and by the calibrated model (``reprojected[i]``), and the residual vectors
+        from each detected corner to its two projections, magnified ``scale`` times (default: the longest
+        start residual drawn at about 4 % of the picture's diagonal, rounded to 1, 2 or 5 × 10^k; the
+        factor is in the legend).
+        Writes a PNG to ``path`` and returns the path; without ``path`` returns the matplotlib Figure (no
+        pyplot: the process's backend is left alone). Needs matplotlib."""
+        import numpy as np
+
+        Figure = require("matplotlib.figure", "plot", "CameraCalibrationResult.plot_image_residuals").Figure
+        if self.reprojected is None:
+            raise DiffkinError("this result holds no per-point projections (calibrate_camera's results do)")
+        n = self.image_points.shape[0]
+        if not isinstance(i, int) or not -n <= i < n:
+            raise OptionError(f"expected an image index in [0, {n}), got {i!r}")
+        vis = self.visible[i].cpu().numpy()
+        meas, after, before = (
+            t[i].detach().cpu().double().numpy()[vis]
+            for t in (self.image_points, self.reprojected, self.initial_reprojected)
+        )
+        if image is not None:
+            image = np.asarray(image.detach().cpu() if isinstance(image, Tensor) else image)
+            if image.ndim not in (2, 3):
+                raise ShapeError(f"expected image (H, W) or (H, W, 3), got {tuple(image.shape)}")
+            H, W = image.shape[:2]
+        elif size is not None:
+            W, H = int(size[0]), int(size[1])
+        else:  # a centred principal point is at (W - 1) / 2 (OpenCV's pixel centres) or W / 2: W even
+            K = self.camera_matrix.tolist()
+            W, H = 2 * math.ceil(K[0][2]), 2 * math.ceil(K[1][2])
+        r0, r1 = meas - before, meas - after
+        if scale is None:
+            longest = float(np.linalg.norm(r0, axis=-1).max()) if len(r0) else 0.0
+            raw = 0.04 * math.hypot(W, H) / max(longest, 1e-12)
+            k = 10.0 ** math.floor(math.log10(raw))
+            scale = max(m * k for m in (1, 2, 5) if m * k <= raw)
+        fig = Figure(figsize=(7, 7 * H / W + 0.6))
+        ax = fig.subplots()
+        if image is not None:
+            top = 255 if image.dtype.kind in "ui" else 1
+            grey = dict(cmap="gray", vmin=0, vmax=top) if image.ndim == 2 else {}
+            ax.imshow(image, extent=(-0.5, W - 0.5, H - 0.5, -0.5), **grey)  # grey levels as they are
+        else:
+            ax.set_facecolor("white")
+        rms0, rms1 = float(self.initial_image_rms[i]), float(self.image_rms[i])
+        ax.plot(meas[:, 0], meas[:, 1], "+", color="lime", ms=6, mew=1.0, label="detected")
+        ax.plot(before[:, 0], before[:, 1], "o", mfc="none", color="tab:orange", ms=5,
+                label=f"start (nominal robot), RMS {rms0:.3f} px")
+        ax.plot(after[:, 0], after[:, 1], "x", color="tab:blue", ms=5,
+                label=f"calibrated, RMS {rms1:.3f} px")
+        for r, c in ((r0, "tab:orange"), (r1, "tab:blue")):  # residuals from the detected corner, magnified
+            ax.quiver(meas[:, 0], meas[:, 1], -r[:, 0] * scale, -r[:, 1] * scale, color=c, angles="xy",
+                      scale_units="xy", scale=1.0, width=0.003)
+        ax.plot([], [], "-", color="gray", label=f"projected - detected, x{scale:g}")
+        ax.set_xlim(-0.5, W - 0.5)
+        ax.set_ylim(H - 0.5, -0.5)  # image rows down
+        ax.set_aspect("equal")
+        ax.set_xlabel("u [px]")
+        ax.set_ylabel("v [px]")
+        ax.legend(loc="upper right", fontsize=8, framealpha=0.8)
+        ax.set_title(title or f"image {i % n}: reprojection before / after calibration")
+        fig.subplots_adjust(left=0.11, right=0.98, bottom=0.07, top=0.94)  # fixed: no layout pass
+        # one figure per picture in a report: a fast PNG compression (the pictures' noise compresses badly)
+        return fig if path is None else save_figure(fig, path, tight=False, pil_kwargs={"compress_level": 3})

@@ -180,8 +180,9 @@ _DESCRIPTIONS = {
                  "From board pictures: --images DIR --joints FILE --board ROWS COLS --square M\n"
                  "--camera FX FY CX CY detects the chessboard in each picture (OpenCV) and fits the\n"
                  "robot's geometry with the camera's and the board's poses to the corners' pixels;\n"
-                 "--output DIR gets the calibrated robot, camera.yaml, camera_joint.urdf, report.md and\n"
-                 "residuals.png.",
+                 "--output DIR gets the calibrated robot, camera.yaml, camera_joint.urdf, report.md,\n"
+                 "residuals.png and residuals/<picture>.png (each picture with its detected corners, the\n"
+                 "corners projected before and after the fit and the residuals magnified).",
     "trajectory": "Plan a joint-space (cubic, quintic, trapezoidal) or a Cartesian straight-line trajectory\n"
                   "from --start to --end, or in either space a cubic spline through the via points of\n"
                   "--points (rows at equally spaced times), and export t, position, velocity, acceleration.",

@@ -124,7 +124,7 @@ def _cmd_calibrate_images(args) -> int:
     out = Path(args.output)
     if out.suffix:
         raise DiffkinError(f"--output {out}: with --images give a directory (the calibrated robot, "
-                           "camera.yaml, camera_joint.urdf, report.md, residuals.png)")
+                           "camera.yaml, camera_joint.urdf, report.md, residuals.png, residuals/)")
     _check_output_dir(out)
     args.device, args.dtype = "cpu", "float64"  # calibration corrects by micrometres: float64 on the CPU
     chain = _load_chain(args)
@@ -143,7 +143,7 @@ def _cmd_calibrate_images(args) -> int:
             error_model=args.error_model, measurement_noise=args.pixel_noise, loss=args.loss,
             cross_validation=args.cv, progress=not args.no_progress,
         )
-    written = write_camera_report(res, det, out)
+    written = write_camera_report(res, det, out, images=args.images)
     con = _console()
     con.print(f"board found in {int(det.found.sum())} of {len(det.names)} pictures"
               + ("" if bool(det.found.all()) else " (not in: "
