@@ -180,9 +180,10 @@ def calibrate_contacts(
             distances have no length scale of their own: with unknown radii (and with planes) the scale of
             the robot is unidentifiable — one length is reported and kept nominal.
         tip: the tip in the chain's end frame ``(3,)`` (metres; default the end frame's origin).
-        method, error_model, loss, cross_validation, parameters, base, tool, joint_offsets, max_iterations,
-            tol, rank_tol, progress, max_correction, solver_options: as :func:`calibrate` (losses and
-            scale in metres of distance; ``cross_validation`` needs 4k contacts).
+        method, error_model, loss, cross_validation, parameters: as :func:`calibrate` (losses and scale in
+            metres of distance; ``cross_validation`` needs 4k contacts).
+        base, tool, joint_offsets, max_iterations, tol, rank_tol: as :func:`calibrate`.
+        progress, max_correction, solver_options: as :func:`calibrate`.
         measurement_noise: σ (metres), the standard deviation of the probe's trigger distance:
             ``result.noise_ratio`` χ = √(Σ (d/σ)² / (N − rank)) ≈ 1 for an adequate model (a
             ``UserWarning`` above 2), the outlier threshold 3σ (else 3 × 1.48 × the median |d|) and the
