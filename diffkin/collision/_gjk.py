@@ -32,6 +32,8 @@ __all__ = ["Witness", "signed_witness"]
 
 Support = Callable[..., tuple[Tensor, Tensor]]  # support(args, d (N, 3)) -> point (N, 3), code (N,)
 _SUBSETS = [s for k in range(1, 5) for s in itertools.combinations(range(4), k)]
+#: the subsets holding point 0, GJK's newest support point (which is always on the new closest face)
+_SUBSETS_0 = [s for s in _SUBSETS if 0 in s]
 
 
 class Witness:
@@ -73,13 +75,13 @@ def _project(P: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
     return torch.cat((1.0 - mu.sum(-1, keepdim=True), mu), -1), ok
 
 
-def _closest(W: Tensor, active: Tensor, scale: Tensor) -> tuple[Tensor, Tensor]:
+def _closest(W: Tensor, active: Tensor, scale: Tensor, subsets=_SUBSETS) -> tuple[Tensor, Tensor]:
     """The point of conv(active W) nearest the origin: weights ``(N, 4)`` (0 off its face) and the
-    squared norm ``(N,)``. ``W (N, 4, 3)``, ``active (N, 4)``."""
+    squared norm ``(N,)``. ``W (N, 4, 3)``, ``active (N, 4)``; ``subsets``: the faces tried."""
     N = W.shape[0]
     best = torch.full((N,), math.inf, dtype=W.dtype, device=W.device)
     lam = torch.zeros(N, 4, dtype=W.dtype, device=W.device)
-    for s in _SUBSETS:
+    for s in subsets:
         idx = list(s)
         ls, ok = _project(W[:, idx], scale)
         ok &= active[:, idx].all(-1) & (ls >= -1e-12).all(-1)
@@ -129,18 +131,20 @@ def signed_witness(sa: Support, a_args: tuple, sb: Support, b_args: tuple, d0: T
         vn = (v * v).sum(-1).sqrt()
         conv = (vn * vn - (v * w).sum(-1)) <= tol * vn
         done = done | conv
-        slot = (~active).to(torch.int8).argmax(-1)  # the first free slot (GJK keeps at most 3 when adding)
         put = ~done
-        onehot = torch.nn.functional.one_hot(slot, 4).bool() & put[:, None]
-        W = torch.where(onehot[..., None], w[:, None], W)
-        dirs = torch.where(onehot[..., None], d[:, None], dirs)
-        ca = torch.where(onehot, a[:, None], ca)
-        cb = torch.where(onehot, b[:, None], cb)
-        act = active | onehot
-        lam_n, n2 = _closest(W, act, scale)
-        lam = torch.where(put[:, None], lam_n, lam)
-        active = torch.where(put[:, None], lam_n > 0, active)
-        v = torch.where(put[:, None], (lam[..., None] * W).sum(1), v)
+        # the new point first, then the (at most three) points of the current face: only the faces that
+        # hold the new point can be the new closest face
+        keep = torch.argsort((~active).to(torch.int8), dim=-1, stable=True)[:, :3]
+        pm, pv, k3 = put[:, None], put[:, None, None], keep[..., None].expand(-1, -1, 3)
+        W = torch.where(pv, torch.cat((w[:, None], W.gather(1, k3)), 1), W)
+        dirs = torch.where(pv, torch.cat((d[:, None], dirs.gather(1, k3)), 1), dirs)
+        ca = torch.where(pm, torch.cat((a[:, None], ca.gather(1, keep)), 1), ca)
+        cb = torch.where(pm, torch.cat((b[:, None], cb.gather(1, keep)), 1), cb)
+        act = torch.cat((torch.ones_like(active[:, :1]), active.gather(1, keep)), 1)
+        lam_n, n2 = _closest(W, act, scale, _SUBSETS_0)
+        lam = torch.where(pm, lam_n, lam)
+        active = torch.where(pm, lam_n > 0, active)
+        v = torch.where(pm, (lam[..., None] * W).sum(1), v)
         hit = put & (n2 <= (tol * tol))
         contact = contact | hit
         done = done | hit
