@@ -12,8 +12,8 @@ timeit`):
   (signed) between its hulls of the same meshes and the scene's boxes and cylinders, looped in Python.
 * ``panda clear``: the collision decision (``_clear``, every distance >= 0, through the broad phase) of the
   same configurations, per configuration (the capsule model's goes through the fused C pass).
-* ``convex-convex``: ``--pairs`` random pairs of random hulls (8-40 vertices, about 80 % in contact: EPA)
-  in one batched call, per pair; coal looped over the same pairs.
+* ``convex-convex``: ``--pairs`` random pairs of random hulls (of 24 random points each, most of them in
+  contact: EPA) in one batched call, per pair; coal looped over the same pairs (hulls built beforehand).
 
 The machine is shared: compare ratios from one run.
 """
@@ -85,7 +85,6 @@ def _coal_panda(q, problem, rc):
 def main(argv=None) -> None:
     from benchmarks import motion_problems as mp
     from diffkin.collision import convex as CV
-    from tests.test_collision_convex import _coal_sd, _pairs
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--batch", type=int, default=64)
@@ -111,16 +110,26 @@ def main(argv=None) -> None:
         c_cv = timeit(clear(convex), min_time=0.2, repeats=3) / a.batch
         c_cap = timeit(clear(capsules), min_time=0.2, repeats=3) / a.batch
         print(f"{'panda clear':>16} {1e6 * c_cv:>10.1f} {1e6 * c_cap:>12.1f} {'':>9} {c_cv / c_cap:>16.1f}")
-        X, V, _ = _pairs("convex", a.pairs // 10, seed=1)
-        X, V = X[0].repeat(10, 1, 1), V.repeat(10, 1, 1)
-        t_pair = timeit(lambda: CV.convex_convex(X, V), min_time=0.2, repeats=3) / len(V)
-    from tests.test_collision_convex import _coal_hull, _tf  # (coal's time: hull building excluded)
+        rng = np.random.default_rng(1)
+        hulls = [rng.normal(size=(24, 3)) * rng.uniform(0.02, 0.12, 3) + rng.uniform(-0.15, 0.15, 3)
+                 for _ in range(2 * a.pairs)]
+        X = torch.tensor(np.stack(hulls[: a.pairs]), dtype=F64)
+        V = torch.tensor(np.stack(hulls[a.pairs:]), dtype=F64)
+        t_pair = timeit(lambda: CV.convex_convex(X, V), min_time=0.2, repeats=3) / a.pairs
+    import coal
 
-    hulls = [(_coal_hull(x.numpy()), _coal_hull(v.numpy())) for x, v in zip(X[: a.pairs // 10], V)]
+    def hull(P):
+        pts = coal.StdVec_Vec3s()
+        pts.extend(list(P))
+        return coal.Convex.convexHull(pts, False, "")
+
+    req, eye = coal.DistanceRequest(), coal.Transform3s()
+    req.enable_signed_distance = True
+    pairs = [(hull(x), hull(v)) for x, v in zip(hulls[: a.pairs], hulls[a.pairs:])]  # (not timed)
     t0 = time.perf_counter()
-    for g1, g2 in hulls:
-        _coal_sd(g1, _tf(), g2, _tf())
-    t_pc = (time.perf_counter() - t0) / len(hulls)
+    for g1, g2 in pairs:
+        coal.distance(g1, eye, g2, eye, req, coal.DistanceResult())
+    t_pc = (time.perf_counter() - t0) / len(pairs)
     print(f"{'convex-convex':>16} {1e6 * t_pair:>10.1f} {'':>12} {1e6 * t_pc:>9.1f} {'':>16} "
           f"{t_pair / t_pc:>12.2f}")
 

@@ -2,13 +2,15 @@
 spheres, boxes, cylinders), gradcheck in float64, float32 and broadcasting, the pair table's entries, and
 the Panda's convex model (RobotCollision.from_urdf(geometry="convex")) against coal on the true meshes.
 
-Tolerances (float64): polytope pairs (meshes, boxes, segments) 1e-8 m against coal with GJK tolerance 1e-10
-in both regimes (GJK and EPA both end on an exact face there); a cylinder's curved side in contact 2e-6 m
-(coal's EPA tolerance 1e-6, ours converges to a few 1e-7 on a curved surface).
+Tolerances (float64): polytope pairs (meshes, boxes, segments) 1e-8 m against coal (GJK and EPA tolerances
+1e-12) in both regimes (GJK and EPA both end on an exact face there); a cylinder's curved side in contact
+2e-6 m (EPA on a curved surface converges to a few 1e-7 in 64 steps); the Panda's pairs, up to 2 m apart,
+1e-7 m (coal's GJK stops at its relative tolerance there).
 """
 
 from __future__ import annotations
 
+import collision_reference as ref
 import numpy as np
 import pytest
 import torch
@@ -16,23 +18,13 @@ import torch
 from diffkin.collision import convex as CV
 from diffkin.collision.pairs import distance
 
-coal = pytest.importorskip("coal")
+coal = ref.coal
 F64 = torch.float64
 KINDS = ("convex", "capsule", "sphere", "box", "cylinder")
 
 
-def _tf(R=None, p=None):
-    T = coal.Transform3s()
-    T.setRotation(np.eye(3) if R is None else np.asarray(R, dtype=float))
-    T.setTranslation(np.zeros(3) if p is None else np.asarray(p, dtype=float))
-    return T
-
-
-def _coal_sd(g1, T1, g2, T2):
-    req = coal.DistanceRequest()
-    req.enable_signed_distance = True
-    req.gjk_tolerance = 1e-10
-    return coal.distance(g1, T1, g2, T2, req, coal.DistanceResult())
+_tf = ref.placement
+_coal_sd = ref.distance  # signed (coal's default), GJK and EPA tolerances 1e-12
 
 
 def _coal_hull(V):
