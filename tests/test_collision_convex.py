@@ -276,3 +276,26 @@ def test_convex_panda_has_no_more_start_or_goal_collisions_than_vamps_spheres():
     rows = bench_motion_problems.run(models=("convex",))
     total = next(r for r in rows if r["family"] == "all")
     assert total["problems"] == 700 and total["start_or_goal"] <= 1
+
+
+def test_panda_convex_with_one_scene_per_row(panda):
+    """World.stack of two scenes (padded), one per row: each row's columns are that scene's own distances,
+    and the decisions with a margin follow them."""
+    from benchmarks import motion_problems as mp
+    from diffkin.collision import World
+    from diffkin.collision.world_stack import stacked_columns
+
+    _, chain, rc, *_ = panda
+    ps = mp.load_problems(families={"cage", "box"}, indices={1})
+    ws = [p.scene.to_world(dtype=F64) for p in ps]
+    q = torch.tensor([p.start for p in ps], dtype=F64)
+    with torch.no_grad():
+        d = rc.world_distances(q, World.stack(ws))
+        own = []
+        for k in range(2):
+            own.append(rc.world_distances(q[k], ws[k]))
+            torch.testing.assert_close(d[k][:, stacked_columns(ws, k)], own[k], atol=1e-12, rtol=0)
+        lowest = torch.stack([torch.cat((o.flatten(), rc.self_distances(q[k]))).min()
+                              for k, o in enumerate(own)])
+        for margin in (0.0, float(lowest.mean())):
+            assert torch.equal(rc._clear(q, World.stack(ws), margin=margin), lowest >= margin)
