@@ -299,3 +299,13 @@ def test_panda_convex_with_one_scene_per_row(panda):
                               for k, o in enumerate(own)])
         for margin in (0.0, float(lowest.mean())):
             assert torch.equal(rc._clear(q, World.stack(ws), margin=margin), lowest >= margin)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+@pytest.mark.parametrize("kind", KINDS)
+def test_cuda_matches_cpu(kind):
+    X, V, _ = _pairs(kind, 40, seed=40 + KINDS.index(kind))
+    d = _ours(kind, X, V)
+    dc = _ours(kind, tuple(x.cuda() for x in X), V.cuda())
+    assert dc.device.type == "cuda"
+    torch.testing.assert_close(dc.cpu(), d, atol=1e-9, rtol=0)
