@@ -45,8 +45,9 @@ def convex_halfspace(V: Tensor, n: Tensor, offset: Tensor) -> Tensor:
 
 # ------------------------------------------------------------ support maps (float64, flat (N, ...) args)
 def _s_convex(args, d):
-    (V,) = args
-    i = (V @ d.unsqueeze(-1)).squeeze(-1).argmax(-1)
+    V, Vx, Vy, Vz = args  # the vertices and their coordinate planes (N, M) (three fused multiply-adds on
+    # contiguous planes: about 3x a batched (M, 3) @ (3, 1) product)
+    i = (Vx * d[:, :1]).addcmul_(Vy, d[:, 1:2]).addcmul_(Vz, d[:, 2:3]).argmax(-1)
     return V[torch.arange(len(V), device=V.device), i], i
 
 
@@ -121,8 +122,10 @@ def _signed(ka: str, A: tuple, ra: Tensor | None, kb: str, B: tuple, rb: Tensor 
             _flat(x, k, batch)
             for x, k in zip(xs, own))
         A64, B64 = flat(A, own_a), flat(B, own_b)
+        A64, B64 = (x + tuple(x[0][..., k].contiguous() for k in range(3)) if k_ == "convex" else x
+                    for x, k_ in ((A64, ka), (B64, kb)))
         ca, cb = _centre(ka, A64), _centre(kb, B64)
-        scale = 1.0 + torch.cat([x.abs().reshape(N, -1) for x in A64 + B64], -1).amax(-1)
+        scale = 1.0 + torch.cat([x.abs().reshape(N, -1) for x in A64[:len(A)] + B64[:len(B)]], -1).amax(-1)
         wit = signed_witness(sa, A64, sb, B64, ca - cb, scale)
     dirs = wit.dirs.to(ref.dtype).reshape(*batch, 4, 3)
     lam = wit.lam.to(ref.dtype).reshape(*batch, 4, 1)
