@@ -309,3 +309,17 @@ def test_cuda_matches_cpu(kind):
     dc = _ours(kind, tuple(x.cuda() for x in X), V.cuda())
     assert dc.device.type == "cuda"
     torch.testing.assert_close(dc.cpu(), d, atol=1e-9, rtol=0)
+
+
+def test_exported_functions_check_their_input():
+    from diffkin import collision as C
+    from diffkin.errors import DiffkinError
+
+    V = torch.rand(5, 8, 3, dtype=F64)
+    torch.testing.assert_close(C.convex_convex(V, V + 1.0), CV.convex_convex(V, V + 1.0))
+    d = C.capsule_convex([0.0, 0, 2], [0.0, 0, 3], 0.1, V.tolist())  # lists become tensors
+    assert d.shape == (5,) and d.dtype == torch.float32 and bool((d > 0.8).all())
+    with pytest.raises(DiffkinError, match="V"):
+        C.convex_halfspace(V[..., :2], [0.0, 0, 1], 0.0)  # points of 2 coordinates
+    with pytest.raises(DiffkinError, match="broadcast"):
+        C.box_convex(torch.zeros(4, 3, dtype=F64), torch.eye(3, dtype=F64), torch.ones(3, dtype=F64), V)
