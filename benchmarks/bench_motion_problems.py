@@ -8,7 +8,9 @@ scene's allowed-collision matrix through :meth:`~diffkin.collision.RobotCollisio
 
 * ``capsules``: today's default ``RobotCollision.from_urdf(panda.urdf)`` (each collision mesh fitted by at
   most 4 enclosing capsules; never optimistic, oversized);
-* ``spherized``: ``panda_spherized.urdf``'s 59 spheres (VAMP's conservative spherical decomposition).
+* ``spherized``: ``panda_spherized.urdf``'s 59 spheres (VAMP's conservative spherical decomposition);
+* ``convex``: ``RobotCollision.from_urdf(panda.urdf, geometry="convex")``, each collision mesh as its exact
+  convex hull (link6's mesh is not convex: its hull, larger by at most a few mm).
 
 A state (a start or a goal) is in collision when a checked self pair or a geom–obstacle pair has a signed
 distance < 0 (no margin). The world is :meth:`Scene.to_world <diffkin.collision.moveit.Scene.to_world>`;
@@ -35,18 +37,19 @@ from diffkin.collision import RobotCollision
 
 __all__ = ["run", "robot_model", "main"]
 
-MODELS = ("capsules", "spherized")
+MODELS = ("capsules", "spherized", "convex")
 F64 = torch.float64
 
 
 def robot_model(name: str) -> RobotCollision:
     """The robot model ``name`` (module docstring) on a float64 chain to ``panda_hand`` (fingers included:
     they are fixed joints in VAMP's URDF)."""
-    urdf = {"capsules": PANDA_URDF, "spherized": PANDA_SPHERIZED_URDF}[name]
+    urdf = {"capsules": PANDA_URDF, "spherized": PANDA_SPHERIZED_URDF, "convex": PANDA_URDF}[name]
     chain = dk_models.from_urdf(urdf, "panda_hand", dtype=F64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # panda.urdf's visual meshes are not vendored (collision ones are)
-        return RobotCollision.from_urdf(urdf, chain, PANDA_SRDF)
+        return RobotCollision.from_urdf(urdf, chain, PANDA_SRDF,
+                                        geometry="convex" if name == "convex" else "capsules")
 
 
 def run(args=None, *, models=MODELS, families=None, problems=None, cylinders: str = "exact") -> list[dict]:

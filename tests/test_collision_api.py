@@ -63,7 +63,8 @@ def test_a_collision_model_of_another_chain_is_refused():
 def test_the_chain_is_held_by_reference():
     chain, rc = _fr3(torch.float32)
     names = {n for n, _ in rc.named_parameters()}
-    assert names == {"capsule_a", "capsule_b", "capsule_radius", "box_center", "box_rpy", "box_half_extents"}
+    assert names == {"capsule_a", "capsule_b", "capsule_radius", "box_center", "box_rpy", "box_half_extents",
+                     "convex_vertices"}
     assert not any(p is c for p in rc.parameters() for c in chain.parameters())
     rc.double()
     assert chain.dtype == torch.float32 and rc.capsule_radius.dtype == F64  # the user's chain untouched
@@ -143,11 +144,11 @@ def test_every_exported_distance_function_wraps_its_own_kernel():
     from diffkin.collision import _checked
 
     names = [n for n in collision.__all__ if hasattr(_checked, n)]
-    assert len(names) == 20
+    assert len(names) == 25  # (the five convex-mesh functions: tests/test_collision_convex.py)
     for n in names:
         fn = getattr(collision, n)
         assert fn.__wrapped__.__name__ == n and fn.__wrapped__.__module__.endswith(
-            ("distances", "boxes", "cylinders"))
+            ("distances", "boxes", "cylinders", "convex"))
 
 
 def _rotation(x):

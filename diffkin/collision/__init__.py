@@ -3,6 +3,7 @@
 * :mod:`~diffkin.collision.distances`: spheres, capsules, points and half-spaces in closed form.
 * :mod:`~diffkin.collision.boxes`: oriented boxes (:func:`box`) against all of those and each other.
 * :mod:`~diffkin.collision.cylinders`: exact cylinders (flat ends) against all of those and each other.
+* :mod:`~diffkin.collision.convex`: convex meshes (a vertex set's hull) against all of those and each other.
 * :mod:`~diffkin.collision.pairs`: the pair table (kinds × kinds → distance, broad-phase bound, C entry).
 * :func:`read_world` / :func:`read_scene`: world files and MoveIt PlanningScene YAML
   (:mod:`~diffkin.collision.moveit`).
@@ -16,13 +17,18 @@ The model never imports this package (data flows ``model frames -> collision geo
 """
 
 from ._checked import box_box as box_box
+from ._checked import box_convex as box_convex
 from ._checked import box_cylinder as box_cylinder
 from ._checked import box_halfspace as box_halfspace
 from ._checked import capsule_box as capsule_box
 from ._checked import capsule_capsule as capsule_capsule
 from ._checked import capsule_capsule_pairs as capsule_capsule_pairs
+from ._checked import capsule_convex as capsule_convex
 from ._checked import capsule_cylinder as capsule_cylinder
 from ._checked import capsule_halfspace as capsule_halfspace
+from ._checked import convex_convex as convex_convex
+from ._checked import convex_halfspace as convex_halfspace
+from ._checked import cylinder_convex as cylinder_convex
 from ._checked import cylinder_cylinder as cylinder_cylinder
 from ._checked import cylinder_halfspace as cylinder_halfspace
 from ._checked import point_box as point_box
@@ -58,10 +64,15 @@ __all__ = [
     "box_box",
     "box_cylinder",
     "box_halfspace",
+    "box_convex",
     "capsule_box",
     "capsule_capsule",
     "capsule_capsule_pairs",
     "capsule_cylinder",
+    "capsule_convex",
+    "convex_convex",
+    "convex_halfspace",
+    "cylinder_convex",
     "cylinder_cylinder",
     "cylinder_halfspace",
     "capsule_halfspace",

@@ -4,7 +4,8 @@
 (tensors of float32 / float64, numbers and arrays converted to their dtype, one dtype and device, the
 trailing shape of each argument, batch dims that broadcast) and raises the typed errors of
 :mod:`diffkin.errors`; then it calls the kernel of :mod:`~diffkin.collision.distances` /
-:mod:`~diffkin.collision.boxes` / :mod:`~diffkin.collision.cylinders` unchanged. The library's own hot
+:mod:`~diffkin.collision.boxes` / :mod:`~diffkin.collision.cylinders` / :mod:`~diffkin.collision.convex`
+unchanged. The library's own hot
 paths call those kernels directly (no check per call). No finiteness check: that would read the values
 (a host sync on CUDA).
 """
@@ -18,9 +19,10 @@ import torch
 
 from ..errors import DTypeError, ShapeError
 from ..validation import broadcast_batch, shape_str, tensors
-from . import boxes, cylinders, distances
+from . import boxes, convex, cylinders, distances
 
 V, M, S = (3,), (3, 3), ()  # a point or vector, a rotation matrix, a scalar (radius, offset)
+P = (None, 3)  # the vertices of a convex mesh
 
 _SPECS = {
     distances.segment_closest_parameters: dict(a0=V, a1=V, b0=V, b1=V),
@@ -42,6 +44,11 @@ _SPECS = {
     cylinders.capsule_cylinder: dict(a0=V, a1=V, ra=S, b0=V, b1=V, rb=S),
     cylinders.box_cylinder: dict(c=V, R=M, h=V, a=V, b=V, r=S),
     cylinders.cylinder_cylinder: dict(a0=V, a1=V, ra=S, b0=V, b1=V, rb=S),
+    convex.convex_halfspace: dict(V=P, n=V, offset=S),
+    convex.capsule_convex: dict(a=V, b=V, r=S, V=P),
+    convex.box_convex: dict(c=V, R=M, h=V, V=P),
+    convex.cylinder_convex: dict(a=V, b=V, r=S, V=P),
+    convex.convex_convex: dict(V1=P, V2=P),
 }
 
 
@@ -89,4 +96,5 @@ def capsule_capsule_pairs(a, b, r, i, j, pair_kernel=None):
 (segment_closest_parameters, point_segment_parameter, sphere_sphere, sphere_capsule, capsule_capsule,
  sphere_halfspace, capsule_halfspace, point_box, sphere_box, segment_box, capsule_box, box_halfspace,
  box_box, point_cylinder, sphere_cylinder, cylinder_halfspace, capsule_cylinder, box_cylinder,
- cylinder_cylinder) = (_checked(fn) for fn in _SPECS)
+ cylinder_cylinder, convex_halfspace, capsule_convex, box_convex, cylinder_convex,
+ convex_convex) = (_checked(fn) for fn in _SPECS)

@@ -29,7 +29,11 @@ import numpy as np
 from ..errors import OptionError, require
 from ..validation import check_count, check_number
 
-__all__ = ["resolve_mesh", "fit_capsules", "capsules_of_triangles", "capsule_of_points"]
+__all__ = ["resolve_mesh", "fit_capsules", "capsules_of_triangles", "capsule_of_points", "hull_vertices"]
+
+#: a watertight mesh whose volume is within this fraction of its hull's counts as convex (the Panda's
+#: collision meshes, convex but for rounding, are within 3e-4)
+CONVEX_VOLUME_FRACTION = 1e-3
 
 _CUTS = np.arange(1, 8) / 8.0  # the candidate cut quantiles along a part's principal axis
 
@@ -67,6 +71,28 @@ def fit_capsules(path: Path, scale=(1.0, 1.0, 1.0), *, max_capsules: int = 4,
     key = (str(Path(path).resolve()), Path(path).stat().st_mtime_ns,
            tuple(float(x) for x in np.broadcast_to(np.asarray(scale, dtype=np.float64), 3)))
     return [(a.copy(), b.copy(), r) for a, b, r in _fit_file(*key, max_capsules, min_gain)]
+
+
+def hull_vertices(path: Path, scale=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, bool]:
+    """``(V (M, 3), convex)``: the vertices of the convex hull of the mesh at ``path`` (mesh frame, scaled;
+    trimesh's Qhull) and whether the mesh is convex itself (watertight, its volume within
+    :data:`CONVEX_VOLUME_FRACTION` of the hull's). Cached per file while it is unchanged."""
+    key = (str(Path(path).resolve()), Path(path).stat().st_mtime_ns,
+           tuple(float(x) for x in np.broadcast_to(np.asarray(scale, dtype=np.float64), 3)))
+    V, convex = _hull_file(*key)
+    return V.copy(), convex
+
+
+@functools.lru_cache(maxsize=256)
+def _hull_file(path: str, mtime: int, scale: tuple) -> tuple[np.ndarray, bool]:
+    trimesh = require("trimesh", "collision", "mesh collision geometry")
+    mesh = trimesh.load(path, force="mesh")
+    mesh.vertices = np.asarray(mesh.vertices, dtype=np.float64) * np.asarray(scale, dtype=np.float64)
+    mesh.merge_vertices()
+    hull = mesh.convex_hull
+    convex = bool(mesh.is_watertight) and abs(hull.volume) > 0 and \
+        1.0 - abs(mesh.volume) / abs(hull.volume) <= CONVEX_VOLUME_FRACTION
+    return np.asarray(hull.vertices, dtype=np.float64), convex
 
 
 @functools.lru_cache(maxsize=256)

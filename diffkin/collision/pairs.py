@@ -12,7 +12,8 @@ Kinds (arguments, own dims):
 * ``capsule``: ``(a, b, r)`` (spheres: a = b; points: r = 0), own dims (1, 1, 0);
 * ``box``: ``(c, R, h)``, (1, 2, 1);
 * ``cylinder``: ``(a, b, r)`` (the flat faces' centres, the radius), (1, 1, 0);
-* ``halfspace``: ``(n, offset)``, (1, 0): world only, no bound (exact and cheap).
+* ``halfspace``: ``(n, offset)``, (1, 0): world only, no bound (exact and cheap);
+* ``convex``: ``(V,)``, the vertices of a convex mesh (its hull), (2,) (:mod:`diffkin.collision.convex`).
 """
 
 from __future__ import annotations
@@ -25,6 +26,14 @@ from torch import Tensor
 from ..errors import ConventionError
 from .boxes import box_box, box_halfspace, capsule_box
 from .broad import box_spheres, capsule_box_bound, capsule_spheres, exact_below, sphere_bound
+from .convex import (
+    box_convex,
+    capsule_convex,
+    convex_convex,
+    convex_halfspace,
+    convex_spheres,
+    cylinder_convex,
+)
 from .cylinders import box_cylinder, capsule_cylinder, cylinder_cylinder, cylinder_halfspace, cylinder_spheres
 from .distances import capsule_capsule, capsule_halfspace
 
@@ -57,6 +66,7 @@ KINDS: dict[str, Kind] = {
     "box": Kind((1, 2, 1), lambda c, R, h: box_spheres(c, h)),
     "cylinder": Kind((1, 1, 0), cylinder_spheres),
     "halfspace": Kind((1, 0), None),
+    "convex": Kind((2,), convex_spheres),
 }
 
 
@@ -80,6 +90,11 @@ PAIRS: dict[tuple[str, str], Pair] = {
     ("box", "cylinder"): Pair(box_cylinder, _spheres_bound("box", "cylinder"), None),
     ("cylinder", "cylinder"): Pair(cylinder_cylinder, _spheres_bound("cylinder", "cylinder"), None),
     ("cylinder", "halfspace"): Pair(cylinder_halfspace, None, None),
+    ("capsule", "convex"): Pair(capsule_convex, _spheres_bound("capsule", "convex"), None),
+    ("box", "convex"): Pair(box_convex, _spheres_bound("box", "convex"), None),
+    ("cylinder", "convex"): Pair(cylinder_convex, _spheres_bound("cylinder", "convex"), None),
+    ("convex", "convex"): Pair(convex_convex, _spheres_bound("convex", "convex"), None),
+    ("convex", "halfspace"): Pair(convex_halfspace, None, None),
 }
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from ..errors import ModelError
+from ..errors import ModelError, OptionError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
@@ -32,7 +32,7 @@ from ._poses import LinkFrames
 from .broad import capsule_pairs_at_least, group_tables, pairs_clear
 from .clear import world_clear
 from .distances import capsule_capsule_pairs
-from .meshes import fit_capsules, resolve_mesh
+from .meshes import fit_capsules, hull_vertices, resolve_mesh
 from .pairs import NATIVE_CLEAR, PAIRS, distance
 from .world import World, _check_world
 
@@ -44,13 +44,15 @@ class Geom:
     """One collision geom: ``name``, its ``link``, ``kind`` as written in the file (``sphere``, ``capsule``,
     ``cylinder``, ``box``, ``mesh``) and ``shape`` as computed (``capsule`` or ``box``); ``source`` is the
     mesh file a fitted capsule came from (a mesh fitted by several capsules gives geoms ``name/0``,
-    ``name/1``, ... with the same source)."""
+    ``name/1``, ... with the same source); ``shape`` ``convex``: the convex hull of a mesh, and ``hull``
+    says that the mesh is not convex itself (the hull is larger than it: conservative)."""
 
     name: str
     link: str
     kind: str
     shape: str
     source: str | None = None
+    hull: bool = False
 
 
 class RobotCollision(nn.Module):
@@ -61,7 +63,7 @@ class RobotCollision(nn.Module):
     ``pairs`` (list of ``(geom_a, geom_b)`` names, the order of :meth:`self_distances`), ``chain``.
     Parameters (learnable, in the link frames, dtype and device of the chain): ``capsule_a``, ``capsule_b``
     ``(G_c, 3)``, ``capsule_radius`` ``(G_c,)``; ``box_center``, ``box_rpy``, ``box_half_extents``
-    ``(G_b, 3)``.
+    ``(G_b, 3)``; ``convex_vertices`` ``(G_v, M, 3)`` (the hulls' vertices, padded by repeating one).
 
     The chain is held by reference, not as a submodule: ``parameters()`` are the geometry's only (an
     optimiser over them never moves the robot), and ``to()`` / ``double()`` / ``float()`` convert the
@@ -86,7 +88,7 @@ class RobotCollision(nn.Module):
         return self.__dict__["_chain_ref"]
 
     def __init__(self, chain, geoms: list[Geom], links: list[str], capsules: list, boxes: list,
-                 pairs: list[tuple[int, int]], *, frames=None, dtype=None, device=None):
+                 pairs: list[tuple[int, int]], *, convexes=(), frames=None, dtype=None, device=None):
         super().__init__()
         self.chain = chain
         self.geoms = list(geoms)
@@ -96,7 +98,9 @@ class RobotCollision(nn.Module):
         link_index = [self._frames.index[k] for k in links]  # per geom
         cap = [g for g, geom in enumerate(self.geoms) if geom.shape == "capsule"]
         bx = [g for g, geom in enumerate(self.geoms) if geom.shape == "box"]
-        where = {g: (0, i) for i, g in enumerate(cap)} | {g: (1, i) for i, g in enumerate(bx)}
+        cv = [g for g, geom in enumerate(self.geoms) if geom.shape == "convex"]
+        where = {g: (0, i) for i, g in enumerate(cap)} | {g: (1, i) for i, g in enumerate(bx)} \
+            | {g: (2, i) for i, g in enumerate(cv)}
         f = lambda rows, k, n: torch.tensor([r[k] for r in rows], dtype=dt, device=dev).reshape(-1, *n)  # noqa: E731
         self.capsule_a = nn.Parameter(f(capsules, 0, (3,)))
         self.capsule_b = nn.Parameter(f(capsules, 1, (3,)))
@@ -104,6 +108,8 @@ class RobotCollision(nn.Module):
         self.box_center = nn.Parameter(f(boxes, 0, (3,)))
         self.box_rpy = nn.Parameter(f(boxes, 1, (3,)))
         self.box_half_extents = nn.Parameter(f(boxes, 2, (3,)))
+        self.convex_vertices = nn.Parameter(_padded_vertices(convexes, dt, dev))
+        M = self.convex_vertices.shape[1]
         ilong = lambda x: torch.tensor(x, dtype=torch.long, device=dev).reshape(-1)  # noqa: E731
         anchor = [self._frames.bodies[k] for k in link_index]
         static = getattr(self._frames, "static", {0})  # anchors placed independently of q (the base)
@@ -115,17 +121,20 @@ class RobotCollision(nn.Module):
         self.skip_fixed = True
         # the columns of the placement product (see _columns): capsule starts, ends, box centres, box axes
         cols = lambda per: ([per[g] for g in cap] * 2 + [per[g] for g in bx]  # noqa: E731
-                            + [per[g] for g in bx for _ in range(3)])  # box g's axes: columns 3 g + k
+                            + [per[g] for g in bx for _ in range(3)]  # box g's axes: columns 3 g + k
+                            + [per[g] for g in cv for _ in range(M)])  # convex g's vertices: M g + k
         col_link, col_anchor = cols(link_index), cols(anchor)
         self.register_buffer("_col_link", ilong(col_link), persistent=False)
         self.register_buffer("_col_anchor", ilong(col_anchor), persistent=False)
         self._counts = (len(cap), len(bx))
-        self.register_buffer("_rows", ilong(torch.argsort(torch.tensor(cap + bx, dtype=torch.long)).tolist()),
+        self._nconvex = len(cv)  # (apart from _counts, which the C paths read as (capsules, boxes))
+        order = cap + bx + cv  # the geoms in the world rows' order (by kind)
+        self.register_buffer("_rows", ilong(torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()),
                              persistent=False)
-        self._rows_in_order = cap + bx == list(range(len(self.geoms)))  # then no gather of the world rows
+        self._rows_in_order = order == list(range(len(self.geoms)))  # then no gather of the world rows
         self.pairs = [(self.geoms[i].name, self.geoms[j].name) for i, j in pairs]
         self._pair_index = [(int(i), int(j)) for i, j in pairs]  # geom indices of ``pairs``
-        kinds: dict[tuple[int, int], list] = {(0, 0): [], (0, 1): [], (1, 1): []}
+        kinds: dict[tuple[int, int], list] = {k: [] for k in _PAIR_KINDS}
         for p, (i, j) in enumerate(pairs):
             (ki, ii), (kj, jj) = sorted((where[i], where[j]))
             kinds[(ki, kj)].append((p, ii, jj))
@@ -187,8 +196,10 @@ class RobotCollision(nn.Module):
                     zip(self.capsule_a, self.capsule_b, self.capsule_radius)]
             boxes = [(c.tolist(), e.tolist(), h.tolist()) for c, e, h in
                      zip(self.box_center, self.box_rpy, self.box_half_extents)]
+            convexes = [v.cpu().numpy() for v in self.convex_vertices]
         out = type(self)(self.chain, self.geoms, [g.link for g in self.geoms], caps, boxes, pairs,
-                         frames=self._frames, dtype=self.capsule_a.dtype, device=self.capsule_a.device)
+                         convexes=convexes, frames=self._frames, dtype=self.capsule_a.dtype,
+                         device=self.capsule_a.device)
         out.skip_fixed = self.skip_fixed
         return out.requires_grad_(any(p.requires_grad for p in self.parameters()))
 
@@ -238,7 +249,9 @@ class RobotCollision(nn.Module):
         Rb = origin_transform(torch.zeros_like(self.box_rpy), self.box_rpy)[..., :3, :3]  # (G_b, 3, 3)
         local = torch.cat((torch.cat((self.capsule_a, self.capsule_b, self.box_center), 0), one), 1)
         axes = torch.cat((Rb.transpose(-1, -2).reshape(-1, 3), zero), 1)  # box g's axis k: row 3 g + k
-        h = (O @ torch.cat((local, axes), 0).unsqueeze(-1)).squeeze(-1)  # (C, 4)
+        verts = self.convex_vertices.reshape(-1, 3)
+        verts = torch.cat((verts, verts.new_ones(len(verts), 1)), 1)
+        h = (O @ torch.cat((local, axes, verts), 0).unsqueeze(-1)).squeeze(-1)  # (C, 4)
         K, C = F.shape[-3], h.shape[0]
         H = h.new_zeros(K, C, 4).index_put((self._col_anchor, torch.arange(C, device=h.device)), h)
         return H.transpose(1, 2).reshape(4 * K, C)
@@ -266,10 +279,21 @@ class RobotCollision(nn.Module):
 
     def _placed_from(self, P: Tensor) -> tuple[Tensor, ...]:
         nc, nb = self._counts
-        a, b, c, ax = P.split((nc, nc, nb, 3 * nb), -1)
+        a, b, c, ax, _ = P.split((nc, nc, nb, 3 * nb, P.shape[-1] - 2 * nc - 4 * nb), -1)
         R = ax.reshape(*ax.shape[:-1], nb, 3).movedim(-3, -2)  # (..., G_b, 3 (i), 3 (k))
         return (a.transpose(-1, -2), b.transpose(-1, -2), self.capsule_radius, c.transpose(-1, -2), R,
                 self.box_half_extents)
+
+    def _convex_from(self, P: Tensor) -> Tensor:
+        """The convex geoms' vertices in the base frame ``(..., G_v, M, 3)`` from the placement product."""
+        nc, nb = self._counts
+        V = P[..., 2 * nc + 4 * nb:]
+        return V.reshape(*V.shape[:-1], self._nconvex, -1).movedim(-3, -1)
+
+    def placed_convex(self, q: Tensor) -> Tensor:
+        """The convex geoms' vertices in the base frame for joint values ``q (..., n)``: ``(..., G_v, M,
+        3)`` (geoms in the order of ``geoms``; shorter hulls padded by repeating a vertex)."""
+        return self._convex_from(self._columns(self._as_q(q)))
 
     def self_distances(self, q: Tensor) -> Tensor:
         """Signed distances ``(..., P)`` of the checked pairs (order of ``pairs``; negative: penetration
@@ -283,13 +307,13 @@ class RobotCollision(nn.Module):
         (i, j), (k, m), (u, v) = self._pairs_00.T, self._pairs_01.T, self._pairs_11.T
         nc = self._counts[0]
         batch = P.shape[:-2]
-        if len(k) or len(u):
+        if len(k) or len(u) or self._nconvex:
             a, b, r, c, R, h = self._placed_from(P) if placed is None else placed
         sel = lambda x, idx, k: x.index_select(-1 - k, idx)  # noqa: E731
         d = []
         if len(i):  # (static sizes: the box searches cost dozens of small ops even on empty tensors)
             kern = functools.partial(capsule_pairs_at_least, threshold=threshold)
-            if len(k) or len(u):
+            if len(k) or len(u) or self._nconvex:
                 d.append(capsule_capsule_pairs(a, b, r, i, j, kern))
             else:  # capsules only: stay in the product's component-major layout
                 Pc = P[..., : 2 * nc].reshape(-1, 3, 2 * nc).permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
@@ -301,6 +325,14 @@ class RobotCollision(nn.Module):
         if len(u):
             d.append(distance("box", (sel(c, u, 1), sel(R, u, 2), h[u]), "box",
                               (sel(c, v, 1), sel(R, v, 2), h[v]), threshold))
+        if self._nconvex:
+            V = self._convex_from(P)
+            args = {0: lambda x: (sel(a, x, 1), sel(b, x, 1), r[x]),
+                    1: lambda x: (sel(c, x, 1), sel(R, x, 2), h[x]), 2: lambda x: (sel(V, x, 2),)}
+            for ki, kj in _PAIR_KINDS[3:]:
+                x, y = getattr(self, f"_pairs_{ki}{kj}").T
+                if len(x):
+                    d.append(distance(_KIND_NAMES[ki], args[ki](x), _KIND_NAMES[kj], args[kj](y), threshold))
         if not d:
             return self.capsule_radius.new_zeros(*batch, 0)
         d = torch.cat([x.expand(*batch, x.shape[-1]) for x in d], -1) if len(d) > 1 else d[0]
@@ -310,11 +342,17 @@ class RobotCollision(nn.Module):
         """Signed distances ``(..., G, W)`` of every geom (order of ``geoms``) to every object of ``world``
         (spheres, capsules, boxes, half-spaces, points); the world's batch dims broadcast with q's."""
         world = _check_world(world)
-        return self._world_from(self.placed(q), world)  # q converted by placed
+        P = self._columns(self._as_q(q))
+        return self._world_from(self._placed_from(P), world,
+                                convex=self._convex_from(P) if self._nconvex else None)
 
-    def _world_from(self, placed, world: World, threshold: float | None = None) -> Tensor:
+    def _world_from(self, placed, world: World, threshold: float | None = None, convex=None) -> Tensor:
         a, b, r, c, R, h = placed
-        d = world.distances(a, b, r.expand(a.shape[:-1]), c, R, h.expand(c.shape), threshold)
+        if self._nconvex:
+            d = world.distances_of([("capsule", (a, b, r.expand(a.shape[:-1]))),
+                                    ("box", (c, R, h.expand(c.shape))), ("convex", (convex,))], threshold)
+        else:
+            d = world.distances(a, b, r.expand(a.shape[:-1]), c, R, h.expand(c.shape), threshold)
         return d if self._rows_in_order else d.index_select(-2, self._rows)
 
     def _distances_at_least(self, q: Tensor, world: World | None = None, threshold: float | None = None,
@@ -343,7 +381,8 @@ class RobotCollision(nn.Module):
             d = d.index_select(-1, keep_self)
         if world is None:
             return d
-        w = self._world_from(placed, world, threshold).flatten(-2)
+        convex = self._convex_from(P) if self._nconvex else None
+        w = self._world_from(placed, world, threshold, convex).flatten(-2)
         w = w if keep_world is None else w.index_select(-1, keep_world)
         batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-1])
         return torch.cat((d.expand(*batch, d.shape[-1]), w.expand(*batch, w.shape[-1])), dim=-1)
@@ -371,7 +410,7 @@ class RobotCollision(nn.Module):
         per-row worlds or self pairs left out through :meth:`_distances_at_least`."""
         nc, nb = self._counts
         keep_self, keep_world = self._kept(world, moving_only)
-        if nb or keep_self is not None or (world is not None and not _unbatched(world)):
+        if nb or self._nconvex or keep_self is not None or (world is not None and not _unbatched(world)):
             d = self._distances_at_least(q, world, margin + slack, moving_only=moving_only)
             return ((d - margin) >= slack).all(-1)
         with torch.no_grad():
@@ -445,15 +484,18 @@ class RobotCollision(nn.Module):
 
     # ------------------------------------------------------------------------------------ builders
     @classmethod
-    def from_urdf(cls, source, chain, srdf=None, *, package_dirs=(),
-                  mesh_capsules: int = 4) -> RobotCollision:
+    def from_urdf(cls, source, chain, srdf=None, *, package_dirs=(), mesh_capsules: int = 4,
+                  geometry: str = "capsules") -> RobotCollision:
         """The ``<collision>`` geoms of the chain's links (fixed links included) from a URDF (path, text or
         :class:`~diffkin.models.urdf_xml.URDFTree`), with the URDF pair rules (module docstring) and the
         ``<disable_collisions>`` of ``srdf`` (path or text). Meshes whose files resolve (``package://``
         and relative names from the URDF's directory, or ``package_dirs``) become a fitted set of at most
         ``mesh_capsules`` capsules that together contain every triangle of the mesh
-        (:mod:`diffkin.collision.meshes`; 1: one enclosing capsule); the others are skipped with one warning
-        naming them. A ``<collision>`` whose shape URDF does not define (``<cone>``) is left out with a
+        (:mod:`diffkin.collision.meshes`; 1: one enclosing capsule) with ``geometry="capsules"``, or their
+        exact convex hull with ``geometry="convex"`` (one ``convex`` geom per mesh,
+        :mod:`diffkin.collision.convex`; a mesh that is not convex itself is held as its hull, flagged
+        ``Geom.hull``); the others are skipped with one warning naming them. A ``<collision>`` whose shape
+        URDF does not define (``<cone>``) is left out with a
         warning naming it; a ``<geometry>`` holding two shapes, and an SRDF naming links the URDF does not
         have (another robot's SRDF, a typo), are a :class:`~diffkin.errors.ModelError`.
         """
@@ -461,6 +503,9 @@ class RobotCollision(nn.Module):
             raise ModelError(f"RobotCollision.from_urdf: expected chain as the chain built from this URDF "
                              f"(models.from_urdf(source, end_link)), got {type(chain).__name__}")
         mesh_capsules = check_count(mesh_capsules, "mesh_capsules")
+        if geometry not in ("capsules", "convex"):
+            raise OptionError(f"RobotCollision.from_urdf: expected geometry 'capsules' or 'convex', got "
+                              f"{geometry!r}")
         disabled = _srdf_disabled(srdf) if srdf is not None else set()  # a missing SRDF: before any work
         base_dir = None
         if isinstance(source, (str, Path)) and "<" not in str(source):
@@ -476,22 +521,23 @@ class RobotCollision(nn.Module):
             raise ModelError(f"RobotCollision.from_urdf: the URDF has none of the chain's links (the chain: "
                              f"{names_str(frames.links)}; the URDF: {names_str(list(specs))}): is it this "
                              "robot's file?")
-        geoms, links, caps, boxes, missing = [], [], [], [], []
+        geoms, links, missing = [], [], []
+        data_of: dict[str, list] = {"capsule": [], "box": [], "convex": []}
         for link in frames.links:
             for s in specs.get(link, []):
-                found = _geoms_of(s, base_dir, package_dirs, mesh_capsules)
+                found = _geoms_of(s, base_dir, package_dirs, mesh_capsules, geometry)
                 if not found:
                     missing.append(f"{s.name} ({s.filename})")
                 for geom, data in found:
                     geoms.append(geom)
                     links.append(link)
-                    (caps if geom.shape == "capsule" else boxes).append(data)
+                    data_of[geom.shape].append(data)
         if missing:
             warnings.warn(f"RobotCollision.from_urdf: {len(missing)} mesh file(s) not found, those geoms are "
                           f"skipped: {', '.join(missing)}", stacklevel=2)
         _check_srdf_links(disabled, specs)
         pairs = _urdf_pairs(chain, frames, geoms, disabled)
-        return cls(chain, geoms, links, caps, boxes, pairs)
+        return cls(chain, geoms, links, data_of["capsule"], data_of["box"], pairs, convexes=data_of["convex"])
 
     @classmethod
     def from_mjcf(cls, source, chain=None, *, body_poses=None, dtype: torch.dtype | None = None,
@@ -536,6 +582,19 @@ class RobotCollision(nn.Module):
 
 
 _GROUP_BUFFERS = ("_group", "_group_pairs", "_group_table", "_group_mean", "_group_members")
+_KIND_NAMES = ("capsule", "box", "convex")  # the geom kinds of a model, in column order
+#: the pairs of geom kinds (indices into _KIND_NAMES) in the order of self_distances' blocks
+_PAIR_KINDS = ((0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (2, 2))
+
+
+def _padded_vertices(convexes, dtype, device) -> Tensor:
+    """``(G_v, M, 3)``: the vertex arrays of the convex geoms, each padded to the longest by repeating its
+    first vertex (the hull is unchanged)."""
+    M = max((len(v) for v in convexes), default=0)
+    rows = [torch.as_tensor(v, dtype=torch.float64).reshape(-1, 3) for v in convexes]
+    rows = [torch.cat((v, v[:1].expand(M - len(v), 3))) for v in rows]
+    out = torch.stack(rows) if rows else torch.zeros(0, 0, 3, dtype=torch.float64)
+    return out.to(dtype=dtype, device=device)
 _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distances_at_least)
 
 
@@ -544,9 +603,9 @@ def _unbatched(world: World) -> bool:
     return len(world.batch_shape) == 0
 
 
-def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int) -> list:
-    """[(Geom, link-frame data)] of a CollisionSpec: one geom, a mesh's fitted capsules, or none for a mesh
-    whose file does not resolve."""
+def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int, geometry: str = "capsules") -> list:
+    """[(Geom, link-frame data)] of a CollisionSpec: one geom, a mesh's fitted capsules or its hull
+    (``geometry``), or none for a mesh whose file does not resolve."""
     T = origin_transform(torch.tensor(s.xyz, dtype=torch.float64), torch.tensor(s.rpy, dtype=torch.float64))
     pt = lambda p: transform_points(T, torch.tensor(p, dtype=torch.float64)).tolist()  # noqa: E731
     if s.type == "sphere":
@@ -561,6 +620,10 @@ def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int) -> list:
     path = resolve_mesh(s.filename, base_dir, package_dirs)
     if path is None:
         return []
+    if geometry == "convex":
+        V, convex = hull_vertices(path, s.size)
+        V = transform_points(T, torch.as_tensor(V, dtype=torch.float64)).numpy()
+        return [(Geom(s.name, s.link, "mesh", "convex", s.filename, hull=not convex), V)]
     caps = fit_capsules(path, s.size, max_capsules=mesh_capsules)
     names = [s.name] if len(caps) == 1 else [f"{s.name}/{k}" for k in range(len(caps))]
     return [(Geom(n, s.link, "mesh", "capsule", s.filename), (pt(tuple(a)), pt(tuple(b)), r))

@@ -533,7 +533,8 @@ def _collision_key(chain, lim, dtype) -> tuple | None:
     storage), the world's tensors (the same), gain and distances; None where the C step does not serve it
     (another chain, box geoms, a world with boxes or batch dims, another dtype or device)."""
     rc, world = lim.collision, lim.world
-    if getattr(rc, "chain", None) is not chain or getattr(rc, "_counts", (0, 1))[1]:
+    if getattr(rc, "chain", None) is not chain or getattr(rc, "_counts", (0, 1))[1] \
+            or getattr(rc, "_nconvex", 0):  # (the C step holds capsules only)
         return None
     params = tuple(rc.parameters())
     if any(p.dtype is not dtype or not p.is_cpu for p in params):
