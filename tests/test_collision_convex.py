@@ -323,3 +323,19 @@ def test_exported_functions_check_their_input():
         C.convex_halfspace(V[..., :2], [0.0, 0, 1], 0.0)  # points of 2 coordinates
     with pytest.raises(DiffkinError, match="broadcast"):
         C.box_convex(torch.zeros(4, 3, dtype=F64), torch.eye(3, dtype=F64), torch.ones(3, dtype=F64), V)
+
+
+def test_planner_and_viewer_refuse_convex_geoms_by_name(panda):
+    """motion.plan's continuous check bounds the motion of capsule ends and box centres only, and the viewer
+    draws capsules and boxes: both refuse a convex model with a typed error naming the way out, never a
+    silent under-bound or a KeyError."""
+    from diffkin import motion
+    from diffkin.errors import ModelError
+    from diffkin.viz.collision import CollisionView
+
+    _, chain, rc, *_ = panda
+    q = torch.tensor([[0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785]], dtype=F64)
+    with pytest.raises(ModelError, match=r'11 convex geoms: build it with .*geometry="capsules"'):
+        motion.plan(chain, q, q + 0.1, collision=rc, acceleration_limit=5.0)
+    with pytest.raises(ModelError, match=r"the viewer draws capsule and box geoms, this model has convex"):
+        CollisionView(None, rc, q=q[0])

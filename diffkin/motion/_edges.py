@@ -32,6 +32,10 @@ def joint_reach(collision) -> Tensor:
     moves, in every configuration (module docstring). Revolute (and continuous) joints only."""
     chain = collision.chain
     frames = collision._frames
+    if collision.convex_vertices.shape[0]:  # the bound below counts capsule ends and box centres only
+        raise ModelError("motion planning bounds the motion of capsule, sphere and box geoms; this model has "
+                         f"{collision.convex_vertices.shape[0]} convex geoms: build it with "
+                         'RobotCollision.from_urdf(..., geometry="capsules") to plan')
     with torch.no_grad():
         dt, dev = collision.capsule_a.dtype, collision.capsule_a.device
         g = torch.Generator().manual_seed(0)

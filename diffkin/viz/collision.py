@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ..errors import ShapeError
+from ..errors import ModelError, ShapeError
 
 __all__: list[str] = []  # used through diffkin.viz.Viewer(collision=, world=, margin=)
 
@@ -75,6 +75,11 @@ class CollisionView:
         self.collision, self.world, self.margin = collision, world, float(margin)
         self._scene = scene
         self._shape = [g.shape for g in collision.geoms]
+        other = sorted({s for s in self._shape if s not in ("capsule", "box")})
+        if other:  # convex meshes are not drawn yet: say so instead of a KeyError below
+            raise ModelError(f"the viewer draws capsule and box geoms, this model has {', '.join(other)} "
+                             'geoms: build it with RobotCollision.from_urdf(..., geometry="capsules") to '
+                             "view it")
         self._slot = []  # per geom: its row among the capsules or among the boxes of placed(q)
         counts = {"capsule": 0, "box": 0}
         for s in self._shape:
