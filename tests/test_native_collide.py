@@ -88,3 +88,62 @@ def test_a_skipped_entry_takes_no_part_and_cuda_is_not_served():
     half = A.to(torch.float16)
     assert not native.capsules_clear(half, half, r, torch.zeros(0, 2, dtype=torch.long), inside,
                                      A.new_zeros(0, 4), None, None, 0.0, 0.0, ok)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_boxes_cylinders_and_per_row_worlds_decide_as_the_torch_distances(dtype):
+    """Boxes (against spheres at margins of both signs, against proper segments at margin + slack >= 0, the
+    contract) and cylinders (against the sphere geoms ``points`` marks; the others take no part), each
+    configuration with its own world of a stack of three (``world_index``), entry by entry against
+    ``capsule_box`` and ``capsule_cylinder`` of the torch pair table."""
+    from diffkin.collision import box
+    from diffkin.collision.boxes import capsule_box
+    from diffkin.collision.cylinders import capsule_cylinder
+
+    g = torch.Generator().manual_seed(5)
+    G, N, nw = 6, 600, 3
+    A, B, r = _capsules(G, N, dtype, g)
+    points = torch.zeros(G, dtype=torch.bool)
+    points[0] = True
+    B[4] = A[4]
+    points[4] = True  # two spheres
+    bc = 0.6 * (torch.rand(nw, 2, 3, dtype=dtype, generator=g) - 0.5)
+    bR = box(bc, bc.abs(), torch.rand(nw, 2, 3, dtype=dtype, generator=g) * 3).rotation
+    bh = 0.05 + 0.2 * torch.rand(nw, 2, 3, dtype=dtype, generator=g)
+    bh[1, 1, 2] = 0.0  # a flat box
+    ya = 0.6 * (torch.rand(nw, 2, 3, dtype=dtype, generator=g) - 0.5)
+    yb = ya + 0.4 * (torch.rand(nw, 2, 3, dtype=dtype, generator=g) - 0.5)
+    yr = 0.02 + 0.15 * torch.rand(nw, 2, dtype=dtype, generator=g)
+    wid = torch.randint(0, nw, (N,), generator=g)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    none3, none0 = (A.new_zeros(nw, 0, 3),) * 2, A.new_zeros(nw, 0)
+    no_pairs = torch.zeros(0, 2, dtype=torch.long)
+    a, b = A.permute(2, 0, 1), B.permute(2, 0, 1)  # (N, G, 3)
+    checked = {"box": 0, "cylinder": 0}
+    for margin, slack in ((0.0, 0.0), (0.02, 1e-4), (-0.03, 0.0)):
+        for kind in ("box", "cylinder"):
+            for w in range(2):
+                if kind == "box":
+                    d = capsule_box(a, b, r, bc[wid, None, w], bR[wid, None, w], bh[wid, None, w])  # (N, G)
+                    serve = points if margin + slack < 0 else torch.ones(G, dtype=torch.bool)
+                else:
+                    d = capsule_cylinder(a, b, r, ya[wid, None, w], yb[wid, None, w], yr[wid, None, w])
+                    serve = points
+                for k in range(G):
+                    skip = torch.ones(G, 2, dtype=torch.bool)
+                    skip[k, w] = False
+                    ok = torch.ones(N, dtype=torch.bool)
+                    extra = dict(boxes=(bc, bR, bh), skip_box=skip) if kind == "box" else \
+                        dict(cylinders=(ya, yb, yr), skip_cylinder=skip)
+                    assert native.capsules_clear(A, B, r, no_pairs, (*none3, none0), A.new_zeros(nw, 0, 4),
+                                                 None, None, margin, slack, ok, points=points,
+                                                 world_index=wid, **extra)
+                    if not serve[k]:
+                        if kind == "cylinder":  # proper segments take no part against cylinders
+                            assert ok.all()
+                        continue
+                    sure = (d[:, k] - margin - slack).abs() > tol
+                    bad = (ok != (d[:, k] - margin >= slack)) & sure
+                    assert not bad.any(), (kind, k, w, margin, d[bad, k], ok[bad])
+                    checked[kind] += int(sure.sum())
+    assert min(checked.values()) > 4 * N

@@ -161,6 +161,12 @@ typedef struct dk_collide { /* the arguments of dk_collide (_native_collide.c); 
     const uint8_t *skip_r, *skip_h; /* (G x Wr), (G x H) entries left out, or NULL */
     double margin, slack;
     uint8_t *ok;                  /* (N) in/out: cleared where some distance fails */
+    int64_t Wb, Wy, nw;           /* boxes, cylinders; worlds (the object arrays carry nw leading rows) */
+    const int64_t *wid;           /* (N) the world of each configuration (NULL: world 0 for all) */
+    const void *bc, *bR, *bh;     /* boxes: centres (Wb x 3), rotations (Wb x 9, row-major), half extents */
+    const void *ya, *yb, *yr;     /* cylinders: the flat faces' centres (Wy x 3, Wy x 3), radii (Wy) */
+    const uint8_t *skip_b, *skip_y; /* (G x Wb), (G x Wy) entries left out, or NULL */
+    const uint8_t *point;         /* (G) capsule g is a sphere (its ends coincide); cylinders: only these */
 } dk_collide;
 #undef DK_DECLARE
 
