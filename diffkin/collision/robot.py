@@ -207,6 +207,15 @@ class RobotCollision(nn.Module):
         Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * F.shape[-3])  # (..., 3, K·4)
         return Fm @ self._placement(F)
 
+    def _columns_by_component(self, q: Tensor) -> Tensor:
+        """:meth:`_columns` of q ``(N, n)`` laid out component-major, ``(C, 3, N)`` contiguous (the layout of
+        the C decisions): the same product taken as one matrix product ``Hᵀ · [F]`` with the N frames side by
+        side, so no transpose of the (larger) result is needed."""
+        self._check_agree(q)
+        F = self._frames.frames(self.chain, q)  # (N, K, 4, 4)
+        Fk = F[..., :3, :].permute(1, 3, 2, 0).reshape(4 * F.shape[-3], 3 * F.shape[0])  # (K·4, 3 N)
+        return (self._placement(F).T @ Fk).reshape(-1, 3, F.shape[0])
+
     def _check_agree(self, q: Tensor) -> None:
         """The geometry, the chain and q in one dtype and device (:func:`._checks.check_agree`)."""
         check_agree(self, q)
@@ -387,9 +396,8 @@ class RobotCollision(nn.Module):
             return self._clear_torch(q, world, margin, slack, moving_only, world_index)
         with torch.no_grad():
             batch, rows = q.shape[:-1], q.shape[:-1].numel()
-            P = self._columns(q.reshape(rows, q.shape[-1]))  # (N, 3, C)
-            Pc = P[..., : 2 * nc].permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
-            A, B, r = Pc[:nc], Pc[nc:], self.capsule_radius
+            Pc = self._columns_by_component(q.reshape(rows, q.shape[-1]))  # (C, 3, N)
+            A, B, r = Pc[:nc], Pc[nc: 2 * nc], self.capsule_radius
             skip = None if world is None else self._world_skip(world, keep_world)
             ok = self._clear_native(A, B, r, world, margin, slack, skip, world_index)
             if ok is None and world_index is not None:

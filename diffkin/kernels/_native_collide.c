@@ -182,6 +182,27 @@ static void DK(cylinder_lanes)(const real *A, int64_t N, real rg, const real *ya
     }
 }
 
+/* Whether some lane of the block is still clear (a block whose lanes all collide stops early). */
+static inline int DK(any_clear)(const uint8_t *clear, int m) {
+    uint8_t any = 0;
+    for (int l = 0; l < m; l++) any |= clear[l];
+    return any;
+}
+
+/* Whether the boxes [lo1, hi1] and [lo2, hi2] (3 each) are at least T apart (T <= 0: apart at all): then every
+ * entry of the block between what they bound is clear and is skipped. */
+static inline int DK(aabb_apart)(const real *lo1, const real *hi1, const real *lo2, const real *hi2, real T) {
+    real g2 = 0;
+    for (int k = 0; k < 3; k++) {
+        real gap = lo2[k] - hi1[k], gap2 = lo1[k] - hi2[k];
+        gap = gap > gap2 ? gap : gap2;
+        g2 += gap > 0 ? gap * gap : 0;
+    }
+    return T > 0 ? g2 >= T * T : g2 > 0;
+}
+
+#define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
+
 static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
     const int64_t N = c->N, G = c->G;
     const real *A = (const real *)c->A, *B = (const real *)c->B, *r = (const real *)c->r;
@@ -190,18 +211,29 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
     uint8_t clear[COLLIDE_BLOCK];
     int64_t wl[COLLIDE_BLOCK];
     for (int l = 0; l < m; l++) clear[l] = 1, wl[l] = WORLD_OF(c, n0, l);
-    for (int64_t p = 0; p < c->P; p++) { /* the self pairs */
-        const int64_t i = c->pi[p], j = c->pj[p];
-        const real T = r[i] + r[j] + thr;
-        if (T <= 0) continue;
-        DK(segments_d2)(A + i * 3 * N + n0, B + i * 3 * N + n0, N, A + j * 3 * N + n0, B + j * 3 * N + n0, N,
-                        m, d2);
-        for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
-    }
+    /* The broad phase of the block: each geom's axis-aligned box over the block's lanes (the samples of an
+     * edge lie close together), against each object's box when the lanes share one world, and against each
+     * other for the self pairs. */
+    real glo[3 * CULL_GEOMS], ghi[3 * CULL_GEOMS], olo[3], ohi[3];
+    int cull = G <= CULL_GEOMS && m > 0;
+    for (int l = 1; l < m && cull; l++) cull = wl[l] == wl[0];
+    const int64_t w0 = m > 0 ? wl[0] : 0;
+    for (int64_t g = 0; g < G && G <= CULL_GEOMS; g++)
+        for (int k = 0; k < 3; k++) {
+            const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
+            real lo = a[0], hi = a[0];
+            for (int l = 0; l < m; l++) {
+                const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
+                lo = x < lo ? x : lo;
+                hi = y > hi ? y : hi;
+            }
+            glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
+        }
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
     real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK];
     for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
+        if (!DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++) {
             const int64_t o = wl[l] * c->Wr + w;
             for (int k = 0; k < 3; k++) {
@@ -210,8 +242,13 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
             }
             pr[l] = wr[o];
         }
+        for (int k = 0; k < 3 && cull; k++) {
+            const real x = pa[k * COLLIDE_BLOCK], y = pb[k * COLLIDE_BLOCK];
+            olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
+        }
         for (int64_t g = 0; g < G; g++) {
             if (c->skip_r && c->skip_r[g * c->Wr + w]) continue;
+            if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
             DK(segments_d2)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, pa, pb, COLLIDE_BLOCK, m, d2);
             for (int l = 0; l < m; l++) {
                 const real T = r[g] + pr[l] + thr;
@@ -220,6 +257,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         }
     }
     for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
+        if (!DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++)
             for (int k = 0; k < 4; k++) pa[k * COLLIDE_BLOCK + l] = hs[4 * (wl[l] * c->H + h) + k];
         for (int64_t g = 0; g < G; g++) {
@@ -239,13 +277,22 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
         real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
         for (int64_t w = 0; w < c->Wb; w++) {
+            if (!DK(any_clear)(clear, m)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wb + w;
                 for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
                 for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
             }
+            for (int k = 0; k < 3 && cull; k++) { /* the box's extent along world axis k: sum_j |R_kj| h_j */
+                const real *R = bR + 9 * (w0 * c->Wb + w), *h = bh + 3 * (w0 * c->Wb + w);
+                const real e = (R[3 * k] < 0 ? -R[3 * k] : R[3 * k]) * h[0] +
+                               (R[3 * k + 1] < 0 ? -R[3 * k + 1] : R[3 * k + 1]) * h[1] +
+                               (R[3 * k + 2] < 0 ? -R[3 * k + 2] : R[3 * k + 2]) * h[2];
+                olo[k] = bc[3 * (w0 * c->Wb + w) + k] - e, ohi[k] = bc[3 * (w0 * c->Wb + w) + k] + e;
+            }
             for (int64_t g = 0; g < G; g++) {
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
+                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
                 const int point = c->point ? c->point[g] : 0;
                 DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear);
             }
@@ -254,17 +301,42 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
     if (c->Wy && c->point) { /* cylinders: the sphere geoms only (the caller decides the others) */
         const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         for (int64_t w = 0; w < c->Wy; w++) {
+            if (!DK(any_clear)(clear, m)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wy + w;
                 for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
                 pr[l] = yr[o];
             }
+            for (int k = 0; k < 3 && cull; k++) { /* the faces' centres and the radius every way */
+                const real x = pa[k * COLLIDE_BLOCK], y = pb[k * COLLIDE_BLOCK];
+                olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
+            }
             for (int64_t g = 0; g < G; g++) {
                 if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
+                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
                 DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
             }
         }
     }
+    if (!DK(any_clear)(clear, m)) goto done;
+    for (int64_t p = 0; p < c->P; p++) { /* the self pairs (last: the world rejects most colliding samples) */
+        const int64_t i = c->pi[p], j = c->pj[p];
+        const real T = r[i] + r[j] + thr;
+        if (T <= 0) continue;
+        if (G <= CULL_GEOMS && DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, T)) continue;
+        const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
+        if (c->point && c->point[i] && c->point[j]) { /* two spheres: their centres */
+            for (int l = 0; l < m; l++) {
+                const real dx = Ai[l] - Aj[l], dy = Ai[N + l] - Aj[N + l], dz = Ai[2 * N + l] - Aj[2 * N + l];
+                clear[l] &= dx * dx + dy * dy + dz * dz >= T * T;
+            }
+        } else {
+            DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
+            for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
+        }
+        if ((p & 15) == 15 && !DK(any_clear)(clear, m)) break;
+    }
+done:
     for (int l = 0; l < m; l++) ok[n0 + l] &= clear[l];
 }
 
