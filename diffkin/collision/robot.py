@@ -214,7 +214,8 @@ class RobotCollision(nn.Module):
         self._check_agree(q)
         F = self._frames.frames(self.chain, q)  # (N, K, 4, 4)
         Fk = F[..., :3, :].permute(1, 3, 2, 0).reshape(4 * F.shape[-3], 3 * F.shape[0])  # (K·4, 3 N)
-        return (self._placement(F).T @ Fk).reshape(-1, 3, F.shape[0])
+        H = self._placement(F)
+        return (H.T @ Fk).reshape(H.shape[-1], 3, F.shape[0])
 
     def _check_agree(self, q: Tensor) -> None:
         """The geometry, the chain and q in one dtype and device (:func:`._checks.check_agree`)."""
