@@ -95,10 +95,10 @@ def test_boxes_cylinders_and_per_row_worlds_decide_as_the_torch_distances(dtype)
     """Boxes (against spheres at margins of both signs, against proper segments at margin + slack >= 0, the
     contract) and cylinders (against the sphere geoms ``points`` marks; the others take no part), each
     configuration with its own world of a stack of three (``world_index``), entry by entry against
-    ``capsule_box`` and ``capsule_cylinder`` of the torch pair table."""
+    ``capsule_box`` and ``sphere_cylinder`` of the torch layer."""
     from diffkin.collision import box
     from diffkin.collision.boxes import capsule_box
-    from diffkin.collision.cylinders import capsule_cylinder
+    from diffkin.collision.cylinders import sphere_cylinder
 
     g = torch.Generator().manual_seed(5)
     G, N, nw = 6, 600, 3
@@ -120,15 +120,16 @@ def test_boxes_cylinders_and_per_row_worlds_decide_as_the_torch_distances(dtype)
     no_pairs = torch.zeros(0, 2, dtype=torch.long)
     a, b = A.permute(2, 0, 1), B.permute(2, 0, 1)  # (N, G, 3)
     checked = {"box": 0, "cylinder": 0}
+    dist = {("box", w): capsule_box(a, b, r, bc[wid, None, w], bR[wid, None, w], bh[wid, None, w])
+            for w in range(2)}  # (N, G)
+    for w in range(2):  # cylinders: the sphere geoms only (the closed-form field)
+        dist[("cylinder", w)] = sphere_cylinder(a, r, ya[wid, None, w], yb[wid, None, w], yr[wid, None, w])
     for margin, slack in ((0.0, 0.0), (0.02, 1e-4), (-0.03, 0.0)):
         for kind in ("box", "cylinder"):
             for w in range(2):
-                if kind == "box":
-                    d = capsule_box(a, b, r, bc[wid, None, w], bR[wid, None, w], bh[wid, None, w])  # (N, G)
-                    serve = points if margin + slack < 0 else torch.ones(G, dtype=torch.bool)
-                else:
-                    d = capsule_cylinder(a, b, r, ya[wid, None, w], yb[wid, None, w], yr[wid, None, w])
-                    serve = points
+                d = dist[(kind, w)]
+                every = torch.ones(G, dtype=torch.bool)
+                serve = points if kind == "cylinder" or margin + slack < 0 else every
                 for k in range(G):
                     skip = torch.ones(G, 2, dtype=torch.bool)
                     skip[k, w] = False
