@@ -269,9 +269,7 @@ def cmd_plan(args) -> int:
         row = int(ok.nonzero()[0, 0]) if ok.any() else 0
         v = limits["velocity_limit"]
         if v is None:  # the URDF's, as plan read them
-            from .motion.plan import _urdf_velocity
-
-            v = _urdf_velocity(chain)
+            v = chain.velocity_limits()
         fig = plan_figure(res, chain, v, limits["acceleration_limit"], row)
         Path(args.plot).parent.mkdir(parents=True, exist_ok=True)
         fig.savefig(args.plot, dpi=110)

@@ -26,7 +26,6 @@ keeps every limit on the samples, and its continuous motion is proven clear of `
 from __future__ import annotations
 
 import math
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import torch
@@ -100,24 +99,6 @@ class MotionResult:
     def sample(self, t) -> Tensor:
         """Positions ``(B, T, nq)`` at times ``t`` ``(T,)`` or ``(B, T)`` [s] (see :meth:`state`)."""
         return self.state(t).position
-
-
-def _urdf_velocity(chain) -> Tensor | None:
-    """The chain's joint velocity limits from its URDF's ``<limit velocity=>`` (None where absent)."""
-    tree = getattr(chain, "tree", None)
-    text = getattr(tree, "text", None)
-    names = getattr(chain, "joint_names", None)
-    if not text or names is None:
-        return None
-    root = ET.fromstring(text)
-    v = {}
-    for j in root.iter("joint"):
-        lim = j.find("limit")
-        if lim is not None and lim.get("velocity") is not None:
-            v[j.get("name")] = float(lim.get("velocity"))
-    if not all(n in v for n in names):
-        return None
-    return torch.tensor([v[n] for n in names], dtype=chain.dtype, device=chain.device)
 
 
 def _limits(x, B: int, nq: int, name: str, like: Tensor) -> Tensor:
@@ -237,7 +218,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         raise ShapeError(f"expected one world for all problems or one per problem (batch shape ({B},)), "
                          f"got a world of batch shape {shape_str(world.batch_shape)}")
     if velocity_limit is None:
-        velocity_limit = _urdf_velocity(chain)
+        velocity_limit = chain.velocity_limits() if hasattr(chain, "velocity_limits") else None
         if velocity_limit is None:
             raise ConventionError("motion.plan: the chain carries no velocity limits: give velocity_limit")
     if acceleration_limit is None:
