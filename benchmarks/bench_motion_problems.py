@@ -26,6 +26,11 @@ and jerk limits), ``--iterations`` RRT-Connect iterations and ``--step``: per fa
 calls and its mean per problem. ``--recheck`` successes per family are re-checked by an independent checker:
 Pinocchio places the spherized URDF's spheres, coal measures their distances to the scene's boxes and
 cylinders at every 10 ms sample of the trajectory (geoms that move only; self pairs are not re-checked).
+``--ompl N``: beside it, OMPL's RRT-Connect (PyPI ``ompl``; skipped when it is not importable) on the first N
+problems of each family, one problem at a time, its state validity checker diffkin's C decision for one
+configuration (the same model and scene, margin 0), OMPL's own discrete motion checks (its default
+resolution, not diffkin's proven step bound), ``--ompl-time`` seconds per problem, no smoothing or timing:
+per family the successes and the median planning milliseconds.
 """
 
 from __future__ import annotations
@@ -176,6 +181,63 @@ def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2
     return rows
 
 
+def ompl_rows(problems, per_family: int = 10, time_limit: float = 1.0) -> list[dict]:
+    """The ``--ompl`` rows (module docstring); none when ``ompl`` is not importable."""
+    import time
+
+    import numpy as np
+
+    try:
+        from ompl import base as ob
+        from ompl import geometric as og
+    except ImportError:
+        return [{"benchmark": "ompl_rrtconnect", "family": "all", "note": "ompl not importable: skipped"}]
+    rc = robot_model("spherized").requires_grad_(False)
+    lim = rc.chain.q_limits.numpy()
+    out: dict[str, dict] = {}
+    count: dict[str, int] = {}
+    for p in problems:
+        count[p.family] = count.get(p.family, 0) + 1
+        if count[p.family] > per_family:
+            continue
+        model = rc.allow_collisions(p.scene.allowed)
+        world = p.scene.to_world(dtype=F64)
+        space = ob.RealVectorStateSpace(7)
+        bounds = ob.RealVectorBounds(7)
+        for j in range(7):
+            bounds.setLow(j, float(lim[j, 0]))
+            bounds.setHigh(j, float(lim[j, 1]))
+        space.setBounds(bounds)
+        ss = og.SimpleSetup(space)
+        buf = torch.zeros(1, 7, dtype=F64)
+
+        def valid(state, model=model, world=world, buf=buf):
+            for j in range(7):
+                buf[0, j] = state[j]
+            return bool(model._clear(buf, world, 0.0, 0.0, moving_only=True)[0])
+
+        ss.setStateValidityChecker(valid)
+        start, goal = space.allocState(), space.allocState()
+        for j in range(7):
+            start[j], goal[j] = p.start[j], p.goal[j]
+        ss.setStartAndGoalStates(start, goal)
+        ss.setPlanner(og.RRTConnect(ss.getSpaceInformation()))
+        t0 = time.perf_counter()
+        ss.solve(time_limit)
+        dt = time.perf_counter() - t0
+        c = out.setdefault(p.family, {"problems": 0, "success": 0, "ms": []})
+        c["problems"] += 1
+        c["success"] += int(ss.haveExactSolutionPath())
+        c["ms"].append(1e3 * dt)
+    rows = [{"benchmark": "ompl_rrtconnect", "family": f, "problems": c["problems"], "success": c["success"],
+             "ms_median": float(np.median(c["ms"]))} for f, c in sorted(out.items())]
+    every = [m for c in out.values() for m in c["ms"]]
+    rows.append({"benchmark": "ompl_rrtconnect", "family": "all", "problems": len(every),
+                 "success": sum(c["success"] for c in out.values()), "ms_median": float(np.median(every)),
+                 "time_limit_s": time_limit})
+    return rows
+
+
 class _CoalPanda:
     """The independent re-check of ``--plan``: Pinocchio places the spheres of ``panda_spherized.urdf``
     (its own URDF parser and FK), coal measures each moving sphere's distance to each box and cylinder of a
@@ -228,9 +290,16 @@ def main(argv=None) -> int:
     p.add_argument("--iterations", type=int, default=300)
     p.add_argument("--step", type=float, default=2.0)
     p.add_argument("--recheck", type=int, default=5)
-    if p.parse_known_args(argv)[0].plan:
-        return cli(p, lambda a: plan_rows(load_problems(families=a.families), a.chunk, a.iterations, a.step,
-                                          a.recheck), "MotionBenchMaker Panda: motion.plan, batched", argv)
+    p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")
+    p.add_argument("--ompl-time", type=float, default=1.0)
+    known = p.parse_known_args(argv)[0]
+    if known.plan or known.ompl:
+        def both(a):
+            problems = load_problems(families=a.families)
+            rows = plan_rows(problems, a.chunk, a.iterations, a.step, a.recheck) if a.plan else []
+            return rows + (ompl_rows(problems, a.ompl, a.ompl_time) if a.ompl else [])
+
+        return cli(p, both, "MotionBenchMaker Panda: motion.plan batched, OMPL RRT-Connect", argv)
     return cli(p, run, "MotionBenchMaker Panda: problems whose start or goal is in collision", argv)
 
 
