@@ -10,8 +10,8 @@ Panda problems, one problem per call.
   VAMP's files unchanged), each planned by ``motion.plan`` with its own scene (``Scene.to_world``; its
   allowed-collision matrix applied), VAMP's spherized Panda (``--model``), Franka's velocity, acceleration
   and jerk limits. Per family: valid problems (start and goal clear), successes, median and 90th-percentile
-  planning time per problem, median trajectory duration. One problem per call because ``plan`` takes one
-  ``World`` for all its rows (per-problem scenes in one call are the next step).
+  planning time per problem, median trajectory duration. One problem per call (the one-at-a-time latency);
+  all 700 in batched calls, one scene per problem: ``benchmarks.bench_motion_problems --plan``.
 
 Timings on a shared machine are contended: compare the columns of one run, not runs.
 """

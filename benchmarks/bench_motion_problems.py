@@ -20,6 +20,19 @@ capsules``: ``capsules``, the counts of the enclosing capsules). Columns: ``star
 ``start_or_goal`` (problems), ``self`` and ``world`` (states in self-collision / touching an obstacle),
 ``base_world`` (states where a geom of ``panda_link0``, which no joint moves, touches an obstacle). Counting
 only: no timing.
+
+``--plan``: instead, ``motion.plan`` on every problem with the spherized model, the problems in batched
+calls of ``--chunk`` problems each (one scene per problem, ``World.stack``; Franka's velocity, acceleration
+and jerk limits), ``--iterations`` RRT-Connect iterations and ``--step``: per family the valid problems
+(start and goal clear of the resolution), the successes, and planning seconds; the total wall time of all
+calls and its mean per problem. ``--recheck`` successes per family are re-checked by an independent checker:
+Pinocchio places the spherized URDF's spheres, coal measures their distances to the scene's boxes and
+cylinders at every 10 ms sample of the trajectory (geoms that move only; self pairs are not re-checked).
+``--ompl N``: beside it, OMPL's RRT-Connect (PyPI ``ompl``; skipped when it is not importable) on the first N
+problems of each family, one problem at a time, its state validity checker diffkin's C decision for one
+configuration (the same model and scene, margin 0), OMPL's own discrete motion checks (its default
+resolution, not diffkin's proven step bound), ``--ompl-time`` seconds per problem, no smoothing or timing:
+per family the successes and the median planning milliseconds.
 """
 
 from __future__ import annotations
@@ -105,6 +118,169 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
+def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2.0, recheck: int = 5,
+              seed: int = 0) -> list[dict]:
+    """The ``--plan`` rows (module docstring): one per family and a total."""
+    import time
+
+    import numpy as np
+
+    from benchmarks.bench_motion import FRANKA_A, FRANKA_J, FRANKA_V
+    from diffkin import motion
+    from diffkin.collision import World
+
+    rc = robot_model("spherized").requires_grad_(False)
+    chain = rc.chain
+    out: dict[str, dict] = {}
+    total = 0.0
+    checker = _CoalPanda() if recheck else None
+    for k0 in range(0, len(problems), chunk):
+        part = problems[k0:k0 + chunk]
+        allowed = {p.scene.allowed for p in part}
+        if len(allowed) != 1:  # one model per call (all 700 share one allowed-collision matrix)
+            raise ValueError("a chunk of problems with different allowed-collision matrices")
+        model = rc.allow_collisions(allowed.pop())
+        worlds = [p.scene.to_world(dtype=F64) for p in part]
+        qs = torch.tensor([p.start for p in part], dtype=F64)
+        qg = torch.tensor([p.goal for p in part], dtype=F64)
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = motion.plan(chain, qs, qg, collision=model, world=World.stack(worlds),
+                              velocity_limit=FRANKA_V, acceleration_limit=FRANKA_A, jerk_limit=FRANKA_J,
+                              max_iterations=iterations, step=step, seed=seed)
+        dt = time.perf_counter() - t0
+        total += dt
+        for b, p in enumerate(part):
+            c = out.setdefault(p.family, {"problems": 0, "valid": 0, "success": 0, "rechecked": 0,
+                                          "recheck_min_mm": float("inf"), "seconds": 0.0, "durations": []})
+            c["problems"] += 1
+            c["seconds"] += dt / len(part)
+            c["valid"] += int("in collision" not in res.reason[b])
+            c["success"] += int(res.success[b])
+            if bool(res.success[b]):
+                c["durations"].append(float(res.duration[b]))
+                if checker is not None and c["rechecked"] < recheck:
+                    n = int(float(res.duration[b]) / 0.01) + 1
+                    d = checker.min_distance(res.q[b, :n].numpy(), worlds[b])
+                    c["rechecked"] += 1
+                    c["recheck_min_mm"] = min(c["recheck_min_mm"], 1e3 * d)
+    rows = []
+    for family in sorted(out):
+        c = out[family]
+        dur = float(np.median(c["durations"])) if c["durations"] else float("nan")
+        rows.append({"benchmark": "motion_plan", "family": family, "problems": c["problems"],
+                     "valid": c["valid"], "success": c["success"], "rechecked": c["rechecked"],
+                     "recheck_min_mm": round(c["recheck_min_mm"], 2),
+                     "ms_per_problem": 1e3 * c["seconds"] / c["problems"], "duration_s_median": dur})
+    n = sum(c["problems"] for c in out.values())
+    rows.append({"benchmark": "motion_plan", "family": "all", "problems": n,
+                 "valid": sum(c["valid"] for c in out.values()),
+                 "success": sum(c["success"] for c in out.values()),
+                 "rechecked": sum(c["rechecked"] for c in out.values()),
+                 "recheck_min_mm": round(min(c["recheck_min_mm"] for c in out.values()), 2),
+                 "ms_per_problem": 1e3 * total / max(n, 1), "total_s": total, "chunk": chunk,
+                 "iterations": iterations, "step": step})
+    return rows
+
+
+def ompl_rows(problems, per_family: int = 10, time_limit: float = 1.0) -> list[dict]:
+    """The ``--ompl`` rows (module docstring); none when ``ompl`` is not importable."""
+    import time
+
+    import numpy as np
+
+    try:
+        from ompl import base as ob
+        from ompl import geometric as og
+    except ImportError:
+        return [{"benchmark": "ompl_rrtconnect", "family": "all", "note": "ompl not importable: skipped"}]
+    rc = robot_model("spherized").requires_grad_(False)
+    lim = rc.chain.q_limits.numpy()
+    out: dict[str, dict] = {}
+    count: dict[str, int] = {}
+    for p in problems:
+        count[p.family] = count.get(p.family, 0) + 1
+        if count[p.family] > per_family:
+            continue
+        model = rc.allow_collisions(p.scene.allowed)
+        world = p.scene.to_world(dtype=F64)
+        space = ob.RealVectorStateSpace(7)
+        bounds = ob.RealVectorBounds(7)
+        for j in range(7):
+            bounds.setLow(j, float(lim[j, 0]))
+            bounds.setHigh(j, float(lim[j, 1]))
+        space.setBounds(bounds)
+        ss = og.SimpleSetup(space)
+        buf = torch.zeros(1, 7, dtype=F64)
+
+        def valid(state, model=model, world=world, buf=buf):
+            for j in range(7):
+                buf[0, j] = state[j]
+            return bool(model._clear(buf, world, 0.0, 0.0, moving_only=True)[0])
+
+        ss.setStateValidityChecker(valid)
+        start, goal = space.allocState(), space.allocState()
+        for j in range(7):
+            start[j], goal[j] = p.start[j], p.goal[j]
+        ss.setStartAndGoalStates(start, goal)
+        ss.setPlanner(og.RRTConnect(ss.getSpaceInformation()))
+        t0 = time.perf_counter()
+        ss.solve(time_limit)
+        dt = time.perf_counter() - t0
+        c = out.setdefault(p.family, {"problems": 0, "success": 0, "ms": []})
+        c["problems"] += 1
+        c["success"] += int(ss.haveExactSolutionPath())
+        c["ms"].append(1e3 * dt)
+    rows = [{"benchmark": "ompl_rrtconnect", "family": f, "problems": c["problems"], "success": c["success"],
+             "ms_median": float(np.median(c["ms"]))} for f, c in sorted(out.items())]
+    every = [m for c in out.values() for m in c["ms"]]
+    rows.append({"benchmark": "ompl_rrtconnect", "family": "all", "problems": len(every),
+                 "success": sum(c["success"] for c in out.values()), "ms_median": float(np.median(every)),
+                 "time_limit_s": time_limit})
+    return rows
+
+
+class _CoalPanda:
+    """The independent re-check of ``--plan``: Pinocchio places the spheres of ``panda_spherized.urdf``
+    (its own URDF parser and FK), coal measures each moving sphere's distance to each box and cylinder of a
+    scene (``tests/collision_reference.py``'s coal set-up)."""
+
+    def __init__(self):
+        import pinocchio as pin
+
+        from tests import collision_reference as ref
+
+        self._pin, self._ref = pin, ref
+        self.model = pin.buildModelFromUrdf(str(PANDA_SPHERIZED_URDF))
+        self.geom = pin.buildGeomFromUrdf(self.model, str(PANDA_SPHERIZED_URDF), pin.COLLISION)
+        self.data, self.gdata = self.model.createData(), pin.GeometryData(self.geom)
+        self.moving = [i for i, o in enumerate(self.geom.geometryObjects) if o.parentJoint > 0]
+        names = [f"panda_joint{i}" for i in range(1, 8)]
+        self.q_of = [self.model.joints[self.model.getJointId(n)].idx_q for n in names]
+
+    def min_distance(self, qs, world) -> float:
+        """The least sphere–obstacle distance [m] over the configurations ``qs (S, 7)``."""
+        ref, pin, coal = self._ref, self._pin, self._ref.coal
+        obstacles = [ref.box(c, R, h) for c, R, h in zip(world.boxes.center.numpy(),
+                                                          world.boxes.rotation.numpy(),
+                                                          world.boxes.half_extents.numpy())]
+        for y in world.cylinders.numpy():
+            R, m, length = ref.frame_along(y[:3], y[3:6])
+            obstacles.append((coal.Cylinder(float(y[6]), length), ref.placement(R, m)))
+        best = float("inf")
+        for q in qs:
+            qp = pin.neutral(self.model)
+            qp[self.q_of] = q
+            pin.updateGeometryPlacements(self.model, self.data, self.geom, self.gdata, qp)
+            for i in self.moving:
+                M = self.gdata.oMg[i]
+                g, T = self.geom.geometryObjects[i].geometry, ref.placement(M.rotation, M.translation)
+                for o, To in obstacles:
+                    best = min(best, ref.distance(g, T, o, To))
+        return best
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--models", nargs="*", default=list(MODELS), choices=MODELS)
@@ -112,6 +288,21 @@ def main(argv=None) -> int:
     p.add_argument("--cylinders", default="exact", choices=("exact", "capsules"),
                    help="exact: the scenes' cylinders as exact cylinders; capsules: as their enclosing "
                    "capsules")
+    p.add_argument("--plan", action="store_true", help="plan every problem (module docstring)")
+    p.add_argument("--chunk", type=int, default=100)
+    p.add_argument("--iterations", type=int, default=300)
+    p.add_argument("--step", type=float, default=2.0)
+    p.add_argument("--recheck", type=int, default=5)
+    p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")
+    p.add_argument("--ompl-time", type=float, default=1.0)
+    known = p.parse_known_args(argv)[0]
+    if known.plan or known.ompl:
+        def both(a):
+            problems = load_problems(families=a.families)
+            rows = plan_rows(problems, a.chunk, a.iterations, a.step, a.recheck) if a.plan else []
+            return rows + (ompl_rows(problems, a.ompl, a.ompl_time) if a.ompl else [])
+
+        return cli(p, both, "MotionBenchMaker Panda: motion.plan batched, OMPL RRT-Connect", argv)
     return cli(p, run, "MotionBenchMaker Panda: problems whose start or goal is in collision", argv)
 
 

@@ -904,9 +904,7 @@ def section_motion(report: Report, quick: bool) -> None:
         straight = float(rc.min_distance(q0 + f * (q1 - q0), world).min())
     res, dt = _timed(lambda: motion.plan(chain, q0, q1, collision=rc, world=world, acceleration_limit=acc,
                                          jerk_limit=jerk, resolution=0.01 if quick else 0.005))
-    from .motion.plan import _urdf_velocity
-
-    vel = _urdf_velocity(chain)
+    vel = chain.velocity_limits()
     ok = bool(res.success[0])
     with torch.no_grad():
         clear = float(rc.min_distance(res.q[0], world).min())

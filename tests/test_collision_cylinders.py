@@ -240,7 +240,8 @@ def test_cylinder_distances_batch_and_float32():
 
 def test_world_cylinders_through_the_pair_table(monkeypatch):
     """World obstacles that are cylinders: World.distances against the kernels, and the broad-phase and C
-    decisions (which do not serve cylinders: the table routes them to torch) against the exact distances."""
+    decisions (which serve cylinders against sphere geoms only: the FR3's capsules go to torch) against the
+    exact distances."""
     from diffkin import models
     from diffkin.collision import RobotCollision
     from tests.test_collision_robot import FR3
@@ -259,13 +260,14 @@ def test_world_cylinders_through_the_pair_table(monkeypatch):
     ref = C.capsule_cylinder(a[:, :, None], b[:, :, None], r[:, None], y[:, :3], y[:, 3:6], y[:, 6])
     cap = [i for i, g in enumerate(rc.geoms) if g.shape == "capsule"]
     torch.testing.assert_close(d[:, cap, 2:], ref, atol=1e-12, rtol=0)
-    from diffkin.collision.pairs import NATIVE_CLEAR, PAIRS
+    from diffkin.collision.pairs import NATIVE_CLEAR, NATIVE_CLEAR_SPHERES, PAIRS
     from diffkin.ik.residuals import DistanceConstraint
     from diffkin.kernels import native
 
-    # the table: the C decisions serve capsule-capsule and capsule-halfspace only; cylinders go to torch
-    assert PAIRS[("capsule", "cylinder")].native is None
-    assert PAIRS[("capsule", "capsule")].native == NATIVE_CLEAR
+    # the table: the C decisions serve capsules against round objects, half-spaces and boxes; cylinders
+    # against the robot's spheres only (the FR3's proper capsules go to torch)
+    assert PAIRS[("capsule", "cylinder")].native == NATIVE_CLEAR_SPHERES
+    assert PAIRS[("capsule", "capsule")].native == PAIRS[("capsule", "box")].native == NATIVE_CLEAR
     exact = d.flatten(1).amin(-1)
     for margin in (0.0, 0.05):
         clear = exact >= margin
@@ -273,7 +275,7 @@ def test_world_cylinders_through_the_pair_table(monkeypatch):
         # the C pass (where built) for the round objects, torch for the cylinders and the box
         assert torch.equal(DistanceConstraint(rc, world, margin).satisfied(q), clear)
         with monkeypatch.context() as mp:  # without the C pass: every kind through the torch broad phase
-            mp.setattr(native, "capsules_clear", lambda *args: False)
+            mp.setattr(native, "capsules_clear", lambda *args, **kw: False)
             assert torch.equal(DistanceConstraint(rc, world, margin).satisfied(q), clear)
 
 

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from diffkin import motion
-from diffkin.collision import World, box
+from diffkin import models, motion
+from diffkin.collision import RobotCollision, World, box
+from diffkin.errors import ShapeError
 from diffkin.motion._edges import EdgeChecker
 from diffkin.sampling import random_configuration
 from tests.helpers import BOX, SPHERES, CoalCheck, fr3_robot
@@ -123,7 +124,8 @@ def test_edges_subdivision_proves_the_continuous_edge(robot):
     g = torch.Generator().manual_seed(1)
     q = random_configuration(chain, (8,), g, collision=rc, world=world, margin=0.03)
     qa, qb = q[:4], q[4:]
-    free, _ = checker.edges(qa, qb)
+    rows = torch.arange(4)
+    free, _ = checker.edges(qa, qb, rows)
     assert free.any() and (~free).any()
     # every free edge, sampled 2x finer than the subdivision, keeps d >= 0 (exact distances, torch path)
     f = torch.linspace(0, 1, 2 * int(checker.steps(qb - qa).max()) + 1, dtype=torch.float64)
@@ -133,10 +135,10 @@ def test_edges_subdivision_proves_the_continuous_edge(robot):
     qs = qa[~free, None] + f[:, None] * (qb - qa)[~free, None]
     assert (rc.min_distance(qs, world).amin(-1) < eta).all()
     # the prefix decision: the reached part is clear, the part just after it is not provably so
-    free_p, lam = checker.edges(qa, qb, prefix=True)
+    free_p, lam = checker.edges(qa, qb, rows, prefix=True)
     assert (free_p == free).all() and (lam[free] == 1).all() and (lam[~free] < 1).all()
     part = qa + lam[:, None] * (qb - qa)
-    assert checker.clear(part).all()
+    assert checker.clear(part, rows).all()
 
 
 def test_plan_joint_goals_rechecked_by_coal(robot):
@@ -252,7 +254,7 @@ def test_a_spline_leaving_the_limits_is_not_taken():
         reach = torch.ones(1, dtype=torch.float64)
         eta = 0.01
 
-        def clear(self, q):
+        def clear(self, q, problem):
             return torch.ones(q.shape[:-1], dtype=torch.bool)
 
     path = torch.tensor([[[0.0], [1.0], [1.0], [0.2]]], dtype=torch.float64)
@@ -265,4 +267,37 @@ def test_a_spline_leaving_the_limits_is_not_taken():
     lo = torch.tensor([-2.0], dtype=torch.float64)
     for hi, inside in ((1.0, False), (top - 1e-4, False), (top + 1e-4, True)):
         limit = torch.tensor([hi], dtype=torch.float64)
-        assert bool(_spline_clear(Clear(), path, knots, lo, limit)) == inside
+        one = torch.zeros(1, dtype=torch.long)
+        assert bool(_spline_clear(Clear(), path, knots, lo, limit, one)) == inside
+
+
+def test_plan_one_scene_per_problem_in_one_call():
+    """Two MotionBenchMaker problems (VAMP's files, the spherized Panda) in one call with their scenes
+    stacked (``World.stack``, the C decisions with one world per configuration): both succeed, and every
+    10 ms sample keeps d >= 0 in its own scene by the closed-form torch distances (boxes, cylinders)."""
+    from benchmarks import motion_problems as mp
+    from diffkin.collision.boxes import sphere_box
+    from diffkin.collision.cylinders import sphere_cylinder
+
+    probs = mp.load_problems(families=["table_pick"], indices=[1, 2])
+    chain = models.from_urdf(mp.PANDA_SPHERIZED_URDF, "panda_hand", dtype=torch.float64)
+    rc = RobotCollision.from_urdf(mp.PANDA_SPHERIZED_URDF, chain, mp.PANDA_SRDF).requires_grad_(False)
+    rc = rc.allow_collisions(probs[0].scene.allowed)
+    worlds = [p.scene.to_world(dtype=torch.float64) for p in probs]
+    qs = torch.tensor([p.start for p in probs], dtype=torch.float64)
+    qg = torch.tensor([p.goal for p in probs], dtype=torch.float64)
+    v = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
+    res = motion.plan(chain, qs, qg, collision=rc, world=World.stack(worlds), velocity_limit=v,
+                      acceleration_limit=10.0, max_iterations=300)
+    assert res.success.all(), res.reason
+    moving = ~torch.tensor(rc.fixed)
+    for b, w in enumerate(worlds):  # the closed-form sphere-box and sphere-cylinder fields of the torch layer
+        a, _, r, *_ = rc.placed(res.q[b])  # (S, G, 3): the robot's 59 spheres
+        a, r = a[:, moving, None], r[moving, None]
+        bx, y = w.boxes, w.cylinders
+        d_box = sphere_box(a, r, bx.center, bx.rotation, bx.half_extents)
+        d_cyl = sphere_cylinder(a, r, y[:, :3], y[:, 3:6], y[:, 6])
+        assert d_box.numel() and d_cyl.numel() and min(d_box.min(), d_cyl.min()) >= 0
+    with pytest.raises(ShapeError):  # a world per problem: batch (B,), not another
+        motion.plan(chain, qs, qg, collision=rc, world=World.stack(worlds * 2), velocity_limit=v,
+                    acceleration_limit=10.0)

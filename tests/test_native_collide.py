@@ -15,8 +15,14 @@ pytestmark = pytest.mark.skipif(not native.available(), reason="the native libra
 
 
 def _capsules(G: int, N: int, dtype, g):
+    """G capsules in N lanes; the first block of 256 lanes clustered (as the samples of one edge), so the
+    pass's per-block broad phase skips entries there."""
     A = torch.rand(G, 3, N, dtype=dtype, generator=g) - 0.5
-    B = A + 0.3 * (torch.rand(G, 3, N, dtype=dtype, generator=g) - 0.5)
+    D = 0.3 * (torch.rand(G, 3, N, dtype=dtype, generator=g) - 0.5)
+    near = min(N, 256)
+    A[..., :near] = A[..., :1] + 0.02 * (torch.rand(G, 3, near, dtype=dtype, generator=g) - 0.5)
+    D[..., :near] = D[..., :1] + 0.02 * (torch.rand(G, 3, near, dtype=dtype, generator=g) - 0.5)
+    B = A + D
     B[0] = A[0]  # a point (a sphere)
     B[1] = A[1] + (B[2] - A[2])  # parallel to capsule 2
     r = 0.1 * torch.rand(G, dtype=dtype, generator=g)
@@ -88,3 +94,101 @@ def test_a_skipped_entry_takes_no_part_and_cuda_is_not_served():
     half = A.to(torch.float16)
     assert not native.capsules_clear(half, half, r, torch.zeros(0, 2, dtype=torch.long), inside,
                                      A.new_zeros(0, 4), None, None, 0.0, 0.0, ok)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_boxes_cylinders_and_per_row_worlds_decide_as_the_torch_distances(dtype):
+    """Boxes (against spheres at margins of both signs, against proper segments at margin + slack >= 0, the
+    contract) and cylinders (against the sphere geoms ``points`` marks; the others take no part), each
+    configuration with its own world of a stack of three (``world_index``), entry by entry against
+    ``capsule_box`` and ``sphere_cylinder`` of the torch layer."""
+    from diffkin.collision import box
+    from diffkin.collision.boxes import capsule_box
+    from diffkin.collision.cylinders import sphere_cylinder
+
+    g = torch.Generator().manual_seed(5)
+    G, N, nw = 6, 600, 3
+    A, B, r = _capsules(G, N, dtype, g)
+    points = torch.zeros(G, dtype=torch.bool)
+    points[0] = True
+    B[4] = A[4]
+    points[4] = True  # two spheres
+    bc = 0.6 * (torch.rand(nw, 2, 3, dtype=dtype, generator=g) - 0.5)
+    bR = box(bc, bc.abs(), torch.rand(nw, 2, 3, dtype=dtype, generator=g) * 3).rotation
+    bh = 0.05 + 0.2 * torch.rand(nw, 2, 3, dtype=dtype, generator=g)
+    bh[1, 1, 2] = 0.0  # a flat box
+    ya = 0.6 * (torch.rand(nw, 2, 3, dtype=dtype, generator=g) - 0.5)
+    yb = ya + 0.4 * (torch.rand(nw, 2, 3, dtype=dtype, generator=g) - 0.5)
+    yr = 0.02 + 0.15 * torch.rand(nw, 2, dtype=dtype, generator=g)
+    wid = torch.randint(0, nw, (N,), generator=g)
+    wid[:256] = 1  # the clustered block in one world: the broad phase against the objects runs there
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    none3, none0 = (A.new_zeros(nw, 0, 3),) * 2, A.new_zeros(nw, 0)
+    no_pairs = torch.zeros(0, 2, dtype=torch.long)
+    a, b = A.permute(2, 0, 1), B.permute(2, 0, 1)  # (N, G, 3)
+    checked = {"box": 0, "cylinder": 0}
+    dist = {("box", w): capsule_box(a, b, r, bc[wid, None, w], bR[wid, None, w], bh[wid, None, w])
+            for w in range(2)}  # (N, G)
+    for w in range(2):  # cylinders: the sphere geoms only (the closed-form field)
+        dist[("cylinder", w)] = sphere_cylinder(a, r, ya[wid, None, w], yb[wid, None, w], yr[wid, None, w])
+    for margin, slack in ((0.0, 0.0), (0.02, 1e-4), (-0.03, 0.0)):
+        for kind in ("box", "cylinder"):
+            for w in range(2):
+                d = dist[(kind, w)]
+                every = torch.ones(G, dtype=torch.bool)
+                serve = points if kind == "cylinder" or margin + slack < 0 else every
+                for k in range(G):
+                    skip = torch.ones(G, 2, dtype=torch.bool)
+                    skip[k, w] = False
+                    ok = torch.ones(N, dtype=torch.bool)
+                    extra = dict(boxes=(bc, bR, bh), skip_box=skip) if kind == "box" else \
+                        dict(cylinders=(ya, yb, yr), skip_cylinder=skip)
+                    assert native.capsules_clear(A, B, r, no_pairs, (*none3, none0), A.new_zeros(nw, 0, 4),
+                                                 None, None, margin, slack, ok, points=points,
+                                                 world_index=wid, **extra)
+                    if not serve[k]:
+                        if kind == "cylinder":  # proper segments take no part against cylinders
+                            assert ok.all()
+                        continue
+                    sure = (d[:, k] - margin - slack).abs() > tol
+                    bad = (ok != (d[:, k] - margin >= slack)) & sure
+                    assert not bad.any(), (kind, k, w, margin, d[bad, k], ok[bad])
+                    checked[kind] += int(sure.sum())
+    assert min(checked.values()) > 4 * N
+
+
+def test_the_block_broad_phase_keeps_a_near_entry():
+    """A block of 256 lanes of one sphere 15 mm from a box, a cylinder, a sphere and another robot sphere
+    (each alone), margin 20 mm: the per-block boxes of the pass are close to the entries themselves there, so
+    only a bound that stays below the distance keeps these entries (not clear); 25 mm away they are clear."""
+    dtype = torch.float64
+    g = torch.Generator().manual_seed(2)
+    r = torch.tensor([0.05, 0.05], dtype=dtype)
+    points = torch.ones(2, dtype=torch.bool)
+    no_pairs, pair = torch.zeros(0, 2, dtype=torch.long), torch.tensor([[0, 1]])
+    none = (torch.zeros(0, 3, dtype=dtype),) * 2 + (torch.zeros(0, dtype=dtype),)
+    hs = torch.zeros(0, 4, dtype=dtype)
+    for gap, clear in ((0.015, False), (0.025, True)):
+        x = 0.2 + 0.05 + gap
+        A = torch.zeros(2, 3, 256, dtype=dtype)
+        A[0, 0] = x + 1e-5 * torch.rand(256, dtype=dtype, generator=g)
+        A[1, 0] = 5.0  # the second sphere far away, but for the self pair
+        cases = [dict(boxes=(torch.zeros(1, 3, dtype=dtype), torch.eye(3, dtype=dtype)[None],
+                             torch.full((1, 3), 0.2, dtype=dtype))),
+                 dict(cylinders=(torch.tensor([[0.0, 0.0, -0.2]], dtype=dtype),
+                                 torch.tensor([[0.0, 0.0, 0.2]], dtype=dtype),
+                                 torch.tensor([0.2], dtype=dtype)))]
+        for extra in cases:
+            ok = torch.ones(256, dtype=torch.bool)
+            assert native.capsules_clear(A, A, r, no_pairs, none, hs, None, None, 0.02, 0.0, ok,
+                                         points=points, **extra)
+            assert bool(ok.all()) == clear and bool(ok.any()) == clear
+        ok = torch.ones(256, dtype=torch.bool)  # a round object: a sphere of 0.2 at the origin
+        ball = (torch.zeros(1, 3, dtype=dtype),) * 2 + (torch.tensor([0.2], dtype=dtype),)
+        assert native.capsules_clear(A, A, r, no_pairs, ball, hs, None, None, 0.02, 0.0, ok, points=points)
+        assert bool(ok.all()) == clear and bool(ok.any()) == clear
+        B2 = A.clone()
+        B2[1, 0] = 0.2 - 0.05 + 1e-5 * torch.rand(256, dtype=dtype, generator=g)  # a robot sphere instead
+        ok = torch.ones(256, dtype=torch.bool)
+        assert native.capsules_clear(B2, B2, r, pair, none, hs, None, None, 0.02, 0.0, ok, points=points)
+        assert bool(ok.all()) == clear and bool(ok.any()) == clear

@@ -108,7 +108,8 @@ def test_small_tree_defaults_and_queries():
     tree = parse_urdf(urdf(body, "toy"))
     j1, j2 = tree.joints
     zero = (0.0, 0.0, 0.0)
-    assert j1 == JointSpec("j1", "continuous", "base", "l1", zero, zero, (1.0, 0.0, 0.0), None, None, None)
+    assert j1 == JointSpec("j1", "continuous", "base", "l1", zero, zero, (1.0, 0.0, 0.0), None, None, None,
+                           1.0)  # a continuous joint keeps its velocity limit
     assert (j2.xyz, j2.rpy, j2.axis) == ((1.0, 2.0, 3.0), zero, (0.0, 0.0, 2.0))
     assert (j2.lower, j2.upper) == (None, 0.5)
     assert tree.name == "toy" and tree.root == "base" and tree.links == ("base", "l1", "l2")
@@ -386,3 +387,26 @@ def test_write_errors(tmp_path):
     with pytest.raises(ModelError, match="'j1'"):
         write_urdf(tree, {"j1": ((0, float("nan"), 0), (0, 0, 0))})
     assert not list(tmp_path.iterdir())
+
+
+def test_velocity_limits_are_the_files_limit_velocity():
+    """``URDFChain.velocity_limits`` against the file read by ElementTree: fr3.urdf's ``<limit velocity=>``
+    in joint order and the chain's dtype; a chain with a joint that has none gives None."""
+    import xml.etree.ElementTree as ET
+
+    import torch
+
+    from diffkin import models
+    from tests.helpers import FR3
+
+    chain = models.from_urdf(FR3, "fr3_link8", dtype=torch.float32)
+    root = ET.parse(FR3).getroot()
+    ref = {j.get("name"): float(j.find("limit").get("velocity")) for j in root.iter("joint")
+           if j.find("limit") is not None and j.find("limit").get("velocity") is not None}
+    v = chain.velocity_limits()
+    assert v.dtype == torch.float32 and v.tolist() == pytest.approx([ref[n] for n in chain.joint_names])
+    assert len(set(v.tolist())) > 1  # per joint, not one number
+    text = FR3.read_text()
+    j1 = text.index('name="fr3_joint1"')
+    text = text[:j1] + text[j1:].replace('velocity="', 'v_removed="', 1)  # fr3_joint1's velocity gone
+    assert models.from_urdf(text, "fr3_link8").velocity_limits() is None

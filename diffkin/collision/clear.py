@@ -7,21 +7,21 @@ import torch
 from torch import Tensor
 
 from .broad import _pad, _sqrt
-from .pairs import KINDS, PAIRS, distance
+from .pairs import KINDS, distance
 
 __all__ = ["world_clear"]
 
 
 def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: float,
-                skip: Tensor | None = None, native: str | None = None) -> Tensor:
+                skip: Tensor | None = None, kinds: list[str] | None = None) -> Tensor:
     """Whether every capsule ``A, B (G, 3, N)``, ``r (G,)`` has d − margin >= slack to every object of an
     unbatched ``world`` (:class:`~diffkin.collision.World`), ``(N,)``, kind by kind through the pair table
     (:mod:`diffkin.collision.pairs`): kinds with a bounding sphere first get the bounding-sphere bound of
     every (geom, object, row) entry, the entries left their pair's own bound (capsule–box: the face normals,
     :func:`capsule_box_bound`) and only the entries left after that their exact distance; half-spaces are
     exact and cheap for all. ``skip (G, W)`` (bool, the world's object order): entries that take no part
-    (geoms fixed to the base); ``native``: leave out the kinds whose pair that C entry serves (it decided
-    them)."""
+    (geoms fixed to the base, entries the C pass decided); ``kinds``: the kinds to decide (None: all; the
+    others the C pass decided)."""
     thr = margin + slack
     D = B - A
     M = torch.addcmul(A, D, D.new_tensor(0.5))  # the bounding spheres (G, 3, N), (G, N)
@@ -41,7 +41,7 @@ def world_clear(A: Tensor, B: Tensor, r: Tensor, world, margin: float, slack: fl
         return g, w, n, A[g, :, n], B[g, :, n]
 
     for (kind, args), cols in zip(world.blocks(), world._kind_columns(A.device)):
-        if not args[0].shape[0] or (native is not None and PAIRS[("capsule", kind)].native == native):
+        if not args[0].shape[0] or (kinds is not None and kind not in kinds):
             continue
         if KINDS[kind].spheres is None:  # half-spaces: exact for every entry
             a, b = (X.transpose(1, 2).unsqueeze(1) for X in (A, B))  # (G, 1, N, 3)

@@ -37,10 +37,12 @@ from .convex import (
 from .cylinders import box_cylinder, capsule_cylinder, cylinder_cylinder, cylinder_halfspace, cylinder_spheres
 from .distances import capsule_capsule, capsule_halfspace
 
-__all__ = ["Kind", "Pair", "KINDS", "PAIRS", "distance", "NATIVE_CLEAR"]
+__all__ = ["Kind", "Pair", "KINDS", "PAIRS", "distance", "NATIVE_CLEAR", "NATIVE_CLEAR_SPHERES"]
 
 #: the fused C decisions (``dk_collide_clear``, :func:`diffkin.kernels.native.capsules_clear`)
 NATIVE_CLEAR = "dk_collide_clear"
+#: the fused C decisions for the robot's sphere geoms (capsules whose ends coincide) only
+NATIVE_CLEAR_SPHERES = "dk_collide_clear (spheres)"
 
 
 @dataclass(frozen=True)
@@ -54,7 +56,8 @@ class Kind:
 @dataclass(frozen=True)
 class Pair:
     """A pair of kinds: ``fn(*x, *y)``, a lower bound ``bound(*x, *y)`` (None: none, the pair is always
-    exact) and the C entry of the decisions that serves it (None: torch)."""
+    exact) and the C entry of the decisions that serves it (None: torch; :data:`NATIVE_CLEAR_SPHERES`: C for
+    the robot's sphere geoms, torch for the others)."""
 
     fn: Callable[..., Tensor]
     bound: Callable[..., Tensor] | None
@@ -82,9 +85,10 @@ def _spheres_bound(kx: str, ky: str) -> Callable[..., Tensor]:
 
 PAIRS: dict[tuple[str, str], Pair] = {
     ("capsule", "capsule"): Pair(capsule_capsule, _spheres_bound("capsule", "capsule"), NATIVE_CLEAR),
-    ("capsule", "box"): Pair(capsule_box, capsule_box_bound, None),
+    ("capsule", "box"): Pair(capsule_box, capsule_box_bound, NATIVE_CLEAR),
     ("capsule", "halfspace"): Pair(capsule_halfspace, None, NATIVE_CLEAR),
-    ("capsule", "cylinder"): Pair(capsule_cylinder, _spheres_bound("capsule", "cylinder"), None),
+    ("capsule", "cylinder"): Pair(capsule_cylinder, _spheres_bound("capsule", "cylinder"),
+                                  NATIVE_CLEAR_SPHERES),
     ("box", "box"): Pair(box_box, _spheres_bound("box", "box"), None),
     ("box", "halfspace"): Pair(box_halfspace, None, None),
     ("box", "cylinder"): Pair(box_cylinder, _spheres_bound("box", "cylinder"), None),

@@ -33,7 +33,7 @@ from .broad import capsule_pairs_at_least, group_tables, pairs_clear
 from .clear import world_clear
 from .distances import capsule_capsule_pairs
 from .meshes import fit_capsules, hull_vertices, resolve_mesh
-from .pairs import NATIVE_CLEAR, PAIRS, distance
+from .pairs import NATIVE_CLEAR_SPHERES, PAIRS, distance
 from .world import World, _check_world
 
 __all__ = ["Geom", "RobotCollision"]
@@ -218,6 +218,16 @@ class RobotCollision(nn.Module):
         Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * F.shape[-3])  # (..., 3, K·4)
         return Fm @ self._placement(F)
 
+    def _columns_by_component(self, q: Tensor) -> Tensor:
+        """:meth:`_columns` of q ``(N, n)`` laid out component-major, ``(C, 3, N)`` contiguous (the layout of
+        the C decisions): the same product taken as one matrix product ``Hᵀ · [F]`` with the N frames side by
+        side, so no transpose of the (larger) result is needed."""
+        self._check_agree(q)
+        F = self._frames.frames(self.chain, q)  # (N, K, 4, 4)
+        Fk = F[..., :3, :].permute(1, 3, 2, 0).reshape(4 * F.shape[-3], 3 * F.shape[0])  # (K·4, 3 N)
+        H = self._placement(F)
+        return (H.T @ Fk).reshape(H.shape[-1], 3, F.shape[0])
+
     def _check_agree(self, q: Tensor) -> None:
         """The geometry, the chain and q in one dtype and device (:func:`._checks.check_agree`)."""
         check_agree(self, q)
@@ -401,25 +411,37 @@ class RobotCollision(nn.Module):
         return distance_names(self, world, moving_only)
 
     def _clear(self, q: Tensor, world: World | None = None, margin: float = 0.0,
-               slack: float = 0.0, moving_only: bool = False) -> Tensor:
+               slack: float = 0.0, moving_only: bool = False, world_index: Tensor | None = None) -> Tensor:
         """Whether every distance d of :meth:`_distances_at_least` (with ``moving_only``: the columns it
         keeps) has d − margin >= slack, ``(...)`` bool (a decision, no gradient): the exact distances
-        wherever the bounds do not prove it. Capsule geoms and one world for all rows go through the
-        component-major broad phase of :func:`~diffkin.collision.broad.pairs_clear` and
-        :func:`~diffkin.collision.clear.world_clear` (the world entries left out masked there); robot boxes,
-        per-row worlds or self pairs left out through :meth:`_distances_at_least`."""
+        wherever the bounds do not prove it. Capsule geoms go through the fused C pass
+        (:meth:`_clear_native`) or the component-major broad phase of
+        :func:`~diffkin.collision.broad.pairs_clear` and :func:`~diffkin.collision.clear.world_clear` (the
+        world entries left out masked there); robot boxes or self pairs left out through
+        :meth:`_distances_at_least`.
+
+        A batched world broadcasts against q's batch as in :meth:`_distances_at_least`; or ``world_index``
+        ``(N,)`` (long) with q ``(N, n)`` and a world of one batch dim ``(nw,)`` names each row's world (the
+        planner's rows of many problems, each with its own scene)."""
         nc, nb = self._counts
+        if world is not None and world_index is None and not _unbatched(world):
+            batch = torch.broadcast_shapes(q.shape[:-1], world.batch_shape)
+            flat = world._flattened()
+            idx = torch.arange(flat.batch_shape[0], device=q.device).reshape(world.batch_shape).expand(batch)
+            ok = self._clear(q.expand(*batch, q.shape[-1]).reshape(-1, q.shape[-1]), flat, margin, slack,
+                             moving_only, idx.reshape(-1))
+            return ok.reshape(batch)
         keep_self, keep_world = self._kept(world, moving_only)
-        if nb or self._nconvex or keep_self is not None or (world is not None and not _unbatched(world)):
-            d = self._distances_at_least(q, world, margin + slack, moving_only=moving_only)
-            return ((d - margin) >= slack).all(-1)
+        if nb or self._nconvex or keep_self is not None:  # robot boxes and convex meshes: torch
+            return self._clear_torch(q, world, margin, slack, moving_only, world_index)
         with torch.no_grad():
             batch, rows = q.shape[:-1], q.shape[:-1].numel()
-            P = self._columns(q.reshape(rows, q.shape[-1]))  # (N, 3, C)
-            Pc = P[..., : 2 * nc].permute(2, 1, 0).contiguous()  # (2 G_c, 3, N)
-            A, B, r = Pc[:nc], Pc[nc:], self.capsule_radius
+            Pc = self._columns_by_component(q.reshape(rows, q.shape[-1]))  # (C, 3, N)
+            A, B, r = Pc[:nc], Pc[nc: 2 * nc], self.capsule_radius
             skip = None if world is None else self._world_skip(world, keep_world)
-            ok = self._clear_native(A, B, r, world, margin, slack, skip)
+            ok = self._clear_native(A, B, r, world, margin, slack, skip, world_index)
+            if ok is None and world_index is not None:
+                return self._clear_torch(q, world, margin, slack, moving_only, world_index)
             if ok is None:
                 i, j = self._pairs_00.T
                 groups = tuple(getattr(self, name) for name in _GROUP_BUFFERS)
@@ -429,28 +451,63 @@ class RobotCollision(nn.Module):
                     ok &= world_clear(A, B, r, world, margin, slack, skip)
         return ok.reshape(batch)
 
+    def _clear_torch(self, q: Tensor, world: World | None, margin: float, slack: float, moving_only: bool,
+                     world_index: Tensor | None) -> Tensor:
+        """:meth:`_clear` through :meth:`_distances_at_least` (rows of ``world_index`` each with their own
+        world gathered)."""
+        if world_index is not None:
+            world = world._take(world_index)
+        d = self._distances_at_least(q, world, margin + slack, moving_only=moving_only)
+        return ((d - margin) >= slack).all(-1)
+
     def _clear_native(self, A: Tensor, B: Tensor, r: Tensor, world: World | None, margin: float,
-                      slack: float, skip: Tensor | None) -> Tensor | None:
-        """:meth:`_clear`'s decision by the fused C pass (``dk_collide_clear``: every self pair, round
-        object and half-space exactly, configurations in blocks, no broad phase needed) and the torch broad
-        phase for the world's boxes; None where the pass does not serve (not built, CUDA)."""
+                      slack: float, skip: Tensor | None, world_index: Tensor | None = None) -> Tensor | None:
+        """:meth:`_clear`'s decision by the fused C pass (``dk_collide_clear``: every self pair and every
+        world object the pair table serves there exactly, configurations in blocks, no broad phase needed;
+        per-row worlds by ``world_index``) and the torch broad phase for the rest (cylinders against proper
+        segments; boxes against proper segments when margin + slack < 0); None where the pass does not
+        serve (not built, CUDA; per-row worlds with entries left for torch)."""
         from ..kernels import native
 
         ok = torch.ones(A.shape[-1], dtype=torch.bool, device=A.device)
+        points = (self.capsule_a.detach() == self.capsule_b.detach()).all(-1)  # (G_c,): the spheres
+        extra: dict = {}
         if world is None:
             objects = (A.new_zeros(0, 3), A.new_zeros(0, 3), A.new_zeros(0))
             hs, skip_r, skip_h = A.new_zeros(0, 4), None, None
+            left = []
         else:
             objects, hs = world._round(), world.halfspaces
-            round_cols, _, half_cols, _ = world._kind_columns(A.device)
-            skip_r = None if skip is None else skip[:, round_cols]
-            skip_h = None if skip is None else skip[:, half_cols]
-        done = native.capsules_clear(A, B, r, self._pairs_00, objects, hs, skip_r, skip_h, margin, slack, ok)
+            round_cols, box_cols, half_cols, cyl_cols = world._kind_columns(A.device)
+            cut = lambda cols: None if skip is None else skip[:, cols]  # noqa: E731
+            skip_r, skip_h = cut(round_cols), cut(half_cols)
+            # boxes against proper segments: exact in C only where a penetration fails (margin + slack >= 0)
+            boxes_here = margin + slack >= 0 or bool(points.all())
+            b = world.boxes
+            if boxes_here:
+                extra.update(boxes=(b.center, b.rotation, b.half_extents), skip_box=cut(box_cols))
+            y = world.cylinders
+            extra.update(cylinders=(y[..., :3], y[..., 3:6], y[..., 6]), skip_cylinder=cut(cyl_cols),
+                         points=points, world_index=world_index)
+            left = [k for k, args in world.blocks() if args[0].shape[-2] and (
+                PAIRS[("capsule", k)].native is None or (k == "box" and not boxes_here)
+                or (PAIRS[("capsule", k)].native == NATIVE_CLEAR_SPHERES and not bool(points.all())))]
+        done = native.capsules_clear(A, B, r, self._pairs_00, objects, hs, skip_r, skip_h, margin, slack, ok,
+                                     **extra)
         if not done:
             return None
-        if world is not None and any(PAIRS[("capsule", k)].native != NATIVE_CLEAR and len(args[0])
-                                     for k, args in world.blocks()):
-            ok &= world_clear(A, B, r, world, margin, slack, skip, native=NATIVE_CLEAR)
+        if left:
+            if world_index is not None:
+                return None
+            # what C left: every kind named in ``left`` (cylinders: the proper segments only)
+            decided = torch.zeros(len(r), len(world), dtype=torch.bool, device=A.device)
+            for k, cols in zip(("capsule", "box", "halfspace", "cylinder"), world._kind_columns(A.device)):
+                if k not in left:
+                    decided[:, cols] = True
+                elif k == "cylinder":
+                    decided[:, cols] = points[:, None]
+            rest = decided if skip is None else decided | skip
+            ok &= world_clear(A, B, r, world, margin, slack, rest, kinds=left)
         return ok
 
     def _world_skip(self, world: World, keep_world: Tensor | None) -> Tensor | None:

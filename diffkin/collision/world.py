@@ -129,6 +129,22 @@ class World:
             raise DiffkinError(f"World.stack: expected a list of diffkin.collision.World, got {got}")
         return cls(**stack_worlds(worlds))
 
+    def _flattened(self) -> World:
+        """The same worlds with every object tensor brought to one batch dim ``(nw, W, ...)`` (nw the
+        product of :attr:`batch_shape`)."""
+        batch = self.batch_shape
+        s, c, bc, bR, bh, h, p, y = self.tensors()
+        flat = lambda t, own: t.expand(*batch, *t.shape[-own:]).reshape(-1, *t.shape[-own:])  # noqa: E731
+        boxes = Box(flat(bc, 2), flat(bR, 3), flat(bh, 2))
+        return World(spheres=flat(s, 2), capsules=flat(c, 2), boxes=boxes, halfspaces=flat(h, 2),
+                     points=flat(p, 2), cylinders=flat(y, 2))
+
+    def _take(self, index: Tensor) -> World:
+        """The worlds ``index (N,)`` (long) of a world with one batch dim: a world per row ``(N, W, ...)``."""
+        s, c, bc, bR, bh, h, p, y = self.tensors()
+        return World(spheres=s[index], capsules=c[index], boxes=Box(bc[index], bR[index], bh[index]),
+                     halfspaces=h[index], points=p[index], cylinders=y[index])
+
     def _round(self) -> tuple[Tensor, Tensor, Tensor]:
         """Spheres, capsules and points as capsules ``(a (..., W, 3), b (..., W, 3), r (..., W))``."""
         parts = [(self.spheres[..., :3], self.spheres[..., :3], self.spheres[..., 3]),

@@ -51,7 +51,7 @@
 #define DK_ABI_VERSION 4 /* dk_args: bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_SOLVE_VERSION 1 /* dk_solve_args: bump with every change of DK_SOLVE_FIELDS (native.SolveArgs) */
 #define DK_WATCH_VERSION 1 /* dk_watch: bump with every change of DK_WATCH_FIELDS (native.WatchArgs) */
-#define DK_COLLIDE_VERSION 1 /* dk_collide: bump with every change of DK_COLLIDE_FIELDS (native.Collide) */
+#define DK_COLLIDE_VERSION 2 /* dk_collide: bump with every change of DK_COLLIDE_FIELDS (native.Collide) */
 #define DK_ABI_ERROR (-2) /* returned for a struct of another version or size */
 #define DK_RANGE_ERROR (-3) /* dk_solve: an option beyond this file's limits (lib_ranks > MAX_RANKS) */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
@@ -169,7 +169,20 @@ typedef struct dk_watch { DK_WATCH_FIELDS(DK_DECLARE) } dk_watch;
     X(const uint8_t *, skip_h, "[G*H] entries left out, or NULL") \
     X(double, margin, "") \
     X(double, slack, "") \
-    X(uint8_t *, ok, "[N] in/out: cleared where some distance fails")
+    X(uint8_t *, ok, "[N] in/out: cleared where some distance fails") \
+    X(int64_t, Wb, "world boxes") \
+    X(int64_t, Wy, "world cylinders") \
+    X(int64_t, nw, "worlds (the object arrays carry nw leading rows)") \
+    X(const int64_t *, wid, "[N] the world of each configuration, or NULL: world 0 for all") \
+    X(const void *, bc, "[Wb*3] reals: box centres") \
+    X(const void *, bR, "[Wb*9] reals: box rotations, row-major") \
+    X(const void *, bh, "[Wb*3] reals: box half extents") \
+    X(const void *, ya, "[Wy*3] reals: cylinders' flat faces' centres") \
+    X(const void *, yb, "[Wy*3] reals") \
+    X(const void *, yr, "[Wy] reals: cylinder radii") \
+    X(const uint8_t *, skip_b, "[G*Wb] entries left out, or NULL") \
+    X(const uint8_t *, skip_y, "[G*Wy] entries left out, or NULL") \
+    X(const uint8_t *, point, "[G] capsule g is a sphere (its ends coincide); cylinders: only these")
 typedef struct dk_collide { DK_COLLIDE_FIELDS(DK_DECLARE) } dk_collide;
 
 DK_LAYOUT(args, dk_args, DK_ARGS_FIELDS, DK_ABI_VERSION)

@@ -1,8 +1,11 @@
-/* The collision decisions of the IK's checks in one call (included by _native.c once per real type, like
- * _native_solve.c): whether every checked capsule pair and every capsule against every round world object
- * (spheres, capsules, points: segments with a radius) and half-space has d - margin >= slack, per
- * configuration. diffkin/collision/robot.py (RobotCollision._clear) places the capsules and calls it; boxes
- * stay with the torch broad phase.
+/* The collision decisions of the IK's and the planner's checks in one call (included by _native.c once per
+ * real type, like _native_solve.c): whether every checked capsule pair and every capsule against every world
+ * object (round ones: spheres, capsules, points as segments with a radius; half-spaces; boxes; cylinders
+ * against the sphere geoms) has d - margin >= slack, per configuration. diffkin/collision/robot.py
+ * (RobotCollision._clear) places the capsules and calls it; cylinders against proper segments stay with the
+ * torch broad phase. Each configuration may have its own world (wid: one scene per planning problem, the
+ * object arrays stacked by diffkin.collision.World.stack); a block gathers its lanes' objects once per
+ * object.
  *
  * Capsules are given component-major as the placement product leaves them: A and B (G x 3 x N) the segment
  * ends, r (G) the radii. The distance of two segments is Ericson's closest points of two segments
@@ -62,44 +65,207 @@ static void DK(segments_d2)(const real *p, const real *u_end, int64_t sp, const 
     }
 }
 
+/* The world of lane l of the block at n0 (0 without per-configuration worlds). */
+#define WORLD_OF(c, n0, l) ((c)->wid ? (c)->wid[(n0) + (l)] : 0)
+
+/* Squared distance from the box-frame point (x, y, z) to the box |x_k| <= h_k (0 inside) and the largest
+ * excess max_k (|x_k| - h_k) (< 0 inside: minus the depth). */
+static inline __attribute__((always_inline)) real DK(box_point_d2)(real x, real y, real z, real hx, real hy,
+                                                                 real hz, real *excess) {
+    real ex = (x < 0 ? -x : x) - hx, ey = (y < 0 ? -y : y) - hy, ez = (z < 0 ? -z : z) - hz;
+    real m = ex > ey ? ex : ey;
+    *excess = m > ez ? m : ez;
+    ex = ex > 0 ? ex : 0;
+    ey = ey > 0 ? ey : 0;
+    ez = ez > 0 ? ez : 0;
+    return ex * ex + ey * ey + ez * ez;
+}
+
+/* Whether the box-frame segment p + s d (s in [0, 1]) meets the closed box |x_k| <= h_k (the slab test,
+ * branch-free: a direction component ~0 keeps the whole parameter range when |p_k| <= h_k, none otherwise).
+ * Closed: a segment through a flat box (some h_k = 0) penetrates it (a positive depth). */
+static inline __attribute__((always_inline)) int DK(box_segment_meets)(const real p[3], const real d[3],
+                                                                     const real h[3]) {
+    real lo = 0, hi = 1;
+    int inside = 1;
+    for (int k = 0; k < 3; k++) {
+        const real ad = d[k] < 0 ? -d[k] : d[k];
+        const int par = ad < (real)1e-12;
+        const real inv = 1 / (par ? 1 : d[k]);
+        real t1 = (-h[k] - p[k]) * inv, t2 = (h[k] - p[k]) * inv;
+        real tl = t1 < t2 ? t1 : t2, th = t1 < t2 ? t2 : t1;
+        const real pk = p[k] < 0 ? -p[k] : p[k];
+        inside &= par ? pk <= h[k] : 1;
+        tl = par ? lo : tl;
+        th = par ? hi : th;
+        lo = tl > lo ? tl : lo;
+        hi = th < hi ? th : hi;
+    }
+    return inside & (lo <= hi);
+}
+
+/* Whether every lane's capsule (segment a_l - b_l, radius rg) keeps d >= T = rg + thr from the lanes' boxes
+ * (given per lane: centre bc[3][], rotation bR[9][], half extents bh[3][]). Spheres (point): the exact signed
+ * distance, any thr. Segments: thr >= 0 (the caller's contract), so a penetrating segment fails. Apart, the distance of a segment and a box is the least of its ends' distances and its
+ * distances to the box's 12 edges (a closest pair with the segment's interior and a face's interior has the
+ * segment parallel to that face: sliding along it reaches an end or an edge at the same distance). */
+static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, const real *bc, const real *bR,
+                          const real *bh, real thr, int point, int m, uint8_t *restrict clear) {
+    for (int l = 0; l < m; l++) {
+        const real dx = A[l] - bc[l], dy = A[N + l] - bc[COLLIDE_BLOCK + l], dz = A[2 * N + l] - bc[2 * COLLIDE_BLOCK + l];
+        const real *R = bR + l; /* R[(3 i + k) * COLLIDE_BLOCK] */
+#define RR(i, k) R[(3 * (i) + (k)) * COLLIDE_BLOCK]
+        real p[3], d[3], h[3] = {bh[l], bh[COLLIDE_BLOCK + l], bh[2 * COLLIDE_BLOCK + l]};
+        for (int k = 0; k < 3; k++) p[k] = dx * RR(0, k) + dy * RR(1, k) + dz * RR(2, k);
+        const real T = rg + thr;
+        real ex;
+        real best = DK(box_point_d2)(p[0], p[1], p[2], h[0], h[1], h[2], &ex);
+        if (point) { /* the signed distance of the centre: outside its distance, inside minus the depth */
+            clear[l] &= (best > 0 ? (real)sqrt((double)best) : ex) >= T;
+            continue;
+        }
+        const real ux = B[l] - A[l], uy = B[N + l] - A[N + l], uz = B[2 * N + l] - A[2 * N + l];
+        for (int k = 0; k < 3; k++) d[k] = ux * RR(0, k) + uy * RR(1, k) + uz * RR(2, k);
+#undef RR
+        real e2 = DK(box_point_d2)(p[0] + d[0], p[1] + d[1], p[2] + d[2], h[0], h[1], h[2], &ex);
+        best = e2 < best ? e2 : best;
+        /* a cheap pass first: the segment's bounding sphere against the box's */
+        const real len = (real)0.5 * (real)sqrt((double)(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]));
+        const real mx = p[0] + (real)0.5 * d[0], my = p[1] + (real)0.5 * d[1], mz = p[2] + (real)0.5 * d[2];
+        const real hr = (real)sqrt((double)(h[0] * h[0] + h[1] * h[1] + h[2] * h[2]));
+        const real far = (real)sqrt((double)(mx * mx + my * my + mz * mz)) - len - hr;
+        if (far >= T) continue;
+        if (best < T * T || DK(box_segment_meets)(p, d, h)) {
+            clear[l] = 0;
+            continue;
+        }
+        for (int k = 0; k < 3 && best >= T * T; k++) { /* the 4 edges along axis k */
+            const int i = (k + 1) % 3, j = (k + 2) % 3;
+            for (int sgn = 0; sgn < 4; sgn++) {
+                real q[3], v[3] = {0, 0, 0}, s, t;
+                q[k] = -h[k];
+                q[i] = sgn & 1 ? h[i] : -h[i];
+                q[j] = sgn & 2 ? h[j] : -h[j];
+                v[k] = 2 * h[k];
+                const real d2 = DK(segment_closest)(d[0], d[1], d[2], v[0], v[1], v[2], p[0] - q[0], p[1] - q[1],
+                                                    p[2] - q[2], &s, &t);
+                best = d2 < best ? d2 : best;
+            }
+        }
+        clear[l] &= best >= T * T;
+    }
+}
+
+/* Whether every lane's sphere (centre a_l, radius rg) keeps d >= T_l = rg + thr from the lanes' cylinders
+ * (flat faces' centres ya, yb [3][], radius yr []): the closed-form field of diffkin.collision.cylinders
+ * (axial coordinate z, radial distance rho, half-length hl: q = (rho - r, |z| - hl), d = |max(q, 0)| +
+ * min(max(q), 0)). */
+static void DK(cylinder_lanes)(const real *A, int64_t N, real rg, const real *ya, const real *yb,
+                               const real *yr, real thr, int m, uint8_t *restrict clear) {
+    for (int l = 0; l < m; l++) {
+        const real ex = (real)0.5 * (yb[l] - ya[l]), ey = (real)0.5 * (yb[COLLIDE_BLOCK + l] - ya[COLLIDE_BLOCK + l]),
+                   ez = (real)0.5 * (yb[2 * COLLIDE_BLOCK + l] - ya[2 * COLLIDE_BLOCK + l]);
+        const real hl = (real)sqrt((double)(ex * ex + ey * ey + ez * ez));
+        const int deg = !(hl > (real)1e-12);
+        const real inv = 1 / (deg ? 1 : hl);
+        const real ux = deg ? 0 : ex * inv, uy = deg ? 0 : ey * inv, uz = deg ? 1 : ez * inv;
+        const real wx = A[l] - ya[l] - ex, wy = A[N + l] - ya[COLLIDE_BLOCK + l] - ey,
+                   wz = A[2 * N + l] - ya[2 * COLLIDE_BLOCK + l] - ez;
+        const real z = wx * ux + wy * uy + wz * uz;
+        real rad2 = wx * wx + wy * wy + wz * wz - z * z;
+        rad2 = rad2 > 0 ? rad2 : 0;
+        const real qx = (real)sqrt((double)rad2) - yr[l], qz = (z < 0 ? -z : z) - hl;
+        const real ox = qx > 0 ? qx : 0, oz = qz > 0 ? qz : 0;
+        const real mq = qx > qz ? qx : qz;
+        const real d = (real)sqrt((double)(ox * ox + oz * oz)) + (mq < 0 ? mq : 0) - rg;
+        clear[l] &= d >= thr;
+    }
+}
+
+/* Whether some lane of the block is still clear (a block whose lanes all collide stops early). */
+static inline int DK(any_clear)(const uint8_t *clear, int m) {
+    uint8_t any = 0;
+    for (int l = 0; l < m; l++) any |= clear[l];
+    return any;
+}
+
+/* Whether the boxes [lo1, hi1] and [lo2, hi2] (3 each) are at least T apart (T <= 0: apart at all): then every
+ * entry of the block between what they bound is clear and is skipped. */
+static inline int DK(aabb_apart)(const real *lo1, const real *hi1, const real *lo2, const real *hi2, real T) {
+    real g2 = 0;
+    for (int k = 0; k < 3; k++) {
+        real gap = lo2[k] - hi1[k], gap2 = lo1[k] - hi2[k];
+        gap = gap > gap2 ? gap : gap2;
+        g2 += gap > 0 ? gap * gap : 0;
+    }
+    return T > 0 ? g2 >= T * T : g2 > 0;
+}
+
+#define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
+
 static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
     const int64_t N = c->N, G = c->G;
     const real *A = (const real *)c->A, *B = (const real *)c->B, *r = (const real *)c->r;
     const real thr = (real)(c->margin + c->slack);
     real d2[COLLIDE_BLOCK];
     uint8_t clear[COLLIDE_BLOCK];
-    for (int l = 0; l < m; l++) clear[l] = 1;
-    for (int64_t p = 0; p < c->P; p++) { /* the self pairs */
-        const int64_t i = c->pi[p], j = c->pj[p];
-        const real T = r[i] + r[j] + thr;
-        if (T <= 0) continue;
-        DK(segments_d2)(A + i * 3 * N + n0, B + i * 3 * N + n0, N, A + j * 3 * N + n0, B + j * 3 * N + n0, N,
-                        m, d2);
-        for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
-    }
+    int64_t wl[COLLIDE_BLOCK];
+    for (int l = 0; l < m; l++) clear[l] = 1, wl[l] = WORLD_OF(c, n0, l);
+    /* The broad phase of the block: each geom's axis-aligned box over the block's lanes (the samples of an
+     * edge lie close together), against each object's box when the lanes share one world, and against each
+     * other for the self pairs. */
+    real glo[3 * CULL_GEOMS], ghi[3 * CULL_GEOMS], olo[3], ohi[3];
+    int cull = G <= CULL_GEOMS && m > 0;
+    for (int l = 1; l < m && cull; l++) cull = wl[l] == wl[0];
+    const int64_t w0 = m > 0 ? wl[0] : 0;
+    for (int64_t g = 0; g < G && G <= CULL_GEOMS; g++)
+        for (int k = 0; k < 3; k++) {
+            const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
+            real lo = a[0], hi = a[0];
+            for (int l = 0; l < m; l++) {
+                const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
+                lo = x < lo ? x : lo;
+                hi = y > hi ? y : hi;
+            }
+            glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
+        }
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
-    real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK];
-    for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment, copied to the m lanes once */
-        for (int k = 0; k < 3; k++)
-            for (int l = 0; l < m; l++) {
-                pa[k * COLLIDE_BLOCK + l] = wa[3 * w + k];
-                pb[k * COLLIDE_BLOCK + l] = wb[3 * w + k];
+    real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK];
+    for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
+        if (!DK(any_clear)(clear, m)) goto done;
+        for (int l = 0; l < m; l++) {
+            const int64_t o = wl[l] * c->Wr + w;
+            for (int k = 0; k < 3; k++) {
+                pa[k * COLLIDE_BLOCK + l] = wa[3 * o + k];
+                pb[k * COLLIDE_BLOCK + l] = wb[3 * o + k];
             }
+            pr[l] = wr[o];
+        }
+        for (int k = 0; k < 3 && cull; k++) {
+            const real x = pa[k * COLLIDE_BLOCK], y = pb[k * COLLIDE_BLOCK];
+            olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
+        }
         for (int64_t g = 0; g < G; g++) {
             if (c->skip_r && c->skip_r[g * c->Wr + w]) continue;
-            const real T = r[g] + wr[w] + thr;
-            if (T <= 0) continue;
+            if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
             DK(segments_d2)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, pa, pb, COLLIDE_BLOCK, m, d2);
-            for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
+            for (int l = 0; l < m; l++) {
+                const real T = r[g] + pr[l] + thr;
+                clear[l] &= (T <= 0) | (d2[l] >= T * T);
+            }
         }
     }
-    for (int64_t g = 0; g < G && c->H; g++) {
-        const real *Ag = A + g * 3 * N + n0, *Bg = B + g * 3 * N + n0;
-        for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
+    for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
+        if (!DK(any_clear)(clear, m)) goto done;
+        for (int l = 0; l < m; l++)
+            for (int k = 0; k < 4; k++) pa[k * COLLIDE_BLOCK + l] = hs[4 * (wl[l] * c->H + h) + k];
+        for (int64_t g = 0; g < G; g++) {
             if (c->skip_h && c->skip_h[g * c->H + h]) continue;
-            const real nx = hs[4 * h], ny = hs[4 * h + 1], nz = hs[4 * h + 2], off = hs[4 * h + 3];
+            const real *Ag = A + g * 3 * N + n0, *Bg = B + g * 3 * N + n0;
             for (int l = 0; l < m; l++) {
+                const real nx = pa[l], ny = pa[COLLIDE_BLOCK + l], nz = pa[2 * COLLIDE_BLOCK + l];
+                const real off = pa[3 * COLLIDE_BLOCK + l];
                 real da = nx * Ag[l] + ny * Ag[N + l] + nz * Ag[2 * N + l];
                 real db = nx * Bg[l] + ny * Bg[N + l] + nz * Bg[2 * N + l];
                 real d = (da < db ? da : db) - off - r[g];
@@ -107,6 +273,70 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
             }
         }
     }
+    if (c->Wb) { /* boxes (segments: thr >= 0, the caller's contract) */
+        const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
+        real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
+        for (int64_t w = 0; w < c->Wb; w++) {
+            if (!DK(any_clear)(clear, m)) goto done;
+            for (int l = 0; l < m; l++) {
+                const int64_t o = wl[l] * c->Wb + w;
+                for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
+                for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
+            }
+            for (int k = 0; k < 3 && cull; k++) { /* the box's extent along world axis k: sum_j |R_kj| h_j */
+                const real *R = bR + 9 * (w0 * c->Wb + w), *h = bh + 3 * (w0 * c->Wb + w);
+                const real e = (R[3 * k] < 0 ? -R[3 * k] : R[3 * k]) * h[0] +
+                               (R[3 * k + 1] < 0 ? -R[3 * k + 1] : R[3 * k + 1]) * h[1] +
+                               (R[3 * k + 2] < 0 ? -R[3 * k + 2] : R[3 * k + 2]) * h[2];
+                olo[k] = bc[3 * (w0 * c->Wb + w) + k] - e, ohi[k] = bc[3 * (w0 * c->Wb + w) + k] + e;
+            }
+            for (int64_t g = 0; g < G; g++) {
+                if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
+                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
+                const int point = c->point ? c->point[g] : 0;
+                DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear);
+            }
+        }
+    }
+    if (c->Wy && c->point) { /* cylinders: the sphere geoms only (the caller decides the others) */
+        const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
+        for (int64_t w = 0; w < c->Wy; w++) {
+            if (!DK(any_clear)(clear, m)) goto done;
+            for (int l = 0; l < m; l++) {
+                const int64_t o = wl[l] * c->Wy + w;
+                for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
+                pr[l] = yr[o];
+            }
+            for (int k = 0; k < 3 && cull; k++) { /* the faces' centres and the radius every way */
+                const real x = pa[k * COLLIDE_BLOCK], y = pb[k * COLLIDE_BLOCK];
+                olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
+            }
+            for (int64_t g = 0; g < G; g++) {
+                if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
+                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
+                DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
+            }
+        }
+    }
+    if (!DK(any_clear)(clear, m)) goto done;
+    for (int64_t p = 0; p < c->P; p++) { /* the self pairs (last: the world rejects most colliding samples) */
+        const int64_t i = c->pi[p], j = c->pj[p];
+        const real T = r[i] + r[j] + thr;
+        if (T <= 0) continue;
+        if (G <= CULL_GEOMS && DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, T)) continue;
+        const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
+        if (c->point && c->point[i] && c->point[j]) { /* two spheres: their centres */
+            for (int l = 0; l < m; l++) {
+                const real dx = Ai[l] - Aj[l], dy = Ai[N + l] - Aj[N + l], dz = Ai[2 * N + l] - Aj[2 * N + l];
+                clear[l] &= dx * dx + dy * dy + dz * dz >= T * T;
+            }
+        } else {
+            DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
+            for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
+        }
+        if ((p & 15) == 15 && !DK(any_clear)(clear, m)) break;
+    }
+done:
     for (int l = 0; l < m; l++) ok[n0 + l] &= clear[l];
 }
 

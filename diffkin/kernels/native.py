@@ -153,10 +153,12 @@ class WatchArgs(ctypes.Structure):
 class Collide(ctypes.Structure):
     """``dk_collide`` of ``_native.c`` (``DK_COLLIDE_FIELDS``: the arguments of :func:`capsules_clear`)."""
 
-    VERSION = 1
+    VERSION = 2
     _fields_ = _HEAD + [(name, _I64) for name in ("real_bytes", "N", "G", "P", "Wr", "H", "nthreads")] + \
         [(name, _PTR) for name in ("A", "B", "r", "pi", "pj", "wa", "wb", "wr", "hs", "skip_r", "skip_h")] + \
-        [("margin", _F64), ("slack", _F64), ("ok", _PTR)]
+        [("margin", _F64), ("slack", _F64), ("ok", _PTR)] + \
+        [(name, _I64) for name in ("Wb", "Wy", "nw")] + \
+        [(name, _PTR) for name in ("wid", "bc", "bR", "bh", "ya", "yb", "yr", "skip_b", "skip_y", "point")]
 
 
 #: the structs checked at load, by the tag of their ``dk_layout_<tag>`` / ``dk_names_<tag>`` exports
@@ -630,27 +632,48 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
 
 def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,
                    skip_round: Tensor | None, skip_half: Tensor | None, margin: float, slack: float,
-                   ok: Tensor) -> bool:
+                   ok: Tensor, *, boxes=None, cylinders=None, skip_box: Tensor | None = None,
+                   skip_cylinder: Tensor | None = None, points: Tensor | None = None,
+                   world_index: Tensor | None = None) -> bool:
     """Clear ``ok (N,)`` (bool, in place) where a checked distance has d − margin < slack: capsules with
     ends ``A, B (G, 3, N)`` (contiguous, component-major) and radii ``r (G,)``, the self ``pairs (P, 2)``
     (long), the round world objects ``(a (W, 3), b (W, 3), r (W,))`` (spheres, capsules, points as
-    capsules) and ``halfspaces (H, 4)`` of one world (``{x : n·x ≤ offset}``), with the entries ``skip_*``
-    (``(G, W)``, ``(G, H)`` bool) left out. One call of ``dk_collide_clear`` (``_native_collide.c``); False
-    (nothing done) where the library is not loaded or the inputs are not CPU tensors of one float dtype."""
+    capsules), ``halfspaces (H, 4)`` (``{x : n·x ≤ offset}``), ``boxes`` ``(c (W_b, 3), R (W_b, 3, 3), h
+    (W_b, 3))`` and ``cylinders`` ``(a (W_y, 3), b (W_y, 3), r (W_y,))`` — cylinders against the capsules
+    that ``points (G,)`` (bool) marks as spheres only, none without ``points`` — with the entries
+    ``skip_*`` (``(G, W)``, ``(G, H)``, ``(G, W_b)``, ``(G, W_y)`` bool) left out. Boxes against proper
+    segments need margin + slack >= 0 (the caller's contract: a penetration depth is not computed).
+
+    One world for all configurations, or ``nw`` worlds: every object tensor with a leading ``(nw, ...)``
+    dim (:meth:`~diffkin.collision.World.stack`) and ``world_index (N,)`` (long) the world of each
+    configuration. One call of ``dk_collide_clear`` (``_native_collide.c``); False (nothing done) where the
+    library is not loaded or the inputs are not CPU tensors of one float dtype."""
     dtype = A.dtype
     if not available() or A.device.type != "cpu" or dtype not in (torch.float32, torch.float64):
         return False
-    wa, wb, wr = (t.detach().to(dtype).contiguous() for t in round_objects)
-    hs = halfspaces.detach().to(dtype).contiguous()
-    keep = [A, B, r.detach().to(dtype).contiguous(), pairs[:, 0].contiguous(), pairs[:, 1].contiguous(),
-            wa, wb, wr, hs]
-    skips = [None if m is None else m.to(torch.uint8).contiguous() for m in (skip_round, skip_half)]
+    real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
+    empty = lambda *s: A.new_zeros(*s)  # noqa: E731
+    wa, wb, wr = (real(t) for t in round_objects)
+    hs = real(halfspaces)
+    boxes = boxes if boxes is not None else (empty(0, 3), empty(0, 3, 3), empty(0, 3))
+    cylinders = cylinders if cylinders is not None else (empty(0, 3), empty(0, 3), empty(0))
+    bc, bR, bh = (real(t) for t in boxes)
+    ya, yb, yr = (real(t) for t in cylinders)
+    nw = next((t.shape[0] for t in (wa, hs, bc, ya) if t.ndim == 3), 1)
+    keep = [A, B, real(r), pairs[:, 0].contiguous(), pairs[:, 1].contiguous(), wa, wb, wr, hs, bc, bR, bh,
+            ya, yb, yr]
+    skips = [None if m is None else m.to(torch.uint8).contiguous()
+             for m in (skip_round, skip_half, skip_box, skip_cylinder, points)]
+    wid = None if world_index is None else world_index.to(torch.int64).contiguous()
     ptr = lambda t: None if t is None or t.numel() == 0 else t.data_ptr()  # noqa: E731
     okb = ok.view(torch.uint8)
     c = new_struct(Collide, real_bytes=A.element_size(), N=A.shape[-1], G=A.shape[0], P=pairs.shape[0],
-                   Wr=wa.shape[0],
-                H=hs.shape[0], nthreads=thread_count(A.shape[-1] * max(1, pairs.shape[0]) // 64),
-                A=A.data_ptr(), B=B.data_ptr(), r=ptr(keep[2]), pi=ptr(keep[3]), pj=ptr(keep[4]),
-                wa=ptr(wa), wb=ptr(wb), wr=ptr(wr), hs=ptr(hs), skip_r=ptr(skips[0]), skip_h=ptr(skips[1]),
-                margin=float(margin), slack=float(slack), ok=okb.data_ptr())
+                   Wr=wa.shape[-2], H=hs.shape[-2],
+                   nthreads=thread_count(A.shape[-1] * max(1, pairs.shape[0]) // 64),
+                   A=A.data_ptr(), B=B.data_ptr(), r=ptr(keep[2]), pi=ptr(keep[3]), pj=ptr(keep[4]),
+                   wa=ptr(wa), wb=ptr(wb), wr=ptr(wr), hs=ptr(hs), skip_r=ptr(skips[0]), skip_h=ptr(skips[1]),
+                   margin=float(margin), slack=float(slack), ok=okb.data_ptr(),
+                   Wb=bc.shape[-2], Wy=ya.shape[-2], nw=nw, wid=ptr(wid), bc=ptr(bc), bR=ptr(bR), bh=ptr(bh),
+                   ya=ptr(ya), yb=ptr(yb), yr=ptr(yr), skip_b=ptr(skips[2]), skip_y=ptr(skips[3]),
+                   point=ptr(skips[4]))
     return _lib.dk_collide_clear(ctypes.byref(c)) == 0

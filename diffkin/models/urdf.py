@@ -16,6 +16,7 @@ applied as constants (zero terms skipped): real URDFs' fixed rotations are mostl
 from __future__ import annotations
 
 import torch
+from torch import Tensor
 
 from ..errors import ModelError
 from ..kernels.configuration import JointKind, joint_kind, urdf_kind
@@ -220,6 +221,15 @@ class URDFChain(TreeChain):
                 "At": _make_transform(S.transpose(-1, -2), zero).unbind(0)}
 
     # ------------------------------------------------------------------------------------- helpers
+    def velocity_limits(self) -> Tensor | None:
+        """The joint velocity limits ``(nq,)`` of the URDF's ``<limit velocity=>`` (rad/s, m/s), in the
+        chain's dtype and device, in ``joint_names`` order; None when a joint has none (or the chain has a
+        joint of several coordinates, whose URDF carries no per-coordinate limit)."""
+        v = [self.tree.joint(n).velocity if n in self.tree._by_name else None for n in self.joint_names]
+        if len(v) != self.nq or any(x is None for x in v):
+            return None
+        return torch.tensor(v, dtype=self.dtype, device=self.device)
+
     def to_urdf(self, path=None) -> str:
         """The source URDF with this chain's current joint origins and axes written in; everything else in
         the file (visuals, collisions, inertials, transmissions, comments) is kept byte for byte. Also

@@ -54,7 +54,8 @@ class JointSpec:
     """One ``<joint>``: its type, links, fixed origin (from the parent link frame), axis, limits and mimic.
 
     ``axis`` is as written in the file (not normalised); ``lower``/``upper`` are ``None`` when absent (always
-    for continuous joints); ``mimic`` is ``(leader joint, multiplier, offset)`` or ``None``.
+    for continuous joints); ``mimic`` is ``(leader joint, multiplier, offset)`` or ``None``; ``velocity`` the
+    ``<limit velocity=>`` (rad/s or m/s) or ``None`` when absent.
     """
 
     name: str
@@ -67,6 +68,7 @@ class JointSpec:
     lower: float | None = None
     upper: float | None = None
     mimic: tuple[str, float, float] | None = None
+    velocity: float | None = None
 
 
 @dataclass(frozen=True)
@@ -252,6 +254,7 @@ def _joint_spec(elem: ET.Element, index: int) -> JointSpec:
     limit = elem.find("limit")
     lower = _opt_float(limit, "lower", where)
     upper = _opt_float(limit, "upper", where)
+    velocity = _opt_float(limit, "velocity", where)
     if kind is not None and not kind.limited:
         lower = upper = None
     if kind is not None and lower is not None and upper is not None and lower > upper:
@@ -265,7 +268,8 @@ def _joint_spec(elem: ET.Element, index: int) -> JointSpec:
         mult = _opt_float(m, "multiplier", where)
         off = _opt_float(m, "offset", where)
         mimic = (leader, 1.0 if mult is None else mult, 0.0 if off is None else off)
-    return JointSpec(name, jtype, parent, child, xyz, rpy, axis, lower, upper, mimic)  # type: ignore[arg-type]
+    return JointSpec(name, jtype, parent, child, xyz, rpy, axis, lower, upper, mimic,  # type: ignore[arg-type]
+                     velocity)
 
 
 def _cycle_from(start: str, parent_of: Mapping[str, str]) -> list[str]:

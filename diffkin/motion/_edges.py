@@ -102,15 +102,20 @@ class EdgeChecker:
         self.chunk = chunk
         self.checked = 0  # configurations decided so far (a count for the benchmarks)
 
-    def clear(self, q: Tensor, slack: float | None = None) -> Tensor:
-        """(...,) bool: every distance ≥ margin + ``slack`` (default η) at q (..., nq)."""
+    def clear(self, q: Tensor, problem: Tensor, slack: float | None = None) -> Tensor:
+        """(...,) bool: every distance ≥ margin + ``slack`` (default η) at q (..., nq), each configuration in
+        the world of its ``problem`` (...,) (long; a batched world ``(B, ...)`` has one scene per problem,
+        an unbatched one serves all)."""
         slack = self.eta if slack is None else slack
         flat = q.reshape(-1, q.shape[-1])
         self.checked += flat.shape[0]
         if flat.shape[0] == 0:
             return torch.ones(q.shape[:-1], dtype=torch.bool, device=q.device)
-        out = torch.cat([self.collision._clear(x, self.world, self.margin, slack, moving_only=self.moving)
-                         for x in flat.split(self.chunk)])
+        per_row = self.world is not None and len(self.world.batch_shape) > 0
+        idx = problem.expand(q.shape[:-1]).reshape(-1)
+        out = torch.cat([self.collision._clear(x, self.world, self.margin, slack, moving_only=self.moving,
+                                               world_index=i if per_row else None)
+                         for x, i in zip(flat.split(self.chunk), idx.split(self.chunk))])
         return out.reshape(q.shape[:-1])
 
     def steps(self, dq: Tensor) -> Tensor:
@@ -118,8 +123,10 @@ class EdgeChecker:
         L = (dq.abs() * self.reach.to(dq.dtype)).sum(-1)
         return torch.ceil(L / self.eta).clamp(min=1).long()
 
-    def edges(self, qa: Tensor, qb: Tensor, prefix: bool = False, block: int = 256) -> tuple[Tensor, Tensor]:
-        """Straight edges qa → qb (E, nq): ``free (E,)`` and ``reach (E,)``, with ``prefix`` the largest
+    def edges(self, qa: Tensor, qb: Tensor, problem: Tensor, prefix: bool = False,
+              block: int = 256) -> tuple[Tensor, Tensor]:
+        """Straight edges qa → qb (E, nq) of problems ``problem (E,)``: ``free (E,)`` and ``reach (E,)``,
+        with ``prefix`` the largest
         fraction λ ∈ [0, 1] such that qa → qa + λ (qb − qa) is proven clear (0 when qa itself is not; without
         ``prefix``: 1 for free edges, 0 otherwise).
 
@@ -151,7 +158,7 @@ class EdgeChecker:
                 continue
             rows = active[r]
             f = (pos[c] / n[rows]).to(qa.dtype)
-            ok = self.clear(qa[rows] + f[:, None] * dq[rows])
+            ok = self.clear(qa[rows] + f[:, None] * dq[rows], problem[rows])
             bad_pos = torch.full((active.numel(),), S, dtype=torch.long, device=dev)
             bad_pos.scatter_reduce_(0, r[~ok], pos[c][~ok], reduce="amin")
             first_bad[active] = torch.minimum(first_bad[active], bad_pos)

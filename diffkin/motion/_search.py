@@ -47,14 +47,15 @@ def _trace(nodes: Tensor, parent: Tensor, leaf: Tensor) -> tuple[Tensor, Tensor]
     return nodes[rows[:, None], torch.gather(idx, 1, shift)], depth
 
 
-def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, *,
+def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor, *,
            max_iterations: int, step: float, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
-    """Paths (B, L, nq) from q_start to q_goal (B, nq) (rows padded with the goal), their waypoint counts
-    (B,) and ``found (B,)``. Start and goal must already be clear (rows where they are not stay unfound)."""
+    """Paths (B, L, nq) from q_start to q_goal (B, nq) of problems ``problem (B,)`` (the rows' scenes in the
+    checker's world; rows padded with the goal), their waypoint counts (B,) and ``found (B,)``. Start and
+    goal must already be clear (rows where they are not stay unfound)."""
     B, nq = q_start.shape
     dev, dt = q_start.device, q_start.dtype
     w = checker.reach.to(dt)
-    free, _ = checker.edges(q_start, q_goal)
+    free, _ = checker.edges(q_start, q_goal, problem)
     found = free.clone()
     paths = [torch.stack((q_start, q_goal), 1)]
     lengths = torch.full((B,), 2, dtype=torch.long, device=dev)
@@ -63,6 +64,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         return paths[0], lengths, found
     C = max_iterations + 2
     nb = todo.numel()
+    pid = problem[todo]  # the problem of each tree pair
     trees = []
     for root in (q_start[todo], q_goal[todo]):
         nodes = q_start.new_zeros(nb, C, nq)
@@ -84,7 +86,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         d = q_rand - q_near
         L = (d.abs() * w).sum(-1)
         q_new = q_near + d * (step / L.clamp(min=step))[:, None]
-        ok, _ = checker.edges(q_near, q_new)
+        ok, _ = checker.edges(q_near, q_new, pid[rows])
         grow = rows[ok]
         if grow.numel():
             slot = A[2][grow]
@@ -95,7 +97,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
             qn = q_new[ok]
             nearB = _nearest(Bt[0][grow], Bt[2][grow], qn, w)
             qb = Bt[0][grow, nearB]
-            freeB, lam = checker.edges(qb, qn, prefix=True)
+            freeB, lam = checker.edges(qb, qn, pid[grow], prefix=True)
             joined = grow[freeB]
             if joined.numel():
                 ia, ib = slot[freeB], nearB[freeB]
@@ -131,9 +133,10 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
     return full, lengths, found
 
 
-def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, rounds: int, generator: torch.Generator,
-             tries: int = 4) -> tuple[Tensor, Tensor]:
-    """Random shortcutting of paths (B, L, nq) with n (B,) waypoints: each round, every path tries ``tries``
+def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, problem: Tensor, rounds: int,
+             generator: torch.Generator, tries: int = 4) -> tuple[Tensor, Tensor]:
+    """Random shortcutting of paths (B, L, nq) with n (B,) waypoints of problems ``problem (B,)``: each
+    round, every path tries ``tries``
     straight edges between random waypoints i < j − 1 (all in one batched decision) and, of the clear ones,
     takes the one dropping the most waypoints."""
     B, L, nq = path.shape
@@ -149,7 +152,8 @@ def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, rounds: int, generat
         i = (u[..., 0] * (m - 2)).long().clamp(max=m - 3)  # 0 <= i <= n - 3
         j = i + 2 + (u[..., 1] * (m - i - 2)).long().clamp(max=m - i - 3)  # i + 2 <= j <= n - 1
         r = can[:, None].expand(-1, tries)
-        free, _ = checker.edges(path[r, i].reshape(-1, nq), path[r, j].reshape(-1, nq))
+        free, _ = checker.edges(path[r, i].reshape(-1, nq), path[r, j].reshape(-1, nq),
+                                problem[r].reshape(-1))
         gain = torch.where(free.view(-1, tries), j - i - 1, 0)
         best = gain.argmax(1)
         drop = torch.zeros(B, dtype=torch.long, device=dev)

@@ -26,7 +26,6 @@ keeps every limit on the samples, and its continuous motion is proven clear of `
 from __future__ import annotations
 
 import math
-import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
 import torch
@@ -102,24 +101,6 @@ class MotionResult:
         return self.state(t).position
 
 
-def _urdf_velocity(chain) -> Tensor | None:
-    """The chain's joint velocity limits from its URDF's ``<limit velocity=>`` (None where absent)."""
-    tree = getattr(chain, "tree", None)
-    text = getattr(tree, "text", None)
-    names = getattr(chain, "joint_names", None)
-    if not text or names is None:
-        return None
-    root = ET.fromstring(text)
-    v = {}
-    for j in root.iter("joint"):
-        lim = j.find("limit")
-        if lim is not None and lim.get("velocity") is not None:
-            v[j.get("name")] = float(lim.get("velocity"))
-    if not all(n in v for n in names):
-        return None
-    return torch.tensor([v[n] for n in names], dtype=chain.dtype, device=chain.device)
-
-
 def _limits(x, B: int, nq: int, name: str, like: Tensor) -> Tensor:
     x = tensors((name, x, None), like=like, finite=False)[0]
     if x.ndim > 2 or (x.ndim and x.shape[-1] != nq) or (x.ndim == 2 and x.shape[0] != B):
@@ -153,7 +134,7 @@ def _knots(path: Tensor) -> Tensor:
     return torch.cat((torch.zeros_like(seg[:, :1]), seg.cumsum(1)), 1)
 
 
-def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor,
+def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
                   fine: int = 4096) -> Tensor:
     """(B,) bool: the clamped cubic spline through ``path`` (B, L, nq) at ``knots`` (B, L) — the geometric
     path :func:`~diffkin.trajectories.time_optimal` times — is proven clear and within the joint limits
@@ -177,7 +158,7 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     idx = torch.searchsorted(cum, marks.expand(B, K).contiguous()).clamp(max=fine)
     idx = torch.where(torch.arange(K, device=path.device)[None] <= n[:, None], idx, fine)
     qc = torch.gather(q, 1, idx[..., None].expand(B, K, q.shape[-1])).to(path.dtype)
-    return checker.clear(qc).all(1) & inside
+    return checker.clear(qc, problem[:, None]).all(1) & inside
 
 
 def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, velocity_limit=None,
@@ -194,7 +175,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             solved by :func:`diffkin.ik.solve` with the collision model.
         collision: the robot's :class:`~diffkin.collision.RobotCollision` on ``chain`` (self pairs and
             geoms of the links fixed to the chain included).
-        world: the obstacles (:class:`~diffkin.collision.World`, one for all problems) or None.
+        world: the obstacles (:class:`~diffkin.collision.World`): one for all problems, one scene per
+            problem (a world of batch shape ``(B,)``, :meth:`World.stack <diffkin.collision.World.stack>`),
+            or None.
         margin: the least clearance [m] of the continuous motion.
         velocity_limit / acceleration_limit / jerk_limit: a number, ``(nq,)`` or ``(B, nq)``.
             ``velocity_limit`` None: the URDF's ``<limit velocity=>``; the URDF holds no acceleration limit,
@@ -231,8 +214,11 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                          f"(poses), got {shape_str(goal.shape)}")
     if pose_goal and goal.shape[0] != B:
         raise ShapeError(f"expected {B} goal poses, got {shape_str(goal.shape)}")
+    if world is not None and tuple(world.batch_shape) not in ((), (B,)):
+        raise ShapeError(f"expected one world for all problems or one per problem (batch shape ({B},)), "
+                         f"got a world of batch shape {shape_str(world.batch_shape)}")
     if velocity_limit is None:
-        velocity_limit = _urdf_velocity(chain)
+        velocity_limit = chain.velocity_limits() if hasattr(chain, "velocity_limits") else None
         if velocity_limit is None:
             raise ConventionError("motion.plan: the chain carries no velocity limits: give velocity_limit")
     if acceleration_limit is None:
@@ -270,8 +256,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         else:
             lo_l = torch.full((nq,), -math.inf, dtype=dtype, device=dev)
             hi_l = -lo_l
-        fail(~checker.clear(q_start), "start in collision (closer than margin + resolution)")
-        fail(~checker.clear(q_goal), "goal in collision (closer than margin + resolution)")
+        every = torch.arange(B, device=dev)
+        fail(~checker.clear(q_start, every), "start in collision (closer than margin + resolution)")
+        fail(~checker.clear(q_goal, every), "goal in collision (closer than margin + resolution)")
         # the sampling box: the limits, and one turn about zero where a joint has none
         lo = torch.where(torch.isfinite(lo_l), lo_l, torch.full_like(lo_l, -math.pi))
         hi = torch.where(torch.isfinite(hi_l), hi_l, torch.full_like(hi_l, math.pi))
@@ -284,11 +271,11 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         success = torch.zeros(B, dtype=torch.bool, device=dev)
         duration = torch.zeros(B, dtype=dtype, device=dev)
         if rows.numel():
-            path, n, found = search(checker, q_start[rows], q_goal[rows], lo, hi,
+            path, n, found = search(checker, q_start[rows], q_goal[rows], lo, hi, rows,
                                     max_iterations=max_iterations, step=step, generator=gen)
             fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, rows[~found], True),
                  f"no collision-free path found in {max_iterations} iterations")
-            path, n = shortcut(checker, path, n, shortcut_rounds, gen)
+            path, n = shortcut(checker, path, n, rows, shortcut_rounds, gen)
             L = int(n[found].max()) if bool(found.any()) else 2
             path = path[:, :L]
             waypoints = q_goal[:, None].expand(B, L, nq).clone()
@@ -299,7 +286,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             if good.numel():
                 p = _pad(path[found], n[found])
                 kn = _knots(p)
-                smooth = _spline_clear(checker, p, kn, lo_l, hi_l)
+                smooth = _spline_clear(checker, p, kn, lo_l, hi_l, good)
                 for keep, how in ((smooth, "spline"), (~smooth, "linear")):
                     rr = good[keep]
                     if rr.numel() == 0:
