@@ -428,9 +428,7 @@ def _plot(args, chain, figure, limits) -> None:
     res = SimpleNamespace(t=one(t), q=one(q), qd=one(qd), qdd=one(qdd), duration=torch.tensor([duration]))
     v = limits["velocity_limit"]
     if v is None:  # the URDF's, as plan read them
-        from ..motion.plan import _urdf_velocity
-
-        v = _urdf_velocity(chain)
+        v = chain.velocity_limits()
     fig = plan_figure(res, chain, v, limits["acceleration_limit"], 0,
                       title=f"planned motion {b} ({duration:.3f} s; dashed: limits)")
     Path(args.plot).parent.mkdir(parents=True, exist_ok=True)

@@ -134,7 +134,8 @@ class World:
         product of :attr:`batch_shape`)."""
         batch = self.batch_shape
         s, c, bc, bR, bh, h, p, y = self.tensors()
-        flat = lambda t, own: t.expand(*batch, *t.shape[-own:]).reshape(-1, *t.shape[-own:])  # noqa: E731
+        n = batch.numel()  # not -1: an empty kind (0 objects) leaves -1 undetermined
+        flat = lambda t, own: t.expand(*batch, *t.shape[-own:]).reshape(n, *t.shape[-own:])  # noqa: E731
         boxes = Box(flat(bc, 2), flat(bR, 3), flat(bh, 2))
         return World(spheres=flat(s, 2), capsules=flat(c, 2), boxes=boxes, halfspaces=flat(h, 2),
                      points=flat(p, 2), cylinders=flat(y, 2))
