@@ -26,14 +26,12 @@ import numpy as np
 import torch
 
 from benchmarks.common import cli
+from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V  # the Franka limits cuRobo plans with
 from diffkin import motion
 from diffkin.trajectories import time_optimal
 
-__all__ = ["run", "main", "FRANKA_V", "FRANKA_A", "FRANKA_J"]
+__all__ = ["run", "main"]
 
-FRANKA_V = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
-FRANKA_A = [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]
-FRANKA_J = [7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0]
 
 
 def timing(paths: int = 64, seed: int = 0) -> list[dict]:

@@ -125,7 +125,7 @@ def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2
 
     import numpy as np
 
-    from benchmarks.bench_motion import FRANKA_A, FRANKA_J, FRANKA_V
+    from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V
     from diffkin import motion
     from diffkin.collision import World
 

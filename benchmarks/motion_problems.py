@@ -26,6 +26,10 @@ import yaml
 
 from diffkin.collision.moveit import Scene, scene_from_data
 
+FRANKA_V = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
+FRANKA_A = [15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0]
+FRANKA_J = [7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0]
+
 __all__ = ["DATA", "ARCHIVE", "PANDA_URDF", "PANDA_SPHERIZED_URDF", "PANDA_SRDF", "PANDA_JOINTS",
            "MotionProblem", "iter_problems", "load_problems"]
 
