@@ -306,6 +306,11 @@ EXEMPT: dict[str, str] = {
     "tests/test_camera_projection.py::test_bad_shapes; no fuzz case yet",
     "diffkin.calibration.CalibrationResult": "result container",
     "diffkin.calibration.CameraCalibrationResult": "result container",
+    "diffkin.calibration.ContactCalibrationResult": "result container",
+    "diffkin.calibration.calibrate_contacts": "a fit over touch-probe postures (seconds a call): readings "
+    "of another robot, NaN, fixture indices of another shape or range, non-positive radii, too few contacts "
+    "and degenerate tips are unit-tested in tests/test_calibrate_contacts.py::test_bad_inputs_are_refused; "
+    "no fuzz case yet",
     "diffkin.calibration.calibrate_camera": "a fit over images (seconds a call): bad shapes (another board "
     "size, another robot), NaN at visible points, unknown options and degenerate postures are unit-tested in "
     "tests/test_calibrate_camera.py::test_bad_inputs_are_refused; no fuzz case yet",

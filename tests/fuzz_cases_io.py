@@ -61,6 +61,8 @@ EXEMPT: dict[str, str] = {
     "diffkin.io.streaming.FKStreamResult": _RESULT,
     "diffkin.io.streaming.IKStreamResult": _RESULT,
     "diffkin.io.streaming.combine_ik": "combines IKStreamResults (plain numbers), no tensor input",
+    "diffkin.io.streaming.seed_of_chunk": "two integers (numpy's SeedSequence refuses negative ones), no "
+    "tensor input",
     **{f"diffkin.validation.{name}": _PIECE for name in (
         "as_tensor", "broadcast_batch", "check_broadcasts_to", "check_count", "check_device",
         "check_fits_dtype", "check_dtype", "check_given", "check_lower_bound", "check_number", "check_finite",
@@ -82,5 +84,5 @@ EXEMPT: dict[str, str] = {
                                                               "CollisionSpec", "parse_collisions")},
     **{f"diffkin.io.distributed.{name}": _RANKS for name in (
         "RankInfo", "rank_info", "init", "shard_rows", "part_path", "manifest_path", "write_manifest",
-        "read_manifest", "merge_parts", "gather", "barrier", "finish", "run_sharded")},
+        "read_manifest", "merge_parts", "gather", "agree", "barrier", "finish", "run_sharded")},
 }
