@@ -152,7 +152,7 @@ def test_world_files(tmp_path):
         "boxes: [{center: [0, 0, 0]}]":
             (ModelError, r"boxes\[0\]: expected keys center, half_extents .*got center"),
         "boxes: [{center: [0, 0, 0], half_extents: [1, -1, 1]}]":
-            (ModelError, r"boxes: expected half_extents >= 0, got 1 value\(s\) < 0 \(smallest -1\)"),
+            (ModelError, r"boxes: expected half_extents >= 0, got 1 negative value\(s\) \(smallest -1\)"),
         "halfspaces: [[0, 0, 2, 0]]": (ModelError, r"expected unit half-space normals, got norms \[2.0\]"),
         "cylinders: [[0, 0, 1, 0, 0, 1, 0.1]]":
             (ModelError, r"bad6.yaml: expected cylinders lengths \|b - a\|"),

@@ -30,6 +30,9 @@ def _argument(shape, name):
         return torch.eye(3, dtype=F64)
     if shape == ():
         return torch.tensor(0.2, dtype=F64)
+    if shape == (None, 3):  # a convex mesh's vertices: a box of 8 corners, placed by the name
+        corners = torch.tensor([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=F64)
+        return 0.1 * corners + torch.rand(3, dtype=F64, generator=torch.Generator().manual_seed(len(name)))
     return torch.rand(3, dtype=F64, generator=torch.Generator().manual_seed(len(name)))
 
 
@@ -41,7 +44,7 @@ def test_item06_nan_distance_is_nan(fn):
     spec = _checked._SPECS[fn]
     public = getattr(C, fn.__name__)
     for arg, shape in spec.items():
-        for k in range(max(1, math.prod(shape))):
+        for k in range(max(1, math.prod(8 if d is None else d for d in shape))):
             args = {a: _argument(s, a) for a, s in spec.items()}
             x = args[arg].clone()
             x.view(-1)[k] = NAN

@@ -129,21 +129,29 @@ def _signed(ka: str, A: tuple, ra: Tensor | None, kb: str, B: tuple, rb: Tensor 
         wit = signed_witness(sa, A64, sb, B64, ca - cb, scale)
     dirs = wit.dirs.to(ref.dtype).reshape(*batch, 4, 3)
     lam = wit.lam.to(ref.dtype).reshape(*batch, 4, 1)
-    A = tuple(x.expand(*batch, *x.shape[x.ndim - k:]) for x, k in zip(A, own_a))
-    B = tuple(x.expand(*batch, *x.shape[x.ndim - k:]) for x, k in zip(B, own_b))
+    A = tuple(x.expand(torch.Size((*batch, *x.shape[x.ndim - k:]))) for x, k in zip(A, own_a))
+    B = tuple(x.expand(torch.Size((*batch, *x.shape[x.ndim - k:]))) for x, k in zip(B, own_b))
     sa_k = pa(A, dirs, wit.code_a.reshape(*batch, 4))
     p = (lam * (sa_k - pb(B, -dirs, wit.code_b.reshape(*batch, 4)))).sum(-2)
     d = wit.sign.to(ref.dtype).reshape(batch) * safe_norm(p)
     for r in (ra, rb):
         if r is not None:
             d = d - r
-    return d
+    # NaN in, NaN out (the house rule of every distance): the witness search runs without the inputs' NaN
+    # (a NaN end of a segment may never be a support point), so the value would look finite
+    bad = torch.zeros(batch, dtype=torch.bool, device=d.device)
+    for x, k in zip(A + B, own_a + own_b):
+        bad = bad | torch.isnan(x).flatten(x.ndim - k).any(-1) if k else bad | torch.isnan(x)
+    for r in (ra, rb):
+        if r is not None:
+            bad = bad | torch.isnan(r)
+    return torch.where(bad, torch.full_like(d, float("nan")), d)
 
 
 def _flat(x: Tensor, k: int, batch: torch.Size) -> Tensor:
     """``x`` detached in float64, expanded to ``batch`` and flattened to ``(N, own dims)``."""
     own = x.shape[x.ndim - k:]
-    return x.detach().to(torch.float64).expand(*batch, *own).reshape(batch.numel(), *own)
+    return x.detach().to(torch.float64).expand(torch.Size((*batch, *own))).reshape(batch.numel(), *own)
 
 
 def _centre(kind: str, args: tuple) -> Tensor:
