@@ -272,6 +272,15 @@ def test_one_target_solve_sees_a_write_through_data():
     after, ref = ik.solve(chain, T, seed=3), ik.solve(fresh, T, seed=3)
     assert torch.equal(after.q, ref.q) and bool(after.success) and bool(ref.success)
     assert not torch.equal(after.q, before.q)
+    # with a caller's generator the stale entry is repacked and the call redone from the pool already
+    # drawn: the generator advances once, as on a chain whose entry was never stale
+    chain.d.data.add_(0.01)
+    unused = models.load("panda", dtype=torch.float64)  # no entry yet: nothing to find stale
+    unused.d.data.add_(0.02).add_(0.01)  # the same additions as the chain's: the same bits
+    g_chain, g_unused = torch.Generator().manual_seed(9), torch.Generator().manual_seed(9)
+    a, b = ik.solve(chain, T, generator=g_chain), ik.solve(unused, T, generator=g_unused)
+    assert torch.equal(a.q, b.q) and torch.equal(g_chain.get_state(), g_unused.get_state())
+    chain.d.data.sub_(0.01)
     reached = chain.forward_kinematics(after.q)  # within 0.1 mm and 1 mrad, the default tolerances
     torch.testing.assert_close(reached[:3, 3], T[:3, 3], atol=1e-4, rtol=0)
     torch.testing.assert_close(reached[:3, :3], T[:3, :3], atol=1e-3, rtol=0)

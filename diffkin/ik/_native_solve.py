@@ -242,8 +242,7 @@ def _solve_one_fn():
     return _typed[1]
 
 
-def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, tol,
-              _retry: bool = True) -> IKResult | None:
+def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, tol) -> IKResult | None:
     """The lean front of :func:`diffkin.ik.solve` for ONE target pose ``T (4, 4)`` with default options
     (no ``q0``, ``base``, ``config``, ``damping``, position-only or closed-form seeds): plain attribute
     checks, then one foreign call, ``dk_solve_one``, that checks the packed constants are still the chain's
@@ -260,19 +259,14 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
             or type(to) not in (float, int) or not 0 < to < math.inf \
             or (generator is not None and generator.device.type != "cpu") \
             or (seed is not None and type(seed) is not int) or torch.compiler.is_compiling() \
-            or single._is_wrapped(T) or not native.available():
+            or single._is_wrapped(T) or not native.available() \
+            or (T.dtype is torch.float32 and min(tol) < 1e-5) or not chain._single_end:
         return None
-    hit = single._current(chain, False)  # the pointers; dk_solve_one compares the bytes
-    if hit is None or T.dtype is not hit.dtype or (T.dtype is torch.float32 and min(tol) < 1e-5) \
-            or not chain._single_end:
+    state = _one_state(chain, T, tol, num_seeds, max_iterations)
+    if state is None:
         return None
-    prep = hit.extra.get(_ONE)
-    if prep is None:
-        prep = hit.extra[_ONE] = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
-        if prep is None:
-            return None
-    tmpl, npool = prep.one(tol, num_seeds, max_iterations)
-    empty, (tq, treal, tflag, tcount) = torch.empty_like, prep.outs
+    watch, tmpl, npool, (tq, treal, tflag, tcount) = state
+    empty = torch.empty_like
     q, ok, pe, oe, its, seeds = (empty(tq), empty(tflag), empty(treal), empty(treal), empty(tcount),
                                  empty(tcount))
     pool = None
@@ -283,14 +277,15 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
         if generator is None and seed is not None:
             generator = _seeded(seed)
         pool = torch.rand(npool, generator=generator, dtype=T.dtype) if npool else None  # alive for the call
-    status = _solve_one_fn()(tmpl, hit.watch_addr, T.data_ptr(), stream,
-                             None if pool is None else pool.data_ptr(), npool, q.data_ptr(),
-                             ok.data_ptr(), pe.data_ptr(), oe.data_ptr(), its.data_ptr(), seeds.data_ptr())
+    outputs = (q.data_ptr(), ok.data_ptr(), pe.data_ptr(), oe.data_ptr(), its.data_ptr(), seeds.data_ptr())
+    call = lambda w, t: _solve_one_fn()(t, w, T.data_ptr(), stream,  # noqa: E731
+                                        None if pool is None else pool.data_ptr(), npool, *outputs)
+    status = call(watch, tmpl)
+    if status == single._STALE:  # bytes written in place since the entry was made: repacked, the same pool
+        single._remade(chain)
+        state = _one_state(chain, T, tol, num_seeds, max_iterations)
+        status = single._STALE if state is None else call(*state[:2])
     if status != 0:
-        if status == single._STALE and _retry:  # bytes written in place since the entry was made
-            single._remade(chain)
-            return solve_one(chain, T, generator, seed, num_seeds=num_seeds, max_iterations=max_iterations,
-                             tol=tol, _retry=False)
         if status == _NOT_RIGID or status == single._STALE:  # the general path: its error, or a repack
             return None
         native._raise_on(status, "work space")
@@ -300,6 +295,22 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
                                    _DEFAULT.damping)
     return IKResult(q=q, success=ok, position_error=pe, orientation_error=oe, iterations=its,
                     seeds_tried=seeds)
+
+
+def _one_state(chain, T: Tensor, tol: tuple, num_seeds: int, max_iterations: int):
+    """``(watch address, dk_solve_one's argument template address, pool length, output templates)`` of the
+    chain's lean-path entry for a one-target call (the pointers checked here; ``dk_solve_one`` compares the
+    bytes), or None where the fused kernel does not serve the chain in ``T``'s dtype."""
+    hit = single._current(chain, False)
+    if hit is None or T.dtype is not hit.dtype:
+        return None
+    prep = hit.extra.get(_ONE)
+    if prep is None:
+        prep = hit.extra[_ONE] = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
+        if prep is None:
+            return None
+    tmpl, npool = prep.one(tol, num_seeds, max_iterations)
+    return hit.watch_addr, tmpl, npool, prep.outs
 
 
 def _wants_gradients(chain, T: Tensor) -> bool:
