@@ -34,7 +34,7 @@ from ..kernels.joints import pose_correction
 from ..transforms import _transform_inverse, _transform_points
 from .camera import _project
 from .identifiability import IdentifiabilityReport, _random_configurations, analyse_matrices, merge_reports
-from .model import POSE_AXES, parameter_jacobian
+from .model import POSE_AXES, ParameterLayout, parameter_jacobian
 
 __all__ = ["CameraModel", "ESTIMATE", "INTRINSICS", "camera_reports"]
 
@@ -44,7 +44,7 @@ ESTIMATE = ("robot", "camera", "board", "intrinsics")
 INTRINSICS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
 
 
-class CameraModel:
+class CameraModel(ParameterLayout):
     """Pixels of the board's points for K robots: ``calibration_matrix``, ``residual``, ``residual_of`` and
     the layout attributes the solvers of :mod:`.solvers` use (``n_params``, ``candidate``, ``names``,
     ``nominal``, ``is_length``, ``chains``).
@@ -101,15 +101,9 @@ class CameraModel:
 
     # ----------------------------------------------------------------------------------- layout
     @property
-    def n_params(self) -> int:
+    def n_params(self) -> int:  # (ParameterLayout's dtype and is_length)
         return self.P_robot + 21
 
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.nominal.dtype
-
-    def is_length(self) -> Tensor:
-        return self._length.to(self.nominal.device)
 
     def units(self) -> list[str]:
         """Per entry of θ: ``"m"``, ``"rad"``, ``"px"`` (fx..cy) or ``"1"`` (distortion)."""

@@ -36,7 +36,7 @@ from torch import Tensor
 from ..kernels.joints import pose_correction
 from ..transforms import _make_transform
 from .identifiability import IdentifiabilityReport, _random_configurations, analyse_matrices, merge_reports
-from .model import parameter_jacobian
+from .model import ParameterLayout, parameter_jacobian
 
 __all__ = ["ContactModel", "SURFACES", "contact_reports", "fit_fixtures", "on_fixtures", "signed_distance",
            "tip_positions"]
@@ -83,7 +83,7 @@ def fit_fixtures(p: Tensor, onehot: Tensor, surface: str) -> tuple[Tensor, Tenso
     return torch.cat((n, (n * m).sum(-1, keepdim=True)), -1), _plane_frames(n, m)
 
 
-class ContactModel:
+class ContactModel(ParameterLayout):
     """Signed distances of a probe tip to its fixtures for K robots: ``calibration_matrix``, ``residual``,
     ``residual_of`` and the layout the solvers of :mod:`.solvers` use (``n_params``, ``candidate``, ``names``,
     ``nominal``, ``is_length``, ``chains``), as :class:`~diffkin.calibration.camera_model.CameraModel`.
@@ -118,18 +118,6 @@ class ContactModel:
         self.names = tuple(robot.names) + tuple(f"{surface}{f}_{a}" for f in range(self.F) for a in axes)
         self._length = torch.cat((robot.is_length().cpu(), length))
         self.candidate = torch.cat((robot.candidate.cpu(), free)).to(self.nominal.device)
-
-    # ----------------------------------------------------------------------------------- layout
-    @property
-    def n_params(self) -> int:
-        return len(self.names)
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.nominal.dtype
-
-    def is_length(self) -> Tensor:
-        return self._length.to(self.nominal.device)
 
     def fixtures(self, theta: Tensor) -> Tensor:
         """``(..., F, 4)`` of ``theta (..., P)``: sphere [c, r]; plane [n, nᵀo] (the plane is nᵀp = d)."""

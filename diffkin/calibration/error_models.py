@@ -37,7 +37,15 @@ from torch import Tensor, nn
 from .._unchecked import UncheckedFK as _FK  # FK without checks, for torch.func over robots
 from ..chain import DHChain, KinematicChain
 from ..errors import ModelError
-from .model import DH_KINDS, POSE_AXES, CalibrationModel, ForwardModeMatrix, learnable_like, pose_residual
+from .model import (
+    DH_KINDS,
+    POSE_AXES,
+    CalibrationModel,
+    ForwardModeMatrix,
+    ParameterLayout,
+    learnable_like,
+    pose_residual,
+)
 
 __all__ = ["build_model", "ChainErrorModel", "ERROR_MODELS", "PARALLEL_SIN", "parallel_pairs",
            "resolve_error_model"]
@@ -140,7 +148,7 @@ def _names_units(chain: KinematicChain, named) -> tuple[list[str], list[bool]]:
     return names, length
 
 
-class ChainErrorModel(ForwardModeMatrix):
+class ChainErrorModel(ParameterLayout, ForwardModeMatrix):
     """The ``"hayati"`` or ``"general"`` error model of one chain structure for K robots (see module doc).
 
     ``nominal``: ζ_n ``(P,)`` or ``(K, P)``; ``candidate`` ``(P,)`` bool; ``names``; ``chains``: the nominal
@@ -271,18 +279,6 @@ class ChainErrorModel(ForwardModeMatrix):
             if flag:
                 mask[self._slice(key)] = True
         return mask
-
-    # ---------------------------------------------------------------------------------- layout
-    @property
-    def n_params(self) -> int:
-        return len(self.names)
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.nominal.dtype
-
-    def is_length(self) -> Tensor:
-        return self._length.to(self.nominal.device)
 
     # ------------------------------------------------------------------------------ kinematics
     def _fk_one(self, theta: Tensor, q: Tensor) -> Tensor:

@@ -137,6 +137,23 @@ def parameter_jacobian(f, theta: Tensor, x: Tensor, n_params: int, columns: Tens
         return torch.func.vmap(one)(theta, x)
 
 
+class ParameterLayout:
+    """The solvers' view of a model's parameter vector θ: ``n_params`` (one per entry of ``names``),
+    ``dtype`` (``nominal``'s) and ``is_length()`` (``(P,)`` bool: the entries in metres, from the ``_length``
+    mask the model builds), shared by the error models the solvers of :mod:`.solvers` take."""
+
+    @property
+    def n_params(self) -> int:
+        return len(self.names)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.nominal.dtype
+
+    def is_length(self) -> Tensor:
+        return self._length.to(self.nominal.device)
+
+
 class ForwardModeMatrix:
     """The calibration matrix Φ (2.86) of every error model, by forward-mode differentiation of the one FK
     kernel (what :meth:`~diffkin.chain.KinematicChain.parameter_jacobian` does), vectorised over K robots
