@@ -531,7 +531,8 @@ def _classes3():
 def _collision_key(chain, lim, dtype) -> tuple | None:
     """A CollisionLimit as a hashable constant: the collision model (identity, its parameters' versions and
     storage), the world's tensors (the same), gain and distances; None where the C step does not serve it
-    (another chain, box geoms, a world with boxes or batch dims, another dtype or device)."""
+    (another chain, box geoms, a world with boxes, cylinders, objects of registered kinds or batch dims,
+    another dtype or device)."""
     rc, world = lim.collision, lim.world
     if getattr(rc, "chain", None) is not chain or getattr(rc, "_counts", (0, 1))[1] \
             or getattr(rc, "_nconvex", 0):  # (the C step holds capsules only)
@@ -544,6 +545,8 @@ def _collision_key(chain, lim, dtype) -> tuple | None:
         ts = (world.spheres, world.capsules, world.halfspaces, world.points, world.boxes.center)
         if ts[4].shape[0] or any(t.ndim != 2 or t.dtype is not dtype or not t.is_cpu or
                                  (t.requires_grad and torch.is_grad_enabled()) for t in ts[:4]):
+            return None
+        if world.cylinders.shape[-2] or world.objects:  # the C step packs round objects and half-spaces only
             return None
         wkey = (id(world), *((id(t), t._version, t.data_ptr()) for t in ts))
     return (id(rc), tuple((p._version, p.data_ptr()) for p in params), wkey, lim.gain, lim.minimum_distance,
