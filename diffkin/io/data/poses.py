@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ...errors import ShapeError
+from ...rotations import _quaternion_to_matrix
 from .formats import (
     QUATERNION_NORM_TOLERANCE,
     DataFileError,
@@ -89,18 +90,9 @@ def _to_transforms(chunk: np.ndarray, layout: str, K: int, single_end: bool, nam
                     f"has norm {norm[i, j]:.6g}, not 1 (tolerance {QUATERNION_NORM_TOLERANCE:g}; it is never "
                     "normalised silently); if these rows are joint vectors, they are input for `diffkin fk`"
                 )
-            T[..., :3, :3] = _quaternion_to_matrix(quat / norm[..., None])
+            # the one encoding of (2.33), the kernels' (float64 here, as the rows are read)
+            T[..., :3, :3] = _quaternion_to_matrix(torch.from_numpy(quat / norm[..., None])).numpy()
     return T[:, 0] if single_end else T
-
-
-def _quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices of unit quaternions ``(..., 4)`` (w, x, y, z) (2.33)."""
-    w, x, y, z = np.moveaxis(q, -1, 0)
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
-    ], -2)
 
 
 def _pose_names(K: int, single_end: bool) -> list[tuple[list[str], list[str]]]:
