@@ -27,8 +27,9 @@ numbers to rounding. Under ``torch.autocast`` the kinematics run in the chain's 
 
 When no gradient w.r.t. geometry is needed (``torch.no_grad()`` or ``chain.requires_grad_(False)``) the
 fixed transforms are evaluated once in float64 and used as Python constants whose zero terms are skipped
-(cached per parameter and buffer version, so optimizer steps, in-place updates and ``load_state_dict`` are
-seen; writes through ``.data`` bypass version counting and are not).
+(kept on the chain's :class:`~diffkin.kernels.cache.Data` with every other fast path's derived state, and
+remade by its one rule: optimizer steps, in-place updates, writes through ``.data``, replaced or moved
+tensors and ``load_state_dict`` are all seen).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ import torch
 from torch import Tensor, nn
 
 from .errors import ConventionError, DTypeError, ModelError, NonFiniteError, OptionError, ShapeError
-from .kernels import native, single
+from .kernels import cache, native, single
 from .kernels.columns import columns_to_matrices, plan_of, stack_columns
 from .kernels.configuration import MOTION_NQ, ConfigurationSpace
 from .kernels.jacobian import tree_jacobian, tree_jacobian_rows
@@ -197,8 +198,6 @@ class KinematicChain(nn.Module):
                 raise ModelError(f"q_limits must have lower < upper (±inf: no limit); joints {bad} do not")
             self.q_limits = lim
         self._compiled_fk = None
-        self._const_key, self._const = None, None
-        self._zero_key, self._zero = {}, {}
         #: free-text model information (description, source, notes) from YAML, kept by to_dict()
         self.metadata: dict[str, str] = {}
 
@@ -283,12 +282,17 @@ class KinematicChain(nn.Module):
         return D if nominal is None else nominal @ D
 
     def _delta_is_zero(self, which: str, delta: Tensor) -> bool:
+        """Whether the correction is exactly zero: one host read per state of the chain (kept on its
+        :class:`~diffkin.kernels.cache.Data`, so a write through ``.data`` is seen too)."""
         if not _is_plain(delta):
             return False
-        key = (delta._version, delta.data_ptr())
-        if self._zero_key.get(which) != key:  # one host read per parameter update
-            self._zero_key[which], self._zero[which] = key, not bool(delta.detach().any())
-        return self._zero[which]
+        data = cache.current(self, grad=False)
+        if data is None:
+            return False
+        zero = data.zero.get(which)
+        if zero is None:
+            zero = data.zero[which] = not bool(delta.detach().any())
+        return zero
 
     def _fixed_transform(self, T, name: str) -> Tensor:
         """A base or tool ``(4, 4)`` by the rule (the chain's dtype and device), checked rigid."""
@@ -332,45 +336,27 @@ class KinematicChain(nn.Module):
         from the parameters, differentiable (base and tool are added by the caller)."""
         raise NotImplementedError
 
-    def _state_key(self) -> tuple | None:
-        """The version key of every parameter and buffer when the geometry may be read as constants (no
-        gradient needed, no torch.func / compile wrapper), else None. One pass, no host sync: this runs on
-        every call, so it is the latency floor of a small batch."""
-        # a chain has no submodules; buffers count too (a calibration may put a learnable origin_delta there)
-        if torch.compiler.is_compiling():  # traced: parameters are graph inputs, never constants
-            return None
-        grad = torch.is_grad_enabled()
-        key = []
-        for t in (*self._parameters.values(), *self._buffers.values()):
-            if t is None:
-                key.append(None)
-                continue
-            if (grad and t.requires_grad) or not _is_plain(t):
-                return None
-            key.append(t._version)
-            key.append(t.data_ptr())  # replaced or re-materialised (load_state_dict, .to) tensors
-        key.append(self._buffers["revolute_mask"].dtype)
-        key.append(self._buffers["revolute_mask"].device)
-        return tuple(key)
+    def _state_key(self) -> int | None:
+        """A key of the chain's state for caches kept elsewhere (collision models, the velocity IK's
+        problems): the generation of its current Data (unique over all chains; a new one after every change
+        the rule sees), or None where the geometry may not be read as constants now (a gradient wanted from
+        it, a torch.func / compile wrapper: :func:`diffkin.kernels.cache.current`)."""
+        data = cache.current(self)
+        return None if data is None else data.generation
+
+    def _constants(self) -> tuple[Segments, Segments] | None:
+        """Both constant forms of :meth:`_constant_segments` from the current Data, or None (see
+        :meth:`_state_key`)."""
+        data = cache.current(self)
+        return None if data is None else data.segments(self)
 
     def _segments(self, per_joint: bool, constants: bool = True) -> Segments:
         """The fixed transforms of every joint: per joint (column path) or stacked (matrix path); Python
         constants when allowed, else tensors that carry gradients to the parameters."""
-        key = self._state_key() if constants else None
-        if key is not None:
-            return self._cached_constants(key)[0 if per_joint else 1]
+        data = cache.current(self) if constants else None
+        if data is not None:
+            return data.segments(self)[0 if per_joint else 1]
         return self._tensor_segments(per_joint, constants)
-
-    def _cached_constants(self, key: tuple) -> tuple[Segments, Segments]:
-        """Both constant forms of :meth:`_constant_segments`, remade when the :meth:`_state_key` changes
-        (every parameter and buffer set, replaced or updated in place) or, on CPU, when their bytes were
-        written without a version bump (``p.data.add_()``: :class:`~diffkin.kernels.single.Watch`)."""
-        watched = self.__dict__.get("_const_watch")
-        if key != self._const_key or (watched is not None and not watched.unchanged()):
-            self._zero_key.clear()  # its (version, pointer) keys miss such writes as well
-            self._const_key, self._const = key, self._constant_segments()
-            self.__dict__["_const_watch"] = single.watch(self)
-        return self._const
 
     def _native_model(self, q: Tensor) -> native.NativeModel | None:
         """The packed constants for the fused native kernel (:mod:`diffkin.kernels.native`) when it may
@@ -379,8 +365,8 @@ class KinematicChain(nn.Module):
         if torch.compiler.is_compiling() or q.device.type != "cpu" or not _is_plain(q) \
                 or (q.requires_grad and torch.is_grad_enabled()) or not native.available():
             return None
-        key = self._state_key()
-        return None if key is None else native.native_model(self._topo, self._cached_constants(key)[0])
+        data = cache.current(self)
+        return None if data is None else data.native_model(self)
 
     def _route(self, q: Tensor, op: str) -> tuple[str, native.NativeModel | None]:
         """THE dispatch point: which evaluation serves a call of ``op`` on ``q`` (joints last, or joints
@@ -913,7 +899,7 @@ def _as_float64(chain: KinematicChain) -> KinematicChain:
                      for k, p in chain._parameters.items()}
     c._buffers = {k: None if b is None else (b.double() if b.is_floating_point() else b).cpu()
                   for k, b in chain._buffers.items()}
-    c._zero_key, c._zero = {}, {}
+    c.__dict__.pop(cache.KEY, None)  # the original's Data is not the copy's
     return c
 
 
