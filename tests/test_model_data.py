@@ -25,6 +25,9 @@ from diffkin.models import from_mjcf
 G1 = Path(__file__).parent / "data" / "mjcf" / "unitree_g1" / "g1.xml"
 STRUCTURE = {"revolute_mask", "_joint_revolute", "qpos0"}  # structure (or unread): not values to change
 WAYS = ("add_", "data", "setattr", "data_assign", "load_state_dict", "meta")
+# the default run's tensors (None: all); the extended run changes every one of every chain
+FAST = {"panda": None, "panda_urdf": ("origin_rpy", "axis"),
+        "g1_leg": ("body_quat", "q_limits", "link_masses")}
 
 
 def _make(name: str) -> nn.Module:
@@ -40,7 +43,7 @@ def proto(request):
     qb = chain.random_configuration(40, generator=g)
     with torch.no_grad():
         Tb = chain.forward_kinematics(qb[:4])
-    return chain, qb, Tb
+    return chain, qb, Tb, request.param
 
 
 def _tensors(chain) -> dict:
@@ -61,25 +64,48 @@ def _changed(name: str, t: torch.Tensor) -> torch.Tensor:
     return new + 0.03
 
 
+def _cat(*xs) -> torch.Tensor:
+    return torch.cat([x.flatten() for x in xs])
+
+
+# every path, each a function of (chain, q (B, nq), T (4, 4, 4)) in the chain's dtype
+PATHS = {
+    "fk_one": lambda c, q, T: c.forward_kinematics(q[0]),  # kernels/single.py: dk_fk_one
+    "fkj_one": lambda c, q, T: _cat(*c.forward_kinematics_and_jacobian(q[1])),
+    "fk_native": lambda c, q, T: c.forward_kinematics(q),  # the fused C pass
+    "jac_native": lambda c, q, T: c.geometric_jacobian(q),
+    "fk_small": lambda c, q, T: _torch(c.forward_kinematics, q[:3]),  # torch kernels, constant transforms
+    "fk_large": lambda c, q, T: _torch(c.forward_kinematics, q),
+    "fkj_small": lambda c, q, T: _cat(*_torch(c.forward_kinematics_and_jacobian, q[:3])),
+    "com": lambda c, q, T: c.center_of_mass(q),  # the native pass with the masses' pack
+    "ik_one": lambda c, q, T: ik.solve(c, T[0], seed=0).q,  # dk_solve_one
+    "ik_batch": lambda c, q, T: ik.solve(c, T, seed=0).q,  # dk_solve
+}
+
+
+def _torch(fn, q):
+    with native.disabled():
+        return fn(q)
+
+
+def _paths(chain) -> list[str]:
+    skip = {"com"} if getattr(chain, "link_masses", None) is None else set()
+    if chain.dtype != torch.float64:
+        skip |= {"ik_one", "ik_batch"}
+    return [k for k in PATHS if k not in skip]
+
+
+def _run(chain, path: str, qb, Tb) -> torch.Tensor:
+    q, T = qb.to(chain.dtype), Tb.to(chain.dtype)
+    if path.startswith("ik"):
+        return PATHS[path](chain, q, T)
+    with torch.no_grad():
+        return PATHS[path](chain, q, T)
+
+
 def _outputs(chain, qb, Tb) -> dict:
     """What every path gives (float64 inputs converted to the chain's dtype)."""
-    q, T = qb.to(chain.dtype), Tb.to(chain.dtype)
-    out = {}
-    with torch.no_grad():
-        out["fk_one"] = chain.forward_kinematics(q[0])  # kernels/single.py: dk_fk_one
-        out["fkj_one"] = torch.cat([x.flatten() for x in chain.forward_kinematics_and_jacobian(q[1])])
-        out["fk_native"] = chain.forward_kinematics(q)  # the fused C pass
-        out["jac_native"] = chain.geometric_jacobian(q)
-        with native.disabled():  # the torch kernels on the constant transforms
-            out["fk_small"] = chain.forward_kinematics(q[:3])
-            out["fk_large"] = chain.forward_kinematics(q)
-            out["fkj_small"] = torch.cat([x.flatten() for x in chain.forward_kinematics_and_jacobian(q[:3])])
-        if getattr(chain, "link_masses", None) is not None:
-            out["com"] = chain.center_of_mass(q)  # the native pass with the masses' pack
-    if chain.dtype == torch.float64:
-        out["ik_one"] = ik.solve(chain, T[0], seed=0).q  # dk_solve_one
-        out["ik_batch"] = ik.solve(chain, T, seed=0).q  # dk_solve
-    return out
+    return {k: _run(chain, k, qb, Tb) for k in _paths(chain)}
 
 
 def _fresh(proto_chain, chain) -> nn.Module:
@@ -129,37 +155,49 @@ def _apply(chain, way: str, name: str, new: torch.Tensor) -> None:
                 v.copy_(saved[k])
 
 
+@pytest.mark.parametrize("sweep", ["fast", pytest.param("full", marks=pytest.mark.extended)])
 @pytest.mark.parametrize("way", WAYS)
-def test_every_path_sees_every_change(proto, way):
-    base, qb, Tb = proto
+def test_every_path_sees_every_change(proto, way, sweep):
+    """Each path on its own (a path that ran first could otherwise renew the Data for the others): a chain
+    on which only this path has run, the change, the path again."""
+    base, qb, Tb, model = proto
     names = [k for k, t in _tensors(base).items() if k not in STRUCTURE and t.is_floating_point()
              and t.numel() > 0 and (k != "_offsets" or base._has_offsets)]  # (all zero: never read)
+    assert len(names) >= 6
+    if sweep == "fast" and FAST[model] is not None:
+        names = [k for k in names if k in FAST[model]]
     if way == "load_state_dict":
         names = [k for k in names if k in base.state_dict()]
-    assert len(names) >= 6
+    before = _outputs(copy.deepcopy(base), qb, Tb)
     for name in names:
-        chain = copy.deepcopy(base)
-        before = _outputs(chain, qb, Tb)  # every path has run: every cache is filled
-        _apply(chain, way, name, _changed(name, _tensors(chain)[name]))
-        want = _outputs(_fresh(base, chain), qb, Tb)
-        assert any(not torch.equal(before[k], want[k]) for k in want), f"{name}: the change shows nowhere"
-        _compare(_outputs(chain, qb, Tb), want, f"{way} {name}")
+        want = None
+        for path in _paths(base):
+            chain = copy.deepcopy(base)
+            _run(chain, path, qb, Tb)  # this path has run: what it caches is filled
+            _apply(chain, way, name, _changed(name, _tensors(chain)[name]))
+            if want is None:
+                want = _outputs(_fresh(base, chain), qb, Tb)
+                assert any(not torch.equal(before[k], want[k]) for k in want), f"{name}: no path shows it"
+            _compare({path: _run(chain, path, qb, Tb)}, {path: want[path]}, f"{way} {name}")
 
 
 def test_every_path_sees_a_dtype_move(proto):
-    base, qb, Tb = proto
-    chain = copy.deepcopy(base)
-    _outputs(chain, qb, Tb)
-    chain.float()
-    _compare(_outputs(chain, qb, Tb), _outputs(_fresh(base, chain), qb, Tb), "float()")
-    chain.double()  # back: float32-rounded values in float64
-    _compare(_outputs(chain, qb, Tb), _outputs(_fresh(base, chain), qb, Tb), "double()")
+    """``.float()`` and back ``.double()`` (float32-rounded values), each path on its own."""
+    base, qb, Tb, _ = proto
+    for path in _paths(base):
+        chain = copy.deepcopy(base)
+        _run(chain, path, qb, Tb)
+        for move in ("float", "double"):
+            getattr(chain, move)()
+            if path in _paths(chain):
+                want = _run(_fresh(base, chain), path, qb, Tb)
+                _compare({path: _run(chain, path, qb, Tb)}, {path: want}, f"{move}()")
 
 
 def test_one_data_per_chain_and_a_new_one_per_change(proto):
     """The chain keeps one Data; a write through ``.data`` replaces it (the rule), a call without a change
     keeps it (no repacking on every call)."""
-    base, qb, Tb = proto
+    base, qb, Tb, _ = proto
     chain = copy.deepcopy(base)
     _outputs(chain, qb, Tb)
     first = chain.__dict__["_model_data"]
