@@ -68,7 +68,7 @@ def run(args) -> list[dict]:
     v = torch.empty(7, dtype=torch.float64)
     rows = []
     with torch.no_grad():
-        prob.step(q, views[0], q_ref, DT, out=v)  # packs the chain and binds the lean entry
+        prob.step(q, views[0], q_ref, DT, out=v)  # packs the chain and binds its Data
         lean = prob._entry
         with tempfile.TemporaryDirectory() as tmp:
             lib = _driver(Path(tmp))

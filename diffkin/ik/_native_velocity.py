@@ -275,7 +275,7 @@ class NativeVelocity:
 
     # ------------------------------------------------------------------------------- the lean path
     def _lean(self):
-        """The chain's current lean entry and this problem's call struct bound to it (None: not servable:
+        """The chain's current Data and this problem's call struct bound to it (None: not servable:
         gradients wanted, CUDA, no library): ``(entry, dk_velocity_step, address of its fixed block, work
         space, the call's Vel, the fixed block)``."""
         chain = self.chain
@@ -304,7 +304,7 @@ class NativeVelocity:
         the QP solved. ``com_target (3,)``: the ComTask's target, when the problem has one.
 
         A handful of Python operations around one foreign call (``dk_velocity_step``, two arguments): the
-        entry is this problem's while the chain's lean entry is the one it was bound to (the chain's bytes
+        entry is this problem's while the chain's Data is the one it was bound to (the chain's bytes
         are compared in C on every call)."""
         lean = self._entry
         if lean is None or lean[0] is not self._cdict.get(_LEAN) or q.dtype is not self.dtype or \
