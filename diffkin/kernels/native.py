@@ -68,7 +68,7 @@ from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
            "Collide", "capsules_clear",
-           "native_model", "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
+           "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve"]
 
@@ -143,7 +143,7 @@ class SolveArgs(ctypes.Structure):
 
 class WatchArgs(ctypes.Structure):
     """``dk_watch`` of ``_native.c`` (``DK_WATCH_FIELDS``): the byte snapshot the lean paths' entry points
-    compare before they compute (:class:`diffkin.kernels.single.Watch`)."""
+    compare before they compute (:class:`diffkin.kernels.cache.Watch`)."""
 
     VERSION = 1
     _fields_ = _HEAD + [("n", _I64), ("ptr", _PTR), ("bytes", _PTR), ("snap", _PTR), ("work", _PTR),
@@ -544,15 +544,6 @@ def _filled(args: ctypes.Structure, **fields) -> ctypes.Structure:
     for name, v in fields.items():
         setattr(args, name, v.data_ptr() if isinstance(v, Tensor) else v)
     return args
-
-
-def native_model(topo: Topology, seg: Segments) -> NativeModel:
-    """The packed constants of ``seg``, made once per Segments object (kept on it)."""
-    packed = seg.__dict__.get("_native")
-    if packed is None:
-        packed = NativeModel(topo, seg)
-        object.__setattr__(seg, "_native", packed)  # Segments is frozen; the pack is derived data
-    return packed
 
 
 def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
