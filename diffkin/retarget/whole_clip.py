@@ -48,6 +48,7 @@ from torch.nn import functional as nn
 from ..errors import ModelError, OptionError, ShapeError
 from ..ik.closed_loop import _L_matrix
 from ..jacobian import _shift_jacobian_point
+from ..kernels import native
 from ..kernels.banded import block_banded_cg, block_banded_solve
 from ..kernels.pose_error import orientation_error
 from ..rotations import _skew
@@ -81,6 +82,9 @@ class _Terms:
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
         self._F = None
+        #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
+        #: rows added to the problem (:meth:`evaluate`)
+        self.extra_rows: list = []
         self.fps = fps
         self.kp_idx = [ends.index(f) for f in keypoint_frames]
         self.kp_w = kp_weights
@@ -135,19 +139,55 @@ class _Terms:
     def evaluate(self, q: Tensor):
         """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``.
 
+        Three parts: the end links' frame terms (keypoints, orientations, the soles' contact, penetration,
+        level and skating rows: :meth:`frame_terms`), the per-frame rows of :attr:`extra_rows` (the
+        residual-row interface: each callable ``(q, Ta (B, T, E, 4, 4), Ja (B, T, E, 6, nv)) -> (r (B, T,
+        m), J (B, T, m, nv))`` adds ½‖r‖² to the cost, JᵀJ to D and Jᵀr to g), then the joint terms
+        (:meth:`_joint_terms`: limits, posture, the differences over time)."""
+        B, T, nq = q.shape
+        Ta, Ja = self.chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
+        if Ta.ndim == 3:
+            Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
+        cost, D, E, g = self.frame_terms(Ta, Ja, B, T)
+        Ta, Ja = Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:])
+        for rows in self.extra_rows:
+            r, J = rows(q, Ta, Ja)
+            cost = cost + 0.5 * r.square().flatten(1).sum(-1)
+            D = D + J.mT @ J
+            g = g + (J.mT @ r.unsqueeze(-1)).squeeze(-1)
+        return self._joint_terms(q, cost, D, E, g)
+
+    def frame_terms(self, Ta: Tensor, Ja: Tensor, B: int, T: int):
+        """The end links' terms from the poses ``Ta (B T, E, 4, 4)`` and Jacobians ``Ja (B T, E, 6, nv)``
+        of the B clips' T frames: cost ``(B,)``, D, E ``(B, T, nv, nv)``, g ``(B, T, nv)``. In C on CPU
+        tensors (:func:`diffkin.kernels.native.clip_rows`), else :meth:`_frame_terms_torch` (the same to
+        rounding: a CUDA tensor, autograd, no C compiler)."""
+        w, ori = self.w, self.ori is not None
+        out = native.clip_rows(
+            Ta, Ja, T=T, keypoint_ends=self.kp_idx, keypoint_weights=w["keypoint"] * self.kp_w.to(Ta),
+            keypoints=self.x.reshape(B * T, -1, 3), orientation_ends=self.ori_idx if ori else [],
+            orientation_weights=w["orientation"] * self.ori_w.to(Ta) if ori else None,
+            orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
+            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground)
+        if out is None:
+            return self._frame_terms_torch(Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:]))
+        cost, D, E, g = out
+        nv = D.shape[-1]
+        return (cost.reshape(B, T).sum(-1), D.reshape(B, T, nv, nv), E.reshape(B, T, nv, nv),
+                g.reshape(B, T, nv))
+
+    def _frame_terms_torch(self, Ta: Tensor, Ja: Tensor):
+        """:meth:`frame_terms` in torch ops, from ``Ta (B, T, E, 4, 4)`` and ``Ja (B, T, E, 6, nv)``.
+
         The rows of one frame (keypoints, the soles' contact, penetration and level rows) are stacked into
         ``J_f (B, T, m, nv)`` and enter D as one batched product J_fᵀ J_f; the skating rows couple
         consecutive frames, their diagonal part joins that product (each frame's sole-centre Jacobian
         weighted by the root of the summed squared weights of its two pairs), their off-diagonal part is
-        one more product; the limit, posture and difference terms are multiples of the identity."""
-        chain, w = self.chain, self.w
-        B, T, nq = q.shape
-        nv = chain.nv
-        Ta, Ja = chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
-        if Ta.ndim == 3:
-            Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
-        Ta = Ta.reshape(B, T, *Ta.shape[1:])
-        Ja = Ja.reshape(B, T, *Ja.shape[1:])
+        one more product."""
+        w = self.w
+        B, T = Ta.shape[:2]
+        nv = Ja.shape[-1]
+        q = Ta  # the dtype and device of the rows
         rows, jacs, d_only = [], [], []  # d_only: rows entering D only (skating's diagonal part)
         # keypoints
         p = self._frames(Ta, self.kp_idx)[..., :3, 3]
@@ -206,6 +246,15 @@ class _Terms:
         if skate_new:
             Jn, Jo = torch.cat(skate_new, -2), torch.cat(skate_old, -2)
             E[:, 1:] = -(Jn.mT @ Jo)
+        return cost, D, E, g
+
+    def _joint_terms(self, q: Tensor, cost: Tensor, D: Tensor, E: Tensor, g: Tensor):
+        """The joint terms of ``q (B, T, nq)`` (limits, velocity limits, posture, velocity, acceleration;
+        the module doc), multiples of the identity on the scalar columns or on all, added to the other
+        terms' cost, D, E, g (D, E, g in place); returns (cost, D, E, F, g)."""
+        w = self.w
+        B, T, _ = q.shape
+        nv = self.chain.nv
         # joint limits (diagonal in the scalar velocity columns)
         qs = q.index_select(-1, self.sq)
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
