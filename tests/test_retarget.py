@@ -534,6 +534,79 @@ def test_whole_clip_gradient_against_autograd():
         assert torch.isfinite(D).all() and (ev > -1e-9 * ev.amax(-1, keepdim=True)).all()
 
 
+def _terms_case(dtype, B=2, T=6):
+    """A whole-clip problem on the G1 (random poses near the ground, noisy keypoints, random contacts and
+    orientation targets on some frames): its _Terms and q."""
+    from diffkin.retarget.whole_clip import COSTS, _Terms, _velocity_limits
+    from diffkin.rotations import _skew
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=dtype).requires_grad_(False)
+    gen = torch.Generator().manual_seed(1)
+    q = torch.zeros(B, T, g1.nq, dtype=torch.float64)
+    q[..., 2], q[..., 3] = 0.76, 1.0  # some sole points below the ground: penetration rows
+    q[..., 7:] = 0.2 * torch.randn(B, T, g1.nq - 7, generator=gen, dtype=torch.float64)
+    q[..., 3:7] += 0.05 * torch.randn(B, T, 4, generator=gen, dtype=torch.float64)
+    q[..., 3:7] /= q[..., 3:7].norm(dim=-1, keepdim=True)
+    kp = mp.keypoint_frames
+    with torch.no_grad():
+        x = g1.forward_kinematics(q.to(dtype))[..., [g1.end_links.index(f) for f in kp], :3, 3].double()
+    x = x + 0.03 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    contacts = torch.rand(B, T, 2, generator=gen) < 0.7
+    rv = 0.5 * torch.randn(B, T, len(kp), 3, generator=gen, dtype=torch.float64)
+    R_d = torch.linalg.matrix_exp(_skew(rv))
+    ow = torch.rand(len(kp), generator=gen, dtype=torch.float64) * (torch.arange(len(kp)) % 2)  # some 0
+    kw = 0.5 + torch.rand(len(kp), generator=gen, dtype=torch.float64)
+    terms = _Terms(g1, x.to(dtype), contacts, list(mp.feet), kp, 30.0, 0.01, None, kw.to(dtype), dict(COSTS),
+                   q.to(dtype), 0.0, _velocity_limits(g1, 3.0, q.to(dtype)), R_d.to(dtype), ow.to(dtype))
+    return terms, q.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
+    """The C frame terms (native.clip_rows: keypoints, orientations, the soles' contact, penetration and
+    level rows, skating) give the torch path's cost, D, E and g: 1e-9 relative in float64."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    terms, q = _terms_case(dtype)
+    assert bool((terms.c[:, 1:] & terms.c[:, :-1]).any())  # skating pairs
+    with torch.no_grad():
+        Ta, Ja = terms.chain.forward_kinematics_and_jacobian(q.flatten(0, 1))
+        h = Ta[:, terms.feet_idx, 2, 3]
+    assert bool((h < 0.05).any())  # some frames with soles below the ground
+    fast = terms.evaluate(q)
+    with native.disabled():
+        slow = terms.evaluate(q)
+    tol = 1e-9 if dtype == torch.float64 else 1e-4
+    for name, a, b in zip(("cost", "D", "E", "F", "g"), fast, slow):
+        scale = b.abs().amax().clamp_min(1.0)
+        assert (a - b).abs().amax() <= tol * scale, name
+    assert fast[2].abs().amax() > 0 and not torch.equal(fast[2], torch.zeros_like(fast[2]))
+
+
+def test_whole_clip_extra_rows_plug_in():
+    """The residual-row interface: per-frame rows given through ``extra_rows`` add ½‖r‖² to the cost, JᵀJ
+    to D and Jᵀr to g (a row that repeats the pelvis keypoint's rows doubles their share)."""
+    terms, q = _terms_case(torch.float64, B=1, T=4)
+    base = terms.evaluate(q)
+    k = terms.kp_idx[0]
+    sw = terms.w["keypoint"] * terms.kp_w[0]
+
+    def pelvis(q_, Ta, Ja):
+        return sw * (Ta[..., k, :3, 3] - terms.x[:, :, 0]), sw * Ja[..., k, :3, :]
+
+    terms.extra_rows.append(pelvis)
+    more = terms.evaluate(q)
+    Ta, Ja = terms.chain.forward_kinematics_and_jacobian(q.flatten(0, 1))
+    r, J = pelvis(q, Ta.reshape(1, 4, *Ta.shape[1:]), Ja.reshape(1, 4, *Ja.shape[1:]))
+    torch.testing.assert_close(more[0] - base[0], 0.5 * r.square().sum((-1, -2)))
+    torch.testing.assert_close(more[1] - base[1], J.mT @ J)
+    torch.testing.assert_close(more[4] - base[4], (J.mT @ r.unsqueeze(-1)).squeeze(-1))
+    torch.testing.assert_close(more[2], base[2])
+
+
 def test_whole_clip_orientation_targets_recover_the_wrists():
     """Orientation targets (the robot's own link frames by diffkin FK): the wrist joints, which positions of
     the wrist_yaw_link origin leave nearly unobservable, are recovered with the orientation term and not
