@@ -28,25 +28,33 @@ static int64_t DK(support)(const real *J, int64_t nv, int64_t *cols) {
 }
 
 /* The m rows R (m x nv) and residuals r of one end link into the frame's D (upper triangle), g and cost, on
- * the s columns cols: packed rows P (m x s), then D[cols, cols] += P^T P. */
+ * the s columns cols: the rows packed on them (P, m x s), their Gram matrix G = P^T P (s x s, rank-one
+ * updates of contiguous rows) scattered into D[cols, cols]. */
 static void DK(clip_gram)(const real *R, const real *r, int64_t m, const int64_t *cols, int64_t s, int64_t nv,
-                          real *P, real *D, real *g, real *cost) {
+                          real *P, real *G, real *D, real *g, real *cost) {
     for (int64_t i = 0; i < m; i++) {
         for (int64_t a = 0; a < s; a++) P[i * s + a] = R[i * nv + cols[a]];
         *cost += (real)0.5 * r[i] * r[i];
         for (int64_t a = 0; a < s; a++) g[cols[a]] += P[i * s + a] * r[i];
     }
+    memset(G, 0, (size_t)(s * s) * sizeof(real));
+    for (int64_t i = 0; i < m; i++) {
+        const real *p = P + i * s;
+        for (int64_t a = 0; a < s; a++) {
+            const real pa = p[a];
+            real *Ga = G + a * s;
+#pragma omp simd
+            for (int64_t b = 0; b < s; b++) Ga[b] += pa * p[b];
+        }
+    }
     for (int64_t a = 0; a < s; a++) {
         real *Da = D + cols[a] * nv;
-        for (int64_t b = a; b < s; b++) {
-            real acc = 0;
-            for (int64_t i = 0; i < m; i++) acc += P[i * s + a] * P[i * s + b];
-            Da[cols[b]] += acc;
-        }
+        for (int64_t b = a; b < s; b++) Da[cols[b]] += G[a * s + b];
     }
 }
 
-static void DK(clip_frame)(const dk_clip *c, int64_t n, real *rows, real *res, real *packed, int64_t *cols) {
+static void DK(clip_frame)(const dk_clip *c, int64_t n, real *rows, real *res, real *packed, real *gram,
+                           int64_t *cols) {
     const int64_t nv = c->nv, E = c->ends, nn = nv * nv;
     const real *Tn = (const real *)c->Tf + n * E * 16, *Jn = (const real *)c->J + n * E * 6 * nv;
     const real *x = (const real *)c->x + n * c->K * 3, *Rd = (const real *)c->Rd + n * c->Ko * 9;
@@ -140,14 +148,14 @@ static void DK(clip_frame)(const dk_clip *c, int64_t n, real *rows, real *res, r
         }
         if (m) {
             const int64_t s = DK(support)(Je, nv, cols);
-            DK(clip_gram)(rows, res, m, cols, s, nv, packed, D, g, &cost);
+            DK(clip_gram)(rows, res, m, cols, s, nv, packed, gram, D, g, &cost);
         }
     }
     ((real *)c->cost)[n] = cost;
 }
 
 /* The skating rows of frame n (t = n mod T): its pair with n - 1 and with n + 1, then D_n mirrored. */
-static void DK(clip_skate)(const dk_clip *c, int64_t n) {
+static void DK(clip_skate)(const dk_clip *c, int64_t n, int64_t *cols) {
     const int64_t nv = c->nv, nn = nv * nv, t = n % c->T;
     const uint8_t *con = c->contact;
     const real *ctr = (const real *)c->centre, *Jc = (const real *)c->centre_jac;
@@ -167,22 +175,24 @@ static void DK(clip_skate)(const dk_clip *c, int64_t n) {
             for (int64_t v = 0; v < nv; v++) g[v] += J0[a * nv + v] * (prev * rp[a] - next * rn[a]);
         }
         const real wd = prev * prev + next * next;
-        if (wd != 0)
+        if (wd == 0) continue;
+        int64_t s = 0; /* the columns where a centre row of frame n or n - 1 is non-zero */
+        const real *J1 = prev != 0 ? Jc + ((n - 1) * 4 + 2 * k) * nv : J0;
+        for (int64_t v = 0; v < nv; v++)
+            if (J0[v] != 0 || J0[nv + v] != 0 || J1[v] != 0 || J1[nv + v] != 0) cols[s++] = v;
+        for (int a = 0; a < 2; a++)
+            for (int64_t i = 0; i < s; i++) {
+                const real f = wd * J0[a * nv + cols[i]];
+                real *Di = D + cols[i] * nv;
+                for (int64_t j = i; j < s; j++) Di[cols[j]] += f * J0[a * nv + cols[j]];
+            }
+        if (prev != 0) /* E_n = -w^2 Jc_n^T Jc_{n-1} */
             for (int a = 0; a < 2; a++)
-                for (int64_t i = 0; i < nv; i++) {
-                    const real f = wd * J0[a * nv + i];
-                    if (f != 0)
-                        for (int64_t j = i; j < nv; j++) D[i * nv + j] += f * J0[a * nv + j];
+                for (int64_t i = 0; i < s; i++) {
+                    const real f = prev * prev * J0[a * nv + cols[i]];
+                    real *Ei = En + cols[i] * nv;
+                    for (int64_t j = 0; j < s; j++) Ei[cols[j]] -= f * J1[a * nv + cols[j]];
                 }
-        if (prev != 0) { /* E_n = -w^2 Jc_n^T Jc_{n-1} */
-            const real *J1 = Jc + ((n - 1) * 4 + 2 * k) * nv;
-            for (int a = 0; a < 2; a++)
-                for (int64_t i = 0; i < nv; i++) {
-                    const real f = prev * prev * J0[a * nv + i];
-                    if (f != 0)
-                        for (int64_t j = 0; j < nv; j++) En[i * nv + j] -= f * J1[a * nv + j];
-                }
-        }
     }
     ((real *)c->cost)[n] += cost;
     for (int64_t i = 0; i < nv; i++)
@@ -190,23 +200,25 @@ static void DK(clip_skate)(const dk_clip *c, int64_t n) {
 }
 
 /* Work space per thread: rows and residuals of one end link (rows_max x nv, rows_max), packed rows
- * (rows_max x nv), the support columns (nv). */
+ * (rows_max x nv), their Gram matrix (nv x nv), the support columns (nv). */
 static int64_t DK(clip_rows)(const dk_clip *c) {
     const int64_t nv = c->nv, N = c->N;
     const int64_t rows_max = 3 * (c->K + c->Ko) + c->P0 + c->P1 + 6;
-    const size_t per = (size_t)(2 * rows_max * nv + rows_max) * sizeof(real) + (size_t)nv * sizeof(int64_t);
+    const size_t reals = (size_t)(2 * rows_max * nv + rows_max + nv * nv);
+    const size_t per = reals * sizeof(real) + (size_t)nv * sizeof(int64_t);
     int64_t nth = c->nthreads < 1 ? 1 : c->nthreads;
     if (nth > N) nth = N > 0 ? N : 1;
     char *work = malloc(per * (size_t)nth);
     if (!work) return -1;
 #pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
     for (int64_t n = 0; n < N; n++) {
-        char *w = work + per * (size_t)thread_id();
-        real *rows = (real *)w, *packed = rows + rows_max * nv, *res = packed + rows_max * nv;
-        DK(clip_frame)(c, n, rows, res, packed, (int64_t *)(res + rows_max));
+        real *rows = (real *)(work + per * (size_t)thread_id()), *packed = rows + rows_max * nv;
+        real *res = packed + rows_max * nv, *gram = res + rows_max;
+        DK(clip_frame)(c, n, rows, res, packed, gram, (int64_t *)(rows + reals));
     }
 #pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
-    for (int64_t n = 0; n < N; n++) DK(clip_skate)(c, n);
+    for (int64_t n = 0; n < N; n++)
+        DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals));
     free(work);
     return 0;
 }

@@ -105,6 +105,9 @@ class _Terms:
         cs = chain.configuration_space
         self.sq = torch.tensor(cs.scalar_index("q"), dtype=torch.long, device=keypoints.device)
         self.sv = torch.tensor(cs.scalar_index("v"), dtype=torch.long, device=keypoints.device)
+        # the same columns as a slice where they are a run (a floating base then hinges): views, no gathers
+        self.sq_cols = _as_slice(cs.scalar_index("q"), self.sq)
+        self.sv_cols = _as_slice(cs.scalar_index("v"), self.sv)
         lim = chain.q_limits.index_select(0, self.sq) if chain.q_limits is not None else None
         if lim is None:
             lim = torch.full((len(self.sq), 2), float("inf"), dtype=keypoints.dtype, device=keypoints.device)
@@ -256,14 +259,14 @@ class _Terms:
         B, T, _ = q.shape
         nv = self.chain.nv
         # joint limits (diagonal in the scalar velocity columns)
-        qs = q.index_select(-1, self.sq)
+        qs = q[..., self.sq_cols]
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
         r_l = w["limit"] * (over - under)
         act = ((over > 0) | (under > 0)).to(q.dtype) * w["limit"] ** 2
         cost = cost + 0.5 * r_l.square().flatten(1).sum(-1)
         diag = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
-        diag[..., self.sv] += act
-        g[..., self.sv] += w["limit"] * r_l
+        diag[..., self.sv_cols] += act
+        g[..., self.sv_cols] += w["limit"] * r_l
         if T > 1 and self.vstep is not None:  # velocity limits: ±(I, −I) on the scalar columns where beyond
             dq = qs[:, 1:] - qs[:, :-1]
             ex = (dq.abs() - self.vstep).clamp_min(0)
@@ -271,11 +274,11 @@ class _Terms:
             r_v = wl * ex * dq.sign()
             cost = cost + 0.5 * r_v.square().flatten(1).sum(-1)
             act = (ex > 0).to(q.dtype) * wl**2  # (B, T - 1, n_s)
-            diag[:, 1:, self.sv] += act
-            diag[:, :-1, self.sv] += act
-            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv] -= act
-            g[:, 1:, self.sv] += wl * r_v
-            g[:, :-1, self.sv] -= wl * r_v
+            diag[:, 1:, self.sv_cols] += act
+            diag[:, :-1, self.sv_cols] += act
+            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv_cols] -= act
+            g[:, 1:, self.sv_cols] += wl * r_v
+            g[:, :-1, self.sv_cols] -= wl * r_v
         # posture: near the warm start
         dp = self.chain.configuration_space.difference(self.q_ref, q)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
@@ -315,6 +318,13 @@ class _Terms:
                 F[:, 2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
             self._F = F
         return self._F
+
+
+def _as_slice(index: list[int], tensor: Tensor):
+    """``slice(a, b)`` where ``index`` is the run a, a + 1, ..., b − 1, else ``tensor`` (the same columns)."""
+    if index and index == list(range(index[0], index[0] + len(index))):
+        return slice(index[0], index[0] + len(index))
+    return tensor
 
 
 def _orientation_targets(orientations, weights, shape: tuple, like: Tensor):
