@@ -615,7 +615,7 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
     blocks of :func:`diffkin.kernels.banded.block_banded_solve`), by ``dk_banded_solve``
     (``_native_banded.c``); None (nothing done) where the library is not loaded, or the inputs are not CPU
     tensors of one float dtype without autograd. Systems are shared between threads (:func:`thread_count`
-    of the frames they hold, each weighted by n²/64: a frame's O(n³) block work against one FK's)."""
+    of the frames they hold)."""
     dtype = g.dtype
     if (not available() or dtype not in (torch.float32, torch.float64) or torch.is_grad_enabled() and any(
             t.requires_grad for t in (D, E, F, g)) or any(t.device.type != "cpu" or t.dtype != dtype
@@ -629,7 +629,7 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
     g = g.contiguous()
     x = torch.empty_like(g)
     batch = max(1, g.numel() // max(1, T * n))
-    threads = min(batch, thread_count(batch * T * max(1, n * n // 64)))  # a frame's blocks: ~n²/64 FKs
+    threads = min(batch, thread_count(batch * T))
     _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), g.data_ptr(), x.data_ptr(),
                                    batch, T, n, g.element_size(), threads), "work space")
     return x
@@ -664,7 +664,7 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
     D, Eb = Tf.new_empty(N, nv, nv), Tf.new_empty(N, nv, nv)
     centre, centre_jac = Tf.new_empty(N, 4), Tf.new_empty(N, 4, nv)
-    threads = thread_count(N * max(1, nv * nv // 64))  # a frame's O(nv²) rows against one FK's work
+    threads = thread_count(N)
     args = new_struct(ClipArgs, real_bytes=Tf.element_size(), nthreads=threads, N=N, T=T, nv=nv,
                       ends=E, K=len(keypoint_ends), Ko=Ko, P0=soles[0][0].shape[0], P1=soles[1][0].shape[0],
                       kp=keep[2], kp_w=keep[3], x=keep[4], ko=keep[5], ko_w=keep[6], Rd=keep[7], feet=keep[8],

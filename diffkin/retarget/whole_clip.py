@@ -459,11 +459,11 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         cur = terms.evaluate(q)
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
         history = [cur[0]]
-        eye = torch.eye(chain.nv, dtype=q.dtype, device=q.device)
         for _ in range(iterations):
             cost, D, E, F, g = cur
             scale = torch.diagonal(D, dim1=-2, dim2=-1).mean((-1, -2))  # (B,): λ relative to the curvature
-            Dl = D + (lam * scale)[:, None, None, None] * eye
+            Dl = D.clone()  # D + λ s I: a copy, its diagonal raised (no full-size product with I)
+            Dl.diagonal(dim1=-2, dim2=-1).add_((lam * scale)[:, None, None])
             if solver == "cg":
                 step = -block_banded_cg(Dl, E, F, g, cg_iterations)
             else:
