@@ -155,17 +155,17 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
                          f"{mapping.frames} (build it with mapping.frames)")
     if not chain.joint_kinds or chain.joint_kinds[0] != "free":
         raise ModelError("clip needs a floating-base chain (a free joint first)")
-    motion_c = Motion(motion.positions.to(chain.dtype), motion.names, motion.fps,
-                      None if motion.orientations is None else motion.orientations.to(chain.dtype))
+    motion_c = motion if motion.positions.dtype == chain.dtype else Motion(  # checked once: converted only
+        motion.positions.to(chain.dtype), motion.names, motion.fps,
+        None if motion.orientations is None else motion.orientations.to(chain.dtype))
     s = fit_scale(chain, motion_c, mapping) if scale is None else torch.as_tensor(
         scale, dtype=chain.dtype).reshape(-1).expand(motion.batch)
     X = mapping.targets(motion_c, s)  # (B, T, K, 3)
     B, T, K = X.shape[:3]
     kp = mapping.keypoint_frames
     ends = list(chain.end_links)
-    tgt = torch.eye(4, dtype=chain.dtype).repeat(B, T, len(ends), 1, 1)
-    for k, f in enumerate(kp):
-        tgt[:, :, ends.index(f), :3, 3] = X[:, :, k]
+    tgt = torch.zeros(B, T, len(ends), 3, dtype=chain.dtype)  # positions: ik.solve's position_only input
+    tgt[:, :, [ends.index(f) for f in kp]] = X
     root = [f for f in kp if f not in mapping.feet][0]
     if warm_start == "sequential":
         q = _initial(chain, X[:, :1], kp, root, mapping.feet, 1)[:, 0]

@@ -280,12 +280,14 @@ class _Terms:
             g[:, 1:, self.sv_cols] += wl * r_v
             g[:, :-1, self.sv_cols] -= wl * r_v
         # posture: near the warm start
-        dp = self.chain.configuration_space.difference(self.q_ref, q)
+        # q ⊖ q_ref and the frame differences q_{t+1} ⊖ q_t in one call (one pass of the quaternion maps)
+        both = self.chain.configuration_space.difference(torch.cat((self.q_ref, q[:, :-1]), 1),
+                                                         torch.cat((q, q[:, 1:]), 1))
+        dp, d = both[:, :T], both[:, T:]  # (B, T, nv), (B, T - 1, nv)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
         diag += w["posture"] ** 2
         g += w["posture"] ** 2 * dp
         if T > 1:  # velocity: J = (I at t, −I at t−1)
-            d = self.chain.configuration_space.difference(q[:, :-1], q[:, 1:])  # (B, T-1, nv)
             wv = w["velocity"] ** 2
             cost = cost + 0.5 * wv * d.square().flatten(1).sum(-1)
             diag[:, 1:] += wv
