@@ -125,7 +125,7 @@ def retarget_gmr(motion) -> tuple[np.ndarray, float, np.ndarray, object]:
     from general_motion_retargeting import GeneralMotionRetargeting
 
     clips = [frames_of(motion, b) for b in range(motion.batch)]
-    out, own, secs = [], [], 0.0
+    out, own, secs, cpu = [], [], 0.0, 0.0
     for frames in clips:
         gmr = GeneralMotionRetargeting("bvh", "unitree_g1", actual_human_height=HUMAN_HEIGHT)
         config = cmu_config(gmr.model)
@@ -140,11 +140,12 @@ def retarget_gmr(motion) -> tuple[np.ndarray, float, np.ndarray, object]:
         gmr.setup_retarget_configuration()
         q = np.zeros((len(frames), gmr.model.nq))
         targets = []
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         for t, frame in enumerate(frames):
             q[t] = gmr.retarget(copy.copy(frame))
             targets.append(gmr.scaled_human_data)
         secs += time.perf_counter() - start
+        cpu += time.process_time() - start_cpu
         out.append(q)
         tracked = {f: e[0] for f, e in config["ik_match_table2"].items() if e[1] > 0}
         data = mujoco.MjData(gmr.model)
@@ -154,7 +155,7 @@ def retarget_gmr(motion) -> tuple[np.ndarray, float, np.ndarray, object]:
             mujoco.mj_kinematics(gmr.model, data)
             err += [np.linalg.norm(data.body(f).xpos - target[h][0]) for f, h in tracked.items()]
         own.append(float(np.mean(err)))
-    return np.stack(out), secs, np.array(own), gmr.model
+    return np.stack(out), (secs, cpu), np.array(own), gmr.model
 
 
 def check_same_kinematics(gmr_model, ours_model, samples: int = 20, seed: int = 0) -> float:
