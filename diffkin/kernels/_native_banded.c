@@ -18,9 +18,28 @@ static inline void DK(axpy)(real *restrict y, real a, const real *restrict x, in
 }
 
 /* X <- L^{-1} X = U^{-T} X for upper-triangular U (rows of X: n reals each); `lower`: X is lower
- * triangular, and so is the result (row j then has no entry beyond column j). */
+ * triangular, and so is the result (row j then has no entry beyond column j). Rows are eliminated four at
+ * a time: each later row takes the four in one pass (one load and store of it per four products). */
 static void DK(lower_solve)(const real *restrict U, real *restrict X, int64_t n, int lower) {
-    for (int64_t j = 0; j < n; j++) {
+    int64_t j0 = 0;
+    for (; j0 + 4 <= n; j0 += 4) {
+        const int64_t len = lower ? j0 + 4 : n;
+        for (int64_t j = j0; j < j0 + 4; j++) { /* the four rows among themselves */
+            real *xj = X + j * n;
+            const real d = 1 / U[j * n + j];
+            for (int64_t k = 0; k < len; k++) xj[k] *= d;
+            for (int64_t i = j + 1; i < j0 + 4; i++) DK(axpy)(X + i * n, U[j * n + i], xj, len);
+        }
+        const real *x0 = X + j0 * n, *x1 = x0 + n, *x2 = x1 + n, *x3 = x2 + n;
+        for (int64_t i = j0 + 4; i < n; i++) {
+            const real a0 = U[j0 * n + i], a1 = U[(j0 + 1) * n + i], a2 = U[(j0 + 2) * n + i],
+                       a3 = U[(j0 + 3) * n + i];
+            real *xi = X + i * n;
+#pragma omp simd
+            for (int64_t k = 0; k < len; k++) xi[k] -= a0 * x0[k] + a1 * x1[k] + a2 * x2[k] + a3 * x3[k];
+        }
+    }
+    for (int64_t j = j0; j < n; j++) {
         real *xj = X + j * n;
         const real d = 1 / U[j * n + j];
         const int64_t len = lower ? j + 1 : n;
