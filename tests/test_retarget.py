@@ -586,6 +586,31 @@ def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
     assert fast[2].abs().amax() > 0 and not torch.equal(fast[2], torch.zeros_like(fast[2]))
 
 
+def test_whole_clip_optimisation_in_c_equals_the_torch_path():
+    """optimize_clip from one warm start (12 frames of the shipped hop, velocity limits, 3 iterations) gives
+    the same clip with the C kernels (frame terms, banded solve, FK) as with the torch path: 1e-9."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 12)
+    r = retarget.clip(g1, hop, mp, whole_clip=False)
+
+    def run():
+        return retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
+                                      keypoint_frames=r.keypoint_frames, fps=hop.fps, iterations=3,
+                                      velocity_limit=20.0)
+
+    fast = run()
+    with native.disabled():
+        slow = run()
+    assert bool((fast.cost[-1] < fast.cost[0] / 2).all())
+    torch.testing.assert_close(fast.cost, slow.cost, rtol=1e-9, atol=0)
+    torch.testing.assert_close(fast.q, slow.q, rtol=0, atol=1e-9)
+
+
 def test_whole_clip_extra_rows_plug_in():
     """The residual-row interface: per-frame rows given through ``extra_rows`` add ½‖r‖² to the cost, JᵀJ
     to D and Jᵀr to g (a row that repeats the pelvis keypoint's rows doubles their share)."""
