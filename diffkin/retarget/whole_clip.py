@@ -35,6 +35,10 @@ O(T nv³)). A step is kept per clip when it lowers that clip's cost (the damping
 grows); after each step the hinges are projected onto their limits (and, with ``velocity_limit``, frame
 after frame onto [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max]), so the result never violates
 them: hard constraints, whose penalty rows steer the steps away from the projection.
+
+On CPU tensors without autograd the end links' rows (keypoint to skating) and their share of JᵀJ, Jᵀr and
+the cost are formed in C (:func:`diffkin.kernels.native.clip_rows`), elsewhere in torch ops (equal to
+rounding); further per-frame rows plug in through ``_Terms.extra_rows`` (:meth:`_Terms.evaluate`).
 """
 
 from __future__ import annotations
