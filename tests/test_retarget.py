@@ -468,12 +468,18 @@ def test_whole_clip_optimisation_on_the_shipped_hop():
     data = mujoco.MjData(model)
     adr = [0, 1, 2, 3, 4, 5, 6] + [int(model.joint(n).qposadr[0]) for n in g1.joint_names[1:]]
     ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in r.keypoint_frames]
-    dist = []
+    feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in mp.feet]
+    soles = [g for g in range(model.ngeom) if model.geom_bodyid[g] in feet]  # the URDF's 4 + 4 foot spheres
+    dist, lowest = [], []
     for t in range(r.q.shape[1]):
         data.qpos[adr] = r.q[0, t].numpy()
         mujoco.mj_kinematics(model, data)
         dist.append(np.linalg.norm(data.xpos[ids] - r.keypoints[0, t].numpy(), axis=-1))
+        lowest.append(np.min(data.geom_xpos[soles, 2] - model.geom_size[soles, 0]))
     assert 1000 * np.mean(dist) == pytest.approx(m.keypoint_error.item(), abs=1e-6)
+    # no sole point below the ground, exactly (the last step lifts the base): in MuJoCo's FK and the metric
+    assert len(soles) == 8 and min(lowest) >= -1e-12
+    assert m.ground_penetration.item() <= 1e-9  # mm
 
 
 def _mujoco_g1():
@@ -633,10 +639,18 @@ def test_optimize_clip_errors():
     f32 = retarget.optimize_clip(g1, q, x.float(), c, iterations=1, **kw)
     assert f32.q.dtype == torch.float64
     out = retarget.optimize_clip(g1, q, x, c, iterations=0, **kw)
-    torch.testing.assert_close(out.q, q)
+    torch.testing.assert_close(out.q[..., 3:], q[..., 3:])  # iterations=0: the warm start, lifted ...
+    T_out = g1.forward_kinematics(out.q)
+    lowest = min(retarget.sole_of(g1, f).lowest(T_out[..., g1.end_links.index(f), :, :])[0].min()
+                 for f in mp.feet)
+    assert abs(lowest.item()) <= 1e-12 and bool((out.q[..., 2] > q[..., 2]).all())  # ... onto the ground
     assert out.cost.shape == (1, 1)
     with pytest.raises(ModelError, match="nojoint"):
         retarget.optimize_clip(g1, q, x, c, velocity_limit={"nojoint": 1.0}, **kw)
+    with pytest.raises(OptionError, match="collision_margin"):
+        retarget.optimize_clip(g1, q, x, c, collision_margin=-0.01, **kw)
+    with pytest.raises(ModelError, match="RobotCollision"):
+        retarget.optimize_clip(g1, q, x, c, collision=object(), **kw)
     with pytest.raises(OptionError, match="velocity_limit"):
         retarget.optimize_clip(g1, q, x, c, velocity_limit=0.0, **kw)
     with pytest.raises(ShapeError, match="velocity_limit"):

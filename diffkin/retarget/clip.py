@@ -124,10 +124,11 @@ def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
     return (robot.to(human) / human).to(motion.positions.dtype)
 
 
-def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float = 0.0,
+def clip(chain, motion: Motion, mapping: Mapping, *, collision=None, ground: float = 0.0, scale=None,
          max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
          iterations: int = 10, costs: dict | None = None, solver: str = "banded",
-         warm_start: str = "sequential", velocity_limit=None) -> RetargetResult:
+         warm_start: str = "sequential", velocity_limit=None,
+         collision_margin: float = 0.01) -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
     ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
 
@@ -143,7 +144,11 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
     at once (``iterations``, ``costs``, ``solver``, ``velocity_limit`` are its: joint velocity limits as
     hard constraints, e.g. the motors' rad/s), with the mapping's position weights and soles; pairs with an
     orientation weight follow their human joint's frame (``motion.orientations``) up to a per-clip
-    constant rotation fitted on stage one's answer. The
+    constant rotation fitted on stage one's answer. ``collision``: a
+    :class:`~diffkin.collision.RobotCollision` of ``chain`` (e.g. :func:`~diffkin.retarget.g1_collision`)
+    whose self pairs the optimisation keeps ``collision_margin`` (m) apart (pairs screened once on stage
+    one's answer); None (the default) adds no self-collision rows, and stage one never sees collisions.
+    No sole point ends below ``ground`` (the optimisation's last step raises the base where one is). The
     metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage one's.
     """
     mapping.check(motion)
@@ -189,7 +194,8 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
         opt = optimize_clip(chain, Q, X, contacts, feet=mapping.feet, keypoint_frames=kp, fps=motion.fps,
                             ground=ground, sole=sole, keypoint_weights=weights[:, 0], costs=costs,
                             iterations=iterations, solver=solver, velocity_limit=velocity_limit,
-                            orientations=ori, orientation_weights=None if ori is None else weights[:, 1])
+                            orientations=ori, orientation_weights=None if ori is None else weights[:, 1],
+                            collision=collision, collision_margin=collision_margin)
         Q, cost, warm = opt.q, opt.cost, m
         m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
                     keypoint_frames=kp, sole=sole)
