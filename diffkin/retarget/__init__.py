@@ -9,7 +9,7 @@ from .bvh import load_bvh
 from .clip import RetargetResult, clip, fit_scale
 from .clips import example_clips
 from .contacts import detect_contacts
-from .mapping import Mapping
+from .mapping import Mapping, skeleton_of
 from .metrics import Metrics, metrics
 from .motion import Motion
 from .plot import plot_frame
@@ -20,4 +20,5 @@ from .whole_clip import COSTS, ClipOptimization, optimize_clip
 
 __all__ = ["COSTS", "ClipOptimization", "Mapping", "Metrics", "Motion", "RetargetResult", "SMPLX_JOINT_NAMES",
            "SMPL_JOINT_NAMES", "Sole", "clip", "detect_contacts", "example_clips", "fit_scale",
-           "g1_collision", "load_bvh", "load_smpl", "metrics", "optimize_clip", "plot_frame", "sole_of"]
+           "g1_collision", "load_bvh", "load_smpl", "metrics", "optimize_clip", "plot_frame",
+           "skeleton_of", "sole_of"]
