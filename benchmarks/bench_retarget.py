@@ -23,6 +23,12 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
   for the CMU skeleton (names mapped, orientation offsets recomputed at the rest pose); one clip after
   the other, frame by frame. ``GMR own mm``: GMR's bodies against its own scaled targets.
 
+* The walk with a turn and the pick-up (``NEW``: 30 fps, the MotionBuilder-named CMU skeleton, mapping
+  ``Mapping.builtin("g1", "cmu_mb")``), each alone and whole: ``diffkin`` (batched warm start, velocity
+  limits), ``diffkin + self-collision`` (the same on the MJCF chain of the G1 with
+  ``collision=retarget.g1_collision(chain)``) and ``GMR`` (its scheme, the names and rest pose of that
+  skeleton: :mod:`benchmarks.peers_gmr`).
+
 Every output is scored by ``retarget.metrics`` on the same chain with the same contacts (from the human
 clip) and keypoints (diffkin's scaled human joints). The machine is shared: times are contended; compare
 the ratios of rows measured in the same run.
@@ -44,6 +50,7 @@ ROOT = Path(__file__).resolve().parents[1]
 G1_URDF = ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
 G1_MJCF = ROOT / "diffkin" / "models" / "robots" / "mjcf" / "unitree_g1_29dof" / "g1.xml"
 CLIPS = ("walk", "crouch", "hop", "turn", "reach")
+NEW = ("walkturn", "pickup")  # the walk with a 90° turn, the reach to an object (30 fps, skeleton "cmu_mb")
 
 
 def mujoco_g1():
@@ -176,10 +183,37 @@ def run(args) -> list[dict]:
         rows.append({"method": "mink frame by frame (GMR's scheme)", "clip": name, "frames/s": n / secs,
                      **_metrics_row(mm, b)})
     rows += _gmr_rows(g1, motion, base, mp)
+    for name in NEW:
+        rows += _new_clip(g1, name, vmax)
     return rows
 
 
-def _gmr_rows(chain, motion, base, mp) -> list[dict]:
+def _new_clip(g1, name: str, vmax: dict) -> list[dict]:
+    """One of ``NEW`` whole, alone: diffkin, diffkin with self-collision (MJCF chain), GMR."""
+    from diffkin import models, retarget
+
+    motion = retarget.load_bvh(retarget.example_clips()[name])
+    skeleton = retarget.skeleton_of(motion.names)
+    mp = retarget.Mapping.builtin("g1", skeleton)
+    rows = []
+    t0 = time.perf_counter()
+    r = retarget.clip(g1, motion, mp, warm_start="batched", velocity_limit=vmax)
+    rows.append({"method": "diffkin whole clip (batched warm start)", "clip": name,
+                 "frames/s": motion.frames / (time.perf_counter() - t0), **_metrics_row(r.metrics, 0)})
+    mj = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64).requires_grad_(False)
+    t0 = time.perf_counter()
+    rc = retarget.clip(mj, motion, mp, warm_start="batched", velocity_limit=vmax,
+                       collision=retarget.g1_collision(mj))
+    secs = time.perf_counter() - t0
+    # scored on the URDF chain like every other row (the same kinematics, MuJoCo qpos order)
+    m = retarget.metrics(g1, rc.q, rc.contacts, motion.fps, feet=mp.feet, keypoints=rc.keypoints,
+                         keypoint_frames=rc.keypoint_frames)
+    rows.append({"method": "diffkin + self-collision (MJCF G1)", "clip": name,
+                 "frames/s": motion.frames / secs, **_metrics_row(m, 0)})
+    return rows + _gmr_rows(g1, motion, r, mp, (name,), skeleton)
+
+
+def _gmr_rows(chain, motion, base, mp, clip_names=CLIPS, skeleton: str = "cmu") -> list[dict]:
     """GMR itself on the same clips (``benchmarks.peers_gmr``), scored like the other rows; [] when GMR is
     not installed."""
     from benchmarks import peers_gmr
@@ -189,7 +223,7 @@ def _gmr_rows(chain, motion, base, mp) -> list[dict]:
     if not peers_gmr.available():
         print("GMR (general_motion_retargeting) is not installed: its rows are skipped")
         return []
-    q, secs, own, model = peers_gmr.retarget_gmr(motion)
+    q, secs, own, model = peers_gmr.retarget_gmr(motion, skeleton)
     worst = peers_gmr.check_same_kinematics(model, compile_mjcf(G1_MJCF)[0])
     if worst > 1e-9:
         raise AssertionError(f"GMR's G1 is not the Menagerie G1's kinematics (bodies {worst:.2e} apart)")
@@ -200,12 +234,13 @@ def _gmr_rows(chain, motion, base, mp) -> list[dict]:
                          keypoint_frames=base.keypoint_frames)
     n = motion.batch * motion.frames
     return [{"method": "GMR (its G1, its scheme and weights)", "clip": name, "frames/s": n / secs,
-             **_metrics_row(m, b), "GMR own mm": 1000 * float(own[b])} for b, name in enumerate(CLIPS)]
+             **_metrics_row(m, b), "GMR own mm": 1000 * float(own[b])} for b, name in enumerate(clip_names)]
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    title = "retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames)"
+    title = ("retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames, then the "
+             "walk with a turn and the pick-up whole)")
     return cli(p, run, title, argv)
 
 

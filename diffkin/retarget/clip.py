@@ -126,7 +126,7 @@ def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
 
 def clip(chain, motion: Motion, mapping: Mapping, *, collision=None, ground: float = 0.0, scale=None,
          max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
-         iterations: int = 10, costs: dict | None = None, solver: str = "banded",
+         iterations: int | None = None, costs: dict | None = None, solver: str = "banded",
          warm_start: str = "sequential", velocity_limit=None,
          collision_margin: float = 0.01) -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
@@ -148,6 +148,8 @@ def clip(chain, motion: Motion, mapping: Mapping, *, collision=None, ground: flo
     :class:`~diffkin.collision.RobotCollision` of ``chain`` (e.g. :func:`~diffkin.retarget.g1_collision`)
     whose self pairs the optimisation keeps ``collision_margin`` (m) apart (pairs screened once on stage
     one's answer); None (the default) adds no self-collision rows, and stage one never sees collisions.
+    ``iterations`` defaults to 10, or 20 with ``collision`` (stage one's hands can be 10 cm deep in the
+    hips or torso on real clips: the one-sided penalty then takes more steps).
     No sole point ends below ``ground`` (the optimisation's last step raises the base where one is). The
     metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage one's.
     """
@@ -188,6 +190,8 @@ def clip(chain, motion: Motion, mapping: Mapping, *, collision=None, ground: flo
     m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
                 keypoint_frames=kp, sole=sole)
     warm, cost = None, None
+    if iterations is None:
+        iterations = 10 if collision is None else 20
     if whole_clip:
         weights = mapping.weights[[mapping.frames.index(f) for f in kp]]
         ori = _orientation_targets(chain, motion_c, mapping, Q) if bool((weights[:, 1] > 0).any()) else None
