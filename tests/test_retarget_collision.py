@@ -115,9 +115,20 @@ def test_whole_clip_keeps_the_hands_out_of_the_torso(g1):
     assert m.foot_skating.item() < 5.0 and m.keypoint_error.item() < 100.0
 
 
-def test_collision_argument_errors(g1):
+def test_collision_in_float32_and_argument_errors(g1):
     mp, chain, rc = g1
     motion = _sinking_hands(4)
+    # 8 frames: the steps push the right hand out of the chest onto the right hip, a pair the screen of the
+    # warm start leaves out (18 cm apart there): the second screen adds it and another round clears it
+    c32 = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float32)
+    rc32 = retarget.g1_collision(c32)
+    warm = retarget.clip(c32, _sinking_hands(8), mp, whole_clip=False, warm_start="batched")
+    assert ("right_hip_collision", "right_hand_collision") not in SelfCollisionRows(rc32, c32, warm.q, 0.01,
+                                                                                     0.1).pairs
+    r32 = retarget.clip(c32, _sinking_hands(8), mp, collision=rc32, iterations=6, warm_start="batched")
+    assert r32.q.dtype == torch.float32 and bool(torch.isfinite(r32.q).all())
+    assert float(rc.self_distances(r32.q[0].double()).min()) > -1e-4
+    assert r32.cost.shape[0] > 7  # more than one round of 6 iterations
     with pytest.raises(ModelError, match="RobotCollision"):
         retarget.clip(chain, motion, mp, collision="torso", iterations=1)
     other = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=F64)

@@ -8,12 +8,12 @@ margin) enters the Gauss–Newton as the residual
 zero while the pair is clear (the same one-sided penalty as the sole's ``penetration`` rows; with a weight
 far above the keypoints' the equilibrium depth is ≈ (keypoint pull) / w², sub-millimetre).
 
-Broad phase, once per clip: the pairs are screened on the warm start. A pair is kept when it comes within
+Broad phase, once per round: the pairs are screened on the warm start. A pair is kept when it comes within
 ``m + screen`` in some frame of some clip; each iteration then evaluates only those pairs (the G1 of
-Menagerie's MJX scene has 26 self pairs; a walk keeps the few leg pairs that come near, a clip with the
-arms across the body the torso–arm pairs). A pair that is farther than ``m + screen`` everywhere at the warm
-start is taken to stay clear: the whole-clip steps move the limbs by centimetres (the posture and keypoint
-terms hold them near the warm start), far less than the default screen of 0.1 m.
+Menagerie's MJX scene has 26 self pairs; on the shipped clips 13-22 are kept, the legs' and those of a
+hand near a hip or an arm near the torso). The steps can move a limb farther than the screen (a hand
+pushed out of the torso onto the hip): :meth:`SelfCollisionRows.extend` screens the result again and adds
+the pairs found, and :func:`~diffkin.retarget.optimize_clip` then runs another round of iterations.
 
 The distances are the collision layer's closed forms, their gradients one batched backward pass over all
 frames (each frame's distance depends on that frame's q only, so ∂(Σ_t d_{p,t})/∂q_t = ∂d_{p,t}/∂q_t).
@@ -36,7 +36,7 @@ class SelfCollisionRows:
     """The screened pairs of ``collision`` for the warm start ``q (B, T, nq)`` and their residual rows.
 
     ``pairs``: the names of the kept pairs (those within ``margin + screen`` in some frame at the warm
-    start), ``count``: how many.
+    start, and at each :meth:`extend`), ``count``: how many.
     """
 
     def __init__(self, collision, chain, q: Tensor, margin: float, screen: float):
@@ -44,16 +44,29 @@ class SelfCollisionRows:
             raise ModelError(f"collision must be a diffkin.collision.RobotCollision of the chain, got "
                              f"{type(collision).__name__}")
         collision._check_chain(chain, "retarget (collision=)")
-        self.chain, self.margin = chain, float(margin)
+        self.chain, self.collision, self.margin, self.screen = chain, collision, float(margin), float(screen)
+        self.index: list[int] = []
+        self.pairs: list[tuple[str, str]] = []
+        self.count, self.model = 0, None
+        self.extend(q)
+
+    def extend(self, q: Tensor) -> bool:
+        """Screen ``q (B, T, nq)`` (every pair of the collision model, one evaluation and one host read) and
+        keep the pairs within ``margin + screen`` in some frame besides those kept; True when some were
+        added."""
         B, T, nq = q.shape
-        with torch.no_grad():  # the broad phase: the warm start's distances of every pair, once
-            d = collision.self_distances(q.reshape(B * T, nq))  # (B T, P)
-            near = (d < self.margin + float(screen)).any(0).nonzero().flatten().tolist()  # one host read
-        self.index = near
-        self.pairs = [collision.pairs[i] for i in near]
-        self.count = len(near)
-        self.model = collision._with_pairs([collision._pair_index[i] for i in near]).requires_grad_(False) \
-            if near else None
+        with torch.no_grad():
+            d = self.collision.self_distances(q.reshape(B * T, nq))  # (B T, P)
+            near = (d < self.margin + self.screen).any(0).nonzero().flatten().tolist()
+        new = sorted(set(near) - set(self.index))
+        if not new:
+            return False
+        self.index = sorted(set(self.index) | set(new))
+        c = self.collision
+        self.pairs = [c.pairs[i] for i in self.index]
+        self.count = len(self.index)
+        self.model = c._with_pairs([c._pair_index[i] for i in self.index]).requires_grad_(False)
+        return True
 
     def distances(self, q: Tensor) -> Tensor:
         """The kept pairs' signed distances ``(B, T, P_kept)`` (metres; negative: penetration)."""

@@ -71,7 +71,8 @@ COSTS = {"keypoint": 1.0, "orientation": 0.1, "contact_height": 30.0, "skating":
 @dataclass
 class ClipOptimization:
     """The optimised clip ``q (B, T, nq)`` and the cost ½‖r‖² per clip after each iteration
-    ``cost (iterations + 1, B)`` (row 0: the warm start)."""
+    ``cost (iterations + 1, B)`` (row 0: the warm start; with ``collision``, one or two more rounds of
+    ``iterations`` when pairs came near that the screen had left out)."""
 
     q: Tensor
     cost: Tensor
@@ -357,8 +358,10 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         collision: optional :class:`~diffkin.collision.RobotCollision` of ``chain`` (e.g.
             :func:`~diffkin.retarget.g1_collision`): its self pairs are kept ``collision_margin`` (m) apart
             (rows ``collision``); the pairs within ``collision_margin + collision_screen`` of each other in
-            some frame of the warm start are screened in once, the others never evaluated
-            (:mod:`~diffkin.retarget.self_collision`). None (the default): no self-collision rows.
+            some frame of the warm start are screened in, the others not evaluated; after the iterations the
+            screen is redone on the result, and where it finds pairs it had left out, they are added and
+            ``iterations`` more run (at most twice; :mod:`~diffkin.retarget.self_collision`). None (the
+            default): no self-collision rows.
 
     Returns a :class:`ClipOptimization`.
     """
@@ -418,7 +421,8 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
         history = [cur[0]]
         eye = torch.eye(chain.nv, dtype=q.dtype, device=q.device)
-        for _ in range(iterations):
+        rounds = 1 if rows is None else 3  # with collision: re-screened after a round (module self_collision)
+        for k in range(iterations * rounds):
             cost, D, E, F, g = cur
             scale = torch.diagonal(D, dim1=-2, dim2=-1).mean((-1, -2))  # (B,): λ relative to the curvature
             Dl = D + (lam * scale)[:, None, None, None] * eye
@@ -435,6 +439,10 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                         for k, (a, b) in enumerate(zip(cur, new)))
             lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
             history.append(cur[0])
+            if rows is not None and (k + 1) % iterations == 0:
+                if k + 1 == iterations * rounds or not rows.extend(q):  # no pair came near unscreened
+                    break
+                cur = terms.evaluate(q)  # the cost with the pairs added
     if chain.joint_kinds and chain.joint_kinds[0] == "free":  # no sole below the ground, exactly
         q = lift_above_ground(chain, q, feet, terms.sole_list, ground)
     return ClipOptimization(q, torch.stack(history))
