@@ -24,6 +24,16 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
   for the CMU skeleton (names mapped, orientation offsets recomputed at the rest pose); one clip after
   the other, frame by frame. ``GMR own mm``: GMR's bodies against its own scaled targets.
 
+* ``diffkin + self-collision``: the batched run again on the MJCF chain of the same G1 with
+  ``collision=retarget.g1_collision(chain)`` (Menagerie's MJX colliders and the 26 self pairs of its scene;
+  20 whole-clip iterations, ``retarget.clip``'s default with a collision model). Every row also counts
+  its frames where one of those pairs penetrates (``self-colliding frames``).
+* The walk with a turn and the pick-up (``NEW``: 30 fps, the MotionBuilder-named CMU skeleton, mapping
+  ``Mapping.builtin("g1", "cmu_mb")``), each alone and whole: ``diffkin`` (batched warm start, velocity
+  limits), ``diffkin + self-collision`` (the same on the MJCF chain of the G1 with
+  ``collision=retarget.g1_collision(chain)``) and ``GMR`` (its scheme, the names and rest pose of that
+  skeleton: :mod:`benchmarks.peers_gmr`).
+
 Every output is scored by ``retarget.metrics`` on the same chain with the same contacts (from the human
 clip) and keypoints (diffkin's scaled human joints). The machine is shared: times are contended; compare
 the ratios of rows measured in the same run. ``frames/CPU-s`` (diffkin and GMR rows) divides by the
@@ -47,6 +57,7 @@ ROOT = Path(__file__).resolve().parents[1]
 G1_URDF = ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
 G1_MJCF = ROOT / "diffkin" / "models" / "robots" / "mjcf" / "unitree_g1_29dof" / "g1.xml"
 CLIPS = ("walk", "crouch", "hop", "turn", "reach")
+NEW = ("walkturn", "pickup")  # the walk with a 90° turn, the reach to an object (30 fps, skeleton "cmu_mb")
 
 
 def mujoco_g1():
@@ -72,11 +83,31 @@ def g1_velocity_limits() -> dict[str, float]:
             if j.get("type") in ("revolute", "prismatic") and j.find("limit") is not None}
 
 
-def _metrics_row(m, b: int) -> dict:
-    return {"limit violations": int(m.joint_limit_violations[b]),
-            "worst excess rad": float(m.joint_limit_excess[b]), "skating mm": float(m.foot_skating[b]),
-            "penetration mm": float(m.ground_penetration[b]), "floating mm": float(m.floating[b]),
-            "keypoint mm": float(m.keypoint_error[b]), "max |qd| rad/s": float(m.max_joint_velocity[b])}
+_COLLISION = []
+
+
+def _self_colliding_frames(q) -> int:
+    """Frames of ``q (T, 36)`` (MuJoCo qpos order) where a self pair of Menagerie's MJX G1 scene
+    (``retarget.g1_collision``) penetrates."""
+    from diffkin import models, retarget
+
+    if not _COLLISION:
+        mp = retarget.Mapping.builtin("g1")
+        mj = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64).requires_grad_(False)
+        _COLLISION.append(retarget.g1_collision(mj))
+    with torch.no_grad():
+        d = _COLLISION[0].self_distances(q.to(torch.float64))
+    return int((d.min(-1).values < 0).sum())
+
+
+def _metrics_row(m, b: int, q=None) -> dict:
+    row = {"limit violations": int(m.joint_limit_violations[b]),
+           "worst excess rad": float(m.joint_limit_excess[b]), "skating mm": float(m.foot_skating[b]),
+           "penetration mm": float(m.ground_penetration[b]), "floating mm": float(m.floating[b]),
+           "keypoint mm": float(m.keypoint_error[b]), "max |qd| rad/s": float(m.max_joint_velocity[b])}
+    if q is not None:
+        row["self-colliding frames"] = _self_colliding_frames(q[b])
+    return row
 
 
 def _mink(chain, model, result, q_init, max_iter: int = 10):
@@ -133,7 +164,7 @@ def _one_clip(g1, mp, motion, name: str, vmax: dict) -> list[dict]:
     t, cpu = sorted(times)[1]
     return [{"method": "diffkin one clip (batched warm start)", "clip": name, "frames/s": motion.frames / t,
              "frames/CPU-s": motion.frames / cpu,
-             **_metrics_row(r.metrics, 0)}]
+             **_metrics_row(r.metrics, 0, r.q)}]
 
 
 def run(args) -> list[dict]:
@@ -168,11 +199,11 @@ def run(args) -> list[dict]:
         for b, name in enumerate(CLIPS):
             if warm == "sequential":
                 rows.append({"method": "diffkin stage one (sequential)", "clip": name, "frames/s": None,
-                             **_metrics_row(r.metrics, b)})
+                             **_metrics_row(r.metrics, b, r.q)})
             rows.append({"method": f"diffkin whole clip ({warm} warm start)", "clip": name,
                          "frames/s": n / (t2 - t0), "frames/CPU-s": n / cpu,
                          "stage-two share": (t2 - t1) / (t2 - t0),
-                         **_metrics_row(m, b)})
+                         **_metrics_row(m, b, opt.q)})
     rows += _one_clip(g1, mp, clips[0], CLIPS[0], vmax)
     model = mujoco_g1()
     kp = base.keypoint_frames
@@ -184,12 +215,48 @@ def run(args) -> list[dict]:
                           keypoint_frames=kp)
     for b, name in enumerate(CLIPS):
         rows.append({"method": "mink frame by frame (GMR's scheme)", "clip": name, "frames/s": n / secs,
-                     **_metrics_row(mm, b)})
+                     **_metrics_row(mm, b, q_mink)})
     rows += _gmr_rows(g1, motion, base, mp)
+    rows += _with_collision(g1, motion, mp, vmax, CLIPS)
+    for name in NEW:
+        rows += _new_clip(g1, name, vmax)
     return rows
 
 
-def _gmr_rows(chain, motion, base, mp) -> list[dict]:
+def _new_clip(g1, name: str, vmax: dict) -> list[dict]:
+    """One of ``NEW`` whole, alone: diffkin, diffkin with self-collision (MJCF chain), GMR."""
+    from diffkin import retarget
+
+    motion = retarget.load_bvh(retarget.example_clips()[name])
+    skeleton = retarget.skeleton_of(motion.names)
+    mp = retarget.Mapping.builtin("g1", skeleton)
+    rows = []
+    t0 = time.perf_counter()
+    r = retarget.clip(g1, motion, mp, warm_start="batched", velocity_limit=vmax)
+    rows.append({"method": "diffkin whole clip (batched warm start)", "clip": name,
+                 "frames/s": motion.frames / (time.perf_counter() - t0), **_metrics_row(r.metrics, 0, r.q)})
+    rows += _with_collision(g1, motion, mp, vmax, (name,))
+    return rows + _gmr_rows(g1, motion, r, mp, (name,), skeleton)
+
+
+def _with_collision(g1, motion, mp, vmax: dict, names) -> list[dict]:
+    """diffkin with ``collision=retarget.g1_collision`` on the MJCF chain of the same G1 (batched warm
+    start), scored on ``g1`` like every other row (the same kinematics and qpos order)."""
+    from diffkin import models, retarget
+
+    mj = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64).requires_grad_(False)
+    t0 = time.perf_counter()
+    rc = retarget.clip(mj, motion, mp, warm_start="batched", velocity_limit=vmax,
+                       collision=retarget.g1_collision(mj))
+    secs = time.perf_counter() - t0
+    m = retarget.metrics(g1, rc.q, rc.contacts, motion.fps, feet=mp.feet, keypoints=rc.keypoints,
+                         keypoint_frames=rc.keypoint_frames)
+    return [{"method": "diffkin + self-collision (MJCF G1)", "clip": name,
+             "frames/s": motion.batch * motion.frames / secs, **_metrics_row(m, b, rc.q)}
+            for b, name in enumerate(names)]
+
+
+def _gmr_rows(chain, motion, base, mp, clip_names=CLIPS, skeleton: str = "cmu") -> list[dict]:
     """GMR itself on the same clips (``benchmarks.peers_gmr``), scored like the other rows; [] when GMR is
     not installed."""
     from benchmarks import peers_gmr
@@ -199,7 +266,7 @@ def _gmr_rows(chain, motion, base, mp) -> list[dict]:
     if not peers_gmr.available():
         print("GMR (general_motion_retargeting) is not installed: its rows are skipped")
         return []
-    q, (secs, cpu), own, model = peers_gmr.retarget_gmr(motion)
+    q, (secs, cpu), own, model = peers_gmr.retarget_gmr(motion, skeleton)
     worst = peers_gmr.check_same_kinematics(model, compile_mjcf(G1_MJCF)[0])
     if worst > 1e-9:
         raise AssertionError(f"GMR's G1 is not the Menagerie G1's kinematics (bodies {worst:.2e} apart)")
@@ -211,12 +278,14 @@ def _gmr_rows(chain, motion, base, mp) -> list[dict]:
     n = motion.batch * motion.frames
     return [{"method": "GMR (its G1, its scheme and weights)", "clip": name, "frames/s": n / secs,
              "frames/CPU-s": n / cpu,
-             **_metrics_row(m, b), "GMR own mm": 1000 * float(own[b])} for b, name in enumerate(CLIPS)]
+             **_metrics_row(m, b, q), "GMR own mm": 1000 * float(own[b])}
+            for b, name in enumerate(clip_names)]
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    title = "retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames)"
+    title = ("retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames, then the "
+             "walk with a turn and the pick-up whole)")
     return cli(p, run, title, argv)
 
 

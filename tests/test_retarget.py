@@ -14,6 +14,7 @@ import torch
 from diffkin import models, retarget
 from diffkin.errors import ConventionError, ModelError, NonFiniteError, OptionError, ShapeError
 from diffkin.retarget.bvh import CMU_UNIT
+from diffkin.retarget.mapping import SKELETONS
 
 mujoco = pytest.importorskip("mujoco")
 Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
@@ -31,13 +32,15 @@ def _offsets(path: Path) -> list[list[float]]:
 
 
 # ------------------------------------------------------------------------------------------ loaders
-@pytest.mark.parametrize("name, frames", [("walk", 150), ("crouch", 120), ("hop", 120), ("turn", 110),
-                                          ("reach", 74)])
-def test_shipped_clips_load(name, frames):
+@pytest.mark.parametrize("name, frames, fps", [("walk", 150, 60), ("crouch", 120, 60), ("hop", 120, 60),
+                                               ("turn", 110, 60), ("reach", 74, 60), ("walkturn", 63, 30),
+                                               ("pickup", 54, 30)])
+def test_shipped_clips_load(name, frames, fps):
     path = retarget.example_clips()[name]
     m = retarget.load_bvh(path)
     assert (m.batch, m.frames, len(m.names)) == (1, frames, 38)  # 31 joints + 7 End Sites
-    assert m.fps == 60.0
+    assert m.fps == fps
+    human = SKELETONS[retarget.skeleton_of(m.names)]
     assert m.orientations.shape == (1, frames, 38, 3, 3)
     # bone lengths: constant over frames and equal to the file's offsets in CMU units
     off = np.array(_offsets(path))
@@ -48,7 +51,8 @@ def test_shipped_clips_load(name, frames):
         length = np.linalg.norm(p[:, j] - p[:, parent], axis=-1)
         np.testing.assert_allclose(length, np.linalg.norm(off[j]) * CMU_UNIT, atol=1e-9)
     # standing on the floor: the lowest foot point of every frame is within a few cm of z = 0
-    feet = m.index(["LeftToe", "RightToe", "LeftToe_end", "RightToe_end", "LeftAnkle", "RightAnkle"])
+    ends = (("toe", ""), ("toe", "_end"), ("ankle", ""))
+    feet = m.index([human[f"{s}_{j}"] + e for s in ("left", "right") for j, e in ends])
     lowest = p[:, feet, 2].min(-1)
     assert np.all(lowest > -0.03) and np.median(lowest) < 0.08
     # an adult: pelvis 0.8-1.1 m high in the first frame, head top above 1.3 m
@@ -72,6 +76,30 @@ def test_shipped_turn_and_reach_are_what_they_say():
     assert w[0, 2] < s[0, 2] and w[-1, 2] > s[-1, 2] + 0.2
     assert straight[0] < 0.6 and straight[-1] > 0.95
     assert np.linalg.norm(h - h[0], axis=-1).max() < 0.05
+
+
+def test_shipped_walkturn_and_pickup_are_what_they_say():
+    """The walk with a turn walks > 1 m before and > 20 cm after turning the hip line by 75-95° to the left;
+    the pick-up takes the left wrist from above 0.6 m to below 0.3 m above the floor and back above 0.5 m,
+    the pelvis down by > 10 cm, after walking > 1 m. Both are the MotionBuilder-named CMU skeleton."""
+    walk = retarget.load_bvh(retarget.example_clips()["walkturn"])
+    assert retarget.skeleton_of(walk.names) == "cmu_mb"
+    p = walk.positions[0].numpy()
+    d = p[:, walk.index("LeftUpLeg")[0]] - p[:, walk.index("RightUpLeg")[0]]
+    yaw = np.degrees(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))
+    hips = p[:, walk.index("Hips")[0], :2]
+    turning = np.nonzero(np.abs(yaw - yaw[0]) > 10)[0][0]
+    assert 75 < yaw[-1] - yaw[0] < 95
+    assert np.linalg.norm(hips[turning] - hips[0]) > 1.0 and np.linalg.norm(hips[-1] - hips[-8]) > 0.2
+    pick = retarget.load_bvh(retarget.example_clips()["pickup"])
+    q = pick.positions[0].numpy()
+    wrist, pelvis = q[:, pick.index("LeftHand")[0], 2], q[:, pick.index("Hips")[0]]
+    low = wrist.argmin()
+    assert wrist[0] > 0.6 and wrist[low] < 0.3 and wrist[-1] > 0.5
+    assert pelvis[0, 2] - pelvis[low, 2] > 0.1
+    assert np.linalg.norm(pelvis[low, :2] - pelvis[0, :2]) > 1.0
+    with pytest.raises(ConventionError, match="cmu_mb"):
+        retarget.skeleton_of(["Hips", "Spine"])
 
 
 def test_bvh_root_against_scipy():
@@ -468,12 +496,18 @@ def test_whole_clip_optimisation_on_the_shipped_hop():
     data = mujoco.MjData(model)
     adr = [0, 1, 2, 3, 4, 5, 6] + [int(model.joint(n).qposadr[0]) for n in g1.joint_names[1:]]
     ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in r.keypoint_frames]
-    dist = []
+    feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in mp.feet]
+    soles = [g for g in range(model.ngeom) if model.geom_bodyid[g] in feet]  # the URDF's 4 + 4 foot spheres
+    dist, lowest = [], []
     for t in range(r.q.shape[1]):
         data.qpos[adr] = r.q[0, t].numpy()
         mujoco.mj_kinematics(model, data)
         dist.append(np.linalg.norm(data.xpos[ids] - r.keypoints[0, t].numpy(), axis=-1))
+        lowest.append(np.min(data.geom_xpos[soles, 2] - model.geom_size[soles, 0]))
     assert 1000 * np.mean(dist) == pytest.approx(m.keypoint_error.item(), abs=1e-6)
+    # no sole point below the ground, exactly (the last step lifts the base): in MuJoCo's FK and the metric
+    assert len(soles) == 8 and min(lowest) >= -1e-12
+    assert m.ground_penetration.item() <= 1e-9  # mm
 
 
 def _mujoco_g1():
@@ -731,10 +765,18 @@ def test_optimize_clip_errors():
     f32 = retarget.optimize_clip(g1, q, x.float(), c, iterations=1, **kw)
     assert f32.q.dtype == torch.float64
     out = retarget.optimize_clip(g1, q, x, c, iterations=0, **kw)
-    torch.testing.assert_close(out.q, q)
+    torch.testing.assert_close(out.q[..., 3:], q[..., 3:])  # iterations=0: the warm start, lifted ...
+    T_out = g1.forward_kinematics(out.q)
+    lowest = min(retarget.sole_of(g1, f).lowest(T_out[..., g1.end_links.index(f), :, :])[0].min()
+                 for f in mp.feet)
+    assert abs(lowest.item()) <= 1e-12 and bool((out.q[..., 2] > q[..., 2]).all())  # ... onto the ground
     assert out.cost.shape == (1, 1)
     with pytest.raises(ModelError, match="nojoint"):
         retarget.optimize_clip(g1, q, x, c, velocity_limit={"nojoint": 1.0}, **kw)
+    with pytest.raises(OptionError, match="collision_margin"):
+        retarget.optimize_clip(g1, q, x, c, collision_margin=-0.01, **kw)
+    with pytest.raises(ModelError, match="RobotCollision"):
+        retarget.optimize_clip(g1, q, x, c, collision=object(), **kw)
     with pytest.raises(OptionError, match="velocity_limit"):
         retarget.optimize_clip(g1, q, x, c, velocity_limit=0.0, **kw)
     with pytest.raises(ShapeError, match="velocity_limit"):

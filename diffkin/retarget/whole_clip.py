@@ -23,6 +23,8 @@ term                   residual                                               fr
 ``velocity``           w (q_t ⊖ q_{t−1})                                        t ≥ 1
 ``acceleration``       w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1}))                     1 ≤ t ≤ T − 2
 ``posture``            w (q_t ⊖ q_t⁰): stay near the warm start q⁰              every frame
+``collision``          w min(0, d_p(q_t) − m): self pairs p ≥ the margin m      every frame (with
+                       (:mod:`~diffkin.retarget.self_collision`)              ``collision``)
 =====================  =====================================================  ==========================
 
 Point Jacobians come from the chain's geometric Jacobian (3.30) at the frame origin o: J_p = J_v − S(p − o)
@@ -34,11 +36,14 @@ bands and each step is one block-banded Cholesky solve (:func:`diffkin.kernels.b
 O(T nv³)). A step is kept per clip when it lowers that clip's cost (the damping λ then shrinks, else it
 grows); after each step the hinges are projected onto their limits (and, with ``velocity_limit``, frame
 after frame onto [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max]), so the result never violates
-them: hard constraints, whose penalty rows steer the steps away from the projection.
+them: hard constraints, whose penalty rows steer the steps away from the projection. The last step raises
+the base wherever a sole is still below the ground (:func:`~diffkin.retarget.ground.lift_above_ground`), so
+no sole point is below it (to rounding).
 
 On CPU tensors without autograd the end links' rows (keypoint to skating) and their share of JᵀJ, Jᵀr and
 the cost are formed in C (:func:`diffkin.kernels.native.clip_rows`), elsewhere in torch ops (equal to
-rounding); further per-frame rows plug in through ``_Terms.extra_rows`` (:meth:`_Terms.evaluate`).
+rounding); further per-frame rows (the self-collision rows) plug in through ``_Terms.extra_rows``
+(:meth:`_Terms.evaluate`).
 """
 
 from __future__ import annotations
@@ -57,21 +62,23 @@ from ..kernels.banded import block_banded_cg, block_banded_solve
 from ..kernels.pose_error import orientation_error
 from ..rotations import _skew
 from ..validation import as_tensor, check_count, check_finite, check_number, shape_str
+from .ground import lift_above_ground, soles_of
 from .metrics import _finite, _scalar_columns
-from .sole import Sole, sole_of
+from .self_collision import SelfCollisionRows
 
 __all__ = ["COSTS", "ClipOptimization", "optimize_clip"]
 
 #: default weights of the whole-clip terms (module doc); lengths in metres, angles in rad per frame.
 COSTS = {"keypoint": 1.0, "orientation": 0.1, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3,
          "penetration": 300.0, "limit": 10.0, "velocity_limit": 10.0, "velocity": 0.02, "acceleration": 0.3,
-         "posture": 0.01}
+         "posture": 0.01, "collision": 300.0}
 
 
 @dataclass
 class ClipOptimization:
     """The optimised clip ``q (B, T, nq)`` and the cost ½‖r‖² per clip after each iteration
-    ``cost (iterations + 1, B)`` (row 0: the warm start)."""
+    ``cost (iterations + 1, B)`` (row 0: the warm start; with ``collision``, one or two more rounds of
+    ``iterations`` when pairs came near that the screen had left out)."""
 
     q: Tensor
     cost: Tensor
@@ -81,7 +88,8 @@ class _Terms:
     """The residual layout of one problem (weights, sole geometry, index maps)."""
 
     def __init__(self, chain, keypoints, contacts, feet, keypoint_frames, fps, ground, sole, kp_weights, w,
-                 q_ref, limit_margin, velocity_limit=None, orientations=None, orientation_weights=None):
+                 q_ref, limit_margin, velocity_limit=None, orientations=None, orientation_weights=None,
+                 collision: SelfCollisionRows | None = None):
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
@@ -100,12 +108,10 @@ class _Terms:
             self.ori_idx = [self.kp_idx[k] for k in sel]
             self.ori_w = orientation_weights[sel]
         self.feet_idx = [ends.index(f) for f in feet]
-        self.soles = []
-        for f in feet:
-            s = (sole or {}).get(f) or sole_of(chain, f)
-            if not isinstance(s, Sole):
-                raise ModelError(f"sole[{f!r}] must be a Sole(points, radii), got {type(s).__name__}")
-            self.soles.append((s.points.to(keypoints), s.radii.to(keypoints)))
+        self.sole_list = soles_of(chain, feet, sole)
+        self.soles = [(s.points.to(keypoints), s.radii.to(keypoints)) for s in self.sole_list]
+        if collision is not None:  # self pairs closer than the margin (module self_collision), C path or not
+            self.extra_rows.append(lambda q, Ta, Ja: collision.rows(q, self.w["collision"]))
         cs = chain.configuration_space
         self.sq = torch.tensor(cs.scalar_index("q"), dtype=torch.long, device=keypoints.device)
         self.sv = torch.tensor(cs.scalar_index("v"), dtype=torch.long, device=keypoints.device)
@@ -383,7 +389,8 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                sole: dict | None = None, keypoint_weights=None, costs: dict | None = None,
                iterations: int = 10, limit_margin: float = 0.0, damping: float = 1e-4, solver: str = "banded",
                cg_iterations: int = 30, velocity_limit=None, orientations=None,
-               orientation_weights=None) -> ClipOptimization:
+               orientation_weights=None, collision=None, collision_margin: float = 0.01,
+               collision_screen: float = 0.1) -> ClipOptimization:
     """Optimise a warm-started clip ``q (B, T, nq)`` over all frames at once (module doc).
 
     Args:
@@ -399,7 +406,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         keypoint_weights: optional ``(K,)`` position weights (the mapping's).
         costs: weights overriding :data:`COSTS` by name.
         iterations: Levenberg–Marquardt iterations (each one solve and one FK pass; 0 returns the warm
-            start, clamped to the limits).
+            start, clamped to the limits and raised onto the ground where a sole is below it).
         limit_margin: keep the hinges this far inside their limits (rad or m) where the cost allows.
         damping: the initial damping λ (relative to the mean diagonal of JᵀJ).
         solver: ``"banded"``, the exact block-banded Cholesky solve (a loop over T), or ``"cg"``,
@@ -411,6 +418,13 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         velocity_limit: optional q̇_max of the scalar joints (hinges: rad/s, slides: m/s): a number for
             every one, ``(n_scalar,)`` in the chain's joint order, or ``{joint name: limit}`` (others
             free); kept as a hard constraint (module doc). None: no limit.
+        collision: optional :class:`~diffkin.collision.RobotCollision` of ``chain`` (e.g.
+            :func:`~diffkin.retarget.g1_collision`): its self pairs are kept ``collision_margin`` (m) apart
+            (rows ``collision``); the pairs within ``collision_margin + collision_screen`` of each other in
+            some frame of the warm start are screened in, the others not evaluated; after the iterations the
+            screen is redone on the result, and where it finds pairs it had left out, they are added and
+            ``iterations`` more run (at most twice; :mod:`~diffkin.retarget.self_collision`). None (the
+            default): no self-collision rows.
 
     Returns a :class:`ClipOptimization`.
     """
@@ -456,16 +470,21 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
     if bool((kw < 0).any()):
         raise OptionError("expected keypoint_weights >= 0")
     q = q.detach()
+    collision_margin = check_number(collision_margin, "collision_margin", positive=False)
+    collision_screen = check_number(collision_screen, "collision_screen", positive=False)
+    rows = None if collision is None else SelfCollisionRows(collision, chain, q, collision_margin,
+                                                            collision_screen)
     vmax = _velocity_limits(chain, velocity_limit, q)
     R_d, ow = _orientation_targets(orientations, orientation_weights, (B, T, len(frames)), q)
     terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
-                   limit_margin, vmax, R_d, ow)
+                   limit_margin, vmax, R_d, ow, rows)
     q = terms.project(q)
     with torch.no_grad():
         cur = terms.evaluate(q)
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
         history = [cur[0]]
-        for _ in range(iterations):
+        rounds = 1 if rows is None else 3  # with collision: re-screened after a round (module self_collision)
+        for k in range(iterations * rounds):
             cost, D, E, F, g = cur
             scale = torch.diagonal(D, dim1=-2, dim2=-1).mean((-1, -2))  # (B,): λ relative to the curvature
             Dl = D.clone()  # D + λ s I: a copy, its diagonal raised (no full-size product with I)
@@ -483,4 +502,10 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                         for k, (a, b) in enumerate(zip(cur, new)))
             lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
             history.append(cur[0])
+            if rows is not None and (k + 1) % iterations == 0:
+                if k + 1 == iterations * rounds or not rows.extend(q):  # no pair came near unscreened
+                    break
+                cur = terms.evaluate(q)  # the cost with the pairs added
+    if chain.joint_kinds and chain.joint_kinds[0] == "free":  # no sole below the ground, exactly
+        q = lift_above_ground(chain, q, feet, terms.sole_list, ground)
     return ClipOptimization(q, torch.stack(history))
