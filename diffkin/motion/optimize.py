@@ -51,7 +51,7 @@ from ..errors import OptionError
 from ..ik._qp_ip import ip_solve
 from ..ik.residuals import DistanceConstraint
 
-__all__ = ["OptimizeConfig", "OptimizedPath", "optimize_knots", "resample"]
+__all__ = ["OptimizeConfig", "OptimizedPath", "optimize_knots", "optimize_stage", "resample", "sample_with"]
 
 _PUSH = 0.02  # the most a penetrating distance row is asked to recover in one step [m]
 
@@ -396,3 +396,42 @@ class _ImplicitKnots(torch.autograd.Function):
                 s = ((dr[0] - dr[1]) / (2 * eps) * lam_d).sum() - (dr[2] * v[:, :r]).sum()
                 grads = list(torch.autograd.grad(s, wanted, allow_unused=True))
         return (None, grad_z.to(z.dtype), None, *grads)
+
+
+def optimize_stage(checker, world, q_start: Tensor, q_goal: Tensor, path: Tensor, rows: Tensor, lo: Tensor,
+                   hi: Tensor, cfg: OptimizeConfig) -> tuple[Tensor, Tensor]:
+    """:func:`diffkin.motion.plan`'s stage: the optimised knots ``(R, M + 2, nq)`` of the searched paths
+    ``path (R, L, nq)`` of problems ``rows (R,)`` (``q_start``, ``q_goal`` ``(R, nq)``: the plan's inputs,
+    which may carry gradients; ``world``: the plan's, batch ``()`` or ``(B,)``), and ``kept (R,)``: the rows
+    whose optimisation converged and whose optimised path is proven clear by ``checker`` (the
+    :class:`~diffkin.motion._edges.EdgeChecker`): every straight segment between knots and the clamped
+    spline through them (the path that is timed) within the joint limits ``lo``, ``hi``."""
+    from .plan import _knots, _spline_clear
+
+    w = world
+    if world is not None and len(world.batch_shape):
+        w = world._take(rows)
+    bound = checker.margin + checker.eta + cfg.buffer
+    out = optimize_knots(checker.collision, w, q_start, q_goal, path, lo, hi, bound, checker.reach, cfg)
+    with torch.no_grad():
+        Y = out.path.detach()
+        R, N, nq = Y.shape
+        free, _ = checker.edges(Y[:, :-1].reshape(-1, nq), Y[:, 1:].reshape(-1, nq), rows.repeat_interleave(N - 1))
+        kept = out.converged & free.view(R, N - 1).all(1)
+        kept &= _spline_clear(checker, Y, _knots(Y), lo, hi, rows)
+    return out.path, kept
+
+
+def sample_with(timed, path: Tensor, t: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """q, q̇, q̈ ``(R, T, nq)`` of the timed clamped spline ``timed`` (a
+    :class:`~diffkin.trajectories.time_optimal.TimedPath`) with its waypoints replaced by ``path``
+    ``(R, N, nq)`` (the same values, carrying gradients): the time law and the path parameters are held
+    fixed, so the samples are linear in the waypoints and the gradient reaches them."""
+    import copy
+
+    from ..trajectories.time_optimal import _Path
+
+    moved = copy.copy(timed)
+    moved._path = _Path(timed._path.s, path.to(torch.float64), "spline", "clamped")
+    q, qd, qdd, _ = moved._joint(t)
+    return q.to(path.dtype), qd.to(path.dtype), qdd.to(path.dtype)
