@@ -48,7 +48,7 @@ from torch import Tensor
 from ..collision.boxes import Box
 from ..collision.world import World
 from ..errors import OptionError
-from ..ik._qp_ip import ip_solve
+from ..ik._qp_ip import _polish, ip_solve
 from ..ik.residuals import DistanceConstraint
 
 __all__ = ["OptimizeConfig", "OptimizedPath", "optimize_knots", "optimize_stage", "resample", "sample_with"]
@@ -182,6 +182,24 @@ class _Rows:
         return sel.detach(), rows, J.movedim(0, -2).detach()
 
 
+def _qp(H: Tensor, c: Tensor, G: Tensor, h: Tensor, guess: Tensor | None) -> tuple[Tensor, Tensor]:
+    """min ½xᵀHx − cᵀx s.t. Gx ≤ h (x, λ): first the KKT system of the active set ``guess`` (the last
+    iteration's, usually right near the solution: one solve), kept where it is primal and dual feasible
+    (:func:`~diffkin.ik._qp_ip._polish`'s test); the interior point of :mod:`diffkin.ik._qp_ip` for the
+    other problems."""
+    B = H.shape[0]
+    good = torch.zeros(B, dtype=torch.bool, device=H.device)
+    x, lam = c.new_zeros(c.shape), h.new_zeros(h.shape)
+    if guess is not None:
+        on = torch.ones_like(guess)
+        x, lam, _, good = _polish(H, c, G, h, on, x, torch.full_like(h, 0.5), guess.to(h.dtype))
+    if not bool(good.all()):
+        bad = (~good).nonzero().squeeze(1)
+        xb, lb, _, _ = ip_solve(H[bad], c[bad], G[bad], h[bad], 40)
+        x, lam = x.index_put((bad,), xb), lam.index_put((bad,), lb)
+    return x, lam
+
+
 def _solve(rows: _Rows, Q: Tensor, W: Tensor, Y: Tensor, lo: Tensor, hi: Tensor, cfg: OptimizeConfig
            ) -> tuple[Tensor, Tensor, Tensor, Tensor, int, Tensor]:
     """The sequential-QP iterations (module docstring) from knots Y ``(B, M + 2, nq)`` (float64, ends
@@ -199,15 +217,18 @@ def _solve(rows: _Rows, Q: Tensor, W: Tensor, Y: Tensor, lo: Tensor, hi: Tensor,
     prev = torch.zeros_like(X)
     it = 0
     lam = idx = None
+    lam_box = Y.new_zeros(B, 2 * n)
     ar = torch.arange(M, device=Y.device)
     for it in range(1, cfg.iterations + 1):
         g, new_idx, J = rows.nearest(X, k, detection)
         k = g.shape[-1]
         H = QW
-        if lam is not None and bool((lam > 0).any()):
-            # ∇²L = ∇²C − Σ λ_i ∇²g_i with the last QP's multipliers on the rows still selected: Newton's
-            # rate on the Lagrangian (Gauss–Newton's alone is linear, slow where the distances curve)
+        li = None
+        if lam is not None:  # the last QP's multipliers on the rows still selected (new rows: 0)
             li = ((new_idx[..., :, None] == idx[..., None, :]).to(g.dtype) * lam[..., None, :]).sum(-1)
+        if li is not None and bool((li > 0).any()):
+            # ∇²L = ∇²C − Σ λ_i ∇²g_i: Newton's rate on the Lagrangian (Gauss–Newton's alone is linear,
+            # slow where the distances curve)
             curv = rows.curvature(X, new_idx, li, detection)
             Hl = QW.clone()
             Hl.view(B, M, nq, M, nq)[:, ar, :, ar, :] -= curv.transpose(0, 1)
@@ -225,8 +246,9 @@ def _solve(rows: _Rows, Q: Tensor, W: Tensor, Y: Tensor, lo: Tensor, hi: Tensor,
         up = torch.minimum(hi - X, trust).clamp_min(0).reshape(B, n)
         down = torch.minimum(X - lo, trust).clamp_min(0).reshape(B, n)
         h = torch.cat((g.clamp_min(-_PUSH).reshape(B, M * k), up, down), 1)
-        step, lam_all, _, _ = ip_solve(H, -grad_c, G, h, 40)
-        lam = lam_all[:, : M * k].reshape(B, M, k)
+        guess = None if li is None else torch.cat((li.reshape(B, M * k) > 0, lam_box > 0), 1)
+        step, lam_all = _qp(H, -grad_c, G, h, guess)
+        lam, lam_box = lam_all[:, : M * k].reshape(B, M, k), lam_all[:, M * k:]
         step = step.view(B, M, nq)
         # the trust region halves where the step turns back on the last one (a cycle between two sets of
         # rows), and grows back to cfg.trust while it does not

@@ -97,7 +97,7 @@ class MotionResult:
     def _state(self, t: Tensor) -> Trajectory:
         """:meth:`state` at float64 times (B, T), unchecked."""
         B, nq = self.success.shape[0], self.q.shape[-1]
-        q = self.q[:, :1].expand(B, t.shape[1], nq).clone()
+        q = self.q[:, :1].detach().expand(B, t.shape[1], nq).clone()  # samples carry no gradient
         qd, qdd = torch.zeros_like(q), torch.zeros_like(q)
         for rows, timed in self._timing:  # at most two timings (spline, linear fallback)
             tr = timed._sample(t[rows])

@@ -1,0 +1,108 @@
+"""motion.plan's optimisation stage (diffkin.motion.optimize) on the FR3 among two spheres: the optimised
+plan re-checked by Pinocchio + coal and against its limits, and the implicit gradient of the optimised knots
+(and of the sampled trajectory, the timing held fixed) w.r.t. the start, the goal and a sphere's centre,
+against central differences of warm-started re-optimisations (float64)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffkin import motion
+from diffkin.collision import World
+from diffkin.errors import ConventionError, OptionError
+from diffkin.motion.optimize import OptimizeConfig, optimize_knots, sample_with
+from diffkin.sampling import random_configuration
+from tests.helpers import SPHERES, CoalCheck, fr3_robot
+
+pytest.importorskip("pinocchio")
+V = [2.0, 1.0, 1.5, 1.25, 3.0, 1.5, 3.0]  # fr3.urdf's <limit velocity=>
+A = 10.0
+CFG = OptimizeConfig(knots=16)
+MARGIN, ETA = 0.005, 0.01
+
+
+@pytest.fixture(scope="module")
+def planned():
+    """One FR3 problem whose optimised path holds distance rows at the boundary, planned with gradients."""
+    d = torch.float64
+    chain, rc = fr3_robot(d)
+    sph = torch.tensor(SPHERES, dtype=d)
+    q = random_configuration(chain, (6,), torch.Generator().manual_seed(3), collision=rc,
+                             world=World(spheres=sph), margin=0.02)
+    qs, qg, s = q[:1].clone().requires_grad_(), q[3:4].clone().requires_grad_(), sph.clone().requires_grad_()
+    res = motion.plan(chain, qs, qg, collision=rc, world=World(spheres=s), margin=MARGIN, acceleration_limit=A,
+                      resolution=ETA, max_iterations=300, optimize=CFG)
+    return chain, rc, qs, qg, s, res
+
+
+def test_optimized_plan_is_shorter_and_rechecked_by_coal(planned):
+    chain, rc, qs, qg, s, res = planned
+    assert res.success.all() and res.optimized.all(), res.reason
+    base = motion.plan(chain, qs.detach(), qg.detach(), collision=rc, world=World(spheres=s.detach()),
+                       margin=MARGIN, acceleration_limit=A, resolution=ETA, max_iterations=300)
+    assert not base.optimized.any()
+    assert res.duration[0] < 0.8 * base.duration[0]  # 1.66 s against 2.39 s
+    assert res.n_waypoints[0] == CFG.knots + 2 and torch.equal(res.waypoints[0, 0], qs[0].detach())
+    assert torch.equal(res.q[0, 0], qs[0].detach()) and torch.equal(res.q[0, -1], qg[0].detach())
+    t = torch.arange(0, float(res.duration[0]) + 0.02, 2e-3, dtype=torch.float64)
+    st = res.state(t)
+    assert (st.velocity.abs() <= torch.tensor(V) * (1 + 1e-9)).all()
+    assert (st.acceleration.abs() <= A * (1 + 1e-9)).all()
+    lim = chain.q_limits
+    assert ((st.position >= lim[:, 0]) & (st.position <= lim[:, 1])).all()
+    # the samples held by the result are the timed spline's (the differentiable resampling agrees)
+    assert torch.allclose(res.q.detach(), res.sample(res.t[0]), atol=1e-12)
+    ref = CoalCheck(rc, with_box=False, moving_only=True)
+    idx = torch.linspace(0, t.numel() - 1, 25).long()
+    assert min(ref.min_distance(st.position[0, i].numpy()) for i in idx) >= MARGIN - 1e-9
+
+
+def _replan(rc, knots, qs, qg, s, lim, reach):
+    """Knots re-optimised from ``knots`` (warm start) for the perturbed inputs."""
+    out = optimize_knots(rc, World(spheres=s), qs, qg, knots, lim[:, 0], lim[:, 1], MARGIN + ETA + CFG.buffer,
+                         reach, CFG, warm=knots)
+    assert out.converged.all()
+    return out.path
+
+
+def test_gradients_match_warm_started_replans(planned):
+    """d(knots)/d(start, goal, sphere centre) and d(q samples)/d(…) at fixed timing, against central
+    differences (ε = 1e-5) of re-optimisations started from the solution, along random directions."""
+    chain, rc, qs, qg, s, res = planned
+    knots = res.waypoints.detach()
+    lim, reach = chain.q_limits, motion.joint_reach(rc)
+    g = torch.Generator().manual_seed(1)
+    wk = torch.randn(knots.shape, generator=g, dtype=torch.float64)
+    wq = torch.randn(res.q.shape, generator=g, dtype=torch.float64)
+    timed, tt = res._timing[0][1], res.t[:, :].to(torch.float64)
+    gk = torch.autograd.grad((res.waypoints * wk).sum(), (qs, qg, s), retain_graph=True)
+    gq = torch.autograd.grad((res.q * wq).sum(), (qs, qg, s))
+    # the solution holds distance rows (the KKT part of the gradient is exercised): a sphere moves the path
+    assert gk[2][:, :3].abs().max() > 1.0
+    eps = 1e-5
+    inputs = [qs.detach(), qg.detach(), s.detach()]
+    for i in range(3):
+        v = torch.randn(inputs[i].shape, generator=g, dtype=torch.float64)
+        if i == 2:
+            v[:, 3] = 0.0  # the centres (the radii too are differentiable; the centres are the parameter)
+        f = []
+        for sign in (1.0, -1.0):
+            x = list(inputs)
+            x[i] = x[i] + sign * eps * v
+            f.append(_replan(rc, knots, *x, lim, reach))
+        fd_k = ((f[0] - f[1]) / (2 * eps) * wk).sum()
+        q_pm = [sample_with(timed, k, tt)[0] for k in f]
+        fd_q = ((q_pm[0] - q_pm[1]) / (2 * eps) * wq).sum()
+        for fd, grad in ((fd_k, gk[i]), (fd_q, gq[i])):
+            assert torch.isclose((grad * v).sum(), fd, rtol=1e-5, atol=1e-7), (i, float(fd), float((grad * v).sum()))
+
+
+def test_options_are_checked():
+    chain, rc = fr3_robot(torch.float64)
+    q = torch.zeros(1, 7, dtype=torch.float64)
+    with pytest.raises(ConventionError, match="optimize"):
+        motion.plan(chain, q, q, collision=rc, acceleration_limit=A, optimize="yes")
+    for bad in ({"knots": 0}, {"trust": 0.0}, {"buffer": float("nan")}, {"iterations": 1.5}):
+        with pytest.raises(OptionError):
+            OptimizeConfig(**bad)
