@@ -15,27 +15,34 @@ ends x_0 = q_start and x_{M+1} = q_goal. With h = 1/(M+1) and the joint weights 
 C is the discrete ∫‖q'‖² + α∫‖q''‖² of a path with uniform parameter: without obstacles the straight
 segment at uniform speed. The distances are the collision layer's closed forms (differentiable).
 
-**The solver** (batched over problems; loops run over iterations): an augmented Lagrangian whose inner
-problem takes one Gauss–Newton step per multiplier update, i.e. with the multipliers λ of the rows and
-ρ the penalty, the step Δ minimises
+**The solver** (batched over problems; loops run over iterations, never rows): sequential quadratic
+programming. Each step Δ solves
 
-    ½ Δᵀ(∇²C)Δ + ∇Cᵀ Δ + (ρ/2) Σ_{i: λ_i − ρ g_i > 0} (g_i + ∇g_i·Δ − λ_i/ρ)²      (g_i = d_i − bound)
+    min_Δ ½ Δᵀ(∇²C − Σ_i λ_i ∇²g_i)Δ + ∇Cᵀ Δ
+    s.t.  g_i + ∇g_i·Δ ≥ 0 (a penetration recovered by at most 2 cm a step),  lo ≤ x + Δ ≤ hi,  |Δ| ≤ trust
 
-(one dense SPD solve of size M·nq per problem), clipped to ``trust`` per coordinate and projected into the
-joint limits, and then λ_i ← max(0, λ_i − ρ (g_i + ∇g_i·Δ)). Its fixed points are exactly the KKT points
-(Δ = 0 ⇒ g_i = 0 where λ_i > 0, g_i ≥ 0 elsewhere, ∇C = Σ λ_i ∇g_i). A row converges when its largest
-step is below ``tolerance``.
+(g_i = d_i − bound, the ``nearest`` rows of each knot; λ the last step's multipliers on the rows still
+selected; the curvature Σλ_i∇²g_i per knot by forward differences of exact gradients, dropped where it
+would make the Hessian indefinite). The QP is first solved as the KKT system of the last active set (one
+solve, kept where primal and dual feasible), else by the interior point of :mod:`diffkin.ik._qp_ip`. The
+trust region halves where a step turns back on the last one. A row converges when its largest step is
+below ``tolerance``; its knots are then a KKT point.
 
-**The gradient** (:func:`optimize_knots`) is implicit, as :func:`diffkin.ik.optimize`'s: the knots are a
-KKT point of the problem above, and the rows held at the boundary with a positive multiplier (and the
-coordinates held at a joint limit) are differentiated as equalities,
-[∇²L Aᵀ; A 0][dX; dν] = −[∂_z∇_X L dz; ∂_z a dz] with L = C − λᵀd (the distances' curvature included),
-by :func:`diffkin.ik.implicit.attach_stationary_gradients`; z is the start, the goal, and every tensor of the
-world that requires grad (sphere centres and radii, box poses and sizes, …). The gradient is that of the
-local solution: it is defined while the active set does not change (a perturbation that makes a new
-distance row active, or releases one, is a kink), and it is blind to a change of homotopy class — a larger
-perturbation for which the search or the optimisation goes round the other side of an obstacle lands on
-another local solution, which no derivative at this one predicts.
+**The gradient** is implicit, as :func:`diffkin.ik.optimize`'s (:mod:`diffkin.ik.implicit`, whose row
+selection it reuses): the knots are a KKT point, and the rows held at the boundary with a positive
+multiplier (and the coordinates held at a joint limit) are differentiated as equalities,
+[∇²L Aᵀ; A 0][dX; dν] = −[∂_z∇_X L dz; ∂_z a dz] with L = C − λᵀd; z is the start, the goal, and every
+tensor of the world that requires grad (sphere centres and radii, box poses and sizes, …). The
+collision layer's distances have exact first derivatives but not exact autograd second derivatives (their
+witness parameters are held constant, the envelope theorem, which holds for the first derivative only:
+off by 0.96 in a capsule–sphere Hessian whose largest entry is 0.42), so every second-order term is a central
+difference of exact gradients (:class:`_ImplicitKnots`).
+
+**Where it is not defined.** The gradient is that of the local solution: it holds while the set of rows
+held does not change (a perturbation that makes a new distance row active, or releases one, is a kink:
+the two one-sided derivatives differ) and it is blind to a change of homotopy class — a larger
+perturbation for which the search, or the optimisation, goes round the other side of an obstacle lands on
+another local solution that no derivative at this one predicts (the planner's path jumps).
 """
 
 from __future__ import annotations
@@ -219,7 +226,7 @@ def _solve(rows: _Rows, Q: Tensor, W: Tensor, Y: Tensor, lo: Tensor, hi: Tensor,
     lam = idx = None
     lam_box = Y.new_zeros(B, 2 * n)
     ar = torch.arange(M, device=Y.device)
-    for it in range(1, cfg.iterations + 1):
+    for it in range(1, cfg.iterations + 1):  # noqa: B007 (the count is returned)
         g, new_idx, J = rows.nearest(X, k, detection)
         k = g.shape[-1]
         H = QW
@@ -270,8 +277,8 @@ def optimize_knots(collision, world: World | None, q_start: Tensor, q_goal: Tens
     ``(B, nq)`` (the path's own ends are replaced by them), with every distance row ≥ ``bound`` [m]
     (``margin + resolution + buffer``), within the joint limits ``lo``, ``hi`` ``(nq,)`` (±inf allowed), in
     ``world`` (batch ``()`` or ``(B,)``). ``reach (nq,)``: the subdivision's R_j (the metric of the
-    resampling and the joint weights). ``warm``: knots ``(B, M + 2, nq)`` of an earlier result (same problems) to
-    start from instead of the resampled path (a re-optimisation from that solution).
+    resampling and the joint weights). ``warm``: knots ``(B, M + 2, nq)`` of an earlier result (same
+    problems) to start from instead of the resampled path (a re-optimisation from that solution).
 
     Computed in float64 (the result in ``q_start``'s dtype). With grad mode on and ``q_start``, ``q_goal``
     or a tensor of ``world`` requiring grad, the interior knots carry the implicit gradient (module
@@ -330,7 +337,8 @@ def _attach(coll64, world, Q, W, Y, lam, idx, g, lo, hi, converged, z, params, b
 
 
 def _distance_rows(coll64, world, X: Tensor, rows_idx: Tensor, bound: float) -> Tensor:
-    """g of the rows ``rows_idx (B, r)`` (flat knot·D + row) at knots X ``(..., B, M, nq)``: ``(..., B, r)``."""
+    """g of the rows ``rows_idx (B, r)`` (flat knot·D + row) at knots X ``(..., B, M, nq)``:
+    ``(..., B, r)``."""
     d = _Rows(DistanceConstraint(coll64, world, 0.0), bound).all(X)
     d = d.flatten(-2)
     return d.gather(-1, rows_idx.expand(*d.shape[:-1], rows_idx.shape[-1]))
@@ -394,8 +402,8 @@ class _ImplicitKnots(torch.autograd.Function):
             H.view(B, M, nq, M, nq)[:, ar, :, ar, :] -= (0.5 * (curv + curv.mT)).transpose(0, 1)
         m = A.shape[1]
         Am = A * keep[..., None].to(X.dtype)
-        K = torch.cat((torch.cat((H, Am.mT), -1), torch.cat((Am, -torch.diag_embed((~keep).to(X.dtype))), -1)),
-                      -2)
+        off = -torch.diag_embed((~keep).to(X.dtype))  # rows not held: ν = 0
+        K = torch.cat((torch.cat((H, Am.mT), -1), torch.cat((Am, off), -1)), -2)
         rhs = torch.cat((gbar, gbar.new_zeros(B, m)), -1)
         uv, info = torch.linalg.solve_ex(K, rhs[..., None])
         ok = (converged & (info == 0))[:, None].to(X.dtype)
@@ -438,7 +446,8 @@ def optimize_stage(checker, world, q_start: Tensor, q_goal: Tensor, path: Tensor
     with torch.no_grad():
         Y = out.path.detach()
         R, N, nq = Y.shape
-        free, _ = checker.edges(Y[:, :-1].reshape(-1, nq), Y[:, 1:].reshape(-1, nq), rows.repeat_interleave(N - 1))
+        free, _ = checker.edges(Y[:, :-1].reshape(-1, nq), Y[:, 1:].reshape(-1, nq),
+                                rows.repeat_interleave(N - 1))
         kept = out.converged & free.view(R, N - 1).all(1)
         kept &= _spline_clear(checker, Y, _knots(Y), lo, hi, rows)
     return out.path, kept

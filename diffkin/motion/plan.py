@@ -317,16 +317,16 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                 groups = []
                 if cfg is not None:  # the optimised knots where they are proven clear (grad mode on)
                     with torch.enable_grad():
-                        knots, kept = optimize_stage(checker, world, q_start[good], goal_in[good], p, good, lo_l,
-                                                     hi_l, cfg)
+                        knots, kept = optimize_stage(checker, world, q_start[good], goal_in[good], p, good,
+                                                     lo_l, hi_l, cfg)
                     optimized[good[kept]] = True
                     smooth, p_opt = smooth & ~kept, knots.detach()[kept]
                     groups.append((kept, "spline", p_opt, _knots(p_opt)))
                     notkept = ~kept
                 else:
                     notkept = torch.ones_like(smooth)
-                groups += [(smooth, "spline", p[smooth], kn[smooth]), (notkept & ~smooth, "linear",
-                                                                       p[notkept & ~smooth], kn[notkept & ~smooth])]
+                rough = notkept & ~smooth
+                groups += [(smooth, "spline", p[smooth], kn[smooth]), (rough, "linear", p[rough], kn[rough])]
                 for keep, how, pp, kk in groups:
                     rr = good[keep]
                     if rr.numel() == 0:
