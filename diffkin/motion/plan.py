@@ -99,7 +99,7 @@ class MotionResult:
         B, nq = self.success.shape[0], self.q.shape[-1]
         q = self.q[:, :1].detach().expand(B, t.shape[1], nq).clone()  # samples carry no gradient
         qd, qdd = torch.zeros_like(q), torch.zeros_like(q)
-        for rows, timed in self._timing:  # at most two timings (spline, linear fallback)
+        for rows, timed in self._timing:  # at most three timings (optimised, spline, linear fallback)
             tr = timed._sample(t[rows])
             q[rows], qd[rows], qdd[rows] = tr.position, tr.velocity, tr.acceleration
         return Trajectory(q, qd, qdd)
