@@ -114,6 +114,23 @@ def test_gradients_wrt_the_goal_match_warm_started_replans(planned):
     _check_gradients(planned, (1,))
 
 
+def test_unconverged_rows_carry_no_gradient(planned):
+    """One step from the straight line through the spheres is no KKT point: its interior knots get a zero
+    gradient (the ends are the inputs themselves)."""
+    chain, rc, qs, qg, s, res = planned
+    lim = chain.q_limits
+    line = torch.stack((qs.detach(), qg.detach()), 1)
+    s1 = s.detach().clone().requires_grad_(True)
+    q1 = qs.detach().clone().requires_grad_(True)
+    one = OptimizeConfig(knots=8, iterations=1)
+    out = optimize_knots(rc, World(spheres=s1), q1, qg.detach(), line, lim[:, 0], lim[:, 1],
+                         MARGIN + ETA + CFG.buffer, motion.joint_reach(rc), one)
+    assert not out.converged.any()
+    gs, gq = torch.autograd.grad(out.path[:, 1:-1].sum(), (s1, q1), allow_unused=True, retain_graph=True)
+    assert (gs is None or not gs.any()) and not gq.any()
+    assert torch.equal(torch.autograd.grad(out.path[:, 0].sum(), q1)[0], torch.ones_like(q1))
+
+
 def test_options_are_checked():
     chain, rc = fr3_robot(torch.float64)
     q = torch.zeros(1, 7, dtype=torch.float64)

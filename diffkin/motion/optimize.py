@@ -433,9 +433,11 @@ def optimize_stage(checker, world, q_start: Tensor, q_goal: Tensor, path: Tensor
     """:func:`diffkin.motion.plan`'s stage: the optimised knots ``(R, M + 2, nq)`` of the searched paths
     ``path (R, L, nq)`` of problems ``rows (R,)`` (``q_start``, ``q_goal`` ``(R, nq)``: the plan's inputs,
     which may carry gradients; ``world``: the plan's, batch ``()`` or ``(B,)``), and ``kept (R,)``: the rows
-    whose optimisation converged and whose optimised path is proven clear by ``checker`` (the
-    :class:`~diffkin.motion._edges.EdgeChecker`): every straight segment between knots and the clamped
-    spline through them (the path that is timed) within the joint limits ``lo``, ``hi``."""
+    whose optimised path is proven clear by ``checker`` (the :class:`~diffkin.motion._edges.EdgeChecker`):
+    every straight segment between knots and the clamped spline through them (the path that is timed)
+    within the joint limits ``lo``, ``hi``. A row whose iterations did not converge is kept on the same
+    proof (its last iterate, a smoother path than the search's) but carries no gradient (it is no KKT
+    point)."""
     from .plan import _knots, _spline_clear
 
     w = world
@@ -448,7 +450,7 @@ def optimize_stage(checker, world, q_start: Tensor, q_goal: Tensor, path: Tensor
         R, N, nq = Y.shape
         free, _ = checker.edges(Y[:, :-1].reshape(-1, nq), Y[:, 1:].reshape(-1, nq),
                                 rows.repeat_interleave(N - 1))
-        kept = out.converged & free.view(R, N - 1).all(1)
+        kept = free.view(R, N - 1).all(1)
         kept &= _spline_clear(checker, Y, _knots(Y), lo, hi, rows)
     return out.path, kept
 

@@ -16,9 +16,9 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
    ends), checked continuously by the same bound (along its length in the bound's metric); a row whose
    spline leaves the clear region falls back to the checked polyline itself (a stop at every waypoint).
 6. **Optimisation** (``optimize=True``, :mod:`diffkin.motion.optimize`): the path resampled to knots and
-   optimised for smoothness with the distances and limits as constraints; kept where it converged and
-   its segments and spline are proven clear as above, else the path of 5. The optimised knots carry the
-   implicit gradient w.r.t. the start, the goal and the world's tensors.
+   optimised for smoothness with the distances and limits as constraints; kept where its segments and
+   spline are proven clear as above, else the path of 5. The optimised knots carry the implicit gradient
+   w.r.t. the start, the goal and the world's tensors where the iterations converged.
 7. **Timing** (:func:`diffkin.trajectories.time_optimal`): TOPP-RA under the velocity and acceleration
    limits, smoothed for the jerk limit (zero acceleration at both ends), limits held on dense samples.
 
@@ -211,8 +211,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
     :mod:`diffkin.motion.optimize`) and the spline through them; the timing (the time law s(t) and the
     spline's knot parameters) is held fixed at the solution. The gradient is the local one: it is not
     defined where the perturbation changes the set of distance rows held, and says nothing about another
-    homotopy class (a re-plan that goes round the other side of an obstacle). Other rows, and pose goals
-    (their IK solution), get no gradient.
+    homotopy class (a re-plan that goes round the other side of an obstacle). Other rows, rows whose
+    optimisation did not converge within ``OptimizeConfig.iterations`` (kept when proven clear, but no
+    KKT point), and pose goals (their IK solution) get no gradient.
     """
     from ..ik import solve as ik_solve
 
