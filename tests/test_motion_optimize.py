@@ -64,8 +64,8 @@ def test_optimized_plan_rechecked_by_coal(planned):
 
 
 def _replan(rc, knots, qs, qg, s, lim, reach):
-    """Knots re-optimised from ``knots`` (warm start) for the perturbed inputs (to steps of 1e-9 rad)."""
-    cfg = OptimizeConfig(knots=CFG.knots, tolerance=1e-9)
+    """Knots re-optimised from ``knots`` (warm start) for the perturbed inputs (to steps of 1e-10 rad)."""
+    cfg = OptimizeConfig(knots=CFG.knots, tolerance=1e-10)
     out = optimize_knots(rc, World(spheres=s), qs, qg, knots, lim[:, 0], lim[:, 1], MARGIN + ETA + CFG.buffer,
                          reach, cfg, warm=knots)
     assert out.converged.all()
@@ -84,7 +84,7 @@ def _check_gradients(planned, which):
     gq = torch.autograd.grad((res.q * wq).sum(), (qs, qg, s), retain_graph=True)  # the fixture is shared
     # the solution holds distance rows (the KKT part of the gradient is exercised): a sphere moves the path
     assert gk[2][:, :3].abs().max() > 1.0
-    eps = 1e-5
+    eps = 1e-4
     inputs = [qs.detach(), qg.detach(), s.detach()]
     for i in which:
         v = torch.randn(inputs[i].shape, generator=g, dtype=torch.float64)
@@ -105,7 +105,7 @@ def _check_gradients(planned, which):
 
 def test_gradients_match_warm_started_replans(planned):
     """d(knots)/d(start, sphere centres) and d(q samples)/d(…) at fixed timing, against central differences
-    (ε = 1e-5) of re-optimisations started from the solution, along random directions."""
+    (ε = 1e-4) of re-optimisations started from the solution, along random directions."""
     _check_gradients(planned, (0, 2))
 
 
