@@ -5,15 +5,15 @@
 #     bash benchmarks/install_vamp.sh            # VAMP_VENV=/work/venvs/vamp VAMP_SRC=/work/venvs/vamp_src
 #
 # What it does, and why:
-# 1. the sdist: `pip download --no-deps --no-binary :all: vamp-planner==0.6.4` fetches the archive but then
-#    builds cmake from source for the metadata (--no-binary reaches the build requirements): the archive is
-#    taken from pip's unpack directory as soon as it is there and the download stopped; its sha256 is checked
-#    (the one tests/data/vamp_panda/README.md records).
+# 1. the sdist: `pip download --no-deps --no-binary :all: vamp-planner==0.6.4` alone fetches the archive but
+#    then builds cmake from source for the metadata (--no-binary reaches the build requirements); run from
+#    VAMP's venv with its build requirements installed first and --no-build-isolation, it only fetches.
+#    Its sha256 is checked (the one tests/data/vamp_panda/README.md records).
 # 2. the three C++ header dependencies at the commits cmake/Dependencies.cmake names
 #    (`CPMAddPackage("gh:owner/name#commit")`): nigh (KavrakiLab/nigh 97130999), pdqsort (orlp/pdqsort
 #    b1ef26a5) and SIMDxorshift (lemire/SIMDxorshift 857c1a01), the paths the build reads (and licences),
-#    exported with `git archive` from local bare
-#    mirrors ($VAMP_MIRROR/<owner>+<name>/repo) or, when absent, cloned from GitHub.
+#    exported with `git archive` from local bare mirrors ($VAMP_MIRROR/<owner>+<name>/repo; it may warn
+#    about large blobs outside those paths that a mirror lacks) or, when absent, cloned from GitHub.
 # 3. CPM itself (cmake/FetchInitCPM.cmake downloads CPM.cmake from GitHub at configure time) is replaced,
 #    without editing the sdist, by a shim of the same name placed first on CMAKE_MODULE_PATH (VAMP's
 #    CMakeLists appends its own cmake/ after the caller's path): `CPMAddPackage("gh:owner/name#commit")`
@@ -34,22 +34,12 @@ SHA=d3150c6b67ff941af9ad56480b31d3fb73b12211ea21dc684f7737b059f6daba
 ARCHIVE=$SRC/vamp_planner-0.6.4.tar.gz
 
 mkdir -p "$SRC"
-if [ ! -f "$ARCHIVE" ]; then
-    dl=$(mktemp -d)
-    ( cd "$dl" && TMPDIR=$dl exec "$PYTHON" -m pip download --no-deps --no-binary :all: \
-        vamp-planner==0.6.4 >/dev/null 2>&1 ) &
-    pid=$!
-    for _ in $(seq 600); do  # the archive appears in pip's unpack directory before the metadata build
-        found=$(find "$dl" -name vamp_planner-0.6.4.tar.gz -size +100k 2>/dev/null | head -1)
-        if [ -n "$found" ] && [ "$(sha256sum "$found" | cut -d' ' -f1)" = "$SHA" ]; then
-            cp "$found" "$ARCHIVE"; break
-        fi
-        kill -0 "$pid" 2>/dev/null || break
-        sleep 1
-    done
-    kill -- "$pid" 2>/dev/null || true
-    wait "$pid" 2>/dev/null || true
-    rm -rf "$dl"
+[ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
+"$VENV/bin/pip" install -q "scikit-build-core>=0.4.3" "nanobind==2.8.0" numpy typing_extensions \
+    pyyaml fire tqdm toppra  # VAMP's resources/problem_tar_to_pkl_json.py needs the first three;
+                             # toppra times VAMP's paths (benchmarks/peers_vamp.py)
+if [ ! -f "$ARCHIVE" ]; then  # the build requirements are there: no build of cmake for the metadata
+    "$VENV/bin/pip" download --no-deps --no-binary :all: --no-build-isolation vamp-planner==0.6.4 -d "$SRC"
 fi
 echo "$SHA  $ARCHIVE" | sha256sum -c -
 tar -xzf "$ARCHIVE" -C "$SRC"
@@ -91,10 +81,6 @@ macro(CPMAddPackage spec)
 endmacro()
 EOF
 
-[ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
-"$VENV/bin/pip" install -q "scikit-build-core>=0.4.3" "nanobind==2.8.0" numpy typing_extensions \
-    pyyaml fire tqdm toppra  # VAMP's resources/problem_tar_to_pkl_json.py needs the first three;
-                             # toppra times VAMP's paths (benchmarks/peers_vamp.py)
 NB_DIR=$("$VENV/bin/python" -m nanobind --cmake_dir)
 CMAKE_BUILD_PARALLEL_LEVEL=$JOBS "$VENV/bin/pip" install --no-build-isolation --no-deps -v "$SDIST" \
     -C cmake.define.CMAKE_MODULE_PATH="$SRC/cmake_offline" \
