@@ -33,6 +33,11 @@ JOBS=${JOBS:-2}
 SHA=d3150c6b67ff941af9ad56480b31d3fb73b12211ea21dc684f7737b059f6daba
 ARCHIVE=$SRC/vamp_planner-0.6.4.tar.gz
 
+if [ ! -f /usr/share/eigen3/cmake/Eigen3Config.cmake ] && [ ! -f /usr/lib/cmake/eigen3/Eigen3Config.cmake ] \
+        && [ -z "${Eigen3_DIR:-}" ]; then
+    echo "install_vamp.sh: Eigen 3 not found: apt-get install libeigen3-dev (or set Eigen3_DIR)" >&2
+    exit 1
+fi
 mkdir -p "$SRC"
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
 "$VENV/bin/pip" install -q "scikit-build-core>=0.4.3" "nanobind==2.8.0" numpy typing_extensions \
