@@ -2,6 +2,7 @@
 model: the baseline a planner's collision model is judged by (VAMP counts 699 valid problems).
 
     python -m benchmarks.bench_motion_problems [--models capsules spherized] [--families cage box]
+    python -m benchmarks.bench_motion_problems --compare --out docs/bench/motion_problems.txt  # + VAMP, OMPL
 
 Models, both built from VAMP's files unchanged (``tests/data/vamp_panda``, the SRDF's pair rules and each
 scene's allowed-collision matrix through :meth:`~diffkin.collision.RobotCollision.allow_collisions`):
@@ -36,6 +37,29 @@ problems of each family, one problem at a time, its state validity checker diffk
 configuration (the same model and scene, margin 0), OMPL's own discrete motion checks (its default
 resolution, not diffkin's proven step bound), ``--ompl-time`` seconds per problem, no smoothing or timing:
 per family the successes and the median planning milliseconds.
+
+``--compare``: diffkin, VAMP and OMPL on the same problems in one run, one text table (``--out``; the
+figures in ``docs/bench/motion_problems.txt``), a row per method and family:
+
+* ``diffkin plan, one call``: ``motion.plan`` on every problem in **one** batched call (``World.stack`` of
+  all the scenes; ``--iterations``, ``--step``; the spherized model, Franka limits): valid problems,
+  successes, the call's time per problem, and per success the duration, the joint-space length of the
+  10 ms samples and the largest jerk (|Δq̈|/Δt every 1 ms); ``--recheck`` successes per family re-checked
+  as in ``--plan``;
+* ``VAMP rrtc + simplify`` (:mod:`benchmarks.peers_vamp`, VAMP 0.6.4 built from its sdist by
+  ``benchmarks/install_vamp.sh``, in its own venv; skipped when absent): VAMP's own problem conversion,
+  spherized Panda, default RRT-Connect and simplification on every problem; its clock's median planning
+  (``search_ms``) and planning + simplification (``ms``) times; its simplified path timed by toppra under
+  the same Franka velocity and acceleration limits (at rest at every waypoint: the path it checked;
+  ``spline_s``: the unchecked cubic spline through its waypoints), length and jerk as above;
+* ``diffkin plan, one at a time``: the first ``--subset`` problems of each family, each in its own call
+  (after one untimed warm-up call), and the search stage alone on each (the edge checker and RRT-Connect
+  as ``plan`` runs them, :func:`_search_stage`): median wall times, and the search's median over VAMP's
+  median planning time on the same problems (``search_vs_vamp``);
+* ``OMPL RRTConnect``: on the same subset, as ``--ompl`` (``--ompl-time`` seconds each). When ``ompl`` is
+  not importable here, ``OMPL_SITE`` names a site-packages holding PyPI ``ompl`` (appended to ``sys.path``).
+
+Duration ratios (``dur_vs_vamp_*``) are medians of per-problem ratios over the problems both solved.
 """
 
 from __future__ import annotations
@@ -121,12 +145,15 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
-def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2.0, recheck: int = 5,
-              seed: int = 0, optimize: bool = False) -> list[dict]:
-    """The ``--plan`` rows (module docstring): one per family and a total."""
+def _plan_records(problems, chunk: int = 100, iterations: int = 300, step: float = 2.0, recheck: int = 5,
+                  seed: int = 0, optimize: bool = False) -> tuple[list[dict], float]:
+    """``motion.plan`` on ``problems`` in batched calls of ``chunk`` (module docstring, ``--plan``): one
+    record per problem (``family``, ``valid``, ``success``, ``duration`` [s], ``length`` (joint-space length
+    of the 10 ms samples, rad), ``jerk_max`` (largest |Δq̈|/Δt of the trajectory sampled every 1 ms, rad/s³),
+    ``recheck_mm`` (the coal re-check's least distance, or None), ``optimized`` (timed along the optimisation
+    stage's knots, with ``optimize``), ``seconds`` (its call's time / its size)) and the total seconds of the
+    calls."""
     import time
-
-    import numpy as np
 
     from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V
     from diffkin import motion
@@ -134,9 +161,10 @@ def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2
 
     rc = robot_model("spherized").requires_grad_(False)
     chain = rc.chain
-    out: dict[str, dict] = {}
     total = 0.0
     checker = _CoalPanda() if recheck else None
+    rechecked: dict[str, int] = defaultdict(int)
+    records = []
     for k0 in range(0, len(problems), chunk):
         part = problems[k0:k0 + chunk]
         allowed = {p.scene.allowed for p in part}
@@ -154,55 +182,282 @@ def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2
                               max_iterations=iterations, step=step, seed=seed, optimize=optimize)
         dt = time.perf_counter() - t0
         total += dt
+        length = res.q.diff(dim=1).norm(dim=-1).sum(1)
+        jerk = _max_jerk(res)
         for b, p in enumerate(part):
-            c = out.setdefault(p.family, {"problems": 0, "valid": 0, "success": 0, "rechecked": 0,
-                                          "recheck_min_mm": float("inf"), "seconds": 0.0, "durations": [],
-                                          "lengths": [], "optimized": 0})
-            c["problems"] += 1
-            c["seconds"] += dt / len(part)
-            c["valid"] += int("in collision" not in res.reason[b])
-            c["success"] += int(res.success[b])
-            c["optimized"] += int(res.optimized[b])
-            if bool(res.success[b]):
-                c["durations"].append(float(res.duration[b]))
-                q = res.q[b].detach()
-                c["lengths"].append(float((q[1:] - q[:-1]).norm(dim=-1).sum()))  # joint-space path length
-                if checker is not None and c["rechecked"] < recheck:
-                    n = int(float(res.duration[b]) / 0.01) + 1
-                    d = checker.min_distance(res.q[b, :n].numpy(), worlds[b])
-                    c["rechecked"] += 1
-                    c["recheck_min_mm"] = min(c["recheck_min_mm"], 1e3 * d)
+            ok = bool(res.success[b])
+            r = {"family": p.family, "name": p.name, "valid": "in collision" not in res.reason[b],
+                 "success": ok, "duration": float(res.duration[b]) if ok else None,
+                 "length": float(length[b]) if ok else None, "jerk_max": float(jerk[b]) if ok else None,
+                 "recheck_mm": None, "optimized": bool(res.optimized[b]), "seconds": dt / len(part)}
+            if ok and checker is not None and rechecked[p.family] < recheck:
+                n = int(float(res.duration[b]) / 0.01) + 1
+                r["recheck_mm"] = 1e3 * checker.min_distance(res.q[b, :n].numpy(), worlds[b])
+                rechecked[p.family] += 1
+            records.append(r)
+    return records, total
+
+
+def _max_jerk(res, dt: float = 1e-3, window: int = 1000) -> torch.Tensor:
+    """(B,) the largest |Δq̈|/Δt of each row of a ``MotionResult`` sampled every ``dt`` (rows rest at both
+    ends, so rows past their duration add nothing), in windows of ``window`` samples."""
+    n = int(float(res.duration.max()) / dt) + 2
+    best = torch.zeros(res.duration.shape[0], dtype=F64)
+    for k0 in range(0, n, window):
+        t = torch.arange(k0, min(n, k0 + window + 1), dtype=F64) * dt  # one sample of overlap
+        if t.numel() < 2:
+            break
+        qdd = res.state(t).acceleration
+        best = torch.maximum(best, qdd.diff(dim=1).abs().flatten(1).amax(1) / dt)
+    return best
+
+
+def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2.0, recheck: int = 5,
+              seed: int = 0, optimize: bool = False) -> list[dict]:
+    """The ``--plan`` rows (module docstring): one per family and a total."""
+    import numpy as np
+
+    records, total = _plan_records(problems, chunk, iterations, step, recheck, seed, optimize)
     rows = []
-    for family in sorted(out):
-        c = out[family]
-        dur = float(np.median(c["durations"])) if c["durations"] else float("nan")
-        length = float(np.median(c["lengths"])) if c["lengths"] else float("nan")
-        rows.append({"benchmark": "motion_plan", "family": family, "problems": c["problems"],
-                     "valid": c["valid"], "success": c["success"], "optimized": c["optimized"],
-                     "rechecked": c["rechecked"], "recheck_min_mm": round(c["recheck_min_mm"], 2),
-                     "ms_per_problem": 1e3 * c["seconds"] / c["problems"], "duration_s_median": dur,
-                     "length_rad_median": length})
-    n = sum(c["problems"] for c in out.values())
-    rows.append({"benchmark": "motion_plan", "family": "all", "problems": n,
-                 "valid": sum(c["valid"] for c in out.values()),
-                 "success": sum(c["success"] for c in out.values()),
-                 "rechecked": sum(c["rechecked"] for c in out.values()),
-                 "recheck_min_mm": round(min(c["recheck_min_mm"] for c in out.values()), 2),
-                 "ms_per_problem": 1e3 * total / max(n, 1), "total_s": total, "chunk": chunk,
+    by_family = _by_family(records)
+    for family, rs in by_family.items():
+        dur = [r["duration"] for r in rs if r["success"]]
+        length = [r["length"] for r in rs if r["success"]]
+        mm = [r["recheck_mm"] for r in rs if r["recheck_mm"] is not None]
+        rows.append({"benchmark": "motion_plan", "family": family, "problems": len(rs),
+                     "valid": sum(r["valid"] for r in rs), "success": sum(r["success"] for r in rs),
+                     "optimized": sum(r["optimized"] for r in rs),
+                     "rechecked": len(mm), "recheck_min_mm": round(min(mm), 2) if mm else None,
+                     "ms_per_problem": 1e3 * sum(r["seconds"] for r in rs) / len(rs),
+                     "duration_s_median": float(np.median(dur)) if dur else float("nan"),
+                     "length_rad_median": float(np.median(length)) if length else float("nan")})
+    mm = [r["recheck_mm"] for r in records if r["recheck_mm"] is not None]
+    rows.append({"benchmark": "motion_plan", "family": "all", "problems": len(records),
+                 "valid": sum(r["valid"] for r in records), "success": sum(r["success"] for r in records),
+                 "rechecked": len(mm), "recheck_min_mm": round(min(mm), 2) if mm else None,
+                 "ms_per_problem": 1e3 * total / max(len(records), 1), "total_s": total, "chunk": chunk,
                  "iterations": iterations, "step": step})
     return rows
 
 
-def ompl_rows(problems, per_family: int = 10, time_limit: float = 1.0) -> list[dict]:
-    """The ``--ompl`` rows (module docstring); none when ``ompl`` is not importable."""
+def _by_family(records) -> dict[str, list[dict]]:
+    out: dict[str, list[dict]] = {}
+    for r in records:
+        out.setdefault(r["family"], []).append(r)
+    return dict(sorted(out.items()))
+
+
+def _search_stage(chain, model, world, qs, qg, iterations: int, step: float, seed: int) -> torch.Tensor:
+    """``motion.plan``'s search stage alone (stage 3 of its docstring, as ``plan`` calls it: the continuous
+    edge checker at ``plan``'s default resolution, margin 0, then RRT-Connect) -> ``found (B,)``. No goal IK,
+    start/goal checks, shortcutting, smoothing or timing."""
+    from diffkin.motion._edges import EdgeChecker
+    from diffkin.motion._search import search
+
+    lim = chain.q_limits.to(qs.dtype)
+    checker = EdgeChecker(model, world, 0.0, 0.005)
+    rows = torch.arange(qs.shape[0])
+    return search(checker, qs, qg, lim[:, 0], lim[:, 1], rows, max_iterations=iterations, step=step,
+                  generator=torch.Generator().manual_seed(seed))[2]
+
+
+def _one_at_a_time(problems, iterations: int, step: float, seed: int, ompl_time: float) -> list[dict]:
+    """One record per problem: ``motion.plan`` on it alone (``plan_s``, ``success``), the search stage alone
+    (``search_s``, ``found``) and OMPL's RRT-Connect (``ompl_s``, ``ompl_success``; None without ompl)."""
     import time
 
+    from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V
+    from diffkin import motion
+
+    rc = robot_model("spherized").requires_grad_(False)
+    chain = rc.chain
+    lim = chain.q_limits.numpy()
+    mods = _ompl_modules()
+    records = []
+    for k, p in enumerate([*problems[:1], *problems]):  # the first one twice: a warm-up call, not recorded
+        model = rc.allow_collisions(p.scene.allowed)
+        world = p.scene.to_world(dtype=F64)
+        qs = torch.tensor([p.start], dtype=F64)
+        qg = torch.tensor([p.goal], dtype=F64)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            t0 = time.perf_counter()
+            res = motion.plan(chain, qs, qg, collision=model, world=world, velocity_limit=FRANKA_V,
+                              acceleration_limit=FRANKA_A, jerk_limit=FRANKA_J, max_iterations=iterations,
+                              step=step, seed=seed)
+            t1 = time.perf_counter()
+            found = _search_stage(chain, model, world, qs, qg, iterations, step, seed)
+            t2 = time.perf_counter()
+        r = {"family": p.family, "name": p.name, "valid": "in collision" not in res.reason[0],
+             "success": bool(res.success[0]), "plan_s": t1 - t0, "found": bool(found[0]), "search_s": t2 - t1,
+             "ompl_success": None, "ompl_s": None}
+        if mods is not None:
+            r["ompl_success"], r["ompl_s"] = _ompl_solve(*mods, model, world, lim, p, ompl_time)
+        if k:
+            records.append(r)
+    return records
+
+
+def compare_rows(problems, subset: int = 5, iterations: int = 300, step: float = 2.0, recheck: int = 2,
+                 ompl_time: float = 1.0, seed: int = 0) -> list[dict]:
+    """The ``--compare`` table (module docstring): diffkin (all problems in one call; one at a time on the
+    first ``subset`` of each family), VAMP and OMPL in one run, a row per method and family."""
     import numpy as np
 
-    try:
-        from ompl import base as ob
-        from ompl import geometric as og
-    except ImportError:
+    from benchmarks import peers_vamp
+    from benchmarks.motion_problems import ARCHIVE, FRANKA_A, FRANKA_V
+
+    def med(x):
+        return float(np.median(x)) if len(x) else None
+
+    def pick(rs, f):
+        return [r for r in rs if f in ("all", r["family"])]
+
+    vamp = None
+    if peers_vamp.available():
+        vamp = {a["name"]: a for a in peers_vamp.solve_vamp(problems, ARCHIVE, FRANKA_V, FRANKA_A)}
+    batch, total = _plan_records(problems, len(problems), iterations, step, recheck, seed)
+    first = [p for p in problems if p.index <= subset]
+    single = _one_at_a_time(first, iterations, step, seed, ompl_time)
+    rows = []
+    families = sorted({p.family for p in problems}) + ["all"]
+    for f in families:
+        rs = pick(batch, f)
+        ratio_stop, ratio_spline = [], []
+        if vamp is not None:
+            for r in rs:
+                v = vamp[r["name"]]
+                if r["success"] and v["solved"]:
+                    ratio_stop.append(r["duration"] / v["toppra_stop_s"])
+                    ratio_spline.append(r["duration"] / v["toppra_spline_s"])
+        mm = [r["recheck_mm"] for r in rs if r["recheck_mm"] is not None]
+        ok = [r for r in rs if r["success"]]
+        rows.append({"method": "diffkin plan, one call", "family": f, "problems": len(rs),
+                     "valid": sum(r["valid"] for r in rs), "success": len(ok),
+                     "ms": 1e3 * total / len(batch) if f == "all" else None,
+                     "duration_s": med([r["duration"] for r in ok]),
+                     "dur_vs_vamp_stop": med(ratio_stop), "dur_vs_vamp_spline": med(ratio_spline),
+                     "length_rad": med([r["length"] for r in ok]),
+                     "jerk_max": max((r["jerk_max"] for r in ok), default=None),
+                     "recheck_min_mm": min(mm) if mm else None})
+        if vamp is not None:
+            vs = [vamp[r["name"]] for r in rs]
+            sv = [v for v in vs if v["solved"]]
+            rows.append({"method": "VAMP rrtc + simplify", "family": f, "problems": len(vs),
+                         "valid": sum(v["valid"] for v in vs), "success": len(sv),
+                         "ms": med([1e-6 * (v["plan_ns"] + v["simplify_ns"]) for v in sv]),
+                         "search_ms": med([1e-6 * v["plan_ns"] for v in sv]),
+                         "duration_s": med([v["toppra_stop_s"] for v in sv]),
+                         "spline_s": med([v["toppra_spline_s"] for v in sv]),
+                         "length_rad": med([v["length"] for v in sv]),
+                         "jerk_max": max((v["jerk_max"] for v in sv), default=None)})
+        ss = pick(single, f)
+        if not ss:
+            continue
+        search_ms = [1e3 * r["search_s"] for r in ss if r["found"]]
+        vamp_ms = [1e-6 * vamp[r["name"]]["plan_ns"] for r in ss if vamp[r["name"]]["solved"]] if vamp else []
+        rows.append({"method": f"diffkin plan, one at a time (first {subset})", "family": f,
+                     "problems": len(ss), "valid": sum(r["valid"] for r in ss),
+                     "success": sum(r["success"] for r in ss), "ms": med([1e3 * r["plan_s"] for r in ss]),
+                     "search_ms": med(search_ms), "search_found": sum(r["found"] for r in ss),
+                     "search_vs_vamp": (med(search_ms) / med(vamp_ms)) if search_ms and vamp_ms else None})
+        if ss[0]["ompl_success"] is not None:
+            rows.append({"method": f"OMPL RRTConnect, diffkin checker (first {subset}, {ompl_time:g} s)",
+                         "family": f, "problems": len(ss), "success": sum(r["ompl_success"] for r in ss),
+                         "ms": med([1e3 * r["ompl_s"] for r in ss])})
+    return rows
+
+
+COLUMNS = ("method", "family", "problems", "valid", "success", "ms", "search_ms", "search_found",
+           "search_vs_vamp", "duration_s", "spline_s", "dur_vs_vamp_stop", "dur_vs_vamp_spline", "length_rad",
+           "jerk_max", "recheck_min_mm")
+
+
+def format_table(rows, columns=COLUMNS) -> str:
+    """``rows`` as a fixed-width text table of ``columns`` (a blank where a row has no value; numbers to
+    4 significant digits), rows grouped by family in their order."""
+    def cell(v):
+        if v is None:
+            return ""
+        if isinstance(v, bool):
+            return str(v)
+        if isinstance(v, float):
+            return f"{v:.4g}"
+        return str(v)
+
+    cols = [c for c in columns if any(r.get(c) is not None for r in rows)]
+    cells = [[cell(r.get(c)) for c in cols] for r in rows]
+    width = [max([len(c)] + [len(line[k]) for line in cells]) for k, c in enumerate(cols)]
+    lines = [_join(cols, width)]
+    lines.append("  ".join("-" * w for w in width))
+    last = None
+    for r, line in zip(rows, cells):
+        if last is not None and r.get("family") != last:
+            lines.append("")
+        last = r.get("family")
+        lines.append(_join(line, width))
+    return "\n".join(lines) + "\n"
+
+
+def _join(cells, width) -> str:  # the first two columns (method, family) left-aligned, numbers right
+    return "  ".join(x.ljust(w) if k < 2 else x.rjust(w) for k, (x, w) in enumerate(zip(cells, width)))
+
+
+def _ompl_modules():
+    """OMPL's ``base`` and ``geometric`` modules, or None: from this interpreter, else from the site-packages
+    named by ``OMPL_SITE`` (e.g. a venv holding only PyPI ``ompl``), appended after this one's."""
+    import os
+    import sys
+
+    for attempt in range(2):
+        try:
+            from ompl import base as ob
+            from ompl import geometric as og
+            return ob, og
+        except ImportError:
+            site = os.environ.get("OMPL_SITE")
+            if attempt or not site:
+                return None
+            sys.path.append(site)
+    return None
+
+
+def _ompl_solve(ob, og, model, world, lim, p, time_limit: float) -> tuple[bool, float]:
+    """OMPL's RRT-Connect on problem ``p`` (module docstring) -> (exact solution found, wall seconds of
+    ``solve``)."""
+    import time
+
+    space = ob.RealVectorStateSpace(7)
+    bounds = ob.RealVectorBounds(7)
+    for j in range(7):
+        bounds.setLow(j, float(lim[j, 0]))
+        bounds.setHigh(j, float(lim[j, 1]))
+    space.setBounds(bounds)
+    ss = og.SimpleSetup(space)
+    buf = torch.zeros(1, 7, dtype=F64)
+
+    def valid(state):
+        for j in range(7):
+            buf[0, j] = state[j]
+        return bool(model._clear(buf, world, 0.0, 0.0, moving_only=True)[0])
+
+    ss.setStateValidityChecker(valid)
+    start, goal = space.allocState(), space.allocState()
+    for j in range(7):
+        start[j], goal[j] = p.start[j], p.goal[j]
+    ss.setStartAndGoalStates(start, goal)
+    ss.setPlanner(og.RRTConnect(ss.getSpaceInformation()))
+    t0 = time.perf_counter()
+    ss.solve(time_limit)
+    return bool(ss.haveExactSolutionPath()), time.perf_counter() - t0
+
+
+def ompl_rows(problems, per_family: int = 10, time_limit: float = 1.0) -> list[dict]:
+    """The ``--ompl`` rows (module docstring); none when ``ompl`` is not importable."""
+    import numpy as np
+
+    mods = _ompl_modules()
+    if mods is None:
         return [{"benchmark": "ompl_rrtconnect", "family": "all", "note": "ompl not importable: skipped"}]
     rc = robot_model("spherized").requires_grad_(False)
     lim = rc.chain.q_limits.numpy()
@@ -212,34 +467,11 @@ def ompl_rows(problems, per_family: int = 10, time_limit: float = 1.0) -> list[d
         count[p.family] = count.get(p.family, 0) + 1
         if count[p.family] > per_family:
             continue
-        model = rc.allow_collisions(p.scene.allowed)
-        world = p.scene.to_world(dtype=F64)
-        space = ob.RealVectorStateSpace(7)
-        bounds = ob.RealVectorBounds(7)
-        for j in range(7):
-            bounds.setLow(j, float(lim[j, 0]))
-            bounds.setHigh(j, float(lim[j, 1]))
-        space.setBounds(bounds)
-        ss = og.SimpleSetup(space)
-        buf = torch.zeros(1, 7, dtype=F64)
-
-        def valid(state, model=model, world=world, buf=buf):
-            for j in range(7):
-                buf[0, j] = state[j]
-            return bool(model._clear(buf, world, 0.0, 0.0, moving_only=True)[0])
-
-        ss.setStateValidityChecker(valid)
-        start, goal = space.allocState(), space.allocState()
-        for j in range(7):
-            start[j], goal[j] = p.start[j], p.goal[j]
-        ss.setStartAndGoalStates(start, goal)
-        ss.setPlanner(og.RRTConnect(ss.getSpaceInformation()))
-        t0 = time.perf_counter()
-        ss.solve(time_limit)
-        dt = time.perf_counter() - t0
+        ok, dt = _ompl_solve(*mods, rc.allow_collisions(p.scene.allowed), p.scene.to_world(dtype=F64), lim, p,
+                             time_limit)
         c = out.setdefault(p.family, {"problems": 0, "success": 0, "ms": []})
         c["problems"] += 1
-        c["success"] += int(ss.haveExactSolutionPath())
+        c["success"] += int(ok)
         c["ms"].append(1e3 * dt)
     rows = [{"benchmark": "ompl_rrtconnect", "family": f, "problems": c["problems"], "success": c["success"],
              "ms_median": float(np.median(c["ms"]))} for f, c in sorted(out.items())]
@@ -304,10 +536,32 @@ def main(argv=None) -> int:
     p.add_argument("--recheck", type=int, default=5)
     p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")
     p.add_argument("--ompl-time", type=float, default=1.0)
-    p.add_argument("--indices", nargs="*", type=int, default=None, help="these problem numbers per family")
+    p.add_argument("--compare", action="store_true",
+                   help="diffkin, VAMP and OMPL in one run (module docstring)")
+    p.add_argument("--subset", type=int, default=5,
+                   help="--compare: problems per family planned one at a time")
+    p.add_argument("--indices", type=int, nargs="*", default=None, help="only these problem numbers (1-100)")
+    p.add_argument("--out", default=None, help="--compare: also write the table to this text file")
     p.add_argument("--optimize", action="store_true",
                    help="--plan twice in the same run, without and with the optimisation stage")
     known = p.parse_known_args(argv)[0]
+    if known.compare:  # printed as format_table's text (16 columns), not the other modes' rich table
+        from benchmarks.common import write_json
+
+        p.add_argument("--threads", type=int, default=1)
+        p.add_argument("--json", default=None, help="write the rows (and the environment) to this JSON file")
+        a = p.parse_args(argv)
+        torch.set_num_threads(a.threads)
+        problems = load_problems(families=a.families, indices=a.indices)
+        rows = compare_rows(problems, a.subset, a.iterations, a.step, a.recheck, a.ompl_time)
+        text = _compare_text(rows, a, len(problems))
+        print(text)
+        if a.out:
+            with open(a.out, "w") as f:
+                f.write(text)
+        if a.json:
+            write_json(a.json, rows)
+        return 0
     if known.plan or known.ompl:
         def both(a):
             problems = load_problems(families=a.families, indices=a.indices)
@@ -319,6 +573,40 @@ def main(argv=None) -> int:
 
         return cli(p, both, "MotionBenchMaker Panda: motion.plan batched, OMPL RRT-Connect", argv)
     return cli(p, run, "MotionBenchMaker Panda: problems whose start or goal is in collision", argv)
+
+
+def _compare_text(rows, a, n: int) -> str:
+    """The ``--compare`` table as text, under a header naming the run (command, machine, load, versions)."""
+    import os
+    import platform
+    import sys
+    import time
+    from importlib import metadata
+
+    from benchmarks import peers_vamp
+
+    version = metadata.version("ompl") if _ompl_modules() else "not importable"
+    machine = platform.processor() or platform.machine()
+    found = "found" if peers_vamp.available() else "NOT found"
+    head = (f"python -m benchmarks.bench_motion_problems {' '.join(sys.argv[1:])}\n"
+            f"{time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}; {machine}, {os.cpu_count()} cores, "
+            f"load {os.getloadavg()[0]:.1f} at the end (a shared machine: compare the rows of this one "
+            f"run); torch threads {torch.get_num_threads()}. {n} problems; diffkin motion.plan: "
+            f"{a.iterations} iterations, step {a.step}, VAMP's spherized Panda, Franka limits; VAMP 0.6.4 "
+            f"(benchmarks/install_vamp.sh, {found}); OMPL {version}.\n"
+            "Columns: ms = per problem (diffkin one call: the call / problems; VAMP: planning + "
+            "simplification, its own clock; one at a time and OMPL: wall); search_ms = RRT-Connect alone "
+            "(diffkin: EdgeChecker + search; VAMP: planning); search_vs_vamp = ratio of the medians on the "
+            "same problems; duration_s = trajectory seconds under the Franka limits (VAMP: its path timed by "
+            "toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through its waypoints, "
+            "not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on problems both "
+            "solved; length_rad = joint-space path length; jerk_max = max |dq''|/dt sampled every 1 ms, "
+            "rad/s^3 (toppra's q'' is piecewise constant); recheck_min_mm = coal/Pinocchio re-check of "
+            "diffkin's successes.")
+    import textwrap
+
+    head = "\n".join("# " + line for para in head.split("\n") for line in textwrap.wrap(para, 108)) + "\n\n"
+    return head + format_table(rows)
 
 
 if __name__ == "__main__":
