@@ -107,6 +107,30 @@ def test_a_new_task_is_one_subclass(ur5):
         assert bool(chain.within_limits(qk).all())
 
 
+def test_a_new_task_in_ik_optimize(ur5):
+    """The same task as a cost term of ik.optimize beside a pose FrameTask with orientation cost 0 (its
+    orientation rows dropped): the target position p_t chosen on the line c + s u, the one point where both
+    weighted errors vanish is p_t (closed form); the orientation is left free. (A FrameTask's cost weighs
+    the rows of log(T_f⁻¹T_t), the frame's own axes: a cost (1, 0, 0) frees the frame's y and z, not the
+    base's, so a base-frame closed form is not its answer.)"""
+    gen = torch.Generator().manual_seed(5)
+    q_t = ur5.random_configuration((5,), generator=gen)
+    T_t = ur5.forward_kinematics(q_t)
+    u = torch.tensor(U, dtype=F64) / torch.tensor(U, dtype=F64).norm()
+    c = T_t[..., :3, 3] - 0.3 * u  # the line through every target position
+    line = PointOnLineTask(0, c, u, cost=[1.0, 2.0, 0.5])
+    frame = ik.FrameTask(0, target=T_t, orientation_cost=0.0)
+    q0 = q_t + 0.15 * torch.randn(q_t.shape, dtype=F64, generator=gen)
+    res = ik.optimize(ur5, q0=q0, tasks=[frame, line], optimizer="gauss_newton")
+    p = ur5.forward_kinematics(res.q)[..., :3, 3]
+    torch.testing.assert_close(p, T_t[..., :3, 3], atol=1e-9, rtol=0)
+    assert _line_distance(ur5, res.q, c.numpy(), U).max() < 1e-9
+    assert float(res.position_error.max()) < 1e-9
+    R = ur5.forward_kinematics(res.q)[..., :3, :3].mT @ T_t[..., :3, :3]
+    angle = torch.arccos(((R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1))
+    assert float(angle.min()) > 1e-2  # not asked for: the cost 0 dropped those rows
+
+
 # ------------------------------------------------------------------------------------ a new primitive
 def _rounded_box_spheres(c, R, h, rho):
     centre, radius = box_spheres(c, h)

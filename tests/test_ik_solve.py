@@ -208,6 +208,57 @@ def test_bad_inputs():
         solve(chain, T.float())
 
 
+def test_frame_task_zero_costs_are_honoured_or_refused():
+    """A FrameTask's zero cost removes that row of log(T_f⁻¹T_t) in every solver alike: ik.optimize and
+    ik.solve_velocity drop it (here: scipy's least_squares on the same weighted residual W e reaches 0, and
+    so does optimize, with the x row 0 and the free rows not); the LM pose solve has every row, so it
+    refuses zeros on some axes only (it used to reach the whole position silently) and keeps the position
+    only solve for orientation costs 0 everywhere; positive costs leave its exact solution unchanged."""
+    from scipy.optimize import least_squares
+
+    from diffkin import ik
+    from diffkin.errors import ConventionError
+    from diffkin.ik.tasks import Problem
+
+    chain = chain64("ur5")
+    q, T = targets(chain, (3,), seed=4)
+    q0 = q + 0.2
+    task = ik.FrameTask(0, target=T, position_cost=[1.0, 0.0, 0.0], orientation_cost=0.0)
+    with pytest.raises(ConventionError, match="position_cost"):
+        solve(chain, tasks=[task])
+    with pytest.raises(ConventionError, match="orientation_cost"):
+        solve(chain, tasks=[ik.FrameTask(0, target=T, orientation_cost=[0.0, 0.0, 1.0])])
+    with pytest.raises(ConventionError, match="orientation_cost"):  # zero for some samples only
+        some = torch.tensor([[1.0], [0.0], [1.0]], dtype=F64).expand(3, 3)
+        solve(chain, tasks=[ik.FrameTask(0, target=T, orientation_cost=some)])
+    # positive costs: the same exact solve as the plain target; orientation costs 0: position only
+    plain = solve(chain, T, seed=2)
+    weighted = solve(chain, tasks=[ik.FrameTask(0, target=T, position_cost=[1.0, 2.0, 0.5],
+                                                orientation_cost=0.3)], seed=2)
+    torch.testing.assert_close(weighted.q, plain.q, atol=0, rtol=0)
+    pos = solve(chain, tasks=[ik.FrameTask(0, target=T, orientation_cost=0.0)], seed=2)
+    ref = solve(chain, T[..., :3, 3], position_only=True, seed=2)
+    torch.testing.assert_close(pos.q, ref.q, atol=0, rtol=0)
+    # the solvers that take the task drop the zero rows: a zero of W e, away from the target
+    w = torch.tensor([1.0, 0, 0, 0, 0, 0], dtype=F64)
+
+    def residual(qn, k):
+        p = Problem(chain, torch.as_tensor(qn), 1.0)
+        return (w * ik.FrameTask(0, target=T[k]).error(p)).numpy()
+
+    for k in range(3):
+        ref = least_squares(residual, q0[k].numpy(), args=(k,), xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        assert np.abs(ref.fun).max() < 1e-12
+    res = ik.optimize(chain, q0=q0, tasks=[task], optimizer="gauss_newton")
+    e = task.error(Problem(chain, res.q, 1.0))
+    assert float(e[:, 0].abs().max()) < 1e-10 and float(e[:, 1:3].norm(dim=-1).min()) > 1e-3
+    v = ik.solve_velocity(chain, q0, [task], 0.1, damping=1e-3)
+    p = Problem(chain, q0, 0.1)
+    A, b = w[:, None] * task.jacobian(p), -w * task.error(p)  # W J, −α W e: (T.1), damped least squares
+    want = torch.linalg.solve(A.mT @ A + 1e-3 * torch.eye(6, dtype=F64), (A.mT @ b[..., None]))[..., 0] / 0.1
+    torch.testing.assert_close(v, want, atol=1e-9, rtol=0)
+
+
 def test_empty_batch():
     chain = chain64("ur5")
     res = solve(chain, torch.zeros(0, 4, 4, dtype=F64))

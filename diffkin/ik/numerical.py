@@ -286,7 +286,9 @@ def solve(
             refinement (:mod:`diffkin.ik._collision`).
         tasks, limits: the same problem as objects (:mod:`diffkin.ik._from_tasks`): one pose
             :class:`~diffkin.ik.FrameTask` per end link instead of ``T_target`` (orientation costs 0:
-            ``position_only``); :class:`~diffkin.ik.ConfigurationLimit` for ``respect_limits``,
+            ``position_only``; a zero cost on some axes only is a ConventionError: it leaves rows free,
+            which ``ik.optimize`` and ``ik.solve_velocity`` honour and the pose solve cannot);
+            :class:`~diffkin.ik.ConfigurationLimit` for ``respect_limits``,
             :class:`~diffkin.ik.CollisionLimit` for ``collision`` / ``world`` / ``margin``.
 
     Returns:
