@@ -257,6 +257,9 @@ def test_a_spline_leaving_the_limits_is_not_taken():
         def clear(self, q, problem):
             return torch.ones(q.shape[:-1], dtype=torch.bool)
 
+        def eta_of(self, problem):
+            return torch.full(problem.shape, self.eta, dtype=torch.float64)
+
     path = torch.tensor([[[0.0], [1.0], [1.0], [0.2]]], dtype=torch.float64)
     knots = torch.tensor([[0.0, 1.0, 2.0, 3.0]], dtype=torch.float64)
     from scipy.interpolate import CubicSpline

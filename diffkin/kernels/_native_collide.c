@@ -231,7 +231,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         }
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
-    real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK];
+    real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
     for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
         if (!DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++) {

@@ -97,15 +97,36 @@ class EdgeChecker:
 
     def __init__(self, collision, world, margin: float, resolution: float, chunk: int = 1 << 16):
         self.collision, self.world, self.margin, self.eta = collision, world, float(margin), float(resolution)
+        #: per problem its own resolution ``(B,)`` (:meth:`set_row_resolution`; None: ``eta`` for all)
+        self.row_eta: Tensor | None = None
         self.reach = joint_reach(collision)
         self.moving = bool(getattr(collision, "skip_fixed", False))
         self.chunk = chunk
         self.checked = 0  # configurations decided so far (a count for the benchmarks)
 
+    def set_row_resolution(self, eta: Tensor) -> None:
+        """Give problem b the resolution ``eta[b]`` (``(B,)``, each ≤ η): its edges are subdivided and its
+        samples decided with it (a start or goal closer than margin + η to an obstacle gets a finer one)."""
+        self.row_eta = eta
+
+    def eta_of(self, problem: Tensor) -> Tensor:
+        """The resolution ``(...,)`` of each ``problem (...,)``."""
+        if self.row_eta is None:
+            return torch.full(problem.shape, self.eta, dtype=self.reach.dtype, device=problem.device)
+        return self.row_eta[problem]
+
     def clear(self, q: Tensor, problem: Tensor, slack: float | None = None) -> Tensor:
-        """(...,) bool: every distance ≥ margin + ``slack`` (default η) at q (..., nq), each configuration in
-        the world of its ``problem`` (...,) (long; a batched world ``(B, ...)`` has one scene per problem,
-        an unbatched one serves all)."""
+        """(...,) bool: every distance ≥ margin + ``slack`` (default: each problem's resolution) at q
+        (..., nq), each configuration in the world of its ``problem`` (...,) (long; a batched world
+        ``(B, ...)`` has one scene per problem, an unbatched one serves all)."""
+        if slack is None and self.row_eta is not None:  # one decision per distinct resolution (a few)
+            idx = problem.expand(q.shape[:-1])
+            s = self.row_eta[idx]
+            out = torch.empty(q.shape[:-1], dtype=torch.bool, device=q.device)
+            for v in torch.unique(s).tolist():
+                m = s == v
+                out[m] = self.clear(q[m], idx[m], slack=v)
+            return out
         slack = self.eta if slack is None else slack
         flat = q.reshape(-1, q.shape[-1])
         self.checked += flat.shape[0]
@@ -118,10 +139,12 @@ class EdgeChecker:
                          for x, i in zip(flat.split(self.chunk), idx.split(self.chunk))])
         return out.reshape(q.shape[:-1])
 
-    def steps(self, dq: Tensor) -> Tensor:
-        """Sub-steps (...,) long for straight edges dq (..., nq): ceil(Σ R_j |Δq_j| / η), at least 1."""
+    def steps(self, dq: Tensor, problem: Tensor | None = None) -> Tensor:
+        """Sub-steps (...,) long for straight edges dq (..., nq) of problems ``problem`` (...,):
+        ceil(Σ R_j |Δq_j| / η_b), at least 1 (η_b: the problem's resolution; η without ``problem``)."""
         L = (dq.abs() * self.reach.to(dq.dtype)).sum(-1)
-        return torch.ceil(L / self.eta).clamp(min=1).long()
+        eta = self.eta if problem is None else self.eta_of(problem).to(dq.dtype)
+        return torch.ceil(L / eta).clamp(min=1).long()
 
     def edges(self, qa: Tensor, qb: Tensor, problem: Tensor, prefix: bool = False,
               block: int = 256) -> tuple[Tensor, Tensor]:
@@ -138,7 +161,7 @@ class EdgeChecker:
             z = qa.new_zeros(0)
             return z.bool(), z
         dev = qa.device
-        n = self.steps(qb - qa)
+        n = self.steps(qb - qa, problem)
         S = int(n.max()) + 1
         i = torch.arange(S, device=dev)
         if not prefix:

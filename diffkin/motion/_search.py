@@ -48,10 +48,12 @@ def _trace(nodes: Tensor, parent: Tensor, leaf: Tensor) -> tuple[Tensor, Tensor]
 
 
 def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor, *,
-           max_iterations: int, step: float, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+           max_iterations: int, step: float, generator: torch.Generator,
+           goal_bias: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """Paths (B, L, nq) from q_start to q_goal (B, nq) of problems ``problem (B,)`` (the rows' scenes in the
     checker's world; rows padded with the goal), their waypoint counts (B,) and ``found (B,)``. Start and
-    goal must already be clear (rows where they are not stay unfound)."""
+    goal must already be clear (rows where they are not stay unfound). With probability ``goal_bias`` a
+    tree extends towards the other tree's root instead of a uniform sample."""
     B, nq = q_start.shape
     dev, dt = q_start.device, q_start.dtype
     w = checker.reach.to(dt)
@@ -81,6 +83,9 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         A, Bt = trees[a], trees[1 - a]
         r = len(rows)
         q_rand = lo + (hi - lo) * torch.rand(r, nq, generator=generator, dtype=dt, device="cpu").to(dev)
+        if goal_bias > 0:
+            towards = torch.rand(r, generator=generator, dtype=torch.float64).to(dev) < goal_bias
+            q_rand = torch.where(towards[:, None], Bt[0][rows, 0], q_rand)
         near = _nearest(A[0][rows], A[2][rows], q_rand, w)
         q_near = A[0][rows, near]
         d = q_rand - q_near

@@ -1,0 +1,159 @@
+"""The search stage of :func:`diffkin.motion.plan` in C: RRT-Connect and shortcutting per problem
+(``dk_plan_search`` of ``diffkin/kernels/_native_plan.c``), problems spread over threads.
+
+Same algorithm and success semantics as :mod:`diffkin.motion._search` (the torch path, which serves CUDA
+tensors, builds without a C compiler and models the C decisions do not serve): the straight edge first, then
+trees from the start and the goal that take turns extending by at most ``step`` towards a uniform sample and
+connecting by the longest clear prefix, then random shortcuts; every edge decided by the subdivision of
+:mod:`diffkin.motion._edges` with the same reach bound ``R`` (:func:`~diffkin.motion.joint_reach`) and each
+problem's resolution. What differs: one problem at a time per thread instead of all problems per iteration
+(a solved problem stops costing at once), and the randomness: each problem's stream is seeded by ``seed``
+and the bytes of its own start and goal, so a problem planned alone returns what its row returns in any
+batch, on any number of threads (the torch path draws one stream for the whole batch).
+
+Interface: :class:`PlanArgs` mirrors ``dk_plan`` (``DK_PLAN_FIELDS``) field by field, checked once against
+the library by :func:`diffkin.kernels.native.check_layout` (a mismatch: the torch path serves).
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+from torch import Tensor
+
+from ..kernels import native
+
+__all__ = ["PlanArgs", "VERSION", "search_native", "serves"]
+
+#: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
+VERSION = 1
+#: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
+FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY = 1, 0, 2, -1
+_I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+
+
+class PlanArgs(ctypes.Structure):
+    """``dk_plan`` of ``_native_plan.c`` (``DK_PLAN_FIELDS``, where each field is described)."""
+
+    VERSION = VERSION
+    _fields_ = [(name, _I64) for name in ("version", "size", "nthreads")] + \
+        [("chain", _PTR), ("collide", _PTR), ("C", _I64), ("col_frame", _PTR), ("col_h", _PTR),
+         ("base", _PTR), ("B", _I64)] + \
+        [(name, _PTR) for name in ("q_start", "q_goal", "world", "eta", "lo", "hi", "reach")] + \
+        [("step", _F64), ("goal_bias", _F64)] + \
+        [(name, _I64) for name in ("max_iterations", "shortcut_tries", "seed", "capacity")] + \
+        [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")]
+
+
+_fn: dict = {}  # id of the loaded library -> dk_plan_search
+
+
+def _function():
+    lib = native._lib
+    fn = _fn.get(id(lib))
+    if fn is None:
+        native.check_layout(lib, "plan", PlanArgs)
+        fn = lib.dk_plan_search
+        fn.restype, fn.argtypes = _I64, [ctypes.POINTER(PlanArgs)]
+        _fn[id(lib)] = fn
+    return fn
+
+
+def _template(checker, q: Tensor):
+    """(the chain's all-frames native model, base, the :class:`~diffkin.kernels.native.Collide` of the
+    checker's decisions and the tensors it points into), or None where the C search does not serve: no
+    library, CUDA, a model with robot boxes, convex meshes or pairs the C pass leaves to torch."""
+    rc = checker.collision
+    if q.device.type != "cpu" or not native.available():
+        return None
+    try:
+        _function()
+    except (AttributeError, native.AbiMismatch):
+        return None
+    nc, nb = rc._counts
+    keep_self, keep_world = rc._kept(checker.world, checker.moving)
+    if nb or rc._nconvex or keep_self is not None or nc == 0:
+        return None
+    made = rc._frames.native_frames_model(rc.chain, q)
+    if made is None:
+        return None
+    model, base = made
+    world = checker.world
+    world_flat = None if world is None else (world._flattened() if len(world.batch_shape) > 1 else world)
+    skip = None if world_flat is None else rc._world_skip(world_flat, keep_world)
+    empty = q.new_zeros(nc, 3, 0)
+    objects, hs, skip_r, skip_h, extra, left, _ = rc._native_inputs(world_flat, checker.margin, 0.0, skip,
+                                                                    None, empty)
+    if left:
+        return None
+    extra.pop("world_index", None)
+    made = native.collide_struct(empty, empty, rc.capsule_radius.detach(), rc._pairs_00, objects, hs, skip_r,
+                                 skip_h, checker.margin, 0.0, None, **extra)
+    if made is None:
+        return None
+    return model, base, made
+
+
+def serves(checker, q: Tensor) -> bool:
+    """Whether :func:`search_native` serves the checker's model and world for tensors like ``q``."""
+    return _template(checker, q) is not None
+
+
+def _columns(rc, base: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
+    """Each capsule end's frame index (0 the base, k the chain's frame k − 1) ``(2 G,)`` and its
+    homogeneous coordinates there ``(2 G, 4)`` (the blocks of :meth:`RobotCollision._placement`), the
+    base's 3 × 4 rows."""
+    nc = rc._counts[0]
+    F = rc._frames.frames(rc.chain, torch.zeros(rc.chain.nq, dtype=dtype))
+    H = rc._placement(F)  # (K·4, C)
+    frame = rc._col_anchor[: 2 * nc].to(torch.int64).contiguous()
+    Hk = H.reshape(-1, 4, H.shape[-1])[:, :, : 2 * nc]  # (K, 4, 2 G)
+    h = Hk[frame, :, torch.arange(2 * nc)].to(dtype).contiguous()  # (2 G, 4)
+    return frame, h, base[:3].to(dtype).contiguous()
+
+
+def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
+                  eta: Tensor, *, max_iterations: int, step: float, shortcut_tries: int, seed: int,
+                  goal_bias: float = 0.0, capacity: int = 256) -> tuple[Tensor, Tensor, Tensor, dict] | None:
+    """Paths ``(B, L, nq)`` (rows padded with their goal) from ``q_start`` to ``q_goal`` ``(B, nq)`` of
+    problems ``problem (B,)`` (rows of the checker's world), each edge subdivided at the row's resolution
+    ``eta (B,)``, their waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``,
+    ``checked``: configurations decided, ``too_long``: rows whose path kept more than ``capacity``
+    waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be clear of
+    ``margin + eta`` (rows where they are not are searched in vain)."""
+    made = _template(checker, q_start)
+    if made is None:
+        return None
+    model, base, (collide, keep) = made
+    dtype = q_start.dtype
+    B, nq = q_start.shape
+    rc = checker.collision
+    frame, h, base12 = _columns(rc, base, dtype)
+    real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
+    qs, qg, lo_, hi_ = real(q_start), real(q_goal), real(lo), real(hi)
+    reach, eta_ = real(checker.reach), real(eta)
+    world = None
+    if checker.world is not None and len(checker.world.batch_shape) > 0:
+        world = problem.to(torch.int64).contiguous()
+    L = max(2, int(capacity))
+    path = torch.empty(B, L, nq, dtype=dtype)
+    n_way, status, its, checked = (torch.zeros(B, dtype=torch.int64) for _ in range(4))
+    args = native.new_struct(
+        PlanArgs, nthreads=native.thread_count(B * 4096), chain=ctypes.addressof(model.args[dtype]),
+        collide=ctypes.addressof(collide), C=frame.shape[0], col_frame=frame, col_h=h, base=base12, B=B,
+        q_start=qs, q_goal=qg, world=world, eta=eta_, lo=lo_, hi=hi_, reach=reach,
+        step=float(step), goal_bias=float(goal_bias), max_iterations=int(max_iterations),
+        shortcut_tries=int(shortcut_tries), seed=int(seed), capacity=L, path=path, n_way=n_way, status=status,
+        iterations=its, checked=checked)
+    if B:
+        rc_ = _function()(ctypes.byref(args))
+        del keep
+        if rc_ == native.CONSTANTS["DK_ABI_ERROR"] or rc_ == native.CONSTANTS["DK_RANGE_ERROR"]:
+            return None
+        if rc_ < 0:
+            raise MemoryError("motion.plan: the C search could not allocate its per-thread work space")
+    found = status == FOUND
+    dev = q_start.device
+    stats = {"iterations": its.to(dev), "checked": checked.to(dev), "too_long": status == TOO_LONG}
+    return path.to(dev), n_way.to(dev), found.to(dev), stats
