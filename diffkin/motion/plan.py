@@ -10,10 +10,10 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
    ``resolution / 2^k`` where a start or goal is closer than that to an obstacle; the limits > 0: a
    failing row gets its ``reason``; nothing is raised for the batch.
 3. **Search**: the straight edge first, then RRT-Connect; in C on the CPU
-   (:mod:`diffkin.motion._native_search`: one problem per thread, problems over OpenMP threads), else in torch vectorised over the unsolved
-   problems (:mod:`diffkin.motion._search`; CUDA, no compiler). Every edge is checked by a subdivision whose
-   joint step bounds the travel of every geom point by the problem's resolution (so the continuous edge is
-   clear of ``margin``).
+   (:mod:`diffkin.motion._native_search`: one problem per thread, problems over OpenMP threads), else in
+   torch vectorised over the unsolved problems (:mod:`diffkin.motion._search`; CUDA, no compiler). Every
+   edge is checked by a subdivision whose joint step bounds the travel of every geom point by the
+   problem's resolution (so the continuous edge is clear of ``margin``).
 4. **Shortcutting**: random straight shortcuts between waypoints, each edge checked the same way (in C with
    the C search).
 5. **Geometric path**: the cubic spline through the waypoints (chord-length knots, zero path slope at both
