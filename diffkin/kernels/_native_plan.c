@@ -61,7 +61,12 @@
     X(int64_t *, n_way, "[B] out: waypoints") \
     X(int64_t *, status, "[B] out: DK_PLAN_FOUND, _NOT_FOUND, _TOO_LONG, _NO_MEMORY") \
     X(int64_t *, iterations, "[B] out: RRT-Connect iterations run") \
-    X(int64_t *, checked, "[B] out: configurations decided")
+    X(int64_t *, checked, "[B] out: configurations decided") \
+    X(int64_t, N, "dk_plan_decide: configurations") \
+    X(const void *, q, "dk_plan_decide: [N n] reals") \
+    X(const int64_t *, wid, "dk_plan_decide: [N] the world row of each, or NULL: row 0") \
+    X(double, slack, "dk_plan_decide: clear means every distance - margin >= slack") \
+    X(uint8_t *, ok, "dk_plan_decide: [N] out")
 
 #define DK_PDECLARE(type, name, what) type name;
 typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
@@ -104,6 +109,7 @@ typedef struct { /* one thread's work space */
     real *path;           /* [2 cap n] */
     int64_t cap, checked;
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
+    real *scratch;
     real eta;
     uint64_t rng;
 } DK(PlanWork);
@@ -303,6 +309,52 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     p->checked[b] = w->checked;
 }
 
+/* A thread's work space for p (its chain's shape s, plans pp); 0 when memory ran out (then free it). */
+static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s, const DK(Params) *pp) {
+    const int64_t cap = p->max_iterations + 2, G = p->C / 2;
+    memset(w, 0, sizeof *w);
+    w->p = p;
+    w->s = *s;
+    w->pp = pp;
+    w->cap = cap;
+    size_t per;
+    w->scratch = DK(team_alloc)(DK(scratch_size)(s) / sizeof(real), 1, &per);
+    w->qs = (real *)malloc(sizeof(real) * COLLIDE_BLOCK * (size_t)s->n);
+    w->P = (real *)malloc(sizeof(real) * (size_t)p->C * 3 * COLLIDE_BLOCK);
+    w->wid = (int64_t *)malloc(sizeof(int64_t) * COLLIDE_BLOCK);
+    for (int t = 0; t < 2; t++) {
+        w->nodes[t] = (real *)malloc(sizeof(real) * (size_t)(cap * s->n));
+        w->parent[t] = (int64_t *)malloc(sizeof(int64_t) * (size_t)cap);
+    }
+    w->path = (real *)malloc(sizeof(real) * (size_t)(2 * cap * s->n + 2 * s->n));
+    if (!(w->scratch && w->qs && w->P && w->wid && w->nodes[0] && w->nodes[1] && w->parent[0] && w->parent[1] &&
+          w->path))
+        return 0;
+    DK(scratch_init)(s, pp, w->scratch, &w->sc);
+    w->cc = *p->collide;
+    w->cc.N = COLLIDE_BLOCK;
+    w->cc.A = w->P;
+    w->points = 1;
+    for (int64_t g = 0; g < G && w->points; g++) {
+        const real *hA = (const real *)p->col_h + 4 * g, *hB = (const real *)p->col_h + 4 * (G + g);
+        w->points = p->col_frame[g] == p->col_frame[G + g] && hA[0] == hB[0] && hA[1] == hB[1] &&
+                    hA[2] == hB[2] && hA[3] == hB[3];
+    }
+    w->cc.B = w->points ? w->P : w->P + G * 3 * COLLIDE_BLOCK;
+    w->cc.wid = w->wid;
+    w->cc.nthreads = 1;
+    return 1;
+}
+
+static void DK(plan_work_free)(DK(PlanWork) *w) {
+    free(w->scratch);
+    free(w->qs);
+    free(w->P);
+    free(w->wid);
+    for (int t = 0; t < 2; t++) free(w->nodes[t]), free(w->parent[t]);
+    free(w->path);
+}
+
 static int64_t DK(dk_plan)(const dk_plan *p) {
     Shape s;
     read_shape(p->chain, &s);
@@ -310,43 +362,11 @@ static int64_t DK(dk_plan)(const dk_plan *p) {
     DK(Params) pp;
     if (DK(read_params)(p->chain, &s, &pp)) return -1;
     int nthreads = (int)(p->nthreads > 1 && p->B > 1 ? (p->nthreads < p->B ? p->nthreads : p->B) : 1);
-    const int64_t cap = p->max_iterations + 2, G = p->C / 2;
     int64_t failed = 0;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
     {
         DK(PlanWork) w;
-        memset(&w, 0, sizeof w);
-        w.p = p;
-        w.s = s;
-        w.pp = &pp;
-        w.cap = cap;
-        size_t per;
-        real *scratch = DK(team_alloc)(DK(scratch_size)(&s) / sizeof(real), 1, &per);
-        w.qs = (real *)malloc(sizeof(real) * COLLIDE_BLOCK * (size_t)s.n);
-        w.P = (real *)malloc(sizeof(real) * (size_t)p->C * 3 * COLLIDE_BLOCK);
-        w.wid = (int64_t *)malloc(sizeof(int64_t) * COLLIDE_BLOCK);
-        for (int t = 0; t < 2; t++) {
-            w.nodes[t] = (real *)malloc(sizeof(real) * (size_t)(cap * s.n));
-            w.parent[t] = (int64_t *)malloc(sizeof(int64_t) * (size_t)cap);
-        }
-        w.path = (real *)malloc(sizeof(real) * (size_t)(2 * cap * s.n + 2 * s.n));
-        const int good = scratch && w.qs && w.P && w.wid && w.nodes[0] && w.nodes[1] && w.parent[0] &&
-                         w.parent[1] && w.path;
-        if (good) {
-            DK(scratch_init)(&s, &pp, scratch, &w.sc);
-            w.cc = *p->collide;
-            w.cc.N = COLLIDE_BLOCK;
-            w.cc.A = w.P;
-            w.points = 1;
-            for (int64_t g = 0; g < G && w.points; g++) {
-                const real *hA = (const real *)p->col_h + 4 * g, *hB = (const real *)p->col_h + 4 * (G + g);
-                w.points = p->col_frame[g] == p->col_frame[G + g] && hA[0] == hB[0] && hA[1] == hB[1] &&
-                           hA[2] == hB[2] && hA[3] == hB[3];
-            }
-            w.cc.B = w.points ? w.P : w.P + G * 3 * COLLIDE_BLOCK;
-            w.cc.wid = w.wid;
-            w.cc.nthreads = 1;
-        }
+        const int good = DK(plan_work_init)(&w, p, &s, &pp);
 #pragma omp for schedule(dynamic, 1)
         for (int64_t b = 0; b < p->B; b++) {
             if (good) {
@@ -357,12 +377,42 @@ static int64_t DK(dk_plan)(const dk_plan *p) {
                 failed++;
             }
         }
-        free(scratch);
-        free(w.qs);
-        free(w.P);
-        free(w.wid);
-        for (int t = 0; t < 2; t++) free(w.nodes[t]), free(w.parent[t]);
-        free(w.path);
+        DK(plan_work_free)(&w);
+    }
+    free(pp.fix);
+    return failed ? -1 : 0;
+}
+
+/* dk_plan_decide: p->ok[i] = configuration i of p->q clear (every distance - margin >= p->slack) in world
+ * row p->wid[i]; blocks of COLLIDE_BLOCK shared between threads. */
+static int64_t DK(dk_plan_decide)(const dk_plan *p) {
+    Shape s;
+    read_shape(p->chain, &s);
+    DK(Params) pp;
+    if (DK(read_params)(p->chain, &s, &pp)) return -1;
+    const int64_t nblocks = (p->N + COLLIDE_BLOCK - 1) / COLLIDE_BLOCK;
+    int nthreads = (int)(p->nthreads > 1 && nblocks > 1 ? (p->nthreads < nblocks ? p->nthreads : nblocks) : 1);
+    int64_t failed = 0;
+    const int n = s.n;
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
+    {
+        DK(PlanWork) w;
+        const int good = DK(plan_work_init)(&w, p, &s, &pp);
+        if (good) w.cc.slack = p->slack;
+#pragma omp for schedule(dynamic, 4)
+        for (int64_t k = 0; k < nblocks; k++) {
+            const int64_t n0 = k * COLLIDE_BLOCK;
+            const int m = (int)(p->N - n0 < COLLIDE_BLOCK ? p->N - n0 : COLLIDE_BLOCK);
+            if (!good) {
+                failed++;
+                continue;
+            }
+            memcpy(w.qs, (const real *)p->q + n0 * n, sizeof(real) * (size_t)(m * n));
+            w.cc.wid = p->wid ? p->wid + n0 : NULL;
+            DK(plan_decide)(&w, m);
+            memcpy(p->ok + n0, w.ok, (size_t)m);
+        }
+        DK(plan_work_free)(&w);
     }
     free(pp.fix);
     return failed ? -1 : 0;
@@ -379,6 +429,19 @@ int64_t dk_plan_search(const dk_plan *p) {
         return DK_ABI_ERROR;
     if (p->chain->real_bytes == 8) return dk_plan_f64(p);
     if (p->chain->real_bytes == 4) return dk_plan_f32(p);
+    return DK_ABI_ERROR;
+}
+
+/* The decisions of p->N configurations (dk_plan_decide_f64 / _f32 above; p's search fields not read but
+ * max_iterations, which sizes the work space: give 0). Returns 0, -1 when memory ran out, DK_ABI_ERROR as
+ * dk_plan_search. */
+int64_t dk_plan_decide(const dk_plan *p) {
+    if (!DK_LAYOUT_OK(p, dk_plan, DK_PLAN_VERSION) || !DK_LAYOUT_OK(p->chain, dk_args, DK_ABI_VERSION) ||
+        !DK_LAYOUT_OK(p->collide, dk_collide, DK_COLLIDE_VERSION) ||
+        p->chain->real_bytes != p->collide->real_bytes || 2 * (p->C / 2) != p->C || p->C / 2 != p->collide->G)
+        return DK_ABI_ERROR;
+    if (p->chain->real_bytes == 8) return dk_plan_decide_f64(p);
+    if (p->chain->real_bytes == 4) return dk_plan_decide_f32(p);
     return DK_ABI_ERROR;
 }
 #endif

@@ -103,6 +103,20 @@ class EdgeChecker:
         self.moving = bool(getattr(collision, "skip_fixed", False))
         self.chunk = chunk
         self.checked = 0  # configurations decided so far (a count for the benchmarks)
+        #: decide through the C planner's one-call decisions where they serve (False: the torch placement
+        #: and RobotCollision._clear, as on CUDA)
+        self.use_c = True
+        self._native: dict = {}
+
+    def native(self, like: Tensor):
+        """The C search's constants (:class:`~diffkin.motion._native_search.NativePlanner`) for tensors like
+        ``like``, made once per dtype; None where they do not serve."""
+        from ._native_search import NativePlanner
+
+        key = (like.dtype, like.device)
+        if key not in self._native:
+            self._native[key] = NativePlanner.make(self, like)
+        return self._native[key]
 
     def set_row_resolution(self, eta: Tensor) -> None:
         """Give problem b the resolution ``eta[b]`` (``(B,)``, each ≤ η): its edges are subdivided and its
@@ -134,6 +148,11 @@ class EdgeChecker:
             return torch.ones(q.shape[:-1], dtype=torch.bool, device=q.device)
         per_row = self.world is not None and len(self.world.batch_shape) > 0
         idx = problem.expand(q.shape[:-1]).reshape(-1)
+        planner = self.native(q) if self.use_c else None
+        if planner is not None:  # FK, placement and decisions in one C call
+            ok = planner.decide(flat, idx if per_row else None, slack)
+            if ok is not None:
+                return ok.reshape(q.shape[:-1])
         out = torch.cat([self.collision._clear(x, self.world, self.margin, slack, moving_only=self.moving,
                                                world_index=i if per_row else None)
                          for x, i in zip(flat.split(self.chunk), idx.split(self.chunk))])

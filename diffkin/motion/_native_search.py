@@ -24,7 +24,7 @@ from torch import Tensor
 
 from ..kernels import native
 
-__all__ = ["PlanArgs", "VERSION", "search_native", "serves"]
+__all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
 #: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
 VERSION = 1
@@ -43,74 +43,101 @@ class PlanArgs(ctypes.Structure):
         [(name, _PTR) for name in ("q_start", "q_goal", "world", "eta", "lo", "hi", "reach")] + \
         [("step", _F64), ("goal_bias", _F64)] + \
         [(name, _I64) for name in ("max_iterations", "shortcut_tries", "seed", "capacity")] + \
-        [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")]
+        [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")] + \
+        [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)]
 
 
-_fn: dict = {}  # id of the loaded library -> dk_plan_search
+_fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide)
 
 
-def _function():
+def _functions():
     lib = native._lib
-    fn = _fn.get(id(lib))
-    if fn is None:
+    fns = _fns.get(id(lib))
+    if fns is None:
         native.check_layout(lib, "plan", PlanArgs)
-        fn = lib.dk_plan_search
-        fn.restype, fn.argtypes = _I64, [ctypes.POINTER(PlanArgs)]
-        _fn[id(lib)] = fn
-    return fn
+        fns = (lib.dk_plan_search, lib.dk_plan_decide)
+        for fn in fns:
+            fn.restype, fn.argtypes = _I64, [ctypes.POINTER(PlanArgs)]
+        _fns[id(lib)] = fns
+    return fns
 
 
-def _template(checker, q: Tensor):
-    """(the chain's all-frames native model, base, the :class:`~diffkin.kernels.native.Collide` of the
-    checker's decisions and the tensors it points into), or None where the C search does not serve: no
-    library, CUDA, a model with robot boxes, convex meshes or pairs the C pass leaves to torch."""
-    rc = checker.collision
-    if q.device.type != "cpu" or not native.available():
-        return None
-    try:
-        _function()
-    except (AttributeError, native.AbiMismatch):
-        return None
-    nc, nb = rc._counts
-    keep_self, keep_world = rc._kept(checker.world, checker.moving)
-    if nb or rc._nconvex or keep_self is not None or nc == 0:
-        return None
-    made = rc._frames.native_frames_model(rc.chain, q)
-    if made is None:
-        return None
-    model, base = made
-    world = checker.world
-    world_flat = None if world is None else (world._flattened() if len(world.batch_shape) > 1 else world)
-    skip = None if world_flat is None else rc._world_skip(world_flat, keep_world)
-    empty = q.new_zeros(nc, 3, 0)
-    objects, hs, skip_r, skip_h, extra, left, _ = rc._native_inputs(world_flat, checker.margin, 0.0, skip,
-                                                                    None, empty)
-    if left:
-        return None
-    extra.pop("world_index", None)
-    made = native.collide_struct(empty, empty, rc.capsule_radius.detach(), rc._pairs_00, objects, hs, skip_r,
-                                 skip_h, checker.margin, 0.0, None, **extra)
-    if made is None:
-        return None
-    return model, base, made
+class NativePlanner:
+    """The C search's constants for one :class:`~diffkin.motion._edges.EdgeChecker` and dtype: the chain's
+    all-frames FK (:meth:`LinkFrames.native_frames_model <diffkin.collision._poses.LinkFrames>`), each
+    capsule end's frame and coordinates there (the blocks of :meth:`RobotCollision._placement`), and the
+    :class:`~diffkin.kernels.native.Collide` of the checker's decisions. :meth:`make` returns None where the
+    C search does not serve: no library, CUDA, a model with robot boxes, convex meshes or entries the C
+    decisions leave to torch."""
+
+    def __init__(self, model, base: Tensor, collide, keep: list, frame: Tensor, h: Tensor, dtype):
+        self.model, self.collide, self._keep, self.frame, self.h = model, collide, keep, frame, h
+        self.base12, self.dtype = base[:3].to(dtype).contiguous(), dtype
+
+    @classmethod
+    def make(cls, checker, q: Tensor) -> NativePlanner | None:
+        rc = checker.collision
+        if q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64) or not native.available():
+            return None
+        try:
+            _functions()
+        except (AttributeError, native.AbiMismatch):
+            return None
+        nc, nb = rc._counts
+        world = checker.world
+        keep_self, keep_world = rc._kept(world, checker.moving)
+        if nb or rc._nconvex or keep_self is not None or nc == 0 or rc.capsule_a.dtype != q.dtype \
+                or (world is not None and len(world.batch_shape) > 1):
+            return None
+        made = rc._frames.native_frames_model(rc.chain, q)
+        if made is None:
+            return None
+        model, base = made
+        skip = None if world is None else rc._world_skip(world, keep_world)
+        empty = q.new_zeros(nc, 3, 0)
+        objects, hs, skip_r, skip_h, extra, left, _ = rc._native_inputs(world, checker.margin, 0.0, skip,
+                                                                        None, empty)
+        if left:
+            return None
+        extra.pop("world_index", None)
+        collide = native.collide_struct(empty, empty, rc.capsule_radius.detach(), rc._pairs_00, objects, hs,
+                                        skip_r, skip_h, checker.margin, 0.0, None, **extra)
+        if collide is None:
+            return None
+        F = rc._frames.frames(rc.chain, torch.zeros(rc.chain.nq, dtype=q.dtype))
+        H = rc._placement(F)  # (K·4, C): column c's block is its frame's
+        frame = rc._col_anchor[: 2 * nc].to(torch.int64).contiguous()
+        h = H.reshape(-1, 4, H.shape[-1])[frame, :, torch.arange(2 * nc)].to(q.dtype).contiguous()  # (2 G, 4)
+        return cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype)
+
+    def args(self, **fields) -> PlanArgs:
+        """A :class:`PlanArgs` with the constants and ``fields`` set (tensors by their address)."""
+        return native.new_struct(PlanArgs, chain=ctypes.addressof(self.model.args[self.dtype]),
+                                 collide=ctypes.addressof(self.collide), C=self.frame.shape[0],
+                                 col_frame=self.frame, col_h=self.h, base=self.base12, **fields)
+
+    def decide(self, q: Tensor, world_row: Tensor | None, slack: float) -> Tensor | None:
+        """``(N,)`` bool: configurations ``q (N, nq)`` clear of margin + ``slack``, each in its world row
+        ``world_row (N,)`` (None: row 0); None where the call is refused (another interface)."""
+        N = q.shape[0]
+        q = q.detach().to(self.dtype).contiguous()
+        ok = torch.zeros(N, dtype=torch.uint8)
+        wid = None if world_row is None else world_row.to(torch.int64).contiguous()
+        if N == 0:
+            return ok.bool()
+        a = self.args(nthreads=native.thread_count(N), N=N, q=q, wid=wid, slack=float(slack), ok=ok,
+                      max_iterations=0)
+        status = _functions()[1](ctypes.byref(a))
+        if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
+            return None
+        if status < 0:
+            raise MemoryError("motion.plan: the C decisions could not allocate their per-thread work space")
+        return ok.bool()
 
 
 def serves(checker, q: Tensor) -> bool:
     """Whether :func:`search_native` serves the checker's model and world for tensors like ``q``."""
-    return _template(checker, q) is not None
-
-
-def _columns(rc, base: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor]:
-    """Each capsule end's frame index (0 the base, k the chain's frame k − 1) ``(2 G,)`` and its
-    homogeneous coordinates there ``(2 G, 4)`` (the blocks of :meth:`RobotCollision._placement`), the
-    base's 3 × 4 rows."""
-    nc = rc._counts[0]
-    F = rc._frames.frames(rc.chain, torch.zeros(rc.chain.nq, dtype=dtype))
-    H = rc._placement(F)  # (K·4, C)
-    frame = rc._col_anchor[: 2 * nc].to(torch.int64).contiguous()
-    Hk = H.reshape(-1, 4, H.shape[-1])[:, :, : 2 * nc]  # (K, 4, 2 G)
-    h = Hk[frame, :, torch.arange(2 * nc)].to(dtype).contiguous()  # (2 G, 4)
-    return frame, h, base[:3].to(dtype).contiguous()
+    return checker.native(q) is not None
 
 
 def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
@@ -122,14 +149,11 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     ``checked``: configurations decided, ``too_long``: rows whose path kept more than ``capacity``
     waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be clear of
     ``margin + eta`` (rows where they are not are searched in vain)."""
-    made = _template(checker, q_start)
-    if made is None:
+    planner = checker.native(q_start)
+    if planner is None:
         return None
-    model, base, (collide, keep) = made
-    dtype = q_start.dtype
+    dtype = planner.dtype
     B, nq = q_start.shape
-    rc = checker.collision
-    frame, h, base12 = _columns(rc, base, dtype)
     real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
     qs, qg, lo_, hi_ = real(q_start), real(q_goal), real(lo), real(hi)
     reach, eta_ = real(checker.reach), real(eta)
@@ -139,21 +163,17 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     L = max(2, int(capacity))
     path = torch.empty(B, L, nq, dtype=dtype)
     n_way, status, its, checked = (torch.zeros(B, dtype=torch.int64) for _ in range(4))
-    args = native.new_struct(
-        PlanArgs, nthreads=native.thread_count(B * 4096), chain=ctypes.addressof(model.args[dtype]),
-        collide=ctypes.addressof(collide), C=frame.shape[0], col_frame=frame, col_h=h, base=base12, B=B,
-        q_start=qs, q_goal=qg, world=world, eta=eta_, lo=lo_, hi=hi_, reach=reach,
-        step=float(step), goal_bias=float(goal_bias), max_iterations=int(max_iterations),
+    args = planner.args(
+        nthreads=native.thread_count(B * 4096), B=B, q_start=qs, q_goal=qg, world=world, eta=eta_, lo=lo_,
+        hi=hi_, reach=reach, step=float(step), goal_bias=float(goal_bias), max_iterations=int(max_iterations),
         shortcut_tries=int(shortcut_tries), seed=int(seed), capacity=L, path=path, n_way=n_way, status=status,
         iterations=its, checked=checked)
     if B:
-        rc_ = _function()(ctypes.byref(args))
-        del keep
-        if rc_ == native.CONSTANTS["DK_ABI_ERROR"] or rc_ == native.CONSTANTS["DK_RANGE_ERROR"]:
+        rc_ = _functions()[0](ctypes.byref(args))
+        if rc_ in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
             return None
         if rc_ < 0:
             raise MemoryError("motion.plan: the C search could not allocate its per-thread work space")
     found = status == FOUND
-    dev = q_start.device
-    stats = {"iterations": its.to(dev), "checked": checked.to(dev), "too_long": status == TOO_LONG}
-    return path.to(dev), n_way.to(dev), found.to(dev), stats
+    stats = {"iterations": its, "checked": checked, "too_long": status == TOO_LONG}
+    return path, n_way, found, stats

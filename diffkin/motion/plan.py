@@ -231,7 +231,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             problem per thread, each problem's randomness its own, so a problem planned alone equals its
             row in a batch) where it serves (CPU, the library built, capsule and sphere models whose
             decisions are all in C); else, or with False, the torch search (batched over problems, one
-            random stream for the batch; CUDA).
+            random stream for the batch; CUDA); with it the other stages' decisions go through the C
+            placement too.
         position_tolerance / orientation_tolerance: of the pose goals' IK.
 
     Returns:
@@ -280,6 +281,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
 
     with torch.no_grad():
         checker = EdgeChecker(collision, world, margin, resolution)
+        checker.use_c = search_in_c
         gen = torch.Generator().manual_seed(seed)
         lim_ok = torch.stack([(x > 0).all(1) & x.isfinite().all(1) for x in (vmax, amax, jmax)], 0).all(0)
         fail(~lim_ok, "infeasible limits (each must be a finite number > 0)")
