@@ -118,7 +118,7 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
-def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2.0, recheck: int = 5,
+def plan_rows(problems, chunk: int = 700, iterations: int = 10000, step: float = 0.5, recheck: int = 5,
               seed: int = 0) -> list[dict]:
     """The ``--plan`` rows (module docstring): one per family and a total."""
     import time
@@ -181,6 +181,92 @@ def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2
                  "recheck_min_mm": round(min(c["recheck_min_mm"] for c in out.values()), 2),
                  "ms_per_problem": 1e3 * total / max(n, 1), "total_s": total, "chunk": chunk,
                  "iterations": iterations, "step": step})
+    return rows
+
+
+def search_rows(problems, iterations: int = 10000, step: float = 0.5, single: int = 10,
+                seed: int = 0) -> list[dict]:
+    """The ``--search`` rows: the search stage alone (``motion.plan``'s per-row validity with its resolution
+    ladder, then the C RRT-Connect and shortcutting, ``diffkin.motion._native_search``), all problems in one
+    call (their threads over the cores); then ``single`` problems per family one at a time on one thread:
+    the search stage and the whole ``motion.plan`` (smoothing and timing included), median milliseconds.
+    Per family: valid problems, paths found, configurations decided."""
+    import time
+
+    import numpy as np
+
+    from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V
+    from diffkin import motion
+    from diffkin.collision import World
+    from diffkin.motion._edges import EdgeChecker
+    from diffkin.motion._native_search import search_native
+    from diffkin.motion.plan import _row_resolution
+
+    rc = robot_model("spherized").requires_grad_(False)
+    chain = rc.chain
+    model = rc.allow_collisions(problems[0].scene.allowed)
+    lim = chain.q_limits
+
+    def stage(part, threads=None):
+        worlds = World.stack([p.scene.to_world(dtype=F64) for p in part])
+        qs = torch.tensor([p.start for p in part], dtype=F64)
+        qg = torch.tensor([p.goal for p in part], dtype=F64)
+        t0 = time.perf_counter()
+        checker = EdgeChecker(model, worlds, 0.0, 0.005)
+        rows = torch.arange(len(part))
+        eta, a, b = _row_resolution(checker, qs, qg, rows)
+        valid = a & b
+        v = rows[valid]
+        out = search_native(checker, qs[v], qg[v], lim[:, 0], lim[:, 1], v, eta[v], max_iterations=iterations,
+                            step=step, shortcut_tries=64, seed=seed)
+        dt = time.perf_counter() - t0
+        found = torch.zeros(len(part), dtype=torch.bool)
+        found[v] = out[2]
+        checked = torch.zeros(len(part), dtype=torch.int64)
+        checked[v] = out[3]["checked"]
+        return dt, valid, found, checked, (qs, qg, worlds)
+
+    total, valid, found, checked, _ = stage(problems)
+    out: dict[str, dict] = {}
+    for k, p in enumerate(problems):
+        c = out.setdefault(p.family, {"problems": 0, "valid": 0, "found": 0, "checked": []})
+        c["problems"] += 1
+        c["valid"] += int(valid[k])
+        c["found"] += int(found[k])
+        c["checked"].append(int(checked[k]))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    one_search, one_plan = defaultdict(list), defaultdict(list)
+    try:
+        seen: dict = defaultdict(int)
+        for p in problems:
+            seen[p.family] += 1
+            if seen[p.family] > single:
+                continue
+            dt, _, _, _, (qs, qg, world) = stage([p])
+            one_search[p.family].append(1e3 * dt)
+            t0 = time.perf_counter()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                motion.plan(chain, qs, qg, collision=model, world=world, velocity_limit=FRANKA_V,
+                            acceleration_limit=FRANKA_A, jerk_limit=FRANKA_J, max_iterations=iterations,
+                            step=step, seed=seed)
+            one_plan[p.family].append(1e3 * (time.perf_counter() - t0))
+    finally:
+        torch.set_num_threads(threads)
+    rows = [{"benchmark": "motion_search", "family": f, "problems": c["problems"], "valid": c["valid"],
+             "found": c["found"], "checked_median": float(np.median(c["checked"])),
+             "one_search_ms_median": float(np.median(one_search[f])) if one_search[f] else float("nan"),
+             "one_plan_ms_median": float(np.median(one_plan[f])) if one_plan[f] else float("nan")}
+            for f, c in sorted(out.items())]
+    every_s = [m for v in one_search.values() for m in v]
+    every_p = [m for v in one_plan.values() for m in v]
+    rows.append({"benchmark": "motion_search", "family": "all", "problems": len(problems),
+                 "valid": int(valid.sum()), "found": int(found.sum()), "search_all_s": total,
+                 "checked_median": float(np.median(checked.numpy())),
+                 "one_search_ms_median": float(np.median(every_s)) if every_s else float("nan"),
+                 "one_plan_ms_median": float(np.median(every_p)) if every_p else float("nan"),
+                 "iterations": iterations, "step": step, "single_per_family": single})
     return rows
 
 
@@ -289,17 +375,22 @@ def main(argv=None) -> int:
                    help="exact: the scenes' cylinders as exact cylinders; capsules: as their enclosing "
                    "capsules")
     p.add_argument("--plan", action="store_true", help="plan every problem (module docstring)")
-    p.add_argument("--chunk", type=int, default=100)
-    p.add_argument("--iterations", type=int, default=300)
-    p.add_argument("--step", type=float, default=2.0)
+    p.add_argument("--search", action="store_true",
+                   help="the search stage alone, batched and one at a time (search_rows)")
+    p.add_argument("--single", type=int, default=10,
+                   help="--search: problems per family planned one at a time")
+    p.add_argument("--chunk", type=int, default=700)
+    p.add_argument("--iterations", type=int, default=10000)
+    p.add_argument("--step", type=float, default=0.5)
     p.add_argument("--recheck", type=int, default=5)
     p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")
     p.add_argument("--ompl-time", type=float, default=1.0)
     known = p.parse_known_args(argv)[0]
-    if known.plan or known.ompl:
+    if known.plan or known.ompl or known.search:
         def both(a):
             problems = load_problems(families=a.families)
-            rows = plan_rows(problems, a.chunk, a.iterations, a.step, a.recheck) if a.plan else []
+            rows = search_rows(problems, a.iterations, a.step, a.single) if a.search else []
+            rows += plan_rows(problems, a.chunk, a.iterations, a.step, a.recheck) if a.plan else []
             return rows + (ompl_rows(problems, a.ompl, a.ompl_time) if a.ompl else [])
 
         return cli(p, both, "MotionBenchMaker Panda: motion.plan batched, OMPL RRT-Connect", argv)
