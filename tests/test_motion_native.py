@@ -125,3 +125,24 @@ def test_close_start_planned_at_a_finer_resolution_and_a_start_in_collision_repo
                       max_iterations=10000, step=0.5)
     assert res.success.tolist() == [True, False]
     assert "in collision" in res.reason[1]
+
+
+def test_plan_struct_layout_checked_and_another_version_refused(panda):
+    """dk_plan's version, size and field offsets equal PlanArgs' (check_layout); a struct of another
+    version is refused by the C entry points (DK_ABI_ERROR), nothing computed."""
+    import ctypes
+
+    from diffkin.motion import _native_search as ns
+
+    native.check_layout(native._lib, "plan", ns.PlanArgs)
+    with pytest.raises(native.AbiMismatch):
+        native.check_layout(native._lib, "plan", ns.PlanArgs, ns.VERSION + 1)
+    chain, rc, probs = panda
+    qs, qg, world, _ = _batch(probs, ["box/0001"])
+    planner = EdgeChecker(rc, world, 0.0, 0.005).native(qs)
+    ok = torch.full((1,), 7, dtype=torch.uint8)
+    a = planner.args(nthreads=1, N=1, q=qs.contiguous(), slack=0.0, ok=ok)
+    a.version = ns.VERSION + 1
+    search, decide = ns._functions()
+    assert decide(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"] and int(ok[0]) == 7
+    assert search(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
