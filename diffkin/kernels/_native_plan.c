@@ -7,6 +7,8 @@
  * tree's root with probability goal_bias) by at most `step` (in the bound's metric sum_j R_j |dq_j|: metres
  * of geom travel), and when that edge is clear the other tree connects its nearest node to the new one by
  * the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full connection joins the trees.
+ * Every `restart` iterations without a join both trees are dropped and grown anew from the roots (the
+ * random stream continuing): the iterations an RRT needs are heavy-tailed, and a fresh start cuts the tail.
  * Then random shortcuts (shortcut_tries straight edges between waypoints i < j - 1, each clear one taken).
  * Nearest: a linear scan in the weighted L1 metric of the bound (diffkin.motion._search's).
  *
@@ -54,6 +56,7 @@
     X(double, step, "RRT range in the bound's metric [m]") \
     X(double, goal_bias, "probability of sampling the other tree's root") \
     X(int64_t, max_iterations, "RRT-Connect iterations per problem") \
+    X(int64_t, restart, "iterations after which both trees are dropped and grown anew (0: never)") \
     X(int64_t, shortcut_tries, "random shortcut attempts per path") \
     X(int64_t, seed, "mixed with each problem's hash") \
     X(int64_t, capacity, "L: waypoints a returned path may have") \
@@ -241,7 +244,13 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
         int a = 0;
         real qr[64], qn[64];
         int64_t join[2] = {-1, -1};
+        int64_t it0 = 0;
         for (; it < p->max_iterations && count[0] < w->cap && count[1] < w->cap; it++, a ^= 1) {
+            if (p->restart > 0 && it - it0 >= p->restart) { /* a fresh pair of trees, the stream continuing */
+                count[0] = count[1] = 1;
+                it0 = it;
+                a = 0;
+            }
             real *NA = w->nodes[a], *NB = w->nodes[1 - a];
             if (plan_uniform(&w->rng) < p->goal_bias) {
                 memcpy(qr, NB, sizeof(real) * n);

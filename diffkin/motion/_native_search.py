@@ -42,7 +42,7 @@ class PlanArgs(ctypes.Structure):
          ("base", _PTR), ("B", _I64)] + \
         [(name, _PTR) for name in ("q_start", "q_goal", "world", "eta", "lo", "hi", "reach")] + \
         [("step", _F64), ("goal_bias", _F64)] + \
-        [(name, _I64) for name in ("max_iterations", "shortcut_tries", "seed", "capacity")] + \
+        [(name, _I64) for name in ("max_iterations", "restart", "shortcut_tries", "seed", "capacity")] + \
         [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")] + \
         [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)]
 
@@ -142,10 +142,12 @@ def serves(checker, q: Tensor) -> bool:
 
 def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
                   eta: Tensor, *, max_iterations: int, step: float, shortcut_tries: int, seed: int,
-                  goal_bias: float = 0.0, capacity: int = 256) -> tuple[Tensor, Tensor, Tensor, dict] | None:
+                  goal_bias: float = 0.0, restart: int = 0,
+                  capacity: int = 256) -> tuple[Tensor, Tensor, Tensor, dict] | None:
     """Paths ``(B, L, nq)`` (rows padded with their goal) from ``q_start`` to ``q_goal`` ``(B, nq)`` of
     problems ``problem (B,)`` (rows of the checker's world), each edge subdivided at the row's resolution
-    ``eta (B,)``, their waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``,
+    ``eta (B,)`` (both trees grown anew every ``restart`` iterations without a join; 0: never), their
+    waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``,
     ``checked``: configurations decided, ``too_long``: rows whose path kept more than ``capacity``
     waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be clear of
     ``margin + eta`` (rows where they are not are searched in vain)."""
@@ -166,6 +168,7 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     args = planner.args(
         nthreads=native.thread_count(B * 4096), B=B, q_start=qs, q_goal=qg, world=world, eta=eta_, lo=lo_,
         hi=hi_, reach=reach, step=float(step), goal_bias=float(goal_bias), max_iterations=int(max_iterations),
+        restart=int(restart),
         shortcut_tries=int(shortcut_tries), seed=int(seed), capacity=L, path=path, n_way=n_way, status=status,
         iterations=its, checked=checked)
     if B:
