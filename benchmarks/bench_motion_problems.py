@@ -118,7 +118,7 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
-def plan_rows(problems, chunk: int = 700, iterations: int = 10000, step: float = 0.5, recheck: int = 5,
+def plan_rows(problems, chunk: int = 700, iterations: int = 30000, step: float = 0.5, recheck: int = 5,
               seed: int = 0) -> list[dict]:
     """The ``--plan`` rows (module docstring): one per family and a total."""
     import time
@@ -184,7 +184,7 @@ def plan_rows(problems, chunk: int = 700, iterations: int = 10000, step: float =
     return rows
 
 
-def search_rows(problems, iterations: int = 10000, step: float = 0.5, single: int = 10,
+def search_rows(problems, iterations: int = 30000, step: float = 0.5, single: int = 10,
                 seed: int = 0) -> list[dict]:
     """The ``--search`` rows: the search stage alone (``motion.plan``'s per-row validity with its resolution
     ladder, then the C RRT-Connect and shortcutting, ``diffkin.motion._native_search``), all problems in one
@@ -380,7 +380,7 @@ def main(argv=None) -> int:
     p.add_argument("--single", type=int, default=10,
                    help="--search: problems per family planned one at a time")
     p.add_argument("--chunk", type=int, default=700)
-    p.add_argument("--iterations", type=int, default=10000)
+    p.add_argument("--iterations", type=int, default=30000)
     p.add_argument("--step", type=float, default=0.5)
     p.add_argument("--recheck", type=int, default=5)
     p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")

@@ -5,7 +5,8 @@
  * Per problem (VAMP's RRT-Connect): the straight edge start -> goal first; then trees rooted at the start and
  * the goal take turns: the tree extends its node nearest to a uniform sample of the box [lo, hi] (the other
  * tree's root with probability goal_bias) by at most `step` (in the bound's metric sum_j R_j |dq_j|: metres
- * of geom travel), and when that edge is clear the other tree connects its nearest node to the new one by
+ * of geom travel), as far as that edge is clear (its clear prefix: trees reach into narrow passages), and
+ * then the other tree connects its nearest node to the new one by
  * the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full connection joins the trees.
  * Every `restart` iterations without a join both trees are dropped and grown anew from the roots (the
  * random stream continuing): the iterations an RRT needs are heavy-tailed, and a fresh start cuts the tail.
@@ -264,7 +265,10 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             if (!(Ld > 0)) continue;
             const real f = Ld > step ? step / Ld : 1;
             for (int j = 0; j < n; j++) qn[j] = qa[j] + f * (qr[j] - qa[j]);
-            if (DK(plan_edge)(w, qa, qn, 0) != 1) continue;
+            const real lam_a = DK(plan_edge)(w, qa, qn, 1); /* EXTEND: as far as the edge is clear */
+            if (!(lam_a > 0)) continue;
+            if (lam_a < 1)
+                for (int j = 0; j < n; j++) qn[j] = qa[j] + lam_a * (qn[j] - qa[j]);
             const int64_t ia = count[a]++;
             memcpy(NA + ia * n, qn, sizeof(real) * n);
             w->parent[a][ia] = near;

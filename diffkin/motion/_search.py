@@ -4,7 +4,8 @@ the proven step bound), all problems' edges of one iteration in one batched deci
 
 Trees are tensors ``(B, capacity, nq)`` with parent indices; one iteration extends, for every unsolved
 problem at once, tree A by one step of at most ``step`` (in the bound's metric: metres of geom travel)
-towards a random configuration, then tries to connect tree B to the new node by the longest clear prefix of
+towards a random configuration (as far as that edge is clear), then tries to connect tree B to the new
+node by the longest clear prefix of
 the straight edge (RRT-Connect's CONNECT, decided by one subdivided edge), then swaps the trees.
 """
 
@@ -91,7 +92,10 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         d = q_rand - q_near
         L = (d.abs() * w).sum(-1)
         q_new = q_near + d * (step / L.clamp(min=step))[:, None]
-        ok, _ = checker.edges(q_near, q_new, pid[rows])
+        # EXTEND as far as the edge is clear (its clear prefix, as the C search): trees reach into passages
+        _, lam = checker.edges(q_near, q_new, pid[rows], prefix=True)
+        ok = lam > 0
+        q_new = q_near + lam[:, None] * (q_new - q_near)
         grow = rows[ok]
         if grow.numel():
             slot = A[2][grow]
