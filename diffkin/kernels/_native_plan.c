@@ -432,14 +432,19 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
 }
 
 #if DK_PLAN_PASS == 2 /* after the second (float) pass: both types exist */
+/* p, its chain and its decisions' struct of this file's versions and sizes, of one real type, with G
+ * capsules placed from C = 2 G points. */
+static int plan_ok(const dk_plan *p) {
+    return DK_LAYOUT_OK(p, dk_plan, DK_PLAN_VERSION) && DK_LAYOUT_OK(p->chain, dk_args, DK_ABI_VERSION) &&
+           DK_LAYOUT_OK(p->collide, dk_collide, DK_COLLIDE_VERSION) &&
+           p->chain->real_bytes == p->collide->real_bytes && 2 * (p->C / 2) == p->C && p->C / 2 == p->collide->G;
+}
+
 /* RRT-Connect and shortcutting of p->B problems (top of this file); returns 0, -1 when memory ran out (those
  * problems' status DK_PLAN_NO_MEMORY), DK_RANGE_ERROR for more than 64 joints, DK_ABI_ERROR for a dk_plan,
  * dk_args or dk_collide of another version or size, or of two real types. */
 int64_t dk_plan_search(const dk_plan *p) {
-    if (!DK_LAYOUT_OK(p, dk_plan, DK_PLAN_VERSION) || !DK_LAYOUT_OK(p->chain, dk_args, DK_ABI_VERSION) ||
-        !DK_LAYOUT_OK(p->collide, dk_collide, DK_COLLIDE_VERSION) ||
-        p->chain->real_bytes != p->collide->real_bytes || 2 * (p->C / 2) != p->C || p->C / 2 != p->collide->G)
-        return DK_ABI_ERROR;
+    if (!plan_ok(p)) return DK_ABI_ERROR;
     if (p->chain->real_bytes == 8) return dk_plan_f64(p);
     if (p->chain->real_bytes == 4) return dk_plan_f32(p);
     return DK_ABI_ERROR;
@@ -449,10 +454,7 @@ int64_t dk_plan_search(const dk_plan *p) {
  * max_iterations, which sizes the work space: give 0). Returns 0, -1 when memory ran out, DK_ABI_ERROR as
  * dk_plan_search. */
 int64_t dk_plan_decide(const dk_plan *p) {
-    if (!DK_LAYOUT_OK(p, dk_plan, DK_PLAN_VERSION) || !DK_LAYOUT_OK(p->chain, dk_args, DK_ABI_VERSION) ||
-        !DK_LAYOUT_OK(p->collide, dk_collide, DK_COLLIDE_VERSION) ||
-        p->chain->real_bytes != p->collide->real_bytes || 2 * (p->C / 2) != p->C || p->C / 2 != p->collide->G)
-        return DK_ABI_ERROR;
+    if (!plan_ok(p)) return DK_ABI_ERROR;
     if (p->chain->real_bytes == 8) return dk_plan_decide_f64(p);
     if (p->chain->real_bytes == 4) return dk_plan_decide_f32(p);
     return DK_ABI_ERROR;
