@@ -146,3 +146,19 @@ def test_plan_struct_layout_checked_and_another_version_refused(panda):
     search, decide = ns._functions()
     assert decide(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"] and int(ok[0]) == 7
     assert search(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
+
+
+def test_goal_bias_validated_and_used(panda):
+    """goal_bias outside [0, 1] is an OptionError naming it; 0.5 still solves (the other tree's root as the
+    sample half the time)."""
+    from diffkin.errors import OptionError
+
+    chain, rc, probs = panda
+    qs, qg, world, _ = _batch(probs, ["box/0001"])
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(OptionError, match="goal_bias"):
+            motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
+                        goal_bias=bad)
+    res = motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
+                      max_iterations=10000, step=0.5, goal_bias=0.5)
+    assert res.success.all(), res.reason

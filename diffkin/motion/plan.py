@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..errors import ConventionError, ShapeError
+from ..errors import ConventionError, OptionError, ShapeError
 from ..trajectories import Trajectory
 from ..trajectories.time_optimal import _Path, time_optimal
 from ..validation import check_count, check_number, shape_str, tensors
@@ -245,6 +245,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
     margin = check_number(margin, "margin", positive=False)
     step = check_number(step, "step")
     check_count(max_iterations, "max_iterations", 0)
+    goal_bias = check_number(goal_bias, "goal_bias", positive=False)
+    if goal_bias > 1:
+        raise OptionError(f"expected goal_bias as a probability in [0, 1], got {goal_bias!r}")
     check_count(shortcut_rounds, "shortcut_rounds", 0)
     collision._check_chain(chain, "motion.plan")
     q_start = chain.check_q(q_start, "q_start")
