@@ -28,6 +28,9 @@ and jerk limits), ``--iterations`` RRT-Connect iterations and ``--step``: per fa
 calls and its mean per problem. ``--recheck`` successes per family are re-checked by an independent checker:
 Pinocchio places the spherized URDF's spheres, coal measures their distances to the scene's boxes and
 cylinders at every 10 ms sample of the trajectory (geoms that move only; self pairs are not re-checked).
+``--optimize``: the plans twice in the same run, without and with
+``motion.plan``'s optimisation stage (``optimized``: the problems timed along their optimised knots,
+``length_rad_median``: the joint-space path length). ``--indices``: those problem numbers per family.
 ``--ompl N``: beside it, OMPL's RRT-Connect (PyPI ``ompl``; skipped when it is not importable) on the first N
 problems of each family, one problem at a time, its state validity checker diffkin's C decision for one
 configuration (the same model and scene, margin 0), OMPL's own discrete motion checks (its default
@@ -119,7 +122,7 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
 
 
 def plan_rows(problems, chunk: int = 700, iterations: int = 30000, step: float = 0.5, recheck: int = 5,
-              seed: int = 0) -> list[dict]:
+              seed: int = 0, optimize: bool = False) -> list[dict]:
     """The ``--plan`` rows (module docstring): one per family and a total."""
     import time
 
@@ -148,18 +151,22 @@ def plan_rows(problems, chunk: int = 700, iterations: int = 30000, step: float =
             warnings.simplefilter("ignore")
             res = motion.plan(chain, qs, qg, collision=model, world=World.stack(worlds),
                               velocity_limit=FRANKA_V, acceleration_limit=FRANKA_A, jerk_limit=FRANKA_J,
-                              max_iterations=iterations, step=step, seed=seed)
+                              max_iterations=iterations, step=step, seed=seed, optimize=optimize)
         dt = time.perf_counter() - t0
         total += dt
         for b, p in enumerate(part):
             c = out.setdefault(p.family, {"problems": 0, "valid": 0, "success": 0, "rechecked": 0,
-                                          "recheck_min_mm": float("inf"), "seconds": 0.0, "durations": []})
+                                          "recheck_min_mm": float("inf"), "seconds": 0.0, "durations": [],
+                                          "lengths": [], "optimized": 0})
             c["problems"] += 1
             c["seconds"] += dt / len(part)
             c["valid"] += int("in collision" not in res.reason[b])
             c["success"] += int(res.success[b])
+            c["optimized"] += int(res.optimized[b])
             if bool(res.success[b]):
                 c["durations"].append(float(res.duration[b]))
+                q = res.q[b].detach()
+                c["lengths"].append(float((q[1:] - q[:-1]).norm(dim=-1).sum()))  # joint-space path length
                 if checker is not None and c["rechecked"] < recheck:
                     n = int(float(res.duration[b]) / 0.01) + 1
                     d = checker.min_distance(res.q[b, :n].numpy(), worlds[b])
@@ -169,10 +176,12 @@ def plan_rows(problems, chunk: int = 700, iterations: int = 30000, step: float =
     for family in sorted(out):
         c = out[family]
         dur = float(np.median(c["durations"])) if c["durations"] else float("nan")
+        length = float(np.median(c["lengths"])) if c["lengths"] else float("nan")
         rows.append({"benchmark": "motion_plan", "family": family, "problems": c["problems"],
-                     "valid": c["valid"], "success": c["success"], "rechecked": c["rechecked"],
-                     "recheck_min_mm": round(c["recheck_min_mm"], 2),
-                     "ms_per_problem": 1e3 * c["seconds"] / c["problems"], "duration_s_median": dur})
+                     "valid": c["valid"], "success": c["success"], "optimized": c["optimized"],
+                     "rechecked": c["rechecked"], "recheck_min_mm": round(c["recheck_min_mm"], 2),
+                     "ms_per_problem": 1e3 * c["seconds"] / c["problems"], "duration_s_median": dur,
+                     "length_rad_median": length})
     n = sum(c["problems"] for c in out.values())
     rows.append({"benchmark": "motion_plan", "family": "all", "problems": n,
                  "valid": sum(c["valid"] for c in out.values()),
@@ -385,12 +394,17 @@ def main(argv=None) -> int:
     p.add_argument("--recheck", type=int, default=5)
     p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")
     p.add_argument("--ompl-time", type=float, default=1.0)
+    p.add_argument("--indices", nargs="*", type=int, default=None, help="these problem numbers per family")
+    p.add_argument("--optimize", action="store_true",
+                   help="--plan twice in the same run, without and with the optimisation stage")
     known = p.parse_known_args(argv)[0]
     if known.plan or known.ompl or known.search:
         def both(a):
-            problems = load_problems(families=a.families)
+            problems = load_problems(families=a.families, indices=a.indices)
             rows = search_rows(problems, a.iterations, a.step, a.single) if a.search else []
-            rows += plan_rows(problems, a.chunk, a.iterations, a.step, a.recheck) if a.plan else []
+            for opt in ((False, True) if a.optimize else (False,)) if a.plan else ():
+                rows += [{**r, "optimize": opt} for r in plan_rows(problems, a.chunk, a.iterations, a.step,
+                                                                   a.recheck, optimize=opt)]
             return rows + (ompl_rows(problems, a.ompl, a.ompl_time) if a.ompl else [])
 
         return cli(p, both, "MotionBenchMaker Panda: motion.plan batched, OMPL RRT-Connect", argv)

@@ -7,8 +7,9 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
 * ``diffkin``: ``retarget.clip`` on the five clips batched (B = 5, the first 74 frames of each), stage one
   (``warm_start="sequential"``: ``ik.solve`` frame after frame, or ``"batched"``: all frames in one call)
   then the whole-clip optimisation (:func:`diffkin.retarget.optimize_clip`, with the URDF's joint velocity
-  limits as hard constraints: ``velocity_limit=``); frames per second over the 370 frames, each stage's
-  share of the time; ``diffkin one clip``: the walk alone (B = 1), end to end through ``retarget.clip``.
+  limits as hard constraints: ``velocity_limit=``); frames per second over the 370 frames (batched: the
+  median of three runs, after a warm-up call), the whole-clip stage's share of the time; ``diffkin one
+  clip``: the walk alone (B = 1), end to end through ``retarget.clip``.
 * ``mink``: frame by frame with mink (GMR's scheme: a ``FrameTask`` per mapped frame with the same scaled
   human targets, position cost 1 and orientation cost 0, a small ``PostureTask``,
   ``ConfigurationLimit``, ``solve_ik(..., "daqp")`` and ``integrate_inplace``, iterated on each frame
@@ -23,9 +24,21 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
   for the CMU skeleton (names mapped, orientation offsets recomputed at the rest pose); one clip after
   the other, frame by frame. ``GMR own mm``: GMR's bodies against its own scaled targets.
 
+* ``diffkin + self-collision``: the batched run again on the MJCF chain of the same G1 with
+  ``collision=retarget.g1_collision(chain)`` (Menagerie's MJX colliders and the 26 self pairs of its scene;
+  20 whole-clip iterations, ``retarget.clip``'s default with a collision model). Every row also counts
+  its frames where one of those pairs penetrates (``self-colliding frames``).
+* The walk with a turn and the pick-up (``NEW``: 30 fps, the MotionBuilder-named CMU skeleton, mapping
+  ``Mapping.builtin("g1", "cmu_mb")``), each alone and whole: ``diffkin`` (batched warm start, velocity
+  limits), ``diffkin + self-collision`` (the same on the MJCF chain of the G1 with
+  ``collision=retarget.g1_collision(chain)``) and ``GMR`` (its scheme, the names and rest pose of that
+  skeleton: :mod:`benchmarks.peers_gmr`).
+
 Every output is scored by ``retarget.metrics`` on the same chain with the same contacts (from the human
 clip) and keypoints (diffkin's scaled human joints). The machine is shared: times are contended; compare
-the ratios of rows measured in the same run.
+the ratios of rows measured in the same run. ``frames/CPU-s`` (diffkin and GMR rows) divides by the
+process's CPU time (``time.process_time``) instead of the wall clock: other processes' load inflates it
+less (not at all when they leave this one a core).
 """
 
 from __future__ import annotations
@@ -44,6 +57,7 @@ ROOT = Path(__file__).resolve().parents[1]
 G1_URDF = ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
 G1_MJCF = ROOT / "diffkin" / "models" / "robots" / "mjcf" / "unitree_g1_29dof" / "g1.xml"
 CLIPS = ("walk", "crouch", "hop", "turn", "reach")
+NEW = ("walkturn", "pickup")  # the walk with a 90° turn, the reach to an object (30 fps, skeleton "cmu_mb")
 
 
 def mujoco_g1():
@@ -69,11 +83,31 @@ def g1_velocity_limits() -> dict[str, float]:
             if j.get("type") in ("revolute", "prismatic") and j.find("limit") is not None}
 
 
-def _metrics_row(m, b: int) -> dict:
-    return {"limit violations": int(m.joint_limit_violations[b]),
-            "worst excess rad": float(m.joint_limit_excess[b]), "skating mm": float(m.foot_skating[b]),
-            "penetration mm": float(m.ground_penetration[b]), "floating mm": float(m.floating[b]),
-            "keypoint mm": float(m.keypoint_error[b]), "max |qd| rad/s": float(m.max_joint_velocity[b])}
+_COLLISION = []
+
+
+def _self_colliding_frames(q) -> int:
+    """Frames of ``q (T, 36)`` (MuJoCo qpos order) where a self pair of Menagerie's MJX G1 scene
+    (``retarget.g1_collision``) penetrates."""
+    from diffkin import models, retarget
+
+    if not _COLLISION:
+        mp = retarget.Mapping.builtin("g1")
+        mj = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64).requires_grad_(False)
+        _COLLISION.append(retarget.g1_collision(mj))
+    with torch.no_grad():
+        d = _COLLISION[0].self_distances(q.to(torch.float64))
+    return int((d.min(-1).values < 0).sum())
+
+
+def _metrics_row(m, b: int, q=None) -> dict:
+    row = {"limit violations": int(m.joint_limit_violations[b]),
+           "worst excess rad": float(m.joint_limit_excess[b]), "skating mm": float(m.foot_skating[b]),
+           "penetration mm": float(m.ground_penetration[b]), "floating mm": float(m.floating[b]),
+           "keypoint mm": float(m.keypoint_error[b]), "max |qd| rad/s": float(m.max_joint_velocity[b])}
+    if q is not None:
+        row["self-colliding frames"] = _self_colliding_frames(q[b])
+    return row
 
 
 def _mink(chain, model, result, q_init, max_iter: int = 10):
@@ -124,12 +158,13 @@ def _one_clip(g1, mp, motion, name: str, vmax: dict) -> list[dict]:
 
     times = []
     for _ in range(3):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         r = retarget.clip(g1, motion, mp, warm_start="batched", velocity_limit=vmax)
-        times.append(time.perf_counter() - t0)
-    t = sorted(times)[1]
+        times.append((time.perf_counter() - t0, time.process_time() - c0))
+    t, cpu = sorted(times)[1]
     return [{"method": "diffkin one clip (batched warm start)", "clip": name, "frames/s": motion.frames / t,
-             **_metrics_row(r.metrics, 0)}]
+             "frames/CPU-s": motion.frames / cpu,
+             **_metrics_row(r.metrics, 0, r.q)}]
 
 
 def run(args) -> list[dict]:
@@ -146,23 +181,29 @@ def run(args) -> list[dict]:
     vmax = {j: v for j, v in g1_velocity_limits().items() if j in g1.joint_names}
     rows = []
     base = None
+    retarget.clip(g1, clips[0].frames_slice(0, 4), mp, velocity_limit=vmax)  # warm-up: builds the C library
     for warm in ("sequential", "batched"):
-        t0 = time.perf_counter()
-        r = retarget.clip(g1, motion, mp, whole_clip=False, warm_start=warm)
-        t1 = time.perf_counter()
-        opt = retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
-                                     keypoint_frames=r.keypoint_frames, fps=motion.fps, velocity_limit=vmax)
-        t2 = time.perf_counter()
+        runs = []
+        for _ in range(1 if warm == "sequential" else 3):  # batched: the median of three runs
+            t0, c0 = time.perf_counter(), time.process_time()
+            r = retarget.clip(g1, motion, mp, whole_clip=False, warm_start=warm)
+            t1 = time.perf_counter()
+            opt = retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
+                                         keypoint_frames=r.keypoint_frames, fps=motion.fps,
+                                         velocity_limit=vmax)
+            runs.append((time.perf_counter() - t0, t0, t1, time.perf_counter(), time.process_time() - c0))
+        _, t0, t1, t2, cpu = sorted(runs)[len(runs) // 2]
         m = retarget.metrics(g1, opt.q, r.contacts, motion.fps, feet=mp.feet, keypoints=r.keypoints,
                              keypoint_frames=r.keypoint_frames)
         base = base or r
         for b, name in enumerate(CLIPS):
             if warm == "sequential":
                 rows.append({"method": "diffkin stage one (sequential)", "clip": name, "frames/s": None,
-                             **_metrics_row(r.metrics, b)})
+                             **_metrics_row(r.metrics, b, r.q)})
             rows.append({"method": f"diffkin whole clip ({warm} warm start)", "clip": name,
-                         "frames/s": n / (t2 - t0), "stage-two share": (t2 - t1) / (t2 - t0),
-                         **_metrics_row(m, b)})
+                         "frames/s": n / (t2 - t0), "frames/CPU-s": n / cpu,
+                         "stage-two share": (t2 - t1) / (t2 - t0),
+                         **_metrics_row(m, b, opt.q)})
     rows += _one_clip(g1, mp, clips[0], CLIPS[0], vmax)
     model = mujoco_g1()
     kp = base.keypoint_frames
@@ -174,12 +215,48 @@ def run(args) -> list[dict]:
                           keypoint_frames=kp)
     for b, name in enumerate(CLIPS):
         rows.append({"method": "mink frame by frame (GMR's scheme)", "clip": name, "frames/s": n / secs,
-                     **_metrics_row(mm, b)})
+                     **_metrics_row(mm, b, q_mink)})
     rows += _gmr_rows(g1, motion, base, mp)
+    rows += _with_collision(g1, motion, mp, vmax, CLIPS)
+    for name in NEW:
+        rows += _new_clip(g1, name, vmax)
     return rows
 
 
-def _gmr_rows(chain, motion, base, mp) -> list[dict]:
+def _new_clip(g1, name: str, vmax: dict) -> list[dict]:
+    """One of ``NEW`` whole, alone: diffkin, diffkin with self-collision (MJCF chain), GMR."""
+    from diffkin import retarget
+
+    motion = retarget.load_bvh(retarget.example_clips()[name])
+    skeleton = retarget.skeleton_of(motion.names)
+    mp = retarget.Mapping.builtin("g1", skeleton)
+    rows = []
+    t0 = time.perf_counter()
+    r = retarget.clip(g1, motion, mp, warm_start="batched", velocity_limit=vmax)
+    rows.append({"method": "diffkin whole clip (batched warm start)", "clip": name,
+                 "frames/s": motion.frames / (time.perf_counter() - t0), **_metrics_row(r.metrics, 0, r.q)})
+    rows += _with_collision(g1, motion, mp, vmax, (name,))
+    return rows + _gmr_rows(g1, motion, r, mp, (name,), skeleton)
+
+
+def _with_collision(g1, motion, mp, vmax: dict, names) -> list[dict]:
+    """diffkin with ``collision=retarget.g1_collision`` on the MJCF chain of the same G1 (batched warm
+    start), scored on ``g1`` like every other row (the same kinematics and qpos order)."""
+    from diffkin import models, retarget
+
+    mj = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64).requires_grad_(False)
+    t0 = time.perf_counter()
+    rc = retarget.clip(mj, motion, mp, warm_start="batched", velocity_limit=vmax,
+                       collision=retarget.g1_collision(mj))
+    secs = time.perf_counter() - t0
+    m = retarget.metrics(g1, rc.q, rc.contacts, motion.fps, feet=mp.feet, keypoints=rc.keypoints,
+                         keypoint_frames=rc.keypoint_frames)
+    return [{"method": "diffkin + self-collision (MJCF G1)", "clip": name,
+             "frames/s": motion.batch * motion.frames / secs, **_metrics_row(m, b, rc.q)}
+            for b, name in enumerate(names)]
+
+
+def _gmr_rows(chain, motion, base, mp, clip_names=CLIPS, skeleton: str = "cmu") -> list[dict]:
     """GMR itself on the same clips (``benchmarks.peers_gmr``), scored like the other rows; [] when GMR is
     not installed."""
     from benchmarks import peers_gmr
@@ -189,7 +266,7 @@ def _gmr_rows(chain, motion, base, mp) -> list[dict]:
     if not peers_gmr.available():
         print("GMR (general_motion_retargeting) is not installed: its rows are skipped")
         return []
-    q, secs, own, model = peers_gmr.retarget_gmr(motion)
+    q, (secs, cpu), own, model = peers_gmr.retarget_gmr(motion, skeleton)
     worst = peers_gmr.check_same_kinematics(model, compile_mjcf(G1_MJCF)[0])
     if worst > 1e-9:
         raise AssertionError(f"GMR's G1 is not the Menagerie G1's kinematics (bodies {worst:.2e} apart)")
@@ -200,12 +277,15 @@ def _gmr_rows(chain, motion, base, mp) -> list[dict]:
                          keypoint_frames=base.keypoint_frames)
     n = motion.batch * motion.frames
     return [{"method": "GMR (its G1, its scheme and weights)", "clip": name, "frames/s": n / secs,
-             **_metrics_row(m, b), "GMR own mm": 1000 * float(own[b])} for b, name in enumerate(CLIPS)]
+             "frames/CPU-s": n / cpu,
+             **_metrics_row(m, b, q), "GMR own mm": 1000 * float(own[b])}
+            for b, name in enumerate(clip_names)]
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    title = "retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames)"
+    title = ("retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames, then the "
+             "walk with a turn and the pick-up whole)")
     return cli(p, run, title, argv)
 
 

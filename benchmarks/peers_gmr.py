@@ -29,6 +29,12 @@ straightens the G1's arms (its zero pose bends them 90°), everything else zero,
 ``offset = R_human_rest^T R_robot_rest`` per matched body. GMR's BVH script's fixed human height
 (1.75 m) is used as it uses it. The frames are fed to ``GeneralMotionRetargeting.retarget`` one after the
 other, as ``scripts/bvh_to_robot.py`` does (without its viewer).
+
+The walk-with-turn and pick-up clips are the same CMU skeleton in the MotionBuilder-friendly conversion
+(skeleton ``"cmu_mb"``): GMR's names map onto them as LAFAN1's do (``LeftUpLeg``, ``LeftLeg``,
+``LeftFoot`` with ``LeftToeBase`` orientation, ``LeftArm``, ``LeftForeArm``, ``LeftHand``, ``Spine2`` ->
+``Spine1``), and their rest pose (every rotation zero) has the arms out to the sides, horizontal (a T
+pose), so the G1's rest posture for the offsets raises the arms sideways (shoulder roll ±π/2) as well.
 """
 
 from __future__ import annotations
@@ -47,6 +53,16 @@ GMR_NAMES = {"Hips": "Hips", "Spine2": "Chest2",
              **{f"{s}{k}": f"{s}{v}" for s in ("Left", "Right") for k, v in (
                  ("UpLeg", "Hip"), ("Leg", "Knee"), ("FootMod", "Ankle"), ("Arm", "Shoulder"),
                  ("ForeArm", "Elbow"), ("Hand", "Wrist"))}}
+#: per skeleton of ``retarget.Mapping.builtin``: (GMR name -> joint, foot -> toe joint for "FootMod"'s
+#: orientation, the rest pose's arms: "down" or "out" (horizontal, to the sides))
+SKELETON_NAMES = {
+    "cmu": (GMR_NAMES, {f"{s}Ankle": f"{s}Toe" for s in ("Left", "Right")}, "down"),
+    "cmu_mb": ({"Hips": "Hips", "Spine2": "Spine1",
+                **{f"{s}{k}": f"{s}{v}" for s in ("Left", "Right") for k, v in (
+                    ("UpLeg", "UpLeg"), ("Leg", "Leg"), ("FootMod", "Foot"), ("Arm", "Arm"),
+                    ("ForeArm", "ForeArm"), ("Hand", "Hand"))}},
+               {f"{s}Foot": f"{s}ToeBase" for s in ("Left", "Right")}, "out"),
+}
 #: GMR's BVH script's fixed human height (``utils/lafan1.py``: ``human_height = 1.75``)
 HUMAN_HEIGHT = 1.75
 SPLAY = math.radians(20.0)  # the CMU rest pose's leg abduction: atan(2.49329 / 6.85026) = 20.0°
@@ -60,8 +76,9 @@ def available() -> bool:
     return True
 
 
-def _rest_pose_rotations(model) -> dict[str, np.ndarray]:
-    """World rotations of GMR's G1 bodies in the CMU rest posture, facing -y (MuJoCo FK)."""
+def _rest_pose_rotations(model, arms: str = "down") -> dict[str, np.ndarray]:
+    """World rotations of GMR's G1 bodies in the CMU rest posture, facing -y (MuJoCo FK); ``arms="out"``:
+    the arms raised sideways to horizontal (the MotionBuilder conversion's T pose)."""
     import mujoco
 
     data = mujoco.MjData(model)
@@ -71,12 +88,14 @@ def _rest_pose_rotations(model) -> dict[str, np.ndarray]:
         q[model.joint(f"{side}_hip_roll_joint").qposadr[0]] = sign * SPLAY
         q[model.joint(f"{side}_ankle_roll_joint").qposadr[0]] = -sign * SPLAY
         q[model.joint(f"{side}_elbow_joint").qposadr[0]] = math.pi / 2  # G1's zero bends it 90°: straighten
+        if arms == "out":
+            q[model.joint(f"{side}_shoulder_roll_joint").qposadr[0]] = sign * math.pi / 2
     data.qpos[:] = q
     mujoco.mj_kinematics(model, data)
     return {model.body(b).name: data.xmat[b].reshape(3, 3).copy() for b in range(model.nbody)}
 
 
-def cmu_config(model) -> dict:
+def cmu_config(model, skeleton: str = "cmu") -> dict:
     """GMR's ``bvh_to_g1.json`` for the CMU skeleton (see the module doc): names mapped, orientation
     offsets recomputed at the rest pose, everything else as GMR ships it."""
     from general_motion_retargeting.params import IK_CONFIG_DICT
@@ -84,7 +103,7 @@ def cmu_config(model) -> dict:
 
     with open(IK_CONFIG_DICT["bvh"]["unitree_g1"]) as f:
         config = json.load(f)
-    robot = _rest_pose_rotations(model)
+    robot = _rest_pose_rotations(model, SKELETON_NAMES[skeleton][2])
     human = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # every CMU joint at rest: the y-up -> z-up turn
     for table in ("ik_match_table1", "ik_match_table2"):
         for frame, entry in config[table].items():
@@ -93,7 +112,7 @@ def cmu_config(model) -> dict:
     return config
 
 
-def frames_of(motion, b: int = 0) -> list[dict]:
+def frames_of(motion, b: int = 0, skeleton: str = "cmu") -> list[dict]:
     """One clip of a :class:`diffkin.retarget.Motion` (with orientations) as GMR's per-frame dicts
     ``{GMR name: (position (3,), orientation wxyz (4,))}``, metres, z up (what GMR's BVH loader makes)."""
     from scipy.spatial.transform import Rotation
@@ -101,21 +120,22 @@ def frames_of(motion, b: int = 0) -> list[dict]:
     P = motion.positions[b].double().numpy()
     R = motion.orientations[b].double().numpy()
     T = P.shape[0]
+    names, toes, _ = SKELETON_NAMES[skeleton]
     quat = {}
-    for name in {*GMR_NAMES.values(), "LeftToe", "RightToe"}:
+    for name in {*names.values(), *toes.values()}:
         quat[name] = Rotation.from_matrix(R[:, motion.index([name])[0]]).as_quat(scalar_first=True)
     out = []
     for t in range(T):
         frame = {}
-        for gmr, cmu in GMR_NAMES.items():
+        for gmr, cmu in names.items():
             j = motion.index([cmu])[0]
-            rot = cmu.replace("Ankle", "Toe") if gmr.endswith("FootMod") else cmu  # GMR's "FootMod"
+            rot = toes[cmu] if gmr.endswith("FootMod") else cmu  # GMR's "FootMod": the toe's orientation
             frame[gmr] = (P[t, j].copy(), quat[rot][t].copy())
         out.append(frame)
     return out
 
 
-def retarget_gmr(motion) -> tuple[np.ndarray, float, np.ndarray, object]:
+def retarget_gmr(motion, skeleton: str = "cmu") -> tuple[np.ndarray, float, np.ndarray, object]:
     """GMR on every clip of ``motion`` -> ``(q, seconds, own_error, model)``: qpos ``(B, T, 36)`` (GMR's
     model's order: free joint, wxyz, then the 29 joints), the seconds spent in
     ``GeneralMotionRetargeting.retarget`` (one retargeter per clip, built outside the timing, as GMR's
@@ -124,11 +144,11 @@ def retarget_gmr(motion) -> tuple[np.ndarray, float, np.ndarray, object]:
     import mujoco
     from general_motion_retargeting import GeneralMotionRetargeting
 
-    clips = [frames_of(motion, b) for b in range(motion.batch)]
-    out, own, secs = [], [], 0.0
+    clips = [frames_of(motion, b, skeleton) for b in range(motion.batch)]
+    out, own, secs, cpu = [], [], 0.0, 0.0
     for frames in clips:
         gmr = GeneralMotionRetargeting("bvh", "unitree_g1", actual_human_height=HUMAN_HEIGHT)
-        config = cmu_config(gmr.model)
+        config = cmu_config(gmr.model, skeleton)
         # GMR reads its config in __init__; rebuild its tables from the CMU config the same way
         ratio = HUMAN_HEIGHT / config["human_height_assumption"]
         gmr.human_scale_table = {k: v * ratio for k, v in config["human_scale_table"].items()}
@@ -140,11 +160,12 @@ def retarget_gmr(motion) -> tuple[np.ndarray, float, np.ndarray, object]:
         gmr.setup_retarget_configuration()
         q = np.zeros((len(frames), gmr.model.nq))
         targets = []
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         for t, frame in enumerate(frames):
             q[t] = gmr.retarget(copy.copy(frame))
             targets.append(gmr.scaled_human_data)
         secs += time.perf_counter() - start
+        cpu += time.process_time() - start_cpu
         out.append(q)
         tracked = {f: e[0] for f, e in config["ik_match_table2"].items() if e[1] > 0}
         data = mujoco.MjData(gmr.model)
@@ -154,7 +175,7 @@ def retarget_gmr(motion) -> tuple[np.ndarray, float, np.ndarray, object]:
             mujoco.mj_kinematics(gmr.model, data)
             err += [np.linalg.norm(data.body(f).xpos - target[h][0]) for f, h in tracked.items()]
         own.append(float(np.mean(err)))
-    return np.stack(out), secs, np.array(own), gmr.model
+    return np.stack(out), (secs, cpu), np.array(own), gmr.model
 
 
 def check_same_kinematics(gmr_model, ours_model, samples: int = 20, seed: int = 0) -> float:

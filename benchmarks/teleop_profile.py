@@ -68,7 +68,7 @@ def run(args) -> list[dict]:
     v = torch.empty(7, dtype=torch.float64)
     rows = []
     with torch.no_grad():
-        prob.step(q, views[0], q_ref, DT, out=v)  # packs the chain and binds the lean entry
+        prob.step(q, views[0], q_ref, DT, out=v)  # packs the chain and binds its Data
         lean = prob._entry
         with tempfile.TemporaryDirectory() as tmp:
             lib = _driver(Path(tmp))
@@ -83,7 +83,7 @@ def run(args) -> list[dict]:
             q_c = qs[steps % 2].clone()  # where the C loop ended: the Python loop below must end there too
             hit = lean[0]
             T, J = torch.empty(4, 4, dtype=torch.float64), torch.empty(6, 7, dtype=torch.float64)
-            fk = ctypes.cast(single._functions()[1], ctypes.c_void_p).value
+            fk = ctypes.cast(single._fk_one(), ctypes.c_void_p).value
             status = lib.loop_fk(fk, hit.base, hit.watch_addr, q.data_ptr(), T.data_ptr(), J.data_ptr(),
                                  steps, times)
             if status:

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from .errors import ModelError
-from .kernels import native
+from .kernels import cache, native
 from .kernels.jacobian import weighted_point_jacobian
 from .kernels.tree import Segments, matrix_frames
 
@@ -54,10 +54,10 @@ def _masses(chain) -> tuple[Tensor, Tensor]:
 
 def _mass_columns(chain, like: Tensor) -> Tensor:
     """``(C, B)``: m_i / M where Jacobian column c moves body i (its frame is an ancestor of body i's),
-    else 0. Structure cached per chain; the masses are read on every call (they may change)."""
+    else 0. Structure cached per chain and topology; the masses are read on every call (they may change)."""
     topo = chain.topology
-    cache = chain.__dict__.get("_mass_column_mask")
-    if cache is None or cache[0][0] is not topo or cache[0][1:] != (like.dtype, like.device):
+    memo = chain.__dict__.get("_mass_column_mask")  # topology only (a key of the structure, no values)
+    if memo is None or memo[0][0] is not topo or memo[0][1:] != (like.dtype, like.device):
         rows = []
         for f in topo.column_frame:
             row = []
@@ -68,9 +68,9 @@ def _mass_columns(chain, like: Tensor) -> Tensor:
                 row.append(j == f)
             rows.append(row)
         mask = torch.tensor(rows, dtype=like.dtype, device=like.device).reshape(topo.n_columns, -1)
-        cache = ((topo, like.dtype, like.device), mask)
-        chain.__dict__["_mass_column_mask"] = cache
-    return cache[1] * _mass_weights(chain)
+        memo = ((topo, like.dtype, like.device), mask)
+        chain.__dict__["_mass_column_mask"] = memo
+    return memo[1] * _mass_weights(chain)
 
 
 def _body_points(chain, q: Tensor, with_axes: bool):
@@ -96,19 +96,20 @@ def _native_pass(chain, q: Tensor, with_jacobian: bool) -> tuple[Tensor, Tensor 
     centres of mass as its end points (the same frames, ends translated by c_i), reduced to
     ``(center_of_mass (..., 3), com_jacobian (..., 3, nv) or None)``; None where the native pass does not
     serve the call (autograd, tracing, another device: :meth:`~diffkin.chain.KinematicChain._native_model`).
+    The pack is kept on the chain's :class:`~diffkin.kernels.cache.Data` (remade with it).
     Large batches run in slices whose B point Jacobians fit in 16 MiB, each reduced at once."""
     if chain._native_model(q) is None:
         return None
-    per_joint = chain._const[0]  # the constants _native_model has just checked (or remade)
-    cache = chain.__dict__.get("_mass_native")
-    if cache is None or cache[0] is not per_joint:
+    data = cache.current(chain)  # the Data _native_model has just checked (or remade)
+    packed = data.extra.get("mass")
+    if packed is None:
+        per_joint = data.segments(chain)[0]
         c = chain.link_inertial_frames[:, :3, 3].detach().double().cpu().tolist()
         identity = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
         ends = [None if not any(ci) else (identity, tuple(ci)) for ci in c]
         seg = Segments(per_joint.pre, per_joint.offset, per_joint.post, per_joint.base, ends)
-        packed = native.native_model(replace(chain.topology, ends=tuple(chain._mass_frames)), seg)
-        cache = (per_joint, packed)
-        chain.__dict__["_mass_native"] = cache
+        topo = replace(chain.topology, ends=tuple(chain._mass_frames))
+        packed = data.extra["mass"] = native.NativeModel(topo, seg)
     batch, nv, B = q.shape[:-1], chain.nv, len(chain._mass_frames)
     flat = q.reshape(-1, chain.nq).contiguous()
     rows = flat.shape[0]
@@ -116,7 +117,7 @@ def _native_pass(chain, q: Tensor, with_jacobian: bool) -> tuple[Tensor, Tensor 
     step = max(1, _NATIVE_BYTES // (B * (6 * nv if with_jacobian else 16) * q.element_size()))
     parts = []
     for start in range(0, rows, step):  # slices of the batch (one for a control loop's few rows)
-        T, Jp, _ = native.fk_jacobian(cache[1], flat[start:start + step], with_jacobian)
+        T, Jp, _ = native.fk_jacobian(packed, flat[start:start + step], with_jacobian)
         n = T.shape[0]
         # Σ_i (m_i / M) over the bodies: one product each for the poses and the point Jacobians
         com = (w @ T.view(n, B, 16))[:, 3:12:4]
@@ -130,16 +131,16 @@ def _native_pass(chain, q: Tensor, with_jacobian: bool) -> tuple[Tensor, Tensor 
 
 
 def _mass_weights(chain) -> Tensor:
-    """m_i / M ``(B,)``, remade when the masses change (version or storage)."""
+    """m_i / M ``(B,)``, kept on the chain's :class:`~diffkin.kernels.cache.Data` (remade with it when the
+    masses, a buffer, change in any way)."""
     m = chain.link_masses
-    if m.requires_grad and torch.is_grad_enabled():  # learnable masses: a fresh graph every call
+    data = None if m.requires_grad and torch.is_grad_enabled() else cache.current(chain, grad=False)
+    if data is None:  # learnable masses (a fresh graph every call), or values not readable as constants
         return m / m.sum()
-    key = (m._version, m.data_ptr(), m.dtype, m.device)
-    cache = chain.__dict__.get("_mass_weights")
-    if cache is None or cache[0] != key:
-        cache = (key, m / m.sum())
-        chain.__dict__["_mass_weights"] = cache
-    return cache[1]
+    w = data.extra.get("mass_weights")
+    if w is None:
+        w = data.extra["mass_weights"] = m / m.sum()
+    return w
 
 
 def _weighted_mean(chain, points: Tensor) -> Tensor:

@@ -32,6 +32,7 @@ from diffkin import models, viz  # noqa: E402
 from diffkin.collision import RobotCollision, World  # noqa: E402
 from diffkin.models.mjcf import compile_mjcf  # noqa: E402
 from diffkin.models.mjcf_bodies import body_poses  # noqa: E402
+from diffkin.viz import scene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "mjcf"
@@ -39,7 +40,7 @@ F64 = torch.float64
 
 
 def _pose(h) -> np.ndarray:
-    return viz._pose(h.wxyz, h.position)
+    return scene._pose(h.wxyz, h.position)
 
 
 def _triangles(ax, v, f, T, rgb, alpha: float) -> np.ndarray:
@@ -54,7 +55,7 @@ def _triangles(ax, v, f, T, rgb, alpha: float) -> np.ndarray:
 def _skeleton(ax, v) -> list[np.ndarray]:
     seg = np.asarray(v._segments.points, dtype=np.float64)
     for a, b in seg:
-        ax.plot(*np.stack((a, b)).T, color=np.asarray(viz._SEGMENT_RGB) / 255.0, lw=2.0)
+        ax.plot(*np.stack((a, b)).T, color=np.asarray(scene._SEGMENT_RGB) / 255.0, lw=2.0)
     return [seg.reshape(-1, 3)]
 
 

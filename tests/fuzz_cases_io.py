@@ -78,7 +78,7 @@ EXEMPT: dict[str, str] = {
     **{f"diffkin.io.data.{name}": _FILES for name in (
         "ArraySource", "PoseSource", "RandomJoints", "check_output_path", "open_joint_source",
         "open_pose_source", "open_writer", "read_array", "read_joints", "read_poses", "write_arrays",
-        "read_manifest", "DataFileError", "joint_count", "read_measurements")},
+        "read_manifest", "DataFileError", "joint_count", "read_measurements", "Writer")},
     **{f"diffkin.models.urdf_xml.{name}": _FILES for name in ("JointSpec", "URDFTree", "InertialSpec",
                                                               "parse_inertials", "parse_urdf", "write_urdf",
                                                               "CollisionSpec", "parse_collisions")},

@@ -363,7 +363,7 @@ def test_analytical_jacobian_representation_singularity():
 @pytest.mark.parametrize("batch", [(100,), (7, 13)])
 def test_sliced_large_batch_path_is_bit_identical(monkeypatch, batch):
     """Large CPU batches without autograd run in slices (_CHUNK); slicing must not change a single bit."""
-    import diffkin.chain as chain_module
+    import diffkin.chain.evaluation as chain_module
     import diffkin.jacobian as jac
     from diffkin.models import from_urdf
 

@@ -100,3 +100,31 @@ def test_native_banded_solve_against_torch_loop(dtype):
     x = native.banded_solve(bad, E, F, g)
     assert torch.isnan(x[1, 2]).any() and torch.isfinite(x[0]).all() and torch.isfinite(x[1, :2]).all()
     assert native.banded_solve(D, E, F, g.requires_grad_()) is None  # autograd: the torch loop's
+
+
+@pytest.mark.parametrize("shape", ["diagonal", "lower"])
+def test_native_banded_solve_with_a_triangular_second_band(shape):
+    """A second band F_t that is diagonal (the acceleration term of the whole-clip retargeting) or lower
+    triangular takes the C recursion's triangular path: the dense solve's answer, block sizes with and
+    without a remainder of the 4-row passes (n = 5, 8), against a full F's path on the same system."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    for n in (5, 8):
+        _, D, E, F, g = _system(2, 7, n, seed=5)
+        F = torch.diag_embed(F.diagonal(dim1=-2, dim2=-1)) if shape == "diagonal" else F.tril()
+        D = D + 4 * n * torch.eye(n, dtype=F64)  # diagonally dominant: SPD with any such F
+        T = D.shape[1]
+        H = torch.zeros(2, T, T, n, n, dtype=F64)
+        idx = torch.arange(T)
+        H[:, idx, idx] = D
+        H[:, idx[1:], idx[:-1]], H[:, idx[:-1], idx[1:]] = E[:, 1:], E[:, 1:].mT
+        H[:, idx[2:], idx[:-2]], H[:, idx[:-2], idx[2:]] = F[:, 2:], F[:, 2:].mT
+        H = H.permute(0, 1, 3, 2, 4).reshape(2, T * n, T * n)
+        want = torch.linalg.solve(H, g.reshape(2, -1, 1)).reshape(g.shape)
+        got = native.banded_solve(D, E, F, g)
+        torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
+        F_full = F.clone()
+        F_full[:, 2:, 0, -1] = 1e-30  # one entry above the diagonal: the general path
+        torch.testing.assert_close(native.banded_solve(D, E, F_full, g), got, atol=1e-10, rtol=1e-10)

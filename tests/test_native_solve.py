@@ -189,7 +189,7 @@ def test_one_target_falls_back_where_the_lean_path_does_not_apply():
 
 
 def test_disabled_keeps_the_torch_loop_after_a_c_solve(monkeypatch):
-    """A chain's cached lean-path entry must not let the C solve run inside native.disabled() (the torch
+    """A chain's Data (its lean state) must not let the C solve run inside native.disabled() (the torch
     side of every comparison here, and of tests/test_native_solve_ball.py, ran through C before)."""
     chain = models.load("panda", dtype=torch.float64)
     _, T = _targets(chain, 4, seed=16)

@@ -17,7 +17,7 @@ mujoco = pytest.importorskip("mujoco")
 
 from diffkin.errors import NonFiniteError  # noqa: E402
 from diffkin.ik import _native_velocity as nvel  # noqa: E402
-from diffkin.kernels import native  # noqa: E402
+from diffkin.kernels import cache, native  # noqa: E402
 from diffkin.models import from_mjcf  # noqa: E402
 from diffkin.models.mjcf import compile_mjcf  # noqa: E402
 
@@ -209,12 +209,17 @@ def test_struct_mirrors_library():
 from diffkin import ik  # noqa: E402
 
 
+def _problems(chain) -> dict:
+    """The C route's problems, kept on the chain's Data (diffkin/kernels/cache.py)."""
+    data = chain.__dict__.get(cache.KEY)
+    return {} if data is None else data.extra.get("velocity", {})
+
+
 def _both(chain, q, tasks, dt, limits, damping=1e-12):
     """solve_velocity by the C route and by the torch path (native kernels disabled)."""
-    cache = chain.__dict__.get("_velocity_native", {})
-    n = len(cache)
+    n = len(_problems(chain))
     fast = ik.solve_velocity(chain, q, tasks, dt, limits=limits, damping=damping)
-    assert len(chain.__dict__.get("_velocity_native", {})) >= max(n, 1)  # the C route served it
+    assert len(_problems(chain)) >= max(n, 1)  # the C route served it
     with native.disabled():
         slow = ik.solve_velocity(chain, q, tasks, dt, limits=limits, damping=damping)
     return fast, slow

@@ -14,6 +14,7 @@ import torch
 from diffkin import models, retarget
 from diffkin.errors import ConventionError, ModelError, NonFiniteError, OptionError, ShapeError
 from diffkin.retarget.bvh import CMU_UNIT
+from diffkin.retarget.mapping import SKELETONS
 
 mujoco = pytest.importorskip("mujoco")
 Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
@@ -31,13 +32,15 @@ def _offsets(path: Path) -> list[list[float]]:
 
 
 # ------------------------------------------------------------------------------------------ loaders
-@pytest.mark.parametrize("name, frames", [("walk", 150), ("crouch", 120), ("hop", 120), ("turn", 110),
-                                          ("reach", 74)])
-def test_shipped_clips_load(name, frames):
+@pytest.mark.parametrize("name, frames, fps", [("walk", 150, 60), ("crouch", 120, 60), ("hop", 120, 60),
+                                               ("turn", 110, 60), ("reach", 74, 60), ("walkturn", 63, 30),
+                                               ("pickup", 54, 30)])
+def test_shipped_clips_load(name, frames, fps):
     path = retarget.example_clips()[name]
     m = retarget.load_bvh(path)
     assert (m.batch, m.frames, len(m.names)) == (1, frames, 38)  # 31 joints + 7 End Sites
-    assert m.fps == 60.0
+    assert m.fps == fps
+    human = SKELETONS[retarget.skeleton_of(m.names)]
     assert m.orientations.shape == (1, frames, 38, 3, 3)
     # bone lengths: constant over frames and equal to the file's offsets in CMU units
     off = np.array(_offsets(path))
@@ -48,7 +51,8 @@ def test_shipped_clips_load(name, frames):
         length = np.linalg.norm(p[:, j] - p[:, parent], axis=-1)
         np.testing.assert_allclose(length, np.linalg.norm(off[j]) * CMU_UNIT, atol=1e-9)
     # standing on the floor: the lowest foot point of every frame is within a few cm of z = 0
-    feet = m.index(["LeftToe", "RightToe", "LeftToe_end", "RightToe_end", "LeftAnkle", "RightAnkle"])
+    ends = (("toe", ""), ("toe", "_end"), ("ankle", ""))
+    feet = m.index([human[f"{s}_{j}"] + e for s in ("left", "right") for j, e in ends])
     lowest = p[:, feet, 2].min(-1)
     assert np.all(lowest > -0.03) and np.median(lowest) < 0.08
     # an adult: pelvis 0.8-1.1 m high in the first frame, head top above 1.3 m
@@ -72,6 +76,30 @@ def test_shipped_turn_and_reach_are_what_they_say():
     assert w[0, 2] < s[0, 2] and w[-1, 2] > s[-1, 2] + 0.2
     assert straight[0] < 0.6 and straight[-1] > 0.95
     assert np.linalg.norm(h - h[0], axis=-1).max() < 0.05
+
+
+def test_shipped_walkturn_and_pickup_are_what_they_say():
+    """The walk with a turn walks > 1 m before and > 20 cm after turning the hip line by 75-95° to the left;
+    the pick-up takes the left wrist from above 0.6 m to below 0.3 m above the floor and back above 0.5 m,
+    the pelvis down by > 10 cm, after walking > 1 m. Both are the MotionBuilder-named CMU skeleton."""
+    walk = retarget.load_bvh(retarget.example_clips()["walkturn"])
+    assert retarget.skeleton_of(walk.names) == "cmu_mb"
+    p = walk.positions[0].numpy()
+    d = p[:, walk.index("LeftUpLeg")[0]] - p[:, walk.index("RightUpLeg")[0]]
+    yaw = np.degrees(np.unwrap(np.arctan2(d[:, 1], d[:, 0])))
+    hips = p[:, walk.index("Hips")[0], :2]
+    turning = np.nonzero(np.abs(yaw - yaw[0]) > 10)[0][0]
+    assert 75 < yaw[-1] - yaw[0] < 95
+    assert np.linalg.norm(hips[turning] - hips[0]) > 1.0 and np.linalg.norm(hips[-1] - hips[-8]) > 0.2
+    pick = retarget.load_bvh(retarget.example_clips()["pickup"])
+    q = pick.positions[0].numpy()
+    wrist, pelvis = q[:, pick.index("LeftHand")[0], 2], q[:, pick.index("Hips")[0]]
+    low = wrist.argmin()
+    assert wrist[0] > 0.6 and wrist[low] < 0.3 and wrist[-1] > 0.5
+    assert pelvis[0, 2] - pelvis[low, 2] > 0.1
+    assert np.linalg.norm(pelvis[low, :2] - pelvis[0, :2]) > 1.0
+    with pytest.raises(ConventionError, match="cmu_mb"):
+        retarget.skeleton_of(["Hips", "Spine"])
 
 
 def test_bvh_root_against_scipy():
@@ -468,12 +496,18 @@ def test_whole_clip_optimisation_on_the_shipped_hop():
     data = mujoco.MjData(model)
     adr = [0, 1, 2, 3, 4, 5, 6] + [int(model.joint(n).qposadr[0]) for n in g1.joint_names[1:]]
     ids = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in r.keypoint_frames]
-    dist = []
+    feet = [mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, f) for f in mp.feet]
+    soles = [g for g in range(model.ngeom) if model.geom_bodyid[g] in feet]  # the URDF's 4 + 4 foot spheres
+    dist, lowest = [], []
     for t in range(r.q.shape[1]):
         data.qpos[adr] = r.q[0, t].numpy()
         mujoco.mj_kinematics(model, data)
         dist.append(np.linalg.norm(data.xpos[ids] - r.keypoints[0, t].numpy(), axis=-1))
+        lowest.append(np.min(data.geom_xpos[soles, 2] - model.geom_size[soles, 0]))
     assert 1000 * np.mean(dist) == pytest.approx(m.keypoint_error.item(), abs=1e-6)
+    # no sole point below the ground, exactly (the last step lifts the base): in MuJoCo's FK and the metric
+    assert len(soles) == 8 and min(lowest) >= -1e-12
+    assert m.ground_penetration.item() <= 1e-9  # mm
 
 
 def _mujoco_g1():
@@ -532,6 +566,104 @@ def test_whole_clip_gradient_against_autograd():
         torch.testing.assert_close(g[..., cols], want[..., cols], atol=1e-8, rtol=1e-8)
         ev = torch.linalg.eigvalsh(D)  # JᵀJ: positive semi-definite
         assert torch.isfinite(D).all() and (ev > -1e-9 * ev.amax(-1, keepdim=True)).all()
+
+
+def _terms_case(dtype, B=2, T=6):
+    """A whole-clip problem on the G1 (random poses near the ground, noisy keypoints, random contacts and
+    orientation targets on some frames): its _Terms and q."""
+    from diffkin.retarget.whole_clip import COSTS, _Terms, _velocity_limits
+    from diffkin.rotations import _skew
+
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=dtype).requires_grad_(False)
+    gen = torch.Generator().manual_seed(1)
+    q = torch.zeros(B, T, g1.nq, dtype=torch.float64)
+    q[..., 2], q[..., 3] = 0.76, 1.0  # some sole points below the ground: penetration rows
+    q[..., 7:] = 0.2 * torch.randn(B, T, g1.nq - 7, generator=gen, dtype=torch.float64)
+    q[..., 3:7] += 0.05 * torch.randn(B, T, 4, generator=gen, dtype=torch.float64)
+    q[..., 3:7] /= q[..., 3:7].norm(dim=-1, keepdim=True)
+    kp = mp.keypoint_frames
+    with torch.no_grad():
+        x = g1.forward_kinematics(q.to(dtype))[..., [g1.end_links.index(f) for f in kp], :3, 3].double()
+    x = x + 0.03 * torch.randn(x.shape, generator=gen, dtype=torch.float64)
+    contacts = torch.rand(B, T, 2, generator=gen) < 0.7
+    rv = 0.5 * torch.randn(B, T, len(kp), 3, generator=gen, dtype=torch.float64)
+    R_d = torch.linalg.matrix_exp(_skew(rv))
+    ow = torch.rand(len(kp), generator=gen, dtype=torch.float64) * (torch.arange(len(kp)) % 2)  # some 0
+    kw = 0.5 + torch.rand(len(kp), generator=gen, dtype=torch.float64)
+    terms = _Terms(g1, x.to(dtype), contacts, list(mp.feet), kp, 30.0, 0.01, None, kw.to(dtype), dict(COSTS),
+                   q.to(dtype), 0.0, _velocity_limits(g1, 3.0, q.to(dtype)), R_d.to(dtype), ow.to(dtype))
+    return terms, q.to(dtype)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
+    """The C frame terms (native.clip_rows: keypoints, orientations, the soles' contact, penetration and
+    level rows, skating) give the torch path's cost, D, E and g: 1e-9 relative in float64."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    terms, q = _terms_case(dtype)
+    assert bool((terms.c[:, 1:] & terms.c[:, :-1]).any())  # skating pairs
+    with torch.no_grad():
+        Ta, Ja = terms.chain.forward_kinematics_and_jacobian(q.flatten(0, 1))
+        h = Ta[:, terms.feet_idx, 2, 3]
+    assert bool((h < 0.05).any())  # some frames with soles below the ground
+    fast = terms.evaluate(q)
+    with native.disabled():
+        slow = terms.evaluate(q)
+    tol = 1e-9 if dtype == torch.float64 else 1e-4
+    for name, a, b in zip(("cost", "D", "E", "F", "g"), fast, slow):
+        scale = b.abs().amax().clamp_min(1.0)
+        assert (a - b).abs().amax() <= tol * scale, name
+    assert fast[2].abs().amax() > 0 and not torch.equal(fast[2], torch.zeros_like(fast[2]))
+
+
+def test_whole_clip_optimisation_in_c_equals_the_torch_path():
+    """optimize_clip from one warm start (12 frames of the shipped hop, velocity limits, 3 iterations) gives
+    the same clip with the C kernels (frame terms, banded solve, FK) as with the torch path: 1e-9."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    mp = retarget.Mapping.builtin("g1")
+    g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 12)
+    r = retarget.clip(g1, hop, mp, whole_clip=False)
+
+    def run():
+        return retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
+                                      keypoint_frames=r.keypoint_frames, fps=hop.fps, iterations=3,
+                                      velocity_limit=20.0)
+
+    fast = run()
+    with native.disabled():
+        slow = run()
+    assert bool((fast.cost[-1] < fast.cost[0] / 2).all())
+    torch.testing.assert_close(fast.cost, slow.cost, rtol=1e-9, atol=0)
+    torch.testing.assert_close(fast.q, slow.q, rtol=0, atol=1e-9)
+
+
+def test_whole_clip_extra_rows_plug_in():
+    """The residual-row interface: per-frame rows given through ``extra_rows`` add ½‖r‖² to the cost, JᵀJ
+    to D and Jᵀr to g (a row that repeats the pelvis keypoint's rows doubles their share)."""
+    terms, q = _terms_case(torch.float64, B=1, T=4)
+    base = terms.evaluate(q)
+    k = terms.kp_idx[0]
+    sw = terms.w["keypoint"] * terms.kp_w[0]
+
+    def pelvis(q_, Ta, Ja):
+        return sw * (Ta[..., k, :3, 3] - terms.x[:, :, 0]), sw * Ja[..., k, :3, :]
+
+    terms.extra_rows.append(pelvis)
+    more = terms.evaluate(q)
+    Ta, Ja = terms.chain.forward_kinematics_and_jacobian(q.flatten(0, 1))
+    r, J = pelvis(q, Ta.reshape(1, 4, *Ta.shape[1:]), Ja.reshape(1, 4, *Ja.shape[1:]))
+    torch.testing.assert_close(more[0] - base[0], 0.5 * r.square().sum((-1, -2)))
+    torch.testing.assert_close(more[1] - base[1], J.mT @ J)
+    torch.testing.assert_close(more[4] - base[4], (J.mT @ r.unsqueeze(-1)).squeeze(-1))
+    torch.testing.assert_close(more[2], base[2])
 
 
 def test_whole_clip_orientation_targets_recover_the_wrists():
@@ -633,10 +765,18 @@ def test_optimize_clip_errors():
     f32 = retarget.optimize_clip(g1, q, x.float(), c, iterations=1, **kw)
     assert f32.q.dtype == torch.float64
     out = retarget.optimize_clip(g1, q, x, c, iterations=0, **kw)
-    torch.testing.assert_close(out.q, q)
+    torch.testing.assert_close(out.q[..., 3:], q[..., 3:])  # iterations=0: the warm start, lifted ...
+    T_out = g1.forward_kinematics(out.q)
+    lowest = min(retarget.sole_of(g1, f).lowest(T_out[..., g1.end_links.index(f), :, :])[0].min()
+                 for f in mp.feet)
+    assert abs(lowest.item()) <= 1e-12 and bool((out.q[..., 2] > q[..., 2]).all())  # ... onto the ground
     assert out.cost.shape == (1, 1)
     with pytest.raises(ModelError, match="nojoint"):
         retarget.optimize_clip(g1, q, x, c, velocity_limit={"nojoint": 1.0}, **kw)
+    with pytest.raises(OptionError, match="collision_margin"):
+        retarget.optimize_clip(g1, q, x, c, collision_margin=-0.01, **kw)
+    with pytest.raises(ModelError, match="RobotCollision"):
+        retarget.optimize_clip(g1, q, x, c, collision=object(), **kw)
     with pytest.raises(OptionError, match="velocity_limit"):
         retarget.optimize_clip(g1, q, x, c, velocity_limit=0.0, **kw)
     with pytest.raises(ShapeError, match="velocity_limit"):

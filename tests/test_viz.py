@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from diffkin import cli, models, viz
+from diffkin.viz.scene import _wxyz
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -37,7 +38,7 @@ def test_view_without_viser_names_the_extra(monkeypatch, capsys):
 def test_view_parser():
     args = cli.build_parser().parse_args(["view", "--urdf", "a.urdf", "--end-link", "l1", "l2"])
     assert args.host == "127.0.0.1" and args.port == 8080 and args.end_link == ["l1", "l2"]
-    assert args.func.__module__ == "diffkin.viz"
+    assert args.func.__module__ == "diffkin.viz.command"
 
 
 # ------------------------------------------------------------------------------------- the viewer
@@ -130,7 +131,7 @@ def test_moving_the_target_runs_ik(viewer, panda):
     T = panda.forward_kinematics(q_goal).detach().numpy()
     # what a drag in the browser does: the gizmo's pose changes, then its callback runs
     h = viewer._targets[0]
-    h.position, h.wxyz = T[:3, 3], viz._wxyz(T[:3, :3])
+    h.position, h.wxyz = T[:3, 3], _wxyz(T[:3, :3])
     viewer._on_target_event(None)
     assert viewer.ik_state["success"] is True
     assert viewer.ik_state["position_error"] < 1e-4
@@ -242,7 +243,7 @@ def test_velocity_drag_follows_the_target_within_the_limits(panda):
         T = panda.forward_kinematics(q0 + torch.tensor([0.1, 0.05, -0.05, 0.1, 0.0, -0.05, 0.0],
                                                        dtype=torch.float64)).detach().numpy()
         h = v._targets[0]
-        h.position, h.wxyz = T[:3, 3], viz._wxyz(T[:3, :3])
+        h.position, h.wxyz = T[:3, 3], _wxyz(T[:3, :3])
         v._on_target_event(None)
         assert v.ik_state["success"] is True and v.ik_state["position_error"] < 1e-4
         np.testing.assert_allclose(panda.forward_kinematics(v.q).detach().numpy(), T, atol=1e-3)

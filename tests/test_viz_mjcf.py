@@ -22,10 +22,12 @@ pytest.importorskip("viser")
 pytest.importorskip("trimesh")
 
 from diffkin.collision import RobotCollision, World  # noqa: E402
+from diffkin.errors import DiffkinError, ShapeError  # noqa: E402
 from diffkin.models.mjcf import compile_mjcf  # noqa: E402
 from diffkin.models.mjcf_bodies import _companion, body_names, body_poses  # noqa: E402
 from diffkin.viz.collision import CONTACT_RGB, FREE_RGB, WORLD_RGB  # noqa: E402
 from diffkin.viz.mjcf import mjcf_visuals  # noqa: E402
+from diffkin.viz.scene import _pose  # noqa: E402
 
 DATA = Path(__file__).parent / "data" / "mjcf"
 G1, CASSIE = DATA / "unitree_g1/g1.xml", DATA / "agility_cassie/cassie.xml"
@@ -331,7 +333,7 @@ def test_collision_geoms_drawn_where_placed(fr3):
         for k, g in enumerate(caps):
             h = v._collision_view.handles[g]
             np.testing.assert_allclose(h.position, (0.5 * (a[k] + b[k])).detach().numpy(), atol=1e-6)
-            z = viz._pose(h.wxyz, h.position)[:3, 2]
+            z = _pose(h.wxyz, h.position)[:3, 2]
             u = (b[k] - a[k]).detach().numpy()
             if np.linalg.norm(u) > 1e-9:
                 assert abs(float(z @ u) / np.linalg.norm(u)) == pytest.approx(1.0, abs=1e-6)
@@ -358,12 +360,12 @@ def test_mjcf_collision_and_cli(tmp_path, capsys):
 
 def test_bad_collision_arguments_are_refused(fr3, cassie):
     chain, col = fr3
-    with pytest.raises(viz.DiffkinError, match="collision must be a RobotCollision of the chain"):
+    with pytest.raises(DiffkinError, match="collision must be a RobotCollision of the chain"):
         viz.show(cassie, port=0, collision=col)
-    with pytest.raises(viz.DiffkinError, match="world needs collision="):
+    with pytest.raises(DiffkinError, match="world needs collision="):
         viz.show(chain, port=0, world=World(points=[[0.0, 0.0, 0.0]], dtype=F64))
-    with pytest.raises(viz.DiffkinError, match="margin"):
+    with pytest.raises(DiffkinError, match="margin"):
         viz.show(chain, port=0, collision=col, margin=float("nan"))
     batched = World(spheres=torch.zeros(2, 1, 4, dtype=F64) + torch.tensor([0, 0, 0, 0.1], dtype=F64))
-    with pytest.raises(viz.ShapeError, match="the viewer draws one world"):
+    with pytest.raises(ShapeError, match="the viewer draws one world"):
         viz.show(chain, port=0, collision=col, world=batched)

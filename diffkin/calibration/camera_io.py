@@ -12,7 +12,7 @@ import torch
 from torch import Tensor
 
 from ..errors import DiffkinError, MissingExtraError, ShapeError, require
-from ..io.data import _is_number
+from ..io.data.formats import _is_number
 from .board import BoardDetection, detect_board, image_files
 from .camera_api import calibrate_camera
 from .camera_result import CameraCalibrationResult

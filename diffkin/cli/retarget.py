@@ -34,8 +34,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                                 "hop)")
     g = p.add_argument_group("robot")
     g.add_argument("--mapping", default="g1", help="built-in mapping (g1, h1)")
-    g.add_argument("--skeleton", default=None, choices=["cmu", "smpl"],
-                   help="the clip's skeleton (default: smpl for .npz, cmu otherwise)")
+    g.add_argument("--skeleton", default=None, choices=["cmu", "cmu_mb", "smpl"],
+                   help="the clip's skeleton (default: smpl for .npz, else found from the BVH's joint names)")
     src = g.add_mutually_exclusive_group(required=True)
     src.add_argument("--robot", help="a built-in URDF / MuJoCo robot by name (g1: MuJoCo Menagerie's "
                      "29-DoF G1, h1; see `diffkin models`)")
@@ -56,11 +56,10 @@ def _motion(spec: str, skeleton: str | None):
     from .. import retarget
 
     shipped = retarget.example_clips()
-    if spec in shipped:
-        return retarget.load_bvh(shipped[spec]), skeleton or "cmu"
+    if spec in shipped or Path(spec).suffix.lower() == ".bvh":
+        motion = retarget.load_bvh(shipped.get(spec, spec))
+        return motion, skeleton or retarget.skeleton_of(motion.names)
     path = Path(spec)
-    if path.suffix.lower() == ".bvh":
-        return retarget.load_bvh(path), skeleton or "cmu"
     if path.suffix.lower() == ".npz":
         return retarget.load_smpl(path), skeleton or "smpl"
     raise DiffkinError(f"{spec}: expected a .bvh file, an .npz of SMPL joints or a shipped clip name "

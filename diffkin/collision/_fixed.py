@@ -56,7 +56,7 @@ def kept_columns(rc, world, moving_only: bool) -> tuple[Tensor | None, Tensor | 
     ts = [*chain.parameters(), *chain.buffers()] if isinstance(chain, torch.nn.Module) else []
     key = [(t, t._version) for t in (world.halfspaces, *ts)]
     memo = rc.__dict__.get("_kept_memo")
-    if memo is not None and len(memo[0]) == len(key) and memo[1] == world.counts and all(
+    if memo is not None and len(memo[0]) == len(key) and memo[1] == (world.counts, len(world)) and all(
             a is b and u == v for (a, u), (b, v) in zip(memo[0], key)):
         return keep_self, memo[2]
     G, (s, c, b, h, *_) = len(rc.geoms), world.counts
@@ -66,7 +66,7 @@ def kept_columns(rc, world, moving_only: bool) -> tuple[Tensor | None, Tensor | 
         drop[:, s + c + b: s + c + b + h] |= planar[torch.tensor(rc._anchor)]
     keep = (~drop).flatten().nonzero().flatten().to(rc._moving_pairs.device)
     keep = None if len(keep) == drop.numel() else keep
-    rc.__dict__["_kept_memo"] = (key, world.counts, keep)
+    rc.__dict__["_kept_memo"] = (key, (world.counts, len(world)), keep)
     return keep_self, keep
 
 
@@ -79,6 +79,7 @@ def distance_names(rc, world, moving_only: bool) -> list[str]:
     if world is None:
         return names
     kinds = ("sphere", "capsule", "box", "halfspace", "point", "cylinder")
-    objs = [f"world {kind} {k}" for kind, n in zip(kinds, world.counts) for k in range(n)]
+    counts = (*world.counts, *world.object_counts)
+    objs = [f"world {kind} {k}" for kind, n in zip((*kinds, *world.objects), counts) for k in range(n)]
     rows = [f"{g.name} × {o}" for g in rc.geoms for o in objs]
     return names + (rows if keep_world is None else [rows[i] for i in keep_world.tolist()])

@@ -15,7 +15,7 @@ from functools import reduce
 import torch
 from torch import Tensor
 
-from ..kernels import native
+from ..kernels import cache, native
 from ..kernels.joints import origin_transform
 from ..kernels.tree import Segments
 from ..models.urdf_xml import moves
@@ -110,9 +110,9 @@ class LinkFrames:
         made = self.native_frames_model(chain, q)
         if made is None:
             return None
-        model, B = made
+        packed, B = made
         batch, n = q.shape[:-1], q.shape[-1]
-        T, _, bad = native.fk_jacobian(model, q.reshape(-1, n).contiguous())
+        T, _, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous())
         if bad:
             check_finite(q, "q")
         F = torch.cat((B.expand(T.shape[0], 1, 4, 4), T), 1)
@@ -124,15 +124,16 @@ class LinkFrames:
         ``base``); None elsewhere. The planner's C search places its geoms with it."""
         if chain._topo.coupled or any(chain._topo.spherical) or chain._native_model(q) is None:
             return None
-        seg, stacked = chain._cached_constants(chain._state_key())
-        memo = self.__dict__.get("_native")
-        if memo is None or memo[0] is not seg:
+        data = cache.current(chain)  # the Data _native_model has just checked; the pack is kept on it
+        seg, stacked = data.segments(chain)
+        packed = data.extra.get("all_frames")
+        if packed is None:
             topo = dataclasses.replace(chain._topo, ends=tuple(range(chain._topo.n_frames)))
             ends = [None] * topo.n_frames
-            memo = self._native = (seg, native.NativeModel(topo, Segments(seg.pre, seg.offset, seg.post,
-                                                                           seg.base, ends)))
+            packed = data.extra["all_frames"] = native.NativeModel(
+                topo, Segments(seg.pre, seg.offset, seg.post, seg.base, ends))
         B = torch.eye(4, dtype=q.dtype) if stacked.base is None else stacked.base.to(q.dtype)
-        return memo[1], B
+        return packed, B
 
     def poses(self, chain, q: Tensor) -> Tensor:
         """``(..., L, 4, 4)``: the pose of every link of ``links`` in the base frame of the chain's world."""

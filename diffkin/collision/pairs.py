@@ -5,7 +5,8 @@ pair of kinds gives the torch signed-distance function, the lower bound the broa
 (:mod:`diffkin.collision.broad`) and the C entry of the decisions that serves it (``None``: the torch
 function decides it). :class:`~diffkin.collision.World` and
 :class:`~diffkin.collision.RobotCollision` dispatch through :func:`distance` only; a new primitive is a
-new :data:`KINDS` entry plus its :data:`PAIRS` entries.
+new :data:`KINDS` entry plus its :data:`PAIRS` entries (``tests/test_extension_points.py`` registers one in
+the test: world objects of the kind, torch distances, the C decisions leaving them to torch).
 
 Kinds (arguments, own dims):
 
@@ -47,10 +48,17 @@ NATIVE_CLEAR_SPHERES = "dk_collide_clear (spheres)"
 
 @dataclass(frozen=True)
 class Kind:
-    """A primitive kind: its arguments' own trailing dims and its bounding sphere (None: no bound)."""
+    """A primitive kind: its arguments' own trailing dims and its bounding sphere (None: no bound).
+
+    ``trailing``: the shapes of one object's arguments (e.g. ``((3,), (3, 3), (3,))``), for a kind a
+    :class:`~diffkin.collision.World` takes through ``objects=`` (None: the World's own arguments, or not a
+    world object); ``check(*args)``: the kind's own argument rule there (radii >= 0, ...), raising a
+    :class:`~diffkin.errors.DiffkinError`."""
 
     own: tuple[int, ...]
     spheres: Callable[..., tuple[Tensor, Tensor]] | None
+    trailing: tuple[tuple[int, ...], ...] | None = None
+    check: Callable[..., None] | None = None
 
 
 @dataclass(frozen=True)

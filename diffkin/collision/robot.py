@@ -33,7 +33,7 @@ from .broad import capsule_pairs_at_least, group_tables, pairs_clear
 from .clear import world_clear
 from .distances import capsule_capsule_pairs
 from .meshes import fit_capsules, hull_vertices, resolve_mesh
-from .pairs import NATIVE_CLEAR_SPHERES, PAIRS, distance
+from .pairs import NATIVE_CLEAR_SPHERES, distance, pair
 from .world import World, _check_world
 
 __all__ = ["Geom", "RobotCollision"]
@@ -504,7 +504,7 @@ class RobotCollision(nn.Module):
             left = []
         else:
             objects, hs = world._round(), world.halfspaces
-            round_cols, box_cols, half_cols, cyl_cols = world._kind_columns(A.device)
+            round_cols, box_cols, half_cols, cyl_cols, *_ = world._kind_columns(A.device)  # (+ objects=)
             cut = lambda cols: None if skip is None else skip[:, cols]  # noqa: E731
             skip_r, skip_h = cut(round_cols), cut(half_cols)
             # boxes against proper segments: exact in C only where a penetration fails (margin + slack >= 0)
@@ -515,9 +515,10 @@ class RobotCollision(nn.Module):
             y = world.cylinders
             extra.update(cylinders=(y[..., :3], y[..., 3:6], y[..., 6]), skip_cylinder=cut(cyl_cols),
                          points=points, world_index=world_index)
+            # the kinds C does not decide here (a kind registered without a C entry: always torch)
             left = [k for k, args in world.blocks() if args[0].shape[-2] and (
-                PAIRS[("capsule", k)].native is None or (k == "box" and not boxes_here)
-                or (PAIRS[("capsule", k)].native == NATIVE_CLEAR_SPHERES and not bool(points.all())))]
+                pair("capsule", k)[0].native is None or (k == "box" and not boxes_here)
+                or (pair("capsule", k)[0].native == NATIVE_CLEAR_SPHERES and not bool(points.all())))]
         return objects, hs, skip_r, skip_h, extra, left, points
 
     def _world_skip(self, world: World, keep_world: Tensor | None) -> Tensor | None:

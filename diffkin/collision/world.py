@@ -2,7 +2,8 @@
 cylinders, and the distances of the robot's geoms to all of them.
 
 Objects are indexed in the order spheres, capsules, boxes, half-spaces, points, cylinders (a kind added
-later comes last, so the columns of the earlier kinds never move); every tensor may carry leading batch
+later comes last, so the columns of the earlier kinds never move), then the ``objects`` of kinds registered
+in the pair table (:mod:`diffkin.collision.pairs`), in the order given; every tensor may carry leading batch
 dims (one world per row of a batch), which broadcast against the batch of ``q``.
 """
 
@@ -12,7 +13,7 @@ import torch
 from torch import Tensor
 
 from .._numerics import normalize_floor, safe_norm
-from ..errors import DiffkinError, ModelError, ShapeError
+from ..errors import ConventionError, DiffkinError, ModelError, ShapeError
 from ..validation import broadcast_batch, check_lower_bound, common_dtype_device, shape_str, tensors
 from .boxes import Box, checked_boxes
 
@@ -32,13 +33,18 @@ class World:
         cylinders: ``(..., W_y, 7)``: the two end points of the axis (the centres of the flat faces) and the
             radius, in the style of ``capsules`` (a cylinder of length L along the unit axis u, placed at p:
             ``p ∓ (L/2) u`` and r). Exact cylinders (flat ends), not capsules; L > 0.
+        objects: ``{kind: (arg, ...)}``: objects of any other kind of the pair table
+            (:data:`diffkin.collision.pairs.KINDS`) that has a world layout (``Kind.trailing``): each argument
+            ``(..., W_k, *trailing)``. The distances run through the pair table (torch); the C decisions
+            and the C velocity step leave such a world to torch.
         dtype, device: for arguments given as numbers or arrays (tensors are taken as they are).
 
     ``len(world)`` is W = W_s + W_c + W_b + W_h + W_p + W_y, the last axis of ``world_distances``.
     """
 
     def __init__(self, spheres=None, capsules=None, boxes: Box | None = None, halfspaces=None, points=None,
-                 cylinders=None, *, dtype: torch.dtype | None = None, device=None):
+                 cylinders=None, *, objects: dict | None = None, dtype: torch.dtype | None = None,
+                 device=None):
         if boxes is not None and not isinstance(boxes, Box):
             raise DiffkinError(f"expected boxes from diffkin.collision.box(...), got {type(boxes).__name__}")
         like = None
@@ -53,9 +59,10 @@ class World:
                                 ("halfspaces", halfspaces, (None, 4)), ("points", points, (None, 3)),
                                 ("cylinders", cylinders, (None, 7)), like=like)
         # one world per batch row: the objects' batch dims (all but the last two) must broadcast
-        broadcast_batch(("spheres", s, 2), ("capsules", c, 2), ("halfspaces", h, 2), ("points", p, 2),
-                        ("cylinders", y, 2),
-                        ("boxes.center", None if boxes is None or boxes.center.ndim < 2 else boxes.center, 2))
+        batched = [("spheres", s, 2), ("capsules", c, 2), ("halfspaces", h, 2), ("points", p, 2),
+                   ("cylinders", y, 2),
+                   ("boxes.center", None if boxes is None or boxes.center.ndim < 2 else boxes.center, 2)]
+        broadcast_batch(*batched)
         for name, radius in (("spheres", s), ("capsules", c), ("cylinders", y)):
             if radius is not None:  # as box() rejects half extents < 0
                 check_lower_bound(radius[..., -1], f"{name} radii (last column)", cls=ModelError)
@@ -66,6 +73,14 @@ class World:
         if boxes is not None:
             common_dtype_device({"boxes": boxes.center, **({"spheres etc.": ref} if ref is not None else {})})
             ref = boxes.center if ref is None else ref
+        self.objects = _registered_objects(objects, ref if ref is not None else like)
+        if self.objects:  # their batch dims too (the object axis and the kind's own dims excluded)
+            from .pairs import KINDS
+
+            broadcast_batch(*batched, *((f"objects[{k!r}]", args[0], 1 + KINDS[k].own[0])
+                                        for k, args in self.objects.items()))
+        if ref is None and self.objects:
+            ref = next(iter(self.objects.values()))[0]
         dt = ref.dtype if ref is not None else (dtype or torch.get_default_dtype())
         dev = ref.device if ref is not None else torch.empty(0, device=device).device
         empty = lambda k: torch.zeros(0, k, dtype=dt, device=dev)  # noqa: E731
@@ -86,35 +101,56 @@ class World:
 
     @property
     def counts(self) -> tuple[int, int, int, int, int, int]:
-        """(W_s, W_c, W_b, W_h, W_p, W_y)."""
+        """(W_s, W_c, W_b, W_h, W_p, W_y): the built-in kinds (:attr:`object_counts`: the others)."""
         return (self.spheres.shape[-2], self.capsules.shape[-2], self.boxes.center.shape[-2],
                 self.halfspaces.shape[-2], self.points.shape[-2], self.cylinders.shape[-2])
 
+    @property
+    def object_counts(self) -> tuple[int, ...]:
+        """The number of objects of each kind of :attr:`objects`, in their order."""
+        from .pairs import KINDS
+
+        return tuple(args[0].shape[-1 - KINDS[k].own[0]] for k, args in self.objects.items())
+
     def tensors(self) -> tuple[Tensor, ...]:
         """Every tensor of the world: spheres, capsules, the boxes' centres, rotations and half extents,
-        half-spaces, points, cylinders (for memo keys and conversions)."""
+        half-spaces, points, cylinders, then the arguments of :attr:`objects` (for memo keys and
+        conversions)."""
         b = self.boxes
         return (self.spheres, self.capsules, b.center, b.rotation, b.half_extents, self.halfspaces,
-                self.points, self.cylinders)
+                self.points, self.cylinders, *(t for args in self.objects.values() for t in args))
+
+    def _objects_map(self, fn) -> dict:
+        """``objects`` with ``fn(tensor, own dims)`` applied to every argument."""
+        from .pairs import KINDS
+
+        return {k: tuple(fn(t, own) for t, own in zip(args, KINDS[k].own))
+                for k, args in self.objects.items()}
 
     @property
     def batch_shape(self) -> torch.Size:
         """The objects' leading (per-row world) dims broadcast together; ``()`` for one world for all rows."""
-        s, c, bc, bR, bh, h, p, y = self.tensors()
-        return torch.broadcast_shapes(*(t.shape[:-2] for t in (s, c, bc, bh, h, p, y)), bR.shape[:-3])
+        from .pairs import KINDS
+
+        s, c, bc, bR, bh, h, p, y = self.tensors()[:8]
+        extra = [t.shape[:-1 - own] for k, args in self.objects.items() for t, own in zip(args, KINDS[k].own)]
+        return torch.broadcast_shapes(*(t.shape[:-2] for t in (s, c, bc, bh, h, p, y)), bR.shape[:-3], *extra)
 
     def to(self, dtype: torch.dtype | None = None, device=None) -> World:
         """The same world with every tensor in ``dtype`` on ``device`` (None: unchanged)."""
-        s, c, bc, bR, bh, h, p, y = (t.to(dtype=dtype or self.dtype, device=device or self.device)
-                                     for t in self.tensors())
-        return World(spheres=s, capsules=c, boxes=Box(bc, bR, bh), halfspaces=h, points=p, cylinders=y)
+        move = lambda t, own=None: t.to(dtype=dtype or self.dtype, device=device or self.device)  # noqa: E731
+        s, c, bc, bR, bh, h, p, y = (move(t) for t in self.tensors()[:8])
+        return World(spheres=s, capsules=c, boxes=Box(bc, bR, bh), halfspaces=h, points=p, cylinders=y,
+                     objects=self._objects_map(move))
 
     def __len__(self) -> int:
-        return sum(self.counts)
+        return sum(self.counts) + sum(self.object_counts)
 
     def __repr__(self) -> str:
         s, c, b, h, p, y = self.counts
-        return f"World(spheres={s}, capsules={c}, boxes={b}, halfspaces={h}, points={p}, cylinders={y})"
+        extra = "".join(f", {k}={n}" for k, n in zip(self.objects, self.object_counts))
+        return (f"World(spheres={s}, capsules={c}, boxes={b}, halfspaces={h}, points={p}, cylinders={y}"
+                f"{extra})")
 
     @classmethod
     def stack(cls, worlds) -> World:
@@ -127,24 +163,30 @@ class World:
             got = [type(w).__name__ for w in worlds] if isinstance(worlds, (list, tuple)) else \
                 type(worlds).__name__
             raise DiffkinError(f"World.stack: expected a list of diffkin.collision.World, got {got}")
+        kinds = sorted({k for w in worlds for k in w.objects})
+        if kinds:  # a registered kind has no padding object that never collides
+            raise ConventionError(f"World.stack: worlds with objects of the registered kinds {kinds} are not "
+                                  "stacked (no padding object for them); batch their tensors directly")
         return cls(**stack_worlds(worlds))
 
     def _flattened(self) -> World:
         """The same worlds with every object tensor brought to one batch dim ``(nw, W, ...)`` (nw the
         product of :attr:`batch_shape`)."""
         batch = self.batch_shape
-        s, c, bc, bR, bh, h, p, y = self.tensors()
+        s, c, bc, bR, bh, h, p, y = self.tensors()[:8]
         n = batch.numel()  # not -1: an empty kind (0 objects) leaves -1 undetermined
         flat = lambda t, own: t.expand(*batch, *t.shape[-own:]).reshape(n, *t.shape[-own:])  # noqa: E731
         boxes = Box(flat(bc, 2), flat(bR, 3), flat(bh, 2))
         return World(spheres=flat(s, 2), capsules=flat(c, 2), boxes=boxes, halfspaces=flat(h, 2),
-                     points=flat(p, 2), cylinders=flat(y, 2))
+                     points=flat(p, 2), cylinders=flat(y, 2),
+                     objects=self._objects_map(lambda t, own: flat(t, own + 1)))
 
     def _take(self, index: Tensor) -> World:
         """The worlds ``index (N,)`` (long) of a world with one batch dim: a world per row ``(N, W, ...)``."""
-        s, c, bc, bR, bh, h, p, y = self.tensors()
+        s, c, bc, bR, bh, h, p, y = self.tensors()[:8]
         return World(spheres=s[index], capsules=c[index], boxes=Box(bc[index], bR[index], bh[index]),
-                     halfspaces=h[index], points=p[index], cylinders=y[index])
+                     halfspaces=h[index], points=p[index], cylinders=y[index],
+                     objects=self._objects_map(lambda t, own: t[index]))
 
     def _round(self) -> tuple[Tensor, Tensor, Tensor]:
         """Spheres, capsules and points as capsules ``(a (..., W, 3), b (..., W, 3), r (..., W))``."""
@@ -160,26 +202,28 @@ class World:
     def blocks(self) -> list[tuple[str, tuple[Tensor, ...]]]:
         """The objects by kind of the pair table (:mod:`diffkin.collision.pairs`), in block order: round
         objects (spheres, capsules, points as ``capsule``: :meth:`_round`), ``box``, ``halfspace``
-        (``(n (..., W_h, 3), offset (..., W_h))``), ``cylinder`` (``(a, b, r)``)."""
+        (``(n (..., W_h, 3), offset (..., W_h))``), ``cylinder`` (``(a, b, r)``), then :attr:`objects`."""
         B, y = self.boxes, self.cylinders
         return [("capsule", self._round()), ("box", (B.center, B.rotation, B.half_extents)),
                 ("halfspace", (self.halfspaces[..., :3], self.halfspaces[..., 3])),
-                ("cylinder", (y[..., :3], y[..., 3:6], y[..., 6]))]
+                ("cylinder", (y[..., :3], y[..., 3:6], y[..., 6])), *self.objects.items()]
 
-    def _kind_columns(self, device=None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _kind_columns(self, device=None) -> tuple[Tensor, ...]:
         """The world-order columns of the objects of each of :meth:`blocks` (round: spheres, capsules, then
-        points; boxes; half-spaces; cylinders), long index tensors."""
+        points; boxes; half-spaces; cylinders; each kind of :attr:`objects`), long index tensors."""
         s, c, b, h, p, y = self.counts
         ar = lambda n, start=0: start + torch.arange(n, device=device)  # noqa: E731
+        starts = torch.tensor([0, *self.object_counts]).cumsum(0).tolist()
         return (torch.cat((ar(s + c), ar(p, s + c + b + h))), ar(b, s + c), ar(h, s + c + b),
-                ar(y, s + c + b + h + p))
+                ar(y, s + c + b + h + p), *(ar(n, sum(self.counts) + a) for n, a in zip(self.object_counts,
+                                                                                      starts)))
 
     def _assemble(self, parts: list[Tensor]) -> Tensor:
         """(..., G, W) in the world's order from the blocks' distances (order of :meth:`blocks`)."""
         s, c, *_ = self.counts
         batch = torch.broadcast_shapes(*(x.shape[:-1] for x in parts))
-        rd, bd, hd, yd = (x.expand(*batch, x.shape[-1]) for x in parts)
-        return torch.cat((rd[..., : s + c], bd, hd, rd[..., s + c:], yd), -1)
+        rd, bd, hd, yd, *od = (x.expand(*batch, x.shape[-1]) for x in parts)
+        return torch.cat((rd[..., : s + c], bd, hd, rd[..., s + c:], yd, *od), -1)
 
     def distances(self, a: Tensor, b: Tensor, r: Tensor, bc: Tensor, bR: Tensor, bh: Tensor,
                   threshold: float | None = None, *, cylinders: tuple[Tensor, Tensor, Tensor] | None = None
@@ -218,6 +262,41 @@ class World:
                                         for kw, w, n in world]))
         batch = torch.broadcast_shapes(*(x.shape[:-2] for x in rows))
         return torch.cat([x.expand(*batch, *x.shape[-2:]) for x in rows], -2)
+
+
+def _registered_objects(objects, like) -> dict[str, tuple[Tensor, ...]]:
+    """``World(objects=)`` checked: kinds of the pair table with a world layout, each argument ``(...,
+    W_k, *trailing)`` by the shared tensor rule (one dtype and device with ``like``), the kind's own check."""
+    from .pairs import KINDS
+
+    if objects is None:
+        return {}
+    if not isinstance(objects, dict):
+        raise ConventionError(f"World objects=: expected a dict {{kind: (arg, ...)}}, got "
+                              f"{type(objects).__name__}")
+    out: dict[str, tuple[Tensor, ...]] = {}
+    for kind, args in objects.items():
+        spec = KINDS.get(kind)
+        if spec is None or spec.trailing is None:
+            layouts = [k for k, v in KINDS.items() if v.trailing is not None]
+            raise ConventionError(f"World objects=: expected a kind of the pair table with a world layout "
+                                  f"({', '.join(layouts) or 'none registered'}), got {kind!r}")
+        args = tuple(args) if isinstance(args, (tuple, list)) else (args,)
+        if len(args) != len(spec.trailing):
+            raise ShapeError(f"World objects[{kind!r}]: expected {len(spec.trailing)} arguments, got "
+                             f"{len(args)}")
+        names = [f"objects[{kind!r}][{i}]" for i in range(len(args))]
+        ts = tensors(*((n, a, (None, *tr)) for n, a, tr in zip(names, args, spec.trailing)), like=like)
+        counts = {t.shape[-1 - len(tr)] for t, tr in zip(ts, spec.trailing)}
+        if len(counts) > 1:
+            raise ShapeError(f"World objects[{kind!r}]: the arguments hold different object counts "
+                             f"{sorted(counts)}")
+        broadcast_batch(*((n, t, 1 + len(tr)) for n, t, tr in zip(names, ts, spec.trailing)))
+        if spec.check is not None:
+            spec.check(*ts)
+        like = ts[0] if like is None else like
+        out[kind] = ts
+    return out
 
 
 def _check_world(world) -> World:

@@ -25,6 +25,7 @@ import torch
 from torch import Tensor
 
 from ..kernels import native, single
+from ..kernels.cache import Data
 from . import _seeds
 from ._kernel import JointMap
 from ._lm import LMConfig
@@ -101,31 +102,31 @@ class _Prepared:
         return hit[:2]
 
 
-def _entry(chain, x: Tensor) -> single.Entry | None:
-    """The chain's lean-path cache entry (:func:`diffkin.kernels.single.entry`) when ``dk_solve`` can serve
-    it: the fused kernel serves the chain (every joint kind: dk_solve steps scalars additively and
-    quaternions on the manifold). None otherwise."""
+def _entry(chain, x: Tensor) -> Data | None:
+    """The chain's current :class:`~diffkin.kernels.cache.Data` with its lean state
+    (:func:`diffkin.kernels.single.entry`) when ``dk_solve`` can serve it: the fused kernel serves the chain
+    (every joint kind: dk_solve steps scalars additively and quaternions on the manifold). None otherwise."""
     return single.entry(chain, x, grad=False)  # the iterations never need autograd (gradients: attached)
 
 
 def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int) -> _Prepared | None:
-    """The :class:`_Prepared` of ``chain`` for these options, kept in its lean-path cache entry
-    (:func:`diffkin.kernels.single.entry`: remade when a parameter or buffer changes); None when the fused
-    kernel cannot serve it."""
+    """The :class:`_Prepared` of ``chain`` for these options, kept in the ``extra`` slot of its
+    :class:`~diffkin.kernels.cache.Data` (dropped with it when a parameter or buffer changes); None when
+    the fused kernel cannot serve it."""
     hit = _entry(chain, x)
     if hit is None:
         return None
     key = ("solve", dtype, respect_limits, L)
     prep = hit.extra.get(key)
     if prep is None:
-        prep = hit.extra[key] = _Prepared(chain, hit.args, dtype, respect_limits, L)
+        prep = hit.extra[key] = _Prepared(chain, hit.native, dtype, respect_limits, L)
     return prep
 
 
 def applies(chain, T_target: Tensor, progress: bool) -> bool:
     """Whether the C solve serves this call: CPU and a chain the fused kernel supports (the iterations run
     without autograd either way; gradients are attached at the solution afterwards). Asked first whether
-    the library is in use: a cached lean-path entry outlives :func:`~diffkin.kernels.native.disabled`."""
+    the library is in use: a chain's Data outlives :func:`~diffkin.kernels.native.disabled`."""
     if progress or T_target.device.type != "cpu" or chain.device.type != "cpu" or not native.available():
         return False
     return _entry(chain, T_target) is not None
@@ -222,7 +223,7 @@ __all__ = ["applies", "solve_batch", "run", "prepared", "columns", "checked", "u
 
 
 _DEFAULT = LMConfig()
-_ONE = ("solve_one",)  # the Entry.extra key of the default-options _Prepared a one-target call uses
+_ONE = ("solve_one",)  # the Data.extra key of the default-options _Prepared a one-target call uses
 _NOT_RIGID = native.CONSTANTS["DK_NOT_RIGID"]
 _SEED_MAX = 2**63  # seeds from 0 below this: the pool drawn in C as torch.Generator().manual_seed(seed) draws
 _typed: tuple = (None, None)  # (the loaded library, its dk_solve_one typed)
@@ -281,7 +282,7 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
     call = lambda w, t: _solve_one_fn()(t, w, T.data_ptr(), stream,  # noqa: E731
                                         None if pool is None else pool.data_ptr(), npool, *outputs)
     status = call(watch, tmpl)
-    if status == single._STALE:  # bytes written in place since the entry was made: repacked, the same pool
+    if status == single._STALE:  # bytes written in place since the Data was made: repacked, the same pool
         single._remade(chain)
         state = _one_state(chain, T, tol, num_seeds, max_iterations)
         status = single._STALE if state is None else call(*state[:2])
@@ -299,7 +300,7 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
 
 def _one_state(chain, T: Tensor, tol: tuple, num_seeds: int, max_iterations: int):
     """``(watch address, dk_solve_one's argument template address, pool length, output templates)`` of the
-    chain's lean-path entry for a one-target call (the pointers checked here; ``dk_solve_one`` compares the
+    chain's Data for a one-target call (the pointers checked here; ``dk_solve_one`` compares the
     bytes), or None where the fused kernel does not serve the chain in ``T``'s dtype."""
     hit = single._current(chain, False)
     if hit is None or T.dtype is not hit.dtype:

@@ -8,8 +8,9 @@ velocity (0 on a free joint's six, as mink), gain and damping, the configuration
 and upper, ``min_distance_from_limits`` folded in, and the gain), the velocity limits per velocity and
 the QP's damping. :meth:`NativeVelocity.solve` runs a batch; :meth:`NativeVelocity.step` one row ``q (nq,)``
 with no torch operation but its output's allocation (none when ``out=`` is given): the chain's packed
-constants come from the lean single-call cache (:mod:`diffkin.kernels.single`, checked on every call, never
-trusted), the QP's work space stays between calls.
+constants come from the chain's :class:`~diffkin.kernels.cache.Data` (checked on every call by its one
+rule, the bytes in C), the QP's work space stays between calls. :func:`route` keeps its problems in that
+Data too, so a change of the chain's limits or masses makes new ones.
 
 The QP, per row (mink's ``build_ik``; Δq the step, v = Δq / dt)::
 
@@ -38,7 +39,7 @@ import torch
 from torch import Tensor
 
 from .._numerics import tol_for
-from ..kernels import native, single
+from ..kernels import cache, native, single
 
 __all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
 
@@ -46,7 +47,7 @@ __all__ = ["NativeVelocity", "VERSION", "Vel", "available", "route"]
 VERSION = 3
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 _STALE = native.CONSTANTS["DK_STALE"]
-_LEAN = single._KEY  # the chain's lean entry in its instance __dict__
+_LEAN = cache.KEY  # the chain's Data in its instance __dict__
 _pack = struct.Struct("=5Qd").pack  # dk_velocity_step's call block: q, target, q_ref, v, q_next, dt
 
 
@@ -178,8 +179,9 @@ class NativeVelocity:
         self._rows = _pack_rows(chain, dtype, com, collision)  # v3: ComTask, CollisionLimit (or None)
         self._args = self._filled()
         _fill_rows(self._args, self._rows)
-        self._entry = None  # the lean path's cache: (single.Entry, dk_velocity_step, ...: see _lean)
-        self._cdict = chain.__dict__  # where the chain keeps its lean entry
+        self._entry = None  # the lean path's state: (the chain's Data, dk_velocity_step, ...: see _lean)
+        self._cdict = chain.__dict__  # where the chain keeps its Data
+        self.owned = False  # True: kept in a Data's extra by route (its limits and masses are that Data's)
         self._v = torch.empty(nv, dtype=dtype)  # step's output template
         self._ok = ctypes.c_uint8(1)
 
@@ -273,7 +275,7 @@ class NativeVelocity:
 
     # ------------------------------------------------------------------------------- the lean path
     def _lean(self):
-        """The chain's current lean entry and this problem's call struct bound to it (None: not servable:
+        """The chain's current Data and this problem's call struct bound to it (None: not servable:
         gradients wanted, CUDA, no library): ``(entry, dk_velocity_step, address of its fixed block, work
         space, the call's Vel, the fixed block)``."""
         chain = self.chain
@@ -302,7 +304,7 @@ class NativeVelocity:
         the QP solved. ``com_target (3,)``: the ComTask's target, when the problem has one.
 
         A handful of Python operations around one foreign call (``dk_velocity_step``, two arguments): the
-        entry is this problem's while the chain's lean entry is the one it was bound to (the chain's bytes
+        entry is this problem's while the chain's Data is the one it was bound to (the chain's bytes
         are compared in C on every call)."""
         lean = self._entry
         if lean is None or lean[0] is not self._cdict.get(_LEAN) or q.dtype is not self.dtype or \
@@ -326,7 +328,7 @@ class NativeVelocity:
         if status == _STALE:  # the chain's bytes changed since they were packed: repacked once
             single._remade(self.chain)
             self._entry = None
-            if self._lean() is None:
+            if self.owned or self._lean() is None:  # route's problems read the old Data: the torch path
                 return None
             return self.step(q, targets, q_ref, dt, out=out, next_q=next_q, com_target=com_target)
         return None
@@ -382,8 +384,7 @@ def _joint_frames(chain, q: Tensor) -> Tensor:
 
     from ..kernels.tree import Segments
 
-    key = chain._state_key()
-    seg, stacked = chain._cached_constants(key)
+    seg, stacked = chain._constants()
     topo = dataclasses.replace(chain.topology, ends=tuple(range(chain.topology.n_frames)))
     ends = [None] * topo.n_frames
     model = native.NativeModel(topo, Segments(seg.pre, seg.offset, seg.post, seg.base, ends))
@@ -475,7 +476,7 @@ def _check(status: int) -> None:
 
 
 # ----------------------------------------------------------------------------------- solve_velocity's route
-_CACHE = "_velocity_native"  # per chain (instance __dict__): problem key -> NativeVelocity
+_CACHE = "velocity"  # in the chain's Data.extra: problem key -> NativeVelocity
 
 
 def _number(x) -> float | None:
@@ -531,7 +532,8 @@ def _classes3():
 def _collision_key(chain, lim, dtype) -> tuple | None:
     """A CollisionLimit as a hashable constant: the collision model (identity, its parameters' versions and
     storage), the world's tensors (the same), gain and distances; None where the C step does not serve it
-    (another chain, box geoms, a world with boxes or batch dims, another dtype or device)."""
+    (another chain, box geoms, a world with boxes, cylinders, objects of registered kinds or batch dims,
+    another dtype or device)."""
     rc, world = lim.collision, lim.world
     if getattr(rc, "chain", None) is not chain or getattr(rc, "_counts", (0, 1))[1] \
             or getattr(rc, "_nconvex", 0):  # (the C step holds capsules only)
@@ -544,6 +546,8 @@ def _collision_key(chain, lim, dtype) -> tuple | None:
         ts = (world.spheres, world.capsules, world.halfspaces, world.points, world.boxes.center)
         if ts[4].shape[0] or any(t.ndim != 2 or t.dtype is not dtype or not t.is_cpu or
                                  (t.requires_grad and torch.is_grad_enabled()) for t in ts[:4]):
+            return None
+        if world.cylinders.shape[-2] or world.objects:  # the C step packs round objects and half-spaces only
             return None
         wkey = (id(world), *((id(t), t._version, t.data_ptr()) for t in ts))
     return (id(rc), tuple((p._version, p.data_ptr()) for p in params), wkey, lim.gain, lim.minimum_distance,
@@ -630,25 +634,23 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
             return None
     if not frames and posture is None and com is None:
         return None
-    lim_t = chain._buffers.get("q_limits")
-    key = (dtype, tuple(frames), posture, config, vel, damping,
-           None if lim_t is None else (id(lim_t), lim_t._version))
-    if com is not None or coll is not None:  # v3: their arrays read the chain's masses and frames
-        state = chain._state_key()
-        if state is None:
-            return None
-        key = key + (com, coll_key, state)
-    cache = chain.__dict__.get(_CACHE)
-    if cache is None:
-        cache = chain.__dict__[_CACHE] = {}
-    prob = cache.get(key)
+    # the problems read the chain's limits, masses and frames: kept on its Data (the one rule of
+    # kernels/cache.py), dropped with it when a parameter or buffer changes
+    data = cache.current(chain, grad=False)
+    if data is None:
+        return None
+    key = (dtype, tuple(frames), posture, config, vel, damping, com, coll_key)
+    problems = data.extra.get(_CACHE)
+    if problems is None:
+        problems = data.extra[_CACHE] = {}
+    prob = problems.get(key)
     if prob is None:
         prob = _build(chain, key, limits, dt, VelocityLimit, Problem, com=com, collision=coll)
         if prob is None:
             return None
-        if len(cache) > 64:  # a loop that builds new constants every step: keep the newest only
-            cache.clear()
-        cache[key] = prob
+        if len(problems) > 64:  # a loop that builds new constants every step: keep the newest only
+            problems.clear()
+        prob.owned, problems[key] = True, prob
     if q.shape[-1] != prob.nq or (q_ref is not None and q_ref.shape[-1] != prob.nq):
         return None
     if q.ndim == 1:
@@ -701,7 +703,7 @@ def _stacked(targets: list) -> Tensor | None:
 
 def _build(chain, key, limits, dt, VelocityLimit, Problem, com=None, collision=None) -> NativeVelocity | None:
     """The :class:`NativeVelocity` of a route key (None: the chain or the constants do not suit it)."""
-    dtype, frames, posture, config, vel, damping, _ = key[:7]
+    dtype, frames, posture, config, vel, damping = key[:6]
     if chain.dtype is not dtype:
         return None
     K, names = chain.n_ends, list(getattr(chain, "end_links", None) or [])

@@ -42,6 +42,7 @@ from torch import Tensor
 
 from .._numerics import cross, eps_for
 from ..errors import ModelError
+from ..kernels import cache
 from ..rotations import _axis_angle_to_matrix
 from ..transforms import _transform_inverse
 
@@ -122,18 +123,14 @@ def _scale(p: Tensor, M: Tensor) -> float:
     return 1.0 + float((pts - pts[0]).norm(dim=-1).max())
 
 
-def _cache_key(chain) -> tuple:
-    tensors = [*chain.parameters(), *chain.buffers()]
-    return tuple((t.data_ptr(), t._version, tuple(t.shape)) for t in tensors)
-
-
 def recognise_industrial(chain) -> tuple[str, float]:
     """``(family, scale)`` of a six-revolute chain from its geometry at q = 0; ModelError listing every
-    condition checked when it is neither family. Cached on the chain until a parameter changes."""
-    key = _cache_key(chain)
-    cached = chain.__dict__.get("_closed_form_family")
-    if cached is not None and cached[0] == key:
-        return cached[1]
+    condition checked when it is neither family. Kept on the chain's :class:`~diffkin.kernels.cache.Data`
+    (remade with it when a parameter or buffer changes)."""
+    data = cache.current(chain, grad=False)
+    cached = None if data is None else data.extra.get("closed_form_family")
+    if cached is not None:
+        return cached
     if chain.n_joints != 6 or chain.joint_types != "RRRRRR" or not chain.single_end:
         raise ModelError(
             f"chain '{chain.name}' ({chain.joint_types}, {chain.n_joints} joints, {chain.n_ends} end "
@@ -146,7 +143,8 @@ def recognise_industrial(chain) -> tuple[str, float]:
         checks, _ = _checks(u, p, scale)
     for fam in INDUSTRIAL_FAMILIES:
         if all(ok for _, ok in checks[fam]):
-            chain.__dict__["_closed_form_family"] = (key, (fam, scale))
+            if data is not None:
+                data.extra["closed_form_family"] = (fam, scale)
             return fam, scale
     lines = "; ".join(
         f"{fam}: " + ", ".join(f"{d} {'ok' if ok else 'FAILS'}" for d, ok in checks[fam]) for fam in checks

@@ -36,12 +36,10 @@ from ..errors import DiffkinError
 from ..io.data import (
     MANIFEST_FORMAT,
     MANIFEST_SUFFIX,
-    _npz_keys,
-    _npz_member,
-    _read_exact,
     open_writer,
     read_manifest,
 )
+from .data.formats import _npz_keys, _npz_member, _read_exact
 
 __all__ = [
     "MANIFEST_SUFFIX",

@@ -39,12 +39,12 @@ from ..io.data import (
     ArraySource,
     PoseSource,
     RandomJoints,
-    _pose_names,
     open_joint_source,
     open_pose_source,
     open_writer,
 )
 from ..validation import check_count
+from .data.poses import _pose_names
 
 __all__ = ["FK_CHUNK_SIZE", "IK_CHUNK_SIZE", "FKStreamResult", "IKStreamResult", "stream_fk", "stream_ik",
            "combine_ik", "seed_of_chunk"]

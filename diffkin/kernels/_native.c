@@ -53,6 +53,7 @@
 #define DK_SOLVE_VERSION 1 /* dk_solve_args: bump with every change of DK_SOLVE_FIELDS (native.SolveArgs) */
 #define DK_WATCH_VERSION 1 /* dk_watch: bump with every change of DK_WATCH_FIELDS (native.WatchArgs) */
 #define DK_COLLIDE_VERSION 2 /* dk_collide: bump with every change of DK_COLLIDE_FIELDS (native.Collide) */
+#define DK_CLIP_VERSION 1 /* dk_clip: bump with every change of DK_CLIP_FIELDS (native.ClipArgs) */
 #define DK_ABI_ERROR (-2) /* returned for a struct of another version or size */
 #define DK_RANGE_ERROR (-3) /* dk_solve: an option beyond this file's limits (lib_ranks > MAX_RANKS) */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
@@ -186,9 +187,50 @@ typedef struct dk_watch { DK_WATCH_FIELDS(DK_DECLARE) } dk_watch;
     X(const uint8_t *, point, "[G] capsule g is a sphere (its ends coincide); cylinders: only these")
 typedef struct dk_collide { DK_COLLIDE_FIELDS(DK_DECLARE) } dk_collide;
 
+/* The arguments of dk_clip_rows (_native_clip.c: the frame terms of the whole-clip retargeting problem);
+ * reals of real_bytes, every array contiguous. */
+#define DK_CLIP_FIELDS(X) \
+    X(int64_t, version, "DK_CLIP_VERSION") \
+    X(int64_t, size, "sizeof(dk_clip)") \
+    X(int64_t, real_bytes, "8 or 4") \
+    X(int64_t, nthreads, "threads (at least 1)") \
+    X(int64_t, N, "frames of all clips (B T)") \
+    X(int64_t, T, "frames per clip") \
+    X(int64_t, nv, "velocities (Jacobian columns)") \
+    X(int64_t, ends, "end links of the FK outputs") \
+    X(int64_t, K, "keypoints") \
+    X(int64_t, Ko, "orientation targets") \
+    X(int64_t, P0, "sole points of the left foot") \
+    X(int64_t, P1, "sole points of the right foot") \
+    X(const int64_t *, kp, "[K] end link of each keypoint") \
+    X(const void *, kp_w, "[K] reals: keypoint weights") \
+    X(const void *, x, "[N*K*3] reals: keypoint targets") \
+    X(const int64_t *, ko, "[Ko] end link of each orientation target") \
+    X(const void *, ko_w, "[Ko] reals: orientation weights") \
+    X(const void *, Rd, "[N*Ko*9] reals: target rotations, row-major") \
+    X(const int64_t *, feet, "[2] end links of the left and right foot") \
+    X(const void *, pts, "[(P0+P1)*3] reals: sole points in the foot frames") \
+    X(const void *, rad, "[P0+P1] reals: their radii") \
+    X(const uint8_t *, contact, "[N*2] foot in contact") \
+    X(double, w_contact, "contact-height weight") \
+    X(double, w_pen, "penetration weight") \
+    X(double, w_flat, "flat-foot weight") \
+    X(double, w_skate, "skating weight") \
+    X(double, ground, "ground height") \
+    X(const void *, Tf, "[N*ends*16] reals: end-link poses") \
+    X(const void *, J, "[N*ends*6*nv] reals: their geometric Jacobians") \
+    X(void *, cost, "[N] reals out: 1/2 |r|^2 of the frame's rows") \
+    X(void *, D, "[N*nv*nv] reals out: J^T J") \
+    X(void *, E, "[N*nv*nv] reals out: the skating rows' block (n, n - 1)") \
+    X(void *, g, "[N*nv] reals out: J^T r") \
+    X(void *, centre, "[N*4] reals out: the sole centres (x, y), left then right") \
+    X(void *, centre_jac, "[N*4*nv] reals out: their Jacobian rows")
+typedef struct dk_clip { DK_CLIP_FIELDS(DK_DECLARE) } dk_clip;
+
 DK_LAYOUT(args, dk_args, DK_ARGS_FIELDS, DK_ABI_VERSION)
 DK_LAYOUT(watch, dk_watch, DK_WATCH_FIELDS, DK_WATCH_VERSION)
 DK_LAYOUT(collide, dk_collide, DK_COLLIDE_FIELDS, DK_COLLIDE_VERSION)
+DK_LAYOUT(clip, dk_clip, DK_CLIP_FIELDS, DK_CLIP_VERSION)
 
 static int thread_id(void) {
 #ifdef _OPENMP
@@ -477,6 +519,16 @@ int64_t dk_banded_solve(const void *D, const void *E, const void *F, const void 
     if (real_bytes == 4)
         return banded_solve_f32((const float *)D, (const float *)E, (const float *)F, (const float *)g,
                                 (float *)x, batch, T, n, nthreads);
+    return DK_ABI_ERROR;
+}
+
+/* The frame terms of the whole-clip retargeting problem (_native_clip.c) into c's outputs; returns 0, -1
+ * when the work space cannot be allocated, DK_ABI_ERROR for a struct of another version or size or a real
+ * size other than 8 or 4. */
+int64_t dk_clip_rows(const dk_clip *c) {
+    if (!DK_LAYOUT_OK(c, dk_clip, DK_CLIP_VERSION)) return DK_ABI_ERROR;
+    if (c->real_bytes == 8) return clip_rows_f64(c);
+    if (c->real_bytes == 4) return clip_rows_f32(c);
     return DK_ABI_ERROR;
 }
 
@@ -950,6 +1002,7 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
 #include "_native_plan.c"
 #include "_native_velocity.c"
 #include "_native_banded.c"
+#include "_native_clip.c"
 
 #undef real
 #endif

@@ -17,32 +17,71 @@ static inline void DK(axpy)(real *restrict y, real a, const real *restrict x, in
     for (int64_t k = 0; k < n; k++) y[k] -= a * x[k];
 }
 
-/* X <- L^{-1} X = U^{-T} X for upper-triangular U (rows of X: n reals each). */
-static void DK(lower_solve)(const real *restrict U, real *restrict X, int64_t n) {
-    for (int64_t j = 0; j < n; j++) {
+/* X <- L^{-1} X = U^{-T} X for upper-triangular U (rows of X: n reals each); `lower`: X is lower
+ * triangular, and so is the result (row j then has no entry beyond column j). Rows are eliminated four at
+ * a time: each later row takes the four in one pass (one load and store of it per four products). */
+static void DK(lower_solve)(const real *restrict U, real *restrict X, int64_t n, int lower) {
+    int64_t j0 = 0;
+    for (; j0 + 4 <= n; j0 += 4) {
+        const int64_t len = lower ? j0 + 4 : n;
+        for (int64_t j = j0; j < j0 + 4; j++) { /* the four rows among themselves */
+            real *xj = X + j * n;
+            const real d = 1 / U[j * n + j];
+            for (int64_t k = 0; k < len; k++) xj[k] *= d;
+            for (int64_t i = j + 1; i < j0 + 4; i++) DK(axpy)(X + i * n, U[j * n + i], xj, len);
+        }
+        const real *x0 = X + j0 * n, *x1 = x0 + n, *x2 = x1 + n, *x3 = x2 + n;
+        for (int64_t i = j0 + 4; i < n; i++) {
+            const real a0 = U[j0 * n + i], a1 = U[(j0 + 1) * n + i], a2 = U[(j0 + 2) * n + i],
+                       a3 = U[(j0 + 3) * n + i];
+            real *xi = X + i * n;
+#pragma omp simd
+            for (int64_t k = 0; k < len; k++) xi[k] -= a0 * x0[k] + a1 * x1[k] + a2 * x2[k] + a3 * x3[k];
+        }
+    }
+    for (int64_t j = j0; j < n; j++) {
         real *xj = X + j * n;
         const real d = 1 / U[j * n + j];
-        for (int64_t k = 0; k < n; k++) xj[k] *= d;
-        for (int64_t i = j + 1; i < n; i++) DK(axpy)(X + i * n, U[j * n + i], xj, n);
+        const int64_t len = lower ? j + 1 : n;
+        for (int64_t k = 0; k < len; k++) xj[k] *= d;
+        for (int64_t i = j + 1; i < n; i++) DK(axpy)(X + i * n, U[j * n + i], xj, len);
     }
 }
 
 /* S -= P^T Q for row-major P, Q (S_ij -= sum_k P_ki Q_kj); four rows of Q per pass over a row of S, so
- * that S is loaded and stored a quarter as often as Q is read. */
-static void DK(sub_tn)(real *restrict S, const real *restrict P, const real *restrict Q, int64_t n) {
+ * that S is loaded and stored a quarter as often as Q is read. Structure skips only products with zeros:
+ * `upper` updates the upper triangle j >= i only (the Cholesky step reads no other), `plow` / `qlow` say P /
+ * Q are lower triangular (zero above the diagonal: P_ki = 0 for i > k, Q_kj = 0 for j > k). */
+static void DK(sub_tn)(real *restrict S, const real *restrict P, const real *restrict Q, int64_t n, int upper,
+                       int plow, int qlow) {
     int64_t k = 0;
     for (; k + 4 <= n; k += 4) {
         const real *q0 = Q + k * n, *q1 = q0 + n, *q2 = q1 + n, *q3 = q2 + n;
-        for (int64_t i = 0; i < n; i++) {
+        const int64_t iend = plow ? k + 4 : n, jend = qlow ? k + 4 : n;
+        for (int64_t i = 0; i < iend; i++) {
             const real a0 = P[k * n + i], a1 = P[(k + 1) * n + i], a2 = P[(k + 2) * n + i],
                        a3 = P[(k + 3) * n + i];
             real *si = S + i * n;
 #pragma omp simd
-            for (int64_t j = 0; j < n; j++) si[j] -= a0 * q0[j] + a1 * q1[j] + a2 * q2[j] + a3 * q3[j];
+            for (int64_t j = upper ? i : 0; j < jend; j++)
+                si[j] -= a0 * q0[j] + a1 * q1[j] + a2 * q2[j] + a3 * q3[j];
         }
     }
-    for (; k < n; k++)
-        for (int64_t i = 0; i < n; i++) DK(axpy)(S + i * n, P[k * n + i], Q + k * n, n);
+    for (; k < n; k++) {
+        const int64_t iend = plow ? k + 1 : n, jend = qlow ? k + 1 : n;
+        for (int64_t i = 0; i < iend; i++) {
+            const int64_t j0 = upper ? i : 0;
+            if (j0 < jend) DK(axpy)(S + i * n + j0, P[k * n + i], Q + k * n + j0, jend - j0);
+        }
+    }
+}
+
+/* 1 when X (n x n, row-major) is zero above its diagonal. */
+static int DK(is_lower)(const real *X, int64_t n) {
+    for (int64_t i = 0; i < n; i++)
+        for (int64_t j = i + 1; j < n; j++)
+            if (X[i * n + j] != 0) return 0;
+    return 1;
 }
 
 /* The upper Cholesky factor U (S = U^T U) in place of the symmetric S (lower triangle zeroed). */
@@ -58,9 +97,25 @@ static void DK(cholesky_upper)(real *restrict S, int64_t n) {
     }
 }
 
+/* dst = src^T (n x n, row-major) in 8 x 8 tiles: every cache line read or written is used whole (the
+ * blocks come from the caller's large arrays, mostly not in cache). */
 static void DK(transpose_into)(real *restrict dst, const real *restrict src, int64_t n) {
+    for (int64_t ib = 0; ib < n; ib += 8)
+        for (int64_t jb = 0; jb < n; jb += 8) {
+            const int64_t ie = ib + 8 < n ? ib + 8 : n, je = jb + 8 < n ? jb + 8 : n;
+            for (int64_t i = ib; i < ie; i++)
+                for (int64_t j = jb; j < je; j++) dst[j * n + i] = src[i * n + j];
+        }
+}
+
+/* 1 when X (n x n, row-major) is diagonal; then B <- X (its diagonal, zeros elsewhere). */
+static int DK(copy_diagonal)(real *restrict B, const real *restrict X, int64_t n) {
     for (int64_t i = 0; i < n; i++)
-        for (int64_t j = 0; j < n; j++) dst[j * n + i] = src[i * n + j];
+        for (int64_t j = 0; j < n; j++)
+            if (i != j && X[i * n + j] != 0) return 0;
+    memset(B, 0, (size_t)(n * n) * sizeof(real));
+    for (int64_t i = 0; i < n; i++) B[i * n + i] = X[i * n + i];
+    return 1;
 }
 
 static void DK(banded_one)(const real *D, const real *E, const real *F, const real *g, real *x, int64_t T,
@@ -70,16 +125,21 @@ static void DK(banded_one)(const real *D, const real *E, const real *F, const re
     for (int64_t t = 0; t < T; t++) {
         real *Ut = U + t * nn, *a = At + t * nn, *b = Bt + t * nn;
         memcpy(Ut, D + t * nn, nn * sizeof(real));
+        int low = 0; /* F_t^T lower triangular (e.g. the diagonal of an acceleration term): so is B_t^T */
         if (t >= 2) {
-            DK(transpose_into)(b, F + t * nn, n);
-            DK(lower_solve)(U + (t - 2) * nn, b, n);  /* B_t^T = L_{t-2}^{-1} F_t^T */
-            DK(sub_tn)(Ut, b, b, n);                 /* - B_t B_t^T */
+            low = DK(copy_diagonal)(b, F + t * nn, n);
+            if (!low) {
+                DK(transpose_into)(b, F + t * nn, n);
+                low = DK(is_lower)(b, n);
+            }
+            DK(lower_solve)(U + (t - 2) * nn, b, n, low); /* B_t^T = L_{t-2}^{-1} F_t^T */
+            DK(sub_tn)(Ut, b, b, n, 1, low, low);            /* - B_t B_t^T (upper triangle) */
         }
         if (t >= 1) {
             DK(transpose_into)(a, E + t * nn, n);
-            if (t >= 2) DK(sub_tn)(a, At + (t - 1) * nn, b, n); /* E_t^T - A_{t-1} B_t^T */
-            DK(lower_solve)(U + (t - 1) * nn, a, n);
-            DK(sub_tn)(Ut, a, a, n);                 /* - A_t A_t^T */
+            if (t >= 2) DK(sub_tn)(a, At + (t - 1) * nn, b, n, 0, 0, low); /* E_t^T - A_{t-1} B_t^T */
+            DK(lower_solve)(U + (t - 1) * nn, a, n, 0);
+            DK(sub_tn)(Ut, a, a, n, 1, 0, 0);            /* - A_t A_t^T (upper triangle) */
         }
         DK(cholesky_upper)(Ut, n);
     }

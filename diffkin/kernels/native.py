@@ -68,16 +68,17 @@ from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
            "Collide", "capsules_clear", "collide_struct",
-           "native_model", "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
+           "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
-           "check_layout", "check_constants", "banded_solve"]
+           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
              Path(__file__).with_name("_native_collide.c"),
              Path(__file__).with_name("_native_plan.c"),
              Path(__file__).with_name("_native_velocity.c"),
-             Path(__file__).with_name("_native_banded.c"))
+             Path(__file__).with_name("_native_banded.c"),
+             Path(__file__).with_name("_native_clip.c"))
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
@@ -144,7 +145,7 @@ class SolveArgs(ctypes.Structure):
 
 class WatchArgs(ctypes.Structure):
     """``dk_watch`` of ``_native.c`` (``DK_WATCH_FIELDS``): the byte snapshot the lean paths' entry points
-    compare before they compute (:class:`diffkin.kernels.single.Watch`)."""
+    compare before they compute (:class:`diffkin.kernels.cache.Watch`)."""
 
     VERSION = 1
     _fields_ = _HEAD + [("n", _I64), ("ptr", _PTR), ("bytes", _PTR), ("snap", _PTR), ("work", _PTR),
@@ -162,9 +163,21 @@ class Collide(ctypes.Structure):
         [(name, _PTR) for name in ("wid", "bc", "bR", "bh", "ya", "yb", "yr", "skip_b", "skip_y", "point")]
 
 
+class ClipArgs(ctypes.Structure):
+    """``dk_clip`` of ``_native.c`` (``DK_CLIP_FIELDS``: the arguments of :func:`clip_rows`)."""
+
+    VERSION = 1
+    _fields_ = _HEAD + [(name, _I64) for name in
+                        ("real_bytes", "nthreads", "N", "T", "nv", "ends", "K", "Ko", "P0", "P1")] + \
+        [(name, _PTR) for name in
+         ("kp", "kp_w", "x", "ko", "ko_w", "Rd", "feet", "pts", "rad", "contact")] + \
+        [(name, _F64) for name in ("w_contact", "w_pen", "w_flat", "w_skate", "ground")] + \
+        [(name, _PTR) for name in ("Tf", "J", "cost", "D", "E", "g", "centre", "centre_jac")]
+
+
 #: the structs checked at load, by the tag of their ``dk_layout_<tag>`` / ``dk_names_<tag>`` exports
 STRUCTS: dict[str, type[ctypes.Structure]] = {"args": Args, "solve": SolveArgs, "watch": WatchArgs,
-                                              "collide": Collide}
+                                              "collide": Collide, "clip": ClipArgs}
 
 
 def new_struct(struct_type: type[ctypes.Structure], **fields) -> ctypes.Structure:
@@ -274,6 +287,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_solve.restype, lib.dk_solve.argtypes = _I64, [ctypes.POINTER(SolveArgs)]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
     lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 5 + [_I64] * 5
+    lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     return lib
 
 
@@ -547,15 +561,6 @@ def _filled(args: ctypes.Structure, **fields) -> ctypes.Structure:
     return args
 
 
-def native_model(topo: Topology, seg: Segments) -> NativeModel:
-    """The packed constants of ``seg``, made once per Segments object (kept on it)."""
-    packed = seg.__dict__.get("_native")
-    if packed is None:
-        packed = NativeModel(topo, seg)
-        object.__setattr__(seg, "_native", packed)  # Segments is frozen; the pack is derived data
-    return packed
-
-
 def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
                 threads: int | None = None) -> tuple[Tensor, Tensor | None, int]:
     """``q (B, nq)`` (CPU, float32/float64, contiguous) -> ``(T (B, K, 4, 4), J (B, K, 6, nv) or None,
@@ -629,6 +634,47 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
     _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), g.data_ptr(), x.data_ptr(),
                                    batch, T, n, g.element_size(), threads), "work space")
     return x
+
+
+def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,
+              keypoints: Tensor, orientation_ends: list[int], orientation_weights: Tensor | None,
+              orientations: Tensor | None, feet: list[int], soles: list[tuple[Tensor, Tensor]],
+              contacts: Tensor, weights: dict, ground: float):
+    """The frame terms of the whole-clip retargeting problem (:mod:`diffkin.retarget.whole_clip`: keypoints,
+    orientations, the soles' contact height, penetration and level rows, skating) by ``dk_clip_rows``
+    (``_native_clip.c``), from the end-link poses ``Tf (N, E, 4, 4)`` and Jacobians ``J (N, E, 6, nv)`` of
+    N = B T frames (clips of ``T`` frames one after another): ``(cost (N,), D (N, nv, nv), E (N, nv, nv),
+    g (N, nv))`` (cost ½‖r‖², D = JᵀJ, g = Jᵀr of each frame's rows, E the skating rows' block (t, t − 1)).
+    ``keypoints (N, K, 3)`` of the ends ``keypoint_ends`` weighted by ``keypoint_weights (K,)``,
+    ``orientations (N, K_o, 3, 3)`` of ``orientation_ends`` (or None), ``soles`` the feet's (points (P, 3),
+    radii (P,)), ``contacts (N, 2)`` bool, ``weights`` the terms' weights by name. None (nothing done) where
+    the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    dtype = Tf.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64) or Tf.device.type != "cpu"
+            or J.dtype != dtype or torch.is_grad_enabled() and (Tf.requires_grad or J.requires_grad)):
+        return None
+    N, E, nv = Tf.shape[0], Tf.shape[1], J.shape[-1]
+    real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
+    longs = lambda v: torch.tensor(list(v), dtype=torch.int64)  # noqa: E731
+    Ko = len(orientation_ends)
+    keep = [real(Tf), real(J), longs(keypoint_ends), real(keypoint_weights), real(keypoints),
+            longs(orientation_ends or [0]), real(orientation_weights if Ko else Tf.new_zeros(1)),
+            real(orientations if Ko else Tf.new_zeros(1)), longs(feet),
+            real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
+            contacts.to(torch.uint8).contiguous()]
+    cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
+    D, Eb = Tf.new_empty(N, nv, nv), Tf.new_empty(N, nv, nv)
+    centre, centre_jac = Tf.new_empty(N, 4), Tf.new_empty(N, 4, nv)
+    threads = thread_count(N)
+    args = new_struct(ClipArgs, real_bytes=Tf.element_size(), nthreads=threads, N=N, T=T, nv=nv,
+                      ends=E, K=len(keypoint_ends), Ko=Ko, P0=soles[0][0].shape[0], P1=soles[1][0].shape[0],
+                      kp=keep[2], kp_w=keep[3], x=keep[4], ko=keep[5], ko_w=keep[6], Rd=keep[7], feet=keep[8],
+                      pts=keep[9], rad=keep[10], contact=keep[11], w_contact=float(weights["contact_height"]),
+                      w_pen=float(weights["penetration"]), w_flat=float(weights["flat_foot"]),
+                      w_skate=float(weights["skating"]), ground=float(ground), Tf=keep[0], J=keep[1],
+                      cost=cost, D=D, E=Eb, g=g, centre=centre, centre_jac=centre_jac)
+    _raise_on(_lib.dk_clip_rows(ctypes.byref(args)), "work space")
+    return cost, D, Eb, g
 
 
 def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,

@@ -3,16 +3,13 @@
 A batch-1 call through the general dispatch spends most of its time in Python-side checks and tensor
 round trips (the fused C pass itself takes about 1 µs for a Panda). :func:`fk` checks what it needs with
 plain attribute tests (a plain contiguous CPU tensor of the chain's dtype, shape ``(n,)``, no gradient
-wanted), takes the chain's cached :class:`Entry` and makes ONE foreign call, ``dk_fk_one``, on q's own
-memory and fresh outputs.
+wanted), takes the chain's :class:`~diffkin.kernels.cache.Data` and makes ONE foreign call, ``dk_fk_one``,
+on q's own memory and fresh outputs.
 
-The cache is checked on every call, never trusted: an entry holds the data pointers of every parameter
-and buffer it was packed from and a byte snapshot of them (a :class:`Watch`). A tensor replaced, moved
-(``.to``), re-materialised or set through ``.data =`` has another pointer; one written in place, with a
-version bump (an optimizer step, ``add_`` under ``no_grad``) or without one (``p.data.add_()``, memory
-shared with numpy), has other bytes, which ``dk_fk_one`` compares before it computes anything (a few
-hundred bytes for a Panda). Either way the entry is remade through the chain's checked state
-(:meth:`~diffkin.chain.KinematicChain._state_key`, :meth:`~diffkin.chain.KinematicChain._native_model`).
+The Data is checked on every call by the one rule of :mod:`diffkin.kernels.cache`, in two halves: the
+data pointers of every parameter and buffer here (:func:`_current`), their bytes in C (``dk_fk_one``
+compares the :class:`~diffkin.kernels.cache.Watch` snapshot before it computes anything: a few hundred
+bytes for a Panda, and answers ``DK_STALE``). Either miss makes a new Data.
 
 Anything else (a batch, CUDA, autograd, a traced call, a non-finite q, chains the C kernel does not take)
 returns None and the general path serves the call, so results and errors are the general path's.
@@ -25,112 +22,34 @@ import ctypes
 import torch
 from torch import Tensor
 
-from . import native
+from . import cache, native
+from .cache import Data, Watch
 
-__all__ = ["fk", "entry", "Entry", "Watch", "watch"]
+__all__ = ["fk", "entry", "Watch"]
 
-_KEY = "_lean_entry"  # the chain's cached Entry, in its instance __dict__ (an attribute read: ~50 ns)
+_KEY = cache.KEY
 _STALE = native.CONSTANTS["DK_STALE"]
 _is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor
-
-
 _I64, _PTR = ctypes.c_int64, ctypes.c_void_p
-
-
 _one: tuple = (None, None)  # (the loaded library, its dk_fk_one typed)
-_typed: dict = {}  # id of the loaded library -> (dk_unchanged, dk_fk_one, dk_fk_work_bytes), typed once
 
 
-def _functions():
-    """``(dk_unchanged, dk_fk_one, dk_fk_work_bytes)`` of the loaded library (native.available() first).
-    dk_fk_one is taken through a ``PyDLL`` handle: it keeps the GIL for its microsecond (no release and
-    re-acquire), and its arguments are plain addresses (no per-call type checks of ctypes pointers)."""
-    lib = native._lib
-    fns = _typed.get(id(lib))
-    if fns is None:
-        fns = lib.dk_unchanged, ctypes.PyDLL(native._path).dk_fk_one, lib.dk_fk_work_bytes
-        for fn, nargs in zip(fns, (1, 5, 1)):
-            fn.restype, fn.argtypes = _I64, [_PTR] * nargs
-        _typed[id(lib)] = fns
+def _fk_one():
+    """``dk_fk_one`` of the loaded library, typed once per library, through a ``PyDLL`` handle: it keeps
+    the GIL for its microsecond (no release and re-acquire), and its arguments are plain addresses (no
+    per-call type checks of ctypes pointers)."""
     global _one
-    _one = (lib, fns[1])
-    return fns
+    lib = native._lib
+    if _one[0] is not lib:
+        fn = ctypes.PyDLL(native._path).dk_fk_one
+        fn.restype, fn.argtypes = _I64, [_PTR] * 5
+        _one = (lib, fn)
+    return _one[1]
 
 
-class Watch:
-    """A byte snapshot of contiguous CPU tensors at their data pointers: :meth:`unchanged` is False once any
-    of their bytes was written (with or without a version bump). The caller checks the pointers are still
-    the tensors' (they are in the chain's :meth:`~diffkin.chain.KinematicChain._state_key`). ``work``:
-    bytes of ``dk_fk_one``'s work space (plans and scratch kept between calls), 0 for none."""
-
-    __slots__ = ("ptrs", "tensors", "snap", "_keep", "c", "addr")
-
-    def __init__(self, tensors: list[Tensor], work: int = 0):
-        self.tensors = tensors  # kept alive: the addresses stay theirs
-        self.ptrs = [t.data_ptr() for t in tensors]
-        sizes = [t.numel() * t.element_size() for t in tensors]
-        self.snap = b"".join(ctypes.string_at(p, n) for p, n in zip(self.ptrs, sizes))
-        ptr, size = (_I64 * len(tensors))(*self.ptrs), (_I64 * len(tensors))(*sizes)
-        space = ctypes.create_string_buffer(work) if work > 0 else None
-        self._keep = (ptr, size, space)
-        snap = ctypes.cast(ctypes.c_char_p(self.snap), _PTR).value
-        self.c = native.new_struct(native.WatchArgs, n=len(tensors), ptr=ctypes.addressof(ptr),
-                                   bytes=ctypes.addressof(size), snap=snap,
-                                   work=space and ctypes.addressof(space))
-        self.addr = ctypes.addressof(self.c)
-
-    def unchanged(self) -> bool:
-        if native._lib is not None:  # loaded (even inside native.disabled()): one memcmp per tensor
-            return _functions()[0](self.addr) == 1
-        return b"".join(ctypes.string_at(p, t.numel() * t.element_size())
-                        for p, t in zip(self.ptrs, self.tensors)) == self.snap
-
-    def __reduce__(self):  # copies and pickles of a chain carry no addresses: the copy makes its own
-        return _nothing, ()
-
-
-def _nothing():
-    return None
-
-
-def _tensors(chain) -> tuple:
-    return (*chain._parameters.values(), *chain._buffers.values())
-
-
-def watch(chain, work: int = 0) -> Watch | None:
-    """A :class:`Watch` of every parameter and buffer of ``chain`` when all are contiguous CPU tensors, else
-    None (a CUDA chain: reading its bytes would synchronise)."""
-    ts = [t for t in _tensors(chain) if t is not None]
-    if not all(t.is_cpu and t.is_contiguous() for t in ts):
-        return None
-    return Watch(ts, work)
-
-
-class Entry:
-    """A chain's cached call state: the packed Args per dtype, the :class:`Watch` of the tensors they were
-    packed from (their pointers in ``_tensors`` order, 0 for an unset buffer), output templates, and
-    ``extra`` (per-chain state of other lean callers, e.g. the IK solve's, dropped with the entry)."""
-
-    __slots__ = ("ptrs", "topo", "watch", "watch_addr", "args", "extra", "dtype", "n", "T0", "J0", "base")
-
-    def __init__(self, chain, ptrs, args):
-        self.ptrs, self.topo, self.args, self.extra = ptrs, chain._topo, args, {}
-        self.dtype, self.n, K = chain.dtype, chain.n_joints, chain.n_ends  # read once: properties cost µs
-        nv = chain.nv  # Jacobian columns: velocities (a ball joint's quaternion has three)
-        shapes = ((4, 4), (6, nv)) if chain.single_end else ((K, 4, 4), (K, 6, nv))
-        self.T0, self.J0 = (torch.empty(s, dtype=self.dtype) for s in shapes)  # for empty_like: ~1 µs
-        base = args.args[self.dtype]
-        self.base = ctypes.addressof(base)  # args keeps it alive
-        self.watch = watch(chain, _functions()[2](self.base))
-        self.watch_addr = None if self.watch is None else self.watch.addr
-
-    def __reduce__(self):
-        return _nothing, ()
-
-
-def _current(chain, grad: bool) -> Entry | None:
-    """The cached entry if the chain's tensors are still at its pointers and none wants a gradient; the
-    bytes are not compared here (the caller does: dk_fk_one, or :func:`entry`). None: no entry, or
+def _current(chain, grad: bool) -> Data | None:
+    """The chain's Data with its lean state when the chain's tensors are still at its pointers and none
+    wants a gradient; the bytes are not compared here (the caller does: dk_fk_one, or :func:`entry`). None:
     not servable now."""
     d = chain.__dict__  # plain reads: nn.Module's attribute lookup costs a microsecond here
     hit, ts = d.get(_KEY), (*d["_parameters"].values(), *d["_buffers"].values())
@@ -138,41 +57,38 @@ def _current(chain, grad: bool) -> Entry | None:
         for t in ts:
             if t is not None and t.requires_grad:
                 return None
-    if hit is None:
-        return _remade(chain)
-    try:
+    if hit is None or hit.base is None:
+        return _lean(chain)
+    try:  # cache.pointers, inline (a call costs here)
         ptrs = [0 if t is None else t.data_ptr() for t in ts]
     except RuntimeError:  # a tensor without storage (a torch.func wrapper): the general path
         return None
     if ptrs != hit.ptrs or hit.topo is not d["_topo"]:
-        return _remade(chain)
+        return _lean(chain)
     return hit
 
 
-def _remade(chain) -> Entry | None:
-    """A new entry from the chain's checked state (None where the fused kernel cannot serve it)."""
-    chain.__dict__.pop(_KEY, None)
+def _lean(chain) -> Data | None:
+    """The chain's current Data by the whole rule, with its lean state (None where it cannot serve)."""
     if chain.device.type != "cpu":  # a chain elsewhere: the general path's device error
         return None
-    ts = _tensors(chain)
-    probe = torch.empty(0, dtype=chain.dtype)
-    with torch.no_grad():  # the packed constants are data (a caller may run in grad mode)
-        packed = chain._native_model(probe) if chain._state_key() is not None else None
-    if packed is None:
-        return None
-    hit = Entry(chain, [0 if t is None else t.data_ptr() for t in ts], packed)
-    if hit.watch is None:
-        return None
-    chain.__dict__[_KEY] = hit  # a plain attribute, not a module member (not in state_dict)
-    return hit
+    data = cache.current(chain, grad=False)
+    return None if data is None else data.lean(chain)
 
 
-def entry(chain, x: Tensor, grad: bool | None = None) -> Entry | None:
-    """The chain's cached :class:`Entry` for a call on the plain CPU tensor ``x``, or None (general path).
+def _remade(chain) -> Data | None:
+    """A new Data (after ``DK_STALE``: bytes written since the Data was made), with its lean state."""
+    cache.drop(chain)
+    return _lean(chain)
 
-    A hit needs every parameter and buffer at the pointer and with the bytes the entry was packed from, and
+
+def entry(chain, x: Tensor, grad: bool | None = None) -> Data | None:
+    """The chain's current :class:`~diffkin.kernels.cache.Data` with its lean state for a call on the
+    plain CPU tensor ``x``, or None (general path).
+
+    A hit needs every parameter and buffer at the pointer and with the bytes the Data was made from, and
     no gradient wanted from any of them (``grad``: whether gradients are wanted, default grad mode; False
-    for a caller that runs without autograd); a miss re-validates through ``_state_key`` and repacks.
+    for a caller that runs without autograd); a miss makes a new Data.
     """
     if torch.compiler.is_compiling() or _is_wrapped(x) or not native.available():
         return None
@@ -197,10 +113,10 @@ def fk(chain, q, jacobian: bool = False, _retry: bool = True):
         return None
     T = torch.empty_like(hit.T0)
     J = torch.empty_like(hit.J0) if jacobian else None
-    one = _one[1] if _one[0] is native._lib else _functions()[1]
+    one = _one[1] if _one[0] is native._lib else _fk_one()
     status = one(hit.base, hit.watch_addr, q.data_ptr(), T.data_ptr(),
                  J.data_ptr() if jacobian else None)
-    if status == _STALE and _retry:  # bytes written in place since the entry was made: remade once
+    if status == _STALE and _retry:  # bytes written in place since the Data was made: remade once
         _remade(chain)
         return fk(chain, q, jacobian, False)
     if status != 0:  # non-finite q (or a failure): the general path's error

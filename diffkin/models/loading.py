@@ -10,7 +10,8 @@ from pathlib import Path
 
 import torch
 
-from ..chain import KinematicChain, _check_learnable
+from ..chain import KinematicChain
+from ..chain.kinematic import _check_learnable
 from ..errors import ModelError
 from ..validation import check_device
 

@@ -19,7 +19,11 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
 5. **Geometric path**: the cubic spline through the waypoints (chord-length knots, zero path slope at both
    ends), checked continuously by the same bound (along its length in the bound's metric); a row whose
    spline leaves the clear region falls back to the checked polyline itself (a stop at every waypoint).
-6. **Timing** (:func:`diffkin.trajectories.time_optimal`): TOPP-RA under the velocity and acceleration
+6. **Optimisation** (``optimize=True``, :mod:`diffkin.motion.optimize`): the path resampled to knots and
+   optimised for smoothness with the distances and limits as constraints; kept where its segments and
+   spline are proven clear as above, else the path of 5. The optimised knots carry the implicit gradient
+   w.r.t. the start, the goal and the world's tensors where the iterations converged.
+7. **Timing** (:func:`diffkin.trajectories.time_optimal`): TOPP-RA under the velocity and acceleration
    limits, smoothed for the jerk limit (zero acceleration at both ends), limits held on dense samples.
 
 A row succeeds when all of that holds: it starts exactly at ``q_start``, rests at both ends (zero velocity
@@ -42,6 +46,7 @@ from ..validation import check_count, check_number, shape_str, tensors
 from ._edges import EdgeChecker
 from ._native_search import search_native
 from ._search import search, shortcut
+from .optimize import OptimizeConfig, optimize_stage, sample_with
 
 __all__ = ["MotionResult", "plan"]
 
@@ -93,6 +98,8 @@ class MotionResult:
         waypoints: ``(B, L, nq)`` the shortcut collision-checked path (rows padded with their goal) and
             ``n_waypoints (B,)`` its waypoint counts.
         interpolation: per row ``"spline"`` or ``"linear"`` (the fallback), ``""`` for failed rows.
+        optimized: ``(B,)`` bool, the rows timed along their optimised knots (``optimize=True``; then
+            ``waypoints`` holds those knots).
     """
 
     success: Tensor
@@ -106,6 +113,7 @@ class MotionResult:
     waypoints: Tensor
     n_waypoints: Tensor
     interpolation: list[str]
+    optimized: Tensor
     _timing: list
 
     def state(self, t) -> Trajectory:
@@ -122,9 +130,9 @@ class MotionResult:
     def _state(self, t: Tensor) -> Trajectory:
         """:meth:`state` at float64 times (B, T), unchecked."""
         B, nq = self.success.shape[0], self.q.shape[-1]
-        q = self.q[:, :1].expand(B, t.shape[1], nq).clone()
+        q = self.q[:, :1].detach().expand(B, t.shape[1], nq).clone()  # samples carry no gradient
         qd, qdd = torch.zeros_like(q), torch.zeros_like(q)
-        for rows, timed in self._timing:  # at most two timings (spline, linear fallback)
+        for rows, timed in self._timing:  # at most three timings (optimised, spline, linear fallback)
             tr = timed._sample(t[rows])
             q[rows], qd[rows], qdd[rows] = tr.position, tr.velocity, tr.acceleration
         return Trajectory(q, qd, qdd)
@@ -199,7 +207,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
          acceleration_limit=None, jerk_limit=None, dt: float = 0.01, resolution: float = 0.005,
          max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 16, seed: int = 0,
          goal_bias: float = 0.0, search_in_c: bool = True, position_tolerance: float = 1e-4,
-         orientation_tolerance: float = 1e-3) -> MotionResult:
+         orientation_tolerance: float = 1e-3, optimize: bool | OptimizeConfig = False) -> MotionResult:
     """Collision-free, limit-respecting timed trajectories from ``q_start`` to ``goal``, batched (module
     docstring: goals, per-row checks, search, shortcut, timing, continuous re-check).
 
@@ -234,9 +242,21 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             random stream for the batch; CUDA); with it the other stages' decisions go through the C
             placement too.
         position_tolerance / orientation_tolerance: of the pose goals' IK.
+        optimize: True (or an :class:`~diffkin.motion.optimize.OptimizeConfig`) for the optimisation stage
+            (module docstring, :mod:`diffkin.motion.optimize`).
 
     Returns:
         :class:`MotionResult`.
+
+    **Gradients** (``optimize`` on, grad mode on, and ``q_start``, a joint ``goal`` or a tensor of ``world``
+    requiring grad): ``q``, ``qd``, ``qdd`` and ``waypoints`` of the rows with ``optimized`` True are
+    differentiable w.r.t. them, through the implicit gradient of the optimised knots (the KKT point of
+    :mod:`diffkin.motion.optimize`) and the spline through them; the timing (the time law s(t) and the
+    spline's knot parameters) is held fixed at the solution. The gradient is the local one: it is not
+    defined where the perturbation changes the set of distance rows held, and says nothing about another
+    homotopy class (a re-plan that goes round the other side of an obstacle). Other rows, rows whose
+    optimisation did not converge within ``OptimizeConfig.iterations`` (kept when proven clear, but no
+    KKT point), and pose goals (their IK solution) get no gradient.
     """
     from ..ik import solve as ik_solve
 
@@ -255,6 +275,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         raise ShapeError(f"expected q_start of shape (B, {chain.nq}), got {shape_str(q_start.shape)}")
     B, nq = q_start.shape
     goal = tensors(("goal", goal, None), like=chain)[0]
+    cfg = optimize if isinstance(optimize, OptimizeConfig) else OptimizeConfig() if optimize is True else None
+    if cfg is None and optimize is not False:
+        raise ConventionError(f"motion.plan: optimize is a bool or an OptimizeConfig, got {optimize!r}")
     pose_goal = goal.ndim >= 3 and goal.shape[-2:] == (4, 4)
     if not pose_goal and goal.shape != (B, nq):
         raise ShapeError(f"expected goal of shape ({B}, {nq}) (joints), ({B}, 4, 4) or ({B}, K, 4, 4) "
@@ -293,9 +316,11 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                           margin=margin + resolution, position_tolerance=position_tolerance,
                           orientation_tolerance=orientation_tolerance, seed=seed)
             q_goal = ik.q.detach().to(dtype)
+            goal_in = q_goal
             fail(~ik.success.reshape(B), "goal pose unreachable (no collision-free IK solution)")
         else:
             q_goal = goal.detach()
+            goal_in = goal  # the joint goal as given (its gradient reaches the optimised knots)
         lim = chain.q_limits
         if lim is not None:
             lo_l, hi_l = lim[:, 0].to(dtype), lim[:, 1].to(dtype)
@@ -318,6 +343,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         waypoints = torch.stack((q_start, q_goal), 1)
         n_way = torch.full((B,), 2, dtype=torch.long, device=dev)
         timing, interp = [], [""] * B
+        optimized = torch.zeros(B, dtype=torch.bool, device=dev)
+        knots = None
         success = torch.zeros(B, dtype=torch.bool, device=dev)
         duration = torch.zeros(B, dtype=dtype, device=dev)
         if rows.numel():
@@ -350,13 +377,26 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                 p = _pad(path[found], n[found])
                 kn = _knots(p)
                 smooth = _spline_clear(checker, p, kn, lo_l, hi_l, good)
-                for keep, how in ((smooth, "spline"), (~smooth, "linear")):
+                groups = []
+                if cfg is not None:  # the optimised knots where they are proven clear (grad mode on)
+                    with torch.enable_grad():
+                        knots, kept = optimize_stage(checker, world, q_start[good], goal_in[good], p, good,
+                                                     lo_l, hi_l, cfg)
+                    optimized[good[kept]] = True
+                    smooth, p_opt = smooth & ~kept, knots.detach()[kept]
+                    groups.append((kept, "spline", p_opt, _knots(p_opt)))
+                    notkept = ~kept
+                else:
+                    notkept = torch.ones_like(smooth)
+                rough = notkept & ~smooth
+                groups += [(smooth, "spline", p[smooth], kn[smooth]), (rough, "linear", p[rough], kn[rough])]
+                for keep, how, pp, kk in groups:
                     rr = good[keep]
                     if rr.numel() == 0:
                         continue
                     # the spline where it is proven clear, else the checked polyline (stops at waypoints)
-                    timed = time_optimal(p[keep], vmax[rr], amax[rr], jmax[rr], knots=kn[keep],
-                                         interpolation=how, bc="clamped")
+                    timed = time_optimal(pp, vmax[rr], amax[rr], jmax[rr], knots=kk, interpolation=how,
+                                         bc="clamped")
                     timing.append((rr, timed))
                     success[rr] = True
                     duration[rr] = timed.duration.to(dtype)
@@ -366,7 +406,27 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         t = (torch.arange(S, dtype=torch.float64, device=dev) * dt)
         zero = torch.zeros(B, S, nq, dtype=dtype, device=dev)
         result = MotionResult(success, duration, t.to(dtype).expand(B, S), q_start[:, None].expand(B, S, nq),
-                              zero, zero, reason, q_goal, waypoints, n_way, interp, timing)
+                              zero, zero, reason, q_goal, waypoints, n_way, interp, optimized, timing)
         tr = result._state(t.expand(B, S))
         result.q, result.qd, result.qdd = tr.position, tr.velocity, tr.acceleration
+    if knots is not None and bool(optimized.any()):
+        _with_knots(result, knots[optimized[good]], t)
     return result
+
+
+def _with_knots(result: MotionResult, knots: Tensor, t: Tensor) -> None:
+    """The optimised rows' waypoints and samples from their knots ``(R, M + 2, nq)`` (which may carry the
+    implicit gradient; the timing held fixed: :func:`~diffkin.motion.optimize.sample_with`)."""
+    rr, timed = result._timing[0]
+    R, N, nq = knots.shape
+    B, L = result.waypoints.shape[:2]
+    way = result.waypoints.detach()
+    if N > L:
+        way = torch.cat((way, way[:, -1:].expand(B, N - L, nq)), 1)
+    pad = torch.cat((knots, knots[:, -1:].expand(R, way.shape[1] - N, nq)), 1)
+    result.waypoints = way.index_put((rr,), pad.to(way.dtype))
+    result.n_waypoints = result.n_waypoints.index_fill(0, rr, N)
+    q, qd, qdd = sample_with(timed, knots, t.expand(R, -1))
+    result.q = result.q.index_put((rr,), q.to(result.q.dtype))
+    result.qd = result.qd.index_put((rr,), qd.to(result.q.dtype))
+    result.qdd = result.qdd.index_put((rr,), qdd.to(result.q.dtype))

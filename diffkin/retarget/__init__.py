@@ -9,14 +9,16 @@ from .bvh import load_bvh
 from .clip import RetargetResult, clip, fit_scale
 from .clips import example_clips
 from .contacts import detect_contacts
-from .mapping import Mapping
+from .mapping import Mapping, skeleton_of
 from .metrics import Metrics, metrics
 from .motion import Motion
 from .plot import plot_frame
+from .self_collision import g1_collision
 from .smpl import SMPL_JOINT_NAMES, SMPLX_JOINT_NAMES, load_smpl
 from .sole import Sole, sole_of
 from .whole_clip import COSTS, ClipOptimization, optimize_clip
 
 __all__ = ["COSTS", "ClipOptimization", "Mapping", "Metrics", "Motion", "RetargetResult", "SMPLX_JOINT_NAMES",
-           "SMPL_JOINT_NAMES", "Sole", "clip", "detect_contacts", "example_clips", "fit_scale", "load_bvh",
-           "load_smpl", "metrics", "optimize_clip", "plot_frame", "sole_of"]
+           "SMPL_JOINT_NAMES", "Sole", "clip", "detect_contacts", "example_clips", "fit_scale",
+           "g1_collision", "load_bvh", "load_smpl", "metrics", "optimize_clip", "plot_frame",
+           "skeleton_of", "sole_of"]

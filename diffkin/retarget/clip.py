@@ -124,10 +124,11 @@ def fit_scale(chain, motion: Motion, mapping: Mapping) -> Tensor:
     return (robot.to(human) / human).to(motion.positions.dtype)
 
 
-def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float = 0.0,
+def clip(chain, motion: Motion, mapping: Mapping, *, collision=None, ground: float = 0.0, scale=None,
          max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
-         iterations: int = 10, costs: dict | None = None, solver: str = "banded",
-         warm_start: str = "sequential", velocity_limit=None) -> RetargetResult:
+         iterations: int | None = None, costs: dict | None = None, solver: str = "banded",
+         warm_start: str = "sequential", velocity_limit=None,
+         collision_margin: float = 0.01) -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
     ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
 
@@ -143,7 +144,13 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
     at once (``iterations``, ``costs``, ``solver``, ``velocity_limit`` are its: joint velocity limits as
     hard constraints, e.g. the motors' rad/s), with the mapping's position weights and soles; pairs with an
     orientation weight follow their human joint's frame (``motion.orientations``) up to a per-clip
-    constant rotation fitted on stage one's answer. The
+    constant rotation fitted on stage one's answer. ``collision``: a
+    :class:`~diffkin.collision.RobotCollision` of ``chain`` (e.g. :func:`~diffkin.retarget.g1_collision`)
+    whose self pairs the optimisation keeps ``collision_margin`` (m) apart (pairs screened once on stage
+    one's answer); None (the default) adds no self-collision rows, and stage one never sees collisions.
+    ``iterations`` defaults to 10, or 20 with ``collision`` (stage one's hands can be 10 cm deep in the
+    hips or torso on real clips: the one-sided penalty then takes more steps).
+    No sole point ends below ``ground`` (the optimisation's last step raises the base where one is). The
     metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage one's.
     """
     mapping.check(motion)
@@ -155,17 +162,17 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
                          f"{mapping.frames} (build it with mapping.frames)")
     if not chain.joint_kinds or chain.joint_kinds[0] != "free":
         raise ModelError("clip needs a floating-base chain (a free joint first)")
-    motion_c = Motion(motion.positions.to(chain.dtype), motion.names, motion.fps,
-                      None if motion.orientations is None else motion.orientations.to(chain.dtype))
+    motion_c = motion if motion.positions.dtype == chain.dtype else Motion(  # checked once: converted only
+        motion.positions.to(chain.dtype), motion.names, motion.fps,
+        None if motion.orientations is None else motion.orientations.to(chain.dtype))
     s = fit_scale(chain, motion_c, mapping) if scale is None else torch.as_tensor(
         scale, dtype=chain.dtype).reshape(-1).expand(motion.batch)
     X = mapping.targets(motion_c, s)  # (B, T, K, 3)
     B, T, K = X.shape[:3]
     kp = mapping.keypoint_frames
     ends = list(chain.end_links)
-    tgt = torch.eye(4, dtype=chain.dtype).repeat(B, T, len(ends), 1, 1)
-    for k, f in enumerate(kp):
-        tgt[:, :, ends.index(f), :3, 3] = X[:, :, k]
+    tgt = torch.zeros(B, T, len(ends), 3, dtype=chain.dtype)  # positions: ik.solve's position_only input
+    tgt[:, :, [ends.index(f) for f in kp]] = X
     root = [f for f in kp if f not in mapping.feet][0]
     if warm_start == "sequential":
         q = _initial(chain, X[:, :1], kp, root, mapping.feet, 1)[:, 0]
@@ -183,13 +190,16 @@ def clip(chain, motion: Motion, mapping: Mapping, *, scale=None, ground: float =
     m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
                 keypoint_frames=kp, sole=sole)
     warm, cost = None, None
+    if iterations is None:
+        iterations = 10 if collision is None else 20
     if whole_clip:
         weights = mapping.weights[[mapping.frames.index(f) for f in kp]]
         ori = _orientation_targets(chain, motion_c, mapping, Q) if bool((weights[:, 1] > 0).any()) else None
         opt = optimize_clip(chain, Q, X, contacts, feet=mapping.feet, keypoint_frames=kp, fps=motion.fps,
                             ground=ground, sole=sole, keypoint_weights=weights[:, 0], costs=costs,
                             iterations=iterations, solver=solver, velocity_limit=velocity_limit,
-                            orientations=ori, orientation_weights=None if ori is None else weights[:, 1])
+                            orientations=ori, orientation_weights=None if ori is None else weights[:, 1],
+                            collision=collision, collision_margin=collision_margin)
         Q, cost, warm = opt.q, opt.cost, m
         m = metrics(chain, Q, contacts, motion.fps, feet=mapping.feet, ground=ground, keypoints=X,
                     keypoint_frames=kp, sole=sole)

@@ -14,7 +14,7 @@ from .contacts import detect_contacts
 from .motion import Motion
 from .sole import Sole
 
-__all__ = ["BUILTIN", "Mapping"]
+__all__ = ["BUILTIN", "Mapping", "SKELETONS", "skeleton_of"]
 
 _SIDES = ("left", "right")
 
@@ -40,14 +40,21 @@ def _h1(human: dict[str, str]) -> dict[str, str]:
     return pairs
 
 
-#: human skeletons: role -> joint name. ``"cmu"``: the shipped clips (CMU database, 3dsMax-friendly BVH
-#: names); ``"smpl"``: SMPL / SMPL-H / SMPL-X joints (:data:`~diffkin.retarget.smpl.SMPLX_JOINT_NAMES`).
+#: human skeletons: role -> joint name. ``"cmu"``: the shipped clips of subject 131 (CMU database,
+#: 3dsMax-friendly BVH names); ``"cmu_mb"``: the shipped walk-and-turn and pick-up clips (the same CMU
+#: skeleton in the MotionBuilder-friendly conversion's names: ``LeftUpLeg`` for ``LeftHip``, ``Spine`` for
+#: ``Chest``, ``LeftArm`` for ``LeftShoulder``...); ``"smpl"``: SMPL / SMPL-H / SMPL-X joints
+#: (:data:`~diffkin.retarget.smpl.SMPLX_JOINT_NAMES`). :func:`skeleton_of` tells them apart.
 SKELETONS = {
     "cmu": {"pelvis": "Hips", "chest": "Chest", "left_hip": "LeftHip", "left_knee": "LeftKnee",
             "left_ankle": "LeftAnkle", "left_toe": "LeftToe", "left_shoulder": "LeftShoulder",
             "left_elbow": "LeftElbow", "left_wrist": "LeftWrist", "right_hip": "RightHip",
             "right_knee": "RightKnee", "right_ankle": "RightAnkle", "right_toe": "RightToe",
             "right_shoulder": "RightShoulder", "right_elbow": "RightElbow", "right_wrist": "RightWrist"},
+    "cmu_mb": {"pelvis": "Hips", "chest": "Spine", **{
+        f"{s}_{r}": f"{s.title()}{j}" for s in _SIDES for r, j in (
+            ("hip", "UpLeg"), ("knee", "Leg"), ("ankle", "Foot"), ("toe", "ToeBase"), ("shoulder", "Arm"),
+            ("elbow", "ForeArm"), ("wrist", "Hand"))}},
     "smpl": {"pelvis": "pelvis", "chest": "spine3", **{f"{s}_{r}": f"{s}_{r}" for s in _SIDES for r in (
         "hip", "knee", "ankle", "shoulder", "elbow", "wrist")}, "left_toe": "left_foot",
              "right_toe": "right_foot"},
@@ -163,7 +170,8 @@ class Mapping:
     @classmethod
     def builtin(cls, name: str, skeleton: str = "cmu") -> Mapping:
         """The mapping of robot ``name`` (``"g1"``: the 29-DoF G1; ``"h1"``) for a human ``skeleton``
-        (``"cmu"``: the shipped clips; ``"smpl"``). Feet contact on the ankle and toe joints."""
+        (:data:`SKELETONS`: ``"cmu"``, ``"cmu_mb"``, ``"smpl"``; :func:`skeleton_of` finds a clip's). Feet
+        contact on the ankle and toe joints."""
         if name not in BUILTIN:
             raise ConventionError(f"no built-in mapping {name!r}; known: {sorted(BUILTIN)}")
         if skeleton not in SKELETONS:
@@ -172,3 +180,14 @@ class Mapping:
         human = SKELETONS[skeleton]
         contact = ([human["left_ankle"], human["left_toe"]], [human["right_ankle"], human["right_toe"]])
         return cls(build(human), feet=feet, contact_joints=contact)
+
+
+def skeleton_of(names) -> str:
+    """The key of :data:`SKELETONS` whose joints are all among ``names`` (a clip's joint names, e.g.
+    ``motion.names``); :class:`~diffkin.errors.ConventionError` listing the skeletons when none is."""
+    have = set(names)
+    for key, roles in SKELETONS.items():
+        if set(roles.values()) <= have:
+            return key
+    raise ConventionError(f"the clip's joints {sorted(have)[:8]}... match none of the skeletons "
+                          f"{sorted(SKELETONS)}; write a Mapping for them")

@@ -19,6 +19,7 @@ point whose horizontal path measures foot skating) is the mean of the points.
 from __future__ import annotations
 
 import math
+import weakref
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 
@@ -157,11 +158,22 @@ def _urdf_sole(chain, link: str) -> Sole:
     return Sole(torch.as_tensor(np.concatenate(pts)), torch.as_tensor(np.concatenate(rad)))
 
 
+_read: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # chain -> {foot: Sole}
+
+
 def sole_of(chain, foot: str) -> Sole:
-    """The :class:`Sole` of ``foot`` (a body, link or site name) read from the chain's model (module doc)."""
-    if getattr(chain, "source_text", None) is not None:
-        return _mjcf_sole(chain, foot)
-    if getattr(getattr(chain, "tree", None), "text", None) is not None:
-        return _urdf_sole(chain, foot)
-    raise ModelError(f"the sole of {foot!r} cannot be read from a {type(chain).__name__} (MJCF and URDF "
-                     "chains only); give sole=Sole(points, radii)")
+    """The :class:`Sole` of ``foot`` (a body, link or site name) read from the chain's model (module doc);
+    read once per chain and foot (a chain's model text does not change; MJCF soles compile the model)."""
+    try:
+        known = _read.setdefault(chain, {})
+    except TypeError:  # a chain that takes no weak reference: read every time
+        known = {}
+    if foot not in known:
+        if getattr(chain, "source_text", None) is not None:
+            known[foot] = _mjcf_sole(chain, foot)
+        elif getattr(getattr(chain, "tree", None), "text", None) is not None:
+            known[foot] = _urdf_sole(chain, foot)
+        else:
+            raise ModelError(f"the sole of {foot!r} cannot be read from a {type(chain).__name__} (MJCF and "
+                             "URDF chains only); give sole=Sole(points, radii)")
+    return known[foot]

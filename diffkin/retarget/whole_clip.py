@@ -23,6 +23,8 @@ term                   residual                                               fr
 ``velocity``           w (q_t ⊖ q_{t−1})                                        t ≥ 1
 ``acceleration``       w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1}))                     1 ≤ t ≤ T − 2
 ``posture``            w (q_t ⊖ q_t⁰): stay near the warm start q⁰              every frame
+``collision``          w min(0, d_p(q_t) − m): self pairs p ≥ the margin m      every frame (with
+                       (:mod:`~diffkin.retarget.self_collision`)              ``collision``)
 =====================  =====================================================  ==========================
 
 Point Jacobians come from the chain's geometric Jacobian (3.30) at the frame origin o: J_p = J_v − S(p − o)
@@ -34,7 +36,14 @@ bands and each step is one block-banded Cholesky solve (:func:`diffkin.kernels.b
 O(T nv³)). A step is kept per clip when it lowers that clip's cost (the damping λ then shrinks, else it
 grows); after each step the hinges are projected onto their limits (and, with ``velocity_limit``, frame
 after frame onto [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max]), so the result never violates
-them: hard constraints, whose penalty rows steer the steps away from the projection.
+them: hard constraints, whose penalty rows steer the steps away from the projection. The last step raises
+the base wherever a sole is still below the ground (:func:`~diffkin.retarget.ground.lift_above_ground`), so
+no sole point is below it (to rounding).
+
+On CPU tensors without autograd the end links' rows (keypoint to skating) and their share of JᵀJ, Jᵀr and
+the cost are formed in C (:func:`diffkin.kernels.native.clip_rows`), elsewhere in torch ops (equal to
+rounding); further per-frame rows (the self-collision rows) plug in through ``_Terms.extra_rows``
+(:meth:`_Terms.evaluate`).
 """
 
 from __future__ import annotations
@@ -48,25 +57,28 @@ from torch.nn import functional as nn
 from ..errors import ModelError, OptionError, ShapeError
 from ..ik.closed_loop import _L_matrix
 from ..jacobian import _shift_jacobian_point
+from ..kernels import native
 from ..kernels.banded import block_banded_cg, block_banded_solve
 from ..kernels.pose_error import orientation_error
 from ..rotations import _skew
 from ..validation import as_tensor, check_count, check_finite, check_number, shape_str
+from .ground import lift_above_ground, soles_of
 from .metrics import _finite, _scalar_columns
-from .sole import Sole, sole_of
+from .self_collision import SelfCollisionRows
 
 __all__ = ["COSTS", "ClipOptimization", "optimize_clip"]
 
 #: default weights of the whole-clip terms (module doc); lengths in metres, angles in rad per frame.
 COSTS = {"keypoint": 1.0, "orientation": 0.1, "contact_height": 30.0, "skating": 100.0, "flat_foot": 0.3,
          "penetration": 300.0, "limit": 10.0, "velocity_limit": 10.0, "velocity": 0.02, "acceleration": 0.3,
-         "posture": 0.01}
+         "posture": 0.01, "collision": 300.0}
 
 
 @dataclass
 class ClipOptimization:
     """The optimised clip ``q (B, T, nq)`` and the cost ½‖r‖² per clip after each iteration
-    ``cost (iterations + 1, B)`` (row 0: the warm start)."""
+    ``cost (iterations + 1, B)`` (row 0: the warm start; with ``collision``, one or two more rounds of
+    ``iterations`` when pairs came near that the screen had left out)."""
 
     q: Tensor
     cost: Tensor
@@ -76,11 +88,15 @@ class _Terms:
     """The residual layout of one problem (weights, sole geometry, index maps)."""
 
     def __init__(self, chain, keypoints, contacts, feet, keypoint_frames, fps, ground, sole, kp_weights, w,
-                 q_ref, limit_margin, velocity_limit=None, orientations=None, orientation_weights=None):
+                 q_ref, limit_margin, velocity_limit=None, orientations=None, orientation_weights=None,
+                 collision: SelfCollisionRows | None = None):
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
         self._F = None
+        #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
+        #: rows added to the problem (:meth:`evaluate`)
+        self.extra_rows: list = []
         self.fps = fps
         self.kp_idx = [ends.index(f) for f in keypoint_frames]
         self.kp_w = kp_weights
@@ -92,15 +108,16 @@ class _Terms:
             self.ori_idx = [self.kp_idx[k] for k in sel]
             self.ori_w = orientation_weights[sel]
         self.feet_idx = [ends.index(f) for f in feet]
-        self.soles = []
-        for f in feet:
-            s = (sole or {}).get(f) or sole_of(chain, f)
-            if not isinstance(s, Sole):
-                raise ModelError(f"sole[{f!r}] must be a Sole(points, radii), got {type(s).__name__}")
-            self.soles.append((s.points.to(keypoints), s.radii.to(keypoints)))
+        self.sole_list = soles_of(chain, feet, sole)
+        self.soles = [(s.points.to(keypoints), s.radii.to(keypoints)) for s in self.sole_list]
+        if collision is not None:  # self pairs closer than the margin (module self_collision), C path or not
+            self.extra_rows.append(lambda q, Ta, Ja: collision.rows(q, self.w["collision"]))
         cs = chain.configuration_space
         self.sq = torch.tensor(cs.scalar_index("q"), dtype=torch.long, device=keypoints.device)
         self.sv = torch.tensor(cs.scalar_index("v"), dtype=torch.long, device=keypoints.device)
+        # the same columns as a slice where they are a run (a floating base then hinges): views, no gathers
+        self.sq_cols = _as_slice(cs.scalar_index("q"), self.sq)
+        self.sv_cols = _as_slice(cs.scalar_index("v"), self.sv)
         lim = chain.q_limits.index_select(0, self.sq) if chain.q_limits is not None else None
         if lim is None:
             lim = torch.full((len(self.sq), 2), float("inf"), dtype=keypoints.dtype, device=keypoints.device)
@@ -135,19 +152,55 @@ class _Terms:
     def evaluate(self, q: Tensor):
         """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``.
 
+        Three parts: the end links' frame terms (keypoints, orientations, the soles' contact, penetration,
+        level and skating rows: :meth:`frame_terms`), the per-frame rows of :attr:`extra_rows` (the
+        residual-row interface: each callable ``(q, Ta (B, T, E, 4, 4), Ja (B, T, E, 6, nv)) -> (r (B, T,
+        m), J (B, T, m, nv))`` adds ½‖r‖² to the cost, JᵀJ to D and Jᵀr to g), then the joint terms
+        (:meth:`_joint_terms`: limits, posture, the differences over time)."""
+        B, T, nq = q.shape
+        Ta, Ja = self.chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
+        if Ta.ndim == 3:
+            Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
+        cost, D, E, g = self.frame_terms(Ta, Ja, B, T)
+        Ta, Ja = Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:])
+        for rows in self.extra_rows:
+            r, J = rows(q, Ta, Ja)
+            cost = cost + 0.5 * r.square().flatten(1).sum(-1)
+            D = D + J.mT @ J
+            g = g + (J.mT @ r.unsqueeze(-1)).squeeze(-1)
+        return self._joint_terms(q, cost, D, E, g)
+
+    def frame_terms(self, Ta: Tensor, Ja: Tensor, B: int, T: int):
+        """The end links' terms from the poses ``Ta (B T, E, 4, 4)`` and Jacobians ``Ja (B T, E, 6, nv)``
+        of the B clips' T frames: cost ``(B,)``, D, E ``(B, T, nv, nv)``, g ``(B, T, nv)``. In C on CPU
+        tensors (:func:`diffkin.kernels.native.clip_rows`), else :meth:`_frame_terms_torch` (the same to
+        rounding: a CUDA tensor, autograd, no C compiler)."""
+        w, ori = self.w, self.ori is not None
+        out = native.clip_rows(
+            Ta, Ja, T=T, keypoint_ends=self.kp_idx, keypoint_weights=w["keypoint"] * self.kp_w.to(Ta),
+            keypoints=self.x.reshape(B * T, -1, 3), orientation_ends=self.ori_idx if ori else [],
+            orientation_weights=w["orientation"] * self.ori_w.to(Ta) if ori else None,
+            orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
+            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground)
+        if out is None:
+            return self._frame_terms_torch(Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:]))
+        cost, D, E, g = out
+        nv = D.shape[-1]
+        return (cost.reshape(B, T).sum(-1), D.reshape(B, T, nv, nv), E.reshape(B, T, nv, nv),
+                g.reshape(B, T, nv))
+
+    def _frame_terms_torch(self, Ta: Tensor, Ja: Tensor):
+        """:meth:`frame_terms` in torch ops, from ``Ta (B, T, E, 4, 4)`` and ``Ja (B, T, E, 6, nv)``.
+
         The rows of one frame (keypoints, the soles' contact, penetration and level rows) are stacked into
         ``J_f (B, T, m, nv)`` and enter D as one batched product J_fᵀ J_f; the skating rows couple
         consecutive frames, their diagonal part joins that product (each frame's sole-centre Jacobian
         weighted by the root of the summed squared weights of its two pairs), their off-diagonal part is
-        one more product; the limit, posture and difference terms are multiples of the identity."""
-        chain, w = self.chain, self.w
-        B, T, nq = q.shape
-        nv = chain.nv
-        Ta, Ja = chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
-        if Ta.ndim == 3:
-            Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
-        Ta = Ta.reshape(B, T, *Ta.shape[1:])
-        Ja = Ja.reshape(B, T, *Ja.shape[1:])
+        one more product."""
+        w = self.w
+        B, T = Ta.shape[:2]
+        nv = Ja.shape[-1]
+        q = Ta  # the dtype and device of the rows
         rows, jacs, d_only = [], [], []  # d_only: rows entering D only (skating's diagonal part)
         # keypoints
         p = self._frames(Ta, self.kp_idx)[..., :3, 3]
@@ -206,15 +259,24 @@ class _Terms:
         if skate_new:
             Jn, Jo = torch.cat(skate_new, -2), torch.cat(skate_old, -2)
             E[:, 1:] = -(Jn.mT @ Jo)
+        return cost, D, E, g
+
+    def _joint_terms(self, q: Tensor, cost: Tensor, D: Tensor, E: Tensor, g: Tensor):
+        """The joint terms of ``q (B, T, nq)`` (limits, velocity limits, posture, velocity, acceleration;
+        the module doc), multiples of the identity on the scalar columns or on all, added to the other
+        terms' cost, D, E, g (D, E, g in place); returns (cost, D, E, F, g)."""
+        w = self.w
+        B, T, _ = q.shape
+        nv = self.chain.nv
         # joint limits (diagonal in the scalar velocity columns)
-        qs = q.index_select(-1, self.sq)
+        qs = q[..., self.sq_cols]
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
         r_l = w["limit"] * (over - under)
         act = ((over > 0) | (under > 0)).to(q.dtype) * w["limit"] ** 2
         cost = cost + 0.5 * r_l.square().flatten(1).sum(-1)
         diag = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
-        diag[..., self.sv] += act
-        g[..., self.sv] += w["limit"] * r_l
+        diag[..., self.sv_cols] += act
+        g[..., self.sv_cols] += w["limit"] * r_l
         if T > 1 and self.vstep is not None:  # velocity limits: ±(I, −I) on the scalar columns where beyond
             dq = qs[:, 1:] - qs[:, :-1]
             ex = (dq.abs() - self.vstep).clamp_min(0)
@@ -222,18 +284,20 @@ class _Terms:
             r_v = wl * ex * dq.sign()
             cost = cost + 0.5 * r_v.square().flatten(1).sum(-1)
             act = (ex > 0).to(q.dtype) * wl**2  # (B, T - 1, n_s)
-            diag[:, 1:, self.sv] += act
-            diag[:, :-1, self.sv] += act
-            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv] -= act
-            g[:, 1:, self.sv] += wl * r_v
-            g[:, :-1, self.sv] -= wl * r_v
+            diag[:, 1:, self.sv_cols] += act
+            diag[:, :-1, self.sv_cols] += act
+            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv_cols] -= act
+            g[:, 1:, self.sv_cols] += wl * r_v
+            g[:, :-1, self.sv_cols] -= wl * r_v
         # posture: near the warm start
-        dp = self.chain.configuration_space.difference(self.q_ref, q)
+        # q ⊖ q_ref and the frame differences q_{t+1} ⊖ q_t in one call (one pass of the quaternion maps)
+        both = self.chain.configuration_space.difference(torch.cat((self.q_ref, q[:, :-1]), 1),
+                                                         torch.cat((q, q[:, 1:]), 1))
+        dp, d = both[:, :T], both[:, T:]  # (B, T, nv), (B, T - 1, nv)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
         diag += w["posture"] ** 2
         g += w["posture"] ** 2 * dp
         if T > 1:  # velocity: J = (I at t, −I at t−1)
-            d = self.chain.configuration_space.difference(q[:, :-1], q[:, 1:])  # (B, T-1, nv)
             wv = w["velocity"] ** 2
             cost = cost + 0.5 * wv * d.square().flatten(1).sum(-1)
             diag[:, 1:] += wv
@@ -266,6 +330,13 @@ class _Terms:
                 F[:, 2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
             self._F = F
         return self._F
+
+
+def _as_slice(index: list[int], tensor: Tensor):
+    """``slice(a, b)`` where ``index`` is the run a, a + 1, ..., b − 1, else ``tensor`` (the same columns)."""
+    if index and index == list(range(index[0], index[0] + len(index))):
+        return slice(index[0], index[0] + len(index))
+    return tensor
 
 
 def _orientation_targets(orientations, weights, shape: tuple, like: Tensor):
@@ -318,7 +389,8 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                sole: dict | None = None, keypoint_weights=None, costs: dict | None = None,
                iterations: int = 10, limit_margin: float = 0.0, damping: float = 1e-4, solver: str = "banded",
                cg_iterations: int = 30, velocity_limit=None, orientations=None,
-               orientation_weights=None) -> ClipOptimization:
+               orientation_weights=None, collision=None, collision_margin: float = 0.01,
+               collision_screen: float = 0.1) -> ClipOptimization:
     """Optimise a warm-started clip ``q (B, T, nq)`` over all frames at once (module doc).
 
     Args:
@@ -334,7 +406,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         keypoint_weights: optional ``(K,)`` position weights (the mapping's).
         costs: weights overriding :data:`COSTS` by name.
         iterations: Levenberg–Marquardt iterations (each one solve and one FK pass; 0 returns the warm
-            start, clamped to the limits).
+            start, clamped to the limits and raised onto the ground where a sole is below it).
         limit_margin: keep the hinges this far inside their limits (rad or m) where the cost allows.
         damping: the initial damping λ (relative to the mean diagonal of JᵀJ).
         solver: ``"banded"``, the exact block-banded Cholesky solve (a loop over T), or ``"cg"``,
@@ -346,6 +418,13 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         velocity_limit: optional q̇_max of the scalar joints (hinges: rad/s, slides: m/s): a number for
             every one, ``(n_scalar,)`` in the chain's joint order, or ``{joint name: limit}`` (others
             free); kept as a hard constraint (module doc). None: no limit.
+        collision: optional :class:`~diffkin.collision.RobotCollision` of ``chain`` (e.g.
+            :func:`~diffkin.retarget.g1_collision`): its self pairs are kept ``collision_margin`` (m) apart
+            (rows ``collision``); the pairs within ``collision_margin + collision_screen`` of each other in
+            some frame of the warm start are screened in, the others not evaluated; after the iterations the
+            screen is redone on the result, and where it finds pairs it had left out, they are added and
+            ``iterations`` more run (at most twice; :mod:`~diffkin.retarget.self_collision`). None (the
+            default): no self-collision rows.
 
     Returns a :class:`ClipOptimization`.
     """
@@ -391,20 +470,25 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
     if bool((kw < 0).any()):
         raise OptionError("expected keypoint_weights >= 0")
     q = q.detach()
+    collision_margin = check_number(collision_margin, "collision_margin", positive=False)
+    collision_screen = check_number(collision_screen, "collision_screen", positive=False)
+    rows = None if collision is None else SelfCollisionRows(collision, chain, q, collision_margin,
+                                                            collision_screen)
     vmax = _velocity_limits(chain, velocity_limit, q)
     R_d, ow = _orientation_targets(orientations, orientation_weights, (B, T, len(frames)), q)
     terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
-                   limit_margin, vmax, R_d, ow)
+                   limit_margin, vmax, R_d, ow, rows)
     q = terms.project(q)
     with torch.no_grad():
         cur = terms.evaluate(q)
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
         history = [cur[0]]
-        eye = torch.eye(chain.nv, dtype=q.dtype, device=q.device)
-        for _ in range(iterations):
+        rounds = 1 if rows is None else 3  # with collision: re-screened after a round (module self_collision)
+        for k in range(iterations * rounds):
             cost, D, E, F, g = cur
             scale = torch.diagonal(D, dim1=-2, dim2=-1).mean((-1, -2))  # (B,): λ relative to the curvature
-            Dl = D + (lam * scale)[:, None, None, None] * eye
+            Dl = D.clone()  # D + λ s I: a copy, its diagonal raised (no full-size product with I)
+            Dl.diagonal(dim1=-2, dim2=-1).add_((lam * scale)[:, None, None])
             if solver == "cg":
                 step = -block_banded_cg(Dl, E, F, g, cg_iterations)
             else:
@@ -418,4 +502,10 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                         for k, (a, b) in enumerate(zip(cur, new)))
             lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
             history.append(cur[0])
+            if rows is not None and (k + 1) % iterations == 0:
+                if k + 1 == iterations * rounds or not rows.extend(q):  # no pair came near unscreened
+                    break
+                cur = terms.evaluate(q)  # the cost with the pairs added
+    if chain.joint_kinds and chain.joint_kinds[0] == "free":  # no sole below the ground, exactly
+        q = lift_above_ground(chain, q, feet, terms.sole_list, ground)
     return ClipOptimization(q, torch.stack(history))

@@ -1,0 +1,224 @@
+/* The frame terms of the whole-clip retargeting problem (diffkin/retarget/whole_clip.py, _Terms.evaluate;
+ * included by _native.c once per real type, like _native_banded.c): for every frame n of N = B T frames, from
+ * its end-link poses Tf (E x 4 x 4) and geometric Jacobians J (E x 6 x nv) (dk_fk's outputs), the rows
+ *
+ *     keypoint        w_k (p_k - x_k),                 w_k J_v
+ *     orientation     w_o e_O (3.85),                  -w_o L J_w (3.87),  L = -1/2 sum_i S(d_i) S(e_i)
+ *     contact height  w_c (z_lowest - r - ground),     w_c J_z(lowest point)         (foot in contact)
+ *     penetration     w_p (z_p - r_p - ground),        w_p J_z(p)                    (every point below)
+ *     flat foot       w_f (R e_z)_xy,                  w_f (-S(R e_z) J_w)_xy         (foot in contact)
+ *
+ * (a sole point's Jacobian J_v + w x off, (3.112)) enter cost_n = 1/2 |r|^2, D_n = J^T J and g_n = J^T r;
+ * then the skating rows of consecutive contact frames of one clip, w_s (c_n - c_{n-1})_xy on the sole centres
+ * c, add to cost_n, g_n, D_n (the diagonal part, each frame's centre Jacobian weighted by the root of its two
+ * pairs' summed squared weights) and give E_n = -sum w_s^2 Jc_n^T Jc_{n-1} (the first sub-diagonal block).
+ * The rows of one end link only touch the columns its Jacobian has non-zeros in (the floating base and its
+ * ancestors): they are packed on those columns, their Gram matrix formed there and scattered into D_n.
+ * Frames are shared between threads (pass 1), then the skating pass reads the neighbours' centres. */
+
+/* Columns (of nv) where some of the 6 rows of J (6 x nv) is non-zero; returns their count. */
+static int64_t DK(support)(const real *J, int64_t nv, int64_t *cols) {
+    int64_t s = 0;
+    for (int64_t c = 0; c < nv; c++) {
+        int nz = 0;
+        for (int a = 0; a < 6; a++) nz |= J[a * nv + c] != 0;
+        if (nz) cols[s++] = c;
+    }
+    return s;
+}
+
+/* The m rows R (m x nv) and residuals r of one end link into the frame's D (upper triangle), g and cost, on
+ * the s columns cols: the rows packed on them (P, m x s), their Gram matrix G = P^T P (s x s, rank-one
+ * updates of contiguous rows) scattered into D[cols, cols]. */
+static void DK(clip_gram)(const real *R, const real *r, int64_t m, const int64_t *cols, int64_t s, int64_t nv,
+                          real *P, real *G, real *D, real *g, real *cost) {
+    for (int64_t i = 0; i < m; i++) {
+        for (int64_t a = 0; a < s; a++) P[i * s + a] = R[i * nv + cols[a]];
+        *cost += (real)0.5 * r[i] * r[i];
+        for (int64_t a = 0; a < s; a++) g[cols[a]] += P[i * s + a] * r[i];
+    }
+    memset(G, 0, (size_t)(s * s) * sizeof(real));
+    for (int64_t i = 0; i < m; i++) {
+        const real *p = P + i * s;
+        for (int64_t a = 0; a < s; a++) {
+            const real pa = p[a];
+            real *Ga = G + a * s;
+#pragma omp simd
+            for (int64_t b = 0; b < s; b++) Ga[b] += pa * p[b];
+        }
+    }
+    for (int64_t a = 0; a < s; a++) {
+        real *Da = D + cols[a] * nv;
+        for (int64_t b = a; b < s; b++) Da[cols[b]] += G[a * s + b];
+    }
+}
+
+static void DK(clip_frame)(const dk_clip *c, int64_t n, real *rows, real *res, real *packed, real *gram,
+                           int64_t *cols) {
+    const int64_t nv = c->nv, E = c->ends, nn = nv * nv;
+    const real *Tn = (const real *)c->Tf + n * E * 16, *Jn = (const real *)c->J + n * E * 6 * nv;
+    const real *x = (const real *)c->x + n * c->K * 3, *Rd = (const real *)c->Rd + n * c->Ko * 9;
+    const real *kw = (const real *)c->kp_w, *ow = (const real *)c->ko_w;
+    const real *pts = (const real *)c->pts, *rad = (const real *)c->rad;
+    const uint8_t *con = c->contact + n * 2;
+    real *D = (real *)c->D + n * nn, *g = (real *)c->g + n * nv, *ctr = (real *)c->centre + n * 4;
+    real *Jc = (real *)c->centre_jac + n * 4 * nv;
+    real cost = 0;
+    memset(D, 0, nn * sizeof(real));
+    memset(g, 0, nv * sizeof(real));
+    for (int64_t e = 0; e < E; e++) {
+        const real *T = Tn + e * 16, *Je = Jn + e * 6 * nv, *Jw = Je + 3 * nv;
+        int64_t m = 0;
+        for (int64_t k = 0; k < c->K; k++) { /* keypoints */
+            if (c->kp[k] != e) continue;
+            for (int a = 0; a < 3; a++, m++) {
+                res[m] = kw[k] * (T[4 * a + 3] - x[3 * k + a]);
+                for (int64_t v = 0; v < nv; v++) rows[m * nv + v] = kw[k] * Je[a * nv + v];
+            }
+        }
+        for (int64_t o = 0; o < c->Ko; o++) { /* orientations: e_O (3.85), -L J_w (3.87) */
+            if (c->ko[o] != e) continue;
+            const real *d = Rd + 9 * o; /* row-major: column i of R_d is d[3 j + i] */
+            real eo[3] = {0, 0, 0}, L[9] = {0}, dot = 0;
+            for (int i = 0; i < 3; i++) {
+                const real di[3] = {d[i], d[3 + i], d[6 + i]}, ei[3] = {T[i], T[4 + i], T[8 + i]};
+                eo[0] += ei[1] * di[2] - ei[2] * di[1];
+                eo[1] += ei[2] * di[0] - ei[0] * di[2];
+                eo[2] += ei[0] * di[1] - ei[1] * di[0];
+                for (int a = 0; a < 3; a++) /* S(d) S(e) = e d^T - (d . e) I */
+                    for (int b = 0; b < 3; b++) L[3 * a + b] += ei[a] * di[b];
+                dot += di[0] * ei[0] + di[1] * ei[1] + di[2] * ei[2];
+            }
+            for (int a = 0; a < 3; a++) L[4 * a] -= dot;
+            for (int a = 0; a < 3; a++, m++) {
+                res[m] = ow[o] * (real)0.5 * eo[a];
+                /* -w_o L J_w with L = -1/2 (sum S(d)S(e)): +w_o / 2 (sum S(d)S(e)) J_w */
+                const real f = ow[o] * (real)0.5;
+                for (int64_t v = 0; v < nv; v++)
+                    rows[m * nv + v] = f * (L[3 * a] * Jw[v] + L[3 * a + 1] * Jw[nv + v] + L[3 * a + 2] * Jw[2 * nv + v]);
+            }
+        }
+        for (int k = 0; k < 2; k++) { /* the soles */
+            if (c->feet[k] != e) continue;
+            const int64_t P = k ? c->P1 : c->P0, first = k ? c->P0 : 0;
+            const real *pk = pts + 3 * first, *rk = rad + first;
+            int64_t low = 0;
+            real hlow = 0, mean[3] = {0, 0, 0};
+            for (int64_t p = 0; p < P; p++) { /* the lowest point (the first of equals, as argmin) */
+                real off[3];
+                for (int a = 0; a < 3; a++) {
+                    off[a] = T[4 * a] * pk[3 * p] + T[4 * a + 1] * pk[3 * p + 1] + T[4 * a + 2] * pk[3 * p + 2];
+                    mean[a] += off[a];
+                }
+                const real h = off[2] + T[11] - rk[p] - (real)c->ground;
+                if (p == 0 || h < hlow) low = p, hlow = h;
+                if (h < 0 && c->w_pen != 0) { /* penetration */
+                    res[m] = (real)c->w_pen * h;
+                    for (int64_t v = 0; v < nv; v++)
+                        rows[m * nv + v] = (real)c->w_pen * (Je[2 * nv + v] + Jw[v] * off[1] - Jw[nv + v] * off[0]);
+                    m++;
+                }
+            }
+            for (int a = 0; a < 3; a++) mean[a] /= (real)P;
+            if (con[k]) {
+                real off[3];
+                for (int a = 0; a < 3; a++)
+                    off[a] = T[4 * a] * pk[3 * low] + T[4 * a + 1] * pk[3 * low + 1] + T[4 * a + 2] * pk[3 * low + 2];
+                const real wc = (real)c->w_contact, wf = (real)c->w_flat;
+                res[m] = wc * hlow;
+                for (int64_t v = 0; v < nv; v++)
+                    rows[m * nv + v] = wc * (Je[2 * nv + v] + Jw[v] * off[1] - Jw[nv + v] * off[0]);
+                m++;
+                const real nx = T[2], ny = T[6], nz = T[10]; /* R e_z */
+                res[m] = wf * nx;
+                for (int64_t v = 0; v < nv; v++) rows[m * nv + v] = wf * (nz * Jw[nv + v] - ny * Jw[2 * nv + v]);
+                m++;
+                res[m] = wf * ny;
+                for (int64_t v = 0; v < nv; v++) rows[m * nv + v] = wf * (nx * Jw[2 * nv + v] - nz * Jw[v]);
+                m++;
+            }
+            /* the sole centre (x, y) and its Jacobian rows: J_v + w x (mean offset) */
+            ctr[2 * k] = mean[0] + T[3];
+            ctr[2 * k + 1] = mean[1] + T[7];
+            real *jx = Jc + (2 * k) * nv, *jy = jx + nv;
+            for (int64_t v = 0; v < nv; v++) {
+                jx[v] = Je[v] + Jw[nv + v] * mean[2] - Jw[2 * nv + v] * mean[1];
+                jy[v] = Je[nv + v] + Jw[2 * nv + v] * mean[0] - Jw[v] * mean[2];
+            }
+        }
+        if (m) {
+            const int64_t s = DK(support)(Je, nv, cols);
+            DK(clip_gram)(rows, res, m, cols, s, nv, packed, gram, D, g, &cost);
+        }
+    }
+    ((real *)c->cost)[n] = cost;
+}
+
+/* The skating rows of frame n (t = n mod T): its pair with n - 1 and with n + 1, then D_n mirrored. */
+static void DK(clip_skate)(const dk_clip *c, int64_t n, int64_t *cols) {
+    const int64_t nv = c->nv, nn = nv * nv, t = n % c->T;
+    const uint8_t *con = c->contact;
+    const real *ctr = (const real *)c->centre, *Jc = (const real *)c->centre_jac;
+    real *D = (real *)c->D + n * nn, *En = (real *)c->E + n * nn, *g = (real *)c->g + n * nv;
+    real cost = 0;
+    memset(En, 0, nn * sizeof(real));
+    for (int k = 0; k < 2; k++) {
+        const real w = (real)c->w_skate;
+        const real prev = (t >= 1 && con[2 * n + k] && con[2 * (n - 1) + k]) ? w : 0;
+        const real next = (t + 1 < c->T && con[2 * n + k] && con[2 * (n + 1) + k]) ? w : 0;
+        const real *J0 = Jc + (n * 4 + 2 * k) * nv; /* rows x, y of frame n's centre */
+        real rp[2] = {0, 0}, rn[2] = {0, 0};
+        for (int a = 0; a < 2; a++) {
+            if (prev != 0) rp[a] = prev * (ctr[4 * n + 2 * k + a] - ctr[4 * (n - 1) + 2 * k + a]);
+            if (next != 0) rn[a] = next * (ctr[4 * (n + 1) + 2 * k + a] - ctr[4 * n + 2 * k + a]);
+            cost += (real)0.5 * rp[a] * rp[a];
+            for (int64_t v = 0; v < nv; v++) g[v] += J0[a * nv + v] * (prev * rp[a] - next * rn[a]);
+        }
+        const real wd = prev * prev + next * next;
+        if (wd == 0) continue;
+        int64_t s = 0; /* the columns where a centre row of frame n or n - 1 is non-zero */
+        const real *J1 = prev != 0 ? Jc + ((n - 1) * 4 + 2 * k) * nv : J0;
+        for (int64_t v = 0; v < nv; v++)
+            if (J0[v] != 0 || J0[nv + v] != 0 || J1[v] != 0 || J1[nv + v] != 0) cols[s++] = v;
+        for (int a = 0; a < 2; a++)
+            for (int64_t i = 0; i < s; i++) {
+                const real f = wd * J0[a * nv + cols[i]];
+                real *Di = D + cols[i] * nv;
+                for (int64_t j = i; j < s; j++) Di[cols[j]] += f * J0[a * nv + cols[j]];
+            }
+        if (prev != 0) /* E_n = -w^2 Jc_n^T Jc_{n-1} */
+            for (int a = 0; a < 2; a++)
+                for (int64_t i = 0; i < s; i++) {
+                    const real f = prev * prev * J0[a * nv + cols[i]];
+                    real *Ei = En + cols[i] * nv;
+                    for (int64_t j = 0; j < s; j++) Ei[cols[j]] -= f * J1[a * nv + cols[j]];
+                }
+    }
+    ((real *)c->cost)[n] += cost;
+    for (int64_t i = 0; i < nv; i++)
+        for (int64_t j = 0; j < i; j++) D[i * nv + j] = D[j * nv + i];
+}
+
+/* Work space per thread: rows and residuals of one end link (rows_max x nv, rows_max), packed rows
+ * (rows_max x nv), their Gram matrix (nv x nv), the support columns (nv). */
+static int64_t DK(clip_rows)(const dk_clip *c) {
+    const int64_t nv = c->nv, N = c->N;
+    const int64_t rows_max = 3 * (c->K + c->Ko) + c->P0 + c->P1 + 6;
+    const size_t reals = (size_t)(2 * rows_max * nv + rows_max + nv * nv);
+    const size_t per = reals * sizeof(real) + (size_t)nv * sizeof(int64_t);
+    int64_t nth = c->nthreads < 1 ? 1 : c->nthreads;
+    if (nth > N) nth = N > 0 ? N : 1;
+    char *work = malloc(per * (size_t)nth);
+    if (!work) return -1;
+#pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
+    for (int64_t n = 0; n < N; n++) {
+        real *rows = (real *)(work + per * (size_t)thread_id()), *packed = rows + rows_max * nv;
+        real *res = packed + rows_max * nv, *gram = res + rows_max;
+        DK(clip_frame)(c, n, rows, res, packed, gram, (int64_t *)(rows + reals));
+    }
+#pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
+    for (int64_t n = 0; n < N; n++)
+        DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals));
+    free(work);
+    return 0;
+}
