@@ -145,7 +145,7 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
-def _plan_records(problems, chunk: int = 100, iterations: int = 300, step: float = 2.0, recheck: int = 5,
+def _plan_records(problems, chunk: int = 700, iterations: int = 30000, step: float = 0.5, recheck: int = 5,
                   seed: int = 0, optimize: bool = False) -> tuple[list[dict], float]:
     """``motion.plan`` on ``problems`` in batched calls of ``chunk`` (module docstring, ``--plan``): one
     record per problem (``family``, ``valid``, ``success``, ``duration`` [s], ``length`` (joint-space length
@@ -212,7 +212,7 @@ def _max_jerk(res, dt: float = 1e-3, window: int = 1000) -> torch.Tensor:
     return best
 
 
-def plan_rows(problems, chunk: int = 100, iterations: int = 300, step: float = 2.0, recheck: int = 5,
+def plan_rows(problems, chunk: int = 700, iterations: int = 30000, step: float = 0.5, recheck: int = 5,
               seed: int = 0, optimize: bool = False) -> list[dict]:
     """The ``--plan`` rows (module docstring): one per family and a total."""
     import numpy as np
@@ -247,18 +247,99 @@ def _by_family(records) -> dict[str, list[dict]]:
     return dict(sorted(out.items()))
 
 
-def _search_stage(chain, model, world, qs, qg, iterations: int, step: float, seed: int) -> torch.Tensor:
-    """``motion.plan``'s search stage alone (stage 3 of its docstring, as ``plan`` calls it: the continuous
-    edge checker at ``plan``'s default resolution, margin 0, then RRT-Connect) -> ``found (B,)``. No goal IK,
-    start/goal checks, shortcutting, smoothing or timing."""
+def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
+                  seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``motion.plan``'s search stage alone, as ``plan`` runs it: per-row validity with its resolution ladder
+    (the continuous edge checker at ``plan``'s default resolution, margin 0), then the C RRT-Connect and its
+    shortcutting (:mod:`diffkin.motion._native_search`) -> ``found``, ``valid`` (B,) bool and ``checked`` (B,)
+    configurations decided. No goal IK, smoothing or timing."""
     from diffkin.motion._edges import EdgeChecker
-    from diffkin.motion._search import search
+    from diffkin.motion._native_search import search_native
+    from diffkin.motion.plan import _row_resolution
 
     lim = chain.q_limits.to(qs.dtype)
     checker = EdgeChecker(model, world, 0.0, 0.005)
     rows = torch.arange(qs.shape[0])
-    return search(checker, qs, qg, lim[:, 0], lim[:, 1], rows, max_iterations=iterations, step=step,
-                  generator=torch.Generator().manual_seed(seed))[2]
+    eta, a, b = _row_resolution(checker, qs, qg, rows)
+    valid = a & b
+    v = rows[valid]
+    found = torch.zeros(qs.shape[0], dtype=torch.bool)
+    checked = torch.zeros(qs.shape[0], dtype=torch.int64)
+    if v.numel():
+        out = search_native(checker, qs[v], qg[v], lim[:, 0], lim[:, 1], v, eta[v], max_iterations=iterations,
+                            step=step, shortcut_tries=64, seed=seed)
+        found[v], checked[v] = out[2], out[3]["checked"]
+    return found, valid, checked
+
+
+def search_rows(problems, iterations: int = 30000, step: float = 0.5, single: int = 10,
+                seed: int = 0) -> list[dict]:
+    """The ``--search`` rows: the search stage alone (:func:`_search_stage`), all problems in one call (their
+    threads over the cores); then ``single`` problems per family one at a time on one thread: the search
+    stage and the whole ``motion.plan`` (smoothing and timing included), median milliseconds. Per family:
+    valid problems, paths found, configurations decided."""
+    import time
+
+    import numpy as np
+
+    from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V
+    from diffkin import motion
+    from diffkin.collision import World
+
+    rc = robot_model("spherized").requires_grad_(False)
+    chain = rc.chain
+    model = rc.allow_collisions(problems[0].scene.allowed)
+
+    def stage(part):
+        worlds = World.stack([p.scene.to_world(dtype=F64) for p in part])
+        qs = torch.tensor([p.start for p in part], dtype=F64)
+        qg = torch.tensor([p.goal for p in part], dtype=F64)
+        t0 = time.perf_counter()
+        found, valid, checked = _search_stage(chain, model, worlds, qs, qg, iterations, step, seed)
+        return time.perf_counter() - t0, valid, found, checked, (qs, qg, worlds)
+
+    total, valid, found, checked, _ = stage(problems)
+    out: dict[str, dict] = {}
+    for k, p in enumerate(problems):
+        c = out.setdefault(p.family, {"problems": 0, "valid": 0, "found": 0, "checked": []})
+        c["problems"] += 1
+        c["valid"] += int(valid[k])
+        c["found"] += int(found[k])
+        c["checked"].append(int(checked[k]))
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    one_search, one_plan = defaultdict(list), defaultdict(list)
+    try:
+        seen: dict = defaultdict(int)
+        for p in problems:
+            seen[p.family] += 1
+            if seen[p.family] > single:
+                continue
+            dt, _, _, _, (qs, qg, world) = stage([p])
+            one_search[p.family].append(1e3 * dt)
+            t0 = time.perf_counter()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                motion.plan(chain, qs, qg, collision=model, world=world, velocity_limit=FRANKA_V,
+                            acceleration_limit=FRANKA_A, jerk_limit=FRANKA_J, max_iterations=iterations,
+                            step=step, seed=seed)
+            one_plan[p.family].append(1e3 * (time.perf_counter() - t0))
+    finally:
+        torch.set_num_threads(threads)
+    rows = [{"benchmark": "motion_search", "family": f, "problems": c["problems"], "valid": c["valid"],
+             "found": c["found"], "checked_median": float(np.median(c["checked"])),
+             "one_search_ms_median": float(np.median(one_search[f])) if one_search[f] else float("nan"),
+             "one_plan_ms_median": float(np.median(one_plan[f])) if one_plan[f] else float("nan")}
+            for f, c in sorted(out.items())]
+    every_s = [m for v in one_search.values() for m in v]
+    every_p = [m for v in one_plan.values() for m in v]
+    rows.append({"benchmark": "motion_search", "family": "all", "problems": len(problems),
+                 "valid": int(valid.sum()), "found": int(found.sum()), "search_all_s": total,
+                 "checked_median": float(np.median(checked.numpy())),
+                 "one_search_ms_median": float(np.median(every_s)) if every_s else float("nan"),
+                 "one_plan_ms_median": float(np.median(every_p)) if every_p else float("nan"),
+                 "iterations": iterations, "step": step, "single_per_family": single})
+    return rows
 
 
 def _one_at_a_time(problems, iterations: int, step: float, seed: int, ompl_time: float) -> list[dict]:
@@ -286,7 +367,7 @@ def _one_at_a_time(problems, iterations: int, step: float, seed: int, ompl_time:
                               acceleration_limit=FRANKA_A, jerk_limit=FRANKA_J, max_iterations=iterations,
                               step=step, seed=seed)
             t1 = time.perf_counter()
-            found = _search_stage(chain, model, world, qs, qg, iterations, step, seed)
+            found = _search_stage(chain, model, world, qs, qg, iterations, step, seed)[0]
             t2 = time.perf_counter()
         r = {"family": p.family, "name": p.name, "valid": "in collision" not in res.reason[0],
              "success": bool(res.success[0]), "plan_s": t1 - t0, "found": bool(found[0]), "search_s": t2 - t1,
@@ -298,7 +379,7 @@ def _one_at_a_time(problems, iterations: int, step: float, seed: int, ompl_time:
     return records
 
 
-def compare_rows(problems, subset: int = 5, iterations: int = 300, step: float = 2.0, recheck: int = 2,
+def compare_rows(problems, subset: int = 5, iterations: int = 30000, step: float = 0.5, recheck: int = 2,
                  ompl_time: float = 1.0, seed: int = 0) -> list[dict]:
     """The ``--compare`` table (module docstring): diffkin (all problems in one call; one at a time on the
     first ``subset`` of each family), VAMP and OMPL in one run, a row per method and family."""
@@ -530,9 +611,13 @@ def main(argv=None) -> int:
                    help="exact: the scenes' cylinders as exact cylinders; capsules: as their enclosing "
                    "capsules")
     p.add_argument("--plan", action="store_true", help="plan every problem (module docstring)")
-    p.add_argument("--chunk", type=int, default=100)
-    p.add_argument("--iterations", type=int, default=300)
-    p.add_argument("--step", type=float, default=2.0)
+    p.add_argument("--search", action="store_true",
+                   help="the search stage alone, batched and one at a time (search_rows)")
+    p.add_argument("--single", type=int, default=10,
+                   help="--search: problems per family planned one at a time")
+    p.add_argument("--chunk", type=int, default=700)
+    p.add_argument("--iterations", type=int, default=30000)
+    p.add_argument("--step", type=float, default=0.5)
     p.add_argument("--recheck", type=int, default=5)
     p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")
     p.add_argument("--ompl-time", type=float, default=1.0)
@@ -562,10 +647,10 @@ def main(argv=None) -> int:
         if a.json:
             write_json(a.json, rows)
         return 0
-    if known.plan or known.ompl:
+    if known.plan or known.ompl or known.search:
         def both(a):
             problems = load_problems(families=a.families, indices=a.indices)
-            rows = []
+            rows = search_rows(problems, a.iterations, a.step, a.single) if a.search else []
             for opt in ((False, True) if a.optimize else (False,)) if a.plan else ():
                 rows += [{**r, "optimize": opt} for r in plan_rows(problems, a.chunk, a.iterations, a.step,
                                                                    a.recheck, optimize=opt)]

@@ -257,6 +257,9 @@ def test_a_spline_leaving_the_limits_is_not_taken():
         def clear(self, q, problem):
             return torch.ones(q.shape[:-1], dtype=torch.bool)
 
+        def eta_of(self, problem):
+            return torch.full(problem.shape, self.eta, dtype=torch.float64)
+
     path = torch.tensor([[[0.0], [1.0], [1.0], [0.2]]], dtype=torch.float64)
     knots = torch.tensor([[0.0, 1.0, 2.0, 3.0]], dtype=torch.float64)
     from scipy.interpolate import CubicSpline
@@ -271,9 +274,11 @@ def test_a_spline_leaving_the_limits_is_not_taken():
         assert bool(_spline_clear(Clear(), path, knots, lo, limit, one)) == inside
 
 
-def test_plan_one_scene_per_problem_in_one_call():
+@pytest.mark.parametrize("search_in_c", [True, False])
+def test_plan_one_scene_per_problem_in_one_call(search_in_c):
     """Two MotionBenchMaker problems (VAMP's files, the spherized Panda) in one call with their scenes
-    stacked (``World.stack``, the C decisions with one world per configuration): both succeed, and every
+    stacked (``World.stack``, the C decisions with one world per configuration), searched in C or in torch
+    (the same success semantics): both succeed, and every
     10 ms sample keeps d >= 0 in its own scene by the closed-form torch distances (boxes, cylinders)."""
     from benchmarks import motion_problems as mp
     from diffkin.collision.boxes import sphere_box
@@ -288,7 +293,7 @@ def test_plan_one_scene_per_problem_in_one_call():
     qg = torch.tensor([p.goal for p in probs], dtype=torch.float64)
     v = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
     res = motion.plan(chain, qs, qg, collision=rc, world=World.stack(worlds), velocity_limit=v,
-                      acceleration_limit=10.0, max_iterations=300)
+                      acceleration_limit=10.0, max_iterations=300, search_in_c=search_in_c)
     assert res.success.all(), res.reason
     moving = ~torch.tensor(rc.fixed)
     for b, w in enumerate(worlds):  # the closed-form sphere-box and sphere-cylinder fields of the torch layer

@@ -107,6 +107,21 @@ class LinkFrames:
         ``q`` (CPU, no gradient, a chain of 1-DOF joints without mimic couplings): the chain's constants
         with every joint frame as an end link (no end transform, so the last frame is the joint's own).
         None elsewhere (the torch kernels)."""
+        made = self.native_frames_model(chain, q)
+        if made is None:
+            return None
+        packed, B = made
+        batch, n = q.shape[:-1], q.shape[-1]
+        T, _, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous())
+        if bad:
+            check_finite(q, "q")
+        F = torch.cat((B.expand(T.shape[0], 1, 4, 4), T), 1)
+        return F.reshape(*batch, *F.shape[1:])
+
+    def native_frames_model(self, chain, q: Tensor):
+        """``(NativeModel, base (4, 4))`` of :meth:`_native_frames` where the fused C FK serves ``q``: the
+        chain's constants with every joint frame as an end link (frames 1.. of :meth:`frames`; frame 0 is
+        ``base``); None elsewhere. The planner's C search places its geoms with it."""
         if chain._topo.coupled or any(chain._topo.spherical) or chain._native_model(q) is None:
             return None
         data = cache.current(chain)  # the Data _native_model has just checked; the pack is kept on it
@@ -117,13 +132,8 @@ class LinkFrames:
             ends = [None] * topo.n_frames
             packed = data.extra["all_frames"] = native.NativeModel(
                 topo, Segments(seg.pre, seg.offset, seg.post, seg.base, ends))
-        batch, n = q.shape[:-1], q.shape[-1]
-        T, _, bad = native.fk_jacobian(packed, q.reshape(-1, n).contiguous())
-        if bad:
-            check_finite(q, "q")
         B = torch.eye(4, dtype=q.dtype) if stacked.base is None else stacked.base.to(q.dtype)
-        F = torch.cat((B.expand(T.shape[0], 1, 4, 4), T), 1)
-        return F.reshape(*batch, *F.shape[1:])
+        return packed, B
 
     def poses(self, chain, q: Tensor) -> Tensor:
         """``(..., L, 4, 4)``: the pose of every link of ``links`` in the base frame of the chain's world."""

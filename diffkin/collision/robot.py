@@ -470,6 +470,32 @@ class RobotCollision(nn.Module):
         from ..kernels import native
 
         ok = torch.ones(A.shape[-1], dtype=torch.bool, device=A.device)
+        objects, hs, skip_r, skip_h, extra, left, points = self._native_inputs(world, margin, slack, skip,
+                                                                                world_index, A)
+        done = native.capsules_clear(A, B, r, self._pairs_00, objects, hs, skip_r, skip_h, margin, slack, ok,
+                                     **extra)
+        if not done:
+            return None
+        if left:
+            if world_index is not None:
+                return None
+            # what C left: every kind named in ``left`` (cylinders: the proper segments only)
+            decided = torch.zeros(len(r), len(world), dtype=torch.bool, device=A.device)
+            for k, cols in zip(("capsule", "box", "halfspace", "cylinder"), world._kind_columns(A.device)):
+                if k not in left:
+                    decided[:, cols] = True
+                elif k == "cylinder":
+                    decided[:, cols] = points[:, None]
+            rest = decided if skip is None else decided | skip
+            ok &= world_clear(A, B, r, world, margin, slack, rest, kinds=left)
+        return ok
+
+    def _native_inputs(self, world: World | None, margin: float, slack: float, skip: Tensor | None,
+                       world_index: Tensor | None, like: Tensor) -> tuple:
+        """The world arguments of :func:`~diffkin.kernels.native.capsules_clear` for :meth:`_clear_native`
+        ``(objects, halfspaces, skip_round, skip_half, extra keywords, left, points)``: ``left`` names the
+        world kinds the C pass leaves to torch, ``points (G_c,)`` the sphere capsules."""
+        A = like
         points = (self.capsule_a.detach() == self.capsule_b.detach()).all(-1)  # (G_c,): the spheres
         extra: dict = {}
         if world is None:
@@ -493,23 +519,7 @@ class RobotCollision(nn.Module):
             left = [k for k, args in world.blocks() if args[0].shape[-2] and (
                 pair("capsule", k)[0].native is None or (k == "box" and not boxes_here)
                 or (pair("capsule", k)[0].native == NATIVE_CLEAR_SPHERES and not bool(points.all())))]
-        done = native.capsules_clear(A, B, r, self._pairs_00, objects, hs, skip_r, skip_h, margin, slack, ok,
-                                     **extra)
-        if not done:
-            return None
-        if left:
-            if world_index is not None:
-                return None
-            # what C left: every kind named in ``left`` (cylinders: the proper segments only)
-            decided = torch.zeros(len(r), len(world), dtype=torch.bool, device=A.device)
-            for k, cols in zip(("capsule", "box", "halfspace", "cylinder"), world._kind_columns(A.device)):
-                if k not in left:
-                    decided[:, cols] = True
-                elif k == "cylinder":
-                    decided[:, cols] = points[:, None]
-            rest = decided if skip is None else decided | skip
-            ok &= world_clear(A, B, r, world, margin, slack, rest, kinds=left)
-        return ok
+        return objects, hs, skip_r, skip_h, extra, left, points
 
     def _world_skip(self, world: World, keep_world: Tensor | None) -> Tensor | None:
         """``(G_c, W)`` bool, capsule-major rows and the world's columns: the entries :meth:`_kept` leaves

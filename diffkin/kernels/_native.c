@@ -25,7 +25,8 @@
  * for the fixed transforms, and one FK call's inputs and outputs) for dk_fk and as the chain of every other
  * entry; dk_solve_args (DK_SOLVE_FIELDS, _native_solve.c's: the chain's address, the LM constants, the
  * solve's inputs and outputs) for dk_solve and dk_solve_one; dk_watch (DK_WATCH_FIELDS) for the cache checks; dk_collide
- * (DK_COLLIDE_FIELDS) for dk_collide_clear; dk_vel (_native_velocity.c). Each struct starts with its own
+ * (DK_COLLIDE_FIELDS) for dk_collide_clear; dk_vel (_native_velocity.c); dk_plan (_native_plan.c: the planner's
+ * RRT-Connect). Each struct starts with its own
  * version and its size: DK_LAYOUT exports dk_layout_<tag>() (version, sizeof, every field's offset) and
  * dk_names_<tag>() (the field names), which native.py checks at load for every struct, and every entry point
  * refuses a struct whose version or size is not this file's (DK_ABI_ERROR). A new solver option therefore
@@ -998,6 +999,7 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
 
 #include "_native_solve.c"
 #include "_native_collide.c"
+#include "_native_plan.c"
 #include "_native_velocity.c"
 #include "_native_banded.c"
 #include "_native_clip.c"

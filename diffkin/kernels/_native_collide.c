@@ -222,6 +222,8 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         for (int k = 0; k < 3; k++) {
             const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
             real lo = a[0], hi = a[0];
+            /* a reduction the compiler may reorder (min and max are exact in any order): vectorised */
+#pragma omp simd reduction(min : lo) reduction(max : hi)
             for (int l = 0; l < m; l++) {
                 const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
                 lo = x < lo ? x : lo;
@@ -231,7 +233,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         }
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
-    real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK];
+    real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
     for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
         if (!DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++) {

@@ -67,7 +67,7 @@ from .configuration import MOTION_NQ, MOTION_NV
 from .tree import Segments, Topology
 
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
-           "Collide", "capsules_clear",
+           "Collide", "capsules_clear", "collide_struct",
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows"]
@@ -75,6 +75,7 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
              Path(__file__).with_name("_native_collide.c"),
+             Path(__file__).with_name("_native_plan.c"),
              Path(__file__).with_name("_native_velocity.c"),
              Path(__file__).with_name("_native_banded.c"),
              Path(__file__).with_name("_native_clip.c"))
@@ -694,9 +695,24 @@ def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects
     dim (:meth:`~diffkin.collision.World.stack`) and ``world_index (N,)`` (long) the world of each
     configuration. One call of ``dk_collide_clear`` (``_native_collide.c``); False (nothing done) where the
     library is not loaded or the inputs are not CPU tensors of one float dtype."""
+    made = collide_struct(A, B, r, pairs, round_objects, halfspaces, skip_round, skip_half, margin, slack, ok,
+                          boxes=boxes, cylinders=cylinders, skip_box=skip_box, skip_cylinder=skip_cylinder,
+                          points=points, world_index=world_index)
+    return made is not None and _lib.dk_collide_clear(ctypes.byref(made[0])) == 0
+
+
+def collide_struct(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,
+                   skip_round: Tensor | None, skip_half: Tensor | None, margin: float, slack: float,
+                   ok: Tensor | None, *, boxes=None, cylinders=None, skip_box: Tensor | None = None,
+                   skip_cylinder: Tensor | None = None, points: Tensor | None = None,
+                   world_index: Tensor | None = None) -> tuple[Collide, list] | None:
+    """The :class:`Collide` of a :func:`capsules_clear` call (same arguments; ``ok`` None: no output) and the
+    tensors its addresses point into (keep them alive while it is used), or None where the library does not
+    serve the inputs (not loaded, not CPU tensors of one float dtype). The planner's C search
+    (``dk_plan_search``) takes it as the constants of its decisions."""
     dtype = A.dtype
     if not available() or A.device.type != "cpu" or dtype not in (torch.float32, torch.float64):
-        return False
+        return None
     real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
     empty = lambda *s: A.new_zeros(*s)  # noqa: E731
     wa, wb, wr = (real(t) for t in round_objects)
@@ -712,14 +728,14 @@ def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects
              for m in (skip_round, skip_half, skip_box, skip_cylinder, points)]
     wid = None if world_index is None else world_index.to(torch.int64).contiguous()
     ptr = lambda t: None if t is None or t.numel() == 0 else t.data_ptr()  # noqa: E731
-    okb = ok.view(torch.uint8)
+    okb = None if ok is None else ok.view(torch.uint8)
     c = new_struct(Collide, real_bytes=A.element_size(), N=A.shape[-1], G=A.shape[0], P=pairs.shape[0],
                    Wr=wa.shape[-2], H=hs.shape[-2],
                    nthreads=thread_count(A.shape[-1] * max(1, pairs.shape[0]) // 64),
                    A=A.data_ptr(), B=B.data_ptr(), r=ptr(keep[2]), pi=ptr(keep[3]), pj=ptr(keep[4]),
                    wa=ptr(wa), wb=ptr(wb), wr=ptr(wr), hs=ptr(hs), skip_r=ptr(skips[0]), skip_h=ptr(skips[1]),
-                   margin=float(margin), slack=float(slack), ok=okb.data_ptr(),
+                   margin=float(margin), slack=float(slack), ok=ptr(okb),
                    Wb=bc.shape[-2], Wy=ya.shape[-2], nw=nw, wid=ptr(wid), bc=ptr(bc), bR=ptr(bR), bh=ptr(bh),
                    ya=ptr(ya), yb=ptr(yb), yr=ptr(yr), skip_b=ptr(skips[2]), skip_y=ptr(skips[3]),
                    point=ptr(skips[4]))
-    return _lib.dk_collide_clear(ctypes.byref(c)) == 0
+    return c, [*keep, *skips, wid, okb]

@@ -97,15 +97,50 @@ class EdgeChecker:
 
     def __init__(self, collision, world, margin: float, resolution: float, chunk: int = 1 << 16):
         self.collision, self.world, self.margin, self.eta = collision, world, float(margin), float(resolution)
+        #: per problem its own resolution ``(B,)`` (:meth:`set_row_resolution`; None: ``eta`` for all)
+        self.row_eta: Tensor | None = None
         self.reach = joint_reach(collision)
         self.moving = bool(getattr(collision, "skip_fixed", False))
         self.chunk = chunk
         self.checked = 0  # configurations decided so far (a count for the benchmarks)
+        #: decide through the C planner's one-call decisions where they serve (False: the torch placement
+        #: and RobotCollision._clear, as on CUDA)
+        self.use_c = True
+        self._native: dict = {}
+
+    def native(self, like: Tensor):
+        """The C search's constants (:class:`~diffkin.motion._native_search.NativePlanner`) for tensors like
+        ``like``, made once per dtype; None where they do not serve."""
+        from ._native_search import NativePlanner
+
+        key = (like.dtype, like.device)
+        if key not in self._native:
+            self._native[key] = NativePlanner.make(self, like)
+        return self._native[key]
+
+    def set_row_resolution(self, eta: Tensor) -> None:
+        """Give problem b the resolution ``eta[b]`` (``(B,)``, each ≤ η): its edges are subdivided and its
+        samples decided with it (a start or goal closer than margin + η to an obstacle gets a finer one)."""
+        self.row_eta = eta
+
+    def eta_of(self, problem: Tensor) -> Tensor:
+        """The resolution ``(...,)`` of each ``problem (...,)``."""
+        if self.row_eta is None:
+            return torch.full(problem.shape, self.eta, dtype=self.reach.dtype, device=problem.device)
+        return self.row_eta[problem]
 
     def clear(self, q: Tensor, problem: Tensor, slack: float | None = None) -> Tensor:
-        """(...,) bool: every distance ≥ margin + ``slack`` (default η) at q (..., nq), each configuration in
-        the world of its ``problem`` (...,) (long; a batched world ``(B, ...)`` has one scene per problem,
-        an unbatched one serves all)."""
+        """(...,) bool: every distance ≥ margin + ``slack`` (default: each problem's resolution) at q
+        (..., nq), each configuration in the world of its ``problem`` (...,) (long; a batched world
+        ``(B, ...)`` has one scene per problem, an unbatched one serves all)."""
+        if slack is None and self.row_eta is not None:  # one decision per distinct resolution (a few)
+            idx = problem.expand(q.shape[:-1])
+            s = self.row_eta[idx]
+            out = torch.empty(q.shape[:-1], dtype=torch.bool, device=q.device)
+            for v in torch.unique(s).tolist():
+                m = s == v
+                out[m] = self.clear(q[m], idx[m], slack=v)
+            return out
         slack = self.eta if slack is None else slack
         flat = q.reshape(-1, q.shape[-1])
         self.checked += flat.shape[0]
@@ -113,15 +148,22 @@ class EdgeChecker:
             return torch.ones(q.shape[:-1], dtype=torch.bool, device=q.device)
         per_row = self.world is not None and len(self.world.batch_shape) > 0
         idx = problem.expand(q.shape[:-1]).reshape(-1)
+        planner = self.native(q) if self.use_c else None
+        if planner is not None:  # FK, placement and decisions in one C call
+            ok = planner.decide(flat, idx if per_row else None, slack)
+            if ok is not None:
+                return ok.reshape(q.shape[:-1])
         out = torch.cat([self.collision._clear(x, self.world, self.margin, slack, moving_only=self.moving,
                                                world_index=i if per_row else None)
                          for x, i in zip(flat.split(self.chunk), idx.split(self.chunk))])
         return out.reshape(q.shape[:-1])
 
-    def steps(self, dq: Tensor) -> Tensor:
-        """Sub-steps (...,) long for straight edges dq (..., nq): ceil(Σ R_j |Δq_j| / η), at least 1."""
+    def steps(self, dq: Tensor, problem: Tensor | None = None) -> Tensor:
+        """Sub-steps (...,) long for straight edges dq (..., nq) of problems ``problem`` (...,):
+        ceil(Σ R_j |Δq_j| / η_b), at least 1 (η_b: the problem's resolution; η without ``problem``)."""
         L = (dq.abs() * self.reach.to(dq.dtype)).sum(-1)
-        return torch.ceil(L / self.eta).clamp(min=1).long()
+        eta = self.eta if problem is None else self.eta_of(problem).to(dq.dtype)
+        return torch.ceil(L / eta).clamp(min=1).long()
 
     def edges(self, qa: Tensor, qb: Tensor, problem: Tensor, prefix: bool = False,
               block: int = 256) -> tuple[Tensor, Tensor]:
@@ -138,7 +180,7 @@ class EdgeChecker:
             z = qa.new_zeros(0)
             return z.bool(), z
         dev = qa.device
-        n = self.steps(qb - qa)
+        n = self.steps(qb - qa, problem)
         S = int(n.max()) + 1
         i = torch.arange(S, device=dev)
         if not prefix:

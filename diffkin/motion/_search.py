@@ -4,7 +4,8 @@ the proven step bound), all problems' edges of one iteration in one batched deci
 
 Trees are tensors ``(B, capacity, nq)`` with parent indices; one iteration extends, for every unsolved
 problem at once, tree A by one step of at most ``step`` (in the bound's metric: metres of geom travel)
-towards a random configuration, then tries to connect tree B to the new node by the longest clear prefix of
+towards a random configuration (as far as that edge is clear), then tries to connect tree B to the new
+node by the longest clear prefix of
 the straight edge (RRT-Connect's CONNECT, decided by one subdivided edge), then swaps the trees.
 """
 
@@ -48,10 +49,12 @@ def _trace(nodes: Tensor, parent: Tensor, leaf: Tensor) -> tuple[Tensor, Tensor]
 
 
 def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor, *,
-           max_iterations: int, step: float, generator: torch.Generator) -> tuple[Tensor, Tensor, Tensor]:
+           max_iterations: int, step: float, generator: torch.Generator,
+           goal_bias: float = 0.0) -> tuple[Tensor, Tensor, Tensor]:
     """Paths (B, L, nq) from q_start to q_goal (B, nq) of problems ``problem (B,)`` (the rows' scenes in the
     checker's world; rows padded with the goal), their waypoint counts (B,) and ``found (B,)``. Start and
-    goal must already be clear (rows where they are not stay unfound)."""
+    goal must already be clear (rows where they are not stay unfound). With probability ``goal_bias`` a
+    tree extends towards the other tree's root instead of a uniform sample."""
     B, nq = q_start.shape
     dev, dt = q_start.device, q_start.dtype
     w = checker.reach.to(dt)
@@ -81,12 +84,18 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         A, Bt = trees[a], trees[1 - a]
         r = len(rows)
         q_rand = lo + (hi - lo) * torch.rand(r, nq, generator=generator, dtype=dt, device="cpu").to(dev)
+        if goal_bias > 0:
+            towards = torch.rand(r, generator=generator, dtype=torch.float64).to(dev) < goal_bias
+            q_rand = torch.where(towards[:, None], Bt[0][rows, 0], q_rand)
         near = _nearest(A[0][rows], A[2][rows], q_rand, w)
         q_near = A[0][rows, near]
         d = q_rand - q_near
         L = (d.abs() * w).sum(-1)
         q_new = q_near + d * (step / L.clamp(min=step))[:, None]
-        ok, _ = checker.edges(q_near, q_new, pid[rows])
+        # EXTEND as far as the edge is clear (its clear prefix, as the C search): trees reach into passages
+        _, lam = checker.edges(q_near, q_new, pid[rows], prefix=True)
+        ok = lam > 0
+        q_new = q_near + lam[:, None] * (q_new - q_near)
         grow = rows[ok]
         if grow.numel():
             slot = A[2][grow]

@@ -5,13 +5,17 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
 
 1. **Goals**: joint goals as given, or pose goals solved by :func:`diffkin.ik.solve` with the collision model
    (seeded with the start).
-2. **Per-row checks**: the start and goal within the joint limits and clear of ``margin + resolution``
-   (the subdivision's slack, :mod:`diffkin.motion._edges`), the limits > 0: a failing row gets its
-   ``reason``; nothing is raised for the batch.
-3. **Search** (:mod:`diffkin.motion._search`): the straight edge first, then RRT-Connect vectorised over the
-   unsolved problems; every edge is checked by a subdivision whose joint step bounds the travel of every
-   geom point by ``resolution`` (so the continuous edge is clear of ``margin``).
-4. **Shortcutting**: random straight shortcuts between waypoints, each edge checked the same way.
+2. **Per-row checks**: the start and goal within the joint limits and clear of ``margin + η_b`` with η_b
+   the problem's resolution (the subdivision's slack, :mod:`diffkin.motion._edges`): ``resolution``, or
+   ``resolution / 2^k`` where a start or goal is closer than that to an obstacle; the limits > 0: a
+   failing row gets its ``reason``; nothing is raised for the batch.
+3. **Search**: the straight edge first, then RRT-Connect; in C on the CPU
+   (:mod:`diffkin.motion._native_search`: one problem per thread, problems over OpenMP threads), else in
+   torch vectorised over the unsolved problems (:mod:`diffkin.motion._search`; CUDA, no compiler). Every
+   edge is checked by a subdivision whose joint step bounds the travel of every geom point by the
+   problem's resolution (so the continuous edge is clear of ``margin``).
+4. **Shortcutting**: random straight shortcuts between waypoints, each edge checked the same way (in C with
+   the C search).
 5. **Geometric path**: the cubic spline through the waypoints (chord-length knots, zero path slope at both
    ends), checked continuously by the same bound (along its length in the bound's metric); a row whose
    spline leaves the clear region falls back to the checked polyline itself (a stop at every waypoint).
@@ -35,11 +39,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..errors import ConventionError, ShapeError
+from ..errors import ConventionError, OptionError, ShapeError
 from ..trajectories import Trajectory
 from ..trajectories.time_optimal import _Path, time_optimal
 from ..validation import check_count, check_number, shape_str, tensors
 from ._edges import EdgeChecker
+from ._native_search import search_native
 from ._search import search, shortcut
 from .optimize import OptimizeConfig, optimize_stage, sample_with
 
@@ -48,6 +53,34 @@ __all__ = ["MotionResult", "plan"]
 #: the jerk bound of the smoothing when no ``jerk_limit`` is given: this many times the acceleration limit
 #: per second (the motion still starts and ends with zero acceleration)
 DEFAULT_JERK_PER_ACCELERATION = 100.0
+#: a start or goal clear of margin + η / 2^k but not of margin + η gets the resolution η / 2^k for its whole
+#: problem, k ≤ ETA_LEVELS (η / 1024: 5 µm at the default 5 mm); closer ones fail as in collision
+ETA_LEVELS = 10
+#: shortcut attempts per path per round of ``shortcut_rounds``
+SHORTCUT_TRIES = 4
+
+
+def _row_resolution(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, rows: Tensor
+                    ) -> tuple[Tensor, Tensor, Tensor]:
+    """Each problem's resolution ``(B,)``: the largest η / 2^k (k ≤ :data:`ETA_LEVELS`) whose slack both
+    its start and goal clear, and ``start_ok``, ``goal_ok (B,)`` (clear of margin + η / 2^ETA_LEVELS). Only
+    the rows that fail a level are decided again at the next (usually none past the first)."""
+    B = q_start.shape[0]
+    eta = torch.full((B,), checker.eta, dtype=checker.reach.dtype, device=q_start.device)
+    ok = [torch.zeros(B, dtype=torch.bool, device=q_start.device) for _ in range(2)]
+    todo = [rows, rows]
+    for k in range(ETA_LEVELS + 1):
+        s = checker.eta / 2 ** k
+        for e, q in enumerate((q_start, q_goal)):
+            r = todo[e]
+            if r.numel():
+                good = checker.clear(q[r], r, slack=s)
+                ok[e][r[good]] = True
+                eta[r[good]] = torch.minimum(eta[r[good]], eta.new_tensor(s))
+                todo[e] = r[~good]
+        if not (todo[0].numel() or todo[1].numel()):
+            break
+    return eta, ok[0], ok[1]
 
 
 @dataclass
@@ -149,7 +182,8 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     ``lo``, ``hi`` (nq,) (a cubic overshoots its waypoints: checked on the ``fine`` samples, whose spacing
     leaves at most the spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
-    crosses a multiple of 0.8 η (the 20 % spare covers chords against arcs and the last fine chord)."""
+    crosses a multiple of 0.8 η_b (each problem's resolution; the 20 % spare covers chords against arcs
+    and the last fine chord)."""
     B = path.shape[0]
     knots = knots.to(torch.float64)
     s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
@@ -159,11 +193,11 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     inside = ((q >= lo.to(q)) & (q <= hi.to(q))).all(-1).all(-1)
     chord = ((q[:, 1:] - q[:, :-1]).abs() * checker.reach.to(torch.float64)).sum(-1)
     cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
-    c = 0.8 * checker.eta
+    c = 0.8 * checker.eta_of(problem).to(torch.float64)  # (B,): each problem's resolution
     n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
     K = int(n.max()) + 1
-    marks = torch.arange(K, device=path.device, dtype=torch.float64)[None] * c  # (1, K)
-    idx = torch.searchsorted(cum, marks.expand(B, K).contiguous()).clamp(max=fine)
+    marks = torch.arange(K, device=path.device, dtype=torch.float64)[None] * c[:, None]  # (B, K)
+    idx = torch.searchsorted(cum, marks.contiguous()).clamp(max=fine)
     idx = torch.where(torch.arange(K, device=path.device)[None] <= n[:, None], idx, fine)
     qc = torch.gather(q, 1, idx[..., None].expand(B, K, q.shape[-1])).to(path.dtype)
     return checker.clear(qc, problem[:, None]).all(1) & inside
@@ -172,8 +206,8 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
 def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, velocity_limit=None,
          acceleration_limit=None, jerk_limit=None, dt: float = 0.01, resolution: float = 0.005,
          max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 16, seed: int = 0,
-         position_tolerance: float = 1e-4, orientation_tolerance: float = 1e-3,
-         optimize: bool | OptimizeConfig = False) -> MotionResult:
+         goal_bias: float = 0.0, search_in_c: bool = True, position_tolerance: float = 1e-4,
+         orientation_tolerance: float = 1e-3, optimize: bool | OptimizeConfig = False) -> MotionResult:
     """Collision-free, limit-respecting timed trajectories from ``q_start`` to ``goal``, batched (module
     docstring: goals, per-row checks, search, shortcut, timing, continuous re-check).
 
@@ -195,9 +229,18 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             acceleration at both ends. A row with a limit ≤ 0 or NaN fails with its reason.
         dt: sampling period of ``t``, ``q``, ``qd``, ``qdd`` [s].
         resolution: η [m], the most any geom point travels between two collision checks (module docstring
-            of :mod:`diffkin.motion._edges`); starts and goals must be clear of ``margin + resolution``.
-        max_iterations / step / shortcut_rounds / seed: search budget, RRT step (metres of geom travel in
-            the bound's metric), shortcut rounds (4 tries per path each), randomness.
+            of :mod:`diffkin.motion._edges`); a problem whose start or goal is clear of ``margin + η / 2^k``
+            but not of ``margin + η`` is planned at the resolution η / 2^k (k ≤ :data:`ETA_LEVELS`; closer:
+            the row fails as in collision).
+        max_iterations / step / shortcut_rounds / seed / goal_bias: search budget per problem, RRT step
+            (metres of geom travel in the bound's metric), shortcut rounds (:data:`SHORTCUT_TRIES` tries per
+            path each), randomness, the probability of extending towards the other tree's root.
+        search_in_c: the search stage by the C RRT-Connect (:mod:`diffkin.motion._native_search`: one
+            problem per thread, each problem's randomness its own, so a problem planned alone equals its
+            row in a batch) where it serves (CPU, the library built, capsule and sphere models whose
+            decisions are all in C); else, or with False, the torch search (batched over problems, one
+            random stream for the batch; CUDA); with it the other stages' decisions go through the C
+            placement too.
         position_tolerance / orientation_tolerance: of the pose goals' IK.
         optimize: True (or an :class:`~diffkin.motion.optimize.OptimizeConfig`) for the optimisation stage
             (module docstring, :mod:`diffkin.motion.optimize`).
@@ -222,6 +265,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
     margin = check_number(margin, "margin", positive=False)
     step = check_number(step, "step")
     check_count(max_iterations, "max_iterations", 0)
+    goal_bias = check_number(goal_bias, "goal_bias", positive=False)
+    if goal_bias > 1:
+        raise OptionError(f"expected goal_bias as a probability in [0, 1], got {goal_bias!r}")
     check_count(shortcut_rounds, "shortcut_rounds", 0)
     collision._check_chain(chain, "motion.plan")
     q_start = chain.check_q(q_start, "q_start")
@@ -261,6 +307,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
 
     with torch.no_grad():
         checker = EdgeChecker(collision, world, margin, resolution)
+        checker.use_c = search_in_c
         gen = torch.Generator().manual_seed(seed)
         lim_ok = torch.stack([(x > 0).all(1) & x.isfinite().all(1) for x in (vmax, amax, jmax)], 0).all(0)
         fail(~lim_ok, "infeasible limits (each must be a finite number > 0)")
@@ -283,8 +330,10 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             lo_l = torch.full((nq,), -math.inf, dtype=dtype, device=dev)
             hi_l = -lo_l
         every = torch.arange(B, device=dev)
-        fail(~checker.clear(q_start, every), "start in collision (closer than margin + resolution)")
-        fail(~checker.clear(q_goal, every), "goal in collision (closer than margin + resolution)")
+        row_eta, start_ok, goal_ok = _row_resolution(checker, q_start, q_goal, every)
+        fail(~start_ok, f"start in collision (closer than margin + resolution / {2 ** ETA_LEVELS})")
+        fail(~goal_ok, f"goal in collision (closer than margin + resolution / {2 ** ETA_LEVELS})")
+        checker.set_row_resolution(row_eta)
         # the sampling box: the limits, and one turn about zero where a joint has none
         lo = torch.where(torch.isfinite(lo_l), lo_l, torch.full_like(lo_l, -math.pi))
         hi = torch.where(torch.isfinite(hi_l), hi_l, torch.full_like(hi_l, math.pi))
@@ -299,11 +348,24 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         success = torch.zeros(B, dtype=torch.bool, device=dev)
         duration = torch.zeros(B, dtype=dtype, device=dev)
         if rows.numel():
-            path, n, found = search(checker, q_start[rows], q_goal[rows], lo, hi, rows,
-                                    max_iterations=max_iterations, step=step, generator=gen)
+            searched = None
+            if search_in_c:
+                searched = search_native(checker, q_start[rows], q_goal[rows], lo, hi, rows, row_eta[rows],
+                                         max_iterations=max_iterations, step=step,
+                                         shortcut_tries=SHORTCUT_TRIES * shortcut_rounds, seed=seed,
+                                         goal_bias=goal_bias, capacity=min(2 * max_iterations + 2, 1024))
+            if searched is not None:  # the C search (its paths already shortcut)
+                path, n, found, stats = searched
+                long_rows = rows[stats["too_long"]]
+                fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, long_rows, True),
+                     "path longer than 1024 waypoints after shortcutting")
+            else:  # the torch path: CUDA, no compiler, models the C decisions do not serve
+                path, n, found = search(checker, q_start[rows], q_goal[rows], lo, hi, rows,
+                                        max_iterations=max_iterations, step=step, generator=gen,
+                                        goal_bias=goal_bias)
+                path, n = shortcut(checker, path, n, rows, shortcut_rounds, gen, tries=SHORTCUT_TRIES)
             fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, rows[~found], True),
                  f"no collision-free path found in {max_iterations} iterations")
-            path, n = shortcut(checker, path, n, rows, shortcut_rounds, gen)
             L = int(n[found].max()) if bool(found.any()) else 2
             path = path[:, :L]
             waypoints = q_goal[:, None].expand(B, L, nq).clone()

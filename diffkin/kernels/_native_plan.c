@@ -1,0 +1,462 @@
+/* RRT-Connect per planning problem in C (included by _native.c once per real type, after
+ * _native_collide.c): the search stage of diffkin.motion.plan (diffkin/motion/_native_search.py) for
+ * problems spread over OpenMP threads, one problem per thread at a time.
+ *
+ * Per problem (VAMP's RRT-Connect): the straight edge start -> goal first; then trees rooted at the start and
+ * the goal take turns: the tree extends its node nearest to a uniform sample of the box [lo, hi] (the other
+ * tree's root with probability goal_bias) by at most `step` (in the bound's metric sum_j R_j |dq_j|: metres
+ * of geom travel), as far as that edge is clear (its clear prefix: trees reach into narrow passages), and
+ * then the other tree connects its nearest node to the new one by
+ * the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full connection joins the trees.
+ * Every `restart` iterations without a join both trees are dropped and grown anew from the roots (the
+ * random stream continuing): the iterations an RRT needs are heavy-tailed, and a fresh start cuts the tail.
+ * Then random shortcuts (shortcut_tries straight edges between waypoints i < j - 1, each clear one taken).
+ * Nearest: a linear scan in the weighted L1 metric of the bound (diffkin.motion._search's).
+ *
+ * Edges: the subdivision of diffkin.motion._edges with the problem's resolution eta_b: a straight edge
+ * Delta q in ceil(sum_j R_j |Delta q_j| / eta_b) equal steps (R_j: joint_reach, passed in), every sample
+ * decided by DK(collide_block) of _native_collide.c with slack eta_b (samples clear of margin + eta_b prove
+ * the continuous edge clear of margin). Samples are placed by the FK block of _native.c (the chain's every
+ * joint frame as an end link) and the placement columns h_c of RobotCollision._columns (each capsule end a
+ * fixed point of one frame). A full edge is decided coarse to fine (its far end first, then the midpoints
+ * of ever finer halvings), a prefix in order; both in blocks of 16 growing to COLLIDE_BLOCK samples, an
+ * edge leaving at its first colliding block.
+ *
+ * Randomness: each problem's stream is splitmix64 seeded by the caller's seed mixed with a hash of the
+ * problem's start and goal bytes, so a problem planned alone takes the same path as in any batch, on any
+ * number of threads.
+ */
+#ifndef DK_PLAN_TYPES
+#define DK_PLAN_TYPES
+#define DK_PLAN_PASS 1
+#define DK_PLAN_VERSION 1 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
+#define DK_PLAN_FOUND 1
+#define DK_PLAN_NOT_FOUND 0
+#define DK_PLAN_TOO_LONG 2
+#define DK_PLAN_NO_MEMORY (-1)
+
+#define DK_PLAN_FIELDS(X) \
+    X(int64_t, version, "DK_PLAN_VERSION") \
+    X(int64_t, size, "sizeof(dk_plan)") \
+    X(int64_t, nthreads, "threads over the problems (at least 1)") \
+    X(const dk_args *, chain, "the chain's FK, every joint frame an end link (dk_args of the real type)") \
+    X(const dk_collide *, collide, "the decisions' constants (pairs, radii, world rows, skips, margin); " \
+                                   "its A, B, N, ok, wid, slack are not read") \
+    X(int64_t, C, "placed points: the G capsule starts then the G ends") \
+    X(const int64_t *, col_frame, "[C] frame of each point: 0 the base, k >= 1 the chain's end k - 1") \
+    X(const void *, col_h, "[4C] reals: each point in its frame, homogeneous") \
+    X(const void *, base, "[12] reals: the base frame, 3x4 row-major") \
+    X(int64_t, B, "problems") \
+    X(const void *, q_start, "[B n] reals") \
+    X(const void *, q_goal, "[B n] reals") \
+    X(const int64_t *, world, "[B] the world row of each problem, or NULL: row 0") \
+    X(const void *, eta, "[B] reals: each problem's resolution [m]") \
+    X(const void *, lo, "[n] reals: the sampling box") \
+    X(const void *, hi, "[n] reals") \
+    X(const void *, reach, "[n] reals: R_j of joint_reach") \
+    X(double, step, "RRT range in the bound's metric [m]") \
+    X(double, goal_bias, "probability of sampling the other tree's root") \
+    X(int64_t, max_iterations, "RRT-Connect iterations per problem") \
+    X(int64_t, restart, "iterations after which both trees are dropped and grown anew (0: never)") \
+    X(int64_t, shortcut_tries, "random shortcut attempts per path") \
+    X(int64_t, seed, "mixed with each problem's hash") \
+    X(int64_t, capacity, "L: waypoints a returned path may have") \
+    X(void *, path, "[B L n] reals out: waypoints (the rest of a row: the goal)") \
+    X(int64_t *, n_way, "[B] out: waypoints") \
+    X(int64_t *, status, "[B] out: DK_PLAN_FOUND, _NOT_FOUND, _TOO_LONG, _NO_MEMORY") \
+    X(int64_t *, iterations, "[B] out: RRT-Connect iterations run") \
+    X(int64_t *, checked, "[B] out: configurations decided") \
+    X(int64_t, N, "dk_plan_decide: configurations") \
+    X(const void *, q, "dk_plan_decide: [N n] reals") \
+    X(const int64_t *, wid, "dk_plan_decide: [N] the world row of each, or NULL: row 0") \
+    X(double, slack, "dk_plan_decide: clear means every distance - margin >= slack") \
+    X(uint8_t *, ok, "dk_plan_decide: [N] out")
+
+#define DK_PDECLARE(type, name, what) type name;
+typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
+#undef DK_PDECLARE
+DK_LAYOUT(plan, dk_plan, DK_PLAN_FIELDS, DK_PLAN_VERSION) /* dk_layout_plan, dk_names_plan (_native.c) */
+
+static inline uint64_t plan_mix(uint64_t *state) { /* splitmix64 */
+    uint64_t z = (*state += 0x9E3779B97F4A7C15ull);
+    z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
+    z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
+    return z ^ (z >> 31);
+}
+
+static inline double plan_uniform(uint64_t *state) { return (double)(plan_mix(state) >> 11) * 0x1.0p-53; }
+
+static uint64_t plan_hash(const void *a, const void *b, size_t bytes, int64_t seed) { /* FNV-1a, then mixed */
+    uint64_t h = 1469598103934665603ull;
+    for (size_t i = 0; i < bytes; i++) h = (h ^ ((const uint8_t *)a)[i]) * 1099511628211ull;
+    for (size_t i = 0; i < bytes; i++) h = (h ^ ((const uint8_t *)b)[i]) * 1099511628211ull;
+    uint64_t s = h ^ (uint64_t)seed * 0xD1B54A32D192ED03ull;
+    return plan_mix(&s);
+}
+#else
+#undef DK_PLAN_PASS
+#define DK_PLAN_PASS 2
+#endif
+
+typedef struct { /* one thread's work space */
+    const dk_plan *p;
+    Shape s;
+    const DK(Params) *pp;
+    DK(Scratch) sc;
+    dk_collide cc;        /* the problem's decisions: A, B, N, wid, slack set here */
+    real *qs;             /* [COLLIDE_BLOCK n] the block's configurations */
+    real *P;              /* [C 3 COLLIDE_BLOCK] the placed points, component-major */
+    int64_t *wid;         /* [COLLIDE_BLOCK] the problem's world row */
+    uint8_t ok[COLLIDE_BLOCK];
+    real *nodes[2];       /* [cap n] the trees */
+    int64_t *parent[2];   /* [cap] */
+    real *path;           /* [2 cap n] */
+    int64_t cap, checked;
+    int points;           /* every capsule a sphere (ends equal): B is A, placed once */
+    real *scratch;
+    real eta;
+    uint64_t rng;
+} DK(PlanWork);
+
+/* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta). */
+static void DK(plan_decide)(DK(PlanWork) *w, int m) {
+    const dk_plan *p = w->p;
+    const int n = w->s.n;
+    const real *h = (const real *)p->col_h, *base = (const real *)p->base;
+    for (int b0 = 0; b0 < m; b0 += W) {
+        const int nl = m - b0 < W ? m - b0 : W;
+        DK(load_q)(&w->s, &w->sc, w->qs, b0, nl);
+        DK(block)(&w->s, w->pp, &w->sc, 0);
+        for (int64_t c = 0; c < (w->points ? p->C / 2 : p->C); c++) { /* spheres: the ends are the starts */
+            const int64_t f = p->col_frame[c];
+            const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
+            real *dst = w->P + c * 3 * COLLIDE_BLOCK + b0;
+            if (f == 0) {
+                for (int r = 0; r < 3; r++) {
+                    const real v = base[4 * r] * h0 + base[4 * r + 1] * h1 + base[4 * r + 2] * h2 + base[4 * r + 3] * h3;
+                    for (int l = 0; l < nl; l++) dst[r * COLLIDE_BLOCK + l] = v;
+                }
+                continue;
+            }
+            const real *E = w->sc.ends + (size_t)(f - 1) * 12 * W;
+            for (int r = 0; r < 3; r++) {
+                const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
+                real *restrict o = dst + r * COLLIDE_BLOCK;
+#pragma omp simd
+                for (int l = 0; l < nl; l++) o[l] = E0[l] * h0 + E1[l] * h1 + E2[l] * h2 + E3[l] * h3;
+            }
+        }
+        (void)n;
+    }
+    memset(w->ok, 1, (size_t)m);
+    DK(collide_block)(&w->cc, 0, m, w->ok);
+    w->checked += m;
+}
+
+/* Sub-steps of the straight edge a -> b: ceil(sum_j R_j |b_j - a_j| / eta), at least 1. */
+static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *b) {
+    const real *R = (const real *)w->p->reach;
+    double L = 0;
+    for (int j = 0; j < w->s.n; j++) L += (double)R[j] * fabs((double)(b[j] - a[j]));
+    const double k = ceil(L / (double)w->eta);
+    return k < 1 ? 1 : (int64_t)k;
+}
+
+/* The straight edge a -> b (a already known clear): with prefix the largest fraction lam = i / steps such
+ * that the samples 0 .. i are clear (1: the whole edge); without, 1 when every sample is clear, else 0. */
+static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int prefix) {
+    const int n = w->s.n;
+    const int64_t ns = DK(plan_steps)(w, a, b);
+    int64_t idx[COLLIDE_BLOCK];
+    int64_t top = 1;
+    while (top * 2 <= ns) top *= 2;
+    int64_t level = top, next = 0, i_seq = 1; /* coarse to fine: ns, then odd multiples of level, halving */
+    int first = 1, size = 16;
+    for (;;) {
+        int m = 0;
+        while (m < size) {
+            int64_t i;
+            if (prefix) {
+                if (i_seq > ns) break;
+                i = i_seq++;
+            } else if (first) {
+                i = ns;
+                first = 0;
+            } else {
+                if (level == 0) break;
+                if (next == 0) next = level;
+                i = next;
+                next += level == top ? level : 2 * level;
+                if (next > ns) { level >>= 1; next = level; }
+                if (i == ns) continue;
+            }
+            idx[m++] = i;
+        }
+        if (m == 0) return 1;
+        for (int k = 0; k < m; k++) {
+            const real f = (real)idx[k] / (real)ns;
+            for (int j = 0; j < n; j++) w->qs[k * n + j] = a[j] + f * (b[j] - a[j]);
+        }
+        DK(plan_decide)(w, m);
+        for (int k = 0; k < m; k++)
+            if (!w->ok[k]) return prefix ? (real)(idx[k] - 1) / (real)ns : 0;
+        size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
+    }
+}
+
+static int64_t DK(plan_nearest)(const real *nodes, int64_t count, const real *q, const real *R, int n) {
+    int64_t best = 0;
+    real bd = (real)INFINITY;
+    for (int64_t k = 0; k < count; k++) {
+        const real *x = nodes + k * n;
+        real d = 0;
+        for (int j = 0; j < n; j++) d += R[j] * (x[j] > q[j] ? x[j] - q[j] : q[j] - x[j]);
+        if (d < bd) bd = d, best = k;
+    }
+    return best;
+}
+
+/* Problem b: search, shortcut, write its outputs. */
+static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
+    const dk_plan *p = w->p;
+    const int n = w->s.n;
+    const int64_t L = p->capacity;
+    const real *qs0 = (const real *)p->q_start + b * n, *qg0 = (const real *)p->q_goal + b * n;
+    const real *R = (const real *)p->reach, *lo = (const real *)p->lo, *hi = (const real *)p->hi;
+    const real step = (real)p->step;
+    real *out = (real *)p->path + b * L * n;
+    const int64_t wrow = p->world ? p->world[b] : 0;
+    for (int l = 0; l < COLLIDE_BLOCK; l++) w->wid[l] = wrow;
+    w->eta = ((const real *)p->eta)[b];
+    w->cc.slack = (double)w->eta;
+    w->checked = 0;
+    w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
+    int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND;
+    real *path = w->path;
+    if (DK(plan_edge)(w, qs0, qg0, 0) == 1) {
+        memcpy(path, qs0, sizeof(real) * n);
+        memcpy(path + n, qg0, sizeof(real) * n);
+        len = 2;
+        status = DK_PLAN_FOUND;
+    } else {
+        memcpy(w->nodes[0], qs0, sizeof(real) * n);
+        memcpy(w->nodes[1], qg0, sizeof(real) * n);
+        w->parent[0][0] = w->parent[1][0] = -1;
+        int a = 0;
+        real qr[64], qn[64];
+        int64_t join[2] = {-1, -1};
+        int64_t it0 = 0;
+        for (; it < p->max_iterations && count[0] < w->cap && count[1] < w->cap; it++, a ^= 1) {
+            if (p->restart > 0 && it - it0 >= p->restart) { /* a fresh pair of trees, the stream continuing */
+                count[0] = count[1] = 1;
+                it0 = it;
+                a = 0;
+            }
+            real *NA = w->nodes[a], *NB = w->nodes[1 - a];
+            if (plan_uniform(&w->rng) < p->goal_bias) {
+                memcpy(qr, NB, sizeof(real) * n);
+            } else {
+                for (int j = 0; j < n; j++) qr[j] = lo[j] + (hi[j] - lo[j]) * (real)plan_uniform(&w->rng);
+            }
+            const int64_t near = DK(plan_nearest)(NA, count[a], qr, R, n);
+            const real *qa = NA + near * n;
+            real Ld = 0;
+            for (int j = 0; j < n; j++) Ld += R[j] * (qr[j] > qa[j] ? qr[j] - qa[j] : qa[j] - qr[j]);
+            if (!(Ld > 0)) continue;
+            const real f = Ld > step ? step / Ld : 1;
+            for (int j = 0; j < n; j++) qn[j] = qa[j] + f * (qr[j] - qa[j]);
+            const real lam_a = DK(plan_edge)(w, qa, qn, 1); /* EXTEND: as far as the edge is clear */
+            if (!(lam_a > 0)) continue;
+            if (lam_a < 1)
+                for (int j = 0; j < n; j++) qn[j] = qa[j] + lam_a * (qn[j] - qa[j]);
+            const int64_t ia = count[a]++;
+            memcpy(NA + ia * n, qn, sizeof(real) * n);
+            w->parent[a][ia] = near;
+            const int64_t nb = DK(plan_nearest)(NB, count[1 - a], qn, R, n);
+            const real *qb = NB + nb * n;
+            const real lam = DK(plan_edge)(w, qb, qn, 1);
+            if (lam == 1) {
+                join[a] = ia;
+                join[1 - a] = nb;
+                it++;
+                break;
+            }
+            if (lam > 0) {
+                const int64_t ib = count[1 - a]++;
+                for (int j = 0; j < n; j++) NB[ib * n + j] = qb[j] + lam * (qn[j] - qb[j]);
+                w->parent[1 - a][ib] = nb;
+            }
+        }
+        if (join[0] >= 0) { /* start .. join (tree 0 reversed), then join .. goal (tree 1) */
+            int64_t d0 = 0;
+            for (int64_t k = join[0]; k >= 0; k = w->parent[0][k]) d0++;
+            int64_t k = join[0];
+            for (int64_t i = d0 - 1; i >= 0; i--, k = w->parent[0][k])
+                memcpy(path + i * n, w->nodes[0] + k * n, sizeof(real) * n);
+            len = d0;
+            for (k = join[1]; k >= 0; k = w->parent[1][k], len++)
+                memcpy(path + len * n, w->nodes[1] + k * n, sizeof(real) * n);
+            status = DK_PLAN_FOUND;
+        }
+    }
+    if (status == DK_PLAN_FOUND) { /* random shortcuts: each clear edge i -> j drops the waypoints between */
+        for (int64_t t = 0; t < p->shortcut_tries && len > 2; t++) {
+            const int64_t i = (int64_t)(plan_uniform(&w->rng) * (double)(len - 2));
+            const int64_t j = i + 2 + (int64_t)(plan_uniform(&w->rng) * (double)(len - i - 2));
+            if (j >= len || DK(plan_edge)(w, path + i * n, path + j * n, 0) != 1) continue;
+            memmove(path + (i + 1) * n, path + j * n, sizeof(real) * (size_t)((len - j) * n));
+            len -= j - i - 1;
+        }
+        if (len > L) status = DK_PLAN_TOO_LONG;
+    }
+    if (status != DK_PLAN_FOUND) {
+        memcpy(path, qs0, sizeof(real) * n);
+        memcpy(path + n, qg0, sizeof(real) * n);
+        len = 2;
+    }
+    memcpy(out, path, sizeof(real) * (size_t)(len * n));
+    for (int64_t i = len; i < L; i++) memcpy(out + i * n, qg0, sizeof(real) * n);
+    p->n_way[b] = len;
+    p->status[b] = status;
+    p->iterations[b] = it;
+    p->checked[b] = w->checked;
+}
+
+/* A thread's work space for p (its chain's shape s, plans pp); 0 when memory ran out (then free it). */
+static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s, const DK(Params) *pp) {
+    const int64_t cap = p->max_iterations + 2, G = p->C / 2;
+    memset(w, 0, sizeof *w);
+    w->p = p;
+    w->s = *s;
+    w->pp = pp;
+    w->cap = cap;
+    size_t per;
+    w->scratch = DK(team_alloc)(DK(scratch_size)(s) / sizeof(real), 1, &per);
+    w->qs = (real *)malloc(sizeof(real) * COLLIDE_BLOCK * (size_t)s->n);
+    w->P = (real *)malloc(sizeof(real) * (size_t)p->C * 3 * COLLIDE_BLOCK);
+    w->wid = (int64_t *)malloc(sizeof(int64_t) * COLLIDE_BLOCK);
+    for (int t = 0; t < 2; t++) {
+        w->nodes[t] = (real *)malloc(sizeof(real) * (size_t)(cap * s->n));
+        w->parent[t] = (int64_t *)malloc(sizeof(int64_t) * (size_t)cap);
+    }
+    w->path = (real *)malloc(sizeof(real) * (size_t)(2 * cap * s->n + 2 * s->n));
+    if (!(w->scratch && w->qs && w->P && w->wid && w->nodes[0] && w->nodes[1] && w->parent[0] && w->parent[1] &&
+          w->path))
+        return 0;
+    DK(scratch_init)(s, pp, w->scratch, &w->sc);
+    w->cc = *p->collide;
+    w->cc.N = COLLIDE_BLOCK;
+    w->cc.A = w->P;
+    w->points = 1;
+    for (int64_t g = 0; g < G && w->points; g++) {
+        const real *hA = (const real *)p->col_h + 4 * g, *hB = (const real *)p->col_h + 4 * (G + g);
+        w->points = p->col_frame[g] == p->col_frame[G + g] && hA[0] == hB[0] && hA[1] == hB[1] &&
+                    hA[2] == hB[2] && hA[3] == hB[3];
+    }
+    w->cc.B = w->points ? w->P : w->P + G * 3 * COLLIDE_BLOCK;
+    w->cc.wid = w->wid;
+    w->cc.nthreads = 1;
+    return 1;
+}
+
+static void DK(plan_work_free)(DK(PlanWork) *w) {
+    free(w->scratch);
+    free(w->qs);
+    free(w->P);
+    free(w->wid);
+    for (int t = 0; t < 2; t++) free(w->nodes[t]), free(w->parent[t]);
+    free(w->path);
+}
+
+static int64_t DK(dk_plan)(const dk_plan *p) {
+    Shape s;
+    read_shape(p->chain, &s);
+    if (s.n > 64) return DK_RANGE_ERROR;
+    DK(Params) pp;
+    if (DK(read_params)(p->chain, &s, &pp)) return -1;
+    int nthreads = (int)(p->nthreads > 1 && p->B > 1 ? (p->nthreads < p->B ? p->nthreads : p->B) : 1);
+    int64_t failed = 0;
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
+    {
+        DK(PlanWork) w;
+        const int good = DK(plan_work_init)(&w, p, &s, &pp);
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t b = 0; b < p->B; b++) {
+            if (good) {
+                DK(plan_one)(&w, b);
+            } else {
+                p->status[b] = DK_PLAN_NO_MEMORY;
+                p->n_way[b] = 0;
+                failed++;
+            }
+        }
+        DK(plan_work_free)(&w);
+    }
+    free(pp.fix);
+    return failed ? -1 : 0;
+}
+
+/* dk_plan_decide: p->ok[i] = configuration i of p->q clear (every distance - margin >= p->slack) in world
+ * row p->wid[i]; blocks of COLLIDE_BLOCK shared between threads. */
+static int64_t DK(dk_plan_decide)(const dk_plan *p) {
+    Shape s;
+    read_shape(p->chain, &s);
+    DK(Params) pp;
+    if (DK(read_params)(p->chain, &s, &pp)) return -1;
+    const int64_t nblocks = (p->N + COLLIDE_BLOCK - 1) / COLLIDE_BLOCK;
+    int nthreads = (int)(p->nthreads > 1 && nblocks > 1 ? (p->nthreads < nblocks ? p->nthreads : nblocks) : 1);
+    int64_t failed = 0;
+    const int n = s.n;
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
+    {
+        DK(PlanWork) w;
+        const int good = DK(plan_work_init)(&w, p, &s, &pp);
+        if (good) w.cc.slack = p->slack;
+#pragma omp for schedule(dynamic, 4)
+        for (int64_t k = 0; k < nblocks; k++) {
+            const int64_t n0 = k * COLLIDE_BLOCK;
+            const int m = (int)(p->N - n0 < COLLIDE_BLOCK ? p->N - n0 : COLLIDE_BLOCK);
+            if (!good) {
+                failed++;
+                continue;
+            }
+            memcpy(w.qs, (const real *)p->q + n0 * n, sizeof(real) * (size_t)(m * n));
+            w.cc.wid = p->wid ? p->wid + n0 : NULL;
+            DK(plan_decide)(&w, m);
+            memcpy(p->ok + n0, w.ok, (size_t)m);
+        }
+        DK(plan_work_free)(&w);
+    }
+    free(pp.fix);
+    return failed ? -1 : 0;
+}
+
+#if DK_PLAN_PASS == 2 /* after the second (float) pass: both types exist */
+/* p, its chain and its decisions' struct of this file's versions and sizes, of one real type, with G
+ * capsules placed from C = 2 G points. */
+static int plan_ok(const dk_plan *p) {
+    return DK_LAYOUT_OK(p, dk_plan, DK_PLAN_VERSION) && DK_LAYOUT_OK(p->chain, dk_args, DK_ABI_VERSION) &&
+           DK_LAYOUT_OK(p->collide, dk_collide, DK_COLLIDE_VERSION) &&
+           p->chain->real_bytes == p->collide->real_bytes && 2 * (p->C / 2) == p->C && p->C / 2 == p->collide->G;
+}
+
+/* RRT-Connect and shortcutting of p->B problems (top of this file); returns 0, -1 when memory ran out (those
+ * problems' status DK_PLAN_NO_MEMORY), DK_RANGE_ERROR for more than 64 joints, DK_ABI_ERROR for a dk_plan,
+ * dk_args or dk_collide of another version or size, or of two real types. */
+int64_t dk_plan_search(const dk_plan *p) {
+    if (!plan_ok(p)) return DK_ABI_ERROR;
+    if (p->chain->real_bytes == 8) return dk_plan_f64(p);
+    if (p->chain->real_bytes == 4) return dk_plan_f32(p);
+    return DK_ABI_ERROR;
+}
+
+/* The decisions of p->N configurations (dk_plan_decide_f64 / _f32 above; p's search fields not read but
+ * max_iterations, which sizes the work space: give 0). Returns 0, -1 when memory ran out, DK_ABI_ERROR as
+ * dk_plan_search. */
+int64_t dk_plan_decide(const dk_plan *p) {
+    if (!plan_ok(p)) return DK_ABI_ERROR;
+    if (p->chain->real_bytes == 8) return dk_plan_decide_f64(p);
+    if (p->chain->real_bytes == 4) return dk_plan_decide_f32(p);
+    return DK_ABI_ERROR;
+}
+#endif

@@ -1,0 +1,182 @@
+"""The search stage of :func:`diffkin.motion.plan` in C: RRT-Connect and shortcutting per problem
+(``dk_plan_search`` of ``diffkin/kernels/_native_plan.c``), problems spread over threads.
+
+Same algorithm and success semantics as :mod:`diffkin.motion._search` (the torch path, which serves CUDA
+tensors, builds without a C compiler and models the C decisions do not serve): the straight edge first, then
+trees from the start and the goal that take turns extending by at most ``step`` towards a uniform sample and
+connecting by the longest clear prefix, then random shortcuts; every edge decided by the subdivision of
+:mod:`diffkin.motion._edges` with the same reach bound ``R`` (:func:`~diffkin.motion.joint_reach`) and each
+problem's resolution. What differs: one problem at a time per thread instead of all problems per iteration
+(a solved problem stops costing at once), and the randomness: each problem's stream is seeded by ``seed``
+and the bytes of its own start and goal, so a problem planned alone returns what its row returns in any
+batch, on any number of threads (the torch path draws one stream for the whole batch).
+
+Interface: :class:`PlanArgs` mirrors ``dk_plan`` (``DK_PLAN_FIELDS``) field by field, checked once against
+the library by :func:`diffkin.kernels.native.check_layout` (a mismatch: the torch path serves).
+"""
+
+from __future__ import annotations
+
+import ctypes
+
+import torch
+from torch import Tensor
+
+from ..kernels import native
+
+__all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
+
+#: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
+VERSION = 1
+#: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
+FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY = 1, 0, 2, -1
+_I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
+
+
+class PlanArgs(ctypes.Structure):
+    """``dk_plan`` of ``_native_plan.c`` (``DK_PLAN_FIELDS``, where each field is described)."""
+
+    VERSION = VERSION
+    _fields_ = [(name, _I64) for name in ("version", "size", "nthreads")] + \
+        [("chain", _PTR), ("collide", _PTR), ("C", _I64), ("col_frame", _PTR), ("col_h", _PTR),
+         ("base", _PTR), ("B", _I64)] + \
+        [(name, _PTR) for name in ("q_start", "q_goal", "world", "eta", "lo", "hi", "reach")] + \
+        [("step", _F64), ("goal_bias", _F64)] + \
+        [(name, _I64) for name in ("max_iterations", "restart", "shortcut_tries", "seed", "capacity")] + \
+        [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")] + \
+        [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)]
+
+
+_fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide)
+
+
+def _functions():
+    lib = native._lib
+    fns = _fns.get(id(lib))
+    if fns is None:
+        native.check_layout(lib, "plan", PlanArgs)
+        fns = (lib.dk_plan_search, lib.dk_plan_decide)
+        for fn in fns:
+            fn.restype, fn.argtypes = _I64, [ctypes.POINTER(PlanArgs)]
+        _fns[id(lib)] = fns
+    return fns
+
+
+class NativePlanner:
+    """The C search's constants for one :class:`~diffkin.motion._edges.EdgeChecker` and dtype: the chain's
+    all-frames FK (:meth:`LinkFrames.native_frames_model <diffkin.collision._poses.LinkFrames>`), each
+    capsule end's frame and coordinates there (the blocks of :meth:`RobotCollision._placement`), and the
+    :class:`~diffkin.kernels.native.Collide` of the checker's decisions. :meth:`make` returns None where the
+    C search does not serve: no library, CUDA, a model with robot boxes, convex meshes or entries the C
+    decisions leave to torch."""
+
+    def __init__(self, model, base: Tensor, collide, keep: list, frame: Tensor, h: Tensor, dtype):
+        self.model, self.collide, self._keep, self.frame, self.h = model, collide, keep, frame, h
+        self.base12, self.dtype = base[:3].to(dtype).contiguous(), dtype
+
+    @classmethod
+    def make(cls, checker, q: Tensor) -> NativePlanner | None:
+        rc = checker.collision
+        if q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64) or not native.available():
+            return None
+        try:
+            _functions()
+        except (AttributeError, native.AbiMismatch):
+            return None
+        nc, nb = rc._counts
+        world = checker.world
+        keep_self, keep_world = rc._kept(world, checker.moving)
+        if nb or rc._nconvex or keep_self is not None or nc == 0 or rc.capsule_a.dtype != q.dtype \
+                or (world is not None and len(world.batch_shape) > 1):
+            return None
+        made = rc._frames.native_frames_model(rc.chain, q)
+        if made is None:
+            return None
+        model, base = made
+        skip = None if world is None else rc._world_skip(world, keep_world)
+        empty = q.new_zeros(nc, 3, 0)
+        objects, hs, skip_r, skip_h, extra, left, _ = rc._native_inputs(world, checker.margin, 0.0, skip,
+                                                                        None, empty)
+        if left:
+            return None
+        extra.pop("world_index", None)
+        collide = native.collide_struct(empty, empty, rc.capsule_radius.detach(), rc._pairs_00, objects, hs,
+                                        skip_r, skip_h, checker.margin, 0.0, None, **extra)
+        if collide is None:
+            return None
+        F = rc._frames.frames(rc.chain, torch.zeros(rc.chain.nq, dtype=q.dtype))
+        H = rc._placement(F)  # (K·4, C): column c's block is its frame's
+        frame = rc._col_anchor[: 2 * nc].to(torch.int64).contiguous()
+        h = H.reshape(-1, 4, H.shape[-1])[frame, :, torch.arange(2 * nc)].to(q.dtype).contiguous()  # (2 G, 4)
+        return cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype)
+
+    def args(self, **fields) -> PlanArgs:
+        """A :class:`PlanArgs` with the constants and ``fields`` set (tensors by their address)."""
+        return native.new_struct(PlanArgs, chain=ctypes.addressof(self.model.args[self.dtype]),
+                                 collide=ctypes.addressof(self.collide), C=self.frame.shape[0],
+                                 col_frame=self.frame, col_h=self.h, base=self.base12, **fields)
+
+    def decide(self, q: Tensor, world_row: Tensor | None, slack: float) -> Tensor | None:
+        """``(N,)`` bool: configurations ``q (N, nq)`` clear of margin + ``slack``, each in its world row
+        ``world_row (N,)`` (None: row 0); None where the call is refused (another interface)."""
+        N = q.shape[0]
+        q = q.detach().to(self.dtype).contiguous()
+        ok = torch.zeros(N, dtype=torch.uint8)
+        wid = None if world_row is None else world_row.to(torch.int64).contiguous()
+        if N == 0:
+            return ok.bool()
+        a = self.args(nthreads=native.thread_count(N), N=N, q=q, wid=wid, slack=float(slack), ok=ok,
+                      max_iterations=0)
+        status = _functions()[1](ctypes.byref(a))
+        if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
+            return None
+        if status < 0:
+            raise MemoryError("motion.plan: the C decisions could not allocate their per-thread work space")
+        return ok.bool()
+
+
+def serves(checker, q: Tensor) -> bool:
+    """Whether :func:`search_native` serves the checker's model and world for tensors like ``q``."""
+    return checker.native(q) is not None
+
+
+def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
+                  eta: Tensor, *, max_iterations: int, step: float, shortcut_tries: int, seed: int,
+                  goal_bias: float = 0.0, restart: int = 0,
+                  capacity: int = 256) -> tuple[Tensor, Tensor, Tensor, dict] | None:
+    """Paths ``(B, L, nq)`` (rows padded with their goal) from ``q_start`` to ``q_goal`` ``(B, nq)`` of
+    problems ``problem (B,)`` (rows of the checker's world), each edge subdivided at the row's resolution
+    ``eta (B,)`` (both trees grown anew every ``restart`` iterations without a join; 0: never), their
+    waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``,
+    ``checked``: configurations decided, ``too_long``: rows whose path kept more than ``capacity``
+    waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be clear of
+    ``margin + eta`` (rows where they are not are searched in vain)."""
+    planner = checker.native(q_start)
+    if planner is None:
+        return None
+    dtype = planner.dtype
+    B, nq = q_start.shape
+    real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
+    qs, qg, lo_, hi_ = real(q_start), real(q_goal), real(lo), real(hi)
+    reach, eta_ = real(checker.reach), real(eta)
+    world = None
+    if checker.world is not None and len(checker.world.batch_shape) > 0:
+        world = problem.to(torch.int64).contiguous()
+    L = max(2, int(capacity))
+    path = torch.empty(B, L, nq, dtype=dtype)
+    n_way, status, its, checked = (torch.zeros(B, dtype=torch.int64) for _ in range(4))
+    args = planner.args(
+        nthreads=native.thread_count(B * 4096), B=B, q_start=qs, q_goal=qg, world=world, eta=eta_, lo=lo_,
+        hi=hi_, reach=reach, step=float(step), goal_bias=float(goal_bias), max_iterations=int(max_iterations),
+        restart=int(restart),
+        shortcut_tries=int(shortcut_tries), seed=int(seed), capacity=L, path=path, n_way=n_way, status=status,
+        iterations=its, checked=checked)
+    if B:
+        rc_ = _functions()[0](ctypes.byref(args))
+        if rc_ in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
+            return None
+        if rc_ < 0:
+            raise MemoryError("motion.plan: the C search could not allocate its per-thread work space")
+    found = status == FOUND
+    stats = {"iterations": its, "checked": checked, "too_long": status == TOO_LONG}
+    return path, n_way, found, stats

@@ -1,0 +1,164 @@
+"""The search stage of motion.plan in C (diffkin/kernels/_native_plan.c, diffkin.motion._native_search) on
+MotionBenchMaker problems (VAMP's files, the spherized Panda): its one-call decisions against the torch
+placement, every returned edge re-checked by the torch EdgeChecker, a plan re-checked by Pinocchio + coal,
+determinism (a problem alone equals its row in a batch), and the finer resolution near a close start."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffkin import models, motion
+from diffkin.collision import RobotCollision, World
+from diffkin.kernels import native
+from diffkin.motion._edges import EdgeChecker
+from diffkin.motion._native_search import search_native
+from diffkin.motion.plan import _row_resolution
+from diffkin.sampling import random_configuration
+
+pytestmark = pytest.mark.skipif(not native.available(), reason="the C library is not built")
+F64 = torch.float64
+V = [2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61]
+
+
+@pytest.fixture(scope="module")
+def panda():
+    from benchmarks import motion_problems as mp
+
+    chain = models.from_urdf(mp.PANDA_SPHERIZED_URDF, "panda_hand", dtype=F64)
+    rc = RobotCollision.from_urdf(mp.PANDA_SPHERIZED_URDF, chain, mp.PANDA_SRDF).requires_grad_(False)
+    probs = {p.name: p for p in mp.load_problems(families=["cage", "box", "bookshelf_small", "table_pick"],
+                                                  indices=[1, 19, 41])}
+    return chain, rc.allow_collisions(probs["cage/0001"].scene.allowed), probs
+
+
+def _batch(probs, names):
+    ps = [probs[n] for n in names]
+    return (torch.tensor([p.start for p in ps], dtype=F64), torch.tensor([p.goal for p in ps], dtype=F64),
+            World.stack([p.scene.to_world(dtype=F64) for p in ps]), [p.scene.to_world(dtype=F64) for p in ps])
+
+
+def test_c_decisions_equal_the_torch_placement(panda):
+    """dk_plan_decide (FK, placement and decisions in C) equals RobotCollision._clear (torch FK and
+    placement, the C decisions) on random configurations in two scenes, wherever the distance is not
+    within rounding of the threshold."""
+    chain, rc, probs = panda
+    _, _, world, _ = _batch(probs, ["cage/0001", "bookshelf_small/0019"])
+    q = random_configuration(chain, (600,), generator=torch.Generator().manual_seed(1)).to(F64)
+    wid = torch.arange(600) % 2
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    assert checker.native(q) is not None
+    for slack in (0.0, 0.005):
+        c = checker.clear(q, wid, slack=slack)
+        t = rc._clear(q, world, 0.0, slack, moving_only=True, world_index=wid)
+        assert 0 < int(c.sum()) < 600  # both outcomes occur
+        differ = c != t
+        if bool(differ.any()):  # only at the threshold
+            d = torch.stack([rc.min_distance(q[i], world._take(wid[i:i + 1])).reshape(()) for i in
+                             differ.nonzero().squeeze(1).tolist()])
+            assert ((d - slack).abs() < 1e-9).all()
+
+
+def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
+    """Three problems in one call (a cage, a box, a bookshelf whose start needs a finer resolution): every
+    path found, every edge of every returned path proven clear again by the torch EdgeChecker (torch
+    placement, the row's resolution); one whole plan re-checked by Pinocchio's FK and coal."""
+    from benchmarks.bench_motion_problems import _CoalPanda
+
+    chain, rc, probs = panda
+    names = ["cage/0001", "box/0001", "bookshelf_small/0019"]
+    qs, qg, world, worlds = _batch(probs, names)
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    rows = torch.arange(3)
+    eta, a, b = _row_resolution(checker, qs, qg, rows)
+    assert (a & b).all() and eta[2] < 0.005 and (eta[:2] == 0.005).all()
+    lim = chain.q_limits
+    path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta,
+                                          max_iterations=10000, step=0.5, shortcut_tries=64, seed=0)
+    assert found.all() and (stats["checked"] > 0).all()
+    torch_checker = EdgeChecker(rc, world, 0.0, 0.005)
+    torch_checker.use_c = False
+    torch_checker.set_row_resolution(eta)
+    for r in range(3):
+        w = path[r, : int(n[r])]
+        assert torch.equal(w[0], qs[r]) and torch.equal(w[-1], qg[r])
+        free, _ = torch_checker.edges(w[:-1], w[1:], torch.full((len(w) - 1,), r))
+        assert free.all()
+    res = motion.plan(chain, qs[:1], qg[:1], collision=rc, world=World.stack(worlds[:1]), velocity_limit=V,
+                      acceleration_limit=10.0, max_iterations=10000, step=0.5)
+    assert res.success.all(), res.reason
+    S = int(float(res.duration[0]) / 0.01) + 1
+    assert _CoalPanda().min_distance(res.q[0, :S:2].numpy(), worlds[0]) >= 0
+
+
+def test_c_search_deterministic_and_a_problem_alone_equals_its_row(panda):
+    chain, rc, probs = panda
+    names = ["cage/0001", "box/0001", "cage/0019"]
+    qs, qg, world, _ = _batch(probs, names)
+    lim = chain.q_limits
+    kw = dict(max_iterations=10000, step=0.5, shortcut_tries=64, seed=3)
+
+    def run(rows):
+        checker = EdgeChecker(rc, world, 0.0, 0.005)
+        eta = torch.full((len(rows),), 0.005, dtype=F64)
+        return search_native(checker, qs[rows], qg[rows], lim[:, 0], lim[:, 1], rows, eta, **kw)
+
+    every = torch.arange(3)
+    p1, n1, f1, s1 = run(every)
+    p2, n2, f2, s2 = run(every)
+    assert f1.all() and torch.equal(p1, p2) and torch.equal(n1, n2)
+    assert torch.equal(s1["checked"], s2["checked"])
+    for r in range(3):
+        pa, na, fa, sa = run(torch.tensor([r]))
+        k = int(na[0])
+        assert bool(fa[0]) and k == int(n1[r]) and torch.equal(pa[0, :k], p1[r, :k])
+        assert int(sa["iterations"][0]) == int(s1["iterations"][r])
+
+
+def test_close_start_planned_at_a_finer_resolution_and_a_start_in_collision_reported(panda):
+    """bookshelf_small/0019 starts closer than 5 mm to a shelf (clear of 0.3 mm): planned at η / 16, it
+    succeeds; table_pick/0041 starts or ends in collision (VAMP's one invalid problem): its reason says
+    so, in the same call, and nothing is raised."""
+    chain, rc, probs = panda
+    qs, qg, world, _ = _batch(probs, ["bookshelf_small/0019", "table_pick/0041"])
+    res = motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
+                      max_iterations=10000, step=0.5)
+    assert res.success.tolist() == [True, False]
+    assert "in collision" in res.reason[1]
+
+
+def test_plan_struct_layout_checked_and_another_version_refused(panda):
+    """dk_plan's version, size and field offsets equal PlanArgs' (check_layout); a struct of another
+    version is refused by the C entry points (DK_ABI_ERROR), nothing computed."""
+    import ctypes
+
+    from diffkin.motion import _native_search as ns
+
+    native.check_layout(native._lib, "plan", ns.PlanArgs)
+    with pytest.raises(native.AbiMismatch):
+        native.check_layout(native._lib, "plan", ns.PlanArgs, ns.VERSION + 1)
+    chain, rc, probs = panda
+    qs, qg, world, _ = _batch(probs, ["box/0001"])
+    planner = EdgeChecker(rc, world, 0.0, 0.005).native(qs)
+    ok = torch.full((1,), 7, dtype=torch.uint8)
+    a = planner.args(nthreads=1, N=1, q=qs.contiguous(), slack=0.0, ok=ok)
+    a.version = ns.VERSION + 1
+    search, decide = ns._functions()
+    assert decide(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"] and int(ok[0]) == 7
+    assert search(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
+
+
+def test_goal_bias_validated_and_used(panda):
+    """goal_bias outside [0, 1] is an OptionError naming it; 0.5 still solves (the other tree's root as the
+    sample half the time)."""
+    from diffkin.errors import OptionError
+
+    chain, rc, probs = panda
+    qs, qg, world, _ = _batch(probs, ["box/0001"])
+    for bad in (-0.1, 1.5, float("nan")):
+        with pytest.raises(OptionError, match="goal_bias"):
+            motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
+                        goal_bias=bad)
+    res = motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
+                      max_iterations=10000, step=0.5, goal_bias=0.5)
+    assert res.success.all(), res.reason
