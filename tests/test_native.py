@@ -214,6 +214,19 @@ def test_thread_policy_counts_free_cores(monkeypatch):
     assert native.thread_count(10**6, 2) == 1
     monkeypatch.setattr(native, "_free", [1e9, 3])
     assert native.thread_count(10**6, 2) == 2 and native.thread_count(10**6, 8) == 3
+    # within native.threads(n): n for batches of any size (not torch's count), capped by the free cores
+    with native.threads(2):
+        assert native.thread_count(10) == 2 and native.thread_count(1) == 1
+        assert native.thread_count(10, 1) == 1  # an explicit request still wins
+        with native.threads(8):
+            assert native.thread_count(10**6) == 3
+        with native.threads(None):  # None: the setting around it
+            assert native.thread_count(10) == 2
+        assert native.thread_count(10**6) == 2
+    assert native.thread_count(10) == 1  # restored: small batches on the calling thread again
+    for bad in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match="threads"), native.threads(bad):
+            pass
     # an explicit count is used as given, and the values do not depend on it
     chain = models.load("panda", dtype=torch.float32)
     q = chain.random_configuration((2000,), generator=torch.Generator().manual_seed(7))

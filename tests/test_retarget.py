@@ -620,9 +620,10 @@ def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
     assert fast[2].abs().amax() > 0 and not torch.equal(fast[2], torch.zeros_like(fast[2]))
 
 
-def test_whole_clip_optimisation_in_c_equals_the_torch_path():
+def test_whole_clip_optimisation_in_c_equals_the_torch_path(monkeypatch):
     """optimize_clip from one warm start (12 frames of the shipped hop, velocity limits, 3 iterations) gives
-    the same clip with the C kernels (frame terms, banded solve, FK) as with the torch path: 1e-9."""
+    the same clip with the C kernels (frame terms, banded solve, FK) as with the torch path: 1e-9; and the
+    same on two C threads (``threads=2``) as on one."""
     from diffkin.kernels import native
 
     if not native.available():
@@ -632,10 +633,10 @@ def test_whole_clip_optimisation_in_c_equals_the_torch_path():
     hop = retarget.load_bvh(retarget.example_clips()["hop"]).frames_slice(0, 12)
     r = retarget.clip(g1, hop, mp, whole_clip=False)
 
-    def run():
+    def run(**kw):
         return retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
                                       keypoint_frames=r.keypoint_frames, fps=hop.fps, iterations=3,
-                                      velocity_limit=20.0)
+                                      velocity_limit=20.0, **kw)
 
     fast = run()
     with native.disabled():
@@ -643,6 +644,18 @@ def test_whole_clip_optimisation_in_c_equals_the_torch_path():
     assert bool((fast.cost[-1] < fast.cost[0] / 2).all())
     torch.testing.assert_close(fast.cost, slow.cost, rtol=1e-9, atol=0)
     torch.testing.assert_close(fast.q, slow.q, rtol=0, atol=1e-9)
+    # threads=2: the kernels share the frames out over two threads (two cores free, as the policy sees it)
+    # whatever torch's count; the same clip
+    counts = []
+    count = native.thread_count
+    monkeypatch.setattr(native, "thread_count", lambda *a, **k: counts.append(count(*a, **k)) or counts[-1])
+    monkeypatch.setattr(native, "free_cores", lambda: 2)
+    two = run(threads=2)
+    assert max(counts) == 2
+    torch.testing.assert_close(two.cost, fast.cost, rtol=1e-12, atol=0)
+    torch.testing.assert_close(two.q, fast.q, rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="threads"):
+        run(threads=0)
 
 
 def test_whole_clip_extra_rows_plug_in():

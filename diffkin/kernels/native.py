@@ -40,7 +40,11 @@ is taken off the cores this process may run on. A fork-join call waits for its s
 thread that shares a core with a busy process is preempted for whole scheduler slices (milliseconds): on a
 2-core machine with one core busy, two threads made FK 10× slower than one. With the policy a busy core
 costs at most its share (≤ 2× on 2 cores). Blocks are also handed out dynamically, for cores that are
-slower for other reasons. ``threads=`` on :func:`fk_jacobian` overrides the policy.
+slower for other reasons. ``threads=`` on :func:`fk_jacobian` overrides the policy. Within
+``with native.threads(n):`` (:func:`threads`) every kernel called from this thread asks for ``n`` threads
+instead of torch's count, for batches of any size (the 512 floor is off), still capped by the free
+cores: the C kernels' threads then do not follow torch's (whose extra threads slow the small torch ops
+between the kernels down on a loaded machine).
 """
 
 from __future__ import annotations
@@ -66,8 +70,8 @@ from ..errors import OptionError
 from .configuration import MOTION_NQ, MOTION_NV
 from .tree import Segments, Topology
 
-__all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "NativeModel",
-           "Collide", "capsules_clear", "collide_struct",
+__all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "threads",
+           "NativeModel", "Collide", "capsules_clear", "collide_struct",
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows"]
@@ -458,13 +462,33 @@ def free_cores() -> int:
     return free
 
 
+_override = threading.local()  # .n: the count set by threads() on this thread (None: torch's)
+
+
+@contextlib.contextmanager
+def threads(n: int | None):
+    """Within the block the C kernels called from this thread ask for ``n`` threads (``n ≥ 1``) instead of
+    ``torch.get_num_threads()``, whatever the batch size, capped by :func:`free_cores` (module doc:
+    thread policy); None leaves the policy as it is. Nests; torch's own thread count is not touched."""
+    if n is not None and (isinstance(n, bool) or not isinstance(n, int) or n < 1):
+        raise OptionError(f"expected threads as an integer >= 1 or None, got {n!r}")
+    before = getattr(_override, "n", None)
+    _override.n = before if n is None else n
+    try:
+        yield
+    finally:
+        _override.n = before
+
+
 def thread_count(batch: int, requested: int | None = None) -> int:
     """Threads the kernel uses for ``batch`` configurations: 1 up to 512, else ``requested`` (default
-    ``torch.get_num_threads()``) capped by :func:`free_cores` (see the module doc)."""
-    if batch <= _SERIAL_MAX:
+    ``torch.get_num_threads()``) capped by :func:`free_cores`; within :func:`threads` its count for any
+    batch (capped the same way; see the module doc)."""
+    forced = getattr(_override, "n", None) if requested is None else None
+    if forced is None and batch <= _SERIAL_MAX:
         return 1
-    requested = torch.get_num_threads() if requested is None else requested
-    return 1 if requested <= 1 else min(requested, free_cores())
+    requested = (forced or torch.get_num_threads()) if requested is None else requested
+    return 1 if requested <= 1 or batch <= 1 else min(requested, batch, free_cores())
 
 
 @contextlib.contextmanager

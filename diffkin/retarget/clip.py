@@ -16,6 +16,7 @@ from torch import Tensor
 
 from .. import ik
 from ..errors import ModelError, OptionError
+from ..kernels import native
 from ..kernels.configuration import joint_kind
 from ..validation import check_count
 from .mapping import Mapping
@@ -128,7 +129,7 @@ def clip(chain, motion: Motion, mapping: Mapping, *, collision=None, ground: flo
          max_iterations: int = 20, contact_thresholds: dict | None = None, whole_clip: bool = True,
          iterations: int | None = None, costs: dict | None = None, solver: str = "banded",
          warm_start: str = "sequential", velocity_limit=None,
-         collision_margin: float = 0.01) -> RetargetResult:
+         collision_margin: float = 0.01, threads: int | None = None) -> RetargetResult:
     """Retarget ``motion`` (B clips) onto ``chain`` (a floating-base chain whose end links are
     ``mapping.frames``, e.g. ``models.from_mjcf(path, mapping.frames)``).
 
@@ -152,7 +153,19 @@ def clip(chain, motion: Motion, mapping: Mapping, *, collision=None, ground: flo
     hips or torso on real clips: the one-sided penalty then takes more steps).
     No sole point ends below ``ground`` (the optimisation's last step raises the base where one is). The
     metrics are :func:`~diffkin.retarget.metrics` of the result; ``warm_start`` holds stage one's.
+    ``threads``: the C kernels' threads in both stages (the frames of the clips shared out over them),
+    independent of torch's count (:func:`diffkin.kernels.native.threads`; None: their default policy).
     """
+    if threads is not None:
+        check_count(threads, "threads")
+    with native.threads(threads):
+        return _clip(chain, motion, mapping, collision, ground, scale, max_iterations, contact_thresholds,
+                     whole_clip, iterations, costs, solver, warm_start, velocity_limit, collision_margin)
+
+
+def _clip(chain, motion, mapping, collision, ground, scale, max_iterations, contact_thresholds, whole_clip,
+          iterations, costs, solver, warm_start, velocity_limit, collision_margin) -> RetargetResult:
+    """:func:`clip` (its arguments, in order) within its thread setting."""
     mapping.check(motion)
     check_count(max_iterations, "max_iterations")
     if warm_start not in ("batched", "sequential"):

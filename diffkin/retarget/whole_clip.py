@@ -390,7 +390,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                iterations: int = 10, limit_margin: float = 0.0, damping: float = 1e-4, solver: str = "banded",
                cg_iterations: int = 30, velocity_limit=None, orientations=None,
                orientation_weights=None, collision=None, collision_margin: float = 0.01,
-               collision_screen: float = 0.1) -> ClipOptimization:
+               collision_screen: float = 0.1, threads: int | None = None) -> ClipOptimization:
     """Optimise a warm-started clip ``q (B, T, nq)`` over all frames at once (module doc).
 
     Args:
@@ -425,12 +425,18 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
             screen is redone on the result, and where it finds pairs it had left out, they are added and
             ``iterations`` more run (at most twice; :mod:`~diffkin.retarget.self_collision`). None (the
             default): no self-collision rows.
+        threads: the C kernels' threads (FK, frame terms, banded solve on CPU tensors: the clips' frames
+            shared out over them) independently of ``torch.get_num_threads()``, capped by the free cores
+            (:func:`diffkin.kernels.native.threads`); None: the kernels' default policy (torch's count
+            for batches over 512 configurations, else one).
 
     Returns a :class:`ClipOptimization`.
     """
     check_number(fps, "fps", unit=" frames per second")
     check_count(iterations, "iterations", minimum=0)
     check_count(cg_iterations, "cg_iterations")
+    if threads is not None:
+        check_count(threads, "threads")
     if solver not in ("cg", "banded"):
         raise OptionError(f"solver must be 'cg' or 'banded', got {solver!r}")
     ground = _finite(ground, "ground")
@@ -479,7 +485,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
     terms = _Terms(chain, x.detach(), c.bool(), list(feet), frames, fps, ground, sole, kw, w, q.clone(),
                    limit_margin, vmax, R_d, ow, rows)
     q = terms.project(q)
-    with torch.no_grad():
+    with torch.no_grad(), native.threads(threads):
         cur = terms.evaluate(q)
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
         history = [cur[0]]
