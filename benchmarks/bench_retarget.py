@@ -8,8 +8,10 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
   (``warm_start="sequential"``: ``ik.solve`` frame after frame, or ``"batched"``: all frames in one call)
   then the whole-clip optimisation (:func:`diffkin.retarget.optimize_clip`, with the URDF's joint velocity
   limits as hard constraints: ``velocity_limit=``); frames per second over the 370 frames (batched: the
-  median of three runs, after a warm-up call), the whole-clip stage's share of the time; ``diffkin one
-  clip``: the walk alone (B = 1), end to end through ``retarget.clip``.
+  median of three runs, after a warm-up call), the whole-clip stage's share of the time; the batched run
+  with the C kernels on 1 and on 2 threads (``threads=``: the frames shared out over them, torch's own
+  count unchanged; still capped by the cores free at the time); ``diffkin one clip``: the walk alone
+  (B = 1), end to end through ``retarget.clip``.
 * ``mink``: frame by frame with mink (GMR's scheme: a ``FrameTask`` per mapped frame with the same scaled
   human targets, position cost 1 and orientation cost 0, a small ``PostureTask``,
   ``ConfigurationLimit``, ``solve_ik(..., "daqp")`` and ``integrate_inplace``, iterated on each frame
@@ -182,15 +184,15 @@ def run(args) -> list[dict]:
     rows = []
     base = None
     retarget.clip(g1, clips[0].frames_slice(0, 4), mp, velocity_limit=vmax)  # warm-up: builds the C library
-    for warm in ("sequential", "batched"):
+    for warm, threads in (("sequential", 1), ("batched", 1), ("batched", 2)):
         runs = []
         for _ in range(1 if warm == "sequential" else 3):  # batched: the median of three runs
             t0, c0 = time.perf_counter(), time.process_time()
-            r = retarget.clip(g1, motion, mp, whole_clip=False, warm_start=warm)
+            r = retarget.clip(g1, motion, mp, whole_clip=False, warm_start=warm, threads=threads)
             t1 = time.perf_counter()
             opt = retarget.optimize_clip(g1, r.q, r.keypoints, r.contacts, feet=mp.feet,
                                          keypoint_frames=r.keypoint_frames, fps=motion.fps,
-                                         velocity_limit=vmax)
+                                         velocity_limit=vmax, threads=threads)
             runs.append((time.perf_counter() - t0, t0, t1, time.perf_counter(), time.process_time() - c0))
         _, t0, t1, t2, cpu = sorted(runs)[len(runs) // 2]
         m = retarget.metrics(g1, opt.q, r.contacts, motion.fps, feet=mp.feet, keypoints=r.keypoints,
@@ -200,7 +202,8 @@ def run(args) -> list[dict]:
             if warm == "sequential":
                 rows.append({"method": "diffkin stage one (sequential)", "clip": name, "frames/s": None,
                              **_metrics_row(r.metrics, b, r.q)})
-            rows.append({"method": f"diffkin whole clip ({warm} warm start)", "clip": name,
+            rows.append({"method": f"diffkin whole clip ({warm} warm start, {threads} C thread"
+                                   f"{'s' if threads > 1 else ''})", "clip": name,
                          "frames/s": n / (t2 - t0), "frames/CPU-s": n / cpu,
                          "stage-two share": (t2 - t1) / (t2 - t0),
                          **_metrics_row(m, b, opt.q)})

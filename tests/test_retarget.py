@@ -596,6 +596,35 @@ def _terms_case(dtype, B=2, T=6):
     return terms, q.to(dtype)
 
 
+def test_whole_clip_projection_is_the_frame_after_frame_clamp():
+    """_Terms.project: the limits, then frame after frame q_t into [q_{t−1} ∓ q̇_max/fps] ∩ [q_min, q_max]
+    (a numpy loop over every frame here); a clip within the velocity limits comes back as it is, and one
+    whose first step beyond is at frame 3 (in one clip of two) is clamped from there on."""
+    terms, q = _terms_case(torch.float64, B=2, T=8)
+    sq, vstep = terms.sq.numpy(), terms.vstep.numpy()
+    lo, hi = terms.lo_hard.numpy(), terms.hi_hard.numpy()
+
+    def reference(q):
+        out = terms.chain.clamp_to_limits(q, check=False).numpy().copy()
+        for b in range(out.shape[0]):
+            for t in range(1, out.shape[1]):
+                prev = out[b, t - 1, sq]
+                lo_t, hi_t = np.maximum(prev - vstep, lo), np.minimum(prev + vstep, hi)
+                out[b, t, sq] = np.clip(out[b, t, sq], lo_t, hi_t)
+        return torch.from_numpy(out)
+
+    slow = q[:, :1].expand(q.shape).clone()  # every frame the first: no step at all
+    slow[..., 7:] += 0.05 * torch.linspace(0, 1, q.shape[1], dtype=q.dtype)[:, None]  # 0.007 rad a frame
+    slow = terms.chain.clamp_to_limits(slow, check=False)
+    assert torch.equal(terms.project(slow), slow)
+    jump = slow.clone()
+    jump[1, 3:, 7:] += 0.3  # 0.3 rad at frame 3 of clip 1 (the limit: 0.1 rad a frame)
+    got = terms.project(jump)
+    torch.testing.assert_close(got, reference(jump), rtol=0, atol=1e-15)
+    assert torch.equal(got[:, :3], jump[:, :3]) and not torch.equal(got[1, 3:], jump[1, 3:])
+    torch.testing.assert_close(terms.project(q), reference(q), rtol=0, atol=1e-15)
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
     """The C frame terms (native.clip_rows: keypoints, orientations, the soles' contact, penetration and

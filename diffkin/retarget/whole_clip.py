@@ -136,8 +136,16 @@ class _Terms:
         if self.vstep is None or q.shape[1] < 2:
             return q
         qs = q.index_select(-1, self.sq)
-        out = [qs[:, 0]]
-        for t in range(1, q.shape[1]):
+        start = 1
+        if q.device.type == "cpu":  # no device sync: the frames before the first step beyond (in any clip)
+            # are their own projection (each within q̇_max/fps of the one before), the loop starts there
+            beyond = ((qs[:, 1:] - qs[:, :-1]).abs() > self.vstep * (1 - 1e-9)).any(-1).any(0)
+            hit = beyond.nonzero()
+            if hit.numel() == 0:
+                return q
+            start = int(hit[0, 0]) + 1
+        out = list(qs[:, :start].unbind(1))
+        for t in range(start, q.shape[1]):
             lo = torch.maximum(out[-1] - self.vstep, self.lo_hard)
             hi = torch.minimum(out[-1] + self.vstep, self.hi_hard)
             out.append(torch.minimum(torch.maximum(qs[:, t], lo), hi))
