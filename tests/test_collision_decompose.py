@@ -61,12 +61,12 @@ def _inside_some_hull(p, parts, tol=1e-12):
 @pytest.fixture(scope="module")
 def u_parts():
     v, faces = _u_mesh()
-    return v, faces, convex_parts(v, faces, tolerance=0.001)
+    return v, faces, convex_parts(v, faces, tolerance=0.002)
 
 
 def test_u_parts_contain_the_mesh_and_are_fewer_than_its_faces(u_parts):
     v, faces, r = u_parts
-    assert 2 <= len(r.parts) <= 8 and r.excess <= 0.001
+    assert 2 <= len(r.parts) <= 4 and r.excess <= 0.002
     assert _inside_some_hull(v, r.parts).all()  # every mesh vertex, and points spread over each triangle
     w = np.random.default_rng(0).dirichlet(np.ones(3), 200)
     assert _inside_some_hull(np.einsum("kj,fjd->fkd", w, v[faces]).reshape(-1, 3), r.parts).all()
@@ -74,7 +74,7 @@ def test_u_parts_contain_the_mesh_and_are_fewer_than_its_faces(u_parts):
 
 def test_u_parts_distances_against_coal_on_the_mesh(u_parts):
     """Points outside the U: the distance to the parts is never above coal's distance to the mesh (BVH)
-    and below it by at most the tolerance (the hull alone: the 20 mm slot)."""
+    and below it by at most the tolerance (the hull alone: up to the slot's half width, 10 mm)."""
     v, faces, r = u_parts
     bvh = _bvh(v, faces)
     rng = np.random.default_rng(1)
@@ -86,7 +86,7 @@ def test_u_parts_distances_against_coal_on_the_mesh(u_parts):
     P = torch.tensor(p)
     ours = CV.capsule_convex(P[:, None], P[:, None], torch.zeros(len(p), 1, dtype=F64), V).amin(-1).numpy()
     gap = true - ours
-    assert gap.min() > -1e-9 and gap.max() <= 0.001 + 1e-9
+    assert gap.min() > -1e-9 and gap.max() <= 0.002 + 1e-9
     hull = CV.capsule_convex(P, P, torch.zeros(len(p), dtype=F64), torch.tensor(v)).numpy()
     assert (true - hull).max() > 0.01  # (what the decomposition removes: the hull fills the slot)
 
@@ -124,7 +124,7 @@ def test_typed_errors():
 
 def test_max_parts_stops_early_with_the_excess_reported():
     v, faces = _u_mesh()
-    r = convex_parts(v, faces, tolerance=0.001, max_parts=1)
+    r = convex_parts(v, faces, tolerance=0.004, max_parts=1)
     assert len(r.parts) == 1 and 0.0099 < r.excess < 0.0115  # the hull over the slot: its half width (10 mm)
 
 
@@ -148,7 +148,7 @@ def test_from_urdf_convex_parts(tmp_path):
     trimesh.Trimesh(v, faces).export(tmp_path / "u.obj")
     (tmp_path / "u.urdf").write_text(_URDF)
     chain = models.from_urdf(tmp_path / "u.urdf", "tip", dtype=F64)
-    rc = RobotCollision.from_urdf(tmp_path / "u.urdf", chain, geometry="convex", mesh_tolerance=0.001)
+    rc = RobotCollision.from_urdf(tmp_path / "u.urdf", chain, geometry="convex", mesh_tolerance=0.002)
     parts = [g for g in rc.geoms if g.link == "arm"]
     assert len(parts) >= 2 and all(g.shape == "convex" and g.name.startswith("arm") for g in parts)
     hull = RobotCollision.from_urdf(tmp_path / "u.urdf", chain, geometry="convex")
@@ -158,6 +158,6 @@ def test_from_urdf_convex_parts(tmp_path):
     q = torch.tensor([[0.0, -0.2 + 0.5 * UNIT, 0.0]], dtype=F64)
     with torch.no_grad():
         d_parts, d_hull = float(rc.self_distances(q).min()), float(hull.self_distances(q).min())
-    assert d_hull < 0 and 0.001 - 1e-9 <= d_parts <= 0.002 + 1e-9
+    assert d_hull < 0 and -1e-9 <= d_parts <= 0.002 + 1e-9
     with pytest.raises(OptionError, match="mesh_tolerance"):
         RobotCollision.from_urdf(tmp_path / "u.urdf", chain, geometry="convex", mesh_tolerance=-1.0)

@@ -12,22 +12,26 @@ The rule (deterministic, no random draws):
    crosses the surface and d_mesh(y) ≤ d_union(y). Since every triangle lies in some hull, also
    d_union(y) ≤ d_mesh(y): **0 ≤ d_mesh − d_union ≤ the largest excess** for every point outside.
 3. While some part's excess is above ``tolerance`` (and there are fewer than ``max_parts`` parts), the worst
-   part is split by a plane: normals along its principal axes and the coordinate axes, offsets at 1/8 … 7/8
-   of its extent and through the mesh point nearest its worst sample; the plane whose two sides' hulls have
-   the least total volume wins. Triangles crossing the plane are clipped, each side keeping its piece with
-   the crossing points as vertices, so a part's hull still contains its triangles and the union contains
-   the whole surface (conservative). Deep inside a thick mesh, near a point where three cutting planes
-   meet, a small pocket of the solid may belong to no hull; it lies farther than the cut parts' surfaces
-   from any point outside, so distances to the outside are unaffected.
+   part is cut by the plane through the nearest point f of its own triangles to its worst sample x, facing
+   x − f (the concavity's wall there is cut off: on the U below, first one arm, then the other); where
+   that plane leaves one side empty, by the plane among its principal axes at 1/8 … 7/8 of its extent
+   whose two sides' hulls have the least total volume. Triangles crossing the plane are clipped, each side
+   keeping its piece with the crossing points as vertices (a triangle on the plane goes to the side behind
+   its normal), so a part's hull still contains its triangles and the union contains the whole surface
+   (conservative). A cut's face is shared by the two sides and is not measured again. Deep inside a thick
+   mesh, near a point where three cutting planes meet, a small pocket of the solid may belong to no hull;
+   it lies farther than the parts' surfaces from any point outside, so distances to the outside are
+   unaffected, but an object wholly inside such a pocket is not seen.
 
 Measuring the excess. The hull's triangles are bisected at their longest edge until no edge is longer than
-``s = tolerance / 4``; their corners are the samples (every boundary point lies within s/√3 of one). A
-sample's distance to the surface is its distance to the nearest corner of the mesh's own triangles bisected
-the same way, which is above the true distance by at most s/√3 (the safe side); a sample is outside where
-the mesh's generalised winding number (Jacobson, Kavan and Sorkine-Hornung 2013: the solid angle of the
-triangles over 4π, robust to the cracks of real collision meshes) is below 1/2 in magnitude. A part passes
-when its measured excess plus s/√3 is within ``tolerance``. Parts are first measured on samples 4× coarser:
-one sample outside by more than ``tolerance`` already condemns a part.
+``s = tolerance / 2``; their corners are the samples (every boundary point lies within s/√3 of one). A
+sample's distance to the surface is first bounded by its distance to the nearest corner of the mesh's own
+triangles bisected the same way (never below the true one), and where that is above the limit, taken
+exactly to the triangles of the 4 nearest corners; a sample is outside where the mesh's generalised winding
+number (Jacobson, Kavan and Sorkine-Hornung 2013: robust to the cracks and overlapping shells of real
+collision meshes) is below 1/2 in magnitude. A part passes when its measured excess plus s/√3 is within
+``tolerance``. Parts are first measured on samples 4× coarser: one sample outside by more than the limit
+already condemns a part.
 """
 
 from __future__ import annotations
@@ -230,9 +234,11 @@ class _Part:
         _, _, vt = np.linalg.svd(P - c, full_matrices=False)
         cands = []
         if self._excess is not None and self._excess[1] is not None:
-            x, f = self._excess[1]  # the worst sample and the mesh point nearest it: the plane through
-            u = (x - f) / max(float(np.linalg.norm(x - f)), 1e-300)  # the concavity's bottom f facing the
-            cands.append((u, float(f @ u)))  # gap (x - f) cuts off the wall there
+            x = self._excess[1][0]  # the worst sample and the nearest point f of the part's own triangles:
+            dd, ff = point_triangle(x[None], self.T)  # the plane through the concavity's bottom f facing
+            f = ff[int(dd.argmin())]  # the gap x - f cuts off the wall there
+            u = (x - f) / max(float(np.linalg.norm(x - f)), 1e-300)
+            cands.append((u, float(f @ u)))
         if not cands or _sides(self.T, *cands[0]) is None:
             cands = []
             for n in vt:
