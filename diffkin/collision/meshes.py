@@ -29,7 +29,8 @@ import numpy as np
 from ..errors import OptionError, require
 from ..validation import check_count, check_number
 
-__all__ = ["resolve_mesh", "fit_capsules", "capsules_of_triangles", "capsule_of_points", "hull_vertices"]
+__all__ = ["resolve_mesh", "fit_capsules", "capsules_of_triangles", "capsule_of_points", "hull_vertices",
+           "convex_parts_of_file"]
 
 #: a watertight mesh whose volume is within this fraction of its hull's counts as convex (the Panda's
 #: collision meshes, convex but for rounding, are within 3e-4)
@@ -81,6 +82,30 @@ def hull_vertices(path: Path, scale=(1.0, 1.0, 1.0)) -> tuple[np.ndarray, bool]:
            tuple(float(x) for x in np.broadcast_to(np.asarray(scale, dtype=np.float64), 3)))
     V, convex = _hull_file(*key)
     return V.copy(), convex
+
+
+def convex_parts_of_file(path: Path, scale=(1.0, 1.0, 1.0), *, tolerance: float = 0.002,
+                        max_parts: int = 128):
+    """:class:`~diffkin.collision.decompose.ConvexParts` of the mesh at ``path`` (mesh frame, scaled):
+    :func:`~diffkin.collision.decompose.convex_parts` of its triangles. Cached per file while it is
+    unchanged (the decomposition takes seconds to minutes)."""
+    from .decompose import ConvexParts
+
+    key = (str(Path(path).resolve()), Path(path).stat().st_mtime_ns,
+           tuple(float(x) for x in np.broadcast_to(np.asarray(scale, dtype=np.float64), 3)))
+    r = _parts_file(*key, check_number(tolerance, "tolerance"), check_count(max_parts, "max_parts"))
+    return ConvexParts([v.copy() for v in r.parts], r.excess)
+
+
+@functools.lru_cache(maxsize=64)
+def _parts_file(path: str, mtime: int, scale: tuple, tolerance: float, max_parts: int):
+    from .decompose import convex_parts
+
+    trimesh = require("trimesh", "collision", "mesh collision geometry")
+    mesh = trimesh.load(path, force="mesh")
+    mesh.vertices = np.asarray(mesh.vertices, dtype=np.float64) * np.asarray(scale, dtype=np.float64)
+    mesh.merge_vertices()
+    return convex_parts(mesh.vertices, mesh.faces, tolerance=tolerance, max_parts=max_parts)
 
 
 @functools.lru_cache(maxsize=256)

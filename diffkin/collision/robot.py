@@ -26,13 +26,13 @@ from ..errors import ModelError, OptionError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
 from ..transforms import transform_points
-from ..validation import check_count, check_dtype, check_given, tensors
+from ..validation import check_count, check_dtype, check_given, check_number, tensors
 from ._checks import check_agree, check_chain, names_str
 from ._poses import LinkFrames
 from .broad import capsule_pairs_at_least, group_tables, pairs_clear
 from .clear import world_clear
 from .distances import capsule_capsule_pairs
-from .meshes import fit_capsules, hull_vertices, resolve_mesh
+from .meshes import convex_parts_of_file, fit_capsules, hull_vertices, resolve_mesh
 from .pairs import NATIVE_CLEAR_SPHERES, distance, pair
 from .world import World, _check_world
 
@@ -553,7 +553,7 @@ class RobotCollision(nn.Module):
     # ------------------------------------------------------------------------------------ builders
     @classmethod
     def from_urdf(cls, source, chain, srdf=None, *, package_dirs=(), mesh_capsules: int = 4,
-                  geometry: str = "capsules") -> RobotCollision:
+                  geometry: str = "capsules", mesh_tolerance: float | None = None) -> RobotCollision:
         """The ``<collision>`` geoms of the chain's links (fixed links included) from a URDF (path, text or
         :class:`~diffkin.models.urdf_xml.URDFTree`), with the URDF pair rules (module docstring) and the
         ``<disable_collisions>`` of ``srdf`` (path or text). Meshes whose files resolve (``package://``
@@ -562,7 +562,11 @@ class RobotCollision(nn.Module):
         (:mod:`diffkin.collision.meshes`; 1: one enclosing capsule) with ``geometry="capsules"``, or their
         exact convex hull with ``geometry="convex"`` (one ``convex`` geom per mesh,
         :mod:`diffkin.collision.convex`; a mesh that is not convex itself is held as its hull, flagged
-        ``Geom.hull``); the others are skipped with one warning naming them. A ``<collision>`` whose shape
+        ``Geom.hull``); with ``mesh_tolerance`` (m) a non-convex mesh becomes instead convex parts
+        ``name/0``, ``name/1``, ... whose union contains its triangles and reaches beyond it by at most
+        that much (:func:`diffkin.collision.decompose.convex_parts`, at most 128 parts; a warning names a
+        mesh left above the tolerance; seconds to minutes per mesh, once per file in a process); the
+        others are skipped with one warning naming them. A ``<collision>`` whose shape
         URDF does not define (``<cone>``) is left out with a
         warning naming it; a ``<geometry>`` holding two shapes, and an SRDF naming links the URDF does not
         have (another robot's SRDF, a typo), are a :class:`~diffkin.errors.ModelError`.
@@ -571,6 +575,8 @@ class RobotCollision(nn.Module):
             raise ModelError(f"RobotCollision.from_urdf: expected chain as the chain built from this URDF "
                              f"(models.from_urdf(source, end_link)), got {type(chain).__name__}")
         mesh_capsules = check_count(mesh_capsules, "mesh_capsules")
+        if mesh_tolerance is not None:
+            mesh_tolerance = check_number(mesh_tolerance, "mesh_tolerance", unit=" (m)")
         if geometry not in ("capsules", "convex"):
             raise OptionError(f"RobotCollision.from_urdf: expected geometry 'capsules' or 'convex', got "
                               f"{geometry!r}")
@@ -593,7 +599,7 @@ class RobotCollision(nn.Module):
         data_of: dict[str, list] = {"capsule": [], "box": [], "convex": []}
         for link in frames.links:
             for s in specs.get(link, []):
-                found = _geoms_of(s, base_dir, package_dirs, mesh_capsules, geometry)
+                found = _geoms_of(s, base_dir, package_dirs, mesh_capsules, geometry, mesh_tolerance)
                 if not found:
                     missing.append(f"{s.name} ({s.filename})")
                 for geom, data in found:
@@ -671,9 +677,11 @@ def _unbatched(world: World) -> bool:
     return len(world.batch_shape) == 0
 
 
-def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int, geometry: str = "capsules") -> list:
-    """[(Geom, link-frame data)] of a CollisionSpec: one geom, a mesh's fitted capsules or its hull
-    (``geometry``), or none for a mesh whose file does not resolve."""
+def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int, geometry: str = "capsules",
+              mesh_tolerance: float | None = None) -> list:
+    """[(Geom, link-frame data)] of a CollisionSpec: one geom, a mesh's fitted capsules, its hull or (a
+    non-convex mesh with ``mesh_tolerance``) its convex parts (``geometry``), or none for a mesh whose
+    file does not resolve."""
     T = origin_transform(torch.tensor(s.xyz, dtype=torch.float64), torch.tensor(s.rpy, dtype=torch.float64))
     pt = lambda p: transform_points(T, torch.tensor(p, dtype=torch.float64)).tolist()  # noqa: E731
     if s.type == "sphere":
@@ -690,8 +698,18 @@ def _geoms_of(s, base_dir, package_dirs, mesh_capsules: int, geometry: str = "ca
         return []
     if geometry == "convex":
         V, convex = hull_vertices(path, s.size)
-        V = transform_points(T, torch.as_tensor(V, dtype=torch.float64)).numpy()
-        return [(Geom(s.name, s.link, "mesh", "convex", s.filename, hull=not convex), V)]
+        if convex or mesh_tolerance is None:
+            V = transform_points(T, torch.as_tensor(V, dtype=torch.float64)).numpy()
+            return [(Geom(s.name, s.link, "mesh", "convex", s.filename, hull=not convex), V)]
+        parts = convex_parts_of_file(path, s.size, tolerance=mesh_tolerance)
+        if parts.excess > mesh_tolerance:
+            warnings.warn(f"RobotCollision.from_urdf: the convex parts of {s.filename} reach "
+                          f"{parts.excess:.3g} m beyond it (mesh_tolerance {mesh_tolerance:g} m): the part "
+                          "limit was reached first", stacklevel=3)
+        names = [s.name] if len(parts.parts) == 1 else [f"{s.name}/{k}" for k in range(len(parts.parts))]
+        return [(Geom(n, s.link, "mesh", "convex", s.filename),
+                 transform_points(T, torch.as_tensor(V, dtype=torch.float64)).numpy())
+                for n, V in zip(names, parts.parts)]
     caps = fit_capsules(path, s.size, max_capsules=mesh_capsules)
     names = [s.name] if len(caps) == 1 else [f"{s.name}/{k}" for k in range(len(caps))]
     return [(Geom(n, s.link, "mesh", "capsule", s.filename), (pt(tuple(a)), pt(tuple(b)), r))
