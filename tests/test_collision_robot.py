@@ -309,8 +309,8 @@ def test_meshes_become_enclosing_capsules(tmp_path):
 def test_the_model_does_not_import_the_collision_layer():
     """Dependencies point one way: the collision layer sits above the model (chain, kernels, models,
     transforms, calibration, ...) and below what builds on it (IK's distance constraints, motion planning,
-    retargeting, the viewer, the demo and the command line); nothing of the model names diffkin.collision, and diffkin.collision names
-    nothing of those above it."""
+    retargeting, the viewer, the demo and the command line); nothing of the model names diffkin.collision,
+    and diffkin.collision names nothing of those above it."""
     root = Path(diffkin.__file__).parent
     above = {root / "__init__.py", root / "demo.py"}
     above |= {p for d in ("cli", "viz", "ik", "motion", "retarget") for p in (root / d).rglob("*.py")}

@@ -248,7 +248,7 @@ def test_plan_float32_and_empty_batch():
 def test_a_spline_leaving_the_limits_is_not_taken():
     """The cubic through waypoints that touch a limit overshoots it; _spline_clear refuses it (the planner
     then times the polyline, which stays inside)."""
-    from diffkin.motion.plan import _spline_clear
+    from diffkin.motion._spline import _spline_clear
 
     class Clear:  # every configuration collision-free: only the limits decide
         reach = torch.ones(1, dtype=torch.float64)

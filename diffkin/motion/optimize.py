@@ -57,6 +57,7 @@ from ..collision.world import World
 from ..errors import OptionError
 from ..ik._qp_ip import _polish, ip_solve
 from ..ik.residuals import DistanceConstraint
+from ._spline import _knots, _spline_clear
 
 __all__ = ["OptimizeConfig", "OptimizedPath", "optimize_knots", "optimize_stage", "resample", "sample_with"]
 
@@ -438,7 +439,6 @@ def optimize_stage(checker, world, q_start: Tensor, q_goal: Tensor, path: Tensor
     within the joint limits ``lo``, ``hi``. A row whose iterations did not converge is kept on the same
     proof (its last iterate, a smoother path than the search's) but carries no gradient (it is no KKT
     point)."""
-    from .plan import _knots, _spline_clear
 
     w = world
     if world is not None and len(world.batch_shape):

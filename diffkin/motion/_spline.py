@@ -1,0 +1,47 @@
+"""The geometric path of a plan: chord-length knots through waypoints and the continuous check of the
+clamped cubic spline through them (the path :func:`~diffkin.trajectories.time_optimal` times), shared by
+:func:`~diffkin.motion.plan` and its optimisation stage (:mod:`diffkin.motion.optimize`)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..trajectories.time_optimal import _Path
+from ._edges import EdgeChecker
+
+__all__ = ["_knots", "_spline_clear"]
+
+
+def _knots(path: Tensor) -> Tensor:
+    """Chord-length knots (B, L), strictly increasing."""
+    seg = (path[:, 1:] - path[:, :-1]).norm(dim=-1) + 1e-9
+    return torch.cat((torch.zeros_like(seg[:, :1]), seg.cumsum(1)), 1)
+
+
+def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
+                  fine: int = 4096) -> Tensor:
+    """(B,) bool: the clamped cubic spline through ``path`` (B, L, nq) at ``knots`` (B, L) — the geometric
+    path :func:`~diffkin.trajectories.time_optimal` times — is proven clear and within the joint limits
+    ``lo``, ``hi`` (nq,) (a cubic overshoots its waypoints: checked on the ``fine`` samples, whose spacing
+    leaves at most the spline's curvature times (1/fine)² between them). Its bound-length
+    Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
+    crosses a multiple of 0.8 η_b (each problem's resolution; the 20 % spare covers chords against arcs
+    and the last fine chord)."""
+    B = path.shape[0]
+    knots = knots.to(torch.float64)
+    s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
+    p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
+    u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
+    q = p.eval(u)[0]
+    inside = ((q >= lo.to(q)) & (q <= hi.to(q))).all(-1).all(-1)
+    chord = ((q[:, 1:] - q[:, :-1]).abs() * checker.reach.to(torch.float64)).sum(-1)
+    cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
+    c = 0.8 * checker.eta_of(problem).to(torch.float64)  # (B,): each problem's resolution
+    n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
+    K = int(n.max()) + 1
+    marks = torch.arange(K, device=path.device, dtype=torch.float64)[None] * c[:, None]  # (B, K)
+    idx = torch.searchsorted(cum, marks.contiguous()).clamp(max=fine)
+    idx = torch.where(torch.arange(K, device=path.device)[None] <= n[:, None], idx, fine)
+    qc = torch.gather(q, 1, idx[..., None].expand(B, K, q.shape[-1])).to(path.dtype)
+    return checker.clear(qc, problem[:, None]).all(1) & inside
