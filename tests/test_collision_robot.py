@@ -312,7 +312,7 @@ def test_the_model_does_not_import_the_collision_layer():
     retargeting, the viewer, the demo and the command line); nothing of the model names diffkin.collision,
     and diffkin.collision names nothing of those above it."""
     root = Path(diffkin.__file__).parent
-    above = {root / "__init__.py", root / "demo.py"}
+    above = {root / "__init__.py", *(root / "demo").rglob("*.py")}
     above |= {p for d in ("cli", "viz", "ik", "motion", "retarget") for p in (root / d).rglob("*.py")}
     files = [p for p in root.rglob("*.py") if "collision" not in p.relative_to(root).parts and p not in above]
     pattern = re.compile(r"^\s*(from\s+(\.+|diffkin\.)collision"
