@@ -4,7 +4,7 @@ against central differences of its exact gradient."""
 
 import pytest
 import torch
-from torch.autograd import gradgradcheck
+from torch.autograd import gradcheck, gradgradcheck
 
 from diffkin.collision import boxes as B
 from diffkin.collision import cylinders as C
@@ -29,7 +29,8 @@ CASES = {
                        ([0.1, 1.0, 0.3], [-1.0, 0.0, 0.0], [1.0, 0.2, 0.0])),
     "capsule_capsule": (lambda w, x, y, z: D.capsule_capsule(w, x, R, y, z, R),
                         ([0.2, -1.0, 1.0], [-0.1, 1.0, 1.2], [-1.0, 0.0, 0.0], [1.0, 0.2, 0.0])),
-    "capsule_capsule_pairs": (_pairs, ([0.2, -1.0, 1.0], [-0.1, 1.0, 1.2], [-1.0, 0.0, 0.0], [1.0, 0.2, 0.0])),
+    "capsule_capsule_pairs": (_pairs,
+                              ([0.2, -1.0, 1.0], [-0.1, 1.0, 1.2], [-1.0, 0.0, 0.0], [1.0, 0.2, 0.0])),
     "capsule_box": (lambda x, y, c: B.capsule_box(x, y, R, c, BOX.rotation, BOX.half_extents),
                     ([0.9, -1.0, 0.1], [1.1, 1.0, 0.05], [0.0, 0.0, 0.0])),
     "sphere_box": (lambda x, c: B.sphere_box(x, R, c, BOX.rotation, BOX.half_extents),
@@ -51,7 +52,7 @@ CASES = {
 def test_gradgradcheck(name):
     f, pts = CASES[name]
     args = tuple(torch.tensor(p, dtype=DT, requires_grad=True) for p in pts)
-    assert gradgradcheck(f, args)
+    assert gradcheck(f, args) and gradgradcheck(f, args)
 
 
 def _hessian_vs_fd(f, x, h=1e-5):
@@ -61,7 +62,8 @@ def _hessian_vs_fd(f, x, h=1e-5):
     return H, fd
 
 
-@pytest.mark.parametrize("name", ["sphere_capsule", "capsule_capsule", "capsule_box"])
+@pytest.mark.parametrize("name", ["sphere_capsule", "capsule_capsule", "capsule_capsule_pairs",
+                                  "capsule_box"])
 def test_hessian_matches_differences_of_the_gradient(name):
     """The reported defect: an error of O(1) in a capsule–sphere Hessian, in a neighbourhood (not a kink)."""
     f, pts = CASES[name]

@@ -151,18 +151,77 @@ def capsule_pairs_cm(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor) -> T
     and radii ``R (G, N)`` (or ``(G, 1)``) of G capsules in N rows → ``(P, N)`` for the pairs (i[p], j[p]).
 
     The geoms sit on the leading axis so that gathering the pairs copies contiguous rows and every per-pair
-    operation runs on contiguous ``(P, N)`` planes; the squared lengths are computed once per geom.
+    operation runs on contiguous ``(P, N)`` planes; the squared lengths are computed once per geom. With
+    gradients it runs as :class:`_PairKernel` (the first-order backward pass in closed form; a
+    ``create_graph`` pass through :func:`_pairs_graph`, exact second derivatives).
     """
+    if torch.is_grad_enabled() and (A.requires_grad or D.requires_grad or R.requires_grad):
+        return _PairKernel.apply(A, D, R, i, j)
+    return _pairs_values(A, D, R, i, j)[0]
+
+
+def _pairs_values(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor):
+    """(distances ``(P, N)``, s, t, v ``(P, 3, N)``) of :func:`capsule_pairs_cm`, without gradient."""
+    with torch.no_grad():
+        a0, d1 = A.index_select(0, i), D.index_select(0, i)
+        b0, d2 = A.index_select(0, j), D.index_select(0, j)
+        rel = a0 - b0
+        dd = (D * D).sum(1)  # (G, N)
+        s, t = _closest_from_dots(dd.index_select(0, i), dd.index_select(0, j), (d1 * d2).sum(1),
+                                  (d1 * rel).sum(1), (d2 * rel).sum(1))
+        v = torch.addcmul(torch.addcmul(rel, s.unsqueeze(1), d1), t.unsqueeze(1), d2, value=-1.0)
+        return safe_sqrt((v * v).sum(1)) - R.index_select(0, i) - R.index_select(0, j), s, t, v
+
+
+def _pairs_graph(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor, s0: Tensor, t0: Tensor) -> Tensor:
+    """:func:`capsule_pairs_cm` as a differentiable function, (s, t) through :func:`envelope`."""
     a0, d1, b0, d2 = A.index_select(0, i), D.index_select(0, i), A.index_select(0, j), D.index_select(0, j)
     rel = a0 - b0
     dd = (D * D).sum(1)  # (G, N)
     dots = (dd.index_select(0, i), dd.index_select(0, j), (d1 * d2).sum(1), (d1 * rel).sum(1),
             (d2 * rel).sum(1))
-    with torch.no_grad():
-        s0, t0 = _closest_from_dots(*dots)
-    s, t = envelope((s0, t0), _smooth_st(*dots, s0, t0)) if dd.requires_grad else (s0, t0)
+    s, t = envelope((s0, t0), _smooth_st(*dots, s0, t0))
     v = torch.addcmul(torch.addcmul(rel, s.unsqueeze(1), d1), t.unsqueeze(1), d2, value=-1.0)
     return safe_sqrt((v * v).sum(1)) - R.index_select(0, i) - R.index_select(0, j)
+
+
+class _PairKernel(torch.autograd.Function):
+    """:func:`capsule_pairs_cm` with its first-order backward pass in closed form: with n = v / ‖v‖ (0 where
+    v = 0, as :func:`~diffkin._numerics.safe_sqrt`), ∂d/∂a0 = n, ∂d/∂b0 = −n, ∂d/∂d1 = s n, ∂d/∂d2 = −t n,
+    ∂d/∂r = −1 (s, t held: the envelope theorem). Under ``create_graph`` the backward pass differentiates
+    :func:`_pairs_graph` instead, so that second derivatives are exact."""
+
+    @staticmethod
+    def forward(ctx, A, D, R, i, j):
+        d, s, t, v = _pairs_values(A, D, R, i, j)
+        ctx.save_for_backward(A, D, R, i, j, s, t, v)
+        return d
+
+    @staticmethod
+    def backward(ctx, g):
+        A, D, R, i, j, s, t, v = ctx.saved_tensors
+        if torch.is_grad_enabled():  # create_graph: differentiate the graph version
+            # fresh views: D may be a function of A (D = B − A), and each input takes its partial derivative
+            # only
+            A, D, R = (x.view_as(x) for x in (A, D, R))
+            want = [x for x in (A, D, R) if x.requires_grad]
+            got = iter(torch.autograd.grad(_pairs_graph(A, D, R, i, j, s, t), want, g, create_graph=True,
+                                           allow_unused=True))
+            out = [next(got) if x.requires_grad else None for x in (A, D, R)]
+            return (*out, None, None)
+        nv = safe_sqrt((v * v).sum(1, keepdim=True))
+        gn = v * (g.unsqueeze(1) / torch.where(nv > 0, nv, torch.ones_like(nv)))  # (P, 3, N)
+        gn = torch.where(nv > 0, gn, torch.zeros_like(gn))
+        gA = gD = gR = None  # out-of-place index_add: the backward pass may run under vmap
+        if ctx.needs_input_grad[0]:
+            gA = torch.zeros_like(A).index_add(0, i, gn).index_add(0, j, gn, alpha=-1.0)
+        if ctx.needs_input_grad[1]:
+            gD = torch.zeros_like(D).index_add(0, i, gn * s.unsqueeze(1)).index_add(
+                0, j, gn * t.unsqueeze(1), alpha=-1.0)
+        if ctx.needs_input_grad[2]:
+            gR = torch.zeros(R.shape[0], g.shape[1], dtype=g.dtype, device=g.device).index_add(
+                0, i, g, alpha=-1.0).index_add(0, j, g, alpha=-1.0).sum_to_size(R.shape)
+        return gA, gD, gR, None, None
 
 
 def sphere_sphere(ca: Tensor, ra: Tensor, cb: Tensor, rb: Tensor) -> Tensor:
