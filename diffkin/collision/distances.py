@@ -6,16 +6,15 @@ smallest translation that separates the two solids). A sphere is a capsule whose
 a point is a sphere of radius 0.
 
 Gradients. The closest-point parameters (s, t) of two segments minimise ‖p(s) − q(t)‖ over [0, 1]²; they
-are found without gradient and the distance is evaluated at them through :func:`envelope`: a first-order
-backward pass holds them constant (by the envelope theorem that is the exact gradient of the minimum
-wherever it is differentiable: the parameters' own derivatives multiply a zero partial derivative at an
-interior minimum and are zero where clamped, and it costs nothing), while a ``create_graph`` pass
-differentiates them as the smooth functions they are on their active set (an interior parameter solves
-its normal equation, a clamped one is constant), so Hessians, gradgradcheck and the KKT systems built on
-them are exact wherever the distance is twice differentiable (the second derivative needs the
-parameters' first derivatives: d²D = D_θθ + D_θt t_θ + ...). Finite everywhere: at parallel and
-coincident axes (any minimiser gives a valid one-sided gradient; near-parallel pairs keep the held
-parameter), at degenerate (zero length) segments and at coincident centres, where
+are found without gradient and attached to the geometry by :func:`envelope`: their values stay those
+found, their derivatives are those of the same minimisers rebuilt as smooth functions on their active set
+(an interior parameter solves its normal equation, a clamped one is constant). The first derivative of
+the distance does not need them (the envelope theorem: they multiply a zero partial derivative at an
+interior minimum; the pair kernel :class:`_PairKernel` skips them in a closed-form first-order backward
+pass), but the second does (d²D = D_θθ + D_θt t_θ + ...): Hessians, gradgradcheck and the KKT systems
+built on them are exact wherever the distance is twice differentiable. Finite everywhere: at parallel and
+coincident axes (any minimiser gives a valid one-sided gradient; near-parallel pairs keep the parameter
+held), at degenerate (zero length) segments and at coincident centres, where
 :func:`~diffkin._numerics.safe_norm` gives a zero gradient instead of 0/0.
 """
 
