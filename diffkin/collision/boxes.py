@@ -10,9 +10,11 @@ Methods (all exact up to the stated tolerance):
   inside: minus the distance to the nearest face).
 * segment–box (capsules, spheres): apart, the distance is min over t ∈ [0, 1] of the box's distance field
   at a + t (b − a); its square is a convex piecewise quadratic in t with at most six knots, minimised in
-  closed form (the stationary point of each piece, clamped to it), then evaluated at the detached
-  minimiser (envelope theorem). In contact, the penetration depth is the separating-axis minimum over the
-  six axes of the segment–box Minkowski difference (the box's face normals and segment × box edges), exact.
+  closed form (the stationary point of each piece, clamped to it), then evaluated at that minimiser, found
+  without gradient and differentiated as the stationary point of its piece
+  (:func:`~diffkin.collision.distances.envelope`: exact first and second derivatives). In contact, the
+  penetration depth is the separating-axis minimum over the six axes of the segment–box Minkowski
+  difference (the box's face normals and segment × box edges), exact.
 * box–box: apart, min over the 24 edges of either box of the edge–other-box distance (one closest point of
   two convex polyhedra always lies on an edge of one of them), exact; in contact, the separating-axis
   minimum over the 15 axes (face normals of both, 9 edge × edge), the exact penetration depth.
@@ -31,6 +33,7 @@ from ..errors import ModelError
 from ..kernels.joints import origin_transform
 from ..transforms import RIGIDITY_TOLERANCE, _make_transform, _nearest_rigid, _transform_deviations
 from ..validation import broadcast_batch, check_lower_bound, tensors
+from .distances import envelope
 
 __all__ = ["Box", "box", "point_box", "segment_box", "capsule_box", "sphere_box", "box_halfspace", "box_box"]
 
@@ -178,11 +181,29 @@ def _segment_box_parameter(a: Tensor, b: Tensor, c: Tensor, R: Tensor, h: Tensor
     return t.gather(0, f.argmin(0, keepdim=True)).squeeze(0)
 
 
+def _smooth_segment_box_parameter(a: Tensor, b: Tensor, c: Tensor, R: Tensor, h: Tensor, t: Tensor) -> Tensor:
+    """The minimiser ``t`` of :func:`_segment_box_parameter` as a differentiable function where it is
+    interior: the stationary point t = −Σ e_k (u_a,k − s_k h_k) / Σ e_k² of its piece (the coordinates
+    outside the slab at t, their sides s_k held); ``t`` itself where it is clamped to 0 or 1 or the piece
+    is flat."""
+    ua = _local(a, c, R)
+    e = _local(b, c, R) - ua
+    with torch.no_grad():
+        u = ua + t.unsqueeze(-1) * e
+        side = (u > h).to(u.dtype) - (u < -h).to(u.dtype)
+    ee = e * side.abs()
+    den = (ee * ee).sum(-1)
+    ok = (t > 0) & (t < 1) & (den.detach() > torch.finfo(den.dtype).eps * (e * e).sum(-1).detach())
+    return torch.where(ok, -(ee * (ua - side * h)).sum(-1) / torch.where(ok, den, torch.ones_like(den)), t)
+
+
 def segment_box(a: Tensor, b: Tensor, c: Tensor, R: Tensor, h: Tensor) -> Tensor:
     """Signed distance of segments a–b ``(..., 3)`` to boxes ``(..., 3)``, ``(..., 3, 3)``, ``(..., 3)``."""
     (a, b, c, h), (R,) = _broadcast([a, b, c, h], [R])
-    t = _segment_box_parameter(a, b, c, R, h).unsqueeze(-1)
-    apart = point_box(a + t * (b - a), c, R, h)
+    t0 = _segment_box_parameter(a, b, c, R, h)
+    t = _smooth_segment_box_parameter(a, b, c, R, h, t0) if torch.is_grad_enabled() else t0
+    (t,) = envelope((t0,), (t,))
+    apart = point_box(a + t.unsqueeze(-1) * (b - a), c, R, h)
     sat = _segment_box_sat(a, b, c, R, h)
     return torch.where(sat > 0, apart, sat)
 
