@@ -424,7 +424,10 @@ def optimize(
     instead. Every sample is differentiated (its cost is stationary whether or not the pose meets the
     tolerances). With distance constraints (Gauss–Newton) a constraint held at the boundary with a positive
     multiplier is differentiated as an equality of the KKT point ([∇²L Aᵀ; A 0], L = C − λᵀd, the
-    distances' curvature included, :func:`~diffkin.ik.implicit.attach_stationary_gradients`); where none
+    distances' curvature included, :func:`~diffkin.ik.implicit.attach_stationary_gradients`: exact for
+    spheres, capsules, boxes and half-spaces, ``tests/test_collision_second_order.py``; the witness
+    parameters of convex meshes and of a cylinder's rim search are held constant, so their curvature is
+    approximate where those pairs are active); where none
     is active the gradient is that of the unconstrained stationary point. Equal to central differences of
     the solver in both cases (``tests/test_ik_optimize_constraints.py``, ``tests/test_ik_collision.py``).
     """
