@@ -92,22 +92,25 @@ class _Path:
 
 
 # ------------------------------------------------------------------------------------ TOPP-RA on a grid
-def _rows(P1, P2, Q1, Q2, a, xv, delta, x_next):
-    """The constraints α u + β x ≤ γ (each (B, R)) of one grid interval: acceleration at its start (P) and,
-    with x + 2Δu, at its end (Q: toppra's interpolation scheme), the next controllable set, 0 ≤ x ≤ xv."""
+def _rows(P1, P2, Q1, Q2, a, xv, delta):
+    """The constraints α u + β x ≤ γ (each (..., R)) of grid intervals (leading dims (...) of ``delta``):
+    acceleration at its start (P) and, with x + 2Δu, at its end (Q: toppra's interpolation scheme),
+    0 ≤ x ≤ xv and u ≥ −x / 2Δ (x_next ≥ 0). The row of the next controllable set, 2Δ u + x ≤ x_next, is
+    not among them: it is the one that changes along the recursion (:func:`_topp` adds it)."""
     one, zero = torch.ones_like(xv), torch.zeros_like(xv)
-    d2 = 2 * delta[:, None]
+    d2 = 2 * delta[..., None]
     A = Q1 + d2 * Q2
-    al = torch.cat((P1, -P1, A, -A, torch.stack((2 * delta, -2 * delta, zero, zero), 1)), 1)
-    be = torch.cat((P2, -P2, Q2, -Q2, torch.stack((one, -one, one, -one), 1)), 1)
-    ga = torch.cat((a, a, a, a, torch.stack((x_next, zero, xv, zero), 1)), 1)
+    al = torch.cat((P1, -P1, A, -A, torch.stack((-2 * delta, zero, zero), -1)), -1)
+    be = torch.cat((P2, -P2, Q2, -Q2, torch.stack((-one, one, -one), -1)), -1)
+    ga = torch.cat((a, a, a, a, torch.stack((zero, xv, zero), -1)), -1)
     return al, be, ga
 
 
 def _max_x(al: Tensor, be: Tensor, ga: Tensor, xv: Tensor) -> Tensor:
-    """max x such that some u meets every row α u + β x ≤ γ, exactly (Fourier–Motzkin on u: every pair of
-    an upper row (α > 0) and a lower row (α < 0) bounds x linearly). x = 0 is always feasible, and the
-    feasible x form an interval, so the answer is the smallest upper bound (clamped into [0, xv])."""
+    """max x such that some u meets every row α u + β x ≤ γ (each (B, R)), exactly (Fourier–Motzkin on u:
+    every pair of an upper row (α > 0) and a lower row (α < 0) bounds x linearly). x = 0 is always
+    feasible, and the feasible x form an interval, so the answer is the smallest upper bound (clamped into
+    [0, xv])."""
     up, dn = al > 0, al < 0
     Ap, Aq = torch.where(up, al, 0.0), torch.where(dn, -al, 0.0)
     c = Ap[:, :, None] * be[:, None, :] + Aq[:, None, :] * be[:, :, None]  # (B, R_p, R_q)
@@ -120,15 +123,13 @@ def _max_x(al: Tensor, be: Tensor, ga: Tensor, xv: Tensor) -> Tensor:
     return torch.minimum(bound.clamp_min(0), xv)
 
 
-def _max_u(al: Tensor, be: Tensor, ga: Tensor, x: Tensor) -> Tensor:
-    """The largest u meeting the upper rows (α > 0) at x, (B,)."""
-    up = al > 0
-    r = (ga - be * x[:, None]) / torch.where(up, al, 1.0)
-    return torch.where(up, r, math.inf).amin(1)
-
-
 def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, stops: Tensor) -> Tensor:
-    """x = ṡ² (B, M) at the grid points (B, M); ``stops`` (B, M) bool: grid points where ṡ = 0."""
+    """x = ṡ² (B, M) at the grid points (B, M); ``stops`` (B, M) bool: grid points where ṡ = 0.
+
+    Every constraint row but one (2Δ u + x ≤ x_next) is fixed before the recursion, so the bounds from all
+    the pairs of fixed rows are computed for all intervals at once (in chunks of bounded memory); the
+    backward and forward passes then meet only the moving row, with the same arithmetic as the full
+    Fourier–Motzkin elimination of :func:`_max_x` (the results are identical)."""
     _, P1, P2, _ = path.eval(grid, kseg)  # (B, M, n), right-hand at knots
     _, Q1, Q2, _ = path.eval(grid[:, 1:], kseg[:, :-1])  # interval ends, left-hand
     delta = grid[:, 1:] - grid[:, :-1]
@@ -137,19 +138,44 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     xv = torch.where(stops, 0.0, xv.clamp_max(_X_BIG))
     absQ1 = Q1.abs()
     xq = torch.where(absQ1 > 0, (vmax[:, None] / absQ1.clamp_min(1e-300)) ** 2, _X_BIG).amin(-1)
-    M = grid.shape[1]
+    B, M = grid.shape
+    n = P1.shape[-1]
+    a = amax[:, None].expand(B, M - 1, n)
+    al, be, ga = _rows(P1[:, :-1], P2[:, :-1], Q1, Q2, a, xv[:, :-1], delta)  # (B, M - 1, R)
+    R, xv0 = al.shape[-1], xv[:, :-1]
+    # the bound from the fixed rows alone, per interval (B, M - 1)
+    step = max(1, (1 << 22) // max(1, B * R * R))
+    fixed = torch.cat([_max_x(al[:, j:j + step].reshape(-1, R), be[:, j:j + step].reshape(-1, R),
+                              ga[:, j:j + step].reshape(-1, R), xv0[:, j:j + step].reshape(-1))
+                       .view(B, -1) for j in range(0, M - 1, step)], 1)
+    # the moving row (α, β, γ) = (2Δ, 1, x_next) with each lower row q (α_q < 0):
+    # x ≤ (A_q x_next + 2Δ γ_q) / c_q, A_q = −α_q, c_q = 2Δ β_q + A_q (the pair term of _max_x)
+    d2 = (2 * delta)[..., None]
+    dn = al < 0
+    Aq = torch.where(dn, -al, 0.0)
+    c = d2 * be + Aq
+    pair = dn & (c > 0)
+    Aq = torch.where(pair, Aq, 0.0)
+    G = torch.where(pair, d2 * ga, math.inf)
+    C = torch.where(pair, c, 1.0)
+    # the fixed upper rows for u at x: u ≤ (γ − β x) / α
+    up = al > 0
+    Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
     K = [torch.zeros_like(xv[:, 0])] * M  # the controllable ṡ² bound per grid point
-    rows = [None] * (M - 1)
+    K_next = [None] * (M - 1)
     for i in range(M - 2, -1, -1):
-        K_next = torch.minimum(K[i + 1], xq[:, i])
-        rows[i] = _rows(P1[:, i], P2[:, i], Q1[:, i], Q2[:, i], amax, xv[:, i], delta[:, i], K_next)
-        K[i] = _max_x(*rows[i], xv[:, i])
+        kn = torch.minimum(K[i + 1], xq[:, i])
+        K_next[i] = kn
+        moving = ((Aq[:, i] * kn[:, None] + G[:, i]) / C[:, i]).amin(1)
+        K[i] = torch.minimum(fixed[:, i], moving.clamp_min(0))
     x = [torch.zeros_like(K[0])]
     for i in range(M - 1):
         xi = torch.minimum(x[i], K[i])
         x[i] = xi
-        u = _max_u(*rows[i], xi).clamp(min=-xi / (2 * delta[:, i]))
-        x.append((xi + 2 * delta[:, i] * u).clamp(min=0).minimum(K[i + 1]))
+        d = 2 * delta[:, i]
+        u = torch.minimum(((Gu[:, i] - Bu[:, i] * xi[:, None]) / Au[:, i]).amin(1), (K_next[i] - xi) / d)
+        u = u.clamp(min=-xi / d)
+        x.append((xi + d * u).clamp(min=0).minimum(K[i + 1]))
     return torch.stack(x, 1)
 
 
