@@ -92,44 +92,49 @@ class _Path:
 
 
 # ------------------------------------------------------------------------------------ TOPP-RA on a grid
-def _rows(P1, P2, Q1, Q2, a, xv, delta):
-    """The constraints α u + β x ≤ γ (each (..., R)) of grid intervals (leading dims (...) of ``delta``):
-    acceleration at its start (P) and, with x + 2Δu, at its end (Q: toppra's interpolation scheme),
-    0 ≤ x ≤ xv and u ≥ −x / 2Δ (x_next ≥ 0). The row of the next controllable set, 2Δ u + x ≤ x_next, is
-    not among them: it is the one that changes along the recursion (:func:`_topp` adds it)."""
-    one, zero = torch.ones_like(xv), torch.zeros_like(xv)
+def _rows(P1, P2, Q1, Q2, a, delta):
+    """The acceleration constraints α u + β x ≤ γ of grid intervals (leading dims (...) of ``delta``), at
+    the interval's start (P) and, with x + 2Δu, at its end (Q: toppra's interpolation scheme), as their
+    upper rows (each (..., 2n)): |α|, β of the row of each ± pair with α > 0 (the lower row is −β), γ; and
+    the bound on x of the rows without u (α = 0: |β| x ≤ γ), (...)."""
+    A = Q1 + 2 * delta[..., None] * Q2
+    al = torch.cat((P1.abs(), A.abs()), -1)
+    be = torch.cat((torch.where(P1 < 0, -P2, P2), torch.where(A < 0, -Q2, Q2)), -1)
+    ga = torch.cat((a, a), -1)
+    alone = (al == 0) & (be != 0)
+    return al, be, ga, torch.where(alone, ga / torch.where(alone, be.abs(), 1.0), math.inf).amin(-1)
+
+
+def _lower(al, be, ga, delta):
+    """The lower rows (α < 0) as −α, β, γ (each (..., 2n + 1)): the acceleration rows' partners and
+    u ≥ −x / 2Δ (the next x ≥ 0); a row with −α = 0 is none."""
     d2 = 2 * delta[..., None]
-    A = Q1 + d2 * Q2
-    al = torch.cat((P1, -P1, A, -A, torch.stack((-2 * delta, zero, zero), -1)), -1)
-    be = torch.cat((P2, -P2, Q2, -Q2, torch.stack((-one, one, -one), -1)), -1)
-    ga = torch.cat((a, a, a, a, torch.stack((zero, xv, zero), -1)), -1)
-    return al, be, ga
+    return (torch.cat((al, d2), -1), torch.cat((-be, -torch.ones_like(d2)), -1),
+            torch.cat((ga, torch.zeros_like(d2)), -1))
 
 
-def _max_x(al: Tensor, be: Tensor, ga: Tensor, xv: Tensor) -> Tensor:
-    """max x such that some u meets every row α u + β x ≤ γ (each (B, R)), exactly (Fourier–Motzkin on u:
-    every pair of an upper row (α > 0) and a lower row (α < 0) bounds x linearly). x = 0 is always
-    feasible, and the feasible x form an interval, so the answer is the smallest upper bound (clamped into
-    [0, xv])."""
-    up, dn = al > 0, al < 0
-    Ap, Aq = torch.where(up, al, 0.0), torch.where(dn, -al, 0.0)
-    c = Ap[:, :, None] * be[:, None, :] + Aq[:, None, :] * be[:, :, None]  # (B, R_p, R_q)
-    d = Aq[:, None, :] * ga[:, :, None] + Ap[:, :, None] * ga[:, None, :]
-    pair = up[:, :, None] & dn[:, None, :] & (c > 0)
-    inf = torch.full_like(c, math.inf)
-    bound = torch.where(pair, d / torch.where(pair, c, 1.0), inf).flatten(1).amin(1)
-    alone = (al == 0) & (be > 0)  # rows without u
-    bound = torch.minimum(bound, torch.where(alone, ga / torch.where(alone, be, 1.0), math.inf).amin(1))
-    return torch.minimum(bound.clamp_min(0), xv)
+def _max_x(al: Tensor, be: Tensor, ga: Tensor, alone: Tensor, delta: Tensor, xv: Tensor) -> Tensor:
+    """max x (...) such that some u meets the rows of :func:`_rows` and :func:`_lower` and x ≤ xv, exactly
+    (Fourier–Motzkin on u: every pair of an upper row (α > 0) and a lower row (α < 0) bounds x linearly).
+    x = 0 is always feasible, and the feasible x form an interval, so the answer is the smallest upper
+    bound (clamped into [0, xv])."""
+    up = al > 0
+    Ap = torch.where(up, al, 0.0)
+    Aq, bq, gq = _lower(Ap, be, ga, delta)
+    dn = Aq > 0
+    c = Ap[..., :, None] * bq[..., None, :] + Aq[..., None, :] * be[..., :, None]  # (..., R_p, R_q)
+    d = Aq[..., None, :] * ga[..., :, None] + Ap[..., :, None] * gq[..., None, :]
+    pair = up[..., :, None] & dn[..., None, :] & (c > 0)
+    bound = torch.where(pair, d / torch.where(pair, c, 1.0), math.inf).flatten(-2).amin(-1)
+    return torch.minimum(torch.minimum(bound, alone).clamp_min(0), xv)
 
 
 def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, stops: Tensor) -> Tensor:
     """x = ṡ² (B, M) at the grid points (B, M); ``stops`` (B, M) bool: grid points where ṡ = 0.
 
-    Every constraint row but one (2Δ u + x ≤ x_next) is fixed before the recursion, so the bounds from all
-    the pairs of fixed rows are computed for all intervals at once (in chunks of bounded memory); the
-    backward and forward passes then meet only the moving row, with the same arithmetic as the full
-    Fourier–Motzkin elimination of :func:`_max_x` (the results are identical)."""
+    Every constraint row but one (2Δ u + x ≤ x_next, the next controllable set) is fixed before the
+    recursion, so the bounds from all the pairs of fixed rows are computed for all intervals at once (in
+    chunks of bounded memory); the backward and forward passes then meet only the moving row."""
     _, P1, P2, _ = path.eval(grid, kseg)  # (B, M, n), right-hand at knots
     _, Q1, Q2, _ = path.eval(grid[:, 1:], kseg[:, :-1])  # interval ends, left-hand
     delta = grid[:, 1:] - grid[:, :-1]
@@ -140,26 +145,22 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     xq = torch.where(absQ1 > 0, (vmax[:, None] / absQ1.clamp_min(1e-300)) ** 2, _X_BIG).amin(-1)
     B, M = grid.shape
     n = P1.shape[-1]
-    a = amax[:, None].expand(B, M - 1, n)
-    al, be, ga = _rows(P1[:, :-1], P2[:, :-1], Q1, Q2, a, xv[:, :-1], delta)  # (B, M - 1, R)
-    R, xv0 = al.shape[-1], xv[:, :-1]
-    # the bound from the fixed rows alone, per interval (B, M - 1)
-    step = max(1, (1 << 22) // max(1, B * R * R))
-    fixed = torch.cat([_max_x(al[:, j:j + step].reshape(-1, R), be[:, j:j + step].reshape(-1, R),
-                              ga[:, j:j + step].reshape(-1, R), xv0[:, j:j + step].reshape(-1))
-                       .view(B, -1) for j in range(0, M - 1, step)], 1)
-    # the moving row (α, β, γ) = (2Δ, 1, x_next) with each lower row q (α_q < 0):
+    al, be, ga, alone = _rows(P1[:, :-1], P2[:, :-1], Q1, Q2, amax[:, None].expand(B, M - 1, n), delta)
+    # the bound from the fixed rows, per interval (B, M - 1)
+    step = max(1, (1 << 22) // max(1, B * 2 * n * (2 * n + 1)))
+    parts = (al, be, ga, alone, delta, xv[:, :-1])
+    fixed = torch.cat([_max_x(*(v[:, j:j + step] for v in parts)) for j in range(0, M - 1, step)], 1)
+    # the moving row (α, β, γ) = (2Δ, 1, x_next) with each lower row q:
     # x ≤ (A_q x_next + 2Δ γ_q) / c_q, A_q = −α_q, c_q = 2Δ β_q + A_q (the pair term of _max_x)
+    up = al > 0
+    Aq, bq, gq = _lower(torch.where(up, al, 0.0), be, ga, delta)
     d2 = (2 * delta)[..., None]
-    dn = al < 0
-    Aq = torch.where(dn, -al, 0.0)
-    c = d2 * be + Aq
-    pair = dn & (c > 0)
+    c = d2 * bq + Aq
+    pair = (Aq > 0) & (c > 0)
     Aq = torch.where(pair, Aq, 0.0)
-    G = torch.where(pair, d2 * ga, math.inf)
+    G = torch.where(pair, d2 * gq, math.inf)
     C = torch.where(pair, c, 1.0)
     # the fixed upper rows for u at x: u ≤ (γ − β x) / α
-    up = al > 0
     Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
     K = [torch.zeros_like(xv[:, 0])] * M  # the controllable ṡ² bound per grid point
     K_next = [None] * (M - 1)
