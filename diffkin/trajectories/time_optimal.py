@@ -404,23 +404,43 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         else:
             base = 2 * (amax / jmax).amax(1)
             taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
-        best = None
-        for tau in taus:
-            one = torch.ones_like(tau)
-            timed = TimedPath(p, grid, x, tau, one, dtype)
-            tb = timed._breakpoints(check_per_interval)
-            _, qd, qdd, qddd = timed._joint(tb)
+        def stretch(tau: Tensor, per_interval: int) -> tuple[Tensor, Tensor]:
+            """k and the duration (B,) of the profile smoothed by τ (B,), checked at ``per_interval``."""
+            timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
+            _, qd, qdd, qddd = timed._joint(timed._breakpoints(per_interval))
             k = torch.maximum((qd.abs() / vmax[:, None]).amax((1, 2)),
                               (qdd.abs() / amax[:, None]).amax((1, 2)).sqrt())
             if jmax is not None:
                 k = torch.maximum(k, (qddd.abs() / jmax[:, None]).amax((1, 2)).pow(1 / 3))
             k = k.clamp_min(1) * (1 + _STRETCH)
-            total = (timed._t[:, -1] + tau) * k
+            return k, (timed._t[:, -1] + tau) * k
+
+        taus = torch.stack(taus, 1)  # (B, C) candidates, the shortest wins (the first of equals)
+        B, C = taus.shape
+        # Pruning, exact: the check at a quarter of the samples (a subset of the dense samples, the same
+        # floats) gives a lower bound on each candidate's duration; the candidates are checked densely in
+        # the order of their bounds until no row's next bound can beat its best.
+        prune = C > 1 and check_per_interval % 4 == 0
+        if prune:
+            lower = torch.stack([stretch(taus[:, c], check_per_interval // 4)[1] for c in range(C)], 1)
+            order = lower.argsort(dim=1, stable=True)
+            lower = lower.gather(1, order)
+        else:
+            order = torch.arange(C, device=taus.device).expand(B, C)
+        best = None
+        for r in range(C):
+            c = order[:, r]
+            tau = taus.gather(1, c[:, None])[:, 0]
+            if prune and best is not None:
+                lo = lower[:, r]
+                if not bool(((lo < best[2]) | ((lo == best[2]) & (c < best[3]))).any()):
+                    break  # the later bounds are larger still
+            k, total = stretch(tau, check_per_interval)
             if best is None:
-                best = (tau, k, total)
+                best = (tau, k, total, c)
             else:
-                better = total < best[2]
-                best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total), best))
+                better = (total < best[2]) | ((total == best[2]) & (c < best[3]))
+                best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
         return _batched(TimedPath(p, grid, x, best[0], best[1], dtype), batch)
 
 
