@@ -25,8 +25,9 @@ Without a jerk limit this is bang-bang: the acceleration jumps at the switching 
 at the end). With ``jerk_limit``, the profile s(t) is smoothed by a moving average of width τ,
 s̄(t) = (1/τ)∫_{t-τ}^{t} s (s = 0 before the start, 1 after the end): s̄ starts and ends at rest with zero
 acceleration, its acceleration is continuous and its jerk bounded ((s̈(t) − s̈(t−τ))/τ); τ is chosen per
-path among a few multiples of 2·max_j a_j / j_j (the shortest result wins). The smoothed motion is not
-time-optimal under the jerk limit (an upper bound on it).
+path among a few multiples of 2·max_j a_j / j_j (the shortest result wins; a candidate whose duration
+checked at a quarter of the samples — a lower bound — cannot win is not checked densely). The smoothed
+motion is not time-optimal under the jerk limit (an upper bound on it).
 
 Limits exactly: every result is finally stretched uniformly in time by the smallest factor k ≥ 1 that puts
 every velocity, acceleration and jerk (with ``jerk_limit``) within its limit on a dense check (all the
