@@ -25,8 +25,9 @@ Without a jerk limit this is bang-bang: the acceleration jumps at the switching 
 at the end). With ``jerk_limit``, the profile s(t) is smoothed by a moving average of width τ,
 s̄(t) = (1/τ)∫_{t-τ}^{t} s (s = 0 before the start, 1 after the end): s̄ starts and ends at rest with zero
 acceleration, its acceleration is continuous and its jerk bounded ((s̈(t) − s̈(t−τ))/τ); τ is chosen per
-path among a few multiples of 2·max_j a_j / j_j (the shortest result wins). The smoothed motion is not
-time-optimal under the jerk limit (an upper bound on it).
+path among a few multiples of 2·max_j a_j / j_j (the shortest result wins; a candidate whose duration
+checked at a quarter of the samples — a lower bound — cannot win is not checked densely). The smoothed
+motion is not time-optimal under the jerk limit (an upper bound on it).
 
 Limits exactly: every result is finally stretched uniformly in time by the smallest factor k ≥ 1 that puts
 every velocity, acceleration and jerk (with ``jerk_limit``) within its limit on a dense check (all the
@@ -92,43 +93,49 @@ class _Path:
 
 
 # ------------------------------------------------------------------------------------ TOPP-RA on a grid
-def _rows(P1, P2, Q1, Q2, a, xv, delta, x_next):
-    """The constraints α u + β x ≤ γ (each (B, R)) of one grid interval: acceleration at its start (P) and,
-    with x + 2Δu, at its end (Q: toppra's interpolation scheme), the next controllable set, 0 ≤ x ≤ xv."""
-    one, zero = torch.ones_like(xv), torch.zeros_like(xv)
-    d2 = 2 * delta[:, None]
-    A = Q1 + d2 * Q2
-    al = torch.cat((P1, -P1, A, -A, torch.stack((2 * delta, -2 * delta, zero, zero), 1)), 1)
-    be = torch.cat((P2, -P2, Q2, -Q2, torch.stack((one, -one, one, -one), 1)), 1)
-    ga = torch.cat((a, a, a, a, torch.stack((x_next, zero, xv, zero), 1)), 1)
-    return al, be, ga
+def _rows(P1, P2, Q1, Q2, a, delta):
+    """The acceleration constraints α u + β x ≤ γ of grid intervals (leading dims (...) of ``delta``), at
+    the interval's start (P) and, with x + 2Δu, at its end (Q: toppra's interpolation scheme), as their
+    upper rows (each (..., 2n)): |α|, β of the row of each ± pair with α > 0 (the lower row is −β), γ; and
+    the bound on x of the rows without u (α = 0: |β| x ≤ γ), (...)."""
+    A = Q1 + 2 * delta[..., None] * Q2
+    al = torch.cat((P1.abs(), A.abs()), -1)
+    be = torch.cat((torch.where(P1 < 0, -P2, P2), torch.where(A < 0, -Q2, Q2)), -1)
+    ga = torch.cat((a, a), -1)
+    alone = (al == 0) & (be != 0)
+    return al, be, ga, torch.where(alone, ga / torch.where(alone, be.abs(), 1.0), math.inf).amin(-1)
 
 
-def _max_x(al: Tensor, be: Tensor, ga: Tensor, xv: Tensor) -> Tensor:
-    """max x such that some u meets every row α u + β x ≤ γ, exactly (Fourier–Motzkin on u: every pair of
-    an upper row (α > 0) and a lower row (α < 0) bounds x linearly). x = 0 is always feasible, and the
-    feasible x form an interval, so the answer is the smallest upper bound (clamped into [0, xv])."""
-    up, dn = al > 0, al < 0
-    Ap, Aq = torch.where(up, al, 0.0), torch.where(dn, -al, 0.0)
-    c = Ap[:, :, None] * be[:, None, :] + Aq[:, None, :] * be[:, :, None]  # (B, R_p, R_q)
-    d = Aq[:, None, :] * ga[:, :, None] + Ap[:, :, None] * ga[:, None, :]
-    pair = up[:, :, None] & dn[:, None, :] & (c > 0)
-    inf = torch.full_like(c, math.inf)
-    bound = torch.where(pair, d / torch.where(pair, c, 1.0), inf).flatten(1).amin(1)
-    alone = (al == 0) & (be > 0)  # rows without u
-    bound = torch.minimum(bound, torch.where(alone, ga / torch.where(alone, be, 1.0), math.inf).amin(1))
-    return torch.minimum(bound.clamp_min(0), xv)
+def _lower(al, be, ga, delta):
+    """The lower rows (α < 0) as −α, β, γ (each (..., 2n + 1)): the acceleration rows' partners and
+    u ≥ −x / 2Δ (the next x ≥ 0); a row with −α = 0 is none."""
+    d2 = 2 * delta[..., None]
+    return (torch.cat((al, d2), -1), torch.cat((-be, -torch.ones_like(d2)), -1),
+            torch.cat((ga, torch.zeros_like(d2)), -1))
 
 
-def _max_u(al: Tensor, be: Tensor, ga: Tensor, x: Tensor) -> Tensor:
-    """The largest u meeting the upper rows (α > 0) at x, (B,)."""
+def _max_x(al: Tensor, be: Tensor, ga: Tensor, alone: Tensor, delta: Tensor, xv: Tensor) -> Tensor:
+    """max x (...) such that some u meets the rows of :func:`_rows` and :func:`_lower` and x ≤ xv, exactly
+    (Fourier–Motzkin on u: every pair of an upper row (α > 0) and a lower row (α < 0) bounds x linearly).
+    x = 0 is always feasible, and the feasible x form an interval, so the answer is the smallest upper
+    bound (clamped into [0, xv])."""
     up = al > 0
-    r = (ga - be * x[:, None]) / torch.where(up, al, 1.0)
-    return torch.where(up, r, math.inf).amin(1)
+    Ap = torch.where(up, al, 0.0)
+    Aq, bq, gq = _lower(Ap, be, ga, delta)
+    dn = Aq > 0
+    c = Ap[..., :, None] * bq[..., None, :] + Aq[..., None, :] * be[..., :, None]  # (..., R_p, R_q)
+    d = Aq[..., None, :] * ga[..., :, None] + Ap[..., :, None] * gq[..., None, :]
+    pair = up[..., :, None] & dn[..., None, :] & (c > 0)
+    bound = torch.where(pair, d / torch.where(pair, c, 1.0), math.inf).flatten(-2).amin(-1)
+    return torch.minimum(torch.minimum(bound, alone).clamp_min(0), xv)
 
 
 def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, stops: Tensor) -> Tensor:
-    """x = ṡ² (B, M) at the grid points (B, M); ``stops`` (B, M) bool: grid points where ṡ = 0."""
+    """x = ṡ² (B, M) at the grid points (B, M); ``stops`` (B, M) bool: grid points where ṡ = 0.
+
+    Every constraint row but one (2Δ u + x ≤ x_next, the next controllable set) is fixed before the
+    recursion, so the bounds from all the pairs of fixed rows are computed for all intervals at once (in
+    chunks of bounded memory); the backward and forward passes then meet only the moving row."""
     _, P1, P2, _ = path.eval(grid, kseg)  # (B, M, n), right-hand at knots
     _, Q1, Q2, _ = path.eval(grid[:, 1:], kseg[:, :-1])  # interval ends, left-hand
     delta = grid[:, 1:] - grid[:, :-1]
@@ -137,19 +144,40 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     xv = torch.where(stops, 0.0, xv.clamp_max(_X_BIG))
     absQ1 = Q1.abs()
     xq = torch.where(absQ1 > 0, (vmax[:, None] / absQ1.clamp_min(1e-300)) ** 2, _X_BIG).amin(-1)
-    M = grid.shape[1]
+    B, M = grid.shape
+    n = P1.shape[-1]
+    al, be, ga, alone = _rows(P1[:, :-1], P2[:, :-1], Q1, Q2, amax[:, None].expand(B, M - 1, n), delta)
+    # the bound from the fixed rows, per interval (B, M - 1)
+    step = max(1, (1 << 22) // max(1, B * 2 * n * (2 * n + 1)))
+    parts = (al, be, ga, alone, delta, xv[:, :-1])
+    fixed = torch.cat([_max_x(*(v[:, j:j + step] for v in parts)) for j in range(0, M - 1, step)], 1)
+    # the moving row (α, β, γ) = (2Δ, 1, x_next) with each lower row q:
+    # x ≤ (A_q x_next + 2Δ γ_q) / c_q, A_q = −α_q, c_q = 2Δ β_q + A_q (the pair term of _max_x)
+    up = al > 0
+    Aq, bq, gq = _lower(torch.where(up, al, 0.0), be, ga, delta)
+    d2 = (2 * delta)[..., None]
+    c = d2 * bq + Aq
+    pair = (Aq > 0) & (c > 0)
+    Aq = torch.where(pair, Aq, 0.0)
+    G = torch.where(pair, d2 * gq, math.inf)
+    C = torch.where(pair, c, 1.0)
+    # the fixed upper rows for u at x: u ≤ (γ − β x) / α
+    Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
     K = [torch.zeros_like(xv[:, 0])] * M  # the controllable ṡ² bound per grid point
-    rows = [None] * (M - 1)
+    K_next = [None] * (M - 1)
     for i in range(M - 2, -1, -1):
-        K_next = torch.minimum(K[i + 1], xq[:, i])
-        rows[i] = _rows(P1[:, i], P2[:, i], Q1[:, i], Q2[:, i], amax, xv[:, i], delta[:, i], K_next)
-        K[i] = _max_x(*rows[i], xv[:, i])
+        kn = torch.minimum(K[i + 1], xq[:, i])
+        K_next[i] = kn
+        moving = ((Aq[:, i] * kn[:, None] + G[:, i]) / C[:, i]).amin(1)
+        K[i] = torch.minimum(fixed[:, i], moving.clamp_min(0))
     x = [torch.zeros_like(K[0])]
     for i in range(M - 1):
         xi = torch.minimum(x[i], K[i])
         x[i] = xi
-        u = _max_u(*rows[i], xi).clamp(min=-xi / (2 * delta[:, i]))
-        x.append((xi + 2 * delta[:, i] * u).clamp(min=0).minimum(K[i + 1]))
+        d = 2 * delta[:, i]
+        u = torch.minimum(((Gu[:, i] - Bu[:, i] * xi[:, None]) / Au[:, i]).amin(1), (K_next[i] - xi) / d)
+        u = u.clamp(min=-xi / d)
+        x.append((xi + d * u).clamp(min=0).minimum(K[i + 1]))
     return torch.stack(x, 1)
 
 
@@ -377,23 +405,43 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         else:
             base = 2 * (amax / jmax).amax(1)
             taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
-        best = None
-        for tau in taus:
-            one = torch.ones_like(tau)
-            timed = TimedPath(p, grid, x, tau, one, dtype)
-            tb = timed._breakpoints(check_per_interval)
-            _, qd, qdd, qddd = timed._joint(tb)
+        def stretch(tau: Tensor, per_interval: int) -> tuple[Tensor, Tensor]:
+            """k and the duration (B,) of the profile smoothed by τ (B,), checked at ``per_interval``."""
+            timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
+            _, qd, qdd, qddd = timed._joint(timed._breakpoints(per_interval))
             k = torch.maximum((qd.abs() / vmax[:, None]).amax((1, 2)),
                               (qdd.abs() / amax[:, None]).amax((1, 2)).sqrt())
             if jmax is not None:
                 k = torch.maximum(k, (qddd.abs() / jmax[:, None]).amax((1, 2)).pow(1 / 3))
             k = k.clamp_min(1) * (1 + _STRETCH)
-            total = (timed._t[:, -1] + tau) * k
+            return k, (timed._t[:, -1] + tau) * k
+
+        taus = torch.stack(taus, 1)  # (B, C) candidates, the shortest wins (the first of equals)
+        B, C = taus.shape
+        # Pruning, exact: the check at a quarter of the samples (a subset of the dense samples, the same
+        # floats) gives a lower bound on each candidate's duration; the candidates are checked densely in
+        # the order of their bounds until no row's next bound can beat its best.
+        prune = C > 1 and check_per_interval % 4 == 0
+        if prune:
+            lower = torch.stack([stretch(taus[:, c], check_per_interval // 4)[1] for c in range(C)], 1)
+            order = lower.argsort(dim=1, stable=True)
+            lower = lower.gather(1, order)
+        else:
+            order = torch.arange(C, device=taus.device).expand(B, C)
+        best = None
+        for r in range(C):
+            c = order[:, r]
+            tau = taus.gather(1, c[:, None])[:, 0]
+            if prune and best is not None:
+                lo = lower[:, r]
+                if not bool(((lo < best[2]) | ((lo == best[2]) & (c < best[3]))).any()):
+                    break  # the later bounds are larger still
+            k, total = stretch(tau, check_per_interval)
             if best is None:
-                best = (tau, k, total)
+                best = (tau, k, total, c)
             else:
-                better = total < best[2]
-                best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total), best))
+                better = (total < best[2]) | ((total == best[2]) & (c < best[3]))
+                best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
         return _batched(TimedPath(p, grid, x, best[0], best[1], dtype), batch)
 
 
