@@ -214,6 +214,14 @@ def test_a_new_primitive_is_one_entry(rounded_box):
     assert _native_velocity.route(chain, q[0], [task], 0.05, [ik.CollisionLimit(rc, cyl)], 1e-12) is None
     qd = ik.solve_velocity(chain, q[0], [task], 0.05, limits=[limit])
     assert bool(torch.isfinite(qd).all())
+    # the motion optimisation's detached copy of the world keeps the new kind (it unpacked 8 built-in tensors)
+    from diffkin.motion.optimize import _detached
+
+    grad_world = World(objects={"rounded_box": (c.clone().requires_grad_(True), R, h, rho)}, dtype=F64)
+    copy = _detached(grad_world, torch.float32)
+    assert list(copy.objects) == ["rounded_box"] and copy.dtype == torch.float32
+    for got, want in zip(copy.objects["rounded_box"], grad_world.objects["rounded_box"]):
+        assert not got.requires_grad and torch.equal(got, want.detach().float())
     with pytest.raises(ConventionError, match="rounded_box"):
         World.stack([world, world])
     with pytest.raises(ConventionError, match="world layout"):

@@ -139,3 +139,15 @@ def test_options_are_checked():
     for bad in ({"knots": 0}, {"trust": 0.0}, {"buffer": float("nan")}, {"iterations": 1.5}):
         with pytest.raises(OptionError):
             OptimizeConfig(**bad)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_resample_of_a_zero_length_path_is_its_start(dtype):
+    """A path whose start is its goal (length 0 in the bound's metric) resamples to its start, finite in
+    float32 too (the segment-length floor was 1e-300, which is 0 in float32: 0/0 knots)."""
+    from diffkin.motion.optimize import resample
+
+    start = torch.tensor([[0.1, -0.2, 0.3]], dtype=dtype)
+    path = start[:, None].expand(1, 3, 3).contiguous()
+    out = resample(path, torch.tensor([0.5, 0.4, 0.3], dtype=dtype), 6)
+    assert out.shape == (1, 6, 3) and torch.equal(out, start[:, None].expand(1, 6, 3))

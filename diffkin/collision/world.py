@@ -138,10 +138,13 @@ class World:
 
     def to(self, dtype: torch.dtype | None = None, device=None) -> World:
         """The same world with every tensor in ``dtype`` on ``device`` (None: unchanged)."""
-        move = lambda t, own=None: t.to(dtype=dtype or self.dtype, device=device or self.device)  # noqa: E731
-        s, c, bc, bR, bh, h, p, y = (move(t) for t in self.tensors()[:8])
+        return self._map(lambda t: t.to(dtype=dtype or self.dtype, device=device or self.device))
+
+    def _map(self, fn) -> World:
+        """The same world with ``fn(tensor)`` applied to every tensor, registered objects included."""
+        s, c, bc, bR, bh, h, p, y = (fn(t) for t in self.tensors()[:8])
         return World(spheres=s, capsules=c, boxes=Box(bc, bR, bh), halfspaces=h, points=p, cylinders=y,
-                     objects=self._objects_map(move))
+                     objects=self._objects_map(lambda t, own: fn(t)))
 
     def __len__(self) -> int:
         return sum(self.counts) + sum(self.object_counts)

@@ -52,7 +52,6 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ..collision.boxes import Box
 from ..collision.world import World
 from ..errors import OptionError
 from ..ik._qp_ip import _polish, ip_solve
@@ -121,7 +120,7 @@ def resample(path: Tensor, reach: Tensor, count: int) -> Tensor:
     u = torch.linspace(0, 1, count, dtype=path.dtype, device=path.device) * total  # (B, count)
     i = torch.searchsorted(cum[:, 1:-1].contiguous(), u.contiguous(), right=True)  # segment (B, count)
     c0, c1 = cum.gather(1, i), cum.gather(1, i + 1)
-    f = ((u - c0) / (c1 - c0).clamp_min(1e-300)).clamp(0, 1)[..., None]
+    f = ((u - c0) / (c1 - c0).clamp_min(torch.finfo(path.dtype).tiny)).clamp(0, 1)[..., None]
     idx = i[..., None].expand(*i.shape, path.shape[-1])
     out = path.gather(1, idx) + f * (path.gather(1, idx + 1) - path.gather(1, idx))
     out[:, 0], out[:, -1] = path[:, 0], path[:, -1]
@@ -145,8 +144,7 @@ def _cost(Q: Tensor, W: Tensor, Y: Tensor) -> Tensor:
 def _detached(world: World | None, dtype) -> World | None:
     if world is None:
         return None
-    s, c, bc, bR, bh, h, p, y = (t.detach().to(dtype) for t in world.tensors())
-    return World(spheres=s, capsules=c, boxes=Box(bc, bR, bh), halfspaces=h, points=p, cylinders=y)
+    return world._map(lambda t: t.detach().to(dtype))  # registered object kinds included
 
 
 class _Rows:
