@@ -966,3 +966,35 @@ def test_plot_frame_draws_the_robot_at_its_fk_and_the_human_beside_it(tmp_path):
     assert np.linalg.norm((p + shift[0]).mean(0)[:2] - kp.mean(0)[:2]) == pytest.approx(0.7, abs=1e-9)
     with pytest.raises(ShapeError, match="frame 3"):
         retarget.plot_frame(g1, r, walk, 3)
+
+
+@pytest.mark.parametrize("tilted", [False, True])
+def test_lift_above_ground_along_the_worlds_z(tilted):
+    """The ground lift raises the floating base along the world's z, also when the chain's base frame is
+    rotated (q's base position is in that frame): afterwards the lowest sole point is on the ground to
+    rounding where it was below, and untouched where it was above (it used to add to q's own z: 6 cm off
+    with a tilted base)."""
+    from diffkin.retarget.ground import lift_above_ground, soles_of
+    from diffkin.rotations import rot_x
+
+    chain = models.from_mjcf(FEET_XML, ["lfoot", "rfoot", "arm"], dtype=torch.float64)
+    if tilted:
+        base = torch.eye(4, dtype=torch.float64)
+        base[:3, :3] = rot_x(torch.tensor(0.7, dtype=torch.float64))
+        base[:3, 3] = torch.tensor([0.1, -0.2, 0.05])
+        chain.base = base
+    q = torch.zeros(4, 15, dtype=torch.float64)
+    q[:, 3] = q[:, 10] = 1.0
+    q[:, 2] = torch.tensor([-0.3, -0.02, 0.0, 0.4])  # some soles below the ground, one well above
+    q[:, 9] = 1.0
+    soles = soles_of(chain, ["lfoot"])
+
+    def lowest(q):
+        T = chain.forward_kinematics(q)[..., 0, :, :]
+        return soles[0].lowest(T, 0.0)[0]
+
+    before, after = lowest(q), lowest(lift_above_ground(chain, q, ["lfoot"], soles, 0.0))
+    below = before < 0
+    assert bool(below.any()) and bool((~below).any())
+    torch.testing.assert_close(after[below], torch.zeros_like(after[below]), rtol=0, atol=1e-12)
+    assert torch.equal(after[~below], before[~below])

@@ -33,9 +33,9 @@ def soles_of(chain, feet, sole: dict | None = None) -> list[Sole]:
 
 
 def lift_above_ground(chain, q: Tensor, feet, soles: list[Sole], ground: float = 0.0) -> Tensor:
-    """``q (..., nq)`` (a floating base first: its position q[..., :3] in the world) with the base raised in
-    each configuration by the depth of the lowest sole point of ``feet`` below ``ground`` (module doc);
-    configurations with both soles above the ground are returned unchanged."""
+    """``q (..., nq)`` (a floating base first: its position q[..., :3] in the chain's base frame) with the
+    base raised along the world's z in each configuration by the depth of the lowest sole point of ``feet``
+    below ``ground`` (module doc); configurations with both soles above the ground are returned unchanged."""
     if not chain.joint_kinds or chain.joint_kinds[0] != "free":
         raise ModelError("lift_above_ground needs a floating-base chain (a free joint first)")
     ends = list(chain.end_links)
@@ -43,4 +43,8 @@ def lift_above_ground(chain, q: Tensor, feet, soles: list[Sole], ground: float =
         T = chain.forward_kinematics(q, check=False)
         h = torch.stack([s.lowest(T[..., ends.index(f), :, :], ground)[0] for f, s in zip(feet, soles)],
                         -1).amin(-1)  # (...,): the lowest sole point of either foot above the ground
-    return torch.cat((q[..., :2], q[..., 2:3] + (-h).clamp_min(0).unsqueeze(-1), q[..., 3:]), -1)
+    lift = (-h).clamp_min(0).unsqueeze(-1)  # (..., 1): how far up, along the world's z
+    base = chain.base
+    # q[..., :3] is the base position in the chain's base frame T^b_0: the world's z is R_bᵀ e_z there
+    up = q.new_tensor([0.0, 0.0, 1.0]) if base is None else base[2, :3].detach().to(q)
+    return torch.cat((q[..., :3] + lift * up, q[..., 3:]), -1)
