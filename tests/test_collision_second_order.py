@@ -89,3 +89,17 @@ def test_batched_hessian_no_nan_at_degenerate_inputs():
         s = sum((x * x).sum() for x in g if x is not None)
         for x in torch.autograd.grad(s, (a0, a1, b0, b1), allow_unused=True):
             assert x is None or torch.isfinite(x).all()
+
+
+def test_pair_kernel_under_functorch_transforms():
+    """``torch.func.jacrev`` / ``vmap`` over the robot's self distances (the pair kernel): the same Jacobian
+    as autograd's through the closed-form backward (the autograd.Function alone cannot run under them)."""
+    from tests.helpers import fr3_robot
+
+    chain, rc = fr3_robot(torch.float64)
+    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(0))
+    J = torch.func.vmap(torch.func.jacrev(lambda x: rc.self_distances(x[None])[0]))(q)
+    want = torch.stack([torch.autograd.functional.jacobian(lambda x: rc.self_distances(x[None])[0], q[k])
+                        for k in range(3)])
+    assert J.shape == want.shape == (3, rc.self_distances(q).shape[-1], chain.nq)
+    torch.testing.assert_close(J, want, rtol=1e-10, atol=1e-12)

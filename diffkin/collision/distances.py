@@ -154,6 +154,10 @@ def capsule_pairs_cm(A: Tensor, D: Tensor, R: Tensor, i: Tensor, j: Tensor) -> T
     gradients it runs as :class:`_PairKernel` (the first-order backward pass in closed form; a
     ``create_graph`` pass through :func:`_pairs_graph`, exact second derivatives).
     """
+    if torch._C._are_functorch_transforms_active():  # vmap / jacrev / grad: the graph version, which they
+        # trace (an autograd.Function without setup_context cannot run under them)
+        _, s0, t0, _ = _pairs_values(A.detach(), D.detach(), R.detach(), i, j)
+        return _pairs_graph(A, D, R, i, j, s0, t0)
     if torch.is_grad_enabled() and (A.requires_grad or D.requires_grad or R.requires_grad):
         return _PairKernel.apply(A, D, R, i, j)
     return _pairs_values(A, D, R, i, j)[0]
