@@ -161,3 +161,5 @@ def test_from_urdf_convex_parts(tmp_path):
     assert d_hull < 0 and -1e-9 <= d_parts <= 0.002 + 1e-9
     with pytest.raises(OptionError, match="mesh_tolerance"):
         RobotCollision.from_urdf(tmp_path / "u.urdf", chain, geometry="convex", mesh_tolerance=-1.0)
+    with pytest.raises(OptionError, match="needs geometry='convex'"):  # not silently ignored
+        RobotCollision.from_urdf(tmp_path / "u.urdf", chain, mesh_tolerance=0.002)

@@ -580,6 +580,9 @@ class RobotCollision(nn.Module):
         if geometry not in ("capsules", "convex"):
             raise OptionError(f"RobotCollision.from_urdf: expected geometry 'capsules' or 'convex', got "
                               f"{geometry!r}")
+        if mesh_tolerance is not None and geometry != "convex":  # the capsule fit has no such bound
+            raise OptionError("RobotCollision.from_urdf: mesh_tolerance (convex parts of non-convex meshes) "
+                              f"needs geometry='convex', got geometry={geometry!r}")
         disabled = _srdf_disabled(srdf) if srdf is not None else set()  # a missing SRDF: before any work
         base_dir = None
         if isinstance(source, (str, Path)) and "<" not in str(source):

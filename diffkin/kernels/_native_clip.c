@@ -204,7 +204,9 @@ static void DK(clip_skate)(const dk_clip *c, int64_t n, int64_t *cols) {
 static int64_t DK(clip_rows)(const dk_clip *c) {
     const int64_t nv = c->nv, N = c->N;
     const int64_t rows_max = 3 * (c->K + c->Ko) + c->P0 + c->P1 + 6;
-    const size_t reals = (size_t)(2 * rows_max * nv + rows_max + nv * nv);
+    /* an even count of reals: the int64 column scratch after them (and every thread's block) stays 8-byte
+       aligned in float32 too */
+    const size_t reals = ((size_t)(2 * rows_max * nv + rows_max + nv * nv) + 1) & ~(size_t)1;
     const size_t per = reals * sizeof(real) + (size_t)nv * sizeof(int64_t);
     int64_t nth = c->nthreads < 1 ? 1 : c->nthreads;
     if (nth > N) nth = N > 0 ? N : 1;

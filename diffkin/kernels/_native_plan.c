@@ -8,8 +8,9 @@
  * of geom travel), as far as that edge is clear (its clear prefix: trees reach into narrow passages), and
  * then the other tree connects its nearest node to the new one by
  * the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full connection joins the trees.
- * Every `restart` iterations without a join both trees are dropped and grown anew from the roots (the
- * random stream continuing): the iterations an RRT needs are heavy-tailed, and a fresh start cuts the tail.
+ * With `restart` > 0, every `restart` iterations without a join both trees are dropped and grown anew from
+ * the roots (the random stream continuing); motion.plan passes 0 (never): restarts did not help on the
+ * MotionBenchMaker problems.
  * Then random shortcuts (shortcut_tries straight edges between waypoints i < j - 1, each clear one taken).
  * Nearest: a linear scan in the weighted L1 metric of the bound (diffkin.motion._search's).
  *

@@ -32,11 +32,11 @@ below ``tolerance``; its knots are then a KKT point.
 selection it reuses): the knots are a KKT point, and the rows held at the boundary with a positive
 multiplier (and the coordinates held at a joint limit) are differentiated as equalities,
 [∇²L Aᵀ; A 0][dX; dν] = −[∂_z∇_X L dz; ∂_z a dz] with L = C − λᵀd; z is the start, the goal, and every
-tensor of the world that requires grad (sphere centres and radii, box poses and sizes, …). The
-collision layer's distances have exact first derivatives but not exact autograd second derivatives (their
-witness parameters are held constant, the envelope theorem, which holds for the first derivative only:
-off by 0.96 in a capsule–sphere Hessian whose largest entry is 0.42), so every second-order term is a central
-difference of exact gradients (:class:`_ImplicitKnots`).
+tensor of the world that requires grad (sphere centres and radii, box poses and sizes, …). Every
+second-order term is a central difference of exact gradients (:class:`_ImplicitKnots`): the collision
+layer's autograd second derivatives are exact for spheres, capsules, boxes and half-spaces
+(``tests/test_collision_second_order.py``) but not for convex meshes or a cylinder's rim search, whose witness
+parameters are held constant (the envelope theorem holds for the first derivative only).
 
 **Where it is not defined.** The gradient is that of the local solution: it holds while the set of rows
 held does not change (a perturbation that makes a new distance row active, or releases one, is a kink:
@@ -346,9 +346,9 @@ def _distance_rows(coll64, world, X: Tensor, rows_idx: Tensor, bound: float) -> 
 class _ImplicitKnots(torch.autograd.Function):
     """dX* of the KKT point X* (module docstring): [∇²L Aᵀ; A 0][u; v] = [ḡ; 0] for the cotangent ḡ, then
     z̄ = −(uᵀ ∂_z∇_X L + vᵀ ∂_z a), L = C − λᵀa. The collision layer's distances have exact gradients but
-    not exact second derivatives (their witness parameters are held constant: the envelope theorem, which
-    holds for the first derivative only), so every second-order term is a central difference of exact
-    gradients along one direction: the curvature Σλ_i∇²d_i per knot along each joint, and
+    not, for every primitive, exact second derivatives (convex meshes and a cylinder's rim search hold their
+    witness parameters constant), so every second-order term is a central difference of exact gradients
+    along one direction: the curvature Σλ_i∇²d_i per knot along each joint, and
     uᵀ ∂_w∇_X(λᵀd) = ∂_w[(λᵀd(X + εu) − λᵀd(X − εu)) / 2ε] (ε = 1e-5 rad: error O(ε²) relative)."""
 
     @staticmethod
