@@ -138,13 +138,15 @@ class World:
 
     def to(self, dtype: torch.dtype | None = None, device=None) -> World:
         """The same world with every tensor in ``dtype`` on ``device`` (None: unchanged)."""
-        return self._map(lambda t: t.to(dtype=dtype or self.dtype, device=device or self.device))
+        return self._map(lambda t, own: t.to(dtype=dtype or self.dtype, device=device or self.device))
 
     def _map(self, fn) -> World:
-        """The same world with ``fn(tensor)`` applied to every tensor, registered objects included."""
-        s, c, bc, bR, bh, h, p, y = (fn(t) for t in self.tensors()[:8])
+        """The same world with ``fn(tensor, own)`` applied to every tensor, registered objects included;
+        ``own`` counts the tensor's trailing dims that are not batch dims (the object axis included)."""
+        own = (2, 2, 2, 3, 2, 2, 2, 2)  # in the order of tensors(): a rotation has 3, the others 2
+        s, c, bc, bR, bh, h, p, y = (fn(t, k) for t, k in zip(self.tensors()[:8], own))
         return World(spheres=s, capsules=c, boxes=Box(bc, bR, bh), halfspaces=h, points=p, cylinders=y,
-                     objects=self._objects_map(lambda t, own: fn(t)))
+                     objects=self._objects_map(lambda t, own: fn(t, own + 1)))
 
     def __len__(self) -> int:
         return sum(self.counts) + sum(self.object_counts)
@@ -176,20 +178,12 @@ class World:
         """The same worlds with every object tensor brought to one batch dim ``(nw, W, ...)`` (nw the
         product of :attr:`batch_shape`)."""
         batch = self.batch_shape
-        s, c, bc, bR, bh, h, p, y = self.tensors()[:8]
         n = batch.numel()  # not -1: an empty kind (0 objects) leaves -1 undetermined
-        flat = lambda t, own: t.expand(*batch, *t.shape[-own:]).reshape(n, *t.shape[-own:])  # noqa: E731
-        boxes = Box(flat(bc, 2), flat(bR, 3), flat(bh, 2))
-        return World(spheres=flat(s, 2), capsules=flat(c, 2), boxes=boxes, halfspaces=flat(h, 2),
-                     points=flat(p, 2), cylinders=flat(y, 2),
-                     objects=self._objects_map(lambda t, own: flat(t, own + 1)))
+        return self._map(lambda t, own: t.expand(*batch, *t.shape[-own:]).reshape(n, *t.shape[-own:]))
 
     def _take(self, index: Tensor) -> World:
         """The worlds ``index (N,)`` (long) of a world with one batch dim: a world per row ``(N, W, ...)``."""
-        s, c, bc, bR, bh, h, p, y = self.tensors()[:8]
-        return World(spheres=s[index], capsules=c[index], boxes=Box(bc[index], bR[index], bh[index]),
-                     halfspaces=h[index], points=p[index], cylinders=y[index],
-                     objects=self._objects_map(lambda t, own: t[index]))
+        return self._map(lambda t, own: t[index])
 
     def _round(self) -> tuple[Tensor, Tensor, Tensor]:
         """Spheres, capsules and points as capsules ``(a (..., W, 3), b (..., W, 3), r (..., W))``."""

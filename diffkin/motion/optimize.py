@@ -144,7 +144,7 @@ def _cost(Q: Tensor, W: Tensor, Y: Tensor) -> Tensor:
 def _detached(world: World | None, dtype) -> World | None:
     if world is None:
         return None
-    return world._map(lambda t: t.detach().to(dtype))  # registered object kinds included
+    return world._map(lambda t, own: t.detach().to(dtype))  # registered object kinds included
 
 
 class _Rows:
