@@ -55,7 +55,7 @@ from torch import Tensor
 from ..collision.world import World
 from ..errors import OptionError
 from ..ik._qp_ip import _polish, ip_solve
-from ..ik.residuals import DistanceConstraint
+from ..ik.residuals import DistanceConstraint, _residual_jacobian
 from ._spline import _knots, _spline_clear
 
 __all__ = ["OptimizeConfig", "OptimizedPath", "optimize_knots", "optimize_stage", "resample", "sample_with"]
@@ -182,10 +182,8 @@ class _Rows:
             k = min(k, g.shape[-1])
             rows = g.detach().topk(k, dim=-1, largest=False).indices
             sel = g.gather(-1, rows)
-            eye = torch.eye(k, dtype=X.dtype, device=X.device).view(k, 1, 1, k).expand(k, *sel.shape)
-            (J,) = torch.autograd.grad(sel, Xg, grad_outputs=eye, is_grads_batched=True)
-            # J[r] = Σ over the batch of the r-th row's gradient: each row depends on its own knot only
-        return sel.detach(), rows, J.movedim(0, -2).detach()
+            J = _residual_jacobian(sel, Xg)  # each row depends on its own knot only: per-sample Jacobians
+        return sel.detach(), rows, J.detach()
 
 
 def _qp(H: Tensor, c: Tensor, G: Tensor, h: Tensor, guess: Tensor | None) -> tuple[Tensor, Tensor]:
