@@ -53,9 +53,9 @@ import torch
 from torch import Tensor
 
 from ..collision.world import World
-from ..errors import OptionError
 from ..ik._qp_ip import _polish, ip_solve
 from ..ik.residuals import DistanceConstraint, _residual_jacobian
+from ..validation import check_count, check_number
 from ._spline import _knots, _spline_clear
 
 __all__ = ["OptimizeConfig", "OptimizedPath", "optimize_knots", "optimize_stage", "resample", "sample_with"]
@@ -87,17 +87,11 @@ class OptimizeConfig:
     trust: float = 0.1
     tolerance: float = 1e-11
 
-    def __post_init__(self):
+    def __post_init__(self):  # the shared option validators (typed OptionError naming the field)
         for name in ("knots", "iterations", "nearest"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise OptionError(f"OptimizeConfig.{name}: expected an integer >= 1, got {v!r}")
+            check_count(getattr(self, name), f"OptimizeConfig.{name}")
         for name in ("buffer", "acceleration_weight", "trust", "tolerance"):
-            v = getattr(self, name)
-            if not isinstance(v, (int, float)) or isinstance(v, bool) or not v == v or v < 0 \
-                    or (v == 0 and name == "trust") or v == float("inf"):
-                raise OptionError(f"OptimizeConfig.{name}: expected a finite number >= 0 (> 0 for trust), "
-                                  f"got {v!r}")
+            check_number(getattr(self, name), f"OptimizeConfig.{name}", positive=name == "trust")
 
 
 @dataclass
