@@ -102,9 +102,9 @@ def perturbed(chain, seed, free_names=None, mm=2.0, deg=0.2, **sel):
 def measure(chain, q, seed=0, pos_noise=0.0, rot_noise=0.0):
     with torch.no_grad():
         T = chain.forward_kinematics(q).clone()
-    g = torch.Generator().manual_seed(seed)
-    T[:, :3, 3] += pos_noise * torch.randn(q.shape[0], 3, generator=g, dtype=F64)
-    R_noise = rotvec_to_matrix(rot_noise * torch.randn(q.shape[0], 3, generator=g, dtype=F64))
+    g = torch.Generator().manual_seed(seed)  # CPU noise, moved to T's device (the same draws on any device)
+    T[:, :3, 3] += pos_noise * torch.randn(q.shape[0], 3, generator=g, dtype=F64).to(T.device)
+    R_noise = rotvec_to_matrix(rot_noise * torch.randn(q.shape[0], 3, generator=g, dtype=F64)).to(T.device)
     T[:, :3, :3] = R_noise @ T[:, :3, :3]
     return T
 

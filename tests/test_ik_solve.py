@@ -312,10 +312,11 @@ def test_summary_and_str():
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_solve_cuda():
     chain = load("panda", dtype=torch.float32, device="cuda")
-    _, T = targets(chain.cpu(), (500,), seed=12)
+    cpu = chain.copy().cpu()  # Module.cpu() moves in place: the CUDA chain must stay on the GPU
+    _, T = targets(cpu, (500,), seed=12)
     res = solve(chain, T.cuda(), generator=torch.Generator(device="cuda").manual_seed(0))
     assert res.q.is_cuda and res.success.double().mean() >= 0.99
-    assert_honest(chain.cpu(), res.to(device="cpu"), T)
+    assert_honest(cpu, res.to(device="cpu"), T)
 
 
 @pytest.mark.parametrize("name", ["panda", "ur5", "stanford", "urdf_ur5"])

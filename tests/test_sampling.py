@@ -184,7 +184,7 @@ def test_on_cuda(gen_device):
     """The samples on the chain's device (either generator device), the rejection on the GPU, the same
     values as on the CPU for a CPU generator."""
     cpu = models.from_mjcf(BALLS, _ends(), dtype=F64)
-    chain = cpu.to("cuda")
+    chain = cpu.copy().to("cuda")  # Module.to moves in place: keep the CPU chain for the comparison
     g = torch.Generator(device=gen_device).manual_seed(0)
     q = chain.random_configuration(500, generator=g, collision=_Rule(), margin=0.1)
     assert q.device.type == "cuda" and (q[:, 0] >= 0.6).all()
