@@ -298,27 +298,41 @@ def _convex_robot(device, dtype):
 
 
 @functools.cache
-def _g1():
+def _g1(mjcf: bool = False):
+    """The builtin G1 mapping and its chain: from the shipped URDF (no MuJoCo), or Menagerie's MJCF (MuJoCo
+    compiles it) with its self-collision model."""
     from diffkin import models, retarget
 
     mp = retarget.Mapping.builtin("g1")
-    return mp, models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=F64)
+    if not mjcf:
+        return mp, models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=F64), None
+    chain = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=F64)
+    return mp, chain, retarget.g1_collision(chain)
 
 
-def _clip(warm_start, solver):
+def _clip(warm_start, solver, mjcf=False):
     def make(device, dtype):
-        """retarget.clip of six frames of the shipped walk on the G1 (URDF: no MuJoCo): both stages, the
-        whole-clip optimisation's torch rows (its C rows serve the CPU only), the metrics."""
+        """retarget.clip of six frames of the shipped walk on the G1: both stages, the whole-clip
+        optimisation's torch rows (its C rows serve the CPU only), the metrics; ``mjcf``: Menagerie's G1
+        with its self-collision pairs kept apart."""
         from diffkin import retarget
 
-        mp, g1 = _g1()
-        g1 = g1.copy().to(device=device, dtype=dtype)
+        mp, g1, rc = _g1(mjcf)
+        if rc is not None:
+            rc = copy.deepcopy(rc)
+            g1 = rc.chain.to(device=device, dtype=dtype)
+            rc = rc.to(device=device, dtype=dtype)
+            # the MJCF body poses' companion chain is parsed from the model on first use: here, so the
+            # stand-in sees the call (host-side parsing without device= reads there as a misplaced tensor)
+            rc.self_distances(torch.zeros(1, g1.nq, dtype=dtype, device=device))
+        else:
+            g1 = g1.copy().to(device=device, dtype=dtype)
         walk = retarget.load_bvh(retarget.example_clips()["walk"]).frames_slice(0, 6)
         walk = retarget.Motion(walk.positions.to(device=device, dtype=dtype), walk.names, walk.fps)
 
         def call():
             r = retarget.clip(g1, walk, mp, max_iterations=4, iterations=2, warm_start=warm_start,
-                              solver=solver)
+                              solver=solver, collision=rc)
             m = r.metrics
             return (r.q, r.scale, r.keypoints, r.contacts, r.cost,
                     *(getattr(m, k) for k in m.__dataclass_fields__))
@@ -332,7 +346,7 @@ def _metrics(device, dtype):
     """retarget.metrics of a short G1 clip (feet from the URDF's sole spheres) and their gradient."""
     from diffkin import retarget
 
-    mp, g1 = _g1()
+    mp, g1, _ = _g1()
     g1 = g1.copy().to(device=device, dtype=dtype)
     q = torch.zeros(1, 3, g1.nq, dtype=dtype, device=device)
     q[..., 2], q[..., 3] = 0.79, 1.0
@@ -350,15 +364,15 @@ def _metrics(device, dtype):
 
 def _velocity_tasks(device, dtype):
     """ik.solve_velocity with frame, posture and damping tasks under configuration,
-    velocity and collision limits (the FR3 among spheres, a box and cylinders)."""
+    velocity and collision limits (the FR3, a sphere and a point)."""
     from diffkin import ik
 
     chain, rc = _robot(device, dtype)
-    q = chain.clamp_to_limits(_rand(8, 7, seed=16, dtype=dtype).to(device) * 2 - 1)
+    q = chain.clamp_to_limits(_rand(4, 7, seed=16, dtype=dtype).to(device) * 2 - 1)
     T = chain.forward_kinematics(q) @ _pose([0.03] * 3, [0.03] * 3, dtype, device)
     tasks = [ik.FrameTask("fr3_link8", target=T, lm_damping=1e-3),
              ik.PostureTask(torch.zeros(7, dtype=dtype, device=device), cost=0.1), ik.DampingTask(cost=1e-3)]
-    world = _worlds(device, dtype)[0]
+    world = _worlds(device, dtype)[1]  # (a sphere and a point: the collision rows' Jacobian is the cost)
     limits = [ik.ConfigurationLimit(), ik.VelocityLimit(1.0), ik.CollisionLimit(rc, world=world)]
     return lambda: ik.solve_velocity(chain, q, tasks, 0.02, limits=limits)
 
@@ -381,7 +395,10 @@ def _hand_eye(device, dtype):
     pts = _rand(20, 3, seed=9) * 0.2
     d = lambda x: x.to(device=device, dtype=dtype)  # noqa: E731
     fk, cam_target, K, dist, pts = map(d, (fk, cam_target, K, dist, pts))
-    return lambda: (hand_eye(fk, cam_target), robot_world_hand_eye(fk, cam_target),
+    # three refinement steps of the default 10: each is a forward-mode Jacobian, the cost of this case
+    steps = 3
+    return lambda: (hand_eye(fk, cam_target, iterations=steps),
+                    robot_world_hand_eye(fk, cam_target, iterations=steps),
                     project_points(pts, cam_target, K, dist))
 
 
@@ -438,6 +455,8 @@ CASES = [
     Case("collision convex robot", _convex_robot, {F64: 1e-9, F32: 2e-4}),
     *(Case(f"retarget.clip {w} {s}", _clip(w, s), {F64: 1e-6}) for w, s in
       (("batched", "banded"), ("sequential", "cg"))),
+    Case("retarget.clip G1 MJCF with g1_collision", _clip("batched", "banded", mjcf=True), {F64: 1e-6},
+         needs=("mujoco",)),
     Case("retarget.metrics", _metrics, {F64: 1e-9, F32: 1e-3}),
     Case("ik.solve_velocity tasks and limits", _velocity_tasks, {F64: 1e-8}),
     Case("calibration hand_eye / project_points", _hand_eye, {F64: 1e-8}),
