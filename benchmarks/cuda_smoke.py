@@ -153,7 +153,8 @@ def _rand(*shape, seed: int, dtype=F64):
 # ----------------------------------------------------------------------------------------------- cases
 def _plan(device, dtype):
     """motion.plan through the torch search (the C search does not serve CUDA), optimised, with the implicit
-    gradient w.r.t. the start, the goal and the world's spheres; MotionResult.sample at given times."""
+    gradient w.r.t. the starts, the goals and the world's spheres; MotionResult.sample at given times. Two
+    problems, each in its own scene (World.stack): one needs the RRT, the other is a short straight move."""
     from diffkin import motion
     from diffkin.collision import World
     from diffkin.motion.optimize import OptimizeConfig
@@ -164,11 +165,17 @@ def _plan(device, dtype):
     t = torch.tensor([0.0, 0.05, 0.3, 0.6], dtype=dtype, device=device)
 
     def call():
-        qs, qg, s = (x.clone().requires_grad_() for x in (q[:1], q[1:], sph))
-        res = motion.plan(chain, qs, qg, collision=rc, world=World(spheres=s), margin=0.005,
+        qs, qg, s = (x.clone().requires_grad_() for x in (q[[0, 0]], q[[1, 2]], sph))
+        world = World.stack([World(spheres=s), World(spheres=s[:1])])
+        res = motion.plan(chain, qs, qg, collision=rc, world=world, margin=0.005,
                           acceleration_limit=10.0, resolution=0.01, max_iterations=300,
                           optimize=OptimizeConfig(knots=16), search_in_c=torch.device(device).type != "cpu")
         (res.q.sum() + res.waypoints.square().sum()).backward()
+        # the case exercises what it names: the RRT (more than two waypoints), the optimised knots kept
+        # (whose implicit gradient reaches the starts, the goals and the spheres)
+        assert bool(res.success.all()) and bool(res.optimized.all()) and int(res.n_waypoints[0]) > 2, \
+            (res.reason, res.optimized, res.n_waypoints)
+        assert all(bool(g.abs().sum() > 0) for g in (qs.grad, qg.grad, s.grad))
         return (res.success, res.optimized, res.n_waypoints, res.duration, res.q.detach(), res.qd,
                 res.waypoints.detach(), res.sample(t), qs.grad, qg.grad, s.grad)
 
@@ -177,15 +184,15 @@ def _plan(device, dtype):
 
 @functools.cache
 def _plan_problem():
-    """A start and a goal (2, 7) clear of the spheres whose plan needs the RRT (the straight edge is not
-    clear) and keeps its optimised knots."""
+    """A start, a goal whose plan needs the RRT (the straight edge is not clear) and keeps its optimised
+    knots, and a goal a short straight move from the start (3, 7), clear of the spheres."""
     from diffkin.collision import World
     from diffkin.sampling import random_configuration
 
     rc = _fr3()
     q = random_configuration(rc.chain, (8,), torch.Generator().manual_seed(3), collision=rc,
                              world=World(spheres=torch.tensor(SPHERES, dtype=F64)), margin=0.02)
-    return q[[1, 5]]
+    return torch.stack((q[1], q[5], q[1] + 0.05))
 
 
 def _time_optimal(interpolation, jerk):

@@ -44,10 +44,3 @@ def test_cuda_matches_cpu(case, dtype):
     _needs(case)
     smoke.run_case(case, "cuda", dtype)
 
-
-def test_plan_case_searches_and_keeps_the_optimised_knots():
-    """The plan case exercises what it names: the RRT (more than the two ends), the optimised knots kept,
-    and a gradient reaching the start, the goal and the spheres."""
-    success, optimized, n_way, *_, g_start, g_goal, g_world = smoke._plan("cpu", torch.float64)()
-    assert success.all() and optimized.all() and int(n_way[0]) > 2
-    assert all(bool(g.abs().sum() > 0) for g in (g_start, g_goal, g_world))
