@@ -547,6 +547,7 @@ def test_float32_least_squares():
     assert res.validation_error(q, T)["position_rms"] < 2e-6
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_batch():
     chain = ur5().cuda()

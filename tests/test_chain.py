@@ -332,6 +332,7 @@ def test_gradients_finite_at_singular_configurations(kernel):
         chain.zero_grad()
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 @pytest.mark.parametrize("kernel", ["matrix", "column"])
 def test_cuda_matches_cpu(kernel):

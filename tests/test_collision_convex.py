@@ -301,6 +301,7 @@ def test_panda_convex_with_one_scene_per_row(panda):
             assert torch.equal(rc._clear(q, World.stack(ws), margin=margin), lowest >= margin)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 @pytest.mark.parametrize("kind", KINDS)
 def test_cuda_matches_cpu(kind):

@@ -12,10 +12,13 @@ device differs from the CPU for this library in two ways, and :func:`as_on_cuda`
   ``meta`` and the device check fails. :func:`test_the_stand_in_catches_what_cuda_would` shows both.
 
 Each test names the CUDA test it stands in for; the CUDA tests stay (they also check the kernels' CUDA
-arithmetic). Not stood in: ``test_bench_gpu`` (CUDA graphs and ``torch.compile`` on the GPU),
-test_calibration ``test_cuda_batch`` and test_collision_meshes ``test_mesh_sets_on_cuda_match_cpu``
-(calibration builds host-side masks without ``device="cpu"``, which the stand-in cannot tell from a
-misplaced tensor; the mesh robot's files live with its test).
+arithmetic). Host-side tensors (masks, parsed model numbers, CPU random streams) say ``device="cpu"``: the
+stand-in cannot tell a tensor made on the default device on purpose from a misplaced one. Not stood in:
+``test_bench_gpu`` (CUDA graphs and ``torch.compile`` on the GPU) and test_collision_meshes
+``test_mesh_sets_on_cuda_match_cpu`` (the mesh robot's files live with its test). The newer modules
+(motion planning, time_optimal, cylinders and convex meshes, World.stack and scenes, retargeting, camera
+calibration, velocity IK with tasks, the vector envs) have their stand-ins and CUDA twins in
+test_device_standin_motion.py.
 """
 
 from __future__ import annotations
@@ -185,3 +188,26 @@ def test_trajectories():
         tr.cubic_spline(pts, times, t, end="natural_virtual"), tr.trapezoidal(pts[0], pts[1], 4.2, t),
         tr.linear_parabolic_blends(pts, times, t, blend_time=0.2), tr.anticipated_segments(pts, times, t,
                                                                                             advance=0.1))])
+
+
+@pytest.mark.parametrize("method", ["least_squares", "gradient", "calibrate"])
+def test_calibration_batch(method):
+    """Stands in for test_calibration ``test_cuda_batch``: two robots calibrated in one call by each method;
+    and ``calibrate`` of one (its cross-validation folds drawn from a CPU generator)."""
+    from diffkin.calibration import calibrate, calibrate_batch
+
+    nominal = models.load("ur5", dtype=F64)
+    true = nominal.copy()
+    with torch.no_grad():
+        for k, p in enumerate((true.a, true.d)):  # a robot ~1 mm off its nominal link lengths and offsets
+            p.add_(1e-3 * torch.randn(p.shape, generator=torch.Generator().manual_seed(k), dtype=F64))
+    q = nominal.random_configuration((24,), generator=torch.Generator().manual_seed(65))
+    with torch.no_grad():
+        T = true.forward_kinematics(q)
+    if method == "calibrate":
+        res = check_as_on_cuda(lambda: calibrate(nominal, q, T, progress=False).chain.forward_kinematics(q)
+                               .detach(), atol=1e-8)
+    else:
+        res = check_as_on_cuda(lambda: [r.chain.forward_kinematics(q).detach() for r in calibrate_batch(
+            nominal, q.expand(2, -1, -1), T.expand(2, -1, -1, -1), method=method, progress=False)], atol=1e-8)
+    assert (res[0] - T).abs().amax() < (nominal.forward_kinematics(q).detach() - T).abs().amax() / 10

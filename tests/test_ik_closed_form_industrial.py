@@ -284,6 +284,7 @@ def test_other_structures_get_a_model_error_naming_the_checks():
         identify_structure(tree)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_follows_inputs():
     chain = _robot("ur10").to("cuda")

@@ -309,6 +309,7 @@ def test_summary_and_str():
     assert f"{100 * s['success_rate']:.2f} %" in str(res)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_solve_cuda():
     chain = load("panda", dtype=torch.float32, device="cuda")

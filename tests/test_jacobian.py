@@ -267,6 +267,7 @@ def test_gradcheck_wrt_q_and_dh_parameters():
     assert torch.autograd.gradcheck(lambda x, v: jacobian_dot_qdot(chain, x, v), (q, qd))
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu():
     chain = random_chain(10, "modified").to(torch.float32)

@@ -618,6 +618,7 @@ def test_errors_non_finite_and_types():
         rot.quaternion_to_matrix(torch.zeros(4))
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_device_preserved():
     _, R = random_rotations(32, (8,))

@@ -736,6 +736,7 @@ def test_operational_batched_equals_per_item():
             torch.testing.assert_close(x[b], y, atol=1e-12, rtol=1e-12)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_outputs_stay_on_device():
     def run(dev):

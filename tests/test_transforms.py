@@ -263,6 +263,7 @@ def test_errors_bad_input():
         tf.transform_inverse(nan)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_device_preserved():
     _, _, T = random_poses(17, (8,))

@@ -124,6 +124,7 @@ def test_vector_bad_actions(bad):
         venv.step(bad)
 
 
+@pytest.mark.cuda
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_cuda_matches_cpu():
     a = TorchVectorEnv("diffkin/Reach-v0", 16, device="cuda")

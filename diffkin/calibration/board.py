@@ -63,9 +63,9 @@ class BoardDetection(NamedTuple):
 
 def board_points(rows: int, cols: int, square: float, dtype=torch.float64, device=None) -> Tensor:
     """``(rows * cols, 3)`` corners of the board: corner r * cols + c at (c * square, r * square, 0)."""
-    r, c = torch.meshgrid(torch.arange(rows), torch.arange(cols), indexing="ij")
-    p = torch.stack((c.reshape(-1), r.reshape(-1), torch.zeros(rows * cols, dtype=torch.long)), -1)
-    return p.to(dtype=dtype, device=device) * square
+    r, c = torch.meshgrid(torch.arange(rows, device=device), torch.arange(cols, device=device), indexing="ij")
+    p = torch.stack((c.reshape(-1), r.reshape(-1), torch.zeros_like(r.reshape(-1))), -1)
+    return p.to(dtype=dtype) * square
 
 
 def charuco_board(rows: int, cols: int, square: float, marker: float, dictionary: str = "DICT_5X5_100"):

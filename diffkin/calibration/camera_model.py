@@ -84,17 +84,17 @@ class CameraModel(ParameterLayout):
         length = torch.cat(
             (
                 robot.is_length().cpu(),
-                torch.tensor([True] * 3 + [False] * 3).repeat(2),
-                torch.zeros(9, dtype=torch.bool),
+                torch.tensor([True] * 3 + [False] * 3, device="cpu").repeat(2),
+                torch.zeros(9, dtype=torch.bool, device="cpu"),
             )
         )
         self._length = length
         cand = torch.cat(
             (
                 robot.candidate.cpu() & ("robot" in estimate),
-                torch.full((6,), "camera" in estimate),
-                torch.full((6,), "board" in estimate),
-                torch.full((9,), "intrinsics" in estimate),
+                torch.full((6,), "camera" in estimate, device="cpu"),
+                torch.full((6,), "board" in estimate, device="cpu"),
+                torch.full((9,), "intrinsics" in estimate, device="cpu"),
             )
         )
         self.candidate = cand.to(self.nominal.device)

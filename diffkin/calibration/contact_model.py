@@ -108,12 +108,12 @@ class ContactModel(ParameterLayout):
         if surface == "sphere":
             r = values0[:, 3] if radius is None else radius
             fixtures = torch.cat((values0[:, :3], r[:, None]), -1)
-            free = torch.tensor([True, True, True, radius is None]).repeat(self.F)
-            length = torch.ones(4 * self.F, dtype=torch.bool)
+            free = torch.tensor([True, True, True, radius is None], device="cpu").repeat(self.F)
+            length = torch.ones(4 * self.F, dtype=torch.bool, device="cpu")
         else:
             fixtures = values0.new_zeros(self.F, 3)  # corrections on the fitted frames
-            free = torch.ones(3 * self.F, dtype=torch.bool)
-            length = torch.tensor([True, False, False]).repeat(self.F)
+            free = torch.ones(3 * self.F, dtype=torch.bool, device="cpu")
+            length = torch.tensor([True, False, False], device="cpu").repeat(self.F)
         self.nominal = torch.cat((nominal_robot, fixtures.reshape(-1).to(nominal_robot)))
         self.names = tuple(robot.names) + tuple(f"{surface}{f}_{a}" for f in range(self.F) for a in axes)
         self._length = torch.cat((robot.is_length().cpu(), length))

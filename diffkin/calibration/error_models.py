@@ -194,7 +194,7 @@ class ChainErrorModel(ParameterLayout, ForwardModeMatrix):
         self.nominal = flat[0] if single else torch.stack(flat)
         names, length = _names_units(ref, self._named)
         self.names = tuple(names)
-        self._length = torch.tensor(length)
+        self._length = torch.tensor(length, device="cpu")  # host masks: moved where used
         self.n = ref.n_joints
         self.candidate = self._select(ref, parameters, base, tool, joint_offsets)
 
@@ -216,7 +216,7 @@ class ChainErrorModel(ParameterLayout, ForwardModeMatrix):
 
     def _select(self, ref, parameters, base: bool, tool: bool, joint_offsets: bool) -> Tensor:
         P = len(self.names)
-        mask = torch.zeros(P, dtype=torch.bool)
+        mask = torch.zeros(P, dtype=torch.bool, device="cpu")
         index = {nm: j for j, nm in enumerate(self.names)}
         if self.kind == "hayati":
             n = self.n
@@ -232,7 +232,7 @@ class ChainErrorModel(ParameterLayout, ForwardModeMatrix):
                 else:
                     raise ModelError(f"unknown calibration parameter {item!r}; use 'all', a kind "
                                      f"{DH_KINDS + ('beta',)} or a name such as 'a2', 'beta2', 'base_z'")
-            beta = torch.zeros(n, dtype=torch.bool)
+            beta = torch.zeros(n, dtype=torch.bool, device="cpu")
             beta[pairs] = True
             mask[kinds["beta"]] &= beta  # β only where the axes are parallel ...
             d = mask[kinds["d"]].clone()

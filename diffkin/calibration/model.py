@@ -103,7 +103,7 @@ def _as_selection(parameters, n: int, joint_types: str, base: bool, tool: bool, 
     for j in range(6):
         mask[4 * n + j] = mask[4 * n + j] or base
         mask[4 * n + 6 + j] = mask[4 * n + 6 + j] or tool
-    return torch.tensor(mask)
+    return torch.tensor(mask, device="cpu")
 
 
 @contextlib.contextmanager
@@ -122,7 +122,7 @@ def parameter_jacobian(f, theta: Tensor, x: Tensor, n_params: int, columns: Tens
     respect to the selected entries of θ (``columns``: bool ``(P,)``, default all), vectorised over K
     robots: ``theta (K, P)``, ``x (K, N, ...)`` -> ``(K, N, ..., C)`` (the models of measurements other than
     poses: pixels, contact distances)."""
-    cols = torch.ones(n_params, dtype=torch.bool) if columns is None else columns.cpu()
+    cols = torch.ones(n_params, dtype=torch.bool, device="cpu") if columns is None else columns.cpu()
     idx = cols.nonzero().flatten().to(theta.device)
 
     def shifted(delta, z, xk):
@@ -166,7 +166,7 @@ class ForwardModeMatrix:
         per unit change of the j-th selected entry of ζ (``columns``: bool ``(P,)``, default all), so that
         ζ' = ζ + Δζ (2.89) is exact to first order; and the poses ``(K, N, 4, 4)``. ``zeta (P,)`` with
         ``q (N, n)`` gives ``(N, m, C)`` and ``(N, 4, 4)``."""
-        cols = (torch.ones(self.n_params, dtype=torch.bool) if columns is None else columns.cpu())
+        cols = torch.ones(self.n_params, dtype=torch.bool, device="cpu") if columns is None else columns.cpu()
         idx = cols.nonzero().flatten().to(zeta.device)
         squeeze = zeta.ndim == 1
         Z, Q = (zeta[None], q[None]) if squeeze else (zeta, q)

@@ -35,7 +35,7 @@ def kfold_split(N: int, folds: int, device, min_train: int = 1) -> tuple[Tensor,
     n_test = N // folds
     if folds < 2 or n_test < 1 or N - n_test < min_train:
         return None
-    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0)).to(device)
+    perm = torch.randperm(N, generator=torch.Generator().manual_seed(0), device="cpu").to(device)
     test = perm[: folds * n_test].reshape(folds, n_test)
     train = torch.stack([perm[torch.isin(perm, t, invert=True)] for t in test])
     return train, test

@@ -60,10 +60,10 @@ def kept_columns(rc, world, moving_only: bool) -> tuple[Tensor | None, Tensor | 
             a is b and u == v for (a, u), (b, v) in zip(memo[0], key)):
         return keep_self, memo[2]
     G, (s, c, b, h, *_) = len(rc.geoms), world.counts
-    drop = torch.tensor(rc.fixed, dtype=torch.bool).reshape(G, 1).expand(G, len(world)).clone()
+    drop = torch.tensor(rc.fixed, dtype=torch.bool, device="cpu").reshape(G, 1).expand(G, len(world)).clone()
     if h and world.halfspaces.ndim == 2 and chain is not None:
         planar = planar_frames(rc._frames, chain, world.halfspaces[:, :3].detach()).cpu()
-        drop[:, s + c + b: s + c + b + h] |= planar[torch.tensor(rc._anchor)]
+        drop[:, s + c + b: s + c + b + h] |= planar[torch.tensor(rc._anchor, device="cpu")]
     keep = (~drop).flatten().nonzero().flatten().to(rc._moving_pairs.device)
     keep = None if len(keep) == drop.numel() else keep
     rc.__dict__["_kept_memo"] = (key, (world.counts, len(world)), keep)

@@ -115,7 +115,7 @@ def _separation(n: Tensor, delta: Tensor, E: Tensor, V: Tensor, rho: Tensor, bet
 
 
 def _fibonacci(m: int, dtype, device) -> Tensor:
-    k = torch.arange(m, dtype=torch.float64) + 0.5
+    k = torch.arange(m, dtype=torch.float64, device=device) + 0.5
     z = 1.0 - 2.0 * k / m
     phi = k * math.pi * (3.0 - math.sqrt(5.0))
     s = (1.0 - z * z).sqrt()

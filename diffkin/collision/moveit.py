@@ -87,7 +87,7 @@ class Scene:
         exact = self._exact(cylinders)
         dt = dtype or torch.get_default_dtype()
         by = {k: [p for p in self.objects if p.kind == k] for k in ("sphere", "cylinder", "box")}
-        f = lambda rows, n: torch.tensor(rows, dtype=torch.float64).reshape(-1, n)  # noqa: E731
+        f = lambda rows, n: torch.tensor(rows, dtype=torch.float64, device="cpu").reshape(-1, n)  # noqa: E731
         spheres = f([[*p.pose[:3, 3].tolist(), p.dimensions[0]] for p in by["sphere"]], 4)
         cyl = []
         for p in by["cylinder"]:
@@ -97,8 +97,8 @@ class Scene:
         cyl_t = f(cyl, 7)
         boxes = by["box"]
         center = f([p.pose[:3, 3].tolist() for p in boxes], 3)
-        rot = torch.stack([p.pose[:3, :3] for p in boxes]) if boxes else torch.zeros(0, 3, 3,
-                                                                                    dtype=torch.float64)
+        rot = torch.stack([p.pose[:3, :3] for p in boxes]) if boxes else \
+            torch.zeros(0, 3, 3, dtype=torch.float64, device="cpu")
         half = f([[0.5 * d for d in p.dimensions] for p in boxes], 3)
         cast = lambda t: t.to(dtype=dt, device=device)  # noqa: E731
         kw = {"cylinders": cast(cyl_t)} if exact else {"capsules": cast(cyl_t)}
@@ -219,8 +219,8 @@ def _pose(p, what: str) -> list[float]:
 
 def _poses(rows: list[list[float]]) -> Tensor:
     """``(N, 4, 4)`` float64 homogeneous transforms of :func:`_pose` rows (quaternions normalised, (2.33))."""
-    x = torch.tensor(rows, dtype=torch.float64).reshape(-1, 7)
-    T = torch.eye(4, dtype=torch.float64).repeat(x.shape[0], 1, 1)
+    x = torch.tensor(rows, dtype=torch.float64, device="cpu").reshape(-1, 7)  # parsed on the host
+    T = torch.eye(4, dtype=torch.float64, device="cpu").repeat(x.shape[0], 1, 1)
     T[:, :3, 3] = x[:, :3]
     if x.shape[0]:
         T[:, :3, :3] = quaternion_to_matrix(x[:, 3:])

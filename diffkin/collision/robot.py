@@ -129,8 +129,7 @@ class RobotCollision(nn.Module):
         self._counts = (len(cap), len(bx))
         self._nconvex = len(cv)  # (apart from _counts, which the C paths read as (capsules, boxes))
         order = cap + bx + cv  # the geoms in the world rows' order (by kind)
-        self.register_buffer("_rows", ilong(torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()),
-                             persistent=False)
+        self.register_buffer("_rows", ilong(_argsort(order)), persistent=False)
         self._rows_in_order = order == list(range(len(self.geoms)))  # then no gather of the world rows
         self.pairs = [(self.geoms[i].name, self.geoms[j].name) for i, j in pairs]
         self._pair_index = [(int(i), int(j)) for i, j in pairs]  # geom indices of ``pairs``
@@ -147,7 +146,7 @@ class RobotCollision(nn.Module):
                               self.capsule_a.dtype, dev)
         for name, t in zip(_GROUP_BUFFERS, tables):  # the first stage of the decisions' broad phase
             self.register_buffer(name, t, persistent=False)
-        perm = torch.argsort(torch.tensor(order, dtype=torch.long)).tolist()
+        perm = _argsort(order)
         self.register_buffer("_pair_perm", ilong(perm), persistent=False)
         self._pairs_in_order = perm == list(range(len(perm)))  # then no gather (slow on the last axis)
         moving_pairs = [p for p, (i, j) in enumerate(pairs) if not (self.fixed[i] and self.fixed[j])]
@@ -192,10 +191,9 @@ class RobotCollision(nn.Module):
         """A copy of the geometry's current values (parameters of its own) on the same chain and frames,
         checking the geom index ``pairs``; ``skip_fixed`` and ``requires_grad`` kept."""
         with torch.no_grad():
-            caps = [(a.tolist(), b.tolist(), float(r)) for a, b, r in
-                    zip(self.capsule_a, self.capsule_b, self.capsule_radius)]
-            boxes = [(c.tolist(), e.tolist(), h.tolist()) for c, e, h in
-                     zip(self.box_center, self.box_rpy, self.box_half_extents)]
+            # one read per tensor (on CUDA, one per geom and value was a host sync each)
+            caps = list(zip(self.capsule_a.tolist(), self.capsule_b.tolist(), self.capsule_radius.tolist()))
+            boxes = list(zip(self.box_center.tolist(), self.box_rpy.tolist(), self.box_half_extents.tolist()))
             convexes = [v.cpu().numpy() for v in self.convex_vertices]
         out = type(self)(self.chain, self.geoms, [g.link for g in self.geoms], caps, boxes, pairs,
                          convexes=convexes, frames=self._frames, dtype=self.capsule_a.dtype,
@@ -664,13 +662,18 @@ _KIND_NAMES = ("capsule", "box", "convex")  # the geom kinds of a model, in colu
 _PAIR_KINDS = ((0, 0), (0, 1), (1, 1), (0, 2), (1, 2), (2, 2))
 
 
+def _argsort(order: list[int]) -> list[int]:
+    """The indices that sort ``order`` (distinct integers: the inverse of a permutation), on the host."""
+    return sorted(range(len(order)), key=order.__getitem__)
+
+
 def _padded_vertices(convexes, dtype, device) -> Tensor:
     """``(G_v, M, 3)``: the vertex arrays of the convex geoms, each padded to the longest by repeating its
     first vertex (the hull is unchanged)."""
     M = max((len(v) for v in convexes), default=0)
-    rows = [torch.as_tensor(v, dtype=torch.float64).reshape(-1, 3) for v in convexes]
+    rows = [torch.as_tensor(v, dtype=torch.float64, device="cpu").reshape(-1, 3) for v in convexes]
     rows = [torch.cat((v, v[:1].expand(M - len(v), 3))) for v in rows]
-    out = torch.stack(rows) if rows else torch.zeros(0, 0, 3, dtype=torch.float64)
+    out = torch.stack(rows) if rows else torch.zeros(0, 0, 3, dtype=torch.float64, device="cpu")
     return out.to(dtype=dtype, device=device)
 _BLOCK = 2048  # rows per block of the broad phase (see RobotCollision._distances_at_least)
 

@@ -9,6 +9,8 @@ dims (one world per row of a batch), which broadcast against the batch of ``q``.
 
 from __future__ import annotations
 
+import itertools
+
 import torch
 from torch import Tensor
 
@@ -210,7 +212,7 @@ class World:
         points; boxes; half-spaces; cylinders; each kind of :attr:`objects`), long index tensors."""
         s, c, b, h, p, y = self.counts
         ar = lambda n, start=0: start + torch.arange(n, device=device)  # noqa: E731
-        starts = torch.tensor([0, *self.object_counts]).cumsum(0).tolist()
+        starts = list(itertools.accumulate(self.object_counts, initial=0))  # (host numbers)
         return (torch.cat((ar(s + c), ar(p, s + c + b + h))), ar(b, s + c), ar(h, s + c + b),
                 ar(y, s + c + b + h + p), *(ar(n, sum(self.counts) + a) for n, a in zip(self.object_counts,
                                                                                       starts)))

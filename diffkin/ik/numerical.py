@@ -344,7 +344,7 @@ def solve(
     seeds_user = _user_seeds(chain, q0, batch, N)
     if generator is None:
         generator = torch.Generator(device=device)
-        generator.manual_seed(seed if seed is not None else int(torch.randint(2**62, ()).item()))
+        generator.manual_seed(seed if seed is not None else int(torch.randint(2**62, (), device="cpu")))
     residual = PoseResidual(position_only, cfg.orientation_weight)
     # the whole solve in one C call (CPU, no autograd)
     if collision is None and world is None and native_applies(chain, T_target, progress):

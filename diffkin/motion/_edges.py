@@ -39,7 +39,7 @@ def joint_reach(collision) -> Tensor:
     with torch.no_grad():
         dt, dev = collision.capsule_a.dtype, collision.capsule_a.device
         g = torch.Generator().manual_seed(0)
-        q0 = (torch.rand(chain.nq, generator=g, dtype=torch.float64) - 0.5).to(dt).to(dev)
+        q0 = (torch.rand(chain.nq, generator=g, dtype=torch.float64, device="cpu") - 0.5).to(dt).to(dev)
         F0 = frames.frames(chain, q0)  # (K, 4, 4)
         K, nq = F0.shape[-3], chain.nq
         eps = 1e-3

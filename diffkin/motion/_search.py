@@ -85,7 +85,8 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         r = len(rows)
         q_rand = lo + (hi - lo) * torch.rand(r, nq, generator=generator, dtype=dt, device="cpu").to(dev)
         if goal_bias > 0:
-            towards = torch.rand(r, generator=generator, dtype=torch.float64).to(dev) < goal_bias
+            u = torch.rand(r, generator=generator, dtype=torch.float64, device="cpu")  # the batch's stream
+            towards = u.to(dev) < goal_bias
             q_rand = torch.where(towards[:, None], Bt[0][rows, 0], q_rand)
         near = _nearest(A[0][rows], A[2][rows], q_rand, w)
         q_near = A[0][rows, near]
@@ -157,7 +158,7 @@ def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, problem: Tensor, rou
         if can.numel() == 0:
             break
         m = n[can, None]
-        u = torch.rand(can.numel(), tries, 2, generator=generator, dtype=torch.float64).to(dev)
+        u = torch.rand(can.numel(), tries, 2, generator=generator, dtype=torch.float64, device="cpu").to(dev)
         i = (u[..., 0] * (m - 2)).long().clamp(max=m - 3)  # 0 <= i <= n - 3
         j = i + 2 + (u[..., 1] * (m - i - 2)).long().clamp(max=m - i - 3)  # i + 2 <= j <= n - 1
         r = can[:, None].expand(-1, tries)

@@ -179,12 +179,12 @@ def _clip(chain, motion, mapping, collision, ground, scale, max_iterations, cont
         motion.positions.to(chain.dtype), motion.names, motion.fps,
         None if motion.orientations is None else motion.orientations.to(chain.dtype))
     s = fit_scale(chain, motion_c, mapping) if scale is None else torch.as_tensor(
-        scale, dtype=chain.dtype).reshape(-1).expand(motion.batch)
+        scale, dtype=chain.dtype, device=chain.device).reshape(-1).expand(motion.batch)
     X = mapping.targets(motion_c, s)  # (B, T, K, 3)
     B, T, K = X.shape[:3]
     kp = mapping.keypoint_frames
     ends = list(chain.end_links)
-    tgt = torch.zeros(B, T, len(ends), 3, dtype=chain.dtype)  # positions: ik.solve's position_only input
+    tgt = X.new_zeros(B, T, len(ends), 3)  # positions: ik.solve's position_only input
     tgt[:, :, [ends.index(f) for f in kp]] = X
     root = [f for f in kp if f not in mapping.feet][0]
     if warm_start == "sequential":

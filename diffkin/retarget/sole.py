@@ -71,7 +71,7 @@ def _rim(radius: float, half: float) -> np.ndarray:
 
 
 def _quat_matrix(q) -> np.ndarray:
-    return quaternion_to_matrix(torch.as_tensor(np.asarray(q, dtype=np.float64))).numpy()
+    return quaternion_to_matrix(torch.as_tensor(np.asarray(q, dtype=np.float64), device="cpu")).numpy()
 
 
 def _shape_points(kind: str, size, where: str) -> tuple[np.ndarray, np.ndarray]:
@@ -118,13 +118,13 @@ def _mjcf_sole(chain, body: str) -> Sole:
     if not pts:
         raise ModelError(f"foot {body!r} has no primitive collision geom (sphere, capsule, box, cylinder); "
                          "give sole=Sole(points, radii)")
-    return Sole(torch.as_tensor(np.concatenate(pts)), torch.as_tensor(np.concatenate(rad)))
+    return Sole(*(torch.as_tensor(np.concatenate(x), device="cpu") for x in (pts, rad)))
 
 
 def _rpy_matrix(rpy) -> np.ndarray:
     """URDF's rpy: R = Rz(yaw) Ry(pitch) Rx(roll), the book's RPY angles (2.21) as (yaw, pitch, roll)."""
     r, p, y = rpy
-    return euler_to_matrix(torch.tensor([y, p, r], dtype=torch.float64), "RPY").numpy()
+    return euler_to_matrix(torch.tensor([y, p, r], dtype=torch.float64, device="cpu"), "RPY").numpy()
 
 
 def _urdf_sole(chain, link: str) -> Sole:
@@ -155,7 +155,7 @@ def _urdf_sole(chain, link: str) -> Sole:
     if not pts:
         raise ModelError(f"foot {link!r} has no sphere, box or cylinder <collision>; give sole=Sole(points, "
                          "radii)")
-    return Sole(torch.as_tensor(np.concatenate(pts)), torch.as_tensor(np.concatenate(rad)))
+    return Sole(*(torch.as_tensor(np.concatenate(x), device="cpu") for x in (pts, rad)))
 
 
 _read: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()  # chain -> {foot: Sole}
