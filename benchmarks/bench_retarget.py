@@ -30,9 +30,9 @@ with ``retarget.Mapping.builtin("g1")``. Rows:
   ``collision=retarget.g1_collision(chain)`` (Menagerie's MJX colliders and the 26 self pairs of its scene;
   20 whole-clip iterations, ``retarget.clip``'s default with a collision model). Every row also counts
   its frames where one of those pairs penetrates (``self-colliding frames``).
-* The walk with a turn and the pick-up (``NEW``: 30 fps, the MotionBuilder-named CMU skeleton, mapping
-  ``Mapping.builtin("g1", "cmu_mb")``), each alone and whole: ``diffkin`` (batched warm start, velocity
-  limits), ``diffkin + self-collision`` (the same on the MJCF chain of the G1 with
+* The walk with a turn, the pick-up and the squat (``NEW``: 30 fps, the MotionBuilder-named CMU skeleton,
+  mapping ``Mapping.builtin("g1", "cmu_mb")``), each alone and whole: ``diffkin`` (batched warm start,
+  velocity limits), ``diffkin + self-collision`` (the same on the MJCF chain of the G1 with
   ``collision=retarget.g1_collision(chain)``) and ``GMR`` (its scheme, the names and rest pose of that
   skeleton: :mod:`benchmarks.peers_gmr`).
 
@@ -59,7 +59,8 @@ ROOT = Path(__file__).resolve().parents[1]
 G1_URDF = ROOT / "tests" / "data" / "urdf" / "g1_29dof_rev_1_0.urdf"
 G1_MJCF = ROOT / "diffkin" / "models" / "robots" / "mjcf" / "unitree_g1_29dof" / "g1.xml"
 CLIPS = ("walk", "crouch", "hop", "turn", "reach")
-NEW = ("walkturn", "pickup")  # the walk with a 90° turn, the reach to an object (30 fps, skeleton "cmu_mb")
+NEW = ("walkturn", "pickup", "squat")  # a walk with a 90° turn, a reach to an object, a deep squat (30 fps,
+# skeleton "cmu_mb")
 
 
 def mujoco_g1():
@@ -288,7 +289,7 @@ def _gmr_rows(chain, motion, base, mp, clip_names=CLIPS, skeleton: str = "cmu") 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     title = ("retargeting the shipped clips onto the G1 (contended 2-core CPU; 5 clips x 74 frames, then the "
-             "walk with a turn and the pick-up whole)")
+             "walk with a turn, the pick-up and the squat whole)")
     return cli(p, run, title, argv)
 
 

@@ -34,7 +34,7 @@ def _offsets(path: Path) -> list[list[float]]:
 # ------------------------------------------------------------------------------------------ loaders
 @pytest.mark.parametrize("name, frames, fps", [("walk", 150, 60), ("crouch", 120, 60), ("hop", 120, 60),
                                                ("turn", 110, 60), ("reach", 74, 60), ("walkturn", 63, 30),
-                                               ("pickup", 54, 30)])
+                                               ("pickup", 54, 30), ("squat", 69, 30)])
 def test_shipped_clips_load(name, frames, fps):
     path = retarget.example_clips()[name]
     m = retarget.load_bvh(path)
@@ -100,6 +100,31 @@ def test_shipped_walkturn_and_pickup_are_what_they_say():
     assert np.linalg.norm(pelvis[low, :2] - pelvis[0, :2]) > 1.0
     with pytest.raises(ConventionError, match="cmu_mb"):
         retarget.skeleton_of(["Hips", "Spine"])
+
+
+def test_shipped_squat_is_what_it_says():
+    """The squat (MotionBuilder-named skeleton) takes the pelvis from standing (> 0.95 m) down by > 0.5 m and
+    back up to within 3 cm of its start, both knees bent by 150° at the bottom (thigh-shank angle < 30°,
+    from > 150° standing), the pelvis within 12 cm of its start horizontally and each ankle within 12 cm of
+    its start: a squat in place, not a step; and the MOTION rows are the README's every-4th-row selection
+    (30 fps, 69 frames) with the HIERARCHY's 38 OFFSET rows."""
+    path = retarget.example_clips()["squat"]
+    m = retarget.load_bvh(path)
+    assert retarget.skeleton_of(m.names) == "cmu_mb" and (m.frames, m.fps) == (69, 30)
+    assert len(_offsets(path)) == 38
+    p = m.positions[0].numpy()
+    hips = p[:, m.index("Hips")[0]]
+    low = hips[:, 2].argmin()
+    assert hips[0, 2] > 0.95 and hips[0, 2] - hips[low, 2] > 0.5 and abs(hips[-1, 2] - hips[0, 2]) < 0.03
+    assert 0 < low < m.frames - 1
+    assert np.linalg.norm(hips[:, :2] - hips[0, :2], axis=-1).max() < 0.12
+    for side in ("Left", "Right"):
+        hip, knee, ankle = (p[:, m.index(f"{side}{j}")[0]] for j in ("UpLeg", "Leg", "Foot"))
+        u, v = hip - knee, ankle - knee
+        cos = (u * v).sum(-1) / (np.linalg.norm(u, axis=-1) * np.linalg.norm(v, axis=-1))
+        angle = np.degrees(np.arccos(cos))
+        assert angle[0] > 150 and angle[low] < 30
+        assert np.linalg.norm(ankle[:, :2] - ankle[0, :2], axis=-1).max() < 0.12
 
 
 def test_bvh_root_against_scipy():
