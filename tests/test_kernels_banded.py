@@ -128,3 +128,25 @@ def test_native_banded_solve_with_a_triangular_second_band(shape):
         F_full = F.clone()
         F_full[:, 2:, 0, -1] = 1e-30  # one entry above the diagonal: the general path
         torch.testing.assert_close(native.banded_solve(D, E, F_full, g), got, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_banded_solve_shift_is_a_raised_diagonal(dtype):
+    """``shift`` (one value per system: the whole-clip LM damping) solves (H + shift I) x = g on the C path
+    and on the torch loop (autograd), batched (2, 3), against the dense solve of H + shift I."""
+    from diffkin.kernels import native
+
+    H, D, E, F, g = _system(6, 5, 4, seed=11)
+    D, E, F, g, H = (t.reshape(2, 3, *t.shape[1:]) for t in (D, E, F, g, H))
+    shift = torch.tensor([[0.0, 0.5, 3.0], [10.0, 1e-3, 2.0]], dtype=F64)
+    Hs = H + shift[..., None, None] * torch.eye(H.shape[-1], dtype=F64)
+    want = torch.linalg.solve(Hs, g.reshape(2, 3, -1, 1)).reshape(g.shape)
+    D, E, F, g, s = (t.to(dtype) for t in (D, E, F, g, shift))
+    tol = 1e-10 if dtype == torch.float64 else 2e-3
+    if native.available():
+        got = native.banded_solve(D, E, F, g, s)
+        torch.testing.assert_close(got.double(), want, atol=tol, rtol=tol)
+        torch.testing.assert_close(block_banded_solve(D, E, F, g, shift=s), got)  # the default path: C's
+    x = block_banded_solve(D, E, F, g.clone().requires_grad_(), shift=s)  # autograd: the torch loop
+    torch.testing.assert_close(x.detach().double(), want, atol=tol, rtol=tol)
+    assert not torch.allclose(x.detach().double(), block_banded_solve(D, E, F, g).double(), atol=tol)

@@ -119,12 +119,13 @@ static int DK(copy_diagonal)(real *restrict B, const real *restrict X, int64_t n
 }
 
 static void DK(banded_one)(const real *D, const real *E, const real *F, const real *g, real *x, int64_t T,
-                           int64_t n, real *work) {
+                           int64_t n, real shift, real *work) {
     const int64_t nn = n * n;
     real *U = work, *At = work + T * nn, *Bt = work + 2 * T * nn; /* U_t = L_t^T, A_t^T, B_t^T */
     for (int64_t t = 0; t < T; t++) {
         real *Ut = U + t * nn, *a = At + t * nn, *b = Bt + t * nn;
         memcpy(Ut, D + t * nn, nn * sizeof(real));
+        for (int64_t i = 0; i < n; i++) Ut[i * n + i] += shift; /* D_t + shift I (the caller's damping) */
         int low = 0; /* F_t^T lower triangular (e.g. the diagonal of an acceleration term): so is B_t^T */
         if (t >= 2) {
             low = DK(copy_diagonal)(b, F + t * nn, n);
@@ -177,10 +178,11 @@ static void DK(banded_one)(const real *D, const real *E, const real *F, const re
     }
 }
 
-/* batch systems of T blocks of n: D, E, F (batch x T x n x n), g and x (batch x T x n), contiguous. Returns
+/* batch systems of T blocks of n: D, E, F (batch x T x n x n), g and x (batch x T x n), contiguous; shift
+ * (batch) or NULL: each system's D_t taken as D_t + shift I (an LM damping without a copy of D). Returns
  * 0, or -1 when the work space cannot be allocated. */
-static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, const real *g, real *x,
-                                int64_t batch, int64_t T, int64_t n, int64_t nthreads) {
+static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, const real *g, const real *shift,
+                                real *x, int64_t batch, int64_t T, int64_t n, int64_t nthreads) {
     const size_t per = (size_t)(3 * T * n * n), sys = (size_t)(T * n * n), vec = (size_t)(T * n);
     if (nthreads < 1) nthreads = 1;
     if (nthreads > batch) nthreads = batch;
@@ -188,12 +190,13 @@ static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, con
     if (!work) return -1;
     if (nthreads == 1) {
         for (int64_t b = 0; b < batch; b++)
-            DK(banded_one)(D + b * sys, E + b * sys, F + b * sys, g + b * vec, x + b * vec, T, n, work);
+            DK(banded_one)(D + b * sys, E + b * sys, F + b * sys, g + b * vec, x + b * vec, T, n,
+                           shift ? shift[b] : 0, work);
     } else {
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
         for (int64_t b = 0; b < batch; b++)
             DK(banded_one)(D + b * sys, E + b * sys, F + b * sys, g + b * vec, x + b * vec, T, n,
-                           work + per * (size_t)thread_id());
+                           shift ? shift[b] : 0, work + per * (size_t)thread_id());
     }
     free(work);
     return 0;

@@ -290,7 +290,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_fk.restype, lib.dk_fk.argtypes = _I64, [ctypes.POINTER(Args)]
     lib.dk_solve.restype, lib.dk_solve.argtypes = _I64, [ctypes.POINTER(SolveArgs)]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
-    lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 5 + [_I64] * 5
+    lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 6 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     return lib
 
@@ -635,16 +635,17 @@ def solve_call(args: SolveArgs) -> None:
     _raise_on(_lib.dk_solve(ctypes.byref(args)), "work space")
 
 
-def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
+def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | None = None) -> Tensor | None:
     """x ``(..., T, n)`` with H x = g for the block-banded SPD H of ``D, E, F (..., T, n, n)`` (the lower
-    blocks of :func:`diffkin.kernels.banded.block_banded_solve`), by ``dk_banded_solve``
-    (``_native_banded.c``); None (nothing done) where the library is not loaded, or the inputs are not CPU
-    tensors of one float dtype without autograd. Systems are shared between threads (:func:`thread_count`
-    of the frames they hold)."""
+    blocks of :func:`diffkin.kernels.banded.block_banded_solve`; ``shift (...)``: each system's D_t taken as
+    D_t + shift I, without a copy of D), by ``dk_banded_solve`` (``_native_banded.c``); None (nothing done)
+    where the library is not loaded, or the inputs are not CPU tensors of one float dtype without autograd.
+    Systems are shared between threads (:func:`thread_count` of the frames they hold)."""
     dtype = g.dtype
+    given = [t for t in (D, E, F, shift) if t is not None]
     if (not available() or dtype not in (torch.float32, torch.float64) or torch.is_grad_enabled() and any(
-            t.requires_grad for t in (D, E, F, g)) or any(t.device.type != "cpu" or t.dtype != dtype
-                                                         for t in (D, E, F))):
+            t.requires_grad for t in (*given, g)) or any(t.device.type != "cpu" or t.dtype != dtype
+                                                        for t in given)):
         return None
     *lead, T, n = g.shape
     if g.numel() == 0:
@@ -652,11 +653,14 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
     shape = (*lead, T, n, n)
     D, E, F = (t.expand(shape).contiguous() for t in (D, E, F))
     g = g.contiguous()
+    if shift is not None:
+        shift = shift.expand(tuple(lead)).contiguous()
     x = torch.empty_like(g)
     batch = max(1, g.numel() // max(1, T * n))
     threads = min(batch, thread_count(batch * T))
-    _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), g.data_ptr(), x.data_ptr(),
-                                   batch, T, n, g.element_size(), threads), "work space")
+    _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), g.data_ptr(),
+                                   None if shift is None else shift.data_ptr(), x.data_ptr(), batch, T, n,
+                                   g.element_size(), threads), "work space")
     return x
 
 

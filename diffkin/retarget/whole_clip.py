@@ -93,7 +93,7 @@ class _Terms:
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
-        self._F = None
+        self._F = self._bands = None
         #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
         #: rows added to the problem (:meth:`evaluate`)
         self.extra_rows: list = []
@@ -272,18 +272,18 @@ class _Terms:
     def _joint_terms(self, q: Tensor, cost: Tensor, D: Tensor, E: Tensor, g: Tensor):
         """The joint terms of ``q (B, T, nq)`` (limits, velocity limits, posture, velocity, acceleration;
         the module doc), multiples of the identity on the scalar columns or on all, added to the other
-        terms' cost, D, E, g (D, E, g in place); returns (cost, D, E, F, g)."""
+        terms' cost, D, E, g (D, E, g in place); returns (cost, D, E, F, g). The posture, velocity and
+        acceleration terms' share of D and E is the same at every q (:meth:`_constant_bands`)."""
         w = self.w
         B, T, _ = q.shape
-        nv = self.chain.nv
+        Dd, Ed = D.diagonal(dim1=-2, dim2=-1), E.diagonal(dim1=-2, dim2=-1)  # views: added to in place
         # joint limits (diagonal in the scalar velocity columns)
         qs = q[..., self.sq_cols]
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
         r_l = w["limit"] * (over - under)
         act = ((over > 0) | (under > 0)).to(q.dtype) * w["limit"] ** 2
         cost = cost + 0.5 * r_l.square().flatten(1).sum(-1)
-        diag = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
-        diag[..., self.sv_cols] += act
+        Dd[..., self.sv_cols] += act
         g[..., self.sv_cols] += w["limit"] * r_l
         if T > 1 and self.vstep is not None:  # velocity limits: ±(I, −I) on the scalar columns where beyond
             dq = qs[:, 1:] - qs[:, :-1]
@@ -292,9 +292,9 @@ class _Terms:
             r_v = wl * ex * dq.sign()
             cost = cost + 0.5 * r_v.square().flatten(1).sum(-1)
             act = (ex > 0).to(q.dtype) * wl**2  # (B, T - 1, n_s)
-            diag[:, 1:, self.sv_cols] += act
-            diag[:, :-1, self.sv_cols] += act
-            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv_cols] -= act
+            Dd[:, 1:, self.sv_cols] += act
+            Dd[:, :-1, self.sv_cols] += act
+            Ed[:, 1:, self.sv_cols] -= act
             g[:, 1:, self.sv_cols] += wl * r_v
             g[:, :-1, self.sv_cols] -= wl * r_v
         # posture: near the warm start
@@ -303,32 +303,45 @@ class _Terms:
                                                          torch.cat((q, q[:, 1:]), 1))
         dp, d = both[:, :T], both[:, T:]  # (B, T, nv), (B, T - 1, nv)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
-        diag += w["posture"] ** 2
         g += w["posture"] ** 2 * dp
         if T > 1:  # velocity: J = (I at t, −I at t−1)
             wv = w["velocity"] ** 2
             cost = cost + 0.5 * wv * d.square().flatten(1).sum(-1)
-            diag[:, 1:] += wv
-            diag[:, :-1] += wv
-            e = torch.full((T,), -wv, dtype=q.dtype, device=q.device)
             g[:, 1:] += wv * d
             g[:, :-1] -= wv * d
             if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
                 a = d[:, 1:] - d[:, :-1]  # (B, T-2, nv), centred at frames 1..T-2
                 wa = w["acceleration"] ** 2
                 cost = cost + 0.5 * wa * a.square().flatten(1).sum(-1)
-                diag[:, :-2] += wa
-                diag[:, 1:-1] += 4 * wa
-                diag[:, 2:] += wa
-                e[1:-1] -= 2 * wa
-                e[2:] -= 2 * wa
                 g[:, :-2] += wa * a
                 g[:, 1:-1] -= 2 * wa * a
                 g[:, 2:] += wa * a
-            e[0] = 0.0
-            E.diagonal(dim1=-2, dim2=-1).add_(e[:, None])
-        D.diagonal(dim1=-2, dim2=-1).add_(diag)
+        diag, e = self._constant_bands(T, D)
+        Dd.add_(diag)
+        Ed.add_(e)
         return cost, D, E, self._second_band(D), g
+
+    def _constant_bands(self, T: int, like: Tensor) -> tuple[Tensor, Tensor]:
+        """The posture, velocity and acceleration terms' diagonals of D ``(T, 1)`` and E ``(T, 1)`` (all
+        columns alike; the same for every q: made once per problem)."""
+        if self._bands is None or self._bands[0].shape[0] != T:
+            w = self.w
+            diag = torch.full((T, 1), w["posture"] ** 2, dtype=like.dtype, device=like.device)
+            e = torch.zeros(T, 1, dtype=like.dtype, device=like.device)
+            if T > 1:  # velocity: (I at t, −I at t−1)
+                wv = w["velocity"] ** 2
+                diag[1:] += wv
+                diag[:-1] += wv
+                e[1:] -= wv
+                if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
+                    wa = w["acceleration"] ** 2
+                    diag[:-2] += wa
+                    diag[1:-1] += 4 * wa
+                    diag[2:] += wa
+                    e[1:-1] -= 2 * wa
+                    e[2:] -= 2 * wa
+            self._bands = (diag, e)
+        return self._bands
 
     def _second_band(self, like: Tensor) -> Tensor:
         """F: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q (made once)."""
@@ -338,6 +351,19 @@ class _Terms:
                 F[:, 2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
             self._F = F
         return self._F
+
+
+def _kept(ok: Tensor, old: tuple, new: tuple) -> list[Tensor]:
+    """Per clip (dim 0) ``new`` where ``ok (B,)``, else ``old``. On CPU the rejected clips are copied into
+    ``new`` (fresh tensors of this iteration; most clips keep their step, so little is copied), elsewhere
+    one ``torch.where`` each (no host sync)."""
+    if ok.device.type != "cpu":
+        return [torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a) for a, b in zip(old, new)]
+    rejected = (~ok).nonzero().flatten()
+    if rejected.numel():
+        for a, b in zip(old, new):
+            b.index_copy_(0, rejected, a.index_select(0, rejected))
+    return list(new)
 
 
 def _as_slice(index: list[int], tensor: Tensor):
@@ -501,19 +527,18 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
         for k in range(iterations * rounds):
             cost, D, E, F, g = cur
             scale = torch.diagonal(D, dim1=-2, dim2=-1).mean((-1, -2))  # (B,): λ relative to the curvature
-            Dl = D.clone()  # D + λ s I: a copy, its diagonal raised (no full-size product with I)
-            Dl.diagonal(dim1=-2, dim2=-1).add_((lam * scale)[:, None, None])
             if solver == "cg":
+                Dl = D.clone()  # D + λ s I: a copy, its diagonal raised (no full-size product with I)
+                Dl.diagonal(dim1=-2, dim2=-1).add_((lam * scale)[:, None, None])
                 step = -block_banded_cg(Dl, E, F, g, cg_iterations)
-            else:
-                step = -block_banded_solve(Dl, E, F, g)
+            else:  # D + λ s I as the solve's shift (the C path raises the diagonal as it copies D)
+                step = -block_banded_solve(D, E, F, g, shift=lam * scale)
             trial = terms.project(chain.configuration_space.integrate(q, step))
             new = terms.evaluate(trial)
             ok = torch.isfinite(new[0]) & (new[0] < cost)
-            q = torch.where(ok[:, None, None], trial, q)
             # F is the same at every q: the other parts are taken per clip from the trial where it is kept
-            cur = tuple(b if k == 3 else torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a)
-                        for k, (a, b) in enumerate(zip(cur, new)))
+            q, *kept = _kept(ok, (q, *cur[:3], cur[4]), (trial, *new[:3], new[4]))
+            cur = (*kept[:3], F, kept[3])
             lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
             history.append(cur[0])
             if rows is not None and (k + 1) % iterations == 0:
