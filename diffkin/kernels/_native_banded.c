@@ -108,11 +108,17 @@ static void DK(transpose_into)(real *restrict dst, const real *restrict src, int
         }
 }
 
-/* 1 when X (n x n, row-major) is diagonal; then B <- X (its diagonal, zeros elsewhere). */
+/* 1 when X (n x n, row-major) is diagonal; then B <- X (its diagonal, zeros elsewhere). The test counts
+ * each row's non-zeros in one branch-free (vectorised) pass: a compare and branch per entry was a tenth
+ * of the solve's time on the whole-clip problem's diagonal F. */
 static int DK(copy_diagonal)(real *restrict B, const real *restrict X, int64_t n) {
-    for (int64_t i = 0; i < n; i++)
-        for (int64_t j = 0; j < n; j++)
-            if (i != j && X[i * n + j] != 0) return 0;
+    for (int64_t i = 0; i < n; i++) {
+        const real *xi = X + i * n;
+        int64_t nz = 0;
+#pragma omp simd reduction(+ : nz)
+        for (int64_t j = 0; j < n; j++) nz += xi[j] != 0;
+        if (nz > (xi[i] != 0)) return 0;
+    }
     memset(B, 0, (size_t)(n * n) * sizeof(real));
     for (int64_t i = 0; i < n; i++) B[i * n + i] = X[i * n + i];
     return 1;

@@ -276,14 +276,18 @@ class _Terms:
         acceleration terms' share of D and E is the same at every q (:meth:`_constant_bands`)."""
         w = self.w
         B, T, _ = q.shape
-        Dd, Ed = D.diagonal(dim1=-2, dim2=-1), E.diagonal(dim1=-2, dim2=-1)  # views: added to in place
         # joint limits (diagonal in the scalar velocity columns)
         qs = q[..., self.sq_cols]
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
         r_l = w["limit"] * (over - under)
         act = ((over > 0) | (under > 0)).to(q.dtype) * w["limit"] ** 2
         cost = cost + 0.5 * r_l.square().flatten(1).sum(-1)
-        Dd[..., self.sv_cols] += act
+        # the diagonals of D and E gathered compactly, then added to the blocks once each (a strided pass
+        # over D or E costs a cache line per entry)
+        diag0, e0 = self._constant_bands(T, D)
+        diag = diag0.expand(B, T, self.chain.nv).clone()
+        diag[..., self.sv_cols] += act
+        e = e0
         g[..., self.sv_cols] += w["limit"] * r_l
         if T > 1 and self.vstep is not None:  # velocity limits: ±(I, −I) on the scalar columns where beyond
             dq = qs[:, 1:] - qs[:, :-1]
@@ -292,9 +296,10 @@ class _Terms:
             r_v = wl * ex * dq.sign()
             cost = cost + 0.5 * r_v.square().flatten(1).sum(-1)
             act = (ex > 0).to(q.dtype) * wl**2  # (B, T - 1, n_s)
-            Dd[:, 1:, self.sv_cols] += act
-            Dd[:, :-1, self.sv_cols] += act
-            Ed[:, 1:, self.sv_cols] -= act
+            diag[:, 1:, self.sv_cols] += act
+            diag[:, :-1, self.sv_cols] += act
+            e = e0.expand(B, T, self.chain.nv).clone()
+            e[:, 1:, self.sv_cols] -= act
             g[:, 1:, self.sv_cols] += wl * r_v
             g[:, :-1, self.sv_cols] -= wl * r_v
         # posture: near the warm start
@@ -316,9 +321,8 @@ class _Terms:
                 g[:, :-2] += wa * a
                 g[:, 1:-1] -= 2 * wa * a
                 g[:, 2:] += wa * a
-        diag, e = self._constant_bands(T, D)
-        Dd.add_(diag)
-        Ed.add_(e)
+        D.diagonal(dim1=-2, dim2=-1).add_(diag)
+        E.diagonal(dim1=-2, dim2=-1).add_(e)
         return cost, D, E, self._second_band(D), g
 
     def _constant_bands(self, T: int, like: Tensor) -> tuple[Tensor, Tensor]:
