@@ -623,6 +623,17 @@ def test_whole_clip_projection_is_the_frame_after_frame_clamp():
     torch.testing.assert_close(got, reference(jump), rtol=0, atol=1e-15)
     assert torch.equal(got[:, :3], jump[:, :3]) and not torch.equal(got[1, 3:], jump[1, 3:])
     torch.testing.assert_close(terms.project(q), reference(q), rtol=0, atol=1e-15)
+    # a run of 20 clamped frames (2 rad at 0.1 rad a frame) and noise clamped at most frames: more than
+    # the CPU path's sweeps over all frames at once, the rest frame after frame; the same numbers as the loop
+    long_terms, long_q = _terms_case(torch.float64, B=2, T=24)
+    far = long_q[:, :1].expand(long_q.shape).clone()
+    far[0, 2:, 7:] += 2.0
+    noise = torch.randn(24, far.shape[-1] - 7, generator=torch.Generator().manual_seed(0), dtype=far.dtype)
+    far[1, :, 7:] += 0.4 * noise  # steps beyond the limit either way at most frames
+    far = terms.chain.clamp_to_limits(far, check=False)
+    got = long_terms.project(far)
+    assert not torch.equal(got[0, 12], far[0, 12])  # still clamped 10 frames after the jump
+    torch.testing.assert_close(got, reference(far), rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

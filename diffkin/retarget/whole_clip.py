@@ -129,14 +129,14 @@ class _Terms:
 
     def project(self, q: Tensor) -> Tensor:
         """``q (B, T, nq)`` onto the joint limits and, with velocity limits, frame after frame onto
-        [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max] on the scalar columns (a loop over
+        [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max] on the scalar columns (a recursion over
         time: each frame's interval depends on the projected frame before it; it meets the limits' range
         because q_{t−1} is in it)."""
         q = self.chain.clamp_to_limits(q, check=False)
         if self.vstep is None or q.shape[1] < 2:
             return q
         qs = q.index_select(-1, self.sq)
-        start = 1
+        start, T = 1, q.shape[1]
         if q.device.type == "cpu":  # no device sync: the frames before the first step beyond (in any clip)
             # are their own projection (each within q̇_max/fps of the one before), the loop starts there
             beyond = ((qs[:, 1:] - qs[:, :-1]).abs() > self.vstep * (1 - 1e-9)).any(-1).any(0)
@@ -144,12 +144,27 @@ class _Terms:
             if hit.numel() == 0:
                 return q
             start = int(hit[0, 0]) + 1
+            # all frames at once, each on the interval of the previous sweep's frame before it: after k
+            # sweeps frames < start + k are final, and a sweep that changes nothing has met the recursion
+            # (whose answer is unique): the same numbers as the loop below in a few sweeps, not T steps
+            out = qs
+            for _ in range(8):
+                swept = self._velocity_clamp(out[:, start - 1:-1], qs[:, start:])
+                new = torch.cat((out[:, :start], swept), 1)
+                if torch.equal(new, out):
+                    return q.index_copy(-1, self.sq, out)
+                out, start = new, start + 1
+            qs = torch.cat((out[:, :start], qs[:, start:]), 1)  # the final frames, then the rest as given
         out = list(qs[:, :start].unbind(1))
-        for t in range(start, q.shape[1]):
-            lo = torch.maximum(out[-1] - self.vstep, self.lo_hard)
-            hi = torch.minimum(out[-1] + self.vstep, self.hi_hard)
-            out.append(torch.minimum(torch.maximum(qs[:, t], lo), hi))
+        for t in range(start, T):
+            out.append(self._velocity_clamp(out[-1], qs[:, t]))
         return q.index_copy(-1, self.sq, torch.stack(out, 1))
+
+    def _velocity_clamp(self, before: Tensor, q: Tensor) -> Tensor:
+        """Scalar columns ``q`` onto [before − q̇_max/fps, before + q̇_max/fps] ∩ [q_min, q_max]."""
+        lo = torch.maximum(before - self.vstep, self.lo_hard)
+        hi = torch.minimum(before + self.vstep, self.hi_hard)
+        return torch.minimum(torch.maximum(q, lo), hi)
 
     def _frames(self, X: Tensor, idx: list[int]) -> Tensor:
         """``X[:, :, idx]`` (dim 2: the chain's end links), a view where ``idx`` is a run of frames."""
