@@ -150,3 +150,19 @@ def test_banded_solve_shift_is_a_raised_diagonal(dtype):
     x = block_banded_solve(D, E, F, g.clone().requires_grad_(), shift=s)  # autograd: the torch loop
     torch.testing.assert_close(x.detach().double(), want, atol=tol, rtol=tol)
     assert not torch.allclose(x.detach().double(), block_banded_solve(D, E, F, g).double(), atol=tol)
+
+
+def test_native_banded_solve_with_one_second_band_for_every_system():
+    """An F without batch dims (the whole-clip retargeting's acceleration band, the same for every clip) is
+    read once for all systems: the dense solve's answer, and the same numbers as F copied per system."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    H, D, E, F, _ = _system(1, 6, 5, seed=5)
+    g = torch.randn(3, 6, 5, generator=torch.Generator().manual_seed(1), dtype=F64)
+    D3, E3 = D.expand(3, -1, -1, -1), E.expand(3, -1, -1, -1)
+    got = native.banded_solve(D3, E3, F[0], g)
+    want = torch.linalg.solve(H, g.reshape(3, -1, 1)).reshape(g.shape)
+    torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
+    assert torch.equal(got, native.banded_solve(D3, E3, F.expand(3, -1, -1, -1), g))

@@ -862,10 +862,10 @@ def test_whole_clip_difference_terms_hessian_by_differences():
     H = torch.zeros(T * n, T * n, dtype=torch.float64)
     for t in range(T):  # the dense matrix of the lower blocks (a loop over the 3 frames of a test)
         H[t * n:(t + 1) * n, t * n:(t + 1) * n] = D[0, t]
-        for k, M in ((1, E), (2, F)):
+        for k, M in ((1, E[0]), (2, F)):  # F: one band for every clip
             if t >= k:
-                H[t * n:(t + 1) * n, (t - k) * n:(t - k + 1) * n] = M[0, t]
-                H[(t - k) * n:(t - k + 1) * n, t * n:(t + 1) * n] = M[0, t].T
+                H[t * n:(t + 1) * n, (t - k) * n:(t - k + 1) * n] = M[t]
+                H[(t - k) * n:(t - k + 1) * n, t * n:(t + 1) * n] = M[t].T
 
     # central differences of the gradient g (checked against autograd in the test above) in the hinges of
     # all three frames, where the terms are linear pieces: exact to rounding. The limit term acts on the

@@ -184,24 +184,27 @@ static void DK(banded_one)(const real *D, const real *E, const real *F, const re
     }
 }
 
-/* batch systems of T blocks of n: D, E, F (batch x T x n x n), g and x (batch x T x n), contiguous; shift
- * (batch) or NULL: each system's D_t taken as D_t + shift I (an LM damping without a copy of D). Returns
- * 0, or -1 when the work space cannot be allocated. */
-static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, const real *g, const real *shift,
-                                real *x, int64_t batch, int64_t T, int64_t n, int64_t nthreads) {
+/* batch systems of T blocks of n: D, E (batch x T x n x n), F (batch x T x n x n, or T x n x n shared by
+ * every system where f_shared: read once into cache, not batch times from memory), g and x (batch x T x
+ * n), contiguous; shift (batch) or NULL: each system's D_t taken as D_t + shift I (an LM damping without a
+ * copy of D). Returns 0, or -1 when the work space cannot be allocated. */
+static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, int64_t f_shared, const real *g,
+                                const real *shift, real *x, int64_t batch, int64_t T, int64_t n,
+                                int64_t nthreads) {
     const size_t per = (size_t)(3 * T * n * n), sys = (size_t)(T * n * n), vec = (size_t)(T * n);
+    const size_t fsys = f_shared ? 0 : sys;
     if (nthreads < 1) nthreads = 1;
     if (nthreads > batch) nthreads = batch;
     real *work = malloc(per * (size_t)nthreads * sizeof(real));
     if (!work) return -1;
     if (nthreads == 1) {
         for (int64_t b = 0; b < batch; b++)
-            DK(banded_one)(D + b * sys, E + b * sys, F + b * sys, g + b * vec, x + b * vec, T, n,
+            DK(banded_one)(D + b * sys, E + b * sys, F + b * fsys, g + b * vec, x + b * vec, T, n,
                            shift ? shift[b] : 0, work);
     } else {
 #pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
         for (int64_t b = 0; b < batch; b++)
-            DK(banded_one)(D + b * sys, E + b * sys, F + b * sys, g + b * vec, x + b * vec, T, n,
+            DK(banded_one)(D + b * sys, E + b * sys, F + b * fsys, g + b * vec, x + b * vec, T, n,
                            shift ? shift[b] : 0, work + per * (size_t)thread_id());
     }
     free(work);

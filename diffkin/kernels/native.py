@@ -290,7 +290,8 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_fk.restype, lib.dk_fk.argtypes = _I64, [ctypes.POINTER(Args)]
     lib.dk_solve.restype, lib.dk_solve.argtypes = _I64, [ctypes.POINTER(SolveArgs)]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
-    lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 6 + [_I64] * 5
+    lib.dk_banded_solve.restype = _I64  # D, E, F, f_shared, g, shift, x, batch, T, n, real_bytes, nthreads
+    lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     return lib
 
@@ -640,7 +641,9 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
     blocks of :func:`diffkin.kernels.banded.block_banded_solve`; ``shift (...)``: each system's D_t taken as
     D_t + shift I, without a copy of D), by ``dk_banded_solve`` (``_native_banded.c``); None (nothing done)
     where the library is not loaded, or the inputs are not CPU tensors of one float dtype without autograd.
-    Systems are shared between threads (:func:`thread_count` of the frames they hold)."""
+    An ``F`` without batch dims (or broadcast ones of size 1) is passed once, shared by the systems (not
+    copied batch times). Systems are shared between threads (:func:`thread_count` of the frames they
+    hold)."""
     dtype = g.dtype
     given = [t for t in (D, E, F, shift) if t is not None]
     if (not available() or dtype not in (torch.float32, torch.float64) or torch.is_grad_enabled() and any(
@@ -651,14 +654,16 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
     if g.numel() == 0:
         return torch.empty_like(g)
     shape = (*lead, T, n, n)
-    D, E, F = (t.expand(shape).contiguous() for t in (D, E, F))
+    D, E = (t.expand(shape).contiguous() for t in (D, E))
+    f_shared = F.shape[:-3].numel() == 1  # one band for every system
+    F = F.reshape(T, n, n).contiguous() if f_shared else F.expand(shape).contiguous()
     g = g.contiguous()
     if shift is not None:
         shift = shift.expand(tuple(lead)).contiguous()
     x = torch.empty_like(g)
     batch = max(1, g.numel() // max(1, T * n))
     threads = min(batch, thread_count(batch * T))
-    _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), g.data_ptr(),
+    _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), int(f_shared), g.data_ptr(),
                                    None if shift is None else shift.data_ptr(), x.data_ptr(), batch, T, n,
                                    g.element_size(), threads), "work space")
     return x

@@ -173,7 +173,8 @@ class _Terms:
         return X.index_select(2, torch.tensor(idx, device=X.device))
 
     def evaluate(self, q: Tensor):
-        """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``.
+        """cost ``(B,)`` and the normal equations' blocks D, E ``(B, T, nv, nv)``, F ``(T, nv, nv)`` (the
+        same for every clip), g ``(B, T, nv)``.
 
         Three parts: the end links' frame terms (keypoints, orientations, the soles' contact, penetration,
         level and skating rows: :meth:`frame_terms`), the per-frame rows of :attr:`extra_rows` (the
@@ -363,11 +364,12 @@ class _Terms:
         return self._bands
 
     def _second_band(self, like: Tensor) -> Tensor:
-        """F: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q (made once)."""
-        if self._F is None or self._F.shape != like.shape:
-            F = torch.zeros_like(like)
+        """F ``(T, nv, nv)``: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q and
+        every clip (made once; broadcast over the clips, the C solve reads it once for all of them)."""
+        if self._F is None or self._F.shape != like.shape[1:]:
+            F = like.new_zeros(like.shape[1:])
             if like.shape[1] > 2:
-                F[:, 2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
+                F[2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
             self._F = F
         return self._F
 
