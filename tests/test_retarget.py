@@ -639,7 +639,8 @@ def test_whole_clip_projection_is_the_frame_after_frame_clamp():
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
     """The C frame terms (native.clip_rows: keypoints, orientations, the soles' contact, penetration and
-    level rows, skating) give the torch path's cost, D, E and g: 1e-9 relative in float64."""
+    level rows, skating) give the torch path's cost, D, E and g: 1e-9 relative in float64; with recycled
+    blocks (evaluate(recycle=True), two sets in turn) the same numbers, the third call in the first's."""
     from diffkin.kernels import native
 
     if not native.available():
@@ -658,6 +659,17 @@ def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
         scale = b.abs().amax().clamp_min(1.0)
         assert (a - b).abs().amax() <= tol * scale, name
     assert fast[2].abs().amax() > 0 and not torch.equal(fast[2], torch.zeros_like(fast[2]))
+    # recycled blocks (the LM loop's two sets in turn): the same numbers; the third call writes the first's
+    q2 = q + 0.01
+    first = terms.evaluate(q, recycle=True)
+    second = terms.evaluate(q2, recycle=True)
+    for a, b in zip(first, fast):
+        assert torch.equal(a, b)
+    third = terms.evaluate(q, recycle=True)
+    assert third[1].data_ptr() == first[1].data_ptr() and third[1].data_ptr() != second[1].data_ptr()
+    for a, b in zip((second, third), (terms.evaluate(q2), fast)):
+        for x, y in zip(a, b):
+            assert torch.equal(x, y)
 
 
 def test_whole_clip_optimisation_in_c_equals_the_torch_path(monkeypatch):

@@ -672,7 +672,7 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
 def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,
               keypoints: Tensor, orientation_ends: list[int], orientation_weights: Tensor | None,
               orientations: Tensor | None, feet: list[int], soles: list[tuple[Tensor, Tensor]],
-              contacts: Tensor, weights: dict, ground: float):
+              contacts: Tensor, weights: dict, ground: float, out: tuple[Tensor, Tensor] | None = None):
     """The frame terms of the whole-clip retargeting problem (:mod:`diffkin.retarget.whole_clip`: keypoints,
     orientations, the soles' contact height, penetration and level rows, skating) by ``dk_clip_rows``
     (``_native_clip.c``), from the end-link poses ``Tf (N, E, 4, 4)`` and Jacobians ``J (N, E, 6, nv)`` of
@@ -680,8 +680,10 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     g (N, nv))`` (cost ½‖r‖², D = JᵀJ, g = Jᵀr of each frame's rows, E the skating rows' block (t, t − 1)).
     ``keypoints (N, K, 3)`` of the ends ``keypoint_ends`` weighted by ``keypoint_weights (K,)``,
     ``orientations (N, K_o, 3, 3)`` of ``orientation_ends`` (or None), ``soles`` the feet's (points (P, 3),
-    radii (P,)), ``contacts (N, 2)`` bool, ``weights`` the terms' weights by name. None (nothing done) where
-    the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    radii (P,)), ``contacts (N, 2)`` bool, ``weights`` the terms' weights by name. ``out``: optional
+    ``(D, E)`` tensors to write D and E into (contiguous, of that shape and dtype; an iterative caller's
+    buffers, which spares the allocator two fresh blocks per call). None (nothing done) where the library is
+    not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
     dtype = Tf.dtype
     if (not available() or dtype not in (torch.float32, torch.float64) or Tf.device.type != "cpu"
             or J.dtype != dtype or torch.is_grad_enabled() and (Tf.requires_grad or J.requires_grad)):
@@ -696,7 +698,11 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
             real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
             contacts.to(torch.uint8).contiguous()]
     cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
-    D, Eb = Tf.new_empty(N, nv, nv), Tf.new_empty(N, nv, nv)
+    if out is not None and all(t.shape == (N, nv, nv) and t.dtype == dtype and t.device.type == "cpu"
+                               and t.is_contiguous() for t in out):
+        D, Eb = out
+    else:
+        D, Eb = Tf.new_empty(N, nv, nv), Tf.new_empty(N, nv, nv)
     centre, centre_jac = Tf.new_empty(N, 4), Tf.new_empty(N, 4, nv)
     threads = thread_count(N)
     args = new_struct(ClipArgs, real_bytes=Tf.element_size(), nthreads=threads, N=N, T=T, nv=nv,

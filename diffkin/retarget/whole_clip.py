@@ -94,6 +94,7 @@ class _Terms:
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
         self._F = self._bands = None
+        self._buffers, self._turn = [None, None], 0  # frame_terms' recycled D, E (two sets in turn)
         #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
         #: rows added to the problem (:meth:`evaluate`)
         self.extra_rows: list = []
@@ -172,7 +173,7 @@ class _Terms:
             return X[:, :, idx[0]:idx[0] + len(idx)]
         return X.index_select(2, torch.tensor(idx, device=X.device))
 
-    def evaluate(self, q: Tensor):
+    def evaluate(self, q: Tensor, recycle: bool = False):
         """cost ``(B,)`` and the normal equations' blocks D, E ``(B, T, nv, nv)``, F ``(T, nv, nv)`` (the
         same for every clip), g ``(B, T, nv)``.
 
@@ -180,12 +181,14 @@ class _Terms:
         level and skating rows: :meth:`frame_terms`), the per-frame rows of :attr:`extra_rows` (the
         residual-row interface: each callable ``(q, Ta (B, T, E, 4, 4), Ja (B, T, E, 6, nv)) -> (r (B, T,
         m), J (B, T, m, nv))`` adds ½‖r‖² to the cost, JᵀJ to D and Jᵀr to g), then the joint terms
-        (:meth:`_joint_terms`: limits, posture, the differences over time)."""
+        (:meth:`_joint_terms`: limits, posture, the differences over time). ``recycle``: D and E may be
+        the blocks of the recycling evaluation before the last (:meth:`frame_terms`), for a caller that
+        keeps only the last one."""
         B, T, nq = q.shape
         Ta, Ja = self.chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
         if Ta.ndim == 3:
             Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
-        cost, D, E, g = self.frame_terms(Ta, Ja, B, T)
+        cost, D, E, g = self.frame_terms(Ta, Ja, B, T, recycle)
         Ta, Ja = Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:])
         for rows in self.extra_rows:
             r, J = rows(q, Ta, Ja)
@@ -194,21 +197,28 @@ class _Terms:
             g = g + (J.mT @ r.unsqueeze(-1)).squeeze(-1)
         return self._joint_terms(q, cost, D, E, g)
 
-    def frame_terms(self, Ta: Tensor, Ja: Tensor, B: int, T: int):
+    def frame_terms(self, Ta: Tensor, Ja: Tensor, B: int, T: int, recycle: bool = False):
         """The end links' terms from the poses ``Ta (B T, E, 4, 4)`` and Jacobians ``Ja (B T, E, 6, nv)``
         of the B clips' T frames: cost ``(B,)``, D, E ``(B, T, nv, nv)``, g ``(B, T, nv)``. In C on CPU
         tensors (:func:`diffkin.kernels.native.clip_rows`), else :meth:`_frame_terms_torch` (the same to
-        rounding: a CUDA tensor, autograd, no C compiler)."""
+        rounding: a CUDA tensor, autograd, no C compiler). ``recycle``: the C path writes D and E into
+        the blocks it made two recycling calls before (two sets in turn), so an iterative caller that
+        keeps only the last evaluation's blocks does not have 2 B T nv² fresh reals allocated (and the
+        pages faulted in) at every call."""
         w, ori = self.w, self.ori is not None
+        buffers = self._buffers[self._turn] if recycle else None
         out = native.clip_rows(
             Ta, Ja, T=T, keypoint_ends=self.kp_idx, keypoint_weights=w["keypoint"] * self.kp_w.to(Ta),
             keypoints=self.x.reshape(B * T, -1, 3), orientation_ends=self.ori_idx if ori else [],
             orientation_weights=w["orientation"] * self.ori_w.to(Ta) if ori else None,
             orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
-            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground)
+            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground, out=buffers)
         if out is None:
             return self._frame_terms_torch(Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:]))
         cost, D, E, g = out
+        if recycle:
+            self._buffers[self._turn] = (D, E)
+            self._turn ^= 1
         nv = D.shape[-1]
         return (cost.reshape(B, T).sum(-1), D.reshape(B, T, nv, nv), E.reshape(B, T, nv, nv),
                 g.reshape(B, T, nv))
@@ -541,7 +551,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                    limit_margin, vmax, R_d, ow, rows)
     q = terms.project(q)
     with torch.no_grad(), native.threads(threads):
-        cur = terms.evaluate(q)
+        cur = terms.evaluate(q, recycle=True)  # only the last evaluation is kept: its blocks recycled
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
         history = [cur[0]]
         rounds = 1 if rows is None else 3  # with collision: re-screened after a round (module self_collision)
@@ -555,7 +565,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
             else:  # D + λ s I as the solve's shift (the C path raises the diagonal as it copies D)
                 step = -block_banded_solve(D, E, F, g, shift=lam * scale)
             trial = terms.project(chain.configuration_space.integrate(q, step))
-            new = terms.evaluate(trial)
+            new = terms.evaluate(trial, recycle=True)
             ok = torch.isfinite(new[0]) & (new[0] < cost)
             # F is the same at every q: the other parts are taken per clip from the trial where it is kept
             q, *kept = _kept(ok, (q, *cur[:3], cur[4]), (trial, *new[:3], new[4]))
@@ -565,7 +575,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
             if rows is not None and (k + 1) % iterations == 0:
                 if k + 1 == iterations * rounds or not rows.extend(q):  # no pair came near unscreened
                     break
-                cur = terms.evaluate(q)  # the cost with the pairs added
+                cur = terms.evaluate(q, recycle=True)  # the cost with the pairs added
     if chain.joint_kinds and chain.joint_kinds[0] == "free":  # no sole below the ground, exactly
         q = lift_above_ground(chain, q, feet, terms.sole_list, ground)
     return ClipOptimization(q, torch.stack(history))
