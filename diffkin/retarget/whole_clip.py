@@ -93,7 +93,7 @@ class _Terms:
         ends = list(chain.end_links)
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
-        self._F = self._bands = None
+        self._F = None
         self._buffers, self._turn = [None, None], 0  # frame_terms' recycled D, E (two sets in turn)
         #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
         #: rows added to the problem (:meth:`evaluate`)
@@ -298,22 +298,18 @@ class _Terms:
     def _joint_terms(self, q: Tensor, cost: Tensor, D: Tensor, E: Tensor, g: Tensor):
         """The joint terms of ``q (B, T, nq)`` (limits, velocity limits, posture, velocity, acceleration;
         the module doc), multiples of the identity on the scalar columns or on all, added to the other
-        terms' cost, D, E, g (D, E, g in place); returns (cost, D, E, F, g). The posture, velocity and
-        acceleration terms' share of D and E is the same at every q (:meth:`_constant_bands`)."""
+        terms' cost, D, E, g (D, E, g in place); returns (cost, D, E, F, g)."""
         w = self.w
         B, T, _ = q.shape
+        nv = self.chain.nv
         # joint limits (diagonal in the scalar velocity columns)
         qs = q[..., self.sq_cols]
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
         r_l = w["limit"] * (over - under)
         act = ((over > 0) | (under > 0)).to(q.dtype) * w["limit"] ** 2
         cost = cost + 0.5 * r_l.square().flatten(1).sum(-1)
-        # the diagonals of D and E gathered compactly, then added to the blocks once each (a strided pass
-        # over D or E costs a cache line per entry)
-        diag0, e0 = self._constant_bands(T, D)
-        diag = diag0.expand(B, T, self.chain.nv).clone()
+        diag = torch.zeros(B, T, nv, dtype=q.dtype, device=q.device)
         diag[..., self.sv_cols] += act
-        e = e0
         g[..., self.sv_cols] += w["limit"] * r_l
         if T > 1 and self.vstep is not None:  # velocity limits: ±(I, −I) on the scalar columns where beyond
             dq = qs[:, 1:] - qs[:, :-1]
@@ -324,8 +320,7 @@ class _Terms:
             act = (ex > 0).to(q.dtype) * wl**2  # (B, T - 1, n_s)
             diag[:, 1:, self.sv_cols] += act
             diag[:, :-1, self.sv_cols] += act
-            e = e0.expand(B, T, self.chain.nv).clone()
-            e[:, 1:, self.sv_cols] -= act
+            E[:, 1:].diagonal(dim1=-2, dim2=-1)[..., self.sv_cols] -= act
             g[:, 1:, self.sv_cols] += wl * r_v
             g[:, :-1, self.sv_cols] -= wl * r_v
         # posture: near the warm start
@@ -334,44 +329,32 @@ class _Terms:
                                                          torch.cat((q, q[:, 1:]), 1))
         dp, d = both[:, :T], both[:, T:]  # (B, T, nv), (B, T - 1, nv)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
+        diag += w["posture"] ** 2
         g += w["posture"] ** 2 * dp
         if T > 1:  # velocity: J = (I at t, −I at t−1)
             wv = w["velocity"] ** 2
             cost = cost + 0.5 * wv * d.square().flatten(1).sum(-1)
+            diag[:, 1:] += wv
+            diag[:, :-1] += wv
+            e = torch.full((T,), -wv, dtype=q.dtype, device=q.device)
             g[:, 1:] += wv * d
             g[:, :-1] -= wv * d
             if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
                 a = d[:, 1:] - d[:, :-1]  # (B, T-2, nv), centred at frames 1..T-2
                 wa = w["acceleration"] ** 2
                 cost = cost + 0.5 * wa * a.square().flatten(1).sum(-1)
+                diag[:, :-2] += wa
+                diag[:, 1:-1] += 4 * wa
+                diag[:, 2:] += wa
+                e[1:-1] -= 2 * wa
+                e[2:] -= 2 * wa
                 g[:, :-2] += wa * a
                 g[:, 1:-1] -= 2 * wa * a
                 g[:, 2:] += wa * a
+            e[0] = 0.0
+            E.diagonal(dim1=-2, dim2=-1).add_(e[:, None])
         D.diagonal(dim1=-2, dim2=-1).add_(diag)
-        E.diagonal(dim1=-2, dim2=-1).add_(e)
         return cost, D, E, self._second_band(D), g
-
-    def _constant_bands(self, T: int, like: Tensor) -> tuple[Tensor, Tensor]:
-        """The posture, velocity and acceleration terms' diagonals of D ``(T, 1)`` and E ``(T, 1)`` (all
-        columns alike; the same for every q: made once per problem)."""
-        if self._bands is None or self._bands[0].shape[0] != T:
-            w = self.w
-            diag = torch.full((T, 1), w["posture"] ** 2, dtype=like.dtype, device=like.device)
-            e = torch.zeros(T, 1, dtype=like.dtype, device=like.device)
-            if T > 1:  # velocity: (I at t, −I at t−1)
-                wv = w["velocity"] ** 2
-                diag[1:] += wv
-                diag[:-1] += wv
-                e[1:] -= wv
-                if T > 2:  # acceleration: (+I, −2I, +I) at (t−1, t, t+1)
-                    wa = w["acceleration"] ** 2
-                    diag[:-2] += wa
-                    diag[1:-1] += 4 * wa
-                    diag[2:] += wa
-                    e[1:-1] -= 2 * wa
-                    e[2:] -= 2 * wa
-            self._bands = (diag, e)
-        return self._bands
 
     def _second_band(self, like: Tensor) -> Tensor:
         """F ``(T, nv, nv)``: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q and
