@@ -109,8 +109,8 @@ static void DK(transpose_into)(real *restrict dst, const real *restrict src, int
 }
 
 /* 1 when X (n x n, row-major) is diagonal; then B <- X (its diagonal, zeros elsewhere). The test counts
- * each row's non-zeros in one branch-free (vectorised) pass: a compare and branch per entry was a tenth
- * of the solve's time on the whole-clip problem's diagonal F. */
+ * each row's non-zeros without a branch per entry (a compare and branch per entry showed as a tenth of
+ * the solve's samples on the whole-clip problem's diagonal F; about 2 % of the solve's time saved). */
 static int DK(copy_diagonal)(real *restrict B, const real *restrict X, int64_t n) {
     for (int64_t i = 0; i < n; i++) {
         const real *xi = X + i * n;
