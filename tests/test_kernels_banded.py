@@ -128,3 +128,41 @@ def test_native_banded_solve_with_a_triangular_second_band(shape):
         F_full = F.clone()
         F_full[:, 2:, 0, -1] = 1e-30  # one entry above the diagonal: the general path
         torch.testing.assert_close(native.banded_solve(D, E, F_full, g), got, atol=1e-10, rtol=1e-10)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_banded_solve_shift_is_a_raised_diagonal(dtype):
+    """``shift`` (one value per system: the whole-clip LM damping) solves (H + shift I) x = g on the C path
+    and on the torch loop (autograd), batched (2, 3), against the dense solve of H + shift I."""
+    from diffkin.kernels import native
+
+    H, D, E, F, g = _system(6, 5, 4, seed=11)
+    D, E, F, g, H = (t.reshape(2, 3, *t.shape[1:]) for t in (D, E, F, g, H))
+    shift = torch.tensor([[0.0, 0.5, 3.0], [10.0, 1e-3, 2.0]], dtype=F64)
+    Hs = H + shift[..., None, None] * torch.eye(H.shape[-1], dtype=F64)
+    want = torch.linalg.solve(Hs, g.reshape(2, 3, -1, 1)).reshape(g.shape)
+    D, E, F, g, s = (t.to(dtype) for t in (D, E, F, g, shift))
+    tol = 1e-10 if dtype == torch.float64 else 2e-3
+    if native.available():
+        got = native.banded_solve(D, E, F, g, s)
+        torch.testing.assert_close(got.double(), want, atol=tol, rtol=tol)
+        torch.testing.assert_close(block_banded_solve(D, E, F, g, shift=s), got)  # the default path: C's
+    x = block_banded_solve(D, E, F, g.clone().requires_grad_(), shift=s)  # autograd: the torch loop
+    torch.testing.assert_close(x.detach().double(), want, atol=tol, rtol=tol)
+    assert not torch.allclose(x.detach().double(), block_banded_solve(D, E, F, g).double(), atol=tol)
+
+
+def test_native_banded_solve_with_one_second_band_for_every_system():
+    """An F without batch dims (the whole-clip retargeting's acceleration band, the same for every clip) is
+    read once for all systems: the dense solve's answer, and the same numbers as F copied per system."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    H, D, E, F, _ = _system(1, 6, 5, seed=5)
+    g = torch.randn(3, 6, 5, generator=torch.Generator().manual_seed(1), dtype=F64)
+    D3, E3 = D.expand(3, -1, -1, -1), E.expand(3, -1, -1, -1)
+    got = native.banded_solve(D3, E3, F[0], g)
+    want = torch.linalg.solve(H, g.reshape(3, -1, 1)).reshape(g.shape)
+    torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
+    assert torch.equal(got, native.banded_solve(D3, E3, F.expand(3, -1, -1, -1), g))

@@ -648,12 +648,24 @@ def test_whole_clip_projection_is_the_frame_after_frame_clamp():
     torch.testing.assert_close(got, reference(jump), rtol=0, atol=1e-15)
     assert torch.equal(got[:, :3], jump[:, :3]) and not torch.equal(got[1, 3:], jump[1, 3:])
     torch.testing.assert_close(terms.project(q), reference(q), rtol=0, atol=1e-15)
+    # a run of 20 clamped frames (2 rad at 0.1 rad a frame) and noise clamped at most frames: more than
+    # the CPU path's sweeps over all frames at once, the rest frame after frame; the same numbers as the loop
+    long_terms, long_q = _terms_case(torch.float64, B=2, T=24)
+    far = long_q[:, :1].expand(long_q.shape).clone()
+    far[0, 2:, 7:] += 2.0
+    noise = torch.randn(24, far.shape[-1] - 7, generator=torch.Generator().manual_seed(0), dtype=far.dtype)
+    far[1, :, 7:] += 0.4 * noise  # steps beyond the limit either way at most frames
+    far = terms.chain.clamp_to_limits(far, check=False)
+    got = long_terms.project(far)
+    assert not torch.equal(got[0, 12], far[0, 12])  # still clamped 10 frames after the jump
+    torch.testing.assert_close(got, reference(far), rtol=0, atol=0)
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
     """The C frame terms (native.clip_rows: keypoints, orientations, the soles' contact, penetration and
-    level rows, skating) give the torch path's cost, D, E and g: 1e-9 relative in float64."""
+    level rows, skating) give the torch path's cost, D, E and g: 1e-9 relative in float64; with recycled
+    blocks (evaluate(recycle=True), two sets in turn) the same numbers, the third call in the first's."""
     from diffkin.kernels import native
 
     if not native.available():
@@ -672,6 +684,17 @@ def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
         scale = b.abs().amax().clamp_min(1.0)
         assert (a - b).abs().amax() <= tol * scale, name
     assert fast[2].abs().amax() > 0 and not torch.equal(fast[2], torch.zeros_like(fast[2]))
+    # recycled blocks (the LM loop's two sets in turn): the same numbers; the third call writes the first's
+    q2 = q + 0.01
+    first = terms.evaluate(q, recycle=True)
+    second = terms.evaluate(q2, recycle=True)
+    for a, b in zip(first, fast):
+        assert torch.equal(a, b)
+    third = terms.evaluate(q, recycle=True)
+    assert third[1].data_ptr() == first[1].data_ptr() and third[1].data_ptr() != second[1].data_ptr()
+    for a, b in zip((second, third), (terms.evaluate(q2), fast)):
+        for x, y in zip(a, b):
+            assert torch.equal(x, y)
 
 
 def test_whole_clip_optimisation_in_c_equals_the_torch_path(monkeypatch):
@@ -876,10 +899,10 @@ def test_whole_clip_difference_terms_hessian_by_differences():
     H = torch.zeros(T * n, T * n, dtype=torch.float64)
     for t in range(T):  # the dense matrix of the lower blocks (a loop over the 3 frames of a test)
         H[t * n:(t + 1) * n, t * n:(t + 1) * n] = D[0, t]
-        for k, M in ((1, E), (2, F)):
+        for k, M in ((1, E[0]), (2, F)):  # F: one band for every clip
             if t >= k:
-                H[t * n:(t + 1) * n, (t - k) * n:(t - k + 1) * n] = M[0, t]
-                H[(t - k) * n:(t - k + 1) * n, t * n:(t + 1) * n] = M[0, t].T
+                H[t * n:(t + 1) * n, (t - k) * n:(t - k + 1) * n] = M[t]
+                H[(t - k) * n:(t - k + 1) * n, t * n:(t + 1) * n] = M[t].T
 
     # central differences of the gradient g (checked against autograd in the test above) in the hinges of
     # all three frames, where the terms are linear pieces: exact to rounding. The limit term acts on the

@@ -509,16 +509,18 @@ int64_t dk_collide_clear(const dk_collide *c) {
     return 0;
 }
 
-/* The block-banded SPD solve H x = g of batch systems (_native_banded.c; reals of real_bytes 8 or 4). Returns 0,
- * -1 when the work space cannot be allocated, DK_ABI_ERROR for another real size. */
-int64_t dk_banded_solve(const void *D, const void *E, const void *F, const void *g, void *x, int64_t batch,
-                        int64_t T, int64_t n, int64_t real_bytes, int64_t nthreads) {
+/* The block-banded SPD solve H x = g of batch systems (_native_banded.c; reals of real_bytes 8 or 4; F one
+ * band for all systems where f_shared; shift: NULL or one real per system added to its diagonal). Returns
+ * 0, -1 when the work space cannot be allocated, DK_ABI_ERROR for another real size. */
+int64_t dk_banded_solve(const void *D, const void *E, const void *F, int64_t f_shared, const void *g,
+                        const void *shift, void *x, int64_t batch, int64_t T, int64_t n, int64_t real_bytes,
+                        int64_t nthreads) {
     if (real_bytes == 8)
-        return banded_solve_f64((const double *)D, (const double *)E, (const double *)F, (const double *)g,
-                                (double *)x, batch, T, n, nthreads);
+        return banded_solve_f64((const double *)D, (const double *)E, (const double *)F, f_shared,
+                                (const double *)g, (const double *)shift, (double *)x, batch, T, n, nthreads);
     if (real_bytes == 4)
-        return banded_solve_f32((const float *)D, (const float *)E, (const float *)F, (const float *)g,
-                                (float *)x, batch, T, n, nthreads);
+        return banded_solve_f32((const float *)D, (const float *)E, (const float *)F, f_shared,
+                                (const float *)g, (const float *)shift, (float *)x, batch, T, n, nthreads);
     return DK_ABI_ERROR;
 }
 

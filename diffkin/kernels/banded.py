@@ -71,10 +71,12 @@ def _regroup(D: Tensor, E: Tensor, F: Tensor, g: Tensor, k: int):
     return Dd.flatten(-4, -3).flatten(-2, -1), Ee.flatten(-4, -3).flatten(-2, -1), g.reshape(*lead, m, k * n)
 
 
-def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_block: int | None = None
-                       ) -> Tensor:
+def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_block: int | None = None,
+                       shift: Tensor | None = None) -> Tensor:
     """x ``(..., T, n)`` with H x = g, H SPD block-banded (module doc); ``D, E, F (..., T, n, n)``,
-    ``g (..., T, n)``. A block that is not positive definite gives NaN (no host sync to check it).
+    ``g (..., T, n)``; ``shift (...)`` (optional): H + shift I per system (a Levenberg–Marquardt damping; the
+    C path adds it as it copies D, no copy of D is made for it). A block that is not positive definite
+    gives NaN (no host sync to check it).
 
     ``frames_per_block`` k ≥ 2 regroups the frames into ⌈T/k⌉ super-blocks of k frames, which makes H
     block-tridiagonal: k times fewer sequential steps of k n × k n blocks (k² times the flops of the
@@ -85,9 +87,11 @@ def block_banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, frames_per_bl
     T = D.shape[-3]
     k = 1 if frames_per_block is None else int(frames_per_block)
     if k < 2:  # CPU without autograd: the same recursion in C (native.banded_solve), else torch's below
-        x = native.banded_solve(D, E, F, g)
+        x = native.banded_solve(D, E, F, g, shift)
         if x is not None:
             return x
+    if shift is not None:
+        D = D + shift[..., None, None, None] * torch.eye(D.shape[-1], dtype=D.dtype, device=D.device)
     if k >= 2:
         Dk, Ek, gk = _regroup(D, E, F, g, k)
         x = _band_cholesky_solve(Dk, Ek, None, gk)

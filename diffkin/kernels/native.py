@@ -290,7 +290,8 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_fk.restype, lib.dk_fk.argtypes = _I64, [ctypes.POINTER(Args)]
     lib.dk_solve.restype, lib.dk_solve.argtypes = _I64, [ctypes.POINTER(SolveArgs)]
     lib.dk_collide_clear.restype, lib.dk_collide_clear.argtypes = _I64, [ctypes.POINTER(Collide)]
-    lib.dk_banded_solve.restype, lib.dk_banded_solve.argtypes = _I64, [_PTR] * 5 + [_I64] * 5
+    lib.dk_banded_solve.restype = _I64  # D, E, F, f_shared, g, shift, x, batch, T, n, real_bytes, nthreads
+    lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     return lib
 
@@ -635,35 +636,43 @@ def solve_call(args: SolveArgs) -> None:
     _raise_on(_lib.dk_solve(ctypes.byref(args)), "work space")
 
 
-def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
+def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | None = None) -> Tensor | None:
     """x ``(..., T, n)`` with H x = g for the block-banded SPD H of ``D, E, F (..., T, n, n)`` (the lower
-    blocks of :func:`diffkin.kernels.banded.block_banded_solve`), by ``dk_banded_solve``
-    (``_native_banded.c``); None (nothing done) where the library is not loaded, or the inputs are not CPU
-    tensors of one float dtype without autograd. Systems are shared between threads (:func:`thread_count`
-    of the frames they hold)."""
+    blocks of :func:`diffkin.kernels.banded.block_banded_solve`; ``shift (...)``: each system's D_t taken as
+    D_t + shift I, without a copy of D), by ``dk_banded_solve`` (``_native_banded.c``); None (nothing done)
+    where the library is not loaded, or the inputs are not CPU tensors of one float dtype without autograd.
+    An ``F`` without batch dims (or broadcast ones of size 1) is passed once, shared by the systems (not
+    copied batch times). Systems are shared between threads (:func:`thread_count` of the frames they
+    hold)."""
     dtype = g.dtype
+    given = [t for t in (D, E, F, shift) if t is not None]
     if (not available() or dtype not in (torch.float32, torch.float64) or torch.is_grad_enabled() and any(
-            t.requires_grad for t in (D, E, F, g)) or any(t.device.type != "cpu" or t.dtype != dtype
-                                                         for t in (D, E, F))):
+            t.requires_grad for t in (*given, g)) or any(t.device.type != "cpu" or t.dtype != dtype
+                                                        for t in given)):
         return None
     *lead, T, n = g.shape
     if g.numel() == 0:
         return torch.empty_like(g)
     shape = (*lead, T, n, n)
-    D, E, F = (t.expand(shape).contiguous() for t in (D, E, F))
+    D, E = (t.expand(shape).contiguous() for t in (D, E))
+    f_shared = F.shape[:-3].numel() == 1  # one band for every system
+    F = F.reshape(T, n, n).contiguous() if f_shared else F.expand(shape).contiguous()
     g = g.contiguous()
+    if shift is not None:
+        shift = shift.expand(tuple(lead)).contiguous()
     x = torch.empty_like(g)
     batch = max(1, g.numel() // max(1, T * n))
     threads = min(batch, thread_count(batch * T))
-    _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), g.data_ptr(), x.data_ptr(),
-                                   batch, T, n, g.element_size(), threads), "work space")
+    _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), int(f_shared), g.data_ptr(),
+                                   None if shift is None else shift.data_ptr(), x.data_ptr(), batch, T, n,
+                                   g.element_size(), threads), "work space")
     return x
 
 
 def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,
               keypoints: Tensor, orientation_ends: list[int], orientation_weights: Tensor | None,
               orientations: Tensor | None, feet: list[int], soles: list[tuple[Tensor, Tensor]],
-              contacts: Tensor, weights: dict, ground: float):
+              contacts: Tensor, weights: dict, ground: float, out: tuple[Tensor, Tensor] | None = None):
     """The frame terms of the whole-clip retargeting problem (:mod:`diffkin.retarget.whole_clip`: keypoints,
     orientations, the soles' contact height, penetration and level rows, skating) by ``dk_clip_rows``
     (``_native_clip.c``), from the end-link poses ``Tf (N, E, 4, 4)`` and Jacobians ``J (N, E, 6, nv)`` of
@@ -671,8 +680,10 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     g (N, nv))`` (cost ½‖r‖², D = JᵀJ, g = Jᵀr of each frame's rows, E the skating rows' block (t, t − 1)).
     ``keypoints (N, K, 3)`` of the ends ``keypoint_ends`` weighted by ``keypoint_weights (K,)``,
     ``orientations (N, K_o, 3, 3)`` of ``orientation_ends`` (or None), ``soles`` the feet's (points (P, 3),
-    radii (P,)), ``contacts (N, 2)`` bool, ``weights`` the terms' weights by name. None (nothing done) where
-    the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    radii (P,)), ``contacts (N, 2)`` bool, ``weights`` the terms' weights by name. ``out``: optional
+    ``(D, E)`` tensors to write D and E into (contiguous, of that shape and dtype; an iterative caller's
+    buffers, which spares the allocator two fresh blocks per call). None (nothing done) where the library is
+    not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
     dtype = Tf.dtype
     if (not available() or dtype not in (torch.float32, torch.float64) or Tf.device.type != "cpu"
             or J.dtype != dtype or torch.is_grad_enabled() and (Tf.requires_grad or J.requires_grad)):
@@ -687,7 +698,11 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
             real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
             contacts.to(torch.uint8).contiguous()]
     cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
-    D, Eb = Tf.new_empty(N, nv, nv), Tf.new_empty(N, nv, nv)
+    if out is not None and all(t.shape == (N, nv, nv) and t.dtype == dtype and t.device.type == "cpu"
+                               and t.is_contiguous() for t in out):
+        D, Eb = out
+    else:
+        D, Eb = Tf.new_empty(N, nv, nv), Tf.new_empty(N, nv, nv)
     centre, centre_jac = Tf.new_empty(N, 4), Tf.new_empty(N, 4, nv)
     threads = thread_count(N)
     args = new_struct(ClipArgs, real_bytes=Tf.element_size(), nthreads=threads, N=N, T=T, nv=nv,

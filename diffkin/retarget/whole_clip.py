@@ -94,6 +94,7 @@ class _Terms:
         self.chain, self.x, self.c, self.ground = chain, keypoints, contacts, ground
         self.w, self.q_ref = w, q_ref
         self._F = None
+        self._buffers, self._turn = [None, None], 0  # frame_terms' recycled D, E (two sets in turn)
         #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
         #: rows added to the problem (:meth:`evaluate`)
         self.extra_rows: list = []
@@ -129,14 +130,14 @@ class _Terms:
 
     def project(self, q: Tensor) -> Tensor:
         """``q (B, T, nq)`` onto the joint limits and, with velocity limits, frame after frame onto
-        [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max] on the scalar columns (a loop over
+        [q_{t−1} − q̇_max/fps, q_{t−1} + q̇_max/fps] ∩ [q_min, q_max] on the scalar columns (a recursion over
         time: each frame's interval depends on the projected frame before it; it meets the limits' range
         because q_{t−1} is in it)."""
         q = self.chain.clamp_to_limits(q, check=False)
         if self.vstep is None or q.shape[1] < 2:
             return q
         qs = q.index_select(-1, self.sq)
-        start = 1
+        start, T = 1, q.shape[1]
         if q.device.type == "cpu":  # no device sync: the frames before the first step beyond (in any clip)
             # are their own projection (each within q̇_max/fps of the one before), the loop starts there
             beyond = ((qs[:, 1:] - qs[:, :-1]).abs() > self.vstep * (1 - 1e-9)).any(-1).any(0)
@@ -144,12 +145,27 @@ class _Terms:
             if hit.numel() == 0:
                 return q
             start = int(hit[0, 0]) + 1
+            # all frames at once, each on the interval of the previous sweep's frame before it: after k
+            # sweeps frames < start + k are final, and a sweep that changes nothing has met the recursion
+            # (whose answer is unique): the same numbers as the loop below in a few sweeps, not T steps
+            out = qs
+            for _ in range(8):
+                swept = self._velocity_clamp(out[:, start - 1:-1], qs[:, start:])
+                new = torch.cat((out[:, :start], swept), 1)
+                if torch.equal(new, out):
+                    return q.index_copy(-1, self.sq, out)
+                out, start = new, start + 1
+            qs = torch.cat((out[:, :start], qs[:, start:]), 1)  # the final frames, then the rest as given
         out = list(qs[:, :start].unbind(1))
-        for t in range(start, q.shape[1]):
-            lo = torch.maximum(out[-1] - self.vstep, self.lo_hard)
-            hi = torch.minimum(out[-1] + self.vstep, self.hi_hard)
-            out.append(torch.minimum(torch.maximum(qs[:, t], lo), hi))
+        for t in range(start, T):
+            out.append(self._velocity_clamp(out[-1], qs[:, t]))
         return q.index_copy(-1, self.sq, torch.stack(out, 1))
+
+    def _velocity_clamp(self, before: Tensor, q: Tensor) -> Tensor:
+        """Scalar columns ``q`` onto [before − q̇_max/fps, before + q̇_max/fps] ∩ [q_min, q_max]."""
+        lo = torch.maximum(before - self.vstep, self.lo_hard)
+        hi = torch.minimum(before + self.vstep, self.hi_hard)
+        return torch.minimum(torch.maximum(q, lo), hi)
 
     def _frames(self, X: Tensor, idx: list[int]) -> Tensor:
         """``X[:, :, idx]`` (dim 2: the chain's end links), a view where ``idx`` is a run of frames."""
@@ -157,19 +173,22 @@ class _Terms:
             return X[:, :, idx[0]:idx[0] + len(idx)]
         return X.index_select(2, torch.tensor(idx, device=X.device))
 
-    def evaluate(self, q: Tensor):
-        """cost ``(B,)`` and the normal equations' blocks D, E, F ``(B, T, nv, nv)``, g ``(B, T, nv)``.
+    def evaluate(self, q: Tensor, recycle: bool = False):
+        """cost ``(B,)`` and the normal equations' blocks D, E ``(B, T, nv, nv)``, F ``(T, nv, nv)`` (the
+        same for every clip), g ``(B, T, nv)``.
 
         Three parts: the end links' frame terms (keypoints, orientations, the soles' contact, penetration,
         level and skating rows: :meth:`frame_terms`), the per-frame rows of :attr:`extra_rows` (the
         residual-row interface: each callable ``(q, Ta (B, T, E, 4, 4), Ja (B, T, E, 6, nv)) -> (r (B, T,
         m), J (B, T, m, nv))`` adds ½‖r‖² to the cost, JᵀJ to D and Jᵀr to g), then the joint terms
-        (:meth:`_joint_terms`: limits, posture, the differences over time)."""
+        (:meth:`_joint_terms`: limits, posture, the differences over time). ``recycle``: D and E may be
+        the blocks of the recycling evaluation before the last (:meth:`frame_terms`), for a caller that
+        keeps only the last one."""
         B, T, nq = q.shape
         Ta, Ja = self.chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
         if Ta.ndim == 3:
             Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
-        cost, D, E, g = self.frame_terms(Ta, Ja, B, T)
+        cost, D, E, g = self.frame_terms(Ta, Ja, B, T, recycle)
         Ta, Ja = Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:])
         for rows in self.extra_rows:
             r, J = rows(q, Ta, Ja)
@@ -178,21 +197,28 @@ class _Terms:
             g = g + (J.mT @ r.unsqueeze(-1)).squeeze(-1)
         return self._joint_terms(q, cost, D, E, g)
 
-    def frame_terms(self, Ta: Tensor, Ja: Tensor, B: int, T: int):
+    def frame_terms(self, Ta: Tensor, Ja: Tensor, B: int, T: int, recycle: bool = False):
         """The end links' terms from the poses ``Ta (B T, E, 4, 4)`` and Jacobians ``Ja (B T, E, 6, nv)``
         of the B clips' T frames: cost ``(B,)``, D, E ``(B, T, nv, nv)``, g ``(B, T, nv)``. In C on CPU
         tensors (:func:`diffkin.kernels.native.clip_rows`), else :meth:`_frame_terms_torch` (the same to
-        rounding: a CUDA tensor, autograd, no C compiler)."""
+        rounding: a CUDA tensor, autograd, no C compiler). ``recycle``: the C path writes D and E into
+        the blocks it made two recycling calls before (two sets in turn), so an iterative caller that
+        keeps only the last evaluation's blocks does not have 2 B T nv² fresh reals allocated (and the
+        pages faulted in) at every call."""
         w, ori = self.w, self.ori is not None
+        buffers = self._buffers[self._turn] if recycle else None
         out = native.clip_rows(
             Ta, Ja, T=T, keypoint_ends=self.kp_idx, keypoint_weights=w["keypoint"] * self.kp_w.to(Ta),
             keypoints=self.x.reshape(B * T, -1, 3), orientation_ends=self.ori_idx if ori else [],
             orientation_weights=w["orientation"] * self.ori_w.to(Ta) if ori else None,
             orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
-            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground)
+            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground, out=buffers)
         if out is None:
             return self._frame_terms_torch(Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:]))
         cost, D, E, g = out
+        if recycle:
+            self._buffers[self._turn] = (D, E)
+            self._turn ^= 1
         nv = D.shape[-1]
         return (cost.reshape(B, T).sum(-1), D.reshape(B, T, nv, nv), E.reshape(B, T, nv, nv),
                 g.reshape(B, T, nv))
@@ -331,13 +357,27 @@ class _Terms:
         return cost, D, E, self._second_band(D), g
 
     def _second_band(self, like: Tensor) -> Tensor:
-        """F: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q (made once)."""
-        if self._F is None or self._F.shape != like.shape:
-            F = torch.zeros_like(like)
+        """F ``(T, nv, nv)``: the acceleration term's +w² I at (t, t − 2), t ≥ 2; the same for every q and
+        every clip (made once; broadcast over the clips, the C solve reads it once for all of them)."""
+        if self._F is None or self._F.shape != like.shape[1:]:
+            F = like.new_zeros(like.shape[1:])
             if like.shape[1] > 2:
-                F[:, 2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
+                F[2:].diagonal(dim1=-2, dim2=-1).fill_(self.w["acceleration"] ** 2)
             self._F = F
         return self._F
+
+
+def _kept(ok: Tensor, old: tuple, new: tuple) -> list[Tensor]:
+    """Per clip (dim 0) ``new`` where ``ok (B,)``, else ``old``. On CPU the rejected clips are copied into
+    ``new`` (fresh tensors of this iteration; most clips keep their step, so little is copied), elsewhere
+    one ``torch.where`` each (no host sync)."""
+    if ok.device.type != "cpu":
+        return [torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a) for a, b in zip(old, new)]
+    rejected = (~ok).nonzero().flatten()
+    if rejected.numel():
+        for a, b in zip(old, new):
+            b.index_copy_(0, rejected, a.index_select(0, rejected))
+    return list(new)
 
 
 def _as_slice(index: list[int], tensor: Tensor):
@@ -494,32 +534,31 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                    limit_margin, vmax, R_d, ow, rows)
     q = terms.project(q)
     with torch.no_grad(), native.threads(threads):
-        cur = terms.evaluate(q)
+        cur = terms.evaluate(q, recycle=True)  # only the last evaluation is kept: its blocks recycled
         lam = torch.full((B,), damping, dtype=q.dtype, device=q.device)
         history = [cur[0]]
         rounds = 1 if rows is None else 3  # with collision: re-screened after a round (module self_collision)
         for k in range(iterations * rounds):
             cost, D, E, F, g = cur
             scale = torch.diagonal(D, dim1=-2, dim2=-1).mean((-1, -2))  # (B,): λ relative to the curvature
-            Dl = D.clone()  # D + λ s I: a copy, its diagonal raised (no full-size product with I)
-            Dl.diagonal(dim1=-2, dim2=-1).add_((lam * scale)[:, None, None])
             if solver == "cg":
+                Dl = D.clone()  # D + λ s I: a copy, its diagonal raised (no full-size product with I)
+                Dl.diagonal(dim1=-2, dim2=-1).add_((lam * scale)[:, None, None])
                 step = -block_banded_cg(Dl, E, F, g, cg_iterations)
-            else:
-                step = -block_banded_solve(Dl, E, F, g)
+            else:  # D + λ s I as the solve's shift (the C path raises the diagonal as it copies D)
+                step = -block_banded_solve(D, E, F, g, shift=lam * scale)
             trial = terms.project(chain.configuration_space.integrate(q, step))
-            new = terms.evaluate(trial)
+            new = terms.evaluate(trial, recycle=True)
             ok = torch.isfinite(new[0]) & (new[0] < cost)
-            q = torch.where(ok[:, None, None], trial, q)
             # F is the same at every q: the other parts are taken per clip from the trial where it is kept
-            cur = tuple(b if k == 3 else torch.where(ok.reshape(-1, *([1] * (a.ndim - 1))), b, a)
-                        for k, (a, b) in enumerate(zip(cur, new)))
+            q, *kept = _kept(ok, (q, *cur[:3], cur[4]), (trial, *new[:3], new[4]))
+            cur = (*kept[:3], F, kept[3])
             lam = torch.where(ok, lam * 0.5, lam * 4.0).clamp(1e-9, 1e6)
             history.append(cur[0])
             if rows is not None and (k + 1) % iterations == 0:
                 if k + 1 == iterations * rounds or not rows.extend(q):  # no pair came near unscreened
                     break
-                cur = terms.evaluate(q)  # the cost with the pairs added
+                cur = terms.evaluate(q, recycle=True)  # the cost with the pairs added
     if chain.joint_kinds and chain.joint_kinds[0] == "free":  # no sole below the ground, exactly
         q = lift_above_ground(chain, q, feet, terms.sole_list, ground)
     return ClipOptimization(q, torch.stack(history))
