@@ -94,6 +94,35 @@ def test_collision_rows_jacobian_against_finite_differences(g1):
     torch.testing.assert_close(J, fd, atol=1e-6, rtol=1e-5)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_collision_rows_jacobian_from_the_bodies_equals_autograd(g1, dtype):
+    """The rows' Jacobian from the bodies' geometric Jacobians (each pair's wrench, module
+    ``self_collision``) equals the autograd one through all frames' FK: every pair kind of the G1 (capsules,
+    spheres, the foot boxes) on random and near-standing configurations, float64 and float32."""
+    mp, chain, rc = g1
+    if dtype != F64:
+        chain = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=dtype).requires_grad_(False)
+        rc = retarget.g1_collision(chain)
+    q = chain.random_configuration((2, 6), generator=torch.Generator().manual_seed(5))
+    q[1, :, 7:] *= 0.3  # some pairs near contact
+    rows = SelfCollisionRows(rc, chain, q, margin=10.0, screen=0.0)
+    assert rows.count == 26 and rows._body_jacobians(q.reshape(-1, chain.nq)) is not None
+    d, J = rows.jacobian(q.reshape(-1, chain.nq))
+    d_ag, J_ag = rows.jacobian(q.reshape(-1, chain.nq), autograd=True)
+    tol = 1e-12 if dtype == F64 else 2e-5
+    torch.testing.assert_close(d, d_ag, atol=tol, rtol=0)
+    torch.testing.assert_close(J, J_ag, atol=tol * 10, rtol=0)
+    assert J.abs().amax() > 0.1 and J.dtype == dtype
+    # through the broad phase (the rows' call): exact below the threshold, a bound at or above it elsewhere
+    t = float(d.median())
+    d_b, J_b = rows.jacobian(q.reshape(-1, chain.nq), below=t)
+    near = d < t
+    assert near.any() and (~near).any()
+    torch.testing.assert_close(d_b[near], d[near], atol=tol, rtol=0)
+    torch.testing.assert_close(J_b[near], J[near], atol=tol * 10, rtol=0)
+    assert bool((d_b[~near] >= t - tol).all()) and bool(torch.isfinite(J_b).all())
+
+
 def test_whole_clip_keeps_the_hands_out_of_the_torso(g1):
     """Hands sinking into the chest: without ``collision`` MuJoCo finds penetrating pairs in many frames;
     with it none of the 26 pairs penetrates in any frame, the screen kept only some pairs, and the other

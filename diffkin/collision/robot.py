@@ -212,7 +212,11 @@ class RobotCollision(nn.Module):
         pose per geom.
         """
         self._check_agree(q)
-        F = self._frames.frames(self.chain, q)  # (..., K, 4, 4)
+        return self._columns_at(self._frames.frames(self.chain, q))
+
+    def _columns_at(self, F: Tensor) -> Tensor:
+        """:meth:`_columns` from the anchor frames' poses ``F (..., K, 4, 4)`` (a caller that has them from
+        its own FK pass, with their Jacobians: :mod:`diffkin.retarget.self_collision`)."""
         Fm = F[..., :3, :].transpose(-3, -2).reshape(*F.shape[:-3], 3, 4 * F.shape[-3])  # (..., 3, K·4)
         return Fm @ self._placement(F)
 

@@ -15,12 +15,27 @@ hand near a hip or an arm near the torso). The steps can move a limb farther tha
 pushed out of the torso onto the hip): :meth:`SelfCollisionRows.extend` screens the result again and adds
 the pairs found, and :func:`~diffkin.retarget.optimize_clip` then runs another round of iterations.
 
-The distances are the collision layer's closed forms, their gradients one batched backward pass over all
-frames (each frame's distance depends on that frame's q only, so ∂(Σ_t d_{p,t})/∂q_t = ∂d_{p,t}/∂q_t).
+The distances are the collision layer's closed forms. Their Jacobian is assembled from the bodies'
+geometric Jacobians: with every kept pair given its own copies of its two geoms (so each placed point or
+axis x_c belongs to one pair), one backward pass of Σ d over the placed geometry only (no FK in the graph)
+gives each pair's g_c = ∂d_p/∂x_c; a point moves as ẋ = v_k + ω_k × (x − o_k) with its body k, an axis as
+ω_k × x, so
+
+    ∂d_p/∂δ = Σ_sides F_sᵀ J_v(k_s) + (M_s − o_{k_s} × F_s)ᵀ J_ω(k_s),
+    F_s = Σ_points g_c,  M_s = Σ_c x_c × g_c,
+
+the pair's wrench on each of its bodies (for capsules and spheres, nᵀ (J_p(a, p_a) − J_p(b, p_b)) with the
+witness points p_a, p_b and the unit normal n). The bodies' poses and Jacobians come from one FK+Jacobian
+pass of the MJCF model's every body (:func:`diffkin.models.mjcf_bodies.body_poses`' chain, the fused C
+kernel on CPU). A model placed otherwise (``body_poses=`` of one's own, another q layout) takes the
+autograd path: one batched backward pass per kept pair through all frames' FK (each frame's distance
+depends on that frame's q only, so ∂(Σ_t d_{p,t})/∂q_t = ∂d_{p,t}/∂q_t); both give the same rows
+(``tests/test_retarget_collision.py``).
 """
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import torch
@@ -28,6 +43,7 @@ from torch import Tensor
 
 from ..errors import ModelError
 from ..ik.residuals import _residual_jacobian
+from ..models.mjcf_bodies import _companion, body_poses
 
 __all__ = ["G1_MJX_SCENE", "SelfCollisionRows", "g1_collision"]
 
@@ -48,6 +64,7 @@ class SelfCollisionRows:
         self.index: list[int] = []
         self.pairs: list[tuple[str, str]] = []
         self.count, self.model = 0, None
+        self._bodies = _bodies_chain(collision, chain)
         self.extend(q)
 
     def extend(self, q: Tensor) -> bool:
@@ -66,6 +83,7 @@ class SelfCollisionRows:
         self.pairs = [c.pairs[i] for i in self.index]
         self.count = len(self.index)
         self.model = c._with_pairs([c._pair_index[i] for i in self.index]).requires_grad_(False)
+        self._split = _per_pair(c, [c._pair_index[i] for i in self.index])
         return True
 
     def distances(self, q: Tensor) -> Tensor:
@@ -82,17 +100,112 @@ class SelfCollisionRows:
         nv = self.chain.nv
         if self.model is None:
             return q.new_zeros(B, T, 0), q.new_zeros(B, T, 0, nv)
-        with torch.enable_grad():
-            qg = q.detach().reshape(B * T, nq).requires_grad_(True)
-            d = self.model.self_distances(qg)  # (B T, P)
-            Jq = _residual_jacobian(d, qg)  # (B T, P, nq)
-        space = self.chain.configuration_space
-        J = Jq if space.euclidean else Jq @ space.tangent_map(qg.detach())  # (B T, P, nv)
-        d = d.detach()
+        d, J = self.jacobian(q.detach().reshape(B * T, nq), below=self.margin)
         active = (d < self.margin).to(q.dtype) * weight
         r = active * (d - self.margin)
         J = active.unsqueeze(-1) * J.detach()
         return r.reshape(B, T, -1), J.reshape(B, T, -1, nv)
+
+    def jacobian(self, q: Tensor, autograd: bool = False,
+                 below: float | None = None) -> tuple[Tensor, Tensor]:
+        """The kept pairs' distances ``(N, P_kept)`` and their Jacobians ``(N, P_kept, nv)`` w.r.t. the step δ
+        at ``q (N, nq)``, detached: from the bodies' Jacobians where the model's bodies are the MJCF
+        chain's (module doc), else (or with ``autograd``) by autograd through every frame's FK. ``below``:
+        exact only where d < ``below`` (the collision layer's broad phase: elsewhere a bound >= ``below``
+        and its gradient; the rows need no more, and the exact box distances are most of the cost)."""
+        bodies = None if autograd else self._body_jacobians(q)
+        if bodies is None:
+            with torch.enable_grad():
+                qg = q.detach().requires_grad_(True)
+                d = self.model.self_distances(qg)  # (N, P)
+                Jq = _residual_jacobian(d, qg)  # (N, P, nq)
+            space = self.chain.configuration_space
+            J = Jq if space.euclidean else Jq @ space.tangent_map(q)  # (N, P, nv)
+            return d.detach(), J.detach()
+        F, JF = bodies  # (N, K, 4, 4), (N, K, 6, nv)
+        split, point, group, anchor = self._split
+        on_body = torch.nn.functional.one_hot(anchor, F.shape[1]).to(F).unflatten(0, (-1, 2))  # (P, 2, K)
+        with torch.enable_grad():
+            P = split._columns_at(F).detach().requires_grad_(True)  # (N, 3, C): each column one pair's
+            d = split._self_from(P, threshold=below)  # (N, P)
+            (g,) = torch.autograd.grad(d.sum(), P)
+        X, g = P.detach().mT, g.mT  # (N, C, 3)
+        # per (pair, side): F_s (points only) and M_s about the world origin, summed over the side's columns
+        w = torch.cat((g * point, torch.linalg.cross(X, g, dim=-1)), -1)  # (N, C, 6)
+        w = (group @ w).unflatten(-2, (-1, 2))  # (N, P, 2, 6)
+        o = F[:, anchor, :3, 3].unflatten(-2, (-1, 2))  # (N, P, 2, 3): the bodies' origins
+        f, m = w.split(3, -1)
+        w = torch.cat((f, m - torch.linalg.cross(o, f, dim=-1)), -1)  # the moment about o_k
+        # each side's wrench in its body's slot (N, P, K, 6), then one batched product with the bodies'
+        # stacked Jacobians (N, K·6, nv): no gather of a Jacobian per pair and side
+        N, K = F.shape[:2]
+        W = torch.einsum("npsc,psk->npkc", w, on_body)
+        J = W.reshape(N, -1, 6 * K) @ JF.reshape(N, 6 * K, -1)  # (N, P, nv)
+        return d.detach(), J
+
+    def _body_jacobians(self, q: Tensor) -> tuple[Tensor, Tensor] | None:
+        """Poses ``(N, nbody, 4, 4)`` and geometric Jacobians ``(N, nbody, 6, nv)`` (in the chain's δ) of the
+        collision model's anchor frames, the world body first, from one FK+Jacobian pass; None where the
+        model is not placed by :func:`~diffkin.models.mjcf_bodies.body_poses` of this chain on the chain's own
+        coordinates."""
+        full = self._bodies
+        if full is None:
+            return None
+        T, J = full.forward_kinematics_and_jacobian(q, check=False)
+        N = q.shape[0]
+        world = torch.eye(4, dtype=q.dtype, device=q.device).expand(N, 1, 4, 4)
+        return torch.cat((world, T), 1), torch.cat((J.new_zeros(N, 1, *J.shape[2:]), J), 1)
+
+
+def _bodies_chain(collision, chain):
+    """The chain from the world to every MuJoCo body that places ``collision``'s geoms
+    (:func:`~diffkin.models.mjcf_bodies.body_poses` of ``chain``, its default for an MJCF chain) where its
+    coordinates are ``chain``'s own (the same joints, q and δ layout: its Jacobians are then in ``chain``'s
+    δ); None otherwise (a model placed by another ``body_poses``)."""
+    poses = getattr(collision._frames, "_poses", None)
+    if not (isinstance(poses, functools.partial) and poses.func is body_poses and poses.args == (chain,)):
+        return None
+    full = _companion(chain)
+    # the same joints at the same qpos addresses: full.from_qpos(chain.to_qpos(q)) is q itself
+    same = full.joint_names == chain.joint_names and (full.nq, full.nv) == (chain.nq, chain.nv) \
+        and list(full._qpos_index) == list(chain._qpos_index)
+    return full if same else None
+
+
+def _per_pair(collision, pairs: list[tuple[int, int]]):
+    """The model of ``pairs`` (geom indices into ``collision``) with each pair's own copies of its two geoms
+    (geoms 2p and 2p + 1), so every column of its placement product belongs to one pair, and the column
+    tables of :meth:`SelfCollisionRows.jacobian`: ``point (C, 1)`` 1 on point columns (0 on box axes),
+    ``group (2P, C)`` the incidence of pair p's side s (row 2p + s) and the columns, ``anchor (2P,)`` each
+    side's anchor frame."""
+    c = collision
+    with torch.no_grad():
+        kind = {}
+        for n, g in enumerate(k for k, geom in enumerate(c.geoms) if geom.shape == "capsule"):
+            kind[g] = (c.capsule_a[n].tolist(), c.capsule_b[n].tolist(), float(c.capsule_radius[n]))
+        for n, g in enumerate(k for k, geom in enumerate(c.geoms) if geom.shape == "box"):
+            kind[g] = (c.box_center[n].tolist(), c.box_rpy[n].tolist(), c.box_half_extents[n].tolist())
+        for n, g in enumerate(k for k, geom in enumerate(c.geoms) if geom.shape == "convex"):
+            kind[g] = c.convex_vertices[n].cpu().numpy()
+    own = [g for pair in pairs for g in pair]  # copy 2p + s of geom pairs[p][s]
+    geoms = [c.geoms[g] for g in own]
+    by = lambda shape: [kind[g] for g in own if c.geoms[g].shape == shape]  # noqa: E731
+    split = type(c)(c.chain, geoms, [g.link for g in geoms], by("capsule"), by("box"),
+                    [(2 * p, 2 * p + 1) for p in range(len(pairs))], convexes=by("convex"), frames=c._frames,
+                    dtype=c.capsule_a.dtype, device=c.capsule_a.device).requires_grad_(False)
+    split.skip_fixed = c.skip_fixed
+    # the column -> copy map of RobotCollision's placement product (capsule starts, ends, box centres, box
+    # axes, convex vertices)
+    of = lambda shape: [k for k, geom in enumerate(geoms) if geom.shape == shape]  # noqa: E731
+    cap, bx, cv = of("capsule"), of("box"), of("convex")
+    M = split.convex_vertices.shape[1]
+    col = cap * 2 + bx + [g for g in bx for _ in range(3)] + [g for g in cv for _ in range(M)]
+    point = torch.ones(len(col), 1, dtype=c.capsule_a.dtype, device=c.capsule_a.device)
+    point[2 * len(cap) + len(bx):2 * len(cap) + 4 * len(bx)] = 0
+    group = point.new_zeros(len(geoms), len(col))
+    group[col, torch.arange(len(col))] = 1
+    anchor = torch.tensor(split._anchor, dtype=torch.long, device=point.device)
+    return split, point, group, anchor
 
 
 #: MuJoCo Menagerie's MJX G1 (29 DoF, rev 1.0): primitive colliders and the self pairs of its scene
