@@ -106,7 +106,7 @@ def test_collision_rows_jacobian_from_the_bodies_equals_autograd(g1, dtype):
     q = chain.random_configuration((2, 6), generator=torch.Generator().manual_seed(5))
     q[1, :, 7:] *= 0.3  # some pairs near contact
     rows = SelfCollisionRows(rc, chain, q, margin=10.0, screen=0.0)
-    assert rows.count == 26 and rows._body_jacobians(q.reshape(-1, chain.nq)) is not None
+    assert rows.count == 26 and rows._bodies is not None
     d, J = rows.jacobian(q.reshape(-1, chain.nq))
     d_ag, J_ag = rows.jacobian(q.reshape(-1, chain.nq), autograd=True)
     tol = 1e-12 if dtype == F64 else 2e-5

@@ -111,10 +111,11 @@ class SelfCollisionRows:
         """The kept pairs' distances ``(N, P_kept)`` and their Jacobians ``(N, P_kept, nv)`` w.r.t. the step δ
         at ``q (N, nq)``, detached: from the bodies' Jacobians where the model's bodies are the MJCF
         chain's (module doc), else (or with ``autograd``) by autograd through every frame's FK. ``below``:
-        exact only where d < ``below`` (the collision layer's broad phase: elsewhere a bound >= ``below``
-        and its gradient; the rows need no more, and the exact box distances are most of the cost)."""
-        bodies = None if autograd else self._body_jacobians(q)
-        if bodies is None:
+        exact only where d < ``below``; elsewhere d >= ``below`` (the collision layer's broad phase: the
+        exact box distances are most of the cost) with finite rows, zero in the frames where no pair is
+        below (their bodies' Jacobians are not computed). The rows need no more."""
+        full = None if autograd else self._bodies
+        if full is None:
             with torch.enable_grad():
                 qg = q.detach().requires_grad_(True)
                 d = self.model.self_distances(qg)  # (N, P)
@@ -122,39 +123,35 @@ class SelfCollisionRows:
             space = self.chain.configuration_space
             J = Jq if space.euclidean else Jq @ space.tangent_map(q)  # (N, P, nv)
             return d.detach(), J.detach()
-        F, JF = bodies  # (N, K, 4, 4), (N, K, 6, nv)
-        split, point, group, anchor = self._split
-        on_body = torch.nn.functional.one_hot(anchor, F.shape[1]).to(F).unflatten(0, (-1, 2))  # (P, 2, K)
+        split, point, group, anchor, bodies, slot = self._split
+        T = full.forward_kinematics(q, check=False)  # (N, nbody − 1, 4, 4): every body but the world
+        F = torch.cat((torch.eye(4, dtype=q.dtype, device=q.device).expand(q.shape[0], 1, 4, 4), T), 1)
         with torch.enable_grad():
             P = split._columns_at(F).detach().requires_grad_(True)  # (N, 3, C): each column one pair's
             d = split._self_from(P, threshold=below)  # (N, P)
             (g,) = torch.autograd.grad(d.sum(), P)
-        X, g = P.detach().mT, g.mT  # (N, C, 3)
-        # per (pair, side): F_s (points only) and M_s about the world origin, summed over the side's columns
-        w = torch.cat((g * point, torch.linalg.cross(X, g, dim=-1)), -1)  # (N, C, 6)
-        w = (group @ w).unflatten(-2, (-1, 2))  # (N, P, 2, 6)
-        o = F[:, anchor, :3, 3].unflatten(-2, (-1, 2))  # (N, P, 2, 3): the bodies' origins
-        f, m = w.split(3, -1)
-        w = torch.cat((f, m - torch.linalg.cross(o, f, dim=-1)), -1)  # the moment about o_k
-        # each side's wrench in its body's slot (N, P, K, 6), then one batched product with the bodies'
-        # stacked Jacobians (N, K·6, nv): no gather of a Jacobian per pair and side
-        N, K = F.shape[:2]
-        W = torch.einsum("npsc,psk->npkc", w, on_body)
-        J = W.reshape(N, -1, 6 * K) @ JF.reshape(N, 6 * K, -1)  # (N, P, nv)
-        return d.detach(), J
-
-    def _body_jacobians(self, q: Tensor) -> tuple[Tensor, Tensor] | None:
-        """Poses ``(N, nbody, 4, 4)`` and geometric Jacobians ``(N, nbody, 6, nv)`` (in the chain's δ) of the
-        collision model's anchor frames, the world body first, from one FK+Jacobian pass; None where the
-        model is not placed by :func:`~diffkin.models.mjcf_bodies.body_poses` of this chain on the chain's own
-        coordinates."""
-        full = self._bodies
-        if full is None:
-            return None
-        T, J = full.forward_kinematics_and_jacobian(q, check=False)
-        N = q.shape[0]
-        world = torch.eye(4, dtype=q.dtype, device=q.device).expand(N, 1, 4, 4)
-        return torch.cat((world, T), 1), torch.cat((J.new_zeros(N, 1, *J.shape[2:]), J), 1)
+        d = d.detach()
+        J = q.new_zeros(*d.shape, self.chain.nv)
+        if below is not None:  # the frames with a pair below (one host read): their rows only
+            rows = (d < below).any(-1).nonzero().flatten()
+            if rows.numel() == 0:
+                return d, J
+            P, g, F, q = P.index_select(0, rows), g.index_select(0, rows), F.index_select(0, rows), q[rows]
+        N, C, S, K = P.shape[0], P.shape[-1], group.shape[0], len(bodies)
+        X, g = P.detach().permute(2, 0, 1), g.permute(2, 0, 1)  # (C, N, 3): columns first, for one product
+        # per moving side (pair, side): F_s (points only) and M_s about the world origin, summed over its
+        # columns, then M_s about its body's origin o_k
+        w = torch.cat((g * point.unsqueeze(-1), torch.linalg.cross(X, g, dim=-1)), -1)  # (C, N, 6)
+        f, m = (group @ w.reshape(C, -1)).view(S, N, 6).split(3, -1)
+        o = F[:, anchor, :3, 3].transpose(0, 1)  # (S, N, 3)
+        w = torch.cat((f, m - torch.linalg.cross(o, f, dim=-1)), -1)
+        # each side's wrench in its pair's slot for its body (both sides of a pair may share one), then one
+        # batched product with those bodies' stacked Jacobians (N, K·6, nv): no Jacobian gathered per side
+        W = w.new_zeros(d.shape[-1] * K, N, 6).index_add_(0, slot, w)
+        W = W.view(-1, K, N, 6).permute(2, 0, 1, 3).reshape(N, -1, 6 * K)  # (N, P, K·6)
+        _, JF = full.forward_kinematics_and_jacobian(q, check=False)  # (N, nbody − 1, 6, nv)
+        Jr = torch.bmm(W, JF.index_select(1, bodies - 1).reshape(N, 6 * K, -1))  # (N, P, nv)
+        return d, (Jr if below is None else J.index_copy_(0, rows, Jr))
 
 
 def _bodies_chain(collision, chain):
@@ -175,9 +172,10 @@ def _bodies_chain(collision, chain):
 def _per_pair(collision, pairs: list[tuple[int, int]]):
     """The model of ``pairs`` (geom indices into ``collision``) with each pair's own copies of its two geoms
     (geoms 2p and 2p + 1), so every column of its placement product belongs to one pair, and the column
-    tables of :meth:`SelfCollisionRows.jacobian`: ``point (C, 1)`` 1 on point columns (0 on box axes),
-    ``group (2P, C)`` the incidence of pair p's side s (row 2p + s) and the columns, ``anchor (2P,)`` each
-    side's anchor frame."""
+    tables of :meth:`SelfCollisionRows.jacobian`: ``point (C, 1)`` 1 on point columns (0 on box axes);
+    for the S sides (pair p's side s, copy 2p + s) on a moving body: ``group (S, C)`` their incidence with
+    the columns, ``anchor (S,)`` their bodies, ``bodies (K,)`` those bodies (ascending), ``slot (S,)``
+    p K + (the body's place in ``bodies``)."""
     c = collision
     with torch.no_grad():
         kind = {}
@@ -204,8 +202,13 @@ def _per_pair(collision, pairs: list[tuple[int, int]]):
     point[2 * len(cap) + len(bx):2 * len(cap) + 4 * len(bx)] = 0
     group = point.new_zeros(len(geoms), len(col))
     group[col, torch.arange(len(col))] = 1
-    anchor = torch.tensor(split._anchor, dtype=torch.long, device=point.device)
-    return split, point, group, anchor
+    # the sides on a moving body (one on the world body, 0, contributes nothing), those bodies, and each
+    # side's slot p K + k among them
+    moving = [k for k, a in enumerate(split._anchor) if a != 0]
+    used = sorted({split._anchor[k] for k in moving})
+    slot = [(k // 2) * len(used) + used.index(split._anchor[k]) for k in moving]
+    long = lambda x: torch.tensor(x, dtype=torch.long, device=point.device)  # noqa: E731
+    return split, point, group[moving], long([split._anchor[k] for k in moving]), long(used), long(slot)
 
 
 #: MuJoCo Menagerie's MJX G1 (29 DoF, rev 1.0): primitive colliders and the self pairs of its scene
