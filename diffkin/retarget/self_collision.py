@@ -25,9 +25,12 @@ gives each pair's g_c = ∂d_p/∂x_c; a point moves as ẋ = v_k + ω_k × (x �
     F_s = Σ_points g_c,  M_s = Σ_c x_c × g_c,
 
 the pair's wrench on each of its bodies (for capsules and spheres, nᵀ (J_p(a, p_a) − J_p(b, p_b)) with the
-witness points p_a, p_b and the unit normal n). The bodies' poses and Jacobians come from one FK+Jacobian
-pass of the MJCF model's every body (:func:`diffkin.models.mjcf_bodies.body_poses`' chain, the fused C
-kernel on CPU). A model placed otherwise (``body_poses=`` of one's own, another q layout) takes the
+witness points p_a, p_b and the unit normal n). The bodies' poses come from one FK pass of the MJCF
+model's every body (:func:`diffkin.models.mjcf_bodies.body_poses`' chain, the fused C kernel on CPU), their
+Jacobians from one FK+Jacobian pass over the frames where some pair is within the margin (the others have
+no active row; finding them is one host read per evaluation, as the collision layer's broad phase, which
+also leaves the exact distance of pairs its bound proves beyond the margin uncomputed). A model placed
+otherwise (``body_poses=`` of one's own, another q layout) takes the
 autograd path: one batched backward pass per kept pair through all frames' FK (each frame's distance
 depends on that frame's q only, so ∂(Σ_t d_{p,t})/∂q_t = ∂d_{p,t}/∂q_t); both give the same rows
 (``tests/test_retarget_collision.py``).
