@@ -204,7 +204,7 @@ def _per_pair(collision, pairs: list[tuple[int, int]]):
     point = torch.ones(len(col), 1, dtype=c.capsule_a.dtype, device=c.capsule_a.device)
     point[2 * len(cap) + len(bx):2 * len(cap) + 4 * len(bx)] = 0
     group = point.new_zeros(len(geoms), len(col))
-    group[col, torch.arange(len(col))] = 1
+    group[col, torch.arange(len(col), device=point.device)] = 1
     # the sides on a moving body (one on the world body, 0, contributes nothing), those bodies, and each
     # side's slot p K + k among them
     moving = [k for k, a in enumerate(split._anchor) if a != 0]
