@@ -59,6 +59,21 @@ _X_BIG = 1e12  # bound on ṡ² where no limit binds (a path derivative of zero)
 _STRETCH = 2e-4
 
 
+def _search_rows(seq: Tensor, rows: Tensor, x: Tensor) -> Tensor:
+    """``torch.searchsorted(seq[rows], x, right=True)`` per sample: seq (P, L) sorted along L, rows and x
+    (B, T) (each sample searched in its own row of seq) -> (B, T). A binary search by gathers (log2 L
+    steps), so a sample costs its own row only, not all the rows a batched searchsorted would need."""
+    L = seq.shape[1]
+    flat, base = seq.reshape(-1), rows * L
+    lo, hi = torch.zeros_like(rows), torch.full_like(rows, L)
+    for _ in range(L.bit_length()):
+        mid = (lo + hi) // 2
+        le = flat[base + mid.clamp(max=L - 1)] <= x
+        go = lo < hi
+        lo, hi = torch.where(go & le, mid + 1, lo), torch.where(go & ~le, mid, hi)
+    return lo
+
+
 # ------------------------------------------------------------------------------------ the geometric path
 class _Path:
     """Piecewise cubic q(s) = c0 + c1 τ + c2 τ² + c3 τ³ (τ = s − s_k on [s_k, s_{k+1}]), (B, N−1, n)."""
@@ -80,15 +95,24 @@ class _Path:
         inner = self.s[:, 1:-1].contiguous()
         return torch.searchsorted(inner, s.contiguous(), right=True)
 
-    def eval(self, s: Tensor, k: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def eval(self, s: Tensor, k: Tensor | None = None, rows: Tensor | None = None
+             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """q, q', q'', q''' (B, T, n) at s (B, T) (segment k (B, T) if given: the right-hand derivatives at a
-        knot are those of the segment that starts there)."""
-        k = self.segment(s) if k is None else k
-        tau = (s - torch.gather(self.s, 1, k))[..., None]
-        idx = k[..., None].expand(*k.shape, self.c[0].shape[-1])
-        coeffs = [torch.gather(c, 1, idx) for c in self.c]
+        knot are those of the segment that starts there); ``rows`` (B, T): the path of each sample (else
+        row b of s is path b)."""
+        if rows is None:
+            k = self.segment(s) if k is None else k
+            tau = (s - torch.gather(self.s, 1, k))[..., None]
+            idx = k[..., None].expand(*k.shape, self.c[0].shape[-1])
+            coeffs = [torch.gather(c, 1, idx) for c in self.c]
+            last, end = self.s[:, -1:], self.end[:, None]
+        else:
+            k = _search_rows(self.s[:, 1:-1], rows, s) if k is None else k
+            tau = (s - self.s[rows, k])[..., None]
+            coeffs = [c[rows, k] for c in self.c]
+            last, end = self.s[rows, -1], self.end[rows]
         q, q1, q2 = poly_eval(coeffs, tau)
-        q = torch.where((s >= self.s[:, -1:])[..., None], self.end[:, None], q)
+        q = torch.where((s >= last)[..., None], end, q)
         return q, q1, q2, 6 * coeffs[3]
 
 
@@ -205,12 +229,19 @@ class TimedPath:
         #: the geometric path's waypoints (B, N, n) and knots (B, N)
         self.knots = path.s.to(dtype)
 
-    def _base(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """s, ṡ, s̈, ∫s of the unsmoothed profile at times t (B, T) (any real t)."""
-        T_end = self._t[:, -1:]
-        tc = t.clamp(min=0).minimum(T_end)
-        i = torch.searchsorted(self._t[:, 1:-1].contiguous(), tc.contiguous(), right=True)
-        g = lambda v: torch.gather(v, 1, i)  # noqa: E731
+    def _base(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """s, ṡ, s̈, ∫s of the unsmoothed profile at times t (B, T) (any real t; ``rows`` (B, T): the
+        path of each sample, else row b of t is path b)."""
+        if rows is None:
+            T_end = self._t[:, -1:]
+            tc = t.clamp(min=0).minimum(T_end)
+            i = torch.searchsorted(self._t[:, 1:-1].contiguous(), tc.contiguous(), right=True)
+            g = lambda v: torch.gather(v, 1, i)  # noqa: E731
+        else:
+            T_end = self._t[rows, -1]
+            tc = t.clamp(min=0).minimum(T_end)
+            i = _search_rows(self._t[:, 1:-1], rows, tc)
+            g = lambda v: v[rows, i]  # noqa: E731
         d = tc - g(self._t)
         s0, v0, u = g(self._grid), g(self._sd), g(self._u)
         s = s0 + v0 * d + u * d**2 / 2
@@ -221,29 +252,30 @@ class TimedPath:
         a = torch.where(inside & (t < T_end), u, torch.zeros_like(s))
         return s, v, a, S
 
-    def _profile(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """s, ṡ, s̈, s⃛ of the (smoothed, unscaled) profile at times t (B, T)."""
-        tau = self._tau[:, None]
-        s, v, a, S = self._base(t)
+    def _profile(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """s, ṡ, s̈, s⃛ of the (smoothed, unscaled) profile at times t (B, T) (``rows``: :meth:`_base`)."""
+        tau = self._tau[:, None] if rows is None else self._tau[rows]
+        s, v, a, S = self._base(t, rows)
         smooth = tau > 0
         taus = torch.where(smooth, tau, torch.ones_like(tau))
-        s2, v2, a2, S2 = self._base(t - taus)
+        s2, v2, a2, S2 = self._base(t - taus, rows)
         sb = torch.where(smooth, (S - S2) / taus, s)
         vb = torch.where(smooth, (s - s2) / taus, v)
         ab = torch.where(smooth, (v - v2) / taus, a)
         jb = torch.where(smooth, (a - a2) / taus, torch.zeros_like(a))
-        done = t >= self._t[:, -1:] + tau  # at the end exactly, at rest
+        done = t >= (self._t[:, -1:] if rows is None else self._t[rows, -1]) + tau  # at the end, at rest
         zero = torch.zeros_like(sb)
         return (torch.where(done, torch.ones_like(sb), sb), torch.where(done, zero, vb),
                 torch.where(done, zero, ab), torch.where(done, zero, jb))
 
-    def _joint(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """q, q̇, q̈, q⃛ (B, T, n) at real times t (B, T), float64."""
-        k = self._k[:, None]
-        s, v, a, j = self._profile(t / k)
+    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """q, q̇, q̈, q⃛ (B, T, n) at real times t (B, T), float64 (``rows`` (B, T): the path of each
+        sample, else row b of t is path b)."""
+        k = self._k[:, None] if rows is None else self._k[rows]
+        s, v, a, j = self._profile(t / k, rows)
         v, a, j = v / k, a / k**2, j / k**3
         s = s.clamp(min=0, max=1)
-        q, q1, q2, q3 = self._path.eval(s)
+        q, q1, q2, q3 = self._path.eval(s, rows=rows)
         v, a, j = v[..., None], a[..., None], j[..., None]
         return q, q1 * v, q1 * a + q2 * v**2, q1 * j + 3 * q2 * v * a + q3 * v**3
 
@@ -304,14 +336,16 @@ class _Chained(TimedPath):
         self.duration = d.sum(1).to(dtype)
         self.knots = None
 
-    def _joint(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        B, T, K = t.shape[0], t.shape[1], self._K
-        local = (t[:, None, :] - self._start[:, :, None]).reshape(B * K, T)  # each part rests outside
-        out = self._parts._joint(local)
-        seg = torch.searchsorted(self._start[:, 1:].contiguous(), t.contiguous(), right=True)  # (B, T)
-        n = out[0].shape[-1]
-        idx = seg[:, None, :, None].expand(B, 1, T, n)
-        return tuple(torch.gather(x.view(B, K, T, n), 1, idx)[:, 0] for x in out)
+    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        # each sample evaluated on its own part only (the last part that starts at or before it; a part
+        # rests outside its own time span, so the others would add nothing)
+        B, K = t.shape[0], self._K
+        if rows is None:
+            chain = torch.arange(B, device=t.device)[:, None]
+            seg = torch.searchsorted(self._start[:, 1:].contiguous(), t.contiguous(), right=True)  # (B, T)
+        else:
+            chain, seg = rows, _search_rows(self._start[:, 1:], rows, t)
+        return self._parts._joint(t - self._start[chain, seg], chain * K + seg)
 
 
 def _check_limit(x: Tensor, batch: tuple, n: int, name: str) -> Tensor:
