@@ -57,6 +57,7 @@ _X_BIG = 1e12  # bound on ṡ² where no limit binds (a path derivative of zero)
 # relative stretch on top of the dense check: covers the interpolation between check samples (measured up to
 # 1e-4 of the acceleration limit at 16 samples per interval with a jerk limit, 1e-6 without)
 _STRETCH = 2e-4
+_BLOCK = 1 << 16  # samples per block of the limit check (:func:`_peaks`)
 
 
 def _search_rows(seq: Tensor, rows: Tensor, x: Tensor) -> Tensor:
@@ -89,6 +90,12 @@ class _Path:
         else:
             m = spline_slopes(s, y, bc)  # the spline as Hermite cubics of its knot slopes
             self.c = tuple(cubic_coeffs(y[:, :-1], y[:, 1:], m[:, :-1], m[:, 1:], h))
+
+    def rows(self, r: Tensor) -> _Path:
+        """The paths of the rows ``r`` (an index tensor)."""
+        sub = object.__new__(_Path)
+        sub.s, sub.end, sub.c = self.s[r], self.end[r], tuple(c[r] for c in self.c)
+        return sub
 
     def segment(self, s: Tensor) -> Tensor:
         """Segment index (B, T) of path parameters s (B, T) (clamped into the path)."""
@@ -316,9 +323,13 @@ class TimedPath:
         t = torch.arange(S, dtype=torch.float64, device=self._device) * dt
         return t.to(self._dtype).expand(*self._batch, S), self._sample(t.expand(self._B, S))
 
-    def _breakpoints(self, per_interval: int) -> Tensor:
-        """Profile times (B, ·) for the limit check: the knots, the knots + τ, ``per_interval`` inside."""
-        f = torch.arange(per_interval + 1, dtype=torch.float64, device=self._t.device) / per_interval
+    def _breakpoints(self, per_interval: int, skip: int = 0) -> Tensor:
+        """Profile times (B, ·) for the limit check: the knots, the knots + τ, ``per_interval`` inside
+        (``skip`` > 0: without the fractions j / per_interval with j a multiple of ``skip``, the samples of
+        the check at ``per_interval / skip``: the same floats, j / per_interval = (j / skip) / (per_interval /
+        skip) exactly for the powers of two used)."""
+        f = torch.arange(per_interval + 1, dtype=torch.float64, device=self._t.device)
+        f = (f[f.remainder(skip) != 0] if skip else f) / per_interval
         t0, dt = self._t[:, :-1, None], (self._t[:, 1:] - self._t[:, :-1])[..., None]
         inner = (t0 + f * dt).flatten(1)
         return torch.cat((inner, inner + self._tau[:, None]), 1)
@@ -346,6 +357,20 @@ class _Chained(TimedPath):
         else:
             chain, seg = rows, _search_rows(self._start[:, 1:], rows, t)
         return self._parts._joint(t - self._start[chain, seg], chain * K + seg)
+
+
+def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
+    """The largest |q̇| / v, |q̈| / a (and |q⃛| / j with a jerk limit) of each row over the profile times t
+    (B, T): (B, 2 or 3). The samples go in column blocks of about :data:`_BLOCK` samples in all, so the
+    (B, ·, n) temporaries stay small (a whole check at once allocates and faults in hundreds of MB)."""
+    B, T = t.shape
+    w = max(64, _BLOCK // max(B, 1))
+    peak = None
+    for c in range(0, T, w):
+        q_dots = timed._joint(t[:, c:c + w])[1:]
+        r = torch.stack([(qd.abs() / lim[:, None]).amax((1, 2)) for qd, lim in zip(q_dots, limits)], 1)
+        peak = r if peak is None else torch.maximum(peak, r)
+    return peak
 
 
 def _check_limit(x: Tensor, batch: tuple, n: int, name: str) -> Tensor:
@@ -439,16 +464,26 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         else:
             base = 2 * (amax / jmax).amax(1)
             taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
-        def stretch(tau: Tensor, per_interval: int) -> tuple[Tensor, Tensor]:
-            """k and the duration (B,) of the profile smoothed by τ (B,), checked at ``per_interval``."""
-            timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
-            _, qd, qdd, qddd = timed._joint(timed._breakpoints(per_interval))
-            k = torch.maximum((qd.abs() / vmax[:, None]).amax((1, 2)),
-                              (qdd.abs() / amax[:, None]).amax((1, 2)).sqrt())
+        limits = [vmax, amax] if jmax is None else [vmax, amax, jmax]
+
+        def stretch(tau: Tensor, per_interval: int, r: Tensor | None = None, skip: int = 0,
+                    prior: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+            """k, the duration and the peaks (:func:`_peaks`) of the profile smoothed by τ, checked at
+            ``per_interval``, of the rows ``r`` (all if None; τ of those rows); ``prior``: the peaks of the
+            samples left out by ``skip`` (:meth:`TimedPath._breakpoints`)."""
+            if r is None:
+                timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
+                lim = limits
+            else:
+                timed = TimedPath(p.rows(r), grid[r], x[r], tau, torch.ones_like(tau), dtype)
+                lim = [v[r] for v in limits]
+            peak = _peaks(timed, timed._breakpoints(per_interval, skip), lim)
+            peak = peak if prior is None else torch.maximum(peak, prior)
+            k = torch.maximum(peak[:, 0], peak[:, 1].sqrt())
             if jmax is not None:
-                k = torch.maximum(k, (qddd.abs() / jmax[:, None]).amax((1, 2)).pow(1 / 3))
+                k = torch.maximum(k, peak[:, 2].pow(1 / 3))
             k = k.clamp_min(1) * (1 + _STRETCH)
-            return k, (timed._t[:, -1] + tau) * k
+            return k, (timed._t[:, -1] + tau) * k, peak
 
         taus = torch.stack(taus, 1)  # (B, C) candidates, the shortest wins (the first of equals)
         B, C = taus.shape
@@ -456,8 +491,13 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         # floats) gives a lower bound on each candidate's duration; the candidates are checked densely in
         # the order of their bounds until no row's next bound can beat its best.
         prune = C > 1 and check_per_interval % 4 == 0
+        # A dense check then only evaluates the samples the quarter check left out (the peaks of the union
+        # are the larger of both), and only on the rows where its candidate can still win (its duration is
+        # at least its bound, so elsewhere it cannot): the same result as checking every row densely.
         if prune:
-            lower = torch.stack([stretch(taus[:, c], check_per_interval // 4)[1] for c in range(C)], 1)
+            quarter = [stretch(taus[:, c], check_per_interval // 4) for c in range(C)]
+            lower = torch.stack([q[1] for q in quarter], 1)
+            peaks = torch.stack([q[2] for q in quarter], 1)  # (B, C, 2 or 3)
             order = lower.argsort(dim=1, stable=True)
             lower = lower.gather(1, order)
         else:
@@ -466,15 +506,24 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         for r in range(C):
             c = order[:, r]
             tau = taus.gather(1, c[:, None])[:, 0]
+            if prune:
+                prior = peaks.gather(1, c[:, None, None].expand(B, 1, peaks.shape[-1]))[:, 0]
             if prune and best is not None:
                 lo = lower[:, r]
-                if not bool(((lo < best[2]) | ((lo == best[2]) & (c < best[3]))).any()):
+                maybe = (lo < best[2]) | ((lo == best[2]) & (c < best[3]))
+                if not bool(maybe.any()):
                     break  # the later bounds are larger still
-            k, total = stretch(tau, check_per_interval)
+                rows = maybe.nonzero()[:, 0]
+                k_r, total_r, _ = stretch(tau[rows], check_per_interval, rows, 4, prior[rows])
+                k, total = best[1].index_put((rows,), k_r), best[2].index_put((rows,), total_r)
+                better = maybe.clone()
+                better[rows] = (total_r < best[2][rows]) | ((total_r == best[2][rows]) & (c[rows] < best[3][rows]))
+            else:
+                k, total, _ = stretch(tau, check_per_interval, None, 4 if prune else 0, prior if prune else None)
+                better = None if best is None else (total < best[2]) | ((total == best[2]) & (c < best[3]))
             if best is None:
                 best = (tau, k, total, c)
             else:
-                better = (total < best[2]) | ((total == best[2]) & (c < best[3]))
                 best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
         return _batched(TimedPath(p, grid, x, best[0], best[1], dtype), batch)
 
