@@ -220,7 +220,7 @@ class TimedPath:
     """
 
     def __init__(self, path: _Path, grid: Tensor, x: Tensor, tau: Tensor, k: Tensor, dtype: torch.dtype):
-        self._path, self._grid, self._tau, self._k, self._dtype = path, grid, tau, k, dtype
+        self._path, self._grid, self._x, self._tau, self._k, self._dtype = path, grid, x, tau, k, dtype
         self._B, self._device, self._batch = grid.shape[0], grid.device, (grid.shape[0],)
         sd = x.clamp_min(0).sqrt()
         delta = grid[:, 1:] - grid[:, :-1]
