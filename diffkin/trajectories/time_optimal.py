@@ -194,22 +194,27 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     C = torch.where(pair, c, 1.0)
     # the fixed upper rows for u at x: u ≤ (γ − β x) / α
     Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
-    K = [torch.zeros_like(xv[:, 0])] * M  # the controllable ṡ² bound per grid point
+    # the passes below run one grid point at a time: the per-point columns are taken once (unbind) and kept
+    # as (B, 1), so each step is a few small ops (these loops are most of the time of a short batch)
+    col = lambda v: v.unbind(1)  # noqa: E731
+    Aq, G, C, Au, Bu, Gu = col(Aq), col(G), col(C), col(Au), col(Bu), col(Gu)
+    fixed, xq, d2 = col(fixed[..., None]), col(xq[..., None]), col((2 * delta)[..., None])
+    K = [torch.zeros_like(xv[:, :1])] * M  # the controllable ṡ² bound per grid point
     K_next = [None] * (M - 1)
     for i in range(M - 2, -1, -1):
-        kn = torch.minimum(K[i + 1], xq[:, i])
+        kn = torch.minimum(K[i + 1], xq[i])
         K_next[i] = kn
-        moving = ((Aq[:, i] * kn[:, None] + G[:, i]) / C[:, i]).amin(1)
-        K[i] = torch.minimum(fixed[:, i], moving.clamp_min(0))
+        moving = ((Aq[i] * kn + G[i]) / C[i]).amin(1, keepdim=True)
+        K[i] = torch.minimum(fixed[i], moving.clamp_min(0))
     x = [torch.zeros_like(K[0])]
     for i in range(M - 1):
         xi = torch.minimum(x[i], K[i])
         x[i] = xi
-        d = 2 * delta[:, i]
-        u = torch.minimum(((Gu[:, i] - Bu[:, i] * xi[:, None]) / Au[:, i]).amin(1), (K_next[i] - xi) / d)
+        d = d2[i]
+        u = torch.minimum(((Gu[i] - Bu[i] * xi) / Au[i]).amin(1, keepdim=True), (K_next[i] - xi) / d)
         u = u.clamp(min=-xi / d)
         x.append((xi + d * u).clamp(min=0).minimum(K[i + 1]))
-    return torch.stack(x, 1)
+    return torch.cat(x, 1)
 
 
 # ------------------------------------------------------------------------------------ the timed result
