@@ -123,8 +123,14 @@ def take_scalar(values: Tensor, idx: Tensor) -> Tensor:
     return take(values[..., None], idx)[..., 0]
 
 
-def poly_eval(coeffs: list[Tensor], tau: Tensor) -> Trajectory:
-    """Horner evaluation of sum_k a_k tau^k and its first two derivatives in tau."""
+def poly_eval(coeffs: list[Tensor], tau: Tensor, position_only: bool = False) -> Trajectory:
+    """Horner evaluation of sum_k a_k tau^k and its first two derivatives in tau (``position_only``: the
+    derivatives are None)."""
+    if position_only:
+        p = coeffs[-1]
+        for c in reversed(coeffs[:-1]):
+            p = p * tau + c
+        return Trajectory(p, None, None)
     # Horner from the top coefficient: the steps that would multiply zeros are skipped (the same floats as
     # starting from p = v = a = 0; fewer full-size temporaries on large sample sets)
     p, v, a = coeffs[-1], None, None

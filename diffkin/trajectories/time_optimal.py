@@ -102,11 +102,11 @@ class _Path:
         inner = self.s[:, 1:-1].contiguous()
         return torch.searchsorted(inner, s.contiguous(), right=True)
 
-    def eval(self, s: Tensor, k: Tensor | None = None, rows: Tensor | None = None
+    def eval(self, s: Tensor, k: Tensor | None = None, rows: Tensor | None = None, position_only: bool = False
              ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """q, q', q'', q''' (B, T, n) at s (B, T) (segment k (B, T) if given: the right-hand derivatives at a
         knot are those of the segment that starts there); ``rows`` (B, T): the path of each sample (else
-        row b of s is path b)."""
+        row b of s is path b); ``position_only``: q alone (the derivatives None)."""
         if rows is None:
             k = self.segment(s) if k is None else k
             tau = (s - torch.gather(self.s, 1, k))[..., None]
@@ -118,9 +118,9 @@ class _Path:
             tau = (s - self.s[rows, k])[..., None]
             coeffs = [c[rows, k] for c in self.c]
             last, end = self.s[rows, -1], self.end[rows]
-        q, q1, q2 = poly_eval(coeffs, tau)
+        q, q1, q2 = poly_eval(coeffs, tau, position_only)
         q = torch.where((s >= last)[..., None], end, q)
-        return q, q1, q2, 6 * coeffs[3]
+        return q, q1, q2, None if position_only else 6 * coeffs[3]
 
 
 # ------------------------------------------------------------------------------------ TOPP-RA on a grid
