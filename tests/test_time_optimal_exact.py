@@ -101,3 +101,17 @@ def test_poly_eval_equals_horner_from_zero():
             a, v, p = a * tau + 2 * v, v * tau + p, p * tau + c
         for x, ref in zip(poly_eval(coeffs, tau), (p, v, a)):
             assert x.shape == ref.shape and torch.equal(x, ref)
+
+
+@pytest.mark.parametrize("interpolation", ["spline", "linear"])
+def test_native_topp_passes_equal_torch(interpolation):
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch passes serve every call")
+    y, kn, _ = _paths(6, 7, 5)
+    res = time_optimal(y, V, A, knots=kn, interpolation=interpolation, grid_per_segment=40)
+    with native.disabled():
+        ref = time_optimal(y, V, A, knots=kn, interpolation=interpolation, grid_per_segment=40)
+    assert torch.equal(res._x, ref._x) and torch.equal(res.duration, ref.duration)
+    assert bool((res._x[:, 1:-1] > 0).any())  # a motion, not a path at rest

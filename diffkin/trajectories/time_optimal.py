@@ -48,6 +48,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ConventionError, ShapeError
+from ..kernels import native
 from ..validation import check_count, check_number, shape_str, tensors
 from ._common import InfeasibleTrajectoryError, Trajectory, cubic_coeffs, poly_eval, spline_slopes
 
@@ -194,11 +195,15 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     C = torch.where(pair, c, 1.0)
     # the fixed upper rows for u at x: u ≤ (γ − β x) / α
     Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
+    two_delta = 2 * delta
+    x = native.topp_passes(Aq, G, C, Au, Bu, Gu, fixed, xq, two_delta)  # in C on the CPU: the same floats
+    if x is not None:
+        return x
     # the passes below run one grid point at a time: the per-point columns are taken once (unbind) and kept
     # as (B, 1), so each step is a few small ops (these loops are most of the time of a short batch)
     col = lambda v: v.unbind(1)  # noqa: E731
     Aq, G, C, Au, Bu, Gu = col(Aq), col(G), col(C), col(Au), col(Bu), col(Gu)
-    fixed, xq, d2 = col(fixed[..., None]), col(xq[..., None]), col((2 * delta)[..., None])
+    fixed, xq, d2 = col(fixed[..., None]), col(xq[..., None]), col(two_delta[..., None])
     K = [torch.zeros_like(xv[:, :1])] * M  # the controllable ṡ² bound per grid point
     K_next = [None] * (M - 1)
     for i in range(M - 2, -1, -1):
