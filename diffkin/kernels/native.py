@@ -662,13 +662,13 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor) -> Tensor | None:
     return x
 
 
-def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Tensor, fixed: Tensor, xq: Tensor,
-                d: Tensor) -> Tensor | None:
+def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Tensor, fixed: Tensor,
+                xq: Tensor, d: Tensor) -> Tensor | None:
     """x = ṡ² ``(B, M)`` at the grid points of the TOPP-RA backward and forward passes of
-    :func:`diffkin.trajectories.time_optimal._topp` by ``dk_topp_passes`` (``_native_topp.c``: the same floats),
-    from its reduced rows ``Aq, G, C (B, M - 1, R)``, ``Au, Bu, Gu (B, M - 1, Ru)`` and ``fixed, xq, d
-    (B, M - 1)``; None (nothing done) where the library is not loaded or the inputs are not CPU tensors of one
-    float dtype without autograd. Paths are shared between threads."""
+    :func:`diffkin.trajectories.time_optimal._topp` by ``dk_topp_passes`` (``_native_topp.c``: the same
+    floats), from its reduced rows ``Aq, G, C (B, M - 1, R)``, ``Au, Bu, Gu (B, M - 1, Ru)`` and ``fixed,
+    xq, d (B, M - 1)``; None (nothing done) where the library is not loaded or the inputs are not CPU tensors
+    of one float dtype without autograd. Paths are shared between threads."""
     ins = (Aq, G, C, Au, Bu, Gu, fixed, xq, d)
     dtype = Aq.dtype
     if (not available() or dtype not in (torch.float32, torch.float64)

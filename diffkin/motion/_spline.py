@@ -34,8 +34,8 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
     u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
     lo, hi, reach = lo.to(torch.float64), hi.to(torch.float64), checker.reach.to(torch.float64)
-    # the fine samples in column blocks (each overlapping the next by one sample for its chord): the (B, ·, nq)
-    # positions of all of them at once would be hundreds of MB for a large batch
+    # the fine samples in column blocks (each overlapping the next by one sample for its chord): the
+    # (B, ·, nq) positions of all of them at once would be hundreds of MB for a large batch
     w = max(64, _BLOCK // max(B, 1))
     inside, chords = torch.ones(B, dtype=torch.bool, device=path.device), []
     for c in range(0, fine, w):

@@ -512,25 +512,26 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             lower = lower.gather(1, order)
         else:
             order = torch.arange(C, device=taus.device).expand(B, C)
+        def beats(total: Tensor, c: Tensor, best: tuple) -> Tensor:
+            return (total < best[2]) | ((total == best[2]) & (c < best[3]))
+
         best = None
         for r in range(C):
             c = order[:, r]
             tau = taus.gather(1, c[:, None])[:, 0]
-            if prune:
-                prior = peaks.gather(1, c[:, None, None].expand(B, 1, peaks.shape[-1]))[:, 0]
+            skip, prior = (4, peaks.gather(1, c[:, None, None].expand(-1, 1, peaks.shape[-1]))[:, 0]) \
+                if prune else (0, None)
             if prune and best is not None:
-                lo = lower[:, r]
-                maybe = (lo < best[2]) | ((lo == best[2]) & (c < best[3]))
+                maybe = beats(lower[:, r], c, best)
                 if not bool(maybe.any()):
                     break  # the later bounds are larger still
                 rows = maybe.nonzero()[:, 0]
-                k_r, total_r, _ = stretch(tau[rows], check_per_interval, rows, 4, prior[rows])
+                k_r, total_r, _ = stretch(tau[rows], check_per_interval, rows, skip, prior[rows])
                 k, total = best[1].index_put((rows,), k_r), best[2].index_put((rows,), total_r)
-                better = maybe.clone()
-                better[rows] = (total_r < best[2][rows]) | ((total_r == best[2][rows]) & (c[rows] < best[3][rows]))
+                better = maybe & beats(total, c, best)
             else:
-                k, total, _ = stretch(tau, check_per_interval, None, 4 if prune else 0, prior if prune else None)
-                better = None if best is None else (total < best[2]) | ((total == best[2]) & (c < best[3]))
+                k, total, _ = stretch(tau, check_per_interval, None, skip, prior)
+                better = None if best is None else beats(total, c, best)
             if best is None:
                 best = (tau, k, total, c)
             else:
