@@ -19,15 +19,18 @@ grid points) with x = ṡ², u = s̈ and x_{i+1} = x_i + 2 Δ_i u_i, the constra
 (collocation) are |q'_j(s_i)| √x ≤ v_j and |q'_j(s_i) u + q''_j(s_i) x| ≤ a_j. A backward pass computes the
 largest x_i from which the end is reachable at rest (each a two-variable LP, solved exactly by its vertices,
 all paths at once); a forward pass from x_0 = 0 takes the largest u_i that stays controllable. Between grid
-points s̈ is constant (toppra's ``ParametrizeConstAccel``), so interval i lasts 2Δ_i / (ṡ_i + ṡ_{i+1}).
+points s̈ is constant (toppra's ``ParametrizeConstAccel``), so interval i lasts 2Δ_i / (ṡ_i + ṡ_{i+1}). The
+two passes go one grid point at a time: in C on the CPU (``kernels/_native_topp.c``, paths over threads, the
+same floats), else in torch (CUDA, no compiler).
 
 Without a jerk limit this is bang-bang: the acceleration jumps at the switching points (and at t = 0 and
 at the end). With ``jerk_limit``, the profile s(t) is smoothed by a moving average of width τ,
 s̄(t) = (1/τ)∫_{t-τ}^{t} s (s = 0 before the start, 1 after the end): s̄ starts and ends at rest with zero
 acceleration, its acceleration is continuous and its jerk bounded ((s̈(t) − s̈(t−τ))/τ); τ is chosen per
 path among a few multiples of 2·max_j a_j / j_j (the shortest result wins; a candidate whose duration
-checked at a quarter of the samples — a lower bound — cannot win is not checked densely). The smoothed
-motion is not time-optimal under the jerk limit (an upper bound on it).
+checked at a quarter of the samples — a lower bound — cannot win is not checked densely, and a dense
+check evaluates only the samples the quarter check did not, on the rows where its candidate can still
+win). The smoothed motion is not time-optimal under the jerk limit (an upper bound on it).
 
 Limits exactly: every result is finally stretched uniformly in time by the smallest factor k ≥ 1 that puts
 every velocity, acceleration and jerk (with ``jerk_limit``) within its limit on a dense check (all the
