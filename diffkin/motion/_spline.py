@@ -49,6 +49,10 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     K = int(n.max()) + 1
     marks = torch.arange(K, device=path.device, dtype=torch.float64)[None] * c[:, None]  # (B, K)
     idx = torch.searchsorted(cum, marks.contiguous()).clamp(max=fine)
-    idx = torch.where(torch.arange(K, device=path.device)[None] <= n[:, None], idx, fine)
     qc = p.eval(torch.gather(u, 1, idx), position_only=True)[0].to(path.dtype)  # the same floats as above
-    return checker.clear(qc, problem[:, None]).all(1) & inside
+    # only each row's own n + 1 marks are checked (a row's marks past n would all be its end point, which its
+    # mark n already is: the longest row's count for every row multiplied the collision checks)
+    own = torch.arange(K, device=path.device)[None] <= n[:, None]
+    ok = torch.ones(B, K, dtype=torch.bool, device=path.device)
+    ok[own] = checker.clear(qc[own], problem[:, None].expand(B, K)[own])
+    return ok.all(1) & inside
