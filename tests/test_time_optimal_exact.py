@@ -86,8 +86,9 @@ def test_search_rows_equals_searchsorted():
             seq[:, 2] = seq[:, 1]  # repeated values
         x = torch.cat((torch.rand(5, 50, generator=g, dtype=F64) * 1.2 - 0.1, seq), 1)
         rows = torch.randint(0, 5, x.shape, generator=g)
-        ref = torch.searchsorted(seq[rows], x[..., None], right=True)[..., 0]
-        assert torch.equal(_search_rows(seq, rows, x), ref)
+        for right in (True, False):
+            ref = torch.searchsorted(seq[rows], x[..., None], right=right)[..., 0]
+            assert torch.equal(_search_rows(seq, rows, x, right), ref)
 
 
 def test_poly_eval_equals_horner_from_zero():
@@ -115,3 +116,43 @@ def test_native_topp_passes_equal_torch(interpolation):
         ref = time_optimal(y, V, A, knots=kn, interpolation=interpolation, grid_per_segment=40)
     assert torch.equal(res._x, ref._x) and torch.equal(res.duration, ref.duration)
     assert bool((res._x[:, 1:-1] > 0).any())  # a motion, not a path at rest
+
+
+def test_spline_check_marks_equal_padded_marks():
+    """motion._spline_clear checks each row's own marks in blocks: the same decisions as all fine samples at
+    once and every row padded to the longest row's mark count (the former code), here with a stand-in
+    checker whose decision is a plane in joint space."""
+    from diffkin.motion._spline import _knots, _spline_clear
+    from diffkin.trajectories.time_optimal import _Path
+
+    class Plane:
+        reach = torch.full((7,), 0.3, dtype=F64)
+
+        def eta_of(self, problem):
+            return 0.004 + 0.002 * (problem % 2).to(F64)
+
+        def clear(self, q, problem):
+            return q[..., 0] + 0.01 * problem.to(F64) < 1.2
+
+    y, _, _ = _paths(7, 9, 6)
+    y[::3] *= 0.1  # short and long paths in one batch
+    kn, lo, hi = _knots(y), torch.full((7,), -3.0, dtype=F64), torch.full((7,), 3.0, dtype=F64)
+    problem = torch.arange(9)
+    fine = 512
+    got = _spline_clear(Plane(), y, kn, lo, hi, problem, fine=fine)
+    # the former code
+    s = (kn - kn[:, :1]) / (kn[:, -1:] - kn[:, :1])
+    p = _Path(s.contiguous(), y, "spline", "clamped")
+    u = torch.linspace(0, 1, fine + 1, dtype=F64).expand(9, -1).contiguous()
+    q = p.eval(u)[0]
+    inside = ((q >= lo) & (q <= hi)).all(-1).all(-1)
+    cum = torch.cat((torch.zeros(9, 1, dtype=F64), ((q[:, 1:] - q[:, :-1]).abs() * Plane.reach).sum(-1)
+                     .cumsum(1)), 1)
+    c = 0.8 * Plane().eta_of(problem)
+    n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
+    K = int(n.max()) + 1
+    idx = torch.searchsorted(cum, (torch.arange(K, dtype=F64)[None] * c[:, None]).contiguous()).clamp(max=fine)
+    idx = torch.where(torch.arange(K)[None] <= n[:, None], idx, fine)
+    qc = torch.gather(q, 1, idx[..., None].expand(9, K, 7))
+    ref = Plane().clear(qc, problem[:, None]).all(1) & inside
+    assert torch.equal(got, ref) and bool(got.any()) and not bool(got.all())

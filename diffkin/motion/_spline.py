@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..trajectories.time_optimal import _BLOCK, _Path
+from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
 from ._edges import EdgeChecker
 
 __all__ = ["_knots", "_spline_clear"]
@@ -46,13 +46,14 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
     c = 0.8 * checker.eta_of(problem).to(torch.float64)  # (B,): each problem's resolution
     n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
-    K = int(n.max()) + 1
-    marks = torch.arange(K, device=path.device, dtype=torch.float64)[None] * c[:, None]  # (B, K)
-    idx = torch.searchsorted(cum, marks.contiguous()).clamp(max=fine)
-    qc = p.eval(torch.gather(u, 1, idx), position_only=True)[0].to(path.dtype)  # the same floats as above
-    # only each row's own n + 1 marks are checked (a row's marks past n would all be its end point, which its
-    # mark n already is: the longest row's count for every row multiplied the collision checks)
-    own = torch.arange(K, device=path.device)[None] <= n[:, None]
-    ok = torch.ones(B, K, dtype=torch.bool, device=path.device)
-    ok[own] = checker.clear(qc[own], problem[:, None].expand(B, K)[own])
-    return ok.all(1) & inside
+    # each row's own n + 1 marks only, flat (padding every row to the longest row's count multiplied the
+    # evaluations and collision checks: a row's marks past n would all be its end point, its mark n)
+    rows = torch.repeat_interleave(torch.arange(B, device=path.device), n + 1)
+    first = torch.cumsum(n + 1, 0) - (n + 1)
+    marks = (torch.arange(rows.shape[0], device=path.device) - first[rows]).to(torch.float64) * c[rows]
+    idx = _search_rows(cum, rows, marks, right=False).clamp(max=fine)
+    qc = p.eval(u[0, idx], rows=rows, position_only=True)[0].to(path.dtype)  # the same floats as above
+    ok = checker.clear(qc, problem[rows])
+    clear = torch.ones(B, dtype=torch.bool, device=path.device)
+    clear[rows[~ok]] = False
+    return clear & inside

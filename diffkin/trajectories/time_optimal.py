@@ -64,16 +64,17 @@ _STRETCH = 2e-4
 _BLOCK = 1 << 16  # samples per block of the limit check (:func:`_peaks`)
 
 
-def _search_rows(seq: Tensor, rows: Tensor, x: Tensor) -> Tensor:
-    """``torch.searchsorted(seq[rows], x, right=True)`` per sample: seq (P, L) sorted along L, rows and x
-    (B, T) (each sample searched in its own row of seq) -> (B, T). A binary search by gathers (log2 L
+def _search_rows(seq: Tensor, rows: Tensor, x: Tensor, right: bool = True) -> Tensor:
+    """``torch.searchsorted(seq[rows], x, right=right)`` per sample: seq (P, L) sorted along L, rows and x
+    (...) (each sample searched in its own row of seq) -> (...). A binary search by gathers (log2 L
     steps), so a sample costs its own row only, not all the rows a batched searchsorted would need."""
     L = seq.shape[1]
     flat, base = seq.reshape(-1), rows * L
     lo, hi = torch.zeros_like(rows), torch.full_like(rows, L)
     for _ in range(L.bit_length()):
         mid = (lo + hi) // 2
-        le = flat[base + mid.clamp(max=L - 1)] <= x
+        v = flat[base + mid.clamp(max=L - 1)]
+        le = v <= x if right else v < x
         go = lo < hi
         lo, hi = torch.where(go & le, mid + 1, lo), torch.where(go & ~le, mid, hi)
     return lo
