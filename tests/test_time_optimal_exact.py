@@ -151,7 +151,8 @@ def test_spline_check_marks_equal_padded_marks():
     c = 0.8 * Plane().eta_of(problem)
     n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
     K = int(n.max()) + 1
-    idx = torch.searchsorted(cum, (torch.arange(K, dtype=F64)[None] * c[:, None]).contiguous()).clamp(max=fine)
+    marks = (torch.arange(K, dtype=F64)[None] * c[:, None]).contiguous()
+    idx = torch.searchsorted(cum, marks).clamp(max=fine)
     idx = torch.where(torch.arange(K)[None] <= n[:, None], idx, fine)
     qc = torch.gather(q, 1, idx[..., None].expand(9, K, 7))
     ref = Plane().clear(qc, problem[:, None]).all(1) & inside
