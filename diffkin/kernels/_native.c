@@ -524,6 +524,24 @@ int64_t dk_banded_solve(const void *D, const void *E, const void *F, int64_t f_s
     return DK_ABI_ERROR;
 }
 
+/* The TOPP-RA passes of B paths of M grid points (_native_topp.c; reals of real_bytes 8 or 4): x (B, M) from the
+ * reduced rows Aq, G, C (B, M - 1, R), Au, Bu, Gu (B, M - 1, Ru), fixed, xq, d (B, M - 1), with the work K
+ * (B, M), Kn (B, M - 1). Returns 0, DK_ABI_ERROR for another real size. */
+int64_t dk_topp_passes(const void *const *in, void *K, void *Kn, void *x, int64_t B, int64_t M, int64_t R,
+                       int64_t Ru, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        return topp_passes_f64(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], (double *)K, (double *)Kn,
+                               (double *)x, B, M, R, Ru, nthreads);
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        return topp_passes_f32(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], (float *)K, (float *)Kn,
+                               (float *)x, B, M, R, Ru, nthreads);
+    }
+    return DK_ABI_ERROR;
+}
+
 /* The frame terms of the whole-clip retargeting problem (_native_clip.c) into c's outputs; returns 0, -1
  * when the work space cannot be allocated, DK_ABI_ERROR for a struct of another version or size or a real
  * size other than 8 or 4. */
@@ -1005,6 +1023,7 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
 #include "_native_velocity.c"
 #include "_native_banded.c"
 #include "_native_clip.c"
+#include "_native_topp.c"
 
 #undef real
 #endif

@@ -74,7 +74,7 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "NativeModel", "Collide", "capsules_clear", "collide_struct",
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
-           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows"]
+           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -82,7 +82,8 @@ _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _nativ
              Path(__file__).with_name("_native_plan.c"),
              Path(__file__).with_name("_native_velocity.c"),
              Path(__file__).with_name("_native_banded.c"),
-             Path(__file__).with_name("_native_clip.c"))
+             Path(__file__).with_name("_native_clip.c"),
+             Path(__file__).with_name("_native_topp.c"))
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
@@ -293,6 +294,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.restype = _I64  # D, E, F, f_shared, g, shift, x, batch, T, n, real_bytes, nthreads
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
+    lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     return lib
 
 
@@ -666,6 +668,29 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
     _raise_on(_lib.dk_banded_solve(D.data_ptr(), E.data_ptr(), F.data_ptr(), int(f_shared), g.data_ptr(),
                                    None if shift is None else shift.data_ptr(), x.data_ptr(), batch, T, n,
                                    g.element_size(), threads), "work space")
+    return x
+
+
+def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Tensor, fixed: Tensor,
+                xq: Tensor, d: Tensor) -> Tensor | None:
+    """x = ṡ² ``(B, M)`` at the grid points of the TOPP-RA backward and forward passes of
+    :func:`diffkin.trajectories.time_optimal._topp` by ``dk_topp_passes`` (``_native_topp.c``: the same
+    floats), from its reduced rows ``Aq, G, C (B, M - 1, R)``, ``Au, Bu, Gu (B, M - 1, Ru)`` and ``fixed,
+    xq, d (B, M - 1)``; None (nothing done) where the library is not loaded or the inputs are not CPU tensors
+    of one float dtype without autograd. Paths are shared between threads."""
+    ins = (Aq, G, C, Au, Bu, Gu, fixed, xq, d)
+    dtype = Aq.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in ins)):
+        return None
+    B, M1, R = Aq.shape
+    ins = [t.contiguous() for t in ins]
+    x = torch.empty(B, M1 + 1, dtype=dtype)
+    K, Kn = torch.empty_like(x), torch.empty(B, M1, dtype=dtype)
+    ptrs = (ctypes.c_void_p * 9)(*(t.data_ptr() for t in ins))
+    threads = min(B, thread_count(B * M1))
+    _raise_on(_lib.dk_topp_passes(ptrs, K.data_ptr(), Kn.data_ptr(), x.data_ptr(), B, M1 + 1, R, Au.shape[-1],
+                                  x.element_size(), threads), "work space")
     return x
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..trajectories.time_optimal import _Path
+from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
 from ._edges import EdgeChecker
 
 __all__ = ["_knots", "_spline_clear"]
@@ -33,15 +33,27 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
     p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
     u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
-    q = p.eval(u)[0]
-    inside = ((q >= lo.to(q)) & (q <= hi.to(q))).all(-1).all(-1)
-    chord = ((q[:, 1:] - q[:, :-1]).abs() * checker.reach.to(torch.float64)).sum(-1)
+    lo, hi, reach = lo.to(torch.float64), hi.to(torch.float64), checker.reach.to(torch.float64)
+    # the fine samples in column blocks (each overlapping the next by one sample for its chord): the
+    # (B, ·, nq) positions of all of them at once would be hundreds of MB for a large batch
+    w = max(64, _BLOCK // max(B, 1))
+    inside, chords = torch.ones(B, dtype=torch.bool, device=path.device), []
+    for c in range(0, fine, w):
+        q = p.eval(u[:, c:c + w + 1], position_only=True)[0]
+        inside &= ((q >= lo) & (q <= hi)).all(-1).all(-1)
+        chords.append(((q[:, 1:] - q[:, :-1]).abs() * reach).sum(-1))
+    chord = torch.cat(chords, 1)
     cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
     c = 0.8 * checker.eta_of(problem).to(torch.float64)  # (B,): each problem's resolution
     n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
-    K = int(n.max()) + 1
-    marks = torch.arange(K, device=path.device, dtype=torch.float64)[None] * c[:, None]  # (B, K)
-    idx = torch.searchsorted(cum, marks.contiguous()).clamp(max=fine)
-    idx = torch.where(torch.arange(K, device=path.device)[None] <= n[:, None], idx, fine)
-    qc = torch.gather(q, 1, idx[..., None].expand(B, K, q.shape[-1])).to(path.dtype)
-    return checker.clear(qc, problem[:, None]).all(1) & inside
+    # each row's own n + 1 marks only, flat (padding every row to the longest row's count multiplied the
+    # evaluations and collision checks: a row's marks past n would all be its end point, its mark n)
+    rows = torch.repeat_interleave(torch.arange(B, device=path.device), n + 1)
+    first = torch.cumsum(n + 1, 0) - (n + 1)
+    marks = (torch.arange(rows.shape[0], device=path.device) - first[rows]).to(torch.float64) * c[rows]
+    idx = _search_rows(cum, rows, marks, right=False).clamp(max=fine)
+    qc = p.eval(u[0, idx], rows=rows, position_only=True)[0].to(path.dtype)  # the same floats as above
+    ok = checker.clear(qc, problem[rows])
+    clear = torch.ones(B, dtype=torch.bool, device=path.device)
+    clear[rows[~ok]] = False
+    return clear & inside

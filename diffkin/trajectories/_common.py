@@ -123,15 +123,26 @@ def take_scalar(values: Tensor, idx: Tensor) -> Tensor:
     return take(values[..., None], idx)[..., 0]
 
 
-def poly_eval(coeffs: list[Tensor], tau: Tensor) -> Trajectory:
-    """Horner evaluation of sum_k a_k tau^k and its first two derivatives in tau."""
-    p = torch.zeros_like(tau * coeffs[-1])
-    v = torch.zeros_like(p)
-    a = torch.zeros_like(p)
-    for c in reversed(coeffs):
-        a = a * tau + 2 * v
-        v = v * tau + p
+def poly_eval(coeffs: list[Tensor], tau: Tensor, position_only: bool = False) -> Trajectory:
+    """Horner evaluation of sum_k a_k tau^k and its first two derivatives in tau (``position_only``: the
+    derivatives are None)."""
+    if position_only:
+        p = coeffs[-1]
+        for c in reversed(coeffs[:-1]):
+            p = p * tau + c
+        return Trajectory(p, None, None)
+    # Horner from the top coefficient: the steps that would multiply zeros are skipped (the same floats as
+    # starting from p = v = a = 0; fewer full-size temporaries on large sample sets)
+    p, v, a = coeffs[-1], None, None
+    for c in reversed(coeffs[:-1]):
+        if v is not None:
+            a = 2 * v if a is None else a * tau + 2 * v
+        v = p if v is None else v * tau + p
         p = p * tau + c
+    shape = torch.broadcast_shapes(p.shape, tau.shape)
+    p = p.expand(shape) if p.shape != shape else p
+    v = torch.zeros(shape, dtype=p.dtype, device=p.device) if v is None else v.expand(shape)
+    a = torch.zeros(shape, dtype=p.dtype, device=p.device) if a is None else a.expand(shape)
     return Trajectory(p, v, a)
 
 

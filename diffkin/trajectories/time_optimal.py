@@ -19,15 +19,18 @@ grid points) with x = ṡ², u = s̈ and x_{i+1} = x_i + 2 Δ_i u_i, the constra
 (collocation) are |q'_j(s_i)| √x ≤ v_j and |q'_j(s_i) u + q''_j(s_i) x| ≤ a_j. A backward pass computes the
 largest x_i from which the end is reachable at rest (each a two-variable LP, solved exactly by its vertices,
 all paths at once); a forward pass from x_0 = 0 takes the largest u_i that stays controllable. Between grid
-points s̈ is constant (toppra's ``ParametrizeConstAccel``), so interval i lasts 2Δ_i / (ṡ_i + ṡ_{i+1}).
+points s̈ is constant (toppra's ``ParametrizeConstAccel``), so interval i lasts 2Δ_i / (ṡ_i + ṡ_{i+1}). The
+two passes go one grid point at a time: in C on the CPU (``kernels/_native_topp.c``, paths over threads, the
+same floats), else in torch (CUDA, no compiler).
 
 Without a jerk limit this is bang-bang: the acceleration jumps at the switching points (and at t = 0 and
 at the end). With ``jerk_limit``, the profile s(t) is smoothed by a moving average of width τ,
 s̄(t) = (1/τ)∫_{t-τ}^{t} s (s = 0 before the start, 1 after the end): s̄ starts and ends at rest with zero
 acceleration, its acceleration is continuous and its jerk bounded ((s̈(t) − s̈(t−τ))/τ); τ is chosen per
 path among a few multiples of 2·max_j a_j / j_j (the shortest result wins; a candidate whose duration
-checked at a quarter of the samples — a lower bound — cannot win is not checked densely). The smoothed
-motion is not time-optimal under the jerk limit (an upper bound on it).
+checked at a quarter of the samples — a lower bound — cannot win is not checked densely, and a dense
+check evaluates only the samples the quarter check did not, on the rows where its candidate can still
+win). The smoothed motion is not time-optimal under the jerk limit (an upper bound on it).
 
 Limits exactly: every result is finally stretched uniformly in time by the smallest factor k ≥ 1 that puts
 every velocity, acceleration and jerk (with ``jerk_limit``) within its limit on a dense check (all the
@@ -48,6 +51,7 @@ import torch
 from torch import Tensor
 
 from ..errors import ConventionError, ShapeError
+from ..kernels import native
 from ..validation import check_count, check_number, shape_str, tensors
 from ._common import InfeasibleTrajectoryError, Trajectory, cubic_coeffs, poly_eval, spline_slopes
 
@@ -57,6 +61,23 @@ _X_BIG = 1e12  # bound on ṡ² where no limit binds (a path derivative of zero)
 # relative stretch on top of the dense check: covers the interpolation between check samples (measured up to
 # 1e-4 of the acceleration limit at 16 samples per interval with a jerk limit, 1e-6 without)
 _STRETCH = 2e-4
+_BLOCK = 1 << 16  # samples per block of the limit check (:func:`_peaks`)
+
+
+def _search_rows(seq: Tensor, rows: Tensor, x: Tensor, right: bool = True) -> Tensor:
+    """``torch.searchsorted(seq[rows], x, right=right)`` per sample: seq (P, L) sorted along L, rows and x
+    (...) (each sample searched in its own row of seq) -> (...). A binary search by gathers (log2 L
+    steps), so a sample costs its own row only, not all the rows a batched searchsorted would need."""
+    L = seq.shape[1]
+    flat, base = seq.reshape(-1), rows * L
+    lo, hi = torch.zeros_like(rows), torch.full_like(rows, L)
+    for _ in range(L.bit_length()):
+        mid = (lo + hi) // 2
+        v = flat[base + mid.clamp(max=L - 1)]
+        le = v <= x if right else v < x
+        go = lo < hi
+        lo, hi = torch.where(go & le, mid + 1, lo), torch.where(go & ~le, mid, hi)
+    return lo
 
 
 # ------------------------------------------------------------------------------------ the geometric path
@@ -75,21 +96,36 @@ class _Path:
             m = spline_slopes(s, y, bc)  # the spline as Hermite cubics of its knot slopes
             self.c = tuple(cubic_coeffs(y[:, :-1], y[:, 1:], m[:, :-1], m[:, 1:], h))
 
+    def rows(self, r: Tensor) -> _Path:
+        """The paths of the rows ``r`` (an index tensor)."""
+        sub = object.__new__(_Path)
+        sub.s, sub.end, sub.c = self.s[r], self.end[r], tuple(c[r] for c in self.c)
+        return sub
+
     def segment(self, s: Tensor) -> Tensor:
         """Segment index (B, T) of path parameters s (B, T) (clamped into the path)."""
         inner = self.s[:, 1:-1].contiguous()
         return torch.searchsorted(inner, s.contiguous(), right=True)
 
-    def eval(self, s: Tensor, k: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def eval(self, s: Tensor, k: Tensor | None = None, rows: Tensor | None = None, position_only: bool = False
+             ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """q, q', q'', q''' (B, T, n) at s (B, T) (segment k (B, T) if given: the right-hand derivatives at a
-        knot are those of the segment that starts there)."""
-        k = self.segment(s) if k is None else k
-        tau = (s - torch.gather(self.s, 1, k))[..., None]
-        idx = k[..., None].expand(*k.shape, self.c[0].shape[-1])
-        coeffs = [torch.gather(c, 1, idx) for c in self.c]
-        q, q1, q2 = poly_eval(coeffs, tau)
-        q = torch.where((s >= self.s[:, -1:])[..., None], self.end[:, None], q)
-        return q, q1, q2, 6 * coeffs[3]
+        knot are those of the segment that starts there); ``rows`` (B, T): the path of each sample (else
+        row b of s is path b); ``position_only``: q alone (the derivatives None)."""
+        if rows is None:
+            k = self.segment(s) if k is None else k
+            tau = (s - torch.gather(self.s, 1, k))[..., None]
+            idx = k[..., None].expand(*k.shape, self.c[0].shape[-1])
+            coeffs = [torch.gather(c, 1, idx) for c in self.c]
+            last, end = self.s[:, -1:], self.end[:, None]
+        else:
+            k = _search_rows(self.s[:, 1:-1], rows, s) if k is None else k
+            tau = (s - self.s[rows, k])[..., None]
+            coeffs = [c[rows, k] for c in self.c]
+            last, end = self.s[rows, -1], self.end[rows]
+        q, q1, q2 = poly_eval(coeffs, tau, position_only)
+        q = torch.where((s >= last)[..., None], end, q)
+        return q, q1, q2, None if position_only else 6 * coeffs[3]
 
 
 # ------------------------------------------------------------------------------------ TOPP-RA on a grid
@@ -163,22 +199,31 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     C = torch.where(pair, c, 1.0)
     # the fixed upper rows for u at x: u ≤ (γ − β x) / α
     Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
-    K = [torch.zeros_like(xv[:, 0])] * M  # the controllable ṡ² bound per grid point
+    two_delta = 2 * delta
+    x = native.topp_passes(Aq, G, C, Au, Bu, Gu, fixed, xq, two_delta)  # in C on the CPU: the same floats
+    if x is not None:
+        return x
+    # the passes below run one grid point at a time: the per-point columns are taken once (unbind) and kept
+    # as (B, 1), so each step is a few small ops (these loops are most of the time of a short batch)
+    col = lambda v: v.unbind(1)  # noqa: E731
+    Aq, G, C, Au, Bu, Gu = col(Aq), col(G), col(C), col(Au), col(Bu), col(Gu)
+    fixed, xq, d2 = col(fixed[..., None]), col(xq[..., None]), col(two_delta[..., None])
+    K = [torch.zeros_like(xv[:, :1])] * M  # the controllable ṡ² bound per grid point
     K_next = [None] * (M - 1)
     for i in range(M - 2, -1, -1):
-        kn = torch.minimum(K[i + 1], xq[:, i])
+        kn = torch.minimum(K[i + 1], xq[i])
         K_next[i] = kn
-        moving = ((Aq[:, i] * kn[:, None] + G[:, i]) / C[:, i]).amin(1)
-        K[i] = torch.minimum(fixed[:, i], moving.clamp_min(0))
+        moving = ((Aq[i] * kn + G[i]) / C[i]).amin(1, keepdim=True)
+        K[i] = torch.minimum(fixed[i], moving.clamp_min(0))
     x = [torch.zeros_like(K[0])]
     for i in range(M - 1):
         xi = torch.minimum(x[i], K[i])
         x[i] = xi
-        d = 2 * delta[:, i]
-        u = torch.minimum(((Gu[:, i] - Bu[:, i] * xi[:, None]) / Au[:, i]).amin(1), (K_next[i] - xi) / d)
+        d = d2[i]
+        u = torch.minimum(((Gu[i] - Bu[i] * xi) / Au[i]).amin(1, keepdim=True), (K_next[i] - xi) / d)
         u = u.clamp(min=-xi / d)
         x.append((xi + d * u).clamp(min=0).minimum(K[i + 1]))
-    return torch.stack(x, 1)
+    return torch.cat(x, 1)
 
 
 # ------------------------------------------------------------------------------------ the timed result
@@ -189,7 +234,7 @@ class TimedPath:
     """
 
     def __init__(self, path: _Path, grid: Tensor, x: Tensor, tau: Tensor, k: Tensor, dtype: torch.dtype):
-        self._path, self._grid, self._tau, self._k, self._dtype = path, grid, tau, k, dtype
+        self._path, self._grid, self._x, self._tau, self._k, self._dtype = path, grid, x, tau, k, dtype
         self._B, self._device, self._batch = grid.shape[0], grid.device, (grid.shape[0],)
         sd = x.clamp_min(0).sqrt()
         delta = grid[:, 1:] - grid[:, :-1]
@@ -205,12 +250,19 @@ class TimedPath:
         #: the geometric path's waypoints (B, N, n) and knots (B, N)
         self.knots = path.s.to(dtype)
 
-    def _base(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """s, ṡ, s̈, ∫s of the unsmoothed profile at times t (B, T) (any real t)."""
-        T_end = self._t[:, -1:]
-        tc = t.clamp(min=0).minimum(T_end)
-        i = torch.searchsorted(self._t[:, 1:-1].contiguous(), tc.contiguous(), right=True)
-        g = lambda v: torch.gather(v, 1, i)  # noqa: E731
+    def _base(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """s, ṡ, s̈, ∫s of the unsmoothed profile at times t (B, T) (any real t; ``rows`` (B, T): the
+        path of each sample, else row b of t is path b)."""
+        if rows is None:
+            T_end = self._t[:, -1:]
+            tc = t.clamp(min=0).minimum(T_end)
+            i = torch.searchsorted(self._t[:, 1:-1].contiguous(), tc.contiguous(), right=True)
+            g = lambda v: torch.gather(v, 1, i)  # noqa: E731
+        else:
+            T_end = self._t[rows, -1]
+            tc = t.clamp(min=0).minimum(T_end)
+            i = _search_rows(self._t[:, 1:-1], rows, tc)
+            g = lambda v: v[rows, i]  # noqa: E731
         d = tc - g(self._t)
         s0, v0, u = g(self._grid), g(self._sd), g(self._u)
         s = s0 + v0 * d + u * d**2 / 2
@@ -221,29 +273,30 @@ class TimedPath:
         a = torch.where(inside & (t < T_end), u, torch.zeros_like(s))
         return s, v, a, S
 
-    def _profile(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """s, ṡ, s̈, s⃛ of the (smoothed, unscaled) profile at times t (B, T)."""
-        tau = self._tau[:, None]
-        s, v, a, S = self._base(t)
+    def _profile(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """s, ṡ, s̈, s⃛ of the (smoothed, unscaled) profile at times t (B, T) (``rows``: :meth:`_base`)."""
+        tau = self._tau[:, None] if rows is None else self._tau[rows]
+        s, v, a, S = self._base(t, rows)
         smooth = tau > 0
         taus = torch.where(smooth, tau, torch.ones_like(tau))
-        s2, v2, a2, S2 = self._base(t - taus)
+        s2, v2, a2, S2 = self._base(t - taus, rows)
         sb = torch.where(smooth, (S - S2) / taus, s)
         vb = torch.where(smooth, (s - s2) / taus, v)
         ab = torch.where(smooth, (v - v2) / taus, a)
         jb = torch.where(smooth, (a - a2) / taus, torch.zeros_like(a))
-        done = t >= self._t[:, -1:] + tau  # at the end exactly, at rest
+        done = t >= (self._t[:, -1:] if rows is None else self._t[rows, -1]) + tau  # at the end, at rest
         zero = torch.zeros_like(sb)
         return (torch.where(done, torch.ones_like(sb), sb), torch.where(done, zero, vb),
                 torch.where(done, zero, ab), torch.where(done, zero, jb))
 
-    def _joint(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """q, q̇, q̈, q⃛ (B, T, n) at real times t (B, T), float64."""
-        k = self._k[:, None]
-        s, v, a, j = self._profile(t / k)
+    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """q, q̇, q̈, q⃛ (B, T, n) at real times t (B, T), float64 (``rows`` (B, T): the path of each
+        sample, else row b of t is path b)."""
+        k = self._k[:, None] if rows is None else self._k[rows]
+        s, v, a, j = self._profile(t / k, rows)
         v, a, j = v / k, a / k**2, j / k**3
         s = s.clamp(min=0, max=1)
-        q, q1, q2, q3 = self._path.eval(s)
+        q, q1, q2, q3 = self._path.eval(s, rows=rows)
         v, a, j = v[..., None], a[..., None], j[..., None]
         return q, q1 * v, q1 * a + q2 * v**2, q1 * j + 3 * q2 * v * a + q3 * v**3
 
@@ -284,9 +337,13 @@ class TimedPath:
         t = torch.arange(S, dtype=torch.float64, device=self._device) * dt
         return t.to(self._dtype).expand(*self._batch, S), self._sample(t.expand(self._B, S))
 
-    def _breakpoints(self, per_interval: int) -> Tensor:
-        """Profile times (B, ·) for the limit check: the knots, the knots + τ, ``per_interval`` inside."""
-        f = torch.arange(per_interval + 1, dtype=torch.float64, device=self._t.device) / per_interval
+    def _breakpoints(self, per_interval: int, skip: int = 0) -> Tensor:
+        """Profile times (B, ·) for the limit check: the knots, the knots + τ, ``per_interval`` inside
+        (``skip`` > 0: without the fractions j / per_interval with j a multiple of ``skip``, the samples of
+        the check at ``per_interval / skip``: the same floats, j / per_interval = (j / skip) / (per_interval /
+        skip) exactly for the powers of two used)."""
+        f = torch.arange(per_interval + 1, dtype=torch.float64, device=self._t.device)
+        f = (f[f.remainder(skip) != 0] if skip else f) / per_interval
         t0, dt = self._t[:, :-1, None], (self._t[:, 1:] - self._t[:, :-1])[..., None]
         inner = (t0 + f * dt).flatten(1)
         return torch.cat((inner, inner + self._tau[:, None]), 1)
@@ -304,14 +361,30 @@ class _Chained(TimedPath):
         self.duration = d.sum(1).to(dtype)
         self.knots = None
 
-    def _joint(self, t: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        B, T, K = t.shape[0], t.shape[1], self._K
-        local = (t[:, None, :] - self._start[:, :, None]).reshape(B * K, T)  # each part rests outside
-        out = self._parts._joint(local)
-        seg = torch.searchsorted(self._start[:, 1:].contiguous(), t.contiguous(), right=True)  # (B, T)
-        n = out[0].shape[-1]
-        idx = seg[:, None, :, None].expand(B, 1, T, n)
-        return tuple(torch.gather(x.view(B, K, T, n), 1, idx)[:, 0] for x in out)
+    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        # each sample evaluated on its own part only (the last part that starts at or before it; a part
+        # rests outside its own time span, so the others would add nothing)
+        B, K = t.shape[0], self._K
+        if rows is None:
+            chain = torch.arange(B, device=t.device)[:, None]
+            seg = torch.searchsorted(self._start[:, 1:].contiguous(), t.contiguous(), right=True)  # (B, T)
+        else:
+            chain, seg = rows, _search_rows(self._start[:, 1:], rows, t)
+        return self._parts._joint(t - self._start[chain, seg], chain * K + seg)
+
+
+def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
+    """The largest |q̇| / v, |q̈| / a (and |q⃛| / j with a jerk limit) of each row over the profile times t
+    (B, T): (B, 2 or 3). The samples go in column blocks of about :data:`_BLOCK` samples in all, so the
+    (B, ·, n) temporaries stay small (a whole check at once allocates and faults in hundreds of MB)."""
+    B, T = t.shape
+    w = max(64, _BLOCK // max(B, 1))
+    peak = None
+    for c in range(0, T, w):
+        q_dots = timed._joint(t[:, c:c + w])[1:]
+        r = torch.stack([(qd.abs() / lim[:, None]).amax((1, 2)) for qd, lim in zip(q_dots, limits)], 1)
+        peak = r if peak is None else torch.maximum(peak, r)
+    return peak
 
 
 def _check_limit(x: Tensor, batch: tuple, n: int, name: str) -> Tensor:
@@ -405,16 +478,26 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         else:
             base = 2 * (amax / jmax).amax(1)
             taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
-        def stretch(tau: Tensor, per_interval: int) -> tuple[Tensor, Tensor]:
-            """k and the duration (B,) of the profile smoothed by τ (B,), checked at ``per_interval``."""
-            timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
-            _, qd, qdd, qddd = timed._joint(timed._breakpoints(per_interval))
-            k = torch.maximum((qd.abs() / vmax[:, None]).amax((1, 2)),
-                              (qdd.abs() / amax[:, None]).amax((1, 2)).sqrt())
+        limits = [vmax, amax] if jmax is None else [vmax, amax, jmax]
+
+        def stretch(tau: Tensor, per_interval: int, r: Tensor | None = None, skip: int = 0,
+                    prior: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+            """k, the duration and the peaks (:func:`_peaks`) of the profile smoothed by τ, checked at
+            ``per_interval``, of the rows ``r`` (all if None; τ of those rows); ``prior``: the peaks of the
+            samples left out by ``skip`` (:meth:`TimedPath._breakpoints`)."""
+            if r is None:
+                timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
+                lim = limits
+            else:
+                timed = TimedPath(p.rows(r), grid[r], x[r], tau, torch.ones_like(tau), dtype)
+                lim = [v[r] for v in limits]
+            peak = _peaks(timed, timed._breakpoints(per_interval, skip), lim)
+            peak = peak if prior is None else torch.maximum(peak, prior)
+            k = torch.maximum(peak[:, 0], peak[:, 1].sqrt())
             if jmax is not None:
-                k = torch.maximum(k, (qddd.abs() / jmax[:, None]).amax((1, 2)).pow(1 / 3))
+                k = torch.maximum(k, peak[:, 2].pow(1 / 3))
             k = k.clamp_min(1) * (1 + _STRETCH)
-            return k, (timed._t[:, -1] + tau) * k
+            return k, (timed._t[:, -1] + tau) * k, peak
 
         taus = torch.stack(taus, 1)  # (B, C) candidates, the shortest wins (the first of equals)
         B, C = taus.shape
@@ -422,25 +505,40 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         # floats) gives a lower bound on each candidate's duration; the candidates are checked densely in
         # the order of their bounds until no row's next bound can beat its best.
         prune = C > 1 and check_per_interval % 4 == 0
+        # A dense check then only evaluates the samples the quarter check left out (the peaks of the union
+        # are the larger of both), and only on the rows where its candidate can still win (its duration is
+        # at least its bound, so elsewhere it cannot): the same result as checking every row densely.
         if prune:
-            lower = torch.stack([stretch(taus[:, c], check_per_interval // 4)[1] for c in range(C)], 1)
+            quarter = [stretch(taus[:, c], check_per_interval // 4) for c in range(C)]
+            lower = torch.stack([q[1] for q in quarter], 1)
+            peaks = torch.stack([q[2] for q in quarter], 1)  # (B, C, 2 or 3)
             order = lower.argsort(dim=1, stable=True)
             lower = lower.gather(1, order)
         else:
             order = torch.arange(C, device=taus.device).expand(B, C)
+        def beats(total: Tensor, c: Tensor, best: tuple) -> Tensor:
+            return (total < best[2]) | ((total == best[2]) & (c < best[3]))
+
         best = None
         for r in range(C):
             c = order[:, r]
             tau = taus.gather(1, c[:, None])[:, 0]
+            skip, prior = (4, peaks.gather(1, c[:, None, None].expand(-1, 1, peaks.shape[-1]))[:, 0]) \
+                if prune else (0, None)
             if prune and best is not None:
-                lo = lower[:, r]
-                if not bool(((lo < best[2]) | ((lo == best[2]) & (c < best[3]))).any()):
+                maybe = beats(lower[:, r], c, best)
+                if not bool(maybe.any()):
                     break  # the later bounds are larger still
-            k, total = stretch(tau, check_per_interval)
+                rows = maybe.nonzero()[:, 0]
+                k_r, total_r, _ = stretch(tau[rows], check_per_interval, rows, skip, prior[rows])
+                k, total = best[1].index_put((rows,), k_r), best[2].index_put((rows,), total_r)
+                better = maybe & beats(total, c, best)
+            else:
+                k, total, _ = stretch(tau, check_per_interval, None, skip, prior)
+                better = None if best is None else beats(total, c, best)
             if best is None:
                 best = (tau, k, total, c)
             else:
-                better = (total < best[2]) | ((total == best[2]) & (c < best[3]))
                 best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
         return _batched(TimedPath(p, grid, x, best[0], best[1], dtype), batch)
 

@@ -1,0 +1,159 @@
+"""trajectories.time_optimal's fast paths against the plain evaluations they replace, to the last bit: the
+chained (polyline + jerk) path sampled part by part against every part at every time, the pruned limit check
+(quarter samples reused, dense checks on the rows that can still win) against every candidate checked
+densely on every row, the per-sample row search against torch.searchsorted, Horner from the top coefficient
+against Horner from zero."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from diffkin.trajectories import time_optimal
+from diffkin.trajectories._common import poly_eval
+from diffkin.trajectories.time_optimal import _STRETCH, TimedPath, _peaks, _search_rows
+
+F64 = torch.float64
+V = torch.tensor([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61], dtype=F64)
+A = torch.tensor([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0], dtype=F64)
+
+
+def _paths(seed: int, B: int, N: int):
+    g = torch.Generator().manual_seed(seed)
+    y = torch.cumsum(torch.rand(B, N, 7, generator=g, dtype=F64) - 0.5, 1) * 1.5
+    gaps = torch.rand(B, N - 1, generator=g, dtype=F64) + 0.2
+    return y, torch.cat((torch.zeros(B, 1, dtype=F64), gaps.cumsum(1)), 1), g
+
+
+def test_chained_samples_each_part_only():
+    y, kn, g = _paths(1, 5, 6)
+    res = time_optimal(y, V, A, 100 * A, knots=kn, interpolation="linear")
+    B, K = 5, 5
+    t = torch.cat((torch.linspace(-0.2, float(res.duration.max()) + 0.2, 400, dtype=F64).expand(B, -1),
+                   torch.rand(B, 100, generator=g, dtype=F64) * res.duration[:, None]), 1)
+    t = torch.cat((t, res._start), 1)  # exactly at the part boundaries too
+    # the plain evaluation: every part at every time (each rests outside its span), then the sample's part
+    local = (t[:, None, :] - res._start[:, :, None]).reshape(B * K, -1)
+    every = res._parts._joint(local)
+    seg = torch.searchsorted(res._start[:, 1:].contiguous(), t.contiguous(), right=True)
+    idx = seg[:, None, :, None].expand(B, 1, t.shape[1], 7)
+    for x, ref in zip(res._joint(t), every):
+        assert torch.equal(x, torch.gather(ref.view(B, K, -1, 7), 1, idx)[:, 0])
+
+
+# (4, 3): coarse quarter bounds, so later dense checks run on some rows only (6, then 1 of 8 rows)
+@pytest.mark.parametrize("per_interval, grid", [(16, None), (8, None), (6, None), (4, 3)])
+def test_pruned_limit_check_equals_every_candidate_checked_densely(per_interval, grid):
+    y, kn, _ = _paths(2, 8, 5)
+    J = 100 * A
+    res = time_optimal(y, V, A, J, knots=kn, bc="clamped", check_per_interval=per_interval,
+                       grid_per_segment=grid)
+    # every candidate τ on every row at every dense sample, the shortest (the first of equals) wins
+    base = 2 * (A / J).amax()
+    best_total, best_k = None, None
+    for c in (0.25, 0.5, 1.0, 2.0):
+        tau = torch.full((8,), c, dtype=F64) * base
+        timed = TimedPath(res._path, res._grid, res._x, tau, torch.ones_like(tau), F64)
+        _, qd, qdd, qddd = timed._joint(timed._breakpoints(per_interval))
+        k = torch.maximum((qd.abs() / V).amax((1, 2)), (qdd.abs() / A).amax((1, 2)).sqrt())
+        k = torch.maximum(k, (qddd.abs() / J).amax((1, 2)).pow(1 / 3)).clamp_min(1) * (1 + _STRETCH)
+        total = (timed._t[:, -1] + tau) * k
+        if best_total is None:
+            best_total, best_k = total, k
+        else:
+            better = total < best_total
+            best_total, best_k = torch.where(better, total, best_total), torch.where(better, k, best_k)
+    assert torch.equal(res._k, best_k)
+    assert torch.equal(res.duration, best_total)
+
+
+def test_peaks_in_blocks_equal_one_block():
+    y, kn, _ = _paths(3, 3, 4)
+    res = time_optimal(y, V, A, 100 * A, knots=kn)
+    t = res._breakpoints(16)
+    _, qd, qdd, qddd = res._joint(t)
+    lims = [V.expand(3, 7), A.expand(3, 7), 100 * A.expand(3, 7)]
+    ref = torch.stack([(x.abs() / lim[:, None]).amax((1, 2)) for x, lim in zip((qd, qdd, qddd), lims)], 1)
+    assert t.shape[1] > 64  # several blocks of 64 columns at the least
+    assert torch.equal(_peaks(res, t, lims), ref)
+
+
+def test_search_rows_equals_searchsorted():
+    g = torch.Generator().manual_seed(4)
+    for L in (0, 1, 2, 7, 64):
+        seq = torch.rand(5, L, generator=g, dtype=F64).sort(1).values
+        if L > 2:
+            seq[:, 2] = seq[:, 1]  # repeated values
+        x = torch.cat((torch.rand(5, 50, generator=g, dtype=F64) * 1.2 - 0.1, seq), 1)
+        rows = torch.randint(0, 5, x.shape, generator=g)
+        for right in (True, False):
+            ref = torch.searchsorted(seq[rows], x[..., None], right=right)[..., 0]
+            assert torch.equal(_search_rows(seq, rows, x, right), ref)
+
+
+def test_poly_eval_equals_horner_from_zero():
+    g = torch.Generator().manual_seed(5)
+    for n in (2, 3, 4, 6):
+        coeffs = [torch.randn(4, 1, 3, generator=g, dtype=F64) for _ in range(n)]
+        tau = torch.randn(4, 9, 1, generator=g, dtype=F64)
+        p = torch.zeros_like(tau * coeffs[-1])
+        v, a = torch.zeros_like(p), torch.zeros_like(p)
+        for c in reversed(coeffs):
+            a, v, p = a * tau + 2 * v, v * tau + p, p * tau + c
+        for x, ref in zip(poly_eval(coeffs, tau), (p, v, a)):
+            assert x.shape == ref.shape and torch.equal(x, ref)
+
+
+@pytest.mark.parametrize("interpolation", ["spline", "linear"])
+def test_native_topp_passes_equal_torch(interpolation):
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch passes serve every call")
+    y, kn, _ = _paths(6, 7, 5)
+    res = time_optimal(y, V, A, knots=kn, interpolation=interpolation, grid_per_segment=40)
+    with native.disabled():
+        ref = time_optimal(y, V, A, knots=kn, interpolation=interpolation, grid_per_segment=40)
+    assert torch.equal(res._x, ref._x) and torch.equal(res.duration, ref.duration)
+    assert bool((res._x[:, 1:-1] > 0).any())  # a motion, not a path at rest
+
+
+def test_spline_check_marks_equal_padded_marks():
+    """motion._spline_clear checks each row's own marks in blocks: the same decisions as all fine samples at
+    once and every row padded to the longest row's mark count (the former code), here with a stand-in
+    checker whose decision is a plane in joint space."""
+    from diffkin.motion._spline import _knots, _spline_clear
+    from diffkin.trajectories.time_optimal import _Path
+
+    class Plane:
+        reach = torch.full((7,), 0.3, dtype=F64)
+
+        def eta_of(self, problem):
+            return 0.004 + 0.002 * (problem % 2).to(F64)
+
+        def clear(self, q, problem):
+            return q[..., 0] + 0.01 * problem.to(F64) < 1.2
+
+    y, _, _ = _paths(7, 9, 6)
+    y[::3] *= 0.1  # short and long paths in one batch
+    kn, lo, hi = _knots(y), torch.full((7,), -3.0, dtype=F64), torch.full((7,), 3.0, dtype=F64)
+    problem = torch.arange(9)
+    fine = 512
+    got = _spline_clear(Plane(), y, kn, lo, hi, problem, fine=fine)
+    # the former code
+    s = (kn - kn[:, :1]) / (kn[:, -1:] - kn[:, :1])
+    p = _Path(s.contiguous(), y, "spline", "clamped")
+    u = torch.linspace(0, 1, fine + 1, dtype=F64).expand(9, -1).contiguous()
+    q = p.eval(u)[0]
+    inside = ((q >= lo) & (q <= hi)).all(-1).all(-1)
+    cum = torch.cat((torch.zeros(9, 1, dtype=F64), ((q[:, 1:] - q[:, :-1]).abs() * Plane.reach).sum(-1)
+                     .cumsum(1)), 1)
+    c = 0.8 * Plane().eta_of(problem)
+    n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
+    K = int(n.max()) + 1
+    marks = (torch.arange(K, dtype=F64)[None] * c[:, None]).contiguous()
+    idx = torch.searchsorted(cum, marks).clamp(max=fine)
+    idx = torch.where(torch.arange(K)[None] <= n[:, None], idx, fine)
+    qc = torch.gather(q, 1, idx[..., None].expand(9, K, 7))
+    ref = Plane().clear(qc, problem[:, None]).all(1) & inside
+    assert torch.equal(got, ref) and bool(got.any()) and not bool(got.all())
