@@ -203,8 +203,21 @@ static inline int DK(aabb_apart)(const real *lo1, const real *hi1, const real *l
 
 #define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
 
-static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
+/* Lanes 0 .. m-1 below the first one that collides (m itself when none does). */
+static inline int DK(first_hit)(const uint8_t *clear, int m) {
+    for (int l = 0; l < m; l++)
+        if (!clear[l]) return l;
+    return m;
+}
+
+/* The decisions of the block's lanes n0 .. n0 + m - 1 into ok (&=). With first (the planner's edges, which
+ * read a block only up to its first colliding lane), lanes past the first colliding one found so far are
+ * dropped from every later test: ok is then exact up to and including the first colliding lane and says
+ * nothing about the lanes after it. */
+static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_collide *c, int64_t n0, int m,
+                                                                    uint8_t *restrict ok, const int first) {
     const int64_t N = c->N, G = c->G;
+    const int m0 = m;
     const real *A = (const real *)c->A, *B = (const real *)c->B, *r = (const real *)c->r;
     const real thr = (real)(c->margin + c->slack);
     real d2[COLLIDE_BLOCK];
@@ -235,7 +248,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
     const real *hs = (const real *)c->hs;
     real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
     for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
-        if (!DK(any_clear)(clear, m)) goto done;
+        if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++) {
             const int64_t o = wl[l] * c->Wr + w;
             for (int k = 0; k < 3; k++) {
@@ -259,7 +272,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         }
     }
     for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
-        if (!DK(any_clear)(clear, m)) goto done;
+        if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++)
             for (int k = 0; k < 4; k++) pa[k * COLLIDE_BLOCK + l] = hs[4 * (wl[l] * c->H + h) + k];
         for (int64_t g = 0; g < G; g++) {
@@ -279,7 +292,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
         real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
         for (int64_t w = 0; w < c->Wb; w++) {
-            if (!DK(any_clear)(clear, m)) goto done;
+            if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wb + w;
                 for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
@@ -303,7 +316,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
     if (c->Wy && c->point) { /* cylinders: the sphere geoms only (the caller decides the others) */
         const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         for (int64_t w = 0; w < c->Wy; w++) {
-            if (!DK(any_clear)(clear, m)) goto done;
+            if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wy + w;
                 for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
@@ -320,7 +333,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
             }
         }
     }
-    if (!DK(any_clear)(clear, m)) goto done;
+    if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
     for (int64_t p = 0; p < c->P; p++) { /* the self pairs (last: the world rejects most colliding samples) */
         const int64_t i = c->pi[p], j = c->pj[p];
         const real T = r[i] + r[j] + thr;
@@ -336,10 +349,19 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
             DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
             for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
         }
-        if ((p & 15) == 15 && !DK(any_clear)(clear, m)) break;
+        if ((p & 15) == 15 && (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m))) break;
     }
 done:
-    for (int l = 0; l < m; l++) ok[n0 + l] &= clear[l];
+    for (int l = 0; l < m0; l++) ok[n0 + l] &= clear[l];
+}
+
+static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
+    DK(collide_lanes)(c, n0, m, ok, 0);
+}
+
+/* DK(collide_block) for a caller that reads ok only up to its first colliding lane (DK(collide_lanes)). */
+static void DK(collide_first)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
+    DK(collide_lanes)(c, n0, m, ok, 1);
 }
 
 static void DK(dk_collide)(const dk_collide *c) {
