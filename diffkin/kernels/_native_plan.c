@@ -21,7 +21,9 @@
  * joint frame as an end link) and the placement columns h_c of RobotCollision._columns (each capsule end a
  * fixed point of one frame). A full edge is decided coarse to fine (its far end first, then the midpoints
  * of ever finer halvings), a prefix in order; both in blocks of 16 growing to COLLIDE_BLOCK samples, an
- * edge leaving at its first colliding block.
+ * edge leaving at its first colliding block. Blocks are decided by DK(collide_first): an edge reads a block
+ * only up to its first colliding sample, so the samples past the first collision found so far drop out of
+ * the later tests (same decisions where they are read, same paths).
  *
  * Randomness: each problem's stream is splitmix64 seeded by the caller's seed mixed with a hash of the
  * problem's start and goal bytes, so a problem planned alone takes the same path as in any batch, on any
