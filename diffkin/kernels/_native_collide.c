@@ -202,9 +202,23 @@ static inline int DK(aabb_apart)(const real *lo1, const real *hi1, const real *l
 }
 
 #define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
+#define CULL_GROUP 8   /* geoms per group of the level above (a power of 2) */
 
-static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
+/* Lanes 0 .. m-1 below the first one that collides (m itself when none does). */
+static inline int DK(first_hit)(const uint8_t *clear, int m) {
+    for (int l = 0; l < m; l++)
+        if (!clear[l]) return l;
+    return m;
+}
+
+/* The decisions of the block's lanes n0 .. n0 + m - 1 into ok (&=). With first (the planner's edges, which
+ * read a block only up to its first colliding lane), lanes past the first colliding one found so far are
+ * dropped from every later test: ok is then exact up to and including the first colliding lane and says
+ * nothing about the lanes after it. */
+static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_collide *c, int64_t n0, int m,
+                                                                    uint8_t *restrict ok, const int first) {
     const int64_t N = c->N, G = c->G;
+    const int m0 = m;
     const real *A = (const real *)c->A, *B = (const real *)c->B, *r = (const real *)c->r;
     const real thr = (real)(c->margin + c->slack);
     real d2[COLLIDE_BLOCK];
@@ -231,11 +245,31 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
             }
             glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
         }
+    /* A level above (VAMP's per-link bounding spheres, as boxes): each run of CULL_GROUP consecutive geoms
+     * (a link's spheres mostly are consecutive) bounded by the union of their boxes, each grown by its
+     * radius. A group box at least thr from an object's box puts each geom's box at least r_g + thr from it
+     * (the gap vector g of two boxes and g' of the grown ones: |g| >= |g'| + r), so the group's geoms are
+     * skipped as one; the self pairs alike with both groups grown (r_i + r_j). */
+    real gglo[3 * CULL_GEOMS / CULL_GROUP], gghi[3 * CULL_GEOMS / CULL_GROUP];
+    const int64_t NG = G <= CULL_GEOMS ? (G + CULL_GROUP - 1) / CULL_GROUP : 0;
+    for (int64_t u = 0; u < NG; u++)
+        for (int k = 0; k < 3; k++) {
+            real lo = (real)INFINITY, hi = -(real)INFINITY;
+            for (int64_t g = u * CULL_GROUP; g < G && g < (u + 1) * CULL_GROUP; g++) {
+                const real rg = r[g] > 0 ? r[g] : 0;
+                lo = glo[3 * g + k] - rg < lo ? glo[3 * g + k] - rg : lo;
+                hi = ghi[3 * g + k] + rg > hi ? ghi[3 * g + k] + rg : hi;
+            }
+            gglo[3 * u + k] = lo, gghi[3 * u + k] = hi;
+        }
+#define GROUP_APART(g) \
+    (cull && ((g) & (CULL_GROUP - 1)) == 0 && \
+     DK(aabb_apart)(gglo + 3 * ((g) / CULL_GROUP), gghi + 3 * ((g) / CULL_GROUP), olo, ohi, thr))
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
     real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
     for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
-        if (!DK(any_clear)(clear, m)) goto done;
+        if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++) {
             const int64_t o = wl[l] * c->Wr + w;
             for (int k = 0; k < 3; k++) {
@@ -249,6 +283,10 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
             olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
         }
         for (int64_t g = 0; g < G; g++) {
+            if (GROUP_APART(g)) {
+                g += CULL_GROUP - 1;
+                continue;
+            }
             if (c->skip_r && c->skip_r[g * c->Wr + w]) continue;
             if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
             DK(segments_d2)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, pa, pb, COLLIDE_BLOCK, m, d2);
@@ -259,7 +297,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         }
     }
     for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
-        if (!DK(any_clear)(clear, m)) goto done;
+        if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
         for (int l = 0; l < m; l++)
             for (int k = 0; k < 4; k++) pa[k * COLLIDE_BLOCK + l] = hs[4 * (wl[l] * c->H + h) + k];
         for (int64_t g = 0; g < G; g++) {
@@ -279,7 +317,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
         const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
         real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
         for (int64_t w = 0; w < c->Wb; w++) {
-            if (!DK(any_clear)(clear, m)) goto done;
+            if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wb + w;
                 for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
@@ -293,6 +331,10 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
                 olo[k] = bc[3 * (w0 * c->Wb + w) + k] - e, ohi[k] = bc[3 * (w0 * c->Wb + w) + k] + e;
             }
             for (int64_t g = 0; g < G; g++) {
+                if (GROUP_APART(g)) {
+                    g += CULL_GROUP - 1;
+                    continue;
+                }
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
                 const int point = c->point ? c->point[g] : 0;
@@ -303,7 +345,7 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
     if (c->Wy && c->point) { /* cylinders: the sphere geoms only (the caller decides the others) */
         const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         for (int64_t w = 0; w < c->Wy; w++) {
-            if (!DK(any_clear)(clear, m)) goto done;
+            if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wy + w;
                 for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
@@ -314,18 +356,29 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
                 olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
             }
             for (int64_t g = 0; g < G; g++) {
+                if (GROUP_APART(g)) {
+                    g += CULL_GROUP - 1;
+                    continue;
+                }
                 if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
                 DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
             }
         }
     }
-    if (!DK(any_clear)(clear, m)) goto done;
+    if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
+    uint8_t gnear[(CULL_GEOMS / CULL_GROUP) * (CULL_GEOMS / CULL_GROUP)]; /* group pairs: 0 unknown, 1 apart */
+    memset(gnear, 0, (size_t)(NG * NG));
     for (int64_t p = 0; p < c->P; p++) { /* the self pairs (last: the world rejects most colliding samples) */
         const int64_t i = c->pi[p], j = c->pj[p];
         const real T = r[i] + r[j] + thr;
         if (T <= 0) continue;
-        if (G <= CULL_GEOMS && DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, T)) continue;
+        if (NG) {
+            const int64_t u = i / CULL_GROUP, v = j / CULL_GROUP, uv = u * NG + v;
+            if (!gnear[uv])
+                gnear[uv] = DK(aabb_apart)(gglo + 3 * u, gghi + 3 * u, gglo + 3 * v, gghi + 3 * v, thr) ? 1 : 2;
+            if (gnear[uv] == 1 || DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, T)) continue;
+        }
         const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
         if (c->point && c->point[i] && c->point[j]) { /* two spheres: their centres */
             for (int l = 0; l < m; l++) {
@@ -336,10 +389,20 @@ static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *r
             DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
             for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
         }
-        if ((p & 15) == 15 && !DK(any_clear)(clear, m)) break;
+        if ((p & 15) == 15 && (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m))) break;
     }
 done:
-    for (int l = 0; l < m; l++) ok[n0 + l] &= clear[l];
+    for (int l = 0; l < m0; l++) ok[n0 + l] &= clear[l];
+#undef GROUP_APART
+}
+
+static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
+    DK(collide_lanes)(c, n0, m, ok, 0);
+}
+
+/* DK(collide_block) for a caller that reads ok only up to its first colliding lane (DK(collide_lanes)). */
+static void DK(collide_first)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
+    DK(collide_lanes)(c, n0, m, ok, 1);
 }
 
 static void DK(dk_collide)(const dk_collide *c) {

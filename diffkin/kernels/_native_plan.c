@@ -21,7 +21,9 @@
  * joint frame as an end link) and the placement columns h_c of RobotCollision._columns (each capsule end a
  * fixed point of one frame). A full edge is decided coarse to fine (its far end first, then the midpoints
  * of ever finer halvings), a prefix in order; both in blocks of 16 growing to COLLIDE_BLOCK samples, an
- * edge leaving at its first colliding block.
+ * edge leaving at its first colliding block. Blocks are decided by DK(collide_first): an edge reads a block
+ * only up to its first colliding sample, so the samples past the first collision found so far drop out of
+ * the later tests (same decisions where they are read, same paths).
  *
  * Randomness: each problem's stream is splitmix64 seeded by the caller's seed mixed with a hash of the
  * problem's start and goal bytes, so a problem planned alone takes the same path as in any batch, on any
@@ -119,8 +121,9 @@ typedef struct { /* one thread's work space */
     uint64_t rng;
 } DK(PlanWork);
 
-/* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta). */
-static void DK(plan_decide)(DK(PlanWork) *w, int m) {
+/* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta); with first, ok is exact only
+ * up to its first 0 (DK(collide_first): an edge reads no further). */
+static void DK(plan_decide)(DK(PlanWork) *w, int m, int first) {
     const dk_plan *p = w->p;
     const int n = w->s.n;
     const real *h = (const real *)p->col_h, *base = (const real *)p->base;
@@ -150,7 +153,8 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m) {
         (void)n;
     }
     memset(w->ok, 1, (size_t)m);
-    DK(collide_block)(&w->cc, 0, m, w->ok);
+    if (first) DK(collide_first)(&w->cc, 0, m, w->ok);
+    else DK(collide_block)(&w->cc, 0, m, w->ok);
     w->checked += m;
 }
 
@@ -198,7 +202,7 @@ static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int pre
             const real f = (real)idx[k] / (real)ns;
             for (int j = 0; j < n; j++) w->qs[k * n + j] = a[j] + f * (b[j] - a[j]);
         }
-        DK(plan_decide)(w, m);
+        DK(plan_decide)(w, m, 1);
         for (int k = 0; k < m; k++)
             if (!w->ok[k]) return prefix ? (real)(idx[k] - 1) / (real)ns : 0;
         size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
@@ -423,7 +427,7 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
             }
             memcpy(w.qs, (const real *)p->q + n0 * n, sizeof(real) * (size_t)(m * n));
             w.cc.wid = p->wid ? p->wid + n0 : NULL;
-            DK(plan_decide)(&w, m);
+            DK(plan_decide)(&w, m, 0);
             memcpy(p->ok + n0, w.ok, (size_t)m);
         }
         DK(plan_work_free)(&w);
