@@ -166,3 +166,7 @@ def test_native_banded_solve_with_one_second_band_for_every_system():
     want = torch.linalg.solve(H, g.reshape(3, -1, 1)).reshape(g.shape)
     torch.testing.assert_close(got, want, atol=1e-10, rtol=1e-10)
     assert torch.equal(got, native.banded_solve(D3, E3, F.expand(3, -1, -1, -1), g))
+    # a band broadcast along T too (one block for every step) still broadcasts, as F.expand did before
+    F1 = F[0, :1]
+    want1 = native.banded_solve(D3, E3, F1.expand(3, 6, -1, -1).contiguous(), g)
+    assert torch.equal(native.banded_solve(D3, E3, F1, g), want1)

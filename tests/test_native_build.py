@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 FK = ("import torch; from diffkin import models; c = models.load('ur5', dtype=torch.float64); "
@@ -130,3 +131,26 @@ def test_doctor_and_version_report_the_fused_kernel(request, tmp_path, env, path
     assert "NativeBuildWarning" not in r.stderr  # the report says it; no warning on top
     if expect == "in use":
         assert str(tmp_path / "cache") in reports[0][1][0]
+
+
+def test_native_outputs_land_on_the_cpu_whatever_the_default_device():
+    """The fused kernels write into buffers they make themselves: those are the CPU's even when the caller
+    sets another default device (meta here; CUDA for a user of torch.set_default_device), so the C code never
+    receives a pointer it cannot write (FK and the TOPP-RA passes of time_optimal)."""
+    from diffkin import models
+    from diffkin.kernels import native
+    from diffkin.trajectories import time_optimal
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    chain = models.load("panda", dtype=torch.float64)
+    q = chain.random_configuration((3,), generator=torch.Generator().manual_seed(0))
+    path = torch.stack([chain.random_configuration((4,), generator=torch.Generator().manual_seed(s))
+                        for s in range(2)])  # (2, 4, 7)
+    want_T = chain.forward_kinematics(q)
+    want_d = time_optimal(path, 2.0, 10.0).duration
+    with torch.device("meta"):
+        T = chain.forward_kinematics(q)
+        d = time_optimal(path, 2.0, 10.0).duration
+    assert T.device.type == "cpu" and d.device.type == "cpu"
+    assert torch.equal(T, want_T) and torch.equal(d, want_d)

@@ -166,3 +166,16 @@ def test_collision_in_float32_and_argument_errors(g1):
     h1 = models.from_mjcf(models.model_path("h1"), ["left_ankle_link", "right_ankle_link"], dtype=F64)
     with pytest.raises(ModelError, match="29-DoF G1"):
         retarget.g1_collision(h1)
+
+
+def test_rows_with_no_pair_kept_are_empty(g1):
+    """A screen that keeps no pair (every pair far beyond the margin) gives empty rows and Jacobians, not an
+    error (the Jacobian's wrench tables exist only once a pair is kept)."""
+    _, chain, rc = g1
+    q = chain.random_configuration((1, 3), generator=torch.Generator().manual_seed(2))
+    rows = SelfCollisionRows(rc, chain, q, margin=-10.0, screen=0.0)
+    assert rows.count == 0
+    d, J = rows.jacobian(q.reshape(-1, chain.nq))
+    assert d.shape == (3, 0) and J.shape == (3, 0, chain.nv)
+    r, Jr = rows.rows(q, 1.0)
+    assert r.shape == (1, 3, 0) and Jr.shape == (1, 3, 0, chain.nv)

@@ -252,16 +252,21 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
      * skipped as one; the self pairs alike with both groups grown (r_i + r_j). */
     real gglo[3 * CULL_GEOMS / CULL_GROUP], gghi[3 * CULL_GEOMS / CULL_GROUP];
     const int64_t NG = G <= CULL_GEOMS ? (G + CULL_GROUP - 1) / CULL_GROUP : 0;
-    for (int64_t u = 0; u < NG; u++)
+    for (int64_t u = 0; u < NG; u++) {
+        int nan = 0; /* a NaN geom (any axis) turns its group's box into NaN: never apart */
         for (int k = 0; k < 3; k++) {
             real lo = (real)INFINITY, hi = -(real)INFINITY;
             for (int64_t g = u * CULL_GROUP; g < G && g < (u + 1) * CULL_GROUP; g++) {
-                const real rg = r[g] > 0 ? r[g] : 0;
-                lo = glo[3 * g + k] - rg < lo ? glo[3 * g + k] - rg : lo;
-                hi = ghi[3 * g + k] + rg > hi ? ghi[3 * g + k] + rg : hi;
+                const real rg = r[g] > 0 ? r[g] : 0, a = glo[3 * g + k] - rg, b = ghi[3 * g + k] + rg;
+                nan |= a != a || b != b;
+                lo = a < lo ? a : lo;
+                hi = b > hi ? b : hi;
             }
             gglo[3 * u + k] = lo, gghi[3 * u + k] = hi;
         }
+        if (nan) /* aabb_apart adds nothing for a NaN gap: NaN on every axis leaves g2 = 0, not apart */
+            for (int k = 0; k < 3; k++) gglo[3 * u + k] = gghi[3 * u + k] = (real)NAN;
+    }
 #define GROUP_APART(g) \
     (cull && ((g) & (CULL_GROUP - 1)) == 0 && \
      DK(aabb_apart)(gglo + 3 * ((g) / CULL_GROUP), gghi + 3 * ((g) / CULL_GROUP), olo, ohi, thr))

@@ -596,8 +596,8 @@ def fk_jacobian(model: NativeModel, q: Tensor, with_jacobian: bool = False,
     NaN/inf are not meaningful; the caller raises on a non-zero count. ``threads``: a fixed count instead of
     the policy of :func:`thread_count`."""
     B, nv, K = q.shape[0], model.n_velocities, model.n_ends
-    T = torch.empty(B, K, 4, 4, dtype=q.dtype)
-    J = torch.empty(B, K, 6, nv, dtype=q.dtype) if with_jacobian else None
+    T = q.new_empty(B, K, 4, 4)  # on q's device (the CPU), whatever the default device is
+    J = q.new_empty(B, K, 6, nv) if with_jacobian else None
     args = model.call(q.dtype, batch=B, q=q, T=T, jac=J, nthreads=threads or thread_count(B))
     bad = _lib.dk_fk(ctypes.byref(args))
     _raise_on(bad, "frames")
@@ -658,7 +658,7 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
     shape = (*lead, T, n, n)
     D, E = (t.expand(shape).contiguous() for t in (D, E))
     f_shared = F.shape[:-3].numel() == 1  # one band for every system
-    F = F.reshape(T, n, n).contiguous() if f_shared else F.expand(shape).contiguous()
+    F = F.reshape(F.shape[-3:]).expand(T, n, n).contiguous() if f_shared else F.expand(shape).contiguous()
     g = g.contiguous()
     if shift is not None:
         shift = shift.expand(tuple(lead)).contiguous()
@@ -685,10 +685,10 @@ def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Te
         return None
     B, M1, R = Aq.shape
     ins = [t.contiguous() for t in ins]
-    x = torch.empty(B, M1 + 1, dtype=dtype)
-    K, Kn = torch.empty_like(x), torch.empty(B, M1, dtype=dtype)
+    x = torch.empty(B, M1 + 1, dtype=dtype, device="cpu")  # C writes here: never the default device
+    K, Kn = torch.empty_like(x), torch.empty(B, M1, dtype=dtype, device="cpu")
     ptrs = (ctypes.c_void_p * 9)(*(t.data_ptr() for t in ins))
-    threads = min(B, thread_count(B * M1))
+    threads = max(1, min(B, thread_count(B * M1)))  # OpenMP's num_threads must be positive
     _raise_on(_lib.dk_topp_passes(ptrs, K.data_ptr(), Kn.data_ptr(), x.data_ptr(), B, M1 + 1, R, Au.shape[-1],
                                   x.element_size(), threads), "work space")
     return x

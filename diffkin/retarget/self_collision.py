@@ -117,6 +117,8 @@ class SelfCollisionRows:
         exact only where d < ``below``; elsewhere d >= ``below`` (the collision layer's broad phase: the
         exact box distances are most of the cost) with finite rows, zero in the frames where no pair is
         below (their bodies' Jacobians are not computed). The rows need no more."""
+        if self.model is None:  # no pair kept
+            return q.new_zeros(q.shape[0], 0), q.new_zeros(q.shape[0], 0, self.chain.nv)
         full = None if autograd else self._bodies
         if full is None:
             with torch.enable_grad():
