@@ -211,6 +211,13 @@ static inline int DK(first_hit)(const uint8_t *clear, int m) {
     return m;
 }
 
+/* Whether some lane is still to be decided: one is clear; with first, one before the first colliding lane,
+ * and *m shrinks to that lane (the lanes past it are dropped from every later test). */
+static inline int DK(lanes_left)(const uint8_t *clear, int *m, const int first) {
+    if (first) return (*m = DK(first_hit)(clear, *m)) > 0;
+    return DK(any_clear)(clear, *m);
+}
+
 /* The decisions of the block's lanes n0 .. n0 + m - 1 into ok (&=). With first (the planner's edges, which
  * read a block only up to its first colliding lane), lanes past the first colliding one found so far are
  * dropped from every later test: ok is then exact up to and including the first colliding lane and says
@@ -274,7 +281,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     const real *hs = (const real *)c->hs;
     real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
     for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
-        if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
+        if (!DK(lanes_left)(clear, &m, first)) goto done;
         for (int l = 0; l < m; l++) {
             const int64_t o = wl[l] * c->Wr + w;
             for (int k = 0; k < 3; k++) {
@@ -302,7 +309,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         }
     }
     for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
-        if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
+        if (!DK(lanes_left)(clear, &m, first)) goto done;
         for (int l = 0; l < m; l++)
             for (int k = 0; k < 4; k++) pa[k * COLLIDE_BLOCK + l] = hs[4 * (wl[l] * c->H + h) + k];
         for (int64_t g = 0; g < G; g++) {
@@ -322,7 +329,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
         real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
         for (int64_t w = 0; w < c->Wb; w++) {
-            if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
+            if (!DK(lanes_left)(clear, &m, first)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wb + w;
                 for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
@@ -350,7 +357,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     if (c->Wy && c->point) { /* cylinders: the sphere geoms only (the caller decides the others) */
         const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         for (int64_t w = 0; w < c->Wy; w++) {
-            if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
+            if (!DK(lanes_left)(clear, &m, first)) goto done;
             for (int l = 0; l < m; l++) {
                 const int64_t o = wl[l] * c->Wy + w;
                 for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
@@ -371,7 +378,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             }
         }
     }
-    if (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m)) goto done;
+    if (!DK(lanes_left)(clear, &m, first)) goto done;
     uint8_t gnear[(CULL_GEOMS / CULL_GROUP) * (CULL_GEOMS / CULL_GROUP)]; /* group pairs: 0 unknown, 1 apart */
     memset(gnear, 0, (size_t)(NG * NG));
     for (int64_t p = 0; p < c->P; p++) { /* the self pairs (last: the world rejects most colliding samples) */
@@ -394,7 +401,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
             for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
         }
-        if ((p & 15) == 15 && (first ? (m = DK(first_hit)(clear, m)) == 0 : !DK(any_clear)(clear, m))) break;
+        if ((p & 15) == 15 && !DK(lanes_left)(clear, &m, first)) break;
     }
 done:
     for (int l = 0; l < m0; l++) ok[n0 + l] &= clear[l];
