@@ -190,16 +190,22 @@ class RobotCollision(nn.Module):
     def _with_pairs(self, pairs: list[tuple[int, int]]) -> RobotCollision:
         """A copy of the geometry's current values (parameters of its own) on the same chain and frames,
         checking the geom index ``pairs``; ``skip_fixed`` and ``requires_grad`` kept."""
-        with torch.no_grad():
-            # one read per tensor (on CUDA, one per geom and value was a host sync each)
-            caps = list(zip(self.capsule_a.tolist(), self.capsule_b.tolist(), self.capsule_radius.tolist()))
-            boxes = list(zip(self.box_center.tolist(), self.box_rpy.tolist(), self.box_half_extents.tolist()))
-            convexes = [v.cpu().numpy() for v in self.convex_vertices]
+        caps, boxes, convexes = self._geometry_values()
         out = type(self)(self.chain, self.geoms, [g.link for g in self.geoms], caps, boxes, pairs,
                          convexes=convexes, frames=self._frames, dtype=self.capsule_a.dtype,
                          device=self.capsule_a.device)
         out.skip_fixed = self.skip_fixed
         return out.requires_grad_(any(p.requires_grad for p in self.parameters()))
+
+    def _geometry_values(self) -> tuple[list, list, list]:
+        """The geometry's current values as the constructor takes them, per kind in geom order: capsules
+        ``(a, b, radius)``, boxes ``(centre, rpy, half extents)``, convex vertex arrays; one host read per
+        tensor (on CUDA, a read per geom and value would be a host sync each)."""
+        with torch.no_grad():
+            caps = list(zip(self.capsule_a.tolist(), self.capsule_b.tolist(), self.capsule_radius.tolist()))
+            boxes = list(zip(self.box_center.tolist(), self.box_rpy.tolist(), self.box_half_extents.tolist()))
+            convexes = [v.cpu().numpy() for v in self.convex_vertices]
+        return caps, boxes, convexes
 
     # ------------------------------------------------------------------------------------ geometry
     def _columns(self, q: Tensor) -> Tensor:

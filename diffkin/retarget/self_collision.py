@@ -182,14 +182,9 @@ def _per_pair(collision, pairs: list[tuple[int, int]]):
     the columns, ``anchor (S,)`` their bodies, ``bodies (K,)`` those bodies (ascending), ``slot (S,)``
     p K + (the body's place in ``bodies``)."""
     c = collision
-    with torch.no_grad():
-        kind = {}
-        for n, g in enumerate(k for k, geom in enumerate(c.geoms) if geom.shape == "capsule"):
-            kind[g] = (c.capsule_a[n].tolist(), c.capsule_b[n].tolist(), float(c.capsule_radius[n]))
-        for n, g in enumerate(k for k, geom in enumerate(c.geoms) if geom.shape == "box"):
-            kind[g] = (c.box_center[n].tolist(), c.box_rpy[n].tolist(), c.box_half_extents[n].tolist())
-        for n, g in enumerate(k for k, geom in enumerate(c.geoms) if geom.shape == "convex"):
-            kind[g] = c.convex_vertices[n].cpu().numpy()
+    kind = {}  # geom index -> its values, as the constructor takes them
+    for shape, values in zip(("capsule", "box", "convex"), c._geometry_values()):
+        kind.update(zip((k for k, geom in enumerate(c.geoms) if geom.shape == shape), values))
     own = [g for pair in pairs for g in pair]  # copy 2p + s of geom pairs[p][s]
     geoms = [c.geoms[g] for g in own]
     by = lambda shape: [kind[g] for g in own if c.geoms[g].shape == shape]  # noqa: E731
