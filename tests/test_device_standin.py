@@ -32,6 +32,7 @@ from helpers import F64, FR3, random_chain, urdf_path
 import diffkin.rotations as rot
 import diffkin.trajectories as tr
 import diffkin.transforms as tf
+from benchmarks.cuda_smoke import outputs
 from diffkin import models
 from diffkin.collision import RobotCollision, World, box, box_box, capsule_box, capsule_capsule
 from diffkin.errors import DTypeError
@@ -48,19 +49,11 @@ def as_on_cuda(f):
         return f()
 
 
-def _tensors(out) -> list[torch.Tensor]:
-    if isinstance(out, torch.Tensor):
-        return [out]
-    if isinstance(out, tuple | list):
-        return [t for o in out for t in _tensors(o)]
-    return []
-
-
 def check_as_on_cuda(f, atol=1e-10, values=True):
     """The outputs of :func:`as_on_cuda` ``(f)`` on the CPU, in the dtypes and (``values``) with the values of
     the ordinary call."""
-    out = _tensors(as_on_cuda(f))  # first: what f caches on first use is made under the stand-in
-    ref = _tensors(f())
+    out = outputs(as_on_cuda(f))  # first: what f caches on first use is made under the stand-in
+    ref = outputs(f())
     assert len(out) == len(ref) > 0
     for o, r in zip(out, ref):
         assert o.device.type == "cpu" and o.dtype == r.dtype, (o.device, o.dtype, r.dtype)
