@@ -616,8 +616,10 @@ def _terms_case(dtype, B=2, T=6):
     R_d = torch.linalg.matrix_exp(_skew(rv))
     ow = torch.rand(len(kp), generator=gen, dtype=torch.float64) * (torch.arange(len(kp)) % 2)  # some 0
     kw = 0.5 + torch.rand(len(kp), generator=gen, dtype=torch.float64)
+    q_ref = q.clone()  # the posture rows' reference: near q, not q (rows that are not zero)
+    q_ref[..., 7:] += 0.05 * torch.randn(B, T, g1.nq - 7, generator=gen, dtype=torch.float64)
     terms = _Terms(g1, x.to(dtype), contacts, list(mp.feet), kp, 30.0, 0.01, None, kw.to(dtype), dict(COSTS),
-                   q.to(dtype), 0.0, _velocity_limits(g1, 3.0, q.to(dtype)), R_d.to(dtype), ow.to(dtype))
+                   q_ref.to(dtype), 0.0, _velocity_limits(g1, 3.0, q.to(dtype)), R_d.to(dtype), ow.to(dtype))
     return terms, q.to(dtype)
 
 
@@ -664,14 +666,18 @@ def test_whole_clip_projection_is_the_frame_after_frame_clamp():
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
     """The C frame terms (native.clip_rows: keypoints, orientations, the soles' contact, penetration and
-    level rows, skating) give the torch path's cost, D, E and g: 1e-9 relative in float64; with recycled
-    blocks (evaluate(recycle=True), two sets in turn) the same numbers, the third call in the first's."""
+    level rows, skating) and joint terms (native.clip_joint: limits, velocity limits, posture, velocity,
+    acceleration) give the torch path's cost, D, E and g: 1e-9 relative in float64; with recycled blocks
+    (evaluate(recycle=True), two sets in turn) the same numbers, the third call in the first's."""
     from diffkin.kernels import native
 
     if not native.available():
         pytest.skip("the native kernel is not built")
     terms, q = _terms_case(dtype)
     assert bool((terms.c[:, 1:] & terms.c[:, :-1]).any())  # skating pairs
+    qs = q[..., terms.sq]
+    assert bool(((qs > terms.hi) | (qs < terms.lo)).any())  # limit rows active
+    assert bool(((qs[:, 1:] - qs[:, :-1]).abs() > terms.vstep).any())  # velocity-limit rows active
     with torch.no_grad():
         Ta, Ja = terms.chain.forward_kinematics_and_jacobian(q.flatten(0, 1))
         h = Ta[:, terms.feet_idx, 2, 3]

@@ -542,6 +542,24 @@ int64_t dk_topp_passes(const void *const *in, void *K, void *Kn, void *x, int64_
     return DK_ABI_ERROR;
 }
 
+/* The joint terms of the whole-clip retargeting problem (_native_clip.c, clip_joint; reals of real_bytes 8 or
+ * 4): in = (qs, lo, hi, vstep or NULL, dif, w), added to cost, D, E, g. Returns 0, DK_ABI_ERROR for another
+ * real size. */
+int64_t dk_clip_joint(const void *const *in, const int64_t *sv, void *cost, void *D, void *E, void *g, int64_t B,
+                      int64_t T, int64_t ns, int64_t nv, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        return clip_joint_f64(a[0], sv, a[1], a[2], a[3], a[4], B, T, ns, nv, a[5], (double *)cost, (double *)D,
+                              (double *)E, (double *)g, nthreads);
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        return clip_joint_f32(a[0], sv, a[1], a[2], a[3], a[4], B, T, ns, nv, a[5], (float *)cost, (float *)D,
+                              (float *)E, (float *)g, nthreads);
+    }
+    return DK_ABI_ERROR;
+}
+
 /* The frame terms of the whole-clip retargeting problem (_native_clip.c) into c's outputs; returns 0, -1
  * when the work space cannot be allocated, DK_ABI_ERROR for a struct of another version or size or a real
  * size other than 8 or 4. */

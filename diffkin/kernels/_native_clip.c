@@ -16,14 +16,19 @@
  * ancestors): they are packed on those columns, their Gram matrix formed there and scattered into D_n.
  * Frames are shared between threads (pass 1), then the skating pass reads the neighbours' centres. */
 
-/* Columns (of nv) where some of the 6 rows of J (6 x nv) is non-zero; returns their count. */
+/* Columns (of nv) where some of the 6 rows of J (6 x nv) is non-zero; returns their count. The flags are
+ * gathered a row at a time over all columns (vectorised: a test per entry, branch-free), then compressed in
+ * place (cols doubles as the flag array: entry c is read before any index >= c is written). */
 static int64_t DK(support)(const real *J, int64_t nv, int64_t *cols) {
-    int64_t s = 0;
-    for (int64_t c = 0; c < nv; c++) {
-        int nz = 0;
-        for (int a = 0; a < 6; a++) nz |= J[a * nv + c] != 0;
-        if (nz) cols[s++] = c;
+    for (int64_t c = 0; c < nv; c++) cols[c] = 0;
+    for (int a = 0; a < 6; a++) {
+        const real *Ja = J + a * nv;
+#pragma omp simd
+        for (int64_t c = 0; c < nv; c++) cols[c] |= Ja[c] != 0;
     }
+    int64_t s = 0;
+    for (int64_t c = 0; c < nv; c++)
+        if (cols[c]) cols[s++] = c;
     return s;
 }
 
@@ -222,5 +227,94 @@ static int64_t DK(clip_rows)(const dk_clip *c) {
     for (int64_t n = 0; n < N; n++)
         DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals));
     free(work);
+    return 0;
+}
+
+/* The joint terms of the whole-clip problem (whole_clip.py, _Terms._joint_terms: the same rows, summed in the
+ * same order per entry, equal to rounding) of one clip of T frames, added to its cost, D, E (T x nv x nv) and
+ * g (T x nv): on the ns scalar columns (q's columns qs (T x ns), velocity columns sv) the limit hinges
+ * w_l ((q - hi)^+ - (lo - q)^+) and, with vstep (q̇_max / fps, NULL: none), the velocity-limit hinges
+ * w_v (|Δq| - vstep)^+ sign(Δq); on all nv columns, from dif ((2T - 1) x nv: q_t ⊖ q_ref,t for t < T, then
+ * q_{t+1} ⊖ q_t), the posture w_p (q ⊖ q_ref), velocity w (q_{t+1} ⊖ q_t) and acceleration
+ * w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1})) rows, whose Jacobians are ± multiples of I at their frames. */
+static void DK(clip_joint_one)(const real *qs, const int64_t *sv, const real *lo, const real *hi,
+                               const real *vstep, const real *dif, int64_t T, int64_t ns, int64_t nv,
+                               const real *w, real *cost, real *D, real *E, real *g) {
+    const real wl = w[0], wvl = w[1], wp = w[2], wv = w[3] * w[3], wa = w[4] * w[4];
+    const int64_t nn = nv * nv;
+    real c = 0;
+    for (int64_t t = 0; t < T; t++) {
+        real *Dt = D + t * nn, *gt = g + t * nv;
+        const real *q = qs + t * ns, *dp = dif + t * nv;
+        for (int64_t j = 0; j < ns; j++) { /* joint limits */
+            const real over = q[j] > hi[j] ? q[j] - hi[j] : 0, under = lo[j] > q[j] ? lo[j] - q[j] : 0;
+            const real r = wl * (over - under);
+            c += (real)0.5 * r * r;
+            if (over > 0 || under > 0) Dt[sv[j] * (nv + 1)] += wl * wl;
+            gt[sv[j]] += wl * r;
+        }
+        if (vstep && t >= 1) { /* velocity limits: ±(I, −I) at (t, t − 1) where beyond */
+            const real *qp = qs + (t - 1) * ns;
+            real *Dp = D + (t - 1) * nn, *Et = E + t * nn, *gp = g + (t - 1) * nv;
+            for (int64_t j = 0; j < ns; j++) {
+                const real dq = q[j] - qp[j], ex = fabs(dq) - vstep[j];
+                if (!(ex > 0)) continue;
+                const real r = wvl * ex * (dq > 0 ? 1 : (dq < 0 ? -1 : 0));
+                const int64_t k = sv[j] * (nv + 1);
+                c += (real)0.5 * r * r;
+                Dt[k] += wvl * wvl;
+                Dp[k] += wvl * wvl;
+                Et[k] -= wvl * wvl;
+                gt[sv[j]] += wvl * r;
+                gp[sv[j]] -= wvl * r;
+            }
+        }
+        for (int64_t v = 0; v < nv; v++) { /* posture, then the differences' diagonal and off-diagonal parts */
+            const real rp = wp * dp[v];
+            c += (real)0.5 * rp * rp;
+            real dd = wp * wp;
+            gt[v] += wp * wp * dp[v];
+            if (T > 1) dd += wv * ((t >= 1) + (t + 1 < T));
+            if (T > 2) dd += wa * ((t >= 2) + 4 * (t >= 1 && t + 1 < T) + (t + 2 < T));
+            Dt[v * (nv + 1)] += dd;
+        }
+        if (t >= 1) { /* E_t's diagonal: −w_v², and −2 w_a² per acceleration row through (t, t − 1) */
+            real e = -wv;
+            if (T > 2) e -= 2 * wa * ((t + 1 < T) + (t >= 2));
+            real *Et = E + t * nn;
+            for (int64_t v = 0; v < nv; v++) Et[v * (nv + 1)] += e;
+        }
+    }
+    if (T > 1) { /* velocity rows d_i = q_{i+1} ⊖ q_i: g_{i+1} += w² d_i, g_i −= w² d_i */
+        const real *d = dif + T * nv;
+        for (int64_t i = 0; i + 1 < T; i++)
+            for (int64_t v = 0; v < nv; v++) {
+                const real x = d[i * nv + v];
+                c += (real)0.5 * wv * x * x;
+                g[(i + 1) * nv + v] += wv * x;
+                g[i * nv + v] -= wv * x;
+            }
+        for (int64_t i = 0; i + 2 < T; i++) /* acceleration rows a_i = d_{i+1} − d_i at frames (i, i+1, i+2) */
+            for (int64_t v = 0; v < nv; v++) {
+                const real a = d[(i + 1) * nv + v] - d[i * nv + v];
+                c += (real)0.5 * wa * a * a;
+                g[i * nv + v] += wa * a;
+                g[(i + 1) * nv + v] -= 2 * wa * a;
+                g[(i + 2) * nv + v] += wa * a;
+            }
+    }
+    *cost += c;
+}
+
+/* B clips: qs (B x T x ns), dif (B x (2T − 1) x nv), cost (B), D, E (B x T x nv x nv), g (B x T x nv); the
+ * weights w = (limit, velocity_limit, posture, velocity, acceleration). Clips are shared between threads. */
+static int64_t DK(clip_joint)(const real *qs, const int64_t *sv, const real *lo, const real *hi,
+                              const real *vstep, const real *dif, int64_t B, int64_t T, int64_t ns, int64_t nv,
+                              const real *w, real *cost, real *D, real *E, real *g, int64_t nthreads) {
+    if (nthreads < 1) nthreads = 1;
+#pragma omp parallel for num_threads(nthreads) schedule(static) if (nthreads > 1)
+    for (int64_t b = 0; b < B; b++)
+        DK(clip_joint_one)(qs + b * T * ns, sv, lo, hi, vstep, dif + b * (2 * T - 1) * nv, T, ns, nv, w, cost + b,
+                           D + b * T * nv * nv, E + b * T * nv * nv, g + b * T * nv);
     return 0;
 }

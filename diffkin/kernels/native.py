@@ -74,7 +74,8 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "NativeModel", "Collide", "capsules_clear", "collide_struct",
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
-           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes"]
+           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "clip_joint",
+           "topp_passes"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -294,6 +295,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.restype = _I64  # D, E, F, f_shared, g, shift, x, batch, T, n, real_bytes, nthreads
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
+    lib.dk_clip_joint.restype, lib.dk_clip_joint.argtypes = _I64, [_PTR] * 6 + [_I64] * 6
     lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     return lib
 
@@ -739,6 +741,35 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
                       cost=cost, D=D, E=Eb, g=g, centre=centre, centre_jac=centre_jac)
     _raise_on(_lib.dk_clip_rows(ctypes.byref(args)), "work space")
     return cost, D, Eb, g
+
+
+def clip_joint(qs: Tensor, sv: Tensor, lo: Tensor, hi: Tensor, vstep: Tensor | None, dif: Tensor,
+               weights: Tensor, cost: Tensor, D: Tensor, E: Tensor, g: Tensor) -> bool:
+    """The joint terms of the whole-clip retargeting problem (:meth:`diffkin.retarget.whole_clip._Terms.
+    _joint_terms`: limits and velocity limits on the scalar columns, posture, velocity and acceleration rows)
+    added in place to ``cost (B,)``, ``D, E (B, T, nv, nv)`` and ``g (B, T, nv)`` (contiguous) by
+    ``dk_clip_joint`` (``_native_clip.c``), from the scalar columns ``qs (B, T, ns)`` of q, their velocity
+    columns ``sv (ns,)`` (long), the soft limits ``lo, hi (ns,)``, ``vstep (ns,)`` (q̇_max / fps; None: no
+    velocity limits), the differences ``dif (B, 2T − 1, nv)`` (q ⊖ q_ref, then q_{t+1} ⊖ q_t) and ``weights
+    (5,)`` (limit, velocity_limit, posture, velocity, acceleration). False (nothing done) where the library is
+    not loaded or the tensors are not contiguous CPU tensors of one float dtype without autograd. Clips are
+    shared between threads."""
+    dtype = D.dtype
+    reals = [t for t in (qs, lo, hi, vstep, dif, weights, cost, D, E, g) if t is not None]
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in reals)
+            or not all(t.is_contiguous() for t in (cost, D, E, g))):
+        return False
+    B, T, ns = qs.shape
+    ins = [t.contiguous() for t in (qs, lo, hi)] + [None if vstep is None else vstep.contiguous()] + [
+        dif.contiguous(), weights.contiguous()]
+    ptrs = (ctypes.c_void_p * 6)(*(None if t is None else t.data_ptr() for t in ins))
+    sv = sv.to(device="cpu", dtype=torch.int64).contiguous()
+    threads = max(1, min(B, thread_count(B * T)))
+    _raise_on(_lib.dk_clip_joint(ptrs, sv.data_ptr(), cost.data_ptr(), D.data_ptr(), E.data_ptr(),
+                                 g.data_ptr(), B, T, ns, D.shape[-1], D.element_size(), threads),
+              "work space")
+    return True
 
 
 def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,

@@ -41,9 +41,10 @@ the base wherever a sole is still below the ground (:func:`~diffkin.retarget.gro
 no sole point is below it (to rounding).
 
 On CPU tensors without autograd the end links' rows (keypoint to skating) and their share of JᵀJ, Jᵀr and
-the cost are formed in C (:func:`diffkin.kernels.native.clip_rows`), elsewhere in torch ops (equal to
-rounding); further per-frame rows (the self-collision rows) plug in through ``_Terms.extra_rows``
-(:meth:`_Terms.evaluate`).
+the cost are formed in C (:func:`diffkin.kernels.native.clip_rows`), and so are the joint terms' (limit to
+acceleration, from the differences ⊖ made in torch: :func:`diffkin.kernels.native.clip_joint`), elsewhere
+in torch ops (equal to rounding); further per-frame rows (the self-collision rows) plug in through
+``_Terms.extra_rows`` (:meth:`_Terms.evaluate`).
 """
 
 from __future__ import annotations
@@ -127,6 +128,9 @@ class _Terms:
         self.lo, self.hi = lim[:, 0] + limit_margin, lim[:, 1] - limit_margin
         # q̇_max / fps (rad or m per frame) on the scalar q columns (inf on the base position)
         self.vstep = None if velocity_limit is None else velocity_limit.index_select(0, self.sq) / fps
+        self._joint_weights = torch.tensor([w[k] for k in ("limit", "velocity_limit", "posture", "velocity",
+                                                           "acceleration")], dtype=keypoints.dtype,
+                                          device=keypoints.device)
 
     def project(self, q: Tensor) -> Tensor:
         """``q (B, T, nq)`` onto the joint limits and, with velocity limits, frame after frame onto
@@ -302,6 +306,12 @@ class _Terms:
         w = self.w
         B, T, _ = q.shape
         nv = self.chain.nv
+        # q ⊖ q_ref and the frame differences q_{t+1} ⊖ q_t in one call (one pass of the quaternion maps)
+        both = self.chain.configuration_space.difference(torch.cat((self.q_ref, q[:, :-1]), 1),
+                                                         torch.cat((q, q[:, 1:]), 1))
+        if native.clip_joint(q[..., self.sq_cols], self.sv, self.lo, self.hi, self.vstep, both,
+                             self._joint_weights.to(q), cost, D, E, g):  # C on CPU tensors: the same rows
+            return cost, D, E, self._second_band(D), g
         # joint limits (diagonal in the scalar velocity columns)
         qs = q[..., self.sq_cols]
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
@@ -324,9 +334,6 @@ class _Terms:
             g[:, 1:, self.sv_cols] += wl * r_v
             g[:, :-1, self.sv_cols] -= wl * r_v
         # posture: near the warm start
-        # q ⊖ q_ref and the frame differences q_{t+1} ⊖ q_t in one call (one pass of the quaternion maps)
-        both = self.chain.configuration_space.difference(torch.cat((self.q_ref, q[:, :-1]), 1),
-                                                         torch.cat((q, q[:, 1:]), 1))
         dp, d = both[:, :T], both[:, T:]  # (B, T, nv), (B, T - 1, nv)
         cost = cost + 0.5 * (w["posture"] * dp).square().flatten(1).sum(-1)
         diag += w["posture"] ** 2
