@@ -16,16 +16,15 @@
  * ancestors): they are packed on those columns, their Gram matrix formed there and scattered into D_n.
  * Frames are shared between threads (pass 1), then the skating pass reads the neighbours' centres. */
 
-/* Columns (of nv) where some of the 6 rows of J (6 x nv) is non-zero; returns their count. The flags are
- * gathered a row at a time over all columns (vectorised: a test per entry, branch-free), then compressed in
- * place (cols doubles as the flag array: entry c is read before any index >= c is written). */
+/* Columns (of nv) where some of the 6 rows of J (6 x nv) is non-zero; returns their count. A column's flag is
+ * one expression over its six entries (vectorised over the columns, each flag written once), then the flags
+ * are compressed in place (cols doubles as the flag array: entry c is read before any index >= c is
+ * written). */
 static int64_t DK(support)(const real *J, int64_t nv, int64_t *cols) {
-    for (int64_t c = 0; c < nv; c++) cols[c] = 0;
-    for (int a = 0; a < 6; a++) {
-        const real *Ja = J + a * nv;
+    const real *J0 = J, *J1 = J + nv, *J2 = J1 + nv, *J3 = J2 + nv, *J4 = J3 + nv, *J5 = J4 + nv;
 #pragma omp simd
-        for (int64_t c = 0; c < nv; c++) cols[c] |= Ja[c] != 0;
-    }
+    for (int64_t c = 0; c < nv; c++)
+        cols[c] = (J0[c] != 0) | (J1[c] != 0) | (J2[c] != 0) | (J3[c] != 0) | (J4[c] != 0) | (J5[c] != 0);
     int64_t s = 0;
     for (int64_t c = 0; c < nv; c++)
         if (cols[c]) cols[s++] = c;
