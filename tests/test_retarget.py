@@ -616,7 +616,10 @@ def _terms_case(dtype, B=2, T=6):
     R_d = torch.linalg.matrix_exp(_skew(rv))
     ow = torch.rand(len(kp), generator=gen, dtype=torch.float64) * (torch.arange(len(kp)) % 2)  # some 0
     kw = 0.5 + torch.rand(len(kp), generator=gen, dtype=torch.float64)
-    q_ref = q.clone()  # the posture rows' reference: near q, not q (rows that are not zero)
+    q_ref = q.clone()  # the posture rows' reference: near q, not q (rows that are not zero; the base too)
+    q_ref[..., :3] += 0.05 * torch.randn(B, T, 3, generator=gen, dtype=torch.float64)
+    q_ref[..., 3:7] += 0.1 * torch.randn(B, T, 4, generator=gen, dtype=torch.float64)
+    q_ref[..., 3:7] /= q_ref[..., 3:7].norm(dim=-1, keepdim=True)
     q_ref[..., 7:] += 0.05 * torch.randn(B, T, g1.nq - 7, generator=gen, dtype=torch.float64)
     terms = _Terms(g1, x.to(dtype), contacts, list(mp.feet), kp, 30.0, 0.01, None, kw.to(dtype), dict(COSTS),
                    q_ref.to(dtype), 0.0, _velocity_limits(g1, 3.0, q.to(dtype)), R_d.to(dtype), ow.to(dtype))

@@ -543,19 +543,20 @@ int64_t dk_topp_passes(const void *const *in, void *K, void *Kn, void *x, int64_
 }
 
 /* The joint terms of the whole-clip retargeting problem (_native_clip.c, clip_joint; reals of real_bytes 8 or
- * 4): in = (qs, lo, hi, vstep or NULL, dif, w), added to cost, D, E, g. Returns 0, DK_ABI_ERROR for another
- * real size. */
-int64_t dk_clip_joint(const void *const *in, const int64_t *sv, void *cost, void *D, void *E, void *g, int64_t B,
-                      int64_t T, int64_t ns, int64_t nv, int64_t real_bytes, int64_t nthreads) {
+ * 4): in = (q, q_ref, lo, hi, vstep or NULL, w), idx = (sq, sv, bq, bv), added to cost, D, E, g. Returns 0,
+ * -1 when the work space cannot be allocated, DK_ABI_ERROR for another real size. */
+int64_t dk_clip_joint(const void *const *in, const int64_t *const *idx, void *cost, void *D, void *E, void *g,
+                      int64_t B, int64_t T, int64_t nq, int64_t nv, int64_t ns, int64_t nb, int64_t real_bytes,
+                      int64_t nthreads) {
     if (real_bytes == 8) {
         const double *const *a = (const double *const *)in;
-        return clip_joint_f64(a[0], sv, a[1], a[2], a[3], a[4], B, T, ns, nv, a[5], (double *)cost, (double *)D,
-                              (double *)E, (double *)g, nthreads);
+        return clip_joint_f64(a[0], a[1], idx, ns, nb, a[2], a[3], a[4], B, T, nq, nv, a[5], (double *)cost,
+                              (double *)D, (double *)E, (double *)g, nthreads);
     }
     if (real_bytes == 4) {
         const float *const *a = (const float *const *)in;
-        return clip_joint_f32(a[0], sv, a[1], a[2], a[3], a[4], B, T, ns, nv, a[5], (float *)cost, (float *)D,
-                              (float *)E, (float *)g, nthreads);
+        return clip_joint_f32(a[0], a[1], idx, ns, nb, a[2], a[3], a[4], B, T, nq, nv, a[5], (float *)cost,
+                              (float *)D, (float *)E, (float *)g, nthreads);
     }
     return DK_ABI_ERROR;
 }

@@ -229,34 +229,77 @@ static int64_t DK(clip_rows)(const dk_clip *c) {
     return 0;
 }
 
-/* The joint terms of the whole-clip problem (whole_clip.py, _Terms._joint_terms: the same rows, summed in the
- * same order per entry, equal to rounding) of one clip of T frames, added to its cost, D, E (T x nv x nv) and
- * g (T x nv): on the ns scalar columns (q's columns qs (T x ns), velocity columns sv) the limit hinges
+/* v = q1 ⊖ q0 (nv) of two configurations (nq) (ConfigurationSpace.difference, equal to rounding): the ns
+ * scalars q1 - q0 (q columns sq, v columns sv), the nb quaternions (q columns bq, 4 each; v columns bv, 3
+ * each) the rotation vector of a0^-1 (x) a1 along the shortest arc, each quaternion first normalised (scaled
+ * by its largest |entry|; a norm at or below DK_QSMALL gives the identity, as stable_normalize). */
+static void DK(difference)(const real *q0, const real *q1, const int64_t *sq, const int64_t *sv, int64_t ns,
+                           const int64_t *bq, const int64_t *bv, int64_t nb, real *v) {
+    for (int64_t j = 0; j < ns; j++) v[sv[j]] = q1[sq[j]] - q0[sq[j]];
+    for (int64_t k = 0; k < nb; k++) {
+        real a[2][4];
+        for (int s = 0; s < 2; s++) {
+            const real *src = s ? q1 : q0;
+            real m = 0, nn = 0;
+            for (int c = 0; c < 4; c++) {
+                a[s][c] = src[bq[4 * k + c]];
+                m = fabs(a[s][c]) > m ? fabs(a[s][c]) : m;
+            }
+            if (!(m > 0 && m < (real)INFINITY)) m = 1;
+            for (int c = 0; c < 4; c++) nn += (a[s][c] / m) * (a[s][c] / m);
+            const real n = sqrt(nn) * m;
+            for (int c = 0; c < 4; c++) a[s][c] = n <= (real)DK_QSMALL ? (real)(c == 0) : a[s][c] / n;
+        }
+        const real *p = a[0], *q = a[1]; /* conj(p) (x) q: w = p0 q0 + pv.qv, v = p0 qv - q0 pv - pv x qv */
+        real d[4] = {p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3],
+                     p[0] * q[1] - q[0] * p[1] - (p[2] * q[3] - p[3] * q[2]),
+                     p[0] * q[2] - q[0] * p[2] - (p[3] * q[1] - p[1] * q[3]),
+                     p[0] * q[3] - q[0] * p[3] - (p[1] * q[2] - p[2] * q[1])};
+        if (d[0] < 0)
+            for (int c = 0; c < 4; c++) d[c] = -d[c];
+        /* 2 atan2(n, w) / n, n = |v| (rigid._atan_ratio: its Taylor branch where n^2 <= sqrt(eps) w^2) */
+        const real n2 = d[1] * d[1] + d[2] * d[2] + d[3] * d[3], tiny = (real)DK_QSMALL * 1000;
+        real f;
+        if (n2 <= tiny * d[0] * d[0]) {
+            const real x2 = n2 / (d[0] * d[0]);
+            f = 2 / d[0] * (1 - x2 / 3 + x2 * x2 / 5);
+        } else {
+            f = 2 * atan2(sqrt(n2), d[0]) / sqrt(n2);
+        }
+        for (int c = 0; c < 3; c++) v[bv[3 * k + c]] = d[1 + c] * f;
+    }
+}
+
+/* The joint terms of the whole-clip problem (whole_clip.py, _Terms._joint_terms: the same rows, equal to
+ * rounding) of one clip of T frames q (T x nq) with the posture reference qr (T x nq), added to its cost, D, E
+ * (T x nv x nv) and g (T x nv): on the ns scalar columns (q columns sq, v columns sv) the limit hinges
  * w_l ((q - hi)^+ - (lo - q)^+) and, with vstep (q̇_max / fps, NULL: none), the velocity-limit hinges
- * w_v (|Δq| - vstep)^+ sign(Δq); on all nv columns, from dif ((2T - 1) x nv: q_t ⊖ q_ref,t for t < T, then
- * q_{t+1} ⊖ q_t), the posture w_p (q ⊖ q_ref), velocity w (q_{t+1} ⊖ q_t) and acceleration
- * w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1})) rows, whose Jacobians are ± multiples of I at their frames. */
-static void DK(clip_joint_one)(const real *qs, const int64_t *sv, const real *lo, const real *hi,
-                               const real *vstep, const real *dif, int64_t T, int64_t ns, int64_t nv,
-                               const real *w, real *cost, real *D, real *E, real *g) {
+ * w_v (|Δq| - vstep)^+ sign(Δq); on all nv columns the posture w_p (q ⊖ q_ref), velocity w (q_{t+1} ⊖ q_t)
+ * and acceleration w ((q_{t+1} ⊖ q_t) − (q_t ⊖ q_{t−1})) rows (DK(difference)), whose Jacobians are ±
+ * multiples of I at their frames. work: T nv reals. */
+static void DK(clip_joint_one)(const real *q, const real *qr, const int64_t *sq, const int64_t *sv, int64_t ns,
+                               const int64_t *bq, const int64_t *bv, int64_t nb, const real *lo, const real *hi,
+                               const real *vstep, int64_t T, int64_t nq, int64_t nv, const real *w, real *cost,
+                               real *D, real *E, real *g, real *work) {
     const real wl = w[0], wvl = w[1], wp = w[2], wv = w[3] * w[3], wa = w[4] * w[4];
     const int64_t nn = nv * nv;
     real c = 0;
     for (int64_t t = 0; t < T; t++) {
-        real *Dt = D + t * nn, *gt = g + t * nv;
-        const real *q = qs + t * ns, *dp = dif + t * nv;
+        real *Dt = D + t * nn, *gt = g + t * nv, *dp = work + t * nv;
+        const real *qt = q + t * nq;
         for (int64_t j = 0; j < ns; j++) { /* joint limits */
-            const real over = q[j] > hi[j] ? q[j] - hi[j] : 0, under = lo[j] > q[j] ? lo[j] - q[j] : 0;
+            const real x = qt[sq[j]];
+            const real over = x > hi[j] ? x - hi[j] : 0, under = lo[j] > x ? lo[j] - x : 0;
             const real r = wl * (over - under);
             c += (real)0.5 * r * r;
             if (over > 0 || under > 0) Dt[sv[j] * (nv + 1)] += wl * wl;
             gt[sv[j]] += wl * r;
         }
         if (vstep && t >= 1) { /* velocity limits: ±(I, −I) at (t, t − 1) where beyond */
-            const real *qp = qs + (t - 1) * ns;
+            const real *qp = q + (t - 1) * nq;
             real *Dp = D + (t - 1) * nn, *Et = E + t * nn, *gp = g + (t - 1) * nv;
             for (int64_t j = 0; j < ns; j++) {
-                const real dq = q[j] - qp[j], ex = fabs(dq) - vstep[j];
+                const real dq = qt[sq[j]] - qp[sq[j]], ex = fabs(dq) - vstep[j];
                 if (!(ex > 0)) continue;
                 const real r = wvl * ex * (dq > 0 ? 1 : (dq < 0 ? -1 : 0));
                 const int64_t k = sv[j] * (nv + 1);
@@ -268,6 +311,7 @@ static void DK(clip_joint_one)(const real *qs, const int64_t *sv, const real *lo
                 gp[sv[j]] -= wvl * r;
             }
         }
+        DK(difference)(qr + t * nq, qt, sq, sv, ns, bq, bv, nb, dp); /* posture: q ⊖ q_ref */
         for (int64_t v = 0; v < nv; v++) { /* posture, then the differences' diagonal and off-diagonal parts */
             const real rp = wp * dp[v];
             c += (real)0.5 * rp * rp;
@@ -284,8 +328,10 @@ static void DK(clip_joint_one)(const real *qs, const int64_t *sv, const real *lo
             for (int64_t v = 0; v < nv; v++) Et[v * (nv + 1)] += e;
         }
     }
-    if (T > 1) { /* velocity rows d_i = q_{i+1} ⊖ q_i: g_{i+1} += w² d_i, g_i −= w² d_i */
-        const real *d = dif + T * nv;
+    if (T > 1) { /* velocity rows d_i = q_{i+1} ⊖ q_i (into work): g_{i+1} += w² d_i, g_i −= w² d_i */
+        real *d = work;
+        for (int64_t i = 0; i + 1 < T; i++) DK(difference)(q + i * nq, q + (i + 1) * nq, sq, sv, ns, bq, bv, nb,
+                                                          d + i * nv);
         for (int64_t i = 0; i + 1 < T; i++)
             for (int64_t v = 0; v < nv; v++) {
                 const real x = d[i * nv + v];
@@ -305,15 +351,21 @@ static void DK(clip_joint_one)(const real *qs, const int64_t *sv, const real *lo
     *cost += c;
 }
 
-/* B clips: qs (B x T x ns), dif (B x (2T − 1) x nv), cost (B), D, E (B x T x nv x nv), g (B x T x nv); the
- * weights w = (limit, velocity_limit, posture, velocity, acceleration). Clips are shared between threads. */
-static int64_t DK(clip_joint)(const real *qs, const int64_t *sv, const real *lo, const real *hi,
-                              const real *vstep, const real *dif, int64_t B, int64_t T, int64_t ns, int64_t nv,
-                              const real *w, real *cost, real *D, real *E, real *g, int64_t nthreads) {
+/* B clips: q, qr (B x T x nq), cost (B), D, E (B x T x nv x nv), g (B x T x nv); idx = (sq, sv, bq, bv); the
+ * weights w = (limit, velocity_limit, posture, velocity, acceleration). Clips are shared between threads.
+ * Returns 0, or -1 when the work space cannot be allocated. */
+static int64_t DK(clip_joint)(const real *q, const real *qr, const int64_t *const *idx, int64_t ns, int64_t nb,
+                              const real *lo, const real *hi, const real *vstep, int64_t B, int64_t T, int64_t nq,
+                              int64_t nv, const real *w, real *cost, real *D, real *E, real *g, int64_t nthreads) {
     if (nthreads < 1) nthreads = 1;
+    if (nthreads > B) nthreads = B > 0 ? B : 1;
+    real *work = malloc((size_t)(T * nv) * (size_t)nthreads * sizeof(real));
+    if (!work) return -1;
 #pragma omp parallel for num_threads(nthreads) schedule(static) if (nthreads > 1)
     for (int64_t b = 0; b < B; b++)
-        DK(clip_joint_one)(qs + b * T * ns, sv, lo, hi, vstep, dif + b * (2 * T - 1) * nv, T, ns, nv, w, cost + b,
-                           D + b * T * nv * nv, E + b * T * nv * nv, g + b * T * nv);
+        DK(clip_joint_one)(q + b * T * nq, qr + b * T * nq, idx[0], idx[1], ns, idx[2], idx[3], nb, lo, hi, vstep,
+                           T, nq, nv, w, cost + b, D + b * T * nv * nv, E + b * T * nv * nv, g + b * T * nv,
+                           work + (size_t)(T * nv) * (size_t)thread_id());
+    free(work);
     return 0;
 }

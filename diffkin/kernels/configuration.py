@@ -353,9 +353,9 @@ class ConfigurationSpace:
         """Positions of the scalar coordinates in q (``"q"``) or v (``"v"``)."""
         return self._scalar_q if which == "q" else self._scalar_v
 
-    def quaternion_index(self) -> tuple[tuple[int, ...], ...]:
-        """The four q positions of each quaternion."""
-        return self._quat_q
+    def quaternion_index(self, which: str = "q") -> tuple[tuple[int, ...], ...]:
+        """The four q positions (``"q"``) or three v positions (``"v"``) of each quaternion."""
+        return self._quat_q if which == "q" else self._quat_v
 
 
 def _broadcast_batch(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:

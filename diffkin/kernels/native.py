@@ -295,7 +295,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.restype = _I64  # D, E, F, f_shared, g, shift, x, batch, T, n, real_bytes, nthreads
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
-    lib.dk_clip_joint.restype, lib.dk_clip_joint.argtypes = _I64, [_PTR] * 6 + [_I64] * 6
+    lib.dk_clip_joint.restype, lib.dk_clip_joint.argtypes = _I64, [_PTR] * 6 + [_I64] * 8
     lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     return lib
 
@@ -743,31 +743,36 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     return cost, D, Eb, g
 
 
-def clip_joint(qs: Tensor, sv: Tensor, lo: Tensor, hi: Tensor, vstep: Tensor | None, dif: Tensor,
+def clip_joint(q: Tensor, q_ref: Tensor, space, lo: Tensor, hi: Tensor, vstep: Tensor | None,
                weights: Tensor, cost: Tensor, D: Tensor, E: Tensor, g: Tensor) -> bool:
     """The joint terms of the whole-clip retargeting problem (:meth:`diffkin.retarget.whole_clip._Terms.
-    _joint_terms`: limits and velocity limits on the scalar columns, posture, velocity and acceleration rows)
-    added in place to ``cost (B,)``, ``D, E (B, T, nv, nv)`` and ``g (B, T, nv)`` (contiguous) by
-    ``dk_clip_joint`` (``_native_clip.c``), from the scalar columns ``qs (B, T, ns)`` of q, their velocity
-    columns ``sv (ns,)`` (long), the soft limits ``lo, hi (ns,)``, ``vstep (ns,)`` (q̇_max / fps; None: no
-    velocity limits), the differences ``dif (B, 2T − 1, nv)`` (q ⊖ q_ref, then q_{t+1} ⊖ q_t) and ``weights
-    (5,)`` (limit, velocity_limit, posture, velocity, acceleration). False (nothing done) where the library is
-    not loaded or the tensors are not contiguous CPU tensors of one float dtype without autograd. Clips are
+    _joint_terms`: limits and velocity limits on the scalar coordinates, posture, velocity and acceleration
+    rows) of ``q (B, T, nq)`` with the posture reference ``q_ref (B, T, nq)`` added in place to ``cost
+    (B,)``, ``D, E (B, T, nv, nv)`` and ``g (B, T, nv)`` (contiguous) by ``dk_clip_joint``
+    (``_native_clip.c``; the differences ⊖ of ``space``, a
+    :class:`~diffkin.kernels.configuration.ConfigurationSpace`, formed there), with the soft limits ``lo, hi
+    (ns,)`` and ``vstep (ns,)`` (q̇_max / fps; None: no velocity limits) of its ns scalar coordinates and
+    ``weights (5,)`` (limit, velocity_limit, posture, velocity, acceleration). False (nothing done) where the
+    library is not loaded or the tensors are not CPU tensors of one float dtype without autograd. Clips are
     shared between threads."""
     dtype = D.dtype
-    reals = [t for t in (qs, lo, hi, vstep, dif, weights, cost, D, E, g) if t is not None]
+    reals = [t for t in (q, q_ref, lo, hi, vstep, weights, cost, D, E, g) if t is not None]
     if (not available() or dtype not in (torch.float32, torch.float64)
             or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in reals)
             or not all(t.is_contiguous() for t in (cost, D, E, g))):
         return False
-    B, T, ns = qs.shape
-    ins = [t.contiguous() for t in (qs, lo, hi)] + [None if vstep is None else vstep.contiguous()] + [
-        dif.contiguous(), weights.contiguous()]
+    B, T, nq = q.shape
+    ins = [t.contiguous() for t in (q, q_ref.expand(q.shape), lo, hi)] + [
+        None if vstep is None else vstep.contiguous(), weights.contiguous()]
     ptrs = (ctypes.c_void_p * 6)(*(None if t is None else t.data_ptr() for t in ins))
-    sv = sv.to(device="cpu", dtype=torch.int64).contiguous()
+    quats_q, quats_v = space.quaternion_index("q"), space.quaternion_index("v")
+    idx = [torch.tensor(list(v), dtype=torch.int64) for v in (
+        space.scalar_index("q"), space.scalar_index("v"), [i for b in quats_q for i in b],
+        [i for b in quats_v for i in b])]
+    iptrs = (ctypes.c_void_p * 4)(*(t.data_ptr() for t in idx))
     threads = max(1, min(B, thread_count(B * T)))
-    _raise_on(_lib.dk_clip_joint(ptrs, sv.data_ptr(), cost.data_ptr(), D.data_ptr(), E.data_ptr(),
-                                 g.data_ptr(), B, T, ns, D.shape[-1], D.element_size(), threads),
+    _raise_on(_lib.dk_clip_joint(ptrs, iptrs, cost.data_ptr(), D.data_ptr(), E.data_ptr(), g.data_ptr(), B, T,
+                                 nq, D.shape[-1], len(idx[0]), len(quats_q), D.element_size(), threads),
               "work space")
     return True
 

@@ -42,8 +42,8 @@ no sole point is below it (to rounding).
 
 On CPU tensors without autograd the end links' rows (keypoint to skating) and their share of JᵀJ, Jᵀr and
 the cost are formed in C (:func:`diffkin.kernels.native.clip_rows`), and so are the joint terms' (limit to
-acceleration, from the differences ⊖ made in torch: :func:`diffkin.kernels.native.clip_joint`), elsewhere
-in torch ops (equal to rounding); further per-frame rows (the self-collision rows) plug in through
+acceleration, with their differences ⊖: :func:`diffkin.kernels.native.clip_joint`), elsewhere in torch
+ops (equal to rounding); further per-frame rows (the self-collision rows) plug in through
 ``_Terms.extra_rows`` (:meth:`_Terms.evaluate`).
 """
 
@@ -306,12 +306,12 @@ class _Terms:
         w = self.w
         B, T, _ = q.shape
         nv = self.chain.nv
-        # q ⊖ q_ref and the frame differences q_{t+1} ⊖ q_t in one call (one pass of the quaternion maps)
-        both = self.chain.configuration_space.difference(torch.cat((self.q_ref, q[:, :-1]), 1),
-                                                         torch.cat((q, q[:, 1:]), 1))
-        if native.clip_joint(q[..., self.sq_cols], self.sv, self.lo, self.hi, self.vstep, both,
-                             self._joint_weights.to(q), cost, D, E, g):  # C on CPU tensors: the same rows
+        cs = self.chain.configuration_space
+        if native.clip_joint(q, self.q_ref, cs, self.lo, self.hi, self.vstep, self._joint_weights.to(q), cost,
+                             D, E, g):  # C on CPU tensors: the same rows (the differences ⊖ there too)
             return cost, D, E, self._second_band(D), g
+        # q ⊖ q_ref and the frame differences q_{t+1} ⊖ q_t in one call (one pass of the quaternion maps)
+        both = cs.difference(torch.cat((self.q_ref, q[:, :-1]), 1), torch.cat((q, q[:, 1:]), 1))
         # joint limits (diagonal in the scalar velocity columns)
         qs = q[..., self.sq_cols]
         over, under = (qs - self.hi).clamp_min(0), (self.lo - qs).clamp_min(0)
