@@ -706,6 +706,33 @@ def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
             assert torch.equal(x, y)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_whole_clip_step_in_c_equals_the_torch_path(dtype):
+    """The LM trial in C (native.clip_step: q ⊕ step with the base quaternion turned, the limits, then the
+    velocity limits frame after frame) equals project(integrate(q, step)) in torch: 1e-12 in float64; steps
+    large enough that both clamps act, turns of the base of 0 and near 0 (sinc's Taylor branch) and larger
+    ones."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    terms, q = _terms_case(dtype, B=2, T=9)
+    gen = torch.Generator().manual_seed(3)
+    step = 0.3 * torch.randn(*q.shape[:2], terms.chain.nv, generator=gen, dtype=torch.float64).to(dtype)
+    step[0, :, 3:6] *= 1e-6  # a tiny turn of the base in clip 0, none at all in its first frames
+    step[0, :2, 3:6] = 0.0
+    fast = terms.step(q, step)
+    with native.disabled():
+        slow = terms.step(q, step)
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    torch.testing.assert_close(fast, slow, rtol=0, atol=tol)
+    moved = terms.chain.configuration_space.integrate(q, step)
+    qs, ms = fast[..., terms.sq], moved[..., terms.sq]
+    assert bool((qs != ms).any())  # some coordinate clamped
+    assert bool(((qs[:, 1:] - qs[:, :-1]).abs() >= terms.vstep * (1 - 1e-6)).any())  # at its velocity limit
+    assert not torch.equal(fast[..., 3:7], q[..., 3:7])  # the base turned
+
+
 def test_whole_clip_optimisation_in_c_equals_the_torch_path(monkeypatch):
     """optimize_clip from one warm start (12 frames of the shipped hop, velocity limits, 3 iterations) gives
     the same clip with the C kernels (frame terms, banded solve, FK) as with the torch path: 1e-9; and the

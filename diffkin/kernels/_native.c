@@ -561,6 +561,24 @@ int64_t dk_clip_joint(const void *const *in, const int64_t *const *idx, void *co
     return DK_ABI_ERROR;
 }
 
+/* The whole-clip step q ⊕ step, projected (_native_clip.c, clip_step; reals of real_bytes 8 or 4): in = (q, step,
+ * qlo, qhi, lo, hi, vstep or NULL), idx = (sq, sv, bq, bv), into out. Returns 0, DK_ABI_ERROR for another real
+ * size. */
+int64_t dk_clip_step(const void *const *in, const int64_t *const *idx, void *out, int64_t B, int64_t T, int64_t nq,
+                     int64_t nv, int64_t ns, int64_t nb, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        return clip_step_f64(a[0], a[1], idx, ns, nb, a[2], a[3], a[4], a[5], a[6], B, T, nq, nv, (double *)out,
+                             nthreads);
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        return clip_step_f32(a[0], a[1], idx, ns, nb, a[2], a[3], a[4], a[5], a[6], B, T, nq, nv, (float *)out,
+                             nthreads);
+    }
+    return DK_ABI_ERROR;
+}
+
 /* The frame terms of the whole-clip retargeting problem (_native_clip.c) into c's outputs; returns 0, -1
  * when the work space cannot be allocated, DK_ABI_ERROR for a struct of another version or size or a real
  * size other than 8 or 4. */

@@ -229,6 +229,23 @@ static int64_t DK(clip_rows)(const dk_clip *c) {
     return 0;
 }
 
+/* u = the quaternion at q's columns col (4) normalised as stable_normalize does: scaled by its largest |entry|
+ * first; a norm at or below DK_QSMALL gives the identity. */
+static void DK(unit_read)(const real *q, const int64_t *col, real *u) {
+    real m = 0, nn = 0;
+    for (int c = 0; c < 4; c++) {
+        u[c] = q[col[c]];
+        m = fabs(u[c]) > m ? fabs(u[c]) : m;
+    }
+    if (!(m > 0 && m < (real)INFINITY)) m = 1;
+    for (int c = 0; c < 4; c++) nn += (u[c] / m) * (u[c] / m);
+    const real n = sqrt(nn) * m;
+    for (int c = 0; c < 4; c++) u[c] = n <= (real)DK_QSMALL ? (real)(c == 0) : u[c] / n;
+}
+
+static inline real DK(min_nan)(real a, real b) { return (a < b || a != a) ? a : b; } /* torch.minimum */
+static inline real DK(max_nan)(real a, real b) { return (a > b || a != a) ? a : b; } /* torch.maximum */
+
 /* v = q1 ⊖ q0 (nv) of two configurations (nq) (ConfigurationSpace.difference, equal to rounding): the ns
  * scalars q1 - q0 (q columns sq, v columns sv), the nb quaternions (q columns bq, 4 each; v columns bv, 3
  * each) the rotation vector of a0^-1 (x) a1 along the shortest arc, each quaternion first normalised (scaled
@@ -238,18 +255,8 @@ static void DK(difference)(const real *q0, const real *q1, const int64_t *sq, co
     for (int64_t j = 0; j < ns; j++) v[sv[j]] = q1[sq[j]] - q0[sq[j]];
     for (int64_t k = 0; k < nb; k++) {
         real a[2][4];
-        for (int s = 0; s < 2; s++) {
-            const real *src = s ? q1 : q0;
-            real m = 0, nn = 0;
-            for (int c = 0; c < 4; c++) {
-                a[s][c] = src[bq[4 * k + c]];
-                m = fabs(a[s][c]) > m ? fabs(a[s][c]) : m;
-            }
-            if (!(m > 0 && m < (real)INFINITY)) m = 1;
-            for (int c = 0; c < 4; c++) nn += (a[s][c] / m) * (a[s][c] / m);
-            const real n = sqrt(nn) * m;
-            for (int c = 0; c < 4; c++) a[s][c] = n <= (real)DK_QSMALL ? (real)(c == 0) : a[s][c] / n;
-        }
+        DK(unit_read)(q0, bq + 4 * k, a[0]);
+        DK(unit_read)(q1, bq + 4 * k, a[1]);
         const real *p = a[0], *q = a[1]; /* conj(p) (x) q: w = p0 q0 + pv.qv, v = p0 qv - q0 pv - pv x qv */
         real d[4] = {p[0] * q[0] + p[1] * q[1] + p[2] * q[2] + p[3] * q[3],
                      p[0] * q[1] - q[0] * p[1] - (p[2] * q[3] - p[3] * q[2]),
@@ -367,5 +374,51 @@ static int64_t DK(clip_joint)(const real *q, const real *qr, const int64_t *cons
                            T, nq, nv, w, cost + b, D + b * T * nv * nv, E + b * T * nv * nv, g + b * T * nv,
                            work + (size_t)(T * nv) * (size_t)thread_id());
     free(work);
+    return 0;
+}
+
+/* The whole-clip step of B clips of T frames (whole_clip.py: _Terms.project(space.integrate(q, step)), equal
+ * to rounding): out = q ⊕ step (scalars q + v; quaternions normalise(Q) (x) exp(w / 2), exp(w / 2) =
+ * (cos(th / 2), sin(th / 2) w / th), th = |w|, as ConfigurationSpace.integrate), clamped to the limits qlo,
+ * qhi (nq; torch.minimum then torch.maximum, as chain.clamp_to_limits), then, with vstep (ns; NULL: none),
+ * frame after frame the scalar coordinates onto [out_{t-1} - vstep, out_{t-1} + vstep] ∩ [lo, hi] (lo, hi:
+ * the limits of the ns scalars). Clips are shared between threads. */
+static int64_t DK(clip_step)(const real *q, const real *step, const int64_t *const *idx, int64_t ns, int64_t nb,
+                             const real *qlo, const real *qhi, const real *lo, const real *hi, const real *vstep,
+                             int64_t B, int64_t T, int64_t nq, int64_t nv, real *out, int64_t nthreads) {
+    const int64_t *sq = idx[0], *sv = idx[1], *bq = idx[2], *bv = idx[3];
+    if (nthreads < 1) nthreads = 1;
+    if (nthreads > B) nthreads = B > 0 ? B : 1;
+#pragma omp parallel for num_threads(nthreads) schedule(static) if (nthreads > 1)
+    for (int64_t b = 0; b < B; b++)
+        for (int64_t t = 0; t < T; t++) {
+            const int64_t n = b * T + t;
+            const real *qn = q + n * nq, *v = step + n * nv;
+            real *o = out + n * nq;
+            for (int64_t j = 0; j < ns; j++) o[sq[j]] = qn[sq[j]] + v[sv[j]];
+            for (int64_t k = 0; k < nb; k++) {
+                real u[4];
+                DK(unit_read)(qn, bq + 4 * k, u);
+                const real wx = v[bv[3 * k]], wy = v[bv[3 * k + 1]], wz = v[bv[3 * k + 2]];
+                const real h = (real)0.5 * sqrt(wx * wx + wy * wy + wz * wz);
+                /* sinc(h) with its Taylor branch below eps^(1/4), as _numerics.sinc */
+                const real sc = h < sqrt((real)DK_QSMALL * 1000) ? 1 - h * h / 6 + h * h * h * h / 120 : sin(h) / h;
+                const real e0 = cos(h), ev[3] = {(real)0.5 * sc * wx, (real)0.5 * sc * wy, (real)0.5 * sc * wz};
+                const int64_t *c = bq + 4 * k;
+                o[c[0]] = u[0] * e0 - (u[1] * ev[0] + u[2] * ev[1] + u[3] * ev[2]);
+                o[c[1]] = u[0] * ev[0] + e0 * u[1] + (u[2] * ev[2] - u[3] * ev[1]);
+                o[c[2]] = u[0] * ev[1] + e0 * u[2] + (u[3] * ev[0] - u[1] * ev[2]);
+                o[c[3]] = u[0] * ev[2] + e0 * u[3] + (u[1] * ev[1] - u[2] * ev[0]);
+            }
+            for (int64_t i = 0; i < nq; i++) o[i] = DK(max_nan)(DK(min_nan)(o[i], qhi[i]), qlo[i]);
+            if (vstep && t >= 1) {
+                const real *before = o - nq;
+                for (int64_t j = 0; j < ns; j++) {
+                    const real l = DK(max_nan)(before[sq[j]] - vstep[j], lo[j]);
+                    const real u = DK(min_nan)(before[sq[j]] + vstep[j], hi[j]);
+                    o[sq[j]] = DK(min_nan)(DK(max_nan)(o[sq[j]], l), u);
+                }
+            }
+        }
     return 0;
 }

@@ -75,7 +75,7 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "clip_joint",
-           "topp_passes"]
+           "clip_step", "topp_passes"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -296,6 +296,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     lib.dk_clip_joint.restype, lib.dk_clip_joint.argtypes = _I64, [_PTR] * 6 + [_I64] * 8
+    lib.dk_clip_step.restype, lib.dk_clip_step.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
     lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     return lib
 
@@ -765,16 +766,53 @@ def clip_joint(q: Tensor, q_ref: Tensor, space, lo: Tensor, hi: Tensor, vstep: T
     ins = [t.contiguous() for t in (q, q_ref.expand(q.shape), lo, hi)] + [
         None if vstep is None else vstep.contiguous(), weights.contiguous()]
     ptrs = (ctypes.c_void_p * 6)(*(None if t is None else t.data_ptr() for t in ins))
-    quats_q, quats_v = space.quaternion_index("q"), space.quaternion_index("v")
-    idx = [torch.tensor(list(v), dtype=torch.int64) for v in (
-        space.scalar_index("q"), space.scalar_index("v"), [i for b in quats_q for i in b],
-        [i for b in quats_v for i in b])]
+    idx = _space_index(space)
     iptrs = (ctypes.c_void_p * 4)(*(t.data_ptr() for t in idx))
     threads = max(1, min(B, thread_count(B * T)))
     _raise_on(_lib.dk_clip_joint(ptrs, iptrs, cost.data_ptr(), D.data_ptr(), E.data_ptr(), g.data_ptr(), B, T,
-                                 nq, D.shape[-1], len(idx[0]), len(quats_q), D.element_size(), threads),
+                                 nq, D.shape[-1], len(idx[0]), len(idx[2]) // 4, D.element_size(), threads),
               "work space")
     return True
+
+
+def _space_index(space) -> list[Tensor]:
+    """(sq, sv, bq, bv) of a :class:`~diffkin.kernels.configuration.ConfigurationSpace` as int64 CPU tensors
+    (the scalar coordinates' q and v columns, the quaternions' four q and three v columns each), made once per
+    space."""
+    made = space._cache.get("native_index")
+    if made is None:
+        quats_q, quats_v = space.quaternion_index("q"), space.quaternion_index("v")
+        made = [torch.tensor(list(v), dtype=torch.int64, device="cpu") for v in (
+            space.scalar_index("q"), space.scalar_index("v"), [i for b in quats_q for i in b],
+            [i for b in quats_v for i in b])]
+        space._cache["native_index"] = made
+    return made
+
+
+def clip_step(q: Tensor, step: Tensor, space, q_limits: tuple[Tensor, Tensor], limits: tuple[Tensor, Tensor],
+              vstep: Tensor | None) -> Tensor | None:
+    """The whole-clip step of :func:`diffkin.retarget.optimize_clip` by ``dk_clip_step`` (``_native_clip.c``):
+    ``q (B, T, nq)`` ⊕ ``step (B, T, nv)`` (``space``'s integrate), clamped to ``q_limits`` (lower, upper
+    ``(nq,)``), then frame after frame the ns scalar coordinates onto their velocity limits ``vstep (ns,)``
+    (q̇_max / fps; None: none) within ``limits`` (lower, upper ``(ns,)``): ``(B, T, nq)``. None (nothing
+    done) where the library is not loaded or the inputs are not CPU tensors of one float dtype without
+    autograd. Clips are shared between threads."""
+    dtype = q.dtype
+    reals = [t for t in (q, step, *q_limits, *limits, vstep) if t is not None]
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in reals)):
+        return None
+    B, T, nq = q.shape
+    ins = [t.contiguous() for t in (q, step, *q_limits, *limits)]
+    ins.append(None if vstep is None else vstep.contiguous())
+    ptrs = (ctypes.c_void_p * 7)(*(None if t is None else t.data_ptr() for t in ins))
+    idx = _space_index(space)
+    iptrs = (ctypes.c_void_p * 4)(*(t.data_ptr() for t in idx))
+    out = torch.empty(B, T, nq, dtype=dtype, device="cpu")  # C writes here: never the default device
+    threads = max(1, min(B, thread_count(B * T)))
+    _raise_on(_lib.dk_clip_step(ptrs, iptrs, out.data_ptr(), B, T, nq, step.shape[-1], len(idx[0]),
+                                len(idx[2]) // 4, q.element_size(), threads), "work space")
+    return out
 
 
 def capsules_clear(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects, halfspaces: Tensor,

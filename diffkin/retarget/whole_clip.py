@@ -125,6 +125,11 @@ class _Terms:
             lim = torch.full((len(self.sq), 2), float("inf"), dtype=keypoints.dtype, device=keypoints.device)
             lim[:, 0] = -lim[:, 0]
         self.lo_hard, self.hi_hard = lim[:, 0], lim[:, 1]
+        ql = chain.q_limits  # every q column's limits for clamp_to_limits' C twin in step(); ±inf without
+        if ql is None:
+            ql = torch.tensor([-float("inf"), float("inf")], dtype=keypoints.dtype, device=keypoints.device)
+            ql = ql.expand(chain.nq, 2)
+        self.q_bounds = (ql[:, 0].to(keypoints), ql[:, 1].to(keypoints))
         self.lo, self.hi = lim[:, 0] + limit_margin, lim[:, 1] - limit_margin
         # q̇_max / fps (rad or m per frame) on the scalar q columns (inf on the base position)
         self.vstep = None if velocity_limit is None else velocity_limit.index_select(0, self.sq) / fps
@@ -164,6 +169,14 @@ class _Terms:
         for t in range(start, T):
             out.append(self._velocity_clamp(out[-1], qs[:, t]))
         return q.index_copy(-1, self.sq, torch.stack(out, 1))
+
+    def step(self, q: Tensor, step: Tensor) -> Tensor:
+        """The LM trial ``project(q ⊕ step)`` for ``q (B, T, nq)``, ``step (B, T, nv)``: in C on CPU tensors
+        (:func:`diffkin.kernels.native.clip_step`, the frame-after-frame loop of :meth:`project`), else in
+        torch ops; the same to rounding."""
+        out = native.clip_step(q, step, self.chain.configuration_space, self.q_bounds,
+                               (self.lo_hard, self.hi_hard), self.vstep)
+        return out if out is not None else self.project(self.chain.configuration_space.integrate(q, step))
 
     def _velocity_clamp(self, before: Tensor, q: Tensor) -> Tensor:
         """Scalar columns ``q`` onto [before − q̇_max/fps, before + q̇_max/fps] ∩ [q_min, q_max]."""
@@ -554,7 +567,7 @@ def optimize_clip(chain, q, keypoints, contacts, *, feet, keypoint_frames, fps, 
                 step = -block_banded_cg(Dl, E, F, g, cg_iterations)
             else:  # D + λ s I as the solve's shift (the C path raises the diagonal as it copies D)
                 step = -block_banded_solve(D, E, F, g, shift=lam * scale)
-            trial = terms.project(chain.configuration_space.integrate(q, step))
+            trial = terms.step(q, step)
             new = terms.evaluate(trial, recycle=True)
             ok = torch.isfinite(new[0]) & (new[0] < cost)
             # F is the same at every q: the other parts are taken per clip from the trial where it is kept
