@@ -18,16 +18,19 @@
 
 /* Columns (of nv) where some of the 6 rows of J (6 x nv) is non-zero; returns their count. A column's flag is
  * one expression over its six entries (vectorised over the columns, each flag written once), then the flags
- * are compressed in place (cols doubles as the flag array: entry c is read before any index >= c is
- * written). */
+ * are compressed in place without a branch (cols doubles as the flag array: entry c is read before index
+ * s <= c is written; a mispredicted branch per column cost more than the tests). */
 static int64_t DK(support)(const real *J, int64_t nv, int64_t *cols) {
     const real *J0 = J, *J1 = J + nv, *J2 = J1 + nv, *J3 = J2 + nv, *J4 = J3 + nv, *J5 = J4 + nv;
 #pragma omp simd
     for (int64_t c = 0; c < nv; c++)
         cols[c] = (J0[c] != 0) | (J1[c] != 0) | (J2[c] != 0) | (J3[c] != 0) | (J4[c] != 0) | (J5[c] != 0);
     int64_t s = 0;
-    for (int64_t c = 0; c < nv; c++)
-        if (cols[c]) cols[s++] = c;
+    for (int64_t c = 0; c < nv; c++) { /* branch-free: a flag's column is written, kept when the flag is 1 */
+        const int64_t f = cols[c];
+        cols[s] = c;
+        s += f;
+    }
     return s;
 }
 
