@@ -177,6 +177,43 @@ static int space_read(const Shape *s, Space *sp) {
     sp->nu = k + 3 * sp->nb;
     return 0;
 }
+
+/* acc + x y and acc - x y with one rounding where the CPU has FMA: GCC fuses them in the vector loops over
+ * lanes but keeps a scalar chain (a sum in a register) as a multiply and an add (its FMA-chain tuning), and
+ * a lane's numbers must not depend on how many lanes step together. */
+#ifdef __FMA__
+#define DK_MULADD(acc, x, y) (sizeof(real) == 8 ? (real)fma((double)(x), (double)(y), (double)(acc)) \
+                                                : (real)fmaf((float)(x), (float)(y), (float)(acc)))
+#else
+#define DK_MULADD(acc, x, y) ((acc) + (x) * (y))
+#endif
+#define DK_MULSUB(acc, x, y) DK_MULADD(acc, -(x), y)
+
+typedef struct { /* the structural non-zeros of the end links' Jacobians */
+    int32_t *cols;  /* [K*nv] end link k's columns, ascending (count[k] of them): its ancestors' velocities */
+    int32_t *count; /* [K] */
+    uint8_t *moves; /* [K*nv] column v moves end link k (the columns in cols) */
+} Support;
+
+/* The support of every end link of s (the columns DK(block) writes; the others of its Jacobian stay 0):
+ * one block in sup->cols, freed with it; returns -1 when memory ran out. */
+static int support_read(const Shape *s, Support *sup) {
+    const int K = s->K, nv = s->nv;
+    int32_t *all = (int32_t *)malloc(sizeof(int32_t) * (size_t)(K * nv + K) + (size_t)(K * nv) + 1);
+    if (!all) return -1;
+    sup->cols = all, sup->count = all + K * nv, sup->moves = (uint8_t *)(sup->count + K);
+    memset(sup->moves, 0, (size_t)(K * nv));
+    for (int k = 0; k < K; k++)
+        for (int j = 0; j < s->J; j++)
+            if (s->anc[k * s->J + j]) /* an S frame: three velocities */
+                for (int c = 0; c < (s->motion[j] == DK_MOTION_S ? 3 : 1); c++) sup->moves[k * nv + s->vidx[j] + c] = 1;
+    for (int k = 0; k < K; k++) {
+        sup->count[k] = 0;
+        for (int v = 0; v < nv; v++)
+            if (sup->moves[k * nv + v]) sup->cols[k * nv + sup->count[k]++] = v;
+    }
+    return 0;
+}
 #endif
 
 /* q and dq/du of the first nw of the W lanes of u (n x W, lane-major): q = c + h sin(u) on bounded joints,
@@ -247,6 +284,7 @@ typedef struct { /* the fixed inputs of a solve, read once */
     Shape s;
     DK(Params) pp;
     Space sp;
+    Support sup;
     int K, n, nv, r, d, pos_only;
     int64_t N, ts, S, L, R, P, nseeds, maxit, minit, every;
     real tp, to, margin, damping2, mu, stall, w2;
@@ -301,45 +339,85 @@ static void DK(lane_error)(const DK(Solve) *S, const real *ends, int l, int64_t 
  * (nv x W), lambda (W); e1 (r) one lane's error. */
 typedef struct { real *dqdu, *Jw, *e, *A, *y, *delta, *lam, *e1; int32_t *lanes; } DK(LMWork);
 
-/* Solve A x = b in place on m lanes (A d x d x W: its lower triangle, overwritten by the Cholesky factor;
+/* Solve A x = b in place on LN lanes (A d x d x W: its lower triangle, overwritten by the Cholesky factor;
  * b d x W), a Cholesky factorisation on each lane (pivots clamped to a tiny positive value, as
- * kernels/dls.py), the lanes innermost so that every loop vectorises. */
-static void DK(spd_solve_lanes)(real *restrict A, real *restrict b, int d, int m) {
+ * kernels/dls.py). Every entry's sum runs in registers over k in order (four rows of the factor at once:
+ * independent chains), so a lane's numbers are those of the plain loops whatever LN (16, 8 or 1 where this
+ * is inlined). */
+static inline __attribute__((always_inline)) void DK(spd_solve_block)(real *restrict A, real *restrict b,
+                                                                      int d, const int LN) {
     const real tiny = (real)sqrt((double)DK_TINY);
+#define DK_ROW(i, c) (A + ((size_t)(i) * d + (c)) * W)
     for (int j = 0; j < d; j++) {
-        real *restrict Ajj = A + ((size_t)j * d + j) * W;
+        real *restrict Ajj = DK_ROW(j, j), s[W];
+        for (int l = 0; l < LN; l++) s[l] = Ajj[l];
         for (int k = 0; k < j; k++) {
-            const real *restrict Ajk = A + ((size_t)j * d + k) * W;
-            for (int l = 0; l < m; l++) Ajj[l] -= Ajk[l] * Ajk[l];
+            const real *restrict Ajk = DK_ROW(j, k);
+            for (int l = 0; l < LN; l++) s[l] = DK_MULSUB(s[l], Ajk[l], Ajk[l]);
         }
-        for (int l = 0; l < m; l++) Ajj[l] = (real)sqrt((double)(Ajj[l] > tiny ? Ajj[l] : tiny));
-        for (int i = j + 1; i < d; i++) {
-            real *restrict Aij = A + ((size_t)i * d + j) * W;
-            for (int k = 0; k < j; k++) {
-                const real *restrict Aik = A + ((size_t)i * d + k) * W;
-                const real *restrict Ajk = A + ((size_t)j * d + k) * W;
-                for (int l = 0; l < m; l++) Aij[l] -= Aik[l] * Ajk[l];
+        for (int l = 0; l < LN; l++) Ajj[l] = (real)sqrt((double)(s[l] > tiny ? s[l] : tiny));
+        int i = j + 1;
+        for (; i + 4 <= d; i += 4) {
+            real s0[W], s1[W], s2[W], s3[W];
+            for (int l = 0; l < LN; l++) {
+                s0[l] = DK_ROW(i, j)[l], s1[l] = DK_ROW(i + 1, j)[l];
+                s2[l] = DK_ROW(i + 2, j)[l], s3[l] = DK_ROW(i + 3, j)[l];
             }
-            for (int l = 0; l < m; l++) Aij[l] /= Ajj[l];
+            for (int k = 0; k < j; k++) {
+                const real *restrict Ajk = DK_ROW(j, k), *restrict R0 = DK_ROW(i, k), *restrict R1 = DK_ROW(i + 1, k);
+                const real *restrict R2 = DK_ROW(i + 2, k), *restrict R3 = DK_ROW(i + 3, k);
+                for (int l = 0; l < LN; l++) {
+                    s0[l] = DK_MULSUB(s0[l], R0[l], Ajk[l]), s1[l] = DK_MULSUB(s1[l], R1[l], Ajk[l]);
+                    s2[l] = DK_MULSUB(s2[l], R2[l], Ajk[l]), s3[l] = DK_MULSUB(s3[l], R3[l], Ajk[l]);
+                }
+            }
+            for (int l = 0; l < LN; l++) {
+                DK_ROW(i, j)[l] = s0[l] / Ajj[l], DK_ROW(i + 1, j)[l] = s1[l] / Ajj[l];
+                DK_ROW(i + 2, j)[l] = s2[l] / Ajj[l], DK_ROW(i + 3, j)[l] = s3[l] / Ajj[l];
+            }
+        }
+        for (; i < d; i++) {
+            real *restrict Aij = DK_ROW(i, j);
+            for (int l = 0; l < LN; l++) s[l] = Aij[l];
+            for (int k = 0; k < j; k++) {
+                const real *restrict Aik = DK_ROW(i, k), *restrict Ajk = DK_ROW(j, k);
+                for (int l = 0; l < LN; l++) s[l] = DK_MULSUB(s[l], Aik[l], Ajk[l]);
+            }
+            for (int l = 0; l < LN; l++) Aij[l] = s[l] / Ajj[l];
         }
     }
     for (int i = 0; i < d; i++) { /* L y = b */
-        real *restrict bi = b + (size_t)i * W;
+        real *restrict bi = b + (size_t)i * W, s[W];
+        for (int l = 0; l < LN; l++) s[l] = bi[l];
         for (int k = 0; k < i; k++)
-            for (int l = 0; l < m; l++) bi[l] -= A[((size_t)i * d + k) * W + l] * b[(size_t)k * W + l];
-        for (int l = 0; l < m; l++) bi[l] /= A[((size_t)i * d + i) * W + l];
+            for (int l = 0; l < LN; l++) s[l] = DK_MULSUB(s[l], DK_ROW(i, k)[l], b[(size_t)k * W + l]);
+        for (int l = 0; l < LN; l++) bi[l] = s[l] / DK_ROW(i, i)[l];
     }
     for (int i = d - 1; i >= 0; i--) { /* L^T x = y */
-        real *restrict bi = b + (size_t)i * W;
+        real *restrict bi = b + (size_t)i * W, s[W];
+        for (int l = 0; l < LN; l++) s[l] = bi[l];
         for (int k = i + 1; k < d; k++)
-            for (int l = 0; l < m; l++) bi[l] -= A[((size_t)k * d + i) * W + l] * b[(size_t)k * W + l];
-        for (int l = 0; l < m; l++) bi[l] /= A[((size_t)i * d + i) * W + l];
+            for (int l = 0; l < LN; l++) s[l] = DK_MULSUB(s[l], DK_ROW(k, i)[l], b[(size_t)k * W + l]);
+        for (int l = 0; l < LN; l++) bi[l] = s[l] / DK_ROW(i, i)[l];
     }
+#undef DK_ROW
+}
+
+/* DK(spd_solve_block) on the first m lanes: 16 or 8 at once (vector registers), the rest one by one. */
+static void DK(spd_solve_lanes)(real *restrict A, real *restrict b, int d, int m) {
+    int l0 = 0;
+    if (m == W) {
+        DK(spd_solve_block)(A, b, d, W);
+        return;
+    }
+    for (; l0 + 8 <= m; l0 += 8) DK(spd_solve_block)(A + l0, b + l0, d, 8);
+    for (; l0 < m; l0++) DK(spd_solve_block)(A + l0, b + l0, d, 1);
 }
 
 /* J_w = diag(sqrt_w) J diag(dq/du) of the m stepping lanes (J: nv columns; dq/du of a scalar velocity's
- * coordinate, 1 in a quaternion, as JointMap.dq_du), gathered from the block's Jacobians Jb, and the
- * weighted errors e_w with lambda = damping2 + mu |e_w|^2. */
+ * coordinate, 1 in a quaternion, as JointMap.dq_du), gathered from the block's Jacobians Jb on each end
+ * link's support (the other entries of J_w are never read: DK(lanes_delta) sums over the supports), and
+ * the weighted errors e_w with lambda = damping2 + mu |e_w|^2. */
 static void DK(lanes_weigh)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork) *w) {
     const int n = S->nv, r = S->r, rows = S->pos_only ? 3 : 6;
     const int32_t *vq = S->sp.vq, *lanes = w->lanes;
@@ -348,67 +426,116 @@ static void DK(lanes_weigh)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork
     for (int a = 0; a < r; a++)
         for (int l = 0; l < m; l++) {
             e[(size_t)a * W + l] *= S->sqrt_w[a];
-            lam[l] += e[(size_t)a * W + l] * e[(size_t)a * W + l];
+            lam[l] = DK_MULADD(lam[l], e[(size_t)a * W + l], e[(size_t)a * W + l]);
         }
     for (int l = 0; l < m; l++) lam[l] = S->damping2 + S->mu * lam[l];
+    const int dense = lanes[m - 1] == m - 1; /* the stepping lanes are 0 .. m - 1 (lanes ascend): no gather */
     for (int k = 0; k < S->K; k++)
         for (int a = 0; a < rows; a++)
-            for (int i = 0; i < n; i++) {
-                const int row = rows * k + a;
-                const real *src = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W, sw = S->sqrt_w[row];
-                const real *dq = vq[i] >= 0 ? w->dqdu + (size_t)vq[i] * W : NULL;
+            for (int s = 0; s < S->sup.count[k]; s++) {
+                const int row = rows * k + a, i = S->sup.cols[k * n + s];
+                const real *restrict src = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W, sw = S->sqrt_w[row];
+                const real *restrict dq = vq[i] >= 0 ? w->dqdu + (size_t)vq[i] * W : NULL;
                 real *restrict dst = w->Jw + ((size_t)row * n + i) * W;
-                for (int l = 0; l < m; l++) dst[l] = src[lanes[l]] * sw * (dq ? dq[lanes[l]] : 1);
+                if (dense && dq)
+                    for (int l = 0; l < m; l++) dst[l] = src[l] * sw * dq[l];
+                else if (dense)
+                    for (int l = 0; l < m; l++) dst[l] = src[l] * sw;
+                else
+                    for (int l = 0; l < m; l++) dst[l] = src[lanes[l]] * sw * (dq ? dq[lanes[l]] : 1);
             }
+}
+
+/* A += the `rows` rows of one end link (from row0 of J_w, n columns) in J_w^T J_w on its support (s
+ * columns `cols`): A's lower triangle on those columns, the rows added in order (the sum over all rows of
+ * J_w in their order, less the terms that are 0 by structure). rows is 3 or 6 where this is inlined. */
+static inline __attribute__((always_inline)) void DK(gram_rows)(const real *restrict Jw, int row0, int n,
+                                                                const int32_t *cols, int s, real *restrict A,
+                                                                int d, int m, const int rows) {
+    for (int sa = 0; sa < s; sa++)
+        for (int sc = 0; sc <= sa; sc++) {
+            const int a = cols[sa], c = cols[sc];
+            real *restrict Aac = A + ((size_t)a * d + c) * W;
+            const real *restrict x = Jw + ((size_t)row0 * n + a) * W, *restrict z = Jw + ((size_t)row0 * n + c) * W;
+            for (int l = 0; l < m; l++) {
+                real acc = Aac[l];
+                for (int j = 0; j < rows; j++) acc = DK_MULADD(acc, x[(size_t)j * n * W + l], z[(size_t)j * n * W + l]);
+                Aac[l] = acc;
+            }
+        }
 }
 
 /* The damped least-squares steps (3.59) of the m stepping lanes into delta: delta = J_w^T (J_w J_w^T +
  * lambda I)^-1 e_w, or the n x n normal equations when r > n (J_w, e_w, lambda from DK(lanes_weigh)). The
  * lanes are innermost: a block of stepping lanes runs on vector registers (1.8x a lane at a time for the
- * Panda, 1.3x for the G1 floating base with four end links), a single target's one lane as before. */
+ * Panda, 1.3x for the G1 floating base with four end links), a single target's one lane as before. Every
+ * product sums over the end links' supports only: a row of end link k is 0 outside its ancestors' columns
+ * (the G1 with 14 end links: J_w^T J_w takes a tenth of the dense products), and the terms that remain
+ * are added in the dense sum's order, so the steps are the dense ones to the bit. */
 static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork) *w) {
-    const int n = S->nv, r = S->r, d = S->d; /* n: the step's nv columns */
+    const int n = S->nv, r = S->r, d = S->d, rows = S->pos_only ? 3 : 6; /* n: the step's nv columns */
+    const Support *sup = &S->sup;
     DK(lanes_weigh)(S, Jb, m, w);
     const real *restrict Jw = w->Jw, *restrict e = w->e, *restrict lam = w->lam;
     real *restrict A = w->A, *restrict y = w->y, *restrict delta = w->delta;
-    const int rr = r <= n ? r : n, sum = r <= n ? n : r; /* A is rr x rr; its entries sum over `sum` */
-    for (int a = 0; a < rr; a++) {
-        for (int c = 0; c <= a; c++) {
-            real *restrict Aac = A + ((size_t)a * d + c) * W;
-            if (m == 1) { /* one stepping lane (a single target): the sum in a register, in the same order */
-                real acc = 0;
-                for (int i = 0; i < sum; i++)
-                    acc += Jw[(r <= n ? (size_t)a * n + i : (size_t)i * n + a) * W] *
-                           Jw[(r <= n ? (size_t)c * n + i : (size_t)i * n + c) * W];
-                Aac[0] = acc;
-                continue;
-            }
-            for (int l = 0; l < m; l++) Aac[l] = 0;
-            for (int i = 0; i < sum; i++) { /* J_w J_w^T (rows a, c) or J_w^T J_w (columns a, c) */
-                const real *restrict x = Jw + (r <= n ? (size_t)a * n + i : (size_t)i * n + a) * W;
-                const real *restrict z = Jw + (r <= n ? (size_t)c * n + i : (size_t)i * n + c) * W;
-                for (int l = 0; l < m; l++) Aac[l] += x[l] * z[l];
+    if (r > n) { /* J_w^T J_w: each end link's rows on its support, the links in row order */
+        for (int a = 0; a < n; a++)
+            for (int c = 0; c <= a; c++)
+                for (int l = 0; l < m; l++) A[((size_t)a * d + c) * W + l] = 0;
+        for (int k = 0; k < S->K; k++) {
+            if (rows == 3) DK(gram_rows)(Jw, 3 * k, n, sup->cols + (size_t)k * n, sup->count[k], A, d, m, 3);
+            else DK(gram_rows)(Jw, 6 * k, n, sup->cols + (size_t)k * n, sup->count[k], A, d, m, 6);
+        }
+    } else { /* J_w J_w^T: rows a, c over the columns both of their end links move */
+        for (int a = 0; a < r; a++) {
+            const int ka = a / rows;
+            const int32_t *ca = sup->cols + (size_t)ka * n;
+            const uint8_t *mv = sup->moves;
+            for (int c = 0; c <= a; c++) {
+                const uint8_t *mc = mv + (size_t)(c / rows) * n;
+                real *restrict Aac = A + ((size_t)a * d + c) * W;
+                if (m == 1) { /* one stepping lane (a single target): the sum in a register, in the same order */
+                    real acc = 0;
+                    for (int s = 0; s < sup->count[ka]; s++)
+                        if (mc[ca[s]]) acc = DK_MULADD(acc, Jw[((size_t)a * n + ca[s]) * W], Jw[((size_t)c * n + ca[s]) * W]);
+                    Aac[0] = acc;
+                    continue;
+                }
+                for (int l = 0; l < m; l++) Aac[l] = 0;
+                for (int s = 0; s < sup->count[ka]; s++) {
+                    if (!mc[ca[s]]) continue;
+                    const real *restrict x = Jw + ((size_t)a * n + ca[s]) * W;
+                    const real *restrict z = Jw + ((size_t)c * n + ca[s]) * W;
+                    for (int l = 0; l < m; l++) Aac[l] = DK_MULADD(Aac[l], x[l], z[l]);
+                }
             }
         }
-        for (int l = 0; l < m; l++) A[((size_t)a * d + a) * W + l] += lam[l];
     }
+    const int rr = r <= n ? r : n;
+    for (int a = 0; a < rr; a++)
+        for (int l = 0; l < m; l++) A[((size_t)a * d + a) * W + l] += lam[l];
     if (r <= n) {
         for (int a = 0; a < r; a++)
             for (int l = 0; l < m; l++) y[(size_t)a * W + l] = e[(size_t)a * W + l];
         DK(spd_solve_lanes)(A, y, d, m);
     }
-    for (int i = 0; i < n; i++) { /* J_w^T y, or the right-hand side J_w^T e_w */
+    for (int i = 0; i < n; i++) { /* J_w^T y, or the right-hand side J_w^T e_w: the rows that move column i */
         real *restrict di = delta + (size_t)i * W;
         const real *restrict v = r <= n ? y : e;
         if (m == 1) { /* one stepping lane: as above */
             real acc = 0;
-            for (int a = 0; a < r; a++) acc += Jw[((size_t)a * n + i) * W] * v[(size_t)a * W];
+            for (int k = 0; k < S->K; k++)
+                for (int a = rows * k; a < rows * k + rows && sup->moves[(size_t)k * n + i]; a++)
+                    acc = DK_MULADD(acc, Jw[((size_t)a * n + i) * W], v[(size_t)a * W]);
             di[0] = acc;
             continue;
         }
         for (int l = 0; l < m; l++) di[l] = 0;
-        for (int a = 0; a < r; a++)
-            for (int l = 0; l < m; l++) di[l] += Jw[((size_t)a * n + i) * W + l] * v[(size_t)a * W + l];
+        for (int k = 0; k < S->K; k++) {
+            if (!sup->moves[(size_t)k * n + i]) continue;
+            for (int a = rows * k; a < rows * k + rows; a++)
+                for (int l = 0; l < m; l++) di[l] = DK_MULADD(di[l], Jw[((size_t)a * n + i) * W + l], v[(size_t)a * W + l]);
+        }
     }
     if (r > n) DK(spd_solve_lanes)(A, delta, d, m);
 }
@@ -509,7 +636,7 @@ static int DK(start)(const DK(Solve) *S, DK(Chunk) *c, int64_t t, real *ul, int 
     int64_t *seeds = S->a->seeds_out;
     const int64_t j = t - c->t0;
     if (t < 0 || c->done[j] || seeds[t] >= S->nseeds) return 0;
-    if (seeds[t] == 0 && S->R) DK(nearest)(S, t, c->nn + j * S->R);
+    if (seeds[t] == S->S && S->R) DK(nearest)(S, t, c->nn + j * S->R); /* before its first library seed */
     DK(seed)(S, t, seeds[t], c->nn + j * S->R, ul, l);
     if (seeds[t] == 0) /* a first best: every target ends with some u */
         for (int i = 0; i < S->n; i++) ((real *)S->a->q_out)[t * S->n + i] = ul[(size_t)i * W + l];
@@ -673,9 +800,11 @@ static int DK(solve_read)(const dk_args *chain, const dk_solve_args *a, DK(Solve
     S->bounded = a->bounded, S->wrap = a->wrap;
     S->stream = NULL;
     S->best_merit = (real *)malloc(sizeof(real) * (size_t)(S->N > 0 ? S->N : 1));
-    if (!S->best_merit || space_read(&S->s, &S->sp)) {
+    S->sp.vq = NULL;
+    if (!S->best_merit || space_read(&S->s, &S->sp) || support_read(&S->s, &S->sup)) {
         free(S->best_merit);
         free(S->pp.fix);
+        free(S->sp.vq);
         return -1;
     }
     for (int64_t t = 0; t < S->N; t++) {
@@ -735,7 +864,7 @@ static int64_t DK(solve_from)(const dk_args *chain, const dk_solve_args *a, dk_s
     /* one thread: the calling thread's kept work space (a single-target solve paid more for allocating
      * and faulting in a fresh one than for its LM steps) */
     real *all = nthreads == 1 ? (real *)kept_space(sizeof(real) * want) : DK(team_alloc)(want, nthreads, &per);
-    if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); return -1; }
+    if (!all) { free(S.pp.fix); free(S.best_merit); free(S.sp.vq); free(S.sup.cols); return -1; }
     if (nthreads == 1) { /* no team: OpenMP's fork and dynamic schedule cost a one-target call ~1 us */
         DK(solve_worker)(&S, all, nchunks, 0);
     } else {
@@ -746,6 +875,7 @@ static int64_t DK(solve_from)(const dk_args *chain, const dk_solve_args *a, dk_s
     free(S.pp.fix);
     free(S.best_merit);
     free(S.sp.vq);
+    free(S.sup.cols);
     return 0;
 }
 
