@@ -11,7 +11,7 @@ from diffkin import ik, models
 from diffkin.ik import _native_solve
 from diffkin.ik.result import rotation_angle_between
 from diffkin.kernels import native, single
-from tests.helpers import c_and_torch_solve, native_chain
+from tests.helpers import c_and_torch_solve, native_chain, urdf_path
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: the torch kernels serve")
 
@@ -67,6 +67,38 @@ def test_trees_mimic_and_position_only_agree(kind, position_only):
         Te = chain.forward_kinematics(fused.q)
     assert float((Te[..., :3, 3] - T[..., :3, 3]).norm(dim=-1).max()) <= TOL_P
     assert bool(chain.within_limits(fused.q).all())
+
+
+def _g1_retarget_chain():
+    """The floating-base G1 with its 14 retargeting frames (as retarget.clip's stage one solves it)."""
+    from diffkin import retarget
+
+    frames = retarget.Mapping.builtin("g1").frames
+    return models.from_urdf(urdf_path("g1_29dof_rev_1_0"), frames, floating_base=True,
+                            dtype=torch.float64).requires_grad_(False)
+
+
+@pytest.mark.parametrize("kind", ["g1", "panda"])
+def test_a_target_s_answer_does_not_depend_on_the_others_in_the_call(kind):
+    """One seed per target, 21 targets (a block of 16 lanes stepping together, then 5) against each solved
+    alone (one lane): the same q to the bit. The G1 position-only (42 rows > 35 velocities: the step's
+    sums run over each end link's Jacobian support) also agrees with the torch solve to rounding, with
+    7 targets moved off the reachable set (the seed stalls: every LM step of a stage-one solve)."""
+    chain = _g1_retarget_chain() if kind == "g1" else models.load("panda", dtype=torch.float64)
+    q, T = _targets(chain, 21, seed=3)
+    q0 = chain.configuration_space.neutral(torch.float64).expand(21, -1)
+    if kind == "g1":
+        T = T[..., :3, 3].clone()
+        T[:7] += 0.2 * torch.randn(7, T.shape[1], 3, dtype=T.dtype, generator=torch.Generator().manual_seed(4))
+    kw = dict(num_seeds=1, max_iterations=20, position_only=kind == "g1")
+    fused, ref = c_and_torch_solve(chain, T, q0=q0, **kw)
+    with torch.no_grad():
+        alone = torch.stack([ik.solve(chain, T[i : i + 1], q0[:1], **kw).q[0] for i in range(21)])
+    assert torch.equal(alone, fused.q)
+    assert torch.equal(fused.iterations, ref.iterations) and torch.equal(fused.success, ref.success)
+    torch.testing.assert_close(fused.q, ref.q, atol=1e-10, rtol=0)
+    if kind == "g1":
+        assert bool((fused.iterations[:7] >= 8).all()) and not bool(fused.success[:7].any())
 
 
 def test_the_same_generator_gives_the_same_answers_for_every_thread_count(monkeypatch):
