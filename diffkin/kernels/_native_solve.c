@@ -206,7 +206,8 @@ static int support_read(const Shape *s, Support *sup) {
     for (int k = 0; k < K; k++)
         for (int j = 0; j < s->J; j++)
             if (s->anc[k * s->J + j]) /* an S frame: three velocities */
-                for (int c = 0; c < (s->motion[j] == DK_MOTION_S ? 3 : 1); c++) sup->moves[k * nv + s->vidx[j] + c] = 1;
+                for (int c = 0; c < (s->motion[j] == DK_MOTION_S ? 3 : 1); c++)
+                    sup->moves[k * nv + s->vidx[j] + c] = 1;
     for (int k = 0; k < K; k++) {
         sup->count[k] = 0;
         for (int v = 0; v < nv; v++)
@@ -364,11 +365,14 @@ static inline __attribute__((always_inline)) void DK(spd_solve_block)(real *rest
                 s2[l] = DK_ROW(i + 2, j)[l], s3[l] = DK_ROW(i + 3, j)[l];
             }
             for (int k = 0; k < j; k++) {
-                const real *restrict Ajk = DK_ROW(j, k), *restrict R0 = DK_ROW(i, k), *restrict R1 = DK_ROW(i + 1, k);
+                const real *restrict Ajk = DK_ROW(j, k), *restrict R0 = DK_ROW(i, k);
+                const real *restrict R1 = DK_ROW(i + 1, k);
                 const real *restrict R2 = DK_ROW(i + 2, k), *restrict R3 = DK_ROW(i + 3, k);
                 for (int l = 0; l < LN; l++) {
-                    s0[l] = DK_MULSUB(s0[l], R0[l], Ajk[l]), s1[l] = DK_MULSUB(s1[l], R1[l], Ajk[l]);
-                    s2[l] = DK_MULSUB(s2[l], R2[l], Ajk[l]), s3[l] = DK_MULSUB(s3[l], R3[l], Ajk[l]);
+                    s0[l] = DK_MULSUB(s0[l], R0[l], Ajk[l]);
+                    s1[l] = DK_MULSUB(s1[l], R1[l], Ajk[l]);
+                    s2[l] = DK_MULSUB(s2[l], R2[l], Ajk[l]);
+                    s3[l] = DK_MULSUB(s3[l], R3[l], Ajk[l]);
                 }
             }
             for (int l = 0; l < LN; l++) {
@@ -434,7 +438,8 @@ static void DK(lanes_weigh)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork
         for (int a = 0; a < rows; a++)
             for (int s = 0; s < S->sup.count[k]; s++) {
                 const int row = rows * k + a, i = S->sup.cols[k * n + s];
-                const real *restrict src = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W, sw = S->sqrt_w[row];
+                const real *restrict src = Jb + ((size_t)k * 6 * n + (size_t)a * n + i) * W;
+                const real sw = S->sqrt_w[row];
                 const real *restrict dq = vq[i] >= 0 ? w->dqdu + (size_t)vq[i] * W : NULL;
                 real *restrict dst = w->Jw + ((size_t)row * n + i) * W;
                 if (dense && dq)
@@ -456,10 +461,12 @@ static inline __attribute__((always_inline)) void DK(gram_rows)(const real *rest
         for (int sc = 0; sc <= sa; sc++) {
             const int a = cols[sa], c = cols[sc];
             real *restrict Aac = A + ((size_t)a * d + c) * W;
-            const real *restrict x = Jw + ((size_t)row0 * n + a) * W, *restrict z = Jw + ((size_t)row0 * n + c) * W;
+            const real *restrict x = Jw + ((size_t)row0 * n + a) * W;
+            const real *restrict z = Jw + ((size_t)row0 * n + c) * W;
             for (int l = 0; l < m; l++) {
                 real acc = Aac[l];
-                for (int j = 0; j < rows; j++) acc = DK_MULADD(acc, x[(size_t)j * n * W + l], z[(size_t)j * n * W + l]);
+                for (int j = 0; j < rows; j++)
+                    acc = DK_MULADD(acc, x[(size_t)j * n * W + l], z[(size_t)j * n * W + l]);
                 Aac[l] = acc;
             }
         }
@@ -494,10 +501,12 @@ static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork
             for (int c = 0; c <= a; c++) {
                 const uint8_t *mc = mv + (size_t)(c / rows) * n;
                 real *restrict Aac = A + ((size_t)a * d + c) * W;
-                if (m == 1) { /* one stepping lane (a single target): the sum in a register, in the same order */
+                if (m == 1) { /* one stepping lane (a single target): the sum in a register, the same order */
                     real acc = 0;
                     for (int s = 0; s < sup->count[ka]; s++)
-                        if (mc[ca[s]]) acc = DK_MULADD(acc, Jw[((size_t)a * n + ca[s]) * W], Jw[((size_t)c * n + ca[s]) * W]);
+                        if (mc[ca[s]])
+                            acc = DK_MULADD(acc, Jw[((size_t)a * n + ca[s]) * W],
+                                            Jw[((size_t)c * n + ca[s]) * W]);
                     Aac[0] = acc;
                     continue;
                 }
@@ -534,7 +543,8 @@ static void DK(lanes_delta)(const DK(Solve) *S, const real *Jb, int m, DK(LMWork
         for (int k = 0; k < S->K; k++) {
             if (!sup->moves[(size_t)k * n + i]) continue;
             for (int a = rows * k; a < rows * k + rows; a++)
-                for (int l = 0; l < m; l++) di[l] = DK_MULADD(di[l], Jw[((size_t)a * n + i) * W + l], v[(size_t)a * W + l]);
+                for (int l = 0; l < m; l++)
+                    di[l] = DK_MULADD(di[l], Jw[((size_t)a * n + i) * W + l], v[(size_t)a * W + l]);
         }
     }
     if (r > n) DK(spd_solve_lanes)(A, delta, d, m);
