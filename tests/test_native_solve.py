@@ -89,7 +89,8 @@ def test_a_target_s_answer_does_not_depend_on_the_others_in_the_call(kind):
     q0 = chain.configuration_space.neutral(torch.float64).expand(21, -1)
     if kind == "g1":
         T = T[..., :3, 3].clone()
-        T[:7] += 0.2 * torch.randn(7, T.shape[1], 3, dtype=T.dtype, generator=torch.Generator().manual_seed(4))
+        gen = torch.Generator().manual_seed(4)
+        T[:7] += 0.2 * torch.randn(7, T.shape[1], 3, dtype=T.dtype, generator=gen)
     kw = dict(num_seeds=1, max_iterations=20, position_only=kind == "g1")
     fused, ref = c_and_torch_solve(chain, T, q0=q0, **kw)
     with torch.no_grad():
