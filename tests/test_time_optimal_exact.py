@@ -78,6 +78,29 @@ def test_peaks_in_blocks_equal_one_block():
     assert torch.equal(_peaks(res, t, lims), ref)
 
 
+@pytest.mark.parametrize("interpolation, jerk", [("spline", True), ("spline", False), ("linear", True)])
+def test_native_peaks_equal_torch(interpolation, jerk):
+    """The dense check in C (kernels/_native_topp.c, topp_peaks) against the torch evaluation, bit for bit: a
+    stretched result (k > 1), the breakpoints and times out of order, before 0 and past the end."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch check serves every call")
+    y, kn, g = _paths(8, 4, 6)
+    J = 100 * A if jerk else None
+    res = time_optimal(y, V, A, J, knots=kn, interpolation=interpolation)
+    res = res._parts if interpolation == "linear" else res  # the parts are the paths that are checked
+    B = res._grid.shape[0]
+    assert bool((res._k > 1).all())
+    end = float(res._t[:, -1].max() + res._tau.max()) * float(res._k.max())
+    t = torch.cat((res._breakpoints(16), torch.rand(B, 300, generator=g, dtype=F64) * (end + 0.4) - 0.2), 1)
+    lims = [v.expand(B, 7) for v in (V, A, J) if v is not None]
+    got = _peaks(res, t, lims)
+    with native.disabled():
+        ref = _peaks(res, t, lims)
+    assert got.shape == (B, len(lims)) and torch.equal(got, ref)
+
+
 def test_search_rows_equals_searchsorted():
     g = torch.Generator().manual_seed(4)
     for L in (0, 1, 2, 7, 64):

@@ -542,6 +542,20 @@ int64_t dk_topp_passes(const void *const *in, void *K, void *Kn, void *x, int64_
     return DK_ABI_ERROR;
 }
 
+/* The dense limit check of time_optimal (_native_topp.c, topp_peaks; reals of real_bytes 8 or 4): the peaks
+ * (B, nlim) of B timed paths at the sample times in[0] (B, T) (in: the arrays listed there; top (B, nlim, n)
+ * work). Returns 0,
+ * DK_ABI_ERROR for another real size or nlim outside 2..3. */
+int64_t dk_topp_peaks(const void *const *in, void *top, void *peak, int64_t B, int64_t T, int64_t M, int64_t N, int64_t n,
+                      int64_t nlim, int64_t real_bytes, int64_t nthreads) {
+    if (nlim < 2 || nlim > 3) return DK_ABI_ERROR;
+    if (real_bytes == 8)
+        return topp_peaks_f64((const double *const *)in, (double *)top, (double *)peak, B, T, M, N, n, nlim, nthreads);
+    if (real_bytes == 4)
+        return topp_peaks_f32((const float *const *)in, (float *)top, (float *)peak, B, T, M, N, n, nlim, nthreads);
+    return DK_ABI_ERROR;
+}
+
 /* The frame terms of the whole-clip retargeting problem (_native_clip.c) into c's outputs; returns 0, -1
  * when the work space cannot be allocated, DK_ABI_ERROR for a struct of another version or size or a real
  * size other than 8 or 4. */

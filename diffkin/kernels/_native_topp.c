@@ -73,6 +73,191 @@ static int64_t DK(topp_passes)(const real *Aq, const real *G, const real *C, con
     return 0;
 }
 
+/* The dense limit check of time_optimal (_peaks): per path the largest |q̇_j| / v_j, |q̈_j| / a_j (and |q⃛_j| / j_j
+ * with nlim = 3) over the sample times t (B, T), of the profile smoothed by τ and stretched by k (TimedPath._joint:
+ * _base twice, _profile, the path's Horner evaluation), each sample one pass through its own profile interval
+ * and path segment: torch spends a full-size temporary on each of its ~100 steps. The same operations in the
+ * same order as the torch code (x**2 and x**3 as x·x and x·x·x, as torch computes them), so the same floats:
+ * the peaks are maxima of absolute values, so only a zero's sign could differ, which they do not show. */
+
+/* torch.searchsorted(a[:L], x, right=True): the count of a's sorted values <= x (torch's upper bound). */
+static inline int64_t DK(upper_bound)(const real *a, int64_t L, real x) {
+    int64_t lo = 0, hi = L;
+    while (lo < hi) {
+        const int64_t mid = lo + ((hi - lo) >> 1);
+        if (!(a[mid] > x)) lo = mid + 1;
+        else hi = mid;
+    }
+    return lo;
+}
+
+/* upper_bound from the previous answer *h (a walk of at most a few steps: the samples come in time order
+ * but for one jump back), else the binary search; a sorted array without NaN (sorted) has one answer, so
+ * both give it. The answer is kept in *h. */
+static inline int64_t DK(upper_bound_near)(const real *a, int64_t L, real x, int sorted, int64_t *h) {
+    int64_t i = *h;
+    if (sorted && x == x) {
+        for (int step = 0; step < 4; step++) {
+            if (i < L && !(a[i] > x)) i++;
+            else if (i > 0 && a[i - 1] > x) i--;
+            else return *h = i;
+        }
+    }
+    return *h = DK(upper_bound)(a, L, x);
+}
+
+/* a[0..L) non-decreasing and free of NaN */
+static inline int DK(sorted)(const real *a, int64_t L) {
+    for (int64_t i = 0; i < L; i++)
+        if (a[i] != a[i] || (i && a[i] < a[i - 1])) return 0;
+    return 1;
+}
+
+/* TimedPath._base at time t of one path: s, ṡ, s̈ and ∫s (out[0..3]) of the unsmoothed profile, from its knot
+ * times pt, grid points s, speeds sd, ∫s at the knots Sk (M) and accelerations u (M - 1); sorted, *h: pt's
+ * (DK(upper_bound_near)). */
+static inline void DK(profile_base)(const real *pt, const real *grid, const real *sd, const real *u,
+                                    const real *Sk, int64_t M, real t, int sorted, int64_t *h, real *out) {
+    const real T_end = pt[M - 1];
+    real tc = t < 0 ? 0 : t;  /* clamp(min=0) keeps a NaN */
+    tc = DK(nan_min)(tc, T_end);
+    const int64_t i = DK(upper_bound_near)(pt + 1, M - 2, tc, sorted, h);
+    const real d = tc - pt[i];
+    const real s0 = grid[i], v0 = sd[i], ui = u[i];
+    const real d2 = d * d;
+    const real d3 = d2 * d;
+    real s = v0 * d;
+    s = s0 + s;
+    real w = ui * d2;
+    w = w / 2;
+    s = s + w;
+    real S = s0 * d;
+    S = Sk[i] + S;
+    w = v0 * d2;
+    w = w / 2;
+    S = S + w;
+    w = ui * d3;
+    w = w / 6;
+    S = S + w;
+    const int inside = (t >= 0) & (t <= T_end);
+    if (t > T_end) {
+        w = t - T_end;
+        w = w * s;
+        S = S + w;
+    } else if (t < 0) {
+        S = 0;
+    }
+    real v = ui * d;
+    v = v0 + v;
+    out[0] = s;
+    out[1] = inside ? v : 0;
+    out[2] = (inside && t < T_end) ? ui : 0;
+    out[3] = S;
+}
+
+/* One path: prof = (pt, grid, sd, Sk (M), u (M - 1)), its τ and k; the geometric path's knots ps (N) and
+ * coefficients c0..c3 (N - 1, n); lim (nlim, n); top (nlim, n) work; peak (nlim) out. Each joint's largest
+ * |q̇_j| (|q̈_j|, |q⃛_j|) is divided by its limit once, at the end: a correctly rounded division is monotone in
+ * its numerator, so that is the largest of the per-sample quotients, bit for bit. */
+static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real *grid, const real *sd,
+                           const real *u, const real *Sk, int64_t M, real tau, real k, const real *ps,
+                           const real *c0, const real *c1, const real *c2, const real *c3, int64_t N, int64_t n,
+                           const real *const *lim, int64_t nlim, real *top, real *peak) {
+    const int smooth = tau > 0;
+    const real taus = smooth ? tau : 1;
+    const real T_end = pt[M - 1];
+    const real k2 = k * k;
+    const real k3 = k2 * k;
+    const real done_at = T_end + tau;
+    (void)c0;  /* the positions are not checked */
+    for (int64_t e = 0; e < nlim * n; e++) top[e] = 0;
+    const int pt_sorted = DK(sorted)(pt + 1, M - 2), ps_sorted = DK(sorted)(ps + 1, N - 2);
+    int64_t h1 = 0, h2 = 0, hs = 0;
+    real *top_v = top, *top_a = top + n, *top_j = top + 2 * n;
+    for (int64_t m = 0; m < T; m++) {
+        const real tk = t[m] / k;
+        real b[4], b2[4];
+        DK(profile_base)(pt, grid, sd, u, Sk, M, tk, pt_sorted, &h1, b);
+        DK(profile_base)(pt, grid, sd, u, Sk, M, tk - taus, pt_sorted, &h2, b2);
+        real sb, vb, ab, jb;
+        if (smooth) {
+            sb = b[3] - b2[3];
+            sb = sb / taus;
+            vb = b[0] - b2[0];
+            vb = vb / taus;
+            ab = b[1] - b2[1];
+            ab = ab / taus;
+            jb = b[2] - b2[2];
+            jb = jb / taus;
+        } else {
+            sb = b[0], vb = b[1], ab = b[2], jb = 0;
+        }
+        if (tk >= done_at) sb = 1, vb = 0, ab = 0, jb = 0;
+        const real v = vb / k, a = ab / k2, j = jb / k3;
+        real s = sb < 0 ? 0 : sb;  /* clamp(0, 1) keeps a NaN */
+        s = s > 1 ? 1 : s;
+        const int64_t g = DK(upper_bound_near)(ps + 1, N - 2, s, ps_sorted, &hs);
+        const real x = s - ps[g];
+        const real vv = v * v;
+        const real vvv = vv * v;
+        const real *C1 = c1 + g * n, *C2 = c2 + g * n, *C3 = c3 + g * n;
+        for (int64_t c = 0; c < n; c++) {
+            /* poly_eval from the top coefficient (c3, c2, c1, c0) */
+            real p = C3[c] * x;
+            p = p + C2[c];
+            real q1 = C3[c];
+            real q2 = 2 * q1;
+            real h = q1 * x;
+            q1 = h + p;
+            h = p * x;
+            p = h + C1[c];
+            q2 = q2 * x;
+            h = 2 * q1;
+            q2 = q2 + h;
+            h = q1 * x;
+            q1 = h + p;
+            const real qd = q1 * v;
+            real qdd = q1 * a;
+            h = q2 * vv;
+            qdd = qdd + h;
+            top_v[c] = DK(nan_max)(top_v[c], fabs(qd));
+            top_a[c] = DK(nan_max)(top_a[c], fabs(qdd));
+            if (nlim > 2) {
+                const real q3 = 6 * C3[c];
+                real qj = q1 * j;
+                h = 3 * q2;
+                h = h * v;
+                h = h * a;
+                qj = qj + h;
+                h = q3 * vvv;
+                qj = qj + h;
+                top_j[c] = DK(nan_max)(top_j[c], fabs(qj));
+            }
+        }
+    }
+    for (int64_t l = 0; l < nlim; l++) {
+        real best = -(real)INFINITY;
+        for (int64_t c = 0; c < n; c++) best = DK(nan_max)(best, top[l * n + c] / lim[l][c]);
+        peak[l] = best;
+    }
+}
+
+/* B paths (in: t, pt, grid, sd, Sk, u, tau, k, ps, c0, c1, c2, c3, lim_0, ..., lim_{nlim-1}; module layout
+ * above, each path's rows contiguous), top (B, nlim, n) work, peak (B, nlim) out; paths shared between
+ * threads. */
+static int64_t DK(topp_peaks)(const real *const *in, real *top, real *peak, int64_t B, int64_t T, int64_t M, int64_t N,
+                              int64_t n, int64_t nlim, int64_t nthreads) {
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
+    for (int64_t b = 0; b < B; b++) {
+        const real *lim[3] = {in[13] + b * n, in[14] + b * n, nlim > 2 ? in[15] + b * n : NULL};
+        const int64_t E = b * (N - 1) * n;
+        DK(peaks_path)(in[0] + b * T, T, in[1] + b * M, in[2] + b * M, in[3] + b * M, in[5] + b * (M - 1),
+                       in[4] + b * M, M, in[6][b], in[7][b], in[8] + b * N, in[9] + E, in[10] + E, in[11] + E,
+                       in[12] + E, N, n, lim, nlim, top + b * nlim * n, peak + b * nlim);
+    }
+    return 0;
+}
+
 #if defined(__clang__)
 #pragma clang fp contract(on)
 #elif defined(__GNUC__)

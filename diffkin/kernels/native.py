@@ -74,7 +74,8 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "NativeModel", "Collide", "capsules_clear", "collide_struct",
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
-           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes"]
+           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes",
+           "topp_peaks"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -295,6 +296,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
+    lib.dk_topp_peaks.restype, lib.dk_topp_peaks.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
     return lib
 
 
@@ -692,6 +694,31 @@ def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Te
     _raise_on(_lib.dk_topp_passes(ptrs, K.data_ptr(), Kn.data_ptr(), x.data_ptr(), B, M1 + 1, R, Au.shape[-1],
                                   x.element_size(), threads), "work space")
     return x
+
+
+def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, knots: Tensor,
+               coeffs: tuple[Tensor, ...], limits: list[Tensor]) -> Tensor | None:
+    """The peaks ``(B, len(limits))`` of :func:`diffkin.trajectories.time_optimal._peaks` (the largest
+    |q̇| / v, |q̈| / a, |q⃛| / j of each path over the sample times ``t (B, T)``) by ``dk_topp_peaks``
+    (``_native_topp.c``: the same floats), from the profile's knot times, grid, speeds and ∫s ``(B, M)`` and
+    accelerations ``(B, M - 1)`` (``profile``), ``tau``, ``k (B,)``, the path's ``knots (B, N)`` and
+    coefficients ``c0..c3 (B, N - 1, n)``, ``limits`` 2 or 3 of ``(B, n)``; None (nothing done) where the
+    library is not loaded or the inputs are not CPU tensors of one float dtype without autograd. Paths are
+    shared between threads."""
+    ins = (t, *profile, tau, k, knots, *coeffs, *limits)
+    dtype = t.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64) or len(limits) not in (2, 3)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
+        return None
+    (B, T), M, N, n = t.shape, profile[0].shape[1], knots.shape[1], coeffs[0].shape[-1]
+    ins = [x.contiguous() for x in ins]
+    peak = torch.empty(B, len(limits), dtype=dtype, device="cpu")  # C writes here: never the default device
+    top = torch.empty(B, len(limits), n, dtype=dtype, device="cpu")
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(B, thread_count(B * T)))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_topp_peaks(ptrs, top.data_ptr(), peak.data_ptr(), B, T, M, N, n, len(limits), peak.element_size(),
+                                 threads), "work space")
+    return peak
 
 
 def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,

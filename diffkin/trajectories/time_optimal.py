@@ -378,6 +378,11 @@ def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
     (B, T): (B, 2 or 3). The samples go in column blocks of about :data:`_BLOCK` samples in all, so the
     (B, ·, n) temporaries stay small (a whole check at once allocates and faults in hundreds of MB)."""
     B, T = t.shape
+    # in C on the CPU (each sample one pass, no temporaries): the same floats
+    peak = native.topp_peaks(t, (timed._t, timed._grid, timed._sd, timed._S, timed._u), timed._tau, timed._k,
+                             timed._path.s, timed._path.c, limits)
+    if peak is not None:
+        return peak
     w = max(64, _BLOCK // max(B, 1))
     peak = None
     for c in range(0, T, w):
