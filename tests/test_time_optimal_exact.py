@@ -141,6 +141,28 @@ def test_native_topp_passes_equal_torch(interpolation):
     assert bool((res._x[:, 1:-1] > 0).any())  # a motion, not a path at rest
 
 
+def test_native_fixed_bound_equals_torch():
+    """The fixed rows' bound per grid interval in C (topp_fixed) against _max_x, bit for bit: random rows with
+    zero and negative entries (rows without u, rows that bound nothing) and real paths' rows."""
+    from diffkin.kernels import native
+    from diffkin.trajectories.time_optimal import _max_x, _rows
+
+    if not native.available():
+        pytest.skip("no C compiler: _max_x serves every call")
+    g = torch.Generator().manual_seed(9)
+    I, n = 300, 7
+    P1, P2, Q1, Q2 = (torch.randn(I, n, generator=g, dtype=F64) for _ in range(4))
+    P1[::5, :3] = 0  # rows without u
+    Q2[::7] = 0
+    delta = torch.rand(I, generator=g, dtype=F64) * 1e-2 + 1e-4
+    xv = torch.rand(I, generator=g, dtype=F64) * 10
+    xv[::11] = float("inf")
+    al, be, ga, alone = _rows(P1, P2, Q1, Q2, A.expand(I, n), delta)
+    got = native.topp_fixed(al, be, ga, alone, delta, xv)
+    ref = _max_x(al, be, ga, alone, delta, xv)
+    assert torch.equal(got, ref) and bool((ref > 0).any()) and bool((ref < xv).any())
+
+
 def test_spline_check_marks_equal_padded_marks():
     """motion._spline_clear checks each row's own marks in blocks: the same decisions as all fine samples at
     once and every row padded to the longest row's mark count (the former code), here with a stand-in

@@ -542,6 +542,24 @@ int64_t dk_topp_passes(const void *const *in, void *K, void *Kn, void *x, int64_
     return DK_ABI_ERROR;
 }
 
+/* The TOPP-RA bound of each grid interval from its fixed rows (_native_topp.c, topp_fixed; reals of
+ * real_bytes 8 or 4): out (I) from al, be, ga (I, R), alone, delta, xv (I). Returns 0, DK_ABI_ERROR for
+ * another real size. */
+int64_t dk_topp_fixed(const void *const *in, void *out, int64_t I, int64_t R, int64_t real_bytes,
+                      int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        topp_fixed_f64(a[0], a[1], a[2], a[3], a[4], a[5], (double *)out, I, R, nthreads);
+        return 0;
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        topp_fixed_f32(a[0], a[1], a[2], a[3], a[4], a[5], (float *)out, I, R, nthreads);
+        return 0;
+    }
+    return DK_ABI_ERROR;
+}
+
 /* The dense limit check of time_optimal (_native_topp.c, topp_peaks; reals of real_bytes 8 or 4): the peaks
  * (B, nlim) of B timed paths at the sample times in[0] (B, T) (in: the arrays listed there; top (B, nlim, n)
  * work). Returns 0,

@@ -73,6 +73,42 @@ static int64_t DK(topp_passes)(const real *Aq, const real *G, const real *C, con
     return 0;
 }
 
+/* The bound on x = ṡ² of each grid interval from its fixed rows (time_optimal._max_x: Fourier–Motzkin on u over
+ * every pair of an upper row p (α_p > 0) and a lower row q: the acceleration rows' partners and u ≥ −x / 2Δ),
+ * from the upper rows al, be, ga (R each, R = 2n), the rows without u (alone), Δ (delta) and the velocity
+ * bound xv of I intervals; out (I). One interval's R (R + 1) pairs in registers instead of torch's
+ * (I, R, R + 1) temporaries; the same operations in the same order, so the same floats. */
+static void DK(topp_fixed)(const real *al, const real *be, const real *ga, const real *alone,
+                           const real *delta, const real *xv, real *out, int64_t I, int64_t R, int64_t nthreads) {
+#pragma omp parallel for num_threads(nthreads) schedule(static)
+    for (int64_t i = 0; i < I; i++) {
+        const real *a = al + i * R, *b = be + i * R, *g = ga + i * R;
+        const real d2 = 2 * delta[i];
+        real bound = (real)INFINITY;
+        for (int64_t p = 0; p < R; p++) {
+            if (!(a[p] > 0)) continue;
+            const real Ap = a[p];
+            for (int64_t q = 0; q <= R; q++) {
+                const real Aq = q < R ? a[q] : d2;
+                if (!(Aq > 0)) continue;
+                const real bq = q < R ? -b[q] : -1;
+                const real gq = q < R ? g[q] : 0;
+                real c = Ap * bq;
+                real w = Aq * b[p];
+                c = c + w;
+                if (!(c > 0)) continue;
+                real d = Aq * g[p];
+                w = Ap * gq;
+                d = d + w;
+                bound = DK(nan_min)(bound, d / c);
+            }
+        }
+        real r = DK(nan_min)(bound, alone[i]);
+        r = r < 0 ? 0 : r;  /* clamp_min(0) keeps a NaN */
+        out[i] = DK(nan_min)(r, xv[i]);
+    }
+}
+
 /* The dense limit check of time_optimal (_peaks): per path the largest |q̇_j| / v_j, |q̈_j| / a_j (and |q⃛_j| / j_j
  * with nlim = 3) over the sample times t (B, T), of the profile smoothed by τ and stretched by k (TimedPath._joint:
  * _base twice, _profile, the path's Horner evaluation), each sample one pass through its own profile interval

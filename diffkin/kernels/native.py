@@ -75,7 +75,7 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes",
-           "topp_peaks"]
+           "topp_fixed", "topp_peaks"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -296,6 +296,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
+    lib.dk_topp_fixed.restype, lib.dk_topp_fixed.argtypes = _I64, [_PTR] * 2 + [_I64] * 4
     lib.dk_topp_peaks.restype, lib.dk_topp_peaks.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
     return lib
 
@@ -694,6 +695,26 @@ def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Te
     _raise_on(_lib.dk_topp_passes(ptrs, K.data_ptr(), Kn.data_ptr(), x.data_ptr(), B, M1 + 1, R, Au.shape[-1],
                                   x.element_size(), threads), "work space")
     return x
+
+
+def topp_fixed(al: Tensor, be: Tensor, ga: Tensor, alone: Tensor, delta: Tensor, xv: Tensor) -> Tensor | None:
+    """The bound on x = ṡ² of each TOPP-RA grid interval from its fixed rows, of
+    :func:`diffkin.trajectories.time_optimal._max_x`, by ``dk_topp_fixed`` (``_native_topp.c``: the same
+    floats), from the upper rows ``al, be, ga (..., R)`` and ``alone, delta, xv (...)``; None (nothing done)
+    where the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    ins = (al, be, ga, alone, delta, xv)
+    dtype = al.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
+        return None
+    *lead, R = al.shape
+    ins = [x.contiguous() for x in ins]
+    out = torch.empty(lead, dtype=dtype, device="cpu")  # C writes here: never the default device
+    I = out.numel()
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(I, thread_count(I)))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_topp_fixed(ptrs, out.data_ptr(), I, R, out.element_size(), threads), "work space")
+    return out
 
 
 def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, knots: Tensor,

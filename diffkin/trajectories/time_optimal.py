@@ -183,10 +183,12 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     B, M = grid.shape
     n = P1.shape[-1]
     al, be, ga, alone = _rows(P1[:, :-1], P2[:, :-1], Q1, Q2, amax[:, None].expand(B, M - 1, n), delta)
-    # the bound from the fixed rows, per interval (B, M - 1)
-    step = max(1, (1 << 22) // max(1, B * 2 * n * (2 * n + 1)))
+    # the bound from the fixed rows, per interval (B, M - 1): in C on the CPU (the same floats), else in torch
     parts = (al, be, ga, alone, delta, xv[:, :-1])
-    fixed = torch.cat([_max_x(*(v[:, j:j + step] for v in parts)) for j in range(0, M - 1, step)], 1)
+    fixed = native.topp_fixed(*parts)
+    if fixed is None:
+        step = max(1, (1 << 22) // max(1, B * 2 * n * (2 * n + 1)))
+        fixed = torch.cat([_max_x(*(v[:, j:j + step] for v in parts)) for j in range(0, M - 1, step)], 1)
     # the moving row (α, β, γ) = (2Δ, 1, x_next) with each lower row q:
     # x ≤ (A_q x_next + 2Δ γ_q) / c_q, A_q = −α_q, c_q = 2Δ β_q + A_q (the pair term of _max_x)
     up = al > 0
