@@ -202,3 +202,36 @@ def test_spline_check_marks_equal_padded_marks():
     qc = torch.gather(q, 1, idx[..., None].expand(9, K, 7))
     ref = Plane().clear(qc, problem[:, None]).all(1) & inside
     assert torch.equal(got, ref) and bool(got.any()) and not bool(got.all())
+
+
+def test_native_spline_check_points_equal_torch():
+    """motion._spline_clear's fine samples and check points in C (kernels/_native_spline.c) against its torch
+    code, bit for bit: the points handed to the checker, their paths, and the decisions (limits included)."""
+    from diffkin.kernels import native
+    from diffkin.motion._spline import _knots, _spline_clear
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch code serves every call")
+    seen = []
+
+    class Plane:
+        reach = torch.tensor([0.9, 0.8, 0.7, 0.5, 0.4, 0.3, 0.2], dtype=F64)
+
+        def eta_of(self, problem):
+            return 0.004 + 0.002 * (problem % 2).to(F64)
+
+        def clear(self, q, problem):
+            seen.append((q, problem))
+            return q[..., 0] + 0.01 * problem.to(F64) < 1.2
+
+    y, _, _ = _paths(10, 9, 7)
+    y[::3] *= 0.1
+    kn, problem = _knots(y), torch.arange(9)
+    lo, hi = torch.full((7,), -2.5, dtype=F64), torch.full((7,), 2.5, dtype=F64)
+    got = _spline_clear(Plane(), y, kn, lo, hi, problem, fine=1000)
+    with native.disabled():
+        ref = _spline_clear(Plane(), y, kn, lo, hi, problem, fine=1000)
+    (q1, p1), (q2, p2) = seen
+    assert torch.equal(got, ref) and torch.equal(q1, q2) and torch.equal(p1, p2)
+    inside = ((y >= -2.5) & (y <= 2.5)).all(-1).all(-1)
+    assert bool(got.any()) and not bool(got.all()) and not bool(inside.all())

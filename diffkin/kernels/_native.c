@@ -560,6 +560,46 @@ int64_t dk_topp_fixed(const void *const *in, void *out, int64_t I, int64_t R, in
     return DK_ABI_ERROR;
 }
 
+/* The fine samples of motion._spline_clear (_native_spline.c, spline_fine; reals of real_bytes 8 or 4): in: u
+ * (F + 1), knots (B, N), c0..c3 (B, N - 1, n), end (B, n), lo, hi, reach (n); cum (B, F + 1), inside (B) out,
+ * work (B, 2 n). Returns 0, DK_ABI_ERROR for another real size. */
+int64_t dk_spline_fine(const void *const *in, void *cum, void *inside, void *work, int64_t F, int64_t B,
+                       int64_t N, int64_t n, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        spline_fine_f64(a[0], F, a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], B, N, n, (double *)cum,
+                        (double *)inside, (double *)work, nthreads);
+        return 0;
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        spline_fine_f32(a[0], F, a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], B, N, n, (float *)cum,
+                        (float *)inside, (float *)work, nthreads);
+        return 0;
+    }
+    return DK_ABI_ERROR;
+}
+
+/* The check points of motion._spline_clear (_native_spline.c, spline_marks): in: u (F + 1), cum (B, F + 1),
+ * step (B), knots (B, N), c0..c3 (B, N - 1, n), end (B, n); count, first (B) int64; q (Σ (count + 1), n) out.
+ * Returns 0, DK_ABI_ERROR for another real size. */
+int64_t dk_spline_marks(const void *const *in, const int64_t *count, const int64_t *first, void *q, int64_t F,
+                        int64_t B, int64_t N, int64_t n, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        spline_marks_f64(a[0], F, a[1], a[2], count, first, a[3], a[4], a[5], a[6], a[7], a[8], B, N, n,
+                         (double *)q, nthreads);
+        return 0;
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        spline_marks_f32(a[0], F, a[1], a[2], count, first, a[3], a[4], a[5], a[6], a[7], a[8], B, N, n,
+                         (float *)q, nthreads);
+        return 0;
+    }
+    return DK_ABI_ERROR;
+}
+
 /* The dense limit check of time_optimal (_native_topp.c, topp_peaks; reals of real_bytes 8 or 4): the peaks
  * (B, nlim) of B timed paths at the sample times in[0] (B, T) (in: the arrays listed there; top (B, nlim, n)
  * work). Returns 0,
@@ -1056,6 +1096,7 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
 #include "_native_banded.c"
 #include "_native_clip.c"
 #include "_native_topp.c"
+#include "_native_spline.c" /* after _native_topp.c: its searches */
 
 #undef real
 #endif

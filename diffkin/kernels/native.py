@@ -75,7 +75,8 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes",
-           "topp_fixed", "topp_peaks"]
+           "topp_fixed", "topp_peaks",
+           "spline_fine", "spline_marks"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -84,7 +85,8 @@ _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _nativ
              Path(__file__).with_name("_native_velocity.c"),
              Path(__file__).with_name("_native_banded.c"),
              Path(__file__).with_name("_native_clip.c"),
-             Path(__file__).with_name("_native_topp.c"))
+             Path(__file__).with_name("_native_topp.c"),
+             Path(__file__).with_name("_native_spline.c"))
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
@@ -296,6 +298,8 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
+    lib.dk_spline_fine.restype, lib.dk_spline_fine.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
+    lib.dk_spline_marks.restype, lib.dk_spline_marks.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     lib.dk_topp_fixed.restype, lib.dk_topp_fixed.argtypes = _I64, [_PTR] * 2 + [_I64] * 4
     lib.dk_topp_peaks.restype, lib.dk_topp_peaks.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
     return lib
@@ -737,9 +741,55 @@ def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, k
     top = torch.empty(B, len(limits), n, dtype=dtype, device="cpu")
     ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
     threads = max(1, min(B, thread_count(B * T)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_peaks(ptrs, top.data_ptr(), peak.data_ptr(), B, T, M, N, n, len(limits), peak.element_size(),
-                                 threads), "work space")
+    _raise_on(_lib.dk_topp_peaks(ptrs, top.data_ptr(), peak.data_ptr(), B, T, M, N, n, len(limits),
+                                 peak.element_size(), threads), "work space")
     return peak
+
+
+def spline_fine(u: Tensor, knots: Tensor, coeffs: tuple[Tensor, ...], end: Tensor, lo: Tensor, hi: Tensor,
+                reach: Tensor) -> tuple[Tensor, Tensor] | None:
+    """The fine samples of :func:`diffkin.motion._spline._spline_clear` by ``dk_spline_fine``
+    (``_native_spline.c``: the same floats): from the fine samples ``u (F + 1)``, the splines' ``knots
+    (B, N)``, coefficients ``c0..c3 (B, N - 1, n)`` and ends ``(B, n)``, the limits ``lo, hi`` and ``reach
+    (n)``: the running bound-length ``cum (B, F + 1)`` and ``inside (B,)`` bool; None (nothing done) where
+    the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    ins = (u, knots, *coeffs, end, lo, hi, reach)
+    dtype = u.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
+        return None
+    (B, N), F, n = knots.shape, u.shape[0] - 1, end.shape[-1]
+    ins = [x.contiguous() for x in ins]
+    cpu = {"dtype": dtype, "device": "cpu"}  # C writes here: never the default device
+    cum, inside, work = torch.empty(B, F + 1, **cpu), torch.empty(B, **cpu), torch.empty(B, 2 * n, **cpu)
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(B, thread_count(B * (F + 1))))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_spline_fine(ptrs, cum.data_ptr(), inside.data_ptr(), work.data_ptr(), F, B, N, n,
+                                  u.element_size(), threads), "work space")
+    return cum, inside > 0
+
+
+def spline_marks(u: Tensor, cum: Tensor, step: Tensor, count: Tensor, first: Tensor, knots: Tensor,
+                 coeffs: tuple[Tensor, ...], end: Tensor) -> Tensor | None:
+    """The check points of :func:`diffkin.motion._spline._spline_clear` by ``dk_spline_marks``
+    (``_native_spline.c``: the same floats): path b's marks ``m · step[b]`` (m = 0..count[b]) placed on its
+    running length ``cum`` (:func:`spline_fine`) and its spline evaluated there, ``(Σ (count + 1), n)``,
+    path b's from row ``first[b]``; None (nothing done) where :func:`spline_fine` would be."""
+    ins = (u, cum, step, knots, *coeffs, end)
+    dtype = u.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)
+            or any(x.device.type != "cpu" for x in (count, first))):
+        return None
+    (B, N), F, n = knots.shape, u.shape[0] - 1, end.shape[-1]
+    ins = [x.contiguous() for x in ins]
+    count, first = count.to(torch.int64).contiguous(), first.to(torch.int64).contiguous()
+    q = torch.empty(int(count.sum()) + B, n, dtype=dtype, device="cpu")  # C writes here
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(B, thread_count(q.shape[0])))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_spline_marks(ptrs, count.data_ptr(), first.data_ptr(), q.data_ptr(), F, B, N, n,
+                                   u.element_size(), threads), "work space")
+    return q
 
 
 def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,
