@@ -236,7 +236,7 @@ class TimedPath:
     """
 
     def __init__(self, path: _Path, grid: Tensor, x: Tensor, tau: Tensor, k: Tensor, dtype: torch.dtype):
-        self._path, self._grid, self._x, self._tau, self._k, self._dtype = path, grid, x, tau, k, dtype
+        self._path, self._grid, self._x, self._dtype = path, grid, x, dtype
         self._B, self._device, self._batch = grid.shape[0], grid.device, (grid.shape[0],)
         sd = x.clamp_min(0).sqrt()
         delta = grid[:, 1:] - grid[:, :-1]
@@ -247,10 +247,29 @@ class TimedPath:
         # ∫ s dt at the knots (for the moving average)
         inc = grid[:, :-1] * dt + sd[:, :-1] * dt**2 / 2 + self._u * dt**3 / 6
         self._S = torch.cat((torch.zeros_like(dt[:, :1]), inc.cumsum(1)), 1)
+        self._law(tau, k)
+
+    def _law(self, tau: Tensor, k: Tensor) -> None:
+        """The smoothing width τ and the stretch k (B,) of the profile."""
+        self._tau, self._k = tau, k
         #: seconds per path (B,)
-        self.duration = ((self._t[:, -1] + tau) * k).to(dtype)
+        self.duration = ((self._t[:, -1] + tau) * k).to(self._dtype)
         #: the geometric path's waypoints (B, N, n) and knots (B, N)
-        self.knots = path.s.to(dtype)
+        self.knots = self._path.s.to(self._dtype)
+
+    def _retimed(self, tau: Tensor, k: Tensor, rows: Tensor | None = None) -> TimedPath:
+        """This profile with τ and k of the rows ``rows`` (an index tensor; all if None): the profile's
+        arrays shared or indexed, not computed again (each row's are its own: the same floats)."""
+        new = object.__new__(TimedPath)
+        new.__dict__.update(self.__dict__)
+        if rows is not None:
+            new._path = self._path.rows(rows)
+            for name in ("_grid", "_x", "_u", "_sd", "_t", "_S"):
+                setattr(new, name, getattr(self, name)[rows])
+            new._B = new._grid.shape[0]
+            new._batch = (new._B,)
+        new._law(tau, k)
+        return new
 
     def _base(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """s, ṡ, s̈, ∫s of the unsmoothed profile at times t (B, T) (any real t; ``rows`` (B, T): the
@@ -487,17 +506,15 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
         limits = [vmax, amax] if jmax is None else [vmax, amax, jmax]
 
+        profile = TimedPath(p, grid, x, taus[0], torch.ones_like(taus[0]), dtype)  # made once, retimed below
+
         def stretch(tau: Tensor, per_interval: int, r: Tensor | None = None, skip: int = 0,
                     prior: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
             """k, the duration and the peaks (:func:`_peaks`) of the profile smoothed by τ, checked at
             ``per_interval``, of the rows ``r`` (all if None; τ of those rows); ``prior``: the peaks of the
             samples left out by ``skip`` (:meth:`TimedPath._breakpoints`)."""
-            if r is None:
-                timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
-                lim = limits
-            else:
-                timed = TimedPath(p.rows(r), grid[r], x[r], tau, torch.ones_like(tau), dtype)
-                lim = [v[r] for v in limits]
+            timed = profile._retimed(tau, torch.ones_like(tau), r)
+            lim = limits if r is None else [v[r] for v in limits]
             peak = _peaks(timed, timed._breakpoints(per_interval, skip), lim)
             peak = peak if prior is None else torch.maximum(peak, prior)
             k = torch.maximum(peak[:, 0], peak[:, 1].sqrt())
@@ -547,7 +564,7 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
                 best = (tau, k, total, c)
             else:
                 best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
-        return _batched(TimedPath(p, grid, x, best[0], best[1], dtype), batch)
+        return _batched(profile._retimed(best[0], best[1]), batch)
 
 
 def _batched(timed: TimedPath, batch: tuple) -> TimedPath:
