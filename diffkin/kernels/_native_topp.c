@@ -204,6 +204,7 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
     const real T_end = pt[M - 1];
     const real k2 = k * k;
     const real k3 = k2 * k;
+    const int unit = k == 1;
     const real done_at = T_end + tau;
     (void)c0;  /* the positions are not checked */
     for (int64_t e = 0; e < nlim * n; e++) top[e] = 0;
@@ -211,7 +212,7 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
     int64_t h1 = 0, h2 = 0, hs = 0;
     real *top_v = top, *top_a = top + n, *top_j = top + 2 * n;
     for (int64_t m = 0; m < T; m++) {
-        const real tk = t[m] / k;
+        const real tk = unit ? t[m] : t[m] / k;  /* x / 1 is x, bit for bit (the candidates' k) */
         real b[4], b2[4];
         DK(profile_base)(pt, grid, sd, u, Sk, M, tk, pt_sorted, &h1, b);
         DK(profile_base)(pt, grid, sd, u, Sk, M, tk - taus, pt_sorted, &h2, b2);
@@ -229,7 +230,7 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
             sb = b[0], vb = b[1], ab = b[2], jb = 0;
         }
         if (tk >= done_at) sb = 1, vb = 0, ab = 0, jb = 0;
-        const real v = vb / k, a = ab / k2, j = jb / k3;
+        const real v = unit ? vb : vb / k, a = unit ? ab : ab / k2, j = unit ? jb : jb / k3;
         real s = sb < 0 ? 0 : sb;  /* clamp(0, 1) keeps a NaN */
         s = s > 1 ? 1 : s;
         const int64_t g = DK(upper_bound_near)(ps + 1, N - 2, s, ps_sorted, &hs);
