@@ -28,7 +28,8 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     leaves at most the spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
     crosses a multiple of 0.8 η_b (each problem's resolution; the 20 % spare covers chords against arcs
-    and the last fine chord)."""
+    and the last fine chord). The samples and check points in C on the CPU (``kernels/_native_spline.c``,
+    the same floats), else in torch."""
     B = path.shape[0]
     knots = knots.to(torch.float64)
     s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])

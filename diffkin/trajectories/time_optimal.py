@@ -21,7 +21,7 @@ largest x_i from which the end is reachable at rest (each a two-variable LP, sol
 all paths at once); a forward pass from x_0 = 0 takes the largest u_i that stays controllable. Between grid
 points s̈ is constant (toppra's ``ParametrizeConstAccel``), so interval i lasts 2Δ_i / (ṡ_i + ṡ_{i+1}). The
 two passes go one grid point at a time: in C on the CPU (``kernels/_native_topp.c``, paths over threads, the
-same floats), else in torch (CUDA, no compiler).
+same floats), else in torch (CUDA, no compiler); so does the bound of each interval's fixed rows.
 
 Without a jerk limit this is bang-bang: the acceleration jumps at the switching points (and at t = 0 and
 at the end). With ``jerk_limit``, the profile s(t) is smoothed by a moving average of width τ,
@@ -30,14 +30,16 @@ acceleration, its acceleration is continuous and its jerk bounded ((s̈(t) − s
 path among a few multiples of 2·max_j a_j / j_j (the shortest result wins; a candidate whose duration
 checked at a quarter of the samples — a lower bound — cannot win is not checked densely, and a dense
 check evaluates only the samples the quarter check did not, on the rows where its candidate can still
-win). The smoothed motion is not time-optimal under the jerk limit (an upper bound on it).
+win; the candidates share one profile, retimed). The smoothed motion is not time-optimal under the jerk
+limit (an upper bound on it).
 
 Limits exactly: every result is finally stretched uniformly in time by the smallest factor k ≥ 1 that puts
 every velocity, acceleration and jerk (with ``jerk_limit``) within its limit on a dense check (all the
 breakpoints of the profile and ``check_per_interval`` points inside each interval), times 1 + 2e-4 for the
 values between the check samples; without that step the discretised constraints would hold at the grid
 points only. Without a jerk limit k is within ~0.5 % of 1 (the durations stay within 1 % of toppra's on
-the same path).
+the same path). The dense check runs in C on the CPU (``kernels/_native_topp.c``, each sample one pass, the
+same floats), else in torch.
 
 No gradient flows through the timing (it is a decision, like the LP it solves); it is computed in float64
 and sampled in the dtype of ``path``.
