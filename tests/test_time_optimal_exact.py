@@ -101,6 +101,28 @@ def test_native_peaks_equal_torch(interpolation, jerk):
     assert got.shape == (B, len(lims)) and torch.equal(got, ref)
 
 
+@pytest.mark.parametrize("interpolation, jerk", [("spline", True), ("spline", False), ("linear", True),
+                                                 ("linear", False)])
+def test_native_samples_equal_torch(interpolation, jerk):
+    """sample() in C (kernels/_native_topp.c, topp_sample) against the torch evaluation, bit for bit: the
+    chained parts (polyline + jerk) included, times before 0, past the end and exactly at the knots."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch evaluation serves every call")
+    y, kn, g = _paths(11, 4, 6)
+    res = time_optimal(y, V, A, 100 * A if jerk else None, knots=kn, interpolation=interpolation)
+    end = float(res.duration.max())
+    t = torch.cat((torch.rand(4, 300, generator=g, dtype=F64) * (end + 0.4) - 0.2,
+                   torch.linspace(0, end, 200, dtype=F64).expand(4, -1)), 1)
+    got = res.sample(t)
+    with native.disabled():
+        ref = res.sample(t)
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b)
+    assert bool((got.velocity.abs() > 0.1).any())
+
+
 def test_search_rows_equals_searchsorted():
     g = torch.Generator().manual_seed(4)
     for L in (0, 1, 2, 7, 64):

@@ -600,6 +600,19 @@ int64_t dk_spline_marks(const void *const *in, const int64_t *count, const int64
     return DK_ABI_ERROR;
 }
 
+/* q, q̇, q̈ of timed paths at the times in[0] (R, T) (_native_topp.c, topp_sample; reals of real_bytes 8 or 4):
+ * rows (R, T) the path of each sample, or NULL (row r: path r). Returns 0, DK_ABI_ERROR for another real size. */
+int64_t dk_topp_sample(const void *const *in, const int64_t *rows, void *q, void *qd, void *qdd, int64_t R,
+                       int64_t T, int64_t M, int64_t N, int64_t n, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8)
+        return topp_sample_f64((const double *const *)in, rows, (double *)q, (double *)qd, (double *)qdd, R, T, M,
+                               N, n, nthreads);
+    if (real_bytes == 4)
+        return topp_sample_f32((const float *const *)in, rows, (float *)q, (float *)qd, (float *)qdd, R, T, M, N,
+                               n, nthreads);
+    return DK_ABI_ERROR;
+}
+
 /* The dense limit check of time_optimal (_native_topp.c, topp_peaks; reals of real_bytes 8 or 4): the peaks
  * (B, nlim) of B timed paths at the sample times in[0] (B, T) (in: the arrays listed there; top (B, nlim, n)
  * work). Returns 0,

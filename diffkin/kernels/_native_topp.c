@@ -191,6 +191,65 @@ static inline void DK(profile_base)(const real *pt, const real *grid, const real
     out[3] = S;
 }
 
+/* TimedPath._profile and the stretch of _joint at time t of one path (profile arrays as DK(profile_base), its
+ * τ and k; sorted, h1, h2: DK(upper_bound_near) of the two base evaluations): s (clamped into [0, 1]), ṡ, s̈,
+ * s⃛ of the smoothed, stretched law into out[0..3]. */
+static inline void DK(law_at)(const real *pt, const real *grid, const real *sd, const real *u, const real *Sk,
+                              int64_t M, real tau, real k, int sorted, int64_t *h1, int64_t *h2, real t,
+                              real *out) {
+    const int smooth = tau > 0, unit = k == 1;  /* x / 1 is x, bit for bit (the candidates' k) */
+    const real taus = smooth ? tau : 1;
+    const real tk = unit ? t : t / k;
+    real b[4], b2[4];
+    DK(profile_base)(pt, grid, sd, u, Sk, M, tk, sorted, h1, b);
+    DK(profile_base)(pt, grid, sd, u, Sk, M, tk - taus, sorted, h2, b2);
+    real sb, vb, ab, jb;
+    if (smooth) {
+        sb = b[3] - b2[3];
+        sb = sb / taus;
+        vb = b[0] - b2[0];
+        vb = vb / taus;
+        ab = b[1] - b2[1];
+        ab = ab / taus;
+        jb = b[2] - b2[2];
+        jb = jb / taus;
+    } else {
+        sb = b[0], vb = b[1], ab = b[2], jb = 0;
+    }
+    const real done_at = pt[M - 1] + tau;
+    if (tk >= done_at) sb = 1, vb = 0, ab = 0, jb = 0;
+    if (unit) {
+        out[1] = vb, out[2] = ab, out[3] = jb;
+    } else {
+        const real k2 = k * k;
+        const real k3 = k2 * k;
+        out[1] = vb / k, out[2] = ab / k2, out[3] = jb / k3;
+    }
+    real s = sb < 0 ? 0 : sb;  /* clamp(0, 1) keeps a NaN */
+    out[0] = s > 1 ? 1 : s;
+}
+
+/* poly_eval from the top coefficient (c3, c2, c1, c0) at x: q, q', q'' into out[0..2]. */
+static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real *out) {
+    real p = c3 * x;
+    p = p + c2;
+    real q1 = c3;
+    real q2 = 2 * q1;
+    real h = q1 * x;
+    q1 = h + p;
+    h = p * x;
+    p = h + c1;
+    q2 = q2 * x;
+    h = 2 * q1;
+    q2 = q2 + h;
+    h = q1 * x;
+    q1 = h + p;
+    h = p * x;
+    out[0] = h + c0;
+    out[1] = q1;
+    out[2] = q2;
+}
+
 /* One path: prof = (pt, grid, sd, Sk (M), u (M - 1)), its τ and k; the geometric path's knots ps (N) and
  * coefficients c0..c3 (N - 1, n); lim (nlim, n); top (nlim, n) work; peak (nlim) out. Each joint's largest
  * |q̇_j| (|q̈_j|, |q⃛_j|) is divided by its limit once, at the end: a correctly rounded division is monotone in
@@ -199,70 +258,31 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
                            const real *u, const real *Sk, int64_t M, real tau, real k, const real *ps,
                            const real *c0, const real *c1, const real *c2, const real *c3, int64_t N, int64_t n,
                            const real *const *lim, int64_t nlim, real *top, real *peak) {
-    const int smooth = tau > 0;
-    const real taus = smooth ? tau : 1;
-    const real T_end = pt[M - 1];
-    const real k2 = k * k;
-    const real k3 = k2 * k;
-    const int unit = k == 1;
-    const real done_at = T_end + tau;
-    (void)c0;  /* the positions are not checked */
     for (int64_t e = 0; e < nlim * n; e++) top[e] = 0;
     const int pt_sorted = DK(sorted)(pt + 1, M - 2), ps_sorted = DK(sorted)(ps + 1, N - 2);
     int64_t h1 = 0, h2 = 0, hs = 0;
     real *top_v = top, *top_a = top + n, *top_j = top + 2 * n;
     for (int64_t m = 0; m < T; m++) {
-        const real tk = unit ? t[m] : t[m] / k;  /* x / 1 is x, bit for bit (the candidates' k) */
-        real b[4], b2[4];
-        DK(profile_base)(pt, grid, sd, u, Sk, M, tk, pt_sorted, &h1, b);
-        DK(profile_base)(pt, grid, sd, u, Sk, M, tk - taus, pt_sorted, &h2, b2);
-        real sb, vb, ab, jb;
-        if (smooth) {
-            sb = b[3] - b2[3];
-            sb = sb / taus;
-            vb = b[0] - b2[0];
-            vb = vb / taus;
-            ab = b[1] - b2[1];
-            ab = ab / taus;
-            jb = b[2] - b2[2];
-            jb = jb / taus;
-        } else {
-            sb = b[0], vb = b[1], ab = b[2], jb = 0;
-        }
-        if (tk >= done_at) sb = 1, vb = 0, ab = 0, jb = 0;
-        const real v = unit ? vb : vb / k, a = unit ? ab : ab / k2, j = unit ? jb : jb / k3;
-        real s = sb < 0 ? 0 : sb;  /* clamp(0, 1) keeps a NaN */
-        s = s > 1 ? 1 : s;
+        real law[4], q[3];
+        DK(law_at)(pt, grid, sd, u, Sk, M, tau, k, pt_sorted, &h1, &h2, t[m], law);
+        const real s = law[0], v = law[1], a = law[2], j = law[3];
         const int64_t g = DK(upper_bound_near)(ps + 1, N - 2, s, ps_sorted, &hs);
         const real x = s - ps[g];
         const real vv = v * v;
         const real vvv = vv * v;
-        const real *C1 = c1 + g * n, *C2 = c2 + g * n, *C3 = c3 + g * n;
+        const int64_t e = g * n;
         for (int64_t c = 0; c < n; c++) {
-            /* poly_eval from the top coefficient (c3, c2, c1, c0) */
-            real p = C3[c] * x;
-            p = p + C2[c];
-            real q1 = C3[c];
-            real q2 = 2 * q1;
-            real h = q1 * x;
-            q1 = h + p;
-            h = p * x;
-            p = h + C1[c];
-            q2 = q2 * x;
-            h = 2 * q1;
-            q2 = q2 + h;
-            h = q1 * x;
-            q1 = h + p;
-            const real qd = q1 * v;
-            real qdd = q1 * a;
-            h = q2 * vv;
+            DK(cubic_at)(c0[e + c], c1[e + c], c2[e + c], c3[e + c], x, q);
+            const real qd = q[1] * v;
+            real qdd = q[1] * a;
+            real h = q[2] * vv;
             qdd = qdd + h;
             top_v[c] = DK(nan_max)(top_v[c], fabs(qd));
             top_a[c] = DK(nan_max)(top_a[c], fabs(qdd));
             if (nlim > 2) {
-                const real q3 = 6 * C3[c];
-                real qj = q1 * j;
-                h = 3 * q2;
+                const real q3 = 6 * c3[e + c];
+                real qj = q[1] * j;
+                h = 3 * q[2];
                 h = h * v;
                 h = h * a;
                 qj = qj + h;
@@ -291,6 +311,46 @@ static int64_t DK(topp_peaks)(const real *const *in, real *top, real *peak, int6
         DK(peaks_path)(in[0] + b * T, T, in[1] + b * M, in[2] + b * M, in[3] + b * M, in[5] + b * (M - 1),
                        in[4] + b * M, M, in[6][b], in[7][b], in[8] + b * N, in[9] + E, in[10] + E, in[11] + E,
                        in[12] + E, N, n, lim, nlim, top + b * nlim * n, peak + b * nlim);
+    }
+    return 0;
+}
+
+/* TimedPath._joint's q, q̇, q̈ (TimedPath._sample) at the times t (R, T): sample (r, m) on path rows[r T + m]
+ * (rows NULL: path r), in: t, then the arrays of topp_peaks in[1..12] and end (B, n) in[13]; q, qd, qdd
+ * (R, T, n) out. Rows of samples are shared between threads. */
+static int64_t DK(topp_sample)(const real *const *in, const int64_t *rows, real *q, real *qd, real *qdd, int64_t R,
+                               int64_t T, int64_t M, int64_t N, int64_t n, int64_t nthreads) {
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
+    for (int64_t r = 0; r < R; r++) {
+        int64_t b = -1, h1 = 0, h2 = 0, hs = 0;
+        int pt_sorted = 0, ps_sorted = 0;
+        const real *pt = NULL, *grid = NULL, *sd = NULL, *Sk = NULL, *u = NULL, *ps = NULL;
+        for (int64_t m = 0; m < T; m++) {
+            const int64_t o = r * T + m, bb = rows ? rows[o] : r;
+            if (bb != b) {  /* another path: its arrays, and the searches start afresh */
+                b = bb;
+                pt = in[1] + b * M, grid = in[2] + b * M, sd = in[3] + b * M, Sk = in[4] + b * M;
+                u = in[5] + b * (M - 1), ps = in[8] + b * N;
+                pt_sorted = DK(sorted)(pt + 1, M - 2), ps_sorted = DK(sorted)(ps + 1, N - 2);
+                h1 = h2 = hs = 0;
+            }
+            real law[4], c[3];
+            DK(law_at)(pt, grid, sd, u, Sk, M, in[6][b], in[7][b], pt_sorted, &h1, &h2, in[0][o], law);
+            const real s = law[0], v = law[1], a = law[2];
+            const int64_t g = DK(upper_bound_near)(ps + 1, N - 2, s, ps_sorted, &hs);
+            const real x = s - ps[g];
+            const real vv = v * v;
+            const int last = s >= ps[N - 1];
+            const int64_t e = (b * (N - 1) + g) * n;
+            for (int64_t j = 0; j < n; j++) {
+                DK(cubic_at)(in[9][e + j], in[10][e + j], in[11][e + j], in[12][e + j], x, c);
+                q[o * n + j] = last ? in[13][b * n + j] : c[0];
+                qd[o * n + j] = c[1] * v;
+                real acc = c[1] * a;
+                const real h = c[2] * vv;
+                qdd[o * n + j] = acc + h;
+            }
+        }
     }
     return 0;
 }

@@ -75,7 +75,7 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes",
-           "topp_fixed", "topp_peaks",
+           "topp_fixed", "topp_peaks", "topp_sample",
            "spline_fine", "spline_marks"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
@@ -301,6 +301,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_spline_fine.restype, lib.dk_spline_fine.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     lib.dk_spline_marks.restype, lib.dk_spline_marks.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     lib.dk_topp_fixed.restype, lib.dk_topp_fixed.argtypes = _I64, [_PTR] * 2 + [_I64] * 4
+    lib.dk_topp_sample.restype, lib.dk_topp_sample.argtypes = _I64, [_PTR] * 5 + [_I64] * 7
     lib.dk_topp_peaks.restype, lib.dk_topp_peaks.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
     return lib
 
@@ -744,6 +745,31 @@ def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, k
     _raise_on(_lib.dk_topp_peaks(ptrs, top.data_ptr(), peak.data_ptr(), B, T, M, N, n, len(limits),
                                  peak.element_size(), threads), "work space")
     return peak
+
+
+def topp_sample(t: Tensor, rows: Tensor | None, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor,
+                knots: Tensor, coeffs: tuple[Tensor, ...], end: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+    """q, q̇, q̈ ``(R, T, n)`` of :meth:`diffkin.trajectories.time_optimal.TimedPath._joint` at the times ``t
+    (R, T)`` (``rows (R, T)``: the path of each sample; None: row r is path r) by ``dk_topp_sample``
+    (``_native_topp.c``: the same floats), from the arrays of :func:`topp_peaks` and the paths' ends ``(B,
+    n)``; None (nothing done) where the library is not loaded or the inputs are not CPU tensors of one float
+    dtype without autograd."""
+    ins = (t, *profile, tau, k, knots, *coeffs, end)
+    dtype = t.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)
+            or (rows is not None and rows.device.type != "cpu")):
+        return None
+    (R, T), M, N, n = t.shape, profile[0].shape[1], knots.shape[1], end.shape[-1]
+    ins = [x.contiguous() for x in ins]
+    if rows is not None:
+        rows = rows.to(torch.int64).expand(R, T).contiguous()
+    q, qd, qdd = (torch.empty(R, T, n, dtype=dtype, device="cpu") for _ in range(3))  # C writes here
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(R, thread_count(R * T)))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_topp_sample(ptrs, None if rows is None else rows.data_ptr(), q.data_ptr(), qd.data_ptr(),
+                                  qdd.data_ptr(), R, T, M, N, n, q.element_size(), threads), "work space")
+    return q, qd, qdd
 
 
 def spline_fine(u: Tensor, knots: Tensor, coeffs: tuple[Tensor, ...], end: Tensor, lo: Tensor, hi: Tensor,

@@ -345,8 +345,15 @@ class TimedPath:
 
     def _sample(self, t: Tensor) -> Trajectory:
         """:meth:`sample` at float64 times (B, T), unchecked."""
-        q, qd, qdd, _ = self._joint(t)
+        q, qd, qdd = self._state(t)
         return Trajectory(self._out(q), self._out(qd), self._out(qdd))
+
+    def _state(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """q, q̇, q̈ of :meth:`_joint`: in C on the CPU (each sample one pass; the same floats), else
+        :meth:`_joint`'s torch evaluation."""
+        out = native.topp_sample(t, rows, (self._t, self._grid, self._sd, self._S, self._u), self._tau, self._k,
+                                 self._path.s, self._path.c, self._path.end)
+        return self._joint(t, rows)[:3] if out is None else out
 
     def jerk(self, t) -> Tensor:
         """q⃛ ``(..., T, n)`` at times ``t`` ``(T,)`` or ``(..., T)`` (piecewise continuous; 0 at rest)."""
@@ -384,16 +391,22 @@ class _Chained(TimedPath):
         self.duration = d.sum(1).to(dtype)
         self.knots = None
 
-    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        # each sample evaluated on its own part only (the last part that starts at or before it; a part
-        # rests outside its own time span, so the others would add nothing)
+    def _own_part(self, t: Tensor, rows: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Each sample's time in its own part and that part's row of ``_parts``: the last part that starts
+        at or before it (a part rests outside its own time span, so the others would add nothing)."""
         B, K = t.shape[0], self._K
         if rows is None:
             chain = torch.arange(B, device=t.device)[:, None]
             seg = torch.searchsorted(self._start[:, 1:].contiguous(), t.contiguous(), right=True)  # (B, T)
         else:
             chain, seg = rows, _search_rows(self._start[:, 1:], rows, t)
-        return self._parts._joint(t - self._start[chain, seg], chain * K + seg)
+        return t - self._start[chain, seg], chain * K + seg
+
+    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return self._parts._joint(*self._own_part(t, rows))
+
+    def _state(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        return self._parts._state(*self._own_part(t, rows))
 
 
 def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
