@@ -748,7 +748,8 @@ def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, k
 
 
 def topp_sample(t: Tensor, rows: Tensor | None, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor,
-                knots: Tensor, coeffs: tuple[Tensor, ...], end: Tensor) -> tuple[Tensor, Tensor, Tensor] | None:
+                knots: Tensor, coeffs: tuple[Tensor, ...], end: Tensor
+                ) -> tuple[Tensor, Tensor, Tensor] | None:
     """q, q̇, q̈ ``(R, T, n)`` of :meth:`diffkin.trajectories.time_optimal.TimedPath._joint` at the times ``t
     (R, T)`` (``rows (R, T)``: the path of each sample; None: row r is path r) by ``dk_topp_sample``
     (``_native_topp.c``: the same floats), from the arrays of :func:`topp_peaks` and the paths' ends ``(B,
@@ -767,8 +768,9 @@ def topp_sample(t: Tensor, rows: Tensor | None, profile: tuple[Tensor, ...], tau
     q, qd, qdd = (torch.empty(R, T, n, dtype=dtype, device="cpu") for _ in range(3))  # C writes here
     ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
     threads = max(1, min(R, thread_count(R * T)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_sample(ptrs, None if rows is None else rows.data_ptr(), q.data_ptr(), qd.data_ptr(),
-                                  qdd.data_ptr(), R, T, M, N, n, q.element_size(), threads), "work space")
+    _raise_on(_lib.dk_topp_sample(ptrs, None if rows is None else rows.data_ptr(), q.data_ptr(),
+                                  qd.data_ptr(), qdd.data_ptr(), R, T, M, N, n, q.element_size(), threads),
+              "work space")
     return q, qd, qdd
 
 

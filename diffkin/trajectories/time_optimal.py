@@ -351,8 +351,9 @@ class TimedPath:
     def _state(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """q, q̇, q̈ of :meth:`_joint`: in C on the CPU (each sample one pass; the same floats), else
         :meth:`_joint`'s torch evaluation."""
-        out = native.topp_sample(t, rows, (self._t, self._grid, self._sd, self._S, self._u), self._tau, self._k,
-                                 self._path.s, self._path.c, self._path.end)
+        profile = (self._t, self._grid, self._sd, self._S, self._u)
+        out = native.topp_sample(t, rows, profile, self._tau, self._k, self._path.s, self._path.c,
+                                 self._path.end)
         return self._joint(t, rows)[:3] if out is None else out
 
     def jerk(self, t) -> Tensor:
