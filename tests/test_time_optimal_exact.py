@@ -163,26 +163,37 @@ def test_native_topp_passes_equal_torch(interpolation):
     assert bool((res._x[:, 1:-1] > 0).any())  # a motion, not a path at rest
 
 
-def test_native_fixed_bound_equals_torch():
-    """The fixed rows' bound per grid interval in C (topp_fixed) against _max_x, bit for bit: random rows with
-    zero and negative entries (rows without u, rows that bound nothing) and real paths' rows."""
+def test_native_topp_grid_equals_torch():
+    """TOPP-RA from the path's derivatives in C (topp_grid: the rows, their fixed bound, the moving row, the
+    passes) against _topp's torch code, bit for bit, on random derivatives with zero entries (rows without u,
+    joints without a speed bound) and stops."""
     from diffkin.kernels import native
-    from diffkin.trajectories.time_optimal import _max_x, _rows
+    from diffkin.trajectories.time_optimal import _X_BIG, _topp
 
     if not native.available():
-        pytest.skip("no C compiler: _max_x serves every call")
+        pytest.skip("no C compiler: the torch code serves every call")
     g = torch.Generator().manual_seed(9)
-    I, n = 300, 7
-    P1, P2, Q1, Q2 = (torch.randn(I, n, generator=g, dtype=F64) for _ in range(4))
-    P1[::5, :3] = 0  # rows without u
-    Q2[::7] = 0
-    delta = torch.rand(I, generator=g, dtype=F64) * 1e-2 + 1e-4
-    xv = torch.rand(I, generator=g, dtype=F64) * 10
-    xv[::11] = float("inf")
-    al, be, ga, alone = _rows(P1, P2, Q1, Q2, A.expand(I, n), delta)
-    got = native.topp_fixed(al, be, ga, alone, delta, xv)
-    ref = _max_x(al, be, ga, alone, delta, xv)
-    assert torch.equal(got, ref) and bool((ref > 0).any()) and bool((ref < xv).any())
+    B, M, n = 3, 120, 7
+    P1, P2 = (torch.randn(B, M, n, generator=g, dtype=F64) for _ in range(2))
+    Q1, Q2 = (torch.randn(B, M - 1, n, generator=g, dtype=F64) for _ in range(2))
+    P1[:, ::5, :3] = 0
+    Q1[:, ::9] = 0
+    Q2[:, ::7] = 0
+    grid = torch.cat((torch.zeros(B, 1, dtype=F64), (torch.rand(B, M - 1, generator=g, dtype=F64) + 0.1)
+                      .cumsum(1)), 1)
+    grid = grid / grid[:, -1:]
+    stops = torch.zeros(B, M, dtype=torch.bool)
+    stops[:, 40:-1:40] = True
+    amax, vmax = A.expand(B, n), V.expand(B, n)
+
+    class Derivatives:  # the path's derivatives at the grid points (P) and at the interval ends (Q)
+        def eval(self, s, k):
+            return (None, P1, P2, None) if s.shape[1] == M else (None, Q1, Q2, None)
+
+    got = native.topp_grid(P1, P2, Q1, Q2, amax, vmax, grid[:, 1:] - grid[:, :-1], stops, _X_BIG)
+    with native.disabled():
+        ref = _topp(Derivatives(), grid, torch.zeros(B, M, dtype=torch.long), vmax, amax, stops)
+    assert torch.equal(got, ref) and bool((ref[:, 1:-1] > 0).any()) and bool((ref[stops] == 0).all())
 
 
 def test_spline_check_marks_equal_padded_marks():

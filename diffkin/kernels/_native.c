@@ -524,42 +524,6 @@ int64_t dk_banded_solve(const void *D, const void *E, const void *F, int64_t f_s
     return DK_ABI_ERROR;
 }
 
-/* The TOPP-RA passes of B paths of M grid points (_native_topp.c; reals of real_bytes 8 or 4): x (B, M) from the
- * reduced rows Aq, G, C (B, M - 1, R), Au, Bu, Gu (B, M - 1, Ru), fixed, xq, d (B, M - 1), with the work K
- * (B, M), Kn (B, M - 1). Returns 0, DK_ABI_ERROR for another real size. */
-int64_t dk_topp_passes(const void *const *in, void *K, void *Kn, void *x, int64_t B, int64_t M, int64_t R,
-                       int64_t Ru, int64_t real_bytes, int64_t nthreads) {
-    if (real_bytes == 8) {
-        const double *const *a = (const double *const *)in;
-        return topp_passes_f64(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], (double *)K, (double *)Kn,
-                               (double *)x, B, M, R, Ru, nthreads);
-    }
-    if (real_bytes == 4) {
-        const float *const *a = (const float *const *)in;
-        return topp_passes_f32(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], (float *)K, (float *)Kn,
-                               (float *)x, B, M, R, Ru, nthreads);
-    }
-    return DK_ABI_ERROR;
-}
-
-/* The TOPP-RA bound of each grid interval from its fixed rows (_native_topp.c, topp_fixed; reals of
- * real_bytes 8 or 4): out (I) from al, be, ga (I, R), alone, delta, xv (I). Returns 0, DK_ABI_ERROR for
- * another real size. */
-int64_t dk_topp_fixed(const void *const *in, void *out, int64_t I, int64_t R, int64_t real_bytes,
-                      int64_t nthreads) {
-    if (real_bytes == 8) {
-        const double *const *a = (const double *const *)in;
-        topp_fixed_f64(a[0], a[1], a[2], a[3], a[4], a[5], (double *)out, I, R, nthreads);
-        return 0;
-    }
-    if (real_bytes == 4) {
-        const float *const *a = (const float *const *)in;
-        topp_fixed_f32(a[0], a[1], a[2], a[3], a[4], a[5], (float *)out, I, R, nthreads);
-        return 0;
-    }
-    return DK_ABI_ERROR;
-}
-
 /* The fine samples of motion._spline_clear (_native_spline.c, spline_fine; reals of real_bytes 8 or 4): in: u
  * (F + 1), knots (B, N), c0..c3 (B, N - 1, n), end (B, n), lo, hi, reach (n); cum (B, F + 1), inside (B) out,
  * work (B, 2 n). Returns 0, DK_ABI_ERROR for another real size. */
@@ -610,6 +574,23 @@ int64_t dk_topp_sample(const void *const *in, const int64_t *rows, void *q, void
     if (real_bytes == 4)
         return topp_sample_f32((const float *const *)in, rows, (float *)q, (float *)qd, (float *)qdd, R, T, M, N,
                                n, nthreads);
+    return DK_ABI_ERROR;
+}
+
+/* TOPP-RA from the path's derivatives at the grid (_native_topp.c, topp_grid; reals of real_bytes 8 or 4): in
+ * P1, P2 (B, M, n), Q1, Q2 (B, M - 1, n), amax, vmax (B, n), delta (B, M - 1), stops (B, M); x (B, M) out.
+ * Returns 0, -1 when the work space cannot be allocated, DK_ABI_ERROR for another real size. */
+int64_t dk_topp_grid(const void *const *in, void *x, int64_t B, int64_t M, int64_t n, double big,
+                     int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        return topp_grid_f64(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], (double *)x, B, M, n, big, nthreads);
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        return topp_grid_f32(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], (float *)x, B, M, n, (float)big,
+                             nthreads);
+    }
     return DK_ABI_ERROR;
 }
 

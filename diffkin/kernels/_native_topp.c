@@ -1,6 +1,7 @@
-/* The backward and forward passes of TOPP-RA (diffkin/trajectories/time_optimal.py, _topp) for CPU tensors
- * without autograd (included by _native.c once per real type, like _native_banded.c). Every constraint row
- * but the moving one is reduced before the passes (in torch); the passes meet, per grid interval i of a path,
+/* TOPP-RA (diffkin/trajectories/time_optimal.py, _topp) and the timing's dense check and samples for CPU tensors
+ * without autograd (included by _native.c once per real type, like _native_banded.c). From the path's
+ * derivatives at the grid (topp_grid), every constraint row but the moving one is reduced before the passes;
+ * the passes meet, per grid interval i of a path,
  *
  *     backward: kn_i = min(K_{i+1}, xq_i),  K_i = min(fixed_i, max(0, min_r (Aq_ir kn_i + G_ir) / C_ir))
  *     forward:  x_i = min(x_i, K_i),  u = max(min(min_r (Gu_ir - Bu_ir x_i) / Au_ir, (kn_i - x_i) / d_i),
@@ -61,52 +62,116 @@ static void DK(topp_path)(const real *Aq, const real *G, const real *C, const re
     }
 }
 
-static int64_t DK(topp_passes)(const real *Aq, const real *G, const real *C, const real *Au, const real *Bu,
-                               const real *Gu, const real *fixed, const real *xq, const real *d, real *K,
-                               real *Kn, real *x, int64_t B, int64_t M, int64_t R, int64_t Ru, int64_t nthreads) {
-#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
-    for (int64_t b = 0; b < B; b++) {
-        const int64_t I = b * (M - 1);
-        DK(topp_path)(Aq + I * R, G + I * R, C + I * R, Au + I * Ru, Bu + I * Ru, Gu + I * Ru, fixed + I, xq + I,
-                      d + I, M, R, Ru, K + b * M, Kn + I, x + b * M);
+/* The bound on x = ṡ² of one grid interval from its fixed rows (time_optimal._max_x: Fourier–Motzkin on u over
+ * every pair of an upper row p (α_p > 0) and a lower row q: the acceleration rows' partners and u ≥ −x / 2Δ),
+ * from its upper rows a, b, g (R each, R = 2n), the rows without u (alone), Δ and the velocity bound xv; the
+ * pairs in registers instead of torch's (I, R, R + 1) temporaries. */
+static inline real DK(fixed_bound)(const real *a, const real *b, const real *g, int64_t R, real alone, real delta,
+                                   real xv) {
+    const real d2 = 2 * delta;
+    real bound = (real)INFINITY;
+    for (int64_t p = 0; p < R; p++) {
+        if (!(a[p] > 0)) continue;
+        const real Ap = a[p];
+        for (int64_t q = 0; q <= R; q++) {
+            const real Aq = q < R ? a[q] : d2;
+            if (!(Aq > 0)) continue;
+            const real bq = q < R ? -b[q] : -1;
+            const real gq = q < R ? g[q] : 0;
+            real c = Ap * bq;
+            real w = Aq * b[p];
+            c = c + w;
+            if (!(c > 0)) continue;
+            real d = Aq * g[p];
+            w = Ap * gq;
+            d = d + w;
+            bound = DK(nan_min)(bound, d / c);
+        }
     }
-    return 0;
+    real r = DK(nan_min)(bound, alone);
+    r = r < 0 ? 0 : r;  /* clamp_min(0) keeps a NaN */
+    return DK(nan_min)(r, xv);
 }
 
-/* The bound on x = ṡ² of each grid interval from its fixed rows (time_optimal._max_x: Fourier–Motzkin on u over
- * every pair of an upper row p (α_p > 0) and a lower row q: the acceleration rows' partners and u ≥ −x / 2Δ),
- * from the upper rows al, be, ga (R each, R = 2n), the rows without u (alone), Δ (delta) and the velocity
- * bound xv of I intervals; out (I). One interval's R (R + 1) pairs in registers instead of torch's
- * (I, R, R + 1) temporaries; the same operations in the same order, so the same floats. */
-static void DK(topp_fixed)(const real *al, const real *be, const real *ga, const real *alone,
-                           const real *delta, const real *xv, real *out, int64_t I, int64_t R, int64_t nthreads) {
-#pragma omp parallel for num_threads(nthreads) schedule(static)
-    for (int64_t i = 0; i < I; i++) {
-        const real *a = al + i * R, *b = be + i * R, *g = ga + i * R;
-        const real d2 = 2 * delta[i];
-        real bound = (real)INFINITY;
-        for (int64_t p = 0; p < R; p++) {
-            if (!(a[p] > 0)) continue;
-            const real Ap = a[p];
-            for (int64_t q = 0; q <= R; q++) {
-                const real Aq = q < R ? a[q] : d2;
-                if (!(Aq > 0)) continue;
-                const real bq = q < R ? -b[q] : -1;
-                const real gq = q < R ? g[q] : 0;
-                real c = Ap * bq;
-                real w = Aq * b[p];
-                c = c + w;
-                if (!(c > 0)) continue;
-                real d = Aq * g[p];
-                w = Ap * gq;
-                d = d + w;
-                bound = DK(nan_min)(bound, d / c);
+/* The speed bound min_j (v_j / max(|q'_j|, 1e-300))² over the joints with q'_j ≠ 0 (big where none). */
+static inline real DK(speed_bound)(const real *d1, const real *vmax, int64_t n, real big) {
+    real x = (real)INFINITY;
+    for (int64_t j = 0; j < n; j++) {
+        const real m = fabs(d1[j]);
+        real y = m < (real)1e-300 ? (real)1e-300 : m;  /* clamp_min keeps a NaN */
+        y = vmax[j] / y;
+        y = y * y;
+        x = DK(nan_min)(x, m > 0 ? y : big);
+    }
+    return x;
+}
+
+/* The whole of time_optimal._topp after the path's derivatives, per path: from P1, P2 (M, n) at the grid points
+ * (right-hand), Q1, Q2 (M - 1, n) at the interval ends (left-hand), amax, vmax (n), Δ (M - 1) and stops (M,
+ * 1 where ṡ = 0): the rows of each interval (_rows), their fixed bound (fixed_bound), the moving row's terms
+ * and the passes (topp_path), x (M) out; big: _X_BIG. The same operations in the same order as the torch code:
+ * the same floats. Returns -1 when the work space cannot be allocated. */
+static int64_t DK(topp_grid)(const real *P1, const real *P2, const real *Q1, const real *Q2, const real *amax,
+                             const real *vmax, const real *delta, const real *stops, real *x, int64_t B, int64_t M,
+                             int64_t n, real big, int64_t nthreads) {
+    const int64_t R = 2 * n + 1, Ru = 2 * n, I = M - 1;
+    int64_t status = 0;
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
+    for (int64_t b = 0; b < B; b++) {
+        real *w = (real *)malloc(sizeof(real) * (size_t)(I * (3 * R + 3 * Ru + 4) + M + 3 * Ru));
+        if (!w) {
+#pragma omp atomic write
+            status = -1;
+            continue;
+        }
+        real *Aq = w, *G = Aq + I * R, *C = G + I * R, *Au = C + I * R, *Bu = Au + I * Ru, *Gu = Bu + I * Ru;
+        real *fixed = Gu + I * Ru, *xq = fixed + I, *d = xq + I, *Kn = d + I, *K = Kn + I;
+        real *al = K + M, *be = al + Ru, *ga = be + Ru;
+        const real *p1 = P1 + b * M * n, *p2 = P2 + b * M * n, *q1 = Q1 + b * I * n, *q2 = Q2 + b * I * n;
+        const real *am = amax + b * n, *vm = vmax + b * n, *dl = delta + b * I, *st = stops + b * M;
+        for (int64_t i = 0; i < I; i++) {
+            const real di = dl[i];
+            const real d2 = 2 * di;
+            for (int64_t j = 0; j < n; j++) {  /* _rows */
+                const real P1j = p1[i * n + j], P2j = p2[i * n + j], Q1j = q1[i * n + j], Q2j = q2[i * n + j];
+                real A = d2 * Q2j;
+                A = Q1j + A;
+                al[j] = fabs(P1j), al[n + j] = fabs(A);
+                be[j] = P1j < 0 ? -P2j : P2j, be[n + j] = A < 0 ? -Q2j : Q2j;
+                ga[j] = am[j], ga[n + j] = am[j];
+            }
+            real alone = (real)INFINITY;
+            for (int64_t r = 0; r < Ru; r++)
+                if (al[r] == 0 && be[r] != 0) alone = DK(nan_min)(alone, ga[r] / fabs(be[r]));
+            real xv = DK(speed_bound)(p1 + i * n, vm, n, big);
+            xv = DK(nan_min)(xv, big);
+            xv = st[i] != 0 ? 0 : xv;
+            xq[i] = DK(speed_bound)(q1 + i * n, vm, n, big);
+            fixed[i] = DK(fixed_bound)(al, be, ga, Ru, alone, di, xv);
+            d[i] = d2;
+            /* the moving row with each lower row, and the fixed upper rows for u (the torch code's wheres) */
+            for (int64_t q = 0; q < R; q++) {
+                const int up = q < Ru && al[q] > 0;
+                const real Aqq = q < Ru ? (up ? al[q] : 0) : d2;
+                const real bq = q < Ru ? -be[q] : -1;
+                const real gq = q < Ru ? ga[q] : 0;
+                real c = d2 * bq;
+                c = c + Aqq;
+                const int pair = Aqq > 0 && c > 0;
+                Aq[i * R + q] = pair ? Aqq : 0;
+                G[i * R + q] = pair ? d2 * gq : (real)INFINITY;
+                C[i * R + q] = pair ? c : 1;
+                if (q < Ru) {
+                    Au[i * Ru + q] = up ? al[q] : 1;
+                    Bu[i * Ru + q] = up ? be[q] : 0;
+                    Gu[i * Ru + q] = up ? ga[q] : (real)INFINITY;
+                }
             }
         }
-        real r = DK(nan_min)(bound, alone[i]);
-        r = r < 0 ? 0 : r;  /* clamp_min(0) keeps a NaN */
-        out[i] = DK(nan_min)(r, xv[i]);
+        DK(topp_path)(Aq, G, C, Au, Bu, Gu, fixed, xq, d, M, R, Ru, K, Kn, x + b * M);
+        free(w);
     }
+    return status;
 }
 
 /* The dense limit check of time_optimal (_peaks): per path the largest |q̇_j| / v_j, |q̈_j| / a_j (and |q⃛_j| / j_j

@@ -74,8 +74,8 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "NativeModel", "Collide", "capsules_clear", "collide_struct",
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
-           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "topp_passes",
-           "topp_fixed", "topp_peaks", "topp_sample",
+           "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows",
+           "topp_grid", "topp_peaks", "topp_sample",
            "spline_fine", "spline_marks"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
@@ -297,10 +297,10 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_banded_solve.restype = _I64  # D, E, F, f_shared, g, shift, x, batch, T, n, real_bytes, nthreads
     lib.dk_banded_solve.argtypes = [_PTR] * 3 + [_I64] + [_PTR] * 3 + [_I64] * 5
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
-    lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     lib.dk_spline_fine.restype, lib.dk_spline_fine.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
     lib.dk_spline_marks.restype, lib.dk_spline_marks.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
-    lib.dk_topp_fixed.restype, lib.dk_topp_fixed.argtypes = _I64, [_PTR] * 2 + [_I64] * 4
+    lib.dk_topp_grid.restype = _I64  # in, x, B, M, n, big, real_bytes, nthreads
+    lib.dk_topp_grid.argtypes = [_PTR] * 2 + [_I64] * 3 + [ctypes.c_double] + [_I64] * 2
     lib.dk_topp_sample.restype, lib.dk_topp_sample.argtypes = _I64, [_PTR] * 5 + [_I64] * 7
     lib.dk_topp_peaks.restype, lib.dk_topp_peaks.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
     return lib
@@ -679,47 +679,26 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
     return x
 
 
-def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Tensor, fixed: Tensor,
-                xq: Tensor, d: Tensor) -> Tensor | None:
-    """x = ṡ² ``(B, M)`` at the grid points of the TOPP-RA backward and forward passes of
-    :func:`diffkin.trajectories.time_optimal._topp` by ``dk_topp_passes`` (``_native_topp.c``: the same
-    floats), from its reduced rows ``Aq, G, C (B, M - 1, R)``, ``Au, Bu, Gu (B, M - 1, Ru)`` and ``fixed,
-    xq, d (B, M - 1)``; None (nothing done) where the library is not loaded or the inputs are not CPU tensors
-    of one float dtype without autograd. Paths are shared between threads."""
-    ins = (Aq, G, C, Au, Bu, Gu, fixed, xq, d)
-    dtype = Aq.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64)
+def topp_grid(P1: Tensor, P2: Tensor, Q1: Tensor, Q2: Tensor, amax: Tensor, vmax: Tensor, delta: Tensor,
+              stops: Tensor, big: float) -> Tensor | None:
+    """x = ṡ² ``(B, M)`` of :func:`diffkin.trajectories.time_optimal._topp` from the path's derivatives
+    by ``dk_topp_grid`` (``_native_topp.c``: its rows, their fixed bound, the moving row and the passes, per
+    path; the same floats): ``P1, P2 (B, M, n)`` at the grid points, ``Q1, Q2 (B, M - 1, n)`` at the
+    interval ends, ``amax, vmax (B, n)``, ``delta (B, M - 1)``, ``stops (B, M)`` bool, ``big`` the bound
+    where no limit binds; None (nothing done) where the library is not loaded or the inputs are not CPU
+    tensors of one float dtype without autograd. Paths are shared between threads."""
+    ins = (P1, P2, Q1, Q2, amax, vmax, delta)
+    dtype = P1.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64) or stops.device.type != "cpu"
             or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in ins)):
         return None
-    B, M1, R = Aq.shape
-    ins = [t.contiguous() for t in ins]
-    x = torch.empty(B, M1 + 1, dtype=dtype, device="cpu")  # C writes here: never the default device
-    K, Kn = torch.empty_like(x), torch.empty(B, M1, dtype=dtype, device="cpu")
-    ptrs = (ctypes.c_void_p * 9)(*(t.data_ptr() for t in ins))
-    threads = max(1, min(B, thread_count(B * M1)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_passes(ptrs, K.data_ptr(), Kn.data_ptr(), x.data_ptr(), B, M1 + 1, R, Au.shape[-1],
-                                  x.element_size(), threads), "work space")
+    B, M, n = P1.shape
+    ins = [t.contiguous() for t in (*ins, stops.to(dtype))]
+    x = torch.empty(B, M, dtype=dtype, device="cpu")  # C writes here: never the default device
+    ptrs = (ctypes.c_void_p * len(ins))(*(t.data_ptr() for t in ins))
+    threads = max(1, min(B, thread_count(B * M)))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_topp_grid(ptrs, x.data_ptr(), B, M, n, big, x.element_size(), threads), "work space")
     return x
-
-
-def topp_fixed(al: Tensor, be: Tensor, ga: Tensor, alone: Tensor, delta: Tensor, xv: Tensor) -> Tensor | None:
-    """The bound on x = ṡ² of each TOPP-RA grid interval from its fixed rows, of
-    :func:`diffkin.trajectories.time_optimal._max_x`, by ``dk_topp_fixed`` (``_native_topp.c``: the same
-    floats), from the upper rows ``al, be, ga (..., R)`` and ``alone, delta, xv (...)``; None (nothing done)
-    where the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
-    ins = (al, be, ga, alone, delta, xv)
-    dtype = al.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64)
-            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
-        return None
-    *lead, R = al.shape
-    ins = [x.contiguous() for x in ins]
-    out = torch.empty(lead, dtype=dtype, device="cpu")  # C writes here: never the default device
-    I = out.numel()
-    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
-    threads = max(1, min(I, thread_count(I)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_fixed(ptrs, out.data_ptr(), I, R, out.element_size(), threads), "work space")
-    return out
 
 
 def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, knots: Tensor,

@@ -177,20 +177,21 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     _, P1, P2, _ = path.eval(grid, kseg)  # (B, M, n), right-hand at knots
     _, Q1, Q2, _ = path.eval(grid[:, 1:], kseg[:, :-1])  # interval ends, left-hand
     delta = grid[:, 1:] - grid[:, :-1]
+    B, M = grid.shape
+    x = native.topp_grid(P1, P2, Q1, Q2, amax, vmax, delta, stops, _X_BIG)  # all below in C: the same floats
+    if x is not None:
+        return x
     absP1 = P1.abs()
     xv = torch.where(absP1 > 0, (vmax[:, None] / absP1.clamp_min(1e-300)) ** 2, _X_BIG).amin(-1)
     xv = torch.where(stops, 0.0, xv.clamp_max(_X_BIG))
     absQ1 = Q1.abs()
     xq = torch.where(absQ1 > 0, (vmax[:, None] / absQ1.clamp_min(1e-300)) ** 2, _X_BIG).amin(-1)
-    B, M = grid.shape
     n = P1.shape[-1]
     al, be, ga, alone = _rows(P1[:, :-1], P2[:, :-1], Q1, Q2, amax[:, None].expand(B, M - 1, n), delta)
-    # the bound from the fixed rows, per interval (B, M - 1): in C on the CPU (the same floats), else in torch
+    # the bound from the fixed rows, per interval (B, M - 1)
+    step = max(1, (1 << 22) // max(1, B * 2 * n * (2 * n + 1)))
     parts = (al, be, ga, alone, delta, xv[:, :-1])
-    fixed = native.topp_fixed(*parts)
-    if fixed is None:
-        step = max(1, (1 << 22) // max(1, B * 2 * n * (2 * n + 1)))
-        fixed = torch.cat([_max_x(*(v[:, j:j + step] for v in parts)) for j in range(0, M - 1, step)], 1)
+    fixed = torch.cat([_max_x(*(v[:, j:j + step] for v in parts)) for j in range(0, M - 1, step)], 1)
     # the moving row (α, β, γ) = (2Δ, 1, x_next) with each lower row q:
     # x ≤ (A_q x_next + 2Δ γ_q) / c_q, A_q = −α_q, c_q = 2Δ β_q + A_q (the pair term of _max_x)
     up = al > 0
@@ -204,9 +205,6 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     # the fixed upper rows for u at x: u ≤ (γ − β x) / α
     Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
     two_delta = 2 * delta
-    x = native.topp_passes(Aq, G, C, Au, Bu, Gu, fixed, xq, two_delta)  # in C on the CPU: the same floats
-    if x is not None:
-        return x
     # the passes below run one grid point at a time: the per-point columns are taken once (unbind) and kept
     # as (B, 1), so each step is a few small ops (these loops are most of the time of a short batch)
     col = lambda v: v.unbind(1)  # noqa: E731
