@@ -78,6 +78,51 @@ def test_peaks_in_blocks_equal_one_block():
     assert torch.equal(_peaks(res, t, lims), ref)
 
 
+@pytest.mark.parametrize("interpolation, jerk", [("spline", True), ("spline", False), ("linear", True)])
+def test_native_peaks_equal_torch(interpolation, jerk):
+    """The dense check in C (kernels/_native_topp.c, topp_peaks) against the torch evaluation, bit for bit: a
+    stretched result (k > 1), the breakpoints and times out of order, before 0 and past the end."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch check serves every call")
+    y, kn, g = _paths(8, 4, 6)
+    J = 100 * A if jerk else None
+    res = time_optimal(y, V, A, J, knots=kn, interpolation=interpolation)
+    res = res._parts if interpolation == "linear" else res  # the parts are the paths that are checked
+    B = res._grid.shape[0]
+    assert bool((res._k > 1).all())
+    end = float(res._t[:, -1].max() + res._tau.max()) * float(res._k.max())
+    t = torch.cat((res._breakpoints(16), torch.rand(B, 300, generator=g, dtype=F64) * (end + 0.4) - 0.2), 1)
+    lims = [v.expand(B, 7) for v in (V, A, J) if v is not None]
+    got = _peaks(res, t, lims)
+    with native.disabled():
+        ref = _peaks(res, t, lims)
+    assert got.shape == (B, len(lims)) and torch.equal(got, ref)
+
+
+@pytest.mark.parametrize("interpolation, jerk", [("spline", True), ("spline", False), ("linear", True),
+                                                 ("linear", False)])
+def test_native_samples_equal_torch(interpolation, jerk):
+    """sample() in C (kernels/_native_topp.c, topp_sample) against the torch evaluation, bit for bit: the
+    chained parts (polyline + jerk) included, times before 0, past the end and exactly at the knots."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch evaluation serves every call")
+    y, kn, g = _paths(11, 4, 6)
+    res = time_optimal(y, V, A, 100 * A if jerk else None, knots=kn, interpolation=interpolation)
+    end = float(res.duration.max())
+    t = torch.cat((torch.rand(4, 300, generator=g, dtype=F64) * (end + 0.4) - 0.2,
+                   torch.linspace(0, end, 200, dtype=F64).expand(4, -1)), 1)
+    got = res.sample(t)
+    with native.disabled():
+        ref = res.sample(t)
+    for a, b in zip(got, ref):
+        assert torch.equal(a, b)
+    assert bool((got.velocity.abs() > 0.1).any())
+
+
 def test_search_rows_equals_searchsorted():
     g = torch.Generator().manual_seed(4)
     for L in (0, 1, 2, 7, 64):
@@ -116,6 +161,39 @@ def test_native_topp_passes_equal_torch(interpolation):
         ref = time_optimal(y, V, A, knots=kn, interpolation=interpolation, grid_per_segment=40)
     assert torch.equal(res._x, ref._x) and torch.equal(res.duration, ref.duration)
     assert bool((res._x[:, 1:-1] > 0).any())  # a motion, not a path at rest
+
+
+def test_native_topp_grid_equals_torch():
+    """TOPP-RA from the path's derivatives in C (topp_grid: the rows, their fixed bound, the moving row, the
+    passes) against _topp's torch code, bit for bit, on random derivatives with zero entries (rows without u,
+    joints without a speed bound) and stops."""
+    from diffkin.kernels import native
+    from diffkin.trajectories.time_optimal import _X_BIG, _topp
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch code serves every call")
+    g = torch.Generator().manual_seed(9)
+    B, M, n = 3, 120, 7
+    P1, P2 = (torch.randn(B, M, n, generator=g, dtype=F64) for _ in range(2))
+    Q1, Q2 = (torch.randn(B, M - 1, n, generator=g, dtype=F64) for _ in range(2))
+    P1[:, ::5, :3] = 0
+    Q1[:, ::9] = 0
+    Q2[:, ::7] = 0
+    grid = torch.cat((torch.zeros(B, 1, dtype=F64), (torch.rand(B, M - 1, generator=g, dtype=F64) + 0.1)
+                      .cumsum(1)), 1)
+    grid = grid / grid[:, -1:]
+    stops = torch.zeros(B, M, dtype=torch.bool)
+    stops[:, 40:-1:40] = True
+    amax, vmax = A.expand(B, n), V.expand(B, n)
+
+    class Derivatives:  # the path's derivatives at the grid points (P) and at the interval ends (Q)
+        def eval(self, s, k):
+            return (None, P1, P2, None) if s.shape[1] == M else (None, Q1, Q2, None)
+
+    got = native.topp_grid(P1, P2, Q1, Q2, amax, vmax, grid[:, 1:] - grid[:, :-1], stops, _X_BIG)
+    with native.disabled():
+        ref = _topp(Derivatives(), grid, torch.zeros(B, M, dtype=torch.long), vmax, amax, stops)
+    assert torch.equal(got, ref) and bool((ref[:, 1:-1] > 0).any()) and bool((ref[stops] == 0).all())
 
 
 def test_spline_check_marks_equal_padded_marks():
@@ -157,3 +235,36 @@ def test_spline_check_marks_equal_padded_marks():
     qc = torch.gather(q, 1, idx[..., None].expand(9, K, 7))
     ref = Plane().clear(qc, problem[:, None]).all(1) & inside
     assert torch.equal(got, ref) and bool(got.any()) and not bool(got.all())
+
+
+def test_native_spline_check_points_equal_torch():
+    """motion._spline_clear's fine samples and check points in C (kernels/_native_spline.c) against its torch
+    code, bit for bit: the points handed to the checker, their paths, and the decisions (limits included)."""
+    from diffkin.kernels import native
+    from diffkin.motion._spline import _knots, _spline_clear
+
+    if not native.available():
+        pytest.skip("no C compiler: the torch code serves every call")
+    seen = []
+
+    class Plane:
+        reach = torch.tensor([0.9, 0.8, 0.7, 0.5, 0.4, 0.3, 0.2], dtype=F64)
+
+        def eta_of(self, problem):
+            return 0.004 + 0.002 * (problem % 2).to(F64)
+
+        def clear(self, q, problem):
+            seen.append((q, problem))
+            return q[..., 0] + 0.01 * problem.to(F64) < 1.2
+
+    y, _, _ = _paths(10, 9, 7)
+    y[::3] *= 0.1
+    kn, problem = _knots(y), torch.arange(9)
+    lo, hi = torch.full((7,), -2.5, dtype=F64), torch.full((7,), 2.5, dtype=F64)
+    got = _spline_clear(Plane(), y, kn, lo, hi, problem, fine=1000)
+    with native.disabled():
+        ref = _spline_clear(Plane(), y, kn, lo, hi, problem, fine=1000)
+    (q1, p1), (q2, p2) = seen
+    assert torch.equal(got, ref) and torch.equal(q1, q2) and torch.equal(p1, p2)
+    inside = ((y >= -2.5) & (y <= 2.5)).all(-1).all(-1)
+    assert bool(got.any()) and not bool(got.all()) and not bool(inside.all())

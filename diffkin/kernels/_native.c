@@ -524,21 +524,87 @@ int64_t dk_banded_solve(const void *D, const void *E, const void *F, int64_t f_s
     return DK_ABI_ERROR;
 }
 
-/* The TOPP-RA passes of B paths of M grid points (_native_topp.c; reals of real_bytes 8 or 4): x (B, M) from the
- * reduced rows Aq, G, C (B, M - 1, R), Au, Bu, Gu (B, M - 1, Ru), fixed, xq, d (B, M - 1), with the work K
- * (B, M), Kn (B, M - 1). Returns 0, DK_ABI_ERROR for another real size. */
-int64_t dk_topp_passes(const void *const *in, void *K, void *Kn, void *x, int64_t B, int64_t M, int64_t R,
-                       int64_t Ru, int64_t real_bytes, int64_t nthreads) {
+/* The fine samples of motion._spline_clear (_native_spline.c, spline_fine; reals of real_bytes 8 or 4): in: u
+ * (F + 1), knots (B, N), c0..c3 (B, N - 1, n), end (B, n), lo, hi, reach (n); cum (B, F + 1), inside (B) out,
+ * work (B, 2 n). Returns 0, DK_ABI_ERROR for another real size. */
+int64_t dk_spline_fine(const void *const *in, void *cum, void *inside, void *work, int64_t F, int64_t B,
+                       int64_t N, int64_t n, int64_t real_bytes, int64_t nthreads) {
     if (real_bytes == 8) {
         const double *const *a = (const double *const *)in;
-        return topp_passes_f64(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], (double *)K, (double *)Kn,
-                               (double *)x, B, M, R, Ru, nthreads);
+        spline_fine_f64(a[0], F, a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], B, N, n, (double *)cum,
+                        (double *)inside, (double *)work, nthreads);
+        return 0;
     }
     if (real_bytes == 4) {
         const float *const *a = (const float *const *)in;
-        return topp_passes_f32(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], (float *)K, (float *)Kn,
-                               (float *)x, B, M, R, Ru, nthreads);
+        spline_fine_f32(a[0], F, a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], B, N, n, (float *)cum,
+                        (float *)inside, (float *)work, nthreads);
+        return 0;
     }
+    return DK_ABI_ERROR;
+}
+
+/* The check points of motion._spline_clear (_native_spline.c, spline_marks): in: u (F + 1), cum (B, F + 1),
+ * step (B), knots (B, N), c0..c3 (B, N - 1, n), end (B, n); count, first (B) int64; q (Σ (count + 1), n) out.
+ * Returns 0, DK_ABI_ERROR for another real size. */
+int64_t dk_spline_marks(const void *const *in, const int64_t *count, const int64_t *first, void *q, int64_t F,
+                        int64_t B, int64_t N, int64_t n, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        spline_marks_f64(a[0], F, a[1], a[2], count, first, a[3], a[4], a[5], a[6], a[7], a[8], B, N, n,
+                         (double *)q, nthreads);
+        return 0;
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        spline_marks_f32(a[0], F, a[1], a[2], count, first, a[3], a[4], a[5], a[6], a[7], a[8], B, N, n,
+                         (float *)q, nthreads);
+        return 0;
+    }
+    return DK_ABI_ERROR;
+}
+
+/* q, q̇, q̈ of timed paths at the times in[0] (R, T) (_native_topp.c, topp_sample; reals of real_bytes 8 or 4):
+ * rows (R, T) the path of each sample, or NULL (row r: path r). Returns 0, DK_ABI_ERROR for another real size. */
+int64_t dk_topp_sample(const void *const *in, const int64_t *rows, void *q, void *qd, void *qdd, int64_t R,
+                       int64_t T, int64_t M, int64_t N, int64_t n, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8)
+        return topp_sample_f64((const double *const *)in, rows, (double *)q, (double *)qd, (double *)qdd, R, T, M,
+                               N, n, nthreads);
+    if (real_bytes == 4)
+        return topp_sample_f32((const float *const *)in, rows, (float *)q, (float *)qd, (float *)qdd, R, T, M, N,
+                               n, nthreads);
+    return DK_ABI_ERROR;
+}
+
+/* TOPP-RA from the path's derivatives at the grid (_native_topp.c, topp_grid; reals of real_bytes 8 or 4): in
+ * P1, P2 (B, M, n), Q1, Q2 (B, M - 1, n), amax, vmax (B, n), delta (B, M - 1), stops (B, M); x (B, M) out.
+ * Returns 0, -1 when the work space cannot be allocated, DK_ABI_ERROR for another real size. */
+int64_t dk_topp_grid(const void *const *in, void *x, int64_t B, int64_t M, int64_t n, double big,
+                     int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8) {
+        const double *const *a = (const double *const *)in;
+        return topp_grid_f64(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], (double *)x, B, M, n, big, nthreads);
+    }
+    if (real_bytes == 4) {
+        const float *const *a = (const float *const *)in;
+        return topp_grid_f32(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], (float *)x, B, M, n, (float)big,
+                             nthreads);
+    }
+    return DK_ABI_ERROR;
+}
+
+/* The dense limit check of time_optimal (_native_topp.c, topp_peaks; reals of real_bytes 8 or 4): the peaks
+ * (B, nlim) of B timed paths at the sample times in[0] (B, T) (in: the arrays listed there; top (B, nlim, n)
+ * work). Returns 0,
+ * DK_ABI_ERROR for another real size or nlim outside 2..3. */
+int64_t dk_topp_peaks(const void *const *in, void *top, void *peak, int64_t B, int64_t T, int64_t M, int64_t N, int64_t n,
+                      int64_t nlim, int64_t real_bytes, int64_t nthreads) {
+    if (nlim < 2 || nlim > 3) return DK_ABI_ERROR;
+    if (real_bytes == 8)
+        return topp_peaks_f64((const double *const *)in, (double *)top, (double *)peak, B, T, M, N, n, nlim, nthreads);
+    if (real_bytes == 4)
+        return topp_peaks_f32((const float *const *)in, (float *)top, (float *)peak, B, T, M, N, n, nlim, nthreads);
     return DK_ABI_ERROR;
 }
 
@@ -1061,6 +1127,7 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
 #include "_native_banded.c"
 #include "_native_clip.c"
 #include "_native_topp.c"
+#include "_native_spline.c" /* after _native_topp.c: its searches */
 
 #undef real
 #endif

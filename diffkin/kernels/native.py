@@ -75,7 +75,7 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "clip_joint",
-           "clip_step", "topp_passes"]
+           "clip_step", "topp_grid", "topp_peaks", "topp_sample", "spline_fine", "spline_marks"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -84,7 +84,8 @@ _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _nativ
              Path(__file__).with_name("_native_velocity.c"),
              Path(__file__).with_name("_native_banded.c"),
              Path(__file__).with_name("_native_clip.c"),
-             Path(__file__).with_name("_native_topp.c"))
+             Path(__file__).with_name("_native_topp.c"),
+             Path(__file__).with_name("_native_spline.c"))
 _FLAGS = ("-O3", "-fPIC", "-shared", "-fno-math-errno")
 _OPTIONAL = (("-march=native", "-fopenmp"), ("-fopenmp",), ("-fopenmp-simd",), ())  # tried in this order
 _lock = threading.Lock()
@@ -297,7 +298,12 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_clip_rows.restype, lib.dk_clip_rows.argtypes = _I64, [ctypes.POINTER(ClipArgs)]
     lib.dk_clip_joint.restype, lib.dk_clip_joint.argtypes = _I64, [_PTR] * 6 + [_I64] * 8
     lib.dk_clip_step.restype, lib.dk_clip_step.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
-    lib.dk_topp_passes.restype, lib.dk_topp_passes.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
+    lib.dk_spline_fine.restype, lib.dk_spline_fine.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
+    lib.dk_spline_marks.restype, lib.dk_spline_marks.argtypes = _I64, [_PTR] * 4 + [_I64] * 6
+    lib.dk_topp_grid.restype = _I64  # in, x, B, M, n, big, real_bytes, nthreads
+    lib.dk_topp_grid.argtypes = [_PTR] * 2 + [_I64] * 3 + [ctypes.c_double] + [_I64] * 2
+    lib.dk_topp_sample.restype, lib.dk_topp_sample.argtypes = _I64, [_PTR] * 5 + [_I64] * 7
+    lib.dk_topp_peaks.restype, lib.dk_topp_peaks.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
     return lib
 
 
@@ -674,27 +680,124 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
     return x
 
 
-def topp_passes(Aq: Tensor, G: Tensor, C: Tensor, Au: Tensor, Bu: Tensor, Gu: Tensor, fixed: Tensor,
-                xq: Tensor, d: Tensor) -> Tensor | None:
-    """x = ṡ² ``(B, M)`` at the grid points of the TOPP-RA backward and forward passes of
-    :func:`diffkin.trajectories.time_optimal._topp` by ``dk_topp_passes`` (``_native_topp.c``: the same
-    floats), from its reduced rows ``Aq, G, C (B, M - 1, R)``, ``Au, Bu, Gu (B, M - 1, Ru)`` and ``fixed,
-    xq, d (B, M - 1)``; None (nothing done) where the library is not loaded or the inputs are not CPU tensors
-    of one float dtype without autograd. Paths are shared between threads."""
-    ins = (Aq, G, C, Au, Bu, Gu, fixed, xq, d)
-    dtype = Aq.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64)
+def topp_grid(P1: Tensor, P2: Tensor, Q1: Tensor, Q2: Tensor, amax: Tensor, vmax: Tensor, delta: Tensor,
+              stops: Tensor, big: float) -> Tensor | None:
+    """x = ṡ² ``(B, M)`` of :func:`diffkin.trajectories.time_optimal._topp` from the path's derivatives
+    by ``dk_topp_grid`` (``_native_topp.c``: its rows, their fixed bound, the moving row and the passes, per
+    path; the same floats): ``P1, P2 (B, M, n)`` at the grid points, ``Q1, Q2 (B, M - 1, n)`` at the
+    interval ends, ``amax, vmax (B, n)``, ``delta (B, M - 1)``, ``stops (B, M)`` bool, ``big`` the bound
+    where no limit binds; None (nothing done) where the library is not loaded or the inputs are not CPU
+    tensors of one float dtype without autograd. Paths are shared between threads."""
+    ins = (P1, P2, Q1, Q2, amax, vmax, delta)
+    dtype = P1.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64) or stops.device.type != "cpu"
             or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in ins)):
         return None
-    B, M1, R = Aq.shape
-    ins = [t.contiguous() for t in ins]
-    x = torch.empty(B, M1 + 1, dtype=dtype, device="cpu")  # C writes here: never the default device
-    K, Kn = torch.empty_like(x), torch.empty(B, M1, dtype=dtype, device="cpu")
-    ptrs = (ctypes.c_void_p * 9)(*(t.data_ptr() for t in ins))
-    threads = max(1, min(B, thread_count(B * M1)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_passes(ptrs, K.data_ptr(), Kn.data_ptr(), x.data_ptr(), B, M1 + 1, R, Au.shape[-1],
-                                  x.element_size(), threads), "work space")
+    B, M, n = P1.shape
+    ins = [t.contiguous() for t in (*ins, stops.to(dtype))]
+    x = torch.empty(B, M, dtype=dtype, device="cpu")  # C writes here: never the default device
+    ptrs = (ctypes.c_void_p * len(ins))(*(t.data_ptr() for t in ins))
+    threads = max(1, min(B, thread_count(B * M)))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_topp_grid(ptrs, x.data_ptr(), B, M, n, big, x.element_size(), threads), "work space")
     return x
+
+
+def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, knots: Tensor,
+               coeffs: tuple[Tensor, ...], limits: list[Tensor]) -> Tensor | None:
+    """The peaks ``(B, len(limits))`` of :func:`diffkin.trajectories.time_optimal._peaks` (the largest
+    |q̇| / v, |q̈| / a, |q⃛| / j of each path over the sample times ``t (B, T)``) by ``dk_topp_peaks``
+    (``_native_topp.c``: the same floats), from the profile's knot times, grid, speeds and ∫s ``(B, M)`` and
+    accelerations ``(B, M - 1)`` (``profile``), ``tau``, ``k (B,)``, the path's ``knots (B, N)`` and
+    coefficients ``c0..c3 (B, N - 1, n)``, ``limits`` 2 or 3 of ``(B, n)``; None (nothing done) where the
+    library is not loaded or the inputs are not CPU tensors of one float dtype without autograd. Paths are
+    shared between threads."""
+    ins = (t, *profile, tau, k, knots, *coeffs, *limits)
+    dtype = t.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64) or len(limits) not in (2, 3)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
+        return None
+    (B, T), M, N, n = t.shape, profile[0].shape[1], knots.shape[1], coeffs[0].shape[-1]
+    ins = [x.contiguous() for x in ins]
+    peak = torch.empty(B, len(limits), dtype=dtype, device="cpu")  # C writes here: never the default device
+    top = torch.empty(B, len(limits), n, dtype=dtype, device="cpu")
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(B, thread_count(B * T)))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_topp_peaks(ptrs, top.data_ptr(), peak.data_ptr(), B, T, M, N, n, len(limits),
+                                 peak.element_size(), threads), "work space")
+    return peak
+
+
+def topp_sample(t: Tensor, rows: Tensor | None, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor,
+                knots: Tensor, coeffs: tuple[Tensor, ...], end: Tensor
+                ) -> tuple[Tensor, Tensor, Tensor] | None:
+    """q, q̇, q̈ ``(R, T, n)`` of :meth:`diffkin.trajectories.time_optimal.TimedPath._joint` at the times ``t
+    (R, T)`` (``rows (R, T)``: the path of each sample; None: row r is path r) by ``dk_topp_sample``
+    (``_native_topp.c``: the same floats), from the arrays of :func:`topp_peaks` and the paths' ends ``(B,
+    n)``; None (nothing done) where the library is not loaded or the inputs are not CPU tensors of one float
+    dtype without autograd."""
+    ins = (t, *profile, tau, k, knots, *coeffs, end)
+    dtype = t.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)
+            or (rows is not None and rows.device.type != "cpu")):
+        return None
+    (R, T), M, N, n = t.shape, profile[0].shape[1], knots.shape[1], end.shape[-1]
+    ins = [x.contiguous() for x in ins]
+    if rows is not None:
+        rows = rows.to(torch.int64).expand(R, T).contiguous()
+    q, qd, qdd = (torch.empty(R, T, n, dtype=dtype, device="cpu") for _ in range(3))  # C writes here
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(R, thread_count(R * T)))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_topp_sample(ptrs, None if rows is None else rows.data_ptr(), q.data_ptr(),
+                                  qd.data_ptr(), qdd.data_ptr(), R, T, M, N, n, q.element_size(), threads),
+              "work space")
+    return q, qd, qdd
+
+
+def spline_fine(u: Tensor, knots: Tensor, coeffs: tuple[Tensor, ...], end: Tensor, lo: Tensor, hi: Tensor,
+                reach: Tensor) -> tuple[Tensor, Tensor] | None:
+    """The fine samples of :func:`diffkin.motion._spline._spline_clear` by ``dk_spline_fine``
+    (``_native_spline.c``: the same floats): from the fine samples ``u (F + 1)``, the splines' ``knots
+    (B, N)``, coefficients ``c0..c3 (B, N - 1, n)`` and ends ``(B, n)``, the limits ``lo, hi`` and ``reach
+    (n)``: the running bound-length ``cum (B, F + 1)`` and ``inside (B,)`` bool; None (nothing done) where
+    the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    ins = (u, knots, *coeffs, end, lo, hi, reach)
+    dtype = u.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
+        return None
+    (B, N), F, n = knots.shape, u.shape[0] - 1, end.shape[-1]
+    ins = [x.contiguous() for x in ins]
+    cpu = {"dtype": dtype, "device": "cpu"}  # C writes here: never the default device
+    cum, inside, work = torch.empty(B, F + 1, **cpu), torch.empty(B, **cpu), torch.empty(B, 2 * n, **cpu)
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(B, thread_count(B * (F + 1))))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_spline_fine(ptrs, cum.data_ptr(), inside.data_ptr(), work.data_ptr(), F, B, N, n,
+                                  u.element_size(), threads), "work space")
+    return cum, inside > 0
+
+
+def spline_marks(u: Tensor, cum: Tensor, step: Tensor, count: Tensor, first: Tensor, knots: Tensor,
+                 coeffs: tuple[Tensor, ...], end: Tensor) -> Tensor | None:
+    """The check points of :func:`diffkin.motion._spline._spline_clear` by ``dk_spline_marks``
+    (``_native_spline.c``: the same floats): path b's marks ``m · step[b]`` (m = 0..count[b]) placed on its
+    running length ``cum`` (:func:`spline_fine`) and its spline evaluated there, ``(Σ (count + 1), n)``,
+    path b's from row ``first[b]``; None (nothing done) where :func:`spline_fine` would be."""
+    ins = (u, cum, step, knots, *coeffs, end)
+    dtype = u.dtype
+    if (not available() or dtype not in (torch.float32, torch.float64)
+            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)
+            or any(x.device.type != "cpu" for x in (count, first))):
+        return None
+    (B, N), F, n = knots.shape, u.shape[0] - 1, end.shape[-1]
+    ins = [x.contiguous() for x in ins]
+    count, first = count.to(torch.int64).contiguous(), first.to(torch.int64).contiguous()
+    q = torch.empty(int(count.sum()) + B, n, dtype=dtype, device="cpu")  # C writes here
+    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
+    threads = max(1, min(B, thread_count(q.shape[0])))  # OpenMP's num_threads must be positive
+    _raise_on(_lib.dk_spline_marks(ptrs, count.data_ptr(), first.data_ptr(), q.data_ptr(), F, B, N, n,
+                                   u.element_size(), threads), "work space")
+    return q
 
 
 def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,

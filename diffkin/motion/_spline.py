@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..kernels import native
 from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
 from ._edges import EdgeChecker
 
@@ -27,33 +28,41 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     leaves at most the spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
     crosses a multiple of 0.8 η_b (each problem's resolution; the 20 % spare covers chords against arcs
-    and the last fine chord)."""
+    and the last fine chord). The samples and check points in C on the CPU (``kernels/_native_spline.c``,
+    the same floats), else in torch."""
     B = path.shape[0]
     knots = knots.to(torch.float64)
     s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
     p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
     u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
     lo, hi, reach = lo.to(torch.float64), hi.to(torch.float64), checker.reach.to(torch.float64)
-    # the fine samples in column blocks (each overlapping the next by one sample for its chord): the
-    # (B, ·, nq) positions of all of them at once would be hundreds of MB for a large batch
-    w = max(64, _BLOCK // max(B, 1))
-    inside, chords = torch.ones(B, dtype=torch.bool, device=path.device), []
-    for c in range(0, fine, w):
-        q = p.eval(u[:, c:c + w + 1], position_only=True)[0]
-        inside &= ((q >= lo) & (q <= hi)).all(-1).all(-1)
-        chords.append(((q[:, 1:] - q[:, :-1]).abs() * reach).sum(-1))
-    chord = torch.cat(chords, 1)
-    cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
+    fine_c = native.spline_fine(u[0], p.s, p.c, p.end, lo, hi, reach)  # in C on the CPU: the same floats
+    if fine_c is not None:
+        cum, inside = fine_c
+    else:
+        # the fine samples in column blocks (each overlapping the next by one sample for its chord): the
+        # (B, ·, nq) positions of all of them at once would be hundreds of MB for a large batch
+        w = max(64, _BLOCK // max(B, 1))
+        inside, chords = torch.ones(B, dtype=torch.bool, device=path.device), []
+        for c in range(0, fine, w):
+            q = p.eval(u[:, c:c + w + 1], position_only=True)[0]
+            inside &= ((q >= lo) & (q <= hi)).all(-1).all(-1)
+            d = (q[:, 1:] - q[:, :-1]).abs() * reach
+            chords.append(sum(d.unbind(-1)))  # the joints in order, first to last (as the C code)
+        chord = torch.cat(chords, 1)
+        cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
     c = 0.8 * checker.eta_of(problem).to(torch.float64)  # (B,): each problem's resolution
     n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
     # each row's own n + 1 marks only, flat (padding every row to the longest row's count multiplied the
     # evaluations and collision checks: a row's marks past n would all be its end point, its mark n)
     rows = torch.repeat_interleave(torch.arange(B, device=path.device), n + 1)
     first = torch.cumsum(n + 1, 0) - (n + 1)
-    marks = (torch.arange(rows.shape[0], device=path.device) - first[rows]).to(torch.float64) * c[rows]
-    idx = _search_rows(cum, rows, marks, right=False).clamp(max=fine)
-    qc = p.eval(u[0, idx], rows=rows, position_only=True)[0].to(path.dtype)  # the same floats as above
-    ok = checker.clear(qc, problem[rows])
+    qc = native.spline_marks(u[0], cum, c, n, first, p.s, p.c, p.end)  # in C on the CPU: the same floats
+    if qc is None:
+        marks = (torch.arange(rows.shape[0], device=path.device) - first[rows]).to(torch.float64) * c[rows]
+        idx = _search_rows(cum, rows, marks, right=False).clamp(max=fine)
+        qc = p.eval(u[0, idx], rows=rows, position_only=True)[0]  # the same floats as above
+    ok = checker.clear(qc.to(path.dtype), problem[rows])
     clear = torch.ones(B, dtype=torch.bool, device=path.device)
     clear[rows[~ok]] = False
     return clear & inside

@@ -21,7 +21,7 @@ largest x_i from which the end is reachable at rest (each a two-variable LP, sol
 all paths at once); a forward pass from x_0 = 0 takes the largest u_i that stays controllable. Between grid
 points s̈ is constant (toppra's ``ParametrizeConstAccel``), so interval i lasts 2Δ_i / (ṡ_i + ṡ_{i+1}). The
 two passes go one grid point at a time: in C on the CPU (``kernels/_native_topp.c``, paths over threads, the
-same floats), else in torch (CUDA, no compiler).
+same floats), else in torch (CUDA, no compiler); so does the bound of each interval's fixed rows.
 
 Without a jerk limit this is bang-bang: the acceleration jumps at the switching points (and at t = 0 and
 at the end). With ``jerk_limit``, the profile s(t) is smoothed by a moving average of width τ,
@@ -30,14 +30,16 @@ acceleration, its acceleration is continuous and its jerk bounded ((s̈(t) − s
 path among a few multiples of 2·max_j a_j / j_j (the shortest result wins; a candidate whose duration
 checked at a quarter of the samples — a lower bound — cannot win is not checked densely, and a dense
 check evaluates only the samples the quarter check did not, on the rows where its candidate can still
-win). The smoothed motion is not time-optimal under the jerk limit (an upper bound on it).
+win; the candidates share one profile, retimed). The smoothed motion is not time-optimal under the jerk
+limit (an upper bound on it).
 
 Limits exactly: every result is finally stretched uniformly in time by the smallest factor k ≥ 1 that puts
 every velocity, acceleration and jerk (with ``jerk_limit``) within its limit on a dense check (all the
 breakpoints of the profile and ``check_per_interval`` points inside each interval), times 1 + 2e-4 for the
 values between the check samples; without that step the discretised constraints would hold at the grid
 points only. Without a jerk limit k is within ~0.5 % of 1 (the durations stay within 1 % of toppra's on
-the same path).
+the same path). The dense check runs in C on the CPU (``kernels/_native_topp.c``, each sample one pass, the
+same floats), else in torch.
 
 No gradient flows through the timing (it is a decision, like the LP it solves); it is computed in float64
 and sampled in the dtype of ``path``.
@@ -175,12 +177,15 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     _, P1, P2, _ = path.eval(grid, kseg)  # (B, M, n), right-hand at knots
     _, Q1, Q2, _ = path.eval(grid[:, 1:], kseg[:, :-1])  # interval ends, left-hand
     delta = grid[:, 1:] - grid[:, :-1]
+    B, M = grid.shape
+    x = native.topp_grid(P1, P2, Q1, Q2, amax, vmax, delta, stops, _X_BIG)  # all below in C: the same floats
+    if x is not None:
+        return x
     absP1 = P1.abs()
     xv = torch.where(absP1 > 0, (vmax[:, None] / absP1.clamp_min(1e-300)) ** 2, _X_BIG).amin(-1)
     xv = torch.where(stops, 0.0, xv.clamp_max(_X_BIG))
     absQ1 = Q1.abs()
     xq = torch.where(absQ1 > 0, (vmax[:, None] / absQ1.clamp_min(1e-300)) ** 2, _X_BIG).amin(-1)
-    B, M = grid.shape
     n = P1.shape[-1]
     al, be, ga, alone = _rows(P1[:, :-1], P2[:, :-1], Q1, Q2, amax[:, None].expand(B, M - 1, n), delta)
     # the bound from the fixed rows, per interval (B, M - 1)
@@ -200,9 +205,6 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     # the fixed upper rows for u at x: u ≤ (γ − β x) / α
     Au, Bu, Gu = torch.where(up, al, 1.0), torch.where(up, be, 0.0), torch.where(up, ga, math.inf)
     two_delta = 2 * delta
-    x = native.topp_passes(Aq, G, C, Au, Bu, Gu, fixed, xq, two_delta)  # in C on the CPU: the same floats
-    if x is not None:
-        return x
     # the passes below run one grid point at a time: the per-point columns are taken once (unbind) and kept
     # as (B, 1), so each step is a few small ops (these loops are most of the time of a short batch)
     col = lambda v: v.unbind(1)  # noqa: E731
@@ -234,7 +236,7 @@ class TimedPath:
     """
 
     def __init__(self, path: _Path, grid: Tensor, x: Tensor, tau: Tensor, k: Tensor, dtype: torch.dtype):
-        self._path, self._grid, self._x, self._tau, self._k, self._dtype = path, grid, x, tau, k, dtype
+        self._path, self._grid, self._x, self._dtype = path, grid, x, dtype
         self._B, self._device, self._batch = grid.shape[0], grid.device, (grid.shape[0],)
         sd = x.clamp_min(0).sqrt()
         delta = grid[:, 1:] - grid[:, :-1]
@@ -245,10 +247,29 @@ class TimedPath:
         # ∫ s dt at the knots (for the moving average)
         inc = grid[:, :-1] * dt + sd[:, :-1] * dt**2 / 2 + self._u * dt**3 / 6
         self._S = torch.cat((torch.zeros_like(dt[:, :1]), inc.cumsum(1)), 1)
+        self._law(tau, k)
+
+    def _law(self, tau: Tensor, k: Tensor) -> None:
+        """The smoothing width τ and the stretch k (B,) of the profile."""
+        self._tau, self._k = tau, k
         #: seconds per path (B,)
-        self.duration = ((self._t[:, -1] + tau) * k).to(dtype)
+        self.duration = ((self._t[:, -1] + tau) * k).to(self._dtype)
         #: the geometric path's waypoints (B, N, n) and knots (B, N)
-        self.knots = path.s.to(dtype)
+        self.knots = self._path.s.to(self._dtype)
+
+    def _retimed(self, tau: Tensor, k: Tensor, rows: Tensor | None = None) -> TimedPath:
+        """This profile with τ and k of the rows ``rows`` (an index tensor; all if None): the profile's
+        arrays shared or indexed, not computed again (each row's are its own: the same floats)."""
+        new = object.__new__(TimedPath)
+        new.__dict__.update(self.__dict__)
+        if rows is not None:
+            new._path = self._path.rows(rows)
+            for name in ("_grid", "_x", "_u", "_sd", "_t", "_S"):
+                setattr(new, name, getattr(self, name)[rows])
+            new._B = new._grid.shape[0]
+            new._batch = (new._B,)
+        new._law(tau, k)
+        return new
 
     def _base(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """s, ṡ, s̈, ∫s of the unsmoothed profile at times t (B, T) (any real t; ``rows`` (B, T): the
@@ -322,8 +343,16 @@ class TimedPath:
 
     def _sample(self, t: Tensor) -> Trajectory:
         """:meth:`sample` at float64 times (B, T), unchecked."""
-        q, qd, qdd, _ = self._joint(t)
+        q, qd, qdd = self._state(t)
         return Trajectory(self._out(q), self._out(qd), self._out(qdd))
+
+    def _state(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """q, q̇, q̈ of :meth:`_joint`: in C on the CPU (each sample one pass; the same floats), else
+        :meth:`_joint`'s torch evaluation."""
+        profile = (self._t, self._grid, self._sd, self._S, self._u)
+        out = native.topp_sample(t, rows, profile, self._tau, self._k, self._path.s, self._path.c,
+                                 self._path.end)
+        return self._joint(t, rows)[:3] if out is None else out
 
     def jerk(self, t) -> Tensor:
         """q⃛ ``(..., T, n)`` at times ``t`` ``(T,)`` or ``(..., T)`` (piecewise continuous; 0 at rest)."""
@@ -361,16 +390,22 @@ class _Chained(TimedPath):
         self.duration = d.sum(1).to(dtype)
         self.knots = None
 
-    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        # each sample evaluated on its own part only (the last part that starts at or before it; a part
-        # rests outside its own time span, so the others would add nothing)
+    def _own_part(self, t: Tensor, rows: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Each sample's time in its own part and that part's row of ``_parts``: the last part that starts
+        at or before it (a part rests outside its own time span, so the others would add nothing)."""
         B, K = t.shape[0], self._K
         if rows is None:
             chain = torch.arange(B, device=t.device)[:, None]
             seg = torch.searchsorted(self._start[:, 1:].contiguous(), t.contiguous(), right=True)  # (B, T)
         else:
             chain, seg = rows, _search_rows(self._start[:, 1:], rows, t)
-        return self._parts._joint(t - self._start[chain, seg], chain * K + seg)
+        return t - self._start[chain, seg], chain * K + seg
+
+    def _joint(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        return self._parts._joint(*self._own_part(t, rows))
+
+    def _state(self, t: Tensor, rows: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        return self._parts._state(*self._own_part(t, rows))
 
 
 def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
@@ -378,6 +413,11 @@ def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
     (B, T): (B, 2 or 3). The samples go in column blocks of about :data:`_BLOCK` samples in all, so the
     (B, ·, n) temporaries stay small (a whole check at once allocates and faults in hundreds of MB)."""
     B, T = t.shape
+    # in C on the CPU (each sample one pass, no temporaries): the same floats
+    peak = native.topp_peaks(t, (timed._t, timed._grid, timed._sd, timed._S, timed._u), timed._tau, timed._k,
+                             timed._path.s, timed._path.c, limits)
+    if peak is not None:
+        return peak
     w = max(64, _BLOCK // max(B, 1))
     peak = None
     for c in range(0, T, w):
@@ -480,17 +520,15 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
             taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
         limits = [vmax, amax] if jmax is None else [vmax, amax, jmax]
 
+        profile = TimedPath(p, grid, x, taus[0], torch.ones_like(taus[0]), dtype)  # made once, retimed below
+
         def stretch(tau: Tensor, per_interval: int, r: Tensor | None = None, skip: int = 0,
                     prior: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
             """k, the duration and the peaks (:func:`_peaks`) of the profile smoothed by τ, checked at
             ``per_interval``, of the rows ``r`` (all if None; τ of those rows); ``prior``: the peaks of the
             samples left out by ``skip`` (:meth:`TimedPath._breakpoints`)."""
-            if r is None:
-                timed = TimedPath(p, grid, x, tau, torch.ones_like(tau), dtype)
-                lim = limits
-            else:
-                timed = TimedPath(p.rows(r), grid[r], x[r], tau, torch.ones_like(tau), dtype)
-                lim = [v[r] for v in limits]
+            timed = profile._retimed(tau, torch.ones_like(tau), r)
+            lim = limits if r is None else [v[r] for v in limits]
             peak = _peaks(timed, timed._breakpoints(per_interval, skip), lim)
             peak = peak if prior is None else torch.maximum(peak, prior)
             k = torch.maximum(peak[:, 0], peak[:, 1].sqrt())
@@ -540,7 +578,7 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
                 best = (tau, k, total, c)
             else:
                 best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
-        return _batched(TimedPath(p, grid, x, best[0], best[1], dtype), batch)
+        return _batched(profile._retimed(best[0], best[1]), batch)
 
 
 def _batched(timed: TimedPath, batch: tuple) -> TimedPath:
