@@ -15,9 +15,19 @@
 
 #ifndef DK_BANDED_ONCE
 #define DK_BANDED_ONCE
-#define DK_VBYTES 64 /* one vector: an AVX-512 register (the compiler splits it where the target has less) */
-#define DK_MR 4      /* rows of a register tile */
-#define DK_NV 5      /* vectors of a register tile's row: 4 x 5 accumulators, n = 35 in one tile row (ld 40) */
+/* One vector: a register of the target (the compiler splits a wider one, and a tile that then needs more
+ * registers than there are spills: 4 x 5 AVX-512 vectors, 4 x 3 elsewhere, fit with room for the operands). */
+#if defined(__AVX512F__)
+#define DK_VBYTES 64
+#define DK_NV 5 /* vectors of a register tile's row: n = 35 doubles in one tile row (ld 40) */
+#elif defined(__AVX__)
+#define DK_VBYTES 32
+#define DK_NV 3
+#else
+#define DK_VBYTES 16
+#define DK_NV 3
+#endif
+#define DK_MR 4 /* rows of a register tile */
 #endif
 
 typedef real DK(vec) __attribute__((vector_size(DK_VBYTES)));
@@ -69,7 +79,11 @@ static inline __attribute__((always_inline)) void DK(tile)(real *restrict C, con
         if (qlow) DK(tile)(C, P, Q, ld, i0, c0, k0, k1, Ud, rinv, m, v, 1);                                \
         else DK(tile)(C, P, Q, ld, i0, c0, k0, k1, Ud, rinv, m, v, 0);                                     \
         break;
+#if DK_NV == 5
 #define DK_TILE_ROW(m) DK_TILE_CASE(m, 1) DK_TILE_CASE(m, 2) DK_TILE_CASE(m, 3) DK_TILE_CASE(m, 4) DK_TILE_CASE(m, 5)
+#else
+#define DK_TILE_ROW(m) DK_TILE_CASE(m, 1) DK_TILE_CASE(m, 2) DK_TILE_CASE(m, 3)
+#endif
 
 /* DK(tile) for mr <= DK_MR rows and nv <= DK_NV vectors, each size compiled on its own. C may be rows of
  * Q (a lower solve's, the Cholesky's: the tile's rows are not among those it reads). */
