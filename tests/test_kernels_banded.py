@@ -170,3 +170,38 @@ def test_native_banded_solve_with_one_second_band_for_every_system():
     F1 = F[0, :1]
     want1 = native.banded_solve(D3, E3, F1.expand(3, 6, -1, -1).contiguous(), g)
     assert torch.equal(native.banded_solve(D3, E3, F1, g), want1)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_native_banded_solve_register_tiles_any_block_size(dtype, monkeypatch):
+    """The C solve's register tiles (rows padded to whole vectors: 8 doubles, 16 floats; tiles of 4 rows
+    and at most 5 vectors) at block sizes with a remainder of rows and of columns, one and several column
+    panels (n = 13, 35: the whole-clip retargeting's, 45), a shared F diagonal (its fast path, tested once
+    per call), lower triangular and full, against the dense solve; one thread and two the same numbers."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    monkeypatch.setattr(native, "free_cores", lambda: 2)  # two threads whatever the machine's load
+    gen = torch.Generator().manual_seed(2)
+    for n in (13, 35, 45):
+        T = 6
+        _, D, E, F, g = _system(3, T, n, seed=n)
+        D = D + 4 * n * torch.eye(n, dtype=F64)  # diagonally dominant: SPD with any of the F below
+        Ff = 0.3 * torch.randn(T, n, n, generator=gen, dtype=F64)
+        for F1 in (torch.diag_embed(Ff.diagonal(dim1=-2, dim2=-1)), Ff.tril(), Ff):
+            idx = torch.arange(T)
+            H = torch.zeros(3, T, T, n, n, dtype=F64)
+            H[:, idx, idx] = D
+            H[:, idx[1:], idx[:-1]], H[:, idx[:-1], idx[1:]] = E[:, 1:], E[:, 1:].mT
+            H[:, idx[2:], idx[:-2]], H[:, idx[:-2], idx[2:]] = F1[2:], F1[2:].mT
+            H = H.permute(0, 1, 3, 2, 4).reshape(3, T * n, T * n)
+            want = torch.linalg.solve(H, g.reshape(3, -1, 1)).reshape(g.shape)
+            args = tuple(t.to(dtype) for t in (D, E, F1, g))
+            got = native.banded_solve(*args)
+            tol = 1e-10 if dtype == torch.float64 else 2e-3
+            torch.testing.assert_close(got.double(), want, atol=tol, rtol=tol)
+            per_system = native.banded_solve(*args[:2], args[2].expand(3, -1, -1, -1), args[3])
+            assert torch.equal(per_system, got)  # F tested per system: the same path
+            with native.threads(2):
+                assert torch.equal(native.banded_solve(*args), got)

@@ -7,111 +7,177 @@
  *
  * then y_t = L_t^{-1}(g_t - A_t y_{t-1} - B_t y_{t-2}) and x_t = L_t^{-T}(y_t - A_{t+1}^T x_{t+1} -
  * B_{t+2}^T x_{t+2}). The factors are kept transposed (U_t = L_t^T, A_t^T, B_t^T, row-major) so that every
- * O(n^3) loop is an axpy of contiguous rows, which the compiler vectorises without reassociating sums;
- * the factors of one system live in a work space of 3 T n^2 reals. A block that is not positive definite
+ * O(n^3) step is S -= P^T Q over rows (DK(tile)); their rows are padded to ld, a multiple of the vector
+ * width (zeros beyond column n), so that every row is whole aligned vectors: no remainder columns. The
+ * factors of one system live in a work space of 3 T n ld reals. A block that is not positive definite
  * gives a NaN pivot (sqrt of a negative), which reaches x, as the torch path's cholesky_ex does. Systems
  * (the leading batch) are shared between threads. */
 
-static inline void DK(axpy)(real *restrict y, real a, const real *restrict x, int64_t n) {
-#pragma omp simd
-    for (int64_t k = 0; k < n; k++) y[k] -= a * x[k];
+#ifndef DK_BANDED_ONCE
+#define DK_BANDED_ONCE
+/* One vector: a register of the target (the compiler splits a wider one, and a tile that then needs more
+ * registers than there are spills: 4 x 5 AVX-512 vectors, 4 x 3 elsewhere, fit with room for the operands). */
+#if defined(__AVX512F__)
+#define DK_VBYTES 64
+#define DK_NV 5 /* vectors of a register tile's row: n = 35 doubles in one tile row (ld 40) */
+#elif defined(__AVX__)
+#define DK_VBYTES 32
+#define DK_NV 3
+#else
+#define DK_VBYTES 16
+#define DK_NV 3
+#endif
+#define DK_MR 4 /* rows of a register tile */
+#endif
+
+typedef real DK(vec) __attribute__((vector_size(DK_VBYTES)));
+#define DK_V ((int64_t)(DK_VBYTES / sizeof(real)))
+
+/* The register tile of every O(n^3) step: rows i0 .. i0 + mr of C, columns c0 .. c0 + nv V (whole
+ * vectors), C_ij -= sum_{k0 <= k < k1} P_ki Q_kj (P, Q, C: rows ld apart). `qlow`: Q is lower triangular
+ * (Q_kj = 0 for j > k), so row k of Q adds to the vectors that start at or before column k only. With
+ * Ud (the upper factor U, rinv its reciprocal diagonal), the tile's rows are then solved among
+ * themselves, X <- U_II^{-T} X (the diagonal block of a lower solve, its earlier rows already
+ * subtracted). mr, nv, qlow are constants where inlined (DK(tile_at)), so acc stays in registers: each Q
+ * vector loaded is used mr times, each P scalar nv times. */
+static inline __attribute__((always_inline)) void DK(tile)(real *restrict C, const real *restrict P,
+                                                           const real *restrict Q, int64_t ld, int64_t i0,
+                                                           int64_t c0, int64_t k0, int64_t k1,
+                                                           const real *restrict Ud, const real *restrict rinv,
+                                                           const int mr, const int nv, const int qlow) {
+    typedef DK(vec) vec;
+    vec acc[DK_MR][DK_NV];
+    for (int r = 0; r < mr; r++)
+        for (int v = 0; v < nv; v++) acc[r][v] = *(const vec *)(C + (i0 + r) * ld + c0 + v * DK_V);
+    for (int s = qlow ? 0 : nv - 1; s < nv; s++) { /* k's for which vectors 0 .. s hold non-zeros of Q */
+        int64_t ks = qlow ? c0 + s * DK_V : k0, ke = qlow && s + 1 < nv ? c0 + (s + 1) * DK_V : k1;
+        if (ks < k0) ks = k0;
+        if (ke > k1) ke = k1;
+        for (int64_t k = ks; k < ke; k++) {
+            const real *q = Q + k * ld + c0, *p = P + k * ld + i0;
+            for (int v = 0; v <= s; v++) {
+                const vec qv = *(const vec *)(q + v * DK_V);
+                for (int r = 0; r < mr; r++) acc[r][v] -= p[r] * qv;
+            }
+        }
+    }
+    if (Ud)
+        for (int r = 0; r < mr; r++) {
+            const real d = rinv[i0 + r];
+            for (int v = 0; v < nv; v++) acc[r][v] *= d;
+            for (int s = r + 1; s < mr; s++) {
+                const real u = Ud[(i0 + r) * ld + i0 + s];
+                for (int v = 0; v < nv; v++) acc[s][v] -= u * acc[r][v];
+            }
+        }
+    for (int r = 0; r < mr; r++)
+        for (int v = 0; v < nv; v++) *(vec *)(C + (i0 + r) * ld + c0 + v * DK_V) = acc[r][v];
 }
 
-/* X <- L^{-1} X = U^{-T} X for upper-triangular U (rows of X: n reals each); `lower`: X is lower
- * triangular, and so is the result (row j then has no entry beyond column j). Rows are eliminated four at
- * a time: each later row takes the four in one pass (one load and store of it per four products). */
-static void DK(lower_solve)(const real *restrict U, real *restrict X, int64_t n, int lower) {
-    int64_t j0 = 0;
-    for (; j0 + 4 <= n; j0 += 4) {
-        const int64_t len = lower ? j0 + 4 : n;
-        for (int64_t j = j0; j < j0 + 4; j++) { /* the four rows among themselves */
-            real *xj = X + j * n;
-            const real d = 1 / U[j * n + j];
-            for (int64_t k = 0; k < len; k++) xj[k] *= d;
-            for (int64_t i = j + 1; i < j0 + 4; i++) DK(axpy)(X + i * n, U[j * n + i], xj, len);
-        }
-        const real *x0 = X + j0 * n, *x1 = x0 + n, *x2 = x1 + n, *x3 = x2 + n;
-        for (int64_t i = j0 + 4; i < n; i++) {
-            const real a0 = U[j0 * n + i], a1 = U[(j0 + 1) * n + i], a2 = U[(j0 + 2) * n + i],
-                       a3 = U[(j0 + 3) * n + i];
-            real *xi = X + i * n;
-#pragma omp simd
-            for (int64_t k = 0; k < len; k++) xi[k] -= a0 * x0[k] + a1 * x1[k] + a2 * x2[k] + a3 * x3[k];
-        }
-    }
-    for (int64_t j = j0; j < n; j++) {
-        real *xj = X + j * n;
-        const real d = 1 / U[j * n + j];
-        const int64_t len = lower ? j + 1 : n;
-        for (int64_t k = 0; k < len; k++) xj[k] *= d;
-        for (int64_t i = j + 1; i < n; i++) DK(axpy)(X + i * n, U[j * n + i], xj, len);
+#define DK_TILE_CASE(m, v)                                                                                 \
+    case (m) * 8 + (v):                                                                                    \
+        if (qlow) DK(tile)(C, P, Q, ld, i0, c0, k0, k1, Ud, rinv, m, v, 1);                                \
+        else DK(tile)(C, P, Q, ld, i0, c0, k0, k1, Ud, rinv, m, v, 0);                                     \
+        break;
+#if DK_NV == 5
+#define DK_TILE_ROW(m) DK_TILE_CASE(m, 1) DK_TILE_CASE(m, 2) DK_TILE_CASE(m, 3) DK_TILE_CASE(m, 4) DK_TILE_CASE(m, 5)
+#else
+#define DK_TILE_ROW(m) DK_TILE_CASE(m, 1) DK_TILE_CASE(m, 2) DK_TILE_CASE(m, 3)
+#endif
+
+/* DK(tile) for mr <= DK_MR rows and nv <= DK_NV vectors, each size compiled on its own. C may be rows of
+ * Q (a lower solve's, the Cholesky's: the tile's rows are not among those it reads). */
+static void DK(tile_at)(real *C, const real *P, const real *Q, int64_t ld, int64_t i0, int mr, int64_t c0,
+                        int nv, int64_t k0, int64_t k1, int qlow, const real *Ud, const real *rinv) {
+    switch (mr * 8 + nv) {
+        DK_TILE_ROW(1) DK_TILE_ROW(2) DK_TILE_ROW(3) DK_TILE_ROW(4)
     }
 }
+#undef DK_TILE_CASE
+#undef DK_TILE_ROW
 
-/* S -= P^T Q for row-major P, Q (S_ij -= sum_k P_ki Q_kj); four rows of Q per pass over a row of S, so
- * that S is loaded and stored a quarter as often as Q is read. Structure skips only products with zeros:
- * `upper` updates the upper triangle j >= i only (the Cholesky step reads no other), `plow` / `qlow` say P /
- * Q are lower triangular (zero above the diagonal: P_ki = 0 for i > k, Q_kj = 0 for j > k). */
-static void DK(sub_tn)(real *restrict S, const real *restrict P, const real *restrict Q, int64_t n, int upper,
-                       int plow, int qlow) {
-    int64_t k = 0;
-    for (; k + 4 <= n; k += 4) {
-        const real *q0 = Q + k * n, *q1 = q0 + n, *q2 = q1 + n, *q3 = q2 + n;
-        const int64_t iend = plow ? k + 4 : n, jend = qlow ? k + 4 : n;
-        for (int64_t i = 0; i < iend; i++) {
-            const real a0 = P[k * n + i], a1 = P[(k + 1) * n + i], a2 = P[(k + 2) * n + i],
-                       a3 = P[(k + 3) * n + i];
-            real *si = S + i * n;
-#pragma omp simd
-            for (int64_t j = upper ? i : 0; j < jend; j++)
-                si[j] -= a0 * q0[j] + a1 * q1[j] + a2 * q2[j] + a3 * q3[j];
-        }
-    }
-    for (; k < n; k++) {
-        const int64_t iend = plow ? k + 1 : n, jend = qlow ? k + 1 : n;
-        for (int64_t i = 0; i < iend; i++) {
-            const int64_t j0 = upper ? i : 0;
-            if (j0 < jend) DK(axpy)(S + i * n + j0, P[k * n + i], Q + k * n + j0, jend - j0);
+/* X <- L^{-1} X = U^{-T} X for upper-triangular U (n rows of X, ld apart), left-looking by tiles of rows:
+ * each tile takes every earlier row at once (X_I -= U_{<I, I}^T X_{<I}), then is solved in registers.
+ * `lower`: X is lower triangular, and so is the result (the tile stops after its last row's column). */
+static void DK(lower_solve)(const real *restrict U, const real *restrict rinv, real *restrict X, int64_t n,
+                            int64_t ld, int lower) {
+    for (int64_t i0 = 0; i0 < n; i0 += DK_MR) {
+        const int mr = n - i0 < DK_MR ? (int)(n - i0) : DK_MR;
+        const int64_t cend = lower ? i0 + mr : n;
+        for (int64_t c0 = 0; c0 < cend; c0 += DK_NV * DK_V) {
+            const int64_t left = (cend - c0 + DK_V - 1) / DK_V;
+            DK(tile_at)(X, U, X, ld, i0, mr, c0, left < DK_NV ? (int)left : DK_NV, 0, i0, lower, U, rinv);
         }
     }
 }
 
-/* 1 when X (n x n, row-major) is zero above its diagonal. */
-static int DK(is_lower)(const real *X, int64_t n) {
+/* S -= P^T Q for P, Q (n rows, ld apart); skips only products with zeros or unread results: `upper`
+ * updates the tiles that hold the upper triangle j >= i (the Cholesky step reads no other), `plow` /
+ * `qlow` say P / Q are lower triangular (P_ki = 0 for i > k, Q_kj = 0 for j > k). */
+static void DK(sub_tn)(real *restrict S, const real *restrict P, const real *restrict Q, int64_t n, int64_t ld,
+                       int upper, int plow, int qlow) {
+    for (int64_t i0 = 0; i0 < n; i0 += DK_MR) {
+        const int mr = n - i0 < DK_MR ? (int)(n - i0) : DK_MR;
+        for (int64_t c0 = upper ? i0 / DK_V * DK_V : 0; c0 < n; c0 += DK_NV * DK_V) {
+            const int64_t left = (n - c0 + DK_V - 1) / DK_V;
+            DK(tile_at)(S, P, Q, ld, i0, mr, c0, left < DK_NV ? (int)left : DK_NV, plow ? i0 : 0, n, qlow, NULL,
+                        NULL);
+        }
+    }
+}
+
+/* The upper Cholesky factor U (S = U^T U) in place of the symmetric S (upper triangle read; below the
+ * diagonal is left as it is, never read), rinv its reciprocal diagonal; left-looking by tiles of rows:
+ * each tile takes every finished row at once, then its rows are factored among themselves (whole vectors
+ * from the one that holds the diagonal: the entries left of it are not read). */
+static void DK(cholesky_upper)(real *restrict S, real *restrict rinv, int64_t n, int64_t ld) {
+    typedef DK(vec) vec;
+    for (int64_t i0 = 0; i0 < n; i0 += DK_MR) {
+        const int mr = n - i0 < DK_MR ? (int)(n - i0) : DK_MR;
+        const int64_t cs = i0 / DK_V * DK_V;
+        if (i0 > 0)
+            for (int64_t c0 = cs; c0 < n; c0 += DK_NV * DK_V) {
+                const int64_t left = (n - c0 + DK_V - 1) / DK_V;
+                DK(tile_at)(S, S, S, ld, i0, mr, c0, left < DK_NV ? (int)left : DK_NV, 0, i0, 0, NULL, NULL);
+            }
+        for (int64_t j = i0; j < i0 + mr; j++) {
+            real *sj = S + j * ld;
+            const real d = sqrt(sj[j]); /* NaN for a block that is not positive definite */
+            const real inv = 1 / d;
+            rinv[j] = inv;
+            for (int64_t c = cs; c < ld; c += DK_V) *(vec *)(sj + c) *= inv;
+            sj[j] = d;
+            for (int64_t i = j + 1; i < i0 + mr; i++) {
+                const real a = sj[i];
+                real *si = S + i * ld;
+                for (int64_t c = cs; c < ld; c += DK_V) *(vec *)(si + c) -= a * *(const vec *)(sj + c);
+            }
+        }
+    }
+}
+
+/* dst = src^T (n x n; src row-major, dst rows ld apart, zeros beyond column n), src read in its order (a
+ * stream the hardware prefetches; the blocks come from the caller's large arrays, not in cache), dst
+ * written across (in L1). */
+static void DK(transpose_into)(real *restrict dst, const real *restrict src, int64_t n, int64_t ld) {
+    for (int64_t i = 0; i < n; i++)
+        for (int64_t j = 0; j < n; j++) dst[j * ld + i] = src[i * n + j];
+    for (int64_t j = 0; j < n; j++)
+        for (int64_t i = n; i < ld; i++) dst[j * ld + i] = 0;
+}
+
+/* 1 when X (n x n, row-major) is zero above its diagonal (rows ld apart). */
+static int DK(is_lower)(const real *X, int64_t n, int64_t ld) {
     for (int64_t i = 0; i < n; i++)
         for (int64_t j = i + 1; j < n; j++)
-            if (X[i * n + j] != 0) return 0;
+            if (X[i * ld + j] != 0) return 0;
     return 1;
 }
 
-/* The upper Cholesky factor U (S = U^T U) in place of the symmetric S (lower triangle zeroed). */
-static void DK(cholesky_upper)(real *restrict S, int64_t n) {
-    for (int64_t j = 0; j < n; j++) {
-        real *sj = S + j * n;
-        const real d = sqrt(sj[j]); /* NaN for a block that is not positive definite */
-        const real inv = 1 / d;
-        for (int64_t k = 0; k < j; k++) sj[k] = 0;
-        sj[j] = d;
-        for (int64_t k = j + 1; k < n; k++) sj[k] *= inv;
-        for (int64_t i = j + 1; i < n; i++) DK(axpy)(S + i * n + i, sj[i], sj + i, n - i);
-    }
-}
-
-/* dst = src^T (n x n, row-major) in 8 x 8 tiles: every cache line read or written is used whole (the
- * blocks come from the caller's large arrays, mostly not in cache). */
-static void DK(transpose_into)(real *restrict dst, const real *restrict src, int64_t n) {
-    for (int64_t ib = 0; ib < n; ib += 8)
-        for (int64_t jb = 0; jb < n; jb += 8) {
-            const int64_t ie = ib + 8 < n ? ib + 8 : n, je = jb + 8 < n ? jb + 8 : n;
-            for (int64_t i = ib; i < ie; i++)
-                for (int64_t j = jb; j < je; j++) dst[j * n + i] = src[i * n + j];
-        }
-}
-
-/* 1 when X (n x n, row-major) is diagonal; then B <- X (its diagonal, zeros elsewhere). The test counts
- * each row's non-zeros without a branch per entry (a compare and branch per entry showed as a tenth of
- * the solve's samples on the whole-clip problem's diagonal F; about 2 % of the solve's time saved). */
-static int DK(copy_diagonal)(real *restrict B, const real *restrict X, int64_t n) {
+/* 1 when X (n x n, row-major) is diagonal: no non-zero (nor NaN) off its diagonal. Each row's non-zeros
+ * are counted without a branch per entry (a compare and branch per entry showed as a tenth of the solve's
+ * samples on the whole-clip problem's diagonal F). */
+static int DK(is_diagonal)(const real *restrict X, int64_t n) {
     for (int64_t i = 0; i < n; i++) {
         const real *xi = X + i * n;
         int64_t nz = 0;
@@ -119,94 +185,136 @@ static int DK(copy_diagonal)(real *restrict B, const real *restrict X, int64_t n
         for (int64_t j = 0; j < n; j++) nz += xi[j] != 0;
         if (nz > (xi[i] != 0)) return 0;
     }
-    memset(B, 0, (size_t)(n * n) * sizeof(real));
-    for (int64_t i = 0; i < n; i++) B[i * n + i] = X[i * n + i];
     return 1;
 }
 
-static void DK(banded_one)(const real *D, const real *E, const real *F, const real *g, real *x, int64_t T,
-                           int64_t n, real shift, real *work) {
-    const int64_t nn = n * n;
-    real *U = work, *At = work + T * nn, *Bt = work + 2 * T * nn; /* U_t = L_t^T, A_t^T, B_t^T */
-    for (int64_t t = 0; t < T; t++) {
-        real *Ut = U + t * nn, *a = At + t * nn, *b = Bt + t * nn;
-        memcpy(Ut, D + t * nn, nn * sizeof(real));
-        for (int64_t i = 0; i < n; i++) Ut[i * n + i] += shift; /* D_t + shift I (the caller's damping) */
-        int low = 0; /* F_t^T lower triangular (e.g. the diagonal of an acceleration term): so is B_t^T */
-        if (t >= 2) {
-            low = DK(copy_diagonal)(b, F + t * nn, n);
-            if (!low) {
-                DK(transpose_into)(b, F + t * nn, n);
-                low = DK(is_lower)(b, n);
-            }
-            DK(lower_solve)(U + (t - 2) * nn, b, n, low); /* B_t^T = L_{t-2}^{-1} F_t^T */
-            DK(sub_tn)(Ut, b, b, n, 1, low, low);            /* - B_t B_t^T (upper triangle) */
-        }
-        if (t >= 1) {
-            DK(transpose_into)(a, E + t * nn, n);
-            if (t >= 2) DK(sub_tn)(a, At + (t - 1) * nn, b, n, 0, 0, low); /* E_t^T - A_{t-1} B_t^T */
-            DK(lower_solve)(U + (t - 1) * nn, a, n, 0);
-            DK(sub_tn)(Ut, a, a, n, 1, 0, 0);            /* - A_t A_t^T (upper triangle) */
-        }
-        DK(cholesky_upper)(Ut, n);
-    }
+/* diag[t] = 1 where F_t (t >= 2) is diagonal (e.g. an acceleration term's): then B_t^T is its diagonal
+ * solved, lower triangular, and is built without reading F_t's other entries. */
+static void DK(diagonal_flags)(const real *F, int64_t T, int64_t n, unsigned char *diag) {
+    for (int64_t t = 0; t < T; t++) diag[t] = t >= 2 && DK(is_diagonal)(F + t * n * n, n);
+}
+
+/* The forward and back substitutions with the factors (banded_one's work space): x = L^{-T} L^{-1} g
+ * (module doc). r (2 ld reals) holds the vector being formed, padded with zeros beyond n so that every
+ * product with a factor's row runs over whole vectors. */
+static void DK(substitute)(const real *restrict U, const real *restrict At, const real *restrict Bt,
+                           const real *restrict rinv, const real *restrict g, real *restrict x, int64_t T,
+                           int64_t n, int64_t ld, real *restrict r) {
+    const int64_t nl = n * ld;
+    real *xs = r + ld;
     for (int64_t t = 0; t < T; t++) { /* forward: y_t = L_t^{-1}(g_t - A_t y_{t-1} - B_t y_{t-2}), in x */
         real *y = x + t * n;
-        const real *Ut = U + t * nn;
-        memcpy(y, g + t * n, n * sizeof(real));
-        for (int64_t k = 0; k < n; k++) {
-            if (t >= 1) DK(axpy)(y, x[(t - 1) * n + k], At + t * nn + k * n, n);
-            if (t >= 2) DK(axpy)(y, x[(t - 2) * n + k], Bt + t * nn + k * n, n);
+        const real *Ut = U + t * nl, *ri = rinv + t * ld;
+        memcpy(r, g + t * n, n * sizeof(real));
+        for (int64_t i = n; i < ld; i++) r[i] = 0;
+        for (int64_t s = 1; s <= 2 && s <= t; s++) { /* r -= M_t y_{t-s}: rows of M_t^T, whole vectors */
+            const real *M = (s == 1 ? At : Bt) + t * nl, *ys = x + (t - s) * n;
+            for (int64_t k = 0; k < n; k++) {
+                const real c = ys[k], *mk = M + k * ld;
+#pragma omp simd aligned(r, mk : DK_VBYTES)
+                for (int64_t i = 0; i < ld; i++) r[i] -= c * mk[i];
+            }
         }
         for (int64_t j = 0; j < n; j++) {
-            y[j] /= Ut[j * n + j];
-            DK(axpy)(y + j + 1, y[j], Ut + j * n + j + 1, n - j - 1);
+            const real c = r[j] * ri[j], *uj = Ut + j * ld;
+            y[j] = c;
+#pragma omp simd
+            for (int64_t i = j + 1; i < n; i++) r[i] -= c * uj[i];
         }
     }
+    for (int64_t i = n; i < ld; i++) xs[i] = 0;
     for (int64_t t = T - 1; t >= 0; t--) { /* back: x_t = U_t^{-1}(y_t - A_{t+1}^T x_{t+1} - B_{t+2}^T x_{t+2}) */
-        real *r = x + t * n;
-        const real *Ut = U + t * nn;
+        real *xt = x + t * n;
+        const real *Ut = U + t * nl, *ri = rinv + t * ld;
+        memcpy(r, xt, n * sizeof(real));
         for (int64_t s = 1; s <= 2 && t + s < T; s++) {
-            const real *M = (s == 1 ? At : Bt) + (t + s) * nn, *xs = x + (t + s) * n;
+            const real *M = (s == 1 ? At : Bt) + (t + s) * nl;
+            memcpy(xs, x + (t + s) * n, n * sizeof(real)); /* zeros beyond n: whole-vector products */
             for (int64_t i = 0; i < n; i++) {
+                const real *mi = M + i * ld;
                 real acc = 0;
-#pragma omp simd reduction(+ : acc)
-                for (int64_t k = 0; k < n; k++) acc += M[i * n + k] * xs[k];
+#pragma omp simd reduction(+ : acc) aligned(xs, mi : DK_VBYTES)
+                for (int64_t k = 0; k < ld; k++) acc += mi[k] * xs[k];
                 r[i] -= acc;
             }
         }
         for (int64_t i = n - 1; i >= 0; i--) {
+            const real *ui = Ut + i * ld;
             real acc = 0;
 #pragma omp simd reduction(+ : acc)
-            for (int64_t k = i + 1; k < n; k++) acc += Ut[i * n + k] * r[k];
-            r[i] = (r[i] - acc) / Ut[i * n + i];
+            for (int64_t k = i + 1; k < n; k++) acc += ui[k] * r[k];
+            r[i] = (r[i] - acc) * ri[i];
         }
+        memcpy(xt, r, n * sizeof(real));
     }
 }
 
+/* One system: work holds 3 T n ld reals of factors, T ld reciprocal diagonals and 2 ld of vectors. */
+static void DK(banded_one)(const real *D, const real *E, const real *F, const unsigned char *fdiag,
+                           const real *g, real *x, int64_t T, int64_t n, real shift, real *work) {
+    const int64_t ld = (n + DK_V - 1) / DK_V * DK_V, nl = n * ld, nn = n * n;
+    real *U = work, *At = work + T * nl, *Bt = work + 2 * T * nl; /* U_t = L_t^T, A_t^T, B_t^T */
+    real *rinv = work + 3 * T * nl;                                 /* 1 / diag(U_t) */
+    for (int64_t t = 0; t < T; t++) {
+        real *Ut = U + t * nl, *a = At + t * nl, *b = Bt + t * nl;
+        for (int64_t i = 0; i < n; i++) {
+            memcpy(Ut + i * ld, D + t * nn + i * n, n * sizeof(real));
+            for (int64_t j = n; j < ld; j++) Ut[i * ld + j] = 0;
+            Ut[i * ld + i] += shift; /* D_t + shift I (the caller's damping) */
+        }
+        int low = 0; /* F_t^T lower triangular (e.g. the diagonal of an acceleration term): so is B_t^T */
+        if (t >= 2) {
+            const real *Ft = F + t * nn;
+            if (fdiag[t]) {
+                memset(b, 0, (size_t)nl * sizeof(real));
+                for (int64_t i = 0; i < n; i++) b[i * ld + i] = Ft[i * n + i];
+                low = 1;
+            } else {
+                DK(transpose_into)(b, Ft, n, ld);
+                low = DK(is_lower)(b, n, ld);
+            }
+            DK(lower_solve)(U + (t - 2) * nl, rinv + (t - 2) * ld, b, n, ld, low); /* B_t^T = L_{t-2}^{-1} F_t^T */
+            DK(sub_tn)(Ut, b, b, n, ld, 1, low, low); /* - B_t B_t^T (upper triangle) */
+        }
+        if (t >= 1) {
+            DK(transpose_into)(a, E + t * nn, n, ld);
+            if (t >= 2) DK(sub_tn)(a, At + (t - 1) * nl, b, n, ld, 0, 0, low); /* E_t^T - A_{t-1} B_t^T */
+            DK(lower_solve)(U + (t - 1) * nl, rinv + (t - 1) * ld, a, n, ld, 0);
+            DK(sub_tn)(Ut, a, a, n, ld, 1, 0, 0); /* - A_t A_t^T (upper triangle) */
+        }
+        DK(cholesky_upper)(Ut, rinv + t * ld, n, ld);
+    }
+    DK(substitute)(U, At, Bt, rinv, g, x, T, n, ld, rinv + T * ld);
+}
+
 /* batch systems of T blocks of n: D, E (batch x T x n x n), F (batch x T x n x n, or T x n x n shared by
- * every system where f_shared: read once into cache, not batch times from memory), g and x (batch x T x
- * n), contiguous; shift (batch) or NULL: each system's D_t taken as D_t + shift I (an LM damping without a
- * copy of D). Returns 0, or -1 when the work space cannot be allocated. */
+ * every system where f_shared: read once into cache, not batch times from memory, and tested for a
+ * diagonal once), g and x (batch x T x n), contiguous; shift (batch) or NULL: each system's D_t taken as
+ * D_t + shift I (an LM damping without a copy of D). Returns 0, or -1 when the work space cannot be
+ * allocated. */
 static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, int64_t f_shared, const real *g,
                                 const real *shift, real *x, int64_t batch, int64_t T, int64_t n,
                                 int64_t nthreads) {
-    const size_t per = (size_t)(3 * T * n * n), sys = (size_t)(T * n * n), vec = (size_t)(T * n);
-    const size_t fsys = f_shared ? 0 : sys;
+    const int64_t ld = (n + DK_V - 1) / DK_V * DK_V;
+    const size_t reals = (size_t)((3 * n + 1) * T * ld + 2 * ld); /* one system's work (DK(banded_one)) */
+    const size_t per = reals + ((size_t)T + sizeof(real) - 1) / sizeof(real); /* + its F_t diagonal flags */
+    const size_t stride = (per + DK_V - 1) / DK_V * DK_V; /* each thread's work aligned */
+    const size_t sys = (size_t)(T * n * n), vec = (size_t)(T * n), fsys = f_shared ? 0 : sys;
     if (nthreads < 1) nthreads = 1;
     if (nthreads > batch) nthreads = batch;
-    real *work = malloc(per * (size_t)nthreads * sizeof(real));
+    real *work = aligned_alloc(DK_VBYTES, stride * (size_t)nthreads * sizeof(real)); /* whole aligned vectors */
     if (!work) return -1;
-    if (nthreads == 1) {
-        for (int64_t b = 0; b < batch; b++)
-            DK(banded_one)(D + b * sys, E + b * sys, F + b * fsys, g + b * vec, x + b * vec, T, n,
-                           shift ? shift[b] : 0, work);
-    } else {
-#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
-        for (int64_t b = 0; b < batch; b++)
-            DK(banded_one)(D + b * sys, E + b * sys, F + b * fsys, g + b * vec, x + b * vec, T, n,
-                           shift ? shift[b] : 0, work + per * (size_t)thread_id());
+    unsigned char *shared_flags = (unsigned char *)(work + reals); /* thread 0's, filled once when shared */
+    if (f_shared) DK(diagonal_flags)(F, T, n, shared_flags);
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1) if (nthreads > 1)
+    for (int64_t b = 0; b < batch; b++) {
+        real *w = work + stride * (size_t)(nthreads > 1 ? thread_id() : 0);
+        unsigned char *flags = f_shared ? shared_flags : (unsigned char *)(w + reals);
+        if (!f_shared) DK(diagonal_flags)(F + b * fsys, T, n, flags);
+        DK(banded_one)(D + b * sys, E + b * sys, F + b * fsys, flags, g + b * vec, x + b * vec, T, n,
+                       shift ? shift[b] : 0, w);
     }
     free(work);
     return 0;
 }
+#undef DK_V
