@@ -706,6 +706,36 @@ def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
             assert torch.equal(x, y)
 
 
+@pytest.mark.parametrize("source", ["urdf", "mjcf"])
+def test_jacobian_support_holds_every_non_zero_column(source):
+    """native.jacobian_support (the columns of each end link's ancestors) covers every non-zero Jacobian
+    column at random poses, and each of its columns is non-zero at some pose (it is the support, not a
+    superset), for the URDF and MJCF G1 with the retargeting frames; and the C frame terms give the same
+    numbers with it as with each frame's support found from its Jacobian (the same floats)."""
+    from diffkin.kernels import native
+
+    mp = retarget.Mapping.builtin("g1")
+    if source == "urdf":
+        g1 = models.from_urdf(G1_URDF, mp.frames, floating_base=True, dtype=torch.float64)
+    else:
+        g1 = models.from_mjcf(models.model_path("g1"), mp.frames, dtype=torch.float64)
+    g1 = g1.requires_grad_(False)
+    q = g1.random_configuration(64, generator=torch.Generator().manual_seed(0))
+    with torch.no_grad():
+        _, J = g1.forward_kinematics_and_jacobian(q)
+    nonzero = (J != 0).any(-2).any(0)  # (E, nv)
+    sup = native.jacobian_support(g1.topology, g1.nv)
+    assert torch.equal(sup, nonzero)
+    assert not bool(sup.all())  # a tree: every end link misses some columns
+    if source == "urdf" and native.available():
+        terms, qc = _terms_case(torch.float64)
+        given = terms.evaluate(qc)
+        terms.support = None
+        found = terms.evaluate(qc)
+        for a, b in zip(given, found):
+            assert torch.equal(a, b)
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_whole_clip_step_in_c_equals_the_torch_path(dtype):
     """The LM trial in C (native.clip_step: q ⊕ step with the base quaternion turned, the limits, then the

@@ -53,7 +53,7 @@
 #define DK_SOLVE_VERSION 1 /* dk_solve_args: bump with every change of DK_SOLVE_FIELDS (native.SolveArgs) */
 #define DK_WATCH_VERSION 1 /* dk_watch: bump with every change of DK_WATCH_FIELDS (native.WatchArgs) */
 #define DK_COLLIDE_VERSION 2 /* dk_collide: bump with every change of DK_COLLIDE_FIELDS (native.Collide) */
-#define DK_CLIP_VERSION 1 /* dk_clip: bump with every change of DK_CLIP_FIELDS (native.ClipArgs) */
+#define DK_CLIP_VERSION 2 /* dk_clip: bump with every change of DK_CLIP_FIELDS (native.ClipArgs) */
 #define DK_ABI_ERROR (-2) /* returned for a struct of another version or size */
 #define DK_RANGE_ERROR (-3) /* dk_solve: an option beyond this file's limits (lib_ranks > MAX_RANKS) */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
@@ -212,6 +212,7 @@ typedef struct dk_collide { DK_COLLIDE_FIELDS(DK_DECLARE) } dk_collide;
     X(const void *, pts, "[(P0+P1)*3] reals: sole points in the foot frames") \
     X(const void *, rad, "[P0+P1] reals: their radii") \
     X(const uint8_t *, contact, "[N*2] foot in contact") \
+    X(const uint8_t *, support, "[ends*nv] the columns each end link's Jacobian can be non-zero in, or NULL") \
     X(double, w_contact, "contact-height weight") \
     X(double, w_pen, "penetration weight") \
     X(double, w_flat, "flat-foot weight") \

@@ -61,7 +61,7 @@ static void DK(clip_gram)(const real *R, const real *r, int64_t m, const int64_t
 }
 
 static void DK(clip_frame)(const dk_clip *c, int64_t n, real *rows, real *res, real *packed, real *gram,
-                           int64_t *cols) {
+                           int64_t *cols, const int64_t *sup) {
     const int64_t nv = c->nv, E = c->ends, nn = nv * nv;
     const real *Tn = (const real *)c->Tf + n * E * 16, *Jn = (const real *)c->J + n * E * 6 * nv;
     const real *x = (const real *)c->x + n * c->K * 3, *Rd = (const real *)c->Rd + n * c->Ko * 9;
@@ -154,15 +154,20 @@ static void DK(clip_frame)(const dk_clip *c, int64_t n, real *rows, real *res, r
             }
         }
         if (m) {
-            const int64_t s = DK(support)(Je, nv, cols);
-            DK(clip_gram)(rows, res, m, cols, s, nv, packed, gram, D, g, &cost);
+            if (sup) { /* the end link's structural columns (ends x (nv + 1): the count, then the columns) */
+                const int64_t *se = sup + e * (nv + 1);
+                DK(clip_gram)(rows, res, m, se + 1, se[0], nv, packed, gram, D, g, &cost);
+            } else {
+                const int64_t s = DK(support)(Je, nv, cols);
+                DK(clip_gram)(rows, res, m, cols, s, nv, packed, gram, D, g, &cost);
+            }
         }
     }
     ((real *)c->cost)[n] = cost;
 }
 
 /* The skating rows of frame n (t = n mod T): its pair with n - 1 and with n + 1, then D_n mirrored. */
-static void DK(clip_skate)(const dk_clip *c, int64_t n, int64_t *cols) {
+static void DK(clip_skate)(const dk_clip *c, int64_t n, int64_t *cols, const int64_t *sup) {
     const int64_t nv = c->nv, nn = nv * nv, t = n % c->T;
     const uint8_t *con = c->contact;
     const real *ctr = (const real *)c->centre, *Jc = (const real *)c->centre_jac;
@@ -183,10 +188,17 @@ static void DK(clip_skate)(const dk_clip *c, int64_t n, int64_t *cols) {
         }
         const real wd = prev * prev + next * next;
         if (wd == 0) continue;
-        int64_t s = 0; /* the columns where a centre row of frame n or n - 1 is non-zero */
+        int64_t s = 0; /* the columns where a centre row of frame n or n - 1 is non-zero (or can be: the
+                          foot's structural columns) */
         const real *J1 = prev != 0 ? Jc + ((n - 1) * 4 + 2 * k) * nv : J0;
-        for (int64_t v = 0; v < nv; v++)
-            if (J0[v] != 0 || J0[nv + v] != 0 || J1[v] != 0 || J1[nv + v] != 0) cols[s++] = v;
+        if (sup) {
+            const int64_t *se = sup + c->feet[k] * (nv + 1);
+            s = se[0];
+            for (int64_t i = 0; i < s; i++) cols[i] = se[1 + i];
+        } else {
+            for (int64_t v = 0; v < nv; v++)
+                if (J0[v] != 0 || J0[nv + v] != 0 || J1[v] != 0 || J1[nv + v] != 0) cols[s++] = v;
+        }
         for (int a = 0; a < 2; a++)
             for (int64_t i = 0; i < s; i++) {
                 const real f = wd * J0[a * nv + cols[i]];
@@ -217,17 +229,26 @@ static int64_t DK(clip_rows)(const dk_clip *c) {
     const size_t per = reals * sizeof(real) + (size_t)nv * sizeof(int64_t);
     int64_t nth = c->nthreads < 1 ? 1 : c->nthreads;
     if (nth > N) nth = N > 0 ? N : 1;
-    char *work = malloc(per * (size_t)nth);
+    const size_t sup_bytes = c->support ? (size_t)(c->ends * (nv + 1)) * sizeof(int64_t) : 0;
+    char *work = malloc(per * (size_t)nth + sup_bytes);
     if (!work) return -1;
+    /* the structural columns of each end link, once per call (a frame's support where none is given) */
+    int64_t *sup = c->support ? (int64_t *)(work + per * (size_t)nth) : NULL;
+    for (int64_t e = 0; sup && e < c->ends; e++) {
+        int64_t *se = sup + e * (nv + 1), s = 0;
+        for (int64_t v = 0; v < nv; v++)
+            if (c->support[e * nv + v]) se[1 + s++] = v;
+        se[0] = s;
+    }
 #pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
     for (int64_t n = 0; n < N; n++) {
         real *rows = (real *)(work + per * (size_t)thread_id()), *packed = rows + rows_max * nv;
         real *res = packed + rows_max * nv, *gram = res + rows_max;
-        DK(clip_frame)(c, n, rows, res, packed, gram, (int64_t *)(rows + reals));
+        DK(clip_frame)(c, n, rows, res, packed, gram, (int64_t *)(rows + reals), sup);
     }
 #pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
     for (int64_t n = 0; n < N; n++)
-        DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals));
+        DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals), sup);
     free(work);
     return 0;
 }

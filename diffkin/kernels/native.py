@@ -75,7 +75,8 @@ __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thre
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
            "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "clip_joint",
-           "clip_step", "topp_grid", "topp_peaks", "topp_sample", "spline_fine", "spline_marks"]
+           "clip_step", "jacobian_support", "topp_grid", "topp_peaks", "topp_sample", "spline_fine",
+           "spline_marks"]
 
 _SOURCE = Path(__file__).with_name("_native.c")
 _INCLUDED = (Path(__file__).with_name("_native_solve.c"),  # #included by _native.c: part of its source
@@ -173,11 +174,11 @@ class Collide(ctypes.Structure):
 class ClipArgs(ctypes.Structure):
     """``dk_clip`` of ``_native.c`` (``DK_CLIP_FIELDS``: the arguments of :func:`clip_rows`)."""
 
-    VERSION = 1
+    VERSION = 2
     _fields_ = _HEAD + [(name, _I64) for name in
                         ("real_bytes", "nthreads", "N", "T", "nv", "ends", "K", "Ko", "P0", "P1")] + \
         [(name, _PTR) for name in
-         ("kp", "kp_w", "x", "ko", "ko_w", "Rd", "feet", "pts", "rad", "contact")] + \
+         ("kp", "kp_w", "x", "ko", "ko_w", "Rd", "feet", "pts", "rad", "contact", "support")] + \
         [(name, _F64) for name in ("w_contact", "w_pen", "w_flat", "w_skate", "ground")] + \
         [(name, _PTR) for name in ("Tf", "J", "cost", "D", "E", "g", "centre", "centre_jac")]
 
@@ -584,6 +585,16 @@ def _velocity_index(topo: Topology) -> list[int]:
     return [first[j] for j in range(topo.n_frames)]
 
 
+def jacobian_support(topo: Topology, nv: int) -> Tensor:
+    """``(K, nv)`` bool: the velocity columns each end link's Jacobian can be non-zero in (those of its
+    ancestors' motions, as the FK writes them: column c of the frame layout into velocity ``column_v[c]``)."""
+    sup = torch.zeros(len(topo.column_ancestors), nv, dtype=torch.bool)
+    for k, row in enumerate(topo.column_ancestors):
+        cols = [v for v, a in zip(topo.column_v, row) if a]
+        sup[k, cols] = True
+    return sup
+
+
 def _relinked(ints: dict, reals: dict, head: dict) -> NativeModel:
     model = NativeModel.__new__(NativeModel)
     model._link(ints, reals, head)
@@ -803,7 +814,8 @@ def spline_marks(u: Tensor, cum: Tensor, step: Tensor, count: Tensor, first: Ten
 def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,
               keypoints: Tensor, orientation_ends: list[int], orientation_weights: Tensor | None,
               orientations: Tensor | None, feet: list[int], soles: list[tuple[Tensor, Tensor]],
-              contacts: Tensor, weights: dict, ground: float, out: tuple[Tensor, Tensor] | None = None):
+              contacts: Tensor, weights: dict, ground: float, out: tuple[Tensor, Tensor] | None = None,
+              support: Tensor | None = None):
     """The frame terms of the whole-clip retargeting problem (:mod:`diffkin.retarget.whole_clip`: keypoints,
     orientations, the soles' contact height, penetration and level rows, skating) by ``dk_clip_rows``
     (``_native_clip.c``), from the end-link poses ``Tf (N, E, 4, 4)`` and Jacobians ``J (N, E, 6, nv)`` of
@@ -813,8 +825,11 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     ``orientations (N, K_o, 3, 3)`` of ``orientation_ends`` (or None), ``soles`` the feet's (points (P, 3),
     radii (P,)), ``contacts (N, 2)`` bool, ``weights`` the terms' weights by name. ``out``: optional
     ``(D, E)`` tensors to write D and E into (contiguous, of that shape and dtype; an iterative caller's
-    buffers, which spares the allocator two fresh blocks per call). None (nothing done) where the library is
-    not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    buffers, which spares the allocator two fresh blocks per call). ``support``: optional ``(E, nv)`` bool, the
+    columns each end link's Jacobian can be non-zero in (its ancestors': :func:`jacobian_support`; a
+    column outside is taken as zero, a column inside that is zero adds exact zeros), else each frame's
+    non-zero columns are found from its Jacobian. None (nothing done) where the library is not loaded or the
+    inputs are not CPU tensors of one float dtype without autograd."""
     dtype = Tf.dtype
     if (not available() or dtype not in (torch.float32, torch.float64) or Tf.device.type != "cpu"
             or J.dtype != dtype or torch.is_grad_enabled() and (Tf.requires_grad or J.requires_grad)):
@@ -827,7 +842,8 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
             longs(orientation_ends or [0]), real(orientation_weights if Ko else Tf.new_zeros(1)),
             real(orientations if Ko else Tf.new_zeros(1)), longs(feet),
             real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
-            contacts.to(torch.uint8).contiguous()]
+            contacts.to(torch.uint8).contiguous(),
+            None if support is None else support.to(device="cpu", dtype=torch.uint8).contiguous()]
     cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
     if out is not None and all(t.shape == (N, nv, nv) and t.dtype == dtype and t.device.type == "cpu"
                                and t.is_contiguous() for t in out):
@@ -839,7 +855,8 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     args = new_struct(ClipArgs, real_bytes=Tf.element_size(), nthreads=threads, N=N, T=T, nv=nv,
                       ends=E, K=len(keypoint_ends), Ko=Ko, P0=soles[0][0].shape[0], P1=soles[1][0].shape[0],
                       kp=keep[2], kp_w=keep[3], x=keep[4], ko=keep[5], ko_w=keep[6], Rd=keep[7], feet=keep[8],
-                      pts=keep[9], rad=keep[10], contact=keep[11], w_contact=float(weights["contact_height"]),
+                      pts=keep[9], rad=keep[10], contact=keep[11], support=keep[12],
+                      w_contact=float(weights["contact_height"]),
                       w_pen=float(weights["penetration"]), w_flat=float(weights["flat_foot"]),
                       w_skate=float(weights["skating"]), ground=float(ground), Tf=keep[0], J=keep[1],
                       cost=cost, D=D, E=Eb, g=g, centre=centre, centre_jac=centre_jac)

@@ -110,6 +110,9 @@ class _Terms:
             self.ori_idx = [self.kp_idx[k] for k in sel]
             self.ori_w = orientation_weights[sel]
         self.feet_idx = [ends.index(f) for f in feet]
+        # the columns each end link's Jacobian can be non-zero in: the C frame terms' Gram products skip
+        # finding them per frame
+        self.support = native.jacobian_support(chain.topology, chain.nv)
         self.sole_list = soles_of(chain, feet, sole)
         self.soles = [(s.points.to(keypoints), s.radii.to(keypoints)) for s in self.sole_list]
         if collision is not None:  # self pairs closer than the margin (module self_collision), C path or not
@@ -229,7 +232,8 @@ class _Terms:
             keypoints=self.x.reshape(B * T, -1, 3), orientation_ends=self.ori_idx if ori else [],
             orientation_weights=w["orientation"] * self.ori_w.to(Ta) if ori else None,
             orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
-            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground, out=buffers)
+            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground, out=buffers,
+            support=self.support)
         if out is None:
             return self._frame_terms_torch(Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:]))
         cost, D, E, g = out
