@@ -825,8 +825,8 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     ``orientations (N, K_o, 3, 3)`` of ``orientation_ends`` (or None), ``soles`` the feet's (points (P, 3),
     radii (P,)), ``contacts (N, 2)`` bool, ``weights`` the terms' weights by name. ``out``: optional
     ``(D, E)`` tensors to write D and E into (contiguous, of that shape and dtype; an iterative caller's
-    buffers, which spares the allocator two fresh blocks per call). ``support``: optional ``(E, nv)`` bool, the
-    columns each end link's Jacobian can be non-zero in (its ancestors': :func:`jacobian_support`; a
+    buffers, which spares the allocator two fresh blocks per call). ``support``: optional ``(E, nv)`` bool,
+    the columns each end link's Jacobian can be non-zero in (its ancestors': :func:`jacobian_support`; a
     column outside is taken as zero, a column inside that is zero adds exact zeros), else each frame's
     non-zero columns are found from its Jacobian. None (nothing done) where the library is not loaded or the
     inputs are not CPU tensors of one float dtype without autograd."""
