@@ -10,7 +10,7 @@ from torch import Tensor
 from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
 from ._edges import EdgeChecker
 
-__all__ = ["_knots", "_spline_clear"]
+__all__ = ["_knots", "_spline_clear", "_spline_failures"]
 
 
 def _knots(path: Tensor) -> Tensor:
@@ -21,10 +21,18 @@ def _knots(path: Tensor) -> Tensor:
 
 def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
                   fine: int = 4096) -> Tensor:
-    """(B,) bool: the clamped cubic spline through ``path`` (B, L, nq) at ``knots`` (B, L) — the geometric
-    path :func:`~diffkin.trajectories.time_optimal` times — is proven clear and within the joint limits
-    ``lo``, ``hi`` (nq,) (a cubic overshoots its waypoints: checked on the ``fine`` samples, whose spacing
-    leaves at most the spline's curvature times (1/fine)² between them). Its bound-length
+    """(B,) bool: the clamped cubic spline through ``path`` is proven clear and within the limits
+    (:func:`_spline_failures`, which says where it is not)."""
+    return ~_spline_failures(checker, path, knots, lo, hi, problem, fine).any(1)
+
+
+def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor,
+                     problem: Tensor, fine: int = 4096) -> Tensor:
+    """(B, L − 1) bool: the knot intervals where the clamped cubic spline through ``path`` (B, L, nq) at
+    ``knots`` (B, L) — the geometric path :func:`~diffkin.trajectories.time_optimal` times — is *not* proven
+    clear or within the joint limits ``lo``, ``hi`` (nq,) (all False: the whole spline is; a cubic
+    overshoots its waypoints: the limits checked on the ``fine`` samples, whose spacing leaves at most the
+    spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
     crosses a multiple of 0.8 η_b (each problem's resolution; the 20 % spare covers chords against arcs
     and the last fine chord)."""
@@ -37,10 +45,10 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     # the fine samples in column blocks (each overlapping the next by one sample for its chord): the
     # (B, ·, nq) positions of all of them at once would be hundreds of MB for a large batch
     w = max(64, _BLOCK // max(B, 1))
-    inside, chords = torch.ones(B, dtype=torch.bool, device=path.device), []
+    outside, chords = [], []
     for c in range(0, fine, w):
         q = p.eval(u[:, c:c + w + 1], position_only=True)[0]
-        inside &= ((q >= lo) & (q <= hi)).all(-1).all(-1)
+        outside.append(((q < lo) | (q > hi)).any(-1)[:, int(c > 0):])  # each sample once
         chords.append(((q[:, 1:] - q[:, :-1]).abs() * reach).sum(-1))
     chord = torch.cat(chords, 1)
     cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
@@ -54,6 +62,11 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
     idx = _search_rows(cum, rows, marks, right=False).clamp(max=fine)
     qc = p.eval(u[0, idx], rows=rows, position_only=True)[0].to(path.dtype)  # the same floats as above
     ok = checker.clear(qc, problem[rows])
-    clear = torch.ones(B, dtype=torch.bool, device=path.device)
-    clear[rows[~ok]] = False
-    return clear & inside
+    # each failing sample blames the knot interval holding it (a sample on a knot: the interval it starts)
+    L = path.shape[1]
+    bad = torch.zeros(B, L - 1, dtype=torch.bool, device=path.device)
+    br = rows[~ok]
+    bad[br, (_search_rows(s, br, u[0, idx[~ok]]) - 1).clamp(0, L - 2)] = True
+    ob, oi = torch.cat(outside, 1).nonzero(as_tuple=True)
+    bad[ob, (_search_rows(s, ob, u[0, oi]) - 1).clamp(0, L - 2)] = True
+    return bad
