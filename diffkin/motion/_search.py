@@ -214,7 +214,7 @@ def row_uniform(key: Tensor, counter: int, shape: tuple[int, ...]) -> Tensor:
 
 
 #: :func:`shortcut_points` stops trying on a path after this many rounds in a row found no clear shortcut
-STOP_AFTER = 3
+STOP_AFTER = 4
 
 
 def shortcut_points(checker: EdgeChecker, path: Tensor, n: Tensor, problem: Tensor, rounds: int,

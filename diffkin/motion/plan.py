@@ -15,10 +15,16 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
    edge is checked by a subdivision whose joint step bounds the travel of every geom point by the
    problem's resolution (so the continuous edge is clear of ``margin``).
 4. **Shortcutting**: random straight shortcuts between waypoints, each edge checked the same way (in C with
-   the C search).
+   the C search); then :data:`POINT_ROUNDS` × ``shortcut_rounds`` rounds of shortcuts between points
+   anywhere on the path
+   (:func:`~diffkin.motion._search.shortcut_points`: the detours a path of few waypoints keeps; each
+   problem's draws its own stream, seeded by ``seed`` and its start and goal).
 5. **Geometric path**: the cubic spline through the waypoints (chord-length knots, zero path slope at both
-   ends), checked continuously by the same bound (along its length in the bound's metric); a row whose
-   spline leaves the clear region falls back to the checked polyline itself (a stop at every waypoint).
+   ends), checked continuously by the same bound (along its length in the bound's metric); where it leaves
+   the clear region (or the limits), the knot intervals it fails on and their neighbours are split at their
+   midpoints (points of the checked polyline, which the new spline hugs closer) and the spline checked
+   again, up to :data:`REFINE_ROUNDS` times; a refined row is timed both ways and keeps the faster; a row no
+   round proves falls back to the checked polyline itself (a stop at every waypoint).
 6. **Optimisation** (``optimize=True``, :mod:`diffkin.motion.optimize`): the path resampled to knots and
    optimised for smoothness with the distances and limits as constraints; kept where its segments and
    spline are proven clear as above, else the path of 5. The optimised knots carry the implicit gradient
@@ -62,9 +68,10 @@ SHORTCUT_TRIES = 4
 #: rounds of spline refinement (module docstring, 5): each splits the knot intervals where the spline is not
 #: proven clear, and their neighbours, at their midpoints (the spacing there halves each round)
 REFINE_ROUNDS = 6
-#: rounds of shortcuts between points anywhere on the searched path (:func:`~._search.shortcut_points`), and
-#: the shortcuts tried per path per round
-POINT_ROUNDS, POINT_TRIES = 8, 8
+#: rounds of shortcuts between points anywhere on the searched path (:func:`~._search.shortcut_points`) per
+#: round of ``shortcut_rounds``, and the shortcuts tried per path per round (each clear one taken costs its
+#: edge's whole subdivision: on the cage problems this stage costs about what the search does)
+POINT_ROUNDS, POINT_TRIES = 2, 8
 
 
 def _row_resolution(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, rows: Tensor
@@ -249,7 +256,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             the row fails as in collision).
         max_iterations / step / shortcut_rounds / seed / goal_bias: search budget per problem, RRT step
             (metres of geom travel in the bound's metric), shortcut rounds (:data:`SHORTCUT_TRIES` tries per
-            path each), randomness, the probability of extending towards the other tree's root.
+            path each between waypoints, and :data:`POINT_ROUNDS` rounds of :data:`POINT_TRIES` between any
+            points of the path each), randomness, the probability of extending towards the other tree's root.
         search_in_c: the search stage by the C RRT-Connect (:mod:`diffkin.motion._native_search`: one
             problem per thread, each problem's randomness its own, so a problem planned alone equals its
             row in a batch) where it serves (CPU, the library built, capsule and sphere models whose
@@ -382,7 +390,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, rows[~found], True),
                  f"no collision-free path found in {max_iterations} iterations")
             if bool(found.any()):  # shortcuts between any points of the paths (detours between waypoints)
-                sp, sn = shortcut_points(checker, path[found], n[found], rows[found], POINT_ROUNDS,
+                sp, sn = shortcut_points(checker, path[found], n[found], rows[found],
+                                         POINT_ROUNDS * shortcut_rounds,
                                          row_keys(q_start[rows[found]], q_goal[rows[found]], seed),
                                          tries=POINT_TRIES)
                 if sp.shape[1] > path.shape[1]:
