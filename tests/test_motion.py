@@ -374,9 +374,9 @@ def test_shortcut_points_shortens_proven_paths(robot):
 
 def test_cage_problem_spline_refined_not_the_polyline(monkeypatch):
     """A MotionBenchMaker cage problem (spherized Panda, half the default shortcut rounds): the cubic spline
-    through its shortcut path leaves the clear region, so without refinement (REFINE_ROUNDS = 0) it is timed along the polyline (a stop at each
-    waypoint); refined (midpoints where the spline failed) it is a proven spline, faster; the motion keeps
-    d >= 0 on its 10 ms samples by the closed-form torch distances."""
+    through its shortcut path leaves the clear region, so without refinement (REFINE_ROUNDS = 0) it is timed
+    along the polyline (a stop at each waypoint); refined (midpoints where the spline failed) it is a proven
+    spline, faster; the motion keeps d >= 0 on its 10 ms samples by the closed-form torch distances."""
     from benchmarks import motion_problems as mp
     from diffkin.collision.boxes import sphere_box
     from diffkin.collision.cylinders import sphere_cylinder
