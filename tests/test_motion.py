@@ -4,6 +4,8 @@ densely by Pinocchio's FK + coal (never by the code under test) and against thei
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 import torch
@@ -306,3 +308,99 @@ def test_plan_one_scene_per_problem_in_one_call(search_in_c):
     with pytest.raises(ShapeError):  # a world per problem: batch (B,), not another
         motion.plan(chain, qs, qg, collision=rc, world=World.stack(worlds * 2), velocity_limit=v,
                     acceleration_limit=10.0)
+
+
+def test_split_keeps_the_polyline():
+    """plan._split inserts the midpoints of the cut segments (rows with fewer cuts padded by _pad): every new
+    waypoint lies on its row's old polyline, the old waypoints are kept in order, and the ends unchanged."""
+    from diffkin.motion.plan import _split
+
+    g = torch.Generator().manual_seed(0)
+    path = torch.randn(3, 5, 2, generator=g, dtype=torch.float64)
+    cut = torch.tensor([[True, False, True, False], [False] * 4, [False, True, True, True]])
+    out = _split(path, cut)
+    assert out.shape == (3, 8, 2)
+    assert torch.equal(out[:, 0], path[:, 0]) and torch.equal(out[:, -1], path[:, -1])
+    assert torch.equal(out[2, [0, 1, 3, 5, 7]], path[2])  # the row with the most cuts: no padding
+    assert torch.allclose(out[2, 2], path[2, 1:3].mean(0)) and torch.allclose(out[2, 6], path[2, 3:].mean(0))
+    for b in range(3):  # the old waypoints in order among the new ones
+        j = 0
+        for x in out[b]:
+            j += bool(j < 5 and torch.equal(x, path[b, j]))
+        assert j == 5
+    assert any(torch.allclose(x, path[0, :2].mean(0)) for x in out[0])
+    for b in range(3):  # on the polyline: each new point between two consecutive old waypoints
+        a, c = path[b, :-1], path[b, 1:]
+        for x in out[b]:
+            f = ((x - a) * (c - a)).sum(-1) / ((c - a) ** 2).sum(-1)
+            d = (a + f.clamp(0, 1)[:, None] * (c - a) - x).norm(dim=-1)
+            assert float(d.min()) < 1e-12
+
+
+def test_shortcut_points_shortens_proven_paths(robot):
+    """shortcut_points on searched paths: the ends kept, no path longer, clear on dense samples by the exact
+    torch distances (its new pieces are parts of proven edges or checked edges), and a path's draws its own
+    (the same path alone as in the batch)."""
+    from diffkin.motion._search import row_keys, search, shortcut_points
+
+    chain, rc, world = robot
+    eta = 0.01
+    checker = EdgeChecker(rc, world, 0.0, eta)
+    g = torch.Generator().manual_seed(3)
+    q = random_configuration(chain, (8,), g, collision=rc, world=world, margin=0.02)
+    qs, qg = q[:4], q[4:]
+    rows = torch.arange(4)
+    lim = chain.q_limits.to(torch.float64)
+    path, n, found = search(checker, qs, qg, lim[:, 0], lim[:, 1], rows, max_iterations=300, step=0.3,
+                            generator=torch.Generator().manual_seed(0))
+    assert found.all() and (n > 2).any()
+    key = row_keys(qs, qg, 0)
+    new, m = shortcut_points(checker, path, n, rows, 8, key)
+    length = lambda p, k: (p[1:k] - p[:k - 1]).norm(dim=-1).sum()  # noqa: E731
+    shorter = 0
+    for b in range(4):
+        k = int(m[b])
+        assert torch.equal(new[b, 0], qs[b]) and torch.equal(new[b, k - 1], qg[b])
+        assert length(new[b], k) <= length(path[b], int(n[b])) + 1e-12
+        shorter += bool(length(new[b], k) < length(path[b], int(n[b])) - 1e-6)
+        f = torch.linspace(0, 1, 64, dtype=torch.float64)[:, None]
+        dense = (new[b, :k - 1, None] + f * (new[b, 1:k] - new[b, :k - 1])[:, None]).reshape(-1, 7)
+        assert float(rc.min_distance(dense, world).min()) >= 0
+    assert shorter >= 1
+    r = int((n > 2).nonzero()[0])
+    alone, m1 = shortcut_points(checker, path[r:r + 1], n[r:r + 1], rows[r:r + 1], 8, key[r:r + 1])
+    assert int(m1[0]) == int(m[r]) and torch.equal(alone[0, :int(m1[0])], new[r, :int(m[r])])
+
+
+def test_cage_problem_spline_refined_not_the_polyline(monkeypatch):
+    """A MotionBenchMaker cage problem (spherized Panda, half the default shortcut rounds): the cubic spline
+    through its shortcut path leaves the clear region, so without refinement (REFINE_ROUNDS = 0) it is timed
+    along the polyline (a stop at each waypoint); refined (midpoints where the spline failed) it is a proven
+    spline, faster; the motion keeps d >= 0 on its 10 ms samples by the closed-form torch distances."""
+    from benchmarks import motion_problems as mp
+    from diffkin.collision.boxes import sphere_box
+    from diffkin.collision.cylinders import sphere_cylinder
+
+    plan_mod = importlib.import_module("diffkin.motion.plan")  # the module (motion.plan is the function)
+    probs = mp.load_problems(families=["cage"], indices=[2])
+    chain = models.from_urdf(mp.PANDA_SPHERIZED_URDF, "panda_hand", dtype=torch.float64)
+    rc = RobotCollision.from_urdf(mp.PANDA_SPHERIZED_URDF, chain, mp.PANDA_SRDF).requires_grad_(False)
+    rc = rc.allow_collisions(probs[0].scene.allowed)
+    w = probs[0].scene.to_world(dtype=torch.float64)
+    qs = torch.tensor([probs[0].start], dtype=torch.float64)
+    qg = torch.tensor([probs[0].goal], dtype=torch.float64)
+    kw = dict(collision=rc, world=w, velocity_limit=mp.FRANKA_V, acceleration_limit=mp.FRANKA_A,
+              jerk_limit=mp.FRANKA_J, max_iterations=30000, step=0.5, shortcut_rounds=8)
+    res = motion.plan(chain, qs, qg, **kw)
+    monkeypatch.setattr(plan_mod, "REFINE_ROUNDS", 0)
+    raw = motion.plan(chain, qs, qg, **kw)
+    assert res.success.all() and raw.success.all(), (res.reason, raw.reason)
+    assert raw.interpolation == ["linear"] and res.interpolation == ["spline"]
+    assert float(res.duration[0]) < float(raw.duration[0])
+    moving = ~torch.tensor(rc.fixed)
+    a, _, r, *_ = rc.placed(res.q[0])
+    a, r = a[:, moving, None], r[moving, None]
+    d_box = sphere_box(a, r, w.boxes.center, w.boxes.rotation, w.boxes.half_extents)
+    d_cyl = sphere_cylinder(a, r, w.cylinders[:, :3], w.cylinders[:, 3:6], w.cylinders[:, 6]) \
+        if w.cylinders.numel() else d_box
+    assert min(d_box.min(), d_cyl.min()) >= 0

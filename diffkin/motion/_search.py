@@ -1,5 +1,6 @@
 """Batched collision-free path search: straight line first, then RRT-Connect vectorised over problems, then
-random shortcutting. Every edge goes through :class:`~diffkin.motion._edges.EdgeChecker` (subdivision with
+random shortcutting (between waypoints, then between points anywhere on the path). Every edge goes
+through :class:`~diffkin.motion._edges.EdgeChecker` (subdivision with
 the proven step bound), all problems' edges of one iteration in one batched decision.
 
 Trees are tensors ``(B, capacity, nq)`` with parent indices; one iteration extends, for every unsolved
@@ -16,7 +17,7 @@ from torch import Tensor
 
 from ._edges import EdgeChecker
 
-__all__ = ["search", "shortcut"]
+__all__ = ["row_keys", "row_uniform", "search", "shortcut", "shortcut_points"]
 
 
 def _nearest(nodes: Tensor, count: Tensor, q: Tensor, w: Tensor) -> Tensor:
@@ -173,4 +174,125 @@ def shortcut(checker: EdgeChecker, path: Tensor, n: Tensor, problem: Tensor, rou
         src = torch.where(cols > ii[:, None], cols + drop[:, None], cols).clamp(max=L - 1)
         path = path[rows[:, None], src]
         n = n - drop
+    return path, n
+
+
+def _signed(c: int) -> int:
+    return c - (1 << 64) if c >= 1 << 63 else c
+
+
+_GOLDEN, _M1, _M2 = _signed(0x9E3779B97F4A7C15), _signed(0xBF58476D1CE4E5B9), _signed(0x94D049BB133111EB)
+
+
+def _mix(x: Tensor) -> Tensor:
+    """splitmix64's finaliser on int64 tensors (wrapping products; the shifts logical, by masking)."""
+    shr = lambda v, k: (v >> k) & ((1 << (64 - k)) - 1)  # noqa: E731
+    x = (x ^ shr(x, 30)) * _M1
+    x = (x ^ shr(x, 27)) * _M2
+    return x ^ shr(x, 31)
+
+
+def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
+    """(B,) int64: a random-stream key per problem from ``seed`` and the bits of its start and goal, so
+    that a problem's draws (:func:`row_uniform`) do not depend on the batch it is planned in (as the C
+    search's streams)."""
+    bits = torch.cat((q_start, q_goal), -1).detach().to(torch.float64).contiguous().view(torch.int64)
+    key = torch.full(bits.shape[:1], seed, dtype=torch.int64, device=bits.device)
+    for j in range(bits.shape[1]):
+        key = _mix(key ^ bits[:, j] + _GOLDEN)
+    return key
+
+
+def row_uniform(key: Tensor, counter: int, shape: tuple[int, ...]) -> Tensor:
+    """(B, *shape) float64 uniform in [0, 1): draw ``counter`` of the streams ``key`` (B,)."""
+    k = 1
+    for d in shape:
+        k *= d
+    i = torch.arange(k, dtype=torch.int64, device=key.device) + counter * k + 1
+    z = _mix(key[:, None] + i * _GOLDEN)
+    return ((z >> 11) & ((1 << 53) - 1)).to(torch.float64).mul_(2.0 ** -53).view(key.shape[0], *shape)
+
+
+#: :func:`shortcut_points` stops trying on a path after this many rounds in a row found no clear shortcut
+STOP_AFTER = 4
+
+
+def shortcut_points(checker: EdgeChecker, path: Tensor, n: Tensor, problem: Tensor, rounds: int,
+                    key: Tensor, tries: int = 8) -> tuple[Tensor, Tensor]:
+    """Random shortcutting between points anywhere on the paths (B, L, nq) with n (B,) waypoints of problems
+    ``problem (B,)``, not only between waypoints (which leaves the detours of a path with few waypoints):
+    each round every path tries ``tries`` straight edges a → b between two points drawn uniformly along its
+    joint-space length (each path's own stream ``key`` (B,), :func:`row_keys`), on different segments
+    i < j, and of the clear ones takes the one shortening the path the most (checked best first: a path's
+    next try only where its better ones collide; each check one batched decision):
+    ``w_0 … w_i, a, b, w_(j+1) … w_(n−1)``. The pieces ``w_i → a`` and ``b → w_(j+1)`` are parts of edges
+    already proven clear, so the path stays proven. A path stops after :data:`STOP_AFTER` rounds in a row
+    without a clear shortcut. Returns the paths (B, L', nq) (L' ≤ L + rounds; rows padded with their last
+    waypoint) and their counts."""
+    B, L, nq = path.shape
+    dev = path.device
+    misses = torch.zeros(B, dtype=torch.long, device=dev)
+    for rnd in range(rounds):
+        can = ((n > 2) & (misses < STOP_AFTER)).nonzero().squeeze(1)
+        if can.numel() == 0:
+            break
+        cols = torch.arange(L, device=dev)[None]
+        p = path[can]
+        seg = (p[:, 1:] - p[:, :-1]).norm(dim=-1)
+        seg = torch.where(cols[:, :-1] < (n[can] - 1)[:, None], seg, 0.0)
+        cum = torch.cat((seg.new_zeros(can.numel(), 1), seg.cumsum(1)), 1)  # (C, L)
+        total = cum[:, -1:]
+        u = row_uniform(key[can], rnd, (tries, 2)).to(path.dtype)
+        t = u.sort(-1).values * total[..., None]  # (C, tries, 2)
+        # the segment holding each point: the last waypoint at or before it (within the row's n − 1 segments)
+        k = (torch.searchsorted(cum, t.reshape(can.numel(), -1), right=True) - 1).view_as(t)
+        k = torch.minimum(k.clamp(min=0), (n[can] - 2)[:, None, None])
+        base = torch.gather(cum, 1, k.flatten(1)).view_as(t)
+        ln = torch.gather(seg, 1, k.flatten(1)).view_as(t)
+        f = ((t - base) / ln.clamp(min=torch.finfo(path.dtype).tiny)).clamp(0, 1)
+        r = torch.arange(can.numel(), device=dev)[:, None, None]
+        pt = p[r, k] + f[..., None] * (p[r, k + 1] - p[r, k])  # (C, tries, 2, nq)
+        a, b = pt[:, :, 0], pt[:, :, 1]
+        i, j = k[..., 0], k[..., 1]
+        direct = (b - a).norm(dim=-1)
+        gain = (t[..., 1] - t[..., 0]) - direct
+        # shortcuts within one segment change nothing; tiny ones are not worth an edge check
+        gain = torch.where((j > i) & (gain > 1e-6 * total), gain, -1.0)
+        # the tries by gain, largest first: each path's k-th best checked only where its better ones
+        # collided (a clear edge costs all its subdivision samples, a colliding one usually few)
+        order = gain.argsort(1, descending=True)
+        c = torch.arange(can.numel(), device=dev)
+        best = torch.full_like(c, -1)
+        for kk in range(tries):
+            o = order[:, kk]
+            ask = c[(best < 0) & (gain[c, o] > 0)]
+            if ask.numel() == 0:
+                break
+            free, _ = checker.edges(a[ask, o[ask]], b[ask, o[ask]], problem[can[ask]])
+            best[ask[free]] = o[ask[free]]
+        take = best >= 0
+        misses[can] = torch.where(take, 0, misses[can] + 1)
+        if not bool(take.any()):
+            continue
+        ct, bi = c[take], best[take]
+        tr = can[take]
+        i, j = i[ct, bi], j[ct, bi]
+        a, b = a[ct, bi], b[ct, bi]
+        new_n = n.clone()
+        new_n[tr] = n[tr] + 2 - (j - i)  # i + 1 kept, a and b, n − 1 − j kept after them
+        L2 = max(L, int(new_n.max()))
+        if L2 > L:
+            path = torch.cat((path, path[:, -1:].expand(B, L2 - L, nq)), 1)
+            L = L2
+        cols = torch.arange(L, device=dev)[None]
+        src = torch.where(cols > i[:, None] + 2, cols + (j - i - 2)[:, None], cols).clamp(max=L - 1)
+        sub = path[tr[:, None], src]
+        sub[torch.arange(tr.numel(), device=dev), i + 1] = a
+        sub[torch.arange(tr.numel(), device=dev), i + 2] = b
+        # past the row's last waypoint: its goal
+        last = path[tr, n[tr] - 1]
+        sub = torch.where((cols < new_n[tr][:, None])[..., None], sub, last[:, None])
+        path = path.clone()
+        path[tr] = sub
+        n = new_n
     return path, n

@@ -11,7 +11,7 @@ from ..kernels import native
 from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
 from ._edges import EdgeChecker
 
-__all__ = ["_knots", "_spline_clear"]
+__all__ = ["_knots", "_spline_clear", "_spline_failures"]
 
 
 def _knots(path: Tensor) -> Tensor:
@@ -22,10 +22,18 @@ def _knots(path: Tensor) -> Tensor:
 
 def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
                   fine: int = 4096) -> Tensor:
-    """(B,) bool: the clamped cubic spline through ``path`` (B, L, nq) at ``knots`` (B, L) — the geometric
-    path :func:`~diffkin.trajectories.time_optimal` times — is proven clear and within the joint limits
-    ``lo``, ``hi`` (nq,) (a cubic overshoots its waypoints: checked on the ``fine`` samples, whose spacing
-    leaves at most the spline's curvature times (1/fine)² between them). Its bound-length
+    """(B,) bool: the clamped cubic spline through ``path`` is proven clear and within the limits
+    (:func:`_spline_failures`, which says where it is not)."""
+    return ~_spline_failures(checker, path, knots, lo, hi, problem, fine).any(1)
+
+
+def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor,
+                     problem: Tensor, fine: int = 4096) -> Tensor:
+    """(B, L − 1) bool: the knot intervals where the clamped cubic spline through ``path`` (B, L, nq) at
+    ``knots`` (B, L) — the geometric path :func:`~diffkin.trajectories.time_optimal` times — is *not* proven
+    clear or within the joint limits ``lo``, ``hi`` (nq,) (all False: the whole spline is; a cubic
+    overshoots its waypoints: the limits checked on the ``fine`` samples, whose spacing leaves at most the
+    spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
     crosses a multiple of 0.8 η_b (each problem's resolution; the 20 % spare covers chords against arcs
     and the last fine chord). The samples and check points in C on the CPU (``kernels/_native_spline.c``,
@@ -63,6 +71,21 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
         idx = _search_rows(cum, rows, marks, right=False).clamp(max=fine)
         qc = p.eval(u[0, idx], rows=rows, position_only=True)[0]  # the same floats as above
     ok = checker.clear(qc.to(path.dtype), problem[rows])
-    clear = torch.ones(B, dtype=torch.bool, device=path.device)
-    clear[rows[~ok]] = False
-    return clear & inside
+    # each failing mark blames the knot interval holding it (a mark on a knot: the interval it starts); its
+    # fine sample found again for the failing marks only
+    L = path.shape[1]
+    bad = torch.zeros(B, L - 1, dtype=torch.bool, device=path.device)
+    fail = (~ok).nonzero().flatten()
+    if fail.numel():
+        fr = rows[fail]
+        fm = (fail - first[fr]).to(torch.float64) * c[fr]
+        fidx = _search_rows(cum, fr, fm, right=False).clamp(max=fine)
+        bad[fr, (_search_rows(s, fr, u[0, fidx]) - 1).clamp(0, L - 2)] = True
+    out = (~inside).nonzero().flatten()  # rows beyond a limit somewhere: their samples evaluated again
+    if out.numel():
+        sub = _Path(s[out].contiguous(), path[out].to(torch.float64), "spline", "clamped")
+        q = sub.eval(u[out], position_only=True)[0]
+        ob, oi = (~((q >= lo) & (q <= hi))).any(-1).nonzero(as_tuple=True)  # NaN: outside, as for inside
+        bad[out[ob], (_search_rows(s, out[ob], u[0, oi]) - 1).clamp(0, L - 2)] = True
+        bad[out] |= ~bad[out].any(1, keepdim=True)  # never a row not inside without a failing interval
+    return bad

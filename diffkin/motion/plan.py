@@ -15,10 +15,16 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
    edge is checked by a subdivision whose joint step bounds the travel of every geom point by the
    problem's resolution (so the continuous edge is clear of ``margin``).
 4. **Shortcutting**: random straight shortcuts between waypoints, each edge checked the same way (in C with
-   the C search).
+   the C search); then :data:`POINT_ROUNDS` × ``shortcut_rounds`` rounds of shortcuts between points
+   anywhere on the path
+   (:func:`~diffkin.motion._search.shortcut_points`: the detours a path of few waypoints keeps; each
+   problem's draws its own stream, seeded by ``seed`` and its start and goal).
 5. **Geometric path**: the cubic spline through the waypoints (chord-length knots, zero path slope at both
-   ends), checked continuously by the same bound (along its length in the bound's metric); a row whose
-   spline leaves the clear region falls back to the checked polyline itself (a stop at every waypoint).
+   ends), checked continuously by the same bound (along its length in the bound's metric); where it leaves
+   the clear region (or the limits), the knot intervals it fails on and their neighbours are split at their
+   midpoints (points of the checked polyline, which the new spline hugs closer) and the spline checked
+   again, up to :data:`REFINE_ROUNDS` times; a refined row is timed both ways and keeps the faster; a row no
+   round proves falls back to the checked polyline itself (a stop at every waypoint).
 6. **Optimisation** (``optimize=True``, :mod:`diffkin.motion.optimize`): the path resampled to knots and
    optimised for smoothness with the distances and limits as constraints; kept where its segments and
    spline are proven clear as above, else the path of 5. The optimised knots carry the implicit gradient
@@ -45,8 +51,8 @@ from ..trajectories.time_optimal import time_optimal
 from ..validation import check_count, check_number, shape_str, tensors
 from ._edges import EdgeChecker
 from ._native_search import search_native
-from ._search import search, shortcut
-from ._spline import _knots, _spline_clear
+from ._search import row_keys, search, shortcut, shortcut_points
+from ._spline import _knots, _spline_failures
 from .optimize import OptimizeConfig, optimize_stage, sample_with
 
 __all__ = ["MotionResult", "plan"]
@@ -59,6 +65,13 @@ DEFAULT_JERK_PER_ACCELERATION = 100.0
 ETA_LEVELS = 10
 #: shortcut attempts per path per round of ``shortcut_rounds``
 SHORTCUT_TRIES = 4
+#: rounds of spline refinement (module docstring, 5): each splits the knot intervals where the spline is not
+#: proven clear, and their neighbours, at their midpoints (the spacing there halves each round)
+REFINE_ROUNDS = 6
+#: rounds of shortcuts between points anywhere on the searched path (:func:`~._search.shortcut_points`) per
+#: round of ``shortcut_rounds``, and the shortcuts tried per path per round (each clear one taken costs its
+#: edge's whole subdivision: on the cage problems this stage costs about what the search does)
+POINT_ROUNDS, POINT_TRIES = 2, 8
 
 
 def _row_resolution(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, rows: Tensor
@@ -133,7 +146,7 @@ class MotionResult:
         B, nq = self.success.shape[0], self.q.shape[-1]
         q = self.q[:, :1].detach().expand(B, t.shape[1], nq).clone()  # samples carry no gradient
         qd, qdd = torch.zeros_like(q), torch.zeros_like(q)
-        for rows, timed in self._timing:  # at most three timings (optimised, spline, linear fallback)
+        for rows, timed in self._timing:  # a few timings (optimised, spline, refined splines, polyline)
             tr = timed._sample(t[rows])
             q[rows], qd[rows], qdd[rows] = tr.position, tr.velocity, tr.acceleration
         return Trajectory(q, qd, qdd)
@@ -170,6 +183,48 @@ def _pad(path: Tensor, n: Tensor) -> Tensor:
     return path
 
 
+def _split(path: Tensor, cut: Tensor) -> Tensor:
+    """Paths (R, L, nq) with the segments ``cut`` (R, L − 1) split at their midpoints: (R, L', nq), rows
+    with fewer cuts brought to L' by :func:`_pad` (the polyline is unchanged)."""
+    R, L, nq = path.shape
+    extra = cut.long().cumsum(1)
+    at = torch.arange(L, device=path.device)[None] + torch.cat((extra.new_zeros(R, 1), extra), 1)  # (R, L)
+    n = L + extra[:, -1]
+    out = path.new_zeros(R, int(n.max()) if R else L, nq)
+    out.scatter_(1, at[..., None].expand(R, L, nq), path)
+    mid = (path[:, 1:] + path[:, :-1]) / 2
+    r, k = cut.nonzero(as_tuple=True)
+    out[r, at[r, k] + 1] = mid[r, k]
+    return _pad(out, n)
+
+
+def _refine_spline(checker: EdgeChecker, path: Tensor, bad: Tensor, todo: Tensor, lo: Tensor, hi: Tensor,
+                   problem: Tensor) -> tuple[list[tuple[Tensor, Tensor]], Tensor]:
+    """The rows ``todo`` (R,) bool of ``path`` (R, L, nq) whose spline fails on the knot intervals ``bad``
+    (R, L − 1) (:func:`~diffkin.motion._spline._spline_failures`), refined: each of
+    :data:`REFINE_ROUNDS` rounds splits the failing intervals and their neighbours at their midpoints (points
+    of the checked polyline, so the spline through them hugs it closer where it left the clear region) and
+    checks the new spline again. Returns the rounds' proven rows as ``(rows (R,) bool, path)`` and the rows
+    no round proved (R,) bool."""
+    left, found = todo.clone(), []
+    idx = todo.nonzero().squeeze(1)
+    p, b = path[idx], bad[idx]
+    for _ in range(REFINE_ROUNDS):
+        if idx.numel() == 0:
+            break
+        cut = b.clone()
+        cut[:, 1:] |= b[:, :-1]
+        cut[:, :-1] |= b[:, 1:]
+        p = _split(p, cut)
+        b = _spline_failures(checker, p, _knots(p), lo, hi, problem[idx])
+        ok = ~b.any(1)
+        if bool(ok.any()):
+            found.append((torch.zeros_like(todo).index_fill(0, idx[ok], True), p[ok]))
+            left[idx[ok]] = False
+        idx, p, b = idx[~ok], p[~ok], b[~ok]
+    return found, left
+
+
 def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, velocity_limit=None,
          acceleration_limit=None, jerk_limit=None, dt: float = 0.01, resolution: float = 0.005,
          max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 16, seed: int = 0,
@@ -201,7 +256,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             the row fails as in collision).
         max_iterations / step / shortcut_rounds / seed / goal_bias: search budget per problem, RRT step
             (metres of geom travel in the bound's metric), shortcut rounds (:data:`SHORTCUT_TRIES` tries per
-            path each), randomness, the probability of extending towards the other tree's root.
+            path each between waypoints, and :data:`POINT_ROUNDS` rounds of :data:`POINT_TRIES` between any
+            points of the path each), randomness, the probability of extending towards the other tree's root.
         search_in_c: the search stage by the C RRT-Connect (:mod:`diffkin.motion._native_search`: one
             problem per thread, each problem's randomness its own, so a problem planned alone equals its
             row in a batch) where it serves (CPU, the library built, capsule and sphere models whose
@@ -333,6 +389,17 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                 path, n = shortcut(checker, path, n, rows, shortcut_rounds, gen, tries=SHORTCUT_TRIES)
             fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, rows[~found], True),
                  f"no collision-free path found in {max_iterations} iterations")
+            if bool(found.any()):  # shortcuts between any points of the paths (detours between waypoints)
+                sp, sn = shortcut_points(checker, path[found], n[found], rows[found],
+                                         POINT_ROUNDS * shortcut_rounds,
+                                         row_keys(q_start[rows[found]], q_goal[rows[found]], seed),
+                                         tries=POINT_TRIES)
+                if sp.shape[1] > path.shape[1]:
+                    path = torch.cat((path, path[:, -1:].expand(-1, sp.shape[1] - path.shape[1], nq)), 1)
+                path = path.clone()
+                path[found] = torch.cat((sp, sp[:, -1:].expand(-1, path.shape[1] - sp.shape[1], nq)), 1)
+                n = n.clone()
+                n[found] = sn
             L = int(n[found].max()) if bool(found.any()) else 2
             path = path[:, :L]
             waypoints = q_goal[:, None].expand(B, L, nq).clone()
@@ -343,7 +410,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             if good.numel():
                 p = _pad(path[found], n[found])
                 kn = _knots(p)
-                smooth = _spline_clear(checker, p, kn, lo_l, hi_l, good)
+                bad = _spline_failures(checker, p, kn, lo_l, hi_l, good)
+                smooth = ~bad.any(1)
                 groups = []
                 if cfg is not None:  # the optimised knots where they are proven clear (grad mode on)
                     with torch.enable_grad():
@@ -355,20 +423,47 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                     notkept = ~kept
                 else:
                     notkept = torch.ones_like(smooth)
-                rough = notkept & ~smooth
-                groups += [(smooth, "spline", p[smooth], kn[smooth]), (rough, "linear", p[rough], kn[rough])]
-                for keep, how, pp, kk in groups:
+                refined, rough = _refine_spline(checker, p, bad, notkept & ~smooth, lo_l, hi_l, good)
+                groups += [(smooth, "spline", p[smooth], kn[smooth])]
+
+                def timed_group(keep: Tensor, how: str, pp: Tensor, kk: Tensor):
                     rr = good[keep]
-                    if rr.numel() == 0:
-                        continue
-                    # the spline where it is proven clear, else the checked polyline (stops at waypoints)
-                    timed = time_optimal(pp, vmax[rr], amax[rr], jmax[rr], knots=kk, interpolation=how,
-                                         bc="clamped")
+                    return rr, time_optimal(pp, vmax[rr], amax[rr], jmax[rr], knots=kk, interpolation=how,
+                                            bc="clamped")
+
+                def take(rr: Tensor, timed, how: str) -> None:
                     timing.append((rr, timed))
                     success[rr] = True
                     duration[rr] = timed.duration.to(dtype)
                     for r in rr.tolist():
                         interp[r] = how
+
+                for keep, how, pp, kk in groups:
+                    if bool(keep.any()):
+                        take(*timed_group(keep, how, pp, kk), how)
+                # the refined splines (their many knots near a tight corner can make them slower than stops
+                # at the waypoints): each row timed both ways, the faster finite one taken (the polyline's
+                # timing first, so the spline's entries, later, win where they are taken)
+                spl = [timed_group(keep, "spline", pp, _knots(pp)) for keep, pp in refined]
+                spline_wins = torch.zeros_like(rough)
+                for keep, (_, timed) in zip((k for k, _ in refined), spl):
+                    spline_wins[keep] = timed.duration.isfinite()
+                both = rough | torch.stack([k for k, _ in refined] + [rough]).any(0)
+                if bool(both.any()):
+                    rr, lin = timed_group(both, "linear", p[both], kn[both])
+                    take(rr, lin, "linear")
+                    d_lin = torch.zeros(len(spline_wins), dtype=lin.duration.dtype, device=dev)
+                    d_lin[both] = lin.duration
+                    for keep, (_, timed) in zip((k for k, _ in refined), spl):
+                        spline_wins[keep] &= timed.duration < d_lin[keep]
+                for (keep, pp), (rr, timed) in zip(refined, spl):
+                    win = spline_wins[keep]
+                    if bool(win.all()):
+                        take(rr, timed, "spline")
+                    elif bool(win.any()):  # the rows where the polyline was faster drop out (timed anew)
+                        w = keep.clone()
+                        w[keep] = win
+                        take(*timed_group(w, "spline", pp[win], _knots(pp[win])), "spline")
         S = int(math.ceil(float(duration.max()) / dt - 1e-9)) + 1 if B else 1
         t = (torch.arange(S, dtype=torch.float64, device=dev) * dt)
         zero = torch.zeros(B, S, nq, dtype=dtype, device=dev)
