@@ -40,11 +40,12 @@ sample's distance to the surface is first bounded by its distance to the nearest
 triangles bisected the same way (never below the true one; the k-d tree searched only to the limit
 first, a far sample's nearest corners being a deep search), and where that is above the limit, taken
 exactly to the triangles of the 4 nearest corners (an upper bound still); a sample is outside where the
-mesh's generalised winding number (Jacobson, Kavan and Sorkine-Hornung 2013: robust to the cracks and overlapping shells of real
-collision meshes) is below 1/2 in magnitude. A part passes when its measured excess plus s/√3 is within
-``tolerance``. Parts are first measured on samples 4× coarser: one sample outside by more than the limit
-already condemns a part. Samples and corners are merged within cubes of side q = 2^-20 of the mesh's extent
-(a bisection corner is shared by about 6 pieces: 6× fewer points to search), which costs the limit 2√3 q.
+mesh's generalised winding number (Jacobson, Kavan and Sorkine-Hornung 2013: robust to the cracks and
+overlapping shells of real collision meshes) is below 1/2 in magnitude. A part passes when its measured
+excess plus s/√3 is within ``tolerance``. Parts are first measured on samples 4× coarser: one sample
+outside by more than the limit already condemns a part. Samples and corners are merged within cubes of side
+q = 2^-20 of the mesh's extent (a bisection corner is shared by about 6 pieces: 6× fewer points to search),
+which costs the limit 2√3 q.
 """
 
 from __future__ import annotations
