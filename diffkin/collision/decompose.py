@@ -287,9 +287,7 @@ class _Part:
             u = (x - ff[near]) / np.maximum(dd[near], 1e-300)[:, None]
             first = [_Cut(self, w, float(f @ w), x) for w, f in zip(u, ff[near])]
             first = [c for c in first if c.ok]
-            top = max(first, key=lambda c: c.cleared, default=None)
-            if top is not None:
-                top = max(first, key=lambda c: (c.cleared, -c.volume))
+            top = max(first, key=lambda c: (c.cleared, -c.volume), default=None)
             if top is not None and (top.cleared >= 0.5 * (gap - self.mesh.tolerance)
                                     or top.smaller >= 0.01 * self.volume):
                 best = top
@@ -372,29 +370,33 @@ def _sides(T: np.ndarray, n: np.ndarray, off: float) -> tuple | None:
     """The points of either side of the plane n·x = off as :func:`_clip` divides the triangles (each side's
     corners and the points where edges cross the plane; a triangle on the plane with the side its back
     faces), or None when one side would hold no triangle."""
-    s = T @ n - off  # (F, 3)
+    s, both, first, second = _divide(T, n, off)
     if not (s > 0).any() or not (s < 0).any():  # (a corner strictly on each side: a piece on each)
         return None
-    pos, neg = (s > 0).any(1), (s < 0).any(1)
-    both = pos & neg
-    flat = ~pos & ~neg & (np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]) @ n > 0)
     a, b = T[both], T[both][:, [1, 2, 0]]
     sa, sb = s[both], s[both][:, [1, 2, 0]]
     cross = sa * sb < 0
     x = a[cross] + (sa[cross] / (sa[cross] - sb[cross]))[:, None] * (b[cross] - a[cross])
-    return ((T[~both & ~neg & ~flat].reshape(-1, 3), a[sa >= 0], x),
-            (T[(~both & neg) | flat].reshape(-1, 3), a[sa <= 0], x))
+    return (T[first].reshape(-1, 3), a[sa >= 0], x), (T[second].reshape(-1, 3), a[sa <= 0], x)
+
+
+def _divide(T: np.ndarray, n: np.ndarray, off: float):
+    """``(s (F, 3), crossing, positive, negative)``: the corners' signed offsets from the plane n·x = off,
+    the triangles with a corner strictly on each side, and those wholly on the positive and on the negative
+    side, where a triangle on the plane goes to the side its back faces (the solid's side of an outward
+    normal)."""
+    s = T @ n - off
+    pos, neg = (s > 0).any(1), (s < 0).any(1)
+    both = pos & neg
+    flat = ~pos & ~neg & (np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]) @ n > 0)
+    return s, both, ~both & ~neg & ~flat, (~both & neg) | flat
 
 
 def _clip(T: np.ndarray, n: np.ndarray, off: float) -> tuple[np.ndarray, np.ndarray]:
     """The triangles ``T`` clipped by the plane n·x = off: ``(T_pos, T_neg)``, those on each side (a triangle
     on the plane goes to the side behind its normal) with each crossing triangle's two pieces triangulated."""
-    s = T @ n - off
-    pos, neg = (s > 0).any(1), (s < 0).any(1)
-    both = pos & neg
-    # a triangle on the plane goes to the side its back faces (the solid's side of an outward normal)
-    flat = ~pos & ~neg & (np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]) @ n > 0)
-    out = ([T[~both & ~neg & ~flat]], [T[(~both & neg) | flat]])
+    s, both, first, second = _divide(T, n, off)
+    out = ([T[first]], [T[second]])
     for tri, st in zip(T[both], s[both]):
         for side, sign in ((0, 1.0), (1, -1.0)):
             poly = []
