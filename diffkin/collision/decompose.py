@@ -12,26 +12,40 @@ The rule (deterministic, no random draws):
    crosses the surface and d_mesh(y) ≤ d_union(y). Since every triangle lies in some hull, also
    d_union(y) ≤ d_mesh(y): **0 ≤ d_mesh − d_union ≤ the largest excess** for every point outside.
 3. While some part's excess is above ``tolerance`` (and there are fewer than ``max_parts`` parts), the worst
-   part is cut by the plane through the nearest point f of its own triangles to its worst sample x, facing
-   x − f (the concavity's wall there is cut off: on the U below, first one arm, then the other); where
-   that plane leaves one side empty, by the plane among its principal axes at 1/8 … 7/8 of its extent
+   part is cut. Its worst sample x and the points f of its own triangles nearest to x (ties: the U's slot
+   has two walls and a floor) give the gap-facing planes, through f facing x − f (the concavity's wall
+   there is cut off: on the U below, first one arm, then the other). The one that moves x farthest out of
+   both sides' hulls is taken if it moves x out by half the gap beyond the tolerance, or if its smaller
+   side holds at least 1 % of the part's hull volume. Otherwise (a sliver off a rim or a flat panel, which
+   leaves x covered: on Panda link6 such cuts spent most parts) the candidates are also the planes through
+   f of the mesh's own triangles there, the 3 coordinate axes and the part's 3 principal axes, and the one
+   that moves x farthest out of both hulls is taken (least total hull volume among ties). With no worst
+   sample, or none that any plane uncovers, the plane among the principal axes at 1/8 … 7/8 of the extent
    whose two sides' hulls have the least total volume. Triangles crossing the plane are clipped, each side
    keeping its piece with the crossing points as vertices (a triangle on the plane goes to the side behind
    its normal), so a part's hull still contains its triangles and the union contains the whole surface
-   (conservative). A cut's face is shared by the two sides and is not measured again. Deep inside a thick
-   mesh, near a point where three cutting planes meet, a small pocket of the solid may belong to no hull;
-   it lies farther than the parts' surfaces from any point outside, so distances to the outside are
-   unaffected, but an object wholly inside such a pocket is not seen.
+   (conservative).
+4. A point of a part's hull on one of its cuts is inside the union, and not measured, where a hull of
+   another part holds it from across the cut; when the splitting stops, every part is measured again
+   against the final set (a later cut may have uncovered a face), and the splitting resumes if one fails.
+   Deep inside a thick mesh, near a point where three cutting planes meet, a small pocket of the solid may
+   belong to no hull; it lies farther than the parts' surfaces from any point outside, so distances to the
+   outside are unaffected, but an object wholly inside such a pocket is not seen. The bound of 2. is for
+   points outside the union: a point outside the mesh but inside a hull (a cavity of the mesh that a hull
+   closes over) gets a negative distance, its depth in that hull, which no boundary measure bounds.
 
 Measuring the excess. The hull's triangles are bisected at their longest edge until no edge is longer than
 ``s = tolerance / 2``; their corners are the samples (every boundary point lies within s/√3 of one). A
 sample's distance to the surface is first bounded by its distance to the nearest corner of the mesh's own
-triangles bisected the same way (never below the true one), and where that is above the limit, taken
-exactly to the triangles of the 4 nearest corners; a sample is outside where the mesh's generalised winding
-number (Jacobson, Kavan and Sorkine-Hornung 2013: robust to the cracks and overlapping shells of real
-collision meshes) is below 1/2 in magnitude. A part passes when its measured excess plus s/√3 is within
-``tolerance``. Parts are first measured on samples 4× coarser: one sample outside by more than the limit
-already condemns a part.
+triangles bisected the same way (never below the true one; the k-d tree searched only to the limit
+first, a far sample's nearest corners being a deep search), and where that is above the limit, taken
+exactly to the triangles of the 4 nearest corners (an upper bound still); a sample is outside where the
+mesh's generalised winding number (Jacobson, Kavan and Sorkine-Hornung 2013: robust to the cracks and
+overlapping shells of real collision meshes) is below 1/2 in magnitude. A part passes when its measured
+excess plus s/√3 is within ``tolerance``. Parts are first measured on samples 4× coarser: one sample
+outside by more than the limit already condemns a part. Samples and corners are merged within cubes of side
+q = 2^-20 of the mesh's extent (a bisection corner is shared by about 6 pieces: 6× fewer points to search),
+which costs the limit 2√3 q.
 """
 
 from __future__ import annotations
@@ -78,16 +92,23 @@ def convex_parts(v, faces, *, tolerance: float = 0.002, max_parts: int = 32) -> 
     if not np.isfinite(v).all():
         raise NonFiniteError("convex_parts: expected finite vertices, got NaN or inf")
     mesh = _Mesh(v[faces], tolerance)
-    parts = [_Part(mesh, mesh.T)]
-    while len(parts) < max_parts:
-        k = int(np.argmax([p.excess if p.splittable else -1.0 for p in parts]))
-        if not parts[k].splittable or parts[k].excess <= tolerance:
+    parts = mesh.parts = [_Part(mesh, mesh.T)]
+    while True:
+        while len(parts) < max_parts:
+            k = int(np.argmax([p.excess if p.splittable else -1.0 for p in parts]))
+            if not parts[k].splittable or parts[k].excess <= tolerance:
+                break
+            children = parts[k].split()
+            if children is None:
+                parts[k].splittable = False
+                continue
+            parts[k:k + 1] = children
+        # a part's cut faces were measured against the parts of their time: again against the final ones
+        before = [p.excess for p in parts]
+        for p in parts:
+            p._excess = None
+        if len(parts) >= max_parts or all(p.excess <= max(b, tolerance) for p, b in zip(parts, before)):
             break
-        children = parts[k].split()
-        if children is None:
-            parts[k].splittable = False
-            continue
-        parts[k:k + 1] = children
     return ConvexParts([p.vertices for p in parts], max(p.excess for p in parts))
 
 
@@ -140,12 +161,23 @@ class _Mesh:
         self.T, self.tolerance, self.spatial = T, tolerance, spatial
         self.s = tolerance / 2.0
         B, src = bisected(T, self.s)
-        self.corners = B.reshape(-1, 3)  # (repeats cost the k-d tree less than np.unique would)
-        self.source = np.repeat(src, 3)  # the triangle each corner lies on
+        #: points closer than this may be merged (:meth:`unique`: 2^-20 of the mesh's extent)
+        self.lo = T.reshape(-1, 3).min(0)
+        self.q = max(float((T.reshape(-1, 3).max(0) - self.lo).max()), 1e-300) * 2.0 ** -20
+        keep = self.unique(B.reshape(-1, 3))  # (a bisection corner is shared by about 6 pieces)
+        self.corners = B.reshape(-1, 3)[keep]
+        self.source = np.repeat(src, 3)[keep]  # the triangle each corner lies on
         self.tree = spatial.cKDTree(self.corners)
-        #: a sample passes within this distance (its sampled excess plus the spacing's s/√3 of the hull)
-        self.limit = tolerance - self.s / math.sqrt(3.0)
+        #: a sample passes within this distance (its sampled excess plus the spacing's s/√3 of the hull and
+        #: the merging of points of a cell of side q, √3 q, for the samples and for the corners)
+        self.limit = tolerance - self.s / math.sqrt(3.0) - 2.0 * math.sqrt(3.0) * self.q
         self.flat = 1e-9 * (1.0 + float(np.abs(T).max()))  # a sample this close to a cut lies on it
+
+    def unique(self, P: np.ndarray) -> np.ndarray:
+        """Indices of one point of ``P (N, 3)`` per occupied cube of side :attr:`q` (a 21-bit grid per
+        coordinate over the mesh's box, one int64 key: a sort, not np.unique's row comparison)."""
+        g = np.clip(np.floor((P - self.lo) / self.q), 0, (1 << 21) - 1).astype(np.int64)
+        return np.unique((g[:, 0] << 42) | (g[:, 1] << 21) | g[:, 2], return_index=True)[1]
 
     def excess(self, samples: np.ndarray) -> tuple[float, np.ndarray | None]:
         """The largest distance of the ``samples`` to the surface when it is above :attr:`limit`, with the
@@ -155,12 +187,17 @@ class _Mesh:
         s/√3 of a corner); where it is above the limit, the distance to the triangles of the 4 nearest
         corners (exact but for a nearest triangle among none of them) replaces it, farthest first: the
         first sample outside the mesh is the worst one."""
-        d, _ = self.tree.query(samples)
-        far = np.flatnonzero(d > self.limit)
-        far = far[np.argsort(-d[far], kind="stable")]
+        samples = samples[self.unique(samples)]
+        # (bounded: a far sample's nearest corner costs a deep search, and the far ones are measured below)
+        d, _ = self.tree.query(samples, distance_upper_bound=self.limit)
+        far = np.flatnonzero(~np.isfinite(d))
+        k = min(4, len(self.corners))
+        d4, near4 = (a.reshape(len(far), k) for a in self.tree.query(samples[far], k))
+        d[far] = d4[:, 0]
+        order = np.argsort(-d[far], kind="stable")
+        far, near4 = far[order], near4[order]
         for s in range(0, len(far), 512):
-            idx = far[s:s + 512]
-            _, near = self.tree.query(samples[idx], 4)
+            idx, near = far[s:s + 512], near4[s:s + 512]
             dd, xx = point_triangle(samples[idx, None], self.T[self.source[near]])
             j = dd.argmin(1)
             r = np.arange(len(idx))
@@ -206,7 +243,7 @@ class _Part:
     def __init__(self, mesh: _Mesh, T: np.ndarray, planes: tuple = ()):
         self.mesh, self.T, self.planes = mesh, T, planes  # planes: the cuts (n, offset) that bound it
         self.points = T.reshape(-1, 3)  # (with repeats: Qhull ignores them)
-        self.vertices, self.faces, self.volume = _hull(self.points, mesh.spatial)
+        self.vertices, self.faces, self.volume, self.equations = _hull(self.points, mesh.spatial)
         self.splittable = len(T) > 1
         self._excess: tuple | None = None
 
@@ -220,8 +257,17 @@ class _Part:
         m = self.mesh
         for s in (4.0 * m.s, m.s):  # coarse first: one sample far outside condemns the part
             samples = np.concatenate((self.vertices, bisected(self.faces, s)[0].reshape(-1, 3)))
-            for n, off in self.planes:  # a cut's face is shared with the other side: not beyond the mesh
-                samples = samples[np.abs(samples @ n - off) > m.flat]
+            covered = np.zeros(len(samples), dtype=bool)
+            for n, off in self.planes:  # a point of a cut's face is inside the union where a part across
+                on = np.flatnonzero(np.abs(samples @ n - off) <= m.flat)  # the cut holds it
+                if len(on) == 0:
+                    continue
+                across = samples[on] - math.copysign(m.q, float(self.points.mean(0) @ n - off)) * n
+                for q in m.parts:
+                    if q is not self and q.equations is not None:
+                        eq = q.equations
+                        covered[on] |= (across @ eq[:, :3].T + eq[:, 3] <= 0).all(1)
+            samples = samples[~covered]
             e, worst = m.excess(samples)
             if worst is not None:
                 break
@@ -230,48 +276,81 @@ class _Part:
     def split(self) -> list | None:
         """The two parts of the best cut (module docstring), or None when no plane separates triangles."""
         P = self.points
-        c = P.mean(0)
-        _, _, vt = np.linalg.svd(P - c, full_matrices=False)
-        cands = []
-        if self._excess is not None and self._excess[1] is not None:
-            x = self._excess[1][0]  # the worst sample and the nearest point f of the part's own triangles:
-            dd, ff = point_triangle(x[None], self.T)  # the plane through the concavity's bottom f facing
-            f = ff[int(dd.argmin())]  # the gap x - f cuts off the wall there
-            u = (x - f) / max(float(np.linalg.norm(x - f)), 1e-300)
-            cands.append((u, float(f @ u)))
-        if not cands or _sides(self.T, *cands[0]) is None:
-            cands = []
+        _, _, vt = np.linalg.svd(P - P.mean(0), full_matrices=False)
+        worst = self._excess[1] if self._excess is not None else None
+        best = None
+        if worst is not None:
+            x = worst[0]  # the worst sample, and the points f of the part's own triangles nearest to it
+            dd, ff = point_triangle(x[None], self.T)
+            gap = float(dd.min())
+            near = dd <= gap + self.mesh.flat  # (ties: the U's slot has two walls and a floor)
+            u = (x - ff[near]) / np.maximum(dd[near], 1e-300)[:, None]
+            first = [_Cut(self, w, float(f @ w), x) for w, f in zip(u, ff[near])]
+            first = [c for c in first if c.ok]
+            top = max(first, key=lambda c: (c.cleared, -c.volume), default=None)
+            if top is not None and (top.cleared >= 0.5 * (gap - self.mesh.tolerance)
+                                    or top.smaller >= 0.01 * self.volume):
+                best = top
+            else:  # every such plane leaves x covered: the plane through f that uncovers it most
+                f = ff[int(dd.argmin())]
+                walls = dd <= gap + self.mesh.s  # the mesh's own planes there
+                n = np.cross(self.T[walls, 1] - self.T[walls, 0], self.T[walls, 2] - self.T[walls, 0])
+                n = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+                cuts = first + [_Cut(self, w, float(f @ w), x) for w in (*n, *np.eye(3), *vt)]
+                cuts = [c for c in cuts if c.ok and c.cleared > 0]
+                if cuts:
+                    best = max(cuts, key=lambda c: (c.cleared, -c.volume))
+        if best is None:  # no worst sample, or no plane through f uncovers it: the principal axes' cuts
+            cuts = []
             for n in vt:
                 t = P @ n
                 lo, hi = float(t.min()), float(t.max())
-                cands += [(n, float(off)) for off in lo + (hi - lo) * _CUTS]
-        best, score = None, math.inf
-        for n, off in cands:
-            sides = _sides(self.T, n, off)
-            if sides is None:
-                continue
-            vol = sum(_hull(np.concatenate(s), self.mesh.spatial, volume_only=True) for s in sides)
-            if vol < score:
-                best, score = (n, off), vol
-        if best is None:
-            return None
-        planes = self.planes + (best,)
-        return [_Part(self.mesh, T, planes) for T in _clip(self.T, *best)]
+                cuts += [_Cut(self, n, float(off)) for off in lo + (hi - lo) * _CUTS]
+            cuts = [c for c in cuts if c.ok]
+            if not cuts:
+                return None
+            best = min(cuts, key=lambda c: c.volume)
+        planes = self.planes + ((best.n, best.off),)
+        return [_Part(self.mesh, T, planes) for T in _clip(self.T, best.n, best.off)]
 
 
-def _hull(points: np.ndarray, spatial, volume_only: bool = False):
-    """``(vertices (M, 3), triangles (K, 3, 3), volume)`` of the points' convex hull (Qhull); a flat or
-    degenerate set: its points, the fan of its planar hull (none when collinear) and volume 0. With
-    ``volume_only``: the volume."""
+class _Cut:
+    """A candidate cut of a part by the plane n·x = off: ``ok`` (a triangle on each side), the two sides'
+    total hull ``volume`` and, given the worst sample x, ``cleared``: x's distance to the nearer side's
+    hull (0 where a side's hull still covers it)."""
+
+    def __init__(self, part: _Part, n: np.ndarray, off: float, x: np.ndarray | None = None):
+        self.n, self.off = n, off
+        sides = _sides(part.T, n, off)
+        self.ok = sides is not None
+        self.volume, self.cleared, self.smaller = math.inf, 0.0, 0.0
+        if not self.ok:
+            return
+        hulls = [_hull(np.concatenate(s), part.mesh.spatial) for s in sides]
+        self.volume = sum(h[2] for h in hulls)
+        self.smaller = min(h[2] for h in hulls)
+        if x is not None:
+            self.cleared = min(_hull_distance(x, h[1], h[3]) for h in hulls)
+
+
+def _hull(points: np.ndarray, spatial):
+    """``(vertices (M, 3), triangles (K, 3, 3), volume, equations (K, 4) or None)`` of the points' convex hull
+    (Qhull; its outward facet planes n·x + d ≤ 0 inside); a flat or degenerate set: its points, the fan of
+    its planar hull (none when collinear), volume 0 and no planes."""
     try:
         h = spatial.ConvexHull(points)
     except (spatial.QhullError, ValueError):
-        if volume_only:
-            return 0.0
-        return points, _flat_fan(points, spatial), 0.0
-    if volume_only:
-        return float(h.volume)
-    return points[h.vertices], points[h.simplices], float(h.volume)
+        return points, _flat_fan(points, spatial), 0.0, None
+    return points[h.vertices], points[h.simplices], float(h.volume), h.equations
+
+
+def _hull_distance(x: np.ndarray, triangles: np.ndarray, equations) -> float:
+    """The distance of the point x to a hull of :func:`_hull` (0 inside; a collinear set counts as 0)."""
+    if equations is not None and (equations[:, :3] @ x + equations[:, 3] <= 0).all():
+        return 0.0
+    if len(triangles) == 0:
+        return 0.0
+    return float(point_triangle(x[None], triangles)[0].min())
 
 
 def _flat_fan(points: np.ndarray, spatial) -> np.ndarray:
@@ -288,29 +367,36 @@ def _flat_fan(points: np.ndarray, spatial) -> np.ndarray:
 
 
 def _sides(T: np.ndarray, n: np.ndarray, off: float) -> tuple | None:
-    """The points of either side of the plane n·x = off (each side's corners and the points where edges
-    cross the plane), or None when one side would hold no triangle."""
-    s = T @ n - off  # (F, 3)
+    """The points of either side of the plane n·x = off as :func:`_clip` divides the triangles (each side's
+    corners and the points where edges cross the plane; a triangle on the plane with the side its back
+    faces), or None when one side would hold no triangle."""
+    s, both, first, second = _divide(T, n, off)
     if not (s > 0).any() or not (s < 0).any():  # (a corner strictly on each side: a piece on each)
         return None
-    a, b = T, T[:, [1, 2, 0]]
-    sa, sb = s, s[:, [1, 2, 0]]
+    a, b = T[both], T[both][:, [1, 2, 0]]
+    sa, sb = s[both], s[both][:, [1, 2, 0]]
     cross = sa * sb < 0
     x = a[cross] + (sa[cross] / (sa[cross] - sb[cross]))[:, None] * (b[cross] - a[cross])
-    corners = T.reshape(-1, 3)
-    flat = s.reshape(-1)
-    return (corners[flat >= 0], x), (corners[flat <= 0], x)
+    return (T[first].reshape(-1, 3), a[sa >= 0], x), (T[second].reshape(-1, 3), a[sa <= 0], x)
+
+
+def _divide(T: np.ndarray, n: np.ndarray, off: float):
+    """``(s (F, 3), crossing, positive, negative)``: the corners' signed offsets from the plane n·x = off,
+    the triangles with a corner strictly on each side, and those wholly on the positive and on the negative
+    side, where a triangle on the plane goes to the side its back faces (the solid's side of an outward
+    normal)."""
+    s = T @ n - off
+    pos, neg = (s > 0).any(1), (s < 0).any(1)
+    both = pos & neg
+    flat = ~pos & ~neg & (np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]) @ n > 0)
+    return s, both, ~both & ~neg & ~flat, (~both & neg) | flat
 
 
 def _clip(T: np.ndarray, n: np.ndarray, off: float) -> tuple[np.ndarray, np.ndarray]:
     """The triangles ``T`` clipped by the plane n·x = off: ``(T_pos, T_neg)``, those on each side (a triangle
     on the plane goes to the side behind its normal) with each crossing triangle's two pieces triangulated."""
-    s = T @ n - off
-    pos, neg = (s > 0).any(1), (s < 0).any(1)
-    both = pos & neg
-    # a triangle on the plane goes to the side its back faces (the solid's side of an outward normal)
-    flat = ~pos & ~neg & (np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0]) @ n > 0)
-    out = ([T[~both & ~neg & ~flat]], [T[(~both & neg) | flat]])
+    s, both, first, second = _divide(T, n, off)
+    out = ([T[first]], [T[second]])
     for tri, st in zip(T[both], s[both]):
         for side, sign in ((0, 1.0), (1, -1.0)):
             poly = []
