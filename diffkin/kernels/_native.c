@@ -1121,6 +1121,11 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
     return th;
 }
 
+/* minimum and maximum that propagate NaN as torch.minimum / torch.maximum / amin / clamp do (the C twins of
+ * torch code that must give the same floats: _native_clip.c, _native_topp.c) */
+static inline real DK(nan_min)(real a, real b) { return (a < b || a != a) ? a : b; }
+static inline real DK(nan_max)(real a, real b) { return (a > b || a != a) ? a : b; }
+
 #include "_native_solve.c"
 #include "_native_collide.c"
 #include "_native_plan.c"

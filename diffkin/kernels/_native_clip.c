@@ -267,8 +267,6 @@ static void DK(unit_read)(const real *q, const int64_t *col, real *u) {
     for (int c = 0; c < 4; c++) u[c] = n <= (real)DK_QSMALL ? (real)(c == 0) : u[c] / n;
 }
 
-static inline real DK(min_nan)(real a, real b) { return (a < b || a != a) ? a : b; } /* torch.minimum */
-static inline real DK(max_nan)(real a, real b) { return (a > b || a != a) ? a : b; } /* torch.maximum */
 
 /* v = q1 ⊖ q0 (nv) of two configurations (nq) (ConfigurationSpace.difference, equal to rounding): the ns
  * scalars q1 - q0 (q columns sq, v columns sv), the nb quaternions (q columns bq, 4 each; v columns bv, 3
@@ -434,13 +432,13 @@ static int64_t DK(clip_step)(const real *q, const real *step, const int64_t *con
                 o[c[2]] = u[0] * ev[1] + e0 * u[2] + (u[3] * ev[0] - u[1] * ev[2]);
                 o[c[3]] = u[0] * ev[2] + e0 * u[3] + (u[1] * ev[1] - u[2] * ev[0]);
             }
-            for (int64_t i = 0; i < nq; i++) o[i] = DK(max_nan)(DK(min_nan)(o[i], qhi[i]), qlo[i]);
+            for (int64_t i = 0; i < nq; i++) o[i] = DK(nan_max)(DK(nan_min)(o[i], qhi[i]), qlo[i]);
             if (vstep && t >= 1) {
                 const real *before = o - nq;
                 for (int64_t j = 0; j < ns; j++) {
-                    const real l = DK(max_nan)(before[sq[j]] - vstep[j], lo[j]);
-                    const real u = DK(min_nan)(before[sq[j]] + vstep[j], hi[j]);
-                    o[sq[j]] = DK(min_nan)(DK(max_nan)(o[sq[j]], l), u);
+                    const real l = DK(nan_max)(before[sq[j]] - vstep[j], lo[j]);
+                    const real u = DK(nan_min)(before[sq[j]] + vstep[j], hi[j]);
+                    o[sq[j]] = DK(nan_min)(DK(nan_max)(o[sq[j]], l), u);
                 }
             }
         }

@@ -19,8 +19,6 @@
 #pragma GCC optimize("fp-contract=off")
 #endif
 
-static inline real DK(nan_min)(real a, real b) { return (a < b || a != a) ? a : b; }
-static inline real DK(nan_max)(real a, real b) { return (a > b || a != a) ? a : b; }
 
 /* One path: Aq, G, C (M - 1, R); Au, Bu, Gu (M - 1, Ru); fixed, xq, d (M - 1); K (M), Kn (M - 1) work;
  * x (M) out. */
