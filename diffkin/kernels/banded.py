@@ -184,12 +184,45 @@ def block_banded_cg(D: Tensor, E: Tensor, F: Tensor, g: Tensor, iterations: int 
     return x
 
 
-def tridiagonal_solve(sub: Tensor, diag: Tensor, sup: Tensor, rhs: Tensor) -> Tensor:
+#: above this N a diagonally dominant system is eliminated along its band (O(N)), not as a dense N x N
+DENSE_MAX = 48
+
+
+def tridiagonal_solve(sub: Tensor, diag: Tensor, sup: Tensor, rhs: Tensor, dominant: bool = False) -> Tensor:
     """x ``(..., N, k)`` with A x = rhs for the tridiagonal A of diagonal ``diag (..., N)``, sub-diagonal
     ``sub (..., N-1)`` (A_{i+1,i}) and super-diagonal ``sup (..., N-1)`` (A_{i,i+1}); ``rhs (..., N, k)``,
     batch dims broadcast. A need not be symmetric (a spline's not-a-knot or virtual-point rows are not):
-    LU with partial pivoting on the dense matrix (``torch.linalg.solve``), differentiable; N is the number
-    of path points, so the dense N x N costs nothing next to the evaluation."""
+    LU with partial pivoting on the dense matrix (``torch.linalg.solve``), differentiable. ``dominant``: the
+    caller's word that A is diagonally dominant (a clamped spline's rows), so that elimination without
+    pivoting is stable: above :data:`DENSE_MAX` rows it runs along the band (the Thomas algorithm, O(N) per
+    system, a loop over N), since the dense LU's O(N³) per system grows past everything else for the long,
+    refined paths of a planner's batch (every row padded to the longest)."""
+    if dominant and diag.shape[-1] > DENSE_MAX:
+        return _thomas(sub, diag, sup, rhs)
     A = torch.diag_embed(diag) + torch.diag_embed(sub, offset=-1) + torch.diag_embed(sup, offset=1)
     batch = torch.broadcast_shapes(A.shape[:-2], rhs.shape[:-2])  # explicit: rhs is never read as vectors
     return torch.linalg.solve(A.expand(*batch, *A.shape[-2:]), rhs.expand(*batch, *rhs.shape[-2:]))
+
+
+def _thomas(sub: Tensor, diag: Tensor, sup: Tensor, rhs: Tensor) -> Tensor:
+    """:func:`tridiagonal_solve` by elimination along the band without pivoting (for a diagonally dominant
+    A): forward c_i = sup_i / m_i, y_i = (rhs_i − sub_{i−1} y_{i−1}) / m_i with m_i = diag_i − sub_{i−1}
+    c_{i−1}, then x_i = y_i − c_i x_{i+1}; a loop over N of batched ops (differentiable)."""
+    batch = torch.broadcast_shapes(diag.shape[:-1], sub.shape[:-1], sup.shape[:-1], rhs.shape[:-2])
+    N = diag.shape[-1]
+    diag, rhs = diag.expand(*batch, N), rhs.expand(*batch, *rhs.shape[-2:])
+    sub, sup = sub.expand(*batch, N - 1), sup.expand(*batch, N - 1)
+    c, y = [], []
+    m = diag[..., 0]
+    for i in range(N):
+        if i:
+            m = diag[..., i] - sub[..., i - 1] * c[-1]
+            y.append((rhs[..., i, :] - sub[..., i - 1, None] * y[-1]) / m[..., None])
+        else:
+            y.append(rhs[..., 0, :] / m[..., None])
+        if i < N - 1:
+            c.append(sup[..., i] / m)
+    x = [y[-1]]
+    for i in range(N - 2, -1, -1):
+        x.append(y[i] - c[i][..., None] * x[-1])
+    return torch.stack(x[::-1], -2)

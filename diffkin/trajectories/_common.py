@@ -192,7 +192,8 @@ def spline_slopes(knots: Tensor, y: Tensor, bc: str = "clamped", v_i: Tensor | N
         first = ((h0 + 2 * w0) * h1)[..., None] * d[..., :1, :] + (h0**2)[..., None] * d[..., 1:2, :]
         last = (hn**2)[..., None] * d[..., -2:-1, :] + ((2 * w1 + hn) * hm)[..., None] * d[..., -1:, :]
         rhs = cat_broadcast([first / w0[..., None], rhs, last / w1[..., None]], -2)
-    return tridiagonal_solve(sub, diag, sup, rhs)
+    # clamped: every row diagonally dominant (2 (h_l + h_r) against h_l + h_r; the end rows the identity)
+    return tridiagonal_solve(sub, diag, sup, rhs, dominant=bc == "clamped")
 
 
 def mask_outside(traj: Trajectory, inside: Tensor) -> Trajectory:
