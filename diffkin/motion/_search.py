@@ -258,18 +258,28 @@ def shortcut_points(checker: EdgeChecker, path: Tensor, n: Tensor, problem: Tens
         gain = (t[..., 1] - t[..., 0]) - direct
         # shortcuts within one segment change nothing; tiny ones are not worth an edge check
         gain = torch.where((j > i) & (gain > 1e-6 * total), gain, -1.0)
-        # the tries by gain, largest first: each path's k-th best checked only where its better ones
-        # collided (a clear edge costs all its subdivision samples, a colliding one usually few)
+        # the tries by gain, largest first, in stages of 1, 2 and the rest: a path's tries of a stage checked
+        # (one batched decision) only where all its better ones collided, the best clear one of the first
+        # stage holding one taken (the same choice as one try at a time, best first: a clear edge costs all
+        # its subdivision samples, a colliding one usually few; one decision per try cost more in calls)
         order = gain.argsort(1, descending=True)
         c = torch.arange(can.numel(), device=dev)
         best = torch.full_like(c, -1)
-        for kk in range(tries):
-            o = order[:, kk]
-            ask = c[(best < 0) & (gain[c, o] > 0)]
-            if ask.numel() == 0:
+        for lo, hi in ((0, 1), (1, 3), (3, tries)):
+            if lo >= tries:
                 break
-            free, _ = checker.edges(a[ask, o[ask]], b[ask, o[ask]], problem[can[ask]])
-            best[ask[free]] = o[ask[free]]
+            o = order[:, lo:hi]  # (C, s)
+            rows, col = ((best < 0)[:, None] & (gain.gather(1, o) > 0)).nonzero(as_tuple=True)
+            if rows.numel() == 0:
+                break
+            tried = o[rows, col]
+            free, _ = checker.edges(a[rows, tried], b[rows, tried], problem[can[rows]])
+            # per path its first clear try of the stage (in gain order): the smallest stage column
+            hit = torch.full((can.numel(), hi - lo), hi - lo, dtype=torch.long, device=dev)
+            hit[rows[free], col[free]] = col[free]
+            first = hit.min(1).values
+            won = first < hi - lo
+            best[won] = o[won, first[won]]
         take = best >= 0
         misses[can] = torch.where(take, 0, misses[can] + 1)
         if not bool(take.any()):
