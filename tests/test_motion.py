@@ -374,9 +374,10 @@ def test_shortcut_points_shortens_proven_paths(robot):
 
 def test_cage_problem_spline_refined_not_the_polyline(monkeypatch):
     """A MotionBenchMaker cage problem (spherized Panda, half the default shortcut rounds): the cubic spline
-    through its shortcut path leaves the clear region, so without refinement (REFINE_ROUNDS = 0) it is timed
-    along the polyline (a stop at each waypoint); refined (midpoints where the spline failed) it is a proven
-    spline, faster; the motion keeps d >= 0 on its 10 ms samples by the closed-form torch distances."""
+    through its shortcut path leaves the clear region, so without refinement (REFINE_ROUNDS = 0, the
+    default) it is timed along the polyline (a stop at each waypoint); refined (6 rounds: midpoints where
+    the spline failed) it is a proven spline, faster; the motion keeps d >= 0 on its 10 ms samples by the
+    closed-form torch distances."""
     from benchmarks import motion_problems as mp
     from diffkin.collision.boxes import sphere_box
     from diffkin.collision.cylinders import sphere_cylinder
@@ -391,9 +392,9 @@ def test_cage_problem_spline_refined_not_the_polyline(monkeypatch):
     qg = torch.tensor([probs[0].goal], dtype=torch.float64)
     kw = dict(collision=rc, world=w, velocity_limit=mp.FRANKA_V, acceleration_limit=mp.FRANKA_A,
               jerk_limit=mp.FRANKA_J, max_iterations=30000, step=0.5, shortcut_rounds=8)
+    raw = motion.plan(chain, qs, qg, **kw)  # REFINE_ROUNDS = 0, the default
+    monkeypatch.setattr(plan_mod, "REFINE_ROUNDS", 6)
     res = motion.plan(chain, qs, qg, **kw)
-    monkeypatch.setattr(plan_mod, "REFINE_ROUNDS", 0)
-    raw = motion.plan(chain, qs, qg, **kw)
     assert res.success.all() and raw.success.all(), (res.reason, raw.reason)
     assert raw.interpolation == ["linear"] and res.interpolation == ["spline"]
     assert float(res.duration[0]) < float(raw.duration[0])

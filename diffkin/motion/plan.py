@@ -23,8 +23,9 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
    ends), checked continuously by the same bound (along its length in the bound's metric); where it leaves
    the clear region (or the limits), the knot intervals it fails on and their neighbours are split at their
    midpoints (points of the checked polyline, which the new spline hugs closer) and the spline checked
-   again, up to :data:`REFINE_ROUNDS` times; a refined row is timed both ways and keeps the faster; a row no
-   round proves falls back to the checked polyline itself (a stop at every waypoint).
+   again, up to :data:`REFINE_ROUNDS` times (0 by default: off, see there); a refined row is timed both
+   ways and keeps the faster; a row no round proves falls back to the checked polyline itself (a stop at
+   every waypoint).
 6. **Optimisation** (``optimize=True``, :mod:`diffkin.motion.optimize`): the path resampled to knots and
    optimised for smoothness with the distances and limits as constraints; kept where its segments and
    spline are proven clear as above, else the path of 5. The optimised knots carry the implicit gradient
@@ -67,7 +68,10 @@ ETA_LEVELS = 10
 SHORTCUT_TRIES = 4
 #: rounds of spline refinement (module docstring, 5): each splits the knot intervals where the spline is not
 #: proven clear, and their neighbours, at their midpoints (the spacing there halves each round)
-REFINE_ROUNDS = 6
+#: 0 by default: refined splines timed by time_optimal can carry a jump of q̈ between its samples (cage/0035
+#: of the 700 MotionBenchMaker problems in one call: 21 400 rad/s³ at 1 ms against the 10 000 limit, the row
+#: reported a success); a round count > 0 turns the refinement on for experiments until that is found
+REFINE_ROUNDS = 0
 #: rounds of shortcuts between points anywhere on the searched path (:func:`~._search.shortcut_points`) per
 #: round of ``shortcut_rounds``, and the shortcuts tried per path per round (each clear one taken costs its
 #: edge's whole subdivision: on the cage problems this stage costs about what the search does)
