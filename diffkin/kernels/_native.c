@@ -1132,8 +1132,21 @@ static inline real DK(nan_max)(real a, real b) { return (a > b || a != a) ? a : 
 #include "_native_velocity.c"
 #include "_native_banded.c"
 #include "_native_clip.c"
+/* the C twins of torch code that must give the same floats (each operation a statement of its own, never
+   contracted into a fused multiply-add): compiled with contraction off */
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#elif defined(__GNUC__)
+#pragma GCC push_options
+#pragma GCC optimize("fp-contract=off")
+#endif
 #include "_native_topp.c"
 #include "_native_spline.c" /* after _native_topp.c: its searches */
+#if defined(__clang__)
+#pragma clang fp contract(on)
+#elif defined(__GNUC__)
+#pragma GCC pop_options
+#endif
 
 #undef real
 #endif

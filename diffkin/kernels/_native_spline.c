@@ -3,15 +3,8 @@
  * cubic spline at the fine samples u, their bound-length chords and the check points at the marks, each
  * sample one pass through its own segment (torch spends (B, fine, nq) temporaries and a gather per binary
  * search step). The same operations in the same order as the torch code (poly_eval position_only, the
- * chord's joints summed first to last, cumsum in order): the same floats. Paths are shared between
- * threads. */
-
-#if defined(__clang__)
-#pragma clang fp contract(off)
-#elif defined(__GNUC__)
-#pragma GCC push_options
-#pragma GCC optimize("fp-contract=off")
-#endif
+ * chord's joints summed first to last, cumsum in order; _native.c includes this file with fused
+ * multiply-adds off): the same floats. Paths are shared between threads. */
 
 /* _Path.eval(s, position_only=True) of one path: its knots ps (N), coefficients c0..c3 (N - 1, n) and end
  * point (n); g the segment (torch.searchsorted of the inner knots, right); q (n) out. */
@@ -100,9 +93,3 @@ static void DK(spline_marks)(const real *u, int64_t F, const real *cum, const re
         }
     }
 }
-
-#if defined(__clang__)
-#pragma clang fp contract(on)
-#elif defined(__GNUC__)
-#pragma GCC pop_options
-#endif

@@ -9,16 +9,9 @@
  *
  * with K_{M-1} = 0 and x_0 = 0: one grid point after another, a few flops each, which torch spends one
  * operator call on (most of the time of a short batch). The same operations in the same order as the torch
- * loop, each a statement of its own and never contracted into a fused multiply-add, and the minima and maxima
- * propagate NaN as torch.minimum / amin / clamp do: the same floats. Paths are shared between threads. */
-
-#if defined(__clang__)
-#pragma clang fp contract(off)
-#elif defined(__GNUC__)
-#pragma GCC push_options
-#pragma GCC optimize("fp-contract=off")
-#endif
-
+ * loop, each a statement of its own and never contracted into a fused multiply-add (_native.c includes this
+ * file with contraction off), and the minima and maxima propagate NaN as torch.minimum / amin / clamp do: the
+ * same floats. Paths are shared between threads. */
 
 /* One path: Aq, G, C (M - 1, R); Au, Bu, Gu (M - 1, Ru); fixed, xq, d (M - 1); K (M), Kn (M - 1) work;
  * x (M) out. */
@@ -417,9 +410,3 @@ static int64_t DK(topp_sample)(const real *const *in, const int64_t *rows, real 
     }
     return 0;
 }
-
-#if defined(__clang__)
-#pragma clang fp contract(on)
-#elif defined(__GNUC__)
-#pragma GCC pop_options
-#endif
