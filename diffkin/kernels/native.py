@@ -691,6 +691,24 @@ def banded_solve(D: Tensor, E: Tensor, F: Tensor, g: Tensor, shift: Tensor | Non
     return x
 
 
+def _serves(dtype: torch.dtype, tensors) -> bool:
+    """True when the library is loaded and every one of ``tensors`` (None skipped) is a CPU tensor of
+    ``dtype`` (float32 or float64) without autograd: what the C twins of torch code below take."""
+    return available() and dtype in (torch.float32, torch.float64) and all(
+        t.device.type == "cpu" and t.dtype == dtype and not t.requires_grad for t in tensors if t is not None)
+
+
+def _lanes(units: int, work: int) -> int:
+    """Threads for ``units`` independent pieces (paths, clips) of ``work`` items in all: the policy of
+    :func:`thread_count`, at most one per piece and at least one (OpenMP's num_threads must be positive)."""
+    return max(1, min(units, thread_count(work)))
+
+
+def _pointers(tensors) -> ctypes.Array:
+    """The data pointers of ``tensors`` as a C array (NULL for None)."""
+    return (ctypes.c_void_p * len(tensors))(*(None if t is None else t.data_ptr() for t in tensors))
+
+
 def topp_grid(P1: Tensor, P2: Tensor, Q1: Tensor, Q2: Tensor, amax: Tensor, vmax: Tensor, delta: Tensor,
               stops: Tensor, big: float) -> Tensor | None:
     """x = ṡ² ``(B, M)`` of :func:`diffkin.trajectories.time_optimal._topp` from the path's derivatives
@@ -701,15 +719,13 @@ def topp_grid(P1: Tensor, P2: Tensor, Q1: Tensor, Q2: Tensor, amax: Tensor, vmax
     tensors of one float dtype without autograd. Paths are shared between threads."""
     ins = (P1, P2, Q1, Q2, amax, vmax, delta)
     dtype = P1.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64) or stops.device.type != "cpu"
-            or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in ins)):
+    if stops.device.type != "cpu" or not _serves(dtype, ins):
         return None
     B, M, n = P1.shape
     ins = [t.contiguous() for t in (*ins, stops.to(dtype))]
     x = torch.empty(B, M, dtype=dtype, device="cpu")  # C writes here: never the default device
-    ptrs = (ctypes.c_void_p * len(ins))(*(t.data_ptr() for t in ins))
-    threads = max(1, min(B, thread_count(B * M)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_grid(ptrs, x.data_ptr(), B, M, n, big, x.element_size(), threads), "work space")
+    _raise_on(_lib.dk_topp_grid(_pointers(ins), x.data_ptr(), B, M, n, big, x.element_size(),
+                                _lanes(B, B * M)), "work space")
     return x
 
 
@@ -724,17 +740,14 @@ def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, k
     shared between threads."""
     ins = (t, *profile, tau, k, knots, *coeffs, *limits)
     dtype = t.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64) or len(limits) not in (2, 3)
-            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
+    if len(limits) not in (2, 3) or not _serves(dtype, ins):
         return None
     (B, T), M, N, n = t.shape, profile[0].shape[1], knots.shape[1], coeffs[0].shape[-1]
     ins = [x.contiguous() for x in ins]
     peak = torch.empty(B, len(limits), dtype=dtype, device="cpu")  # C writes here: never the default device
     top = torch.empty(B, len(limits), n, dtype=dtype, device="cpu")
-    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
-    threads = max(1, min(B, thread_count(B * T)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_peaks(ptrs, top.data_ptr(), peak.data_ptr(), B, T, M, N, n, len(limits),
-                                 peak.element_size(), threads), "work space")
+    _raise_on(_lib.dk_topp_peaks(_pointers(ins), top.data_ptr(), peak.data_ptr(), B, T, M, N, n, len(limits),
+                                 peak.element_size(), _lanes(B, B * T)), "work space")
     return peak
 
 
@@ -748,20 +761,16 @@ def topp_sample(t: Tensor, rows: Tensor | None, profile: tuple[Tensor, ...], tau
     dtype without autograd."""
     ins = (t, *profile, tau, k, knots, *coeffs, end)
     dtype = t.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64)
-            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)
-            or (rows is not None and rows.device.type != "cpu")):
+    if (rows is not None and rows.device.type != "cpu") or not _serves(dtype, ins):
         return None
     (R, T), M, N, n = t.shape, profile[0].shape[1], knots.shape[1], end.shape[-1]
     ins = [x.contiguous() for x in ins]
     if rows is not None:
         rows = rows.to(torch.int64).expand(R, T).contiguous()
     q, qd, qdd = (torch.empty(R, T, n, dtype=dtype, device="cpu") for _ in range(3))  # C writes here
-    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
-    threads = max(1, min(R, thread_count(R * T)))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_topp_sample(ptrs, None if rows is None else rows.data_ptr(), q.data_ptr(),
-                                  qd.data_ptr(), qdd.data_ptr(), R, T, M, N, n, q.element_size(), threads),
-              "work space")
+    _raise_on(_lib.dk_topp_sample(_pointers(ins), None if rows is None else rows.data_ptr(), q.data_ptr(),
+                                  qd.data_ptr(), qdd.data_ptr(), R, T, M, N, n, q.element_size(),
+                                  _lanes(R, R * T)), "work space")
     return q, qd, qdd
 
 
@@ -774,17 +783,14 @@ def spline_fine(u: Tensor, knots: Tensor, coeffs: tuple[Tensor, ...], end: Tenso
     the library is not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
     ins = (u, knots, *coeffs, end, lo, hi, reach)
     dtype = u.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64)
-            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)):
+    if not _serves(dtype, ins):
         return None
     (B, N), F, n = knots.shape, u.shape[0] - 1, end.shape[-1]
     ins = [x.contiguous() for x in ins]
     cpu = {"dtype": dtype, "device": "cpu"}  # C writes here: never the default device
     cum, inside, work = torch.empty(B, F + 1, **cpu), torch.empty(B, **cpu), torch.empty(B, 2 * n, **cpu)
-    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
-    threads = max(1, min(B, thread_count(B * (F + 1))))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_spline_fine(ptrs, cum.data_ptr(), inside.data_ptr(), work.data_ptr(), F, B, N, n,
-                                  u.element_size(), threads), "work space")
+    _raise_on(_lib.dk_spline_fine(_pointers(ins), cum.data_ptr(), inside.data_ptr(), work.data_ptr(), F, B, N,
+                                  n, u.element_size(), _lanes(B, B * (F + 1))), "work space")
     return cum, inside > 0
 
 
@@ -796,18 +802,14 @@ def spline_marks(u: Tensor, cum: Tensor, step: Tensor, count: Tensor, first: Ten
     path b's from row ``first[b]``; None (nothing done) where :func:`spline_fine` would be."""
     ins = (u, cum, step, knots, *coeffs, end)
     dtype = u.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64)
-            or any(x.device.type != "cpu" or x.dtype != dtype or x.requires_grad for x in ins)
-            or any(x.device.type != "cpu" for x in (count, first))):
+    if any(x.device.type != "cpu" for x in (count, first)) or not _serves(dtype, ins):
         return None
     (B, N), F, n = knots.shape, u.shape[0] - 1, end.shape[-1]
     ins = [x.contiguous() for x in ins]
     count, first = count.to(torch.int64).contiguous(), first.to(torch.int64).contiguous()
     q = torch.empty(int(count.sum()) + B, n, dtype=dtype, device="cpu")  # C writes here
-    ptrs = (ctypes.c_void_p * len(ins))(*(x.data_ptr() for x in ins))
-    threads = max(1, min(B, thread_count(q.shape[0])))  # OpenMP's num_threads must be positive
-    _raise_on(_lib.dk_spline_marks(ptrs, count.data_ptr(), first.data_ptr(), q.data_ptr(), F, B, N, n,
-                                   u.element_size(), threads), "work space")
+    _raise_on(_lib.dk_spline_marks(_pointers(ins), count.data_ptr(), first.data_ptr(), q.data_ptr(), F, B, N,
+                                   n, u.element_size(), _lanes(B, q.shape[0])), "work space")
     return q
 
 
@@ -876,22 +878,16 @@ def clip_joint(q: Tensor, q_ref: Tensor, space, lo: Tensor, hi: Tensor, vstep: T
     ``weights (5,)`` (limit, velocity_limit, posture, velocity, acceleration). False (nothing done) where the
     library is not loaded or the tensors are not CPU tensors of one float dtype without autograd. Clips are
     shared between threads."""
-    dtype = D.dtype
-    reals = [t for t in (q, q_ref, lo, hi, vstep, weights, cost, D, E, g) if t is not None]
-    if (not available() or dtype not in (torch.float32, torch.float64)
-            or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in reals)
-            or not all(t.is_contiguous() for t in (cost, D, E, g))):
+    if (not all(t.is_contiguous() for t in (cost, D, E, g))
+            or not _serves(D.dtype, (q, q_ref, lo, hi, vstep, weights, cost, D, E, g))):
         return False
     B, T, nq = q.shape
     ins = [t.contiguous() for t in (q, q_ref.expand(q.shape), lo, hi)] + [
         None if vstep is None else vstep.contiguous(), weights.contiguous()]
-    ptrs = (ctypes.c_void_p * 6)(*(None if t is None else t.data_ptr() for t in ins))
     idx = _space_index(space)
-    iptrs = (ctypes.c_void_p * 4)(*(t.data_ptr() for t in idx))
-    threads = max(1, min(B, thread_count(B * T)))
-    _raise_on(_lib.dk_clip_joint(ptrs, iptrs, cost.data_ptr(), D.data_ptr(), E.data_ptr(), g.data_ptr(), B, T,
-                                 nq, D.shape[-1], len(idx[0]), len(idx[2]) // 4, D.element_size(), threads),
-              "work space")
+    _raise_on(_lib.dk_clip_joint(_pointers(ins), _pointers(idx), cost.data_ptr(), D.data_ptr(), E.data_ptr(),
+                                 g.data_ptr(), B, T, nq, D.shape[-1], len(idx[0]), len(idx[2]) // 4,
+                                 D.element_size(), _lanes(B, B * T)), "work space")
     return True
 
 
@@ -918,20 +914,16 @@ def clip_step(q: Tensor, step: Tensor, space, q_limits: tuple[Tensor, Tensor], l
     done) where the library is not loaded or the inputs are not CPU tensors of one float dtype without
     autograd. Clips are shared between threads."""
     dtype = q.dtype
-    reals = [t for t in (q, step, *q_limits, *limits, vstep) if t is not None]
-    if (not available() or dtype not in (torch.float32, torch.float64)
-            or any(t.device.type != "cpu" or t.dtype != dtype or t.requires_grad for t in reals)):
+    if not _serves(dtype, (q, step, *q_limits, *limits, vstep)):
         return None
     B, T, nq = q.shape
     ins = [t.contiguous() for t in (q, step, *q_limits, *limits)]
     ins.append(None if vstep is None else vstep.contiguous())
-    ptrs = (ctypes.c_void_p * 7)(*(None if t is None else t.data_ptr() for t in ins))
     idx = _space_index(space)
-    iptrs = (ctypes.c_void_p * 4)(*(t.data_ptr() for t in idx))
     out = torch.empty(B, T, nq, dtype=dtype, device="cpu")  # C writes here: never the default device
-    threads = max(1, min(B, thread_count(B * T)))
-    _raise_on(_lib.dk_clip_step(ptrs, iptrs, out.data_ptr(), B, T, nq, step.shape[-1], len(idx[0]),
-                                len(idx[2]) // 4, q.element_size(), threads), "work space")
+    _raise_on(_lib.dk_clip_step(_pointers(ins), _pointers(idx), out.data_ptr(), B, T, nq, step.shape[-1],
+                                len(idx[0]), len(idx[2]) // 4, q.element_size(), _lanes(B, B * T)),
+              "work space")
     return out
 
 
