@@ -123,16 +123,14 @@ class _Terms:
         # the same columns as a slice where they are a run (a floating base then hinges): views, no gathers
         self.sq_cols = _as_slice(cs.scalar_index("q"), self.sq)
         self.sv_cols = _as_slice(cs.scalar_index("v"), self.sv)
-        lim = chain.q_limits.index_select(0, self.sq) if chain.q_limits is not None else None
-        if lim is None:
-            lim = torch.full((len(self.sq), 2), float("inf"), dtype=keypoints.dtype, device=keypoints.device)
-            lim[:, 0] = -lim[:, 0]
-        self.lo_hard, self.hi_hard = lim[:, 0], lim[:, 1]
-        ql = chain.q_limits  # every q column's limits for clamp_to_limits' C twin in step(); ±inf without
+        ql = chain.q_limits  # every q column's limits (±inf without): clamp_to_limits' C twin in step()
         if ql is None:
             ql = torch.tensor([-float("inf"), float("inf")], dtype=keypoints.dtype, device=keypoints.device)
             ql = ql.expand(chain.nq, 2)
-        self.q_bounds = (ql[:, 0].to(keypoints), ql[:, 1].to(keypoints))
+        ql = ql.to(keypoints)
+        self.q_bounds = (ql[:, 0], ql[:, 1])
+        lim = ql.index_select(0, self.sq)  # the scalar coordinates' (the velocity clamp's bounds)
+        self.lo_hard, self.hi_hard = lim[:, 0], lim[:, 1]
         self.lo, self.hi = lim[:, 0] + limit_margin, lim[:, 1] - limit_margin
         # q̇_max / fps (rad or m per frame) on the scalar q columns (inf on the base position)
         self.vstep = None if velocity_limit is None else velocity_limit.index_select(0, self.sq) / fps
