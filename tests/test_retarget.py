@@ -706,6 +706,46 @@ def test_whole_clip_frame_terms_in_c_equal_the_torch_path(dtype):
             assert torch.equal(x, y)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_whole_clip_frame_terms_with_the_fk_in_the_same_pass(dtype):
+    """evaluate's C path computes the frames' FK inside native.clip_rows, a block of 16 frames at a time
+    (no poses nor Jacobians written out): the same floats as clip_rows from the chain's FK outputs, for a
+    frame count that leaves a partial block, on one and two threads; a call with rows that need the poses
+    (extra_rows) takes the FK outputs."""
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    terms, q = _terms_case(dtype, B=3, T=7)  # 21 frames: a block of 16 and one of 5
+    B, T, nq = q.shape
+    with torch.no_grad():
+        Ta, Ja = terms.chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
+        from_fk = terms._joint_terms(q, *terms.frame_terms(Ta, Ja, B, T))
+        calls = []
+        clip_rows = native.clip_rows
+
+        def spy(Tf, J, **kw):
+            calls.append(Tf is None and kw.get("fk") is not None)
+            return clip_rows(Tf, J, **kw)
+
+        native.clip_rows = spy
+        try:
+            for threads in (1, 2):
+                with native.threads(threads):
+                    fused = terms.evaluate(q)
+                for name, a, b in zip(("cost", "D", "E", "F", "g"), fused, from_fk):
+                    assert torch.equal(a, b), (name, threads)
+            assert calls == [True, True]
+            terms.extra_rows = [lambda q_, Ta_, Ja_: (Ta_.new_zeros(B, T, 1),
+                                                      Ja_.new_zeros(B, T, 1, Ja_.shape[-1]))]
+            with_rows = terms.evaluate(q)
+            assert calls[-1] is False
+        finally:
+            native.clip_rows = clip_rows
+    for a, b in zip(with_rows, from_fk):
+        assert torch.equal(a, b)
+
+
 @pytest.mark.parametrize("source", ["urdf", "mjcf"])
 def test_jacobian_support_holds_every_non_zero_column(source):
     """native.jacobian_support (the columns of each end link's ancestors) covers every non-zero Jacobian

@@ -53,7 +53,7 @@
 #define DK_SOLVE_VERSION 1 /* dk_solve_args: bump with every change of DK_SOLVE_FIELDS (native.SolveArgs) */
 #define DK_WATCH_VERSION 1 /* dk_watch: bump with every change of DK_WATCH_FIELDS (native.WatchArgs) */
 #define DK_COLLIDE_VERSION 2 /* dk_collide: bump with every change of DK_COLLIDE_FIELDS (native.Collide) */
-#define DK_CLIP_VERSION 2 /* dk_clip: bump with every change of DK_CLIP_FIELDS (native.ClipArgs) */
+#define DK_CLIP_VERSION 3 /* dk_clip: bump with every change of DK_CLIP_FIELDS (native.ClipArgs) */
 #define DK_ABI_ERROR (-2) /* returned for a struct of another version or size */
 #define DK_RANGE_ERROR (-3) /* dk_solve: an option beyond this file's limits (lib_ranks > MAX_RANKS) */
 #define DK_STALE (-4) /* dk_fk_one: the watched constants changed since they were packed */
@@ -218,8 +218,9 @@ typedef struct dk_collide { DK_COLLIDE_FIELDS(DK_DECLARE) } dk_collide;
     X(double, w_flat, "flat-foot weight") \
     X(double, w_skate, "skating weight") \
     X(double, ground, "ground height") \
-    X(const void *, Tf, "[N*ends*16] reals: end-link poses") \
-    X(const void *, J, "[N*ends*6*nv] reals: their geometric Jacobians") \
+    X(const void *, Tf, "[N*ends*16] reals: end-link poses, or NULL: from fk") \
+    X(const void *, J, "[N*ends*6*nv] reals: their geometric Jacobians, or NULL: from fk") \
+    X(const dk_args *, fk, "the chain's FK with q the N frames' configurations, where Tf and J are NULL") \
     X(void *, cost, "[N] reals out: 1/2 |r|^2 of the frame's rows") \
     X(void *, D, "[N*nv*nv] reals out: J^T J") \
     X(void *, E, "[N*nv*nv] reals out: the skating rows' block (n, n - 1)") \
@@ -651,6 +652,7 @@ int64_t dk_clip_step(const void *const *in, const int64_t *const *idx, void *out
  * size other than 8 or 4. */
 int64_t dk_clip_rows(const dk_clip *c) {
     if (!DK_LAYOUT_OK(c, dk_clip, DK_CLIP_VERSION)) return DK_ABI_ERROR;
+    if ((c->Tf == NULL || c->J == NULL) && (c->fk == NULL || !abi_ok(c->fk))) return DK_ABI_ERROR;
     if (c->real_bytes == 8) return clip_rows_f64(c);
     if (c->real_bytes == 4) return clip_rows_f32(c);
     return DK_ABI_ERROR;
@@ -998,6 +1000,23 @@ static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_
 
 /* Block blk of dk_fk: its configurations of q (B, n) into T and Jac (NULL: no Jacobian); returns the number
  * of non-finite entries of q it read. */
+/* The first nl lanes of the block just evaluated (DK(block)) into T (nl, K, 4, 4) and, when Jac is not NULL,
+ * Jac (nl, K, 6, nv), batch first. */
+static void DK(fk_store)(const Shape *s, const DK(Scratch) *sc, int nl, real *T, real *Jac) {
+    const int K = s->K, nv = s->nv;
+    for (int k = 0; k < K; k++) {
+        const real *E = sc->ends + (size_t)k * 12 * W;
+        DK(store_lanes)(E, 12, nl, T + k * 16, (int64_t)K * 16);
+        for (int l = 0; l < nl; l++) {
+            real *To = T + ((int64_t)l * K + k) * 16;
+            To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
+        }
+        if (Jac)
+            DK(store_lanes)(sc->Jb + (size_t)k * 6 * nv * W, 6 * nv, nl, Jac + (int64_t)k * 6 * nv,
+                            (int64_t)K * 6 * nv);
+    }
+}
+
 static int64_t DK(fk_block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, const real *q, real *T,
                             real *Jac, int64_t B, int64_t blk) {
     const int K = s->K, nv = s->nv;
@@ -1005,17 +1024,7 @@ static int64_t DK(fk_block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *s
     const int nl = (int)(B - b0 < W ? B - b0 : W);
     const int64_t bad = DK(load_q)(s, sc, q, b0, nl);
     DK(block)(s, pp, sc, Jac != NULL);
-    for (int k = 0; k < K; k++) {
-        const real *E = sc->ends + (size_t)k * 12 * W;
-        DK(store_lanes)(E, 12, nl, T + (b0 * K + k) * 16, (int64_t)K * 16);
-        for (int l = 0; l < nl; l++) {
-            real *To = T + ((b0 + l) * K + k) * 16;
-            To[12] = 0; To[13] = 0; To[14] = 0; To[15] = 1;
-        }
-        if (Jac)
-            DK(store_lanes)(sc->Jb + (size_t)k * 6 * nv * W, 6 * nv, nl, Jac + (b0 * K + k) * 6 * (int64_t)nv,
-                            (int64_t)K * 6 * nv);
-    }
+    DK(fk_store)(s, sc, nl, T + b0 * K * 16, Jac ? Jac + b0 * K * 6 * (int64_t)nv : NULL);
     return bad;
 }
 

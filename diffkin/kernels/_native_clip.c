@@ -14,7 +14,9 @@
  * pairs' summed squared weights) and give E_n = -sum w_s^2 Jc_n^T Jc_{n-1} (the first sub-diagonal block).
  * The rows of one end link only touch the columns its Jacobian has non-zeros in (the floating base and its
  * ancestors): they are packed on those columns, their Gram matrix formed there and scattered into D_n.
- * Frames are shared between threads (pass 1), then the skating pass reads the neighbours' centres. */
+ * Frames are shared between threads (pass 1), then the skating pass reads the neighbours' centres. Given
+ * the chain's FK arguments (c->fk) instead of Tf and J, pass 1 evaluates the FK itself, a block of W frames
+ * at a time, and reads each block's poses and Jacobians while they are in cache. */
 
 /* Columns (of nv) where some of the 6 rows of J (6 x nv) is non-zero; returns their count. A column's flag is
  * one expression over its six entries (vectorised over the columns, each flag written once), then the flags
@@ -60,10 +62,10 @@ static void DK(clip_gram)(const real *R, const real *r, int64_t m, const int64_t
     }
 }
 
-static void DK(clip_frame)(const dk_clip *c, int64_t n, real *rows, real *res, real *packed, real *gram,
-                           int64_t *cols, const int64_t *sup) {
+/* Frame n's rows from its end-link poses Tn (E x 4 x 4) and Jacobians Jn (E x 6 x nv). */
+static void DK(clip_frame)(const dk_clip *c, int64_t n, const real *Tn, const real *Jn, real *rows, real *res,
+                           real *packed, real *gram, int64_t *cols, const int64_t *sup) {
     const int64_t nv = c->nv, E = c->ends, nn = nv * nv;
-    const real *Tn = (const real *)c->Tf + n * E * 16, *Jn = (const real *)c->J + n * E * 6 * nv;
     const real *x = (const real *)c->x + n * c->K * 3, *Rd = (const real *)c->Rd + n * c->Ko * 9;
     const real *kw = (const real *)c->kp_w, *ow = (const real *)c->ko_w;
     const real *pts = (const real *)c->pts, *rad = (const real *)c->rad;
@@ -219,36 +221,78 @@ static void DK(clip_skate)(const dk_clip *c, int64_t n, int64_t *cols, const int
 }
 
 /* Work space per thread: rows and residuals of one end link (rows_max x nv, rows_max), packed rows
- * (rows_max x nv), their Gram matrix (nv x nv), the support columns (nv). */
+ * (rows_max x nv), their Gram matrix (nv x nv), the support columns (nv); with c->fk (no Tf, J given), then
+ * the FK's scratch and the poses and Jacobians of one block of W frames (W x ends x 16, W x ends x 6 x nv):
+ * each block's FK is read while in cache instead of written out for all N frames and read back. */
 static int64_t DK(clip_rows)(const dk_clip *c) {
-    const int64_t nv = c->nv, N = c->N;
+    const int64_t nv = c->nv, N = c->N, E = c->ends;
     const int64_t rows_max = 3 * (c->K + c->Ko) + c->P0 + c->P1 + 6;
-    /* an even count of reals: the int64 column scratch after them (and every thread's block) stays 8-byte
-       aligned in float32 too */
-    const size_t reals = ((size_t)(2 * rows_max * nv + rows_max + nv * nv) + 1) & ~(size_t)1;
-    const size_t per = reals * sizeof(real) + (size_t)nv * sizeof(int64_t);
+    const int fused = c->Tf == NULL || c->J == NULL;
+    if (fused && (c->fk->real_bytes != (int64_t)sizeof(real) || c->fk->K != E || c->fk->nv != nv))
+        return DK_ABI_ERROR; /* (dk_clip_rows checked c->fk's layout) */
+    Shape shape;
+    DK(Params) pp;
+    if (fused) {
+        read_shape(c->fk, &shape);
+        if (DK(read_params)(c->fk, &shape, &pp)) return -1;
+    }
+    /* whole 64-byte lines of reals: the FK scratch and the int64 column scratch after them start aligned;
+       each thread's block starts on its own page (as DK(team_alloc)'s) */
+    const size_t reals = ((size_t)(2 * rows_max * nv + rows_max + nv * nv) + 15) & ~(size_t)15;
+    const size_t fk_reals = fused ? (DK(scratch_size)(&shape) / sizeof(real) + (size_t)(W * E * (16 + 6 * nv)))
+                                  : 0;
+    const size_t per = ((reals + fk_reals) * sizeof(real) + (size_t)nv * sizeof(int64_t) + 4095) & ~(size_t)4095;
     int64_t nth = c->nthreads < 1 ? 1 : c->nthreads;
     if (nth > N) nth = N > 0 ? N : 1;
-    const size_t sup_bytes = c->support ? (size_t)(c->ends * (nv + 1)) * sizeof(int64_t) : 0;
-    char *work = malloc(per * (size_t)nth + sup_bytes);
-    if (!work) return -1;
+    const size_t sup_bytes = c->support ? (size_t)(E * (nv + 1)) * sizeof(int64_t) : 0;
+    char *work = aligned_alloc(4096, per * (size_t)nth + ((sup_bytes + 4095) & ~(size_t)4095));
+    if (!work) {
+        if (fused) free(pp.fix);
+        return -1;
+    }
     /* the structural columns of each end link, once per call (a frame's support where none is given) */
     int64_t *sup = c->support ? (int64_t *)(work + per * (size_t)nth) : NULL;
-    for (int64_t e = 0; sup && e < c->ends; e++) {
+    for (int64_t e = 0; sup && e < E; e++) {
         int64_t *se = sup + e * (nv + 1), s = 0;
         for (int64_t v = 0; v < nv; v++)
             if (c->support[e * nv + v]) se[1 + s++] = v;
         se[0] = s;
     }
+    if (fused) {
+        const int64_t blocks = (N + W - 1) / W;
+#pragma omp parallel num_threads(nth) if (nth > 1)
+        {
+            real *rows = (real *)(work + per * (size_t)thread_id()), *packed = rows + rows_max * nv;
+            real *res = packed + rows_max * nv, *gram = res + rows_max, *scratch = rows + reals;
+            real *Tb = scratch + DK(scratch_size)(&shape) / sizeof(real), *Jb = Tb + W * E * 16;
+            int64_t *cols = (int64_t *)(rows + reals + fk_reals);
+            DK(Scratch) sc;
+            DK(scratch_init)(&shape, &pp, scratch, &sc);
+#pragma omp for schedule(static)
+            for (int64_t blk = 0; blk < blocks; blk++) {
+                const int64_t b0 = blk * W;
+                const int nl = (int)(N - b0 < W ? N - b0 : W);
+                DK(load_q)(&shape, &sc, (const real *)c->fk->q, b0, nl);
+                DK(block)(&shape, &pp, &sc, 1);
+                DK(fk_store)(&shape, &sc, nl, Tb, Jb);
+                for (int l = 0; l < nl; l++)
+                    DK(clip_frame)(c, b0 + l, Tb + l * E * 16, Jb + l * E * 6 * nv, rows, res, packed, gram, cols,
+                                   sup);
+            }
+        }
+        free(pp.fix);
+    } else {
 #pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
-    for (int64_t n = 0; n < N; n++) {
-        real *rows = (real *)(work + per * (size_t)thread_id()), *packed = rows + rows_max * nv;
-        real *res = packed + rows_max * nv, *gram = res + rows_max;
-        DK(clip_frame)(c, n, rows, res, packed, gram, (int64_t *)(rows + reals), sup);
+        for (int64_t n = 0; n < N; n++) {
+            real *rows = (real *)(work + per * (size_t)thread_id()), *packed = rows + rows_max * nv;
+            real *res = packed + rows_max * nv, *gram = res + rows_max;
+            DK(clip_frame)(c, n, (const real *)c->Tf + n * E * 16, (const real *)c->J + n * E * 6 * nv, rows, res,
+                           packed, gram, (int64_t *)(rows + reals), sup);
+        }
     }
 #pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
     for (int64_t n = 0; n < N; n++)
-        DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals), sup);
+        DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals + fk_reals), sup);
     free(work);
     return 0;
 }

@@ -174,13 +174,13 @@ class Collide(ctypes.Structure):
 class ClipArgs(ctypes.Structure):
     """``dk_clip`` of ``_native.c`` (``DK_CLIP_FIELDS``: the arguments of :func:`clip_rows`)."""
 
-    VERSION = 2
+    VERSION = 3
     _fields_ = _HEAD + [(name, _I64) for name in
                         ("real_bytes", "nthreads", "N", "T", "nv", "ends", "K", "Ko", "P0", "P1")] + \
         [(name, _PTR) for name in
          ("kp", "kp_w", "x", "ko", "ko_w", "Rd", "feet", "pts", "rad", "contact", "support")] + \
         [(name, _F64) for name in ("w_contact", "w_pen", "w_flat", "w_skate", "ground")] + \
-        [(name, _PTR) for name in ("Tf", "J", "cost", "D", "E", "g", "centre", "centre_jac")]
+        [(name, _PTR) for name in ("Tf", "J", "fk", "cost", "D", "E", "g", "centre", "centre_jac")]
 
 
 #: the structs checked at load, by the tag of their ``dk_layout_<tag>`` / ``dk_names_<tag>`` exports
@@ -813,11 +813,12 @@ def spline_marks(u: Tensor, cum: Tensor, step: Tensor, count: Tensor, first: Ten
     return q
 
 
-def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoint_weights: Tensor,
-              keypoints: Tensor, orientation_ends: list[int], orientation_weights: Tensor | None,
-              orientations: Tensor | None, feet: list[int], soles: list[tuple[Tensor, Tensor]],
-              contacts: Tensor, weights: dict, ground: float, out: tuple[Tensor, Tensor] | None = None,
-              support: Tensor | None = None):
+def clip_rows(Tf: Tensor | None, J: Tensor | None, *, T: int, keypoint_ends: list[int],
+              keypoint_weights: Tensor, keypoints: Tensor, orientation_ends: list[int],
+              orientation_weights: Tensor | None, orientations: Tensor | None, feet: list[int],
+              soles: list[tuple[Tensor, Tensor]], contacts: Tensor, weights: dict, ground: float,
+              out: tuple[Tensor, Tensor] | None = None, support: Tensor | None = None,
+              fk: tuple[NativeModel, Tensor] | None = None):
     """The frame terms of the whole-clip retargeting problem (:mod:`diffkin.retarget.whole_clip`: keypoints,
     orientations, the soles' contact height, penetration and level rows, skating) by ``dk_clip_rows``
     (``_native_clip.c``), from the end-link poses ``Tf (N, E, 4, 4)`` and Jacobians ``J (N, E, 6, nv)`` of
@@ -830,22 +831,32 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
     buffers, which spares the allocator two fresh blocks per call). ``support``: optional ``(E, nv)`` bool,
     the columns each end link's Jacobian can be non-zero in (its ancestors': :func:`jacobian_support`; a
     column outside is taken as zero, a column inside that is zero adds exact zeros), else each frame's
-    non-zero columns are found from its Jacobian. None (nothing done) where the library is not loaded or the
-    inputs are not CPU tensors of one float dtype without autograd."""
-    dtype = Tf.dtype
-    if (not available() or dtype not in (torch.float32, torch.float64) or Tf.device.type != "cpu"
-            or J.dtype != dtype or torch.is_grad_enabled() and (Tf.requires_grad or J.requires_grad)):
+    non-zero columns are found from its Jacobian. ``fk``: ``(model, q (N, nq))`` in place of ``Tf`` and ``J``
+    (None): the frames' poses and Jacobians computed in the same pass, a block of frames at a time, instead
+    of written out for all N frames and read back (the same values). None (nothing done) where the library is
+    not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    fused = Tf is None
+    ref = fk[1] if fused else Tf  # the frames' dtype and device
+    dtype = ref.dtype
+    if not _serves(dtype, (ref,) if fused else (Tf, J)):
         return None
-    N, E, nv = Tf.shape[0], Tf.shape[1], J.shape[-1]
+    if fused:
+        model, q = fk
+        N, E, nv = q.shape[0], model.n_ends, model.n_velocities
+    else:
+        N, E, nv = Tf.shape[0], Tf.shape[1], J.shape[-1]
     real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
     longs = lambda v: torch.tensor(list(v), dtype=torch.int64)  # noqa: E731
     Ko = len(orientation_ends)
-    keep = [real(Tf), real(J), longs(keypoint_ends), real(keypoint_weights), real(keypoints),
+    Tf = ref = real(ref)
+    keep = [None if fused else Tf, None if fused else real(J), longs(keypoint_ends), real(keypoint_weights),
+            real(keypoints),
             longs(orientation_ends or [0]), real(orientation_weights if Ko else Tf.new_zeros(1)),
             real(orientations if Ko else Tf.new_zeros(1)), longs(feet),
             real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
             contacts.to(torch.uint8).contiguous(),
             None if support is None else support.to(device="cpu", dtype=torch.uint8).contiguous()]
+    chain_args = model.call(dtype, batch=N, q=ref, nthreads=1) if fused else None
     cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
     if out is not None and all(t.shape == (N, nv, nv) and t.dtype == dtype and t.device.type == "cpu"
                                and t.is_contiguous() for t in out):
@@ -861,7 +872,8 @@ def clip_rows(Tf: Tensor, J: Tensor, *, T: int, keypoint_ends: list[int], keypoi
                       w_contact=float(weights["contact_height"]),
                       w_pen=float(weights["penetration"]), w_flat=float(weights["flat_foot"]),
                       w_skate=float(weights["skating"]), ground=float(ground), Tf=keep[0], J=keep[1],
-                      cost=cost, D=D, E=Eb, g=g, centre=centre, centre_jac=centre_jac)
+                      fk=None if chain_args is None else ctypes.addressof(chain_args), cost=cost, D=D, E=Eb,
+                      g=g, centre=centre, centre_jac=centre_jac)
     _raise_on(_lib.dk_clip_rows(ctypes.byref(args)), "work space")
     return cost, D, Eb, g
 

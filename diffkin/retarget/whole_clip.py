@@ -203,7 +203,13 @@ class _Terms:
         the blocks of the recycling evaluation before the last (:meth:`frame_terms`), for a caller that
         keeps only the last one."""
         B, T, nq = q.shape
-        Ta, Ja = self.chain.forward_kinematics_and_jacobian(q.reshape(B * T, nq), check=False)
+        flat = q.reshape(B * T, nq)
+        model = None if self.extra_rows else self.chain._native_model(flat)
+        if model is not None:  # the C frame terms with the FK in the same pass (no pose nor Jacobian kept)
+            out = self._native_frame_terms(None, None, B, T, recycle, fk=(model, flat.contiguous()))
+            if out is not None:
+                return self._joint_terms(q, *out)
+        Ta, Ja = self.chain.forward_kinematics_and_jacobian(flat, check=False)
         if Ta.ndim == 3:
             Ta, Ja = Ta.unsqueeze(-3), Ja.unsqueeze(-3)
         cost, D, E, g = self.frame_terms(Ta, Ja, B, T, recycle)
@@ -223,17 +229,27 @@ class _Terms:
         the blocks it made two recycling calls before (two sets in turn), so an iterative caller that
         keeps only the last evaluation's blocks does not have 2 B T nv² fresh reals allocated (and the
         pages faulted in) at every call."""
-        w, ori = self.w, self.ori is not None
-        buffers = self._buffers[self._turn] if recycle else None
-        out = native.clip_rows(
-            Ta, Ja, T=T, keypoint_ends=self.kp_idx, keypoint_weights=w["keypoint"] * self.kp_w.to(Ta),
-            keypoints=self.x.reshape(B * T, -1, 3), orientation_ends=self.ori_idx if ori else [],
-            orientation_weights=w["orientation"] * self.ori_w.to(Ta) if ori else None,
-            orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
-            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground, out=buffers,
-            support=self.support)
+        out = self._native_frame_terms(Ta, Ja, B, T, recycle)
         if out is None:
             return self._frame_terms_torch(Ta.reshape(B, T, *Ta.shape[1:]), Ja.reshape(B, T, *Ja.shape[1:]))
+        return out
+
+    def _native_frame_terms(self, Ta: Tensor | None, Ja: Tensor | None, B: int, T: int, recycle: bool,
+                            fk: tuple | None = None):
+        """:meth:`frame_terms` by :func:`diffkin.kernels.native.clip_rows` (from ``Ta, Ja``, or from ``fk =
+        (native model, q (B T, nq))`` in one pass with the FK), or None where it does not serve."""
+        w, ori = self.w, self.ori is not None
+        like = fk[1] if Ta is None else Ta
+        buffers = self._buffers[self._turn] if recycle else None
+        out = native.clip_rows(
+            Ta, Ja, T=T, keypoint_ends=self.kp_idx, keypoint_weights=w["keypoint"] * self.kp_w.to(like),
+            keypoints=self.x.reshape(B * T, -1, 3), orientation_ends=self.ori_idx if ori else [],
+            orientation_weights=w["orientation"] * self.ori_w.to(like) if ori else None,
+            orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
+            soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground, out=buffers,
+            support=self.support, fk=fk)
+        if out is None:
+            return None
         cost, D, E, g = out
         if recycle:
             self._buffers[self._turn] = (D, E)
