@@ -194,34 +194,40 @@ static void DK(diagonal_flags)(const real *F, int64_t T, int64_t n, unsigned cha
     for (int64_t t = 0; t < T; t++) diag[t] = t >= 2 && DK(is_diagonal)(F + t * n * n, n);
 }
 
-/* The forward and back substitutions with the factors (banded_one's work space): x = L^{-T} L^{-1} g
- * (module doc). r (2 ld reals) holds the vector being formed, padded with zeros beyond n so that every
+/* The forward substitution's step t with the factors of frames t - 2 .. t (banded_one's work space, run as
+ * soon as frame t is factored, while its blocks are in cache): y_t = L_t^{-1}(g_t - A_t y_{t-1} - B_t y_{t-2})
+ * into x (module doc). r (ld reals) holds the vector being formed, padded with zeros beyond n so that every
  * product with a factor's row runs over whole vectors. */
-static void DK(substitute)(const real *restrict U, const real *restrict At, const real *restrict Bt,
-                           const real *restrict rinv, const real *restrict g, real *restrict x, int64_t T,
-                           int64_t n, int64_t ld, real *restrict r) {
+static void DK(forward_step)(const real *restrict U, const real *restrict At, const real *restrict Bt,
+                             const real *restrict rinv, const real *restrict g, real *restrict x, int64_t t,
+                             int64_t n, int64_t ld, real *restrict r) {
     const int64_t nl = n * ld;
-    real *xs = r + ld;
-    for (int64_t t = 0; t < T; t++) { /* forward: y_t = L_t^{-1}(g_t - A_t y_{t-1} - B_t y_{t-2}), in x */
-        real *y = x + t * n;
-        const real *Ut = U + t * nl, *ri = rinv + t * ld;
-        memcpy(r, g + t * n, n * sizeof(real));
-        for (int64_t i = n; i < ld; i++) r[i] = 0;
-        for (int64_t s = 1; s <= 2 && s <= t; s++) { /* r -= M_t y_{t-s}: rows of M_t^T, whole vectors */
-            const real *M = (s == 1 ? At : Bt) + t * nl, *ys = x + (t - s) * n;
-            for (int64_t k = 0; k < n; k++) {
-                const real c = ys[k], *mk = M + k * ld;
+    real *y = x + t * n;
+    const real *Ut = U + t * nl, *ri = rinv + t * ld;
+    memcpy(r, g + t * n, n * sizeof(real));
+    for (int64_t i = n; i < ld; i++) r[i] = 0;
+    for (int64_t s = 1; s <= 2 && s <= t; s++) { /* r -= M_t y_{t-s}: rows of M_t^T, whole vectors */
+        const real *M = (s == 1 ? At : Bt) + t * nl, *ys = x + (t - s) * n;
+        for (int64_t k = 0; k < n; k++) {
+            const real c = ys[k], *mk = M + k * ld;
 #pragma omp simd aligned(r, mk : DK_VBYTES)
-                for (int64_t i = 0; i < ld; i++) r[i] -= c * mk[i];
-            }
-        }
-        for (int64_t j = 0; j < n; j++) {
-            const real c = r[j] * ri[j], *uj = Ut + j * ld;
-            y[j] = c;
-#pragma omp simd
-            for (int64_t i = j + 1; i < n; i++) r[i] -= c * uj[i];
+            for (int64_t i = 0; i < ld; i++) r[i] -= c * mk[i];
         }
     }
+    for (int64_t j = 0; j < n; j++) {
+        const real c = r[j] * ri[j], *uj = Ut + j * ld;
+        y[j] = c;
+#pragma omp simd
+        for (int64_t i = j + 1; i < n; i++) r[i] -= c * uj[i];
+    }
+}
+
+/* The back substitution x = L^{-T} y (y in x, from DK(forward_step)); r (2 ld reals) as there. */
+static void DK(back_substitute)(const real *restrict U, const real *restrict At, const real *restrict Bt,
+                                const real *restrict rinv, real *restrict x, int64_t T, int64_t n, int64_t ld,
+                                real *restrict r) {
+    const int64_t nl = n * ld;
+    real *xs = r + ld;
     for (int64_t i = n; i < ld; i++) xs[i] = 0;
     for (int64_t t = T - 1; t >= 0; t--) { /* back: x_t = U_t^{-1}(y_t - A_{t+1}^T x_{t+1} - B_{t+2}^T x_{t+2}) */
         real *xt = x + t * n;
@@ -283,8 +289,9 @@ static void DK(banded_one)(const real *D, const real *E, const real *F, const un
             DK(sub_tn)(Ut, a, a, n, ld, 1, 0, 0); /* - A_t A_t^T (upper triangle) */
         }
         DK(cholesky_upper)(Ut, rinv + t * ld, n, ld);
+        DK(forward_step)(U, At, Bt, rinv, g, x, t, n, ld, rinv + T * ld);
     }
-    DK(substitute)(U, At, Bt, rinv, g, x, T, n, ld, rinv + T * ld);
+    DK(back_substitute)(U, At, Bt, rinv, x, T, n, ld, rinv + T * ld);
 }
 
 /* batch systems of T blocks of n: D, E (batch x T x n x n), F (batch x T x n x n, or T x n x n shared by
