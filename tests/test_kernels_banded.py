@@ -231,3 +231,24 @@ def test_tridiagonal_solve_along_the_band_equals_the_dense_solve():
     small[1] = diag[0, 0, :7].clone().requires_grad_(True)
     b = rhs[0, :7, :2].clone().requires_grad_(True)
     assert torch.autograd.gradcheck(_thomas, (*small, b))
+
+
+def test_native_banded_solve_in_the_threads_kept_work_space():
+    """The C solve and the clip rows run in the calling thread's kept work space (no fresh pages at every
+    call): a larger solve, a smaller one, an IK solve that takes the same space with its own layout, then
+    the first again give the same floats as the first (nothing a call reads is left from another)."""
+    from diffkin import ik, models
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the native kernel is not built")
+    big = _system(3, 9, 6, seed=4)[1:]
+    small = _system(1, 3, 2, seed=5)[1:]
+    first = native.banded_solve(*big)
+    want_small = torch.linalg.solve(_system(1, 3, 2, seed=5)[0], small[3].reshape(1, -1, 1)).reshape(1, 3, 2)
+    torch.testing.assert_close(native.banded_solve(*small), want_small, atol=1e-10, rtol=1e-10)
+    chain = models.load("panda", dtype=F64)
+    gen = torch.Generator().manual_seed(0)
+    target = chain.forward_kinematics(chain.random_configuration(2, generator=gen))
+    assert bool(ik.solve(chain, target, num_seeds=1).success.all())
+    assert torch.equal(native.banded_solve(*big), first)

@@ -309,7 +309,8 @@ static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, int
     const size_t sys = (size_t)(T * n * n), vec = (size_t)(T * n), fsys = f_shared ? 0 : sys;
     if (nthreads < 1) nthreads = 1;
     if (nthreads > batch) nthreads = batch;
-    real *work = aligned_alloc(DK_VBYTES, stride * (size_t)nthreads * sizeof(real)); /* whole aligned vectors */
+    int owned;
+    real *work = work_space(stride * (size_t)nthreads * sizeof(real), &owned); /* whole aligned vectors */
     if (!work) return -1;
     unsigned char *shared_flags = (unsigned char *)(work + reals); /* thread 0's, filled once when shared */
     if (f_shared) DK(diagonal_flags)(F, T, n, shared_flags);
@@ -321,7 +322,7 @@ static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, int
         DK(banded_one)(D + b * sys, E + b * sys, F + b * fsys, flags, g + b * vec, x + b * vec, T, n,
                        shift ? shift[b] : 0, w);
     }
-    free(work);
+    if (owned) free(work);
     return 0;
 }
 #undef DK_V

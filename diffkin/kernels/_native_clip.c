@@ -245,7 +245,8 @@ static int64_t DK(clip_rows)(const dk_clip *c) {
     int64_t nth = c->nthreads < 1 ? 1 : c->nthreads;
     if (nth > N) nth = N > 0 ? N : 1;
     const size_t sup_bytes = c->support ? (size_t)(E * (nv + 1)) * sizeof(int64_t) : 0;
-    char *work = aligned_alloc(4096, per * (size_t)nth + ((sup_bytes + 4095) & ~(size_t)4095));
+    int owned;
+    char *work = work_space(per * (size_t)nth + sup_bytes, &owned);
     if (!work) {
         if (fused) free(pp.fix);
         return -1;
@@ -293,7 +294,7 @@ static int64_t DK(clip_rows)(const dk_clip *c) {
 #pragma omp parallel for num_threads(nth) schedule(static) if (nth > 1)
     for (int64_t n = 0; n < N; n++)
         DK(clip_skate)(c, n, (int64_t *)((real *)(work + per * (size_t)thread_id()) + reals + fk_reals), sup);
-    free(work);
+    if (owned) free(work);
     return 0;
 }
 

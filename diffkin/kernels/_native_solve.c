@@ -103,6 +103,16 @@ static void *kept_space(size_t bytes) {
     return kept_ptr;
 }
 
+/* The work space of a call that runs no other kernel while it holds it (the banded solve, the clip rows):
+ * the calling thread's kept space up to DK_KEEP_MAX bytes (faulted in once: a 2.5 MB banded work space
+ * freshly allocated cost 0.3 ms of page faults a call of 1.2 ms), a fresh block beyond it (*owned = 1: the
+ * caller frees it). NULL when memory ran out. */
+#define DK_KEEP_MAX ((size_t)64 << 20)
+static void *work_space(size_t bytes, int *owned) {
+    *owned = bytes > DK_KEEP_MAX;
+    return *owned ? aligned_alloc(4096, (bytes + 4095) / 4096 * 4096) : kept_space(bytes);
+}
+
 /* The pool of a one-target call drawn here instead of by torch (dk_solve_one with a seed): the stream of
  * torch.rand(n, generator=torch.Generator().manual_seed(seed)) on the CPU, which is MT19937 (ATen's
  * at::mt19937: the reference initialisation of the low 32 bits of the seed, the reference twist and
