@@ -771,6 +771,7 @@ def test_jacobian_support_holds_every_non_zero_column(source):
         terms, qc = _terms_case(torch.float64)
         given = terms.evaluate(qc)
         terms.support = None
+        terms._clip_args.clear()  # the C call's converted constants, support among them
         found = terms.evaluate(qc)
         for a, b in zip(given, found):
             assert torch.equal(a, b)

@@ -818,7 +818,7 @@ def clip_rows(Tf: Tensor | None, J: Tensor | None, *, T: int, keypoint_ends: lis
               orientation_weights: Tensor | None, orientations: Tensor | None, feet: list[int],
               soles: list[tuple[Tensor, Tensor]], contacts: Tensor, weights: dict, ground: float,
               out: tuple[Tensor, Tensor] | None = None, support: Tensor | None = None,
-              fk: tuple[NativeModel, Tensor] | None = None):
+              fk: tuple[NativeModel, Tensor] | None = None, prepared: dict | None = None):
     """The frame terms of the whole-clip retargeting problem (:mod:`diffkin.retarget.whole_clip`: keypoints,
     orientations, the soles' contact height, penetration and level rows, skating) by ``dk_clip_rows``
     (``_native_clip.c``), from the end-link poses ``Tf (N, E, 4, 4)`` and Jacobians ``J (N, E, 6, nv)`` of
@@ -833,8 +833,11 @@ def clip_rows(Tf: Tensor | None, J: Tensor | None, *, T: int, keypoint_ends: lis
     column outside is taken as zero, a column inside that is zero adds exact zeros), else each frame's
     non-zero columns are found from its Jacobian. ``fk``: ``(model, q (N, nq))`` in place of ``Tf`` and ``J``
     (None): the frames' poses and Jacobians computed in the same pass, a block of frames at a time, instead
-    of written out for all N frames and read back (the same values). None (nothing done) where the library is
-    not loaded or the inputs are not CPU tensors of one float dtype without autograd."""
+    of written out for all N frames and read back (the same values). ``prepared``: a dict an iterative
+    caller keeps for one problem: the arguments other than the frames (keypoints to support) are converted
+    for the C call once per dtype and kept there (later calls read them from it, not from the arguments).
+    None (nothing done) where the library is not loaded or the inputs are not CPU tensors of one float dtype
+    without autograd."""
     fused = Tf is None
     ref = fk[1] if fused else Tf  # the frames' dtype and device
     dtype = ref.dtype
@@ -849,13 +852,17 @@ def clip_rows(Tf: Tensor | None, J: Tensor | None, *, T: int, keypoint_ends: lis
     longs = lambda v: torch.tensor(list(v), dtype=torch.int64)  # noqa: E731
     Ko = len(orientation_ends)
     Tf = ref = real(ref)
-    keep = [None if fused else Tf, None if fused else real(J), longs(keypoint_ends), real(keypoint_weights),
-            real(keypoints),
-            longs(orientation_ends or [0]), real(orientation_weights if Ko else Tf.new_zeros(1)),
-            real(orientations if Ko else Tf.new_zeros(1)), longs(feet),
-            real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
-            contacts.to(torch.uint8).contiguous(),
-            None if support is None else support.to(device="cpu", dtype=torch.uint8).contiguous()]
+    consts = None if prepared is None else prepared.get(dtype)
+    if consts is None:
+        consts = [longs(keypoint_ends), real(keypoint_weights), real(keypoints), longs(orientation_ends or [0]),
+                  real(orientation_weights if Ko else Tf.new_zeros(1)),
+                  real(orientations if Ko else Tf.new_zeros(1)), longs(feet),
+                  real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
+                  contacts.to(torch.uint8).contiguous(),
+                  None if support is None else support.to(device="cpu", dtype=torch.uint8).contiguous()]
+        if prepared is not None:
+            prepared[dtype] = consts
+    keep = [None if fused else Tf, None if fused else real(J), *consts]
     chain_args = model.call(dtype, batch=N, q=ref, nthreads=1) if fused else None
     cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
     if out is not None and all(t.shape == (N, nv, nv) and t.dtype == dtype and t.device.type == "cpu"

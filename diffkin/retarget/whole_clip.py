@@ -96,6 +96,7 @@ class _Terms:
         self.w, self.q_ref = w, q_ref
         self._F = None
         self._buffers, self._turn = [None, None], 0  # frame_terms' recycled D, E (two sets in turn)
+        self._clip_args: dict = {}  # native.clip_rows's converted constants (per dtype), made once
         #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
         #: rows added to the problem (:meth:`evaluate`)
         self.extra_rows: list = []
@@ -247,7 +248,7 @@ class _Terms:
             orientation_weights=w["orientation"] * self.ori_w.to(like) if ori else None,
             orientations=self.ori.reshape(B * T, -1, 3, 3) if ori else None, feet=self.feet_idx,
             soles=self.soles, contacts=self.c.reshape(B * T, 2), weights=w, ground=self.ground, out=buffers,
-            support=self.support, fk=fk)
+            support=self.support, fk=fk, prepared=self._clip_args)
         if out is None:
             return None
         cost, D, E, g = out
