@@ -854,8 +854,8 @@ def clip_rows(Tf: Tensor | None, J: Tensor | None, *, T: int, keypoint_ends: lis
     Tf = ref = real(ref)
     consts = None if prepared is None else prepared.get(dtype)
     if consts is None:
-        consts = [longs(keypoint_ends), real(keypoint_weights), real(keypoints), longs(orientation_ends or [0]),
-                  real(orientation_weights if Ko else Tf.new_zeros(1)),
+        consts = [longs(keypoint_ends), real(keypoint_weights), real(keypoints),
+                  longs(orientation_ends or [0]), real(orientation_weights if Ko else Tf.new_zeros(1)),
                   real(orientations if Ko else Tf.new_zeros(1)), longs(feet),
                   real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
                   contacts.to(torch.uint8).contiguous(),
