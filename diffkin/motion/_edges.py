@@ -97,6 +97,9 @@ class EdgeChecker:
 
     def __init__(self, collision, world, margin: float, resolution: float, chunk: int = 1 << 16):
         self.collision, self.world, self.margin, self.eta = collision, world, float(margin), float(resolution)
+        #: a world with a leading batch dim: one scene per problem (read once: its shape is a broadcast of
+        #: every object tensor's, and clear() runs tens of times a plan)
+        self.per_row = world is not None and len(world.batch_shape) > 0
         #: per problem its own resolution ``(B,)`` (:meth:`set_row_resolution`; None: ``eta`` for all)
         self.row_eta: Tensor | None = None
         self.reach = joint_reach(collision)
@@ -122,6 +125,8 @@ class EdgeChecker:
         """Give problem b the resolution ``eta[b]`` (``(B,)``, each ≤ η): its edges are subdivided and its
         samples decided with it (a start or goal closer than margin + η to an obstacle gets a finer one)."""
         self.row_eta = eta
+        #: its distinct values (a few; one decision per value)
+        self._eta_values = torch.unique(eta).tolist()
 
     def eta_of(self, problem: Tensor) -> Tensor:
         """The resolution ``(...,)`` of each ``problem (...,)``."""
@@ -133,6 +138,8 @@ class EdgeChecker:
         """(...,) bool: every distance ≥ margin + ``slack`` (default: each problem's resolution) at q
         (..., nq), each configuration in the world of its ``problem`` (...,) (long; a batched world
         ``(B, ...)`` has one scene per problem, an unbatched one serves all)."""
+        if slack is None and self.row_eta is not None and len(self._eta_values) == 1:
+            slack = self._eta_values[0]  # one resolution for every problem
         if slack is None and self.row_eta is not None:  # one decision per distinct resolution (a few)
             idx = problem.expand(q.shape[:-1])
             s = self.row_eta[idx]
@@ -146,7 +153,7 @@ class EdgeChecker:
         self.checked += flat.shape[0]
         if flat.shape[0] == 0:
             return torch.ones(q.shape[:-1], dtype=torch.bool, device=q.device)
-        per_row = self.world is not None and len(self.world.batch_shape) > 0
+        per_row = self.per_row
         idx = problem.expand(q.shape[:-1]).reshape(-1)
         planner = self.native(q) if self.use_c else None
         if planner is not None:  # FK, placement and decisions in one C call

@@ -160,7 +160,7 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     qs, qg, lo_, hi_ = real(q_start), real(q_goal), real(lo), real(hi)
     reach, eta_ = real(checker.reach), real(eta)
     world = None
-    if checker.world is not None and len(checker.world.batch_shape) > 0:
+    if checker.per_row:
         world = problem.to(torch.int64).contiguous()
     L = max(2, int(capacity))
     path = torch.empty(B, L, nq, dtype=dtype)
