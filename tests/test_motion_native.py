@@ -5,6 +5,8 @@ determinism (a problem alone equals its row in a batch), and the finer resolutio
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 
@@ -57,6 +59,37 @@ def test_c_decisions_equal_the_torch_placement(panda):
             d = torch.stack([rc.min_distance(q[i], world._take(wid[i:i + 1])).reshape(()) for i in
                              differ.nonzero().squeeze(1).tolist()])
             assert ((d - slack).abs() < 1e-9).all()
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_c_edges_equal_the_torch_subdivision(panda, dtype):
+    """EdgeChecker.edges through dk_plan_edges (each edge's samples decided in C, in blocks, the edge
+    leaving at its first colliding one) gives the torch loop's free flags and prefix fractions on random
+    edges in two scenes (one per problem, per-problem resolutions), float64 and float32; it decides fewer
+    samples (the rest of a colliding block is not read)."""
+    chain, rc, probs = panda
+    if dtype == torch.float32:  # copies: float() converts a module in place (the fixture is shared)
+        rc = copy.deepcopy(rc).float()
+        chain = rc.chain.float()
+    _, _, world, _ = _batch(probs, ["cage/0001", "bookshelf_small/0019"])
+    world = world.to(dtype)
+    gen = torch.Generator().manual_seed(2)
+    qa = random_configuration(chain, (300,), generator=gen).to(dtype)
+    qb = qa + 0.4 * torch.randn(qa.shape, generator=gen, dtype=F64).to(dtype)
+    rows = torch.arange(300) % 2
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    checker.set_row_resolution(torch.tensor([0.005, 0.0025], dtype=dtype))
+    assert checker.native(qa) is not None
+    for prefix in (False, True):
+        checker.use_c, before = True, checker.checked
+        free_c, reach_c = checker.edges(qa, qb, rows, prefix=prefix)
+        checker.use_c, mid = False, checker.checked
+        free_t, reach_t = checker.edges(qa, qb, rows, prefix=prefix)
+        assert 0 < int(free_c.sum()) < 300  # both outcomes occur
+        assert torch.equal(free_c, free_t) and torch.equal(reach_c, reach_t)
+        assert 0 < checker.checked - mid - (mid - before) or prefix  # fewer samples read in C
+        if prefix:
+            assert bool(((reach_c > 0) & (reach_c < 1)).any())  # partial prefixes occur
 
 
 def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
@@ -143,9 +176,10 @@ def test_plan_struct_layout_checked_and_another_version_refused(panda):
     ok = torch.full((1,), 7, dtype=torch.uint8)
     a = planner.args(nthreads=1, N=1, q=qs.contiguous(), slack=0.0, ok=ok)
     a.version = ns.VERSION + 1
-    search, decide = ns._functions()
+    search, decide, edges = ns._functions()
     assert decide(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"] and int(ok[0]) == 7
     assert search(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
+    assert edges(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
 
 
 def test_goal_bias_validated_and_used(panda):

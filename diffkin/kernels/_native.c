@@ -652,7 +652,9 @@ int64_t dk_clip_step(const void *const *in, const int64_t *const *idx, void *out
  * size other than 8 or 4. */
 int64_t dk_clip_rows(const dk_clip *c) {
     if (!DK_LAYOUT_OK(c, dk_clip, DK_CLIP_VERSION)) return DK_ABI_ERROR;
-    if ((c->Tf == NULL || c->J == NULL) && (c->fk == NULL || !abi_ok(c->fk))) return DK_ABI_ERROR;
+    if ((c->Tf == NULL || c->J == NULL) &&
+        (c->fk == NULL || !abi_ok(c->fk) || c->fk->q == NULL || c->fk->batch < c->N))
+        return DK_ABI_ERROR;
     if (c->real_bytes == 8) return clip_rows_f64(c);
     if (c->real_bytes == 4) return clip_rows_f32(c);
     return DK_ABI_ERROR;

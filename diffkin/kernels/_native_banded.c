@@ -314,6 +314,7 @@ static int64_t DK(banded_solve)(const real *D, const real *E, const real *F, int
     const size_t per = reals + ((size_t)T + sizeof(real) - 1) / sizeof(real); /* + its F_t diagonal flags */
     const size_t stride = (per + DK_V - 1) / DK_V * DK_V; /* each thread's work aligned */
     const size_t sys = (size_t)(T * n * n), vec = (size_t)(T * n), fsys = f_shared ? 0 : sys;
+    if (batch < 1) return 0; /* nothing to solve (and no work space to take) */
     if (nthreads < 1) nthreads = 1;
     if (nthreads > batch) nthreads = batch;
     int owned;

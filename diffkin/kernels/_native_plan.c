@@ -32,7 +32,7 @@
 #ifndef DK_PLAN_TYPES
 #define DK_PLAN_TYPES
 #define DK_PLAN_PASS 1
-#define DK_PLAN_VERSION 1 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
+#define DK_PLAN_VERSION 2 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
 #define DK_PLAN_FOUND 1
 #define DK_PLAN_NOT_FOUND 0
 #define DK_PLAN_TOO_LONG 2
@@ -73,7 +73,12 @@
     X(const void *, q, "dk_plan_decide: [N n] reals") \
     X(const int64_t *, wid, "dk_plan_decide: [N] the world row of each, or NULL: row 0") \
     X(double, slack, "dk_plan_decide: clear means every distance - margin >= slack") \
-    X(uint8_t *, ok, "dk_plan_decide: [N] out")
+    X(uint8_t *, ok, "dk_plan_decide: [N] out") \
+    X(const void *, qb, "dk_plan_edges: [N n] reals, the edges' far ends (q: their starts)") \
+    X(const int64_t *, steps, "dk_plan_edges: [N] each edge's sub-steps (at least 1)") \
+    X(const void *, slacks, "dk_plan_edges: [N] reals, each edge's slack (its problem's resolution)") \
+    X(int64_t, prefix, "dk_plan_edges: 1: samples in order along each edge, 0: coarse to fine") \
+    X(int64_t *, first_bad, "dk_plan_edges: [N] out: the colliding sample found (steps + 1: none)")
 
 #define DK_PDECLARE(type, name, what) type name;
 typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
@@ -436,6 +441,84 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
     return failed ? -1 : 0;
 }
 
+/* dk_plan_edges: the straight edges q[e] -> qb[e] of diffkin.motion._edges.EdgeChecker.edges, each in
+ * steps[e] equal sub-steps, its samples i = 0 .. steps[e] at a + (i / steps[e]) (b - a) decided in world row
+ * wid[e] with slack slacks[e]: with prefix in order, else coarse to fine (i = 0, steps, then the odd
+ * multiples of ever smaller powers of two: a colliding edge is usually caught in its first block); in
+ * blocks of 16 growing to COLLIDE_BLOCK, an edge leaving at its first colliding block (DK(collide_first)).
+ * first_bad[e] is the first colliding sample of that block in the order taken (steps + 1: every sample
+ * clear), checked[e] the samples decided. Edges are shared between threads. */
+static int64_t DK(dk_plan_edges)(const dk_plan *p) {
+    Shape s;
+    read_shape(p->chain, &s);
+    DK(Params) pp;
+    if (DK(read_params)(p->chain, &s, &pp)) return -1;
+    int nthreads = (int)(p->nthreads > 1 && p->N > 1 ? (p->nthreads < p->N ? p->nthreads : p->N) : 1);
+    int64_t failed = 0;
+    const int n = s.n;
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
+    {
+        DK(PlanWork) w;
+        const int good = DK(plan_work_init)(&w, p, &s, &pp);
+        int64_t idx[COLLIDE_BLOCK];
+#pragma omp for schedule(dynamic, 8)
+        for (int64_t e = 0; e < p->N; e++) {
+            if (!good) {
+                failed++;
+                continue;
+            }
+            const real *a = (const real *)p->q + e * n, *b = (const real *)p->qb + e * n;
+            const int64_t ns = p->steps[e];
+            real dq[64];
+            for (int j = 0; j < n; j++) dq[j] = b[j] - a[j];
+            const int64_t row = p->wid ? p->wid[e] : 0;
+            for (int l = 0; l < COLLIDE_BLOCK; l++) w.wid[l] = row;
+            w.cc.wid = w.wid;
+            w.cc.slack = (double)((const real *)p->slacks)[e];
+            int64_t top = 1;
+            while (top * 2 <= ns) top *= 2;
+            int64_t level = top, next = 0, i_seq = 0, bad = ns + 1, decided = 0;
+            int stage = 0, size = 16; /* coarse to fine: stage 0 gives 0, stage 1 ns, then the levels */
+            while (bad > ns) {
+                int m = 0;
+                while (m < size) {
+                    int64_t i;
+                    if (p->prefix) {
+                        if (i_seq > ns) break;
+                        i = i_seq++;
+                    } else if (stage < 2) {
+                        i = stage++ ? ns : 0;
+                        if (i == 0 && ns == 0) stage = 2;
+                    } else {
+                        if (level == 0) break;
+                        if (next == 0) next = level;
+                        i = next;
+                        next += level == top ? level : 2 * level;
+                        if (next > ns) { level >>= 1; next = level; }
+                        if (i == ns) continue;
+                    }
+                    idx[m++] = i;
+                }
+                if (m == 0) break;
+                for (int k = 0; k < m; k++) {
+                    const real f = (real)((double)idx[k] / (double)ns);
+                    for (int j = 0; j < n; j++) w.qs[k * n + j] = a[j] + f * dq[j];
+                }
+                DK(plan_decide)(&w, m, 1);
+                decided += m;
+                for (int k = 0; k < m; k++)
+                    if (!w.ok[k]) { bad = idx[k]; break; }
+                size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
+            }
+            p->first_bad[e] = bad;
+            p->checked[e] = decided;
+        }
+        DK(plan_work_free)(&w);
+    }
+    free(pp.fix);
+    return failed ? -1 : 0;
+}
+
 #if DK_PLAN_PASS == 2 /* after the second (float) pass: both types exist */
 /* p, its chain and its decisions' struct of this file's versions and sizes, of one real type, with G
  * capsules placed from C = 2 G points. */
@@ -462,6 +545,17 @@ int64_t dk_plan_decide(const dk_plan *p) {
     if (!plan_ok(p)) return DK_ABI_ERROR;
     if (p->chain->real_bytes == 8) return dk_plan_decide_f64(p);
     if (p->chain->real_bytes == 4) return dk_plan_decide_f32(p);
+    return DK_ABI_ERROR;
+}
+
+/* The edges of p->N straight edges (dk_plan_edges_f64 / _f32 above; p's search fields not read but
+ * max_iterations, which sizes the work space: give 0). Returns 0, -1 when memory ran out, DK_RANGE_ERROR
+ * for more than 64 joints, DK_ABI_ERROR as dk_plan_search. */
+int64_t dk_plan_edges(const dk_plan *p) {
+    if (!plan_ok(p)) return DK_ABI_ERROR;
+    if (p->chain->n > 64) return DK_RANGE_ERROR;
+    if (p->chain->real_bytes == 8) return dk_plan_edges_f64(p);
+    if (p->chain->real_bytes == 4) return dk_plan_edges_f32(p);
     return DK_ABI_ERROR;
 }
 #endif

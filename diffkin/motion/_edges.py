@@ -188,6 +188,13 @@ class EdgeChecker:
             return z.bool(), z
         dev = qa.device
         n = self.steps(qb - qa, problem)
+        planner = self.native(qa) if self.use_c else None
+        if planner is not None:  # the same samples decided in C, edge after edge (no torch op per block)
+            got = planner.edges(qa, qb, n, self.eta_of(problem), problem if self.per_row else None, prefix)
+            if got is not None:
+                first_bad, decided = got
+                self.checked += int(decided.sum())
+                return self._outcome(first_bad, n, prefix, qa)
         S = int(n.max()) + 1
         i = torch.arange(S, device=dev)
         if not prefix:
@@ -212,10 +219,16 @@ class EdgeChecker:
             bad_pos.scatter_reduce_(0, r[~ok], pos[c][~ok], reduce="amin")
             first_bad[active] = torch.minimum(first_bad[active], bad_pos)
             active = active[(bad_pos == S) & (na > pos.max() if prefix else True)]
-        free = first_bad == S
+        return self._outcome(first_bad, n, prefix, qa)
+
+    @staticmethod
+    def _outcome(first_bad: Tensor, n: Tensor, prefix: bool, like: Tensor) -> tuple[Tensor, Tensor]:
+        """``(free, reach)`` of edges of ``n (E,)`` sub-steps from the first colliding sample found on each
+        (``first_bad > n``: none)."""
+        free = first_bad > n
         if prefix:
-            part = ((first_bad - 1).clamp(min=0) / n).to(qa.dtype)
-            reach = torch.where(free, torch.ones_like(qa[:, 0]), part)
+            part = ((first_bad - 1).clamp(min=0) / n).to(like.dtype)
+            reach = torch.where(free, torch.ones_like(like[:, 0]), part)
         else:
-            reach = free.to(qa.dtype)
+            reach = free.to(like.dtype)
         return free, reach

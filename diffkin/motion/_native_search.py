@@ -27,7 +27,7 @@ from ..kernels import native
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
 #: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
-VERSION = 1
+VERSION = 2
 #: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
 FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY = 1, 0, 2, -1
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
@@ -44,10 +44,11 @@ class PlanArgs(ctypes.Structure):
         [("step", _F64), ("goal_bias", _F64)] + \
         [(name, _I64) for name in ("max_iterations", "restart", "shortcut_tries", "seed", "capacity")] + \
         [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")] + \
-        [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)]
+        [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)] + \
+        [("qb", _PTR), ("steps", _PTR), ("slacks", _PTR), ("prefix", _I64), ("first_bad", _PTR)]
 
 
-_fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide)
+_fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide, dk_plan_edges)
 
 
 def _functions():
@@ -55,7 +56,7 @@ def _functions():
     fns = _fns.get(id(lib))
     if fns is None:
         native.check_layout(lib, "plan", PlanArgs)
-        fns = (lib.dk_plan_search, lib.dk_plan_decide)
+        fns = (lib.dk_plan_search, lib.dk_plan_decide, lib.dk_plan_edges)
         for fn in fns:
             fn.restype, fn.argtypes = _I64, [ctypes.POINTER(PlanArgs)]
         _fns[id(lib)] = fns
@@ -133,6 +134,30 @@ class NativePlanner:
         if status < 0:
             raise MemoryError("motion.plan: the C decisions could not allocate their per-thread work space")
         return ok.bool()
+
+
+    def edges(self, qa: Tensor, qb: Tensor, steps: Tensor, slack: Tensor, world_row: Tensor | None,
+              prefix: bool) -> tuple[Tensor, Tensor] | None:
+        """The subdivision samples i = 0 .. ``steps[e]`` of the straight edges ``qa → qb (E, nq)`` decided
+        in C (``dk_plan_edges``: in order with ``prefix``, else coarse to fine; an edge leaves at its first
+        colliding block), each with the slack ``slack[e]`` in its world row ``world_row[e]`` (None: row 0):
+        ``(first_bad (E,), decided (E,))`` long, first_bad the colliding sample found (``steps + 1``: every
+        sample clear; with ``prefix`` the first one along the edge); None where the call is refused."""
+        E = qa.shape[0]
+        qa, qb = (t.detach().to(self.dtype).contiguous() for t in (qa, qb))
+        steps = steps.to(torch.int64).contiguous()
+        slack = slack.detach().to(self.dtype).contiguous()
+        wid = None if world_row is None else world_row.to(torch.int64).contiguous()
+        first_bad, decided = torch.empty(E, dtype=torch.int64), torch.zeros(E, dtype=torch.int64)
+        a = self.args(nthreads=native.thread_count(int(E) * 64), N=E, q=qa, qb=qb, steps=steps, slacks=slack,
+                      wid=wid, prefix=int(prefix), first_bad=first_bad, checked=decided, max_iterations=0)
+        status = _functions()[2](ctypes.byref(a))
+        if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
+            return None
+        if status < 0:
+            raise MemoryError("motion.plan: the C edge decisions could not allocate their per-thread work "
+                              "space")
+        return first_bad, decided
 
 
 def serves(checker, q: Tensor) -> bool:

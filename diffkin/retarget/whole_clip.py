@@ -96,7 +96,9 @@ class _Terms:
         self.w, self.q_ref = w, q_ref
         self._F = None
         self._buffers, self._turn = [None, None], 0  # frame_terms' recycled D, E (two sets in turn)
-        self._clip_args: dict = {}  # native.clip_rows's converted constants (per dtype), made once
+        # native.clip_rows's converted constants (per dtype), made at the first evaluation: the weights,
+        # targets, contacts, soles and support must not change after it (or clear this dict)
+        self._clip_args: dict = {}
         #: the residual-row interface: callables (q, Ta, Ja) -> (r (B, T, m), J (B, T, m, nv)), per-frame
         #: rows added to the problem (:meth:`evaluate`)
         self.extra_rows: list = []
