@@ -85,6 +85,45 @@ typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
 #undef DK_PDECLARE
 DK_LAYOUT(plan, dk_plan, DK_PLAN_FIELDS, DK_PLAN_VERSION) /* dk_layout_plan, dk_names_plan (_native.c) */
 
+/* The order in which an edge's samples i (of its ns sub-steps) are decided, from sample `from` (0: the
+ * edge's start included, 1: known clear): with prefix in order along the edge; else coarse to fine: `from`
+ * (when 0), ns, then the odd multiples of ever smaller powers of two (a colliding edge is usually caught
+ * in its first block). */
+typedef struct {
+    int64_t ns, top, level, next, seq;
+    int stage, prefix;
+} EdgeOrder;
+
+static void edge_order_init(EdgeOrder *o, int64_t ns, int prefix, int from) {
+    o->ns = ns, o->prefix = prefix, o->seq = from, o->stage = from, o->next = 0;
+    o->top = 1;
+    while (o->top * 2 <= ns) o->top *= 2;
+    o->level = o->top;
+}
+
+/* The next samples, at most size of them, into idx; returns how many (0: the edge is done). */
+static int edge_order_fill(EdgeOrder *o, int64_t *idx, int size) {
+    int m = 0;
+    while (m < size) {
+        int64_t i;
+        if (o->prefix) {
+            if (o->seq > o->ns) break;
+            i = o->seq++;
+        } else if (o->stage < 2) {
+            i = o->stage++ ? o->ns : 0;
+        } else {
+            if (o->level == 0) break;
+            if (o->next == 0) o->next = o->level;
+            i = o->next;
+            o->next += o->level == o->top ? o->level : 2 * o->level;
+            if (o->next > o->ns) { o->level >>= 1; o->next = o->level; }
+            if (i == o->ns) continue;
+        }
+        idx[m++] = i;
+    }
+    return m;
+}
+
 static inline uint64_t plan_mix(uint64_t *state) { /* splitmix64 */
     uint64_t z = (*state += 0x9E3779B97F4A7C15ull);
     z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
@@ -178,30 +217,11 @@ static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int pre
     const int n = w->s.n;
     const int64_t ns = DK(plan_steps)(w, a, b);
     int64_t idx[COLLIDE_BLOCK];
-    int64_t top = 1;
-    while (top * 2 <= ns) top *= 2;
-    int64_t level = top, next = 0, i_seq = 1; /* coarse to fine: ns, then odd multiples of level, halving */
-    int first = 1, size = 16;
+    EdgeOrder order;
+    edge_order_init(&order, ns, prefix, 1);
+    int size = 16;
     for (;;) {
-        int m = 0;
-        while (m < size) {
-            int64_t i;
-            if (prefix) {
-                if (i_seq > ns) break;
-                i = i_seq++;
-            } else if (first) {
-                i = ns;
-                first = 0;
-            } else {
-                if (level == 0) break;
-                if (next == 0) next = level;
-                i = next;
-                next += level == top ? level : 2 * level;
-                if (next > ns) { level >>= 1; next = level; }
-                if (i == ns) continue;
-            }
-            idx[m++] = i;
-        }
+        const int m = edge_order_fill(&order, idx, size);
         if (m == 0) return 1;
         for (int k = 0; k < m; k++) {
             const real f = (real)idx[k] / (real)ns;
@@ -475,30 +495,12 @@ static int64_t DK(dk_plan_edges)(const dk_plan *p) {
             for (int l = 0; l < COLLIDE_BLOCK; l++) w.wid[l] = row;
             w.cc.wid = w.wid;
             w.cc.slack = (double)((const real *)p->slacks)[e];
-            int64_t top = 1;
-            while (top * 2 <= ns) top *= 2;
-            int64_t level = top, next = 0, i_seq = 0, bad = ns + 1, decided = 0;
-            int stage = 0, size = 16; /* coarse to fine: stage 0 gives 0, stage 1 ns, then the levels */
+            EdgeOrder order;
+            edge_order_init(&order, ns, (int)p->prefix, 0);
+            int64_t bad = ns + 1, decided = 0;
+            int size = 16;
             while (bad > ns) {
-                int m = 0;
-                while (m < size) {
-                    int64_t i;
-                    if (p->prefix) {
-                        if (i_seq > ns) break;
-                        i = i_seq++;
-                    } else if (stage < 2) {
-                        i = stage++ ? ns : 0;
-                        if (i == 0 && ns == 0) stage = 2;
-                    } else {
-                        if (level == 0) break;
-                        if (next == 0) next = level;
-                        i = next;
-                        next += level == top ? level : 2 * level;
-                        if (next > ns) { level >>= 1; next = level; }
-                        if (i == ns) continue;
-                    }
-                    idx[m++] = i;
-                }
+                const int m = edge_order_fill(&order, idx, size);
                 if (m == 0) break;
                 for (int k = 0; k < m; k++) {
                     const real f = (real)((double)idx[k] / (double)ns);
