@@ -92,6 +92,41 @@ def test_c_edges_equal_the_torch_subdivision(panda, dtype):
             assert bool(((reach_c > 0) & (reach_c < 1)).any())  # partial prefixes occur
 
 
+def test_c_point_shortcuts_equal_the_torch_rounds(panda):
+    """shortcut_points in C (dk_plan_points: each path's rounds in one thread, the same draws, choices and
+    splices) equals the torch rounds on paths the C search found in three scenes: the same waypoint
+    counts, the coordinates to rounding; every edge of the shortened paths is proven clear again by the
+    torch EdgeChecker, and the paths are shorter than the searched ones."""
+    from diffkin.motion._native_search import shortcut_points_native
+    from diffkin.motion._search import STOP_AFTER, row_keys, shortcut_points
+
+    chain, rc, probs = panda
+    names = ["cage/0001", "box/0001", "table_pick/0019"]
+    qs, qg, world, _ = _batch(probs, names)
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    rows = torch.arange(3)
+    eta, _, _ = _row_resolution(checker, qs, qg, rows)
+    checker.set_row_resolution(eta)
+    lim = chain.q_limits
+    path, n, found, _ = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta, max_iterations=20000,
+                                      step=0.5, shortcut_tries=32, seed=0)
+    assert found.all()
+    key = row_keys(qs, qg, 0)
+    pt, nt = shortcut_points(checker, path, n, rows, 12, key, tries=8)
+    pc, nc = shortcut_points_native(checker, path, n, rows, 12, key, 8, STOP_AFTER)
+    assert torch.equal(nt, nc)
+    L = int(nc.max())
+    torch.testing.assert_close(pc[:, :L], pt[:, :L], rtol=0, atol=1e-12)
+    length = lambda p, k: (p[1:k] - p[:k - 1]).norm(dim=-1).sum()  # noqa: E731
+    for b in range(3):
+        k = int(nc[b])
+        assert length(pc[b], k) < length(path[b], int(n[b]))
+        checker.use_c = False
+        free, _ = checker.edges(pc[b, :k - 1], pc[b, 1:k], torch.full((k - 1,), b))
+        checker.use_c = True
+        assert free.all()
+
+
 def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
     """Three problems in one call (a cage, a box, a bookshelf whose start needs a finer resolution): every
     path found, every edge of every returned path proven clear again by the torch EdgeChecker (torch
@@ -176,10 +211,10 @@ def test_plan_struct_layout_checked_and_another_version_refused(panda):
     ok = torch.full((1,), 7, dtype=torch.uint8)
     a = planner.args(nthreads=1, N=1, q=qs.contiguous(), slack=0.0, ok=ok)
     a.version = ns.VERSION + 1
-    search, decide, edges = ns._functions()
+    search, decide, edges, points = ns._functions()
     assert decide(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"] and int(ok[0]) == 7
-    assert search(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
-    assert edges(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
+    for entry in (search, edges, points):
+        assert entry(ctypes.byref(a)) == native.CONSTANTS["DK_ABI_ERROR"]
 
 
 def test_goal_bias_validated_and_used(panda):

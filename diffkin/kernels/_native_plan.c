@@ -78,7 +78,11 @@
     X(const int64_t *, steps, "dk_plan_edges: [N] each edge's sub-steps (at least 1)") \
     X(const void *, slacks, "dk_plan_edges: [N] reals, each edge's slack (its problem's resolution)") \
     X(int64_t, prefix, "dk_plan_edges: 1: samples in order along each edge, 0: coarse to fine") \
-    X(int64_t *, first_bad, "dk_plan_edges: [N] out: the colliding sample found (steps + 1: none)")
+    X(int64_t *, first_bad, "dk_plan_edges: [N] out: the colliding sample found (steps + 1: none)") \
+    X(const int64_t *, keys, "dk_plan_points: [B] each path's random-stream key (_search.row_keys)") \
+    X(int64_t, rounds, "dk_plan_points: rounds of shortcuts between points") \
+    X(int64_t, tries, "dk_plan_points: shortcuts tried per path and round") \
+    X(int64_t, stop_after, "dk_plan_points: a path stops after this many rounds in a row without one")
 
 #define DK_PDECLARE(type, name, what) type name;
 typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
@@ -124,11 +128,14 @@ static int edge_order_fill(EdgeOrder *o, int64_t *idx, int size) {
     return m;
 }
 
-static inline uint64_t plan_mix(uint64_t *state) { /* splitmix64 */
-    uint64_t z = (*state += 0x9E3779B97F4A7C15ull);
+static inline uint64_t plan_finalise(uint64_t z) { /* splitmix64's finaliser (_search._mix) */
     z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
     z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
     return z ^ (z >> 31);
+}
+
+static inline uint64_t plan_mix(uint64_t *state) { /* splitmix64 */
+    return plan_finalise(*state += 0x9E3779B97F4A7C15ull);
 }
 
 static inline double plan_uniform(uint64_t *state) { return (double)(plan_mix(state) >> 11) * 0x1.0p-53; }
@@ -213,12 +220,12 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
 
 /* The straight edge a -> b (a already known clear): with prefix the largest fraction lam = i / steps such
  * that the samples 0 .. i are clear (1: the whole edge); without, 1 when every sample is clear, else 0. */
-static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int prefix) {
+static real DK(plan_edge_from)(DK(PlanWork) *w, const real *a, const real *b, int prefix, int from) {
     const int n = w->s.n;
     const int64_t ns = DK(plan_steps)(w, a, b);
     int64_t idx[COLLIDE_BLOCK];
     EdgeOrder order;
-    edge_order_init(&order, ns, prefix, 1);
+    edge_order_init(&order, ns, prefix, from);
     int size = 16;
     for (;;) {
         const int m = edge_order_fill(&order, idx, size);
@@ -232,6 +239,10 @@ static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int pre
             if (!w->ok[k]) return prefix ? (real)(idx[k] - 1) / (real)ns : 0;
         size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
     }
+}
+
+static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int prefix) {
+    return DK(plan_edge_from)(w, a, b, prefix, 1);
 }
 
 static int64_t DK(plan_nearest)(const real *nodes, int64_t count, const real *q, const real *R, int n) {
@@ -521,6 +532,118 @@ static int64_t DK(dk_plan_edges)(const dk_plan *p) {
     return failed ? -1 : 0;
 }
 
+/* |x - y| (n) in the joint space's Euclidean norm. */
+static real DK(plan_dist)(const real *x, const real *y, int n) {
+    real ss = 0;
+    for (int j = 0; j < n; j++) ss += (x[j] - y[j]) * (x[j] - y[j]);
+    return sqrt(ss);
+}
+
+/* Path b's shortcuts between points (diffkin.motion._search.shortcut_points, its loop in C): each round
+ * `tries` pairs of points drawn uniformly along the path's length from its stream (row_uniform of key, the
+ * round), the clear edge between a pair shortening the path the most spliced in; rows past the count hold
+ * the last waypoint. The path has room for capacity waypoints (its count + rounds). */
+static void DK(plan_points_one)(DK(PlanWork) *w, int64_t b, real *cum, real *seg, real *pts, real *gain,
+                                int64_t *seq, int64_t *ij) {
+    const dk_plan *p = w->p;
+    const int n = w->s.n, T = (int)p->tries;
+    const int64_t L = p->capacity;
+    real *P = (real *)p->path + b * L * n;
+    int64_t cnt = p->n_way[b], misses = 0;
+    const int64_t wrow = p->world ? p->world[b] : 0;
+    for (int l = 0; l < COLLIDE_BLOCK; l++) w->wid[l] = wrow;
+    w->cc.wid = w->wid;
+    w->eta = ((const real *)p->eta)[b];
+    w->cc.slack = (double)w->eta;
+    const uint64_t key = (uint64_t)p->keys[b];
+    for (int64_t rnd = 0; rnd < p->rounds && cnt > 2 && misses < p->stop_after; rnd++) {
+        cum[0] = 0;
+        for (int64_t k = 0; k + 1 < cnt; k++) {
+            seg[k] = DK(plan_dist)(P + (k + 1) * n, P + k * n, n);
+            cum[k + 1] = cum[k] + seg[k];
+        }
+        const real total = cum[cnt - 1];
+        for (int t = 0; t < T; t++) {
+            real tt[2];
+            int64_t kk[2];
+            for (int e = 0; e < 2; e++) { /* draw 2 t + e of the round: row_uniform(key, rnd, (T, 2)) */
+                const uint64_t i = (uint64_t)(2 * t + e) + (uint64_t)rnd * (uint64_t)(2 * T) + 1;
+                const uint64_t z = plan_finalise(key + i * 0x9E3779B97F4A7C15ull);
+                tt[e] = (real)((double)(z >> 11) * 0x1.0p-53);
+            }
+            if (tt[1] < tt[0]) { const real x = tt[0]; tt[0] = tt[1]; tt[1] = x; }
+            for (int e = 0; e < 2; e++) {
+                tt[e] *= total;
+                int64_t k = 0; /* the last waypoint at or before the point, within the cnt - 1 segments */
+                while (k + 1 < cnt && cum[k + 1] <= tt[e]) k++;
+                if (k > cnt - 2) k = cnt - 2;
+                kk[e] = k;
+                const real ln = seg[k] > DK_TINY ? seg[k] : DK_TINY;
+                real f = (tt[e] - cum[k]) / ln;
+                f = f < 0 ? 0 : (f > 1 ? 1 : f);
+                real *q = pts + (2 * t + e) * n;
+                for (int j = 0; j < n; j++) q[j] = P[k * n + j] + f * (P[(k + 1) * n + j] - P[k * n + j]);
+            }
+            const real g = (tt[1] - tt[0]) - DK(plan_dist)(pts + (2 * t + 1) * n, pts + 2 * t * n, n);
+            gain[t] = kk[1] > kk[0] && g > (real)1e-6 * total ? g : -1;
+            ij[2 * t] = kk[0], ij[2 * t + 1] = kk[1];
+            seq[t] = t;
+        }
+        for (int a = 1; a < T; a++) /* the tries by gain, largest first (equal gains in draw order) */
+            for (int c = a; c > 0 && gain[seq[c]] > gain[seq[c - 1]]; c--) {
+                const int64_t x = seq[c]; seq[c] = seq[c - 1]; seq[c - 1] = x;
+            }
+        int64_t best = -1;
+        for (int a = 0; a < T && gain[seq[a]] > 0; a++) {
+            const int64_t t = seq[a];
+            if (DK(plan_edge_from)(w, pts + 2 * t * n, pts + (2 * t + 1) * n, 0, 0) == 1) { best = t; break; }
+        }
+        if (best < 0) { misses++; continue; }
+        misses = 0;
+        const int64_t i = ij[2 * best], j = ij[2 * best + 1], shift = j - i - 2; /* keep 0..i, a, b, j+1.. */
+        if (shift > 0)
+            for (int64_t c = i + 3; c < cnt - shift; c++) memcpy(P + c * n, P + (c + shift) * n, sizeof(real) * n);
+        else if (shift < 0)
+            for (int64_t c = cnt - 1 - shift; c >= i + 3; c--) memcpy(P + c * n, P + (c + shift) * n, sizeof(real) * n);
+        memcpy(P + (i + 1) * n, pts + 2 * best * n, sizeof(real) * n);
+        memcpy(P + (i + 2) * n, pts + (2 * best + 1) * n, sizeof(real) * n);
+        cnt -= shift;
+    }
+    for (int64_t c = cnt; c < L; c++) memcpy(P + c * n, P + (cnt - 1) * n, sizeof(real) * n);
+    p->n_way[b] = cnt;
+}
+
+/* dk_plan_points: DK(plan_points_one) of the B paths, shared between threads. */
+static int64_t DK(dk_plan_points)(const dk_plan *p) {
+    Shape s;
+    read_shape(p->chain, &s);
+    DK(Params) pp;
+    if (DK(read_params)(p->chain, &s, &pp)) return -1;
+    int nthreads = (int)(p->nthreads > 1 && p->B > 1 ? (p->nthreads < p->B ? p->nthreads : p->B) : 1);
+    int64_t failed = 0;
+    const int64_t L = p->capacity, T = p->tries;
+#pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
+    {
+        DK(PlanWork) w;
+        const int good = DK(plan_work_init)(&w, p, &s, &pp);
+        real *buf = malloc(sizeof(real) * (size_t)(2 * L + 2 * T * s.n + T));
+        int64_t *ibuf = malloc(sizeof(int64_t) * (size_t)(3 * T));
+#pragma omp for schedule(dynamic, 1)
+        for (int64_t b = 0; b < p->B; b++) {
+            if (!good || !buf || !ibuf) {
+                failed++;
+                continue;
+            }
+            DK(plan_points_one)(&w, b, buf, buf + L, buf + 2 * L, buf + 2 * L + 2 * T * s.n, ibuf, ibuf + T);
+        }
+        free(buf);
+        free(ibuf);
+        DK(plan_work_free)(&w);
+    }
+    free(pp.fix);
+    return failed ? -1 : 0;
+}
+
 #if DK_PLAN_PASS == 2 /* after the second (float) pass: both types exist */
 /* p, its chain and its decisions' struct of this file's versions and sizes, of one real type, with G
  * capsules placed from C = 2 G points. */
@@ -553,6 +676,18 @@ int64_t dk_plan_decide(const dk_plan *p) {
 /* The edges of p->N straight edges (dk_plan_edges_f64 / _f32 above; p's search fields not read but
  * max_iterations, which sizes the work space: give 0). Returns 0, -1 when memory ran out, DK_RANGE_ERROR
  * for more than 64 joints, DK_ABI_ERROR as dk_plan_search. */
+/* Shortcuts between points of the p->B paths in p->path (B x capacity x n, p->n_way waypoints each,
+ * rewritten in place; dk_plan_points_f64 / _f32 above; max_iterations sizes the work space: give 0).
+ * Returns 0, -1 when memory ran out, DK_RANGE_ERROR for more than 64 joints, DK_ABI_ERROR as
+ * dk_plan_search. */
+int64_t dk_plan_points(const dk_plan *p) {
+    if (!plan_ok(p)) return DK_ABI_ERROR;
+    if (p->chain->n > 64 || p->tries < 1) return DK_RANGE_ERROR;
+    if (p->chain->real_bytes == 8) return dk_plan_points_f64(p);
+    if (p->chain->real_bytes == 4) return dk_plan_points_f32(p);
+    return DK_ABI_ERROR;
+}
+
 int64_t dk_plan_edges(const dk_plan *p) {
     if (!plan_ok(p)) return DK_ABI_ERROR;
     if (p->chain->n > 64) return DK_RANGE_ERROR;

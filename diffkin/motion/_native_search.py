@@ -45,10 +45,11 @@ class PlanArgs(ctypes.Structure):
         [(name, _I64) for name in ("max_iterations", "restart", "shortcut_tries", "seed", "capacity")] + \
         [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")] + \
         [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)] + \
-        [("qb", _PTR), ("steps", _PTR), ("slacks", _PTR), ("prefix", _I64), ("first_bad", _PTR)]
+        [("qb", _PTR), ("steps", _PTR), ("slacks", _PTR), ("prefix", _I64), ("first_bad", _PTR)] + \
+        [("keys", _PTR), ("rounds", _I64), ("tries", _I64), ("stop_after", _I64)]
 
 
-_fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide, dk_plan_edges)
+_fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide, dk_plan_edges, dk_plan_points)
 
 
 def _functions():
@@ -56,7 +57,7 @@ def _functions():
     fns = _fns.get(id(lib))
     if fns is None:
         native.check_layout(lib, "plan", PlanArgs)
-        fns = (lib.dk_plan_search, lib.dk_plan_decide, lib.dk_plan_edges)
+        fns = (lib.dk_plan_search, lib.dk_plan_decide, lib.dk_plan_edges, lib.dk_plan_points)
         for fn in fns:
             fn.restype, fn.argtypes = _I64, [ctypes.POINTER(PlanArgs)]
         _fns[id(lib)] = fns
@@ -158,6 +159,34 @@ class NativePlanner:
             raise MemoryError("motion.plan: the C edge decisions could not allocate their per-thread work "
                               "space")
         return first_bad, decided
+
+
+def shortcut_points_native(checker, path: Tensor, n: Tensor, problem: Tensor, rounds: int, key: Tensor,
+                           tries: int, stop_after: int) -> tuple[Tensor, Tensor] | None:
+    """:func:`diffkin.motion._search.shortcut_points` in C (``dk_plan_points``: each path's rounds in
+    one thread, its edges decided there): the same draws, choices and splices, the points' coordinates
+    to rounding (the segment lengths summed in C's order). ``path (B, L, nq)``, ``n (B,)``, ``problem
+    (B,)``, ``key (B,)`` (:func:`~diffkin.motion._search.row_keys`); returns ``(path (B, L + rounds, nq),
+    n (B,))``, or None where the C decisions do not serve (then the torch loop does)."""
+    planner = checker.native(path)
+    if planner is None or path.shape[0] == 0:
+        return None
+    B, L, nq = path.shape
+    cap = L + max(int(rounds), 0)
+    out = torch.cat((path, path[:, -1:].expand(B, cap - L, nq)), 1).to(planner.dtype).contiguous()
+    count = n.to(torch.int64).contiguous().clone()
+    eta = checker.eta_of(problem).to(planner.dtype).contiguous()
+    world = problem.to(torch.int64).contiguous() if checker.per_row else None
+    reach, keys = checker.reach.to(planner.dtype).contiguous(), key.to(torch.int64).contiguous()  # kept alive
+    a = planner.args(nthreads=native.thread_count(B * 4096), B=B, path=out, n_way=count, world=world, eta=eta,
+                     reach=reach, capacity=cap, keys=keys, rounds=int(rounds), tries=int(tries),
+                     stop_after=int(stop_after), max_iterations=0)
+    status = _functions()[3](ctypes.byref(a))
+    if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
+        return None
+    if status < 0:
+        raise MemoryError("motion.plan: the C shortcuts could not allocate their per-thread work space")
+    return out.to(path.dtype), count.to(n.dtype)
 
 
 def serves(checker, q: Tensor) -> bool:
