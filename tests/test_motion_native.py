@@ -40,6 +40,16 @@ def _batch(probs, names):
             World.stack([p.scene.to_world(dtype=F64) for p in ps]), [p.scene.to_world(dtype=F64) for p in ps])
 
 
+def _checked(probs, rc, names):
+    """The problems ``names`` batched (one scene each) with an EdgeChecker (margin 0, resolution 5 mm) and
+    each problem's resolution: ``(qs, qg, world, worlds, checker, rows, eta, start_ok, goal_ok)``."""
+    qs, qg, world, worlds = _batch(probs, names)
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    rows = torch.arange(len(names))
+    eta, a, b = _row_resolution(checker, qs, qg, rows)
+    return qs, qg, world, worlds, checker, rows, eta, a, b
+
+
 def test_c_decisions_equal_the_torch_placement(panda):
     """dk_plan_decide (FK, placement and decisions in C) equals RobotCollision._clear (torch FK and
     placement, the C decisions) on random configurations in two scenes, wherever the distance is not
@@ -101,11 +111,7 @@ def test_c_point_shortcuts_equal_the_torch_rounds(panda):
     from diffkin.motion._search import STOP_AFTER, row_keys, shortcut_points
 
     chain, rc, probs = panda
-    names = ["cage/0001", "box/0001", "table_pick/0019"]
-    qs, qg, world, _ = _batch(probs, names)
-    checker = EdgeChecker(rc, world, 0.0, 0.005)
-    rows = torch.arange(3)
-    eta, _, _ = _row_resolution(checker, qs, qg, rows)
+    qs, qg, _, _, checker, rows, eta, _, _ = _checked(probs, rc, ["cage/0001", "box/0001", "table_pick/0019"])
     checker.set_row_resolution(eta)
     lim = chain.q_limits
     path, n, found, _ = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta, max_iterations=20000,
@@ -135,10 +141,7 @@ def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
 
     chain, rc, probs = panda
     names = ["cage/0001", "box/0001", "bookshelf_small/0019"]
-    qs, qg, world, worlds = _batch(probs, names)
-    checker = EdgeChecker(rc, world, 0.0, 0.005)
-    rows = torch.arange(3)
-    eta, a, b = _row_resolution(checker, qs, qg, rows)
+    qs, qg, world, worlds, checker, rows, eta, a, b = _checked(probs, rc, names)
     assert (a & b).all() and eta[2] < 0.005 and (eta[:2] == 0.005).all()
     lim = chain.q_limits
     path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta,
