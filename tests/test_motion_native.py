@@ -40,10 +40,11 @@ def _batch(probs, names):
             World.stack([p.scene.to_world(dtype=F64) for p in ps]), [p.scene.to_world(dtype=F64) for p in ps])
 
 
-def _checked(probs, rc, names):
+def _checked(probs, rc, names, dtype=F64):
     """The problems ``names`` batched (one scene each) with an EdgeChecker (margin 0, resolution 5 mm) and
     each problem's resolution: ``(qs, qg, world, worlds, checker, rows, eta, start_ok, goal_ok)``."""
     qs, qg, world, worlds = _batch(probs, names)
+    qs, qg, world = qs.to(dtype), qg.to(dtype), world.to(dtype)
     checker = EdgeChecker(rc, world, 0.0, 0.005)
     rows = torch.arange(len(names))
     eta, a, b = _row_resolution(checker, qs, qg, rows)
@@ -102,7 +103,8 @@ def test_c_edges_equal_the_torch_subdivision(panda, dtype):
             assert bool(((reach_c > 0) & (reach_c < 1)).any())  # partial prefixes occur
 
 
-def test_c_point_shortcuts_equal_the_torch_rounds(panda):
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_c_point_shortcuts_equal_the_torch_rounds(panda, dtype):
     """shortcut_points in C (dk_plan_points: each path's rounds in one thread, the same draws, choices and
     splices) equals the torch rounds on paths the C search found in three scenes: the same waypoint
     counts, the coordinates to rounding; every edge of the shortened paths is proven clear again by the
@@ -111,7 +113,11 @@ def test_c_point_shortcuts_equal_the_torch_rounds(panda):
     from diffkin.motion._search import STOP_AFTER, row_keys, shortcut_points
 
     chain, rc, probs = panda
-    qs, qg, _, _, checker, rows, eta, _, _ = _checked(probs, rc, ["cage/0001", "box/0001", "table_pick/0019"])
+    if dtype == torch.float32:  # copies: float() converts a module in place (the fixture is shared)
+        rc = copy.deepcopy(rc).float()
+        chain = rc.chain.float()
+    qs, qg, _, _, checker, rows, eta, _, _ = _checked(probs, rc, ["cage/0001", "box/0001", "table_pick/0019"],
+                                                      dtype)
     checker.set_row_resolution(eta)
     lim = chain.q_limits
     path, n, found, _ = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta, max_iterations=20000,
@@ -122,7 +128,7 @@ def test_c_point_shortcuts_equal_the_torch_rounds(panda):
     pc, nc = shortcut_points_native(checker, path, n, rows, 12, key, 8, STOP_AFTER)
     assert torch.equal(nt, nc)
     L = int(nc.max())
-    torch.testing.assert_close(pc[:, :L], pt[:, :L], rtol=0, atol=1e-12)
+    torch.testing.assert_close(pc[:, :L], pt[:, :L], rtol=0, atol=1e-12 if dtype == F64 else 1e-5)
     length = lambda p, k: (p[1:k] - p[:k - 1]).norm(dim=-1).sum()  # noqa: E731
     for b in range(3):
         k = int(nc[b])

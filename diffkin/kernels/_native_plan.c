@@ -28,6 +28,10 @@
  * Randomness: each problem's stream is splitmix64 seeded by the caller's seed mixed with a hash of the
  * problem's start and goal bytes, so a problem planned alone takes the same path as in any batch, on any
  * number of threads.
+ *
+ * Besides the search: dk_plan_decide (configurations), dk_plan_edges (straight edges, the samples of
+ * diffkin.motion._edges.EdgeChecker.edges) and dk_plan_points (the shortcuts between points of
+ * diffkin.motion._search.shortcut_points, its rounds per path in C).
  */
 #ifndef DK_PLAN_TYPES
 #define DK_PLAN_TYPES
@@ -675,24 +679,29 @@ int64_t dk_plan_decide(const dk_plan *p) {
 
 /* The edges of p->N straight edges (dk_plan_edges_f64 / _f32 above; p's search fields not read but
  * max_iterations, which sizes the work space: give 0). Returns 0, -1 when memory ran out, DK_RANGE_ERROR
- * for more than 64 joints, DK_ABI_ERROR as dk_plan_search. */
-/* Shortcuts between points of the p->B paths in p->path (B x capacity x n, p->n_way waypoints each,
- * rewritten in place; dk_plan_points_f64 / _f32 above; max_iterations sizes the work space: give 0).
- * Returns 0, -1 when memory ran out, DK_RANGE_ERROR for more than 64 joints, DK_ABI_ERROR as
- * dk_plan_search. */
-int64_t dk_plan_points(const dk_plan *p) {
-    if (!plan_ok(p)) return DK_ABI_ERROR;
-    if (p->chain->n > 64 || p->tries < 1) return DK_RANGE_ERROR;
-    if (p->chain->real_bytes == 8) return dk_plan_points_f64(p);
-    if (p->chain->real_bytes == 4) return dk_plan_points_f32(p);
-    return DK_ABI_ERROR;
-}
-
+ * for more than 64 joints or an edge of fewer than 1 sub-step, DK_ABI_ERROR as dk_plan_search. */
 int64_t dk_plan_edges(const dk_plan *p) {
     if (!plan_ok(p)) return DK_ABI_ERROR;
     if (p->chain->n > 64) return DK_RANGE_ERROR;
+    for (int64_t e = 0; e < p->N; e++)
+        if (p->steps[e] < 1) return DK_RANGE_ERROR;
     if (p->chain->real_bytes == 8) return dk_plan_edges_f64(p);
     if (p->chain->real_bytes == 4) return dk_plan_edges_f32(p);
+    return DK_ABI_ERROR;
+}
+
+/* Shortcuts between points of the p->B paths in p->path (B x capacity x n, p->n_way waypoints each,
+ * rewritten in place; dk_plan_points_f64 / _f32 above; max_iterations sizes the work space: give 0).
+ * Returns 0, -1 when memory ran out, DK_RANGE_ERROR for more than 64 joints, no tries, or a path of fewer
+ * than 2 waypoints or without room for one more a round (n_way > capacity - rounds), DK_ABI_ERROR as
+ * dk_plan_search. */
+int64_t dk_plan_points(const dk_plan *p) {
+    if (!plan_ok(p)) return DK_ABI_ERROR;
+    if (p->chain->n > 64 || p->tries < 1 || p->rounds < 0) return DK_RANGE_ERROR;
+    for (int64_t b = 0; b < p->B; b++)
+        if (p->n_way[b] < 2 || p->n_way[b] > p->capacity - p->rounds) return DK_RANGE_ERROR;
+    if (p->chain->real_bytes == 8) return dk_plan_points_f64(p);
+    if (p->chain->real_bytes == 4) return dk_plan_points_f32(p);
     return DK_ABI_ERROR;
 }
 #endif

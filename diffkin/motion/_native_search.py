@@ -168,7 +168,7 @@ def shortcut_points_native(checker, path: Tensor, n: Tensor, problem: Tensor, ro
     to rounding (the segment lengths summed in C's order). ``path (B, L, nq)``, ``n (B,)``, ``problem
     (B,)``, ``key (B,)`` (:func:`~diffkin.motion._search.row_keys`); returns ``(path (B, L + rounds, nq),
     n (B,))``, or None where the C decisions do not serve (then the torch loop does)."""
-    planner = checker.native(path)
+    planner = checker.native(path) if checker.use_c else None
     if planner is None or path.shape[0] == 0:
         return None
     B, L, nq = path.shape
