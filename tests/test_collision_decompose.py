@@ -72,22 +72,29 @@ def test_u_parts_contain_the_mesh_and_are_fewer_than_its_faces(u_parts):
     assert _inside_some_hull(np.einsum("kj,fjd->fkd", w, v[faces]).reshape(-1, 3), r.parts).all()
 
 
+def _distances(v, faces, parts, p):
+    """At points ``p (N, 3)``: coal's distance to the mesh (its BVH), the distance to the nearest of the
+    convex ``parts`` and to the mesh's hull (diffkin's capsule-convex distance with zero-length capsules)."""
+    bvh = _bvh(v, faces)
+    true = np.array([ref.distance(coal.Sphere(1e-12), ref.placement(p=x), bvh, ref.placement()) for x in p])
+    M = max(len(V) for V in parts)
+    V = torch.tensor(np.stack([np.concatenate((V, V[:1].repeat(M - len(V), 0))) for V in parts]))
+    P = torch.tensor(p)
+    ours = CV.capsule_convex(P[:, None], P[:, None], torch.zeros(len(p), 1, dtype=F64), V).amin(-1).numpy()
+    hull = CV.capsule_convex(P, P, torch.zeros(len(p), dtype=F64), torch.tensor(v)).numpy()
+    return true, ours, hull
+
+
 def test_u_parts_distances_against_coal_on_the_mesh(u_parts):
     """Points outside the U: the distance to the parts is never above coal's distance to the mesh (BVH)
     and below it by at most the tolerance (the hull alone: up to the slot's half width, 10 mm)."""
     v, faces, r = u_parts
-    bvh = _bvh(v, faces)
     rng = np.random.default_rng(1)
     p = rng.uniform(-0.02, 0.08, (600, 3))
     p = p[~_inside_u(p)]
-    true = np.array([ref.distance(coal.Sphere(1e-12), ref.placement(p=x), bvh, ref.placement()) for x in p])
-    M = max(len(V) for V in r.parts)
-    V = torch.tensor(np.stack([np.concatenate((V, V[:1].repeat(M - len(V), 0))) for V in r.parts]))
-    P = torch.tensor(p)
-    ours = CV.capsule_convex(P[:, None], P[:, None], torch.zeros(len(p), 1, dtype=F64), V).amin(-1).numpy()
+    true, ours, hull = _distances(v, faces, r.parts, p)
     gap = true - ours
     assert gap.min() > -1e-9 and gap.max() <= 0.002 + 1e-9
-    hull = CV.capsule_convex(P, P, torch.zeros(len(p), dtype=F64), torch.tensor(v)).numpy()
     assert (true - hull).max() > 0.01  # (what the decomposition removes: the hull fills the slot)
 
 
@@ -121,15 +128,9 @@ def test_frame_of_overlapping_boxes_against_coal():
     hole = (x >= 1) & (x <= 3) & (y >= 1) & (y <= 3)
     inside = (x > 0) & (x < 4) & (y > 0) & (y < 4) & ~hole & (z > 0) & (z < 1)
     p = p[~inside]
-    bvh = _bvh(v, faces)
-    true = np.array([ref.distance(coal.Sphere(1e-12), ref.placement(p=q), bvh, ref.placement()) for q in p])
-    M = max(len(V) for V in r.parts)
-    V = torch.tensor(np.stack([np.concatenate((V, V[:1].repeat(M - len(V), 0))) for V in r.parts]))
-    P = torch.tensor(p)
-    ours = CV.capsule_convex(P[:, None], P[:, None], torch.zeros(len(p), 1, dtype=F64), V).amin(-1).numpy()
+    true, ours, hull = _distances(v, faces, r.parts, p)
     gap = true - ours
     assert gap.min() > -1e-9 and gap.max() <= r.excess + 1e-9
-    hull = CV.capsule_convex(P, P, torch.zeros(len(p), dtype=F64), torch.tensor(v)).numpy()
     assert (true - hull).max() > 0.015
 
 

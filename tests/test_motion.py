@@ -146,14 +146,19 @@ def test_joint_reach_batched_walk_equals_the_loop(robot, dtype):
         assert torch.equal(got, _reach_loop(rc))
 
 
+def _four_pairs(robot, eta: float, seed: int, margin: float):
+    """An EdgeChecker of the robot in its world (margin 0, resolution ``eta``) and four pairs of random
+    configurations clear of ``margin``: ``(checker, q_a (4, nq), q_b (4, nq), rows (4,))``."""
+    chain, rc, world = robot
+    q = random_configuration(chain, (8,), torch.Generator().manual_seed(seed), collision=rc, world=world,
+                             margin=margin)
+    return EdgeChecker(rc, world, 0.0, eta), q[:4], q[4:], torch.arange(4)
+
+
 def test_edges_subdivision_proves_the_continuous_edge(robot):
     chain, rc, world = robot
     eta = 0.01
-    checker = EdgeChecker(rc, world, 0.0, eta)
-    g = torch.Generator().manual_seed(1)
-    q = random_configuration(chain, (8,), g, collision=rc, world=world, margin=0.03)
-    qa, qb = q[:4], q[4:]
-    rows = torch.arange(4)
+    checker, qa, qb, rows = _four_pairs(robot, eta, seed=1, margin=0.03)
     free, _ = checker.edges(qa, qb, rows)
     assert free.any() and (~free).any()
     # every free edge, sampled 2x finer than the subdivision, keeps d >= 0 (exact distances, torch path)
@@ -372,11 +377,7 @@ def test_shortcut_points_shortens_proven_paths(robot):
 
     chain, rc, world = robot
     eta = 0.01
-    checker = EdgeChecker(rc, world, 0.0, eta)
-    g = torch.Generator().manual_seed(3)
-    q = random_configuration(chain, (8,), g, collision=rc, world=world, margin=0.02)
-    qs, qg = q[:4], q[4:]
-    rows = torch.arange(4)
+    checker, qs, qg, rows = _four_pairs(robot, eta, seed=3, margin=0.02)
     lim = chain.q_limits.to(torch.float64)
     path, n, found = search(checker, qs, qg, lim[:, 0], lim[:, 1], rows, max_iterations=300, step=0.3,
                             generator=torch.Generator().manual_seed(0))
