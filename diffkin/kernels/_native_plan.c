@@ -222,27 +222,39 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
     return k < 1 ? 1 : (int64_t)k;
 }
 
-/* The straight edge a -> b (a already known clear): with prefix the largest fraction lam = i / steps such
- * that the samples 0 .. i are clear (1: the whole edge); without, 1 when every sample is clear, else 0. */
-static real DK(plan_edge_from)(DK(PlanWork) *w, const real *a, const real *b, int prefix, int from) {
+/* The straight edge a -> b in ns sub-steps, its samples i = from .. ns at a + (i / ns) (b - a) taken in the
+ * EdgeOrder (in order with prefix, else coarse to fine) in blocks of 16 growing to COLLIDE_BLOCK, the edge
+ * leaving at its first colliding block (DK(collide_first)): returns the first colliding sample of that
+ * block in the order taken (ns + 1: every sample clear; with prefix the first along the edge). The samples
+ * decided are counted in w->checked. */
+static int64_t DK(plan_edge_bad)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, int prefix,
+                                 int from) {
     const int n = w->s.n;
-    const int64_t ns = DK(plan_steps)(w, a, b);
     int64_t idx[COLLIDE_BLOCK];
     EdgeOrder order;
     edge_order_init(&order, ns, prefix, from);
     int size = 16;
     for (;;) {
         const int m = edge_order_fill(&order, idx, size);
-        if (m == 0) return 1;
+        if (m == 0) return ns + 1;
         for (int k = 0; k < m; k++) {
             const real f = (real)idx[k] / (real)ns;
             for (int j = 0; j < n; j++) w->qs[k * n + j] = a[j] + f * (b[j] - a[j]);
         }
         DK(plan_decide)(w, m, 1);
         for (int k = 0; k < m; k++)
-            if (!w->ok[k]) return prefix ? (real)(idx[k] - 1) / (real)ns : 0;
+            if (!w->ok[k]) return idx[k];
         size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
     }
+}
+
+/* The straight edge a -> b in its DK(plan_steps) (samples from `from`: 1 when a is already known clear):
+ * with prefix the largest fraction lam = i / steps such that the samples up to i are clear (1: the whole
+ * edge); without, 1 when every sample is clear, else 0. */
+static real DK(plan_edge_from)(DK(PlanWork) *w, const real *a, const real *b, int prefix, int from) {
+    const int64_t ns = DK(plan_steps)(w, a, b), bad = DK(plan_edge_bad)(w, a, b, ns, prefix, from);
+    if (bad > ns) return 1;
+    return prefix ? (real)(bad - 1) / (real)ns : 0;
 }
 
 static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int prefix) {
@@ -477,12 +489,9 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
 }
 
 /* dk_plan_edges: the straight edges q[e] -> qb[e] of diffkin.motion._edges.EdgeChecker.edges, each in
- * steps[e] equal sub-steps, its samples i = 0 .. steps[e] at a + (i / steps[e]) (b - a) decided in world row
- * wid[e] with slack slacks[e]: with prefix in order, else coarse to fine (i = 0, steps, then the odd
- * multiples of ever smaller powers of two: a colliding edge is usually caught in its first block); in
- * blocks of 16 growing to COLLIDE_BLOCK, an edge leaving at its first colliding block (DK(collide_first)).
- * first_bad[e] is the first colliding sample of that block in the order taken (steps + 1: every sample
- * clear), checked[e] the samples decided. Edges are shared between threads. */
+ * steps[e] equal sub-steps, its samples 0 .. steps[e] decided by DK(plan_edge_bad) in world row wid[e] with
+ * slack slacks[e]: first_bad[e] its result (steps + 1: every sample clear), checked[e] the samples decided.
+ * Edges are shared between threads. */
 static int64_t DK(dk_plan_edges)(const dk_plan *p) {
     Shape s;
     read_shape(p->chain, &s);
@@ -495,40 +504,20 @@ static int64_t DK(dk_plan_edges)(const dk_plan *p) {
     {
         DK(PlanWork) w;
         const int good = DK(plan_work_init)(&w, p, &s, &pp);
-        int64_t idx[COLLIDE_BLOCK];
 #pragma omp for schedule(dynamic, 8)
         for (int64_t e = 0; e < p->N; e++) {
             if (!good) {
                 failed++;
                 continue;
             }
-            const real *a = (const real *)p->q + e * n, *b = (const real *)p->qb + e * n;
-            const int64_t ns = p->steps[e];
-            real dq[64];
-            for (int j = 0; j < n; j++) dq[j] = b[j] - a[j];
             const int64_t row = p->wid ? p->wid[e] : 0;
             for (int l = 0; l < COLLIDE_BLOCK; l++) w.wid[l] = row;
             w.cc.wid = w.wid;
             w.cc.slack = (double)((const real *)p->slacks)[e];
-            EdgeOrder order;
-            edge_order_init(&order, ns, (int)p->prefix, 0);
-            int64_t bad = ns + 1, decided = 0;
-            int size = 16;
-            while (bad > ns) {
-                const int m = edge_order_fill(&order, idx, size);
-                if (m == 0) break;
-                for (int k = 0; k < m; k++) {
-                    const real f = (real)((double)idx[k] / (double)ns);
-                    for (int j = 0; j < n; j++) w.qs[k * n + j] = a[j] + f * dq[j];
-                }
-                DK(plan_decide)(&w, m, 1);
-                decided += m;
-                for (int k = 0; k < m; k++)
-                    if (!w.ok[k]) { bad = idx[k]; break; }
-                size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
-            }
-            p->first_bad[e] = bad;
-            p->checked[e] = decided;
+            const int64_t before = w.checked;
+            p->first_bad[e] = DK(plan_edge_bad)(&w, (const real *)p->q + e * n, (const real *)p->qb + e * n,
+                                                p->steps[e], (int)p->prefix, 0);
+            p->checked[e] = w.checked - before;
         }
         DK(plan_work_free)(&w);
     }
