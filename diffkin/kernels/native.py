@@ -839,40 +839,36 @@ def clip_rows(Tf: Tensor | None, J: Tensor | None, *, T: int, keypoint_ends: lis
     None (nothing done) where the library is not loaded or the inputs are not CPU tensors of one float dtype
     without autograd."""
     fused = Tf is None
-    ref = fk[1] if fused else Tf  # the frames' dtype and device
-    dtype = ref.dtype
-    if not _serves(dtype, (ref,) if fused else (Tf, J)):
+    dtype = (fk[1] if fused else Tf).dtype
+    if not _serves(dtype, (fk[1],) if fused else (Tf, J)):
         return None
-    if fused:
-        model, q = fk
-        N, E, nv = q.shape[0], model.n_ends, model.n_velocities
-    else:
-        N, E, nv = Tf.shape[0], Tf.shape[1], J.shape[-1]
     real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
     longs = lambda v: torch.tensor(list(v), dtype=torch.int64)  # noqa: E731
+    frames = real(fk[1] if fused else Tf)  # the configurations (N, nq) for the FK, or the poses (N, E, 4, 4)
+    N = frames.shape[0]
+    E, nv = (fk[0].n_ends, fk[0].n_velocities) if fused else (Tf.shape[1], J.shape[-1])
     Ko = len(orientation_ends)
-    Tf = ref = real(ref)
     consts = None if prepared is None else prepared.get(dtype)
     if consts is None:
         consts = [longs(keypoint_ends), real(keypoint_weights), real(keypoints),
-                  longs(orientation_ends or [0]), real(orientation_weights if Ko else Tf.new_zeros(1)),
-                  real(orientations if Ko else Tf.new_zeros(1)), longs(feet),
+                  longs(orientation_ends or [0]), real(orientation_weights if Ko else frames.new_zeros(1)),
+                  real(orientations if Ko else frames.new_zeros(1)), longs(feet),
                   real(torch.cat([s[0] for s in soles])), real(torch.cat([s[1] for s in soles])),
                   contacts.to(torch.uint8).contiguous(),
                   None if support is None else support.to(device="cpu", dtype=torch.uint8).contiguous()]
         if prepared is not None:
             prepared[dtype] = consts
-    keep = [None if fused else Tf, None if fused else real(J), *consts]
-    chain_args = model.call(dtype, batch=N, q=ref, nthreads=1) if fused else None
-    cost, g = Tf.new_empty(N), Tf.new_empty(N, nv)
+    keep = [None if fused else frames, None if fused else real(J), *consts]
+    chain_args = fk[0].call(dtype, batch=N, q=frames, nthreads=1) if fused else None
+    cost, g = frames.new_empty(N), frames.new_empty(N, nv)
     if out is not None and all(t.shape == (N, nv, nv) and t.dtype == dtype and t.device.type == "cpu"
                                and t.is_contiguous() for t in out):
         D, Eb = out
     else:
-        D, Eb = Tf.new_empty(N, nv, nv), Tf.new_empty(N, nv, nv)
-    centre, centre_jac = Tf.new_empty(N, 4), Tf.new_empty(N, 4, nv)
+        D, Eb = frames.new_empty(N, nv, nv), frames.new_empty(N, nv, nv)
+    centre, centre_jac = frames.new_empty(N, 4), frames.new_empty(N, 4, nv)
     threads = thread_count(N)
-    args = new_struct(ClipArgs, real_bytes=Tf.element_size(), nthreads=threads, N=N, T=T, nv=nv,
+    args = new_struct(ClipArgs, real_bytes=frames.element_size(), nthreads=threads, N=N, T=T, nv=nv,
                       ends=E, K=len(keypoint_ends), Ko=Ko, P0=soles[0][0].shape[0], P1=soles[1][0].shape[0],
                       kp=keep[2], kp_w=keep[3], x=keep[4], ko=keep[5], ko_w=keep[6], Rd=keep[7], feet=keep[8],
                       pts=keep[9], rad=keep[10], contact=keep[11], support=keep[12],
