@@ -105,12 +105,11 @@ def test_c_edges_equal_the_torch_subdivision(panda, dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_c_point_shortcuts_equal_the_torch_rounds(panda, dtype):
-    """shortcut_points in C (dk_plan_points: each path's rounds in one thread, the same draws, choices and
-    splices) equals the torch rounds on paths the C search found in three scenes: the same waypoint
-    counts, the coordinates to rounding; every edge of the shortened paths is proven clear again by the
-    torch EdgeChecker, and the paths are shorter than the searched ones."""
-    from diffkin.motion._native_search import shortcut_points_native
-    from diffkin.motion._search import STOP_AFTER, row_keys, shortcut_points
+    """shortcut_points in C (dk_plan_points, where the checker decides in C: each path's rounds in one
+    thread, the same draws, choices and splices) equals the torch rounds on paths the C search found in
+    three scenes: the same waypoint counts, the coordinates to rounding; every edge of the shortened paths
+    is proven clear again by the torch EdgeChecker, and the paths are shorter than the searched ones."""
+    from diffkin.motion._search import row_keys, shortcut_points
 
     chain, rc, probs = panda
     if dtype == torch.float32:  # copies: float() converts a module in place (the fixture is shared)
@@ -124,8 +123,11 @@ def test_c_point_shortcuts_equal_the_torch_rounds(panda, dtype):
                                       step=0.5, shortcut_tries=32, seed=0)
     assert found.all()
     key = row_keys(qs, qg, 0)
-    pt, nt = shortcut_points(checker, path, n, rows, 12, key, tries=8)
-    pc, nc = shortcut_points_native(checker, path, n, rows, 12, key, 8, STOP_AFTER)
+    pc, nc = shortcut_points(checker, path, n, rows, 12, key, tries=8)  # the C rounds (the checker's in C)
+    assert pc.shape[1] == path.shape[1] + 12  # (rows of L + rounds: shortcut_points_native's)
+    checker.use_c = False
+    pt, nt = shortcut_points(checker, path, n, rows, 12, key, tries=8)  # the torch rounds
+    checker.use_c = True
     assert torch.equal(nt, nc)
     L = int(nc.max())
     torch.testing.assert_close(pc[:, :L], pt[:, :L], rtol=0, atol=1e-12 if dtype == F64 else 1e-5)

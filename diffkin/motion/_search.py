@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from ._edges import EdgeChecker
+from ._native_search import shortcut_points_native
 
 __all__ = ["row_keys", "row_uniform", "search", "shortcut", "shortcut_points"]
 
@@ -228,7 +229,12 @@ def shortcut_points(checker: EdgeChecker, path: Tensor, n: Tensor, problem: Tens
     ``w_0 … w_i, a, b, w_(j+1) … w_(n−1)``. The pieces ``w_i → a`` and ``b → w_(j+1)`` are parts of edges
     already proven clear, so the path stays proven. A path stops after :data:`STOP_AFTER` rounds in a row
     without a clear shortcut. Returns the paths (B, L', nq) (L' ≤ L + rounds; rows padded with their last
-    waypoint) and their counts."""
+    waypoint) and their counts. Where the checker decides in C (CPU, the C decisions serve its model and
+    world, ``checker.use_c``), the rounds run in C (:func:`~diffkin.motion._native_search.
+    shortcut_points_native`: the same choices, the points to rounding; rows of ``L + rounds``)."""
+    got = shortcut_points_native(checker, path, n, problem, rounds, key, tries, STOP_AFTER)
+    if got is not None:
+        return got
     B, L, nq = path.shape
     dev = path.device
     misses = torch.zeros(B, dtype=torch.long, device=dev)

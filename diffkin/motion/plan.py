@@ -18,8 +18,8 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
    the C search); then :data:`POINT_ROUNDS` × ``shortcut_rounds`` rounds of shortcuts between points
    anywhere on the path
    (:func:`~diffkin.motion._search.shortcut_points`: the detours a path of few waypoints keeps; each
-   problem's draws its own stream, seeded by ``seed`` and its start and goal; with the C search its
-   rounds run in C too, ``dk_plan_points``: the same choices, the points to rounding).
+   problem's draws its own stream, seeded by ``seed`` and its start and goal; where the C decisions serve,
+   its rounds run in C too, ``dk_plan_points``: the same choices, the points to rounding).
 5. **Geometric path**: the cubic spline through the waypoints (chord-length knots, zero path slope at both
    ends), checked continuously by the same bound (along its length in the bound's metric); where it leaves
    the clear region (or the limits), the knot intervals it fails on and their neighbours are split at their
@@ -52,8 +52,8 @@ from ..trajectories import Trajectory
 from ..trajectories.time_optimal import time_optimal
 from ..validation import check_count, check_number, shape_str, tensors
 from ._edges import EdgeChecker
-from ._native_search import search_native, shortcut_points_native
-from ._search import STOP_AFTER, row_keys, search, shortcut, shortcut_points
+from ._native_search import search_native
+from ._search import row_keys, search, shortcut, shortcut_points
 from ._spline import _knots, _spline_failures
 from .optimize import OptimizeConfig, optimize_stage, sample_with
 
@@ -395,10 +395,10 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, rows[~found], True),
                  f"no collision-free path found in {max_iterations} iterations")
             if bool(found.any()):  # shortcuts between any points of the paths (detours between waypoints)
-                args = (checker, path[found], n[found], rows[found], POINT_ROUNDS * shortcut_rounds,
-                        row_keys(q_start[rows[found]], q_goal[rows[found]], seed))
-                pts = shortcut_points_native(*args, POINT_TRIES, STOP_AFTER) if searched is not None else None
-                sp, sn = pts if pts is not None else shortcut_points(*args, tries=POINT_TRIES)
+                sp, sn = shortcut_points(checker, path[found], n[found], rows[found],
+                                         POINT_ROUNDS * shortcut_rounds,
+                                         row_keys(q_start[rows[found]], q_goal[rows[found]], seed),
+                                         tries=POINT_TRIES)
                 if sp.shape[1] > path.shape[1]:
                     path = torch.cat((path, path[:, -1:].expand(-1, sp.shape[1] - path.shape[1], nq)), 1)
                 path = path.clone()
