@@ -58,6 +58,22 @@ def test_joint_reach_bounds_the_travel_of_every_geom(robot):
         assert ((_points(rc, q[:200] + e) - _points(rc, q[:200])).norm(dim=-1).amax() <= R[j] * 1e-4 * 1.0001)
 
 
+@pytest.mark.parametrize("scale", [2e-3, 0.1, 1.0])
+def test_self_distances_change_by_at_most_the_travel_bound(robot, scale):
+    """The subdivision's robot–robot claim (motion._edges): along a straight edge Δq every distance between two
+    robot geoms changes by at most Σ_j R_j |Δq_j|, the bound on one point's travel (not twice it), for small
+    and large steps alike."""
+    chain, rc, _ = robot
+    R = motion.joint_reach(rc)
+    g = torch.Generator().manual_seed(1)
+    lo, hi = chain.q_limits[:, 0], chain.q_limits[:, 1]
+    q = lo + (hi - lo) * torch.rand(3000, 7, generator=g, dtype=torch.float64)
+    dq = (torch.rand(3000, 7, generator=g, dtype=torch.float64) - 0.5) * 2 * scale
+    change = (rc.self_distances(q + dq) - rc.self_distances(q)).abs().amax(-1)
+    ratio = change / (dq.abs() * R).sum(-1)
+    assert ratio.max() <= 1.0 and ratio.max() > 0.2  # a bound, and not a vacuous one
+
+
 def _reach_loop(rc) -> torch.Tensor:
     """joint_reach's sum as it was first written (a Python loop per joint and geom, walking the parent frames
     one by one, in Python floats), from the same intermediate quantities: the reference the batched walk

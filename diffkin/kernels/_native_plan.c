@@ -15,9 +15,9 @@
  * Nearest: a linear scan in the weighted L1 metric of the bound (diffkin.motion._search's).
  *
  * Edges: the subdivision of diffkin.motion._edges with the problem's resolution eta_b: a straight edge
- * Delta q in ceil(sum_j R_j |Delta q_j| / eta_b) equal steps (R_j: joint_reach, passed in), every sample
+ * Delta q in ceil(sum_j R_j |Delta q_j| / (2 eta_b)) equal steps (R_j: joint_reach, passed in), every sample
  * decided by DK(collide_block) of _native_collide.c with slack eta_b (samples clear of margin + eta_b prove
- * the continuous edge clear of margin). Samples are placed by the FK block of _native.c (the chain's every
+ * the continuous edge clear of margin: between samples every distance is at most eta_b smaller). Samples are placed by the FK block of _native.c (the chain's every
  * joint frame as an end link) and the placement columns h_c of RobotCollision._columns (each capsule end a
  * fixed point of one frame). A full edge is decided coarse to fine (its far end first, then the midpoints
  * of ever finer halvings), a prefix in order; both in blocks of 16 growing to COLLIDE_BLOCK samples, an
@@ -36,7 +36,7 @@
 #ifndef DK_PLAN_TYPES
 #define DK_PLAN_TYPES
 #define DK_PLAN_PASS 1
-#define DK_PLAN_VERSION 2 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
+#define DK_PLAN_VERSION 3 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
 #define DK_PLAN_FOUND 1
 #define DK_PLAN_NOT_FOUND 0
 #define DK_PLAN_TOO_LONG 2
@@ -213,12 +213,13 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int first) {
     w->checked += m;
 }
 
-/* Sub-steps of the straight edge a -> b: ceil(sum_j R_j |b_j - a_j| / eta), at least 1. */
+/* Sub-steps of the straight edge a -> b: ceil(sum_j R_j |b_j - a_j| / (2 eta)), at least 1 (every point
+ * travels at most 2 eta a step: within eta of the nearer sample, diffkin.motion._edges). */
 static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *b) {
     const real *R = (const real *)w->p->reach;
     double L = 0;
     for (int j = 0; j < w->s.n; j++) L += (double)R[j] * fabs((double)(b[j] - a[j]));
-    const double k = ceil(L / (double)w->eta);
+    const double k = ceil(L / (2 * (double)w->eta));
     return k < 1 ? 1 : (int64_t)k;
 }
 

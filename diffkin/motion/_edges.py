@@ -9,12 +9,15 @@ revolute joint turns about an axis through its own frame origin), so ``‖p − 
 frame-to-frame distances from joint j's frame down to the geom's frame) ``+ ‖p − o_frame‖`` (fixed) ``+`` the
 geom's own extent (capsule radius, box half-diagonal).
 
-**The check.** A motion is sampled so that between consecutive samples every geom point travels at most η
-(``resolution``): a straight edge Δq in ``ceil(Σ_j R_j |Δq_j| / η)`` equal steps, a timed trajectory every
-η / Σ_j R_j q̇max_j seconds. At any instant between two samples each point is within η/2 of where it was at
-the nearer sample (the bound grows linearly in the fraction of the step), so a robot–obstacle distance is at
-most η/2 smaller, and a robot–robot distance at most η smaller, than at that sample: samples whose every
-distance is ≥ margin + η prove the continuous motion clear of ``margin``.
+**The check.** A motion is sampled so that between consecutive samples every geom point travels at most
+2η (η = ``resolution``): a straight edge Δq in ``ceil(Σ_j R_j |Δq_j| / (2η))`` equal steps (:data:`SPACING`).
+At any instant between two samples each point is within η of where it was at the nearer sample (the bound
+grows linearly in the fraction of the step), so a robot–obstacle distance is at most η smaller than at that
+sample. So is a robot–robot distance: the joints that move both geoms turn the vector between two of their
+points without changing its length, and each remaining joint moves one of the two only (the two links'
+own branches of the tree share no joint), so the distance changes by at most Σ_j R_j |Δq_j| over the
+joints, the same bound. Samples whose every distance is ≥ margin + η prove the continuous motion clear of
+``margin`` (``tests/test_motion.py`` checks both bounds against exact distances).
 """
 
 from __future__ import annotations
@@ -24,7 +27,11 @@ from torch import Tensor
 
 from ..errors import ModelError
 
-__all__ = ["joint_reach", "EdgeChecker"]
+__all__ = ["joint_reach", "EdgeChecker", "SPACING"]
+
+#: the subdivision's step in units of the resolution η: every geom point travels at most SPACING · η between
+#: consecutive samples, so each instant is within η of its nearer sample (module docstring)
+SPACING = 2.0
 
 
 def joint_reach(collision) -> Tensor:
@@ -188,10 +195,11 @@ class EdgeChecker:
 
     def steps(self, dq: Tensor, problem: Tensor | None = None) -> Tensor:
         """Sub-steps (...,) long for straight edges dq (..., nq) of problems ``problem`` (...,):
-        ceil(Σ R_j |Δq_j| / η_b), at least 1 (η_b: the problem's resolution; η without ``problem``)."""
+        ceil(Σ R_j |Δq_j| / (2 η_b)), at least 1 (η_b: the problem's resolution; η without ``problem``; 2:
+        :data:`SPACING`, as ``dk_plan``'s steps in C)."""
         L = (dq.abs() * self.reach.to(dq.dtype)).sum(-1)
         eta = self.eta if problem is None else self.eta_of(problem).to(dq.dtype)
-        return torch.ceil(L / eta).clamp(min=1).long()
+        return torch.ceil(L / (SPACING * eta)).clamp(min=1).long()
 
     def edges(self, qa: Tensor, qb: Tensor, problem: Tensor, prefix: bool = False,
               block: int = 256) -> tuple[Tensor, Tensor]:

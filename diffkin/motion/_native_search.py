@@ -27,7 +27,7 @@ from ..kernels import native
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
 #: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
-VERSION = 2
+VERSION = 3
 #: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
 FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY = 1, 0, 2, -1
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p

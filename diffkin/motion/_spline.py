@@ -9,7 +9,7 @@ from torch import Tensor
 
 from ..kernels import native
 from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
-from ._edges import EdgeChecker
+from ._edges import SPACING, EdgeChecker
 
 __all__ = ["_knots", "_spline_clear", "_spline_failures"]
 
@@ -35,8 +35,9 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
     overshoots its waypoints: the limits checked on the ``fine`` samples, whose spacing leaves at most the
     spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
-    crosses a multiple of 0.8 η_b (each problem's resolution; the 20 % spare covers chords against arcs
-    and the last fine chord). The samples and check points in C on the CPU (``kernels/_native_spline.c``,
+    crosses a multiple of 0.8 · 2 η_b (each problem's resolution η_b times the subdivision's
+    :data:`~diffkin.motion._edges.SPACING`; the 20 % spare covers chords against arcs and the last fine
+    chord). The samples and check points in C on the CPU (``kernels/_native_spline.c``,
     the same floats), else in torch."""
     B = path.shape[0]
     knots = knots.to(torch.float64)
@@ -59,7 +60,7 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
             chords.append(sum(d.unbind(-1)))  # the joints in order, first to last (as the C code)
         chord = torch.cat(chords, 1)
         cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
-    c = 0.8 * checker.eta_of(problem).to(torch.float64)  # (B,): each problem's resolution
+    c = 0.8 * SPACING * checker.eta_of(problem).to(torch.float64)  # (B,): the marks' spacing per problem
     n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
     # each row's own n + 1 marks only, flat (padding every row to the longest row's count multiplied the
     # evaluations and collision checks: a row's marks past n would all be its end point, its mark n)
