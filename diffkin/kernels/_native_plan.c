@@ -12,7 +12,8 @@
  * the roots (the random stream continuing); motion.plan passes 0 (never): restarts did not help on the
  * MotionBenchMaker problems.
  * Then random shortcuts (shortcut_tries straight edges between waypoints i < j - 1, each clear one taken).
- * Nearest: a linear scan in the weighted L1 metric of the bound (diffkin.motion._search's).
+ * Nearest: a linear scan in the weighted L1 metric of the bound (diffkin.motion._search's), vectorised over the
+ * nodes (DK(plan_nearest)).
  *
  * Edges: the subdivision of diffkin.motion._edges with the problem's resolution eta_b: a straight edge
  * Delta q in ceil(sum_j R_j |Delta q_j| / (2 eta_b)) equal steps (R_j: joint_reach, passed in), every sample
@@ -167,6 +168,7 @@ typedef struct { /* one thread's work space */
     int64_t *wid;         /* [COLLIDE_BLOCK] the problem's world row */
     uint8_t ok[COLLIDE_BLOCK];
     real *nodes[2];       /* [cap n] the trees */
+    real *cols[2];        /* [n cap] the trees' nodes joint-major (DK(plan_nearest)) */
     int64_t *parent[2];   /* [cap] */
     real *path;           /* [2 cap n] */
     int64_t cap, checked;
@@ -262,16 +264,39 @@ static real DK(plan_edge)(DK(PlanWork) *w, const real *a, const real *b, int pre
     return DK(plan_edge_from)(w, a, b, prefix, 1);
 }
 
-static int64_t DK(plan_nearest)(const real *nodes, int64_t count, const real *q, const real *R, int n) {
+/* The tree node nearest q in the weighted L1 metric: cols holds the tree's count nodes joint-major (cols[j cap +
+ * k], node k's joint j), so each block's distances are vectorised over the nodes, summed over the joints in
+ * order as a scalar loop would; the first of equal minima wins (as a scan in node order). */
+#define NEAREST_BLOCK 256
+static int64_t DK(plan_nearest)(const real *cols, int64_t cap, int64_t count, const real *q, const real *R, int n) {
     int64_t best = 0;
-    real bd = (real)INFINITY;
-    for (int64_t k = 0; k < count; k++) {
-        const real *x = nodes + k * n;
-        real d = 0;
-        for (int j = 0; j < n; j++) d += R[j] * (x[j] > q[j] ? x[j] - q[j] : q[j] - x[j]);
-        if (d < bd) bd = d, best = k;
+    real bd = (real)INFINITY, d[NEAREST_BLOCK];
+    for (int64_t k0 = 0; k0 < count; k0 += NEAREST_BLOCK) {
+        const int m = (int)(count - k0 < NEAREST_BLOCK ? count - k0 : NEAREST_BLOCK);
+        for (int l = 0; l < m; l++) d[l] = 0;
+        for (int j = 0; j < n; j++) {
+            const real *x = cols + (size_t)j * (size_t)cap + k0, qj = q[j], Rj = R[j];
+#pragma omp simd
+            for (int l = 0; l < m; l++) d[l] += Rj * (x[l] > qj ? x[l] - qj : qj - x[l]);
+        }
+        real lo = (real)INFINITY; /* a NaN distance is never the nearest, as in a scan with < */
+        /* min is exact in any order: vectorised */
+#pragma omp simd reduction(min : lo)
+        for (int l = 0; l < m; l++) lo = d[l] < lo ? d[l] : lo;
+        if (lo < bd) {
+            int l = 0;
+            while (d[l] != lo) l++;
+            bd = lo, best = k0 + l;
+        }
     }
     return best;
+}
+
+/* Node k of tree t: its coordinates q (n) into the node rows and the joint-major columns. */
+static inline void DK(plan_put)(DK(PlanWork) *w, int t, int64_t k, const real *q) {
+    const int n = w->s.n;
+    memcpy(w->nodes[t] + k * n, q, sizeof(real) * n);
+    for (int j = 0; j < n; j++) w->cols[t][(size_t)j * (size_t)w->cap + k] = q[j];
 }
 
 /* Problem b: search, shortcut, write its outputs. */
@@ -297,8 +322,8 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
         len = 2;
         status = DK_PLAN_FOUND;
     } else {
-        memcpy(w->nodes[0], qs0, sizeof(real) * n);
-        memcpy(w->nodes[1], qg0, sizeof(real) * n);
+        DK(plan_put)(w, 0, 0, qs0);
+        DK(plan_put)(w, 1, 0, qg0);
         w->parent[0][0] = w->parent[1][0] = -1;
         int a = 0;
         real qr[64], qn[64];
@@ -316,7 +341,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             } else {
                 for (int j = 0; j < n; j++) qr[j] = lo[j] + (hi[j] - lo[j]) * (real)plan_uniform(&w->rng);
             }
-            const int64_t near = DK(plan_nearest)(NA, count[a], qr, R, n);
+            const int64_t near = DK(plan_nearest)(w->cols[a], w->cap, count[a], qr, R, n);
             const real *qa = NA + near * n;
             real Ld = 0;
             for (int j = 0; j < n; j++) Ld += R[j] * (qr[j] > qa[j] ? qr[j] - qa[j] : qa[j] - qr[j]);
@@ -328,9 +353,9 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             if (lam_a < 1)
                 for (int j = 0; j < n; j++) qn[j] = qa[j] + lam_a * (qn[j] - qa[j]);
             const int64_t ia = count[a]++;
-            memcpy(NA + ia * n, qn, sizeof(real) * n);
+            DK(plan_put)(w, a, ia, qn);
             w->parent[a][ia] = near;
-            const int64_t nb = DK(plan_nearest)(NB, count[1 - a], qn, R, n);
+            const int64_t nb = DK(plan_nearest)(w->cols[1 - a], w->cap, count[1 - a], qn, R, n);
             const real *qb = NB + nb * n;
             const real lam = DK(plan_edge)(w, qb, qn, 1);
             if (lam == 1) {
@@ -341,7 +366,9 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             }
             if (lam > 0) {
                 const int64_t ib = count[1 - a]++;
-                for (int j = 0; j < n; j++) NB[ib * n + j] = qb[j] + lam * (qn[j] - qb[j]);
+                real qc[64];
+                for (int j = 0; j < n; j++) qc[j] = qb[j] + lam * (qn[j] - qb[j]);
+                DK(plan_put)(w, 1 - a, ib, qc);
                 w->parent[1 - a][ib] = nb;
             }
         }
@@ -395,10 +422,12 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
     w->wid = (int64_t *)malloc(sizeof(int64_t) * COLLIDE_BLOCK);
     for (int t = 0; t < 2; t++) {
         w->nodes[t] = (real *)malloc(sizeof(real) * (size_t)(cap * s->n));
+        w->cols[t] = (real *)malloc(sizeof(real) * (size_t)(cap * s->n));
         w->parent[t] = (int64_t *)malloc(sizeof(int64_t) * (size_t)cap);
     }
     w->path = (real *)malloc(sizeof(real) * (size_t)(2 * cap * s->n + 2 * s->n));
-    if (!(w->scratch && w->qs && w->P && w->wid && w->nodes[0] && w->nodes[1] && w->parent[0] && w->parent[1] &&
+    if (!(w->scratch && w->qs && w->P && w->wid && w->nodes[0] && w->nodes[1] && w->cols[0] && w->cols[1] &&
+          w->parent[0] && w->parent[1] &&
           w->path))
         return 0;
     DK(scratch_init)(s, pp, w->scratch, &w->sc);
@@ -422,7 +451,7 @@ static void DK(plan_work_free)(DK(PlanWork) *w) {
     free(w->qs);
     free(w->P);
     free(w->wid);
-    for (int t = 0; t < 2; t++) free(w->nodes[t]), free(w->parent[t]);
+    for (int t = 0; t < 2; t++) free(w->nodes[t]), free(w->cols[t]), free(w->parent[t]);
     free(w->path);
 }
 
