@@ -60,9 +60,9 @@ def test_joint_reach_bounds_the_travel_of_every_geom(robot):
 
 @pytest.mark.parametrize("scale", [2e-3, 0.1, 1.0])
 def test_self_distances_change_by_at_most_the_travel_bound(robot, scale):
-    """The subdivision's robot–robot claim (motion._edges): along a straight edge Δq every distance between two
-    robot geoms changes by at most Σ_j R_j |Δq_j|, the bound on one point's travel (not twice it), for small
-    and large steps alike."""
+    """The subdivision's robot–robot claim (motion._edges): along a straight edge Δq every distance between
+    two robot geoms changes by at most Σ_j R_j |Δq_j|, the bound on one point's travel (not twice it), for
+    small and large steps alike."""
     chain, rc, _ = robot
     R = motion.joint_reach(rc)
     g = torch.Generator().manual_seed(1)
