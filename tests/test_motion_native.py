@@ -170,6 +170,29 @@ def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
     assert _CoalPanda().min_distance(res.q[0, :S:2].numpy(), worlds[0]) >= 0
 
 
+def test_c_search_trees_grow_past_their_first_capacity(panda):
+    """The trees start with room for 4096 nodes and double as they fill: short steps (1 cm) make box/0001 take
+    about 10 000 iterations (thousands of nodes per tree); the path found is traced through the regrown trees
+    and every edge of it proven clear again by the torch EdgeChecker; a search that cannot finish (the goal
+    tree's root in collision) runs its whole budget."""
+    chain, rc, probs = panda
+    qs, qg, world, _, checker, rows, eta, _, _ = _checked(probs, rc, ["box/0001"])
+    lim = chain.q_limits
+    kw = dict(max_iterations=20000, step=0.01, shortcut_tries=0, capacity=4096)
+    path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta, seed=1, **kw)
+    assert bool(found[0]) and int(stats["iterations"][0]) > 8192
+    torch_checker = EdgeChecker(rc, world, 0.0, 0.005)
+    torch_checker.use_c = False
+    w = path[0, : int(n[0])]
+    assert torch.equal(w[0], qs[0]) and torch.equal(w[-1], qg[0])
+    assert torch_checker.edges(w[:-1], w[1:], torch.zeros(len(w) - 1, dtype=torch.long))[0].all()
+    inside = torch.tensor([[0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0]], dtype=F64)  # not clear in this scene
+    assert not checker.clear(inside, rows).any()
+    kw["max_iterations"] = 12000
+    _, _, found, stats = search_native(checker, qs, inside, lim[:, 0], lim[:, 1], rows, eta, seed=1, **kw)
+    assert not found.any() and int(stats["iterations"][0]) == 12000
+
+
 def test_c_search_deterministic_and_a_problem_alone_equals_its_row(panda):
     chain, rc, probs = panda
     names = ["cage/0001", "box/0001", "cage/0019"]

@@ -171,7 +171,7 @@ typedef struct { /* one thread's work space */
     real *cols[2];        /* [n cap] the trees' nodes joint-major (DK(plan_nearest)) */
     int64_t *parent[2];   /* [cap] */
     real *path;           /* [2 cap n] */
-    int64_t cap, checked;
+    int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (max_iterations + 2) */
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
     real *scratch;
     real eta;
@@ -299,6 +299,33 @@ static inline void DK(plan_put)(DK(PlanWork) *w, int t, int64_t k, const real *q
     for (int j = 0; j < n; j++) w->cols[t][(size_t)j * (size_t)w->cap + k] = q[j];
 }
 
+/* Room for nodes up to w->cap_max in both trees: the capacity doubles (a search of many iterations pays for
+ * the memory it uses only: 10^6 iterations would be 240 MB per thread up front); 0 when memory ran out. */
+static int DK(plan_grow)(DK(PlanWork) *w) {
+    const int n = w->s.n;
+    const int64_t cap = 2 * w->cap < w->cap_max ? 2 * w->cap : w->cap_max;
+    if (cap <= w->cap) return 0;
+    for (int t = 0; t < 2; t++) {
+        real *nodes = (real *)realloc(w->nodes[t], sizeof(real) * (size_t)(cap * n));
+        if (nodes) w->nodes[t] = nodes;
+        int64_t *parent = (int64_t *)realloc(w->parent[t], sizeof(int64_t) * (size_t)cap);
+        if (parent) w->parent[t] = parent;
+        real *cols = (real *)malloc(sizeof(real) * (size_t)(cap * n));
+        if (!(nodes && parent && cols)) {
+            free(cols);
+            return 0;
+        }
+        for (int j = 0; j < n; j++) memcpy(cols + (size_t)j * cap, w->cols[t] + (size_t)j * w->cap, sizeof(real) * w->cap);
+        free(w->cols[t]);
+        w->cols[t] = cols;
+    }
+    real *path = (real *)realloc(w->path, sizeof(real) * (size_t)(2 * cap * n + 2 * n));
+    if (!path) return 0;
+    w->path = path;
+    w->cap = cap;
+    return 1;
+}
+
 /* Problem b: search, shortcut, write its outputs. */
 static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     const dk_plan *p = w->p;
@@ -329,7 +356,11 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
         real qr[64], qn[64];
         int64_t join[2] = {-1, -1};
         int64_t it0 = 0;
-        for (; it < p->max_iterations && count[0] < w->cap && count[1] < w->cap; it++, a ^= 1) {
+        for (; it < p->max_iterations; it++, a ^= 1) {
+            if ((count[0] >= w->cap - 1 || count[1] >= w->cap - 1) && !DK(plan_grow)(w)) {
+                if (w->cap < w->cap_max) status = DK_PLAN_NO_MEMORY;
+                break;
+            }
             if (p->restart > 0 && it - it0 >= p->restart) { /* a fresh pair of trees, the stream continuing */
                 count[0] = count[1] = 1;
                 it0 = it;
@@ -372,6 +403,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
                 w->parent[1 - a][ib] = nb;
             }
         }
+        path = w->path; /* moved where the trees grew */
         if (join[0] >= 0) { /* start .. join (tree 0 reversed), then join .. goal (tree 1) */
             int64_t d0 = 0;
             for (int64_t k = join[0]; k >= 0; k = w->parent[0][k]) d0++;
@@ -409,12 +441,13 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
 
 /* A thread's work space for p (its chain's shape s, plans pp); 0 when memory ran out (then free it). */
 static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s, const DK(Params) *pp) {
-    const int64_t cap = p->max_iterations + 2, G = p->C / 2;
+    const int64_t cap_max = p->max_iterations + 2, cap = cap_max < 4096 ? cap_max : 4096, G = p->C / 2;
     memset(w, 0, sizeof *w);
     w->p = p;
     w->s = *s;
     w->pp = pp;
     w->cap = cap;
+    w->cap_max = cap_max;
     size_t per;
     w->scratch = DK(team_alloc)(DK(scratch_size)(s) / sizeof(real), 1, &per);
     w->qs = (real *)malloc(sizeof(real) * COLLIDE_BLOCK * (size_t)s->n);

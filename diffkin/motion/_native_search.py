@@ -231,6 +231,8 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
             return None
         if rc_ < 0:
             raise MemoryError("motion.plan: the C search could not allocate its per-thread work space")
+    if bool((status == NO_MEMORY).any()):
+        raise MemoryError("motion.plan: the C search ran out of memory growing its trees")
     found = status == FOUND
     stats = {"iterations": its, "checked": checked, "too_long": status == TOO_LONG}
     return path, n_way, found, stats
