@@ -149,8 +149,8 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
-def _plan_records(problems, chunk: int = 700, iterations: int = ITERATIONS, step: float = 0.5, recheck: int = 5,
-                  seed: int = 0, optimize: bool = False) -> tuple[list[dict], float]:
+def _plan_records(problems, chunk: int = 700, iterations: int = ITERATIONS, step: float = 0.5,
+                  recheck: int = 5, seed: int = 0, optimize: bool = False) -> tuple[list[dict], float]:
     """``motion.plan`` on ``problems`` in batched calls of ``chunk`` (module docstring, ``--plan``): one
     record per problem (``family``, ``valid``, ``success``, ``duration`` [s], ``length`` (joint-space length
     of the 10 ms samples, rad), ``jerk_max`` (largest |Δq̈|/Δt of the trajectory sampled every 1 ms, rad/s³),

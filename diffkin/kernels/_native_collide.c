@@ -330,11 +330,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
         for (int64_t w = 0; w < c->Wb; w++) {
             if (!DK(lanes_left)(clear, &m, first)) goto done;
-            for (int l = 0; l < m; l++) {
-                const int64_t o = wl[l] * c->Wb + w;
-                for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
-                for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
-            }
+            int gathered = 0; /* the box per lane, gathered once a geom is near it (most objects are not) */
             for (int k = 0; k < 3 && cull; k++) { /* the box's extent along world axis k: sum_j |R_kj| h_j */
                 const real *R = bR + 9 * (w0 * c->Wb + w), *h = bh + 3 * (w0 * c->Wb + w);
                 const real e = (R[3 * k] < 0 ? -R[3 * k] : R[3 * k]) * h[0] +
@@ -349,6 +345,14 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 }
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
+                if (!gathered) {
+                    for (int l = 0; l < m; l++) {
+                        const int64_t o = wl[l] * c->Wb + w;
+                        for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
+                        for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
+                    }
+                    gathered = 1;
+                }
                 const int point = c->point ? c->point[g] : 0;
                 DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear);
             }
@@ -358,14 +362,11 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         for (int64_t w = 0; w < c->Wy; w++) {
             if (!DK(lanes_left)(clear, &m, first)) goto done;
-            for (int l = 0; l < m; l++) {
-                const int64_t o = wl[l] * c->Wy + w;
-                for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
-                pr[l] = yr[o];
-            }
+            int gathered = 0; /* the cylinder per lane, gathered once a geom is near it */
             for (int k = 0; k < 3 && cull; k++) { /* the faces' centres and the radius every way */
-                const real x = pa[k * COLLIDE_BLOCK], y = pb[k * COLLIDE_BLOCK];
-                olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
+                const int64_t o = w0 * c->Wy + w;
+                const real x = ya[3 * o + k], y = yb[3 * o + k];
+                olo[k] = (x < y ? x : y) - yr[o], ohi[k] = (x < y ? y : x) + yr[o];
             }
             for (int64_t g = 0; g < G; g++) {
                 if (GROUP_APART(g)) {
@@ -374,6 +375,14 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 }
                 if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
+                if (!gathered) {
+                    for (int l = 0; l < m; l++) {
+                        const int64_t o = wl[l] * c->Wy + w;
+                        for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
+                        pr[l] = yr[o];
+                    }
+                    gathered = 1;
+                }
                 DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
             }
         }
