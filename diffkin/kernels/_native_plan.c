@@ -517,13 +517,24 @@ static int64_t DK(dk_plan)(const dk_plan *p) {
 }
 
 /* dk_plan_decide: p->ok[i] = configuration i of p->q clear (every distance - margin >= p->slack) in world
- * row p->wid[i]; blocks of COLLIDE_BLOCK shared between threads. */
+ * row p->wid[i]; blocks of up to COLLIDE_BLOCK configurations of one world row each, shared between threads. */
 static int64_t DK(dk_plan_decide)(const dk_plan *p) {
     Shape s;
     read_shape(p->chain, &s);
     DK(Params) pp;
     if (DK(read_params)(p->chain, &s, &pp)) return -1;
-    const int64_t nblocks = (p->N + COLLIDE_BLOCK - 1) / COLLIDE_BLOCK;
+    /* blocks of up to COLLIDE_BLOCK configurations of one world row each: the broad phase of
+     * DK(collide_lanes) culls by bounding boxes only where a block's lanes share their world (a block
+     * straddling two scenes would test every geom against every object) */
+    int64_t *start = (int64_t *)malloc(sizeof(int64_t) * (size_t)(p->N + 2)), nblocks = 0;
+    if (!start) {
+        free(pp.fix);
+        return -1;
+    }
+    for (int64_t i = 0; i < p->N; i++)
+        if (i == 0 || i - start[nblocks - 1] == COLLIDE_BLOCK || (p->wid && p->wid[i] != p->wid[i - 1]))
+            start[nblocks++] = i;
+    start[nblocks] = p->N;
     int nthreads = (int)(p->nthreads > 1 && nblocks > 1 ? (p->nthreads < nblocks ? p->nthreads : nblocks) : 1);
     int64_t failed = 0;
     const int n = s.n;
@@ -534,8 +545,8 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
         if (good) w.cc.slack = p->slack;
 #pragma omp for schedule(dynamic, 4)
         for (int64_t k = 0; k < nblocks; k++) {
-            const int64_t n0 = k * COLLIDE_BLOCK;
-            const int m = (int)(p->N - n0 < COLLIDE_BLOCK ? p->N - n0 : COLLIDE_BLOCK);
+            const int64_t n0 = start[k];
+            const int m = (int)(start[k + 1] - n0);
             if (!good) {
                 failed++;
                 continue;
@@ -547,6 +558,7 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
         }
         DK(plan_work_free)(&w);
     }
+    free(start);
     free(pp.fix);
     return failed ? -1 : 0;
 }
