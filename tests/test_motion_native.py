@@ -193,6 +193,35 @@ def test_c_search_trees_grow_past_their_first_capacity(panda):
     assert not found.any() and int(stats["iterations"][0]) == 12000
 
 
+def test_planner_columns_remembered_for_copies_of_one_robot(panda, monkeypatch):
+    """The C planner's capsule-end columns are the robot's alone: found once for the copies
+    allow_collisions makes per scene (the same values as computed anew), found again when the geometry
+    changes."""
+    chain, rc, probs = panda
+    q = torch.zeros(1, 7, dtype=F64)
+    worlds = [probs[n].scene.to_world(dtype=F64) for n in ("cage/0001", "box/0001")]
+    first = EdgeChecker(rc, worlds[0], 0.0, 0.005).native(q)
+    calls = []
+    placement = RobotCollision._placement
+
+    def counted(self, F):
+        calls.append(1)
+        return placement(self, F)
+
+    monkeypatch.setattr(RobotCollision, "_placement", counted)
+    copy = rc.allow_collisions(probs["box/0001"].scene.allowed)
+    again = EdgeChecker(copy, worlds[1], 0.0, 0.005).native(q)
+    assert not calls and torch.equal(again.h, first.h) and torch.equal(again.frame, first.frame)
+    moved_model = rc.allow_collisions([])
+    with torch.no_grad():
+        moved_model.capsule_a[0, 2] += 0.01  # another geometry (a sphere moved): its columns found anew
+        moved_model.capsule_b[0, 2] += 0.01
+    moved = EdgeChecker(moved_model, worlds[1], 0.0, 0.005).native(q)
+    assert calls and not torch.equal(moved.h, first.h)  # (joint_reach places it too)
+    fresh = EdgeChecker(rc, worlds[0], 0.0, 0.005)  # the first geometry again: its values, computed again
+    assert torch.equal(fresh.native(q).h, first.h)
+
+
 def test_c_search_deterministic_and_a_problem_alone_equals_its_row(panda):
     chain, rc, probs = panda
     names = ["cage/0001", "box/0001", "cage/0019"]

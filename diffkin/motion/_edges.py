@@ -41,19 +41,32 @@ def joint_reach(collision) -> Tensor:
     Remembered on the model's link frames (shared by the copies :meth:`RobotCollision.allow_collisions
     <diffkin.collision.RobotCollision.allow_collisions>` makes, one per scene) for the geometry's and the
     chain's current values: planning many scenes with one robot finds R once (about 3 ms a plan)."""
+    return _remembered(collision, "reach", geometry_key(collision), lambda: _joint_reach(collision)).clone()
+
+
+def geometry_key(collision) -> tuple:
+    """The geometry's and the chain's current values (and their dtype, device and shapes) as one hashable
+    key: what :func:`joint_reach` and the C planner's constants (:mod:`~diffkin.motion._native_search`)
+    depend on, so copies of one robot (one per scene) share them."""
     with torch.no_grad():
         parts = [collision.capsule_a, collision.capsule_b, collision.capsule_radius, collision.box_center,
                  collision.box_rpy, collision.box_half_extents, collision._col_anchor,
                  *collision.chain.parameters()]
         flat = torch.cat([t.detach().reshape(-1).to("cpu", torch.float64) for t in parts])
-        key = (collision.capsule_a.dtype, collision.capsule_a.device, tuple(t.shape for t in parts),
-               collision.convex_vertices.shape[0], flat.numpy().tobytes())
-    memo = getattr(collision._frames, "_reach_memo", None)
-    if memo is not None and memo[0] == key:
-        return memo[1].clone()  # a copy: the caller may change it
-    reach = _joint_reach(collision)
-    collision._frames._reach_memo = (key, reach.clone())
-    return reach
+        return (collision.capsule_a.dtype, collision.capsule_a.device, tuple(t.shape for t in parts),
+                collision.convex_vertices.shape[0], flat.numpy().tobytes())
+
+
+def _remembered(collision, name: str, key, make):
+    """``make()``, remembered as ``name`` on the model's link frames (shared by its copies) for ``key``
+    (:func:`geometry_key`; one value per name: the last key's)."""
+    memo = collision._frames.__dict__.setdefault("_geometry_memo", {})
+    got = memo.get(name)
+    if got is not None and got[0] == key:
+        return got[1]
+    value = make()
+    memo[name] = (key, value)
+    return value
 
 
 def _joint_reach(collision) -> Tensor:
@@ -130,7 +143,10 @@ class EdgeChecker:
         self.per_row = world is not None and len(world.batch_shape) > 0
         #: per problem its own resolution ``(B,)`` (:meth:`set_row_resolution`; None: ``eta`` for all)
         self.row_eta: Tensor | None = None
-        self.reach = joint_reach(collision)
+        #: the robot's geometry and chain values (:func:`geometry_key`), read once
+        self.geometry_key = geometry_key(collision)
+        self.reach = _remembered(collision, "reach", self.geometry_key,
+                                 lambda: _joint_reach(collision)).clone()
         self.moving = bool(getattr(collision, "skip_fixed", False))
         self.chunk = chunk
         self.checked = 0  # configurations decided so far (a count for the benchmarks)

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from ..kernels import native
+from ._edges import _remembered
 
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
@@ -106,10 +107,16 @@ class NativePlanner:
                                         skip_r, skip_h, checker.margin, 0.0, None, **extra)
         if collide is None:
             return None
-        F = rc._frames.frames(rc.chain, torch.zeros(rc.chain.nq, dtype=q.dtype))
-        H = rc._placement(F)  # (K·4, C): column c's block is its frame's
-        frame = rc._col_anchor[: 2 * nc].to(torch.int64).contiguous()
-        h = H.reshape(-1, 4, H.shape[-1])[frame, :, torch.arange(2 * nc)].to(q.dtype).contiguous()  # (2 G, 4)
+        def columns():
+            F = rc._frames.frames(rc.chain, torch.zeros(rc.chain.nq, dtype=q.dtype))
+            H = rc._placement(F)  # (K·4, C): column c's block is its frame's
+            frame = rc._col_anchor[: 2 * nc].to(torch.int64).contiguous()
+            h = H.reshape(-1, 4, H.shape[-1])[frame, :, torch.arange(2 * nc)]
+            return frame, h.to(q.dtype).contiguous()
+
+        # each capsule end's frame and coordinates there (2 G, 4): the robot's alone, so found once for the
+        # copies allow_collisions makes per scene (about 1 ms a plan)
+        frame, h = _remembered(rc, f"planner columns {q.dtype}", checker.geometry_key, columns)
         return cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype)
 
     def args(self, **fields) -> PlanArgs:
