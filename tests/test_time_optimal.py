@@ -4,6 +4,8 @@ the jerk-limited variant against finite differences of its own acceleration."""
 
 from __future__ import annotations
 
+import importlib
+
 import numpy as np
 import pytest
 import torch
@@ -143,3 +145,48 @@ def test_linear_path_with_jerk_limit_rests_at_every_corner():
     assert (fa - tr.acceleration[:, 1:-1]).abs().max() < 0.05
     end = res.sample(res.duration[:, None] + 1e-9).position[:, 0]
     np.testing.assert_array_equal(end.numpy(), path[:, -1])
+
+
+def _close_waypoints_path() -> tuple[torch.Tensor, torch.Tensor]:
+    """A MotionBenchMaker plan's path (bookshelf_thin/0013 as motion.plan timed it among the 700): two of its
+    waypoints 0.1 mrad apart, so the clamped spline crosses one very short knot interval with a large third
+    derivative; its segments split at their midpoints, as motion.plan pads a batch."""
+    w = torch.tensor([
+        [0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785],
+        [2.1027e-03, -7.8948e-01, -8.6624e-02, -2.3193e+00, 2.9395e-02, 1.5971e+00, 7.9258e-01],
+        [2.1745e-03, -7.8950e-01, -8.6780e-02, -2.3193e+00, 2.9478e-02, 1.5971e+00, 7.9258e-01],
+        [2.6274e-01, -8.7883e-01, -4.1812e-01, -2.1920e+00, 2.5302e-01, 1.7369e+00, 7.6852e-01],
+        [1.1848e+00, -1.1937e+00, -1.5621e+00, -1.7536e+00, 1.0347e+00, 2.2228e+00, 6.8074e-01],
+        [1.1859e+00, -1.1940e+00, -1.5635e+00, -1.7531e+00, 1.0356e+00, 2.2234e+00, 6.8063e-01],
+        [1.5882e+00, -1.3309e+00, -2.0520e+00, -1.5663e+00, 1.3732e+00, 2.4323e+00, 6.4135e-01],
+        [1.7471e+00, -1.3846e+00, -2.2347e+00, -1.4969e+00, 1.5032e+00, 2.5118e+00, 6.2488e-01],
+        [1.7603e+00, -1.3883e+00, -2.2345e+00, -1.4977e+00, 1.5089e+00, 2.5138e+00, 6.2207e-01],
+        [2.1831e+00, -1.3719e+00, -2.4224e+00, -1.2178e+00, 2.0152e+00, 2.4672e+00, 8.9695e-01]],
+        dtype=torch.float64)
+    pieces = [torch.lerp(w[i], w[i + 1], torch.linspace(0, 1, 4, dtype=torch.float64)[:-1, None])
+              for i in range(len(w) - 1)]
+    path = torch.cat((*pieces, w[-1:]))[None]  # (1, 28, 7)
+    chord = (path[:, 1:] - path[:, :-1]).norm(dim=-1)
+    return path, torch.cat((chord.new_zeros(1, 1), chord.cumsum(1)), 1)
+
+
+@pytest.mark.parametrize("short", [0, None])
+def test_jerk_held_across_a_short_knot_interval(monkeypatch, short):
+    """The jerk limit holds on 10 µs samples where the spline turns sharply between two close waypoints:
+    the check samples the time the smoothed profile takes to cross the shortest knot intervals (without
+    them, ``short=0``, the limit is exceeded several times over there)."""
+    topp = importlib.import_module("diffkin.trajectories.time_optimal")  # the module, not the function
+    if short is not None:
+        monkeypatch.setattr(topp, "_SHORT_INTERVALS", short)
+    path, knots = _close_waypoints_path()
+    v = torch.tensor([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61], dtype=torch.float64)
+    a = torch.tensor([15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0], dtype=torch.float64)
+    j = torch.tensor([7500.0, 3750.0, 5000.0, 6250.0, 7500.0, 10000.0, 10000.0], dtype=torch.float64)
+    res = time_optimal(path, v, a, j, knots=knots, bc="clamped")
+    dt = 1e-5
+    t = torch.arange(0, float(res.duration[0]) + dt, dt, dtype=torch.float64)
+    ratio = float((res.sample(t).acceleration[0].diff(dim=0).abs() / dt / j).max())
+    if short == 0:
+        assert ratio > 2
+    else:
+        assert ratio <= 1.005

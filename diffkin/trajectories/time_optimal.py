@@ -35,11 +35,13 @@ limit (an upper bound on it).
 
 Limits exactly: every result is finally stretched uniformly in time by the smallest factor k ≥ 1 that puts
 every velocity, acceleration and jerk (with ``jerk_limit``) within its limit on a dense check (all the
-breakpoints of the profile and ``check_per_interval`` points inside each interval), times 1 + 2e-4 for the
-values between the check samples; without that step the discretised constraints would hold at the grid
-points only. Without a jerk limit k is within ~0.5 % of 1 (the durations stay within 1 % of toppra's on
-the same path). The dense check runs in C on the CPU (``kernels/_native_topp.c``, each sample one pass, the
-same floats), else in torch.
+breakpoints of the profile, ``check_per_interval`` points inside each interval, and 65 points over the
+span of time in which the smoothed profile can be inside each of the 8 knot intervals the unsmoothed one
+crosses fastest: a short knot interval, where the spline turns sharply, can otherwise fall between two of
+the grid's samples), times 1 + 2e-4 for the values between the check samples; without that step the
+discretised constraints would hold at the grid points only. Without a jerk limit k is within ~0.5 % of 1
+(the durations stay within 1 % of toppra's on the same path). The dense check runs in C on the CPU
+(``kernels/_native_topp.c``, each sample one pass, the same floats), else in torch.
 
 No gradient flows through the timing (it is a decision, like the LP it solves); it is computed in float64
 and sampled in the dtype of ``path``.
@@ -58,6 +60,10 @@ from ..validation import check_count, check_number, shape_str, tensors
 from ._common import InfeasibleTrajectoryError, Trajectory, cubic_coeffs, poly_eval, spline_slopes
 
 __all__ = ["TimedPath", "time_optimal"]
+
+#: the knot intervals crossed fastest, and the check samples in each one's span of time
+#: (:meth:`TimedPath._knot_samples`), besides the grid's
+_SHORT_INTERVALS, _KNOT_SAMPLES = 8, 64
 
 _X_BIG = 1e12  # bound on ṡ² where no limit binds (a path derivative of zero)
 # relative stretch on top of the dense check: covers the interpolation between check samples (measured up to
@@ -375,7 +381,28 @@ class TimedPath:
         f = (f[f.remainder(skip) != 0] if skip else f) / per_interval
         t0, dt = self._t[:, :-1, None], (self._t[:, 1:] - self._t[:, :-1])[..., None]
         inner = (t0 + f * dt).flatten(1)
-        return torch.cat((inner, inner + self._tau[:, None]), 1)
+        out = torch.cat((inner, inner + self._tau[:, None]), 1)
+        if skip == 0 and self._path.s.shape[1] > 2:  # (with skip: in the coarser check's samples already)
+            out = torch.cat((out, self._knot_samples(_KNOT_SAMPLES)), 1)
+        return out
+
+    def _knot_samples(self, m: int) -> Tensor:
+        """Times (B, K (m + 1)): m + 1 equally spaced over [t_k, t_(k+1) + τ] for the K = min(N − 1,
+        :data:`_SHORT_INTERVALS`) knot intervals [s_k, s_(k+1)] of each path that the unsmoothed profile
+        crosses fastest (t_k: when it reaches knot k, a grid point). The smoothed s̄(t), the mean of s over
+        [t − τ, t], is in [s_k, s_(k+1)] only within [t_k, t_(k+1) + τ]. A knot interval crossed in much less
+        than τ (two waypoints close together: a sharp turn of the spline, its third derivative large) can
+        fall between two of the grid's check samples, which the smoothing moved off its times; its jerk is
+        sampled here."""
+        knots = self._path.s.to(torch.float64)  # (B, N)
+        i = torch.searchsorted(self._grid.contiguous(), knots.contiguous()).clamp(max=self._grid.shape[1] - 1)
+        tk = self._t.gather(1, i)  # the knots are grid points (time_optimal's grid)
+        span = tk[:, 1:] - tk[:, :-1]  # (B, N - 1)
+        K = min(span.shape[1], _SHORT_INTERVALS)
+        k = span.topk(K, dim=1, largest=False).indices
+        t0, t1 = tk[:, :-1].gather(1, k), tk[:, 1:].gather(1, k) + self._tau[:, None]
+        f = torch.arange(m + 1, dtype=torch.float64, device=knots.device) / m
+        return (t0[..., None] + f * (t1 - t0)[..., None]).flatten(1)
 
 
 class _Chained(TimedPath):
