@@ -254,9 +254,10 @@ def _by_family(records) -> dict[str, list[dict]]:
 def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
                   seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``motion.plan``'s search stage alone, as ``plan`` runs it: per-row validity with its resolution ladder
-    (the continuous edge checker at ``plan``'s default resolution, margin 0), then the C RRT-Connect and its
-    shortcutting (:mod:`diffkin.motion._native_search`) -> ``found``, ``valid`` (B,) bool and ``checked`` (B,)
-    configurations decided. No goal IK, smoothing or timing."""
+    (the continuous edge checker at ``plan``'s default resolution, margin 0), then the C RRT-Connect
+    (:mod:`diffkin.motion._native_search`) -> ``found``, ``valid`` (B,) bool and ``checked`` (B,)
+    configurations decided. No goal IK, shortcutting (``plan``'s random shortcuts run in the same C call:
+    left out here, as VAMP's planning time leaves out its simplification), smoothing or timing."""
     from diffkin.motion._edges import EdgeChecker
     from diffkin.motion._native_search import search_native
     from diffkin.motion.plan import _row_resolution
@@ -271,7 +272,7 @@ def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
     checked = torch.zeros(qs.shape[0], dtype=torch.int64)
     if v.numel():
         out = search_native(checker, qs[v], qg[v], lim[:, 0], lim[:, 1], v, eta[v], max_iterations=iterations,
-                            step=step, shortcut_tries=64, seed=seed)
+                            step=step, shortcut_tries=0, seed=seed)
         found[v], checked[v] = out[2], out[3]["checked"]
     return found, valid, checked
 
@@ -685,7 +686,8 @@ def _compare_text(rows, a, n: int) -> str:
             f"(benchmarks/install_vamp.sh, {found}); OMPL {version}.\n"
             "Columns: ms = per problem (diffkin one call: the call / problems; VAMP: planning + "
             "simplification, its own clock; one at a time and OMPL: wall); search_ms = RRT-Connect alone "
-            "(diffkin: EdgeChecker + search; VAMP: planning); search_vs_vamp = ratio of the medians on the "
+            "(diffkin: EdgeChecker, start and goal checks and RRT-Connect, no shortcuts; VAMP: planning, no "
+            "simplification); search_vs_vamp = ratio of the medians on the "
             "same problems; duration_s = trajectory seconds under the Franka limits (VAMP: its path timed by "
             "toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through its waypoints, "
             "not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on problems both "
