@@ -105,7 +105,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     o.add_argument("--margin", type=_number, default=0.0, metavar="M",
                    help="least clearance of the continuous motion [m]")
     o.add_argument("--resolution", type=_positive, default=0.005, metavar="M",
-                   help="most travel of any geom point between two collision checks [m]")
+                   help="slack of each collision check [m]: samples clear of margin + it, 2x it apart")
     o.add_argument("--max-iterations", dest="max_iterations", type=int, default=2000, metavar="N",
                    help="RRT-Connect iterations")
     o.add_argument("--seed", type=int, default=0, help="randomness of the search and the shortcuts (chunk "

@@ -12,8 +12,9 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
 3. **Search**: the straight edge first, then RRT-Connect; in C on the CPU
    (:mod:`diffkin.motion._native_search`: one problem per thread, problems over OpenMP threads), else in
    torch vectorised over the unsolved problems (:mod:`diffkin.motion._search`; CUDA, no compiler). Every
-   edge is checked by a subdivision whose joint step bounds the travel of every geom point by the
-   problem's resolution (so the continuous edge is clear of ``margin``).
+   edge is checked by a subdivision whose joint step bounds the travel of every geom point by twice the
+   problem's resolution η, every sample clear of ``margin + η`` (so the continuous edge is clear of
+   ``margin``: :mod:`diffkin.motion._edges`).
 4. **Shortcutting**: random straight shortcuts between waypoints, each edge checked the same way (in C with
    the C search); then :data:`POINT_ROUNDS` × ``shortcut_rounds`` rounds of shortcuts between points
    anywhere on the path
@@ -255,10 +256,11 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             ``DEFAULT_JERK_PER_ACCELERATION · acceleration_limit`` (1/s) — the motion still rests with zero
             acceleration at both ends. A row with a limit ≤ 0 or NaN fails with its reason.
         dt: sampling period of ``t``, ``q``, ``qd``, ``qdd`` [s].
-        resolution: η [m], the most any geom point travels between two collision checks (module docstring
-            of :mod:`diffkin.motion._edges`); a problem whose start or goal is clear of ``margin + η / 2^k``
-            but not of ``margin + η`` is planned at the resolution η / 2^k (k ≤ :data:`ETA_LEVELS`; closer:
-            the row fails as in collision).
+        resolution: η [m], the slack of every collision check: each sample is clear of ``margin + η``, and
+            every geom point travels at most 2η between two samples, so within η of the nearer one (module
+            docstring of :mod:`diffkin.motion._edges`); a problem whose start or goal is clear of
+            ``margin + η / 2^k`` but not of ``margin + η`` is planned at the resolution η / 2^k
+            (k ≤ :data:`ETA_LEVELS`; closer: the row fails as in collision).
         max_iterations / step / shortcut_rounds / seed / goal_bias: search budget per problem, RRT step
             (metres of geom travel in the bound's metric), shortcut rounds (:data:`SHORTCUT_TRIES` tries per
             path each between waypoints, and :data:`POINT_ROUNDS` rounds of :data:`POINT_TRIES` between any
