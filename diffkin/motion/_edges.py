@@ -165,6 +165,11 @@ class EdgeChecker:
             self._native[key] = NativePlanner.make(self, like)
         return self._native[key]
 
+    def remembered(self, name: str, make):
+        """``make()``, remembered for this robot's geometry and chain values (:func:`geometry_key`) on its
+        link frames: shared by the checkers of the copies one robot makes per scene."""
+        return _remembered(self.collision, name, self.geometry_key, make)
+
     def set_row_resolution(self, eta: Tensor) -> None:
         """Give problem b the resolution ``eta[b]`` (``(B,)``, each ≤ η): its edges are subdivided and its
         samples decided with it (a start or goal closer than margin + η to an obstacle gets a finer one)."""

@@ -23,7 +23,6 @@ import torch
 from torch import Tensor
 
 from ..kernels import native
-from ._edges import _remembered
 
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
@@ -116,7 +115,7 @@ class NativePlanner:
 
         # each capsule end's frame and coordinates there (2 G, 4): the robot's alone, so found once for the
         # copies allow_collisions makes per scene (about 1 ms a plan)
-        frame, h = _remembered(rc, f"planner columns {q.dtype}", checker.geometry_key, columns)
+        frame, h = checker.remembered(f"planner columns {q.dtype}", columns)
         return cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype)
 
     def args(self, **fields) -> PlanArgs:
