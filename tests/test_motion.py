@@ -74,6 +74,32 @@ def test_self_distances_change_by_at_most_the_travel_bound(robot, scale):
     assert ratio.max() <= 1.0 and ratio.max() > 0.2  # a bound, and not a vacuous one
 
 
+def test_joint_reach_refuses_mimic_joints():
+    """One coordinate turning two fingers on separate branches (a URDF <mimic>) moves both ends of a
+    robot-robot distance at once: the bound does not hold (about 1.8x it here), so planning refuses it."""
+    import warnings
+
+    from diffkin.errors import ModelError
+
+    urdf = """<robot name="g"><link name="base"/>
+    <link name="left"><collision><origin xyz="0.1 0.05 0"/><geometry><sphere radius="0.01"/></geometry>
+    </collision></link>
+    <link name="right"><collision><origin xyz="0.1 -0.05 0"/><geometry><sphere radius="0.01"/></geometry>
+    </collision></link>
+    <joint name="jl" type="revolute"><parent link="base"/><child link="left"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+    <joint name="jr" type="revolute"><parent link="base"/><child link="right"/><axis xyz="0 0 1"/>
+    <limit lower="-1" upper="1" effort="1" velocity="1"/><mimic joint="jl" multiplier="-1"/></joint>
+    </robot>"""
+    chain = models.from_urdf(urdf, ["left", "right"], dtype=torch.float64)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = RobotCollision.from_urdf(urdf, chain)
+    assert chain.nq == 1 and len(rc.pairs)
+    with pytest.raises(ModelError, match="mimic"):
+        motion.joint_reach(rc)
+
+
 def _reach_loop(rc) -> torch.Tensor:
     """joint_reach's sum as it was first written (a Python loop per joint and geom, walking the parent frames
     one by one, in Python floats), from the same intermediate quantities: the reference the batched walk
@@ -449,3 +475,35 @@ def test_cage_problem_spline_refined_not_the_polyline(monkeypatch):
     d_cyl = sphere_cylinder(a, r, w.cylinders[:, :3], w.cylinders[:, 3:6], w.cylinders[:, 6]) \
         if w.cylinders.numel() else d_box
     assert min(d_box.min(), d_cyl.min()) >= 0
+
+
+def test_spline_marks_leave_room_for_the_fine_chords():
+    """Each spline check point is the first of the fine samples past its mark: the marks' spacing gives up
+    the longest fine chord, so check points are at most 0.8 · 2η of bound-length apart; a row whose chords
+    are too long for its resolution (η = 5 µm, the finest rungs, on a path a metre long) is checked again
+    with finer samples, and one that would need more than _FINE_MAX of them (η = 5 nm) is not proven."""
+    from diffkin.motion._spline import _spline_failures
+
+    class Clear:  # every configuration collision-free: the check points are recorded through clear()
+        reach = torch.ones(1, dtype=torch.float64)
+
+        def __init__(self, eta):
+            self.eta, self.points = torch.tensor(eta, dtype=torch.float64), []
+
+        def clear(self, q, problem):
+            self.points.append((q[..., 0].clone(), problem.clone()))
+            return torch.ones(q.shape[:-1], dtype=torch.bool)
+
+        def eta_of(self, problem):
+            return self.eta[problem]
+
+    path = torch.tensor([[[0.0], [0.5], [1.0]]], dtype=torch.float64).expand(3, 3, 1)
+    knots = torch.tensor([[0.0, 1.0, 2.0]], dtype=torch.float64).expand(3, 3)
+    lim = torch.tensor([5.0], dtype=torch.float64)
+    checker = Clear([0.005, 5e-6, 5e-9])
+    bad = _spline_failures(checker, path, knots, -lim, lim, torch.arange(3))
+    assert not bad[0].any() and not bad[1].any() and bad[2].all()
+    for row, eta in ((0, 0.005), (1, 5e-6)):  # the check points that proved each row
+        q = torch.cat([q[p == row] for q, p in checker.points])
+        q = q.sort().values
+        assert q[0] == 0 and q[-1] == 1 and q.diff().max() <= 0.8 * 2 * eta * (1 + 1e-9)

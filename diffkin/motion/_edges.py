@@ -44,22 +44,29 @@ def joint_reach(collision) -> Tensor:
     return _remembered(collision, "reach", geometry_key(collision), lambda: _joint_reach(collision)).clone()
 
 
-def geometry_key(collision) -> tuple:
-    """The geometry's and the chain's current values (and their dtype, device and shapes) as one hashable
-    key: what :func:`joint_reach` and the C planner's constants (:mod:`~diffkin.motion._native_search`)
-    depend on, so copies of one robot (one per scene) share them."""
+def geometry_key(collision) -> tuple | None:
+    """The geometry's and the chain's current values (and their dtype, device and shapes) and the chain's
+    state (:meth:`~diffkin.chain.KinematicChain._state_key`: a new one after any change of its parameters or
+    buffers, such as a calibration's origin offsets) as one hashable key: what :func:`joint_reach` and the C
+    planner's constants (:mod:`~diffkin.motion._native_search`) depend on, so copies of one robot (one per
+    scene) share them. None where the chain's state may not be read as constants (nothing is remembered)."""
+    state = getattr(collision.chain, "_state_key", lambda: None)()
+    if state is None:
+        return None
     with torch.no_grad():
         parts = [collision.capsule_a, collision.capsule_b, collision.capsule_radius, collision.box_center,
                  collision.box_rpy, collision.box_half_extents, collision._col_anchor,
                  *collision.chain.parameters()]
         flat = torch.cat([t.detach().reshape(-1).to("cpu", torch.float64) for t in parts])
-        return (collision.capsule_a.dtype, collision.capsule_a.device, tuple(t.shape for t in parts),
+        return (state, collision.capsule_a.dtype, collision.capsule_a.device, tuple(t.shape for t in parts),
                 collision.convex_vertices.shape[0], flat.numpy().tobytes())
 
 
 def _remembered(collision, name: str, key, make):
     """``make()``, remembered as ``name`` on the model's link frames (shared by its copies) for ``key``
     (:func:`geometry_key`; one value per name: the last key's)."""
+    if key is None:
+        return make()
     memo = collision._frames.__dict__.setdefault("_geometry_memo", {})
     got = memo.get(name)
     if got is not None and got[0] == key:
@@ -114,8 +121,12 @@ def _joint_reach(collision) -> Tensor:
         # a point of joint j's axis, fixed in joint j's own frame (URDF: that frame's origin; MJCF: the
         # joint's pos in its body)
         _, origin, _ = chain.joint_axes_origins(q0)
-        axis_off = (origin - o[first.clamp(max=K - 1)]).norm(dim=-1) if origin.shape[-2] == nq \
-            else torch.zeros(nq, dtype=dt, device=dev)
+        if origin.shape[-2] != nq:  # one row per joint frame: more rows than coordinates with mimic joints
+            raise ModelError(f"motion planning bounds geom motion where each coordinate turns one joint: "
+                             f"{type(chain).__name__} has {origin.shape[-2]} joint frames for {nq} "
+                             "coordinates (mimic joints: one coordinate turning joints on two branches can "
+                             "change a robot-robot distance twice as fast as the bound)")
+        axis_off = (origin - o[first.clamp(max=K - 1)]).norm(dim=-1)
         # R_j: the largest own extent + axis offset + the fixed links from the geom's frame k up to joint j's
         # own frame f (f excluded; up to the root where f is not above k), over the geoms joint j moves: all
         # (joint, geom) pairs walk up the frame tree together, one level per step, in float64 (the sums as

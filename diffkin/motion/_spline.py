@@ -11,6 +11,10 @@ from ..kernels import native
 from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
 from ._edges import SPACING, EdgeChecker
 
+#: the most fine samples per row of the spline check (a row needing more, a very fine resolution on a
+#: long path, is not proven: its polyline is timed instead)
+_FINE_MAX = 1 << 20
+
 __all__ = ["_knots", "_spline_clear", "_spline_failures"]
 
 
@@ -35,10 +39,12 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
     overshoots its waypoints: the limits checked on the ``fine`` samples, whose spacing leaves at most the
     spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
-    crosses a multiple of 0.8 · 2 η_b (each problem's resolution η_b times the subdivision's
-    :data:`~diffkin.motion._edges.SPACING`; the 20 % spare covers chords against arcs and the last fine
-    chord). The samples and check points in C on the CPU (``kernels/_native_spline.c``,
-    the same floats), else in torch."""
+    crosses a multiple of 0.8 · 2 η_b less the row's longest fine chord (η_b each problem's resolution,
+    2 the subdivision's :data:`~diffkin.motion._edges.SPACING`; each check point is the first fine sample
+    past its mark, so the longest chord is taken off; the 20 % spare covers chords against arcs; a row
+    whose longest chord is over 75 % of 0.8 · 2 η_b is checked again with finer samples, up to
+    :data:`_FINE_MAX`, else not proven). The samples and check points in C on
+    the CPU (``kernels/_native_spline.c``, the same floats), else in torch."""
     B = path.shape[0]
     knots = knots.to(torch.float64)
     s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
@@ -60,8 +66,15 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
             chords.append(sum(d.unbind(-1)))  # the joints in order, first to last (as the C code)
         chord = torch.cat(chords, 1)
         cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
-    c = 0.8 * SPACING * checker.eta_of(problem).to(torch.float64)  # (B,): the marks' spacing per problem
-    n = torch.ceil(cum[:, -1] / c).long().clamp(min=1)
+    # the marks' spacing per problem: each check point is the first fine sample at or past its mark, so two
+    # of them can be a mark's spacing plus one fine chord apart; rows whose longest chord is over three
+    # quarters of the spacing (a very fine resolution on a long path) are checked again with finer samples
+    spacing = 0.8 * SPACING * checker.eta_of(problem).to(torch.float64)  # (B,)
+    longest = (cum[:, 1:] - cum[:, :-1]).amax(1) if fine else torch.zeros_like(spacing)
+    c = spacing - longest
+    coarse = c < 0.25 * spacing
+    c = torch.where(coarse, spacing, c)
+    n = torch.where(coarse, 1, torch.ceil(cum[:, -1] / c).long().clamp(min=1))  # (coarse: failed below)
     # each row's own n + 1 marks only, flat (padding every row to the longest row's count multiplied the
     # evaluations and collision checks: a row's marks past n would all be its end point, its mark n)
     rows = torch.repeat_interleave(torch.arange(B, device=path.device), n + 1)
@@ -82,6 +95,13 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
         fm = (fail - first[fr]).to(torch.float64) * c[fr]
         fidx = _search_rows(cum, fr, fm, right=False).clamp(max=fine)
         bad[fr, (_search_rows(s, fr, u[0, fidx]) - 1).clamp(0, L - 2)] = True
+    if bool(coarse.any()):  # those rows again with finer samples (where that stays within _FINE_MAX)
+        need = fine * torch.exp2(torch.ceil(torch.log2(longest / (0.5 * spacing))).clamp(min=1))  # (B,)
+        bad[coarse & (need > _FINE_MAX)] = True
+        r = (coarse & (need <= _FINE_MAX)).nonzero().flatten()
+        if r.numel():
+            finer = int(need[r].max())
+            bad[r] = _spline_failures(checker, path[r], knots[r], lo, hi, problem[r], finer)
     out = (~inside).nonzero().flatten()  # rows beyond a limit somewhere: their samples evaluated again
     if out.numel():
         sub = _Path(s[out].contiguous(), path[out].to(torch.float64), "spline", "clamped")
