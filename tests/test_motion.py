@@ -74,6 +74,31 @@ def test_self_distances_change_by_at_most_the_travel_bound(robot, scale):
     assert ratio.max() <= 1.0 and ratio.max() > 0.2  # a bound, and not a vacuous one
 
 
+def test_joint_reach_bounds_mjcf_joints_off_their_body_origin():
+    """MJCF joints whose pos lies off their body's origin: the body origins then turn about the axes and
+    their distances change, so R_j walks the joints' axis points instead (a 3-hinge arm, the second hinge
+    1 m from its body's origin: the travel of every capsule end per radian stays within R_j)."""
+    from diffkin.models import from_mjcf
+
+    xml = """<mujoco><worldbody>
+    <body name="b1"><joint name="j1" type="hinge" axis="0 0 1" range="-3 3" limited="true"/>
+     <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.02"/>
+     <body name="b2" pos="0.5 0 0"><joint name="j2" type="hinge" axis="0 0 1" pos="1.0 0 0" range="-3 3"
+      limited="true"/><geom type="capsule" fromto="0 0 0 0.1 0 0" size="0.02"/>
+      <body name="b3" pos="0 0 0"><joint name="j3" type="hinge" axis="0 0 1" pos="0.5 0 0" range="-3 3"
+       limited="true"/><geom type="capsule" fromto="0 0.0 0 0.0 0.1 0" size="0.02"/>
+    </body></body></body></worldbody></mujoco>"""
+    chain = from_mjcf(xml, "b3", dtype=torch.float64)
+    rc = RobotCollision.from_mjcf(xml, chain).requires_grad_(False)
+    R = motion.joint_reach(rc)
+    q = (torch.rand(300, 3, generator=torch.Generator().manual_seed(0), dtype=torch.float64) - 0.5) * 6
+    for j in range(3):
+        e = torch.zeros(3, dtype=torch.float64)
+        e[j] = 1e-6
+        travel = (_points(rc, q + e) - _points(rc, q)).norm(dim=-1).amax() / 1e-6
+        assert travel <= R[j] and travel > 0.9 * R[j]  # j1 reaches 2.5 m: 0.7 m before this bound
+
+
 def test_joint_reach_refuses_mimic_joints():
     """One coordinate turning two fingers on separate branches (a URDF <mimic>) moves both ends of a
     robot-robot distance at once: the bound does not hold (about 1.8x it here), so planning refuses it."""
@@ -116,21 +141,21 @@ def _reach_loop(rc) -> torch.Tensor:
     movers = moved.T
     anc = ((movers[:, None, :] & ~movers[None, :, :]).any(-1) == 0) & movers.any(1)[:, None]
     parent = [max([m for m in range(k) if bool(anc[m, k])], default=-1) for k in range(K)]
-    link = [float((o[k] - o[parent[k]]).norm()) if parent[k] >= 0 else 0.0 for k in range(K)]
+    ref = o.clone()  # each frame's reference point: its joint's axis point, else its origin
+    ref[first.clamp(max=K - 1)] = chain.joint_axes_origins(q0)[1]
+    link = [float((ref[k] - ref[parent[k]]).norm()) if parent[k] >= 0 else 0.0 for k in range(K)]
     nc, nb = rc._counts
     pts = rc._columns(q0)[:, : 2 * nc + nb].T
     a_pts = rc._col_anchor[: 2 * nc + nb]
     ext = torch.cat((rc.capsule_radius, rc.capsule_radius, rc.box_half_extents.norm(dim=-1)))
-    own = (pts - o[a_pts]).norm(dim=-1) + ext
-    origin = chain.joint_axes_origins(q0)[1]
-    axis_off = (origin - o[first.clamp(max=K - 1)]).norm(dim=-1)
+    own = (pts - ref[a_pts]).norm(dim=-1) + ext
     R = torch.zeros(nq, dtype=dt)
     for j in range(nq):
         for c in range(pts.shape[0]):
             k = int(a_pts[c])
             if not bool(moved[j, k]):
                 continue
-            total, m = float(own[c]) + float(axis_off[j]), k
+            total, m = float(own[c]), k
             while m != int(first[j]) and m >= 0:
                 total += link[m]
                 m = parent[m]

@@ -172,15 +172,16 @@ def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
 
 def test_c_search_trees_grow_past_their_first_capacity(panda):
     """The trees start with room for 4096 nodes and double as they fill: short steps (1 cm) make box/0001 take
-    about 10 000 iterations (thousands of nodes per tree); the path found is traced through the regrown trees
-    and every edge of it proven clear again by the torch EdgeChecker; a search that cannot finish (the goal
-    tree's root in collision) runs its whole budget."""
+    about 8 000 iterations (thousands of nodes per tree); the path found is traced through the trees and
+    every edge of it proven clear again by the torch EdgeChecker; a search that cannot finish (the goal
+    tree's root in collision: every extend of the start's tree that moves at all adds a node, about 6 000)
+    runs its whole budget through the regrown trees."""
     chain, rc, probs = panda
     qs, qg, world, _, checker, rows, eta, _, _ = _checked(probs, rc, ["box/0001"])
     lim = chain.q_limits
     kw = dict(max_iterations=20000, step=0.01, shortcut_tries=0, capacity=4096)
     path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta, seed=1, **kw)
-    assert bool(found[0]) and int(stats["iterations"][0]) > 8192
+    assert bool(found[0]) and int(stats["iterations"][0]) > 6000
     torch_checker = EdgeChecker(rc, world, 0.0, 0.005)
     torch_checker.use_c = False
     w = path[0, : int(n[0])]

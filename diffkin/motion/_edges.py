@@ -4,10 +4,12 @@
 ṗ = Σ_j ω_j × (p − o_j) q̇_j with o_j a point of joint j's axis, so along any motion every geom point travels a
 path of length at most Σ_j R_j ∫|q̇_j| dt, where R_j bounds the distance from joint j's axis to every point of
 every geom downstream of joint j over all configurations. :func:`joint_reach` computes such R_j from the
-rigid structure: the distance between a joint-frame origin and its parent joint-frame origin is fixed (a
-revolute joint turns about an axis through its own frame origin), so ``‖p − o_j‖ ≤`` (the chain of fixed
-frame-to-frame distances from joint j's frame down to the geom's frame) ``+ ‖p − o_frame‖`` (fixed) ``+`` the
-geom's own extent (capsule radius, box half-diagonal).
+rigid structure: each frame has a reference point fixed both in it and in its parent frame (a joint's own
+frame: a point of that joint's axis, its origin in a URDF, the joint's ``pos`` in an MJCF body; a frame
+rigid on its parent: its origin), so the distance between the reference points of a frame and its parent
+never changes, and ``‖p − o_j‖ ≤`` (those distances from joint j's frame down to the geom's frame) ``+`` the
+fixed distance of p from its frame's reference point ``+`` the geom's own extent (capsule radius, box
+half-diagonal).
 
 **The check.** A motion is sampled so that between consecutive samples every geom point travels at most
 2η (η = ``resolution``): a straight edge Δq in ``ceil(Σ_j R_j |Δq_j| / (2η))`` equal steps (:data:`SPACING`).
@@ -107,9 +109,21 @@ def _joint_reach(collision) -> Tensor:
         idx = torch.arange(K, device=dev)
         cand = anc & (idx[:, None] < idx[None, :])  # cand[m, k]: m a proper ancestor of k
         parent = torch.where(cand, idx[:, None], -1).amax(0) if K else idx
+        # each frame's reference point, fixed in it and in its parent: a joint's own frame's is a point of
+        # that joint's axis (URDF: the frame's origin; MJCF: the joint's pos in its body, which may lie off
+        # the body's origin: then the origin turns about the axis and its distance to the parent's varies),
+        # any other frame's (rigid on its parent) its origin
+        _, origin, _ = chain.joint_axes_origins(q0)
+        if origin.shape[-2] != nq:  # one row per joint frame: more rows than coordinates with mimic joints
+            raise ModelError(f"motion planning bounds geom motion where each coordinate turns one joint: "
+                             f"{type(chain).__name__} has {origin.shape[-2]} joint frames for {nq} "
+                             "coordinates (mimic joints: one coordinate turning joints on two branches can "
+                             "change a robot-robot distance twice as fast as the bound)")
+        ref = o.clone()
+        ref[first.clamp(max=K - 1)] = origin.to(dt)
         link = torch.zeros(K, dtype=dt, device=dev)
         has = parent >= 0
-        link[has] = (o[has] - o[parent[has]]).norm(dim=-1)
+        link[has] = (ref[has] - ref[parent[has]]).norm(dim=-1)
         P = collision._columns(q0)  # (3, C)
         nc, nb = collision._counts
         anchor = collision._col_anchor
@@ -117,23 +131,15 @@ def _joint_reach(collision) -> Tensor:
         a_pts = anchor[: 2 * nc + nb]
         ext = torch.cat((collision.capsule_radius.detach(), collision.capsule_radius.detach(),
                          collision.box_half_extents.detach().norm(dim=-1)))
-        own = (pts - o[a_pts]).norm(dim=-1) + ext  # (C',)
-        # a point of joint j's axis, fixed in joint j's own frame (URDF: that frame's origin; MJCF: the
-        # joint's pos in its body)
-        _, origin, _ = chain.joint_axes_origins(q0)
-        if origin.shape[-2] != nq:  # one row per joint frame: more rows than coordinates with mimic joints
-            raise ModelError(f"motion planning bounds geom motion where each coordinate turns one joint: "
-                             f"{type(chain).__name__} has {origin.shape[-2]} joint frames for {nq} "
-                             "coordinates (mimic joints: one coordinate turning joints on two branches can "
-                             "change a robot-robot distance twice as fast as the bound)")
-        axis_off = (origin - o[first.clamp(max=K - 1)]).norm(dim=-1)
-        # R_j: the largest own extent + axis offset + the fixed links from the geom's frame k up to joint j's
-        # own frame f (f excluded; up to the root where f is not above k), over the geoms joint j moves: all
+        own = (pts - ref[a_pts]).norm(dim=-1) + ext  # (C',)
+        # R_j: the largest own extent + the fixed links between reference points from the geom's frame k up
+        # to joint j's own frame f (f excluded: its reference point is on j's axis; up to the root where f
+        # is not above k), over the geoms joint j moves: all
         # (joint, geom) pairs walk up the frame tree together, one level per step, in float64 (the sums as
         # before, link after link), then cast to the chain's dtype
         f64 = torch.float64
         link64, up = link.to(f64), torch.cat((parent, parent.new_full((1,), -1)))  # up[-1]: "none" stays
-        total = own.to(f64)[None, :] + axis_off.to(f64)[:, None]  # (nq, C')
+        total = own.to(f64)[None, :].expand(nq, -1)  # (nq, C')
         m = a_pts.expand(nq, -1)
         f = first[:, None]
         live = m != f
