@@ -39,11 +39,11 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
     overshoots its waypoints: the limits checked on the ``fine`` samples, whose spacing leaves at most the
     spline's curvature times (1/fine)² between them). Its bound-length
     Σ_j R_j ∫|q'_j| ds is measured on ``fine`` chords per row and the spline checked wherever that length
-    crosses a multiple of 0.8 · 2 η_b less the row's longest fine chord (η_b each problem's resolution,
-    2 the subdivision's :data:`~diffkin.motion._edges.SPACING`; each check point is the first fine sample
-    past its mark, so the longest chord is taken off; the 20 % spare covers chords against arcs; a row
-    whose longest chord is over 75 % of 0.8 · 2 η_b is checked again with finer samples, up to
-    :data:`_FINE_MAX`, else not proven). The samples and check points in C on
+    crosses a multiple of min(0.8 · 2 η_b, 0.95 · 2 η_b − the row's longest fine chord) (η_b each
+    problem's resolution, 2 the subdivision's :data:`~diffkin.motion._edges.SPACING`; each check point is
+    the first fine sample past its mark, so two are at most that plus one chord apart; 5 % is left for
+    chords against arcs; a row where that leaves less than 0.2 · 2 η_b is checked again with finer
+    samples, up to :data:`_FINE_MAX`, else not proven). The samples and check points in C on
     the CPU (``kernels/_native_spline.c``, the same floats), else in torch."""
     B = path.shape[0]
     knots = knots.to(torch.float64)
@@ -67,13 +67,13 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
         chord = torch.cat(chords, 1)
         cum = torch.cat((torch.zeros_like(chord[:, :1]), chord.cumsum(1)), 1)  # (B, fine + 1)
     # the marks' spacing per problem: each check point is the first fine sample at or past its mark, so two
-    # of them can be a mark's spacing plus one fine chord apart; rows whose longest chord is over three
-    # quarters of the spacing (a very fine resolution on a long path) are checked again with finer samples
-    spacing = 0.8 * SPACING * checker.eta_of(problem).to(torch.float64)  # (B,)
-    longest = (cum[:, 1:] - cum[:, :-1]).amax(1) if fine else torch.zeros_like(spacing)
-    c = spacing - longest
-    coarse = c < 0.25 * spacing
-    c = torch.where(coarse, spacing, c)
+    # of them can be a mark's spacing plus one fine chord apart; rows whose longest chord leaves less than a
+    # fifth of the step (a very fine resolution on a long path) are checked again with finer samples
+    step = SPACING * checker.eta_of(problem).to(torch.float64)  # (B,): the bound-length between samples
+    longest = (cum[:, 1:] - cum[:, :-1]).amax(1) if fine else torch.zeros_like(step)
+    c = torch.minimum(0.8 * step, 0.95 * step - longest)  # 5 % left for chords against arcs
+    coarse = c < 0.2 * step
+    c = torch.where(coarse, 0.8 * step, c)
     n = torch.where(coarse, 1, torch.ceil(cum[:, -1] / c).long().clamp(min=1))  # (coarse: failed below)
     # each row's own n + 1 marks only, flat (padding every row to the longest row's count multiplied the
     # evaluations and collision checks: a row's marks past n would all be its end point, its mark n)
@@ -96,7 +96,7 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
         fidx = _search_rows(cum, fr, fm, right=False).clamp(max=fine)
         bad[fr, (_search_rows(s, fr, u[0, fidx]) - 1).clamp(0, L - 2)] = True
     if bool(coarse.any()):  # those rows again with finer samples (where that stays within _FINE_MAX)
-        need = fine * torch.exp2(torch.ceil(torch.log2(longest / (0.5 * spacing))).clamp(min=1))  # (B,)
+        need = fine * torch.exp2(torch.ceil(torch.log2(longest / (0.15 * step))).clamp(min=1))  # (B,)
         bad[coarse & (need > _FINE_MAX)] = True
         r = (coarse & (need <= _FINE_MAX)).nonzero().flatten()
         if r.numel():
