@@ -72,7 +72,10 @@ SHORTCUT_TRIES = 4
 #: proven clear, and their neighbours, at their midpoints (the spacing there halves each round)
 #: 0 by default: refined splines timed by time_optimal can carry a jump of q̈ between its samples (cage/0035
 #: of the 700 MotionBenchMaker problems in one call: 21 400 rad/s³ at 1 ms against the 10 000 limit, the row
-#: reported a success); a round count > 0 turns the refinement on for experiments until that is found
+#: reported a success); a round count > 0 turns the refinement on for experiments until that is found.
+#: With the timing's knot-interval samples (time_optimal, 4 December) 6 rounds still left cage/0060 at 8.2x
+#: and bookshelf_thin/0066 at 1.13x their jerk limit on 0.1 ms samples (while the cage's median duration
+#: fell from 3.30 s to 2.63 s): still off
 REFINE_ROUNDS = 0
 #: rounds of shortcuts between points anywhere on the searched path (:func:`~._search.shortcut_points`) per
 #: round of ``shortcut_rounds``, and the shortcuts tried per path per round (each clear one taken costs its
