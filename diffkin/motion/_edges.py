@@ -43,7 +43,13 @@ def joint_reach(collision) -> Tensor:
     Remembered on the model's link frames (shared by the copies :meth:`RobotCollision.allow_collisions
     <diffkin.collision.RobotCollision.allow_collisions>` makes, one per scene) for the geometry's and the
     chain's current values: planning many scenes with one robot finds R once (about 3 ms a plan)."""
-    return _remembered(collision, "reach", geometry_key(collision), lambda: _joint_reach(collision)).clone()
+    return _reach(collision, geometry_key(collision))
+
+
+def _reach(collision, key) -> Tensor:
+    """:func:`joint_reach` for the geometry key ``key`` (:func:`geometry_key`), a copy of the remembered
+    value (the caller may change it)."""
+    return _remembered(collision, "reach", key, lambda: _joint_reach(collision)).clone()
 
 
 def geometry_key(collision) -> tuple | None:
@@ -162,8 +168,7 @@ class EdgeChecker:
         self.row_eta: Tensor | None = None
         #: the robot's geometry and chain values (:func:`geometry_key`), read once
         self.geometry_key = geometry_key(collision)
-        self.reach = _remembered(collision, "reach", self.geometry_key,
-                                 lambda: _joint_reach(collision)).clone()
+        self.reach = _reach(collision, self.geometry_key)
         self.moving = bool(getattr(collision, "skip_fixed", False))
         self.chunk = chunk
         self.checked = 0  # configurations decided so far (a count for the benchmarks)

@@ -64,6 +64,18 @@ def _functions():
     return fns
 
 
+def _run(which: int, args: PlanArgs, what: str) -> bool:
+    """Call entry ``which`` of :func:`_functions` (0 search, 1 decide, 2 edges, 3 points) on ``args``: True
+    when it ran, False where it refused the call (another interface, a range it does not serve: the torch
+    code serves); a MemoryError where its per-thread work space could not be allocated."""
+    status = _functions()[which](ctypes.byref(args))
+    if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
+        return False
+    if status < 0:
+        raise MemoryError(f"motion.plan: the C {what}: no memory for a per-thread work space")
+    return True
+
+
 class NativePlanner:
     """The C search's constants for one :class:`~diffkin.motion._edges.EdgeChecker` and dtype: the chain's
     all-frames FK (:meth:`LinkFrames.native_frames_model <diffkin.collision._poses.LinkFrames>`), each
@@ -135,12 +147,7 @@ class NativePlanner:
             return ok.bool()
         a = self.args(nthreads=native.thread_count(N), N=N, q=q, wid=wid, slack=float(slack), ok=ok,
                       max_iterations=0)
-        status = _functions()[1](ctypes.byref(a))
-        if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
-            return None
-        if status < 0:
-            raise MemoryError("motion.plan: the C decisions could not allocate their per-thread work space")
-        return ok.bool()
+        return ok.bool() if _run(1, a, "decisions") else None
 
 
     def edges(self, qa: Tensor, qb: Tensor, steps: Tensor, slack: Tensor, world_row: Tensor | None,
@@ -158,13 +165,7 @@ class NativePlanner:
         first_bad, decided = torch.empty(E, dtype=torch.int64), torch.zeros(E, dtype=torch.int64)
         a = self.args(nthreads=native.thread_count(int(E) * 64), N=E, q=qa, qb=qb, steps=steps, slacks=slack,
                       wid=wid, prefix=int(prefix), first_bad=first_bad, checked=decided, max_iterations=0)
-        status = _functions()[2](ctypes.byref(a))
-        if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
-            return None
-        if status < 0:
-            raise MemoryError("motion.plan: the C edge decisions could not allocate their per-thread work "
-                              "space")
-        return first_bad, decided
+        return (first_bad, decided) if _run(2, a, "edge decisions") else None
 
 
 def shortcut_points_native(checker, path: Tensor, n: Tensor, problem: Tensor, rounds: int, key: Tensor,
@@ -187,11 +188,8 @@ def shortcut_points_native(checker, path: Tensor, n: Tensor, problem: Tensor, ro
     a = planner.args(nthreads=native.thread_count(B * 4096), B=B, path=out, n_way=count, world=world, eta=eta,
                      reach=reach, capacity=cap, keys=keys, rounds=int(rounds), tries=int(tries),
                      stop_after=int(stop_after), max_iterations=0)
-    status = _functions()[3](ctypes.byref(a))
-    if status in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
+    if not _run(3, a, "shortcuts"):
         return None
-    if status < 0:
-        raise MemoryError("motion.plan: the C shortcuts could not allocate their per-thread work space")
     return out.to(path.dtype), count.to(n.dtype)
 
 
@@ -231,12 +229,8 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
         restart=int(restart),
         shortcut_tries=int(shortcut_tries), seed=int(seed), capacity=L, path=path, n_way=n_way, status=status,
         iterations=its, checked=checked)
-    if B:
-        rc_ = _functions()[0](ctypes.byref(args))
-        if rc_ in (native.CONSTANTS["DK_ABI_ERROR"], native.CONSTANTS["DK_RANGE_ERROR"]):
-            return None
-        if rc_ < 0:
-            raise MemoryError("motion.plan: the C search could not allocate its per-thread work space")
+    if B and not _run(0, args, "search"):
+        return None
     if bool((status == NO_MEMORY).any()):
         raise MemoryError("motion.plan: the C search ran out of memory growing its trees")
     found = status == FOUND
