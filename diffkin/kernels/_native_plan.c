@@ -133,6 +133,11 @@ static int edge_order_fill(EdgeOrder *o, int64_t *idx, int size) {
     return m;
 }
 
+/* The threads of a call asking for `requested` over `items` independent items: at most one per item. */
+static inline int plan_threads(int64_t requested, int64_t items) {
+    return (int)(requested > 1 && items > 1 ? (requested < items ? requested : items) : 1);
+}
+
 static inline uint64_t plan_finalise(uint64_t z) { /* splitmix64's finaliser (_search._mix) */
     z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ull;
     z = (z ^ (z >> 27)) * 0x94D049BB133111EBull;
@@ -167,8 +172,7 @@ typedef struct { /* one thread's work space */
     real *P;              /* [C 3 COLLIDE_BLOCK] the placed points, component-major */
     int64_t *wid;         /* [COLLIDE_BLOCK] the problem's world row */
     uint8_t ok[COLLIDE_BLOCK];
-    real *nodes[2];       /* [cap n] the trees */
-    real *cols[2];        /* [n cap] the trees' nodes joint-major (DK(plan_nearest)) */
+    real *cols[2];        /* [n cap] the trees' nodes, joint-major (DK(plan_nearest) reads them vectorised) */
     int64_t *parent[2];   /* [cap] */
     real *path;           /* [2 cap n] */
     int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (max_iterations + 2) */
@@ -292,11 +296,14 @@ static int64_t DK(plan_nearest)(const real *cols, int64_t cap, int64_t count, co
     return best;
 }
 
-/* Node k of tree t: its coordinates q (n) into the node rows and the joint-major columns. */
+/* Node k of tree t: its coordinates q (n) into the tree's joint-major columns. */
 static inline void DK(plan_put)(DK(PlanWork) *w, int t, int64_t k, const real *q) {
-    const int n = w->s.n;
-    memcpy(w->nodes[t] + k * n, q, sizeof(real) * n);
-    for (int j = 0; j < n; j++) w->cols[t][(size_t)j * (size_t)w->cap + k] = q[j];
+    for (int j = 0; j < w->s.n; j++) w->cols[t][(size_t)j * (size_t)w->cap + k] = q[j];
+}
+
+/* Node k of tree t into q (n). */
+static inline void DK(plan_node)(const DK(PlanWork) *w, int t, int64_t k, real *q) {
+    for (int j = 0; j < w->s.n; j++) q[j] = w->cols[t][(size_t)j * (size_t)w->cap + k];
 }
 
 /* Room for nodes up to w->cap_max in both trees: the capacity doubles (a search of many iterations pays for
@@ -306,12 +313,10 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
     const int64_t cap = 2 * w->cap < w->cap_max ? 2 * w->cap : w->cap_max;
     if (cap <= w->cap) return 0;
     for (int t = 0; t < 2; t++) {
-        real *nodes = (real *)realloc(w->nodes[t], sizeof(real) * (size_t)(cap * n));
-        if (nodes) w->nodes[t] = nodes;
         int64_t *parent = (int64_t *)realloc(w->parent[t], sizeof(int64_t) * (size_t)cap);
         if (parent) w->parent[t] = parent;
         real *cols = (real *)malloc(sizeof(real) * (size_t)(cap * n));
-        if (!(nodes && parent && cols)) {
+        if (!(parent && cols)) {
             free(cols);
             return 0;
         }
@@ -353,7 +358,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
         DK(plan_put)(w, 1, 0, qg0);
         w->parent[0][0] = w->parent[1][0] = -1;
         int a = 0;
-        real qr[64], qn[64];
+        real qr[64], qn[64], qa[64], qb[64];
         int64_t join[2] = {-1, -1};
         int64_t it0 = 0;
         for (; it < p->max_iterations; it++, a ^= 1) {
@@ -366,14 +371,13 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
                 it0 = it;
                 a = 0;
             }
-            real *NA = w->nodes[a], *NB = w->nodes[1 - a];
             if (plan_uniform(&w->rng) < p->goal_bias) {
-                memcpy(qr, NB, sizeof(real) * n);
+                DK(plan_node)(w, 1 - a, 0, qr);
             } else {
                 for (int j = 0; j < n; j++) qr[j] = lo[j] + (hi[j] - lo[j]) * (real)plan_uniform(&w->rng);
             }
             const int64_t near = DK(plan_nearest)(w->cols[a], w->cap, count[a], qr, R, n);
-            const real *qa = NA + near * n;
+            DK(plan_node)(w, a, near, qa);
             real Ld = 0;
             for (int j = 0; j < n; j++) Ld += R[j] * (qr[j] > qa[j] ? qr[j] - qa[j] : qa[j] - qr[j]);
             if (!(Ld > 0)) continue;
@@ -387,7 +391,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             DK(plan_put)(w, a, ia, qn);
             w->parent[a][ia] = near;
             const int64_t nb = DK(plan_nearest)(w->cols[1 - a], w->cap, count[1 - a], qn, R, n);
-            const real *qb = NB + nb * n;
+            DK(plan_node)(w, 1 - a, nb, qb);
             const real lam = DK(plan_edge)(w, qb, qn, 1);
             if (lam == 1) {
                 join[a] = ia;
@@ -409,10 +413,10 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             for (int64_t k = join[0]; k >= 0; k = w->parent[0][k]) d0++;
             int64_t k = join[0];
             for (int64_t i = d0 - 1; i >= 0; i--, k = w->parent[0][k])
-                memcpy(path + i * n, w->nodes[0] + k * n, sizeof(real) * n);
+                DK(plan_node)(w, 0, k, path + i * n);
             len = d0;
             for (k = join[1]; k >= 0; k = w->parent[1][k], len++)
-                memcpy(path + len * n, w->nodes[1] + k * n, sizeof(real) * n);
+                DK(plan_node)(w, 1, k, path + len * n);
             status = DK_PLAN_FOUND;
         }
     }
@@ -454,13 +458,11 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
     w->P = (real *)malloc(sizeof(real) * (size_t)p->C * 3 * COLLIDE_BLOCK);
     w->wid = (int64_t *)malloc(sizeof(int64_t) * COLLIDE_BLOCK);
     for (int t = 0; t < 2; t++) {
-        w->nodes[t] = (real *)malloc(sizeof(real) * (size_t)(cap * s->n));
         w->cols[t] = (real *)malloc(sizeof(real) * (size_t)(cap * s->n));
         w->parent[t] = (int64_t *)malloc(sizeof(int64_t) * (size_t)cap);
     }
     w->path = (real *)malloc(sizeof(real) * (size_t)(2 * cap * s->n + 2 * s->n));
-    if (!(w->scratch && w->qs && w->P && w->wid && w->nodes[0] && w->nodes[1] && w->cols[0] && w->cols[1] &&
-          w->parent[0] && w->parent[1] &&
+    if (!(w->scratch && w->qs && w->P && w->wid && w->cols[0] && w->cols[1] && w->parent[0] && w->parent[1] &&
           w->path))
         return 0;
     DK(scratch_init)(s, pp, w->scratch, &w->sc);
@@ -484,7 +486,7 @@ static void DK(plan_work_free)(DK(PlanWork) *w) {
     free(w->qs);
     free(w->P);
     free(w->wid);
-    for (int t = 0; t < 2; t++) free(w->nodes[t]), free(w->cols[t]), free(w->parent[t]);
+    for (int t = 0; t < 2; t++) free(w->cols[t]), free(w->parent[t]);
     free(w->path);
 }
 
@@ -494,7 +496,7 @@ static int64_t DK(dk_plan)(const dk_plan *p) {
     if (s.n > 64) return DK_RANGE_ERROR;
     DK(Params) pp;
     if (DK(read_params)(p->chain, &s, &pp)) return -1;
-    int nthreads = (int)(p->nthreads > 1 && p->B > 1 ? (p->nthreads < p->B ? p->nthreads : p->B) : 1);
+    int nthreads = plan_threads(p->nthreads, p->B);
     int64_t failed = 0;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
     {
@@ -535,7 +537,7 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
         if (i == 0 || i - start[nblocks - 1] == COLLIDE_BLOCK || (p->wid && p->wid[i] != p->wid[i - 1]))
             start[nblocks++] = i;
     start[nblocks] = p->N;
-    int nthreads = (int)(p->nthreads > 1 && nblocks > 1 ? (p->nthreads < nblocks ? p->nthreads : nblocks) : 1);
+    int nthreads = plan_threads(p->nthreads, nblocks);
     int64_t failed = 0;
     const int n = s.n;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
@@ -572,7 +574,7 @@ static int64_t DK(dk_plan_edges)(const dk_plan *p) {
     read_shape(p->chain, &s);
     DK(Params) pp;
     if (DK(read_params)(p->chain, &s, &pp)) return -1;
-    int nthreads = (int)(p->nthreads > 1 && p->N > 1 ? (p->nthreads < p->N ? p->nthreads : p->N) : 1);
+    int nthreads = plan_threads(p->nthreads, p->N);
     int64_t failed = 0;
     const int n = s.n;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
@@ -687,7 +689,7 @@ static int64_t DK(dk_plan_points)(const dk_plan *p) {
     read_shape(p->chain, &s);
     DK(Params) pp;
     if (DK(read_params)(p->chain, &s, &pp)) return -1;
-    int nthreads = (int)(p->nthreads > 1 && p->B > 1 ? (p->nthreads < p->B ? p->nthreads : p->B) : 1);
+    int nthreads = plan_threads(p->nthreads, p->B);
     int64_t failed = 0;
     const int64_t L = p->capacity, T = p->tries;
 #pragma omp parallel num_threads(nthreads) if (nthreads > 1) reduction(+ : failed)
