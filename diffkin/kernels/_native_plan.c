@@ -525,9 +525,8 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
     read_shape(p->chain, &s);
     DK(Params) pp;
     if (DK(read_params)(p->chain, &s, &pp)) return -1;
-    /* blocks of up to COLLIDE_BLOCK configurations of one world row each: the broad phase of
-     * DK(collide_lanes) culls by bounding boxes only where a block's lanes share their world (a block
-     * straddling two scenes would test every geom against every object) */
+    /* one world row a block: DK(collide_lanes) culls by bounding boxes only where a block's lanes share
+     * their world (a block straddling two scenes would test every geom against every object) */
     int64_t *start = (int64_t *)malloc(sizeof(int64_t) * (size_t)(p->N + 2)), nblocks = 0;
     if (!start) {
         free(pp.fix);
