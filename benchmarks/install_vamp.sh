@@ -12,8 +12,8 @@
 # 2. the three C++ header dependencies at the commits cmake/Dependencies.cmake names
 #    (`CPMAddPackage("gh:owner/name#commit")`): nigh (KavrakiLab/nigh 97130999), pdqsort (orlp/pdqsort
 #    b1ef26a5) and SIMDxorshift (lemire/SIMDxorshift 857c1a01), the paths the build reads (and licences),
-#    exported with `git archive` from local bare mirrors ($VAMP_MIRROR/<owner>+<name>/repo; it may warn
-#    about large blobs outside those paths that a mirror lacks) or, when absent, cloned from GitHub.
+#    exported file by file from local bare mirrors ($VAMP_MIRROR/<owner>+<name>/repo; a mirror may lack
+#    large blobs outside those paths) or, when absent, cloned from GitHub.
 # 3. CPM itself (cmake/FetchInitCPM.cmake downloads CPM.cmake from GitHub at configure time) is replaced,
 #    without editing the sdist, by a shim of the same name placed first on CMAKE_MODULE_PATH (VAMP's
 #    CMakeLists appends its own cmake/ after the caller's path): `CPMAddPackage("gh:owner/name#commit")`
@@ -59,7 +59,13 @@ dep() {  # dep owner name commit paths...: those paths of the library at that co
         bare=$SRC/deps/$name.git
         [ -d "$bare" ] || git clone --bare --quiet "https://github.com/$owner/$name" "$bare"
     fi
-    git --git-dir="$bare" archive "$commit" "$@" | tar -x -C "$SRC/deps/$name"
+    # file by file rather than `git archive`, which reads every blob of the commit and fails on a mirror
+    # lacking a large one outside these paths
+    local mode type obj path
+    git --git-dir="$bare" ls-tree -r "$commit" -- "$@" | while read -r mode type obj path; do
+        mkdir -p "$SRC/deps/$name/$(dirname "$path")"
+        git --git-dir="$bare" cat-file blob "$obj" > "$SRC/deps/$name/$path"
+    done
 }
 dep KavrakiLab nigh 97130999440647c204e0265d05a997dbd8da4e70 src LICENSE
 dep orlp pdqsort b1ef26a55cdb60d236a5cb199c4234c704f46726 pdqsort.h license.txt

@@ -244,11 +244,19 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
             real lo = a[0], hi = a[0];
             /* a reduction the compiler may reorder (min and max are exact in any order): vectorised */
+            if (A == B) { /* spheres (the planner's: B is A): the ends are one point */
 #pragma omp simd reduction(min : lo) reduction(max : hi)
-            for (int l = 0; l < m; l++) {
-                const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
-                lo = x < lo ? x : lo;
-                hi = y > hi ? y : hi;
+                for (int l = 0; l < m; l++) {
+                    lo = a[l] < lo ? a[l] : lo;
+                    hi = a[l] > hi ? a[l] : hi;
+                }
+            } else {
+#pragma omp simd reduction(min : lo) reduction(max : hi)
+                for (int l = 0; l < m; l++) {
+                    const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
+                    lo = x < lo ? x : lo;
+                    hi = y > hi ? y : hi;
+                }
             }
             glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
         }
