@@ -185,8 +185,9 @@ def _signed(c: int) -> int:
 _GOLDEN, _M1, _M2 = _signed(0x9E3779B97F4A7C15), _signed(0xBF58476D1CE4E5B9), _signed(0x94D049BB133111EB)
 
 
-def _mix(x: Tensor) -> Tensor:
-    """splitmix64's finaliser on int64 tensors (wrapping products; the shifts logical, by masking)."""
+def _mix(x):
+    """splitmix64's finaliser on int64 tensors or numpy arrays (wrapping products; the shifts logical, by
+    masking)."""
     shr = lambda v, k: (v >> k) & ((1 << (64 - k)) - 1)  # noqa: E731
     x = (x ^ shr(x, 30)) * _M1
     x = (x ^ shr(x, 27)) * _M2
@@ -198,10 +199,14 @@ def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
     that a problem's draws (:func:`row_uniform`) do not depend on the batch it is planned in (as the C
     search's streams)."""
     bits = torch.cat((q_start, q_goal), -1).detach().to(torch.float64).contiguous().view(torch.int64)
+    # on the CPU in numpy (the same int64 wrapping arithmetic): 2 nq rounds of torch ops cost ~1 ms a plan
+    cpu = bits.device.type == "cpu"
+    cols = bits.numpy().T if cpu else bits.T
     key = torch.full(bits.shape[:1], seed, dtype=torch.int64, device=bits.device)
-    for j in range(bits.shape[1]):
-        key = _mix(key ^ bits[:, j] + _GOLDEN)
-    return key
+    key = key.numpy() if cpu else key
+    for col in cols:
+        key = _mix(key ^ col + _GOLDEN)
+    return torch.from_numpy(key) if cpu else key
 
 
 def row_uniform(key: Tensor, counter: int, shape: tuple[int, ...]) -> Tensor:

@@ -90,20 +90,19 @@ def _row_resolution(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, rows:
     the rows that fail a level are decided again at the next (usually none past the first)."""
     B = q_start.shape[0]
     eta = torch.full((B,), checker.eta, dtype=checker.reach.dtype, device=q_start.device)
-    ok = [torch.zeros(B, dtype=torch.bool, device=q_start.device) for _ in range(2)]
-    todo = [rows, rows]
+    ok = torch.zeros(2 * B, dtype=torch.bool, device=q_start.device)  # the starts', then the goals'
+    q = torch.cat((q_start, q_goal))
+    todo = torch.cat((rows, rows + B))  # entries of q (and ok) left to decide
     for k in range(ETA_LEVELS + 1):
         s = checker.eta / 2 ** k
-        for e, q in enumerate((q_start, q_goal)):
-            r = todo[e]
-            if r.numel():
-                good = checker.clear(q[r], r, slack=s)
-                ok[e][r[good]] = True
-                eta[r[good]] = torch.minimum(eta[r[good]], eta.new_tensor(s))
-                todo[e] = r[~good]
-        if not (todo[0].numel() or todo[1].numel()):
+        r = todo % B
+        good = checker.clear(q[todo], r, slack=s)  # the starts and goals in one decision
+        ok[todo[good]] = True
+        eta[r[good]] = torch.minimum(eta[r[good]], eta.new_tensor(s))
+        todo = todo[~good]
+        if not todo.numel():
             break
-    return eta, ok[0], ok[1]
+    return eta, ok[:B], ok[B:]
 
 
 @dataclass
