@@ -573,7 +573,7 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         # A dense check then only evaluates the samples the quarter check left out (the peaks of the union
         # are the larger of both), and only on the rows where its candidate can still win (its duration is
         # at least its bound, so elsewhere it cannot): the same result as checking every row densely.
-        if prune:  # every candidate of every row in one check (row b's candidates are rows b C .. b C + C - 1)
+        if prune:  # every candidate of every row in one check (row b's candidates: rows b C .. b C + C - 1)
             every = torch.arange(B, device=taus.device).repeat_interleave(C)
             _, lower, peaks = stretch(taus.reshape(-1), check_per_interval // 4, every)
             lower, peaks = lower.view(B, C), peaks.view(B, C, -1)  # (B, C), (B, C, 2 or 3)
