@@ -467,6 +467,41 @@ def test_shortcut_points_shortens_proven_paths(robot):
     assert int(m1[0]) == int(m[r]) and torch.equal(alone[0, :int(m1[0])], new[r, :int(m[r])])
 
 
+def test_row_keys_are_splitmix64_of_the_bits_in_python_integers():
+    """row_keys (numpy's int64 on the CPU) against splitmix64 written on Python integers modulo 2^64: the
+    products wrap and the shifts are logical, for any sign of the bits (negative joint values, a negative
+    seed), whatever the batch; the key of a row alone equals its key in the batch."""
+    import struct
+
+    from diffkin.motion._search import row_keys
+
+    M = (1 << 64) - 1
+
+    def mix(x):
+        x = ((x ^ (x >> 30)) * 0xBF58476D1CE4E5B9) & M
+        x = ((x ^ (x >> 27)) * 0x94D049BB133111EB) & M
+        return x ^ (x >> 31)
+
+    def reference(qs, qg, seed):
+        key = seed & M
+        for v in (*qs, *qg):
+            bits = struct.unpack("<Q", struct.pack("<d", v))[0]
+            key = mix(key ^ ((bits + 0x9E3779B97F4A7C15) & M))
+        return key - (1 << 64) if key >> 63 else key
+
+    g = torch.Generator().manual_seed(5)
+    qs = torch.randn(6, 7, generator=g, dtype=torch.float64) * 3
+    qg = torch.randn(6, 7, generator=g, dtype=torch.float64) * 3
+    qs[0] = 0.0
+    qg[1] = -0.0
+    for seed in (0, 12345, -7):
+        key = row_keys(qs, qg, seed)
+        assert key.dtype == torch.int64 and key.shape == (6,)
+        assert key.tolist() == [reference(a.tolist(), b.tolist(), seed) for a, b in zip(qs, qg)]
+        assert int(row_keys(qs[3:4], qg[3:4], seed)[0]) == int(key[3])
+    assert len(set(row_keys(qs, qg, 0).tolist())) == 6
+
+
 def test_cage_problem_spline_refined_not_the_polyline(monkeypatch):
     """A MotionBenchMaker cage problem (spherized Panda, half the default shortcut rounds): the cubic spline
     through its shortcut path leaves the clear region, so without refinement (REFINE_ROUNDS = 0, the
