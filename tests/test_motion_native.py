@@ -171,17 +171,18 @@ def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
 
 
 def test_c_search_trees_grow_past_their_first_capacity(panda):
-    """The trees start with room for 4096 nodes and double as they fill: short steps (1 cm) make box/0001 take
-    about 8 000 iterations (thousands of nodes per tree); the path found is traced through the trees and
-    every edge of it proven clear again by the torch EdgeChecker; a search that cannot finish (the goal
-    tree's root in collision: every extend of the start's tree that moves at all adds a node, about 6 000)
-    runs its whole budget through the regrown trees."""
+    """The trees start with room for 4096 nodes and double as they fill: short steps (3 mm) make box/0001 end
+    with more than 2 · 4096 + 2 nodes in its two balanced trees (the smaller one extends, so each holds more
+    than 4096); the path found is traced through the regrown trees and every edge of it proven clear again
+    by the torch EdgeChecker. A tree whose root is in collision never grows and, being the smaller, takes
+    every iteration: the search runs its whole budget with the start's tree at two nodes."""
     chain, rc, probs = panda
     qs, qg, world, _, checker, rows, eta, _, _ = _checked(probs, rc, ["box/0001"])
     lim = chain.q_limits
-    kw = dict(max_iterations=20000, step=0.01, shortcut_tries=0, capacity=4096)
+    kw = dict(max_iterations=40000, step=0.003, shortcut_tries=0, capacity=4096)
     path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta, seed=1, **kw)
-    assert bool(found[0]) and int(stats["iterations"][0]) > 6000
+    assert bool(found[0]) and int(stats["nodes"][0]) > 2 * 4096 + 2
+    assert int(stats["nodes"][0]) <= 2 * int(stats["iterations"][0]) + 2
     torch_checker = EdgeChecker(rc, world, 0.0, 0.005)
     torch_checker.use_c = False
     w = path[0, : int(n[0])]
@@ -189,9 +190,9 @@ def test_c_search_trees_grow_past_their_first_capacity(panda):
     assert torch_checker.edges(w[:-1], w[1:], torch.zeros(len(w) - 1, dtype=torch.long))[0].all()
     inside = torch.tensor([[0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0]], dtype=F64)  # not clear in this scene
     assert not checker.clear(inside, rows).any()
-    kw["max_iterations"] = 12000
+    kw.update(max_iterations=12000, step=0.01)
     _, _, found, stats = search_native(checker, qs, inside, lim[:, 0], lim[:, 1], rows, eta, seed=1, **kw)
-    assert not found.any() and int(stats["iterations"][0]) == 12000
+    assert not found.any() and int(stats["iterations"][0]) == 12000 and int(stats["nodes"][0]) == 3
 
 
 def test_planner_columns_remembered_for_copies_of_one_robot(panda, monkeypatch):

@@ -2,12 +2,15 @@
  * _native_collide.c): the search stage of diffkin.motion.plan (diffkin/motion/_native_search.py) for
  * problems spread over OpenMP threads, one problem per thread at a time.
  *
- * Per problem (VAMP's RRT-Connect): the straight edge start -> goal first; then trees rooted at the start and
- * the goal take turns: the tree extends its node nearest to a uniform sample of the box [lo, hi] (the other
- * tree's root with probability goal_bias) by at most `step` (in the bound's metric sum_j R_j |dq_j|: metres
- * of geom travel), as far as that edge is clear (its clear prefix: trees reach into narrow passages), and
- * then the other tree connects its nearest node to the new one by
- * the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full connection joins the trees.
+ * Per problem (VAMP's RRT-Connect): the straight edge start -> goal first; then of the trees rooted at the
+ * start and the goal the one with fewer nodes (the start's on a tie: VAMP's balanced trees, where the tree
+ * whose root sits in a pocket gets the iterations until it has grown as large as the other; taking turns
+ * instead let the free tree grow large, and its nearest-node scans slow, on the hard problems) extends its
+ * node nearest to a uniform sample of the box [lo, hi] (the other tree's root with probability goal_bias)
+ * by at most `step` (in the bound's metric sum_j R_j |dq_j|: metres of geom travel), as far as that edge is
+ * clear (its clear prefix: trees reach into narrow passages), and then the other tree connects its nearest
+ * node to the new one by the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full
+ * connection joins the trees.
  * With `restart` > 0, every `restart` iterations without a join both trees are dropped and grown anew from
  * the roots (the random stream continuing); motion.plan passes 0 (never): restarts did not help on the
  * MotionBenchMaker problems.
@@ -37,7 +40,7 @@
 #ifndef DK_PLAN_TYPES
 #define DK_PLAN_TYPES
 #define DK_PLAN_PASS 1
-#define DK_PLAN_VERSION 3 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
+#define DK_PLAN_VERSION 4 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
 #define DK_PLAN_FOUND 1
 #define DK_PLAN_NOT_FOUND 0
 #define DK_PLAN_TOO_LONG 2
@@ -74,6 +77,7 @@
     X(int64_t *, status, "[B] out: DK_PLAN_FOUND, _NOT_FOUND, _TOO_LONG, _NO_MEMORY") \
     X(int64_t *, iterations, "[B] out: RRT-Connect iterations run") \
     X(int64_t *, checked, "[B] out: configurations decided") \
+    X(int64_t *, nodes, "[B] out: the two trees' nodes at the end, or NULL") \
     X(int64_t, N, "dk_plan_decide: configurations") \
     X(const void *, q, "dk_plan_decide: [N n] reals") \
     X(const int64_t *, wid, "dk_plan_decide: [N] the world row of each, or NULL: row 0") \
@@ -357,11 +361,10 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
         DK(plan_put)(w, 0, 0, qs0);
         DK(plan_put)(w, 1, 0, qg0);
         w->parent[0][0] = w->parent[1][0] = -1;
-        int a = 0;
         real qr[64], qn[64], qa[64], qb[64];
         int64_t join[2] = {-1, -1};
         int64_t it0 = 0;
-        for (; it < p->max_iterations; it++, a ^= 1) {
+        for (; it < p->max_iterations; it++) {
             if ((count[0] >= w->cap - 1 || count[1] >= w->cap - 1) && !DK(plan_grow)(w)) {
                 if (w->cap < w->cap_max) status = DK_PLAN_NO_MEMORY;
                 break;
@@ -369,8 +372,8 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             if (p->restart > 0 && it - it0 >= p->restart) { /* a fresh pair of trees, the stream continuing */
                 count[0] = count[1] = 1;
                 it0 = it;
-                a = 0;
             }
+            const int a = count[1] < count[0]; /* the smaller tree extends (the start's on a tie) */
             if (plan_uniform(&w->rng) < p->goal_bias) {
                 DK(plan_node)(w, 1 - a, 0, qr);
             } else {
@@ -441,6 +444,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     p->status[b] = status;
     p->iterations[b] = it;
     p->checked[b] = w->checked;
+    if (p->nodes) p->nodes[b] = count[0] + count[1];
 }
 
 /* A thread's work space for p (its chain's shape s, plans pp); 0 when memory ran out (then free it). */

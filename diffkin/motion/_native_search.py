@@ -3,10 +3,11 @@
 
 Same algorithm and success semantics as :mod:`diffkin.motion._search` (the torch path, which serves CUDA
 tensors, builds without a C compiler and models the C decisions do not serve): the straight edge first, then
-trees from the start and the goal that take turns extending by at most ``step`` towards a uniform sample and
-connecting by the longest clear prefix, then random shortcuts; every edge decided by the subdivision of
-:mod:`diffkin.motion._edges` with the same reach bound ``R`` (:func:`~diffkin.motion.joint_reach`) and each
-problem's resolution. What differs: one problem at a time per thread instead of all problems per iteration
+trees from the start and the goal, the one with fewer nodes extending by at most ``step`` towards a uniform
+sample and the other connecting by the longest clear prefix, then random shortcuts; every edge decided by the
+subdivision of :mod:`diffkin.motion._edges` with the same reach bound ``R``
+(:func:`~diffkin.motion.joint_reach`) and each problem's resolution. What differs: one problem at a time per
+thread instead of all problems per iteration
 (a solved problem stops costing at once), and the randomness: each problem's stream is seeded by ``seed``
 and the bytes of its own start and goal, so a problem planned alone returns what its row returns in any
 batch, on any number of threads (the torch path draws one stream for the whole batch).
@@ -27,7 +28,7 @@ from ..kernels import native
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
 #: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
-VERSION = 3
+VERSION = 4
 #: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
 FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY = 1, 0, 2, -1
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
@@ -43,7 +44,7 @@ class PlanArgs(ctypes.Structure):
         [(name, _PTR) for name in ("q_start", "q_goal", "world", "eta", "lo", "hi", "reach")] + \
         [("step", _F64), ("goal_bias", _F64)] + \
         [(name, _I64) for name in ("max_iterations", "restart", "shortcut_tries", "seed", "capacity")] + \
-        [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked")] + \
+        [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked", "nodes")] + \
         [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)] + \
         [("qb", _PTR), ("steps", _PTR), ("slacks", _PTR), ("prefix", _I64), ("first_bad", _PTR)] + \
         [("keys", _PTR), ("rounds", _I64), ("tries", _I64), ("stop_after", _I64)]
@@ -205,10 +206,10 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     """Paths ``(B, L, nq)`` (rows padded with their goal) from ``q_start`` to ``q_goal`` ``(B, nq)`` of
     problems ``problem (B,)`` (rows of the checker's world), each edge subdivided at the row's resolution
     ``eta (B,)`` (both trees grown anew every ``restart`` iterations without a join; 0: never), their
-    waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``,
-    ``checked``: configurations decided, ``too_long``: rows whose path kept more than ``capacity``
-    waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be clear of
-    ``margin + eta`` (rows where they are not are searched in vain)."""
+    waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``, ``checked``: configurations
+    decided, ``nodes``: the two trees' nodes at the end, ``too_long``: rows whose path kept more than
+    ``capacity`` waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be
+    clear of ``margin + eta`` (rows where they are not are searched in vain)."""
     planner = checker.native(q_start)
     if planner is None:
         return None
@@ -222,17 +223,17 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
         world = problem.to(torch.int64).contiguous()
     L = max(2, int(capacity))
     path = torch.empty(B, L, nq, dtype=dtype)
-    n_way, status, its, checked = (torch.zeros(B, dtype=torch.int64) for _ in range(4))
+    n_way, status, its, checked, nodes = (torch.zeros(B, dtype=torch.int64) for _ in range(5))
     args = planner.args(
         nthreads=native.thread_count(B * 4096), B=B, q_start=qs, q_goal=qg, world=world, eta=eta_, lo=lo_,
         hi=hi_, reach=reach, step=float(step), goal_bias=float(goal_bias), max_iterations=int(max_iterations),
         restart=int(restart),
         shortcut_tries=int(shortcut_tries), seed=int(seed), capacity=L, path=path, n_way=n_way, status=status,
-        iterations=its, checked=checked)
+        iterations=its, checked=checked, nodes=nodes)
     if B and not _run(0, args, "search"):
         return None
     if bool((status == NO_MEMORY).any()):
         raise MemoryError("motion.plan: the C search ran out of memory growing its trees")
     found = status == FOUND
-    stats = {"iterations": its, "checked": checked, "too_long": status == TOO_LONG}
+    stats = {"iterations": its, "checked": checked, "nodes": nodes, "too_long": status == TOO_LONG}
     return path, n_way, found, stats

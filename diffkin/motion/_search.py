@@ -3,11 +3,12 @@ random shortcutting (between waypoints, then between points anywhere on the path
 through :class:`~diffkin.motion._edges.EdgeChecker` (subdivision with
 the proven step bound), all problems' edges of one iteration in one batched decision.
 
-Trees are tensors ``(B, capacity, nq)`` with parent indices; one iteration extends, for every unsolved
-problem at once, tree A by one step of at most ``step`` (in the bound's metric: metres of geom travel)
-towards a random configuration (as far as that edge is clear), then tries to connect tree B to the new
-node by the longest clear prefix of
-the straight edge (RRT-Connect's CONNECT, decided by one subdivided edge), then swaps the trees.
+Each problem's two trees (rooted at the start and the goal) are tensors ``(B, 2, capacity, nq)`` with parent
+indices; one iteration extends, for every unsolved problem at once, its tree with fewer nodes (the start's
+on a tie: balanced trees, as VAMP's and the C search's) by one step of at most ``step`` (in the bound's
+metric: metres of geom travel) towards a random configuration (as far as that edge is clear), then tries to
+connect the other tree to the new node by the longest clear prefix of the straight edge (RRT-Connect's
+CONNECT, decided by one subdivided edge).
 """
 
 from __future__ import annotations
@@ -70,28 +71,27 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
     C = max_iterations + 2
     nb = todo.numel()
     pid = problem[todo]  # the problem of each tree pair
-    trees = []
-    for root in (q_start[todo], q_goal[todo]):
-        nodes = q_start.new_zeros(nb, C, nq)
-        nodes[:, 0] = root
-        trees.append([nodes, torch.full((nb, C), -1, dtype=torch.long, device=dev),
-                      torch.ones(nb, dtype=torch.long, device=dev)])
+    # the two trees of each problem: 0 rooted at the start, 1 at the goal
+    nodes = q_start.new_zeros(nb, 2, C, nq)
+    nodes[:, 0, 0], nodes[:, 1, 0] = q_start[todo], q_goal[todo]
+    parent = torch.full((nb, 2, C), -1, dtype=torch.long, device=dev)
+    count = torch.ones(nb, 2, dtype=torch.long, device=dev)
     active = torch.ones(nb, dtype=torch.bool, device=dev)
     link = torch.zeros(nb, 2, dtype=torch.long, device=dev)  # (node in tree 0, node in tree 1) at the join
-    a = 0
     for _ in range(max_iterations):
         rows = active.nonzero().squeeze(1)
         if rows.numel() == 0:
             break
-        A, Bt = trees[a], trees[1 - a]
+        ta = (count[rows, 1] < count[rows, 0]).long()  # the smaller tree extends (the start's on a tie)
+        tb = 1 - ta
         r = len(rows)
         q_rand = lo + (hi - lo) * torch.rand(r, nq, generator=generator, dtype=dt, device="cpu").to(dev)
         if goal_bias > 0:
             u = torch.rand(r, generator=generator, dtype=torch.float64, device="cpu")  # the batch's stream
             towards = u.to(dev) < goal_bias
-            q_rand = torch.where(towards[:, None], Bt[0][rows, 0], q_rand)
-        near = _nearest(A[0][rows], A[2][rows], q_rand, w)
-        q_near = A[0][rows, near]
+            q_rand = torch.where(towards[:, None], nodes[rows, tb, 0], q_rand)
+        near = _nearest(nodes[rows, ta], count[rows, ta], q_rand, w)
+        q_near = nodes[rows, ta, near]
         d = q_rand - q_near
         L = (d.abs() * w).sum(-1)
         q_new = q_near + d * (step / L.clamp(min=step))[:, None]
@@ -99,34 +99,33 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         _, lam = checker.edges(q_near, q_new, pid[rows], prefix=True)
         ok = lam > 0
         q_new = q_near + lam[:, None] * (q_new - q_near)
-        grow = rows[ok]
+        grow, ga, gb = rows[ok], ta[ok], tb[ok]
         if grow.numel():
-            slot = A[2][grow]
-            A[0][grow, slot] = q_new[ok]
-            A[1][grow, slot] = near[ok]
-            A[2][grow] += 1
-            # CONNECT: tree B's nearest node towards the new node, as far as the edge is clear
+            slot = count[grow, ga]
+            nodes[grow, ga, slot] = q_new[ok]
+            parent[grow, ga, slot] = near[ok]
+            count[grow, ga] += 1
+            # CONNECT: the other tree's nearest node towards the new node, as far as the edge is clear
             qn = q_new[ok]
-            nearB = _nearest(Bt[0][grow], Bt[2][grow], qn, w)
-            qb = Bt[0][grow, nearB]
+            nearB = _nearest(nodes[grow, gb], count[grow, gb], qn, w)
+            qb = nodes[grow, gb, nearB]
             freeB, lam = checker.edges(qb, qn, pid[grow], prefix=True)
             joined = grow[freeB]
             if joined.numel():
-                ia, ib = slot[freeB], nearB[freeB]
-                link[joined] = torch.stack((ia, ib) if a == 0 else (ib, ia), 1)
+                link[joined, ga[freeB]] = slot[freeB]
+                link[joined, gb[freeB]] = nearB[freeB]
                 active[joined] = False
             part = (~freeB) & (lam > 0)
-            ext = grow[part]
+            ext, eb = grow[part], gb[part]
             if ext.numel():
-                s2 = Bt[2][ext]
-                Bt[0][ext, s2] = qb[part] + lam[part, None] * (qn[part] - qb[part])
-                Bt[1][ext, s2] = nearB[part]
-                Bt[2][ext] += 1
-        a = 1 - a
+                s2 = count[ext, eb]
+                nodes[ext, eb, s2] = qb[part] + lam[part, None] * (qn[part] - qb[part])
+                parent[ext, eb, s2] = nearB[part]
+                count[ext, eb] += 1
     joined = ~active
     sub_found = joined
-    p0, n0 = _trace(trees[0][0], trees[0][1], link[:, 0])
-    p1, n1 = _trace(trees[1][0], trees[1][1], link[:, 1])
+    p0, n0 = _trace(nodes[:, 0], parent[:, 0], link[:, 0])
+    p1, n1 = _trace(nodes[:, 1], parent[:, 1], link[:, 1])
     # start … join (tree 0, root first) then join … goal (tree 1 reversed)
     D0, D1 = p0.shape[1], p1.shape[1]
     Lmax = D0 + D1
