@@ -80,8 +80,9 @@ __all__ = ["run", "robot_model", "main"]
 MODELS = ("capsules", "spherized", "convex")
 F64 = torch.float64
 #: RRT-Connect iterations per problem: VAMP's budget (``vamp.configure_robot_and_planner_with_kwargs``); the C
-#: trees grow as they fill, so a problem pays only for the iterations it takes (bookshelf_thin/0089 took
-#: 100 938 at seed 0 with the 2η subdivision)
+#: trees grow as they fill, so a problem pays only for the iterations it takes (bookshelf_thin/0089, a start in
+#: a narrow pocket, took 8 625 to 160 371 over seeds 0-3 with balanced trees and step 1.0: the pocket's tree,
+#: the smaller, takes the iterations, most of them failing at once)
 ITERATIONS = 1_000_000
 
 
@@ -149,7 +150,7 @@ def _count(rc: RobotCollision, problems, exact: bool = True) -> dict[str, dict]:
     return out
 
 
-def _plan_records(problems, chunk: int = 700, iterations: int = ITERATIONS, step: float = 0.5,
+def _plan_records(problems, chunk: int = 700, iterations: int = ITERATIONS, step: float = 1.0,
                   recheck: int = 5, seed: int = 0, optimize: bool = False) -> tuple[list[dict], float]:
     """``motion.plan`` on ``problems`` in batched calls of ``chunk`` (module docstring, ``--plan``): one
     record per problem (``family``, ``valid``, ``success``, ``duration`` [s], ``length`` (joint-space length
@@ -216,7 +217,7 @@ def _max_jerk(res, dt: float = 1e-3, window: int = 1000) -> torch.Tensor:
     return best
 
 
-def plan_rows(problems, chunk: int = 700, iterations: int = ITERATIONS, step: float = 0.5, recheck: int = 5,
+def plan_rows(problems, chunk: int = 700, iterations: int = ITERATIONS, step: float = 1.0, recheck: int = 5,
               seed: int = 0, optimize: bool = False) -> list[dict]:
     """The ``--plan`` rows (module docstring): one per family and a total."""
     import numpy as np
@@ -277,7 +278,7 @@ def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
     return found, valid, checked
 
 
-def search_rows(problems, iterations: int = ITERATIONS, step: float = 0.5, single: int = 10,
+def search_rows(problems, iterations: int = ITERATIONS, step: float = 1.0, single: int = 10,
                 seed: int = 0) -> list[dict]:
     """The ``--search`` rows: the search stage alone (:func:`_search_stage`), all problems in one call (their
     threads over the cores); then ``single`` problems per family one at a time on one thread: the search
@@ -384,7 +385,7 @@ def _one_at_a_time(problems, iterations: int, step: float, seed: int, ompl_time:
     return records
 
 
-def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: float = 0.5, recheck: int = 2,
+def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: float = 1.0, recheck: int = 2,
                  ompl_time: float = 1.0, seed: int = 0) -> list[dict]:
     """The ``--compare`` table (module docstring): diffkin (all problems in one call; one at a time on the
     first ``subset`` of each family), VAMP and OMPL in one run, a row per method and family."""
@@ -622,7 +623,7 @@ def main(argv=None) -> int:
                    help="--search: problems per family planned one at a time")
     p.add_argument("--chunk", type=int, default=700)
     p.add_argument("--iterations", type=int, default=ITERATIONS)
-    p.add_argument("--step", type=float, default=0.5)
+    p.add_argument("--step", type=float, default=1.0)
     p.add_argument("--recheck", type=int, default=5)
     p.add_argument("--ompl", type=int, default=0, help="OMPL RRT-Connect on the first N problems per family")
     p.add_argument("--ompl-time", type=float, default=1.0)
