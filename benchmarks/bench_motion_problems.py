@@ -80,9 +80,9 @@ __all__ = ["run", "robot_model", "main"]
 MODELS = ("capsules", "spherized", "convex")
 F64 = torch.float64
 #: RRT-Connect iterations per problem: VAMP's budget (``vamp.configure_robot_and_planner_with_kwargs``); the C
-#: trees grow as they fill, so a problem pays only for the iterations it takes (bookshelf_thin/0089, a start in
-#: a narrow pocket, took 8 625 to 160 371 over seeds 0-3 with balanced trees and step 1.0: the pocket's tree,
-#: the smaller, takes the iterations, most of them failing at once)
+#: trees grow as they fill, so a problem pays only for the iterations it takes (bookshelf_thin/0089, a start
+#: in a narrow pocket, took 8 625 to 160 371 over seeds 0-3 with balanced trees and step 1.0: the pocket's
+#: tree, the smaller, takes the iterations, most of them failing at once)
 ITERATIONS = 1_000_000
 
 
