@@ -190,3 +190,24 @@ def test_jerk_held_across_a_short_knot_interval(monkeypatch, short):
         assert ratio > 2
     else:
         assert ratio <= 1.005
+
+
+def test_quarter_checks_in_one_call_equal_one_call_per_candidate(monkeypatch):
+    """The quarter-density checks of the τ candidates run as one call for small batches (rows × candidates
+    up to _ONE_CHECK) and one call per candidate for large ones: the same durations, stretches and samples to
+    the bit, spline and linear, with and without a jerk limit, batches of 1 and 5."""
+    tom = importlib.import_module("diffkin.trajectories.time_optimal")
+    g = torch.Generator().manual_seed(11)
+    v, a, j = torch.full((7,), 2.0, dtype=torch.float64), torch.full((7,), 10.0, dtype=torch.float64), \
+        torch.full((7,), 5000.0, dtype=torch.float64)
+    for B, N in ((1, 6), (5, 4)):
+        path = torch.cumsum(torch.rand(B, N, 7, generator=g, dtype=torch.float64) - 0.5, 1)
+        for interpolation in ("spline", "linear"):
+            for jerk in (j, None):
+                got = []
+                for one in (256, 0):
+                    monkeypatch.setattr(tom, "_ONE_CHECK", one)
+                    r = time_optimal(path, v, a, jerk, interpolation=interpolation)
+                    t = torch.linspace(0, float(r.duration.max()), 40, dtype=torch.float64)
+                    got.append((r.duration, r.sample(t).position, r.sample(t).acceleration))
+                assert all(torch.equal(x, y) for x, y in zip(*got))

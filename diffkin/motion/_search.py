@@ -3,12 +3,12 @@ random shortcutting (between waypoints, then between points anywhere on the path
 through :class:`~diffkin.motion._edges.EdgeChecker` (subdivision with
 the proven step bound), all problems' edges of one iteration in one batched decision.
 
-Each problem's two trees (rooted at the start and the goal) are tensors ``(B, 2, capacity, nq)`` with parent
-indices; one iteration extends, for every unsolved problem at once, its tree with fewer nodes (the start's
-on a tie: balanced trees, as VAMP's and the C search's) by one step of at most ``step`` (in the bound's
-metric: metres of geom travel) towards a random configuration (as far as that edge is clear), then tries to
-connect the other tree to the new node by the longest clear prefix of the straight edge (RRT-Connect's
-CONNECT, decided by one subdivided edge).
+Each problem's two trees (rooted at the start and the goal) are tensors ``(P, 2, max_iterations + 2, nq)``
+(P: the problems the straight edge left) with parent indices; one iteration extends, for every unsolved
+problem at once, its tree with fewer nodes (the start's on a tie: balanced trees, as the C search's) by one
+step of at most ``step`` (in the bound's metric: metres of geom travel) towards a random configuration (as far
+as that edge is clear), then tries to connect the other tree to the new node by the longest clear prefix of
+the straight edge (RRT-Connect's CONNECT, decided by one subdivided edge).
 """
 
 from __future__ import annotations
@@ -198,7 +198,7 @@ def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
     that a problem's draws (:func:`row_uniform`) do not depend on the batch it is planned in (as the C
     search's streams)."""
     bits = torch.cat((q_start, q_goal), -1).detach().to(torch.float64).contiguous().view(torch.int64)
-    # on the CPU in numpy (the same int64 wrapping arithmetic): 2 nq rounds of torch ops cost ~1 ms a plan
+    # on the CPU in numpy (the same int64 wrapping arithmetic): 2 nq rounds of torch ops cost ~1-2 ms a plan
     cpu = bits.device.type == "cpu"
     cols = bits.numpy().T if cpu else bits.T
     key = torch.full(bits.shape[:1], seed, dtype=torch.int64, device=bits.device)

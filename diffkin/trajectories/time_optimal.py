@@ -70,6 +70,9 @@ _X_BIG = 1e12  # bound on ṡ² where no limit binds (a path derivative of zero)
 # 1e-4 of the acceleration limit at 16 samples per interval with a jerk limit, 1e-6 without)
 _STRETCH = 2e-4
 _BLOCK = 1 << 16  # samples per block of the limit check (:func:`_peaks`)
+#: the most rows × τ candidates whose quarter checks run as one call (each candidate's rows a copy of the
+#: profile): a small batch pays per call (B = 1: ~4 ms a plan), a large one for the copies (+44 % memory)
+_ONE_CHECK = 256
 
 
 def _search_rows(seq: Tensor, rows: Tensor, x: Tensor, right: bool = True) -> Tensor:
@@ -573,10 +576,15 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         # A dense check then only evaluates the samples the quarter check left out (the peaks of the union
         # are the larger of both), and only on the rows where its candidate can still win (its duration is
         # at least its bound, so elsewhere it cannot): the same result as checking every row densely.
-        if prune:  # every candidate of every row in one check (row b's candidates: rows b C .. b C + C - 1)
+        if prune and B * C <= _ONE_CHECK:  # every candidate of every row in one check (row b's: rows b C ..)
             every = torch.arange(B, device=taus.device).repeat_interleave(C)
             _, lower, peaks = stretch(taus.reshape(-1), check_per_interval // 4, every)
             lower, peaks = lower.view(B, C), peaks.view(B, C, -1)  # (B, C), (B, C, 2 or 3)
+        elif prune:  # a check per candidate, the profile shared (C copies of it: C times the memory)
+            quarter = [stretch(taus[:, c], check_per_interval // 4) for c in range(C)]
+            lower = torch.stack([q[1] for q in quarter], 1)
+            peaks = torch.stack([q[2] for q in quarter], 1)  # (B, C, 2 or 3)
+        if prune:
             order = lower.argsort(dim=1, stable=True)
             lower = lower.gather(1, order)
         else:
