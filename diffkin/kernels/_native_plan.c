@@ -6,12 +6,12 @@
  * start and the goal the one with fewer nodes (the start's on a tie: balanced trees, stricter than VAMP's
  * balance, which takes turns unless one tree has twice the other's nodes; the tree whose root sits in a
  * pocket gets the iterations until it has grown as large as the other, where taking turns let the free
- * tree grow large, and its nearest-node scans slow, on the hard problems) extends its
- * node nearest to a uniform sample of the box [lo, hi] (the other tree's root with probability goal_bias)
- * by at most `step` (in the bound's metric sum_j R_j |dq_j|: metres of geom travel), as far as that edge is
- * clear (its clear prefix: trees reach into narrow passages), and then the other tree connects its nearest
- * node to the new one by the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full
- * connection joins the trees.
+ * tree grow large, and its nearest-node scans slow, on the hard problems) extends its node nearest to a
+ * uniform sample of the box [lo, hi] (the other tree's root with probability goal_bias) by at most `step`
+ * (in the bound's metric sum_j R_j |dq_j|: metres of geom travel), as far as that edge is clear (its clear
+ * prefix: trees reach into narrow passages), and then the other tree connects its nearest node to the new
+ * one by the longest clear prefix of the straight edge (RRT-Connect's CONNECT); a full connection joins
+ * the trees.
  * With `restart` > 0, every `restart` iterations without a join both trees are dropped and grown anew from
  * the roots (the random stream continuing); motion.plan passes 0 (never): restarts did not help on the
  * MotionBenchMaker problems.

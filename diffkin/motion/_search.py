@@ -198,14 +198,13 @@ def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
     that a problem's draws (:func:`row_uniform`) do not depend on the batch it is planned in (as the C
     search's streams)."""
     bits = torch.cat((q_start, q_goal), -1).detach().to(torch.float64).contiguous().view(torch.int64)
-    # on the CPU in numpy (the same int64 wrapping arithmetic): 2 nq rounds of torch ops cost ~1-2 ms a plan
-    cpu = bits.device.type == "cpu"
-    cols = bits.numpy().T if cpu else bits.T
     key = torch.full(bits.shape[:1], seed, dtype=torch.int64, device=bits.device)
-    key = key.numpy() if cpu else key
+    cols = bits.T
+    if bits.device.type == "cpu":  # in numpy (the same int64 wrapping): 2 nq rounds of torch ops cost ~1-2 ms
+        key, cols = key.numpy(), cols.numpy()
     for col in cols:
         key = _mix(key ^ col + _GOLDEN)
-    return torch.from_numpy(key) if cpu else key
+    return torch.as_tensor(key)
 
 
 def row_uniform(key: Tensor, counter: int, shape: tuple[int, ...]) -> Tensor:

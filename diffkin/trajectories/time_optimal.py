@@ -576,15 +576,15 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
         # A dense check then only evaluates the samples the quarter check left out (the peaks of the union
         # are the larger of both), and only on the rows where its candidate can still win (its duration is
         # at least its bound, so elsewhere it cannot): the same result as checking every row densely.
-        if prune and B * C <= _ONE_CHECK:  # every candidate of every row in one check (row b's: rows b C ..)
-            every = torch.arange(B, device=taus.device).repeat_interleave(C)
-            _, lower, peaks = stretch(taus.reshape(-1), check_per_interval // 4, every)
-            lower, peaks = lower.view(B, C), peaks.view(B, C, -1)  # (B, C), (B, C, 2 or 3)
-        elif prune:  # a check per candidate, the profile shared (C copies of it: C times the memory)
-            quarter = [stretch(taus[:, c], check_per_interval // 4) for c in range(C)]
-            lower = torch.stack([q[1] for q in quarter], 1)
-            peaks = torch.stack([q[2] for q in quarter], 1)  # (B, C, 2 or 3)
         if prune:
+            if B * C <= _ONE_CHECK:  # every candidate of every row in one check (row b's: rows b C ..)
+                every = torch.arange(B, device=taus.device).repeat_interleave(C)
+                _, lower, peaks = stretch(taus.reshape(-1), check_per_interval // 4, every)
+                lower, peaks = lower.view(B, C), peaks.view(B, C, -1)  # (B, C), (B, C, 2 or 3)
+            else:  # a check per candidate, the profile shared (C copies of it: C times the memory)
+                quarter = [stretch(taus[:, c], check_per_interval // 4) for c in range(C)]
+                lower = torch.stack([q[1] for q in quarter], 1)
+                peaks = torch.stack([q[2] for q in quarter], 1)  # (B, C, 2 or 3)
             order = lower.argsort(dim=1, stable=True)
             lower = lower.gather(1, order)
         else:
