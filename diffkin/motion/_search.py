@@ -204,7 +204,7 @@ def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
         key, cols = key.numpy(), cols.numpy()
     for col in cols:
         key = _mix(key ^ col + _GOLDEN)
-    return torch.as_tensor(key)
+    return torch.as_tensor(key, device=bits.device)  # never the default device (a numpy key: the CPU)
 
 
 def row_uniform(key: Tensor, counter: int, shape: tuple[int, ...]) -> Tensor:
