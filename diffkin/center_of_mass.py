@@ -101,15 +101,16 @@ def _native_pass(chain, q: Tensor, with_jacobian: bool) -> tuple[Tensor, Tensor 
     if chain._native_model(q) is None:
         return None
     data = cache.current(chain)  # the Data _native_model has just checked (or remade)
-    packed = data.extra.get("mass")
-    if packed is None:
+
+    def make():
         per_joint = data.segments(chain)[0]
         c = chain.link_inertial_frames[:, :3, 3].detach().double().cpu().tolist()
         identity = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
         ends = [None if not any(ci) else (identity, tuple(ci)) for ci in c]
         seg = Segments(per_joint.pre, per_joint.offset, per_joint.post, per_joint.base, ends)
-        topo = replace(chain.topology, ends=tuple(chain._mass_frames))
-        packed = data.extra["mass"] = native.NativeModel(topo, seg)
+        return native.NativeModel(replace(chain.topology, ends=tuple(chain._mass_frames)), seg)
+
+    packed = data.derived("mass", make)
     batch, nv, B = q.shape[:-1], chain.nv, len(chain._mass_frames)
     flat = q.reshape(-1, chain.nq).contiguous()
     rows = flat.shape[0]
@@ -137,10 +138,7 @@ def _mass_weights(chain) -> Tensor:
     data = None if m.requires_grad and torch.is_grad_enabled() else cache.current(chain, grad=False)
     if data is None:  # learnable masses (a fresh graph every call), or values not readable as constants
         return m / m.sum()
-    w = data.extra.get("mass_weights")
-    if w is None:
-        w = data.extra["mass_weights"] = m / m.sum()
-    return w
+    return data.derived("mass_weights", lambda: m / m.sum())
 
 
 def _weighted_mean(chain, points: Tensor) -> Tensor:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import pickle
+import sys
 import threading
 
 import numpy as np
@@ -185,6 +186,55 @@ def test_calls_from_several_threads_agree():
     for t in threads:
         t.join()
     assert len(errors) == 4 * 20 * len(qs) and max(errors) < 1e-12
+
+
+def _first_calls_from_threads(call, n_threads=4):
+    """``call(thread index)`` from several threads at once, switching between them every microsecond (so the
+    first-use work of a fresh chain, its Data and packs, interleaves); the results in order of finishing."""
+    out: list = []
+    barrier = threading.Barrier(n_threads)
+
+    def work(k):
+        barrier.wait()
+        out.append(call(k))
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=work, args=(k,)) for k in range(n_threads)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(old)
+    return out
+
+
+def test_a_fresh_chains_first_calls_from_several_threads_agree():
+    """The first calls of a fresh chain from several threads fill its Data once: a pack made twice and
+    replaced freed the packed constants another thread's C call was reading (wrong poses, a refused struct,
+    a crash; seen on a slow CI machine). Calls that all get the same, right answer."""
+    from diffkin import ik
+
+    ref_chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
+    qs = _q(ref_chain, 11, n=4)
+    with torch.no_grad(), native.disabled():
+        ref_T, ref_J = ref_chain.forward_kinematics_and_jacobian(qs)
+    T_goal = ref_T[0].contiguous()
+    ref_ik = ik.solve(ref_chain, T_goal, seed=3)
+    for _ in range(6):  # fresh chains: the race is in the first calls
+        chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
+        with torch.no_grad():
+            fk = _first_calls_from_threads(lambda k: chain.forward_kinematics_and_jacobian(qs[k]) + (k,))
+        assert len(fk) == 4
+        for T, J, k in fk:
+            assert torch.allclose(T, ref_T[k], atol=1e-12, rtol=0) and torch.allclose(J, ref_J[k], atol=1e-12,
+                                                                                      rtol=0)
+        chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
+        solved = _first_calls_from_threads(lambda k: ik.solve(chain, T_goal, seed=3))
+        assert len(solved) == 4
+        assert all(torch.equal(r.q, ref_ik.q) and bool(r.success) for r in solved)
 
 
 def test_the_watch_sees_every_byte():

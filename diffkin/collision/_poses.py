@@ -126,12 +126,13 @@ class LinkFrames:
             return None
         data = cache.current(chain)  # the Data _native_model has just checked; the pack is kept on it
         seg, stacked = data.segments(chain)
-        packed = data.extra.get("all_frames")
-        if packed is None:
+
+        def make():
             topo = dataclasses.replace(chain._topo, ends=tuple(range(chain._topo.n_frames)))
-            ends = [None] * topo.n_frames
-            packed = data.extra["all_frames"] = native.NativeModel(
-                topo, Segments(seg.pre, seg.offset, seg.post, seg.base, ends))
+            return native.NativeModel(topo, Segments(seg.pre, seg.offset, seg.post, seg.base,
+                                                     [None] * topo.n_frames))
+
+        packed = data.derived("all_frames", make)
         B = torch.eye(4, dtype=q.dtype) if stacked.base is None else stacked.base.to(q.dtype)
         return packed, B
 

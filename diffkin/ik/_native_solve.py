@@ -60,6 +60,9 @@ class _Prepared:
             # for the vectorised nearest-pose search
             self.lib_pose = T[:, :, :3, [3, 0, 1, 2]].permute(0, 3, 1, 2).reshape(L, -1).T.contiguous()
         self.L, self._configured, self._one = L, {}, {}
+        # the two caches are filled once per key (C calls use their addresses); re-entrant: one() fills
+        # configured()
+        self._lock = threading.RLock()
         # solve_one's outputs by empty_like (half the cost of torch.empty with a dtype): q, a real, a flag,
         # a count
         self.outs = (torch.empty(self.n, dtype=dtype), torch.empty((), dtype=dtype),
@@ -76,13 +79,16 @@ class _Prepared:
         key = (cfg, position_only, K)
         hit = self._configured.get(key)
         if hit is None:
-            rot = [] if position_only else [math.sqrt(cfg.orientation_weight)] * 3
-            sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
-            hit = self._configured[key] = (sqrt_w, native._filled(
-                native.SolveArgs.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
-                damping2=cfg.damping, error_damping=cfg.error_damping, margin=cfg.margin,
-                min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
-                feature_weight=cfg.orientation_weight))
+            with self._lock:
+                hit = self._configured.get(key)
+                if hit is None:
+                    rot = [] if position_only else [math.sqrt(cfg.orientation_weight)] * 3
+                    sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
+                    hit = self._configured[key] = (sqrt_w, native._filled(
+                        native.SolveArgs.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
+                        damping2=cfg.damping, error_damping=cfg.error_damping, margin=cfg.margin,
+                        min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
+                        feature_weight=cfg.orientation_weight))
         return hit[1]
 
     def one(self, tol: tuple, num_seeds: int, max_iterations: int) -> tuple[int, int]:
@@ -92,13 +98,18 @@ class _Prepared:
         key = (tol, num_seeds, max_iterations)
         hit = self._one.get(key)
         if hit is None:
-            R = _seeds.ranks(self.L, 1, _DEFAULT.library_ranks)
-            P = _seeds.pool_size(1, num_seeds, 0, R)
-            args = native._filled(
-                native.SolveArgs.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
-                tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations, n_user=0,
-                user_u=None, lib_ranks=R, n_pool=P, nthreads=1, target_stride=4)  # a row-major (4, 4) pose
-            hit = self._one[key] = (ctypes.addressof(args), P * self.nu, args)  # args keeps the address
+            with self._lock:
+                hit = self._one.get(key)
+                if hit is None:
+                    R = _seeds.ranks(self.L, 1, _DEFAULT.library_ranks)
+                    P = _seeds.pool_size(1, num_seeds, 0, R)
+                    args = native._filled(
+                        native.SolveArgs.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
+                        tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations,
+                        n_user=0, user_u=None, lib_ranks=R, n_pool=P, nthreads=1,
+                        target_stride=4)  # a row-major (4, 4) pose
+                    # args keeps the address
+                    hit = self._one[key] = (ctypes.addressof(args), P * self.nu, args)
         return hit[:2]
 
 
@@ -116,11 +127,8 @@ def prepared(chain, x: Tensor, dtype: torch.dtype, respect_limits: bool, L: int)
     hit = _entry(chain, x)
     if hit is None:
         return None
-    key = ("solve", dtype, respect_limits, L)
-    prep = hit.extra.get(key)
-    if prep is None:
-        prep = hit.extra[key] = _Prepared(chain, hit.native, dtype, respect_limits, L)
-    return prep
+    return hit.derived(("solve", dtype, respect_limits, L),
+                       lambda: _Prepared(chain, hit.native, dtype, respect_limits, L))
 
 
 def applies(chain, T_target: Tensor, progress: bool) -> bool:
@@ -266,7 +274,7 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
     state = _one_state(chain, T, tol, num_seeds, max_iterations)
     if state is None:
         return None
-    watch, tmpl, npool, (tq, treal, tflag, tcount) = state
+    watch, tmpl, npool, (tq, treal, tflag, tcount), _ = state  # the last keeps Data and pack alive
     empty = torch.empty_like
     q, ok, pe, oe, its, seeds = (empty(tq), empty(tflag), empty(treal), empty(treal), empty(tcount),
                                  empty(tcount))
@@ -299,19 +307,19 @@ def solve_one(chain, T: Tensor, generator, seed, *, num_seeds, max_iterations, t
 
 
 def _one_state(chain, T: Tensor, tol: tuple, num_seeds: int, max_iterations: int):
-    """``(watch address, dk_solve_one's argument template address, pool length, output templates)`` of the
-    chain's Data for a one-target call (the pointers checked here; ``dk_solve_one`` compares the
-    bytes), or None where the fused kernel does not serve the chain in ``T``'s dtype."""
+    """``(watch address, dk_solve_one's argument template address, pool length, output templates, (Data,
+    pack))`` of the chain's Data for a one-target call (the pointers checked here; ``dk_solve_one``
+    compares the bytes), or None where the fused kernel does not serve the chain in ``T``'s dtype. The
+    caller holds the last item through the call: the addresses point into those objects, and another
+    thread may replace the chain's Data meanwhile."""
     hit = single._current(chain, False)
     if hit is None or T.dtype is not hit.dtype:
         return None
-    prep = hit.extra.get(_ONE)
+    prep = hit.derived(_ONE, lambda: prepared(chain, T, T.dtype, True, _DEFAULT.library_size))
     if prep is None:
-        prep = hit.extra[_ONE] = prepared(chain, T, T.dtype, True, _DEFAULT.library_size)
-        if prep is None:
-            return None
+        return None
     tmpl, npool = prep.one(tol, num_seeds, max_iterations)
-    return hit.watch_addr, tmpl, npool, prep.outs
+    return hit.watch_addr, tmpl, npool, prep.outs, (hit, prep)
 
 
 def _wants_gradients(chain, T: Tensor) -> bool:

@@ -640,9 +640,7 @@ def route(chain, q, tasks, dt, limits, damping) -> Tensor | None:
     if data is None:
         return None
     key = (dtype, tuple(frames), posture, config, vel, damping, com, coll_key)
-    problems = data.extra.get(_CACHE)
-    if problems is None:
-        problems = data.extra[_CACHE] = {}
+    problems = data.derived(_CACHE, dict)
     prob = problems.get(key)
     if prob is None:
         prob = _build(chain, key, limits, dt, VelocityLimit, Problem, com=com, collision=coll)

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import ctypes
 import itertools
+import threading
 
 import torch
 from torch import Tensor, nn
@@ -48,6 +49,7 @@ _GENERATION = itertools.count(1)  # unique over all chains: a Data's generation 
 _I64, _PTR = ctypes.c_int64, ctypes.c_void_p
 _is_wrapped = torch._C._functorch.is_functorch_wrapped_tensor
 _unchanged: tuple = (None, None)  # (the loaded library, its dk_unchanged typed)
+_MAKING = threading.Lock()  # held while a chain's new Data is made and stored
 
 
 def _dk_unchanged():
@@ -124,10 +126,14 @@ class Data:
     :class:`~diffkin.kernels.native.NativeModel`), the lean call state (:meth:`lean`: :attr:`base` the
     address of the packed ``dk_args`` of the chain's dtype, :attr:`watch_addr`, output templates
     :attr:`T0` / :attr:`J0`), :attr:`zero` (per ``"base"`` / ``"tool"``: whether that correction is
-    exactly zero) and :attr:`extra` (other fast paths' derived state, by their own keys)."""
+    exactly zero) and :attr:`extra` (other fast paths' derived state, by their own keys: :meth:`derived`).
+
+    Every slot is filled once, under the Data's lock: calls from several threads share one Data, and C
+    calls hold plain addresses into what the slots keep alive (the packed ``dk_args``, the watch), so a
+    slot made twice and replaced would free memory another thread's call is reading."""
 
     __slots__ = ("generation", "tensors", "ptrs", "versions", "topo", "dtype", "device", "watch", "copies",
-                 "constants", "native", "base", "watch_addr", "n", "T0", "J0", "zero", "extra")
+                 "constants", "native", "base", "watch_addr", "n", "T0", "J0", "zero", "extra", "_lock")
 
     def __init__(self, ts: tuple, topo, dtype: torch.dtype, device: torch.device):
         self.generation = next(_GENERATION)
@@ -145,6 +151,7 @@ class Data:
         self.n = 0
         self.zero: dict[str, bool] = {}
         self.extra: dict = {}
+        self._lock = threading.RLock()  # re-entrant: lean() fills native, which fills constants
 
     def current(self, ts: tuple, topo) -> bool:
         """THE rule: the same topology object, every tensor at the same pointer, and unchanged contents
@@ -159,14 +166,32 @@ class Data:
     def segments(self, chain) -> tuple:
         """``(per_joint, stacked)``: the chain's constant fixed transforms (made once per Data)."""
         if self.constants is None:
-            self.constants = chain._constant_segments()
+            with self._lock:
+                if self.constants is None:
+                    self.constants = chain._constant_segments()
         return self.constants
 
     def native_model(self, chain) -> native.NativeModel:
         """The packed constants of the fused C kernel (made once per Data; the library must be loaded)."""
         if self.native is None:
-            self.native = native.NativeModel(self.topo, self.segments(chain)[0])
+            with self._lock:
+                if self.native is None:
+                    self.native = native.NativeModel(self.topo, self.segments(chain)[0])
         return self.native
+
+    def derived(self, key, make):
+        """``extra[key]``, made by ``make()`` the first time (once, whichever thread asks first: the others
+        wait and get the same object). A ``make()`` that answers None stores nothing (asked again next
+        time); one that raises stores nothing."""
+        value = self.extra.get(key)
+        if value is None:
+            with self._lock:
+                value = self.extra.get(key)
+                if value is None:
+                    value = make()
+                    if value is not None:
+                        self.extra[key] = value
+        return value
 
     def lean(self, chain) -> Data | None:
         """This Data with its single-call state filled (the packed ``dk_args`` of the chain's dtype, the
@@ -176,6 +201,10 @@ class Data:
             return self
         if self.watch is None or self.copies or self.device.type != "cpu" or not native.available():
             return None
+        with self._lock:
+            return self if self.base is not None else self._fill_lean(chain)
+
+    def _fill_lean(self, chain) -> Data:
         with torch.no_grad():  # the packed constants are data (a caller may run in grad mode)
             args = self.native_model(chain).args[self.dtype]
         self.n, K, nv = chain.n_joints, chain.n_ends, chain.nv  # read once: properties cost µs
@@ -215,8 +244,11 @@ def current(chain, grad: bool | None = None) -> Data | None:
     for t in ts:
         if t is not None and not _plain(t):
             return None
-    mask = d["_buffers"]["revolute_mask"]
-    data = d[KEY] = Data(ts, d["_topo"], mask.dtype, mask.device)
+    with _MAKING:  # one new Data however many threads found the old one stale (or none)
+        data = d.get(KEY)
+        if data is None or not data.current(ts, d["_topo"]):
+            mask = d["_buffers"]["revolute_mask"]
+            data = d[KEY] = Data(ts, d["_topo"], mask.dtype, mask.device)
     return data
 
 
