@@ -55,7 +55,10 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
 * ``diffkin plan, one at a time``: the first ``--subset`` problems of each family, each in its own call
   (after one untimed warm-up call), and the search stage alone on each (the edge checker and RRT-Connect
   as ``plan`` runs them, :func:`_search_stage`): median wall times, and the search's median over VAMP's
-  median planning time on the same problems (``search_vs_vamp``);
+  median planning time on the same problems (``search_vs_vamp``); and the search again with its scene
+  prepared before the clock starts (:func:`prepared_scene`: the edge checker and its C constants, as VAMP's
+  clock starts after ``problem_dict_to_vamp`` has built its environment): ``search_prepared_ms`` and
+  ``prepared_vs_vamp``;
 * ``OMPL RRTConnect``: on the same subset, as ``--ompl`` (``--ompl-time`` seconds each). When ``ompl`` is
   not importable here, ``OMPL_SITE`` names a site-packages holding PyPI ``ompl`` (appended to ``sys.path``).
 
@@ -252,19 +255,30 @@ def _by_family(records) -> dict[str, list[dict]]:
     return dict(sorted(out.items()))
 
 
+def prepared_scene(model, world, qs):
+    """The scene made ready for the search: the edge checker and its C planner's constants (world arrays,
+    skip masks, the decisions' struct: ``NativePlanner.make``), as VAMP's ``problem_dict_to_vamp`` makes its
+    environment before its clock starts."""
+    from diffkin.motion._edges import EdgeChecker
+
+    checker = EdgeChecker(model, world, 0.0, 0.005)
+    checker.native(qs)
+    return checker
+
+
 def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
-                  seed: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+                  seed: int, checker=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``motion.plan``'s search stage alone, as ``plan`` runs it: per-row validity with its resolution ladder
     (the continuous edge checker at ``plan``'s default resolution, margin 0), then the C RRT-Connect
     (:mod:`diffkin.motion._native_search`) -> ``found``, ``valid`` (B,) bool and ``checked`` (B,)
     configurations decided. No goal IK, shortcutting (``plan``'s random shortcuts run in the same C call:
-    left out here, as VAMP's planning time leaves out its simplification), smoothing or timing."""
-    from diffkin.motion._edges import EdgeChecker
+    left out here, as VAMP's planning time leaves out its simplification), smoothing or timing. ``checker``:
+    the scene already prepared (:func:`prepared_scene`), else prepared here."""
     from diffkin.motion._native_search import search_native
     from diffkin.motion.plan import _row_resolution
 
     lim = chain.q_limits.to(qs.dtype)
-    checker = EdgeChecker(model, world, 0.0, 0.005)
+    checker = prepared_scene(model, world, qs) if checker is None else checker
     rows = torch.arange(qs.shape[0])
     eta, a, b = _row_resolution(checker, qs, qg, rows)
     valid = a & b
@@ -375,8 +389,13 @@ def _one_at_a_time(problems, iterations: int, step: float, seed: int, ompl_time:
             t1 = time.perf_counter()
             found = _search_stage(chain, model, world, qs, qg, iterations, step, seed)[0]
             t2 = time.perf_counter()
+            checker = prepared_scene(model, world, qs)  # the scene made ready first, as VAMP's environment
+            t3 = time.perf_counter()
+            _search_stage(chain, model, world, qs, qg, iterations, step, seed, checker)
+            t4 = time.perf_counter()
         r = {"family": p.family, "name": p.name, "valid": "in collision" not in res.reason[0],
              "success": bool(res.success[0]), "plan_s": t1 - t0, "found": bool(found[0]), "search_s": t2 - t1,
+             "search_prepared_s": t4 - t3,
              "ompl_success": None, "ompl_s": None}
         if mods is not None:
             r["ompl_success"], r["ompl_s"] = _ompl_solve(*mods, model, world, lim, p, ompl_time)
@@ -442,12 +461,16 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
         if not ss:
             continue
         search_ms = [1e3 * r["search_s"] for r in ss if r["found"]]
+        prepared_ms = [1e3 * r["search_prepared_s"] for r in ss if r["found"]]
         vamp_ms = [1e-6 * vamp[r["name"]]["plan_ns"] for r in ss if vamp[r["name"]]["solved"]] if vamp else []
         rows.append({"method": f"diffkin plan, one at a time (first {subset})", "family": f,
                      "problems": len(ss), "valid": sum(r["valid"] for r in ss),
                      "success": sum(r["success"] for r in ss), "ms": med([1e3 * r["plan_s"] for r in ss]),
                      "search_ms": med(search_ms), "search_found": sum(r["found"] for r in ss),
-                     "search_vs_vamp": (med(search_ms) / med(vamp_ms)) if search_ms and vamp_ms else None})
+                     "search_vs_vamp": (med(search_ms) / med(vamp_ms)) if search_ms and vamp_ms else None,
+                     "search_prepared_ms": med(prepared_ms),
+                     "prepared_vs_vamp": (med(prepared_ms) / med(vamp_ms)) if prepared_ms and vamp_ms
+                     else None})
         if ss[0]["ompl_success"] is not None:
             rows.append({"method": f"OMPL RRTConnect, diffkin checker (first {subset}, {ompl_time:g} s)",
                          "family": f, "problems": len(ss), "success": sum(r["ompl_success"] for r in ss),
@@ -456,7 +479,8 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
 
 
 COLUMNS = ("method", "family", "problems", "valid", "success", "ms", "search_ms", "search_found",
-           "search_vs_vamp", "duration_s", "spline_s", "dur_vs_vamp_stop", "dur_vs_vamp_spline", "length_rad",
+           "search_vs_vamp", "search_prepared_ms", "prepared_vs_vamp", "duration_s", "spline_s",
+           "dur_vs_vamp_stop", "dur_vs_vamp_spline", "length_rad",
            "jerk_max", "recheck_min_mm")
 
 
@@ -689,11 +713,13 @@ def _compare_text(rows, a, n: int) -> str:
             "simplification, its own clock; one at a time and OMPL: wall); search_ms = RRT-Connect alone "
             "(diffkin: EdgeChecker, start and goal checks and RRT-Connect, no shortcuts; VAMP: planning, no "
             "simplification); search_vs_vamp = ratio of the medians on the "
-            "same problems; duration_s = trajectory seconds under the Franka limits (VAMP: its path timed by "
-            "toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through its waypoints, "
-            "not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on problems both "
-            "solved; length_rad = joint-space path length; jerk_max = max |dq''|/dt sampled every 1 ms, "
-            "rad/s^3 (toppra's q'' is piecewise constant); recheck_min_mm = coal/Pinocchio re-check of "
+            "same problems; search_prepared_ms, prepared_vs_vamp = the same with the scene prepared before "
+            "the clock starts (diffkin: the edge checker and its C constants; VAMP's clock also starts after "
+            "its environment is built); duration_s = trajectory seconds under the Franka limits (VAMP: its "
+            "path timed by toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through "
+            "its waypoints, not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on "
+            "problems both solved; length_rad = joint-space path length; jerk_max = max |dq''|/dt sampled "
+            "every 1 ms, rad/s^3 (toppra's q'' is piecewise constant); recheck_min_mm = coal/Pinocchio re-check of "
             "diffkin's successes.")
     import textwrap
 

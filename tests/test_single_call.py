@@ -226,13 +226,13 @@ def test_a_fresh_chains_first_calls_from_several_threads_agree():
     for _ in range(6):  # fresh chains: the race is in the first calls
         chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
         with torch.no_grad():
-            fk = _first_calls_from_threads(lambda k: chain.forward_kinematics_and_jacobian(qs[k]) + (k,))
+            fk = _first_calls_from_threads(lambda k, c=chain: c.forward_kinematics_and_jacobian(qs[k]) + (k,))
         assert len(fk) == 4
         for T, J, k in fk:
             assert torch.allclose(T, ref_T[k], atol=1e-12, rtol=0) and torch.allclose(J, ref_J[k], atol=1e-12,
                                                                                       rtol=0)
         chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
-        solved = _first_calls_from_threads(lambda k: ik.solve(chain, T_goal, seed=3))
+        solved = _first_calls_from_threads(lambda k, c=chain: ik.solve(c, T_goal, seed=3))
         assert len(solved) == 4
         assert all(torch.equal(r.q, ref_ik.q) and bool(r.success) for r in solved)
 
