@@ -719,8 +719,8 @@ def _compare_text(rows, a, n: int) -> str:
             "path timed by toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through "
             "its waypoints, not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on "
             "problems both solved; length_rad = joint-space path length; jerk_max = max |dq''|/dt sampled "
-            "every 1 ms, rad/s^3 (toppra's q'' is piecewise constant); recheck_min_mm = coal/Pinocchio re-check of "
-            "diffkin's successes.")
+            "every 1 ms, rad/s^3 (toppra's q'' is piecewise constant); recheck_min_mm = coal/Pinocchio "
+            "re-check of diffkin's successes.")
     import textwrap
 
     head = "\n".join("# " + line for para in head.split("\n") for line in textwrap.wrap(para, 108)) + "\n\n"
