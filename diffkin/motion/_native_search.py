@@ -4,7 +4,8 @@
 Same algorithm and success semantics as :mod:`diffkin.motion._search` (the torch path, which serves CUDA
 tensors, builds without a C compiler and models the C decisions do not serve): the straight edge first, then
 trees from the start and the goal, the one with fewer nodes extending by at most ``step`` towards a uniform
-sample and the other connecting by the longest clear prefix, then random shortcuts; every edge decided by the
+sample and the other connecting by one straight edge (each edge taken whole or not at all), then random
+shortcuts; every edge decided by the
 subdivision of :mod:`diffkin.motion._edges` with the same reach bound ``R``
 (:func:`~diffkin.motion.joint_reach`) and each problem's resolution. What differs: one problem at a time per
 thread instead of all problems per iteration
@@ -154,10 +155,10 @@ class NativePlanner:
     def edges(self, qa: Tensor, qb: Tensor, steps: Tensor, slack: Tensor, world_row: Tensor | None,
               prefix: bool) -> tuple[Tensor, Tensor] | None:
         """The subdivision samples i = 0 .. ``steps[e]`` of the straight edges ``qa → qb (E, nq)`` decided
-        in C (``dk_plan_edges``: in order with ``prefix``, else coarse to fine; an edge leaves at its first
-        colliding block), each with the slack ``slack[e]`` in its world row ``world_row[e]`` (None: row 0):
-        ``(first_bad (E,), decided (E,))`` long, first_bad the colliding sample found (``steps + 1``: every
-        sample clear; with ``prefix`` the first one along the edge); None where the call is refused."""
+        in C (``dk_plan_edges``: in order with ``prefix``, else coarse, then in order; an edge leaves at its
+        first colliding block), each with the slack ``slack[e]`` in its world row ``world_row[e]`` (None:
+        row 0): ``(first_bad (E,), decided (E,))`` long, first_bad the colliding sample found (``steps + 1``:
+        every sample clear; with ``prefix`` the first one along the edge); None where the call is refused."""
         E = qa.shape[0]
         qa, qb = (t.detach().to(self.dtype).contiguous() for t in (qa, qb))
         steps = steps.to(torch.int64).contiguous()

@@ -6,9 +6,10 @@ the proven step bound), all problems' edges of one iteration in one batched deci
 Each problem's two trees (rooted at the start and the goal) are tensors ``(P, 2, max_iterations + 2, nq)``
 (P: the problems the straight edge left) with parent indices; one iteration extends, for every unsolved
 problem at once, its tree with fewer nodes (the start's on a tie: balanced trees, as the C search's) by one
-step of at most ``step`` (in the bound's metric: metres of geom travel) towards a random configuration (as far
-as that edge is clear), then tries to connect the other tree to the new node by the longest clear prefix of
-the straight edge (RRT-Connect's CONNECT, decided by one subdivided edge).
+step of at most ``step`` (in the bound's metric: metres of geom travel) towards a random configuration when
+that whole edge is clear, then tries to connect the other tree to the new node by one straight edge
+(RRT-Connect's CONNECT, decided by one subdivided edge); both edges are taken whole or not at all, as the C
+search's and VAMP's.
 """
 
 from __future__ import annotations
@@ -95,33 +96,24 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         d = q_rand - q_near
         L = (d.abs() * w).sum(-1)
         q_new = q_near + d * (step / L.clamp(min=step))[:, None]
-        # EXTEND as far as the edge is clear (its clear prefix, as the C search): trees reach into passages
-        _, lam = checker.edges(q_near, q_new, pid[rows], prefix=True)
-        ok = lam > 0
-        q_new = q_near + lam[:, None] * (q_new - q_near)
+        # EXTEND by the whole edge or not at all (as the C search: a rejected edge is usually caught by its
+        # coarse samples)
+        ok, _ = checker.edges(q_near, q_new, pid[rows])
         grow, ga, gb = rows[ok], ta[ok], tb[ok]
         if grow.numel():
             slot = count[grow, ga]
             nodes[grow, ga, slot] = q_new[ok]
             parent[grow, ga, slot] = near[ok]
             count[grow, ga] += 1
-            # CONNECT: the other tree's nearest node towards the new node, as far as the edge is clear
+            # CONNECT: the other tree's nearest node to the new node by one whole edge
             qn = q_new[ok]
             nearB = _nearest(nodes[grow, gb], count[grow, gb], qn, w)
-            qb = nodes[grow, gb, nearB]
-            freeB, lam = checker.edges(qb, qn, pid[grow], prefix=True)
+            freeB, _ = checker.edges(nodes[grow, gb, nearB], qn, pid[grow])
             joined = grow[freeB]
             if joined.numel():
                 link[joined, ga[freeB]] = slot[freeB]
                 link[joined, gb[freeB]] = nearB[freeB]
                 active[joined] = False
-            part = (~freeB) & (lam > 0)
-            ext, eb = grow[part], gb[part]
-            if ext.numel():
-                s2 = count[ext, eb]
-                nodes[ext, eb, s2] = qb[part] + lam[part, None] * (qn[part] - qb[part])
-                parent[ext, eb, s2] = nearB[part]
-                count[ext, eb] += 1
     joined = ~active
     sub_found = joined
     p0, n0 = _trace(nodes[:, 0], parent[:, 0], link[:, 0])
