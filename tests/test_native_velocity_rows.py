@@ -297,6 +297,45 @@ def test_native_velocity_step_with_com_target(g1):
     torch.testing.assert_close(step, want, atol=1e-9, rtol=0)
 
 
+def test_native_velocity_step_with_com_targets_from_several_threads(g1):
+    """One problem stepped from four threads, each with its own ComTask target: each call reads its own
+    target (the call struct is the problem's: its target pointer was set outside the C call, and another
+    thread could set its own, or free it, in between)."""
+    import sys
+    import threading
+
+    model, chain = g1
+    _, q, tasks = _g1_case(model, chain, 15)
+    com = tasks[0]
+    prob = nvel.NativeVelocity(chain, [], com=(com.cost, com.gain, com.lm_damping), damping=1e-6)
+    targets = [(com.target + 0.02 * k).contiguous() for k in range(4)]
+    want = [prob.step(q.contiguous(), None, None, 0.01, com_target=t).clone() for t in targets]
+    assert not torch.equal(want[0], want[1])
+    got: list = [[] for _ in targets]
+    errors: list = []
+
+    def work(k):
+        try:
+            for _ in range(200):
+                got[k].append(prob.step(q.contiguous(), None, None, 0.01, com_target=targets[k]).clone())
+        except Exception as e:  # noqa: BLE001 - reported below, not lost in the thread
+            errors.append(e)
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(old)
+    assert not errors
+    for k in range(4):
+        assert len(got[k]) == 200 and all(torch.equal(v, want[k]) for v in got[k])
+
+
 def _contact_case(chain, rc, q, T, i, rng_draws):
     """Case i of the contact-heavy sweep: spheres 5-10 cm under and 15 cm beside the flange, a target
     moved and turned at random, Δt and the velocity limit varied, detection 0.2 m."""

@@ -190,13 +190,19 @@ def test_calls_from_several_threads_agree():
 
 def _first_calls_from_threads(call, n_threads=4):
     """``call(thread index)`` from several threads at once, switching between them every microsecond (so the
-    first-use work of a fresh chain, its Data and packs, interleaves); the results in order of finishing."""
+    first-use work of a fresh chain, its Data and packs, interleaves); the results in order of finishing (an
+    exception in a thread is raised here, not lost in it)."""
     out: list = []
-    barrier = threading.Barrier(n_threads)
+    errors: list = []
+    barrier = threading.Barrier(n_threads, timeout=600)
 
     def work(k):
-        barrier.wait()
-        out.append(call(k))
+        try:
+            barrier.wait()
+            with torch.no_grad():  # grad mode is per thread
+                out.append(call(k))
+        except Exception as e:  # noqa: BLE001 - raised below
+            errors.append(e)
 
     old = sys.getswitchinterval()
     sys.setswitchinterval(1e-6)
@@ -208,6 +214,8 @@ def _first_calls_from_threads(call, n_threads=4):
             t.join()
     finally:
         sys.setswitchinterval(old)
+    if errors:
+        raise errors[0]
     return out
 
 
@@ -225,8 +233,7 @@ def test_a_fresh_chains_first_calls_from_several_threads_agree():
     ref_ik = ik.solve(ref_chain, T_goal, seed=3)
     for _ in range(6):  # fresh chains: the race is in the first calls
         chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
-        with torch.no_grad():
-            fk = _first_calls_from_threads(lambda k, c=chain: c.forward_kinematics_and_jacobian(qs[k]) + (k,))
+        fk = _first_calls_from_threads(lambda k, c=chain: c.forward_kinematics_and_jacobian(qs[k]) + (k,))
         assert len(fk) == 4
         for T, J, k in fk:
             assert torch.allclose(T, ref_T[k], atol=1e-12, rtol=0) and torch.allclose(J, ref_J[k], atol=1e-12,

@@ -33,6 +33,7 @@ from __future__ import annotations
 import ctypes
 import math
 import struct
+import threading
 from collections.abc import Sequence
 
 import torch
@@ -184,6 +185,7 @@ class NativeVelocity:
         self.owned = False  # True: kept in a Data's extra by route (its limits and masses are that Data's)
         self._v = torch.empty(nv, dtype=dtype)  # step's output template
         self._ok = ctypes.c_uint8(1)
+        self._com_lock = threading.Lock()  # step's ComTask target: one call's at a time
 
     @property
     def ok(self) -> bool:
@@ -314,15 +316,21 @@ class NativeVelocity:
             lean = self._lean()
             if lean is None:
                 return None
-        if self._rows is not None and "com_cost" in self._rows:  # v3: the ComTask's target (3,)
-            if not (type(com_target) is Tensor and com_target.shape == (3,) and com_target.dtype is self.dtype
-                    and com_target.is_contiguous() and com_target.is_cpu):
-                return None
-            lean[4].com_target = com_target.data_ptr()
+        com = self._rows is not None and "com_cost" in self._rows  # v3: the ComTask's target (3,)
+        if com and not (type(com_target) is Tensor and com_target.shape == (3,) and
+                        com_target.dtype is self.dtype and com_target.is_contiguous() and com_target.is_cpu):
+            return None
         v = torch.empty_like(self._v) if out is None else out  # empty_like: half torch.empty's cost
-        status = lean[1](lean[2], _pack(q.data_ptr(), 0 if targets is None else targets.data_ptr(),
-                                        0 if q_ref is None else q_ref.data_ptr(), v.data_ptr(),
-                                        0 if next_q is None else next_q.data_ptr(), dt))
+        packed = _pack(q.data_ptr(), 0 if targets is None else targets.data_ptr(),
+                       0 if q_ref is None else q_ref.data_ptr(), v.data_ptr(),
+                       0 if next_q is None else next_q.data_ptr(), dt)
+        # the call struct is the problem's, shared by threads: the target is this call's until it returns
+        if com:
+            with self._com_lock:
+                lean[4].com_target = com_target.data_ptr()
+                status = lean[1](lean[2], packed)
+        else:
+            status = lean[1](lean[2], packed)
         if status == 0:
             return v
         if status == _STALE:  # the chain's bytes changed since they were packed: repacked once

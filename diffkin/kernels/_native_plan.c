@@ -10,9 +10,11 @@
  * uniform sample of the box [lo, hi] (the other tree's root with probability goal_bias) by at most `step`
  * (in the bound's metric sum_j R_j |dq_j|: metres of geom travel) when that whole edge is clear, and then
  * the other tree tries its nearest node to the new one by one straight edge (RRT-Connect's CONNECT); a clear
- * one joins the trees. Both edges are taken whole or not at all, as VAMP's: most are rejected, and a
- * rejected edge is usually caught by its coarse samples, where a clear prefix (kept until 5 December)
- * decided every sample in order up to the collision: about 40 % fewer decisions, as many problems solved.
+ * one joins the trees. Both edges are taken whole or not at all (VAMP's EXTEND alike; its CONNECT steps
+ * towards the other tree by `range` and keeps each clear step): most edges are rejected, and a rejected
+ * edge is usually caught by its first, coarse samples, where keeping an edge's clear prefix meant deciding
+ * every sample in order up to the collision (docs/motion.md: about 40 % fewer decisions, as many problems
+ * solved).
  * With `restart` > 0, every `restart` iterations without a join both trees are dropped and grown anew from
  * the roots (the random stream continuing); motion.plan passes 0 (never): restarts did not help on the
  * MotionBenchMaker problems.
@@ -28,7 +30,7 @@
  * joint frame as an end link) and the placement columns h_c of RobotCollision._columns (each capsule end a
  * fixed point of one frame). A full edge is decided coarse, then in order (its far end first, then the
  * midpoints of ever finer halvings down to about 16 samples, then the rest along the edge: EdgeOrder), a
- * prefix in order; both in blocks of 16 growing to COLLIDE_BLOCK samples, an
+ * prefix in order; both in blocks of 4 growing to COLLIDE_BLOCK samples, an
  * edge leaving at its first colliding block. Blocks are decided by DK(collide_first): an edge reads a block
  * only up to its first colliding sample, so the samples past the first collision found so far drop out of
  * the later tests (same decisions where they are read, same paths).
@@ -90,7 +92,7 @@
     X(const void *, qb, "dk_plan_edges: [N n] reals, the edges' far ends (q: their starts)") \
     X(const int64_t *, steps, "dk_plan_edges: [N] each edge's sub-steps (at least 1)") \
     X(const void *, slacks, "dk_plan_edges: [N] reals, each edge's slack (its problem's resolution)") \
-    X(int64_t, prefix, "dk_plan_edges: 1: samples in order along each edge, 0: coarse to fine") \
+    X(int64_t, prefix, "dk_plan_edges: 1: samples in order along each edge, 0: coarse, then in order") \
     X(int64_t *, first_bad, "dk_plan_edges: [N] out: the colliding sample found (steps + 1: none)") \
     X(const int64_t *, keys, "dk_plan_points: [B] each path's random-stream key (_search.row_keys)") \
     X(int64_t, rounds, "dk_plan_points: rounds of shortcuts between points") \
@@ -139,7 +141,7 @@ static int edge_order_fill(EdgeOrder *o, int64_t *idx, int size) {
             i = o->next;
             o->next += o->level == o->top ? o->level : 2 * o->level;
             if (o->next > o->ns) { o->level >>= 1; o->next = o->level; }
-            if (o->level < o->stride) o->seq = 1;
+            if (o->level < o->stride) o->seq = o->stride > 1 ? 1 : o->ns; /* stride 1: every sample taken */
             if (i == o->ns) continue;
         } else {
             if (o->seq >= o->ns) break;
@@ -248,7 +250,9 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
 }
 
 /* The straight edge a -> b in ns sub-steps, its samples i = from .. ns at a + (i / ns) (b - a) taken in the
- * EdgeOrder (in order with prefix, else coarse to fine) in blocks of 16 growing to COLLIDE_BLOCK, the edge
+ * EdgeOrder (in order with prefix, else coarse, then in order) in blocks of 4 growing to COLLIDE_BLOCK (a
+ * rejected edge is usually caught in its first samples; 4 decided 30-50 % fewer than 16 and took 1-15 %
+ * less time on the first 20 MotionBenchMaker problems of each family), the edge
  * leaving at its first colliding block (DK(collide_first)): returns the first colliding sample of that
  * block in the order taken (ns + 1: every sample clear; with prefix the first along the edge). The samples
  * decided are counted in w->checked. */
@@ -258,7 +262,7 @@ static int64_t DK(plan_edge_bad)(DK(PlanWork) *w, const real *a, const real *b, 
     int64_t idx[COLLIDE_BLOCK];
     EdgeOrder order;
     edge_order_init(&order, ns, prefix, from);
-    int size = 16;
+    int size = 4;
     for (;;) {
         const int m = edge_order_fill(&order, idx, size);
         if (m == 0) return ns + 1;
@@ -400,9 +404,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
             if (!(Ld > 0)) continue;
             const real f = Ld > step ? step / Ld : 1;
             for (int j = 0; j < n; j++) qn[j] = qa[j] + f * (qr[j] - qa[j]);
-            /* EXTEND and CONNECT take a whole edge or nothing (VAMP's RRT-Connect alike): a rejected edge
-             * is usually caught by its first, coarse block, where the longest clear prefix had to decide
-             * every sample up to the collision in order (about 40 % fewer decisions; EdgeOrder) */
+            /* EXTEND and CONNECT take a whole edge or nothing (top of this file) */
             if (DK(plan_edge)(w, qa, qn, 0) != 1) continue;
             const int64_t ia = count[a]++;
             DK(plan_put)(w, a, ia, qn);

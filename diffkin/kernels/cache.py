@@ -128,9 +128,12 @@ class Data:
     :attr:`T0` / :attr:`J0`), :attr:`zero` (per ``"base"`` / ``"tool"``: whether that correction is
     exactly zero) and :attr:`extra` (other fast paths' derived state, by their own keys: :meth:`derived`).
 
-    Every slot is filled once, under the Data's lock: calls from several threads share one Data, and C
-    calls hold plain addresses into what the slots keep alive (the packed ``dk_args``, the watch), so a
-    slot made twice and replaced would free memory another thread's call is reading."""
+    The slots of derived objects (:attr:`constants`, :attr:`native`, the lean state, :meth:`derived` entries
+    of :attr:`extra`) are filled once, under the Data's lock: calls from several threads share one Data, and
+    C calls hold plain addresses into what the slots keep alive (the packed ``dk_args``, the watch), so a
+    slot made twice and replaced would free memory another thread's call is reading. Plain values (the
+    :attr:`zero` flags, a recognised closed-form family) may be found twice by racing threads, the same
+    value each time."""
 
     __slots__ = ("generation", "tensors", "ptrs", "versions", "topo", "dtype", "device", "watch", "copies",
                  "constants", "native", "base", "watch_addr", "n", "T0", "J0", "zero", "extra", "_lock")

@@ -9,7 +9,7 @@ problem at once, its tree with fewer nodes (the start's on a tie: balanced trees
 step of at most ``step`` (in the bound's metric: metres of geom travel) towards a random configuration when
 that whole edge is clear, then tries to connect the other tree to the new node by one straight edge
 (RRT-Connect's CONNECT, decided by one subdivided edge); both edges are taken whole or not at all, as the C
-search's and VAMP's.
+search's.
 """
 
 from __future__ import annotations
