@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import math
 import re
+import sys
+import threading
 import warnings
 from pathlib import Path
 
@@ -306,3 +308,34 @@ def g1_mink_tasks(model, tasks) -> list:
     pt = mink.PostureTask(model, cost=tasks[-1].cost)
     pt.set_target(model.qpos0)
     return out + [pt]
+
+
+def in_threads(call, n_threads: int = 4) -> list:
+    """``call(k)`` for k = 0 .. n_threads - 1, each in its own thread, all started together and switching
+    every microsecond (so first-use work and shared call structs interleave), without autograd (grad mode is
+    per thread); the results in order of finishing. An exception in a thread is raised here, not lost."""
+    out: list = []
+    errors: list = []
+    barrier = threading.Barrier(n_threads, timeout=600)
+
+    def work(k):
+        try:
+            barrier.wait()
+            with torch.no_grad():
+                out.append(call(k))
+        except Exception as e:  # noqa: BLE001 - raised below
+            errors.append(e)
+
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        threads = [threading.Thread(target=work, args=(k,)) for k in range(n_threads)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+    finally:
+        sys.setswitchinterval(old)
+    if errors:
+        raise errors[0]
+    return out

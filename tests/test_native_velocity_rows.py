@@ -24,7 +24,7 @@ from diffkin.ik import _native_velocity as nvel
 from diffkin.ik.tasks import Problem
 from diffkin.kernels import native
 from diffkin.models import from_mjcf, from_urdf
-from tests.helpers import g1_com_case, g1_com_robot, g1_mink_tasks, se3_exp
+from tests.helpers import g1_com_case, g1_com_robot, g1_mink_tasks, in_threads, se3_exp
 
 pytestmark = pytest.mark.skipif(not nvel.available(), reason="no C compiler: the fused kernel is not built")
 
@@ -301,9 +301,6 @@ def test_native_velocity_step_with_com_targets_from_several_threads(g1):
     """One problem stepped from four threads, each with its own ComTask target: each call reads its own
     target (the call struct is the problem's: its target pointer was set outside the C call, and another
     thread could set its own, or free it, in between)."""
-    import sys
-    import threading
-
     model, chain = g1
     _, q, tasks = _g1_case(model, chain, 15)
     com = tasks[0]
@@ -311,27 +308,12 @@ def test_native_velocity_step_with_com_targets_from_several_threads(g1):
     targets = [(com.target + 0.02 * k).contiguous() for k in range(4)]
     want = [prob.step(q.contiguous(), None, None, 0.01, com_target=t).clone() for t in targets]
     assert not torch.equal(want[0], want[1])
-    got: list = [[] for _ in targets]
-    errors: list = []
 
-    def work(k):
-        try:
-            for _ in range(200):
-                got[k].append(prob.step(q.contiguous(), None, None, 0.01, com_target=targets[k]).clone())
-        except Exception as e:  # noqa: BLE001 - reported below, not lost in the thread
-            errors.append(e)
+    def steps(k):
+        return k, [prob.step(q.contiguous(), None, None, 0.01, com_target=targets[k]).clone()
+                   for _ in range(200)]
 
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)
-    try:
-        threads = [threading.Thread(target=work, args=(k,)) for k in range(4)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-    finally:
-        sys.setswitchinterval(old)
-    assert not errors
+    got = dict(in_threads(steps))
     for k in range(4):
         assert len(got[k]) == 200 and all(torch.equal(v, want[k]) for v in got[k])
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import copy
 import pickle
-import sys
 import threading
 
 import numpy as np
@@ -19,6 +18,7 @@ from torch import nn
 from diffkin import models
 from diffkin.errors import DTypeError, NonFiniteError, ShapeError
 from diffkin.kernels import native, single
+from tests.helpers import in_threads
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="no C compiler: the torch kernels serve")
 
@@ -188,37 +188,6 @@ def test_calls_from_several_threads_agree():
     assert len(errors) == 4 * 20 * len(qs) and max(errors) < 1e-12
 
 
-def _first_calls_from_threads(call, n_threads=4):
-    """``call(thread index)`` from several threads at once, switching between them every microsecond (so the
-    first-use work of a fresh chain, its Data and packs, interleaves); the results in order of finishing (an
-    exception in a thread is raised here, not lost in it)."""
-    out: list = []
-    errors: list = []
-    barrier = threading.Barrier(n_threads, timeout=600)
-
-    def work(k):
-        try:
-            barrier.wait()
-            with torch.no_grad():  # grad mode is per thread
-                out.append(call(k))
-        except Exception as e:  # noqa: BLE001 - raised below
-            errors.append(e)
-
-    old = sys.getswitchinterval()
-    sys.setswitchinterval(1e-6)
-    try:
-        threads = [threading.Thread(target=work, args=(k,)) for k in range(n_threads)]
-        for t in threads:
-            t.start()
-        for t in threads:
-            t.join()
-    finally:
-        sys.setswitchinterval(old)
-    if errors:
-        raise errors[0]
-    return out
-
-
 def test_a_fresh_chains_first_calls_from_several_threads_agree():
     """The first calls of a fresh chain from several threads fill its Data once: a pack made twice and
     replaced freed the packed constants another thread's C call was reading (wrong poses, a refused struct,
@@ -233,13 +202,13 @@ def test_a_fresh_chains_first_calls_from_several_threads_agree():
     ref_ik = ik.solve(ref_chain, T_goal, seed=3)
     for _ in range(6):  # fresh chains: the race is in the first calls
         chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
-        fk = _first_calls_from_threads(lambda k, c=chain: c.forward_kinematics_and_jacobian(qs[k]) + (k,))
+        fk = in_threads(lambda k, c=chain: c.forward_kinematics_and_jacobian(qs[k]) + (k,))
         assert len(fk) == 4
         for T, J, k in fk:
             assert torch.allclose(T, ref_T[k], atol=1e-12, rtol=0) and torch.allclose(J, ref_J[k], atol=1e-12,
                                                                                       rtol=0)
         chain = models.load("panda", dtype=torch.float64).requires_grad_(False)
-        solved = _first_calls_from_threads(lambda k, c=chain: ik.solve(c, T_goal, seed=3))
+        solved = in_threads(lambda k, c=chain: ik.solve(c, T_goal, seed=3))
         assert len(solved) == 4
         assert all(torch.equal(r.q, ref_ik.q) and bool(r.success) for r in solved)
 
