@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import copy
 import pickle
-import threading
 
 import numpy as np
 import pytest
@@ -171,20 +170,16 @@ def test_calls_from_several_threads_agree():
     qs = _q(chain, 9, n=64)
     with torch.no_grad(), native.disabled():
         ref_T, ref_J = chain.forward_kinematics_and_jacobian(qs)
-    errors: list[float] = []
 
-    def work():
-        with torch.no_grad():
-            for _ in range(20):
-                for i in range(len(qs)):
-                    T, J = chain.forward_kinematics_and_jacobian(qs[i])
-                    errors.append(max(float((T - ref_T[i]).abs().max()), float((J - ref_J[i]).abs().max())))
+    def work(_):
+        errors = []
+        for _ in range(20):
+            for i in range(len(qs)):
+                T, J = chain.forward_kinematics_and_jacobian(qs[i])
+                errors.append(max(float((T - ref_T[i]).abs().max()), float((J - ref_J[i]).abs().max())))
+        return errors
 
-    threads = [threading.Thread(target=work) for _ in range(4)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    errors = [e for part in in_threads(work) for e in part]
     assert len(errors) == 4 * 20 * len(qs) and max(errors) < 1e-12
 
 

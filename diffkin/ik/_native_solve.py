@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from ..kernels import native, single
-from ..kernels.cache import Data
+from ..kernels.cache import Data, filled
 from . import _seeds
 from ._kernel import JointMap
 from ._lm import LMConfig
@@ -76,41 +76,31 @@ class _Prepared:
 
     def configured(self, cfg: LMConfig, position_only: bool, K: int) -> native.SolveArgs:
         """:attr:`base` with the fields of ``cfg`` and the row weights set (cached per option set)."""
-        key = (cfg, position_only, K)
-        hit = self._configured.get(key)
-        if hit is None:
-            with self._lock:
-                hit = self._configured.get(key)
-                if hit is None:
-                    rot = [] if position_only else [math.sqrt(cfg.orientation_weight)] * 3
-                    sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
-                    hit = self._configured[key] = (sqrt_w, native._filled(
-                        native.SolveArgs.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
-                        damping2=cfg.damping, error_damping=cfg.error_damping, margin=cfg.margin,
-                        min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
-                        feature_weight=cfg.orientation_weight))
-        return hit[1]
+        def make():
+            rot = [] if position_only else [math.sqrt(cfg.orientation_weight)] * 3
+            sqrt_w = torch.tensor(([1.0] * 3 + rot) * K, dtype=self.dtype)
+            return sqrt_w, native._filled(
+                native.SolveArgs.from_buffer_copy(self.base), sqrt_w=sqrt_w, iters=cfg.check_every,
+                damping2=cfg.damping, error_damping=cfg.error_damping, margin=cfg.margin,
+                min_seed_iterations=cfg.min_seed_iterations, stall_ratio=cfg.stall_ratio,
+                feature_weight=cfg.orientation_weight)
+
+        return filled(self._configured, (cfg, position_only, K), self._lock, make)[1]
 
     def one(self, tol: tuple, num_seeds: int, max_iterations: int) -> tuple[int, int]:
         """The address of the filled ``dk_solve_args`` of a one-target call with default options (every
         field but the target, the pool and the outputs: ``dk_solve_one`` copies the struct and sets them),
         and the pool's length (cached per option set)."""
-        key = (tol, num_seeds, max_iterations)
-        hit = self._one.get(key)
-        if hit is None:
-            with self._lock:
-                hit = self._one.get(key)
-                if hit is None:
-                    R = _seeds.ranks(self.L, 1, _DEFAULT.library_ranks)
-                    P = _seeds.pool_size(1, num_seeds, 0, R)
-                    args = native._filled(
-                        native.SolveArgs.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
-                        tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations,
-                        n_user=0, user_u=None, lib_ranks=R, n_pool=P, nthreads=1,
-                        target_stride=4)  # a row-major (4, 4) pose
-                    # args keeps the address
-                    hit = self._one[key] = (ctypes.addressof(args), P * self.nu, args)
-        return hit[:2]
+        def make():
+            R = _seeds.ranks(self.L, 1, _DEFAULT.library_ranks)
+            P = _seeds.pool_size(1, num_seeds, 0, R)
+            args = native._filled(
+                native.SolveArgs.from_buffer_copy(self.configured(_DEFAULT, False, 1)), n_targets=1,
+                tol_p=tol[0], tol_o=tol[1], n_seeds=num_seeds, max_iterations=max_iterations, n_user=0,
+                user_u=None, lib_ranks=R, n_pool=P, nthreads=1, target_stride=4)  # a row-major (4, 4) pose
+            return ctypes.addressof(args), P * self.nu, args  # args keeps the address
+
+        return filled(self._one, (tol, num_seeds, max_iterations), self._lock, make)[:2]
 
 
 def _entry(chain, x: Tensor) -> Data | None:

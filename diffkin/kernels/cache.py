@@ -42,7 +42,7 @@ from torch import Tensor, nn
 
 from . import native
 
-__all__ = ["Data", "Watch", "current", "drop", "pointers", "KEY"]
+__all__ = ["Data", "Watch", "current", "drop", "filled", "pointers", "KEY"]
 
 KEY = "_model_data"  # the chain's Data, in its instance __dict__ (a plain read: ~50 ns)
 _GENERATION = itertools.count(1)  # unique over all chains: a Data's generation is a cache key elsewhere
@@ -183,18 +183,8 @@ class Data:
         return self.native
 
     def derived(self, key, make):
-        """``extra[key]``, made by ``make()`` the first time (once, whichever thread asks first: the others
-        wait and get the same object). A ``make()`` that answers None stores nothing (asked again next
-        time); one that raises stores nothing."""
-        value = self.extra.get(key)
-        if value is None:
-            with self._lock:
-                value = self.extra.get(key)
-                if value is None:
-                    value = make()
-                    if value is not None:
-                        self.extra[key] = value
-        return value
+        """``extra[key]``, made by ``make()`` the first time (:func:`filled` under the Data's lock)."""
+        return filled(self.extra, key, self._lock, make)
 
     def lean(self, chain) -> Data | None:
         """This Data with its single-call state filled (the packed ``dk_args`` of the chain's dtype, the
@@ -253,6 +243,21 @@ def current(chain, grad: bool | None = None) -> Data | None:
             mask = d["_buffers"]["revolute_mask"]
             data = d[KEY] = Data(ts, d["_topo"], mask.dtype, mask.device)
     return data
+
+
+def filled(cache: dict, key, lock, make):
+    """``cache[key]``, made by ``make()`` the first time, under ``lock`` (once, whichever thread asks first:
+    the others wait and get the same object, so an address into it stays valid while the cache holds it). A
+    ``make()`` that answers None stores nothing (asked again next time); one that raises stores nothing."""
+    value = cache.get(key)
+    if value is None:
+        with lock:
+            value = cache.get(key)
+            if value is None:
+                value = make()
+                if value is not None:
+                    cache[key] = value
+    return value
 
 
 def drop(chain) -> None:
