@@ -12,7 +12,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._numerics import cross, eps_for, safe_norm, stable_norm
+from ._numerics import broadcast_shapes, cross, eps_for, safe_norm, stable_norm
 from .errors import ConventionError, ModelError, ShapeError
 from .validation import broadcast_batch, check_trailing, shape_str, tensors
 
@@ -240,7 +240,7 @@ def velocity_transmission_ratio(J: Tensor, u: Tensor) -> Tensor:
     G = J @ J.mT
     reg = eps_for(J) * G.diagonal(dim1=-2, dim2=-1).sum(-1) + torch.finfo(J.dtype).tiny
     G = G + reg[..., None, None] * torch.eye(m, dtype=J.dtype, device=J.device)
-    batch = torch.broadcast_shapes(G.shape[:-2], u.shape[:-1])
+    batch = broadcast_shapes(G.shape[:-2], u.shape[:-1])
     u = u.expand(*batch, m)
     x = torch.linalg.solve(G.expand(*batch, m, m), u.unsqueeze(-1)).squeeze(-1)
     return torch.rsqrt((u * x).sum(-1))

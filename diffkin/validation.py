@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from ._numerics import broadcast_shapes
 from .errors import (
     DeviceError,
     DTypeError,
@@ -248,7 +249,7 @@ def broadcast_batch(*specs: tuple[str, Tensor | None, int]) -> torch.Size:
     broadcast (instead of torch's error from deep inside the computation)."""
     given = [(n, t, k) for n, t, k in specs if t is not None]
     try:
-        return torch.broadcast_shapes(*(t.shape[: t.ndim - k] for _, t, k in given))
+        return broadcast_shapes(*(t.shape[: t.ndim - k] for _, t, k in given))
     except RuntimeError:
         got = ", ".join(f"{n} {shape_str(t.shape)}" for n, t, _ in given)
         raise ShapeError(f"expected arguments whose batch dims broadcast, got {got}") from None
@@ -360,7 +361,7 @@ def check_broadcasts_to(x: Tensor | None, shape: Sequence[int], name: str, of: s
     if x is None:
         return x
     try:
-        ok = tuple(torch.broadcast_shapes(x.shape, tuple(shape))) == tuple(shape)
+        ok = tuple(broadcast_shapes(x.shape, tuple(shape))) == tuple(shape)
     except RuntimeError:
         ok = False
     if not ok:

@@ -468,11 +468,13 @@ def test_shortcut_points_shortens_proven_paths(robot):
 
 
 def test_row_keys_are_splitmix64_of_the_bits_in_python_integers():
-    """row_keys (numpy's int64 on the CPU) against splitmix64 written on Python integers modulo 2^64: the
-    products wrap and the shifts are logical, for any sign of the bits (negative joint values, a negative
-    seed), whatever the batch; the key of a row alone equals its key in the batch."""
+    """row_keys (numpy's int64 on the CPU for a batch, Python integers for a few rows) against splitmix64
+    written here on Python integers modulo 2^64: the products wrap and the shifts are logical, for any sign
+    of the bits (negative joint values, a negative seed), whatever the batch; the key of a row alone, or in
+    a small batch, equals its key in the large batch."""
     import struct
 
+    from diffkin.motion import _search
     from diffkin.motion._search import row_keys
 
     M = (1 << 64) - 1
@@ -490,16 +492,19 @@ def test_row_keys_are_splitmix64_of_the_bits_in_python_integers():
         return key - (1 << 64) if key >> 63 else key
 
     g = torch.Generator().manual_seed(5)
-    qs = torch.randn(6, 7, generator=g, dtype=torch.float64) * 3
-    qg = torch.randn(6, 7, generator=g, dtype=torch.float64) * 3
+    B = 2 * _search._INT_ROWS + 3  # the batch in numpy, its rows alone and in small batches in Python ints
+    qs = torch.randn(B, 7, generator=g, dtype=torch.float64) * 3
+    qg = torch.randn(B, 7, generator=g, dtype=torch.float64) * 3
     qs[0] = 0.0
     qg[1] = -0.0
     for seed in (0, 12345, -7):
         key = row_keys(qs, qg, seed)
-        assert key.dtype == torch.int64 and key.shape == (6,)
+        assert key.dtype == torch.int64 and key.shape == (B,)
         assert key.tolist() == [reference(a.tolist(), b.tolist(), seed) for a, b in zip(qs, qg)]
         assert int(row_keys(qs[3:4], qg[3:4], seed)[0]) == int(key[3])
-    assert len(set(row_keys(qs, qg, 0).tolist())) == 6
+        assert torch.equal(row_keys(qs[2:2 + _search._INT_ROWS], qg[2:2 + _search._INT_ROWS], seed),
+                           key[2:2 + _search._INT_ROWS])
+    assert len(set(row_keys(qs, qg, 0).tolist())) == B
 
 
 def test_cage_problem_spline_refined_not_the_polyline(monkeypatch):

@@ -23,6 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._numerics import broadcast_shapes
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.quaternion import _matrix_to_quaternion
 from ..rotations import (
@@ -258,7 +259,7 @@ def _inputs(T_base_gripper, T_cam_target) -> tuple[Tensor, Tensor]:
                          f"got {shape_str(G.shape)} and {shape_str(C.shape)}")
     if G.dtype != C.dtype:
         raise ShapeError(f"T_base_gripper is {G.dtype}, T_cam_target {C.dtype}; pass one dtype")
-    batch = torch.broadcast_shapes(G.shape[:-3], C.shape[:-3])
+    batch = broadcast_shapes(G.shape[:-3], C.shape[:-3])
     N = G.shape[-3]
     return G.expand(*batch, N, 4, 4), C.expand(*batch, N, 4, 4)
 

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._numerics import broadcast_shapes
 from ..chain import DHChain
 from ..errors import ModelError, ShapeError
 from ..kernels.jacobian import twist_of_derivative
@@ -404,7 +405,7 @@ def measurement_shapes(q: Tensor, T: Tensor, n: int, batch: tuple[int, ...] | No
         )
     if batch is None:
         try:
-            torch.broadcast_shapes(q.shape[:k], T.shape[:k])
+            broadcast_shapes(q.shape[:k], T.shape[:k])
         except RuntimeError:
             raise ShapeError(
                 f"the batch dims of q {shape_str(q.shape)} and T {shape_str(T.shape)} do not broadcast"

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for, tol_for
+from .._numerics import broadcast_shapes, eps_for, tol_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.dls import dls_solve
 from ..validation import _traced, check_number, shape_str, tensors
@@ -165,7 +165,7 @@ def calibration_loss(
                            like=model.chains[0])
     measurement_shapes(q, T, model.n, batch=None)
     try:
-        torch.broadcast_shapes(params.shape[:-1], q.shape[:-2])
+        broadcast_shapes(params.shape[:-1], q.shape[:-2])
     except RuntimeError:
         raise ShapeError(f"the batch dims of params {shape_str(params.shape)} and q {shape_str(q.shape)} do "
                          "not broadcast") from None

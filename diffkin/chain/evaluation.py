@@ -12,6 +12,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
+from .._numerics import broadcast_shapes
 from ..errors import ShapeError
 from ..kernels import cache, native, single
 from ..kernels.columns import columns_to_matrices, plan_of, stack_columns
@@ -153,7 +154,7 @@ class ChainEvaluation:
         (base,) = tensors(("base", base, (4, 4)), like=self)
         if batch is not None:
             try:
-                torch.broadcast_shapes(tuple(batch), base.shape[:-2])
+                broadcast_shapes(tuple(batch), base.shape[:-2])
             except RuntimeError:
                 got = f"{of} {shape_str(tuple(batch))}, got base {shape_str(base.shape)}"
                 raise ShapeError(f"expected base of shape (..., 4, 4) whose batch dims broadcast with those "

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for, safe_norm
+from .._numerics import broadcast_shapes, eps_for, safe_norm
 from ..errors import ModelError
 from ..kernels.joints import origin_transform
 from ..transforms import RIGIDITY_TOLERANCE, _make_transform, _nearest_rigid, _transform_deviations
@@ -88,7 +88,7 @@ def checked_boxes(B: Box, like=None) -> Box:
 
 def _broadcast(vectors: list[Tensor], matrices: list[Tensor]) -> tuple[list[Tensor], list[Tensor]]:
     """Expand ``(..., 3)`` vectors and ``(..., 3, 3)`` matrices to one batch shape."""
-    batch = torch.broadcast_shapes(*(v.shape[:-1] for v in vectors), *(m.shape[:-2] for m in matrices))
+    batch = broadcast_shapes(*(v.shape[:-1] for v in vectors), *(m.shape[:-2] for m in matrices))
     return [v.expand(*batch, 3) for v in vectors], [m.expand(*batch, 3, 3) for m in matrices]
 
 

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._numerics import safe_norm
+from .._numerics import broadcast_shapes, safe_norm
 from ._gjk import signed_witness
 from .cylinders import _frame, _unit
 
@@ -114,7 +114,7 @@ def _signed(ka: str, A: tuple, ra: Tensor | None, kb: str, B: tuple, rb: Tensor 
     sb, pb, own_b = _CORES[kb]
     shapes = [x.shape[: x.ndim - k] for x, k in zip(A + B, own_a + own_b)]
     shapes += [x.shape for x in (ra, rb) if x is not None]
-    batch = torch.broadcast_shapes(*shapes)
+    batch = broadcast_shapes(*shapes)
     N = batch.numel()
     ref = A[0]
     with torch.no_grad():

@@ -41,7 +41,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._numerics import safe_norm, safe_normalize, tol_for
+from .._numerics import broadcast_shapes, safe_norm, safe_normalize, tol_for
 
 __all__ = ["point_cylinder", "sphere_cylinder", "cylinder_halfspace", "capsule_cylinder", "box_cylinder",
            "cylinder_cylinder", "cylinder_spheres"]
@@ -265,7 +265,7 @@ def _support_distance(A: tuple, B: tuple) -> Tensor:
     """d of two solids given as parts (centre, segments, disc normals, disc radii, ball): ``(...)``."""
     cA, EA, VA, rA, bA = A
     cB, EB, VB, rB, bB = B
-    batch = torch.broadcast_shapes(cA.shape[:-1], cB.shape[:-1], EA.shape[:-2], EB.shape[:-2], VA.shape[:-2],
+    batch = broadcast_shapes(cA.shape[:-1], cB.shape[:-1], EA.shape[:-2], EB.shape[:-2], VA.shape[:-2],
                                    VB.shape[:-2], rA.shape[:-1], rB.shape[:-1], bA.shape, bB.shape)
     x = lambda t, k: t.expand(torch.Size(batch) + t.shape[t.ndim - k:])  # noqa: E731
     delta = x(cA, 1) - x(cB, 1)

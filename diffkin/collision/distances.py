@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._numerics import safe_norm, safe_sqrt
+from .._numerics import broadcast_shapes, safe_norm, safe_sqrt
 
 __all__ = [
     "segment_closest_parameters",
@@ -138,7 +138,7 @@ def capsule_capsule_pairs(a: Tensor, b: Tensor, r: Tensor, i: Tensor, j: Tensor,
     """:func:`capsule_capsule` of the pairs (i[p], j[p]) of one set of G capsules: ``a, b (..., G, 3)``,
     ``r (G,)`` or ``(..., G)``, index tensors ``(P,)`` → ``(..., P)``; ``pair_kernel``: another kernel of
     :func:`capsule_pairs_cm`'s signature (the broad phase)."""
-    batch = torch.broadcast_shapes(a.shape[:-2], b.shape[:-2], r.shape[:-1])
+    batch = broadcast_shapes(a.shape[:-2], b.shape[:-2], r.shape[:-1])
     cm = lambda x: x.expand(*batch, *x.shape[-2:]).reshape(-1, *x.shape[-2:]).permute(1, 2, 0)  # noqa: E731
     A = cm(a).contiguous()
     R = r.expand(*batch, r.shape[-1]).reshape(-1, r.shape[-1]).T

@@ -22,6 +22,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
+from .._numerics import broadcast_shapes
 from ..errors import ModelError, OptionError
 from ..kernels.joints import origin_transform
 from ..models.urdf_xml import parse_collisions
@@ -402,7 +403,7 @@ class RobotCollision(nn.Module):
         convex = self._convex_from(P) if self._nconvex else None
         w = self._world_from(placed, world, threshold, convex).flatten(-2)
         w = w if keep_world is None else w.index_select(-1, keep_world)
-        batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-1])
+        batch = broadcast_shapes(d.shape[:-1], w.shape[:-1])
         return torch.cat((d.expand(*batch, d.shape[-1]), w.expand(*batch, w.shape[-1])), dim=-1)
 
     def _kept(self, world: World | None, moving_only: bool) -> tuple[Tensor | None, Tensor | None]:
@@ -433,7 +434,7 @@ class RobotCollision(nn.Module):
         planner's rows of many problems, each with its own scene)."""
         nc, nb = self._counts
         if world is not None and world_index is None and not _unbatched(world):
-            batch = torch.broadcast_shapes(q.shape[:-1], world.batch_shape)
+            batch = broadcast_shapes(q.shape[:-1], world.batch_shape)
             flat = world._flattened()
             idx = torch.arange(flat.batch_shape[0], device=q.device).reshape(world.batch_shape).expand(batch)
             ok = self._clear(q.expand(*batch, q.shape[-1]).reshape(-1, q.shape[-1]), flat, margin, slack,
@@ -546,7 +547,7 @@ class RobotCollision(nn.Module):
         d = self.self_distances(q)
         if world is not None:
             w = self.world_distances(q, world)
-            batch = torch.broadcast_shapes(d.shape[:-1], w.shape[:-2])
+            batch = broadcast_shapes(d.shape[:-1], w.shape[:-2])
             d = torch.cat((d.expand(*batch, d.shape[-1]), w.flatten(-2).expand(*batch, -1)), -1)
         inf = torch.full_like(d[..., :1], math.inf)
         return torch.cat((d, inf), -1).amin(-1)

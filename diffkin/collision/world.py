@@ -14,7 +14,7 @@ import itertools
 import torch
 from torch import Tensor
 
-from .._numerics import normalize_floor, safe_norm
+from .._numerics import broadcast_shapes, normalize_floor, safe_norm
 from ..errors import ConventionError, DiffkinError, ModelError, ShapeError
 from ..validation import broadcast_batch, check_lower_bound, common_dtype_device, shape_str, tensors
 from .boxes import Box, checked_boxes
@@ -136,7 +136,7 @@ class World:
 
         s, c, bc, bR, bh, h, p, y = self.tensors()[:8]
         extra = [t.shape[:-1 - own] for k, args in self.objects.items() for t, own in zip(args, KINDS[k].own)]
-        return torch.broadcast_shapes(*(t.shape[:-2] for t in (s, c, bc, bh, h, p, y)), bR.shape[:-3], *extra)
+        return broadcast_shapes(*(t.shape[:-2] for t in (s, c, bc, bh, h, p, y)), bR.shape[:-3], *extra)
 
     def to(self, dtype: torch.dtype | None = None, device=None) -> World:
         """The same world with every tensor in ``dtype`` on ``device`` (None: unchanged)."""
@@ -192,7 +192,7 @@ class World:
         parts = [(self.spheres[..., :3], self.spheres[..., :3], self.spheres[..., 3]),
                  (self.capsules[..., :3], self.capsules[..., 3:6], self.capsules[..., 6]),
                  (self.points, self.points, torch.zeros_like(self.points[..., 0]))]
-        batch = torch.broadcast_shapes(*(a.shape[:-2] for a, _, _ in parts))
+        batch = broadcast_shapes(*(a.shape[:-2] for a, _, _ in parts))
         a = torch.cat([x.expand(*batch, *x.shape[-2:]) for x, _, _ in parts], -2)
         b = torch.cat([x.expand(*batch, *x.shape[-2:]) for _, x, _ in parts], -2)
         r = torch.cat([x.expand(*batch, x.shape[-1]) for _, _, x in parts], -1)
@@ -220,7 +220,7 @@ class World:
     def _assemble(self, parts: list[Tensor]) -> Tensor:
         """(..., G, W) in the world's order from the blocks' distances (order of :meth:`blocks`)."""
         s, c, *_ = self.counts
-        batch = torch.broadcast_shapes(*(x.shape[:-1] for x in parts))
+        batch = broadcast_shapes(*(x.shape[:-1] for x in parts))
         rd, bd, hd, yd, *od = (x.expand(*batch, x.shape[-1]) for x in parts)
         return torch.cat((rd[..., : s + c], bd, hd, rd[..., s + c:], yd, *od), -1)
 
@@ -259,7 +259,7 @@ class World:
             empty = g[0].new_zeros(*g[0].shape[:-1 - KINDS[kg].own[0]], 0)
             rows.append(self._assemble([distance(kg, g, kw, w, threshold) if n else empty
                                         for kw, w, n in world]))
-        batch = torch.broadcast_shapes(*(x.shape[:-2] for x in rows))
+        batch = broadcast_shapes(*(x.shape[:-2] for x in rows))
         return torch.cat([x.expand(*batch, *x.shape[-2:]) for x in rows], -2)
 
 

@@ -38,7 +38,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for, safe_norm, wrap_angle
+from .._numerics import broadcast_shapes, eps_for, safe_norm, wrap_angle
 from ..errors import ConventionError, ModelError, ShapeError
 from ..jacobian import (
     _inverse3,
@@ -619,7 +619,7 @@ def _integrate(chain, q, qd, get, steps, dt, cfg: _Config, clamp: bool, return_p
         T, e, J_t, L, J = _error_and_jacobian(chain, q, task, p_d, o_d)
         v_ff = _feed(v_d, task.size, q)
         if k == 0:
-            batch = torch.broadcast_shapes(e.shape[:-1], v_ff.shape[:-1], q.shape[:-1])
+            batch = broadcast_shapes(e.shape[:-1], v_ff.shape[:-1], q.shape[:-1])
             q = q.expand(*batch, n)
         if cfg.algorithm == "second_order":
             if qd is None:

@@ -27,6 +27,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
+from .._numerics import broadcast_shapes
 from ..errors import ConventionError
 from ..validation import check_nonnegative, check_number, tensors
 from . import _native_velocity
@@ -48,7 +49,7 @@ def check_tasks(tasks) -> tuple[Task, ...]:
 def least_squares(p: Problem, tasks: Sequence[Task], damping: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """A ``(..., M, nv)``, b ``(..., M)`` and the regulariser λ + Σμ‖b‖² ``(...)`` of (D.1)."""
     parts = [t.least_squares(p) for t in tasks]
-    batch = torch.broadcast_shapes(p.q.shape[:-1], damping.shape, *(a.shape[:-2] for a, _, _ in parts),
+    batch = broadcast_shapes(p.q.shape[:-1], damping.shape, *(a.shape[:-2] for a, _, _ in parts),
                                    *(b.shape[:-1] for _, b, _ in parts), *(m.shape for _, _, m in parts))
     A = torch.cat([a.expand(*batch, *a.shape[-2:]) for a, _, _ in parts], dim=-2)
     b = torch.cat([b.expand(*batch, b.shape[-1]) for _, b, _ in parts], dim=-1)
@@ -129,7 +130,7 @@ def solve_step(p: Problem, A: Tensor, b: Tensor, reg: Tensor, limits: Sequence[L
         batch = x.shape[:-1]
         return _refine(A.expand(*batch, *A.shape[-2:]), b.expand(*batch, b.shape[-1]), reg.expand(batch), x,
                        lo.expand(*batch, nv), hi.expand(*batch, nv))
-    batch = torch.broadcast_shapes(H.shape[:-2], lo.shape[:-1], hi.shape[:-1],
+    batch = broadcast_shapes(H.shape[:-2], lo.shape[:-1], hi.shape[:-1],
                                    *(G.shape[:-2] for G, _ in rows), *(h.shape[:-1] for _, h in rows))
     I = eye.expand(*batch, nv, nv)
     G = torch.cat([G.expand(*batch, *G.shape[-2:]) for G, _ in rows] + [I, -I], dim=-2)

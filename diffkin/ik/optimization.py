@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._numerics import broadcast_shapes
 from ..errors import ConventionError, NonFiniteError, OptionError, ShapeError
 from ..kernels.dls import dls_solve
 from ..validation import as_tensor, check_count, check_number, shape_str
@@ -173,7 +174,7 @@ def _check_terms_at(chain, terms: list[_Term], q: Tensor, T: Tensor) -> None:
         if isinstance(term, RestPostureCost) and term.q_rest is not None:
             rest = as_tensor(term.q_rest, "RestPostureCost.q_rest", dtype=q.dtype, device=q.device)
             try:
-                torch.broadcast_shapes(rest.shape, q.shape)
+                broadcast_shapes(rest.shape, q.shape)
             except RuntimeError:
                 raise ShapeError(f"expected RestPostureCost.q_rest of shape (..., {chain.n_joints}) "
                                  f"broadcastable to q {shape_str(q.shape)}, got {shape_str(rest.shape)}"

@@ -44,7 +44,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for
+from .._numerics import broadcast_shapes, eps_for
 from ..errors import DiffkinError, ShapeError
 from ..kernels.dls import _spd_solve_batch_last
 from ..validation import broadcast_batch, check_count, shape_str, tensors
@@ -363,7 +363,7 @@ def solve_qp(H, g, G=None, h=None, lower=None, upper=None, *, iterations: int | 
 # ---------------------------------------------------------------------------- trusted entry points
 def _solve_box(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     """:func:`box_qp`'s x for validated inputs of one broadcast batch (library callers)."""
-    batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1], lo.shape[:-1], hi.shape[:-1])
+    batch = broadcast_shapes(H.shape[:-2], g.shape[:-1], lo.shape[:-1], hi.shape[:-1])
     n = g.shape[-1]
     out = _BoxQP.apply(*_flat(batch, (H, 2), (g, 1), (lo, 1), (hi, 1)), 4 * n + 8)
     return out[0].reshape(*batch, n)
@@ -371,7 +371,7 @@ def _solve_box(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
 
 def _solve_general(H: Tensor, g: Tensor, G: Tensor, h: Tensor) -> Tensor:
     """:func:`solve_qp`'s x for validated inputs (no bounds; inf entries of h switch rows off)."""
-    batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1], G.shape[:-2], h.shape[:-1])
+    batch = broadcast_shapes(H.shape[:-2], g.shape[:-1], G.shape[:-2], h.shape[:-1])
     n = g.shape[-1]
     out = ip_solve(*_flat(batch, (H, 2), (g, 1), (G, 2), (h, 1)), _IP_ITERATIONS)
     return out[0].reshape(*batch, n)

@@ -37,6 +37,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._numerics import broadcast_shapes
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..kernels.se3 import se3_jlog, se3_log
 from ..transforms import _transform_inverse
@@ -222,7 +223,7 @@ class FrameTask(Task):
     def cost_vector(self, p: Problem, m: int) -> Tensor:
         pos = _per_axis(p, self.position_cost, "FrameTask.position_cost", 3)
         ori = _per_axis(p, self.orientation_cost, "FrameTask.orientation_cost", 3)
-        batch = torch.broadcast_shapes(pos.shape[:-1], ori.shape[:-1])
+        batch = broadcast_shapes(pos.shape[:-1], ori.shape[:-1])
         return torch.cat((pos.expand(*batch, 3), ori.expand(*batch, 3)), dim=-1)
 
     def _pose(self, p: Problem) -> tuple[Tensor, Tensor]:
@@ -328,7 +329,7 @@ class PostureTask(Task):
 
     def error(self, p: Problem) -> Tensor:
         q_ref = p.like("PostureTask.q_ref", self.q_ref, (p.q.shape[-1],))
-        batch = torch.broadcast_shapes(q_ref.shape, p.q.shape)
+        batch = broadcast_shapes(q_ref.shape, p.q.shape)
         e = p.chain.configuration_space.difference(q_ref.expand(batch), p.q.expand(batch))
         keep = self._mask(p)
         return e if keep is None else e * keep

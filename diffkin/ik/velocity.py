@@ -40,7 +40,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for
+from .._numerics import broadcast_shapes, eps_for
 from ..errors import ConventionError, DiffkinError, ShapeError
 from ..redundancy import _pinv
 from ..validation import broadcast_batch, check_nonnegative, check_number, check_positive, shape_str, tensors
@@ -133,7 +133,7 @@ def _posture(chain, q, dt, A, qd1, lo, hi, task: PostureTask, dampers=None):
     if dampers is not None:  # Gd (q̇₁ + N z) ≤ hd
         Gd, hd = dampers
         slack = (hd - (Gd @ qd1.unsqueeze(-1)).squeeze(-1)).clamp(min=0.0)
-        batch = torch.broadcast_shapes(slack.shape[:-1], G.shape[:-2], h.shape[:-1])
+        batch = broadcast_shapes(slack.shape[:-1], G.shape[:-2], h.shape[:-1])
         G = torch.cat(((Gd @ N).expand(*batch, -1, nv), G.expand(*batch, *G.shape[-2:])), dim=-2)
         h = torch.cat((slack.expand(*batch, -1), h.expand(*batch, h.shape[-1])), dim=-1)
     z = _solve_general(H, g, G, h)

@@ -27,6 +27,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._numerics import broadcast_shapes
 from . import native
 
 __all__ = ["block_banded_cg", "block_banded_solve", "tridiagonal_solve"]
@@ -200,7 +201,7 @@ def tridiagonal_solve(sub: Tensor, diag: Tensor, sup: Tensor, rhs: Tensor, domin
     if dominant and diag.shape[-1] > DENSE_MAX:
         return _thomas(sub, diag, sup, rhs)
     A = torch.diag_embed(diag) + torch.diag_embed(sub, offset=-1) + torch.diag_embed(sup, offset=1)
-    batch = torch.broadcast_shapes(A.shape[:-2], rhs.shape[:-2])  # explicit: rhs is never read as vectors
+    batch = broadcast_shapes(A.shape[:-2], rhs.shape[:-2])  # explicit: rhs is never read as vectors
     return torch.linalg.solve(A.expand(*batch, *A.shape[-2:]), rhs.expand(*batch, *rhs.shape[-2:]))
 
 
@@ -208,7 +209,7 @@ def _thomas(sub: Tensor, diag: Tensor, sup: Tensor, rhs: Tensor) -> Tensor:
     """:func:`tridiagonal_solve` by elimination along the band without pivoting (for a diagonally dominant
     A): forward c_i = sup_i / m_i, y_i = (rhs_i − sub_{i−1} y_{i−1}) / m_i with m_i = diag_i − sub_{i−1}
     c_{i−1}, then x_i = y_i − c_i x_{i+1}; a loop over N of batched ops (differentiable)."""
-    batch = torch.broadcast_shapes(diag.shape[:-1], sub.shape[:-1], sup.shape[:-1], rhs.shape[:-2])
+    batch = broadcast_shapes(diag.shape[:-1], sub.shape[:-1], sup.shape[:-1], rhs.shape[:-2])
     N = diag.shape[-1]
     diag, rhs = diag.expand(*batch, N), rhs.expand(*batch, *rhs.shape[-2:])
     sub, sup = sub.expand(*batch, N - 1), sup.expand(*batch, N - 1)

@@ -42,7 +42,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._numerics import safe_norm, sinc, stable_normalize
+from .._numerics import broadcast_shapes, safe_norm, sinc, stable_normalize
 from .rigid import _canonical, _quaternion_multiply, _quaternion_to_rotvec
 
 __all__ = ["Motion", "MOTIONS", "JointKind", "JOINT_KINDS", "joint_kind", "urdf_kind", "mjcf_kind",
@@ -359,5 +359,5 @@ class ConfigurationSpace:
 
 
 def _broadcast_batch(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
-    batch = torch.broadcast_shapes(a.shape[:-1], b.shape[:-1])
+    batch = broadcast_shapes(a.shape[:-1], b.shape[:-1])
     return a.expand(*batch, a.shape[-1]), b.expand(*batch, b.shape[-1])

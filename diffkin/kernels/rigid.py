@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._numerics import eps_for, safe_atan2, safe_norm, safe_sqrt, sinc
+from .._numerics import broadcast_shapes, eps_for, safe_atan2, safe_norm, safe_sqrt, sinc
 from . import pose_error as _kpe
 from .quaternion import _canonical, _matrix_to_quaternion
 
@@ -186,7 +186,7 @@ def _quaternion_slerp(Q0: Tensor, Q1: Tensor, s: Tensor) -> Tensor:
 
 
 def _make_transform(R: Tensor, p: Tensor) -> Tensor:
-    batch = torch.broadcast_shapes(R.shape[:-2], p.shape[:-1])
+    batch = broadcast_shapes(R.shape[:-2], p.shape[:-1])
     top = torch.cat((R.expand(*batch, 3, 3), p.expand(*batch, 3)[..., None]), dim=-1)
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=R.dtype, device=R.device).expand(*batch, 1, 4)
     return torch.cat((top, bottom), dim=-2)

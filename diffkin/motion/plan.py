@@ -235,7 +235,7 @@ def _refine_spline(checker: EdgeChecker, path: Tensor, bad: Tensor, todo: Tensor
 
 def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, velocity_limit=None,
          acceleration_limit=None, jerk_limit=None, dt: float = 0.01, resolution: float = 0.005,
-         max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 16, seed: int = 0,
+         max_iterations: int = 2000, step: float = 0.3, shortcut_rounds: int = 8, seed: int = 0,
          goal_bias: float = 0.0, search_in_c: bool = True, position_tolerance: float = 1e-4,
          orientation_tolerance: float = 1e-3, optimize: bool | OptimizeConfig = False) -> MotionResult:
     """Collision-free, limit-respecting timed trajectories from ``q_start`` to ``goal``, batched (module

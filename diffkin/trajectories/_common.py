@@ -15,6 +15,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from .._numerics import broadcast_shapes
 from ..errors import DiffkinError, ShapeError
 from ..kernels.banded import tridiagonal_solve
 from ..validation import check_trailing, shape_str
@@ -51,7 +52,7 @@ def cat_broadcast(tensors: list[Tensor], dim: int) -> Tensor:
     nd = max(x.ndim for x in tensors)
     xs = [x.reshape((1,) * (nd - x.ndim) + tuple(x.shape)) for x in tensors]
     shape = list(
-        torch.broadcast_shapes(*[x.shape[:dim] + (1,) + x.shape[len(x.shape) + dim + 1 :] for x in xs])
+        broadcast_shapes(*[x.shape[:dim] + (1,) + x.shape[len(x.shape) + dim + 1 :] for x in xs])
     )
     out = []
     for x in xs:
@@ -103,14 +104,14 @@ def segment_index(knots: Tensor, t: Tensor) -> Tensor:
     inner = knots[..., 1:-1]
     if inner.ndim == 1:
         return torch.searchsorted(inner, t.contiguous(), right=True)
-    batch = torch.broadcast_shapes(inner.shape[:-1], t.shape[:-1])
+    batch = broadcast_shapes(inner.shape[:-1], t.shape[:-1])
     inner = inner.expand(*batch, inner.shape[-1]).contiguous()
     return torch.searchsorted(inner, t.expand(*batch, t.shape[-1]).contiguous(), right=True)
 
 
 def take(values: Tensor, idx: Tensor) -> Tensor:
     """values (..., K, n) gathered at idx (..., T) along K -> (..., T, n); batch dims broadcast."""
-    batch = torch.broadcast_shapes(values.shape[:-2], idx.shape[:-1])
+    batch = broadcast_shapes(values.shape[:-2], idx.shape[:-1])
     K, n = values.shape[-2:]
     T = idx.shape[-1]
     v = values.expand(*batch, K, n)
@@ -139,7 +140,7 @@ def poly_eval(coeffs: list[Tensor], tau: Tensor, position_only: bool = False) ->
             a = 2 * v if a is None else a * tau + 2 * v
         v = p if v is None else v * tau + p
         p = p * tau + c
-    shape = torch.broadcast_shapes(p.shape, tau.shape)
+    shape = broadcast_shapes(p.shape, tau.shape)
     p = p.expand(shape) if p.shape != shape else p
     v = torch.zeros(shape, dtype=p.dtype, device=p.device) if v is None else v.expand(shape)
     a = torch.zeros(shape, dtype=p.dtype, device=p.device) if a is None else a.expand(shape)

@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._numerics import stable_norm, stable_normalize
+from .._numerics import broadcast_shapes, stable_norm, stable_normalize
 from ..errors import ConventionError, DiffkinError
 from ..kernels.banded import tridiagonal_solve
 from ..validation import broadcast_batch, check_trailing, tensors
@@ -205,7 +205,7 @@ def cubic_spline(
         per_item(x, n, name, "one per joint")
     named = ((k, x, 1) for k, x in ends.items())
     broadcast_batch(("points", points, 2), *named, ("virtual_times", virtual_times, 1))
-    v_i, v_f, a_i, a_f = (x.expand(torch.broadcast_shapes(x.shape, points.shape[-1:])) for x in ends.values())
+    v_i, v_f, a_i, a_f = (x.expand(broadcast_shapes(x.shape, points.shape[-1:])) for x in ends.values())
     if end == "clamped":
         return _hermite_segments(points, spline_slopes(times, points, "clamped", v_i, v_f), times, t)
     knots, Q, M = _virtual_spline(points, times, v_i, v_f, a_i, a_f, virtual_times)
@@ -285,7 +285,7 @@ def anticipated_segments(points: Tensor, times, t, advance=None, qdd_c=None) -> 
     L, u = stable_norm(dp), stable_normalize(dp)  # (..., N), (..., N, n)
     h = torch.diff(times, dim=-1)
     shift = torch.zeros_like(h) if advance is None else advance
-    cum = torch.cumsum(torch.broadcast_to(shift, torch.broadcast_shapes(shift.shape, h.shape)), dim=-1)
+    cum = torch.cumsum(torch.broadcast_to(shift, broadcast_shapes(shift.shape, h.shape)), dim=-1)
     local = t[..., None, :] + (cum - times[..., :-1])[..., None]  # (..., N, T)
     data = {"q_i": torch.zeros_like(L)[..., None], "q_f": L[..., None], "t_f": h[..., None]}
     if qdd_c is not None:
