@@ -211,3 +211,38 @@ def test_quarter_checks_in_one_call_equal_one_call_per_candidate(monkeypatch):
                     t = torch.linspace(0, float(r.duration.max()), 40, dtype=torch.float64)
                     got.append((r.duration, r.sample(t).position, r.sample(t).acceleration))
                 assert all(torch.equal(x, y) for x, y in zip(*got))
+
+
+def test_search_rows_gathered_equals_its_binary_search(monkeypatch):
+    """_search_rows' ways (one row, or a few samples with their rows gathered: one torch.searchsorted;
+    many: the binary search by gathers) give the same index for every sample: ties, both sides, values
+    outside the rows, a NaN sample (0), rows broadcast against the samples, and against torch.searchsorted
+    row by row."""
+    mod = importlib.import_module("diffkin.trajectories.time_optimal")
+    g = torch.Generator().manual_seed(0)
+    for trial in range(200):
+        P, L = int(torch.randint(1, 5, (1,), generator=g)), int(torch.randint(1, 300, (1,), generator=g))
+        P = 1 if trial % 4 == 0 else P  # one row: its own searchsorted
+        seq = torch.rand(P, L, generator=g, dtype=torch.float64).sort(1).values
+        N = int(torch.randint(1, 40, (1,), generator=g))
+        rows = torch.randint(0, P, (N,), generator=g)
+        x = torch.rand(N, generator=g, dtype=torch.float64) * 1.2 - 0.1
+        if trial % 3 == 0:  # ties between samples and entries
+            seq, x = (seq * 4).round() / 4, (x * 4).round() / 4
+        if trial % 5 == 0:
+            x[0] = float("nan")
+        for right in (True, False):
+            monkeypatch.setattr(mod, "_GATHERED", 1 << 16)
+            gathered = mod._search_rows(seq, rows, x, right)
+            monkeypatch.setattr(mod, "_GATHERED", 0)
+            searched = mod._search_rows(seq, rows, x, right) if P > 1 else \
+                mod._search_rows(seq.expand(2, L), rows, x, right)  # two equal rows: the binary search
+            assert torch.equal(gathered, searched)
+            finite = x == x
+            ref = torch.stack([torch.searchsorted(seq[r], v, right=right) for r, v in zip(rows, x)])
+            assert torch.equal(gathered[finite], ref[finite]) and (gathered[~finite] == 0).all()
+    monkeypatch.setattr(mod, "_GATHERED", 1 << 16)
+    seq = torch.tensor([[0.0, 1.0, 2.0], [0.5, 1.5, 2.5]], dtype=torch.float64)
+    x = torch.tensor([[0.7, 1.7, 3.0]], dtype=torch.float64)
+    out = mod._search_rows(seq, torch.tensor([[0], [1]]), x)
+    assert out.tolist() == [[1, 2, 3], [1, 2, 3]]

@@ -525,7 +525,7 @@ class RobotCollision(nn.Module):
             extra.update(cylinders=(y[..., :3], y[..., 3:6], y[..., 6]), skip_cylinder=cut(cyl_cols),
                          points=points, world_index=world_index)
             # the kinds C does not decide here (a kind registered without a C entry: always torch)
-            left = [k for k, args in world.blocks() if args[0].shape[-2] and (
+            left = [k for k, count in world.block_counts() if count and (
                 pair("capsule", k)[0].native is None or (k == "box" and not boxes_here)
                 or (pair("capsule", k)[0].native == NATIVE_CLEAR_SPHERES and not bool(points.all())))]
         return objects, hs, skip_r, skip_h, extra, left, points

@@ -207,6 +207,12 @@ class World:
                 ("halfspace", (self.halfspaces[..., :3], self.halfspaces[..., 3])),
                 ("cylinder", (y[..., :3], y[..., 3:6], y[..., 6])), *self.objects.items()]
 
+    def block_counts(self) -> list[tuple[str, int]]:
+        """The kinds of :meth:`blocks`, in their order, with their object counts (no tensor made)."""
+        s, c, b, h, p, y = self.counts
+        return [("capsule", s + c + p), ("box", b), ("halfspace", h), ("cylinder", y),
+                *zip(self.objects, self.object_counts)]
+
     def _kind_columns(self, device=None) -> tuple[Tensor, ...]:
         """The world-order columns of the objects of each of :meth:`blocks` (round: spheres, capsules, then
         points; boxes; half-spaces; cylinders; each kind of :attr:`objects`), long index tensors."""

@@ -978,7 +978,9 @@ def collide_struct(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects
     dtype = A.dtype
     if not available() or A.device.type != "cpu" or dtype not in (torch.float32, torch.float64):
         return None
-    real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
+    def real(t: Tensor) -> Tensor:  # (the common case, already so: no copy, no op)
+        return t if t.dtype == dtype and t.is_contiguous() else t.detach().to(dtype).contiguous()
+
     empty = lambda *s: A.new_zeros(*s)  # noqa: E731
     wa, wb, wr = (real(t) for t in round_objects)
     hs = real(halfspaces)

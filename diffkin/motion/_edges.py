@@ -65,7 +65,7 @@ def geometry_key(collision) -> tuple | None:
         parts = [collision.capsule_a, collision.capsule_b, collision.capsule_radius, collision.box_center,
                  collision.box_rpy, collision.box_half_extents, collision._col_anchor,
                  *collision.chain.parameters()]
-        flat = torch.cat([t.detach().reshape(-1).to("cpu", torch.float64) for t in parts])
+        flat = torch.cat([t.reshape(-1) for t in parts]).to("cpu", torch.float64)  # (promoted: exact)
         return (state, collision.capsule_a.dtype, collision.capsule_a.device, tuple(t.shape for t in parts),
                 collision.convex_vertices.shape[0], flat.numpy().tobytes())
 

@@ -8,20 +8,26 @@ import torch
 from torch import Tensor
 
 from ..kernels import native
-from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows
+from ..trajectories.time_optimal import _BLOCK, _Path, _search_rows, unit_knots
 from ._edges import SPACING, EdgeChecker
 
 #: the most fine samples per row of the spline check (a row needing more, a very fine resolution on a
 #: long path, is not proven: its polyline is timed instead)
 _FINE_MAX = 1 << 20
 
-__all__ = ["_knots", "_spline_clear", "_spline_failures"]
+__all__ = ["_knots", "_spline", "_spline_clear", "_spline_failures"]
 
 
 def _knots(path: Tensor) -> Tensor:
     """Chord-length knots (B, L), strictly increasing."""
     seg = (path[:, 1:] - path[:, :-1]).norm(dim=-1) + 1e-9
     return torch.cat((torch.zeros_like(seg[:, :1]), seg.cumsum(1)), 1)
+
+
+def _spline(path: Tensor, knots: Tensor) -> _Path:
+    """The clamped cubic spline through ``path (B, L, nq)`` at ``knots (B, L)`` (normalised to [0, 1]),
+    float64: the geometric path :func:`~diffkin.trajectories.time_optimal` times."""
+    return _Path(unit_knots(knots).contiguous(), path.to(torch.float64), "spline", "clamped")
 
 
 def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
@@ -32,7 +38,7 @@ def _spline_clear(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor,
 
 
 def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tensor, hi: Tensor,
-                     problem: Tensor, fine: int = 4096) -> Tensor:
+                     problem: Tensor, fine: int = 4096, spline: _Path | None = None) -> Tensor:
     """(B, L − 1) bool: the knot intervals where the clamped cubic spline through ``path`` (B, L, nq) at
     ``knots`` (B, L) — the geometric path :func:`~diffkin.trajectories.time_optimal` times — is *not* proven
     clear or within the joint limits ``lo``, ``hi`` (nq,) (all False: the whole spline is; a cubic
@@ -44,11 +50,11 @@ def _spline_failures(checker: EdgeChecker, path: Tensor, knots: Tensor, lo: Tens
     the first fine sample past its mark, so two are at most that plus one chord apart; 5 % is left for
     chords against arcs; a row where that leaves less than 0.2 · 2 η_b is checked again with finer
     samples, up to :data:`_FINE_MAX`, else not proven). The samples and check points in C on
-    the CPU (``kernels/_native_spline.c``, the same floats), else in torch."""
+    the CPU (``kernels/_native_spline.c``, the same floats), else in torch. ``spline``: :func:`_spline` of
+    ``path`` and ``knots`` where the caller has it already."""
     B = path.shape[0]
-    knots = knots.to(torch.float64)
-    s = (knots - knots[:, :1]) / (knots[:, -1:] - knots[:, :1])
-    p = _Path(s.contiguous(), path.to(torch.float64), "spline", "clamped")
+    p = _spline(path, knots) if spline is None else spline
+    s = p.s
     u = torch.linspace(0, 1, fine + 1, dtype=torch.float64, device=path.device).expand(B, -1).contiguous()
     lo, hi, reach = lo.to(torch.float64), hi.to(torch.float64), checker.reach.to(torch.float64)
     fine_c = native.spline_fine(u[0], p.s, p.c, p.end, lo, hi, reach)  # in C on the CPU: the same floats

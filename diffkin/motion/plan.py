@@ -50,12 +50,12 @@ from torch import Tensor
 
 from ..errors import ConventionError, OptionError, ShapeError
 from ..trajectories import Trajectory
-from ..trajectories.time_optimal import time_optimal
+from ..trajectories.time_optimal import CHECK_PER_INTERVAL, _timed, unit_knots
 from ..validation import check_count, check_number, shape_str, tensors
 from ._edges import EdgeChecker
 from ._native_search import search_native
 from ._search import row_keys, search, shortcut, shortcut_points
-from ._spline import _knots, _spline_failures
+from ._spline import _knots, _spline, _spline_failures
 from .optimize import OptimizeConfig, optimize_stage, sample_with
 
 __all__ = ["MotionResult", "plan"]
@@ -333,15 +333,16 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
     reason = [""] * B
 
     def fail(mask: Tensor, why: str) -> None:
-        for r in mask.nonzero().squeeze(1).tolist():
-            if not reason[r]:
+        for r, bad in enumerate(mask.tolist()):
+            if bad and not reason[r]:
                 reason[r] = why
 
     with torch.no_grad():
         checker = EdgeChecker(collision, world, margin, resolution)
         checker.use_c = search_in_c
         gen = torch.Generator().manual_seed(seed)
-        lim_ok = torch.stack([(x > 0).all(1) & x.isfinite().all(1) for x in (vmax, amax, jmax)], 0).all(0)
+        limits = torch.stack((vmax, amax, jmax))  # (3, B, nq)
+        lim_ok = ((limits > 0) & limits.isfinite()).all(2).all(0)
         fail(~lim_ok, "infeasible limits (each must be a finite number > 0)")
         if pose_goal:
             ik = ik_solve(chain, goal, q0=q_start, collision=collision, world=world,
@@ -419,7 +420,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             if good.numel():
                 p = _pad(path[found], n[found])
                 kn = _knots(p)
-                bad = _spline_failures(checker, p, kn, lo_l, hi_l, good)
+                spline = _spline(p, kn)  # checked here, timed below (the rows proven clear)
+                bad = _spline_failures(checker, p, kn, lo_l, hi_l, good, spline=spline)
                 smooth = ~bad.any(1)
                 groups = []
                 if cfg is not None:  # the optimised knots where they are proven clear (grad mode on)
@@ -428,17 +430,22 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                                                      lo_l, hi_l, cfg)
                     optimized[good[kept]] = True
                     smooth, p_opt = smooth & ~kept, knots.detach()[kept]
-                    groups.append((kept, "spline", p_opt, _knots(p_opt)))
+                    groups.append((kept, "spline", p_opt, _knots(p_opt), None))
                     notkept = ~kept
                 else:
                     notkept = torch.ones_like(smooth)
                 refined, rough = _refine_spline(checker, p, bad, notkept & ~smooth, lo_l, hi_l, good)
-                groups += [(smooth, "spline", p[smooth], kn[smooth])]
+                own = spline if bool(smooth.all()) else spline.rows(smooth.nonzero()[:, 0])
+                groups += [(smooth, "spline", p[smooth], kn[smooth], own)]
 
-                def timed_group(keep: Tensor, how: str, pp: Tensor, kk: Tensor):
+                def timed_group(keep: Tensor, how: str, pp: Tensor, kk: Tensor, path=None):
+                    """time_optimal of the rows ``keep`` of ``good`` (their limits checked above; ``path``:
+                    their spline where it is made already)."""
                     rr = good[keep]
-                    return rr, time_optimal(pp, vmax[rr], amax[rr], jmax[rr], knots=kk, interpolation=how,
-                                            bc="clamped")
+                    lim = [x[rr].to(torch.float64) for x in (vmax, amax, jmax)]
+                    s = unit_knots(kk) if path is None else path.s
+                    return rr, _timed(pp.to(torch.float64), s, *lim, how, "clamped", None, CHECK_PER_INTERVAL,
+                                      pp.dtype, path)
 
                 def take(rr: Tensor, timed, how: str) -> None:
                     timing.append((rr, timed))
@@ -447,9 +454,9 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                     for r in rr.tolist():
                         interp[r] = how
 
-                for keep, how, pp, kk in groups:
+                for keep, how, pp, kk, path in groups:
                     if bool(keep.any()):
-                        take(*timed_group(keep, how, pp, kk), how)
+                        take(*timed_group(keep, how, pp, kk, path), how)
                 # the refined splines (their many knots near a tight corner can make them slower than stops
                 # at the waypoints): each row timed both ways, the faster finite one taken (the polyline's
                 # timing first, so the spline's entries, later, win where they are taken)

@@ -73,6 +73,11 @@ _BLOCK = 1 << 16  # samples per block of the limit check (:func:`_peaks`)
 #: the most rows × τ candidates whose quarter checks run as one call (each candidate's rows a copy of the
 #: profile): a small batch pays per call (B = 1: ~4 ms a plan), a large one for the copies (+44 % memory)
 _ONE_CHECK = 256
+#: samples per profile interval of the final limit stretch (``check_per_interval``'s default)
+CHECK_PER_INTERVAL = 16
+#: the most row entries :func:`_search_rows` gathers for one searchsorted (more: its binary search by
+#: gathers)
+_GATHERED = 1 << 16
 
 
 def _search_rows(seq: Tensor, rows: Tensor, x: Tensor, right: bool = True) -> Tensor:
@@ -80,6 +85,13 @@ def _search_rows(seq: Tensor, rows: Tensor, x: Tensor, right: bool = True) -> Te
     (...) (each sample searched in its own row of seq) -> (...). A binary search by gathers (log2 L
     steps), so a sample costs its own row only, not all the rows a batched searchsorted would need."""
     L = seq.shape[1]
+    if seq.shape[0] == 1 or rows.numel() * L <= _GATHERED:  # one searchsorted (the same answer)
+        rows, x = torch.broadcast_tensors(rows, x) if rows.shape != x.shape else (rows, x)
+        if seq.shape[0] == 1:  # one row: every sample's
+            i = torch.searchsorted(seq.contiguous(), x.reshape(1, -1).contiguous(), right=right)
+        else:  # few samples: their rows gathered
+            i = torch.searchsorted(seq[rows.reshape(-1)], x.reshape(-1, 1).contiguous(), right=right)
+        return torch.where(x == x, i.view(x.shape), 0)  # a NaN sample: 0, as the search below gives it
     flat, base = seq.reshape(-1), rows * L
     lo, hi = torch.zeros_like(rows), torch.full_like(rows, L)
     for _ in range(L.bit_length()):
@@ -261,10 +273,20 @@ class TimedPath:
     def _law(self, tau: Tensor, k: Tensor) -> None:
         """The smoothing width τ and the stretch k (B,) of the profile."""
         self._tau, self._k = tau, k
-        #: seconds per path (B,)
-        self.duration = ((self._t[:, -1] + tau) * k).to(self._dtype)
+        self._duration = None  # made when read (the candidates' retimed profiles never read it)
         #: the geometric path's waypoints (B, N, n) and knots (B, N)
         self.knots = self._path.s.to(self._dtype)
+
+    @property
+    def duration(self) -> Tensor:
+        """Seconds per path (B,) (the path's batch dims once returned by :func:`time_optimal`)."""
+        if self._duration is None:
+            self._duration = ((self._t[:, -1] + self._tau) * self._k).to(self._dtype)
+        return self._duration
+
+    @duration.setter
+    def duration(self, value: Tensor) -> None:
+        self._duration = value
 
     def _retimed(self, tau: Tensor, k: Tensor, rows: Tensor | None = None) -> TimedPath:
         """This profile with τ and k of the rows ``rows`` (an index tensor; all if None): the profile's
@@ -457,6 +479,12 @@ def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
     return peak
 
 
+def unit_knots(knots: Tensor) -> Tensor:
+    """Knots ``(B, N)`` brought to run from 0 to 1 (the same path: s is normalised), float64."""
+    s = knots.to(torch.float64)
+    return (s - s[:, :1]) / (s[:, -1:] - s[:, :1])
+
+
 def _check_limit(x: Tensor, batch: tuple, n: int, name: str) -> Tensor:
     """A limit given as a number, ``(n,)`` or ``(..., n)`` broadcasting to the path's batch -> (B, n)."""
     try:
@@ -471,7 +499,7 @@ def _check_limit(x: Tensor, batch: tuple, n: int, name: str) -> Tensor:
 
 def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, knots=None,
                  interpolation: str = "spline", bc: str = "not-a-knot", grid_per_segment: int | None = None,
-                 check_per_interval: int = 16) -> TimedPath:
+                 check_per_interval: int = CHECK_PER_INTERVAL) -> TimedPath:
     """Time-optimal timing of the path through ``path``'s waypoints (module docstring: TOPP-RA, then an
     optional jerk smoothing and an exact limit stretch).
 
@@ -523,97 +551,110 @@ def time_optimal(path, velocity_limit, acceleration_limit, jerk_limit=None, *, k
                                  f"got {shape_str(knots.shape)}")
             if bool((s[:, 1:] <= s[:, :-1]).any()):
                 raise ConventionError("time_optimal: knots must be strictly increasing")
-        s = (s - s[:, :1]) / (s[:, -1:] - s[:, :1])  # normalised: the same path
-        if interpolation == "linear" and jmax is not None and N > 2:  # each segment rest to rest
-            K = N - 1
-            seg = torch.stack((y[:, :-1], y[:, 1:]), 2).reshape(B * K, 2, n)
-            rep = lambda x: x.repeat_interleave(K, 0)  # noqa: E731
-            m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // K))
-            parts = time_optimal(seg, rep(vmax), rep(amax), rep(jmax), interpolation="linear",
-                                 grid_per_segment=m, check_per_interval=check_per_interval)
-            return _batched(_Chained(parts, B, K, dtype), batch)
-        p = _Path(s.contiguous(), y, interpolation, bc)
-        m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // (N - 1)))
-        check_count(m, "grid_per_segment", 2 if interpolation == "linear" else 1)
-        f = torch.arange(m, dtype=torch.float64, device=y.device) / m
-        grid = torch.cat(((s[:, :-1, None] + f * (s[:, 1:] - s[:, :-1])[..., None]).flatten(1), s[:, -1:]), 1)
-        seg = torch.arange(N - 1, device=y.device).repeat_interleave(m)
-        kseg = torch.cat((seg, seg[-1:])).expand(B, -1).contiguous()
-        stops = torch.zeros_like(grid, dtype=torch.bool)
-        if interpolation == "linear":
-            stops[:, m:-1:m] = True
-        x = _topp(p, grid, kseg, vmax, amax, stops)
-        if jmax is None:
-            taus = [torch.zeros(B, dtype=torch.float64, device=y.device)]
+        s = unit_knots(s)
+        timed = _timed(y, s, vmax, amax, jmax, interpolation, bc, grid_per_segment, check_per_interval, dtype)
+        return _batched(timed, batch)
+
+
+def _timed(y: Tensor, s: Tensor, vmax: Tensor, amax: Tensor, jmax: Tensor | None, interpolation: str, bc: str,
+           grid_per_segment: int | None, check_per_interval: int, dtype: torch.dtype,
+           path: _Path | None = None) -> TimedPath:
+    """:func:`time_optimal` of checked arguments, without grad: the waypoints ``y (B, N, n)`` and their
+    normalised knots ``s (B, N)`` (from 0 to 1, strictly increasing), float64 limits ``(B, n)`` (``jmax``
+    None: no jerk limit), ``dtype`` the result's; ``path``: the :class:`_Path` of ``y`` at ``s`` with
+    ``interpolation`` and ``bc`` where the caller has it already (:func:`diffkin.motion.plan`'s checked
+    spline). The result is batched as ``(B,)``."""
+    B, N, n = y.shape
+    if interpolation == "linear" and jmax is not None and N > 2:  # each segment rest to rest
+        K = N - 1
+        seg = torch.stack((y[:, :-1], y[:, 1:]), 2).reshape(B * K, 2, n)
+        rep = lambda x: x.repeat_interleave(K, 0)  # noqa: E731
+        m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // K))
+        unit = torch.tensor([0.0, 1.0], dtype=torch.float64, device=y.device).expand(B * K, 2)
+        parts = _timed(seg, unit, rep(vmax), rep(amax), rep(jmax), "linear", bc, m, check_per_interval, dtype)
+        return _Chained(parts, B, K, dtype)
+    p = _Path(s.contiguous(), y, interpolation, bc) if path is None else path
+    m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // (N - 1)))
+    check_count(m, "grid_per_segment", 2 if interpolation == "linear" else 1)
+    f = torch.arange(m, dtype=torch.float64, device=y.device) / m
+    grid = torch.cat(((s[:, :-1, None] + f * (s[:, 1:] - s[:, :-1])[..., None]).flatten(1), s[:, -1:]), 1)
+    seg = torch.arange(N - 1, device=y.device).repeat_interleave(m)
+    kseg = torch.cat((seg, seg[-1:])).expand(B, -1).contiguous()
+    stops = torch.zeros_like(grid, dtype=torch.bool)
+    if interpolation == "linear":
+        stops[:, m:-1:m] = True
+    x = _topp(p, grid, kseg, vmax, amax, stops)
+    if jmax is None:
+        taus = [torch.zeros(B, dtype=torch.float64, device=y.device)]
+    else:
+        base = 2 * (amax / jmax).amax(1)
+        taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
+    limits = [vmax, amax] if jmax is None else [vmax, amax, jmax]
+
+    profile = TimedPath(p, grid, x, taus[0], torch.ones_like(taus[0]), dtype)  # made once, retimed below
+
+    def stretch(tau: Tensor, per_interval: int, r: Tensor | None = None, skip: int = 0,
+                prior: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """k, the duration and the peaks (:func:`_peaks`) of the profile smoothed by τ, checked at
+        ``per_interval``, of the rows ``r`` (all if None; τ of those rows); ``prior``: the peaks of the
+        samples left out by ``skip`` (:meth:`TimedPath._breakpoints`)."""
+        timed = profile._retimed(tau, torch.ones_like(tau), r)
+        lim = limits if r is None else [v[r] for v in limits]
+        peak = _peaks(timed, timed._breakpoints(per_interval, skip), lim)
+        peak = peak if prior is None else torch.maximum(peak, prior)
+        k = torch.maximum(peak[:, 0], peak[:, 1].sqrt())
+        if jmax is not None:
+            k = torch.maximum(k, peak[:, 2].pow(1 / 3))
+        k = k.clamp_min(1) * (1 + _STRETCH)
+        return k, (timed._t[:, -1] + tau) * k, peak
+
+    taus = torch.stack(taus, 1)  # (B, C) candidates, the shortest wins (the first of equals)
+    B, C = taus.shape
+    # Pruning, exact: the check at a quarter of the samples (a subset of the dense samples, the same
+    # floats) gives a lower bound on each candidate's duration; the candidates are checked densely in
+    # the order of their bounds until no row's next bound can beat its best.
+    prune = C > 1 and check_per_interval % 4 == 0
+    # A dense check then only evaluates the samples the quarter check left out (the peaks of the union
+    # are the larger of both), and only on the rows where its candidate can still win (its duration is
+    # at least its bound, so elsewhere it cannot): the same result as checking every row densely.
+    if prune:
+        if B * C <= _ONE_CHECK:  # every candidate of every row in one check (row b's: rows b C ..)
+            every = torch.arange(B, device=taus.device).repeat_interleave(C)
+            _, lower, peaks = stretch(taus.reshape(-1), check_per_interval // 4, every)
+            lower, peaks = lower.view(B, C), peaks.view(B, C, -1)  # (B, C), (B, C, 2 or 3)
+        else:  # a check per candidate, the profile shared (C copies of it: C times the memory)
+            quarter = [stretch(taus[:, c], check_per_interval // 4) for c in range(C)]
+            lower = torch.stack([q[1] for q in quarter], 1)
+            peaks = torch.stack([q[2] for q in quarter], 1)  # (B, C, 2 or 3)
+        order = lower.argsort(dim=1, stable=True)
+        lower = lower.gather(1, order)
+    else:
+        order = torch.arange(C, device=taus.device).expand(B, C)
+    def beats(total: Tensor, c: Tensor, best: tuple) -> Tensor:
+        return (total < best[2]) | ((total == best[2]) & (c < best[3]))
+
+    best = None
+    for r in range(C):
+        c = order[:, r]
+        tau = taus.gather(1, c[:, None])[:, 0]
+        skip, prior = (4, peaks.gather(1, c[:, None, None].expand(-1, 1, peaks.shape[-1]))[:, 0]) \
+            if prune else (0, None)
+        if prune and best is not None:
+            maybe = beats(lower[:, r], c, best)
+            if not bool(maybe.any()):
+                break  # the later bounds are larger still
+            rows = maybe.nonzero()[:, 0]
+            k_r, total_r, _ = stretch(tau[rows], check_per_interval, rows, skip, prior[rows])
+            k, total = best[1].index_put((rows,), k_r), best[2].index_put((rows,), total_r)
+            better = maybe & beats(total, c, best)
         else:
-            base = 2 * (amax / jmax).amax(1)
-            taus = [c * base for c in (0.25, 0.5, 1.0, 2.0)]
-        limits = [vmax, amax] if jmax is None else [vmax, amax, jmax]
-
-        profile = TimedPath(p, grid, x, taus[0], torch.ones_like(taus[0]), dtype)  # made once, retimed below
-
-        def stretch(tau: Tensor, per_interval: int, r: Tensor | None = None, skip: int = 0,
-                    prior: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-            """k, the duration and the peaks (:func:`_peaks`) of the profile smoothed by τ, checked at
-            ``per_interval``, of the rows ``r`` (all if None; τ of those rows); ``prior``: the peaks of the
-            samples left out by ``skip`` (:meth:`TimedPath._breakpoints`)."""
-            timed = profile._retimed(tau, torch.ones_like(tau), r)
-            lim = limits if r is None else [v[r] for v in limits]
-            peak = _peaks(timed, timed._breakpoints(per_interval, skip), lim)
-            peak = peak if prior is None else torch.maximum(peak, prior)
-            k = torch.maximum(peak[:, 0], peak[:, 1].sqrt())
-            if jmax is not None:
-                k = torch.maximum(k, peak[:, 2].pow(1 / 3))
-            k = k.clamp_min(1) * (1 + _STRETCH)
-            return k, (timed._t[:, -1] + tau) * k, peak
-
-        taus = torch.stack(taus, 1)  # (B, C) candidates, the shortest wins (the first of equals)
-        B, C = taus.shape
-        # Pruning, exact: the check at a quarter of the samples (a subset of the dense samples, the same
-        # floats) gives a lower bound on each candidate's duration; the candidates are checked densely in
-        # the order of their bounds until no row's next bound can beat its best.
-        prune = C > 1 and check_per_interval % 4 == 0
-        # A dense check then only evaluates the samples the quarter check left out (the peaks of the union
-        # are the larger of both), and only on the rows where its candidate can still win (its duration is
-        # at least its bound, so elsewhere it cannot): the same result as checking every row densely.
-        if prune:
-            if B * C <= _ONE_CHECK:  # every candidate of every row in one check (row b's: rows b C ..)
-                every = torch.arange(B, device=taus.device).repeat_interleave(C)
-                _, lower, peaks = stretch(taus.reshape(-1), check_per_interval // 4, every)
-                lower, peaks = lower.view(B, C), peaks.view(B, C, -1)  # (B, C), (B, C, 2 or 3)
-            else:  # a check per candidate, the profile shared (C copies of it: C times the memory)
-                quarter = [stretch(taus[:, c], check_per_interval // 4) for c in range(C)]
-                lower = torch.stack([q[1] for q in quarter], 1)
-                peaks = torch.stack([q[2] for q in quarter], 1)  # (B, C, 2 or 3)
-            order = lower.argsort(dim=1, stable=True)
-            lower = lower.gather(1, order)
+            k, total, _ = stretch(tau, check_per_interval, None, skip, prior)
+            better = None if best is None else beats(total, c, best)
+        if best is None:
+            best = (tau, k, total, c)
         else:
-            order = torch.arange(C, device=taus.device).expand(B, C)
-        def beats(total: Tensor, c: Tensor, best: tuple) -> Tensor:
-            return (total < best[2]) | ((total == best[2]) & (c < best[3]))
-
-        best = None
-        for r in range(C):
-            c = order[:, r]
-            tau = taus.gather(1, c[:, None])[:, 0]
-            skip, prior = (4, peaks.gather(1, c[:, None, None].expand(-1, 1, peaks.shape[-1]))[:, 0]) \
-                if prune else (0, None)
-            if prune and best is not None:
-                maybe = beats(lower[:, r], c, best)
-                if not bool(maybe.any()):
-                    break  # the later bounds are larger still
-                rows = maybe.nonzero()[:, 0]
-                k_r, total_r, _ = stretch(tau[rows], check_per_interval, rows, skip, prior[rows])
-                k, total = best[1].index_put((rows,), k_r), best[2].index_put((rows,), total_r)
-                better = maybe & beats(total, c, best)
-            else:
-                k, total, _ = stretch(tau, check_per_interval, None, skip, prior)
-                better = None if best is None else beats(total, c, best)
-            if best is None:
-                best = (tau, k, total, c)
-            else:
-                best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
-        return _batched(profile._retimed(best[0], best[1]), batch)
+            best = tuple(torch.where(better, new, old) for new, old in zip((tau, k, total, c), best))
+    return profile._retimed(best[0], best[1])
 
 
 def _batched(timed: TimedPath, batch: tuple) -> TimedPath:
