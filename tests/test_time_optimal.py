@@ -192,8 +192,8 @@ def test_jerk_held_across_a_short_knot_interval(monkeypatch, short):
         assert ratio <= 1.005
 
 
-def test_quarter_checks_in_one_call_equal_one_call_per_candidate(monkeypatch):
-    """The quarter-density checks of the τ candidates run as one call for small batches (rows × candidates
+def test_coarse_checks_in_one_call_equal_one_call_per_candidate(monkeypatch):
+    """The coarse checks of the τ candidates run as one call for small batches (rows × candidates
     up to _ONE_CHECK) and one call per candidate for large ones: the same durations, stretches and samples to
     the bit, spline and linear, with and without a jerk limit, batches of 1 and 5."""
     tom = importlib.import_module("diffkin.trajectories.time_optimal")

@@ -1,6 +1,6 @@
 """trajectories.time_optimal's fast paths against the plain evaluations they replace, to the last bit: the
 chained (polyline + jerk) path sampled part by part against every part at every time, the pruned limit check
-(quarter samples reused, dense checks on the rows that can still win) against every candidate checked
+(coarse samples reused, dense checks on the rows that can still win) against every candidate checked
 densely on every row, the per-sample row search against torch.searchsorted, Horner from the top coefficient
 against Horner from zero."""
 
@@ -41,7 +41,7 @@ def test_chained_samples_each_part_only():
         assert torch.equal(x, torch.gather(ref.view(B, K, -1, 7), 1, idx)[:, 0])
 
 
-# (4, 3): coarse quarter bounds, so later dense checks run on some rows only (6, then 1 of 8 rows)
+# (4, 3): coarse bounds (one sample in 4), so later dense checks run on some rows only
 @pytest.mark.parametrize("per_interval, grid", [(16, None), (8, None), (6, None), (4, 3)])
 def test_pruned_limit_check_equals_every_candidate_checked_densely(per_interval, grid):
     y, kn, _ = _paths(2, 8, 5)
