@@ -306,6 +306,25 @@ static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real
     out[2] = q2;
 }
 
+/* DK(cubic_at)'s q' and q'' alone (its statements for them, in its order: the same floats; c0 adds to q only). */
+static inline void DK(cubic_slopes)(real c1, real c2, real c3, real x, real *d1, real *d2) {
+    real p = c3 * x;
+    p = p + c2;
+    real q1 = c3;
+    real q2 = 2 * q1;
+    real h = q1 * x;
+    q1 = h + p;
+    h = p * x;
+    p = h + c1;
+    q2 = q2 * x;
+    h = 2 * q1;
+    q2 = q2 + h;
+    h = q1 * x;
+    q1 = h + p;
+    *d1 = q1;
+    *d2 = q2;
+}
+
 /* One path: prof = (pt, grid, sd, Sk (M), u (M - 1)), its τ and k; the geometric path's knots ps (N) and
  * coefficients c0..c3 (N - 1, n); lim (nlim, n); top (nlim, n) work; peak (nlim) out. Each joint's largest
  * |q̇_j| (|q̈_j|, |q⃛_j|) is divided by its limit once, at the end: a correctly rounded division is monotone in
@@ -319,7 +338,7 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
     int64_t h1 = 0, h2 = 0, hs = 0;
     real *top_v = top, *top_a = top + n, *top_j = top + 2 * n;
     for (int64_t m = 0; m < T; m++) {
-        real law[4], q[3];
+        real law[4];
         DK(law_at)(pt, grid, sd, u, Sk, M, tau, k, pt_sorted, &h1, &h2, t[m], law);
         const real s = law[0], v = law[1], a = law[2], j = law[3];
         const int64_t g = DK(upper_bound_near)(ps + 1, N - 2, s, ps_sorted, &hs);
@@ -327,24 +346,40 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
         const real vv = v * v;
         const real vvv = vv * v;
         const int64_t e = g * n;
-        for (int64_t c = 0; c < n; c++) {
-            DK(cubic_at)(c0[e + c], c1[e + c], c2[e + c], c3[e + c], x, q);
-            const real qd = q[1] * v;
-            real qdd = q[1] * a;
-            real h = q[2] * vv;
-            qdd = qdd + h;
-            top_v[c] = DK(nan_max)(top_v[c], fabs(qd));
-            top_a[c] = DK(nan_max)(top_a[c], fabs(qdd));
-            if (nlim > 2) {
-                const real q3 = 6 * c3[e + c];
-                real qj = q[1] * j;
-                h = 3 * q[2];
+        const real *C1 = c1 + e, *C2 = c2 + e, *C3 = c3 + e;
+        /* the joints side by side (each lane the scalar statements below, in their order: the same floats) */
+        if (nlim > 2) {
+#pragma omp simd
+            for (int64_t c = 0; c < n; c++) {
+                real q1, q2;
+                DK(cubic_slopes)(C1[c], C2[c], C3[c], x, &q1, &q2);
+                const real qd = q1 * v;
+                real qdd = q1 * a;
+                real h = q2 * vv;
+                qdd = qdd + h;
+                const real q3 = 6 * C3[c];
+                real qj = q1 * j;
+                h = 3 * q2;
                 h = h * v;
                 h = h * a;
                 qj = qj + h;
                 h = q3 * vvv;
                 qj = qj + h;
+                top_v[c] = DK(nan_max)(top_v[c], fabs(qd));
+                top_a[c] = DK(nan_max)(top_a[c], fabs(qdd));
                 top_j[c] = DK(nan_max)(top_j[c], fabs(qj));
+            }
+        } else {
+#pragma omp simd
+            for (int64_t c = 0; c < n; c++) {
+                real q1, q2;
+                DK(cubic_slopes)(C1[c], C2[c], C3[c], x, &q1, &q2);
+                const real qd = q1 * v;
+                real qdd = q1 * a;
+                const real h = q2 * vv;
+                qdd = qdd + h;
+                top_v[c] = DK(nan_max)(top_v[c], fabs(qd));
+                top_a[c] = DK(nan_max)(top_a[c], fabs(qdd));
             }
         }
     }
