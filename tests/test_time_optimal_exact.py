@@ -187,6 +187,8 @@ def test_native_topp_grid_equals_torch():
     amax, vmax = A.expand(B, n), V.expand(B, n)
 
     class Derivatives:  # the path's derivatives at the grid points (P) and at the interval ends (Q)
+        s, c = None, ()  # no knots or coefficients: the C slopes are not asked for (native disabled below)
+
         def eval(self, s, k):
             return (None, P1, P2, None) if s.shape[1] == M else (None, Q1, Q2, None)
 
@@ -270,3 +272,33 @@ def test_native_spline_check_points_equal_torch():
         assert torch.equal(q1, q2) and torch.equal(p1, p2)
     inside = ((y >= -2.5) & (y <= 2.5)).all(-1).all(-1)
     assert bool(got.any()) and not bool(got.all()) and not bool(inside.all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_grid_slopes_in_c_equal_the_path_evaluation(dtype):
+    """_topp's q', q'' at the grid (right-hand at the grid points, left-hand at each interval's end) from
+    the C kernel (native.topp_slopes) against _Path.eval's torch Horner, to the bit: splines and polylines,
+    one path and batches, float64 and float32."""
+    import sys
+
+    from diffkin.kernels import native
+
+    if not native.available():
+        pytest.skip("the C library is not available")
+    T = sys.modules["diffkin.trajectories.time_optimal"]
+    g = torch.Generator().manual_seed(0)
+    for B, N, n, m in ((1, 6, 7, 85), (3, 2, 7, 512), (4, 9, 3, 5)):
+        y = torch.cumsum(torch.rand(B, N, n, generator=g, dtype=F64) - 0.5, 1)
+        gaps = torch.rand(B, N - 1, generator=g, dtype=F64) + 0.2
+        s = T.unit_knots(torch.cat((torch.zeros(B, 1, dtype=F64), gaps.cumsum(1)), 1))
+        f = torch.arange(m, dtype=F64) / m
+        grid = torch.cat(((s[:, :-1, None] + f * (s[:, 1:] - s[:, :-1])[..., None]).flatten(1), s[:, -1:]), 1)
+        seg = torch.arange(N - 1).repeat_interleave(m)
+        kseg = torch.cat((seg, seg[-1:])).expand(B, -1).contiguous()
+        for how in ("spline", "linear"):
+            p = T._Path(s.contiguous(), y, how, "clamped")
+            p.s, p.c = p.s.to(dtype), tuple(c.to(dtype) for c in p.c)
+            got = native.topp_slopes(p.s, p.c, grid.to(dtype), kseg)
+            _, P1, P2, _ = p.eval(grid.to(dtype), kseg)
+            _, Q1, Q2, _ = p.eval(grid.to(dtype)[:, 1:], kseg[:, :-1])
+            assert got is not None and all(torch.equal(a, b) for a, b in zip(got, (P1, P2, Q1, Q2)))

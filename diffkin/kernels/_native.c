@@ -579,6 +579,20 @@ int64_t dk_topp_sample(const void *const *in, const int64_t *rows, void *q, void
     return DK_ABI_ERROR;
 }
 
+/* The path's q', q'' at time_optimal's grid (_native_topp.c, topp_slopes; reals of real_bytes 8 or 4): in = (s
+ * (B, N), c0..c3 (B, N - 1, n), grid (B, M)), kseg (B, M); P1, P2 (B, M, n), Q1, Q2 (B, M - 1, n) out. Returns
+ * 0, DK_ABI_ERROR for another real size. */
+int64_t dk_topp_slopes(const void *const *in, const int64_t *kseg, void *P1, void *P2, void *Q1, void *Q2,
+                       int64_t B, int64_t M, int64_t N, int64_t n, int64_t real_bytes, int64_t nthreads) {
+    if (real_bytes == 8)
+        return topp_slopes_f64((const double *const *)in, kseg, (double *)P1, (double *)P2, (double *)Q1,
+                               (double *)Q2, B, M, N, n, nthreads);
+    if (real_bytes == 4)
+        return topp_slopes_f32((const float *const *)in, kseg, (float *)P1, (float *)P2, (float *)Q1, (float *)Q2,
+                               B, M, N, n, nthreads);
+    return DK_ABI_ERROR;
+}
+
 /* TOPP-RA from the path's derivatives at the grid (_native_topp.c, topp_grid; reals of real_bytes 8 or 4): in
  * P1, P2 (B, M, n), Q1, Q2 (B, M - 1, n), amax, vmax (B, n), delta (B, M - 1), stops (B, M); x (B, M) out.
  * Returns 0, -1 when the work space cannot be allocated, DK_ABI_ERROR for another real size. */

@@ -306,6 +306,34 @@ static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real
     out[2] = q2;
 }
 
+/* _Path.eval's q' and q'' of B paths for time_optimal's grid (_topp): P1, P2 (B, M, n) at grid[m] on segment
+ * kseg[m] (right-hand at a knot), Q1, Q2 (B, M - 1, n) at grid[m + 1] on segment kseg[m] (each interval's end,
+ * left-hand); in: knots s (B, N), c0..c3 (B, N - 1, n), grid (B, M); DK(cubic_at)'s Horner: the same floats.
+ * Paths are shared between threads. */
+static int64_t DK(topp_slopes)(const real *const *in, const int64_t *kseg, real *P1, real *P2, real *Q1, real *Q2,
+                               int64_t B, int64_t M, int64_t N, int64_t n, int64_t nthreads) {
+#pragma omp parallel for num_threads(nthreads) schedule(dynamic, 1)
+    for (int64_t b = 0; b < B; b++) {
+        const real *s = in[0] + b * N, *grid = in[5] + b * M;
+        const int64_t E = b * (N - 1) * n, *kb = kseg + b * M;
+        for (int64_t m = 0; m < 2 * M - 1; m++) {
+            const int end = m >= M; /* the second pass: the intervals' ends */
+            const int64_t i = end ? m - M : m, k = kb[i];
+            const real x = grid[end ? i + 1 : i] - s[k];
+            real *d1 = end ? Q1 + (b * (M - 1) + i) * n : P1 + (b * M + i) * n;
+            real *d2 = end ? Q2 + (b * (M - 1) + i) * n : P2 + (b * M + i) * n;
+            const int64_t e = E + k * n;
+            for (int64_t c = 0; c < n; c++) {
+                real q[3];
+                DK(cubic_at)(in[1][e + c], in[2][e + c], in[3][e + c], in[4][e + c], x, q);
+                d1[c] = q[1];
+                d2[c] = q[2];
+            }
+        }
+    }
+    return 0;
+}
+
 /* DK(cubic_at)'s q' and q'' alone (its statements for them, in its order: the same floats; c0 adds to q only). */
 static inline void DK(cubic_slopes)(real c1, real c2, real c3, real x, real *d1, real *d2) {
     real p = c3 * x;

@@ -305,6 +305,7 @@ def _load(path: Path, flags: tuple[str, ...]) -> ctypes.CDLL:
     lib.dk_topp_grid.argtypes = [_PTR] * 2 + [_I64] * 3 + [ctypes.c_double] + [_I64] * 2
     lib.dk_topp_sample.restype, lib.dk_topp_sample.argtypes = _I64, [_PTR] * 5 + [_I64] * 7
     lib.dk_topp_peaks.restype, lib.dk_topp_peaks.argtypes = _I64, [_PTR] * 3 + [_I64] * 8
+    lib.dk_topp_slopes.restype, lib.dk_topp_slopes.argtypes = _I64, [_PTR] * 6 + [_I64] * 6
     return lib
 
 
@@ -727,6 +728,29 @@ def topp_grid(P1: Tensor, P2: Tensor, Q1: Tensor, Q2: Tensor, amax: Tensor, vmax
     _raise_on(_lib.dk_topp_grid(_pointers(ins), x.data_ptr(), B, M, n, big, x.element_size(),
                                 _lanes(B, B * M)), "work space")
     return x
+
+
+def topp_slopes(knots: Tensor, coeffs: tuple[Tensor, ...], grid: Tensor, kseg: Tensor
+                ) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+    """The path's q', q'' of :func:`diffkin.trajectories.time_optimal._topp` by ``dk_topp_slopes``
+    (``_native_topp.c``: _Path.eval's Horner, the same floats): ``P1, P2 (B, M, n)`` at the grid points
+    ``grid (B, M)`` on their segments ``kseg (B, M)`` (right-hand at a knot) and ``Q1, Q2 (B, M - 1, n)``
+    at each interval's end on its segment (left-hand), from the paths' ``knots (B, N)`` and coefficients
+    ``c0..c3 (B, N - 1, n)``; None (nothing done) where the library is not loaded or the inputs are not CPU
+    tensors of one float dtype without autograd. Paths are shared between threads."""
+    ins = (knots, *coeffs, grid)
+    dtype = grid.dtype
+    if kseg.device.type != "cpu" or not _serves(dtype, ins):
+        return None
+    (B, M), N, n = grid.shape, knots.shape[1], coeffs[0].shape[-1]
+    ins = [x.contiguous() for x in ins]
+    kseg = kseg.to(torch.int64).expand(B, M).contiguous()
+    P1, P2 = (torch.empty(B, M, n, dtype=dtype, device="cpu") for _ in range(2))  # C writes here
+    Q1, Q2 = (torch.empty(B, M - 1, n, dtype=dtype, device="cpu") for _ in range(2))
+    outs = [x.data_ptr() for x in (P1, P2, Q1, Q2)]
+    _raise_on(_lib.dk_topp_slopes(_pointers(ins), kseg.data_ptr(), *outs, B, M, N, n, P1.element_size(),
+                                  _lanes(B, B * M)), "work space")
+    return P1, P2, Q1, Q2
 
 
 def topp_peaks(t: Tensor, profile: tuple[Tensor, ...], tau: Tensor, k: Tensor, knots: Tensor,

@@ -200,8 +200,12 @@ def _topp(path: _Path, grid: Tensor, kseg: Tensor, vmax: Tensor, amax: Tensor, s
     Every constraint row but one (2Δ u + x ≤ x_next, the next controllable set) is fixed before the
     recursion, so the bounds from all the pairs of fixed rows are computed for all intervals at once (in
     chunks of bounded memory); the backward and forward passes then meet only the moving row."""
-    _, P1, P2, _ = path.eval(grid, kseg)  # (B, M, n), right-hand at knots
-    _, Q1, Q2, _ = path.eval(grid[:, 1:], kseg[:, :-1])  # interval ends, left-hand
+    slopes = native.topp_slopes(path.s, path.c, grid, kseg)  # in C on the CPU: the same floats
+    if slopes is not None:
+        P1, P2, Q1, Q2 = slopes
+    else:
+        _, P1, P2, _ = path.eval(grid, kseg)  # (B, M, n), right-hand at knots
+        _, Q1, Q2, _ = path.eval(grid[:, 1:], kseg[:, :-1])  # interval ends, left-hand
     delta = grid[:, 1:] - grid[:, :-1]
     B, M = grid.shape
     x = native.topp_grid(P1, P2, Q1, Q2, amax, vmax, delta, stops, _X_BIG)  # all below in C: the same floats
