@@ -52,10 +52,10 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
   (``search_ms``) and planning + simplification (``ms``) times; its simplified path timed by toppra under
   the same Franka velocity and acceleration limits (at rest at every waypoint: the path it checked;
   ``spline_s``: the unchecked cubic spline through its waypoints), length and jerk as above;
-* ``diffkin plan, one at a time``: the first ``--subset`` problems of each family, each in its own call
-  (after one untimed warm-up call), and the search stage alone on each (the edge checker and RRT-Connect
-  as ``plan`` runs them, :func:`_search_stage`): median wall times, and the search's median over VAMP's
-  median planning time on the same problems (``search_vs_vamp``); and the search again with its scene
+* ``diffkin plan, one at a time``: the first ``--subset`` problems of each family, each in its own call on one
+  thread (after one untimed warm-up call), and the search stage alone on each (the edge checker and
+  RRT-Connect as ``plan`` runs them, :func:`_search_stage`): median wall times, and the search's median over
+  VAMP's median planning time on the same problems (``search_vs_vamp``); and the search again with its scene
   prepared before the clock starts (:func:`prepared_scene`: the edge checker and its C constants, as VAMP's
   clock starts after ``problem_dict_to_vamp`` has built its environment): ``search_prepared_ms`` and
   ``prepared_vs_vamp``;
@@ -364,7 +364,18 @@ def search_rows(problems, iterations: int = ITERATIONS, step: float = 1.0, singl
 
 def _one_at_a_time(problems, iterations: int, step: float, seed: int, ompl_time: float) -> list[dict]:
     """One record per problem: ``motion.plan`` on it alone (``plan_s``, ``success``), the search stage alone
-    (``search_s``, ``found``) and OMPL's RRT-Connect (``ompl_s``, ``ompl_success``; None without ompl)."""
+    (``search_s``, ``found``) and OMPL's RRT-Connect (``ompl_s``, ``ompl_success``; None without ompl), on
+    one thread (the issue's measure; torch's thread count restored after)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return _one_at_a_time_records(problems, iterations, step, seed, ompl_time)
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _one_at_a_time_records(problems, iterations: int, step: float, seed: int, ompl_time: float) -> list[dict]:
+    """:func:`_one_at_a_time`'s records, on the threads set."""
     import time
 
     from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V
