@@ -432,12 +432,23 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
         }
     }
     if (status == DK_PLAN_FOUND) { /* random shortcuts: each clear edge i -> j drops the waypoints between */
+        /* the pairs found colliding since the path last changed (paths of up to 64 waypoints): a pair drawn
+         * again collides again (the same edge, the same decision), so it is not decided again; the draws are
+         * unchanged, so the result is the same */
+        uint64_t failed[64] = {0};
         for (int64_t t = 0; t < p->shortcut_tries && len > 2; t++) {
             const int64_t i = (int64_t)(plan_uniform(&w->rng) * (double)(len - 2));
             const int64_t j = i + 2 + (int64_t)(plan_uniform(&w->rng) * (double)(len - i - 2));
-            if (j >= len || DK(plan_edge)(w, path + i * n, path + j * n, 0) != 1) continue;
+            if (j >= len) continue;
+            const int memo = len <= 64;
+            if (memo && (failed[i] >> j & 1)) continue;
+            if (DK(plan_edge)(w, path + i * n, path + j * n, 0) != 1) {
+                if (memo) failed[i] |= (uint64_t)1 << j;
+                continue;
+            }
             memmove(path + (i + 1) * n, path + j * n, sizeof(real) * (size_t)((len - j) * n));
             len -= j - i - 1;
+            memset(failed, 0, sizeof failed);
         }
         if (len > L) status = DK_PLAN_TOO_LONG;
     }
