@@ -31,7 +31,10 @@ __all__ = [
 def broadcast_shapes(*shapes) -> torch.Size:
     """``torch.broadcast_shapes`` of plain shapes (tuples or ``torch.Size``) without its dispatch: about 5 µs
     a call against 60 (a plan one at a time made some 20 of them). The same result, and a RuntimeError
-    naming both sizes where they do not broadcast; symbolic sizes (``torch.compile``'s) go to torch's."""
+    naming both sizes where they do not broadcast; traced calls (``torch.compile``) and symbolic sizes go to
+    torch's."""
+    if torch.compiler.is_compiling():
+        return torch.broadcast_shapes(*shapes)
     n = max(map(len, shapes), default=0)
     out = [1] * n
     for shape in shapes:

@@ -283,8 +283,8 @@ def test_plan_struct_layout_checked_and_another_version_refused(panda):
 
 
 def test_goal_bias_validated_and_used(panda):
-    """goal_bias outside [0, 1] is an OptionError naming it; 0.5 still solves (the other tree's root as the
-    sample half the time)."""
+    """goal_bias outside [0, 1], and a seed that is not an int64, are OptionErrors naming them; goal_bias 0.5
+    still solves (the other tree's root as the sample half the time)."""
     from diffkin.errors import OptionError
 
     chain, rc, probs = panda
@@ -293,6 +293,10 @@ def test_goal_bias_validated_and_used(panda):
         with pytest.raises(OptionError, match="goal_bias"):
             motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
                         goal_bias=bad)
+    for bad in (1 << 63, -(1 << 63) - 1, 1.5, True):  # the seed: an int64 (the C streams' and row_keys')
+        with pytest.raises(OptionError, match="seed"):
+            motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
+                        seed=bad)
     res = motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
                       max_iterations=10000, step=0.5, goal_bias=0.5)
     assert res.success.all(), res.reason

@@ -11,7 +11,7 @@ import torch
 
 from diffkin.trajectories import time_optimal
 from diffkin.trajectories._common import poly_eval
-from diffkin.trajectories.time_optimal import _STRETCH, TimedPath, _peaks, _search_rows
+from diffkin.trajectories.time_optimal import _STRETCH, TimedPath, _cube_root, _peaks, _search_rows
 
 F64 = torch.float64
 V = torch.tensor([2.175, 2.175, 2.175, 2.175, 2.61, 2.61, 2.61], dtype=F64)
@@ -41,13 +41,24 @@ def test_chained_samples_each_part_only():
         assert torch.equal(x, torch.gather(ref.view(B, K, -1, 7), 1, idx)[:, 0])
 
 
-# (4, 3): coarse bounds (one sample in 4), so later dense checks run on some rows only
-@pytest.mark.parametrize("per_interval, grid", [(16, None), (8, None), (6, None), (4, 3)])
-def test_pruned_limit_check_equals_every_candidate_checked_densely(per_interval, grid):
+# (16, None, 10): a jerk limit 10x the acceleration's (the candidates' durations close): a later dense check
+# runs on one of the 8 rows only
+@pytest.mark.parametrize("per_interval, grid, jerk", [(16, None, 100), (8, None, 100), (6, None, 100),
+                                                      (4, 3, 100), (16, None, 10)])
+def test_pruned_limit_check_equals_every_candidate_checked_densely(per_interval, grid, jerk, monkeypatch):
+    import sys
+
+    mod = sys.modules["diffkin.trajectories.time_optimal"]
+    rows, peaks = [], mod._peaks
+    monkeypatch.setattr(mod, "_peaks", lambda timed, t, lim: rows.append(t.shape[0]) or peaks(timed, t, lim))
     y, kn, _ = _paths(2, 8, 5)
-    J = 100 * A
+    J = jerk * A
     res = time_optimal(y, V, A, J, knots=kn, bc="clamped", check_per_interval=per_interval,
                        grid_per_segment=grid)
+    # the coarse check of the 8 rows' 4 candidates in one call, then the dense checks
+    assert rows[0] == 32 and rows[1] == 8
+    if jerk == 10:  # the pruning's later branch ran: a dense check on some rows only
+        assert len(rows) > 2 and all(0 < r < 8 for r in rows[2:])
     # every candidate τ on every row at every dense sample, the shortest (the first of equals) wins
     base = 2 * (A / J).amax()
     best_total, best_k = None, None
@@ -56,7 +67,7 @@ def test_pruned_limit_check_equals_every_candidate_checked_densely(per_interval,
         timed = TimedPath(res._path, res._grid, res._x, tau, torch.ones_like(tau), F64)
         _, qd, qdd, qddd = timed._joint(timed._breakpoints(per_interval))
         k = torch.maximum((qd.abs() / V).amax((1, 2)), (qdd.abs() / A).amax((1, 2)).sqrt())
-        k = torch.maximum(k, (qddd.abs() / J).amax((1, 2)).pow(1 / 3)).clamp_min(1) * (1 + _STRETCH)
+        k = torch.maximum(k, _cube_root((qddd.abs() / J).amax((1, 2)))).clamp_min(1) * (1 + _STRETCH)
         total = (timed._t[:, -1] + tau) * k
         if best_total is None:
             best_total, best_k = total, k
@@ -302,3 +313,30 @@ def test_grid_slopes_in_c_equal_the_path_evaluation(dtype):
             _, P1, P2, _ = p.eval(grid.to(dtype), kseg)
             _, Q1, Q2, _ = p.eval(grid.to(dtype)[:, 1:], kseg[:, :-1])
             assert got is not None and all(torch.equal(a, b) for a, b in zip(got, (P1, P2, Q1, Q2)))
+
+
+def test_polyline_with_jerk_in_float32_times_its_parts_in_float64():
+    """A float32 polyline with a jerk limit is timed part by part in float64, as a float64 one (the parts'
+    durations are added up in float64): the same part starts and the float64 durations rounded once."""
+    y, kn, _ = _paths(4, 3, 5)
+    y, kn, v, a = (x.float() for x in (y, kn, V, A))  # the float32 values, given in both dtypes below
+    r32 = time_optimal(y, v, a, 100 * a, knots=kn, interpolation="linear")
+    r64 = time_optimal(y.double(), v.double(), a.double(), 100 * a.double(), knots=kn.double(),
+                       interpolation="linear")
+    assert r32._parts._dtype == F64 and torch.equal(r32._start, r64._start)
+    assert r32.duration.dtype == torch.float32 and torch.equal(r32.duration, r64.duration.float())
+
+
+def test_a_path_alone_is_timed_as_its_row_in_a_batch():
+    """Each row's duration and stretch k, timed with seven other paths or alone, to the bit (the cube root of
+    the jerk peak one entry at a time: torch's pow can differ in the last bit by the tensor's size/layout)."""
+    y, kn, _ = _paths(2, 8, 5)
+    J = 10 * A
+    batch = time_optimal(y, V, A, J, knots=kn, bc="clamped")
+    for b in range(8):
+        alone = time_optimal(y[b:b + 1], V, A, J, knots=kn[b:b + 1], bc="clamped")
+        assert torch.equal(alone.duration, batch.duration[b:b + 1])
+        assert torch.equal(alone._k, batch._k[b:b + 1])
+    x = torch.rand(37, dtype=F64) * 10
+    assert torch.equal(_cube_root(x), torch.tensor([v ** (1 / 3) for v in x.tolist()], dtype=F64))
+    assert torch.equal(_cube_root(x[5:6]), _cube_root(x)[5:6])

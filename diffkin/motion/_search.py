@@ -203,6 +203,8 @@ def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
     """(B,) int64: a random-stream key per problem from ``seed`` and the bits of its start and goal, so
     that a problem's draws (:func:`row_uniform`) do not depend on the batch it is planned in (as the C
     search's streams)."""
+    if not -(1 << 63) <= seed < 1 << 63:  # (either way below: a key is an int64)
+        raise RuntimeError(f"row_keys: the seed {seed} does not fit an int64")
     bits = torch.cat((q_start, q_goal), -1).detach().to(torch.float64).contiguous().view(torch.int64)
     if bits.device.type == "cpu" and bits.shape[0] <= _INT_ROWS:  # Python integers: 14 µs a row, not 460
         mask, golden = (1 << 64) - 1, _GOLDEN & ((1 << 64) - 1)

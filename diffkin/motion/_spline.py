@@ -19,7 +19,9 @@ __all__ = ["_knots", "_spline", "_spline_clear", "_spline_failures"]
 
 
 def _knots(path: Tensor) -> Tensor:
-    """Chord-length knots (B, L), strictly increasing."""
+    """Chord-length knots (B, L), float64, strictly increasing (in float32, 1e-9 added to a zero chord would
+    vanish in the sum: two equal knots)."""
+    path = path.to(torch.float64)
     seg = (path[:, 1:] - path[:, :-1]).norm(dim=-1) + 1e-9
     return torch.cat((torch.zeros_like(seg[:, :1]), seg.cumsum(1)), 1)
 

@@ -303,6 +303,8 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
     if goal_bias > 1:
         raise OptionError(f"expected goal_bias as a probability in [0, 1], got {goal_bias!r}")
     check_count(shortcut_rounds, "shortcut_rounds", 0)
+    if isinstance(seed, bool) or not isinstance(seed, int) or not -(1 << 63) <= seed < 1 << 63:
+        raise OptionError(f"expected seed as an integer that fits an int64, got {seed!r}")
     collision._check_chain(chain, "motion.plan")
     q_start = chain.check_q(q_start, "q_start")
     if q_start.ndim != 2:

@@ -90,8 +90,8 @@ def _search_rows(seq: Tensor, rows: Tensor, x: Tensor, right: bool = True) -> Te
     (...) (each sample searched in its own row of seq) -> (...). A binary search by gathers (log2 L
     steps), so a sample costs its own row only, not all the rows a batched searchsorted would need."""
     L = seq.shape[1]
+    rows, x = torch.broadcast_tensors(rows, x) if rows.shape != x.shape else (rows, x)
     if seq.shape[0] == 1 or rows.numel() * L <= _GATHERED:  # one searchsorted (the same answer)
-        rows, x = torch.broadcast_tensors(rows, x) if rows.shape != x.shape else (rows, x)
         if seq.shape[0] == 1:  # one row: every sample's
             i = torch.searchsorted(seq.contiguous(), x.reshape(1, -1).contiguous(), right=right)
         else:  # few samples: their rows gathered
@@ -488,6 +488,15 @@ def _peaks(timed: TimedPath, t: Tensor, limits: list[Tensor]) -> Tensor:
     return peak
 
 
+def _cube_root(x: Tensor) -> Tensor:
+    """x^(1/3) of each entry of ``x (R,)`` by the C library's pow, one entry at a time. torch's pow can differ
+    in the last bit between its vectorised loop and its scalar one, which it picks by the tensor's size,
+    layout and an entry's place in it: a row's stretch k (and duration) would then depend on the rows it is
+    checked with (a pruned dense check of some rows against one of every row, a plan alone against its row in
+    a batch)."""
+    return torch.tensor([v ** (1 / 3) for v in x.tolist()], dtype=x.dtype, device=x.device)
+
+
 def unit_knots(knots: Tensor) -> Tensor:
     """Knots ``(B, N)`` brought to run from 0 to 1 (the same path: s is normalised), float64."""
     s = knots.to(torch.float64)
@@ -580,7 +589,8 @@ def _timed(y: Tensor, s: Tensor, vmax: Tensor, amax: Tensor, jmax: Tensor | None
         rep = lambda x: x.repeat_interleave(K, 0)  # noqa: E731
         m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // K))
         unit = torch.tensor([0.0, 1.0], dtype=torch.float64, device=y.device).expand(B * K, 2)
-        parts = _timed(seg, unit, rep(vmax), rep(amax), rep(jmax), "linear", bc, m, check_per_interval, dtype)
+        parts = _timed(seg, unit, rep(vmax), rep(amax), rep(jmax), "linear", bc, m, check_per_interval,
+                       torch.float64)  # the parts in float64 whatever the result's dtype (_Chained adds them)
         return _Chained(parts, B, K, dtype)
     p = _Path(s.contiguous(), y, interpolation, bc) if path is None else path
     m = grid_per_segment if grid_per_segment is not None else max(2, -(-512 // (N - 1)))
@@ -613,7 +623,7 @@ def _timed(y: Tensor, s: Tensor, vmax: Tensor, amax: Tensor, jmax: Tensor | None
         peak = peak if prior is None else torch.maximum(peak, prior)
         k = torch.maximum(peak[:, 0], peak[:, 1].sqrt())
         if jmax is not None:
-            k = torch.maximum(k, peak[:, 2].pow(1 / 3))
+            k = torch.maximum(k, _cube_root(peak[:, 2]))
         k = k.clamp_min(1) * (1 + _STRETCH)
         return k, (timed._t[:, -1] + tau) * k, peak
 
