@@ -285,8 +285,9 @@ static inline void DK(law_at)(const real *pt, const real *grid, const real *sd, 
     out[0] = s > 1 ? 1 : s;
 }
 
-/* poly_eval from the top coefficient (c3, c2, c1, c0) at x: q, q', q'' into out[0..2]. */
-static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real *out) {
+/* poly_eval from the top coefficient (c3, c2, c1) at x, its statements in its order: q''s Horner partial
+ * (c3 x + c2) x + c1 into *p, q' and q'' into *d1, *d2 (the caller adds c0 to p x for q). */
+static inline void DK(cubic_horner)(real c1, real c2, real c3, real x, real *p_out, real *d1, real *d2) {
     real p = c3 * x;
     p = p + c2;
     real q1 = c3;
@@ -300,10 +301,28 @@ static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real
     q2 = q2 + h;
     h = q1 * x;
     q1 = h + p;
-    h = p * x;
+    *p_out = p;
+    *d1 = q1;
+    *d2 = q2;
+}
+
+/* poly_eval from the top coefficient (c3, c2, c1, c0) at x: q, q', q'' into out[0..2]. */
+static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real *out) {
+    real p;
+    DK(cubic_horner)(c1, c2, c3, x, &p, out + 1, out + 2);
+    const real h = p * x;
     out[0] = h + c0;
-    out[1] = q1;
-    out[2] = q2;
+}
+
+/* A joint's q', q'' (DK(cubic_horner)) and its q̇ = q' ṡ, q̈ = q' s̈ + q'' ṡ² (vv = ṡ²), in _joint's order. */
+static inline void DK(joint_rates)(real c1, real c2, real c3, real x, real v, real a, real vv, real *q1, real *q2,
+                                   real *qd, real *qdd) {
+    real p;
+    DK(cubic_horner)(c1, c2, c3, x, &p, q1, q2);
+    *qd = *q1 * v;
+    const real t = *q1 * a;
+    const real h = *q2 * vv;
+    *qdd = t + h;
 }
 
 /* _Path.eval's q' and q'' of B paths for time_optimal's grid (_topp): P1, P2 (B, M, n) at grid[m] on segment
@@ -334,25 +353,6 @@ static int64_t DK(topp_slopes)(const real *const *in, const int64_t *kseg, real 
     return 0;
 }
 
-/* DK(cubic_at)'s q' and q'' alone (its statements for them, in its order: the same floats; c0 adds to q only). */
-static inline void DK(cubic_slopes)(real c1, real c2, real c3, real x, real *d1, real *d2) {
-    real p = c3 * x;
-    p = p + c2;
-    real q1 = c3;
-    real q2 = 2 * q1;
-    real h = q1 * x;
-    q1 = h + p;
-    h = p * x;
-    p = h + c1;
-    q2 = q2 * x;
-    h = 2 * q1;
-    q2 = q2 + h;
-    h = q1 * x;
-    q1 = h + p;
-    *d1 = q1;
-    *d2 = q2;
-}
-
 /* One path: prof = (pt, grid, sd, Sk (M), u (M - 1)), its τ and k; the geometric path's knots ps (N) and
  * coefficients c0..c3 (N - 1, n); lim (nlim, n); top (nlim, n) work; peak (nlim) out. Each joint's largest
  * |q̇_j| (|q̈_j|, |q⃛_j|) is divided by its limit once, at the end: a correctly rounded division is monotone in
@@ -379,15 +379,11 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
         if (nlim > 2) {
 #pragma omp simd
             for (int64_t c = 0; c < n; c++) {
-                real q1, q2;
-                DK(cubic_slopes)(C1[c], C2[c], C3[c], x, &q1, &q2);
-                const real qd = q1 * v;
-                real qdd = q1 * a;
-                real h = q2 * vv;
-                qdd = qdd + h;
+                real q1, q2, qd, qdd;
+                DK(joint_rates)(C1[c], C2[c], C3[c], x, v, a, vv, &q1, &q2, &qd, &qdd);
                 const real q3 = 6 * C3[c];
                 real qj = q1 * j;
-                h = 3 * q2;
+                real h = 3 * q2;
                 h = h * v;
                 h = h * a;
                 qj = qj + h;
@@ -400,12 +396,8 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
         } else {
 #pragma omp simd
             for (int64_t c = 0; c < n; c++) {
-                real q1, q2;
-                DK(cubic_slopes)(C1[c], C2[c], C3[c], x, &q1, &q2);
-                const real qd = q1 * v;
-                real qdd = q1 * a;
-                const real h = q2 * vv;
-                qdd = qdd + h;
+                real q1, q2, qd, qdd;
+                DK(joint_rates)(C1[c], C2[c], C3[c], x, v, a, vv, &q1, &q2, &qd, &qdd);
                 top_v[c] = DK(nan_max)(top_v[c], fabs(qd));
                 top_a[c] = DK(nan_max)(top_a[c], fabs(qdd));
             }
