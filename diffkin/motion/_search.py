@@ -214,7 +214,7 @@ def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
             for col in row:
                 key = _mix_uint(key ^ ((col + golden) & mask))
             keys.append(_signed(key))
-        return torch.tensor(keys, dtype=torch.int64)
+        return torch.tensor(keys, dtype=torch.int64, device=bits.device)  # never the default device
     key = torch.full(bits.shape[:1], seed, dtype=torch.int64, device=bits.device)
     cols = bits.T
     if bits.device.type == "cpu":  # in numpy (the same int64 wrapping): 2 nq rounds of torch ops cost ~1-2 ms
