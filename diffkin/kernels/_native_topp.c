@@ -285,9 +285,8 @@ static inline void DK(law_at)(const real *pt, const real *grid, const real *sd, 
     out[0] = s > 1 ? 1 : s;
 }
 
-/* poly_eval from the top coefficient (c3, c2, c1) at x, its statements in its order: q''s Horner partial
- * (c3 x + c2) x + c1 into *p, q' and q'' into *d1, *d2 (the caller adds c0 to p x for q). */
-static inline void DK(cubic_horner)(real c1, real c2, real c3, real x, real *p_out, real *d1, real *d2) {
+/* poly_eval from the top coefficient (c3, c2, c1, c0) at x: q, q', q'' into out[0..2]. */
+static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real *out) {
     real p = c3 * x;
     p = p + c2;
     real q1 = c3;
@@ -301,27 +300,22 @@ static inline void DK(cubic_horner)(real c1, real c2, real c3, real x, real *p_o
     q2 = q2 + h;
     h = q1 * x;
     q1 = h + p;
-    *p_out = p;
-    *d1 = q1;
-    *d2 = q2;
-}
-
-/* poly_eval from the top coefficient (c3, c2, c1, c0) at x: q, q', q'' into out[0..2]. */
-static inline void DK(cubic_at)(real c0, real c1, real c2, real c3, real x, real *out) {
-    real p;
-    DK(cubic_horner)(c1, c2, c3, x, &p, out + 1, out + 2);
-    const real h = p * x;
+    h = p * x;
     out[0] = h + c0;
+    out[1] = q1;
+    out[2] = q2;
 }
 
-/* A joint's q', q'' (DK(cubic_horner)) and its q̇ = q' ṡ, q̈ = q' s̈ + q'' ṡ² (vv = ṡ²), in _joint's order. */
-static inline void DK(joint_rates)(real c1, real c2, real c3, real x, real v, real a, real vv, real *q1, real *q2,
-                                   real *qd, real *qdd) {
-    real p;
-    DK(cubic_horner)(c1, c2, c3, x, &p, q1, q2);
-    *qd = *q1 * v;
-    const real t = *q1 * a;
-    const real h = *q2 * vv;
+/* A joint at path point x of its segment (coefficients c0..c3) moved at ṡ = v, s̈ = a (vv = ṡ²): q, q', q''
+ * (DK(cubic_at)) into *q, *d1, *d2 and q̇ = q' ṡ, q̈ = q' s̈ + q'' ṡ² (TimedPath._joint's order) into *qd, *qdd. */
+static inline void DK(joint_rates)(real c0, real c1, real c2, real c3, real x, real v, real a, real vv, real *q,
+                                   real *d1, real *d2, real *qd, real *qdd) {
+    real c[3];
+    DK(cubic_at)(c0, c1, c2, c3, x, c);
+    *q = c[0], *d1 = c[1], *d2 = c[2];
+    *qd = c[1] * v;
+    const real t = c[1] * a;
+    const real h = c[2] * vv;
     *qdd = t + h;
 }
 
@@ -374,13 +368,13 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
         const real vv = v * v;
         const real vvv = vv * v;
         const int64_t e = g * n;
-        const real *C1 = c1 + e, *C2 = c2 + e, *C3 = c3 + e;
+        const real *C0 = c0 + e, *C1 = c1 + e, *C2 = c2 + e, *C3 = c3 + e;
         /* the joints side by side (each lane the scalar statements below, in their order: the same floats) */
         if (nlim > 2) {
 #pragma omp simd
             for (int64_t c = 0; c < n; c++) {
-                real q1, q2, qd, qdd;
-                DK(joint_rates)(C1[c], C2[c], C3[c], x, v, a, vv, &q1, &q2, &qd, &qdd);
+                real q, q1, q2, qd, qdd; /* (q, the position, unused: the compiler drops it) */
+                DK(joint_rates)(C0[c], C1[c], C2[c], C3[c], x, v, a, vv, &q, &q1, &q2, &qd, &qdd);
                 const real q3 = 6 * C3[c];
                 real qj = q1 * j;
                 real h = 3 * q2;
@@ -396,8 +390,8 @@ static void DK(peaks_path)(const real *t, int64_t T, const real *pt, const real 
         } else {
 #pragma omp simd
             for (int64_t c = 0; c < n; c++) {
-                real q1, q2, qd, qdd;
-                DK(joint_rates)(C1[c], C2[c], C3[c], x, v, a, vv, &q1, &q2, &qd, &qdd);
+                real q, q1, q2, qd, qdd;
+                DK(joint_rates)(C0[c], C1[c], C2[c], C3[c], x, v, a, vv, &q, &q1, &q2, &qd, &qdd);
                 top_v[c] = DK(nan_max)(top_v[c], fabs(qd));
                 top_a[c] = DK(nan_max)(top_a[c], fabs(qdd));
             }
@@ -445,7 +439,7 @@ static int64_t DK(topp_sample)(const real *const *in, const int64_t *rows, real 
                 pt_sorted = DK(sorted)(pt + 1, M - 2), ps_sorted = DK(sorted)(ps + 1, N - 2);
                 h1 = h2 = hs = 0;
             }
-            real law[4], c[3];
+            real law[4];
             DK(law_at)(pt, grid, sd, u, Sk, M, in[6][b], in[7][b], pt_sorted, &h1, &h2, in[0][o], law);
             const real s = law[0], v = law[1], a = law[2];
             const int64_t g = DK(upper_bound_near)(ps + 1, N - 2, s, ps_sorted, &hs);
@@ -454,12 +448,10 @@ static int64_t DK(topp_sample)(const real *const *in, const int64_t *rows, real 
             const int last = s >= ps[N - 1];
             const int64_t e = (b * (N - 1) + g) * n;
             for (int64_t j = 0; j < n; j++) {
-                DK(cubic_at)(in[9][e + j], in[10][e + j], in[11][e + j], in[12][e + j], x, c);
-                q[o * n + j] = last ? in[13][b * n + j] : c[0];
-                qd[o * n + j] = c[1] * v;
-                real acc = c[1] * a;
-                const real h = c[2] * vv;
-                qdd[o * n + j] = acc + h;
+                real p, d1, d2;
+                DK(joint_rates)(in[9][e + j], in[10][e + j], in[11][e + j], in[12][e + j], x, v, a, vv, &p, &d1,
+                                &d2, qd + o * n + j, qdd + o * n + j);
+                q[o * n + j] = last ? in[13][b * n + j] : p;
             }
         }
     }

@@ -65,13 +65,13 @@ def geometry_key(collision) -> tuple | None:
              collision.box_rpy, collision.box_half_extents, collision._col_anchor,
              *collision.chain.parameters()]
     # the key last made for these very tensors, unchanged since (the same objects, kept alive here, their
-    # version counters, storage and shapes): copies of one robot, one per scene, share their tensors, and
-    # reading them all again cost about 0.3 ms a plan
+    # version counters, storage and shapes): a model planning many scenes reads its geometry once (about
+    # 0.3 ms a plan); the copies allow_collisions makes have tensors of their own, so each reads it anew
     seen = (state, collision.convex_vertices.shape[0],
             tuple((t._version, t.data_ptr(), t.shape, t.dtype, t.device) for t in parts))
     last = collision._frames.__dict__.get("_geometry_key")
-    if last is not None and last[1] == seen and all(a is b for a, b in zip(last[0], parts)) \
-            and len(last[0]) == len(parts):
+    # (an equal `seen` has as many parts)
+    if last is not None and last[1] == seen and all(a is b for a, b in zip(last[0], parts)):
         return last[2]
     with torch.no_grad():
         flat = torch.cat([t.reshape(-1) for t in parts]).to("cpu", torch.float64)  # (promoted: exact)

@@ -173,8 +173,10 @@ def _signed(c: int) -> int:
     return c - (1 << 64) if c >= 1 << 63 else c
 
 
-_GOLDEN, _M1, _M2 = _signed(0x9E3779B97F4A7C15), _signed(0xBF58476D1CE4E5B9), _signed(0x94D049BB133111EB)
-_M1_U, _M2_U = 0xBF58476D1CE4E5B9, 0x94D049BB133111EB
+#: splitmix64's constants as unsigned 64-bit integers, and as the int64 values of the same bits
+_MASK = (1 << 64) - 1
+_GOLDEN_U, _M1_U, _M2_U = 0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB
+_GOLDEN, _M1, _M2 = _signed(_GOLDEN_U), _signed(_M1_U), _signed(_M2_U)
 
 
 def _mix(x):
@@ -188,9 +190,8 @@ def _mix(x):
 
 def _mix_uint(x: int) -> int:
     """:func:`_mix` on a Python integer in [0, 2^64) (the products reduced modulo 2^64)."""
-    mask = (1 << 64) - 1
-    x = ((x ^ (x >> 30)) * _M1_U) & mask
-    x = ((x ^ (x >> 27)) * _M2_U) & mask
+    x = ((x ^ (x >> 30)) * _M1_U) & _MASK
+    x = ((x ^ (x >> 27)) * _M2_U) & _MASK
     return x ^ (x >> 31)
 
 
@@ -202,17 +203,14 @@ _INT_ROWS = 8
 def row_keys(q_start: Tensor, q_goal: Tensor, seed: int) -> Tensor:
     """(B,) int64: a random-stream key per problem from ``seed`` and the bits of its start and goal, so
     that a problem's draws (:func:`row_uniform`) do not depend on the batch it is planned in (as the C
-    search's streams)."""
-    if not -(1 << 63) <= seed < 1 << 63:  # (either way below: a key is an int64)
-        raise RuntimeError(f"row_keys: the seed {seed} does not fit an int64")
+    search's streams). ``seed`` fits an int64 (plan checks it)."""
     bits = torch.cat((q_start, q_goal), -1).detach().to(torch.float64).contiguous().view(torch.int64)
     if bits.device.type == "cpu" and bits.shape[0] <= _INT_ROWS:  # Python integers: 14 µs a row, not 460
-        mask, golden = (1 << 64) - 1, _GOLDEN & ((1 << 64) - 1)
         keys = []
         for row in bits.tolist():
-            key = seed & mask
+            key = seed & _MASK
             for col in row:
-                key = _mix_uint(key ^ ((col + golden) & mask))
+                key = _mix_uint(key ^ ((col + _GOLDEN_U) & _MASK))
             keys.append(_signed(key))
         return torch.tensor(keys, dtype=torch.int64, device=bits.device)  # never the default device
     key = torch.full(bits.shape[:1], seed, dtype=torch.int64, device=bits.device)

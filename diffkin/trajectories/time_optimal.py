@@ -87,8 +87,9 @@ _GATHERED = 1 << 16
 
 def _search_rows(seq: Tensor, rows: Tensor, x: Tensor, right: bool = True) -> Tensor:
     """``torch.searchsorted(seq[rows], x, right=right)`` per sample: seq (P, L) sorted along L, rows and x
-    (...) (each sample searched in its own row of seq) -> (...). A binary search by gathers (log2 L
-    steps), so a sample costs its own row only, not all the rows a batched searchsorted would need."""
+    (...) (each sample searched in its own row of seq) -> (...). One row, or few samples (their rows
+    gathered: at most :data:`_GATHERED` entries): one torch.searchsorted. Else a binary search by gathers
+    (log2 L steps), so a sample costs its own row only, not all the rows a batched searchsorted would need."""
     L = seq.shape[1]
     rows, x = torch.broadcast_tensors(rows, x) if rows.shape != x.shape else (rows, x)
     if seq.shape[0] == 1 or rows.numel() * L <= _GATHERED:  # one searchsorted (the same answer)
