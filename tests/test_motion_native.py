@@ -72,6 +72,59 @@ def test_c_decisions_equal_the_torch_placement(panda):
             assert ((d - slack).abs() < 1e-9).all()
 
 
+def test_c_decisions_by_link_groups_equal_the_torch_kernels(panda):
+    """dk_plan_decide culls by link (each link's spheres one group, the self pairs in runs of one pair of
+    links, a sphere far from the other link's box skipping its pairs there): its decisions equal the torch
+    kernels' alone (no C at all) on 3 000 configurations spread over two scenes, self collisions included,
+    blocks of every size from 1 to 256, wherever the distance is not within rounding of the threshold."""
+    chain, rc, probs = panda
+    _, _, world, _ = _batch(probs, ["cage/0001", "bookshelf_small/0019"])
+    g = torch.Generator().manual_seed(5)
+    q = random_configuration(chain, (3000,), generator=g).to(F64)
+    wid = (torch.arange(3000) // 500) % 2  # runs of one scene: blocks of 256 and the tails
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    c = checker.clear(q, wid, slack=0.005)
+    sizes = [1, 2, 3, 4, 5, 6, 7] * 20  # blocks of 1 to 7 configurations, one call each
+    starts = torch.tensor([0] + sizes[:-1]).cumsum(0).tolist()
+    small = torch.cat([checker.clear(q[k:k + m], wid[k:k + m], slack=0.005) for k, m in zip(starts, sizes)])
+    with native.disabled():
+        t = rc._clear(q, world, 0.0, 0.005, moving_only=True, world_index=wid)
+        self_ok = rc._clear(q, None, 0.0, 0.005, moving_only=True)
+    assert int((~self_ok).sum()) > 100 and int((self_ok & ~t).sum()) > 100  # both kinds of collision occur
+    assert int(t.sum()) > 100
+    for got, want in ((c, t), (small, t[:small.shape[0]])):
+        differ = got != want
+        if bool(differ.any()):  # only at the threshold
+            rows = differ.nonzero().squeeze(1).tolist()
+            d = torch.stack([rc.min_distance(q[i], world._take(wid[i:i + 1])).reshape(()) for i in rows])
+            assert ((d - 0.005).abs() < 1e-9).all()
+
+
+def test_c_decisions_at_the_edge_of_a_self_collision(panda):
+    """Configurations bisected (by the torch kernels) to within 1e-7 of the boundary of a self collision,
+    where one pair of spheres decides: each decided alone by dk_plan_decide (a block of one lane: the boxes
+    of the link groups and of each sphere are tight, so they cull the most) is clear on the clear side and
+    not on the other."""
+    chain, rc, _ = panda
+    slack = 0.005
+    q = random_configuration(chain, (4000,), generator=torch.Generator().manual_seed(9)).to(F64)
+    with native.disabled():
+        ok = rc._clear(q, None, 0.0, slack, moving_only=True)
+    lo, hi = q[ok][:40], q[~ok][:40]
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        with native.disabled():
+            m = rc._clear(mid, None, 0.0, slack, moving_only=True)
+        lo, hi = torch.where(m[:, None], mid, lo), torch.where(m[:, None], hi, mid)
+    assert float((hi - lo).abs().max()) < 1e-9
+    checker = EdgeChecker(rc, None, 0.0, 0.005)
+    assert checker.native(q) is not None
+    zero = torch.zeros(1, dtype=torch.long)
+    for a, b in zip(lo, hi):
+        assert bool(checker.clear(a[None], zero, slack=slack))
+        assert not bool(checker.clear(b[None], zero, slack=slack))
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_c_edges_equal_the_torch_subdivision(panda, dtype):
     """EdgeChecker.edges through dk_plan_edges (each edge's samples decided in C, in blocks, the edge

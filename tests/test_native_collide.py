@@ -192,3 +192,42 @@ def test_the_block_broad_phase_keeps_a_near_entry():
         ok = torch.ones(256, dtype=torch.bool)
         assert native.capsules_clear(B2, B2, r, pair, none, hs, None, None, 0.02, 0.0, ok, points=points)
         assert bool(ok.all()) == clear and bool(ok.any()) == clear
+
+
+def test_a_nan_geom_or_radius_is_never_clear():
+    """A geom NaN in some lanes of a block (the bounding boxes' min and max drop a NaN), or a NaN radius, is
+    never culled as apart: those lanes are not clear, the others decide as without it (a review found NaN
+    geoms declared clear by the boxes): 16 spheres (two groups of the broad phase), far from each other, a
+    self pair and a box."""
+    dtype = torch.float64
+    G, N = 16, 64
+    r = torch.full((G,), 0.05, dtype=dtype)
+    points = torch.ones(G, dtype=torch.bool)
+    A = torch.zeros(G, 3, N, dtype=dtype)
+    A[:, 0] = torch.arange(G, dtype=dtype)[:, None]  # a metre apart along x
+    pairs = torch.tensor([[0, 9], [0, 1], [3, 12]])
+    none = (torch.zeros(0, 3, dtype=dtype),) * 2 + (torch.zeros(0, dtype=dtype),)
+    hs = torch.zeros(0, 4, dtype=dtype)
+    box = dict(boxes=(torch.tensor([[0.0, 5.0, 0.0]], dtype=dtype), torch.eye(3, dtype=dtype)[None],
+                      torch.full((1, 3), 0.2, dtype=dtype)))
+    for world in ({}, box):
+        ok = torch.ones(N, dtype=torch.bool)
+        assert native.capsules_clear(A, A, r, pairs, none, hs, None, None, 0.0, 0.0, ok, points=points,
+                                     **world)
+        assert bool(ok.all())  # all clear without NaN
+        for lanes in ([0], [5, 6], list(range(N))):
+            B = A.clone()
+            B[0, 1, lanes] = float("nan")
+            ok = torch.ones(N, dtype=torch.bool)
+            assert native.capsules_clear(B, B, r, pairs, none, hs, None, None, 0.0, 0.0, ok, points=points,
+                                         **world)
+            want = torch.ones(N, dtype=torch.bool)
+            want[lanes] = False
+            assert torch.equal(ok, want), (world.keys(), lanes)
+        bad = r.clone()
+        bad[9] = float("nan")
+        ok = torch.ones(N, dtype=torch.bool)
+        assert native.capsules_clear(A, A, bad, pairs, none, hs, None, None, 0.0, 0.0, ok, points=points,
+                                     **world)
+        assert not bool(ok.any())
+

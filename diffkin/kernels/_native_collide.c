@@ -9,8 +9,11 @@
  *
  * Capsules are given component-major as the placement product leaves them: A and B (G x 3 x N) the segment
  * ends, r (G) the radii. The distance of two segments is Ericson's closest points of two segments
- * (Real-Time Collision Detection, 5.1.9) written without branches, so the loop over the configurations of a
- * block vectorises; degenerate segments (points) take the clamped formulas. The test compares squared
+ * (Real-Time Collision Detection, 5.1.9) written without branches, so that the loop over the configurations
+ * of a block can vectorise (GCC 12 keeps it scalar: under the default -ftrapping-math a select on a double
+ * comparison stays a branch; -fno-trapping-math for the whole library changed other kernels' results, so
+ * only DK(box_points) and DK(cylinder_lanes), the planner's hot loops, are compiled so); degenerate segments
+ * (points) take the clamped formulas. The test compares squared
  * centre distances with (r_a + r_b + margin + slack)^2: no square root. Configurations run in blocks of
  * COLLIDE_BLOCK (the block's capsules stay in cache while every pair is tested), blocks shared between
  * threads.
@@ -18,12 +21,69 @@
 #ifndef DK_COLLIDE_ONCE
 #define DK_COLLIDE_ONCE
 #define COLLIDE_BLOCK 256
+#define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
+#define CULL_GROUP 8   /* geoms per group where the caller names none (collide_runs_init) */
+
+/* The groups of a model's geoms for the broad phase's level above the geoms (VAMP's per-link bounding
+ * spheres, as boxes): runs of consecutive geoms (a link's: the planner groups by frame; runs of CULL_GROUP
+ * otherwise), and the self pairs ordered by the pair of their groups, so that a pair of groups found apart
+ * skips all its pairs at once (a Panda's 690 pairs fall into about 40 pairs of links, most of them apart in
+ * most configurations). Type-free; built once per call (per thread in the planner). */
+typedef struct {
+    int64_t NG;                      /* groups (0: no culling: more than CULL_GEOMS geoms, or out of memory) */
+    int64_t start[CULL_GEOMS + 1];   /* group u: geoms start[u] .. start[u + 1] - 1 */
+    int32_t of[CULL_GEOMS];          /* the group of each geom */
+    int64_t *pi, *pj, *end;          /* [P] the pairs ordered by group pair; end[p]: one past p's run */
+} CollideRuns;
+
+/* Runs for the G geoms and P pairs (pi, pj) of a call: the group of geom g is key[g]'s run of equal
+ * consecutive values (key NULL: runs of CULL_GROUP); the pairs counting-sorted by (group of i, group of j),
+ * stable. Returns 0 when memory ran out (then NG is 0: every pair on its own, in the caller's order). Free
+ * with collide_runs_free. */
+static int collide_runs_init(CollideRuns *R, int64_t G, int64_t P, const int64_t *pi, const int64_t *pj,
+                             const int64_t *key) {
+    R->NG = 0;
+    R->pi = R->pj = R->end = NULL;
+    if (G > CULL_GEOMS || G <= 0) return 1;
+    int64_t NG = 0;
+    for (int64_t g = 0; g < G; g++) {
+        if (g == 0 || (key ? key[g] != key[g - 1] : g % CULL_GROUP == 0)) R->start[NG++] = g;
+        R->of[g] = (int32_t)(NG - 1);
+    }
+    R->start[NG] = G;
+    int64_t *count = (int64_t *)calloc((size_t)(NG * NG + 1), sizeof(int64_t));
+    R->pi = (int64_t *)malloc(sizeof(int64_t) * (size_t)(P > 0 ? P : 1));
+    R->pj = (int64_t *)malloc(sizeof(int64_t) * (size_t)(P > 0 ? P : 1));
+    R->end = (int64_t *)malloc(sizeof(int64_t) * (size_t)(P > 0 ? P : 1));
+    if (!(count && R->pi && R->pj && R->end)) {
+        free(count), free(R->pi), free(R->pj), free(R->end);
+        R->pi = R->pj = R->end = NULL;
+        return 0;
+    }
+    for (int64_t p = 0; p < P; p++) count[R->of[pi[p]] * NG + R->of[pj[p]] + 1]++;
+    for (int64_t k = 0; k < NG * NG; k++) count[k + 1] += count[k]; /* count[k]: where bucket k starts */
+    for (int64_t p = 0; p < P; p++) {
+        const int64_t k = R->of[pi[p]] * NG + R->of[pj[p]], at = count[k]++;
+        R->pi[at] = pi[p], R->pj[at] = pj[p];
+    }
+    for (int64_t p = P - 1; p >= 0; p--) /* count[k] is now where bucket k ends */
+        R->end[p] = count[R->of[R->pi[p]] * NG + R->of[R->pj[p]]];
+    free(count);
+    R->NG = NG;
+    return 1;
+}
+
+static void collide_runs_free(CollideRuns *R) {
+    free(R->pi), free(R->pj), free(R->end);
+    R->pi = R->pj = R->end = NULL;
+    R->NG = 0;
+}
 #endif
 
 /* Ericson's closest points of the segments p + s u and q + t v (s, t in [0, 1]; w = p - q) without
  * branches: every division runs on a safe denominator and a select picks the case. Writes s and t and
- * returns the squared distance. Inlined where it is used: the lane loop of DK(segments_d2) vectorises,
- * the differential-IK step's collision rows (_native_velocity.c) take the closest points of one pair. */
+ * returns the squared distance. Inlined where it is used: in the lane loop of DK(segments_d2) and in the
+ * differential-IK step's collision rows (_native_velocity.c), which take the closest points of one pair. */
 static inline __attribute__((always_inline)) real DK(segment_closest)(real ux, real uy, real uz, real vx, real vy,
                                                                     real vz, real wx, real wy, real wz,
                                                                     real *s_out, real *t_out) {
@@ -104,29 +164,54 @@ static inline __attribute__((always_inline)) int DK(box_segment_meets)(const rea
     return inside & (lo <= hi);
 }
 
+/* The world vector (x, y, z) in the frame of lane l's box (R: its rotation's entry (0, 0), the 9 entries
+ * COLLIDE_BLOCK apart, row-major): R^T (x, y, z) into bx, by, bz. */
+static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, real x, real y, real z, real *bx,
+                                                                real *by, real *bz) {
+    const int64_t S = COLLIDE_BLOCK;
+    *bx = x * R[0] + y * R[3 * S] + z * R[6 * S];
+    *by = x * R[S] + y * R[4 * S] + z * R[7 * S];
+    *bz = x * R[2 * S] + y * R[5 * S] + z * R[8 * S];
+}
+
+/* DK(box_lanes) of sphere geoms (point): the signed distance of the centre, outside its distance, inside minus
+ * the depth, lane by lane without branches, vectorised: without trapping math here, GCC may run a select on
+ * a comparison of doubles as a blend (the same values; clang vectorises it anyway and ignores the attribute). */
+__attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const real *A, int64_t N, real rg,
+        const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear) {
+#pragma omp simd
+    for (int l = 0; l < m; l++) {
+        const real dx = A[l] - bc[l], dy = A[N + l] - bc[COLLIDE_BLOCK + l],
+                   dz = A[2 * N + l] - bc[2 * COLLIDE_BLOCK + l];
+        real px, py, pz, ex;
+        DK(box_frame)(bR + l, dx, dy, dz, &px, &py, &pz);
+        const real best = DK(box_point_d2)(px, py, pz, bh[l], bh[COLLIDE_BLOCK + l], bh[2 * COLLIDE_BLOCK + l], &ex);
+        const real root = (real)sqrt((double)best); /* best >= 0: taken in every lane, no branch */
+        clear[l] &= (best > 0 ? root : ex) >= rg + thr;
+    }
+}
+
 /* Whether every lane's capsule (segment a_l - b_l, radius rg) keeps d >= T = rg + thr from the lanes' boxes
  * (given per lane: centre bc[3][], rotation bR[9][], half extents bh[3][]). Spheres (point): the exact signed
- * distance, any thr. Segments: thr >= 0 (the caller's contract), so a penetrating segment fails. Apart, the distance of a segment and a box is the least of its ends' distances and its
+ * distance, any thr (DK(box_points)). Segments: thr >= 0 (the caller's contract), so a penetrating segment
+ * fails. Apart, the distance of a segment and a box is the least of its ends' distances and its
  * distances to the box's 12 edges (a closest pair with the segment's interior and a face's interior has the
  * segment parallel to that face: sliding along it reaches an end or an edge at the same distance). */
 static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, const real *bc, const real *bR,
                           const real *bh, real thr, int point, int m, uint8_t *restrict clear) {
+    if (point) {
+        DK(box_points)(A, N, rg, bc, bR, bh, thr, m, clear);
+        return;
+    }
     for (int l = 0; l < m; l++) {
         const real dx = A[l] - bc[l], dy = A[N + l] - bc[COLLIDE_BLOCK + l], dz = A[2 * N + l] - bc[2 * COLLIDE_BLOCK + l];
-        const real *R = bR + l; /* R[(3 i + k) * COLLIDE_BLOCK] */
-#define RR(i, k) R[(3 * (i) + (k)) * COLLIDE_BLOCK]
         real p[3], d[3], h[3] = {bh[l], bh[COLLIDE_BLOCK + l], bh[2 * COLLIDE_BLOCK + l]};
-        for (int k = 0; k < 3; k++) p[k] = dx * RR(0, k) + dy * RR(1, k) + dz * RR(2, k);
+        DK(box_frame)(bR + l, dx, dy, dz, p, p + 1, p + 2);
         const real T = rg + thr;
         real ex;
         real best = DK(box_point_d2)(p[0], p[1], p[2], h[0], h[1], h[2], &ex);
-        if (point) { /* the signed distance of the centre: outside its distance, inside minus the depth */
-            clear[l] &= (best > 0 ? (real)sqrt((double)best) : ex) >= T;
-            continue;
-        }
         const real ux = B[l] - A[l], uy = B[N + l] - A[N + l], uz = B[2 * N + l] - A[2 * N + l];
-        for (int k = 0; k < 3; k++) d[k] = ux * RR(0, k) + uy * RR(1, k) + uz * RR(2, k);
-#undef RR
+        DK(box_frame)(bR + l, ux, uy, uz, d, d + 1, d + 2);
         real e2 = DK(box_point_d2)(p[0] + d[0], p[1] + d[1], p[2] + d[2], h[0], h[1], h[2], &ex);
         best = e2 < best ? e2 : best;
         /* a cheap pass first: the segment's bounding sphere against the box's */
@@ -160,9 +245,10 @@ static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, cons
  * (flat faces' centres ya, yb [3][], radius yr []): the closed-form field of diffkin.collision.cylinders
  * (axial coordinate z, radial distance rho, half-length hl: q = (rho - r, |z| - hl), d = |max(q, 0)| +
  * min(max(q), 0)). */
-static void DK(cylinder_lanes)(const real *A, int64_t N, real rg, const real *ya, const real *yb,
-                               const real *yr, real thr, int m, uint8_t *restrict clear) {
-    for (int l = 0; l < m; l++) {
+__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
+        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
+#pragma omp simd
+    for (int l = 0; l < m; l++) { /* vectorised as DK(box_points) */
         const real ex = (real)0.5 * (yb[l] - ya[l]), ey = (real)0.5 * (yb[COLLIDE_BLOCK + l] - ya[COLLIDE_BLOCK + l]),
                    ez = (real)0.5 * (yb[2 * COLLIDE_BLOCK + l] - ya[2 * COLLIDE_BLOCK + l]);
         const real hl = (real)sqrt((double)(ex * ex + ey * ey + ez * ez));
@@ -198,11 +284,8 @@ static inline int DK(aabb_apart)(const real *lo1, const real *hi1, const real *l
         gap = gap > gap2 ? gap : gap2;
         g2 += gap > 0 ? gap * gap : 0;
     }
-    return T > 0 ? g2 >= T * T : g2 > 0;
+    return T > 0 ? g2 >= T * T : (T <= 0) & (g2 > 0); /* a NaN threshold: never apart */
 }
-
-#define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
-#define CULL_GROUP 8   /* geoms per group of the level above (a power of 2) */
 
 /* Lanes 0 .. m-1 below the first one that collides (m itself when none does). */
 static inline int DK(first_hit)(const uint8_t *clear, int m) {
@@ -222,8 +305,9 @@ static inline int DK(lanes_left)(const uint8_t *clear, int *m, const int first) 
  * read a block only up to its first colliding lane), lanes past the first colliding one found so far are
  * dropped from every later test: ok is then exact up to and including the first colliding lane and says
  * nothing about the lanes after it. */
-static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_collide *c, int64_t n0, int m,
-                                                                    uint8_t *restrict ok, const int first) {
+static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_collide *c, const CollideRuns *R,
+                                                                    int64_t n0, int m, uint8_t *restrict ok,
+                                                                    const int first) {
     const int64_t N = c->N, G = c->G;
     const int m0 = m;
     const real *A = (const real *)c->A, *B = (const real *)c->B, *r = (const real *)c->r;
@@ -235,45 +319,52 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     /* The broad phase of the block: each geom's axis-aligned box over the block's lanes (the samples of an
      * edge lie close together), against each object's box when the lanes share one world, and against each
      * other for the self pairs. */
+    const int64_t NG = R->NG; /* 0: no culling */
     real glo[3 * CULL_GEOMS], ghi[3 * CULL_GEOMS], olo[3], ohi[3];
-    int cull = G <= CULL_GEOMS && m > 0;
+    int cull = NG > 0 && m > 0;
     for (int l = 1; l < m && cull; l++) cull = wl[l] == wl[0];
     const int64_t w0 = m > 0 ? wl[0] : 0;
-    for (int64_t g = 0; g < G && G <= CULL_GEOMS; g++)
+    for (int64_t g = 0; g < G && NG; g++) {
+        int nan = 0; /* a NaN coordinate in some lane: min and max may drop it, a sum keeps it */
         for (int k = 0; k < 3; k++) {
             const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
-            real lo = a[0], hi = a[0];
-            /* a reduction the compiler may reorder (min and max are exact in any order): vectorised */
+            real lo = a[0], hi = a[0], sum = 0;
+            /* reductions the compiler may reorder (min and max are exact in any order; the sum is only
+             * asked whether it is NaN, which an infinity's opposite also makes it: never apart then) */
             if (A == B) { /* spheres (the planner's: B is A): the ends are one point */
-#pragma omp simd reduction(min : lo) reduction(max : hi)
+#pragma omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)
                 for (int l = 0; l < m; l++) {
                     lo = a[l] < lo ? a[l] : lo;
                     hi = a[l] > hi ? a[l] : hi;
+                    sum += a[l];
                 }
             } else {
-#pragma omp simd reduction(min : lo) reduction(max : hi)
+#pragma omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)
                 for (int l = 0; l < m; l++) {
                     const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
                     lo = x < lo ? x : lo;
                     hi = y > hi ? y : hi;
+                    sum += a[l] + b[l];
                 }
             }
+            nan |= sum != sum;
             glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
         }
-    /* A level above (VAMP's per-link bounding spheres, as boxes): each run of CULL_GROUP consecutive geoms
-     * (a link's spheres mostly are consecutive) bounded by the union of their boxes, each grown by its
+        if (nan) /* NaN on every axis: each gap 0, never apart (nor its group: below) */
+            for (int k = 0; k < 3; k++) glo[3 * g + k] = ghi[3 * g + k] = (real)NAN;
+    }
+    /* The level above (CollideRuns): each group bounded by the union of its geoms' boxes, each grown by its
      * radius. A group box at least thr from an object's box puts each geom's box at least r_g + thr from it
      * (the gap vector g of two boxes and g' of the grown ones: |g| >= |g'| + r), so the group's geoms are
      * skipped as one; the self pairs alike with both groups grown (r_i + r_j). */
-    real gglo[3 * CULL_GEOMS / CULL_GROUP], gghi[3 * CULL_GEOMS / CULL_GROUP];
-    const int64_t NG = G <= CULL_GEOMS ? (G + CULL_GROUP - 1) / CULL_GROUP : 0;
+    real gglo[3 * CULL_GEOMS], gghi[3 * CULL_GEOMS];
     for (int64_t u = 0; u < NG; u++) {
-        int nan = 0; /* a NaN geom (any axis) turns its group's box into NaN: never apart */
+        int nan = 0; /* a NaN geom (its box NaN above) or radius turns its group's box into NaN: never apart */
         for (int k = 0; k < 3; k++) {
             real lo = (real)INFINITY, hi = -(real)INFINITY;
-            for (int64_t g = u * CULL_GROUP; g < G && g < (u + 1) * CULL_GROUP; g++) {
+            for (int64_t g = R->start[u]; g < R->start[u + 1]; g++) {
                 const real rg = r[g] > 0 ? r[g] : 0, a = glo[3 * g + k] - rg, b = ghi[3 * g + k] + rg;
-                nan |= a != a || b != b;
+                nan |= a != a || b != b || r[g] != r[g];
                 lo = a < lo ? a : lo;
                 hi = b > hi ? b : hi;
             }
@@ -282,9 +373,13 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         if (nan) /* aabb_apart adds nothing for a NaN gap: NaN on every axis leaves g2 = 0, not apart */
             for (int k = 0; k < 3; k++) gglo[3 * u + k] = gghi[3 * u + k] = (real)NAN;
     }
-#define GROUP_APART(g) \
-    (cull && ((g) & (CULL_GROUP - 1)) == 0 && \
-     DK(aabb_apart)(gglo + 3 * ((g) / CULL_GROUP), gghi + 3 * ((g) / CULL_GROUP), olo, ohi, thr))
+    /* the geoms g0 .. g1 - 1 of each group in turn (one group of all without culling), the groups whose box
+     * is at least thr from the object's box (olo, ohi) skipped */
+    const int64_t NU = NG ? NG : 1;
+#define GROUP_GEOMS(g) \
+    for (int64_t u_ = 0; u_ < NU; u_++) \
+        if (!(cull && DK(aabb_apart)(gglo + 3 * u_, gghi + 3 * u_, olo, ohi, thr))) \
+            for (int64_t g = NG ? R->start[u_] : 0; g < (NG ? R->start[u_ + 1] : G); g++)
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
     real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
@@ -302,11 +397,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             const real x = pa[k * COLLIDE_BLOCK], y = pb[k * COLLIDE_BLOCK];
             olo[k] = (x < y ? x : y) - pr[0], ohi[k] = (x < y ? y : x) + pr[0];
         }
-        for (int64_t g = 0; g < G; g++) {
-            if (GROUP_APART(g)) {
-                g += CULL_GROUP - 1;
-                continue;
-            }
+        GROUP_GEOMS(g) {
             if (c->skip_r && c->skip_r[g * c->Wr + w]) continue;
             if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
             DK(segments_d2)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, pa, pb, COLLIDE_BLOCK, m, d2);
@@ -340,17 +431,13 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             if (!DK(lanes_left)(clear, &m, first)) goto done;
             int gathered = 0; /* the box per lane, gathered once a geom is near it (most objects are not) */
             for (int k = 0; k < 3 && cull; k++) { /* the box's extent along world axis k: sum_j |R_kj| h_j */
-                const real *R = bR + 9 * (w0 * c->Wb + w), *h = bh + 3 * (w0 * c->Wb + w);
-                const real e = (R[3 * k] < 0 ? -R[3 * k] : R[3 * k]) * h[0] +
-                               (R[3 * k + 1] < 0 ? -R[3 * k + 1] : R[3 * k + 1]) * h[1] +
-                               (R[3 * k + 2] < 0 ? -R[3 * k + 2] : R[3 * k + 2]) * h[2];
+                const real *Rw = bR + 9 * (w0 * c->Wb + w), *h = bh + 3 * (w0 * c->Wb + w);
+                const real e = (Rw[3 * k] < 0 ? -Rw[3 * k] : Rw[3 * k]) * h[0] +
+                               (Rw[3 * k + 1] < 0 ? -Rw[3 * k + 1] : Rw[3 * k + 1]) * h[1] +
+                               (Rw[3 * k + 2] < 0 ? -Rw[3 * k + 2] : Rw[3 * k + 2]) * h[2];
                 olo[k] = bc[3 * (w0 * c->Wb + w) + k] - e, ohi[k] = bc[3 * (w0 * c->Wb + w) + k] + e;
             }
-            for (int64_t g = 0; g < G; g++) {
-                if (GROUP_APART(g)) {
-                    g += CULL_GROUP - 1;
-                    continue;
-                }
+            GROUP_GEOMS(g) {
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
                 if (!gathered) {
@@ -376,11 +463,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 const real x = ya[3 * o + k], y = yb[3 * o + k];
                 olo[k] = (x < y ? x : y) - yr[o], ohi[k] = (x < y ? y : x) + yr[o];
             }
-            for (int64_t g = 0; g < G; g++) {
-                if (GROUP_APART(g)) {
-                    g += CULL_GROUP - 1;
-                    continue;
-                }
+            GROUP_GEOMS(g) {
                 if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
                 if (!gathered) {
@@ -395,52 +478,75 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             }
         }
     }
+#undef GROUP_GEOMS
     if (!DK(lanes_left)(clear, &m, first)) goto done;
-    uint8_t gnear[(CULL_GEOMS / CULL_GROUP) * (CULL_GEOMS / CULL_GROUP)]; /* group pairs: 0 unknown, 1 apart */
-    memset(gnear, 0, (size_t)(NG * NG));
-    for (int64_t p = 0; p < c->P; p++) { /* the self pairs (last: the world rejects most colliding samples) */
-        const int64_t i = c->pi[p], j = c->pj[p];
-        const real T = r[i] + r[j] + thr;
-        if (T <= 0) continue;
+    /* the self pairs (last: the world rejects most colliding samples), a run of pairs of one pair of groups
+     * (CollideRuns) skipped at once where the groups' boxes are apart */
+    const int64_t *pi = NG ? R->pi : c->pi, *pj = NG ? R->pj : c->pj;
+    int64_t tested = 0;
+    for (int64_t p = 0; p < c->P;) {
+        const int64_t end = NG ? R->end[p] : c->P;
+        int64_t v = 0;
         if (NG) {
-            const int64_t u = i / CULL_GROUP, v = j / CULL_GROUP, uv = u * NG + v;
-            if (!gnear[uv])
-                gnear[uv] = DK(aabb_apart)(gglo + 3 * u, gghi + 3 * u, gglo + 3 * v, gghi + 3 * v, thr) ? 1 : 2;
-            if (gnear[uv] == 1 || DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, T)) continue;
-        }
-        const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
-        if (c->point && c->point[i] && c->point[j]) { /* two spheres: their centres */
-            for (int l = 0; l < m; l++) {
-                const real dx = Ai[l] - Aj[l], dy = Ai[N + l] - Aj[N + l], dz = Ai[2 * N + l] - Aj[2 * N + l];
-                clear[l] &= dx * dx + dy * dy + dz * dz >= T * T;
+            const int64_t u = R->of[pi[p]];
+            v = R->of[pj[p]];
+            if (DK(aabb_apart)(gglo + 3 * u, gghi + 3 * u, gglo + 3 * v, gghi + 3 * v, thr)) {
+                p = end;
+                continue;
             }
-        } else {
-            DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
-            for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
         }
-        if ((p & 15) == 15 && !DK(lanes_left)(clear, &m, first)) break;
+        int64_t at_i = -1; /* a run's pairs of one geom i: consecutive in the callers' order (else tested again) */
+        for (; p < end; p++) {
+            const int64_t i = pi[p], j = pj[p];
+            if (NG && i != at_i) { /* i's box r_i + thr from group v's (grown by each r_j): all of i's pairs there */
+                at_i = i;
+                if (DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, gglo + 3 * v, gghi + 3 * v, r[i] + thr)) {
+                    while (p + 1 < end && pi[p + 1] == i) p++;
+                    continue;
+                }
+            }
+            const real T = r[i] + r[j] + thr;
+            if (T <= 0 || (NG && DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, T))) continue;
+            const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
+            if (c->point && c->point[i] && c->point[j]) { /* two spheres: their centres */
+                for (int l = 0; l < m; l++) {
+                    const real dx = Ai[l] - Aj[l], dy = Ai[N + l] - Aj[N + l], dz = Ai[2 * N + l] - Aj[2 * N + l];
+                    clear[l] &= dx * dx + dy * dy + dz * dz >= T * T;
+                }
+            } else {
+                DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
+                for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
+            }
+            if ((++tested & 15) == 0 && !DK(lanes_left)(clear, &m, first)) goto done;
+        }
     }
 done:
     for (int l = 0; l < m0; l++) ok[n0 + l] &= clear[l];
-#undef GROUP_APART
 }
 
-static void DK(collide_block)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
-    DK(collide_lanes)(c, n0, m, ok, 0);
+static void DK(collide_block)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m, uint8_t *restrict ok) {
+    DK(collide_lanes)(c, R, n0, m, ok, 0);
 }
 
 /* DK(collide_block) for a caller that reads ok only up to its first colliding lane (DK(collide_lanes)). */
-static void DK(collide_first)(const dk_collide *c, int64_t n0, int m, uint8_t *restrict ok) {
-    DK(collide_lanes)(c, n0, m, ok, 1);
+static void DK(collide_first)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m,
+                              uint8_t *restrict ok) {
+    DK(collide_lanes)(c, R, n0, m, ok, 1);
 }
 
+/* The decisions of c's N configurations: blocks shared between threads, the groups runs of CULL_GROUP
+ * geoms (without memory for the ordered pairs, no culling: the same decisions but for rounding at the
+ * threshold, where a cull's exact box gap and the narrow phase's rounded squared distance may disagree). */
 static void DK(dk_collide)(const dk_collide *c) {
+    CollideRuns R;
+    collide_runs_init(&R, c->G, c->P, c->pi, c->pj, NULL);
     const int64_t nblocks = (c->N + COLLIDE_BLOCK - 1) / COLLIDE_BLOCK;
     int nthreads = (int)(c->nthreads > 1 && nblocks > 1 ? c->nthreads : 1);
 #pragma omp parallel for schedule(dynamic, 4) num_threads(nthreads) if (nthreads > 1)
     for (int64_t k = 0; k < nblocks; k++) {
         const int64_t n0 = k * COLLIDE_BLOCK;
         const int m = (int)(c->N - n0 < COLLIDE_BLOCK ? c->N - n0 : COLLIDE_BLOCK);
-        DK(collide_block)(c, n0, m, c->ok);
+        DK(collide_block)(c, &R, n0, m, c->ok);
     }
+    collide_runs_free(&R);
 }

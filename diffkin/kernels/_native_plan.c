@@ -188,6 +188,7 @@ typedef struct { /* one thread's work space */
     const DK(Params) *pp;
     DK(Scratch) sc;
     dk_collide cc;        /* the problem's decisions: A, B, N, wid, slack set here */
+    CollideRuns runs;     /* cc's geoms grouped by frame, its pairs by pair of groups */
     real *qs;             /* [COLLIDE_BLOCK n] the block's configurations */
     real *P;              /* [C 3 COLLIDE_BLOCK] the placed points, component-major */
     int64_t *wid;         /* [COLLIDE_BLOCK] the problem's world row */
@@ -211,7 +212,8 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int first) {
     for (int b0 = 0; b0 < m; b0 += W) {
         const int nl = m - b0 < W ? m - b0 : W;
         DK(load_q)(&w->s, &w->sc, w->qs, b0, nl);
-        DK(block)(&w->s, w->pp, &w->sc, 0);
+        if (nl <= WN) DK(block_narrow)(&w->s, w->pp, &w->sc, 0); /* 4 lanes or fewer (an edge's first block) */
+        else DK(block)(&w->s, w->pp, &w->sc, 0);
         for (int64_t c = 0; c < (w->points ? p->C / 2 : p->C); c++) { /* spheres: the ends are the starts */
             const int64_t f = p->col_frame[c];
             const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
@@ -234,8 +236,8 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int first) {
         (void)n;
     }
     memset(w->ok, 1, (size_t)m);
-    if (first) DK(collide_first)(&w->cc, 0, m, w->ok);
-    else DK(collide_block)(&w->cc, 0, m, w->ok);
+    if (first) DK(collide_first)(&w->cc, &w->runs, 0, m, w->ok);
+    else DK(collide_block)(&w->cc, &w->runs, 0, m, w->ok);
     w->checked += m;
 }
 
@@ -501,6 +503,8 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
     w->cc.B = w->points ? w->P : w->P + G * 3 * COLLIDE_BLOCK;
     w->cc.wid = w->wid;
     w->cc.nthreads = 1;
+    /* a link's geoms move as one: its group (without memory for it, no culling: collide_runs_init) */
+    collide_runs_init(&w->runs, G, w->cc.P, w->cc.pi, w->cc.pj, p->col_frame);
     return 1;
 }
 
@@ -511,6 +515,7 @@ static void DK(plan_work_free)(DK(PlanWork) *w) {
     free(w->wid);
     for (int t = 0; t < 2; t++) free(w->cols[t]), free(w->parent[t]);
     free(w->path);
+    collide_runs_free(&w->runs);
 }
 
 static int64_t DK(dk_plan)(const dk_plan *p) {
