@@ -166,7 +166,9 @@ def _plan_records(problems, chunk: int = 700, iterations: int = ITERATIONS, step
     from benchmarks.motion_problems import FRANKA_A, FRANKA_J, FRANKA_V
     from diffkin import motion
     from diffkin.collision import World
+    from diffkin.kernels import native
 
+    native.status()  # the C library built (a fresh checkout compiles it: tens of seconds) before any clock
     rc = robot_model("spherized").requires_grad_(False)
     chain = rc.chain
     total = 0.0
