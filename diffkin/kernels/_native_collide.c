@@ -24,6 +24,22 @@
 #define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
 #define CULL_GROUP 8   /* geoms per group where the caller names none (collide_runs_init) */
 
+/* `for (int l = 0; l < m; l++) { body }` as a reduction over the lanes: an omp simd loop with the reduction
+ * clauses from SIMD_REDUCE_LANES lanes on, a plain loop below. GCC lowers an omp simd reduction to an array of
+ * per-lane partial results on the stack, stored as one vector and combined one by one (narrow loads of a wide
+ * store: a stall each), which costs more than a few lanes' work: the planner's edges start with blocks of 4
+ * and 8 (with the plain loop below 16 lanes the planner's decisions took 30 % less time). min and max are
+ * exact in any order; a sum kept only to be asked whether it is NaN may be formed in any order. */
+#define SIMD_REDUCE_LANES 16
+#define REDUCE_LANES(m, clauses, ...)                                                                             \
+    do {                                                                                                         \
+        if ((m) < SIMD_REDUCE_LANES) {                                                                           \
+            for (int l = 0; l < (m); l++) { __VA_ARGS__ }                                                        \
+        } else {                                                                                                 \
+            _Pragma(clauses) for (int l = 0; l < (m); l++) { __VA_ARGS__ }                                       \
+        }                                                                                                        \
+    } while (0)
+
 /* The groups of a model's geoms for the broad phase's level above the geoms (VAMP's per-link bounding
  * spheres, as boxes): runs of consecutive geoms (a link's: the planner groups by frame; runs of CULL_GROUP
  * otherwise), and the self pairs ordered by the pair of their groups, so that a pair of groups found apart
@@ -331,22 +347,17 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             real lo = a[0], hi = a[0], sum = 0;
             /* reductions the compiler may reorder (min and max are exact in any order; the sum is only
              * asked whether it is NaN, which an infinity's opposite also makes it: never apart then) */
-            if (A == B) { /* spheres (the planner's: B is A): the ends are one point */
-#pragma omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)
-                for (int l = 0; l < m; l++) {
-                    lo = a[l] < lo ? a[l] : lo;
-                    hi = a[l] > hi ? a[l] : hi;
-                    sum += a[l];
-                }
-            } else {
-#pragma omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)
-                for (int l = 0; l < m; l++) {
-                    const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
-                    lo = x < lo ? x : lo;
-                    hi = y > hi ? y : hi;
-                    sum += a[l] + b[l];
-                }
-            }
+            if (A == B) /* spheres (the planner's: B is A): the ends are one point */
+                REDUCE_LANES(m, "omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)",
+                             lo = a[l] < lo ? a[l] : lo;
+                             hi = a[l] > hi ? a[l] : hi;
+                             sum += a[l];);
+            else
+                REDUCE_LANES(m, "omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)",
+                             const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
+                             lo = x < lo ? x : lo;
+                             hi = y > hi ? y : hi;
+                             sum += a[l] + b[l];);
             nan |= sum != sum;
             glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
         }

@@ -308,9 +308,8 @@ static int64_t DK(plan_nearest)(const real *cols, int64_t cap, int64_t count, co
             for (int l = 0; l < m; l++) d[l] += Rj * (x[l] > qj ? x[l] - qj : qj - x[l]);
         }
         real lo = (real)INFINITY; /* a NaN distance is never the nearest, as in a scan with < */
-        /* min is exact in any order: vectorised */
-#pragma omp simd reduction(min : lo)
-        for (int l = 0; l < m; l++) lo = d[l] < lo ? d[l] : lo;
+        /* min is exact in any order: vectorised from SIMD_REDUCE_LANES nodes on */
+        REDUCE_LANES(m, "omp simd reduction(min : lo)", lo = d[l] < lo ? d[l] : lo;);
         if (lo < bd) {
             int l = 0;
             while (d[l] != lo) l++;
