@@ -191,6 +191,37 @@ def test_joint_reach_remembered_for_the_same_geometry(robot):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_a_copy_takes_its_sources_geometry_key(dtype):
+    """allow_collisions' copy takes its source's geometry key without reading its values (the same key
+    object), equal to the key read afresh from the copy's own tensors; a change of the copy's geometry or of
+    the chain gives a new key, equal to a fresh read, and leaves the source's unchanged where it is."""
+    from diffkin.collision._values import geometry_key
+    from tests.helpers import fr3_robot
+
+    _, rc = fr3_robot(dtype)
+    rc.requires_grad_(False)
+    source = geometry_key(rc)
+    i, j = rc._pair_index[0]
+    copy = rc.allow_collisions([(rc.geoms[i].link, rc.geoms[j].link)])  # a checked pair of links allowed
+    assert len(copy.pairs) < len(rc.pairs)
+    assert geometry_key(copy) is source
+    fresh = lambda m: (m.__dict__.pop("_geometry_key"), geometry_key(m))[1]  # noqa: E731
+    assert fresh(copy) == source and fresh(copy) is not source
+    with torch.no_grad():
+        copy.capsule_radius.add_(0.01)
+    grown = geometry_key(copy)
+    assert grown != source and grown == fresh(copy) and geometry_key(rc) is source
+    p = next(rc.chain.parameters())
+    with torch.no_grad():
+        p.add_(1e-3)
+        try:
+            moved = geometry_key(copy)
+            assert moved != grown and moved == fresh(copy) and geometry_key(rc) != source
+        finally:
+            p.sub_(1e-3)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_joint_reach_batched_walk_equals_the_loop(robot, dtype):
     """The batched walk up the frame tree gives the per-joint, per-geom loop's R exactly, on the FR3 (a chain)
     and on the G1 (a tree of 29 joints, five end links, its URDF's primitive geoms)."""

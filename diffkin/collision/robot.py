@@ -30,6 +30,7 @@ from ..transforms import transform_points
 from ..validation import check_count, check_dtype, check_given, check_number, tensors
 from ._checks import check_agree, check_chain, names_str
 from ._poses import LinkFrames
+from ._values import share_geometry_key
 from .broad import capsule_pairs_at_least, group_tables, pairs_clear
 from .clear import world_clear
 from .distances import capsule_capsule_pairs
@@ -196,7 +197,9 @@ class RobotCollision(nn.Module):
                          convexes=convexes, frames=self._frames, dtype=self.capsule_a.dtype,
                          device=self.capsule_a.device)
         out.skip_fixed = self.skip_fixed
-        return out.requires_grad_(any(p.requires_grad for p in self.parameters()))
+        out.requires_grad_(any(p.requires_grad for p in self.parameters()))
+        share_geometry_key(self, out)  # equal values: the planner's constants remembered for them serve both
+        return out
 
     def _geometry_values(self) -> tuple[list, list, list]:
         """The geometry's current values as the constructor takes them, per kind in geom order: capsules

@@ -27,6 +27,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..collision._values import geometry_key
 from ..errors import ModelError
 
 __all__ = ["joint_reach", "EdgeChecker", "SPACING"]
@@ -50,35 +51,6 @@ def _reach(collision, key) -> Tensor:
     """:func:`joint_reach` for the geometry key ``key`` (:func:`geometry_key`), a copy of the remembered
     value (the caller may change it)."""
     return _remembered(collision, "reach", key, lambda: _joint_reach(collision)).clone()
-
-
-def geometry_key(collision) -> tuple | None:
-    """The geometry's and the chain's current values (and their dtype, device and shapes) and the chain's
-    state (:meth:`~diffkin.chain.KinematicChain._state_key`: a new one after any change of its parameters or
-    buffers, such as a calibration's origin offsets) as one hashable key: what :func:`joint_reach` and the C
-    planner's constants (:mod:`~diffkin.motion._native_search`) depend on, so copies of one robot (one per
-    scene) share them. None where the chain's state may not be read as constants (nothing is remembered)."""
-    state = getattr(collision.chain, "_state_key", lambda: None)()
-    if state is None:
-        return None
-    parts = [collision.capsule_a, collision.capsule_b, collision.capsule_radius, collision.box_center,
-             collision.box_rpy, collision.box_half_extents, collision._col_anchor,
-             *collision.chain.parameters()]
-    # the key last made for these very tensors, unchanged since (the same objects, kept alive here, their
-    # version counters, storage and shapes): a model planning many scenes reads its geometry once (about
-    # 0.3 ms a plan); the copies allow_collisions makes have tensors of their own, so each reads it anew
-    seen = (state, collision.convex_vertices.shape[0],
-            tuple((t._version, t.data_ptr(), t.shape, t.dtype, t.device) for t in parts))
-    last = collision._frames.__dict__.get("_geometry_key")
-    # (an equal `seen` has as many parts)
-    if last is not None and last[1] == seen and all(a is b for a, b in zip(last[0], parts)):
-        return last[2]
-    with torch.no_grad():
-        flat = torch.cat([t.reshape(-1) for t in parts]).to("cpu", torch.float64)  # (promoted: exact)
-        key = (state, collision.capsule_a.dtype, collision.capsule_a.device, tuple(t.shape for t in parts),
-               collision.convex_vertices.shape[0], flat.numpy().tobytes())
-    collision._frames.__dict__["_geometry_key"] = (parts, seen, key)
-    return key
 
 
 def _remembered(collision, name: str, key, make):
