@@ -65,4 +65,5 @@ def share_geometry_key(source, copy) -> None:
     if key is None:
         return
     own = _own(copy)
-    copy.__dict__["_geometry_key"] = (own, _seen(copy, key[0], own), key)
+    state = key[0]  # the chain's state, as geometry_key read it just now (the chain is shared)
+    copy.__dict__["_geometry_key"] = (own, _seen(copy, state, own), key)
