@@ -194,13 +194,14 @@ def test_the_block_broad_phase_keeps_a_near_entry():
         assert bool(ok.all()) == clear and bool(ok.any()) == clear
 
 
-def test_a_nan_geom_or_radius_is_never_clear():
+@pytest.mark.parametrize("N", [64, 3])
+def test_a_nan_geom_or_radius_is_never_clear(N):
     """A geom NaN in some lanes of a block (the bounding boxes' min and max drop a NaN), or a NaN radius, is
     never culled as apart: those lanes are not clear, the others decide as without it (a review found NaN
     geoms declared clear by the boxes): 16 spheres (two groups of the broad phase), far from each other, a
-    self pair and a box."""
+    self pair and a box; in a block of 64 lanes and in one of 3 (whose boxes are taken without a loop)."""
     dtype = torch.float64
-    G, N = 16, 64
+    G = 16
     r = torch.full((G,), 0.05, dtype=dtype)
     points = torch.ones(G, dtype=torch.bool)
     A = torch.zeros(G, 3, N, dtype=dtype)
@@ -215,7 +216,7 @@ def test_a_nan_geom_or_radius_is_never_clear():
         assert native.capsules_clear(A, A, r, pairs, none, hs, None, None, 0.0, 0.0, ok, points=points,
                                      **world)
         assert bool(ok.all())  # all clear without NaN
-        for lanes in ([0], [5, 6], list(range(N))):
+        for lanes in ([0], [N - 2, N - 1], list(range(N))):
             B = A.clone()
             B[0, 1, lanes] = float("nan")
             ok = torch.ones(N, dtype=torch.bool)
@@ -231,3 +232,62 @@ def test_a_nan_geom_or_radius_is_never_clear():
                                      **world)
         assert not bool(ok.any())
 
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_blocks_of_one_to_four_spheres_decide_as_one_block_of_all(dtype):
+    """Sphere models (the planner's: the ends are one tensor) in blocks of 1 to 4 lanes, whose per-sphere
+    boxes are taken without a loop (an edge's first block), decide each lane as one block of all 64 lanes
+    does, and both as the exact distances: 8 spheres (one group of the broad phase) each moving along a line,
+    lanes in a shuffled order of their own; a box, a cylinder, a round object and another sphere (a self
+    pair) each met by one sphere in about a quarter of the lanes (those that move it forward), so that in a
+    block the broad phase's boxes decide which entries are tested and one missed lane can change a
+    decision."""
+    from diffkin.collision import box
+    from diffkin.collision.boxes import capsule_box
+    from diffkin.collision.cylinders import sphere_cylinder
+    from diffkin.collision.distances import capsule_capsule
+
+    g = torch.Generator().manual_seed(7)
+    G, N = 8, 128
+    base = 0.3 * torch.arange(G, dtype=dtype)[:, None] * torch.tensor([1.0, 0.5, 0.2], dtype=dtype)
+    u = torch.nn.functional.normalize(torch.randn(G, 3, dtype=dtype, generator=g), dim=-1)
+    s = torch.stack([torch.linspace(-1, 1, N, dtype=dtype)[torch.randperm(N, generator=g)] for _ in range(G)])
+    A = (base[:, :, None] + 0.04 * u[:, :, None] * s[:, None, :]).contiguous()  # (G, 3, N), each on its line
+    r = torch.full((G,), 0.03, dtype=dtype)
+    points = torch.ones(G, dtype=torch.bool)
+    out = 0.03 + 0.04 * 0.5  # each object's near side where its sphere is at s = 0.5: met for s > 0.5 or so
+    bh = torch.full((1, 3), 0.02, dtype=dtype)
+    bc = base[:1] + (out + 0.02) * u[:1]
+    bR = box(bc, bh, torch.zeros(1, 3, dtype=dtype)).rotation
+    z = torch.tensor([0.0, 0.0, 0.05], dtype=dtype)
+    ya, yb = base[1:2] + (out + 0.02) * u[1:2] - z, base[1:2] + (out + 0.02) * u[1:2] + z
+    yr = torch.tensor([0.02], dtype=dtype)
+    ball = base[2:3] + (out + 0.02) * u[2:3]
+    round_ = (ball, ball, torch.tensor([0.02], dtype=dtype))
+    A[7] = base[3, :, None] + (2 * out + 0.04 * s[7]) * u[3, :, None]  # sphere 7 meets sphere 3 head on
+    pairs = torch.tensor([[3, 7], [0, 5], [1, 6]])
+    hs = torch.zeros(0, 4, dtype=dtype)
+    world = dict(boxes=(bc, bR, bh), cylinders=(ya, yb, yr))
+
+    def decide(lanes):
+        X = A[:, :, lanes].contiguous()
+        ok = torch.ones(len(lanes), dtype=torch.bool)
+        assert native.capsules_clear(X, X, r, pairs, round_, hs, None, None, 0.0, 0.0, ok, points=points,
+                                     **world)
+        return ok
+
+    whole = decide(list(range(N)))
+    a = A.permute(2, 0, 1).contiguous()  # (N, G, 3)
+    d = torch.cat([capsule_box(a, a, r, bc[None, 0], bR[None, 0], bh[None, 0]),
+                   sphere_cylinder(a, r, ya[None, 0], yb[None, 0], yr[0]),
+                   capsule_capsule(a, a, r, round_[0][None, 0], round_[1][None, 0], round_[2][0])]
+                  + [capsule_capsule(a[:, i], a[:, i], r[i], a[:, j], a[:, j], r[j])[:, None]
+                     for i, j in pairs.tolist()], dim=1)
+    exact = (d >= 0).all(1)
+    sure = (d.abs() > (1e-5 if dtype == torch.float32 else 1e-12)).all(1)
+    assert 4 < int(whole.sum()) < N - 4  # both outcomes occur
+    assert torch.equal(whole[sure], exact[sure])
+    for m in (1, 2, 3, 4):
+        blocks = torch.cat([decide(list(range(n0, min(n0 + m, N)))) for n0 in range(0, N, m)])
+        assert torch.equal(blocks, whole), m

@@ -348,7 +348,13 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             real lo = a[0], hi = a[0], sum = 0;
             /* reductions the compiler may reorder (min and max are exact in any order; the sum is only
              * asked whether it is NaN, which an infinity's opposite also makes it: never apart then) */
-            if (A == B) /* spheres (the planner's: B is A): the ends are one point */
+            if (A == B && m <= 4 && m > 0) { /* an edge's first block: its lanes as a tree, no loop */
+                const int l1 = m > 1, l2 = m > 2 ? 2 : l1, l3 = m > 3 ? 3 : l2; /* repeats: the same min, max */
+                const real x0 = a[0], x1 = a[l1], x2 = a[l2], x3 = a[l3];
+                const real lo01 = x1 < x0 ? x1 : x0, lo23 = x3 < x2 ? x3 : x2;
+                const real hi01 = x1 > x0 ? x1 : x0, hi23 = x3 > x2 ? x3 : x2;
+                lo = lo23 < lo01 ? lo23 : lo01, hi = hi23 > hi01 ? hi23 : hi01, sum = (x0 + x1) + (x2 + x3);
+            } else if (A == B) /* spheres (the planner's: B is A): the ends are one point */
                 REDUCE_LANES(m, "omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)",
                              lo = a[l] < lo ? a[l] : lo;
                              hi = a[l] > hi ? a[l] : hi;
