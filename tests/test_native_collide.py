@@ -194,12 +194,13 @@ def test_the_block_broad_phase_keeps_a_near_entry():
         assert bool(ok.all()) == clear and bool(ok.any()) == clear
 
 
-@pytest.mark.parametrize("N", [64, 3])
+@pytest.mark.parametrize("N", [64, 4, 3])
 def test_a_nan_geom_or_radius_is_never_clear(N):
     """A geom NaN in some lanes of a block (the bounding boxes' min and max drop a NaN), or a NaN radius, is
     never culled as apart: those lanes are not clear, the others decide as without it (a review found NaN
     geoms declared clear by the boxes): 16 spheres (two groups of the broad phase), far from each other, a
-    self pair and a box; in a block of 64 lanes and in one of 3 (whose boxes are taken without a loop)."""
+    self pair and a box; in a block of 64 lanes and in ones of 4 and 3 (whose boxes are taken without a
+    loop), NaN in each lane alone, in the last two and in all."""
     dtype = torch.float64
     G = 16
     r = torch.full((G,), 0.05, dtype=dtype)
@@ -216,7 +217,7 @@ def test_a_nan_geom_or_radius_is_never_clear(N):
         assert native.capsules_clear(A, A, r, pairs, none, hs, None, None, 0.0, 0.0, ok, points=points,
                                      **world)
         assert bool(ok.all())  # all clear without NaN
-        for lanes in ([0], [N - 2, N - 1], list(range(N))):
+        for lanes in [[k] for k in range(min(N, 4))] + [[N - 2, N - 1], list(range(N))]:
             B = A.clone()
             B[0, 1, lanes] = float("nan")
             ok = torch.ones(N, dtype=torch.bool)
@@ -237,12 +238,12 @@ def test_a_nan_geom_or_radius_is_never_clear(N):
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_blocks_of_one_to_four_spheres_decide_as_one_block_of_all(dtype):
     """Sphere models (the planner's: the ends are one tensor) in blocks of 1 to 4 lanes, whose per-sphere
-    boxes are taken without a loop (an edge's first block), decide each lane as one block of all 64 lanes
+    boxes are taken without a loop (an edge's first block), decide each lane as one block of all 128 lanes
     does, and both as the exact distances: 8 spheres (one group of the broad phase) each moving along a line,
-    lanes in a shuffled order of their own; a box, a cylinder, a round object and another sphere (a self
-    pair) each met by one sphere in about a quarter of the lanes (those that move it forward), so that in a
-    block the broad phase's boxes decide which entries are tested and one missed lane can change a
-    decision."""
+    lanes in a shuffled order of their own; a box, a cylinder and a round object each met by one sphere in
+    about a quarter of the lanes (those that move it forward), and two spheres of a self pair head on in
+    about an eighth. So in a block the broad phase's boxes decide which entries are tested, and a box that
+    missed a lane would change a decision."""
     from diffkin.collision import box
     from diffkin.collision.boxes import capsule_box
     from diffkin.collision.cylinders import sphere_cylinder
