@@ -247,7 +247,6 @@ def test_blocks_of_one_to_four_spheres_decide_as_one_block_of_all(dtype):
     from diffkin.collision import box
     from diffkin.collision.boxes import capsule_box
     from diffkin.collision.cylinders import sphere_cylinder
-    from diffkin.collision.distances import capsule_capsule
 
     g = torch.Generator().manual_seed(7)
     G, N = 8, 128
