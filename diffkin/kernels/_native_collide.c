@@ -23,6 +23,11 @@
 #define COLLIDE_BLOCK 256
 #define CULL_GEOMS 512 /* blocks of models with more geoms test every entry */
 #define CULL_GROUP 8   /* geoms per group where the caller names none (collide_runs_init) */
+/* What a caller reads of a block's decisions (DK(collide_lanes)): every lane; the lanes up to the first
+ * colliding one; or only whether some lane collides. */
+#define COLLIDE_ALL 0
+#define COLLIDE_FIRST 1
+#define COLLIDE_ANY 2
 
 /* `for (int l = 0; l < m; l++) { body }` as a reduction over the lanes: an omp simd loop with the reduction
  * clauses from SIMD_REDUCE_LANES lanes on, a plain loop below. GCC lowers an omp simd reduction to an array of
@@ -312,20 +317,31 @@ static inline int DK(first_hit)(const uint8_t *clear, int m) {
     return m;
 }
 
-/* Whether some lane is still to be decided: one is clear; with first, one before the first colliding lane,
- * and *m shrinks to that lane (the lanes past it are dropped from every later test). */
-static inline int DK(lanes_left)(const uint8_t *clear, int *m, const int first) {
-    if (first) return (*m = DK(first_hit)(clear, *m)) > 0;
+/* Whether every lane of the block is still clear. */
+static inline int DK(all_clear)(const uint8_t *clear, int m) {
+    uint8_t all = 1;
+    for (int l = 0; l < m; l++) all &= clear[l];
+    return all;
+}
+
+/* Whether some lane is still to be decided: one is clear; with COLLIDE_FIRST, one before the first colliding
+ * lane, and *m shrinks to that lane (the lanes past it are dropped from every later test); with COLLIDE_ANY,
+ * no lane collides yet. */
+static inline int DK(lanes_left)(const uint8_t *clear, int *m, const int mode) {
+    if (mode == COLLIDE_FIRST) return (*m = DK(first_hit)(clear, *m)) > 0;
+    if (mode == COLLIDE_ANY) return DK(all_clear)(clear, *m);
     return DK(any_clear)(clear, *m);
 }
 
-/* The decisions of the block's lanes n0 .. n0 + m - 1 into ok (&=). With first (the planner's edges, which
- * read a block only up to its first colliding lane), lanes past the first colliding one found so far are
- * dropped from every later test: ok is then exact up to and including the first colliding lane and says
- * nothing about the lanes after it. */
+/* The decisions of the block's lanes n0 .. n0 + m - 1 into ok (&=). With COLLIDE_FIRST (an edge's first
+ * colliding sample wanted: dk_plan_edges), lanes past the first colliding one found so far are dropped from
+ * every later test: ok is then exact up to and including the first colliding lane and says nothing about the
+ * lanes after it. With COLLIDE_ANY (an edge taken whole or not at all: the search, the shortcuts), the block
+ * stops at the first collision found in any lane: every lane of ok is then clear when all are, and else
+ * some colliding lane is 0 (a lane of ok at 0 always collides; one at 1 may too). */
 static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_collide *c, const CollideRuns *R,
                                                                     int64_t n0, int m, uint8_t *restrict ok,
-                                                                    const int first) {
+                                                                    const int mode) {
     const int64_t N = c->N, G = c->G;
     const int m0 = m;
     const real *A = (const real *)c->A, *B = (const real *)c->B, *r = (const real *)c->r;
@@ -407,7 +423,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     const real *hs = (const real *)c->hs;
     real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
     for (int64_t w = 0; w < c->Wr; w++) { /* round objects: a segment per lane (its world's), gathered once */
-        if (!DK(lanes_left)(clear, &m, first)) goto done;
+        if (!DK(lanes_left)(clear, &m, mode)) goto done;
         for (int l = 0; l < m; l++) {
             const int64_t o = wl[l] * c->Wr + w;
             for (int k = 0; k < 3; k++) {
@@ -428,10 +444,11 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 const real T = r[g] + pr[l] + thr;
                 clear[l] &= (T <= 0) | (d2[l] >= T * T);
             }
+            if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
         }
     }
     for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
-        if (!DK(lanes_left)(clear, &m, first)) goto done;
+        if (!DK(lanes_left)(clear, &m, mode)) goto done;
         for (int l = 0; l < m; l++)
             for (int k = 0; k < 4; k++) pa[k * COLLIDE_BLOCK + l] = hs[4 * (wl[l] * c->H + h) + k];
         for (int64_t g = 0; g < G; g++) {
@@ -451,7 +468,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
         real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
         for (int64_t w = 0; w < c->Wb; w++) {
-            if (!DK(lanes_left)(clear, &m, first)) goto done;
+            if (!DK(lanes_left)(clear, &m, mode)) goto done;
             int gathered = 0; /* the box per lane, gathered once a geom is near it (most objects are not) */
             for (int k = 0; k < 3 && cull; k++) { /* the box's extent along world axis k: sum_j |R_kj| h_j */
                 const real *Rw = bR + 9 * (w0 * c->Wb + w), *h = bh + 3 * (w0 * c->Wb + w);
@@ -473,13 +490,14 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 }
                 const int point = c->point ? c->point[g] : 0;
                 DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear);
+                if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
             }
         }
     }
     if (c->Wy && c->point) { /* cylinders: the sphere geoms only (the caller decides the others) */
         const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         for (int64_t w = 0; w < c->Wy; w++) {
-            if (!DK(lanes_left)(clear, &m, first)) goto done;
+            if (!DK(lanes_left)(clear, &m, mode)) goto done;
             int gathered = 0; /* the cylinder per lane, gathered once a geom is near it */
             for (int k = 0; k < 3 && cull; k++) { /* the faces' centres and the radius every way */
                 const int64_t o = w0 * c->Wy + w;
@@ -498,11 +516,12 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                     gathered = 1;
                 }
                 DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
+                if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
             }
         }
     }
 #undef GROUP_GEOMS
-    if (!DK(lanes_left)(clear, &m, first)) goto done;
+    if (!DK(lanes_left)(clear, &m, mode)) goto done;
     /* the self pairs (last: the world rejects most colliding samples), a run of pairs of one pair of groups
      * (CollideRuns) skipped at once where the groups' boxes are apart */
     const int64_t *pi = NG ? R->pi : c->pi, *pj = NG ? R->pj : c->pj;
@@ -540,7 +559,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
                 for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
             }
-            if ((++tested & 15) == 0 && !DK(lanes_left)(clear, &m, first)) goto done;
+            if ((mode == COLLIDE_ANY || (++tested & 15) == 0) && !DK(lanes_left)(clear, &m, mode)) goto done;
         }
     }
 done:
@@ -548,13 +567,18 @@ done:
 }
 
 static void DK(collide_block)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m, uint8_t *restrict ok) {
-    DK(collide_lanes)(c, R, n0, m, ok, 0);
+    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_ALL);
 }
 
 /* DK(collide_block) for a caller that reads ok only up to its first colliding lane (DK(collide_lanes)). */
 static void DK(collide_first)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m,
                               uint8_t *restrict ok) {
-    DK(collide_lanes)(c, R, n0, m, ok, 1);
+    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_FIRST);
+}
+
+/* DK(collide_block) for a caller that reads only whether some lane collides (DK(collide_lanes)). */
+static void DK(collide_any)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m, uint8_t *restrict ok) {
+    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_ANY);
 }
 
 /* The decisions of c's N configurations: blocks shared between threads, the groups runs of CULL_GROUP

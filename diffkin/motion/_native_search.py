@@ -210,7 +210,8 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``, ``checked``: configurations
     decided, ``nodes``: the two trees' nodes at the end, ``too_long``: rows whose path kept more than
     ``capacity`` waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be
-    clear of ``margin + eta`` (rows where they are not are searched in vain)."""
+    clear of ``margin + eta`` (:func:`diffkin.motion.plan._row_resolution`): they are not decided again,
+    and the edges ending at them take them as clear."""
     planner = checker.native(q_start)
     if planner is None:
         return None
