@@ -157,6 +157,37 @@ def test_c_edges_equal_the_torch_subdivision(panda, dtype):
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_c_short_edges_equal_the_torch_subdivision(panda, dtype):
+    """Edges of 1 to 5 sub-steps, whose first block in C has fewer samples than the narrow decision's 4
+    lanes (the rest repeat its last sample) or exactly 4: EdgeChecker.edges in C (whole edges: a block
+    stops at its first collision in any sample) gives the torch loop's free flags, both outcomes occurring
+    at every count of sub-steps."""
+    chain, rc, probs = panda
+    if dtype == torch.float32:
+        rc = copy.deepcopy(rc).float()
+        chain = rc.chain.float()
+    _, _, world, _ = _batch(probs, ["cage/0001", "box/0019"])
+    gen = torch.Generator().manual_seed(3)
+    qa = random_configuration(chain, (1200,), generator=gen).to(dtype)
+    d = torch.randn(qa.shape, generator=gen, dtype=F64).to(dtype)
+    checker = EdgeChecker(rc, world.to(dtype), 0.0, 0.005)
+    reach = checker.reach.to(dtype)
+    # an edge of k sub-steps: its bound sum_j R_j |dq_j| = (k - 0.5) * 2 eta, k = 1 .. 5
+    k = torch.arange(1200) % 5 + 1
+    qb = qa + d * ((k - 0.5) * 2 * 0.005 / (d.abs() * reach).sum(-1)).to(dtype)[:, None]
+    rows = torch.arange(1200) % 2
+    assert torch.equal(checker.steps(qb - qa, rows), k)
+    assert checker.native(qa) is not None
+    checker.use_c = True
+    free_c, _ = checker.edges(qa, qb, rows)
+    checker.use_c = False
+    free_t, _ = checker.edges(qa, qb, rows)
+    assert torch.equal(free_c, free_t)
+    for steps in range(1, 6):
+        assert 0 < int(free_c[k == steps].sum()) < int((k == steps).sum())  # both outcomes occur
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_c_point_shortcuts_equal_the_torch_rounds(panda, dtype):
     """shortcut_points in C (dk_plan_points, where the checker decides in C: each path's rounds in one
     thread, the same draws, choices and splices) equals the torch rounds on paths the C search found in

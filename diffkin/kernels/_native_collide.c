@@ -28,6 +28,7 @@
 #define COLLIDE_ALL 0
 #define COLLIDE_FIRST 1
 #define COLLIDE_ANY 2
+#define COLLIDE_NARROW 4 /* the lanes of DK(collide_any_narrow) */
 
 /* `for (int l = 0; l < m; l++) { body }` as a reduction over the lanes: an omp simd loop with the reduction
  * clauses from SIMD_REDUCE_LANES lanes on, a plain loop below. GCC lowers an omp simd reduction to an array of
@@ -200,8 +201,9 @@ static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, r
 /* DK(box_lanes) of sphere geoms (point): the signed distance of the centre, outside its distance, inside minus
  * the depth, lane by lane without branches, vectorised: without trapping math here, GCC may run a select on
  * a comparison of doubles as a blend (the same values; clang vectorises it anyway and ignores the attribute). */
-__attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const real *A, int64_t N, real rg,
-        const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear) {
+static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(box_points_lanes)(
+        const real *A, int64_t N, real rg, const real *bc, const real *bR, const real *bh, real thr, int m,
+        uint8_t *restrict clear) {
 #pragma omp simd
     for (int l = 0; l < m; l++) {
         const real dx = A[l] - bc[l], dy = A[N + l] - bc[COLLIDE_BLOCK + l],
@@ -212,6 +214,17 @@ __attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const r
         const real root = (real)sqrt((double)best); /* best >= 0: taken in every lane, no branch */
         clear[l] &= (best > 0 ? root : ex) >= rg + thr;
     }
+}
+
+__attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const real *A, int64_t N, real rg,
+        const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear) {
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear);
+}
+
+/* DK(box_points) of COLLIDE_NARROW lanes (a constant trip count) */
+__attribute__((optimize("no-trapping-math"))) static void DK(box_points_narrow)(const real *A, int64_t N, real rg,
+        const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear) {
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear);
 }
 
 /* Whether every lane's capsule (segment a_l - b_l, radius rg) keeps d >= T = rg + thr from the lanes' boxes
@@ -268,8 +281,9 @@ static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, cons
  * (flat faces' centres ya, yb [3][], radius yr []): the closed-form field of diffkin.collision.cylinders
  * (axial coordinate z, radial distance rho, half-length hl: q = (rho - r, |z| - hl), d = |max(q, 0)| +
  * min(max(q), 0)). */
-__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
-        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
+static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(cylinder_lanes_of)(
+        const real *A, int64_t N, real rg, const real *ya, const real *yb, const real *yr, real thr, int m,
+        uint8_t *restrict clear) {
 #pragma omp simd
     for (int l = 0; l < m; l++) { /* vectorised as DK(box_points) */
         const real ex = (real)0.5 * (yb[l] - ya[l]), ey = (real)0.5 * (yb[COLLIDE_BLOCK + l] - ya[COLLIDE_BLOCK + l]),
@@ -289,6 +303,17 @@ __attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(con
         const real d = (real)sqrt((double)(ox * ox + oz * oz)) + (mq < 0 ? mq : 0) - rg;
         clear[l] &= d >= thr;
     }
+}
+
+__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
+        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
+    DK(cylinder_lanes_of)(A, N, rg, ya, yb, yr, thr, m, clear);
+}
+
+/* DK(cylinder_lanes) of COLLIDE_NARROW lanes (a constant trip count) */
+__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_narrow)(const real *A, int64_t N, real rg,
+        const real *ya, const real *yb, const real *yr, real thr, uint8_t *restrict clear) {
+    DK(cylinder_lanes_of)(A, N, rg, ya, yb, yr, thr, COLLIDE_NARROW, clear);
 }
 
 /* Whether some lane of the block is still clear (a block whose lanes all collide stops early). */
@@ -358,7 +383,15 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     int cull = NG > 0 && m > 0;
     for (int l = 1; l < m && cull; l++) cull = wl[l] == wl[0];
     const int64_t w0 = m > 0 ? wl[0] : 0;
-    for (int64_t g = 0; g < G && NG; g++) {
+    /* The level above (CollideRuns), formed in the same pass: each group bounded by the union of its geoms'
+     * boxes, each grown by its radius. A group box at least thr from an object's box puts each geom's box at
+     * least r_g + thr from it (the gap vector g of two boxes and g' of the grown ones: |g| >= |g'| + r), so
+     * the group's geoms are skipped as one; the self pairs alike with both groups grown (r_i + r_j). */
+    real gglo[3 * CULL_GEOMS], gghi[3 * CULL_GEOMS];
+    real ulo[3] = {(real)INFINITY, (real)INFINITY, (real)INFINITY};
+    real uhi[3] = {-(real)INFINITY, -(real)INFINITY, -(real)INFINITY};
+    int unan = 0; /* a NaN geom (its box NaN below) or radius turns its group's box into NaN: never apart */
+    for (int64_t g = 0, u = 0; g < G && NG; g++) {
         int nan = 0; /* a NaN coordinate in some lane: min and max may drop it, a sum keeps it */
         for (int k = 0; k < 3; k++) {
             const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
@@ -389,28 +422,24 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             nan |= sum != sum;
             glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
         }
-        if (nan) /* NaN on every axis: each gap 0, never apart (nor its group: below) */
+        if (nan) /* NaN on every axis: each gap 0, never apart (nor its group) */
             for (int k = 0; k < 3; k++) glo[3 * g + k] = ghi[3 * g + k] = (real)NAN;
-    }
-    /* The level above (CollideRuns): each group bounded by the union of its geoms' boxes, each grown by its
-     * radius. A group box at least thr from an object's box puts each geom's box at least r_g + thr from it
-     * (the gap vector g of two boxes and g' of the grown ones: |g| >= |g'| + r), so the group's geoms are
-     * skipped as one; the self pairs alike with both groups grown (r_i + r_j). */
-    real gglo[3 * CULL_GEOMS], gghi[3 * CULL_GEOMS];
-    for (int64_t u = 0; u < NG; u++) {
-        int nan = 0; /* a NaN geom (its box NaN above) or radius turns its group's box into NaN: never apart */
+        const real rg = r[g] > 0 ? r[g] : 0;
+        unan |= r[g] != r[g];
         for (int k = 0; k < 3; k++) {
-            real lo = (real)INFINITY, hi = -(real)INFINITY;
-            for (int64_t g = R->start[u]; g < R->start[u + 1]; g++) {
-                const real rg = r[g] > 0 ? r[g] : 0, a = glo[3 * g + k] - rg, b = ghi[3 * g + k] + rg;
-                nan |= a != a || b != b || r[g] != r[g];
-                lo = a < lo ? a : lo;
-                hi = b > hi ? b : hi;
-            }
-            gglo[3 * u + k] = lo, gghi[3 * u + k] = hi;
+            const real a = glo[3 * g + k] - rg, b = ghi[3 * g + k] + rg;
+            unan |= (a != a) | (b != b);
+            ulo[k] = a < ulo[k] ? a : ulo[k];
+            uhi[k] = b > uhi[k] ? b : uhi[k];
         }
-        if (nan) /* aabb_apart adds nothing for a NaN gap: NaN on every axis leaves g2 = 0, not apart */
-            for (int k = 0; k < 3; k++) gglo[3 * u + k] = gghi[3 * u + k] = (real)NAN;
+        if (g + 1 == R->start[u + 1]) { /* the group's last geom */
+            for (int k = 0; k < 3; k++) { /* NaN: aabb_apart's gaps 0 on every axis, never apart */
+                gglo[3 * u + k] = unan ? (real)NAN : ulo[k], gghi[3 * u + k] = unan ? (real)NAN : uhi[k];
+                ulo[k] = (real)INFINITY, uhi[k] = -(real)INFINITY;
+            }
+            unan = 0;
+            u++;
+        }
     }
     /* the geoms g0 .. g1 - 1 of each group in turn (one group of all without culling), the groups whose box
      * is at least thr from the object's box (olo, ohi) skipped */
@@ -489,7 +518,10 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                     gathered = 1;
                 }
                 const int point = c->point ? c->point[g] : 0;
-                DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear);
+                if (point && m == COLLIDE_NARROW) /* a constant where DK(collide_any_narrow) inlines this */
+                    DK(box_points_narrow)(A + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, clear);
+                else
+                    DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear);
                 if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
             }
         }
@@ -515,7 +547,10 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                     }
                     gathered = 1;
                 }
-                DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
+                if (m == COLLIDE_NARROW)
+                    DK(cylinder_narrow)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, clear);
+                else
+                    DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
                 if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
             }
         }
@@ -579,6 +614,12 @@ static void DK(collide_first)(const dk_collide *c, const CollideRuns *R, int64_t
 /* DK(collide_block) for a caller that reads only whether some lane collides (DK(collide_lanes)). */
 static void DK(collide_any)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m, uint8_t *restrict ok) {
     DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_ANY);
+}
+
+/* DK(collide_any) of lanes 0 .. COLLIDE_NARROW - 1, a constant: every loop over the lanes has a constant
+ * trip count (an edge's first block, about half the planner's decision time). */
+static void DK(collide_any_narrow)(const dk_collide *c, const CollideRuns *R, uint8_t *restrict ok) {
+    DK(collide_lanes)(c, R, 0, COLLIDE_NARROW, ok, COLLIDE_ANY);
 }
 
 /* The decisions of c's N configurations: blocks shared between threads, the groups runs of CULL_GROUP

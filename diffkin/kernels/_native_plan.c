@@ -208,37 +208,53 @@ typedef struct { /* one thread's work space */
     uint64_t rng;
 } DK(PlanWork);
 
+/* Place the geoms of lanes b0 .. b0 + nl - 1 (w->P) from the FK block just computed in w->sc (its lanes 0 ..
+ * nl - 1); spheres: the starts only. */
+static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w, int b0, int nl) {
+    const dk_plan *p = w->p;
+    const real *h = (const real *)p->col_h, *base = (const real *)p->base;
+    for (int64_t c = 0; c < (w->points ? p->C / 2 : p->C); c++) { /* spheres: the ends are the starts */
+        const int64_t f = p->col_frame[c];
+        const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
+        real *dst = w->P + c * 3 * COLLIDE_BLOCK + b0;
+        if (f == 0) {
+            for (int r = 0; r < 3; r++) {
+                const real v = base[4 * r] * h0 + base[4 * r + 1] * h1 + base[4 * r + 2] * h2 + base[4 * r + 3] * h3;
+                for (int l = 0; l < nl; l++) dst[r * COLLIDE_BLOCK + l] = v;
+            }
+            continue;
+        }
+        const real *E = w->sc.ends + (size_t)(f - 1) * 12 * W;
+        for (int r = 0; r < 3; r++) {
+            const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
+            real *restrict o = dst + r * COLLIDE_BLOCK;
+#pragma omp simd
+            for (int l = 0; l < nl; l++) o[l] = E0[l] * h0 + E1[l] * h1 + E2[l] * h2 + E3[l] * h3;
+        }
+    }
+}
+
 /* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta); mode as DK(collide_lanes)'s:
  * with COLLIDE_FIRST ok is exact only up to its first 0, with COLLIDE_ANY only whether it has a 0. */
 static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
-    const dk_plan *p = w->p;
-    const int n = w->s.n;
-    const real *h = (const real *)p->col_h, *base = (const real *)p->base;
+    if (mode == COLLIDE_ANY && m > 0 && m <= COLLIDE_NARROW && COLLIDE_NARROW == WN) {
+        /* an edge's first block: COLLIDE_NARROW lanes, whatever m (constant trip counts in every loop of
+         * the decision), the lanes from m on repeating lane m - 1 (DK(load_q)'s tail) */
+        DK(load_q)(&w->s, &w->sc, w->qs, 0, m);
+        DK(block_narrow)(&w->s, w->pp, &w->sc, 0);
+        DK(plan_place)(w, 0, COLLIDE_NARROW);
+        memset(w->ok, 1, COLLIDE_NARROW);
+        DK(collide_any_narrow)(&w->cc, &w->runs, w->ok);
+        for (int l = m; l < COLLIDE_NARROW; l++) w->ok[m - 1] &= w->ok[l]; /* a repeat colliding: lane m - 1 */
+        w->checked += m;
+        return;
+    }
     for (int b0 = 0; b0 < m; b0 += W) {
         const int nl = m - b0 < W ? m - b0 : W;
         DK(load_q)(&w->s, &w->sc, w->qs, b0, nl);
         if (nl <= WN) DK(block_narrow)(&w->s, w->pp, &w->sc, 0); /* 4 lanes or fewer (an edge's first block) */
         else DK(block)(&w->s, w->pp, &w->sc, 0);
-        for (int64_t c = 0; c < (w->points ? p->C / 2 : p->C); c++) { /* spheres: the ends are the starts */
-            const int64_t f = p->col_frame[c];
-            const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
-            real *dst = w->P + c * 3 * COLLIDE_BLOCK + b0;
-            if (f == 0) {
-                for (int r = 0; r < 3; r++) {
-                    const real v = base[4 * r] * h0 + base[4 * r + 1] * h1 + base[4 * r + 2] * h2 + base[4 * r + 3] * h3;
-                    for (int l = 0; l < nl; l++) dst[r * COLLIDE_BLOCK + l] = v;
-                }
-                continue;
-            }
-            const real *E = w->sc.ends + (size_t)(f - 1) * 12 * W;
-            for (int r = 0; r < 3; r++) {
-                const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
-                real *restrict o = dst + r * COLLIDE_BLOCK;
-#pragma omp simd
-                for (int l = 0; l < nl; l++) o[l] = E0[l] * h0 + E1[l] * h1 + E2[l] * h2 + E3[l] * h3;
-            }
-        }
-        (void)n;
+        DK(plan_place)(w, b0, nl);
     }
     memset(w->ok, 1, (size_t)m);
     if (mode == COLLIDE_ANY) DK(collide_any)(&w->cc, &w->runs, 0, m, w->ok);
