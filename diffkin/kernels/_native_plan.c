@@ -203,17 +203,18 @@ typedef struct { /* one thread's work space */
     real *path;           /* [2 cap n] */
     int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (max_iterations + 2) */
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
+    CollideHint hint;     /* the last sphere-box collision of the narrow decisions (spheres only) */
     real *scratch;
     real eta;
     uint64_t rng;
 } DK(PlanWork);
 
-/* Place the geoms of lanes b0 .. b0 + nl - 1 (w->P) from the FK block just computed in w->sc (its lanes 0 ..
- * nl - 1); spheres: the starts only. */
-static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w, int b0, int nl) {
+/* Place point c of lanes b0 .. b0 + nl - 1 (w->P) from the FK block just computed in w->sc (its lanes 0 ..
+ * nl - 1). */
+static inline __attribute__((always_inline)) void DK(plan_place_point)(DK(PlanWork) *w, int64_t c, int b0, int nl) {
     const dk_plan *p = w->p;
     const real *h = (const real *)p->col_h, *base = (const real *)p->base;
-    for (int64_t c = 0; c < (w->points ? p->C / 2 : p->C); c++) { /* spheres: the ends are the starts */
+    {
         const int64_t f = p->col_frame[c];
         const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
         real *dst = w->P + c * 3 * COLLIDE_BLOCK + b0;
@@ -222,7 +223,7 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
                 const real v = base[4 * r] * h0 + base[4 * r + 1] * h1 + base[4 * r + 2] * h2 + base[4 * r + 3] * h3;
                 for (int l = 0; l < nl; l++) dst[r * COLLIDE_BLOCK + l] = v;
             }
-            continue;
+            return;
         }
         const real *E = w->sc.ends + (size_t)(f - 1) * 12 * W;
         for (int r = 0; r < 3; r++) {
@@ -234,6 +235,11 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
     }
 }
 
+/* Place every geom (spheres: the starts only, the ends are the same points). */
+static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w, int b0, int nl) {
+    for (int64_t c = 0; c < (w->points ? w->p->C / 2 : w->p->C); c++) DK(plan_place_point)(w, c, b0, nl);
+}
+
 /* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta); mode as DK(collide_lanes)'s:
  * with COLLIDE_FIRST ok is exact only up to its first 0, with COLLIDE_ANY only whether it has a 0. */
 static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
@@ -242,9 +248,16 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
          * the decision), the lanes from m on repeating lane m - 1 (DK(load_q)'s tail) */
         DK(load_q)(&w->s, &w->sc, w->qs, 0, m);
         DK(block_narrow)(&w->s, w->pp, &w->sc, 0);
-        DK(plan_place)(w, 0, COLLIDE_NARROW);
         memset(w->ok, 1, COLLIDE_NARROW);
-        DK(collide_any_narrow)(&w->cc, &w->runs, w->ok);
+        int hit = 0; /* the last collision's sphere and box first: only that sphere placed */
+        if (w->points && w->hint.w >= 0) {
+            DK(plan_place_point)(w, w->hint.g, 0, COLLIDE_NARROW);
+            hit = DK(collide_hint)(&w->cc, &w->hint, w->ok);
+        }
+        if (!hit) {
+            DK(plan_place)(w, 0, COLLIDE_NARROW);
+            DK(collide_any_narrow)(&w->cc, &w->runs, w->ok, w->points ? &w->hint : NULL);
+        }
         for (int l = m; l < COLLIDE_NARROW; l++) w->ok[m - 1] &= w->ok[l]; /* a repeat colliding: lane m - 1 */
         w->checked += m;
         return;
@@ -392,6 +405,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     w->eta = ((const real *)p->eta)[b];
     w->cc.slack = (double)w->eta;
     w->checked = 0;
+    w->hint.w = -1; /* (a hint changes no verdict, only how soon a colliding block is found) */
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
     int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND;
     real *path = w->path;
@@ -515,6 +529,7 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
         return 0;
     DK(scratch_init)(s, pp, w->scratch, &w->sc);
     w->cc = *p->collide;
+    w->hint.w = -1;
     w->cc.N = COLLIDE_BLOCK;
     w->cc.A = w->P;
     w->points = 1;
