@@ -30,8 +30,8 @@
 #define COLLIDE_ANY 2
 #define COLLIDE_NARROW 4 /* the lanes of DK(collide_any_narrow) */
 
-/* The last collision a caller's COLLIDE_ANY decisions found between a sphere geom and a box: decided first
- * next time (DK(collide_hint)), before the broad phase. Consecutive samples of a search tend to meet the same
+/* A collision a caller's COLLIDE_ANY decisions found between a sphere geom and a box: decided first next
+ * time (DK(collide_hint)), before the broad phase. Consecutive samples of a search tend to meet the same
  * object with the same sphere: about 92 % of the planner's first blocks of an edge stop at a box. */
 typedef struct {
     int64_t w, g; /* the box and the geom (w < 0: none) */

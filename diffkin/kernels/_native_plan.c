@@ -187,6 +187,8 @@ static uint64_t plan_hash(const void *a, const void *b, size_t bytes, int64_t se
 #define DK_PLAN_PASS 2
 #endif
 
+#define PLAN_HINTS 4 /* sphere-box collisions remembered (one: 43 % of first blocks stop at it; four: 8-10 %
+                        * less time again) */
 typedef struct { /* one thread's work space */
     const dk_plan *p;
     Shape s;
@@ -203,7 +205,7 @@ typedef struct { /* one thread's work space */
     real *path;           /* [2 cap n] */
     int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (max_iterations + 2) */
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
-    CollideHint hint;     /* the last sphere-box collision of the narrow decisions (spheres only) */
+    CollideHint hint[PLAN_HINTS]; /* the last sphere-box collisions of the narrow decisions, latest first */
     real *scratch;
     real eta;
     uint64_t rng;
@@ -249,14 +251,24 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
         DK(load_q)(&w->s, &w->sc, w->qs, 0, m);
         DK(block_narrow)(&w->s, w->pp, &w->sc, 0);
         memset(w->ok, 1, COLLIDE_NARROW);
-        int hit = 0; /* the last collision's sphere and box first: only that sphere placed */
-        if (w->points && w->hint.w >= 0) {
-            DK(plan_place_point)(w, w->hint.g, 0, COLLIDE_NARROW);
-            hit = DK(collide_hint)(&w->cc, &w->hint, w->ok);
+        int hit = 0; /* the last collisions' spheres and boxes first, each sphere placed alone */
+        for (int k = 0; w->points && k < PLAN_HINTS && w->hint[k].w >= 0 && !hit; k++) {
+            DK(plan_place_point)(w, w->hint[k].g, 0, COLLIDE_NARROW);
+            hit = DK(collide_hint)(&w->cc, &w->hint[k], w->ok);
+            if (hit && k) { /* to the front */
+                const CollideHint x = w->hint[k];
+                memmove(w->hint + 1, w->hint, sizeof(CollideHint) * (size_t)k);
+                w->hint[0] = x;
+            }
         }
         if (!hit) {
             DK(plan_place)(w, 0, COLLIDE_NARROW);
-            DK(collide_any_narrow)(&w->cc, &w->runs, w->ok, w->points ? &w->hint : NULL);
+            CollideHint found = {-1, -1};
+            DK(collide_any_narrow)(&w->cc, &w->runs, w->ok, w->points ? &found : NULL);
+            if (found.w >= 0) { /* a new one in front, the oldest dropped */
+                memmove(w->hint + 1, w->hint, sizeof(CollideHint) * (PLAN_HINTS - 1));
+                w->hint[0] = found;
+            }
         }
         for (int l = m; l < COLLIDE_NARROW; l++) w->ok[m - 1] &= w->ok[l]; /* a repeat colliding: lane m - 1 */
         w->checked += m;
@@ -405,7 +417,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     w->eta = ((const real *)p->eta)[b];
     w->cc.slack = (double)w->eta;
     w->checked = 0;
-    w->hint.w = -1; /* (a hint changes no verdict, only how soon a colliding block is found) */
+    for (int k = 0; k < PLAN_HINTS; k++) w->hint[k].w = -1; /* (no verdict changes, only how soon) */
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
     int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND;
     real *path = w->path;
@@ -529,7 +541,7 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
         return 0;
     DK(scratch_init)(s, pp, w->scratch, &w->sc);
     w->cc = *p->collide;
-    w->hint.w = -1;
+    for (int k = 0; k < PLAN_HINTS; k++) w->hint[k].w = -1;
     w->cc.N = COLLIDE_BLOCK;
     w->cc.A = w->P;
     w->points = 1;
