@@ -288,9 +288,8 @@ static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, cons
  * (flat faces' centres ya, yb [3][], radius yr []): the closed-form field of diffkin.collision.cylinders
  * (axial coordinate z, radial distance rho, half-length hl: q = (rho - r, |z| - hl), d = |max(q, 0)| +
  * min(max(q), 0)). */
-static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(cylinder_lanes_of)(
-        const real *A, int64_t N, real rg, const real *ya, const real *yb, const real *yr, real thr, int m,
-        uint8_t *restrict clear) {
+__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
+        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
 #pragma omp simd
     for (int l = 0; l < m; l++) { /* vectorised as DK(box_points) */
         const real ex = (real)0.5 * (yb[l] - ya[l]), ey = (real)0.5 * (yb[COLLIDE_BLOCK + l] - ya[COLLIDE_BLOCK + l]),
@@ -310,17 +309,6 @@ static inline __attribute__((always_inline, optimize("no-trapping-math"))) void 
         const real d = (real)sqrt((double)(ox * ox + oz * oz)) + (mq < 0 ? mq : 0) - rg;
         clear[l] &= d >= thr;
     }
-}
-
-__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
-        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
-    DK(cylinder_lanes_of)(A, N, rg, ya, yb, yr, thr, m, clear);
-}
-
-/* DK(cylinder_lanes) of COLLIDE_NARROW lanes (a constant trip count) */
-__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_narrow)(const real *A, int64_t N, real rg,
-        const real *ya, const real *yb, const real *yr, real thr, uint8_t *restrict clear) {
-    DK(cylinder_lanes_of)(A, N, rg, ya, yb, yr, thr, COLLIDE_NARROW, clear);
 }
 
 /* Whether some lane of the block is still clear (a block whose lanes all collide stops early). */
@@ -557,10 +545,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                     }
                     gathered = 1;
                 }
-                if (m == COLLIDE_NARROW)
-                    DK(cylinder_narrow)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, clear);
-                else
-                    DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
+                DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
                 if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
             }
         }
