@@ -225,6 +225,29 @@ def test_c_point_shortcuts_equal_the_torch_rounds(panda, dtype):
         assert free.all()
 
 
+def test_c_search_paths_without_shortcuts_rechecked_sample_by_sample(panda):
+    """Six problems searched in C without shortcuts, so every waypoint is a tree node as the search took it
+    (the search decides a node once, as the far end of the edge that made it, and takes it as clear after):
+    every waypoint is clear with its row's resolution and every edge's every sample, ends included, is clear
+    again in the torch EdgeChecker (torch placement)."""
+    chain, rc, probs = panda
+    names = ["cage/0001", "box/0019", "table_pick/0019", "bookshelf_small/0001", "box/0041", "cage/0019"]
+    qs, qg, _, _, checker, rows, eta, a, b = _checked(probs, rc, names)
+    assert (a & b).all()
+    checker.set_row_resolution(eta)
+    lim = chain.q_limits
+    path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta,
+                                          max_iterations=20000, step=0.5, shortcut_tries=0, seed=0)
+    assert found.all() and int(n.sum()) > 3 * len(names)  # tree nodes on the paths, not only straight edges
+    checker.use_c = False
+    for r in range(len(names)):
+        k = int(n[r])
+        assert checker.clear(path[r, :k], torch.full((k,), r)).all()
+        free, _ = checker.edges(path[r, :k - 1], path[r, 1:k], torch.full((k - 1,), r))
+        assert free.all()
+    checker.use_c = True
+
+
 def test_c_search_edges_rechecked_and_plan_rechecked_by_coal(panda):
     """Three problems in one call (a cage, a box, a bookshelf whose start needs a finer resolution): every
     path found, every edge of every returned path proven clear again by the torch EdgeChecker (torch

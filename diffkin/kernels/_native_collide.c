@@ -12,7 +12,8 @@
  * (Real-Time Collision Detection, 5.1.9) written without branches, so that the loop over the configurations
  * of a block can vectorise (GCC 12 keeps it scalar: under the default -ftrapping-math a select on a double
  * comparison stays a branch; -fno-trapping-math for the whole library changed other kernels' results, so
- * only DK(box_points) and DK(cylinder_lanes), the planner's hot loops, are compiled so); degenerate segments
+ * only DK(box_points), its 4-lane DK(box_points_narrow) and DK(cylinder_lanes), the planner's hot loops, are
+ * compiled so); degenerate segments
  * (points) take the clamped formulas. The test compares squared
  * centre distances with (r_a + r_b + margin + slack)^2: no square root. Configurations run in blocks of
  * COLLIDE_BLOCK (the block's capsules stay in cache while every pair is tested), blocks shared between

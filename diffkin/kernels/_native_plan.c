@@ -109,8 +109,8 @@ typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
 DK_LAYOUT(plan, dk_plan, DK_PLAN_FIELDS, DK_PLAN_VERSION) /* dk_layout_plan, dk_names_plan (_native.c) */
 
 /* The order in which an edge's samples i (of its ns sub-steps) are decided, from sample `from` (0: the
- * edge's start included, 1: known clear): with prefix in order along the edge; else coarse, then in order:
- * `from` (when 0), ns, the odd multiples of ever smaller powers of two down to the stride that leaves about
+ * edge's start included, 1: known clear) to ns (with `last`; without, ns is known clear and skipped): with
+ * prefix in order along the edge; else coarse, then in order: `from` (when 0), ns (with `last`), the odd multiples of ever smaller powers of two down to the stride that leaves about
  * EDGE_COARSE of them (a colliding edge is usually caught among these), then the other samples in order
  * along the edge (consecutive samples lie close together, so a block's bounding boxes stay tight and its
  * culling works; all the way coarse to fine the late blocks spanned the whole edge: 10-25 % more time on
@@ -246,8 +246,9 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
  * with COLLIDE_FIRST ok is exact only up to its first 0, with COLLIDE_ANY only whether it has a 0. */
 static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
     if (mode == COLLIDE_ANY && m > 0 && m <= COLLIDE_NARROW && COLLIDE_NARROW == WN) {
-        /* an edge's first block: COLLIDE_NARROW lanes, whatever m (constant trip counts in every loop of
-         * the decision), the lanes from m on repeating lane m - 1 (DK(load_q)'s tail) */
+        /* a block of 4 samples or fewer (an edge's first; the last of a short edge): COLLIDE_NARROW lanes,
+         * whatever m (constant trip counts in every loop of the decision), the lanes from m on repeating
+         * lane m - 1 (DK(load_q)'s tail) */
         DK(load_q)(&w->s, &w->sc, w->qs, 0, m);
         DK(block_narrow)(&w->s, w->pp, &w->sc, 0);
         memset(w->ok, 1, COLLIDE_NARROW);
@@ -298,7 +299,8 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
     return k < 1 ? 1 : (int64_t)k;
 }
 
-/* The straight edge a -> b in ns sub-steps, its samples i = from .. ns at a + (i / ns) (b - a) taken in the
+/* The straight edge a -> b in ns sub-steps, its samples i = from .. ns (ns - 1 without last) at
+ * a + (i / ns) (b - a) taken in the
  * EdgeOrder (in order with prefix, else coarse, then in order) in blocks of 4 growing to COLLIDE_BLOCK (a
  * rejected edge is usually caught in its first samples; 4 decided 30-50 % fewer than 16 and took 1-15 %
  * less time on the first 20 MotionBenchMaker problems of each family), the edge
@@ -421,7 +423,8 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
     int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND;
     real *path = w->path;
-    if (DK(plan_edge)(w, qs0, qg0, 0)) { /* the start and the goal are clear (the caller's row checks) */
+    if (DK(plan_edge)(w, qs0, qg0, 1)) { /* the goal decided here once (a caller passing one that collides
+                                             * gets no path through it); later edges take it as clear */
         memcpy(path, qs0, sizeof(real) * n);
         memcpy(path + n, qg0, sizeof(real) * n);
         len = 2;
@@ -669,6 +672,7 @@ static int64_t DK(dk_plan_edges)(const dk_plan *p) {
             for (int l = 0; l < COLLIDE_BLOCK; l++) w.wid[l] = row;
             w.cc.wid = w.wid;
             w.cc.slack = (double)((const real *)p->slacks)[e];
+            for (int k = 0; k < PLAN_HINTS; k++) w.hint[k].w = -1; /* the sample found: the edge's own */
             const int64_t before = w.checked;
             p->first_bad[e] = DK(plan_edge_bad)(&w, (const real *)p->q + e * n, (const real *)p->qb + e * n,
                                                 p->steps[e], (int)p->prefix, 0, 1,
