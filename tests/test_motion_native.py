@@ -236,8 +236,8 @@ def test_c_search_paths_without_shortcuts_rechecked_sample_by_sample(panda):
     assert (a & b).all()
     checker.set_row_resolution(eta)
     lim = chain.q_limits
-    path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta,
-                                          max_iterations=20000, step=0.5, shortcut_tries=0, seed=0)
+    path, n, found, _ = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, eta,
+                                      max_iterations=20000, step=0.5, shortcut_tries=0, seed=0)
     assert found.all() and int(n.sum()) > 3 * len(names)  # tree nodes on the paths, not only straight edges
     checker.use_c = False
     for r in range(len(names)):

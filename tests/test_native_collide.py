@@ -234,7 +234,6 @@ def test_a_nan_geom_or_radius_is_never_clear(N):
         assert not bool(ok.any())
 
 
-
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_blocks_of_one_to_four_spheres_decide_as_one_block_of_all(dtype):
     """Sphere models (the planner's: the ends are one tensor) in blocks of 1 to 4 lanes, whose per-sphere

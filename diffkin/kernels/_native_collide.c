@@ -13,8 +13,7 @@
  * of a block can vectorise (GCC 12 keeps it scalar: under the default -ftrapping-math a select on a double
  * comparison stays a branch; -fno-trapping-math for the whole library changed other kernels' results, so
  * only DK(box_points), its 4-lane DK(box_points_narrow) and DK(cylinder_lanes), the planner's hot loops, are
- * compiled so); degenerate segments
- * (points) take the clamped formulas. The test compares squared
+ * compiled so); degenerate segments (points) take the clamped formulas. The test compares squared
  * centre distances with (r_a + r_b + margin + slack)^2: no square root. Configurations run in blocks of
  * COLLIDE_BLOCK (the block's capsules stay in cache while every pair is tested), blocks shared between
  * threads.
@@ -233,6 +232,17 @@ __attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const r
 __attribute__((optimize("no-trapping-math"))) static void DK(box_points_narrow)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear) {
     DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear);
+}
+
+/* Box w of the world row of each lane n0 .. n0 + m - 1 of c, gathered per lane (centre lc[3][], rotation
+ * lR[9][], half extents lh[3][], rows COLLIDE_BLOCK apart) for DK(box_lanes). */
+static inline void DK(gather_box)(const dk_collide *c, int64_t n0, int m, int64_t w, real *lc, real *lR, real *lh) {
+    const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
+    for (int l = 0; l < m; l++) {
+        const int64_t o = WORLD_OF(c, n0, l) * c->Wb + w;
+        for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
+        for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
+    }
 }
 
 /* Whether every lane's capsule (segment a_l - b_l, radius rg) keeps d >= T = rg + thr from the lanes' boxes
@@ -506,11 +516,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
                 if (!gathered) {
-                    for (int l = 0; l < m; l++) {
-                        const int64_t o = wl[l] * c->Wb + w;
-                        for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
-                        for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
-                    }
+                    DK(gather_box)(c, n0, m, w, lc, lR, lh);
                     gathered = 1;
                 }
                 const int point = c->point ? c->point[g] : 0;
@@ -624,16 +630,11 @@ static void DK(collide_any_narrow)(const dk_collide *c, const CollideRuns *R, ui
  * world row), the same test as DK(collide_lanes)'s: its lanes' decisions into ok (&=). Only the geom's own
  * rows of c->A are read. */
 static int DK(collide_hint)(const dk_collide *c, const CollideHint *hint, uint8_t *restrict ok) {
-    const int64_t w = hint->w, g = hint->g, N = c->N;
-    const real *bc = (const real *)c->bc, *bR = (const real *)c->bR, *bh = (const real *)c->bh;
+    const int64_t g = hint->g, N = c->N;
     real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
     uint8_t clear[COLLIDE_NARROW];
-    for (int l = 0; l < COLLIDE_NARROW; l++) {
-        const int64_t o = WORLD_OF(c, 0, l) * c->Wb + w;
-        for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
-        for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
-        clear[l] = 1;
-    }
+    DK(gather_box)(c, 0, COLLIDE_NARROW, hint->w, lc, lR, lh);
+    memset(clear, 1, COLLIDE_NARROW);
     DK(box_points_narrow)((const real *)c->A + g * 3 * N, N, ((const real *)c->r)[g], lc, lR, lh,
                           (real)(c->margin + c->slack), clear);
     for (int l = 0; l < COLLIDE_NARROW; l++) ok[l] &= clear[l];

@@ -69,7 +69,7 @@
     X(const void *, base, "[12] reals: the base frame, 3x4 row-major") \
     X(int64_t, B, "problems") \
     X(const void *, q_start, "[B n] reals, each clear of margin + eta (the caller's checks; not decided)") \
-    X(const void *, q_goal, "[B n] reals, each clear of margin + eta (the caller's checks; not decided)") \
+    X(const void *, q_goal, "[B n] reals, each clear of margin + eta (the caller's checks; decided once more)") \
     X(const int64_t *, world, "[B] the world row of each problem, or NULL: row 0") \
     X(const void *, eta, "[B] reals: each problem's resolution [m]") \
     X(const void *, lo, "[n] reals: the sampling box") \
@@ -110,8 +110,8 @@ DK_LAYOUT(plan, dk_plan, DK_PLAN_FIELDS, DK_PLAN_VERSION) /* dk_layout_plan, dk_
 
 /* The order in which an edge's samples i (of its ns sub-steps) are decided, from sample `from` (0: the
  * edge's start included, 1: known clear) to ns (with `last`; without, ns is known clear and skipped): with
- * prefix in order along the edge; else coarse, then in order: `from` (when 0), ns (with `last`), the odd multiples of ever smaller powers of two down to the stride that leaves about
- * EDGE_COARSE of them (a colliding edge is usually caught among these), then the other samples in order
+ * prefix in order along the edge; else coarse, then in order: `from` (when 0), ns (with `last`), the odd
+ * multiples of ever smaller powers of two down to the stride that leaves about EDGE_COARSE of them (a colliding edge is usually caught among these), then the other samples in order
  * along the edge (consecutive samples lie close together, so a block's bounding boxes stay tight and its
  * culling works; all the way coarse to fine the late blocks spanned the whole edge: 10-25 % more time on
  * the first 20 MotionBenchMaker problems of each family). Edges of fewer than 16 EDGE_COARSE samples go
@@ -216,25 +216,35 @@ typedef struct { /* one thread's work space */
 static inline __attribute__((always_inline)) void DK(plan_place_point)(DK(PlanWork) *w, int64_t c, int b0, int nl) {
     const dk_plan *p = w->p;
     const real *h = (const real *)p->col_h, *base = (const real *)p->base;
-    {
-        const int64_t f = p->col_frame[c];
-        const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
-        real *dst = w->P + c * 3 * COLLIDE_BLOCK + b0;
-        if (f == 0) {
-            for (int r = 0; r < 3; r++) {
-                const real v = base[4 * r] * h0 + base[4 * r + 1] * h1 + base[4 * r + 2] * h2 + base[4 * r + 3] * h3;
-                for (int l = 0; l < nl; l++) dst[r * COLLIDE_BLOCK + l] = v;
-            }
-            return;
-        }
-        const real *E = w->sc.ends + (size_t)(f - 1) * 12 * W;
+    const int64_t f = p->col_frame[c];
+    const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
+    real *dst = w->P + c * 3 * COLLIDE_BLOCK + b0;
+    if (f == 0) {
         for (int r = 0; r < 3; r++) {
-            const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
-            real *restrict o = dst + r * COLLIDE_BLOCK;
-#pragma omp simd
-            for (int l = 0; l < nl; l++) o[l] = E0[l] * h0 + E1[l] * h1 + E2[l] * h2 + E3[l] * h3;
+            const real v = base[4 * r] * h0 + base[4 * r + 1] * h1 + base[4 * r + 2] * h2 + base[4 * r + 3] * h3;
+            for (int l = 0; l < nl; l++) dst[r * COLLIDE_BLOCK + l] = v;
         }
+        return;
     }
+    const real *E = w->sc.ends + (size_t)(f - 1) * 12 * W;
+    for (int r = 0; r < 3; r++) {
+        const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
+        real *restrict o = dst + r * COLLIDE_BLOCK;
+#pragma omp simd
+        for (int l = 0; l < nl; l++) o[l] = E0[l] * h0 + E1[l] * h1 + E2[l] * h2 + E3[l] * h3;
+    }
+}
+
+/* Forget the remembered collisions (a hint changes no verdict, only how soon a colliding block is found). */
+static inline void DK(plan_forget_hints)(DK(PlanWork) *w) {
+    for (int k = 0; k < PLAN_HINTS; k++) w->hint[k].w = -1;
+}
+
+/* x to the front of the hints, those before position k moved one back (k = PLAN_HINTS - 1: a new one, the
+ * oldest dropped). */
+static inline void DK(plan_hint_to_front)(DK(PlanWork) *w, CollideHint x, int k) {
+    memmove(w->hint + 1, w->hint, sizeof(CollideHint) * (size_t)k);
+    w->hint[0] = x;
 }
 
 /* Place every geom (spheres: the starts only, the ends are the same points). */
@@ -245,7 +255,8 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
 /* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta); mode as DK(collide_lanes)'s:
  * with COLLIDE_FIRST ok is exact only up to its first 0, with COLLIDE_ANY only whether it has a 0. */
 static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
-    if (mode == COLLIDE_ANY && m > 0 && m <= COLLIDE_NARROW && COLLIDE_NARROW == WN) {
+    _Static_assert(COLLIDE_NARROW == WN, "the narrow decision places DK(block_narrow)'s lanes");
+    if (mode == COLLIDE_ANY && m > 0 && m <= COLLIDE_NARROW) {
         /* a block of 4 samples or fewer (an edge's first; the last of a short edge): COLLIDE_NARROW lanes,
          * whatever m (constant trip counts in every loop of the decision), the lanes from m on repeating
          * lane m - 1 (DK(load_q)'s tail) */
@@ -256,20 +267,13 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
         for (int k = 0; w->points && k < PLAN_HINTS && w->hint[k].w >= 0 && !hit; k++) {
             DK(plan_place_point)(w, w->hint[k].g, 0, COLLIDE_NARROW);
             hit = DK(collide_hint)(&w->cc, &w->hint[k], w->ok);
-            if (hit && k) { /* to the front */
-                const CollideHint x = w->hint[k];
-                memmove(w->hint + 1, w->hint, sizeof(CollideHint) * (size_t)k);
-                w->hint[0] = x;
-            }
+            if (hit) DK(plan_hint_to_front)(w, w->hint[k], k);
         }
         if (!hit) {
             DK(plan_place)(w, 0, COLLIDE_NARROW);
             CollideHint found = {-1, -1};
             DK(collide_any_narrow)(&w->cc, &w->runs, w->ok, w->points ? &found : NULL);
-            if (found.w >= 0) { /* a new one in front, the oldest dropped */
-                memmove(w->hint + 1, w->hint, sizeof(CollideHint) * (PLAN_HINTS - 1));
-                w->hint[0] = found;
-            }
+            if (found.w >= 0) DK(plan_hint_to_front)(w, found, PLAN_HINTS - 1);
         }
         for (int l = m; l < COLLIDE_NARROW; l++) w->ok[m - 1] &= w->ok[l]; /* a repeat colliding: lane m - 1 */
         w->checked += m;
@@ -300,8 +304,8 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
 }
 
 /* The straight edge a -> b in ns sub-steps, its samples i = from .. ns (ns - 1 without last) at
- * a + (i / ns) (b - a) taken in the
- * EdgeOrder (in order with prefix, else coarse, then in order) in blocks of 4 growing to COLLIDE_BLOCK (a
+ * a + (i / ns) (b - a) taken in the EdgeOrder (in order with prefix, else coarse, then in order) in blocks
+ * of 4 growing to COLLIDE_BLOCK (a
  * rejected edge is usually caught in its first samples; 4 decided 30-50 % fewer than 16 and took 1-15 %
  * less time on the first 20 MotionBenchMaker problems of each family), the edge
  * leaving at its first colliding block, decided in `mode` (DK(collide_lanes)): returns, with
@@ -419,7 +423,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     w->eta = ((const real *)p->eta)[b];
     w->cc.slack = (double)w->eta;
     w->checked = 0;
-    for (int k = 0; k < PLAN_HINTS; k++) w->hint[k].w = -1; /* (no verdict changes, only how soon) */
+    DK(plan_forget_hints)(w);
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
     int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND;
     real *path = w->path;
@@ -544,7 +548,7 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
         return 0;
     DK(scratch_init)(s, pp, w->scratch, &w->sc);
     w->cc = *p->collide;
-    for (int k = 0; k < PLAN_HINTS; k++) w->hint[k].w = -1;
+    DK(plan_forget_hints)(w);
     w->cc.N = COLLIDE_BLOCK;
     w->cc.A = w->P;
     w->points = 1;
@@ -672,7 +676,7 @@ static int64_t DK(dk_plan_edges)(const dk_plan *p) {
             for (int l = 0; l < COLLIDE_BLOCK; l++) w.wid[l] = row;
             w.cc.wid = w.wid;
             w.cc.slack = (double)((const real *)p->slacks)[e];
-            for (int k = 0; k < PLAN_HINTS; k++) w.hint[k].w = -1; /* the sample found: the edge's own */
+            DK(plan_forget_hints)(&w); /* the sample found: the edge's own, whichever edges the thread had */
             const int64_t before = w.checked;
             p->first_bad[e] = DK(plan_edge_bad)(&w, (const real *)p->q + e * n, (const real *)p->qb + e * n,
                                                 p->steps[e], (int)p->prefix, 0, 1,

@@ -210,8 +210,9 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``, ``checked``: configurations
     decided, ``nodes``: the two trees' nodes at the end, ``too_long``: rows whose path kept more than
     ``capacity`` waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be
-    clear of ``margin + eta`` (:func:`diffkin.motion.plan._row_resolution`): they are not decided again,
-    and the edges ending at them take them as clear."""
+    clear of ``margin + eta`` (:func:`diffkin.motion.plan._row_resolution`): the start is not decided again
+    and the goal once (its direct edge, so a colliding goal gets no path through it); the edges ending at
+    them take them as clear."""
     planner = checker.native(q_start)
     if planner is None:
         return None
