@@ -58,7 +58,8 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
   VAMP's median planning time on the same problems (``search_vs_vamp``); and the search again with its scene
   prepared before the clock starts (:func:`prepared_scene`: the edge checker and its C constants, as VAMP's
   clock starts after ``problem_dict_to_vamp`` has built its environment): ``search_prepared_ms`` and
-  ``prepared_vs_vamp``;
+  ``prepared_vs_vamp``; and that call's own time on its C thread's clock, as VAMP's clock times its
+  planner (its start and goal decisions included; no Python): ``search_c_ms`` and ``c_vs_vamp``;
 * ``OMPL RRTConnect``: on the same subset, as ``--ompl`` (``--ompl-time`` seconds each). When ``ompl`` is
   not importable here, ``OMPL_SITE`` names a site-packages holding PyPI ``ompl`` (appended to ``sys.path``).
 
@@ -269,29 +270,25 @@ def prepared_scene(model, world, qs):
 
 
 def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
-                  seed: int, checker=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """``motion.plan``'s search stage alone, as ``plan`` runs it: per-row validity with its resolution ladder
-    (the continuous edge checker at ``plan``'s default resolution, margin 0), then the C RRT-Connect
-    (:mod:`diffkin.motion._native_search`) -> ``found``, ``valid`` (B,) bool and ``checked`` (B,)
-    configurations decided. No goal IK, shortcutting (``plan``'s random shortcuts run in the same C call:
-    left out here, as VAMP's planning time leaves out its simplification), smoothing or timing. ``checker``:
-    the scene already prepared (:func:`prepared_scene`), else prepared here."""
+                  seed: int, checker=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``motion.plan``'s search stage alone, as ``plan`` runs it: one C call
+    (:mod:`diffkin.motion._native_search`) deciding each start and goal at ``plan``'s resolution ladder (the
+    continuous edge checker at ``plan``'s default resolution, margin 0), then RRT-Connect -> ``found``,
+    ``valid`` (B,) bool, ``checked`` (B,) configurations decided and ``nanoseconds`` (B,): each problem's time
+    on its C thread's clock (as VAMP's planners time themselves). No goal IK, shortcutting (``plan``'s random
+    shortcuts run in the same C call: left out here, as VAMP's planning time leaves out its simplification),
+    smoothing or timing. ``checker``: the scene already prepared (:func:`prepared_scene`), else prepared
+    here."""
     from diffkin.motion._native_search import search_native
-    from diffkin.motion.plan import _row_resolution
+    from diffkin.motion.plan import ETA_LEVELS
 
-    lim = chain.q_limits.to(qs.dtype)
+    lim = chain.q_limits
     checker = prepared_scene(model, world, qs) if checker is None else checker
-    rows = torch.arange(qs.shape[0])
-    eta, a, b = _row_resolution(checker, qs, qg, rows)
-    valid = a & b
-    v = rows[valid]
-    found = torch.zeros(qs.shape[0], dtype=torch.bool)
-    checked = torch.zeros(qs.shape[0], dtype=torch.int64)
-    if v.numel():
-        out = search_native(checker, qs[v], qg[v], lim[:, 0], lim[:, 1], v, eta[v], max_iterations=iterations,
-                            step=step, shortcut_tries=0, seed=seed)
-        found[v], checked[v] = out[2], out[3]["checked"]
-    return found, valid, checked
+    out = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], torch.arange(qs.shape[0]), None,
+                        max_iterations=iterations, step=step, shortcut_tries=0, seed=seed,
+                        rungs=ETA_LEVELS + 1)
+    stats = out[3]
+    return out[2], stats["start_ok"] & stats["goal_ok"], stats["checked"], stats["nanoseconds"]
 
 
 def search_rows(problems, iterations: int = ITERATIONS, step: float = 1.0, single: int = 10,
@@ -317,7 +314,7 @@ def search_rows(problems, iterations: int = ITERATIONS, step: float = 1.0, singl
         qs = torch.tensor([p.start for p in part], dtype=F64)
         qg = torch.tensor([p.goal for p in part], dtype=F64)
         t0 = time.perf_counter()
-        found, valid, checked = _search_stage(chain, model, worlds, qs, qg, iterations, step, seed)
+        found, valid, checked, _ = _search_stage(chain, model, worlds, qs, qg, iterations, step, seed)
         return time.perf_counter() - t0, valid, found, checked, (qs, qg, worlds)
 
     total, valid, found, checked, _ = stage(problems)
@@ -404,11 +401,11 @@ def _one_at_a_time_records(problems, iterations: int, step: float, seed: int, om
             t2 = time.perf_counter()
             checker = prepared_scene(model, world, qs)  # the scene made ready first, as VAMP's environment
             t3 = time.perf_counter()
-            _search_stage(chain, model, world, qs, qg, iterations, step, seed, checker)
+            c_ns = _search_stage(chain, model, world, qs, qg, iterations, step, seed, checker)[3]
             t4 = time.perf_counter()
         r = {"family": p.family, "name": p.name, "valid": "in collision" not in res.reason[0],
              "success": bool(res.success[0]), "plan_s": t1 - t0, "found": bool(found[0]), "search_s": t2 - t1,
-             "search_prepared_s": t4 - t3,
+             "search_prepared_s": t4 - t3, "search_c_s": 1e-9 * float(c_ns[0]),
              "ompl_success": None, "ompl_s": None}
         if mods is not None:
             r["ompl_success"], r["ompl_s"] = _ompl_solve(*mods, model, world, lim, p, ompl_time)
@@ -475,6 +472,7 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
             continue
         search_ms = [1e3 * r["search_s"] for r in ss if r["found"]]
         prepared_ms = [1e3 * r["search_prepared_s"] for r in ss if r["found"]]
+        c_ms = [1e3 * r["search_c_s"] for r in ss if r["found"]]
         vamp_ms = [1e-6 * vamp[r["name"]]["plan_ns"] for r in ss if vamp[r["name"]]["solved"]] if vamp else []
         rows.append({"method": f"diffkin plan, one at a time (first {subset})", "family": f,
                      "problems": len(ss), "valid": sum(r["valid"] for r in ss),
@@ -483,7 +481,8 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
                      "search_vs_vamp": (med(search_ms) / med(vamp_ms)) if search_ms and vamp_ms else None,
                      "search_prepared_ms": med(prepared_ms),
                      "prepared_vs_vamp": (med(prepared_ms) / med(vamp_ms)) if prepared_ms and vamp_ms
-                     else None})
+                     else None, "search_c_ms": med(c_ms),
+                     "c_vs_vamp": (med(c_ms) / med(vamp_ms)) if c_ms and vamp_ms else None})
         if ss[0]["ompl_success"] is not None:
             rows.append({"method": f"OMPL RRTConnect, diffkin checker (first {subset}, {ompl_time:g} s)",
                          "family": f, "problems": len(ss), "success": sum(r["ompl_success"] for r in ss),
@@ -492,7 +491,8 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
 
 
 COLUMNS = ("method", "family", "problems", "valid", "success", "ms", "search_ms", "search_found",
-           "search_vs_vamp", "search_prepared_ms", "prepared_vs_vamp", "duration_s", "spline_s",
+           "search_vs_vamp", "search_prepared_ms", "prepared_vs_vamp", "search_c_ms", "c_vs_vamp",
+           "duration_s", "spline_s",
            "dur_vs_vamp_stop", "dur_vs_vamp_spline", "length_rad",
            "jerk_max", "recheck_min_mm")
 
@@ -728,7 +728,9 @@ def _compare_text(rows, a, n: int) -> str:
             "simplification); search_vs_vamp = ratio of the medians on the "
             "same problems; search_prepared_ms, prepared_vs_vamp = the same with the scene prepared before "
             "the clock starts (diffkin: the edge checker and its C constants; VAMP's clock also starts after "
-            "its environment is built); duration_s = trajectory seconds under the Franka limits (VAMP: its "
+            "its environment is built); search_c_ms, c_vs_vamp = that call's own time on its C thread's "
+            "clock (its start and goal decisions and RRT-Connect, no Python), as VAMP's clock times its "
+            "planner; duration_s = trajectory seconds under the Franka limits (VAMP: its "
             "path timed by toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through "
             "its waypoints, not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on "
             "problems both solved; length_rad = joint-space path length; jerk_max = max |dq''|/dt sampled "

@@ -187,6 +187,37 @@ def test_c_short_edges_equal_the_torch_subdivision(panda, dtype):
         assert 0 < int(free_c[k == steps].sum()) < int((k == steps).sum())  # both outcomes occur
 
 
+def test_c_edges_decided_by_covers_of_three_samples(panda):
+    """A whole edge of at least 6 sub-steps is decided in runs of three samples, each run's middle at
+    margin + 3 η as well (_native_plan.c, DK(plan_edge_cover)): an edge whose every sample keeps 3 η (torch
+    decisions of all its samples) costs exactly one decision a run, steps // 3 + 1; the flags equal the
+    torch loop's on edges in both outcomes; an edge with samples closer than 3 η but clear costs more."""
+    chain, rc, probs = panda
+    _, _, world, _ = _batch(probs, ["cage/0001"])
+    gen = torch.Generator().manual_seed(4)
+    qa = random_configuration(chain, (400,), generator=gen).to(F64)
+    qb = qa + 0.3 * torch.randn(qa.shape, generator=gen, dtype=F64)
+    rows = torch.zeros(400, dtype=torch.long)
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    planner = checker.native(qa)
+    steps = checker.steps(qb - qa, rows)
+    assert (steps >= 6).all()
+    first_bad, decided = planner.edges(qa, qb, steps, torch.full((400,), 0.005, dtype=F64), None, False)
+    free_c = first_bad > steps
+    far, near = [], []
+    for e in range(400):
+        f = torch.arange(int(steps[e]) + 1, dtype=F64)[:, None] / steps[e]
+        q = qa[e] + f * (qb[e] - qa[e])
+        clear1 = checker.clear(q, torch.zeros(len(q), dtype=torch.long), slack=0.005)
+        assert bool(free_c[e]) == bool(clear1.all())
+        if bool(clear1.all()):
+            clear3 = checker.clear(q, torch.zeros(len(q), dtype=torch.long), slack=0.015)
+            (far if bool(clear3.all()) else near).append(e)
+    assert 0 < int(free_c.sum()) < 400 and far and near
+    assert torch.equal(decided[far], steps[far] // 3 + 1)
+    assert (decided[near] > steps[near] // 3 + 1).all()
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_c_point_shortcuts_equal_the_torch_rounds(panda, dtype):
     """shortcut_points in C (dk_plan_points, where the checker decides in C: each path's rounds in one
@@ -365,6 +396,43 @@ def test_close_start_planned_at_a_finer_resolution_and_a_start_in_collision_repo
                       max_iterations=10000, step=0.5)
     assert res.success.tolist() == [True, False]
     assert "in collision" in res.reason[1]
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_c_search_decides_starts_and_goals_as_the_torch_ladder(panda, dtype):
+    """search_native with ``rungs`` decides each start and goal in C: the resolution, start_ok and goal_ok
+    equal _row_resolution's (torch) on a start needing η / 16 (bookshelf_small/0019), VAMP's invalid
+    problem (table_pick/0041), a goal moved into collision and a start moved into collision; the rows
+    with both clear return the paths and counts of a search given that resolution, the others no path
+    (status START_BAD / GOAL_BAD), and each problem's C clock is positive."""
+    from diffkin.motion.plan import ETA_LEVELS
+
+    chain, rc, probs = panda
+    if dtype == torch.float32:  # copies: float() converts a module in place (the fixture is shared)
+        rc = copy.deepcopy(rc).float()
+        chain = rc.chain.float()
+    names = ["bookshelf_small/0019", "table_pick/0041", "cage/0001", "box/0001", "box/0001"]
+    qs, qg, world, _ = _batch(probs, names)
+    inside = torch.tensor([0.0, 0.0, 0.0, -1.5, 0.0, 1.5, 0.0], dtype=F64)  # collides in box/0001
+    qg[3], qs[4] = inside, inside
+    qs, qg, world = qs.to(dtype), qg.to(dtype), world.to(dtype)
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    rows = torch.arange(len(names))
+    eta, a, b = _row_resolution(checker, qs, qg, rows)
+    lim = chain.q_limits
+    kw = dict(max_iterations=10000, step=0.5, shortcut_tries=8, seed=2)
+    path, n, found, stats = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, None,
+                                          rungs=ETA_LEVELS + 1, **kw)
+    assert a.tolist() == stats["start_ok"].tolist() == [True, a[1].item(), True, True, False]
+    assert b[:4].tolist() == stats["goal_ok"][:4].tolist() and not b[3] and not (a[1] & b[1])
+    both = a & b
+    assert torch.equal(stats["eta"][both], eta[both].to(dtype)) and eta[0] < 0.005
+    assert both.tolist() == [True, False, True, False, False] and found.tolist() == both.tolist()
+    assert (stats["nanoseconds"] > 0).all()
+    v = both.nonzero().squeeze(1)
+    given = search_native(checker, qs[v], qg[v], lim[:, 0], lim[:, 1], v, eta[v], **kw)
+    assert torch.equal(given[1], n[v]) and torch.equal(given[0], path[v])
+    assert torch.equal(given[3]["iterations"], stats["iterations"][v])
 
 
 def test_plan_struct_layout_checked_and_another_version_refused(panda):

@@ -28,6 +28,10 @@
 #define COLLIDE_ALL 0
 #define COLLIDE_FIRST 1
 #define COLLIDE_ANY 2
+/* COLLIDE_ANY, and each lane's decision at a second, larger threshold as well (a cover: the planner's sample
+ * clear of it proves its neighbours, _native_plan.c): the culls at the larger one, the block stopping at the
+ * first collision at the smaller one only */
+#define COLLIDE_COVER 3
 #define COLLIDE_NARROW 4 /* the lanes of DK(collide_any_narrow) */
 
 /* A collision a caller's COLLIDE_ANY decisions found between a sphere geom and a box: decided first next
@@ -210,7 +214,7 @@ static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, r
  * a comparison of doubles as a blend (the same values; clang vectorises it anyway and ignores the attribute). */
 static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(box_points_lanes)(
         const real *A, int64_t N, real rg, const real *bc, const real *bR, const real *bh, real thr, int m,
-        uint8_t *restrict clear) {
+        uint8_t *restrict clear, real thr_hi, uint8_t *restrict hi) {
 #pragma omp simd
     for (int l = 0; l < m; l++) {
         const real dx = A[l] - bc[l], dy = A[N + l] - bc[COLLIDE_BLOCK + l],
@@ -219,19 +223,34 @@ static inline __attribute__((always_inline, optimize("no-trapping-math"))) void 
         DK(box_frame)(bR + l, dx, dy, dz, &px, &py, &pz);
         const real best = DK(box_point_d2)(px, py, pz, bh[l], bh[COLLIDE_BLOCK + l], bh[2 * COLLIDE_BLOCK + l], &ex);
         const real root = (real)sqrt((double)best); /* best >= 0: taken in every lane, no branch */
-        clear[l] &= (best > 0 ? root : ex) >= rg + thr;
+        const real d = best > 0 ? root : ex;
+        clear[l] &= d >= rg + thr;
+        if (hi) hi[l] &= d >= rg + thr_hi; /* hi: NULL or not in each inlined copy, no test left */
     }
 }
 
 __attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear) {
-    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear);
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, 0, NULL);
 }
 
 /* DK(box_points) of COLLIDE_NARROW lanes (a constant trip count) */
 __attribute__((optimize("no-trapping-math"))) static void DK(box_points_narrow)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear) {
-    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear);
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, 0, NULL);
+}
+
+/* DK(box_points) and DK(box_points_narrow) deciding each lane at thr_hi as well, into hi (&=) */
+__attribute__((optimize("no-trapping-math"))) static void DK(box_points_cover)(const real *A, int64_t N, real rg,
+        const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear, real thr_hi,
+        uint8_t *restrict hi) {
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, thr_hi, hi);
+}
+
+__attribute__((optimize("no-trapping-math"))) static void DK(box_points_narrow_cover)(const real *A, int64_t N,
+        real rg, const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear, real thr_hi,
+        uint8_t *restrict hi) {
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, thr_hi, hi);
 }
 
 /* Box w of the world row of each lane n0 .. n0 + m - 1 of c, gathered per lane (centre lc[3][], rotation
@@ -252,16 +271,18 @@ static inline void DK(gather_box)(const dk_collide *c, int64_t n0, int m, int64_
  * distances to the box's 12 edges (a closest pair with the segment's interior and a face's interior has the
  * segment parallel to that face: sliding along it reaches an end or an edge at the same distance). */
 static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, const real *bc, const real *bR,
-                          const real *bh, real thr, int point, int m, uint8_t *restrict clear) {
+                          const real *bh, real thr, int point, int m, uint8_t *restrict clear, real thr_hi,
+                          uint8_t *restrict hi) {
     if (point) {
-        DK(box_points)(A, N, rg, bc, bR, bh, thr, m, clear);
+        if (hi) DK(box_points_cover)(A, N, rg, bc, bR, bh, thr, m, clear, thr_hi, hi);
+        else DK(box_points)(A, N, rg, bc, bR, bh, thr, m, clear);
         return;
     }
     for (int l = 0; l < m; l++) {
         const real dx = A[l] - bc[l], dy = A[N + l] - bc[COLLIDE_BLOCK + l], dz = A[2 * N + l] - bc[2 * COLLIDE_BLOCK + l];
         real p[3], d[3], h[3] = {bh[l], bh[COLLIDE_BLOCK + l], bh[2 * COLLIDE_BLOCK + l]};
         DK(box_frame)(bR + l, dx, dy, dz, p, p + 1, p + 2);
-        const real T = rg + thr;
+        const real T = rg + thr, Th = rg + (hi ? thr_hi : thr);
         real ex;
         real best = DK(box_point_d2)(p[0], p[1], p[2], h[0], h[1], h[2], &ex);
         const real ux = B[l] - A[l], uy = B[N + l] - A[N + l], uz = B[2 * N + l] - A[2 * N + l];
@@ -273,7 +294,7 @@ static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, cons
         const real mx = p[0] + (real)0.5 * d[0], my = p[1] + (real)0.5 * d[1], mz = p[2] + (real)0.5 * d[2];
         const real hr = (real)sqrt((double)(h[0] * h[0] + h[1] * h[1] + h[2] * h[2]));
         const real far = (real)sqrt((double)(mx * mx + my * my + mz * mz)) - len - hr;
-        if (far >= T) continue;
+        if (far >= Th) continue;
         if (best < T * T || DK(box_segment_meets)(p, d, h)) {
             clear[l] = 0;
             continue;
@@ -292,6 +313,7 @@ static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, cons
             }
         }
         clear[l] &= best >= T * T;
+        if (hi) hi[l] &= best >= Th * Th;
     }
 }
 
@@ -299,8 +321,9 @@ static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, cons
  * (flat faces' centres ya, yb [3][], radius yr []): the closed-form field of diffkin.collision.cylinders
  * (axial coordinate z, radial distance rho, half-length hl: q = (rho - r, |z| - hl), d = |max(q, 0)| +
  * min(max(q), 0)). */
-__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
-        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
+static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(cylinder_lanes_impl)(
+        const real *A, int64_t N, real rg, const real *ya, const real *yb, const real *yr, real thr, int m,
+        uint8_t *restrict clear, real thr_hi, uint8_t *restrict hi) {
 #pragma omp simd
     for (int l = 0; l < m; l++) { /* vectorised as DK(box_points) */
         const real ex = (real)0.5 * (yb[l] - ya[l]), ey = (real)0.5 * (yb[COLLIDE_BLOCK + l] - ya[COLLIDE_BLOCK + l]),
@@ -319,7 +342,20 @@ __attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(con
         const real mq = qx > qz ? qx : qz;
         const real d = (real)sqrt((double)(ox * ox + oz * oz)) + (mq < 0 ? mq : 0) - rg;
         clear[l] &= d >= thr;
+        if (hi) hi[l] &= d >= thr_hi;
     }
+}
+
+__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
+        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
+    DK(cylinder_lanes_impl)(A, N, rg, ya, yb, yr, thr, m, clear, 0, NULL);
+}
+
+/* DK(cylinder_lanes) deciding each lane at thr_hi as well, into hi (&=) */
+__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes_cover)(const real *A, int64_t N,
+        real rg, const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear,
+        real thr_hi, uint8_t *restrict hi) {
+    DK(cylinder_lanes_impl)(A, N, rg, ya, yb, yr, thr, m, clear, thr_hi, hi);
 }
 
 /* Whether some lane of the block is still clear (a block whose lanes all collide stops early). */
@@ -360,7 +396,7 @@ static inline int DK(all_clear)(const uint8_t *clear, int m) {
  * no lane collides yet. */
 static inline int DK(lanes_left)(const uint8_t *clear, int *m, const int mode) {
     if (mode == COLLIDE_FIRST) return (*m = DK(first_hit)(clear, *m)) > 0;
-    if (mode == COLLIDE_ANY) return DK(all_clear)(clear, *m);
+    if (mode == COLLIDE_ANY || mode == COLLIDE_COVER) return DK(all_clear)(clear, *m);
     return DK(any_clear)(clear, *m);
 }
 
@@ -372,11 +408,19 @@ static inline int DK(lanes_left)(const uint8_t *clear, int *m, const int mode) {
  * some colliding lane is 0 (a lane of ok at 0 always collides; one at 1 may too). */
 static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_collide *c, const CollideRuns *R,
                                                                     int64_t n0, int m, uint8_t *restrict ok,
-                                                                    const int mode, CollideHint *hint) {
+                                                                    const int mode, CollideHint *hint,
+                                                                    const real thr_hi, uint8_t *restrict hi_ok) {
     const int64_t N = c->N, G = c->G;
     const int m0 = m;
     const real *A = (const real *)c->A, *B = (const real *)c->B, *r = (const real *)c->r;
     const real thr = (real)(c->margin + c->slack);
+    const int any = mode == COLLIDE_ANY || mode == COLLIDE_COVER; /* the block stops at a collision */
+    /* with COLLIDE_COVER every lane decided at thr_hi as well (hi): the culls at the larger threshold, so
+     * that an entry culled is apart at both */
+    const real cthr = mode == COLLIDE_COVER ? thr_hi : thr;
+    uint8_t hic[COLLIDE_BLOCK];
+    uint8_t *hi = mode == COLLIDE_COVER ? hic : NULL;
+    for (int l = 0; hi && l < m; l++) hic[l] = 1;
     real d2[COLLIDE_BLOCK];
     uint8_t clear[COLLIDE_BLOCK];
     int64_t wl[COLLIDE_BLOCK];
@@ -452,7 +496,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     const int64_t NU = NG ? NG : 1;
 #define GROUP_GEOMS(g) \
     for (int64_t u_ = 0; u_ < NU; u_++) \
-        if (!(cull && DK(aabb_apart)(gglo + 3 * u_, gghi + 3 * u_, olo, ohi, thr))) \
+        if (!(cull && DK(aabb_apart)(gglo + 3 * u_, gghi + 3 * u_, olo, ohi, cthr))) \
             for (int64_t g = NG ? R->start[u_] : 0; g < (NG ? R->start[u_ + 1] : G); g++)
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
@@ -473,13 +517,17 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         }
         GROUP_GEOMS(g) {
             if (c->skip_r && c->skip_r[g * c->Wr + w]) continue;
-            if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
+            if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
             DK(segments_d2)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, pa, pb, COLLIDE_BLOCK, m, d2);
             for (int l = 0; l < m; l++) {
                 const real T = r[g] + pr[l] + thr;
                 clear[l] &= (T <= 0) | (d2[l] >= T * T);
             }
-            if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
+            for (int l = 0; hi && l < m; l++) {
+                const real T = r[g] + pr[l] + thr_hi;
+                hi[l] &= (T <= 0) | (d2[l] >= T * T);
+            }
+            if (any && !DK(all_clear)(clear, m)) goto done;
         }
     }
     for (int64_t h = 0; h < c->H; h++) { /* {x : n.x <= offset}: min(n.a, n.b) - offset - r */
@@ -496,6 +544,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 real db = nx * Bg[l] + ny * Bg[N + l] + nz * Bg[2 * N + l];
                 real d = (da < db ? da : db) - off - r[g];
                 clear[l] &= d - (real)c->margin >= (real)c->slack;
+                if (hi) hi[l] &= d >= thr_hi;
             }
         }
     }
@@ -514,17 +563,20 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             }
             GROUP_GEOMS(g) {
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
-                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
+                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
                 if (!gathered) {
                     DK(gather_box)(c, n0, m, w, lc, lR, lh);
                     gathered = 1;
                 }
                 const int point = c->point ? c->point[g] : 0;
-                if (point && m == COLLIDE_NARROW) /* a constant where DK(collide_any_narrow) inlines this */
+                if (point && m == COLLIDE_NARROW && hi) /* a constant where DK(collide_any_narrow) and */
+                    DK(box_points_narrow_cover)(A + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, clear, thr_hi, hi);
+                else if (point && m == COLLIDE_NARROW) /* DK(collide_cover_narrow) inline this */
                     DK(box_points_narrow)(A + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, clear);
                 else
-                    DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear);
-                if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) {
+                    DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear,
+                                  thr_hi, hi);
+                if (any && !DK(all_clear)(clear, m)) {
                     if (hint && point) hint->w = w, hint->g = g;
                     goto done;
                 }
@@ -543,7 +595,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             }
             GROUP_GEOMS(g) {
                 if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
-                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + thr)) continue;
+                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
                 if (!gathered) {
                     for (int l = 0; l < m; l++) {
                         const int64_t o = wl[l] * c->Wy + w;
@@ -552,8 +604,9 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                     }
                     gathered = 1;
                 }
-                DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
-                if (mode == COLLIDE_ANY && !DK(all_clear)(clear, m)) goto done;
+                if (hi) DK(cylinder_lanes_cover)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear, thr_hi, hi);
+                else DK(cylinder_lanes)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear);
+                if (any && !DK(all_clear)(clear, m)) goto done;
             }
         }
     }
@@ -569,7 +622,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         if (NG) {
             const int64_t u = R->of[pi[p]];
             v = R->of[pj[p]];
-            if (DK(aabb_apart)(gglo + 3 * u, gghi + 3 * u, gglo + 3 * v, gghi + 3 * v, thr)) {
+            if (DK(aabb_apart)(gglo + 3 * u, gghi + 3 * u, gglo + 3 * v, gghi + 3 * v, cthr)) {
                 p = end;
                 continue;
             }
@@ -579,43 +632,52 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             const int64_t i = pi[p], j = pj[p];
             if (NG && i != at_i) { /* i's box r_i + thr from group v's (grown by each r_j): all of i's pairs there */
                 at_i = i;
-                if (DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, gglo + 3 * v, gghi + 3 * v, r[i] + thr)) {
+                if (DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, gglo + 3 * v, gghi + 3 * v, r[i] + cthr)) {
                     while (p + 1 < end && pi[p + 1] == i) p++;
                     continue;
                 }
             }
-            const real T = r[i] + r[j] + thr;
-            if (T <= 0 || (NG && DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, T))) continue;
+            const real T = r[i] + r[j] + thr, Tc = r[i] + r[j] + cthr, Th = r[i] + r[j] + thr_hi;
+            if (Tc <= 0 || (NG && DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, Tc))) continue;
             const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
             if (c->point && c->point[i] && c->point[j]) { /* two spheres: their centres */
                 for (int l = 0; l < m; l++) {
                     const real dx = Ai[l] - Aj[l], dy = Ai[N + l] - Aj[N + l], dz = Ai[2 * N + l] - Aj[2 * N + l];
-                    clear[l] &= dx * dx + dy * dy + dz * dz >= T * T;
+                    d2[l] = dx * dx + dy * dy + dz * dz;
                 }
             } else {
                 DK(segments_d2)(Ai, B + i * 3 * N + n0, N, Aj, B + j * 3 * N + n0, N, m, d2);
-                for (int l = 0; l < m; l++) clear[l] &= d2[l] >= T * T;
             }
-            if ((mode == COLLIDE_ANY || (++tested & 15) == 0) && !DK(lanes_left)(clear, &m, mode)) goto done;
+            for (int l = 0; l < m; l++) clear[l] &= (T <= 0) | (d2[l] >= T * T); /* T <= 0 < Tc: cover only */
+            for (int l = 0; hi && l < m; l++) hi[l] &= d2[l] >= Th * Th;
+            if ((any || (++tested & 15) == 0) && !DK(lanes_left)(clear, &m, mode)) goto done;
         }
     }
 done:
     for (int l = 0; l < m0; l++) ok[n0 + l] &= clear[l];
+    for (int l = 0; hi && l < m0; l++) hi_ok[n0 + l] = clear[l] & hic[l];
 }
 
 static void DK(collide_block)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m, uint8_t *restrict ok) {
-    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_ALL, NULL);
+    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_ALL, NULL, 0, NULL);
 }
 
 /* DK(collide_block) for a caller that reads ok only up to its first colliding lane (DK(collide_lanes)). */
 static void DK(collide_first)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m,
                               uint8_t *restrict ok) {
-    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_FIRST, NULL);
+    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_FIRST, NULL, 0, NULL);
 }
 
 /* DK(collide_block) for a caller that reads only whether some lane collides (DK(collide_lanes)). */
 static void DK(collide_any)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m, uint8_t *restrict ok) {
-    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_ANY, NULL);
+    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_ANY, NULL, 0, NULL);
+}
+
+/* DK(collide_any), each lane decided at thr_hi as well: hi[l] = 1 where lane l is clear at both thresholds
+ * (read only when ok has no 0: a block that stops early leaves it incomplete). */
+static void DK(collide_cover)(const dk_collide *c, const CollideRuns *R, int64_t n0, int m, uint8_t *restrict ok,
+                              real thr_hi, uint8_t *restrict hi) {
+    DK(collide_lanes)(c, R, n0, m, ok, COLLIDE_COVER, NULL, thr_hi, hi);
 }
 
 /* DK(collide_any) of lanes 0 .. COLLIDE_NARROW - 1, a constant: every loop over the lanes has a constant
@@ -623,7 +685,13 @@ static void DK(collide_any)(const dk_collide *c, const CollideRuns *R, int64_t n
  * box found is kept in hint. */
 static void DK(collide_any_narrow)(const dk_collide *c, const CollideRuns *R, uint8_t *restrict ok,
                                    CollideHint *hint) {
-    DK(collide_lanes)(c, R, 0, COLLIDE_NARROW, ok, COLLIDE_ANY, hint);
+    DK(collide_lanes)(c, R, 0, COLLIDE_NARROW, ok, COLLIDE_ANY, hint, 0, NULL);
+}
+
+/* DK(collide_any_narrow) as DK(collide_cover). */
+static void DK(collide_cover_narrow)(const dk_collide *c, const CollideRuns *R, uint8_t *restrict ok,
+                                     CollideHint *hint, real thr_hi, uint8_t *restrict hi) {
+    DK(collide_lanes)(c, R, 0, COLLIDE_NARROW, ok, COLLIDE_COVER, hint, thr_hi, hi);
 }
 
 /* Whether hint's sphere geom meets hint's box in some lane of lanes 0 .. COLLIDE_NARROW - 1 (each in its

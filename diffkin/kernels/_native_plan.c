@@ -50,11 +50,13 @@
 #ifndef DK_PLAN_TYPES
 #define DK_PLAN_TYPES
 #define DK_PLAN_PASS 1
-#define DK_PLAN_VERSION 4 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
+#define DK_PLAN_VERSION 5 /* bump with every change of DK_PLAN_FIELDS (and _native_search.py's VERSION) */
 #define DK_PLAN_FOUND 1
 #define DK_PLAN_NOT_FOUND 0
 #define DK_PLAN_TOO_LONG 2
 #define DK_PLAN_NO_MEMORY (-1)
+#define DK_PLAN_START_BAD 3 /* with ends: the start clears no rung of the ladder */
+#define DK_PLAN_GOAL_BAD 4  /* with ends: the goal clears none (the start does) */
 
 #define DK_PLAN_FIELDS(X) \
     X(int64_t, version, "DK_PLAN_VERSION") \
@@ -68,10 +70,12 @@
     X(const void *, col_h, "[4C] reals: each point in its frame, homogeneous") \
     X(const void *, base, "[12] reals: the base frame, 3x4 row-major") \
     X(int64_t, B, "problems") \
-    X(const void *, q_start, "[B n] reals, each clear of margin + eta (the caller's checks; not decided)") \
-    X(const void *, q_goal, "[B n] reals, each clear of margin + eta (the caller's checks; decided once more)") \
+    X(const void *, q_start, "[B n] reals; without ends each clear of margin + eta (the caller's checks; " \
+                             "not decided)") \
+    X(const void *, q_goal, "[B n] reals; without ends each clear of margin + eta (the caller's checks; " \
+                            "decided once more)") \
     X(const int64_t *, world, "[B] the world row of each problem, or NULL: row 0") \
-    X(const void *, eta, "[B] reals: each problem's resolution [m]") \
+    X(void *, eta, "[B] reals: each problem's resolution [m] (with ends: out)") \
     X(const void *, lo, "[n] reals: the sampling box") \
     X(const void *, hi, "[n] reals") \
     X(const void *, reach, "[n] reals: R_j of joint_reach") \
@@ -84,7 +88,7 @@
     X(int64_t, capacity, "L: waypoints a returned path may have") \
     X(void *, path, "[B L n] reals out: waypoints (the rest of a row: the goal)") \
     X(int64_t *, n_way, "[B] out: waypoints") \
-    X(int64_t *, status, "[B] out: DK_PLAN_FOUND, _NOT_FOUND, _TOO_LONG, _NO_MEMORY") \
+    X(int64_t *, status, "[B] out: DK_PLAN_FOUND, _NOT_FOUND, _TOO_LONG, _NO_MEMORY, _START_BAD, _GOAL_BAD") \
     X(int64_t *, iterations, "[B] out: RRT-Connect iterations run") \
     X(int64_t *, checked, "[B] out: configurations decided") \
     X(int64_t *, nodes, "[B] out: the two trees' nodes at the end, or NULL") \
@@ -101,7 +105,11 @@
     X(const int64_t *, keys, "dk_plan_points: [B] each path's random-stream key (_search.row_keys)") \
     X(int64_t, rounds, "dk_plan_points: rounds of shortcuts between points") \
     X(int64_t, tries, "dk_plan_points: shortcuts tried per path and round") \
-    X(int64_t, stop_after, "dk_plan_points: a path stops after this many rounds in a row without one")
+    X(int64_t, stop_after, "dk_plan_points: a path stops after this many rounds in a row without one") \
+    X(int64_t, ends, "dk_plan_search: 0: eta given; k >= 1: each problem's start and goal decided at " \
+                     "resolution / 2^i, i < k, eta[b] set to the finest rung either needed (DK(plan_ends))") \
+    X(double, resolution, "dk_plan_search with ends: the ladder's top rung [m]") \
+    X(int64_t *, nanoseconds, "dk_plan_search: [B] out: each problem's time in its thread, or NULL")
 
 #define DK_PDECLARE(type, name, what) type name;
 typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
@@ -175,6 +183,14 @@ static inline uint64_t plan_mix(uint64_t *state) { /* splitmix64 */
 
 static inline double plan_uniform(uint64_t *state) { return (double)(plan_mix(state) >> 11) * 0x1.0p-53; }
 
+static inline int64_t plan_clock(void) { /* ns of a monotonic clock (0 where there is none) */
+#ifdef CLOCK_MONOTONIC
+    struct timespec t;
+    if (clock_gettime(CLOCK_MONOTONIC, &t) == 0) return (int64_t)t.tv_sec * 1000000000 + (int64_t)t.tv_nsec;
+#endif
+    return 0;
+}
+
 static uint64_t plan_hash(const void *a, const void *b, size_t bytes, int64_t seed) { /* FNV-1a, then mixed */
     uint64_t h = 1469598103934665603ull;
     for (size_t i = 0; i < bytes; i++) h = (h ^ ((const uint8_t *)a)[i]) * 1099511628211ull;
@@ -187,6 +203,10 @@ static uint64_t plan_hash(const void *a, const void *b, size_t bytes, int64_t se
 #define DK_PLAN_PASS 2
 #endif
 
+/* A cover's slack in units of eta (DK(plan_edge_cover)): clear of margin + 3 eta, a sample proves its
+ * neighbours, one sub-step (at most 2 eta of travel) away */
+#define COVER_SLACK 3
+#define COVER_MIN_STEPS 6 /* shorter edges: every sample decided (DK(plan_edge_bad)) */
 #define PLAN_HINTS 4 /* sphere-box collisions remembered (one: 43 % of first blocks stop at it; four: 8-10 %
                         * less time again) */
 typedef struct { /* one thread's work space */
@@ -200,6 +220,7 @@ typedef struct { /* one thread's work space */
     real *P;              /* [C 3 COLLIDE_BLOCK] the placed points, component-major */
     int64_t *wid;         /* [COLLIDE_BLOCK] the problem's world row */
     uint8_t ok[COLLIDE_BLOCK];
+    uint8_t hi[COLLIDE_BLOCK]; /* with COLLIDE_COVER: clear of the cover's slack too (DK(plan_edge_cover)) */
     real *cols[2];        /* [n cap] the trees' nodes, joint-major (DK(plan_nearest) reads them vectorised) */
     int64_t *parent[2];   /* [cap] */
     real *path;           /* [2 cap n] */
@@ -253,10 +274,13 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
 }
 
 /* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta); mode as DK(collide_lanes)'s:
- * with COLLIDE_FIRST ok is exact only up to its first 0, with COLLIDE_ANY only whether it has a 0. */
+ * with COLLIDE_FIRST ok is exact only up to its first 0, with COLLIDE_ANY only whether it has a 0; with
+ * COLLIDE_COVER as COLLIDE_ANY, and where ok has no 0, w->hi says which are clear of margin + COVER_SLACK
+ * eta as well. */
 static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
     _Static_assert(COLLIDE_NARROW == WN, "the narrow decision places DK(block_narrow)'s lanes");
-    if (mode == COLLIDE_ANY && m > 0 && m <= COLLIDE_NARROW) {
+    const real thr_hi = (real)(w->cc.margin + COVER_SLACK * w->cc.slack);
+    if ((mode == COLLIDE_ANY || mode == COLLIDE_COVER) && m > 0 && m <= COLLIDE_NARROW) {
         /* a block of 4 samples or fewer (an edge's first; the last of a short edge): COLLIDE_NARROW lanes,
          * whatever m (constant trip counts in every loop of the decision), the lanes from m on repeating
          * lane m - 1 (DK(load_q)'s tail) */
@@ -272,10 +296,14 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
         if (!hit) {
             DK(plan_place)(w, 0, COLLIDE_NARROW);
             CollideHint found = {-1, -1};
-            DK(collide_any_narrow)(&w->cc, &w->runs, w->ok, w->points ? &found : NULL);
+            if (mode == COLLIDE_COVER)
+                DK(collide_cover_narrow)(&w->cc, &w->runs, w->ok, w->points ? &found : NULL, thr_hi, w->hi);
+            else
+                DK(collide_any_narrow)(&w->cc, &w->runs, w->ok, w->points ? &found : NULL);
             if (found.w >= 0) DK(plan_hint_to_front)(w, found, PLAN_HINTS - 1);
         }
         for (int l = m; l < COLLIDE_NARROW; l++) w->ok[m - 1] &= w->ok[l]; /* a repeat colliding: lane m - 1 */
+        for (int l = m; mode == COLLIDE_COVER && l < COLLIDE_NARROW; l++) w->hi[m - 1] &= w->hi[l];
         w->checked += m;
         return;
     }
@@ -287,7 +315,8 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
         DK(plan_place)(w, b0, nl);
     }
     memset(w->ok, 1, (size_t)m);
-    if (mode == COLLIDE_ANY) DK(collide_any)(&w->cc, &w->runs, 0, m, w->ok);
+    if (mode == COLLIDE_COVER) DK(collide_cover)(&w->cc, &w->runs, 0, m, w->ok, thr_hi, w->hi);
+    else if (mode == COLLIDE_ANY) DK(collide_any)(&w->cc, &w->runs, 0, m, w->ok);
     else if (mode == COLLIDE_FIRST) DK(collide_first)(&w->cc, &w->runs, 0, m, w->ok);
     else DK(collide_block)(&w->cc, &w->runs, 0, m, w->ok);
     w->checked += m;
@@ -303,6 +332,62 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
     return k < 1 ? 1 : (int64_t)k;
 }
 
+/* The samples i of the straight edge a -> b in ns sub-steps (from .. ns, ns - 1 without last) at
+ * a + (i / ns) (b - a) decided into w->qs and w->ok (mode as DK(plan_decide)); returns the first colliding
+ * one of idx[0 .. m-1] in the order given, or -1. */
+static int64_t DK(plan_samples)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, const int64_t *idx,
+                                int m, int mode) {
+    const int n = w->s.n;
+    for (int k = 0; k < m; k++) {
+        const real f = (real)idx[k] / (real)ns;
+        for (int j = 0; j < n; j++) w->qs[k * n + j] = a[j] + f * (b[j] - a[j]);
+    }
+    DK(plan_decide)(w, m, mode);
+    for (int k = 0; k < m; k++)
+        if (!w->ok[k]) return idx[k];
+    return -1;
+}
+
+/* An edge taken whole or not at all (COLLIDE_ANY) decided by covers: its samples 0 .. ns in runs of three,
+ * 3k .. 3k + 2, each run's middle one (ns where the run is cut short) decided at margin + eta and at
+ * margin + COVER_SLACK eta (COLLIDE_COVER) in the EdgeOrder of the runs (coarse, then in order). A middle
+ * clear of the larger slack proves its run: its neighbours lie one sub-step away, where every distance is at
+ * most 2 eta smaller (diffkin.motion._edges), so they are clear of margin + eta, as the subdivision asks;
+ * the other samples of a run whose middle is clear of the smaller one only are decided as themselves
+ * (COLLIDE_ANY, gathered into blocks). A colliding sample ends the edge (returned: one that collides); ns + 1
+ * when every sample is proven clear. The same verdicts as deciding every sample (the same paths), with about
+ * a third of the decisions where the robot keeps 3 eta from everything (92 % of the samples of the first
+ * 5 MotionBenchMaker paths of each family at eta = 5 mm). */
+static int64_t DK(plan_edge_cover)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, int from,
+                                   int last) {
+    const int64_t runs = ns / 3 + 1, end = last ? ns : ns - 1; /* samples from .. end to prove */
+    int64_t idx[COLLIDE_BLOCK], mid[COLLIDE_BLOCK], pend[3 * COLLIDE_BLOCK];
+    int np = 0, size = 4;
+    EdgeOrder order;
+    edge_order_init(&order, runs - 1, 0, 0, 1);
+    for (;;) {
+        const int m = edge_order_fill(&order, idx, size);
+        for (int k = 0; k < m; k++) mid[k] = 3 * idx[k] + 1 < ns ? 3 * idx[k] + 1 : ns;
+        int64_t bad = m ? DK(plan_samples)(w, a, b, ns, mid, m, COLLIDE_COVER) : -1;
+        if (bad >= 0) return bad;
+        for (int k = 0; k < m; k++) { /* the runs not proven by their middle */
+            if (w->hi[k]) continue;
+            const int64_t r0 = 3 * idx[k], r1 = r0 + 2 < ns ? r0 + 2 : ns;
+            for (int64_t i = r0; i <= r1; i++)
+                if (i != mid[k] && i >= from && i <= end) pend[np++] = i;
+        }
+        while (np >= COLLIDE_BLOCK || (np > 0 && m == 0)) { /* full blocks, then the rest at the end */
+            const int take = np < COLLIDE_BLOCK ? np : COLLIDE_BLOCK;
+            bad = DK(plan_samples)(w, a, b, ns, pend, take, COLLIDE_ANY);
+            if (bad >= 0) return bad;
+            memmove(pend, pend + take, sizeof(int64_t) * (size_t)(np - take));
+            np -= take;
+        }
+        if (m == 0) return ns + 1;
+        size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
+    }
+}
+
 /* The straight edge a -> b in ns sub-steps, its samples i = from .. ns (ns - 1 without last) at
  * a + (i / ns) (b - a) taken in the EdgeOrder (in order with prefix, else coarse, then in order) in blocks
  * of 4 growing to COLLIDE_BLOCK (a
@@ -314,6 +399,7 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
  * counted in w->checked. */
 static int64_t DK(plan_edge_bad)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, int prefix,
                                  int from, int last, int mode) {
+    if (mode == COLLIDE_ANY && !prefix && ns >= COVER_MIN_STEPS) return DK(plan_edge_cover)(w, a, b, ns, from, last);
     const int n = w->s.n;
     int64_t idx[COLLIDE_BLOCK];
     EdgeOrder order;
@@ -410,7 +496,45 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
 }
 
 /* Problem b: search, shortcut, write its outputs. */
+/* The problem's resolution from its start qs0 and goal qg0 (p->ends >= 1): the largest rung
+ * p->resolution / 2^i, i < p->ends, that both clear, found as diffkin.motion.plan._row_resolution finds it
+ * (both decided at each rung until each has cleared one; the finer of their two rungs). *bad: 0, or
+ * DK_PLAN_START_BAD / DK_PLAN_GOAL_BAD where one clears no rung (the start's first). */
+static real DK(plan_ends)(DK(PlanWork) *w, const real *qs0, const real *qg0, int64_t *bad) {
+    const int n = w->s.n;
+    int need[2] = {1, 1};
+    real got = (real)w->p->resolution;
+    for (int64_t i = 0; i < w->p->ends && (need[0] || need[1]); i++) {
+        const double slack = ldexp(w->p->resolution, -(int)i);
+        int m = 0, which[2];
+        for (int e = 0; e < 2; e++)
+            if (need[e]) {
+                memcpy(w->qs + m * n, e ? qg0 : qs0, sizeof(real) * (size_t)n);
+                which[m++] = e;
+            }
+        w->cc.slack = slack;
+        DK(plan_decide)(w, m, COLLIDE_ALL);
+        for (int l = 0; l < m; l++)
+            if (w->ok[l]) {
+                need[which[l]] = 0;
+                got = (real)slack < got ? (real)slack : got;
+            }
+    }
+    *bad = need[0] ? DK_PLAN_START_BAD : (need[1] ? DK_PLAN_GOAL_BAD : 0);
+    return got;
+}
+
+static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b);
+
+/* Problem b of w->p: its search (DK(plan_search_one)), timed into p->nanoseconds (VAMP's planners time
+ * themselves so: from the call's own start and goal to its path). */
 static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
+    const int64_t t0 = w->p->nanoseconds ? plan_clock() : 0;
+    DK(plan_search_one)(w, b);
+    if (w->p->nanoseconds) w->p->nanoseconds[b] = plan_clock() - t0;
+}
+
+static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
     const dk_plan *p = w->p;
     const int n = w->s.n;
     const int64_t L = p->capacity;
@@ -420,14 +544,17 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     real *out = (real *)p->path + b * L * n;
     const int64_t wrow = p->world ? p->world[b] : 0;
     for (int l = 0; l < COLLIDE_BLOCK; l++) w->wid[l] = wrow;
-    w->eta = ((const real *)p->eta)[b];
-    w->cc.slack = (double)w->eta;
     w->checked = 0;
+    int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND, bad = 0;
+    w->eta = p->ends > 0 ? DK(plan_ends)(w, qs0, qg0, &bad) : ((const real *)p->eta)[b];
+    if (p->ends > 0) ((real *)p->eta)[b] = w->eta;
+    w->cc.slack = (double)w->eta;
     DK(plan_forget_hints)(w);
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
-    int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND;
     real *path = w->path;
-    if (DK(plan_edge)(w, qs0, qg0, 1)) { /* the goal decided here once (a caller passing one that collides
+    if (bad) {
+        status = bad;
+    } else if (DK(plan_edge)(w, qs0, qg0, 1)) { /* the goal decided here once (a caller passing one that collides
                                              * gets no path through it); later edges take it as clear */
         memcpy(path, qs0, sizeof(real) * n);
         memcpy(path + n, qg0, sizeof(real) * n);

@@ -29,9 +29,9 @@ from ..kernels import native
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
 #: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
-VERSION = 4
+VERSION = 5
 #: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
-FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY = 1, 0, 2, -1
+FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY, START_BAD, GOAL_BAD = 1, 0, 2, -1, 3, 4
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 
 
@@ -48,7 +48,8 @@ class PlanArgs(ctypes.Structure):
         [(name, _PTR) for name in ("path", "n_way", "status", "iterations", "checked", "nodes")] + \
         [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)] + \
         [("qb", _PTR), ("steps", _PTR), ("slacks", _PTR), ("prefix", _I64), ("first_bad", _PTR)] + \
-        [("keys", _PTR), ("rounds", _I64), ("tries", _I64), ("stop_after", _I64)]
+        [("keys", _PTR), ("rounds", _I64), ("tries", _I64), ("stop_after", _I64)] + \
+        [("ends", _I64), ("resolution", _F64), ("nanoseconds", _PTR)]
 
 
 _fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide, dk_plan_edges, dk_plan_points)
@@ -89,6 +90,7 @@ class NativePlanner:
     def __init__(self, model, base: Tensor, collide, keep: list, frame: Tensor, h: Tensor, dtype):
         self.model, self.collide, self._keep, self.frame, self.h = model, collide, keep, frame, h
         self.base12, self.dtype = base[:3].to(dtype).contiguous(), dtype
+        self._template = None  # the constants' PlanArgs (:meth:`search_args`), made once
 
     @classmethod
     def make(cls, checker, q: Tensor) -> NativePlanner | None:
@@ -137,6 +139,13 @@ class NativePlanner:
         return native.new_struct(PlanArgs, chain=ctypes.addressof(self.model.args[self.dtype]),
                                  collide=ctypes.addressof(self.collide), C=self.frame.shape[0],
                                  col_frame=self.frame, col_h=self.h, base=self.base12, **fields)
+
+    def search_args(self) -> PlanArgs:
+        """A fresh copy of a :class:`PlanArgs` holding the constants (:meth:`args` without fields, made once:
+        a one-problem search's Python costs less than its C)."""
+        if self._template is None:
+            self._template = self.args()
+        return PlanArgs.from_buffer_copy(self._template)
 
     def decide(self, q: Tensor, world_row: Tensor | None, slack: float) -> Tensor | None:
         """``(N,)`` bool: configurations ``q (N, nq)`` clear of margin + ``slack``, each in its world row
@@ -200,43 +209,61 @@ def serves(checker, q: Tensor) -> bool:
     return checker.native(q) is not None
 
 
+def _real(t: Tensor, dtype) -> Tensor:
+    """``t`` as a contiguous tensor of ``dtype`` without a graph (itself when it is one already)."""
+    if t.dtype != dtype or t.requires_grad or not t.is_contiguous():
+        t = t.detach().to(dtype).contiguous()
+    return t
+
+
 def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
-                  eta: Tensor, *, max_iterations: int, step: float, shortcut_tries: int, seed: int,
-                  goal_bias: float = 0.0, restart: int = 0,
-                  capacity: int = 256) -> tuple[Tensor, Tensor, Tensor, dict] | None:
+                  eta: Tensor | None, *, max_iterations: int, step: float, shortcut_tries: int, seed: int,
+                  goal_bias: float = 0.0, restart: int = 0, capacity: int = 256,
+                  rungs: int = 0) -> tuple[Tensor, Tensor, Tensor, dict] | None:
     """Paths ``(B, L, nq)`` (rows padded with their goal) from ``q_start`` to ``q_goal`` ``(B, nq)`` of
     problems ``problem (B,)`` (rows of the checker's world), each edge subdivided at the row's resolution
     ``eta (B,)`` (both trees grown anew every ``restart`` iterations without a join; 0: never), their
     waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``, ``checked``: configurations
     decided, ``nodes``: the two trees' nodes at the end, ``too_long``: rows whose path kept more than
-    ``capacity`` waypoints); None where the C search does not serve (:func:`serves`). Start and goal must be
-    clear of ``margin + eta`` (:func:`diffkin.motion.plan._row_resolution`): the start is not decided again
-    and the goal once (its direct edge, so a colliding goal gets no path through it); the edges ending at
-    them take them as clear."""
+    ``capacity`` waypoints, ``nanoseconds``: each problem's time in C, its thread's clock); None where the C
+    search does not serve (:func:`serves`). Start and goal must be clear of ``margin + eta``
+    (:func:`diffkin.motion.plan._row_resolution`): the start is not decided again and the goal once (its
+    direct edge, so a colliding goal gets no path through it); the edges ending at them take them as clear.
+
+    With ``rungs`` >= 1 the C search decides the starts and goals itself, as
+    :func:`~diffkin.motion.plan._row_resolution` does (``eta`` is not read: give None): each problem's
+    resolution the largest ``checker.eta / 2^i``, i < ``rungs``, that both clear; ``stats`` then holds
+    ``eta (B,)`` and ``start_ok``, ``goal_ok (B,)`` bool (a row failing either is not searched)."""
     planner = checker.native(q_start)
     if planner is None:
         return None
     dtype = planner.dtype
     B, nq = q_start.shape
-    real = lambda t: t.detach().to(dtype).contiguous()  # noqa: E731
-    qs, qg, lo_, hi_ = real(q_start), real(q_goal), real(lo), real(hi)
-    reach, eta_ = real(checker.reach), real(eta)
-    world = None
-    if checker.per_row:
-        world = problem.to(torch.int64).contiguous()
+    qs, qg, lo_, hi_ = (_real(t, dtype) for t in (q_start, q_goal, lo, hi))
+    reach = checker.remembered(f"planner reach {dtype}", lambda: checker.reach.to(dtype).contiguous())
+    eta_ = torch.empty(B, dtype=dtype) if rungs > 0 else _real(eta, dtype)
     L = max(2, int(capacity))
     path = torch.empty(B, L, nq, dtype=dtype)
-    n_way, status, its, checked, nodes = (torch.zeros(B, dtype=torch.int64) for _ in range(5))
-    args = planner.args(
-        nthreads=native.thread_count(B * 4096), B=B, q_start=qs, q_goal=qg, world=world, eta=eta_, lo=lo_,
-        hi=hi_, reach=reach, step=float(step), goal_bias=float(goal_bias), max_iterations=int(max_iterations),
-        restart=int(restart),
-        shortcut_tries=int(shortcut_tries), seed=int(seed), capacity=L, path=path, n_way=n_way, status=status,
-        iterations=its, checked=checked, nodes=nodes)
-    if B and not _run(0, args, "search"):
+    out = torch.zeros(6, B, dtype=torch.int64)  # n_way, status, iterations, checked, nodes, nanoseconds
+    a = planner.search_args()
+    a.nthreads, a.B, a.step, a.goal_bias = native.thread_count(B * 4096), B, float(step), float(goal_bias)
+    a.max_iterations, a.restart, a.shortcut_tries = int(max_iterations), int(restart), int(shortcut_tries)
+    a.seed, a.capacity, a.ends, a.resolution = int(seed), L, max(int(rungs), 0), float(checker.eta)
+    for name, t in (("q_start", qs), ("q_goal", qg), ("eta", eta_), ("lo", lo_), ("hi", hi_),
+                    ("reach", reach), ("path", path)):
+        setattr(a, name, t.data_ptr())
+    row = out.data_ptr()
+    a.n_way, a.status, a.iterations, a.checked, a.nodes, a.nanoseconds = (row + 8 * B * k for k in range(6))
+    world = problem.to(torch.int64).contiguous() if checker.per_row else None  # kept alive to the call
+    a.world = None if world is None else world.data_ptr()
+    if B and not _run(0, a, "search"):
         return None
+    n_way, status, its, checked, nodes, nanoseconds = out
     if bool((status == NO_MEMORY).any()):
         raise MemoryError("motion.plan: the C search ran out of memory growing its trees")
-    found = status == FOUND
-    stats = {"iterations": its, "checked": checked, "nodes": nodes, "too_long": status == TOO_LONG}
-    return path, n_way, found, stats
+    stats = {"iterations": its, "checked": checked, "nodes": nodes, "too_long": status == TOO_LONG,
+             "nanoseconds": nanoseconds}
+    if rungs > 0:
+        start_ok = status != START_BAD
+        stats.update(eta=eta_, start_ok=start_ok, goal_ok=start_ok & (status != GOAL_BAD))
+    return path, n_way, status == FOUND, stats

@@ -366,15 +366,35 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         else:
             lo_l = torch.full((nq,), -math.inf, dtype=dtype, device=dev)
             hi_l = -lo_l
-        every = torch.arange(B, device=dev)
-        row_eta, start_ok, goal_ok = _row_resolution(checker, q_start, q_goal, every)
-        fail(~start_ok, f"start in collision (closer than margin + resolution / {2 ** ETA_LEVELS})")
-        fail(~goal_ok, f"goal in collision (closer than margin + resolution / {2 ** ETA_LEVELS})")
-        checker.set_row_resolution(row_eta)
         # the sampling box: the limits, and one turn about zero where a joint has none
         lo = torch.where(torch.isfinite(lo_l), lo_l, torch.full_like(lo_l, -math.pi))
         hi = torch.where(torch.isfinite(hi_l), hi_l, torch.full_like(hi_l, math.pi))
+        searched = None
+        if search_in_c:  # the starts and goals decided in the C search (its resolution ladder), its rows
+            # those without a reason so far
+            rows = torch.tensor([not r for r in reason], dtype=torch.bool, device=dev).nonzero().squeeze(1)
+            searched = search_native(checker, q_start[rows], q_goal[rows], lo, hi, rows, None,
+                                     max_iterations=max_iterations, step=step,
+                                     shortcut_tries=SHORTCUT_TRIES * shortcut_rounds, seed=seed,
+                                     goal_bias=goal_bias, capacity=min(2 * max_iterations + 2, 1024),
+                                     rungs=ETA_LEVELS + 1)
+        if searched is not None:
+            row_eta = torch.full((B,), checker.eta, dtype=checker.reach.dtype, device=dev)
+            start_ok = torch.ones(B, dtype=torch.bool, device=dev)
+            goal_ok = start_ok.clone()
+            stats = searched[3]
+            row_eta[rows] = stats["eta"].to(row_eta.dtype)
+            start_ok[rows], goal_ok[rows] = stats["start_ok"], stats["goal_ok"]
+        else:
+            every = torch.arange(B, device=dev)
+            row_eta, start_ok, goal_ok = _row_resolution(checker, q_start, q_goal, every)
+        fail(~start_ok, f"start in collision (closer than margin + resolution / {2 ** ETA_LEVELS})")
+        fail(~goal_ok, f"goal in collision (closer than margin + resolution / {2 ** ETA_LEVELS})")
+        checker.set_row_resolution(row_eta)
         valid = torch.tensor([not r for r in reason], dtype=torch.bool, device=dev)
+        if searched is not None:  # the searched rows that kept no reason (their starts and goals clear)
+            keep = valid[rows]
+            searched = tuple(t[keep] for t in searched[:3]) + ({k: v[keep] for k, v in stats.items()},)
         rows = valid.nonzero().squeeze(1)
         L = 2
         waypoints = torch.stack((q_start, q_goal), 1)
@@ -385,12 +405,6 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
         success = torch.zeros(B, dtype=torch.bool, device=dev)
         duration = torch.zeros(B, dtype=dtype, device=dev)
         if rows.numel():
-            searched = None
-            if search_in_c:
-                searched = search_native(checker, q_start[rows], q_goal[rows], lo, hi, rows, row_eta[rows],
-                                         max_iterations=max_iterations, step=step,
-                                         shortcut_tries=SHORTCUT_TRIES * shortcut_rounds, seed=seed,
-                                         goal_bias=goal_bias, capacity=min(2 * max_iterations + 2, 1024))
             if searched is not None:  # the C search (its paths already shortcut)
                 path, n, found, stats = searched
                 long_rows = rows[stats["too_long"]]
