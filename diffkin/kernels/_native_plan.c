@@ -495,7 +495,6 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
     return 1;
 }
 
-/* Problem b: search, shortcut, write its outputs. */
 /* The problem's resolution from its start qs0 and goal qg0 (p->ends >= 1): the largest rung
  * p->resolution / 2^i, i < p->ends, that both clear, found as diffkin.motion.plan._row_resolution finds it
  * (both decided at each rung until each has cleared one; the finer of their two rungs). *bad: 0, or
@@ -534,6 +533,7 @@ static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     if (w->p->nanoseconds) w->p->nanoseconds[b] = plan_clock() - t0;
 }
 
+/* Problem b: its start and goal (with ends), search, shortcut, write its outputs. */
 static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
     const dk_plan *p = w->p;
     const int n = w->s.n;
