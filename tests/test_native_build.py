@@ -18,6 +18,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from tests.helpers import stand_in_compiler
+
 ROOT = Path(__file__).resolve().parents[1]
 FK = ("import torch; from diffkin import models; c = models.load('ur5', dtype=torch.float64); "
       "c.forward_kinematics(torch.zeros(100, 6, dtype=torch.float64)); "
@@ -55,19 +57,10 @@ def _cli_reports(stdout: str) -> list[tuple[int, list[str]]]:
 
 @pytest.fixture(scope="module")
 def stand_in_cc(tmp_path_factory) -> str:
-    """A C compiler stand-in (for ``CC``) that writes to its ``-o`` argument the library this session built:
-    the library's whole build path runs in the subprocesses (announcement, compiler call, atomic rename,
-    load, ABI check) without paying for a real compile there (the session's build is the real one)."""
+    """:func:`tests.helpers.stand_in_compiler` (the session's library copied where the build asks)."""
     if not HAS_CC:
         pytest.skip("no C compiler: nothing is compiled")
-    from diffkin.kernels import native
-
-    built = native.build()
-    cc = tmp_path_factory.mktemp("stand_in_cc") / "cc"
-    cc.write_text(f"#!{sys.executable}\nimport shutil, sys\n"
-                  f"shutil.copyfile({str(built)!r}, sys.argv[sys.argv.index('-o') + 1])\n")
-    cc.chmod(0o755)
-    return str(cc)
+    return stand_in_compiler(tmp_path_factory.mktemp("stand_in_cc"))
 
 
 @pytest.fixture(scope="module")

@@ -2,7 +2,9 @@
  * _native_collide.c): the search stage of diffkin.motion.plan (diffkin/motion/_native_search.py) for
  * problems spread over OpenMP threads, one problem per thread at a time.
  *
- * Per problem (VAMP's RRT-Connect): the straight edge start -> goal first; then of the trees rooted at the
+ * Per problem (VAMP's RRT-Connect), timed on the thread's clock (nanoseconds: as VAMP's planners time
+ * themselves): with `ends`, its start and goal decided at the resolution ladder first (DK(plan_ends)); the
+ * straight edge start -> goal; then of the trees rooted at the
  * start and the goal the one with fewer nodes (the start's on a tie: balanced trees, stricter than VAMP's
  * balance, which takes turns unless one tree has twice the other's nodes; the tree whose root sits in a
  * pocket gets the iterations until it has grown as large as the other, where taking turns let the free
@@ -34,7 +36,8 @@
  * edge leaving at its first colliding block. The search's and the shortcuts' edges are taken whole or not
  * at all, so their blocks are decided by DK(collide_any): a block stops at the first collision found in any
  * of its samples (the same verdicts as deciding every sample, the same paths; 25-30 % less time than
- * deciding each block up to its first colliding sample). An edge's end already known clear (a tree's node, a
+ * deciding each block up to its first colliding sample); such an edge of 6 sub-steps or more is decided by
+ * covers, runs of three samples whose middle, clear of margin + 3 eta, proves the run (DK(plan_edge_cover)). An edge's end already known clear (a tree's node, a
  * waypoint, the goal) is not decided again. A prefix (dk_plan_edges with prefix) reads a block up to its
  * first colliding sample (DK(collide_first)): the samples past the first collision found so far drop out of
  * the later tests.
@@ -279,8 +282,9 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
  * eta as well. */
 static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
     _Static_assert(COLLIDE_NARROW == WN, "the narrow decision places DK(block_narrow)'s lanes");
+    if (m <= 0) return;
     const real thr_hi = (real)(w->cc.margin + COVER_SLACK * w->cc.slack);
-    if ((mode == COLLIDE_ANY || mode == COLLIDE_COVER) && m > 0 && m <= COLLIDE_NARROW) {
+    if ((mode == COLLIDE_ANY || mode == COLLIDE_COVER) && m <= COLLIDE_NARROW) {
         /* a block of 4 samples or fewer (an edge's first; the last of a short edge): COLLIDE_NARROW lanes,
          * whatever m (constant trip counts in every loop of the decision), the lanes from m on repeating
          * lane m - 1 (DK(load_q)'s tail) */
