@@ -58,8 +58,9 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
   VAMP's median planning time on the same problems (``search_vs_vamp``); and the search again with its scene
   prepared before the clock starts (:func:`prepared_scene`: the edge checker and its C constants, as VAMP's
   clock starts after ``problem_dict_to_vamp`` has built its environment): ``search_prepared_ms`` and
-  ``prepared_vs_vamp``; and that call's own time on its C thread's clock, as VAMP's clock times its
-  planner (its start and goal decisions included; no Python): ``search_c_ms`` and ``c_vs_vamp``;
+  ``prepared_vs_vamp``; and that call's own time in C (a monotonic clock read in its thread around each
+  problem), as VAMP's clock times its planner (its start and goal decisions included; no Python):
+  ``search_c_ms`` and ``c_vs_vamp``;
 * ``OMPL RRTConnect``: on the same subset, as ``--ompl`` (``--ompl-time`` seconds each). When ``ompl`` is
   not importable here, ``OMPL_SITE`` names a site-packages holding PyPI ``ompl`` (appended to ``sys.path``).
 
@@ -274,11 +275,11 @@ def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
     """``motion.plan``'s search stage alone, as ``plan`` runs it: one C call
     (:mod:`diffkin.motion._native_search`) deciding each start and goal at ``plan``'s resolution ladder (the
     continuous edge checker at ``plan``'s default resolution, margin 0), then RRT-Connect -> ``found``,
-    ``valid`` (B,) bool, ``checked`` (B,) configurations decided and ``nanoseconds`` (B,): each problem's time
-    on its C thread's clock (as VAMP's planners time themselves). No goal IK, shortcutting (``plan``'s random
-    shortcuts run in the same C call: left out here, as VAMP's planning time leaves out its simplification),
-    smoothing or timing. ``checker``: the scene already prepared (:func:`prepared_scene`), else prepared
-    here."""
+    ``valid`` (B,) bool, ``checked`` (B,) configurations decided and ``nanoseconds`` (B,): each problem's wall
+    time in C, from a monotonic clock in its thread (as VAMP's planners time themselves). No goal IK,
+    shortcutting (``plan``'s random shortcuts run in the same C call: left out here, as VAMP's planning time
+    leaves out its simplification), smoothing or timing. ``checker``: the scene already prepared
+    (:func:`prepared_scene`), else prepared here."""
     from diffkin.motion._native_search import search_native
     from diffkin.motion.plan import ETA_LEVELS
 
@@ -728,9 +729,9 @@ def _compare_text(rows, a, n: int) -> str:
             "simplification); search_vs_vamp = ratio of the medians on the "
             "same problems; search_prepared_ms, prepared_vs_vamp = the same with the scene prepared before "
             "the clock starts (diffkin: the edge checker and its C constants; VAMP's clock also starts after "
-            "its environment is built); search_c_ms, c_vs_vamp = that call's own time on its C thread's "
-            "clock (its start and goal decisions and RRT-Connect, no Python), as VAMP's clock times its "
-            "planner; duration_s = trajectory seconds under the Franka limits (VAMP: its "
+            "its environment is built); search_c_ms, c_vs_vamp = that call's own time in C (a monotonic "
+            "clock read in its thread; its start and goal decisions and RRT-Connect, no Python), as VAMP's "
+            "clock times its planner; duration_s = trajectory seconds under the Franka limits (VAMP: its "
             "path timed by toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through "
             "its waypoints, not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on "
             "problems both solved; length_rad = joint-space path length; jerk_max = max |dq''|/dt sampled "

@@ -2,8 +2,8 @@
  * _native_collide.c): the search stage of diffkin.motion.plan (diffkin/motion/_native_search.py) for
  * problems spread over OpenMP threads, one problem per thread at a time.
  *
- * Per problem (VAMP's RRT-Connect), timed on the thread's clock (nanoseconds: as VAMP's planners time
- * themselves): with `ends`, its start and goal decided at the resolution ladder first (DK(plan_ends)); the
+ * Per problem (VAMP's RRT-Connect), timed by a monotonic clock read in its thread (nanoseconds: as VAMP's
+ * planners time themselves): with `ends`, its start and goal decided at the resolution ladder first (DK(plan_ends)); the
  * straight edge start -> goal; then of the trees rooted at the
  * start and the goal the one with fewer nodes (the start's on a tie: balanced trees, stricter than VAMP's
  * balance, which takes turns unless one tree has twice the other's nodes; the tree whose root sits in a
@@ -58,8 +58,9 @@
 #define DK_PLAN_NOT_FOUND 0
 #define DK_PLAN_TOO_LONG 2
 #define DK_PLAN_NO_MEMORY (-1)
-#define DK_PLAN_START_BAD 3 /* with ends: the start clears no rung of the ladder */
+#define DK_PLAN_START_BAD 3 /* with ends: the start clears no rung of the ladder (the goal does) */
 #define DK_PLAN_GOAL_BAD 4  /* with ends: the goal clears none (the start does) */
+#define DK_PLAN_ENDS_BAD 5  /* with ends: neither clears one */
 
 #define DK_PLAN_FIELDS(X) \
     X(int64_t, version, "DK_PLAN_VERSION") \
@@ -91,7 +92,8 @@
     X(int64_t, capacity, "L: waypoints a returned path may have") \
     X(void *, path, "[B L n] reals out: waypoints (the rest of a row: the goal)") \
     X(int64_t *, n_way, "[B] out: waypoints") \
-    X(int64_t *, status, "[B] out: DK_PLAN_FOUND, _NOT_FOUND, _TOO_LONG, _NO_MEMORY, _START_BAD, _GOAL_BAD") \
+    X(int64_t *, status, "[B] out: DK_PLAN_FOUND, _NOT_FOUND, _TOO_LONG, _NO_MEMORY, _START_BAD, _GOAL_BAD, " \
+                          "_ENDS_BAD") \
     X(int64_t *, iterations, "[B] out: RRT-Connect iterations run") \
     X(int64_t *, checked, "[B] out: configurations decided") \
     X(int64_t *, nodes, "[B] out: the two trees' nodes at the end, or NULL") \
@@ -112,7 +114,8 @@
     X(int64_t, ends, "dk_plan_search: 0: eta given; k >= 1: each problem's start and goal decided at " \
                      "resolution / 2^i, i < k, eta[b] set to the finest rung either needed (DK(plan_ends))") \
     X(double, resolution, "dk_plan_search with ends: the ladder's top rung [m]") \
-    X(int64_t *, nanoseconds, "dk_plan_search: [B] out: each problem's time in its thread, or NULL")
+    X(int64_t *, nanoseconds, "dk_plan_search: [B] out: each problem's wall time, a monotonic clock read in " \
+                              "its thread, or NULL")
 
 #define DK_PDECLARE(type, name, what) type name;
 typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
@@ -352,33 +355,36 @@ static int64_t DK(plan_samples)(DK(PlanWork) *w, const real *a, const real *b, i
     return -1;
 }
 
-/* An edge taken whole or not at all (COLLIDE_ANY) decided by covers: its samples 0 .. ns in runs of three,
- * 3k .. 3k + 2, each run's middle one (ns where the run is cut short) decided at margin + eta and at
+/* An edge taken whole or not at all (COLLIDE_ANY) decided by covers: its samples 0 .. end (ns, or ns - 1 where
+ * b is known clear) in runs of three, 3k .. 3k + 2, each run's middle one (end where the run is cut short;
+ * sample 0, where a is known clear, is proven with its run or left out) decided at margin + eta and at
  * margin + COVER_SLACK eta (COLLIDE_COVER) in the EdgeOrder of the runs (coarse, then in order). A middle
  * clear of the larger slack proves its run: its neighbours lie one sub-step away, where every distance is at
  * most 2 eta smaller (diffkin.motion._edges), so they are clear of margin + eta, as the subdivision asks;
  * the other samples of a run whose middle is clear of the smaller one only are decided as themselves
  * (COLLIDE_ANY, gathered into blocks). A colliding sample ends the edge (returned: one that collides); ns + 1
- * when every sample is proven clear. The same verdicts as deciding every sample (the same paths), with about
+ * when every sample is proven clear. The same verdicts as deciding every sample (the same paths; a sample
+ * within rounding of a threshold aside, as anywhere in the decisions), with about
  * a third of the decisions where the robot keeps 3 eta from everything (92 % of the samples of the first
  * 5 MotionBenchMaker paths of each family at eta = 5 mm). */
 static int64_t DK(plan_edge_cover)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, int from,
                                    int last) {
-    const int64_t runs = ns / 3 + 1, end = last ? ns : ns - 1; /* samples from .. end to prove */
+    /* the samples from .. end to prove, in runs over 0 .. end (b itself left out where known clear) */
+    const int64_t end = last ? ns : ns - 1, runs = end / 3 + 1;
     int64_t idx[COLLIDE_BLOCK], mid[COLLIDE_BLOCK], pend[3 * COLLIDE_BLOCK];
     int np = 0, size = 4;
     EdgeOrder order;
     edge_order_init(&order, runs - 1, 0, 0, 1);
     for (;;) {
         const int m = edge_order_fill(&order, idx, size);
-        for (int k = 0; k < m; k++) mid[k] = 3 * idx[k] + 1 < ns ? 3 * idx[k] + 1 : ns;
+        for (int k = 0; k < m; k++) mid[k] = 3 * idx[k] + 1 < end ? 3 * idx[k] + 1 : end;
         int64_t bad = m ? DK(plan_samples)(w, a, b, ns, mid, m, COLLIDE_COVER) : -1;
         if (bad >= 0) return bad;
         for (int k = 0; k < m; k++) { /* the runs not proven by their middle */
             if (w->hi[k]) continue;
-            const int64_t r0 = 3 * idx[k], r1 = r0 + 2 < ns ? r0 + 2 : ns;
-            for (int64_t i = r0; i <= r1; i++)
-                if (i != mid[k] && i >= from && i <= end) pend[np++] = i;
+            const int64_t r0 = 3 * idx[k], r1 = r0 + 2 < end ? r0 + 2 : end;
+            for (int64_t i = r0 > from ? r0 : from; i <= r1; i++)
+                if (i != mid[k]) pend[np++] = i;
         }
         while (np >= COLLIDE_BLOCK || (np > 0 && m == 0)) { /* full blocks, then the rest at the end */
             const int take = np < COLLIDE_BLOCK ? np : COLLIDE_BLOCK;
@@ -399,8 +405,9 @@ static int64_t DK(plan_edge_cover)(DK(PlanWork) *w, const real *a, const real *b
  * less time on the first 20 MotionBenchMaker problems of each family), the edge
  * leaving at its first colliding block, decided in `mode` (DK(collide_lanes)): returns, with
  * COLLIDE_FIRST, the first colliding sample of that block in the order taken (with prefix the first along the
- * edge), with COLLIDE_ANY a colliding sample of it (ns + 1: every sample clear). The samples decided are
- * counted in w->checked. */
+ * edge), with COLLIDE_ANY a colliding sample of it (ns + 1: every sample clear). With COLLIDE_ANY and without
+ * prefix, an edge of COVER_MIN_STEPS sub-steps or more is decided by covers instead (DK(plan_edge_cover): the
+ * same verdicts, fewer decisions). The samples decided are counted in w->checked. */
 static int64_t DK(plan_edge_bad)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, int prefix,
                                  int from, int last, int mode) {
     if (mode == COLLIDE_ANY && !prefix && ns >= COVER_MIN_STEPS) return DK(plan_edge_cover)(w, a, b, ns, from, last);
@@ -502,7 +509,7 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
 /* The problem's resolution from its start qs0 and goal qg0 (p->ends >= 1): the largest rung
  * p->resolution / 2^i, i < p->ends, that both clear, found as diffkin.motion.plan._row_resolution finds it
  * (both decided at each rung until each has cleared one; the finer of their two rungs). *bad: 0, or
- * DK_PLAN_START_BAD / DK_PLAN_GOAL_BAD where one clears no rung (the start's first). */
+ * DK_PLAN_START_BAD, DK_PLAN_GOAL_BAD or DK_PLAN_ENDS_BAD where one or both clear no rung. */
 static real DK(plan_ends)(DK(PlanWork) *w, const real *qs0, const real *qg0, int64_t *bad) {
     const int n = w->s.n;
     int need[2] = {1, 1};
@@ -523,14 +530,14 @@ static real DK(plan_ends)(DK(PlanWork) *w, const real *qs0, const real *qg0, int
                 got = (real)slack < got ? (real)slack : got;
             }
     }
-    *bad = need[0] ? DK_PLAN_START_BAD : (need[1] ? DK_PLAN_GOAL_BAD : 0);
+    *bad = need[0] ? (need[1] ? DK_PLAN_ENDS_BAD : DK_PLAN_START_BAD) : (need[1] ? DK_PLAN_GOAL_BAD : 0);
     return got;
 }
 
 static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b);
 
-/* Problem b of w->p: its search (DK(plan_search_one)), timed into p->nanoseconds (VAMP's planners time
- * themselves so: from the call's own start and goal to its path). */
+/* Problem b of w->p: its search (DK(plan_search_one)), its wall time into p->nanoseconds (VAMP's planners
+ * time themselves so: from the call's own start and goal to its path). */
 static void DK(plan_one)(DK(PlanWork) *w, int64_t b) {
     const int64_t t0 = w->p->nanoseconds ? plan_clock() : 0;
     DK(plan_search_one)(w, b);
@@ -552,14 +559,17 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
     int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND, bad = 0;
     w->eta = p->ends > 0 ? DK(plan_ends)(w, qs0, qg0, &bad) : ((const real *)p->eta)[b];
     if (p->ends > 0) ((real *)p->eta)[b] = w->eta;
+    w->checked = 0; /* the search's decisions (not the ends') */
     w->cc.slack = (double)w->eta;
     DK(plan_forget_hints)(w);
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
     real *path = w->path;
     if (bad) {
         status = bad;
-    } else if (DK(plan_edge)(w, qs0, qg0, 1)) { /* the goal decided here once (a caller passing one that collides
-                                             * gets no path through it); later edges take it as clear */
+    } else if (DK(plan_edge)(w, qs0, qg0, 1)) { /* the goal decided (or proven by a cover) in the direct
+                                             * edge; where that edge is refused, its verdict on the goal
+                                             * is not read: the goal is the caller's to pass clear (or
+                                             * decided by plan_ends), and later edges take it as clear */
         memcpy(path, qs0, sizeof(real) * n);
         memcpy(path + n, qg0, sizeof(real) * n);
         len = 2;
@@ -782,7 +792,8 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
 
 /* dk_plan_edges: the straight edges q[e] -> qb[e] of diffkin.motion._edges.EdgeChecker.edges, each in
  * steps[e] equal sub-steps, its samples 0 .. steps[e] decided by DK(plan_edge_bad) in world row wid[e] with
- * slack slacks[e] (without prefix in COLLIDE_ANY: only whether the edge is clear is read): first_bad[e] its
+ * slack slacks[e] (without prefix in COLLIDE_ANY, by covers from 6 sub-steps: only whether the edge is clear
+ * is read): first_bad[e] its
  * result (steps + 1: every sample clear), checked[e] the samples decided.
  * Edges are shared between threads. */
 static int64_t DK(dk_plan_edges)(const dk_plan *p) {

@@ -237,8 +237,9 @@ class EdgeChecker:
         The subdivision samples go in blocks of ``block`` per edge, an edge leaving as soon as one sample
         collides: in order along the edge with ``prefix``, coarse to fine otherwise (indices with more
         trailing zero bits first, so a colliding edge is usually caught in the first block; the C decisions
-        take a long edge's rest in order after its coarse samples, and start with blocks of 4: the same
-        outcome, fewer and cheaper decisions)."""
+        take a long edge's rest in order after its coarse samples, and start with blocks of 4; without
+        ``prefix`` they decide an edge of 6 sub-steps or more by covers, runs of three samples whose middle,
+        clear of margin + 3η, proves its neighbours: the same outcome, fewer and cheaper decisions)."""
         E = qa.shape[0]
         if E == 0:
             z = qa.new_zeros(0)

@@ -31,7 +31,7 @@ __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 #: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
 VERSION = 5
 #: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
-FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY, START_BAD, GOAL_BAD = 1, 0, 2, -1, 3, 4
+FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY, START_BAD, GOAL_BAD, ENDS_BAD = 1, 0, 2, -1, 3, 4, 5
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
 
 
@@ -225,15 +225,17 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     ``eta (B,)`` (both trees grown anew every ``restart`` iterations without a join; 0: never), their
     waypoint counts ``(B,)``, ``found (B,)`` and statistics (``iterations``, ``checked``: configurations
     decided, ``nodes``: the two trees' nodes at the end, ``too_long``: rows whose path kept more than
-    ``capacity`` waypoints, ``nanoseconds``: each problem's time in C, its thread's clock); None where the C
-    search does not serve (:func:`serves`). Start and goal must be clear of ``margin + eta``
-    (:func:`diffkin.motion.plan._row_resolution`): the start is not decided again and the goal once (its
-    direct edge, so a colliding goal gets no path through it); the edges ending at them take them as clear.
+    ``capacity`` waypoints, ``nanoseconds``: each problem's wall time in C, read from a monotonic clock in
+    its thread, as VAMP's planners time themselves); None where the C search does not serve
+    (:func:`serves`). Start and goal must be clear of ``margin + eta``
+    (:func:`diffkin.motion.plan._row_resolution`): the edges ending at them take them as clear (the direct
+    edge decides the goal, but its verdict is read only where the whole edge is clear).
 
     With ``rungs`` >= 1 the C search decides the starts and goals itself, as
     :func:`~diffkin.motion.plan._row_resolution` does (``eta`` is not read: give None): each problem's
     resolution the largest ``checker.eta / 2^i``, i < ``rungs``, that both clear; ``stats`` then holds
-    ``eta (B,)`` and ``start_ok``, ``goal_ok (B,)`` bool (a row failing either is not searched)."""
+    ``eta (B,)`` and ``start_ok``, ``goal_ok (B,)`` bool, each end's own verdict (a row failing either is
+    not searched). ``checked`` counts the search's decisions, not those of the ends."""
     planner = checker.native(q_start)
     if planner is None:
         return None
@@ -264,6 +266,6 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     stats = {"iterations": its, "checked": checked, "nodes": nodes, "too_long": status == TOO_LONG,
              "nanoseconds": nanoseconds}
     if rungs > 0:
-        start_ok = status != START_BAD
-        stats.update(eta=eta_, start_ok=start_ok, goal_ok=start_ok & (status != GOAL_BAD))
+        both = status == ENDS_BAD
+        stats.update(eta=eta_, start_ok=(status != START_BAD) & ~both, goal_ok=(status != GOAL_BAD) & ~both)
     return path, n_way, status == FOUND, stats

@@ -7,8 +7,9 @@ Pipeline of :func:`plan` (every stage batched over the problems; loops run over 
    (seeded with the start).
 2. **Per-row checks**: the start and goal within the joint limits and clear of ``margin + η_b`` with η_b
    the problem's resolution (the subdivision's slack, :mod:`diffkin.motion._edges`): ``resolution``, or
-   ``resolution / 2^k`` where a start or goal is closer than that to an obstacle; the limits > 0: a
-   failing row gets its ``reason``; nothing is raised for the batch.
+   ``resolution / 2^k`` where a start or goal is closer than that to an obstacle (decided in the C search's
+   call where it serves, else in torch before the search); the limits > 0: a failing row gets its
+   ``reason``; nothing is raised for the batch.
 3. **Search**: the straight edge first, then RRT-Connect; in C on the CPU
    (:mod:`diffkin.motion._native_search`: one problem per thread, problems over OpenMP threads), else in
    torch vectorised over the unsolved problems (:mod:`diffkin.motion._search`; CUDA, no compiler). Every
