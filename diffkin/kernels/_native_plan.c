@@ -411,7 +411,6 @@ static int64_t DK(plan_edge_cover)(DK(PlanWork) *w, const real *a, const real *b
 static int64_t DK(plan_edge_bad)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, int prefix,
                                  int from, int last, int mode) {
     if (mode == COLLIDE_ANY && !prefix && ns >= COVER_MIN_STEPS) return DK(plan_edge_cover)(w, a, b, ns, from, last);
-    const int n = w->s.n;
     int64_t idx[COLLIDE_BLOCK];
     EdgeOrder order;
     edge_order_init(&order, ns, prefix, from, last);
@@ -419,13 +418,8 @@ static int64_t DK(plan_edge_bad)(DK(PlanWork) *w, const real *a, const real *b, 
     for (;;) {
         const int m = edge_order_fill(&order, idx, size);
         if (m == 0) return ns + 1;
-        for (int k = 0; k < m; k++) {
-            const real f = (real)idx[k] / (real)ns;
-            for (int j = 0; j < n; j++) w->qs[k * n + j] = a[j] + f * (b[j] - a[j]);
-        }
-        DK(plan_decide)(w, m, mode);
-        for (int k = 0; k < m; k++)
-            if (!w->ok[k]) return idx[k];
+        const int64_t bad = DK(plan_samples)(w, a, b, ns, idx, m, mode);
+        if (bad >= 0) return bad;
         size = size * 2 > COLLIDE_BLOCK ? COLLIDE_BLOCK : size * 2;
     }
 }
