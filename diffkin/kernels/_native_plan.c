@@ -3,20 +3,19 @@
  * problems spread over OpenMP threads, one problem per thread at a time.
  *
  * Per problem (VAMP's RRT-Connect), timed by a monotonic clock read in its thread (nanoseconds: as VAMP's
- * planners time themselves): with `ends`, its start and goal decided at the resolution ladder first (DK(plan_ends)); the
- * straight edge start -> goal; then of the trees rooted at the
- * start and the goal the one with fewer nodes (the start's on a tie: balanced trees, stricter than VAMP's
- * balance, which takes turns unless one tree has twice the other's nodes; the tree whose root sits in a
- * pocket gets the iterations until it has grown as large as the other, where taking turns let the free
- * tree grow large, and its nearest-node scans slow, on the hard problems) extends its node nearest to a
- * uniform sample of the box [lo, hi] (the other tree's root with probability goal_bias) by at most `step`
- * (in the bound's metric sum_j R_j |dq_j|: metres of geom travel) when that whole edge is clear, and then
- * the other tree tries its nearest node to the new one by one straight edge (RRT-Connect's CONNECT); a clear
- * one joins the trees. Both edges are taken whole or not at all (VAMP's EXTEND alike; its CONNECT steps
- * towards the other tree by `range` and keeps each clear step): most edges are rejected, and a rejected
- * edge is usually caught by its first, coarse samples, where keeping an edge's clear prefix meant deciding
- * every sample in order up to the collision (docs/motion.md: about 40 % fewer decisions, as many problems
- * solved).
+ * planners time themselves): with `ends`, its start and goal decided at the resolution ladder first
+ * (DK(plan_ends)); the straight edge start -> goal; then of the trees rooted at the start and the goal the
+ * one with fewer nodes (the start's on a tie: balanced trees, stricter than VAMP's balance, which takes turns
+ * unless one tree has twice the other's nodes; the tree whose root sits in a pocket gets the iterations until
+ * it has grown as large as the other, where taking turns let the free tree grow large, and its nearest-node
+ * scans slow, on the hard problems) extends its node nearest to a uniform sample of the box [lo, hi] (the
+ * other tree's root with probability goal_bias) by at most `step` (in the bound's metric sum_j R_j |dq_j|:
+ * metres of geom travel) when that whole edge is clear, and then the other tree tries its nearest node to the
+ * new one by one straight edge (RRT-Connect's CONNECT); a clear one joins the trees. Both edges are taken
+ * whole or not at all (VAMP's EXTEND alike; its CONNECT steps towards the other tree by `range` and keeps
+ * each clear step): most edges are rejected, and a rejected edge is usually caught by its first, coarse
+ * samples, where keeping an edge's clear prefix meant deciding every sample in order up to the collision
+ * (docs/motion.md: about 40 % fewer decisions, as many problems solved).
  * With `restart` > 0, every `restart` iterations without a join both trees are dropped and grown anew from
  * the roots (the random stream continuing); motion.plan passes 0 (never): restarts did not help on the
  * MotionBenchMaker problems.
@@ -32,15 +31,15 @@
  * joint frame as an end link) and the placement columns h_c of RobotCollision._columns (each capsule end a
  * fixed point of one frame). A full edge is decided coarse, then in order (its far end first, then the
  * midpoints of ever finer halvings down to about 16 samples, then the rest along the edge: EdgeOrder), a
- * prefix in order; both in blocks of 4 growing to COLLIDE_BLOCK samples, an
- * edge leaving at its first colliding block. The search's and the shortcuts' edges are taken whole or not
- * at all, so their blocks are decided by DK(collide_any): a block stops at the first collision found in any
- * of its samples (the same verdicts as deciding every sample, the same paths; 25-30 % less time than
- * deciding each block up to its first colliding sample); such an edge of 6 sub-steps or more is decided by
- * covers, runs of three samples whose middle, clear of margin + 3 eta, proves the run (DK(plan_edge_cover)). An edge's end already known clear (a tree's node, a
- * waypoint, the goal) is not decided again. A prefix (dk_plan_edges with prefix) reads a block up to its
- * first colliding sample (DK(collide_first)): the samples past the first collision found so far drop out of
- * the later tests.
+ * prefix in order; both in blocks of 4 growing to COLLIDE_BLOCK samples, an edge leaving at its first
+ * colliding block. The search's and the shortcuts' edges are taken whole or not at all, so their blocks are
+ * decided by DK(collide_any): a block stops at the first collision found in any of its samples (the same
+ * verdicts as deciding every sample, the same paths; 25-30 % less time than deciding each block up to its
+ * first colliding sample); such an edge of 6 sub-steps or more is decided by covers, runs of three samples
+ * whose middle, clear of margin + 3 eta, proves the run (DK(plan_edge_cover)). An edge's end already known
+ * clear (a tree's node, a waypoint, the goal) is not decided again. A prefix (dk_plan_edges with prefix)
+ * reads a block up to its first colliding sample (DK(collide_first)): the samples past the first collision
+ * found so far drop out of the later tests.
  *
  * Randomness: each problem's stream is splitmix64 seeded by the caller's seed mixed with a hash of the
  * problem's start and goal bytes, so a problem planned alone takes the same path as in any batch, on any
@@ -122,14 +121,14 @@ typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
 #undef DK_PDECLARE
 DK_LAYOUT(plan, dk_plan, DK_PLAN_FIELDS, DK_PLAN_VERSION) /* dk_layout_plan, dk_names_plan (_native.c) */
 
-/* The order in which an edge's samples i (of its ns sub-steps) are decided, from sample `from` (0: the
- * edge's start included, 1: known clear) to ns (with `last`; without, ns is known clear and skipped): with
- * prefix in order along the edge; else coarse, then in order: `from` (when 0), ns (with `last`), the odd
- * multiples of ever smaller powers of two down to the stride that leaves about EDGE_COARSE of them (a colliding edge is usually caught among these), then the other samples in order
- * along the edge (consecutive samples lie close together, so a block's bounding boxes stay tight and its
- * culling works; all the way coarse to fine the late blocks spanned the whole edge: 10-25 % more time on
- * the first 20 MotionBenchMaker problems of each family). Edges of fewer than 16 EDGE_COARSE samples go
- * coarse to fine all the way. */
+/* The order in which an edge's samples i (of its ns sub-steps) are decided, from sample `from` (0: the edge's
+ * start included, 1: known clear) to ns (with `last`; without, ns is known clear and skipped): with prefix in
+ * order along the edge; else coarse, then in order: `from` (when 0), ns (with `last`), the odd multiples of
+ * ever smaller powers of two down to the stride that leaves about EDGE_COARSE of them (a colliding edge is
+ * usually caught among these), then the other samples in order along the edge (consecutive samples lie close
+ * together, so a block's bounding boxes stay tight and its culling works; all the way coarse to fine the late
+ * blocks spanned the whole edge: 10-25 % more time on the first 20 MotionBenchMaker problems of each family).
+ * Edges of fewer than 16 EDGE_COARSE samples go coarse to fine all the way. */
 typedef struct {
     int64_t ns, top, level, next, seq, stride;
     int stage, prefix, last;
@@ -339,9 +338,9 @@ static int64_t DK(plan_steps)(const DK(PlanWork) *w, const real *a, const real *
     return k < 1 ? 1 : (int64_t)k;
 }
 
-/* The samples i of the straight edge a -> b in ns sub-steps (from .. ns, ns - 1 without last) at
- * a + (i / ns) (b - a) decided into w->qs and w->ok (mode as DK(plan_decide)); returns the first colliding
- * one of idx[0 .. m-1] in the order given, or -1. */
+/* The samples idx[0 .. m-1] (each in 0 .. ns) of the straight edge a -> b in ns sub-steps, sample i at
+ * a + (i / ns) (b - a), decided into w->qs and w->ok (mode as DK(plan_decide)); returns the first colliding
+ * one in the order given, or -1. */
 static int64_t DK(plan_samples)(DK(PlanWork) *w, const real *a, const real *b, int64_t ns, const int64_t *idx,
                                 int m, int mode) {
     const int n = w->s.n;
@@ -549,7 +548,6 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
     real *out = (real *)p->path + b * L * n;
     const int64_t wrow = p->world ? p->world[b] : 0;
     for (int l = 0; l < COLLIDE_BLOCK; l++) w->wid[l] = wrow;
-    w->checked = 0;
     int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND, bad = 0;
     w->eta = p->ends > 0 ? DK(plan_ends)(w, qs0, qg0, &bad) : ((const real *)p->eta)[b];
     if (p->ends > 0) ((real *)p->eta)[b] = w->eta;
@@ -787,8 +785,7 @@ static int64_t DK(dk_plan_decide)(const dk_plan *p) {
 /* dk_plan_edges: the straight edges q[e] -> qb[e] of diffkin.motion._edges.EdgeChecker.edges, each in
  * steps[e] equal sub-steps, its samples 0 .. steps[e] decided by DK(plan_edge_bad) in world row wid[e] with
  * slack slacks[e] (without prefix in COLLIDE_ANY, by covers from 6 sub-steps: only whether the edge is clear
- * is read): first_bad[e] its
- * result (steps + 1: every sample clear), checked[e] the samples decided.
+ * is read): first_bad[e] its result (steps + 1: every sample clear), checked[e] the samples decided.
  * Edges are shared between threads. */
 static int64_t DK(dk_plan_edges)(const dk_plan *p) {
     Shape s;

@@ -73,7 +73,8 @@ from .tree import Segments, Topology
 __all__ = ["available", "build", "disabled", "library_path", "free_cores", "thread_count", "threads",
            "NativeModel", "Collide", "capsules_clear", "collide_struct",
            "fk_jacobian", "status", "NativeBuildWarning", "Args", "SolveArgs", "WatchArgs",
-           "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "check_abi",
+           "ABI_VERSION", "CONSTANTS", "STRUCTS", "AbiMismatch", "solve_call", "new_struct", "contiguous_as",
+           "check_abi",
            "check_layout", "check_constants", "banded_solve", "ClipArgs", "clip_rows", "clip_joint",
            "clip_step", "jacobian_support", "topp_grid", "topp_peaks", "topp_sample", "spline_fine",
            "spline_marks"]
@@ -186,6 +187,12 @@ class ClipArgs(ctypes.Structure):
 #: the structs checked at load, by the tag of their ``dk_layout_<tag>`` / ``dk_names_<tag>`` exports
 STRUCTS: dict[str, type[ctypes.Structure]] = {"args": Args, "solve": SolveArgs, "watch": WatchArgs,
                                               "collide": Collide, "clip": ClipArgs}
+
+
+def contiguous_as(t: Tensor, dtype: torch.dtype) -> Tensor:
+    """``t`` as a contiguous tensor of ``dtype`` whose address a C call reads (itself, no copy and no op, in
+    the common case where it is one already)."""
+    return t if t.dtype == dtype and t.is_contiguous() else t.detach().to(dtype).contiguous()
 
 
 def new_struct(struct_type: type[ctypes.Structure], **fields) -> ctypes.Structure:
@@ -1002,9 +1009,7 @@ def collide_struct(A: Tensor, B: Tensor, r: Tensor, pairs: Tensor, round_objects
     dtype = A.dtype
     if not available() or A.device.type != "cpu" or dtype not in (torch.float32, torch.float64):
         return None
-    def real(t: Tensor) -> Tensor:  # (the common case, already so: no copy, no op)
-        return t if t.dtype == dtype and t.is_contiguous() else t.detach().to(dtype).contiguous()
-
+    real = lambda t: contiguous_as(t, dtype)  # noqa: E731
     empty = lambda *s: A.new_zeros(*s)  # noqa: E731
     wa, wb, wr = (real(t) for t in round_objects)
     hs = real(halfspaces)

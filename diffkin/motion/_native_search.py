@@ -209,13 +209,6 @@ def serves(checker, q: Tensor) -> bool:
     return checker.native(q) is not None
 
 
-def _real(t: Tensor, dtype) -> Tensor:
-    """``t`` as a contiguous tensor of ``dtype`` without a graph (itself when it is one already)."""
-    if t.dtype != dtype or t.requires_grad or not t.is_contiguous():
-        t = t.detach().to(dtype).contiguous()
-    return t
-
-
 def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
                   eta: Tensor | None, *, max_iterations: int, step: float, shortcut_tries: int, seed: int,
                   goal_bias: float = 0.0, restart: int = 0, capacity: int = 256,
@@ -241,9 +234,9 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
         return None
     dtype = planner.dtype
     B, nq = q_start.shape
-    qs, qg, lo_, hi_ = (_real(t, dtype) for t in (q_start, q_goal, lo, hi))
+    qs, qg, lo_, hi_ = (native.contiguous_as(t, dtype) for t in (q_start, q_goal, lo, hi))
     reach = checker.remembered(f"planner reach {dtype}", lambda: checker.reach.to(dtype).contiguous())
-    eta_ = torch.empty(B, dtype=dtype) if rungs > 0 else _real(eta, dtype)
+    eta_ = torch.empty(B, dtype=dtype) if rungs > 0 else native.contiguous_as(eta, dtype)
     L = max(2, int(capacity))
     path = torch.empty(B, L, nq, dtype=dtype)
     out = torch.zeros(6, B, dtype=torch.int64)  # n_way, status, iterations, checked, nodes, nanoseconds
