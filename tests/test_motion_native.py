@@ -390,6 +390,29 @@ def test_c_search_deterministic_and_a_problem_alone_equals_its_row(panda):
         assert int(sa["iterations"][0]) == int(s1["iterations"][r])
 
 
+def test_c_search_hints_change_no_verdict(panda):
+    """The collisions the C search remembers between blocks (sphere-box and sphere-cylinder, decided first in
+    an edge's first block) only make a colliding block found sooner: with and without them the same paths,
+    iterations, decisions and trees, on problems in scenes of boxes and cylinders (bookshelf, table, box)."""
+    chain, rc, probs = panda
+    names = ["bookshelf_small/0001", "bookshelf_small/0019", "bookshelf_small/0041", "table_pick/0001",
+             "table_pick/0019", "box/0019"]
+    qs, qg, world, _ = _batch(probs, names)
+    assert world.cylinders.shape[-2] > 0
+    lim = chain.q_limits
+    rows = torch.arange(len(names))
+    runs = []
+    for hints in (True, False):
+        checker = EdgeChecker(rc, world, 0.0, 0.005)
+        runs.append(search_native(checker, qs, qg, lim[:, 0], lim[:, 1], rows, None, max_iterations=20000,
+                                  step=1.0, shortcut_tries=32, seed=5, rungs=4, hints=hints))
+    (p1, n1, f1, s1), (p2, n2, f2, s2) = runs
+    assert f1.all() and torch.equal(f1, f2) and torch.equal(n1, n2) and torch.equal(p1, p2)
+    for key in ("iterations", "checked", "nodes"):
+        assert torch.equal(s1[key], s2[key]), key
+    assert int(s1["iterations"].max()) > 20  # refused edges, where the hints are read, occur
+
+
 def test_close_start_planned_at_a_finer_resolution_and_a_start_in_collision_reported(panda):
     """bookshelf_small/0019 starts closer than 5 mm to a shelf (clear of 0.3 mm): planned at η / 16, it
     succeeds; table_pick/0041 starts or ends in collision (VAMP's one invalid problem): its reason says

@@ -29,7 +29,7 @@ from ..kernels import native
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
 #: the version of ``dk_plan`` this module speaks (DK_PLAN_VERSION in _native_plan.c)
-VERSION = 5
+VERSION = 6
 #: dk_plan_search's per-problem status codes (DK_PLAN_* of _native_plan.c)
 FOUND, NOT_FOUND, TOO_LONG, NO_MEMORY, START_BAD, GOAL_BAD, ENDS_BAD = 1, 0, 2, -1, 3, 4, 5
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
@@ -49,7 +49,7 @@ class PlanArgs(ctypes.Structure):
         [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)] + \
         [("qb", _PTR), ("steps", _PTR), ("slacks", _PTR), ("prefix", _I64), ("first_bad", _PTR)] + \
         [("keys", _PTR), ("rounds", _I64), ("tries", _I64), ("stop_after", _I64)] + \
-        [("ends", _I64), ("resolution", _F64), ("nanoseconds", _PTR)]
+        [("ends", _I64), ("resolution", _F64), ("nanoseconds", _PTR), ("no_hints", _I64)]
 
 
 _fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide, dk_plan_edges, dk_plan_points)
@@ -212,7 +212,7 @@ def serves(checker, q: Tensor) -> bool:
 def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tensor, problem: Tensor,
                   eta: Tensor | None, *, max_iterations: int, step: float, shortcut_tries: int, seed: int,
                   goal_bias: float = 0.0, restart: int = 0, capacity: int = 256,
-                  rungs: int = 0) -> tuple[Tensor, Tensor, Tensor, dict] | None:
+                  rungs: int = 0, hints: bool = True) -> tuple[Tensor, Tensor, Tensor, dict] | None:
     """Paths ``(B, L, nq)`` (rows padded with their goal) from ``q_start`` to ``q_goal`` ``(B, nq)`` of
     problems ``problem (B,)`` (rows of the checker's world), each edge subdivided at the row's resolution
     ``eta (B,)`` (both trees grown anew every ``restart`` iterations without a join; 0: never), their
@@ -228,7 +228,10 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     :func:`~diffkin.motion.plan._row_resolution` does (``eta`` is not read: give None): each problem's
     resolution the largest ``checker.eta / 2^i``, i < ``rungs``, that both clear; ``stats`` then holds
     ``eta (B,)`` and ``start_ok``, ``goal_ok (B,)`` bool, each end's own verdict (a row failing either is
-    not searched). ``checked`` counts the search's decisions, not those of the ends."""
+    not searched). ``checked`` counts the search's decisions, not those of the ends.
+
+    ``hints=False`` makes the search forget the collisions it found (each first block of an edge decides
+    the last ones found first): the same paths and counts, in more time (a test's reference)."""
     planner = checker.native(q_start)
     if planner is None:
         return None
@@ -244,6 +247,7 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     a.nthreads, a.B, a.step, a.goal_bias = native.thread_count(B * 4096), B, float(step), float(goal_bias)
     a.max_iterations, a.restart, a.shortcut_tries = int(max_iterations), int(restart), int(shortcut_tries)
     a.seed, a.capacity, a.ends, a.resolution = int(seed), L, max(int(rungs), 0), float(checker.eta)
+    a.no_hints = int(not hints)
     for name, t in (("q_start", qs), ("q_goal", qg), ("eta", eta_), ("lo", lo_), ("hi", hi_),
                     ("reach", reach), ("path", path)):
         setattr(a, name, t.data_ptr())
