@@ -12,7 +12,7 @@
  * (Real-Time Collision Detection, 5.1.9) written without branches, so that the loop over the configurations
  * of a block can vectorise (GCC 12 keeps it scalar: under the default -ftrapping-math a select on a double
  * comparison stays a branch; -fno-trapping-math for the whole library changed other kernels' results, so
- * only DK(box_points), its 4-lane DK(box_points_narrow) and DK(cylinder_lanes), the planner's hot loops, are
+ * only DK(box_points), its 4-lane and one-box variants and DK(cylinder_lanes), the planner's hot loops, are
  * compiled so); degenerate segments (points) take the clamped formulas. The test compares squared
  * centre distances with (r_a + r_b + margin + slack)^2: no square root. Configurations run in blocks of
  * COLLIDE_BLOCK (the block's capsules stay in cache while every pair is tested), blocks shared between
@@ -215,14 +215,19 @@ static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, r
  * a comparison of doubles as a blend (the same values; clang vectorises it anyway and ignores the attribute). */
 static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(box_points_lanes)(
         const real *A, int64_t N, real rg, const real *bc, const real *bR, const real *bh, real thr, int m,
-        uint8_t *restrict clear, real thr_hi, uint8_t *restrict hi) {
+        uint8_t *restrict clear, real thr_hi, uint8_t *restrict hi, const int shared) {
+    /* entry k of the box of lane l: gathered per lane (rows COLLIDE_BLOCK apart), or one box for every lane
+     * (shared: the object's own 3, 9, 3 entries, no copy) */
+#define BOX_ENTRY(k) (shared ? (k) : (k) * COLLIDE_BLOCK + l)
 #pragma omp simd
     for (int l = 0; l < m; l++) {
-        const real dx = A[l] - bc[l], dy = A[N + l] - bc[COLLIDE_BLOCK + l],
-                   dz = A[2 * N + l] - bc[2 * COLLIDE_BLOCK + l];
-        real px, py, pz, ex;
-        DK(box_frame)(bR + l, dx, dy, dz, &px, &py, &pz);
-        const real best = DK(box_point_d2)(px, py, pz, bh[l], bh[COLLIDE_BLOCK + l], bh[2 * COLLIDE_BLOCK + l], &ex);
+        const real dx = A[l] - bc[BOX_ENTRY(0)], dy = A[N + l] - bc[BOX_ENTRY(1)], dz = A[2 * N + l] - bc[BOX_ENTRY(2)];
+        real ex; /* R^T (dx, dy, dz), as DK(box_frame) */
+        const real px = dx * bR[BOX_ENTRY(0)] + dy * bR[BOX_ENTRY(3)] + dz * bR[BOX_ENTRY(6)];
+        const real py = dx * bR[BOX_ENTRY(1)] + dy * bR[BOX_ENTRY(4)] + dz * bR[BOX_ENTRY(7)];
+        const real pz = dx * bR[BOX_ENTRY(2)] + dy * bR[BOX_ENTRY(5)] + dz * bR[BOX_ENTRY(8)];
+        const real best = DK(box_point_d2)(px, py, pz, bh[BOX_ENTRY(0)], bh[BOX_ENTRY(1)], bh[BOX_ENTRY(2)], &ex);
+#undef BOX_ENTRY
         const real root = (real)sqrt((double)best); /* best >= 0: taken in every lane, no branch */
         const real d = best > 0 ? root : ex;
         clear[l] &= d >= rg + thr;
@@ -232,27 +237,39 @@ static inline __attribute__((always_inline, optimize("no-trapping-math"))) void 
 
 __attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear) {
-    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, 0, NULL);
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, 0, NULL, 0);
 }
 
 /* DK(box_points) of COLLIDE_NARROW lanes (a constant trip count) */
 __attribute__((optimize("no-trapping-math"))) static void DK(box_points_narrow)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear) {
-    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, 0, NULL);
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, 0, NULL, 0);
 }
 
-/* DK(box_points) and DK(box_points_narrow) deciding each lane at thr_hi as well, into hi (&=) */
+/* DK(box_points) deciding each lane at thr_hi as well, into hi (&=) */
 __attribute__((optimize("no-trapping-math"))) static void DK(box_points_cover)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear, real thr_hi,
         uint8_t *restrict hi) {
-    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, thr_hi, hi);
+    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, thr_hi, hi, 0);
 }
 
-__attribute__((optimize("no-trapping-math"))) static void DK(box_points_narrow_cover)(const real *A, int64_t N,
+/* DK(box_points) and DK(box_points_cover) (hi not NULL), of any m and of COLLIDE_NARROW lanes, of one box for
+ * every lane (the object's own centre bc[3], rotation bR[9] and half extents bh[3]: a block in one world
+ * row, nothing gathered) */
+__attribute__((optimize("no-trapping-math"))) static void DK(box_points_one)(const real *A, int64_t N, real rg,
+        const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear, real thr_hi,
+        uint8_t *restrict hi) {
+    if (hi) DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, thr_hi, hi, 1);
+    else DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, 0, NULL, 1);
+}
+
+__attribute__((optimize("no-trapping-math"))) static void DK(box_points_one_narrow)(const real *A, int64_t N,
         real rg, const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear, real thr_hi,
         uint8_t *restrict hi) {
-    DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, thr_hi, hi);
+    if (hi) DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, thr_hi, hi, 1);
+    else DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, 0, NULL, 1);
 }
+
 
 /* Box w of the world row of each lane n0 .. n0 + m - 1 of c, gathered per lane (centre lc[3][], rotation
  * lR[9][], half extents lh[3][], rows COLLIDE_BLOCK apart) for DK(box_lanes). */
@@ -431,8 +448,9 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
      * other for the self pairs. */
     const int64_t NG = R->NG; /* 0: no culling */
     real glo[3 * CULL_GEOMS], ghi[3 * CULL_GEOMS], olo[3], ohi[3];
-    int cull = NG > 0 && m > 0;
-    for (int l = 1; l < m && cull; l++) cull = wl[l] == wl[0];
+    int same = m > 0; /* every lane in one world row: its objects read in place, not gathered per lane */
+    for (int l = 1; l < m && same; l++) same = wl[l] == wl[0];
+    const int cull = NG > 0 && same;
     const int64_t w0 = m > 0 ? wl[0] : 0;
     /* The level above (CollideRuns), formed in the same pass: each group bounded by the union of its geoms'
      * boxes, each grown by its radius. A group box at least thr from an object's box puts each geom's box at
@@ -565,18 +583,24 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             GROUP_GEOMS(g) {
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
-                if (!gathered) {
-                    DK(gather_box)(c, n0, m, w, lc, lR, lh);
-                    gathered = 1;
-                }
                 const int point = c->point ? c->point[g] : 0;
-                if (point && m == COLLIDE_NARROW && hi) /* a constant where DK(collide_any_narrow) and */
-                    DK(box_points_narrow_cover)(A + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, clear, thr_hi, hi);
-                else if (point && m == COLLIDE_NARROW) /* DK(collide_cover_narrow) inline this */
-                    DK(box_points_narrow)(A + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, clear);
-                else
+                if (point && same) { /* a sphere, one box for the block, read in place (m a constant where
+                                      * DK(collide_any_narrow) and DK(collide_cover_narrow) inline this) */
+                    const int64_t ob = w0 * c->Wb + w;
+                    if (m == COLLIDE_NARROW)
+                        DK(box_points_one_narrow)(A + g * 3 * N + n0, N, r[g], bc + 3 * ob, bR + 9 * ob, bh + 3 * ob, thr,
+                                                  clear, thr_hi, hi);
+                    else
+                        DK(box_points_one)(A + g * 3 * N + n0, N, r[g], bc + 3 * ob, bR + 9 * ob, bh + 3 * ob, thr, m,
+                                           clear, thr_hi, hi);
+                } else { /* lanes in several rows, or a capsule: the box gathered per lane */
+                    if (!gathered) {
+                        DK(gather_box)(c, n0, m, w, lc, lR, lh);
+                        gathered = 1;
+                    }
                     DK(box_lanes)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, r[g], lc, lR, lh, thr, point, m, clear,
                                   thr_hi, hi);
+                }
                 if (any && !DK(all_clear)(clear, m)) {
                     if (hint && point) hint->w = w, hint->g = g, hint->cyl = 0;
                     goto done;
@@ -715,6 +739,11 @@ static int DK(collide_hint)(const dk_collide *c, const CollideHint *hint, uint8_
             pr[l] = yr[o];
         }
         DK(cylinder_lanes)(A, N, rg, pa, pb, pr, thr, COLLIDE_NARROW, clear);
+    } else if (WORLD_OF(c, 0, 0) == WORLD_OF(c, 0, COLLIDE_NARROW - 1) &&
+               WORLD_OF(c, 0, 1) == WORLD_OF(c, 0, 2) && WORLD_OF(c, 0, 0) == WORLD_OF(c, 0, 1)) {
+        const int64_t o = WORLD_OF(c, 0, 0) * c->Wb + hint->w; /* one row (the planner's): the box in place */
+        DK(box_points_one_narrow)(A, N, rg, (const real *)c->bc + 3 * o, (const real *)c->bR + 9 * o,
+                                  (const real *)c->bh + 3 * o, thr, clear, 0, NULL);
     } else {
         real lc[3 * COLLIDE_BLOCK], lR[9 * COLLIDE_BLOCK], lh[3 * COLLIDE_BLOCK];
         DK(gather_box)(c, 0, COLLIDE_NARROW, hint->w, lc, lR, lh);
