@@ -390,14 +390,20 @@ def test_c_search_deterministic_and_a_problem_alone_equals_its_row(panda):
         assert int(sa["iterations"][0]) == int(s1["iterations"][r])
 
 
-def test_c_search_hints_change_no_verdict(panda):
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_c_search_hints_change_no_verdict(panda, dtype):
     """The collisions the C search remembers between blocks (sphere-box and sphere-cylinder, decided first in
     an edge's first block) only make a colliding block found sooner: with and without them the same paths,
-    iterations, decisions and trees, on problems in scenes of boxes and cylinders (bookshelf, table, box)."""
+    iterations, decisions and trees, on problems in scenes of boxes and cylinders (bookshelf, table, box),
+    float64 and float32."""
     chain, rc, probs = panda
+    if dtype == torch.float32:  # copies: float() converts a module in place (the fixture is shared)
+        rc = copy.deepcopy(rc).float()
+        chain = rc.chain.float()
     names = ["bookshelf_small/0001", "bookshelf_small/0019", "bookshelf_small/0041", "table_pick/0001",
              "table_pick/0019", "box/0019"]
     qs, qg, world, _ = _batch(probs, names)
+    qs, qg, world = qs.to(dtype), qg.to(dtype), world.to(dtype)
     assert world.cylinders.shape[-2] > 0
     lim = chain.q_limits
     rows = torch.arange(len(names))

@@ -34,10 +34,10 @@
 #define COLLIDE_COVER 3
 #define COLLIDE_NARROW 4 /* the lanes of DK(collide_any_narrow) */
 
-/* A collision a caller's COLLIDE_ANY decisions found between a sphere geom and a box or a cylinder: decided
- * first next time (DK(collide_hint)), before the broad phase. Consecutive samples of a search tend to meet the
- * same object with the same sphere: about 92 % of the planner's first blocks of an edge stop at a box, 1-10 %
- * at a cylinder. */
+/* A collision a caller's COLLIDE_ANY or COLLIDE_COVER decisions found between a sphere geom and a box or a
+ * cylinder: decided first next time (DK(collide_hint)), before the broad phase. Consecutive samples of a search
+ * tend to meet the same object with the same sphere: about 92 % of the planner's first blocks of an edge stop
+ * at a box, 1-10 % at a cylinder. */
 typedef struct {
     int64_t w, g, cyl; /* the object (w < 0: none), the geom, and whether the object is a cylinder */
 } CollideHint;
@@ -46,9 +46,9 @@ typedef struct {
  * clauses from SIMD_REDUCE_LANES lanes on, a plain loop below. GCC lowers an omp simd reduction to an array of
  * per-lane partial results on the stack, stored as one vector and combined one by one (narrow loads of a wide
  * store: a stall each), which costs more than a few lanes' work: the planner's edges start with blocks of 4
- * and 8 (with the plain loop below 16 lanes the planner's decisions took 30 % less time; below 32 or 64
- * measured the same, smaller thresholds were not tried; a sphere's box over 4 lanes or fewer is a tree of
- * selects, no loop: 3-5 % less again). min and max are exact in any order; a sum kept only to be asked
+ * and 16 (4 and 8 where short; with the plain loop below 16 lanes the planner's decisions took 30 % less
+ * time; below 32 or 64 measured the same, smaller thresholds were not tried; a sphere's box over 4 lanes or
+ * fewer is a tree of selects, no loop: 3-5 % less again). min and max are exact in any order; a sum kept only to be asked
  * whether it is NaN may be formed in any order. */
 #define SIMD_REDUCE_LANES 16
 #define REDUCE_LANES(m, clauses, ...)                                                                             \
@@ -710,7 +710,7 @@ static void DK(collide_cover)(const dk_collide *c, const CollideRuns *R, int64_t
 
 /* DK(collide_any) of lanes 0 .. COLLIDE_NARROW - 1, a constant: every loop over the lanes has a constant
  * trip count (an edge's first block, about half the planner's decision time); a collision of a sphere and a
- * box found is kept in hint. */
+ * box or a cylinder found is kept in hint. */
 static void DK(collide_any_narrow)(const dk_collide *c, const CollideRuns *R, uint8_t *restrict ok,
                                    CollideHint *hint) {
     DK(collide_lanes)(c, R, 0, COLLIDE_NARROW, ok, COLLIDE_ANY, hint, 0, NULL);
@@ -730,6 +730,8 @@ static int DK(collide_hint)(const dk_collide *c, const CollideHint *hint, uint8_
     const real *A = (const real *)c->A + g * 3 * N, rg = ((const real *)c->r)[g], thr = (real)(c->margin + c->slack);
     uint8_t clear[COLLIDE_NARROW];
     memset(clear, 1, COLLIDE_NARROW);
+    int one_row = 1; /* the planner's blocks: the box read in place */
+    for (int l = 1; l < COLLIDE_NARROW; l++) one_row &= WORLD_OF(c, 0, l) == WORLD_OF(c, 0, 0);
     if (hint->cyl) {
         const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK];
@@ -739,9 +741,8 @@ static int DK(collide_hint)(const dk_collide *c, const CollideHint *hint, uint8_
             pr[l] = yr[o];
         }
         DK(cylinder_lanes)(A, N, rg, pa, pb, pr, thr, COLLIDE_NARROW, clear);
-    } else if (WORLD_OF(c, 0, 0) == WORLD_OF(c, 0, COLLIDE_NARROW - 1) &&
-               WORLD_OF(c, 0, 1) == WORLD_OF(c, 0, 2) && WORLD_OF(c, 0, 0) == WORLD_OF(c, 0, 1)) {
-        const int64_t o = WORLD_OF(c, 0, 0) * c->Wb + hint->w; /* one row (the planner's): the box in place */
+    } else if (one_row) {
+        const int64_t o = WORLD_OF(c, 0, 0) * c->Wb + hint->w;
         DK(box_points_one_narrow)(A, N, rg, (const real *)c->bc + 3 * o, (const real *)c->bR + 9 * o,
                                   (const real *)c->bh + 3 * o, thr, clear, 0, NULL);
     } else {
