@@ -417,6 +417,7 @@ def test_c_search_hints_change_no_verdict(panda, dtype):
     for key in ("iterations", "checked", "nodes"):
         assert torch.equal(s1[key], s2[key]), key
     assert int(s1["iterations"].max()) > 20  # refused edges, where the hints are read, occur
+    assert int(s1["hinted"].sum()) > 0 and int(s2["hinted"].sum()) == 0  # and the hints were read
 
 
 def test_close_start_planned_at_a_finer_resolution_and_a_start_in_collision_reported(panda):

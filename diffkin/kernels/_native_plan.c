@@ -116,7 +116,9 @@
     X(int64_t *, nanoseconds, "dk_plan_search: [B] out: each problem's wall time, a monotonic clock read in " \
                               "its thread, or NULL") \
     X(int64_t, no_hints, "1: no collisions remembered between blocks (DK(plan_decide)'s hints: they change " \
-                         "no verdict, only how soon a colliding block is found)")
+                         "no verdict, only how soon a colliding block is found)") \
+    X(int64_t *, hinted, "dk_plan_search: [B] out: blocks found colliding by a remembered collision alone " \
+                         "(the search's and its shortcuts'), or NULL")
 
 #define DK_PDECLARE(type, name, what) type name;
 typedef struct dk_plan { DK_PLAN_FIELDS(DK_PDECLARE) } dk_plan;
@@ -232,6 +234,7 @@ typedef struct { /* one thread's work space */
     int64_t *parent[2];   /* [cap] */
     real *path;           /* [2 cap n] */
     int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (max_iterations + 2) */
+    int64_t hinted;       /* blocks found colliding by a hint alone (dk_plan's hinted) */
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
     CollideHint hint[PLAN_HINTS]; /* the last sphere-object collisions of the narrow decisions, latest first */
     real *scratch;
@@ -299,7 +302,7 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
         for (int k = 0; w->points && k < PLAN_HINTS && w->hint[k].w >= 0 && !hit; k++) {
             DK(plan_place_point)(w, w->hint[k].g, 0, COLLIDE_NARROW);
             hit = DK(collide_hint)(&w->cc, &w->hint[k], w->ok);
-            if (hit) DK(plan_hint_to_front)(w, w->hint[k], k);
+            if (hit) DK(plan_hint_to_front)(w, w->hint[k], k), w->hinted++;
         }
         if (!hit) {
             DK(plan_place)(w, 0, COLLIDE_NARROW);
@@ -556,7 +559,7 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
     int64_t count[2] = {1, 1}, it = 0, len = 0, status = DK_PLAN_NOT_FOUND, bad = 0;
     w->eta = p->ends > 0 ? DK(plan_ends)(w, qs0, qg0, &bad) : ((const real *)p->eta)[b];
     if (p->ends > 0) ((real *)p->eta)[b] = w->eta;
-    w->checked = 0; /* the search's decisions (not the ends') */
+    w->checked = w->hinted = 0; /* the search's decisions (not the ends') */
     w->cc.slack = (double)w->eta;
     DK(plan_forget_hints)(w);
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
@@ -659,6 +662,7 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
     p->status[b] = status;
     p->iterations[b] = it;
     p->checked[b] = w->checked;
+    if (p->hinted) p->hinted[b] = w->hinted;
     if (p->nodes) p->nodes[b] = count[0] + count[1];
 }
 

@@ -49,7 +49,7 @@ class PlanArgs(ctypes.Structure):
         [("N", _I64), ("q", _PTR), ("wid", _PTR), ("slack", _F64), ("ok", _PTR)] + \
         [("qb", _PTR), ("steps", _PTR), ("slacks", _PTR), ("prefix", _I64), ("first_bad", _PTR)] + \
         [("keys", _PTR), ("rounds", _I64), ("tries", _I64), ("stop_after", _I64)] + \
-        [("ends", _I64), ("resolution", _F64), ("nanoseconds", _PTR), ("no_hints", _I64)]
+        [("ends", _I64), ("resolution", _F64), ("nanoseconds", _PTR), ("no_hints", _I64), ("hinted", _PTR)]
 
 
 _fns: dict = {}  # id of the loaded library -> (dk_plan_search, dk_plan_decide, dk_plan_edges, dk_plan_points)
@@ -231,7 +231,8 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     not searched). ``checked`` counts the search's decisions, not those of the ends.
 
     ``hints=False`` makes the search forget the collisions it found (each first block of an edge decides
-    the last ones found first): the same paths and counts, in more time (a test's reference)."""
+    the last ones found first): the same paths and counts, in more time (a test's reference); ``stats``
+    holds ``hinted (B,)``, the blocks found colliding by a remembered collision alone."""
     planner = checker.native(q_start)
     if planner is None:
         return None
@@ -242,7 +243,8 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
     eta_ = torch.empty(B, dtype=dtype) if rungs > 0 else native.contiguous_as(eta, dtype)
     L = max(2, int(capacity))
     path = torch.empty(B, L, nq, dtype=dtype)
-    out = torch.zeros(6, B, dtype=torch.int64)  # n_way, status, iterations, checked, nodes, nanoseconds
+    # n_way, status, iterations, checked, nodes, nanoseconds, hinted
+    out = torch.zeros(7, B, dtype=torch.int64)
     a = planner.search_args()
     a.nthreads, a.B, a.step, a.goal_bias = native.thread_count(B * 4096), B, float(step), float(goal_bias)
     a.max_iterations, a.restart, a.shortcut_tries = int(max_iterations), int(restart), int(shortcut_tries)
@@ -252,16 +254,17 @@ def search_native(checker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi: Tens
                     ("reach", reach), ("path", path)):
         setattr(a, name, t.data_ptr())
     row = out.data_ptr()
-    a.n_way, a.status, a.iterations, a.checked, a.nodes, a.nanoseconds = (row + 8 * B * k for k in range(6))
+    a.n_way, a.status, a.iterations, a.checked, a.nodes, a.nanoseconds, a.hinted = \
+        (row + 8 * B * k for k in range(7))
     world = problem.to(torch.int64).contiguous() if checker.per_row else None  # kept alive to the call
     a.world = None if world is None else world.data_ptr()
     if B and not _run(0, a, "search"):
         return None
-    n_way, status, its, checked, nodes, nanoseconds = out
+    n_way, status, its, checked, nodes, nanoseconds, hinted = out
     if bool((status == NO_MEMORY).any()):
         raise MemoryError("motion.plan: the C search ran out of memory growing its trees")
     stats = {"iterations": its, "checked": checked, "nodes": nodes, "too_long": status == TOO_LONG,
-             "nanoseconds": nanoseconds}
+             "nanoseconds": nanoseconds, "hinted": hinted}
     if rungs > 0:
         both = status == ENDS_BAD
         stats.update(eta=eta_, start_ok=(status != START_BAD) & ~both, goal_ok=(status != GOAL_BAD) & ~both)
