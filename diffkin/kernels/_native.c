@@ -915,7 +915,8 @@ static __attribute__((noinline)) void DK(ball_frame)(const real *P, const DK(Fix
  * configurations in sc->qlanes (n x W). The motion axis of joint j (its z and origin, before Post; the x, y,
  * z axes of an S frame) is read from F_j, or from A_j where the joint has a Post. */
 static inline __attribute__((always_inline)) void DK(block_lanes)(const Shape *s, const DK(Params) *pp,
-                                                                  DK(Scratch) *sc, int jac, const int nw) {
+                                                                  DK(Scratch) *sc, int jac, const int nw,
+                                                                  const int ends) {
     const int J = s->J, K = s->K, nv = s->nv;
     real *F = sc->F;
     for (int j = 0; j < J; j++) {
@@ -931,7 +932,7 @@ static inline __attribute__((always_inline)) void DK(block_lanes)(const Shape *s
         else DK(apply)(P, pp->fix + j, rev ? MOVE_TURN : MOVE_SLIDE, rev ? cs : ang, sn, out, nw);
         if (s->has_post[j]) DK(apply)(out, pp->fix + J + j, MOVE_NONE, NULL, NULL, Fj, nw);
     }
-    for (int k = 0; k < K; k++) {
+    for (int k = 0; k < K && (ends || jac); k++) { /* without ends: the joint frames F only (the planner's) */
         const int e = s->end_joint[k];
         const real *P = e < 0 ? sc->basef : F + (size_t)e * 12 * W;
         real *E = sc->ends + (size_t)k * 12 * W;
@@ -961,11 +962,21 @@ static inline __attribute__((always_inline)) void DK(block_lanes)(const Shape *s
 /* DK(block_lanes) of all W lanes, and of the first WN (one or two vector registers: the IK solve's single
  * target runs on lane 0; the other lanes' outputs are then not meaningful). */
 static void DK(block)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
-    DK(block_lanes)(s, pp, sc, jac, W);
+    DK(block_lanes)(s, pp, sc, jac, W, 1);
 }
 
 static void DK(block_narrow)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc, int jac) {
-    DK(block_lanes)(s, pp, sc, jac, WN);
+    DK(block_lanes)(s, pp, sc, jac, WN, 1);
+}
+
+/* DK(block) and DK(block_narrow) without the end frames: the joint frames in sc->F only (the planner, whose
+ * ends are joint frames without an offset, reads them there: no copy of 12 W reals an end) */
+static void DK(block_frames)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc) {
+    DK(block_lanes)(s, pp, sc, 0, W, 0);
+}
+
+static void DK(block_frames_narrow)(const Shape *s, const DK(Params) *pp, DK(Scratch) *sc) {
+    DK(block_lanes)(s, pp, sc, 0, WN, 0);
 }
 
 /* Row l < nl of out (rows stride apart) gets lane l of the rows x W lanes of src: the transpose into the

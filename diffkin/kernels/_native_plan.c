@@ -237,6 +237,9 @@ typedef struct { /* one thread's work space */
     int64_t hinted;       /* blocks found colliding by a hint alone (dk_plan's hinted) */
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
     CollideHint hint[PLAN_HINTS]; /* the last sphere-object collisions of the narrow decisions, latest first */
+    int plain_ends;        /* every end frame a joint's frame (or the base) without an offset, at most 64 of
+                            * them: the FK leaves the ends uncopied (DK(block_frames)), read through endf */
+    const real *endf[64];  /* with plain_ends, end frame k's rows in w->sc (12 x W): sc.F's or sc.basef's */
     real *scratch;
     real eta;
     uint64_t rng;
@@ -257,7 +260,7 @@ static inline __attribute__((always_inline)) void DK(plan_place_point)(DK(PlanWo
         }
         return;
     }
-    const real *E = w->sc.ends + (size_t)(f - 1) * 12 * W;
+    const real *E = w->plain_ends ? w->endf[f - 1] : w->sc.ends + (size_t)(f - 1) * 12 * W;
     for (int r = 0; r < 3; r++) {
         const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
         real *restrict o = dst + r * COLLIDE_BLOCK;
@@ -296,7 +299,8 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
          * whatever m (constant trip counts in every loop of the decision), the lanes from m on repeating
          * lane m - 1 (DK(load_q)'s tail) */
         DK(load_q)(&w->s, &w->sc, w->qs, 0, m);
-        DK(block_narrow)(&w->s, w->pp, &w->sc, 0);
+        if (w->plain_ends) DK(block_frames_narrow)(&w->s, w->pp, &w->sc);
+        else DK(block_narrow)(&w->s, w->pp, &w->sc, 0);
         memset(w->ok, 1, COLLIDE_NARROW);
         int hit = 0; /* the last collisions' spheres and boxes first, each sphere placed alone */
         for (int k = 0; w->points && k < PLAN_HINTS && w->hint[k].w >= 0 && !hit; k++) {
@@ -321,7 +325,9 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
     for (int b0 = 0; b0 < m; b0 += W) {
         const int nl = m - b0 < W ? m - b0 : W;
         DK(load_q)(&w->s, &w->sc, w->qs, b0, nl);
-        if (nl <= WN) DK(block_narrow)(&w->s, w->pp, &w->sc, 0); /* 4 lanes or fewer (an edge's first block) */
+        if (w->plain_ends && nl <= WN) DK(block_frames_narrow)(&w->s, w->pp, &w->sc); /* 4 lanes or fewer */
+        else if (w->plain_ends) DK(block_frames)(&w->s, w->pp, &w->sc);
+        else if (nl <= WN) DK(block_narrow)(&w->s, w->pp, &w->sc, 0); /* (an edge's first block) */
         else DK(block)(&w->s, w->pp, &w->sc, 0);
         DK(plan_place)(w, b0, nl);
     }
@@ -689,6 +695,12 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
           w->path))
         return 0;
     DK(scratch_init)(s, pp, w->scratch, &w->sc);
+    w->plain_ends = s->K <= 64;
+    for (int k = 0; k < s->K && w->plain_ends; k++) {
+        const int e = s->end_joint[k];
+        w->plain_ends = !s->has_end[k];
+        w->endf[k] = e < 0 ? w->sc.basef : w->sc.F + (size_t)e * 12 * W;
+    }
     w->cc = *p->collide;
     DK(plan_forget_hints)(w);
     w->cc.N = COLLIDE_BLOCK;
