@@ -48,8 +48,8 @@ typedef struct {
  * store: a stall each), which costs more than a few lanes' work: the planner's edges start with blocks of 4
  * and 16 (4 and 8 where short; with the plain loop below 16 lanes the planner's decisions took 30 % less
  * time; below 32 or 64 measured the same, smaller thresholds were not tried; a sphere's box over 4 lanes or
- * fewer is a tree of selects, no loop: 3-5 % less again). min and max are exact in any order; a sum kept only to be asked
- * whether it is NaN may be formed in any order. */
+ * fewer is a tree of selects, no loop: 3-5 % less again). min and max are exact in any order; a sum kept
+ * only to be asked whether it is NaN may be formed in any order. */
 #define SIMD_REDUCE_LANES 16
 #define REDUCE_LANES(m, clauses, ...)                                                                             \
     do {                                                                                                         \
@@ -222,7 +222,7 @@ static inline __attribute__((always_inline, optimize("no-trapping-math"))) void 
 #pragma omp simd
     for (int l = 0; l < m; l++) {
         const real dx = A[l] - bc[BOX_ENTRY(0)], dy = A[N + l] - bc[BOX_ENTRY(1)], dz = A[2 * N + l] - bc[BOX_ENTRY(2)];
-        real ex; /* R^T (dx, dy, dz), as DK(box_frame) */
+        real ex; /* R^T (dx, dy, dz), as DK(box_frame), written out (with its stride a parameter: 1.5 % slower) */
         const real px = dx * bR[BOX_ENTRY(0)] + dy * bR[BOX_ENTRY(3)] + dz * bR[BOX_ENTRY(6)];
         const real py = dx * bR[BOX_ENTRY(1)] + dy * bR[BOX_ENTRY(4)] + dz * bR[BOX_ENTRY(7)];
         const real pz = dx * bR[BOX_ENTRY(2)] + dy * bR[BOX_ENTRY(5)] + dz * bR[BOX_ENTRY(8)];
@@ -270,7 +270,6 @@ __attribute__((optimize("no-trapping-math"))) static void DK(box_points_one_narr
     else DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, 0, NULL, 1);
 }
 
-
 /* Box w of the world row of each lane n0 .. n0 + m - 1 of c, gathered per lane (centre lc[3][], rotation
  * lR[9][], half extents lh[3][], rows COLLIDE_BLOCK apart) for DK(box_lanes). */
 static inline void DK(gather_box)(const dk_collide *c, int64_t n0, int m, int64_t w, real *lc, real *lR, real *lh) {
@@ -279,6 +278,19 @@ static inline void DK(gather_box)(const dk_collide *c, int64_t n0, int m, int64_
         const int64_t o = WORLD_OF(c, n0, l) * c->Wb + w;
         for (int k = 0; k < 3; k++) lc[k * COLLIDE_BLOCK + l] = bc[3 * o + k], lh[k * COLLIDE_BLOCK + l] = bh[3 * o + k];
         for (int k = 0; k < 9; k++) lR[k * COLLIDE_BLOCK + l] = bR[9 * o + k];
+    }
+}
+
+/* Cylinder w of the world row of each lane n0 .. n0 + m - 1 of c, gathered per lane (flat faces' centres
+ * pa[3][], pb[3][], radius pr[], rows COLLIDE_BLOCK apart) for DK(cylinder_lanes). */
+static inline void DK(gather_cylinder)(const dk_collide *c, int64_t n0, int m, int64_t w, real *pa, real *pb,
+                                       real *pr) {
+    const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
+    for (int l = 0; l < m; l++) {
+        const int64_t o = WORLD_OF(c, n0, l) * c->Wy + w;
+        for (int k = 0; k < 3; k++)
+            pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
+        pr[l] = yr[o];
     }
 }
 
@@ -587,12 +599,13 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 if (point && same) { /* a sphere, one box for the block, read in place (m a constant where
                                       * DK(collide_any_narrow) and DK(collide_cover_narrow) inline this) */
                     const int64_t ob = w0 * c->Wb + w;
+                    const real *Ag = A + g * 3 * N + n0;
                     if (m == COLLIDE_NARROW)
-                        DK(box_points_one_narrow)(A + g * 3 * N + n0, N, r[g], bc + 3 * ob, bR + 9 * ob, bh + 3 * ob, thr,
-                                                  clear, thr_hi, hi);
+                        DK(box_points_one_narrow)(Ag, N, r[g], bc + 3 * ob, bR + 9 * ob, bh + 3 * ob, thr, clear,
+                                                  thr_hi, hi);
                     else
-                        DK(box_points_one)(A + g * 3 * N + n0, N, r[g], bc + 3 * ob, bR + 9 * ob, bh + 3 * ob, thr, m,
-                                           clear, thr_hi, hi);
+                        DK(box_points_one)(Ag, N, r[g], bc + 3 * ob, bR + 9 * ob, bh + 3 * ob, thr, m, clear, thr_hi,
+                                           hi);
                 } else { /* lanes in several rows, or a capsule: the box gathered per lane */
                     if (!gathered) {
                         DK(gather_box)(c, n0, m, w, lc, lR, lh);
@@ -622,11 +635,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
                 if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
                 if (!gathered) {
-                    for (int l = 0; l < m; l++) {
-                        const int64_t o = wl[l] * c->Wy + w;
-                        for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
-                        pr[l] = yr[o];
-                    }
+                    DK(gather_cylinder)(c, n0, m, w, pa, pb, pr);
                     gathered = 1;
                 }
                 if (hi) DK(cylinder_lanes_cover)(A + g * 3 * N + n0, N, r[g], pa, pb, pr, thr, m, clear, thr_hi, hi);
@@ -730,16 +739,11 @@ static int DK(collide_hint)(const dk_collide *c, const CollideHint *hint, uint8_
     const real *A = (const real *)c->A + g * 3 * N, rg = ((const real *)c->r)[g], thr = (real)(c->margin + c->slack);
     uint8_t clear[COLLIDE_NARROW];
     memset(clear, 1, COLLIDE_NARROW);
-    int one_row = 1; /* the planner's blocks: the box read in place */
+    int one_row = 1; /* the planner's blocks: a box read in place */
     for (int l = 1; l < COLLIDE_NARROW; l++) one_row &= WORLD_OF(c, 0, l) == WORLD_OF(c, 0, 0);
     if (hint->cyl) {
-        const real *ya = (const real *)c->ya, *yb = (const real *)c->yb, *yr = (const real *)c->yr;
         real pa[3 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK];
-        for (int l = 0; l < COLLIDE_NARROW; l++) { /* DK(collide_lanes)'s gathering */
-            const int64_t o = WORLD_OF(c, 0, l) * c->Wy + hint->w;
-            for (int k = 0; k < 3; k++) pa[k * COLLIDE_BLOCK + l] = ya[3 * o + k], pb[k * COLLIDE_BLOCK + l] = yb[3 * o + k];
-            pr[l] = yr[o];
-        }
+        DK(gather_cylinder)(c, 0, COLLIDE_NARROW, hint->w, pa, pb, pr);
         DK(cylinder_lanes)(A, N, rg, pa, pb, pr, thr, COLLIDE_NARROW, clear);
     } else if (one_row) {
         const int64_t o = WORLD_OF(c, 0, 0) * c->Wb + hint->w;
