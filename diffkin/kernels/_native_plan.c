@@ -30,7 +30,7 @@
  * are placed by the FK block of _native.c (the chain's every
  * joint frame as an end link) and the placement columns h_c of RobotCollision._columns (each capsule end a
  * fixed point of one frame). A full edge is decided coarse, then in order (its far end first, then the
- * midpoints of ever finer halvings down to about 16 samples, then the rest along the edge: EdgeOrder), a
+ * midpoints of ever finer halvings down to about 4 samples, then the rest along the edge: EdgeOrder), a
  * prefix in order; both in blocks of 4 growing to COLLIDE_BLOCK samples, an edge leaving at its first
  * colliding block. The search's and the shortcuts' edges are taken whole or not at all, so their blocks are
  * decided by DK(collide_any): a block stops at the first collision found in any of its samples (the same
@@ -132,19 +132,22 @@ DK_LAYOUT(plan, dk_plan, DK_PLAN_FIELDS, DK_PLAN_VERSION) /* dk_layout_plan, dk_
  * usually caught among these), then the other samples in order along the edge (consecutive samples lie close
  * together, so a block's bounding boxes stay tight and its culling works; all the way coarse to fine the late
  * blocks spanned the whole edge: 10-25 % more time on the first 20 MotionBenchMaker problems of each family).
- * Edges of fewer than 16 EDGE_COARSE samples go coarse to fine all the way. */
+ * Edges of fewer than 2 EDGE_COARSE samples go coarse to fine all the way. EDGE_COARSE was 16, coarse to fine
+ * below 256 samples, which left every search edge (about 34 cover runs at step 1.0) coarse to fine all the
+ * way: 4 (and the ends) took 6 % less search time on the first 5 MotionBenchMaker problems of each family for
+ * the same paths (1.4 % more decisions); 2 did no better. */
 typedef struct {
     int64_t ns, top, level, next, seq, stride;
     int stage, prefix, last;
 } EdgeOrder;
-#define EDGE_COARSE 16 /* samples of an edge's coarse pass, about (EdgeOrder) */
+#define EDGE_COARSE 4 /* samples of an edge's coarse pass besides its ends, about (EdgeOrder) */
 
 static void edge_order_init(EdgeOrder *o, int64_t ns, int prefix, int from, int last) {
     o->ns = ns, o->prefix = prefix, o->last = last, o->seq = from, o->stage = from, o->next = 0;
     o->top = 1;
     while (o->top * 2 <= ns) o->top *= 2;
     o->level = o->top;
-    o->stride = o->top >= 16 * EDGE_COARSE ? o->top / EDGE_COARSE : 1;
+    o->stride = o->top >= 2 * EDGE_COARSE ? o->top / EDGE_COARSE : 1;
 }
 
 /* The next samples, at most size of them, into idx; returns how many (0: the edge is done). */
