@@ -498,6 +498,35 @@ def test_shortcut_points_shortens_proven_paths(robot):
     assert int(m1[0]) == int(m[r]) and torch.equal(alone[0, :int(m1[0])], new[r, :int(m[r])])
 
 
+def test_torch_search_connect_steps_no_edge_longer_than_step(robot, monkeypatch):
+    """The torch search's CONNECT steps as the C search's: every edge of a path (no shortcuts) at most
+    ``step`` long in the bound's metric (CONNECT by one whole edge joined the trees by an edge of any length),
+    clear on dense samples by the exact torch distances; with a first room of 16 nodes a tree, grown many
+    times as EXTEND and CONNECT fill it, the same paths as with 4096."""
+    from diffkin.motion import _search
+
+    chain, rc, world = robot
+    checker, qs, qg, rows = _four_pairs(robot, 0.01, seed=3, margin=0.02)
+    lim = chain.q_limits.to(torch.float64)
+    R = checker.reach.to(torch.float64)
+    run = lambda: _search.search(checker, qs, qg, lim[:, 0], lim[:, 1], rows, max_iterations=500,  # noqa: E731
+                                 step=0.05, generator=torch.Generator().manual_seed(0))
+    path, n, found = run()
+    assert found.all() and (n > 100).all()
+    for b in range(4):
+        k = int(n[b])
+        assert torch.equal(path[b, 0], qs[b]) and torch.equal(path[b, k - 1], qg[b])
+        L = ((path[b, 1:k] - path[b, :k - 1]).abs() * R).sum(-1)
+        assert float(L.max()) <= 0.05 * (1 + 1e-9)
+        f = torch.linspace(0, 1, 8, dtype=torch.float64)[:, None]
+        dense = (path[b, :k - 1, None] + f * (path[b, 1:k] - path[b, :k - 1])[:, None]).reshape(-1, 7)
+        assert float(rc.min_distance(dense, world).min()) >= 0  # (the checker's margin: 0)
+    monkeypatch.setattr(_search, "_ROOM", 16)
+    path16, n16, found16 = run()
+    assert torch.equal(n16, n) and torch.equal(found16, found)
+    assert all(torch.equal(path16[b, :int(n[b])], path[b, :int(n[b])]) for b in range(4))
+
+
 def test_row_keys_are_splitmix64_of_the_bits_in_python_integers():
     """row_keys (numpy's int64 on the CPU for a batch, Python integers for a few rows) against splitmix64
     written here on Python integers modulo 2^64: the products wrap and the shifts are logical, for any sign

@@ -10,12 +10,16 @@
  * it has grown as large as the other, where taking turns let the free tree grow large, and its nearest-node
  * scans slow, on the hard problems) extends its node nearest to a uniform sample of the box [lo, hi] (the
  * other tree's root with probability goal_bias) by at most `step` (in the bound's metric sum_j R_j |dq_j|:
- * metres of geom travel) when that whole edge is clear, and then the other tree tries its nearest node to the
- * new one by one straight edge (RRT-Connect's CONNECT); a clear one joins the trees. Both edges are taken
- * whole or not at all (VAMP's EXTEND alike; its CONNECT steps towards the other tree by `range` and keeps
- * each clear step): most edges are rejected, and a rejected edge is usually caught by its first, coarse
- * samples, where keeping an edge's clear prefix meant deciding every sample in order up to the collision
- * (docs/motion.md: about 40 % fewer decisions, as many problems solved).
+ * metres of geom travel) when that whole edge is clear, and then the other tree CONNECTs (RRT-Connect's):
+ * from its node nearest the new one it steps towards it in ceil(L / step) equal steps (L the distance in the
+ * same metric), keeping each clear step as a node, until a step collides or the last one reaches the new
+ * node and joins the trees (DK(plan_connect)). Every edge, EXTEND's and each step's, is taken whole or not
+ * at all: most edges are rejected, and a rejected edge is usually caught by its first, coarse samples, where
+ * keeping an edge's clear prefix meant deciding every sample in order up to the collision (docs/motion.md:
+ * about 40 % fewer decisions, as many problems solved). VAMP's CONNECT steps alike, from the new node towards
+ * the other tree's nearest; CONNECT by one whole straight edge, as here before, took 7 % more search time at
+ * the median problem (the first 8 MotionBenchMaker problems of each family, seeds 0-2), stepping from the new
+ * node 3 % more.
  * With `restart` > 0, every `restart` iterations without a join both trees are dropped and grown anew from
  * the roots (the random stream continuing); motion.plan passes 0 (never): restarts did not help on the
  * MotionBenchMaker problems.
@@ -236,7 +240,7 @@ typedef struct { /* one thread's work space */
     real *cols[2];        /* [n cap] the trees' nodes, joint-major (DK(plan_nearest) reads them vectorised) */
     int64_t *parent[2];   /* [cap] */
     real *path;           /* [2 cap n] */
-    int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (max_iterations + 2) */
+    int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (DK(plan_work_init)) */
     int64_t hinted;       /* blocks found colliding by a hint alone (dk_plan's hinted) */
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
     CollideHint hint[PLAN_HINTS]; /* the last sphere-object collisions of the narrow decisions, latest first */
@@ -516,6 +520,32 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
     return 1;
 }
 
+/* RRT-Connect's CONNECT: tree t steps from its node k (at qk) towards qn, a node of the other tree, in
+ * ceil(L / step) equal steps (L: sum_j R_j |qn_j - qk_j|, at least one step), each step's edge taken whole or
+ * not at all and each clear step kept as a node of t (the last one, qn itself, is not: it joins the trees).
+ * Returns the node of t that reached qn (the last step's start), or -1 where a step collided or the trees ran
+ * out of room. */
+static int64_t DK(plan_connect)(DK(PlanWork) *w, int t, int64_t k, int64_t *count, const real *qk, const real *qn,
+                                real step) {
+    const int n = w->s.n;
+    const real *R = (const real *)w->p->reach;
+    real L = 0, prior[64], next[64];
+    for (int j = 0; j < n; j++) L += R[j] * (qn[j] > qk[j] ? qn[j] - qk[j] : qk[j] - qn[j]);
+    const int64_t ns = L > step ? (int64_t)ceil((double)(L / step)) : 1;
+    memcpy(prior, qk, sizeof(real) * (size_t)n);
+    for (int64_t i = 1; i < ns; i++) {
+        if (count[t] >= w->cap - 1 && !DK(plan_grow)(w)) return -1;
+        for (int j = 0; j < n; j++) next[j] = qk[j] + (real)i / (real)ns * (qn[j] - qk[j]);
+        if (!DK(plan_edge)(w, prior, next, 1)) return -1;
+        const int64_t c = count[t]++;
+        DK(plan_put)(w, t, c, next);
+        w->parent[t][c] = k;
+        k = c;
+        memcpy(prior, next, sizeof(real) * (size_t)n);
+    }
+    return DK(plan_edge)(w, prior, qn, 0) ? k : -1; /* qn: a node, known clear */
+}
+
 /* The problem's resolution from its start qs0 and goal qg0 (p->ends >= 1): the largest rung
  * p->resolution / 2^i, i < p->ends, that both clear, found as diffkin.motion.plan._row_resolution finds it
  * (both decided at each rung until each has cleared one; the finer of their two rungs). *bad: 0, or
@@ -612,16 +642,17 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
             if (!(Ld > 0)) continue;
             const real f = Ld > step ? step / Ld : 1;
             for (int j = 0; j < n; j++) qn[j] = qa[j] + f * (qr[j] - qa[j]);
-            /* EXTEND and CONNECT take a whole edge or nothing (top of this file) */
+            /* EXTEND and each step of CONNECT take a whole edge or nothing (top of this file) */
             if (!DK(plan_edge)(w, qa, qn, 1)) continue; /* qn: a new configuration */
             const int64_t ia = count[a]++;
             DK(plan_put)(w, a, ia, qn);
             w->parent[a][ia] = near;
             const int64_t nb = DK(plan_nearest)(w->cols[1 - a], w->cap, count[1 - a], qn, R, n);
             DK(plan_node)(w, 1 - a, nb, qb);
-            if (DK(plan_edge)(w, qb, qn, 0)) { /* qn: just proven, the far end of the edge above */
+            const int64_t kb = DK(plan_connect)(w, 1 - a, nb, count, qb, qn, step);
+            if (kb >= 0) {
                 join[a] = ia;
-                join[1 - a] = nb;
+                join[1 - a] = kb;
                 it++;
                 break;
             }
@@ -677,7 +708,10 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
 
 /* A thread's work space for p (its chain's shape s, plans pp); 0 when memory ran out (then free it). */
 static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s, const DK(Params) *pp) {
-    const int64_t cap_max = p->max_iterations + 2, cap = cap_max < 4096 ? cap_max : 4096, G = p->C / 2;
+    /* room for 8 nodes an iteration: EXTEND's one and CONNECT's steps (a few at step 1.0; where the trees
+     * fill it, CONNECT stops and the search ends), allocated as the trees grow (DK(plan_grow)) */
+    const int64_t mi = p->max_iterations < ((int64_t)1 << 58) ? p->max_iterations : ((int64_t)1 << 58);
+    const int64_t cap_max = 8 * mi + 2, cap = cap_max < 4096 ? cap_max : 4096, G = p->C / 2;
     memset(w, 0, sizeof *w);
     w->p = p;
     w->s = *s;

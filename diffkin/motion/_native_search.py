@@ -4,7 +4,8 @@
 Same algorithm and success semantics as :mod:`diffkin.motion._search` (the torch path, which serves CUDA
 tensors, builds without a C compiler and models the C decisions do not serve): the straight edge first, then
 trees from the start and the goal, the one with fewer nodes extending by at most ``step`` towards a uniform
-sample and the other connecting by one straight edge (each edge taken whole or not at all), then random
+sample and the other stepping towards the new node by at most ``step`` a step (CONNECT; each edge taken
+whole or not at all), then random
 shortcuts; every edge decided by the
 subdivision of :mod:`diffkin.motion._edges` with the same reach bound ``R``
 (:func:`~diffkin.motion.joint_reach`) and each problem's resolution. What differs: one problem at a time per

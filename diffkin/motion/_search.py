@@ -3,13 +3,15 @@ random shortcutting (between waypoints, then between points anywhere on the path
 through :class:`~diffkin.motion._edges.EdgeChecker` (subdivision with
 the proven step bound), all problems' edges of one iteration in one batched decision.
 
-Each problem's two trees (rooted at the start and the goal) are tensors ``(P, 2, max_iterations + 2, nq)``
-(P: the problems the straight edge left) with parent indices; one iteration extends, for every unsolved
+Each problem's two trees (rooted at the start and the goal) are tensors ``(P, 2, C, nq)`` (P: the problems
+the straight edge left; room C for min(max_iterations + 2, 4096) nodes, doubled as it fills) with parent
+indices; one iteration extends, for every unsolved
 problem at once, its tree with fewer nodes (the start's on a tie: balanced trees, as the C search's) by one
 step of at most ``step`` (in the bound's metric: metres of geom travel) towards a random configuration when
-that whole edge is clear, then tries to connect the other tree to the new node by one straight edge
-(RRT-Connect's CONNECT, decided by one subdivided edge); both edges are taken whole or not at all, as the C
-search's.
+that whole edge is clear, then CONNECTs the other tree (RRT-Connect's): from its node nearest the new one it
+steps towards it in ``ceil(L / step)`` equal steps, keeping each clear step as a node, until a step collides
+or the last one reaches the new node and joins the trees. Every edge (EXTEND's, each step of CONNECT) is
+taken whole or not at all, as the C search's (``diffkin/kernels/_native_plan.c``).
 """
 
 from __future__ import annotations
@@ -30,6 +32,14 @@ def _nearest(nodes: Tensor, count: Tensor, q: Tensor, w: Tensor) -> Tensor:
     C = nodes.shape[1]
     d = torch.where(torch.arange(C, device=q.device)[None] < count[:, None], d, torch.inf)
     return d.argmin(1)
+
+
+_ROOM = 4096  # each tree's first room for nodes (search)
+
+
+def _grow(nodes: Tensor, parent: Tensor) -> tuple[Tensor, Tensor]:
+    """The trees (P, 2, C, nq) and their parents (P, 2, C) with room for 2 C nodes each."""
+    return torch.cat((nodes, torch.zeros_like(nodes)), 2), torch.cat((parent, torch.full_like(parent, -1)), 2)
 
 
 def _trace(nodes: Tensor, parent: Tensor, leaf: Tensor) -> tuple[Tensor, Tensor]:
@@ -69,7 +79,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
     todo = (~found).nonzero().squeeze(1)
     if todo.numel() == 0 or max_iterations == 0:
         return paths[0], lengths, found
-    C = max_iterations + 2
+    C = min(max_iterations + 2, _ROOM)  # node room per tree, doubled as CONNECT's steps fill it (_grow)
     nb = todo.numel()
     pid = problem[todo]  # the problem of each tree pair
     # the two trees of each problem: 0 rooted at the start, 1 at the goal
@@ -101,19 +111,39 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         ok, _ = checker.edges(q_near, q_new, pid[rows])
         grow, ga, gb = rows[ok], ta[ok], tb[ok]
         if grow.numel():
+            if int(count[grow, ga].max()) >= nodes.shape[2]:
+                nodes, parent = _grow(nodes, parent)
             slot = count[grow, ga]
             nodes[grow, ga, slot] = q_new[ok]
             parent[grow, ga, slot] = near[ok]
             count[grow, ga] += 1
-            # CONNECT: the other tree's nearest node to the new node by one whole edge
+            # CONNECT: the other tree steps from its nearest node towards the new one (module docstring)
             qn = q_new[ok]
-            nearB = _nearest(nodes[grow, gb], count[grow, gb], qn, w)
-            freeB, _ = checker.edges(nodes[grow, gb, nearB], qn, pid[grow])
-            joined = grow[freeB]
-            if joined.numel():
-                link[joined, ga[freeB]] = slot[freeB]
-                link[joined, gb[freeB]] = nearB[freeB]
-                active[joined] = False
+            cur = _nearest(nodes[grow, gb], count[grow, gb], qn, w)
+            qk = nodes[grow, gb, cur]
+            ns = ((qn - qk).abs() * w).sum(-1).div(step).ceil().clamp(min=1)
+            prior, on, i = qk, torch.arange(len(grow), device=dev), 1  # on: the rows still stepping
+            while on.numel():
+                g, b = grow[on], gb[on]
+                last = ns[on] <= i
+                nxt = torch.where(last[:, None], qn[on], qk[on] + (i / ns[on])[:, None] * (qn[on] - qk[on]))
+                clear, _ = checker.edges(prior, nxt, pid[g])
+                done = clear & last
+                if bool(done.any()):
+                    link[g[done], ga[on][done]] = slot[on][done]
+                    link[g[done], b[done]] = cur[on][done]
+                    active[g[done]] = False
+                keep = clear & ~last
+                on, g, b, nxt = on[keep], g[keep], b[keep], nxt[keep]
+                if on.numel():
+                    if int(count[g, b].max()) >= nodes.shape[2]:
+                        nodes, parent = _grow(nodes, parent)
+                    c = count[g, b]
+                    nodes[g, b, c] = nxt
+                    parent[g, b, c] = cur[on]
+                    count[g, b] += 1
+                    cur[on] = c
+                prior, i = nxt, i + 1
     joined = ~active
     sub_found = joined
     p0, n0 = _trace(nodes[:, 0], parent[:, 0], link[:, 0])

@@ -377,7 +377,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             searched = search_native(checker, q_start[rows], q_goal[rows], lo, hi, rows, None,
                                      max_iterations=max_iterations, step=step,
                                      shortcut_tries=SHORTCUT_TRIES * shortcut_rounds, seed=seed,
-                                     goal_bias=goal_bias, capacity=min(2 * max_iterations + 2, 1024),
+                                     goal_bias=goal_bias, capacity=min(8 * max_iterations + 2, 1024),
                                      rungs=ETA_LEVELS + 1)
         if searched is not None:
             row_eta = torch.full((B,), checker.eta, dtype=checker.reach.dtype, device=dev)
