@@ -240,7 +240,7 @@ typedef struct { /* one thread's work space */
     real *cols[2];        /* [n cap] the trees' nodes, joint-major (DK(plan_nearest) reads them vectorised) */
     int64_t *parent[2];   /* [cap] */
     real *path;           /* [2 cap n] */
-    int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (DK(plan_work_init)) */
+    int64_t cap, cap_max, checked; /* the trees' node capacity now and at most (DK(plan_search_one)) */
     int64_t hinted;       /* blocks found colliding by a hint alone (dk_plan's hinted) */
     int points;           /* every capsule a sphere (ends equal): B is A, placed once */
     CollideHint hint[PLAN_HINTS]; /* the last sphere-object collisions of the narrow decisions, latest first */
@@ -523,18 +523,19 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
 /* RRT-Connect's CONNECT: tree t steps from its node k (at qk) towards qn, a node of the other tree, in
  * ceil(L / step) equal steps (L: sum_j R_j |qn_j - qk_j|, at least one step), each step's edge taken whole or
  * not at all and each clear step kept as a node of t (the last one, qn itself, is not: it joins the trees).
- * Returns the node of t that reached qn (the last step's start), or -1 where a step collided or the trees ran
- * out of room. */
+ * Returns the node of t that reached qn (the last step's start), -1 where a step collided (or, never, the
+ * trees' room w->cap_max was full: it holds every step, DK(plan_search_one)), -2 where memory ran out. */
 static int64_t DK(plan_connect)(DK(PlanWork) *w, int t, int64_t k, int64_t *count, const real *qk, const real *qn,
                                 real step) {
     const int n = w->s.n;
     const real *R = (const real *)w->p->reach;
     real L = 0, prior[64], next[64];
     for (int j = 0; j < n; j++) L += R[j] * (qn[j] > qk[j] ? qn[j] - qk[j] : qk[j] - qn[j]);
-    const int64_t ns = L > step ? (int64_t)ceil((double)(L / step)) : 1;
+    const double r = ceil((double)L / (double)step); /* NaN: one step (then NaN's own verdict) */
+    const int64_t ns = L > step ? (r < 0x1p62 ? (int64_t)r : (int64_t)1 << 62) : 1;
     memcpy(prior, qk, sizeof(real) * (size_t)n);
     for (int64_t i = 1; i < ns; i++) {
-        if (count[t] >= w->cap - 1 && !DK(plan_grow)(w)) return -1;
+        if (count[t] >= w->cap - 1 && !DK(plan_grow)(w)) return w->cap < w->cap_max ? -2 : -1;
         for (int j = 0; j < n; j++) next[j] = qk[j] + (real)i / (real)ns * (qn[j] - qk[j]);
         if (!DK(plan_edge)(w, prior, next, 1)) return -1;
         const int64_t c = count[t]++;
@@ -599,6 +600,20 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
     w->eta = p->ends > 0 ? DK(plan_ends)(w, qs0, qg0, &bad) : ((const real *)p->eta)[b];
     if (p->ends > 0) ((real *)p->eta)[b] = w->eta;
     w->checked = w->hinted = 0; /* the search's decisions (not the ends') */
+    { /* the trees' room: an iteration adds EXTEND's node and at most ceil(D / step) - 1 of CONNECT's steps,
+       * D the longest edge between two nodes (the box [lo, hi] with the start and the goal, in the bound's
+       * metric), so the trees never fill before max_iterations; allocated only as they grow */
+        double D = 0;
+        for (int j = 0; j < n; j++) {
+            const double l = fmin(fmin((double)lo[j], (double)qs0[j]), (double)qg0[j]);
+            const double h = fmax(fmax((double)hi[j], (double)qs0[j]), (double)qg0[j]);
+            D += (double)R[j] * (h - l);
+        }
+        const double k = fmax(1, ceil(D / (double)step)), room = 4 + (double)p->max_iterations * k;
+        const int64_t top = (int64_t)1 << 58;
+        w->cap_max = room < (double)top ? (int64_t)room : top; /* (NaN: the largest) */
+        if (w->cap_max < w->cap) w->cap_max = w->cap; /* (room kept from an earlier problem) */
+    }
     w->cc.slack = (double)w->eta;
     DK(plan_forget_hints)(w);
     w->rng = plan_hash(qs0, qg0, sizeof(real) * (size_t)n, p->seed);
@@ -650,6 +665,10 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
             const int64_t nb = DK(plan_nearest)(w->cols[1 - a], w->cap, count[1 - a], qn, R, n);
             DK(plan_node)(w, 1 - a, nb, qb);
             const int64_t kb = DK(plan_connect)(w, 1 - a, nb, count, qb, qn, step);
+            if (kb == -2) {
+                status = DK_PLAN_NO_MEMORY;
+                break;
+            }
             if (kb >= 0) {
                 join[a] = ia;
                 join[1 - a] = kb;
@@ -708,10 +727,9 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
 
 /* A thread's work space for p (its chain's shape s, plans pp); 0 when memory ran out (then free it). */
 static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s, const DK(Params) *pp) {
-    /* room for 8 nodes an iteration: EXTEND's one and CONNECT's steps (a few at step 1.0; where the trees
-     * fill it, CONNECT stops and the search ends), allocated as the trees grow (DK(plan_grow)) */
-    const int64_t mi = p->max_iterations < ((int64_t)1 << 58) ? p->max_iterations : ((int64_t)1 << 58);
-    const int64_t cap_max = 8 * mi + 2, cap = cap_max < 4096 ? cap_max : 4096, G = p->C / 2;
+    /* the trees' room grows as they fill (DK(plan_grow)), up to each problem's cap_max (DK(plan_search_one)) */
+    const int64_t cap_max = p->max_iterations + 2 < 4096 ? p->max_iterations + 2 : 4096;
+    const int64_t cap = cap_max, G = p->C / 2;
     memset(w, 0, sizeof *w);
     w->p = p;
     w->s = *s;

@@ -122,6 +122,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
             cur = _nearest(nodes[grow, gb], count[grow, gb], qn, w)
             qk = nodes[grow, gb, cur]
             ns = ((qn - qk).abs() * w).sum(-1).div(step).ceil().clamp(min=1)
+            ns = torch.nan_to_num(ns, nan=1.0, posinf=1.0)  # (not finite: one step, its edge's own verdict)
             prior, on, i = qk, torch.arange(len(grow), device=dev), 1  # on: the rows still stepping
             while on.numel():
                 g, b = grow[on], gb[on]

@@ -69,6 +69,10 @@ DEFAULT_JERK_PER_ACCELERATION = 100.0
 ETA_LEVELS = 10
 #: shortcut attempts per path per round of ``shortcut_rounds``
 SHORTCUT_TRIES = 4
+#: waypoints a path of the C search may keep after its shortcuts (its rows of the output); a longer one fails
+#: with its reason (CONNECT's steps make a searched path a tree's nodes: up to about 2 max_iterations times
+#: the steps of one CONNECT before the shortcuts)
+PATH_CAPACITY = 1024
 #: rounds of spline refinement (module docstring, 5): each splits the knot intervals where the spline is not
 #: proven clear, and their neighbours, at their midpoints (the spacing there halves each round)
 #: 0 by default: refined splines timed by time_optimal can carry a jump of q̈ between its samples (cage/0035
@@ -377,7 +381,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
             searched = search_native(checker, q_start[rows], q_goal[rows], lo, hi, rows, None,
                                      max_iterations=max_iterations, step=step,
                                      shortcut_tries=SHORTCUT_TRIES * shortcut_rounds, seed=seed,
-                                     goal_bias=goal_bias, capacity=min(8 * max_iterations + 2, 1024),
+                                     goal_bias=goal_bias, capacity=PATH_CAPACITY,
                                      rungs=ETA_LEVELS + 1)
         if searched is not None:
             row_eta = torch.full((B,), checker.eta, dtype=checker.reach.dtype, device=dev)
@@ -410,7 +414,7 @@ def plan(chain, q_start, goal, *, collision, world=None, margin: float = 0.0, ve
                 path, n, found, stats = searched
                 long_rows = rows[stats["too_long"]]
                 fail(torch.zeros(B, dtype=torch.bool, device=dev).index_fill(0, long_rows, True),
-                     "path longer than 1024 waypoints after shortcutting")
+                     f"path longer than {PATH_CAPACITY} waypoints after shortcutting")
             else:  # the torch path: CUDA, no compiler, models the C decisions do not serve
                 path, n, found = search(checker, q_start[rows], q_goal[rows], lo, hi, rows,
                                         max_iterations=max_iterations, step=step, generator=gen,
