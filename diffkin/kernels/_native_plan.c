@@ -520,6 +520,13 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
     return 1;
 }
 
+/* The length sum_j R_j |b_j - a_j| of the edge a -> b in the bound's metric (the search's, in order over j). */
+static inline real DK(plan_length)(const real *R, const real *a, const real *b, int n) {
+    real L = 0;
+    for (int j = 0; j < n; j++) L += R[j] * (b[j] > a[j] ? b[j] - a[j] : a[j] - b[j]);
+    return L;
+}
+
 /* RRT-Connect's CONNECT: tree t steps from its node k (at qk) towards qn, a node of the other tree, in
  * ceil(L / step) equal steps (L: sum_j R_j |qn_j - qk_j|, at least one step), each step's edge taken whole or
  * not at all and each clear step kept as a node of t (the last one, qn itself, is not: it joins the trees).
@@ -528,9 +535,8 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
 static int64_t DK(plan_connect)(DK(PlanWork) *w, int t, int64_t k, int64_t *count, const real *qk, const real *qn,
                                 real step) {
     const int n = w->s.n;
-    const real *R = (const real *)w->p->reach;
-    real L = 0, prior[64], next[64];
-    for (int j = 0; j < n; j++) L += R[j] * (qn[j] > qk[j] ? qn[j] - qk[j] : qk[j] - qn[j]);
+    const real L = DK(plan_length)((const real *)w->p->reach, qk, qn, n);
+    real prior[64], next[64];
     const double r = ceil((double)L / (double)step); /* NaN: one step (then NaN's own verdict) */
     const int64_t ns = L > step ? (r < 0x1p62 ? (int64_t)r : (int64_t)1 << 62) : 1;
     memcpy(prior, qk, sizeof(real) * (size_t)n);
@@ -652,8 +658,7 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
             }
             const int64_t near = DK(plan_nearest)(w->cols[a], w->cap, count[a], qr, R, n);
             DK(plan_node)(w, a, near, qa);
-            real Ld = 0;
-            for (int j = 0; j < n; j++) Ld += R[j] * (qr[j] > qa[j] ? qr[j] - qa[j] : qa[j] - qr[j]);
+            const real Ld = DK(plan_length)(R, qa, qr, n);
             if (!(Ld > 0)) continue;
             const real f = Ld > step ? step / Ld : 1;
             for (int j = 0; j < n; j++) qn[j] = qa[j] + f * (qr[j] - qa[j]);
@@ -728,14 +733,12 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
 /* A thread's work space for p (its chain's shape s, plans pp); 0 when memory ran out (then free it). */
 static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s, const DK(Params) *pp) {
     /* the trees' room grows as they fill (DK(plan_grow)), up to each problem's cap_max (DK(plan_search_one)) */
-    const int64_t cap_max = p->max_iterations + 2 < 4096 ? p->max_iterations + 2 : 4096;
-    const int64_t cap = cap_max, G = p->C / 2;
+    const int64_t cap = p->max_iterations + 2 < 4096 ? p->max_iterations + 2 : 4096, G = p->C / 2;
     memset(w, 0, sizeof *w);
     w->p = p;
     w->s = *s;
     w->pp = pp;
-    w->cap = cap;
-    w->cap_max = cap_max;
+    w->cap = w->cap_max = cap;
     size_t per;
     w->scratch = DK(team_alloc)(DK(scratch_size)(s) / sizeof(real), 1, &per);
     w->qs = (real *)malloc(sizeof(real) * COLLIDE_BLOCK * (size_t)s->n);

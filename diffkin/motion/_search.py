@@ -37,8 +37,11 @@ def _nearest(nodes: Tensor, count: Tensor, q: Tensor, w: Tensor) -> Tensor:
 _ROOM = 4096  # each tree's first room for nodes (search)
 
 
-def _grow(nodes: Tensor, parent: Tensor) -> tuple[Tensor, Tensor]:
-    """The trees (P, 2, C, nq) and their parents (P, 2, C) with room for 2 C nodes each."""
+def _room(nodes: Tensor, parent: Tensor, slot: Tensor) -> tuple[Tensor, Tensor]:
+    """The trees (P, 2, C, nq) and their parents (P, 2, C), their room doubled where a node is about to go
+    into a slot past it (``slot``: the next free slot of each tree taking one)."""
+    if int(slot.max()) < nodes.shape[2]:
+        return nodes, parent
     return torch.cat((nodes, torch.zeros_like(nodes)), 2), torch.cat((parent, torch.full_like(parent, -1)), 2)
 
 
@@ -79,7 +82,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
     todo = (~found).nonzero().squeeze(1)
     if todo.numel() == 0 or max_iterations == 0:
         return paths[0], lengths, found
-    C = min(max_iterations + 2, _ROOM)  # node room per tree, doubled as CONNECT's steps fill it (_grow)
+    C = min(max_iterations + 2, _ROOM)  # node room per tree, doubled as CONNECT's steps fill it (_room)
     nb = todo.numel()
     pid = problem[todo]  # the problem of each tree pair
     # the two trees of each problem: 0 rooted at the start, 1 at the goal
@@ -111,9 +114,8 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         ok, _ = checker.edges(q_near, q_new, pid[rows])
         grow, ga, gb = rows[ok], ta[ok], tb[ok]
         if grow.numel():
-            if int(count[grow, ga].max()) >= nodes.shape[2]:
-                nodes, parent = _grow(nodes, parent)
             slot = count[grow, ga]
+            nodes, parent = _room(nodes, parent, slot)
             nodes[grow, ga, slot] = q_new[ok]
             parent[grow, ga, slot] = near[ok]
             count[grow, ga] += 1
@@ -137,9 +139,8 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
                 keep = clear & ~last
                 on, g, b, nxt = on[keep], g[keep], b[keep], nxt[keep]
                 if on.numel():
-                    if int(count[g, b].max()) >= nodes.shape[2]:
-                        nodes, parent = _grow(nodes, parent)
                     c = count[g, b]
+                    nodes, parent = _room(nodes, parent, c)
                     nodes[g, b, c] = nxt
                     parent[g, b, c] = cur[on]
                     count[g, b] += 1
