@@ -496,25 +496,34 @@ static inline void DK(plan_node)(const DK(PlanWork) *w, int t, int64_t k, real *
 }
 
 /* Room for nodes up to w->cap_max in both trees: the capacity doubles (a search of many iterations pays for
- * the memory it uses only: 10^6 iterations would be 240 MB per thread up front); 0 when memory ran out. */
+ * the memory it uses only: 10^6 iterations would be 240 MB per thread up front); 0 when memory ran out, the
+ * trees then as they were (every new array is allocated before any is used: the columns' stride is the
+ * capacity, so a tree moved to the new one beside one left at the old would be misread). */
 static int DK(plan_grow)(DK(PlanWork) *w) {
     const int n = w->s.n;
     const int64_t cap = 2 * w->cap < w->cap_max ? 2 * w->cap : w->cap_max;
     if (cap <= w->cap) return 0;
-    for (int t = 0; t < 2; t++) {
+    real *cols[2], *path;
+    cols[0] = (real *)malloc(sizeof(real) * (size_t)(cap * n));
+    cols[1] = (real *)malloc(sizeof(real) * (size_t)(cap * n));
+    path = (real *)malloc(sizeof(real) * (size_t)(2 * cap * n + 2 * n)); /* (no path is held while growing) */
+    int ok = cols[0] && cols[1] && path;
+    for (int t = 0; t < 2 && ok; t++) { /* a parent array grown alone keeps its entries: harmless */
         int64_t *parent = (int64_t *)realloc(w->parent[t], sizeof(int64_t) * (size_t)cap);
         if (parent) w->parent[t] = parent;
-        real *cols = (real *)malloc(sizeof(real) * (size_t)(cap * n));
-        if (!(parent && cols)) {
-            free(cols);
-            return 0;
-        }
-        for (int j = 0; j < n; j++) memcpy(cols + (size_t)j * cap, w->cols[t] + (size_t)j * w->cap, sizeof(real) * w->cap);
-        free(w->cols[t]);
-        w->cols[t] = cols;
+        ok = parent != NULL;
     }
-    real *path = (real *)realloc(w->path, sizeof(real) * (size_t)(2 * cap * n + 2 * n));
-    if (!path) return 0;
+    if (!ok) {
+        free(cols[0]), free(cols[1]), free(path);
+        return 0;
+    }
+    for (int t = 0; t < 2; t++) {
+        for (int j = 0; j < n; j++)
+            memcpy(cols[t] + (size_t)j * cap, w->cols[t] + (size_t)j * w->cap, sizeof(real) * w->cap);
+        free(w->cols[t]);
+        w->cols[t] = cols[t];
+    }
+    free(w->path);
     w->path = path;
     w->cap = cap;
     return 1;
