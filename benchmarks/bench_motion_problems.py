@@ -51,7 +51,9 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
   spherized Panda, default RRT-Connect and simplification on every problem; its clock's median planning
   (``search_ms``) and planning + simplification (``ms``) times; its simplified path timed by toppra under
   the same Franka velocity and acceleration limits (at rest at every waypoint: the path it checked;
-  ``spline_s``: the unchecked cubic spline through its waypoints), length and jerk as above;
+  ``spline_s``: the unchecked cubic spline through its waypoints), length and jerk as above; ``crossing``:
+  how many of its solved paths cross its own sphere model of the robot against the scene (a distance < 0)
+  somewhere between its discrete checks (:func:`vamp_crossings`: samples ~1 mm of travel apart);
 * ``diffkin plan, one at a time``: the first ``--subset`` problems of each family, each in its own call on one
   thread (after one untimed warm-up call), and the search stage alone on each (the edge checker and
   RRT-Connect as ``plan`` runs them, :func:`_search_stage`): median wall times, and the search's median over
@@ -60,7 +62,9 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
   clock starts after ``problem_dict_to_vamp`` has built its environment): ``search_prepared_ms`` and
   ``prepared_vs_vamp``; and that call's own time in C (a monotonic clock read in its thread around each
   problem), as VAMP's clock times its planner (its start and goal decisions included; no Python):
-  ``search_c_ms`` and ``c_vs_vamp``;
+  ``search_c_ms`` and ``c_vs_vamp``; and the proof of the path found alone (:func:`_path_proof`: its
+  edges decided whole in C at the problem's resolution, as the search decides them; what any search with
+  this edge checker pays at least): ``proof_ms`` and ``proof_vs_vamp``;
 * ``OMPL RRTConnect``: on the same subset, as ``--ompl`` (``--ompl-time`` seconds each). When ``ompl`` is
   not importable here, ``OMPL_SITE`` names a site-packages holding PyPI ``ompl`` (appended to ``sys.path``).
 
@@ -292,6 +296,43 @@ def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
     return out[2], stats["start_ok"] & stats["goal_ok"], stats["checked"], stats["nanoseconds"]
 
 
+def _path_proof(chain, checker, qs, qg, iterations: int, step: float, seed: int,
+                repeats: int = 3) -> tuple[float, int] | None:
+    """The proof of the found path alone, the least any search with this edge checker pays: the path of
+    :func:`_search_stage` (one problem, ``checker`` prepared, :func:`prepared_scene`) found again, then its
+    edges decided whole in C at the problem's resolution (``EdgeChecker.edges``: covers, as the search's),
+    timed alone -> (seconds: the least of ``repeats`` calls' wall time less the least of as many calls with
+    no edge; configurations decided), None where no path was found."""
+    import time
+
+    from diffkin.motion._native_search import search_native
+    from diffkin.motion.plan import ETA_LEVELS
+
+    lim = chain.q_limits
+    out = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], torch.arange(1), None,
+                        max_iterations=iterations, step=step, shortcut_tries=0, seed=seed,
+                        rungs=ETA_LEVELS + 1)
+    if not bool(out[2][0]):
+        return None
+    n = int(out[1][0])
+    qa, qb = out[0][0, :n - 1].contiguous(), out[0][0, 1:n].contiguous()
+    checker.set_row_resolution(out[3]["eta"])
+    rows = torch.zeros(n - 1, dtype=torch.long)
+    steps, eta = checker.steps(qb - qa, rows), checker.eta_of(rows)
+    planner = checker.native(qs)
+    best, empty = float("inf"), float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        free, decided = planner.edges(qa, qb, steps, eta, None, False)
+        t1 = time.perf_counter()
+        planner.edges(qa[:0], qb[:0], steps[:0], eta[:0], None, False)
+        t2 = time.perf_counter()
+        best, empty = min(best, t1 - t0), min(empty, t2 - t1)
+    if not bool((free > steps).all()):  # the search's own edges: never refused
+        raise RuntimeError("a found path's edge was refused when decided alone")
+    return max(best - empty, 0.0), int(decided.sum())
+
+
 def search_rows(problems, iterations: int = ITERATIONS, step: float = 1.0, single: int = 10,
                 seed: int = 0) -> list[dict]:
     """The ``--search`` rows: the search stage alone (:func:`_search_stage`), all problems in one call (their
@@ -404,15 +445,44 @@ def _one_at_a_time_records(problems, iterations: int, step: float, seed: int, om
             t3 = time.perf_counter()
             c_ns = _search_stage(chain, model, world, qs, qg, iterations, step, seed, checker)[3]
             t4 = time.perf_counter()
+            proof = _path_proof(chain, checker, qs, qg, iterations, step, seed)
         r = {"family": p.family, "name": p.name, "valid": "in collision" not in res.reason[0],
              "success": bool(res.success[0]), "plan_s": t1 - t0, "found": bool(found[0]), "search_s": t2 - t1,
              "search_prepared_s": t4 - t3, "search_c_s": 1e-9 * float(c_ns[0]),
+             "proof_s": proof[0] if proof else None, "proof_checked": proof[1] if proof else None,
              "ompl_success": None, "ompl_s": None}
         if mods is not None:
             r["ompl_success"], r["ompl_s"] = _ompl_solve(*mods, model, world, lim, p, ompl_time)
         if k:
             records.append(r)
     return records
+
+
+def vamp_crossings(problems, vamp: dict, max_step: float = 1e-3) -> dict[str, bool]:
+    """Whether each path VAMP solved crosses its own collision model somewhere between its checks: the
+    spherized Panda of this benchmark against the problem's scene (margin 0), decided by diffkin's C
+    decisions at samples no joint moves more than ``max_step`` rad apart along the path's straight segments
+    (a point moves at most about 1 mm from one to the next): ``True`` where some sample has a distance < 0.
+    ``vamp``: :func:`benchmarks.peers_vamp.solve_vamp`'s answers by name; keys: the solved problems."""
+    import math
+
+    from diffkin.motion._edges import EdgeChecker
+
+    rc = robot_model("spherized").requires_grad_(False)
+    out = {}
+    for p in problems:
+        a = vamp[p.name]
+        if not a["solved"]:
+            continue
+        path = torch.tensor(a["path"], dtype=F64)
+        parts = [path[:1]]
+        for qa, qb in zip(path[:-1], path[1:]):
+            k = max(1, math.ceil(float((qb - qa).abs().max()) / max_step))
+            parts.append(qa + torch.arange(1, k + 1, dtype=F64)[:, None] / k * (qb - qa))
+        q = torch.cat(parts)
+        checker = EdgeChecker(rc.allow_collisions(p.scene.allowed), p.scene.to_world(dtype=F64), 0.0, 0.005)
+        out[p.name] = not bool(checker.clear(q, torch.zeros(q.shape[0], dtype=torch.long), slack=0.0).all())
+    return out
 
 
 def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: float = 1.0, recheck: int = 2,
@@ -433,6 +503,7 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
     vamp = None
     if peers_vamp.available():
         vamp = {a["name"]: a for a in peers_vamp.solve_vamp(problems, ARCHIVE, FRANKA_V, FRANKA_A)}
+        crossing = vamp_crossings(problems, vamp)
     batch, total = _plan_records(problems, len(problems), iterations, step, recheck, seed)
     first = [p for p in problems if p.index <= subset]
     single = _one_at_a_time(first, iterations, step, seed, ompl_time)
@@ -463,6 +534,7 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
             rows.append({"method": "VAMP rrtc + simplify", "family": f, "problems": len(vs),
                          "valid": sum(v["valid"] for v in vs), "success": len(sv),
                          "ms": med([1e-6 * (v["plan_ns"] + v["simplify_ns"]) for v in sv]),
+                         "crossing": sum(crossing[v["name"]] for v in sv),
                          "search_ms": med([1e-6 * v["plan_ns"] for v in sv]),
                          "duration_s": med([v["toppra_stop_s"] for v in sv]),
                          "spline_s": med([v["toppra_spline_s"] for v in sv]),
@@ -474,6 +546,7 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
         search_ms = [1e3 * r["search_s"] for r in ss if r["found"]]
         prepared_ms = [1e3 * r["search_prepared_s"] for r in ss if r["found"]]
         c_ms = [1e3 * r["search_c_s"] for r in ss if r["found"]]
+        proof_ms = [1e3 * r["proof_s"] for r in ss if r["proof_s"] is not None]
         vamp_ms = [1e-6 * vamp[r["name"]]["plan_ns"] for r in ss if vamp[r["name"]]["solved"]] if vamp else []
         rows.append({"method": f"diffkin plan, one at a time (first {subset})", "family": f,
                      "problems": len(ss), "valid": sum(r["valid"] for r in ss),
@@ -483,7 +556,9 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
                      "search_prepared_ms": med(prepared_ms),
                      "prepared_vs_vamp": (med(prepared_ms) / med(vamp_ms)) if prepared_ms and vamp_ms
                      else None, "search_c_ms": med(c_ms),
-                     "c_vs_vamp": (med(c_ms) / med(vamp_ms)) if c_ms and vamp_ms else None})
+                     "c_vs_vamp": (med(c_ms) / med(vamp_ms)) if c_ms and vamp_ms else None,
+                     "proof_ms": med(proof_ms),
+                     "proof_vs_vamp": (med(proof_ms) / med(vamp_ms)) if proof_ms and vamp_ms else None})
         if ss[0]["ompl_success"] is not None:
             rows.append({"method": f"OMPL RRTConnect, diffkin checker (first {subset}, {ompl_time:g} s)",
                          "family": f, "problems": len(ss), "success": sum(r["ompl_success"] for r in ss),
@@ -493,6 +568,7 @@ def compare_rows(problems, subset: int = 5, iterations: int = ITERATIONS, step: 
 
 COLUMNS = ("method", "family", "problems", "valid", "success", "ms", "search_ms", "search_found",
            "search_vs_vamp", "search_prepared_ms", "prepared_vs_vamp", "search_c_ms", "c_vs_vamp",
+           "proof_ms", "proof_vs_vamp", "crossing",
            "duration_s", "spline_s",
            "dur_vs_vamp_stop", "dur_vs_vamp_spline", "length_rad",
            "jerk_max", "recheck_min_mm")

@@ -15,7 +15,7 @@ from diffkin.collision import RobotCollision, World
 from diffkin.kernels import native
 from diffkin.motion._edges import EdgeChecker
 from diffkin.motion._native_search import search_native
-from diffkin.motion.plan import _row_resolution
+from diffkin.motion.plan import ETA_LEVELS, _row_resolution
 from diffkin.sampling import random_configuration
 
 pytestmark = pytest.mark.skipif(not native.available(), reason="the C library is not built")
@@ -470,8 +470,6 @@ def test_c_search_decides_starts_and_goals_as_the_torch_ladder(panda, dtype):
     problem (table_pick/0041), a goal moved into collision and a start moved into collision; the rows
     with both clear return the paths and counts of a search given that resolution, the others no path
     (status START_BAD / GOAL_BAD), and each problem's C clock is positive."""
-    from diffkin.motion.plan import ETA_LEVELS
-
     chain, rc, probs = panda
     if dtype == torch.float32:  # copies: float() converts a module in place (the fixture is shared)
         rc = copy.deepcopy(rc).float()
@@ -540,3 +538,37 @@ def test_goal_bias_validated_and_used(panda):
     res = motion.plan(chain, qs, qg, collision=rc, world=world, velocity_limit=V, acceleration_limit=10.0,
                       max_iterations=10000, step=0.5, goal_bias=0.5)
     assert res.success.all(), res.reason
+
+
+def test_benchmark_vamp_crossings_and_path_proof(panda):
+    """The --compare helpers of benchmarks/bench_motion_problems.py. vamp_crossings flags a path whose clear
+    waypoints are joined through an obstacle (box/0001's start and goal: some of 400 samples of the segment
+    collide in the torch placement), not a path the C search proved clear, and leaves unsolved answers out.
+    _path_proof decides the found path's edges alone (every edge clear, each decided at least once) and
+    gives None where no path was found (no iterations, the direct edge refused)."""
+    from benchmarks import bench_motion_problems as bench
+
+    chain, rc, probs = panda
+    p = probs["box/0001"]
+    model, world = rc.allow_collisions(p.scene.allowed), p.scene.to_world(dtype=F64)
+    a, b = torch.tensor(p.start, dtype=F64), torch.tensor(p.goal, dtype=F64)
+    reference = EdgeChecker(model, world, 0.0, 0.005)
+    reference.use_c = False
+    with native.disabled():
+        ok = reference.clear(a + torch.linspace(0, 1, 400, dtype=F64)[:, None] * (b - a),
+                             torch.zeros(400, dtype=torch.long), slack=0.0)
+    assert ok[0] and ok[-1] and not ok.all()
+    qs, qg = a[None], b[None]
+    checker = bench.prepared_scene(model, world, qs)
+    lim = chain.q_limits
+    found_path = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], torch.arange(1), None,
+                               max_iterations=20000, step=1.0, shortcut_tries=0, seed=0, rungs=ETA_LEVELS + 1)
+    assert found_path[2].all()
+    solved = found_path[0][0, :int(found_path[1][0])].tolist()
+    for path, crossing in (([p.start, p.goal], True), (solved, False)):
+        answers = {p.name: {"name": p.name, "solved": True, "path": path},
+                   "box/0019": {"name": "box/0019", "solved": False, "path": []}}
+        assert bench.vamp_crossings([p, probs["box/0019"]], answers) == {p.name: crossing}
+    seconds, decided = bench._path_proof(chain, checker, qs, qg, 20000, 1.0, 0)
+    assert seconds >= 0 and decided >= len(solved) - 1
+    assert bench._path_proof(chain, checker, qs, qg, 0, 1.0, 0) is None
