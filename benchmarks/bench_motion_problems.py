@@ -52,8 +52,9 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
   (``search_ms``) and planning + simplification (``ms``) times; its simplified path timed by toppra under
   the same Franka velocity and acceleration limits (at rest at every waypoint: the path it checked;
   ``spline_s``: the unchecked cubic spline through its waypoints), length and jerk as above; ``crossing``:
-  how many of its solved paths cross its own sphere model of the robot against the scene (a distance < 0)
-  somewhere between its discrete checks (:func:`vamp_crossings`: samples ~1 mm of travel apart);
+  how many of its solved paths cross its own sphere model of the robot against the exact scene (a distance
+  < 0) somewhere along them, between its discrete checks (:func:`vamp_crossings`: samples at most 1 mm of
+  travel apart);
 * ``diffkin plan, one at a time``: the first ``--subset`` problems of each family, each in its own call on one
   thread (after one untimed warm-up call), and the search stage alone on each (the edge checker and
   RRT-Connect as ``plan`` runs them, :func:`_search_stage`): median wall times, and the search's median over
@@ -62,9 +63,10 @@ figures in ``docs/bench/motion_problems.txt``), a row per method and family:
   clock starts after ``problem_dict_to_vamp`` has built its environment): ``search_prepared_ms`` and
   ``prepared_vs_vamp``; and that call's own time in C (a monotonic clock read in its thread around each
   problem), as VAMP's clock times its planner (its start and goal decisions included; no Python):
-  ``search_c_ms`` and ``c_vs_vamp``; and the proof of the path found alone (:func:`_path_proof`: its
-  edges decided whole in C at the problem's resolution, as the search decides them; what any search with
-  this edge checker pays at least): ``proof_ms`` and ``proof_vs_vamp``;
+  ``search_c_ms`` and ``c_vs_vamp``; and the decisions proving the path found alone (:func:`_path_proof`:
+  its edges decided whole in C at the problem's resolution, as the search decides them, the least of 3
+  calls where the others are single calls; what a search returning that path pays at least):
+  ``proof_ms`` and ``proof_vs_vamp``;
 * ``OMPL RRTConnect``: on the same subset, as ``--ompl`` (``--ompl-time`` seconds each). When ``ompl`` is
   not importable here, ``OMPL_SITE`` names a site-packages holding PyPI ``ompl`` (appended to ``sys.path``).
 
@@ -298,11 +300,13 @@ def _search_stage(chain, model, world, qs, qg, iterations: int, step: float,
 
 def _path_proof(chain, checker, qs, qg, iterations: int, step: float, seed: int,
                 repeats: int = 3) -> tuple[float, int] | None:
-    """The proof of the found path alone, the least any search with this edge checker pays: the path of
-    :func:`_search_stage` (one problem, ``checker`` prepared, :func:`prepared_scene`) found again, then its
-    edges decided whole in C at the problem's resolution (``EdgeChecker.edges``: covers, as the search's),
-    timed alone -> (seconds: the least of ``repeats`` calls' wall time less the least of as many calls with
-    no edge; configurations decided), None where no path was found."""
+    """The decisions proving the found path alone (what a search returning this path pays at least with this
+    edge checker, its start and goal decisions aside): the path of :func:`_search_stage` (one problem,
+    ``checker`` prepared, :func:`prepared_scene`) found again, then its edges decided whole in C at the
+    problem's resolution (``EdgeChecker.edges``: covers, as the search's; each edge from its first sample,
+    where the search takes that one as known clear), timed alone -> (seconds: the least of ``repeats`` calls'
+    wall time less the least of as many calls with no edge; configurations decided), None where no path was
+    found (or, never seen, the C call is refused or refuses an edge of the path: rounding at a threshold)."""
     import time
 
     from diffkin.motion._native_search import search_native
@@ -323,14 +327,14 @@ def _path_proof(chain, checker, qs, qg, iterations: int, step: float, seed: int,
     best, empty = float("inf"), float("inf")
     for _ in range(repeats):
         t0 = time.perf_counter()
-        free, decided = planner.edges(qa, qb, steps, eta, None, False)
+        got = planner.edges(qa, qb, steps, eta, None, False)
         t1 = time.perf_counter()
         planner.edges(qa[:0], qb[:0], steps[:0], eta[:0], None, False)
         t2 = time.perf_counter()
         best, empty = min(best, t1 - t0), min(empty, t2 - t1)
-    if not bool((free > steps).all()):  # the search's own edges: never refused
-        raise RuntimeError("a found path's edge was refused when decided alone")
-    return max(best - empty, 0.0), int(decided.sum())
+    if got is None or not bool((got[0] > steps).all()):  # (first_bad > steps: every sample clear)
+        return None
+    return max(best - empty, 0.0), int(got[1].sum())
 
 
 def search_rows(problems, iterations: int = ITERATIONS, step: float = 1.0, single: int = 10,
@@ -449,7 +453,7 @@ def _one_at_a_time_records(problems, iterations: int, step: float, seed: int, om
         r = {"family": p.family, "name": p.name, "valid": "in collision" not in res.reason[0],
              "success": bool(res.success[0]), "plan_s": t1 - t0, "found": bool(found[0]), "search_s": t2 - t1,
              "search_prepared_s": t4 - t3, "search_c_s": 1e-9 * float(c_ns[0]),
-             "proof_s": proof[0] if proof else None, "proof_checked": proof[1] if proof else None,
+             "proof_s": proof[0] if proof else None,
              "ompl_success": None, "ompl_s": None}
         if mods is not None:
             r["ompl_success"], r["ompl_s"] = _ompl_solve(*mods, model, world, lim, p, ompl_time)
@@ -458,12 +462,14 @@ def _one_at_a_time_records(problems, iterations: int, step: float, seed: int, om
     return records
 
 
-def vamp_crossings(problems, vamp: dict, max_step: float = 1e-3) -> dict[str, bool]:
-    """Whether each path VAMP solved crosses its own collision model somewhere between its checks: the
-    spherized Panda of this benchmark against the problem's scene (margin 0), decided by diffkin's C
-    decisions at samples no joint moves more than ``max_step`` rad apart along the path's straight segments
-    (a point moves at most about 1 mm from one to the next): ``True`` where some sample has a distance < 0.
-    ``vamp``: :func:`benchmarks.peers_vamp.solve_vamp`'s answers by name; keys: the solved problems."""
+def vamp_crossings(problems, vamp: dict, max_travel: float = 1e-3) -> dict[str, bool]:
+    """Whether each path VAMP solved crosses its own collision model somewhere along it: the spherized Panda
+    of this benchmark against the problem's exact scene (VAMP's own environment encloses its cylinders, so a
+    crossing here is one there too), margin 0, decided by diffkin's C decisions at samples of the path's
+    straight segments no point of the robot moves more than ``max_travel`` m apart (the edge checker's bound
+    sum_j R_j |dq_j|): ``True`` where some sample has a distance < 0 (its waypoints included: VAMP checked
+    them). ``vamp``: :func:`benchmarks.peers_vamp.solve_vamp`'s answers by name; keys: the solved
+    problems."""
     import math
 
     from diffkin.motion._edges import EdgeChecker
@@ -474,13 +480,13 @@ def vamp_crossings(problems, vamp: dict, max_step: float = 1e-3) -> dict[str, bo
         a = vamp[p.name]
         if not a["solved"]:
             continue
+        checker = EdgeChecker(rc.allow_collisions(p.scene.allowed), p.scene.to_world(dtype=F64), 0.0, 0.005)
         path = torch.tensor(a["path"], dtype=F64)
         parts = [path[:1]]
         for qa, qb in zip(path[:-1], path[1:]):
-            k = max(1, math.ceil(float((qb - qa).abs().max()) / max_step))
+            k = max(1, math.ceil(float((qb - qa).abs() @ checker.reach) / max_travel))
             parts.append(qa + torch.arange(1, k + 1, dtype=F64)[:, None] / k * (qb - qa))
         q = torch.cat(parts)
-        checker = EdgeChecker(rc.allow_collisions(p.scene.allowed), p.scene.to_world(dtype=F64), 0.0, 0.005)
         out[p.name] = not bool(checker.clear(q, torch.zeros(q.shape[0], dtype=torch.long), slack=0.0).all())
     return out
 
@@ -807,7 +813,12 @@ def _compare_text(rows, a, n: int) -> str:
             "the clock starts (diffkin: the edge checker and its C constants; VAMP's clock also starts after "
             "its environment is built); search_c_ms, c_vs_vamp = that call's own time in C (a monotonic "
             "clock read in its thread; its start and goal decisions and RRT-Connect, no Python), as VAMP's "
-            "clock times its planner; duration_s = trajectory seconds under the Franka limits (VAMP: its "
+            "clock times its planner; proof_ms, proof_vs_vamp = the found path's edges decided alone "
+            "in C (the least of 3 calls' wall time less an empty call's; what a search returning that path "
+            "pays at least); crossing = VAMP's solved paths that cross its own sphere model somewhere along "
+            "them (samples at most 1 mm of travel apart, diffkin's C decisions at margin 0, the exact "
+            "scene); duration_s = trajectory seconds under the "
+            "Franka limits (VAMP: its "
             "path timed by toppra, at rest at every waypoint; spline_s: toppra on the cubic spline through "
             "its waypoints, not collision-checked); dur_vs_vamp_* = median of diffkin's duration / VAMP's on "
             "problems both solved; length_rad = joint-space path length; jerk_max = max |dq''|/dt sampled "

@@ -542,10 +542,13 @@ def test_goal_bias_validated_and_used(panda):
 
 def test_benchmark_vamp_crossings_and_path_proof(panda):
     """The --compare helpers of benchmarks/bench_motion_problems.py. vamp_crossings flags a path whose clear
-    waypoints are joined through an obstacle (box/0001's start and goal: some of 400 samples of the segment
-    collide in the torch placement), not a path the C search proved clear, and leaves unsolved answers out.
-    _path_proof decides the found path's edges alone (every edge clear, each decided at least once) and
-    gives None where no path was found (no iterations, the direct edge refused)."""
+    waypoints are joined through an obstacle (box/0001's start and goal: some of 4 000 samples of the segment
+    collide in the torch placement), not a path the C search proved clear, nor one that comes closer than the
+    resolution to the obstacle without touching it (the segment's clear prefix up to its last sample before
+    the first colliding one: decided at margin 0, not at the search's slack), and leaves unsolved answers
+    out. _path_proof decides the found path's edges alone at the problem's resolution (as many decisions as
+    the edge checker's own C edges there) and gives None where no path was found (no iterations, the
+    direct edge refused)."""
     from benchmarks import bench_motion_problems as bench
 
     chain, rc, probs = panda
@@ -554,21 +557,30 @@ def test_benchmark_vamp_crossings_and_path_proof(panda):
     a, b = torch.tensor(p.start, dtype=F64), torch.tensor(p.goal, dtype=F64)
     reference = EdgeChecker(model, world, 0.0, 0.005)
     reference.use_c = False
+    q = a + torch.linspace(0, 1, 4000, dtype=F64)[:, None] * (b - a)
+    zeros = torch.zeros(4000, dtype=torch.long)
     with native.disabled():
-        ok = reference.clear(a + torch.linspace(0, 1, 400, dtype=F64)[:, None] * (b - a),
-                             torch.zeros(400, dtype=torch.long), slack=0.0)
-    assert ok[0] and ok[-1] and not ok.all()
+        touching = ~reference.clear(q, zeros, slack=0.0)
+        within = ~reference.clear(q, zeros, slack=0.005)
+    assert not touching[0] and not touching[-1] and touching.any()
+    near = int(touching.nonzero()[0]) - 1  # the last sample before the first colliding one
+    assert within[near]  # closer than the resolution, clear at margin 0
     qs, qg = a[None], b[None]
     checker = bench.prepared_scene(model, world, qs)
     lim = chain.q_limits
     found_path = search_native(checker, qs, qg, lim[:, 0], lim[:, 1], torch.arange(1), None,
                                max_iterations=20000, step=1.0, shortcut_tries=0, seed=0, rungs=ETA_LEVELS + 1)
     assert found_path[2].all()
-    solved = found_path[0][0, :int(found_path[1][0])].tolist()
-    for path, crossing in (([p.start, p.goal], True), (solved, False)):
+    n = int(found_path[1][0])
+    solved = found_path[0][0, :n]
+    cases = (([p.start, p.goal], True), (solved.tolist(), False), ([p.start, q[near].tolist()], False))
+    for path, crossing in cases:
         answers = {p.name: {"name": p.name, "solved": True, "path": path},
                    "box/0019": {"name": "box/0019", "solved": False, "path": []}}
         assert bench.vamp_crossings([p, probs["box/0019"]], answers) == {p.name: crossing}
     seconds, decided = bench._path_proof(chain, checker, qs, qg, 20000, 1.0, 0)
-    assert seconds >= 0 and decided >= len(solved) - 1
+    fresh = EdgeChecker(model, world, 0.0, 0.005)
+    fresh.set_row_resolution(found_path[3]["eta"])
+    free, _ = fresh.edges(solved[:-1], solved[1:], torch.zeros(n - 1, dtype=torch.long))
+    assert free.all() and decided == fresh.checked and 0 <= seconds < float("inf")
     assert bench._path_proof(chain, checker, qs, qg, 0, 1.0, 0) is None

@@ -497,24 +497,25 @@ static inline void DK(plan_node)(const DK(PlanWork) *w, int t, int64_t k, real *
 
 /* Room for nodes up to w->cap_max in both trees: the capacity doubles (a search of many iterations pays for
  * the memory it uses only: 10^6 iterations would be 240 MB per thread up front); 0 when memory ran out, the
- * trees then as they were (every new array is allocated before any is used: the columns' stride is the
- * capacity, so a tree moved to the new one beside one left at the old would be misread). */
+ * trees then as they were: the path and parent arrays grow first (larger ones left behind by a later failure
+ * are harmless), then both trees' columns are allocated before either moves (their stride is the capacity). */
 static int DK(plan_grow)(DK(PlanWork) *w) {
     const int n = w->s.n;
     const int64_t cap = 2 * w->cap < w->cap_max ? 2 * w->cap : w->cap_max;
     if (cap <= w->cap) return 0;
-    real *cols[2], *path;
-    cols[0] = (real *)malloc(sizeof(real) * (size_t)(cap * n));
-    cols[1] = (real *)malloc(sizeof(real) * (size_t)(cap * n));
-    path = (real *)malloc(sizeof(real) * (size_t)(2 * cap * n + 2 * n)); /* (no path is held while growing) */
-    int ok = cols[0] && cols[1] && path;
-    for (int t = 0; t < 2 && ok; t++) { /* a parent array grown alone keeps its entries: harmless */
+    /* (no path is held in it while the trees grow: it is written before the search and after it) */
+    real *path = (real *)realloc(w->path, sizeof(real) * (size_t)(2 * cap * n + 2 * n));
+    if (!path) return 0;
+    w->path = path;
+    for (int t = 0; t < 2; t++) {
         int64_t *parent = (int64_t *)realloc(w->parent[t], sizeof(int64_t) * (size_t)cap);
-        if (parent) w->parent[t] = parent;
-        ok = parent != NULL;
+        if (!parent) return 0;
+        w->parent[t] = parent;
     }
-    if (!ok) {
-        free(cols[0]), free(cols[1]), free(path);
+    real *cols[2];
+    for (int t = 0; t < 2; t++) cols[t] = (real *)malloc(sizeof(real) * (size_t)(cap * n));
+    if (!(cols[0] && cols[1])) {
+        free(cols[0]), free(cols[1]);
         return 0;
     }
     for (int t = 0; t < 2; t++) {
@@ -523,8 +524,6 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
         free(w->cols[t]);
         w->cols[t] = cols[t];
     }
-    free(w->path);
-    w->path = path;
     w->cap = cap;
     return 1;
 }
