@@ -528,6 +528,14 @@ static int DK(plan_grow)(DK(PlanWork) *w) {
     return 1;
 }
 
+/* Room for one more node in a tree of `count` nodes (both trees grown where it has none): 1; 0 where the
+ * trees are at w->cap_max (never before max_iterations: it holds every step, DK(plan_search_one)), -1 where
+ * memory ran out (the trees as they were: DK(plan_grow)). */
+static int DK(plan_room)(DK(PlanWork) *w, int64_t count) {
+    if (count < w->cap - 1 || DK(plan_grow)(w)) return 1;
+    return w->cap < w->cap_max ? -1 : 0;
+}
+
 /* The length sum_j R_j |b_j - a_j| of the edge a -> b in the bound's metric (the search's, in order over j). */
 static inline real DK(plan_length)(const real *R, const real *a, const real *b, int n) {
     real L = 0;
@@ -549,7 +557,8 @@ static int64_t DK(plan_connect)(DK(PlanWork) *w, int t, int64_t k, int64_t *coun
     const int64_t ns = L > step ? (r < 0x1p62 ? (int64_t)r : (int64_t)1 << 62) : 1;
     memcpy(prior, qk, sizeof(real) * (size_t)n);
     for (int64_t i = 1; i < ns; i++) {
-        if (count[t] >= w->cap - 1 && !DK(plan_grow)(w)) return w->cap < w->cap_max ? -2 : -1;
+        const int room = DK(plan_room)(w, count[t]);
+        if (room <= 0) return room < 0 ? -2 : -1;
         for (int j = 0; j < n; j++) next[j] = qk[j] + (real)i / (real)ns * (qn[j] - qk[j]);
         if (!DK(plan_edge)(w, prior, next, 1)) return -1;
         const int64_t c = count[t]++;
@@ -650,8 +659,9 @@ static void DK(plan_search_one)(DK(PlanWork) *w, int64_t b) {
         int64_t join[2] = {-1, -1};
         int64_t it0 = 0;
         for (; it < p->max_iterations; it++) {
-            if ((count[0] >= w->cap - 1 || count[1] >= w->cap - 1) && !DK(plan_grow)(w)) {
-                if (w->cap < w->cap_max) status = DK_PLAN_NO_MEMORY;
+            const int room = DK(plan_room)(w, count[0] > count[1] ? count[0] : count[1]);
+            if (room <= 0) {
+                if (room < 0) status = DK_PLAN_NO_MEMORY;
                 break;
             }
             if (p->restart > 0 && it - it0 >= p->restart) { /* a fresh pair of trees, the stream continuing */

@@ -25,10 +25,16 @@ from ._native_search import shortcut_points_native
 __all__ = ["row_keys", "row_uniform", "search", "shortcut", "shortcut_points"]
 
 
+def _length(a: Tensor, b: Tensor, w: Tensor) -> Tensor:
+    """The length sum_j w_j |b_j - a_j| (...) of the edges a -> b (..., nq) in the weighted L1 metric of the
+    bound (w = R: metres of geom travel; the C search's DK(plan_length))."""
+    return ((b - a).abs() * w).sum(-1)
+
+
 def _nearest(nodes: Tensor, count: Tensor, q: Tensor, w: Tensor) -> Tensor:
     """Index (B,) of the node of each tree (B, C, nq) (first ``count`` valid) nearest to q (B, nq), in the
     weighted L1 metric of the bound (w = R)."""
-    d = ((nodes - q[:, None]).abs() * w).sum(-1)
+    d = _length(q[:, None], nodes, w)
     C = nodes.shape[1]
     d = torch.where(torch.arange(C, device=q.device)[None] < count[:, None], d, torch.inf)
     return d.argmin(1)
@@ -107,7 +113,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
         near = _nearest(nodes[rows, ta], count[rows, ta], q_rand, w)
         q_near = nodes[rows, ta, near]
         d = q_rand - q_near
-        L = (d.abs() * w).sum(-1)
+        L = _length(q_near, q_rand, w)
         q_new = q_near + d * (step / L.clamp(min=step))[:, None]
         # EXTEND by the whole edge or not at all (as the C search: a rejected edge is usually caught by its
         # coarse samples)
@@ -123,7 +129,7 @@ def search(checker: EdgeChecker, q_start: Tensor, q_goal: Tensor, lo: Tensor, hi
             qn = q_new[ok]
             cur = _nearest(nodes[grow, gb], count[grow, gb], qn, w)
             qk = nodes[grow, gb, cur]
-            ns = ((qn - qk).abs() * w).sum(-1).div(step).ceil().clamp(min=1)
+            ns = _length(qk, qn, w).div(step).ceil().clamp(min=1)
             ns = torch.nan_to_num(ns, nan=1.0, posinf=1.0)  # (not finite: one step, its edge's own verdict)
             prior, on, i = qk, torch.arange(len(grow), device=dev), 1  # on: the rows still stepping
             while on.numel():
