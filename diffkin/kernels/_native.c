@@ -50,6 +50,10 @@
 #define W 16
 #define WN 4 /* the lanes of DK(block_narrow) */
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
+/* A cover's slack in units of eta (_native_plan.c, DK(plan_edge_cover)): clear of margin + 3 eta, a sample proves
+ * its neighbours, one sub-step (at most 2 eta of travel) away; so margin + 3 eta is the largest threshold a
+ * search decides at (diffkin.motion._edges.pairs_apart leaves out the self pairs proven that far apart) */
+#define COVER_SLACK 3
 #define DK_ABI_VERSION 4 /* dk_args: bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_SOLVE_VERSION 1 /* dk_solve_args: bump with every change of DK_SOLVE_FIELDS (native.SolveArgs) */
 #define DK_WATCH_VERSION 1 /* dk_watch: bump with every change of DK_WATCH_FIELDS (native.WatchArgs) */
@@ -414,7 +418,8 @@ static int solve_ok(const dk_solve_args *o) {
     X(CHUNK, "targets per chunk of the solve") \
     X(SERIAL_MAX, "configurations below which no thread is started") \
     X(MAX_RANKS, "library ranks a target may ask for") \
-    X(MAX_ENDS, "end links the nearest-pose search takes")
+    X(MAX_ENDS, "end links the nearest-pose search takes") \
+    X(COVER_SLACK, "a cover's slack in units of the resolution")
 
 const char *dk_constant_names(void) {
 #define DK_CNAME(name, what) #name ","

@@ -219,9 +219,6 @@ static uint64_t plan_hash(const void *a, const void *b, size_t bytes, int64_t se
 #define DK_PLAN_PASS 2
 #endif
 
-/* A cover's slack in units of eta (DK(plan_edge_cover)): clear of margin + 3 eta, a sample proves its
- * neighbours, one sub-step (at most 2 eta of travel) away */
-#define COVER_SLACK 3
 #define COVER_MIN_STEPS 6 /* shorter edges: every sample decided (DK(plan_edge_bad)) */
 #define PLAN_HINTS 16 /* sphere-object collisions remembered (one: 43 % of first blocks stop at it; four: 8-10 %
                          * less time again; 16 and the cylinders' too: 5-9 % less again, 32 no more) */

@@ -115,7 +115,7 @@ ABI_VERSION = 4
 #: the status codes and limits of the library that Python uses (DK_CONSTANTS in _native.c), checked equal to
 #: the library's at load (:func:`check_constants`); the other modules read them from here
 CONSTANTS = {"DK_ABI_ERROR": -2, "DK_RANGE_ERROR": -3, "DK_STALE": -4, "DK_NOT_RIGID": -5, "SERIAL_MAX": 512,
-             "MAX_RANKS": 64, "MAX_ENDS": 64}
+             "MAX_RANKS": 64, "MAX_ENDS": 64, "COVER_SLACK": 3}
 _ABI_ERROR, _RANGE_ERROR = CONSTANTS["DK_ABI_ERROR"], CONSTANTS["DK_RANGE_ERROR"]
 _motion_codes: dict[str, int] = {}  # letter -> code, from the loaded library's DK_MOTIONS
 _I64, _F64, _PTR = ctypes.c_int64, ctypes.c_double, ctypes.c_void_p
