@@ -1005,6 +1005,18 @@ static void DK(store_lanes)(const real *restrict src, int rows, int nl, real *re
 
 /* Load lanes b0 .. b0 + nl - 1 of q (B, n) into sc->qlanes (the tail repeats the last row); returns the
  * number of non-finite entries. */
+/* The nl <= WN configurations q[0 .. nl - 1] into lanes 0 .. WN - 1 of sc->qlanes, the lanes from nl on repeating
+ * lane nl - 1, for DK(block_narrow) and DK(block_frames_narrow), which read those lanes only (not checked for
+ * NaN: the planner's own samples, between finite ends). */
+static void DK(load_q_narrow)(const Shape *s, DK(Scratch) *sc, const real *q, int nl) {
+    const int n = s->n;
+    real *restrict ql = sc->qlanes;
+    for (int l = 0; l < WN; l++) {
+        const real *restrict qr = q + (l < nl ? l : nl - 1) * n;
+        for (int i = 0; i < n; i++) ql[i * W + l] = qr[i];
+    }
+}
+
 static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_t b0, int nl) {
     const int n = s->n;
     real *restrict ql = sc->qlanes;

@@ -301,8 +301,8 @@ static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
     if ((mode == COLLIDE_ANY || mode == COLLIDE_COVER) && m <= COLLIDE_NARROW) {
         /* a block of 4 samples or fewer (an edge's first; the last of a short edge): COLLIDE_NARROW lanes,
          * whatever m (constant trip counts in every loop of the decision), the lanes from m on repeating
-         * lane m - 1 (DK(load_q)'s tail) */
-        DK(load_q)(&w->s, &w->sc, w->qs, 0, m);
+         * lane m - 1 (DK(load_q_narrow)) */
+        DK(load_q_narrow)(&w->s, &w->sc, w->qs, m);
         if (w->plain_ends) DK(block_frames_narrow)(&w->s, w->pp, &w->sc);
         else DK(block_narrow)(&w->s, w->pp, &w->sc, 0);
         memset(w->ok, 1, COLLIDE_NARROW);
