@@ -189,15 +189,20 @@ def pairs_apart(collision, pairs: Tensor, gap: float) -> tuple[Tensor, Tensor, T
     lim = lim.to(dt)
     lo = torch.where(lim[:, 0].isfinite(), lim[:, 0], -torch.pi)
     hi = torch.where(lim[:, 1].isfinite(), lim[:, 1], torch.pi)
-    memo = _remembered(collision, f"pairs apart {float(gap)!r}", geometry_key(collision), dict)
-    key = [(int(i), int(j)) for i, j in pairs.tolist()]
-    todo = sorted({k for k in key if k not in memo})
-    if todo:
-        got = _prove_apart(collision, torch.tensor(todo, dtype=torch.long, device=dev).reshape(-1, 2),
-                           float(gap), lo, hi)
-        memo.update(zip(todo, got.tolist()))
-    apart = torch.tensor([memo[k] for k in key], dtype=torch.bool, device=dev)
-    return apart, lo, hi
+    G = collision._counts[0]
+
+    def fresh():  # (decided, proven) (G, G): the pairs decided so far and those proven
+        return torch.zeros(2, G, G, dtype=torch.bool, device=dev)
+
+    memo = _remembered(collision, f"pairs apart {float(gap)!r}", geometry_key(collision), fresh)
+    i, j = pairs[:, 0].long(), pairs[:, 1].long()
+    todo = ~memo[0, i, j]
+    if bool(todo.any()):
+        new = torch.unique(pairs[todo].long(), dim=0)
+        got = _prove_apart(collision, new, float(gap), lo, hi)
+        memo[0, new[:, 0], new[:, 1]] = True
+        memo[1, new[:, 0], new[:, 1]] = got
+    return memo[1, i, j].clone(), lo, hi
 
 
 def _prove_apart(collision, pairs: Tensor, gap: float, lo: Tensor, hi: Tensor) -> Tensor:

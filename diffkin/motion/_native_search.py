@@ -90,13 +90,12 @@ class NativePlanner:
     decisions leave to torch."""
 
     def __init__(self, model, base: Tensor, collide, keep: list, frame: Tensor, h: Tensor, dtype,
-                 rebuild=None, apart=None):
+                 apart=None):
         self.model, self.collide, self._keep, self.frame, self.h = model, collide, keep, frame, h
         self.base12, self.dtype = base[:3].to(dtype).contiguous(), dtype
         self._template = None  # the constants' PlanArgs (:meth:`search_args`), made once
-        #: self pairs (P, 2) -> the Collide of the same decisions with those self pairs and its tensors (or
-        #: None), and (model, margin, η) of the checker: for :meth:`pruned`
-        self._rebuild, self._apart = rebuild, apart
+        #: (model, margin, η) of the checker, for :meth:`pruned`
+        self._apart = apart
         self._pruned = None  # pruned()'s (Collide, lo, hi, slack), made once
 
     def pruned(self):
@@ -108,14 +107,18 @@ class NativePlanner:
         264 of its 690 pairs, about 20 % of a search's time."""
         if self._pruned is None:
             self._pruned = (None,)
-            if self._rebuild is not None and self._apart is not None:
+            if self._apart is not None:
                 rc, margin, eta = self._apart
                 slack = native.CONSTANTS["COVER_SLACK"] * eta
                 apart, lo, hi = pairs_apart(rc, rc._pairs_00, margin + slack)
-                made = self._rebuild(rc._pairs_00[~apart].contiguous()) if bool(apart.any()) else None
-                if made is not None:
-                    self._keep.append(made[1])
-                    self._pruned = (made[0], lo.to(self.dtype), hi.to(self.dtype), slack)
+                if bool(apart.any()):  # the same constants, the other pairs
+                    kept = rc._pairs_00[~apart]
+                    pi, pj = kept[:, 0].contiguous(), kept[:, 1].contiguous()
+                    c = type(self.collide).from_buffer_copy(self.collide)
+                    c.P, c.pi, c.pj = kept.shape[0], pi.data_ptr() if len(pi) else None, \
+                        pj.data_ptr() if len(pj) else None
+                    self._keep.extend((pi, pj))
+                    self._pruned = (c, lo.to(self.dtype), hi.to(self.dtype), slack)
         return None if self._pruned[0] is None else self._pruned
 
     def collide_for(self, q: Tensor, slack: float) -> int:
@@ -155,11 +158,8 @@ class NativePlanner:
         if left:
             return None
         extra.pop("world_index", None)
-        def rebuild(pairs):
-            return native.collide_struct(empty, empty, rc.capsule_radius.detach(), pairs, objects, hs, skip_r,
-                                         skip_h, checker.margin, 0.0, None, **extra)
-
-        collide = rebuild(rc._pairs_00)
+        collide = native.collide_struct(empty, empty, rc.capsule_radius.detach(), rc._pairs_00, objects, hs,
+                                        skip_r, skip_h, checker.margin, 0.0, None, **extra)
         if collide is None:
             return None
         def columns():
@@ -172,8 +172,10 @@ class NativePlanner:
         # each capsule end's frame and coordinates there (2 G, 4): the robot's alone, so found once for the
         # copies allow_collisions makes per scene (about 1 ms a plan)
         frame, h = checker.remembered(f"planner columns {q.dtype}", columns)
-        return cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype, rebuild,
-                   (rc, checker.margin, checker.eta))
+        planner = cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype,
+                      (rc, checker.margin, checker.eta))
+        planner.pruned()  # the decisions without the pairs proven apart: part of the scene's preparation
+        return planner
 
     def args(self, collide: int | None = None, **fields) -> PlanArgs:
         """A :class:`PlanArgs` with the constants and ``fields`` set (tensors by their address; ``collide``:
