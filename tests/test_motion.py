@@ -166,28 +166,28 @@ def _reach_loop(rc) -> torch.Tensor:
 def test_joint_reach_remembered_for_the_same_geometry(robot):
     """joint_reach is found once for the copies allow_collisions makes (the same geometry and chain: the
     same values, not recomputed) and found anew when the geometry's values change."""
-    import diffkin.motion._edges as edges
+    import diffkin.motion._reach as reach
 
     _, rc, _ = robot
-    first = edges.joint_reach(rc)
+    first = reach.joint_reach(rc)
     calls = []
-    compute = edges._joint_reach
+    compute = reach._joint_reach
 
     def counted(collision):
         calls.append(1)
         return compute(collision)
 
-    edges._joint_reach = counted
+    reach._joint_reach = counted
     try:
         copy = rc.allow_collisions([])
-        assert torch.equal(edges.joint_reach(copy), first) and not calls
+        assert torch.equal(reach.joint_reach(copy), first) and not calls
         with torch.no_grad():
             copy.capsule_radius.add_(0.01)  # a copy's own parameters: the original keeps its values
-        grown = edges.joint_reach(copy)
+        grown = reach.joint_reach(copy)
         assert len(calls) == 1 and bool((grown >= first).all()) and bool((grown > first).any())
-        assert torch.equal(edges.joint_reach(rc), first) and len(calls) == 2  # the first geometry again
+        assert torch.equal(reach.joint_reach(rc), first) and len(calls) == 2  # the first geometry again
     finally:
-        edges._joint_reach = compute
+        reach._joint_reach = compute
 
 
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])

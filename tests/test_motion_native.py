@@ -614,13 +614,13 @@ def test_pairs_apart_never_closer_in_samples_nor_after_descent(panda, monkeypatc
     projected gradient descent on its distance from its 16 closest samples; it proves most pairs whose
     distance only two or three joints change and whose samples keep 20 mm (the bound is tight enough to
     pay), and remembers its verdicts for the copies one robot makes per scene."""
-    from diffkin.motion import _edges
+    from diffkin.motion import _reach
 
     chain, rc, probs = panda
     gap = 0.015
     pairs = rc._pairs_00
     i, j = pairs[:, 0], pairs[:, 1]
-    apart, lo, hi = _edges.pairs_apart(rc, pairs, gap)
+    apart, lo, hi = _reach.pairs_apart(rc, pairs, gap)
     lim = chain.q_limits
     assert torch.equal(lo, lim[:, 0]) and torch.equal(hi, lim[:, 1])
     g = torch.Generator().manual_seed(3)
@@ -643,14 +643,14 @@ def test_pairs_apart_never_closer_in_samples_nor_after_descent(panda, monkeypatc
         with torch.no_grad():
             x.copy_(torch.maximum(torch.minimum(x, hi), lo))
     # the pairs of few joints whose samples keep 20 mm: nearly all proven (the bound is not vacuous)
-    M = _edges._column_reach(rc)[1][:, : rc._counts[0]]
+    M = _reach._column_reach(rc)[1][:, : rc._counts[0]]
     easy = ((M[:, i] ^ M[:, j]).sum(0) <= 3) & (sampled >= gap + 0.005)
     assert int((easy & ~apart).sum()) <= int(easy.sum()) // 20
     # remembered for the copies of one robot: no second proof
     calls = []
-    prove = _edges._prove_apart
-    monkeypatch.setattr(_edges, "_prove_apart", lambda *a: calls.append(1) or prove(*a))
-    again, _, _ = _edges.pairs_apart(rc.allow_collisions(probs["box/0001"].scene.allowed), pairs, gap)
+    prove = _reach._prove_apart
+    monkeypatch.setattr(_reach, "_prove_apart", lambda *a: calls.append(1) or prove(*a))
+    again, _, _ = _reach.pairs_apart(rc.allow_collisions(probs["box/0001"].scene.allowed), pairs, gap)
     assert not calls and torch.equal(again, apart)
 
 
@@ -706,7 +706,7 @@ def test_pair_distance_bound_holds_in_random_boxes(panda):
     (3.30): a point turns about an axis no faster than its distance from it) holds: that distance at the
     configuration (the term of a box of width 1e-9 there) within its bound at the centre plus the change the
     joints between allow."""
-    from diffkin.motion._edges import _PairBound
+    from diffkin.motion._reach import _PairBound
 
     chain, rc, _ = panda
     pairs = rc._pairs_00
@@ -728,3 +728,116 @@ def test_pair_distance_bound_holds_in_random_boxes(panda):
     assert (speed[moving] / eps <= most[moving] + 1e-9).all()
     assert float((speed / eps - most)[moving].amax()) > -0.05  # the speed bound comes close somewhere
     assert float((dq - low).reshape(N, S).amin(1).median()) < 0.15  # and the bound within 15 cm at the median
+
+
+def _mjcf_capsules(name: str, end: str):
+    """A Menagerie MJCF arm (capsule geoms, proper segments) as (chain, RobotCollision), float64."""
+    import warnings
+    from pathlib import Path
+
+    path = Path(__file__).parent / "data" / "mjcf" / name
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        chain = models.from_mjcf(path, end, dtype=F64).requires_grad_(False)
+        rc = RobotCollision.from_mjcf(path, chain).requires_grad_(False)
+    return chain, rc
+
+
+@pytest.mark.parametrize("name", ["universal_robots_ur5e/ur5e.xml", "universal_robots_ur10e/ur10e.xml"])
+def test_pairs_apart_and_its_bound_on_capsules(name):
+    """The bound and the proof on arms of proper capsules (segments, where the moved geom's two ends differ:
+    the spherized Panda has none): in random boxes of joint space the distance never falls below the
+    bound, each joint's speed term holds at sampled configurations, and every pair proven 15 mm apart stays so
+    in 20 000 random configurations and after gradient descent on its distance."""
+    from diffkin.motion._reach import _PairBound, pairs_apart
+
+    chain, rc = _mjcf_capsules(name, "wrist_3_link")
+    pairs = rc._pairs_00
+    assert bool((rc.capsule_a != rc.capsule_b).any(-1).all())  # all 9 proper segments
+    i, j = pairs[:, 0], pairs[:, 1]
+    bound = _PairBound(rc, pairs)
+    g = torch.Generator().manual_seed(6)
+    lim = chain.q_limits
+    N, S, eps = 2000, 16, 1e-9
+    which = torch.randint(pairs.shape[0], (N,), generator=g)
+    c = lim[:, 0] + (lim[:, 1] - lim[:, 0]) * torch.rand(N, chain.nq, generator=g, dtype=F64)
+    h = 0.5 * torch.rand(N, chain.nq, generator=g, dtype=F64)
+    with torch.no_grad():
+        d, term = bound(which, c, h)
+        q = (c[:, None] + h[:, None] * (2 * torch.rand(N, S, chain.nq, generator=g, dtype=F64) - 1))
+        dq, speed = bound(which.repeat_interleave(S), q.reshape(-1, chain.nq),
+                          torch.full((N * S, chain.nq), eps, dtype=F64))
+    assert (dq >= (d - term.sum(-1)).repeat_interleave(S) - 1e-12).all()
+    moving = bound.J[which].repeat_interleave(S, 0)
+    assert (speed[moving] / eps <= (term / h).repeat_interleave(S, 0)[moving] + 1e-9).all()
+    gap = 0.015
+    apart, lo, hi = pairs_apart(rc, pairs, gap)
+    assert 0 < int(apart.sum()) < pairs.shape[0]  # (6 of 21 on the UR5e)
+    x = lo + (hi - lo) * torch.rand(20_000, chain.nq, generator=g, dtype=F64)
+    dd = _gaps(rc, i, j, x)  # (N, P)
+    assert (dd[:, apart].amin(0) >= gap).all()
+    p = apart.nonzero().squeeze(1)
+    y = x[dd[:, p].topk(8, dim=0, largest=False).indices].reshape(-1, chain.nq).clone().requires_grad_(True)
+    which = p.repeat(8)
+    opt = torch.optim.Adam([y], lr=0.02)
+    for _ in range(40):
+        got = _gaps(rc, i[which], j[which], y, rows=True)
+        assert (got.detach() >= gap).all()
+        opt.zero_grad()
+        got.sum().backward()
+        opt.step()
+        with torch.no_grad():
+            y.copy_(torch.maximum(torch.minimum(y, hi), lo))
+
+
+def test_c_calls_leave_out_the_proven_pairs_only_where_the_proof_covers_them(panda, monkeypatch):
+    """Each C call (search, decisions, edges, point shortcuts) gets the decisions without the pairs proven
+    apart only where every configuration it decides lies within the limits and no slack passes 3 eta: a
+    sampling box, a start or an edge end past a limit, a resolution or a slack larger than the checker's
+    get every pair's."""
+    from diffkin.motion import _native_search as ns
+    from diffkin.motion._search import row_keys
+
+    chain, rc, probs = panda
+    qs, qg, world, _ = _batch(probs, ["box/0019", "table_pick/0019"])
+    checker = EdgeChecker(rc, world, 0.0, 0.005)
+    planner = checker.native(qs)
+    full, pruned = ctypes.addressof(planner.collide), ctypes.addressof(planner.pruned()[0])
+    seen = []
+    run = ns._run
+    monkeypatch.setattr(ns, "_run", lambda which, a, what: seen.append(a.collide) or run(which, a, what))
+    lim = chain.q_limits
+    lo, hi = lim[:, 0].clone(), lim[:, 1].clone()
+    rows = torch.arange(2)
+
+    def search(qs=qs, lo=lo, hi=hi, eta=None, rungs=4):
+        seen.clear()
+        ns.search_native(checker, qs, qg, lo, hi, rows, eta, max_iterations=200, step=1.0, shortcut_tries=0,
+                         seed=0, rungs=rungs)
+        return seen[-1]
+
+    assert search() == pruned
+    wide = lo.clone()
+    wide[2] -= 0.1
+    assert search(lo=wide) == full  # a sampling box past a limit
+    out = qs.clone()
+    out[0, 3] = lim[3, 1] + 0.01
+    assert search(qs=out) == full  # a start past a limit
+    assert search(eta=torch.full((2,), 0.005, dtype=F64), rungs=0) == pruned
+    assert search(eta=torch.full((2,), 0.006, dtype=F64), rungs=0) == full  # a coarser resolution
+    q = random_configuration(chain, (64,), generator=torch.Generator().manual_seed(7)).to(F64)
+    for slack, want in ((0.015, pruned), (0.0151, full)):
+        seen.clear()
+        planner.decide(q, None, slack)
+        assert seen[-1] == want
+    steps = torch.full((32,), 8, dtype=torch.long)
+    past = out[:1].expand(32, 7)  # edge ends past a limit
+    for slack, end, want in ((0.005, q[32:], pruned), (0.0051, q[32:], full), (0.005, past, full)):
+        seen.clear()
+        planner.edges(q[:32], end, steps, torch.full((32,), slack, dtype=F64), None, False)
+        assert seen[-1] == want
+    path = torch.stack((qs, (qs + qg) / 2, qg), 1)
+    checker.set_row_resolution(torch.full((2,), 0.005, dtype=F64))
+    seen.clear()
+    ns.shortcut_points_native(checker, path, torch.full((2,), 3), rows, 1, row_keys(qs, qg, 0), 2, 1)
+    assert seen[-1] == pruned

@@ -52,7 +52,7 @@
 #define SERIAL_MAX 512 /* configurations below which no thread is started */
 /* A cover's slack in units of eta (_native_plan.c, DK(plan_edge_cover)): clear of margin + 3 eta, a sample proves
  * its neighbours, one sub-step (at most 2 eta of travel) away; so margin + 3 eta is the largest threshold a
- * search decides at (diffkin.motion._edges.pairs_apart leaves out the self pairs proven that far apart) */
+ * search decides at (diffkin.motion._reach.pairs_apart leaves out the self pairs proven that far apart) */
 #define COVER_SLACK 3
 #define DK_ABI_VERSION 4 /* dk_args: bump with every change of DK_ARGS_FIELDS (and native.py's ABI_VERSION) */
 #define DK_SOLVE_VERSION 1 /* dk_solve_args: bump with every change of DK_SOLVE_FIELDS (native.SolveArgs) */
@@ -1003,8 +1003,6 @@ static void DK(store_lanes)(const real *restrict src, int rows, int nl, real *re
     }
 }
 
-/* Load lanes b0 .. b0 + nl - 1 of q (B, n) into sc->qlanes (the tail repeats the last row); returns the
- * number of non-finite entries. */
 /* The nl <= WN configurations q[0 .. nl - 1] into lanes 0 .. WN - 1 of sc->qlanes, the lanes from nl on repeating
  * lane nl - 1, for DK(block_narrow) and DK(block_frames_narrow), which read those lanes only (not checked for
  * NaN: the planner's own samples, between finite ends). */
@@ -1017,6 +1015,8 @@ static void DK(load_q_narrow)(const Shape *s, DK(Scratch) *sc, const real *q, in
     }
 }
 
+/* Load lanes b0 .. b0 + nl - 1 of q (B, n) into sc->qlanes (the tail repeats the last row); returns the
+ * number of non-finite entries. */
 static int64_t DK(load_q)(const Shape *s, DK(Scratch) *sc, const real *q, int64_t b0, int nl) {
     const int n = s->n;
     real *restrict ql = sc->qlanes;

@@ -6,7 +6,7 @@
 per-joint bound on geom travel its continuous collision checks rest on (:mod:`diffkin.motion._edges`).
 """
 
-from ._edges import joint_reach as joint_reach
+from ._reach import joint_reach as joint_reach
 from .optimize import OptimizeConfig as OptimizeConfig
 from .plan import MotionResult as MotionResult
 from .plan import plan as plan

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor
 
 from ..kernels import native
-from ._edges import pairs_apart
+from ._reach import capsule_end_frames, pairs_apart
 
 __all__ = ["NativePlanner", "PlanArgs", "VERSION", "search_native", "serves"]
 
@@ -94,14 +94,14 @@ class NativePlanner:
         self.model, self.collide, self._keep, self.frame, self.h = model, collide, keep, frame, h
         self.base12, self.dtype = base[:3].to(dtype).contiguous(), dtype
         self._template = None  # the constants' PlanArgs (:meth:`search_args`), made once
-        #: (model, margin, η) of the checker, for :meth:`pruned`
+        #: (its RobotCollision, margin, η) of the checker, for :meth:`pruned`
         self._apart = apart
         self._pruned = None  # pruned()'s (Collide, lo, hi, slack), made once
 
     def pruned(self):
         """``(collide, lo, hi, slack)``: the :class:`~diffkin.kernels.native.Collide` of the same decisions
         without the self pairs proven apart by ``margin + COVER_SLACK · η`` (η the checker's resolution:
-        :func:`~diffkin.motion._edges.pairs_apart`) in every configuration of the box ``lo <= q <= hi``
+        :func:`~diffkin.motion._reach.pairs_apart`) in every configuration of the box ``lo <= q <= hi``
         (the chain's limits), so the same decisions at any slack up to ``slack`` = COVER_SLACK · η for
         configurations in that box (:meth:`collide_for`); None where no pair is proven apart. On the Panda
         264 of its 690 pairs, about 20 % of a search's time."""
@@ -162,16 +162,9 @@ class NativePlanner:
                                         skip_r, skip_h, checker.margin, 0.0, None, **extra)
         if collide is None:
             return None
-        def columns():
-            F = rc._frames.frames(rc.chain, torch.zeros(rc.chain.nq, dtype=q.dtype))
-            H = rc._placement(F)  # (K·4, C): column c's block is its frame's
-            frame = rc._col_anchor[: 2 * nc].to(torch.int64).contiguous()
-            h = H.reshape(-1, 4, H.shape[-1])[frame, :, torch.arange(2 * nc)]
-            return frame, h.to(q.dtype).contiguous()
-
-        # each capsule end's frame and coordinates there (2 G, 4): the robot's alone, so found once for the
-        # copies allow_collisions makes per scene (about 1 ms a plan)
-        frame, h = checker.remembered(f"planner columns {q.dtype}", columns)
+        # each capsule end's frame and coordinates there (2 G, 4): found once for the copies allow_collisions
+        # makes per scene (about 1 ms a plan)
+        frame, h = checker.remembered(f"planner columns {q.dtype}", lambda: capsule_end_frames(rc, q.dtype))
         planner = cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype,
                       (rc, checker.margin, checker.eta))
         planner.pruned()  # the decisions without the pairs proven apart: part of the scene's preparation
@@ -204,7 +197,6 @@ class NativePlanner:
         a = self.args(self.collide_for(q, float(slack)), nthreads=native.thread_count(N), N=N, q=q, wid=wid,
                       slack=float(slack), ok=ok, max_iterations=0)
         return ok.bool() if _run(1, a, "decisions") else None
-
 
     def edges(self, qa: Tensor, qb: Tensor, steps: Tensor, slack: Tensor, world_row: Tensor | None,
               prefix: bool) -> tuple[Tensor, Tensor] | None:
