@@ -608,6 +608,25 @@ def _gaps(rc, i, j, q, rows=False):
     return capsule_capsule(cols[n, i], cols[n, nc + i], r[i], cols[n, j], cols[n, nc + j], r[j])
 
 
+def _descent_keeps(rc, pairs, apart, q, d, gap, lo, hi, starts: int, steps: int):
+    """Projected gradient descent (within lo .. hi) on each proven pair's own distance from its ``starts``
+    closest samples of ``q (N, nq)`` (distances ``d (N, P)``): it stays at least ``gap`` at every step."""
+    i, j = pairs[:, 0], pairs[:, 1]
+    p = apart.nonzero().squeeze(1)
+    closest = d[:, p].topk(starts, dim=0, largest=False).indices  # (starts, Pa)
+    x = q[closest].reshape(-1, q.shape[-1]).clone().requires_grad_(True)
+    which = p.repeat(starts)
+    opt = torch.optim.Adam([x], lr=0.02)
+    for _ in range(steps):
+        got = _gaps(rc, i[which], j[which], x, rows=True)
+        assert (got.detach() >= gap).all()
+        opt.zero_grad()
+        got.sum().backward()
+        opt.step()
+        with torch.no_grad():
+            x.copy_(torch.maximum(torch.minimum(x, hi), lo))
+
+
 def test_pairs_apart_never_closer_in_samples_nor_after_descent(panda, monkeypatch):
     """pairs_apart's proof (branch and bound on the distance's joint-space speed bound): every pair it
     proves 15 mm apart stays at least that far in 40 000 random configurations within the limits and after
@@ -629,19 +648,7 @@ def test_pairs_apart_never_closer_in_samples_nor_after_descent(panda, monkeypatc
     sampled = d.amin(0)
     assert int(apart.sum()) >= 250  # of 690 (264 on this model)
     assert (sampled[apart] >= gap).all()
-    # descent on each proven pair's own distance from its 16 closest samples, kept within the limits
-    p = apart.nonzero().squeeze(1)
-    x = q[d[:, p].topk(16, dim=0, largest=False).indices].reshape(-1, 7).clone().requires_grad_(True)
-    which = p.repeat(16)
-    opt = torch.optim.Adam([x], lr=0.02)
-    for _ in range(60):
-        dd = _gaps(rc, i[which], j[which], x, rows=True)
-        assert (dd.detach() >= gap).all()
-        opt.zero_grad()
-        dd.sum().backward()
-        opt.step()
-        with torch.no_grad():
-            x.copy_(torch.maximum(torch.minimum(x, hi), lo))
+    _descent_keeps(rc, pairs, apart, q, d, gap, lo, hi, starts=16, steps=60)
     # the pairs of few joints whose samples keep 20 mm: nearly all proven (the bound is not vacuous)
     M = _reach._column_reach(rc)[1][:, : rc._counts[0]]
     easy = ((M[:, i] ^ M[:, j]).sum(0) <= 3) & (sampled >= gap + 0.005)
@@ -776,18 +783,7 @@ def test_pairs_apart_and_its_bound_on_capsules(name):
     x = lo + (hi - lo) * torch.rand(20_000, chain.nq, generator=g, dtype=F64)
     dd = _gaps(rc, i, j, x)  # (N, P)
     assert (dd[:, apart].amin(0) >= gap).all()
-    p = apart.nonzero().squeeze(1)
-    y = x[dd[:, p].topk(8, dim=0, largest=False).indices].reshape(-1, chain.nq).clone().requires_grad_(True)
-    which = p.repeat(8)
-    opt = torch.optim.Adam([y], lr=0.02)
-    for _ in range(40):
-        got = _gaps(rc, i[which], j[which], y, rows=True)
-        assert (got.detach() >= gap).all()
-        opt.zero_grad()
-        got.sum().backward()
-        opt.step()
-        with torch.no_grad():
-            y.copy_(torch.maximum(torch.minimum(y, hi), lo))
+    _descent_keeps(rc, pairs, apart, x, dd, gap, lo, hi, starts=8, steps=40)
 
 
 def test_c_calls_leave_out_the_proven_pairs_only_where_the_proof_covers_them(panda, monkeypatch):
