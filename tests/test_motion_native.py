@@ -662,13 +662,11 @@ def test_pairs_apart_never_closer_in_samples_nor_after_descent(panda, monkeypatc
 
 
 @pytest.mark.parametrize("dtype", [F64, torch.float32])
-def test_c_search_and_decisions_equal_without_the_pairs_proven_apart(panda, dtype, monkeypatch):
+def test_c_search_and_decisions_equal_without_the_pairs_proven_apart(panda, dtype):
     """The C decisions leave out the self pairs proven apart only where the proof covers what they decide
     (configurations within the limits, slacks up to 3 eta): the same paths, iterations, decisions and trees
     as with every pair, the same verdicts on random configurations and edges, and every pair's decisions for a
     configuration outside the limits or a larger slack."""
-    from diffkin.motion._native_search import NativePlanner
-
     chain, rc, probs = panda
     if dtype == torch.float32:
         rc = copy.deepcopy(rc).float()
@@ -682,10 +680,10 @@ def test_c_search_and_decisions_equal_without_the_pairs_proven_apart(panda, dtyp
     wid = torch.arange(2000) % len(names)
     runs = []
     for left_out in (True, False):
-        if not left_out:
-            monkeypatch.setattr(NativePlanner, "pruned", lambda self: None)
         checker = EdgeChecker(rc, world, 0.0, 0.005)
         planner = checker.native(qs)
+        if not left_out:
+            planner.pruned = None  # every pair's decisions in every call
         if left_out:
             full = ctypes.addressof(planner.collide)
             assert planner.collide_for(q, 0.015) != full  # within the limits: the pairs left out
@@ -798,7 +796,7 @@ def test_c_calls_leave_out_the_proven_pairs_only_where_the_proof_covers_them(pan
     qs, qg, world, _ = _batch(probs, ["box/0019", "table_pick/0019"])
     checker = EdgeChecker(rc, world, 0.0, 0.005)
     planner = checker.native(qs)
-    full, pruned = ctypes.addressof(planner.collide), ctypes.addressof(planner.pruned()[0])
+    full, pruned = ctypes.addressof(planner.collide), ctypes.addressof(planner.pruned[0])
     seen = []
     run = ns._run
     monkeypatch.setattr(ns, "_run", lambda which, a, what: seen.append(a.collide) or run(which, a, what))

@@ -90,42 +90,18 @@ class NativePlanner:
     decisions leave to torch."""
 
     def __init__(self, model, base: Tensor, collide, keep: list, frame: Tensor, h: Tensor, dtype,
-                 apart=None):
+                 pruned=None):
         self.model, self.collide, self._keep, self.frame, self.h = model, collide, keep, frame, h
         self.base12, self.dtype = base[:3].to(dtype).contiguous(), dtype
         self._template = None  # the constants' PlanArgs (:meth:`search_args`), made once
-        #: (its RobotCollision, margin, η) of the checker, for :meth:`pruned`
-        self._apart = apart
-        self._pruned = None  # pruned()'s (Collide, lo, hi, slack), made once
-
-    def pruned(self):
-        """``(collide, lo, hi, slack)``: the :class:`~diffkin.kernels.native.Collide` of the same decisions
-        without the self pairs proven apart by ``margin + COVER_SLACK · η`` (η the checker's resolution:
-        :func:`~diffkin.motion._reach.pairs_apart`) in every configuration of the box ``lo <= q <= hi``
-        (the chain's limits), so the same decisions at any slack up to ``slack`` = COVER_SLACK · η for
-        configurations in that box (:meth:`collide_for`); None where no pair is proven apart. On the Panda
-        264 of its 690 pairs, about 20 % of a search's time."""
-        if self._pruned is None:
-            self._pruned = (None,)
-            if self._apart is not None:
-                rc, margin, eta = self._apart
-                slack = native.CONSTANTS["COVER_SLACK"] * eta
-                apart, lo, hi = pairs_apart(rc, rc._pairs_00, margin + slack)
-                if bool(apart.any()):  # the same constants, the other pairs
-                    kept = rc._pairs_00[~apart]
-                    pi, pj = kept[:, 0].contiguous(), kept[:, 1].contiguous()
-                    c = type(self.collide).from_buffer_copy(self.collide)
-                    c.P, c.pi, c.pj = kept.shape[0], pi.data_ptr() if len(pi) else None, \
-                        pj.data_ptr() if len(pj) else None
-                    self._keep.extend((pi, pj))
-                    self._pruned = (c, lo.to(self.dtype), hi.to(self.dtype), slack)
-        return None if self._pruned[0] is None else self._pruned
+        #: ``(collide, lo, hi, slack)`` of :func:`_without_pairs_apart`, or None: for :meth:`collide_for`
+        self.pruned = pruned
 
     def collide_for(self, q: Tensor, slack: float) -> int:
         """The address of the Collide to decide configurations ``q (..., nq)`` with (and every configuration
-        on the straight edges between them) at slacks up to ``slack``: :meth:`pruned`'s where its proof
+        on the straight edges between them) at slacks up to ``slack``: :attr:`pruned`'s where its proof
         covers them all (each in its box: the box is convex), else every pair's."""
-        got = self.pruned()
+        got = self.pruned
         if got is not None and slack <= got[3]:
             flat = q.detach().reshape(-1, q.shape[-1])
             if bool(((flat >= got[1]) & (flat <= got[2])).all()):
@@ -165,10 +141,10 @@ class NativePlanner:
         # each capsule end's frame and coordinates there (2 G, 4): found once for the copies allow_collisions
         # makes per scene (about 1 ms a plan)
         frame, h = checker.remembered(f"planner columns {q.dtype}", lambda: capsule_end_frames(rc, q.dtype))
-        planner = cls(model, base, collide[0], [*collide[1], empty], frame, h, q.dtype,
-                      (rc, checker.margin, checker.eta))
-        planner.pruned()  # the decisions without the pairs proven apart: part of the scene's preparation
-        return planner
+        # the decisions without the pairs proven apart: part of the scene's preparation, as the rest
+        pruned = _without_pairs_apart(collide[0], rc, checker.margin, checker.eta, q.dtype)
+        keep = [*collide[1], empty, *(() if pruned is None else pruned[4:])]
+        return cls(model, base, collide[0], keep, frame, h, q.dtype, None if pruned is None else pruned[:4])
 
     def args(self, collide: int | None = None, **fields) -> PlanArgs:
         """A :class:`PlanArgs` with the constants and ``fields`` set (tensors by their address; ``collide``:
@@ -217,6 +193,24 @@ class NativePlanner:
                       N=E, q=qa, qb=qb, steps=steps, slacks=slack, wid=wid, prefix=int(prefix),
                       first_bad=first_bad, checked=decided, max_iterations=0)
         return (first_bad, decided) if _run(2, a, "edge decisions") else None
+
+
+def _without_pairs_apart(collide, rc, margin: float, eta: float, dtype):
+    """``(collide, lo, hi, slack, pi, pj)``: a copy of the :class:`~diffkin.kernels.native.Collide`
+    ``collide`` of ``rc``'s decisions without the self pairs proven apart by ``margin + COVER_SLACK · η``
+    (:func:`~diffkin.motion._reach.pairs_apart`) in every configuration of the box ``lo <= q <= hi`` (the
+    chain's limits), so the same decisions at any slack up to ``slack`` = COVER_SLACK · η for configurations
+    in that box (:meth:`NativePlanner.collide_for`), and the pair arrays it points into (keep them alive);
+    None where no pair is proven apart. On the Panda 264 of its 690 pairs, about 20 % of a search's time."""
+    slack = native.CONSTANTS["COVER_SLACK"] * eta
+    apart, lo, hi = pairs_apart(rc, rc._pairs_00, margin + slack)
+    if not bool(apart.any()):
+        return None
+    kept = rc._pairs_00[~apart]
+    pi, pj = kept[:, 0].contiguous(), kept[:, 1].contiguous()
+    c = type(collide).from_buffer_copy(collide)  # the same constants, the other pairs
+    c.P, c.pi, c.pj = kept.shape[0], pi.data_ptr() if len(pi) else None, pj.data_ptr() if len(pj) else None
+    return c, lo.to(dtype), hi.to(dtype), slack, pi, pj
 
 
 def shortcut_points_native(checker, path: Tensor, n: Tensor, problem: Tensor, rounds: int, key: Tensor,
