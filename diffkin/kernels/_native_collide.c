@@ -210,29 +210,133 @@ static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, r
     *bz = x * R[2 * S] + y * R[5 * S] + z * R[8 * S];
 }
 
-/* DK(box_lanes) of sphere geoms (point): the signed distance of the centre, outside its distance, inside minus
- * the depth, lane by lane without branches, vectorised: without trapping math here, GCC may run a select on
- * a comparison of doubles as a blend (the same values; clang vectorises it anyway and ignores the attribute). */
-static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(box_points_lanes)(
-        const real *A, int64_t N, real rg, const real *bc, const real *bR, const real *bh, real thr, int m,
-        uint8_t *restrict clear, real thr_hi, uint8_t *restrict hi, const int shared) {
-    /* entry k of the box of lane l: gathered per lane (rows COLLIDE_BLOCK apart), or one box for every lane
-     * (shared: the object's own 3, 9, 3 entries, no copy) */
-#define BOX_ENTRY(k) (shared ? (k) : (k) * COLLIDE_BLOCK + l)
-#pragma omp simd
-    for (int l = 0; l < m; l++) {
-        const real dx = A[l] - bc[BOX_ENTRY(0)], dy = A[N + l] - bc[BOX_ENTRY(1)], dz = A[2 * N + l] - bc[BOX_ENTRY(2)];
-        real ex; /* R^T (dx, dy, dz), as DK(box_frame), written out (with its stride a parameter: 1.5 % slower) */
-        const real px = dx * bR[BOX_ENTRY(0)] + dy * bR[BOX_ENTRY(3)] + dz * bR[BOX_ENTRY(6)];
-        const real py = dx * bR[BOX_ENTRY(1)] + dy * bR[BOX_ENTRY(4)] + dz * bR[BOX_ENTRY(7)];
-        const real pz = dx * bR[BOX_ENTRY(2)] + dy * bR[BOX_ENTRY(5)] + dz * bR[BOX_ENTRY(8)];
-        const real best = DK(box_point_d2)(px, py, pz, bh[BOX_ENTRY(0)], bh[BOX_ENTRY(1)], bh[BOX_ENTRY(2)], &ex);
-#undef BOX_ENTRY
-        const real root = (real)sqrt((double)best); /* best >= 0: taken in every lane, no branch */
-        const real d = best > 0 ? root : ex;
-        clear[l] &= d >= rg + thr;
-        if (hi) hi[l] &= d >= rg + thr_hi; /* hi: NULL or not in each inlined copy, no test left */
+/* Four lanes of real as one vector (GCC's and clang's vector extensions: one AVX register of doubles, one SSE
+ * register of floats, NEON's alike; elsewhere the compiler splits it): the 4-lane loops of the sphere-object
+ * tests below, which GCC 12 left scalar with a branch per lane (its cost model refuses a constant trip count
+ * of 4; the wide loops ran their last 1-7 lanes so); in the planner's search these tests took about 17 % of
+ * the time. Only in static inline functions, so the ABI note of GCC's -Wpsabi (a vector argument without AVX
+ * enabled) does not apply. */
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wpsabi"
+#endif
+typedef real DK(v4) __attribute__((vector_size(4 * sizeof(real))));
+typedef __typeof__((DK(v4)){0} < (DK(v4)){0}) DK(m4); /* a comparison's lanes: 0 or all bits set */
+#ifndef DK_LANES4_ONCE
+#define DK_LANES4_ONCE
+typedef uint8_t lanes4_u8 __attribute__((vector_size(4)));
+#endif
+
+static inline __attribute__((always_inline)) DK(v4) DK(v4_splat)(real x) { return (DK(v4)){x, x, x, x}; }
+
+/* lanes l .. l + 3 of p (full) or, past m, lane m - 1 repeated (a block's last lanes: its results there are
+ * dropped) */
+static inline __attribute__((always_inline)) DK(v4) DK(v4_load)(const real *p, int l, int m, const int full) {
+    DK(v4) v;
+    if (full) memcpy(&v, p + l, sizeof v);
+    else
+        for (int i = 0; i < 4; i++) v[i] = p[l + i < m ? l + i : m - 1];
+    return v;
+}
+
+/* the lanes of a where mask is set, of b elsewhere (C's ?: lane by lane) */
+static inline __attribute__((always_inline)) DK(v4) DK(v4_select)(DK(m4) mask, DK(v4) a, DK(v4) b) {
+    return (DK(v4))((mask & (DK(m4))a) | (~mask & (DK(m4))b));
+}
+
+static inline __attribute__((always_inline)) DK(v4) DK(v4_sqrt)(DK(v4) x) {
+    DK(v4) r;
+    for (int i = 0; i < 4; i++) r[i] = (real)sqrt((double)x[i]);
+    return r;
+}
+
+/* flags[l + i] &= mask's lane i, for the lanes below m (full: all four) */
+static inline __attribute__((always_inline)) void DK(v4_and_into)(uint8_t *restrict flags, int l, int m, DK(m4) mask,
+                                                                const int full) {
+    if (full) {
+        lanes4_u8 f, bits = __builtin_convertvector(mask, lanes4_u8) & 1;
+        memcpy(&f, flags + l, 4);
+        f &= bits;
+        memcpy(flags + l, &f, 4);
+    } else
+        for (int i = 0; i < 4 && l + i < m; i++) flags[l + i] &= (uint8_t)(mask[i] & 1);
+}
+
+/* One chunk of DK(lanes_range): lanes l .. l + 3 (past m, lane m - 1 again: the same least and largest) */
+static inline __attribute__((always_inline)) void DK(range_v4)(const real *a, const real *b, int l, int m,
+        const int full, const int first, DK(v4) *lo, DK(v4) *hi, DK(v4) *sum) {
+    const DK(v4) x = DK(v4_load)(a, l, m, full);
+    DK(v4) y = x, z = x, s = x;
+    if (b) { /* a segment's two ends */
+        const DK(v4) v = DK(v4_load)(b, l, m, full);
+        y = DK(v4_select)(x < v, x, v), z = DK(v4_select)(x < v, v, x), s = x + v;
     }
+    *lo = first ? y : DK(v4_select)(y < *lo, y, *lo);
+    *hi = first ? z : DK(v4_select)(z > *hi, z, *hi);
+    *sum = first ? s : *sum + s;
+}
+
+/* The least and the largest coordinate of lanes 0 .. m - 1 (m >= 1) of a and, where b is not NULL, of b
+ * (a segment's ends), into lo and hi, four lanes at a time; returns whether some lane is NaN (min and max
+ * may drop a NaN, a sum keeps it; the sum, formed in any order, is only asked that: an infinity's opposite,
+ * or an overflow meeting one, also makes it NaN, which loses a cull, never a collision). */
+static inline __attribute__((always_inline)) int DK(lanes_range)(const real *a, const real *b, int m, real *lo_out,
+                                                               real *hi_out) {
+    DK(v4) lo, hi, sum;
+    int l = 0;
+    if (m >= 4) {
+        DK(range_v4)(a, b, 0, m, 1, 1, &lo, &hi, &sum);
+        for (l = 4; l + 4 <= m; l += 4) DK(range_v4)(a, b, l, m, 1, 0, &lo, &hi, &sum);
+        if (l < m) DK(range_v4)(a, b, l, m, 0, 0, &lo, &hi, &sum);
+    } else
+        DK(range_v4)(a, b, 0, m, 0, 1, &lo, &hi, &sum);
+    real rl = lo[0], rh = hi[0], rs = sum[0];
+    for (int i = 1; i < 4; i++) {
+        rl = lo[i] < rl ? lo[i] : rl;
+        rh = hi[i] > rh ? hi[i] : rh;
+        rs += sum[i];
+    }
+    *lo_out = rl, *hi_out = rh;
+    return rs != rs;
+}
+
+/* Lanes l .. l + 3 (those below m) of DK(box_points_lanes). */
+static inline __attribute__((always_inline)) void DK(box_points_v4)(const real *A, int64_t N, real rg,
+        const real *bc, const real *bR, const real *bh, real thr, int l, int m, uint8_t *restrict clear,
+        real thr_hi, uint8_t *restrict hi, const int shared, const int full) {
+    /* entry k of the box of the lanes: gathered per lane (rows COLLIDE_BLOCK apart), or one box for every lane
+     * (shared: the object's own 3, 9, 3 entries, no copy) */
+#define BOX_ENTRY(p, k) (shared ? DK(v4_splat)((p)[k]) : DK(v4_load)((p) + (k) * COLLIDE_BLOCK, l, m, full))
+    const DK(v4) zero = DK(v4_splat)(0);
+    const DK(v4) dx = DK(v4_load)(A, l, m, full) - BOX_ENTRY(bc, 0), dy = DK(v4_load)(A + N, l, m, full) - BOX_ENTRY(bc, 1),
+                 dz = DK(v4_load)(A + 2 * N, l, m, full) - BOX_ENTRY(bc, 2);
+    /* R^T (dx, dy, dz), as DK(box_frame), written out */
+    const DK(v4) px = dx * BOX_ENTRY(bR, 0) + dy * BOX_ENTRY(bR, 3) + dz * BOX_ENTRY(bR, 6);
+    const DK(v4) py = dx * BOX_ENTRY(bR, 1) + dy * BOX_ENTRY(bR, 4) + dz * BOX_ENTRY(bR, 7);
+    const DK(v4) pz = dx * BOX_ENTRY(bR, 2) + dy * BOX_ENTRY(bR, 5) + dz * BOX_ENTRY(bR, 8);
+    /* DK(box_point_d2) lane by lane */
+    DK(v4) ex = DK(v4_select)(px < zero, -px, px) - BOX_ENTRY(bh, 0), ey = DK(v4_select)(py < zero, -py, py) - BOX_ENTRY(bh, 1),
+           ez = DK(v4_select)(pz < zero, -pz, pz) - BOX_ENTRY(bh, 2);
+#undef BOX_ENTRY
+    const DK(v4) exy = DK(v4_select)(ex > ey, ex, ey), excess = DK(v4_select)(exy > ez, exy, ez);
+    ex = DK(v4_select)(ex > zero, ex, zero);
+    ey = DK(v4_select)(ey > zero, ey, zero);
+    ez = DK(v4_select)(ez > zero, ez, zero);
+    const DK(v4) best = ex * ex + ey * ey + ez * ez;
+    const DK(v4) d = DK(v4_select)(best > zero, DK(v4_sqrt)(best), excess);
+    DK(v4_and_into)(clear, l, m, d >= DK(v4_splat)(rg + thr), full);
+    if (hi) DK(v4_and_into)(hi, l, m, d >= DK(v4_splat)(rg + thr_hi), full); /* hi: NULL or not in each inlined
+                                                                                 * copy, no test left */
+}
+
+/* DK(box_lanes) of sphere geoms (point): the signed distance of the centre, outside its distance, inside minus
+ * the depth, four lanes at a time (DK(box_points_v4)). */
+static inline __attribute__((always_inline)) void DK(box_points_lanes)(const real *A, int64_t N, real rg,
+        const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear, real thr_hi,
+        uint8_t *restrict hi, const int shared) {
+    int l = 0;
+    for (; l + 4 <= m; l += 4) DK(box_points_v4)(A, N, rg, bc, bR, bh, thr, l, m, clear, thr_hi, hi, shared, 1);
+    if (l < m) DK(box_points_v4)(A, N, rg, bc, bR, bh, thr, l, m, clear, thr_hi, hi, shared, 0);
 }
 
 __attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const real *A, int64_t N, real rg,
@@ -347,33 +451,43 @@ static void DK(box_lanes)(const real *A, const real *B, int64_t N, real rg, cons
     }
 }
 
+/* Lanes l .. l + 3 (those below m) of DK(cylinder_lanes_impl). */
+static inline __attribute__((always_inline)) void DK(cylinder_v4)(const real *A, int64_t N, real rg, const real *ya,
+        const real *yb, const real *yr, real thr, int l, int m, uint8_t *restrict clear, real thr_hi,
+        uint8_t *restrict hi, const int full) {
+#define LANES(p) DK(v4_load)((p), l, m, full)
+    const DK(v4) zero = DK(v4_splat)(0), half = DK(v4_splat)((real)0.5);
+    const DK(v4) ax = LANES(ya), ay = LANES(ya + COLLIDE_BLOCK), az = LANES(ya + 2 * COLLIDE_BLOCK);
+    const DK(v4) ex = half * (LANES(yb) - ax), ey = half * (LANES(yb + COLLIDE_BLOCK) - ay),
+                 ez = half * (LANES(yb + 2 * COLLIDE_BLOCK) - az);
+    const DK(v4) hl = DK(v4_sqrt)(ex * ex + ey * ey + ez * ez);
+    const DK(m4) deg = ~(hl > DK(v4_splat)((real)1e-12));
+    const DK(v4) inv = DK(v4_splat)(1) / DK(v4_select)(deg, DK(v4_splat)(1), hl);
+    const DK(v4) ux = DK(v4_select)(deg, zero, ex * inv), uy = DK(v4_select)(deg, zero, ey * inv),
+                 uz = DK(v4_select)(deg, DK(v4_splat)(1), ez * inv);
+    const DK(v4) wx = LANES(A) - ax - ex, wy = LANES(A + N) - ay - ey, wz = LANES(A + 2 * N) - az - ez;
+    const DK(v4) z = wx * ux + wy * uy + wz * uz;
+    DK(v4) rad2 = wx * wx + wy * wy + wz * wz - z * z;
+    rad2 = DK(v4_select)(rad2 > zero, rad2, zero);
+    const DK(v4) qx = DK(v4_sqrt)(rad2) - LANES(yr), qz = DK(v4_select)(z < zero, -z, z) - hl;
+#undef LANES
+    const DK(v4) ox = DK(v4_select)(qx > zero, qx, zero), oz = DK(v4_select)(qz > zero, qz, zero);
+    const DK(v4) mq = DK(v4_select)(qx > qz, qx, qz);
+    const DK(v4) d = DK(v4_sqrt)(ox * ox + oz * oz) + DK(v4_select)(mq < zero, mq, zero) - DK(v4_splat)(rg);
+    DK(v4_and_into)(clear, l, m, d >= DK(v4_splat)(thr), full);
+    if (hi) DK(v4_and_into)(hi, l, m, d >= DK(v4_splat)(thr_hi), full);
+}
+
 /* Whether every lane's sphere (centre a_l, radius rg) keeps d >= T_l = rg + thr from the lanes' cylinders
  * (flat faces' centres ya, yb [3][], radius yr []): the closed-form field of diffkin.collision.cylinders
  * (axial coordinate z, radial distance rho, half-length hl: q = (rho - r, |z| - hl), d = |max(q, 0)| +
- * min(max(q), 0)). */
-static inline __attribute__((always_inline, optimize("no-trapping-math"))) void DK(cylinder_lanes_impl)(
-        const real *A, int64_t N, real rg, const real *ya, const real *yb, const real *yr, real thr, int m,
-        uint8_t *restrict clear, real thr_hi, uint8_t *restrict hi) {
-#pragma omp simd
-    for (int l = 0; l < m; l++) { /* vectorised as DK(box_points) */
-        const real ex = (real)0.5 * (yb[l] - ya[l]), ey = (real)0.5 * (yb[COLLIDE_BLOCK + l] - ya[COLLIDE_BLOCK + l]),
-                   ez = (real)0.5 * (yb[2 * COLLIDE_BLOCK + l] - ya[2 * COLLIDE_BLOCK + l]);
-        const real hl = (real)sqrt((double)(ex * ex + ey * ey + ez * ez));
-        const int deg = !(hl > (real)1e-12);
-        const real inv = 1 / (deg ? 1 : hl);
-        const real ux = deg ? 0 : ex * inv, uy = deg ? 0 : ey * inv, uz = deg ? 1 : ez * inv;
-        const real wx = A[l] - ya[l] - ex, wy = A[N + l] - ya[COLLIDE_BLOCK + l] - ey,
-                   wz = A[2 * N + l] - ya[2 * COLLIDE_BLOCK + l] - ez;
-        const real z = wx * ux + wy * uy + wz * uz;
-        real rad2 = wx * wx + wy * wy + wz * wz - z * z;
-        rad2 = rad2 > 0 ? rad2 : 0;
-        const real qx = (real)sqrt((double)rad2) - yr[l], qz = (z < 0 ? -z : z) - hl;
-        const real ox = qx > 0 ? qx : 0, oz = qz > 0 ? qz : 0;
-        const real mq = qx > qz ? qx : qz;
-        const real d = (real)sqrt((double)(ox * ox + oz * oz)) + (mq < 0 ? mq : 0) - rg;
-        clear[l] &= d >= thr;
-        if (hi) hi[l] &= d >= thr_hi;
-    }
+ * min(max(q), 0)), four lanes at a time. */
+static inline __attribute__((always_inline)) void DK(cylinder_lanes_impl)(const real *A, int64_t N, real rg,
+        const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear, real thr_hi,
+        uint8_t *restrict hi) {
+    int l = 0;
+    for (; l + 4 <= m; l += 4) DK(cylinder_v4)(A, N, rg, ya, yb, yr, thr, l, m, clear, thr_hi, hi, 1);
+    if (l < m) DK(cylinder_v4)(A, N, rg, ya, yb, yr, thr, l, m, clear, thr_hi, hi, 0);
 }
 
 __attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
@@ -405,6 +519,28 @@ static inline int DK(aabb_apart)(const real *lo1, const real *hi1, const real *l
         g2 += gap > 0 ? gap * gap : 0;
     }
     return T > 0 ? g2 >= T * T : (T <= 0) & (g2 > 0); /* a NaN threshold: never apart */
+}
+
+/* near[u] = !DK(aabb_apart)(box u, [olo, ohi], T) for the n boxes [lo, hi] given axis-major (axis k's row from
+ * k * stride), four boxes at a time, the same arithmetic: a group's test against an object, about a third of a
+ * narrow decision's time as a branch each. */
+static inline void DK(boxes_near)(const real *lo, const real *hi, int64_t stride, int64_t n, const real *olo,
+                                  const real *ohi, real T, uint8_t *restrict near) {
+    const DK(v4) zero = DK(v4_splat)(0);
+    for (int l = 0; l < n; l += 4) {
+        const int full = l + 4 <= n, m = (int)n;
+        DK(v4) g2 = zero;
+        for (int k = 0; k < 3; k++) {
+            const DK(v4) a = DK(v4_splat)(olo[k]) - (full ? DK(v4_load)(hi + k * stride, l, m, 1) : DK(v4_load)(hi + k * stride, l, m, 0));
+            const DK(v4) b = (full ? DK(v4_load)(lo + k * stride, l, m, 1) : DK(v4_load)(lo + k * stride, l, m, 0)) - DK(v4_splat)(ohi[k]);
+            const DK(v4) gap = DK(v4_select)(a > b, a, b);
+            g2 += DK(v4_select)(gap > zero, gap * gap, zero);
+        }
+        DK(m4) apart = g2 > zero; /* T <= 0: apart at all */
+        if (T > 0) apart = g2 >= DK(v4_splat)(T * T);
+        else if (!(T <= 0)) apart ^= apart; /* a NaN threshold: never apart */
+        for (int i = 0; i < 4 && l + i < n; i++) near[l + i] = !(apart[i] & 1);
+    }
 }
 
 /* Lanes 0 .. m-1 below the first one that collides (m itself when none does). */
@@ -469,38 +605,18 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
      * least r_g + thr from it (the gap vector g of two boxes and g' of the grown ones: |g| >= |g'| + r), so
      * the group's geoms are skipped as one; the self pairs alike with both groups grown (r_i + r_j). */
     real gglo[3 * CULL_GEOMS], gghi[3 * CULL_GEOMS];
+    real gslo[3 * CULL_GEOMS], gshi[3 * CULL_GEOMS]; /* the same, axis k's row from k CULL_GEOMS (DK(boxes_near)) */
+    uint8_t gnear[CULL_GEOMS];
     real ulo[3] = {(real)INFINITY, (real)INFINITY, (real)INFINITY};
     real uhi[3] = {-(real)INFINITY, -(real)INFINITY, -(real)INFINITY};
     int unan = 0; /* a NaN geom (its box NaN below) or radius turns its group's box into NaN: never apart */
-    for (int64_t g = 0, u = 0; g < G && NG; g++) {
-        int nan = 0; /* a NaN coordinate in some lane: min and max may drop it, a sum keeps it */
+    for (int64_t g = 0, u = 0; g < G && NG && m > 0; g++) {
+        int nan = 0; /* a NaN coordinate in some lane (DK(lanes_range)) */
         for (int k = 0; k < 3; k++) {
             const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
-            real lo = a[0], hi = a[0], sum = 0;
-            /* min and max are exact in any order; the sum is only asked whether it is NaN (which an
-             * infinity's opposite, or an overflow meeting one, also makes it: never apart then, a cull lost),
-             * so it may be formed in any order */
-            if (A == B && m <= 4) { /* spheres, a block of 4 lanes or fewer (an edge's first): a tree, no loop */
-                const int l1 = m > 1, l2 = m > 2 ? 2 : l1, l3 = m > 3 ? 3 : l2; /* a lane repeated: the same
-                                                                                  * min and max */
-                const real x0 = a[0], x1 = a[l1], x2 = a[l2], x3 = a[l3];
-                const real lo01 = x1 < x0 ? x1 : x0, lo23 = x3 < x2 ? x3 : x2;
-                const real hi01 = x1 > x0 ? x1 : x0, hi23 = x3 > x2 ? x3 : x2;
-                lo = lo23 < lo01 ? lo23 : lo01;
-                hi = hi23 > hi01 ? hi23 : hi01;
-                sum = (x0 + x1) + (x2 + x3);
-            } else if (A == B) /* spheres (the planner's: B is A): the ends are one point */
-                REDUCE_LANES(m, "omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)",
-                             lo = a[l] < lo ? a[l] : lo;
-                             hi = a[l] > hi ? a[l] : hi;
-                             sum += a[l];);
-            else
-                REDUCE_LANES(m, "omp simd reduction(min : lo) reduction(max : hi) reduction(+ : sum)",
-                             const real x = a[l] < b[l] ? a[l] : b[l], y = a[l] < b[l] ? b[l] : a[l];
-                             lo = x < lo ? x : lo;
-                             hi = y > hi ? y : hi;
-                             sum += a[l] + b[l];);
-            nan |= sum != sum;
+            real lo, hi;
+            const int nan_k = DK(lanes_range)(a, A == B ? NULL : b, m, &lo, &hi);
+            nan |= nan_k;
             glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
         }
         if (nan) /* NaN on every axis: each gap 0, never apart (nor its group) */
@@ -516,6 +632,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         if (g + 1 == R->start[u + 1]) { /* the group's last geom */
             for (int k = 0; k < 3; k++) { /* NaN: aabb_apart's gaps 0 on every axis, never apart */
                 gglo[3 * u + k] = unan ? (real)NAN : ulo[k], gghi[3 * u + k] = unan ? (real)NAN : uhi[k];
+                gslo[k * CULL_GEOMS + u] = gglo[3 * u + k], gshi[k * CULL_GEOMS + u] = gghi[3 * u + k];
                 ulo[k] = (real)INFINITY, uhi[k] = -(real)INFINITY;
             }
             unan = 0;
@@ -526,8 +643,9 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
      * is at least thr from the object's box (olo, ohi) skipped */
     const int64_t NU = NG ? NG : 1;
 #define GROUP_GEOMS(g) \
+    if (cull) DK(boxes_near)(gslo, gshi, CULL_GEOMS, NG, olo, ohi, cthr, gnear); \
     for (int64_t u_ = 0; u_ < NU; u_++) \
-        if (!(cull && DK(aabb_apart)(gglo + 3 * u_, gghi + 3 * u_, olo, ohi, cthr))) \
+        if (!cull || gnear[u_]) \
             for (int64_t g = NG ? R->start[u_] : 0; g < (NG ? R->start[u_ + 1] : G); g++)
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
@@ -774,3 +892,6 @@ static void DK(dk_collide)(const dk_collide *c) {
     }
     collide_runs_free(&R);
 }
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif

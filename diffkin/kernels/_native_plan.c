@@ -265,11 +265,18 @@ static inline __attribute__((always_inline)) void DK(plan_place_point)(DK(PlanWo
         return;
     }
     const real *E = w->plain_ends ? w->endf[f - 1] : w->sc.ends + (size_t)(f - 1) * 12 * W;
+    /* four lanes at a time (DK(v4) of _native_collide.c; a loop of 4 lanes stays scalar), up to the next
+     * multiple of 4: the FK block's W lanes and the COLLIDE_BLOCK lanes of w->P leave room, and the lanes
+     * past nl are read by no decision */
+    _Static_assert(W % 4 == 0 && COLLIDE_BLOCK % W == 0, "a block's lanes in whole vectors of 4");
     for (int r = 0; r < 3; r++) {
         const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
         real *restrict o = dst + r * COLLIDE_BLOCK;
-#pragma omp simd
-        for (int l = 0; l < nl; l++) o[l] = E0[l] * h0 + E1[l] * h1 + E2[l] * h2 + E3[l] * h3;
+        for (int l = 0; l < nl; l += 4) {
+            const DK(v4) x = DK(v4_load)(E0, l, W, 1) * h0 + DK(v4_load)(E1, l, W, 1) * h1 +
+                             DK(v4_load)(E2, l, W, 1) * h2 + DK(v4_load)(E3, l, W, 1) * h3;
+            memcpy(o + l, &x, sizeof x);
+        }
     }
 }
 
