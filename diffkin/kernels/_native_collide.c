@@ -244,6 +244,33 @@ static inline __attribute__((always_inline)) DK(v4) DK(v4_select)(DK(m4) mask, D
     return (DK(v4))((mask & (DK(m4))a) | (~mask & (DK(m4))b));
 }
 
+/* a < b ? a : b and a > b ? a : b lane by lane (x86's min and max are exactly these: one instruction where a
+ * select is two) */
+static inline __attribute__((always_inline)) DK(v4) DK(v4_min)(DK(v4) a, DK(v4) b) {
+#if defined(__AVX2__) && DK_TILE == 4
+    return (DK(v4))_mm256_min_pd((__m256d)a, (__m256d)b);
+#elif defined(__AVX2__) && DK_TILE == 8
+    return (DK(v4))_mm_min_ps((__m128)a, (__m128)b);
+#else
+    return DK(v4_select)(a < b, a, b);
+#endif
+}
+
+static inline __attribute__((always_inline)) DK(v4) DK(v4_max)(DK(v4) a, DK(v4) b) {
+#if defined(__AVX2__) && DK_TILE == 4
+    return (DK(v4))_mm256_max_pd((__m256d)a, (__m256d)b);
+#elif defined(__AVX2__) && DK_TILE == 8
+    return (DK(v4))_mm_max_ps((__m128)a, (__m128)b);
+#else
+    return DK(v4_select)(a > b, a, b);
+#endif
+}
+
+/* |x| lane by lane, the sign bit cleared (x < 0 ? -x : x but for the sign of a zero, which no decision reads) */
+static inline __attribute__((always_inline)) DK(v4) DK(v4_abs)(DK(v4) x) {
+    return (DK(v4))((DK(m4))x & ~(DK(m4))DK(v4_splat)((real)-0.0));
+}
+
 static inline __attribute__((always_inline)) DK(v4) DK(v4_sqrt)(DK(v4) x) {
     DK(v4) r;
     for (int i = 0; i < 4; i++) r[i] = (real)sqrt((double)x[i]);
@@ -269,10 +296,10 @@ static inline __attribute__((always_inline)) void DK(range_v4)(const real *a, co
     DK(v4) y = x, z = x, s = x;
     if (b) { /* a segment's two ends */
         const DK(v4) v = DK(v4_load)(b, l, m, full);
-        y = DK(v4_select)(x < v, x, v), z = DK(v4_select)(x < v, v, x), s = x + v;
+        y = DK(v4_min)(x, v), z = DK(v4_max)(v, x), s = x + v;
     }
-    *lo = first ? y : DK(v4_select)(y < *lo, y, *lo);
-    *hi = first ? z : DK(v4_select)(z > *hi, z, *hi);
+    *lo = first ? y : DK(v4_min)(y, *lo);
+    *hi = first ? z : DK(v4_max)(z, *hi);
     *sum = first ? s : *sum + s;
 }
 
@@ -315,13 +342,12 @@ static inline __attribute__((always_inline)) void DK(box_points_v4)(const real *
     const DK(v4) py = dx * BOX_ENTRY(bR, 1) + dy * BOX_ENTRY(bR, 4) + dz * BOX_ENTRY(bR, 7);
     const DK(v4) pz = dx * BOX_ENTRY(bR, 2) + dy * BOX_ENTRY(bR, 5) + dz * BOX_ENTRY(bR, 8);
     /* DK(box_point_d2) lane by lane */
-    DK(v4) ex = DK(v4_select)(px < zero, -px, px) - BOX_ENTRY(bh, 0), ey = DK(v4_select)(py < zero, -py, py) - BOX_ENTRY(bh, 1),
-           ez = DK(v4_select)(pz < zero, -pz, pz) - BOX_ENTRY(bh, 2);
+    DK(v4) ex = DK(v4_abs)(px) - BOX_ENTRY(bh, 0), ey = DK(v4_abs)(py) - BOX_ENTRY(bh, 1), ez = DK(v4_abs)(pz) - BOX_ENTRY(bh, 2);
 #undef BOX_ENTRY
-    const DK(v4) exy = DK(v4_select)(ex > ey, ex, ey), excess = DK(v4_select)(exy > ez, exy, ez);
-    ex = DK(v4_select)(ex > zero, ex, zero);
-    ey = DK(v4_select)(ey > zero, ey, zero);
-    ez = DK(v4_select)(ez > zero, ez, zero);
+    const DK(v4) excess = DK(v4_max)(DK(v4_max)(ex, ey), ez);
+    ex = DK(v4_max)(ex, zero);
+    ey = DK(v4_max)(ey, zero);
+    ez = DK(v4_max)(ez, zero);
     const DK(v4) best = ex * ex + ey * ey + ez * ez;
     const DK(v4) d = DK(v4_select)(best > zero, DK(v4_sqrt)(best), excess);
     DK(v4_and_into)(clear, l, m, d >= DK(v4_splat)(rg + thr), full);
@@ -468,12 +494,11 @@ static inline __attribute__((always_inline)) void DK(cylinder_v4)(const real *A,
     const DK(v4) wx = LANES(A) - ax - ex, wy = LANES(A + N) - ay - ey, wz = LANES(A + 2 * N) - az - ez;
     const DK(v4) z = wx * ux + wy * uy + wz * uz;
     DK(v4) rad2 = wx * wx + wy * wy + wz * wz - z * z;
-    rad2 = DK(v4_select)(rad2 > zero, rad2, zero);
-    const DK(v4) qx = DK(v4_sqrt)(rad2) - LANES(yr), qz = DK(v4_select)(z < zero, -z, z) - hl;
+    rad2 = DK(v4_max)(rad2, zero);
+    const DK(v4) qx = DK(v4_sqrt)(rad2) - LANES(yr), qz = DK(v4_abs)(z) - hl;
 #undef LANES
-    const DK(v4) ox = DK(v4_select)(qx > zero, qx, zero), oz = DK(v4_select)(qz > zero, qz, zero);
-    const DK(v4) mq = DK(v4_select)(qx > qz, qx, qz);
-    const DK(v4) d = DK(v4_sqrt)(ox * ox + oz * oz) + DK(v4_select)(mq < zero, mq, zero) - DK(v4_splat)(rg);
+    const DK(v4) ox = DK(v4_max)(qx, zero), oz = DK(v4_max)(qz, zero);
+    const DK(v4) d = DK(v4_sqrt)(ox * ox + oz * oz) + DK(v4_min)(DK(v4_max)(qx, qz), zero) - DK(v4_splat)(rg);
     DK(v4_and_into)(clear, l, m, d >= DK(v4_splat)(thr), full);
     if (hi) DK(v4_and_into)(hi, l, m, d >= DK(v4_splat)(thr_hi), full);
 }
@@ -533,7 +558,7 @@ static inline void DK(boxes_near)(const real *lo, const real *hi, int64_t stride
         for (int k = 0; k < 3; k++) {
             const DK(v4) a = DK(v4_splat)(olo[k]) - (full ? DK(v4_load)(hi + k * stride, l, m, 1) : DK(v4_load)(hi + k * stride, l, m, 0));
             const DK(v4) b = (full ? DK(v4_load)(lo + k * stride, l, m, 1) : DK(v4_load)(lo + k * stride, l, m, 0)) - DK(v4_splat)(ohi[k]);
-            const DK(v4) gap = DK(v4_select)(a > b, a, b);
+            const DK(v4) gap = DK(v4_max)(a, b);
             g2 += DK(v4_select)(gap > zero, gap * gap, zero);
         }
         DK(m4) apart = g2 > zero; /* T <= 0: apart at all */
