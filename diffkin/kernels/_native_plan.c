@@ -230,7 +230,7 @@ typedef struct { /* one thread's work space */
     dk_collide cc;        /* the problem's decisions: A, B, N, wid, slack set here */
     CollideRuns runs;     /* cc's geoms grouped by frame, its pairs by pair of groups */
     real *qs;             /* [COLLIDE_BLOCK n] the block's configurations */
-    real *P;              /* [C 3 COLLIDE_BLOCK] the placed points, component-major */
+    real *P;              /* [C 3 N] the placed points, component-major, N = cc.N (DK(plan_rows)) */
     int64_t *wid;         /* [COLLIDE_BLOCK] the problem's world row */
     uint8_t ok[COLLIDE_BLOCK];
     uint8_t hi[COLLIDE_BLOCK]; /* with COLLIDE_COVER: clear of the cover's slack too (DK(plan_edge_cover)) */
@@ -256,22 +256,23 @@ static inline __attribute__((always_inline)) void DK(plan_place_point)(DK(PlanWo
     const real *h = (const real *)p->col_h, *base = (const real *)p->base;
     const int64_t f = p->col_frame[c];
     const real h0 = h[4 * c], h1 = h[4 * c + 1], h2 = h[4 * c + 2], h3 = h[4 * c + 3];
-    real *dst = w->P + c * 3 * COLLIDE_BLOCK + b0;
+    const int64_t N = w->cc.N;
+    real *dst = w->P + c * 3 * N + b0;
     if (f == 0) {
         for (int r = 0; r < 3; r++) {
             const real v = base[4 * r] * h0 + base[4 * r + 1] * h1 + base[4 * r + 2] * h2 + base[4 * r + 3] * h3;
-            for (int l = 0; l < nl; l++) dst[r * COLLIDE_BLOCK + l] = v;
+            for (int l = 0; l < nl; l++) dst[r * N + l] = v;
         }
         return;
     }
     const real *E = w->plain_ends ? w->endf[f - 1] : w->sc.ends + (size_t)(f - 1) * 12 * W;
     /* four lanes at a time (DK(v4) of _native_collide.c; a loop of 4 lanes stays scalar), up to the next
-     * multiple of 4: the FK block's W lanes and the COLLIDE_BLOCK lanes of w->P leave room, and the lanes
+     * multiple of 4: the FK block's W lanes and the rows of w->P (DK(plan_rows)) leave room, and the lanes
      * past nl are read by no decision */
     _Static_assert(W % 4 == 0 && COLLIDE_BLOCK % W == 0, "a block's lanes in whole vectors of 4");
     for (int r = 0; r < 3; r++) {
         const real *E0 = E + 4 * r * W, *E1 = E0 + W, *E2 = E1 + W, *E3 = E2 + W;
-        real *restrict o = dst + r * COLLIDE_BLOCK;
+        real *restrict o = dst + r * N;
         for (int l = 0; l < nl; l += 4) {
             const DK(v4) x = DK(v4_load)(E0, l, W, 1) * h0 + DK(v4_load)(E1, l, W, 1) * h1 +
                              DK(v4_load)(E2, l, W, 1) * h2 + DK(v4_load)(E3, l, W, 1) * h3;
@@ -297,6 +298,16 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
     for (int64_t c = 0; c < (w->points ? w->p->C / 2 : w->p->C); c++) DK(plan_place_point)(w, c, b0, nl);
 }
 
+/* The rows of w->P for a decision of m configurations: m rounded up to a multiple of 4 lanes each (cc.N), so
+ * that a block's points lie together: rows COLLIDE_BLOCK apart (2 KiB of doubles) put the 4 lanes of an
+ * edge's first block, in each of a spherized Panda's 177 rows, into the same two sets of a 48 KiB 12-way L1
+ * cache, where they evicted each other before the boxes', the objects' and the self pairs' tests read them
+ * back (rows 64 bytes longer than that took 0.93 of the search's time, packed rows 0.98 of that again). */
+static inline void DK(plan_rows)(DK(PlanWork) *w, int m) {
+    w->cc.N = (m + 3) & ~3;
+    w->cc.B = w->points ? w->P : w->P + w->cc.G * 3 * w->cc.N;
+}
+
 /* Decide the m configurations of w->qs into w->ok (1: clear with margin + eta); mode as DK(collide_lanes)'s:
  * with COLLIDE_FIRST ok is exact only up to its first 0, with COLLIDE_ANY only whether it has a 0; with
  * COLLIDE_COVER as COLLIDE_ANY, and where ok has no 0, w->hi says which are clear of margin + COVER_SLACK
@@ -304,6 +315,7 @@ static inline __attribute__((always_inline)) void DK(plan_place)(DK(PlanWork) *w
 static void DK(plan_decide)(DK(PlanWork) *w, int m, int mode) {
     _Static_assert(COLLIDE_NARROW == WN, "the narrow decision places DK(block_narrow)'s lanes");
     if (m <= 0) return;
+    DK(plan_rows)(w, m);
     const real thr_hi = (real)(w->cc.margin + COVER_SLACK * w->cc.slack);
     if ((mode == COLLIDE_ANY || mode == COLLIDE_COVER) && m <= COLLIDE_NARROW) {
         /* a block of 4 samples or fewer (an edge's first; the last of a short edge): COLLIDE_NARROW lanes,
@@ -783,7 +795,7 @@ static int DK(plan_work_init)(DK(PlanWork) *w, const dk_plan *p, const Shape *s,
     }
     w->cc = *p->collide;
     DK(plan_forget_hints)(w);
-    w->cc.N = COLLIDE_BLOCK;
+    w->cc.N = COLLIDE_BLOCK; /* DK(plan_rows) sets it for each decision */
     w->cc.A = w->P;
     w->points = 1;
     for (int64_t g = 0; g < G && w->points; g++) {
