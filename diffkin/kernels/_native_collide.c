@@ -221,10 +221,17 @@ static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, r
 #pragma GCC diagnostic ignored "-Wpsabi"
 #endif
 typedef real DK(v4) __attribute__((vector_size(4 * sizeof(real))));
-typedef __typeof__((DK(v4)){0} < (DK(v4)){0}) DK(m4); /* a comparison's lanes: 0 or all bits set */
+typedef __typeof__(((DK(v4)){0} < (DK(v4)){0})[0]) DK(v4_int); /* the integer of a comparison's lanes */
+typedef DK(v4_int) DK(m4) __attribute__((vector_size(4 * sizeof(real)))); /* a comparison: 0 or all bits set */
 #ifndef DK_LANES4_ONCE
 #define DK_LANES4_ONCE
 typedef uint8_t lanes4_u8 __attribute__((vector_size(4)));
+/* lanes i, j, k, l of the 8 of a then b */
+#if defined(__clang__)
+#define DK_V4_SHUFFLE(a, b, i, j, k, l) __builtin_shufflevector(a, b, i, j, k, l)
+#else
+#define DK_V4_SHUFFLE(a, b, i, j, k, l) __builtin_shuffle(a, b, (DK(m4)){i, j, k, l})
+#endif
 #endif
 
 static inline __attribute__((always_inline)) DK(v4) DK(v4_splat)(real x) { return (DK(v4)){x, x, x, x}; }
@@ -289,7 +296,7 @@ static inline __attribute__((always_inline)) void DK(v4_and_into)(uint8_t *restr
         for (int i = 0; i < 4 && l + i < m; i++) flags[l + i] &= (uint8_t)(mask[i] & 1);
 }
 
-/* One chunk of DK(lanes_range): lanes l .. l + 3 (past m, lane m - 1 again: the same least and largest) */
+/* One chunk of DK(rows_range): lanes l .. l + 3 (past m, lane m - 1 again: the same least and largest) */
 static inline __attribute__((always_inline)) void DK(range_v4)(const real *a, const real *b, int l, int m,
         const int full, const int first, DK(v4) *lo, DK(v4) *hi, DK(v4) *sum) {
     const DK(v4) x = DK(v4_load)(a, l, m, full);
@@ -303,28 +310,41 @@ static inline __attribute__((always_inline)) void DK(range_v4)(const real *a, co
     *sum = first ? s : *sum + s;
 }
 
-/* The least and the largest coordinate of lanes 0 .. m - 1 (m >= 1) of a and, where b is not NULL, of b
- * (a segment's ends), into lo and hi, four lanes at a time; returns whether some lane is NaN (min and max
- * may drop a NaN, a sum keeps it; the sum, formed in any order, is only asked that: an infinity's opposite,
- * or an overflow meeting one, also makes it NaN, which loses a cull, never a collision). */
-static inline __attribute__((always_inline)) int DK(lanes_range)(const real *a, const real *b, int m, real *lo_out,
-                                                               real *hi_out) {
-    DK(v4) lo, hi, sum;
-    int l = 0;
-    if (m >= 4) {
-        DK(range_v4)(a, b, 0, m, 1, 1, &lo, &hi, &sum);
-        for (l = 4; l + 4 <= m; l += 4) DK(range_v4)(a, b, l, m, 1, 0, &lo, &hi, &sum);
-        if (l < m) DK(range_v4)(a, b, l, m, 0, 0, &lo, &hi, &sum);
-    } else
-        DK(range_v4)(a, b, 0, m, 0, 1, &lo, &hi, &sum);
-    real rl = lo[0], rh = hi[0], rs = sum[0];
-    for (int i = 1; i < 4; i++) {
-        rl = lo[i] < rl ? lo[i] : rl;
-        rh = hi[i] > rh ? hi[i] : rh;
-        rs += sum[i];
+/* Lane i of the result: op (0 min, 1 max, 2 sum) over the four lanes of r[i], for four vectors at once (two
+ * rounds of shuffles: 6 shuffles and 3 ops where each vector alone takes 3 extractions and 3 ops) */
+static inline __attribute__((always_inline)) DK(v4) DK(v4_op)(DK(v4) a, DK(v4) b, const int op) {
+    return op == 0 ? DK(v4_min)(a, b) : op == 1 ? DK(v4_max)(a, b) : a + b;
+}
+static inline __attribute__((always_inline)) DK(v4) DK(v4_across)(const DK(v4) *r, const int op) {
+    const DK(v4) m01 = DK(v4_op)(DK_V4_SHUFFLE(r[0], r[1], 0, 4, 2, 6), DK_V4_SHUFFLE(r[0], r[1], 1, 5, 3, 7), op);
+    const DK(v4) m23 = DK(v4_op)(DK_V4_SHUFFLE(r[2], r[3], 0, 4, 2, 6), DK_V4_SHUFFLE(r[2], r[3], 1, 5, 3, 7), op);
+    return DK(v4_op)(DK_V4_SHUFFLE(m01, m23, 0, 1, 4, 5), DK_V4_SHUFFLE(m01, m23, 2, 3, 6, 7), op);
+}
+
+/* The least and the largest of lanes 0 .. m - 1 (m >= 1) of each of the n rows of a (row i from i N) and,
+ * where b is not NULL, of b's too (a segment's two ends), into lo[i] and hi[i], and whether some lane of the
+ * row is NaN into nan[i] (min and max may drop a NaN, a sum keeps it; the sum, formed in any order, is only
+ * asked that: an infinity's opposite, or an overflow meeting one, also makes it NaN, which loses a cull,
+ * never a collision): four rows at a time, their lanes four at a time, the four rows' vectors reduced across
+ * their lanes together (DK(v4_across)). */
+static inline void DK(rows_range)(const real *a, const real *b, int64_t N, int64_t n, int m, real *restrict lo,
+                                  real *restrict hi, uint8_t *restrict nan) {
+    for (int64_t i = 0; i < n; i += 4) {
+        DK(v4) L[4], H[4], S[4];
+        for (int j = 0; j < 4; j++) {
+            const int64_t row = i + j < n ? i + j : n - 1; /* past n the last row again */
+            const real *ar = a + row * N, *br = b ? b + row * N : NULL;
+            int l = 0;
+            if (m >= 4) {
+                DK(range_v4)(ar, br, 0, m, 1, 1, L + j, H + j, S + j);
+                for (l = 4; l + 4 <= m; l += 4) DK(range_v4)(ar, br, l, m, 1, 0, L + j, H + j, S + j);
+                if (l < m) DK(range_v4)(ar, br, l, m, 0, 0, L + j, H + j, S + j);
+            } else
+                DK(range_v4)(ar, br, 0, m, 0, 1, L + j, H + j, S + j);
+        }
+        const DK(v4) lo4 = DK(v4_across)(L, 0), hi4 = DK(v4_across)(H, 1), s4 = DK(v4_across)(S, 2);
+        for (int j = 0; j < 4 && i + j < n; j++) lo[i + j] = lo4[j], hi[i + j] = hi4[j], nan[i + j] = s4[j] != s4[j];
     }
-    *lo_out = rl, *hi_out = rh;
-    return rs != rs;
 }
 
 /* Lanes l .. l + 3 (those below m) of DK(box_points_lanes). */
@@ -546,26 +566,49 @@ static inline int DK(aabb_apart)(const real *lo1, const real *hi1, const real *l
     return T > 0 ? g2 >= T * T : (T <= 0) & (g2 > 0); /* a NaN threshold: never apart */
 }
 
+/* DK(aabb_apart) of boxes l .. l + 3 (those below n; given axis-major: axis k's row from k * stride) and the box
+ * [olo, ohi], box i at least T[i] apart (T[i] <= 0: apart at all, NaN: never), the same arithmetic: the
+ * apart lanes set */
+static inline __attribute__((always_inline)) DK(m4) DK(apart_v4)(const real *lo, const real *hi, int64_t stride,
+        int l, int n, const int full, const real *olo, const real *ohi, DK(v4) T) {
+    const DK(v4) zero = DK(v4_splat)(0);
+    DK(v4) g2 = zero;
+    for (int k = 0; k < 3; k++) {
+        const DK(v4) a = DK(v4_splat)(olo[k]) - DK(v4_load)(hi + k * stride, l, n, full);
+        const DK(v4) b = DK(v4_load)(lo + k * stride, l, n, full) - DK(v4_splat)(ohi[k]);
+        const DK(v4) gap = DK(v4_max)(a, b);
+        g2 += DK(v4_select)(gap > zero, gap * gap, zero);
+    }
+    return ((T > zero) & (g2 >= T * T)) | ((T <= zero) & (g2 > zero));
+}
+
 /* near[u] = !DK(aabb_apart)(box u, [olo, ohi], T) for the n boxes [lo, hi] given axis-major (axis k's row from
- * k * stride), four boxes at a time, the same arithmetic: a group's test against an object, about a third of a
+ * k * stride), four boxes at a time (DK(apart_v4)): a group's test against an object, about a third of a
  * narrow decision's time as a branch each. */
 static inline void DK(boxes_near)(const real *lo, const real *hi, int64_t stride, int64_t n, const real *olo,
                                   const real *ohi, real T, uint8_t *restrict near) {
-    const DK(v4) zero = DK(v4_splat)(0);
     for (int l = 0; l < n; l += 4) {
-        const int full = l + 4 <= n, m = (int)n;
-        DK(v4) g2 = zero;
-        for (int k = 0; k < 3; k++) {
-            const DK(v4) a = DK(v4_splat)(olo[k]) - (full ? DK(v4_load)(hi + k * stride, l, m, 1) : DK(v4_load)(hi + k * stride, l, m, 0));
-            const DK(v4) b = (full ? DK(v4_load)(lo + k * stride, l, m, 1) : DK(v4_load)(lo + k * stride, l, m, 0)) - DK(v4_splat)(ohi[k]);
-            const DK(v4) gap = DK(v4_max)(a, b);
-            g2 += DK(v4_select)(gap > zero, gap * gap, zero);
-        }
-        DK(m4) apart = g2 > zero; /* T <= 0: apart at all */
-        if (T > 0) apart = g2 >= DK(v4_splat)(T * T);
-        else if (!(T <= 0)) apart ^= apart; /* a NaN threshold: never apart */
+        const int full = l + 4 <= n;
+        const DK(m4) apart = full ? DK(apart_v4)(lo, hi, stride, l, (int)n, 1, olo, ohi, DK(v4_splat)(T))
+                                  : DK(apart_v4)(lo, hi, stride, l, (int)n, 0, olo, ohi, DK(v4_splat)(T));
         for (int i = 0; i < 4 && l + i < n; i++) near[l + i] = !(apart[i] & 1);
     }
+}
+
+/* Bit i set where geom g0 + i (i < n <= 64; boxes axis-major, rows CULL_GEOMS apart) is not at least
+ * r[g0 + i] + T from the box [olo, ohi]: DK(aabb_apart) four geoms at a time (DK(apart_v4)), a group's geoms
+ * against an object (a branch each took about a sixth of a narrow decision's time). */
+static inline uint64_t DK(geoms_near)(const real *lo, const real *hi, const real *r, int64_t g0, int n,
+                                      const real *olo, const real *ohi, real T) {
+    uint64_t bits = 0;
+    for (int l = 0; l < n; l += 4) {
+        const int full = l + 4 <= n;
+        const DK(m4) apart =
+            full ? DK(apart_v4)(lo + g0, hi + g0, CULL_GEOMS, l, n, 1, olo, ohi, DK(v4_load)(r + g0, l, n, 1) + T)
+                 : DK(apart_v4)(lo + g0, hi + g0, CULL_GEOMS, l, n, 0, olo, ohi, DK(v4_load)(r + g0, l, n, 0) + T);
+        for (int i = 0; i < 4 && l + i < n; i++) bits |= (uint64_t)!(apart[i] & 1) << (l + i);
+    }
+    return bits;
 }
 
 /* Lanes 0 .. m-1 below the first one that collides (m itself when none does). */
@@ -632,20 +675,18 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     real gglo[3 * CULL_GEOMS], gghi[3 * CULL_GEOMS];
     real gslo[3 * CULL_GEOMS], gshi[3 * CULL_GEOMS]; /* the same, axis k's row from k CULL_GEOMS (DK(boxes_near)) */
     uint8_t gnear[CULL_GEOMS];
+    real gxlo[3 * CULL_GEOMS], gxhi[3 * CULL_GEOMS]; /* glo, ghi axis-major (DK(geoms_near)) */
     real ulo[3] = {(real)INFINITY, (real)INFINITY, (real)INFINITY};
     real uhi[3] = {-(real)INFINITY, -(real)INFINITY, -(real)INFINITY};
     int unan = 0; /* a NaN geom (its box NaN below) or radius turns its group's box into NaN: never apart */
+    uint8_t rnan[3 * CULL_GEOMS];
+    if (NG && m > 0) /* each geom's box over the lanes: row 3 g + k of A (and B) is its axis k */
+        DK(rows_range)(A + n0, A == B ? NULL : B + n0, N, 3 * G, m, glo, ghi, rnan);
     for (int64_t g = 0, u = 0; g < G && NG && m > 0; g++) {
-        int nan = 0; /* a NaN coordinate in some lane (DK(lanes_range)) */
-        for (int k = 0; k < 3; k++) {
-            const real *a = A + (g * 3 + k) * N + n0, *b = B + (g * 3 + k) * N + n0;
-            real lo, hi;
-            const int nan_k = DK(lanes_range)(a, A == B ? NULL : b, m, &lo, &hi);
-            nan |= nan_k;
-            glo[3 * g + k] = lo, ghi[3 * g + k] = hi;
-        }
+        const int nan = rnan[3 * g] | rnan[3 * g + 1] | rnan[3 * g + 2]; /* a NaN coordinate in some lane */
         if (nan) /* NaN on every axis: each gap 0, never apart (nor its group) */
             for (int k = 0; k < 3; k++) glo[3 * g + k] = ghi[3 * g + k] = (real)NAN;
+        for (int k = 0; k < 3; k++) gxlo[k * CULL_GEOMS + g] = glo[3 * g + k], gxhi[k * CULL_GEOMS + g] = ghi[3 * g + k];
         const real rg = r[g] > 0 ? r[g] : 0;
         unan |= r[g] != r[g];
         for (int k = 0; k < 3; k++) {
@@ -665,13 +706,20 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         }
     }
     /* the geoms g0 .. g1 - 1 of each group in turn (one group of all without culling), the groups whose box
-     * is at least thr from the object's box (olo, ohi) skipped */
+     * is at least thr from the object's box (olo, ohi) skipped (DK(boxes_near)), and in the others each geom
+     * whose box is at least r_g + thr from it (DK(geoms_near): the group's near geoms as bits, 64 at a time,
+     * taken in order) */
     const int64_t NU = NG ? NG : 1;
 #define GROUP_GEOMS(g) \
     if (cull) DK(boxes_near)(gslo, gshi, CULL_GEOMS, NG, olo, ohi, cthr, gnear); \
     for (int64_t u_ = 0; u_ < NU; u_++) \
         if (!cull || gnear[u_]) \
-            for (int64_t g = NG ? R->start[u_] : 0; g < (NG ? R->start[u_ + 1] : G); g++)
+            for (int64_t b_ = NG ? R->start[u_] : 0, e_ = NG ? R->start[u_ + 1] : G; b_ < e_; b_ += 64) \
+                for (uint64_t n_ = e_ - b_ < 64 ? (uint64_t)(e_ - b_) : 64, \
+                              bits_ = cull ? DK(geoms_near)(gxlo, gxhi, r, b_, (int)n_, olo, ohi, cthr) \
+                                           : (n_ == 64 ? ~0ull : (1ull << n_) - 1); \
+                     bits_; bits_ &= bits_ - 1) \
+                    for (int64_t g = b_ + __builtin_ctzll(bits_), once_ = 1; once_; once_ = 0)
     const real *wa = (const real *)c->wa, *wb = (const real *)c->wb, *wr = (const real *)c->wr;
     const real *hs = (const real *)c->hs;
     real pa[4 * COLLIDE_BLOCK], pb[3 * COLLIDE_BLOCK], pr[COLLIDE_BLOCK]; /* pa: 4 rows for a half-space */
@@ -691,7 +739,6 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
         }
         GROUP_GEOMS(g) {
             if (c->skip_r && c->skip_r[g * c->Wr + w]) continue;
-            if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
             DK(segments_d2)(A + g * 3 * N + n0, B + g * 3 * N + n0, N, pa, pb, COLLIDE_BLOCK, m, d2);
             for (int l = 0; l < m; l++) {
                 const real T = r[g] + pr[l] + thr;
@@ -737,7 +784,6 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             }
             GROUP_GEOMS(g) {
                 if (c->skip_b && c->skip_b[g * c->Wb + w]) continue;
-                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
                 const int point = c->point ? c->point[g] : 0;
                 if (point && same) { /* a sphere, one box for the block, read in place (m a constant where
                                       * DK(collide_any_narrow) and DK(collide_cover_narrow) inline this) */
@@ -776,7 +822,6 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             }
             GROUP_GEOMS(g) {
                 if (!c->point[g] || (c->skip_y && c->skip_y[g * c->Wy + w])) continue;
-                if (cull && DK(aabb_apart)(glo + 3 * g, ghi + 3 * g, olo, ohi, r[g] + cthr)) continue;
                 if (!gathered) {
                     DK(gather_cylinder)(c, n0, m, w, pa, pb, pr);
                     gathered = 1;
