@@ -11,9 +11,10 @@
  * ends, r (G) the radii. The distance of two segments is Ericson's closest points of two segments
  * (Real-Time Collision Detection, 5.1.9) written without branches, so that the loop over the configurations
  * of a block can vectorise (GCC 12 keeps it scalar: under the default -ftrapping-math a select on a double
- * comparison stays a branch; -fno-trapping-math for the whole library changed other kernels' results, so
- * only DK(box_points), its 4-lane and one-box variants and DK(cylinder_lanes), the planner's hot loops, are
- * compiled so); degenerate segments (points) take the clamped formulas. The test compares squared
+ * comparison stays a branch; -fno-trapping-math for the whole library changed other kernels' results); the
+ * planner's hot loops (the spheres against boxes and cylinders, the lanes' bounding boxes, the culls against
+ * an object) are written four lanes at a time as vectors (DK(v4)) instead; degenerate segments (points) take
+ * the clamped formulas. The test compares squared
  * centre distances with (r_a + r_b + margin + slack)^2: no square root. Configurations run in blocks of
  * COLLIDE_BLOCK (the block's capsules stay in cache while every pair is tested), blocks shared between
  * threads.
@@ -45,11 +46,9 @@ typedef struct {
 /* `for (int l = 0; l < m; l++) { body }` as a reduction over the lanes: an omp simd loop with the reduction
  * clauses from SIMD_REDUCE_LANES lanes on, a plain loop below. GCC lowers an omp simd reduction to an array of
  * per-lane partial results on the stack, stored as one vector and combined one by one (narrow loads of a wide
- * store: a stall each), which costs more than a few lanes' work: the planner's edges start with blocks of 4
- * and 16 (4 and 8 where short; with the plain loop below 16 lanes the planner's decisions took 30 % less
- * time; below 32 or 64 measured the same, smaller thresholds were not tried; a sphere's box over 4 lanes or
- * fewer is a tree of selects, no loop: 3-5 % less again). min and max are exact in any order; a sum kept
- * only to be asked whether it is NaN may be formed in any order. */
+ * store: a stall each), which costs more than a few lanes' work (the nearest-node scan of _native_plan.c; the
+ * planner's decisions took 30 % less time with the plain loop below 16 lanes, before their lanes' boxes went
+ * to DK(rows_range)). min and max are exact in any order. */
 #define SIMD_REDUCE_LANES 16
 #define REDUCE_LANES(m, clauses, ...)                                                                             \
     do {                                                                                                         \
@@ -216,10 +215,6 @@ static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, r
  * of 4; the wide loops ran their last 1-7 lanes so); in the planner's search these tests took about 17 % of
  * the time. Only in static inline functions, so the ABI note of GCC's -Wpsabi (a vector argument without AVX
  * enabled) does not apply. */
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wpsabi"
-#endif
 typedef real DK(v4) __attribute__((vector_size(4 * sizeof(real))));
 typedef __typeof__(((DK(v4)){0} < (DK(v4)){0})[0]) DK(v4_int); /* the integer of a comparison's lanes */
 typedef DK(v4_int) DK(m4) __attribute__((vector_size(4 * sizeof(real)))); /* a comparison: 0 or all bits set */
@@ -385,19 +380,19 @@ static inline __attribute__((always_inline)) void DK(box_points_lanes)(const rea
     if (l < m) DK(box_points_v4)(A, N, rg, bc, bR, bh, thr, l, m, clear, thr_hi, hi, shared, 0);
 }
 
-__attribute__((optimize("no-trapping-math"))) static void DK(box_points)(const real *A, int64_t N, real rg,
+static void DK(box_points)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear) {
     DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, 0, NULL, 0);
 }
 
 /* DK(box_points) of COLLIDE_NARROW lanes (a constant trip count) */
-__attribute__((optimize("no-trapping-math"))) static void DK(box_points_narrow)(const real *A, int64_t N, real rg,
+static void DK(box_points_narrow)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear) {
     DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, 0, NULL, 0);
 }
 
 /* DK(box_points) deciding each lane at thr_hi as well, into hi (&=) */
-__attribute__((optimize("no-trapping-math"))) static void DK(box_points_cover)(const real *A, int64_t N, real rg,
+static void DK(box_points_cover)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear, real thr_hi,
         uint8_t *restrict hi) {
     DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, thr_hi, hi, 0);
@@ -406,14 +401,14 @@ __attribute__((optimize("no-trapping-math"))) static void DK(box_points_cover)(c
 /* DK(box_points) and DK(box_points_cover) (hi not NULL), of any m and of COLLIDE_NARROW lanes, of one box for
  * every lane (the object's own centre bc[3], rotation bR[9] and half extents bh[3]: a block in one world
  * row, nothing gathered) */
-__attribute__((optimize("no-trapping-math"))) static void DK(box_points_one)(const real *A, int64_t N, real rg,
+static void DK(box_points_one)(const real *A, int64_t N, real rg,
         const real *bc, const real *bR, const real *bh, real thr, int m, uint8_t *restrict clear, real thr_hi,
         uint8_t *restrict hi) {
     if (hi) DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, thr_hi, hi, 1);
     else DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, m, clear, 0, NULL, 1);
 }
 
-__attribute__((optimize("no-trapping-math"))) static void DK(box_points_one_narrow)(const real *A, int64_t N,
+static void DK(box_points_one_narrow)(const real *A, int64_t N,
         real rg, const real *bc, const real *bR, const real *bh, real thr, uint8_t *restrict clear, real thr_hi,
         uint8_t *restrict hi) {
     if (hi) DK(box_points_lanes)(A, N, rg, bc, bR, bh, thr, COLLIDE_NARROW, clear, thr_hi, hi, 1);
@@ -535,13 +530,13 @@ static inline __attribute__((always_inline)) void DK(cylinder_lanes_impl)(const 
     if (l < m) DK(cylinder_v4)(A, N, rg, ya, yb, yr, thr, l, m, clear, thr_hi, hi, 0);
 }
 
-__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
+static void DK(cylinder_lanes)(const real *A, int64_t N, real rg,
         const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear) {
     DK(cylinder_lanes_impl)(A, N, rg, ya, yb, yr, thr, m, clear, 0, NULL);
 }
 
 /* DK(cylinder_lanes) deciding each lane at thr_hi as well, into hi (&=) */
-__attribute__((optimize("no-trapping-math"))) static void DK(cylinder_lanes_cover)(const real *A, int64_t N,
+static void DK(cylinder_lanes_cover)(const real *A, int64_t N,
         real rg, const real *ya, const real *yb, const real *yr, real thr, int m, uint8_t *restrict clear,
         real thr_hi, uint8_t *restrict hi) {
     DK(cylinder_lanes_impl)(A, N, rg, ya, yb, yr, thr, m, clear, thr_hi, hi);
@@ -962,6 +957,3 @@ static void DK(dk_collide)(const dk_collide *c) {
     }
     collide_runs_free(&R);
 }
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic pop
-#endif
