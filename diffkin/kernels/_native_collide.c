@@ -838,7 +838,9 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     int64_t tested = 0;
     for (int64_t p = 0; p < c->P;) {
         const int64_t end = NG ? R->end[p] : c->P;
-        int64_t v = 0;
+        int64_t v = 0, u0 = 0;
+        uint64_t ibits = 0; /* with near_i, bit i - u0: geom i near group v (DK(geoms_near), u's geoms at once) */
+        int near_i = 0;
         if (NG) {
             const int64_t u = R->of[pi[p]];
             v = R->of[pj[p]];
@@ -846,13 +848,17 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
                 p = end;
                 continue;
             }
+            u0 = R->start[u];
+            near_i = R->start[u + 1] - u0 <= 64;
+            if (near_i) ibits = DK(geoms_near)(gxlo, gxhi, r, u0, (int)(R->start[u + 1] - u0), gglo + 3 * v, gghi + 3 * v, cthr);
         }
         int64_t at_i = -1; /* a run's pairs of one geom i: consecutive in the callers' order (else tested again) */
         for (; p < end; p++) {
             const int64_t i = pi[p], j = pj[p];
             if (NG && i != at_i) { /* i's box r_i + thr from group v's (grown by each r_j): all of i's pairs there */
                 at_i = i;
-                if (DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, gglo + 3 * v, gghi + 3 * v, r[i] + cthr)) {
+                if (near_i ? !((ibits >> (i - u0)) & 1)
+                           : DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, gglo + 3 * v, gghi + 3 * v, r[i] + cthr)) {
                     while (p + 1 < end && pi[p + 1] == i) p++;
                     continue;
                 }
