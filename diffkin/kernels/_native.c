@@ -1180,21 +1180,12 @@ static real DK(rotvec)(const real *E, int l, const real *const cols[3], int64_t 
 static inline real DK(nan_min)(real a, real b) { return (a < b || a != a) ? a : b; }
 static inline real DK(nan_max)(real a, real b) { return (a > b || a != a) ? a : b; }
 
-/* the 4-lane vectors of _native_collide.c (DK(v4)) pass between static inline functions only: GCC's -Wpsabi
- * note on their ABI without AVX does not apply */
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic push
-#pragma GCC diagnostic ignored "-Wpsabi"
-#endif
 #include "_native_solve.c"
 #include "_native_collide.c"
 #include "_native_plan.c"
 #include "_native_velocity.c"
 #include "_native_banded.c"
 #include "_native_clip.c"
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic pop
-#endif
 /* the C twins of torch code that must give the same floats (each operation a statement of its own, never
    contracted into a fused multiply-add): compiled with contraction off */
 #if defined(__clang__)

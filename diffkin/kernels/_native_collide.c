@@ -213,8 +213,9 @@ static inline __attribute__((always_inline)) void DK(box_frame)(const real *R, r
  * register of floats, NEON's alike; elsewhere the compiler splits it): the 4-lane loops of the sphere-object
  * tests below, which GCC 12 left scalar with a branch per lane (its cost model refuses a constant trip count
  * of 4; the wide loops ran their last 1-7 lanes so); in the planner's search these tests took about 17 % of
- * the time. Only in static inline functions, so the ABI note of GCC's -Wpsabi (a vector argument without AVX
- * enabled) does not apply. */
+ * the time. They pass only between static inline functions, so the ABI note GCC prints for them in a build
+ * without AVX (-Wpsabi: a vector argument's ABI) does not apply; a pragma does not silence it in GCC 12, and
+ * the library's build reads the compiler's messages only when it fails. */
 typedef real DK(v4) __attribute__((vector_size(4 * sizeof(real))));
 typedef __typeof__(((DK(v4)){0} < (DK(v4)){0})[0]) DK(v4_int); /* the integer of a comparison's lanes */
 typedef DK(v4_int) DK(m4) __attribute__((vector_size(4 * sizeof(real)))); /* a comparison: 0 or all bits set */
@@ -316,9 +317,9 @@ static inline __attribute__((always_inline)) DK(v4) DK(v4_across)(const DK(v4) *
     return DK(v4_op)(DK_V4_SHUFFLE(m01, m23, 0, 1, 4, 5), DK_V4_SHUFFLE(m01, m23, 2, 3, 6, 7), op);
 }
 
-/* The least and the largest of lanes 0 .. m - 1 (m >= 1) of each of the n rows of a (row i from i N) and,
- * where b is not NULL, of b's too (a segment's two ends), into lo[i] and hi[i], and whether some lane of the
- * row is NaN into nan[i] (min and max may drop a NaN, a sum keeps it; the sum, formed in any order, is only
+/* The least and the largest of lanes 0 .. m - 1 (m >= 1) of each of the n rows of a (row i from i N; row
+ * 3 g + k is geom g's axis k) and, where b is not NULL, of b's too (a segment's two ends), into lo and hi
+ * axis-major (row 3 g + k's at k * CULL_GEOMS + g), and whether some lane of the row is NaN into nan[i] (min and max may drop a NaN, a sum keeps it; the sum, formed in any order, is only
  * asked that: an infinity's opposite, or an overflow meeting one, also makes it NaN, which loses a cull,
  * never a collision): four rows at a time, their lanes four at a time, the four rows' vectors reduced across
  * their lanes together (DK(v4_across)). */
@@ -338,7 +339,10 @@ static inline void DK(rows_range)(const real *a, const real *b, int64_t N, int64
                 DK(range_v4)(ar, br, 0, m, 0, 1, L + j, H + j, S + j);
         }
         const DK(v4) lo4 = DK(v4_across)(L, 0), hi4 = DK(v4_across)(H, 1), s4 = DK(v4_across)(S, 2);
-        for (int j = 0; j < 4 && i + j < n; j++) lo[i + j] = lo4[j], hi[i + j] = hi4[j], nan[i + j] = s4[j] != s4[j];
+        for (int j = 0; j < 4 && i + j < n; j++) {
+            const int64_t at = ((i + j) % 3) * CULL_GEOMS + (i + j) / 3;
+            lo[at] = lo4[j], hi[at] = hi4[j], nan[i + j] = s4[j] != s4[j];
+        }
     }
 }
 
@@ -658,7 +662,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
      * edge lie close together), against each object's box when the lanes share one world, and against each
      * other for the self pairs. */
     const int64_t NG = R->NG; /* 0: no culling */
-    real glo[3 * CULL_GEOMS], ghi[3 * CULL_GEOMS], olo[3], ohi[3];
+    real olo[3], ohi[3];
     int same = m > 0; /* every lane in one world row: its objects read in place, not gathered per lane */
     for (int l = 1; l < m && same; l++) same = wl[l] == wl[0];
     const int cull = NG > 0 && same;
@@ -667,33 +671,31 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
      * boxes, each grown by its radius. A group box at least thr from an object's box puts each geom's box at
      * least r_g + thr from it (the gap vector g of two boxes and g' of the grown ones: |g| >= |g'| + r), so
      * the group's geoms are skipped as one; the self pairs alike with both groups grown (r_i + r_j). */
-    real gglo[3 * CULL_GEOMS], gghi[3 * CULL_GEOMS];
-    real gslo[3 * CULL_GEOMS], gshi[3 * CULL_GEOMS]; /* the same, axis k's row from k CULL_GEOMS (DK(boxes_near)) */
+    real gslo[3 * CULL_GEOMS], gshi[3 * CULL_GEOMS]; /* axis-major: axis k of group u at k CULL_GEOMS + u */
     uint8_t gnear[CULL_GEOMS];
-    real gxlo[3 * CULL_GEOMS], gxhi[3 * CULL_GEOMS]; /* glo, ghi axis-major (DK(geoms_near)) */
+    /* each geom's box, axis-major: axis k of geom g at k CULL_GEOMS + g (DK(geoms_near)) */
+    real gxlo[3 * CULL_GEOMS], gxhi[3 * CULL_GEOMS];
     real ulo[3] = {(real)INFINITY, (real)INFINITY, (real)INFINITY};
     real uhi[3] = {-(real)INFINITY, -(real)INFINITY, -(real)INFINITY};
     int unan = 0; /* a NaN geom (its box NaN below) or radius turns its group's box into NaN: never apart */
     uint8_t rnan[3 * CULL_GEOMS];
     if (NG && m > 0) /* each geom's box over the lanes: row 3 g + k of A (and B) is its axis k */
-        DK(rows_range)(A + n0, A == B ? NULL : B + n0, N, 3 * G, m, glo, ghi, rnan);
+        DK(rows_range)(A + n0, A == B ? NULL : B + n0, N, 3 * G, m, gxlo, gxhi, rnan);
     for (int64_t g = 0, u = 0; g < G && NG && m > 0; g++) {
         const int nan = rnan[3 * g] | rnan[3 * g + 1] | rnan[3 * g + 2]; /* a NaN coordinate in some lane */
         if (nan) /* NaN on every axis: each gap 0, never apart (nor its group) */
-            for (int k = 0; k < 3; k++) glo[3 * g + k] = ghi[3 * g + k] = (real)NAN;
-        for (int k = 0; k < 3; k++) gxlo[k * CULL_GEOMS + g] = glo[3 * g + k], gxhi[k * CULL_GEOMS + g] = ghi[3 * g + k];
+            for (int k = 0; k < 3; k++) gxlo[k * CULL_GEOMS + g] = gxhi[k * CULL_GEOMS + g] = (real)NAN;
         const real rg = r[g] > 0 ? r[g] : 0;
         unan |= r[g] != r[g];
         for (int k = 0; k < 3; k++) {
-            const real a = glo[3 * g + k] - rg, b = ghi[3 * g + k] + rg;
+            const real a = gxlo[k * CULL_GEOMS + g] - rg, b = gxhi[k * CULL_GEOMS + g] + rg;
             unan |= (a != a) | (b != b);
             ulo[k] = a < ulo[k] ? a : ulo[k];
             uhi[k] = b > uhi[k] ? b : uhi[k];
         }
         if (g + 1 == R->start[u + 1]) { /* the group's last geom */
             for (int k = 0; k < 3; k++) { /* NaN: aabb_apart's gaps 0 on every axis, never apart */
-                gglo[3 * u + k] = unan ? (real)NAN : ulo[k], gghi[3 * u + k] = unan ? (real)NAN : uhi[k];
-                gslo[k * CULL_GEOMS + u] = gglo[3 * u + k], gshi[k * CULL_GEOMS + u] = gghi[3 * u + k];
+                gslo[k * CULL_GEOMS + u] = unan ? (real)NAN : ulo[k], gshi[k * CULL_GEOMS + u] = unan ? (real)NAN : uhi[k];
                 ulo[k] = (real)INFINITY, uhi[k] = -(real)INFINITY;
             }
             unan = 0;
@@ -839,32 +841,44 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
     for (int64_t p = 0; p < c->P;) {
         const int64_t end = NG ? R->end[p] : c->P;
         int64_t v = 0, u0 = 0;
+        real vlo[3] = {0, 0, 0}, vhi[3] = {0, 0, 0}; /* group v's box (with NG) */
         uint64_t ibits = 0; /* with near_i, bit i - u0: geom i near group v (DK(geoms_near), u's geoms at once) */
         int near_i = 0;
         if (NG) {
             const int64_t u = R->of[pi[p]];
             v = R->of[pj[p]];
-            if (DK(aabb_apart)(gglo + 3 * u, gghi + 3 * u, gglo + 3 * v, gghi + 3 * v, cthr)) {
+            real ulo3[3], uhi3[3];
+            for (int k = 0; k < 3; k++) {
+                ulo3[k] = gslo[k * CULL_GEOMS + u], uhi3[k] = gshi[k * CULL_GEOMS + u];
+                vlo[k] = gslo[k * CULL_GEOMS + v], vhi[k] = gshi[k * CULL_GEOMS + v];
+            }
+            if (DK(aabb_apart)(ulo3, uhi3, vlo, vhi, cthr)) {
                 p = end;
                 continue;
             }
             u0 = R->start[u];
             near_i = R->start[u + 1] - u0 <= 64;
-            if (near_i) ibits = DK(geoms_near)(gxlo, gxhi, r, u0, (int)(R->start[u + 1] - u0), gglo + 3 * v, gghi + 3 * v, cthr);
+            if (near_i) ibits = DK(geoms_near)(gxlo, gxhi, r, u0, (int)(R->start[u + 1] - u0), vlo, vhi, cthr);
         }
         int64_t at_i = -1; /* a run's pairs of one geom i: consecutive in the callers' order (else tested again) */
+        real ilo[3] = {0, 0, 0}, ihi[3] = {0, 0, 0}; /* geom i's box (with NG) */
         for (; p < end; p++) {
             const int64_t i = pi[p], j = pj[p];
             if (NG && i != at_i) { /* i's box r_i + thr from group v's (grown by each r_j): all of i's pairs there */
                 at_i = i;
-                if (near_i ? !((ibits >> (i - u0)) & 1)
-                           : DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, gglo + 3 * v, gghi + 3 * v, r[i] + cthr)) {
+                for (int k = 0; k < 3; k++) ilo[k] = gxlo[k * CULL_GEOMS + i], ihi[k] = gxhi[k * CULL_GEOMS + i];
+                if (near_i ? !((ibits >> (i - u0)) & 1) : DK(aabb_apart)(ilo, ihi, vlo, vhi, r[i] + cthr)) {
                     while (p + 1 < end && pi[p + 1] == i) p++;
                     continue;
                 }
             }
             const real T = r[i] + r[j] + thr, Tc = r[i] + r[j] + cthr, Th = r[i] + r[j] + thr_hi;
-            if (Tc <= 0 || (NG && DK(aabb_apart)(glo + 3 * i, ghi + 3 * i, glo + 3 * j, ghi + 3 * j, Tc))) continue;
+            if (Tc <= 0) continue;
+            if (NG) {
+                real jlo[3], jhi[3];
+                for (int k = 0; k < 3; k++) jlo[k] = gxlo[k * CULL_GEOMS + j], jhi[k] = gxhi[k * CULL_GEOMS + j];
+                if (DK(aabb_apart)(ilo, ihi, jlo, jhi, Tc)) continue;
+            }
             const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
             if (c->point && c->point[i] && c->point[j]) { /* two spheres: their centres */
                 for (int l = 0; l < m; l++) {
