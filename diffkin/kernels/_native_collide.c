@@ -163,19 +163,6 @@ static void DK(segments_d2)(const real *p, const real *u_end, int64_t sp, const 
 /* The world of lane l of the block at n0 (0 without per-configuration worlds). */
 #define WORLD_OF(c, n0, l) ((c)->wid ? (c)->wid[(n0) + (l)] : 0)
 
-/* Squared distance from the box-frame point (x, y, z) to the box |x_k| <= h_k (0 inside) and the largest
- * excess max_k (|x_k| - h_k) (< 0 inside: minus the depth). */
-static inline __attribute__((always_inline)) real DK(box_point_d2)(real x, real y, real z, real hx, real hy,
-                                                                 real hz, real *excess) {
-    real ex = (x < 0 ? -x : x) - hx, ey = (y < 0 ? -y : y) - hy, ez = (z < 0 ? -z : z) - hz;
-    real m = ex > ey ? ex : ey;
-    *excess = m > ez ? m : ez;
-    ex = ex > 0 ? ex : 0;
-    ey = ey > 0 ? ey : 0;
-    ez = ez > 0 ? ez : 0;
-    return ex * ex + ey * ey + ez * ez;
-}
-
 /* Whether the box-frame segment p + s d (s in [0, 1]) meets the closed box |x_k| <= h_k (the slab test,
  * branch-free: a direction component ~0 keeps the whole parameter range when |p_k| <= h_k, none otherwise).
  * Closed: a segment through a flat box (some h_k = 0) penetrates it (a positive depth). */
@@ -292,6 +279,35 @@ static inline __attribute__((always_inline)) void DK(v4_and_into)(uint8_t *restr
         for (int i = 0; i < 4 && l + i < m; i++) flags[l + i] &= (uint8_t)(mask[i] & 1);
 }
 
+/* Squared distance from the box-frame point (x, y, z) to the box |x_k| <= h_k (0 inside) and the largest
+ * excess max_k (|x_k| - h_k) (< 0 inside: minus the depth), lane by lane. */
+static inline __attribute__((always_inline)) DK(v4) DK(box_point_d2_v4)(DK(v4) x, DK(v4) y, DK(v4) z, DK(v4) hx,
+                                                                      DK(v4) hy, DK(v4) hz, DK(v4) *excess) {
+    const DK(v4) zero = DK(v4_splat)(0);
+    DK(v4) ex = DK(v4_abs)(x) - hx, ey = DK(v4_abs)(y) - hy, ez = DK(v4_abs)(z) - hz;
+    *excess = DK(v4_max)(DK(v4_max)(ex, ey), ez);
+    ex = DK(v4_max)(ex, zero);
+    ey = DK(v4_max)(ey, zero);
+    ez = DK(v4_max)(ez, zero);
+    return ex * ex + ey * ey + ez * ez;
+}
+
+/* DK(box_point_d2_v4) of one point (a segment's end: DK(box_lanes)) */
+static inline __attribute__((always_inline)) real DK(box_point_d2)(real x, real y, real z, real hx, real hy,
+                                                                 real hz, real *excess) {
+    DK(v4) e;
+    const DK(v4) d2 = DK(box_point_d2_v4)(DK(v4_splat)(x), DK(v4_splat)(y), DK(v4_splat)(z), DK(v4_splat)(hx),
+                                          DK(v4_splat)(hy), DK(v4_splat)(hz), &e);
+    *excess = e[0];
+    return d2[0];
+}
+
+/* Axis-major boxes (axis k of box i at k CULL_GEOMS + i: DK(collide_lanes)'s geoms' and groups') -> box i's
+ * bounds [blo, bhi] (3 each), as DK(aabb_apart) reads them */
+static inline void DK(box_at)(const real *lo, const real *hi, int64_t i, real *blo, real *bhi) {
+    for (int k = 0; k < 3; k++) blo[k] = lo[k * CULL_GEOMS + i], bhi[k] = hi[k * CULL_GEOMS + i];
+}
+
 /* One chunk of DK(rows_range): lanes l .. l + 3 (past m, lane m - 1 again: the same least and largest) */
 static inline __attribute__((always_inline)) void DK(range_v4)(const real *a, const real *b, int l, int m,
         const int full, const int first, DK(v4) *lo, DK(v4) *hi, DK(v4) *sum) {
@@ -360,14 +376,9 @@ static inline __attribute__((always_inline)) void DK(box_points_v4)(const real *
     const DK(v4) px = dx * BOX_ENTRY(bR, 0) + dy * BOX_ENTRY(bR, 3) + dz * BOX_ENTRY(bR, 6);
     const DK(v4) py = dx * BOX_ENTRY(bR, 1) + dy * BOX_ENTRY(bR, 4) + dz * BOX_ENTRY(bR, 7);
     const DK(v4) pz = dx * BOX_ENTRY(bR, 2) + dy * BOX_ENTRY(bR, 5) + dz * BOX_ENTRY(bR, 8);
-    /* DK(box_point_d2) lane by lane */
-    DK(v4) ex = DK(v4_abs)(px) - BOX_ENTRY(bh, 0), ey = DK(v4_abs)(py) - BOX_ENTRY(bh, 1), ez = DK(v4_abs)(pz) - BOX_ENTRY(bh, 2);
+    DK(v4) excess;
+    const DK(v4) best = DK(box_point_d2_v4)(px, py, pz, BOX_ENTRY(bh, 0), BOX_ENTRY(bh, 1), BOX_ENTRY(bh, 2), &excess);
 #undef BOX_ENTRY
-    const DK(v4) excess = DK(v4_max)(DK(v4_max)(ex, ey), ez);
-    ex = DK(v4_max)(ex, zero);
-    ey = DK(v4_max)(ey, zero);
-    ez = DK(v4_max)(ez, zero);
-    const DK(v4) best = ex * ex + ey * ey + ez * ez;
     const DK(v4) d = DK(v4_select)(best > zero, DK(v4_sqrt)(best), excess);
     DK(v4_and_into)(clear, l, m, d >= DK(v4_splat)(rg + thr), full);
     if (hi) DK(v4_and_into)(hi, l, m, d >= DK(v4_splat)(rg + thr_hi), full); /* hi: NULL or not in each inlined
@@ -848,10 +859,8 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             const int64_t u = R->of[pi[p]];
             v = R->of[pj[p]];
             real ulo3[3], uhi3[3];
-            for (int k = 0; k < 3; k++) {
-                ulo3[k] = gslo[k * CULL_GEOMS + u], uhi3[k] = gshi[k * CULL_GEOMS + u];
-                vlo[k] = gslo[k * CULL_GEOMS + v], vhi[k] = gshi[k * CULL_GEOMS + v];
-            }
+            DK(box_at)(gslo, gshi, u, ulo3, uhi3);
+            DK(box_at)(gslo, gshi, v, vlo, vhi);
             if (DK(aabb_apart)(ulo3, uhi3, vlo, vhi, cthr)) {
                 p = end;
                 continue;
@@ -866,7 +875,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             const int64_t i = pi[p], j = pj[p];
             if (NG && i != at_i) { /* i's box r_i + thr from group v's (grown by each r_j): all of i's pairs there */
                 at_i = i;
-                for (int k = 0; k < 3; k++) ilo[k] = gxlo[k * CULL_GEOMS + i], ihi[k] = gxhi[k * CULL_GEOMS + i];
+                DK(box_at)(gxlo, gxhi, i, ilo, ihi);
                 if (near_i ? !((ibits >> (i - u0)) & 1) : DK(aabb_apart)(ilo, ihi, vlo, vhi, r[i] + cthr)) {
                     while (p + 1 < end && pi[p + 1] == i) p++;
                     continue;
@@ -876,7 +885,7 @@ static inline __attribute__((always_inline)) void DK(collide_lanes)(const dk_col
             if (Tc <= 0) continue;
             if (NG) {
                 real jlo[3], jhi[3];
-                for (int k = 0; k < 3; k++) jlo[k] = gxlo[k * CULL_GEOMS + j], jhi[k] = gxhi[k * CULL_GEOMS + j];
+                DK(box_at)(gxlo, gxhi, j, jlo, jhi);
                 if (DK(aabb_apart)(ilo, ihi, jlo, jhi, Tc)) continue;
             }
             const real *Ai = A + i * 3 * N + n0, *Aj = A + j * 3 * N + n0;
